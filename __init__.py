@@ -1,0 +1,44 @@
+"""forestreg: marker-free registration of forest laser scans and tree measurements.
+
+The repository root is both a QGIS plugin folder and the import package ``forestreg``. Importing
+it stays cheap and Qt-free: the engine is imported on first use of a public name.
+
+Python API (headless)::
+
+    import forestreg
+    reference = forestreg.read_scan("scan1.laz")
+    moving = forestreg.read_scan("scan2.laz")
+    result = forestreg.register(reference, moving)
+    if result.ok:
+        print(result.matrix)      # p_reference = matrix @ p_moving, file coordinates
+    else:
+        print(result.reason)
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__version__ = "0.1.0"
+
+# public name -> module (relative to this package) that defines it
+_LAZY = {
+    "Scan": ".engine.scan",
+    "ForestregError": ".engine.errors",
+    "CancelToken": ".engine.progress",
+    "read_scan": ".engine.io",
+    "read_scans": ".engine.io",
+    "write_scan": ".engine.io",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'forestreg' has no attribute {name!r}")
+    return getattr(importlib.import_module(module, __name__), name)
+
+
+def __dir__() -> list[str]:
+    return sorted(list(globals()) + list(_LAZY))

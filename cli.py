@@ -1,0 +1,292 @@
+"""The ``forestreg`` command line.
+
+Every command is a thin wrapper over the engine's API; none holds algorithm code. Progress goes
+to stderr as a bar, results to files, and the exit status says how it went: 0 ok, 1 a registration
+that failed (with its reason in ``result.json``), 2 bad input or usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+
+log = logging.getLogger("forestreg")
+
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048, "usft": 1200.0 / 3937.0}
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _floats(text: str, count: Optional[int] = None, what: str = "value") -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.replace(";", ",").split(",") if v.strip())
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{what}: {text!r} is not a comma-separated list of numbers") from exc
+    if count is not None and len(values) != count:
+        raise argparse.ArgumentTypeError(f"{what}: expected {count} numbers, got {text!r}")
+    return values
+
+
+class ProgressBar:
+    """A tqdm bar on stderr fed by the engine's ``progress(fraction, message)`` callback."""
+
+    def __init__(self, enabled: bool, desc: str) -> None:
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=1000, desc=desc, file=sys.stderr, bar_format="{desc}: {percentage:3.0f}%|{bar:30}| {postfix}", leave=True)
+
+    def __call__(self, fraction: float, message: str) -> None:
+        if self.bar is None:
+            return
+        self.bar.n = int(round(1000 * min(max(fraction, 0.0), 1.0)))
+        self.bar.set_postfix_str(message[:50], refresh=False)
+        self.bar.refresh()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _params_from_args(args: argparse.Namespace):
+    from .engine.params import RegistrationParams
+
+    params = RegistrationParams.from_toml(args.params) if args.params else RegistrationParams()
+    changes = {}
+    if args.dr is not None:
+        changes["vop_radius_m"] = args.dr
+    if args.dh is not None:
+        changes["slice_offsets_m"] = tuple(args.dh)
+    if getattr(args, "dc", None) is not None:
+        changes["max_range_m"] = args.dc
+    return params.replace(**changes) if changes else params
+
+
+def _write_vops_csv(path: Path, xy: np.ndarray, z: np.ndarray, lsf_to_file: np.ndarray, radius: np.ndarray, support: np.ndarray, matched_with: Sequence[int]) -> None:
+    from .engine.atomic import write_text_atomic
+
+    pts = np.column_stack([xy, z, np.ones(len(xy))]) @ lsf_to_file.T if len(xy) else np.zeros((0, 4))
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["id", "x", "y", "z", "radius_m", "support_points", "matched_with"])
+    for k in range(len(xy)):
+        w.writerow([k, f"{pts[k, 0]:.4f}", f"{pts[k, 1]:.4f}", f"{pts[k, 2]:.4f}", f"{radius[k]:.3f}", int(support[k]), "" if matched_with[k] < 0 else matched_with[k]])
+    write_text_atomic(path, buf.getvalue())
+
+
+# ----------------------------------------------------------------------------- commands
+
+
+def cmd_register(args: argparse.Namespace) -> int:
+    from .engine.atomic import write_text_atomic
+    from .engine.io import read_scan, write_scan
+    from .engine.register import register
+    from .engine.report.figures import pair_figure
+    from .engine.transform import format_matrix
+
+    params = _params_from_args(args)
+    positions = args.scanner_position or []
+    if len(positions) > 2:
+        raise argparse.ArgumentTypeError("--scanner-position is given at most twice (reference, then moving)")
+    scale = UNITS[args.units]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    reference = read_scan(args.reference, scanner_position=positions[0] if len(positions) > 0 else None, unit_scale=scale)
+    moving = read_scan(args.moving, scanner_position=positions[1] if len(positions) > 1 else None, unit_scale=scale)
+    read_s = time.perf_counter() - t0
+    bar = ProgressBar(not args.quiet, "register")
+    try:
+        result = register(reference, moving, params, progress=bar)
+    finally:
+        bar.close()
+    summary = result.to_dict()
+    summary["timings"] = {"read": read_s, **summary["timings"]}
+    summary["reference_file"] = str(Path(args.reference).resolve())
+    summary["moving_file"] = str(Path(args.moving).resolve())
+    det = result.details
+    if det is not None and det.chosen is not None:
+        att = det.chosen
+        ref_match = np.full(len(att.reference_vops), -1)
+        mov_match = np.full(len(att.moving_vops), -1)
+        if att.match is not None:
+            ref_match[att.match.matched_pairs[:, 0]] = att.match.matched_pairs[:, 1]
+            mov_match[att.match.matched_pairs[:, 1]] = att.match.matched_pairs[:, 0]
+        for scan, prep, vops, matched, name in (
+            (reference, det.reference, att.reference_vops, ref_match, "reference_vops.csv"),
+            (moving, det.moving, att.moving_vops, mov_match, "moving_vops.csv"),
+        ):
+            lsf_to_file = scan.local_to_file_matrix() @ np.linalg.inv(prep.local_to_lsf)
+            _write_vops_csv(out / name, vops.xy, vops.z, lsf_to_file, vops.radius, vops.support, matched)
+        try:
+            pair_figure(result, out / "registration.png")
+        except Exception as exc:  # a figure must never lose the result
+            log.warning("could not draw the figure: %s", exc)
+    if result.ok:
+        write_text_atomic(out / "transform.txt", format_matrix(result.matrix))
+        if args.write_registered:
+            write_scan(moving, out / f"{moving.name}_registered.laz", matrix=result.matrix)
+    write_text_atomic(out / "result.json", json.dumps(summary, indent=2) + "\n")
+    if result.ok:
+        icp = result.icp
+        print(
+            f"ok: {result.matched} matched VOPs ({result.reference_vops} / {result.moving_vops}), "
+            f"ICP std {1000 * icp.std_m:.1f} mm, fitness {icp.fitness:.2f} -> {out / 'result.json'}"
+        )
+        return 0
+    print(f"failed: {result.reason} -> {out / 'result.json'}", file=sys.stderr)
+    return 1
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from .engine.simulate import simulate_plot
+
+    positions = [tuple(_floats(p, 2, "--positions")) for p in args.positions.split(";")] if args.positions else [(0.0, 0.0), (10.0, 0.0)]
+    tilted = {}
+    for item in args.tilt or []:
+        index, _, deg = item.partition(":")
+        tilted[int(index)] = float(deg or 30.0)
+    bar = ProgressBar(not args.quiet, "simulate")
+    try:
+        plot = simulate_plot(
+            args.preset,
+            positions,
+            out_dir=Path(args.out),
+            seed=args.seed,
+            angular_step_deg=args.step,
+            tilted=tilted or None,
+            size_m=args.size,
+            progress=bar,
+        )
+    finally:
+        bar.close()
+    for s in plot.scans:
+        print(f"{s.scan.name}: {len(s.scan)} points")
+    print(f"wrote {len(plot.scans)} scans and truth.json to {args.out}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Simulate a mixed forest pair 12 m apart, register it, and compare with the truth."""
+    from .engine.simulate import relative_pose, simulate_plot
+    from .engine.transform import rigid_errors
+
+    out = Path(args.out)
+    data = out / "scans"
+    data.mkdir(parents=True, exist_ok=True)
+    print(f"simulating a '{args.preset}' plot with two scans 12 m apart in {data} ...")
+    plot = simulate_plot(args.preset, [(0.0, 0.0), (12.0, 3.0)], out_dir=data, seed=args.seed, angular_step_deg=args.step, size_m=50.0)
+    names = [s.scan.name for s in plot.scans]
+    code = main(["register", str(data / f"{names[0]}.laz"), str(data / f"{names[1]}.laz"), "--out", str(out / "registration")] + (["--quiet"] if args.quiet else []))
+    result = json.loads((out / "registration" / "result.json").read_text())
+    if result["matrix"] is not None:
+        truth = relative_pose(plot, names[0], names[1])
+        rot, trans = rigid_errors(np.array(result["matrix"]), truth)
+        print(f"against the simulator's truth: rotation error {rot:.4f} deg, translation error {100 * trans:.2f} cm")
+        print(f"figure: {out / 'registration' / 'registration.png'}")
+    return code
+
+
+def cmd_params(args: argparse.Namespace) -> int:
+    from .engine.params import parameter_table
+
+    rows = parameter_table()
+    if args.toml:
+        print("[registration]")
+        for r in rows:
+            d = r["default"]
+            if d is None:
+                print(f"# {r['name']} = ...  # {r['help']}")
+                continue
+            value = json.dumps(list(d)) if isinstance(d, tuple) else json.dumps(d)
+            print(f"{r['name']} = {value}  # {r['unit']} {r['help']}".rstrip())
+        return 0
+    for r in rows:
+        print(f"{r['name']:32} {str(r['default']):18} {r['unit']:6} {r['help']}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    parser = argparse.ArgumentParser(prog="forestreg", description="Marker-free registration of forest laser scans.")
+    parser.add_argument("--version", action="version", version=f"forestreg {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log every step to stderr")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("register", help="register a moving scan onto a reference scan from trunk shadows")
+    p.add_argument("reference", help="reference scan (LAS/LAZ/PLY/PCD/E57/XYZ)")
+    p.add_argument("moving", help="moving scan, mapped onto the reference")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--dr", type=float, help="VOP radius D_r in metres (default: automatic)")
+    p.add_argument("--dc", type=float, help="reduction radius D_c in metres (default 30)")
+    p.add_argument("--dh", type=lambda s: _floats(s, what="--dh"), help="slice offsets dh in metres, comma-separated (default 0)")
+    p.add_argument("--params", help="TOML parameter file ([registration] table; see 'forestreg params --toml')")
+    p.add_argument(
+        "--scanner-position", action="append", type=lambda s: _floats(s, 3, "--scanner-position"),
+        metavar="X,Y,Z", help="scanner position in file coordinates: first for the reference, again for the moving scan (default: each file's origin)",
+    )
+    p.add_argument("--units", choices=sorted(UNITS), default="m", help="unit of the files' coordinates (default m)")
+    p.add_argument("--write-registered", action="store_true", help="also write the moving scan transformed into the reference frame (LAZ)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_register)
+
+    p = sub.add_parser("simulate", help="simulate TLS scans of a synthetic forest plot with known poses")
+    p.add_argument("preset", help="planted_conifer, mixed_temperate, rainforest, sloped or open_field")
+    p.add_argument("--out", required=True, help="output folder (scan_XX.laz + truth.json)")
+    p.add_argument("--positions", help="scanner positions 'x,y;x,y;...' in metres (default '0,0;10,0')")
+    p.add_argument("--tilt", action="append", metavar="INDEX:DEG", help="tilt scan INDEX by DEG degrees (repeatable)")
+    p.add_argument("--step", type=float, default=0.2, help="angular step in degrees (default 0.2)")
+    p.add_argument("--size", type=float, default=60.0, help="plot side in metres (default 60)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("demo", help="simulate a plot, register a pair, compare with the truth")
+    p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
+    p.add_argument("--preset", default="mixed_temperate")
+    p.add_argument("--step", type=float, default=0.15, help="angular step of the simulated scans, degrees")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("params", help="print the registration parameters (or a TOML template)")
+    p.add_argument("--toml", action="store_true", help="print a TOML file with the defaults")
+    p.set_defaults(func=cmd_params)
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    from .engine.errors import ForestregError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except ForestregError as exc:
+        print(f"forestreg: error: {exc}", file=sys.stderr)
+        return 2
+    except argparse.ArgumentTypeError as exc:
+        print(f"forestreg: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,32 @@
+"""Exceptions raised by forestreg.
+
+Every error the engine raises on purpose derives from :class:`ForestregError`, so a caller (CLI,
+GUI, script) can catch one class and show its message, which always says what was wrong and what
+to do about it.
+"""
+
+from __future__ import annotations
+
+
+class ForestregError(Exception):
+    """Root of every error forestreg raises on purpose."""
+
+
+class ScanReadError(ForestregError):
+    """A scan file cannot be read: missing, unreadable, corrupt, empty or of an unknown format."""
+
+
+class ScanDataError(ForestregError):
+    """A scan's contents are unusable: NaN or infinite coordinates, absurd units, too few points."""
+
+
+class ScanWriteError(ForestregError):
+    """An output file cannot be written."""
+
+
+class ParameterError(ForestregError):
+    """A parameter is out of range or a parameter file cannot be read."""
+
+
+class Cancelled(ForestregError):
+    """The user cancelled a long-running operation."""

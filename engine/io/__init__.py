@@ -1,0 +1,353 @@
+"""Reading and writing scan files: LAS/LAZ, PLY, PCD, E57 and ASCII point lists.
+
+Reading picks the format from the file's first bytes (``LASF``, ``ply``, ``# .PCD``/``VERSION``,
+``ASTM-E57``) and falls back to the suffix only for text, so a LAZ saved as ``.txt`` still reads.
+Every problem with the file itself raises :class:`~forestreg.engine.errors.ScanReadError` with
+one sentence naming the file (the library's exception is kept as ``__cause__``); problems with the
+points (NaN, wrong units, too few) raise :class:`~forestreg.engine.errors.ScanDataError` from
+:meth:`Scan.from_points <forestreg.engine.scan.Scan.from_points>`.
+
+Writing picks the format from the suffix and always goes through a temporary file renamed onto
+the target, so a failed write leaves no partial file and the previous file intact.
+
+Frames: readers return file coordinates (scaled to metres by ``unit_scale``); an E57 scan's file
+coordinates are its own coordinates and ``Scan.pose`` maps them into the E57 common frame.
+"""
+
+from __future__ import annotations
+
+import operator
+import os
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..atomic import atomic_path
+from ..errors import ForestregError, ParameterError, ScanReadError, ScanWriteError
+from ..scan import Scan
+from . import e57 as _e57
+from . import las as _las
+from . import pcd as _pcd
+from . import ply as _ply
+from . import xyz as _xyz
+from .base import PathLike, RawCloud, as_column, as_matrix, as_points, build_scan, check_readable, check_unit_scale
+from .sniff import READ_SUFFIXES, detect_format
+
+__all__ = [
+    "SUPPORTED_READ_SUFFIXES",
+    "SUPPORTED_WRITE_SUFFIXES",
+    "read_scan",
+    "read_scans",
+    "write_e57",
+    "write_points",
+    "write_scan",
+]
+
+#: Suffixes (lower case) the readers accept; the content decides the format where it can.
+SUPPORTED_READ_SUFFIXES: tuple[str, ...] = tuple(s for group in READ_SUFFIXES.values() for s in group)
+#: Suffixes (lower case) :func:`write_scan` and :func:`write_points` can write.
+SUPPORTED_WRITE_SUFFIXES: tuple[str, ...] = (".laz", ".las", ".ply", ".xyz", ".txt", ".e57")
+
+
+# --------------------------------------------------------------------------------------- reading
+
+def read_scan(
+    path: PathLike,
+    *,
+    scanner_position: Optional[Sequence[float] | np.ndarray] = None,
+    unit_scale: float = 1.0,
+    scan_index: Optional[int] = None,
+) -> Scan:
+    """Read one scan from a file.
+
+    Parameters
+    ----------
+    path : a LAS/LAZ, PLY, PCD, E57 or ASCII (xyz/txt/csv/pts/asc) file.
+    scanner_position : (3,) scanner position in file coordinates and file units; overrides the
+        default (the file origin; for E57 the origin of the scan's own coordinates).
+    unit_scale : metres per file unit (0.001 for mm, 0.01 for cm, 0.3048 for feet); multiplies
+        the coordinates, the scanner position and an E57 pose translation.
+    scan_index : which scan of a multi-scan E57 (0-based); not needed when the file has one.
+
+    Returns
+    -------
+    Scan
+        Points in metres, ``meta["format"]`` and ``meta["unit_scale"]`` set; for E57 ``name``
+        and ``pose`` come from the file.
+
+    Raises
+    ------
+    ScanReadError
+        Missing, empty, unreadable, truncated or corrupt file; unknown format; an E57 with several
+        scans and no ``scan_index``, or an index out of range.
+    ScanDataError
+        The points are unusable (NaN, too few, an extent that says the unit is wrong).
+    ParameterError
+        ``unit_scale`` or ``scan_index`` is not a valid value.
+    """
+    scale = check_unit_scale(unit_scale)
+    index = _check_index(scan_index)
+    p = check_readable(path)
+    fmt = detect_format(p)
+    if fmt == "e57":
+        count = _e57.scan_count(p)
+        chosen = _pick_e57_index(p, count, index)
+        raw = _e57.read_e57(p, [chosen])[0]
+        return build_scan(raw, p, fmt="e57", unit_scale=scale, scanner_position=_position(scanner_position),
+                          label=f"scan {chosen} ({raw.name})" if count > 1 else None)
+    if index not in (None, 0):
+        raise ScanReadError(f"{p}: holds a single scan; scan_index {index} does not exist (use 0 or leave it out)")
+    raw, name = _read_single(p, fmt)
+    return build_scan(raw, p, fmt=name, unit_scale=scale, scanner_position=_position(scanner_position))
+
+
+def read_scans(path: PathLike, *, unit_scale: float = 1.0) -> list[Scan]:
+    """Read every scan in a file: all scans of an E57 (in file order, each with its pose and
+    name), or the one scan of any other format. See :func:`read_scan` for units and errors."""
+    scale = check_unit_scale(unit_scale)
+    p = check_readable(path)
+    fmt = detect_format(p)
+    if fmt != "e57":
+        raw, name = _read_single(p, fmt)
+        return [build_scan(raw, p, fmt=name, unit_scale=scale)]
+    raws = _e57.read_e57(p)
+    many = len(raws) > 1
+    return [
+        build_scan(raw, p, fmt="e57", unit_scale=scale, label=f"scan {i} ({raw.name})" if many else None)
+        for i, raw in enumerate(raws)
+    ]
+
+
+def _read_single(p: Path, fmt: str) -> tuple[RawCloud, str]:
+    """Read a one-scan format; return the raw cloud and the format name for ``meta``."""
+    if fmt == "las":
+        raw = _las.read_las(p)
+        return raw, "laz" if raw.meta.get("compressed") else "las"
+    if fmt == "ply":
+        return _ply.read_ply(p), "ply"
+    if fmt == "pcd":
+        return _pcd.read_pcd(p), "pcd"
+    return _xyz.read_text(p), "xyz"
+
+
+def _check_index(scan_index: Optional[int]) -> Optional[int]:
+    if scan_index is None:
+        return None
+    if isinstance(scan_index, bool):
+        raise ParameterError(f"scan_index must be a whole number, got {scan_index!r}")
+    try:
+        value = operator.index(scan_index)
+    except TypeError as exc:
+        raise ParameterError(f"scan_index must be a whole number, got {scan_index!r}") from exc
+    if value < 0:
+        raise ParameterError(f"scan_index must be 0 or more, got {value}")
+    return value
+
+
+def _pick_e57_index(p: Path, count: int, index: Optional[int]) -> int:
+    if count == 0:
+        raise ScanReadError(f"{p}: the E57 file holds no scans")
+    if index is None:
+        if count > 1:
+            raise ScanReadError(
+                f"{p}: the E57 file holds {count} scans; give scan_index (0 to {count - 1}) or use read_scans"
+            )
+        return 0
+    if index >= count:
+        raise ScanReadError(f"{p}: the E57 file holds {count} scan(s); scan_index {index} is out of range 0 to {count - 1}")
+    return index
+
+
+def _position(scanner_position: Optional[Sequence[float] | np.ndarray]) -> Optional[np.ndarray]:
+    if scanner_position is None:
+        return None
+    try:
+        pos = np.asarray(scanner_position, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"scanner_position must be three numbers, got {scanner_position!r}") from exc
+    if pos.shape != (3,) or not np.isfinite(pos).all():
+        raise ParameterError(f"scanner_position must be three finite numbers, got {scanner_position!r}")
+    return pos
+
+
+# --------------------------------------------------------------------------------------- writing
+
+def write_scan(scan: Scan, path: PathLike, *, matrix: Optional[np.ndarray] = None) -> None:
+    """Write a scan's file coordinates (metres), optionally transformed, with its intensity.
+
+    ``matrix`` (4x4) maps file coordinates to output coordinates: ``p_out = matrix @ p_file``
+    (homogeneous). The format follows the suffix (see :data:`SUPPORTED_WRITE_SUFFIXES`); ``.e57``
+    writes one scan with an identity pose (the points are already transformed).
+
+    Raises
+    ------
+    ScanWriteError
+        Unsupported suffix, missing folder, or the write failed (the target is left untouched).
+    ParameterError
+        ``matrix`` is not a finite 4x4 matrix.
+    """
+    m = as_matrix(matrix)
+    local, shift = scan.points, scan.origin_shift
+    if m is not None:
+        rotation, translation = m[:3, :3], m[:3, 3]
+        moved_shift = rotation @ shift + translation
+        shift = np.round(moved_shift)
+        # local coordinates stay small; the large part of the transform goes into the shift
+        local = local @ rotation.T + (moved_shift - shift)
+    _write(Path(path), local, np.asarray(shift, dtype=np.float64), scan.intensity, None, scan.name or "scan")
+
+
+def write_points(
+    path: PathLike,
+    points: np.ndarray,
+    *,
+    intensity: Optional[np.ndarray] = None,
+    scan_id: Optional[np.ndarray] = None,
+    origin_shift: Optional[np.ndarray] = None,
+) -> None:
+    """Write raw points; the format follows the suffix.
+
+    Parameters
+    ----------
+    points : (N, 3) coordinates in metres, relative to ``origin_shift`` (written coordinates are
+        ``points + origin_shift``); without ``origin_shift`` they are the file coordinates.
+    intensity : optional (N,) values (written as float in PLY/text, mapped to uint16 in LAS).
+    scan_id : optional (N,) whole numbers 0..65535: a ``scan_id`` extra dimension (LAS/LAZ), a
+        property (PLY), a column (text); in E57 each id becomes its own scan.
+    origin_shift : optional (3,) shift, metres.
+
+    Raises
+    ------
+    ScanWriteError, ParameterError
+        As :func:`write_scan`; also for empty or non-finite points and bad column lengths.
+    """
+    pts = as_points(points)
+    if len(pts) == 0:
+        raise ParameterError(f"{path}: there are no points to write")
+    if not np.isfinite(pts).all():
+        raise ParameterError(f"{path}: {int((~np.isfinite(pts).all(axis=1)).sum())} points have NaN or infinite coordinates")
+    shift = np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64).reshape(-1)
+    if shift.shape != (3,) or not np.isfinite(shift).all():
+        raise ParameterError(f"origin_shift must be three finite numbers, got {origin_shift!r}")
+    inten = as_column(intensity, len(pts), "intensity")
+    ids = as_column(scan_id, len(pts), "scan_id")
+    if ids is not None:
+        ids_f = ids.astype(np.float64)
+        if not np.isfinite(ids_f).all() or (ids_f < 0).any() or (ids_f > 65535).any() or (ids_f != np.round(ids_f)).any():
+            raise ParameterError("scan_id must hold whole numbers 0..65535")
+        ids = ids_f.astype(np.uint16)
+    _write(Path(path), pts, shift, inten, ids, Path(path).stem)
+
+
+def write_e57(path: PathLike, scans: list[Scan], poses: Optional[list[Optional[np.ndarray]]] = None) -> None:
+    """Write scans into one E57 file, one data3D entry each.
+
+    Each entry holds the scan's file coordinates (its own coordinates; 0.1 mm scaled integers, so
+    georeferenced values keep their precision) and intensity, under the scan's name, with the pose
+    ``poses[i]`` if given, else ``scan.pose``, else identity. A pose must be rigid (E57 stores a
+    quaternion and a translation).
+
+    Raises
+    ------
+    ScanWriteError
+        No scans, a non-rigid pose, a wrong suffix, or the write failed (target left untouched).
+    ParameterError
+        ``poses`` does not match ``scans`` or a pose is not a finite 4x4 matrix.
+    """
+    target = Path(path)
+    scans = list(scans)
+    if not scans:
+        raise ScanWriteError(f"cannot write {target}: no scans given")
+    if poses is not None and len(poses) != len(scans):
+        raise ParameterError(f"{len(poses)} poses for {len(scans)} scans")
+    entries = []
+    for i, scan in enumerate(scans):
+        given = poses[i] if poses is not None else None
+        pose = as_matrix(given, f"pose {i}") if given is not None else scan.pose
+        pose = np.eye(4) if pose is None else np.asarray(pose, dtype=np.float64)
+        _e57.check_rigid(pose, f"pose of scan {i} ({scan.name})")
+        entries.append(_e57.E57Entry(scan.points, scan.origin_shift, scan.intensity, pose, scan.name or f"scan {i}"))
+    if target.suffix.lower() != ".e57":
+        raise ScanWriteError(f"cannot write {target}: write_e57 writes .e57 files only")
+    _atomic(target, lambda tmp: _e57.write_e57_file(tmp, entries))
+
+
+def _write(
+    target: Path,
+    local: np.ndarray,
+    shift: np.ndarray,
+    intensity: Optional[np.ndarray],
+    scan_id: Optional[np.ndarray],
+    name: str,
+) -> None:
+    """Write points ``local + shift`` in the format the suffix of ``target`` names."""
+    suffix = target.suffix.lower()
+    if suffix in (".las", ".laz"):
+        def body(tmp: Path) -> None:
+            _las.write_las(tmp, local, shift, intensity=intensity, scan_id=scan_id, compress=suffix == ".laz")
+    elif suffix == ".ply":
+        def body(tmp: Path) -> None:
+            _ply.write_ply(tmp, local, shift, intensity=intensity, scan_id=scan_id)
+    elif suffix in (".xyz", ".txt"):
+        def body(tmp: Path) -> None:
+            _xyz.write_text(tmp, local, shift, intensity=intensity, scan_id=scan_id)
+    elif suffix == ".e57":
+        entries = _e57_entries(local, shift, intensity, scan_id, name)
+
+        def body(tmp: Path) -> None:
+            _e57.write_e57_file(tmp, entries)
+    else:
+        raise ScanWriteError(
+            f"cannot write {target}: unsupported suffix {target.suffix!r} (use {', '.join(SUPPORTED_WRITE_SUFFIXES)})"
+        )
+    _atomic(target, body)
+
+
+def _e57_entries(
+    local: np.ndarray, shift: np.ndarray, intensity: Optional[np.ndarray], scan_id: Optional[np.ndarray], name: str
+) -> list[_e57.E57Entry]:
+    if scan_id is None:
+        return [_e57.E57Entry(local, shift, intensity, np.eye(4), name)]
+    entries = []
+    for value in np.unique(scan_id):
+        sel = scan_id == value
+        entries.append(_e57.E57Entry(local[sel], shift, None if intensity is None else intensity[sel], np.eye(4), f"scan {value}"))
+    return entries
+
+
+def _atomic(target: Path, body) -> None:
+    """Run ``body(tmp)`` inside :func:`atomic_path`; wrap library and OS errors in ScanWriteError."""
+    try:
+        with atomic_path(target) as tmp:
+            body(tmp)
+            _set_mode(tmp, target)
+    except ForestregError:
+        raise
+    except Exception as exc:
+        detail = str(exc).strip().splitlines()
+        raise ScanWriteError(f"cannot write {target}: {detail[0] if detail else type(exc).__name__}") from exc
+
+
+def _set_mode(tmp: Path, target: Path) -> None:
+    """Give the new file the target's permissions, or the usual ones (``0o666`` minus umask):
+    :func:`tempfile.mkstemp` creates it readable by its owner only."""
+    try:
+        mode = target.stat().st_mode & 0o7777
+    except OSError:
+        mode = 0o666 & ~_umask()
+    os.chmod(tmp, mode)
+
+
+def _umask() -> int:
+    """The process umask, read without changing it where the system allows (Linux)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    umask = os.umask(0o022)
+    os.umask(umask)
+    return umask

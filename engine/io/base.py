@@ -1,0 +1,152 @@
+"""Shared pieces of the readers and writers: the raw cloud a reader returns, scan building, checks.
+
+A reader returns :class:`RawCloud` objects in *file units* (whatever the file holds); turning one
+into a :class:`~forestreg.engine.scan.Scan` (unit scale, scanner position, validation) happens
+once, in :func:`build_scan`.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from ..errors import ParameterError, ScanDataError, ScanReadError
+from ..scan import Scan
+
+PathLike = str | os.PathLike[str]
+
+
+@dataclass
+class RawCloud:
+    """Points as read from a file, before unit scaling and validation.
+
+    Attributes
+    ----------
+    points : (N, 3) float64 file coordinates, file units.
+    intensity : optional (N,) intensities as stored (any numeric dtype).
+    name : scan name stored in the file (E57), else ``None`` (the file stem is used).
+    pose : optional 4x4 pose mapping these coordinates into the file's common frame (file units).
+    scanner_position : optional (3,) scanner position in these coordinates (file units).
+    meta : facts about reading (format, counts, columns, ...).
+    """
+
+    points: np.ndarray
+    intensity: Optional[np.ndarray] = None
+    name: Optional[str] = None
+    pose: Optional[np.ndarray] = None
+    scanner_position: Optional[np.ndarray] = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def check_unit_scale(unit_scale: float) -> float:
+    """Return ``unit_scale`` as a float, or raise :class:`ParameterError` unless finite and > 0."""
+    try:
+        value = float(unit_scale)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"unit_scale must be a positive number, got {unit_scale!r}") from exc
+    if not math.isfinite(value) or value <= 0.0:
+        raise ParameterError(f"unit_scale must be a positive number, got {unit_scale!r}")
+    return value
+
+
+def check_readable(path: PathLike) -> Path:
+    """Return ``path`` as a :class:`Path` if it is an existing, non-empty, readable file.
+
+    Raises
+    ------
+    ScanReadError
+        Missing, a folder, empty, or not readable.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise ScanReadError(f"{p}: no such file")
+    if p.is_dir():
+        raise ScanReadError(f"{p}: is a folder, not a scan file")
+    try:
+        size = p.stat().st_size
+        with open(p, "rb"):
+            pass
+    except OSError as exc:
+        raise ScanReadError(f"{p}: cannot be opened ({exc.strerror or exc})") from exc
+    if size == 0:
+        raise ScanReadError(f"{p}: the file is empty (0 bytes)")
+    return p
+
+
+def build_scan(
+    raw: RawCloud,
+    path: Path,
+    *,
+    fmt: str,
+    unit_scale: float,
+    scanner_position: Optional[np.ndarray] = None,
+    label: Optional[str] = None,
+) -> Scan:
+    """Scale a raw cloud to metres and validate it into a :class:`Scan`.
+
+    ``scanner_position`` (file coordinates, file units) overrides the position the reader found;
+    ``unit_scale`` multiplies coordinates, scanner position and pose translation.
+    ``label`` names the scan in error messages (default: the file name).
+    """
+    where = label or path.name
+    if len(raw.points) == 0:
+        raise ScanReadError(f"{path}: {'' if label is None else label + ': '}contains no points")
+    points = raw.points if unit_scale == 1.0 else raw.points * unit_scale
+    scanner = scanner_position if scanner_position is not None else raw.scanner_position
+    if scanner is not None:
+        scanner = np.asarray(scanner, dtype=np.float64).reshape(-1) * unit_scale
+    pose = None
+    if raw.pose is not None:
+        pose = np.array(raw.pose, dtype=np.float64)
+        pose[:3, 3] *= unit_scale
+    meta = {"format": fmt, "unit_scale": unit_scale, **raw.meta}
+    try:
+        return Scan.from_points(
+            points,
+            scanner_position=scanner,
+            intensity=raw.intensity,
+            source=path,
+            name=raw.name,
+            pose=pose,
+            meta=meta,
+        )
+    except ScanDataError as exc:
+        message = str(exc)
+        if label is None and message.startswith(path.name):
+            raise
+        if raw.name and message.startswith(f"{raw.name}: "):
+            message = message[len(raw.name) + 2:]
+        raise ScanDataError(f"{path.name}, {where}: {message}" if label else f"{path.name}: {message}") from exc
+
+
+def as_points(points: np.ndarray, what: str = "points") -> np.ndarray:
+    """Return ``points`` as a float64 (N, 3) array or raise :class:`ParameterError`."""
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ParameterError(f"{what} must be an (N, 3) array, got shape {arr.shape}")
+    return arr
+
+
+def as_column(values: Optional[np.ndarray], n: int, what: str) -> Optional[np.ndarray]:
+    """Return an optional per-point column as a 1-D array of length ``n``, or raise."""
+    if values is None:
+        return None
+    arr = np.asarray(values).reshape(-1)
+    if len(arr) != n:
+        raise ParameterError(f"{what} has {len(arr)} values for {n} points")
+    return arr
+
+
+def as_matrix(matrix: Optional[np.ndarray], what: str = "matrix") -> Optional[np.ndarray]:
+    """Return an optional 4x4 finite float64 matrix, or raise :class:`ParameterError`."""
+    if matrix is None:
+        return None
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise ParameterError(f"{what} must be a finite 4x4 matrix, got shape {m.shape}")
+    return m

@@ -1,0 +1,186 @@
+"""LAS/LAZ reading and writing with laspy (LAZ through the lazrs backend).
+
+laspy trusts the header: a damaged header (say, a huge VLR count) makes it loop or allocate
+for a long time, so the public header is checked with :mod:`struct` first.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..errors import ScanReadError
+from .base import RawCloud
+
+#: Coordinate resolution written to LAS/LAZ, metres (keeps sub-mm steps for UTM-sized values).
+LAS_SCALE = 1.0e-4
+#: Bytes of the LAS 1.0-1.2 public header; 1.3 and 1.4 headers are longer.
+_MIN_HEADER = 227
+_VLR_HEADER = 54
+_EVLR_HEADER = 60
+#: Smallest point record per point format 0..10 (bytes).
+_MIN_RECORD = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)
+
+
+def _check_header(path: Path) -> tuple[int, bool]:
+    """Check the LAS public header; return ``(point_count, compressed)``.
+
+    Raises
+    ------
+    ScanReadError
+        The header is inconsistent with itself or the file size (truncated or corrupt file).
+    """
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(375)
+    if len(head) < _MIN_HEADER or not head.startswith(b"LASF"):
+        raise ScanReadError(f"{path}: is too short to be a LAS/LAZ file ({size} bytes); it is truncated or corrupt")
+    major, minor = head[24], head[25]
+    header_size, offset, n_vlr = struct.unpack_from("<HII", head, 94)
+    fmt_byte, record_len, legacy_count = struct.unpack_from("<BHI", head, 104)
+    scales = struct.unpack_from("<3d", head, 131)
+    point_format = fmt_byte & 0x3F
+    compressed = bool(fmt_byte & 0xC0)
+
+    def bad(what: str) -> ScanReadError:
+        return ScanReadError(f"{path}: has a corrupt LAS header ({what}); the file is damaged or not a LAS/LAZ file")
+
+    if major != 1 or minor > 4:
+        raise bad(f"version {major}.{minor}")
+    if header_size < _MIN_HEADER or header_size > size:
+        raise bad(f"header size {header_size}")
+    if offset < header_size or offset > size:
+        if offset > size:
+            raise ScanReadError(f"{path}: is truncated (the point data should start at byte {offset}, the file has {size})")
+        raise bad(f"point data offset {offset}")
+    if n_vlr * _VLR_HEADER > offset - header_size:
+        raise bad(f"{n_vlr} VLRs do not fit before the points")
+    if point_format >= len(_MIN_RECORD) or record_len < _MIN_RECORD[point_format]:
+        raise bad(f"point format {point_format} with {record_len}-byte records")
+    if not all(np.isfinite(scales)) or any(s == 0 for s in scales):
+        raise bad(f"coordinate scales {scales}")
+    count = legacy_count
+    if minor >= 4 and len(head) >= 255:
+        n_evlr = struct.unpack_from("<I", head, 243)[0]
+        if n_evlr * _EVLR_HEADER > size:
+            raise bad(f"{n_evlr} extended VLRs")
+        count = struct.unpack_from("<Q", head, 247)[0] or legacy_count
+    data_bytes = size - offset
+    if not compressed and count * record_len > data_bytes:
+        raise ScanReadError(
+            f"{path}: is truncated: the header announces {count:,} points "
+            f"({count * record_len:,} bytes) but only {data_bytes:,} bytes follow"
+        )
+    if compressed and count > 0 and data_bytes < 8:
+        raise ScanReadError(f"{path}: is truncated: the header announces {count:,} points but no compressed data follow")
+    return count, compressed
+
+
+def read_las(path: Path) -> RawCloud:
+    """Read a LAS/LAZ file: scaled x, y, z as float64 (file units) and intensity.
+
+    Intensity is dropped when it is zero for every point (the file holds none).
+    """
+    import laspy  # local import: keeps `import forestreg.engine.io` light
+
+    count, compressed = _check_header(path)
+    try:
+        las = laspy.read(str(path))
+    except Exception as exc:  # laspy, lazrs and struct errors: the file is damaged
+        raise ScanReadError(f"{path}: cannot be read as {'LAZ' if compressed else 'LAS'} ({_short(exc)}); the file is truncated or corrupt") from exc
+    n = len(las.points)
+    if n < count:
+        raise ScanReadError(f"{path}: is truncated: the header announces {count:,} points, only {n:,} could be read")
+    points = np.empty((n, 3), dtype=np.float64)
+    points[:, 0] = las.x
+    points[:, 1] = las.y
+    points[:, 2] = las.z
+    intensity: Optional[np.ndarray] = None
+    if "intensity" in las.point_format.dimension_names and n:
+        values = np.asarray(las.intensity)
+        if values.any():
+            intensity = values
+    meta = {
+        "las_version": f"{las.header.version.major}.{las.header.version.minor}",
+        "las_point_format": las.header.point_format.id,
+        "compressed": compressed,
+        "point_count_in_file": n,
+    }
+    return RawCloud(points=points, intensity=intensity, meta=meta)
+
+
+def _short(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def intensity_to_uint16(intensity: np.ndarray) -> np.ndarray:
+    """Map intensities to LAS uint16.
+
+    Integer-valued data within 0..65535 are kept as they are; values within 0..1 are scaled by
+    65535; anything else (floats, negative dB reflectance) is mapped linearly from its
+    min..max onto 0..65535. Non-finite values become 0.
+    """
+    values = np.asarray(intensity, dtype=np.float64)
+    finite = np.isfinite(values)
+    if not finite.any():
+        return np.zeros(len(values), dtype=np.uint16)
+    v = np.where(finite, values, 0.0)
+    lo, hi = float(v[finite].min()), float(v[finite].max())
+    if lo >= 0.0 and hi <= 65535.0 and np.array_equal(v, np.round(v)):
+        out = v
+    elif lo >= 0.0 and hi <= 1.0:
+        out = v * 65535.0
+    elif hi > lo:
+        out = (v - lo) / (hi - lo) * 65535.0
+    else:
+        out = np.zeros_like(v)
+    out = np.where(finite, out, 0.0)
+    return np.clip(np.round(out), 0, 65535).astype(np.uint16)
+
+
+def write_las(
+    tmp: Path,
+    local: np.ndarray,
+    shift: np.ndarray,
+    *,
+    intensity: Optional[np.ndarray],
+    scan_id: Optional[np.ndarray],
+    compress: bool,
+) -> None:
+    """Write points ``local + shift`` (file coordinates, metres) as LAS 1.4 point format 6.
+
+    Header offsets are the floor of the data minimum, scales :data:`LAS_SCALE` (coarser only if
+    the extent would overflow int32), so georeferenced coordinates keep 0.1 mm steps.
+    ``scan_id`` becomes a uint16 extra-bytes dimension named ``scan_id``.
+    """
+    import laspy
+
+    lo_local = local.min(axis=0)
+    hi_local = local.max(axis=0)
+    offset = np.floor(lo_local + shift)
+    scale = LAS_SCALE
+    while float(((hi_local + shift) - offset).max()) / scale > 2.0e9:
+        scale *= 10.0
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.offsets = offset
+    header.scales = np.array([scale, scale, scale])
+    header.generating_software = "forestreg"
+    header.system_identifier = "forestreg"
+    if scan_id is not None:
+        header.add_extra_dim(laspy.ExtraBytesParams(name="scan_id", type=np.uint16, description="scan index"))
+    las = laspy.LasData(header)
+    rel = local - (offset - shift)  # small numbers: no precision lost to large offsets
+    las.X = np.round(rel[:, 0] / scale).astype(np.int32)
+    las.Y = np.round(rel[:, 1] / scale).astype(np.int32)
+    las.Z = np.round(rel[:, 2] / scale).astype(np.int32)
+    las.return_number = np.ones(len(local), dtype=np.uint8)
+    las.number_of_returns = np.ones(len(local), dtype=np.uint8)
+    if intensity is not None:
+        las.intensity = intensity_to_uint16(intensity)
+    if scan_id is not None:
+        las.scan_id = np.asarray(scan_id).astype(np.uint16)
+    las.write(str(tmp), do_compress=compress)

@@ -1,0 +1,3 @@
+"""forestreg.engine.match: registration of scans from their visual occlusion points (VOPs)."""
+
+from .coarse import CoarseMatch, match_vops, match_vops_literal

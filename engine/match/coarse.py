@@ -1,0 +1,717 @@
+"""Coarse horizontal registration of two scans from their visual occlusion points (VOPs).
+
+Frames and units
+----------------
+Both inputs are 2D tree-trunk positions (VOPs) in metres, in the horizontal XY plane of their own
+scan frame: ``reference_xy`` (m x 2) in the reference frame, ``moving_xy`` (n x 2) in the moving
+frame. Every result maps moving coordinates into the reference frame::
+
+    p_ref = Rot(theta) @ p_mov + t,   Rot(theta) = [[cos, -sin], [sin, cos]]  (counter-clockwise)
+
+The problem (Guan et al. 2020, ISPRS J., sec. 2.5.3)
+----------------------------------------------------
+For every anchor pair (reference ``i``, moving ``j``) -- loop order ``i`` outer, then ``j``, then
+``k`` -- the moving set is translated so that ``M[j]`` lands on ``R[i]`` and rotated about that point
+by ``theta_k = k * I_A`` (``k = 1 .. K``, ``K = round(360 / I_A)``, so ``theta_K = 360 deg == 0``)::
+
+    p'_l = Rot(theta_k) @ (M[l] - M[j]) + R[i]
+
+and scored with ``D_overlap(i, j, k) = sum_l min(nn_R(p'_l), D_t)``, where ``nn_R`` is the distance
+to the nearest reference VOP. The optimum is the smallest ``D_overlap``; exact ties go to the first
+(i, j, k) in loop order. :func:`match_vops_literal` is that enumeration (m*n*K*n nearest-neighbour
+look-ups); :func:`match_vops` returns the same optimum by an exact branch and bound.
+
+Why the branch and bound is exact
+---------------------------------
+Write the improvement of a candidate as ``G = n*D_t - D_overlap = sum_l max_q f_lq(theta)`` with
+``f_lq = max(0, D_t - |p'_l - R[q]|)``. Moving point ``l`` lies at radius ``rho_l = |M[l]-M[j]|``
+from the anchor and reference ``q`` at ``rho_q = |R[q]-R[i]|``, so by the law of cosines
+``|p'_l - R[q]|^2 = (rho_l - rho_q)^2 + 4 rho_l rho_q sin^2(delta/2)`` where ``delta`` is the angle
+between ``theta`` and the peak ``psi_q - phi_l``. Hence ``f_lq`` is zero unless
+``|rho_l - rho_q| < D_t`` and ``|delta|`` is inside the half-width
+``acos((rho_l^2 + rho_q^2 - D_t^2) / (2 rho_l rho_q))``, and it does not increase as ``|delta|``
+grows. So on any set of angles ``f_lq`` is at most its value at the set's angle nearest the peak, and
+``sum over compatible (l, q) of that maximum`` bounds ``G`` from above for every angle of the set
+(the sum over ``q`` dominates the max over ``q`` because all terms are >= 0; pairs that are not
+radius-compatible, or whose window holds no angle of the set, contribute exactly 0). Pairs with a
+zero radius (the anchor ``l = j`` itself, duplicate points) or a window wider than
+``_WIDE_WINDOW_DEG`` simply add their peak value ``D_t - |rho_l - rho_q|`` to every angle. Every bound is
+widened by a slack that covers floating-point rounding both of the bound and of the exact score, so
+a bound can never fall below the ``G`` that the shared scoring function computes. Candidates are
+scored exactly (with the same function the literal enumeration uses) in decreasing-bound order, and
+the search stops only when no remaining bound reaches ``best G - 1e-9``; every candidate that could
+beat or tie the best (to 1e-9) is therefore scored, and ties are broken in loop order, so the result
+is the literal optimum.
+
+Search levels: (1) bounds per (anchor pair, coarse bin of ``B`` consecutive angles), accumulated
+with ``np.bincount`` over all radius-compatible ``(i, q, j, l)`` tuples, which come from a single
+sorted interval join of the m*m reference and n*n moving pair radii; (2) for the surviving coarse
+bins, the same bound per single angle (a bin of one angle); (3) exact scores with a k-d tree.
+
+Cost: the tuple count grows like m^2 n^2 D_t / (VOP spread), about 0.25 M tuples for 80 x 80 VOPs
+over a 22 m disc, where a match (with the second pass) takes ~0.1-0.2 s and scores ~70 candidates
+exactly instead of m*n*K = 23 M. The bound is loose when many VOPs lie within D_t of each other
+(e.g. 80 VOPs packed in a 2 m disc); the result stays exact but the search slows down (tens of s).
+
+Evidence of ambiguity: a second pass with the same bounds finds the best *distinct* solution, the
+lowest ``D_overlap`` whose rotation differs from the optimum by more than ``distinct_rotation_deg``
+or which displaces the moving VOP centroid by more than ``distinct_translation_m`` relative to the
+optimum. Candidates that are not distinct are skipped before being scored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["CoarseMatch", "match_vops", "match_vops_literal", "overlap_score"]
+
+#: Scores within this many metres of the best are treated as ties (searched exhaustively).
+TIE_TOLERANCE_M = 1e-9
+#: Target width of a coarse bin in degrees (level 1 of the bound).
+_COARSE_BIN_DEG = 2.0
+#: Windows wider than this (degrees) are bounded by one constant for the whole circle.
+_WIDE_WINDOW_DEG = 40.0
+#: Tuples expanded into bins at a time (memory cap).
+_TUPLES_PER_CHUNK = 1 << 18
+#: Number of moving points scored per k-d tree call (memory cap).
+_POINTS_PER_QUERY = 1 << 20
+
+
+@dataclass(frozen=True)
+class CoarseMatch:
+    """Result of a VOP match; maps moving XY onto reference XY (metres, horizontal plane).
+
+    ``p_ref = Rot(rotation_deg) @ p_mov + translation``. ``score`` is the paper's ``D_overlap`` in
+    metres (lower is better), ``matched`` the number of moving VOPs whose nearest reference VOP is
+    closer than the match distance. The ``second_*`` fields describe the best distinct solution (see
+    :func:`match_vops`); they are ``None`` when none exists or when it was not searched for.
+    """
+
+    rotation_deg: float
+    translation: np.ndarray
+    score: float
+    matched: int
+    matched_pairs: np.ndarray
+    anchor: tuple[int, int]
+    angle_index: int
+    second_score: float | None
+    second_matched: int | None
+    second_rotation_deg: float | None
+    second_translation: np.ndarray | None
+    evaluated: int
+
+    def matrix(self) -> np.ndarray:
+        """3x3 homogeneous 2D matrix ``[[c, -s, tx], [s, c, ty], [0, 0, 1]]`` (moving -> reference)."""
+        theta = np.deg2rad(self.rotation_deg)
+        c, s = np.cos(theta), np.sin(theta)
+        tx, ty = (float(v) for v in self.translation)
+        return np.array([[c, -s, tx], [s, c, ty], [0.0, 0.0, 1.0]])
+
+
+# --------------------------------------------------------------------------------------------------
+# Validation and shared arithmetic
+# --------------------------------------------------------------------------------------------------
+
+
+def _as_points(xy: np.ndarray, name: str) -> np.ndarray:
+    """Return ``xy`` as a C-contiguous float64 (N, 2) array; raise ValueError if unusable."""
+    arr = np.asarray(xy, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"{name} must be an (N, 2) array of XY positions in metres, got shape {arr.shape}")
+    if arr.shape[0] < 2:
+        raise ValueError(f"{name} has {arr.shape[0]} VOP(s); at least 2 are needed to match")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or infinite coordinates")
+    return np.ascontiguousarray(arr)
+
+
+def _angle_count(angle_step_deg: float) -> int:
+    """``K = round(360 / I_A)``; ValueError unless the step divides 360 deg into >= 4 angles."""
+    step = float(angle_step_deg)
+    if not np.isfinite(step) or step <= 0.0:
+        raise ValueError(f"angle_step_deg must be a positive number of degrees, got {angle_step_deg!r}")
+    ratio = 360.0 / step
+    k_count = int(round(ratio))
+    if k_count < 4 or abs(ratio - k_count) > 1e-6 * max(1.0, ratio):
+        raise ValueError(
+            f"angle_step_deg={step} does not divide 360 deg into a whole number (>= 4) of steps; "
+            "use e.g. 0.1, 0.2, 0.25, 0.5 or 1 degree"
+        )
+    return k_count
+
+
+def _check_distance(match_distance_m: float) -> float:
+    dist = float(match_distance_m)
+    if not np.isfinite(dist) or dist <= 0.0:
+        raise ValueError(f"match_distance_m must be a positive distance in metres, got {match_distance_m!r}")
+    return dist
+
+
+def _angle_table(k_count: int, angle_step_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of ``theta_k = k * I_A`` for ``k = 0 .. K`` (index by k; entry 0 is unused)."""
+    theta = np.deg2rad(np.arange(k_count + 1, dtype=np.float64) * float(angle_step_deg))
+    return np.cos(theta), np.sin(theta)
+
+
+def _transform(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    cos_k: np.ndarray,
+    sin_k: np.ndarray,
+) -> np.ndarray:
+    """Moving VOPs under candidates (i, j, k): ``Rot(theta_k) @ (M - M[j]) + R[i]``, shape (C, n, 2).
+
+    Pure elementwise arithmetic, so a candidate's points are bit-identical whatever batch it is in.
+    """
+    dx = moving[None, :, 0] - moving[j, 0][:, None]
+    dy = moving[None, :, 1] - moving[j, 1][:, None]
+    c = cos_k[:, None]
+    s = sin_k[:, None]
+    out = np.empty(dx.shape + (2,))
+    out[..., 0] = (c * dx - s * dy) + reference[i, 0][:, None]
+    out[..., 1] = (s * dx + c * dy) + reference[i, 1][:, None]
+    return out
+
+
+def _scores_of_points(tree: cKDTree, points: np.ndarray, match_distance_m: float) -> np.ndarray:
+    """``D_overlap`` of each row of ``points`` (C, n, 2): sum over the row of min(nn distance, D_t)."""
+    count, n = points.shape[0], points.shape[1]
+    flat = points.reshape(-1, 2)
+    workers = -1 if flat.shape[0] >= 20000 else 1
+    dist, _ = tree.query(flat, k=1, distance_upper_bound=match_distance_m, workers=workers)
+    clipped = np.minimum(dist, match_distance_m).reshape(count, n)
+    return np.add.reduce(clipped, axis=1)
+
+
+def overlap_score(reference_xy: np.ndarray, transformed_moving_xy: np.ndarray, match_distance_m: float) -> float:
+    """Paper's ``D_overlap`` (metres) of moving VOPs already transformed into the reference frame.
+
+    ``sum over moving points of min(distance to nearest reference VOP, match_distance_m)``; the same
+    arithmetic both matchers use, so values agree bit-for-bit.
+    """
+    reference = np.asarray(reference_xy, dtype=np.float64).reshape(-1, 2)
+    points = np.asarray(transformed_moving_xy, dtype=np.float64).reshape(1, -1, 2)
+    dist = _check_distance(match_distance_m)
+    return float(_scores_of_points(cKDTree(reference), points, dist)[0])
+
+
+class _Scorer:
+    """Exact ``D_overlap`` of (i, j, k) candidates; counts how many were computed."""
+
+    def __init__(
+        self, reference: np.ndarray, moving: np.ndarray, k_count: int, step_deg: float, dist: float, record: bool = False
+    ):
+        self.reference = reference
+        self.moving = moving
+        self.cos_k, self.sin_k = _angle_table(k_count, step_deg)
+        self.dist = dist
+        self.tree = cKDTree(reference)
+        self.evaluated = 0
+        self.record = record
+        self._keys: list[np.ndarray] = []
+        self._scores: list[np.ndarray] = []
+
+    def scores(self, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """``D_overlap`` (metres) of candidates given as equal-length int arrays i, j, k (k in 1..K)."""
+        n = self.moving.shape[0]
+        per_call = max(1, _POINTS_PER_QUERY // n)
+        out = np.empty(i.shape[0])
+        for start in range(0, i.shape[0], per_call):
+            sl = slice(start, start + per_call)
+            pts = _transform(self.reference, self.moving, i[sl], j[sl], self.cos_k[k[sl]], self.sin_k[k[sl]])
+            out[sl] = _scores_of_points(self.tree, pts, self.dist)
+        self.evaluated += int(i.shape[0])
+        if self.record:
+            self._keys.append((i * n + j) * (self.cos_k.shape[0] - 1) + (k - 1))
+            self._scores.append(out)
+        return out
+
+    def history(self) -> tuple[np.ndarray, np.ndarray]:
+        """Loop keys and scores of everything scored so far (when ``record`` is set)."""
+        if not self._keys:
+            return np.empty(0, dtype=np.int64), np.empty(0)
+        return np.concatenate(self._keys), np.concatenate(self._scores)
+
+    def transform(self, i: int, j: int, k: int) -> np.ndarray:
+        """Translation t (metres) of candidate (i, j, k), with ``p_ref = Rot(theta_k) @ p_mov + t``."""
+        c, s = self.cos_k[k], self.sin_k[k]
+        mj = self.moving[j]
+        t = self.reference[i] - np.array([c * mj[0] - s * mj[1], s * mj[0] + c * mj[1]])
+        return t
+
+    def matches(self, i: int, j: int, k: int) -> np.ndarray:
+        """(reference index, moving index) pairs closer than D_t under candidate (i, j, k)."""
+        pts = _transform(
+            self.reference, self.moving, np.array([i]), np.array([j]), self.cos_k[[k]], self.sin_k[[k]]
+        )[0]
+        dist, idx = self.tree.query(pts, k=1, distance_upper_bound=self.dist)
+        hit = np.flatnonzero(dist < self.dist)
+        return np.column_stack([idx[hit], hit]).astype(np.int64).reshape(-1, 2)
+
+
+def _result(
+    scorer: _Scorer,
+    step_deg: float,
+    best: tuple[float, int, int, int],
+    second: tuple[float, int, int, int] | None,
+) -> CoarseMatch:
+    score, i, j, k = best
+    pairs = scorer.matches(i, j, k)
+    if second is None:
+        s_score = s_matched = s_rot = s_t = None
+    else:
+        s_score = float(second[0])
+        s_matched = int(scorer.matches(*second[1:]).shape[0])
+        s_rot = float(second[3] * step_deg)
+        s_t = scorer.transform(*second[1:])
+    return CoarseMatch(
+        rotation_deg=float(k * step_deg),
+        translation=scorer.transform(i, j, k),
+        score=float(score),
+        matched=int(pairs.shape[0]),
+        matched_pairs=pairs,
+        anchor=(int(i), int(j)),
+        angle_index=int(k),
+        second_score=s_score,
+        second_matched=s_matched,
+        second_rotation_deg=s_rot,
+        second_translation=s_t,
+        evaluated=scorer.evaluated,
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Literal enumeration (reference implementation)
+# --------------------------------------------------------------------------------------------------
+
+
+def _literal_scores(scorer: _Scorer, k_count: int, anchors: np.ndarray | None = None) -> np.ndarray:
+    """Exact scores of every angle k = 1..K for each anchor pair, shape (A, K) (column c is k = c+1).
+
+    ``anchors`` is an (A, 2) int array of (i, j); default: all m*n pairs in loop order.
+    """
+    m, n = scorer.reference.shape[0], scorer.moving.shape[0]
+    if anchors is None:
+        anchors = np.stack(np.meshgrid(np.arange(m), np.arange(n), indexing="ij"), axis=-1).reshape(-1, 2)
+    ks = np.arange(1, k_count + 1)
+    out = np.empty((anchors.shape[0], k_count))
+    per_block = max(1, _POINTS_PER_QUERY // (n * k_count))
+    for start in range(0, anchors.shape[0], per_block):
+        block = anchors[start : start + per_block]
+        i = np.repeat(block[:, 0], k_count)
+        j = np.repeat(block[:, 1], k_count)
+        k = np.tile(ks, block.shape[0])
+        out[start : start + block.shape[0]] = scorer.scores(i, j, k).reshape(block.shape[0], k_count)
+    return out
+
+
+def match_vops_literal(
+    reference_xy: np.ndarray,
+    moving_xy: np.ndarray,
+    *,
+    angle_step_deg: float = 0.1,
+    match_distance_m: float = 0.2,
+) -> CoarseMatch:
+    """The paper's literal enumeration: score every (i, j, k) and keep the first minimum.
+
+    Inputs are VOP positions in metres (reference frame / moving frame). Costs m*n*K*n nearest-
+    neighbour look-ups; use it as the reference for :func:`match_vops`. No second solution is searched
+    (the ``second_*`` fields are None); ``evaluated`` is m*n*K.
+    """
+    reference = _as_points(reference_xy, "reference_xy")
+    moving = _as_points(moving_xy, "moving_xy")
+    k_count = _angle_count(angle_step_deg)
+    dist = _check_distance(match_distance_m)
+    scorer = _Scorer(reference, moving, k_count, float(angle_step_deg), dist)
+    m, n = reference.shape[0], moving.shape[0]
+    best = (np.inf, -1, -1, -1)
+    for i in range(m):  # loop order i, then j, then k; strict '<' keeps the first minimum
+        anchors = np.column_stack([np.full(n, i), np.arange(n)])
+        scores = _literal_scores(scorer, k_count, anchors).ravel()
+        pos = int(np.argmin(scores))
+        if scores[pos] < best[0]:
+            best = (float(scores[pos]), i, pos // k_count, pos % k_count + 1)
+    return _result(scorer, float(angle_step_deg), best, None)
+
+
+# --------------------------------------------------------------------------------------------------
+# Bounds
+# --------------------------------------------------------------------------------------------------
+
+
+def _bin_size(k_count: int, step_deg: float, bin_deg: float) -> int:
+    """Angles per coarse bin: the divisor of K (at most K/4) nearest to ``bin_deg / step`` in ratio."""
+    target = max(1.0, bin_deg / step_deg)
+    small = [d for d in range(1, int(np.sqrt(k_count)) + 1) if k_count % d == 0]
+    divisors = [d for d in small + [k_count // d for d in small] if d <= k_count // 4]
+    return min(divisors, key=lambda d: (abs(np.log(d / target)), d))
+
+
+@dataclass
+class _Bounds:
+    """Upper bounds on the improvement ``G = n*D_t - D_overlap`` (metres) of (anchor, angle) sets.
+
+    Angles are indexed by ``a = k mod K`` (``a = 0`` is ``k = K``). Coarse bin ``b`` holds angles
+    ``a in [b*B, b*B + B)``. Anchor pairs are numbered ``j * m + i`` (j-major, for memory locality)
+    and a cell is ``anchor * n_bins + b``.
+
+    Each stored *tuple* stands for two twins, (i, q, j, l) and (q, i, l, j): they share the radii,
+    the peak angle ``psi_q - phi_l`` and hence the window, and differ only in the anchor pair.
+    Window positions are angle indices offset by ``3K`` so that they stay positive.
+    """
+
+    m: int
+    n: int
+    k_count: int
+    bin_size: int
+    n_bins: int
+    step_rad: float
+    dist: float
+    slack: float
+    anchor_const: np.ndarray  # (m*n,) angle-independent part of every bound of the anchor
+    peak: np.ndarray  # (T,) peak angle index (offset by 3K)
+    a_lo: np.ndarray  # (T,) first angle index of the window (offset)
+    a_hi: np.ndarray  # (T,) last angle index of the window (offset)
+    dr2: np.ndarray  # (T,) (rho_l - rho_q)^2
+    prod4: np.ndarray  # (T,) 4 rho_l rho_q
+    anchors: tuple[np.ndarray, np.ndarray]  # (T,) int32 anchors of the twins (i,q,j,l), (q,i,l,j)
+    wrap: np.ndarray  # offset bin index -> bin index in [0, n_bins)
+    cell_bound: np.ndarray = field(default_factory=lambda: np.empty(0))  # level-1 bound per cell
+    _table: np.ndarray | None = None
+
+    def values(self, tup: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Upper bound of ``max(0, D_t - distance)`` over the angle indices ``lo..hi`` of each tuple.
+
+        The distance is smallest at the angle nearest the peak; ``sin(x) >= x - x^3/6 >= 0`` for
+        ``0 <= x <= pi/4`` (here ``x = delta/2`` and windows span < 180 deg) gives a lower bound on
+        it, and the slack covers rounding.
+        """
+        p = self.peak[tup]
+        x = np.abs(np.clip(p, lo, hi) - p)
+        x *= 0.5 * self.step_rad
+        s = x * (1.0 - x * x * (1.0 / 6.0))
+        d = np.sqrt(self.dr2[tup] + self.prod4[tup] * (s * s))
+        return np.maximum((self.dist + self.slack) - d, 0.0)
+
+    def entries(self, tup: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Level-1 entries of tuples: (position in ``tup``, offset bin) for every bin a window touches."""
+        B = self.bin_size
+        b0 = self.a_lo[tup] // B
+        nb = self.a_hi[tup] // B - b0 + 1
+        which = np.repeat(np.arange(tup.shape[0]), nb)
+        return which, np.repeat(b0 - (np.cumsum(nb) - nb), nb) + np.arange(which.shape[0])
+
+    def clipped(self, tup: np.ndarray, bins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """First and last angle index of each tuple's window inside offset bin ``bins``."""
+        start = bins * self.bin_size
+        return np.maximum(self.a_lo[tup], start), np.minimum(self.a_hi[tup], start + (self.bin_size - 1))
+
+    def coarse(self) -> np.ndarray:
+        """Level-1 bound of every cell, shape (m*n*n_bins,)."""
+        ncell = self.m * self.n * self.n_bins
+        out = np.zeros(ncell)
+        for start in range(0, self.peak.shape[0], _TUPLES_PER_CHUNK):
+            tup = np.arange(start, min(start + _TUPLES_PER_CHUNK, self.peak.shape[0]))
+            which, bins = self.entries(tup)
+            which = tup[which]
+            vals = self.values(which, *self.clipped(which, bins))
+            wrapped = self.wrap[bins]
+            for anchor in self.anchors:
+                cell = anchor[which] * np.int64(self.n_bins) + wrapped
+                out += np.bincount(cell, weights=vals, minlength=ncell)
+        out.reshape(self.m * self.n, self.n_bins)[:] += self.anchor_const[:, None]
+        return out
+
+    def fine(self, cells: np.ndarray) -> np.ndarray:
+        """Level-2 bound of every angle of ``cells`` (distinct cell ids), shape (len(cells), B).
+
+        The same bound as a cell's, for a bin of a single angle: row r, column s bounds angle
+        ``(cells[r] % n_bins) * B + s`` of anchor ``cells[r] // n_bins``.
+        """
+        B, n_bins = self.bin_size, self.n_bins
+        if self._table is None:
+            self._table = np.full(self.m * self.n * n_bins, -1, dtype=np.int64)
+        table = self._table
+        table[cells] = np.arange(cells.shape[0])
+        marked = np.zeros(self.m * self.n, dtype=bool)
+        marked[cells // n_bins] = True
+        out = np.zeros(cells.shape[0] * B)
+        for anchor in self.anchors:
+            selected = np.flatnonzero(marked[anchor])
+            for start in range(0, selected.shape[0], _TUPLES_PER_CHUNK):
+                tup = selected[start : start + _TUPLES_PER_CHUNK]
+                which, bins = self.entries(tup)
+                pos = table[anchor[tup[which]] * np.int64(n_bins) + self.wrap[bins]]
+                hit = np.flatnonzero(pos >= 0)
+                tup, bins, pos = tup[which[hit]], bins[hit], pos[hit]
+                lo, hi = self.clipped(tup, bins)
+                cnt = hi - lo + 1
+                rep = np.repeat(np.arange(tup.shape[0]), cnt)
+                a = lo[rep] + (np.arange(rep.shape[0]) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+                vals = self.values(tup[rep], a, a)
+                out += np.bincount(pos[rep] * B + (a - bins[rep] * B), weights=vals, minlength=out.shape[0])
+        table[cells] = -1
+        out = out.reshape(cells.shape[0], B)
+        out += self.anchor_const[cells // n_bins][:, None]
+        return out
+
+
+def _pair_polar(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Radius (m) and direction (rad) of ``points[b] - points[a]`` for all (a, b), flattened a-major."""
+    d = points[None, :, :] - points[:, None, :]
+    return np.hypot(d[..., 0], d[..., 1]).ravel(), np.arctan2(d[..., 1], d[..., 0]).ravel()
+
+
+def _build_bounds(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    k_count: int,
+    step_deg: float,
+    dist: float,
+    bin_deg: float = _COARSE_BIN_DEG,
+) -> _Bounds:
+    """Level-1 bounds from all radius-compatible (i, q, j, l) tuples (see the module docstring)."""
+    m, n = reference.shape[0], moving.shape[0]
+    step_rad = float(np.deg2rad(step_deg))
+    B = _bin_size(k_count, step_deg, bin_deg)
+    n_bins = k_count // B
+    # Rounding slack (metres), generous: covers the k-d tree distances of coordinates of this
+    # magnitude, the bound's own arithmetic and the sin polynomial's rounding.
+    scale = float(max(np.abs(reference).max(), np.abs(moving).max(), 1.0))
+    slack = 1e-9 + 1e-13 * scale
+    d_win = dist + 2.0 * slack
+
+    rho_r, psi = _pair_polar(reference)  # index i*m + q
+    rho_m, phi = _pair_polar(moving)  # index j*n + l
+    jj, ll = np.triu_indices(n, 1)  # one twin per moving pair: j < l
+    rm = rho_m[jj * n + ll]
+    ph = phi[jj * n + ll]
+    order = np.argsort(rho_r, kind="stable")
+    sorted_r = rho_r[order]
+    lo = np.searchsorted(sorted_r, rm - d_win, side="left")
+    cnt = np.searchsorted(sorted_r, rm + d_win, side="right") - lo
+    mp = np.repeat(np.arange(rm.shape[0]), cnt)  # moving pair of each tuple
+    rp = order[np.repeat(lo - (np.cumsum(cnt) - cnt), cnt) + np.arange(mp.shape[0])]  # reference pair
+    del order, sorted_r, lo, cnt
+
+    anchor_a = (jj * m).astype(np.int32)[mp] + np.repeat(np.arange(m, dtype=np.int32), m)[rp]
+    anchor_b = (ll * m).astype(np.int32)[mp] + np.tile(np.arange(m, dtype=np.int32), m)[rp]
+    rl = rm[mp]
+    rq = rho_r[rp]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cos_hw = (rl * rl + rq * rq - d_win * d_win) / (2.0 * rl * rq)
+    # Half-width in angle-index units, widened by 1e-9 rad against acos/atan2 rounding.
+    hw = (np.arccos(np.clip(cos_hw, -1.0, 1.0)) + 1e-9) * (1.0 / step_rad)
+    peak = (psi[rp] - ph[mp]) * (1.0 / step_rad) + 3.0 * k_count  # in (K, 5K)
+    del rp, mp
+    # floor(x) + 1 instead of ceil(x): an angle exactly on the widened window edge has f = 0.
+    a_lo = (peak - hw).astype(np.int64) + 1
+    a_hi = (peak + hw).astype(np.int64)
+    wide_limit = min(max(2 * B, int(_WIDE_WINDOW_DEG / step_deg)), k_count // 2)
+    # Angle-independent bound for: a radius 0 (nan), a window round the whole circle, a wide window.
+    const = ~(cos_hw > -1.0) | (a_hi - a_lo >= wide_limit)
+    const_val = np.maximum((dist + 2.0 * slack) - np.abs(rl[const] - rq[const]), 0.0)
+    anchor_const = np.zeros(m * n)
+    for anchor in (anchor_a, anchor_b):
+        anchor_const += np.bincount(anchor[const], weights=const_val, minlength=m * n)
+    # The moving anchor itself (l = j) against reference points within D_t of R[i] (incl. q = i).
+    own = np.maximum((dist + 2.0 * slack) - rho_r.reshape(m, m), 0.0).sum(axis=1)  # per i
+    anchor_const += np.tile(own, n)
+
+    keep = np.flatnonzero(~const & (a_hi >= a_lo))
+    rl, rq = rl[keep], rq[keep]
+    bounds = _Bounds(
+        m=m,
+        n=n,
+        k_count=k_count,
+        bin_size=B,
+        n_bins=n_bins,
+        step_rad=step_rad,
+        dist=dist,
+        slack=2.0 * slack,
+        anchor_const=anchor_const,
+        peak=peak[keep],
+        a_lo=a_lo[keep].astype(np.int32),
+        a_hi=a_hi[keep].astype(np.int32),
+        dr2=(rl - rq) ** 2,
+        prod4=4.0 * rl * rq,
+        anchors=(anchor_a[keep], anchor_b[keep]),
+        wrap=np.arange(6 * n_bins + 2) % n_bins,
+    )
+    bounds.cell_bound = bounds.coarse()
+    return bounds
+
+
+# --------------------------------------------------------------------------------------------------
+# Branch and bound
+# --------------------------------------------------------------------------------------------------
+
+#: Best candidate so far: (score, loop key), loop key = (i*n + j)*K + (k - 1); (inf, -1) if none.
+_Best = tuple[float, int]
+
+
+def _better(best: _Best, scores: np.ndarray, keys: np.ndarray) -> _Best:
+    """Lowest score; exact ties go to the lowest loop key (= first in the literal loop order)."""
+    if scores.shape[0] == 0:
+        return best
+    low = float(scores.min())
+    key = int(keys[scores == low].min())
+    if low < best[0] or (low == best[0] and key < best[1]):
+        return (low, key)
+    return best
+
+
+def _search(
+    bounds: _Bounds,
+    scorer: _Scorer,
+    best: _Best,
+    eligible: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None,
+    done_keys: np.ndarray,
+) -> _Best:
+    """Best eligible candidate, scoring candidates in decreasing-bound order until none can tie.
+
+    ``best`` is the best already known; ``done_keys`` (sorted loop keys) are never scored again.
+    A candidate is needed while its bound >= ``n*D_t - best score - TIE_TOLERANCE_M``. Cells are
+    taken in bands of decreasing level-1 bound; inside a band the angles of its cells get level-2
+    bounds and are scored in decreasing level-2 order.
+    """
+    m, n, k_count, n_bins, B = bounds.m, bounds.n, bounds.k_count, bounds.n_bins, bounds.bin_size
+    total = n * bounds.dist
+
+    def threshold() -> float:
+        return -np.inf if not np.isfinite(best[0]) else total - best[0] - TIE_TOLERANCE_M
+
+    grid = bounds.cell_bound.reshape(m * n, n_bins)
+    anchor_max = grid.max(axis=1)
+    ranked = np.sort(anchor_max)[::-1]
+    u_min = float(grid.min())
+    upper = np.inf
+    rnd = 0
+    while True:
+        # Band r: cells with bound in [t, upper), t = the (16 * 4^r)-th largest anchor maximum.
+        rank = 16 * 4**rnd
+        t = max(threshold(), float(ranked[rank]) if rank < ranked.shape[0] else u_min)
+        rows = np.flatnonzero(anchor_max >= t)
+        sub = grid[rows]
+        r_idx, c_idx = np.nonzero((sub >= t) & (sub < upper))
+        band = rows[r_idx] * n_bins + c_idx
+        band = band[np.argsort(-bounds.cell_bound[band], kind="stable")]
+        pos, chunk, finished = 0, 4096, False
+        while pos < band.shape[0]:
+            thr = threshold()
+            if bounds.cell_bound[band[pos]] < thr:
+                finished = True
+                break
+            cells = band[pos : pos + chunk]
+            pos += chunk
+            chunk *= 2
+            cells = cells[bounds.cell_bound[cells] >= thr]
+            fine = bounds.fine(cells)
+            row, slot = np.nonzero(fine >= thr)
+            ub = fine[row, slot]
+            cell = cells[row]
+            anchor = cell // n_bins
+            a = (cell % n_bins) * B + slot
+            k = np.where(a == 0, k_count, a)
+            j, i = np.divmod(anchor, m)
+            keys = (i * n + j) * k_count + (k - 1)
+            ok = np.ones(keys.shape[0], dtype=bool)
+            if done_keys.shape[0]:
+                at = np.minimum(np.searchsorted(done_keys, keys), done_keys.shape[0] - 1)
+                ok &= done_keys[at] != keys
+            if eligible is not None:
+                ok &= eligible(i, j, k)
+            sel = np.flatnonzero(ok)
+            sel = sel[np.argsort(-ub[sel], kind="stable")]
+            start, size = 0, 32
+            while start < sel.shape[0]:
+                thr = threshold()
+                batch = sel[start : start + size]
+                batch = batch[ub[batch] >= thr]
+                if batch.shape[0] == 0:
+                    break
+                start += size
+                size *= 2
+                best = _better(best, scorer.scores(i[batch], j[batch], k[batch]), keys[batch])
+        upper = t
+        if finished or t <= threshold() or t <= u_min:
+            return best
+        rnd += 1
+
+
+def _decode(key: int, n: int, k_count: int) -> tuple[int, int, int]:
+    """(i, j, k) of a loop key."""
+    anchor, km1 = divmod(int(key), k_count)
+    return anchor // n, anchor % n, km1 + 1
+
+
+def match_vops(
+    reference_xy: np.ndarray,
+    moving_xy: np.ndarray,
+    *,
+    angle_step_deg: float = 0.1,
+    match_distance_m: float = 0.2,
+    distinct_rotation_deg: float = 5.0,
+    distinct_translation_m: float = 1.0,
+) -> CoarseMatch:
+    """Exact optimum of the paper's VOP enumeration by branch and bound, plus the best distinct one.
+
+    ``reference_xy`` (m x 2) and ``moving_xy`` (n x 2) are VOP positions in metres in the reference
+    and moving scan frames. Returns the same ``D_overlap`` and (i, j, k) as
+    :func:`match_vops_literal` (module docstring); ``p_ref = Rot(rotation_deg) @ p_mov + translation``.
+    ``second_*`` describe the lowest-score candidate whose rotation differs from the optimum's by
+    more than ``distinct_rotation_deg`` or that puts the moving VOP centroid more than
+    ``distinct_translation_m`` away from where the optimum puts it (None if there is none).
+    ``evaluated`` counts exact scores computed.
+    """
+    reference = _as_points(reference_xy, "reference_xy")
+    moving = _as_points(moving_xy, "moving_xy")
+    k_count = _angle_count(angle_step_deg)
+    dist = _check_distance(match_distance_m)
+    rot_limit = float(distinct_rotation_deg)
+    trans_limit = float(distinct_translation_m)
+    if not (np.isfinite(rot_limit) and rot_limit >= 0 and np.isfinite(trans_limit) and trans_limit >= 0):
+        raise ValueError("distinct_rotation_deg and distinct_translation_m must be finite and >= 0")
+    step = float(angle_step_deg)
+    n = moving.shape[0]
+
+    scorer = _Scorer(reference, moving, k_count, step, dist, record=True)
+    bounds = _build_bounds(reference, moving, k_count, step, dist)
+    best = _search(bounds, scorer, (np.inf, -1), None, np.empty(0, dtype=np.int64))
+    bi, bj, bk = _decode(best[1], n, k_count)
+
+    # Second pass: the best candidate distinct from the optimum (same bounds, same exactness).
+    centroid = moving.mean(axis=0)
+    cos_k, sin_k = scorer.cos_k, scorer.sin_k
+
+    def moved_centroid(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+        d = centroid[None, :] - moving[j]
+        c, s = cos_k[k], sin_k[k]
+        return np.column_stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1]]) + reference[i]
+
+    c_opt = moved_centroid(np.array([bi]), np.array([bj]), np.array([bk]))[0]
+    rot_index_limit = rot_limit / step + 1e-9
+
+    def distinct(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+        dk = np.abs(k - bk) % k_count
+        dk = np.minimum(dk, k_count - dk)
+        shift = moved_centroid(i, j, k) - c_opt
+        return (dk > rot_index_limit) | (np.hypot(shift[:, 0], shift[:, 1]) > trans_limit)
+
+    # Can any candidate be distinct? (Largest centroid shift: |R[i] - c_opt| + |centroid - M[j]|.)
+    max_shift = np.hypot(*(reference - c_opt).T).max() + np.hypot(*(centroid - moving).T).max()
+    second: _Best = (np.inf, -1)
+    if rot_index_limit < k_count // 2 or trans_limit < max_shift:
+        keys, scores = scorer.history()
+        kj = np.divmod(keys, k_count)
+        ok = distinct(kj[0] // n, kj[0] % n, kj[1] + 1)
+        second = _better(second, scores[ok], keys[ok])
+        second = _search(bounds, scorer, second, distinct, np.unique(keys))
+    second_full = None if not np.isfinite(second[0]) else (second[0],) + _decode(second[1], n, k_count)
+    return _result(scorer, step, (best[0], bi, bj, bk), second_full)

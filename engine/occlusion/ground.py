@@ -1,0 +1,131 @@
+"""Ground points and a ground-height grid (paper sec. 2.5.1, plus a terrain model for slicing).
+
+All functions work in a levelled frame (z up), metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+
+def lowest_voxel_ground(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Boolean mask of the paper's ground points: in each (Gx, Gy) column of voxels of side
+    ``voxel_m``, the points of the lowest occupied voxel.
+
+    Parameters
+    ----------
+    points : (N, 3) levelled coordinates, metres.
+    voxel_m : voxel side, metres (paper: 0.5 m).
+    """
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    idx = np.floor((points - points.min(axis=0)) / voxel_m).astype(np.int64)
+    ny = int(idx[:, 1].max()) + 1
+    column = idx[:, 0] * ny + idx[:, 1]
+    _, inverse = np.unique(column, return_inverse=True)
+    lowest = np.full(inverse.max() + 1, np.iinfo(np.int64).max)
+    np.minimum.at(lowest, inverse, idx[:, 2])
+    return idx[:, 2] == lowest[inverse]
+
+
+@dataclass(frozen=True)
+class GroundGrid:
+    """Ground height on a regular XY grid, levelled frame, metres.
+
+    ``heights[ix, iy]`` is the ground z of the cell whose lower-left corner is
+    ``origin + (ix, iy) * cell_m``; ``measured`` marks cells estimated from their own points (the
+    others are filled from the nearest measured cell).
+    """
+
+    origin: np.ndarray
+    cell_m: float
+    heights: np.ndarray
+    measured: np.ndarray
+
+    def cell_index(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cell indices (clipped to the grid) of (N, 2) positions and whether they fall inside."""
+        ij = np.floor((np.asarray(xy)[:, :2] - self.origin) / self.cell_m).astype(np.int64)
+        inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < self.heights.shape[0]) & (ij[:, 1] < self.heights.shape[1])
+        ix = np.clip(ij[:, 0], 0, self.heights.shape[0] - 1)
+        iy = np.clip(ij[:, 1], 0, self.heights.shape[1] - 1)
+        return ix, iy, inside
+
+    def height_at(self, xy: np.ndarray) -> np.ndarray:
+        """Ground z at (N, 2) positions, bilinear between cell centres; edges extend outward."""
+        u = (np.asarray(xy)[:, :2] - self.origin) / self.cell_m - 0.5
+        nx, ny = self.heights.shape
+        u0 = np.clip(np.floor(u).astype(np.int64), 0, [nx - 1, ny - 1])
+        u1 = np.clip(u0 + 1, 0, [nx - 1, ny - 1])
+        f = np.clip(u - u0, 0.0, 1.0)
+        h = self.heights
+        top = h[u0[:, 0], u0[:, 1]] * (1 - f[:, 0]) + h[u1[:, 0], u0[:, 1]] * f[:, 0]
+        bottom = h[u0[:, 0], u1[:, 1]] * (1 - f[:, 0]) + h[u1[:, 0], u1[:, 1]] * f[:, 0]
+        return top * (1 - f[:, 1]) + bottom * f[:, 1]
+
+    def measured_at(self, xy: np.ndarray) -> np.ndarray:
+        """Whether each (N, 2) position falls in a measured cell."""
+        ix, iy, inside = self.cell_index(xy)
+        return inside & self.measured[ix, iy]
+
+
+def ground_grid(points: np.ndarray, *, cell_m: float = 0.5, window_m: float = 3.0, max_step_m: float = 0.6) -> GroundGrid:
+    """Estimate a ground-height grid from the lowest point of each cell.
+
+    A cell's lowest point is canopy or a trunk where the ground is hidden; such cells stand out
+    above the lowest cells around them. Cells more than ``max_step_m`` above the local minimum over
+    a ``window_m`` window (plus what a 45 deg slope allows) are dropped, the rest smoothed with a
+    3x3 median and holes filled from the nearest measured cell.
+
+    Parameters
+    ----------
+    points : (N, 3) levelled coordinates, metres (best the paper's ground points, but any will do).
+    cell_m : grid cell side, metres.
+    """
+    if len(points) == 0:
+        raise ValueError("no points to estimate the ground from")
+    origin = np.floor(points[:, :2].min(axis=0) / cell_m) * cell_m
+    ij = np.floor((points[:, :2] - origin) / cell_m).astype(np.int64)
+    shape = tuple(ij.max(axis=0) + 1)
+    low = np.full(shape, np.inf)
+    np.minimum.at(low, (ij[:, 0], ij[:, 1]), points[:, 2])
+    measured = np.isfinite(low)
+    size = max(3, int(round(window_m / cell_m)) | 1)
+    filled = np.where(measured, low, np.inf)
+    local_min = ndimage.minimum_filter(filled, size=size, mode="nearest")
+    allowance = max_step_m + (size // 2) * cell_m  # a 45 deg slope rises one cell per cell
+    with np.errstate(invalid="ignore"):
+        measured &= filled - local_min <= allowance
+    heights = _fill_nearest(np.where(measured, low, np.nan))
+    smooth = ndimage.median_filter(heights, size=3, mode="nearest")
+    heights = np.where(measured, smooth, heights)
+    return GroundGrid(origin=origin, cell_m=cell_m, heights=heights, measured=measured)
+
+
+def _fill_nearest(grid: np.ndarray) -> np.ndarray:
+    """Fill NaN cells with the value of the nearest non-NaN cell."""
+    missing = np.isnan(grid)
+    if not missing.any():
+        return grid
+    if missing.all():
+        raise ValueError("no ground cell could be measured")
+    _, (ix, iy) = ndimage.distance_transform_edt(missing, return_indices=True)
+    return grid[ix, iy]
+
+
+def scanner_height_above_ground(grid: GroundGrid, scanner_xyz: np.ndarray, *, inner_m: float = 1.0, outer_m: float = 4.0) -> float:
+    """Height of the scanner above the ground around it, metres: scanner z minus the median ground
+    height of measured cells between ``inner_m`` and ``outer_m`` horizontally (the scanner's own
+    blind spot and tripod are inside ``inner_m``)."""
+    nx, ny = grid.heights.shape
+    cx = grid.origin[0] + (np.arange(nx) + 0.5) * grid.cell_m
+    cy = grid.origin[1] + (np.arange(ny) + 0.5) * grid.cell_m
+    gx, gy = np.meshgrid(cx, cy, indexing="ij")
+    r = np.hypot(gx - scanner_xyz[0], gy - scanner_xyz[1])
+    for outer in (outer_m, 2 * outer_m, 4 * outer_m):
+        ring = (r >= inner_m) & (r <= outer) & grid.measured
+        if ring.sum() >= 4:
+            return float(scanner_xyz[2] - np.median(grid.heights[ring]))
+    return float(scanner_xyz[2] - np.median(grid.heights[grid.measured]))

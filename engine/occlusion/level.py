@@ -1,0 +1,173 @@
+"""Levelling a tilted scan from its own data.
+
+A scanner tilted (e.g. 30 deg, to see the canopy) has its z axis off the vertical, so a horizontal
+slice would cut trunks obliquely. The ground around the scanner is the strongest vertical cue: the
+mode of the normals of flat, near-horizontal surfaces. A plot's terrain can slope too, so a ground
+normal less than 20 deg off the scanner's z is read as terrain and the scan as level; a steeper one
+as a tilted scanner. Where trunks are plentiful (their bark normals are horizontal, so they gather
+on the great circle perpendicular to "up") they refine the ground's estimate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """3x3 rotation taking unit vector ``a`` onto unit vector ``b`` (the shortest rotation)."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    s = float(np.linalg.norm(v))
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        axis = np.cross(a, [1.0, 0.0, 0.0])
+        if np.linalg.norm(axis) < 1e-6:
+            axis = np.cross(a, [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx * ((1 - c) / s**2)
+
+
+def surface_normals(points: np.ndarray, *, voxel_m: float = 0.1, radius_m: float = 15.0, neighbours: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Normals and surface variation of a ``voxel_m`` thinned copy of the points within
+    ``radius_m`` of the origin.
+
+    Returns (M, 3) unit normals (arbitrary sign) and (M,) surface variation
+    ``l0 / (l0 + l1 + l2)`` of the local covariance (0 = flat; leaves and clutter are high).
+    """
+    near = points[np.einsum("ij,ij->i", points, points) <= radius_m**2]
+    if len(near) <= neighbours:
+        return np.zeros((0, 3)), np.zeros(0)
+    thinned = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near)).voxel_down_sample(voxel_m).points)
+    if len(thinned) <= neighbours:
+        return np.zeros((0, 3)), np.zeros(0)
+    if len(thinned) > 60000:
+        thinned = thinned[np.random.default_rng(0).choice(len(thinned), 60000, replace=False)]
+    _, idx = cKDTree(thinned).query(thinned, k=neighbours)
+    nb = thinned[idx] - thinned[idx].mean(axis=1, keepdims=True)
+    w, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    return v[:, :, 0], w[:, 0] / np.maximum(w.sum(axis=1), 1e-12)
+
+
+def _hemisphere_directions(max_tilt_deg: float, step_deg: float, centre: np.ndarray) -> np.ndarray:
+    """Unit vectors within ``max_tilt_deg`` of ``centre`` on a roughly even grid of ``step_deg``."""
+    dirs = [np.array([0.0, 0.0, 1.0])]
+    for tilt in np.arange(step_deg, max_tilt_deg + 1e-9, step_deg):
+        count = max(6, int(round(360.0 * np.sin(np.radians(tilt)) / step_deg)))
+        az = np.radians(np.arange(count) * 360.0 / count)
+        t = np.radians(tilt)
+        dirs.extend(np.stack([np.sin(t) * np.cos(az), np.sin(t) * np.sin(az), np.full(count, np.cos(t))], axis=1))
+    d = np.array(dirs)
+    return d @ rotation_between(np.array([0.0, 0.0, 1.0]), centre).T
+
+
+@dataclass(frozen=True)
+class UpEstimate:
+    """The vertical of a scan estimated from its data (scan frame, unit vectors).
+
+    ``up`` is the decision; ``ground_normal`` the dominant normal of flat near-horizontal
+    surfaces; ``trunk_up`` the direction perpendicular to the most vertical-surface normals
+    (None when trunks are too few); ``trunk_strength`` how strongly trunks agree (votes over the
+    median vote of all candidate directions).
+    """
+
+    up: np.ndarray
+    ground_normal: np.ndarray
+    trunk_up: Optional[np.ndarray]
+    trunk_strength: float
+    source: str
+
+
+def estimate_up_direction(
+    points: np.ndarray,
+    *,
+    max_tilt_deg: float = 50.0,
+    ground_only_min_tilt_deg: float = 20.0,
+) -> UpEstimate:
+    """Estimate the true vertical of a scan in its own frame.
+
+    1. The ground normal: the mode of the normals of flat surfaces within 50 deg of the scan's z.
+       Tilted less than ``ground_only_min_tilt_deg``, it is read as terrain slope: the scan is
+       taken as level (z).
+    2. Otherwise the ground normal is the vertical, refined by trunks where they are plentiful:
+       within 10 deg of it, the direction whose perpendicular great circle gathers the most
+       vertical-surface normals (a clear, interior peak), refined as the smallest eigenvector of
+       those normals' scatter matrix.
+
+    Parameters
+    ----------
+    points : (N, 3) scanner-centred coordinates (scanner at the origin), metres.
+    """
+    z = np.array([0.0, 0.0, 1.0])
+    normals, variation = surface_normals(points)
+    flat = normals[variation < 0.02]
+    if len(flat) < 100:
+        return UpEstimate(z, z, None, 0.0, "too few flat surfaces: taken as level")
+    flat = flat * np.sign(flat[:, 2:3] + 1e-12)
+    horizontalish = flat[flat[:, 2] > np.cos(np.radians(max_tilt_deg))]
+    ground = _direction_mode(horizontalish) if len(horizontalish) >= 50 else z
+    if tilt_deg(ground) < ground_only_min_tilt_deg:
+        return UpEstimate(z, ground, None, 0.0, f"ground tilted {tilt_deg(ground):.1f} deg: taken as level (terrain slope)")
+    walls = flat[np.abs(flat @ ground) < np.cos(np.radians(60.0))]
+    if len(walls) >= 100:
+        band = np.sin(np.radians(3.0))
+        cone = 10.0
+        candidates = _hemisphere_directions(cone, 1.0, ground)
+        votes = (np.abs(walls @ candidates.T) < band).sum(axis=0)
+        best = candidates[int(np.argmax(votes))]
+        strength = float(votes.max() / max(np.median(votes), 1.0))
+        interior = np.degrees(np.arccos(np.clip(best @ ground, -1, 1))) <= cone - 2.0
+        if strength >= 3.0 and interior:
+            for tol in (6.0, 3.0):
+                near = walls[np.abs(walls @ best) < np.sin(np.radians(tol))]
+                if len(near) < 30:
+                    break
+                _, v = np.linalg.eigh(near.T @ near)
+                best = v[:, 0] * np.sign(v[2, 0] + 1e-12)
+            return UpEstimate(best, ground, best, strength, "ground, refined by trunks")
+    return UpEstimate(ground, ground, None, 0.0, "ground")
+
+
+def _direction_mode(normals: np.ndarray, bandwidth_deg: float = 8.0) -> np.ndarray:
+    """Mode of unit vectors on the sphere by mean shift (flat cone kernel), started from their
+    normalised mean and re-started from the densest of a few seeds."""
+    cos_bw = np.cos(np.radians(bandwidth_deg))
+    seeds = [normals.mean(axis=0)] + list(normals[np.random.default_rng(0).choice(len(normals), min(20, len(normals)), replace=False)])
+    best, best_count = None, -1
+    for seed in seeds:
+        u = seed / np.linalg.norm(seed)
+        for _ in range(30):
+            near = normals[normals @ u >= cos_bw]
+            if len(near) == 0:
+                break
+            moved = near.sum(axis=0)
+            moved /= np.linalg.norm(moved)
+            if moved @ u > np.cos(np.radians(0.01)):
+                u = moved
+                break
+            u = moved
+        count = int((normals @ u >= cos_bw).sum())
+        if count > best_count:
+            best, best_count = u, count
+    return best
+
+
+def levelling_rotation(up: np.ndarray) -> np.ndarray:
+    """3x3 rotation that maps the scan's ``up`` direction onto +z (rotation about a horizontal
+    axis only: the heading is kept)."""
+    return rotation_between(np.asarray(up, dtype=float), np.array([0.0, 0.0, 1.0]))
+
+
+def tilt_deg(up: np.ndarray) -> float:
+    """Angle between ``up`` and the scan's z axis, degrees."""
+    u = np.asarray(up, dtype=float)
+    return float(np.degrees(np.arccos(np.clip(u[2] / np.linalg.norm(u), -1.0, 1.0))))

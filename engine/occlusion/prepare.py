@@ -1,0 +1,233 @@
+"""Per-scan preparation for System A: reduce, level, find the ground, extract VOPs.
+
+Frames: a :class:`PreparedScan` holds its points in the *levelled scanner frame* (LSF): metres,
+the scanner at the origin, z up, the heading of the scan's own frame kept. ``local_to_lsf`` maps
+the scan's local frame (see :class:`~forestreg.engine.scan.Scan`) into it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..params import RegistrationParams
+from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
+from .level import estimate_up_direction, levelling_rotation, tilt_deg
+from .vop import (
+    VisualOcclusionPoints,
+    angular_spacing,
+    connected_components,
+    density_mode,
+    outermost_candidates,
+    polar,
+    shadow_is_empty,
+    slice_layer,
+    trunk_axis,
+)
+
+
+@dataclass(frozen=True)
+class PreparedScan:
+    """A scan reduced to ``D_c``, levelled, with its ground (levelled scanner frame, metres)."""
+
+    points: np.ndarray
+    local_to_lsf: np.ndarray
+    ground_mask: np.ndarray
+    ground: GroundGrid
+    scanner_height_m: float
+    tilt_deg: float
+    levelled: bool
+
+
+def reduce_to_range(points: np.ndarray, scanner_xy: np.ndarray, max_range_m: float) -> np.ndarray:
+    """Mask of the points within ``max_range_m`` horizontally of the scanner (paper eq. 1)."""
+    d2 = (points[:, 0] - scanner_xy[0]) ** 2 + (points[:, 1] - scanner_xy[1]) ** 2
+    return d2 <= max_range_m**2
+
+
+def prepare_scan(
+    points_local: np.ndarray,
+    scanner_local: np.ndarray,
+    params: RegistrationParams,
+    *,
+    up: Optional[np.ndarray] = None,
+) -> PreparedScan:
+    """Reduce, level and ground one scan.
+
+    Parameters
+    ----------
+    points_local : (N, 3) points in the scan's local frame, metres.
+    scanner_local : (3,) scanner position in that frame.
+    up : optional known vertical direction in the scan's frame (from an inclination sensor); by
+        default estimated from the data when ``params.level_tilted``.
+    """
+    centred = points_local - scanner_local
+    reach = params.max_range_m
+    keep = np.einsum("ij,ij->i", centred, centred) <= (reach * 1.6) ** 2  # generous before levelling
+    centred = centred[keep]
+    if up is None and params.level_tilted:
+        estimate = estimate_up_direction(centred[np.einsum("ij,ij->i", centred, centred) <= 15.0**2])
+        tilt = tilt_deg(estimate.up)
+        levelled = tilt >= params.tilt_threshold_deg
+        up = estimate.up if levelled else np.array([0.0, 0.0, 1.0])
+        if not levelled:
+            tilt = 0.0
+    else:
+        up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=float)
+        tilt = tilt_deg(up)
+        levelled = tilt > 0.0
+    rotation = levelling_rotation(up)
+    lsf = centred @ rotation.T if levelled else centred
+    lsf = lsf[reduce_to_range(lsf, np.zeros(2), reach)]
+    local_to_lsf = np.eye(4)
+    local_to_lsf[:3, :3] = rotation
+    local_to_lsf[:3, 3] = -rotation @ scanner_local
+    ground_mask = lowest_voxel_ground(lsf, params.ground_voxel_m)
+    grid = ground_grid(lsf[ground_mask], cell_m=params.ground_voxel_m)
+    height = scanner_height_above_ground(grid, np.zeros(3))
+    return PreparedScan(
+        points=lsf,
+        local_to_lsf=local_to_lsf,
+        ground_mask=ground_mask,
+        ground=grid,
+        scanner_height_m=height,
+        tilt_deg=tilt,
+        levelled=levelled,
+    )
+
+
+@dataclass(frozen=True)
+class SliceLayer:
+    """The points of one slice layer (levelled scanner frame), sorted by azimuth."""
+
+    xyz: np.ndarray
+    azimuth: np.ndarray
+    distance: np.ndarray
+    offset_m: float
+
+
+def slice_layers(prepared: PreparedScan, params: RegistrationParams) -> list[SliceLayer]:
+    """The slice layers of a prepared scan, one per ``slice_offsets_m`` (non-ground points only)."""
+    pts = prepared.points[~prepared.ground_mask]
+    layers = []
+    for offset in params.slice_offsets_m:
+        if params.follow_terrain:
+            mask = slice_layer(pts, prepared.ground, centre_height_m=prepared.scanner_height_m + offset, thickness_m=params.slice_thickness_m)
+        else:
+            mask = slice_layer(pts, None, centre_height_m=offset, thickness_m=params.slice_thickness_m)
+        xyz = pts[mask]
+        az, dist = polar(xyz[:, :2])
+        order = np.argsort(az, kind="stable")
+        layers.append(SliceLayer(xyz=xyz[order], azimuth=az[order], distance=dist[order], offset_m=float(offset)))
+    return layers
+
+
+def extract_vops(layers: Sequence[SliceLayer], params: RegistrationParams, radius_m: float) -> VisualOcclusionPoints:
+    """VOPs of a scan from its slice layers within ``radius_m`` (``D_r``), layers merged keeping
+    the lowest layer's VOP where several layers see the same trunk."""
+    found: list[VisualOcclusionPoints] = []
+    for index, layer in enumerate(layers):
+        found.append(_layer_vops(layer, params, radius_m, index))
+    return _merge_layers(found, [layer.offset_m for layer in layers], params.ground_voxel_m)
+
+
+def _layer_vops(layer: SliceLayer, params: RegistrationParams, radius_m: float, layer_index: int) -> VisualOcclusionPoints:
+    cand = outermost_candidates(
+        layer.azimuth,
+        layer.distance,
+        angular_step_deg=params.angular_step_deg,
+        radial_step_m=params.radial_step_m,
+        radius_m=radius_m,
+    )
+    if len(cand) < params.min_component_points:
+        return VisualOcclusionPoints.empty()
+    pts = layer.xyz[cand]
+    spacing = angular_spacing(layer.xyz[layer.distance <= radius_m])
+    labels = connected_components(pts, link_m=params.component_voxel_m, spacing_rad=spacing)
+    order = np.argsort(labels, kind="stable")
+    bounds = np.flatnonzero(np.diff(labels[order])) + 1
+    xy, z, bark, radius, support, rejected = [], [], [], [], [], []
+    min_height = params.min_component_height_fraction * params.slice_thickness_m
+    for members in np.split(order, bounds):
+        if len(members) < params.min_component_points:
+            continue
+        comp = pts[members]
+        if np.ptp(comp[:, 2]) < min_height:
+            continue
+        if max(np.ptp(comp[:, 0]), np.ptp(comp[:, 1])) > params.max_component_width_m:
+            continue
+        mode = density_mode(comp[:, :2], bandwidth_m=params.mean_shift_bandwidth_m)
+        if not shadow_is_empty(
+            mode,
+            layer.azimuth,
+            layer.xyz[:, :2],
+            gap_m=params.visibility_gap_m,
+            width_m=params.radial_step_m,
+            max_range_m=params.max_range_m,
+        ):
+            rejected.append(mode)
+            continue
+        if params.centre_on_trunk_axis:
+            axis, r = trunk_axis(comp[:, :2], mode)
+        else:
+            axis, r = mode, 0.0
+        xy.append(axis)
+        z.append(float(np.median(comp[:, 2])))
+        bark.append(mode)
+        radius.append(r)
+        support.append(len(members))
+    if not xy:
+        empty = VisualOcclusionPoints.empty()
+        return VisualOcclusionPoints(empty.xy, empty.z, empty.bark_xy, empty.radius, empty.support, empty.layer, np.array(rejected).reshape(-1, 2))
+    n = len(xy)
+    return VisualOcclusionPoints(
+        xy=np.array(xy),
+        z=np.array(z),
+        bark_xy=np.array(bark),
+        radius=np.array(radius),
+        support=np.array(support, dtype=np.int64),
+        layer=np.full(n, layer_index, dtype=np.int64),
+        rejected_xy=np.array(rejected).reshape(-1, 2),
+    )
+
+
+def _merge_layers(per_layer: Sequence[VisualOcclusionPoints], offsets_m: Sequence[float], merge_distance_m: float) -> VisualOcclusionPoints:
+    """Combine the layers' VOPs; a VOP within ``merge_distance_m`` of one from a lower layer (or an
+    earlier VOP of the same layer) is the same trunk and dropped (paper: keep the bottom-most)."""
+    if len(per_layer) == 1:
+        return per_layer[0]
+    kept: list[int] = []
+    allv = VisualOcclusionPoints(
+        xy=np.concatenate([v.xy for v in per_layer]),
+        z=np.concatenate([v.z for v in per_layer]),
+        bark_xy=np.concatenate([v.bark_xy for v in per_layer]),
+        radius=np.concatenate([v.radius for v in per_layer]),
+        support=np.concatenate([v.support for v in per_layer]),
+        layer=np.concatenate([v.layer for v in per_layer]),
+        rejected_xy=np.concatenate([v.rejected_xy for v in per_layer]),
+    )
+    if len(allv) == 0:
+        return allv
+    order = np.argsort(np.asarray(offsets_m)[allv.layer], kind="stable")
+    for idx in order:
+        if kept:
+            d = np.hypot(*(allv.xy[kept] - allv.xy[idx]).T)
+            if d.min() < merge_distance_m:
+                continue
+        kept.append(int(idx))
+    sel = np.array(sorted(kept))
+    return VisualOcclusionPoints(
+        xy=allv.xy[sel], z=allv.z[sel], bark_xy=allv.bark_xy[sel], radius=allv.radius[sel],
+        support=allv.support[sel], layer=allv.layer[sel], rejected_xy=allv.rejected_xy,
+    )
+
+
+def nearest_distances(reference_xy: np.ndarray, query_xy: np.ndarray) -> np.ndarray:
+    """Distance from each query point to its nearest reference point (horizontal, metres)."""
+    if len(reference_xy) == 0:
+        return np.full(len(query_xy), np.inf)
+    d, _ = cKDTree(reference_xy).query(query_xy)
+    return d

@@ -1,0 +1,152 @@
+"""Parameters of the pair registration (System A), as one frozen dataclass.
+
+Defaults are the paper's table 2 (Guan et al. 2020) where the paper gives a value; the rest are
+ours and documented in the field metadata (``unit``, ``range``, ``help``, ``paper``), which also
+builds the GUI's parameter panel and the README's table. Distances in metres, angles in degrees.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional
+
+from .errors import ParameterError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+def _p(default: Any, unit: str, lo: Optional[float], hi: Optional[float], help: str, paper: str = "") -> Any:
+    meta = {"unit": unit, "range": (lo, hi), "help": help, "paper": paper}
+    if isinstance(default, (list, tuple)):
+        return field(default=tuple(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """Every setting of marker-free pair registration (METHOD.md, System A)."""
+
+    # --- data reduction and ground (paper 2.4, 2.5.1)
+    max_range_m: float = _p(30.0, "m", 5.0, 200.0, "Points farther than this horizontally from the scanner are dropped", "D_c = 30 m")
+    ground_voxel_m: float = _p(0.5, "m", 0.1, 2.0, "Voxel size for the lowest-voxel ground points", "voxel size = 0.5 m")
+    # --- slicing (paper 2.5.2)
+    slice_thickness_m: float = _p(0.2, "m", 0.05, 1.0, "Thickness of each slice layer", "dZ = 0.2 m")
+    slice_offsets_m: tuple[float, ...] = _p((0.0,), "m", -1.0, 5.0, "Heights of the slice layers relative to the scanner height; several for slopes or understory", "dh (table 3)")
+    follow_terrain: bool = _p(True, "", None, None, "Slice at a constant height above the local ground (the scanner's own height above ground + dh) instead of a flat plane: keeps trunks in the slice on slopes. Off = the paper's flat slice")
+    # --- angular grid and visual occlusion points
+    angular_step_deg: float = _p(0.1, "deg", 0.01, 2.0, "Angular resolution of the angular grid and rotation step of the coarse search", "I_A = 0.1 deg")
+    radial_step_m: float = _p(0.1, "m", 0.02, 1.0, "Distance resolution of the angular grid; width of the visibility buffer", "I_D = 0.1 m")
+    vop_radius_m: Optional[float] = _p(None, "m", 2.0, 100.0, "Radius around the scanner in which VOPs are extracted; empty = choose automatically (tries increasing radii)", "D_r (table 3)")
+    visibility_gap_m: float = _p(0.5, "m", 0.0, 5.0, "Start of the visibility buffer behind a candidate", "D_e = 0.5 m")
+    component_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size of the connected-component labelling of candidate points")
+    min_component_points: int = _p(8, "points", 2, 10000, "Smallest connected component kept as a trunk candidate")
+    min_component_height_fraction: float = _p(0.5, "", 0.0, 1.0, "A trunk component spans at least this fraction of the slice thickness vertically")
+    max_component_width_m: float = _p(2.0, "m", 0.1, 10.0, "Components wider than this (walls, rocks, dense bushes) are not trunks")
+    mean_shift_bandwidth_m: float = _p(0.1, "m", 0.01, 1.0, "Flat-kernel radius of the mean shift that finds a component's density mode")
+    centre_on_trunk_axis: bool = _p(True, "", None, None, "Move each VOP from the visible bark to the estimated trunk axis (half the arc width behind it along the ray), so VOPs of one trunk from two scans coincide. Off = the paper's density mode")
+    # --- horizontal coarse registration (paper 2.5.3)
+    match_distance_m: float = _p(0.2, "m", 0.01, 2.0, "Match distance threshold of the overlap score", "D_t = 0.2 m")
+    # --- evidence
+    min_vops: int = _p(4, "VOPs", 3, 1000, "Fewest VOPs per scan to attempt a registration")
+    min_matched: int = _p(4, "VOPs", 3, 1000, "Fewest matched VOPs for a registration to count (the paper sees failures below 3)")
+    min_match_margin: int = _p(2, "VOPs", 0, 1000, "The best solution must match at least this many more VOPs than the best distinct alternative")
+    distinct_rotation_deg: float = _p(5.0, "deg", 0.5, 180.0, "Alternatives rotated more than this from the best are distinct solutions")
+    distinct_translation_m: float = _p(1.0, "m", 0.1, 50.0, "Alternatives displaced more than this from the best are distinct solutions")
+    # --- levelling of tilted scans
+    level_tilted: bool = _p(True, "", None, None, "Detect a tilted scanner from its own data (ground and trunk directions) and level the scan before slicing")
+    tilt_threshold_deg: float = _p(2.0, "deg", 0.1, 45.0, "Estimated tilts below this are treated as a level scanner")
+    # --- fine registration (ICP, paper 2.6)
+    icp_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size to which both clouds are thinned for ICP")
+    icp_max_distances_m: tuple[float, ...] = _p((0.5, 0.2, 0.08), "m", 0.005, 5.0, "Correspondence distances of the successive ICP stages")
+    icp_iterations: int = _p(40, "", 1, 1000, "Iterations per ICP stage")
+    icp_min_fitness: float = _p(0.2, "", 0.0, 1.0, "Fewest fraction of moving points with a close reference point after ICP")
+    icp_max_correction_m: float = _p(1.0, "m", 0.0, 10.0, "ICP may move the coarse result by at most this much (more means the coarse result was wrong)")
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            lo, hi = f.metadata.get("range", (None, None))
+            values = value if isinstance(value, tuple) else (value,)
+            if value is None or isinstance(value, bool):
+                continue
+            if isinstance(value, tuple) and not value:
+                raise ParameterError(f"{f.name}: needs at least one value")
+            for v in values:
+                if not isinstance(v, (int, float)) or not math.isfinite(v):
+                    raise ParameterError(f"{f.name}: {v!r} is not a finite number")
+                if (lo is not None and v < lo) or (hi is not None and v > hi):
+                    raise ParameterError(f"{f.name} = {v} {f.metadata['unit']} is outside [{lo}, {hi}]")
+        if self.vop_radius_m is not None and self.vop_radius_m >= self.max_range_m:
+            raise ParameterError(
+                f"vop_radius_m ({self.vop_radius_m} m) must be smaller than max_range_m ({self.max_range_m} m): "
+                "the visibility check needs points beyond the VOP radius"
+            )
+        steps = 360.0 / self.angular_step_deg
+        if abs(steps - round(steps)) > 1e-6:
+            raise ParameterError(f"angular_step_deg = {self.angular_step_deg} must divide 360")
+
+    def replace(self, **changes: Any) -> "RegistrationParams":
+        """A copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict of every field."""
+        return {f.name: (list(v) if isinstance(v := getattr(self, f.name), tuple) else v) for f in dataclasses.fields(self)}
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> "RegistrationParams":
+        """Build from a mapping (e.g. a TOML table); unknown keys are an error, lists become tuples."""
+        names = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(names))
+        if unknown:
+            raise ParameterError(f"unknown parameter(s): {', '.join(unknown)}; known: {', '.join(sorted(names))}")
+        clean: dict[str, Any] = {}
+        for k, v in values.items():
+            if isinstance(v, list):
+                v = tuple(v)
+            elif isinstance(names[k].default, tuple) and isinstance(v, (int, float)):
+                v = (v,)
+            clean[k] = v
+        try:
+            return cls(**clean)
+        except TypeError as exc:  # pragma: no cover - defensive
+            raise ParameterError(str(exc)) from exc
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> "RegistrationParams":
+        """Read parameters from a TOML file: top-level keys or a ``[registration]`` table."""
+        p = Path(path)
+        try:
+            data = tomllib.loads(p.read_text(encoding="utf-8"))
+        except FileNotFoundError as exc:
+            raise ParameterError(f"parameter file {p} does not exist") from exc
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            raise ParameterError(f"parameter file {p} cannot be read: {exc}") from exc
+        table = data.get("registration", data)
+        if not isinstance(table, dict):
+            raise ParameterError(f"parameter file {p}: [registration] must be a table")
+        return cls.from_mapping(table)
+
+
+def parameter_table(cls: type = RegistrationParams) -> list[dict[str, Any]]:
+    """One row per parameter: name, default, unit, range, help, paper symbol (for docs and GUI)."""
+    rows = []
+    for f in dataclasses.fields(cls):
+        rows.append(
+            {
+                "name": f.name,
+                "default": f.default,
+                "unit": f.metadata.get("unit", ""),
+                "range": f.metadata.get("range"),
+                "help": f.metadata.get("help", ""),
+                "paper": f.metadata.get("paper", ""),
+            }
+        )
+    return rows

@@ -1,0 +1,388 @@
+"""Marker-free pair registration (System A): the pipeline from two scans to a :class:`PairResult`.
+
+Steps (METHOD.md): reduce -> level -> ground -> slice -> VOPs -> horizontal coarse match ->
+vertical offset from the ground overlap -> ICP -> evidence. Each step is a function of
+``engine.occlusion`` / ``engine.match``; this module only composes them, times them and decides,
+from the evidence, whether the result can be trusted.
+
+Frames: ``PairResult.matrix`` maps the moving scan's *file coordinates* to the reference scan's
+file coordinates: ``p_reference = matrix @ p_moving`` (homogeneous column vectors).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import numpy as np
+
+from .match.coarse import CoarseMatch, match_vops
+from .match.icp import IcpResult, icp
+from .occlusion.prepare import PreparedScan, SliceLayer, extract_vops, nearest_distances, prepare_scan, slice_layers
+from .occlusion.vop import VisualOcclusionPoints
+from .params import RegistrationParams
+from .progress import CancelToken, Progress, ProgressCallback
+from .scan import Scan
+from .transform import rotation_angle_deg
+
+log = logging.getLogger("forestreg")
+
+#: VOP radii (D_r, metres) tried in turn when none is given.
+AUTO_VOP_RADII_M = (10.0, 15.0, 20.0, 25.0)
+
+
+@dataclass(frozen=True)
+class CoarseAttempt:
+    """The coarse match at one VOP radius, with the evidence the decision is made from."""
+
+    radius_m: float
+    reference_vops: VisualOcclusionPoints
+    moving_vops: VisualOcclusionPoints
+    match: Optional[CoarseMatch]
+    problem: str = ""
+
+    @property
+    def matched(self) -> int:
+        return 0 if self.match is None else self.match.matched
+
+    @property
+    def margin(self) -> int:
+        if self.match is None:
+            return 0
+        return self.match.matched - (self.match.second_matched or 0)
+
+    def summary(self) -> dict[str, Any]:
+        m = self.match
+        return {
+            "vop_radius_m": self.radius_m,
+            "reference_vops": len(self.reference_vops),
+            "moving_vops": len(self.moving_vops),
+            "matched": self.matched,
+            "second_matched": None if m is None else m.second_matched,
+            "score_m": None if m is None else m.score,
+            "second_score_m": None if m is None else m.second_score,
+            "problem": self.problem,
+        }
+
+
+@dataclass(frozen=True)
+class PairDetails:
+    """What the pipeline saw, for figures and the GUI (levelled scanner frames, metres)."""
+
+    reference: PreparedScan
+    moving: PreparedScan
+    reference_layers: list[SliceLayer]
+    moving_layers: list[SliceLayer]
+    attempts: list[CoarseAttempt]
+    chosen: Optional[CoarseAttempt]
+    lsf_matrix: Optional[np.ndarray]
+    coarse_lsf_matrix: Optional[np.ndarray]
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """Result of registering a moving scan onto a reference scan.
+
+    ``status`` is "ok" or "failed"; a failed result has ``matrix = None`` and a ``reason``.
+    ``matrix`` maps moving file coordinates to reference file coordinates; ``coarse_matrix`` is
+    the coarse (VOP + ground) solution ICP started from, in the same frames.
+    """
+
+    status: str
+    reason: str
+    matrix: Optional[np.ndarray]
+    coarse_matrix: Optional[np.ndarray]
+    reference_name: str
+    moving_name: str
+    reference_vops: int
+    moving_vops: int
+    matched: int
+    second_matched: Optional[int]
+    score_m: Optional[float]
+    second_score_m: Optional[float]
+    vop_radius_m: Optional[float]
+    vop_residual_m: Optional[float]
+    vertical_offset_m: Optional[float]
+    reference_tilt_deg: float
+    moving_tilt_deg: float
+    icp: Optional[IcpResult]
+    timings: dict[str, float]
+    params: RegistrationParams
+    attempts: list[dict[str, Any]] = field(default_factory=list)
+    details: Optional[PairDetails] = field(default=None, repr=False, compare=False)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def __bool__(self) -> bool:
+        return self.ok
+
+    @property
+    def score_gap_m(self) -> Optional[float]:
+        """Overlap-distance gap between the best and the next distinct coarse solution, metres."""
+        if self.score_m is None or self.second_score_m is None:
+            return None
+        return self.second_score_m - self.score_m
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able summary (what ``result.json`` holds)."""
+        return {
+            "status": self.status,
+            "reason": self.reason,
+            "matrix": None if self.matrix is None else self.matrix.tolist(),
+            "coarse_matrix": None if self.coarse_matrix is None else self.coarse_matrix.tolist(),
+            "convention": "p_reference = matrix @ p_moving (file coordinates, homogeneous column vectors)",
+            "reference": self.reference_name,
+            "moving": self.moving_name,
+            "reference_vops": self.reference_vops,
+            "moving_vops": self.moving_vops,
+            "matched": self.matched,
+            "second_matched": self.second_matched,
+            "score_m": self.score_m,
+            "second_score_m": self.second_score_m,
+            "score_gap_m": self.score_gap_m,
+            "vop_radius_m": self.vop_radius_m,
+            "vop_residual_m": self.vop_residual_m,
+            "vertical_offset_m": self.vertical_offset_m,
+            "reference_tilt_deg": self.reference_tilt_deg,
+            "moving_tilt_deg": self.moving_tilt_deg,
+            "icp": None if self.icp is None else self.icp.to_dict(),
+            "timings": dict(self.timings),
+            "attempts": list(self.attempts),
+            "parameters": self.params.to_dict(),
+        }
+
+
+def register(
+    reference: Scan,
+    moving: Scan,
+    params: Optional[RegistrationParams] = None,
+    *,
+    progress: Optional[ProgressCallback] = None,
+    cancel: Optional[CancelToken] = None,
+    reference_up: Optional[np.ndarray] = None,
+    moving_up: Optional[np.ndarray] = None,
+) -> PairResult:
+    """Register ``moving`` onto ``reference`` from trunk shadows, then ICP.
+
+    Parameters
+    ----------
+    reference, moving : the two scans (each in its own frame, scanner position known).
+    params : settings; default the paper's table 2 with an automatic ``D_r``.
+    progress : optional ``progress(fraction, message)`` callback.
+    cancel : optional token; cancelling raises :class:`~forestreg.engine.errors.Cancelled`.
+    reference_up, moving_up : optional known vertical directions in each scan's local frame
+        (from an inclination sensor); default estimated when ``params.level_tilted``.
+
+    Returns
+    -------
+    PairResult
+        ``status == "ok"`` with the matrix and its evidence, or ``"failed"`` with the reason.
+    """
+    params = params or RegistrationParams()
+    step = Progress(progress, cancel=cancel)
+    timings: dict[str, float] = {}
+    log.info("registering %s onto %s", moving.name, reference.name)
+
+    def timed(name: str, fn, *args, **kwargs):
+        t0 = time.perf_counter()
+        out = fn(*args, **kwargs)
+        timings[name] = timings.get(name, 0.0) + time.perf_counter() - t0
+        return out
+
+    step(0.0, "preparing reference scan")
+    ref_prep = timed("prepare_reference", prepare_scan, reference.points, reference.scanner_position, params, up=reference_up)
+    step(0.15, "preparing moving scan")
+    mov_prep = timed("prepare_moving", prepare_scan, moving.points, moving.scanner_position, params, up=moving_up)
+    for name, prep in ((reference.name, ref_prep), (moving.name, mov_prep)):
+        log.info(
+            "%s: %d points within %.0f m, tilt %.2f deg%s, scanner %.2f m above ground",
+            name, len(prep.points), params.max_range_m, prep.tilt_deg, " (levelled)" if prep.levelled else "", prep.scanner_height_m,
+        )
+    step(0.3, "slicing")
+    ref_layers = timed("slice", slice_layers, ref_prep, params)
+    mov_layers = timed("slice", slice_layers, mov_prep, params)
+
+    radii = (params.vop_radius_m,) if params.vop_radius_m is not None else tuple(r for r in AUTO_VOP_RADII_M if r <= params.max_range_m - 3.0)
+    attempts: list[CoarseAttempt] = []
+    for k, radius in enumerate(radii):
+        step(0.35 + 0.25 * k / len(radii), f"visual occlusion points within {radius:.0f} m")
+        ref_vops = timed("vops", extract_vops, ref_layers, params, radius)
+        mov_vops = timed("vops", extract_vops, mov_layers, params, radius)
+        attempt = timed("coarse", _coarse_attempt, ref_vops, mov_vops, radius, params)
+        log.info(
+            "D_r %.0f m: %d / %d VOPs, %d matched (next distinct: %s)%s",
+            radius, len(ref_vops), len(mov_vops), attempt.matched,
+            None if attempt.match is None else attempt.match.second_matched,
+            f" - {attempt.problem}" if attempt.problem else "",
+        )
+        attempts.append(attempt)
+    chosen = _choose_attempt(attempts)
+    base = dict(
+        reference_name=reference.name,
+        moving_name=moving.name,
+        reference_tilt_deg=ref_prep.tilt_deg,
+        moving_tilt_deg=mov_prep.tilt_deg,
+        timings=timings,
+        params=params,
+        attempts=[a.summary() for a in attempts],
+    )
+    details = dict(reference=ref_prep, moving=mov_prep, reference_layers=ref_layers, moving_layers=mov_layers, attempts=attempts, chosen=chosen)
+    if chosen.problem:
+        return _failed(chosen.problem, chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
+
+    step(0.6, "vertical offset")
+    coarse_2d = chosen.match.matrix()
+    dz = timed("vertical", vertical_offset, ref_prep, mov_prep, coarse_2d)
+    coarse = np.eye(4)
+    coarse[:2, :2] = coarse_2d[:2, :2]
+    coarse[:2, 3] = coarse_2d[:2, 2]
+    coarse[2, 3] = dz
+    if not np.isfinite(dz):
+        return _failed("the two scans share no ground: no vertical offset", chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=coarse))
+
+    step(0.65, "ICP")
+    fine = timed(
+        "icp",
+        icp,
+        ref_prep.points,
+        mov_prep.points,
+        coarse,
+        voxel_m=params.icp_voxel_m,
+        max_distances_m=params.icp_max_distances_m,
+        iterations=params.icp_iterations,
+    )
+    step(0.95, "checking evidence")
+    correction = np.linalg.inv(coarse) @ fine.matrix
+    moved_m = float(np.linalg.norm(correction[:3, 3]))
+    turned = rotation_angle_deg(correction[:3, :3])
+    vop_residual = _vop_residual(chosen, fine.matrix, params.match_distance_m)
+    full_details = PairDetails(**details, lsf_matrix=fine.matrix, coarse_lsf_matrix=coarse)
+    common = dict(base, icp=fine)
+    if moved_m > params.icp_max_correction_m or turned > 5.0:
+        return _failed(
+            f"ICP moved the coarse solution by {moved_m:.2f} m and {turned:.1f} deg: the coarse match is not trustworthy",
+            chosen, common, full_details,
+        )
+    if fine.fitness < params.icp_min_fitness:
+        return _failed(
+            f"ICP fitness {fine.fitness:.2f} is below {params.icp_min_fitness:.2f}: the scans do not overlap where the match puts them",
+            chosen, common, full_details,
+        )
+    matrix = _file_matrix(reference, moving, ref_prep, mov_prep, fine.matrix)
+    coarse_matrix = _file_matrix(reference, moving, ref_prep, mov_prep, coarse)
+    step(1.0, "done")
+    log.info(
+        "ok: %d matched VOPs, ICP std %.1f mm, fitness %.2f (%.1f s)",
+        chosen.matched, 1000 * fine.std_m, fine.fitness, sum(timings.values()),
+    )
+    return PairResult(
+        status="ok",
+        reason="",
+        matrix=matrix,
+        coarse_matrix=coarse_matrix,
+        reference_vops=len(chosen.reference_vops),
+        moving_vops=len(chosen.moving_vops),
+        matched=chosen.matched,
+        second_matched=chosen.match.second_matched,
+        score_m=chosen.match.score,
+        second_score_m=chosen.match.second_score,
+        vop_radius_m=chosen.radius_m,
+        vop_residual_m=vop_residual,
+        vertical_offset_m=dz,
+        details=full_details,
+        **common,
+    )
+
+
+def _coarse_attempt(ref_vops: VisualOcclusionPoints, mov_vops: VisualOcclusionPoints, radius: float, params: RegistrationParams) -> CoarseAttempt:
+    """Match the VOPs of one radius and judge the evidence."""
+    if len(ref_vops) < params.min_vops or len(mov_vops) < params.min_vops:
+        return CoarseAttempt(
+            radius, ref_vops, mov_vops, None,
+            f"too few visual occlusion points within {radius:.0f} m (reference {len(ref_vops)}, moving {len(mov_vops)}; "
+            f"need {params.min_vops}): no trunks visible in the slice - not a forest scan, or try other slice heights (--dh)",
+        )
+    match = match_vops(
+        ref_vops.xy,
+        mov_vops.xy,
+        angle_step_deg=params.angular_step_deg,
+        match_distance_m=params.match_distance_m,
+        distinct_rotation_deg=params.distinct_rotation_deg,
+        distinct_translation_m=params.distinct_translation_m,
+    )
+    problem = ""
+    second = match.second_matched or 0
+    if match.matched < params.min_matched:
+        problem = f"only {match.matched} VOPs match (need {params.min_matched}): the scans share too few trunks - scans too far apart, or D_r too small"
+    elif match.matched - second < params.min_match_margin:
+        problem = (
+            f"ambiguous: the best solution matches {match.matched} VOPs and a different one {second} "
+            f"(need a margin of {params.min_match_margin}) - regular planting or too few common trunks"
+        )
+    return CoarseAttempt(radius, ref_vops, mov_vops, match, problem)
+
+
+def _choose_attempt(attempts: list[CoarseAttempt]) -> CoarseAttempt:
+    """The attempt with the strongest evidence: confident ones first, then the largest margin
+    over the next distinct solution, then the most matched VOPs."""
+    return max(attempts, key=lambda a: (not a.problem, a.margin, a.matched, -a.radius_m))
+
+
+def vertical_offset(reference: PreparedScan, moving: PreparedScan, horizontal: np.ndarray) -> float:
+    """Z offset (metres) to add to the moving scan after the horizontal transform ``horizontal``
+    (3x3, moving LSF xy -> reference LSF xy): the median difference of the two ground grids over
+    the cells both measured. NaN when they share no measured ground."""
+    g = moving.ground
+    nx, ny = g.heights.shape
+    ix, iy = np.nonzero(g.measured)
+    centres = g.origin + (np.column_stack([ix, iy]) + 0.5) * g.cell_m
+    moved = centres @ horizontal[:2, :2].T + horizontal[:2, 2]
+    both = reference.ground.measured_at(moved)
+    if both.sum() < 3:
+        return float("nan")
+    diff = reference.ground.height_at(moved[both]) - g.heights[ix[both], iy[both]]
+    return float(np.median(diff))
+
+
+def _vop_residual(attempt: CoarseAttempt, lsf_matrix: np.ndarray, match_distance_m: float) -> Optional[float]:
+    """Mean horizontal distance (m) between matched VOPs after the final transform."""
+    if attempt.match is None or attempt.match.matched == 0:
+        return None
+    pairs = attempt.match.matched_pairs
+    moved = attempt.moving_vops.xy[pairs[:, 1]] @ lsf_matrix[:2, :2].T + lsf_matrix[:2, 3]
+    d = np.hypot(*(moved - attempt.reference_vops.xy[pairs[:, 0]]).T)
+    return float(np.mean(d))
+
+
+def _file_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, lsf_matrix: np.ndarray) -> np.ndarray:
+    """Compose moving file -> moving local -> moving LSF -> reference LSF -> reference local -> reference file."""
+    file_to_local = np.linalg.inv(moving.local_to_file_matrix())
+    return reference.local_to_file_matrix() @ np.linalg.inv(ref_prep.local_to_lsf) @ lsf_matrix @ mov_prep.local_to_lsf @ file_to_local
+
+
+def _failed(reason: str, attempt: CoarseAttempt, common: dict[str, Any], details: PairDetails) -> PairResult:
+    log.warning("registration failed: %s", reason)
+    m = attempt.match
+    fields = dict(common)
+    fields.setdefault("icp", None)
+    return PairResult(
+        status="failed",
+        reason=reason,
+        matrix=None,
+        coarse_matrix=None,
+        reference_vops=len(attempt.reference_vops),
+        moving_vops=len(attempt.moving_vops),
+        matched=attempt.matched,
+        second_matched=None if m is None else m.second_matched,
+        score_m=None if m is None else m.score,
+        second_score_m=None if m is None else m.second_score,
+        vop_radius_m=attempt.radius_m,
+        vop_residual_m=None,
+        vertical_offset_m=None,
+        details=details,
+        **fields,
+    )

@@ -1,0 +1,93 @@
+"""Figures of a pair registration (matplotlib, no display needed).
+
+Top views in the reference scan's levelled scanner frame (metres): each scan's slice with its
+visual occlusion points, and both after registration with the matched VOP pairs joined.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import TYPE_CHECKING
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..atomic import atomic_path  # noqa: E402
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..register import PairResult
+
+REFERENCE_COLOUR = "#1f77b4"
+MOVING_COLOUR = "#d95f02"
+
+
+def _slice_points(layers, radius: float, limit: int = 60000) -> np.ndarray:
+    pts = np.concatenate([layer.xyz for layer in layers]) if layers else np.zeros((0, 3))
+    pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= radius + 5.0]
+    if len(pts) > limit:
+        pts = pts[:: len(pts) // limit + 1]
+    return pts
+
+
+def _apply2(matrix: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    return xy @ matrix[:2, :2].T + matrix[:2, 3]
+
+
+def pair_figure(result: "PairResult", path: str | os.PathLike[str], *, dpi: int = 110) -> None:
+    """Write a PNG with three top views: the reference slice and VOPs, the moving slice and VOPs,
+    and both overlaid with the final (or, if failed, the best coarse) transform and matched pairs."""
+    det = result.details
+    if det is None or det.chosen is None:
+        raise ValueError("the result carries no details to draw")
+    att = det.chosen
+    radius = att.radius_m
+    fig, axes = plt.subplots(1, 3, figsize=(18, 6.2))
+    for ax, layers, vops, colour, title in (
+        (axes[0], det.reference_layers, att.reference_vops, REFERENCE_COLOUR, f"reference {result.reference_name}"),
+        (axes[1], det.moving_layers, att.moving_vops, MOVING_COLOUR, f"moving {result.moving_name}"),
+    ):
+        pts = _slice_points(layers, radius)
+        ax.scatter(pts[:, 0], pts[:, 1], s=0.3, c="0.6", linewidths=0)
+        if len(vops.rejected_xy):
+            ax.scatter(vops.rejected_xy[:, 0], vops.rejected_xy[:, 1], marker="x", s=14, c="0.35", linewidths=0.8, label="rejected (visibility)")
+        ax.scatter(vops.xy[:, 0], vops.xy[:, 1], s=28, facecolors="none", edgecolors=colour, linewidths=1.4, label=f"{len(vops)} VOPs")
+        ax.add_patch(plt.Circle((0, 0), radius, fill=False, ls="--", color="0.3", lw=0.8))
+        ax.plot(0, 0, marker="^", color="k", ms=9)
+        ax.set_title(f"{title}: slice and VOPs (D_r {radius:.0f} m)")
+        ax.legend(loc="upper right", fontsize=8)
+    ax = axes[2]
+    matrix = det.lsf_matrix if det.lsf_matrix is not None else det.coarse_lsf_matrix
+    ref_pts = _slice_points(det.reference_layers, radius)
+    ax.scatter(ref_pts[:, 0], ref_pts[:, 1], s=0.3, c="#9ecae1", linewidths=0)
+    if matrix is not None:
+        mov_pts = _slice_points(det.moving_layers, radius)
+        moved = _apply2(matrix, mov_pts[:, :2])
+        ax.scatter(moved[:, 0], moved[:, 1], s=0.3, c="#fdae6b", linewidths=0)
+        mov_vops = _apply2(matrix, att.moving_vops.xy)
+        ax.plot(matrix[0, 3], matrix[1, 3], marker="^", color=MOVING_COLOUR, ms=9)
+    else:
+        mov_vops = np.zeros((0, 2))
+    ax.scatter(att.reference_vops.xy[:, 0], att.reference_vops.xy[:, 1], s=28, facecolors="none", edgecolors=REFERENCE_COLOUR, linewidths=1.4, label="reference VOPs")
+    if len(mov_vops):
+        ax.scatter(mov_vops[:, 0], mov_vops[:, 1], s=14, c=MOVING_COLOUR, marker="+", linewidths=1.2, label="moving VOPs")
+    if att.match is not None and len(mov_vops):
+        for i, j in att.match.matched_pairs:
+            a, b = att.reference_vops.xy[i], mov_vops[j]
+            ax.plot([a[0], b[0]], [a[1], b[1]], color="#2ca02c", lw=2.2)
+            ax.plot(a[0], a[1], "o", ms=9, mfc="none", mec="#2ca02c", mew=1.6)
+    ax.plot(0, 0, marker="^", color=REFERENCE_COLOUR, ms=9)
+    status = "ok" if result.ok else f"FAILED: {result.reason[:70]}"
+    ax.set_title(f"registered: {result.matched} matched VOPs (green) - {status}")
+    ax.legend(loc="upper right", fontsize=8)
+    for ax in axes:
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.grid(True, lw=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    plt.close(fig)

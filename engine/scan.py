@@ -1,0 +1,200 @@
+"""The :class:`Scan` type: one set-up of a scanner and its points.
+
+Frames
+------
+*File coordinates* are the coordinates as they stand in the input file (metres). Georeferenced
+clouds (UTM and the like) have coordinates too large for float32 steps, so a scan keeps its points
+in a *local frame*: ``file = local + origin_shift``. For a scan in its scanner's own coordinate
+system (SOCS) the shift is zero and the local frame is the SOCS.
+
+The scanner position is kept in the local frame; by convention (``METHOD.md``) it is the file
+origin ``(0, 0, 0)`` unless a position is given (E57 pose, project file, or option).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional
+
+import numpy as np
+
+from .errors import ScanDataError
+
+#: Coordinates larger than this (m) are shifted to a local origin on reading.
+LARGE_COORDINATE_M = 1.0e4
+#: A scan whose extent exceeds this (m) is taken to be in the wrong units (mm, cm).
+MAX_EXTENT_M = 5.0e3
+#: The fewest points a scan may have.
+MIN_POINTS = 10
+#: At most this fraction of non-finite rows is dropped; more is an error.
+MAX_NONFINITE_FRACTION = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """Points of one scan, float64, in a local frame (``file = points + origin_shift``).
+
+    Build one with :meth:`Scan.from_points`, which validates and shifts; the arrays are read-only.
+
+    Attributes
+    ----------
+    points : (N, 3) float64 array, metres, local frame.
+    scanner_position : (3,) float64 array, metres, local frame.
+    origin_shift : (3,) float64 array, metres: add to local coordinates to get file coordinates.
+    intensity : optional (N,) float32 array, the file's intensity/reflectance as stored.
+    source : the file the scan was read from, if any.
+    name : a short human name (the file stem, or the E57 scan name).
+    pose : optional 4x4 float64 prior pose mapping file coordinates of this scan into a common
+        frame (an E57 pose, a project pose); ``None`` when unknown.
+    meta : free-form facts about reading (format, dropped rows, unit scale, ...).
+    """
+
+    points: np.ndarray
+    scanner_position: np.ndarray
+    origin_shift: np.ndarray
+    intensity: Optional[np.ndarray] = None
+    source: Optional[Path] = None
+    name: str = ""
+    pose: Optional[np.ndarray] = None
+    meta: Mapping[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_points(
+        cls,
+        points: np.ndarray,
+        *,
+        scanner_position: Optional[np.ndarray] = None,
+        intensity: Optional[np.ndarray] = None,
+        source: Optional[Path | str] = None,
+        name: Optional[str] = None,
+        pose: Optional[np.ndarray] = None,
+        origin_shift: Optional[np.ndarray] = None,
+        meta: Optional[Mapping[str, Any]] = None,
+    ) -> "Scan":
+        """Validate file-coordinate points and build a scan.
+
+        Parameters
+        ----------
+        points : (N, 3) array of file coordinates, metres. Rows with NaN or infinite values are
+            dropped (counted in ``meta["dropped_nonfinite"]``); if more than half are, it fails.
+        scanner_position : (3,) scanner position in file coordinates; default the file origin.
+        intensity : optional (N,) intensities, row-aligned with ``points``.
+        origin_shift : (3,) local-origin shift to use; by default zero for small coordinates and
+            a rounded position near the data for georeferenced ones.
+
+        Raises
+        ------
+        ScanDataError
+            Too few points, mostly non-finite values, or an extent that says the units are wrong.
+        """
+        label = name or (Path(source).name if source is not None else "scan")
+        display_name = name or (Path(source).stem if source is not None else "scan")
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ScanDataError(f"{label}: points must be an (N, 3) array, got shape {pts.shape}")
+        n_in = len(pts)
+        finite = np.isfinite(pts).all(axis=1)
+        n_bad = int(n_in - finite.sum())
+        if n_in and n_bad > MAX_NONFINITE_FRACTION * n_in:
+            raise ScanDataError(
+                f"{label}: {n_bad} of {n_in} points have NaN or infinite coordinates; "
+                "the file is damaged or was exported without valid coordinates"
+            )
+        if n_bad:
+            pts = pts[finite]
+        if len(pts) < MIN_POINTS:
+            raise ScanDataError(f"{label}: only {len(pts)} valid points; a scan needs at least {MIN_POINTS}")
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        extent = float((hi - lo).max())
+        if extent > MAX_EXTENT_M:
+            raise ScanDataError(
+                f"{label}: the points span {extent:,.0f} units; a forest scan spans at most a few "
+                "hundred metres. The file is probably in millimetres or centimetres: give its unit "
+                "(CLI --units mm|cm|ft, API unit_scale=0.001|0.01|0.3048)"
+            )
+        if extent <= 0.0:
+            raise ScanDataError(f"{label}: all points coincide; this is not a scan")
+
+        scanner_file = np.zeros(3) if scanner_position is None else np.asarray(scanner_position, dtype=np.float64)
+        if scanner_file.shape != (3,) or not np.isfinite(scanner_file).all():
+            raise ScanDataError(f"{label}: scanner position must be three finite numbers, got {scanner_position!r}")
+        if origin_shift is None:
+            if np.abs(np.concatenate([lo, hi])).max() > LARGE_COORDINATE_M:
+                near = scanner_file if scanner_position is not None else (lo + hi) / 2.0
+                shift = np.round(near)
+            else:
+                shift = np.zeros(3)
+        else:
+            shift = np.asarray(origin_shift, dtype=np.float64).reshape(3)
+
+        inten = None
+        if intensity is not None:
+            inten = np.asarray(intensity, dtype=np.float32).reshape(-1)
+            if len(inten) != n_in:
+                raise ScanDataError(f"{label}: {len(inten)} intensities for {n_in} points")
+            if n_bad:
+                inten = inten[finite]
+            inten = _readonly(np.ascontiguousarray(inten))
+
+        pose_arr = None
+        if pose is not None:
+            pose_arr = np.asarray(pose, dtype=np.float64)
+            if pose_arr.shape != (4, 4) or not np.isfinite(pose_arr).all():
+                raise ScanDataError(f"{label}: a pose must be a finite 4x4 matrix")
+            pose_arr = _readonly(pose_arr.copy())
+
+        info = dict(meta or {})
+        info["dropped_nonfinite"] = n_bad
+        return cls(
+            points=_readonly(np.ascontiguousarray(pts - shift)),
+            scanner_position=_readonly(scanner_file - shift),
+            origin_shift=_readonly(shift.copy()),
+            intensity=inten,
+            source=Path(source) if source is not None else None,
+            name=display_name,
+            pose=pose_arr,
+            meta=info,
+        )
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @property
+    def file_points(self) -> np.ndarray:
+        """(N, 3) float64 points in file coordinates (a new array)."""
+        return self.points + self.origin_shift
+
+    @property
+    def scanner_position_file(self) -> np.ndarray:
+        """(3,) scanner position in file coordinates."""
+        return self.scanner_position + self.origin_shift
+
+    def local_to_file_matrix(self) -> np.ndarray:
+        """4x4 matrix mapping this scan's local frame to its file coordinates."""
+        m = np.eye(4)
+        m[:3, 3] = self.origin_shift
+        return m
+
+    def subset(self, mask_or_index: np.ndarray) -> "Scan":
+        """A scan with a subset of the points (same frame, shift, scanner, pose)."""
+        idx = np.asarray(mask_or_index)
+        return Scan(
+            points=_readonly(np.ascontiguousarray(self.points[idx])),
+            scanner_position=self.scanner_position,
+            origin_shift=self.origin_shift,
+            intensity=None if self.intensity is None else _readonly(np.ascontiguousarray(self.intensity[idx])),
+            source=self.source,
+            name=self.name,
+            pose=self.pose,
+            meta=self.meta,
+        )
+
+    def __repr__(self) -> str:
+        src = f", source={str(self.source)!r}" if self.source else ""
+        return f"Scan(name={self.name!r}, points={len(self)}{src})"
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a

@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Set up forestreg on a fresh Debian machine with Python 3.11 (idempotent; run from anywhere):
+# the system libraries open3d, Qt and the GUI tests need, a virtual environment in .venv, and the
+# package with its GUI and test extras.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+system_packages=(
+  libusb-1.0-0 libgl1 libegl1 libgomp1                     # open3d, VTK (pyvista)
+  libglib2.0-0 libdbus-1-3 libfontconfig1 libxkbcommon-x11-0 # Qt
+  libxcb-cursor0 libxcb-icccm4 libxcb-image0 libxcb-keysyms1 libxcb-randr0
+  libxcb-render-util0 libxcb-shape0 libxcb-xinerama0
+  xvfb xauth                                                 # GUI tests under a virtual X server
+)
+missing=()
+for p in "${system_packages[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  sudo_cmd=""
+  [ "$(id -u)" -ne 0 ] && sudo_cmd="sudo"
+  echo "setup: installing system packages: ${missing[*]}" >&2
+  $sudo_cmd apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+python=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  echo "setup: creating .venv with $($python --version)" >&2
+  $python -m venv .venv
+fi
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e ".[gui,test]"
+echo "setup: ready (.venv/bin/forestreg)" >&2

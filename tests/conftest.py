@@ -1,0 +1,45 @@
+"""Shared fixtures: the real data folder and a cache of simulated plots (simulated once per run)."""
+
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+from typing import Optional
+
+import pytest
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The real clouds of ``../shared/data`` (skips where the folder is absent)."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data folder {SHARED_DATA} is absent")
+    return SHARED_DATA
+
+
+@functools.lru_cache(maxsize=None)
+def simulated_plot(
+    preset: str,
+    positions: tuple[tuple[float, float], ...],
+    *,
+    seed: int = 0,
+    step: float = 0.25,
+    size: float = 50.0,
+    tilted: Optional[tuple[tuple[int, float], ...]] = None,
+):
+    """A simulated plot, cached for the whole test run (tests must not modify it)."""
+    from forestreg.engine.simulate import simulate_plot
+
+    return simulate_plot(
+        preset,
+        list(positions),
+        seed=seed,
+        angular_step_deg=step,
+        size_m=size,
+        tilted=dict(tilted) if tilted else None,
+    )
