@@ -61,12 +61,12 @@ class RegistrationParams:
     distinct_translation_m: float = _p(1.0, "m", 0.1, 50.0, "Alternatives displaced more than this from the best are distinct solutions")
     # --- levelling of tilted scans
     level_tilted: bool = _p(True, "", None, None, "Detect a tilted scanner from its own data (ground and trunk directions) and level the scan before slicing")
-    tilt_threshold_deg: float = _p(2.0, "deg", 0.1, 45.0, "Estimated tilts below this are treated as a level scanner")
+    tilt_threshold_deg: float = _p(10.0, "deg", 0.1, 45.0, "Estimated tilts below this are treated as a level scanner (small tilts are taken up by the ground fit and ICP)")
     # --- fine registration (ICP, paper 2.6)
     icp_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size to which both clouds are thinned for ICP")
     icp_max_distances_m: tuple[float, ...] = _p((0.5, 0.2, 0.08), "m", 0.005, 5.0, "Correspondence distances of the successive ICP stages")
     icp_iterations: int = _p(40, "", 1, 1000, "Iterations per ICP stage")
-    icp_min_fitness: float = _p(0.2, "", 0.0, 1.0, "Fewest fraction of moving points with a close reference point after ICP")
+    icp_min_fitness: float = _p(0.1, "", 0.0, 1.0, "Least fraction of the moving points in the shared area that must have a reference point within the last ICP distance")
     icp_max_correction_m: float = _p(1.0, "m", 0.0, 10.0, "ICP may move the coarse result by at most this much (more means the coarse result was wrong)")
 
     def __post_init__(self) -> None:

@@ -25,7 +25,7 @@ from .occlusion.vop import VisualOcclusionPoints
 from .params import RegistrationParams
 from .progress import CancelToken, Progress, ProgressCallback
 from .scan import Scan
-from .transform import rotation_angle_deg
+from .transform import rotation_angle_deg, rotation_from_vector
 
 log = logging.getLogger("forestreg")
 
@@ -234,22 +234,19 @@ def register(
     if chosen.problem:
         return _failed(chosen.problem, chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
 
-    step(0.6, "vertical offset")
-    coarse_2d = chosen.match.matrix()
-    dz = timed("vertical", vertical_offset, ref_prep, mov_prep, coarse_2d)
-    coarse = np.eye(4)
-    coarse[:2, :2] = coarse_2d[:2, :2]
-    coarse[:2, 3] = coarse_2d[:2, 2]
-    coarse[2, 3] = dz
-    if not np.isfinite(dz):
-        return _failed("the two scans share no ground: no vertical offset", chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=coarse))
+    step(0.6, "vertical alignment")
+    coarse = timed("vertical", vertical_alignment, ref_prep, mov_prep, chosen.match.matrix(), fit_tilt=ref_prep.levelled or mov_prep.levelled)
+    if coarse is None:
+        return _failed("the two scans share no ground where the match puts them: no vertical offset", chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
+    dz = float(coarse[2, 3])
 
     step(0.65, "ICP")
+    ref_overlap, mov_overlap = overlap_region(ref_prep.points, mov_prep.points, coarse, params.max_range_m)
     fine = timed(
         "icp",
         icp,
-        ref_prep.points,
-        mov_prep.points,
+        ref_overlap,
+        mov_overlap,
         coarse,
         voxel_m=params.icp_voxel_m,
         max_distances_m=params.icp_max_distances_m,
@@ -269,7 +266,7 @@ def register(
         )
     if fine.fitness < params.icp_min_fitness:
         return _failed(
-            f"ICP fitness {fine.fitness:.2f} is below {params.icp_min_fitness:.2f}: the scans do not overlap where the match puts them",
+            f"ICP fitness {fine.fitness:.2f} is below {params.icp_min_fitness:.2f}: the scans hardly overlap where the match puts them",
             chosen, common, full_details,
         )
     matrix = _file_matrix(reference, moving, ref_prep, mov_prep, fine.matrix)
@@ -332,20 +329,50 @@ def _choose_attempt(attempts: list[CoarseAttempt]) -> CoarseAttempt:
     return max(attempts, key=lambda a: (not a.problem, a.margin, a.matched, -a.radius_m))
 
 
-def vertical_offset(reference: PreparedScan, moving: PreparedScan, horizontal: np.ndarray) -> float:
-    """Z offset (metres) to add to the moving scan after the horizontal transform ``horizontal``
-    (3x3, moving LSF xy -> reference LSF xy): the median difference of the two ground grids over
-    the cells both measured. NaN when they share no measured ground."""
+def overlap_region(reference: np.ndarray, moving: np.ndarray, moving_to_reference: np.ndarray, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The points each scan could share with the other: reference points within ``reach_m``
+    (horizontally) of the moving scanner and moving points within ``reach_m`` of the reference
+    scanner, under the transform ``moving_to_reference`` (levelled scanner frames, metres)."""
+    moving_scanner = moving_to_reference[:2, 3]
+    reference_scanner = np.linalg.inv(moving_to_reference)[:2, 3]
+    ref_keep = np.sum((reference[:, :2] - moving_scanner) ** 2, axis=1) <= reach_m**2
+    mov_keep = np.sum((moving[:, :2] - reference_scanner) ** 2, axis=1) <= reach_m**2
+    return reference[ref_keep], moving[mov_keep]
+
+
+def vertical_alignment(reference: PreparedScan, moving: PreparedScan, horizontal: np.ndarray, *, fit_tilt: bool) -> Optional[np.ndarray]:
+    """The vertical part of the coarse registration from the two ground grids.
+
+    ``horizontal`` (3x3, moving LSF xy -> reference LSF xy) places the moving ground cells over
+    the reference's; the height differences over the cells both measured give the Z offset (their
+    median) and, with ``fit_tilt``, the residual tilt of a scan levelled from its own data (a
+    plane fitted to the differences, outliers dropped). Returns the 4x4 coarse matrix (moving LSF
+    -> reference LSF), or None when the scans share fewer than 10 ground cells.
+    """
     g = moving.ground
-    nx, ny = g.heights.shape
     ix, iy = np.nonzero(g.measured)
-    centres = g.origin + (np.column_stack([ix, iy]) + 0.5) * g.cell_m
-    moved = centres @ horizontal[:2, :2].T + horizontal[:2, 2]
-    both = reference.ground.measured_at(moved)
-    if both.sum() < 3:
-        return float("nan")
-    diff = reference.ground.height_at(moved[both]) - g.heights[ix[both], iy[both]]
-    return float(np.median(diff))
+    centres = np.column_stack([g.origin + (np.column_stack([ix, iy]) + 0.5) * g.cell_m, g.heights[ix, iy]])
+    matrix = np.eye(4)
+    matrix[:2, :2] = horizontal[:2, :2]
+    matrix[:2, 3] = horizontal[:2, 2]
+    for _ in range(3 if fit_tilt else 1):
+        moved = centres @ matrix[:3, :3].T + matrix[:3, 3]
+        both = reference.ground.measured_at(moved[:, :2])
+        if both.sum() < 10:
+            return None
+        diff = reference.ground.height_at(moved[both, :2]) - moved[both, 2]
+        if not fit_tilt:
+            matrix[2, 3] += float(np.median(diff))
+            break
+        xy = moved[both, :2]
+        keep = np.abs(diff - np.median(diff)) <= max(0.15, 3.0 * 1.4826 * np.median(np.abs(diff - np.median(diff))))
+        design = np.column_stack([xy[keep], np.ones(keep.sum())])
+        (a, b, c), *_ = np.linalg.lstsq(design, diff[keep], rcond=None)
+        correction = np.eye(4)
+        correction[:3, :3] = rotation_from_vector(np.array([b, -a, 0.0]))
+        correction[2, 3] = c
+        matrix = correction @ matrix
+    return matrix
 
 
 def _vop_residual(attempt: CoarseAttempt, lsf_matrix: np.ndarray, match_distance_m: float) -> Optional[float]:

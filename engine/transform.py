@@ -16,6 +16,16 @@ def rotation_angle_deg(rotation: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
+def rotation_from_vector(omega: np.ndarray) -> np.ndarray:
+    """3x3 rotation of the rotation vector ``omega`` (axis times angle, radians), Rodrigues."""
+    angle = float(np.linalg.norm(omega))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = np.asarray(omega, dtype=float) / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+
+
 def rigid_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """Rotation error (deg) and translation error (m) of a 4x4 estimate against the truth:
     the angle of ``R_est^T R_true`` and ``|t_est - t_true|``."""

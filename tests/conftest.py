@@ -22,8 +22,15 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="session")
+def sim_plot():
+    """``sim_plot(preset, positions, seed=..., step=..., size=..., tilted=...)``: a simulated plot,
+    made once per test run for each distinct set of arguments (tests must not modify it)."""
+    return _simulated_plot
+
+
 @functools.lru_cache(maxsize=None)
-def simulated_plot(
+def _simulated_plot(
     preset: str,
     positions: tuple[tuple[float, float], ...],
     *,

@@ -14,6 +14,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from ..transform import rotation_from_vector
+
 
 @dataclass(frozen=True)
 class IcpResult:
@@ -65,16 +67,6 @@ def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours
     nb -= nb.mean(axis=1, keepdims=True)
     _, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
     return v[:, :, 0]
-
-
-def _small_rotation(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector ``omega`` (radians), Rodrigues' formula."""
-    angle = float(np.linalg.norm(omega))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = omega / angle
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
 
 
 def icp(
@@ -141,7 +133,7 @@ def icp(
             except np.linalg.LinAlgError:
                 break
             step = np.eye(4)
-            step[:3, :3] = _small_rotation(x[:3])
+            step[:3, :3] = rotation_from_vector(x[:3])
             step[:3, 3] = x[3:]
             matrix = step @ matrix
             fitness = float(ok.mean())

@@ -2,10 +2,10 @@
 
 A scanner tilted (e.g. 30 deg, to see the canopy) has its z axis off the vertical, so a horizontal
 slice would cut trunks obliquely. The ground around the scanner is the strongest vertical cue: the
-mode of the normals of flat, near-horizontal surfaces. A plot's terrain can slope too, so a ground
-normal less than 20 deg off the scanner's z is read as terrain and the scan as level; a steeper one
-as a tilted scanner. Where trunks are plentiful (their bark normals are horizontal, so they gather
-on the great circle perpendicular to "up") they refine the ground's estimate.
+mode of the normals of flat, near-horizontal surfaces, but a plot's terrain can slope too. Trunks
+are the exact cue where they are plentiful: their bark normals are horizontal, so they gather on
+the great circle perpendicular to "up". Without clear trunks, a ground normal less than 20 deg off
+the scanner's z is read as terrain and the scan as level; a steeper one as a tilted scanner.
 """
 
 from __future__ import annotations
@@ -92,16 +92,20 @@ def estimate_up_direction(
     *,
     max_tilt_deg: float = 50.0,
     ground_only_min_tilt_deg: float = 20.0,
+    min_trunk_strength: float = 2.4,
+    max_slope_deg: float = 20.0,
 ) -> UpEstimate:
     """Estimate the true vertical of a scan in its own frame.
 
     1. The ground normal: the mode of the normals of flat surfaces within 50 deg of the scan's z.
-       Tilted less than ``ground_only_min_tilt_deg``, it is read as terrain slope: the scan is
-       taken as level (z).
-    2. Otherwise the ground normal is the vertical, refined by trunks where they are plentiful:
-       within 10 deg of it, the direction whose perpendicular great circle gathers the most
-       vertical-surface normals (a clear, interior peak), refined as the smallest eigenvector of
-       those normals' scatter matrix.
+    2. Trunks: the direction (within ``max_tilt_deg`` of z) whose perpendicular great circle
+       gathers the most flat-surface normals (bark), refined as the smallest eigenvector of those
+       normals' scatter matrix. A clear peak (votes at least ``min_trunk_strength`` times the
+       median, not on the search's edge) within ``max_slope_deg`` of the ground normal is the
+       answer: trunks are vertical even on slopes.
+    3. When trunks and ground disagree, the more level of the two wins (most scans are level; a
+       scan without ground or with shrubs only gives one spurious reading). A ground normal
+       tilted less than ``ground_only_min_tilt_deg`` is terrain slope: the scan is level.
 
     Parameters
     ----------
@@ -115,26 +119,39 @@ def estimate_up_direction(
     flat = flat * np.sign(flat[:, 2:3] + 1e-12)
     horizontalish = flat[flat[:, 2] > np.cos(np.radians(max_tilt_deg))]
     ground = _direction_mode(horizontalish) if len(horizontalish) >= 50 else z
+    trunk_up, strength = _trunk_vertical(flat, max_tilt_deg)
+    if trunk_up is not None and strength >= min_trunk_strength:
+        if np.degrees(np.arccos(np.clip(trunk_up @ ground, -1.0, 1.0))) <= max_slope_deg:
+            return UpEstimate(trunk_up, ground, trunk_up, strength, "trunks, agreeing with the ground")
+        if tilt_deg(trunk_up) < tilt_deg(ground):
+            return UpEstimate(trunk_up, ground, trunk_up, strength, "trunks (the ground disagrees; the more level reading wins)")
     if tilt_deg(ground) < ground_only_min_tilt_deg:
-        return UpEstimate(z, ground, None, 0.0, f"ground tilted {tilt_deg(ground):.1f} deg: taken as level (terrain slope)")
-    walls = flat[np.abs(flat @ ground) < np.cos(np.radians(60.0))]
-    if len(walls) >= 100:
-        band = np.sin(np.radians(3.0))
-        cone = 10.0
-        candidates = _hemisphere_directions(cone, 1.0, ground)
-        votes = (np.abs(walls @ candidates.T) < band).sum(axis=0)
-        best = candidates[int(np.argmax(votes))]
-        strength = float(votes.max() / max(np.median(votes), 1.0))
-        interior = np.degrees(np.arccos(np.clip(best @ ground, -1, 1))) <= cone - 2.0
-        if strength >= 3.0 and interior:
-            for tol in (6.0, 3.0):
-                near = walls[np.abs(walls @ best) < np.sin(np.radians(tol))]
-                if len(near) < 30:
-                    break
-                _, v = np.linalg.eigh(near.T @ near)
-                best = v[:, 0] * np.sign(v[2, 0] + 1e-12)
-            return UpEstimate(best, ground, best, strength, "ground, refined by trunks")
-    return UpEstimate(ground, ground, None, 0.0, "ground")
+        return UpEstimate(z, ground, trunk_up, strength, f"ground tilted {tilt_deg(ground):.1f} deg: taken as level (terrain slope)")
+    if trunk_up is not None and strength >= min_trunk_strength:
+        return UpEstimate(z, ground, trunk_up, strength, "trunks and ground disagree: taken as level")
+    return UpEstimate(ground, ground, trunk_up, strength, "ground")
+
+
+def _trunk_vertical(walls: np.ndarray, max_tilt_deg: float) -> tuple[Optional[np.ndarray], float]:
+    """The direction (within ``max_tilt_deg`` of z) whose perpendicular great circle gathers the
+    most of the given surface normals, and how strongly (its votes over the median vote); None
+    when the peak lies on the search's edge (no real peak)."""
+    band = np.sin(np.radians(3.0))
+    candidates = _hemisphere_directions(max_tilt_deg, 2.0, np.array([0.0, 0.0, 1.0]))
+    votes = (np.abs(walls @ candidates.T) < band).sum(axis=0)
+    best = candidates[int(np.argmax(votes))]
+    strength = float(votes.max() / max(np.median(votes), 1.0))
+    if tilt_deg(best) > max_tilt_deg - 3.0:
+        return None, strength
+    fine = _hemisphere_directions(3.0, 0.5, best)
+    best = fine[int(np.argmax((np.abs(walls @ fine.T) < band).sum(axis=0)))]
+    for tol in (6.0, 3.0):
+        near = walls[np.abs(walls @ best) < np.sin(np.radians(tol))]
+        if len(near) < 30:
+            break
+        _, v = np.linalg.eigh(near.T @ near)
+        best = v[:, 0] * np.sign(v[2, 0] + 1e-12)
+    return best, strength
 
 
 def _direction_mode(normals: np.ndarray, bandwidth_deg: float = 8.0) -> np.ndarray:

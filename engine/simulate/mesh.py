@@ -1,0 +1,521 @@
+"""Triangle meshes of a :class:`~.scene.ForestScene`, tagged by material, and a ray caster.
+
+Every triangle carries a material (:class:`Material`) and an object id (the tree, shrub, liana,
+target or box it belongs to; 0 for the ground), so that each simulated point can be labelled.
+
+* terrain: the scene's height grid, each cell split along the same diagonal as
+  :meth:`~.scene.Terrain.z`;
+* stems: tapered, leaning tubes with ``trunk_segments`` (default 32) facets around, their vertices
+  pushed out so that each ring has the area of the true circle (a circle fitted to the facets is
+  within 0.3 % of the stem radius); the stem is sunk 0.5 m into the ground;
+* main branches: thin 8-sided tubes from the stem into the crown;
+* crowns and shrubs: a cloud of small randomly oriented leaf triangles filling the crown volume
+  (cone for conifers, ellipsoid for broadleaves) at the tree's leaf area density, so that a crown
+  stops part of the rays and lets the rest through (about ``exp(-0.5 * LAD * path)``); when the
+  foliage would need more than ``max_foliage_triangles`` triangles, the leaves are made larger
+  (same leaf area, fewer leaves);
+* lianas: thin 6-sided tubes along their control polylines;
+* targets: an 8-sided pole and a 32-sided reflective cylinder with end caps;
+* boxes: 12 triangles each.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+
+from .scene import BROADLEAF, ForestScene, Tree
+
+
+class Material(IntEnum):
+    """Material label of a simulated point (``SimulatedScan.labels``, uint8)."""
+
+    NONE = 0
+    GROUND = 1
+    TRUNK = 2
+    BRANCH = 3
+    LEAF = 4
+    SHRUB = 5
+    LIANA = 6
+    TARGET_POLE = 7
+    TARGET = 8
+    STRUCTURE = 9
+
+
+#: Display colours (RGB 0-1) per material, for viewing the meshes.
+MATERIAL_COLOURS = {
+    Material.GROUND: (0.55, 0.45, 0.30),
+    Material.TRUNK: (0.40, 0.26, 0.13),
+    Material.BRANCH: (0.45, 0.30, 0.15),
+    Material.LEAF: (0.20, 0.60, 0.20),
+    Material.SHRUB: (0.35, 0.70, 0.25),
+    Material.LIANA: (0.50, 0.40, 0.20),
+    Material.TARGET_POLE: (0.60, 0.60, 0.60),
+    Material.TARGET: (1.00, 1.00, 1.00),
+    Material.STRUCTURE: (0.70, 0.30, 0.30),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class MeshPart:
+    """All triangles of one material: vertices (V, 3) float64, triangles (T, 3) int64 and the
+    object id of each triangle (T,) int32."""
+
+    material: Material
+    vertices: np.ndarray
+    triangles: np.ndarray
+    object_ids: np.ndarray
+
+    @property
+    def n_triangles(self) -> int:
+        return len(self.triangles)
+
+
+@dataclass(frozen=True, eq=False)
+class SceneMesh:
+    """The meshes of a scene, one :class:`MeshPart` per material present."""
+
+    parts: dict[Material, MeshPart]
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_triangles(self) -> int:
+        return sum(p.n_triangles for p in self.parts.values())
+
+    def counts(self) -> dict[str, int]:
+        return {m.name.lower(): p.n_triangles for m, p in self.parts.items()}
+
+    def to_open3d(self) -> dict[Material, Any]:
+        """Legacy ``open3d.geometry.TriangleMesh`` per material, coloured (for viewing/export)."""
+        import open3d as o3d
+
+        out = {}
+        for mat, part in self.parts.items():
+            m = o3d.geometry.TriangleMesh(
+                o3d.utility.Vector3dVector(part.vertices), o3d.utility.Vector3iVector(part.triangles.astype(np.int32))
+            )
+            m.paint_uniform_color(MATERIAL_COLOURS.get(mat, (0.5, 0.5, 0.5)))
+            out[mat] = m
+        return out
+
+
+class _Builder:
+    def __init__(self) -> None:
+        self.v: dict[Material, list[np.ndarray]] = {}
+        self.t: dict[Material, list[np.ndarray]] = {}
+        self.o: dict[Material, list[np.ndarray]] = {}
+        self.nv: dict[Material, int] = {}
+
+    def add(self, mat: Material, verts: np.ndarray, tris: np.ndarray, obj: int | np.ndarray) -> None:
+        if len(tris) == 0:
+            return
+        off = self.nv.get(mat, 0)
+        self.v.setdefault(mat, []).append(np.asarray(verts, dtype=np.float64))
+        self.t.setdefault(mat, []).append(np.asarray(tris, dtype=np.int64) + off)
+        ids = np.broadcast_to(np.asarray(obj, dtype=np.int32), (len(tris),))
+        self.o.setdefault(mat, []).append(np.ascontiguousarray(ids))
+        self.nv[mat] = off + len(verts)
+
+    def build(self, meta: dict[str, Any]) -> SceneMesh:
+        parts = {}
+        for mat in sorted(self.v):
+            parts[mat] = MeshPart(
+                material=mat,
+                vertices=np.concatenate(self.v[mat]),
+                triangles=np.concatenate(self.t[mat]),
+                object_ids=np.concatenate(self.o[mat]),
+            )
+        return SceneMesh(parts=parts, meta=meta)
+
+
+# --------------------------------------------------------------------------------------------
+# primitives
+# --------------------------------------------------------------------------------------------
+
+
+def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _frame(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors perpendicular to unit ``d`` and to each other."""
+    ref = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = _cross3(d, ref)
+    u /= math.sqrt(float(u @ u))
+    v = _cross3(d, u)
+    return u, v
+
+
+def area_equivalent_factor(n_seg: int) -> float:
+    """Vertex radius / circle radius so that a regular ``n_seg``-gon has the circle's area."""
+    return math.sqrt(2.0 * math.pi / (n_seg * math.sin(2.0 * math.pi / n_seg)))
+
+
+def tube(
+    centres: np.ndarray,
+    radii: np.ndarray,
+    n_seg: int,
+    *,
+    cap_start: bool = False,
+    cap_end: bool = True,
+    area_equivalent: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A tube along a polyline: rings perpendicular to the local direction, ``n_seg`` facets."""
+    c = np.asarray(centres, dtype=np.float64)
+    r = np.asarray(radii, dtype=np.float64) * (area_equivalent_factor(n_seg) if area_equivalent else 1.0)
+    k = len(c)
+    seg = np.diff(c, axis=0)
+    seg /= np.linalg.norm(seg, axis=1, keepdims=True)
+    dirs = np.empty_like(c)
+    dirs[0] = seg[0]
+    dirs[-1] = seg[-1]
+    if k > 2:
+        mid = seg[:-1] + seg[1:]
+        dirs[1:-1] = mid / np.linalg.norm(mid, axis=1, keepdims=True)
+    a = np.arange(n_seg) * (2.0 * math.pi / n_seg)
+    ca, sa = np.cos(a), np.sin(a)
+    if k == 2 or np.allclose(dirs, dirs[0], atol=1e-12):
+        # straight tube: one frame for all rings
+        u, v = _frame(dirs[0])
+        ring = ca[:, None] * u + sa[:, None] * v  # (n_seg, 3)
+        verts = c[:, None, :] + r[:, None, None] * ring[None, :, :]
+    else:
+        u, _ = _frame(dirs[0])
+        verts = np.empty((k, n_seg, 3))
+        for i in range(k):
+            d = dirs[i]
+            u = u - d * float(d @ u)  # parallel transport of the reference vector
+            nu = math.sqrt(float(u @ u))
+            if nu < 1e-9:
+                u, _ = _frame(d)
+            else:
+                u = u / nu
+            v = _cross3(d, u)
+            verts[i] = c[i] + r[i] * (ca[:, None] * u + sa[:, None] * v)
+    verts = verts.reshape(-1, 3)
+    j = np.arange(n_seg)
+    jn = (j + 1) % n_seg
+    ii = np.arange(k - 1)[:, None]
+    a0 = (ii * n_seg + j).ravel()
+    a1 = (ii * n_seg + jn).ravel()
+    b0 = a0 + n_seg
+    b1 = a1 + n_seg
+    tris = [np.column_stack([a0, b0, b1]), np.column_stack([a0, b1, a1])]
+    extra = []
+    nv = len(verts)
+    if cap_start:
+        extra.append(c[0])
+        tris.append(np.column_stack([np.full(n_seg, nv), jn, j]))
+        nv += 1
+    if cap_end:
+        extra.append(c[-1])
+        base = (k - 1) * n_seg
+        tris.append(np.column_stack([np.full(n_seg, nv), base + j, base + jn]))
+        nv += 1
+    if extra:
+        verts = np.vstack([verts, np.asarray(extra)])
+    return verts, np.concatenate(tris).astype(np.int64)
+
+
+def box(cx: float, cy: float, z0: float, size: tuple[float, float, float], yaw_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """An oriented box standing on its bottom face centred at (cx, cy, z0)."""
+    lx, ly, lz = size
+    xs = np.array([-lx, lx, lx, -lx]) / 2.0
+    ys = np.array([-ly, -ly, ly, ly]) / 2.0
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    x = cx + c * xs - s * ys
+    y = cy + s * xs + c * ys
+    verts = np.vstack([np.column_stack([x, y, np.full(4, z0)]), np.column_stack([x, y, np.full(4, z0 + lz)])])
+    tris = np.array(
+        [
+            [0, 2, 1], [0, 3, 2],  # bottom
+            [4, 5, 6], [4, 6, 7],  # top
+            [0, 1, 5], [0, 5, 4],
+            [1, 2, 6], [1, 6, 5],
+            [2, 3, 7], [2, 7, 6],
+            [3, 0, 4], [3, 4, 7],
+        ],
+        dtype=np.int64,
+    )
+    return verts, tris
+
+
+def leaves(centres: np.ndarray, side_m: float, rng: np.random.Generator, n_orientations: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """Equilateral triangles of side ``side_m``, randomly oriented, centred at ``centres``.
+
+    Orientations are drawn from ``n_orientations`` random templates (isotropic), which is much
+    faster than one rotation per leaf and just as random for ray casting.
+    """
+    n = len(centres)
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    m = n_orientations
+    nrm = rng.standard_normal((m, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    ref = np.where(np.abs(nrm[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(nrm, ref)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(nrm, e1)
+    phi = rng.uniform(0.0, 2.0 * math.pi, size=m)
+    rad = side_m / math.sqrt(3.0)
+    tmpl = np.empty((m, 3, 3))
+    for k in range(3):
+        a = phi + k * 2.0 * math.pi / 3.0
+        tmpl[:, k] = rad * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
+    pick = rng.integers(0, m, size=n)
+    verts = np.asarray(centres, dtype=np.float64)[:, None, :] + tmpl[pick]
+    tris = np.arange(3 * n, dtype=np.int64).reshape(n, 3)
+    return verts.reshape(-1, 3), tris
+
+
+def _leaf_area(side_m: float) -> float:
+    return math.sqrt(3.0) / 4.0 * side_m**2
+
+
+def crown_volume(tree: Tree) -> float:
+    length = max(tree.height_m - tree.crown_base_m, 0.0)
+    r = tree.crown_radius_m
+    if tree.shape == BROADLEAF:
+        return 4.0 / 3.0 * math.pi * r * r * (length / 2.0)
+    return math.pi * r * r * length / 3.0
+
+
+def sample_crown(tree: Tree, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` points uniformly in the crown volume of ``tree``."""
+    if n <= 0:
+        return np.zeros((0, 3))
+    length = max(tree.height_m - tree.crown_base_m, 0.0)
+    r = tree.crown_radius_m
+    if tree.shape == BROADLEAF:
+        c = tree.point_at_height(min(tree.stem_height_fraction * tree.height_m, (tree.crown_base_m + tree.height_m) / 2.0))
+        d = rng.standard_normal((n, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        d *= rng.uniform(size=(n, 1)) ** (1.0 / 3.0)
+        centre = np.array([c[0], c[1], tree.z + (tree.crown_base_m + tree.height_m) / 2.0])
+        return centre + d * np.array([r, r, length / 2.0])
+    apex = tree.point_at_height(tree.height_m)
+    t = rng.uniform(size=n) ** (1.0 / 3.0)  # fraction of the cone length from the apex
+    rho = r * t * np.sqrt(rng.uniform(size=n))
+    ang = rng.uniform(0.0, 2.0 * math.pi, size=n)
+    return np.column_stack([apex[0] + rho * np.cos(ang), apex[1] + rho * np.sin(ang), apex[2] - t * length])
+
+
+def sample_ellipsoid(centre: np.ndarray, semi: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    d = rng.standard_normal((n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d *= rng.uniform(size=(n, 1)) ** (1.0 / 3.0)
+    return centre + d * semi
+
+
+# --------------------------------------------------------------------------------------------
+# the scene
+# --------------------------------------------------------------------------------------------
+
+
+def terrain_mesh(scene: ForestScene) -> tuple[np.ndarray, np.ndarray]:
+    ter = scene.terrain
+    ny, nx = ter.heights.shape
+    xs = ter.x0 + np.arange(nx) * ter.cell_m
+    ys = ter.y0 + np.arange(ny) * ter.cell_m
+    gx, gy = np.meshgrid(xs, ys)
+    verts = np.column_stack([gx.ravel(), gy.ravel(), np.asarray(ter.heights).ravel()])
+    j, i = np.meshgrid(np.arange(ny - 1), np.arange(nx - 1), indexing="ij")
+    v00 = (j * nx + i).ravel()
+    v10 = v00 + 1
+    v01 = v00 + nx
+    v11 = v01 + 1
+    tris = np.vstack([np.column_stack([v00, v10, v11]), np.column_stack([v00, v11, v01])])
+    return verts, tris.astype(np.int64)
+
+
+def build_scene_mesh(
+    scene: ForestScene,
+    *,
+    trunk_segments: int = 32,
+    leaf_size_m: float = 0.15,
+    max_foliage_triangles: int = 1_500_000,
+) -> SceneMesh:
+    """Triangles of every object of ``scene``, grouped by :class:`Material`.
+
+    Deterministic: the random leaf and branch layout is seeded from the scene's seed and the
+    object ids.
+    """
+    b = _Builder()
+    tv, tt = terrain_mesh(scene)
+    b.add(Material.GROUND, tv, tt, 0)
+
+    # foliage budget: the same leaf area with larger leaves when there would be too many
+    area_total = sum(t.leaf_area_density * crown_volume(t) for t in scene.trees)
+    shrub_side = 0.7 * leaf_size_m
+    shrub_area = sum(
+        s.leaf_area_density * 4.0 / 3.0 * math.pi * s.radius_m**2 * (s.height_m / 2.0) for s in scene.shrubs
+    )
+    n_wanted = area_total / _leaf_area(leaf_size_m) + shrub_area / _leaf_area(shrub_side)
+    scale = 1.0
+    if n_wanted > max_foliage_triangles > 0:
+        scale = math.sqrt(n_wanted / max_foliage_triangles)
+    leaf_side = leaf_size_m * scale
+    shrub_side *= scale
+
+    leaf_centres: list[np.ndarray] = []
+    leaf_ids: list[np.ndarray] = []
+    for tree in scene.trees:
+        rng = np.random.default_rng([scene.seed, 1, tree.id])
+        s, r = tree.profile()
+        s = np.concatenate([[-0.5], s])
+        r = np.concatenate([[r[0]], r])
+        v, t = tube(tree.point_at(s), r, trunk_segments, cap_end=True)
+        b.add(Material.TRUNK, v, t, tree.id)
+        # main branches
+        length = tree.height_m - tree.crown_base_m
+        stem_top_h = tree.stem_height_fraction * tree.height_m
+        for _ in range(tree.n_branches):
+            if tree.shape == BROADLEAF:
+                hb = rng.uniform(tree.crown_base_m, max(stem_top_h, tree.crown_base_m + 0.1))
+                el = math.radians(rng.uniform(25.0, 60.0))
+                blen = tree.crown_radius_m * rng.uniform(0.7, 1.0) / max(math.cos(el), 0.3)
+            else:
+                hb = rng.uniform(tree.crown_base_m, tree.crown_base_m + 0.6 * length)
+                el = math.radians(rng.uniform(-15.0, 15.0))
+                frac = 1.0 - (hb - tree.crown_base_m) / max(length, 1e-6)
+                blen = max(tree.crown_radius_m * frac * rng.uniform(0.6, 0.9), 0.3)
+            az = rng.uniform(0.0, 2.0 * math.pi)
+            p0 = tree.point_at_height(hb)
+            d = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+            rb = max(0.3 * tree.radius_at(hb / math.cos(math.radians(tree.lean_deg))), 0.012)
+            v, t = tube(np.vstack([p0, p0 + blen * d]), np.array([rb, 0.008]), 8, cap_end=False)
+            b.add(Material.BRANCH, v, t, tree.id)
+        # leaves (triangles made below, all trees at once)
+        n_leaf = int(round(tree.leaf_area_density * crown_volume(tree) / _leaf_area(leaf_side)))
+        if n_leaf > 0:
+            leaf_centres.append(sample_crown(tree, n_leaf, rng))
+            leaf_ids.append(np.full(n_leaf, tree.id, dtype=np.int32))
+    if leaf_centres:
+        v, t = leaves(np.concatenate(leaf_centres), leaf_side, np.random.default_rng([scene.seed, 3]))
+        b.add(Material.LEAF, v, t, np.concatenate(leaf_ids))
+
+    leaf_centres, leaf_ids = [], []
+    for shrub in scene.shrubs:
+        rng = np.random.default_rng([scene.seed, 2, shrub.id])
+        vol = 4.0 / 3.0 * math.pi * shrub.radius_m**2 * (shrub.height_m / 2.0)
+        n_leaf = int(round(shrub.leaf_area_density * vol / _leaf_area(shrub_side)))
+        centre = np.array([shrub.x, shrub.y, shrub.z + shrub.height_m / 2.0])
+        semi = np.array([shrub.radius_m, shrub.radius_m, shrub.height_m / 2.0])
+        leaf_centres.append(sample_ellipsoid(centre, semi, n_leaf, rng))
+        leaf_ids.append(np.full(n_leaf, shrub.id, dtype=np.int32))
+    if leaf_centres:
+        v, t = leaves(np.concatenate(leaf_centres), shrub_side, np.random.default_rng([scene.seed, 4]))
+        b.add(Material.SHRUB, v, t, np.concatenate(leaf_ids))
+
+    for liana in scene.lianas:
+        pts = np.asarray(liana.points, dtype=np.float64)
+        v, t = tube(pts, np.full(len(pts), liana.radius_m), 6, cap_end=False)
+        b.add(Material.LIANA, v, t, liana.id)
+
+    for tg in scene.targets:
+        bottom = tg.z - tg.height_m / 2.0
+        v, t = tube(
+            np.array([[tg.x, tg.y, tg.ground_z - 0.2], [tg.x, tg.y, bottom]]),
+            np.array([tg.pole_radius_m] * 2),
+            8,
+            cap_end=False,
+        )
+        b.add(Material.TARGET_POLE, v, t, tg.id)
+        v, t = tube(
+            np.array([[tg.x, tg.y, bottom], [tg.x, tg.y, tg.z + tg.height_m / 2.0]]),
+            np.array([tg.radius_m] * 2),
+            32,
+            cap_start=True,
+            cap_end=True,
+        )
+        b.add(Material.TARGET, v, t, tg.id)
+
+    for bx in scene.boxes:
+        v, t = box(bx.x, bx.y, bx.z, bx.size, bx.yaw_deg)
+        b.add(Material.STRUCTURE, v, t, bx.id)
+
+    return b.build({"leaf_side_m": leaf_side, "shrub_leaf_side_m": shrub_side, "trunk_segments": trunk_segments})
+
+
+# --------------------------------------------------------------------------------------------
+# ray casting
+# --------------------------------------------------------------------------------------------
+
+
+class SceneRaycaster:
+    """An Open3D BVH (``o3d.t.geometry.RaycastingScene``) of a scene's meshes.
+
+    :meth:`cast` returns per ray the hit distance (``inf`` for no hit), the material, the object
+    id and the cosine of the incidence angle.
+    """
+
+    def __init__(self, mesh: SceneMesh) -> None:
+        import open3d as o3d
+
+        self._o3d = o3d
+        self.mesh = mesh
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self._geom: dict[int, MeshPart] = {}
+        for part in mesh.parts.values():
+            gid = self.scene.add_triangles(
+                o3d.core.Tensor(np.ascontiguousarray(part.vertices, dtype=np.float32)),
+                o3d.core.Tensor(np.ascontiguousarray(part.triangles, dtype=np.uint32)),
+            )
+            self._geom[int(gid)] = part
+        n = max(self._geom) + 1 if self._geom else 1
+        self._mat_lut = np.zeros(n + 1, dtype=np.uint8)
+        for gid, part in self._geom.items():
+            self._mat_lut[gid] = int(part.material)
+        self.invalid_id = int(o3d.t.geometry.RaycastingScene.INVALID_ID)
+
+    def cast(
+        self, origin: np.ndarray, directions: np.ndarray, *, nthreads: int = 0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Cast rays from one ``origin`` (3,) along unit ``directions`` (N, 3), world frame.
+
+        Returns ``(hit_index, t, material, object_id, cos_incidence)`` for the rays that hit
+        something: int64 ray indices, float64 distances, uint8 :class:`Material`, int32 object
+        ids and float32 ``|n . d|``.
+        """
+        o3d = self._o3d
+        d = np.asarray(directions)
+        rays = np.empty((len(d), 6), dtype=np.float32)
+        rays[:, :3] = np.asarray(origin, dtype=np.float32)
+        rays[:, 3:] = d
+        ans = self.scene.cast_rays(o3d.core.Tensor(rays), nthreads=nthreads)
+        t = ans["t_hit"].numpy()
+        gid = ans["geometry_ids"].numpy()
+        idx = np.flatnonzero(np.isfinite(t) & (gid != self.invalid_id))
+        g = gid[idx].astype(np.int64)
+        pid = ans["primitive_ids"].numpy()[idx].astype(np.int64)
+        mat = self._mat_lut[g]
+        obj = np.empty(len(idx), dtype=np.int32)
+        for gg, part in self._geom.items():
+            sel = g == gg
+            if sel.any():
+                obj[sel] = part.object_ids[pid[sel]]
+        nrm = ans["primitive_normals"].numpy()[idx]
+        cosi = np.abs(np.einsum("ij,ij->i", nrm, rays[idx, 3:]))
+        return idx, t[idx].astype(np.float64), mat, obj, cosi.astype(np.float32)
+
+
+#: The last scene's ray caster (one entry only: a BVH of a big plot holds hundreds of MB).
+_LAST: dict[str, Any] = {}
+
+
+def raycaster_for(scene: ForestScene, **mesh_options: Any) -> SceneRaycaster:
+    """The ray caster of ``scene``, built once and reused while the same scene object is asked
+    for again (only the most recent scene is kept, so memory stays bounded)."""
+    key = tuple(sorted(mesh_options.items()))
+    ref = _LAST.get("scene")
+    if ref is not None and ref() is scene and _LAST.get("key") == key:
+        return _LAST["caster"]
+    _LAST.clear()  # free the old BVH before building the new one
+    caster = SceneRaycaster(build_scene_mesh(scene, **mesh_options))
+    _LAST.update(scene=weakref.ref(scene), key=key, caster=caster)
+    return caster

@@ -1,0 +1,58 @@
+"""Real clouds from ../shared/data: VOPs on a real RIEGL scan, and registration of scans simulated
+from real merged plots (paper sec. 4.3) against their known poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from forestreg.engine.io import read_scan
+from forestreg.engine.occlusion.prepare import extract_vops, prepare_scan, slice_layers
+from forestreg.engine.params import RegistrationParams
+from forestreg.engine.register import register
+from forestreg.engine.simulate import simulate_scan_from_cloud
+from forestreg.engine.transform import rigid_errors
+
+
+def test_real_riegl_scan_yields_vops_on_vertical_stems(shared_data):
+    scan = read_scan(shared_data / "TLS_scan_scanner_at_origin.laz")
+    params = RegistrationParams()
+    prepared = prepare_scan(scan.points, scan.scanner_position, params)
+    assert not prepared.levelled, "a level RIEGL scan must not be re-levelled"
+    assert 1.0 < prepared.scanner_height_m < 2.0
+    vops = extract_vops(slice_layers(prepared, params), params, 10.0)
+    assert len(vops) >= 10
+    # A VOP stands on a stem: around it, points rise continuously from the ground to above the
+    # slice (a leaf cluster does not). Count 0.4 m height bins from 0.4 to 2.4 m above ground.
+    pts = prepared.points[~prepared.ground_mask]
+    above = pts[:, 2] - prepared.ground.height_at(pts[:, :2])
+    tree = cKDTree(pts[:, :2])
+    upright = 0
+    for xy, r in zip(vops.xy, vops.radius):
+        near = np.array(tree.query_ball_point(xy, r + 0.08), dtype=np.int64)
+        bins = np.unique(np.floor((above[near] - 0.4) / 0.4).astype(int)) if len(near) else []
+        upright += int(np.sum((np.asarray(bins) >= 0) & (np.asarray(bins) < 5)) >= 4)
+    assert upright >= 0.6 * len(vops), f"only {upright} of {len(vops)} VOPs stand on a vertical structure"
+
+
+@pytest.mark.parametrize(
+    "name, first, second, step",
+    [
+        # ground mostly removed: the scanner height is given (1.4 m above the stems' base level)
+        ("LPine1_demo.laz", (4.0, 3.0, 1.4), (11.0, 5.0, 1.4), 0.3),
+        ("pine_plot.laz", (3.0, 3.0), (7.0, 6.0), 0.3),
+    ],
+)
+def test_scans_simulated_from_real_plots_register(shared_data, name, first, second, step):
+    cloud = read_scan(shared_data / name)
+    a = simulate_scan_from_cloud(cloud, first, angular_step_deg=step, yaw_deg=0.0, name="a")
+    b = simulate_scan_from_cloud(cloud, second, angular_step_deg=step, yaw_deg=70.0, name="b")
+    truth = np.linalg.inv(a.pose) @ b.pose
+    result = register(a.scan, b.scan)
+    assert result.ok, result.reason
+    rot, trans = rigid_errors(result.matrix, truth)
+    assert rot < 0.05 and trans < 0.02, f"{rot:.4f} deg, {100 * trans:.2f} cm"
+    crot, ctrans = rigid_errors(result.coarse_matrix, truth)
+    assert crot < 0.5 and ctrans < 0.25, f"coarse {crot:.3f} deg, {ctrans:.3f} m"
+    assert result.matched >= 6

@@ -1,0 +1,92 @@
+"""Pair registration against ground truth: simulated plots with known poses, and real clouds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from forestreg.engine.params import RegistrationParams
+from forestreg.engine.register import register
+from forestreg.engine.transform import rigid_errors
+
+FINE_ROTATION_DEG = 0.05
+FINE_TRANSLATION_M = 0.02
+COARSE_ROTATION_DEG = 0.5
+COARSE_TRANSLATION_M = 0.25
+
+
+def _check_against_truth(result, truth) -> None:
+    assert result.ok, result.reason
+    rot, trans = rigid_errors(result.matrix, truth)
+    assert rot < FINE_ROTATION_DEG, f"rotation error {rot:.4f} deg"
+    assert trans < FINE_TRANSLATION_M, f"translation error {100 * trans:.2f} cm"
+    crot, ctrans = rigid_errors(result.coarse_matrix, truth)
+    assert crot < COARSE_ROTATION_DEG, f"coarse rotation error {crot:.3f} deg"
+    assert ctrans < COARSE_TRANSLATION_M, f"coarse translation error {ctrans:.3f} m"
+    assert result.matched >= 4
+    assert result.matched - (result.second_matched or 0) >= 2
+    assert result.icp.std_m < 0.03
+    assert set(result.timings) >= {"prepare_reference", "prepare_moving", "slice", "vops", "coarse", "vertical", "icp"}
+
+
+@pytest.mark.parametrize(
+    "preset, offset, seed",
+    [
+        ("planted_conifer", (9.0, 4.0), 1),
+        ("mixed_temperate", (12.0, -3.0), 2),
+        ("rainforest", (7.0, 2.0), 3),
+        ("sloped", (10.0, 3.0), 4),
+    ],
+)
+def test_presets_register_to_truth(sim_plot, preset, offset, seed):
+    plot = sim_plot(preset, ((0.0, 0.0), offset), seed=seed)
+    ref, mov = plot.scans
+    result = register(ref.scan, mov.scan)
+    _check_against_truth(result, plot.relative_pose(0, 1))
+
+
+def test_pair_twenty_metres_apart(sim_plot):
+    plot = sim_plot("mixed_temperate", ((-10.0, 0.0), (10.0, 1.0)), seed=5, size=60.0)
+    result = register(plot.scans[0].scan, plot.scans[1].scan)
+    _check_against_truth(result, plot.relative_pose(0, 1))
+    assert result.vop_radius_m >= 20.0
+
+
+def test_level_scan_to_tilted_scan_at_the_same_spot(sim_plot):
+    plot = sim_plot("mixed_temperate", ((0.0, 0.0), (0.3, 0.2)), seed=6, tilted=((1, 30.0),))
+    result = register(plot.scans[0].scan, plot.scans[1].scan)
+    assert result.moving_tilt_deg == pytest.approx(30.0, abs=3.0)
+    assert result.reference_tilt_deg == 0.0
+    _check_against_truth(result, plot.relative_pose(0, 1))
+
+
+def test_a_scene_without_trees_fails_with_a_reason(sim_plot):
+    plot = sim_plot("open_field", ((0.0, 0.0), (10.0, 0.0)), seed=7)
+    result = register(plot.scans[0].scan, plot.scans[1].scan)
+    assert result.status == "failed"
+    assert result.matrix is None and result.coarse_matrix is None
+    assert "visual occlusion points" in result.reason
+
+
+def test_scans_of_different_plots_fail_rather_than_guess(sim_plot):
+    a = sim_plot("mixed_temperate", ((0.0, 0.0), (10.0, 0.0)), seed=8)
+    b = sim_plot("mixed_temperate", ((0.0, 0.0), (10.0, 0.0)), seed=9)
+    result = register(a.scans[0].scan, b.scans[1].scan)
+    assert result.status == "failed", f"registered unrelated plots: {result.matched} matched"
+    assert result.matrix is None
+
+
+def test_inputs_are_not_modified(sim_plot):
+    plot = sim_plot("planted_conifer", ((0.0, 0.0), (9.0, 4.0)), seed=1)
+    ref, mov = plot.scans[0].scan, plot.scans[1].scan
+    before = ref.points.copy(), mov.points.copy()
+    register(ref, mov, RegistrationParams(vop_radius_m=15.0))
+    assert np.array_equal(ref.points, before[0]) and np.array_equal(mov.points, before[1])
+
+
+def test_given_radius_is_used_and_reported(sim_plot):
+    plot = sim_plot("planted_conifer", ((0.0, 0.0), (9.0, 4.0)), seed=1)
+    result = register(plot.scans[0].scan, plot.scans[1].scan, RegistrationParams(vop_radius_m=15.0))
+    assert result.vop_radius_m == 15.0
+    assert [a["vop_radius_m"] for a in result.attempts] == [15.0]
+    _check_against_truth(result, plot.relative_pose(0, 1))
