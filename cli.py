@@ -45,13 +45,14 @@ class ProgressBar:
         if enabled:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=1000, desc=desc, file=sys.stderr, bar_format="{desc}: {percentage:3.0f}%|{bar:30}| {postfix}", leave=True)
+            self.desc = desc
+            self.bar = tqdm(total=1000, desc=desc, file=sys.stderr, bar_format="{desc} {percentage:3.0f}%|{bar:30}| {elapsed}", leave=True)
 
     def __call__(self, fraction: float, message: str) -> None:
         if self.bar is None:
             return
         self.bar.n = int(round(1000 * min(max(fraction, 0.0), 1.0)))
-        self.bar.set_postfix_str(message[:50], refresh=False)
+        self.bar.set_description_str(f"{self.desc}: {message[:40]:40}", refresh=False)
         self.bar.refresh()
 
     def close(self) -> None:
