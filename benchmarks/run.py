@@ -1,6 +1,6 @@
 """forestreg benchmarks: pair registration per step, and the coarse matcher vs literal enumeration.
 
-Run from the repository root (about 3-4 minutes on 2 cores)::
+Run from the repository root (about 1-2 minutes on 2 cores)::
 
     .venv/bin/python benchmarks/run.py            # or: python -m benchmarks.run
     .venv/bin/python benchmarks/run.py --quick    # smoke run: skips the ~3 M point pair
