@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import platform
 import sys
@@ -63,6 +64,7 @@ def environment() -> dict[str, Any]:
         "usable_cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "thread_env": {k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS") if k in os.environ},
         "numpy": np.__version__,
+        "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
     }
     try:
         import open3d
@@ -85,7 +87,8 @@ def _format_environment(env: dict[str, Any]) -> str:
     lines = [
         f"forestreg benchmarks - Python {env['python']} on {env['platform']}",
         f"cores: os.cpu_count() = {env['cpu_count']}, usable by this process = {env['usable_cpus']}"
-        + (f", thread env {env['thread_env']}" if env["thread_env"] else ""),
+        + (f", thread env {env['thread_env']}" if env["thread_env"] else "")
+        + (f"; 1-min load average at start {env['load_average_1min']:.2f}" if env["load_average_1min"] is not None else ""),
     ]
     if env["threadpools"] is None:
         lines.append("thread pools: threadpoolctl not installed")
@@ -178,12 +181,18 @@ def bench_pair(label: str, angular_step_deg: float, seed: int, workdir: Path) ->
 
 
 def _warm_up(seed: int, workdir: Path) -> None:
-    """Untimed: load Open3D/laspy/scipy code paths once."""
-    plot = simulate_plot(PRESET, _positions(), seed=seed, angular_step_deg=0.5, size_m=SIZE_M)
-    path = workdir / "warmup.laz"
-    write_scan(plot.scans[0].scan, path)
-    read_scan(path)
-    register(plot.scans[0].scan, plot.scans[1].scan)
+    """Untimed: load Open3D/laspy/scipy code paths once (its outcome does not matter: silenced)."""
+    logger = logging.getLogger("forestreg")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        plot = simulate_plot(PRESET, _positions(), seed=seed, angular_step_deg=0.5, size_m=SIZE_M)
+        path = workdir / "warmup.laz"
+        write_scan(plot.scans[0].scan, path)
+        read_scan(path)
+        register(plot.scans[0].scan, plot.scans[1].scan)
+    finally:
+        logger.setLevel(level)
 
 
 def _format_pairs(rows: list[dict[str, Any]]) -> str:

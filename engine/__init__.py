@@ -7,6 +7,8 @@ from .errors import (
     ScanDataError,
     ScanReadError,
     ScanWriteError,
+    ProjectFileError,
+    TargetError,
 )
 from .progress import CancelToken, Progress
 from .scan import Scan
@@ -21,4 +23,6 @@ __all__ = [
     "ScanDataError",
     "ScanReadError",
     "ScanWriteError",
+    "ProjectFileError",
+    "TargetError",
 ]

@@ -30,3 +30,11 @@ class ParameterError(ForestregError):
 
 class Cancelled(ForestregError):
     """The user cancelled a long-running operation."""
+
+
+class TargetError(ForestregError):
+    """Targets (tie points) are missing, unreadable or inconsistent."""
+
+
+class ProjectFileError(ForestregError):
+    """A project file cannot be read: missing, damaged, or of an unsupported version."""

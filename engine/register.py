@@ -241,17 +241,7 @@ def register(
     dz = float(coarse[2, 3])
 
     step(0.65, "ICP")
-    ref_overlap, mov_overlap = overlap_region(ref_prep.points, mov_prep.points, coarse, params.max_range_m)
-    fine = timed(
-        "icp",
-        icp,
-        ref_overlap,
-        mov_overlap,
-        coarse,
-        voxel_m=params.icp_voxel_m,
-        max_distances_m=params.icp_max_distances_m,
-        iterations=params.icp_iterations,
-    )
+    fine = timed("icp", fine_registration, ref_prep, mov_prep, coarse, params)
     step(0.95, "checking evidence")
     correction = np.linalg.inv(coarse) @ fine.matrix
     moved_m = float(np.linalg.norm(correction[:3, 3]))
@@ -269,8 +259,8 @@ def register(
             f"ICP fitness {fine.fitness:.2f} is below {params.icp_min_fitness:.2f}: the scans hardly overlap where the match puts them",
             chosen, common, full_details,
         )
-    matrix = _file_matrix(reference, moving, ref_prep, mov_prep, fine.matrix)
-    coarse_matrix = _file_matrix(reference, moving, ref_prep, mov_prep, coarse)
+    matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, fine.matrix)
+    coarse_matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, coarse)
     step(1.0, "done")
     log.info(
         "ok: %d matched VOPs, ICP std %.1f mm, fitness %.2f (%.1f s)",
@@ -329,6 +319,20 @@ def _choose_attempt(attempts: list[CoarseAttempt]) -> CoarseAttempt:
     return max(attempts, key=lambda a: (not a.problem, a.margin, a.matched, -a.radius_m))
 
 
+def fine_registration(reference: PreparedScan, moving: PreparedScan, coarse_lsf: np.ndarray, params: RegistrationParams) -> IcpResult:
+    """ICP (paper sec. 2.6) from a coarse moving-LSF -> reference-LSF matrix, on the points the two
+    scans can share (see :func:`overlap_region`)."""
+    ref_overlap, mov_overlap = overlap_region(reference.points, moving.points, coarse_lsf, params.max_range_m)
+    return icp(
+        ref_overlap,
+        mov_overlap,
+        coarse_lsf,
+        voxel_m=params.icp_voxel_m,
+        max_distances_m=params.icp_max_distances_m,
+        iterations=params.icp_iterations,
+    )
+
+
 def overlap_region(reference: np.ndarray, moving: np.ndarray, moving_to_reference: np.ndarray, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
     """The points each scan could share with the other: reference points within ``reach_m``
     (horizontally) of the moving scanner and moving points within ``reach_m`` of the reference
@@ -385,10 +389,16 @@ def _vop_residual(attempt: CoarseAttempt, lsf_matrix: np.ndarray, match_distance
     return float(np.mean(d))
 
 
-def _file_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, lsf_matrix: np.ndarray) -> np.ndarray:
-    """Compose moving file -> moving local -> moving LSF -> reference LSF -> reference local -> reference file."""
+def lsf_to_file_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, lsf_matrix: np.ndarray) -> np.ndarray:
+    """A moving-LSF -> reference-LSF matrix as a moving-file -> reference-file matrix (composes
+    moving file -> local -> LSF -> reference LSF -> local -> file)."""
     file_to_local = np.linalg.inv(moving.local_to_file_matrix())
     return reference.local_to_file_matrix() @ np.linalg.inv(ref_prep.local_to_lsf) @ lsf_matrix @ mov_prep.local_to_lsf @ file_to_local
+
+
+def file_to_lsf_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, file_matrix: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`lsf_to_file_matrix`: a file -> file matrix in the levelled frames."""
+    return ref_prep.local_to_lsf @ np.linalg.inv(reference.local_to_file_matrix()) @ file_matrix @ moving.local_to_file_matrix() @ np.linalg.inv(mov_prep.local_to_lsf)
 
 
 def _failed(reason: str, attempt: CoarseAttempt, common: dict[str, Any], details: PairDetails) -> PairResult:
