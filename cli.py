@@ -150,6 +150,118 @@ def cmd_register(args: argparse.Namespace) -> int:
     return 1
 
 
+def _project_from_args(args: argparse.Namespace):
+    """A new project from the scans, centre, tilted marks, targets and parameters on the command line."""
+    from .engine.project import Project
+
+    project = Project(name=Path(args.out).name if getattr(args, "out", None) else "plot", params=_params_from_args(args))
+    for path in args.scans:
+        project.add_scan(path)
+    names = {Path(p).name: s.name for p, s in zip(args.scans, project.scans)}
+    if args.centre:
+        centre = names.get(Path(args.centre).name, args.centre)
+        project.scan(centre)
+        project.centre = centre
+    for item in ",".join(args.tilted or []).split(","):
+        if not item.strip():
+            continue
+        tilted, _, partner = item.partition(":")
+        entry = project.scan(names.get(Path(tilted).name, tilted))
+        entry.tilted = True
+        if partner:
+            entry.level_partner = project.scan(names.get(Path(partner).name, partner)).name
+    if getattr(args, "targets", None):
+        from .engine.manual import read_targets_csv
+
+        for scan_name, targets in read_targets_csv(args.targets).items():
+            if project.has_scan(scan_name):
+                project.scan(scan_name).targets = targets
+            else:
+                log.warning("targets for %s: no such scan in the plot", scan_name)
+    return project
+
+
+def _run_project(project, out: Path, args: argparse.Namespace) -> int:
+    from .engine.plot import ScanCache, adjust_poses, register_project, write_merged, write_poses
+
+    scans = ScanCache(project)
+    bar = ProgressBar(not args.quiet, "plot")
+    try:
+        outcome = register_project(project, rerun=getattr(args, "rerun", False), progress=bar, scans=scans)
+    finally:
+        bar.close()
+    adjusted = adjust_poses(project, scans)
+    if project.path is not None:
+        project.save()
+    write_poses(project, out, outcome)
+    try:
+        from .engine.report.plot_report import write_plot_report
+
+        write_plot_report(project, out / "report.html", scans=scans)
+    except ImportError:  # pragma: no cover - report module optional during development
+        pass
+    if getattr(args, "merged", None):
+        count = write_merged(project, args.merged, scans)
+        print(f"merged {count} points into {args.merged}")
+    for name, status in outcome.status.items():
+        extra = f" - {outcome.reasons[name]}" if name in outcome.reasons else ""
+        link = project.link_of(name)
+        onto = f" onto {link.reference}" if link is not None and status == "ok" else ""
+        print(f"{name}: {status}{onto}{extra}")
+    if adjusted:
+        worst = max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0)
+        print(f"global adjustment over {len(adjusted['links'])} links: largest link residual {100 * worst:.1f} cm")
+    print(f"poses: {out / 'poses.json'}")
+    return 0 if not outcome.failed else 1
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    project = _project_from_args(args)
+    project.save(out / "project.json")
+    return _run_project(project, out, args)
+
+
+def cmd_project(args: argparse.Namespace) -> int:
+    from .engine.project import Project
+
+    if args.action == "create":
+        project = _project_from_args(args)
+        path = project.save(args.project)
+        print(f"created {path} with {len(project.scans)} scans, centre {project.centre}")
+        return 0
+    project = Project.load(args.project)
+    if args.action == "show":
+        poses = project.poses()
+        print(f"project {project.name}: {len(project.scans)} scans, centre {project.centre}")
+        for s in project.scans:
+            link = project.link_of(s.name)
+            state = "centre" if s.name == project.centre else ("not run" if link is None or link.result is None else link.result.get("status"))
+            details = ""
+            if link is not None and link.result is not None:
+                r = link.result
+                details = f" onto {link.reference}, {r.get('matched', '-')} matched VOPs"
+                if r.get("icp"):
+                    details += f", ICP std {1000 * r['icp']['std_m']:.1f} mm"
+                if r.get("reason"):
+                    details += f" ({r['reason']})"
+            t = " [tilted]" if s.tilted else ""
+            placed = "" if poses.get(s.name) is None else f" at ({poses[s.name][0, 3]:.2f}, {poses[s.name][1, 3]:.2f}, {poses[s.name][2, 3]:.2f})"
+            print(f"  {s.name}{t}: {state}{details}{placed}")
+        return 0
+    if args.action == "link":
+        if args.extra:
+            project.add_link(args.moving, args.reference, vop_radius_m=args.dr)
+        else:
+            project.set_link(args.moving, args.reference, vop_radius_m=args.dr)
+        project.save()
+        print(f"linked {args.moving} -> {args.reference}{' (extra link)' if args.extra else ''}")
+        return 0
+    out = Path(args.out) if args.out else project.path.parent
+    return _run_project(project, out, args)
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .engine.simulate import simulate_plot
 
@@ -245,6 +357,48 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--write-registered", action="store_true", help="also write the moving scan transformed into the reference frame (LAZ)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_register)
+
+    def add_plot_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--centre", help="the centre (root) scan: the project frame (default: the first scan)")
+        p.add_argument("--tilted", action="append", metavar="SCAN[:PARTNER],...", help="tilted scans, each optionally with the level scan at the same spot")
+        p.add_argument("--targets", help="targets CSV (scan,target,x,y,z in each scan's own coordinates)")
+        p.add_argument("--dr", type=float, help="VOP radius D_r in metres for every link (default: automatic)")
+        p.add_argument("--dc", type=float, help="reduction radius D_c in metres (default 30)")
+        p.add_argument("--dh", type=lambda s: _floats(s, what="--dh"), help="slice offsets dh in metres, comma-separated")
+        p.add_argument("--params", help="TOML parameter file")
+
+    p = sub.add_parser("plot", help="register all scans of a plot (each to the centre scan, tilted ones to their level partner)")
+    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files")
+    p.add_argument("--out", required=True, help="output folder: project.json, poses.json, <scan>.transform.txt, report.html")
+    add_plot_options(p)
+    p.add_argument("--merged", help="also write all registered scans into one LAZ with a scan_id per point")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser("project", help="create, inspect, link and re-run a saved plot project")
+    psub = p.add_subparsers(dest="action", required=True)
+    q = psub.add_parser("create", help="create a project file from scans")
+    q.add_argument("project", help="project file to write (.json)")
+    q.add_argument("scans", nargs="+", metavar="SCAN")
+    add_plot_options(q)
+    q.set_defaults(func=cmd_project, out=None)
+    q = psub.add_parser("show", help="print the scans, links and results of a project")
+    q.add_argument("project")
+    q.set_defaults(func=cmd_project)
+    q = psub.add_parser("link", help="link MOVING to REFERENCE (replacing its link, or --extra for a loop)")
+    q.add_argument("project")
+    q.add_argument("moving")
+    q.add_argument("reference")
+    q.add_argument("--dr", type=float, help="VOP radius for this link")
+    q.add_argument("--extra", action="store_true", help="add an extra link (closes a loop for the global adjustment)")
+    q.set_defaults(func=cmd_project)
+    q = psub.add_parser("run", help="register the project's scans (links that succeeded are kept unless --rerun)")
+    q.add_argument("project")
+    q.add_argument("--out", help="output folder (default: the project's folder)")
+    q.add_argument("--rerun", action="store_true", help="run every link again")
+    q.add_argument("--merged", help="also write all registered scans into one LAZ")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=cmd_project)
 
     p = sub.add_parser("simulate", help="simulate TLS scans of a synthetic forest plot with known poses")
     p.add_argument("preset", help="planted_conifer, mixed_temperate, rainforest, sloped or open_field")

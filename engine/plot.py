@@ -1,0 +1,328 @@
+"""Multi-scan plot registration: linking, retries, composing poses, and global adjustment.
+
+The paper registers every scan to the centre scan, and a tilted scan to the level scan at the same
+spot. A surveyor whose link fails tries the scans already registered, nearest first; what cannot be
+registered is reported, never guessed. Where extra links close loops, a pose graph spreads the error
+(like RiSCAN's multi-station adjustment).
+
+Frames: see :mod:`forestreg.engine.project` (poses map a scan's file coordinates into the centre
+scan's file coordinates).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import numpy as np
+
+from .atomic import write_text_atomic
+from .io import read_scan, write_points
+from .progress import CancelToken, Progress, ProgressCallback
+from .project import Link, Project, ScanEntry
+from .register import register
+from .scan import Scan
+from .transform import format_matrix, rigid_errors
+
+log = logging.getLogger("forestreg")
+
+#: D_r for a tilted scan against its level partner at the same spot (paper sec. 4.3: ~10 m).
+TILTED_PARTNER_RADIUS_M = 10.0
+
+
+class ScanCache:
+    """Reads each scan of a project once, on first use."""
+
+    def __init__(self, project: Project) -> None:
+        self.project = project
+        self._scans: dict[str, Scan] = {}
+
+    def __call__(self, name: str) -> Scan:
+        if name not in self._scans:
+            entry = self.project.scan(name)
+            self._scans[name] = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
+        return self._scans[name]
+
+
+@dataclass
+class PlotOutcome:
+    """What a plot run did: per scan "ok"/"failed"/"centre", and the reasons of failures."""
+
+    status: dict[str, str] = field(default_factory=dict)
+    reasons: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def registered(self) -> list[str]:
+        return [k for k, v in self.status.items() if v in ("ok", "centre")]
+
+    @property
+    def failed(self) -> list[str]:
+        return [k for k, v in self.status.items() if v == "failed"]
+
+
+def default_links(project: Project) -> None:
+    """Give every scan without a link the paper's default: tilted scans to their level partner,
+    the rest to the centre scan. A tilted scan without a named partner is linked to the centre
+    for now; :func:`register_project` looks for its partner among the level scans."""
+    if project.centre is None:
+        raise ValueError("the project has no scans")
+    for s in project.scans:
+        if s.name == project.centre or project.link_of(s.name) is not None:
+            continue
+        reference = s.level_partner if (s.tilted and s.level_partner) else project.centre
+        project.set_link(s.name, reference)
+
+
+def register_project(
+    project: Project,
+    *,
+    rerun: bool = False,
+    progress: Optional[ProgressCallback] = None,
+    cancel: Optional[CancelToken] = None,
+    on_link: Optional[Callable[[Link], None]] = None,
+    scans: Optional[ScanCache] = None,
+) -> PlotOutcome:
+    """Register every scan of the project along its link, retrying failed links.
+
+    Links that already succeeded are kept unless ``rerun``. After each link the project is saved
+    (when it has a file) and ``on_link`` is called, so an interrupted run loses nothing already
+    computed. Level scans are registered before tilted ones (their partners must be placed first).
+
+    Returns a :class:`PlotOutcome`; the link results and poses are in the project.
+    """
+    default_links(project)
+    scans = scans or ScanCache(project)
+    step = Progress(progress, cancel=cancel)
+    order = [s for s in project.scans if s.name != project.centre and not s.tilted] + [s for s in project.scans if s.tilted and s.name != project.centre]
+    outcome = PlotOutcome(status={project.centre: "centre"})
+    for k, entry in enumerate(order):
+        sub = step.sub(k / max(len(order), 1), (k + 1) / max(len(order), 1))
+        link = project.link_of(entry.name)
+        if link.ok and not rerun:
+            outcome.status[entry.name] = "ok"
+            continue
+        sub(0.0, f"registering {entry.name}")
+        if entry.tilted and not entry.level_partner:
+            link = _register_tilted_without_partner(project, entry, scans, sub, cancel)
+        else:
+            link.result = _run_link(project, link, scans, sub.sub(0.0, 0.5), cancel)
+            if not link.ok:
+                link = _retry(project, entry, link, scans, sub.sub(0.5, 1.0), cancel)
+        outcome.status[entry.name] = "ok" if link.ok else "failed"
+        if not link.ok:
+            outcome.reasons[entry.name] = link.result.get("reason", "") if link.result else "not run"
+            log.warning("%s could not be registered: %s", entry.name, outcome.reasons[entry.name])
+        project.adjustment = None
+        if project.path is not None:
+            project.save()
+        if on_link is not None:
+            on_link(link)
+    extra = [link for link in project.links if link.extra and (rerun or link.result is None)]
+    for link in extra:
+        link.result = _run_link(project, link, scans, Progress(None, cancel=cancel), cancel)
+        if project.path is not None:
+            project.save()
+    # a scan whose chain to the centre is broken has no pose even if its own link worked
+    poses = project.chained_poses()
+    for name, pose in poses.items():
+        if pose is None and outcome.status.get(name) == "ok":
+            outcome.status[name] = "failed"
+            outcome.reasons[name] = "its reference scan could not be registered"
+    step(1.0, "done")
+    return outcome
+
+
+def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> dict[str, Any]:
+    reference, moving = scans(link.reference), scans(link.moving)
+    if link.method == "manual":
+        from .manual import register_manual
+
+        result = register_manual(
+            reference, moving, project.scan(link.reference).targets, project.scan(link.moving).targets,
+            link.params(project.params), progress=progress, cancel=cancel,
+        )
+    else:
+        result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel)
+    return _jsonable(result.to_dict())
+
+
+def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> Link:
+    """Try the failed scan against the scans already registered, nearest to its first reference
+    first; keep the first success (the failed attempt is recorded in the link)."""
+    poses = project.chained_poses()
+    first = poses.get(failed.reference)
+    candidates = [n for n, p in poses.items() if p is not None and n not in (entry.name, failed.reference)]
+    if first is not None:
+        candidates.sort(key=lambda n: float(np.linalg.norm(poses[n][:3, 3] - first[:3, 3])))
+    tried = [{"reference": failed.reference, "reason": (failed.result or {}).get("reason", "")}]
+    for k, name in enumerate(candidates):
+        link = Link(moving=entry.name, reference=name, method=failed.method, vop_radius_m=failed.vop_radius_m, slice_offsets_m=failed.slice_offsets_m)
+        link.result = _run_link(project, link, scans, progress.sub(k / len(candidates), (k + 1) / len(candidates)), cancel)
+        if link.ok:
+            link.result["retried_after"] = tried
+            project.replace_link(failed, link)
+            log.info("%s registered onto %s after %d failed attempt(s)", entry.name, name, len(tried))
+            return link
+        tried.append({"reference": name, "reason": link.result.get("reason", "")})
+    failed.result = dict(failed.result or {}, retried=tried[1:])
+    return failed
+
+
+def _register_tilted_without_partner(project: Project, entry: ScanEntry, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> Link:
+    """A tilted scan whose level partner is not named: register it to every registered level scan
+    (D_r 10 m) and take the success whose scanner lies closest (the partner stands at the same
+    spot)."""
+    poses = project.chained_poses()
+    level = [s.name for s in project.scans if not s.tilted and poses.get(s.name) is not None]
+    best: Optional[Link] = None
+    last: Optional[Link] = None
+    for k, name in enumerate(level):
+        link = Link(moving=entry.name, reference=name, vop_radius_m=TILTED_PARTNER_RADIUS_M)
+        link.result = _run_link(project, link, scans, progress.sub(k / len(level), (k + 1) / len(level)), cancel)
+        last = link
+        if link.ok and (best is None or np.linalg.norm(link.matrix[:3, 3]) < np.linalg.norm(best.matrix[:3, 3])):
+            best = link
+    current = project.link_of(entry.name)
+    chosen = best or last or current
+    if best is not None:
+        entry.level_partner = best.reference
+    project.replace_link(current, chosen)
+    return chosen
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    return value
+
+
+def link_residuals(project: Project, poses: dict[str, Optional[np.ndarray]]) -> list[dict[str, Any]]:
+    """For every successful link, how far the poses disagree with it: rotation (deg) and
+    translation (m, at the moving scanner) between the link's matrix and ``inv(pose_ref) @ pose_mov``."""
+    rows = []
+    for link in project.links:
+        m = link.matrix
+        pr, pm = poses.get(link.reference), poses.get(link.moving)
+        if m is None or pr is None or pm is None:
+            continue
+        rot, trans = rigid_errors(np.linalg.inv(pr) @ pm, m)
+        rows.append({"moving": link.moving, "reference": link.reference, "rotation_deg": rot, "translation_m": trans})
+    return rows
+
+
+def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m: float = 0.1, max_distance_m: float = 0.1) -> Optional[dict[str, Any]]:
+    """Global adjustment: where successful links close loops (more links than a tree needs), a
+    pose graph (open3d, Levenberg-Marquardt, the centre scan fixed) spreads the disagreement over
+    the links. Each link is weighted by the information matrix of its overlap.
+
+    Stores and returns ``{"poses": {name: 4x4 | None}, "links": [per-link residuals before and
+    after]}`` in ``project.adjustment``; returns None (and clears it) where there is no loop.
+    """
+    import open3d as o3d
+
+    chained = project.chained_poses()
+    names = [s.name for s in project.scans if chained.get(s.name) is not None]
+    links = [link for link in project.links if link.ok and link.moving in names and link.reference in names]
+    if len(links) <= len(names) - 1:
+        project.adjustment = None
+        return None
+    scans = scans or ScanCache(project)
+    index = {n: i for i, n in enumerate(names)}
+    reg = o3d.pipelines.registration
+    graph = reg.PoseGraph()
+    for n in names:
+        graph.nodes.append(reg.PoseGraphNode(chained[n]))
+    clouds: dict[str, Any] = {}
+
+    def cloud(name: str):
+        if name not in clouds:
+            scan = scans(name)
+            pts = scan.file_points
+            pts = pts[np.sum((pts - scan.scanner_position_file) ** 2, axis=1) <= project.params.max_range_m**2]
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts - chained[project.centre][:3, 3]))
+            clouds[name] = pc.voxel_down_sample(voxel_m)
+        return clouds[name]
+
+    for link in links:
+        information = reg.get_information_matrix_from_point_clouds(cloud(link.moving), cloud(link.reference), max_distance_m, link.matrix)
+        graph.edges.append(reg.PoseGraphEdge(index[link.moving], index[link.reference], link.matrix, information, uncertain=link.extra))
+    option = reg.GlobalOptimizationOption(max_correspondence_distance=max_distance_m, edge_prune_threshold=0.25, reference_node=index[project.centre])
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option)
+    adjusted: dict[str, Optional[np.ndarray]] = {s.name: None for s in project.scans}
+    centre_inv = np.linalg.inv(np.asarray(graph.nodes[index[project.centre]].pose))
+    for n in names:
+        adjusted[n] = centre_inv @ np.asarray(graph.nodes[index[n]].pose)
+    before = {(r["moving"], r["reference"]): r for r in link_residuals(project, chained)}
+    rows = []
+    for r in link_residuals(project, adjusted):
+        b = before.get((r["moving"], r["reference"]), {})
+        rows.append({
+            "moving": r["moving"], "reference": r["reference"],
+            "before": {"rotation_deg": b.get("rotation_deg"), "translation_m": b.get("translation_m")},
+            "after": {"rotation_deg": r["rotation_deg"], "translation_m": r["translation_m"]},
+        })
+    project.adjustment = {"poses": {k: (None if v is None else v.tolist()) for k, v in adjusted.items()}, "links": rows}
+    return project.adjustment
+
+
+def write_poses(project: Project, out_dir: str | Path, outcome: Optional[PlotOutcome] = None) -> Path:
+    """Write ``poses.json`` (``{"frame": centre, "scans": {name: {"status", "matrix"}}}``, each
+    matrix mapping that scan's file coordinates into the centre scan's) and one
+    ``<scan>.transform.txt`` per registered scan. Returns the path of ``poses.json``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    poses = project.poses()
+    body: dict[str, Any] = {"frame": project.centre, "convention": "p_centre = matrix @ p_scan (file coordinates)", "scans": {}}
+    for s in project.scans:
+        pose = poses.get(s.name)
+        entry: dict[str, Any] = {"status": "ok" if pose is not None else "failed", "matrix": None if pose is None else pose.tolist()}
+        if pose is None and outcome is not None and s.name in outcome.reasons:
+            entry["reason"] = outcome.reasons[s.name]
+        link = project.link_of(s.name)
+        if link is not None:
+            entry["reference"] = link.reference
+        body["scans"][s.name] = entry
+        if pose is not None:
+            write_text_atomic(out / f"{s.name}.transform.txt", format_matrix(pose))
+    if project.adjustment:
+        body["adjustment"] = project.adjustment.get("links")
+    path = out / "poses.json"
+    write_text_atomic(path, json.dumps(body, indent=2) + "\n")
+    return path
+
+
+def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] = None) -> int:
+    """Write every registered scan, in the centre scan's file coordinates, into one point file
+    with a ``scan_id`` per point (the scan's index in the project). Returns the point count."""
+    scans = scans or ScanCache(project)
+    poses = project.poses()
+    parts, intensity, ids = [], [], []
+    with_intensity = True
+    for k, s in enumerate(project.scans):
+        pose = poses.get(s.name)
+        if pose is None:
+            continue
+        scan = scans(s.name)
+        parts.append(scan.file_points @ pose[:3, :3].T + pose[:3, 3])
+        ids.append(np.full(len(scan), k, dtype=np.uint16))
+        with_intensity &= scan.intensity is not None
+        intensity.append(scan.intensity)
+    if not parts:
+        raise ValueError("no scan is registered: nothing to merge")
+    write_points(
+        path,
+        np.concatenate(parts),
+        intensity=np.concatenate(intensity) if with_intensity else None,
+        scan_id=np.concatenate(ids),
+    )
+    return int(sum(len(p) for p in parts))

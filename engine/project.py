@@ -1,0 +1,309 @@
+"""The plot project: scans, the centre scan, links (moving -> reference), targets and results.
+
+A project is what a user registers in one go: the scans of one plot, each linked to the scan it is
+registered onto. It is saved as a versioned JSON file with scan paths relative to it, written
+atomically; a damaged or newer file gives a :class:`~forestreg.engine.errors.ProjectFileError` and
+is never overwritten by a failed read.
+
+Frames: the project frame is the centre (root) scan's file coordinates. A scan's pose maps its own
+file coordinates into the project frame; a link's matrix maps the moving scan's file coordinates
+into the reference scan's (``p_reference = matrix @ p_moving``), so poses compose along links.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from .atomic import write_text_atomic
+from .errors import ProjectFileError
+from .params import RegistrationParams
+
+FORMAT = "forestreg-project"
+VERSION = 1
+
+
+@dataclass
+class ScanEntry:
+    """One scan of the project.
+
+    ``path`` is absolute in memory and relative to the project file on disk. ``scanner_position``
+    (file coordinates) is None for a scan in its scanner's own coordinates. ``targets`` maps target
+    ids to centres in the scan's file coordinates. ``level_partner`` names the level scan a tilted
+    scan was taken beside.
+    """
+
+    name: str
+    path: Path
+    scanner_position: Optional[tuple[float, float, float]] = None
+    scan_index: Optional[int] = None
+    tilted: bool = False
+    level_partner: Optional[str] = None
+    prior_pose: Optional[np.ndarray] = None
+    targets: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
+class Link:
+    """A registration of ``moving`` onto ``reference`` and its outcome.
+
+    ``method`` is "auto" (trunk shadows) or "manual" (targets). ``vop_radius_m`` and
+    ``slice_offsets_m`` override the project parameters for this link. ``result`` is the
+    ``to_dict()`` of the last run (None until run); ``matrix`` its 4x4 when it succeeded. An
+    ``extra`` link does not place its scan; it closes a loop for the global adjustment.
+    """
+
+    moving: str
+    reference: str
+    method: str = "auto"
+    vop_radius_m: Optional[float] = None
+    slice_offsets_m: Optional[tuple[float, ...]] = None
+    result: Optional[dict[str, Any]] = None
+    extra: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return self.result is not None and self.result.get("status") == "ok"
+
+    @property
+    def matrix(self) -> Optional[np.ndarray]:
+        if not self.ok or self.result.get("matrix") is None:
+            return None
+        return np.array(self.result["matrix"], dtype=float)
+
+    def params(self, base: RegistrationParams) -> RegistrationParams:
+        """The project parameters with this link's overrides."""
+        changes: dict[str, Any] = {}
+        if self.vop_radius_m is not None:
+            changes["vop_radius_m"] = self.vop_radius_m
+        if self.slice_offsets_m is not None:
+            changes["slice_offsets_m"] = tuple(self.slice_offsets_m)
+        return base.replace(**changes) if changes else base
+
+
+@dataclass
+class Project:
+    """Scans, links and results of one plot (see the module docstring for frames)."""
+
+    name: str = "plot"
+    centre: Optional[str] = None
+    scans: list[ScanEntry] = field(default_factory=list)
+    links: list[Link] = field(default_factory=list)
+    params: RegistrationParams = field(default_factory=RegistrationParams)
+    path: Optional[Path] = None
+    adjustment: Optional[dict[str, Any]] = None
+
+    # ------------------------------------------------------------------ editing
+
+    def add_scan(self, path: str | Path, *, name: Optional[str] = None, **options: Any) -> ScanEntry:
+        """Add a scan file; its name defaults to the file name (made unique)."""
+        p = Path(path).resolve()
+        base = name or p.name
+        unique, k = base, 2
+        while self.has_scan(unique):
+            unique, k = f"{base}#{k}", k + 1
+        entry = ScanEntry(name=unique, path=p, **options)
+        self.scans.append(entry)
+        if self.centre is None:
+            self.centre = unique
+        return entry
+
+    def has_scan(self, name: str) -> bool:
+        return any(s.name == name for s in self.scans)
+
+    def scan(self, name: str) -> ScanEntry:
+        for s in self.scans:
+            if s.name == name:
+                return s
+        raise KeyError(f"no scan named {name!r} in the project (scans: {', '.join(s.name for s in self.scans)})")
+
+    def link_of(self, moving: str) -> Optional[Link]:
+        """The link that places ``moving`` (its non-extra link)."""
+        return next((link for link in self.links if link.moving == moving and not link.extra), None)
+
+    def set_link(self, moving: str, reference: str, **options: Any) -> Link:
+        """Link ``moving`` to ``reference``, replacing the link that placed it."""
+        self.scan(moving), self.scan(reference)
+        if moving == reference:
+            raise ValueError(f"a scan cannot be linked to itself ({moving})")
+        self.links = [link for link in self.links if link.moving != moving or link.extra]
+        link = Link(moving=moving, reference=reference, **options)
+        self.links.append(link)
+        return link
+
+    def add_link(self, moving: str, reference: str, **options: Any) -> Link:
+        """Add an extra link (beside the link that places the scan): a loop for the global
+        adjustment."""
+        self.scan(moving), self.scan(reference)
+        if moving == reference:
+            raise ValueError(f"a scan cannot be linked to itself ({moving})")
+        link = Link(moving=moving, reference=reference, extra=True, **options)
+        self.links.append(link)
+        return link
+
+    def replace_link(self, old: Link, new: Link) -> None:
+        """Put ``new`` where ``old`` stands in the link list (keeps which link is first)."""
+        self.links = [new if link is old else link for link in self.links]
+
+    # ------------------------------------------------------------------ poses
+
+    def poses(self) -> dict[str, Optional[np.ndarray]]:
+        """Each scan's pose in the project frame (None where its chain of links to the centre is
+        broken or failed), composed along the links."""
+        if self.adjustment and self.adjustment.get("poses"):
+            return {k: (None if v is None else np.array(v)) for k, v in self.adjustment["poses"].items()}
+        return self.chained_poses()
+
+    def chained_poses(self) -> dict[str, Optional[np.ndarray]]:
+        """Poses composed along the (first) link of each scan, ignoring any adjustment."""
+        poses: dict[str, Optional[np.ndarray]] = {s.name: None for s in self.scans}
+        if self.centre is None:
+            return poses
+        poses[self.centre] = np.eye(4)
+
+        def resolve(name: str, seen: tuple[str, ...]) -> Optional[np.ndarray]:
+            if poses.get(name) is not None:
+                return poses[name]
+            link = self.link_of(name)
+            if link is None or name in seen or link.matrix is None:
+                return None
+            parent = resolve(link.reference, seen + (name,))
+            if parent is None:
+                return None
+            poses[name] = parent @ link.matrix
+            return poses[name]
+
+        for s in self.scans:
+            resolve(s.name, ())
+        return poses
+
+    # ------------------------------------------------------------------ files
+
+    def to_dict(self, relative_to: Optional[Path] = None) -> dict[str, Any]:
+        def rel(p: Path) -> str:
+            if relative_to is None:
+                return str(p)
+            try:
+                return str(Path(p).resolve().relative_to(relative_to.resolve()))
+            except ValueError:
+                return os.path.relpath(Path(p).resolve(), relative_to.resolve())
+
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "name": self.name,
+            "centre": self.centre,
+            "parameters": self.params.to_dict(),
+            "scans": [
+                {
+                    "name": s.name,
+                    "path": rel(s.path),
+                    "scanner_position": None if s.scanner_position is None else list(s.scanner_position),
+                    "scan_index": s.scan_index,
+                    "tilted": s.tilted,
+                    "level_partner": s.level_partner,
+                    "prior_pose": None if s.prior_pose is None else np.asarray(s.prior_pose).tolist(),
+                    "targets": {k: np.asarray(v).tolist() for k, v in s.targets.items()},
+                }
+                for s in self.scans
+            ],
+            "links": [
+                {
+                    "moving": link.moving,
+                    "reference": link.reference,
+                    "method": link.method,
+                    "vop_radius_m": link.vop_radius_m,
+                    "slice_offsets_m": None if link.slice_offsets_m is None else list(link.slice_offsets_m),
+                    "result": link.result,
+                    "extra": link.extra,
+                }
+                for link in self.links
+            ],
+            "adjustment": self.adjustment,
+        }
+
+    def save(self, path: Optional[str | Path] = None) -> Path:
+        """Write the project file atomically (scan paths relative to it) and remember the path."""
+        target = Path(path) if path is not None else self.path
+        if target is None:
+            raise ProjectFileError("the project has no file yet: give a path to save it to")
+        target = target.resolve()
+        text = json.dumps(self.to_dict(relative_to=target.parent), indent=1, default=_json_default)
+        write_text_atomic(target, text + "\n")
+        self.path = target
+        return target
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Project":
+        """Read a project file; scan paths are resolved relative to it."""
+        p = Path(path)
+        try:
+            data = json.loads(p.read_text(encoding="utf-8"))
+        except FileNotFoundError as exc:
+            raise ProjectFileError(f"project file {p} does not exist") from exc
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ProjectFileError(f"project file {p} is damaged and cannot be read ({exc}); it was left untouched") from exc
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise ProjectFileError(f"{p} is not a forestreg project file")
+        version = data.get("version")
+        if not isinstance(version, int) or version > VERSION:
+            raise ProjectFileError(f"{p} was written by a newer forestreg (project format {version}; this one reads up to {VERSION})")
+        if version < 1:
+            raise ProjectFileError(f"{p} has an unsupported old project format {version}")
+        try:
+            folder = p.resolve().parent
+            scans = [
+                ScanEntry(
+                    name=str(s["name"]),
+                    path=(folder / s["path"]).resolve(),
+                    scanner_position=None if s.get("scanner_position") is None else tuple(float(v) for v in s["scanner_position"]),
+                    scan_index=s.get("scan_index"),
+                    tilted=bool(s.get("tilted", False)),
+                    level_partner=s.get("level_partner"),
+                    prior_pose=None if s.get("prior_pose") is None else np.array(s["prior_pose"], dtype=float),
+                    targets={str(k): np.array(v, dtype=float) for k, v in (s.get("targets") or {}).items()},
+                )
+                for s in data["scans"]
+            ]
+            links = [
+                Link(
+                    moving=str(link["moving"]),
+                    reference=str(link["reference"]),
+                    method=str(link.get("method", "auto")),
+                    vop_radius_m=link.get("vop_radius_m"),
+                    slice_offsets_m=None if link.get("slice_offsets_m") is None else tuple(link["slice_offsets_m"]),
+                    result=link.get("result"),
+                    extra=bool(link.get("extra", False)),
+                )
+                for link in data.get("links", [])
+            ]
+            params = RegistrationParams.from_mapping(data.get("parameters") or {})
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ProjectFileError(f"project file {p} is damaged ({exc!r}); it was left untouched") from exc
+        project = cls(
+            name=str(data.get("name", p.stem)),
+            centre=data.get("centre"),
+            scans=scans,
+            links=links,
+            params=params,
+            path=p.resolve(),
+            adjustment=data.get("adjustment"),
+        )
+        names = {s.name for s in scans}
+        bad = [link for link in links if link.moving not in names or link.reference not in names]
+        if bad or (project.centre is not None and project.centre not in names):
+            raise ProjectFileError(f"project file {p} refers to scans it does not list; it was left untouched")
+        return project
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    raise TypeError(f"cannot write {type(value).__name__} to a project file")

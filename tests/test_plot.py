@@ -1,0 +1,178 @@
+"""Multi-scan plot projects against the simulator's truth: linking, retries, saving, re-running,
+interruption, global adjustment, and the plot/project commands."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from forestreg.cli import main
+from forestreg.engine.errors import Cancelled, ProjectFileError
+from forestreg.engine.io import read_scan, write_scan
+from forestreg.engine.plot import adjust_poses, register_project, write_poses
+from forestreg.engine.project import Project
+from forestreg.engine.transform import rigid_errors
+
+FOUR = ((0.0, 0.0), (10.0, 2.0), (-8.0, 6.0), (3.0, -11.0))
+SIX_WITH_TILTED = ((0.0, 0.0), (9.0, 3.0), (-7.0, 7.0), (2.0, -10.0), (-9.0, -5.0), (9.3, 3.2))
+
+
+def _write_plot(plot, folder):
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for s in plot.scans:
+        paths.append(folder / f"{s.scan.name}.laz")
+        write_scan(s.scan, paths[-1])
+    return paths
+
+
+def _check_poses(project, plot, names=None):
+    poses = project.poses()
+    for k, s in enumerate(project.scans):
+        if names is not None and s.name not in names:
+            continue
+        truth = plot.relative_pose(0, k)
+        assert poses[s.name] is not None, f"{s.name} not registered"
+        rot, trans = rigid_errors(poses[s.name], truth)
+        assert rot < 0.05 and trans < 0.02, f"{s.name}: {rot:.4f} deg, {100 * trans:.2f} cm"
+
+
+@pytest.fixture(scope="module")
+def four_scan_files(tmp_path_factory, sim_plot):
+    plot = sim_plot("mixed_temperate", FOUR, seed=31, step=0.3, size=45.0)
+    return plot, _write_plot(plot, tmp_path_factory.mktemp("four"))
+
+
+def test_four_scan_plot_registers_every_scan_to_truth(four_scan_files, tmp_path):
+    plot, paths = four_scan_files
+    project = Project(name="four")
+    for p in paths:
+        project.add_scan(p)
+    project.save(tmp_path / "project.json")
+    outcome = register_project(project)
+    assert outcome.failed == []
+    assert [project.link_of(s.name).reference for s in project.scans[1:]] == [paths[0].name] * 3
+    _check_poses(project, plot)
+    # saved after each link: reopening gives the same poses, and re-running keeps them
+    reopened = Project.load(tmp_path / "project.json")
+    for name, pose in project.poses().items():
+        assert np.allclose(reopened.poses()[name], pose)
+    before = {s.name: project.link_of(s.name).result for s in project.scans[1:]}
+    register_project(reopened)
+    assert {s.name: reopened.link_of(s.name).result for s in reopened.scans[1:]} == before
+    register_project(reopened, rerun=True)
+    for name, pose in project.poses().items():
+        assert rigid_errors(reopened.poses()[name], pose)[1] < 1e-6
+
+
+def test_six_scan_plot_with_a_tilted_scan(tmp_path, sim_plot):
+    plot = sim_plot("planted_conifer", SIX_WITH_TILTED, seed=32, step=0.3, size=45.0, tilted=((5, 30.0),))
+    paths = _write_plot(plot, tmp_path / "scans")
+    project = Project()
+    for p in paths:
+        project.add_scan(p)
+    project.scans[5].tilted = True
+    project.scans[5].level_partner = project.scans[1].name
+    outcome = register_project(project)
+    assert outcome.failed == []
+    assert project.link_of(project.scans[5].name).reference == project.scans[1].name
+    _check_poses(project, plot)
+
+
+def test_a_scan_from_another_plot_is_reported_and_the_rest_registers(four_scan_files, tmp_path, sim_plot):
+    plot, paths = four_scan_files
+    stranger = sim_plot("mixed_temperate", ((0.0, 0.0), (5.0, 0.0)), seed=33, step=0.3, size=45.0).scans[1].scan
+    stranger_path = tmp_path / "stranger.laz"
+    write_scan(stranger, stranger_path)
+    project = Project()
+    for p in paths[:3]:
+        project.add_scan(p)
+    project.add_scan(stranger_path)
+    outcome = register_project(project)
+    assert outcome.failed == ["stranger.laz"]
+    assert outcome.reasons["stranger.laz"]
+    link = project.link_of("stranger.laz")
+    assert not link.ok and len(link.result["retried"]) == 2, "a failed link is retried against the registered scans"
+    assert project.poses()["stranger.laz"] is None
+    _check_poses(project, plot, names=[p.name for p in paths[:3]])
+
+
+def test_interrupted_run_keeps_finished_links(four_scan_files, tmp_path):
+    plot, paths = four_scan_files
+    project = Project()
+    for p in paths:
+        project.add_scan(p)
+    project.save(tmp_path / "project.json")
+
+    def stop_after_first(link):
+        raise Cancelled("stopped by the test")
+
+    with pytest.raises(Cancelled):
+        register_project(project, on_link=stop_after_first)
+    saved = Project.load(tmp_path / "project.json")
+    done = [link for link in saved.links if link.result is not None]
+    assert len(done) == 1 and done[0].ok
+    outcome = register_project(saved)
+    assert outcome.failed == []
+    assert saved.link_of(done[0].moving).result == done[0].result, "a finished link is not run again"
+    _check_poses(saved, plot)
+
+
+def test_extra_links_close_a_loop_and_the_adjustment_reports_residuals(four_scan_files):
+    plot, paths = four_scan_files
+    project = Project()
+    for p in paths:
+        project.add_scan(p)
+    project.add_link(paths[2].name, paths[1].name)
+    register_project(project)
+    adjustment = adjust_poses(project)
+    assert adjustment is not None and len(adjustment["links"]) == 4
+    for row in adjustment["links"]:
+        assert row["after"]["translation_m"] < 0.02
+    _check_poses(project, plot)
+
+
+def test_damaged_or_newer_project_files_are_refused_and_left_alone(tmp_path):
+    damaged = tmp_path / "damaged.json"
+    damaged.write_text('{"format": "forestreg-project", "version": 1, "scans": [')
+    with pytest.raises(ProjectFileError, match="damaged"):
+        Project.load(damaged)
+    assert damaged.read_text().endswith("[")
+    newer = tmp_path / "newer.json"
+    newer.write_text(json.dumps({"format": "forestreg-project", "version": 99, "scans": []}))
+    with pytest.raises(ProjectFileError, match="newer"):
+        Project.load(newer)
+    with pytest.raises(ProjectFileError):
+        Project.load(tmp_path / "missing.json")
+
+
+def test_poses_json_layout(four_scan_files, tmp_path):
+    plot, paths = four_scan_files
+    project = Project()
+    for p in paths[:2]:
+        project.add_scan(p)
+    register_project(project)
+    poses_path = write_poses(project, tmp_path)
+    body = json.loads(poses_path.read_text())
+    assert body["frame"] == paths[0].name
+    assert body["scans"][paths[1].name]["status"] == "ok"
+    assert np.allclose(np.loadtxt(tmp_path / f"{paths[1].name}.transform.txt"), body["scans"][paths[1].name]["matrix"])
+
+
+def test_plot_and_project_commands(four_scan_files, tmp_path, capsys):
+    plot, paths = four_scan_files
+    out = tmp_path / "out"
+    merged = tmp_path / "merged.laz"
+    code = main(["plot", *map(str, paths[:3]), "--out", str(out), "--centre", paths[0].name, "--merged", str(merged), "--quiet"])
+    assert code == 0
+    body = json.loads((out / "poses.json").read_text())
+    for k, p in enumerate(paths[:3]):
+        rot, trans = rigid_errors(np.array(body["scans"][p.name]["matrix"]), plot.relative_pose(0, k))
+        assert rot < 0.05 and trans < 0.02
+    cloud = read_scan(merged)
+    assert len(cloud) == sum(len(read_scan(p)) for p in paths[:3])
+    assert main(["project", "show", str(out / "project.json")]) == 0
+    assert "matched VOPs" in capsys.readouterr().out
+    assert main(["project", "run", str(out / "project.json"), "--quiet"]) == 0
