@@ -154,10 +154,16 @@ def _project_from_args(args: argparse.Namespace):
     """A new project from the scans, centre, tilted marks, targets and parameters on the command line."""
     from .engine.project import Project
 
-    project = Project(name=Path(args.out).name if getattr(args, "out", None) else "plot", params=_params_from_args(args))
-    for path in args.scans:
-        project.add_scan(path)
-    names = {Path(p).name: s.name for p, s in zip(args.scans, project.scans)}
+    if len(args.scans) == 1 and Path(args.scans[0]).suffix.lower() == ".e57":
+        from .engine.plot import project_from_e57
+
+        project = project_from_e57(args.scans[0])
+        project.params = _params_from_args(args)
+    else:
+        project = Project(name=Path(args.out).name if getattr(args, "out", None) else "plot", params=_params_from_args(args))
+        for path in args.scans:
+            project.add_scan(path)
+    names = {Path(p).name: s.name for p, s in zip(args.scans, project.scans)} if len(args.scans) == len(project.scans) else {}
     if args.centre:
         centre = names.get(Path(args.centre).name, args.centre)
         project.scan(centre)
@@ -203,6 +209,11 @@ def _run_project(project, out: Path, args: argparse.Namespace) -> int:
     if getattr(args, "merged", None):
         count = write_merged(project, args.merged, scans)
         print(f"merged {count} points into {args.merged}")
+    if getattr(args, "e57_out", None):
+        from .engine.plot import write_registered_e57
+
+        count = write_registered_e57(project, args.e57_out, scans)
+        print(f"wrote {count} registered scans with their poses to {args.e57_out}")
     for name, status in outcome.status.items():
         extra = f" - {outcome.reasons[name]}" if name in outcome.reasons else ""
         link = project.link_of(name)
@@ -368,10 +379,11 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--params", help="TOML parameter file")
 
     p = sub.add_parser("plot", help="register all scans of a plot (each to the centre scan, tilted ones to their level partner)")
-    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files")
+    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files, or one multi-scan E57 file")
     p.add_argument("--out", required=True, help="output folder: project.json, poses.json, <scan>.transform.txt, report.html")
     add_plot_options(p)
     p.add_argument("--merged", help="also write all registered scans into one LAZ with a scan_id per point")
+    p.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_plot)
 
@@ -397,6 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--out", help="output folder (default: the project's folder)")
     q.add_argument("--rerun", action="store_true", help="run every link again")
     q.add_argument("--merged", help="also write all registered scans into one LAZ")
+    q.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=cmd_project)
 

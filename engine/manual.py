@@ -400,7 +400,6 @@ def register_manual(
     except TargetError as exc:
         timings["target_fit"] = time.perf_counter() - t0
         return _failed(str(exc), base)
-    suspects: list[str] = []
     if fit.rmse_m > MAX_TARGET_RMSE_M:
         outliers = _consensus_outliers(ref_t, mov_t, MAX_TARGET_RMSE_M)
         suspects = outliers or []

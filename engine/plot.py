@@ -326,3 +326,30 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
         scan_id=np.concatenate(ids),
     )
     return int(sum(len(p) for p in parts))
+
+
+def project_from_e57(path: str | Path, *, name: Optional[str] = None) -> Project:
+    """A project with one scan per data3D entry of a multi-scan E57 file; each entry's pose is kept
+    as a prior (``ScanEntry.prior_pose``) and the first scan is the centre."""
+    from .io import read_scans
+
+    source = Path(path).resolve()
+    project = Project(name=name or source.stem)
+    for k, scan in enumerate(read_scans(source)):
+        label = scan.name if scan.name and scan.name != source.stem else f"{source.stem}_{k:02d}"
+        project.add_scan(source, name=label, scan_index=k, prior_pose=None if scan.pose is None else np.array(scan.pose))
+    return project
+
+
+def write_registered_e57(project: Project, path: str | Path, scans: Optional[ScanCache] = None) -> int:
+    """Write the registered scans into one E57 file, each with its registered pose (its own
+    coordinates -> the centre scan's). Returns how many scans were written."""
+    from .io import write_e57
+
+    scans = scans or ScanCache(project)
+    poses = project.poses()
+    chosen = [s.name for s in project.scans if poses.get(s.name) is not None]
+    if not chosen:
+        raise ValueError("no scan is registered: nothing to write")
+    write_e57(path, [scans(n) for n in chosen], [poses[n] for n in chosen])
+    return len(chosen)

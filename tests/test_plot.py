@@ -176,3 +176,25 @@ def test_plot_and_project_commands(four_scan_files, tmp_path, capsys):
     assert main(["project", "show", str(out / "project.json")]) == 0
     assert "matched VOPs" in capsys.readouterr().out
     assert main(["project", "run", str(out / "project.json"), "--quiet"]) == 0
+
+
+def test_multi_scan_e57_opens_as_a_project_and_poses_are_written_back(four_scan_files, tmp_path):
+    from forestreg.engine.io import read_scans, write_e57
+    from forestreg.engine.plot import ScanCache, project_from_e57, write_registered_e57
+
+    plot, paths = four_scan_files
+    e57 = tmp_path / "plot.e57"
+    write_e57(e57, [read_scan(p) for p in paths[:3]])
+    project = project_from_e57(e57)
+    assert len(project.scans) == 3 and [s.scan_index for s in project.scans] == [0, 1, 2]
+    assert all(s.prior_pose is not None for s in project.scans)
+    scans = ScanCache(project)
+    outcome = register_project(project, scans=scans)
+    assert outcome.failed == []
+    _check_poses(project, plot)
+    out = tmp_path / "registered.e57"
+    assert write_registered_e57(project, out, scans) == 3
+    back = read_scans(out)
+    for k, scan in enumerate(back):
+        rot, trans = rigid_errors(np.asarray(scan.pose), plot.relative_pose(0, k))
+        assert rot < 0.05 and trans < 0.02
