@@ -273,6 +273,44 @@ def cmd_project(args: argparse.Namespace) -> int:
     return _run_project(project, out, args)
 
 
+def cmd_compare(args: argparse.Namespace) -> int:
+    from .engine.compare import compare_auto_manual, write_comparison
+    from .engine.plot import ScanCache, write_poses
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    project = _project_from_args(args)
+    project.save(out / "project.json")
+    scans = ScanCache(project)
+    bar = ProgressBar(not args.quiet, "compare")
+    try:
+        comparison = compare_auto_manual(project, scans=scans, progress=bar)
+    finally:
+        bar.close()
+    write_poses(project, out)
+    json_path, _ = write_comparison(comparison, out)
+    try:
+        from .engine.report.plot_report import write_plot_report
+
+        write_plot_report(project, out / "report.html", scans=scans, comparison=comparison)
+    except ImportError:  # pragma: no cover - report module optional during development
+        pass
+    print(f"{'pair':32} {'auto std':>9} {'VOPs':>5} {'manual std':>11} {'targets':>7} {'rot diff':>9} {'shift':>8}")
+    for p in comparison["pairs"]:
+        def cm(v):
+            return "failed" if v is None else f"{100 * v:.2f} cm"
+
+        rot = "-" if p["rotation_difference_deg"] is None else f"{p['rotation_difference_deg']:.3f} deg"
+        shift = "-" if p["translation_difference_m"] is None else f"{100 * p['translation_difference_m']:.1f} cm"
+        print(f"{p['moving'] + ' -> ' + p['reference']:32} {cm(p['auto']['icp_std_m']):>9} {str(p['auto']['matched']):>5} "
+              f"{cm(p['manual']['icp_std_m']):>11} {str(p['manual']['targets']):>7} {rot:>9} {shift:>8}")
+    a, m = comparison["auto_target_residual_m"], comparison["manual_target_residual_m"]
+    fmt = lambda v: "n/a" if v is None else f"{100 * v:.2f} cm"  # noqa: E731
+    print(f"average target distance residual: auto {fmt(a)}, manual {fmt(m)} -> {json_path}")
+    failed = [p for p in comparison["pairs"] if p["auto"]["status"] != "ok" or p["manual"]["status"] != "ok"]
+    return 0 if not failed else 1
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .engine.simulate import simulate_plot
 
@@ -320,6 +358,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"against the simulator's truth: rotation error {rot:.4f} deg, translation error {100 * trans:.2f} cm")
         print(f"figure: {out / 'registration' / 'registration.png'}")
     return code
+
+
+def cmd_gui(args: argparse.Namespace) -> int:
+    try:
+        from .ui.app import main as gui_main
+    except ImportError as exc:
+        print(f"forestreg: error: the GUI needs the 'gui' extras (pip install 'forestreg[gui]'): {exc}", file=sys.stderr)
+        return 2
+    return gui_main(list(args.gui_args))
 
 
 def cmd_params(args: argparse.Namespace) -> int:
@@ -387,6 +434,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_plot)
 
+    p = sub.add_parser("compare", help="register a plot automatically and from targets, and compare (the paper's tables 4 and 5)")
+    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files, or one multi-scan E57 file")
+    p.add_argument("--out", required=True, help="output folder: comparison.json/.csv, report.html, project.json, poses.json")
+    add_plot_options(p)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_compare)
+
     p = sub.add_parser("project", help="create, inspect, link and re-run a saved plot project")
     psub = p.add_subparsers(dest="action", required=True)
     q = psub.add_parser("create", help="create a project file from scans")
@@ -432,6 +486,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_demo)
 
+    p = sub.add_parser("gui", help="the desktop GUI (--offscreen --project P --run --screenshot OUT.png for headless use)", add_help=False)
+    p.add_argument("gui_args", nargs=argparse.REMAINDER)
+    p.set_defaults(func=cmd_gui)
+
     p = sub.add_parser("params", help="print the registration parameters (or a TOML template)")
     p.add_argument("--toml", action="store_true", help="print a TOML file with the defaults")
     p.set_defaults(func=cmd_params)
@@ -448,6 +506,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)
+    except BrokenPipeError:  # output piped into head & co.
+        return 0
     except ForestregError as exc:
         print(f"forestreg: error: {exc}", file=sys.stderr)
         return 2

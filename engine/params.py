@@ -39,6 +39,7 @@ class RegistrationParams:
     # --- slicing (paper 2.5.2)
     slice_thickness_m: float = _p(0.2, "m", 0.05, 1.0, "Thickness of each slice layer", "dZ = 0.2 m")
     slice_offsets_m: tuple[float, ...] = _p((0.0,), "m", -1.0, 5.0, "Heights of the slice layers relative to the scanner height; several for slopes or understory", "dh (table 3)")
+    fallback_slice_offsets_m: tuple[float, ...] = _p((0.6, 1.2), "m", -1.0, 5.0, "Slice layers added (above the understory) when no confident match is found at slice_offsets_m; empty = no second try")
     follow_terrain: bool = _p(True, "", None, None, "Slice at a constant height above the local ground (the scanner's own height above ground + dh) instead of a flat plane: keeps trunks in the slice on slopes. Off = the paper's flat slice")
     # --- angular grid and visual occlusion points
     angular_step_deg: float = _p(0.1, "deg", 0.01, 2.0, "Angular resolution of the angular grid and rotation step of the coarse search", "I_A = 0.1 deg")
@@ -57,8 +58,10 @@ class RegistrationParams:
     min_vops: int = _p(4, "VOPs", 3, 1000, "Fewest VOPs per scan to attempt a registration")
     min_matched: int = _p(4, "VOPs", 3, 1000, "Fewest matched VOPs for a registration to count (the paper sees failures below 3)")
     min_match_margin: int = _p(2, "VOPs", 0, 1000, "The best solution must match at least this many more VOPs than the best distinct alternative")
+    min_match_margin_fraction: float = _p(0.1, "", 0.0, 1.0, "...and at least this fraction of its matched VOPs more (a plantation's grid lets another plot's trunks coincide by the dozen)")
     distinct_rotation_deg: float = _p(5.0, "deg", 0.5, 180.0, "Alternatives rotated more than this from the best are distinct solutions")
     distinct_translation_m: float = _p(1.0, "m", 0.1, 50.0, "Alternatives displaced more than this from the best are distinct solutions")
+    max_free_space_violation: float = _p(0.15, "", 0.0, 1.0, "Largest fraction of one scan's slice points allowed where the other scanner saw empty space, after ICP (a wrong match puts trunks there)")
     # --- levelling of tilted scans
     level_tilted: bool = _p(True, "", None, None, "Detect a tilted scanner from its own data (ground and trunk directions) and level the scan before slicing")
     tilt_threshold_deg: float = _p(10.0, "deg", 0.1, 45.0, "Estimated tilts below this are treated as a level scanner (small tilts are taken up by the ground fit and ICP)")
@@ -76,7 +79,7 @@ class RegistrationParams:
             values = value if isinstance(value, tuple) else (value,)
             if value is None or isinstance(value, bool):
                 continue
-            if isinstance(value, tuple) and not value:
+            if isinstance(value, tuple) and not value and f.name != "fallback_slice_offsets_m":
                 raise ParameterError(f"{f.name}: needs at least one value")
             for v in values:
                 if not isinstance(v, (int, float)) or not math.isfinite(v):

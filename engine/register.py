@@ -11,6 +11,7 @@ file coordinates: ``p_reference = matrix @ p_moving`` (homogeneous column vector
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -19,6 +20,7 @@ from typing import Any, Optional
 import numpy as np
 
 from .match.coarse import CoarseMatch, match_vops
+from .match.evidence import mutual_free_space_violation
 from .match.icp import IcpResult, icp
 from .occlusion.prepare import PreparedScan, SliceLayer, extract_vops, nearest_distances, prepare_scan, slice_layers
 from .occlusion.vop import VisualOcclusionPoints
@@ -42,6 +44,9 @@ class CoarseAttempt:
     moving_vops: VisualOcclusionPoints
     match: Optional[CoarseMatch]
     problem: str = ""
+    slice_offsets_m: tuple[float, ...] = (0.0,)
+    reference_layers: list[SliceLayer] = field(default_factory=list, repr=False)
+    moving_layers: list[SliceLayer] = field(default_factory=list, repr=False)
 
     @property
     def matched(self) -> int:
@@ -57,6 +62,7 @@ class CoarseAttempt:
         m = self.match
         return {
             "vop_radius_m": self.radius_m,
+            "slice_offsets_m": list(self.slice_offsets_m),
             "reference_vops": len(self.reference_vops),
             "moving_vops": len(self.moving_vops),
             "matched": self.matched,
@@ -110,6 +116,7 @@ class PairResult:
     icp: Optional[IcpResult]
     timings: dict[str, float]
     params: RegistrationParams
+    free_space_violation: Optional[float] = None
     attempts: list[dict[str, Any]] = field(default_factory=list)
     details: Optional[PairDetails] = field(default=None, repr=False, compare=False)
 
@@ -150,6 +157,7 @@ class PairResult:
             "reference_tilt_deg": self.reference_tilt_deg,
             "moving_tilt_deg": self.moving_tilt_deg,
             "icp": None if self.icp is None else self.icp.to_dict(),
+            "free_space_violation": self.free_space_violation,
             "timings": dict(self.timings),
             "attempts": list(self.attempts),
             "parameters": self.params.to_dict(),
@@ -203,23 +211,11 @@ def register(
             name, len(prep.points), params.max_range_m, prep.tilt_deg, " (levelled)" if prep.levelled else "", prep.scanner_height_m,
         )
     step(0.3, "slicing")
-    ref_layers = timed("slice", slice_layers, ref_prep, params)
-    mov_layers = timed("slice", slice_layers, mov_prep, params)
-
-    radii = (params.vop_radius_m,) if params.vop_radius_m is not None else tuple(r for r in AUTO_VOP_RADII_M if r <= params.max_range_m - 3.0)
-    attempts: list[CoarseAttempt] = []
-    for k, radius in enumerate(radii):
-        step(0.35 + 0.25 * k / len(radii), f"visual occlusion points within {radius:.0f} m")
-        ref_vops = timed("vops", extract_vops, ref_layers, params, radius)
-        mov_vops = timed("vops", extract_vops, mov_layers, params, radius)
-        attempt = timed("coarse", _coarse_attempt, ref_vops, mov_vops, radius, params)
-        log.info(
-            "D_r %.0f m: %d / %d VOPs, %d matched (next distinct: %s)%s",
-            radius, len(ref_vops), len(mov_vops), attempt.matched,
-            None if attempt.match is None else attempt.match.second_matched,
-            f" - {attempt.problem}" if attempt.problem else "",
-        )
-        attempts.append(attempt)
+    attempts = _coarse_attempts(ref_prep, mov_prep, params, timed, step.sub(0.3, 0.6))
+    if params.fallback_slice_offsets_m and all(a.matched < params.min_matched for a in attempts):
+        wider = params.replace(slice_offsets_m=tuple(params.slice_offsets_m) + tuple(params.fallback_slice_offsets_m))
+        log.info("no confident match at dh %s: adding slice layers at dh %s", params.slice_offsets_m, params.fallback_slice_offsets_m)
+        attempts += _coarse_attempts(ref_prep, mov_prep, wider, timed, step.sub(0.45, 0.6))
     chosen = _choose_attempt(attempts)
     base = dict(
         reference_name=reference.name,
@@ -230,7 +226,7 @@ def register(
         params=params,
         attempts=[a.summary() for a in attempts],
     )
-    details = dict(reference=ref_prep, moving=mov_prep, reference_layers=ref_layers, moving_layers=mov_layers, attempts=attempts, chosen=chosen)
+    details = dict(reference=ref_prep, moving=mov_prep, reference_layers=chosen.reference_layers, moving_layers=chosen.moving_layers, attempts=attempts, chosen=chosen)
     if chosen.problem:
         return _failed(chosen.problem, chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
 
@@ -246,7 +242,7 @@ def register(
     correction = np.linalg.inv(coarse) @ fine.matrix
     moved_m = float(np.linalg.norm(correction[:3, 3]))
     turned = rotation_angle_deg(correction[:3, :3])
-    vop_residual = _vop_residual(chosen, fine.matrix, params.match_distance_m)
+    vop_residual, confirmed = _vop_confirmation(chosen, fine.matrix, params.match_distance_m)
     full_details = PairDetails(**details, lsf_matrix=fine.matrix, coarse_lsf_matrix=coarse)
     common = dict(base, icp=fine)
     if moved_m > params.icp_max_correction_m or turned > 5.0:
@@ -254,6 +250,21 @@ def register(
             f"ICP moved the coarse solution by {moved_m:.2f} m and {turned:.1f} deg: the coarse match is not trustworthy",
             chosen, common, full_details,
         )
+    needed = max(params.min_matched, int(np.ceil(0.5 * chosen.matched)))
+    if confirmed < needed:
+        return _failed(
+            f"after ICP only {confirmed} of the {chosen.matched} matched VOPs still coincide within "
+            f"{0.75 * params.match_distance_m:.2f} m (need {needed}): the VOP match was chance, not the same trunks",
+            chosen, common, full_details,
+        )
+    violation, tested = mutual_free_space_violation(chosen.reference_layers, chosen.moving_layers, fine.matrix)
+    if tested >= 100 and violation > params.max_free_space_violation:
+        return _failed(
+            f"{100 * violation:.0f} % of one scan's trunk-slice points stand where the other scanner saw empty space "
+            f"(allowed {100 * params.max_free_space_violation:.0f} %): the scans do not fit together there - wrong match",
+            chosen, dict(common, free_space_violation=violation), full_details,
+        )
+    common["free_space_violation"] = None if tested < 100 else violation
     if fine.fitness < params.icp_min_fitness:
         return _failed(
             f"ICP fitness {fine.fitness:.2f} is below {params.icp_min_fitness:.2f}: the scans hardly overlap where the match puts them",
@@ -285,6 +296,29 @@ def register(
     )
 
 
+def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: RegistrationParams, timed, step: Progress) -> list[CoarseAttempt]:
+    """Slice both scans at ``params.slice_offsets_m`` and match their VOPs at ``params``'s VOP
+    radius, or at each automatic radius."""
+    ref_layers = timed("slice", slice_layers, ref_prep, params)
+    mov_layers = timed("slice", slice_layers, mov_prep, params)
+    radii = (params.vop_radius_m,) if params.vop_radius_m is not None else tuple(r for r in AUTO_VOP_RADII_M if r <= params.max_range_m - 3.0)
+    attempts = []
+    for k, radius in enumerate(radii):
+        step(k / len(radii), f"visual occlusion points within {radius:.0f} m")
+        ref_vops = timed("vops", extract_vops, ref_layers, params, radius)
+        mov_vops = timed("vops", extract_vops, mov_layers, params, radius)
+        attempt = timed("coarse", _coarse_attempt, ref_vops, mov_vops, radius, params)
+        attempt = dataclasses.replace(attempt, slice_offsets_m=tuple(params.slice_offsets_m), reference_layers=ref_layers, moving_layers=mov_layers)
+        log.info(
+            "D_r %.0f m, dh %s: %d / %d VOPs, %d matched (next distinct: %s)%s",
+            radius, params.slice_offsets_m, len(ref_vops), len(mov_vops), attempt.matched,
+            None if attempt.match is None else attempt.match.second_matched,
+            f" - {attempt.problem}" if attempt.problem else "",
+        )
+        attempts.append(attempt)
+    return attempts
+
+
 def _coarse_attempt(ref_vops: VisualOcclusionPoints, mov_vops: VisualOcclusionPoints, radius: float, params: RegistrationParams) -> CoarseAttempt:
     """Match the VOPs of one radius and judge the evidence."""
     if len(ref_vops) < params.min_vops or len(mov_vops) < params.min_vops:
@@ -305,10 +339,11 @@ def _coarse_attempt(ref_vops: VisualOcclusionPoints, mov_vops: VisualOcclusionPo
     second = match.second_matched or 0
     if match.matched < params.min_matched:
         problem = f"only {match.matched} VOPs match (need {params.min_matched}): the scans share too few trunks - scans too far apart, or D_r too small"
-    elif match.matched - second < params.min_match_margin:
+    elif match.matched - second < max(params.min_match_margin, int(np.ceil(params.min_match_margin_fraction * match.matched))):
+        need = max(params.min_match_margin, int(np.ceil(params.min_match_margin_fraction * match.matched)))
         problem = (
             f"ambiguous: the best solution matches {match.matched} VOPs and a different one {second} "
-            f"(need a margin of {params.min_match_margin}) - regular planting or too few common trunks"
+            f"(need a margin of {need}) - regular planting or too few common trunks"
         )
     return CoarseAttempt(radius, ref_vops, mov_vops, match, problem)
 
@@ -379,14 +414,16 @@ def vertical_alignment(reference: PreparedScan, moving: PreparedScan, horizontal
     return matrix
 
 
-def _vop_residual(attempt: CoarseAttempt, lsf_matrix: np.ndarray, match_distance_m: float) -> Optional[float]:
-    """Mean horizontal distance (m) between matched VOPs after the final transform."""
+def _vop_confirmation(attempt: CoarseAttempt, lsf_matrix: np.ndarray, match_distance_m: float) -> tuple[Optional[float], int]:
+    """Check the coarse VOP match against the ICP result, which does not depend on it: the mean
+    horizontal distance (m) between the matched VOPs after the final transform, and how many of
+    them still coincide within 0.75 ``D_t`` (the same trunks do; chance matches scatter)."""
     if attempt.match is None or attempt.match.matched == 0:
-        return None
+        return None, 0
     pairs = attempt.match.matched_pairs
     moved = attempt.moving_vops.xy[pairs[:, 1]] @ lsf_matrix[:2, :2].T + lsf_matrix[:2, 3]
     d = np.hypot(*(moved - attempt.reference_vops.xy[pairs[:, 0]]).T)
-    return float(np.mean(d))
+    return float(np.mean(d)), int(np.sum(d < 0.75 * match_distance_m))
 
 
 def lsf_to_file_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, lsf_matrix: np.ndarray) -> np.ndarray:

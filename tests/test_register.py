@@ -90,3 +90,20 @@ def test_given_radius_is_used_and_reported(sim_plot):
     assert result.vop_radius_m == 15.0
     assert [a["vop_radius_m"] for a in result.attempts] == [15.0]
     _check_against_truth(result, plot.relative_pose(0, 1))
+
+
+def test_a_chance_match_between_unrelated_plots_is_refused(sim_plot):
+    """Planted trees and a mixed plot share no trunk, but with three slice layers their VOPs give
+    a chance match that survives the VOP evidence; the free-space check refuses it."""
+    planted = sim_plot("planted_conifer", ((0.0, 0.0),), seed=49, size=60.0)
+    mixed = sim_plot("mixed_temperate", ((3.0, 1.0),), seed=50, size=60.0)
+    params = RegistrationParams(slice_offsets_m=(0.0, 0.6, 1.2))
+    result = register(planted.scans[0].scan, mixed.scans[0].scan, params)
+    assert result.status == "failed" and result.matrix is None
+    assert "empty space" in result.reason or "chance" in result.reason or "ambiguous" in result.reason
+
+
+def test_free_space_violation_is_small_for_a_correct_registration(sim_plot):
+    plot = sim_plot("mixed_temperate", ((0.0, 0.0), (12.0, -3.0)), seed=2)
+    result = register(plot.scans[0].scan, plot.scans[1].scan)
+    assert result.ok and result.free_space_violation is not None and result.free_space_violation < 0.05

@@ -1,0 +1,274 @@
+"""The parameter panel, built from the engine's parameter metadata (:func:`parameter_table`).
+
+One editor per field of :class:`~forestreg.engine.params.RegistrationParams`: a spin box with its
+unit, range and help as tooltip for numbers, a check box for switches, comma-separated text for
+lists of heights or distances, and "auto" for an optional value (the VOP radius). The panel never
+judges values itself: :meth:`ParameterPanel.params` builds a ``RegistrationParams`` and the
+engine's validation decides; an invalid entry is shown in red with the engine's message.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Optional
+
+from PySide6.QtCore import Qt, Signal
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QDoubleSpinBox,
+    QFormLayout,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QPushButton,
+    QScrollArea,
+    QSpinBox,
+    QVBoxLayout,
+    QWidget,
+)
+
+from ..engine.errors import ForestregError, ParameterError
+from ..engine.params import RegistrationParams, parameter_table
+
+#: Units shown after a value (the metadata's short forms spelt out where useful).
+UNIT_SUFFIX = {"m": " m", "deg": "\u00b0", "points": " points", "VOPs": " VOPs"}
+#: Largest value a spin box offers where the metadata gives no upper bound.
+UNBOUNDED = 1.0e6
+
+
+def label_for(name: str, paper: str = "") -> str:
+    """A readable label: ``max_range_m`` -> "Max range", with the paper's symbol when it has one."""
+    words = name.split("_")
+    if words and words[-1] in ("m", "deg"):
+        words = words[:-1]
+    text = " ".join(words).capitalize().replace("Icp", "ICP").replace("icp", "ICP").replace("vop", "VOP").replace("Vop", "VOP")
+    symbol = paper.split("=")[0].strip() if paper else ""
+    if symbol and len(symbol) <= 6 and " " not in symbol:
+        text += f" ({symbol})"
+    return text
+
+
+def format_tuple(values: Any) -> str:
+    """``(0.5, 0.2)`` -> "0.5, 0.2"."""
+    return ", ".join(f"{float(v):g}" for v in (values or ()))
+
+
+def parse_tuple(text: str) -> tuple[float, ...]:
+    """"0.5, 0.2" -> ``(0.5, 0.2)`` (semicolons and spaces also separate); raises ParameterError."""
+    parts = [t for t in text.replace(";", ",").replace(" ", ",").split(",") if t.strip()]
+    try:
+        return tuple(float(t) for t in parts)
+    except ValueError as exc:
+        raise ParameterError(f"'{text}' is not a list of numbers separated by commas") from exc
+
+
+def _decimals(lo: Optional[float], default: Any) -> int:
+    smallest = min(abs(v) for v in (lo, default) if isinstance(v, (int, float)) and v) if any(
+        isinstance(v, (int, float)) and v for v in (lo, default)) else 1.0
+    return int(min(4, max(2, math.ceil(-math.log10(smallest)) + 1)))
+
+
+class _Field:
+    """One editor and how to read and write its value."""
+
+    def __init__(self, row: dict[str, Any], panel: "ParameterPanel") -> None:
+        self.name: str = row["name"]
+        self.default = row["default"]
+        self.unit: str = row["unit"] or ""
+        lo, hi = row["range"] or (None, None)
+        tip = [row["help"]]
+        if lo is not None or hi is not None:
+            tip.append(f"Range: {lo if lo is not None else '-inf'} to {hi if hi is not None else 'inf'} {self.unit}".rstrip())
+        if row["paper"]:
+            tip.append(f"Paper: {row['paper']}")
+        tip.append(f"Default: {self._text(self.default)}   (name: {self.name})")
+        self.tooltip = "\n".join(tip)
+        self.auto: Optional[QCheckBox] = None
+        if isinstance(self.default, bool):
+            self.kind = "bool"
+            self.editor: QWidget = QCheckBox()
+            self.editor.toggled.connect(panel._edited)
+        elif isinstance(self.default, tuple):
+            self.kind = "tuple"
+            self.editor = QLineEdit()
+            self.editor.setPlaceholderText("none" if self.name.startswith("fallback") else "comma-separated")
+            self.editor.textChanged.connect(panel._edited)
+        elif isinstance(self.default, int):
+            self.kind = "int"
+            box = QSpinBox()
+            box.setRange(int(lo if lo is not None else 0), int(min(hi if hi is not None else UNBOUNDED, 2**31 - 1)))
+            box.setSuffix(UNIT_SUFFIX.get(self.unit, f" {self.unit}" if self.unit else ""))
+            box.valueChanged.connect(panel._edited)
+            self.editor = box
+        else:
+            self.kind = "float" if self.default is not None else "optional"
+            box = QDoubleSpinBox()
+            box.setDecimals(_decimals(lo, self.default))
+            box.setRange(float(lo if lo is not None else 0.0), float(hi if hi is not None else UNBOUNDED))
+            box.setSingleStep(_step(lo, hi, self.default))
+            box.setSuffix(UNIT_SUFFIX.get(self.unit, f" {self.unit}" if self.unit else ""))
+            box.valueChanged.connect(panel._edited)
+            self.editor = box
+            if self.kind == "optional":
+                self.auto = QCheckBox("auto")
+                self.auto.setToolTip("Let the engine choose (it tries increasing values)")
+                self.auto.toggled.connect(lambda on: box.setEnabled(not on))
+                self.auto.toggled.connect(panel._edited)
+        self.editor.setToolTip(self.tooltip)
+        self.editor.setObjectName(f"param_{self.name}")
+
+    @staticmethod
+    def _text(value: Any) -> str:
+        if value is None:
+            return "auto"
+        if isinstance(value, tuple):
+            return format_tuple(value) or "none"
+        return str(value)
+
+    def widget(self) -> QWidget:
+        if self.auto is None:
+            return self.editor
+        holder = QWidget()
+        lay = QHBoxLayout(holder)
+        lay.setContentsMargins(0, 0, 0, 0)
+        lay.addWidget(self.auto)
+        lay.addWidget(self.editor, 1)
+        return holder
+
+    def set(self, value: Any) -> None:
+        if self.kind == "bool":
+            self.editor.setChecked(bool(value))
+        elif self.kind == "tuple":
+            self.editor.setText(format_tuple(value))
+        elif self.kind == "int":
+            self.editor.setValue(int(value))
+        elif self.kind == "optional":
+            self.auto.setChecked(value is None)
+            if value is not None:
+                self.editor.setValue(float(value))
+        else:
+            self.editor.setValue(float(value))
+
+    def get(self) -> Any:
+        if self.kind == "bool":
+            return self.editor.isChecked()
+        if self.kind == "tuple":
+            return parse_tuple(self.editor.text())
+        if self.kind == "int":
+            return int(self.editor.value())
+        if self.kind == "optional" and self.auto.isChecked():
+            return None
+        return float(self.editor.value())
+
+    def mark(self, bad: bool) -> None:
+        self.editor.setStyleSheet("background: #fde2e1;" if bad else "")
+
+
+def _step(lo: Optional[float], hi: Optional[float], default: Any) -> float:
+    ref = default if isinstance(default, (int, float)) and default else (lo or 1.0)
+    return float(10 ** math.floor(math.log10(abs(ref)))) if ref else 0.1
+
+
+class ParameterPanel(QWidget):
+    """Editors for every registration parameter; emits :attr:`paramsChanged` with a valid
+    ``RegistrationParams`` after each edit that the engine accepts."""
+
+    paramsChanged = Signal(object)
+
+    def __init__(self, parent: Optional[QWidget] = None) -> None:
+        super().__init__(parent)
+        self._fields: dict[str, _Field] = {}
+        self._loading = False
+        outer = QVBoxLayout(self)
+        outer.setContentsMargins(4, 4, 4, 4)
+        self.message = QLabel("")
+        self.message.setWordWrap(True)
+        self.message.setStyleSheet("color: #b42318;")
+        self.message.hide()
+        outer.addWidget(self.message)
+        area = QScrollArea()
+        area.setWidgetResizable(True)
+        area.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        inner = QWidget()
+        form = QFormLayout(inner)
+        form.setFieldGrowthPolicy(QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)
+        for row in parameter_table(RegistrationParams):
+            f = _Field(row, self)
+            self._fields[f.name] = f
+            label = QLabel(label_for(f.name, row["paper"]))
+            label.setToolTip(f.tooltip)
+            form.addRow(label, f.widget())
+        area.setWidget(inner)
+        outer.addWidget(area, 1)
+        buttons = QHBoxLayout()
+        self.reset_button = QPushButton("Defaults")
+        self.reset_button.setToolTip("Set every parameter to the paper's / forestreg's default")
+        self.reset_button.clicked.connect(lambda: self.set_params(RegistrationParams(), emit=True))
+        buttons.addWidget(self.reset_button)
+        self.load_button = QPushButton("Load\u2026")
+        self.load_button.setToolTip("Read parameters from a TOML file ([registration] table)")
+        buttons.addWidget(self.load_button)
+        buttons.addStretch(1)
+        outer.addLayout(buttons)
+        self.set_params(RegistrationParams())
+
+    # ------------------------------------------------------------------ values
+
+    def field_names(self) -> list[str]:
+        return list(self._fields)
+
+    def editor(self, name: str) -> QWidget:
+        """The editor of one parameter (for tests and focus)."""
+        return self._fields[name].editor
+
+    def set_value(self, name: str, value: Any) -> None:
+        """Set one editor as a user would (emits paramsChanged when the result is valid)."""
+        self._fields[name].set(value)
+
+    def set_params(self, params: RegistrationParams, *, emit: bool = False) -> None:
+        """Show ``params`` in the editors."""
+        self._loading = True
+        try:
+            for name, f in self._fields.items():
+                f.set(getattr(params, name))
+                f.mark(False)
+        finally:
+            self._loading = False
+        self.message.hide()
+        if emit:
+            self.paramsChanged.emit(params)
+
+    def params(self) -> RegistrationParams:
+        """The parameters as edited; raises :class:`ParameterError` with the engine's reason."""
+        values: dict[str, Any] = {}
+        for name, f in self._fields.items():
+            try:
+                values[name] = f.get()
+            except ParameterError as exc:
+                raise ParameterError(f"{label_for(name)}: {exc}") from exc
+        return RegistrationParams.from_mapping(values)
+
+    def load_toml(self, path: str | Path) -> RegistrationParams:
+        """Read a parameter file into the editors (raises ParameterError)."""
+        params = RegistrationParams.from_toml(path)
+        self.set_params(params, emit=True)
+        return params
+
+    def _edited(self, *_: Any) -> None:
+        if self._loading:
+            return
+        for f in self._fields.values():
+            f.mark(False)
+        try:
+            params = self.params()
+        except ForestregError as exc:
+            text = str(exc)
+            for name, f in self._fields.items():
+                if text.startswith(name) or text.startswith(label_for(name)) or f"({name}" in text:
+                    f.mark(True)
+            self.message.setText(text)
+            self.message.show()
+            return
+        self.message.hide()
+        self.paramsChanged.emit(params)

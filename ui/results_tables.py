@@ -1,0 +1,155 @@
+"""Result tables: one row per link (the registration's evidence) and one per scan (its pose).
+
+Values come straight from the engine's link results (``Link.result``, the ``to_dict()`` of a
+registration) and :meth:`Project.poses`; each cell keeps the raw value under ``Qt.UserRole`` so
+tests and copy-paste see the numbers, not only their formatting.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping, Optional, Sequence
+
+from PySide6.QtCore import Qt
+from PySide6.QtGui import QBrush, QColor
+from PySide6.QtWidgets import QAbstractItemView, QHeaderView, QTableWidget, QTableWidgetItem, QWidget
+
+from ..engine.project import Project
+from ..engine.report.plot_report import scan_states
+from .project_model import STATUS_COLOURS, link_status
+
+LINK_COLUMNS = ("Moving", "Reference", "Method", "Status", "D_r (m)", "VOPs ref / mov", "Matched",
+                "ICP std (cm)", "Fitness", "VOP residual (cm)", "Reason")
+SCAN_COLUMNS = ("Scan", "State", "Placed on", "x (m)", "y (m)", "z (m)", "Heading (\u00b0)", "Reason")
+
+LINK_TIPS = {
+    "D_r (m)": "Radius around the scanner in which trunk shadows (VOPs) were extracted",
+    "VOPs ref / mov": "Visual occlusion points (trunk shadows) found in the reference and the moving scan",
+    "Matched": "VOPs of the moving scan that coincide with a reference VOP after the coarse registration",
+    "ICP std (cm)": "Standard deviation of the point distances after the fine registration (ICP)",
+    "Fitness": "Fraction of moving points in the shared area with a reference point near them after ICP",
+    "VOP residual (cm)": "Mean distance of the matched VOPs after the coarse registration",
+}
+
+
+def _num(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _item(value: Any, text: Optional[str] = None, *, tip: str = "") -> QTableWidgetItem:
+    item = QTableWidgetItem("\u2013" if value is None and text is None else (text if text is not None else str(value)))
+    item.setData(Qt.ItemDataRole.UserRole, value)
+    item.setFlags(Qt.ItemFlag.ItemIsEnabled | Qt.ItemFlag.ItemIsSelectable)
+    if _num(value):
+        item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+    if tip:
+        item.setToolTip(tip)
+    return item
+
+
+def _fmt(value: Any, digits: int, scale: float = 1.0) -> Optional[str]:
+    return f"{value * scale:.{digits}f}" if _num(value) else None
+
+
+class _Table(QTableWidget):
+    def __init__(self, columns: Sequence[str], parent: Optional[QWidget] = None) -> None:
+        super().__init__(0, len(columns), parent)
+        self.columns = tuple(columns)
+        self.setHorizontalHeaderLabels(list(columns))
+        self.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
+        self.setAlternatingRowColors(True)
+        self.verticalHeader().setVisible(False)
+        header = self.horizontalHeader()
+        header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        header.setStretchLastSection(True)
+        for k, name in enumerate(columns):
+            if name in LINK_TIPS:
+                self.horizontalHeaderItem(k).setToolTip(LINK_TIPS[name])
+
+    def column(self, name: str) -> int:  # type: ignore[override]
+        """The index of a column by its header."""
+        return self.columns.index(name)
+
+    def value(self, row: int, name: str) -> Any:
+        """The raw value of a cell (what the engine reported)."""
+        item = self.item(row, self.column(name))
+        return None if item is None else item.data(Qt.ItemDataRole.UserRole)
+
+    def text(self, row: int, name: str) -> str:
+        item = self.item(row, self.column(name))
+        return "" if item is None else item.text()
+
+
+class LinkResultsTable(_Table):
+    """One row per link of the project: status, D_r, VOPs, matched, ICP std, fitness, reason."""
+
+    def __init__(self, parent: Optional[QWidget] = None) -> None:
+        super().__init__(LINK_COLUMNS, parent)
+
+    def show_project(self, project: Project) -> None:
+        self.setRowCount(0)
+        self.setRowCount(len(project.links))
+        for r, link in enumerate(project.links):
+            res: Mapping[str, Any] = link.result or {}
+            icp = res.get("icp") if isinstance(res.get("icp"), Mapping) else {}
+            status = link_status(link)
+            reason = str(res.get("reason") or "")
+            if res.get("retried_after"):
+                reason = (reason + "; " if reason else "") + f"placed after {len(res['retried_after'])} failed attempt(s)"
+            cells = [
+                _item(link.moving),
+                _item(link.reference),
+                _item(link.method + (" (extra)" if link.extra else "")),
+                _item(status),
+                _item(res.get("vop_radius_m"), _fmt(res.get("vop_radius_m"), 0)),
+                _item((res.get("reference_vops"), res.get("moving_vops")),
+                      f"{res['reference_vops']} / {res['moving_vops']}" if _num(res.get("reference_vops")) and _num(res.get("moving_vops")) else "\u2013"),
+                _item(res.get("matched"), None if res.get("matched") is not None else "\u2013"),
+                _item(icp.get("std_m"), _fmt(icp.get("std_m"), 2, 100.0)),
+                _item(icp.get("fitness"), _fmt(icp.get("fitness"), 3)),
+                _item(res.get("vop_residual_m"), _fmt(res.get("vop_residual_m"), 2, 100.0)),
+                _item(reason, reason, tip=reason),
+            ]
+            colour = STATUS_COLOURS.get(status)
+            if colour:
+                cells[3].setForeground(QBrush(QColor(colour)))
+            for c, cell in enumerate(cells):
+                self.setItem(r, c, cell)
+
+
+class ScanPoseTable(_Table):
+    """One row per scan: its state, the scan it was placed on, and its pose in the project frame
+    (translation of its file origin and heading about the vertical)."""
+
+    def __init__(self, parent: Optional[QWidget] = None) -> None:
+        super().__init__(SCAN_COLUMNS, parent)
+
+    def show_project(self, project: Project) -> None:
+        self.setRowCount(0)
+        self.setRowCount(len(project.scans))
+        states = scan_states(project) if project.scans else {}
+        poses = project.poses() if project.scans else {}
+        for r, s in enumerate(project.scans):
+            state = states.get(s.name)
+            pose = poses.get(s.name)
+            status = state.status if state else ""
+            link = project.link_of(s.name)
+            if status == "failed" and (link is None or link.result is None):
+                status = "not run"
+            t = pose[:3, 3] if pose is not None else (None, None, None)
+            heading = math.degrees(math.atan2(pose[1, 0], pose[0, 0])) if pose is not None else None
+            reason = state.reason if state is not None and status == "failed" else ""
+            cells = [
+                _item(s.name),
+                _item(status),
+                _item(state.reference if state else None, (state.reference or "") if state else ""),
+                *(_item(None if v is None else float(v), _fmt(v, 3)) for v in t),
+                _item(heading, _fmt(heading, 2)),
+                _item(reason, reason, tip=reason),
+            ]
+            colour = STATUS_COLOURS.get(status)
+            if colour:
+                cells[1].setForeground(QBrush(QColor(colour)))
+            for c, cell in enumerate(cells):
+                self.setItem(r, c, cell)

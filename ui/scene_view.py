@@ -1,0 +1,216 @@
+"""The 3D view of the scans, coloured by scan, with two interchangeable renderers.
+
+* **interactive** (a normal desktop, or Xvfb): pyvistaqt's ``QtInteractor``, an OpenGL widget
+  inside the window (rotate, zoom, pan with the mouse as in any VTK view).
+* **image** (no display: ``--offscreen``, Qt's "offscreen" platform): an off-screen
+  ``pyvista.Plotter`` renders into an image shown in a label; dragging the mouse orbits the
+  camera and the wheel zooms, re-rendering the image. VTK renders off screen through EGL (or
+  OSMesa) without any X server, so a screenshot of the window includes the points.
+
+:func:`choose_renderer` picks "image" on Qt's offscreen/minimal platforms and "interactive"
+otherwise; ``FORESTREG_3D=image|interactive`` forces one. If the interactive widget cannot be
+created the view falls back to the image renderer and says so in the log.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from typing import Any, Optional
+
+import numpy as np
+from PySide6.QtCore import QPoint, QSize, Qt, QTimer
+from PySide6.QtGui import QGuiApplication, QImage, QMouseEvent, QPixmap, QResizeEvent, QWheelEvent
+from PySide6.QtWidgets import QLabel, QSizePolicy, QVBoxLayout, QWidget
+
+from .scene_data import Scene
+
+os.environ.setdefault("QT_API", "pyside6")  # pyvistaqt goes through qtpy: use our binding
+
+log = logging.getLogger("forestreg")
+
+BACKGROUND = ("#f4f6f8", "#c9d3de")  # bottom, top
+
+
+def choose_renderer() -> str:
+    """"image" or "interactive" for the running QGuiApplication (see the module docstring)."""
+    forced = os.environ.get("FORESTREG_3D", "").strip().lower()
+    if forced in ("image", "interactive"):
+        return forced
+    platform = QGuiApplication.platformName().lower()
+    return "image" if platform in ("offscreen", "minimal", "vnc") else "interactive"
+
+
+def _prefer_egl_without_display() -> None:
+    """Without an X display VTK would first try X and print a warning; ask for EGL directly."""
+    if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+class _ImageLabel(QLabel):
+    """The image renderer's surface: shows the rendered frame and turns drags into camera moves."""
+
+    def __init__(self, view: "SceneView") -> None:
+        super().__init__()
+        self.view = view
+        self._last: Optional[QPoint] = None
+        self._button = Qt.MouseButton.NoButton
+        self.setAlignment(Qt.AlignmentFlag.AlignCenter)
+        self.setMinimumSize(QSize(200, 150))
+        self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
+        self.setStyleSheet(f"background: {BACKGROUND[0]};")
+
+    def mousePressEvent(self, event: QMouseEvent) -> None:  # noqa: N802 - Qt API
+        self._last = event.position().toPoint()
+        self._button = event.button()
+
+    def mouseReleaseEvent(self, event: QMouseEvent) -> None:  # noqa: N802 - Qt API
+        self._last = None
+
+    def mouseMoveEvent(self, event: QMouseEvent) -> None:  # noqa: N802 - Qt API
+        if self._last is None:
+            return
+        pos = event.position().toPoint()
+        dx, dy = pos.x() - self._last.x(), pos.y() - self._last.y()
+        self._last = pos
+        self.view.orbit(-0.4 * dx, 0.4 * dy)
+
+    def wheelEvent(self, event: QWheelEvent) -> None:  # noqa: N802 - Qt API
+        self.view.zoom(1.1 ** (event.angleDelta().y() / 120.0))
+
+
+class SceneView(QWidget):
+    """Draws a :class:`~forestreg.ui.scene_data.Scene`; ``renderer`` is "interactive" or "image"."""
+
+    def __init__(self, parent: Optional[QWidget] = None, renderer: Optional[str] = None) -> None:
+        super().__init__(parent)
+        self.renderer = renderer or choose_renderer()
+        self.scene: Optional[Scene] = None
+        self._layout = QVBoxLayout(self)
+        self._layout.setContentsMargins(0, 0, 0, 0)
+        self.plotter: Any = None
+        self.image_label: Optional[_ImageLabel] = None
+        self._render_timer = QTimer(self)
+        self._render_timer.setSingleShot(True)
+        self._render_timer.setInterval(60)
+        self._render_timer.timeout.connect(self._render_image)
+        if self.renderer == "interactive":
+            try:
+                from pyvistaqt import QtInteractor
+
+                self.plotter = QtInteractor(self)
+                self._layout.addWidget(self.plotter.interactor)
+            except Exception as exc:  # noqa: BLE001 - fall back to images rather than fail
+                log.warning("the interactive 3D view is not available here (%s); using rendered images", exc)
+                self.plotter = None
+                self.renderer = "image"
+        if self.renderer == "image":
+            import pyvista as pv
+
+            _prefer_egl_without_display()
+            self.plotter = pv.Plotter(off_screen=True, window_size=(800, 600))
+            self.image_label = _ImageLabel(self)
+            self._layout.addWidget(self.image_label)
+        self.plotter.set_background(BACKGROUND[0], top=BACKGROUND[1])
+        self._message_actor = None
+        self.show_scene(None)
+
+    # ------------------------------------------------------------------ drawing
+
+    def show_scene(self, scene: Optional[Scene], *, message: str = "") -> None:
+        """Replace what is drawn; with no scene (or an empty one) show ``message``."""
+        import pyvista as pv
+
+        self.scene = scene
+        pl = self.plotter
+        pl.clear()
+        if scene is None or not scene.clouds:
+            text = message or ("No scan to draw." if scene is not None else "Add scans or open a project.")
+            if scene is not None and scene.missing:
+                text += "\n" + "\n".join(f"{k}: {v}" for k, v in list(scene.missing.items())[:6])
+            pl.add_text(text, position="upper_left", font_size=11, color="#444444")
+            self._update()
+            return
+        total = scene.point_count
+        size = float(np.clip(3.5 - total / 150_000.0, 1.5, 3.5))
+        labels = []
+        for cloud in scene.clouds:
+            if len(cloud.points):
+                pl.add_mesh(pv.PolyData(cloud.points), color=cloud.colour, point_size=size, style="points",
+                            render_points_as_spheres=False, name=f"scan:{cloud.name}", reset_camera=False)
+            pl.add_mesh(pv.Sphere(radius=0.35, center=cloud.scanner), color=cloud.colour, name=f"scanner:{cloud.name}",
+                        reset_camera=False)
+            labels.append((f"{cloud.name}  ({cloud.total_points:,} points)", cloud.colour))
+        title = "Before registration: each scan in its own coordinates" if scene.mode == "before" else \
+            "After registration: scans in the project frame"
+        if scene.missing:
+            title += f"  (not shown: {', '.join(scene.missing)})"
+        pl.add_text(title, position="upper_left", font_size=10, color="#222222", name="title")
+        for k, (text, colour) in enumerate(reversed(labels)):
+            pl.add_text(text, position=(12, 10 + 22 * k), font_size=10, color=colour, name=f"legend:{k}")
+        shown = sum(len(c.points) for c in scene.clouds)
+        pl.add_text(f"{shown:,} points drawn", position="upper_right", font_size=8, color="#555555", name="count")
+        self.reset_camera()
+
+    def reset_camera(self) -> None:
+        """Look at all points obliquely from above (south-west, 35 degrees down)."""
+        pl = self.plotter
+        pl.view_isometric()
+        pl.reset_camera()
+        pl.camera.zoom(1.4)
+        self._update()
+
+    def orbit(self, azimuth_deg: float, elevation_deg: float) -> None:
+        """Turn the camera about the focal point (used by the image renderer's mouse)."""
+        cam = self.plotter.camera
+        cam.Azimuth(azimuth_deg)
+        cam.Elevation(elevation_deg)
+        cam.OrthogonalizeViewUp()
+        self._update()
+
+    def zoom(self, factor: float) -> None:
+        self.plotter.camera.zoom(factor)
+        self._update()
+
+    def _update(self) -> None:
+        if self.renderer == "image":
+            self._render_timer.start()
+        else:
+            self.plotter.render()
+
+    def _render_image(self) -> None:
+        if self.image_label is None or self.plotter is None:
+            return
+        w, h = max(self.image_label.width(), 200), max(self.image_label.height(), 150)
+        ratio = self.devicePixelRatioF()
+        size = (int(w * ratio), int(h * ratio))
+        if tuple(self.plotter.window_size) != size:
+            self.plotter.window_size = size
+        img = np.ascontiguousarray(self.plotter.screenshot(return_img=True))
+        qimg = QImage(img.data, img.shape[1], img.shape[0], img.strides[0], QImage.Format.Format_RGB888).copy()
+        pix = QPixmap.fromImage(qimg)
+        pix.setDevicePixelRatio(ratio)
+        self.image_label.setPixmap(pix)
+
+    def render_now(self) -> None:
+        """Render at once (before a screenshot)."""
+        if self.renderer == "image":
+            self._render_timer.stop()
+            self._render_image()
+        else:
+            self.plotter.render()
+
+    def resizeEvent(self, event: QResizeEvent) -> None:  # noqa: N802 - Qt API
+        super().resizeEvent(event)
+        if self.renderer == "image":
+            self._render_timer.start()
+
+    def close_view(self) -> None:
+        """Free the renderer (call once, when the window closes)."""
+        if self.plotter is not None:
+            try:
+                self.plotter.close()
+            except Exception:  # noqa: BLE001 - closing must not fail
+                pass
+            self.plotter = None
