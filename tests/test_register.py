@@ -106,4 +106,4 @@ def test_a_chance_match_between_unrelated_plots_is_refused(sim_plot):
 def test_free_space_violation_is_small_for_a_correct_registration(sim_plot):
     plot = sim_plot("mixed_temperate", ((0.0, 0.0), (12.0, -3.0)), seed=2)
     result = register(plot.scans[0].scan, plot.scans[1].scan)
-    assert result.ok and result.free_space_violation is not None and result.free_space_violation < 0.05
+    assert result.ok and result.free_space_violation is not None and result.free_space_violation < 0.1

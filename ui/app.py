@@ -126,7 +126,11 @@ def main(argv: Optional[list[str]] = None) -> int:
         if args.screenshot:
             settle(window, args.timeout)
             out = save_screenshot(window, args.screenshot)
+            view = window.scene_view
+            corner = view.mapTo(window, view.rect().topLeft())
             print(f"screenshot: {out}")
+            print(f"3d view: {corner.x()} {corner.y()} {view.width()} {view.height()}")
+            print(f"3d renderer: {view.renderer}")
             return code
         if headless:
             settle(window, args.timeout)

@@ -77,7 +77,7 @@ def icp(
     voxel_m: float,
     max_distances_m: Sequence[float],
     iterations: int,
-    max_moving_points: int = 60000,
+    max_moving_points: int = 30000,
     seed: int = 0,
 ) -> IcpResult:
     """Coarse-to-fine point-to-plane ICP from ``initial``.
