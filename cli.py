@@ -188,12 +188,17 @@ def _project_from_args(args: argparse.Namespace):
 
 
 def _run_project(project, out: Path, args: argparse.Namespace) -> int:
-    from .engine.plot import ScanCache, adjust_poses, register_project, write_merged, write_poses
+    from .engine.plot import ScanCache, add_neighbour_links, adjust_poses, register_project, write_merged, write_poses
 
     scans = ScanCache(project)
     bar = ProgressBar(not args.quiet, "plot")
     try:
         outcome = register_project(project, rerun=getattr(args, "rerun", False), progress=bar, scans=scans)
+        if getattr(args, "loops", None):
+            added = add_neighbour_links(project, args.loops)
+            if added:
+                log.info("closing %d loops between neighbouring scans", len(added))
+                register_project(project, progress=bar, scans=scans)
     finally:
         bar.close()
     adjusted = adjust_poses(project, scans)
@@ -309,6 +314,26 @@ def cmd_compare(args: argparse.Namespace) -> int:
     print(f"average target distance residual: auto {fmt(a)}, manual {fmt(m)} -> {json_path}")
     failed = [p for p in comparison["pairs"] if p["auto"]["status"] != "ok" or p["manual"]["status"] != "ok"]
     return 0 if not failed else 1
+
+
+def cmd_targets(args: argparse.Namespace) -> int:
+    from .engine.io import read_scan
+    from .engine.manual import detect_reflectors, match_detected_to_known, read_targets_csv, write_targets_csv
+
+    known = read_targets_csv(args.known) if args.known else {}
+    found: dict[str, dict[str, np.ndarray]] = {}
+    for path in args.scans:
+        scan = read_scan(path)
+        detected = detect_reflectors(scan)
+        name = Path(path).name
+        if name in known:
+            found[name] = match_detected_to_known(detected, known[name], args.max_distance)
+        else:
+            found[name] = {f"R{k + 1}": d.centre for k, d in enumerate(detected)}
+        print(f"{name}: {len(detected)} reflectors detected" + (f", {len(found[name])} named after known targets" if name in known else ""))
+    write_targets_csv(args.out, found)
+    print(f"targets: {args.out} (check them, rename to shared ids across scans, then use --targets)")
+    return 0
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -431,6 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_plot_options(p)
     p.add_argument("--merged", help="also write all registered scans into one LAZ with a scan_id per point")
     p.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
+    p.add_argument("--loops", type=float, metavar="M", help="also link registered scans standing within M metres of each other, and adjust all poses globally")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_plot)
 
@@ -440,6 +466,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_plot_options(p)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_compare)
+
+    p = sub.add_parser("targets", help="detect reflector targets (bright small discs/cylinders) in scans with intensity")
+    p.add_argument("scans", nargs="+", metavar="SCAN")
+    p.add_argument("--out", required=True, help="targets CSV to write (scan,target,x,y,z)")
+    p.add_argument("--known", help="approximate targets CSV: name detections after the nearest known target")
+    p.add_argument("--max-distance", type=float, default=0.3, help="largest distance to a known target, metres (default 0.3)")
+    p.set_defaults(func=cmd_targets)
 
     p = sub.add_parser("project", help="create, inspect, link and re-run a saved plot project")
     psub = p.add_subparsers(dest="action", required=True)

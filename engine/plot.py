@@ -353,3 +353,20 @@ def write_registered_e57(project: Project, path: str | Path, scans: Optional[Sca
         raise ValueError("no scan is registered: nothing to write")
     write_e57(path, [scans(n) for n in chosen], [poses[n] for n in chosen])
     return len(chosen)
+
+
+def add_neighbour_links(project: Project, max_distance_m: float) -> list[Link]:
+    """Add an extra link between every two registered scans (neither the centre) whose scanners
+    stand within ``max_distance_m`` of each other and are not linked yet: loops for
+    :func:`adjust_poses`. Run them with :func:`register_project`. Returns the new links."""
+    poses = project.chained_poses()
+    linked = {frozenset((link.moving, link.reference)) for link in project.links}
+    placed = [s.name for s in project.scans if s.name != project.centre and poses.get(s.name) is not None]
+    added = []
+    for i, a in enumerate(placed):
+        for b in placed[i + 1:]:
+            if frozenset((a, b)) in linked:
+                continue
+            if np.linalg.norm(poses[a][:2, 3] - poses[b][:2, 3]) <= max_distance_m:
+                added.append(project.add_link(b, a))
+    return added

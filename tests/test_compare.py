@@ -69,3 +69,24 @@ def test_compare_command_writes_json_csv_and_report(plot_with_targets, tmp_path,
     assert rows[0][0] == "moving" and rows[1][0] == paths[1].name
     assert "average target distance residual" in capsys.readouterr().out
     assert (out / "poses.json").exists() and (out / "project.json").exists()
+
+
+def test_targets_command_detects_and_names_reflectors(plot_with_targets, tmp_path, capsys):
+    """Detected reflector centres, named after approximate positions (10 cm off), land within
+    3 cm of the true centres."""
+    from forestreg.engine.manual import read_targets_csv
+
+    plot, paths, _, targets = plot_with_targets
+    rng = np.random.default_rng(1)
+    rough = {paths[0].name: {k: v + rng.normal(0, 0.06, 3) for k, v in targets[paths[0].name].items()}}
+    rough_csv = tmp_path / "rough.csv"
+    write_targets_csv(rough_csv, rough)
+    out = tmp_path / "detected.csv"
+    assert main(["targets", str(paths[0]), "--known", str(rough_csv), "--out", str(out)]) == 0
+    found = read_targets_csv(out)[paths[0].name]
+    truth = {t["id"]: np.array([t["x"], t["y"], t["z"]]) for t in plot.truth["scans"][0]["targets_socs"] if t["n_points"] >= 5}
+    named = [k for k in truth if str(k) in found]
+    assert len(named) >= len(truth) - 1 and len(named) >= 3
+    for k in named:
+        assert np.linalg.norm(found[str(k)] - truth[k]) < 0.03
+    assert "reflectors detected" in capsys.readouterr().out

@@ -165,9 +165,10 @@ def test_plot_and_project_commands(four_scan_files, tmp_path, capsys):
     plot, paths = four_scan_files
     out = tmp_path / "out"
     merged = tmp_path / "merged.laz"
-    code = main(["plot", *map(str, paths[:3]), "--out", str(out), "--centre", paths[0].name, "--merged", str(merged), "--quiet"])
+    code = main(["plot", *map(str, paths[:3]), "--out", str(out), "--centre", paths[0].name, "--merged", str(merged), "--loops", "20", "--quiet"])
     assert code == 0
     body = json.loads((out / "poses.json").read_text())
+    assert len(body["adjustment"]) == 3, "--loops 20 links the two outer scans (18 m apart) and adjusts"
     for k, p in enumerate(paths[:3]):
         rot, trans = rigid_errors(np.array(body["scans"][p.name]["matrix"]), plot.relative_pose(0, k))
         assert rot < 0.05 and trans < 0.02

@@ -84,6 +84,9 @@ def test_run_fills_the_tables(qtbot, window, project_file: Path, tmp_path: Path)
         assert window.running and not window.act_run.isEnabled() and window.act_cancel.isEnabled()
         window.run_worker.progress.connect(lambda f, m: progress.append((f, m)))
         window.run_worker.link_done.connect(links_done.append)
+        # the GUI thread keeps handling events: progress reaches the status bar during the run
+        qtbot.waitUntil(lambda: window.progress_bar.value() > 0 and window.status_label.text() != "Registering\u2026", timeout=60_000)
+        window.set_scene_mode("before")
     qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
     outcome = finished.args[0]
     project = window.project
@@ -119,9 +122,17 @@ def test_run_fills_the_tables(qtbot, window, project_file: Path, tmp_path: Path)
     assert [link.result["matched"] for link in saved.links] == [link.result["matched"] for link in project.links]
     assert not window.dirty and window.act_export_report.isEnabled()
     # exports
+    out = tmp_path / "out"
     with qtbot.waitSignal(window.tasks.idle, timeout=60_000):
-        window.export_poses(tmp_path / "out")
-    assert (tmp_path / "out" / "poses.json").is_file() and (tmp_path / "out" / "scan_02.laz.transform.txt").is_file()
+        window.export_poses(out)
+        window.export_merged(out / "merged.laz")
+        window.export_report(out / "report.html")
+    assert window.last_error is None
+    assert (out / "poses.json").is_file() and (out / "scan_02.laz.transform.txt").is_file()
+    from forestreg.engine.io import read_scan
+
+    assert len(read_scan(out / "merged.laz")) == sum(len(window.scans(s.name)) for s in project.scans)
+    assert "scan_03.laz" in (out / "report.html").read_text()
     keep = tmp_path.parent / "registered_ui_plot.json"
     project.save(keep)
     _REGISTERED["project"] = keep

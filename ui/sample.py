@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from ..engine.errors import Cancelled
+from ..engine.params import RegistrationParams
 from ..engine.progress import CancelToken
 from ..engine.project import Project
 
@@ -51,7 +52,8 @@ def make_sample_project(
             progress(0.95 * fraction, f"simulating the sample plot: {message}")
 
     plot = simulate_plot(PRESET, POSITIONS, seed=SEED, angular_step_deg=STEP_DEG, size_m=SIZE_M, out_dir=folder, progress=report)
-    project = Project(name="sample plot (simulated)")
+    # the angular step of the search matches the simulated scanner's resolution (faster, same result)
+    project = Project(name="sample plot (simulated)", params=RegistrationParams(angular_step_deg=STEP_DEG))
     for f in plot.files:
         project.add_scan(f)
     project.save(path)

@@ -120,9 +120,18 @@ class SceneView(QWidget):
 
     def show_scene(self, scene: Optional[Scene], *, message: str = "") -> None:
         """Replace what is drawn; with no scene (or an empty one) show ``message``."""
+        self.scene = scene
+        pl = self.plotter
+        pl.suppress_rendering = True  # one render at the end, not one per actor
+        try:
+            self._draw(scene, message)
+        finally:
+            pl.suppress_rendering = False
+        self._update()
+
+    def _draw(self, scene: Optional[Scene], message: str) -> None:
         import pyvista as pv
 
-        self.scene = scene
         pl = self.plotter
         pl.clear()
         if scene is None or not scene.clouds:
@@ -130,7 +139,6 @@ class SceneView(QWidget):
             if scene is not None and scene.missing:
                 text += "\n" + "\n".join(f"{k}: {v}" for k, v in list(scene.missing.items())[:6])
             pl.add_text(text, position="upper_left", font_size=11, color="#444444")
-            self._update()
             return
         total = scene.point_count
         size = float(np.clip(3.5 - total / 150_000.0, 1.5, 3.5))
@@ -148,10 +156,12 @@ class SceneView(QWidget):
             title += f"  (not shown: {', '.join(scene.missing)})"
         pl.add_text(title, position="upper_left", font_size=10, color="#222222", name="title")
         for k, (text, colour) in enumerate(reversed(labels)):
-            pl.add_text(text, position=(12, 10 + 22 * k), font_size=10, color=colour, name=f"legend:{k}")
+            pl.add_text(text, position=(12, 10 + 20 * k), font_size=9, color=colour, name=f"legend:{k}")
         shown = sum(len(c.points) for c in scene.clouds)
         pl.add_text(f"{shown:,} points drawn", position="upper_right", font_size=8, color="#555555", name="count")
-        self.reset_camera()
+        pl.view_isometric()
+        pl.reset_camera()
+        pl.camera.zoom(1.4)
 
     def reset_camera(self) -> None:
         """Look at all points obliquely from above (south-west, 35 degrees down)."""
@@ -187,6 +197,7 @@ class SceneView(QWidget):
         size = (int(w * ratio), int(h * ratio))
         if tuple(self.plotter.window_size) != size:
             self.plotter.window_size = size
+        self.plotter.render()  # after the first frame, screenshot() alone returns the last frame
         img = np.ascontiguousarray(self.plotter.screenshot(return_img=True))
         qimg = QImage(img.data, img.shape[1], img.shape[0], img.strides[0], QImage.Format.Format_RGB888).copy()
         pix = QPixmap.fromImage(qimg)
