@@ -22,7 +22,7 @@ import numpy as np
 from .match.coarse import CoarseMatch, match_vops
 from .match.evidence import mutual_free_space_violation
 from .match.icp import IcpResult, icp
-from .occlusion.prepare import PreparedScan, SliceLayer, extract_vops, nearest_distances, prepare_scan, slice_layers
+from .occlusion.prepare import PreparedScan, SliceLayer, extract_vops, prepare_scan, slice_layers
 from .occlusion.vop import VisualOcclusionPoints
 from .params import RegistrationParams
 from .progress import CancelToken, Progress, ProgressCallback

@@ -222,6 +222,17 @@ def test_save_reopen_and_project_edits(qtbot, window, project_file: Path, tmp_pa
     assert not window.open_project(bad)
     assert "damaged" in window.last_error[1] and window.project.path == out.resolve()
     assert bad.read_text() == "{ not json"
+    # shortcuts, and settings kept for the next start
+    assert [window.act_run.shortcut().toString(), window.act_cancel.shortcut().toString(),
+            window.act_save.shortcut().toString()] == ["Ctrl+R", "Esc", "Ctrl+S"]
+    window.resize(1234, 777)
+    window.save_settings()
+    from forestreg.ui.main_window import MainWindow
+
+    second = MainWindow(settings=window.settings, interactive=False)
+    qtbot.addWidget(second)
+    assert second.recent_files()[0] == str(out.resolve()) and second.size().width() == 1234
+    assert [a.text().split(" ", 1)[1] for a in second.recent_menu.actions()][0] == str(out.resolve())
 
 
 def test_parameter_panel_builds_the_params(qtbot) -> None:

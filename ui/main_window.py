@@ -309,7 +309,19 @@ class MainWindow(QMainWindow):
         self.refresh_top_view()
         self._update_title()
         self._update_actions()
+        self.status_label.setText(self.summary())
         self.projectLoaded.emit()
+
+    def summary(self) -> str:
+        """One line about the project: scans, and how many are placed."""
+        p = self.project
+        if not p.scans:
+            return "Add the scans of a plot (File > Add scans) or open a project."
+        placed = sum(1 for n, pose in p.poses().items() if pose is not None and n != p.centre)
+        ran = any(link.result is not None for link in p.links)
+        if not ran:
+            return f"{len(p.scans)} scans, centre {p.centre}: press Run (Ctrl+R) to register them"
+        return f"{len(p.scans)} scans, centre {p.centre}: {placed} of {len(p.scans) - 1} placed"
 
     def _project_edited(self) -> None:
         self.dirty = True
@@ -824,7 +836,14 @@ class MainWindow(QMainWindow):
             event.ignore()
             return
         self.tasks.cancel_all()
-        self.tasks.wait_all()
+        if not self.tasks.wait_all(5000):
+            # the engine is inside a step that does not check for cancelling yet: close once it
+            # ends (a thread must not be destroyed while it runs)
+            self.hide()
+            self.interactive = False
+            self.tasks.idle.connect(self.close)
+            event.ignore()
+            return
         self.save_settings()
         self.log_pane.detach()
         self.scene_view.close_view()

@@ -156,19 +156,24 @@ class SceneView(QWidget):
             title += f"  (not shown: {', '.join(scene.missing)})"
         pl.add_text(title, position="upper_left", font_size=10, color="#222222", name="title")
         for k, (text, colour) in enumerate(reversed(labels)):
-            pl.add_text(text, position=(12, 10 + 20 * k), font_size=9, color=colour, name=f"legend:{k}")
+            actor = pl.add_text(text, position=(12, 10 + 22 * k), font_size=9, color=colour, name=f"legend:{k}")
+            try:
+                actor.prop.background_color = "white"
+                actor.prop.background_opacity = 0.75
+            except AttributeError:  # older pyvista: plain text
+                pass
         shown = sum(len(c.points) for c in scene.clouds)
         pl.add_text(f"{shown:,} points drawn", position="upper_right", font_size=8, color="#555555", name="count")
         pl.view_isometric()
         pl.reset_camera()
-        pl.camera.zoom(1.4)
+        pl.camera.zoom(1.3)
 
     def reset_camera(self) -> None:
         """Look at all points obliquely from above (south-west, 35 degrees down)."""
         pl = self.plotter
         pl.view_isometric()
         pl.reset_camera()
-        pl.camera.zoom(1.4)
+        pl.camera.zoom(1.3)
         self._update()
 
     def orbit(self, azimuth_deg: float, elevation_deg: float) -> None:

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..params import RegistrationParams
 from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
@@ -223,11 +222,3 @@ def _merge_layers(per_layer: Sequence[VisualOcclusionPoints], offsets_m: Sequenc
         xy=allv.xy[sel], z=allv.z[sel], bark_xy=allv.bark_xy[sel], radius=allv.radius[sel],
         support=allv.support[sel], layer=allv.layer[sel], rejected_xy=allv.rejected_xy,
     )
-
-
-def nearest_distances(reference_xy: np.ndarray, query_xy: np.ndarray) -> np.ndarray:
-    """Distance from each query point to its nearest reference point (horizontal, metres)."""
-    if len(reference_xy) == 0:
-        return np.full(len(query_xy), np.inf)
-    d, _ = cKDTree(reference_xy).query(query_xy)
-    return d
