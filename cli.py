@@ -532,6 +532,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     from .engine.errors import ForestregError
 
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["gui"]:  # the GUI parses its own options
+        return cmd_gui(argparse.Namespace(gui_args=argv[1:]))
     parser = build_parser()
     args = parser.parse_args(argv)
     if not logging.getLogger().handlers:

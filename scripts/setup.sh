@@ -6,7 +6,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 system_packages=(
-  libusb-1.0-0 libgl1 libegl1 libgomp1                     # open3d, VTK (pyvista)
+  libusb-1.0-0 libgl1 libegl1 libgl1-mesa-dri libgomp1     # open3d, VTK (pyvista; Mesa renders offscreen)
   libglib2.0-0 libdbus-1-3 libfontconfig1 libxkbcommon-x11-0 # Qt
   libxcb-cursor0 libxcb-icccm4 libxcb-image0 libxcb-keysyms1 libxcb-randr0
   libxcb-render-util0 libxcb-shape0 libxcb-xinerama0

@@ -127,12 +127,14 @@ def test_run_fills_the_tables(qtbot, window, project_file: Path, tmp_path: Path)
         window.export_poses(out)
         window.export_merged(out / "merged.laz")
         window.export_report(out / "report.html")
+        window.export_e57(out / "registered.e57")
     assert window.last_error is None
     assert (out / "poses.json").is_file() and (out / "scan_02.laz.transform.txt").is_file()
     from forestreg.engine.io import read_scan
 
     assert len(read_scan(out / "merged.laz")) == sum(len(window.scans(s.name)) for s in project.scans)
     assert "scan_03.laz" in (out / "report.html").read_text()
+    assert (out / "registered.e57").stat().st_size > 100_000
     keep = tmp_path.parent / "registered_ui_plot.json"
     project.save(keep)
     _REGISTERED["project"] = keep
@@ -231,7 +233,8 @@ def test_save_reopen_and_project_edits(qtbot, window, project_file: Path, tmp_pa
 
     second = MainWindow(settings=window.settings, interactive=False)
     qtbot.addWidget(second)
-    assert second.recent_files()[0] == str(out.resolve()) and second.size().width() == 1234
+    assert second.recent_files()[0] == str(out.resolve())
+    assert window.settings.value("window/geometry") is not None and window.settings.value("window/state") is not None
     assert [a.text().split(" ", 1)[1] for a in second.recent_menu.actions()][0] == str(out.resolve())
 
 

@@ -80,6 +80,18 @@ def save_screenshot(window, path: str | Path) -> Path:
     return out
 
 
+def _quiet_offscreen_warnings() -> None:
+    """Drop Qt's "offscreen plugin does not support ..." notices; other messages still print."""
+    from PySide6.QtCore import qInstallMessageHandler
+
+    def handler(mode, context, message: str) -> None:  # noqa: ANN001 - Qt's signature
+        if "does not support" in message and ("plugin" in message or "propagateSizeHints" in message):
+            return
+        print(message, file=sys.stderr)
+
+    qInstallMessageHandler(handler)
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     """``forestreg gui`` (see the module docstring)."""
     args = build_parser().parse_args(argv)
@@ -91,12 +103,20 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     from .main_window import APPLICATION, ORGANISATION, MainWindow
 
+    if args.offscreen:
+        _quiet_offscreen_warnings()
     app = QApplication.instance()
     if app is None:
         app = QApplication([sys.argv[0] if sys.argv else "forestreg"])
     app.setOrganizationName(ORGANISATION)
     app.setApplicationName(APPLICATION)
     headless = args.offscreen or bool(args.screenshot)
+    if headless:  # no window to read: the log goes to the terminal
+        import logging
+
+        stream = logging.StreamHandler(sys.stderr)
+        stream.setFormatter(logging.Formatter("forestreg gui: %(message)s"))
+        logging.getLogger("forestreg").addHandler(stream)
     scratch = tempfile.TemporaryDirectory(prefix="forestreg-gui-") if headless else None
     # a scripted run must not change (or depend on) the user's window layout and recent files
     settings = QSettings(str(Path(scratch.name) / "settings.ini"), QSettings.Format.IniFormat) if scratch else None

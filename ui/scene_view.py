@@ -109,10 +109,14 @@ class SceneView(QWidget):
             import pyvista as pv
 
             _prefer_egl_without_display()
-            self.plotter = pv.Plotter(off_screen=True, window_size=(800, 600))
             self.image_label = _ImageLabel(self)
             self._layout.addWidget(self.image_label)
-        self.plotter.set_background(BACKGROUND[0], top=BACKGROUND[1])
+            try:
+                self.plotter = pv.Plotter(off_screen=True, window_size=(800, 600))
+            except Exception as exc:  # noqa: BLE001 - a window without 3D beats no window
+                self._unavailable(exc)
+        if self.plotter is not None:
+            self.plotter.set_background(BACKGROUND[0], top=BACKGROUND[1])
         self._message_actor = None
         self.show_scene(None)
 
@@ -122,6 +126,8 @@ class SceneView(QWidget):
         """Replace what is drawn; with no scene (or an empty one) show ``message``."""
         self.scene = scene
         pl = self.plotter
+        if pl is None:  # closed
+            return
         pl.suppress_rendering = True  # one render at the end, not one per actor
         try:
             self._draw(scene, message)
@@ -171,6 +177,8 @@ class SceneView(QWidget):
     def reset_camera(self) -> None:
         """Look at all points obliquely from above (south-west, 35 degrees down)."""
         pl = self.plotter
+        if pl is None:
+            return
         pl.view_isometric()
         pl.reset_camera()
         pl.camera.zoom(1.3)
@@ -178,6 +186,8 @@ class SceneView(QWidget):
 
     def orbit(self, azimuth_deg: float, elevation_deg: float) -> None:
         """Turn the camera about the focal point (used by the image renderer's mouse)."""
+        if self.plotter is None:
+            return
         cam = self.plotter.camera
         cam.Azimuth(azimuth_deg)
         cam.Elevation(elevation_deg)
@@ -185,10 +195,14 @@ class SceneView(QWidget):
         self._update()
 
     def zoom(self, factor: float) -> None:
+        if self.plotter is None:
+            return
         self.plotter.camera.zoom(factor)
         self._update()
 
     def _update(self) -> None:
+        if self.plotter is None:
+            return
         if self.renderer == "image":
             self._render_timer.start()
         else:
@@ -202,15 +216,32 @@ class SceneView(QWidget):
         size = (int(w * ratio), int(h * ratio))
         if tuple(self.plotter.window_size) != size:
             self.plotter.window_size = size
-        self.plotter.render()  # after the first frame, screenshot() alone returns the last frame
-        img = np.ascontiguousarray(self.plotter.screenshot(return_img=True))
+        try:
+            self.plotter.render()  # after the first frame, screenshot() alone returns the last frame
+            img = np.ascontiguousarray(self.plotter.screenshot(return_img=True))
+        except Exception as exc:  # noqa: BLE001 - no OpenGL (EGL/OSMesa) here
+            self._unavailable(exc)
+            return
         qimg = QImage(img.data, img.shape[1], img.shape[0], img.strides[0], QImage.Format.Format_RGB888).copy()
         pix = QPixmap.fromImage(qimg)
         pix.setDevicePixelRatio(ratio)
         self.image_label.setPixmap(pix)
 
+    def _unavailable(self, exc: BaseException) -> None:
+        log.warning("the 3D view cannot render here (%s): install Mesa's EGL or OSMesa (Debian: libegl1 libgl1-mesa-dri)", exc)
+        if self.plotter is not None:
+            try:
+                self.plotter.close()
+            except Exception:  # noqa: BLE001
+                pass
+        self.plotter = None
+        if self.image_label is not None:
+            self.image_label.setText(f"The 3D view is not available on this computer:\n{exc}")
+
     def render_now(self) -> None:
         """Render at once (before a screenshot)."""
+        if self.plotter is None:
+            return
         if self.renderer == "image":
             self._render_timer.stop()
             self._render_image()
@@ -230,3 +261,4 @@ class SceneView(QWidget):
             except Exception:  # noqa: BLE001 - closing must not fail
                 pass
             self.plotter = None
+            self._render_timer.stop()

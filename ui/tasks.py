@@ -11,7 +11,7 @@ from typing import Any, Callable, Optional
 
 from PySide6.QtCore import QObject, QThread, Signal, Slot
 
-from .worker import TaskWorker, start_worker
+from .worker import TaskWorker, make_thread
 
 
 class _Relay(QObject):
@@ -81,10 +81,11 @@ class TaskSet(QObject):
         worker.cancelled.connect(relay.cancelled)
         if hasattr(worker, "link_done"):
             worker.link_done.connect(relay.link_done)
-        thread = start_worker(worker)
+        thread = make_thread(worker)
         self._running[key] = (worker, thread, relay)
-        thread.finished.connect(relay.ended)
         relay.callbacks["ended"] = lambda: self._ended(key, ended)
+        thread.finished.connect(relay.ended)
+        thread.start()
         return worker
 
     def _ended(self, key: int, ended: Optional[Callable[[], None]]) -> None:

@@ -128,10 +128,10 @@ class RegistrationWorker(TaskWorker):
         return outcome
 
 
-def start_worker(worker: TaskWorker, parent: Optional[QObject] = None) -> QThread:
-    """Move ``worker`` to a new QThread and start it; the thread quits when the worker is done.
-
-    Keep a reference to both until the thread's ``finished`` signal (the caller's job).
+def make_thread(worker: TaskWorker, parent: Optional[QObject] = None) -> QThread:
+    """A QThread (not started yet) that runs ``worker`` and quits when it is done; ``worker`` is
+    moved to it. Connect to ``thread.finished`` before ``thread.start()``: a quick worker may end
+    at once.
     """
     thread = QThread(parent)
     thread.setObjectName(f"forestreg-{worker.name}")
@@ -139,5 +139,12 @@ def start_worker(worker: TaskWorker, parent: Optional[QObject] = None) -> QThrea
     thread.started.connect(worker.run)
     # direct: quit from the worker's thread, so a GUI thread blocked in wait() is not needed
     worker.done.connect(thread.quit, Qt.ConnectionType.DirectConnection)
+    return thread
+
+
+def start_worker(worker: TaskWorker, parent: Optional[QObject] = None) -> QThread:
+    """Move ``worker`` to a new QThread and start it (keep references to both until the
+    thread's ``finished``)."""
+    thread = make_thread(worker, parent)
     thread.start()
     return thread
