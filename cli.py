@@ -107,9 +107,15 @@ def cmd_register(args: argparse.Namespace) -> int:
     reference = read_scan(args.reference, scanner_position=positions[0] if len(positions) > 0 else None, unit_scale=scale)
     moving = read_scan(args.moving, scanner_position=positions[1] if len(positions) > 1 else None, unit_scale=scale)
     read_s = time.perf_counter() - t0
+    ups = [np.array(u) for u in (args.up or [])]
+    if len(ups) > 2:
+        raise argparse.ArgumentTypeError("--up is given at most twice (reference, then moving)")
     bar = ProgressBar(not args.quiet, "register")
     try:
-        result = register(reference, moving, params, progress=bar)
+        result = register(
+            reference, moving, params, progress=bar,
+            reference_up=ups[0] if len(ups) > 0 else None, moving_up=ups[1] if len(ups) > 1 else None,
+        )
     finally:
         bar.close()
     summary = result.to_dict()
@@ -437,6 +443,10 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="X,Y,Z", help="scanner position in file coordinates: first for the reference, again for the moving scan (default: each file's origin)",
     )
     p.add_argument("--units", choices=sorted(UNITS), default="m", help="unit of the files' coordinates (default m)")
+    p.add_argument(
+        "--up", action="append", type=lambda s: _floats(s, 3, "--up"), metavar="X,Y,Z",
+        help="the true vertical in a scan's own coordinates (from its inclination sensor): first for the reference, again for the moving scan (default: estimated from the data)",
+    )
     p.add_argument("--write-registered", action="store_true", help="also write the moving scan transformed into the reference frame (LAZ)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_register)

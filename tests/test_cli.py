@@ -130,3 +130,21 @@ def test_params_command_prints_a_loadable_toml(tmp_path, capsys):
     path = Path(tmp_path / "defaults.toml")
     path.write_text(text)
     assert RegistrationParams.from_toml(path) == RegistrationParams()
+
+
+def test_given_vertical_for_a_tilted_scan(tmp_path, sim_plot):
+    """--up gives the moving scan's vertical (as an inclination sensor would): it is used as is."""
+    plot = sim_plot("mixed_temperate", ((0.0, 0.0), (0.3, 0.2)), seed=6, tilted=((1, 30.0),))
+    paths = []
+    for s in plot.scans:
+        paths.append(tmp_path / f"{s.scan.name}.laz")
+        write_scan(s.scan, paths[-1])
+    up = np.linalg.inv(plot.scans[1].pose[:3, :3]) @ np.array([0.0, 0.0, 1.0])
+    out = tmp_path / "out"
+    code = main(["register", str(paths[0]), str(paths[1]), "--out", str(out), "--dr", "10", "--quiet",
+                 "--up=0,0,1", "--up=" + ",".join(f"{v:.9f}" for v in up)])
+    assert code == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["moving_tilt_deg"] == pytest.approx(30.0, abs=0.01)
+    rot, trans = rigid_errors(np.array(result["matrix"]), plot.relative_pose(0, 1))
+    assert rot < 0.05 and trans < 0.02
