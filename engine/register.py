@@ -211,11 +211,11 @@ def register(
             name, len(prep.points), params.max_range_m, prep.tilt_deg, " (levelled)" if prep.levelled else "", prep.scanner_height_m,
         )
     step(0.3, "slicing")
-    attempts = _coarse_attempts(ref_prep, mov_prep, params, timed, step.sub(0.3, 0.6))
+    attempts = _coarse_attempts(ref_prep, mov_prep, params, timed, step.sub(0.3, 0.5))
     if params.fallback_slice_offsets_m and all(a.matched < params.min_matched for a in attempts):
         wider = params.replace(slice_offsets_m=tuple(params.slice_offsets_m) + tuple(params.fallback_slice_offsets_m))
         log.info("no confident match at dh %s: adding slice layers at dh %s", params.slice_offsets_m, params.fallback_slice_offsets_m)
-        attempts += _coarse_attempts(ref_prep, mov_prep, wider, timed, step.sub(0.45, 0.6))
+        attempts += _coarse_attempts(ref_prep, mov_prep, wider, timed, step.sub(0.5, 0.6))
     chosen = _choose_attempt(attempts)
     base = dict(
         reference_name=reference.name,
