@@ -40,5 +40,13 @@ def __getattr__(name: str) -> Any:
     return getattr(importlib.import_module(module, __name__), name)
 
 
+def classFactory(iface):  # noqa: N802 - the name QGIS looks for in a plugin folder
+    """QGIS plugin entry point (the repository root is the plugin folder). Imports the QGIS side
+    only when QGIS calls it, so ``import forestreg`` stays Qt-free."""
+    from .plugin.qgis import classFactory as factory
+
+    return factory(iface)
+
+
 def __dir__() -> list[str]:
     return sorted(list(globals()) + list(_LAZY))

@@ -1,0 +1,52 @@
+"""The QGIS plugin object: a menu action ("forestreg: register scans…") and the Processing provider."""
+
+from __future__ import annotations
+
+from qgis.core import QgsApplication
+from qgis.PyQt.QtWidgets import QAction
+
+from .provider import PAIR_ALGORITHM, ForestregProvider
+
+MENU = "&forestreg"
+ACTION_TEXT = "forestreg: register scans…"
+
+
+class ForestregPlugin:
+    """Loaded by QGIS through ``classFactory(iface)``."""
+
+    def __init__(self, iface) -> None:
+        self.iface = iface
+        self.provider = None
+        self.action = None
+
+    def initProcessing(self) -> None:  # noqa: N802 - QGIS naming
+        if self.provider is None:
+            provider = ForestregProvider()
+            # the registry owns the provider; a refused one (same id already there) is deleted
+            self.provider = provider if QgsApplication.processingRegistry().addProvider(provider) else None
+
+    def initGui(self) -> None:  # noqa: N802 - QGIS naming
+        self.initProcessing()
+        parent = self.iface.mainWindow() if self.iface is not None else None
+        self.action = QAction(ACTION_TEXT, parent)
+        self.action.setObjectName("forestregRegisterScans")
+        self.action.setToolTip("Register two TLS scans from trunk shadows (runs the forestreg command line)")
+        self.action.triggered.connect(self.run)
+        if self.iface is not None:
+            self.iface.addPluginToMenu(MENU, self.action)
+
+    def unload(self) -> None:
+        if self.action is not None:
+            if self.iface is not None:
+                self.iface.removePluginMenu(MENU, self.action)
+            self.action.deleteLater()
+            self.action = None
+        if self.provider is not None:
+            QgsApplication.processingRegistry().removeProvider(self.provider)
+            self.provider = None
+
+    def run(self) -> None:
+        """Open the pair algorithm's dialog (Processing runs it in the background with progress)."""
+        import processing  # QGIS's Processing plugin, present whenever the provider is
+
+        processing.execAlgorithmDialog(PAIR_ALGORITHM, {})

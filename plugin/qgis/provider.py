@@ -1,0 +1,246 @@
+"""The forestreg Processing provider: "Register TLS pair (trunk shadows)" and "Register plot".
+
+Each algorithm runs the ``forestreg`` CLI in a separate process through :mod:`forestreg.plugin.adapter`
+(progress and log lines go to the Processing feedback, Cancel stops the process), then loads the
+scanner positions and the VOPs as delimited-text point layers when the algorithm completes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from qgis.core import (
+    QgsProcessing,
+    QgsProcessingAlgorithm,
+    QgsProcessingContext,
+    QgsProcessingException,
+    QgsProcessingOutputNumber,
+    QgsProcessingOutputString,
+    QgsProcessingOutputVectorLayer,
+    QgsProcessingParameterCrs,
+    QgsProcessingParameterDefinition,
+    QgsProcessingParameterFile,
+    QgsProcessingParameterFolderDestination,
+    QgsProcessingParameterMultipleLayers,
+    QgsProcessingParameterNumber,
+    QgsProcessingParameterString,
+    QgsProcessingProvider,
+    QgsSettings,
+    QgsVectorLayer,
+)
+
+from .. import adapter
+
+PROVIDER_ID = "forestreg"
+PAIR_ALGORITHM = f"{PROVIDER_ID}:register_pair"
+PLOT_ALGORITHM = f"{PROVIDER_ID}:register_plot"
+SETTINGS_CLI = "forestreg/cli"  # QgsSettings key: the forestreg command (path or command line)
+SCAN_FILTER = "Point clouds (*.las *.laz *.ply *.pcd *.e57 *.xyz *.txt *.csv);;All files (*.*)"
+
+
+def _run_and_report(run, feedback):
+    """Call ``run(progress, log, cancelled)`` with the Processing feedback wired in."""
+
+    def progress(fraction: float, message: str) -> None:
+        feedback.setProgress(100.0 * fraction)
+        feedback.setProgressText(message)
+
+    def log(line: str) -> None:
+        feedback.pushConsoleInfo(line)
+
+    try:
+        return run(progress, log, feedback.isCanceled)
+    except adapter.CancelledError as exc:
+        raise QgsProcessingException(str(exc)) from exc
+    except adapter.AdapterError as exc:
+        if exc.stderr:
+            feedback.reportError(exc.stderr)
+        raise QgsProcessingException(str(exc)) from exc
+
+
+def _load_point_layer(path: Path, name: str, crs, context: QgsProcessingContext, output: str, feedback):
+    authid = crs.authid() if crs is not None and crs.isValid() else None
+    layer = QgsVectorLayer(adapter.delimited_text_uri(path, authid), name, "delimitedtext")
+    if not layer.isValid():
+        feedback.reportError(f"could not open {path} as a point layer")
+        return None
+    context.temporaryLayerStore().addMapLayer(layer)
+    context.addLayerToLoadOnCompletion(layer.id(), QgsProcessingContext.LayerDetails(name, context.project(), output))
+    return layer.id()
+
+
+class _Base(QgsProcessingAlgorithm):
+    OUTPUT = "OUTPUT"
+    DR = "DR"
+    CRS = "CRS"
+    CLI = "CLI"
+    SCANNERS = "SCANNERS"
+    STATUS = "STATUS"
+    REASON = "REASON"
+
+    def group(self):
+        return "Registration"
+
+    def groupId(self):  # noqa: N802
+        return "registration"
+
+    def createInstance(self):  # noqa: N802
+        return type(self)()
+
+    def _common_parameters(self) -> None:
+        self.addParameter(QgsProcessingParameterNumber(
+            self.DR, "VOP radius D_r in metres (empty: automatic)", type=QgsProcessingParameterNumber.Double,
+            optional=True, minValue=1.0, maxValue=100.0,
+        ))
+        crs = QgsProcessingParameterCrs(self.CRS, "CRS of the scans' coordinates (for the layers)", optional=True)
+        crs.setFlags(crs.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
+        self.addParameter(crs)
+        cli = QgsProcessingParameterString(
+            self.CLI, "forestreg command (path, or e.g. 'python3 -m forestreg.cli'; empty: forestreg on PATH)",
+            defaultValue=QgsSettings().value(SETTINGS_CLI, "", type=str), optional=True,
+        )
+        cli.setFlags(cli.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
+        self.addParameter(cli)
+        self.addOutput(QgsProcessingOutputVectorLayer(self.SCANNERS, "Scanner positions", QgsProcessing.TypeVectorPoint))
+        self.addOutput(QgsProcessingOutputString(self.STATUS, "Status (ok / failed)"))
+        self.addOutput(QgsProcessingOutputString(self.REASON, "Reason of a failure"))
+
+    def _dr(self, parameters, context):
+        value = parameters.get(self.DR)
+        return None if value in (None, "") else self.parameterAsDouble(parameters, self.DR, context)
+
+    def _cli(self, parameters, context):
+        return (self.parameterAsString(parameters, self.CLI, context) or "").strip() or None
+
+
+class RegisterPairAlgorithm(_Base):
+    REFERENCE = "REFERENCE"
+    MOVING = "MOVING"
+    VOPS = "VOPS"
+    MATCHED = "MATCHED"
+    TRANSFORM = "TRANSFORM"
+
+    def name(self):
+        return "register_pair"
+
+    def displayName(self):  # noqa: N802
+        return "Register TLS pair (trunk shadows)"
+
+    def shortHelpString(self):  # noqa: N802
+        return (
+            "Registers the moving scan onto the reference scan from the shadows the trunks cast "
+            "(visual occlusion points), then ICP, by running 'forestreg register' in a separate process. "
+            "Writes result.json, transform.txt (p_reference = matrix @ p_moving), the VOP files and a figure "
+            "into the output folder, and loads the scanner positions and the VOPs (in the reference scan's "
+            "coordinates; 'matched' = 1 for matched VOPs) as point layers."
+        )
+
+    def initAlgorithm(self, config=None):  # noqa: N802
+        self.addParameter(QgsProcessingParameterFile(self.REFERENCE, "Reference scan", fileFilter=SCAN_FILTER))
+        self.addParameter(QgsProcessingParameterFile(self.MOVING, "Moving scan (mapped onto the reference)", fileFilter=SCAN_FILTER))
+        self.addParameter(QgsProcessingParameterFolderDestination(self.OUTPUT, "Output folder"))
+        self._common_parameters()
+        self.addOutput(QgsProcessingOutputVectorLayer(self.VOPS, "Visual occlusion points", QgsProcessing.TypeVectorPoint))
+        self.addOutput(QgsProcessingOutputNumber(self.MATCHED, "Matched VOPs"))
+        self.addOutput(QgsProcessingOutputString(self.TRANSFORM, "transform.txt"))
+
+    def processAlgorithm(self, parameters, context, feedback):  # noqa: N802
+        out = self.parameterAsString(parameters, self.OUTPUT, context)
+        job = adapter.PairJob(
+            reference=self.parameterAsFile(parameters, self.REFERENCE, context),
+            moving=self.parameterAsFile(parameters, self.MOVING, context),
+            out_dir=out,
+            vop_radius_m=self._dr(parameters, context),
+        )
+        cli = self._cli(parameters, context)
+        feedback.pushInfo("running: " + " ".join(adapter.build_pair_command(job, cli)))
+        outputs = _run_and_report(lambda p, l, c: adapter.register_pair(job, cli, p, l, c), feedback)
+        if outputs.status != "ok":
+            feedback.reportError(f"registration failed: {outputs.reason}")
+        crs = self.parameterAsCrs(parameters, self.CRS, context)
+        files = adapter.write_layer_files(outputs)
+        stem = f"{Path(job.moving).stem} onto {Path(job.reference).stem}"
+        summary = outputs.summary
+        return {
+            self.OUTPUT: out,
+            self.SCANNERS: _load_point_layer(files["scanners"], f"scanners ({stem})", crs, context, self.SCANNERS, feedback),
+            self.VOPS: _load_point_layer(files["vops"], f"VOPs ({stem})", crs, context, self.VOPS, feedback),
+            self.STATUS: outputs.status,
+            self.REASON: outputs.reason,
+            self.MATCHED: summary.get("matched") or 0,
+            self.TRANSFORM: str(Path(out) / "transform.txt") if outputs.status == "ok" else "",
+        }
+
+
+class RegisterPlotAlgorithm(_Base):
+    SCANS = "SCANS"
+    CENTRE = "CENTRE"
+
+    def name(self):
+        return "register_plot"
+
+    def displayName(self):  # noqa: N802
+        return "Register plot"
+
+    def shortHelpString(self):  # noqa: N802
+        return (
+            "Registers all scans of a plot onto the centre scan (the first one unless given) by running "
+            "'forestreg plot' in a separate process. Writes project.json, poses.json (p_centre = matrix @ p_scan), "
+            "one <scan>.transform.txt per registered scan and report.html into the output folder, and loads the "
+            "scanner positions in the centre scan's coordinates as a point layer."
+        )
+
+    def initAlgorithm(self, config=None):  # noqa: N802
+        self.addParameter(QgsProcessingParameterMultipleLayers(self.SCANS, "Scan files", layerType=QgsProcessing.TypeFile))
+        self.addParameter(QgsProcessingParameterString(self.CENTRE, "Centre scan (file name; empty: the first scan)", optional=True))
+        self.addParameter(QgsProcessingParameterFolderDestination(self.OUTPUT, "Output folder"))
+        self._common_parameters()
+
+    def _scans(self, parameters, context):
+        try:
+            files = self.parameterAsFileList(parameters, self.SCANS, context)
+        except AttributeError:  # pragma: no cover - QGIS < 3.10
+            files = []
+        if not files:
+            value = parameters.get(self.SCANS) or []
+            files = value.split(";") if isinstance(value, str) else [str(v) for v in value]
+        return [f for f in files if f]
+
+    def processAlgorithm(self, parameters, context, feedback):  # noqa: N802
+        out = self.parameterAsString(parameters, self.OUTPUT, context)
+        scans = self._scans(parameters, context)
+        if len(scans) < 2:
+            raise QgsProcessingException("a plot needs at least two scan files")
+        job = adapter.PlotJob(
+            scans=scans, out_dir=out,
+            centre=(self.parameterAsString(parameters, self.CENTRE, context) or "").strip() or None,
+            vop_radius_m=self._dr(parameters, context),
+        )
+        cli = self._cli(parameters, context)
+        feedback.pushInfo("running: " + " ".join(adapter.build_plot_command(job, cli)))
+        outputs = _run_and_report(lambda p, l, c: adapter.register_plot(job, cli, p, l, c), feedback)
+        if outputs.status != "ok":
+            feedback.reportError(f"not every scan was registered: {outputs.reason}")
+        crs = self.parameterAsCrs(parameters, self.CRS, context)
+        files = adapter.write_layer_files(outputs)
+        return {
+            self.OUTPUT: out,
+            self.SCANNERS: _load_point_layer(files["scanners"], f"scanners ({Path(out).name})", crs, context, self.SCANNERS, feedback),
+            self.STATUS: outputs.status,
+            self.REASON: outputs.reason,
+        }
+
+
+class ForestregProvider(QgsProcessingProvider):
+    def id(self):
+        return PROVIDER_ID
+
+    def name(self):
+        return "forestreg"
+
+    def longName(self):  # noqa: N802
+        return "forestreg: marker-free registration of forest laser scans"
+
+    def loadAlgorithms(self):  # noqa: N802
+        self.addAlgorithm(RegisterPairAlgorithm())
+        self.addAlgorithm(RegisterPlotAlgorithm())
