@@ -45,18 +45,26 @@ def four_scan_files(tmp_path_factory, sim_plot):
     return plot, _write_plot(plot, tmp_path_factory.mktemp("four"))
 
 
-def test_four_scan_plot_registers_every_scan_to_truth(four_scan_files, tmp_path):
+@pytest.fixture(scope="module")
+def registered_four(four_scan_files, tmp_path_factory):
+    """The four-scan plot registered once: (project file, outcome). Tests load their own copy."""
     plot, paths = four_scan_files
     project = Project(name="four")
     for p in paths:
         project.add_scan(p)
-    project.save(tmp_path / "project.json")
-    outcome = register_project(project)
+    path = project.save(tmp_path_factory.mktemp("registered") / "project.json")
+    return path, register_project(project)
+
+
+def test_four_scan_plot_registers_every_scan_to_truth(four_scan_files, registered_four):
+    plot, paths = four_scan_files
+    path, outcome = registered_four
+    project = Project.load(path)
     assert outcome.failed == []
     assert [project.link_of(s.name).reference for s in project.scans[1:]] == [paths[0].name] * 3
     _check_poses(project, plot)
     # saved after each link: reopening gives the same poses, and re-running keeps them
-    reopened = Project.load(tmp_path / "project.json")
+    reopened = Project.load(path)
     for name, pose in project.poses().items():
         assert np.allclose(reopened.poses()[name], pose)
     before = {s.name: project.link_of(s.name).result for s in project.scans[1:]}
@@ -120,13 +128,13 @@ def test_interrupted_run_keeps_finished_links(four_scan_files, tmp_path):
     _check_poses(saved, plot)
 
 
-def test_extra_links_close_a_loop_and_the_adjustment_reports_residuals(four_scan_files):
+def test_extra_links_close_a_loop_and_the_adjustment_reports_residuals(four_scan_files, registered_four):
     plot, paths = four_scan_files
-    project = Project()
-    for p in paths:
-        project.add_scan(p)
+    project = Project.load(registered_four[0])
+    project.path = None
     project.add_link(paths[2].name, paths[1].name)
-    register_project(project)
+    register_project(project)  # runs only the new link: the others are done
+    assert sum(link.result is not None for link in project.links) == 4
     adjustment = adjust_poses(project)
     assert adjustment is not None and len(adjustment["links"]) == 4
     for row in adjustment["links"]:
@@ -148,12 +156,9 @@ def test_damaged_or_newer_project_files_are_refused_and_left_alone(tmp_path):
         Project.load(tmp_path / "missing.json")
 
 
-def test_poses_json_layout(four_scan_files, tmp_path):
+def test_poses_json_layout(four_scan_files, registered_four, tmp_path):
     plot, paths = four_scan_files
-    project = Project()
-    for p in paths[:2]:
-        project.add_scan(p)
-    register_project(project)
+    project = Project.load(registered_four[0])
     poses_path = write_poses(project, tmp_path)
     body = json.loads(poses_path.read_text())
     assert body["frame"] == paths[0].name
