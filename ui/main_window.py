@@ -32,6 +32,7 @@ from ..engine.plot import ScanCache
 from ..engine.project import Project
 from .file_actions import FileActionsMixin
 from .log_pane import LogPane
+from .manual_mode import ManualModeMixin
 from .params_panel import ParameterPanel
 from .project_model import ProjectModel
 from .results_tables import LinkResultsTable, ScanPoseTable
@@ -45,7 +46,7 @@ log = logging.getLogger("forestreg")
 
 ORGANISATION = "forestreg"
 APPLICATION = "forestreg"
-class MainWindow(FileActionsMixin, QMainWindow):
+class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
     """forestreg's main window over one project.
 
     ``settings``: where recent files and the window layout are kept (default
@@ -60,6 +61,11 @@ class MainWindow(FileActionsMixin, QMainWindow):
     sceneReady = Signal()
     topViewReady = Signal()
     projectLoaded = Signal()
+    # manual mode (forestreg.ui.manual_mode)
+    targetsChanged = Signal(str)  # scan name
+    reflectorsDetected = Signal(str, int)  # scan name, targets added or renamed
+    comparisonReady = Signal(object)  # the comparison dict
+    comparisonFailed = Signal(str, str)
 
     def __init__(
         self,
@@ -90,6 +96,7 @@ class MainWindow(FileActionsMixin, QMainWindow):
         self._build_actions()
         self._build_menus()
         self._build_status()
+        self._build_manual()
         self.model.projectChanged.connect(self._project_edited)
         self.model.editFailed.connect(lambda text: self.show_error("Cannot link", text))
         self.params_panel.paramsChanged.connect(self._params_edited)
@@ -302,6 +309,7 @@ class MainWindow(FileActionsMixin, QMainWindow):
         self._update_title()
         self._update_actions()
         self.status_label.setText(self.summary())
+        self._manual_refresh()
         self.projectLoaded.emit()
 
     def summary(self) -> str:
@@ -322,6 +330,7 @@ class MainWindow(FileActionsMixin, QMainWindow):
         self._update_actions()
         self.refresh_scene()
         self.refresh_top_view()
+        self._manual_refresh()
 
     def _params_edited(self, params: Any) -> None:
         if params != self.project.params:
@@ -351,6 +360,7 @@ class MainWindow(FileActionsMixin, QMainWindow):
         for act in (self.act_export_poses, self.act_export_merged, self.act_export_e57, self.act_export_report):
             act.setEnabled(not running and registered)
         self.params_panel.setEnabled(not running)
+        self._manual_refresh()
         self.model.editable = not running
         self.tree.setDragEnabled(not running)
 
@@ -559,6 +569,7 @@ class MainWindow(FileActionsMixin, QMainWindow):
             menu.addAction("Remove from project", lambda: self._edit(self.model.remove_scan, name))
         elif link is not None:
             menu.addAction("Forget the result (run it again with Run)", lambda: self._edit(self.model.clear_results, [link.moving]))
+            self._link_method_actions(menu, link)
         else:
             menu.addAction(self.act_add)
             menu.addAction(self.act_run)

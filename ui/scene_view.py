@@ -20,7 +20,7 @@ import sys
 from typing import Any, Optional
 
 import numpy as np
-from PySide6.QtCore import QPoint, QSize, Qt, QTimer
+from PySide6.QtCore import QPoint, QSize, Qt, QTimer, Signal
 from PySide6.QtGui import QGuiApplication, QImage, QMouseEvent, QPixmap, QResizeEvent, QWheelEvent
 from PySide6.QtWidgets import QLabel, QSizePolicy, QVBoxLayout, QWidget
 
@@ -63,10 +63,16 @@ class _ImageLabel(QLabel):
 
     def mousePressEvent(self, event: QMouseEvent) -> None:  # noqa: N802 - Qt API
         self._last = event.position().toPoint()
+        self._press = self._last
         self._button = event.button()
 
     def mouseReleaseEvent(self, event: QMouseEvent) -> None:  # noqa: N802 - Qt API
+        pos = event.position().toPoint()
+        press = getattr(self, "_press", None)
         self._last = None
+        if self.view.pick_mode and press is not None and (pos - press).manhattanLength() <= 3 \
+                and self._button == Qt.MouseButton.LeftButton:
+            self.view.pick_in_image(pos.x(), pos.y(), self.width(), self.height())
 
     def mouseMoveEvent(self, event: QMouseEvent) -> None:  # noqa: N802 - Qt API
         if self._last is None:
@@ -81,7 +87,13 @@ class _ImageLabel(QLabel):
 
 
 class SceneView(QWidget):
-    """Draws a :class:`~forestreg.ui.scene_data.Scene`; ``renderer`` is "interactive" or "image"."""
+    """Draws a :class:`~forestreg.ui.scene_data.Scene`; ``renderer`` is "interactive" or "image".
+
+    In pick mode (:meth:`set_pick_mode`) a left click on a point emits :attr:`pointPicked` with
+    the point in display coordinates (the window maps it to a scan and its file coordinates).
+    """
+
+    pointPicked = Signal(object)  # (3,) display coordinates
 
     def __init__(self, parent: Optional[QWidget] = None, renderer: Optional[str] = None) -> None:
         super().__init__(parent)
@@ -118,7 +130,54 @@ class SceneView(QWidget):
         if self.plotter is not None:
             self.plotter.set_background(BACKGROUND[0], top=BACKGROUND[1])
         self._message_actor = None
+        self.pick_mode = False
         self.show_scene(None)
+
+    # ------------------------------------------------------------------ picking
+
+    def set_pick_mode(self, on: bool) -> None:
+        """Turn point picking on or off (left click on a point emits :attr:`pointPicked`)."""
+        self.pick_mode = bool(on)
+        pl = self.plotter
+        if pl is None or self.renderer != "interactive":
+            return
+        try:
+            if on:
+                pl.enable_point_picking(callback=lambda point, *rest: self._picked(point), use_picker=True,
+                                        show_message="Click a point to place the target", left_clicking=True,
+                                        show_point=True, color="magenta", point_size=14)
+            else:
+                pl.disable_picking()
+        except Exception as exc:  # noqa: BLE001 - picking is optional
+            log.warning("point picking is not available in this 3D view: %s", exc)
+
+    def _picked(self, point: Any) -> None:
+        if point is None:
+            return
+        p = np.asarray(point, dtype=float).reshape(-1)
+        if p.shape == (3,) and np.isfinite(p).all():
+            self.pointPicked.emit(p)
+
+    def pick_in_image(self, x: int, y: int, width: int, height: int) -> None:
+        """Pick at a pixel of the image renderer's label (label coordinates, origin top left)."""
+        pl = self.plotter
+        if pl is None or self.image_label is None or self.image_label.pixmap() is None:
+            return
+        from vtkmodules.vtkRenderingCore import vtkPointPicker
+
+        ww, wh = pl.window_size
+        pix = self.image_label.pixmap()
+        ratio = pix.devicePixelRatio() or 1.0
+        pw, ph = pix.width() / ratio, pix.height() / ratio
+        # the pixmap is centred in the label
+        ox, oy = (width - pw) / 2.0, (height - ph) / 2.0
+        u, v = (x - ox) / max(pw, 1) * ww, (y - oy) / max(ph, 1) * wh
+        if not (0 <= u < ww and 0 <= v < wh):
+            return
+        picker = vtkPointPicker()
+        picker.SetTolerance(0.01)
+        if picker.Pick(u, wh - 1 - v, 0, pl.renderer) and picker.GetPointId() >= 0:
+            self._picked(picker.GetPickPosition())
 
     # ------------------------------------------------------------------ drawing
 
@@ -173,6 +232,26 @@ class SceneView(QWidget):
         pl.view_isometric()
         pl.reset_camera()
         pl.camera.zoom(1.3)
+
+    def show_markers(self, points: Any, *, colour: str = "#e0007a", label: str = "targets") -> None:
+        """Draw the scans' targets (display coordinates, (N, 3)) over the points; empty clears them."""
+        import pyvista as pv
+
+        pl = self.plotter
+        if pl is None:
+            return
+        for name in ("markers", "markers-legend"):
+            try:
+                pl.remove_actor(name, render=False)
+            except Exception:  # noqa: BLE001 - nothing drawn yet
+                pass
+        pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        if len(pts) and self.scene is not None and self.scene.clouds:
+            pl.add_mesh(pv.PolyData(pts), color=colour, point_size=11, style="points", render_points_as_spheres=True,
+                        name="markers", reset_camera=False, pickable=False)
+            pl.add_text(f"\u25cf {len(pts)} {label}", position=(12, 10 + 22 * len(self.scene.clouds)),
+                        font_size=9, color=colour, name="markers-legend")
+        self._update()
 
     def reset_camera(self) -> None:
         """Look at all points obliquely from above (south-west, 35 degrees down)."""
