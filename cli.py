@@ -220,6 +220,11 @@ def _run_project(project, out: Path, args: argparse.Namespace) -> int:
     if getattr(args, "merged", None):
         count = write_merged(project, args.merged, scans)
         print(f"merged {count} points into {args.merged}")
+    if getattr(args, "registered_dir", None):
+        from .engine.plot import write_registered_scans
+
+        count = write_registered_scans(project, args.registered_dir, scans)
+        print(f"wrote {count} registered scans to {args.registered_dir}")
     if getattr(args, "e57_out", None):
         from .engine.plot import write_registered_e57
 
@@ -466,6 +471,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_plot_options(p)
     p.add_argument("--merged", help="also write all registered scans into one LAZ with a scan_id per point")
     p.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
+    p.add_argument("--registered-dir", help="also write each registered scan, in the centre scan's coordinates, as its own LAZ into this folder")
     p.add_argument("--loops", type=float, metavar="M", help="also link registered scans standing within M metres of each other, and adjust all poses globally")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_plot)

@@ -370,3 +370,23 @@ def add_neighbour_links(project: Project, max_distance_m: float) -> list[Link]:
             if np.linalg.norm(poses[a][:2, 3] - poses[b][:2, 3]) <= max_distance_m:
                 added.append(project.add_link(b, a))
     return added
+
+
+def write_registered_scans(project: Project, folder: str | Path, scans: Optional[ScanCache] = None, *, suffix: str = ".laz") -> int:
+    """Write each registered scan, transformed into the centre scan's file coordinates, as its own
+    file ``<folder>/<scan stem>_registered<suffix>``. Returns how many were written."""
+    from .io import write_scan
+
+    scans = scans or ScanCache(project)
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    written = 0
+    poses = project.poses()
+    for s in project.scans:
+        pose = poses.get(s.name)
+        if pose is None:
+            continue
+        stem = Path(s.name).stem if Path(s.name).suffix else s.name
+        write_scan(scans(s.name), out / f"{stem.replace('#', '_')}_registered{suffix}", matrix=pose)
+        written += 1
+    return written

@@ -204,3 +204,16 @@ def test_multi_scan_e57_opens_as_a_project_and_poses_are_written_back(four_scan_
     for k, scan in enumerate(back):
         rot, trans = rigid_errors(np.asarray(scan.pose), plot.relative_pose(0, k))
         assert rot < 0.05 and trans < 0.02
+
+
+def test_registered_scans_are_written_one_file_each_in_the_centre_frame(four_scan_files, registered_four, tmp_path):
+    from forestreg.engine.plot import write_registered_scans
+
+    plot, paths = four_scan_files
+    project = Project.load(registered_four[0])
+    assert write_registered_scans(project, tmp_path) == 4
+    moved = read_scan(tmp_path / f"{paths[2].stem}_registered.laz")
+    original = read_scan(paths[2])
+    truth = plot.relative_pose(0, 2)
+    expected = original.file_points @ truth[:3, :3].T + truth[:3, 3]
+    assert len(moved) == len(original) and np.abs(moved.file_points - expected).max() < 0.03

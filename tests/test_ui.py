@@ -135,6 +135,10 @@ def test_run_fills_the_tables(qtbot, window, project_file: Path, tmp_path: Path)
     assert len(read_scan(out / "merged.laz")) == sum(len(window.scans(s.name)) for s in project.scans)
     assert "scan_03.laz" in (out / "report.html").read_text()
     assert (out / "registered.e57").stat().st_size > 100_000
+    with qtbot.waitSignal(window.tasks.idle, timeout=60_000):
+        window.export_scans(out / "scans")
+    assert window.last_error is None
+    assert sorted(p.name for p in (out / "scans").iterdir()) == [f"scan_0{k}_registered.laz" for k in (1, 2, 3)]
     keep = tmp_path.parent / "registered_ui_plot.json"
     project.save(keep)
     _REGISTERED["project"] = keep

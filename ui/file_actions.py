@@ -171,6 +171,12 @@ class FileActionsMixin:
             self._remember_dir(path)
             self.export_merged(path)
 
+    def _ask_export_scans(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Folder for the registered scans (one LAZ each)", self._last_dir())
+        if folder:
+            self._remember_dir(folder)
+            self.export_scans(folder)
+
     def _ask_export_e57(self) -> None:
         path, _ = QFileDialog.getSaveFileName(self, "Registered scans", str(Path(self._last_dir()) / "registered.e57"), "E57 (*.e57)")
         if path:
@@ -205,6 +211,17 @@ class FileActionsMixin:
             TaskWorker(lambda progress, cancel: write_merged(project, path, scans), name="export merged"),
             succeeded=lambda count: self._exported(f"Wrote {count:,} points to {path}"),
             failed=lambda m, d: self.show_error("Cannot export the merged cloud", m, d),
+        )
+
+    def export_scans(self, folder: str | Path) -> None:
+        """``write_registered_scans`` into ``folder`` (in the background)."""
+        from ..engine.plot import write_registered_scans
+
+        project, scans = self.project, self.scans
+        self._start_task(
+            TaskWorker(lambda progress, cancel: write_registered_scans(project, folder, scans), name="export scans"),
+            succeeded=lambda count: self._exported(f"Wrote {count} registered scans to {folder}"),
+            failed=lambda m, d: self.show_error("Cannot export the registered scans", m, d),
         )
 
     def export_e57(self, path: str | Path) -> None:

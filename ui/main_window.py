@@ -188,6 +188,8 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.act_export_poses = a("Export &transforms and poses\u2026", self._ask_export_poses, QKeySequence("Ctrl+E"),
                                   "Write poses.json and one <scan>.transform.txt per registered scan")
         self.act_export_merged = a("Export &merged LAZ\u2026", self._ask_export_merged, None, "Write all registered scans into one LAZ file")
+        self.act_export_scans = a("Export registered &scans (one LAZ each)\u2026", self._ask_export_scans, None,
+                                  "Write each registered scan in the centre scan's coordinates as its own LAZ file")
         self.act_export_e57 = a("Export registered &E57…", self._ask_export_e57, None,
                                 "Write the registered scans into one E57 file, each with its pose")
         self.act_export_report = a("Export HTML &report\u2026", self._ask_export_report, QKeySequence("Ctrl+Shift+E"),
@@ -225,7 +227,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         m.addSeparator()
         m.addAction(self.act_add)
         m.addSeparator()
-        for act in (self.act_export_poses, self.act_export_merged, self.act_export_e57, self.act_export_report):
+        for act in (self.act_export_poses, self.act_export_merged, self.act_export_scans, self.act_export_e57, self.act_export_report):
             m.addAction(act)
         m.addSeparator()
         m.addAction(self.act_quit)
@@ -357,7 +359,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.act_run.setEnabled(not running and len(self.project.scans) >= 2)
         self.act_rerun.setEnabled(not running and len(self.project.scans) >= 2)
         self.act_cancel.setEnabled(running)
-        for act in (self.act_export_poses, self.act_export_merged, self.act_export_e57, self.act_export_report):
+        for act in (self.act_export_poses, self.act_export_merged, self.act_export_scans, self.act_export_e57, self.act_export_report):
             act.setEnabled(not running and registered)
         self.params_panel.setEnabled(not running)
         self._manual_refresh()
