@@ -30,6 +30,7 @@ from PySide6.QtWidgets import (
 from ..engine.errors import ForestregError
 from ..engine.plot import ScanCache
 from ..engine.project import Project
+from .icons import icon
 from .file_actions import FileActionsMixin
 from .log_pane import LogPane
 from .manual_mode import ManualModeMixin
@@ -243,9 +244,16 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         m = bar.addMenu("&Help")
         m.addAction(self.act_about)
 
+        for act, name in (
+            (self.act_open, "open"), (self.act_save, "save"), (self.act_add, "add"), (self.act_sample, "sample"),
+            (self.act_run, "run"), (self.act_cancel, "cancel"), (self.act_before, "before"), (self.act_after, "after"),
+            (self.act_export_poses, "export"), (self.act_export_report, "report"),
+        ):
+            act.setIcon(icon(name))
+        self.setWindowIcon(icon("forestreg"))
         tb = self.addToolBar("Main")
         tb.setObjectName("toolbar-main")
-        tb.setToolButtonStyle(Qt.ToolButtonStyle.ToolButtonTextOnly)
+        tb.setToolButtonStyle(Qt.ToolButtonStyle.ToolButtonTextBesideIcon)
         for act in (self.act_open, self.act_save, self.act_add, self.act_sample):
             tb.addAction(act)
         tb.addSeparator()
