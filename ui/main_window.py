@@ -380,6 +380,16 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
 
     # ================================================================== running
 
+    def apply_panel_params(self) -> bool:
+        """Put the parameter panel's values into the project; False (and the reason shown) when
+        they are invalid."""
+        try:
+            self.project.params = self.params_panel.params()
+        except ForestregError as exc:
+            self.show_error("Invalid parameters", str(exc))
+            return False
+        return True
+
     def run(self, *, rerun: bool = False) -> bool:
         """Register the project in the background; False when it cannot start (and why is shown)."""
         if self.running:
@@ -387,10 +397,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         if len(self.project.scans) < 2:
             self.show_error("Nothing to register", "Add at least two scans to the project first.")
             return False
-        try:
-            self.project.params = self.params_panel.params()
-        except ForestregError as exc:
-            self.show_error("Invalid parameters", str(exc))
+        if not self.apply_panel_params():
             return False
         worker = RegistrationWorker(self.project, self.scans, rerun=rerun)
         self.run_worker = worker

@@ -443,10 +443,7 @@ class ManualModeMixin:
 
         if self.running or self.tasks.busy("compare") or len(self.project.scans) < 2:
             return False
-        try:
-            self.project.params = self.params_panel.params()
-        except ForestregError as exc:
-            self.show_error("Invalid parameters", str(exc))
+        if not self.apply_panel_params():
             return False
         work = copy.deepcopy(self.project)
         work.path = None  # nothing is saved
