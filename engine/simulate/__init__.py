@@ -19,6 +19,18 @@ Example::
 
 from .from_cloud import estimate_point_spacing, simulate_scan_from_cloud
 from .mesh import Material, SceneMesh, SceneRaycaster, build_scene_mesh, raycaster_for
+from .platforms import (
+    BackpackSetup,
+    CoregistrationCase,
+    SimulatedCloud,
+    UavSetup,
+    backpack_path,
+    canopy_point_density,
+    simulate_backpack_scan,
+    simulate_coregistration_case,
+    simulate_uav_scan,
+    uav_flight_lines,
+)
 from .plot import SimulatedPlot, relative_pose, simulate_plot
 from .scanner import ScannerSetup, SimulatedScan, simulate_tls_scan
 from .scene import (
@@ -36,7 +48,9 @@ from .scene import (
 )
 
 __all__ = [
+    "BackpackSetup",
     "Box",
+    "CoregistrationCase",
     "ForestScene",
     "Liana",
     "Material",
@@ -45,19 +59,27 @@ __all__ = [
     "SceneMesh",
     "SceneRaycaster",
     "ScannerSetup",
+    "SimulatedCloud",
     "Shrub",
     "SimulatedPlot",
     "SimulatedScan",
     "Target",
     "Terrain",
     "Tree",
+    "UavSetup",
+    "backpack_path",
     "build_scene_mesh",
+    "canopy_point_density",
     "estimate_point_spacing",
     "make_scene",
     "make_terrain",
     "raycaster_for",
     "relative_pose",
+    "simulate_backpack_scan",
+    "simulate_coregistration_case",
     "simulate_plot",
     "simulate_scan_from_cloud",
     "simulate_tls_scan",
+    "simulate_uav_scan",
+    "uav_flight_lines",
 ]

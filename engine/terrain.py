@@ -1,0 +1,272 @@
+"""Ground points, a digital elevation model (DEM) and normalised heights, for any platform.
+
+Ground is classified with the cloth simulation filter (CSF, Zhang et al. 2016; the
+``cloth-simulation-filter`` package): a cloth dropped on the upside-down cloud settles on the
+terrain, points within ``class_threshold_m`` of it are ground. It works alike for TLS, backpack,
+handheld and UAV clouds (the UAV sees few ground points under a canopy; the cloth bridges the gaps).
+The DEM is a regular grid (default 0.5 m, the paper's resolution) of the mean ground height per
+cell, holes filled by linear interpolation and, outside the convex hull of the ground, by the
+nearest cell.
+
+All coordinates are metres in the cloud's own (local, z-up) frame.
+
+Example::
+
+    model = terrain_model(points)
+    heights = model.dem.normalise(points)     # height above ground of every point
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Iterator, Optional
+
+import numpy as np
+
+from .errors import ParameterError, ScanDataError
+from .progress import Progress
+
+__all__ = ["Dem", "TerrainModel", "TerrainParams", "build_dem", "classify_ground", "terrain_model"]
+
+
+@dataclass(frozen=True)
+class TerrainParams:
+    """Parameters of ground classification (CSF) and of the DEM."""
+
+    #: cloth grid spacing, metres (CSF's ``cloth_resolution``)
+    cloth_resolution_m: float = field(default=0.5, metadata={"unit": "m", "help": "CSF cloth grid spacing"})
+    #: points closer than this to the settled cloth are ground, metres
+    class_threshold_m: float = field(default=0.3, metadata={"unit": "m", "help": "CSF ground distance"})
+    #: cloth stiffness: 1 steep terrain, 2 relief, 3 flat (CSF's ``rigidness``)
+    rigidness: int = field(default=2, metadata={"unit": "", "help": "CSF rigidness: 1 steep, 2 relief, 3 flat"})
+    #: DEM cell size, metres (paper: 0.5 m)
+    dem_resolution_m: float = field(default=0.5, metadata={"unit": "m", "help": "DEM cell size", "paper": "0.5 m"})
+    #: the cloud is thinned to one point per this voxel before CSF (speed), metres; 0 keeps all
+    thin_voxel_m: float = field(default=0.1, metadata={"unit": "m", "help": "thinning before CSF"})
+
+    def __post_init__(self) -> None:
+        for name in ("cloth_resolution_m", "class_threshold_m", "dem_resolution_m"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ParameterError(f"{name} must be positive, got {v}")
+        if self.rigidness not in (1, 2, 3):
+            raise ParameterError(f"rigidness must be 1, 2 or 3, got {self.rigidness}")
+        if not (self.thin_voxel_m >= 0):
+            raise ParameterError(f"thin_voxel_m must be >= 0, got {self.thin_voxel_m}")
+
+
+@dataclass(frozen=True, eq=False)
+class Dem:
+    """A regular-grid DEM: ``heights[r, c]`` is the ground height (m) at
+    ``(x0 + (c + 0.5) * resolution_m, y0 + (r + 0.5) * resolution_m)`` (cell centres); no NaN."""
+
+    x0: float
+    y0: float
+    resolution_m: float
+    heights: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.heights.shape  # type: ignore[return-value]
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) of the grid, metres."""
+        ny, nx = self.heights.shape
+        return (self.x0, self.x0 + nx * self.resolution_m, self.y0, self.y0 + ny * self.resolution_m)
+
+    def height_at(self, xy: np.ndarray) -> np.ndarray:
+        """Ground height (m) at (N, 2) positions: bilinear between cell centres, clamped outside."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        ny, nx = self.heights.shape
+        fx = np.clip((xy[:, 0] - self.x0) / self.resolution_m - 0.5, 0.0, nx - 1.0)
+        fy = np.clip((xy[:, 1] - self.y0) / self.resolution_m - 0.5, 0.0, ny - 1.0)
+        c0 = np.minimum(np.floor(fx).astype(np.int64), max(nx - 2, 0))
+        r0 = np.minimum(np.floor(fy).astype(np.int64), max(ny - 2, 0))
+        c1 = np.minimum(c0 + 1, nx - 1)
+        r1 = np.minimum(r0 + 1, ny - 1)
+        tx = fx - c0
+        ty = fy - r0
+        h = self.heights
+        return (
+            h[r0, c0] * (1 - tx) * (1 - ty)
+            + h[r0, c1] * tx * (1 - ty)
+            + h[r1, c0] * (1 - tx) * ty
+            + h[r1, c1] * tx * ty
+        )
+
+    def normalise(self, points: np.ndarray) -> np.ndarray:
+        """Height above ground (m) of (N, 3) points."""
+        p = np.asarray(points, dtype=np.float64)
+        return p[:, 2] - self.height_at(p[:, :2])
+
+
+@dataclass(frozen=True, eq=False)
+class TerrainModel:
+    """Ground mask of a cloud (bool per point) and its DEM."""
+
+    ground: np.ndarray
+    dem: Dem
+
+    @property
+    def n_ground(self) -> int:
+        return int(np.count_nonzero(self.ground))
+
+
+def _check_points(points: np.ndarray, what: str = "cloud") -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ScanDataError(f"{what}: expected (N, 3) points, got shape {p.shape}")
+    if len(p) == 0:
+        raise ScanDataError(f"{what} is empty")
+    if not np.isfinite(p).all():
+        raise ScanDataError(f"{what} holds NaN or infinite coordinates")
+    return p
+
+
+@contextmanager
+def _quiet_stdout() -> Iterator[None]:
+    """Silence the C++ library's progress prints on file descriptor 1."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(fd)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), fd)
+        try:
+            yield
+        finally:
+            os.dup2(saved, fd)
+            os.close(saved)
+
+
+def _thin_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Index of one (the first) point per voxel of side ``voxel_m``."""
+    if voxel_m <= 0:
+        return np.arange(len(points))
+    keys = np.floor((points - points.min(axis=0)) / voxel_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def classify_ground(points: np.ndarray, params: TerrainParams = TerrainParams()) -> np.ndarray:
+    """Boolean mask of the ground points of (N, 3) ``points`` (local frame, z up, metres).
+
+    CSF runs on a thinned copy (``thin_voxel_m``); every point within ``class_threshold_m`` (in
+    height) of the DEM built from the thinned ground is then ground.
+
+    Raises
+    ------
+    ScanDataError
+        Empty cloud, NaN coordinates, or no ground found at all.
+    """
+    import CSF
+
+    p = _check_points(points)
+    keep = _thin_indices(p, params.thin_voxel_m)
+    sub = p[keep]
+    shift = sub.mean(axis=0)
+    csf = CSF.CSF()
+    csf.params.bSloopSmooth = True
+    csf.params.cloth_resolution = float(params.cloth_resolution_m)
+    csf.params.rigidness = int(params.rigidness)
+    csf.params.class_threshold = float(params.class_threshold_m)
+    csf.params.time_step = 0.65
+    csf.params.interations = 500
+    ground_idx = CSF.VecInt()
+    other_idx = CSF.VecInt()
+    with _quiet_stdout():
+        csf.setPointCloud(np.ascontiguousarray(sub - shift, dtype=np.float64))
+        csf.do_filtering(ground_idx, other_idx, False)
+    g = np.asarray(ground_idx, dtype=np.int64)
+    if len(g) < 3:
+        raise ScanDataError("no ground found in the cloud (the cloth simulation filter kept < 3 points)")
+    if len(keep) == len(p):
+        mask = np.zeros(len(p), dtype=bool)
+        mask[g] = True
+        return mask
+    dem = build_dem(sub[g], params.dem_resolution_m, extent=_extent(p))
+    return np.abs(dem.normalise(p)) <= params.class_threshold_m
+
+
+def _extent(points: np.ndarray) -> tuple[float, float, float, float]:
+    return (
+        float(points[:, 0].min()),
+        float(points[:, 0].max()),
+        float(points[:, 1].min()),
+        float(points[:, 1].max()),
+    )
+
+
+def build_dem(
+    ground_points: np.ndarray,
+    resolution_m: float = 0.5,
+    extent: Optional[tuple[float, float, float, float]] = None,
+) -> Dem:
+    """A DEM of cell ``resolution_m`` from ground points: the mean height per cell, holes filled
+    linearly inside the ground's convex hull and by the nearest cell outside.
+
+    ``extent`` (xmin, xmax, ymin, ymax) defaults to the ground points' bounding box.
+    """
+    from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+
+    g = _check_points(ground_points, "ground")
+    if not (resolution_m > 0):
+        raise ParameterError(f"DEM resolution must be positive, got {resolution_m}")
+    xmin, xmax, ymin, ymax = extent if extent is not None else _extent(g)
+    nx = max(int(np.ceil((xmax - xmin) / resolution_m)), 1) + 1
+    ny = max(int(np.ceil((ymax - ymin) / resolution_m)), 1) + 1
+    if nx * ny > 50_000_000:
+        raise ParameterError(
+            f"a DEM of {nx} x {ny} cells at {resolution_m} m is too large: check the units or extent"
+        )
+    x0 = xmin - resolution_m / 2.0
+    y0 = ymin - resolution_m / 2.0
+    col = np.clip(((g[:, 0] - x0) / resolution_m).astype(np.int64), 0, nx - 1)
+    row = np.clip(((g[:, 1] - y0) / resolution_m).astype(np.int64), 0, ny - 1)
+    flat = row * nx + col
+    sums = np.bincount(flat, weights=g[:, 2], minlength=nx * ny)
+    counts = np.bincount(flat, minlength=nx * ny)
+    heights = np.full(nx * ny, np.nan)
+    filled = counts > 0
+    heights[filled] = sums[filled] / counts[filled]
+    heights = heights.reshape(ny, nx)
+    holes = np.isnan(heights)
+    if holes.any():
+        rr, cc = np.nonzero(~holes)
+        known = np.column_stack([cc, rr]).astype(np.float64)
+        values = heights[rr, cc]
+        hr, hc = np.nonzero(holes)
+        query = np.column_stack([hc, hr]).astype(np.float64)
+        if len(known) >= 3 and np.linalg.matrix_rank(known - known.mean(axis=0)) == 2:
+            fill = LinearNDInterpolator(known, values)(query)
+        else:
+            fill = np.full(len(query), np.nan)
+        bad = np.isnan(fill)
+        if bad.any():
+            fill[bad] = NearestNDInterpolator(known, values)(query[bad])
+        heights[hr, hc] = fill
+    return Dem(x0=float(x0), y0=float(y0), resolution_m=float(resolution_m), heights=heights)
+
+
+def terrain_model(
+    points: np.ndarray,
+    params: TerrainParams = TerrainParams(),
+    progress: Optional[Progress] = None,
+) -> TerrainModel:
+    """Ground mask and DEM of a cloud (local frame, z up, metres); the DEM covers the cloud's extent."""
+    progress = progress or Progress()
+    p = _check_points(points)
+    progress(0.0, "classifying ground (cloth simulation filter)")
+    mask = classify_ground(p, params)
+    progress(0.7, "building the DEM")
+    dem = build_dem(p[mask], params.dem_resolution_m, extent=_extent(p))
+    progress(1.0, f"{int(mask.sum()):,} ground points, DEM {dem.shape[1]} x {dem.shape[0]} cells")
+    return TerrainModel(ground=mask, dem=dem)
