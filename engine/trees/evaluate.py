@@ -1,0 +1,671 @@
+"""Comparison of estimated tree parameters with field records (paper section 5.2.2, table 3).
+
+Tables of trees (one row per tree: ``tree_id``, position ``x``, ``y`` in the plot frame, metres,
+and any of the parameters in :data:`PARAMETERS`) come from CSV files (:func:`read_tree_table`) or
+from rows in memory (:func:`tree_table_from_rows`, e.g. the tree pipeline's output). Estimated
+trees are paired one-to-one with field trees (:func:`match_trees`: by position, Hungarian
+assignment on the horizontal distance within a gate, or by tree id); :func:`evaluate` then gives,
+per parameter, the paper's figures:
+
+* ``n``: pairs where both values are known;
+* ``R2 = 1 - SS_res / SS_tot``, the coefficient of determination of the estimates as predictions
+  of the field values (``SS_res = sum (est - field)^2``, ``SS_tot = sum (field - mean field)^2``;
+  not the squared correlation of a fitted line: a biased estimate lowers it, and it can be
+  negative when the estimates are worse than the field mean);
+* ``RMSE = sqrt(mean (est - field)^2)`` in the parameter's unit; ``rRMSE = 100 RMSE / mean field``
+  (%); ``bias = mean (est - field)``;
+
+and the detection figures: matched trees, omitted field trees (no estimate), commission
+(estimated trees with no field tree). :func:`write_evaluation` writes CSV, JSON, scatter plots
+and an HTML report for one or several runs side by side (e.g. "ground" against "fused").
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Optional, Sequence, Union
+
+import numpy as np
+
+from ..errors import ForestregError, ParameterError
+
+
+class TreeTableError(ForestregError):
+    """A table of trees cannot be read or holds implausible values (wrong units, duplicates)."""
+
+
+@dataclass(frozen=True)
+class ParameterInfo:
+    """A tree parameter: its column, the paper's symbol, its unit, and the largest plausible value
+    (larger values mean wrong units)."""
+
+    column: str
+    label: str
+    unit: str
+    description: str
+    max_plausible: float
+
+
+#: The parameters compared, in the order of the paper's table 3 (then crown base height).
+PARAMETERS: dict[str, ParameterInfo] = {
+    p.column: p
+    for p in (
+        ParameterInfo("dbh_m", "DBH", "m", "diameter at breast height (1.3 m)", 3.0),
+        ParameterInfo("height_m", "H", "m", "tree height", 130.0),
+        ParameterInfo("volume_m3", "V", "m³", "wood volume (stem and branches)", 500.0),
+        ParameterInfo("crown_area_m2", "CA", "m²", "crown projection area", 3000.0),
+        ParameterInfo("crown_volume_m3", "CV", "m³", "crown volume", 50000.0),
+        ParameterInfo("crown_base_m", "CBH", "m", "crown base height", 130.0),
+    )
+}
+#: Column name aliases accepted in files (lower case, spaces and dashes as underscores).
+_ALIASES = {
+    "id": "tree_id", "tree": "tree_id", "treeid": "tree_id", "tree_no": "tree_id", "tree_number": "tree_id",
+    "x_m": "x", "y_m": "y",
+    "h_m": "height_m", "height": None, "dbh": None,
+    "cbh_m": "crown_base_m", "crown_base_height_m": "crown_base_m",
+    "ca_m2": "crown_area_m2", "cv_m3": "crown_volume_m3", "v_m3": "volume_m3",
+}
+_MISSING = {"", "na", "n/a", "nan", "null", "none", "-", "--", "?"}
+
+
+@dataclass(frozen=True, eq=False)
+class TreeTable:
+    """Trees: ids (str), positions (m, NaN where unknown) and parameter values (NaN = missing).
+
+    ``values`` maps a column of :data:`PARAMETERS` to a float array; ``notes`` records what was
+    done on reading (unit conversions); ``source`` names where the table came from.
+    """
+
+    tree_id: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    values: dict[str, np.ndarray]
+    source: str = ""
+    notes: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.tree_id)
+
+    @property
+    def xy(self) -> np.ndarray:
+        return np.c_[self.x, self.y]
+
+    @property
+    def parameters(self) -> list[str]:
+        """The parameters this table holds, in :data:`PARAMETERS` order."""
+        return [p for p in PARAMETERS if p in self.values]
+
+
+# ------------------------------------------------------------------------------------------------
+# reading
+# ------------------------------------------------------------------------------------------------
+
+
+def read_tree_table(path: Union[str, os.PathLike[str]]) -> TreeTable:
+    """Read a CSV table of trees (comma, semicolon or tab separated, header row first).
+
+    Columns: ``tree_id``, ``x``, ``y`` (metres, the plot frame) and any of ``dbh_m``,
+    ``height_m``, ``crown_base_m``, ``crown_area_m2``, ``crown_volume_m3``, ``volume_m3``; other
+    columns are ignored. Field sheets often give the diameter in centimetres: a ``dbh_cm`` column
+    is converted to metres (and the conversion recorded in ``notes``). Values that cannot be in
+    the stated unit are an error, never silently used: a ``dbh_m`` above 3 m (centimetres?), a
+    ``dbh_cm`` column whose values are all below 2 (metres?), heights above 130 m.
+    Empty cells, ``NA`` and ``-`` are missing values.
+
+    Raises
+    ------
+    TreeTableError
+        The file is missing or unreadable, lacks a required column, has duplicate tree ids,
+        non-numbers, negative or implausible values.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except FileNotFoundError as exc:
+        raise TreeTableError(f"tree table {p} does not exist") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TreeTableError(f"tree table {p} cannot be read: {exc}") from exc
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise TreeTableError(f"tree table {p} is empty")
+    delimiter = max((",", ";", "\t"), key=lambda d: lines[0].count(d))
+    reader = csv.reader(io.StringIO("\n".join(lines)), delimiter=delimiter)
+    rows = list(reader)
+    header = [_normalise_name(h) for h in rows[0]]
+    records = []
+    for number, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise TreeTableError(f"{p}: line {number} has {len(row)} fields, the header {len(header)}")
+        records.append(dict(zip(header, row)))
+    return _table(header, records, str(p))
+
+
+def tree_table_from_rows(rows: Sequence[Mapping[str, Any]], source: str = "rows") -> TreeTable:
+    """A :class:`TreeTable` from rows of dicts (same columns and checks as :func:`read_tree_table`)."""
+    header: list[str] = []
+    records = []
+    for row in rows:
+        rec = {_normalise_name(k): v for k, v in row.items()}
+        for k in rec:
+            if k not in header:
+                header.append(k)
+        records.append(rec)
+    return _table(header, records, source)
+
+
+def as_tree_table(table: Union[TreeTable, str, os.PathLike[str], Sequence[Mapping[str, Any]]]) -> TreeTable:
+    """A :class:`TreeTable` from a table, a CSV path or rows of dicts."""
+    if isinstance(table, TreeTable):
+        return table
+    if isinstance(table, (str, os.PathLike)):
+        return read_tree_table(table)
+    return tree_table_from_rows(table)
+
+
+def _normalise_name(name: Any) -> str:
+    key = re.sub(r"[\s\-]+", "_", str(name).strip().lower())
+    return key
+
+
+def _table(header: Sequence[str], records: Sequence[Mapping[str, Any]], source: str) -> TreeTable:
+    columns = set(header)
+    renamed: dict[str, str] = {}
+    for name in header:
+        if name in _ALIASES:
+            target = _ALIASES[name]
+            if target is None:
+                raise TreeTableError(
+                    f"{source}: column {name!r} has no unit; name it with its unit, e.g. "
+                    + ("dbh_m or dbh_cm" if name in ("dbh", "d") else "height_m")
+                )
+            if target not in columns:
+                renamed[name] = target
+    header = [renamed.get(h, h) for h in header]
+    records = [{renamed.get(k, k): v for k, v in r.items()} for r in records]
+    missing = [c for c in ("tree_id", "x", "y") if c not in header]
+    if missing:
+        raise TreeTableError(f"{source}: missing column(s) {', '.join(missing)}; a tree table needs tree_id, x, y (metres)")
+    if not records:
+        raise TreeTableError(f"{source}: holds no trees")
+    ids = np.array([_id_text(r.get("tree_id")) for r in records], dtype=object)
+    if any(i == "" for i in ids):
+        raise TreeTableError(f"{source}: {sum(i == '' for i in ids)} row(s) have no tree_id")
+    uniq, counts = np.unique(ids.astype(str), return_counts=True)
+    if (counts > 1).any():
+        raise TreeTableError(f"{source}: duplicate tree_id(s) {', '.join(uniq[counts > 1][:5])}")
+    x = _numbers(records, "x", source)
+    y = _numbers(records, "y", source)
+    notes: list[str] = []
+    values: dict[str, np.ndarray] = {}
+    if "dbh_cm" in header and "dbh_m" not in header:
+        cm = _numbers(records, "dbh_cm", source)
+        finite = cm[np.isfinite(cm)]
+        if len(finite) and finite.max() < 2.0:
+            raise TreeTableError(
+                f"{source}: column dbh_cm holds values up to {finite.max():.3g}, which look like metres, not centimetres; "
+                "rename the column dbh_m"
+            )
+        values["dbh_m"] = cm / 100.0
+        notes.append("dbh_cm converted to metres (divided by 100)")
+    for name, info in PARAMETERS.items():
+        if name not in header:
+            continue
+        v = _numbers(records, name, source)
+        finite = v[np.isfinite(v)]
+        if len(finite) and finite.min() < 0:
+            raise TreeTableError(f"{source}: column {name} has negative values (tree {ids[np.nanargmin(v)]})")
+        if len(finite) and finite.max() > info.max_plausible:
+            worst = ids[np.nanargmax(v)]
+            hint = "; they look like centimetres: name the column dbh_cm" if name == "dbh_m" else "; check the unit"
+            raise TreeTableError(
+                f"{source}: column {name} has a value of {finite.max():.4g} {info.unit} (tree {worst}), more than "
+                f"{info.max_plausible:g} {info.unit}{hint}"
+            )
+        values[name] = v
+    return TreeTable(ids, x, y, values, source, tuple(notes))
+
+
+def _id_text(value: Any) -> str:
+    """A tree id as text; whole numbers written as floats (3.0) become "3"."""
+    if value is None:
+        return ""
+    if isinstance(value, (float, np.floating)) and math.isfinite(value) and float(value).is_integer():
+        return str(int(value))
+    return str(value).strip()
+
+
+def _numbers(records: Sequence[Mapping[str, Any]], column: str, source: str) -> np.ndarray:
+    out = np.full(len(records), np.nan)
+    for i, r in enumerate(records):
+        v = r.get(column)
+        if v is None or (isinstance(v, str) and v.strip().lower() in _MISSING):
+            continue
+        try:
+            f = float(v.strip().replace(",", ".") if isinstance(v, str) else v)
+        except (TypeError, ValueError):
+            raise TreeTableError(f"{source}: tree {r.get('tree_id', i + 1)}: {column} = {v!r} is not a number") from None
+        if math.isfinite(f):
+            out[i] = f
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# matching
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class TreeMatch:
+    """One-to-one pairs of estimated and field trees.
+
+    ``estimated_index[k]`` and ``field_index[k]`` index the two tables; ``distance_m[k]`` is
+    their horizontal distance (NaN where a position is unknown). ``omitted``: field trees left
+    without an estimate; ``commission``: estimated trees with no field tree.
+    """
+
+    estimated_index: np.ndarray
+    field_index: np.ndarray
+    distance_m: np.ndarray
+    omitted: np.ndarray
+    commission: np.ndarray
+    by: str
+    max_distance_m: float
+
+    def __len__(self) -> int:
+        return len(self.estimated_index)
+
+
+def match_trees(
+    estimated: Union[TreeTable, Sequence[Mapping[str, Any]]],
+    field_trees: Union[TreeTable, Sequence[Mapping[str, Any]]],
+    max_distance_m: float = 1.0,
+    by: str = "position",
+) -> TreeMatch:
+    """Pair estimated trees with field trees one-to-one.
+
+    ``by="position"``: the assignment with the most pairs within ``max_distance_m`` (horizontal
+    stem distance, metres), and among those the least total distance (Hungarian algorithm, run on
+    each group of trees linked by distances within the gate, so large plots stay quick).
+    ``by="id"``: trees with the same ``tree_id`` (no gate; the distance is reported).
+    """
+    est, fld = as_tree_table(estimated), as_tree_table(field_trees)
+    if by not in ("position", "id"):
+        raise ParameterError(f"match by {by!r} is unknown; use 'position' or 'id'")
+    if not (isinstance(max_distance_m, (int, float)) and math.isfinite(max_distance_m) and max_distance_m > 0):
+        raise ParameterError(f"max_distance_m must be a positive distance in metres, not {max_distance_m!r}")
+    if by == "id":
+        where = {str(t): j for j, t in enumerate(fld.tree_id)}
+        pairs = [(i, where[str(t)]) for i, t in enumerate(est.tree_id) if str(t) in where]
+        ei = np.array([p[0] for p in pairs], dtype=np.int64)
+        fi = np.array([p[1] for p in pairs], dtype=np.int64)
+    else:
+        for table, what in ((est, "estimated"), (fld, "field")):
+            bad = ~(np.isfinite(table.x) & np.isfinite(table.y))
+            if bad.any():
+                raise TreeTableError(
+                    f"{what} trees {', '.join(map(str, table.tree_id[bad][:5]))} have no position; "
+                    "give x and y, or match by id"
+                )
+        ei, fi = _assign_by_position(est.xy, fld.xy, float(max_distance_m))
+    order = np.argsort(fi, kind="stable")
+    ei, fi = ei[order], fi[order]
+    dist = np.hypot(est.x[ei] - fld.x[fi], est.y[ei] - fld.y[fi]) if len(ei) else np.zeros(0)
+    omitted = np.setdiff1d(np.arange(len(fld)), fi)
+    commission = np.setdiff1d(np.arange(len(est)), ei)
+    return TreeMatch(ei, fi, dist, omitted, commission, by, float(max_distance_m))
+
+
+def _assign_by_position(est_xy: np.ndarray, fld_xy: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.optimize import linear_sum_assignment
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    ne, nf = len(est_xy), len(fld_xy)
+    if ne == 0 or nf == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    near = cKDTree(est_xy).sparse_distance_matrix(cKDTree(fld_xy), gate, output_type="ndarray")
+    if len(near) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    ii, jj, dd = near["i"].astype(np.int64), near["j"].astype(np.int64), near["v"]
+    graph = coo_matrix((np.ones(len(ii)), (ii, ne + jj)), shape=(ne + nf, ne + nf))
+    _, label = connected_components(graph, directed=False)
+    out_e, out_f = [], []
+    comp = label[ii]
+    for c in np.unique(comp):
+        sel = comp == c
+        e_ids, e_local = np.unique(ii[sel], return_inverse=True)
+        f_ids, f_local = np.unique(jj[sel], return_inverse=True)
+        # a pair outside the gate costs more than any set of gated pairs: the most pairs first
+        big = gate * (len(e_ids) + len(f_ids) + 1)
+        cost = np.full((len(e_ids), len(f_ids)), big)
+        cost[e_local, f_local] = dd[sel]
+        r, c2 = linear_sum_assignment(cost)
+        ok = cost[r, c2] < big
+        out_e.append(e_ids[r[ok]])
+        out_f.append(f_ids[c2[ok]])
+    return np.concatenate(out_e), np.concatenate(out_f)
+
+
+# ------------------------------------------------------------------------------------------------
+# statistics
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ParameterStats:
+    """Agreement of one parameter over the matched trees (definitions: module docstring).
+
+    ``estimate`` and ``field_value`` are the ``n`` compared values (parameter unit), with the
+    trees' ids in ``estimated_ids`` and ``field_ids``.
+    """
+
+    parameter: str
+    n: int
+    r2: float
+    rmse: float
+    rrmse_percent: float
+    bias: float
+    field_mean: float
+    estimate: np.ndarray
+    field_value: np.ndarray
+    estimated_ids: np.ndarray
+    field_ids: np.ndarray
+
+    @property
+    def info(self) -> ParameterInfo:
+        return PARAMETERS[self.parameter]
+
+    def to_dict(self) -> dict[str, Any]:
+        info = self.info
+        return {
+            "parameter": self.parameter, "label": info.label, "unit": info.unit, "n": self.n,
+            "r2": _json_num(self.r2), "rmse": _json_num(self.rmse), "rrmse_percent": _json_num(self.rrmse_percent),
+            "bias": _json_num(self.bias), "field_mean": _json_num(self.field_mean),
+        }
+
+
+def agreement(estimate: Iterable[float], field_value: Iterable[float]) -> dict[str, float]:
+    """``n``, ``r2``, ``rmse``, ``rrmse_percent``, ``bias`` and ``field_mean`` of estimates
+    against field values (pairs with a missing value are skipped; NaN where undefined: no pairs,
+    R2 with fewer than 2 pairs or no spread in the field values, rRMSE with a zero field mean)."""
+    e = np.asarray(list(estimate) if not isinstance(estimate, np.ndarray) else estimate, dtype=np.float64)
+    f = np.asarray(list(field_value) if not isinstance(field_value, np.ndarray) else field_value, dtype=np.float64)
+    ok = np.isfinite(e) & np.isfinite(f)
+    e, f = e[ok], f[ok]
+    n = len(e)
+    nan = float("nan")
+    if n == 0:
+        return {"n": 0, "r2": nan, "rmse": nan, "rrmse_percent": nan, "bias": nan, "field_mean": nan}
+    diff = e - f
+    rmse = float(np.sqrt(np.mean(diff**2)))
+    mean_f = float(f.mean())
+    ss_tot = float(np.sum((f - mean_f) ** 2))
+    r2 = 1.0 - float(np.sum(diff**2)) / ss_tot if n >= 2 and ss_tot > 0 else nan
+    rrmse = 100.0 * rmse / mean_f if mean_f != 0 else nan
+    return {"n": n, "r2": r2, "rmse": rmse, "rrmse_percent": rrmse, "bias": float(diff.mean()), "field_mean": mean_f}
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Tree detection: matched pairs, omitted field trees, commission (extra estimated trees)."""
+
+    field_trees: int
+    estimated_trees: int
+    matched: int
+    omitted: int
+    commission: int
+
+    @property
+    def omission_rate(self) -> float:
+        """Omitted field trees / field trees."""
+        return self.omitted / self.field_trees if self.field_trees else float("nan")
+
+    @property
+    def commission_rate(self) -> float:
+        """Estimated trees with no field tree / estimated trees."""
+        return self.commission / self.estimated_trees if self.estimated_trees else float("nan")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "field_trees": self.field_trees, "estimated_trees": self.estimated_trees, "matched": self.matched,
+            "omitted": self.omitted, "commission": self.commission,
+            "omission_rate": _json_num(self.omission_rate), "commission_rate": _json_num(self.commission_rate),
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class Evaluation:
+    """The comparison of one set of estimates (a "run", e.g. ground-based or fused) with the field."""
+
+    match: TreeMatch
+    detection: Detection
+    stats: dict[str, ParameterStats]
+    estimated: TreeTable
+    field_table: TreeTable
+
+    def to_dict(self, *, pairs: bool = True) -> dict[str, Any]:
+        """JSON-able figures (and, with ``pairs``, every matched pair with its values)."""
+        out: dict[str, Any] = {
+            "match": {"by": self.match.by, "max_distance_m": self.match.max_distance_m},
+            "detection": self.detection.to_dict(),
+            "parameters": {k: s.to_dict() for k, s in self.stats.items()},
+            "notes": {"estimated": list(self.estimated.notes), "field": list(self.field_table.notes)},
+        }
+        if pairs:
+            out["pairs"] = pair_rows(self)
+            out["omitted_field_trees"] = [str(t) for t in self.field_table.tree_id[self.match.omitted]]
+            out["commission_trees"] = [str(t) for t in self.estimated.tree_id[self.match.commission]]
+        return out
+
+
+def evaluate(
+    estimated: Union[TreeTable, str, os.PathLike[str], Sequence[Mapping[str, Any]]],
+    field_trees: Union[TreeTable, str, os.PathLike[str], Sequence[Mapping[str, Any]]],
+    *,
+    by: str = "position",
+    max_distance_m: float = 1.0,
+    parameters: Optional[Sequence[str]] = None,
+) -> Evaluation:
+    """Match estimated trees to field trees and compute the paper's figures per parameter.
+
+    ``parameters``: which to compare (default: every parameter both tables hold); a requested
+    parameter missing from a table gets ``n = 0``.
+    """
+    est, fld = as_tree_table(estimated), as_tree_table(field_trees)
+    match = match_trees(est, fld, max_distance_m=max_distance_m, by=by)
+    if parameters is None:
+        names = [p for p in PARAMETERS if p in est.values and p in fld.values]
+    else:
+        unknown = [p for p in parameters if p not in PARAMETERS]
+        if unknown:
+            raise ParameterError(f"unknown parameter(s) {', '.join(unknown)}; known: {', '.join(PARAMETERS)}")
+        names = list(parameters)
+    stats: dict[str, ParameterStats] = {}
+    for name in names:
+        e_all = est.values.get(name, np.full(len(est), np.nan))[match.estimated_index]
+        f_all = fld.values.get(name, np.full(len(fld), np.nan))[match.field_index]
+        ok = np.isfinite(e_all) & np.isfinite(f_all)
+        fig = agreement(e_all, f_all)
+        stats[name] = ParameterStats(
+            name, int(fig["n"]), fig["r2"], fig["rmse"], fig["rrmse_percent"], fig["bias"], fig["field_mean"],
+            e_all[ok], f_all[ok], est.tree_id[match.estimated_index][ok], fld.tree_id[match.field_index][ok],
+        )
+    detection = Detection(len(fld), len(est), len(match), len(match.omitted), len(match.commission))
+    return Evaluation(match, detection, stats, est, fld)
+
+
+def pair_rows(evaluation: Evaluation) -> list[dict[str, Any]]:
+    """One dict per matched pair: ids, distance and each parameter's estimate and field value."""
+    m, est, fld = evaluation.match, evaluation.estimated, evaluation.field_table
+    rows = []
+    for e, f, d in zip(m.estimated_index, m.field_index, m.distance_m):
+        row: dict[str, Any] = {"field_id": str(fld.tree_id[f]), "estimated_id": str(est.tree_id[e]), "distance_m": _json_num(d)}
+        for name in evaluation.stats:
+            row[f"{name}_estimated"] = _json_num(est.values[name][e]) if name in est.values else None
+            row[f"{name}_field"] = _json_num(fld.values[name][f]) if name in fld.values else None
+        rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------------------------------
+# writing
+# ------------------------------------------------------------------------------------------------
+
+#: The figures of the wide table (paper table 3 layout), each with its runs side by side.
+TABLE_METRICS = ("n", "r2", "rmse", "rrmse_percent", "bias")
+
+
+def write_evaluation(
+    out_dir: Union[str, os.PathLike[str]],
+    runs: Mapping[str, Evaluation],
+    *,
+    title: Optional[str] = None,
+) -> dict[str, Path]:
+    """Write the evaluation of one or several runs into ``out_dir`` (created if missing).
+
+    Files (each written atomically):
+
+    * ``evaluation.csv``: one row per parameter; per figure (n, r2, rmse, rrmse_percent, bias)
+      one column per run, side by side as in the paper's table 3 (``r2_ground, r2_fused, ...``);
+      RMSE and bias in the parameter's unit (metres, m², m³);
+    * ``detection.csv``: one row per run: field trees, estimated trees, matched, omitted,
+      commission and the two rates;
+    * ``matches_<run>.csv``: the pairs of each run with both values of every parameter;
+    * ``evaluation.json``: all of it;
+    * ``figures/scatter_<parameter>.png``: estimate against field value, one colour per run,
+      with the 1:1 line;
+    * ``report.html``: a self-contained report (:mod:`forestreg.engine.report.evaluation_report`).
+
+    Returns the paths by name ("csv", "detection", "json", "html", "scatter_<parameter>",
+    "matches_<run>").
+    """
+    from ..atomic import atomic_path, write_text_atomic
+    from ..report.evaluation_report import scatter_png, write_evaluation_report
+
+    if not runs:
+        raise ParameterError("no runs to write: give at least one evaluation")
+    names = [str(n) for n in runs]
+    if any(not n.strip() for n in names):
+        raise ParameterError("run names must not be empty")
+    stems = [_file_stem(n) for n in names]
+    if len(set(stems)) != len(stems):
+        raise ParameterError(f"run names {names} are not distinct as file names")
+    out = Path(out_dir)
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    params = _run_parameters(runs)
+    paths: dict[str, Path] = {}
+
+    paths["csv"] = out / "evaluation.csv"
+    write_text_atomic(paths["csv"], _csv_text(_wide_rows(runs, params)))
+    paths["detection"] = out / "detection.csv"
+    det_rows = [{"run": name, **ev.detection.to_dict()} for name, ev in runs.items()]
+    write_text_atomic(paths["detection"], _csv_text(det_rows))
+    for (name, ev), stem in zip(runs.items(), stems):
+        key = f"matches_{stem}"
+        paths[key] = out / f"{key}.csv"
+        write_text_atomic(paths[key], _csv_text(pair_rows(ev), empty_header=["field_id", "estimated_id", "distance_m"]))
+    doc = {
+        "definitions": {
+            "r2": "1 - SS_res/SS_tot, SS_res = sum (estimate - field)^2, SS_tot = sum (field - mean field)^2",
+            "rmse": "sqrt(mean (estimate - field)^2), in the parameter's unit",
+            "rrmse_percent": "100 * RMSE / mean field value",
+            "bias": "mean (estimate - field)",
+            "omitted": "field trees with no estimated tree",
+            "commission": "estimated trees with no field tree",
+        },
+        "units": {p: PARAMETERS[p].unit for p in params},
+        "runs": {name: ev.to_dict() for name, ev in runs.items()},
+    }
+    paths["json"] = out / "evaluation.json"
+    write_text_atomic(paths["json"], json.dumps(doc, indent=2, ensure_ascii=False) + "\n")
+    figures: dict[str, bytes] = {}
+    for p in params:
+        png = scatter_png(runs, p)
+        if png is None:
+            continue
+        figures[p] = png
+        key = f"scatter_{p}"
+        paths[key] = out / "figures" / f"{key}.png"
+        with atomic_path(paths[key]) as tmp:
+            tmp.write_bytes(png)
+    paths["html"] = out / "report.html"
+    write_evaluation_report(paths["html"], runs, title=title, figures=figures)
+    return paths
+
+
+def _run_parameters(runs: Mapping[str, Evaluation]) -> list[str]:
+    present = {p for ev in runs.values() for p in ev.stats}
+    return [p for p in PARAMETERS if p in present]
+
+
+def _wide_rows(runs: Mapping[str, Evaluation], params: Sequence[str]) -> list[dict[str, Any]]:
+    rows = []
+    for p in params:
+        info = PARAMETERS[p]
+        row: dict[str, Any] = {"parameter": p, "label": info.label, "unit": info.unit}
+        for metric in TABLE_METRICS:
+            for name, ev in runs.items():
+                s = ev.stats.get(p)
+                row[f"{metric}_{name}"] = (s.n if metric == "n" else getattr(s, metric)) if s is not None else None
+        rows.append(row)
+    return rows
+
+
+def _csv_text(rows: Sequence[Mapping[str, Any]], empty_header: Optional[Sequence[str]] = None) -> str:
+    buf = io.StringIO()
+    header = list(rows[0].keys()) if rows else list(empty_header or [])
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(header)
+    for r in rows:
+        writer.writerow([_csv_cell(r.get(h)) for h in header])
+    return buf.getvalue()
+
+
+def _csv_cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, (float, np.floating)):
+        return "" if not math.isfinite(float(value)) else f"{float(value):.6g}"
+    if isinstance(value, (np.integer,)):
+        return str(int(value))
+    return str(value)
+
+
+def _json_num(value: Any) -> Optional[float]:
+    if value is None:
+        return None
+    v = float(value)
+    return v if math.isfinite(v) else None
+
+
+def _file_stem(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name.strip()) or "run"
+
+
+__all__ = [
+    "PARAMETERS",
+    "ParameterInfo",
+    "TreeTable",
+    "TreeTableError",
+    "TreeMatch",
+    "ParameterStats",
+    "Detection",
+    "Evaluation",
+    "read_tree_table",
+    "tree_table_from_rows",
+    "as_tree_table",
+    "match_trees",
+    "agreement",
+    "evaluate",
+    "pair_rows",
+    "write_evaluation",
+]
