@@ -13,6 +13,11 @@ Python API (headless)::
         print(result.matrix)      # p_reference = matrix @ p_moving, file coordinates
     else:
         print(result.reason)
+
+    # System B: a ground-based cloud onto a UAV cloud of the same plot
+    ground = forestreg.read_scan("backpack.laz")
+    uav = forestreg.read_scan("uav.laz")
+    result = forestreg.coregister(ground, uav)   # p_uav = result.matrix @ p_ground
 """
 
 from __future__ import annotations
@@ -30,6 +35,10 @@ _LAZY = {
     "read_scan": ".engine.io",
     "read_scans": ".engine.io",
     "write_scan": ".engine.io",
+    "register": ".engine.register",
+    "coregister": ".engine.canopy.coregister",
+    "CoregistrationParams": ".engine.canopy.coregister",
+    "terrain_model": ".engine.terrain",
 }
 
 

@@ -156,6 +156,149 @@ def cmd_register(args: argparse.Namespace) -> int:
     return 1
 
 
+def _write_keypoints_csv(path: Path, keypoints, local_to_file: np.ndarray, matched_with: np.ndarray) -> None:
+    """Keypoints in file coordinates: id, x, y, z (on the DEM), peak_z, cluster_size, matched_with."""
+    from .engine.atomic import write_text_atomic
+
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["id", "x", "y", "z", "peak_z", "cluster_size", "matched_with"])
+    xyz = keypoints.xyz @ local_to_file[:3, :3].T + local_to_file[:3, 3]
+    peak = keypoints.peak_z + local_to_file[2, 3]
+    for i, (p, z, n, m) in enumerate(zip(xyz, peak, keypoints.cluster_sizes, matched_with)):
+        w.writerow([i, f"{p[0]:.3f}", f"{p[1]:.3f}", f"{p[2]:.3f}", f"{z:.3f}", int(n), int(m)])
+    write_text_atomic(path, buf.getvalue())
+
+
+def cmd_coregister(args: argparse.Namespace) -> int:
+    """Co-register a ground-based cloud onto a UAV cloud by canopy keypoints (System B)."""
+    from .engine.atomic import write_text_atomic
+    from .engine.canopy.coregister import coregister
+    from .engine.io import read_scan
+    from .engine.report.coregistration_report import write_coregistration_report
+    from .engine.transform import format_matrix
+
+    scale = UNITS[args.units]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    ground = read_scan(args.ground, unit_scale=scale)
+    uav = read_scan(args.uav, unit_scale=scale)
+    read_s = time.perf_counter() - t0
+    params = _coregistration_params(args)
+    bar = ProgressBar(not args.quiet, "coregister")
+    try:
+        result = coregister(ground, uav, params, progress=bar)
+    finally:
+        bar.close()
+    summary = result.to_dict()
+    summary["timings"] = {"read_s": read_s, **summary["timings"]}
+    summary["ground_file"] = str(Path(args.ground).resolve())
+    summary["uav_file"] = str(Path(args.uav).resolve())
+    summary["distance_threshold_m"] = params.matching.distance_threshold_m
+    pairs = result.matched_after_icp if result.matched_after_icp is not None else (
+        result.match.pairs if result.match is not None else np.zeros((0, 2), dtype=int))
+    for scan, kp, column, other, name in (
+        (ground, result.ground_keypoints, 0, 1, "keypoints_ground.csv"),
+        (uav, result.uav_keypoints, 1, 0, "keypoints_uav.csv"),
+    ):
+        if kp is None:
+            continue
+        matched = np.full(len(kp), -1)
+        if len(pairs):
+            matched[pairs[:, column]] = pairs[:, other]
+        _write_keypoints_csv(out / name, kp, scan.local_to_file_matrix(), matched)
+    if result.ground_keypoints is not None:
+        try:
+            write_coregistration_report(result, out, ground.points, uav.points)
+        except Exception as exc:  # a figure must never lose the result
+            log.warning("could not draw the figure: %s", exc)
+    if result.ok:
+        write_text_atomic(out / "transform.txt", format_matrix(result.matrix))
+    write_text_atomic(out / "result.json", json.dumps(summary, indent=2) + "\n")
+    if result.ok:
+        icp = result.icp
+        print(
+            f"ok: {result.n_matched} keypoints matched ({result.matching_percentage:.0f} % of "
+            f"{len(result.ground_keypoints)} / {len(result.uav_keypoints)}), mean residual "
+            f"{100 * summary['residuals_m']['mean']:.1f} cm, ICP fitness {icp.fitness:.2f} -> {out / 'result.json'}"
+        )
+        return 0
+    print(f"failed: {result.reason} -> {out / 'result.json'}", file=sys.stderr)
+    return 1
+
+
+def _coregistration_params(args: argparse.Namespace):
+    """Co-registration parameters from the defaults, an optional TOML file and options."""
+    import dataclasses
+
+    from .engine.canopy.coregister import CoregistrationParams
+    from .engine.canopy.keypoints import KeypointParams
+    from .engine.canopy.matching import MatchingParams
+
+    kp: dict = {}
+    mt: dict = {}
+    if args.min_cluster_size is not None:
+        kp["min_cluster_size"] = args.min_cluster_size
+    if args.voxel is not None:
+        kp["voxel_m"] = args.voxel
+    if args.distance_threshold is not None:
+        mt["distance_threshold_m"] = args.distance_threshold
+    return CoregistrationParams(
+        keypoints=dataclasses.replace(KeypointParams(), **kp), matching=dataclasses.replace(MatchingParams(), **mt)
+    )
+
+
+def _read_matrix(path: str) -> np.ndarray:
+    """A 4x4 matrix from a text file (16 numbers, row by row), or result.json's ``matrix``."""
+    from .engine.errors import ParameterError
+
+    text = Path(path).read_text()
+    try:
+        if text.lstrip().startswith("{"):
+            m = json.loads(text).get("matrix")
+            if m is None:
+                raise ParameterError(f"{path}: the result holds no matrix (the co-registration failed)")
+            matrix = np.asarray(m, dtype=np.float64)
+        else:
+            matrix = np.asarray(text.split(), dtype=np.float64).reshape(4, 4)
+    except (ValueError, json.JSONDecodeError) as exc:
+        raise ParameterError(f"{path}: not a 4x4 matrix ({exc})") from exc
+    if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+        raise ParameterError(f"{path}: not a finite 4x4 matrix")
+    r = matrix[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or not np.allclose(matrix[3], [0, 0, 0, 1]):
+        raise ParameterError(f"{path}: not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
+    return matrix
+
+
+def cmd_fuse(args: argparse.Namespace) -> int:
+    """Fuse a ground-based and a UAV cloud (redundancy and noise removal) into one labelled cloud."""
+    from .engine.fusion import FusionParams, fuse_scans, write_fused
+    from .engine.io import read_scan
+
+    scale = UNITS[args.units]
+    matrix = _read_matrix(args.transform) if args.transform else np.eye(4)
+    ground = read_scan(args.ground, unit_scale=scale)
+    uav = read_scan(args.uav, unit_scale=scale)
+    kw = {}
+    if args.epsilon is not None:
+        kw["redundancy_distance_m"] = args.epsilon
+    if args.cube is not None:
+        kw["cube_side_m"] = args.cube
+    params = FusionParams(**kw)
+    bar = ProgressBar(not args.quiet, "fuse")
+    try:
+        result = fuse_scans(ground, uav, matrix, params, progress=bar)
+    finally:
+        bar.close()
+    write_fused(args.out, result, origin_shift=uav.origin_shift)
+    for source, c in result.counts.items():
+        print(f"{source}: {c['input']:,} in, {c['redundant']:,} redundant, {c['noise']:,} noise, {c['kept']:,} kept")
+    print(f"wrote {len(result.points):,} points to {args.out}")
+    return 0
+
+
 def _project_from_args(args: argparse.Namespace):
     """A new project from the scans, centre, tilted marks, targets and parameters on the command line."""
     from .engine.project import Project
@@ -515,6 +658,28 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=cmd_project)
+
+    p = sub.add_parser("coregister", help="co-register a ground-based cloud onto a UAV cloud by canopy keypoints")
+    p.add_argument("ground", help="ground-based cloud (merged TLS, backpack or handheld; LAS/LAZ/PLY/E57/...)")
+    p.add_argument("uav", help="UAV LiDAR cloud of the same plot (the reference frame)")
+    p.add_argument("--out", required=True, help="output folder (result.json, transform.txt, keypoints CSV, report)")
+    p.add_argument("--min-cluster-size", type=int, help="HDBSCAN MinClusterSize (default: from the point density)")
+    p.add_argument("--voxel", type=float, help="thinning voxel before clustering, m (default 0.3)")
+    p.add_argument("--distance-threshold", type=float, help="D_thr for matched keypoints, m (default 1)")
+    p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_coregister)
+
+    p = sub.add_parser("fuse", help="fuse co-registered ground-based and UAV clouds (redundancy + noise removal)")
+    p.add_argument("ground", help="ground-based cloud")
+    p.add_argument("uav", help="UAV cloud (the output frame)")
+    p.add_argument("--transform", help="transform.txt or result.json of `coregister` (p_uav = M @ p_ground); default identity")
+    p.add_argument("--out", required=True, help="fused cloud (.laz/.las) with a per-point source label")
+    p.add_argument("--epsilon", type=float, help="redundancy distance, m")
+    p.add_argument("--cube", type=float, help="cube side of the redundancy search, m")
+    p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_fuse)
 
     p = sub.add_parser("simulate", help="simulate TLS scans of a synthetic forest plot with known poses")
     p.add_argument("preset", help="planted_conifer, mixed_temperate, rainforest, sloped or open_field")

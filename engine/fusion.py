@@ -29,7 +29,7 @@ import math
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Any, Iterator, Mapping, Optional
+from typing import TYPE_CHECKING, Any, Iterator, Mapping, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -38,6 +38,9 @@ from scipy.special import ndtr
 from .atomic import atomic_path
 from .errors import ParameterError, ScanDataError, ScanWriteError
 from .progress import Progress, ProgressCallback
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .scan import Scan
 
 #: Source label of a ground-based point (backpack, handheld, TLS).
 GROUND = 1
@@ -561,6 +564,30 @@ def _check_extra(extra: Optional[Mapping[str, np.ndarray]], n: int, what: str) -
 # ------------------------------------------------------------------------------------------------
 
 
+def fuse_scans(
+    ground: "Scan",
+    uav: "Scan",
+    matrix: np.ndarray,
+    params: FusionParams = FusionParams(),
+    *,
+    progress: Optional[ProgressCallback | Progress] = None,
+) -> FusionResult:
+    """Fuse a ground-based scan into a UAV scan's frame: ``p_uav = matrix @ p_ground`` in *file*
+    coordinates (as written by ``forestreg coregister``). The result's points are in the UAV
+    scan's local frame; write them with ``write_fused(path, result, origin_shift=uav.origin_shift)``.
+    Intensities are carried along when both scans have them."""
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise ParameterError("the transform must be a finite 4x4 matrix")
+    # ground local -> ground file -> UAV file -> UAV local
+    local = m.copy()
+    local[:3, 3] = m[:3, :3] @ np.asarray(ground.origin_shift, dtype=np.float64) + m[:3, 3] - np.asarray(uav.origin_shift, dtype=np.float64)
+    g = ground.points @ local[:3, :3].T + local[:3, 3]
+    g_extra = {"intensity": ground.intensity} if ground.intensity is not None and uav.intensity is not None else None
+    u_extra = {"intensity": uav.intensity} if g_extra is not None else None
+    return fuse(g, uav.points, params, ground_extra=g_extra, uav_extra=u_extra, progress=progress)
+
+
 def write_fused(
     path: str | os.PathLike[str],
     result: FusionResult,
@@ -626,5 +653,6 @@ __all__ = [
     "remove_redundancy",
     "statistical_noise",
     "fuse",
+    "fuse_scans",
     "write_fused",
 ]

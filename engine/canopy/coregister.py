@@ -1,0 +1,352 @@
+"""Ground-based / UAV co-registration pipeline (paper section 4.1): DEMs, canopy keypoints,
+matching, a 6-DoF rigid transform, then ICP, with the evidence and an honest status.
+
+``p_uav = matrix @ p_ground`` (homogeneous column vectors) in the two inputs' *file* frames; the
+work runs in each scan's local frame (large georeferenced coordinates shifted) and the shifts are
+folded into the final matrix.
+
+Failure (``status == "failed"``, with a ``reason``) when: either cloud has too little canopy for
+keypoints; fewer than ``min_matched`` keypoints match; the matching percentage is below
+``min_matching_percentage``; the clouds do not support the solution (too few ground-based points
+land near a UAV point) or a distinct alternative is supported almost as well (a repetitive
+plantation); ICP moves far from the keypoint solution or ends with too few correspondences.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import ParameterError
+from ..match.icp import IcpResult, icp, thin
+from ..progress import Progress, ProgressCallback
+from ..scan import Scan
+from ..terrain import TerrainModel, TerrainParams, terrain_model
+from ..transform import rotation_angle_deg
+from .keypoints import KeypointParams, Keypoints, extract_keypoints
+from .matching import KeypointMatch, MatchingParams, assign_one_to_one, match_keypoints, residual_statistics
+
+__all__ = ["CoregistrationParams", "CoregistrationResult", "coregister", "coregister_points"]
+
+
+@dataclass(frozen=True)
+class CoregistrationParams:
+    """All parameters of the co-registration (defaults: the paper's where it gives them)."""
+
+    terrain: TerrainParams = TerrainParams()
+    keypoints: KeypointParams = KeypointParams()
+    matching: MatchingParams = MatchingParams()
+    #: voxel of the clouds used to verify solutions and for ICP (m)
+    icp_voxel_m: float = field(default=0.1, metadata={"unit": "m", "help": "ICP thinning voxel"})
+    #: ICP correspondence distance per stage (m), largest first
+    icp_distances_m: tuple[float, ...] = field(default=(1.0, 0.5, 0.25, 0.12), metadata={"unit": "m", "help": "ICP stages"})
+    icp_iterations: int = field(default=40, metadata={"unit": "", "help": "ICP iterations per stage"})
+    #: fewer matched keypoints than this fail
+    min_matched: int = field(default=4, metadata={"unit": "", "help": "fewest matched keypoints"})
+    #: a lower matching percentage fails (%)
+    min_matching_percentage: float = field(default=15.0, metadata={"unit": "%", "help": "lowest matching percentage"})
+    #: verification: ground-based canopy points within this distance of a UAV point support a
+    #: solution (m); the ``n_verified`` best supported keypoint solutions get a quick ICP and are
+    #: ranked by their support after it
+    support_distance_m: float = field(default=0.5, metadata={"unit": "m", "help": "support distance"})
+    n_verified: int = field(default=4, metadata={"unit": "", "help": "candidates verified by a quick ICP"})
+    #: only ground-based points this high above their DEM verify a solution (m)
+    support_min_height_m: float = field(default=2.0, metadata={"unit": "m", "help": "lowest support point"})
+    #: a solution supported by fewer ground-based points than this fraction fails
+    min_support: float = field(default=0.55, metadata={"unit": "", "help": "lowest support fraction"})
+    #: the best distinct alternative may reach at most this fraction of the best support
+    max_alternative_support_ratio: float = field(default=0.85, metadata={"unit": "", "help": "ambiguity ratio"})
+    #: ICP may move the keypoint solution at most this far (m, deg)
+    max_icp_shift_m: float = field(default=2.0, metadata={"unit": "m", "help": "largest ICP correction"})
+    max_icp_rotation_deg: float = field(default=3.0, metadata={"unit": "deg", "help": "largest ICP rotation"})
+    #: at most this many ground-based points verify a solution (a fixed random subset)
+    max_support_points: int = 40_000
+
+    def __post_init__(self) -> None:
+        if not self.icp_distances_m or any(d <= 0 for d in self.icp_distances_m):
+            raise ParameterError("icp_distances_m must be positive distances")
+        if self.min_matched < 3:
+            raise ParameterError("min_matched must be >= 3 (a rigid transform needs 3 points)")
+
+
+@dataclass(frozen=True, eq=False)
+class CoregistrationResult:
+    """Outcome of one co-registration; see :meth:`to_dict` for ``result.json``.
+
+    ``matrix`` maps ground-based file coordinates to UAV file coordinates; ``local_matrix`` the
+    same between the scans' local frames (``Scan.points``). ``status`` is "ok" or "failed"; a
+    failed result still carries the best solution found (``matrix`` may be None).
+    """
+
+    status: str
+    reason: str
+    matrix: Optional[np.ndarray]
+    local_matrix: Optional[np.ndarray]
+    keypoint_matrix: Optional[np.ndarray]
+    ground_keypoints: Optional[Keypoints]
+    uav_keypoints: Optional[Keypoints]
+    match: Optional[KeypointMatch]
+    matched_after_icp: Optional[np.ndarray]
+    residuals_after_icp_m: Optional[np.ndarray]
+    icp: Optional[IcpResult]
+    support: float
+    alternative_support: float
+    timings: dict[str, float]
+    ground_name: str = "ground"
+    uav_name: str = "uav"
+    ground_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    uav_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def n_matched(self) -> int:
+        return 0 if self.match is None else self.match.n_matched
+
+    @property
+    def matching_percentage(self) -> float:
+        """Matched keypoints / min(#ground, #UAV keypoints), percent (paper's figure)."""
+        if self.ground_keypoints is None or self.uav_keypoints is None:
+            return 0.0
+        n = min(len(self.ground_keypoints), len(self.uav_keypoints))
+        return 100.0 * self.n_matched / n if n else 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        def mat(m: Optional[np.ndarray]) -> Optional[list[list[float]]]:
+            return None if m is None else [[float(v) for v in row] for row in m]
+
+        heading = None
+        if self.matrix is not None:
+            heading = math.degrees(math.atan2(self.matrix[1, 0], self.matrix[0, 0]))
+        return {
+            "format": "forestreg-coregistration",
+            "version": 1,
+            "status": self.status,
+            "reason": self.reason,
+            "ground": self.ground_name,
+            "uav": self.uav_name,
+            "convention": "p_uav = matrix @ p_ground (file coordinates, homogeneous column vectors)",
+            "matrix": mat(self.matrix),
+            "keypoint_matrix": mat(self._file_matrix(self.keypoint_matrix)),
+            "heading_deg": heading,
+            "keypoints": {
+                "ground": 0 if self.ground_keypoints is None else len(self.ground_keypoints),
+                "uav": 0 if self.uav_keypoints is None else len(self.uav_keypoints),
+            },
+            "matched": self.n_matched,
+            "matching_percentage": self.matching_percentage,
+            "distance_threshold_m": None,
+            "residuals_m": residual_statistics(self.match.residuals_m if self.match is not None else np.zeros(0)),
+            "residuals_after_icp_m": residual_statistics(
+                self.residuals_after_icp_m if self.residuals_after_icp_m is not None else np.zeros(0)
+            ),
+            "matched_after_icp": 0 if self.matched_after_icp is None else int(len(self.matched_after_icp)),
+            "support": self.support,
+            "alternative_support": self.alternative_support,
+            "icp": None if self.icp is None else self.icp.to_dict(),
+            "timings": dict(self.timings),
+        }
+
+    def _file_matrix(self, local: Optional[np.ndarray]) -> Optional[np.ndarray]:
+        if local is None:
+            return None
+        return _shift_matrix(self.uav_shift) @ local @ _shift_matrix(-self.ground_shift)
+
+
+def as_progress(progress: Optional[Progress | ProgressCallback]) -> Progress:
+    """A :class:`Progress` from a Progress, a plain ``callback(fraction, message)`` or None."""
+    if isinstance(progress, Progress):
+        return progress
+    return Progress(progress)
+
+
+def _shift_matrix(shift: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, 3] = shift
+    return m
+
+
+def _support(ground_sample: np.ndarray, uav_tree: cKDTree, matrix: np.ndarray, distance_m: float) -> float:
+    moved = ground_sample @ matrix[:3, :3].T + matrix[:3, 3]
+    d, _ = uav_tree.query(moved, k=1, distance_upper_bound=distance_m, workers=-1)
+    return float(np.mean(np.isfinite(d)))
+
+
+def coregister_points(
+    ground: np.ndarray,
+    uav: np.ndarray,
+    params: CoregistrationParams = CoregistrationParams(),
+    progress: Optional[Progress | ProgressCallback] = None,
+    *,
+    ground_terrain: Optional[TerrainModel] = None,
+    uav_terrain: Optional[TerrainModel] = None,
+) -> CoregistrationResult:
+    """Co-register two clouds given as (N, 3) arrays in local frames (metres, z up):
+    ``p_uav = local_matrix @ p_ground``. See :func:`coregister` for scans with file frames."""
+    from ..errors import ScanDataError
+
+    progress = as_progress(progress)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    def failed(reason: str, **kw: Any) -> CoregistrationResult:
+        timings["total_s"] = time.perf_counter() - t0
+        base: dict[str, Any] = dict(
+            matrix=None, local_matrix=None, keypoint_matrix=None, ground_keypoints=None, uav_keypoints=None,
+            match=None, matched_after_icp=None, residuals_after_icp_m=None, icp=None, support=0.0,
+            alternative_support=0.0, timings=timings,
+        )
+        base.update(kw)
+        return CoregistrationResult(status="failed", reason=reason, **base)
+
+    # 1. terrain
+    t = time.perf_counter()
+    progress(0.0, "ground and DEM of the ground-based cloud")
+    g_terrain = ground_terrain or terrain_model(ground, params.terrain, progress.sub(0.0, 0.12))
+    progress(0.12, "ground and DEM of the UAV cloud")
+    u_terrain = uav_terrain or terrain_model(uav, params.terrain, progress.sub(0.12, 0.22))
+    timings["terrain_s"] = time.perf_counter() - t
+
+    # 2. keypoints
+    t = time.perf_counter()
+    try:
+        g_kp = extract_keypoints(ground, g_terrain.dem, params.keypoints, progress.sub(0.22, 0.42))
+    except ScanDataError as exc:
+        return failed(f"ground-based cloud: {exc}")
+    try:
+        u_kp = extract_keypoints(uav, u_terrain.dem, params.keypoints, progress.sub(0.42, 0.62))
+    except ScanDataError as exc:
+        return failed(f"UAV cloud: {exc}", ground_keypoints=g_kp)
+    timings["keypoints_s"] = time.perf_counter() - t
+    if min(len(g_kp), len(u_kp)) < params.min_matched:
+        return failed(
+            f"too few keypoints to match: {len(g_kp)} ground-based, {len(u_kp)} UAV (need {params.min_matched})",
+            ground_keypoints=g_kp, uav_keypoints=u_kp,
+        )
+
+    # 3. matching
+    t = time.perf_counter()
+    solutions = match_keypoints(g_kp.xyz, u_kp.xyz, params.matching, progress.sub(0.62, 0.72))
+    timings["matching_s"] = time.perf_counter() - t
+    if not solutions:
+        return failed("no consistent keypoint correspondences", ground_keypoints=g_kp, uav_keypoints=u_kp)
+
+    # 4. verify the candidate solutions against the clouds
+    t = time.perf_counter()
+    progress(0.72, f"verifying {len(solutions)} candidate solutions against the clouds")
+    g_thin = thin(ground, params.icp_voxel_m * 2)
+    g_thin = g_thin[g_terrain.dem.normalise(g_thin) > params.support_min_height_m]  # flat terrain fits anywhere
+    rng = np.random.default_rng(0)
+    if len(g_thin) > params.max_support_points:
+        g_thin = g_thin[rng.choice(len(g_thin), params.max_support_points, replace=False)]
+    u_tree = cKDTree(thin(uav, params.icp_voxel_m))
+    eligible = [i for i, s in enumerate(solutions) if s.n_matched >= params.min_matched]
+    loose = {i: _support(g_thin, u_tree, solutions[i].matrix, params.support_distance_m) for i in eligible}
+    ranked = sorted(eligible, key=lambda i: -loose[i])[: params.n_verified]
+    verified: list[tuple[float, int, np.ndarray]] = []  # (support after a quick ICP, solution, matrix)
+    for k, i in enumerate(ranked):
+        progress(0.72 + 0.08 * k / max(len(ranked), 1), f"verifying candidate {k + 1} of {len(ranked)} (quick ICP)")
+        quick = icp(uav, ground, solutions[i].matrix, voxel_m=0.12, max_distances_m=(1.0, 0.5, 0.3),
+                    iterations=15, max_moving_points=8000)
+        verified.append((_support(g_thin, u_tree, quick.matrix, params.support_distance_m), i, quick.matrix))
+    timings["verification_s"] = time.perf_counter() - t
+    n_min = min(len(g_kp), len(u_kp))
+    if not verified:
+        best = solutions[0]
+        return failed(
+            f"only {best.n_matched} keypoints match (need {params.min_matched})",
+            ground_keypoints=g_kp, uav_keypoints=u_kp, match=best, keypoint_matrix=best.matrix,
+        )
+    verified.sort(key=lambda v: -v[0])
+    best_support, best_i, start = verified[0]
+    best = solutions[best_i]
+    # the best alternative that converged somewhere else
+    alt = 0.0
+    for sup, _, m in verified[1:]:
+        delta = np.linalg.inv(start) @ m
+        if np.linalg.norm(delta[:3, 3]) > 0.5 or rotation_angle_deg(delta[:3, :3]) > 1.0:
+            alt = max(alt, sup)
+    common = dict(ground_keypoints=g_kp, uav_keypoints=u_kp, match=best, keypoint_matrix=best.matrix,
+                  support=best_support, alternative_support=alt)
+    pct = 100.0 * best.n_matched / n_min
+    if pct < params.min_matching_percentage:
+        return failed(f"matching percentage {pct:.0f} % is below {params.min_matching_percentage:.0f} %", **common)
+    if best_support < params.min_support:
+        return failed(
+            f"the clouds do not support the keypoint solution: {100 * best_support:.0f} % of the ground-based "
+            f"canopy points lie within {params.support_distance_m} m of a UAV point "
+            f"(need {100 * params.min_support:.0f} %)",
+            **common,
+        )
+    if alt > params.max_alternative_support_ratio * best_support:
+        return failed(
+            f"ambiguous: a distinct solution is supported almost as well ({100 * alt:.0f} % vs "
+            f"{100 * best_support:.0f} % of the ground-based canopy points); the keypoint pattern repeats",
+            **common,
+        )
+
+    # 5. ICP on the full clouds
+    t = time.perf_counter()
+    progress(0.8, "ICP")
+    result = icp(
+        uav, ground, start,
+        voxel_m=params.icp_voxel_m, max_distances_m=params.icp_distances_m, iterations=params.icp_iterations,
+    )
+    timings["icp_s"] = time.perf_counter() - t
+    delta = np.linalg.inv(best.matrix) @ result.matrix
+    shift = float(np.linalg.norm(result.matrix[:3, 3] - best.matrix[:3, 3]))
+    rot = rotation_angle_deg(delta[:3, :3])
+    pairs_after = assign_one_to_one(g_kp.xyz, u_kp.xyz, result.matrix, params.matching.distance_threshold_m)
+    moved = g_kp.xyz[pairs_after[:, 0]] @ result.matrix[:3, :3].T + result.matrix[:3, 3]
+    res_after = np.linalg.norm(moved - u_kp.xyz[pairs_after[:, 1]], axis=1)
+    common.update(icp=result, matched_after_icp=pairs_after, residuals_after_icp_m=res_after)
+    if shift > params.max_icp_shift_m or rot > params.max_icp_rotation_deg:
+        return failed(
+            f"ICP moved the keypoint solution by {shift:.2f} m / {rot:.2f} deg (limit {params.max_icp_shift_m} m / "
+            f"{params.max_icp_rotation_deg} deg): the keypoint match is not trustworthy",
+            **common,
+        )
+    final_support = _support(g_thin, u_tree, result.matrix, params.support_distance_m)
+    common["support"] = final_support
+    timings["total_s"] = time.perf_counter() - t0
+    progress(1.0, f"co-registered: {best.n_matched} keypoints matched ({pct:.0f} %), ICP fitness {result.fitness:.2f}")
+    return CoregistrationResult(
+        status="ok", reason="", matrix=result.matrix, local_matrix=result.matrix, timings=timings, **common
+    )
+
+
+def coregister(
+    ground: Scan,
+    uav: Scan,
+    params: CoregistrationParams = CoregistrationParams(),
+    progress: Optional[Progress | ProgressCallback] = None,
+) -> CoregistrationResult:
+    """Co-register a ground-based cloud (moving) onto a UAV cloud (reference).
+
+    Both scans' points are taken in their local frames; the result's ``matrix`` maps the
+    ground-based *file* coordinates (``Scan.file_points``) to the UAV file coordinates:
+    ``p_uav = matrix @ p_ground``.
+    """
+    res = coregister_points(ground.points, uav.points, params, as_progress(progress))
+    g_shift = np.asarray(ground.origin_shift, dtype=np.float64)
+    u_shift = np.asarray(uav.origin_shift, dtype=np.float64)
+    file_matrix = None
+    if res.local_matrix is not None:
+        file_matrix = _shift_matrix(u_shift) @ res.local_matrix @ _shift_matrix(-g_shift)
+    return CoregistrationResult(
+        **{
+            **{f: getattr(res, f) for f in res.__dataclass_fields__},
+            "matrix": file_matrix,
+            "ground_name": ground.name,
+            "uav_name": uav.name,
+            "ground_shift": g_shift,
+            "uav_shift": u_shift,
+        }
+    )
