@@ -299,6 +299,58 @@ def cmd_fuse(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_trees(args: argparse.Namespace) -> int:
+    """Detect, segment and measure the trees of a ground-based or fused cloud (System B)."""
+    import dataclasses
+
+    from .engine.io import read_scan
+    from .engine.trees.inventory import TreeParams, measure_trees
+
+    cloud = read_scan(args.cloud, unit_scale=UNITS[args.units])
+    params = TreeParams()
+    if args.no_cylinders:
+        params = dataclasses.replace(params, cylinder_models=False)
+    bar = ProgressBar(not args.quiet, "trees")
+    try:
+        inventory = measure_trees(cloud.points, params, progress=bar, origin_shift=cloud.origin_shift)
+    finally:
+        bar.close()
+    out = Path(args.out)
+    path = inventory.write(out, cloud.points, report=not args.no_report)
+    n_flagged = sum(1 for t in inventory.trees if t.flags)
+    print(f"{len(inventory.trees)} trees ({n_flagged} flagged as incomplete) -> {path}")
+    if args.field:
+        return main(["evaluate", str(path), args.field, "--out", str(out / "evaluation")])
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Compare tree tables with field records: R2, RMSE, rRMSE per parameter (paper table 3)."""
+    from .engine.trees.evaluate import evaluate, read_tree_table, write_evaluation
+
+    field = read_tree_table(args.field)
+    runs = {}
+    named = [(args.name or Path(args.trees).parent.name or "run", args.trees)]
+    for item in args.also or []:
+        name, sep, path = item.partition("=")
+        if not sep:
+            name, path = Path(item).parent.name or f"run{len(named) + 1}", item
+        named.append((name, path))
+    for name, path in named:
+        if name in runs:
+            raise argparse.ArgumentTypeError(f"two runs are named {name!r}: name them with NAME=PATH")
+        runs[name] = evaluate(read_tree_table(path), field, by=args.by, max_distance_m=args.max_distance)
+    paths = write_evaluation(args.out, runs)
+    for name, ev in runs.items():
+        d = ev.detection
+        figures = ", ".join(
+            f"{p} R2 {st.r2:.2f} rRMSE {st.rrmse_percent:.1f} %" for p, st in ev.stats.items() if st.n >= 2
+        )
+        print(f"{name}: {d.matched} of {d.field_trees} field trees matched; {figures}")
+    print(f"-> {paths['csv']}, {paths['html']}")
+    return 0
+
+
 def _project_from_args(args: argparse.Namespace):
     """A new project from the scans, centre, tilted marks, targets and parameters on the command line."""
     from .engine.project import Project
@@ -680,6 +732,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_fuse)
+
+    p = sub.add_parser("trees", help="detect and measure trees (DBH, height, crown, cylinder models) in a ground-based or fused cloud")
+    p.add_argument("cloud", help="the cloud (LAS/LAZ/PLY/E57/...), ground included")
+    p.add_argument("--out", required=True, help="output folder (trees.csv, stem_curves.csv, cylinders/, report.html)")
+    p.add_argument("--field", help="field records CSV: evaluate the trees against them into OUT/evaluation")
+    p.add_argument("--no-cylinders", action="store_true", help="skip the cylinder models (faster; no volume)")
+    p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_trees)
+
+    p = sub.add_parser("evaluate", help="compare trees.csv with field records: R2, RMSE, rRMSE per parameter (paper table 3)")
+    p.add_argument("trees", help="trees.csv of `forestreg trees`")
+    p.add_argument("field", help="field records CSV (tree_id, x, y and any of dbh_m/dbh_cm, height_m, ...)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--name", help="name of the first run (default: its folder name)")
+    p.add_argument("--also", action="append", metavar="[NAME=]TREES", help="another run to show side by side, e.g. fused=fused/trees.csv")
+    p.add_argument("--by", choices=("position", "id"), default="position", help="match trees by position or by id")
+    p.add_argument("--max-distance", type=float, default=1.0, help="largest distance of a position match, m")
+    p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("simulate", help="simulate TLS scans of a synthetic forest plot with known poses")
     p.add_argument("preset", help="planted_conifer, mixed_temperate, rainforest, sloped or open_field")

@@ -13,6 +13,8 @@ Run from the repository root (about 1-2 minutes on 2 cores)::
    come from ``PairResult.timings``. Accuracy is checked against the simulator's truth.
 2. The exact coarse VOP matcher vs the paper's literal enumeration, from
    :func:`benchmarks.coarse_matcher.run` (20/40/80 VOPs, 0.1 deg).
+3. System B at full size (:mod:`benchmarks.system_b`): ground-based/UAV co-registration, fusion
+   and the tree inventory of the fused cloud.
 
 Timings are wall-clock seconds of one run (``time.perf_counter``); nothing is asserted on them.
 An untimed warm-up (a coarse 0.5 deg pair) runs first so imports and library initialisation do
@@ -35,10 +37,11 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import coarse_matcher
+    from . import coarse_matcher, system_b
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import coarse_matcher  # type: ignore[no-redef]
+    import system_b  # type: ignore[no-redef]
 
 from forestreg.engine.io import read_scan, write_scan
 from forestreg.engine.register import register
@@ -310,13 +313,17 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     coarse_rows = coarse_matcher.run(sizes=(20, 40, 80), angle_step_deg=0.1, seed=args.seed)
     print(_format_coarse(coarse_rows))
+    print(flush=True)
+
+    system_b_rows = system_b.run(seed=args.seed, quick=args.quick)
+    print(system_b.format_rows(system_b_rows))
     print()
     wall = time.perf_counter() - t_start
     print(f"total benchmark wall time {wall:.0f} s")
 
     if args.json is not None:
         payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
-                   "pairs": pair_rows, "coarse_matcher": coarse_rows}
+                   "pairs": pair_rows, "coarse_matcher": coarse_rows, "system_b": system_b_rows}
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0
