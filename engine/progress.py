@@ -69,3 +69,10 @@ class Progress:
         """A nested progress covering [start, stop] of this one (both in [0, 1])."""
         span = self.stop - self.start
         return Progress(self.callback, self.start + start * span, self.start + stop * span, self.cancel)
+
+
+def as_progress(progress: "Optional[Progress | ProgressCallback]") -> Progress:
+    """A :class:`Progress` from a Progress, a plain ``callback(fraction, message)`` or None."""
+    if isinstance(progress, Progress):
+        return progress
+    return Progress(progress)

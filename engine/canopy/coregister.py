@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import ParameterError
 from ..match.icp import IcpResult, icp, thin
-from ..progress import Progress, ProgressCallback
+from ..progress import Progress, ProgressCallback, as_progress
 from ..scan import Scan
 from ..terrain import TerrainModel, TerrainParams, terrain_model
 from ..transform import rotation_angle_deg
@@ -158,13 +158,6 @@ class CoregistrationResult:
         if local is None:
             return None
         return _shift_matrix(self.uav_shift) @ local @ _shift_matrix(-self.ground_shift)
-
-
-def as_progress(progress: Optional[Progress | ProgressCallback]) -> Progress:
-    """A :class:`Progress` from a Progress, a plain ``callback(fraction, message)`` or None."""
-    if isinstance(progress, Progress):
-        return progress
-    return Progress(progress)
 
 
 def _shift_matrix(shift: np.ndarray) -> np.ndarray:
