@@ -1,0 +1,201 @@
+"""Tree height, crown base height, crown widths, crown area and crown volume of segmented trees.
+
+Frame and units as in :mod:`.stems`: points ``(N, 3)`` in metres, x east, y north, z up; heights
+are vertical distances above the tree's stem base (its ground point), in metres.
+
+Definitions (paper sec. 5.2.2)
+-----------------------------
+* height ``H``: the top above the stem base - the highest point of the tree that is not isolated
+  (at least ``top_min_neighbours`` other points of the tree within ``top_neighbour_radius_m``),
+  so a stray point above the crown does not make the tree taller;
+* crown base height ``CBH``: the lowest height of the live crown, from the vertical profile of the
+  tree's points that spread beyond the stem (farther than the stem radius plus
+  ``stem_clearance_m`` from its axis): bins holding at least ``min_bin_fraction`` of the fullest
+  bin are crown bins; the run of crown bins (gaps up to ``max_crown_gap_m``) with the most points
+  is the live crown, and its base is the bottom of its first stretch of ``min_crown_run_m`` of
+  consecutive crown bins (a few dead branches, or understory below a stretch of bare stem, do not
+  count);
+* crown widths ``a`` (east-west, along x) and ``b`` (north-south, along y): the extent of the crown
+  points (those above the crown base) between the ``width_percentile`` and ``100 -
+  width_percentile`` percentiles of x and of y;
+* crown area ``CA = pi * a * b / 4`` (ellipse), crown diameter ``CD = (a + b) / 2``, crown length
+  ``CL = H - CBH``, crown volume ``CV = pi * CD^2 * CL / 8`` (paraboloid), as in the paper;
+* position: the stem base (x, y).
+
+A tree too sparse to measure gives a :class:`CrownMeasurement` with ``ok = False`` and its
+reasons (NaN where a value cannot be had); bad input raises
+:class:`~forestreg.engine.errors.ScanDataError`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import ScanDataError
+from .stems import Stem, check_cloud, param_field, validate_ranges
+
+
+@dataclass(frozen=True)
+class CrownParams:
+    """Settings of the height and crown measurements. Distances in metres."""
+
+    top_neighbour_radius_m: float = param_field(1.0, "m", 0.01, 5.0, "The top is the highest point with enough tree points within this distance")
+    top_min_neighbours: int = param_field(2, "points", 0, 1000, "Points needed around the top (fewer: a stray point, skipped)")
+    profile_bin_m: float = param_field(0.25, "m", 0.05, 5.0, "Height bin of the vertical profile that gives the crown base")
+    stem_clearance_m: float = param_field(0.3, "m", 0.0, 5.0, "Points farther than the stem radius plus this from the stem axis spread beyond the stem (crown)")
+    min_bin_fraction: float = param_field(0.1, "", 0.0, 1.0, "A profile bin belongs to the live crown when it holds this fraction of the fullest bin's points")
+    min_crown_run_m: float = param_field(1.0, "m", 0.0, 20.0, "The live crown starts with at least this height of crown bins in a row")
+    max_crown_gap_m: float = param_field(1.0, "m", 0.0, 20.0, "Crown bins separated by at most this belong to one crown; the crown is the run holding the most points")
+    width_percentile: float = param_field(0.5, "%", 0.0, 25.0, "Crown widths run from this percentile of x (y) to 100 minus it (robust to stray points)")
+    min_points: int = param_field(50, "points", 3, 10**9, "Fewest points of a tree to measure it")
+
+    def __post_init__(self) -> None:
+        validate_ranges(self)
+
+    def replace(self, **changes: Any) -> "CrownParams":
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class CrownMeasurement:
+    """Height and crown of one tree (metres, m^2, m^3). ``top`` is the (x, y, z) of the top point
+    used for the height. ``ok`` is False (with ``reasons``) when a value could not be measured."""
+
+    tree_id: int
+    x: float
+    y: float
+    height_m: float
+    crown_base_m: float
+    crown_width_ew_m: float
+    crown_width_ns_m: float
+    crown_area_m2: float
+    crown_diameter_m: float
+    crown_length_m: float
+    crown_volume_m3: float
+    n_points: int
+    top: tuple[float, float, float]
+    ok: bool
+    reasons: tuple[str, ...] = ()
+
+
+def tree_top(points: np.ndarray, radius_m: float, min_neighbours: int) -> int:
+    """Index of the highest point with at least ``min_neighbours`` other points within
+    ``radius_m`` (the highest point when none qualifies)."""
+    order = np.argsort(points[:, 2])[::-1]
+    if min_neighbours <= 0 or len(points) <= min_neighbours:
+        return int(order[0])
+    tree = cKDTree(points)
+    for start in range(0, len(order), 256):
+        chunk = order[start : start + 256]
+        counts = np.array([len(c) - 1 for c in tree.query_ball_point(points[chunk], radius_m)])
+        good = np.flatnonzero(counts >= min_neighbours)
+        if len(good):
+            return int(chunk[good[0]])
+    return int(order[0])
+
+
+def crown_base_height(rel_z: np.ndarray, radial: np.ndarray, stem_radius_m: float, params: CrownParams) -> float:
+    """Crown base height (m above the stem base) from the vertical profile of the points spreading
+    beyond the stem (see the module docstring); NaN when no crown is found.
+
+    Profile bins holding at least ``min_bin_fraction`` of the fullest bin's points are crown bins;
+    crown bins separated by gaps of at most ``max_crown_gap_m`` form runs; the run holding the most
+    points is the live crown (so understory or a neighbour's low branches below a gap of bare stem
+    do not lower it), and the crown base is the bottom of its first stretch of at least
+    ``min_crown_run_m`` of consecutive crown bins.
+    """
+    spread = rel_z[radial > stem_radius_m + params.stem_clearance_m]
+    spread = spread[spread >= 0]
+    if len(spread) == 0:
+        return float("nan")
+    bins = np.floor(spread / params.profile_bin_m).astype(np.int64)
+    counts = np.bincount(bins)
+    full = np.flatnonzero(counts >= params.min_bin_fraction * counts.max())
+    max_gap_bins = int(round(params.max_crown_gap_m / params.profile_bin_m))
+    runs = np.split(full, np.flatnonzero(np.diff(full) > max_gap_bins + 1) + 1)
+    main = max(runs, key=lambda r: int(counts[r[0] : r[-1] + 1].sum()))
+    need = max(1, int(round(params.min_crown_run_m / params.profile_bin_m)))
+    consecutive = np.split(main, np.flatnonzero(np.diff(main) > 1) + 1)
+    for c in consecutive:
+        if len(c) >= need:
+            return float(c[0] * params.profile_bin_m)
+    return float(main[0] * params.profile_bin_m)
+
+
+def measure_crown(points: Any, heights: Any, stem: Stem, params: CrownParams = CrownParams()) -> CrownMeasurement:
+    """Height and crown of one tree from its points (e.g. ``points[labels == stem.id]``).
+
+    ``heights`` (the points' normalised heights) are validated; the measurements are relative to
+    the stem base (``stem.ground_z``), so on a slope the height runs from the tree's own foot.
+    """
+    p, _ = check_cloud(points, heights, what="tree points")
+    reasons: list[str] = []
+    nan = float("nan")
+    if len(p) < params.min_points:
+        return CrownMeasurement(stem.id, stem.x, stem.y, nan, nan, nan, nan, nan, nan, nan, nan, len(p), (nan, nan, nan), False, (f"too few points ({len(p)})",))
+    rel_z = p[:, 2] - stem.ground_z
+    top_i = tree_top(p, params.top_neighbour_radius_m, params.top_min_neighbours)
+    height = float(rel_z[top_i])
+    d = p - stem.base
+    s = d @ stem.axis
+    radial = np.linalg.norm(d - s[:, None] * stem.axis, axis=1)
+    cbh = crown_base_height(rel_z, radial, stem.radius_m, params)
+    if not math.isfinite(cbh):
+        reasons.append("no crown points beyond the stem")
+        a = b = nan
+    else:
+        crown = p[(rel_z >= cbh) & (rel_z <= height)]
+        if len(crown) < 3:
+            reasons.append("too few crown points")
+            a = b = nan
+        else:
+            q = params.width_percentile
+            a = float(np.percentile(crown[:, 0], 100 - q) - np.percentile(crown[:, 0], q))
+            b = float(np.percentile(crown[:, 1], 100 - q) - np.percentile(crown[:, 1], q))
+    cd = (a + b) / 2.0
+    cl = height - cbh
+    return CrownMeasurement(
+        tree_id=stem.id,
+        x=stem.x,
+        y=stem.y,
+        height_m=height,
+        crown_base_m=cbh,
+        crown_width_ew_m=a,
+        crown_width_ns_m=b,
+        crown_area_m2=math.pi * a * b / 4.0,
+        crown_diameter_m=cd,
+        crown_length_m=cl,
+        crown_volume_m3=math.pi * cd * cd * cl / 8.0,
+        n_points=len(p),
+        top=(float(p[top_i, 0]), float(p[top_i, 1]), float(p[top_i, 2])),
+        ok=not reasons,
+        reasons=tuple(reasons),
+    )
+
+
+def measure_crowns(points: Any, heights: Any, labels: Any, stems: Sequence[Stem], params: CrownParams = CrownParams()) -> list[CrownMeasurement]:
+    """:func:`measure_crown` for every stem's tree (``labels`` from
+    :func:`~.segmentation.segment_trees`), in the order of ``stems``."""
+    p, h = check_cloud(points, heights)
+    assert h is not None
+    lab = np.asarray(labels)
+    if lab.shape != (len(p),):
+        raise ScanDataError(f"labels must be one tree id per point, shape ({len(p)},), got {lab.shape}")
+    order = np.argsort(lab, kind="stable")
+    sorted_lab = lab[order]
+    out = []
+    for stem in stems:
+        lo, hi = np.searchsorted(sorted_lab, [stem.id, stem.id + 1])
+        idx = order[lo:hi]
+        if len(idx) == 0:
+            nan = float("nan")
+            out.append(CrownMeasurement(stem.id, stem.x, stem.y, nan, nan, nan, nan, nan, nan, nan, nan, 0, (nan, nan, nan), False, ("no points assigned to this tree",)))
+            continue
+        out.append(measure_crown(p[idx], h[idx], stem, params))
+    return out

@@ -1,0 +1,380 @@
+"""Individual tree segmentation: every point assigned to a detected stem, or to none.
+
+Frame and units as in :mod:`.stems`: points ``(N, 3)`` in metres (x east, y north, z up), their
+normalised heights ``(N,)`` in metres above the ground model.
+
+Method (paper sec. 4.3.1: stem detection, then the crowns)
+---------------------------------------------------------
+1. Points below ``ground_clearance_m`` are ground or low understory (label 0), except those on a
+   stem: within the stem's radius plus ``stem_margin_m`` of its axis, which belong to that stem.
+2. The other points are put in voxels (``voxel_m``); voxels whose centroids are closer than
+   ``link_distance_m`` are linked, each link costing its length. The voxels holding a stem's
+   detection points are that stem's seeds.
+   Each stem's axis is continued upward as a chain of graph nodes (one per voxel length, linked
+   to the voxels around the axis) for as long as points lie around it with gaps no longer than
+   ``axis_max_gap_m``: the stem inside a crown is often hidden by foliage, and without its axis
+   a crown would be reached only through a neighbour's.
+3. One multi-source shortest-path search (Dijkstra) from all seeds at once gives every reachable
+   voxel the stem it reaches at least cost: growth goes up each stem along connected geometry,
+   and where two crowns touch, each part goes to the tree it is nearer to *through the tree*,
+   not in a straight line.
+4. Voxels the search cannot reach (crown parts cut off by occlusion gaps) join the nearest
+   reached voxel when it is within ``orphan_max_distance_m`` and they stand at least
+   ``orphan_min_height_m`` above the ground (so shrubs and clutter near the ground stay 0).
+
+:func:`tree_completeness` flags trees too incomplete to measure (stem or crown cut by the edge of
+the data, top not seen, too few crown points, DBH fit failed) with a reason for each. "Top
+missing" is a conservative heuristic (a sparse tip or a crown cut flat at its top): it catches
+clipped clouds and badly occluded tops, but a conifer tip lost to occlusion can shorten a tree by
+5-15 % without being flagged (telling that from the geometry alone needs the scanner positions).
+
+Bad input (empty arrays, NaN, mismatched shapes) raises
+:class:`~forestreg.engine.errors.ScanDataError`; an empty ``stems`` list gives all zeros.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping, Optional, Sequence
+
+import numpy as np
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
+
+from ..errors import ScanDataError
+from ..progress import Progress
+from .stems import DbhMeasurement, Stem, check_cloud, param_field, validate_ranges
+
+
+@dataclass(frozen=True)
+class SegmentationParams:
+    """Settings of tree segmentation. Distances in metres."""
+
+    ground_clearance_m: float = param_field(0.3, "m", 0.0, 3.0, "Points lower than this above the ground are ground or understory (unless on a stem)")
+    stem_margin_m: float = param_field(0.05, "m", 0.0, 1.0, "Low points within a stem's radius plus this of its axis belong to the stem")
+    voxel_m: float = param_field(0.15, "m", 0.02, 1.0, "Voxel size of the connectivity graph")
+    link_distance_m: float = param_field(0.3, "m", 0.02, 3.0, "Voxels whose centroids are closer than this are linked")
+    axis_capture_m: float = param_field(0.5, "m", 0.0, 5.0, "A stem's axis is continued upward while points lie within its radius plus this of the axis...")
+    axis_max_gap_m: float = param_field(3.0, "m", 0.0, 50.0, "...with gaps (occluded stem) of at most this length; 0 = no axis continuation")
+    orphan_max_distance_m: float = param_field(1.0, "m", 0.0, 10.0, "Unreached voxels join the nearest reached voxel within this distance")
+    orphan_min_height_m: float = param_field(2.0, "m", 0.0, 50.0, "...if they stand at least this high above the ground")
+
+    def __post_init__(self) -> None:
+        validate_ranges(self)
+
+    def replace(self, **changes: Any) -> "SegmentationParams":
+        return dataclasses.replace(self, **changes)
+
+
+def _voxelise(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(voxel index per point, centroid per voxel)."""
+    keys = np.floor((points - points.min(axis=0)) / voxel_m).astype(np.int64)
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    n_vox = int(inverse.max()) + 1
+    counts = np.bincount(inverse, minlength=n_vox).astype(np.float64)
+    centroids = np.column_stack([np.bincount(inverse, weights=points[:, k], minlength=n_vox) for k in range(3)]) / counts[:, None]
+    return inverse, centroids
+
+
+def _stem_axis_members(points: np.ndarray, stems: Sequence[Stem], margin_m: float, s_max: float) -> np.ndarray:
+    """Label (stem id or 0) of points within a stem's radius + margin of its axis, between
+    0.5 m below its base and ``s_max`` along it."""
+    labels = np.zeros(len(points), dtype=np.int64)
+    if not stems or len(points) == 0:
+        return labels
+    tree = cKDTree(points[:, :2])
+    for stem in stems:
+        reach = stem.radius_m * 1.3 + margin_m
+        lean_shift = s_max * math.sqrt(max(0.0, 1.0 - float(stem.axis[2]) ** 2))
+        idx = np.asarray(tree.query_ball_point(stem.base[:2], reach + lean_shift + 0.01), dtype=np.int64)
+        if len(idx) == 0:
+            continue
+        d = points[idx] - stem.base
+        s = d @ stem.axis
+        radial = np.linalg.norm(d - s[:, None] * stem.axis, axis=1)
+        on = (s >= -0.5) & (s <= s_max) & (radial <= reach)
+        labels[idx[on]] = stem.id
+    return labels
+
+
+def segment_trees(
+    points: Any,
+    heights: Any,
+    stems: Sequence[Stem],
+    params: SegmentationParams = SegmentationParams(),
+    progress: Optional[Progress] = None,
+) -> np.ndarray:
+    """Tree id (the stem's ``id``) of each point; 0 = ground, understory or not reached.
+
+    ``points`` (N, 3) metres, ``heights`` (N,) normalised heights, ``stems`` from
+    :func:`~.stems.detect_stems` on the same points (their ``point_indices`` are the seeds).
+    Returns an (N,) int64 array. Raises :class:`ScanDataError` for bad input.
+    """
+    p, h = check_cloud(points, heights)
+    assert h is not None
+    report = progress or Progress()
+    labels = np.zeros(len(p), dtype=np.int64)
+    if not stems:
+        return labels
+    for stem in stems:
+        if len(stem.point_indices) and int(np.max(stem.point_indices)) >= len(p):
+            raise ScanDataError(f"stem {stem.id} refers to point {int(np.max(stem.point_indices))}, but there are {len(p)} points: stems must come from the same points")
+    report(0.0, "assigning stem bases")
+    low = h < params.ground_clearance_m
+    low_idx = np.flatnonzero(low)
+    if len(low_idx):
+        labels[low_idx] = _stem_axis_members(p[low_idx], stems, params.stem_margin_m, params.ground_clearance_m + 0.5)
+    up_idx = np.flatnonzero(~low)
+    if len(up_idx) == 0:
+        return labels
+    report(0.1, "building the voxel graph")
+    vox_of, centroids = _voxelise(p[up_idx], params.voxel_m)
+    n_vox = len(centroids)
+    pairs = cKDTree(centroids).query_pairs(params.link_distance_m, output_type="ndarray")
+    weights = np.linalg.norm(centroids[pairs[:, 0]] - centroids[pairs[:, 1]], axis=1)
+    weights = np.maximum(weights, 1e-6)  # zero weights would read as missing links
+    rows, cols, wts = [pairs[:, 0]], [pairs[:, 1]], [weights]
+    n_nodes = n_vox
+    if params.axis_max_gap_m > 0:
+        r_, c_, w_, n_nodes = _axis_links(centroids, stems, params)
+        rows.append(r_)
+        cols.append(c_)
+        wts.append(w_)
+    graph = sparse.csr_matrix((np.concatenate(wts), (np.concatenate(rows), np.concatenate(cols))), shape=(n_nodes, n_nodes))
+    # seeds: voxels of each stem's detection points (first stem wins a shared voxel)
+    pos_in_up = np.full(len(p), -1, dtype=np.int64)
+    pos_in_up[up_idx] = np.arange(len(up_idx))
+    seed_stem = np.zeros(n_nodes, dtype=np.int64)
+    for stem in stems:
+        ix = pos_in_up[np.asarray(stem.point_indices, dtype=np.int64)]
+        ix = ix[ix >= 0]
+        vox = np.unique(vox_of[ix])
+        vox = vox[seed_stem[vox] == 0]
+        seed_stem[vox] = stem.id
+    seeds = np.flatnonzero(seed_stem)
+    if len(seeds) == 0:
+        return labels
+    report(0.4, "growing trees from their stems (shortest paths)")
+    _, _, sources = csgraph.dijkstra(graph, directed=False, indices=seeds, min_only=True, return_predecessors=True)
+    vox_label = np.where(sources >= 0, seed_stem[np.maximum(sources, 0)], 0)[:n_vox]
+    report(0.8, "attaching detached crown parts")
+    reached = vox_label > 0
+    if params.orphan_max_distance_m > 0 and reached.any() and (~reached).any():
+        vox_height = np.bincount(vox_of, weights=h[up_idx], minlength=n_vox) / np.bincount(vox_of, minlength=n_vox)
+        orphan = np.flatnonzero(~reached & (vox_height >= params.orphan_min_height_m))
+        if len(orphan):
+            dist, nn = cKDTree(centroids[reached]).query(centroids[orphan], distance_upper_bound=params.orphan_max_distance_m)
+            ok = np.isfinite(dist)
+            vox_label[orphan[ok]] = vox_label[np.flatnonzero(reached)[nn[ok]]]
+    labels[up_idx] = vox_label[vox_of]
+    report(1.0, "segmented")
+    return labels
+
+
+def _axis_links(centroids: np.ndarray, stems: Sequence[Stem], params: SegmentationParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Graph links of the stems' continued axes: (rows, cols, weights, total node count).
+
+    Axis nodes are numbered after the voxels. Each stem's nodes run every ``voxel_m`` along its
+    axis from 1 m up to the last height with voxels around the axis (gaps up to
+    ``axis_max_gap_m``); consecutive nodes are linked, and each node to the voxels within the
+    stem radius plus ``link_distance_m``, at their distance.
+    """
+    tree = cKDTree(centroids)
+    z_top = float(centroids[:, 2].max())
+    step = params.voxel_m
+    rows: list[np.ndarray] = []
+    cols: list[np.ndarray] = []
+    wts: list[np.ndarray] = []
+    next_node = len(centroids)
+    for stem in stems:
+        s_max = (z_top - stem.ground_z) / max(float(stem.axis[2]), 0.1)
+        s = np.arange(1.0, max(s_max, 1.0) + step, step)
+        nodes = stem.point_at(s)
+        capture = tree.query_ball_point(nodes, stem.radius_m + params.axis_capture_m)
+        occupied = np.array([len(c) > 0 for c in capture])
+        if not occupied.any():
+            continue
+        # walk up from the first occupied node while gaps stay short
+        occ = np.flatnonzero(occupied)
+        last = occ[0]
+        for k in occ[1:]:
+            if (k - last) * step > params.axis_max_gap_m:
+                break
+            last = k
+        nodes = nodes[: last + 1]
+        ids = next_node + np.arange(len(nodes))
+        next_node += len(nodes)
+        if len(nodes) > 1:
+            rows.append(ids[:-1])
+            cols.append(ids[1:])
+            wts.append(np.full(len(nodes) - 1, step))
+        near = tree.query_ball_point(nodes, stem.radius_m + params.link_distance_m)
+        for node_id, node, vox in zip(ids, nodes, near):
+            if vox:
+                vox = np.asarray(vox, dtype=np.int64)
+                rows.append(np.full(len(vox), node_id))
+                cols.append(vox)
+                wts.append(np.maximum(np.linalg.norm(centroids[vox] - node, axis=1), 1e-6))
+    if not rows:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, np.zeros(0), next_node
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(wts), next_node
+
+
+# --------------------------------------------------------------------------------------------
+# Completeness
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CompletenessParams:
+    """Settings of the completeness checks of segmented trees. Distances in metres."""
+
+    footprint_cell_m: float = param_field(0.25, "m", 0.05, 10.0, "Cell size of the map of where the data reach (the plot footprint); edges are known to within a cell")
+    stem_edge_margin_m: float = param_field(1.0, "m", 0.0, 20.0, "A stem closer than this to the edge of the data is flagged as cut by the edge")
+    max_edge_point_fraction: float = param_field(0.05, "", 0.0, 1.0, "A tree with more than this fraction of its points in the outermost cells of the footprint is flagged as cut by the edge")
+    min_tree_points: int = param_field(200, "points", 1, 10**9, "Trees with fewer points are flagged as too sparse")
+    crown_clearance_m: float = param_field(0.5, "m", 0.0, 10.0, "Points farther than the stem radius plus this from the stem axis count as crown points")
+    min_crown_points: int = param_field(100, "points", 0, 10**9, "Trees with fewer crown points are flagged")
+    top_layer_m: float = param_field(1.0, "m", 0.05, 10.0, "Depth of the top layer examined for a missing top")
+    min_top_points: int = param_field(5, "points", 0, 10**6, "Fewer points in the top layer: the top rests on a sparse tip, the true top was probably not seen")
+    max_top_spread_ratio: float = param_field(0.9, "", 0.0, 1.0, "A top layer wider than this fraction of the tree's widest layer: the crown is cut flat at the top (clipped data or a top hidden behind other crowns)")
+
+    def __post_init__(self) -> None:
+        validate_ranges(self)
+
+
+@dataclass(frozen=True)
+class TreeCompleteness:
+    """Completeness of one segmented tree: ``complete`` is False when any check failed, each
+    failure described in ``reasons`` (e.g. "stem cut by the plot edge", "crown cut by the plot
+    edge", "top missing", "too few crown points (12)", "DBH fit failed: partial arc")."""
+
+    tree_id: int
+    n_points: int
+    n_crown_points: int
+    complete: bool
+    reasons: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class Footprint:
+    """Where the data reach, on an XY grid: ``inside`` (ny, nx) bool (occupied cells, small gaps
+    closed, interior holes filled), ``edge_m`` the distance (m, centre to centre) from each cell to
+    the nearest outside cell, ``nearest_outside`` (2, ny, nx) that cell's (row, column), and the
+    grid's lower-left corner and cell size. The grid has a one-cell empty border, so the end of
+    the data counts as outside."""
+
+    inside: np.ndarray
+    edge_m: np.ndarray
+    nearest_outside: np.ndarray
+    x0: float
+    y0: float
+    cell_m: float
+
+    def cell_of(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row, column) of points (N, 2), clipped to the grid."""
+        ij = np.floor((np.asarray(xy, dtype=np.float64).reshape(-1, 2) - (self.x0, self.y0)) / self.cell_m).astype(np.int64)
+        return np.clip(ij[:, 1], 0, self.inside.shape[0] - 1), np.clip(ij[:, 0], 0, self.inside.shape[1] - 1)
+
+    def distance_to_edge(self, x: float, y: float) -> float:
+        """Distance (m) from (x, y) to where the data stop (0 outside the footprint)."""
+        r, c = self.cell_of(np.array([x, y]))
+        r, c = int(r[0]), int(c[0])
+        if not self.inside[r, c]:
+            return 0.0
+        orow, ocol = self.nearest_outside[:, r, c]
+        # distance from the point to the nearest outside cell's square
+        lo_x, lo_y = self.x0 + ocol * self.cell_m, self.y0 + orow * self.cell_m
+        dx = max(lo_x - x, 0.0, x - (lo_x + self.cell_m))
+        dy = max(lo_y - y, 0.0, y - (lo_y + self.cell_m))
+        return math.hypot(dx, dy)
+
+
+def data_footprint(points: np.ndarray, cell_m: float) -> Footprint:
+    """The :class:`Footprint` of a cloud's XY extent on cells of ``cell_m`` metres."""
+    x0, y0 = float(points[:, 0].min()) - cell_m, float(points[:, 1].min()) - cell_m
+    ij = np.floor((points[:, :2] - (x0, y0)) / cell_m).astype(np.int64)
+    shape = (int(ij[:, 1].max()) + 2, int(ij[:, 0].max()) + 2)
+    occupied = np.zeros(shape, dtype=bool)
+    occupied[ij[:, 1], ij[:, 0]] = True
+    inside = ndimage.binary_fill_holes(ndimage.binary_closing(occupied, iterations=1, border_value=0))
+    edge, nearest = ndimage.distance_transform_edt(inside, return_indices=True)
+    return Footprint(inside, edge * cell_m, nearest, x0, y0, cell_m)
+
+
+def tree_completeness(
+    points: Any,
+    heights: Any,
+    labels: Any,
+    stems: Sequence[Stem],
+    params: CompletenessParams = CompletenessParams(),
+    dbh: Optional[Mapping[int, DbhMeasurement]] = None,
+) -> list[TreeCompleteness]:
+    """Completeness checks of every stem's tree (in the order of ``stems``).
+
+    ``labels`` from :func:`segment_trees`; ``dbh`` optionally maps stem id -> DBH measurement
+    (a failed one adds "DBH fit failed: ..."). The plot edge is where the data stop (the
+    footprint of all points), so a tree cut by the border of a clipped plot is flagged.
+    """
+    p, h = check_cloud(points, heights)
+    lab = np.asarray(labels)
+    if lab.shape != (len(p),):
+        raise ScanDataError(f"labels must be one tree id per point, shape ({len(p)},), got {lab.shape}")
+    footprint = data_footprint(p, params.footprint_cell_m)
+    cell = params.footprint_cell_m
+    out: list[TreeCompleteness] = []
+    for stem in stems:
+        idx = np.flatnonzero(lab == stem.id)
+        reasons: list[str] = []
+        n_crown = 0
+        if footprint.distance_to_edge(stem.x, stem.y) < params.stem_edge_margin_m:
+            reasons.append("stem cut by the plot edge")
+        if len(idx) < params.min_tree_points:
+            reasons.append(f"too few points ({len(idx)})")
+        if len(idx):
+            tp = p[idx]
+            rows, cols = footprint.cell_of(tp[:, :2])
+            at_edge = footprint.edge_m[rows, cols] <= cell * 1.01
+            if at_edge.mean() > params.max_edge_point_fraction and "stem cut by the plot edge" not in reasons:
+                reasons.append("crown cut by the plot edge")
+            d = tp - stem.base
+            s = d @ stem.axis
+            radial = np.linalg.norm(d - s[:, None] * stem.axis, axis=1)
+            crown = radial > stem.radius_m + params.crown_clearance_m
+            n_crown = int(crown.sum())
+            if n_crown < params.min_crown_points:
+                reasons.append(f"too few crown points ({n_crown})")
+            elif _top_missing(tp[:, 2] - stem.ground_z, radial, params):
+                reasons.append("top missing")
+        if dbh is not None:
+            m = dbh.get(stem.id)
+            if m is None:
+                reasons.append("DBH not measured")
+            elif not m.ok:
+                reasons.append("DBH fit failed: " + ", ".join(m.reasons))
+        out.append(TreeCompleteness(stem.id, int(len(idx)), n_crown, not reasons, tuple(reasons)))
+    return out
+
+
+def top_layer(rel_z: np.ndarray, radial: np.ndarray, layer_m: float) -> tuple[int, float]:
+    """(points in the top ``layer_m`` of a tree, the spread of that layer as a fraction of the
+    widest layer of the tree); spreads are 90th percentiles of the distance from the stem axis in
+    ``layer_m`` height bins (bins of fewer than 5 points are skipped)."""
+    top = float(np.max(rel_z))
+    layer = rel_z >= top - layer_m
+    bins = np.floor((top - rel_z) / layer_m).astype(np.int64)
+    widest = max((float(np.percentile(radial[bins == b], 90)) for b in np.unique(bins) if (bins == b).sum() >= 5), default=0.0)
+    spread = float(np.percentile(radial[layer], 90))
+    return int(layer.sum()), (spread / widest if widest > 0 else 1.0)
+
+
+def _top_missing(rel_z: np.ndarray, radial: np.ndarray, params: CompletenessParams) -> bool:
+    """True when the top rests on a sparse tip or the crown is cut flat at its top (see
+    :class:`CompletenessParams`)."""
+    n, ratio = top_layer(rel_z, radial, params.top_layer_m)
+    return n < params.min_top_points or ratio > params.max_top_spread_ratio

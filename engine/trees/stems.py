@@ -1,0 +1,1094 @@
+"""Stem detection at breast height, DBH by robust circle fitting, and stem curves.
+
+Frame and units
+---------------
+Every function takes points ``(N, 3)`` float64 in a local metric frame (x east, y north, z up,
+metres) and their normalised heights ``(N,)`` (height above the ground model, metres, e.g.
+``terrain_model(points).dem.normalise(points)``). Lean and azimuths are in degrees; azimuths are
+mathematical (counter-clockwise from +x), as in the rest of forestreg.
+
+Method (paper sec. 4.3.1, after Tao et al. 2015: normalisation, stem detection and DBH)
+-------------------------------------------------------------------------------------
+1. Points of a height band around breast height (default 1-3 m above the ground) are thinned on a
+   fine voxel grid and each point's local geometry is taken from the covariance of its
+   neighbours (radius ``neighbour_radius_m``): bark is locally a surface whose normal (the
+   eigenvector of the smallest eigenvalue) is near horizontal. Points whose normal tilts more than
+   ``max_normal_tilt_deg`` from horizontal, or whose neighbourhood is not surface-like, are
+   dropped (leaves, grass, twigs in random orientations).
+2. The vertical points are grouped by single-linkage clustering (``cluster_distance_m``);
+   clusters too small or too short to be stems are dropped.
+3. In each cluster, circles are fitted to horizontal sub-slices of the band (:func:`fit_circle`:
+   RANSAC and an algebraic fit, each refined by geometric least squares with a soft-L1 loss). The
+   largest consistent set of sub-slice circles (about one radius, stacked along a plausible axis)
+   is the stem; a line through their centres gives its axis and lean (vertical when they span
+   less than ``min_lean_span_m``). Candidates leaning more than ``max_lean_deg`` are branches;
+   candidates with points *inside* their circle (``max_interior_fraction``: nothing can be seen
+   inside a trunk) are rings of foliage or twigs. A cluster may hold several stems: the first
+   one's points are taken out and the rest searched again. Candidates whose circles overlap are
+   merged; of two stems closer than ``min_stem_gap_m`` (surface to surface) the thinner is
+   dropped. The stem's ground height is read from the ground model a little away from the trunk
+   (``ground_ring_m``), where the trunk's own lowest points do not lift it.
+4. DBH comes from circles fitted to slices *perpendicular to the stem axis* at
+   ``breast_height_m`` *along the axis* from the stem base (the axis point at ground level) and
+   0.1 m above and below (the median of the good ones), so leaning stems and slopes are handled
+   and one cluttered slice does not decide it; a circle off the axis or far from the band's
+   radius does not count. Stem curves repeat the fit every ``stem_curve_step_m`` up the stem,
+   following its centre line, until the fits fail; sections that grow upward or deviate from
+   the running median of their neighbours or from a robust taper are rejected (kept as raw
+   values) and replaced by interpolation.
+
+Bad input (empty arrays, wrong shapes, NaN or infinite values) raises
+:class:`~forestreg.engine.errors.ScanDataError`. Finding no stem is not an error:
+:func:`detect_stems` returns an empty list. A DBH or stem section that cannot be measured is
+returned with ``ok = False`` and its reasons, never as a confident number.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
+
+from ..errors import ParameterError, ScanDataError
+from ..progress import Progress
+
+# --------------------------------------------------------------------------------------------
+# Parameter helpers (shared by the tree modules)
+# --------------------------------------------------------------------------------------------
+
+
+def param_field(default: Any, unit: str, lo: Optional[float], hi: Optional[float], help: str, paper: str = "") -> Any:
+    """A dataclass field carrying ``unit``, ``range``, ``help`` and ``paper`` metadata (as in
+    :mod:`forestreg.engine.params`); tuples stay tuples."""
+    meta = {"unit": unit, "range": (lo, hi), "help": help, "paper": paper}
+    if isinstance(default, (list, tuple)):
+        return field(default=tuple(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def validate_ranges(params: Any) -> None:
+    """Raise :class:`ParameterError` for a field of a parameter dataclass that is not a finite
+    number inside its metadata ``range`` (booleans and ``None`` are skipped)."""
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if value is None or isinstance(value, bool):
+            continue
+        lo, hi = f.metadata.get("range", (None, None))
+        values = value if isinstance(value, tuple) else (value,)
+        for v in values:
+            if not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ParameterError(f"{f.name}: {v!r} is not a finite number")
+            if (lo is not None and v < lo) or (hi is not None and v > hi):
+                raise ParameterError(f"{f.name} = {v} {f.metadata.get('unit', '')} is outside [{lo}, {hi}]")
+
+
+def check_cloud(points: Any, heights: Any = None, *, what: str = "points") -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Validate a point array ``(N, 3)`` (N >= 1) and, if given, its normalised heights ``(N,)``.
+
+    Returns float64 arrays; raises :class:`ScanDataError` for wrong shapes, empty arrays and NaN or
+    infinite values.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ScanDataError(f"{what} must be an (N, 3) array of x, y, z, got shape {p.shape}")
+    if len(p) == 0:
+        raise ScanDataError(f"{what} is empty: there are no points to measure trees in")
+    if not np.isfinite(p).all():
+        bad = int((~np.isfinite(p).all(axis=1)).sum())
+        raise ScanDataError(f"{what} holds {bad} point(s) with NaN or infinite coordinates; remove them first")
+    h: Optional[np.ndarray] = None
+    if heights is not None:
+        h = np.asarray(heights, dtype=np.float64)
+        if h.shape != (len(p),):
+            raise ScanDataError(f"heights must be one value per point, shape ({len(p)},), got {h.shape}")
+        if not np.isfinite(h).all():
+            raise ScanDataError(f"heights hold {int((~np.isfinite(h)).sum())} NaN or infinite value(s)")
+    return p, h
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StemParams:
+    """Every setting of stem detection, DBH and stem curves. Distances in metres, angles in degrees."""
+
+    # --- breast height and slices
+    breast_height_m: float = param_field(1.3, "m", 0.5, 3.0, "Height of the DBH slice, measured along the stem axis from the stem base", "DBH at 1.3 m")
+    slice_half_width_m: float = param_field(0.05, "m", 0.01, 0.3, "Half the thickness of a slice in which a stem circle is fitted")
+    sparse_slice_points: int = param_field(30, "points", 0, 100000, "A slice with fewer points is widened to max_slice_half_width_m")
+    max_slice_half_width_m: float = param_field(0.1, "m", 0.01, 0.5, "Half thickness of a widened sparse slice")
+    dbh_slice_offsets_m: tuple[float, ...] = param_field((0.1, -0.1, 0.2, -0.2), "m", -0.5, 0.5, "Slices this far above (+) or below (-) breast height also measure the DBH (those within 0.1 m always, farther ones only when the nearer fail)")
+    max_dbh_slice_spread: float = param_field(0.2, "", 0.0, 1.0, "Good DBH slices disagreeing by more than this fraction of the DBH make it not ok")
+    max_dbh_band_deviation: float = param_field(0.3, "", 0.0, 5.0, "A DBH circle whose radius differs from the detection band's by more than this fraction is rejected")
+    # --- detection band and local geometry
+    band_low_m: float = param_field(1.0, "m", 0.1, 5.0, "Bottom of the height band in which stems are detected")
+    band_high_m: float = param_field(3.0, "m", 0.5, 10.0, "Top of the height band in which stems are detected")
+    detection_voxel_m: float = param_field(0.01, "m", 0.0, 0.1, "Band points are thinned to one per voxel of this size before detection (0 = no thinning)")
+    neighbour_radius_m: float = param_field(0.08, "m", 0.01, 0.5, "Radius of the neighbourhood whose covariance gives a point's local geometry")
+    min_neighbours: int = param_field(6, "points", 3, 1000, "Points with fewer neighbours are dropped as noise")
+    max_normal_tilt_deg: float = param_field(25.0, "deg", 1.0, 90.0, "A bark point's surface normal is within this angle of horizontal")
+    max_surface_variation: float = param_field(0.2, "", 0.0, 1.0 / 3.0, "Largest smallest-eigenvalue fraction of a point's neighbourhood (0 = flat surface, 1/3 = isotropic scatter)")
+    # --- clustering and stem acceptance
+    cluster_distance_m: float = param_field(0.1, "m", 0.005, 1.0, "Vertical points closer than this belong to the same cluster (single linkage)")
+    min_cluster_points: int = param_field(30, "points", 3, 100000, "Smallest cluster examined as a stem")
+    min_stem_extent_m: float = param_field(0.6, "m", 0.1, 10.0, "A stem cluster spans at least this height within the band")
+    subslice_m: float = param_field(0.25, "m", 0.05, 2.0, "Height of the sub-slices fitted with circles during detection")
+    detection_min_arc_coverage: float = param_field(0.2, "", 0.0, 1.0, "Least arc coverage of the sub-slice circles during detection (a stem seen from one side still counts; its DBH is flagged 'partial arc')")
+    detection_min_slice_points: int = param_field(10, "points", 3, 100000, "Fewest points in a detection sub-slice for a circle fit")
+    min_good_subslices: int = param_field(2, "slices", 1, 100, "A stem needs at least this many good sub-slice circles")
+    max_radius_spread: float = param_field(0.2, "", 0.0, 2.0, "Sub-slice circles of one stem differ in radius by at most this fraction")
+    max_interior_fraction: float = param_field(0.03, "", 0.0, 10.0, "Band points inside a candidate stem (well within its circle), per point on its surface, above which it is foliage or twigs around something else, not a trunk")
+    min_lean_span_m: float = param_field(1.0, "m", 0.0, 10.0, "A stem's lean is estimated only from good sub-slices spanning at least this height; shorter stretches are taken as vertical")
+    max_lean_deg: float = param_field(25.0, "deg", 0.0, 89.0, "Stems leaning more than this are branches or dead wood, not stems")
+    dbh_range_m: tuple[float, float] = param_field((0.05, 2.0), "m", 0.005, 5.0, "Plausible stem diameters; circles outside are rejected (the 5 cm floor keeps out thin poles, e.g. target stands)")
+    min_stem_gap_m: float = param_field(0.1, "m", 0.0, 5.0, "Of two stems whose surfaces are closer than this at breast height only the thicker is kept (the other is a sucker, a branch stub or a climber)")
+    ground_ring_m: tuple[float, float] = param_field((0.6, 1.5), "m", 0.0, 10.0, "The stem's ground height is the median ground under the points this far (inner, outer) beyond its surface")
+    # --- circle fit quality
+    min_slice_points: int = param_field(15, "points", 3, 100000, "Fewest points in a slice for a circle fit")
+    inlier_tolerance_m: float = param_field(0.015, "m", 0.001, 0.2, "Points within this distance of a circle are its inliers (RANSAC and quality)")
+    min_inlier_fraction: float = param_field(0.4, "", 0.0, 1.0, "Least fraction of a slice's points on the fitted circle")
+    min_arc_coverage: float = param_field(0.3, "", 0.0, 1.0, "Least fraction of the circle's angular sectors that must hold points")
+    max_fit_residual_m: float = param_field(0.02, "m", 0.001, 0.2, "Largest rms distance from the circle of the points within twice the inlier tolerance of it")
+    ransac_iterations: int = param_field(300, "", 1, 100000, "Random three-point circles tried per slice")
+    # --- stem curve
+    stem_curve_step_m: float = param_field(0.25, "m", 0.2, 0.5, "Spacing of the stem-curve sections along the stem")
+    stem_curve_start_m: float = param_field(0.3, "m", 0.0, 3.0, "First stem-curve section, along the stem from its base")
+    max_failed_sections: int = param_field(4, "sections", 1, 100, "The stem curve ends after this many failed sections in a row")
+    search_margin_m: float = param_field(0.08, "m", 0.0, 1.0, "Points within the expected radius plus this of the predicted centre enter a slice")
+    taper_window: int = param_field(5, "sections", 3, 51, "Sections in the running median that stands for the expected taper")
+    max_taper_deviation: float = param_field(0.12, "", 0.0, 1.0, "Sections deviating more than this fraction from the running median are rejected")
+    max_relative_residual: float = param_field(1.75, "", 1.0, 100.0, "Sections whose circle residual exceeds this multiple of the stem's median are rejected (branch whorls, foliage)")
+    max_section_growth: float = param_field(0.15, "", 0.0, 2.0, "A section may be at most this fraction wider than the accepted one below it (stems taper upward)")
+
+    def __post_init__(self) -> None:
+        validate_ranges(self)
+        if self.band_high_m <= self.band_low_m:
+            raise ParameterError(f"band_high_m ({self.band_high_m}) must be above band_low_m ({self.band_low_m})")
+        if len(self.dbh_range_m) != 2 or not self.dbh_range_m[0] < self.dbh_range_m[1]:
+            raise ParameterError(f"dbh_range_m must be (smallest, largest) diameters, got {self.dbh_range_m}")
+        if self.taper_window % 2 == 0:
+            raise ParameterError(f"taper_window must be odd, got {self.taper_window}")
+
+    def replace(self, **changes: Any) -> "StemParams":
+        """A copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+
+# --------------------------------------------------------------------------------------------
+# Results
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CircleFit:
+    """A circle fitted to 2D points, with its evidence.
+
+    ``centre`` (x, y) and ``radius_m`` are in the frame of the points given (metres);
+    ``rms_residual_m`` is the rms distance from the circle of the points within twice the inlier
+    tolerance of it (its own points with their noise; farther points count as clutter);
+    ``arc_coverage`` the fraction of ``n_sectors`` equal angular sectors around the centre that
+    hold an inlier;
+    ``ok`` is False when any quality check failed, with the reasons in ``reasons`` ("too few
+    points", "partial arc", "high residual", "few inliers", "implausible radius").
+    """
+
+    centre: tuple[float, float]
+    radius_m: float
+    rms_residual_m: float
+    arc_coverage: float
+    n_points: int
+    n_inliers: int
+    ok: bool
+    reasons: tuple[str, ...] = ()
+
+    @property
+    def diameter_m(self) -> float:
+        return 2.0 * self.radius_m
+
+    @property
+    def inlier_fraction(self) -> float:
+        return self.n_inliers / self.n_points if self.n_points else 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class Stem:
+    """A detected stem.
+
+    ``base`` is the stem axis point at ground level (x, y, ground z; metres), ``axis`` the unit
+    direction of the stem (pointing up), ``radius_m`` the median radius of the circles fitted in
+    the detection band, ``point_indices`` the indices (into the points given to
+    :func:`detect_stems`) of the stem's points in the detection band.
+    """
+
+    id: int
+    base: np.ndarray
+    axis: np.ndarray
+    radius_m: float
+    point_indices: np.ndarray
+    n_good_slices: int = 0
+
+    @property
+    def x(self) -> float:
+        return float(self.base[0])
+
+    @property
+    def y(self) -> float:
+        return float(self.base[1])
+
+    @property
+    def ground_z(self) -> float:
+        return float(self.base[2])
+
+    @property
+    def lean_deg(self) -> float:
+        """Angle of the axis from vertical (degrees)."""
+        return math.degrees(math.acos(min(1.0, abs(float(self.axis[2])))))
+
+    @property
+    def lean_azimuth_deg(self) -> float:
+        """Direction of the lean (mathematical azimuth, degrees in [0, 360))."""
+        return math.degrees(math.atan2(float(self.axis[1]), float(self.axis[0]))) % 360.0
+
+    def point_at(self, s: Any) -> np.ndarray:
+        """Point(s) on the axis at distance ``s`` (m) along it from the base."""
+        s = np.asarray(s, dtype=np.float64)
+        return self.base + s[..., None] * self.axis
+
+    def point_at_height(self, h: float) -> np.ndarray:
+        """The axis point at vertical height ``h`` (m) above the base."""
+        return self.point_at(h / max(float(self.axis[2]), 1e-6))
+
+
+@dataclass(frozen=True, eq=False)
+class DbhMeasurement:
+    """DBH of one stem: ``dbh_m`` (NaN when no circle could be fitted), the section centre on
+    the stem (``centre``, world x, y, z), the slice's distance along the axis ``s_m``, the circle
+    fit (in the slice plane), ``ok`` / ``reasons`` (why not ok) and ``note`` (e.g. measured at a
+    fallback height)."""
+
+    stem_id: int
+    dbh_m: float
+    centre: np.ndarray
+    s_m: float
+    fit: Optional[CircleFit]
+    ok: bool
+    reasons: tuple[str, ...] = ()
+    note: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class StemCurve:
+    """Diameters up one stem, every ``step`` metres along its axis.
+
+    Arrays (K,): ``s_m`` distance along the axis from the base, ``heights_m`` vertical height of
+    the section above the base, ``raw_diameter_m`` the fitted diameters (NaN where a fit failed),
+    ``diameter_m`` the accepted curve (raw values that pass the taper check; rejected or failed
+    sections between accepted ones interpolated; NaN above the last accepted section),
+    ``accepted`` (bool: raw value kept), ``interpolated`` (bool). ``centres`` (K, 3) world centres
+    (NaN where failed); ``reasons`` per section ("" when accepted).
+    """
+
+    stem_id: int
+    s_m: np.ndarray
+    heights_m: np.ndarray
+    raw_diameter_m: np.ndarray
+    diameter_m: np.ndarray
+    accepted: np.ndarray
+    interpolated: np.ndarray
+    centres: np.ndarray
+    reasons: tuple[str, ...]
+
+    @property
+    def length_m(self) -> float:
+        """Distance along the axis up to the last accepted section (0 if none)."""
+        ok = np.flatnonzero(self.accepted)
+        return float(self.s_m[ok[-1]]) if len(ok) else 0.0
+
+    def diameter_at(self, s: Any) -> Any:
+        """Accepted diameter interpolated at distance(s) ``s`` along the axis (NaN outside)."""
+        good = np.isfinite(self.diameter_m)
+        out = np.interp(np.asarray(s, dtype=np.float64), self.s_m[good], self.diameter_m[good], left=np.nan, right=np.nan) if good.any() else np.full(np.shape(s), np.nan)
+        return float(out) if np.ndim(out) == 0 else out
+
+
+# --------------------------------------------------------------------------------------------
+# Circle fitting
+# --------------------------------------------------------------------------------------------
+
+
+def _algebraic_circle(xy: np.ndarray) -> Optional[tuple[float, float, float]]:
+    """Least-squares algebraic (Kasa) circle: (cx, cy, r) or None if degenerate."""
+    if len(xy) < 3:
+        return None
+    mean = xy.mean(axis=0)
+    q = xy - mean
+    a = np.column_stack([q, np.ones(len(q))])
+    b = (q**2).sum(axis=1)
+    try:
+        sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+    except np.linalg.LinAlgError:
+        return None
+    cx, cy = sol[0] / 2.0, sol[1] / 2.0
+    r2 = sol[2] + cx * cx + cy * cy
+    if not np.isfinite(r2) or r2 <= 0:
+        return None
+    return float(cx + mean[0]), float(cy + mean[1]), float(math.sqrt(r2))
+
+
+def _geometric_circle(xy: np.ndarray, start: tuple[float, float, float], f_scale: float, iterations: int = 30) -> tuple[float, float, float]:
+    """Geometric circle fit (distances to the circle) with a soft-L1 loss, from ``start``.
+
+    Iteratively reweighted Gauss-Newton: each step solves the weighted normal equations of the
+    residuals ``|p - c| - r`` with the soft-L1 weights ``1 / sqrt(1 + (res / f_scale)^2)``.
+    """
+    v = np.asarray(start, dtype=np.float64).copy()
+    for _ in range(iterations):
+        dx, dy = xy[:, 0] - v[0], xy[:, 1] - v[1]
+        d = np.maximum(np.hypot(dx, dy), 1e-12)
+        res = d - v[2]
+        w = 1.0 / np.sqrt(1.0 + (res / f_scale) ** 2)
+        jac = np.column_stack([-dx / d, -dy / d, -np.ones(len(xy))])
+        jw = jac * w[:, None]
+        a = jw.T @ jac + 1e-12 * np.eye(3)
+        g = jw.T @ res
+        try:
+            delta = -np.linalg.solve(a, g)
+        except np.linalg.LinAlgError:
+            break
+        if not np.isfinite(delta).all():
+            break
+        v += delta
+        if np.abs(delta).max() < 1e-6:
+            break
+    if not np.isfinite(v).all():
+        return start
+    return float(v[0]), float(v[1]), float(abs(v[2]))
+
+
+def _ransac_circle(xy: np.ndarray, tolerance: float, iterations: int, r_range: tuple[float, float], rng: np.random.Generator) -> Optional[tuple[float, float, float]]:
+    """Best three-point circle by inlier count (vectorised RANSAC); None if none is plausible."""
+    n = len(xy)
+    if n < 3:
+        return None
+    score_xy = xy if n <= 600 else xy[rng.choice(n, 600, replace=False)]
+    idx = rng.integers(0, n, size=(iterations, 3))
+    a, b, c = xy[idx[:, 0]], xy[idx[:, 1]], xy[idx[:, 2]]
+    d = 2.0 * (a[:, 0] * (b[:, 1] - c[:, 1]) + b[:, 0] * (c[:, 1] - a[:, 1]) + c[:, 0] * (a[:, 1] - b[:, 1]))
+    valid = np.abs(d) > 1e-12
+    if not valid.any():
+        return None
+    a, b, c, d = a[valid], b[valid], c[valid], d[valid]
+    a2, b2, c2 = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
+    ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / d
+    uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / d
+    r = np.hypot(a[:, 0] - ux, a[:, 1] - uy)
+    plausible = (r >= r_range[0]) & (r <= r_range[1])
+    if not plausible.any():
+        return None
+    ux, uy, r = ux[plausible], uy[plausible], r[plausible]
+    dist = np.hypot(score_xy[None, :, 0] - ux[:, None], score_xy[None, :, 1] - uy[:, None])
+    counts = (np.abs(dist - r[:, None]) < tolerance).sum(axis=1)
+    best = int(np.argmax(counts))
+    return float(ux[best]), float(uy[best]), float(r[best])
+
+
+def _arc_coverage(xy: np.ndarray, cx: float, cy: float, n_sectors: int) -> float:
+    if len(xy) == 0:
+        return 0.0
+    ang = np.arctan2(xy[:, 1] - cy, xy[:, 0] - cx)
+    sector = np.floor((ang + math.pi) / (2 * math.pi) * n_sectors).astype(np.int64) % n_sectors
+    return float(len(np.unique(sector)) / n_sectors)
+
+
+def fit_circle(
+    xy: Any,
+    *,
+    inlier_tolerance_m: float = 0.015,
+    max_residual_m: float = 0.01,
+    min_arc_coverage: float = 0.3,
+    min_inlier_fraction: float = 0.4,
+    radius_range_m: tuple[float, float] = (0.015, 1.0),
+    min_points: int = 10,
+    n_sectors: int = 18,
+    ransac_iterations: int = 300,
+    seed: int = 0,
+) -> CircleFit:
+    """Robust circle fit to 2D points ``xy`` (M, 2) in metres.
+
+    Two candidates are fitted: an algebraic (Kasa) circle of all points refined by geometric least
+    squares with a soft-L1 loss, and a RANSAC circle (``ransac_iterations`` random point triples,
+    inliers within ``inlier_tolerance_m``) refined the same way on its inliers. The candidate with
+    more inliers wins (ties: the smaller rms of the inliers). Quality checks set ``ok`` and
+    ``reasons``.
+
+    Raises :class:`ScanDataError` for fewer than 3 points or NaN/infinite values.
+    """
+    p = np.asarray(xy, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ScanDataError(f"fit_circle needs (M, 2) points, got shape {p.shape}")
+    if not np.isfinite(p).all():
+        raise ScanDataError("fit_circle: points hold NaN or infinite values")
+    if len(p) < 3:
+        raise ScanDataError(f"fit_circle needs at least 3 points, got {len(p)}")
+    rng = np.random.default_rng(seed)
+    tol = inlier_tolerance_m
+    scale = max(tol / 2.0, 1e-4)
+    # the candidates are fitted to at most 1000 points (plenty for a circle); checks use all
+    q = p if len(p) <= 1000 else p[rng.choice(len(p), 1000, replace=False)]
+    candidates: list[tuple[float, float, float]] = []
+    alg = _algebraic_circle(q)
+    if alg is not None:
+        candidates.append(_geometric_circle(q, alg, scale))
+    rs = _ransac_circle(q, tol, ransac_iterations, (radius_range_m[0] * 0.5, radius_range_m[1] * 1.5), rng)
+    if rs is not None:
+        near = np.abs(np.hypot(q[:, 0] - rs[0], q[:, 1] - rs[1]) - rs[2]) < 2.0 * tol
+        sub = q[near] if near.sum() >= 3 else q
+        candidates.append(_geometric_circle(sub, rs, scale))
+    if not candidates:
+        return CircleFit((float("nan"), float("nan")), float("nan"), float("nan"), 0.0, len(p), 0, False, ("degenerate points",))
+    best: Optional[tuple[int, float, tuple[float, float, float]]] = None
+    for cand in candidates:
+        res = np.abs(np.hypot(p[:, 0] - cand[0], p[:, 1] - cand[1]) - cand[2])
+        inl = res < tol
+        n_in = int(inl.sum())
+        rms = float(np.sqrt(np.mean(res[inl] ** 2))) if n_in else float("inf")
+        if best is None or n_in > best[0] or (n_in == best[0] and rms < best[1]):
+            best = (n_in, rms, cand)
+    assert best is not None
+    n_in, _, (cx, cy, r) = best
+    res = np.abs(np.hypot(p[:, 0] - cx, p[:, 1] - cy) - r)
+    inliers = res < tol
+    near = res < 2.0 * tol  # the circle's own points and their noise; farther ones are clutter
+    rms = float(np.sqrt(np.mean(res[near] ** 2))) if near.any() else float("inf")
+    coverage = _arc_coverage(p[inliers], cx, cy, n_sectors)
+    reasons = []
+    if len(p) < min_points:
+        reasons.append("too few points")
+    if not (radius_range_m[0] <= r <= radius_range_m[1]):
+        reasons.append("implausible radius")
+    if coverage < min_arc_coverage:
+        reasons.append("partial arc")
+    if n_in / len(p) < min_inlier_fraction:
+        reasons.append("few inliers")
+    if not math.isfinite(rms) or rms > max_residual_m:
+        reasons.append("high residual")
+    return CircleFit(
+        centre=(cx, cy),
+        radius_m=r,
+        rms_residual_m=rms,
+        arc_coverage=coverage,
+        n_points=len(p),
+        n_inliers=n_in,
+        ok=not reasons,
+        reasons=tuple(reasons),
+    )
+
+
+def _fit(xy: np.ndarray, params: StemParams, seed: int = 0, min_arc_coverage: Optional[float] = None, min_points: Optional[int] = None) -> CircleFit:
+    """:func:`fit_circle` with the settings of ``params``."""
+    lo, hi = params.dbh_range_m
+    return fit_circle(
+        xy,
+        inlier_tolerance_m=params.inlier_tolerance_m,
+        max_residual_m=params.max_fit_residual_m,
+        min_arc_coverage=params.min_arc_coverage if min_arc_coverage is None else min_arc_coverage,
+        min_inlier_fraction=params.min_inlier_fraction,
+        radius_range_m=(lo / 2.0, hi / 2.0),
+        min_points=params.min_slice_points if min_points is None else min_points,
+        ransac_iterations=params.ransac_iterations,
+        seed=seed,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Local geometry and clustering
+# --------------------------------------------------------------------------------------------
+
+
+def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Indices of one point per occupied voxel of side ``voxel_m`` (the first met); all indices
+    when ``voxel_m`` is 0."""
+    if voxel_m <= 0 or len(points) == 0:
+        return np.arange(len(points))
+    keys = np.floor((points - points.min(axis=0)) / voxel_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def local_geometry(points: np.ndarray, radius_m: float, min_neighbours: int, max_neighbours: int = 24) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point: unit normal (eigenvector of the smallest covariance eigenvalue of its neighbours
+    within ``radius_m``), surface variation (smallest eigenvalue / sum) and neighbour count.
+
+    Points with fewer than ``min_neighbours`` neighbours get a NaN normal and variation.
+    """
+    n = len(points)
+    normals = np.full((n, 3), np.nan)
+    variation = np.full(n, np.nan)
+    if n == 0:
+        return normals, variation, np.zeros(0, dtype=np.int64)
+    tree = cKDTree(points)
+    dist, idx = tree.query(points, k=min(max_neighbours, n), distance_upper_bound=radius_m)
+    if idx.ndim == 1:
+        idx = idx[:, None]
+        dist = dist[:, None]
+    valid = np.isfinite(dist)
+    counts = valid.sum(axis=1)
+    enough = counts >= min_neighbours
+    if not enough.any():
+        return normals, variation, counts
+    sel = np.flatnonzero(enough)
+    nb = np.where(valid[sel], idx[sel], 0)
+    w = valid[sel].astype(np.float64)
+    pts = points[nb]  # (m, k, 3)
+    cnt = w.sum(axis=1)[:, None]
+    mean = (pts * w[..., None]).sum(axis=1) / cnt
+    q = (pts - mean[:, None, :]) * w[..., None]
+    cov = np.einsum("mki,mkj->mij", q, q) / cnt[..., None]
+    evals, evecs = np.linalg.eigh(cov)
+    normals[sel] = evecs[:, :, 0]
+    total = evals.sum(axis=1)
+    variation[sel] = np.where(total > 0, evals[:, 0] / np.maximum(total, 1e-30), np.nan)
+    return normals, variation, counts
+
+
+def connected_clusters(points: np.ndarray, distance_m: float) -> np.ndarray:
+    """Single-linkage cluster label per point (points closer than ``distance_m`` are linked)."""
+    n = len(points)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    pairs = cKDTree(points).query_pairs(distance_m, output_type="ndarray")
+    graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = csgraph.connected_components(graph, directed=False)
+    return labels
+
+
+# --------------------------------------------------------------------------------------------
+# Stem detection
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    base: np.ndarray
+    axis: np.ndarray
+    radius: float
+    n_good: int
+
+
+def _fit_axis(centres: np.ndarray, weights: np.ndarray, min_span_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Line x = x0 + bx * z, y = y0 + by * z through slice centres (x, y, z): (point at z=0, unit
+    direction up). With centres spanning less than ``min_span_m`` in height (a lean from them
+    would be mostly noise) the axis is vertical through their weighted mean."""
+    if len(centres) < 2 or np.ptp(centres[:, 2]) < max(min_span_m, 1e-6):
+        c = np.average(centres, axis=0, weights=weights)
+        return np.array([c[0], c[1], 0.0]), np.array([0.0, 0.0, 1.0])
+    z = centres[:, 2]
+    a = np.column_stack([np.ones(len(z)), z]) * np.sqrt(weights)[:, None]
+    sx, *_ = np.linalg.lstsq(a, centres[:, 0] * np.sqrt(weights), rcond=None)
+    sy, *_ = np.linalg.lstsq(a, centres[:, 1] * np.sqrt(weights), rcond=None)
+    direction = np.array([sx[1], sy[1], 1.0])
+    return np.array([sx[0], sy[0], 0.0]), direction / np.linalg.norm(direction)
+
+
+def _stem_from_cluster(pts: np.ndarray, hts: np.ndarray, ground: np.ndarray, params: StemParams, seed: int) -> Optional[_Candidate]:
+    """Fit a stem (axis, radius) to one cluster of vertical band points; None if it is no stem."""
+    lo, hi = float(hts.min()), float(hts.max())
+    if hi - lo < params.min_stem_extent_m:
+        return None
+    edges = np.arange(lo, hi + 1e-9, params.subslice_m)
+    if len(edges) < 2:
+        edges = np.array([lo, hi])
+    fits: list[tuple[float, float, float, float, float]] = []
+    for k in range(len(edges) - 1):
+        m = (hts >= edges[k]) & (hts < edges[k + 1] + (1e-9 if k == len(edges) - 2 else 0.0))
+        if m.sum() < params.detection_min_slice_points:
+            continue
+        f = _fit(pts[m, :2], params, seed + k, params.detection_min_arc_coverage, params.detection_min_slice_points)
+        if f.ok:
+            fits.append((f.centre[0], f.centre[1], float(pts[m, 2].mean()), f.radius_m, f.inlier_fraction * f.arc_coverage))
+    if len(fits) < params.min_good_subslices:
+        return None
+    arr = np.asarray(fits)
+    # consensus of the sub-slices: the largest (best-fitting) set of circles of about one radius,
+    # stacked along a plausible axis; clutter circles (twigs, foliage) fall out
+    radii, centres, z, score = arr[:, 3], arr[:, :2], arr[:, 2], arr[:, 4]
+    tan_lean = math.tan(math.radians(params.max_lean_deg))
+    best_set, best_score = None, -1.0
+    for i in range(len(arr)):
+        same_radius = np.abs(radii - radii[i]) <= params.max_radius_spread * radii[i] + 0.005
+        stacked = np.hypot(*(centres - centres[i]).T) <= 0.5 * radii[i] + 0.02 + np.abs(z - z[i]) * tan_lean
+        members = same_radius & stacked
+        total = float(score[members].sum())
+        if total > best_score:
+            best_set, best_score = members, total
+    assert best_set is not None
+    arr = arr[best_set]
+    if len(arr) < params.min_good_subslices:
+        return None
+    med = float(np.median(arr[:, 3]))
+    # the centres must line up along the axis (one stray centre may be dropped); over a short
+    # stretch a vertical axis is tried first, the fitted lean only if the centres need it
+    limit = max(0.3 * med, 0.02)
+    found = None
+    for min_span in ((params.min_lean_span_m, 0.0) if params.min_lean_span_m > 0 else (0.0,)):
+        sub = arr
+        for _ in range(2):
+            point0, axis = _fit_axis(sub[:, :3], sub[:, 4], min_span)
+            on_line = point0[None, :2] + ((sub[:, 2] - point0[2]) / axis[2])[:, None] * axis[None, :2]
+            off = np.hypot(*(sub[:, :2] - on_line).T)
+            if off.max() <= limit:
+                found = (point0, axis, sub)
+                break
+            sub = sub[off < off.max()]
+            if len(sub) < params.min_good_subslices:
+                break
+        if found is not None:
+            break
+    if found is None:
+        return None
+    point0, axis, arr = found
+    lean = math.degrees(math.acos(min(1.0, axis[2])))
+    if lean > params.max_lean_deg:
+        return None
+    ground_z = float(np.median(ground))
+    t = (ground_z - point0[2]) / axis[2]
+    base = point0 + t * axis
+    return _Candidate(base=base, axis=axis, radius=float(np.median(arr[:, 3])), n_good=len(arr))
+
+
+def _axis_distance(points: np.ndarray, base: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distance along the axis from the base, distance from the axis) of each point."""
+    d = points - base
+    s = d @ axis
+    radial = np.linalg.norm(d - s[:, None] * axis, axis=1)
+    return s, radial
+
+
+def detect_stems(points: Any, heights: Any, params: StemParams = StemParams(), progress: Optional[Progress] = None) -> list[Stem]:
+    """Detect the stems of a point cloud around breast height.
+
+    ``points`` (N, 3) in metres (local frame, z up) and ``heights`` (N,) their normalised heights.
+    Returns the stems sorted by x then y, ids 1, 2, ...; an empty list when none is found.
+    Raises :class:`ScanDataError` for empty arrays, mismatched shapes or NaN values.
+    """
+    p, h = check_cloud(points, heights)
+    assert h is not None
+    report = progress or Progress()
+    band_idx = np.flatnonzero((h >= params.band_low_m) & (h <= params.band_high_m))
+    if len(band_idx) < params.min_cluster_points:
+        return []
+    report(0.0, "finding vertical surfaces around breast height")
+    thin = band_idx[voxel_thin(p[band_idx], params.detection_voxel_m)]
+    normals, variation, _ = local_geometry(p[thin], params.neighbour_radius_m, params.min_neighbours)
+    with np.errstate(invalid="ignore"):
+        vertical = (np.abs(normals[:, 2]) <= math.sin(math.radians(params.max_normal_tilt_deg))) & (variation <= params.max_surface_variation)
+    cand_idx = thin[vertical]
+    if len(cand_idx) < params.min_cluster_points:
+        return []
+    report(0.3, "clustering stem candidates")
+    labels = connected_clusters(p[cand_idx], params.cluster_distance_m)
+    order = np.argsort(labels, kind="stable")
+    splits = np.flatnonzero(np.diff(labels[order])) + 1
+    groups = [g for g in np.split(order, splits) if len(g) >= params.min_cluster_points]
+    candidates: list[_Candidate] = []
+    thin_pts, thin_h = p[thin], h[thin]
+    band_tree = cKDTree(thin_pts[:, :2])
+    for gi, g in enumerate(groups):
+        report(0.3 + 0.6 * gi / max(len(groups), 1), "fitting stem circles")
+        idx = cand_idx[g]
+        for attempt in range(3):  # a cluster may hold more than one stem
+            if len(idx) < params.min_cluster_points:
+                break
+            pts = p[idx]
+            cand = _stem_from_cluster(pts, h[idx], pts[:, 2] - h[idx], params, seed=1000 * gi + 10 * attempt)
+            if cand is None:
+                break
+            _, radial = _axis_distance(pts, cand.base, cand.axis)
+            if _interior_fraction(thin_pts, thin_h, band_tree, cand, params) <= params.max_interior_fraction:
+                candidates.append(cand)
+            # a rejected "circle" of foliage may still surround a stem: search the rest
+            idx = idx[radial > cand.radius + 2 * params.inlier_tolerance_m]
+    report(0.9, "merging duplicate stems")
+    stems = _merge_candidates(candidates, p, h, band_idx, params)
+    report(1.0, f"{len(stems)} stems")
+    return stems
+
+
+def _interior_fraction(points: np.ndarray, heights: np.ndarray, tree_xy: cKDTree, cand: _Candidate, params: StemParams) -> float:
+    """Points inside a candidate stem (closer to its axis than its radius minus a margin) per
+    point on its surface, in the detection band: about 0 for a trunk (nothing can be seen inside
+    wood), large for a ring of foliage or twigs around something else."""
+    bh = cand.base + (params.breast_height_m / cand.axis[2]) * cand.axis
+    lean_reach = (params.band_high_m - params.band_low_m) * math.sqrt(max(0.0, 1.0 - cand.axis[2] ** 2)) / cand.axis[2]
+    idx = np.asarray(tree_xy.query_ball_point(bh[:2], cand.radius + lean_reach + 0.05), dtype=np.int64)
+    if len(idx) == 0:
+        return 0.0
+    idx = idx[(heights[idx] >= params.band_low_m) & (heights[idx] <= params.band_high_m)]
+    _, radial = _axis_distance(points[idx], cand.base, cand.axis)
+    surface = int((np.abs(radial - cand.radius) <= 2 * params.inlier_tolerance_m).sum())
+    inside = int((radial < cand.radius - max(0.4 * cand.radius, 3 * params.inlier_tolerance_m)).sum())
+    return inside / max(surface, 1)
+
+
+def _merge_candidates(candidates: list[_Candidate], p: np.ndarray, h: np.ndarray, band_idx: np.ndarray, params: StemParams) -> list[Stem]:
+    """Merge candidates whose breast-height circles overlap; attach the band points of each."""
+    if not candidates:
+        return []
+    bh = np.array([c.base + (params.breast_height_m / c.axis[2]) * c.axis for c in candidates])
+    radii = np.array([c.radius for c in candidates])
+    dxy = np.hypot(bh[:, None, 0] - bh[None, :, 0], bh[:, None, 1] - bh[None, :, 1])
+    overlap = dxy < (radii[:, None] + radii[None, :]) + params.inlier_tolerance_m
+    _, comp = csgraph.connected_components(sparse.csr_matrix(overlap), directed=False)
+    band_pts = p[band_idx]
+    tree = cKDTree(band_pts[:, :2])
+    # ground heights under a thinned copy of the cloud (z - normalised height = the ground model)
+    sample = voxel_thin(p, 0.1)
+    ground_xy = p[sample, :2]
+    ground_z_of = p[sample, 2] - h[sample]
+    ground_tree = cKDTree(ground_xy)
+    stems: list[tuple[np.ndarray, np.ndarray, float, int, np.ndarray]] = []
+    for c in np.unique(comp):
+        members = [candidates[i] for i in np.flatnonzero(comp == c)]
+        weights = np.array([m.n_good for m in members], dtype=np.float64)
+        best = members[int(np.argmax(weights))]
+        if len(members) > 1:
+            base = np.average([m.base for m in members], axis=0, weights=weights)
+            axis = np.average([m.axis for m in members], axis=0, weights=weights)
+            axis /= np.linalg.norm(axis)
+            radius = float(np.average([m.radius for m in members], weights=weights))
+        else:
+            base, axis, radius = best.base, best.axis, best.radius
+        # ground at the stem: the ground model a little away from the trunk (right at the trunk a
+        # ground model is often lifted by the lowest bark points), then the base on the axis
+        centre_bh = base + (params.breast_height_m / axis[2]) * axis
+        ring = np.asarray(ground_tree.query_ball_point(centre_bh[:2], radius + params.ground_ring_m[1]), dtype=np.int64)
+        if len(ring):
+            dist = np.hypot(*(ground_xy[ring] - centre_bh[:2]).T)
+            ring = ring[dist >= radius + params.ground_ring_m[0]]
+        if len(ring) >= 10:
+            ground_z = float(np.median(ground_z_of[ring]))
+            base = base + ((ground_z - base[2]) / axis[2]) * axis
+            centre_bh = base + (params.breast_height_m / axis[2]) * axis
+        # the stem's band points: within radius + tolerance of the axis
+        near = np.asarray(tree.query_ball_point(centre_bh[:2], radius + 0.3 + (params.band_high_m - params.breast_height_m) * math.tan(math.acos(min(1.0, axis[2])))), dtype=np.int64)
+        if len(near):
+            _, radial = _axis_distance(band_pts[near], base, axis)
+            near = near[radial <= radius + 2 * params.inlier_tolerance_m + 0.01]
+        stems.append((base, axis, radius, int(weights.sum()), band_idx[np.sort(near)]))
+    # a thin vertical thing right beside a stem (a sucker, a branch stub, a climber) is not a tree
+    kept: list[tuple[np.ndarray, np.ndarray, float, int, np.ndarray]] = []
+    for cand in sorted(stems, key=lambda c: -c[2]):
+        c_bh = cand[0] + (params.breast_height_m / cand[1][2]) * cand[1]
+        gaps = [
+            math.hypot(*(c_bh[:2] - (k[0] + (params.breast_height_m / k[1][2]) * k[1])[:2]))
+            - cand[2]
+            - k[2]
+            for k in kept
+        ]
+        if not gaps or min(gaps) >= params.min_stem_gap_m:
+            kept.append(cand)
+    stems = kept
+    stems.sort(key=lambda s: (round(float(s[0][0]), 3), round(float(s[0][1]), 3)))
+    return [Stem(id=i + 1, base=b, axis=a, radius_m=r, point_indices=ix, n_good_slices=ng) for i, (b, a, r, ng, ix) in enumerate(stems)]
+
+
+# --------------------------------------------------------------------------------------------
+# DBH and stem curves
+# --------------------------------------------------------------------------------------------
+
+
+def _perpendicular_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors spanning the plane perpendicular to ``axis`` (u close to +x)."""
+    ref = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = ref - (ref @ axis) * axis
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    return u, v
+
+
+def _section(
+    p: np.ndarray,
+    stem: Stem,
+    s: float,
+    centre_uv: tuple[float, float],
+    search_radius: float,
+    params: StemParams,
+    tree: Optional[cKDTree],
+    seed: int,
+) -> tuple[Optional[CircleFit], np.ndarray, int]:
+    """Fit a circle to the slice perpendicular to the stem axis at ``s`` (m along the axis), using
+    the points within ``search_radius`` of ``centre_uv`` (in the slice plane). A slice holding
+    fewer than ``sparse_slice_points`` points is widened to ``max_slice_half_width_m`` (a thin or
+    distant stem has few points per slice; its taper over a few centimetres is negligible).
+    Returns the fit (None when the slice is too sparse), the world centre and the point count."""
+    u, v = _perpendicular_basis(stem.axis)
+    origin = stem.point_at(s)
+    world_centre = origin + centre_uv[0] * u + centre_uv[1] * v
+    half = max(params.slice_half_width_m, params.max_slice_half_width_m)
+    reach = math.hypot(search_radius, half) + 1e-6
+    if tree is not None:
+        idx = np.asarray(tree.query_ball_point(world_centre, reach), dtype=np.int64)
+        q = p[idx] - origin
+    else:
+        q = p - origin
+    if len(q) == 0:
+        return None, world_centre, 0
+    along = q @ stem.axis
+    pu, pv = q @ u, q @ v
+    near_axis = np.hypot(pu - centre_uv[0], pv - centre_uv[1]) <= search_radius
+    m = (np.abs(along) <= params.slice_half_width_m) & near_axis
+    n = int(m.sum())
+    if n < params.sparse_slice_points and half > params.slice_half_width_m:
+        m = (np.abs(along) <= half) & near_axis
+        n = int(m.sum())
+    if n < max(params.min_slice_points, 3):
+        return None, world_centre, n
+    fit = _fit(np.column_stack([pu[m], pv[m]]), params, seed)
+    world_centre = origin + fit.centre[0] * u + fit.centre[1] * v
+    return fit, world_centre, n
+
+
+def _stem_section_problems(fit: CircleFit, stem: Stem, expected_uv: tuple[float, float], params: StemParams) -> list[str]:
+    """Reasons why a circle fitted to a slice of ``stem`` is not that stem's section: its own
+    quality flags, a centre off the stem axis, a radius far from the detection band's."""
+    reasons = list(fit.reasons)
+    if fit.ok:
+        off = math.hypot(fit.centre[0] - expected_uv[0], fit.centre[1] - expected_uv[1])
+        if off > 0.5 * stem.radius_m + params.inlier_tolerance_m:
+            reasons.append("off the stem axis")
+        if abs(fit.radius_m - stem.radius_m) > params.max_dbh_band_deviation * stem.radius_m + 0.005:
+            reasons.append("disagrees with the stem radius in the detection band")
+    return reasons
+
+
+def measure_dbh(points: Any, heights: Any, stem: Stem, params: StemParams = StemParams(), *, search_tree: Optional[cKDTree] = None) -> DbhMeasurement:
+    """DBH of ``stem`` (metres) from circles fitted to slices perpendicular to its axis.
+
+    The slices lie at ``params.breast_height_m`` along the axis from the stem base and
+    ``dbh_slice_offsets_m`` above and below it; each fit must pass the circle checks, be centred on
+    the stem axis and agree with the detection band's radius. The DBH is the median of the good
+    fits (breast height and the slices within 0.1 m of it), which keeps a branch stub or a clump
+    of twigs in one slice from deciding it; good fits disagreeing by more than
+    ``max_dbh_slice_spread`` make it not ok ("inconsistent slices"). When no slice within 0.1 m is
+    good, the nearest good farther slice is used and ``note`` says so. ``heights`` are accepted
+    for a uniform interface and validated; the slices follow the stem's own base, so leaning
+    stems and slopes are measured along the stem.
+    """
+    p, _ = check_cloud(points, heights)
+    tree = search_tree if search_tree is not None else cKDTree(p)
+    search = stem.radius_m * 1.25 + params.search_margin_m
+    bh = params.breast_height_m
+    offsets = sorted({0.0, *params.dbh_slice_offsets_m}, key=lambda o: (abs(o), -o))
+    good: list[tuple[float, float, CircleFit, np.ndarray]] = []
+    first_reasons: Optional[tuple[str, ...]] = None
+    first_fit: Optional[CircleFit] = None
+    first_centre = stem.point_at(bh)
+    for k, offset in enumerate(offsets):
+        if good and abs(offset) > 0.1 + 1e-9:
+            break
+        fit, centre, n = _section(p, stem, bh + offset, (0.0, 0.0), search, params, tree, seed=stem.id * 100 + k)
+        reasons = (f"too few points at breast height ({n})",) if fit is None else tuple(_stem_section_problems(fit, stem, (0.0, 0.0), params))
+        if offset == 0.0:
+            first_reasons, first_fit, first_centre = reasons, fit, centre
+        if fit is not None and not reasons:
+            good.append((offset, fit.diameter_m, fit, centre))
+    if not good:
+        dbh = first_fit.diameter_m if first_fit is not None and math.isfinite(first_fit.radius_m) else float("nan")
+        return DbhMeasurement(stem.id, dbh, first_centre, bh, first_fit, False, first_reasons or ("no slice could be fitted",))
+    near = [g for g in good if abs(g[0]) <= 0.1 + 1e-9]
+    note = ""
+    if not near:
+        near = good[:1]
+        note = f"measured {bh + near[0][0]:.2f} m along the stem: the slices within 0.1 m of breast height failed ({', '.join(first_reasons or ())})"
+    diameters = np.array([g[1] for g in near])
+    dbh = float(np.median(diameters))
+    main = min(near, key=lambda g: abs(g[1] - dbh))
+    reasons_out: list[str] = []
+    if len(diameters) > 1 and (diameters.max() - diameters.min()) > params.max_dbh_slice_spread * dbh:
+        reasons_out.append("inconsistent slices")
+    return DbhMeasurement(stem.id, dbh, main[3], bh + main[0], main[2], not reasons_out, tuple(reasons_out), note)
+
+
+def _running_median(values: np.ndarray, window: int) -> np.ndarray:
+    """Median of each value's window (edges: the window shrinks), NaN-free input."""
+    half = window // 2
+    out = np.empty_like(values)
+    for i in range(len(values)):
+        out[i] = np.median(values[max(0, i - half) : i + half + 1])
+    return out
+
+
+def stem_curve(points: Any, heights: Any, stem: Stem, params: StemParams = StemParams(), *, search_tree: Optional[cKDTree] = None) -> StemCurve:
+    """Stem diameters every ``params.stem_curve_step_m`` along the axis of ``stem``, from
+    ``params.stem_curve_start_m`` up to where the fits fail (``max_failed_sections`` in a row).
+
+    Each section's slice is perpendicular to the axis and centred on the stem's centre line as
+    followed so far (the line through the last good centres, so a bending stem is followed).
+    Raw fits are kept; the accepted curve drops sections that fail the circle checks, lie off the
+    stem line, are much noisier than the stem's other sections, grow by more than ``max_section_growth`` over the accepted section below, deviate
+    by more than ``max_taper_deviation`` from the running median of their neighbours or from a
+    robust taper (:func:`robust_taper`), or stand alone above a gap at the top; gaps between
+    accepted sections are filled by linear interpolation. ``search_tree`` (a ``cKDTree`` of
+    ``points``) may be passed to reuse one across stems.
+    """
+    p, _ = check_cloud(points, heights)
+    tree = search_tree if search_tree is not None else cKDTree(p)
+    u, v = _perpendicular_basis(stem.axis)
+    step = params.stem_curve_step_m
+    s_top = float(((p - stem.base) @ stem.axis).max())
+    s_values: list[float] = []
+    raw: list[float] = []
+    rms: list[float] = []
+    centres: list[np.ndarray] = []
+    reasons: list[str] = []
+    good_s: list[float] = []
+    good_uv: list[tuple[float, float]] = []
+    good_r: list[float] = []
+    failures = 0
+    s = params.stem_curve_start_m
+    k = 0
+    while s <= s_top and failures < params.max_failed_sections:
+        # predicted centre (in the slice plane) and radius from the sections below
+        if len(good_s) >= 2:
+            ss = np.asarray(good_s[-4:])
+            uv = np.asarray(good_uv[-4:])
+            if np.ptp(ss) > 0:
+                cu = np.polyfit(ss, uv[:, 0], 1)
+                cv = np.polyfit(ss, uv[:, 1], 1)
+                pred = (float(np.polyval(cu, s)), float(np.polyval(cv, s)))
+            else:
+                pred = (float(uv[-1, 0]), float(uv[-1, 1]))
+            r_pred = float(np.median(good_r[-3:]))
+        elif good_s:
+            pred, r_pred = good_uv[-1], good_r[-1]
+        else:
+            pred, r_pred = (0.0, 0.0), stem.radius_m * 1.3
+        search = r_pred * 1.25 + params.search_margin_m
+        fit, centre, n = _section(p, stem, s, pred, search, params, tree, seed=stem.id * 7919 + k)
+        why = ""
+        if fit is None:
+            why = f"too few points ({n})"
+        elif not fit.ok:
+            why = ", ".join(fit.reasons)
+        else:
+            off = math.hypot(fit.centre[0] - pred[0], fit.centre[1] - pred[1])
+            if good_s and off > 0.5 * r_pred + params.inlier_tolerance_m:
+                why = "off the stem line"
+            elif good_s and fit.radius_m > r_pred * (1.0 + params.max_section_growth) + 0.005:
+                why = "wider than the stem below"
+        s_values.append(s)
+        centres.append(centre if fit is not None and why == "" else np.full(3, np.nan))
+        raw.append(fit.diameter_m if fit is not None and why == "" else float("nan"))
+        rms.append(fit.rms_residual_m if fit is not None and why == "" else float("nan"))
+        reasons.append(why)
+        if why:
+            failures += 1
+        else:
+            failures = 0
+            good_s.append(s)
+            good_uv.append(fit.centre)  # type: ignore[union-attr]
+            good_r.append(fit.radius_m)  # type: ignore[union-attr]
+        s += step
+        k += 1
+    return _accept_curve(stem, np.asarray(s_values), np.asarray(raw), np.asarray(rms), np.asarray(centres).reshape(-1, 3), reasons, params)
+
+
+def robust_taper(s: np.ndarray, d: np.ndarray, *, iterations: int = 5) -> np.ndarray:
+    """A smooth taper through stem-curve sections: diameters ``d`` at positions ``s`` (metres
+    along the axis) fitted by a line (a parabola when there are 8 or more sections over more than
+    3 m) with iteratively reweighted least squares (Huber weights, scale from the MAD), so a few
+    bad sections do not pull it. Returns the fitted diameters at ``s``."""
+    s = np.asarray(s, dtype=np.float64)
+    d = np.asarray(d, dtype=np.float64)
+    if len(s) < 3 or np.ptp(s) <= 0:
+        return np.full(len(s), float(np.median(d)) if len(d) else np.nan)
+    degree = 2 if len(s) >= 8 and np.ptp(s) > 3.0 else 1
+    w = np.ones(len(s))
+    fitted = d.copy()
+    for _ in range(iterations):
+        coeffs = np.polyfit(s, d, degree, w=np.sqrt(w))
+        fitted = np.polyval(coeffs, s)
+        res = d - fitted
+        scale = max(1.4826 * float(np.median(np.abs(res))), 0.01 * float(np.median(d)), 1e-4)
+        k = 1.5 * scale
+        w = np.where(np.abs(res) <= k, 1.0, k / np.maximum(np.abs(res), 1e-12))
+    return fitted
+
+
+def _accept_curve(stem: Stem, s: np.ndarray, raw: np.ndarray, rms: np.ndarray, centres: np.ndarray, reasons: list[str], params: StemParams) -> StemCurve:
+    """Taper checks on the raw sections; interpolation of the rejected ones (see stem_curve)."""
+    reasons = list(reasons)
+    accepted = np.isfinite(raw)
+    # a section much noisier than the rest of the stem holds a branch whorl or foliage
+    if accepted.sum() >= 3:
+        typical = float(np.median(rms[accepted]))
+        for j in np.flatnonzero(accepted & (rms > params.max_relative_residual * typical)):
+            accepted[j] = False
+            reasons[j] = "noisier than the rest of the stem"
+    # a short run of sections above a gap of failed ones at the top is not trusted
+    ok = np.flatnonzero(accepted)
+    while len(ok) >= 2:
+        run_start = len(ok) - 1
+        while run_start > 0 and ok[run_start] - ok[run_start - 1] == 1:
+            run_start -= 1
+        gap = ok[run_start] - ok[run_start - 1] - 1 if run_start > 0 else 0
+        if run_start > 0 and gap >= 2 and len(ok) - run_start < 2:
+            for j in ok[run_start:]:
+                accepted[j] = False
+                reasons[j] = "isolated section above a gap"
+            ok = np.flatnonzero(accepted)
+        else:
+            break
+    if accepted.sum() >= 3:
+        idx = np.flatnonzero(accepted)
+        med = _running_median(raw[idx], params.taper_window)
+        above_butt = s[idx] >= 1.0
+        taper = np.full(len(idx), np.nan)
+        if above_butt.sum() >= 3:
+            taper[above_butt] = robust_taper(s[idx][above_butt], raw[idx][above_butt])
+        dev = np.abs(raw[idx] - med) / med
+        dev_taper = np.where(np.isfinite(taper), np.abs(raw[idx] - taper) / np.abs(taper), 0.0)
+        for j, bad_med, bad_taper in zip(idx, dev > params.max_taper_deviation, dev_taper > params.max_taper_deviation):
+            if bad_med or bad_taper:
+                accepted[j] = False
+                reasons[j] = "deviates from the taper"
+    # growth check (stems taper upward; the butt flare too)
+    last = float("nan")
+    for j in np.flatnonzero(accepted):
+        if math.isfinite(last) and raw[j] > last * (1.0 + params.max_section_growth):
+            accepted[j] = False
+            reasons[j] = "wider than the section below"
+            continue
+        last = raw[j]
+    # trailing rejected / failed sections end the curve
+    diameter = np.full(len(s), np.nan)
+    interpolated = np.zeros(len(s), dtype=bool)
+    ok = np.flatnonzero(accepted)
+    if len(ok):
+        diameter[ok] = raw[ok]
+        inside = np.arange(ok[0], ok[-1] + 1)
+        gaps = inside[~accepted[inside]]
+        if len(gaps):
+            diameter[gaps] = np.interp(s[gaps], s[ok], raw[ok])
+            interpolated[gaps] = True
+    heights = s * float(stem.axis[2])
+    return StemCurve(
+        stem_id=stem.id,
+        s_m=s,
+        heights_m=heights,
+        raw_diameter_m=raw,
+        diameter_m=diameter,
+        accepted=accepted,
+        interpolated=interpolated,
+        centres=centres,
+        reasons=tuple(reasons),
+    )
