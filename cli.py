@@ -307,6 +307,8 @@ def cmd_trees(args: argparse.Namespace) -> int:
     from .engine.trees.inventory import TreeParams, measure_trees
 
     cloud = read_scan(args.cloud, unit_scale=UNITS[args.units])
+    if args.transform:
+        cloud = cloud.transformed(_read_matrix(args.transform))
     params = TreeParams()
     if args.no_cylinders:
         params = dataclasses.replace(params, cylinder_models=False)
@@ -571,14 +573,25 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    """System A: a simulated TLS pair registered from trunk shadows; System B: a simulated plot seen
+    from the ground and from a UAV, co-registered, fused and measured. Both against the truth."""
+    out = Path(args.out)
+    codes = []
+    if args.system in ("a", "both"):
+        codes.append(_demo_system_a(out, args))
+    if args.system in ("b", "both"):
+        codes.append(_demo_system_b(out / "system_b", args))
+    return max(codes)
+
+
+def _demo_system_a(out: Path, args: argparse.Namespace) -> int:
     """Simulate a mixed forest pair 12 m apart, register it, and compare with the truth."""
     from .engine.simulate import relative_pose, simulate_plot
     from .engine.transform import rigid_errors
 
-    out = Path(args.out)
     data = out / "scans"
     data.mkdir(parents=True, exist_ok=True)
-    print(f"simulating a '{args.preset}' plot with two scans 12 m apart in {data} ...")
+    print(f"System A: simulating a '{args.preset}' plot with two scans 12 m apart in {data} ...")
     plot = simulate_plot(args.preset, [(0.0, 0.0), (12.0, 3.0)], out_dir=data, seed=args.seed, angular_step_deg=args.step, size_m=50.0)
     names = [s.scan.name for s in plot.scans]
     code = main(["register", str(data / f"{names[0]}.laz"), str(data / f"{names[1]}.laz"), "--out", str(out / "registration")] + (["--quiet"] if args.quiet else []))
@@ -589,6 +602,49 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"against the simulator's truth: rotation error {rot:.4f} deg, translation error {100 * trans:.2f} cm")
         print(f"figure: {out / 'registration' / 'registration.png'}")
     return code
+
+
+def _demo_system_b(out: Path, args: argparse.Namespace) -> int:
+    """A 30 m plot: merged TLS scans (ground-based, own frame, turned 120 deg and shifted 7 m) and
+    a UAV flight at 86 m; co-register, fuse, measure the trees ground-only and fused, and
+    evaluate both against the simulator's trees (the 'field data')."""
+    from .engine.io import write_scan
+    from .engine.simulate.platforms import simulate_coregistration_case
+    from .engine.transform import rigid_errors
+
+    quiet = ["--quiet"] if args.quiet else []
+    data = out / "data"
+    data.mkdir(parents=True, exist_ok=True)
+    print(f"System B: simulating a plot seen by TLS and by a UAV in {data} ...")
+    case = simulate_coregistration_case(
+        "planted_conifer", seed=args.seed, size_m=30.0, ground_platform="tls", ground_extent_m=20.0,
+        heading_deg=120.0, offset_m=(5.0, -5.0, 1.0), uav_density_scale=0.5, tls_step_deg=0.25,
+    )
+    write_scan(case.ground, data / "ground.laz")
+    write_scan(case.uav, data / "uav.laz")
+    field = data / "field.csv"
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["tree_id", "x", "y", "dbh_m", "height_m"])
+    for t in case.scene.trees:
+        if abs(t.x) < 10.0 and abs(t.y) < 10.0:
+            w.writerow([f"T{t.id}", f"{t.x + case.world_offset[0]:.3f}", f"{t.y + case.world_offset[1]:.3f}", f"{t.dbh_m:.4f}", f"{t.height_m:.3f}"])
+    field.write_text(buf.getvalue())
+    code = main(["coregister", str(data / "ground.laz"), str(data / "uav.laz"), "--out", str(out / "coregistration")] + quiet)
+    if code != 0:
+        return code
+    result = json.loads((out / "coregistration" / "result.json").read_text())
+    rot, trans = rigid_errors(np.array(result["matrix"]), case.matrix)
+    print(f"against the simulator's truth: rotation error {rot:.4f} deg, translation error {100 * trans:.2f} cm")
+    transform = str(out / "coregistration" / "transform.txt")
+    main(["fuse", str(data / "ground.laz"), str(data / "uav.laz"), "--transform", transform, "--out", str(out / "fused.laz")] + quiet)
+    main(["trees", str(data / "ground.laz"), "--transform", transform, "--out", str(out / "trees_ground")] + quiet)
+    main(["trees", str(out / "fused.laz"), "--out", str(out / "trees_fused")] + quiet)
+    main(["evaluate", str(out / "trees_ground" / "trees.csv"), str(field), "--name", "ground",
+          "--also", f"fused={out / 'trees_fused' / 'trees.csv'}", "--out", str(out / "evaluation")])
+    print(f"reports: {out / 'coregistration' / 'report.html'}, {out / 'trees_fused' / 'report.html'}, "
+          f"{out / 'evaluation' / 'report.html'}")
+    return 0
 
 
 def cmd_gui(args: argparse.Namespace) -> int:
@@ -736,6 +792,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("trees", help="detect and measure trees (DBH, height, crown, cylinder models) in a ground-based or fused cloud")
     p.add_argument("cloud", help="the cloud (LAS/LAZ/PLY/E57/...), ground included")
     p.add_argument("--out", required=True, help="output folder (trees.csv, stem_curves.csv, cylinders/, report.html)")
+    p.add_argument("--transform", help="move the cloud first (transform.txt of `coregister`: into the UAV/field frame)")
     p.add_argument("--field", help="field records CSV: evaluate the trees against them into OUT/evaluation")
     p.add_argument("--no-cylinders", action="store_true", help="skip the cylinder models (faster; no volume)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
@@ -764,11 +821,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("demo", help="simulate a plot, register a pair, compare with the truth")
+    p = sub.add_parser("demo", help="simulated data through both systems (TLS pair; ground/UAV co-registration, fusion, trees), checked against the truth")
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     p.add_argument("--preset", default="mixed_temperate")
     p.add_argument("--step", type=float, default=0.15, help="angular step of the simulated scans, degrees")
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--system", choices=("a", "b", "both"), default="both", help="System A (TLS pair), B (ground/UAV, trees) or both")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_demo)
 

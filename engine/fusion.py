@@ -88,6 +88,8 @@ class FusionParams:
     sigma: float = _p(0.625, "", 0.0, 1.0, "Probability threshold of eq. 6 (method 'paper'); Pr never exceeds 1 - 1/e = 0.632, see statistical_noise", "sigma")
     min_neighbours: int = _p(2, "points", 0, 1000, "Method 'paper': points with fewer neighbours than this within nu are isolated: noise")
     max_neighbours: int = _p(64, "points", 4, 1000, "Method 'paper': at most this many (the nearest) neighbours within nu are used")
+    canopy_top_cell_m: float = _p(0.5, "m", 0.0, 10.0, "The highest points of every cell of this size (the canopy surface, tree tops) are never removed as noise; 0 = no protection")
+    canopy_top_points: int = _p(3, "points", 1, 1000, "How many of the highest points per cell are protected")
     noise_sources: tuple[int, ...] = _p((GROUND, UAV), "", 1, 2, "Sources whose points the noise filter may remove (the statistics use every point)")
     # --- work size
     batch_points: int = _p(1_000_000, "points", 1000, 100_000_000, "Points handled at once (memory bound)")
@@ -510,6 +512,8 @@ def fuse(
     idx_r = np.flatnonzero(keep_r)
     prob_r, noise_r = statistical_noise(pts[idx_r], params, prog.sub(0.5, 1.0))
     noise_r &= np.isin(src[idx_r], params.noise_sources)
+    if params.canopy_top_cell_m > 0:
+        noise_r &= ~canopy_top(pts[idx_r], params.canopy_top_cell_m, params.canopy_top_points)
     seconds["noise"] = time.perf_counter() - t0
 
     kept = idx_r[~noise_r]
@@ -547,6 +551,25 @@ def fuse(
         params=params,
         seconds=seconds,
     )
+
+
+def canopy_top(points: np.ndarray, cell_m: float, per_cell: int) -> np.ndarray:
+    """Mask of the ``per_cell`` highest points of every ``cell_m`` XY cell: the canopy surface
+    (tree tops), which the UAV sees sparsely and which a density-based noise test would otherwise
+    thin out exactly where the UAV adds what the ground-based cloud lacks."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    ij = np.floor((points[:, :2] - points[:, :2].min(axis=0)) / cell_m).astype(np.int64)
+    flat = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    order = np.lexsort((-points[:, 2], flat))
+    f = flat[order]
+    start = np.ones(len(f), dtype=bool)
+    start[1:] = f[1:] != f[:-1]
+    run_start = np.maximum.accumulate(np.where(start, np.arange(len(f)), 0))
+    rank = np.arange(len(f)) - run_start
+    mask = np.zeros(len(points), dtype=bool)
+    mask[order[rank < per_cell]] = True
+    return mask
 
 
 def _check_extra(extra: Optional[Mapping[str, np.ndarray]], n: int, what: str) -> dict[str, np.ndarray]:

@@ -190,6 +190,26 @@ class Scan:
             meta=self.meta,
         )
 
+    def transformed(self, matrix: np.ndarray) -> "Scan":
+        """This scan moved by a rigid 4x4 ``matrix`` acting on *file* coordinates
+        (``p_new = matrix @ p_file``), e.g. a co-registration result; the new origin shift is the
+        old one moved and rounded to whole metres, so local coordinates stay small."""
+        m = np.asarray(matrix, dtype=np.float64)
+        rot, t = m[:3, :3], m[:3, 3]
+        moved_shift = rot @ self.origin_shift + t
+        new_shift = np.round(moved_shift)
+        offset = moved_shift - new_shift
+        return Scan(
+            points=_readonly(np.ascontiguousarray(self.points @ rot.T + offset)),
+            scanner_position=rot @ self.scanner_position + offset,
+            origin_shift=new_shift,
+            intensity=self.intensity,
+            source=self.source,
+            name=self.name,
+            pose=None,
+            meta={**self.meta, "transformed_by": m.tolist()},
+        )
+
     def __repr__(self) -> str:
         src = f", source={str(self.source)!r}" if self.source else ""
         return f"Scan(name={self.name!r}, points={len(self)}{src})"

@@ -4,7 +4,7 @@ Ground is classified with the cloth simulation filter (CSF, Zhang et al. 2016; t
 ``cloth-simulation-filter`` package): a cloth dropped on the upside-down cloud settles on the
 terrain, points within ``class_threshold_m`` of it are ground. It works alike for TLS, backpack,
 handheld and UAV clouds (the UAV sees few ground points under a canopy; the cloth bridges the gaps).
-The DEM is a regular grid (default 0.5 m, the paper's resolution) of the mean ground height per
+The DEM is a regular grid (default 0.5 m, the paper's resolution) of the median ground height per
 cell, holes filled by linear interpolation and, outside the convex hull of the ground, by the
 nearest cell.
 
@@ -210,7 +210,7 @@ def build_dem(
     resolution_m: float = 0.5,
     extent: Optional[tuple[float, float, float, float]] = None,
 ) -> Dem:
-    """A DEM of cell ``resolution_m`` from ground points: the mean height per cell, holes filled
+    """A DEM of cell ``resolution_m`` from ground points: the median height per cell, holes filled
     linearly inside the ground's convex hull and by the nearest cell outside.
 
     ``extent`` (xmin, xmax, ymin, ymax) defaults to the ground points' bounding box.
@@ -232,11 +232,14 @@ def build_dem(
     col = np.clip(((g[:, 0] - x0) / resolution_m).astype(np.int64), 0, nx - 1)
     row = np.clip(((g[:, 1] - y0) / resolution_m).astype(np.int64), 0, ny - 1)
     flat = row * nx + col
-    sums = np.bincount(flat, weights=g[:, 2], minlength=nx * ny)
-    counts = np.bincount(flat, minlength=nx * ny)
+    # the median height per cell: robust to the lowest bark points of a stem base taken as ground
+    order = np.lexsort((g[:, 2], flat))
+    cells, first, counts = np.unique(flat[order], return_index=True, return_counts=True)
+    z_sorted = g[order, 2]
+    lower = z_sorted[first + (counts - 1) // 2]
+    upper = z_sorted[first + counts // 2]
     heights = np.full(nx * ny, np.nan)
-    filled = counts > 0
-    heights[filled] = sums[filled] / counts[filled]
+    heights[cells] = 0.5 * (lower + upper)
     heights = heights.reshape(ny, nx)
     holes = np.isnan(heights)
     if holes.any():
