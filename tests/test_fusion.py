@@ -328,3 +328,26 @@ def test_bad_input_and_parameters():
         FusionParams(cube_side_m=0.02, redundancy_distance_m=0.05)
     with pytest.raises(ParameterError):
         FusionParams(keep_source=3)
+
+
+def test_tree_tips_the_uav_adds_survive_the_noise_filter():
+    """A dense ground-based cone (a conifer crown) and a sparse UAV sample of its upper part,
+    reaching the tip the ground-based cloud never saw: the highest UAV points stay in the fused
+    cloud, so the fused tree is as tall as the true one; without the protection they go."""
+    from forestreg.engine.fusion import FusionParams, fuse
+
+    rng = np.random.default_rng(7)
+
+    def cone(n: int, z_lo: float, z_hi: float) -> np.ndarray:
+        z = z_lo + (z_hi - z_lo) * np.sqrt(rng.uniform(0.0, 1.0, n))  # denser low down, as seen from below
+        r = 2.0 * (20.0 - z) / 10.0
+        a = rng.uniform(0.0, 2.0 * np.pi, n)
+        return np.column_stack([r * np.cos(a), r * np.sin(a), z])
+
+    ground = cone(200_000, 10.0, 18.5)  # the top 1.5 m unseen from below
+    leader = np.column_stack([np.zeros(6), np.zeros(6), np.linspace(18.75, 20.0, 6)])  # the tip, hit sparsely
+    uav = np.vstack([cone(300, 14.0, 18.5), leader])
+    fused = fuse(ground, uav)
+    assert fused.points[:, 2].max() > 19.9
+    bare = fuse(ground, uav, FusionParams(canopy_top_cell_m=0.0))
+    assert bare.points[:, 2].max() < 19.0  # what the protection is for: the density test drops the tip
