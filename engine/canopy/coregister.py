@@ -7,8 +7,8 @@ folded into the final matrix.
 
 Failure (``status == "failed"``, with a ``reason``) when: either cloud has too little canopy for
 keypoints; fewer than ``min_matched`` keypoints match; the matching percentage is below
-``min_matching_percentage``; the clouds do not support the solution (too few ground-based points
-land near a UAV point) or a distinct alternative is supported almost as well (a repetitive
+``min_matching_percentage``; the canopy surfaces (highest point per 1 m cell) of the two clouds
+do not correlate under the solution, or a distinct solution correlates almost as well (a repetitive
 plantation); ICP moves far from the keypoint solution or ends with too few correspondences.
 """
 
@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..errors import ParameterError
 from ..match.icp import IcpResult, icp, thin
@@ -50,22 +49,23 @@ class CoregistrationParams:
     min_matched: int = field(default=4, metadata={"unit": "", "help": "fewest matched keypoints"})
     #: a lower matching percentage fails (%)
     min_matching_percentage: float = field(default=15.0, metadata={"unit": "%", "help": "lowest matching percentage"})
-    #: verification: ground-based canopy points within this distance of a UAV point support a
-    #: solution (m); the ``n_verified`` best supported keypoint solutions get a quick ICP and are
-    #: ranked by their support after it
-    support_distance_m: float = field(default=0.5, metadata={"unit": "m", "help": "support distance"})
-    n_verified: int = field(default=4, metadata={"unit": "", "help": "candidates verified by a quick ICP"})
-    #: only ground-based points this high above their DEM verify a solution (m)
-    support_min_height_m: float = field(default=2.0, metadata={"unit": "m", "help": "lowest support point"})
-    #: a solution supported by fewer ground-based points than this fraction fails
-    min_support: float = field(default=0.55, metadata={"unit": "", "help": "lowest support fraction"})
-    #: the best distinct alternative may reach at most this fraction of the best support
-    max_alternative_support_ratio: float = field(default=0.85, metadata={"unit": "", "help": "ambiguity ratio"})
-    #: ICP may move the keypoint solution at most this far (m, deg)
-    max_icp_shift_m: float = field(default=2.0, metadata={"unit": "m", "help": "largest ICP correction"})
-    max_icp_rotation_deg: float = field(default=3.0, metadata={"unit": "deg", "help": "largest ICP rotation"})
+    #: verification: the canopy surface models (highest point per cell of this size, m) of the
+    #: ground-based canopy and of the UAV cloud are correlated under each keypoint solution
+    surface_cell_m: float = field(default=1.0, metadata={"unit": "m", "help": "canopy surface cell"})
+    #: only ground-based points this high above their DEM make its canopy surface (m)
+    surface_min_height_m: float = field(default=2.0, metadata={"unit": "m", "help": "lowest canopy point"})
+    #: a solution whose canopy surfaces correlate less than this fails (Pearson r)
+    min_surface_correlation: float = field(default=0.5, metadata={"unit": "", "help": "lowest canopy surface correlation"})
+    #: the best distinct alternative may reach at most this fraction of the best correlation
+    max_alternative_ratio: float = field(default=0.8, metadata={"unit": "", "help": "ambiguity ratio"})
+    #: solutions moving the ground-based keypoints by more than this on average (m) are distinct
+    distinct_solution_m: float = field(default=2.5, metadata={"unit": "m", "help": "distinct solution distance"})
+    #: fewer common cells than this make no evidence
+    min_surface_cells: int = field(default=30, metadata={"unit": "cells", "help": "fewest common canopy cells"})
+    #: ICP may move the keypoint solution at most this far (mean keypoint displacement, m; rotation, deg)
+    max_icp_shift_m: float = field(default=3.0, metadata={"unit": "m", "help": "largest ICP correction"})
+    max_icp_rotation_deg: float = field(default=8.0, metadata={"unit": "deg", "help": "largest ICP rotation"})
     #: at most this many ground-based points verify a solution (a fixed random subset)
-    max_support_points: int = 40_000
 
     def __post_init__(self) -> None:
         if not self.icp_distances_m or any(d <= 0 for d in self.icp_distances_m):
@@ -94,8 +94,8 @@ class CoregistrationResult:
     matched_after_icp: Optional[np.ndarray]
     residuals_after_icp_m: Optional[np.ndarray]
     icp: Optional[IcpResult]
-    support: float
-    alternative_support: float
+    surface_correlation: float
+    alternative_correlation: float
     timings: dict[str, float]
     ground_name: str = "ground"
     uav_name: str = "uav"
@@ -148,8 +148,8 @@ class CoregistrationResult:
                 self.residuals_after_icp_m if self.residuals_after_icp_m is not None else np.zeros(0)
             ),
             "matched_after_icp": 0 if self.matched_after_icp is None else int(len(self.matched_after_icp)),
-            "support": self.support,
-            "alternative_support": self.alternative_support,
+            "surface_correlation": self.surface_correlation,
+            "alternative_correlation": self.alternative_correlation,
             "icp": None if self.icp is None else self.icp.to_dict(),
             "timings": dict(self.timings),
         }
@@ -166,10 +166,53 @@ def _shift_matrix(shift: np.ndarray) -> np.ndarray:
     return m
 
 
-def _support(ground_sample: np.ndarray, uav_tree: cKDTree, matrix: np.ndarray, distance_m: float) -> float:
-    moved = ground_sample @ matrix[:3, :3].T + matrix[:3, 3]
-    d, _ = uav_tree.query(moved, k=1, distance_upper_bound=distance_m, workers=-1)
-    return float(np.mean(np.isfinite(d)))
+def _apply(matrix: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    return xyz @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+@dataclass(frozen=True, eq=False)
+class _SurfaceGrid:
+    """The UAV canopy surface: highest z per ``cell`` (NaN where empty), lattice origin ``x0, y0``."""
+
+    x0: float
+    y0: float
+    cell: float
+    z: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray, cell: float) -> "_SurfaceGrid":
+        x0, y0 = points[:, 0].min(), points[:, 1].min()
+        nx = int((points[:, 0].max() - x0) // cell) + 1
+        ny = int((points[:, 1].max() - y0) // cell) + 1
+        return cls(float(x0), float(y0), cell, _highest(points, x0, y0, cell, nx, ny))
+
+
+def _highest(points: np.ndarray, x0: float, y0: float, cell: float, nx: int, ny: int) -> np.ndarray:
+    ij = np.floor((points[:, :2] - (x0, y0)) / cell).astype(np.int64)
+    inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] < ny)
+    top = np.full(ny * nx, -np.inf)
+    np.maximum.at(top, ij[inside, 1] * nx + ij[inside, 0], points[inside, 2])
+    top[~np.isfinite(top)] = np.nan
+    return top.reshape(ny, nx)
+
+
+def surface_correlation(ground_canopy: np.ndarray, uav_surface: _SurfaceGrid, matrix: np.ndarray) -> tuple[float, int]:
+    """Pearson correlation of the canopy surfaces (highest point per cell) of the ground-based
+    canopy points moved by ``matrix`` and of the UAV cloud, over their common cells, and the number
+    of those cells. The ground-based surface lies below the true canopy where tops were hidden, but
+    its shape (crowns, gaps, slope) follows the UAV's under the right transform only; correlation
+    ignores the offset and the point densities."""
+    moved = ground_canopy @ matrix[:3, :3].T + matrix[:3, 3]
+    ny, nx = uav_surface.z.shape
+    g = _highest(moved, uav_surface.x0, uav_surface.y0, uav_surface.cell, nx, ny)
+    common = np.isfinite(g) & np.isfinite(uav_surface.z)
+    n = int(common.sum())
+    if n < 3:
+        return 0.0, n
+    a, b = g[common], uav_surface.z[common]
+    if a.std() < 1e-9 or b.std() < 1e-9:
+        return 0.0, n
+    return float(np.corrcoef(a, b)[0, 1]), n
 
 
 def coregister_points(
@@ -193,8 +236,8 @@ def coregister_points(
         timings["total_s"] = time.perf_counter() - t0
         base: dict[str, Any] = dict(
             matrix=None, local_matrix=None, keypoint_matrix=None, ground_keypoints=None, uav_keypoints=None,
-            match=None, matched_after_icp=None, residuals_after_icp_m=None, icp=None, support=0.0,
-            alternative_support=0.0, timings=timings,
+            match=None, matched_after_icp=None, residuals_after_icp_m=None, icp=None, surface_correlation=0.0,
+            alternative_correlation=0.0, timings=timings,
         )
         base.update(kw)
         return CoregistrationResult(status="failed", reason=reason, **base)
@@ -231,57 +274,50 @@ def coregister_points(
     if not solutions:
         return failed("no consistent keypoint correspondences", ground_keypoints=g_kp, uav_keypoints=u_kp)
 
-    # 4. verify the candidate solutions against the clouds
+    # 4. verify the candidate solutions against the clouds: canopy surfaces must agree
     t = time.perf_counter()
-    progress(0.72, f"verifying {len(solutions)} candidate solutions against the clouds")
-    g_thin = thin(ground, params.icp_voxel_m * 2)
-    g_thin = g_thin[g_terrain.dem.normalise(g_thin) > params.support_min_height_m]  # flat terrain fits anywhere
-    rng = np.random.default_rng(0)
-    if len(g_thin) > params.max_support_points:
-        g_thin = g_thin[rng.choice(len(g_thin), params.max_support_points, replace=False)]
-    u_tree = cKDTree(thin(uav, params.icp_voxel_m))
-    eligible = [i for i, s in enumerate(solutions) if s.n_matched >= params.min_matched]
-    loose = {i: _support(g_thin, u_tree, solutions[i].matrix, params.support_distance_m) for i in eligible}
-    ranked = sorted(eligible, key=lambda i: -loose[i])[: params.n_verified]
-    verified: list[tuple[float, int, np.ndarray]] = []  # (support after a quick ICP, solution, matrix)
-    for k, i in enumerate(ranked):
-        progress(0.72 + 0.08 * k / max(len(ranked), 1), f"verifying candidate {k + 1} of {len(ranked)} (quick ICP)")
-        quick = icp(uav, ground, solutions[i].matrix, voxel_m=0.12, max_distances_m=(1.0, 0.5, 0.3),
-                    iterations=15, max_moving_points=8000)
-        verified.append((_support(g_thin, u_tree, quick.matrix, params.support_distance_m), i, quick.matrix))
+    progress(0.72, f"verifying {len(solutions)} candidate solutions against the canopy surfaces")
+    g_thin = thin(ground, 0.2)
+    g_canopy = g_thin[g_terrain.dem.normalise(g_thin) > params.surface_min_height_m]
+    uav_surface = _SurfaceGrid.of(thin(uav, 0.2), params.surface_cell_m)
+    scored = []
+    for i, sol in enumerate(solutions):
+        if sol.n_matched < params.min_matched:
+            continue
+        r, n = surface_correlation(g_canopy, uav_surface, sol.matrix)
+        scored.append((r if n >= params.min_surface_cells else 0.0, i))
     timings["verification_s"] = time.perf_counter() - t
     n_min = min(len(g_kp), len(u_kp))
-    if not verified:
+    if not scored:
         best = solutions[0]
         return failed(
             f"only {best.n_matched} keypoints match (need {params.min_matched})",
             ground_keypoints=g_kp, uav_keypoints=u_kp, match=best, keypoint_matrix=best.matrix,
         )
-    verified.sort(key=lambda v: -v[0])
-    best_support, best_i, start = verified[0]
+    scored.sort(key=lambda v: -v[0])
+    best_r, best_i = scored[0]
     best = solutions[best_i]
-    # the best alternative that converged somewhere else
-    alt = 0.0
-    for sup, _, m in verified[1:]:
-        delta = np.linalg.inv(start) @ m
-        if np.linalg.norm(delta[:3, 3]) > 0.5 or rotation_angle_deg(delta[:3, :3]) > 1.0:
-            alt = max(alt, sup)
+    alt = 0.0  # the best alternative that is a different solution: it puts the keypoints elsewhere
+    for r, i in scored[1:]:
+        apart = np.linalg.norm(_apply(solutions[i].matrix, g_kp.xyz) - _apply(best.matrix, g_kp.xyz), axis=1)
+        if float(np.mean(apart)) > params.distinct_solution_m:
+            alt = r
+            break
     common = dict(ground_keypoints=g_kp, uav_keypoints=u_kp, match=best, keypoint_matrix=best.matrix,
-                  support=best_support, alternative_support=alt)
+                  surface_correlation=best_r, alternative_correlation=alt)
     pct = 100.0 * best.n_matched / n_min
     if pct < params.min_matching_percentage:
         return failed(f"matching percentage {pct:.0f} % is below {params.min_matching_percentage:.0f} %", **common)
-    if best_support < params.min_support:
+    if best_r < params.min_surface_correlation:
         return failed(
-            f"the clouds do not support the keypoint solution: {100 * best_support:.0f} % of the ground-based "
-            f"canopy points lie within {params.support_distance_m} m of a UAV point "
-            f"(need {100 * params.min_support:.0f} %)",
+            f"the canopy surfaces do not agree under any keypoint solution: correlation {best_r:.2f} "
+            f"(need {params.min_surface_correlation:.2f}); are these clouds of the same plot?",
             **common,
         )
-    if alt > params.max_alternative_support_ratio * best_support:
+    if alt > params.max_alternative_ratio * best_r:
         return failed(
-            f"ambiguous: a distinct solution is supported almost as well ({100 * alt:.0f} % vs "
-            f"{100 * best_support:.0f} % of the ground-based canopy points); the keypoint pattern repeats",
+            f"ambiguous: a distinct solution fits the canopy almost as well (correlation {alt:.2f} vs "
+            f"{best_r:.2f}); the keypoint pattern repeats",
             **common,
         )
 
@@ -289,13 +325,14 @@ def coregister_points(
     t = time.perf_counter()
     progress(0.8, "ICP")
     result = icp(
-        uav, ground, start,
+        uav, ground, best.matrix,
         voxel_m=params.icp_voxel_m, max_distances_m=params.icp_distances_m, iterations=params.icp_iterations,
     )
     timings["icp_s"] = time.perf_counter() - t
     delta = np.linalg.inv(best.matrix) @ result.matrix
-    shift = float(np.linalg.norm(result.matrix[:3, 3] - best.matrix[:3, 3]))
+    shift = float(np.mean(np.linalg.norm(_apply(result.matrix, g_kp.xyz) - _apply(best.matrix, g_kp.xyz), axis=1)))
     rot = rotation_angle_deg(delta[:3, :3])
+    final_r, _ = surface_correlation(g_canopy, uav_surface, result.matrix)
     pairs_after = assign_one_to_one(g_kp.xyz, u_kp.xyz, result.matrix, params.matching.distance_threshold_m)
     moved = g_kp.xyz[pairs_after[:, 0]] @ result.matrix[:3, :3].T + result.matrix[:3, 3]
     res_after = np.linalg.norm(moved - u_kp.xyz[pairs_after[:, 1]], axis=1)
@@ -306,8 +343,9 @@ def coregister_points(
             f"{params.max_icp_rotation_deg} deg): the keypoint match is not trustworthy",
             **common,
         )
-    final_support = _support(g_thin, u_tree, result.matrix, params.support_distance_m)
-    common["support"] = final_support
+    if final_r < params.min_surface_correlation:
+        return failed(f"after ICP the canopy surfaces correlate only {final_r:.2f}", **common)
+    common["surface_correlation"] = max(final_r, best_r)
     timings["total_s"] = time.perf_counter() - t0
     progress(1.0, f"co-registered: {best.n_matched} keypoints matched ({pct:.0f} %), ICP fitness {result.fitness:.2f}")
     return CoregistrationResult(

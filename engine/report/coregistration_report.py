@@ -147,7 +147,7 @@ def write_coregistration_report(
     if d["icp"]:
         rows.append(("ICP", f"fitness {d['icp']['fitness']:.2f}, RMSE {100 * d['icp']['rmse_m']:.1f} cm, "
                             f"std {100 * d['icp']['std_m']:.1f} cm"))
-    rows.append(("support (best / next distinct)", f"{100 * d['support']:.0f} % / {100 * d['alternative_support']:.0f} %"))
+    rows.append(("canopy surface correlation (best / next distinct solution)", f"{d['surface_correlation']:.2f} / {d['alternative_correlation']:.2f}"))
     if d["heading_deg"] is not None:
         rows.append(("heading", f"{d['heading_deg']:.3f} deg"))
     table = "\n".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows)
