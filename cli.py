@@ -605,7 +605,7 @@ def _demo_system_a(out: Path, args: argparse.Namespace) -> int:
 
 
 def _demo_system_b(out: Path, args: argparse.Namespace) -> int:
-    """A 30 m plot: merged TLS scans (ground-based, own frame, turned 120 deg and shifted 7 m) and
+    """A 28 m plot: merged TLS scans (ground-based, own frame, turned 120 deg and shifted 7 m) and
     a UAV flight at 86 m; co-register, fuse, measure the trees ground-only and fused, and
     evaluate both against the simulator's trees (the 'field data')."""
     from .engine.io import write_scan
@@ -617,8 +617,8 @@ def _demo_system_b(out: Path, args: argparse.Namespace) -> int:
     data.mkdir(parents=True, exist_ok=True)
     print(f"System B: simulating a plot seen by TLS and by a UAV in {data} ...")
     case = simulate_coregistration_case(
-        "planted_conifer", seed=args.seed, size_m=30.0, ground_platform="tls", ground_extent_m=20.0,
-        heading_deg=120.0, offset_m=(5.0, -5.0, 1.0), uav_density_scale=0.5, tls_step_deg=0.25,
+        "planted_conifer", seed=args.seed, size_m=28.0, ground_platform="tls", ground_extent_m=18.0,
+        heading_deg=120.0, offset_m=(5.0, -5.0, 1.0), uav_density_scale=0.5, tls_step_deg=0.3,
     )
     write_scan(case.ground, data / "ground.laz")
     write_scan(case.uav, data / "uav.laz")
@@ -627,7 +627,7 @@ def _demo_system_b(out: Path, args: argparse.Namespace) -> int:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["tree_id", "x", "y", "dbh_m", "height_m"])
     for t in case.scene.trees:
-        if abs(t.x) < 10.0 and abs(t.y) < 10.0:
+        if abs(t.x) < 9.0 and abs(t.y) < 9.0:
             w.writerow([f"T{t.id}", f"{t.x + case.world_offset[0]:.3f}", f"{t.y + case.world_offset[1]:.3f}", f"{t.dbh_m:.4f}", f"{t.height_m:.3f}"])
     field.write_text(buf.getvalue())
     code = main(["coregister", str(data / "ground.laz"), str(data / "uav.laz"), "--out", str(out / "coregistration")] + quiet)

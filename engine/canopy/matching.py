@@ -63,7 +63,7 @@ class MatchingParams:
     #: at most this many ground keypoint pairs seed hypotheses (a fixed random subset beyond)
     max_seed_pairs: int = field(default=1500, metadata={"unit": "", "help": "ground pairs tried"})
     #: this many best distinct solutions are refined and kept
-    n_solutions: int = field(default=150, metadata={"unit": "", "help": "distinct solutions kept"})
+    n_solutions: int = field(default=400, metadata={"unit": "", "help": "distinct solutions kept"})
     #: solutions closer than this in heading (deg) and translation (m) are the same solution
     distinct_heading_deg: float = field(default=3.0, metadata={"unit": "deg", "help": "distinct heading"})
     distinct_translation_m: float = field(default=1.5, metadata={"unit": "m", "help": "distinct translation"})
