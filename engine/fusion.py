@@ -37,6 +37,7 @@ from scipy.special import ndtr
 
 from .atomic import atomic_path
 from .errors import ParameterError, ScanDataError, ScanWriteError
+from .params import param_field as _p
 from .progress import Progress, ProgressCallback
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -60,11 +61,6 @@ _MIN_DISTANCE_M = 1.0e-4
 _ORDER_SEED = 20220
 
 
-def _p(default: Any, unit: str, lo: Optional[float], hi: Optional[float], help: str, paper: str = "") -> Any:
-    meta = {"unit": unit, "range": (lo, hi), "help": help, "paper": paper}
-    if isinstance(default, (list, tuple)):
-        return field(default=tuple(default), metadata=meta)
-    return field(default=default, metadata=meta)
 
 
 @dataclass(frozen=True)

@@ -22,11 +22,34 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 
-def _p(default: Any, unit: str, lo: Optional[float], hi: Optional[float], help: str, paper: str = "") -> Any:
+def param_field(default: Any, unit: str, lo: Optional[float], hi: Optional[float], help: str, paper: str = "") -> Any:
+    """A dataclass field carrying ``unit``, ``range`` (lo, hi), ``help`` and ``paper`` metadata,
+    the one way every parameter dataclass of the engine documents its fields; tuples stay tuples."""
     meta = {"unit": unit, "range": (lo, hi), "help": help, "paper": paper}
     if isinstance(default, (list, tuple)):
         return field(default=tuple(default), metadata=meta)
     return field(default=default, metadata=meta)
+
+
+def validate_ranges(params: Any) -> None:
+    """Raise :class:`ParameterError` for a numeric field of a parameter dataclass that is not a
+    finite number inside its metadata ``range`` (booleans, strings and ``None`` are skipped)."""
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if value is None or isinstance(value, (bool, str)):
+            continue
+        lo, hi = f.metadata.get("range", (None, None))
+        values = value if isinstance(value, tuple) else (value,)
+        for v in values:
+            if isinstance(v, (bool, str)):
+                continue
+            if not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ParameterError(f"{f.name}: {v!r} is not a finite number")
+            if (lo is not None and v < lo) or (hi is not None and v > hi):
+                raise ParameterError(f"{f.name} = {v} {f.metadata.get('unit', '')} is outside [{lo}, {hi}]")
+
+
+_p = param_field
 
 
 @dataclass(frozen=True)

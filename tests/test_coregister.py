@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from forestreg.engine.canopy import CoregistrationParams, coregister, extract_keypoints, match_keypoints
+from forestreg.engine.canopy import coregister, extract_keypoints, match_keypoints
 from forestreg.engine.canopy.keypoints import density_peak
 from forestreg.engine.canopy.matching import MatchingParams
 from forestreg.engine.simulate.platforms import simulate_coregistration_case

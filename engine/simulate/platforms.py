@@ -38,6 +38,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import ParameterError, ScanDataError
+from ..params import param_field as _p
 from ..progress import Progress
 from ..scan import Scan
 from .mesh import Material, SceneRaycaster, raycaster_for
@@ -49,10 +50,6 @@ ProgressCallback = Callable[[float, str], None]
 
 #: The most rays handed to the ray caster in one call.
 MAX_RAYS_PER_CAST = 2_000_000
-
-
-def _p(default: Any, unit: str, lo: Optional[float], hi: Optional[float], help: str, paper: str = "") -> Any:
-    return field(default=default, metadata={"unit": unit, "range": (lo, hi), "help": help, "paper": paper})
 
 
 def _validate_fields(obj: Any) -> None:

@@ -38,13 +38,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import ParameterError, ScanDataError
+from ..params import param_field as _p
 from ..progress import Progress
 
 #: Features per scale: l1, l2, l3 (normalised eigenvalues), zenith of e1, e2, e3 (degrees).
@@ -53,11 +54,6 @@ FEATURES_PER_SCALE = 6
 MIN_POINTS = 50
 
 
-def _p(default: Any, unit: str, lo: Optional[float], hi: Optional[float], help: str, paper: str = "") -> Any:
-    meta = {"unit": unit, "range": (lo, hi), "help": help, "paper": paper}
-    if isinstance(default, (list, tuple)):
-        return field(default=tuple(default), metadata=meta)
-    return field(default=default, metadata=meta)
 
 
 @dataclass(frozen=True)

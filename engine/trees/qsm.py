@@ -64,6 +64,7 @@ from scipy.spatial import cKDTree
 
 from ..atomic import write_text_atomic
 from ..errors import ParameterError, ScanDataError, ScanReadError
+from ..params import param_field as _p
 from ..progress import Progress
 from .leafwood import check_points, voxel_thin
 
@@ -80,10 +81,6 @@ TABLE_COLUMNS: tuple[str, ...] = (
     "length_m", "radius_m", "surface_coverage", "mad_m", "added",
 )
 _INT_COLUMNS = {"cylinder_id", "parent_id", "extension_id", "branch_id", "branch_order", "position_in_branch"}
-
-
-def _p(default: Any, unit: str, lo: Optional[float], hi: Optional[float], help: str, paper: str = "") -> Any:
-    return field(default=default, metadata={"unit": unit, "range": (lo, hi), "help": help, "paper": paper})
 
 
 @dataclass(frozen=True)

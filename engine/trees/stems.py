@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
@@ -56,36 +56,12 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from ..errors import ParameterError, ScanDataError
+from ..params import param_field, validate_ranges
 from ..progress import Progress
 
 # --------------------------------------------------------------------------------------------
-# Parameter helpers (shared by the tree modules)
+# Input checks (shared by the tree modules)
 # --------------------------------------------------------------------------------------------
-
-
-def param_field(default: Any, unit: str, lo: Optional[float], hi: Optional[float], help: str, paper: str = "") -> Any:
-    """A dataclass field carrying ``unit``, ``range``, ``help`` and ``paper`` metadata (as in
-    :mod:`forestreg.engine.params`); tuples stay tuples."""
-    meta = {"unit": unit, "range": (lo, hi), "help": help, "paper": paper}
-    if isinstance(default, (list, tuple)):
-        return field(default=tuple(default), metadata=meta)
-    return field(default=default, metadata=meta)
-
-
-def validate_ranges(params: Any) -> None:
-    """Raise :class:`ParameterError` for a field of a parameter dataclass that is not a finite
-    number inside its metadata ``range`` (booleans and ``None`` are skipped)."""
-    for f in dataclasses.fields(params):
-        value = getattr(params, f.name)
-        if value is None or isinstance(value, bool):
-            continue
-        lo, hi = f.metadata.get("range", (None, None))
-        values = value if isinstance(value, tuple) else (value,)
-        for v in values:
-            if not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ParameterError(f"{f.name}: {v!r} is not a finite number")
-            if (lo is not None and v < lo) or (hi is not None and v > hi):
-                raise ParameterError(f"{f.name} = {v} {f.metadata.get('unit', '')} is outside [{lo}, {hi}]")
 
 
 def check_cloud(points: Any, heights: Any = None, *, what: str = "points") -> tuple[np.ndarray, Optional[np.ndarray]]:
