@@ -9,7 +9,7 @@ Failure (``status == "failed"``, with a ``reason``) when: either cloud has too l
 keypoints; fewer than ``min_matched`` keypoints match; the matching percentage is below
 ``min_matching_percentage``; the canopy surfaces (highest point per 1 m cell) of the two clouds
 do not correlate under the solution, or a distinct solution correlates almost as well (a repetitive
-plantation); ICP moves far from the keypoint solution or ends with too few correspondences.
+plantation); ICP moves far from the keypoint solution, or the surfaces correlate poorly after it.
 """
 
 from __future__ import annotations
@@ -65,7 +65,6 @@ class CoregistrationParams:
     #: ICP may move the keypoint solution at most this far (mean keypoint displacement, m; rotation, deg)
     max_icp_shift_m: float = field(default=3.0, metadata={"unit": "m", "help": "largest ICP correction"})
     max_icp_rotation_deg: float = field(default=8.0, metadata={"unit": "deg", "help": "largest ICP rotation"})
-    #: at most this many ground-based points verify a solution (a fixed random subset)
 
     def __post_init__(self) -> None:
         if not self.icp_distances_m or any(d <= 0 for d in self.icp_distances_m):
@@ -142,7 +141,6 @@ class CoregistrationResult:
             },
             "matched": self.n_matched,
             "matching_percentage": self.matching_percentage,
-            "distance_threshold_m": None,
             "residuals_m": residual_statistics(self.match.residuals_m if self.match is not None else np.zeros(0)),
             "residuals_after_icp_m": residual_statistics(
                 self.residuals_after_icp_m if self.residuals_after_icp_m is not None else np.zeros(0)
