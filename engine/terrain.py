@@ -30,7 +30,7 @@ import numpy as np
 from .errors import ParameterError, ScanDataError
 from .progress import Progress
 
-__all__ = ["Dem", "TerrainModel", "TerrainParams", "build_dem", "classify_ground", "terrain_model"]
+__all__ = ["Dem", "TerrainModel", "TerrainParams", "build_dem", "classify_ground", "lowest_points_dem", "terrain_model"]
 
 
 @dataclass(frozen=True)
@@ -273,3 +273,27 @@ def terrain_model(
     dem = build_dem(p[mask], params.dem_resolution_m, extent=_extent(p))
     progress(1.0, f"{int(mask.sum()):,} ground points, DEM {dem.shape[1]} x {dem.shape[0]} cells")
     return TerrainModel(ground=mask, dem=dem)
+
+
+def lowest_points_dem(points: np.ndarray, resolution_m: float = 0.5, window_m: float = 5.0) -> Dem:
+    """A stand-in DEM for a cloud without ground points (ground removed, e.g. segmented stems):
+    the lowest point of every cell, then the lowest within ``window_m`` (so a cell holding only
+    crown points takes the stem foot next to it), holes filled. Heights above it are heights above
+    the lowest vegetation, not above the terrain: use only when the cloud has no ground."""
+    from scipy import ndimage
+
+    p = _check_points(points)
+    xmin, xmax, ymin, ymax = _extent(p)
+    nx = max(int(np.ceil((xmax - xmin) / resolution_m)), 1) + 1
+    ny = max(int(np.ceil((ymax - ymin) / resolution_m)), 1) + 1
+    x0, y0 = xmin - resolution_m / 2.0, ymin - resolution_m / 2.0
+    col = np.clip(((p[:, 0] - x0) / resolution_m).astype(np.int64), 0, nx - 1)
+    row = np.clip(((p[:, 1] - y0) / resolution_m).astype(np.int64), 0, ny - 1)
+    low = np.full(nx * ny, np.inf)
+    np.minimum.at(low, row * nx + col, p[:, 2])
+    low = low.reshape(ny, nx)
+    size = max(int(round(window_m / resolution_m)) | 1, 1)
+    low = ndimage.minimum_filter(low, size=size, mode="nearest")
+    rr, cc = np.nonzero(np.isfinite(low))
+    ground = np.column_stack([x0 + (cc + 0.5) * resolution_m, y0 + (rr + 0.5) * resolution_m, low[rr, cc]])
+    return build_dem(ground, resolution_m, extent=(xmin, xmax, ymin, ymax))

@@ -151,3 +151,23 @@ def test_no_stems_is_a_clear_error():
         measure_trees(ground)
     with pytest.raises(ScanDataError, match="NaN"):
         measure_trees(np.array([[0.0, 0.0, np.nan]] * 10))
+
+
+def test_a_cloud_without_ground_gets_heights_above_its_stem_feet():
+    """Ground removed (as in segmented plots): the stand-in DEM follows the stem feet, here on a
+    slope of 0.1 m/m, so heights start at zero at every stem."""
+    from forestreg.engine.terrain import lowest_points_dem
+
+    rng = np.random.default_rng(0)
+    stems = []
+    for x in range(0, 20, 4):
+        for y in range(0, 20, 4):
+            z0 = 100.0 + 0.1 * x
+            z = rng.uniform(z0, z0 + 15.0, 3000)
+            a = rng.uniform(0.0, 2.0 * np.pi, 3000)
+            stems.append(np.column_stack([x + 0.15 * np.cos(a), y + 0.15 * np.sin(a), z]))
+    points = np.vstack(stems)
+    dem = lowest_points_dem(points)
+    heights = dem.normalise(points)
+    assert heights.min() > -0.01
+    assert np.allclose(dem.height_at(np.array([[8.0, 8.0], [16.0, 0.0]])), [100.8, 101.6], atol=0.05)

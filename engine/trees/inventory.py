@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -26,12 +27,14 @@ import numpy as np
 from ..atomic import write_text_atomic
 from ..errors import ScanDataError
 from ..progress import Progress, ProgressCallback, as_progress
-from ..terrain import Dem, TerrainParams, terrain_model
+from ..terrain import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
 from .crown import CrownMeasurement, CrownParams, measure_crown
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
 from .segmentation import CompletenessParams, SegmentationParams, segment_trees, tree_completeness
 from .stems import DbhMeasurement, Stem, StemCurve, StemParams, detect_stems, measure_dbh, stem_curve
+
+log = logging.getLogger(__name__)
 
 __all__ = ["TREE_COLUMNS", "TreeInventory", "TreeParams", "TreeRecord", "measure_trees"]
 
@@ -208,6 +211,17 @@ def measure_trees(
     t = time.perf_counter()
     model = terrain_model(p, params.terrain, progress.sub(0.0, 0.08))
     heights = model.dem.normalise(p)
+    below = float(np.mean(heights < -0.5))
+    if below > 0.02:  # the "ground" found lies above part of the cloud: the ground was removed
+        log.warning(
+            "%.0f %% of the points lie more than 0.5 m below the ground model: the cloud seems to have "
+            "no ground; heights are taken above the lowest points instead", 100 * below,
+        )
+        model = TerrainModel(ground=np.zeros(len(p), dtype=bool), dem=lowest_points_dem(p, params.terrain.dem_resolution_m))
+        heights = model.dem.normalise(p)
+        no_ground = True
+    else:
+        no_ground = False
     timings["terrain_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -252,6 +266,8 @@ def measure_trees(
         tree_pts = p[idx]
         crown = measure_crown(tree_pts, heights[idx], stem, params.crown)
         flags = list(complete[stem.id].reasons) if stem.id in complete else []
+        if no_ground:
+            flags.append("no ground in the cloud: heights above the lowest points")
         if not crown.ok:
             flags += [f"crown: {r}" for r in crown.reasons]
         cylinders = None
