@@ -229,7 +229,7 @@ def cmd_coregister(args: argparse.Namespace) -> int:
 
 
 def _coregistration_params(args: argparse.Namespace):
-    """Co-registration parameters from the defaults, an optional TOML file and options."""
+    """Co-registration parameters: the defaults with the command line's options."""
     import dataclasses
 
     from .engine.canopy.coregister import CoregistrationParams
@@ -253,7 +253,10 @@ def _read_matrix(path: str) -> np.ndarray:
     """A 4x4 matrix from a text file (16 numbers, row by row), or result.json's ``matrix``."""
     from .engine.errors import ParameterError
 
-    text = Path(path).read_text()
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ParameterError(f"cannot read the transform {path}: {exc}") from exc
     try:
         if text.lstrip().startswith("{"):
             m = json.loads(text).get("matrix")

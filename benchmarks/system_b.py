@@ -61,7 +61,7 @@ def run(seed: int = 0, quick: bool = False) -> list[dict[str, Any]]:
             row["fused_points"] = len(fused)
             row["redundant"] = fused.counts["total"]["redundant"]
             row["noise"] = fused.counts["total"]["noise"]
-            if not quick:
+            if not quick and platform == "tls":  # the tree inventory of the fused TLS + UAV cloud
                 from forestreg.engine.trees.inventory import measure_trees
 
                 t = time.perf_counter()
