@@ -264,7 +264,15 @@ def measure_trees(
         progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: crown and cylinder model")
         idx = order[bounds[k] : bounds[k + len(stems)]]
         tree_pts = p[idx]
-        crown = measure_crown(tree_pts, heights[idx], stem, params.crown)
+        try:
+            crown = measure_crown(tree_pts, heights[idx], stem, params.crown)
+        except ScanDataError as exc:  # no points reached this stem
+            nan = math.nan
+            crown = CrownMeasurement(
+                tree_id=stem.id, x=stem.x, y=stem.y, height_m=nan, crown_base_m=nan, crown_width_ew_m=nan,
+                crown_width_ns_m=nan, crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan,
+                crown_volume_m3=nan, n_points=int(len(idx)), top=(nan, nan, nan), ok=False, reasons=(str(exc),),
+            )
         flags = list(complete[stem.id].reasons) if stem.id in complete else []
         if no_ground:
             flags.append("no ground in the cloud: heights above the lowest points")
