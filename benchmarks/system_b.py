@@ -75,7 +75,7 @@ def run(seed: int = 0, quick: bool = False) -> list[dict[str, Any]]:
 def format_rows(rows: list[dict[str, Any]]) -> str:
     """A plain-text table of :func:`run`'s rows."""
     cols = [
-        ("case", "{}"), ("ground_points", "{:,}"), ("uav_points", "{:,}"), ("status", "{}"),
+        ("case", "{}"), ("ground_points", "{:,}"), ("uav_points", "{:,}"), ("status", "{}"), ("reason", "{}"),
         ("terrain_s", "{:.1f}"), ("keypoints_s", "{:.1f}"), ("matching_s", "{:.1f}"), ("verification_s", "{:.1f}"),
         ("icp_s", "{:.1f}"), ("total_s", "{:.1f}"), ("keypoints", "{}"), ("matched", "{}"),
         ("matching_percentage", "{:.0f} %"), ("rotation_error_deg", "{:.4f}"), ("translation_error_m", "{:.4f}"),

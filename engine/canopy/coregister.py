@@ -46,7 +46,7 @@ class CoregistrationParams:
     icp_distances_m: tuple[float, ...] = field(default=(1.0, 0.5, 0.25, 0.12), metadata={"unit": "m", "help": "ICP stages"})
     icp_iterations: int = field(default=40, metadata={"unit": "", "help": "ICP iterations per stage"})
     #: fewer matched keypoints than this fail
-    min_matched: int = field(default=4, metadata={"unit": "", "help": "fewest matched keypoints"})
+    min_matched: int = field(default=3, metadata={"unit": "", "help": "fewest matched keypoints (the canopy surface check carries the rest of the evidence)"})
     #: a lower matching percentage fails (%)
     min_matching_percentage: float = field(default=15.0, metadata={"unit": "%", "help": "lowest matching percentage"})
     #: verification: the canopy surface models (highest point per cell of this size, m) of the
@@ -107,6 +107,10 @@ class CoregistrationResult:
 
     @property
     def n_matched(self) -> int:
+        """Matched keypoints (within D_thr, one to one) at the final transform, or at the keypoint
+        solution when ICP did not run."""
+        if self.matched_after_icp is not None:
+            return int(len(self.matched_after_icp))
         return 0 if self.match is None else self.match.n_matched
 
     @property
@@ -280,7 +284,7 @@ def coregister_points(
     uav_surface = _SurfaceGrid.of(thin(uav, 0.2), params.surface_cell_m)
     scored = []
     for i, sol in enumerate(solutions):
-        if sol.n_matched < params.min_matched:
+        if sol.n_matched < 3:  # the canopy surfaces decide; the count is checked at the final transform
             continue
         r, n = surface_correlation(g_canopy, uav_surface, sol.matrix)
         scored.append((r if n >= params.min_surface_cells else 0.0, i))
@@ -303,9 +307,6 @@ def coregister_points(
             break
     common = dict(ground_keypoints=g_kp, uav_keypoints=u_kp, match=best, keypoint_matrix=best.matrix,
                   surface_correlation=best_r, alternative_correlation=alt)
-    pct = 100.0 * best.n_matched / n_min
-    if pct < params.min_matching_percentage:
-        return failed(f"matching percentage {pct:.0f} % is below {params.min_matching_percentage:.0f} %", **common)
     if best_r < params.min_surface_correlation:
         return failed(
             f"the canopy surfaces do not agree under any keypoint solution: correlation {best_r:.2f} "
@@ -343,9 +344,14 @@ def coregister_points(
         )
     if final_r < params.min_surface_correlation:
         return failed(f"after ICP the canopy surfaces correlate only {final_r:.2f}", **common)
+    if len(pairs_after) < params.min_matched:
+        return failed(f"only {len(pairs_after)} keypoints match (need {params.min_matched})", **common)
+    pct = 100.0 * len(pairs_after) / n_min
+    if pct < params.min_matching_percentage:
+        return failed(f"matching percentage {pct:.0f} % is below {params.min_matching_percentage:.0f} %", **common)
     common["surface_correlation"] = max(final_r, best_r)
     timings["total_s"] = time.perf_counter() - t0
-    progress(1.0, f"co-registered: {best.n_matched} keypoints matched ({pct:.0f} %), ICP fitness {result.fitness:.2f}")
+    progress(1.0, f"co-registered: {len(pairs_after)} keypoints matched ({pct:.0f} %), ICP fitness {result.fitness:.2f}")
     return CoregistrationResult(
         status="ok", reason="", matrix=result.matrix, local_matrix=result.matrix, timings=timings, **common
     )
