@@ -620,9 +620,8 @@ def write_fused(
     an extra uint8 dimension ``source``; ``result.extra["intensity"]``, when present, becomes the
     intensity. Written atomically (temporary file, then renamed).
     """
-    import laspy
 
-    from .io.las import LAS_SCALE, intensity_to_uint16
+    from .io.las import las_points
 
     target = str(path)
     suffix = os.path.splitext(target)[1].lower()
@@ -632,28 +631,12 @@ def write_fused(
     if len(pts) == 0:
         raise ScanWriteError(f"{target}: the fused cloud is empty; nothing to write")
     shift = np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64).reshape(3)
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    offset = np.floor(lo + shift)
-    scale = LAS_SCALE
-    while float(((hi + shift) - offset).max()) / scale > 2.0e9:
-        scale *= 10.0
-    header = laspy.LasHeader(point_format=6, version="1.4")
-    header.offsets = offset
-    header.scales = np.array([scale, scale, scale])
-    header.generating_software = "forestreg"
-    header.system_identifier = "forestreg fusion"
-    header.add_extra_dim(laspy.ExtraBytesParams(name="source", type=np.uint8, description="1 ground-based, 2 UAV"))
-    las = laspy.LasData(header)
-    rel = pts - (offset - shift)
-    las.X = np.round(rel[:, 0] / scale).astype(np.int32)
-    las.Y = np.round(rel[:, 1] / scale).astype(np.int32)
-    las.Z = np.round(rel[:, 2] / scale).astype(np.int32)
-    las.return_number = np.ones(len(pts), dtype=np.uint8)
-    las.number_of_returns = np.ones(len(pts), dtype=np.uint8)
+    las = las_points(
+        pts, shift, intensity=result.extra.get("intensity"), system_identifier="forestreg fusion",
+        extra_dims=[("source", np.uint8, "1 ground-based, 2 UAV")],
+    )
     las.point_source_id = np.asarray(result.source).astype(np.uint16)
     las.source = np.asarray(result.source).astype(np.uint8)
-    if "intensity" in result.extra:
-        las.intensity = intensity_to_uint16(result.extra["intensity"])
     with atomic_path(target) as tmp:
         las.write(str(tmp), do_compress=suffix == ".laz")
 

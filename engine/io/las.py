@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import struct
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -142,20 +142,20 @@ def intensity_to_uint16(intensity: np.ndarray) -> np.ndarray:
     return np.clip(np.round(out), 0, 65535).astype(np.uint16)
 
 
-def write_las(
-    tmp: Path,
+def las_points(
     local: np.ndarray,
     shift: np.ndarray,
     *,
-    intensity: Optional[np.ndarray],
-    scan_id: Optional[np.ndarray],
-    compress: bool,
-) -> None:
-    """Write points ``local + shift`` (file coordinates, metres) as LAS 1.4 point format 6.
+    intensity: Optional[np.ndarray] = None,
+    extra_dims: Sequence[tuple[str, type, str]] = (),
+    system_identifier: str = "forestreg",
+):
+    """A ``laspy.LasData`` (LAS 1.4, point format 6) of the points ``local + shift`` (file
+    coordinates, metres), single returns, with empty extra-bytes dimensions ``(name, dtype,
+    description)`` for the caller to fill.
 
     Header offsets are the floor of the data minimum, scales :data:`LAS_SCALE` (coarser only if
     the extent would overflow int32), so georeferenced coordinates keep 0.1 mm steps.
-    ``scan_id`` becomes a uint16 extra-bytes dimension named ``scan_id``.
     """
     import laspy
 
@@ -169,9 +169,9 @@ def write_las(
     header.offsets = offset
     header.scales = np.array([scale, scale, scale])
     header.generating_software = "forestreg"
-    header.system_identifier = "forestreg"
-    if scan_id is not None:
-        header.add_extra_dim(laspy.ExtraBytesParams(name="scan_id", type=np.uint16, description="scan index"))
+    header.system_identifier = system_identifier
+    for name, dtype, description in extra_dims:
+        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dtype, description=description))
     las = laspy.LasData(header)
     rel = local - (offset - shift)  # small numbers: no precision lost to large offsets
     las.X = np.round(rel[:, 0] / scale).astype(np.int32)
@@ -181,6 +181,22 @@ def write_las(
     las.number_of_returns = np.ones(len(local), dtype=np.uint8)
     if intensity is not None:
         las.intensity = intensity_to_uint16(intensity)
+    return las
+
+
+def write_las(
+    tmp: Path,
+    local: np.ndarray,
+    shift: np.ndarray,
+    *,
+    intensity: Optional[np.ndarray],
+    scan_id: Optional[np.ndarray],
+    compress: bool,
+) -> None:
+    """Write points ``local + shift`` (file coordinates, metres) as LAS 1.4 point format 6
+    (:func:`las_points`); ``scan_id`` becomes a uint16 extra-bytes dimension named ``scan_id``."""
+    extra = [("scan_id", np.uint16, "scan index")] if scan_id is not None else []
+    las = las_points(local, shift, intensity=intensity, extra_dims=extra)
     if scan_id is not None:
         las.scan_id = np.asarray(scan_id).astype(np.uint16)
     las.write(str(tmp), do_compress=compress)
