@@ -29,15 +29,15 @@ __version__ = "0.1.0"
 
 # public name -> module (relative to this package) that defines it
 _LAZY = {
-    "Scan": ".engine.scan",
-    "ForestregError": ".engine.errors",
-    "CancelToken": ".engine.progress",
+    "Scan": ".engine.core.scan",
+    "ForestregError": ".engine.core.errors",
+    "CancelToken": ".engine.core.progress",
     "read_scan": ".engine.io",
     "read_scans": ".engine.io",
     "write_scan": ".engine.io",
-    "register": ".engine.register",
-    "coregister": ".engine.canopy.coregister",
-    "CoregistrationParams": ".engine.canopy.coregister",
+    "register": ".engine.tls.pair",
+    "coregister": ".engine.coreg.coregister",
+    "CoregistrationParams": ".engine.coreg.coregister",
     "terrain_model": ".engine.terrain",
 }
 

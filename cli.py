@@ -61,7 +61,7 @@ class ProgressBar:
 
 
 def _params_from_args(args: argparse.Namespace):
-    from .engine.params import RegistrationParams
+    from .engine.core.params import RegistrationParams
 
     params = RegistrationParams.from_toml(args.params) if args.params else RegistrationParams()
     changes = {}
@@ -75,7 +75,7 @@ def _params_from_args(args: argparse.Namespace):
 
 
 def _write_vops_csv(path: Path, xy: np.ndarray, z: np.ndarray, lsf_to_file: np.ndarray, radius: np.ndarray, support: np.ndarray, matched_with: Sequence[int]) -> None:
-    from .engine.atomic import write_text_atomic
+    from .engine.core.atomic import write_text_atomic
 
     pts = np.column_stack([xy, z, np.ones(len(xy))]) @ lsf_to_file.T if len(xy) else np.zeros((0, 4))
     buf = io.StringIO()
@@ -90,11 +90,11 @@ def _write_vops_csv(path: Path, xy: np.ndarray, z: np.ndarray, lsf_to_file: np.n
 
 
 def cmd_register(args: argparse.Namespace) -> int:
-    from .engine.atomic import write_text_atomic
+    from .engine.core.atomic import write_text_atomic
     from .engine.io import read_scan, write_scan
-    from .engine.register import register
+    from .engine.tls.pair import register
     from .engine.report.figures import pair_figure
-    from .engine.transform import format_matrix
+    from .engine.core.transform import format_matrix
 
     params = _params_from_args(args)
     positions = args.scanner_position or []
@@ -158,7 +158,7 @@ def cmd_register(args: argparse.Namespace) -> int:
 
 def _write_keypoints_csv(path: Path, keypoints, local_to_file: np.ndarray, matched_with: np.ndarray) -> None:
     """Keypoints in file coordinates: id, x, y, z (on the DEM), peak_z, cluster_size, matched_with."""
-    from .engine.atomic import write_text_atomic
+    from .engine.core.atomic import write_text_atomic
 
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -172,11 +172,11 @@ def _write_keypoints_csv(path: Path, keypoints, local_to_file: np.ndarray, match
 
 def cmd_coregister(args: argparse.Namespace) -> int:
     """Co-register a ground-based cloud onto a UAV cloud by canopy keypoints (System B)."""
-    from .engine.atomic import write_text_atomic
-    from .engine.canopy.coregister import coregister
+    from .engine.core.atomic import write_text_atomic
+    from .engine.coreg.coregister import coregister
     from .engine.io import read_scan
     from .engine.report.coregistration_report import write_coregistration_report
-    from .engine.transform import format_matrix
+    from .engine.core.transform import format_matrix
 
     scale = UNITS[args.units]
     out = Path(args.out)
@@ -232,9 +232,9 @@ def _coregistration_params(args: argparse.Namespace):
     """Co-registration parameters: the defaults with the command line's options."""
     import dataclasses
 
-    from .engine.canopy.coregister import CoregistrationParams
-    from .engine.canopy.keypoints import KeypointParams
-    from .engine.canopy.matching import MatchingParams
+    from .engine.coreg.coregister import CoregistrationParams
+    from .engine.coreg.keypoints import KeypointParams
+    from .engine.coreg.matching import MatchingParams
 
     kp: dict = {}
     mt: dict = {}
@@ -251,7 +251,7 @@ def _coregistration_params(args: argparse.Namespace):
 
 def _read_matrix(path: str) -> np.ndarray:
     """A 4x4 matrix from a text file (16 numbers, row by row), or result.json's ``matrix``."""
-    from .engine.errors import ParameterError
+    from .engine.core.errors import ParameterError
 
     try:
         text = Path(path).read_text()
@@ -277,7 +277,7 @@ def _read_matrix(path: str) -> np.ndarray:
 
 def cmd_fuse(args: argparse.Namespace) -> int:
     """Fuse a ground-based and a UAV cloud (redundancy and noise removal) into one labelled cloud."""
-    from .engine.fusion import FusionParams, fuse_scans, write_fused
+    from .engine.coreg.fusion import FusionParams, fuse_scans, write_fused
     from .engine.io import read_scan
 
     scale = UNITS[args.units]
@@ -358,10 +358,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _project_from_args(args: argparse.Namespace):
     """A new project from the scans, centre, tilted marks, targets and parameters on the command line."""
-    from .engine.project import Project
+    from .engine.tls.project import Project
 
     if len(args.scans) == 1 and Path(args.scans[0]).suffix.lower() == ".e57":
-        from .engine.plot import project_from_e57
+        from .engine.tls.plot import project_from_e57
 
         project = project_from_e57(args.scans[0])
         project.params = _params_from_args(args)
@@ -383,7 +383,7 @@ def _project_from_args(args: argparse.Namespace):
         if partner:
             entry.level_partner = project.scan(names.get(Path(partner).name, partner)).name
     if getattr(args, "targets", None):
-        from .engine.manual import read_targets_csv
+        from .engine.tls.manual import read_targets_csv
 
         for scan_name, targets in read_targets_csv(args.targets).items():
             if project.has_scan(scan_name):
@@ -394,7 +394,7 @@ def _project_from_args(args: argparse.Namespace):
 
 
 def _run_project(project, out: Path, args: argparse.Namespace) -> int:
-    from .engine.plot import ScanCache, add_neighbour_links, adjust_poses, register_project, write_merged, write_poses
+    from .engine.tls.plot import ScanCache, add_neighbour_links, adjust_poses, register_project, write_merged, write_poses
 
     scans = ScanCache(project)
     bar = ProgressBar(not args.quiet, "plot")
@@ -421,12 +421,12 @@ def _run_project(project, out: Path, args: argparse.Namespace) -> int:
         count = write_merged(project, args.merged, scans)
         print(f"merged {count} points into {args.merged}")
     if getattr(args, "registered_dir", None):
-        from .engine.plot import write_registered_scans
+        from .engine.tls.plot import write_registered_scans
 
         count = write_registered_scans(project, args.registered_dir, scans)
         print(f"wrote {count} registered scans to {args.registered_dir}")
     if getattr(args, "e57_out", None):
-        from .engine.plot import write_registered_e57
+        from .engine.tls.plot import write_registered_e57
 
         count = write_registered_e57(project, args.e57_out, scans)
         print(f"wrote {count} registered scans with their poses to {args.e57_out}")
@@ -451,7 +451,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_project(args: argparse.Namespace) -> int:
-    from .engine.project import Project
+    from .engine.tls.project import Project
 
     if args.action == "create":
         project = _project_from_args(args)
@@ -490,8 +490,8 @@ def cmd_project(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from .engine.compare import compare_auto_manual, write_comparison
-    from .engine.plot import ScanCache, write_poses
+    from .engine.tls.compare import compare_auto_manual, write_comparison
+    from .engine.tls.plot import ScanCache, write_poses
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -529,7 +529,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 def cmd_targets(args: argparse.Namespace) -> int:
     from .engine.io import read_scan
-    from .engine.manual import detect_reflectors, match_detected_to_known, read_targets_csv, write_targets_csv
+    from .engine.tls.manual import detect_reflectors, match_detected_to_known, read_targets_csv, write_targets_csv
 
     known = read_targets_csv(args.known) if args.known else {}
     found: dict[str, dict[str, np.ndarray]] = {}
@@ -590,7 +590,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def _demo_system_a(out: Path, args: argparse.Namespace) -> int:
     """Simulate a mixed forest pair 12 m apart, register it, and compare with the truth."""
     from .engine.simulate import relative_pose, simulate_plot
-    from .engine.transform import rigid_errors
+    from .engine.core.transform import rigid_errors
 
     data = out / "scans"
     data.mkdir(parents=True, exist_ok=True)
@@ -613,7 +613,7 @@ def _demo_system_b(out: Path, args: argparse.Namespace) -> int:
     evaluate both against the simulator's trees (the 'field data')."""
     from .engine.io import write_scan
     from .engine.simulate.platforms import simulate_coregistration_case
-    from .engine.transform import rigid_errors
+    from .engine.core.transform import rigid_errors
 
     quiet = ["--quiet"] if args.quiet else []
     data = out / "data"
@@ -660,7 +660,7 @@ def cmd_gui(args: argparse.Namespace) -> int:
 
 
 def cmd_params(args: argparse.Namespace) -> int:
-    from .engine.params import parameter_table
+    from .engine.core.params import parameter_table
 
     rows = parameter_table()
     if args.toml:
@@ -844,7 +844,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    from .engine.errors import ForestregError
+    from .engine.core.errors import ForestregError
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["gui"]:  # the GUI parses its own options

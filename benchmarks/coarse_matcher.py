@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from forestreg.engine.match import coarse
+from forestreg.engine.tls import coarse
 
 
 def _spread(rng: np.random.Generator, count: int, radius: float, min_sep: float) -> np.ndarray:

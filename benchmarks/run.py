@@ -44,9 +44,9 @@ else:  # run as a script: python benchmarks/run.py
     import system_b  # type: ignore[no-redef]
 
 from forestreg.engine.io import read_scan, write_scan
-from forestreg.engine.register import register
+from forestreg.engine.tls.pair import register
 from forestreg.engine.simulate import simulate_plot
-from forestreg.engine.transform import rigid_errors
+from forestreg.engine.core.transform import rigid_errors
 
 PRESET = "mixed_temperate"
 SIZE_M = 60.0

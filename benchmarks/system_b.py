@@ -18,10 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from forestreg.engine.canopy import coregister
-from forestreg.engine.fusion import fuse_scans
+from forestreg.engine.coreg import coregister
+from forestreg.engine.coreg.fusion import fuse_scans
 from forestreg.engine.simulate.platforms import simulate_coregistration_case
-from forestreg.engine.transform import rigid_errors
+from forestreg.engine.core.transform import rigid_errors
 
 COREG_STEPS = ("terrain_s", "keypoints_s", "matching_s", "verification_s", "icp_s", "total_s")
 

@@ -1,6 +1,6 @@
 """forestreg.engine: the headless methods (numpy, scipy, open3d, laspy; never Qt)."""
 
-from .errors import (
+from .core.errors import (
     Cancelled,
     ForestregError,
     ParameterError,
@@ -10,8 +10,8 @@ from .errors import (
     ProjectFileError,
     TargetError,
 )
-from .progress import CancelToken, Progress
-from .scan import Scan
+from .core.progress import CancelToken, Progress
+from .core.scan import Scan
 
 __all__ = [
     "Cancelled",

@@ -10,7 +10,7 @@ import pytest
 
 from forestreg.cli import main
 from forestreg.engine.io import read_scan, write_scan
-from forestreg.engine.transform import rigid_errors
+from forestreg.engine.core.transform import rigid_errors
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +123,7 @@ def test_scanner_position_for_georeferenced_scans(tmp_path, pair_files):
 
 
 def test_params_command_prints_a_loadable_toml(tmp_path, capsys):
-    from forestreg.engine.params import RegistrationParams
+    from forestreg.engine.core.params import RegistrationParams
 
     assert main(["params", "--toml"]) == 0
     text = capsys.readouterr().out

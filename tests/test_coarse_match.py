@@ -1,4 +1,4 @@
-"""Tests of forestreg.engine.match.coarse: the exact branch-and-bound VOP matcher.
+"""Tests of forestreg.engine.tls.coarse: the exact branch-and-bound VOP matcher.
 
 The fast matcher must return the literal enumeration's optimum (score and (i, j, k)) and the exact
 best distinct solution. Literal runs use coarse angle steps (1-2 deg) and small sets so they take
@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from forestreg.engine.match import coarse
-from forestreg.engine.match.coarse import CoarseMatch, match_vops, match_vops_literal, overlap_score
+from forestreg.engine.tls import coarse
+from forestreg.engine.tls.coarse import CoarseMatch, match_vops, match_vops_literal, overlap_score
 
 DT = 0.2  # default match distance, metres
 
@@ -379,7 +379,7 @@ def test_invalid_input_raises_value_error(reference, moving, kwargs) -> None:
 
 
 def test_package_exports() -> None:
-    from forestreg.engine import match
+    from forestreg.engine import tls as match
 
     assert match.match_vops is match_vops
     assert match.match_vops_literal is match_vops_literal

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from forestreg.cli import main
-from forestreg.engine.compare import compare_auto_manual
+from forestreg.engine.tls.compare import compare_auto_manual
 from forestreg.engine.io import write_scan
-from forestreg.engine.manual import write_targets_csv
-from forestreg.engine.project import Project
+from forestreg.engine.tls.manual import write_targets_csv
+from forestreg.engine.tls.project import Project
 
 POSITIONS = ((0.0, 0.0), (9.0, 3.0), (-7.0, 7.0), (2.0, -10.0))
 
@@ -74,7 +74,7 @@ def test_compare_command_writes_json_csv_and_report(plot_with_targets, tmp_path,
 def test_targets_command_detects_and_names_reflectors(plot_with_targets, tmp_path, capsys):
     """Detected reflector centres, named after approximate positions (10 cm off), land within
     3 cm of the true centres."""
-    from forestreg.engine.manual import read_targets_csv
+    from forestreg.engine.tls.manual import read_targets_csv
 
     plot, paths, _, targets = plot_with_targets
     rng = np.random.default_rng(1)

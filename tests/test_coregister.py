@@ -9,12 +9,12 @@ import math
 import numpy as np
 import pytest
 
-from forestreg.engine.canopy import coregister, extract_keypoints, match_keypoints
-from forestreg.engine.canopy.keypoints import density_peak
-from forestreg.engine.canopy.matching import MatchingParams
+from forestreg.engine.coreg import coregister, extract_keypoints, match_keypoints
+from forestreg.engine.coreg.keypoints import density_peak
+from forestreg.engine.coreg.matching import MatchingParams
 from forestreg.engine.simulate.platforms import simulate_coregistration_case
-from forestreg.engine.terrain import terrain_model
-from forestreg.engine.transform import rigid_errors
+from forestreg.engine.terrain.dem import terrain_model
+from forestreg.engine.core.transform import rigid_errors
 
 
 @functools.lru_cache(maxsize=None)

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from forestreg.engine.errors import ParameterError
+from forestreg.engine.core.errors import ParameterError
 from forestreg.engine.trees.evaluate import (
     TreeTableError,
     agreement,

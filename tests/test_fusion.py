@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from forestreg.engine.errors import ParameterError, ScanDataError, ScanWriteError
-from forestreg.engine.fusion import (
+from forestreg.engine.core.errors import ParameterError, ScanDataError, ScanWriteError
+from forestreg.engine.coreg.fusion import (
     GROUND,
     PAPER_PR_MAX,
     UAV,
@@ -334,7 +334,7 @@ def test_tree_tips_the_uav_adds_survive_the_noise_filter():
     """A dense ground-based cone (a conifer crown) and a sparse UAV sample of its upper part,
     reaching the tip the ground-based cloud never saw: the highest UAV points stay in the fused
     cloud, so the fused tree is as tall as the true one; without the protection they go."""
-    from forestreg.engine.fusion import FusionParams, fuse
+    from forestreg.engine.coreg.fusion import FusionParams, fuse
 
     rng = np.random.default_rng(7)
 

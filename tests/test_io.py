@@ -9,7 +9,7 @@ import laspy
 import numpy as np
 import pytest
 
-from forestreg.engine.errors import ParameterError, ScanDataError, ScanReadError, ScanWriteError
+from forestreg.engine.core.errors import ParameterError, ScanDataError, ScanReadError, ScanWriteError
 from forestreg.engine.io import (
     SUPPORTED_READ_SUFFIXES,
     SUPPORTED_WRITE_SUFFIXES,
@@ -20,7 +20,7 @@ from forestreg.engine.io import (
     write_scan,
 )
 from forestreg.engine.io.las import intensity_to_uint16
-from forestreg.engine.scan import Scan
+from forestreg.engine.core.scan import Scan
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 UTM = np.array([500_123.0, 5_200_456.0, 312.0])

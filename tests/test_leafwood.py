@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from forestreg.engine.errors import ParameterError, ScanDataError
+from forestreg.engine.core.errors import ParameterError, ScanDataError
 from forestreg.engine.simulate.mesh import Material
 from forestreg.engine.simulate.plot import simulate_plot
 from forestreg.engine.trees.leafwood import (

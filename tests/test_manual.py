@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from forestreg.engine.errors import Cancelled, TargetError
-from forestreg.engine.manual import (
+from forestreg.engine.core.errors import Cancelled, TargetError
+from forestreg.engine.tls.manual import (
     DetectedTarget,
     detect_reflectors,
     fit_to_targets,
@@ -22,10 +22,10 @@ from forestreg.engine.manual import (
     targets_for,
     write_targets_csv,
 )
-from forestreg.engine.params import RegistrationParams
-from forestreg.engine.progress import CancelToken
-from forestreg.engine.scan import Scan
-from forestreg.engine.transform import apply, matrix_from_yaw, rigid_errors
+from forestreg.engine.core.params import RegistrationParams
+from forestreg.engine.core.progress import CancelToken
+from forestreg.engine.core.scan import Scan
+from forestreg.engine.core.transform import apply, matrix_from_yaw, rigid_errors
 
 PLOT = ("planted_conifer", ((0.0, 0.0), (9.0, 4.0)))
 #: A smaller reach makes ICP quicker where the test is not about accuracy.

@@ -20,7 +20,7 @@ def test_no_plain_top_level_modules_are_importable(name, tmp_path):
 
 
 def test_package_imports_as_forestreg(tmp_path):
-    code = "import forestreg, forestreg.engine, forestreg.engine.register, forestreg.cli; print(forestreg.__version__)"
+    code = "import forestreg, forestreg.engine, forestreg.engine.tls.pair, forestreg.cli; print(forestreg.__version__)"
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
 

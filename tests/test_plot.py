@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from forestreg.cli import main
-from forestreg.engine.errors import Cancelled, ProjectFileError
+from forestreg.engine.core.errors import Cancelled, ProjectFileError
 from forestreg.engine.io import read_scan, write_scan
-from forestreg.engine.plot import adjust_poses, register_project, write_poses
-from forestreg.engine.project import Project
-from forestreg.engine.transform import rigid_errors
+from forestreg.engine.tls.plot import adjust_poses, register_project, write_poses
+from forestreg.engine.tls.project import Project
+from forestreg.engine.core.transform import rigid_errors
 
 FOUR = ((0.0, 0.0), (10.0, 2.0), (-8.0, 6.0), (3.0, -11.0))
 SIX_WITH_TILTED = ((0.0, 0.0), (9.0, 3.0), (-7.0, 7.0), (2.0, -10.0), (-9.0, -5.0), (9.3, 3.2))
@@ -186,7 +186,7 @@ def test_plot_and_project_commands(four_scan_files, tmp_path, capsys):
 
 def test_multi_scan_e57_opens_as_a_project_and_poses_are_written_back(four_scan_files, tmp_path):
     from forestreg.engine.io import read_scans, write_e57
-    from forestreg.engine.plot import ScanCache, project_from_e57, write_registered_e57
+    from forestreg.engine.tls.plot import ScanCache, project_from_e57, write_registered_e57
 
     plot, paths = four_scan_files
     e57 = tmp_path / "plot.e57"
@@ -207,7 +207,7 @@ def test_multi_scan_e57_opens_as_a_project_and_poses_are_written_back(four_scan_
 
 
 def test_registered_scans_are_written_one_file_each_in_the_centre_frame(four_scan_files, registered_four, tmp_path):
-    from forestreg.engine.plot import write_registered_scans
+    from forestreg.engine.tls.plot import write_registered_scans
 
     plot, paths = four_scan_files
     project = Project.load(registered_four[0])

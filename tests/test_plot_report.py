@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from forestreg.engine.errors import ScanWriteError
+from forestreg.engine.core.errors import ScanWriteError
 from forestreg.engine.io import write_scan
-from forestreg.engine.plot import ScanCache, register_project
-from forestreg.engine.project import Project
+from forestreg.engine.tls.plot import ScanCache, register_project
+from forestreg.engine.tls.project import Project
 from forestreg.engine.report.plot_report import compute_top_view, format_cm, write_plot_report
 
 POSITIONS = ((0.0, 0.0), (10.0, 2.0), (-8.0, 6.0))

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from forestreg.engine.errors import ParameterError, ScanDataError, ScanReadError
+from forestreg.engine.core.errors import ParameterError, ScanDataError, ScanReadError
 from forestreg.engine.simulate.mesh import Material
 from forestreg.engine.simulate.plot import simulate_plot
 from forestreg.engine.simulate.scene import make_scene

@@ -8,11 +8,11 @@ import pytest
 from scipy.spatial import cKDTree
 
 from forestreg.engine.io import read_scan
-from forestreg.engine.occlusion.prepare import extract_vops, prepare_scan, slice_layers
-from forestreg.engine.params import RegistrationParams
-from forestreg.engine.register import register
+from forestreg.engine.tls.prepare import extract_vops, prepare_scan, slice_layers
+from forestreg.engine.core.params import RegistrationParams
+from forestreg.engine.tls.pair import register
 from forestreg.engine.simulate import simulate_scan_from_cloud
-from forestreg.engine.transform import rigid_errors
+from forestreg.engine.core.transform import rigid_errors
 
 
 def test_real_riegl_scan_yields_vops_on_vertical_stems(shared_data):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from forestreg.engine.params import RegistrationParams
-from forestreg.engine.register import register
-from forestreg.engine.transform import rigid_errors
+from forestreg.engine.core.params import RegistrationParams
+from forestreg.engine.tls.pair import register
+from forestreg.engine.core.transform import rigid_errors
 
 FINE_ROTATION_DEG = 0.05
 FINE_TRANSLATION_M = 0.02

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from forestreg.engine.errors import ParameterError
+from forestreg.engine.core.errors import ParameterError
 from forestreg.engine.simulate import (
     PRESETS,
     ForestScene,
@@ -550,7 +550,7 @@ def _fallback_write_scan(scan, path) -> None:
     """A minimal LAZ writer for this test only, used while forestreg.engine.io has none."""
     import laspy
 
-    from forestreg.engine.atomic import atomic_path
+    from forestreg.engine.core.atomic import atomic_path
 
     header = laspy.LasHeader(point_format=1, version="1.2")
     header.scales = np.array([0.0005, 0.0005, 0.0005])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from forestreg.engine.errors import ParameterError
+from forestreg.engine.core.errors import ParameterError
 from forestreg.engine.simulate import (
     BackpackSetup,
     Material,

@@ -143,7 +143,7 @@ def test_trees_and_evaluate_commands(tmp_path):
 
 
 def test_no_stems_is_a_clear_error():
-    from forestreg.engine.errors import ScanDataError
+    from forestreg.engine.core.errors import ScanDataError
 
     rng = np.random.default_rng(0)
     ground = np.column_stack([rng.uniform(0, 20, (20000, 2)), rng.normal(0, 0.02, 20000)])
@@ -156,7 +156,7 @@ def test_no_stems_is_a_clear_error():
 def test_a_cloud_without_ground_gets_heights_above_its_stem_feet():
     """Ground removed (as in segmented plots): the stand-in DEM follows the stem feet, here on a
     slope of 0.1 m/m, so heights start at zero at every stem."""
-    from forestreg.engine.terrain import lowest_points_dem
+    from forestreg.engine.terrain.dem import lowest_points_dem
 
     rng = np.random.default_rng(0)
     stems = []

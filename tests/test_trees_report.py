@@ -9,7 +9,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
-from forestreg.engine.errors import ScanDataError
+from forestreg.engine.core.errors import ScanDataError
 from forestreg.engine.report.trees_report import (
     FLAG_COLOUR,
     ORDER_COLOURS,

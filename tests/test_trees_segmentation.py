@@ -17,9 +17,9 @@ import math
 import numpy as np
 import pytest
 
-from forestreg.engine.errors import ParameterError, ScanDataError
+from forestreg.engine.core.errors import ParameterError, ScanDataError
 from forestreg.engine.simulate.mesh import Material
-from forestreg.engine.terrain import terrain_model
+from forestreg.engine.terrain.dem import terrain_model
 from forestreg.engine.trees.crown import CrownParams, measure_crown, measure_crowns
 from forestreg.engine.trees.segmentation import (
     CompletenessParams,

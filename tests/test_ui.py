@@ -23,8 +23,8 @@ pytest.importorskip("pytestqt")
 from PySide6.QtCore import QSettings  # noqa: E402
 from PySide6.QtGui import QImage  # noqa: E402
 
-from forestreg.engine.params import RegistrationParams  # noqa: E402
-from forestreg.engine.project import Project  # noqa: E402
+from forestreg.engine.core.params import RegistrationParams  # noqa: E402
+from forestreg.engine.tls.project import Project  # noqa: E402
 
 RUN_TIMEOUT_MS = 180_000
 #: A registered copy of the test plot, left by test_run_fills_the_tables for the screenshot tests.
@@ -274,7 +274,7 @@ def _registered_project(plot_dir: Path, tmp_path: Path) -> Path:
     """The project registered by the run test, or registered here when that test did not run."""
     if "project" in _REGISTERED and _REGISTERED["project"].is_file():
         return _REGISTERED["project"]
-    from forestreg.engine.plot import register_project
+    from forestreg.engine.tls.plot import register_project
 
     project = Project(name="test plot", params=_params())
     for f in sorted(plot_dir.glob("scan_*.laz")):

@@ -15,8 +15,8 @@ pytest.importorskip("pytestqt")
 
 from PySide6.QtCore import QSettings  # noqa: E402
 
-from forestreg.engine.params import RegistrationParams  # noqa: E402
-from forestreg.engine.project import Project  # noqa: E402
+from forestreg.engine.core.params import RegistrationParams  # noqa: E402
+from forestreg.engine.tls.project import Project  # noqa: E402
 
 RUN_TIMEOUT_MS = 180_000
 SCREENSHOT = Path(__file__).resolve().parents[1] / "docs" / "images" / "gui_compare.png"
@@ -77,7 +77,7 @@ def _pick_all(window, sim) -> dict[str, dict[str, np.ndarray]]:
 
 
 def test_picked_targets_and_manual_registration(qtbot, window, plot, project_file: Path) -> None:
-    from forestreg.engine.transform import rigid_errors
+    from forestreg.engine.core.transform import rigid_errors
 
     sim, _ = plot
     _open(qtbot, window, project_file)
@@ -142,7 +142,7 @@ def test_picked_targets_and_manual_registration(qtbot, window, plot, project_fil
 
 
 def test_targets_table_csv_round_trip_and_reflectors(qtbot, window, plot, project_file: Path, tmp_path: Path) -> None:
-    from forestreg.engine.manual import read_targets_csv, write_targets_csv
+    from forestreg.engine.tls.manual import read_targets_csv, write_targets_csv
 
     sim, _ = plot
     _open(qtbot, window, project_file)

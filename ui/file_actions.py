@@ -15,9 +15,9 @@ from PySide6.QtCore import QByteArray, QUrl
 from PySide6.QtGui import QDesktopServices
 from PySide6.QtWidgets import QFileDialog, QMessageBox
 
-from ..engine.errors import ForestregError
+from ..engine.core.errors import ForestregError
 from ..engine.io import SUPPORTED_READ_SUFFIXES
-from ..engine.project import Project
+from ..engine.tls.project import Project
 from .worker import TaskWorker, describe_error
 
 log = logging.getLogger("forestreg")
@@ -193,7 +193,7 @@ class FileActionsMixin:
 
     def export_poses(self, folder: str | Path) -> None:
         """``write_poses`` into ``folder`` (in the background)."""
-        from ..engine.plot import write_poses
+        from ..engine.tls.plot import write_poses
 
         project, outcome = self.project, self.last_outcome
         self._start_task(
@@ -204,7 +204,7 @@ class FileActionsMixin:
 
     def export_merged(self, path: str | Path) -> None:
         """``write_merged`` to ``path`` (in the background)."""
-        from ..engine.plot import write_merged
+        from ..engine.tls.plot import write_merged
 
         project, scans = self.project, self.scans
         self._start_task(
@@ -215,7 +215,7 @@ class FileActionsMixin:
 
     def export_scans(self, folder: str | Path) -> None:
         """``write_registered_scans`` into ``folder`` (in the background)."""
-        from ..engine.plot import write_registered_scans
+        from ..engine.tls.plot import write_registered_scans
 
         project, scans = self.project, self.scans
         self._start_task(
@@ -226,7 +226,7 @@ class FileActionsMixin:
 
     def export_e57(self, path: str | Path) -> None:
         """``write_registered_e57`` to ``path`` (in the background)."""
-        from ..engine.plot import write_registered_e57
+        from ..engine.tls.plot import write_registered_e57
 
         project, scans = self.project, self.scans
         self._start_task(

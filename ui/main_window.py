@@ -27,9 +27,9 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from ..engine.errors import ForestregError
-from ..engine.plot import ScanCache
-from ..engine.project import Project
+from ..engine.core.errors import ForestregError
+from ..engine.tls.plot import ScanCache
+from ..engine.tls.project import Project
 from .icons import icon
 from .file_actions import FileActionsMixin
 from .log_pane import LogPane

@@ -3,8 +3,8 @@ in the 3D view), the per-link method (auto | manual), manual registration and th
 both methods (the paper's tables 4 and 5).
 
 A mixin of :class:`~forestreg.ui.main_window.MainWindow`. The engine does the work
-(:mod:`forestreg.engine.manual`, :func:`forestreg.engine.compare.compare_auto_manual`,
-:func:`forestreg.engine.plot.register_project` for manual links); this only edits
+(:mod:`forestreg.engine.tls.manual`, :func:`forestreg.engine.tls.compare.compare_auto_manual`,
+:func:`forestreg.engine.tls.plot.register_project` for manual links); this only edits
 ``ScanEntry.targets`` and ``Link.method`` and shows the results.
 """
 
@@ -19,7 +19,7 @@ import numpy as np
 from PySide6.QtCore import QPoint, Qt
 from PySide6.QtWidgets import QFileDialog, QMenu
 
-from ..engine.errors import ForestregError
+from ..engine.core.errors import ForestregError
 from .manual_panel import ComparisonView, TargetsPanel, next_target_id
 from .worker import TaskWorker, describe_error
 
@@ -257,7 +257,7 @@ class ManualModeMixin:
         """Read a target CSV (``engine.manual.read_targets_csv``) into the matching scans (by file
         name, stem or scan name); returns the number of targets read. Targets of a scan in the
         file replace that scan's targets with the same ids."""
-        from ..engine.manual import read_targets_csv
+        from ..engine.tls.manual import read_targets_csv
 
         try:
             by_scan = read_targets_csv(path)
@@ -289,7 +289,7 @@ class ManualModeMixin:
 
     def export_targets_csv(self, path: str | Path) -> bool:
         """Write every scan's targets (``engine.manual.write_targets_csv``, scan file names)."""
-        from ..engine.manual import write_targets_csv
+        from ..engine.tls.manual import write_targets_csv
 
         data = {s.name: dict(s.targets) for s in self.project.scans if s.targets}
         try:
@@ -309,7 +309,7 @@ class ManualModeMixin:
         """Find reflectors in a scan in the background (``engine.manual.detect_reflectors``). When
         the scan already has targets the detections are named after them
         (``match_detected_to_known`` within ``max_distance_m``); otherwise they are added as R1, R2..."""
-        from ..engine.manual import detect_reflectors, match_detected_to_known
+        from ..engine.tls.manual import detect_reflectors, match_detected_to_known
 
         name = scan_name or self.targets_panel.scan
         if not name or self.running:
@@ -353,7 +353,7 @@ class ManualModeMixin:
     def set_link_method(self, moving: str, method: str) -> None:
         """Register ``moving`` with ``method`` ("auto" or "manual") along its link (its result
         is forgotten); a scan without a link gets the default one first."""
-        from ..engine.plot import default_links
+        from ..engine.tls.plot import default_links
 
         if method not in ("auto", "manual"):
             raise ValueError(f"method must be 'auto' or 'manual', not {method!r}")
@@ -367,7 +367,7 @@ class ManualModeMixin:
         self.model._changed()
 
     def set_all_link_methods(self, method: str) -> None:
-        from ..engine.plot import default_links
+        from ..engine.tls.plot import default_links
 
         if self.running or not self.project.scans:
             return
@@ -438,8 +438,8 @@ class ManualModeMixin:
         """Register the plot automatically and from the targets, in the background, on a copy of
         the project, and show the comparison. The window's project keeps its manual links as they
         are; its auto links that had not been run get the automatic results."""
-        from ..engine.compare import compare_auto_manual
-        from ..engine.project import Link
+        from ..engine.tls.compare import compare_auto_manual
+        from ..engine.tls.project import Link
 
         if self.running or self.tasks.busy("compare") or len(self.project.scans) < 2:
             return False

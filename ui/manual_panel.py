@@ -1,7 +1,7 @@
 """Widgets of manual mode: the per-scan targets table and the auto-vs-manual comparison view.
 
 Both only show and edit what the engine keeps (``ScanEntry.targets``, the comparison dict of
-:func:`forestreg.engine.compare.compare_auto_manual`); the window's manual-mode mixin
+:func:`forestreg.engine.tls.compare.compare_auto_manual`); the window's manual-mode mixin
 (:mod:`forestreg.ui.manual_mode`) wires them to the project and the background workers.
 """
 

@@ -1,6 +1,6 @@
 """The parameter panel, built from the engine's parameter metadata (:func:`parameter_table`).
 
-One editor per field of :class:`~forestreg.engine.params.RegistrationParams`: a spin box with its
+One editor per field of :class:`~forestreg.engine.core.params.RegistrationParams`: a spin box with its
 unit, range and help as tooltip for numbers, a check box for switches, comma-separated text for
 lists of heights or distances, and "auto" for an optional value (the VOP radius). The panel never
 judges values itself: :meth:`ParameterPanel.params` builds a ``RegistrationParams`` and the
@@ -28,8 +28,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from ..engine.errors import ForestregError, ParameterError
-from ..engine.params import RegistrationParams, parameter_table
+from ..engine.core.errors import ForestregError, ParameterError
+from ..engine.core.params import RegistrationParams, parameter_table
 
 #: Units shown after a value (the metadata's short forms spelt out where useful).
 UNIT_SUFFIX = {"m": " m", "deg": "\u00b0", "points": " points", "VOPs": " VOPs"}

@@ -1,4 +1,4 @@
-"""The project tree: a thin Qt item model over :class:`forestreg.engine.project.Project`.
+"""The project tree: a thin Qt item model over :class:`forestreg.engine.tls.project.Project`.
 
 The tree has three groups: *Scans* (the centre scan marked with a star, tilted scans marked, each
 with its registration state), *Links* (moving -> reference with the result) and *Tilted pairs*.
@@ -15,7 +15,7 @@ from typing import Iterable, Optional, Sequence
 from PySide6.QtCore import QByteArray, QMimeData, QModelIndex, QObject, Qt, QTimer, Signal
 from PySide6.QtGui import QBrush, QColor, QFont, QStandardItem, QStandardItemModel
 
-from ..engine.project import Link, Project
+from ..engine.tls.project import Link, Project
 from ..engine.report.plot_report import scan_colours, scan_states
 
 #: Item data roles.

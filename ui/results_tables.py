@@ -14,7 +14,7 @@ from PySide6.QtCore import Qt
 from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import QAbstractItemView, QHeaderView, QTableWidget, QTableWidgetItem, QWidget
 
-from ..engine.project import Project
+from ..engine.tls.project import Project
 from ..engine.report.plot_report import scan_states
 from .project_model import STATUS_COLOURS, link_status
 

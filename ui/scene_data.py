@@ -15,8 +15,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..engine.plot import ScanCache
-from ..engine.project import Project
+from ..engine.tls.plot import ScanCache
+from ..engine.tls.project import Project
 from ..engine.report.plot_report import scan_colours
 
 #: Points drawn in the 3D view, all scans together.

@@ -2,8 +2,8 @@
 
 A worker is a QObject moved to its own :class:`QThread`; it calls the engine there and reports
 through signals, which Qt delivers to the GUI thread (queued), so the window stays responsive.
-Cancelling sets the engine's :class:`~forestreg.engine.progress.CancelToken`; the engine raises
-:class:`~forestreg.engine.errors.Cancelled` at its next check and the worker emits ``cancelled``.
+Cancelling sets the engine's :class:`~forestreg.engine.core.progress.CancelToken`; the engine raises
+:class:`~forestreg.engine.core.errors.Cancelled` at its next check and the worker emits ``cancelled``.
 
 The engine leaves a project untouched by a failed or cancelled run except for the links that
 had already finished; the worker adds nothing to that.
@@ -17,8 +17,8 @@ from typing import Any, Callable, Optional
 
 from PySide6.QtCore import QObject, Qt, QThread, Signal, Slot
 
-from ..engine.errors import Cancelled, ForestregError
-from ..engine.progress import CancelToken
+from ..engine.core.errors import Cancelled, ForestregError
+from ..engine.core.progress import CancelToken
 
 log = logging.getLogger("forestreg")
 
@@ -90,11 +90,11 @@ class TaskWorker(QObject):
 
 
 class RegistrationWorker(TaskWorker):
-    """Registers a project (:func:`~forestreg.engine.plot.register_project`), then runs the global
+    """Registers a project (:func:`~forestreg.engine.tls.plot.register_project`), then runs the global
     adjustment where links close loops, and saves the project when it has a file.
 
     Extra signals: ``link_done(moving_scan_name)`` after each link, ``finished(outcome)`` with the
-    engine's :class:`~forestreg.engine.plot.PlotOutcome` (also emitted as ``succeeded``).
+    engine's :class:`~forestreg.engine.tls.plot.PlotOutcome` (also emitted as ``succeeded``).
     """
 
     link_done = Signal(str)
@@ -108,7 +108,7 @@ class RegistrationWorker(TaskWorker):
         self.succeeded.connect(self.finished)
 
     def _register(self, progress: Callable[[float, str], None], cancel: CancelToken) -> Any:
-        from ..engine.plot import ScanCache, adjust_poses, register_project
+        from ..engine.tls.plot import ScanCache, adjust_poses, register_project
 
         scans = self.scans if self.scans is not None else ScanCache(self.project)
         outcome = register_project(

@@ -2,10 +2,10 @@
 
 Reading picks the format from the file's first bytes (``LASF``, ``ply``, ``# .PCD``/``VERSION``,
 ``ASTM-E57``) and falls back to the suffix only for text, so a LAZ saved as ``.txt`` still reads.
-Every problem with the file itself raises :class:`~forestreg.engine.errors.ScanReadError` with
+Every problem with the file itself raises :class:`~forestreg.engine.core.errors.ScanReadError` with
 one sentence naming the file (the library's exception is kept as ``__cause__``); problems with the
-points (NaN, wrong units, too few) raise :class:`~forestreg.engine.errors.ScanDataError` from
-:meth:`Scan.from_points <forestreg.engine.scan.Scan.from_points>`.
+points (NaN, wrong units, too few) raise :class:`~forestreg.engine.core.errors.ScanDataError` from
+:meth:`Scan.from_points <forestreg.engine.core.scan.Scan.from_points>`.
 
 Writing picks the format from the suffix and always goes through a temporary file renamed onto
 the target, so a failed write leaves no partial file and the previous file intact.
@@ -23,9 +23,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..atomic import atomic_path
-from ..errors import ForestregError, ParameterError, ScanReadError, ScanWriteError
-from ..scan import Scan
+from ..core.atomic import atomic_path
+from ..core.errors import ForestregError, ParameterError, ScanReadError, ScanWriteError
+from ..core.scan import Scan
 from . import e57 as _e57
 from . import las as _las
 from . import pcd as _pcd

@@ -1,7 +1,7 @@
 """Shared pieces of the readers and writers: the raw cloud a reader returns, scan building, checks.
 
 A reader returns :class:`RawCloud` objects in *file units* (whatever the file holds); turning one
-into a :class:`~forestreg.engine.scan.Scan` (unit scale, scanner position, validation) happens
+into a :class:`~forestreg.engine.core.scan.Scan` (unit scale, scanner position, validation) happens
 once, in :func:`build_scan`.
 """
 
@@ -15,8 +15,8 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..errors import ParameterError, ScanDataError, ScanReadError
-from ..scan import Scan
+from ..core.errors import ParameterError, ScanDataError, ScanReadError
+from ..core.scan import Scan
 
 PathLike = str | os.PathLike[str]
 

@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import ScanReadError, ScanWriteError
+from ..core.errors import ScanReadError, ScanWriteError
 from .base import RawCloud
 
 #: Coordinate resolution of written E57 files, metres.

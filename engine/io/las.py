@@ -12,7 +12,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..errors import ScanReadError
+from ..core.errors import ScanReadError
 from .base import RawCloud
 
 #: Coordinate resolution written to LAS/LAZ, metres (keeps sub-mm steps for UTM-sized values).

@@ -11,7 +11,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import ScanReadError
+from ..core.errors import ScanReadError
 from .base import RawCloud
 from .ply import INTENSITY_NAMES
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import ScanReadError
+from ..core.errors import ScanReadError
 
 #: format name -> suffixes read as that format when the content does not say otherwise
 READ_SUFFIXES: dict[str, tuple[str, ...]] = {

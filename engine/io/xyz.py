@@ -15,7 +15,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import ScanReadError
+from ..core.errors import ScanReadError
 from .base import RawCloud
 
 #: Lines searched for the first x y z row.

@@ -21,10 +21,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..atomic import atomic_path, write_text_atomic  # noqa: E402
+from ..core.atomic import atomic_path, write_text_atomic  # noqa: E402
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..canopy.coregister import CoregistrationResult
+    from ..coreg.coregister import CoregistrationResult
 
 GROUND_COLOUR = "#d62728"
 UAV_COLOUR = "#1f77b4"

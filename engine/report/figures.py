@@ -15,10 +15,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..atomic import atomic_path  # noqa: E402
+from ..core.atomic import atomic_path  # noqa: E402
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..register import PairResult
+    from ..tls.pair import PairResult
 
 REFERENCE_COLOUR = "#1f77b4"
 MOVING_COLOUR = "#d95f02"

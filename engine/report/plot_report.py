@@ -42,12 +42,12 @@ from matplotlib.colors import to_rgb  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from ..atomic import write_text_atomic  # noqa: E402
-from ..errors import ForestregError  # noqa: E402
-from ..occlusion.prepare import extract_vops, prepare_scan, slice_layers  # noqa: E402
-from ..params import RegistrationParams  # noqa: E402
-from ..plot import ScanCache  # noqa: E402
-from ..project import Link, Project  # noqa: E402
+from ..core.atomic import write_text_atomic  # noqa: E402
+from ..core.errors import ForestregError  # noqa: E402
+from ..tls.prepare import extract_vops, prepare_scan, slice_layers  # noqa: E402
+from ..core.params import RegistrationParams  # noqa: E402
+from ..tls.plot import ScanCache  # noqa: E402
+from ..tls.project import Link, Project  # noqa: E402
 from .figures import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402
 
 #: VOP radius (D_r, m) drawn for a scan whose link does not say which one it used.
@@ -113,7 +113,7 @@ def write_plot_report(
     ----------
     project : the plot project; its link results, poses and adjustment are reported as they are.
     path : the HTML file to write (its folder must exist).
-    scans : a :class:`~forestreg.engine.plot.ScanCache` of the project (reuse it to avoid reading
+    scans : a :class:`~forestreg.engine.tls.plot.ScanCache` of the project (reuse it to avoid reading
         the scans again); by default one is made. Slices and VOPs computed for the top view are
         kept with it, so a second report from the same cache is quick.
     comparison : optional marker-free against manual comparison (see the module docstring and

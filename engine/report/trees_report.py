@@ -31,8 +31,8 @@ import numpy as np  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
 from matplotlib.patches import Circle, Patch  # noqa: E402
 
-from ..atomic import atomic_path, write_text_atomic  # noqa: E402
-from ..errors import ScanDataError  # noqa: E402
+from ..core.atomic import atomic_path, write_text_atomic  # noqa: E402
+from ..core.errors import ScanDataError  # noqa: E402
 from .evaluation_report import DASH, esc, fmt, generated_line, html_page, img_tag, png_bytes  # noqa: E402
 
 #: Per-tree figures drawn at most (the rest of the trees are listed without one).

@@ -4,7 +4,7 @@
   :data:`PRESETS`: ``planted_conifer``, ``mixed_temperate``, ``rainforest``, ``sloped``,
   ``open_field``;
 * :func:`simulate_tls_scan` casts the rays of one :class:`ScannerSetup` (Open3D ray casting) and
-  returns a :class:`SimulatedScan`: the :class:`~forestreg.engine.scan.Scan` in the scanner's own
+  returns a :class:`SimulatedScan`: the :class:`~forestreg.engine.core.scan.Scan` in the scanner's own
   frame, per-point material labels and the true pose (``p_world = pose @ p_socs``);
 * :func:`simulate_plot` scans a plot from several positions, optionally writes LAZ files and
   ``truth.json``; :func:`relative_pose` gives the true ``T`` (``p_reference = T @ p_moving``);

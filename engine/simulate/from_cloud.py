@@ -54,8 +54,8 @@ from typing import Any, Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import ParameterError, ScanDataError
-from ..scan import Scan
+from ..core.errors import ParameterError, ScanDataError
+from ..core.scan import Scan
 from .mesh import Material
 from .scanner import ScannerSetup, SimulatedScan
 

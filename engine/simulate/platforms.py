@@ -37,10 +37,10 @@ from typing import Any, Callable, Mapping, Optional, Sequence, Union
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import ParameterError, ScanDataError
-from ..params import param_field as _p
-from ..progress import Progress
-from ..scan import Scan
+from ..core.errors import ParameterError, ScanDataError
+from ..core.params import param_field as _p
+from ..core.progress import Progress
+from ..core.scan import Scan
 from .mesh import Material, SceneRaycaster, raycaster_for
 from .plot import simulate_plot
 from .scanner import intensity_model
@@ -215,7 +215,7 @@ class SimulatedCloud:
         )
 
     def to_scan(self, name: str = "cloud", matrix: Optional[np.ndarray] = None) -> Scan:
-        """A :class:`~forestreg.engine.scan.Scan` of these points, mapped by ``matrix`` (4x4,
+        """A :class:`~forestreg.engine.core.scan.Scan` of these points, mapped by ``matrix`` (4x4,
         ``p_out = matrix @ p_world``) when given. The scanner position is the trajectory position
         horizontally nearest the middle of the points (mapped likewise); coordinates beyond 10 km
         get a local origin shift rounded from it (:meth:`Scan.from_points`)."""

@@ -32,8 +32,8 @@ from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from ..atomic import write_text_atomic
-from ..errors import ParameterError
+from ..core.atomic import write_text_atomic
+from ..core.errors import ParameterError
 from .mesh import Material, raycaster_for
 from .scanner import ScannerSetup, SimulatedScan, simulate_tls_scan
 from .scene import BREAST_HEIGHT_M, ForestScene, make_scene

@@ -35,8 +35,8 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from ..errors import ParameterError
-from ..scan import Scan
+from ..core.errors import ParameterError
+from ..core.scan import Scan
 from .mesh import Material, SceneRaycaster, raycaster_for
 from .scene import ForestScene
 
@@ -148,7 +148,7 @@ class SimulatedScan:
 
     Attributes
     ----------
-    scan : the :class:`~forestreg.engine.scan.Scan`: points in SOCS (scanner at the origin),
+    scan : the :class:`~forestreg.engine.core.scan.Scan`: points in SOCS (scanner at the origin),
         16-bit-scale intensity, no prior pose (the truth stays here, not in the scan).
     labels : (N,) uint8 :class:`~.mesh.Material` of each point.
     object_ids : (N,) int32 id of the tree/shrub/liana/target/box each point hit (0 = ground).

@@ -57,7 +57,7 @@ from typing import Any, Mapping, Optional, Sequence
 import numpy as np
 from scipy import ndimage
 
-from ..errors import ParameterError
+from ..core.errors import ParameterError
 
 #: Crown shapes.
 CONIFER = "conifer"

@@ -24,7 +24,7 @@ Definitions (paper sec. 5.2.2)
 
 A tree too sparse to measure gives a :class:`CrownMeasurement` with ``ok = False`` and its
 reasons (NaN where a value cannot be had); bad input raises
-:class:`~forestreg.engine.errors.ScanDataError`.
+:class:`~forestreg.engine.core.errors.ScanDataError`.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import ScanDataError
+from ..core.errors import ScanDataError
 from .stems import Stem, check_cloud, param_field, validate_ranges
 
 

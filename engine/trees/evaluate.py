@@ -34,7 +34,7 @@ from typing import Any, Iterable, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from ..errors import ForestregError, ParameterError
+from ..core.errors import ForestregError, ParameterError
 
 
 class TreeTableError(ForestregError):
@@ -548,7 +548,7 @@ def write_evaluation(
     Returns the paths by name ("csv", "detection", "json", "html", "scatter_<parameter>",
     "matches_<run>").
     """
-    from ..atomic import atomic_path, write_text_atomic
+    from ..core.atomic import atomic_path, write_text_atomic
     from ..report.evaluation_report import scatter_png, write_evaluation_report
 
     if not runs:

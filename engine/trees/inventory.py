@@ -24,10 +24,10 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from ..atomic import write_text_atomic
-from ..errors import ScanDataError
-from ..progress import Progress, ProgressCallback, as_progress
-from ..terrain import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
+from ..core.atomic import write_text_atomic
+from ..core.errors import ScanDataError
+from ..core.progress import Progress, ProgressCallback, as_progress
+from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
 from .crown import CrownMeasurement, CrownParams, measure_crown
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm

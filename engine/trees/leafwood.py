@@ -44,9 +44,9 @@ from typing import Any, Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import ParameterError, ScanDataError
-from ..params import param_field as _p
-from ..progress import Progress
+from ..core.errors import ParameterError, ScanDataError
+from ..core.params import param_field as _p
+from ..core.progress import Progress
 
 #: Features per scale: l1, l2, l3 (normalised eigenvalues), zenith of e1, e2, e3 (degrees).
 FEATURES_PER_SCALE = 6
@@ -395,7 +395,7 @@ def wood_probability(
     points : (N, 3) float64, metres, z up; vegetation points (ground removed: a flat ground is a
         coherent surface and scores as wood by shape).
     params : :class:`LeafWoodParams`.
-    progress : optional :class:`~forestreg.engine.progress.Progress`.
+    progress : optional :class:`~forestreg.engine.core.progress.Progress`.
 
     Steps: multi-scale features on a base thinning (:func:`covariance_features`), the rule-based
     :func:`woodness_score`, a Gaussian mixture whose components are called wood or leaf by the

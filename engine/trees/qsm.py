@@ -62,10 +62,10 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from ..atomic import write_text_atomic
-from ..errors import ParameterError, ScanDataError, ScanReadError
-from ..params import param_field as _p
-from ..progress import Progress
+from ..core.atomic import write_text_atomic
+from ..core.errors import ParameterError, ScanDataError, ScanReadError
+from ..core.params import param_field as _p
+from ..core.progress import Progress
 from .leafwood import check_points, voxel_thin
 
 #: Breast height (m) above the stem base at which the DBH is taken.
@@ -306,7 +306,7 @@ class CylinderModel:
     def read_csv(cls, path: str | os.PathLike[str]) -> "CylinderModel":
         """Read a table written by :meth:`write_csv` (columns found by name, any order, extra
         columns ignored). A missing, unreadable or damaged file raises
-        :class:`~forestreg.engine.errors.ScanReadError`."""
+        :class:`~forestreg.engine.core.errors.ScanReadError`."""
         try:
             with open(path, encoding="utf-8") as fh:
                 lines = [line.strip() for line in fh if line.strip()]
@@ -1236,7 +1236,7 @@ def fit_qsm(
         :mod:`.leafwood`) and without ground.
     params : :class:`QsmParams`.
     base : optional (3,) stem base point; default: the lowest points are the base.
-    progress : optional :class:`~forestreg.engine.progress.Progress`.
+    progress : optional :class:`~forestreg.engine.core.progress.Progress`.
 
     Returns
     -------

@@ -29,7 +29,7 @@ clipped clouds and badly occluded tops, but a conifer tip lost to occlusion can 
 5-15 % without being flagged (telling that from the geometry alone needs the scanner positions).
 
 Bad input (empty arrays, NaN, mismatched shapes) raises
-:class:`~forestreg.engine.errors.ScanDataError`; an empty ``stems`` list gives all zeros.
+:class:`~forestreg.engine.core.errors.ScanDataError`; an empty ``stems`` list gives all zeros.
 """
 
 from __future__ import annotations
@@ -44,8 +44,8 @@ from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from ..errors import ScanDataError
-from ..progress import Progress
+from ..core.errors import ScanDataError
+from ..core.progress import Progress
 from .stems import DbhMeasurement, Stem, check_cloud, param_field, validate_ranges
 
 

@@ -38,7 +38,7 @@ Method (paper sec. 4.3.1, after Tao et al. 2015: normalisation, stem detection a
    values) and replaced by interpolation.
 
 Bad input (empty arrays, wrong shapes, NaN or infinite values) raises
-:class:`~forestreg.engine.errors.ScanDataError`. Finding no stem is not an error:
+:class:`~forestreg.engine.core.errors.ScanDataError`. Finding no stem is not an error:
 :func:`detect_stems` returns an empty list. A DBH or stem section that cannot be measured is
 returned with ``ok = False`` and its reasons, never as a confident number.
 """
@@ -55,9 +55,9 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from ..errors import ParameterError, ScanDataError
-from ..params import param_field, validate_ranges
-from ..progress import Progress
+from ..core.errors import ParameterError, ScanDataError
+from ..core.params import param_field, validate_ranges
+from ..core.progress import Progress
 
 # --------------------------------------------------------------------------------------------
 # Input checks (shared by the tree modules)

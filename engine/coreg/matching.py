@@ -36,9 +36,9 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from ..errors import ParameterError
-from ..progress import Progress
-from ..transform import fit_rigid
+from ..core.errors import ParameterError
+from ..core.progress import Progress
+from ..core.transform import fit_rigid
 
 __all__ = [
     "KeypointMatch",

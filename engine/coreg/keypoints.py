@@ -26,9 +26,9 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import ParameterError, ScanDataError
-from ..progress import Progress
-from ..terrain import Dem
+from ..core.errors import ParameterError, ScanDataError
+from ..core.progress import Progress
+from ..terrain.dem import Dem
 
 __all__ = [
     "KeypointParams",

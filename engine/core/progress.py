@@ -19,7 +19,7 @@ class CancelToken:
     """A thread-safe flag that a caller sets to ask a running operation to stop.
 
     The operation checks it between steps (:meth:`raise_if_cancelled`) and raises
-    :class:`~forestreg.engine.errors.Cancelled`; nothing it already wrote is lost.
+    :class:`~forestreg.engine.core.errors.Cancelled`; nothing it already wrote is lost.
     """
 
     def __init__(self) -> None:

@@ -7,7 +7,7 @@
 
 Example::
 
-    from forestreg.engine.canopy import coregister
+    from forestreg.engine.coreg import coregister
     result = coregister(ground_scan, uav_scan)       # p_uav = result.matrix @ p_ground
 """
 

@@ -27,8 +27,8 @@ from typing import Iterator, Optional
 
 import numpy as np
 
-from .errors import ParameterError, ScanDataError
-from .progress import Progress
+from ..core.errors import ParameterError, ScanDataError
+from ..core.progress import Progress
 
 __all__ = ["Dem", "TerrainModel", "TerrainParams", "build_dem", "classify_ground", "lowest_points_dem", "terrain_model"]
 

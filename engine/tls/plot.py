@@ -5,7 +5,7 @@ spot. A surveyor whose link fails tries the scans already registered, nearest fi
 registered is reported, never guessed. Where extra links close loops, a pose graph spreads the error
 (like RiSCAN's multi-station adjustment).
 
-Frames: see :mod:`forestreg.engine.project` (poses map a scan's file coordinates into the centre
+Frames: see :mod:`forestreg.engine.tls.project` (poses map a scan's file coordinates into the centre
 scan's file coordinates).
 """
 
@@ -19,13 +19,13 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from .atomic import write_text_atomic
-from .io import read_scan, write_points
-from .progress import CancelToken, Progress, ProgressCallback
+from ..core.atomic import write_text_atomic
+from ..io import read_scan, write_points
+from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, Project, ScanEntry
-from .register import register
-from .scan import Scan
-from .transform import format_matrix, rigid_errors
+from .pair import register
+from ..core.scan import Scan
+from ..core.transform import format_matrix, rigid_errors
 
 log = logging.getLogger("forestreg")
 
@@ -331,7 +331,7 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
 def project_from_e57(path: str | Path, *, name: Optional[str] = None) -> Project:
     """A project with one scan per data3D entry of a multi-scan E57 file; each entry's pose is kept
     as a prior (``ScanEntry.prior_pose``) and the first scan is the centre."""
-    from .io import read_scans
+    from ..io import read_scans
 
     source = Path(path).resolve()
     project = Project(name=name or source.stem)
@@ -344,7 +344,7 @@ def project_from_e57(path: str | Path, *, name: Optional[str] = None) -> Project
 def write_registered_e57(project: Project, path: str | Path, scans: Optional[ScanCache] = None) -> int:
     """Write the registered scans into one E57 file, each with its registered pose (its own
     coordinates -> the centre scan's). Returns how many scans were written."""
-    from .io import write_e57
+    from ..io import write_e57
 
     scans = scans or ScanCache(project)
     poses = project.poses()
@@ -375,7 +375,7 @@ def add_neighbour_links(project: Project, max_distance_m: float) -> list[Link]:
 def write_registered_scans(project: Project, folder: str | Path, scans: Optional[ScanCache] = None, *, suffix: str = ".laz") -> int:
     """Write each registered scan, transformed into the centre scan's file coordinates, as its own
     file ``<folder>/<scan stem>_registered<suffix>``. Returns how many were written."""
-    from .io import write_scan
+    from ..io import write_scan
 
     scans = scans or ScanCache(project)
     out = Path(folder)

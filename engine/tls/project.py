@@ -2,7 +2,7 @@
 
 A project is what a user registers in one go: the scans of one plot, each linked to the scan it is
 registered onto. It is saved as a versioned JSON file with scan paths relative to it, written
-atomically; a damaged or newer file gives a :class:`~forestreg.engine.errors.ProjectFileError` and
+atomically; a damaged or newer file gives a :class:`~forestreg.engine.core.errors.ProjectFileError` and
 is never overwritten by a failed read.
 
 Frames: the project frame is the centre (root) scan's file coordinates. A scan's pose maps its own
@@ -20,9 +20,9 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .atomic import write_text_atomic
-from .errors import ProjectFileError
-from .params import RegistrationParams
+from ..core.atomic import write_text_atomic
+from ..core.errors import ProjectFileError
+from ..core.params import RegistrationParams
 
 FORMAT = "forestreg-project"
 VERSION = 1

@@ -17,12 +17,12 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .atomic import write_text_atomic
+from ..core.atomic import write_text_atomic
 from .manual import register_manual, target_residuals
 from .plot import ScanCache, register_project
-from .progress import CancelToken, Progress, ProgressCallback
+from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Project
-from .transform import rotation_angle_deg
+from ..core.transform import rotation_angle_deg
 
 
 def compare_auto_manual(

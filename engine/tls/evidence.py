@@ -9,8 +9,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..occlusion.prepare import SliceLayer
-from ..occlusion.vop import polar
+from .prepare import SliceLayer
+from .vop import polar
 
 
 def free_space_violation(

@@ -2,7 +2,7 @@
 
 Frames: a :class:`PreparedScan` holds its points in the *levelled scanner frame* (LSF): metres,
 the scanner at the origin, z up, the heading of the scan's own frame kept. ``local_to_lsf`` maps
-the scan's local frame (see :class:`~forestreg.engine.scan.Scan`) into it.
+the scan's local frame (see :class:`~forestreg.engine.core.scan.Scan`) into it.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..params import RegistrationParams
+from ..core.params import RegistrationParams
 from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
 from .level import estimate_up_direction, levelling_rotation, tilt_deg
 from .vop import (

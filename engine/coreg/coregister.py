@@ -21,12 +21,12 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..errors import ParameterError
-from ..match.icp import IcpResult, icp, thin
-from ..progress import Progress, ProgressCallback, as_progress
-from ..scan import Scan
-from ..terrain import TerrainModel, TerrainParams, terrain_model
-from ..transform import rotation_angle_deg
+from ..core.errors import ParameterError
+from ..geometry.icp import IcpResult, icp, thin
+from ..core.progress import Progress, ProgressCallback, as_progress
+from ..core.scan import Scan
+from ..terrain.dem import TerrainModel, TerrainParams, terrain_model
+from ..core.transform import rotation_angle_deg
 from .keypoints import KeypointParams, Keypoints, extract_keypoints
 from .matching import KeypointMatch, MatchingParams, assign_one_to_one, match_keypoints, residual_statistics
 
@@ -228,7 +228,7 @@ def coregister_points(
 ) -> CoregistrationResult:
     """Co-register two clouds given as (N, 3) arrays in local frames (metres, z up):
     ``p_uav = local_matrix @ p_ground``. See :func:`coregister` for scans with file frames."""
-    from ..errors import ScanDataError
+    from ..core.errors import ScanDataError
 
     progress = as_progress(progress)
     timings: dict[str, float] = {}

@@ -19,15 +19,15 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .match.coarse import CoarseMatch, match_vops
-from .match.evidence import mutual_free_space_violation
-from .match.icp import IcpResult, icp
-from .occlusion.prepare import PreparedScan, SliceLayer, extract_vops, prepare_scan, slice_layers
-from .occlusion.vop import VisualOcclusionPoints
-from .params import RegistrationParams
-from .progress import CancelToken, Progress, ProgressCallback
-from .scan import Scan
-from .transform import rotation_angle_deg, rotation_from_vector
+from .coarse import CoarseMatch, match_vops
+from .evidence import mutual_free_space_violation
+from ..geometry.icp import IcpResult, icp
+from .prepare import PreparedScan, SliceLayer, extract_vops, prepare_scan, slice_layers
+from .vop import VisualOcclusionPoints
+from ..core.params import RegistrationParams
+from ..core.progress import CancelToken, Progress, ProgressCallback
+from ..core.scan import Scan
+from ..core.transform import rotation_angle_deg, rotation_from_vector
 
 log = logging.getLogger("forestreg")
 
@@ -181,7 +181,7 @@ def register(
     reference, moving : the two scans (each in its own frame, scanner position known).
     params : settings; default the paper's table 2 with an automatic ``D_r``.
     progress : optional ``progress(fraction, message)`` callback.
-    cancel : optional token; cancelling raises :class:`~forestreg.engine.errors.Cancelled`.
+    cancel : optional token; cancelling raises :class:`~forestreg.engine.core.errors.Cancelled`.
     reference_up, moving_up : optional known vertical directions in each scan's local frame
         (from an inclination sensor); default estimated when ``params.level_tilted``.
 

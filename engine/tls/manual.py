@@ -3,7 +3,7 @@
 The operator identifies the same high-reflectance targets (reflectors) in two scans; a rigid
 transform is fitted to these tie points by least squares (>= 3 shared, non-collinear targets) and
 is the coarse result; then **the same ICP** as the marker-free registration refines it
-(:func:`forestreg.engine.register.fine_registration`). The module also
+(:func:`forestreg.engine.tls.pair.fine_registration`). The module also
 
 * reads and writes target lists (CSV ``scan,target,x,y,z``, file coordinates, metres);
 * finds reflectors in a scan from its intensity (:func:`detect_reflectors`) and names the
@@ -30,15 +30,15 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
-from .atomic import write_text_atomic
-from .errors import TargetError
-from .match.icp import IcpResult
-from .occlusion.prepare import prepare_scan
-from .params import RegistrationParams
-from .progress import CancelToken, Progress, ProgressCallback
-from .register import file_to_lsf_matrix, fine_registration, lsf_to_file_matrix
-from .scan import Scan
-from .transform import apply, fit_rigid, rotation_angle_deg
+from ..core.atomic import write_text_atomic
+from ..core.errors import TargetError
+from ..geometry.icp import IcpResult
+from .prepare import prepare_scan
+from ..core.params import RegistrationParams
+from ..core.progress import CancelToken, Progress, ProgressCallback
+from .pair import file_to_lsf_matrix, fine_registration, lsf_to_file_matrix
+from ..core.scan import Scan
+from ..core.transform import apply, fit_rigid, rotation_angle_deg
 
 log = logging.getLogger("forestreg")
 
@@ -368,7 +368,7 @@ def register_manual(
     cancel: Optional[CancelToken] = None,
 ) -> ManualResult:
     """Register ``moving`` onto ``reference`` from shared targets, then the same ICP as
-    :func:`~forestreg.engine.register.register` (paper sec. 2.7, the manual method).
+    :func:`~forestreg.engine.tls.pair.register` (paper sec. 2.7, the manual method).
 
     Parameters
     ----------

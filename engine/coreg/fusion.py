@@ -35,13 +35,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
-from .atomic import atomic_path
-from .errors import ParameterError, ScanDataError, ScanWriteError
-from .params import param_field as _p
-from .progress import Progress, ProgressCallback
+from ..core.atomic import atomic_path
+from ..core.errors import ParameterError, ScanDataError, ScanWriteError
+from ..core.params import param_field as _p
+from ..core.progress import Progress, ProgressCallback
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .scan import Scan
+    from ..core.scan import Scan
 
 #: Source label of a ground-based point (backpack, handheld, TLS).
 GROUND = 1
@@ -621,7 +621,7 @@ def write_fused(
     intensity. Written atomically (temporary file, then renamed).
     """
 
-    from .io.las import las_points
+    from ..io.las import las_points
 
     target = str(path)
     suffix = os.path.splitext(target)[1].lower()

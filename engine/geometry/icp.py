@@ -14,7 +14,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from ..transform import rotation_from_vector
+from ..core.transform import rotation_from_vector
 
 
 @dataclass(frozen=True)

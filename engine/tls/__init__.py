@@ -1,0 +1,15 @@
+"""System A: marker-free registration of terrestrial laser scans from trunk shadows (Guan et al.
+2020), for pairs, whole plots and manual (target) registration.
+
+* :mod:`.prepare`, :mod:`.ground`, :mod:`.level`, :mod:`.vop` - reduce, ground, levelling, slice,
+  visual occlusion points (VOPs);
+* :mod:`.coarse` - the exact horizontal matcher (and the paper's literal enumeration);
+* :mod:`.evidence` - free-space checks that tell right from wrong solutions;
+* :mod:`.pair` - the pair pipeline and its :class:`~.pair.PairResult`;
+* :mod:`.project`, :mod:`.plot` - plot projects, linking, retries, pose graph;
+* :mod:`.manual`, :mod:`.compare` - targets, manual registration, manual-vs-auto comparison.
+"""
+
+from .coarse import CoarseMatch, match_vops, match_vops_literal
+
+__all__ = ["CoarseMatch", "match_vops", "match_vops_literal"]
