@@ -322,8 +322,9 @@ def cmd_trees(args: argparse.Namespace) -> int:
         bar.close()
     out = Path(args.out)
     path = inventory.write(out, cloud.points, report=not args.no_report)
-    n_flagged = sum(1 for t in inventory.trees if t.flags)
-    print(f"{len(inventory.trees)} trees ({n_flagged} flagged as incomplete) -> {path}")
+    for step, seconds in inventory.timings.items():  # the steps run, in order
+        print(f"  {step.removesuffix('_s')}: {seconds:.1f} s")
+    print(f"{inventory.summary()} -> {path}")
     if args.field:
         return main(["evaluate", str(path), args.field, "--out", str(out / "evaluation")])
     return 0
