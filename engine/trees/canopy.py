@@ -51,6 +51,7 @@ class CanopyParams:
     crown_base_percentile: float = param_field(2.0, "%", 0.0, 50.0, "The crown base is this percentile of the crown points' heights")
     width_percentile: float = param_field(1.0, "%", 0.0, 25.0, "Crown widths run from this percentile of the crown cells' x (y) to 100 minus it")
     min_crown_cells: int = param_field(3, "cells", 1, 10000, "Crowns of fewer cells are dropped (noise)")
+    min_crown_points: int = param_field(10, "points", 1, 100000, "Crowns of fewer points are dropped (noise, a fragment of a neighbour's crown)")
 
     def __post_init__(self) -> None:
         validate_ranges(self)
@@ -67,6 +68,9 @@ class CanopyTree:
 
     tree_id: int
     top: np.ndarray
+    #: a taller point within 1 m of the top belongs to another crown: the top may be a fragment
+    #: of the neighbour's crown, or the two tops are not separable (height unsure)
+    beside_taller: bool
     ground_z: float
     height_m: float
     crown_base_m: float
@@ -192,6 +196,9 @@ def canopy_trees(points: Any, heights: Any, params: CanopyParams = CanopyParams(
     point_lab = lab[pr, pc]
     labels[veg_idx] = point_lab
     ground = p[:, 2] - h
+    from scipy.spatial import cKDTree
+
+    index = cKDTree(p[veg_idx, :2])
     trees: list[CanopyTree] = []
     order = np.argsort(point_lab, kind="stable")
     bounds = np.searchsorted(point_lab[order], np.arange(1, len(tops) + 2))
@@ -199,7 +206,7 @@ def canopy_trees(points: Any, heights: Any, params: CanopyParams = CanopyParams(
     for k in range(1, len(tops) + 1):
         cells = np.argwhere(lab == k)
         idx = veg_idx[order[bounds[k - 1] : bounds[k]]]
-        if len(cells) < params.min_crown_cells or len(idx) == 0:
+        if len(cells) < params.min_crown_cells or len(idx) < params.min_crown_points:
             continue
         hk = h[idx]
         top_i = idx[int(np.argmax(hk))]
@@ -213,8 +220,10 @@ def canopy_trees(points: Any, heights: Any, params: CanopyParams = CanopyParams(
         cd = 0.5 * (a + b)
         tid = len(trees) + 1
         new_id[k] = tid
+        close = index.query_ball_point(p[top_i, :2], 1.0)
+        beside = bool(len(close)) and float(h[veg_idx[close]].max()) > 1.05 * height
         trees.append(CanopyTree(
-            tree_id=tid, top=p[top_i].copy(), ground_z=float(ground[top_i]), height_m=height, crown_base_m=cbh,
+            tree_id=tid, top=p[top_i].copy(), beside_taller=beside, ground_z=float(ground[top_i]), height_m=height, crown_base_m=cbh,
             crown_width_ew_m=a, crown_width_ns_m=b, crown_area_m2=math.pi * a * b / 4.0,
             crown_volume_m3=math.pi * cd * cd * max(height - cbh, 0.0) / 8.0, n_cells=int(len(cells)),
             chm_max_m=float(np.nanmax(g[lab == k])), point_indices=np.sort(idx),

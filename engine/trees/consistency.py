@@ -7,7 +7,9 @@ obtained and how far to trust it.
   leaves to eigenvalue features).
 - :func:`reconcile_stem`: the cylinder model's stem cylinders take the stem curve's radius where the
   curve is measured; above it their radii are kept within 0.85-1.5 times a linear taper (a cone) from the
-  curve's last section to zero at the tree top; no branch cylinder is thicker than its parent.
+  curve's last section to zero at the tree top; a stem that ends below 90 % of the height is
+  completed to the top by tapering cylinders (marked ``added``); no branch cylinder is thicker
+  than its parent.
 - :func:`form_factor_check`: the wood volume against ``f * BA * H`` (BA basal area from the DBH,
   H the height): stem form factors of real trees lie within about 0.3-0.7; a volume outside the
   bounds is flagged and, far outside, withheld.
@@ -123,6 +125,9 @@ def reconcile_stem(model: CylinderModel, stem: Stem, curve: StemCurve, height_m:
                 changed += 1
                 added[k] = True
             radius[k] = new
+    model = dataclasses.replace(model, radius_m=radius, added=added)
+    model, n_added = _complete_stem(model, stem, height_m)
+    radius, added = model.radius_m.copy(), model.added.copy()
     # no child thicker than its parent (parents come first in TreeQSM's order)
     for k in range(len(radius)):
         par = model.parent[k]
@@ -130,7 +135,53 @@ def reconcile_stem(model: CylinderModel, stem: Stem, curve: StemCurve, height_m:
             radius[k] = radius[par]
     meta = dict(model.meta)
     meta["stem_cylinders_from_curve"] = changed
+    meta["stem_cylinders_added_to_top"] = n_added
     return dataclasses.replace(model, radius_m=radius, added=added, meta=meta), changed
+
+
+def _complete_stem(model: CylinderModel, stem: Stem, height_m: float, step_m: float = 1.0) -> tuple[CylinderModel, int]:
+    """Stem cylinders from the end of the fitted stem up to the tree top along the stem axis,
+    their radii tapering linearly to zero (marked ``added``): a stem whose upper part the data
+    or the cylinder fit missed (sparse, noisy, or hidden in the crown) keeps a plausible volume.
+    Returns the model and the number of cylinders added (0 when the stem reaches 90 % of the
+    height or the height is unknown)."""
+    stem_idx = np.flatnonzero(model.branch_order == 0)
+    if len(stem_idx) == 0 or not math.isfinite(height_m):
+        return model, 0
+    ends = model.start[stem_idx] + model.length_m[stem_idx, None] * model.axis[stem_idx]
+    s_end = (ends - stem.base) @ stem.axis
+    last = stem_idx[int(np.argmax(s_end))]
+    s0 = float(s_end.max())
+    h_top = height_m / max(float(stem.axis[2]), 1e-6)
+    if s0 >= 0.9 * h_top or h_top - s0 < 1.0:
+        return model, 0
+    r0 = float(model.radius_m[last])
+    n = int(math.ceil((h_top - s0) / step_m))
+    length = (h_top - s0) / n
+    start0 = ends[int(np.argmax(s_end))]
+    k0 = len(model)
+    starts = np.array([start0 + j * length * stem.axis for j in range(n)])
+    radii = np.array([r0 * (1.0 - (j + 0.5) / n) for j in range(n)])
+    parent = np.array([last] + [k0 + j for j in range(n - 1)], dtype=np.int64)
+    extension = model.extension.copy()
+    extension[last] = k0
+    new_ext = np.array([k0 + j + 1 for j in range(n - 1)] + [-1], dtype=np.int64)
+    pos0 = int(model.position_in_branch[last])
+    return dataclasses.replace(
+        model,
+        start=np.vstack([model.start, starts]),
+        axis=np.vstack([model.axis, np.tile(stem.axis, (n, 1))]),
+        length_m=np.concatenate([model.length_m, np.full(n, length)]),
+        radius_m=np.concatenate([model.radius_m, radii]),
+        parent=np.concatenate([model.parent, parent]),
+        extension=np.concatenate([extension, new_ext]),
+        branch=np.concatenate([model.branch, np.full(n, model.branch[last])]),
+        branch_order=np.concatenate([model.branch_order, np.zeros(n, dtype=model.branch_order.dtype)]),
+        position_in_branch=np.concatenate([model.position_in_branch, pos0 + 1 + np.arange(n)]),
+        added=np.concatenate([model.added, np.ones(n, dtype=bool)]),
+        mad_m=np.concatenate([model.mad_m, np.full(n, np.nan)]),
+        surface_coverage=np.concatenate([model.surface_coverage, np.zeros(n)]),
+    ), n
 
 
 def form_factor_check(

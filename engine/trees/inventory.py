@@ -410,6 +410,9 @@ def measure_trees(
                 cylinders.total_volume_m3, cylinders.stem_volume_m3, dbh_value, crown.height_m, params.form_factors)
             if vflag:
                 flags.append(vflag)
+            n_top = int(cylinders.meta.get("stem_cylinders_added_to_top", 0))
+            if n_top and "; high" in quality["volume"]:
+                quality["volume"] = quality["volume"].replace("; high", f", upper stem ({n_top} cylinders) tapered to the top; medium")
             if "top missing" in reasons and "; high" in quality["volume"]:
                 quality["volume"] = quality["volume"].replace("; high", "; medium")
         else:
@@ -511,6 +514,9 @@ def _canopy_inventory(
         h_trust = "high"
         if no_ground:
             flags.append("no ground in the cloud: heights above the lowest points")
+            h_trust = "low"
+        if ct.beside_taller:
+            flags.append("top beside a taller crown: height unsure (tops not separable)")
             h_trust = "low"
         records.append(TreeRecord(
             tree_id=ct.tree_id, stem=stem, dbh=dbh, curve=curve, crown=crown, cylinders=None,
