@@ -292,6 +292,13 @@ def measure_trees(
     index = cKDTree(p)  # one spatial index for every stem's slices
     dbh = {s.id: measure_dbh(p, heights, s, stem_params, search_tree=index) for s in stems}
     curves = {s.id: stem_curve(p, heights, s, stem_params, search_tree=index) for s in stems}
+    if method == "noisy":  # thin stems found with the noisy settings may still be measured finely
+        for s in stems:
+            if not dbh[s.id].ok and s.radius_m < 0.1:
+                fine = measure_dbh(p, heights, s, params.stems, search_tree=index)
+                if fine.ok:
+                    dbh[s.id] = fine
+                    curves[s.id] = stem_curve(p, heights, s, params.stems, search_tree=index)
     timings["dbh_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -349,6 +356,10 @@ def measure_trees(
                 trust = _trust(trust, "medium")
             if method == "noisy":
                 trust = _trust(trust, "medium")
+            if fit is not None and fit.rms_residual_m > 0.15 * 0.5 * d_curve:
+                trust = _trust(trust, "low")
+                flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
+                             f"{1000 * d_curve:.0f} mm stem (noisy or ghosted shell)")
             if math.isfinite(d.dbh_m) and abs(d.dbh_m - d_curve) > 0.1 * d_curve:
                 trust = _trust(trust, "low")
                 flags.append(f"DBH slices ({d.dbh_m:.3f} m) and stem curve ({d_curve:.3f} m) disagree")
@@ -356,7 +367,12 @@ def measure_trees(
             quality["dbh"] = f"{how}, arc {fit.arc_coverage:.2f}; {trust}" if fit is not None else f"{how}; {trust}"
         elif d.ok and math.isfinite(d.dbh_m):
             dbh_value = d.dbh_m
-            quality["dbh"] = "circle fits at 1.3 m (no stem-curve section there); medium"
+            trust = "medium"
+            if fit is not None and fit.rms_residual_m > 0.15 * 0.5 * d.dbh_m:
+                trust = "low"
+                flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
+                             f"{1000 * d.dbh_m:.0f} mm stem (noisy or ghosted shell)")
+            quality["dbh"] = f"circle fits at 1.3 m (no stem-curve section there); {trust}"
         else:
             dbh_value = math.nan
             why = ", ".join(d.reasons) or "no stem-curve section at breast height"
@@ -380,6 +396,9 @@ def measure_trees(
         if "top missing" in reasons:
             h_trust = _trust(h_trust, "low")
             h_how += ", top missing in the data"
+        elif any(r.startswith(("too few crown points", "too few points")) for r in reasons):
+            h_trust = _trust(h_trust, "low")
+            h_how += ", crown too sparse to confirm the top"
         if stem.id in shared:
             flags.append(shared[stem.id])
             h_trust = _trust(h_trust, "low")
@@ -445,26 +464,34 @@ def _lowest_stem_point(tree_pts: np.ndarray, stem: Stem) -> float:
 
 
 def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crowns: dict[int, CrownMeasurement]) -> dict[int, str]:
-    """Trees whose top is not their own: a taller neighbour's points stand above the top (within
-    1 m horizontally, more than 1 m higher), or the top lies nearer (horizontally) to a taller
-    neighbour's stem than to its own. Returns {tree id: flag}."""
-    out: dict[int, str] = {}
-    if len(stems) < 2:
-        return out
+    """Trees whose top is not their own or was not seen: points of no tree stand above the top
+    (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
+    stand above the top (within 1 m horizontally, more than 1 m higher), or the top lies nearer
+    (horizontally) to a taller neighbour's stem than to its own. Returns {tree id: flag}."""
     from scipy.spatial import cKDTree
 
+    out: dict[int, str] = {}
     tree_mask = labels > 0
     if not tree_mask.any():
         return out
     xy_index = cKDTree(p[tree_mask, :2])
     z_all = p[tree_mask, 2]
     lab_all = labels[tree_mask]
+    free = np.flatnonzero(~tree_mask)
+    free_index = cKDTree(p[free, :2]) if len(free) else None
     pos = {s.id: np.array([s.x, s.y]) for s in stems}
     for s in stems:
         c = crowns.get(s.id)
         if c is None or not np.isfinite(c.top).all():
             continue
         top = np.asarray(c.top)
+        if free_index is not None:
+            widths = [w for w in (c.crown_width_ew_m, c.crown_width_ns_m) if math.isfinite(w)]
+            reach = max([2.0] + [0.5 * w for w in widths])
+            near = free[np.asarray(free_index.query_ball_point([s.x, s.y], reach), dtype=np.int64)]
+            if np.count_nonzero(p[near, 2] > top[2] + 1.0) >= 20:
+                out[s.id] = "points of no tree above the top: top probably higher (height unsure)"
+                continue
         near = np.asarray(xy_index.query_ball_point(top[:2], 1.0), dtype=np.int64)
         over = near[(lab_all[near] != s.id) & (z_all[near] > top[2] + 1.0)]
         if len(over) >= 5:
