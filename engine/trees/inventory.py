@@ -164,6 +164,9 @@ class TreeInventory:
         vol = sum(1 for t in self.trees if math.isfinite(t.volume_m3))
         flagged = sum(1 for t in self.trees if t.flags)
         how = {"fine": "from stems", "noisy": "from stems (noisy/sparse profile)", "canopy": "from the canopy (no stems)"}.get(self.method, self.method)
+        canopy = sum(1 for t in self.trees if t.source == "canopy")
+        if self.method != "canopy" and canopy:
+            how += f" and {canopy} from the canopy"
         return f"{n} trees found {how}: {dbh} with DBH, {h} with height, {vol} with volume; {flagged} flagged"
 
     def rows(self) -> list[dict[str, Any]]:
@@ -443,6 +446,11 @@ def measure_trees(
             source="stem", quality=quality,
         ))
     timings["trees_s"] = time.perf_counter() - t
+    if _airborne_like(heights):  # stems hardly sampled: trees seen only from above join
+        t = time.perf_counter()
+        progress(0.98, "airborne cloud: trees without a sampled stem from the canopy height model")
+        records, labels = _add_canopy_trees(p, heights, labels, records, no_ground, params)
+        timings["canopy_s"] = time.perf_counter() - t
     progress(1.0, f"{len(records)} trees measured")
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=wood, ground=model.ground, dem=model.dem,
@@ -523,41 +531,124 @@ def _canopy_inventory(
         raise ScanDataError(
             "no stems found at breast height and no tree crowns in the canopy: is this a forest cloud in metres?"
         )
-    records: list[TreeRecord] = []
-    nan = math.nan
-    for ct in trees:
-        base = np.array([ct.top[0], ct.top[1], ct.ground_z])
-        stem = Stem(id=ct.tree_id, base=base, axis=np.array([0.0, 0.0, 1.0]), radius_m=nan, point_indices=np.zeros(0, dtype=np.int64))
-        dbh = DbhMeasurement(ct.tree_id, nan, base + [0, 0, 1.3], 1.3, None, False, ("stem not sampled",))
-        empty = np.zeros(0)
-        curve = StemCurve(ct.tree_id, empty, empty, empty, empty, np.zeros(0, bool), np.zeros(0, bool), np.zeros((0, 3)), ())
-        crown = CrownMeasurement(
-            tree_id=ct.tree_id, x=float(ct.top[0]), y=float(ct.top[1]), height_m=ct.height_m, crown_base_m=ct.crown_base_m,
-            crown_width_ew_m=ct.crown_width_ew_m, crown_width_ns_m=ct.crown_width_ns_m, crown_area_m2=ct.crown_area_m2,
-            crown_diameter_m=0.5 * (ct.crown_width_ew_m + ct.crown_width_ns_m), crown_length_m=ct.height_m - ct.crown_base_m,
-            crown_volume_m3=ct.crown_volume_m3, n_points=len(ct.point_indices), top=tuple(float(v) for v in ct.top), ok=True, reasons=(),
-        )
-        flags = ["DBH not measured: stem not sampled (tree from the canopy)"]
-        h_trust = "high"
-        if no_ground:
-            flags.append("no ground in the cloud: heights above the lowest points")
-            h_trust = "low"
-        if ct.beside_taller:
-            flags.append("top beside a taller crown: height unsure (tops not separable)")
-            h_trust = "low"
-        records.append(TreeRecord(
-            tree_id=ct.tree_id, stem=stem, dbh=dbh, curve=curve, crown=crown, cylinders=None,
-            n_points=len(ct.point_indices), wood_fraction=nan, flags=tuple(flags), source="canopy",
-            quality={
-                "dbh": "not measured: stem not sampled; none",
-                "height": f"highest crown point above the DEM (canopy height model); {h_trust}",
-                "crown": "crown segment of the canopy height model; medium",
-                "volume": "not measured (no stem); none",
-            },
-        ))
+    records = [_canopy_record(ct, ct.tree_id, no_ground) for ct in trees]
     progress(1.0, f"{len(records)} trees from the canopy")
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=np.zeros(len(p)), ground=model.ground,
         dem=model.dem, origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
         timings=timings, method="canopy",
     )
+
+
+def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool) -> TreeRecord:
+    """The record of a tree found from the canopy (no stem): position, height, crown; DBH and
+    volume not measured (flagged)."""
+    nan = math.nan
+    base = np.array([ct.top[0], ct.top[1], ct.ground_z])
+    stem = Stem(id=tree_id, base=base, axis=np.array([0.0, 0.0, 1.0]), radius_m=nan, point_indices=np.zeros(0, dtype=np.int64))
+    dbh = DbhMeasurement(tree_id, nan, base + [0, 0, 1.3], 1.3, None, False, ("stem not sampled",))
+    empty = np.zeros(0)
+    curve = StemCurve(tree_id, empty, empty, empty, empty, np.zeros(0, bool), np.zeros(0, bool), np.zeros((0, 3)), ())
+    crown = CrownMeasurement(
+        tree_id=tree_id, x=float(ct.top[0]), y=float(ct.top[1]), height_m=ct.height_m, crown_base_m=ct.crown_base_m,
+        crown_width_ew_m=ct.crown_width_ew_m, crown_width_ns_m=ct.crown_width_ns_m, crown_area_m2=ct.crown_area_m2,
+        crown_diameter_m=0.5 * (ct.crown_width_ew_m + ct.crown_width_ns_m), crown_length_m=ct.height_m - ct.crown_base_m,
+        crown_volume_m3=ct.crown_volume_m3, n_points=len(ct.point_indices), top=tuple(float(v) for v in ct.top), ok=True, reasons=(),
+    )
+    flags = ["DBH not measured: stem not sampled (tree from the canopy)"]
+    h_trust = "high"
+    if no_ground:
+        flags.append("no ground in the cloud: heights above the lowest points")
+        h_trust = "low"
+    if ct.beside_taller:
+        flags.append("top beside a taller crown: height unsure (tops not separable)")
+        h_trust = "low"
+    return TreeRecord(
+        tree_id=tree_id, stem=stem, dbh=dbh, curve=curve, crown=crown, cylinders=None,
+        n_points=len(ct.point_indices), wood_fraction=nan, flags=tuple(flags), source="canopy",
+        quality={
+            "dbh": "not measured: stem not sampled; none",
+            "height": f"highest crown point above the DEM (canopy height model); {h_trust}",
+            "crown": "crown segment of the canopy height model; medium",
+            "volume": "not measured (no stem); none",
+        },
+    )
+
+
+#: Points at 1-3 m per point above 3 m below which a cloud is taken as airborne (ALS/ULS: stems
+#: hardly sampled); ground-based clouds hold 0.15 and more, airborne ones 0.005-0.03.
+AIRBORNE_BAND_RATIO = 0.08
+
+
+def _airborne_like(heights: np.ndarray) -> bool:
+    band = np.count_nonzero((heights > 1.0) & (heights < 3.0))
+    above = np.count_nonzero(heights > 3.0)
+    return above > 0 and band / above < AIRBORNE_BAND_RATIO
+
+
+def _add_canopy_trees(
+    p: np.ndarray, heights: np.ndarray, labels: np.ndarray, records: list[TreeRecord], no_ground: bool, params: TreeParams
+) -> tuple[list[TreeRecord], np.ndarray]:
+    """Airborne clouds: the canopy height model decides the crowns, stems attach to them.
+
+    Each stem joins the canopy segment holding most crown points within 1.5 m of it; of the stems
+    of one segment the one nearest its top owns it (height, crown base, widths, area and volume
+    of the segment; its crown points relabelled), the others are under its crown (their height is
+    flagged as unsure). Segments without a sampled stem become trees from the canopy. Returns the
+    records and the labels."""
+    from scipy.spatial import cKDTree
+
+    trees, canopy_labels = canopy_trees(p, heights, params.canopy)
+    if not trees:
+        return records, labels
+    labels = labels.copy()
+    crown_pts = np.flatnonzero(canopy_labels > 0)
+    index = cKDTree(p[crown_pts, :2])
+    by_segment: dict[int, list[int]] = {}
+    for k, r in enumerate(records):
+        near = crown_pts[np.asarray(index.query_ball_point([r.stem.x, r.stem.y], 1.5), dtype=np.int64)]
+        if len(near) == 0:
+            continue
+        seg = int(np.bincount(canopy_labels[near]).argmax())
+        by_segment.setdefault(seg, []).append(k)
+    out = list(records)
+    next_id = max((r.tree_id for r in records), default=0) + 1
+    for ct in trees:
+        members = by_segment.get(ct.tree_id, [])
+        if not members:
+            free = ct.point_indices[labels[ct.point_indices] == 0]
+            labels[ct.point_indices] = next_id
+            out.append(_canopy_record(ct, next_id, no_ground))
+            next_id += 1
+            continue
+        owner = min(members, key=lambda k: math.hypot(records[k].stem.x - ct.top[0], records[k].stem.y - ct.top[1]))
+        r = records[owner]
+        labels[ct.point_indices] = r.tree_id
+        crown = dataclasses.replace(
+            r.crown, height_m=float(ct.top[2] - r.stem.ground_z), crown_base_m=ct.crown_base_m,
+            crown_width_ew_m=ct.crown_width_ew_m, crown_width_ns_m=ct.crown_width_ns_m, crown_area_m2=ct.crown_area_m2,
+            crown_diameter_m=0.5 * (ct.crown_width_ew_m + ct.crown_width_ns_m),
+            crown_length_m=float(ct.top[2] - r.stem.ground_z) - ct.crown_base_m, crown_volume_m3=ct.crown_volume_m3,
+            top=tuple(float(v) for v in ct.top), ok=True, reasons=(),
+        )
+        quality = dict(r.quality)
+        offset = math.hypot(r.stem.x - ct.top[0], r.stem.y - ct.top[1])
+        far = offset > max(1.5, 0.25 * (ct.crown_width_ew_m + ct.crown_width_ns_m) / 2.0)
+        trust = "low" if (no_ground or ct.beside_taller or far) else "high"
+        quality["height"] = f"highest point of its canopy segment above the stem's ground; {trust}"
+        quality["crown"] = "crown segment of the canopy height model; medium"
+        flags = [f for f in r.flags if not f.startswith(("top ", "points of no tree", "crown:", "too few crown"))]
+        if ct.beside_taller:
+            flags.append("top beside a taller crown: height unsure (tops not separable)")
+        if far:
+            flags.append(f"canopy top {offset:.1f} m from the stem: it may be a neighbour's (height unsure)")
+        out[owner] = dataclasses.replace(r, crown=crown, quality=quality, flags=tuple(dict.fromkeys(flags)))
+        for k in members:
+            if k == owner:
+                continue
+            o = out[k]
+            quality = dict(o.quality)
+            quality["height"] = quality.get("height", "").rsplit("; ", 1)[0] + ", under the crown of tree " + f"{r.tree_id}; low"
+            out[k] = dataclasses.replace(o, quality=quality, flags=tuple(dict.fromkeys(
+                list(o.flags) + [f"under the crown of tree {r.tree_id}: own top unseen (height unsure)"])))
+    return out, labels
