@@ -25,6 +25,18 @@ MLS_RINGS = [
 ]
 
 
+#: Stem rings of pine_plot.laz (16; a smear at (6.3, 2.9) is no ring) and LPine1_demo.laz (14)
+#: counted by hand in their 1.2-1.4 m slices, metres from the cloud's minimum corner.
+PINE_PLOT_RINGS = [
+    (0.4, 0.0), (0.3, 2.0), (0.4, 4.0), (0.5, 6.1), (0.4, 8.2), (3.5, 1.5), (3.4, 3.6), (3.5, 5.7), (3.5, 7.7),
+    (6.2, 1.0), (6.4, 4.7), (8.0, 4.6), (9.4, 1.2), (9.3, 3.4), (9.3, 5.4), (9.3, 7.5),
+]
+LPINE_RINGS = [
+    (2.1, 5.6), (3.1, 9.8), (4.8, 2.0), (5.1, 7.6), (6.0, 3.9), (7.3, 9.6), (8.1, 2.8), (8.2, 8.5), (9.3, 4.7),
+    (11.0, 6.3), (13.2, 6.9), (14.1, 1.4), (15.3, 2.6), (16.4, 5.9),
+]
+
+
 @functools.lru_cache(maxsize=None)
 def _cloud(path: str):
     from forestreg.engine.io import read_scan
@@ -58,6 +70,20 @@ def test_mls_stems_against_the_rings_counted_by_hand(shared_data):
     assert len(good) >= 16
     assert 0.2 <= min(good) and max(good) <= 0.7
     assert all(math.isnan(d.dbh_m) for d in dbh if not d.ok and "inconsistent slices" not in d.reasons)
+
+
+@pytest.mark.parametrize("name, rings", [("pine_plot.laz", PINE_PLOT_RINGS), ("LPine1_demo.laz", LPINE_RINGS)])
+def test_tls_stems_against_the_rings_counted_by_hand(shared_data, name, rings):
+    from forestreg.engine.trees.inventory import _no_ground_dem
+
+    p, h = _cloud(str(shared_data / name))
+    if np.mean(h < -0.5) > 0.02:  # LPine1: ground removed
+        h = _no_ground_dem(p, 0.5).normalise(p)
+    stems, _, _ = detect_stems_adaptive(p, h)
+    found = np.array([[s.x, s.y] for s in stems]) - p[:, :2].min(axis=0)
+    hits = sum(1 for r in rings if np.min(np.hypot(*(found - r).T)) < 0.3)
+    assert hits == len(rings), f"{hits} of {len(rings)} rings found"
+    assert len(stems) <= len(rings) + 1
 
 
 def test_als_stand_gives_trees_from_the_canopy(shared_data):

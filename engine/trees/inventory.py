@@ -407,6 +407,11 @@ def measure_trees(
             h_trust = _trust(h_trust, "low")
             h_how += ", top shared with a taller neighbour"
         quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
+        if math.isfinite(dbh_value):  # a DBH is reported: no "fit failed" flag, say what is unsure
+            failed = [f for f in flags if f.startswith("DBH fit failed")]
+            flags = [f for f in flags if not f.startswith("DBH fit failed")]
+            if failed:
+                flags.append("DBH slices inconsistent: the stem curve's value is given (" + quality["dbh"].rsplit("; ", 1)[-1] + " trust)")
         if not crown.ok:
             flags += [f"crown: {r}" for r in crown.reasons]
         c_trust = "high" if crown.ok else "none"
