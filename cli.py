@@ -332,7 +332,8 @@ def cmd_trees(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Compare tree tables with field records: R2, RMSE, rRMSE per parameter (paper table 3)."""
-    from .engine.trees.evaluate import evaluate, read_tree_table, write_evaluation
+    from .engine.io.evaluation import write_evaluation
+    from .engine.trees.evaluate import evaluate, read_tree_table
 
     field = read_tree_table(args.field)
     runs = {}
