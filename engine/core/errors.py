@@ -38,3 +38,19 @@ class TargetError(ForestregError):
 
 class ProjectFileError(ForestregError):
     """A project file cannot be read: missing, damaged, or of an unsupported version."""
+
+
+class OutputPathError(ForestregError):
+    """An output path would overwrite an input or a user's file, or cannot be written."""
+
+
+class UsageError(ForestregError):
+    """An argument is missing, out of range or contradicts another (bad input: CLI exit 2)."""
+
+
+class DataError(ForestregError):
+    """The data do not allow the result (honest failure: CLI exit 1)."""
+
+
+class TransformError(ForestregError):
+    """A 4x4 matrix is unreadable, not finite, or not a proper rigid transform (scale, reflection)."""
