@@ -25,7 +25,13 @@ __all__ = ["build_parser", "main"]
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors (exit 2) and the global flags on every sub-command."""
 
+    last_error = ""
+
     def error(self, message: str) -> None:  # type: ignore[override]
+        import re
+
+        message = re.sub(r"^argument (\S+): \1: ", r"argument \1: ", message)
+        _Parser.last_error = f"{self.prog}: {message}"
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
@@ -62,7 +68,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except SystemExit as exc:  # usage errors (2), --help and --version (0)
         code = int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_BAD_INPUT
         if _wants_jsonl(argv):
-            Reporter("jsonl", "forestreg").end(code, "bad usage (see --help)" if code else "")
+            Reporter("jsonl", "forestreg").end(code, (_Parser.last_error or "bad usage (see --help)") if code else "")
         return code
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
