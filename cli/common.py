@@ -170,9 +170,10 @@ def progress_mode(args: argparse.Namespace) -> str:
 
 def params_from_args(args: argparse.Namespace):
     """Registration parameters: the TOML file (``--params``) with the command line's overrides."""
-    from ..engine.core.params import RegistrationParams
+    from ..engine.params import load_params
+    from ..engine.tls.params import RegistrationParams
 
-    params = RegistrationParams.from_toml(args.params) if getattr(args, "params", None) else RegistrationParams()
+    params = load_params(args.params).registration if getattr(args, "params", None) else RegistrationParams()
     changes = {}
     if getattr(args, "dr", None) is not None:
         changes["vop_radius_m"] = args.dr

@@ -66,7 +66,7 @@ def run_register(
     """Register ``moving_path`` onto ``reference_path`` and write the output folder ``out`` as a
     transaction. Returns the exit code (0 ok, 1 failed with a reason)."""
     from ..engine.core.atomic import check_output_folder, output_folder, write_text_atomic
-    from ..engine.core.params import RegistrationParams
+    from ..engine.tls.params import RegistrationParams
     from ..engine.core.transform import format_matrix, to_file_units
     from ..engine.io import read_scan, write_scan
     from ..engine.io.tables import pair_vop_tables, write_vops_csv
