@@ -61,7 +61,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if argv[:1] == ["gui"]:  # the GUI parses its own options
         from .misc import cmd_gui
 
-        return cmd_gui(argparse.Namespace(gui_args=argv[1:]))
+        try:
+            return cmd_gui(argparse.Namespace(gui_args=argv[1:]))
+        except (ForestregError, argparse.ArgumentTypeError) as exc:
+            _error(_one_line(exc))
+            return EXIT_BAD_INPUT
+        except KeyboardInterrupt:
+            _error("interrupted")
+            return EXIT_INTERRUPTED
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

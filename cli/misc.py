@@ -156,7 +156,39 @@ def _demo_system_b(out: Path, args: argparse.Namespace) -> int:
     return code
 
 
+def check_gui_args(gui_args) -> None:
+    """The GUI's options that can be checked without Qt: --size, --project, --timeout, --screenshot
+    (bad input: one line, exit 2, before a window opens)."""
+    from ..engine.core.atomic import check_output_file
+    from ..engine.core.errors import UsageError
+
+    values: dict[str, str] = {}
+    items = list(gui_args)
+    for k, item in enumerate(items):
+        name, eq, value = item.partition("=")
+        if name in ("--size", "--project", "--timeout", "--screenshot"):
+            if not eq:
+                if k + 1 >= len(items):
+                    raise UsageError(f"gui {name}: a value is missing")
+                value = items[k + 1]
+            values[name] = value
+    if "--size" in values:
+        try:
+            w, h = (int(v) for v in values["--size"].lower().split("x"))
+        except ValueError:
+            raise UsageError(f"gui --size must be WIDTHxHEIGHT in pixels, e.g. 1600x1000 (got {values['--size']!r})") from None
+        if w <= 0 or h <= 0 or w > 20000 or h > 20000:
+            raise UsageError(f"gui --size {values['--size']}: width and height must be between 1 and 20000 pixels")
+    if "--timeout" in values:
+        number("gui --timeout", positive=True)(values["--timeout"])
+    if "--project" in values and not Path(values["--project"]).is_file():
+        raise UsageError(f"gui --project {values['--project']}: no such project file")
+    if "--screenshot" in values:
+        check_output_file(values["--screenshot"], suffixes=(".png",))
+
+
 def cmd_gui(args: argparse.Namespace) -> int:
+    check_gui_args(args.gui_args)
     try:
         from ..ui.app import main as gui_main
     except ImportError as exc:

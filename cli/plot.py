@@ -80,22 +80,17 @@ def add_parsers(sub, add_global_flags) -> None:
 # ----------------------------------------------------------------------------- checks
 
 
-def _check_scan_files(paths, *, sniff: bool) -> None:
-    """Every scan exists and is readable (and, with ``sniff``, of a known point format)."""
-    from ..engine.io.base import check_readable
+def _check_scan_files(paths) -> None:
+    """Every scan can be read (missing, empty, corrupt or garbage files: one line, exit 2)."""
+    from ..engine.io import read_scan
 
     for p in paths:
-        check_readable(p)
-        if sniff:
-            from ..engine.core.errors import ScanReadError
-            from ..engine.io.sniff import detect_format
+        if Path(p).suffix.lower() == ".e57":
+            from ..engine.io.base import check_readable
 
-            try:
-                detect_format(Path(p))
-            except ScanReadError:
-                raise
-            except Exception as exc:
-                raise ScanReadError(f"{p}: not a point cloud file ({exc})") from exc
+            check_readable(p)
+            continue
+        read_scan(p)
 
 
 def _check_extra_outputs(args, inputs) -> None:
@@ -288,7 +283,7 @@ def cmd_project(args: argparse.Namespace) -> int:
         from ..engine.core.atomic import check_output_file
 
         check_output_file(target, inputs=args.scans, suffixes=(".json",))
-        _check_scan_files(args.scans, sniff=True)
+        _check_scan_files(args.scans)
         project = project_from_args(args)
         path = project.save(target)
         say(f"created {path} with {len(project.scans)} scans, centre {project.centre}", args)

@@ -81,6 +81,8 @@ def run_register(
     reference = read_scan(reference_path, scanner_position=positions[0] if len(positions) > 0 else None, unit_scale=scale)
     moving = read_scan(moving_path, scanner_position=positions[1] if len(positions) > 1 else None, unit_scale=scale)
     read_s = time.perf_counter() - t0
+    for scan, path in ((reference, reference_path), (moving, moving_path)):
+        check_near_scanner(scan, params.max_range_m, path, units)
     try:
         result = register(
             reference, moving, params, progress=reporter,
@@ -131,3 +133,17 @@ def run_register(
 
 def _ns(reporter: Reporter) -> argparse.Namespace:
     return argparse.Namespace(reporter=reporter)
+
+
+def check_near_scanner(scan, max_range_m: float, path, units: str) -> None:
+    """Refuse, before the work, a scan with hardly any points within ``D_c`` of its scanner: a
+    georeferenced scan without ``--scanner-position`` or a file in another unit than ``--units``."""
+    from ..engine.core.errors import UsageError
+
+    d = np.hypot(*(scan.points[:, :2] - scan.scanner_position[:2]).T)
+    near = int(np.count_nonzero(d <= max_range_m))
+    if near < 1000 or near < 0.01 * len(d):
+        pos = ", ".join(f"{v:.2f}" for v in scan.scanner_position_file / UNITS[units])
+        raise UsageError(
+            f"{path}: only {near} of {len(d)} points lie within D_c = {max_range_m:g} m of the scanner position ({pos} {units}); "
+            "for a georeferenced scan give --scanner-position X,Y,Z, and check the file's unit (--units cm|mm|ft)")

@@ -71,7 +71,8 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
         inventory.write(tmp, cloud.points, report=report)
         code = 0
         if field_table is not None:
-            code, lines = _evaluate_into(tmp / "evaluation", [("trees", tmp / "trees.csv")], field_table, by="position", max_distance=1.0)
+            code, lines = _evaluate_into(tmp / "evaluation", [("trees", read_tree_table(tmp / "trees.csv"))], field_table,
+                                         by="position", max_distance=1.0)
     reporter.done("", out / "trees.csv")
     say(f"{len(inventory.trees)} trees ({n_flagged} flagged as incomplete) -> {out / 'trees.csv'}", argparse.Namespace(reporter=reporter))
     if report and (out / "report.html").exists():
@@ -105,8 +106,9 @@ def run_evaluate(named: Sequence[tuple[str, str | Path]], field, out, *, by: str
     reporter = reporter or Reporter("none", "evaluate")
     out = check_output_folder(out, "evaluate", inputs=[field, *[p for _, p in named]])
     field_table = read_tree_table(field)
+    tables = [(name, read_tree_table(path)) for name, path in named]  # every table checked before the work
     with output_folder(out, "evaluate") as tmp:
-        code, lines = _evaluate_into(tmp, named, field_table, by=by, max_distance=max_distance)
+        code, lines = _evaluate_into(tmp, tables, field_table, by=by, max_distance=max_distance)
     reporter.done("", out / "evaluation.json")
     ns = argparse.Namespace(reporter=reporter)
     for line in lines:
@@ -116,9 +118,9 @@ def run_evaluate(named: Sequence[tuple[str, str | Path]], field, out, *, by: str
 
 def _evaluate_into(folder: Path, named, field_table, *, by: str, max_distance: float) -> tuple[int, list[str]]:
     """Evaluate and write; returns the exit code (1 when no tree could be matched) and the lines to print."""
-    from ..engine.trees.evaluate import evaluate, read_tree_table, write_evaluation
+    from ..engine.trees.evaluate import evaluate, write_evaluation
 
-    runs = {name: evaluate(read_tree_table(path), field_table, by=by, max_distance_m=max_distance) for name, path in named}
+    runs = {name: evaluate(table, field_table, by=by, max_distance_m=max_distance) for name, table in named}
     paths = write_evaluation(folder, runs)
     lines, code = [], 0
     for name, ev in runs.items():

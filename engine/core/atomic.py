@@ -139,24 +139,43 @@ def output_folder(path: str | os.PathLike[str], kind: str) -> Iterator[Path]:
         yield tmp
         (tmp / MARKER).write_text(kind + "\n", encoding="utf-8")
         os.chmod(tmp, _final_dir_mode())
-        old = None
-        if target.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".forestreg-tmp-old-{target.name}.", dir=target.parent))
-            os.replace(target, old / "x")
-        try:
-            os.replace(tmp, target)
-        except BaseException:
-            if old is not None:
-                os.replace(old / "x", target)
-            raise
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        _swap_in(tmp, target)
     except OSError as exc:
         shutil.rmtree(tmp, ignore_errors=True)
         raise ScanWriteError(f"cannot write {target}: {exc.strerror or exc}") from exc
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _swap_in(tmp: Path, target: Path, attempts: int = 20) -> None:
+    """Put the folder ``tmp`` where ``target`` is: an earlier folder there is moved aside first and
+    removed after. Another run swapping in at the same moment makes a rename fail with
+    ENOTEMPTY/EEXIST: then try again (the last run to finish wins; each folder stays whole)."""
+    import errno
+    import shutil
+
+    for attempt in range(attempts):
+        old = None
+        if target.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".forestreg-tmp-old-{target.name}.", dir=target.parent))
+            try:
+                os.replace(target, old / "x")
+            except FileNotFoundError:  # another run moved it first
+                pass
+        try:
+            os.replace(tmp, target)
+        except OSError as exc:
+            if old is not None and (old / "x").exists() and not target.exists():
+                os.replace(old / "x", target)  # put the earlier result back
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
+            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST) and attempt + 1 < attempts:
+                continue
+            raise
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        return
 
 
 def _final_dir_mode() -> int:

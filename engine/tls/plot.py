@@ -149,7 +149,10 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
             link.params(project.params), progress=progress, cancel=cancel,
         )
     else:
-        result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel)
+        try:
+            result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel)
+        except DataError as exc:  # e.g. no points near a georeferenced scan's assumed scanner
+            return {"status": "failed", "reason": str(exc), "matrix": None}
     return _jsonable(result.to_dict())
 
 
