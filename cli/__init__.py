@@ -86,6 +86,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         mode = "none"
     args.reporter = Reporter(mode, args.command)
     code, message = EXIT_BAD_INPUT, ""
+    previous_term = _terminate_as_interrupt()
     try:
         code = args.func(args)
         return code
@@ -114,6 +115,25 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return code
     finally:
         args.reporter.end(code, message)
+        if previous_term is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, previous_term)
+
+
+def _terminate_as_interrupt():
+    """SIGTERM (a job service stopping a run) unwinds like Ctrl-C: temporary folders are removed
+    and the exit code is 130. Returns the previous handler (None off the main thread)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, handler)
 
 
 def _wants_jsonl(argv: Sequence[str]) -> bool:

@@ -556,3 +556,11 @@ def test_two_runs_into_one_folder_leave_one_complete_result(tiny, tmp_path):
     rows = (out / "moving_vops.csv").read_text().strip().splitlines()
     assert len(rows) == result["moving_vops"] + 1, "the CSV belongs to the other run"
     assert not _leftovers(tmp_path)
+
+
+def test_the_same_pair_gives_the_same_matrix(tiny, pair_result):
+    from forestreg.engine.tls.pair import register
+
+    _, paths, _ = tiny
+    again = register(read_scan(paths[0]), read_scan(paths[1]))
+    assert again.ok and np.array_equal(again.matrix, pair_result.matrix)
