@@ -223,7 +223,7 @@ def _table(header: Sequence[str], records: Sequence[Mapping[str, Any]], source: 
             raise TreeTableError(f"{source}: column {name} has negative values (tree {ids[np.nanargmin(v)]})")
         if len(finite) and finite.max() > info.max_plausible:
             worst = ids[np.nanargmax(v)]
-            hint = "; they look like centimetres: name the column dbh_cm" if name == "dbh_m" else "; check the unit"
+            hint = _unit_hint(name, finite)
             raise TreeTableError(
                 f"{source}: column {name} has a value of {finite.max():.4g} {info.unit} (tree {worst}), more than "
                 f"{info.max_plausible:g} {info.unit}{hint}"
@@ -480,6 +480,8 @@ def evaluate(
     parameter missing from a table gets ``n = 0``.
     """
     est, fld = as_tree_table(estimated), as_tree_table(field_trees)
+    if by == "position":
+        _check_position_units(est, fld)
     match = match_trees(est, fld, max_distance_m=max_distance_m, by=by)
     if parameters is None:
         names = [p for p in PARAMETERS if p in est.values and p in fld.values]
@@ -498,8 +500,63 @@ def evaluate(
             name, int(fig["n"]), fig["r2"], fig["rmse"], fig["rrmse_percent"], fig["bias"], fig["field_mean"],
             e_all[ok], f_all[ok], est.tree_id[match.estimated_index][ok], fld.tree_id[match.field_index][ok],
         )
+        _check_value_units(name, e_all[ok], f_all[ok], fld.source)
     detection = Detection(len(fld), len(est), len(match), len(match.omitted), len(match.commission))
     return Evaluation(match, detection, stats, est, fld)
+
+
+#: Unit factors a field sheet may be off by (name, field value / value in the right unit).
+_UNIT_FACTORS = (("millimetres", 1000.0), ("centimetres", 100.0), ("decimetres", 10.0), ("feet", 1.0 / 0.3048))
+
+
+def _unit_hint(name: str, values: np.ndarray) -> str:
+    """A hint at the unit an implausibly large column is in (from its median)."""
+    med = float(np.median(values))
+    if name == "dbh_m":
+        if med > 150.0:
+            return "; they look like millimetres: divide by 1000 (or by 10 and name the column dbh_cm)"
+        return "; they look like centimetres: name the column dbh_cm"
+    for unit, factor in sorted(_UNIT_FACTORS, key=lambda u: u[1]):
+        if med / factor < PARAMETERS[name].max_plausible / 3:
+            return f"; they look like {unit}, not {PARAMETERS[name].unit}: convert them"
+    return "; check the unit"
+
+
+def _check_value_units(name: str, estimate: np.ndarray, field_value: np.ndarray, source: str) -> None:
+    """Refuse field values that are a unit factor off the matched estimates (heights in feet,
+    diameters in cm named _m): R2 of such a comparison would be meaningless."""
+    if len(estimate) < 5:
+        return
+    e, f = float(np.median(estimate)), float(np.median(field_value))
+    if e <= 0 or f <= 0:
+        return
+    ratio = f / e
+    for unit, factor in _UNIT_FACTORS:
+        if abs(np.log(ratio / factor)) < np.log(1.3):
+            raise TreeTableError(
+                f"{source}: the field {name} values are {ratio:.3g} times the estimates (median {f:.4g} vs "
+                f"{e:.4g} {PARAMETERS[name].unit}): they look like {unit}; convert them to {PARAMETERS[name].unit}")
+
+
+def _check_position_units(est: "TreeTable", fld: "TreeTable") -> None:
+    """Refuse field positions whose spread is a unit factor off the estimated trees' (mm or cm
+    against metres): position matching would find nothing."""
+    if len(est) < 3 or len(fld) < 3:
+        return
+    def spread(t: "TreeTable") -> float:
+        xy = np.column_stack([t.x, t.y])
+        xy = xy[np.isfinite(xy).all(axis=1)]
+        return float(np.ptp(xy, axis=0).max()) if len(xy) >= 3 else 0.0
+
+    se, sf = spread(est), spread(fld)
+    if se <= 0 or sf <= 0:
+        return
+    ratio = sf / se
+    for unit, factor in _UNIT_FACTORS[:2]:
+        if ratio > factor / 3:
+            raise TreeTableError(
+                f"{fld.source}: the field positions spread {sf:,.0f} units against {se:,.1f} m for the trees: "
+                f"they look like {unit}; convert them to metres (same coordinates as the cloud)")
 
 
 def pair_rows(evaluation: Evaluation) -> list[dict[str, Any]]:
