@@ -16,12 +16,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..core.atomic import atomic_path  # noqa: E402
+from ..core.errors import InvalidArgumentError  # noqa: E402
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..tls.pair import PairResult
 
-REFERENCE_COLOUR = "#1f77b4"
-MOVING_COLOUR = "#d95f02"
+from ..tls.views import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402,F401 - one definition of the scan colours
 
 
 def _slice_points(layers, radius: float, limit: int = 60000) -> np.ndarray:
@@ -41,7 +41,7 @@ def pair_figure(result: "PairResult", path: str | os.PathLike[str], *, dpi: int 
     and both overlaid with the final (or, if failed, the best coarse) transform and matched pairs."""
     det = result.details
     if det is None or det.chosen is None:
-        raise ValueError("the result carries no details to draw")
+        raise InvalidArgumentError("the result carries no details to draw")
     att = det.chosen
     radius = att.radius_m
     fig, axes = plt.subplots(1, 3, figsize=(18, 6.2))

@@ -32,13 +32,13 @@ import numpy as np
 from scipy import ndimage
 
 from ..core.errors import ScanDataError
-from ..core.params import param_field, validate_ranges
+from ..core.params import Params, param_field
 
 __all__ = ["CanopyParams", "CanopyTree", "canopy_height_model", "canopy_trees"]
 
 
 @dataclass(frozen=True)
-class CanopyParams:
+class CanopyParams(Params):
     """Settings of tree detection from the canopy. Distances in metres."""
 
     chm_resolution_m: float = param_field(0.5, "m", 0.1, 5.0, "Cell size of the canopy height model")
@@ -52,12 +52,6 @@ class CanopyParams:
     width_percentile: float = param_field(1.0, "%", 0.0, 25.0, "Crown widths run from this percentile of the crown cells' x (y) to 100 minus it")
     min_crown_cells: int = param_field(3, "cells", 1, 10000, "Crowns of fewer cells are dropped (noise)")
     min_crown_points: int = param_field(10, "points", 1, 100000, "Crowns of fewer points are dropped (noise, a fragment of a neighbour's crown)")
-
-    def __post_init__(self) -> None:
-        validate_ranges(self)
-
-    def replace(self, **changes: Any) -> "CanopyParams":
-        return dataclasses.replace(self, **changes)
 
 
 @dataclass(frozen=True, eq=False)

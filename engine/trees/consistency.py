@@ -28,6 +28,7 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..core.params import Params, param_field
 from .qsm import CylinderModel
 from .stems import Stem, StemCurve
 
@@ -35,14 +36,14 @@ __all__ = ["FormFactorBounds", "form_factor_check", "reconcile_stem", "stem_curv
 
 
 @dataclass(frozen=True)
-class FormFactorBounds:
+class FormFactorBounds(Params):
     """Plausible form factors ``V / (BA * H)`` (dimensionless). Stem: 0.3-0.7 for real trees
     (a cone is 1/3, a paraboloid 1/2, a cylinder 1), with a margin; whole tree (stem and
     branches) up to 1.0. Beyond ``withhold_factor`` times the bounds the volume is withheld."""
 
-    stem: tuple[float, float] = (0.25, 0.8)
-    total: tuple[float, float] = (0.25, 1.1)
-    withhold_factor: float = 2.0
+    stem: tuple[float, float] = param_field((0.25, 0.8), "", 0.0, 2.0, "Plausible stem form factors V_stem / (BA * H); outside: volume flagged")
+    total: tuple[float, float] = param_field((0.25, 1.1), "", 0.0, 3.0, "Plausible whole-tree form factors V / (BA * H); outside: volume flagged")
+    withhold_factor: float = param_field(2.0, "", 1.0, 100.0, "Beyond this factor outside the whole-tree bounds the volume is withheld")
 
 
 def curve_dbh(curve: StemCurve, stem: Stem, breast_height_m: float) -> float:

@@ -28,6 +28,7 @@ from ..core.atomic import write_text_atomic
 from ..core.errors import ScanDataError
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
+from ..core.params import Params, param_field as _p
 from .canopy import CanopyParams, CanopyTree, canopy_trees
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
 from .crown import CrownMeasurement, CrownParams, measure_crown
@@ -53,7 +54,7 @@ TRUST_LEVELS = ("high", "medium", "low", "none")
 
 
 @dataclass(frozen=True)
-class TreeParams:
+class TreeParams(Params):
     """Parameters of every step (each step's own dataclass; defaults from the paper where given)."""
 
     terrain: TerrainParams = TerrainParams()
@@ -66,9 +67,9 @@ class TreeParams:
     canopy: CanopyParams = CanopyParams()
     form_factors: FormFactorBounds = FormFactorBounds()
     #: points with a wood probability at least this are wood (input of the cylinder model)
-    wood_threshold: float = field(default=0.5, metadata={"unit": "", "help": "wood probability threshold"})
+    wood_threshold: float = _p(0.5, "", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
-    cylinder_models: bool = field(default=True, metadata={"unit": "", "help": "fit cylinder models"})
+    cylinder_models: bool = _p(True, "", None, None, "fit cylinder models")
 
 
 @dataclass(frozen=True, eq=False)
