@@ -360,7 +360,7 @@ def measure_trees(
                 trust = _trust(trust, "medium")
             if method == "noisy":
                 trust = _trust(trust, "medium")
-            if fit is not None and fit.rms_residual_m > 0.15 * 0.5 * d_curve:
+            if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d_curve, 0.008):
                 trust = _trust(trust, "low")
                 flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
                              f"{1000 * d_curve:.0f} mm stem (noisy or ghosted shell)")
@@ -372,7 +372,7 @@ def measure_trees(
         elif d.ok and math.isfinite(d.dbh_m):
             dbh_value = d.dbh_m
             trust = "medium"
-            if fit is not None and fit.rms_residual_m > 0.15 * 0.5 * d.dbh_m:
+            if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d.dbh_m, 0.008):
                 trust = "low"
                 flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
                              f"{1000 * d.dbh_m:.0f} mm stem (noisy or ghosted shell)")
