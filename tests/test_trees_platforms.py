@@ -181,3 +181,22 @@ def test_a_failed_dbh_fit_reports_no_value():
     stem = Stem(id=1, base=np.zeros(3), axis=np.array([0.0, 0.0, 1.0]), radius_m=0.1, point_indices=np.zeros(0, int))
     d = measure_dbh(pts, z, stem, StemParams())
     assert not d.ok and math.isnan(d.dbh_m)
+
+
+def test_trees_command_on_a_real_als_clip(shared_data, tmp_path, capsys):
+    """`forestreg trees` on an airborne cloud: per-step lines and a one-line summary; the quality
+    columns in trees.csv."""
+    import csv
+
+    from forestreg.cli import main
+
+    assert main(["trees", str(shared_data / "spanner_ALS_Clip.laz"), "--out", str(tmp_path / "t"), "--no-report"]) == 0
+    out = capsys.readouterr().out
+    assert "  terrain:" in out and "  canopy:" in out
+    summary = [line for line in out.splitlines() if "trees found" in line]
+    assert len(summary) == 1 and "from the canopy" in summary[0] and "flagged" in summary[0]
+    with (tmp_path / "t" / "trees.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) >= 15 and tuple(rows[0]) == TREE_COLUMNS
+    assert all(r["dbh_m"] == "" and r["dbh_quality"].endswith("none") and r["source"] == "canopy" for r in rows)
+    assert all(r["height_quality"].endswith(("high", "low")) for r in rows)

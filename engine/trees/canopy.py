@@ -13,7 +13,8 @@ above, as lidR's ``locate_trees(lmf())`` + ``segment_trees(dalponte2016())`` do:
    above ``crown_height_fraction`` of that tree's top and within ``max_crown_radius_m`` of it
    (Dalponte and Coomes 2016).
 4. Per crown: position (the top's x, y), height (the highest point of the crown above the
-   ground), crown base (a low percentile of the crown's points above ``min_height_m``), crown
+   ground), crown base (going down from the top, where a vertical gap of ``max_crown_gap_m``
+   without points begins: understory below is not crown), crown
    widths east-west and north-south (percentile extents of the crown's cells), crown area
    ``pi * a * b / 4`` and volume ``pi * CD^2 * CL / 8`` (paraboloid; paper sec. 4.3.4).
 
@@ -48,7 +49,8 @@ class CanopyParams(Params):
     window_range_m: tuple[float, float] = param_field((1.2, 3.0), "m", 0.1, 20.0, "Smallest and largest tree-top window radius")
     crown_height_fraction: float = param_field(0.45, "", 0.0, 1.0, "A crown cell is at least this fraction of its tree's top height (Dalponte th_tree)")
     max_crown_radius_m: float = param_field(8.0, "m", 0.5, 50.0, "Largest horizontal distance of a crown cell from its top")
-    crown_base_percentile: float = param_field(2.0, "%", 0.0, 50.0, "The crown base is this percentile of the crown points' heights")
+    crown_base_percentile: float = param_field(2.0, "%", 0.0, 50.0, "The crown base is at least this percentile of the crown points' heights")
+    max_crown_gap_m: float = param_field(2.0, "m", 0.5, 20.0, "Going down from the top, a vertical gap this long without points ends the crown (below: understory)")
     width_percentile: float = param_field(1.0, "%", 0.0, 25.0, "Crown widths run from this percentile of the crown cells' x (y) to 100 minus it")
     min_crown_cells: int = param_field(3, "cells", 1, 10000, "Crowns of fewer cells are dropped (noise)")
     min_crown_points: int = param_field(10, "points", 1, 100000, "Crowns of fewer points are dropped (noise, a fragment of a neighbour's crown)")
@@ -142,6 +144,28 @@ def _tree_tops(chm: Chm, params: CanopyParams) -> list[tuple[int, int]]:
     return kept
 
 
+def _crown_base(heights: np.ndarray, params: CanopyParams, bin_m: float = 0.5) -> float:
+    """The crown base: going down from the top through 0.5 m bins of the crown's point heights, the
+    bottom of the last occupied bin before a gap of ``max_crown_gap_m`` (understory under the crown
+    is not crown), never below the ``crown_base_percentile`` of the heights."""
+    top = float(heights.max())
+    bins = np.floor((top - heights) / bin_m).astype(np.int64)
+    occupied = np.zeros(int(bins.max()) + 1, dtype=bool)
+    occupied[bins] = True
+    gap = max(1, int(round(params.max_crown_gap_m / bin_m)))
+    last = 0
+    empty = 0
+    for k in range(1, len(occupied)):
+        if occupied[k]:
+            last, empty = k, 0
+        else:
+            empty += 1
+            if empty >= gap:
+                break
+    base = top - (last + 1) * bin_m
+    return float(max(base, np.percentile(heights, params.crown_base_percentile)))
+
+
 def canopy_trees(points: Any, heights: Any, params: CanopyParams = CanopyParams()) -> tuple[list[CanopyTree], np.ndarray]:
     """Trees found from the canopy of a cloud (see the module docstring).
 
@@ -205,7 +229,7 @@ def canopy_trees(points: Any, heights: Any, params: CanopyParams = CanopyParams(
         hk = h[idx]
         top_i = idx[int(np.argmax(hk))]
         height = float(h[top_i])
-        cbh = float(np.percentile(hk, params.crown_base_percentile))
+        cbh = _crown_base(hk, params)
         xs = chm.x0 + (cells[:, 1] + 0.5) * res
         ys = chm.y0 + (cells[:, 0] + 0.5) * res
         q = params.width_percentile
