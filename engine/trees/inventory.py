@@ -452,7 +452,7 @@ def measure_trees(
             source="stem", quality=quality,
         ))
     timings["trees_s"] = time.perf_counter() - t
-    if _airborne_like(heights):  # stems hardly sampled: trees seen only from above join
+    if method == "noisy" and _airborne_like(heights):  # stems sparse and hardly sampled: the canopy decides
         t = time.perf_counter()
         progress(0.98, "airborne cloud: trees without a sampled stem from the canopy height model")
         records, labels = _add_canopy_trees(p, heights, labels, records, no_ground, params)
@@ -581,8 +581,9 @@ def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool) -> TreeRecord:
     )
 
 
-#: Points at 1-3 m per point above 3 m below which a cloud is taken as airborne (ALS/ULS: stems
-#: hardly sampled); ground-based clouds hold 0.15 and more, airborne ones 0.005-0.03.
+#: Points at 1-3 m per point above 3 m below which a cloud whose stems are sparsely sampled (noisy
+#: profile) is taken as airborne (ALS/ULS); ground-based clouds hold 0.1 and more (a TLS plot of tall
+#: trees without ground 0.04, but its stems are dense), airborne ones 0.005-0.03.
 AIRBORNE_BAND_RATIO = 0.08
 
 
