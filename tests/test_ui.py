@@ -100,10 +100,10 @@ def test_run_fills_the_tables(qtbot, window, project_file: Path, tmp_path: Path)
         assert table.value(row, "Status") == "ok" == link.result["status"]
         assert table.value(row, "Matched") == link.result["matched"] >= 4
         assert table.text(row, "Matched") == str(link.result["matched"])
-        assert table.value(row, "ICP std (cm)") == pytest.approx(link.result["icp"]["std_m"])
-        assert table.text(row, "ICP std (cm)") == f"{100 * link.result['icp']['std_m']:.2f}"
-        assert table.value(row, "Fitness") == pytest.approx(link.result["icp"]["fitness"])
-        assert table.value(row, "D_r (m)") == link.result["vop_radius_m"]
+        assert table.value(row, "Fine fit std (cm)") == pytest.approx(link.result["icp"]["std_m"])
+        assert table.text(row, "Fine fit std (cm)") == f"{100 * link.result['icp']['std_m']:.2f}"
+        assert table.value(row, "Overlap") == pytest.approx(link.result["icp"]["fitness"])
+        assert table.value(row, "Search radius (m)") == link.result["vop_radius_m"]
     # scans table = the poses
     poses = project.poses()
     for row, scan in enumerate(project.scans):

@@ -212,6 +212,8 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.act_all_points = a("Draw &all points (slower)", self._toggle_all_points, None,
                                 "Draw every point of every scan instead of a 200 000-point sample", checkable=True)
         self.act_reset_camera = a("Reset 3D &camera", self.scene_view.reset_camera, QKeySequence("Ctrl+0"), "Look at all points again")
+        self.act_top_camera = a("3D &top view", self.scene_view.top_view, QKeySequence("Ctrl+3"),
+                                "Look straight down, north up: trunks seen twice mean a poor registration")
         self.act_about = a("&About forestreg", self._about)
         for act in (self.act_new, self.act_open, self.act_save, self.act_add, self.act_run, self.act_cancel):
             act.setShortcutContext(Qt.ShortcutContext.WindowShortcut)
@@ -236,7 +238,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         for act in (self.act_run, self.act_rerun, self.act_cancel):
             m.addAction(act)
         m = bar.addMenu("&View")
-        for act in (self.act_before, self.act_after, self.act_all_points, self.act_reset_camera):
+        for act in (self.act_before, self.act_after, self.act_all_points, self.act_reset_camera, self.act_top_camera):
             m.addAction(act)
         m.addSeparator()
         for dock in (self.tree_dock, self.params_dock, self.results_dock):
@@ -260,7 +262,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         for act in (self.act_run, self.act_cancel):
             tb.addAction(act)
         tb.addSeparator()
-        for act in (self.act_before, self.act_after):
+        for act in (self.act_before, self.act_after, self.act_top_camera):
             tb.addAction(act)
         tb.addSeparator()
         for act in (self.act_export_poses, self.act_export_report):
@@ -269,6 +271,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.act_cancel.setIconText("Cancel")
         self.act_before.setIconText("Before")
         self.act_after.setIconText("After")
+        self.act_top_camera.setIconText("Top view")
         self.act_export_poses.setIconText("Export transforms")
         self.act_export_report.setIconText("Report")
         self.act_open.setIconText("Open")

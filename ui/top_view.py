@@ -74,7 +74,7 @@ class TopViewWidget(QWidget):
             ax.annotate(name, xy=(c[0], c[1]), xytext=(7, 7), textcoords="offset points", fontsize=8, zorder=7,
                         bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=colour, lw=1.0, alpha=0.85))
             handles.append(Line2D([], [], ls="none", marker="o", ms=6, mfc="none", mec=colour, mew=1.4,
-                                  label=f"{name}: {len(sv.vops_xy)} VOPs, D_r {sv.radius_m:.0f} m"))
+                                  label=f"{name}: {len(sv.vops_xy)} trunk shadows within {sv.radius_m:.0f} m"))
         n_pairs = 0
         for lv in view.links:
             if not len(lv.pairs):
@@ -84,7 +84,7 @@ class TopViewWidget(QWidget):
             mid = (a + b) / 2
             ax.scatter(mid[:, 0], mid[:, 1], s=90, facecolors="none", edgecolors=MATCH_COLOUR, linewidths=1.6, zorder=4)
         handles.append(Line2D([], [], ls="none", marker="o", ms=9, mfc="none", mec=MATCH_COLOUR, mew=1.6,
-                              label=f"matched VOPs ({n_pairs})"))
+                              label=f"matched trunk shadows ({n_pairs})"))
         allxy = np.concatenate([sv.slice_xy for sv in view.scans.values()] + [sv.scanner[None, :2] for sv in view.scans.values()]) - o
         if len(allxy):
             lo, hi = np.percentile(allxy, 0.5, axis=0) - 2.0, np.percentile(allxy, 99.5, axis=0) + 2.0
@@ -96,8 +96,9 @@ class TopViewWidget(QWidget):
         ax.set_ylabel("y (m)")
         ax.tick_params(labelsize=8)
         if title:
-            ax.set_title(title, fontsize=10)
-        ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.85)
+            ax.set_title(title, fontsize=9, wrap=True)
+        # the legend goes below the map: over it, it hid trunk shadows
+        self.figure.legend(handles=handles, loc="outside lower center", ncols=2, fontsize=7, frameon=False)
         for name, problem in view.problems.items():
             ax.text(0.01, 0.01, f"{name}: {problem}", transform=ax.transAxes, fontsize=7, color="#b42318")
         self.canvas.draw_idle()
