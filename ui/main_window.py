@@ -39,6 +39,7 @@ from .project_model import ProjectModel
 from .results_tables import LinkResultsTable, ScanPoseTable
 from .scene_data import PreviewCache, build_scene
 from .scene_view import SceneView
+from .system_b import SystemBMixin
 from .tasks import TaskSet
 from .top_view import TopViewWidget
 from .worker import RegistrationWorker, TaskWorker
@@ -47,7 +48,7 @@ log = logging.getLogger("forestreg")
 
 ORGANISATION = "forestreg"
 APPLICATION = "forestreg"
-class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
+class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
     """forestreg's main window over one project.
 
     ``settings``: where recent files and the window layout are kept (default
@@ -118,7 +119,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         split.setStretchFactor(1, 2)
         split.setSizes([620, 420])
         self.view_splitter = split
-        self.setCentralWidget(split)
+        self.setCentralWidget(self._build_system_b(split))
 
         self.tree = QTreeView()
         self.tree.setObjectName("project-tree")
@@ -149,7 +150,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.results_dock = self._dock("Results", self.bottom_tabs, Qt.DockWidgetArea.BottomDockWidgetArea)
         self.resizeDocks([self.tree_dock, self.params_dock], [300, 500], Qt.Orientation.Vertical)
         self.resizeDocks([self.tree_dock], [360], Qt.Orientation.Horizontal)
-        self.resizeDocks([self.results_dock], [250], Qt.Orientation.Vertical)
+        self.resizeDocks([self.results_dock], [170], Qt.Orientation.Vertical)
 
     def _tree_refreshed(self) -> None:
         self.tree.expandAll()
@@ -195,6 +196,10 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
                                 "Write the registered scans into one E57 file, each with its pose")
         self.act_export_report = a("Export HTML &report\u2026", self._ask_export_report, QKeySequence("Ctrl+Shift+E"),
                                    "Write the plot report (one HTML file)")
+        self.act_open_trees = a("Open t&rees result\u2026", self._ask_open_trees, None,
+                                "Show the trees measured by 'forestreg trees --out DIR' (map, table, each tree in 3D)")
+        self.act_open_coreg = a("Open &co-registration result\u2026", self._ask_open_coregistration, None,
+                                "Show a ground-based / UAV co-registration made by 'forestreg coregister --out DIR'")
         self.act_quit = a("&Quit", self.close, QKeySequence.StandardKey.Quit, "Close forestreg")
         self.act_run = a("&Run registration", lambda: self.run(), QKeySequence("Ctrl+R"), "Register every scan not registered yet")
         self.act_rerun = a("Run &all links again", lambda: self.run(rerun=True), QKeySequence("Ctrl+Shift+R"),
@@ -224,6 +229,8 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         for act in (self.act_new, self.act_open, self.act_sample):
             m.addAction(act)
         self.recent_menu = m.addMenu("Open &recent")
+        m.addAction(self.act_open_trees)
+        m.addAction(self.act_open_coreg)
         m.addSeparator()
         m.addAction(self.act_save)
         m.addAction(self.act_save_as)
@@ -522,7 +529,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
     def _top_built(self, view: Any) -> None:
         from ..engine.report.plot_report import scan_colours
 
-        self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: slices, VOPs and matches")
+        self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: trunk shadows and matches")
         self.topViewReady.emit()
 
     def _start_view_task(self, name: str, make: Callable[[], TaskWorker], done: Callable[[Any], None]) -> None:
@@ -647,4 +654,5 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.save_settings()
         self.log_pane.detach()
         self.scene_view.close_view()
+        self.trees_view.scene3d.close_view()
         event.accept()

@@ -287,6 +287,31 @@ class SceneView(QWidget):
         pl.reset_camera()
         pl.camera.zoom(1.3)
 
+    def draw(self, painter: Any, *, camera: str = "isometric") -> None:
+        """Replace what is drawn by whatever ``painter(plotter)`` adds (other views' contents:
+        trees, keypoints), then frame it (``camera`` "isometric" or "top")."""
+        self.scene = None
+        pl = self.plotter
+        if pl is None:
+            return
+        pl.suppress_rendering = True
+        try:
+            pl.clear()
+            painter(pl)
+            if camera == "top":
+                pl.view_xy()
+            elif camera == "side":  # from the south, a little above: a tree stands upright
+                pl.view_xz()
+                pl.camera.Elevation(20.0)
+                pl.camera.OrthogonalizeViewUp()
+            else:
+                pl.view_isometric()
+            pl.reset_camera()
+            pl.camera.zoom(1.2)
+        finally:
+            pl.suppress_rendering = False
+        self._update()
+
     def show_markers(self, points: Any, *, colour: str = "#e0007a", label: str = "targets") -> None:
         """Draw the scans' targets (display coordinates, (N, 3)) over the points; empty clears them."""
         import pyvista as pv

@@ -203,7 +203,7 @@ class CoregistrationOutput:
 
     @property
     def ok(self) -> bool:
-        return bool(self.result.get("ok", self.matrix is not None))
+        return self.result.get("status") == "ok" and self.matrix is not None
 
     @property
     def reason(self) -> str:

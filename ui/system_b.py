@@ -1,0 +1,132 @@
+"""The main window's System B tabs: "Co-registration" (ground-based cloud onto a UAV/ALS cloud, then
+fusion) and "Trees" (the inventory map, table and the selected tree). Result folders are read with
+:mod:`forestreg.engine.io.results`; runs go through :class:`~forestreg.ui.worker.TaskWorker`."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Optional
+
+from PySide6.QtWidgets import QFileDialog, QTabWidget
+
+from ..engine.core.errors import ForestregError
+from .coreg_view import CoregistrationView, shown_from_folder
+from .trees_view import TreesView
+
+log = logging.getLogger("forestreg")
+
+#: Tab titles of the central area.
+TAB_TLS, TAB_COREG, TAB_TREES = "TLS registration", "Co-registration", "Trees"
+
+
+class SystemBMixin:
+    """Adds the co-registration and trees tabs to :class:`~forestreg.ui.main_window.MainWindow`."""
+
+    def _build_system_b(self, tls_view: Any) -> QTabWidget:
+        """Wrap the TLS views in a tab widget with the System B tabs; returns it (the central widget)."""
+        self.central_tabs = QTabWidget()
+        self.central_tabs.setObjectName("central-tabs")
+        self.central_tabs.setDocumentMode(True)
+        self.central_tabs.addTab(tls_view, TAB_TLS)
+        self.coreg_view = CoregistrationView(start_task=self._start_task)
+        self.central_tabs.addTab(self.coreg_view, TAB_COREG)
+        self.trees_view = TreesView(renderer=self._renderer_choice())
+        self.central_tabs.addTab(self.trees_view, TAB_TREES)
+        self.coreg_view.run_button.clicked.connect(self._ask_coregister)
+        self.coreg_view.fuse_button.clicked.connect(self._ask_fuse)
+        self.trees_points_file: Optional[str] = None
+        self._tls_docks_visible: Optional[dict[Any, bool]] = None
+        self.central_tabs.currentChanged.connect(self._tab_changed)
+        return self.central_tabs
+
+    def _tab_changed(self, index: int) -> None:
+        """The TLS docks (project tree, parameters, results) belong to the TLS tab: hidden on the
+        System B tabs so that the map, table and 3D view get the room, shown again on return."""
+        docks = [d for d in (getattr(self, "tree_dock", None), getattr(self, "params_dock", None),
+                             getattr(self, "results_dock", None)) if d is not None]
+        if self.central_tabs.widget(index) is self.view_splitter:
+            if self._tls_docks_visible is not None:
+                for d in docks:
+                    d.setVisible(self._tls_docks_visible.get(d, True))
+                self._tls_docks_visible = None
+        elif self._tls_docks_visible is None:
+            self._tls_docks_visible = {d: d.isVisible() for d in docks}
+            for d in docks:
+                d.hide()
+
+    def show_tab(self, title: str) -> None:
+        for k in range(self.central_tabs.count()):
+            if self.central_tabs.tabText(k) == title:
+                self.central_tabs.setCurrentIndex(k)
+                return
+
+    def current_scene_view(self) -> Any:
+        """The 3D view on the visible tab (for screenshots)."""
+        if self.central_tabs.currentWidget() is self.trees_view:
+            return self.trees_view.scene3d
+        return self.scene_view
+
+    # ------------------------------------------------------------------ trees
+
+    def open_trees(self, folder: str | Path, cloud: Optional[str | Path] = None, *, select: Optional[int] = None) -> bool:
+        """Show a ``forestreg trees --out DIR`` folder; ``cloud`` the measured cloud (optional: its
+        points around the selected tree are drawn). False with :attr:`last_error` on failure."""
+        from ..engine.io import read_scan
+        from ..engine.io.results import read_trees_dir
+
+        try:
+            out = read_trees_dir(folder)
+            points = read_scan(cloud).file_points if cloud else None
+        except ForestregError as exc:
+            self.show_error("Cannot open the trees result", str(exc))
+            return False
+        self.trees_points_file = str(cloud) if cloud else None
+        self.trees_view.show_output(out, points, select=select)
+        self.show_tab(TAB_TREES)
+        log.info("trees: %d trees from %s", len(out.trees), folder)
+        return True
+
+    # ------------------------------------------------------------------ co-registration
+
+    def open_coregistration(self, folder: str | Path) -> bool:
+        """Show a ``forestreg coregister --out DIR`` folder. False with :attr:`last_error` on failure."""
+        from ..engine.io.results import read_coregistration_dir
+
+        try:
+            out = read_coregistration_dir(folder)
+        except ForestregError as exc:
+            self.show_error("Cannot open the co-registration result", str(exc))
+            return False
+        self.coreg_view.show_result(shown_from_folder(out))
+        self.show_tab(TAB_COREG)
+        log.info("co-registration %s: %s", folder, "ok" if out.ok else out.reason)
+        return True
+
+    def _ask_open_trees(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Trees result folder (forestreg trees --out DIR)", self._last_dir())
+        if folder:
+            cloud, _ = QFileDialog.getOpenFileName(self, "The measured cloud (optional: cancel to skip)", self._last_dir(),
+                                                   "Point clouds (*.las *.laz *.ply *.pcd *.xyz *.txt *.e57)")
+            self.open_trees(folder, cloud or None)
+
+    def _ask_open_coregistration(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Co-registration result folder (forestreg coregister --out DIR)", self._last_dir())
+        if folder:
+            self.open_coregistration(folder)
+
+    def _ask_coregister(self) -> None:
+        filt = "Point clouds (*.las *.laz *.ply *.pcd *.xyz *.txt *.e57)"
+        ground, _ = QFileDialog.getOpenFileName(self, "Ground-based cloud (TLS plot, backpack, handheld)", self._last_dir(), filt)
+        if not ground:
+            return
+        uav, _ = QFileDialog.getOpenFileName(self, "UAV or airborne cloud", str(Path(ground).parent), filt)
+        if uav:
+            self.coreg_view.run(ground, uav)
+
+    def _ask_fuse(self) -> None:
+        start = str(Path(self.coreg_view.shown.ground_file).with_name("fused.laz")) if self.coreg_view.shown else "fused.laz"
+        path, _ = QFileDialog.getSaveFileName(self, "Fused cloud", start, "LAZ (*.laz);;LAS (*.las)")
+        if path:
+            self.coreg_view.fuse(path)
+
