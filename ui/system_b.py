@@ -31,7 +31,7 @@ class SystemBMixin:
         self.central_tabs.addTab(tls_view, TAB_TLS)
         self.coreg_view = CoregistrationView(start_task=self._start_task)
         self.central_tabs.addTab(self.coreg_view, TAB_COREG)
-        self.trees_view = TreesView(renderer=self._renderer_choice())
+        self.trees_view = TreesView(renderer=self._renderer_choice(), start_task=self._start_task)
         self.central_tabs.addTab(self.trees_view, TAB_TREES)
         self.coreg_view.run_button.clicked.connect(self._ask_coregister)
         self.coreg_view.fuse_button.clicked.connect(self._ask_fuse)
@@ -82,6 +82,8 @@ class SystemBMixin:
             self.show_error("Cannot open the trees result", str(exc))
             return False
         self.trees_points_file = str(cloud) if cloud else None
+        self.trees_view.inventory = None  # a folder's trees are shown; edits need them measured here
+        self.trees_view.steps = []
         self.trees_view.show_output(out, points, select=select)
         self.show_tab(TAB_TREES)
         log.info("trees: %d trees from %s", len(out.trees), folder)

@@ -21,8 +21,12 @@ from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import (
     QAbstractItemView,
+    QDoubleSpinBox,
+    QHBoxLayout,
     QHeaderView,
     QLabel,
+    QProgressBar,
+    QPushButton,
     QSplitter,
     QTableWidget,
     QTableWidgetItem,
@@ -30,8 +34,9 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from ..engine.io.results import TreesOutput
+from ..engine.io.results import TreesOutput, trees_output_from_inventory
 from .scene_view import SceneView, add_guides
+from .worker import TaskWorker
 
 FLAG_COLOUR = "#d92d20"
 OK_COLOUR = "#1f7a3f"
@@ -174,6 +179,7 @@ class TreeMap(QWidget):
     flagged trees red, the selected tree blue. A click selects the nearest tree."""
 
     treeClicked = Signal(int)
+    positionClicked = Signal(float, float)  # file coordinates (m)
 
     def __init__(self, parent: Optional[QWidget] = None) -> None:
         super().__init__(parent)
@@ -233,6 +239,7 @@ class TreeMap(QWidget):
     def _clicked(self, event: Any) -> None:
         if self.out is None or event.inaxes is None or event.xdata is None:
             return
+        self.positionClicked.emit(float(event.xdata + self.origin[0]), float(event.ydata + self.origin[1]))
         xy = np.array([[t.x, t.y] for t in self.out.trees]) - self.origin
         d = np.hypot(xy[:, 0] - event.xdata, xy[:, 1] - event.ydata)
         d[~np.isfinite(d)] = np.inf
@@ -338,15 +345,31 @@ def points_near(points: Optional[np.ndarray], trees_xy: np.ndarray, index: int, 
 
 
 class TreesView(QWidget):
-    """Map + table (left) and the selected tree in 3D + its stem curve (right)."""
+    """Map + table (left) and the selected tree in 3D + its stem curve (right), and the correction
+    loop: measure a cloud here, then delete / merge / split / add a stem / DBH at a height, undo,
+    save (:mod:`forestreg.engine.trees.edit` does the work, in a worker)."""
 
     treeSelected = Signal(int)
+    edited = Signal(str)  # the note of the edit done
+    editFailed = Signal(str)
 
-    def __init__(self, parent: Optional[QWidget] = None, renderer: Optional[str] = None) -> None:
+    def __init__(self, parent: Optional[QWidget] = None, renderer: Optional[str] = None,
+                 start_task: Optional[Any] = None) -> None:
         super().__init__(parent)
         self.out: Optional[TreesOutput] = None
         self.points: Optional[np.ndarray] = None
         self.selected: Optional[int] = None
+        self._start_task = start_task
+        from ..engine.trees.inventory import TreeParams
+
+        self.params = TreeParams()
+        self.inventory: Any = None  # a TreeInventory measured in this session (edits need it)
+        self.local_points: Optional[np.ndarray] = None
+        self.base_inventory: Any = None
+        self.steps: list[tuple[Any, Any]] = []  # (TreeEdit, inventory after it)
+        self.pending: Optional[str] = None
+        self.worker: Optional[TaskWorker] = None
+        self.last_error: Optional[str] = None
         self.map = TreeMap()
         self.table = TreeTable()
         self.scene3d = SceneView(renderer=renderer)
@@ -369,9 +392,262 @@ class TreesView(QWidget):
         lay = QVBoxLayout(self)
         lay.setContentsMargins(0, 0, 0, 0)
         lay.addWidget(self.info)
+        lay.addLayout(self._edit_bar())
         lay.addWidget(split, 1)
-        self.map.treeClicked.connect(self.select_tree)
+        self.map.treeClicked.connect(self._map_tree_clicked)
+        self.map.positionClicked.connect(self._map_position_clicked)
         self.table.itemSelectionChanged.connect(self._table_selected)
+
+    def _edit_bar(self) -> QHBoxLayout:
+        bar = QHBoxLayout()
+        bar.setContentsMargins(4, 0, 4, 0)
+
+        def button(text: str, tip: str, slot: Any) -> QPushButton:
+            b = QPushButton(text)
+            b.setToolTip(tip)
+            b.clicked.connect(lambda checked=False: slot())
+            bar.addWidget(b)
+            return b
+
+        self.measure_button = button("Measure trees\u2026", "Measure the trees of a cloud here (needed to correct them)", self._ask_measure)
+        self.delete_button = button("Delete", "Delete the selected tree (a false stem)", self.delete_selected)
+        self.merge_button = button("Merge with\u2026", "Merge the selected tree with the next tree you click on the map", lambda: self._arm("merge"))
+        self.split_button = button("Split at\u2026", "Split the selected tree: click the second stem on the map", lambda: self._arm("split"))
+        self.add_button = button("Add stem\u2026", "Add a missed stem: click it on the map", lambda: self._arm("add"))
+        self.dbh_height = QDoubleSpinBox()
+        self.dbh_height.setRange(0.3, 5.0)
+        self.dbh_height.setSingleStep(0.1)
+        self.dbh_height.setValue(1.3)
+        self.dbh_height.setSuffix(" m")
+        self.dbh_height.setToolTip("Height along the stem at which the DBH is measured (above a buttress)")
+        bar.addWidget(QLabel("DBH at"))
+        bar.addWidget(self.dbh_height)
+        self.dbh_button = button("Apply", "Measure the selected tree's DBH at this height", lambda: self.dbh_height_selected(self.dbh_height.value()))
+        self.undo_button = button("Undo", "Undo the last edit", self.undo)
+        self.save_button = button("Save\u2026", "Write the edited trees (trees.csv with an 'edited' column, edits.json, report)", self._ask_save)
+        self.edit_status = QLabel("")
+        self.edit_status.setStyleSheet("color: #475467;")
+        bar.addWidget(self.edit_status, 1)
+        self.edit_progress = QProgressBar()
+        self.edit_progress.setRange(0, 1000)
+        self.edit_progress.setMaximumWidth(220)
+        self.edit_progress.hide()
+        bar.addWidget(self.edit_progress)
+        self.edit_cancel = QPushButton("Cancel")
+        self.edit_cancel.hide()
+        self.edit_cancel.clicked.connect(lambda: self.worker.cancel() if self.worker is not None else None)
+        bar.addWidget(self.edit_cancel)
+        self._update_edit_buttons()
+        return bar
+
+    def _update_edit_buttons(self) -> None:
+        busy = self.worker is not None
+        can = self.inventory is not None and not busy
+        sel = can and self.selected is not None
+        self.measure_button.setEnabled(not busy)
+        for b in (self.delete_button, self.merge_button, self.split_button, self.dbh_button):
+            b.setEnabled(sel)
+        self.add_button.setEnabled(can)
+        self.undo_button.setEnabled(can and bool(self.steps))
+        self.save_button.setEnabled(can and bool(self.steps))
+        if self.inventory is None and not busy:
+            self.edit_status.setText("To correct trees, measure them here (Measure trees\u2026).")
+
+    # ------------------------------------------------------------------ background work
+
+    def _work(self, what: str, fn: Any, done: Any) -> bool:
+        if self._start_task is None or self.worker is not None:
+            return False
+        self.last_error = None
+        worker = TaskWorker(fn, name=f"trees: {what}")
+        self.worker = worker
+        self.edit_progress.setValue(0)
+        self.edit_progress.show()
+        self.edit_cancel.show()
+        self.edit_status.setText(f"{what}\u2026")
+        self._update_edit_buttons()
+
+        def failed(message: str, details: str) -> None:
+            self.last_error = message
+            self.edit_status.setText(f"<span style='color:{FLAG_COLOUR}'>{what}: {message}</span>")
+            self.editFailed.emit(message)
+
+        def ended() -> None:
+            self.worker = None
+            self.edit_progress.hide()
+            self.edit_cancel.hide()
+            self._update_edit_buttons()
+
+        def progress(fraction: float, message: str) -> None:
+            self.edit_progress.setValue(int(1000 * fraction))
+            self.edit_progress.setFormat(f"{message} %p%")
+
+        self._start_task(worker, succeeded=done, failed=failed, cancelled=lambda: self.edit_status.setText(f"{what}: cancelled"),
+                         progress=progress, ended=ended)
+        return True
+
+    def _ask_measure(self) -> None:
+        from PySide6.QtWidgets import QFileDialog
+
+        path, _ = QFileDialog.getOpenFileName(self, "Cloud to measure (ground-based or fused)", "",
+                                              "Point clouds (*.las *.laz *.ply *.pcd *.xyz *.txt *.e57)")
+        if path:
+            self.measure(path)
+
+    def measure(self, cloud: str) -> bool:
+        """Measure the trees of a cloud file in a worker; then they can be corrected."""
+        params = self.params
+
+        def task(progress: Any, cancel: Any) -> tuple[Any, np.ndarray]:
+            from ..engine.io import read_scan
+            from ..engine.trees.inventory import measure_trees
+
+            progress(0.0, "reading the cloud")
+            scan = read_scan(cloud)
+            inv = measure_trees(scan.points, params, progress=lambda f, m: progress(0.05 + 0.95 * f, m),
+                                origin_shift=scan.origin_shift)
+            return inv, scan.points
+
+        def done(result: tuple[Any, np.ndarray]) -> None:
+            inv, pts = result
+            self.local_points = pts
+            self.base_inventory = inv
+            self.steps = []
+            self._set_inventory(inv, note=f"measured {len(inv.trees)} trees in {cloud}")
+
+        return self._work("Measuring the trees", task, done)
+
+    def _notes(self) -> dict[int, str]:
+        from ..engine.trees.edit import edit_notes
+
+        return edit_notes(self.base_inventory, self.steps) if self.base_inventory is not None else {}
+
+    def _set_inventory(self, inv: Any, note: str = "") -> None:
+        self.inventory = inv
+        shift = np.asarray(inv.origin_shift, dtype=np.float64)
+        out = trees_output_from_inventory(inv, self._notes(), self.out.folder if self.out is not None else "")
+        keep = self.selected
+        self.show_output(out, self.local_points + shift if self.local_points is not None else None, select=keep)
+        if note:
+            self.edit_status.setText(note + (f"  ({len(self.steps)} edit(s); Undo to go back)" if self.steps else ""))
+        self._update_edit_buttons()
+
+    # ------------------------------------------------------------------ edits
+
+    def _to_local(self, x: float, y: float) -> tuple[float, float]:
+        shift = np.asarray(self.inventory.origin_shift, dtype=np.float64)
+        return float(x - shift[0]), float(y - shift[1])
+
+    def apply(self, edit: Any) -> bool:
+        """Apply a :class:`~forestreg.engine.trees.edit.TreeEdit` in a worker (only its trees are
+        measured again); False when no inventory is there or work is running."""
+        if self.inventory is None or self.local_points is None:
+            return False
+        inv, pts, params = self.inventory, self.local_points, self.params
+
+        def task(progress: Any, cancel: Any) -> Any:
+            from ..engine.trees.edit import apply_edit
+
+            progress(0.1, edit.describe())
+            return apply_edit(pts, inv, edit, params)
+
+        def done(after: Any) -> None:
+            self.steps.append((edit, after))
+            if edit.kind in ("add", "split"):
+                new = sorted({r.tree_id for r in after.trees} - {r.tree_id for r in inv.trees})
+                if new:
+                    self.selected = new[-1]
+            elif edit.kind == "delete":
+                self.selected = None
+            self._set_inventory(after, note=f"{edit.describe()} (tree {edit.trees[0] if edit.trees else self.selected})")
+            self.edited.emit(edit.describe())
+
+        return self._work(edit.describe(), task, done)
+
+    def delete_selected(self) -> bool:
+        from ..engine.trees.edit import TreeEdit
+
+        return self.selected is not None and self.apply(TreeEdit("delete", (self.selected,)))
+
+    def merge_selected_with(self, other: int) -> bool:
+        from ..engine.trees.edit import TreeEdit
+
+        return self.selected is not None and self.apply(TreeEdit("merge", (self.selected, int(other))))
+
+    def split_selected_at(self, x: float, y: float) -> bool:
+        """Split the selected tree at the second stem near (x, y) (file coordinates)."""
+        from ..engine.trees.edit import TreeEdit
+
+        return self.selected is not None and self.inventory is not None and \
+            self.apply(TreeEdit("split", (self.selected,), xy=self._to_local(x, y)))
+
+    def add_stem_at(self, x: float, y: float) -> bool:
+        """Add the stem near (x, y) (file coordinates)."""
+        from ..engine.trees.edit import TreeEdit
+
+        return self.inventory is not None and self.apply(TreeEdit("add", (), xy=self._to_local(x, y)))
+
+    def dbh_height_selected(self, height_m: float) -> bool:
+        from ..engine.trees.edit import TreeEdit
+
+        return self.selected is not None and self.apply(TreeEdit("dbh_height", (self.selected,), height_m=float(height_m)))
+
+    def undo(self) -> bool:
+        """Go back one edit."""
+        if not self.steps or self.worker is not None:
+            return False
+        edit, _ = self.steps.pop()
+        inv = self.steps[-1][1] if self.steps else self.base_inventory
+        self._set_inventory(inv, note=f"undone: {edit.describe()}")
+        return True
+
+    def save_edits(self, folder: str) -> Any:
+        """Write the edited inventory (engine's writer; trees.csv marks edited trees; edits.json)."""
+        from ..engine.trees.edit import write_edited
+
+        return write_edited(folder, self.inventory, self._notes(), [e for e, _ in self.steps], self.local_points)
+
+    def _ask_save(self) -> None:
+        from PySide6.QtWidgets import QFileDialog
+
+        folder = QFileDialog.getExistingDirectory(self, "Folder for the edited trees")
+        if folder:
+            try:
+                path = self.save_edits(folder)
+                self.edit_status.setText(f"saved {path}")
+            except Exception as exc:  # noqa: BLE001 - tell the user, keep the edits
+                self.edit_status.setText(f"<span style='color:{FLAG_COLOUR}'>cannot save: {exc}</span>")
+
+    def _arm(self, action: str) -> None:
+        self.pending = action
+        text = {"merge": "Click the tree to merge into the selected one", "split": "Click the second stem of the selected tree",
+                "add": "Click the missed stem on the map"}[action]
+        self.edit_status.setText(text + " (Esc: cancel)")
+
+    def _map_position_clicked(self, x: float, y: float) -> None:
+        action, self.pending = self.pending, None
+        if action == "split":
+            self.split_selected_at(x, y)
+        elif action == "add":
+            self.add_stem_at(x, y)
+        elif action == "merge":
+            self._merge_pending = True
+
+    def _map_tree_clicked(self, tree_id: int) -> None:
+        if getattr(self, "_merge_pending", False):
+            self._merge_pending = False
+            if tree_id != self.selected:
+                self.merge_selected_with(tree_id)
+            return
+        if self.worker is None:
+            self.select_tree(tree_id)
+
+    def keyPressEvent(self, event: Any) -> None:  # noqa: N802 - Qt API
+        if event.key() == Qt.Key.Key_Escape and self.pending:
+            self.pending = None
+            self.edit_status.setText("")
+            return
+        super().keyPressEvent(event)
 
     # ------------------------------------------------------------------ loading
 
@@ -388,6 +664,8 @@ class TreesView(QWidget):
             text += ". Without the cloud (--cloud) only the models are drawn in 3D."
         self.info.setText(text)
         self.table.show_trees(out)
+        if hasattr(self, "measure_button"):
+            self._update_edit_buttons()
         if not out.trees:
             self.map.show_trees(out)
             self.scene3d.show_scene(None, message="No tree in this result")
@@ -418,6 +696,7 @@ class TreesView(QWidget):
         self.map.show_trees(self.out, self.selected)
         self.curve.show_tree(self.out, self.selected)
         self._draw_3d()
+        self._update_edit_buttons()
         self.treeSelected.emit(self.selected)
 
     def _draw_3d(self) -> None:

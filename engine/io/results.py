@@ -32,6 +32,7 @@ __all__ = [
     "read_coregistration_dir",
     "read_csv_rows",
     "read_trees_dir",
+    "trees_output_from_inventory",
 ]
 
 PathLike = Union[str, os.PathLike[str]]
@@ -114,6 +115,8 @@ class TreesOutput:
     trees: list[TreeRow]
     curves: dict[int, StemCurveRows]
     cylinder_files: dict[int, Path]
+    #: cylinder models held in memory (an inventory measured or edited in this session)
+    models: Mapping[int, Any] = field(default_factory=dict)
 
     def tree(self, tree_id: int) -> TreeRow:
         for t in self.trees:
@@ -125,6 +128,8 @@ class TreesOutput:
         """The tree's :class:`~forestreg.engine.trees.qsm.CylinderModel`, or None without one."""
         from ..trees.qsm import CylinderModel
 
+        if int(tree_id) in self.models:
+            return self.models[int(tree_id)]
         path = self.cylinder_files.get(int(tree_id))
         return CylinderModel.read_csv(path) if path is not None else None
 
@@ -185,6 +190,34 @@ def read_trees_dir(folder: PathLike) -> TreesOutput:
             except ValueError:
                 continue
     return TreesOutput(folder=root, columns=tuple(header), trees=trees, curves=curves, cylinder_files=cylinder_files)
+
+
+def trees_output_from_inventory(inventory: Any, notes: Optional[Mapping[int, str]] = None, folder: PathLike = "") -> TreesOutput:
+    """The same view of an in-memory :class:`~forestreg.engine.trees.inventory.TreeInventory`
+    (file coordinates, as ``trees.csv`` would hold them); ``notes`` tree id -> edit note."""
+    import dataclasses
+
+    from ..trees.inventory import TREE_COLUMNS
+
+    shift = np.asarray(inventory.origin_shift, dtype=np.float64)
+    notes = dict(notes or {})
+    trees, curves, models = [], {}, {}
+    for rec in inventory.trees:
+        row = rec.row(shift)
+        values = {c: float(row[c]) for c in TREE_COLUMNS if c not in TEXT_COLUMNS and c in row}
+        extra = {"edited": notes[rec.tree_id]} if notes.get(rec.tree_id) else {}
+        trees.append(TreeRow(tree_id=int(rec.tree_id), x=values["x"], y=values["y"], z=values["z"], values=values,
+                             flag=str(row.get("flag") or ""), extra=extra))
+        c = rec.curve
+        curves[int(rec.tree_id)] = StemCurveRows(
+            height_m=np.asarray(c.heights_m, dtype=float), diameter_m=np.asarray(c.diameter_m, dtype=float),
+            raw_diameter_m=np.asarray(c.raw_diameter_m, dtype=float), centres=np.asarray(c.centres, dtype=float) + shift,
+            accepted=np.asarray(c.accepted, dtype=bool), interpolated=np.asarray(c.interpolated, dtype=bool),
+            reasons=tuple(c.reasons))
+        if rec.cylinders is not None:
+            models[int(rec.tree_id)] = dataclasses.replace(rec.cylinders, start=rec.cylinders.start + shift)
+    columns = tuple(TREE_COLUMNS) + (("edited",) if notes else ())
+    return TreesOutput(folder=Path(folder), columns=columns, trees=trees, curves=curves, cylinder_files={}, models=models)
 
 
 @dataclass(frozen=True)
