@@ -152,3 +152,50 @@ def test_correction_loop_edits_undo_and_save(qtbot, window, cloud, tmp_path):
     assert {t.tree_id for t in out.trees if t.edited} == {a.tree_id, view.selected}
     replayed = E.apply_edits(scan.points, engine, E.read_edits(tmp_path / "edited" / "edits.json"), PARAMS)
     assert sorted(r.tree_id for r in replayed.trees) == sorted(t.tree_id for t in out.trees)
+
+
+def test_offscreen_screenshot_of_a_trees_folder(trees_dir, cloud, tmp_path):
+    """``forestreg gui --offscreen --trees DIR --screenshot OUT.png`` with no display at all."""
+    import os
+    import subprocess
+    import sys
+
+    from PySide6.QtGui import QImage
+
+    folder, inv = trees_dir
+    out = tmp_path / "trees.png"
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.run([sys.executable, "-m", "forestreg.ui.app", "--offscreen", "--trees", str(folder), "--cloud", str(cloud[1]),
+                           "--size", "1280x800", "--screenshot", str(out)], capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode == 0, proc.stderr
+    img = QImage(str(out))
+    assert (img.width(), img.height()) == (1280, 800)  # nothing widens the window beyond the screen
+    x, y, w, h = (int(v) for v in next(l for l in proc.stdout.splitlines() if l.startswith("3d view:")).split(":")[1].split())
+    colours = {img.pixel(x + i * w // 40, y + j * h // 40) for i in range(1, 40) for j in range(1, 40)}
+    assert len(colours) > 20  # the tree is drawn, not an empty background
+    bad = subprocess.run([sys.executable, "-m", "forestreg.ui.app", "--offscreen", "--trees", str(tmp_path / "none"),
+                          "--screenshot", str(tmp_path / "x.png")], capture_output=True, text=True, timeout=300, env=env)
+    assert bad.returncode == 2 and "not a trees result folder" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_field_data_evaluation_side_by_side(window, cloud, trees_dir, tmp_path):
+    from forestreg.engine.trees.evaluate import evaluate
+
+    plot, _, scan = cloud
+    folder, inv = trees_dir
+    field = tmp_path / "field.csv"
+    lines = ["tree_id,x,y,dbh_m,height_m"] + [f"T{t.id},{t.x:.3f},{t.y:.3f},{t.dbh_m:.4f},{t.height_m:.3f}"
+                                             for t in plot.scene.trees if abs(t.x) < 6.5 and abs(t.y) < 6.5]
+    field.write_text("\n".join(lines) + "\n")
+    assert window.evaluate_field(field, {"one": folder, "again": folder / "trees.csv"})
+    view = window.evaluation_view
+    want = evaluate(folder / "trees.csv", field)
+    for run in ("one", "again"):
+        for p in ("dbh_m", "height_m"):
+            s = want.stats[p]
+            assert view.value(run, p, "n") == s.n > 5
+            assert view.value(run, p, "RMSE") == pytest.approx(s.rmse)
+            assert view.value(run, p, "rRMSE (%)") == pytest.approx(s.rrmse_percent)
+    assert view.value("one", "dbh_m", "rRMSE (%)") < 10.0
+    assert len(view.figure.axes) == 2
+    assert not window.evaluate_field(tmp_path / "missing.csv", {"one": folder})

@@ -44,6 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cloud", metavar="FILE", help="with --trees: the measured cloud, to draw each tree's points")
     p.add_argument("--tree", type=int, metavar="ID", help="with --trees: the tree to select (default: the first)")
     p.add_argument("--coregistration", metavar="DIR", help="open a co-registration result folder (forestreg coregister --out DIR)")
+    p.add_argument("--field", metavar="CSV", help="with --trees: evaluate against field records (Field data tab)")
+    p.add_argument("--also", action="append", default=[], metavar="NAME=DIR",
+                   help="with --field: another trees folder shown side by side (e.g. fused=trees_fused)")
     p.add_argument("--timeout", type=float, default=3600.0, help="longest wait for the run and the views, seconds (default %(default)s)")
     return p
 
@@ -143,6 +146,17 @@ def main(argv: Optional[list[str]] = None) -> int:
         if args.trees and not window.open_trees(args.trees, args.cloud, select=args.tree):
             print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.trees}", file=sys.stderr)
             return 2
+        if args.field:
+            runs = {Path(args.trees).name if args.trees else "trees": args.trees} if args.trees else {}
+            for item in args.also:
+                name, _, folder = item.partition("=")
+                if not folder:
+                    print(f"forestreg gui: --also needs NAME=DIR (got {item!r})", file=sys.stderr)
+                    return 2
+                runs[name] = folder
+            if not runs or not window.evaluate_field(args.field, runs):
+                print(f"forestreg gui: {window.last_error[1] if window.last_error else '--field needs --trees or --also'}", file=sys.stderr)
+                return 2
         if args.sample and not args.project:
             window.open_sample()
             settle(window, args.timeout)

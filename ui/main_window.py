@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 from typing import Any, Callable, Optional
 
-from PySide6.QtCore import QModelIndex, QPoint, QSettings, Qt, Signal
+from PySide6.QtCore import QByteArray, QModelIndex, QPoint, QSettings, Qt, Signal
 from PySide6.QtGui import QAction, QActionGroup, QCloseEvent, QKeySequence
 from PySide6.QtWidgets import (
     QAbstractItemView,
@@ -200,6 +200,8 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
                                 "Show the trees measured by 'forestreg trees --out DIR' (map, table, each tree in 3D)")
         self.act_open_coreg = a("Open &co-registration result\u2026", self._ask_open_coregistration, None,
                                 "Show a ground-based / UAV co-registration made by 'forestreg coregister --out DIR'")
+        self.act_evaluate = a("&Evaluate against field data\u2026", self._ask_evaluate, None,
+                              "Compare tree tables (e.g. ground-only and fused) with field records: R2, RMSE, rRMSE")
         self.act_quit = a("&Quit", self.close, QKeySequence.StandardKey.Quit, "Close forestreg")
         self.act_run = a("&Run registration", lambda: self.run(), QKeySequence("Ctrl+R"), "Register every scan not registered yet")
         self.act_rerun = a("Run &all links again", lambda: self.run(rerun=True), QKeySequence("Ctrl+Shift+R"),
@@ -231,6 +233,7 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self.recent_menu = m.addMenu("Open &recent")
         m.addAction(self.act_open_trees)
         m.addAction(self.act_open_coreg)
+        m.addAction(self.act_evaluate)
         m.addSeparator()
         m.addAction(self.act_save)
         m.addAction(self.act_save_as)
@@ -632,6 +635,13 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
             "Add the scans of a plot, mark the centre scan, press Run (Ctrl+R), then export the "
             "transforms or the report.",
         )
+
+    def showEvent(self, event: Any) -> None:  # noqa: N802 - Qt API
+        super().showEvent(event)
+        if not getattr(self, "_docks_sized", False) and not isinstance(self.settings.value("window/state"), QByteArray):
+            # first show without a saved layout: the results tables get a fifth of the height, not half
+            self._docks_sized = True
+            self.resizeDocks([self.results_dock], [max(150, self.height() // 5)], Qt.Orientation.Vertical)
 
     def closeEvent(self, event: QCloseEvent) -> None:  # noqa: N802 - Qt API
         if self.running and self.interactive:

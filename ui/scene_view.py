@@ -67,7 +67,7 @@ def add_guides(pl: Any, bounds: Any) -> None:
     x0, x1, y0, y1, z0, z1 = (float(v) for v in bounds)
     if not all(np.isfinite([x0, x1, y0, y1, z0, z1])) or x1 <= x0 or y1 <= y0:
         return
-    length = nice_length(max(x1 - x0, y1 - y0))
+    length = nice_length(max(x1 - x0, y1 - y0, z1 - z0))
     base = np.array([x0, y0 - 0.06 * (y1 - y0), z0])
     bar = pv.Line(base, base + [length, 0.0, 0.0])
     pl.add_mesh(bar, color="#111111", line_width=5, name="guide:scale", reset_camera=False, pickable=False)
@@ -88,10 +88,17 @@ def add_guides(pl: Any, bounds: Any) -> None:
                         pickable=False, reset_camera=False)
 
 
+def view_from_south_west(pl: Any) -> None:
+    """Look at the scene obliquely from above, from the south-west (35 degrees down): the scale
+    bar and the north arrow at the south-west corner are in front."""
+    pl.view_vector((-1.0, -1.0, 1.0), viewup=(0.0, 0.0, 1.0))
+
+
 def add_axes_widget(pl: Any) -> None:
-    """The orientation triad (E = x, N = y, Up = z) in the lower left corner."""
+    """The orientation triad (E = x, N = y, Up = z) in the lower right corner (the legend of
+    the scans is in the lower left)."""
     try:
-        pl.add_axes(xlabel="E", ylabel="N", zlabel="Up", line_width=2)
+        pl.add_axes(xlabel="E", ylabel="N", zlabel="Up", line_width=2, viewport=(0.86, 0.0, 1.0, 0.2))
     except Exception as exc:  # noqa: BLE001 - a view without the triad still works
         log.debug("no axes widget: %s", exc)
 
@@ -283,7 +290,7 @@ class SceneView(QWidget):
             allp = np.concatenate(drawn)
             lo, hi = np.percentile(allp, 1.0, axis=0), np.percentile(allp, 99.0, axis=0)
             add_guides(pl, (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]))
-        pl.view_isometric()
+        view_from_south_west(pl)
         pl.reset_camera()
         pl.camera.zoom(1.3)
 
@@ -305,7 +312,7 @@ class SceneView(QWidget):
                 pl.camera.Elevation(20.0)
                 pl.camera.OrthogonalizeViewUp()
             else:
-                pl.view_isometric()
+                view_from_south_west(pl)
             pl.reset_camera()
             pl.camera.zoom(1.2)
         finally:
@@ -337,7 +344,7 @@ class SceneView(QWidget):
         pl = self.plotter
         if pl is None:
             return
-        pl.view_isometric()
+        view_from_south_west(pl)
         pl.reset_camera()
         pl.camera.zoom(1.3)
         self._update()

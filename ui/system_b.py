@@ -12,12 +12,13 @@ from PySide6.QtWidgets import QFileDialog, QTabWidget
 
 from ..engine.core.errors import ForestregError
 from .coreg_view import CoregistrationView, shown_from_folder
+from .evaluation_view import EvaluationView
 from .trees_view import TreesView
 
 log = logging.getLogger("forestreg")
 
 #: Tab titles of the central area.
-TAB_TLS, TAB_COREG, TAB_TREES = "TLS registration", "Co-registration", "Trees"
+TAB_TLS, TAB_COREG, TAB_TREES, TAB_EVAL = "TLS registration", "Co-registration", "Trees", "Field data"
 
 
 class SystemBMixin:
@@ -33,6 +34,8 @@ class SystemBMixin:
         self.central_tabs.addTab(self.coreg_view, TAB_COREG)
         self.trees_view = TreesView(renderer=self._renderer_choice(), start_task=self._start_task)
         self.central_tabs.addTab(self.trees_view, TAB_TREES)
+        self.evaluation_view = EvaluationView()
+        self.central_tabs.addTab(self.evaluation_view, TAB_EVAL)
         self.coreg_view.run_button.clicked.connect(self._ask_coregister)
         self.coreg_view.fuse_button.clicked.connect(self._ask_fuse)
         self.trees_points_file: Optional[str] = None
@@ -104,6 +107,39 @@ class SystemBMixin:
         self.show_tab(TAB_COREG)
         log.info("co-registration %s: %s", folder, "ok" if out.ok else out.reason)
         return True
+
+    # ------------------------------------------------------------------ field data
+
+    def evaluate_field(self, field_csv: str | Path, runs: dict[str, str | Path]) -> bool:
+        """Compare tree tables (``runs``: name -> trees.csv or a trees folder) with a field CSV
+        (the engine's matching and figures) and show them side by side on the Field data tab."""
+        from ..engine.trees.evaluate import evaluate
+
+        results = {}
+        try:
+            for name, path in runs.items():
+                p = Path(path)
+                results[name] = evaluate(p / "trees.csv" if p.is_dir() else p, field_csv)
+        except ForestregError as exc:
+            self.show_error("Cannot evaluate", str(exc))
+            return False
+        self.evaluation_view.show_evaluations(results, Path(field_csv).name)
+        self.show_tab(TAB_EVAL)
+        return True
+
+    def _ask_evaluate(self) -> None:
+        field, _ = QFileDialog.getOpenFileName(self, "Field data (CSV: tree id, x, y, DBH, height, ...)", self._last_dir(),
+                                               "CSV (*.csv);;All files (*)")
+        if not field:
+            return
+        runs: dict[str, str] = {}
+        while True:
+            folder = QFileDialog.getExistingDirectory(self, f"Trees result folder {len(runs) + 1} (cancel when done)", str(Path(field).parent))
+            if not folder:
+                break
+            runs[Path(folder).name] = folder
+        if runs:
+            self.evaluate_field(field, runs)
 
     def _ask_open_trees(self) -> None:
         folder = QFileDialog.getExistingDirectory(self, "Trees result folder (forestreg trees --out DIR)", self._last_dir())

@@ -78,7 +78,7 @@ class TopViewWidget(QWidget):
             ax.annotate(name, xy=(c[0], c[1]), xytext=(7, 7), textcoords="offset points", fontsize=8, zorder=7,
                         bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=colour, lw=1.0, alpha=0.85))
             handles.append(Line2D([], [], ls="none", marker="o", ms=6, mfc="none", mec=colour, mew=1.4,
-                                  label=f"{name}: {len(sv.vops_xy)} trunk shadows within {sv.radius_m:.0f} m"))
+                                  label=f"{name}: {len(sv.vops_xy)} trunk shadows (within {sv.radius_m:.0f} m)"))
         n_pairs = 0
         for lv in view.links:
             if not len(lv.pairs):
@@ -102,7 +102,7 @@ class TopViewWidget(QWidget):
         if title:
             ax.set_title(title, fontsize=9, wrap=True)
         # the legend goes below the map: over it, it hid trunk shadows
-        self.figure.legend(handles=handles, loc="outside lower center", ncols=2, fontsize=7, frameon=False)
+        self.figure.legend(handles=handles, loc="outside lower center", ncols=1, fontsize=7, frameon=False)
         for name, problem in view.problems.items():
             ax.text(0.01, 0.01, f"{name}: {problem}", transform=ax.transAxes, fontsize=7, color="#b42318")
         self.canvas.draw_idle()

@@ -27,6 +27,7 @@ from PySide6.QtWidgets import (
     QLabel,
     QProgressBar,
     QPushButton,
+    QSizePolicy,
     QSplitter,
     QTableWidget,
     QTableWidgetItem,
@@ -427,6 +428,9 @@ class TreesView(QWidget):
         self.save_button = button("Save\u2026", "Write the edited trees (trees.csv with an 'edited' column, edits.json, report)", self._ask_save)
         self.edit_status = QLabel("")
         self.edit_status.setStyleSheet("color: #475467;")
+        # a long message must not widen the window (1280 px screens)
+        self.edit_status.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
+        self.edit_status.setMinimumWidth(40)
         bar.addWidget(self.edit_status, 1)
         self.edit_progress = QProgressBar()
         self.edit_progress.setRange(0, 1000)
