@@ -52,6 +52,7 @@ def window(qtbot, tmp_path: Path):
 def test_cancel_stops_the_run(qtbot, window, files):
     _, ground, uav = files
     view = window.coreg_view
+    window.show_tab("Co-registration")
     view.run(str(ground), str(uav))
     assert view.cancel_button.isVisible() and not view.run_button.isEnabled()
     view.cancel()
@@ -67,6 +68,7 @@ def test_run_accept_and_fuse(qtbot, window, files, tmp_path):
 
     case, ground, uav = files
     view = window.coreg_view
+    window.show_tab("Co-registration")
     seen: list[str] = []
     view.progress.valueChanged.connect(lambda v: seen.append(view.progress.format()))
     view.run(str(ground), str(uav))
