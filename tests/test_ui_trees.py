@@ -199,3 +199,26 @@ def test_field_data_evaluation_side_by_side(window, cloud, trees_dir, tmp_path):
     assert view.value("one", "dbh_m", "rRMSE (%)") < 10.0
     assert len(view.figure.axes) == 2
     assert not window.evaluate_field(tmp_path / "missing.csv", {"one": folder})
+
+
+def test_the_project_keeps_system_b_results(qtbot, window, trees_dir, tmp_path):
+    """Opened results go into the project (paths relative to it, atomic save) and come back."""
+    import json
+
+    from forestreg.engine.tls.project import Project
+    from forestreg.ui.main_window import MainWindow
+
+    folder, inv = trees_dir
+    assert window.open_trees(folder)
+    target = tmp_path / "sub" / "plot.json"
+    target.parent.mkdir()
+    window.project.save(target)
+    stored = json.loads(target.read_text())["forest"]
+    assert not Path(stored["trees"][folder.name]).is_absolute()
+    loaded = Project.load(target)
+    assert loaded.forest.trees[folder.name] == folder.resolve()
+    other = MainWindow(settings=QSettings(str(tmp_path / "o.ini"), QSettings.Format.IniFormat), interactive=False)
+    qtbot.addWidget(other)
+    assert other.open_project(target)
+    qtbot.waitUntil(lambda: not other.busy, timeout=TIMEOUT_MS)
+    assert other.trees_view.table.rowCount() == len(inv.trees)

@@ -152,6 +152,7 @@ class CoregistrationView(QWidget):
         self.shown: Optional[CoregistrationShown] = None
         self.worker: Optional[TaskWorker] = None
         self.fusion_counts: Optional[dict[str, dict[str, int]]] = None
+        self.fused_path: Optional[str] = None
         self.last_error: Optional[tuple[str, str]] = None
         self.headline = QLabel("Open a co-registration result (File \u25b8 Open co-registration result\u2026) or run one "
                                "(Co-register\u2026): the ground-based cloud is placed on the UAV/ALS cloud by tree tops.")
@@ -344,6 +345,7 @@ class CoregistrationView(QWidget):
 
         def done(counts: dict[str, dict[str, int]]) -> None:
             self.fusion_counts = counts
+            self.fused_path = out_file
             lines = [f"<b>Fused</b> into {out_file}:"]
             for source in ("ground", "uav", "total"):
                 c = counts.get(source)

@@ -329,6 +329,7 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self.set_scene_mode("after" if registered else "before", refresh=False)
         self.refresh_scene()
         self.refresh_top_view()
+        self._restore_forest()
         self._update_title()
         self._update_actions()
         self.status_label.setText(self.summary())

@@ -69,19 +69,21 @@ def add_guides(pl: Any, bounds: Any) -> None:
         return
     length = nice_length(max(x1 - x0, y1 - y0, z1 - z0))
     base = np.array([x0, y0 - 0.06 * (y1 - y0), z0])
-    bar = pv.Line(base, base + [length, 0.0, 0.0])
-    pl.add_mesh(bar, color="#111111", line_width=5, name="guide:scale", reset_camera=False, pickable=False)
+    # solid bars, not GL lines (line widths are not honoured by every off-screen renderer)
+    thick = 0.025 * length
+    bar = pv.Line(base, base + [length, 0.0, 0.0]).tube(radius=thick, n_sides=12)
+    pl.add_mesh(bar, color="#111111", name="guide:scale", reset_camera=False, pickable=False)
     for k in range(2):
         tick = base + [k * length, 0.0, 0.0]
-        pl.add_mesh(pv.Line(tick - [0, 0.02 * length, 0], tick + [0, 0.02 * length, 0]), color="#111111", line_width=3,
-                    name=f"guide:tick{k}", reset_camera=False, pickable=False)
+        pl.add_mesh(pv.Line(tick - [0, 0, 0.0], tick + [0, 0, 0.12 * length]).tube(radius=thick, n_sides=12),
+                    color="#111111", name=f"guide:tick{k}", reset_camera=False, pickable=False)
     text = f"{length:g} m"
     pl.add_point_labels([base + [length / 2.0, 0.0, 0.0]], [text], name="guide:scale-label", font_size=12,
                         text_color="#111111", shape_color="white", shape_opacity=0.7, show_points=False,
                         always_visible=True, pickable=False, reset_camera=False)
     tail = base + [-0.08 * length - 0.02 * (x1 - x0), 0.0, 0.0]
-    arrow = pv.Arrow(start=tail, direction=(0.0, 1.0, 0.0), scale=0.5 * length, tip_length=0.35, tip_radius=0.12,
-                     shaft_radius=0.04)
+    arrow = pv.Arrow(start=tail, direction=(0.0, 1.0, 0.0), scale=0.5 * length, tip_length=0.35, tip_radius=0.15,
+                     shaft_radius=0.06)
     pl.add_mesh(arrow, color="#b42318", name="guide:north", reset_camera=False, pickable=False)
     pl.add_point_labels([tail + [0.0, 0.62 * length, 0.0]], ["N"], name="guide:north-label", font_size=14, bold=True,
                         text_color="#b42318", shape_opacity=0.0, show_points=False, always_visible=True,

@@ -38,6 +38,9 @@ class SystemBMixin:
         self.central_tabs.addTab(self.evaluation_view, TAB_EVAL)
         self.coreg_view.run_button.clicked.connect(self._ask_coregister)
         self.coreg_view.fuse_button.clicked.connect(self._ask_fuse)
+        self.coreg_view.decided.connect(self._coreg_decided)
+        self.coreg_view.fused.connect(self._coreg_fused)
+        self.trees_view.edited.connect(self._trees_edited)
         self.trees_points_file: Optional[str] = None
         self._tls_docks_visible: Optional[dict[Any, bool]] = None
         self.central_tabs.currentChanged.connect(self._tab_changed)
@@ -46,6 +49,13 @@ class SystemBMixin:
     def _tab_changed(self, index: int) -> None:
         """The TLS docks (project tree, parameters, results) belong to the TLS tab: hidden on the
         System B tabs so that the map, table and 3D view get the room, shown again on return."""
+        hints = {TAB_COREG: "Co-registration: open a result (File menu) or Co-register\u2026 a ground-based and a UAV cloud",
+                 TAB_TREES: "Trees: click a tree on the map or in the table; Measure trees\u2026 to correct them",
+                 TAB_EVAL: "Field data: File \u25b8 Evaluate against field data\u2026"}
+        label = getattr(self, "status_label", None)
+        title = self.central_tabs.tabText(index)
+        if label is not None and title in hints:
+            label.setText(hints[title])
         docks = [d for d in (getattr(self, "tree_dock", None), getattr(self, "params_dock", None),
                              getattr(self, "results_dock", None)) if d is not None]
         if self.central_tabs.widget(index) is self.view_splitter:
@@ -57,6 +67,28 @@ class SystemBMixin:
             self._tls_docks_visible = {d: d.isVisible() for d in docks}
             for d in docks:
                 d.hide()
+
+    # ------------------------------------------------------------------ the project's System B part
+
+    def _forest_changed(self) -> None:
+        """A System B result was opened or decided: the project holds it (saved with the project)."""
+        self.dirty = True
+        self._update_title()
+
+    def _restore_forest(self) -> None:
+        """Show what a loaded project's System B part names (folders that no longer exist are skipped)."""
+        forest = self.project.forest
+        self.trees_view.inventory = None
+        self.trees_view.steps = []
+        if forest.coregistration is not None and (forest.coregistration / "result.json").is_file():
+            self._show_coregistration(forest.coregistration, forest.coregistration_decision)
+        for name, folder in forest.trees.items():
+            if (folder / "trees.csv").is_file():
+                cloud = forest.fused_cloud if name == "fused" and forest.fused_cloud and forest.fused_cloud.is_file() else None
+                self._show_trees(folder, cloud)
+                break
+        if self.project.scans or forest.empty:
+            self.show_tab(TAB_TLS)
 
     def show_tab(self, title: str) -> None:
         for k in range(self.central_tabs.count()):
@@ -75,6 +107,15 @@ class SystemBMixin:
     def open_trees(self, folder: str | Path, cloud: Optional[str | Path] = None, *, select: Optional[int] = None) -> bool:
         """Show a ``forestreg trees --out DIR`` folder; ``cloud`` the measured cloud (optional: its
         points around the selected tree are drawn). False with :attr:`last_error` on failure."""
+        if not self._show_trees(folder, cloud, select=select):
+            return False
+        forest = self.project.forest
+        forest.trees[Path(folder).name] = Path(folder).resolve()
+        self._forest_changed()
+        self.show_tab(TAB_TREES)
+        return True
+
+    def _show_trees(self, folder: str | Path, cloud: Optional[str | Path] = None, *, select: Optional[int] = None) -> bool:
         from ..engine.io import read_scan
         from ..engine.io.results import read_trees_dir
 
@@ -88,7 +129,6 @@ class SystemBMixin:
         self.trees_view.inventory = None  # a folder's trees are shown; edits need them measured here
         self.trees_view.steps = []
         self.trees_view.show_output(out, points, select=select)
-        self.show_tab(TAB_TREES)
         log.info("trees: %d trees from %s", len(out.trees), folder)
         return True
 
@@ -96,6 +136,20 @@ class SystemBMixin:
 
     def open_coregistration(self, folder: str | Path) -> bool:
         """Show a ``forestreg coregister --out DIR`` folder. False with :attr:`last_error` on failure."""
+        if not self._show_coregistration(folder):
+            return False
+        forest = self.project.forest
+        forest.coregistration = Path(folder).resolve()
+        forest.coregistration_decision = ""
+        shown = self.coreg_view.shown
+        if shown is not None and shown.ground_file:
+            forest.ground_cloud = Path(shown.ground_file)
+            forest.uav_clouds = [Path(shown.uav_file)] if shown.uav_file else []
+        self._forest_changed()
+        self.show_tab(TAB_COREG)
+        return True
+
+    def _show_coregistration(self, folder: str | Path, decision: str = "") -> bool:
         from ..engine.io.results import read_coregistration_dir
 
         try:
@@ -103,10 +157,26 @@ class SystemBMixin:
         except ForestregError as exc:
             self.show_error("Cannot open the co-registration result", str(exc))
             return False
-        self.coreg_view.show_result(shown_from_folder(out))
-        self.show_tab(TAB_COREG)
+        shown = shown_from_folder(out)
+        self.coreg_view.show_result(shown)
+        if decision:
+            self.coreg_view.decide(decision)
         log.info("co-registration %s: %s", folder, "ok" if out.ok else out.reason)
         return True
+
+    def _coreg_decided(self, decision: str) -> None:
+        self.project.forest.coregistration_decision = decision
+        self._forest_changed()
+
+    def _coreg_fused(self, _counts: Any) -> None:
+        path = self.coreg_view.fused_path
+        if path:
+            self.project.forest.fused_cloud = Path(path).resolve()
+            self._forest_changed()
+
+    def _trees_edited(self, _note: str) -> None:
+        self.project.forest.tree_edits = [e.to_dict() for e, _ in self.trees_view.steps]
+        self._forest_changed()
 
     # ------------------------------------------------------------------ field data
 
@@ -124,6 +194,11 @@ class SystemBMixin:
             self.show_error("Cannot evaluate", str(exc))
             return False
         self.evaluation_view.show_evaluations(results, Path(field_csv).name)
+        self.project.forest.field_data = Path(field_csv).resolve()
+        for name, path in runs.items():
+            p = Path(path).resolve()
+            self.project.forest.trees.setdefault(name, p if p.is_dir() else p.parent)
+        self._forest_changed()
         self.show_tab(TAB_EVAL)
         return True
 

@@ -603,6 +603,7 @@ class TreesView(QWidget):
         edit, _ = self.steps.pop()
         inv = self.steps[-1][1] if self.steps else self.base_inventory
         self._set_inventory(inv, note=f"undone: {edit.describe()}")
+        self.edited.emit(f"undone: {edit.describe()}")
         return True
 
     def save_edits(self, folder: str) -> Any:
