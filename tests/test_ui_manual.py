@@ -219,7 +219,7 @@ def test_compare_auto_and_manual(qtbot, window, plot, project_file: Path, tmp_pa
         assert link.result["icp"]["std_m"] == pytest.approx(by_moving[link.moving]["auto"]["icp_std_m"])
         assert window.link_table.value(row, "Status") == "ok"
     view = window.comparison_view
-    assert window.bottom_tabs.currentWidget() is view
+    assert window.bottom_tabs.currentWidget() is window.comparison_tab and window.comparison_tab.widget() is view
     pairs = comparison["pairs"]
     assert view.pairs_table.rowCount() == len(pairs) == 2
     for row, pair in enumerate(pairs):

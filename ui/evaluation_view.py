@@ -40,7 +40,7 @@ class EvaluationView(QWidget):
         self.table.verticalHeader().setVisible(False)
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
-        self.table.horizontalHeader().setStretchLastSection(True)
+        self.table.horizontalHeader().setStretchLastSection(False)
         self.table.verticalHeader().setDefaultSectionSize(22)
         tips = {"R\u00b2": "coefficient of determination against the field values", "RMSE": "root mean square error (parameter unit)",
                 "rRMSE (%)": "RMSE relative to the field mean", "Bias": "mean of estimate minus field (parameter unit)",

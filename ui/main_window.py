@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 from typing import Any, Callable, Optional
 
-from PySide6.QtCore import QByteArray, QModelIndex, QPoint, QSettings, Qt, Signal
+from PySide6.QtCore import QByteArray, QModelIndex, QPoint, QSettings, Qt, QTimer, Signal
 from PySide6.QtGui import QAction, QActionGroup, QCloseEvent, QKeySequence
 from PySide6.QtWidgets import (
     QAbstractItemView,
@@ -642,7 +642,9 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         if not getattr(self, "_docks_sized", False) and not isinstance(self.settings.value("window/state"), QByteArray):
             # first show without a saved layout: the results tables get a fifth of the height, not half
             self._docks_sized = True
-            self.resizeDocks([self.results_dock], [max(150, self.height() // 5)], Qt.Orientation.Vertical)
+            # after the first layout pass (sizing during showEvent is overridden by it)
+            QTimer.singleShot(0, lambda: self.resizeDocks([self.results_dock], [max(150, self.height() // 5)],
+                                                          Qt.Orientation.Vertical))
 
     def closeEvent(self, event: QCloseEvent) -> None:  # noqa: N802 - Qt API
         if self.running and self.interactive:

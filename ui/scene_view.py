@@ -316,7 +316,7 @@ class SceneView(QWidget):
             else:
                 view_from_south_west(pl)
             pl.reset_camera()
-            pl.camera.zoom(1.2)
+            pl.camera.zoom(1.2 if camera == "top" else 1.0)  # no zoom in: the guides at the edge stay in view
         finally:
             pl.suppress_rendering = False
         self._update()

@@ -10,7 +10,7 @@ with the engine's reason in the "Flag" column and as tooltip.
 from __future__ import annotations
 
 import math
-from typing import Any, Optional, Sequence
+from typing import Any, Optional
 
 import numpy as np
 from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
@@ -743,7 +743,7 @@ class TreesView(QWidget):
                     pl.add_mesh(stem, color=STEM_COLOUR, name="stem", smooth_shading=True)
                 legend.append((f"cylinder model: {len(model)} cylinders (stem brown, branches tan)", STEM_COLOUR))
             if curve is not None:
-                moved = dataclasses_replace_centres(curve, curve.centres - shift)
+                moved = _with_centres(curve, curve.centres - shift)
                 for k, (ring, interp) in enumerate(stem_circles(moved)):
                     pl.add_mesh(ring, color="#f59e0b" if interp else SELECT_COLOUR, line_width=3, name=f"ring{k}")
                 legend.append(("stem circles (blue fitted, amber interpolated)", SELECT_COLOUR))
@@ -774,11 +774,8 @@ def _shifted(model: Any, shift: np.ndarray) -> Any:
     return dataclasses.replace(model, start=model.start - shift)
 
 
-def dataclasses_replace_centres(curve: Any, centres: np.ndarray) -> Any:
+def _with_centres(curve: Any, centres: np.ndarray) -> Any:
     import dataclasses
 
     return dataclasses.replace(curve, centres=centres)
 
-
-def tree_ids(out: TreesOutput) -> Sequence[int]:
-    return [t.tree_id for t in out.trees]
