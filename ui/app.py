@@ -87,6 +87,12 @@ def save_screenshot(window, path: str | Path) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     view = window.current_scene_view()
     view.render_now()
+    from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+
+    wait_until(lambda: False, 0.2)
+    for canvas in window.findChildren(FigureCanvasQTAgg):  # at their final size, not a pending idle draw
+        if canvas.isVisible():
+            canvas.draw()
     wait_until(lambda: False, 0.2)
     if not window.grab().save(str(out)):
         raise OSError(f"cannot write the screenshot {out}")

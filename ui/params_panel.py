@@ -157,7 +157,7 @@ class _Field:
                 self.auto.setToolTip("Let the engine choose per scan (it tries increasing values); "
                                      "untick to set a value")
                 # while "auto" is on no number is shown: a greyed value would read as the one in use
-                self.auto_note = QLabel("chosen per scan")
+                self.auto_note = QLabel("per scan")
                 self.auto_note.setStyleSheet("color: #667085;")
                 self.auto.toggled.connect(lambda on: (box.setVisible(not on), self.auto_note.setVisible(on)))
                 self.auto.toggled.connect(panel._edited)
