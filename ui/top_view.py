@@ -94,7 +94,7 @@ class TopViewWidget(QWidget):
             lo, hi = np.percentile(allxy, 0.5, axis=0) - 2.0, np.percentile(allxy, 99.5, axis=0) + 2.0
             ax.set_xlim(lo[0], hi[0])
             ax.set_ylim(lo[1], hi[1])
-        ax.set_aspect("equal")
+        ax.set_aspect("equal", adjustable="datalim")  # the box fills its room: nothing drawn past the canvas edge
         ax.grid(True, lw=0.3, color="0.85", zorder=0)
         ax.set_xlabel("x (m, from the centre scanner)")
         ax.set_ylabel("y (m)")
