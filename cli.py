@@ -678,6 +678,42 @@ def cmd_params(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    """The local job service (HTTP/JSON; see forestreg.service.app)."""
+    try:
+        from .service.app import ServiceRunning, serve
+    except ImportError as exc:
+        print(f"forestreg: error: the service needs FastAPI and uvicorn (pip install forestreg): {exc}", file=sys.stderr)
+        return 2
+    try:
+        return serve(args.host, args.port, Path(args.state) if args.state else None, workers=args.workers, idle_exit_s=args.idle_exit)
+    except (ServiceRunning, OSError) as exc:
+        print(f"forestreg: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    """Many plots on Dask distributed (see forestreg.service.batch)."""
+    from .service.batch import run_batch
+
+    bar = ProgressBar(not args.quiet, "batch")
+    try:
+        outcome = run_batch(
+            Path(args.plots_dir), Path(args.out), workers=args.workers, scheduler=args.scheduler, command=args.command,
+            manifest=Path(args.manifest) if args.manifest else None, extra_args=["--params", args.params] if args.params else (),
+            progress=bar,
+        )
+    finally:
+        bar.close()
+    counts: dict[str, int] = {}
+    for r in outcome.rows:
+        counts[r["status"]] = counts.get(r["status"], 0) + 1
+    resumed = sum(1 for r in outcome.rows if r.get("resumed"))
+    print(f"{len(outcome.rows)} plots: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
+          + (f" ({resumed} done before, skipped)" if resumed else "") + f", {outcome.seconds:.1f} s -> {outcome.summary}, {outcome.overview}")
+    return 0 if outcome.complete else 1
+
+
 # ----------------------------------------------------------------------------- parser
 
 
@@ -836,6 +872,25 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("gui", help="the desktop GUI (--offscreen --project P --run --screenshot OUT.png for headless use)", add_help=False)
     p.add_argument("gui_args", nargs=argparse.REMAINDER)
     p.set_defaults(func=cmd_gui)
+
+    p = sub.add_parser("serve", help="the local job service: queue, watch and cancel forestreg commands over HTTP/JSON")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1; another one is reachable from other machines)")
+    p.add_argument("--port", type=int, default=8754, help="port (default 8754; 0: a free port, written to STATE/server.json)")
+    p.add_argument("--state", metavar="DIR", help="job store and token folder (default: the user's data directory, or $FORESTREG_SERVICE_DIR)")
+    p.add_argument("--workers", type=int, default=1, help="jobs run at once (default 1)")
+    p.add_argument("--idle-exit", type=float, metavar="S", help="stop after S seconds without jobs or requests")
+    p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("batch", help="process every plot folder of PLOTS_DIR on Dask (local cluster or --scheduler)")
+    p.add_argument("plots_dir", help="one subfolder per plot (its scans; optional centre.txt, targets.csv)")
+    p.add_argument("--out", required=True, help="output folder: OUT/<plot>/, summary.csv, index.html (a rerun resumes)")
+    p.add_argument("--workers", type=int, help="local cluster worker processes (default: the number of cores)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="an existing Dask scheduler, e.g. tcp://host:8786")
+    p.add_argument("--command", choices=("plot", "trees", "coregister"), default="plot", help="what to run per plot (default plot)")
+    p.add_argument("--manifest", help="CSV naming each plot's inputs (plot,scans[,centre] / plot,cloud[,transform,field] / plot,ground,uav)")
+    p.add_argument("--params", help="TOML parameter file passed to every plot")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_batch)
 
     p = sub.add_parser("params", help="print the registration parameters (or a TOML template)")
     p.add_argument("--toml", action="store_true", help="print a TOML file with the defaults")
