@@ -12,6 +12,7 @@ import csv
 import io
 import json
 import logging
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -700,7 +701,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     try:
         outcome = run_batch(
             Path(args.plots_dir), Path(args.out), workers=args.workers, scheduler=args.scheduler, command=args.command,
-            manifest=Path(args.manifest) if args.manifest else None, extra_args=["--params", args.params] if args.params else (),
+            manifest=Path(args.manifest) if args.manifest else None,
+            extra_args=(["--params", args.params] if args.params else []) + shlex.split(args.extra or ""),
             progress=bar,
         )
     finally:
@@ -889,6 +891,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--command", choices=("plot", "trees", "coregister"), default="plot", help="what to run per plot (default plot)")
     p.add_argument("--manifest", help="CSV naming each plot's inputs (plot,scans[,centre] / plot,cloud[,transform,field] / plot,ground,uav)")
     p.add_argument("--params", help="TOML parameter file passed to every plot")
+    p.add_argument("--extra", metavar="ARGS", help="more options for every plot's command, e.g. --extra='--no-cylinders --no-report'")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_batch)
 

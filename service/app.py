@@ -26,7 +26,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 from fastapi import Depends, FastAPI, HTTPException, Request
 from fastapi.responses import JSONResponse, StreamingResponse
@@ -72,7 +72,7 @@ class JobId(BaseModel):
     id: str
 
 
-def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = None) -> FastAPI:
+def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = None, on_shutdown: Optional[Callable[[], None]] = None) -> FastAPI:
     """The application with its job store and worker threads (started on application start-up)."""
     from .. import __version__
 
@@ -87,12 +87,14 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
         try:
             yield
         finally:
+            if on_shutdown is not None:
+                on_shutdown()
             await asyncio.to_thread(manager.shutdown)
             store.close()
 
     app = FastAPI(
         title="forestreg job service", version=__version__, lifespan=lifespan,
-        openapi_url="/v1/openapi.json", docs_url="/v1/docs", redoc_url=None,
+        openapi_url=None, docs_url=None, redoc_url=None,
         description="Queue forestreg commands (the CLI's arguments), watch their progress, cancel them.",
     )
     app.state.manager = manager
@@ -113,6 +115,10 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
         if job is None:
             raise HTTPException(404, f"no job {job_id}")
         return job
+
+    @app.get("/v1/openapi.json", dependencies=[Depends(authorised)], include_in_schema=False)
+    def openapi() -> dict:
+        return app.openapi()
 
     @app.get("/v1/health")
     def health() -> dict:
@@ -248,7 +254,13 @@ def serve(
         raise OSError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
     sock.listen(128)
     port = sock.getsockname()[1]
-    app = create_app(state_dir, workers=workers, grace_s=grace_s)
+    def forget_address() -> None:  # before uvicorn re-raises SIGTERM, which ends the process
+        current = read_server_info(state_dir)
+        if current and current.get("pid") == os.getpid():
+            with contextlib.suppress(OSError):
+                (state_dir / "server.json").unlink()
+
+    app = create_app(state_dir, workers=workers, grace_s=grace_s, on_shutdown=forget_address)
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on"))
     url_host = f"[{host}]" if ":" in host else host
     info = {"url": f"http://{url_host}:{port}", "host": host, "port": port, "pid": os.getpid(), "state": str(state_dir)}
@@ -274,9 +286,6 @@ def serve(
     try:
         server.run(sockets=[sock])
     finally:
-        current = read_server_info(state_dir)
-        if current and current.get("pid") == os.getpid():
-            with contextlib.suppress(OSError):
-                (state_dir / "server.json").unlink()
+        forget_address()
         lock.close()
     return 0

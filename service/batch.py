@@ -173,6 +173,14 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
                          _resolve(row.get("uav", ""), plot_dir, manifest_dir), "--out", target]
         task.args += list(extra_args)
         tasks.append(task)
+    from .jobs import ArgumentError, validate_args
+
+    for task in tasks:  # the CLI's own parser, before any plot runs (e.g. a wrong --extra)
+        if not task.problem:
+            try:
+                validate_args(task.args)
+            except ArgumentError as exc:
+                raise ParameterError(f"plot {task.name}: {str(exc).split('error: ', 1)[-1]}") from None
     return tasks
 
 
@@ -267,10 +275,12 @@ def _write_summary(out: Path, rows: list[dict], facts: dict) -> tuple[Path, Path
 def _client(workers: Optional[int], scheduler: Optional[str]):
     from dask.distributed import Client, LocalCluster
 
+    if not log.isEnabledFor(logging.INFO):  # Dask's own INFO lines only with forestreg -v
+        logging.getLogger("distributed").setLevel(logging.WARNING)
     if scheduler:
         return Client(scheduler, timeout="30s"), None
     n = workers or max(1, (os.cpu_count() or 2))
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.ERROR)
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR)
     return Client(cluster), cluster
 
 
