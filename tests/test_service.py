@@ -248,3 +248,12 @@ def test_client_connect_starts_and_reuses_a_service(tmp_path, monkeypatch):
     finally:
         _stop(client)
     assert read_server_info(state) is None  # a stopped service forgets its address
+
+
+def test_hosts_import_no_server_or_cluster_library():
+    import subprocess
+
+    code = ("import sys, forestreg, forestreg.client, forestreg.plugin.adapter, forestreg.plugin.cloudcompare; "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'fastapi', 'uvicorn', 'dask', 'distributed', 'numpy', 'starlette'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
