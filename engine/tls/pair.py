@@ -24,7 +24,7 @@ from .evidence import mutual_free_space_violation
 from ..geometry.icp import IcpResult, icp
 from .prepare import PreparedScan, SliceLayer, extract_vops, prepare_scan, slice_layers
 from .vop import VisualOcclusionPoints
-from ..core.params import RegistrationParams
+from .params import RegistrationParams
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.scan import Scan
 from ..core.transform import rotation_angle_deg, rotation_from_vector
