@@ -257,3 +257,15 @@ def test_hosts_import_no_server_or_cluster_library():
             "print(sorted({m.split('.')[0] for m in sys.modules} & {'fastapi', 'uvicorn', 'dask', 'distributed', 'numpy', 'starlette'}))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_a_batch_job_runs_the_batch_engine(service, tmp_path):
+    (tmp_path / "plots" / "lonely").mkdir(parents=True)
+    (tmp_path / "plots" / "lonely" / "only.laz").write_text("one scan is no plot")
+    seen = []
+    final = service.run(["batch", "plots", "--out", "out", "--workers", "1"], cwd=tmp_path, progress=lambda f, m: seen.append((f, m)), timeout=300)
+    assert final["status"] == "done" and final["exit_code"] == 1, final  # processed, but not every plot could run
+    (row,) = final["result"]["rows"]
+    assert (row["plot"], row["status"]) == ("lonely", "error") and "at least two" in row["reason"]
+    assert final["result_path"] == str((tmp_path / "out" / "summary.csv").resolve())
+    assert seen and seen[-1][0] == 1.0 and "lonely: error" in seen[-1][1]
