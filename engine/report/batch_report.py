@@ -25,7 +25,8 @@ def batch_report_html(rows: Sequence[Mapping[str, Any]], out_dir: Path, *, title
     body = [f"<h1>{esc(title)}</h1>", f"<p class=\"small\">{esc(generated_line())}</p>"]
     body.append("<p>" + ", ".join(f"<b>{n}</b> {esc(s)}" for s, n in sorted(counts.items(), key=lambda kv: _ORDER.get(kv[0], 3)))
                 + f" of {len(rows)} plots. " + "; ".join(f"{esc(k)}: {esc(v)}" for k, v in facts.items()) + "</p>")
-    head = ["plot", "status", "scans", "registered", "seconds", "reason", "outputs"]
+    with_trees = any(str(r.get("trees") or "") for r in rows)
+    head = ["plot", "status", "scans", "registered"] + (["trees"] if with_trees else []) + ["seconds", "reason", "outputs"]
     body.append("<table><thead><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr></thead><tbody>")
     for r in sorted(rows, key=lambda r: (_ORDER.get(str(r["status"]), 3), str(r["plot"]))):
         folder = out_dir / str(r["plot"])
@@ -37,7 +38,8 @@ def batch_report_html(rows: Sequence[Mapping[str, Any]], out_dir: Path, *, title
         seconds = r.get("seconds")
         cells = [
             esc(r["plot"]), f'<b style="color:{colour}">{esc(r["status"])}</b>', esc(r.get("scans", "")),
-            esc(r.get("registered", "")), esc(f"{float(seconds):.1f}" if seconds not in (None, "") else ""),
+            esc(r.get("registered", "")), *([esc(r.get("trees", ""))] if with_trees else []),
+            esc(f"{float(seconds):.1f}" if seconds not in (None, "") else ""),
             esc(r.get("reason", "")), " ".join(links),
         ]
         body.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
