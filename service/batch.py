@@ -118,7 +118,9 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
         raise ParameterError("--command coregister needs --manifest (plot,ground,uav)")
     rows = _read_manifest(manifest) if manifest is not None else None
     manifest_dir = manifest.resolve().parent if manifest is not None else None
-    names = sorted(rows) if rows is not None else sorted(p.name for p in plots_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
+    out_resolved = out.resolve()
+    names = sorted(rows) if rows is not None else sorted(
+        p.name for p in plots_dir.iterdir() if p.is_dir() and not p.name.startswith(".") and p.resolve() != out_resolved)
     if not names:
         raise ParameterError(f"{plots_dir}: no plot subfolders" + (" in the manifest" if rows is not None else ""))
     suffixes = _scan_suffixes()
@@ -296,10 +298,15 @@ def run_batch(
     progress: Optional[Callable[[float, str], None]] = None,
 ) -> BatchOutcome:
     """Process every plot of ``plots_dir`` into ``out`` on Dask; resumes a previous run."""
+    from ..engine.core.atomic import MARKER, check_output_folder
+
     t0 = time.perf_counter()
     plots_dir, out = Path(plots_dir), Path(out)
     tasks = discover_plots(plots_dir, out, command, manifest, extra_args)
+    check_output_folder(out, "batch", inputs=[plots_dir])  # never mix a batch into a folder of other files
     out.mkdir(parents=True, exist_ok=True)
+    if not (out / MARKER).is_file():
+        (out / MARKER).write_text("batch\n", encoding="utf-8")
     rows: dict[str, dict] = {}
     todo: list[PlotTask] = []
     for task in tasks:
