@@ -2,7 +2,7 @@
 
 A job's arguments are the CLI's (``["register", "A.laz", "B.laz", "--out", "D"]``), checked by the
 CLI's own argparse parser before they are queued (:func:`validate_args`). A worker thread of the
-service starts the command with ``--progress jsonl`` and reads its JSON-lines events on stderr:
+service starts ``forestreg ... --progress jsonl`` and reads its JSON-lines events on stderr:
 
     {"event": "progress", "step": "<id>", "fraction": 0..1, "message": "<text>"}
     {"event": "end", "exit_code": N, "message": "<one line>", "result": "<path or null>"}
@@ -86,14 +86,6 @@ def validate_args(args: Sequence[str]) -> argparse.Namespace:
         raise ArgumentError(f"forestreg: error: {exc}") from exc
 
 
-def _accepts(args: list[str]) -> bool:
-    try:
-        _parser().parse_args(args)
-        return True
-    except ArgumentError:
-        return False
-
-
 def _package_env() -> dict[str, str]:
     """The environment of a job: this process's, with the ``forestreg`` package importable."""
     import forestreg
@@ -108,21 +100,13 @@ def _package_env() -> dict[str, str]:
 
 
 def job_command(args: Sequence[str]) -> list[str]:
-    """The command line that runs ``args`` with JSON-lines progress on stderr.
-
-    ``forestreg ... --progress jsonl`` when the CLI has the option; else a small runner
-    (:mod:`forestreg.service.runner`) that gives an older CLI the same events.
-    """
+    """The command line that runs ``args`` with JSON-lines progress on stderr (the CLI's global
+    ``--progress jsonl``, unless the job chose its own ``--progress``)."""
     args = list(args)
     cli = [sys.executable, "-m", "forestreg.cli"]
-    if "--progress" not in args:
-        if _accepts(args + ["--progress", "jsonl"]):
-            return cli + args + ["--progress", "jsonl"]
-        if _accepts(["--progress", "jsonl"] + args):
-            return cli + ["--progress", "jsonl"] + args
-    elif _accepts(args):
+    if any(a == "--progress" or a.startswith("--progress=") for a in args):
         return cli + args
-    return [sys.executable, "-m", "forestreg.service.runner", *args]
+    return cli + args + ["--progress", "jsonl"]
 
 
 def guess_result(args: Sequence[str], cwd: Optional[str] = None) -> Optional[str]:
@@ -373,6 +357,8 @@ class JobManager:
             status = "error"
             message = str(end.get("message") or _error_line(lines) or f"the command stopped with exit status {code}")
         result_path = None if cancelled else (end.get("result") or guess_result(args, cwd))
+        if result_path:
+            result_path = str((Path(cwd or ".") / result_path).resolve())
         fields: dict[str, Any] = dict(status=status, exit_code=code, message=message, finished=time.time())
         if status == "done":
             fields["progress"] = 1.0

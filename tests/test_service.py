@@ -271,31 +271,12 @@ def test_a_batch_job_runs_the_batch_engine(service, tmp_path):
     assert seen and seen[-1][0] == 1.0 and "lonely: error" in seen[-1][1]
 
 
-def test_job_command_uses_the_cli_progress_option_when_it_exists(monkeypatch):
-    import argparse
-
+def test_job_command_and_progress_events():
     from forestreg.service import jobs
 
-    # today's CLI, or one with --progress per command: the JSON-lines events either way
-    cmd = jobs.job_command(["register", "a.laz", "b.laz", "--out", "o"])
-    k = cmd.index("register")
-    assert cmd[k:k + 5] == ["register", "a.laz", "b.laz", "--out", "o"]
-    assert cmd[1:3] == ["-m", "forestreg.service.runner"] or "jsonl" in cmd
-
-    def parser_with_progress():
-        p = argparse.ArgumentParser(prog="forestreg")
-        sub = p.add_subparsers(dest="command", required=True)
-        r = sub.add_parser("register")
-        r.add_argument("reference")
-        r.add_argument("moving")
-        r.add_argument("--out", required=True)
-        r.add_argument("--progress", choices=("bar", "jsonl", "none"))
-        jobs._raising(p)
-        return p
-
-    monkeypatch.setattr(jobs, "_parser", parser_with_progress)
     assert jobs.job_command(["register", "a.laz", "b.laz", "--out", "o"]) == [
         sys.executable, "-m", "forestreg.cli", "register", "a.laz", "b.laz", "--out", "o", "--progress", "jsonl"]
+    assert jobs.job_command(["params", "--progress=none"])[-1] == "--progress=none"  # the job's own choice stays
     assert jobs.parse_event('{"event": "progress", "step": "slice", "fraction": 0.3, "message": "slicing"}')["fraction"] == 0.3
     assert jobs.parse_event('{"event": "end", "exit_code": 1, "message": "failed", "result": null}')["exit_code"] == 1
     for line in ("register  30%|###|", "{not json", '{"event": "other"}', "[1, 2]"):
