@@ -45,6 +45,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return serve(args.host, args.port, Path(args.state) if args.state else None, workers=args.workers, idle_exit_s=args.idle_exit)
     except (ServiceRunning, OSError) as exc:
         raise UsageError(str(exc)) from None
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the service stopped cleanly (running jobs: interrupted)
+        print("forestreg serve: stopped", file=sys.stderr)
+        return 0
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
