@@ -50,7 +50,9 @@ def _run_and_report(run, feedback):
         feedback.pushConsoleInfo(line)
 
     try:
-        return run(progress, log, feedback.isCanceled)
+        outputs = run(progress, log, feedback.isCanceled)
+        feedback.setProgress(100.0)  # the job ended: its last event may stop short of 1.0
+        return outputs
     except adapter.CancelledError as exc:
         raise QgsProcessingException(str(exc)) from exc
     except adapter.AdapterError as exc:
