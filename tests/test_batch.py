@@ -126,3 +126,32 @@ def test_plot_discovery_and_manifests(tmp_path):
 def test_bad_batch_input_is_exit_2(tmp_path):
     run = subprocess.run(CLI + ["batch", str(tmp_path / "nope"), "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and run.stderr.strip().splitlines()[-1] == f"forestreg: error: {tmp_path / 'nope'}: no such folder"
+
+
+def test_batch_on_an_existing_scheduler(tmp_path):
+    """``--scheduler ADDRESS``: the plots go to a cluster started elsewhere (here a loopback
+    Dask cluster of this test process); a plot that cannot run is an error row: exit 1."""
+    from dask.distributed import LocalCluster
+
+    plots = tmp_path / "plots"
+    (plots / "lonely").mkdir(parents=True)
+    (plots / "lonely" / "only.laz").write_text("x")
+    (plots / "garbage").mkdir()
+    for name in ("a.laz", "b.laz"):
+        (plots / "garbage" / name).write_text("not a point cloud")
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, host="127.0.0.1", scheduler_port=0, dashboard_address=":0", protocol="tcp") as cluster:
+        run = subprocess.run(CLI + ["batch", str(plots), "--out", str(tmp_path / "out"), "--scheduler", cluster.scheduler_address, "-q"],
+                             capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1, run.stderr[-2000:]
+    rows = _rows(tmp_path / "out" / "summary.csv")
+    # unreadable scans: the plot command runs to its end and says why (failed); one scan: no plot (error)
+    assert {k: r["status"] for k, r in rows.items()} == {"garbage": "failed", "lonely": "error"}
+    assert rows["garbage"]["exit_code"] == "1" and "a.laz" in rows["garbage"]["reason"] and "not a valid LAS/LAZ" in rows["garbage"]["reason"]
+    assert "at least two" in rows["lonely"]["reason"]
+    assert cluster.scheduler_address in (tmp_path / "out" / "index.html").read_text()
+    # a folder of other files is never used as a batch's OUT
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    run = subprocess.run(CLI + ["batch", str(plots), "--out", str(other), "-q"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "already holds other files" in run.stderr and (other / "notes.txt").read_text() == "mine"
