@@ -52,6 +52,8 @@ def ensure_token(state_dir: Path) -> str:
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     except FileExistsError:
+        with contextlib.suppress(OSError):
+            os.chmod(path, 0o600)  # readable by the user only, also if someone loosened it
         token = path.read_text(encoding="utf-8").strip()
         if token:
             return token

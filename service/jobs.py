@@ -204,14 +204,23 @@ class JobManager:
     # ----------------------------------------------------------------------------- life cycle
 
     def start(self) -> None:
-        for job in self.store.recover():
-            pid = job.get("pid")
-            if pid and _alive(pid) and _is_job_process(pid):  # the old service's job still runs
-                _signal_group(pid, signal.SIGKILL)
+        orphans = [job["pid"] for job in self.store.recover() if job.get("pid") and _alive(job["pid"]) and _is_job_process(job["pid"])]
+        if orphans:  # jobs of a service that was killed still run: stop them as a cancel would
+            threading.Thread(target=self._stop_orphans, args=(orphans,), daemon=True).start()
         for k in range(self.workers):
             t = threading.Thread(target=self._loop, name=f"forestreg-job-{k}", daemon=True)
             t.start()
             self._threads.append(t)
+
+    def _stop_orphans(self, pids: list[int]) -> None:
+        for pid in pids:
+            _signal_group(pid, signal.SIGINT)  # the CLI removes its temporary output folder
+        deadline = time.monotonic() + self.grace_s
+        while time.monotonic() < deadline and any(_alive(p) for p in pids):
+            time.sleep(0.2)
+        for pid in pids:
+            if _alive(pid):
+                _signal_group(pid, signal.SIGKILL)
 
     def shutdown(self) -> None:
         """Stop taking jobs; stop the running ones (they are marked interrupted)."""

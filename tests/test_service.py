@@ -192,6 +192,7 @@ def test_restart_after_kill_9_keeps_the_jobs(pair, tmp_path):
     queued = client.submit(["params", "--toml"])
     _until(lambda: client.job(slow)["status"] == "running" and client.job(slow)["progress"] > 0, 120, "the slow job to run")
     job_pid = _until(lambda: _job_pid(state, slow), 10, "the job's pid")
+    _until(lambda: [p for p in tmp_path.iterdir() if p.name.startswith(".forestreg-tmp")], 30, "the job's temporary output folder")
     old_pid = read_server_info(state)["pid"]
     os.kill(old_pid, signal.SIGKILL)
     _until(lambda: not _alive(old_pid), 10, "the service to die")
@@ -203,7 +204,10 @@ def test_restart_after_kill_9_keeps_the_jobs(pair, tmp_path):
         jobs = {j["id"]: j for j in client.jobs()}
         assert jobs[done["id"]]["status"] == "done"
         assert jobs[slow]["status"] == "interrupted" and "resubmit" in jobs[slow]["message"]
-        _until(lambda: not _alive(job_pid), 15, "the orphaned job to be stopped")  # ... until the new service stopped it
+        _until(lambda: not _alive(job_pid), 30, "the orphaned job to be stopped")  # ... until the new service stopped it
+        # stopped as a cancel would: the CLI removed its temporary folder, no output folder appeared
+        _until(lambda: not [p for p in tmp_path.iterdir() if p.name.startswith(".forestreg-tmp")], 10, "the temporary folder to go")
+        assert not (tmp_path / "slow").exists()
         assert client.wait(queued, timeout=120)["status"] == "done"  # the queued job ran after the restart
         again = client.resubmit(slow)
         assert again != slow and client.job(again)["args"] == jobs[slow]["args"]
