@@ -50,6 +50,7 @@ def batch_run(plots, tmp_path_factory):
     return out, run
 
 
+@pytest.mark.slow
 def test_batch_of_three_plots_on_two_workers(plots, batch_run):
     from forestreg.engine.core.transform import rigid_errors
 
@@ -75,6 +76,7 @@ def test_batch_of_three_plots_on_two_workers(plots, batch_run):
     assert "3 plots: 1 failed, 2 ok" in run.stdout
 
 
+@pytest.mark.slow
 def test_rerun_skips_the_processed_plots(batch_run, plots):
     root, _ = plots
     out, _ = batch_run
