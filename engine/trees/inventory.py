@@ -39,7 +39,7 @@ from .stems import DbhMeasurement, Stem, StemCurve, StemParams, detect_stems_ada
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TREE_COLUMNS", "TreeInventory", "TreeParams", "TreeRecord", "measure_trees"]
+__all__ = ["TREE_COLUMNS", "TreeInventory", "TreeParams", "TreeRecord", "measure_trees", "tree_record"]
 
 #: Columns of ``trees.csv`` (positions in file coordinates; metres, m^2, m^3).
 TREE_COLUMNS = (
@@ -344,112 +344,10 @@ def measure_trees(
     for k, stem in enumerate(stems):
         progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: crown and cylinder model")
         idx = order[bounds[k] : bounds[k + len(stems)]]
-        tree_pts = p[idx]
-        crown = crowns[stem.id]
-        curve = curves[stem.id]
-        d = dbh[stem.id]
-        flags = list(complete[stem.id].reasons) if stem.id in complete else []
-        quality: dict[str, str] = {}
-        # --- DBH: the stem curve at breast height; a failed fit gives no value
-        d_curve = curve_dbh(curve, stem, stem_params.breast_height_m)
-        fit = d.fit
-        if math.isfinite(d_curve) and (d.ok or "inconsistent slices" in d.reasons):
-            dbh_value = d_curve
-            trust = "high" if d.ok else "medium"
-            if fit is not None and fit.arc_coverage < 0.5:
-                trust = _trust(trust, "medium")
-            if method == "noisy":
-                trust = _trust(trust, "medium")
-            if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d_curve, 0.008):
-                trust = _trust(trust, "low")
-                flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
-                             f"{1000 * d_curve:.0f} mm stem (noisy or ghosted shell)")
-            if math.isfinite(d.dbh_m) and abs(d.dbh_m - d_curve) > 0.1 * d_curve:
-                trust = _trust(trust, "low")
-                flags.append(f"DBH slices ({d.dbh_m:.3f} m) and stem curve ({d_curve:.3f} m) disagree")
-            how = "stem curve at 1.3 m" + (" (noisy/sparse profile)" if method == "noisy" else "")
-            quality["dbh"] = f"{how}, arc {fit.arc_coverage:.2f}; {trust}" if fit is not None else f"{how}; {trust}"
-        elif d.ok and math.isfinite(d.dbh_m):
-            dbh_value = d.dbh_m
-            trust = "medium"
-            if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d.dbh_m, 0.008):
-                trust = "low"
-                flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
-                             f"{1000 * d.dbh_m:.0f} mm stem (noisy or ghosted shell)")
-            quality["dbh"] = f"circle fits at 1.3 m (no stem-curve section there); {trust}"
-        else:
-            dbh_value = math.nan
-            why = ", ".join(d.reasons) or "no stem-curve section at breast height"
-            quality["dbh"] = f"not measured: {why}; none"
-            if "DBH not measured" not in flags:
-                flags.append(f"DBH fit failed: {why}")
-        # --- height: the tree's top above the ground under its stem
-        h_trust = "high"
-        h_how = "highest tree point above the stem's ground"
-        if no_ground:
-            flags.append("no ground in the cloud: heights above the lowest points")
-            h_trust, h_how = "low", "highest tree point above the cloud's lowest points (no ground)"
-        elif ground_xy is not None and not ground_xy.query_ball_point([stem.x, stem.y], 3.0):
-            flags.append("no ground points within 3 m of the stem: ground interpolated")
-            h_trust = _trust(h_trust, "medium")
-        lowest = _lowest_stem_point(tree_pts, stem)
-        if math.isfinite(lowest) and lowest < stem.ground_z - 0.25:
-            flags.append(f"stem points reach {stem.ground_z - lowest:.2f} m below the ground found: ground uncertain")
-            h_trust = _trust(h_trust, "low")
-        reasons = complete[stem.id].reasons if stem.id in complete else ()
-        if "top missing" in reasons:
-            h_trust = _trust(h_trust, "low")
-            h_how += ", top missing in the data"
-        elif any(r.startswith(("too few crown points", "too few points")) for r in reasons):
-            h_trust = _trust(h_trust, "low")
-            h_how += ", crown too sparse to confirm the top"
-        if stem.id in shared:
-            flags.append(shared[stem.id])
-            h_trust = _trust(h_trust, "low")
-            h_how += ", top shared with a taller neighbour"
-        quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
-        if math.isfinite(dbh_value):  # a DBH is reported: no "fit failed" flag, say what is unsure
-            failed = [f for f in flags if f.startswith("DBH fit failed")]
-            flags = [f for f in flags if not f.startswith("DBH fit failed")]
-            if failed:
-                flags.append("DBH slices inconsistent: the stem curve's value is given (" + quality["dbh"].rsplit("; ", 1)[-1] + " trust)")
-        if not crown.ok:
-            flags += [f"crown: {r}" for r in crown.reasons]
-        c_trust = "high" if crown.ok else "none"
-        if crown.ok and any("cut by the plot edge" in r for r in reasons):
-            c_trust = "low"
-        elif crown.ok and stem.id in shared:
-            c_trust = "low"
-        quality["crown"] = f"crown points of the segmented tree; {c_trust}"
-        # --- cylinder model, on the wood points, its stem made consistent with the stem curve
-        cylinders = None
-        if params.cylinder_models and len(idx) >= 50:
-            w = wood[idx] >= params.wood_threshold
-            if np.count_nonzero(w) >= 200:
-                try:
-                    cylinders = fit_qsm(tree_pts[w], params.qsm, base=stem.base)
-                    cylinders, _ = reconcile_stem(cylinders, stem, curve, crown.height_m)
-                except ScanDataError as exc:
-                    flags.append(f"cylinder model failed: {exc}")
-            else:
-                flags.append(f"cylinder model not fitted: too few wood points ({int(np.count_nonzero(w))})")
-        if cylinders is not None:
-            volume, ff, quality["volume"], vflag = form_factor_check(
-                cylinders.total_volume_m3, cylinders.stem_volume_m3, dbh_value, crown.height_m, params.form_factors)
-            if vflag:
-                flags.append(vflag)
-            n_top = int(cylinders.meta.get("stem_cylinders_added_to_top", 0))
-            if n_top and "; high" in quality["volume"]:
-                quality["volume"] = quality["volume"].replace("; high", f", upper stem ({n_top} cylinders) tapered to the top; medium")
-            if "top missing" in reasons and "; high" in quality["volume"]:
-                quality["volume"] = quality["volume"].replace("; high", "; medium")
-        else:
-            volume, ff, quality["volume"] = math.nan, math.nan, "no cylinder model; none"
-        records.append(TreeRecord(
-            tree_id=stem.id, stem=stem, dbh=d, curve=curve, crown=crown, cylinders=cylinders,
-            n_points=int(len(idx)), wood_fraction=float(np.mean(wood[idx] >= params.wood_threshold)) if len(idx) else 0.0,
-            flags=tuple(dict.fromkeys(flags)), dbh_m=dbh_value, volume_m3=volume, stem_form_factor=ff,
-            source="stem", quality=quality,
+        records.append(tree_record(
+            p, stem, idx, dbh[stem.id], curves[stem.id], crowns[stem.id], wood,
+            complete[stem.id].reasons if stem.id in complete else (), params, stem_params=stem_params, method=method,
+            no_ground=no_ground, ground_xy=ground_xy, shared_flag=shared.get(stem.id),
         ))
     timings["trees_s"] = time.perf_counter() - t
     if method == "noisy" and _airborne_like(heights):  # stems sparse and hardly sampled: the canopy decides
@@ -462,6 +360,136 @@ def measure_trees(
         trees=records, labels=labels, heights=heights, wood_probability=wood, ground=model.ground, dem=model.dem,
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
         timings=timings, method=method,
+    )
+
+
+def tree_record(
+    p: np.ndarray,
+    stem: Stem,
+    idx: np.ndarray,
+    d: DbhMeasurement,
+    curve: StemCurve,
+    crown: CrownMeasurement,
+    wood: np.ndarray,
+    reasons: Sequence[str],
+    params: TreeParams = TreeParams(),
+    *,
+    stem_params: Optional[StemParams] = None,
+    method: str = "fine",
+    no_ground: bool = False,
+    ground_xy: Any = None,
+    shared_flag: Optional[str] = None,
+) -> TreeRecord:
+    """One tree's record from its measurements: the reported DBH (the stem curve at breast
+    height; none from a failed fit), the height's checks, the cylinder model on its wood points
+    made consistent with the stem curve, the form-factor check, the flags and the quality of each
+    measure. ``idx`` are the tree's point indices into ``p``; ``wood`` the wood probability of
+    every point (the stem traced by the curve already counted as wood); ``reasons`` the
+    completeness reasons; ``ground_xy`` a ``cKDTree`` of the ground points' x, y (or None);
+    ``shared_flag`` the reason its top is unsure, if any. Local frame, metres."""
+    stem_params = stem_params or params.stems
+    flags = list(reasons)
+    quality: dict[str, str] = {}
+    tree_pts = p[idx]
+    # --- DBH: the stem curve at breast height; a failed fit gives no value
+    d_curve = curve_dbh(curve, stem, stem_params.breast_height_m)
+    fit = d.fit
+    if math.isfinite(d_curve) and (d.ok or "inconsistent slices" in d.reasons):
+        dbh_value = d_curve
+        trust = "high" if d.ok else "medium"
+        if fit is not None and fit.arc_coverage < 0.5:
+            trust = _trust(trust, "medium")
+        if method == "noisy":
+            trust = _trust(trust, "medium")
+        if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d_curve, 0.008):
+            trust = _trust(trust, "low")
+            flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
+                         f"{1000 * d_curve:.0f} mm stem (noisy or ghosted shell)")
+        if math.isfinite(d.dbh_m) and abs(d.dbh_m - d_curve) > 0.1 * d_curve:
+            trust = _trust(trust, "low")
+            flags.append(f"DBH slices ({d.dbh_m:.3f} m) and stem curve ({d_curve:.3f} m) disagree")
+        how = "stem curve at 1.3 m" + (" (noisy/sparse profile)" if method == "noisy" else "")
+        quality["dbh"] = f"{how}, arc {fit.arc_coverage:.2f}; {trust}" if fit is not None else f"{how}; {trust}"
+    elif d.ok and math.isfinite(d.dbh_m):
+        dbh_value = d.dbh_m
+        trust = "medium"
+        if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d.dbh_m, 0.008):
+            trust = "low"
+            flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
+                         f"{1000 * d.dbh_m:.0f} mm stem (noisy or ghosted shell)")
+        quality["dbh"] = f"circle fits at 1.3 m (no stem-curve section there); {trust}"
+    else:
+        dbh_value = math.nan
+        why = ", ".join(d.reasons) or "no stem-curve section at breast height"
+        quality["dbh"] = f"not measured: {why}; none"
+        if "DBH not measured" not in flags:
+            flags.append(f"DBH fit failed: {why}")
+    # --- height: the tree's top above the ground under its stem
+    h_trust = "high"
+    h_how = "highest tree point above the stem's ground"
+    if no_ground:
+        flags.append("no ground in the cloud: heights above the lowest points")
+        h_trust, h_how = "low", "highest tree point above the cloud's lowest points (no ground)"
+    elif ground_xy is not None and not ground_xy.query_ball_point([stem.x, stem.y], 3.0):
+        flags.append("no ground points within 3 m of the stem: ground interpolated")
+        h_trust = _trust(h_trust, "medium")
+    lowest = _lowest_stem_point(tree_pts, stem)
+    if math.isfinite(lowest) and lowest < stem.ground_z - 0.25:
+        flags.append(f"stem points reach {stem.ground_z - lowest:.2f} m below the ground found: ground uncertain")
+        h_trust = _trust(h_trust, "low")
+    if "top missing" in reasons:
+        h_trust = _trust(h_trust, "low")
+        h_how += ", top missing in the data"
+    elif any(r.startswith(("too few crown points", "too few points")) for r in reasons):
+        h_trust = _trust(h_trust, "low")
+        h_how += ", crown too sparse to confirm the top"
+    if shared_flag:
+        flags.append(shared_flag)
+        h_trust = _trust(h_trust, "low")
+        h_how += ", top shared with a taller neighbour"
+    quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
+    if math.isfinite(dbh_value):  # a DBH is reported: no "fit failed" flag, say what is unsure
+        failed = [f for f in flags if f.startswith("DBH fit failed")]
+        flags = [f for f in flags if not f.startswith("DBH fit failed")]
+        if failed:
+            flags.append("DBH slices inconsistent: the stem curve's value is given (" + quality["dbh"].rsplit("; ", 1)[-1] + " trust)")
+    if not crown.ok:
+        flags += [f"crown: {r}" for r in crown.reasons]
+    c_trust = "high" if crown.ok else "none"
+    if crown.ok and any("cut by the plot edge" in r for r in reasons):
+        c_trust = "low"
+    elif crown.ok and shared_flag:
+        c_trust = "low"
+    quality["crown"] = f"crown points of the segmented tree; {c_trust}"
+    # --- cylinder model, on the wood points, its stem made consistent with the stem curve
+    cylinders = None
+    if params.cylinder_models and len(idx) >= 50:
+        w = wood[idx] >= params.wood_threshold
+        if np.count_nonzero(w) >= 200:
+            try:
+                cylinders = fit_qsm(tree_pts[w], params.qsm, base=stem.base)
+                cylinders, _ = reconcile_stem(cylinders, stem, curve, crown.height_m)
+            except ScanDataError as exc:
+                flags.append(f"cylinder model failed: {exc}")
+        else:
+            flags.append(f"cylinder model not fitted: too few wood points ({int(np.count_nonzero(w))})")
+    if cylinders is not None:
+        volume, ff, quality["volume"], vflag = form_factor_check(
+            cylinders.total_volume_m3, cylinders.stem_volume_m3, dbh_value, crown.height_m, params.form_factors)
+        if vflag:
+            flags.append(vflag)
+        n_top = int(cylinders.meta.get("stem_cylinders_added_to_top", 0))
+        if n_top and "; high" in quality["volume"]:
+            quality["volume"] = quality["volume"].replace("; high", f", upper stem ({n_top} cylinders) tapered to the top; medium")
+        if "top missing" in reasons and "; high" in quality["volume"]:
+            quality["volume"] = quality["volume"].replace("; high", "; medium")
+    else:
+        volume, ff, quality["volume"] = math.nan, math.nan, "no cylinder model; none"
+    return TreeRecord(
+        tree_id=stem.id, stem=stem, dbh=d, curve=curve, crown=crown, cylinders=cylinders,
+        n_points=int(len(idx)), wood_fraction=float(np.mean(wood[idx] >= params.wood_threshold)) if len(idx) else 0.0,
+        flags=tuple(dict.fromkeys(flags)), dbh_m=dbh_value, volume_m3=volume, stem_form_factor=ff,
+        source="stem", quality=quality,
     )
 
 
@@ -623,7 +651,6 @@ def _add_canopy_trees(
     for ct in trees:
         members = by_segment.get(ct.tree_id, [])
         if not members:
-            free = ct.point_indices[labels[ct.point_indices] == 0]
             labels[ct.point_indices] = next_id
             out.append(_canopy_record(ct, next_id, no_ground))
             next_id += 1
