@@ -124,13 +124,13 @@ def test_correction_loop_edits_undo_and_save(qtbot, window, cloud, tmp_path):
     assert "\u270e" in view.table.text(row, "tree_id")
     # undo restores the engine's trees
     assert view.undo()
-    assert view.table.rowCount() == n and view.table.value(view.table.row_of(b.tree_id), "dbh_m") == pytest.approx(b.dbh.dbh_m, abs=1e-4)
+    assert view.table.rowCount() == n and view.table.value(view.table.row_of(b.tree_id), "dbh_m") == pytest.approx(b.dbh_m, abs=1e-4)
     # DBH at 2 m: the value shown is the engine's for that edit
     view.select_tree(a.tree_id)
     assert view.dbh_height_selected(2.0)
     qtbot.waitUntil(lambda: view.worker is None, timeout=TIMEOUT_MS)
     want = next(r for r in E.dbh_at_height(scan.points, engine, a.tree_id, 2.0, PARAMS).trees if r.tree_id == a.tree_id)
-    assert view.table.value(view.table.row_of(a.tree_id), "dbh_m") == pytest.approx(want.dbh.dbh_m, abs=1e-6)
+    assert view.table.value(view.table.row_of(a.tree_id), "dbh_m") == pytest.approx(want.dbh_m, abs=1e-6)
     # delete, then add the stem back by a click beside it (file coordinates)
     view.select_tree(b.tree_id)
     assert view.delete_selected()
@@ -140,7 +140,7 @@ def test_correction_loop_edits_undo_and_save(qtbot, window, cloud, tmp_path):
     qtbot.waitUntil(lambda: view.worker is None, timeout=TIMEOUT_MS)
     assert view.table.rowCount() == n and view.selected not in {r.tree_id for r in engine.trees}
     new = view.table.row_of(view.selected)
-    assert view.table.value(new, "dbh_m") == pytest.approx(b.dbh.dbh_m, abs=0.005)
+    assert view.table.value(new, "dbh_m") == pytest.approx(b.dbh_m, abs=0.005)
     # a click on nothing: an honest message, nothing changed
     assert view.add_stem_at(-5.5 + shift[0], -3.0 + shift[1])
     qtbot.waitUntil(lambda: view.worker is None, timeout=TIMEOUT_MS)
