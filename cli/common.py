@@ -201,18 +201,8 @@ def check_inputs_exist(*paths) -> None:
 
 
 def final_result_check(summary: dict) -> dict:
-    """The last check before a result is called "ok": its matrix must be a finite proper rigid
-    transform. Otherwise the result becomes "failed" with the reason (never a NaN "ok")."""
-    from ..engine.core.errors import TransformError
-    from ..engine.core.transform import check_rigid
+    """The last check before a command calls a result "ok" (see
+    :func:`~forestreg.engine.core.transform.withhold_unless_rigid`)."""
+    from ..engine.core.transform import withhold_unless_rigid
 
-    if summary.get("status") != "ok":
-        return summary
-    try:
-        check_rigid(summary.get("matrix"), "the result")
-    except TransformError as exc:
-        summary = dict(summary)
-        summary["status"] = "failed"
-        summary["reason"] = f"{exc}; withheld"
-        summary["matrix"] = None
-    return summary
+    return withhold_unless_rigid(summary)

@@ -156,6 +156,7 @@ def plot_report_html(
         "The paper's &ldquo;source&rdquo; scan is our reference (<i>P<sub>s</sub></i>), its &ldquo;target&rdquo; "
         "our moving scan (<i>P<sub>t</sub></i>).</p>"
     )
+    body = _numbered_sections(body)
     return (
         "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
         '<meta name="viewport" content="width=device-width, initial-scale=1">\n'
@@ -589,6 +590,16 @@ def _bars_png(*panels: BarPanel, dpi: int = 100) -> bytes:
 
 # ------------------------------------------------------------------------------------------------
 # sections
+
+
+def _numbered_sections(body: list[str]) -> list[str]:
+    """Number the ``<h2>N. title</h2>`` headings in the order they appear (a section left out, e.g.
+    the global adjustment, leaves no gap)."""
+    import re
+
+    count = iter(range(1, 100))
+    return [re.sub(r"<h2>\d+\. ", lambda m: f"<h2>{next(count)}. ", part) for part in body]
+
 # ------------------------------------------------------------------------------------------------
 
 

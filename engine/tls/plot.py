@@ -26,7 +26,7 @@ from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, Project, ScanEntry
 from .pair import register
 from ..core.scan import Scan
-from ..core.transform import format_matrix, rigid_errors
+from ..core.transform import format_matrix, rigid_errors, withhold_unless_rigid
 
 log = logging.getLogger("forestreg")
 
@@ -153,7 +153,7 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
             result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel)
         except DataError as exc:  # e.g. no points near a georeferenced scan's assumed scanner
             return {"status": "failed", "reason": str(exc), "matrix": None}
-    return _jsonable(result.to_dict())
+    return withhold_unless_rigid(_jsonable(result.to_dict()))
 
 
 def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> Link:
