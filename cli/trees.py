@@ -118,7 +118,8 @@ def run_evaluate(named: Sequence[tuple[str, str | Path]], field, out, *, by: str
 
 def _evaluate_into(folder: Path, named, field_table, *, by: str, max_distance: float) -> tuple[int, list[str]]:
     """Evaluate and write; returns the exit code (1 when no tree could be matched) and the lines to print."""
-    from ..engine.trees.evaluate import evaluate, write_evaluation
+    from ..engine.io.evaluation import write_evaluation
+    from ..engine.trees.evaluate import evaluate
 
     runs = {name: evaluate(table, field_table, by=by, max_distance_m=max_distance) for name, table in named}
     paths = write_evaluation(folder, runs)
