@@ -120,7 +120,8 @@ class Reporter:
         elif self.mode == "bar":
             if not sys.stderr.isatty():  # a log: one line per new step, never cut
                 if message != self._last:
-                    print(f"{self.command}: {100 * f:3.0f}% {message}", file=sys.stderr, flush=True)
+                    # "<command>: <message>  NN%|": the layout the plugin hosts have parsed so far
+                    print(f"{self.command}: {message} {100 * f:3.0f}%|", file=sys.stderr, flush=True)
                     self._last = message
                 return
             if self._bar is None:

@@ -76,7 +76,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     """System A: a simulated TLS pair registered from trunk shadows; System B: a simulated plot seen
     from the ground and from a UAV, co-registered, fused and measured. Both against the truth."""
+    from ..engine.core.atomic import check_output_folder
+
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        check_output_folder(out, "demo")  # refuses a file with one line
     codes = []
     if args.system in ("a", "both"):
         codes.append(_demo_system_a(out, args))

@@ -259,8 +259,16 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def _check_scan_files_exist(paths) -> None:
     """A missing scan is a typo (exit 2, before any work); an existing but unreadable scan is
-    reported as failed while the others are registered."""
-    from ..engine.core.errors import ScanReadError
+    reported as failed while the others are registered. A plot needs two scans (or one multi-scan
+    E57 file), each given once."""
+    from ..engine.core.errors import ScanReadError, UsageError
+
+    if len(paths) == 1 and Path(paths[0]).suffix.lower() != ".e57":
+        raise UsageError(f"a plot needs at least two scans (or one multi-scan E57 file); got only {paths[0]}")
+    resolved = [Path(p).resolve() for p in paths]
+    twice = sorted({str(p) for p in paths if resolved.count(Path(p).resolve()) > 1})
+    if twice:
+        raise UsageError(f"a scan is given twice: {', '.join(twice)}")
 
     for p in paths:
         if not Path(p).exists():
@@ -333,9 +341,15 @@ def cmd_compare(args: argparse.Namespace) -> int:
     from ..engine.tls.compare import compare_auto_manual, write_comparison
     from ..engine.tls.plot import ScanCache, write_poses
 
+    from ..engine.core.errors import UsageError
+
     _check_scan_files_exist(args.scans)
     out = check_output_folder(args.out, "compare", inputs=args.scans + ([args.targets] if args.targets else []))
     project = project_from_args(args)
+    with_targets = [s.name for s in project.scans if s.targets]
+    if len(with_targets) < 2:
+        raise UsageError("compare needs targets in at least two scans (--targets TARGETS.csv with scan,target,x,y,z; "
+                         f"scans with targets: {', '.join(with_targets) or 'none'})")
     scans = ScanCache(project)
     try:
         comparison = compare_auto_manual(project, scans=scans, progress=args.reporter)

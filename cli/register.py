@@ -73,8 +73,12 @@ def run_register(
     from ..engine.tls.pair import register
     from .common import final_result_check
 
+    from ..engine.core.errors import UsageError
+
     reporter = reporter or Reporter("none", "register")
     params = params or RegistrationParams()
+    if Path(reference_path).resolve() == Path(moving_path).resolve():
+        raise UsageError(f"REFERENCE and MOVING are the same file ({reference_path}): a scan cannot be registered onto itself")
     scale = UNITS[units]
     out = check_output_folder(out, "register", inputs=[reference_path, moving_path])
     t0 = time.perf_counter()

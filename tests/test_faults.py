@@ -174,6 +174,13 @@ BAD_INPUT = {
     "simulate --size 0": ["simulate", "planted_conifer", "--out", "{O}", "--size", "0"],
     "simulate --out is a scan": ["simulate", "planted_conifer", "--out", "{A}"],
     "gui --size 0x-5": ["gui", "--size", "0x-5"],
+    "register a scan onto itself": ["register", "{A}", "{A}", "--out", "{O}"],
+    "plot of one scan": ["plot", "{A}", "--out", "{O}"],
+    "plot with a scan twice": ["plot", "{A}", "{B}", "{A}", "--out", "{O}"],
+    "compare without targets": ["compare", "{A}", "{B}", "--out", "{O}"],
+    "demo --out is a scan": ["demo", "--out", "{A}"],
+    "missing --params file": ["register", "{A}", "{B}", "--out", "{O}", "--params", "{X}/missing.toml"],
+    "infinite --dc": ["register", "{A}", "{B}", "--out", "{O}", "--dc", "inf"],
     "unknown command": ["registre", "{A}", "{B}"],
 }
 
