@@ -571,3 +571,17 @@ def test_the_same_pair_gives_the_same_matrix(tiny, pair_result):
     _, paths, _ = tiny
     again = register(read_scan(paths[0]), read_scan(paths[1]))
     assert again.ok and np.array_equal(again.matrix, pair_result.matrix)
+
+
+def test_an_output_folder_of_another_command_is_not_replaced(tiny, tmp_path, capsys):
+    _, paths, _ = tiny
+    plot = tmp_path / "plot"
+    plot.mkdir()
+    (plot / ".forestreg-output").write_text("plot\n")
+    (plot / "project.json").write_text("{}\n")
+    before = _tree(plot)
+    for argv in (["register", str(paths[0]), str(paths[1]), "--out", str(plot)],
+                 ["simulate", "planted_conifer", "--out", str(plot)]):
+        assert main(argv) == 2, argv
+        assert "forestreg plot" in _assert_one_line(capsys.readouterr().err)
+        assert _tree(plot) == before
