@@ -206,16 +206,20 @@ def test_project_link_and_damaged_project_files_exit_2(tiny, tmp_path, capsys):
     project = tmp_path / "p.json"
     assert main(["project", "create", str(project), *map(str, paths[:2])]) == 0
     before = _hash(project)
+    scans_before = [_hash(p) for p in paths]
     for argv in (
         ["project", "link", str(project), "scan_02.laz", "nope.laz"],
         ["project", "link", str(project), "scan_02.laz", "scan_02.laz"],
         ["project", "link", str(project), "scan_02.laz", "scan_01.laz", "--dr", "-4"],
         ["project", "create", str(project), *map(str, paths[:2])],  # exists already
+        ["project", "run", str(project), "--merged", str(paths[1])],  # onto a scan
+        ["project", "run", str(project), "--e57-out", str(paths[0])],
     ):
         capsys.readouterr()
         assert main(argv) == 2, argv
         _assert_one_line(capsys.readouterr().err)
         assert _hash(project) == before, f"{argv} changed the project file"
+        assert [_hash(p) for p in paths] == scans_before
     # matrices in project files: a 2x2, a scale 2 and a reflection are refused with one line
     data = json.loads(project.read_text())
     for matrix in ([[1, 0], [0, 1]], np.diag([2.0, 2, 2, 1]).tolist(), np.diag([1.0, 1, -1, 1]).tolist()):
