@@ -68,13 +68,14 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
         reporter.close()
     n_flagged = sum(1 for t in inventory.trees if t.flags)
     with output_folder(out, "trees") as tmp:
-        inventory.write(tmp, cloud.points, report=report)
+        inventory.write(tmp, cloud.points, report=report, unit_scale=scale)
         code = 0
         if field_table is not None:
             code, lines = _evaluate_into(tmp / "evaluation", [("trees", read_tree_table(tmp / "trees.csv"))], field_table,
-                                         by="position", max_distance=1.0)
+                                         by="position", max_distance=1.0 / scale)
     reporter.done("", out / "trees.csv")
-    say(f"{len(inventory.trees)} trees ({n_flagged} flagged as incomplete) -> {out / 'trees.csv'}", argparse.Namespace(reporter=reporter))
+    unit_note = "" if units == "m" else f" (positions in {units}, sizes in metres)"
+    say(f"{len(inventory.trees)} trees ({n_flagged} flagged as incomplete){unit_note} -> {out / 'trees.csv'}", argparse.Namespace(reporter=reporter))
     if report and (out / "report.html").exists():
         print(f"report: {out / 'report.html'}")
     if field_table is not None:
