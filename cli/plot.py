@@ -151,14 +151,16 @@ def project_from_args(args: argparse.Namespace):
     return project
 
 
-def _publish(tmp: Path, out: Path) -> None:
+def _publish(tmp: Path, out: Path, scan_names) -> None:
     """Move the finished products from ``tmp`` into ``out`` (each by one rename; poses.json last,
-    so a poses.json always belongs to the transforms beside it), drop the stale transforms."""
+    so a poses.json always belongs to the transforms beside it), and drop the stale transforms of
+    the project's scans (no other file)."""
     import os
     import shutil
 
-    for stale in out.glob("*.transform.txt"):
-        if not (tmp / stale.name).exists():
+    for name in scan_names:
+        stale = out / f"{name}.transform.txt"
+        if stale.is_file() and not (tmp / stale.name).exists():
             stale.unlink()
     files = sorted(tmp.iterdir(), key=lambda p: p.name == "poses.json")
     for f in files:
@@ -200,7 +202,7 @@ def run_project(project, out: Path, args: argparse.Namespace) -> int:
             write_plot_report(project, tmp / "report.html", scans=scans)
         except Exception as exc:  # a report must never lose the result
             log.warning("could not write the report: %s", exc)
-        _publish(tmp, out)
+        _publish(tmp, out, [s.name for s in project.scans])
     except BaseException:
         import shutil
 
