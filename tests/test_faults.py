@@ -589,3 +589,17 @@ def test_an_output_folder_of_another_command_is_not_replaced(tiny, tmp_path, cap
         assert main(argv) == 2, argv
         assert "forestreg plot" in _assert_one_line(capsys.readouterr().err)
         assert _tree(plot) == before
+
+
+def test_an_unexpected_error_is_one_line_and_writes_nothing(tiny, tmp_path, capsys, monkeypatch):
+    import forestreg.engine.tls.pair as pair
+
+    _, paths, _ = tiny
+
+    def broken(*a, **k):
+        raise np.linalg.LinAlgError("SVD did not converge")
+
+    monkeypatch.setattr(pair, "register", broken)
+    assert main(["register", str(paths[0]), str(paths[1]), "--out", str(tmp_path / "o"), "-q"]) == 1
+    assert "SVD did not converge" in _assert_one_line(capsys.readouterr().err)
+    assert not (tmp_path / "o").exists() and not _leftovers(tmp_path)
