@@ -124,12 +124,15 @@ class Reporter:
                     print(f"{self.command}: {message} {100 * f:3.0f}%|", file=sys.stderr, flush=True)
                     self._last = message
                 return
-            if self._bar is None:
-                from tqdm import tqdm
+            from tqdm import tqdm
 
-                self._bar = tqdm(total=1000, file=sys.stderr, bar_format="{percentage:3.0f}%|{bar:20}| {elapsed} {desc}", leave=False)
+            if self._bar is None:
+                self._bar = tqdm(total=1000, file=sys.stderr, bar_format="{desc}{percentage:3.0f}%|{bar:30}| {elapsed}",
+                                 desc=f"{self.command} ", leave=False)
+            if message != self._last:  # the whole message on its own line above the bar: never cut
+                tqdm.write(f"{self.command}: {message}", file=sys.stderr)
+                self._last = message
             self._bar.n = int(round(1000 * f))
-            self._bar.set_description_str(f"{self.command}: {message}", refresh=False)
             self._bar.refresh()
 
     def close(self) -> None:
