@@ -210,3 +210,24 @@ def final_result_check(summary: dict) -> dict:
     from ..engine.core.transform import withhold_unless_rigid
 
     return withhold_unless_rigid(summary)
+
+
+def check_replaceable_point_file(path, dimension: str, what: str) -> None:
+    """An existing point file at an output path is replaced only when it is an earlier output of
+    the same kind (a LAS/LAZ with the extra ``dimension``); a user's own scan is refused."""
+    from ..engine.core.errors import OutputPathError
+
+    p = Path(path)
+    if not p.exists():
+        return
+    if p.suffix.lower() in (".las", ".laz"):
+        try:
+            import laspy
+
+            with laspy.open(p) as f:
+                names = set(f.header.point_format.dimension_names)
+            if dimension in names:
+                return
+        except Exception:  # unreadable: not ours either
+            pass
+    raise OutputPathError(f"{p} exists and is not an earlier {what}: it would be overwritten; give a new file name")

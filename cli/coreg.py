@@ -11,7 +11,7 @@ from typing import Optional
 
 import numpy as np
 
-from .common import UNITS, Reporter, log, number, say
+from .common import UNITS, Reporter, check_replaceable_point_file, log, number, say
 
 
 def add_parsers(sub) -> None:
@@ -149,6 +149,7 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
     check_readable(ground_path)
     check_readable(uav_path)
     out = check_output_file(out, inputs=[ground_path, uav_path, transform], suffixes=(".laz", ".las"))
+    check_replaceable_point_file(out, "source", "fused cloud")
     matrix = to_metres(read_matrix(transform), scale) if transform else np.eye(4)
     kw = {}
     if epsilon is not None:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import log, number, offsets, params_from_args, say
+from .common import check_replaceable_point_file, log, number, offsets, params_from_args, say
 
 POINT_SUFFIXES = (".laz", ".las", ".ply", ".xyz", ".txt")
 
@@ -99,6 +99,7 @@ def _check_extra_outputs(args, inputs) -> None:
 
     if getattr(args, "merged", None):
         check_output_file(args.merged, inputs=inputs, suffixes=POINT_SUFFIXES)
+        check_replaceable_point_file(args.merged, "scan_id", "merged cloud")
     if getattr(args, "e57_out", None):
         check_output_file(args.e57_out, inputs=inputs, suffixes=(".e57",))
     if getattr(args, "registered_dir", None):

@@ -161,6 +161,8 @@ BAD_INPUT = {
     "coregister --out is an input": ["coregister", "{A}", "{B}", "--out", "{A}"],
     "fuse --out is the ground cloud": ["fuse", "{A}", "{B}", "--out", "{A}"],
     "fuse --out not a point file": ["fuse", "{A}", "{B}", "--out", "{O}.json"],
+    "fuse --out a user's other scan": ["fuse", "{A}", "{B}", "--out", "{C}"],
+    "plot --merged onto a user's other scan": ["plot", "{A}", "{B}", "--out", "{O}", "--merged", "{C}"],
     "fuse reflection": ["fuse", "{A}", "{B}", "--transform", "{X}/reflect.txt", "--out", "{O}.laz"],
     "fuse scale 2": ["fuse", "{A}", "{B}", "--transform", "{X}/scale.txt", "--out", "{O}.laz"],
     "fuse NaN matrix": ["fuse", "{A}", "{B}", "--transform", "{X}/nan.txt", "--out", "{O}.laz"],
@@ -191,7 +193,7 @@ def test_bad_input_exits_2_with_one_line_before_any_work(case, tiny, tmp_path, c
     inputs = [*paths, *sorted(bad.iterdir())]
     before = {p: _hash(p) for p in inputs}
     out = tmp_path / "out"
-    argv = [a.format(A=paths[0], B=paths[1], X=bad, O=out, T=paths[0].parent) for a in BAD_INPUT[case]]
+    argv = [a.format(A=paths[0], B=paths[1], C=paths[2], X=bad, O=out, T=paths[0].parent) for a in BAD_INPUT[case]]
     code = main(argv)
     captured = capsys.readouterr()
     assert code == 2, (case, captured.err)
