@@ -605,3 +605,26 @@ def test_an_unexpected_error_is_one_line_and_writes_nothing(tiny, tmp_path, caps
     assert main(["register", str(paths[0]), str(paths[1]), "--out", str(tmp_path / "o"), "-q"]) == 1
     assert "SVD did not converge" in _assert_one_line(capsys.readouterr().err)
     assert not (tmp_path / "o").exists() and not _leftovers(tmp_path)
+
+
+def test_tables_and_matrices_are_written_in_the_files_unit(tmp_path):
+    """coregister --units mm and register --units mm share these writers: positions in mm."""
+    from types import SimpleNamespace
+
+    from forestreg.engine.core.transform import to_file_units, to_metres
+    from forestreg.engine.io.tables import write_keypoints_csv, write_vops_csv
+
+    m = np.eye(4)
+    m[:3, 3] = [1.5, -2.0, 0.25]
+    assert np.allclose(to_file_units(m, 0.001)[:3, 3], [1500.0, -2000.0, 250.0])
+    assert np.allclose(to_metres(to_file_units(m, 0.001), 0.001), m)
+    shift = np.eye(4)
+    shift[:3, 3] = [100.0, 200.0, 10.0]
+    kp = SimpleNamespace(xyz=np.array([[1.0, 2.0, 3.0]]), peak_z=np.array([20.0]), cluster_sizes=np.array([50]))
+    write_keypoints_csv(tmp_path / "k.csv", kp, shift, np.array([-1]), unit_scale=0.001)
+    row = (tmp_path / "k.csv").read_text().splitlines()[1].split(",")
+    assert [float(v) for v in row[1:5]] == [101000.0, 202000.0, 13000.0, 30000.0]
+    write_vops_csv(tmp_path / "v.csv", np.array([[1.0, 2.0]]), np.array([3.0]), shift, np.array([0.2]), np.array([9]), [-1],
+                   unit_scale=0.01)
+    row = (tmp_path / "v.csv").read_text().splitlines()[1].split(",")
+    assert [float(v) for v in row[1:4]] == [10100.0, 20200.0, 1300.0] and row[4] == "0.200"
