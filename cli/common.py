@@ -111,6 +111,7 @@ class Reporter:
         self.result: Optional[str] = None
         self._bar = None
         self._last = None
+        self._last_fraction = -1.0
 
     # engine callback
     def __call__(self, fraction: float, message: str = "") -> None:
@@ -118,11 +119,11 @@ class Reporter:
         if self.mode == "jsonl":
             self._emit({"event": "progress", "step": step_id(message or self.command), "fraction": round(f, 4), "message": message})
         elif self.mode == "bar":
-            if not sys.stderr.isatty():  # a log: one line per new step, never cut
-                if message != self._last:
+            if not sys.stderr.isatty():  # a log: one line per new step (or 10 % more), never cut
+                if message != self._last or f >= self._last_fraction + 0.1 or (f == 1.0 and self._last_fraction < 1.0):
                     # "<command>: <message>  NN%|": the layout the plugin hosts have parsed so far
                     print(f"{self.command}: {message} {100 * f:3.0f}%|", file=sys.stderr, flush=True)
-                    self._last = message
+                    self._last, self._last_fraction = message, f
                 return
             from tqdm import tqdm
 
@@ -231,3 +232,12 @@ def check_replaceable_point_file(path, dimension: str, what: str) -> None:
         except Exception:  # unreadable: not ours either
             pass
     raise OutputPathError(f"{p} exists and is not an earlier {what}: it would be overwritten; give a new file name")
+
+
+def shown(path) -> Path:
+    """A path as printed: relative to the working folder when inside it (as the user typed it)."""
+    p = Path(path)
+    try:
+        return p.relative_to(Path.cwd())
+    except ValueError:
+        return p

@@ -11,7 +11,7 @@ from typing import Optional
 
 import numpy as np
 
-from .common import UNITS, Reporter, check_replaceable_point_file, log, number, say
+from .common import Reporter, UNITS, check_replaceable_point_file, log, number, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -121,12 +121,12 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
         say(
             f"ok: {result.n_matched} keypoints matched ({result.matching_percentage:.0f} % of "
             f"{len(result.ground_keypoints)} / {len(result.uav_keypoints)}), mean residual "
-            f"{100 * summary['residuals_m']['mean']:.1f} cm, ICP fitness {icp.fitness:.2f} -> {out / 'result.json'}", ns,
+            f"{100 * summary['residuals_m']['mean']:.1f} cm, ICP fitness {icp.fitness:.2f} -> {shown(out) / 'result.json'}", ns,
         )
         if (out / "report.html").exists():
-            print(f"report: {out / 'report.html'}")
+            print(f"report: {shown(out) / 'report.html'}")
         return 0
-    say(f"failed: {summary['reason']} -> {out / 'result.json'}", ns, err=True)
+    say(f"failed: {summary['reason']} -> {shown(out) / 'result.json'}", ns, err=True)
     return 1
 
 
@@ -171,5 +171,5 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
     for source, c in result.counts.items():
         print(f"{source}: {c['input']:,} in, {c['redundant']:,} redundant, {c['noise']:,} noise, {c['kept']:,} kept")
     reporter.done("", out)
-    say(f"wrote {len(result.points):,} points to {out}", argparse.Namespace(reporter=reporter))
+    say(f"wrote {len(result.points):,} points to {shown(out)}", argparse.Namespace(reporter=reporter))
     return 0

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import check_replaceable_point_file, log, number, offsets, params_from_args, say
+from .common import check_replaceable_point_file, log, number, offsets, params_from_args, say, shown
 
 POINT_SUFFIXES = (".laz", ".las", ".ply", ".xyz", ".txt")
 
@@ -233,11 +233,11 @@ def run_project(project, out: Path, args: argparse.Namespace) -> int:
         worst = max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0)
         print(f"global adjustment over {len(adjusted['links'])} links: largest link residual {100 * worst:.1f} cm")
     if (out / "report.html").exists():
-        print(f"report: {out / 'report.html'}")
+        print(f"report: {shown(out) / 'report.html'}")
     reporter.done("", out / "poses.json")
     n_ok = len(outcome.registered)
-    summary = f"{n_ok} of {len(outcome.status)} scans registered -> {out / 'poses.json'}"
-    say(f"poses: {out / 'poses.json'}" if not outcome.failed else summary, args, err=bool(outcome.failed))
+    summary = f"{n_ok} of {len(outcome.status)} scans registered -> {shown(out) / 'poses.json'}"
+    say(f"poses: {shown(out) / 'poses.json'}" if not outcome.failed else summary, args, err=bool(outcome.failed))
     return 0 if not outcome.failed else 1
 
 
@@ -396,7 +396,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     print(f"average target distance residual: auto {fmt(a)}, manual {fmt(m)}"
           + ("" if not comparison.get("target_residual_note") else f" ({comparison['target_residual_note']})"))
     if (out / "report.html").exists():
-        print(f"report: {out / 'report.html'}")
+        print(f"report: {shown(out) / 'report.html'}")
     args.reporter.done("", json_path)
     say(f"comparison: {json_path}" if not failed else f"{len(failed)} registrations failed -> {json_path}", args, err=bool(failed))
     return 0 if not failed else 1

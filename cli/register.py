@@ -10,7 +10,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .common import UNITS, Reporter, direction, floats, log, number, offsets, params_from_args, say
+from .common import Reporter, UNITS, direction, floats, log, number, offsets, params_from_args, say, shown
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -125,13 +125,13 @@ def run_register(
         icp = result.icp
         say(
             f"ok: {result.matched} matched VOPs ({result.reference_vops} / {result.moving_vops}), "
-            f"ICP std {1000 * icp.std_m:.1f} mm, fitness {icp.fitness:.2f} -> {out / 'result.json'}",
+            f"ICP std {1000 * icp.std_m:.1f} mm, fitness {icp.fitness:.2f} -> {shown(out) / 'result.json'}",
             _ns(reporter),
         )
         if (out / "registration.png").exists():
-            print(f"figure: {out / 'registration.png'}")
+            print(f"figure: {shown(out) / 'registration.png'}")
         return 0
-    say(f"failed: {summary['reason']} -> {out / 'result.json'}", _ns(reporter), err=True)
+    say(f"failed: {summary['reason']} -> {shown(out) / 'result.json'}", _ns(reporter), err=True)
     return 1
 
 

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .common import UNITS, Reporter, number, say
+from .common import Reporter, UNITS, number, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -75,12 +75,12 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
                                          by="position", max_distance=1.0 / scale)
     reporter.done("", out / "trees.csv")
     unit_note = "" if units == "m" else f" (positions in {units}, sizes in metres)"
-    say(f"{len(inventory.trees)} trees ({n_flagged} flagged as incomplete){unit_note} -> {out / 'trees.csv'}", argparse.Namespace(reporter=reporter))
+    say(f"{len(inventory.trees)} trees ({n_flagged} flagged as incomplete){unit_note} -> {shown(out) / 'trees.csv'}", argparse.Namespace(reporter=reporter))
     if report and (out / "report.html").exists():
-        print(f"report: {out / 'report.html'}")
+        print(f"report: {shown(out) / 'report.html'}")
     if field_table is not None:
         for line in lines:
-            print(line.replace(str(tmp), str(out)))
+            print(line.replace(str(tmp), str(shown(out))))
     return code
 
 
@@ -113,7 +113,7 @@ def run_evaluate(named: Sequence[tuple[str, str | Path]], field, out, *, by: str
     reporter.done("", out / "evaluation.json")
     ns = argparse.Namespace(reporter=reporter)
     for line in lines:
-        say(line.replace(str(tmp), str(out)), ns, err=line.startswith("failed"))
+        say(line.replace(str(tmp), str(shown(out))), ns, err=line.startswith("failed"))
     return code
 
 
