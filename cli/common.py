@@ -173,12 +173,19 @@ def progress_mode(args: argparse.Namespace) -> str:
 # ----------------------------------------------------------------------------- parameters
 
 
+PARAMS_HELP = "TOML parameter file: any of the sections [registration], [coregistration], [fusion], [trees] (see 'forestreg params --toml'); options given on the command line win"
+
+
+def product_params(args: argparse.Namespace):
+    """Every parameter of the product: the defaults, or the TOML file of ``--params``."""
+    from ..engine.params import ProductParams, load_params
+
+    return load_params(args.params) if getattr(args, "params", None) else ProductParams()
+
+
 def params_from_args(args: argparse.Namespace):
     """Registration parameters: the TOML file (``--params``) with the command line's overrides."""
-    from ..engine.params import load_params
-    from ..engine.tls.params import RegistrationParams
-
-    params = load_params(args.params).registration if getattr(args, "params", None) else RegistrationParams()
+    params = product_params(args).registration
     changes = {}
     if getattr(args, "dr", None) is not None:
         changes["vop_radius_m"] = args.dr

@@ -11,7 +11,7 @@ from typing import Optional
 
 import numpy as np
 
-from .common import Reporter, UNITS, check_replaceable_point_file, log, number, say, shown
+from .common import PARAMS_HELP, UNITS, Reporter, check_replaceable_point_file, log, number, product_params, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -23,6 +23,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--voxel", type=number("--voxel", positive=True), help="thinning voxel before clustering, m (default 0.3)")
     p.add_argument("--distance-threshold", type=number("--distance-threshold", positive=True), help="D_thr for matched keypoints, m (default 1)")
     p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates; results are written in the same unit")
+    p.add_argument("--params", help=PARAMS_HELP)
     p.set_defaults(func=cmd_coregister, long_running=True)
 
     p = sub.add_parser("fuse", help="fuse co-registered ground-based and UAV clouds (redundancy + noise removal)")
@@ -33,15 +34,13 @@ def add_parsers(sub) -> None:
     p.add_argument("--epsilon", type=number("--epsilon", positive=True), help="redundancy distance, m (default 0.01)")
     p.add_argument("--cube", type=number("--cube", positive=True), help="cube side of the redundancy search, m")
     p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates (and of the fused cloud)")
+    p.add_argument("--params", help=PARAMS_HELP)
     p.set_defaults(func=cmd_fuse, long_running=True)
 
 
 def coregistration_params(args: argparse.Namespace):
-    """Co-registration parameters: the defaults with the command line's options."""
-    from ..engine.coreg.coregister import CoregistrationParams
-    from ..engine.coreg.keypoints import KeypointParams
-    from ..engine.coreg.matching import MatchingParams
-
+    """Co-registration parameters: the defaults (or ``--params``) with the command line's options."""
+    base = product_params(args).coregistration
     kp: dict = {}
     mt: dict = {}
     if getattr(args, "min_cluster_size", None) is not None:
@@ -50,9 +49,7 @@ def coregistration_params(args: argparse.Namespace):
         kp["voxel_m"] = args.voxel
     if getattr(args, "distance_threshold", None) is not None:
         mt["distance_threshold_m"] = args.distance_threshold
-    return CoregistrationParams(
-        keypoints=dataclasses.replace(KeypointParams(), **kp), matching=dataclasses.replace(MatchingParams(), **mt)
-    )
+    return base.replace(keypoints=base.keypoints.replace(**kp), matching=base.matching.replace(**mt))
 
 
 def cmd_coregister(args: argparse.Namespace) -> int:
@@ -131,12 +128,12 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
 
 
 def cmd_fuse(args: argparse.Namespace) -> int:
-    return run_fuse(args.ground, args.uav, args.out, transform=args.transform, units=args.units,
+    return run_fuse(args.ground, args.uav, args.out, transform=args.transform, units=args.units, params=product_params(args).fusion,
                     epsilon=args.epsilon, cube=args.cube, reporter=args.reporter)
 
 
 def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", epsilon=None, cube=None,
-             reporter: Optional[Reporter] = None) -> int:
+             params=None, reporter: Optional[Reporter] = None) -> int:
     """Fuse two clouds into the LAS/LAZ ``out`` (refused when it is an input)."""
     from ..engine.core.atomic import check_output_file
     from ..engine.core.transform import read_matrix, to_metres
@@ -156,7 +153,7 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
         kw["redundancy_distance_m"] = epsilon
     if cube is not None:
         kw["cube_side_m"] = cube
-    params = FusionParams(**kw)
+    params = (params or FusionParams()).replace(**kw)
     ground = read_scan(ground_path, unit_scale=scale)
     uav = read_scan(uav_path, unit_scale=scale)
     try:

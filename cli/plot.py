@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import check_replaceable_point_file, log, number, offsets, params_from_args, say, shown
+from .common import PARAMS_HELP, check_replaceable_point_file, log, number, offsets, params_from_args, say, shown
 
 POINT_SUFFIXES = (".laz", ".las", ".ply", ".xyz", ".txt")
 
@@ -19,7 +19,7 @@ def _add_plot_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dr", type=number("--dr", positive=True), help="VOP radius D_r in metres for every link (default: automatic)")
     p.add_argument("--dc", type=number("--dc", positive=True), help="reduction radius D_c in metres (default 30)")
     p.add_argument("--dh", type=offsets, help="slice offsets dh in metres, comma-separated")
-    p.add_argument("--params", help="TOML parameter file ([registration] table)")
+    p.add_argument("--params", help=PARAMS_HELP)
 
 
 def add_parsers(sub, add_global_flags) -> None:

@@ -10,7 +10,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .common import Reporter, UNITS, direction, floats, log, number, offsets, params_from_args, say, shown
+from .common import PARAMS_HELP, UNITS, Reporter, direction, floats, log, number, offsets, params_from_args, say, shown
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -21,7 +21,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--dr", type=number("--dr", positive=True), help="VOP radius D_r in metres (default: automatic)")
     p.add_argument("--dc", type=number("--dc", positive=True), help="reduction radius D_c in metres (default 30)")
     p.add_argument("--dh", type=offsets, help="slice offsets dh in metres, comma-separated (default 0)")
-    p.add_argument("--params", help="TOML parameter file ([registration] table; see 'forestreg params --toml')")
+    p.add_argument("--params", help=PARAMS_HELP)
     p.add_argument(
         "--scanner-position", action="append", type=lambda s: floats(s, 3, "--scanner-position"),
         metavar="X,Y,Z", help="scanner position in file coordinates: first for the reference, again for the moving scan (default: each file's origin)",

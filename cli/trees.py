@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .common import Reporter, UNITS, number, say, shown
+from .common import PARAMS_HELP, UNITS, Reporter, number, product_params, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -19,6 +19,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--no-cylinders", action="store_true", help="skip the cylinder models (faster; no volume)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates")
+    p.add_argument("--params", help=PARAMS_HELP)
     p.set_defaults(func=cmd_trees, long_running=True)
 
     p = sub.add_parser("evaluate", help="compare trees.csv with field records: R2, RMSE, rRMSE per parameter (paper table 3)")
@@ -33,12 +34,12 @@ def add_parsers(sub) -> None:
 
 
 def cmd_trees(args: argparse.Namespace) -> int:
-    return run_trees(args.cloud, args.out, transform=args.transform, field=args.field, units=args.units,
+    return run_trees(args.cloud, args.out, transform=args.transform, field=args.field, units=args.units, params=product_params(args).trees,
                      cylinders=not args.no_cylinders, report=not args.no_report, reporter=args.reporter)
 
 
 def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", cylinders: bool = True,
-              report: bool = True, reporter: Optional[Reporter] = None) -> int:
+              report: bool = True, params=None, reporter: Optional[Reporter] = None) -> int:
     """Measure the trees of ``cloud_path`` into the folder ``out`` (a transaction), with
     ``field`` also evaluated into ``out/evaluation``."""
     import dataclasses
@@ -59,7 +60,7 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
     cloud = read_scan(cloud_path, unit_scale=scale)
     if matrix is not None:
         cloud = cloud.transformed(matrix)
-    params = TreeParams()
+    params = params or TreeParams()
     if not cylinders:
         params = dataclasses.replace(params, cylinder_models=False)
     try:
