@@ -173,13 +173,15 @@ def _publish(tmp: Path, out: Path, scan_names) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
 
 
-def run_project(project, out: Path, args: argparse.Namespace) -> int:
+def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int:
     """Register the project, then write poses, transforms and the report into ``out``."""
     import tempfile
 
     from ..engine.tls.plot import ScanCache, add_neighbour_links, adjust_poses, register_project, write_merged, write_poses
 
-    scans = ScanCache(project)
+    if scans is None:
+        scans = ScanCache(project)
+        _check_scans_near_their_scanners(project, scans)
     reporter = args.reporter
     try:
         outcome = register_project(project, rerun=getattr(args, "rerun", False), progress=reporter, scans=scans)
@@ -241,6 +243,25 @@ def run_project(project, out: Path, args: argparse.Namespace) -> int:
     return 0 if not outcome.failed else 1
 
 
+def _check_scans_near_their_scanners(project, scans) -> None:
+    """Before the work: when no scan of the plot has points near its scanner (georeferenced scans
+    without scanner positions, or files in cm/mm), refuse with one line instead of failing every
+    link after minutes. A single such scan fails its own link with the reason."""
+    from ..engine.core.errors import ScanDataError, ScanReadError, UsageError
+    from .register import check_near_scanner
+
+    problems = []
+    for s in project.scans:
+        try:
+            check_near_scanner(scans(s.name), project.params.max_range_m, s.path, "m")
+        except UsageError as exc:
+            problems.append(str(exc))
+        except (ScanReadError, ScanDataError):
+            problems.append("")  # unreadable: its link reports it
+    if problems and all(problems) and len(problems) == len(project.scans):
+        raise UsageError(problems[0])
+
+
 def _plot_folder(out, scans) -> Path:
     """The plot's working folder: absent, empty or an earlier plot folder (marked)."""
     from ..engine.core.atomic import MARKER, check_output_folder
@@ -255,9 +276,13 @@ def cmd_plot(args: argparse.Namespace) -> int:
     _check_scan_files_exist(args.scans)
     _check_extra_outputs(args, args.scans)
     project = project_from_args(args)
+    from ..engine.tls.plot import ScanCache
+
+    scans = ScanCache(project)
+    _check_scans_near_their_scanners(project, scans)  # before anything is written
     out = _plot_folder(args.out, args.scans)
     project.save(out / "project.json")
-    return run_project(project, out, args)
+    return run_project(project, out, args, scans)
 
 
 def _check_scan_files_exist(paths) -> None:

@@ -628,3 +628,14 @@ def test_tables_and_matrices_are_written_in_the_files_unit(tmp_path):
                    unit_scale=0.01)
     row = (tmp_path / "v.csv").read_text().splitlines()[1].split(",")
     assert [float(v) for v in row[1:4]] == [10100.0, 20200.0, 1300.0] and row[4] == "0.200"
+
+
+def test_a_plot_of_cm_files_is_refused_before_the_work(tiny, tmp_path, capsys):
+    _, paths, _ = tiny
+    cm = []
+    for p in paths[:2]:
+        cm.append(tmp_path / f"cm_{p.name}")
+        write_scan(read_scan(p), cm[-1], matrix=np.diag([100.0, 100.0, 100.0, 1.0]))
+    assert main(["plot", *map(str, cm), "--out", str(tmp_path / "plot"), "-q"]) == 2
+    assert "--units" in _assert_one_line(capsys.readouterr().err)
+    assert not (tmp_path / "plot").exists()
