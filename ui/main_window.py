@@ -511,13 +511,13 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self._start_view_task("top view", self._top_task, self._top_built)
 
     def _top_task(self) -> TaskWorker:
-        from ..engine.report.plot_report import compute_top_view
+        from ..engine.tls.views import compute_top_view
 
         project, scans = self.project, self.scans
         return TaskWorker(lambda progress, cancel: compute_top_view(project, scans), name="top view")
 
     def _top_built(self, view: Any) -> None:
-        from ..engine.report.plot_report import scan_colours
+        from ..engine.tls.views import scan_colours
 
         self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: slices, VOPs and matches")
         self.topViewReady.emit()

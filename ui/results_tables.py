@@ -15,7 +15,7 @@ from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import QAbstractItemView, QHeaderView, QTableWidget, QTableWidgetItem, QWidget
 
 from ..engine.tls.project import Project
-from ..engine.report.plot_report import scan_states
+from ..engine.tls.views import scan_states
 from .project_model import STATUS_COLOURS, link_status
 
 LINK_COLUMNS = ("Moving", "Reference", "Method", "Status", "D_r (m)", "VOPs ref / mov", "Matched",

@@ -14,7 +14,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle
 from PySide6.QtWidgets import QVBoxLayout, QWidget
 
-from ..engine.report.plot_report import TopView
+from ..engine.tls.views import TopView
 
 MATCH_COLOUR = "#2ca02c"
 
