@@ -144,6 +144,11 @@ def check_near_scanner(scan, max_range_m: float, path, units: str) -> None:
     georeferenced scan without ``--scanner-position`` or a file in another unit than ``--units``."""
     from ..engine.core.errors import UsageError
 
+    span = float(np.ptp(scan.points[:, :2], axis=0).max())
+    if span < 2.0:
+        raise UsageError(
+            f"{path}: with --units {units} the points span only {span:.2f} m horizontally; a forest scan spans tens of metres: "
+            "check the file's unit (--units)")
     d = np.hypot(*(scan.points[:, :2] - scan.scanner_position[:2]).T)
     near = int(np.count_nonzero(d <= max_range_m))
     if near < 1000 or near < 0.01 * len(d):

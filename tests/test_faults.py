@@ -240,6 +240,9 @@ def test_project_link_and_damaged_project_files_exit_2(tiny, tmp_path, capsys):
 def test_georeferenced_scan_without_its_position_and_a_cm_file_are_refused_before_the_work(tiny, tmp_path, capsys):
     _, paths, _ = tiny
     scan = read_scan(paths[1])
+    metres_as_cm = ["--units", "cm"]
+    assert main(["register", str(paths[0]), str(paths[1]), "--out", str(tmp_path / "o"), *metres_as_cm]) == 2
+    assert "--units" in _assert_one_line(capsys.readouterr().err)
     geo, cm = tmp_path / "geo.laz", tmp_path / "cm.laz"
     shift = np.eye(4)
     shift[:3, 3] = [512345.0, 5212345.0, 300.0]
