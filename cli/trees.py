@@ -67,7 +67,6 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
         inventory = measure_trees(cloud.points, params, progress=reporter, origin_shift=cloud.origin_shift)
     finally:
         reporter.close()
-    n_flagged = sum(1 for t in inventory.trees if t.flags)
     with output_folder(out, "trees") as tmp:
         inventory.write(tmp, cloud.points, report=report, unit_scale=scale)
         code = 0
@@ -75,8 +74,11 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
             code, lines = _evaluate_into(tmp / "evaluation", [("trees", read_tree_table(tmp / "trees.csv"))], field_table,
                                          by="position", max_distance=1.0 / scale)
     reporter.done("", out / "trees.csv")
+    quiet = argparse.Namespace(reporter=reporter)
+    for step, seconds in inventory.timings.items():  # the steps run, in order
+        say(f"  {step.removesuffix('_s')}: {seconds:.1f} s", quiet)
     unit_note = "" if units == "m" else f" (positions in {units}, sizes in metres)"
-    say(f"{len(inventory.trees)} trees ({n_flagged} flagged as incomplete){unit_note} -> {shown(out) / 'trees.csv'}", argparse.Namespace(reporter=reporter))
+    say(f"{inventory.summary()}{unit_note} -> {shown(out) / 'trees.csv'}", quiet)
     if report and (out / "report.html").exists():
         print(f"report: {shown(out) / 'report.html'}")
     if field_table is not None:

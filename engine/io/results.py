@@ -38,7 +38,7 @@ __all__ = [
 PathLike = Union[str, os.PathLike[str]]
 
 #: Columns of trees.csv read as text (everything else is a number; empty cells are NaN).
-TEXT_COLUMNS = ("flag", "flags", "edited", "edit", "tree_id", "species")
+TEXT_COLUMNS = ("flag", "flags", "edited", "edit", "tree_id", "species", "source", "dbh_quality", "height_quality", "crown_quality", "volume_quality")
 
 
 def read_csv_rows(path: PathLike) -> tuple[list[str], list[dict[str, str]]]:

@@ -31,10 +31,10 @@ from scipy.spatial import cKDTree
 from ..core.atomic import write_text_atomic
 from ..core.errors import ParameterError, ScanDataError
 from .crown import CrownMeasurement, measure_crown
-from .inventory import TreeInventory, TreeParams, TreeRecord
-from .qsm import fit_qsm
+from .inventory import TreeInventory, TreeParams, TreeRecord, tree_record
 from .segmentation import tree_completeness
-from .stems import Stem, detect_stems, measure_dbh, stem_curve
+from .consistency import stem_curve_wood
+from .stems import NOISY_STEM_CHANGES, Stem, detect_stems, measure_dbh, stem_curve
 
 __all__ = [
     "EDIT_KINDS",
@@ -124,16 +124,16 @@ def measure_tree(
     completeness flags and cylinder model, with the step functions ``measure_trees`` uses."""
     p = points
     heights = inventory.heights
-    stem_params = params.stems if breast_height_m is None else dataclasses.replace(params.stems, breast_height_m=float(breast_height_m))
+    base_params = params.stems.replace(**NOISY_STEM_CHANGES) if getattr(inventory, "method", "fine") == "noisy" else params.stems
+    stem_params = base_params if breast_height_m is None else dataclasses.replace(base_params, breast_height_m=float(breast_height_m))
     index = search_tree if search_tree is not None else cKDTree(p)
     dbh = measure_dbh(p, heights, stem, stem_params, search_tree=index)
-    curve = stem_curve(p, heights, stem, params.stems, search_tree=index)
+    curve = stem_curve(p, heights, stem, base_params, search_tree=index)
     labels = np.zeros(len(p), dtype=inventory.labels.dtype)
     labels[indices] = stem.id
     complete = tree_completeness(p, heights, labels, [stem], params.completeness, {stem.id: dbh})
-    tree_pts = p[indices]
     try:
-        crown = measure_crown(tree_pts, heights[indices], stem, params.crown)
+        crown = measure_crown(p[indices], heights[indices], stem, params.crown)
     except ScanDataError as exc:
         nan = math.nan
         crown = CrownMeasurement(
@@ -141,22 +141,14 @@ def measure_tree(
             crown_width_ns_m=nan, crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan,
             crown_volume_m3=nan, n_points=int(len(indices)), top=(nan, nan, nan), ok=False, reasons=(str(exc),),
         )
-    flags = list(complete[0].reasons) if complete else []
-    if not crown.ok:
-        flags += [f"crown: {r}" for r in crown.reasons]
-    wood = inventory.wood_probability[indices] if len(inventory.wood_probability) == len(p) else np.zeros(len(indices))
-    cylinders = None
-    if params.cylinder_models and len(indices) >= 50:
-        w = wood >= params.wood_threshold
-        qsm_pts = tree_pts[w] if np.count_nonzero(w) >= 200 else tree_pts
-        try:
-            cylinders = fit_qsm(qsm_pts, params.qsm, base=stem.base)
-        except ScanDataError as exc:
-            flags.append(f"cylinder model failed: {exc}")
-    return TreeRecord(
-        tree_id=stem.id, stem=stem, dbh=dbh, curve=curve, crown=crown, cylinders=cylinders, n_points=int(len(indices)),
-        wood_fraction=float(np.mean(wood >= params.wood_threshold)) if len(indices) else 0.0,
-        flags=tuple(dict.fromkeys(flags)),
+    wood = inventory.wood_probability.copy() if len(inventory.wood_probability) == len(p) else np.zeros(len(p))
+    wood[stem_curve_wood(p, index, stem, curve, max(2.0 * stem_params.inlier_tolerance_m, 0.03))] = 1.0
+    ground = np.asarray(inventory.ground, dtype=bool)
+    no_ground = not ground.any()
+    ground_xy = cKDTree(p[ground, :2]) if ground.any() else None
+    return tree_record(
+        p, stem, np.asarray(indices), dbh, curve, crown, wood, complete[0].reasons if complete else (), params,
+        stem_params=stem_params, method=getattr(inventory, "method", "fine"), no_ground=no_ground, ground_xy=ground_xy,
     )
 
 
