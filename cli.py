@@ -187,8 +187,16 @@ def cmd_coregister(args: argparse.Namespace) -> int:
     read_s = time.perf_counter() - t0
     params = _coregistration_params(args)
     bar = ProgressBar(not args.quiet, "coregister")
+
+    def steps(fraction: float, message: str) -> None:  # per-step lines above the bar
+        bar(fraction, message)
+        if not args.quiet and message.startswith("["):
+            from tqdm import tqdm
+
+            tqdm.write(message, file=sys.stderr)
+
     try:
-        result = coregister(ground, uav, params, progress=bar)
+        result = coregister(ground, uav, params, progress=steps)
     finally:
         bar.close()
     summary = result.to_dict()
@@ -217,14 +225,9 @@ def cmd_coregister(args: argparse.Namespace) -> int:
         write_text_atomic(out / "transform.txt", format_matrix(result.matrix))
     write_text_atomic(out / "result.json", json.dumps(summary, indent=2) + "\n")
     if result.ok:
-        icp = result.icp
-        print(
-            f"ok: {result.n_matched} keypoints matched ({result.matching_percentage:.0f} % of "
-            f"{len(result.ground_keypoints)} / {len(result.uav_keypoints)}), mean residual "
-            f"{100 * summary['residuals_m']['mean']:.1f} cm, ICP fitness {icp.fitness:.2f} -> {out / 'result.json'}"
-        )
+        print(f"{result.summary()} -> {out / 'result.json'}")
         return 0
-    print(f"failed: {result.reason} -> {out / 'result.json'}", file=sys.stderr)
+    print(f"{result.summary()} -> {out / 'result.json'}", file=sys.stderr)
     return 1
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError
-from ..geometry.icp import IcpResult, icp, thin
+from ..geometry.icp import IcpReference, IcpResult, icp, thin
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..core.scan import Scan
 from ..terrain.dem import TerrainModel, TerrainParams, terrain_model
@@ -292,14 +292,15 @@ def coregister_points(
 
     # 1. terrain
     t = time.perf_counter()
-    progress(0.0, "ground and DEM of the ground-based cloud")
+    progress(0.0, "[1/6] terrain: ground and DEM of the ground-based cloud")
     g_terrain = ground_terrain or terrain_model(ground, params.terrain, progress.sub(0.0, 0.12))
-    progress(0.12, "ground and DEM of the UAV cloud")
+    progress(0.12, "[1/6] terrain: ground and DEM of the UAV cloud")
     u_terrain = uav_terrain or terrain_model(uav, params.terrain, progress.sub(0.12, 0.22))
     timings["terrain_s"] = time.perf_counter() - t
 
     # 2. keypoints
     t = time.perf_counter()
+    progress(0.22, f"[2/6] canopy keypoints (terrain: {g_terrain.n_ground:,} / {u_terrain.n_ground:,} ground points)")
     try:
         g_kp = extract_keypoints(ground, g_terrain.dem, params.keypoints, progress.sub(0.22, 0.42))
     except ScanDataError as exc:
@@ -317,6 +318,7 @@ def coregister_points(
 
     # 3. matching
     t = time.perf_counter()
+    progress(0.62, f"[3/6] matching {len(g_kp)} ground-based with {len(u_kp)} UAV keypoints")
     solutions = match_keypoints(g_kp.xyz, u_kp.xyz, params.matching, progress.sub(0.62, 0.72))
     timings["matching_s"] = time.perf_counter() - t
     if not solutions:
@@ -324,7 +326,7 @@ def coregister_points(
 
     # 4. rank the candidate solutions by the canopy surfaces (fast), keep the best few distinct
     t = time.perf_counter()
-    progress(0.72, f"ranking {len(solutions)} candidate solutions by the canopy surfaces")
+    progress(0.72, f"[4/6] ranking {len(solutions)} keypoint solutions by the canopy surfaces; the best {params.candidates_verified} distinct are refined")
     g_thin = thin(ground, 0.2)
     g_canopy = _column_tops(g_thin[g_terrain.dem.normalise(g_thin) > params.surface_min_height_m], 0.25)
     uav_surface = _SurfaceGrid.of(thin(uav, 0.2), params.surface_cell_m)
@@ -354,7 +356,7 @@ def coregister_points(
     # 5. coarse 6-DoF ICP from each candidate, then verification AFTER ICP: the canopy surfaces
     # must agree under the refined solution, far better than under any distinct alternative
     t = time.perf_counter()
-    g_ref = thin(ground, params.coarse_voxel_m)
+    g_ref = IcpReference(ground)  # thinned levels, trees and normals shared by every ICP run below
     refined: list[tuple[float, int, np.ndarray]] = []
     for k, i in enumerate(candidates):
         progress(0.75 + 0.1 * k / len(candidates), f"candidate {k + 1}/{len(candidates)}: coarse ICP and canopy check")
@@ -369,7 +371,7 @@ def coregister_points(
             m = sol.matrix  # ICP ran away: keep the keypoint solution as it is
         r, n = surface_correlation(g_canopy, uav_surface, m)
         refined.append((r if n >= params.min_surface_cells else 0.0, i, m))
-        progress(0.75 + 0.1 * (k + 1) / len(candidates), f"candidate {k + 1}: canopy correlation {ranked_r[i]:.2f} -> {refined[-1][0]:.2f} after ICP")
+        progress(0.75 + 0.1 * (k + 1) / len(candidates), f"[4/6] candidate {k + 1}/{len(candidates)}: {solutions[i].n_matched} keypoints, canopy correlation {ranked_r[i]:.2f} -> {refined[-1][0]:.2f} after ICP")
     refined.sort(key=lambda v: -v[0])
     best_r, best_i, coarse = refined[0]
     best = solutions[best_i]
@@ -396,9 +398,9 @@ def coregister_points(
 
     # 6. fine ICP on the full clouds: the (sparser) UAV cloud onto the ground-based surfaces
     t = time.perf_counter()
-    progress(0.86, "fine ICP")
+    progress(0.86, f"[5/6] fine ICP from the best candidate (correlation {best_r:.2f}, margin {best_r - alt:.2f})")
     result = _icp_uav_onto_ground(
-        ground, uav, coarse, params.icp_voxel_m, params.icp_distances_m, params.icp_iterations,
+        g_ref, uav, coarse, params.icp_voxel_m, params.icp_distances_m, params.icp_iterations,
     )
     timings["icp_s"] = time.perf_counter() - t
     shift = _apart_m(result.matrix, best.matrix, g_kp.xyz)
@@ -429,10 +431,10 @@ def coregister_points(
 
     # 7. quality figures without ground truth, and standard errors (jackknife over quadrants)
     t = time.perf_counter()
-    progress(0.92, "quality figures and standard errors (jackknife over plot quadrants)")
+    progress(0.92, "[6/6] quality figures and standard errors (jackknife over plot quadrants)")
     common["quality"] = coregistration_quality(ground, uav, g_terrain, u_terrain, result.matrix, params.surface_cell_m)
     if params.jackknife:
-        common["standard_errors"] = jackknife_standard_errors(ground, uav, result.matrix, params)
+        common["standard_errors"] = jackknife_standard_errors(g_ref, uav, result.matrix, params)
     timings["quality_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
     progress(1.0, f"co-registered: {len(pairs_after)} keypoints matched ({pct:.0f} %), canopy correlation {final_r:.2f} "
@@ -480,7 +482,7 @@ def _overlap(uav: np.ndarray, ground: np.ndarray, matrix: np.ndarray, margin_m: 
 
 
 def _icp_uav_onto_ground(
-    ground: np.ndarray,
+    ground: IcpReference,
     uav: np.ndarray,
     matrix: np.ndarray,
     voxel_m: float,
@@ -495,7 +497,7 @@ def _icp_uav_onto_ground(
     well-sampled surfaces (ground, stems, crowns), which is markedly more accurate than the other
     way round (real MLS onto ALS: 0.46 deg / 8 cm off the other way). Returns the result with
     ``matrix`` ground -> UAV (the inverse of the fitted UAV -> ground transform)."""
-    near = _overlap(uav, ground, matrix, margin_m=max(2.0, 2 * max(distances_m)))
+    near = _overlap(uav, ground.level(0.5)[0], matrix, margin_m=max(2.0, 2 * max(distances_m)))
     if keep is not None:
         near &= keep
     moving = uav[near]
@@ -570,17 +572,17 @@ def _robust(name: str, values: np.ndarray) -> dict[str, float]:
 
 
 def jackknife_standard_errors(
-    ground: np.ndarray, uav: np.ndarray, matrix: np.ndarray, params: "CoregistrationParams"
+    ground: IcpReference, uav: np.ndarray, matrix: np.ndarray, params: "CoregistrationParams"
 ) -> dict[str, Any]:
     """Delete-one-quadrant jackknife of the fine ICP: the UAV points of the overlap are split into
     four quadrants about the overlap's centre; the last two ICP stages are re-run from ``matrix``
     without each quadrant in turn. Standard errors ``sqrt((n-1)/n * sum((x_i - mean)^2))`` of the
     rotation (deg; total, and its heading and tilt parts) and of the translation of the
     ground-based cloud's centre (m; total, horizontal and vertical)."""
-    near = _overlap(uav, ground, matrix, margin_m=1.0)
+    near = _overlap(uav, ground.level(0.5)[0], matrix, margin_m=1.0)
     centre = np.median(uav[near, :2], axis=0) if near.any() else np.median(uav[:, :2], axis=0)
     q = (uav[:, 0] > centre[0]).astype(int) + 2 * (uav[:, 1] > centre[1]).astype(int)
-    g_centre = np.median(ground, axis=0)
+    g_centre = np.median(ground.level(0.5)[0], axis=0)
     stages = params.icp_distances_m[-2:]
     rot_vecs, shifts = [], []
     for k in range(4):
