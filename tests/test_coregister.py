@@ -147,7 +147,7 @@ def test_keypoints_on_the_dem_and_downsampling_evens_out_density():
         assert (kp.peak_z > kp.xyz[:, 2] + 2.0).all()
 
 
-def test_coregister_cli_writes_every_output(tmp_path):
+def test_coregister_cli_writes_every_output(tmp_path, capsys):
     from forestreg.cli import main
     from forestreg.engine.io import read_scan, write_scan
 
@@ -156,19 +156,27 @@ def test_coregister_cli_writes_every_output(tmp_path):
     write_scan(ground, tmp_path / "ground.laz")
     write_scan(case.uav, tmp_path / "uav.laz")
     out = tmp_path / "co"
-    code = main(["coregister", str(tmp_path / "ground.laz"), str(tmp_path / "uav.laz"), "--out", str(out), "--quiet"])
+    code = main(["coregister", str(tmp_path / "ground.laz"), str(tmp_path / "uav.laz"), "--out", str(out)])
     assert code == 0
+    printed = capsys.readouterr()
+    for step in range(1, 7):  # one line per step
+        assert f"[{step}/6]" in printed.err
+    last = printed.out.strip().splitlines()[-1]  # one summary line
+    assert last.startswith("ok: ") and "margin" in last and "standard errors" in last
     result = json.loads((out / "result.json").read_text())
     assert result["status"] == "ok" and result["reason"] == ""
     rot, trans = rigid_errors(np.array(result["matrix"]), case.matrix)
     assert rot < 0.1 and trans < 0.05
-    for key in ("keypoints", "matched", "matching_percentage", "residuals_m", "icp", "timings"):
+    for key in ("keypoints", "matched", "matching_percentage", "residuals_m", "icp", "timings", "standard_errors",
+                "quality", "correlation_margin", "candidates_verified"):
         assert key in result
     assert result["distance_threshold_m"] == 1.0
     m = np.loadtxt(out / "transform.txt")
     assert np.allclose(m, result["matrix"], atol=1e-6)
     for name in ("keypoints_ground.csv", "keypoints_uav.csv", "coregistration.png", "report.html"):
         assert (out / name).stat().st_size > 0, name
+    page = (out / "report.html").read_text()
+    assert "jackknife" in page and "ground height agreement" in page
     rows = (out / "keypoints_ground.csv").read_text().splitlines()
     assert rows[0] == "id,x,y,z,peak_z,cluster_size,matched_with"
     assert sum(int(r.split(",")[-1]) >= 0 for r in rows[1:]) == result["matched_after_icp"]
@@ -233,6 +241,7 @@ def test_drifted_tilted_backpack_onto_uav():
     shift = np.linalg.norm(
         (result.matrix[:3, :3] - case.matrix[:3, :3]) @ centre + result.matrix[:3, 3] - case.matrix[:3, 3]
     )
+    print(f"drifted backpack: {rot:.4f} deg, {100 * shift:.2f} cm; {result.summary()}")
     assert rot < 0.3, f"rotation error {rot:.3f} deg"
     assert shift < 0.15, f"translation error at the plot centre {100 * shift:.1f} cm"
     assert result.correlation_margin > 0.2
@@ -335,6 +344,7 @@ def test_real_mls_onto_real_als_from_any_heading(shared_data, name):
     result = coregister(ground, als)
     assert result.ok, result.reason
     rot, shift = _errors_at_centre(result.local_matrix, fine @ np.linalg.inv(a), ground.points)
+    print(f"{name}: {rot:.4f} deg, {100 * shift:.2f} cm from the fine alignment; {result.summary()}; {result.quality}")
     assert rot < 0.3, f"{rot:.3f} deg from the fine alignment"
     assert shift < 0.15, f"{100 * shift:.1f} cm from the fine alignment"
     assert result.surface_correlation > 0.85 and result.correlation_margin > 0.4
@@ -353,6 +363,7 @@ def test_real_tilted_mls_onto_a_uls_like_cloud(shared_data):
     result = coregister(ground, uls)
     assert result.ok, result.reason
     rot, shift = _errors_at_centre(result.local_matrix, fine @ np.linalg.inv(a), ground.points)
+    print(f"ULS-like: {rot:.4f} deg, {100 * shift:.2f} cm from the fine alignment; {result.summary()}")
     assert rot < 0.3 and shift < 0.15, (rot, shift)
     assert result.correlation_margin > 0.4
 
@@ -371,6 +382,7 @@ def test_unrelated_real_clouds_are_refused_with_a_clear_margin(shared_data):
     mirrored = Scan.from_points(als.points * [-1.0, 1.0, 1.0], name="als_mirrored", origin_shift=np.zeros(3))
     for other in (read_scan(shared_data / "lidR_MixedConifer.laz"), mirrored):
         result = coregister(mls, other)
+        print(f"{other.name}: {result.summary()} (best {result.surface_correlation:.2f})")
         assert not result.ok and result.matrix is None
         assert "same plot" in result.reason or "ambiguous" in result.reason, result.reason
         assert result.surface_correlation < need - 0.15, (other.name, result.surface_correlation)
