@@ -386,3 +386,25 @@ def test_unrelated_real_clouds_are_refused_with_a_clear_margin(shared_data):
         assert not result.ok and result.matrix is None
         assert "same plot" in result.reason or "ambiguous" in result.reason, result.reason
         assert result.surface_correlation < need - 0.15, (other.name, result.surface_correlation)
+
+
+def test_real_coarse_icp_corrects_a_keypoint_solution_degrees_off(shared_data):
+    """The failure of the old pipeline on the real MLS/ULS pair: the best keypoint solution was
+    ~8 deg off and was judged before ICP. The candidates' coarse 6-DoF ICP brings solutions 8 and
+    15 deg / 1-1.5 m off (about the plot centre) to within 0.2 deg / 10 cm of the fine alignment."""
+    from forestreg.engine.coreg import CoregistrationParams
+    from forestreg.engine.coreg.coregister import _icp_uav_onto_ground
+    from forestreg.engine.core.transform import matrix_from_yaw
+
+    mls, als, ref, fine = _real_pair(str(shared_data))
+    p = CoregistrationParams()
+    c = mls.points.mean(axis=0)
+    for yaw, off in ((8.0, (1.0, -0.5, 0.0)), (-15.0, (1.5, 0.0, 0.3))):
+        wrong = matrix_from_yaw(yaw)
+        wrong[:3, 3] = c - wrong[:3, :3] @ c + np.asarray(off)
+        start = fine @ wrong
+        m = _icp_uav_onto_ground(
+            ref, als.points, start, p.coarse_voxel_m, p.coarse_icp_distances_m, p.icp_iterations, max_moving_points=8000
+        ).matrix
+        rot, shift = _errors_at_centre(m, fine, mls.points)
+        assert rot < 0.2 and shift < 0.1, (yaw, rot, shift)
