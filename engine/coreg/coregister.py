@@ -195,8 +195,8 @@ class CoregistrationResult:
             "alternative_correlation": self.alternative_correlation,
             "correlation_margin": self.correlation_margin,
             "candidates_verified": self.candidates_verified,
-            "quality": None if self.quality is None else dict(self.quality),
-            "standard_errors": None if self.standard_errors is None else dict(self.standard_errors),
+            "quality": _finite_or_none(self.quality),
+            "standard_errors": _finite_or_none(self.standard_errors),
             "icp": None if self.icp is None else self.icp.to_dict(),
             "timings": dict(self.timings),
         }
@@ -205,6 +205,13 @@ class CoregistrationResult:
         if local is None:
             return None
         return _shift_matrix(self.uav_shift) @ local @ _shift_matrix(-self.ground_shift)
+
+
+def _finite_or_none(values: Optional[dict[str, Any]]) -> Optional[dict[str, Any]]:
+    """A copy for JSON: NaN/inf figures (nothing to measure them on) become None."""
+    if values is None:
+        return None
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in values.items()}
 
 
 def _shift_matrix(shift: np.ndarray) -> np.ndarray:

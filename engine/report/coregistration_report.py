@@ -158,11 +158,11 @@ def write_coregistration_report(
                      f"vertical {100 * se['vertical_m']:.1f})"))
     q = d.get("quality")
     if q:
-        if q.get("ground_dz_count"):
+        if q.get("ground_dz_count") and q.get("ground_dz_median_m") is not None:
             rows.append(("ground height agreement (UAV ground - ground-based DEM)",
                          f"median {100 * q['ground_dz_median_m']:+.1f} cm, NMAD {100 * q['ground_dz_nmad_m']:.1f} cm "
                          f"({q['ground_dz_count']} points)"))
-        if q.get("canopy_dz_count"):
+        if q.get("canopy_dz_count") and q.get("canopy_dz_median_m") is not None:
             rows.append(("canopy surface residual (UAV top - ground-based top, 1 m cells)",
                          f"median {100 * q['canopy_dz_median_m']:+.1f} cm, NMAD {100 * q['canopy_dz_nmad_m']:.1f} cm "
                          f"({q['canopy_dz_count']} cells)"))
