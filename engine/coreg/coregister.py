@@ -1,5 +1,12 @@
 """Ground-based / UAV co-registration pipeline (paper section 4.1): DEMs, canopy keypoints,
-matching, a 6-DoF rigid transform, then ICP, with the evidence and an honest status.
+matching, then the best few distinct keypoint solutions each refined by a coarse 6-DoF ICP and
+verified *after* it (canopy surface correlation, a margin over the best distinct alternative), a
+fine ICP, and the evidence: standard errors (jackknife over plot quadrants) and quality figures
+that need no ground truth (ground height agreement, canopy surface residuals).
+
+A ground-based cloud whose SLAM map is tilted or drifts by a few degrees gives keypoint solutions
+a few degrees off; the coarse ICP corrects them before they are judged (real MLS clip: solutions
+8-15 deg / 1.5 m off come back to 0.07 deg / 4 cm of the fine alignment).
 
 ``p_uav = matrix @ p_ground`` (homogeneous column vectors) in the two inputs' *file* frames; the
 work runs in each scan's local frame (large georeferenced coordinates shifted) and the shifts are
@@ -8,8 +15,9 @@ folded into the final matrix.
 Failure (``status == "failed"``, with a ``reason``) when: either cloud has too little canopy for
 keypoints; fewer than ``min_matched`` keypoints match; the matching percentage is below
 ``min_matching_percentage``; the canopy surfaces (highest point per 1 m cell) of the two clouds
-do not correlate under the solution, or a distinct solution correlates almost as well (a repetitive
-plantation); ICP moves far from the keypoint solution, or the surfaces correlate poorly after it.
+do not correlate under any refined solution, or a distinct refined solution comes within
+``min_correlation_margin`` (a repetitive plantation); ICP moves far from the keypoint solution,
+or the surfaces correlate poorly after it.
 """
 
 from __future__ import annotations
