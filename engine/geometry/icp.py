@@ -69,8 +69,33 @@ def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours
     return v[:, :, 0]
 
 
+class IcpReference:
+    """A reference cloud prepared for repeated ICP runs: its voxel-thinned versions, their k-d
+    trees and normals (computed where first needed) are kept per voxel size, so several ICP
+    runs against one reference (candidates, a jackknife) build them once. Not thread-safe."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = np.asarray(points, dtype=np.float64)
+        self._levels: dict[float, tuple[np.ndarray, cKDTree, np.ndarray]] = {}
+        self._full_tree: cKDTree | None = None
+
+    def level(self, voxel_m: float) -> tuple[np.ndarray, cKDTree, np.ndarray]:
+        """(thinned points, their k-d tree, their normals: NaN rows not computed yet)."""
+        key = round(float(voxel_m), 6)
+        if key not in self._levels:
+            ref = thin(self.points, voxel_m)
+            self._levels[key] = (ref, cKDTree(ref), np.full((len(ref), 3), np.nan))
+        return self._levels[key]
+
+    @property
+    def full_tree(self) -> cKDTree:
+        if self._full_tree is None:
+            self._full_tree = cKDTree(self.points)
+        return self._full_tree
+
+
 def icp(
-    reference: np.ndarray,
+    reference: "np.ndarray | IcpReference",
     moving: np.ndarray,
     initial: np.ndarray,
     *,
@@ -90,12 +115,14 @@ def icp(
 
     Parameters
     ----------
-    reference, moving : (N, 3) / (M, 3) points, metres.
+    reference, moving : (N, 3) / (M, 3) points, metres; the reference may be an
+        :class:`IcpReference` (prepared once for several runs).
     initial : 4x4 initial moving -> reference matrix (the coarse result).
     max_distances_m : correspondence distance of each stage, largest first.
     iterations : the most iterations per stage (a stage stops when the update is below
         0.01 mm and 0.0001 deg).
     """
+    prepared = reference if isinstance(reference, IcpReference) else IcpReference(reference)
     rng = np.random.default_rng(seed)
     matrix = np.asarray(initial, dtype=np.float64).copy()
     total_iterations = 0
@@ -103,14 +130,12 @@ def icp(
     mov = np.zeros((0, 3))
     for dist in max_distances_m:
         voxel = max(voxel_m, dist / 2.5)
-        ref = thin(reference, voxel)
+        ref, tree, normals = prepared.level(voxel)
         mov = thin(moving, voxel)
         if len(mov) > max_moving_points:
             mov = mov[rng.choice(len(mov), max_moving_points, replace=False)]
         if len(ref) < 20 or len(mov) < 20:
             break
-        tree = cKDTree(ref)
-        normals = np.full((len(ref), 3), np.nan)  # computed where first needed
         for _ in range(iterations):
             total_iterations += 1
             moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
@@ -142,7 +167,7 @@ def icp(
                 break
     last = float(max_distances_m[-1])
     moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
-    std, mean, count = nearest_distance_stats(np.asarray(reference), moved, last)
+    std, mean, count = nearest_distance_stats(prepared.points, moved, last, tree=prepared.full_tree)
     return IcpResult(
         matrix=matrix,
         fitness=fitness,
@@ -154,12 +179,15 @@ def icp(
     )
 
 
-def nearest_distance_stats(reference: np.ndarray, moved: np.ndarray, max_distance_m: float) -> tuple[float, float, int]:
+def nearest_distance_stats(
+    reference: np.ndarray, moved: np.ndarray, max_distance_m: float, *, tree: cKDTree | None = None
+) -> tuple[float, float, int]:
     """Std and mean of the distances from ``moved`` points to their nearest ``reference`` point,
-    over the pairs closer than ``max_distance_m``; and how many there are (metres)."""
+    over the pairs closer than ``max_distance_m``; and how many there are (metres). ``tree``: a
+    k-d tree of ``reference`` when one exists."""
     if len(reference) == 0 or len(moved) == 0:
         return float("nan"), float("nan"), 0
-    d, _ = cKDTree(reference).query(moved, distance_upper_bound=max_distance_m, workers=-1)
+    d, _ = (tree if tree is not None else cKDTree(reference)).query(moved, distance_upper_bound=max_distance_m, workers=-1)
     d = d[np.isfinite(d)]
     if len(d) < 2:
         return float("nan"), float("nan"), int(len(d))
