@@ -24,6 +24,7 @@ from ..io import read_scan, write_points
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, Project, ScanEntry
 from .pair import register
+from .scanner_position import locate_scanner
 from ..core.scan import Scan
 from ..core.transform import format_matrix, rigid_errors
 
@@ -43,7 +44,8 @@ class ScanCache:
     def __call__(self, name: str) -> Scan:
         if name not in self._scans:
             entry = self.project.scan(name)
-            self._scans[name] = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
+            scan = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
+            self._scans[name] = locate_scanner(scan)
         return self._scans[name]
 
 
