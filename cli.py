@@ -61,9 +61,10 @@ class ProgressBar:
 
 
 def _params_from_args(args: argparse.Namespace):
-    from .engine.core.params import RegistrationParams
+    from .engine.params import load_params
+    from .engine.tls.params import RegistrationParams
 
-    params = RegistrationParams.from_toml(args.params) if args.params else RegistrationParams()
+    params = load_params(args.params).registration if args.params else RegistrationParams()
     changes = {}
     if args.dr is not None:
         changes["vop_radius_m"] = args.dr
@@ -660,21 +661,19 @@ def cmd_gui(args: argparse.Namespace) -> int:
 
 
 def cmd_params(args: argparse.Namespace) -> int:
-    from .engine.core.params import parameter_table
+    from .engine.params import ProductParams, load_params, params_toml
 
-    rows = parameter_table()
+    params = load_params(args.params) if getattr(args, "params", None) else ProductParams()
     if args.toml:
-        print("[registration]")
-        for r in rows:
-            d = r["default"]
-            if d is None:
-                print(f"# {r['name']} = ...  # {r['help']}")
-                continue
-            value = json.dumps(list(d)) if isinstance(d, tuple) else json.dumps(d)
-            print(f"{r['name']} = {value}  # {r['unit']} {r['help']}".rstrip())
+        print(params_toml(params))
         return 0
-    for r in rows:
-        print(f"{r['name']:32} {str(r['default']):18} {r['unit']:6} {r['help']}")
+    for r in type(params).table():
+        value = params
+        for part in r["name"].split("."):
+            value = getattr(value, part)
+        unit = r["unit"] or ""
+        paper = f"  (paper: {r['paper']})" if r["paper"] else ""
+        print(f"{r['name']:44} {str(value):22} {unit:7} {r['help']}{paper}")
     return 0
 
 
@@ -837,8 +836,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("gui_args", nargs=argparse.REMAINDER)
     p.set_defaults(func=cmd_gui)
 
-    p = sub.add_parser("params", help="print the registration parameters (or a TOML template)")
-    p.add_argument("--toml", action="store_true", help="print a TOML file with the defaults")
+    p = sub.add_parser("params", help="print every parameter of the product (or a TOML template: sections [registration], [coregistration], [fusion], [trees])")
+    p.add_argument("--toml", action="store_true", help="print a TOML file of the values (the defaults, or those of --params)")
+    p.add_argument("--params", help="a TOML parameter file to show merged over the defaults")
     p.set_defaults(func=cmd_params)
     return parser
 

@@ -29,6 +29,7 @@ from scipy.spatial import cKDTree
 from ..core.errors import ParameterError, ScanDataError
 from ..core.progress import Progress
 from ..terrain.dem import Dem
+from ..core.params import Params, param_field as _p
 
 __all__ = [
     "KeypointParams",
@@ -43,35 +44,29 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class KeypointParams:
+class KeypointParams(Params):
     """Parameters of keypoint extraction (paper section 4.1.1 and 5.1)."""
 
     #: both clouds are thinned to one point per voxel of this side first (m)
-    voxel_m: float = field(default=0.3, metadata={"unit": "m", "help": "thinning voxel before clustering"})
+    voxel_m: float = _p(0.3, "m", 0.01, 10.0, "thinning voxel before clustering")
     #: canopy = points at least this high above the DEM (m)
-    canopy_min_height_m: float = field(default=3.0, metadata={"unit": "m", "help": "lowest canopy height"})
+    canopy_min_height_m: float = _p(3.0, "m", 0.0, 100.0, "lowest canopy height")
     #: ... and above this fraction of the cloud's top height (95th percentile of heights above 2 m)
-    canopy_relative_height: float = field(default=0.4, metadata={"unit": "", "help": "canopy lower bound / top height"})
+    canopy_relative_height: float = _p(0.4, "", 0.0, 0.99, "canopy lower bound / top height")
     #: HDBSCAN MinClusterSize; 0 derives it from the point density (paper: "derived from the point
     #: cloud density") as the points of ``cluster_area_m2`` of canopy
-    min_cluster_size: int = field(default=0, metadata={"unit": "points", "help": "HDBSCAN MinClusterSize (0 = from density)"})
+    min_cluster_size: int = _p(0, "points", 0, 10000000, "HDBSCAN MinClusterSize (0 = from density)")
     #: canopy area whose points make the minimum cluster size (m^2)
-    cluster_area_m2: float = field(default=3.0, metadata={"unit": "m2", "help": "area of the smallest cluster"})
+    cluster_area_m2: float = _p(3.0, "m2", 0.01, 10000.0, "area of the smallest cluster")
     #: the cutoff distance d_c of the local density (m)
-    cutoff_distance_m: float = field(default=0.75, metadata={"unit": "m", "help": "d_c of the local density", "paper": "d_c"})
+    cutoff_distance_m: float = _p(0.75, "m", 0.01, 50.0, "d_c of the local density", "d_c")
     #: at most this many canopy points are clustered (a random subset beyond; speed)
-    max_canopy_points: int = field(default=60_000, metadata={"unit": "points", "help": "canopy points clustered at most"})
-    seed: int = 0
+    max_canopy_points: int = _p(60_000, "points", 100, 100000000, "canopy points clustered at most")
+    seed: int = _p(0, "", 0, 2**31 - 1, "random seed of the canopy subset")
 
-    def __post_init__(self) -> None:
-        for name in ("voxel_m", "cluster_area_m2", "cutoff_distance_m"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ParameterError(f"{name} must be positive, got {v}")
-        if not (0.0 <= self.canopy_relative_height < 1.0):
-            raise ParameterError(f"canopy_relative_height must be in [0, 1), got {self.canopy_relative_height}")
-        if self.min_cluster_size < 0 or self.max_canopy_points < 100:
-            raise ParameterError("min_cluster_size must be >= 0 and max_canopy_points >= 100")
+    def _check(self) -> None:
+        if self.min_cluster_size == 1:
+            raise ParameterError("min_cluster_size must be 0 (from the point density) or at least 2 (HDBSCAN)")
 
 
 @dataclass(frozen=True, eq=False)

@@ -45,7 +45,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 from ..core.atomic import write_text_atomic  # noqa: E402
 from ..core.errors import ForestregError  # noqa: E402
 from ..tls.prepare import extract_vops, prepare_scan, slice_layers  # noqa: E402
-from ..core.params import RegistrationParams  # noqa: E402
+from ..tls.params import RegistrationParams  # noqa: E402
 from ..tls.plot import ScanCache  # noqa: E402
 from ..tls.project import Link, Project  # noqa: E402
 from .figures import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402

@@ -34,7 +34,7 @@ from ..core.atomic import write_text_atomic
 from ..core.errors import TargetError
 from ..geometry.icp import IcpResult
 from .prepare import prepare_scan
-from ..core.params import RegistrationParams
+from .params import RegistrationParams
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .pair import file_to_lsf_matrix, fine_registration, lsf_to_file_matrix
 from ..core.scan import Scan

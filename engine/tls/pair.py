@@ -26,7 +26,7 @@ from .scanner_position import locate_scanner
 from .uncertainty import pair_uncertainty
 from .prepare import PreparedScan, SliceLayer, extract_vops, prepare_scan, slice_layers
 from .vop import VisualOcclusionPoints
-from ..core.params import RegistrationParams
+from .params import RegistrationParams
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.scan import Scan
 from ..core.transform import rigid_errors, rotation_angle_deg, rotation_from_vector

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..core.atomic import write_text_atomic
 from ..core.errors import ProjectFileError
-from ..core.params import RegistrationParams
+from .params import RegistrationParams
 
 FORMAT = "forestreg-project"
 VERSION = 1

@@ -45,7 +45,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError, ScanDataError
-from ..core.params import param_field as _p
+from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 
 #: Features per scale: l1, l2, l3 (normalised eigenvalues), zenith of e1, e2, e3 (degrees).
@@ -57,7 +57,7 @@ MIN_POINTS = 50
 
 
 @dataclass(frozen=True)
-class LeafWoodParams:
+class LeafWoodParams(Params):
     """Settings of the unsupervised leaf-wood separation (paper sec. 4.3.2, Moorthy et al. 2020).
 
     The radii suit terrestrial scans with a point spacing of about 0.5-3 cm on the stems (the
@@ -103,18 +103,9 @@ class LeafWoodParams:
     smoothing_neighbours: int = _p(16, "points", 1, 200, "At most this many nearest neighbours are averaged")
     seed: int = _p(0, "", 0, 2**31 - 1, "Seed of the random sample and the mixture's initialisation")
 
-    def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            lo, hi = f.metadata.get("range", (None, None))
-            values = value if isinstance(value, tuple) else (value,)
-            if isinstance(value, tuple) and not value:
-                raise ParameterError(f"{f.name}: needs at least one value")
-            for v in values:
-                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                    raise ParameterError(f"{f.name}: {v!r} is not a finite number")
-                if (lo is not None and v < lo) or (hi is not None and v > hi):
-                    raise ParameterError(f"{f.name} = {v} {f.metadata['unit']} is outside [{lo}, {hi}]")
+    def _check(self) -> None:
+        if not self.radii_m:
+            raise ParameterError("radii_m: needs at least one value")
         if list(self.radii_m) != sorted(set(self.radii_m)):
             raise ParameterError(f"radii_m must be distinct and increasing, got {self.radii_m}")
         if not (self.min_neighbours < self.full_weight_neighbours <= self.max_neighbours):
@@ -122,10 +113,6 @@ class LeafWoodParams:
                 f"need min_neighbours ({self.min_neighbours}) < full_weight_neighbours "
                 f"({self.full_weight_neighbours}) <= max_neighbours ({self.max_neighbours})"
             )
-
-    def replace(self, **changes: Any) -> "LeafWoodParams":
-        """A copy with some fields changed (validated)."""
-        return dataclasses.replace(self, **changes)
 
 
 # --------------------------------------------------------------------------------------------

@@ -56,7 +56,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError, ScanDataError
-from ..core.params import param_field, validate_ranges
+from ..core.params import Params, param_field
 from ..core.progress import Progress
 
 # --------------------------------------------------------------------------------------------
@@ -94,7 +94,7 @@ def check_cloud(points: Any, heights: Any = None, *, what: str = "points") -> tu
 
 
 @dataclass(frozen=True)
-class StemParams:
+class StemParams(Params):
     """Every setting of stem detection, DBH and stem curves. Distances in metres, angles in degrees."""
 
     # --- breast height and slices
@@ -145,18 +145,13 @@ class StemParams:
     max_relative_residual: float = param_field(1.75, "", 1.0, 100.0, "Sections whose circle residual exceeds this multiple of the stem's median are rejected (branch whorls, foliage)")
     max_section_growth: float = param_field(0.15, "", 0.0, 2.0, "A section may be at most this fraction wider than the accepted one below it (stems taper upward)")
 
-    def __post_init__(self) -> None:
-        validate_ranges(self)
+    def _check(self) -> None:
         if self.band_high_m <= self.band_low_m:
             raise ParameterError(f"band_high_m ({self.band_high_m}) must be above band_low_m ({self.band_low_m})")
         if len(self.dbh_range_m) != 2 or not self.dbh_range_m[0] < self.dbh_range_m[1]:
             raise ParameterError(f"dbh_range_m must be (smallest, largest) diameters, got {self.dbh_range_m}")
         if self.taper_window % 2 == 0:
             raise ParameterError(f"taper_window must be odd, got {self.taper_window}")
-
-    def replace(self, **changes: Any) -> "StemParams":
-        """A copy with some fields changed (validated)."""
-        return dataclasses.replace(self, **changes)
 
 
 # --------------------------------------------------------------------------------------------
