@@ -383,6 +383,7 @@ def _project_from_args(args: argparse.Namespace):
         entry.tilted = True
         if partner:
             entry.level_partner = project.scan(names.get(Path(partner).name, partner)).name
+    _survey_inputs(project, args, names)
     if getattr(args, "targets", None):
         from .engine.tls.manual import read_targets_csv
 
@@ -394,21 +395,49 @@ def _project_from_args(args: argparse.Namespace):
     return project
 
 
+def _survey_inputs(project, args: argparse.Namespace, names: dict) -> None:
+    """Scanner positions (--positions CSV) and prior poses (--prior-poses) into the project."""
+    from .engine.core.errors import ParameterError
+    from .engine.tls.survey import read_positions_csv, read_prior_poses
+
+    def entry(name: str):
+        return project.scan(names.get(Path(name).name, name))
+
+    if getattr(args, "positions", None):
+        for name, xyz in read_positions_csv(args.positions).items():
+            entry(name).scanner_position = xyz
+    if getattr(args, "prior_poses", None):
+        for name, pose in read_prior_poses(args.prior_poses).items():
+            entry(name).prior_pose = pose
+    for name in ",".join(getattr(args, "fixed", None) or []).split(","):
+        if name.strip():
+            e = entry(name.strip())
+            if e.prior_pose is None and e.name != project.centre:
+                raise ParameterError(f"--fixed {name}: the scan has no prior pose to hold it at (give --prior-poses)")
+
+
 def _run_project(project, out: Path, args: argparse.Namespace) -> int:
     from .engine.tls.plot import ScanCache, add_neighbour_links, adjust_poses, register_project, write_merged, write_poses
 
     scans = ScanCache(project)
     bar = ProgressBar(not args.quiet, "plot")
     try:
-        outcome = register_project(project, rerun=getattr(args, "rerun", False), progress=bar, scans=scans)
-        if getattr(args, "loops", None):
+        if getattr(args, "pairs", None):
+            from .engine.tls.survey import SurveyParams, parse_pairs, register_survey
+
+            pairs, distance = parse_pairs(args.pairs)
+            fixed = tuple(n.strip() for n in ",".join(args.fixed or []).split(",") if n.strip())
+            outcome = register_survey(project, SurveyParams(pairs=pairs, max_distance_m=distance, fixed=fixed), rerun=getattr(args, "rerun", False), progress=bar, scans=scans)
+        else:
+            outcome = register_project(project, rerun=getattr(args, "rerun", False), progress=bar, scans=scans)
+        if getattr(args, "loops", None) and not getattr(args, "pairs", None):
             added = add_neighbour_links(project, args.loops)
             if added:
                 log.info("closing %d loops between neighbouring scans", len(added))
                 register_project(project, progress=bar, scans=scans)
     finally:
         bar.close()
-    adjusted = adjust_poses(project, scans)
+    adjusted = adjust_poses(project, scans) if not getattr(args, "pairs", None) else project.adjustment
     if project.path is not None:
         project.save()
     write_poses(project, out, outcome)
@@ -444,6 +473,10 @@ def _run_project(project, out: Path, args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    if getattr(args, "pairs", None):
+        from .engine.tls.survey import parse_pairs
+
+        parse_pairs(args.pairs)  # bad input: one line, before any work
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     project = _project_from_args(args)
@@ -487,6 +520,10 @@ def cmd_project(args: argparse.Namespace) -> int:
         print(f"linked {args.moving} -> {args.reference}{' (extra link)' if args.extra else ''}")
         return 0
     out = Path(args.out) if args.out else project.path.parent
+    if getattr(args, "pairs", None):
+        from .engine.tls.survey import parse_pairs
+
+        parse_pairs(args.pairs)  # bad input: one line, before any work
     return _run_project(project, out, args)
 
 
@@ -717,6 +754,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--dc", type=float, help="reduction radius D_c in metres (default 30)")
         p.add_argument("--dh", type=lambda s: _floats(s, what="--dh"), help="slice offsets dh in metres, comma-separated")
         p.add_argument("--params", help="TOML parameter file")
+        p.add_argument("--pairs", metavar="all|within:D|centre", help="register every pair (or those whose scanners stand within D m), solve a pose graph weighted by each pair's evidence, drop inconsistent links, state each pose's uncertainty")
+        p.add_argument("--positions", metavar="CSV", help="scanner positions: CSV scan,x,y,z in each scan's file coordinates (default: the E57 pose, else found from the data)")
+        p.add_argument("--prior-poses", metavar="FILE", help="prior poses to check links against: poses.json, JSON {scan: 4x4}, or CSV scan,x,y,z[,heading_deg] (GNSS/compass)")
+        p.add_argument("--fixed", action="append", metavar="SCAN,...", help="scans held at their prior poses (with --pairs)")
 
     p = sub.add_parser("plot", help="register all scans of a plot (each to the centre scan, tilted ones to their level partner)")
     p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files, or one multi-scan E57 file")
@@ -764,6 +805,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("project")
     q.add_argument("--out", help="output folder (default: the project's folder)")
     q.add_argument("--rerun", action="store_true", help="run every link again")
+    q.add_argument("--pairs", metavar="all|within:D|centre", help="register every pair (or those within D m), pose graph, inconsistent links dropped, uncertainty per pose")
+    q.add_argument("--fixed", action="append", metavar="SCAN,...", help="scans held at their prior poses (with --pairs)")
     q.add_argument("--merged", help="also write all registered scans into one LAZ")
     q.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
     q.add_argument("--quiet", action="store_true")

@@ -296,11 +296,44 @@ def write_poses(project: Project, out_dir: str | Path, outcome: Optional[PlotOut
         body["scans"][s.name] = entry
         if pose is not None:
             write_text_atomic(out / f"{s.name}.transform.txt", format_matrix(pose))
-    if project.adjustment:
-        body["adjustment"] = project.adjustment.get("links")
+    uncertainty = pose_uncertainty(project)
+    quality = (project.adjustment or {}).get("quality") or {}
+    for name, entry in body["scans"].items():
+        if entry["status"] == "ok":
+            entry["uncertainty"] = uncertainty.get(name)
+        if name in quality:
+            entry["quality"] = quality[name]
+    # always present (None without loops), so readers never meet a missing key
+    body["adjustment"] = (project.adjustment or {}).get("links")
+    if project.adjustment and project.adjustment.get("method") == "survey":
+        body["dropped_links"] = project.adjustment.get("dropped", [])
+        body["loops"] = project.adjustment.get("triangles", [])
+        body["uncertainty_inflation"] = project.adjustment.get("uncertainty_inflation")
     path = out / "poses.json"
     write_text_atomic(path, json.dumps(body, indent=2) + "\n")
     return path
+
+
+def pose_uncertainty(project: Project) -> dict[str, Optional[dict[str, float]]]:
+    """1-sigma uncertainty (``translation_m``, ``rotation_deg``) of every registered pose relative
+    to the frame scan: the survey solution's where there is one, else propagated along the links
+    from each pair's own uncertainty (see :mod:`~forestreg.engine.tls.uncertainty`)."""
+    from .uncertainty import propagate_uncertainty
+
+    stored = (project.adjustment or {}).get("uncertainty")
+    if stored:
+        return dict(stored)
+    poses = project.poses()
+    positions = {n: p[:3, 3] for n, p in poses.items() if p is not None}
+    rows = []
+    for link in project.links:
+        u = (link.result or {}).get("uncertainty") or {}
+        if link.ok and link.moving in positions and link.reference in positions:
+            rows.append({"moving": link.moving, "reference": link.reference, "translation_m": u.get("translation_m"), "rotation_deg": u.get("rotation_deg")})
+    if project.centre is None:
+        return {}
+    found = propagate_uncertainty(project.centre, positions, rows)
+    return {n: found.get(n) for n in positions}
 
 
 def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] = None) -> int:

@@ -1,0 +1,149 @@
+"""Whole surveys against the simulator's truth: georeferenced scans without scanner positions,
+headings and positions off, every pair, a wrong link dropped, and the stated uncertainty honest."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import numpy as np
+import pytest
+
+from forestreg.engine.core.scan import Scan
+from forestreg.engine.core.transform import matrix_from_yaw, rigid_errors
+from forestreg.engine.io import read_scan, write_scan
+from forestreg.engine.tls.plot import ScanCache, write_poses
+from forestreg.engine.tls.project import Project
+from forestreg.engine.tls.scanner_position import ScannerPositionError, locate_scanner
+from forestreg.engine.tls.survey import SurveyParams, register_survey
+
+FOUR = ((0.0, 0.0), (10.0, 2.0), (-8.0, 6.0), (3.0, -11.0))
+UTM = np.array([512345.0, 5234567.0, 310.0])
+
+
+def _placement(k: int, rng: np.random.Generator) -> np.ndarray:
+    """A GNSS/compass placement: the true pose spoilt by up to 30 deg of heading and 5 m of position."""
+    err = matrix_from_yaw(rng.uniform(-30.0, 30.0), np.r_[rng.uniform(-5.0, 5.0, 2), rng.uniform(-0.5, 0.5)])
+    err[:3, 3] += UTM
+    return err
+
+
+@pytest.fixture(scope="module")
+def georeferenced(tmp_path_factory, sim_plot):
+    """Four scans exported in UTM coordinates after a poor placement, no scanner positions."""
+    plot = sim_plot("mixed_temperate", FOUR, seed=31, step=0.3, size=45.0)
+    folder = tmp_path_factory.mktemp("utm")
+    rng = np.random.default_rng(7)
+    placements, paths = [], []
+    for k, s in enumerate(plot.scans):
+        g = _placement(k, rng) @ s.pose  # SOCS -> UTM file coordinates
+        placements.append(g)
+        pts = s.scan.points @ g[:3, :3].T + g[:3, 3]
+        paths.append(folder / f"{s.name}.laz")
+        write_scan(Scan.from_points(pts, name=s.name, intensity=s.scan.intensity), paths[-1])
+    return plot, placements, paths
+
+
+def _truth(plot, placements, k):
+    """True scan k file -> scan 0 file matrix."""
+    return placements[0] @ plot.relative_pose(0, k) @ np.linalg.inv(placements[k])
+
+
+@pytest.fixture(scope="module")
+def surveyed(georeferenced, tmp_path_factory):
+    plot, placements, paths = georeferenced
+    project = Project(name="utm")
+    for p in paths:
+        project.add_scan(p)
+    scans = ScanCache(project)
+    outcome = register_survey(project, SurveyParams(pairs="within", max_distance_m=30.0), scans=scans)
+    return project, outcome, scans
+
+
+def test_scanner_positions_are_found_in_utm_files(georeferenced):
+    plot, placements, paths = georeferenced
+    for k, p in enumerate(paths):
+        scan = read_scan(p)
+        assert scan.meta["scanner_position"] == "file origin"
+        located = locate_scanner(scan)
+        assert located.meta["scanner_position"] == "estimated"
+        err = located.scanner_position_file - placements[k][:3, 3]
+        assert np.hypot(*err[:2]) < 0.05, f"{p.name}: horizontal error {np.hypot(*err[:2]):.3f} m"
+        assert abs(err[2]) < 0.8
+        assert np.allclose(located.origin_shift, scan.origin_shift), "results stay in the file's own coordinates"
+
+
+def test_a_scanner_centred_file_keeps_its_origin(sim_plot):
+    s = sim_plot("mixed_temperate", FOUR, seed=31, step=0.3, size=45.0).scans[1].scan
+    located = locate_scanner(Scan.from_points(s.points))
+    assert np.allclose(located.scanner_position, 0.0) and "confirmed" in located.meta["scanner_position"]
+
+
+def test_a_merged_or_empty_cloud_is_refused_with_a_reason():
+    rng = np.random.default_rng(0)
+    flat = np.column_stack([rng.uniform(0, 40, 50000) + 6e5, rng.uniform(0, 40, 50000) + 5e6, rng.normal(0, 0.02, 50000)])
+    with pytest.raises(ScannerPositionError, match="scanner-position"):
+        locate_scanner(Scan.from_points(flat, name="uniform"))
+
+
+def test_georeferenced_survey_without_positions_registers_to_truth(georeferenced, surveyed, tmp_path):
+    plot, placements, paths = georeferenced
+    project, outcome, scans = surveyed
+    assert outcome.failed == []
+    poses = project.poses()
+    assert project.adjustment["method"] == "survey"
+    assert len(project.adjustment["links"]) >= 5, "every pair within 30 m is used"
+    body = json.loads(write_poses(project, tmp_path).read_text())
+    for k, p in enumerate(paths):
+        truth = _truth(plot, placements, k)
+        scanner = placements[k][:3, 3]
+        rot, _ = rigid_errors(poses[p.name], truth)
+        trans = float(np.linalg.norm((poses[p.name] - truth)[:3, :3] @ scanner + (poses[p.name] - truth)[:3, 3]))
+        assert rot < 0.05 and trans < 0.02, f"{p.name}: {rot:.4f} deg, {100 * trans:.2f} cm"
+        u = body["scans"][p.name]["uncertainty"]
+        assert u is not None and set(u) >= {"translation_m", "rotation_deg"}
+        if k:
+            assert trans <= 3.0 * u["translation_m"] + 1e-9 and rot <= 3.0 * u["rotation_deg"] + 1e-9, (p.name, trans, rot, u)
+            assert u["translation_m"] < 0.1 and u["rotation_deg"] < 0.5, "an uncertainty that says nothing"
+        assert body["scans"][p.name]["quality"]["links"] >= 1
+
+
+def test_a_wrong_link_is_found_and_dropped(georeferenced, surveyed):
+    plot, placements, paths = georeferenced
+    project, _, scans = surveyed
+    project = copy.deepcopy(project)
+    extra = [link for link in project.links if link.extra and link.ok]
+    assert extra, "the survey registered extra pairs"
+    wrong = extra[0]
+    spoilt = matrix_from_yaw(25.0, np.array([3.0, -2.0, 0.0])) @ wrong.matrix
+    wrong.result = dict(wrong.result, matrix=spoilt.tolist())
+    register_survey(project, SurveyParams(pairs="centre"), scans=scans)
+    dropped = project.adjustment["dropped"]
+    assert [(d["moving"], d["reference"]) for d in dropped] == [(wrong.moving, wrong.reference)]
+    poses = project.poses()
+    for k, p in enumerate(paths):
+        rot, trans = rigid_errors(poses[p.name], _truth(plot, placements, k))
+        assert rot < 0.05, f"{p.name}: {rot:.4f} deg after dropping the wrong link"
+
+
+def test_stated_pair_uncertainty_is_honest(georeferenced, surveyed):
+    """Calibration over the survey's pairs: the true error at the moving scanner within 1x/2x/3x the
+    stated 1-sigma (reported); at least 90 % within 3x."""
+    plot, placements, paths = georeferenced
+    project, _, scans = surveyed
+    index = {p.name: k for k, p in enumerate(paths)}
+    ratios = []
+    for link in project.links:
+        if not link.ok or not (link.result or {}).get("uncertainty"):
+            continue
+        truth = np.linalg.inv(_truth(plot, placements, index[link.reference])) @ _truth(plot, placements, index[link.moving])
+        s = placements[index[link.moving]][:3, 3]
+        d = (link.matrix - truth)[:3, :3] @ s + (link.matrix - truth)[:3, 3]
+        rot, _ = rigid_errors(link.matrix, truth)
+        u = link.result["uncertainty"]
+        ratios.append(max(np.linalg.norm(d) / u["translation_m"], rot / u["rotation_deg"]))
+    ratios = np.array(ratios)
+    assert len(ratios) >= 5
+    within = {k: float(np.mean(ratios <= k)) for k in (1, 2, 3)}
+    print("stated-uncertainty calibration over", len(ratios), "pairs:", within)
+    assert within[3] >= 0.9
