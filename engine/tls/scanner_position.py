@@ -31,7 +31,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..core.errors import ScanDataError
-from ..core.params import param_field
+from ..core.params import Params, param_field
 from ..core.scan import Scan
 
 log = logging.getLogger("forestreg")
@@ -51,7 +51,7 @@ class ScannerPositionError(ScanDataError):
 
 
 @dataclass(frozen=True)
-class ScannerPositionParams:
+class ScannerPositionParams(Params):
     """Settings of the scanner-position estimate (metres)."""
 
     cell_m: float = param_field(0.25, unit="m", lo=0.05, hi=2.0, help="grid cell of the density map")
@@ -183,6 +183,10 @@ def _blind_cone(points: np.ndarray, start: np.ndarray, ground_z: float, p: Scann
     if len(local) < 200:
         return None
     g = local[_near_ground(local, p.ground_band_m)]
+    if len(g) < 100:
+        return None
+    _, on_ground = _ground_plane(g, c)
+    g = g[on_ground]
     d = g[:, :2] - c
     r = np.hypot(d[:, 0], d[:, 1])
     sector = (np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2 * np.pi) * 72).astype(int)) % 72
@@ -205,7 +209,11 @@ def _blind_cone(points: np.ndarray, start: np.ndarray, ground_z: float, p: Scann
         elevation = np.arctan2(-dd[:, 2], np.hypot(dd[:, 0], dd[:, 1]))
         return np.concatenate([elevation - v[3], [0.01 * (v[2] - start[2])]])
 
-    sol = least_squares(residuals, [c[0], c[1], start[2], a0], loss="soft_l1", f_scale=0.01)
+    a0 = float(np.clip(a0, np.radians(6.0), np.radians(84.0)))
+    lo = [c[0] - 2.0, c[1] - 2.0, ground_z + 0.3, np.radians(5.0)]
+    hi = [c[0] + 2.0, c[1] + 2.0, ground_z + 3.0, np.radians(85.0)]
+    x0 = np.clip([c[0], c[1], start[2], a0], np.add(lo, 1e-6), np.subtract(hi, 1e-6))
+    sol = least_squares(residuals, x0, bounds=(lo, hi), loss="soft_l1", f_scale=0.01)
     moved = float(np.hypot(*(sol.x[:2] - c)))
     el_res = np.abs(sol.fun[:-1])
     good = el_res < 0.02
@@ -215,16 +223,33 @@ def _blind_cone(points: np.ndarray, start: np.ndarray, ground_z: float, p: Scann
     return np.asarray(sol.x[:3], dtype=float), spread
 
 
+def _ground_plane(ground: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robust plane ``z = a dx + b dy + c`` (dx, dy from ``centre``) through near-ground points
+    (low vegetation and the tripod trimmed); returns (coefficients, inlier mask)."""
+    d = ground[:, :2] - centre
+    design = np.column_stack([d, np.ones(len(d))])
+    keep = np.abs(ground[:, 2] - np.median(ground[:, 2])) < 1.0
+    coef = np.array([0.0, 0.0, float(np.median(ground[:, 2]))])
+    for _ in range(4):
+        if keep.sum() < 10:
+            break
+        coef, *_ = np.linalg.lstsq(design[keep], ground[keep, 2], rcond=None)
+        res = ground[:, 2] - design @ coef
+        mad = 1.4826 * float(np.median(np.abs(res[keep])))
+        keep = np.abs(res) < max(0.1, 2.5 * mad)
+    return coef, keep
+
+
 def _ground_and_height(ground: np.ndarray, centre: np.ndarray, p: ScannerPositionParams) -> tuple[float, float, str]:
     """Ground height under the scanner (plane through the near-ground points) and the instrument
     height from the radial profile ``n(r) ~ h / (r^2 + h^2)`` of ground returns."""
     if len(ground) < 30:
         z = float(np.median(ground[:, 2])) if len(ground) else 0.0
         return z, p.default_height_m, "default"
-    d = ground[:, :2] - centre
-    design = np.column_stack([d, np.ones(len(d))])
-    coef, *_ = np.linalg.lstsq(design, ground[:, 2], rcond=None)
+    coef, inliers = _ground_plane(ground, centre)
     z = float(coef[2])
+    ground = ground[inliers]
+    d = ground[:, :2] - centre
     r = np.hypot(d[:, 0], d[:, 1])
     edges = np.arange(0.0, p.disc_m + 1e-9, 0.25)
     n, _ = np.histogram(r, bins=edges)

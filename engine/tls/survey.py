@@ -56,8 +56,8 @@ class SurveyParams(Params):
     pairs: str = param_field("within", help="which extra pairs to register: 'within' (scanners within max_distance_m), 'all', or 'centre' (none)")
     max_distance_m: float = param_field(25.0, unit="m", lo=1.0, hi=1000.0, help="scanners within this distance are paired")
     closure_sigmas: float = param_field(4.0, unit="sigma", lo=1.0, hi=100.0, help="a loop of links must close within this many stated sigmas")
-    prior_position_tolerance_m: float = param_field(10.0, unit="m", lo=0.0, hi=1000.0, help="a link may place a scan this far from its prior position")
-    prior_heading_tolerance_deg: float = param_field(45.0, unit="deg", lo=0.0, hi=180.0, help="a link may turn a scan this far from its prior heading")
+    prior_position_tolerance_m: float = param_field(6.0, unit="m", lo=0.0, hi=1000.0, help="how far each scan's prior position (GNSS, georeferenced file) may be off")
+    prior_heading_tolerance_deg: float = param_field(35.0, unit="deg", lo=0.0, hi=180.0, help="how far each scan's prior heading (compass) may be off")
     fixed: tuple[str, ...] = param_field((), help="scans held at their prior poses (besides the frame scan)")
 
 
@@ -122,10 +122,17 @@ def _prior_conflict(project: Project, scans: ScanCache, link: Link, params: Surv
     expected = prior[:3, :3] @ pos + prior[:3, 3]
     off = float(np.linalg.norm(moved[:2] - expected[:2]))
     turn = abs((_heading_deg(link.matrix) - _heading_deg(prior) + 180.0) % 360.0 - 180.0)
-    if off > params.prior_position_tolerance_m or turn > params.prior_heading_tolerance_deg:
+    # both scans' priors may be off: twice the position tolerance, plus the reference's heading
+    # error swinging the moving scanner about the reference scanner (lever arm = their distance)
+    ref_pos = _scanner_file(scans, link.reference)
+    lever = float(np.linalg.norm(expected[:2] - ref_pos[:2]))
+    allowed_m = 2.0 * params.prior_position_tolerance_m + 2.0 * lever * np.sin(np.radians(min(params.prior_heading_tolerance_deg, 90.0)) / 1.0)
+    allowed_deg = min(180.0, 2.0 * params.prior_heading_tolerance_deg)
+    if off > allowed_m or turn > allowed_deg:
         return (
-            f"puts the scanner {off:.1f} m and {turn:.0f} deg from its prior pose "
-            f"(tolerance {params.prior_position_tolerance_m:.0f} m, {params.prior_heading_tolerance_deg:.0f} deg)"
+            f"puts the scanner {off:.1f} m and {turn:.0f} deg from where the prior poses put it "
+            f"(allowed {allowed_m:.1f} m, {allowed_deg:.0f} deg for priors within {params.prior_position_tolerance_m:g} m, "
+            f"{params.prior_heading_tolerance_deg:g} deg)"
         )
     return ""
 
@@ -170,8 +177,6 @@ def inconsistent_links(links: Sequence[Link], scanner: dict[str, np.ndarray], cl
             key = id(x)
             (passed if ok else failed)[key] = (passed if ok else failed).get(key, 0) + 1
     drop = [x for x in links if failed.get(id(x), 0) > 0 and passed.get(id(x), 0) == 0]
-    if len(drop) == len(links):
-        drop = []  # nothing closes anywhere: no basis to prefer one link over another
     # a link that fails every triangle it is in, when every other link of those triangles also
     # closes a triangle elsewhere, is the culprit; links failing only with the culprit are kept
     culprits = []
@@ -184,6 +189,11 @@ def inconsistent_links(links: Sequence[Link], scanner: dict[str, np.ndarray], cl
             partners_ok &= all(passed.get(id(o), 0) > 0 for o in others)
         if partners_ok:
             culprits.append(x)
+    if not culprits and drop:
+        # the loops cannot single the culprit out (e.g. one lone triangle): the link with the
+        # weakest evidence (largest stated uncertainty) goes, reported as such
+        culprits = [max(drop, key=lambda x: (_link_sigma(x)[0], -((x.result or {}).get("matched") or 0)))]
+        rows.append({"note": f"loops cannot single out the wrong link; the weakest ({culprits[0].moving} -> {culprits[0].reference}) is dropped"})
     return culprits, rows
 
 
@@ -318,7 +328,9 @@ def register_survey(
             break
         worst = max(culprits, key=lambda x: _link_sigma(x)[0])
         kept.remove(worst)
-        dropped.append({"moving": worst.moving, "reference": worst.reference, "reason": "its loops do not close while the other links' loops do: inconsistent with the rest"})
+        note = next((r["note"] for r in triangles if "note" in r), "")
+        reason = note or "its loops do not close while the other links' loops do: inconsistent with the rest"
+        dropped.append({"moving": worst.moving, "reference": worst.reference, "reason": reason})
         log.warning("dropping link %s -> %s: inconsistent with the other links", worst.moving, worst.reference)
     fixed = {}
     frame_prior = project.scan(frame).prior_pose
