@@ -472,11 +472,20 @@ def _run_project(project, out: Path, args: argparse.Namespace) -> int:
     return 0 if not outcome.failed else 1
 
 
-def cmd_plot(args: argparse.Namespace) -> int:
-    if getattr(args, "pairs", None):
-        from .engine.tls.survey import parse_pairs
+def _check_survey_options(args: argparse.Namespace) -> None:
+    """Bad --pairs / --positions / --prior-poses: one line and exit 2, before any work."""
+    from .engine.tls.survey import parse_pairs, read_positions_csv, read_prior_poses
 
-        parse_pairs(args.pairs)  # bad input: one line, before any work
+    if getattr(args, "pairs", None):
+        parse_pairs(args.pairs)
+    if getattr(args, "positions", None):
+        read_positions_csv(args.positions)
+    if getattr(args, "prior_poses", None):
+        read_prior_poses(args.prior_poses)
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    _check_survey_options(args)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     project = _project_from_args(args)
@@ -488,6 +497,7 @@ def cmd_project(args: argparse.Namespace) -> int:
     from .engine.tls.project import Project
 
     if args.action == "create":
+        _check_survey_options(args)
         project = _project_from_args(args)
         path = project.save(args.project)
         print(f"created {path} with {len(project.scans)} scans, centre {project.centre}")
@@ -520,10 +530,7 @@ def cmd_project(args: argparse.Namespace) -> int:
         print(f"linked {args.moving} -> {args.reference}{' (extra link)' if args.extra else ''}")
         return 0
     out = Path(args.out) if args.out else project.path.parent
-    if getattr(args, "pairs", None):
-        from .engine.tls.survey import parse_pairs
-
-        parse_pairs(args.pairs)  # bad input: one line, before any work
+    _check_survey_options(args)
     return _run_project(project, out, args)
 
 

@@ -154,3 +154,33 @@ def test_stated_pair_uncertainty_is_honest(georeferenced, surveyed):
     within = {k: float(np.mean(ratios <= k)) for k in (1, 2, 3)}
     print("stated-uncertainty calibration over", len(ratios), "pairs:", within)
     assert within[3] >= 0.9
+
+
+def test_project_run_with_pairs_writes_uncertainty_and_quality(georeferenced, surveyed, tmp_path, capsys):
+    from forestreg.cli import main
+
+    plot, placements, paths = georeferenced
+    project = copy.deepcopy(surveyed[0])
+    saved = project.save(tmp_path / "survey.json")
+    out = tmp_path / "out"
+    assert main(["project", "run", str(saved), "--pairs", "all", "--out", str(out), "--quiet"]) == 0
+    body = json.loads((out / "poses.json").read_text())
+    assert body["dropped_links"] == [] and body["adjustment"]
+    for k, p in enumerate(paths):
+        entry = body["scans"][p.name]
+        assert entry["status"] == "ok" and entry["uncertainty"]["translation_m"] >= 0.0
+        rot, _ = rigid_errors(np.array(entry["matrix"]), _truth(plot, placements, k))
+        assert rot < 0.05
+    assert "Pose uncertainty and quality" in (out / "report.html").read_text()
+
+
+def test_bad_survey_options_get_one_line_and_exit_2(georeferenced, tmp_path, capsys):
+    from forestreg.cli import main
+
+    _, _, paths = georeferenced
+    bad = tmp_path / "positions.csv"
+    bad.write_text("scan,x,y,z\nscan_01.laz,1,2,abc\n")
+    assert main(["plot", *map(str, paths[:2]), "--out", str(tmp_path / "o1"), "--positions", str(bad), "--quiet"]) == 2
+    assert main(["plot", *map(str, paths[:2]), "--out", str(tmp_path / "o2"), "--pairs", "near", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "line 2" in err and "--pairs near" in err and "Traceback" not in err

@@ -179,6 +179,8 @@ def register(
     cancel: Optional[CancelToken] = None,
     reference_up: Optional[np.ndarray] = None,
     moving_up: Optional[np.ndarray] = None,
+    prior: Optional[np.ndarray] = None,
+    prior_tolerance: tuple[float, float] = (12.0, 70.0),
 ) -> PairResult:
     """Register ``moving`` onto ``reference`` from trunk shadows, then ICP.
 
@@ -190,6 +192,10 @@ def register(
     cancel : optional token; cancelling raises :class:`~forestreg.engine.core.errors.Cancelled`.
     reference_up, moving_up : optional known vertical directions in each scan's local frame
         (from an inclination sensor); default estimated when ``params.level_tilted``.
+    prior : optional rough moving-file -> reference-file matrix (GNSS/compass placement, E57/SOP
+        poses); used only to decide between two coarse solutions that pass every check, the one
+        within ``prior_tolerance`` (metres at the moving scanner, degrees of heading) of it winning.
+        Never trusted on its own: a result is always judged by its own evidence.
 
     Returns
     -------
@@ -257,8 +263,22 @@ def register(
         rot, trans = rigid_errors(passed[0].matrix, passed[1].matrix)
         if rot < 0.2 and trans < 0.05:  # ICP took both to the same place: not two solutions
             return dataclasses.replace(passed[0], ambiguity_resolved=f"{chosen.problem}; resolved: ICP takes both solutions to the same pose")
+        if prior is not None:
+            near = [r for r in passed if _within_prior(r.matrix, prior, moving, prior_tolerance)]
+            if len(near) == 1:
+                return dataclasses.replace(near[0], ambiguity_resolved=f"{chosen.problem}; resolved: only this solution agrees with the prior pose")
     why = "both pass every check" if len(passed) == 2 else "neither passes every check"
     return _failed(f"{chosen.problem}; ICP and free-space evidence cannot decide ({why})", chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
+
+
+def _within_prior(matrix: np.ndarray, prior: np.ndarray, moving: Scan, tolerance: tuple[float, float]) -> bool:
+    """Whether a file -> file matrix puts the moving scanner within ``tolerance`` (m, deg of
+    heading) of where the prior matrix puts it."""
+    s = moving.scanner_position_file
+    off = float(np.linalg.norm((matrix[:3, :3] @ s + matrix[:3, 3] - prior[:3, :3] @ s - prior[:3, 3])[:2]))
+    turn = np.degrees(np.arctan2(matrix[1, 0], matrix[0, 0]) - np.arctan2(prior[1, 0], prior[0, 0]))
+    turn = abs((turn + 180.0) % 360.0 - 180.0)
+    return off <= tolerance[0] and turn <= tolerance[1]
 
 
 def _second_candidate(attempt: CoarseAttempt, match_distance_m: float) -> CoarseAttempt:

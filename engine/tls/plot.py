@@ -20,6 +20,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from ..core.atomic import write_text_atomic
+from ..core.errors import ScanDataError, ScanReadError
 from ..io import read_scan, write_points
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, Project, ScanEntry
@@ -138,7 +139,11 @@ def register_project(
 
 
 def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> dict[str, Any]:
-    reference, moving = scans(link.reference), scans(link.moving)
+    try:
+        reference, moving = scans(link.reference), scans(link.moving)
+    except (ScanReadError, ScanDataError) as exc:
+        # one unusable scan (unreadable, no scanner position to be found) fails its links, not the plot
+        return {"status": "failed", "reason": str(exc), "matrix": None, "reference": link.reference, "moving": link.moving}
     if link.method == "manual":
         from .manual import register_manual
 
@@ -147,8 +152,28 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
             link.params(project.params), progress=progress, cancel=cancel,
         )
     else:
-        result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel)
+        prior = _link_prior(project, link, reference, moving)
+        result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel, prior=prior)
     return _jsonable(result.to_dict())
+
+
+def informative_priors(project: Project) -> bool:
+    """False when every scan's prior pose is the same matrix (e.g. an E57 whose scans all carry
+    identity poses: they are not placed in a common frame, so the poses say nothing)."""
+    priors = [np.asarray(s.prior_pose) for s in project.scans if s.prior_pose is not None]
+    return len(priors) >= 2 and not all(np.allclose(p, priors[0]) for p in priors[1:])
+
+
+def _link_prior(project: Project, link: Link, reference: Scan, moving: Scan) -> Optional[np.ndarray]:
+    """A rough moving-file -> reference-file matrix from the scans' prior poses (E57/SOP, a
+    positions/headings file), or identity when both files share a georeferenced frame; None
+    otherwise. Used only to decide between solutions that pass every check."""
+    a, b = project.scan(link.moving).prior_pose, project.scan(link.reference).prior_pose
+    if a is not None and b is not None and informative_priors(project):
+        return np.linalg.inv(np.asarray(b)) @ np.asarray(a)
+    if np.abs(reference.origin_shift).max() > 0.0 and np.abs(moving.origin_shift).max() > 0.0:
+        return np.eye(4)
+    return None
 
 
 def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> Link:

@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 from ..core.params import Params, param_field
 from ..core.progress import CancelToken, ProgressCallback
 from ..core.transform import rigid_errors
-from .plot import PlotOutcome, ScanCache, register_project
+from .plot import PlotOutcome, ScanCache, informative_priors, register_project
 from .project import Link, Project
 from .uncertainty import propagate_uncertainty
 
@@ -74,6 +74,17 @@ def _scanner_file(scans: ScanCache, name: str) -> np.ndarray:
     return np.asarray(scans(name).scanner_position_file, dtype=float)
 
 
+def _usable(scans: ScanCache, name: str) -> bool:
+    """Whether the scan can be read and has a scanner position (its links report why not)."""
+    from ..core.errors import ScanDataError, ScanReadError
+
+    try:
+        scans(name)
+        return True
+    except (ScanReadError, ScanDataError):
+        return False
+
+
 def _prior_positions(project: Project, scans: ScanCache, poses: dict[str, Optional[np.ndarray]]) -> dict[str, np.ndarray]:
     """Scanner positions in the frame scan's file coordinates: from the registered poses, else from
     prior poses (relative to the frame scan's prior), else the file coordinates themselves when the
@@ -81,12 +92,16 @@ def _prior_positions(project: Project, scans: ScanCache, poses: dict[str, Option
     frame = project.centre
     out: dict[str, np.ndarray] = {}
     frame_prior = project.scan(frame).prior_pose
+    if not _usable(scans, frame):
+        return out
     for s in project.scans:
+        if not _usable(scans, s.name):
+            continue
         pos = _scanner_file(scans, s.name)
         pose = poses.get(s.name)
         if pose is not None:
             out[s.name] = pose[:3, :3] @ pos + pose[:3, 3]
-        elif s.prior_pose is not None and frame_prior is not None:
+        elif s.prior_pose is not None and frame_prior is not None and informative_priors(project):
             m = np.linalg.inv(frame_prior) @ s.prior_pose
             out[s.name] = m[:3, :3] @ pos + m[:3, 3]
         elif _georeferenced(scans, s.name) and _georeferenced(scans, frame):
@@ -101,7 +116,7 @@ def _georeferenced(scans: ScanCache, name: str) -> bool:
 def _prior_relative(project: Project, scans: ScanCache, moving: str, reference: str) -> Optional[np.ndarray]:
     """The prior moving -> reference file matrix, where both scans have priors."""
     a, b = project.scan(moving).prior_pose, project.scan(reference).prior_pose
-    if a is not None and b is not None:
+    if a is not None and b is not None and informative_priors(project):
         return np.linalg.inv(b) @ a
     if _georeferenced(scans, moving) and _georeferenced(scans, reference):
         return np.eye(4)
@@ -310,8 +325,8 @@ def register_survey(
         if added:
             log.info("registering %d further pairs", added)
             register_project(project, progress=None, cancel=cancel, scans=scans)
-    scanner = {s.name: _scanner_file(scans, s.name) for s in project.scans}
-    ok_links = [link for link in project.links if link.ok and link.matrix is not None]
+    scanner = {s.name: _scanner_file(scans, s.name) for s in project.scans if _usable(scans, s.name)}
+    ok_links = [link for link in project.links if link.ok and link.matrix is not None and link.moving in scanner and link.reference in scanner]
     dropped: list[dict[str, Any]] = []
     kept = []
     for link in ok_links:
