@@ -401,7 +401,10 @@ def _survey_inputs(project, args: argparse.Namespace, names: dict) -> None:
     from .engine.tls.survey import read_positions_csv, read_prior_poses
 
     def entry(name: str):
-        return project.scan(names.get(Path(name).name, name))
+        try:
+            return project.scan(names.get(Path(name).name, name))
+        except KeyError as exc:
+            raise ParameterError(str(exc.args[0])) from None
 
     if getattr(args, "positions", None):
         for name, xyz in read_positions_csv(args.positions).items():
@@ -411,9 +414,7 @@ def _survey_inputs(project, args: argparse.Namespace, names: dict) -> None:
             entry(name).prior_pose = pose
     for name in ",".join(getattr(args, "fixed", None) or []).split(","):
         if name.strip():
-            e = entry(name.strip())
-            if e.prior_pose is None and e.name != project.centre:
-                raise ParameterError(f"--fixed {name}: the scan has no prior pose to hold it at (give --prior-poses)")
+            entry(name.strip())
 
 
 def _run_project(project, out: Path, args: argparse.Namespace) -> int:
@@ -426,7 +427,8 @@ def _run_project(project, out: Path, args: argparse.Namespace) -> int:
             from .engine.tls.survey import SurveyParams, parse_pairs, register_survey
 
             pairs, distance = parse_pairs(args.pairs)
-            fixed = tuple(n.strip() for n in ",".join(args.fixed or []).split(",") if n.strip())
+            names = {s.name: s.name for s in project.scans} | {Path(s.path).name: s.name for s in project.scans}
+            fixed = tuple(names.get(n.strip(), n.strip()) for n in ",".join(getattr(args, "fixed", None) or []).split(",") if n.strip())
             outcome = register_survey(project, SurveyParams(pairs=pairs, max_distance_m=distance, fixed=fixed), rerun=getattr(args, "rerun", False), progress=bar, scans=scans)
         else:
             outcome = register_project(project, rerun=getattr(args, "rerun", False), progress=bar, scans=scans)

@@ -34,9 +34,9 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from ..core.params import Params, param_field
-from ..core.progress import CancelToken, ProgressCallback
+from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.transform import rigid_errors
-from .plot import PlotOutcome, ScanCache, informative_priors, register_project
+from .plot import PlotOutcome, ScanCache, _run_link, informative_priors, register_project
 from .project import Link, Project
 from .uncertainty import propagate_uncertainty
 
@@ -311,7 +311,6 @@ def register_survey(
         positions = _prior_positions(project, scans, project.chained_poses())
         linked = {frozenset((link.moving, link.reference)) for link in project.links}
         names = [s.name for s in project.scans]
-        added = 0
         for a, b in itertools.combinations(names, 2):
             if frozenset((a, b)) in linked:
                 continue
@@ -321,10 +320,13 @@ def register_survey(
                 if np.linalg.norm(positions[a][:2] - positions[b][:2]) > params.max_distance_m:
                     continue
             project.add_link(b, a)
-            added += 1
-        if added:
-            log.info("registering %d further pairs", added)
-            register_project(project, progress=None, cancel=cancel, scans=scans)
+        pending = [link for link in project.links if link.extra and link.result is None]
+        if pending:
+            log.info("registering %d further pairs", len(pending))
+        for k, link in enumerate(pending):
+            link.result = _run_link(project, link, scans, Progress(None, cancel=cancel), cancel)
+            if project.path is not None:
+                project.save()
     scanner = {s.name: _scanner_file(scans, s.name) for s in project.scans if _usable(scans, s.name)}
     ok_links = [link for link in project.links if link.ok and link.matrix is not None and link.moving in scanner and link.reference in scanner]
     dropped: list[dict[str, Any]] = []
@@ -353,8 +355,10 @@ def register_survey(
         prior = project.scan(name).prior_pose
         if name != frame and prior is not None and frame_prior is not None:
             fixed[name] = np.linalg.inv(frame_prior) @ prior
-        elif name != frame and _georeferenced(scans, name) and _georeferenced(scans, frame):
+        elif name != frame and _usable(scans, name) and _georeferenced(scans, name) and _georeferenced(scans, frame):
             fixed[name] = np.eye(4)
+        elif name != frame:
+            log.warning("%s cannot be held fixed: it has no prior pose (give --prior-poses)", name)
     initial = _spanning_poses(frame, kept, fixed)
     poses, rows = solve_pose_graph(frame, kept, initial, scanner, fixed)
     # loops that disagree more than the links state: inflate every stated sigma by the excess
