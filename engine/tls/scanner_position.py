@@ -59,7 +59,7 @@ class ScannerPositionParams(Params):
     disc_m: float = param_field(4.0, unit="m", lo=1.0, hi=15.0, help="radius of the mean shift over near-ground points around the peak")
     ground_band_m: float = param_field(0.3, unit="m", lo=0.05, hi=2.0, help="points within this height of the lowest in their 0.5 m cell count as ground")
     near_m: float = param_field(3.0, unit="m", lo=0.5, hi=10.0, help="radius of the disc whose point count tests a candidate position")
-    min_peak_ratio: float = param_field(4.0, unit="", lo=1.0, hi=100.0, help="the disc at the scanner must hold this many times the points of an average occupied disc")
+    min_peak_ratio: float = param_field(3.0, unit="", lo=1.0, hi=100.0, help="the disc at the scanner must hold this many times the points of an average occupied disc")
     max_second_ratio: float = param_field(0.6, unit="", lo=0.1, hi=1.0, help="a second density peak this strong (6 m or more away) means several scanners: refused")
     default_height_m: float = param_field(1.5, unit="m", lo=0.1, hi=5.0, help="instrument height used when the ground profile does not give one")
     origin_keep_distance_m: float = param_field(1.0, unit="m", lo=0.0, hi=10.0, help="an estimate this close to the file origin confirms the origin (kept exactly)")
@@ -71,8 +71,10 @@ class ScannerEstimate:
 
     ``peak_ratio`` is the point count in the ``near_m`` disc at the position over the mean count of
     such discs over the occupied area; ``second_ratio`` the smoothed density of the strongest other
-    peak (>= 6 m away) over the main one; ``height_m`` the instrument height above the ground
-    (``height_from`` "ground profile" or "default"); ``spread_m`` a 1-sigma horizontal precision.
+    peak (>= 6 m away) over the main one; ``height_m`` the instrument height above the ground seen
+    in the radial profile of ground returns (``height_from`` "ground profile" or "default"; for
+    information: the position stands ``default_height_m`` above ``ground_z``); ``spread_m`` a
+    1-sigma horizontal precision.
     """
 
     position: np.ndarray
@@ -157,7 +159,10 @@ def estimate_scanner_position(points: np.ndarray, params: Optional[ScannerPositi
 
     ground_z, height, height_from = _ground_and_height(g, centre, p)
 
-    position = np.array([centre[0], centre[1], ground_z + height])
+    # The slice heights are measured from the scanner: every estimated scan stands at the same
+    # default instrument height above its ground, so two scans slice their trunks at the same
+    # height (the ground-profile height, +-0.4 m on simulated and real scans, is reported only).
+    position = np.array([centre[0], centre[1], ground_z + p.default_height_m])
     refined = _blind_cone(pts, position, ground_z, p)
     if refined is not None:
         position, spread = refined
@@ -204,23 +209,23 @@ def _blind_cone(points: np.ndarray, start: np.ndarray, ground_z: float, p: Scann
         return None  # no blind circle (a scanner that sees straight down)
     a0 = float(np.arctan2(start[2] - ground_z, r_med))
 
-    def residuals(v: np.ndarray) -> np.ndarray:
-        dd = inner - v[:3]
+    def residuals(v: np.ndarray) -> np.ndarray:  # apex height held (it trades off with the angle)
+        dd = inner - np.array([v[0], v[1], start[2]])
         elevation = np.arctan2(-dd[:, 2], np.hypot(dd[:, 0], dd[:, 1]))
-        return np.concatenate([elevation - v[3], [0.01 * (v[2] - start[2])]])
+        return elevation - v[2]
 
     a0 = float(np.clip(a0, np.radians(6.0), np.radians(84.0)))
-    lo = [c[0] - 2.0, c[1] - 2.0, ground_z + 0.3, np.radians(5.0)]
-    hi = [c[0] + 2.0, c[1] + 2.0, ground_z + 3.0, np.radians(85.0)]
-    x0 = np.clip([c[0], c[1], start[2], a0], np.add(lo, 1e-6), np.subtract(hi, 1e-6))
+    lo = [c[0] - 2.0, c[1] - 2.0, np.radians(5.0)]
+    hi = [c[0] + 2.0, c[1] + 2.0, np.radians(85.0)]
+    x0 = np.clip([c[0], c[1], a0], np.add(lo, 1e-6), np.subtract(hi, 1e-6))
     sol = least_squares(residuals, x0, bounds=(lo, hi), loss="soft_l1", f_scale=0.01)
     moved = float(np.hypot(*(sol.x[:2] - c)))
-    el_res = np.abs(sol.fun[:-1])
+    el_res = np.abs(sol.fun)
     good = el_res < 0.02
     if not sol.success or moved > 1.5 or good.sum() < 0.6 * len(inner):
         return None
     spread = float(max(0.005, np.std(el_res[good]) * r_med * np.sqrt(2.0 / good.sum()) * 3.0))
-    return np.asarray(sol.x[:3], dtype=float), spread
+    return np.array([sol.x[0], sol.x[1], start[2]], dtype=float), spread
 
 
 def _ground_plane(ground: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
