@@ -462,11 +462,20 @@ def _run_project(project, out: Path, args: argparse.Namespace) -> int:
 
         count = write_registered_e57(project, args.e57_out, scans)
         print(f"wrote {count} registered scans with their poses to {args.e57_out}")
+    from .engine.tls.plot import pose_uncertainty
+
+    sigma = pose_uncertainty(project)
     for name, status in outcome.status.items():
         extra = f" - {outcome.reasons[name]}" if name in outcome.reasons else ""
         link = project.link_of(name)
         onto = f" onto {link.reference}" if link is not None and status == "ok" else ""
+        u = sigma.get(name) if status == "ok" else None
+        if u and u.get("translation_m") is not None and u.get("rotation_deg") is not None:
+            onto += f" (1 sigma {100 * u['translation_m']:.1f} cm, {u['rotation_deg']:.3f} deg)"
         print(f"{name}: {status}{onto}{extra}")
+    dropped = (project.adjustment or {}).get("dropped") or []
+    for d in dropped:
+        print(f"dropped link {d['moving']} -> {d['reference']}: {d['reason']}")
     if adjusted:
         worst = max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0)
         print(f"global adjustment over {len(adjusted['links'])} links: largest link residual {100 * worst:.1f} cm")

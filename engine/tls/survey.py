@@ -361,6 +361,11 @@ def register_survey(
             log.warning("%s cannot be held fixed: it has no prior pose (give --prior-poses)", name)
     initial = _spanning_poses(frame, kept, fixed)
     poses, rows = solve_pose_graph(frame, kept, initial, scanner, fixed)
+    before = {}  # each link against the spanning-tree poses the adjustment started from
+    for link in kept:
+        if link.moving in initial and link.reference in initial:
+            rot, trans = _error(link.matrix, np.linalg.inv(initial[link.reference]) @ initial[link.moving], scanner[link.moving])
+            before[(link.moving, link.reference)] = {"rotation_deg": rot, "translation_m": trans}
     # loops that disagree more than the links state: inflate every stated sigma by the excess
     dof = max(6 * len(rows) - 6 * max(len(poses) - 1 - len(fixed), 0), 0)
     chi2 = sum(min(r["normalised"], 10.0) ** 2 for r in rows) * 3.0  # ~ 3 components per block
@@ -384,7 +389,12 @@ def register_survey(
     project.adjustment = {
         "method": "survey",
         "poses": all_poses,
-        "links": [{"moving": r["moving"], "reference": r["reference"], "after": {"rotation_deg": r["rotation_deg"], "translation_m": r["translation_m"]}, "normalised_residual": r["normalised"]} for r in rows],
+        "links": [{
+            "moving": r["moving"], "reference": r["reference"],
+            "before": before.get((r["moving"], r["reference"]), {}),
+            "after": {"rotation_deg": r["rotation_deg"], "translation_m": r["translation_m"]},
+            "normalised_residual": r["normalised"],
+        } for r in rows],
         "dropped": dropped,
         "triangles": triangles,
         "uncertainty": {k: v for k, v in uncertainty.items() if k in poses},
