@@ -85,6 +85,7 @@ class ScannerEstimate:
     ground_z: float
     spread_m: float
     iterations: int
+    blind_circle: bool = False
 
     def to_dict(self) -> dict:
         return {
@@ -94,6 +95,7 @@ class ScannerEstimate:
             "height_m": self.height_m,
             "height_from": self.height_from,
             "spread_m": self.spread_m,
+            "blind_circle": self.blind_circle,
         }
 
 
@@ -164,6 +166,7 @@ def estimate_scanner_position(points: np.ndarray, params: Optional[ScannerPositi
     # height (the ground-profile height, +-0.4 m on simulated and real scans, is reported only).
     position = np.array([centre[0], centre[1], ground_z + p.default_height_m])
     refined = _blind_cone(pts, position, ground_z, p)
+    blind_circle = refined is not None
     if refined is not None:
         position, spread = refined
         centre = position[:2]
@@ -172,7 +175,7 @@ def estimate_scanner_position(points: np.ndarray, params: Optional[ScannerPositi
     occupied = float((counts > 0).sum()) * cell * cell
     mean_disc = len(pts) * np.pi * p.near_m**2 / max(occupied, np.pi * p.near_m**2)
     peak_ratio = float(near.sum() / max(mean_disc, 1.0))
-    return ScannerEstimate(position, peak_ratio, second_ratio, height, height_from, ground_z, spread, iterations)
+    return ScannerEstimate(position, peak_ratio, second_ratio, height, height_from, ground_z, spread, iterations, blind_circle)
 
 
 def _blind_cone(points: np.ndarray, start: np.ndarray, ground_z: float, p: ScannerPositionParams) -> Optional[tuple[np.ndarray, float]]:
@@ -289,6 +292,13 @@ def origin_is_plausible(points: np.ndarray, candidate: np.ndarray, estimate: Opt
     return near >= 0.5 * at_estimate
 
 
+def _origin_inside_data(points: np.ndarray, origin: np.ndarray) -> bool:
+    """Whether a candidate lies within the data's horizontal extent with >= 1000 points within 15 m."""
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    inside = bool(np.all(origin[:2] >= lo - 2.0) and np.all(origin[:2] <= hi + 2.0))
+    return inside and int(np.sum(np.sum((points[:, :2] - origin[:2]) ** 2, axis=1) <= 15.0**2)) >= 1000
+
+
 def locate_scanner(scan: Scan, params: Optional[ScannerPositionParams] = None) -> Scan:
     """The scan with a trustworthy scanner position.
 
@@ -321,6 +331,9 @@ def locate_scanner(scan: Scan, params: Optional[ScannerPositionParams] = None) -
             return confirmed
         if origin_is_plausible(scan.points, origin, estimate, p):
             return confirmed
+        if not estimate.blind_circle and _origin_inside_data(scan.points, origin):
+            log.warning("%s: a density peak away from the file origin, but no blind circle under it; keeping the origin", scan.name)
+            return dataclasses.replace(scan, meta={**scan.meta, "scanner_position": "file origin (not confirmed)"})
         log.info(
             "%s: no scanner position given and the file origin is not the scanner; found it from the data at "
             "(%.2f, %.2f, %.2f) (file coordinates), %.2f m above ground",
@@ -332,6 +345,10 @@ def locate_scanner(scan: Scan, params: Optional[ScannerPositionParams] = None) -
         return dataclasses.replace(scan, scanner_position=position, meta=meta)
     if origin_is_plausible(scan.points, origin, None, p):
         return confirmed
+    if _origin_inside_data(scan.points, origin):
+        # e.g. a scanner-centred scan whose ground was removed: nothing contradicts the origin
+        log.warning("%s: the data neither confirm nor contradict the file origin as the scanner position (%s); keeping it", scan.name, problem)
+        return dataclasses.replace(scan, meta={**scan.meta, "scanner_position": "file origin (not confirmed)"})
     raise ScannerPositionError(
         f"{scan.name}: no scanner position is given, the file origin has no points near it, and the data do not show "
         f"where the scanner stood ({problem}); give it with --scanner-position X,Y,Z or a positions CSV"
