@@ -82,6 +82,16 @@ def test_a_scanner_centred_file_keeps_its_origin(sim_plot):
     assert np.allclose(located.scanner_position, 0.0) and "confirmed" in located.meta["scanner_position"]
 
 
+def test_a_scan_in_project_coordinates_gets_its_own_position(sim_plot):
+    """Scan 2 exported in scan 1's coordinates: its file origin is where scan 1 stood."""
+    plot = sim_plot("mixed_temperate", FOUR, seed=31, step=0.3, size=45.0)
+    m = plot.relative_pose(0, 1)
+    moved = Scan.from_points(plot.scans[1].scan.points @ m[:3, :3].T + m[:3, 3], name="in_project")
+    located = locate_scanner(moved)
+    assert located.meta["scanner_position"] == "estimated"
+    assert np.hypot(*(located.scanner_position[:2] - m[:2, 3])) < 0.05
+
+
 def test_a_merged_or_empty_cloud_is_refused_with_a_reason():
     rng = np.random.default_rng(0)
     flat = np.column_stack([rng.uniform(0, 40, 50000) + 6e5, rng.uniform(0, 40, 50000) + 5e6, rng.normal(0, 0.02, 50000)])
