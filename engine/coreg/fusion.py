@@ -24,7 +24,6 @@ of the kept points into each input (to carry intensity or other attributes);
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import time

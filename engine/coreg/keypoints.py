@@ -3,7 +3,7 @@ each cluster, projected onto the cloud's DEM.
 
 Steps, each a pure function on arrays (local frame, z up, metres):
 
-1. :func:`thin_to_voxel` - one point per voxel, so that a dense ground-based cloud and a sparse
+1. :func:`~forestreg.engine.geometry.voxel.voxel_thin` - one point per voxel, so that a dense ground-based cloud and a sparse
    UAV cloud look alike to the clustering (the paper: downsampling the denser cloud adds 8-15 %
    matching);
 2. :func:`canopy_points` - points higher than ``canopy_min_height_m`` above the DEM;
@@ -20,7 +20,7 @@ matcher (:mod:`.matching`) is built for that.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -30,6 +30,7 @@ from ..core.errors import ParameterError, ScanDataError
 from ..core.progress import Progress
 from ..terrain.dem import Dem
 from ..core.params import Params, param_field as _p
+from ..geometry.voxel import voxel_thin
 
 __all__ = [
     "KeypointParams",
@@ -39,7 +40,6 @@ __all__ = [
     "density_peak",
     "extract_keypoints",
     "min_cluster_size_for",
-    "thin_to_voxel",
 ]
 
 
@@ -96,24 +96,6 @@ class Keypoints:
 
     def __len__(self) -> int:
         return len(self.xyz)
-
-
-def thin_to_voxel(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Indices (sorted) of one point per occupied voxel of side ``voxel_m`` (the point closest to
-    the voxel centre), so dense and sparse clouds end up with similar densities."""
-    p = np.asarray(points, dtype=np.float64)
-    if len(p) == 0:
-        return np.zeros(0, dtype=np.int64)
-    origin = p.min(axis=0)
-    cell = np.floor((p - origin) / voxel_m)
-    offset = np.linalg.norm(p - origin - (cell + 0.5) * voxel_m, axis=1)
-    keys = cell.astype(np.int64)
-    dims = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    order = np.lexsort((offset, flat))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = flat[order][1:] != flat[order][:-1]
-    return np.sort(order[first])
 
 
 def canopy_points(heights: np.ndarray, params: KeypointParams) -> tuple[np.ndarray, float]:
@@ -219,7 +201,7 @@ def extract_keypoints(
     if len(p) == 0 or not np.isfinite(p).all():
         raise ScanDataError("keypoints: the cloud is empty or holds NaN coordinates")
     progress(0.0, "thinning")
-    thin = p[thin_to_voxel(p, params.voxel_m)]
+    thin = p[voxel_thin(p, params.voxel_m, keep="centre")]
     heights = dem.normalise(thin)
     mask, floor = canopy_points(heights, params)
     canopy = thin[mask]

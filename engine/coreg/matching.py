@@ -29,14 +29,13 @@ hypotheses are heading + translation; the refinement fits all six degrees of fre
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from ..core.errors import ParameterError
 from ..core.progress import Progress
 from ..core.transform import fit_rigid
 from ..core.params import Params, param_field as _p

@@ -22,7 +22,7 @@ import os
 import sys
 import tempfile
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Iterator, Optional
 
 import numpy as np
@@ -30,6 +30,7 @@ import numpy as np
 from ..core.errors import ParameterError, ScanDataError
 from ..core.progress import Progress
 from ..core.params import Params, param_field as _p
+from ..geometry.voxel import voxel_thin
 
 __all__ = ["Dem", "TerrainModel", "TerrainParams", "build_dem", "classify_ground", "lowest_points_dem", "terrain_model"]
 
@@ -139,15 +140,6 @@ def _quiet_stdout() -> Iterator[None]:
             os.close(saved)
 
 
-def _thin_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Index of one (the first) point per voxel of side ``voxel_m``."""
-    if voxel_m <= 0:
-        return np.arange(len(points))
-    keys = np.floor((points - points.min(axis=0)) / voxel_m).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return np.sort(first)
-
-
 def classify_ground(points: np.ndarray, params: TerrainParams = TerrainParams()) -> np.ndarray:
     """Boolean mask of the ground points of (N, 3) ``points`` (local frame, z up, metres).
 
@@ -162,7 +154,7 @@ def classify_ground(points: np.ndarray, params: TerrainParams = TerrainParams())
     import CSF
 
     p = _check_points(points)
-    keep = _thin_indices(p, params.thin_voxel_m)
+    keep = voxel_thin(p, params.thin_voxel_m)
     sub = p[keep]
     shift = sub.mean(axis=0)
     csf = CSF.CSF()

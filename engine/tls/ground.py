@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..core.errors import DataError
 import numpy as np
 from scipy import ndimage
 
@@ -85,7 +86,7 @@ def ground_grid(points: np.ndarray, *, cell_m: float = 0.5, window_m: float = 3.
     cell_m : grid cell side, metres.
     """
     if len(points) == 0:
-        raise ValueError("no points to estimate the ground from")
+        raise DataError("no points to estimate the ground from near the scanner (a georeferenced scan? give its scanner position: --scanner-position X,Y,Z)")
     origin = np.floor(points[:, :2].min(axis=0) / cell_m) * cell_m
     ij = np.floor((points[:, :2] - origin) / cell_m).astype(np.int64)
     shape = tuple(ij.max(axis=0) + 1)
@@ -110,7 +111,7 @@ def _fill_nearest(grid: np.ndarray) -> np.ndarray:
     if not missing.any():
         return grid
     if missing.all():
-        raise ValueError("no ground cell could be measured")
+        raise DataError("no ground cell could be measured near the scanner")
     _, (ix, iy) = ndimage.distance_transform_edt(missing, return_indices=True)
     return grid[ix, iy]
 

@@ -351,5 +351,6 @@ def locate_scanner(scan: Scan, params: Optional[ScannerPositionParams] = None) -
         return dataclasses.replace(scan, meta={**scan.meta, "scanner_position": "file origin (not confirmed)"})
     raise ScannerPositionError(
         f"{scan.name}: no scanner position is given, the file origin has no points near it, and the data do not show "
-        f"where the scanner stood ({problem}); give it with --scanner-position X,Y,Z or a positions CSV"
+        f"where the scanner stood ({problem}); give it with --scanner-position X,Y,Z or a positions CSV, "
+        "and check the file's unit (--units cm|mm|ft)"
     )

@@ -20,11 +20,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import sparse
-from scipy.sparse.csgraph import connected_components as _csgraph_components
 from scipy.spatial import cKDTree
 
 from .ground import GroundGrid
+from ..geometry.cluster import connected_clusters
 
 
 @dataclass(frozen=True)
@@ -122,18 +121,10 @@ def connected_components(points_xyz: np.ndarray, *, link_m: float, spacing_rad: 
     """Label the points by connectivity: two points are linked when closer than
     ``max(link_m, 2.5 * spacing_rad * range)``, so the link grows with the scan's point spacing at
     that range. Returns an (N,) int label array."""
-    n = len(points_xyz)
-    if n == 0:
+    if len(points_xyz) == 0:
         return np.zeros(0, dtype=np.int64)
-    rng = np.linalg.norm(points_xyz[:, :2], axis=1)
-    reach = np.maximum(link_m, 2.5 * spacing_rad * rng)
-    pairs = cKDTree(points_xyz).query_pairs(float(reach.max()), output_type="ndarray")
-    if len(pairs):
-        gap = np.linalg.norm(points_xyz[pairs[:, 0]] - points_xyz[pairs[:, 1]], axis=1)
-        pairs = pairs[gap <= np.maximum(reach[pairs[:, 0]], reach[pairs[:, 1]])]
-    graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else sparse.coo_matrix((n, n))
-    _, labels = _csgraph_components(graph, directed=False)
-    return labels.astype(np.int64)
+    reach = np.maximum(link_m, 2.5 * spacing_rad * np.linalg.norm(points_xyz[:, :2], axis=1))
+    return connected_clusters(points_xyz, float(reach.max()), reach_m=reach)
 
 
 def density_mode(points_xy: np.ndarray, *, bandwidth_m: float, max_iterations: int = 50) -> np.ndarray:

@@ -29,7 +29,6 @@ reasons (NaN where a value cannot be had); bad input raises
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Sequence

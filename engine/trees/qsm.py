@@ -51,7 +51,6 @@ stored; the axis is a unit vector from the cylinder's start (base side) to its e
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
@@ -66,7 +65,8 @@ from ..core.atomic import write_text_atomic
 from ..core.errors import ParameterError, ScanDataError, ScanReadError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
-from .leafwood import check_points, voxel_thin
+from ..geometry.voxel import voxel_centroids
+from .leafwood import check_points
 
 #: Breast height (m) above the stem base at which the DBH is taken.
 BREAST_HEIGHT_M = 1.3
@@ -365,7 +365,7 @@ def cover_sets(points: np.ndarray, diameter: float | np.ndarray, max_levels: int
     next_label = 0
     for lv in np.unique(level):
         idx = np.flatnonzero(level == lv)
-        centres, _ = voxel_thin(p[idx], 0.7 * float(sizes[lv]))
+        centres, _ = voxel_centroids(p[idx], 0.7 * float(sizes[lv]))
         _, nearest = cKDTree(centres).query(p[idx], k=1)
         labels[idx] = nearest + next_label
         next_label += len(centres)
@@ -1242,7 +1242,7 @@ def fit_qsm(
         base_pt = np.asarray(base, dtype=np.float64).reshape(-1)
         if base_pt.shape != (3,) or not np.isfinite(base_pt).all():
             raise ScanDataError(f"the base must be a finite (x, y, z) point, got {base!r}")
-    p, voxel_of_raw = voxel_thin(raw, params.thinning_m)
+    p, voxel_of_raw = voxel_centroids(raw, params.thinning_m)
     if len(p) < MIN_POINTS:
         raise ScanDataError(
             f"a cylinder model needs at least {MIN_POINTS} points after thinning to {params.thinning_m:.3g} m, "

@@ -34,7 +34,6 @@ Bad input (empty arrays, NaN, mismatched shapes) raises
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence
@@ -48,6 +47,7 @@ from ..core.errors import ScanDataError
 from ..core.progress import Progress
 from ..core.params import Params, param_field
 from .stems import DbhMeasurement, Stem, check_cloud
+from ..geometry.voxel import voxel_centroids
 
 
 @dataclass(frozen=True)
@@ -62,17 +62,6 @@ class SegmentationParams(Params):
     axis_max_gap_m: float = param_field(3.0, "m", 0.0, 50.0, "...with gaps (occluded stem) of at most this length; 0 = no axis continuation")
     orphan_max_distance_m: float = param_field(1.0, "m", 0.0, 10.0, "Unreached voxels join the nearest reached voxel within this distance")
     orphan_min_height_m: float = param_field(2.0, "m", 0.0, 50.0, "...if they stand at least this high above the ground")
-
-
-def _voxelise(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """(voxel index per point, centroid per voxel)."""
-    keys = np.floor((points - points.min(axis=0)) / voxel_m).astype(np.int64)
-    _, inverse = np.unique(keys, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    n_vox = int(inverse.max()) + 1
-    counts = np.bincount(inverse, minlength=n_vox).astype(np.float64)
-    centroids = np.column_stack([np.bincount(inverse, weights=points[:, k], minlength=n_vox) for k in range(3)]) / counts[:, None]
-    return inverse, centroids
 
 
 def _stem_axis_members(points: np.ndarray, stems: Sequence[Stem], margin_m: float, s_max: float) -> np.ndarray:
@@ -127,7 +116,7 @@ def segment_trees(
     if len(up_idx) == 0:
         return labels
     report(0.1, "building the voxel graph")
-    vox_of, centroids = _voxelise(p[up_idx], params.voxel_m)
+    centroids, vox_of = voxel_centroids(p[up_idx], params.voxel_m)
     n_vox = len(centroids)
     pairs = cKDTree(centroids).query_pairs(params.link_distance_m, output_type="ndarray")
     weights = np.linalg.norm(centroids[pairs[:, 0]] - centroids[pairs[:, 1]], axis=1)
