@@ -798,11 +798,14 @@ def _uncertainty_section(project: Project, states: Mapping[str, Any]) -> str:
         rows.append(
             f"<tr><td>{_e(s.name)}</td><td class=\"num\">{format_cm(t)}</td><td class=\"num\">{_fmt(r, 3)}</td>"
             f"<td class=\"num\">{_e(str(q.get('links', '-')))}</td><td class=\"num\">{format_cm(q.get('max_residual_m'))}</td>"
-            f"<td class=\"num\">{_fmt(q.get('max_residual_deg'), 3)}</td><td class=\"num\">{_e(str(q.get('dropped_links', '-')))}</td></tr>"
+            f"<td class=\"num\">{_fmt(q.get('max_residual_deg'), 3)}</td><td class=\"num\">{_e(str(q.get('dropped_links', '-')))}</td>"
+            f"<td class=\"num\">{format_cm(q.get('terrain_median_m'))}</td><td class=\"num\">{_e(str(q.get('min_matched_vops', '-')))}</td>"
+            f"<td class=\"num\">{_fmt(q.get('max_ambiguity'), 2)}</td></tr>"
         )
     out.append(
         "<table><tr><th>Scan</th><th>Position 1-sigma (cm)</th><th>Rotation 1-sigma (deg)</th><th>Links</th>"
-        "<th>Largest link residual (cm)</th><th>(deg)</th><th>Dropped links</th></tr>" + "".join(rows) + "</table>"
+        "<th>Largest link residual (cm)</th><th>(deg)</th><th>Dropped links</th><th>Terrain disagreement (cm, median)</th>"
+        "<th>Fewest matched trunks</th><th>Ambiguity (2nd / best)</th></tr>" + "".join(rows) + "</table>"
     )
     dropped = [d for d in (adj.get("dropped") or []) if isinstance(d, Mapping)]
     if dropped:

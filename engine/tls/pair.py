@@ -122,6 +122,7 @@ class PairResult:
     attempts: list[dict[str, Any]] = field(default_factory=list)
     ambiguity_resolved: str = ""
     uncertainty: Optional[dict[str, Any]] = None
+    quality: Optional[dict[str, Any]] = None
     details: Optional[PairDetails] = field(default=None, repr=False, compare=False)
 
     @property
@@ -166,6 +167,7 @@ class PairResult:
             "attempts": list(self.attempts),
             "ambiguity_resolved": self.ambiguity_resolved,
             "uncertainty": self.uncertainty,
+            "quality": self.quality,
             "parameters": self.params.to_dict(),
         }
 
@@ -361,6 +363,13 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
     matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, fine.matrix)
     coarse_matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, coarse)
     uncertainty = _pair_uncertainty(chosen, fine, params.match_distance_m)
+    quality = {
+        **terrain_agreement(ref_prep, mov_prep, fine.matrix),
+        "ambiguity": (chosen.match.second_matched or 0) / max(chosen.matched, 1),
+        "confirmed_vops": confirmed,
+        "icp_std_m": fine.std_m,
+        "icp_fitness": fine.fitness,
+    }
     step(1.0, "done")
     log.info(
         "ok: %d matched VOPs, ICP std %.1f mm, fitness %.2f (%.1f s)",
@@ -382,6 +391,7 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
         vertical_offset_m=dz,
         details=full_details,
         uncertainty=uncertainty,
+        quality=quality,
         **common,
     )
 
@@ -514,6 +524,21 @@ def _vop_confirmation(attempt: CoarseAttempt, lsf_matrix: np.ndarray, match_dist
     moved = attempt.moving_vops.xy[pairs[:, 1]] @ lsf_matrix[:2, :2].T + lsf_matrix[:2, 3]
     d = np.hypot(*(moved - attempt.reference_vops.xy[pairs[:, 0]]).T)
     return float(np.mean(d)), int(np.sum(d < 0.75 * match_distance_m))
+
+
+def terrain_agreement(reference: PreparedScan, moving: PreparedScan, lsf_matrix: np.ndarray) -> dict[str, Any]:
+    """How well the two ground models agree under a moving-LSF -> reference-LSF matrix: the median
+    and the 90th percentile of the absolute height differences (m) over the ground cells both
+    measured, and their count. Needs no ground truth."""
+    g = moving.ground
+    ix, iy = np.nonzero(g.measured)
+    centres = np.column_stack([g.origin + (np.column_stack([ix, iy]) + 0.5) * g.cell_m, g.heights[ix, iy]])
+    moved = centres @ lsf_matrix[:3, :3].T + lsf_matrix[:3, 3]
+    both = reference.ground.measured_at(moved[:, :2])
+    if both.sum() < 10:
+        return {"terrain_cells": int(both.sum()), "terrain_median_m": None, "terrain_p90_m": None}
+    diff = np.abs(reference.ground.height_at(moved[both, :2]) - moved[both, 2])
+    return {"terrain_cells": int(both.sum()), "terrain_median_m": float(np.median(diff)), "terrain_p90_m": float(np.percentile(diff, 90))}
 
 
 def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, match_distance_m: float) -> dict[str, Any]:

@@ -428,6 +428,8 @@ def _quality(project: Project, kept: Sequence[Link], rows: Sequence[dict[str, An
                 "icp_std_m": icp.get("std_m"),
                 "icp_fitness": icp.get("fitness"),
                 "free_space_violation": res.get("free_space_violation"),
+                "terrain_median_m": (res.get("quality") or {}).get("terrain_median_m"),
+                "terrain_cells": (res.get("quality") or {}).get("terrain_cells"),
                 "residual_m": r.get("translation_m"),
                 "residual_deg": r.get("rotation_deg"),
             })
@@ -436,6 +438,9 @@ def _quality(project: Project, kept: Sequence[Link], rows: Sequence[dict[str, An
             "dropped_links": sum(s.name in (d["moving"], d["reference"]) for d in dropped),
             "max_residual_m": max((i["residual_m"] for i in items if i["residual_m"] is not None), default=None),
             "max_residual_deg": max((i["residual_deg"] for i in items if i["residual_deg"] is not None), default=None),
+            "terrain_median_m": max((i["terrain_median_m"] for i in items if i["terrain_median_m"] is not None), default=None),
+            "min_matched_vops": min((i["matched_vops"] for i in items), default=None),
+            "max_ambiguity": max((i["ambiguity"] for i in items if i["ambiguity"] is not None), default=None),
             "per_link": items,
         }
     return out
