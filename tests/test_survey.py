@@ -118,7 +118,10 @@ def test_georeferenced_survey_without_positions_registers_to_truth(georeferenced
         if k:
             assert trans <= 3.0 * u["translation_m"] + 1e-9 and rot <= 3.0 * u["rotation_deg"] + 1e-9, (p.name, trans, rot, u)
             assert u["translation_m"] < 0.1 and u["rotation_deg"] < 0.5, "an uncertainty that says nothing"
-        assert body["scans"][p.name]["quality"]["links"] >= 1
+        quality = body["scans"][p.name]["quality"]
+        assert quality["links"] >= 1
+        assert quality["terrain_median_m"] is not None and quality["terrain_median_m"] < 0.05, "the ground models agree"
+        assert quality["max_residual_m"] < 0.02
 
 
 def test_a_wrong_link_is_found_and_dropped(georeferenced, surveyed):
