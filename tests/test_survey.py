@@ -114,6 +114,7 @@ def test_georeferenced_survey_without_positions_registers_to_truth(georeferenced
         trans = float(np.linalg.norm((poses[p.name] - truth)[:3, :3] @ scanner + (poses[p.name] - truth)[:3, 3]))
         assert rot < 0.05 and trans < 0.02, f"{p.name}: {rot:.4f} deg, {100 * trans:.2f} cm"
         u = body["scans"][p.name]["uncertainty"]
+        print(f"{p.name}: error {rot:.4f} deg, {1000 * trans:.1f} mm; stated {u}")
         assert u is not None and set(u) >= {"translation_m", "rotation_deg"}
         if k:
             assert trans <= 3.0 * u["translation_m"] + 1e-9 and rot <= 3.0 * u["rotation_deg"] + 1e-9, (p.name, trans, rot, u)
