@@ -328,6 +328,12 @@ def register_survey(
             if project.path is not None:
                 project.save()
     scanner = {s.name: _scanner_file(scans, s.name) for s in project.scans if _usable(scans, s.name)}
+    if frame not in scanner:  # the centre scan itself is unusable: nothing can be placed
+        for s in project.scans:
+            outcome.status[s.name] = "failed"
+            outcome.reasons.setdefault(s.name, f"the centre scan {frame} cannot be used")
+        project.adjustment = None
+        return outcome
     ok_links = [link for link in project.links if link.ok and link.matrix is not None and link.moving in scanner and link.reference in scanner]
     dropped: list[dict[str, Any]] = []
     kept = []
@@ -371,7 +377,7 @@ def register_survey(
     chi2 = sum(min(r["normalised"], 10.0) ** 2 for r in rows) * 3.0  # ~ 3 components per block
     inflation = float(np.sqrt(chi2 / dof)) if dof > 0 else 1.0
     inflation = max(1.0, inflation)
-    positions = {n: p[:3, :3] @ scanner[n] + p[:3, 3] for n, p in poses.items()}
+    positions = {n: p[:3, :3] @ scanner[n] + p[:3, 3] for n, p in poses.items() if n in scanner}
     link_sigmas = [{"moving": x.moving, "reference": x.reference, "translation_m": _link_sigma(x)[0] * inflation, "rotation_deg": _link_sigma(x)[1] * inflation} for x in kept]
     uncertainty = propagate_uncertainty(frame, positions, link_sigmas)
     for name in fixed:
