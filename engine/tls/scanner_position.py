@@ -178,7 +178,56 @@ def estimate_scanner_position(points: np.ndarray, params: Optional[ScannerPositi
     return ScannerEstimate(position, peak_ratio, second_ratio, height, height_from, ground_z, spread, iterations, blind_circle)
 
 
-def _blind_cone(points: np.ndarray, start: np.ndarray, ground_z: float, p: ScannerPositionParams) -> Optional[tuple[np.ndarray, float]]:
+def find_blind_circle(points: np.ndarray, params: Optional[ScannerPositionParams] = None) -> Optional[ScannerEstimate]:
+    """The scanner from the hole its lowest beam leaves in the ground (a fallback for scans whose
+    ground is not denser near the scanner, e.g. scans resampled from a merged cloud): the one
+    round hole, 0.8-4 m in radius, fully enclosed by ground returns, refined by the cone fit.
+    Returns None where there is no such hole or more than one."""
+    p = params or ScannerPositionParams()
+    pts = np.asarray(points, dtype=np.float64)
+    ground = pts[_near_ground(pts, p.ground_band_m)]
+    if len(ground) < 1000:
+        return None
+    cell = 0.2
+    if float(np.ptp(ground[:, :2], axis=0).max()) / cell > 3000:
+        return None
+    counts, lo = _density_map(ground[:, :2], cell)
+    occupied = ndimage.binary_closing(counts > 0, iterations=1)
+    holes = ndimage.binary_fill_holes(occupied) & ~occupied
+    labels, n = ndimage.label(holes)
+    if n == 0:
+        return None
+    depth = ndimage.distance_transform_edt(holes) * cell
+    found = []
+    for k, sl in enumerate(ndimage.find_objects(labels), start=1):
+        mask = labels[sl] == k
+        radius = float(depth[sl][mask].max())
+        if not 0.8 <= radius <= 4.0:
+            continue
+        area = float(mask.sum()) * cell * cell
+        if not 0.5 * np.pi * radius**2 <= area <= 4.0 * np.pi * radius**2:
+            continue  # not round
+        ii, jj = np.nonzero(mask)
+        centre = lo + (np.column_stack([ii + sl[0].start, jj + sl[1].start]).mean(axis=0) + 0.5) * cell
+        found.append((radius, centre))
+    if len(found) != 1:
+        return None
+    radius, centre = found[0]
+    near = ground[np.sum((ground[:, :2] - centre) ** 2, axis=1) <= (radius + 2.0) ** 2]
+    if len(near) < 100:
+        return None
+    coef, _ = _ground_plane(near, centre)
+    ground_z = float(coef[2])
+    start = np.array([centre[0], centre[1], ground_z + p.default_height_m])
+    # the edge of a hole in a resampled cloud is ragged: a looser fit, still one apex for most sectors
+    refined = _blind_cone(pts, start, ground_z, dataclasses.replace(p, disc_m=max(p.disc_m, radius + 2.0)), tolerance_rad=0.05, min_fraction=0.5)
+    if refined is None:
+        return None
+    position, spread = refined
+    return ScannerEstimate(position, 0.0, 0.0, p.default_height_m, "default", ground_z, spread, 0, True)
+
+
+def _blind_cone(points: np.ndarray, start: np.ndarray, ground_z: float, p: ScannerPositionParams, *, tolerance_rad: float = 0.02, min_fraction: float = 0.6) -> Optional[tuple[np.ndarray, float]]:
     """Ray geometry: the innermost ground return of each of 72 azimuth sectors lies on the cone of
     the scanner's lowest beam (the edge of the blind circle). A robust least-squares fit of the
     cone's apex (x, y; z held near ``start`` by a weak prior, as z and the cone angle trade off on
@@ -224,8 +273,8 @@ def _blind_cone(points: np.ndarray, start: np.ndarray, ground_z: float, p: Scann
     sol = least_squares(residuals, x0, bounds=(lo, hi), loss="soft_l1", f_scale=0.01)
     moved = float(np.hypot(*(sol.x[:2] - c)))
     el_res = np.abs(sol.fun)
-    good = el_res < 0.02
-    if not sol.success or moved > 1.5 or good.sum() < 0.6 * len(inner):
+    good = el_res < tolerance_rad
+    if not sol.success or moved > 1.5 or good.sum() < min_fraction * len(inner):
         return None
     spread = float(max(0.005, np.std(el_res[good]) * r_med * np.sqrt(2.0 / good.sum()) * 3.0))
     return np.array([sol.x[0], sol.x[1], start[2]], dtype=float), spread
@@ -324,6 +373,11 @@ def locate_scanner(scan: Scan, params: Optional[ScannerPositionParams] = None) -
             problem = f"two scanner-like density peaks (the second {100 * estimate.second_ratio:.0f} % of the first): a merged or multi-station cloud?"
     except ScannerPositionError as exc:
         estimate, problem = None, str(exc)
+    if problem:
+        hole = find_blind_circle(scan.points, p)
+        if hole is not None:
+            log.info("%s: no density peak under the scanner, but one blind circle in the ground", scan.name)
+            estimate, problem = hole, ""
     origin = scan.scanner_position
     confirmed = dataclasses.replace(scan, meta={**scan.meta, "scanner_position": "file origin (confirmed by the data)"})
     if estimate is not None and not problem:
