@@ -20,6 +20,10 @@ def _add_plot_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dc", type=number("--dc", positive=True), help="reduction radius D_c in metres (default 30)")
     p.add_argument("--dh", type=offsets, help="slice offsets dh in metres, comma-separated")
     p.add_argument("--params", help=PARAMS_HELP)
+    p.add_argument("--pairs", metavar="all|within:D|centre", help="register every pair (or those whose scanners stand within D m), solve a pose graph weighted by each pair's evidence, drop inconsistent links, state each pose's uncertainty")
+    p.add_argument("--positions", metavar="CSV", help="scanner positions: CSV scan,x,y,z in each scan's file coordinates (default: the E57 pose, else found from the data)")
+    p.add_argument("--prior-poses", metavar="FILE", help="prior poses to check links against: poses.json, JSON {scan: 4x4}, or CSV scan,x,y,z[,heading_deg] (GNSS/compass)")
+    p.add_argument("--fixed", action="append", metavar="SCAN,...", help="scans held at their prior poses (with --pairs)")
 
 
 def add_parsers(sub, add_global_flags) -> None:
@@ -70,6 +74,8 @@ def add_parsers(sub, add_global_flags) -> None:
     q.add_argument("project", help="project file (.json)")
     q.add_argument("--out", help="output folder (default: the project's folder)")
     q.add_argument("--rerun", action="store_true", help="run every link again")
+    q.add_argument("--pairs", metavar="all|within:D|centre", help="register every pair (or those within D m), pose graph, inconsistent links dropped, uncertainty per pose")
+    q.add_argument("--fixed", action="append", metavar="SCAN,...", help="scans held at their prior poses (with --pairs)")
     q.add_argument("--merged", help="also write all registered scans into one point file (.laz/.las; never an input)")
     q.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
     add_global_flags(q)
@@ -141,6 +147,7 @@ def project_from_args(args: argparse.Namespace):
             if other == entry.name:
                 raise UsageError(f"--tilted {item}: a scan cannot be its own level partner")
             entry.level_partner = other
+    _survey_inputs(project, args, known)
     if getattr(args, "targets", None):
         from ..engine.tls.manual import read_targets_csv
 
@@ -150,6 +157,38 @@ def project_from_args(args: argparse.Namespace):
             else:
                 log.warning("targets for %s: no such scan in the plot", scan_name)
     return project
+
+
+def check_survey_options(args: argparse.Namespace) -> None:
+    """Bad --pairs / --positions / --prior-poses: one line and exit 2, before any work."""
+    from ..engine.tls.survey import parse_pairs, read_positions_csv, read_prior_poses
+
+    if getattr(args, "pairs", None):
+        parse_pairs(args.pairs)
+    if getattr(args, "positions", None):
+        read_positions_csv(args.positions)
+    if getattr(args, "prior_poses", None):
+        read_prior_poses(args.prior_poses)
+
+
+def _survey_inputs(project, args: argparse.Namespace, known) -> None:
+    """Scanner positions (--positions CSV), prior poses (--prior-poses) and --fixed names into the project."""
+    from ..engine.tls.survey import read_positions_csv, read_prior_poses
+
+    if getattr(args, "positions", None):
+        for name, xyz in read_positions_csv(args.positions).items():
+            project.scan(known(name, "--positions")).scanner_position = xyz
+    if getattr(args, "prior_poses", None):
+        for name, pose in read_prior_poses(args.prior_poses).items():
+            project.scan(known(name, "--prior-poses")).prior_pose = pose
+    for name in ",".join(getattr(args, "fixed", None) or []).split(","):
+        if name.strip():
+            known(name.strip(), "--fixed")
+
+
+def _fixed_names(project, args: argparse.Namespace) -> tuple[str, ...]:
+    names = {s.name: s.name for s in project.scans} | {Path(s.path).name: s.name for s in project.scans}
+    return tuple(names.get(n.strip(), n.strip()) for n in ",".join(getattr(args, "fixed", None) or []).split(",") if n.strip())
 
 
 def _publish(tmp: Path, out: Path, scan_names) -> None:
@@ -184,15 +223,22 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
         _check_scans_near_their_scanners(project, scans)
     reporter = args.reporter
     try:
-        outcome = register_project(project, rerun=getattr(args, "rerun", False), progress=reporter, scans=scans)
-        if getattr(args, "loops", None):
+        if getattr(args, "pairs", None):
+            from ..engine.tls.survey import SurveyParams, parse_pairs, register_survey
+
+            pairs, distance = parse_pairs(args.pairs)
+            survey = SurveyParams(pairs=pairs, max_distance_m=distance, fixed=_fixed_names(project, args))
+            outcome = register_survey(project, survey, rerun=getattr(args, "rerun", False), progress=reporter, scans=scans)
+        else:
+            outcome = register_project(project, rerun=getattr(args, "rerun", False), progress=reporter, scans=scans)
+        if getattr(args, "loops", None) and not getattr(args, "pairs", None):
             added = add_neighbour_links(project, args.loops)
             if added:
                 log.info("closing %d loops between neighbouring scans", len(added))
                 register_project(project, progress=reporter, scans=scans)
     finally:
         reporter.close()
-    adjusted = adjust_poses(project, scans)
+    adjusted = adjust_poses(project, scans) if not getattr(args, "pairs", None) else project.adjustment
     if project.path is not None:
         project.save()
     out.mkdir(parents=True, exist_ok=True)
@@ -226,11 +272,19 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
 
         count = write_registered_e57(project, args.e57_out, scans)
         print(f"wrote {count} registered scans with their poses to {args.e57_out}")
+    from ..engine.tls.plot import pose_uncertainty
+
+    sigma = pose_uncertainty(project)
     for name, status in outcome.status.items():
         extra = f" - {outcome.reasons[name]}" if name in outcome.reasons else ""
         link = project.link_of(name)
         onto = f" onto {link.reference}" if link is not None and status == "ok" else ""
+        u = sigma.get(name) if status == "ok" else None
+        if u and u.get("translation_m") is not None and u.get("rotation_deg") is not None:
+            onto += f" (1 sigma {100 * u['translation_m']:.1f} cm, {u['rotation_deg']:.3f} deg)"
         print(f"{name}: {status}{onto}{extra}")
+    for d in (project.adjustment or {}).get("dropped") or []:
+        print(f"dropped link {d['moving']} -> {d['reference']}: {d['reason']}")
     if adjusted:
         worst = max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0)
         print(f"global adjustment over {len(adjusted['links'])} links: largest link residual {100 * worst:.1f} cm")
@@ -273,6 +327,7 @@ def _plot_folder(out, scans) -> Path:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    check_survey_options(args)
     _check_scan_files_exist(args.scans)
     _check_extra_outputs(args, args.scans)
     project = project_from_args(args)
@@ -318,6 +373,7 @@ def cmd_project(args: argparse.Namespace) -> int:
         from ..engine.core.atomic import check_output_file
 
         check_output_file(target, inputs=args.scans, suffixes=(".json",))
+        check_survey_options(args)
         _check_scan_files(args.scans)
         project = project_from_args(args)
         path = project.save(target)
@@ -356,6 +412,7 @@ def cmd_project(args: argparse.Namespace) -> int:
         say(f"linked {args.moving} -> {args.reference}{' (extra link)' if args.extra else ''}", args)
         return 0
     inputs = [s.path for s in project.scans]
+    check_survey_options(args)
     _check_extra_outputs(args, inputs)
     if args.out:
         out = _plot_folder(args.out, inputs)

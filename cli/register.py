@@ -84,6 +84,11 @@ def run_register(
     t0 = time.perf_counter()
     reference = read_scan(reference_path, scanner_position=positions[0] if len(positions) > 0 else None, unit_scale=scale)
     moving = read_scan(moving_path, scanner_position=positions[1] if len(positions) > 1 else None, unit_scale=scale)
+    # no scanner position given and the file origin is not the scanner (project/UTM exports):
+    # find it from the data, or refuse with the reason
+    from ..engine.tls.scanner_position import locate_scanner
+
+    reference, moving = locate_scanner(reference), locate_scanner(moving)
     read_s = time.perf_counter() - t0
     for scan, path in ((reference, reference_path), (moving, moving_path)):
         check_near_scanner(scan, params.max_range_m, path, units)

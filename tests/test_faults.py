@@ -238,15 +238,21 @@ def test_project_link_and_damaged_project_files_exit_2(tiny, tmp_path, capsys):
 
 
 def test_georeferenced_scan_without_its_position_and_a_cm_file_are_refused_before_the_work(tiny, tmp_path, capsys):
+    """A georeferenced scan without a position has it found from the data (issue 13); a cloud
+    that shows no single scanner (two scans merged) is refused with the hint, like a cm file."""
+    from forestreg.engine.core.scan import Scan
+
     _, paths, _ = tiny
     scan = read_scan(paths[1])
     metres_as_cm = ["--units", "cm"]
     assert main(["register", str(paths[0]), str(paths[1]), "--out", str(tmp_path / "o"), *metres_as_cm]) == 2
     assert "--units" in _assert_one_line(capsys.readouterr().err)
+    other = read_scan(paths[2])
     geo, cm = tmp_path / "geo.laz", tmp_path / "cm.laz"
     shift = np.eye(4)
     shift[:3, 3] = [512345.0, 5212345.0, 300.0]
-    write_scan(scan, geo, matrix=shift)
+    merged = np.concatenate([scan.points, other.points + [25.0, 0.0, 0.0]]) + shift[:3, 3]
+    write_scan(Scan.from_points(merged, name="geo"), geo)
     write_scan(scan, cm, matrix=np.diag([100.0, 100.0, 100.0, 1.0]))
     for moving, hint in ((geo, "--scanner-position"), (cm, "--units")):
         assert main(["register", str(paths[0]), str(moving), "--out", str(tmp_path / "o")]) == 2

@@ -152,6 +152,8 @@ class Scan:
 
         info = dict(meta or {})
         info["dropped_nonfinite"] = n_bad
+        # where the scanner position came from: given (reader, option, project) or the file origin
+        info.setdefault("scanner_position", "given" if scanner_position is not None else "file origin")
         return cls(
             points=_readonly(np.ascontiguousarray(pts - shift)),
             scanner_position=_readonly(scanner_file - shift),
