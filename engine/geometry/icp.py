@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from ..core.transform import rotation_from_vector
@@ -53,10 +52,48 @@ class IcpResult:
         }
 
 
+def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) minimum and maximum of each column of (N, 3) points, float64 (column by column: a
+    reduction along the long axis is many times faster than ``min(axis=0)`` on an (N, 3) array)."""
+    pts = np.asarray(points)
+    lo = np.array([pts[:, k].min() for k in range(pts.shape[1])], dtype=np.float64)
+    hi = np.array([pts[:, k].max() for k in range(pts.shape[1])], dtype=np.float64)
+    return lo, hi
+
+
+def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """One int64 key per point naming its ``voxel_m`` voxel (a grid anchored half a voxel below
+    the points' minimum corner, as Open3D's voxel thinning). Works axis by axis on float32 or
+    float64 input, so no (N, 3) temporary is made."""
+    pts = np.asarray(points)
+    lo = column_bounds(pts)[0] - voxel_m / 2.0
+    key = np.zeros(len(pts), dtype=np.int64)
+    for axis in range(3):
+        k = ((pts[:, axis] - lo[axis]) * (1.0 / voxel_m)).astype(np.int64)
+        key *= int(k.max()) + 1
+        key += k
+    return key
+
+
 def thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Voxel-grid thinning: one averaged point per occupied ``voxel_m`` voxel, (M, 3) float64."""
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.require(points, np.float64, ["C", "W"])))
-    return np.asarray(cloud.voxel_down_sample(voxel_m).points)
+    """Voxel-grid thinning: one averaged point per occupied ``voxel_m`` voxel, (M, 3) float64
+    in the points' frame, sorted by voxel. One sort of the N voxel keys, no (N, 3) copies."""
+    pts = np.asarray(points)
+    if len(pts) == 0:
+        return np.zeros((0, 3))
+    key = voxel_keys(pts, voxel_m)
+    order = np.argsort(key)
+    key = key[order]
+    starts = np.flatnonzero(np.concatenate(([True], key[1:] != key[:-1])))
+    del key
+    counts = np.diff(np.append(starts, len(pts)))
+    anchor = pts[order[starts]].astype(np.float64)  # sums relative to a voxel member: exact for large coordinates
+    out = np.empty((len(starts), 3))
+    for axis in range(3):
+        column = pts[order, axis].astype(np.float64)
+        column -= np.repeat(anchor[:, axis], counts)
+        out[:, axis] = anchor[:, axis] + np.add.reduceat(column, starts) / counts
+    return out
 
 
 def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours: int = 12) -> np.ndarray:
@@ -101,10 +138,15 @@ def icp(
     total_iterations = 0
     fitness, rmse = 0.0, float("nan")
     mov = np.zeros((0, 3))
+    # Each cloud is thinned once, at the finest stage's voxel; wider stages thin that copy
+    # (the raw clouds may hold millions of points, the thinned ones a fraction).
+    finest = max(voxel_m, min(max_distances_m) / 2.5) if len(max_distances_m) else voxel_m
+    ref_fine = thin(reference, finest)
+    mov_fine = thin(moving, finest)
     for dist in max_distances_m:
         voxel = max(voxel_m, dist / 2.5)
-        ref = thin(reference, voxel)
-        mov = thin(moving, voxel)
+        ref = ref_fine if voxel <= finest else thin(ref_fine, voxel)
+        mov = mov_fine if voxel <= finest else thin(mov_fine, voxel)
         if len(mov) > max_moving_points:
             mov = mov[rng.choice(len(mov), max_moving_points, replace=False)]
         if len(ref) < 20 or len(mov) < 20:
@@ -159,7 +201,17 @@ def nearest_distance_stats(reference: np.ndarray, moved: np.ndarray, max_distanc
     over the pairs closer than ``max_distance_m``; and how many there are (metres)."""
     if len(reference) == 0 or len(moved) == 0:
         return float("nan"), float("nan"), 0
-    d, _ = cKDTree(reference).query(moved, distance_upper_bound=max_distance_m, workers=-1)
+    # only the reference points near the moved ones can be nearest: crop to their box first
+    lo, hi = column_bounds(moved)
+    lo, hi = lo - max_distance_m, hi + max_distance_m
+    near = np.ones(len(reference), dtype=bool)
+    for axis in range(3):
+        near &= (reference[:, axis] >= lo[axis]) & (reference[:, axis] <= hi[axis])
+    reference = reference[near]
+    if len(reference) == 0:
+        return float("nan"), float("nan"), 0
+    tree = cKDTree(reference, balanced_tree=False, compact_nodes=False)  # built once, queried once: a fast build
+    d, _ = tree.query(moved, distance_upper_bound=max_distance_m, workers=-1)
     d = d[np.isfinite(d)]
     if len(d) < 2:
         return float("nan"), float("nan"), int(len(d))

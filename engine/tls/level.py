@@ -14,8 +14,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
+
+from ..geometry.icp import thin
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -44,16 +45,18 @@ def surface_normals(points: np.ndarray, *, voxel_m: float = 0.1, radius_m: float
     Returns (M, 3) unit normals (arbitrary sign) and (M,) surface variation
     ``l0 / (l0 + l1 + l2)`` of the local covariance (0 = flat; leaves and clutter are high).
     """
-    near = points[np.einsum("ij,ij->i", points, points) <= radius_m**2]
+    d2 = points[:, 0] ** 2 + points[:, 1] ** 2 + points[:, 2] ** 2
+    near = points[d2 <= radius_m**2]
     if len(near) <= neighbours:
         return np.zeros((0, 3)), np.zeros(0)
-    thinned = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near)).voxel_down_sample(voxel_m).points)
+    thinned = thin(near, voxel_m)
     if len(thinned) <= neighbours:
         return np.zeros((0, 3)), np.zeros(0)
     if len(thinned) > 60000:
         thinned = thinned[np.random.default_rng(0).choice(len(thinned), 60000, replace=False)]
-    _, idx = cKDTree(thinned).query(thinned, k=neighbours)
-    nb = thinned[idx] - thinned[idx].mean(axis=1, keepdims=True)
+    _, idx = cKDTree(thinned).query(thinned, k=neighbours, workers=-1)
+    nb = thinned[idx]
+    nb -= nb.mean(axis=1, keepdims=True)
     w, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
     return v[:, :, 0], w[:, 0] / np.maximum(w.sum(axis=1), 1e-12)
 
@@ -138,13 +141,13 @@ def _trunk_vertical(walls: np.ndarray, max_tilt_deg: float) -> tuple[Optional[np
     when the peak lies on the search's edge (no real peak)."""
     band = np.sin(np.radians(3.0))
     candidates = _hemisphere_directions(max_tilt_deg, 2.0, np.array([0.0, 0.0, 1.0]))
-    votes = (np.abs(walls @ candidates.T) < band).sum(axis=0)
+    votes = _great_circle_votes(walls, candidates, band)
     best = candidates[int(np.argmax(votes))]
     strength = float(votes.max() / max(np.median(votes), 1.0))
     if tilt_deg(best) > max_tilt_deg - 3.0:
         return None, strength
     fine = _hemisphere_directions(3.0, 0.5, best)
-    best = fine[int(np.argmax((np.abs(walls @ fine.T) < band).sum(axis=0)))]
+    best = fine[int(np.argmax(_great_circle_votes(walls, fine, band)))]
     for tol in (6.0, 3.0):
         near = walls[np.abs(walls @ best) < np.sin(np.radians(tol))]
         if len(near) < 30:
@@ -152,6 +155,20 @@ def _trunk_vertical(walls: np.ndarray, max_tilt_deg: float) -> tuple[Optional[np
         _, v = np.linalg.eigh(near.T @ near)
         best = v[:, 0] * np.sign(v[2, 0] + 1e-12)
     return best, strength
+
+
+def _great_circle_votes(normals: np.ndarray, directions: np.ndarray, band: float, block: int = 2048) -> np.ndarray:
+    """For each direction, how many unit ``normals`` lie within ``band`` (a sine) of its
+    perpendicular great circle: ``|n . d| < band``. Counted in blocks of normals, so memory stays
+    at ``block x len(directions)`` instead of a dense normals x directions matrix."""
+    votes = np.zeros(len(directions), dtype=np.int64)
+    dt = directions.T.astype(np.float32)  # float32: a vote band of 3 deg does not need more
+    normals = normals.astype(np.float32)
+    for start in range(0, len(normals), block):
+        dots = normals[start:start + block] @ dt
+        np.abs(dots, out=dots)
+        votes += np.count_nonzero(dots < band, axis=0)
+    return votes
 
 
 def _direction_mode(normals: np.ndarray, bandwidth_deg: float = 8.0) -> np.ndarray:

@@ -125,12 +125,17 @@ def connected_components(points_xyz: np.ndarray, *, link_m: float, spacing_rad: 
     n = len(points_xyz)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
-    rng = np.linalg.norm(points_xyz[:, :2], axis=1)
+    pts = np.asarray(points_xyz, dtype=np.float64)
+    rng = np.hypot(pts[:, 0], pts[:, 1])
     reach = np.maximum(link_m, 2.5 * spacing_rad * rng)
-    pairs = cKDTree(points_xyz).query_pairs(float(reach.max()), output_type="ndarray")
+    pairs = cKDTree(pts).query_pairs(float(reach.max()), output_type="ndarray")
     if len(pairs):
-        gap = np.linalg.norm(points_xyz[pairs[:, 0]] - points_xyz[pairs[:, 1]], axis=1)
-        pairs = pairs[gap <= np.maximum(reach[pairs[:, 0]], reach[pairs[:, 1]])]
+        i, j = pairs[:, 0], pairs[:, 1]
+        gap2 = np.zeros(len(pairs))
+        for axis in range(3):  # axis by axis: no (pairs, 3) temporaries
+            column = pts[:, axis]
+            gap2 += (column[i] - column[j]) ** 2
+        pairs = pairs[gap2 <= np.maximum(reach[i], reach[j]) ** 2]
     graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else sparse.coo_matrix((n, n))
     _, labels = _csgraph_components(graph, directed=False)
     return labels.astype(np.int64)
