@@ -99,7 +99,7 @@ def thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
 def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours: int = 12) -> np.ndarray:
     """Unit normals (arbitrary sign) of ``points[index]`` from their ``neighbours`` nearest
     points (``tree`` is built on ``points``): the least eigenvector of the local covariance."""
-    _, idx = tree.query(points[index], k=min(neighbours, len(points)), workers=-1)
+    _, idx = tree.query(points[index], k=min(neighbours, len(points)), workers=-1 if len(index) >= 5000 else 1)
     nb = points[idx]
     nb -= nb.mean(axis=1, keepdims=True)
     _, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
@@ -130,8 +130,8 @@ def icp(
     reference, moving : (N, 3) / (M, 3) points, metres.
     initial : 4x4 initial moving -> reference matrix (the coarse result).
     max_distances_m : correspondence distance of each stage, largest first.
-    iterations : the most iterations per stage (a stage stops when the update is below
-        0.01 mm and 0.0001 deg).
+    iterations : the most iterations per stage (the last stage stops when the update is below
+        0.01 mm and 0.0001 deg, earlier ones below 0.1 mm and 0.001 deg).
     """
     rng = np.random.default_rng(seed)
     matrix = np.asarray(initial, dtype=np.float64).copy()
@@ -143,7 +143,11 @@ def icp(
     finest = max(voxel_m, min(max_distances_m) / 2.5) if len(max_distances_m) else voxel_m
     ref_fine = thin(reference, finest)
     mov_fine = thin(moving, finest)
-    for dist in max_distances_m:
+    for stage, dist in enumerate(max_distances_m):
+        # a wide stage only brings the next one into its basin: it stops at 0.1 mm / 0.001 deg
+        # updates; the last stage converges to 0.01 mm / 0.0001 deg
+        final_stage = stage == len(max_distances_m) - 1
+        stop_m, stop_rad = (1e-5, np.radians(1e-4)) if final_stage else (1e-4, np.radians(1e-3))
         voxel = max(voxel_m, dist / 2.5)
         ref = ref_fine if voxel <= finest else thin(ref_fine, voxel)
         mov = mov_fine if voxel <= finest else thin(mov_fine, voxel)
@@ -180,7 +184,7 @@ def icp(
             matrix = step @ matrix
             fitness = float(ok.mean())
             rmse = float(np.sqrt(np.mean(d[ok] ** 2)))
-            if np.linalg.norm(x[3:]) < 1e-5 and np.linalg.norm(x[:3]) < np.radians(1e-4):
+            if np.linalg.norm(x[3:]) < stop_m and np.linalg.norm(x[:3]) < stop_rad:
                 break
     last = float(max_distances_m[-1])
     moved = mov @ matrix[:3, :3].T + matrix[:3, 3]

@@ -157,17 +157,35 @@ def _trunk_vertical(walls: np.ndarray, max_tilt_deg: float) -> tuple[Optional[np
     return best, strength
 
 
-def _great_circle_votes(normals: np.ndarray, directions: np.ndarray, band: float, block: int = 2048) -> np.ndarray:
-    """For each direction, how many unit ``normals`` lie within ``band`` (a sine) of its
-    perpendicular great circle: ``|n . d| < band``. Counted in blocks of normals, so memory stays
-    at ``block x len(directions)`` instead of a dense normals x directions matrix."""
+def _great_circle_votes(normals: np.ndarray, directions: np.ndarray, band: float, block: int = 4096) -> np.ndarray:
+    """For each unit direction, how many unit ``normals`` (upward: ``n_z >= 0``) lie within
+    ``band`` (a sine) of its perpendicular great circle: ``|n . d| < band``.
+
+    A normal at angle ``a`` from z can only be that close to perpendicular to a direction tilted
+    ``t`` from z when ``a > 90 deg - t - asin(band)``, i.e. ``n_z < sin(t + asin(band))``; so
+    directions are taken in groups of similar tilt, each against the normals sorted by ``n_z`` up
+    to its limit (ground normals never reach a near-vertical direction). Counted in blocks: no dense
+    normals x directions matrix."""
     votes = np.zeros(len(directions), dtype=np.int64)
-    dt = directions.T.astype(np.float32)  # float32: a vote band of 3 deg does not need more
-    normals = normals.astype(np.float32)
-    for start in range(0, len(normals), block):
-        dots = normals[start:start + block] @ dt
-        np.abs(dots, out=dots)
-        votes += np.count_nonzero(dots < band, axis=0)
+    if len(normals) == 0 or len(directions) == 0:
+        return votes
+    normals = normals[np.argsort(normals[:, 2], kind="stable")]
+    nz = normals[:, 2]
+    beta = float(np.arcsin(min(band, 1.0)))
+    tilt = np.arccos(np.clip(directions[:, 2], -1.0, 1.0))
+    by_tilt = np.argsort(tilt, kind="stable")
+    group = 256
+    for g in range(0, len(by_tilt), group):
+        idx = by_tilt[g:g + group]
+        reach = float(tilt[idx].max()) + beta
+        limit = len(nz) if reach >= np.pi / 2 else int(np.searchsorted(nz, np.sin(reach) + 1e-9, side="right"))
+        dt = directions[idx].T
+        count = np.zeros(len(idx), dtype=np.int64)
+        for start in range(0, limit, block):
+            dots = normals[start:min(start + block, limit)] @ dt
+            np.abs(dots, out=dots)
+            count += np.count_nonzero(dots < band, axis=0)
+        votes[idx] = count
     return votes
 
 
