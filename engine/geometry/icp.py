@@ -102,7 +102,7 @@ def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours
     _, idx = tree.query(points[index], k=min(neighbours, len(points)), workers=-1 if len(index) >= 5000 else 1)
     nb = points[idx]
     nb -= nb.mean(axis=1, keepdims=True)
-    _, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    _, v = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb))
     return v[:, :, 0]
 
 

@@ -57,7 +57,7 @@ def surface_normals(points: np.ndarray, *, voxel_m: float = 0.1, radius_m: float
     _, idx = cKDTree(thinned).query(thinned, k=neighbours, workers=-1)
     nb = thinned[idx]
     nb -= nb.mean(axis=1, keepdims=True)
-    w, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    w, v = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb))
     return v[:, :, 0], w[:, 0] / np.maximum(w.sum(axis=1), 1e-12)
 
 
