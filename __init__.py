@@ -1,23 +1,34 @@
 """forestreg: marker-free registration of forest laser scans and tree measurements.
 
 The repository root is both a QGIS plugin folder and the import package ``forestreg``. Importing
-it stays cheap and Qt-free: the engine is imported on first use of a public name.
+it stays cheap and Qt-free: the engine is imported on first use of a public name (``__all__``).
 
-Python API (headless)::
+Python API (headless; metres, degrees; a matrix maps the moving/ground cloud's file coordinates
+onto the reference/UAV cloud's: ``p_reference = matrix @ p_moving``)::
 
     import forestreg
+
+    # System A: a pair of TLS scans, and a whole plot project
     reference = forestreg.read_scan("scan1.laz")
     moving = forestreg.read_scan("scan2.laz")
-    result = forestreg.register(reference, moving)
+    result = forestreg.register(reference, moving)          # PairResult
     if result.ok:
-        print(result.matrix)      # p_reference = matrix @ p_moving, file coordinates
+        print(result.matrix)
     else:
         print(result.reason)
+    project = forestreg.Project.load("plot.json")
+    forestreg.register_project(project)
 
-    # System B: a ground-based cloud onto a UAV cloud of the same plot
-    ground = forestreg.read_scan("backpack.laz")
-    uav = forestreg.read_scan("uav.laz")
-    result = forestreg.coregister(ground, uav)   # p_uav = result.matrix @ p_ground
+    # System B: ground-based onto UAV, fusion, trees, evaluation against field records
+    ground, uav = forestreg.read_scan("backpack.laz"), forestreg.read_scan("uav.laz")
+    co = forestreg.coregister(ground, uav)                   # CoregistrationResult
+    fused = forestreg.fuse_scans(ground, uav, co.matrix)     # FusionResult
+    trees = forestreg.measure_trees(fused.points)            # TreeInventory
+    report = forestreg.evaluate(trees.rows(), "field.csv")   # Evaluation (R2, RMSE, rRMSE)
+
+    # every parameter: one dataclass per step, one nested TOML file for all of them
+    params = forestreg.load_params("params.toml")            # ProductParams
+    result = forestreg.register(reference, moving, params.registration)
 """
 
 from __future__ import annotations
@@ -29,17 +40,46 @@ __version__ = "0.1.0"
 
 # public name -> module (relative to this package) that defines it
 _LAZY = {
+    # foundations
     "Scan": ".engine.core.scan",
     "ForestregError": ".engine.core.errors",
+    "ParameterError": ".engine.core.errors",
+    "ScanDataError": ".engine.core.errors",
+    "ScanReadError": ".engine.core.errors",
+    "Cancelled": ".engine.core.errors",
     "CancelToken": ".engine.core.progress",
     "read_scan": ".engine.io",
     "read_scans": ".engine.io",
     "write_scan": ".engine.io",
+    "terrain_model": ".engine.terrain",
+    "TerrainParams": ".engine.terrain",
+    # parameters
+    "ProductParams": ".engine.params",
+    "load_params": ".engine.params",
+    # System A: pairs, plots, targets
     "register": ".engine.tls.pair",
+    "PairResult": ".engine.tls.pair",
+    "RegistrationParams": ".engine.tls.params",
+    "Project": ".engine.tls.project",
+    "register_project": ".engine.tls.plot",
+    "register_manual": ".engine.tls.manual",
+    "compare_auto_manual": ".engine.tls.compare",
+    # System B: co-registration, fusion, trees, evaluation
     "coregister": ".engine.coreg.coregister",
     "CoregistrationParams": ".engine.coreg.coregister",
-    "terrain_model": ".engine.terrain",
+    "CoregistrationResult": ".engine.coreg.coregister",
+    "fuse": ".engine.coreg.fusion",
+    "fuse_scans": ".engine.coreg.fusion",
+    "FusionParams": ".engine.coreg.fusion",
+    "FusionResult": ".engine.coreg.fusion",
+    "measure_trees": ".engine.trees.inventory",
+    "TreeParams": ".engine.trees.inventory",
+    "TreeInventory": ".engine.trees.inventory",
+    "evaluate": ".engine.trees.evaluate",
+    "Evaluation": ".engine.trees.evaluate",
 }
+
+__all__ = sorted(_LAZY)
 
 
 def __getattr__(name: str) -> Any:

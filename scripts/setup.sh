@@ -30,5 +30,9 @@ if [ ! -x .venv/bin/python ]; then
   $python -m venv .venv
 fi
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[gui,test]"
+# the newest versions the requirements allow, every time (--upgrade-strategy eager also moves the
+# dependencies of dependencies): the tests run against what a new user installs today
+.venv/bin/python -m pip install -q --upgrade --upgrade-strategy eager -e ".[gui,test]"
+.venv/bin/python -m pip list --format=freeze 2>/dev/null | grep -iE '^(numpy|scipy|open3d|hdbscan|scikit-learn|laspy|matplotlib)==' | tr '\n' ' ' | sed 's/^/setup: versions: /' >&2 || true
+echo >&2
 echo "setup: ready (.venv/bin/forestreg)" >&2

@@ -14,11 +14,27 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
+def pytest_collection_modifyitems(config, items):
+    """Every test that reads the real clouds (the ``shared_data`` fixture) carries the ``realdata``
+    mark, so ``-m realdata`` runs them and ``-m "not realdata"`` leaves them out."""
+    for item in items:
+        if "shared_data" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.realdata)
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
-    """The real clouds of ``../shared/data`` (skips where the folder is absent)."""
+    """The real clouds of ``../shared/data``.
+
+    Where the folder is absent the test is skipped with the path in the reason, except under CI
+    (``CI`` set) or ``FORESTREG_REQUIRE_DATA=1``, where a missing folder fails the test: the
+    real-data checks must never vanish silently from a run that is supposed to have them.
+    """
     if not SHARED_DATA.is_dir():
-        pytest.skip(f"real data folder {SHARED_DATA} is absent")
+        message = f"real data folder {SHARED_DATA} is absent (put ../shared/data beside the repository)"
+        if os.environ.get("CI") or os.environ.get("FORESTREG_REQUIRE_DATA") == "1":
+            pytest.fail(message)
+        pytest.skip(message)
     return SHARED_DATA
 
 

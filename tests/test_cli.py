@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from forestreg.cli import main
+from forestreg.engine.core.errors import ParameterError
 from forestreg.engine.io import read_scan, write_scan
 from forestreg.engine.core.transform import rigid_errors
 
@@ -123,13 +124,24 @@ def test_scanner_position_for_georeferenced_scans(tmp_path, pair_files):
 
 
 def test_params_command_prints_a_loadable_toml(tmp_path, capsys):
-    from forestreg.engine.core.params import RegistrationParams
+    from forestreg.engine.params import ProductParams, load_params
 
     assert main(["params", "--toml"]) == 0
     text = capsys.readouterr().out
+    for section in ("[registration]", "[coregistration]", "[coregistration.keypoints]", "[fusion]", "[trees]", "[trees.qsm]"):
+        assert section in text
     path = Path(tmp_path / "defaults.toml")
     path.write_text(text)
-    assert RegistrationParams.from_toml(path) == RegistrationParams()
+    assert load_params(path) == ProductParams()
+    # a file that sets a few values of several sections
+    path.write_text("[registration]\nvop_radius_m = 12.0\n[trees.stems]\nband_low_m = 1.1\n[fusion]\nnoise_method = 'global'\n")
+    p = load_params(path)
+    assert p.registration.vop_radius_m == 12.0 and p.trees.stems.band_low_m == 1.1 and p.fusion.noise_method == "global"
+    assert p.coregistration == ProductParams().coregistration
+    # a typo is named with its section
+    path.write_text("[trees.stems]\nband_lo_m = 1.1\n")
+    with pytest.raises(ParameterError, match=r"trees\.stems.*band_lo_m"):
+        load_params(path)
 
 
 def test_given_vertical_for_a_tilted_scan(tmp_path, sim_plot):

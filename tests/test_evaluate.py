@@ -18,8 +18,8 @@ from forestreg.engine.trees.evaluate import (
     match_trees,
     read_tree_table,
     tree_table_from_rows,
-    write_evaluation,
 )
+from forestreg.engine.io.evaluation import write_evaluation
 
 
 def _write(path, text):

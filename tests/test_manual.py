@@ -22,7 +22,7 @@ from forestreg.engine.tls.manual import (
     targets_for,
     write_targets_csv,
 )
-from forestreg.engine.core.params import RegistrationParams
+from forestreg.engine.tls.params import RegistrationParams
 from forestreg.engine.core.progress import CancelToken
 from forestreg.engine.core.scan import Scan
 from forestreg.engine.core.transform import apply, matrix_from_yaw, rigid_errors

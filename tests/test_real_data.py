@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from forestreg.engine.io import read_scan
 from forestreg.engine.tls.prepare import extract_vops, prepare_scan, slice_layers
-from forestreg.engine.core.params import RegistrationParams
+from forestreg.engine.tls.params import RegistrationParams
 from forestreg.engine.tls.pair import register
 from forestreg.engine.simulate import simulate_scan_from_cloud
 from forestreg.engine.core.transform import rigid_errors

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from forestreg.engine.core.params import RegistrationParams
+from forestreg.engine.tls.params import RegistrationParams
 from forestreg.engine.tls.pair import register
 from forestreg.engine.core.transform import rigid_errors
 

@@ -23,7 +23,7 @@ pytest.importorskip("pytestqt")
 from PySide6.QtCore import QSettings  # noqa: E402
 from PySide6.QtGui import QImage  # noqa: E402
 
-from forestreg.engine.core.params import RegistrationParams  # noqa: E402
+from forestreg.engine.tls.params import RegistrationParams  # noqa: E402
 from forestreg.engine.tls.project import Project  # noqa: E402
 
 RUN_TIMEOUT_MS = 180_000

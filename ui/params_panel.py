@@ -29,7 +29,9 @@ from PySide6.QtWidgets import (
 )
 
 from ..engine.core.errors import ForestregError, ParameterError
-from ..engine.core.params import RegistrationParams, parameter_table
+from ..engine.core.params import parameter_table
+from ..engine.params import load_params
+from ..engine.tls.params import RegistrationParams
 
 #: Units shown after a value (the metadata's short forms spelt out where useful).
 UNIT_SUFFIX = {"m": " m", "deg": "\u00b0", "points": " points", "VOPs": " VOPs"}
@@ -251,7 +253,7 @@ class ParameterPanel(QWidget):
 
     def load_toml(self, path: str | Path) -> RegistrationParams:
         """Read a parameter file into the editors (raises ParameterError)."""
-        params = RegistrationParams.from_toml(path)
+        params = load_params(path).registration
         self.set_params(params, emit=True)
         return params
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from ..engine.core.errors import Cancelled
-from ..engine.core.params import RegistrationParams
+from ..engine.tls.params import RegistrationParams
 from ..engine.core.progress import CancelToken
 from ..engine.tls.project import Project
 

@@ -50,3 +50,135 @@ def _final_mode(target: Path) -> int:
         umask = os.umask(0)
         os.umask(umask)
         return 0o666 & ~umask
+
+
+# ----------------------------------------------------------------------------- folder transactions
+
+#: Name of the marker file every output folder of forestreg holds (its kind: "register", ...).
+MARKER = ".forestreg-output"
+
+
+def check_output_folder(path: str | os.PathLike[str], kind: str, *, inputs: "tuple | list" = ()) -> Path:
+    """Refuse an output folder that would lose a user's file, before any work.
+
+    The folder may be absent, empty, or an earlier output folder of forestreg (it holds the
+    :data:`MARKER` file); a file, an input, a folder holding an input, or a folder of other files
+    raises :class:`~forestreg.engine.core.errors.OutputPathError`. Returns the resolved path.
+    """
+    from .errors import OutputPathError
+
+    target = Path(path).expanduser()
+    resolved = target.resolve()
+    for item in inputs:
+        if item is None:
+            continue
+        p = Path(item).expanduser().resolve()
+        if p == resolved:
+            raise OutputPathError(f"--out {target} is an input file: give a new folder")
+        if resolved in p.parents:
+            raise OutputPathError(f"--out {target} holds the input {Path(item).name}: give a new folder")
+    if target.exists() and not target.is_dir():
+        raise OutputPathError(f"--out {target} is an existing file, not a folder: give a new folder")
+    if target.is_dir():
+        entries = [e for e in target.iterdir() if not e.name.startswith(".forestreg-tmp")]
+        if entries and not (target / MARKER).is_file():
+            raise OutputPathError(
+                f"--out {target} already holds other files (not a forestreg output folder): give a new or empty folder")
+    parent = resolved.parent
+    if not parent.exists():
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputPathError(f"cannot create the folder {parent}: {exc.strerror or exc}") from exc
+    if not os.access(parent, os.W_OK):
+        raise OutputPathError(f"cannot write into {parent}: permission denied")
+    return resolved
+
+
+def check_output_file(path: str | os.PathLike[str], *, inputs: "tuple | list" = (), suffixes: "tuple[str, ...]" = ()) -> Path:
+    """Refuse an output file that is an input, a folder, of another kind than ``suffixes``, or in a
+    folder that cannot be written, before any work. Returns the resolved path."""
+    from .errors import OutputPathError
+
+    target = Path(path).expanduser()
+    resolved = target.resolve()
+    for item in inputs:
+        if item is not None and Path(item).expanduser().resolve() == resolved:
+            raise OutputPathError(f"{target} is an input file: it would be overwritten; give a new file name")
+    if target.is_dir():
+        raise OutputPathError(f"{target} is a folder, not a file")
+    if suffixes and target.suffix.lower() not in suffixes:
+        raise OutputPathError(f"{target}: the output must end in {' or '.join(suffixes)}")
+    parent = resolved.parent
+    if not parent.is_dir():
+        raise OutputPathError(f"cannot write {target}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise OutputPathError(f"cannot write into {parent}: permission denied")
+    return resolved
+
+
+@contextlib.contextmanager
+def output_folder(path: str | os.PathLike[str], kind: str) -> Iterator[Path]:
+    """A folder transaction: yield a fresh temporary folder beside ``path``; when the body returns,
+    it becomes ``path`` (an earlier output folder there is replaced in one rename); when it raises
+    (error, Ctrl-C, full disk) it is removed and ``path`` is left as it was.
+
+    Call :func:`check_output_folder` first (before the work) to refuse a folder of other files.
+    """
+    import shutil
+
+    from .errors import ScanWriteError
+
+    target = Path(path).expanduser().resolve()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".forestreg-tmp-{target.name}.", dir=target.parent))
+    except OSError as exc:
+        raise ScanWriteError(f"cannot write into {target.parent}: {exc.strerror or exc}") from exc
+    try:
+        yield tmp
+        (tmp / MARKER).write_text(kind + "\n", encoding="utf-8")
+        os.chmod(tmp, _final_dir_mode())
+        _swap_in(tmp, target)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise ScanWriteError(f"cannot write {target}: {exc.strerror or exc}") from exc
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _swap_in(tmp: Path, target: Path, attempts: int = 20) -> None:
+    """Put the folder ``tmp`` where ``target`` is: an earlier folder there is moved aside first and
+    removed after. Another run swapping in at the same moment makes a rename fail with
+    ENOTEMPTY/EEXIST: then try again (the last run to finish wins; each folder stays whole)."""
+    import errno
+    import shutil
+
+    for attempt in range(attempts):
+        old = None
+        if target.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".forestreg-tmp-old-{target.name}.", dir=target.parent))
+            try:
+                os.replace(target, old / "x")
+            except FileNotFoundError:  # another run moved it first
+                pass
+        try:
+            os.replace(tmp, target)
+        except OSError as exc:
+            if old is not None and (old / "x").exists() and not target.exists():
+                os.replace(old / "x", target)  # put the earlier result back
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
+            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST) and attempt + 1 < attempts:
+                continue
+            raise
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        return
+
+
+def _final_dir_mode() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o777 & ~umask

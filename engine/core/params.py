@@ -1,8 +1,17 @@
-"""Parameters of the pair registration (System A), as one frozen dataclass.
+"""The parameter base of every step of the product.
 
-Defaults are the paper's table 2 (Guan et al. 2020) where the paper gives a value; the rest are
-ours and documented in the field metadata (``unit``, ``range``, ``help``, ``paper``), which also
-builds the GUI's parameter panel and the README's table. Distances in metres, angles in degrees.
+Each step's settings are one frozen dataclass deriving from :class:`Params`; every field is made
+by :func:`param_field` and carries ``unit``, ``range`` (lo, hi), ``help`` and ``paper`` (the
+paper's symbol and value) metadata, which validates it, documents it (``forestreg params``, the
+README) and builds the GUI's parameter panel. Defaults are the papers' tables where they give a
+value. Cross-field rules go in ``_check``. Nested step parameters (e.g. the terrain inside the
+tree parameters) are fields whose default is another :class:`Params`.
+
+Example::
+
+    from forestreg.engine.tls.params import RegistrationParams
+    p = RegistrationParams().replace(vop_radius_m=15.0)
+    RegistrationParams.from_mapping(p.to_dict()) == p     # True
 """
 
 from __future__ import annotations
@@ -10,9 +19,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Mapping, Optional, TypeVar
 
 from .errors import ParameterError
 
@@ -21,10 +30,14 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
+__all__ = ["Params", "param_field", "parameter_table", "read_toml", "validate_ranges"]
 
-def param_field(default: Any, unit: str, lo: Optional[float], hi: Optional[float], help: str, paper: str = "") -> Any:
-    """A dataclass field carrying ``unit``, ``range`` (lo, hi), ``help`` and ``paper`` metadata,
-    the one way every parameter dataclass of the engine documents its fields; tuples stay tuples."""
+P = TypeVar("P", bound="Params")
+
+
+def param_field(default: Any, unit: str = "", lo: Optional[float] = None, hi: Optional[float] = None, help: str = "", paper: str = "") -> Any:
+    """A dataclass field carrying ``unit``, ``range`` (lo, hi), ``help`` and ``paper`` metadata;
+    lists become tuples (parameters are immutable)."""
     meta = {"unit": unit, "range": (lo, hi), "help": help, "paper": paper}
     if isinstance(default, (list, tuple)):
         return field(default=tuple(default), metadata=meta)
@@ -33,146 +46,120 @@ def param_field(default: Any, unit: str, lo: Optional[float], hi: Optional[float
 
 def validate_ranges(params: Any) -> None:
     """Raise :class:`ParameterError` for a numeric field of a parameter dataclass that is not a
-    finite number inside its metadata ``range`` (booleans, strings and ``None`` are skipped)."""
+    finite number inside its metadata ``range`` (booleans, strings, ``None`` and nested
+    parameter sets are skipped; nested sets validate themselves)."""
     for f in dataclasses.fields(params):
         value = getattr(params, f.name)
-        if value is None or isinstance(value, (bool, str)):
+        if value is None or isinstance(value, (bool, str, Params)):
             continue
         lo, hi = f.metadata.get("range", (None, None))
-        values = value if isinstance(value, tuple) else (value,)
-        for v in values:
+        for v in _flat(value):
             if isinstance(v, (bool, str)):
                 continue
             if not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ParameterError(f"{f.name}: {v!r} is not a finite number")
             if (lo is not None and v < lo) or (hi is not None and v > hi):
-                raise ParameterError(f"{f.name} = {v} {f.metadata.get('unit', '')} is outside [{lo}, {hi}]")
+                raise ParameterError(f"{f.name} = {v} {f.metadata.get('unit', '')} is outside [{lo}, {hi}]".replace("  ", " "))
 
 
-_p = param_field
+def _flat(value: Any) -> list[Any]:
+    """The scalars of a (nested) tuple, or the value itself."""
+    if isinstance(value, tuple):
+        return [x for v in value for x in _flat(v)]
+    return [value]
 
 
-@dataclass(frozen=True)
-class RegistrationParams:
-    """Every setting of marker-free pair registration (METHOD.md, System A)."""
+class Params:
+    """Base of every parameter dataclass: validation on construction, :meth:`replace`,
+    :meth:`to_dict` / :meth:`from_mapping` (nested, for TOML and JSON) and :meth:`table`.
 
-    # --- data reduction and ground (paper 2.4, 2.5.1)
-    max_range_m: float = _p(30.0, "m", 5.0, 200.0, "Points farther than this horizontally from the scanner are dropped", "D_c = 30 m")
-    ground_voxel_m: float = _p(0.5, "m", 0.1, 2.0, "Voxel size for the lowest-voxel ground points", "voxel size = 0.5 m")
-    # --- slicing (paper 2.5.2)
-    slice_thickness_m: float = _p(0.2, "m", 0.05, 1.0, "Thickness of each slice layer", "dZ = 0.2 m")
-    slice_offsets_m: tuple[float, ...] = _p((0.0,), "m", -1.0, 5.0, "Heights of the slice layers relative to the scanner height; several for slopes or understory", "dh (table 3)")
-    fallback_slice_offsets_m: tuple[float, ...] = _p((0.6, 1.2), "m", -1.0, 5.0, "Slice layers added (above the understory) when no confident match is found at slice_offsets_m; empty = no second try")
-    follow_terrain: bool = _p(True, "", None, None, "Slice at a constant height above the local ground (the scanner's own height above ground + dh) instead of a flat plane: keeps trunks in the slice on slopes. Off = the paper's flat slice")
-    # --- angular grid and visual occlusion points
-    angular_step_deg: float = _p(0.1, "deg", 0.01, 2.0, "Angular resolution of the angular grid and rotation step of the coarse search", "I_A = 0.1 deg")
-    radial_step_m: float = _p(0.1, "m", 0.02, 1.0, "Distance resolution of the angular grid; width of the visibility buffer", "I_D = 0.1 m")
-    vop_radius_m: Optional[float] = _p(None, "m", 2.0, 100.0, "Radius around the scanner in which VOPs are extracted; empty = choose automatically (tries increasing radii)", "D_r (table 3)")
-    visibility_gap_m: float = _p(0.5, "m", 0.0, 5.0, "Start of the visibility buffer behind a candidate", "D_e = 0.5 m")
-    component_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size of the connected-component labelling of candidate points")
-    min_component_points: int = _p(8, "points", 2, 10000, "Smallest connected component kept as a trunk candidate")
-    min_component_height_fraction: float = _p(0.5, "", 0.0, 1.0, "A trunk component spans at least this fraction of the slice thickness vertically")
-    max_component_width_m: float = _p(2.0, "m", 0.1, 10.0, "Components wider than this (walls, rocks, dense bushes) are not trunks")
-    mean_shift_bandwidth_m: float = _p(0.1, "m", 0.01, 1.0, "Flat-kernel radius of the mean shift that finds a component's density mode")
-    centre_on_trunk_axis: bool = _p(True, "", None, None, "Move each VOP from the visible bark to the estimated trunk axis (half the arc width behind it along the ray), so VOPs of one trunk from two scans coincide. Off = the paper's density mode")
-    # --- horizontal coarse registration (paper 2.5.3)
-    match_distance_m: float = _p(0.2, "m", 0.01, 2.0, "Match distance threshold of the overlap score", "D_t = 0.2 m")
-    # --- evidence
-    min_vops: int = _p(4, "VOPs", 3, 1000, "Fewest VOPs per scan to attempt a registration")
-    min_matched: int = _p(4, "VOPs", 3, 1000, "Fewest matched VOPs for a registration to count (the paper sees failures below 3)")
-    min_match_margin: int = _p(2, "VOPs", 0, 1000, "The best solution must match at least this many more VOPs than the best distinct alternative")
-    min_match_margin_fraction: float = _p(0.1, "", 0.0, 1.0, "...and at least this fraction of its matched VOPs more (a plantation's grid lets another plot's trunks coincide by the dozen)")
-    distinct_rotation_deg: float = _p(5.0, "deg", 0.5, 180.0, "Alternatives rotated more than this from the best are distinct solutions")
-    distinct_translation_m: float = _p(1.0, "m", 0.1, 50.0, "Alternatives displaced more than this from the best are distinct solutions")
-    max_free_space_violation: float = _p(0.15, "", 0.0, 1.0, "Largest fraction of one scan's slice points allowed where the other scanner saw empty space, after ICP (a wrong match puts trunks there)")
-    # --- levelling of tilted scans
-    level_tilted: bool = _p(True, "", None, None, "Detect a tilted scanner from its own data (ground and trunk directions) and level the scan before slicing")
-    tilt_threshold_deg: float = _p(10.0, "deg", 0.1, 45.0, "Estimated tilts below this are treated as a level scanner (small tilts are taken up by the ground fit and ICP)")
-    # --- fine registration (ICP, paper 2.6)
-    icp_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size to which both clouds are thinned for ICP")
-    icp_max_distances_m: tuple[float, ...] = _p((0.5, 0.2, 0.08), "m", 0.005, 5.0, "Correspondence distances of the successive ICP stages")
-    icp_iterations: int = _p(40, "", 1, 1000, "Iterations per ICP stage")
-    icp_min_fitness: float = _p(0.1, "", 0.0, 1.0, "Least fraction of the moving points in the shared area that must have a reference point within the last ICP distance")
-    icp_max_correction_m: float = _p(1.0, "m", 0.0, 10.0, "ICP may move the coarse result by at most this much (more means the coarse result was wrong)")
+    Subclasses are ``@dataclass(frozen=True)`` and put cross-field rules in ``_check``.
+    """
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            lo, hi = f.metadata.get("range", (None, None))
-            values = value if isinstance(value, tuple) else (value,)
-            if value is None or isinstance(value, bool):
-                continue
-            if isinstance(value, tuple) and not value and f.name != "fallback_slice_offsets_m":
-                raise ParameterError(f"{f.name}: needs at least one value")
-            for v in values:
-                if not isinstance(v, (int, float)) or not math.isfinite(v):
-                    raise ParameterError(f"{f.name}: {v!r} is not a finite number")
-                if (lo is not None and v < lo) or (hi is not None and v > hi):
-                    raise ParameterError(f"{f.name} = {v} {f.metadata['unit']} is outside [{lo}, {hi}]")
-        if self.vop_radius_m is not None and self.vop_radius_m >= self.max_range_m:
-            raise ParameterError(
-                f"vop_radius_m ({self.vop_radius_m} m) must be smaller than max_range_m ({self.max_range_m} m): "
-                "the visibility check needs points beyond the VOP radius"
-            )
-        steps = 360.0 / self.angular_step_deg
-        if abs(steps - round(steps)) > 1e-6:
-            raise ParameterError(f"angular_step_deg = {self.angular_step_deg} must divide 360")
+        validate_ranges(self)
+        self._check()
 
-    def replace(self, **changes: Any) -> "RegistrationParams":
-        """A copy with some fields changed (validated)."""
+    def _check(self) -> None:
+        """Cross-field rules of a subclass (raise :class:`ParameterError`)."""
+
+    def replace(self: P, **changes: Any) -> P:
+        """A copy with some fields changed (validated); unknown names are a ParameterError."""
+        names = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(changes) - names)
+        if unknown:
+            raise ParameterError(f"unknown {type(self).__name__} parameter(s): {', '.join(unknown)}")
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able dict of every field."""
-        return {f.name: (list(v) if isinstance(v := getattr(self, f.name), tuple) else v) for f in dataclasses.fields(self)}
+        """JSON/TOML-able nested dict of every field (tuples as lists)."""
+        out: dict[str, Any] = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = v.to_dict() if isinstance(v, Params) else list(v) if isinstance(v, tuple) else v
+        return out
 
     @classmethod
-    def from_mapping(cls, values: Mapping[str, Any]) -> "RegistrationParams":
-        """Build from a mapping (e.g. a TOML table); unknown keys are an error, lists become tuples."""
-        names = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - set(names))
+    def from_mapping(cls: type[P], values: Mapping[str, Any], where: str = "") -> P:
+        """Build from a (nested) mapping, e.g. a TOML table: unknown keys are an error naming the
+        known ones, lists become tuples, a number where a tuple is expected becomes a 1-tuple,
+        missing keys keep their defaults."""
+        if not isinstance(values, Mapping):
+            raise ParameterError(f"[{where or cls.__name__}] must be a table")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(fields))
         if unknown:
-            raise ParameterError(f"unknown parameter(s): {', '.join(unknown)}; known: {', '.join(sorted(names))}")
+            raise ParameterError(
+                f"unknown parameter(s) in [{where or cls.__name__}]: {', '.join(unknown)}; known: {', '.join(sorted(fields))}"
+            )
         clean: dict[str, Any] = {}
         for k, v in values.items():
-            if isinstance(v, list):
+            default = fields[k].default
+            if isinstance(default, Params):
+                v = type(default).from_mapping(v, f"{where}.{k}" if where else k)
+            elif isinstance(v, list):
                 v = tuple(v)
-            elif isinstance(names[k].default, tuple) and isinstance(v, (int, float)):
+            elif isinstance(default, tuple) and isinstance(v, (int, float)):
                 v = (v,)
             clean[k] = v
         try:
             return cls(**clean)
-        except TypeError as exc:  # pragma: no cover - defensive
-            raise ParameterError(str(exc)) from exc
+        except TypeError as exc:
+            raise ParameterError(f"[{where or cls.__name__}]: {exc}") from exc
 
     @classmethod
-    def from_toml(cls, path: str | Path) -> "RegistrationParams":
-        """Read parameters from a TOML file: top-level keys or a ``[registration]`` table."""
-        p = Path(path)
-        try:
-            data = tomllib.loads(p.read_text(encoding="utf-8"))
-        except FileNotFoundError as exc:
-            raise ParameterError(f"parameter file {p} does not exist") from exc
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-            raise ParameterError(f"parameter file {p} cannot be read: {exc}") from exc
-        table = data.get("registration", data)
-        if not isinstance(table, dict):
-            raise ParameterError(f"parameter file {p}: [registration] must be a table")
-        return cls.from_mapping(table)
+    def table(cls, prefix: str = "") -> list[dict[str, Any]]:
+        """One row per parameter (nested ones with dotted names): name, default, unit, range,
+        help, paper symbol; for docs, ``forestreg params`` and the GUI."""
+        rows: list[dict[str, Any]] = []
+        for f in dataclasses.fields(cls):
+            if isinstance(f.default, Params):
+                rows += type(f.default).table(f"{prefix}{f.name}.")
+                continue
+            rows.append(
+                {
+                    "name": prefix + f.name,
+                    "default": f.default,
+                    "unit": f.metadata.get("unit", ""),
+                    "range": f.metadata.get("range", (None, None)),
+                    "help": f.metadata.get("help", ""),
+                    "paper": f.metadata.get("paper", ""),
+                }
+            )
+        return rows
 
 
-def parameter_table(cls: type = RegistrationParams) -> list[dict[str, Any]]:
-    """One row per parameter: name, default, unit, range, help, paper symbol (for docs and GUI)."""
-    rows = []
-    for f in dataclasses.fields(cls):
-        rows.append(
-            {
-                "name": f.name,
-                "default": f.default,
-                "unit": f.metadata.get("unit", ""),
-                "range": f.metadata.get("range"),
-                "help": f.metadata.get("help", ""),
-                "paper": f.metadata.get("paper", ""),
-            }
-        )
-    return rows
+def parameter_table(cls: type) -> list[dict[str, Any]]:
+    """The rows of :meth:`Params.table` for a parameter class."""
+    return cls.table()
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """A TOML file as a dict; a missing or unreadable file is a :class:`ParameterError`."""
+    p = Path(path)
+    try:
+        return tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise ParameterError(f"parameter file {p} does not exist") from exc
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ParameterError(f"parameter file {p} cannot be read: {exc}") from exc

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
+import logging
+
 import numpy as np
 
 from .errors import ScanDataError
@@ -24,6 +26,8 @@ from .errors import ScanDataError
 #: Coordinates larger than this (m) are shifted to a local origin on reading.
 LARGE_COORDINATE_M = 1.0e4
 #: A scan whose extent exceeds this (m) is taken to be in the wrong units (mm, cm).
+log = logging.getLogger("forestreg")
+
 MAX_EXTENT_M = 5.0e3
 #: The fewest points a scan may have.
 MIN_POINTS = 10
@@ -103,6 +107,8 @@ class Scan:
             )
         if n_bad:
             pts = pts[finite]
+            log.warning("%s: %d of %d points (%.1f %%) have NaN or infinite coordinates and were dropped",
+                        label, n_bad, n_in, 100.0 * n_bad / n_in)
         if len(pts) < MIN_POINTS:
             raise ScanDataError(f"{label}: only {len(pts)} valid points; a scan needs at least {MIN_POINTS}")
         lo, hi = pts.min(axis=0), pts.max(axis=0)

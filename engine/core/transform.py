@@ -60,3 +60,84 @@ def fit_rigid(moving: np.ndarray, reference: np.ndarray) -> np.ndarray:
 def format_matrix(matrix: np.ndarray) -> str:
     """The 4x4 as four lines of numbers (CloudCompare / RiSCAN ``.txt`` layout)."""
     return "\n".join(" ".join(f"{v:.10f}" for v in row) for row in np.asarray(matrix)) + "\n"
+
+
+def check_rigid(matrix, what: str = "matrix", *, atol: float = 1e-5) -> np.ndarray:
+    """Return ``matrix`` as a float 4x4 if it is a finite proper rigid transform (orthonormal
+    rotation with determinant +1, no scale, no shear, last row 0 0 0 1); otherwise raise
+    :class:`~forestreg.engine.core.errors.TransformError` saying what is wrong with it.
+
+    The one checker of every 4x4 the product reads or returns (files, project links, results).
+    """
+    from .errors import TransformError
+
+    try:
+        m = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise TransformError(f"{what}: not a 4x4 matrix of numbers") from exc
+    if m.shape != (4, 4):
+        raise TransformError(f"{what}: not a 4x4 matrix (shape {'x'.join(map(str, m.shape)) or 'scalar'})")
+    if not np.isfinite(m).all():
+        raise TransformError(f"{what}: the matrix holds NaN or infinite values")
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=atol):
+        raise TransformError(f"{what}: last row is not 0 0 0 1 (not a rigid transform)")
+    r = m[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), atol=atol):
+        scale = np.linalg.norm(r, axis=0)
+        raise TransformError(f"{what}: not a rigid transform (rotation not orthonormal: column lengths "
+                             f"{', '.join(f'{s:.4g}' for s in scale)}; scaled or sheared)")
+    if np.linalg.det(r) < 0:
+        raise TransformError(f"{what}: a reflection (determinant -1), not a rotation")
+    return m
+
+
+def read_matrix(path, what: str = "transform") -> np.ndarray:
+    """A rigid 4x4 from a text file (16 numbers, row by row: ``transform.txt``) or from a
+    ``result.json`` (its ``matrix``), as written (in the files' units), checked by
+    :func:`check_rigid`. Raises
+    :class:`~forestreg.engine.core.errors.TransformError` with one line."""
+    import json
+    from pathlib import Path
+
+    from .errors import TransformError
+
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError as exc:
+        raise TransformError(f"the {what} {p} does not exist") from exc
+    except IsADirectoryError as exc:
+        raise TransformError(f"the {what} {p} is a folder; give its transform.txt") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TransformError(f"cannot read the {what} {p}: {getattr(exc, 'strerror', None) or exc}") from exc
+    if text.lstrip().startswith("{"):
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise TransformError(f"{p}: damaged JSON ({exc.msg}, line {exc.lineno})") from exc
+        m = data.get("matrix") if isinstance(data, dict) else None
+        if m is None:
+            raise TransformError(f"{p}: the result holds no matrix (the registration failed)")
+        return check_rigid(m, str(p))
+    try:
+        values = np.asarray(text.replace(",", " ").split(), dtype=np.float64)
+    except ValueError as exc:
+        raise TransformError(f"{p}: not a 4x4 matrix (non-numeric values)") from exc
+    if values.size != 16:
+        raise TransformError(f"{p}: not a 4x4 matrix ({values.size} numbers, expected 16)")
+    return check_rigid(values.reshape(4, 4), str(p))
+
+
+def to_file_units(matrix: np.ndarray, unit_scale: float) -> np.ndarray:
+    """A rigid 4x4 in metres re-expressed for coordinates in file units (``unit_scale`` metres
+    per unit): the rotation is unchanged, the translation divided by ``unit_scale``."""
+    m = np.array(matrix, dtype=np.float64)
+    m[:3, 3] /= unit_scale
+    return m
+
+
+def to_metres(matrix: np.ndarray, unit_scale: float) -> np.ndarray:
+    """Inverse of :func:`to_file_units`: a rigid 4x4 for file-unit coordinates in metres."""
+    m = np.array(matrix, dtype=np.float64)
+    m[:3, 3] *= unit_scale
+    return m

@@ -27,6 +27,7 @@ from ..core.progress import Progress, ProgressCallback, as_progress
 from ..core.scan import Scan
 from ..terrain.dem import TerrainModel, TerrainParams, terrain_model
 from ..core.transform import rotation_angle_deg
+from ..core.params import Params, param_field as _p
 from .keypoints import KeypointParams, Keypoints, extract_keypoints
 from .matching import KeypointMatch, MatchingParams, assign_one_to_one, match_keypoints, residual_statistics
 
@@ -34,43 +35,41 @@ __all__ = ["CoregistrationParams", "CoregistrationResult", "coregister", "coregi
 
 
 @dataclass(frozen=True)
-class CoregistrationParams:
+class CoregistrationParams(Params):
     """All parameters of the co-registration (defaults: the paper's where it gives them)."""
 
     terrain: TerrainParams = TerrainParams()
     keypoints: KeypointParams = KeypointParams()
     matching: MatchingParams = MatchingParams()
     #: voxel of the clouds used to verify solutions and for ICP (m)
-    icp_voxel_m: float = field(default=0.1, metadata={"unit": "m", "help": "ICP thinning voxel"})
+    icp_voxel_m: float = _p(0.1, "m", 0.005, 5.0, "ICP thinning voxel")
     #: ICP correspondence distance per stage (m), largest first
-    icp_distances_m: tuple[float, ...] = field(default=(1.0, 0.5, 0.25, 0.12), metadata={"unit": "m", "help": "ICP stages"})
-    icp_iterations: int = field(default=40, metadata={"unit": "", "help": "ICP iterations per stage"})
+    icp_distances_m: tuple[float, ...] = _p((1.0, 0.5, 0.25, 0.12), "m", 0.001, 100.0, "ICP correspondence distance per stage, largest first")
+    icp_iterations: int = _p(40, "", 1, 10000, "ICP iterations per stage")
     #: fewer matched keypoints than this fail
-    min_matched: int = field(default=3, metadata={"unit": "", "help": "fewest matched keypoints (the canopy surface check carries the rest of the evidence)"})
+    min_matched: int = _p(3, "", 3, 100000, "fewest matched keypoints (the canopy surface check carries the rest of the evidence)")
     #: a lower matching percentage fails (%)
-    min_matching_percentage: float = field(default=15.0, metadata={"unit": "%", "help": "lowest matching percentage"})
+    min_matching_percentage: float = _p(15.0, "%", 0.0, 100.0, "lowest matching percentage")
     #: verification: the canopy surface models (highest point per cell of this size, m) of the
     #: ground-based canopy and of the UAV cloud are correlated under each keypoint solution
-    surface_cell_m: float = field(default=1.0, metadata={"unit": "m", "help": "canopy surface cell"})
+    surface_cell_m: float = _p(1.0, "m", 0.05, 50.0, "canopy surface cell")
     #: only ground-based points this high above their DEM make its canopy surface (m)
-    surface_min_height_m: float = field(default=2.0, metadata={"unit": "m", "help": "lowest canopy point"})
+    surface_min_height_m: float = _p(2.0, "m", 0.0, 100.0, "lowest canopy point")
     #: a solution whose canopy surfaces correlate less than this fails (Pearson r)
-    min_surface_correlation: float = field(default=0.5, metadata={"unit": "", "help": "lowest canopy surface correlation"})
+    min_surface_correlation: float = _p(0.5, "", -1.0, 1.0, "lowest canopy surface correlation")
     #: the best distinct alternative may reach at most this fraction of the best correlation
-    max_alternative_ratio: float = field(default=0.8, metadata={"unit": "", "help": "ambiguity ratio"})
+    max_alternative_ratio: float = _p(0.8, "", 0.0, 1.0, "ambiguity ratio")
     #: solutions moving the ground-based keypoints by more than this on average (m) are distinct
-    distinct_solution_m: float = field(default=2.5, metadata={"unit": "m", "help": "distinct solution distance"})
+    distinct_solution_m: float = _p(2.5, "m", 0.01, 1000.0, "distinct solution distance")
     #: fewer common cells than this make no evidence
-    min_surface_cells: int = field(default=30, metadata={"unit": "cells", "help": "fewest common canopy cells"})
+    min_surface_cells: int = _p(30, "cells", 1, 10000000, "fewest common canopy cells")
     #: ICP may move the keypoint solution at most this far (mean keypoint displacement, m; rotation, deg)
-    max_icp_shift_m: float = field(default=3.0, metadata={"unit": "m", "help": "largest ICP correction"})
-    max_icp_rotation_deg: float = field(default=8.0, metadata={"unit": "deg", "help": "largest ICP rotation"})
+    max_icp_shift_m: float = _p(3.0, "m", 0.0, 1000.0, "largest ICP correction")
+    max_icp_rotation_deg: float = _p(8.0, "deg", 0.0, 180.0, "largest ICP rotation")
 
-    def __post_init__(self) -> None:
-        if not self.icp_distances_m or any(d <= 0 for d in self.icp_distances_m):
-            raise ParameterError("icp_distances_m must be positive distances")
-        if self.min_matched < 3:
-            raise ParameterError("min_matched must be >= 3 (a rigid transform needs 3 points)")
+    def _check(self) -> None:
+        if not self.icp_distances_m:
+            raise ParameterError("icp_distances_m: needs at least one value")
 
 
 @dataclass(frozen=True, eq=False)

@@ -24,7 +24,6 @@ of the kept points into each input (to carry intensity or other attributes);
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import time
@@ -37,7 +36,7 @@ from scipy.special import ndtr
 
 from ..core.atomic import atomic_path
 from ..core.errors import ParameterError, ScanDataError, ScanWriteError
-from ..core.params import param_field as _p
+from ..core.params import Params, param_field as _p
 from ..core.progress import Progress, ProgressCallback
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -64,7 +63,7 @@ _ORDER_SEED = 20220
 
 
 @dataclass(frozen=True)
-class FusionParams:
+class FusionParams(Params):
     """Settings of the ground-based/UAV fusion (paper 4.2). Distances in metres.
 
     The paper names ``l``, ``epsilon``, ``nu`` and ``sigma`` but gives no values; ours are chosen
@@ -90,20 +89,9 @@ class FusionParams:
     # --- work size
     batch_points: int = _p(1_000_000, "points", 1000, 100_000_000, "Points handled at once (memory bound)")
 
-    def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            lo, hi = f.metadata.get("range", (None, None))
-            if isinstance(value, str):
-                continue
-            values = value if isinstance(value, tuple) else (value,)
-            if isinstance(value, tuple) and not value:
-                raise ParameterError(f"{f.name}: needs at least one value")
-            for v in values:
-                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                    raise ParameterError(f"{f.name}: {v!r} is not a finite number")
-                if (lo is not None and v < lo) or (hi is not None and v > hi):
-                    raise ParameterError(f"{f.name} = {v} {f.metadata['unit']} is outside [{lo}, {hi}]")
+    def _check(self) -> None:
+        if not self.noise_sources:
+            raise ParameterError("noise_sources: needs at least one value")
         if self.noise_method not in NOISE_METHODS:
             raise ParameterError(f"noise_method {self.noise_method!r} is unknown; use one of {', '.join(NOISE_METHODS)}")
         if self.redundancy_scope not in REDUNDANCY_SCOPES:
@@ -114,24 +102,6 @@ class FusionParams:
             raise ParameterError(
                 f"cube_side_m ({self.cube_side_m} m) must be at least twice redundancy_distance_m ({self.redundancy_distance_m} m)"
             )
-
-    def replace(self, **changes: Any) -> "FusionParams":
-        """A copy with some fields changed (validated)."""
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-able dict of every field."""
-        return {f.name: (list(v) if isinstance(v := getattr(self, f.name), tuple) else v) for f in dataclasses.fields(self)}
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any]) -> "FusionParams":
-        """Build from a mapping (e.g. a TOML table); unknown keys are an error, lists become tuples."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise ParameterError(f"unknown fusion parameter(s): {', '.join(unknown)}; known: {', '.join(sorted(names))}")
-        clean = {k: tuple(v) if isinstance(v, list) else (v,) if k == "noise_sources" and isinstance(v, int) else v for k, v in values.items()}
-        return cls(**clean)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -3,7 +3,7 @@ each cluster, projected onto the cloud's DEM.
 
 Steps, each a pure function on arrays (local frame, z up, metres):
 
-1. :func:`thin_to_voxel` - one point per voxel, so that a dense ground-based cloud and a sparse
+1. :func:`~forestreg.engine.geometry.voxel.voxel_thin` - one point per voxel, so that a dense ground-based cloud and a sparse
    UAV cloud look alike to the clustering (the paper: downsampling the denser cloud adds 8-15 %
    matching);
 2. :func:`canopy_points` - points higher than ``canopy_min_height_m`` above the DEM;
@@ -20,7 +20,7 @@ matcher (:mod:`.matching`) is built for that.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -29,6 +29,8 @@ from scipy.spatial import cKDTree
 from ..core.errors import ParameterError, ScanDataError
 from ..core.progress import Progress
 from ..terrain.dem import Dem
+from ..core.params import Params, param_field as _p
+from ..geometry.voxel import voxel_thin
 
 __all__ = [
     "KeypointParams",
@@ -38,40 +40,33 @@ __all__ = [
     "density_peak",
     "extract_keypoints",
     "min_cluster_size_for",
-    "thin_to_voxel",
 ]
 
 
 @dataclass(frozen=True)
-class KeypointParams:
+class KeypointParams(Params):
     """Parameters of keypoint extraction (paper section 4.1.1 and 5.1)."""
 
     #: both clouds are thinned to one point per voxel of this side first (m)
-    voxel_m: float = field(default=0.3, metadata={"unit": "m", "help": "thinning voxel before clustering"})
+    voxel_m: float = _p(0.3, "m", 0.01, 10.0, "thinning voxel before clustering")
     #: canopy = points at least this high above the DEM (m)
-    canopy_min_height_m: float = field(default=3.0, metadata={"unit": "m", "help": "lowest canopy height"})
+    canopy_min_height_m: float = _p(3.0, "m", 0.0, 100.0, "lowest canopy height")
     #: ... and above this fraction of the cloud's top height (95th percentile of heights above 2 m)
-    canopy_relative_height: float = field(default=0.4, metadata={"unit": "", "help": "canopy lower bound / top height"})
+    canopy_relative_height: float = _p(0.4, "", 0.0, 0.99, "canopy lower bound / top height")
     #: HDBSCAN MinClusterSize; 0 derives it from the point density (paper: "derived from the point
     #: cloud density") as the points of ``cluster_area_m2`` of canopy
-    min_cluster_size: int = field(default=0, metadata={"unit": "points", "help": "HDBSCAN MinClusterSize (0 = from density)"})
+    min_cluster_size: int = _p(0, "points", 0, 10000000, "HDBSCAN MinClusterSize (0 = from density)")
     #: canopy area whose points make the minimum cluster size (m^2)
-    cluster_area_m2: float = field(default=3.0, metadata={"unit": "m2", "help": "area of the smallest cluster"})
+    cluster_area_m2: float = _p(3.0, "m2", 0.01, 10000.0, "area of the smallest cluster")
     #: the cutoff distance d_c of the local density (m)
-    cutoff_distance_m: float = field(default=0.75, metadata={"unit": "m", "help": "d_c of the local density", "paper": "d_c"})
+    cutoff_distance_m: float = _p(0.75, "m", 0.01, 50.0, "d_c of the local density", "d_c")
     #: at most this many canopy points are clustered (a random subset beyond; speed)
-    max_canopy_points: int = field(default=60_000, metadata={"unit": "points", "help": "canopy points clustered at most"})
-    seed: int = 0
+    max_canopy_points: int = _p(60_000, "points", 100, 100000000, "canopy points clustered at most")
+    seed: int = _p(0, "", 0, 2**31 - 1, "random seed of the canopy subset")
 
-    def __post_init__(self) -> None:
-        for name in ("voxel_m", "cluster_area_m2", "cutoff_distance_m"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ParameterError(f"{name} must be positive, got {v}")
-        if not (0.0 <= self.canopy_relative_height < 1.0):
-            raise ParameterError(f"canopy_relative_height must be in [0, 1), got {self.canopy_relative_height}")
-        if self.min_cluster_size < 0 or self.max_canopy_points < 100:
-            raise ParameterError("min_cluster_size must be >= 0 and max_canopy_points >= 100")
+    def _check(self) -> None:
+        if self.min_cluster_size == 1:
+            raise ParameterError("min_cluster_size must be 0 (from the point density) or at least 2 (HDBSCAN)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,24 +96,6 @@ class Keypoints:
 
     def __len__(self) -> int:
         return len(self.xyz)
-
-
-def thin_to_voxel(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Indices (sorted) of one point per occupied voxel of side ``voxel_m`` (the point closest to
-    the voxel centre), so dense and sparse clouds end up with similar densities."""
-    p = np.asarray(points, dtype=np.float64)
-    if len(p) == 0:
-        return np.zeros(0, dtype=np.int64)
-    origin = p.min(axis=0)
-    cell = np.floor((p - origin) / voxel_m)
-    offset = np.linalg.norm(p - origin - (cell + 0.5) * voxel_m, axis=1)
-    keys = cell.astype(np.int64)
-    dims = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    order = np.lexsort((offset, flat))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = flat[order][1:] != flat[order][:-1]
-    return np.sort(order[first])
 
 
 def canopy_points(heights: np.ndarray, params: KeypointParams) -> tuple[np.ndarray, float]:
@@ -224,7 +201,7 @@ def extract_keypoints(
     if len(p) == 0 or not np.isfinite(p).all():
         raise ScanDataError("keypoints: the cloud is empty or holds NaN coordinates")
     progress(0.0, "thinning")
-    thin = p[thin_to_voxel(p, params.voxel_m)]
+    thin = p[voxel_thin(p, params.voxel_m, keep="centre")]
     heights = dem.normalise(thin)
     mask, floor = canopy_points(heights, params)
     canopy = thin[mask]

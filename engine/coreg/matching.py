@@ -29,16 +29,16 @@ hypotheses are heading + translation; the refinement fits all six degrees of fre
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from ..core.errors import ParameterError
 from ..core.progress import Progress
 from ..core.transform import fit_rigid
+from ..core.params import Params, param_field as _p
 
 __all__ = [
     "KeypointMatch",
@@ -51,29 +51,24 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class MatchingParams:
+class MatchingParams(Params):
     """Parameters of keypoint matching."""
 
     #: D_thr: a ground keypoint within this distance (m, horizontal) of a UAV keypoint matches it
-    distance_threshold_m: float = field(default=1.0, metadata={"unit": "m", "help": "D_thr", "paper": "1 m"})
+    distance_threshold_m: float = _p(1.0, "m", 0.01, 100.0, "D_thr", "1 m")
     #: pairwise distances must agree within this (m) to join two candidate correspondences
-    pair_tolerance_m: float = field(default=0.8, metadata={"unit": "m", "help": "pair distance tolerance"})
+    pair_tolerance_m: float = _p(0.8, "m", 0.01, 100.0, "pair distance tolerance")
     #: keypoint pairs closer than this are not used as hypotheses (m): their bearing is uncertain
-    min_pair_distance_m: float = field(default=4.0, metadata={"unit": "m", "help": "shortest seed pair"})
+    min_pair_distance_m: float = _p(4.0, "m", 0.0, 1000.0, "shortest seed pair")
     #: at most this many ground keypoint pairs seed hypotheses (a fixed random subset beyond)
-    max_seed_pairs: int = field(default=1500, metadata={"unit": "", "help": "ground pairs tried"})
+    max_seed_pairs: int = _p(1500, "", 1, 10000000, "ground pairs tried")
     #: this many best distinct solutions are refined and kept
-    n_solutions: int = field(default=400, metadata={"unit": "", "help": "distinct solutions kept"})
+    n_solutions: int = _p(400, "", 1, 100000, "distinct solutions kept")
     #: solutions closer than this in heading (deg) and translation (m) are the same solution
-    distinct_heading_deg: float = field(default=3.0, metadata={"unit": "deg", "help": "distinct heading"})
-    distinct_translation_m: float = field(default=1.5, metadata={"unit": "m", "help": "distinct translation"})
-    seed: int = 0
+    distinct_heading_deg: float = _p(3.0, "deg", 0.01, 180.0, "distinct heading")
+    distinct_translation_m: float = _p(1.5, "m", 0.01, 1000.0, "distinct translation")
+    seed: int = _p(0, "", 0, 2**31 - 1, "random seed of the subset of seed pairs")
 
-    def __post_init__(self) -> None:
-        if not (self.distance_threshold_m > 0 and self.pair_tolerance_m > 0):
-            raise ParameterError("distance_threshold_m and pair_tolerance_m must be positive")
-        if self.max_seed_pairs < 1 or self.n_solutions < 1:
-            raise ParameterError("max_seed_pairs and n_solutions must be >= 1")
 
 
 @dataclass(frozen=True, eq=False)

@@ -14,6 +14,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.transform import rotation_from_vector
+from .features import local_covariances, normals_and_variation
+from .voxel import column_bounds, voxel_downsample
 
 
 @dataclass(frozen=True)
@@ -52,58 +54,17 @@ class IcpResult:
         }
 
 
-def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(3,) minimum and maximum of each column of (N, 3) points, float64 (column by column: a
-    reduction along the long axis is many times faster than ``min(axis=0)`` on an (N, 3) array)."""
-    pts = np.asarray(points)
-    lo = np.array([pts[:, k].min() for k in range(pts.shape[1])], dtype=np.float64)
-    hi = np.array([pts[:, k].max() for k in range(pts.shape[1])], dtype=np.float64)
-    return lo, hi
-
-
-def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """One int64 key per point naming its ``voxel_m`` voxel (a grid anchored half a voxel below
-    the points' minimum corner, as Open3D's voxel thinning). Works axis by axis on float32 or
-    float64 input, so no (N, 3) temporary is made."""
-    pts = np.asarray(points)
-    lo = column_bounds(pts)[0] - voxel_m / 2.0
-    key = np.zeros(len(pts), dtype=np.int64)
-    for axis in range(3):
-        k = ((pts[:, axis] - lo[axis]) * (1.0 / voxel_m)).astype(np.int64)
-        key *= int(k.max()) + 1
-        key += k
-    return key
-
-
 def thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Voxel-grid thinning: one averaged point per occupied ``voxel_m`` voxel, (M, 3) float64
-    in the points' frame, sorted by voxel. One sort of the N voxel keys, no (N, 3) copies."""
-    pts = np.asarray(points)
-    if len(pts) == 0:
-        return np.zeros((0, 3))
-    key = voxel_keys(pts, voxel_m)
-    order = np.argsort(key)
-    key = key[order]
-    starts = np.flatnonzero(np.concatenate(([True], key[1:] != key[:-1])))
-    del key
-    counts = np.diff(np.append(starts, len(pts)))
-    anchor = pts[order[starts]].astype(np.float64)  # sums relative to a voxel member: exact for large coordinates
-    out = np.empty((len(starts), 3))
-    for axis in range(3):
-        column = pts[order, axis].astype(np.float64)
-        column -= np.repeat(anchor[:, axis], counts)
-        out[:, axis] = anchor[:, axis] + np.add.reduceat(column, starts) / counts
-    return out
+    """Voxel-grid thinning for ICP: one averaged point per occupied ``voxel_m`` voxel, (M, 3)
+    float64 (:func:`~forestreg.engine.geometry.voxel.voxel_downsample`)."""
+    return voxel_downsample(points, voxel_m)
 
 
 def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours: int = 12) -> np.ndarray:
     """Unit normals (arbitrary sign) of ``points[index]`` from their ``neighbours`` nearest
     points (``tree`` is built on ``points``): the least eigenvector of the local covariance."""
-    _, idx = tree.query(points[index], k=min(neighbours, len(points)), workers=-1 if len(index) >= 5000 else 1)
-    nb = points[idx]
-    nb -= nb.mean(axis=1, keepdims=True)
-    _, v = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb))
-    return v[:, :, 0]
+    cov, _ = local_covariances(points[index], points, k=neighbours, tree=tree)
+    return normals_and_variation(cov)[0]
 
 
 def icp(

@@ -16,6 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..core.atomic import atomic_path  # noqa: E402
+from ..core.errors import InvalidArgumentError  # noqa: E402
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..tls.pair import PairResult
@@ -41,7 +42,7 @@ def pair_figure(result: "PairResult", path: str | os.PathLike[str], *, dpi: int 
     and both overlaid with the final (or, if failed, the best coarse) transform and matched pairs."""
     det = result.details
     if det is None or det.chosen is None:
-        raise ValueError("the result carries no details to draw")
+        raise InvalidArgumentError("the result carries no details to draw")
     att = det.chosen
     radius = att.radius_m
     fig, axes = plt.subplots(1, 3, figsize=(18, 6.2))

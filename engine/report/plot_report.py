@@ -45,7 +45,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 from ..core.atomic import write_text_atomic  # noqa: E402
 from ..core.errors import ForestregError  # noqa: E402
 from ..tls.prepare import extract_vops, prepare_scan, slice_layers  # noqa: E402
-from ..core.params import RegistrationParams  # noqa: E402
+from ..tls.params import RegistrationParams  # noqa: E402
 from ..tls.plot import ScanCache  # noqa: E402
 from ..tls.project import Link, Project  # noqa: E402
 from .figures import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402
@@ -856,17 +856,20 @@ def comparison_section(comparison: Mapping[str, Any]) -> str:
         f"<td class=\"num\">{_e(str(len(set(t_auto) | set(t_manual))))}</td></tr></table>"
         '<p class="note">With every scan in the project frame, the mean distance between the centres of the same target '
         "seen from different scans.</p>"
+        + (f'<p class="note"><b>Not available:</b> {_e(comparison["target_residual_note"])}</p>'
+           if comparison.get("target_residual_note") else "")
     )
-    if pairs:
+    if pairs and any(v is not None for v in s_auto + s_manual):
         png = _bars_png(
             BarPanel(labels, [("proposed (marker-free)", s_auto, AUTO_COLOUR), ("manual (targets)", s_manual, MANUAL_COLOUR)],
                      "ICP standard deviation (cm)", "ICP standard deviation per pair"),
         )
-        png2 = _bars_png(
+        png2 = None if all(v is None for v in trans + rot) else _bars_png(
             BarPanel(labels, [("translation", trans, "#6a51a3")], "translation difference (cm)", "Proposed against manual: translation"),
             BarPanel(labels, [("rotation", rot, "#fd8d3c")], "rotation difference (deg)", "Proposed against manual: rotation", digits=3),
         )
-        out.append(f"<figure>{_img(png, 'ICP std per pair, proposed and manual', 'cmppairs')}{_img(png2, 'difference per pair', 'cmpdiff')}"
+        diff_img = "" if png2 is None else _img(png2, 'difference per pair', 'cmpdiff')
+        out.append(f"<figure>{_img(png, 'ICP std per pair, proposed and manual', 'cmppairs')}{diff_img}"
                    "<figcaption>Per pair: the ICP standard deviation of both methods, and how far apart the two results are "
                    "(rotation in degrees, translation at the moving scanner in cm).</figcaption></figure>")
     ids = sorted(set(t_auto) | set(t_manual), key=_natural)

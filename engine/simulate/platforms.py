@@ -38,7 +38,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError, ScanDataError
-from ..core.params import param_field as _p
+from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 from ..core.scan import Scan
 from .mesh import Material, SceneRaycaster, raycaster_for
@@ -52,26 +52,13 @@ ProgressCallback = Callable[[float, str], None]
 MAX_RAYS_PER_CAST = 2_000_000
 
 
-def _validate_fields(obj: Any) -> None:
-    """Range-check every numeric field of a setup dataclass from its metadata."""
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        lo, hi = f.metadata.get("range", (None, None))
-        if value is None or isinstance(value, (bool, str, tuple)) or (lo is None and hi is None):
-            continue
-        if not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ParameterError(f"{f.name}: {value!r} is not a finite number")
-        if (lo is not None and value < lo) or (hi is not None and value > hi):
-            raise ParameterError(f"{f.name} = {value} {f.metadata['unit']} is outside [{lo}, {hi}]")
-
-
 # --------------------------------------------------------------------------------------------
 # setups
 # --------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
-class UavSetup:
+class UavSetup(Params):
     """A UAV LiDAR flight (paper section 3.2.2 and table 2: VLP-16 at 86 m).
 
     The flight lines run along ``heading_deg`` (alternating direction, serpentine), ``line_spacing_m``
@@ -94,9 +81,6 @@ class UavSetup:
     range_noise_m: float = _p(0.03, "m", 0.0, 1.0, "Standard deviation of the range noise", "+-3 cm")
     density_scale: float = _p(1.0, "", 1e-4, 4.0, "Fraction of the sensor's pulses fired (scales the point density; 1 = the real sensor)")
 
-    def __post_init__(self) -> None:
-        _validate_fields(self)
-
     @property
     def channel_elevations_deg(self) -> np.ndarray:
         return _channels(self.n_channels, self.vertical_fov_deg)
@@ -114,7 +98,7 @@ class UavSetup:
 
 
 @dataclass(frozen=True)
-class BackpackSetup:
+class BackpackSetup(Params):
     """A walk with a backpack (or handheld) laser scanner (paper section 3.2.3 and table 2).
 
     The path is ``waypoints`` (scene-frame (x, y) pairs) when given, otherwise a serpentine over a
@@ -143,8 +127,7 @@ class BackpackSetup:
     clearance_m: float = _p(0.5, "m", 0.0, 5.0, "Least distance between the sensor path and a stem surface, target pole or building")
     sectors_per_rotation: int = _p(4, "", 1, 64, "Ray groups per rotation, each cast from its own position")
 
-    def __post_init__(self) -> None:
-        _validate_fields(self)
+    def _check(self) -> None:
         if self.waypoints is not None:
             wp = np.asarray(self.waypoints, dtype=np.float64)
             if wp.ndim != 2 or wp.shape[1] != 2 or len(wp) < 2 or not np.isfinite(wp).all():

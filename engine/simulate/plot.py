@@ -33,7 +33,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence, Union
 import numpy as np
 
 from ..core.atomic import write_text_atomic
-from ..core.errors import ParameterError
+from ..core.errors import ParameterError, UnknownNameError
 from .mesh import Material, raycaster_for
 from .scanner import ScannerSetup, SimulatedScan, simulate_tls_scan
 from .scene import BREAST_HEIGHT_M, ForestScene, make_scene
@@ -59,7 +59,7 @@ class SimulatedPlot:
         for s in self.scans:
             if s.name == name_or_index:
                 return s
-        raise KeyError(f"no scan named {name_or_index!r}; scans are {[s.name for s in self.scans]}")
+        raise UnknownNameError(f"no scan named {name_or_index!r}; scans are {[s.name for s in self.scans]}")
 
     def relative_pose(self, reference: Union[str, int], moving: Union[str, int]) -> np.ndarray:
         return relative_pose(self, reference, moving)
@@ -317,7 +317,7 @@ def relative_pose(truth_or_plot: Any, reference_name: Union[str, int], moving_na
         if isinstance(key, (int, np.integer)):
             return mats[names[int(key)]]
         if key not in mats:
-            raise KeyError(f"no scan named {key!r}; scans are {names}")
+            raise UnknownNameError(f"no scan named {key!r}; scans are {names}")
         return mats[key]
 
     ref = get(reference_name)

@@ -22,41 +22,34 @@ import os
 import sys
 import tempfile
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Iterator, Optional
 
 import numpy as np
 
 from ..core.errors import ParameterError, ScanDataError
 from ..core.progress import Progress
+from ..core.params import Params, param_field as _p
+from ..geometry.voxel import voxel_thin
 
 __all__ = ["Dem", "TerrainModel", "TerrainParams", "build_dem", "classify_ground", "lowest_points_dem", "terrain_model"]
 
 
 @dataclass(frozen=True)
-class TerrainParams:
+class TerrainParams(Params):
     """Parameters of ground classification (CSF) and of the DEM."""
 
     #: cloth grid spacing, metres (CSF's ``cloth_resolution``)
-    cloth_resolution_m: float = field(default=0.5, metadata={"unit": "m", "help": "CSF cloth grid spacing"})
+    cloth_resolution_m: float = _p(0.5, "m", 0.01, 10.0, "CSF cloth grid spacing")
     #: points closer than this to the settled cloth are ground, metres
-    class_threshold_m: float = field(default=0.3, metadata={"unit": "m", "help": "CSF ground distance"})
+    class_threshold_m: float = _p(0.3, "m", 0.01, 5.0, "CSF ground distance")
     #: cloth stiffness: 1 steep terrain, 2 relief, 3 flat (CSF's ``rigidness``)
-    rigidness: int = field(default=2, metadata={"unit": "", "help": "CSF rigidness: 1 steep, 2 relief, 3 flat"})
+    rigidness: int = _p(2, "", 1, 3, "CSF rigidness: 1 steep, 2 relief, 3 flat")
     #: DEM cell size, metres (paper: 0.5 m)
-    dem_resolution_m: float = field(default=0.5, metadata={"unit": "m", "help": "DEM cell size", "paper": "0.5 m"})
+    dem_resolution_m: float = _p(0.5, "m", 0.05, 20.0, "DEM cell size", "0.5 m")
     #: the cloud is thinned to one point per this voxel before CSF (speed), metres; 0 keeps all
-    thin_voxel_m: float = field(default=0.1, metadata={"unit": "m", "help": "thinning before CSF"})
+    thin_voxel_m: float = _p(0.1, "m", 0.0, 5.0, "thinning before CSF")
 
-    def __post_init__(self) -> None:
-        for name in ("cloth_resolution_m", "class_threshold_m", "dem_resolution_m"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ParameterError(f"{name} must be positive, got {v}")
-        if self.rigidness not in (1, 2, 3):
-            raise ParameterError(f"rigidness must be 1, 2 or 3, got {self.rigidness}")
-        if not (self.thin_voxel_m >= 0):
-            raise ParameterError(f"thin_voxel_m must be >= 0, got {self.thin_voxel_m}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,15 +140,6 @@ def _quiet_stdout() -> Iterator[None]:
             os.close(saved)
 
 
-def _thin_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Index of one (the first) point per voxel of side ``voxel_m``."""
-    if voxel_m <= 0:
-        return np.arange(len(points))
-    keys = np.floor((points - points.min(axis=0)) / voxel_m).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return np.sort(first)
-
-
 def classify_ground(points: np.ndarray, params: TerrainParams = TerrainParams()) -> np.ndarray:
     """Boolean mask of the ground points of (N, 3) ``points`` (local frame, z up, metres).
 
@@ -170,7 +154,7 @@ def classify_ground(points: np.ndarray, params: TerrainParams = TerrainParams())
     import CSF
 
     p = _check_points(points)
-    keep = _thin_indices(p, params.thin_voxel_m)
+    keep = voxel_thin(p, params.thin_voxel_m)
     sub = p[keep]
     shift = sub.mean(axis=0)
     csf = CSF.CSF()

@@ -67,6 +67,8 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..core.errors import InvalidArgumentError
+
 __all__ = ["CoarseMatch", "match_vops", "match_vops_literal", "overlap_score"]
 
 #: Scores within this many metres of the best are treated as ties (searched exhaustively).
@@ -121,11 +123,11 @@ def _as_points(xy: np.ndarray, name: str) -> np.ndarray:
     """Return ``xy`` as a C-contiguous float64 (N, 2) array; raise ValueError if unusable."""
     arr = np.asarray(xy, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 2:
-        raise ValueError(f"{name} must be an (N, 2) array of XY positions in metres, got shape {arr.shape}")
+        raise InvalidArgumentError(f"{name} must be an (N, 2) array of XY positions in metres, got shape {arr.shape}")
     if arr.shape[0] < 2:
-        raise ValueError(f"{name} has {arr.shape[0]} VOP(s); at least 2 are needed to match")
+        raise InvalidArgumentError(f"{name} has {arr.shape[0]} VOP(s); at least 2 are needed to match")
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or infinite coordinates")
+        raise InvalidArgumentError(f"{name} contains NaN or infinite coordinates")
     return np.ascontiguousarray(arr)
 
 
@@ -133,11 +135,11 @@ def _angle_count(angle_step_deg: float) -> int:
     """``K = round(360 / I_A)``; ValueError unless the step divides 360 deg into >= 4 angles."""
     step = float(angle_step_deg)
     if not np.isfinite(step) or step <= 0.0:
-        raise ValueError(f"angle_step_deg must be a positive number of degrees, got {angle_step_deg!r}")
+        raise InvalidArgumentError(f"angle_step_deg must be a positive number of degrees, got {angle_step_deg!r}")
     ratio = 360.0 / step
     k_count = int(round(ratio))
     if k_count < 4 or abs(ratio - k_count) > 1e-6 * max(1.0, ratio):
-        raise ValueError(
+        raise InvalidArgumentError(
             f"angle_step_deg={step} does not divide 360 deg into a whole number (>= 4) of steps; "
             "use e.g. 0.1, 0.2, 0.25, 0.5 or 1 degree"
         )
@@ -147,7 +149,7 @@ def _angle_count(angle_step_deg: float) -> int:
 def _check_distance(match_distance_m: float) -> float:
     dist = float(match_distance_m)
     if not np.isfinite(dist) or dist <= 0.0:
-        raise ValueError(f"match_distance_m must be a positive distance in metres, got {match_distance_m!r}")
+        raise InvalidArgumentError(f"match_distance_m must be a positive distance in metres, got {match_distance_m!r}")
     return dist
 
 
@@ -677,7 +679,7 @@ def match_vops(
     rot_limit = float(distinct_rotation_deg)
     trans_limit = float(distinct_translation_m)
     if not (np.isfinite(rot_limit) and rot_limit >= 0 and np.isfinite(trans_limit) and trans_limit >= 0):
-        raise ValueError("distinct_rotation_deg and distinct_translation_m must be finite and >= 0")
+        raise InvalidArgumentError("distinct_rotation_deg and distinct_translation_m must be finite and >= 0")
     step = float(angle_step_deg)
     n = moving.shape[0]
 

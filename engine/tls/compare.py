@@ -82,15 +82,24 @@ def compare_auto_manual(
             row["translation_difference_m"] = float(np.linalg.norm((link.matrix @ scanner - manual.matrix @ scanner)[:3]))
         pairs.append(row)
     manual_poses = _compose(project, manual_links)
-    targets = {s.name: s.targets for s in project.scans if s.targets}
+    # target ids are known to name the same targets across scans only where the target fit of a
+    # pair succeeded (it checks the ids); elsewhere a "residual" would compare unrelated targets
+    trusted = {project.centre, *manual_links}
+    targets = {s.name: s.targets for s in project.scans if s.targets and s.name in trusted}
     auto_res = target_residuals(targets, auto_poses)
     manual_res = target_residuals(targets, manual_poses)
+    note = ""
+    if auto_res.get("mean_m") is None:
+        reasons = sorted({p["manual"]["reason"] for p in pairs if p["manual"]["status"] != "ok" and p["manual"]["reason"]})
+        note = "no target is seen, under the same id, by two scans whose targets were fitted" + (
+            f" ({'; '.join(reasons)})" if reasons else "")
     step(1.0, "done")
     return {
         "frame": project.centre,
         "pairs": pairs,
         "auto_target_residual_m": auto_res.get("mean_m"),
         "manual_target_residual_m": manual_res.get("mean_m"),
+        "target_residual_note": note,
         "targets": {
             "auto": {k: v["mean_distance_m"] for k, v in auto_res.get("per_target", {}).items()},
             "manual": {k: v["mean_distance_m"] for k, v in manual_res.get("per_target", {}).items()},

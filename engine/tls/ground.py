@@ -7,10 +7,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..core.errors import DataError
 import numpy as np
 from scipy import ndimage
 
-from ..geometry.icp import column_bounds
+from ..geometry.voxel import column_bounds
 
 
 def lowest_voxel_ground(points: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -90,7 +91,7 @@ def ground_grid(points: np.ndarray, *, cell_m: float = 0.5, window_m: float = 3.
     cell_m : grid cell side, metres.
     """
     if len(points) == 0:
-        raise ValueError("no points to estimate the ground from")
+        raise DataError("no points to estimate the ground from near the scanner (a georeferenced scan? give its scanner position: --scanner-position X,Y,Z)")
     origin = np.floor(column_bounds(points[:, :2])[0] / cell_m) * cell_m
     i = np.floor((points[:, 0] - origin[0]) / cell_m).astype(np.int64)
     j = np.floor((points[:, 1] - origin[1]) / cell_m).astype(np.int64)
@@ -116,7 +117,7 @@ def _fill_nearest(grid: np.ndarray) -> np.ndarray:
     if not missing.any():
         return grid
     if missing.all():
-        raise ValueError("no ground cell could be measured")
+        raise DataError("no ground cell could be measured near the scanner")
     _, (ix, iy) = ndimage.distance_transform_edt(missing, return_indices=True)
     return grid[ix, iy]
 

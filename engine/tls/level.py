@@ -14,9 +14,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from ..geometry.icp import thin
+from ..geometry.features import local_covariances, normals_and_variation
+from ..geometry.voxel import voxel_downsample
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -49,16 +49,14 @@ def surface_normals(points: np.ndarray, *, voxel_m: float = 0.1, radius_m: float
     near = points[d2 <= radius_m**2]
     if len(near) <= neighbours:
         return np.zeros((0, 3)), np.zeros(0)
-    thinned = thin(near, voxel_m)
+    thinned = voxel_downsample(near, voxel_m)
     if len(thinned) <= neighbours:
         return np.zeros((0, 3)), np.zeros(0)
     if len(thinned) > 60000:
         thinned = thinned[np.random.default_rng(0).choice(len(thinned), 60000, replace=False)]
-    _, idx = cKDTree(thinned).query(thinned, k=neighbours, workers=-1)
-    nb = thinned[idx]
-    nb -= nb.mean(axis=1, keepdims=True)
-    w, v = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb))
-    return v[:, :, 0], w[:, 0] / np.maximum(w.sum(axis=1), 1e-12)
+    cov, _ = local_covariances(thinned, thinned, k=neighbours)
+    normals, variation = normals_and_variation(cov)
+    return normals, np.nan_to_num(variation, nan=0.0)
 
 
 def _hemisphere_directions(max_tilt_deg: float, step_deg: float, centre: np.ndarray) -> np.ndarray:

@@ -34,11 +34,12 @@ from ..core.atomic import write_text_atomic
 from ..core.errors import TargetError
 from ..geometry.icp import IcpResult
 from .prepare import prepare_scan
-from ..core.params import RegistrationParams
+from .params import RegistrationParams
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .pair import file_to_lsf_matrix, fine_registration, lsf_to_file_matrix
 from ..core.scan import Scan
 from ..core.transform import apply, fit_rigid, rotation_angle_deg
+from ..geometry.cluster import connected_clusters
 
 log = logging.getLogger("forestreg")
 
@@ -560,7 +561,7 @@ def detect_reflectors(
     if len(bright) < min_points:
         return []
     pts = scan.points[bright]
-    labels = _components(pts, link_m)
+    labels = connected_clusters(pts, link_m)
     order = np.argsort(labels, kind="stable")
     bounds = np.flatnonzero(np.diff(labels[order])) + 1
     contrast_unit = max(threshold - median, 1e-12)
@@ -611,19 +612,6 @@ def _threshold(values: np.ndarray, quantile: float, bulk_factor: float) -> tuple
         values = values[:: int(math.ceil(len(values) / 2_000_000))]
     median, q99, qhi = np.quantile(values, [0.5, 0.99, quantile])
     return float(median), float(max(qhi, median + bulk_factor * (q99 - median)))
-
-
-def _components(points: np.ndarray, link_m: float) -> np.ndarray:
-    """Connected-component labels of points linked when closer than ``link_m``."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    pairs = cKDTree(points).query_pairs(link_m, output_type="ndarray")
-    n = len(points)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else coo_matrix((n, n))
-    _, labels = connected_components(graph, directed=False)
-    return labels
 
 
 def _across_ray_radius(points: np.ndarray, ray: np.ndarray, max_size_m: float) -> float:

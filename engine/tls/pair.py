@@ -25,7 +25,7 @@ from .evidence import mutual_free_space_violation
 from ..geometry.icp import IcpResult, icp
 from .prepare import PreparedScan, SliceLayer, extract_vops, prepare_scan, slice_layers
 from .vop import VisualOcclusionPoints
-from ..core.params import RegistrationParams
+from .params import RegistrationParams
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.scan import Scan
 from ..core.transform import rotation_angle_deg, rotation_from_vector
@@ -165,6 +165,18 @@ class PairResult:
         }
 
 
+def _checked_up(up: Optional[np.ndarray], what: str) -> Optional[np.ndarray]:
+    """A given vertical as a unit (3,) vector; ParameterError unless finite and non-zero."""
+    if up is None:
+        return None
+    from ..core.errors import ParameterError
+
+    v = np.asarray(up, dtype=np.float64).reshape(-1)
+    if v.shape != (3,) or not np.isfinite(v).all() or np.linalg.norm(v) < 1e-9:
+        raise ParameterError(f"{what} must be a finite non-zero direction (3 numbers), got {up!r}")
+    return v / np.linalg.norm(v)
+
+
 def register(
     reference: Scan,
     moving: Scan,
@@ -192,6 +204,7 @@ def register(
         ``status == "ok"`` with the matrix and its evidence, or ``"failed"`` with the reason.
     """
     params = params or RegistrationParams()
+    reference_up, moving_up = _checked_up(reference_up, "reference_up"), _checked_up(moving_up, "moving_up")
     step = Progress(progress, cancel=cancel)
     timings: dict[str, float] = {}
     log.info("registering %s onto %s", moving.name, reference.name)

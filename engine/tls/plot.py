@@ -19,6 +19,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
+from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanReadError
 from ..core.atomic import write_text_atomic
 from ..io import read_scan, write_points
 from ..core.progress import CancelToken, Progress, ProgressCallback
@@ -68,7 +69,7 @@ def default_links(project: Project) -> None:
     the rest to the centre scan. A tilted scan without a named partner is linked to the centre
     for now; :func:`register_project` looks for its partner among the level scans."""
     if project.centre is None:
-        raise ValueError("the project has no scans")
+        raise InvalidArgumentError("the project has no scans")
     for s in project.scans:
         if s.name == project.centre or project.link_of(s.name) is not None:
             continue
@@ -136,7 +137,10 @@ def register_project(
 
 
 def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> dict[str, Any]:
-    reference, moving = scans(link.reference), scans(link.moving)
+    try:
+        reference, moving = scans(link.reference), scans(link.moving)
+    except (ScanReadError, ScanDataError) as exc:  # one unreadable scan must not stop the plot
+        return {"status": "failed", "reason": str(exc), "matrix": None}
     if link.method == "manual":
         from .manual import register_manual
 
@@ -145,7 +149,10 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
             link.params(project.params), progress=progress, cancel=cancel,
         )
     else:
-        result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel)
+        try:
+            result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel)
+        except DataError as exc:  # e.g. no points near a georeferenced scan's assumed scanner
+            return {"status": "failed", "reason": str(exc), "matrix": None}
     return _jsonable(result.to_dict())
 
 
@@ -318,7 +325,7 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
         with_intensity &= scan.intensity is not None
         intensity.append(scan.intensity)
     if not parts:
-        raise ValueError("no scan is registered: nothing to merge")
+        raise DataError("no scan is registered: nothing to merge")
     write_points(
         path,
         np.concatenate(parts),
@@ -350,7 +357,7 @@ def write_registered_e57(project: Project, path: str | Path, scans: Optional[Sca
     poses = project.poses()
     chosen = [s.name for s in project.scans if poses.get(s.name) is not None]
     if not chosen:
-        raise ValueError("no scan is registered: nothing to write")
+        raise DataError("no scan is registered: nothing to write")
     write_e57(path, [scans(n) for n in chosen], [poses[n] for n in chosen])
     return len(chosen)
 

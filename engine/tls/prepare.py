@@ -12,7 +12,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..core.params import RegistrationParams
+from .params import RegistrationParams
 from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
 from .level import estimate_up_direction, levelling_rotation, tilt_deg
 from .vop import (

@@ -21,8 +21,8 @@ from typing import Any, Optional
 import numpy as np
 
 from ..core.atomic import write_text_atomic
-from ..core.errors import ProjectFileError
-from ..core.params import RegistrationParams
+from ..core.errors import InvalidArgumentError, ProjectFileError, UnknownNameError
+from .params import RegistrationParams
 
 FORMAT = "forestreg-project"
 VERSION = 1
@@ -120,7 +120,7 @@ class Project:
         for s in self.scans:
             if s.name == name:
                 return s
-        raise KeyError(f"no scan named {name!r} in the project (scans: {', '.join(s.name for s in self.scans)})")
+        raise UnknownNameError(f"no scan named {name!r} in the project (scans: {', '.join(s.name for s in self.scans)})")
 
     def link_of(self, moving: str) -> Optional[Link]:
         """The link that places ``moving`` (its non-extra link)."""
@@ -130,7 +130,7 @@ class Project:
         """Link ``moving`` to ``reference``, replacing the link that placed it."""
         self.scan(moving), self.scan(reference)
         if moving == reference:
-            raise ValueError(f"a scan cannot be linked to itself ({moving})")
+            raise InvalidArgumentError(f"a scan cannot be linked to itself ({moving})")
         self.links = [link for link in self.links if link.moving != moving or link.extra]
         link = Link(moving=moving, reference=reference, **options)
         self.links.append(link)
@@ -141,7 +141,7 @@ class Project:
         adjustment."""
         self.scan(moving), self.scan(reference)
         if moving == reference:
-            raise ValueError(f"a scan cannot be linked to itself ({moving})")
+            raise InvalidArgumentError(f"a scan cannot be linked to itself ({moving})")
         link = Link(moving=moving, reference=reference, extra=True, **options)
         self.links.append(link)
         return link
@@ -294,11 +294,32 @@ class Project:
             path=p.resolve(),
             adjustment=data.get("adjustment"),
         )
+        _check_matrices(p, scans, links)
         names = {s.name for s in scans}
         bad = [link for link in links if link.moving not in names or link.reference not in names]
         if bad or (project.centre is not None and project.centre not in names):
             raise ProjectFileError(f"project file {p} refers to scans it does not list; it was left untouched")
         return project
+
+
+def _check_matrices(path: Path, scans: list[ScanEntry], links: list[Link]) -> None:
+    """Every 4x4 of a project file (link results, prior poses) is a finite proper rigid transform
+    (no scale, no reflection); otherwise :class:`ProjectFileError` naming it."""
+    from ..core.errors import TransformError
+    from ..core.transform import check_rigid
+
+    try:
+        for s in scans:
+            if s.prior_pose is not None:
+                check_rigid(s.prior_pose, f"the prior pose of {s.name}")
+        for link in links:
+            r = link.result
+            if isinstance(r, dict) and r.get("matrix") is not None:
+                check_rigid(r["matrix"], f"the link {link.moving} -> {link.reference}")
+            if link.moving == link.reference:
+                raise ProjectFileError(f"project file {path}: the scan {link.moving} is linked to itself; it was left untouched")
+    except TransformError as exc:
+        raise ProjectFileError(f"project file {path}: {exc}; it was left untouched") from exc
 
 
 def _json_default(value: Any) -> Any:

@@ -20,11 +20,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import sparse
-from scipy.sparse.csgraph import connected_components as _csgraph_components
 from scipy.spatial import cKDTree
 
 from .ground import GroundGrid
+from ..geometry.cluster import connected_clusters
 
 
 @dataclass(frozen=True)
@@ -122,23 +121,10 @@ def connected_components(points_xyz: np.ndarray, *, link_m: float, spacing_rad: 
     """Label the points by connectivity: two points are linked when closer than
     ``max(link_m, 2.5 * spacing_rad * range)``, so the link grows with the scan's point spacing at
     that range. Returns an (N,) int label array."""
-    n = len(points_xyz)
-    if n == 0:
+    if len(points_xyz) == 0:
         return np.zeros(0, dtype=np.int64)
-    pts = np.asarray(points_xyz, dtype=np.float64)
-    rng = np.hypot(pts[:, 0], pts[:, 1])
-    reach = np.maximum(link_m, 2.5 * spacing_rad * rng)
-    pairs = cKDTree(pts).query_pairs(float(reach.max()), output_type="ndarray")
-    if len(pairs):
-        i, j = pairs[:, 0], pairs[:, 1]
-        gap2 = np.zeros(len(pairs))
-        for axis in range(3):  # axis by axis: no (pairs, 3) temporaries
-            column = pts[:, axis]
-            gap2 += (column[i] - column[j]) ** 2
-        pairs = pairs[gap2 <= np.maximum(reach[i], reach[j]) ** 2]
-    graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else sparse.coo_matrix((n, n))
-    _, labels = _csgraph_components(graph, directed=False)
-    return labels.astype(np.int64)
+    reach = np.maximum(link_m, 2.5 * spacing_rad * np.hypot(points_xyz[:, 0], points_xyz[:, 1]))
+    return connected_clusters(points_xyz, float(reach.max()), reach_m=reach)
 
 
 def density_mode(points_xy: np.ndarray, *, bandwidth_m: float, max_iterations: int = 50) -> np.ndarray:

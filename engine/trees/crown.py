@@ -29,7 +29,6 @@ reasons (NaN where a value cannot be had); bad input raises
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Sequence
@@ -38,11 +37,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ScanDataError
-from .stems import Stem, check_cloud, param_field, validate_ranges
+from ..core.params import Params, param_field
+from .stems import Stem, check_cloud
 
 
 @dataclass(frozen=True)
-class CrownParams:
+class CrownParams(Params):
     """Settings of the height and crown measurements. Distances in metres."""
 
     top_neighbour_radius_m: float = param_field(1.0, "m", 0.01, 5.0, "The top is the highest point with enough tree points within this distance")
@@ -54,12 +54,6 @@ class CrownParams:
     max_crown_gap_m: float = param_field(1.0, "m", 0.0, 20.0, "Crown bins separated by at most this belong to one crown; the crown is the run holding the most points")
     width_percentile: float = param_field(0.5, "%", 0.0, 25.0, "Crown widths run from this percentile of x (y) to 100 minus it (robust to stray points)")
     min_points: int = param_field(50, "points", 3, 10**9, "Fewest points of a tree to measure it")
-
-    def __post_init__(self) -> None:
-        validate_ranges(self)
-
-    def replace(self, **changes: Any) -> "CrownParams":
-        return dataclasses.replace(self, **changes)
 
 
 @dataclass(frozen=True)

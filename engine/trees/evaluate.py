@@ -16,7 +16,7 @@ per parameter, the paper's figures:
   (%); ``bias = mean (est - field)``;
 
 and the detection figures: matched trees, omitted field trees (no estimate), commission
-(estimated trees with no field tree). :func:`write_evaluation` writes CSV, JSON, scatter plots
+(estimated trees with no field tree). :func:`forestreg.engine.io.evaluation.write_evaluation` writes CSV, JSON, scatter plots
 and an HTML report for one or several runs side by side (e.g. "ground" against "fused").
 """
 
@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import os
 import re
@@ -224,7 +223,7 @@ def _table(header: Sequence[str], records: Sequence[Mapping[str, Any]], source: 
             raise TreeTableError(f"{source}: column {name} has negative values (tree {ids[np.nanargmin(v)]})")
         if len(finite) and finite.max() > info.max_plausible:
             worst = ids[np.nanargmax(v)]
-            hint = "; they look like centimetres: name the column dbh_cm" if name == "dbh_m" else "; check the unit"
+            hint = _unit_hint(name, finite)
             raise TreeTableError(
                 f"{source}: column {name} has a value of {finite.max():.4g} {info.unit} (tree {worst}), more than "
                 f"{info.max_plausible:g} {info.unit}{hint}"
@@ -481,6 +480,8 @@ def evaluate(
     parameter missing from a table gets ``n = 0``.
     """
     est, fld = as_tree_table(estimated), as_tree_table(field_trees)
+    if by == "position":
+        _check_position_units(est, fld)
     match = match_trees(est, fld, max_distance_m=max_distance_m, by=by)
     if parameters is None:
         names = [p for p in PARAMETERS if p in est.values and p in fld.values]
@@ -499,8 +500,63 @@ def evaluate(
             name, int(fig["n"]), fig["r2"], fig["rmse"], fig["rrmse_percent"], fig["bias"], fig["field_mean"],
             e_all[ok], f_all[ok], est.tree_id[match.estimated_index][ok], fld.tree_id[match.field_index][ok],
         )
+        _check_value_units(name, e_all[ok], f_all[ok], fld.source)
     detection = Detection(len(fld), len(est), len(match), len(match.omitted), len(match.commission))
     return Evaluation(match, detection, stats, est, fld)
+
+
+#: Unit factors a field sheet may be off by (name, field value / value in the right unit).
+_UNIT_FACTORS = (("millimetres", 1000.0), ("centimetres", 100.0), ("decimetres", 10.0), ("feet", 1.0 / 0.3048))
+
+
+def _unit_hint(name: str, values: np.ndarray) -> str:
+    """A hint at the unit an implausibly large column is in (from its median)."""
+    med = float(np.median(values))
+    if name == "dbh_m":
+        if med > 150.0:
+            return "; they look like millimetres: divide by 1000 (or by 10 and name the column dbh_cm)"
+        return "; they look like centimetres: name the column dbh_cm"
+    for unit, factor in sorted(_UNIT_FACTORS, key=lambda u: u[1]):
+        if med / factor < PARAMETERS[name].max_plausible / 3:
+            return f"; they look like {unit}, not {PARAMETERS[name].unit}: convert them"
+    return "; check the unit"
+
+
+def _check_value_units(name: str, estimate: np.ndarray, field_value: np.ndarray, source: str) -> None:
+    """Refuse field values that are a unit factor off the matched estimates (heights in feet,
+    diameters in cm named _m): R2 of such a comparison would be meaningless."""
+    if len(estimate) < 5:
+        return
+    e, f = float(np.median(estimate)), float(np.median(field_value))
+    if e <= 0 or f <= 0:
+        return
+    ratio = f / e
+    for unit, factor in _UNIT_FACTORS:
+        if abs(np.log(ratio / factor)) < np.log(1.3):
+            raise TreeTableError(
+                f"{source}: the field {name} values are {ratio:.3g} times the estimates (median {f:.4g} vs "
+                f"{e:.4g} {PARAMETERS[name].unit}): they look like {unit}; convert them to {PARAMETERS[name].unit}")
+
+
+def _check_position_units(est: "TreeTable", fld: "TreeTable") -> None:
+    """Refuse field positions whose spread is a unit factor off the estimated trees' (mm or cm
+    against metres): position matching would find nothing."""
+    if len(est) < 3 or len(fld) < 3:
+        return
+    def spread(t: "TreeTable") -> float:
+        xy = np.column_stack([t.x, t.y])
+        xy = xy[np.isfinite(xy).all(axis=1)]
+        return float(np.ptp(xy, axis=0).max()) if len(xy) >= 3 else 0.0
+
+    se, sf = spread(est), spread(fld)
+    if se <= 0 or sf <= 0:
+        return
+    ratio = sf / se
+    for unit, factor in _UNIT_FACTORS[:2]:
+        if ratio > factor / 3:
+            raise TreeTableError(
+                f"{fld.source}: the field positions spread {sf:,.0f} units against {se:,.1f} m for the trees: "
+                f"they look like {unit}; convert them to metres (same coordinates as the cloud)")
 
 
 def pair_rows(evaluation: Evaluation) -> list[dict[str, Any]]:
@@ -516,139 +572,12 @@ def pair_rows(evaluation: Evaluation) -> list[dict[str, Any]]:
     return rows
 
 
-# ------------------------------------------------------------------------------------------------
-# writing
-# ------------------------------------------------------------------------------------------------
-
-#: The figures of the wide table (paper table 3 layout), each with its runs side by side.
-TABLE_METRICS = ("n", "r2", "rmse", "rrmse_percent", "bias")
-
-
-def write_evaluation(
-    out_dir: Union[str, os.PathLike[str]],
-    runs: Mapping[str, Evaluation],
-    *,
-    title: Optional[str] = None,
-) -> dict[str, Path]:
-    """Write the evaluation of one or several runs into ``out_dir`` (created if missing).
-
-    Files (each written atomically):
-
-    * ``evaluation.csv``: one row per parameter; per figure (n, r2, rmse, rrmse_percent, bias)
-      one column per run, side by side as in the paper's table 3 (``r2_ground, r2_fused, ...``);
-      RMSE and bias in the parameter's unit (metres, m², m³);
-    * ``detection.csv``: one row per run: field trees, estimated trees, matched, omitted,
-      commission and the two rates;
-    * ``matches_<run>.csv``: the pairs of each run with both values of every parameter;
-    * ``evaluation.json``: all of it;
-    * ``figures/scatter_<parameter>.png``: estimate against field value, one colour per run,
-      with the 1:1 line;
-    * ``report.html``: a self-contained report (:mod:`forestreg.engine.report.evaluation_report`).
-
-    Returns the paths by name ("csv", "detection", "json", "html", "scatter_<parameter>",
-    "matches_<run>").
-    """
-    from ..core.atomic import atomic_path, write_text_atomic
-    from ..report.evaluation_report import scatter_png, write_evaluation_report
-
-    if not runs:
-        raise ParameterError("no runs to write: give at least one evaluation")
-    names = [str(n) for n in runs]
-    if any(not n.strip() for n in names):
-        raise ParameterError("run names must not be empty")
-    stems = [_file_stem(n) for n in names]
-    if len(set(stems)) != len(stems):
-        raise ParameterError(f"run names {names} are not distinct as file names")
-    out = Path(out_dir)
-    (out / "figures").mkdir(parents=True, exist_ok=True)
-    params = _run_parameters(runs)
-    paths: dict[str, Path] = {}
-
-    paths["csv"] = out / "evaluation.csv"
-    write_text_atomic(paths["csv"], _csv_text(_wide_rows(runs, params)))
-    paths["detection"] = out / "detection.csv"
-    det_rows = [{"run": name, **ev.detection.to_dict()} for name, ev in runs.items()]
-    write_text_atomic(paths["detection"], _csv_text(det_rows))
-    for (name, ev), stem in zip(runs.items(), stems):
-        key = f"matches_{stem}"
-        paths[key] = out / f"{key}.csv"
-        write_text_atomic(paths[key], _csv_text(pair_rows(ev), empty_header=["field_id", "estimated_id", "distance_m"]))
-    doc = {
-        "definitions": {
-            "r2": "1 - SS_res/SS_tot, SS_res = sum (estimate - field)^2, SS_tot = sum (field - mean field)^2",
-            "rmse": "sqrt(mean (estimate - field)^2), in the parameter's unit",
-            "rrmse_percent": "100 * RMSE / mean field value",
-            "bias": "mean (estimate - field)",
-            "omitted": "field trees with no estimated tree",
-            "commission": "estimated trees with no field tree",
-        },
-        "units": {p: PARAMETERS[p].unit for p in params},
-        "runs": {name: ev.to_dict() for name, ev in runs.items()},
-    }
-    paths["json"] = out / "evaluation.json"
-    write_text_atomic(paths["json"], json.dumps(doc, indent=2, ensure_ascii=False) + "\n")
-    figures: dict[str, bytes] = {}
-    for p in params:
-        png = scatter_png(runs, p)
-        if png is None:
-            continue
-        figures[p] = png
-        key = f"scatter_{p}"
-        paths[key] = out / "figures" / f"{key}.png"
-        with atomic_path(paths[key]) as tmp:
-            tmp.write_bytes(png)
-    paths["html"] = out / "report.html"
-    write_evaluation_report(paths["html"], runs, title=title, figures=figures)
-    return paths
-
-
-def _run_parameters(runs: Mapping[str, Evaluation]) -> list[str]:
-    present = {p for ev in runs.values() for p in ev.stats}
-    return [p for p in PARAMETERS if p in present]
-
-
-def _wide_rows(runs: Mapping[str, Evaluation], params: Sequence[str]) -> list[dict[str, Any]]:
-    rows = []
-    for p in params:
-        info = PARAMETERS[p]
-        row: dict[str, Any] = {"parameter": p, "label": info.label, "unit": info.unit}
-        for metric in TABLE_METRICS:
-            for name, ev in runs.items():
-                s = ev.stats.get(p)
-                row[f"{metric}_{name}"] = (s.n if metric == "n" else getattr(s, metric)) if s is not None else None
-        rows.append(row)
-    return rows
-
-
-def _csv_text(rows: Sequence[Mapping[str, Any]], empty_header: Optional[Sequence[str]] = None) -> str:
-    buf = io.StringIO()
-    header = list(rows[0].keys()) if rows else list(empty_header or [])
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(header)
-    for r in rows:
-        writer.writerow([_csv_cell(r.get(h)) for h in header])
-    return buf.getvalue()
-
-
-def _csv_cell(value: Any) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, (float, np.floating)):
-        return "" if not math.isfinite(float(value)) else f"{float(value):.6g}"
-    if isinstance(value, (np.integer,)):
-        return str(int(value))
-    return str(value)
-
-
 def _json_num(value: Any) -> Optional[float]:
     if value is None:
         return None
     v = float(value)
     return v if math.isfinite(v) else None
 
-
-def _file_stem(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name.strip()) or "run"
 
 
 __all__ = [
@@ -667,5 +596,4 @@ __all__ = [
     "agreement",
     "evaluate",
     "pair_rows",
-    "write_evaluation",
 ]

@@ -18,7 +18,7 @@ import io
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -28,6 +28,7 @@ from ..core.atomic import write_text_atomic
 from ..core.errors import ScanDataError
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
+from ..core.params import Params, param_field as _p
 from .crown import CrownMeasurement, CrownParams, measure_crown
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
@@ -47,7 +48,7 @@ TREE_COLUMNS = (
 
 
 @dataclass(frozen=True)
-class TreeParams:
+class TreeParams(Params):
     """Parameters of every step (each step's own dataclass; defaults from the paper where given)."""
 
     terrain: TerrainParams = TerrainParams()
@@ -58,9 +59,9 @@ class TreeParams:
     leafwood: LeafWoodParams = LeafWoodParams()
     qsm: QsmParams = QsmParams()
     #: points with a wood probability at least this are wood (input of the cylinder model)
-    wood_threshold: float = field(default=0.5, metadata={"unit": "", "help": "wood probability threshold"})
+    wood_threshold: float = _p(0.5, "", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
-    cylinder_models: bool = field(default=True, metadata={"unit": "", "help": "fit cylinder models"})
+    cylinder_models: bool = _p(True, "", None, None, "fit cylinder models")
 
 
 @dataclass(frozen=True, eq=False)

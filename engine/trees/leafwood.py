@@ -36,8 +36,6 @@ points of each voxel, and every original point takes the values of its base voxe
 
 from __future__ import annotations
 
-import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -45,8 +43,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError, ScanDataError
-from ..core.params import param_field as _p
+from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
+from ..geometry.features import eigen_features, local_covariances
+from ..geometry.voxel import voxel_centroids
 
 #: Features per scale: l1, l2, l3 (normalised eigenvalues), zenith of e1, e2, e3 (degrees).
 FEATURES_PER_SCALE = 6
@@ -57,7 +57,7 @@ MIN_POINTS = 50
 
 
 @dataclass(frozen=True)
-class LeafWoodParams:
+class LeafWoodParams(Params):
     """Settings of the unsupervised leaf-wood separation (paper sec. 4.3.2, Moorthy et al. 2020).
 
     The radii suit terrestrial scans with a point spacing of about 0.5-3 cm on the stems (the
@@ -103,18 +103,9 @@ class LeafWoodParams:
     smoothing_neighbours: int = _p(16, "points", 1, 200, "At most this many nearest neighbours are averaged")
     seed: int = _p(0, "", 0, 2**31 - 1, "Seed of the random sample and the mixture's initialisation")
 
-    def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            lo, hi = f.metadata.get("range", (None, None))
-            values = value if isinstance(value, tuple) else (value,)
-            if isinstance(value, tuple) and not value:
-                raise ParameterError(f"{f.name}: needs at least one value")
-            for v in values:
-                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                    raise ParameterError(f"{f.name}: {v!r} is not a finite number")
-                if (lo is not None and v < lo) or (hi is not None and v > hi):
-                    raise ParameterError(f"{f.name} = {v} {f.metadata['unit']} is outside [{lo}, {hi}]")
+    def _check(self) -> None:
+        if not self.radii_m:
+            raise ParameterError("radii_m: needs at least one value")
         if list(self.radii_m) != sorted(set(self.radii_m)):
             raise ParameterError(f"radii_m must be distinct and increasing, got {self.radii_m}")
         if not (self.min_neighbours < self.full_weight_neighbours <= self.max_neighbours):
@@ -122,10 +113,6 @@ class LeafWoodParams:
                 f"need min_neighbours ({self.min_neighbours}) < full_weight_neighbours "
                 f"({self.full_weight_neighbours}) <= max_neighbours ({self.max_neighbours})"
             )
-
-    def replace(self, **changes: Any) -> "LeafWoodParams":
-        """A copy with some fields changed (validated)."""
-        return dataclasses.replace(self, **changes)
 
 
 # --------------------------------------------------------------------------------------------
@@ -148,70 +135,9 @@ def check_points(points: Any, min_points: int, what: str = "leaf-wood separation
     return p
 
 
-def voxel_thin(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Voxel centroids of ``points`` and, per point, the index of its voxel.
-
-    Returns ``(centroids (M, 3), voxel_of_point (N,))``; voxels are cubes of side ``voxel_m``
-    aligned to the points' minimum corner.
-    """
-    lo = points.min(axis=0)
-    keys = np.floor((points - lo) / voxel_m).astype(np.int64)
-    span = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    _, first, inverse, counts = np.unique(flat, return_index=True, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    centroids = np.zeros((len(counts), 3))
-    # sums relative to a point of the voxel keep the precision of large coordinates
-    anchor = points[first]
-    np.add.at(centroids, inverse, points - anchor[inverse])
-    centroids = anchor + centroids / counts[:, None]
-    return centroids, inverse
-
-
 # --------------------------------------------------------------------------------------------
 # Features (paper eq. 7-8)
 # --------------------------------------------------------------------------------------------
-
-
-def _local_covariances(
-    queries: np.ndarray, cloud: np.ndarray, tree: cKDTree, radius: float, k: int, batch: int = 50000
-) -> tuple[np.ndarray, np.ndarray]:
-    """Covariance (Q, 3, 3) of the (at most ``k`` nearest) cloud points within ``radius`` of each
-    query point (paper eq. 7), and the neighbour count (Q,).
-
-    Sums are taken of offsets from the query point (small numbers: no loss of precision far from
-    the origin): ``cov = E[d d^T] - E[d] E[d]^T``.
-    """
-    n = len(cloud)
-    k = min(k, n)
-    cov = np.zeros((len(queries), 3, 3))
-    count = np.zeros(len(queries), dtype=np.int64)
-    padded = np.vstack([cloud, np.zeros((1, 3))])
-    for a in range(0, len(queries), batch):
-        q = queries[a : a + batch]
-        _, idx = tree.query(q, k=k, distance_upper_bound=radius, workers=-1)
-        idx = idx.reshape(len(q), k)
-        valid = idx < n
-        cnt = valid.sum(axis=1)
-        d = (padded[idx] - q[:, None, :]) * valid[:, :, None]
-        c = np.maximum(cnt, 1)[:, None]
-        mean = d.sum(axis=1) / c
-        second = np.matmul(d.transpose(0, 2, 1), d) / c[:, :, None]
-        cov[a : a + batch] = second - mean[:, :, None] * mean[:, None, :]
-        count[a : a + batch] = cnt
-    return cov, count
-
-
-def eigen_features(cov: np.ndarray) -> np.ndarray:
-    """(Q, 6) features of covariance matrices (Q, 3, 3): normalised eigenvalues ``l1 >= l2 >=
-    l3`` (sum 1) and the zenith angles (degrees, 0-90) of their eigenvectors ``e1, e2, e3``."""
-    w, v = np.linalg.eigh(cov)  # ascending
-    w = np.clip(w[:, ::-1], 0.0, None)
-    v = v[:, :, ::-1]
-    total = w.sum(axis=1, keepdims=True)
-    lam = np.where(total > 0, w / np.where(total > 0, total, 1.0), 1.0 / 3.0)
-    zenith = np.degrees(np.arccos(np.clip(np.abs(v[:, 2, :]), 0.0, 1.0)))
-    return np.hstack([lam, zenith])
 
 
 def covariance_features(
@@ -246,7 +172,7 @@ def covariance_features(
     prm = prm.replace(radii_m=r)
     p = check_points(points, MIN_POINTS)
     progress = progress or Progress()
-    base, base_of_point = voxel_thin(p, min(prm.base_voxel_m, r[0] / 2.0))
+    base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, r[0] / 2.0))
     feats, _ = _features_on(base, prm, progress)
     return feats[base_of_point]
 
@@ -265,9 +191,9 @@ def _features_on(
     counts = np.zeros((len(base), len(prm.radii_m)), dtype=np.int64)
     for s, radius in enumerate(prm.radii_m):
         progress(s / len(prm.radii_m), f"covariance features at {radius:g} m")
-        cloud, voxel_of_base = voxel_thin(base, radius / prm.thinning_ratio)
+        cloud, voxel_of_base = voxel_centroids(base, radius / prm.thinning_ratio)
         tree = cKDTree(cloud)
-        cov, count = _local_covariances(cloud, cloud, tree, radius, prm.max_neighbours)
+        cov, count = local_covariances(cloud, cloud, k=prm.max_neighbours, radius_m=radius, tree=tree)
         f = eigen_features(cov)
         f[count < prm.min_neighbours] = np.nan
         out[:, s * FEATURES_PER_SCALE : (s + 1) * FEATURES_PER_SCALE] = f[voxel_of_base]
@@ -412,7 +338,7 @@ def wood_probability(
     p = check_points(points, MIN_POINTS)
     progress = progress or Progress()
     prm = params
-    base, base_of_point = voxel_thin(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0))
+    base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0))
     features, counts = _features_on(base, prm, progress.sub(0.0, 0.7))
     score = woodness_score(features, counts, prm)
     rule = score >= prm.wood_score_threshold

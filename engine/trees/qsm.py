@@ -51,7 +51,6 @@ stored; the axis is a unit vector from the cylinder's start (base side) to its e
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
@@ -64,9 +63,10 @@ from scipy.spatial import cKDTree
 
 from ..core.atomic import write_text_atomic
 from ..core.errors import ParameterError, ScanDataError, ScanReadError
-from ..core.params import param_field as _p
+from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
-from .leafwood import check_points, voxel_thin
+from ..geometry.voxel import voxel_centroids
+from .leafwood import check_points
 
 #: Breast height (m) above the stem base at which the DBH is taken.
 BREAST_HEIGHT_M = 1.3
@@ -84,7 +84,7 @@ _INT_COLUMNS = {"cylinder_id", "parent_id", "extension_id", "branch_id", "branch
 
 
 @dataclass(frozen=True)
-class QsmParams:
+class QsmParams(Params):
     """Settings of the cylinder model (paper sec. 4.3.3; TreeQSM, Raumonen et al. 2013).
 
     The patch (cover set) diameters default to the middle of the ranges the paper used
@@ -110,25 +110,12 @@ class QsmParams:
     taper_tolerance: float = _p(0.25, "", 0.01, 10.0, "A fit more than this fraction below the branch's robust taper line (or twice this above it) is treated as poor")
     enforce_taper: bool = _p(True, "", None, None, "Radii never increase along a branch and a child is never thicker than its parent cylinder")
 
-    def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if value is None or isinstance(value, bool):
-                continue
-            lo, hi = f.metadata["range"]
-            if not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ParameterError(f"{f.name}: {value!r} is not a finite number")
-            if (lo is not None and value < lo) or (hi is not None and value > hi):
-                raise ParameterError(f"{f.name} = {value} {f.metadata['unit']} is outside [{lo}, {hi}]")
+    def _check(self) -> None:
         if self.patch_diameter2_min_m > self.patch_diameter2_max_m:
             raise ParameterError(
                 f"patch_diameter2_min_m ({self.patch_diameter2_min_m} m) must not exceed "
                 f"patch_diameter2_max_m ({self.patch_diameter2_max_m} m)"
             )
-
-    def replace(self, **changes: Any) -> "QsmParams":
-        """A copy with some fields changed (validated)."""
-        return dataclasses.replace(self, **changes)
 
     @property
     def thinning_m(self) -> float:
@@ -378,7 +365,7 @@ def cover_sets(points: np.ndarray, diameter: float | np.ndarray, max_levels: int
     next_label = 0
     for lv in np.unique(level):
         idx = np.flatnonzero(level == lv)
-        centres, _ = voxel_thin(p[idx], 0.7 * float(sizes[lv]))
+        centres, _ = voxel_centroids(p[idx], 0.7 * float(sizes[lv]))
         _, nearest = cKDTree(centres).query(p[idx], k=1)
         labels[idx] = nearest + next_label
         next_label += len(centres)
@@ -1255,7 +1242,7 @@ def fit_qsm(
         base_pt = np.asarray(base, dtype=np.float64).reshape(-1)
         if base_pt.shape != (3,) or not np.isfinite(base_pt).all():
             raise ScanDataError(f"the base must be a finite (x, y, z) point, got {base!r}")
-    p, voxel_of_raw = voxel_thin(raw, params.thinning_m)
+    p, voxel_of_raw = voxel_centroids(raw, params.thinning_m)
     if len(p) < MIN_POINTS:
         raise ScanDataError(
             f"a cylinder model needs at least {MIN_POINTS} points after thinning to {params.thinning_m:.3g} m, "

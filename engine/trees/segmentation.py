@@ -34,7 +34,6 @@ Bad input (empty arrays, NaN, mismatched shapes) raises
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence
@@ -46,11 +45,13 @@ from scipy.spatial import cKDTree
 
 from ..core.errors import ScanDataError
 from ..core.progress import Progress
-from .stems import DbhMeasurement, Stem, check_cloud, param_field, validate_ranges
+from ..core.params import Params, param_field
+from .stems import DbhMeasurement, Stem, check_cloud
+from ..geometry.voxel import voxel_centroids
 
 
 @dataclass(frozen=True)
-class SegmentationParams:
+class SegmentationParams(Params):
     """Settings of tree segmentation. Distances in metres."""
 
     ground_clearance_m: float = param_field(0.3, "m", 0.0, 3.0, "Points lower than this above the ground are ground or understory (unless on a stem)")
@@ -61,23 +62,6 @@ class SegmentationParams:
     axis_max_gap_m: float = param_field(3.0, "m", 0.0, 50.0, "...with gaps (occluded stem) of at most this length; 0 = no axis continuation")
     orphan_max_distance_m: float = param_field(1.0, "m", 0.0, 10.0, "Unreached voxels join the nearest reached voxel within this distance")
     orphan_min_height_m: float = param_field(2.0, "m", 0.0, 50.0, "...if they stand at least this high above the ground")
-
-    def __post_init__(self) -> None:
-        validate_ranges(self)
-
-    def replace(self, **changes: Any) -> "SegmentationParams":
-        return dataclasses.replace(self, **changes)
-
-
-def _voxelise(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """(voxel index per point, centroid per voxel)."""
-    keys = np.floor((points - points.min(axis=0)) / voxel_m).astype(np.int64)
-    _, inverse = np.unique(keys, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    n_vox = int(inverse.max()) + 1
-    counts = np.bincount(inverse, minlength=n_vox).astype(np.float64)
-    centroids = np.column_stack([np.bincount(inverse, weights=points[:, k], minlength=n_vox) for k in range(3)]) / counts[:, None]
-    return inverse, centroids
 
 
 def _stem_axis_members(points: np.ndarray, stems: Sequence[Stem], margin_m: float, s_max: float) -> np.ndarray:
@@ -132,7 +116,7 @@ def segment_trees(
     if len(up_idx) == 0:
         return labels
     report(0.1, "building the voxel graph")
-    vox_of, centroids = _voxelise(p[up_idx], params.voxel_m)
+    centroids, vox_of = voxel_centroids(p[up_idx], params.voxel_m)
     n_vox = len(centroids)
     pairs = cKDTree(centroids).query_pairs(params.link_distance_m, output_type="ndarray")
     weights = np.linalg.norm(centroids[pairs[:, 0]] - centroids[pairs[:, 1]], axis=1)
@@ -231,7 +215,7 @@ def _axis_links(centroids: np.ndarray, stems: Sequence[Stem], params: Segmentati
 
 
 @dataclass(frozen=True)
-class CompletenessParams:
+class CompletenessParams(Params):
     """Settings of the completeness checks of segmented trees. Distances in metres."""
 
     footprint_cell_m: float = param_field(0.25, "m", 0.05, 10.0, "Cell size of the map of where the data reach (the plot footprint); edges are known to within a cell")
@@ -243,9 +227,6 @@ class CompletenessParams:
     top_layer_m: float = param_field(1.0, "m", 0.05, 10.0, "Depth of the top layer examined for a missing top")
     min_top_points: int = param_field(5, "points", 0, 10**6, "Fewer points in the top layer: the top rests on a sparse tip, the true top was probably not seen")
     max_top_spread_ratio: float = param_field(0.9, "", 0.0, 1.0, "A top layer wider than this fraction of the tree's widest layer: the crown is cut flat at the top (clipped data or a top hidden behind other crowns)")
-
-    def __post_init__(self) -> None:
-        validate_ranges(self)
 
 
 @dataclass(frozen=True)

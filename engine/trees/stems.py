@@ -45,7 +45,6 @@ returned with ``ok = False`` and its reasons, never as a confident number.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Optional
@@ -56,8 +55,11 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError, ScanDataError
-from ..core.params import param_field, validate_ranges
+from ..core.params import Params, param_field
 from ..core.progress import Progress
+from ..geometry.cluster import connected_clusters
+from ..geometry.features import local_covariances, normals_and_variation
+from ..geometry.voxel import voxel_thin
 
 # --------------------------------------------------------------------------------------------
 # Input checks (shared by the tree modules)
@@ -94,7 +96,7 @@ def check_cloud(points: Any, heights: Any = None, *, what: str = "points") -> tu
 
 
 @dataclass(frozen=True)
-class StemParams:
+class StemParams(Params):
     """Every setting of stem detection, DBH and stem curves. Distances in metres, angles in degrees."""
 
     # --- breast height and slices
@@ -145,18 +147,13 @@ class StemParams:
     max_relative_residual: float = param_field(1.75, "", 1.0, 100.0, "Sections whose circle residual exceeds this multiple of the stem's median are rejected (branch whorls, foliage)")
     max_section_growth: float = param_field(0.15, "", 0.0, 2.0, "A section may be at most this fraction wider than the accepted one below it (stems taper upward)")
 
-    def __post_init__(self) -> None:
-        validate_ranges(self)
+    def _check(self) -> None:
         if self.band_high_m <= self.band_low_m:
             raise ParameterError(f"band_high_m ({self.band_high_m}) must be above band_low_m ({self.band_low_m})")
         if len(self.dbh_range_m) != 2 or not self.dbh_range_m[0] < self.dbh_range_m[1]:
             raise ParameterError(f"dbh_range_m must be (smallest, largest) diameters, got {self.dbh_range_m}")
         if self.taper_window % 2 == 0:
             raise ParameterError(f"taper_window must be odd, got {self.taper_window}")
-
-    def replace(self, **changes: Any) -> "StemParams":
-        """A copy with some fields changed (validated)."""
-        return dataclasses.replace(self, **changes)
 
 
 # --------------------------------------------------------------------------------------------
@@ -490,61 +487,18 @@ def _fit(xy: np.ndarray, params: StemParams, seed: int = 0, min_arc_coverage: Op
 # --------------------------------------------------------------------------------------------
 
 
-def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Indices of one point per occupied voxel of side ``voxel_m`` (the first met); all indices
-    when ``voxel_m`` is 0."""
-    if voxel_m <= 0 or len(points) == 0:
-        return np.arange(len(points))
-    keys = np.floor((points - points.min(axis=0)) / voxel_m).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return np.sort(first)
-
-
 def local_geometry(points: np.ndarray, radius_m: float, min_neighbours: int, max_neighbours: int = 24) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per point: unit normal (eigenvector of the smallest covariance eigenvalue of its neighbours
     within ``radius_m``), surface variation (smallest eigenvalue / sum) and neighbour count.
 
     Points with fewer than ``min_neighbours`` neighbours get a NaN normal and variation.
     """
-    n = len(points)
-    normals = np.full((n, 3), np.nan)
-    variation = np.full(n, np.nan)
-    if n == 0:
-        return normals, variation, np.zeros(0, dtype=np.int64)
-    tree = cKDTree(points)
-    dist, idx = tree.query(points, k=min(max_neighbours, n), distance_upper_bound=radius_m)
-    if idx.ndim == 1:
-        idx = idx[:, None]
-        dist = dist[:, None]
-    valid = np.isfinite(dist)
-    counts = valid.sum(axis=1)
-    enough = counts >= min_neighbours
-    if not enough.any():
-        return normals, variation, counts
-    sel = np.flatnonzero(enough)
-    nb = np.where(valid[sel], idx[sel], 0)
-    w = valid[sel].astype(np.float64)
-    pts = points[nb]  # (m, k, 3)
-    cnt = w.sum(axis=1)[:, None]
-    mean = (pts * w[..., None]).sum(axis=1) / cnt
-    q = (pts - mean[:, None, :]) * w[..., None]
-    cov = np.einsum("mki,mkj->mij", q, q) / cnt[..., None]
-    evals, evecs = np.linalg.eigh(cov)
-    normals[sel] = evecs[:, :, 0]
-    total = evals.sum(axis=1)
-    variation[sel] = np.where(total > 0, evals[:, 0] / np.maximum(total, 1e-30), np.nan)
+    cov, counts = local_covariances(points, points, k=max_neighbours, radius_m=radius_m)
+    normals, variation = normals_and_variation(cov)
+    few = counts < min_neighbours
+    normals[few] = np.nan
+    variation[few] = np.nan
     return normals, variation, counts
-
-
-def connected_clusters(points: np.ndarray, distance_m: float) -> np.ndarray:
-    """Single-linkage cluster label per point (points closer than ``distance_m`` are linked)."""
-    n = len(points)
-    if n == 0:
-        return np.zeros(0, dtype=np.int64)
-    pairs = cKDTree(points).query_pairs(distance_m, output_type="ndarray")
-    graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = csgraph.connected_components(graph, directed=False)
-    return labels
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,151 @@
+"""The ``forestreg`` command line.
+
+Every command is a thin wrapper over the engine's API; none holds algorithm code. One module per
+family: :mod:`.register` (pair), :mod:`.plot` (plot, project, compare, targets), :mod:`.coreg`
+(coregister, fuse), :mod:`.trees` (trees, evaluate), :mod:`.misc` (simulate, demo, gui, params);
+:mod:`.common` holds what they share.
+
+Exit codes: 0 ok; 1 the data do not allow the result (a registration that failed, with its reason);
+2 bad input or usage (one line on stderr, never a traceback); 130 interrupted (Ctrl-C).
+Global flags (``-v``, ``-q``, ``--progress bar|jsonl|none``) go before or after the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from typing import Optional, Sequence
+
+from .common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, Reporter, add_global_flags, progress_mode
+
+__all__ = ["build_parser", "main"]
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (exit 2) and the global flags on every sub-command."""
+
+    last_error = ""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        import re
+
+        message = re.sub(r"^argument (\S+): \1: ", r"argument \1: ", message)
+        _Parser.last_error = f"{self.prog}: {message}"
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .. import __version__
+    from . import coreg, misc, plot, register, trees
+
+    parser = _Parser(prog="forestreg", description="Marker-free registration of forest laser scans, co-registration with UAV LiDAR, and tree measurements.")
+    parser.add_argument("--version", action="version", version=f"forestreg {__version__}")
+    add_global_flags(parser, top=True)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
+    register.add_parser(sub)
+    plot.add_parsers(sub, add_global_flags)
+    coreg.add_parsers(sub)
+    trees.add_parsers(sub)
+    misc.add_parsers(sub)
+    for name, p in sub.choices.items():
+        if name not in ("gui", "project"):
+            add_global_flags(p)
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    from ..engine.core.errors import DataError, ForestregError
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["gui"]:  # the GUI parses its own options
+        from .misc import cmd_gui
+
+        try:
+            return cmd_gui(argparse.Namespace(gui_args=argv[1:]))
+        except (ForestregError, argparse.ArgumentTypeError) as exc:
+            _error(_one_line(exc))
+            return EXIT_BAD_INPUT
+        except KeyboardInterrupt:
+            _error("interrupted")
+            return EXIT_INTERRUPTED
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # usage errors (2), --help and --version (0)
+        code = int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_BAD_INPUT
+        if _wants_jsonl(argv):
+            Reporter("jsonl", "forestreg").end(code, (_Parser.last_error or "bad usage (see --help)") if code else "")
+        return code
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    elif args.verbose:
+        logging.getLogger("forestreg").setLevel(logging.INFO)
+    mode = progress_mode(args)
+    if not getattr(args, "long_running", False) and mode == "bar":
+        mode = "none"
+    args.reporter = Reporter(mode, args.command)
+    code, message = EXIT_BAD_INPUT, ""
+    previous_term = _terminate_as_interrupt()
+    try:
+        code = args.func(args)
+        return code
+    except BrokenPipeError:  # output piped into head & co.
+        code = 0
+        return 0
+    except KeyboardInterrupt:
+        code, message = EXIT_INTERRUPTED, "interrupted: the output was left as it was before the run"
+        _error(message)
+        return code
+    except DataError as exc:
+        code, message = EXIT_FAILED, f"failed: {_one_line(exc)}"
+        _error(message, prefix="")
+        return code
+    except (ForestregError, argparse.ArgumentTypeError) as exc:
+        code, message = EXIT_BAD_INPUT, _one_line(exc)
+        _error(message)
+        return code
+    except MemoryError:
+        code, message = EXIT_FAILED, "not enough memory for this data (try thinning the clouds first)"
+        _error(message)
+        return code
+    except OSError as exc:  # disk full, permission denied, ... on a path forestreg did not foresee
+        code, message = EXIT_BAD_INPUT, f"{exc.filename + ': ' if getattr(exc, 'filename', None) else ''}{exc.strerror or exc}"
+        _error(message)
+        return code
+    finally:
+        args.reporter.end(code, message)
+        if previous_term is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, previous_term)
+
+
+def _terminate_as_interrupt():
+    """SIGTERM (a job service stopping a run) unwinds like Ctrl-C: temporary folders are removed
+    and the exit code is 130. Returns the previous handler (None off the main thread)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, handler)
+
+
+def _wants_jsonl(argv: Sequence[str]) -> bool:
+    return "--progress=jsonl" in argv or any(a == "--progress" and b == "jsonl" for a, b in zip(argv, argv[1:]))
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    if isinstance(exc, KeyError) and text.startswith(("'", '"')):
+        text = text[1:-1]
+    return " ".join(text.split())
+
+
+def _error(message: str, prefix: str = "forestreg: error: ") -> None:
+    print(f"{prefix}{message}", file=sys.stderr, flush=True)

@@ -1,0 +1,218 @@
+"""What every command shares: argument types, global flags, progress (bar or JSON lines), output
+checks, and the mapping of errors onto exit codes (0 ok, 1 the data do not allow it, 2 bad input,
+130 interrupted)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Optional
+
+log = logging.getLogger("forestreg")
+
+#: Metres per unit of the ``--units`` choices.
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048, "usft": 1200.0 / 3937.0}
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+# ----------------------------------------------------------------------------- argument types
+
+
+def floats(text: str, count: Optional[int] = None, what: str = "value") -> tuple[float, ...]:
+    """Comma-separated finite numbers (``count`` of them when given)."""
+    try:
+        values = tuple(float(v) for v in text.replace(";", ",").split(",") if v.strip())
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{what}: {text!r} is not a comma-separated list of numbers") from exc
+    if count is not None and len(values) != count:
+        raise argparse.ArgumentTypeError(f"{what}: expected {count} numbers, got {text!r}")
+    if not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"{what}: {text!r} holds NaN or infinite values")
+    return values
+
+
+def direction(what: str):
+    """An argparse type: three finite numbers forming a non-zero vector (a direction)."""
+
+    def parse(text: str) -> tuple[float, float, float]:
+        v = floats(text, 3, what)
+        if math.sqrt(sum(c * c for c in v)) < 1e-9:
+            raise argparse.ArgumentTypeError(f"{what}: {text!r} is the zero vector, not a direction")
+        return v  # type: ignore[return-value]
+
+    return parse
+
+
+def number(what: str, *, minimum: Optional[float] = None, positive: bool = False, integer: bool = False):
+    """An argparse type: a finite number, optionally > 0 or >= ``minimum``, optionally whole."""
+
+    def parse(text: str):
+        try:
+            value = int(text) if integer else float(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"{what}: {text!r} is not a{' whole' if integer else ''} number") from exc
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{what}: {text!r} is not a finite number")
+        if positive and value <= 0:
+            raise argparse.ArgumentTypeError(f"{what}: must be greater than 0, got {text}")
+        if minimum is not None and value < minimum:
+            raise argparse.ArgumentTypeError(f"{what}: must be at least {minimum:g}, got {text}")
+        return value
+
+    return parse
+
+
+def offsets(text: str) -> tuple[float, ...]:
+    return floats(text, what="--dh")
+
+
+# ----------------------------------------------------------------------------- global flags
+
+
+def add_global_flags(parser: argparse.ArgumentParser, *, top: bool = False) -> None:
+    """-v, -q and --progress, accepted before the command (``top``) and after it."""
+    default = (lambda v: v) if top else (lambda v: argparse.SUPPRESS)
+    parser.add_argument("-v", "--verbose", action="store_true", default=default(False), help="log every step to stderr")
+    parser.add_argument("-q", "--quiet", action="store_true", default=default(False), help="no progress on stderr (results and errors still printed)")
+    parser.add_argument(
+        "--progress", choices=("bar", "jsonl", "none"), default=default(None),
+        help="progress on stderr: a bar (default), JSON lines ({\"event\": \"progress\", ...}, last "
+             "{\"event\": \"end\", ...}) for programs, or none",
+    )
+
+
+# ----------------------------------------------------------------------------- progress
+
+
+def step_id(message: str) -> str:
+    """A short machine id of a progress message: its first words, lower case, joined by '-'."""
+    head = re.split(r"[(:;,.\d]", message, maxsplit=1)[0]
+    words = re.findall(r"[a-z]+", head.lower())[:3]
+    return "-".join(words) or "work"
+
+
+class Reporter:
+    """Progress of one command on stderr (tqdm bar, JSON lines, or nothing) and its final line.
+
+    Called as ``reporter(fraction, message)`` (the engine's progress callback). ``done(message,
+    result)`` records the one-line outcome and the result file for the final ``end`` event.
+    """
+
+    def __init__(self, mode: str, command: str) -> None:
+        self.mode = mode
+        self.command = command
+        self.message: str = ""
+        self.result: Optional[str] = None
+        self._bar = None
+        self._last = None
+
+    # engine callback
+    def __call__(self, fraction: float, message: str = "") -> None:
+        f = min(max(float(fraction), 0.0), 1.0)
+        if self.mode == "jsonl":
+            self._emit({"event": "progress", "step": step_id(message or self.command), "fraction": round(f, 4), "message": message})
+        elif self.mode == "bar":
+            if not sys.stderr.isatty():  # a log: one line per new step, never cut
+                if message != self._last:
+                    print(f"{self.command}: {100 * f:3.0f}% {message}", file=sys.stderr, flush=True)
+                    self._last = message
+                return
+            if self._bar is None:
+                from tqdm import tqdm
+
+                self._bar = tqdm(total=1000, file=sys.stderr, bar_format="{percentage:3.0f}%|{bar:20}| {elapsed} {desc}", leave=False)
+            self._bar.n = int(round(1000 * f))
+            self._bar.set_description_str(f"{self.command}: {message}", refresh=False)
+            self._bar.refresh()
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    def done(self, message: str, result: Optional[str | Path] = None) -> None:
+        self.message = message
+        if result is not None:
+            self.result = str(result)
+
+    def end(self, exit_code: int, message: str = "") -> None:
+        """The last event (JSON lines only)."""
+        self.close()
+        if self.mode == "jsonl":
+            self._emit({"event": "end", "exit_code": int(exit_code), "message": (message or self.message).splitlines()[0] if (message or self.message) else "",
+                        "result": self.result})
+
+    @staticmethod
+    def _emit(event: dict) -> None:
+        sys.stderr.write(json.dumps(event) + "\n")
+        sys.stderr.flush()
+
+
+def reporter_of(args: argparse.Namespace) -> Reporter:
+    return args.reporter
+
+
+def progress_mode(args: argparse.Namespace) -> str:
+    mode = getattr(args, "progress", None)
+    if mode:
+        return mode
+    return "none" if getattr(args, "quiet", False) else "bar"
+
+
+# ----------------------------------------------------------------------------- parameters
+
+
+def params_from_args(args: argparse.Namespace):
+    """Registration parameters: the TOML file (``--params``) with the command line's overrides."""
+    from ..engine.params import load_params
+    from ..engine.tls.params import RegistrationParams
+
+    params = load_params(args.params).registration if getattr(args, "params", None) else RegistrationParams()
+    changes = {}
+    if getattr(args, "dr", None) is not None:
+        changes["vop_radius_m"] = args.dr
+    if getattr(args, "dh", None) is not None:
+        changes["slice_offsets_m"] = tuple(args.dh)
+    if getattr(args, "dc", None) is not None:
+        changes["max_range_m"] = args.dc
+    return params.replace(**changes) if changes else params
+
+
+def say(message: str, args: Optional[argparse.Namespace] = None, *, err: bool = False) -> None:
+    """One result line on stdout (stderr with ``err``), remembered for the final event."""
+    print(message, file=sys.stderr if err else sys.stdout, flush=True)
+    if args is not None and getattr(args, "reporter", None) is not None:
+        args.reporter.message = message
+
+
+def check_inputs_exist(*paths) -> None:
+    """Every input file exists and is a readable file (one line otherwise, before any work)."""
+    from ..engine.io.base import check_readable
+
+    for p in paths:
+        if p is not None:
+            check_readable(p)
+
+
+def final_result_check(summary: dict) -> dict:
+    """The last check before a result is called "ok": its matrix must be a finite proper rigid
+    transform. Otherwise the result becomes "failed" with the reason (never a NaN "ok")."""
+    from ..engine.core.errors import TransformError
+    from ..engine.core.transform import check_rigid
+
+    if summary.get("status") != "ok":
+        return summary
+    try:
+        check_rigid(summary.get("matrix"), "the result")
+    except TransformError as exc:
+        summary = dict(summary)
+        summary["status"] = "failed"
+        summary["reason"] = f"{exc}; withheld"
+        summary["matrix"] = None
+    return summary

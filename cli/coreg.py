@@ -1,0 +1,174 @@
+"""``forestreg coregister`` and ``forestreg fuse``: ground-based and UAV clouds (System B)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from .common import UNITS, Reporter, log, number, say
+
+
+def add_parsers(sub) -> None:
+    p = sub.add_parser("coregister", help="co-register a ground-based cloud onto a UAV cloud by canopy keypoints")
+    p.add_argument("ground", help="ground-based cloud (merged TLS, backpack or handheld; LAS/LAZ/PLY/E57/...)")
+    p.add_argument("uav", help="UAV LiDAR cloud of the same plot (the reference frame)")
+    p.add_argument("--out", required=True, help="output folder (result.json, transform.txt, keypoints CSV, report); replaced when the run completes")
+    p.add_argument("--min-cluster-size", type=number("--min-cluster-size", minimum=2, integer=True), help="HDBSCAN MinClusterSize, at least 2 (default: from the point density)")
+    p.add_argument("--voxel", type=number("--voxel", positive=True), help="thinning voxel before clustering, m (default 0.3)")
+    p.add_argument("--distance-threshold", type=number("--distance-threshold", positive=True), help="D_thr for matched keypoints, m (default 1)")
+    p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates; results are written in the same unit")
+    p.set_defaults(func=cmd_coregister, long_running=True)
+
+    p = sub.add_parser("fuse", help="fuse co-registered ground-based and UAV clouds (redundancy + noise removal)")
+    p.add_argument("ground", help="ground-based cloud")
+    p.add_argument("uav", help="UAV cloud (the output frame)")
+    p.add_argument("--transform", help="transform.txt or result.json of `coregister` (p_uav = M @ p_ground, in the files' units); default identity")
+    p.add_argument("--out", required=True, help="fused cloud to write (.laz/.las; never one of the inputs) with a per-point source label")
+    p.add_argument("--epsilon", type=number("--epsilon", positive=True), help="redundancy distance, m (default 0.01)")
+    p.add_argument("--cube", type=number("--cube", positive=True), help="cube side of the redundancy search, m")
+    p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates (and of the fused cloud)")
+    p.set_defaults(func=cmd_fuse, long_running=True)
+
+
+def coregistration_params(args: argparse.Namespace):
+    """Co-registration parameters: the defaults with the command line's options."""
+    from ..engine.coreg.coregister import CoregistrationParams
+    from ..engine.coreg.keypoints import KeypointParams
+    from ..engine.coreg.matching import MatchingParams
+
+    kp: dict = {}
+    mt: dict = {}
+    if getattr(args, "min_cluster_size", None) is not None:
+        kp["min_cluster_size"] = args.min_cluster_size
+    if getattr(args, "voxel", None) is not None:
+        kp["voxel_m"] = args.voxel
+    if getattr(args, "distance_threshold", None) is not None:
+        mt["distance_threshold_m"] = args.distance_threshold
+    return CoregistrationParams(
+        keypoints=dataclasses.replace(KeypointParams(), **kp), matching=dataclasses.replace(MatchingParams(), **mt)
+    )
+
+
+def cmd_coregister(args: argparse.Namespace) -> int:
+    return run_coregister(args.ground, args.uav, args.out, params=coregistration_params(args), units=args.units, reporter=args.reporter)
+
+
+def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m", reporter: Optional[Reporter] = None) -> int:
+    """Co-register ``ground_path`` onto ``uav_path``; the output folder ``out`` is a transaction."""
+    from ..engine.core.atomic import check_output_folder, output_folder, write_text_atomic
+    from ..engine.core.transform import format_matrix, to_file_units
+    from ..engine.coreg.coregister import coregister
+    from ..engine.io import read_scan
+    from ..engine.io.tables import write_keypoints_csv
+    from .common import final_result_check
+
+    reporter = reporter or Reporter("none", "coregister")
+    if params is None:
+        params = coregistration_params(argparse.Namespace())
+    scale = UNITS[units]
+    out = check_output_folder(out, "coregister", inputs=[ground_path, uav_path])
+    t0 = time.perf_counter()
+    ground = read_scan(ground_path, unit_scale=scale)
+    uav = read_scan(uav_path, unit_scale=scale)
+    read_s = time.perf_counter() - t0
+    try:
+        result = coregister(ground, uav, params, progress=reporter)
+    finally:
+        reporter.close()
+    summary = final_result_check(result.to_dict())
+    ok = summary["status"] == "ok"
+    summary["timings"] = {"read_s": read_s, **summary["timings"]}
+    summary["ground_file"] = str(Path(ground_path).resolve())
+    summary["uav_file"] = str(Path(uav_path).resolve())
+    summary["distance_threshold_m"] = params.matching.distance_threshold_m
+    summary["unit"] = units
+    summary["unit_scale"] = scale
+    if summary.get("matrix") is not None:
+        summary["matrix"] = to_file_units(np.asarray(summary["matrix"]), scale).tolist()
+    pairs = result.matched_after_icp if result.matched_after_icp is not None else (
+        result.match.pairs if result.match is not None else np.zeros((0, 2), dtype=int))
+    with output_folder(out, "coregister") as tmp:
+        for scan, kp, column, other, name in (
+            (ground, result.ground_keypoints, 0, 1, "keypoints_ground.csv"),
+            (uav, result.uav_keypoints, 1, 0, "keypoints_uav.csv"),
+        ):
+            if kp is None:
+                continue
+            matched = np.full(len(kp), -1)
+            if len(pairs):
+                matched[pairs[:, column]] = pairs[:, other]
+            write_keypoints_csv(tmp / name, kp, scan.local_to_file_matrix(), matched, unit_scale=scale)
+        if result.ground_keypoints is not None:
+            try:
+                from ..engine.report.coregistration_report import write_coregistration_report
+
+                write_coregistration_report(result, tmp, ground.points, uav.points)
+            except Exception as exc:  # a figure must never lose the result
+                log.warning("could not draw the figure: %s", exc)
+        if ok:
+            write_text_atomic(tmp / "transform.txt", format_matrix(np.asarray(summary["matrix"])))
+        write_text_atomic(tmp / "result.json", json.dumps(summary, indent=2) + "\n")
+    reporter.done("", out / "result.json")
+    ns = argparse.Namespace(reporter=reporter)
+    if ok:
+        icp = result.icp
+        say(
+            f"ok: {result.n_matched} keypoints matched ({result.matching_percentage:.0f} % of "
+            f"{len(result.ground_keypoints)} / {len(result.uav_keypoints)}), mean residual "
+            f"{100 * summary['residuals_m']['mean']:.1f} cm, ICP fitness {icp.fitness:.2f} -> {out / 'result.json'}", ns,
+        )
+        if (out / "report.html").exists():
+            print(f"report: {out / 'report.html'}")
+        return 0
+    say(f"failed: {summary['reason']} -> {out / 'result.json'}", ns, err=True)
+    return 1
+
+
+def cmd_fuse(args: argparse.Namespace) -> int:
+    return run_fuse(args.ground, args.uav, args.out, transform=args.transform, units=args.units,
+                    epsilon=args.epsilon, cube=args.cube, reporter=args.reporter)
+
+
+def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", epsilon=None, cube=None,
+             reporter: Optional[Reporter] = None) -> int:
+    """Fuse two clouds into the LAS/LAZ ``out`` (refused when it is an input)."""
+    from ..engine.core.atomic import check_output_file
+    from ..engine.core.transform import read_matrix, to_metres
+    from ..engine.coreg.fusion import FusionParams, fuse_scans, write_fused
+    from ..engine.io import read_scan
+    from ..engine.io.base import check_readable
+
+    reporter = reporter or Reporter("none", "fuse")
+    scale = UNITS[units]
+    check_readable(ground_path)
+    check_readable(uav_path)
+    out = check_output_file(out, inputs=[ground_path, uav_path, transform], suffixes=(".laz", ".las"))
+    matrix = to_metres(read_matrix(transform), scale) if transform else np.eye(4)
+    kw = {}
+    if epsilon is not None:
+        kw["redundancy_distance_m"] = epsilon
+    if cube is not None:
+        kw["cube_side_m"] = cube
+    params = FusionParams(**kw)
+    ground = read_scan(ground_path, unit_scale=scale)
+    uav = read_scan(uav_path, unit_scale=scale)
+    try:
+        result = fuse_scans(ground, uav, matrix, params, progress=reporter)
+    finally:
+        reporter.close()
+    shift = uav.origin_shift
+    if scale != 1.0:
+        result = dataclasses.replace(result, points=result.points / scale)
+        shift = shift / scale
+    write_fused(out, result, origin_shift=shift)
+    for source, c in result.counts.items():
+        print(f"{source}: {c['input']:,} in, {c['redundant']:,} redundant, {c['noise']:,} noise, {c['kept']:,} kept")
+    reporter.done("", out)
+    say(f"wrote {len(result.points):,} points to {out}", argparse.Namespace(reporter=reporter))
+    return 0

@@ -1,0 +1,73 @@
+"""Parameters of the pair registration (System A), as one frozen dataclass.
+
+Defaults are the paper's table 2 (Guan et al. 2020) where the paper gives a value; the rest are
+ours and documented in the field metadata (``unit``, ``range``, ``help``, ``paper``), which also
+builds the GUI's parameter panel and the README's table. Distances in metres, angles in degrees.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+from ..core.errors import ParameterError
+from ..core.params import Params, param_field as _p
+
+__all__ = ["RegistrationParams"]
+
+
+@dataclass(frozen=True)
+class RegistrationParams(Params):
+    """Every setting of marker-free pair registration (METHOD.md, System A)."""
+
+    # --- data reduction and ground (paper 2.4, 2.5.1)
+    max_range_m: float = _p(30.0, "m", 5.0, 200.0, "Points farther than this horizontally from the scanner are dropped", "D_c = 30 m")
+    ground_voxel_m: float = _p(0.5, "m", 0.1, 2.0, "Voxel size for the lowest-voxel ground points", "voxel size = 0.5 m")
+    # --- slicing (paper 2.5.2)
+    slice_thickness_m: float = _p(0.2, "m", 0.05, 1.0, "Thickness of each slice layer", "dZ = 0.2 m")
+    slice_offsets_m: tuple[float, ...] = _p((0.0,), "m", -1.0, 5.0, "Heights of the slice layers relative to the scanner height; several for slopes or understory", "dh (table 3)")
+    fallback_slice_offsets_m: tuple[float, ...] = _p((0.6, 1.2), "m", -1.0, 5.0, "Slice layers added (above the understory) when no confident match is found at slice_offsets_m; empty = no second try")
+    follow_terrain: bool = _p(True, "", None, None, "Slice at a constant height above the local ground (the scanner's own height above ground + dh) instead of a flat plane: keeps trunks in the slice on slopes. Off = the paper's flat slice")
+    # --- angular grid and visual occlusion points
+    angular_step_deg: float = _p(0.1, "deg", 0.01, 2.0, "Angular resolution of the angular grid and rotation step of the coarse search", "I_A = 0.1 deg")
+    radial_step_m: float = _p(0.1, "m", 0.02, 1.0, "Distance resolution of the angular grid; width of the visibility buffer", "I_D = 0.1 m")
+    vop_radius_m: Optional[float] = _p(None, "m", 2.0, 100.0, "Radius around the scanner in which VOPs are extracted; empty = choose automatically (tries increasing radii)", "D_r (table 3)")
+    visibility_gap_m: float = _p(0.5, "m", 0.0, 5.0, "Start of the visibility buffer behind a candidate", "D_e = 0.5 m")
+    component_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size of the connected-component labelling of candidate points")
+    min_component_points: int = _p(8, "points", 2, 10000, "Smallest connected component kept as a trunk candidate")
+    min_component_height_fraction: float = _p(0.5, "", 0.0, 1.0, "A trunk component spans at least this fraction of the slice thickness vertically")
+    max_component_width_m: float = _p(2.0, "m", 0.1, 10.0, "Components wider than this (walls, rocks, dense bushes) are not trunks")
+    mean_shift_bandwidth_m: float = _p(0.1, "m", 0.01, 1.0, "Flat-kernel radius of the mean shift that finds a component's density mode")
+    centre_on_trunk_axis: bool = _p(True, "", None, None, "Move each VOP from the visible bark to the estimated trunk axis (half the arc width behind it along the ray), so VOPs of one trunk from two scans coincide. Off = the paper's density mode")
+    # --- horizontal coarse registration (paper 2.5.3)
+    match_distance_m: float = _p(0.2, "m", 0.01, 2.0, "Match distance threshold of the overlap score", "D_t = 0.2 m")
+    # --- evidence
+    min_vops: int = _p(4, "VOPs", 3, 1000, "Fewest VOPs per scan to attempt a registration")
+    min_matched: int = _p(4, "VOPs", 3, 1000, "Fewest matched VOPs for a registration to count (the paper sees failures below 3)")
+    min_match_margin: int = _p(2, "VOPs", 0, 1000, "The best solution must match at least this many more VOPs than the best distinct alternative")
+    min_match_margin_fraction: float = _p(0.1, "", 0.0, 1.0, "...and at least this fraction of its matched VOPs more (a plantation's grid lets another plot's trunks coincide by the dozen)")
+    distinct_rotation_deg: float = _p(5.0, "deg", 0.5, 180.0, "Alternatives rotated more than this from the best are distinct solutions")
+    distinct_translation_m: float = _p(1.0, "m", 0.1, 50.0, "Alternatives displaced more than this from the best are distinct solutions")
+    max_free_space_violation: float = _p(0.15, "", 0.0, 1.0, "Largest fraction of one scan's slice points allowed where the other scanner saw empty space, after ICP (a wrong match puts trunks there)")
+    # --- levelling of tilted scans
+    level_tilted: bool = _p(True, "", None, None, "Detect a tilted scanner from its own data (ground and trunk directions) and level the scan before slicing")
+    tilt_threshold_deg: float = _p(10.0, "deg", 0.1, 45.0, "Estimated tilts below this are treated as a level scanner (small tilts are taken up by the ground fit and ICP)")
+    # --- fine registration (ICP, paper 2.6)
+    icp_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size to which both clouds are thinned for ICP")
+    icp_max_distances_m: tuple[float, ...] = _p((0.5, 0.2, 0.08), "m", 0.005, 5.0, "Correspondence distances of the successive ICP stages")
+    icp_iterations: int = _p(40, "", 1, 1000, "Iterations per ICP stage")
+    icp_min_fitness: float = _p(0.1, "", 0.0, 1.0, "Least fraction of the moving points in the shared area that must have a reference point within the last ICP distance")
+    icp_max_correction_m: float = _p(1.0, "m", 0.0, 10.0, "ICP may move the coarse result by at most this much (more means the coarse result was wrong)")
+
+    def _check(self) -> None:
+        for name in ("slice_offsets_m", "icp_max_distances_m"):
+            if not getattr(self, name):
+                raise ParameterError(f"{name}: needs at least one value")
+        if self.vop_radius_m is not None and self.vop_radius_m >= self.max_range_m:
+            raise ParameterError(
+                f"vop_radius_m ({self.vop_radius_m} m) must be smaller than max_range_m ({self.max_range_m} m): "
+                "the visibility check needs points beyond the VOP radius"
+            )
+        steps = 360.0 / self.angular_step_deg
+        if abs(steps - round(steps)) > 1e-6:
+            raise ParameterError(f"angular_step_deg = {self.angular_step_deg} must divide 360")

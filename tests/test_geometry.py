@@ -1,0 +1,83 @@
+"""The shared numerics of engine/geometry against answers built into their inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from forestreg.engine.geometry.cluster import connected_clusters
+from forestreg.engine.geometry.features import eigen_features, local_covariances, normals_and_variation
+from forestreg.engine.geometry.voxel import voxel_centroids, voxel_downsample, voxel_thin
+
+
+def _grid_with_jitter(seed: int = 0) -> np.ndarray:
+    """Four points in each of 27 unit voxels (3 x 3 x 3), far from the origin (UTM-like)."""
+    rng = np.random.default_rng(seed)
+    cells = np.stack(np.meshgrid(np.arange(3), np.arange(3), np.arange(3), indexing="ij"), -1).reshape(-1, 3)
+    pts = np.repeat(cells, 4, axis=0) + rng.uniform(0.05, 0.95, (len(cells) * 4, 3))
+    pts[0] = [0.0, 0.0, 0.0]  # the minimum corner defines the grid
+    return pts + np.array([500000.0, 6000000.0, 250.0])
+
+
+def test_voxel_thin_keeps_one_point_per_voxel():
+    p = _grid_with_jitter()
+    first = voxel_thin(p, 1.0)
+    centre = voxel_thin(p, 1.0, keep="centre")
+    for idx in (first, centre):
+        assert len(idx) == 27 and np.all(np.diff(idx) > 0)
+        keys = np.floor(p[idx] - p.min(axis=0)).astype(int)
+        assert len(np.unique(keys, axis=0)) == 27
+    # "first" keeps the first point of each voxel in input order (here: every 4th point)
+    assert set(first.tolist()) == set(range(0, 108, 4))
+    # "centre" keeps the point nearest each voxel's centre
+    origin = p.min(axis=0)
+    for i in centre:
+        cell = np.floor(p[i] - origin)
+        same = np.all(np.floor(p - origin) == cell, axis=1)
+        d = np.linalg.norm(p[same] - origin - cell - 0.5, axis=1)
+        assert np.isclose(np.linalg.norm(p[i] - origin - cell - 0.5), d.min())
+    assert len(voxel_thin(p, 0.0)) == len(p) and len(voxel_thin(p[:0], 1.0)) == 0
+    with pytest.raises(ValueError):
+        voxel_thin(p, 1.0, keep="median")
+
+
+def test_voxel_centroids_are_means_at_full_precision():
+    p = _grid_with_jitter(1)
+    centroids, of = voxel_centroids(p, 1.0)
+    assert centroids.shape == (27, 3) and of.shape == (len(p),)
+    for v in range(27):
+        np.testing.assert_allclose(centroids[v], p[of == v].mean(axis=0), rtol=0, atol=1e-9)
+    local = p - p.min(axis=0)
+    down = voxel_downsample(local, 1.0)  # Open3D's grid starts half a voxel below the minimum
+    assert len(down) == len(np.unique(np.floor(local + 0.5), axis=0))
+
+
+def test_connected_clusters_with_fixed_and_growing_reach():
+    a = np.column_stack([np.arange(10) * 0.1, np.zeros(10), np.zeros(10)])  # a chain, 0.1 apart
+    b = a + [5.0, 0.0, 0.0]
+    p = np.vstack([a, b])
+    labels = connected_clusters(p, 0.15)
+    assert len(np.unique(labels)) == 2 and len(np.unique(labels[:10])) == 1
+    assert len(np.unique(connected_clusters(p, 0.05))) == 20
+    # per-point reach: the far chain links only where its own reach allows
+    reach = np.where(np.arange(20) < 10, 0.15, 0.05)
+    assert len(np.unique(connected_clusters(p, 0.15, reach_m=reach))) == 11
+    assert len(connected_clusters(p[:0], 1.0)) == 0
+
+
+def test_covariance_features_of_a_plane_a_line_and_a_vertical_stem():
+    rng = np.random.default_rng(2)
+    plane = np.column_stack([rng.uniform(-1, 1, 2000), rng.uniform(-1, 1, 2000), np.zeros(2000)]) + [300000.0, 0, 100.0]
+    cov, count = local_covariances(plane, plane, k=30, radius_m=0.5)
+    assert (count == 30).all()
+    normals, variation = normals_and_variation(cov)
+    assert np.all(np.abs(normals[:, 2]) > 0.999) and np.all(variation < 1e-6)
+    stem = np.column_stack([rng.normal(0, 1e-3, 500), rng.normal(0, 1e-3, 500), rng.uniform(0, 3, 500)])
+    cov, _ = local_covariances(stem, stem, k=20)
+    f = eigen_features(cov)
+    assert np.all(f[:, 0] > 0.95)  # linear: l1 dominates
+    assert np.all(f[:, 3] < 5.0)  # e1 vertical: zenith near 0
+    # a radius with no neighbour but the point itself
+    lone = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    _, count = local_covariances(lone, lone, k=2, radius_m=1.0)
+    assert count.tolist() == [1, 1]
