@@ -14,7 +14,7 @@ __all__ = ["connected_clusters"]
 
 #: Candidate pairs examined at a time: bounds memory on dense clouds (a 0.04 deg scan's trunks give
 #: hundreds of millions of pairs within a few centimetres).
-_PAIRS_PER_CHUNK = 4_000_000
+_PAIRS_PER_CHUNK = 1_000_000
 
 
 def connected_clusters(points: np.ndarray, distance_m: float, *, reach_m: Optional[np.ndarray] = None) -> np.ndarray:

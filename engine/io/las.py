@@ -13,7 +13,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..core.errors import ScanReadError
-from .base import RawCloud
+from .base import RawCloud, tune_allocator
 
 #: Coordinate resolution written to LAS/LAZ, metres (keeps sub-mm steps for UTM-sized values).
 LAS_SCALE = 1.0e-4
@@ -93,6 +93,7 @@ def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS) -> RawCloud:
     """
     import laspy  # local import: keeps `import forestreg.engine.io` light
 
+    tune_allocator()
     count, compressed = _check_header(path)
     backend = laspy.LazBackend.detect_available()
     try:
