@@ -144,6 +144,8 @@ def build_scan(
             name=raw.name,
             pose=pose,
             meta=meta,
+            # LAS/LAZ points are a fresh array of the reader's; scaled points a fresh product
+            take_ownership=fmt in ("las", "laz") or points is not raw.points,
         )
     except ScanDataError as exc:
         message = str(exc)
