@@ -83,3 +83,30 @@ def test_coarse_bounds_built_in_blocks_keep_the_literal_optimum(monkeypatch):
     fast = coarse.match_vops(ref, mov, angle_step_deg=1.0)
     assert (fast.anchor, fast.angle_index, fast.score) == (literal.anchor, literal.angle_index, literal.score)
     assert fast.matched >= 6
+
+
+def test_downsampling_in_slabs_equals_one_pass(monkeypatch):
+    from forestreg.engine.geometry import voxel
+
+    rng = np.random.default_rng(6)
+    pts = rng.uniform(-10, 10, (20000, 3)).astype(np.float32)
+    whole = voxel.voxel_downsample(pts, 0.7)
+    monkeypatch.setattr(voxel, "DOWNSAMPLE_POINTS_PER_SLAB", 1500)
+    slabs = voxel.voxel_downsample(pts, 0.7)
+    assert slabs.shape == whole.shape
+    np.testing.assert_allclose(slabs, whole, rtol=0, atol=1e-12)  # same voxels, same order; sums may differ in the last bit
+
+
+def test_icp_distance_figures_equal_a_full_nearest_neighbour_search():
+    from scipy.spatial import cKDTree
+
+    from forestreg.engine.geometry.icp import nearest_distance_stats
+
+    rng = np.random.default_rng(7)
+    reference = rng.uniform(-5, 5, (50000, 3)).astype(np.float32)
+    moved = rng.uniform(-5, 5, (3000, 3)) + [0.0, 0.0, 0.01]
+    d, _ = cKDTree(reference).query(moved, distance_upper_bound=0.08)
+    d = d[np.isfinite(d)]
+    std, mean, count = nearest_distance_stats(reference, moved, 0.08)
+    assert count == len(d) > 100
+    assert std == pytest.approx(np.std(d), rel=1e-9) and mean == pytest.approx(np.mean(d), rel=1e-9)

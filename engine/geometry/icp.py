@@ -166,13 +166,9 @@ def nearest_distance_stats(reference: np.ndarray, moved: np.ndarray, max_distanc
     over the pairs closer than ``max_distance_m``; and how many there are (metres)."""
     if len(reference) == 0 or len(moved) == 0:
         return float("nan"), float("nan"), 0
-    # only the reference points near the moved ones can be nearest: crop to their box first
-    lo, hi = column_bounds(moved)
-    lo, hi = lo - max_distance_m, hi + max_distance_m
-    near = np.ones(len(reference), dtype=bool)
-    for axis in range(3):
-        near &= (reference[:, axis] >= lo[axis]) & (reference[:, axis] <= hi[axis])
-    reference = reference[near]
+    # only the reference points within max_distance_m of a moved point can count: keep those in
+    # the cells (of that side) next to the moved points' cells, then build the tree on them
+    reference = reference[_near_cells(reference, moved, max_distance_m)]
     if len(reference) == 0:
         return float("nan"), float("nan"), 0
     tree = cKDTree(reference, balanced_tree=False, compact_nodes=False)  # built once, queried once: a fast build
@@ -181,3 +177,30 @@ def nearest_distance_stats(reference: np.ndarray, moved: np.ndarray, max_distanc
     if len(d) < 2:
         return float("nan"), float("nan"), int(len(d))
     return float(np.std(d)), float(np.mean(d)), int(len(d))
+
+
+def _near_cells(points: np.ndarray, around: np.ndarray, cell_m: float, chunk: int = 2_000_000) -> np.ndarray:
+    """Mask of the ``points`` in the cubic cells (side ``cell_m``) that touch a cell holding one of
+    ``around``: every point within ``cell_m`` of an ``around`` point is kept. Chunked: no copy
+    of ``points`` is made."""
+    keep = np.zeros(len(points), dtype=bool)
+    if len(points) == 0 or len(around) == 0 or not np.isfinite(cell_m) or cell_m <= 0:
+        keep[:] = len(around) > 0
+        return keep
+    origin = column_bounds(around)[0] - 2.0 * cell_m
+    cells = np.floor((np.asarray(around, dtype=np.float64) - origin) / cell_m).astype(np.int64)
+    span = cells.max(axis=0) + 3
+    offsets = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
+    near = (cells[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
+    wanted = np.unique((near[:, 0] * span[1] + near[:, 1]) * span[2] + near[:, 2])
+    for start in range(0, len(points), chunk):
+        block = points[start:start + chunk]
+        ok = np.ones(len(block), dtype=bool)
+        key = np.zeros(len(block), dtype=np.int64)
+        for axis in range(3):
+            c = np.floor((block[:, axis] - origin[axis]) / cell_m).astype(np.int64)
+            ok &= (c >= 0) & (c < span[axis])
+            key = key * span[axis] + c
+        at = np.minimum(np.searchsorted(wanted, key), len(wanted) - 1)
+        keep[start:start + chunk] = ok & (wanted[at] == key)
+    return keep

@@ -86,14 +86,37 @@ def voxel_centroids(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.
     return anchor + sums / counts[:, None], inverse
 
 
+#: Points sorted at a time by :func:`voxel_downsample` (the cloud is cut into slabs along x that
+#: follow the voxel grid, so a voxel never straddles two slabs): bounds its temporaries.
+DOWNSAMPLE_POINTS_PER_SLAB = 4_000_000
+
+
 def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """(M, 3) float64 averaged points of a ``voxel_m`` voxel grid that starts half a voxel below the
     points' minimum corner (Open3D's grid), sorted by voxel. Float32 or float64 input; sums are
-    taken relative to a point of each voxel (exact for large coordinates)."""
+    taken relative to a point of each voxel (exact for large coordinates). Large clouds are
+    processed in slabs of whole voxel columns along x: memory stays bounded."""
     pts = np.asarray(points)
     if len(pts) == 0:
         return np.zeros((0, 3))
-    key = voxel_keys(pts, voxel_m, origin=column_bounds(pts)[0] - voxel_m / 2.0)
+    lo, hi = column_bounds(pts)
+    origin = lo - voxel_m / 2.0
+    slabs = int(np.ceil(len(pts) / DOWNSAMPLE_POINTS_PER_SLAB))
+    if slabs <= 1:
+        return _downsample(pts, voxel_m, origin)
+    columns = int(np.floor((hi[0] - origin[0]) / voxel_m)) + 1
+    edges = np.unique(np.linspace(0, columns, slabs + 1).astype(np.int64))
+    parts = []
+    ix = np.floor((pts[:, 0] - origin[0]) / voxel_m).astype(np.int32)
+    for a, b in zip(edges[:-1], edges[1:]):
+        inside = np.flatnonzero((ix >= a) & (ix < b))
+        if len(inside):
+            parts.append(_downsample(pts[inside], voxel_m, origin))
+    return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+
+def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray) -> np.ndarray:
+    key = voxel_keys(pts, voxel_m, origin=origin)
     order = np.argsort(key)
     key = key[order]
     starts = np.flatnonzero(np.concatenate(([True], key[1:] != key[:-1])))
