@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -230,10 +231,12 @@ def register(
 
     # scans exported in project/UTM coordinates carry no scanner position: find it from the data
     reference, moving = locate_scanner(reference), locate_scanner(moving)
-    step(0.0, "preparing reference scan")
-    ref_prep = timed("prepare_reference", prepare_scan, reference.points, reference.scanner_position, params, up=reference_up)
-    step(0.15, "preparing moving scan")
-    mov_prep = timed("prepare_moving", prepare_scan, moving.points, moving.scanner_position, params, up=moving_up)
+    step(0.0, "preparing both scans")
+    # the two preparations are independent and mostly numpy (which releases the GIL): in parallel
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        ref_job = pool.submit(timed, "prepare_reference", prepare_scan, reference.points, reference.scanner_position, params, up=reference_up)
+        mov_job = pool.submit(timed, "prepare_moving", prepare_scan, moving.points, moving.scanner_position, params, up=moving_up)
+        ref_prep, mov_prep = ref_job.result(), mov_job.result()
     for name, prep in ((reference.name, ref_prep), (moving.name, mov_prep)):
         log.info(
             "%s: %d points within %.0f m, tilt %.2f deg%s, scanner %.2f m above ground",
