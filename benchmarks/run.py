@@ -1,6 +1,6 @@
-"""forestreg benchmarks: pair registration per step, and the coarse matcher vs literal enumeration.
+"""forestreg benchmarks: pair registration per step and against Sylva, memory, the coarse matcher, System B.
 
-Run from the repository root (about 1-2 minutes on 2 cores)::
+Run from the repository root (about 30 minutes on 2 cores with the 30 M-point scan; `--quick`: a few minutes)::
 
     .venv/bin/python benchmarks/run.py            # or: python -m benchmarks.run
     .venv/bin/python benchmarks/run.py --quick    # smoke run: skips the ~3 M point pair
@@ -13,7 +13,12 @@ Run from the repository root (about 1-2 minutes on 2 cores)::
    come from ``PairResult.timings``. Accuracy is checked against the simulator's truth.
 2. The exact coarse VOP matcher vs the paper's literal enumeration, from
    :func:`benchmarks.coarse_matcher.run` (20/40/80 VOPs, 0.1 deg).
-3. System B at full size (:mod:`benchmarks.system_b`): ground-based/UAV co-registration, fusion
+3. Whole commands side by side (:mod:`benchmarks.peers`): reading both LAZ files, ``forestreg
+   register`` and Sylva's ``coreg`` (``pip install 'forestreg[bench]'``) on the same simulated
+   pairs, in turn, with wall time and peak memory per process and their run-by-run ratios.
+4. Peak memory of ``forestreg register`` on a ~30 M-point scan (:mod:`benchmarks.big_scan`; long:
+   left out by ``--quick``).
+5. System B at full size (:mod:`benchmarks.system_b`): ground-based/UAV co-registration, fusion
    and the tree inventory of the fused cloud.
 
 Timings are wall-clock seconds of one run (``time.perf_counter``); nothing is asserted on them.
@@ -37,10 +42,12 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import coarse_matcher, system_b
+    from . import big_scan, coarse_matcher, peers, system_b
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import big_scan  # type: ignore[no-redef]
     import coarse_matcher  # type: ignore[no-redef]
+    import peers  # type: ignore[no-redef]
     import system_b  # type: ignore[no-redef]
 
 from forestreg.engine.io import read_scan, write_scan
@@ -291,6 +298,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--quick", action="store_true", help="skip the ~3 M point pair (smoke run)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated plot and of the VOP sets (default 0)")
     ap.add_argument("--json", metavar="FILE", type=Path, help="also write every row to this JSON file")
+    ap.add_argument("--runs", type=int, default=3, help="timed rounds of the whole-command comparison (default 3)")
+    ap.add_argument("--only", choices=("pairs", "peers", "big", "coarse", "system_b"), action="append",
+                    help="run only these parts (repeatable; default all; --quick leaves out big)")
     args = ap.parse_args(argv)
 
     t_start = time.perf_counter()
@@ -299,31 +309,45 @@ def main(argv: Optional[list[str]] = None) -> int:
     print(f"seed {args.seed}{', quick (no ~3 M point pair)' if args.quick else ''}", flush=True)
     print()
 
-    pairs = PAIRS[1:] if args.quick else PAIRS
-    with tempfile.TemporaryDirectory(prefix="forestreg-bench-") as tmp:
-        workdir = Path(tmp)
-        _warm_up(args.seed, workdir)
-        pair_rows = []
-        for label, step in pairs:
-            pair_rows.append(bench_pair(label, step, args.seed, workdir))
-            for f in workdir.glob(f"{label}_*.laz"):
-                f.unlink()
-    print(_format_pairs(pair_rows))
-    print(flush=True)
-
-    coarse_rows = coarse_matcher.run(sizes=(20, 40, 80), angle_step_deg=0.1, seed=args.seed)
-    print(_format_coarse(coarse_rows))
-    print(flush=True)
-
-    system_b_rows = system_b.run(seed=args.seed, quick=args.quick)
-    print(system_b.format_rows(system_b_rows))
-    print()
+    parts = set(args.only or (("pairs", "peers", "coarse", "system_b") if args.quick else ("pairs", "peers", "big", "coarse", "system_b")))
+    pair_rows: list[dict[str, Any]] = []
+    peer_rows: list[dict[str, Any]] = []
+    coarse_rows: list[dict[str, Any]] = []
+    system_b_rows: Any = []
+    if "peers" in parts:
+        peer_rows = peers.run(quick=args.quick, runs=args.runs)
+        print(peers.format_rows(peer_rows))
+        print(flush=True)
+    big_row: Optional[dict[str, Any]] = None
+    if "big" in parts:
+        big_row = big_scan.run()
+        print(big_scan.format_row(big_row))
+        print(flush=True)
+    if "pairs" in parts:
+        pairs = PAIRS[1:] if args.quick else PAIRS
+        with tempfile.TemporaryDirectory(prefix="forestreg-bench-") as tmp:
+            workdir = Path(tmp)
+            _warm_up(args.seed, workdir)
+            for label, step in pairs:
+                pair_rows.append(bench_pair(label, step, args.seed, workdir))
+                for f in workdir.glob(f"{label}_*.laz"):
+                    f.unlink()
+        print(_format_pairs(pair_rows))
+        print(flush=True)
+    if "coarse" in parts:
+        coarse_rows = coarse_matcher.run(sizes=(20, 40, 80), angle_step_deg=0.1, seed=args.seed)
+        print(_format_coarse(coarse_rows))
+        print(flush=True)
+    if "system_b" in parts:
+        system_b_rows = system_b.run(seed=args.seed, quick=args.quick)
+        print(system_b.format_rows(system_b_rows))
+        print()
     wall = time.perf_counter() - t_start
     print(f"total benchmark wall time {wall:.0f} s")
 
     if args.json is not None:
         payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
-                   "pairs": pair_rows, "coarse_matcher": coarse_rows, "system_b": system_b_rows}
+                   "pairs": pair_rows, "peers": peer_rows, "big_scan": big_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows}
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0

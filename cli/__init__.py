@@ -115,6 +115,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         code, message = EXIT_BAD_INPUT, f"{exc.filename + ': ' if getattr(exc, 'filename', None) else ''}{exc.strerror or exc}"
         _error(message)
         return code
+    except Exception as exc:  # a bug: one line (the traceback with -v), never a half-written output
+        code, message = EXIT_FAILED, f"internal error ({type(exc).__name__}: {_one_line(exc)}); please report it (-v shows the traceback)"
+        if args.verbose:
+            import traceback
+
+            traceback.print_exc()
+        _error(message)
+        return code
     finally:
         args.reporter.end(code, message)
         if previous_term is not None:

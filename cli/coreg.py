@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from .common import PARAMS_HELP, UNITS, Reporter, log, number, product_params, say
+from .common import PARAMS_HELP, UNITS, Reporter, check_replaceable_point_file, log, number, product_params, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -74,8 +75,15 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
     ground = read_scan(ground_path, unit_scale=scale)
     uav = read_scan(uav_path, unit_scale=scale)
     read_s = time.perf_counter() - t0
+    def steps(fraction: float, message: str = "") -> None:  # one line per step above a live bar
+        reporter(fraction, message)
+        if reporter.mode == "bar" and message.startswith("[") and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            tqdm.write(message, file=sys.stderr)
+
     try:
-        result = coregister(ground, uav, params, progress=reporter)
+        result = coregister(ground, uav, params, progress=steps)
     finally:
         reporter.close()
     summary = final_result_check(result.to_dict())
@@ -114,16 +122,11 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
     reporter.done("", out / "result.json")
     ns = argparse.Namespace(reporter=reporter)
     if ok:
-        icp = result.icp
-        say(
-            f"ok: {result.n_matched} keypoints matched ({result.matching_percentage:.0f} % of "
-            f"{len(result.ground_keypoints)} / {len(result.uav_keypoints)}), mean residual "
-            f"{100 * summary['residuals_m']['mean']:.1f} cm, ICP fitness {icp.fitness:.2f} -> {out / 'result.json'}", ns,
-        )
         if (out / "report.html").exists():
-            print(f"report: {out / 'report.html'}")
+            print(f"report: {shown(out) / 'report.html'}")
+        say(f"{result.summary()} -> {shown(out) / 'result.json'}", ns)  # the last line: one-line summary
         return 0
-    say(f"failed: {summary['reason']} -> {out / 'result.json'}", ns, err=True)
+    say(f"failed: {summary['reason']} -> {shown(out) / 'result.json'}", ns, err=True)
     return 1
 
 
@@ -146,6 +149,7 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
     check_readable(ground_path)
     check_readable(uav_path)
     out = check_output_file(out, inputs=[ground_path, uav_path, transform], suffixes=(".laz", ".las"))
+    check_replaceable_point_file(out, "source", "fused cloud")
     matrix = to_metres(read_matrix(transform), scale) if transform else np.eye(4)
     kw = {}
     if epsilon is not None:
@@ -167,5 +171,5 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
     for source, c in result.counts.items():
         print(f"{source}: {c['input']:,} in, {c['redundant']:,} redundant, {c['noise']:,} noise, {c['kept']:,} kept")
     reporter.done("", out)
-    say(f"wrote {len(result.points):,} points to {out}", argparse.Namespace(reporter=reporter))
+    say(f"wrote {len(result.points):,} points to {shown(out)}", argparse.Namespace(reporter=reporter))
     return 0

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .common import PARAMS_HELP, UNITS, Reporter, number, product_params, say
+from .common import PARAMS_HELP, UNITS, Reporter, number, product_params, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -68,20 +68,22 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
     finally:
         reporter.close()
     with output_folder(out, "trees") as tmp:
-        inventory.write(tmp, cloud.points, report=report)
+        inventory.write(tmp, cloud.points, report=report, unit_scale=scale)
         code = 0
         if field_table is not None:
             code, lines = _evaluate_into(tmp / "evaluation", [("trees", read_tree_table(tmp / "trees.csv"))], field_table,
-                                         by="position", max_distance=1.0)
+                                         by="position", max_distance=1.0 / scale)
     reporter.done("", out / "trees.csv")
+    quiet = argparse.Namespace(reporter=reporter)
     for step, seconds in inventory.timings.items():  # the steps run, in order
-        print(f"  {step.removesuffix('_s')}: {seconds:.1f} s")
-    say(f"{inventory.summary()} -> {out / 'trees.csv'}", argparse.Namespace(reporter=reporter))
+        say(f"  {step.removesuffix('_s')}: {seconds:.1f} s", quiet)
+    unit_note = "" if units == "m" else f" (positions in {units}, sizes in metres)"
+    say(f"{inventory.summary()}{unit_note} -> {shown(out) / 'trees.csv'}", quiet)
     if report and (out / "report.html").exists():
-        print(f"report: {out / 'report.html'}")
+        print(f"report: {shown(out) / 'report.html'}")
     if field_table is not None:
         for line in lines:
-            print(line.replace(str(tmp), str(out)))
+            print(line.replace(str(tmp), str(shown(out))))
     return code
 
 
@@ -114,7 +116,7 @@ def run_evaluate(named: Sequence[tuple[str, str | Path]], field, out, *, by: str
     reporter.done("", out / "evaluation.json")
     ns = argparse.Namespace(reporter=reporter)
     for line in lines:
-        say(line.replace(str(tmp), str(out)), ns, err=line.startswith("failed"))
+        say(line.replace(str(tmp), str(shown(out))), ns, err=line.startswith("failed"))
     return code
 
 

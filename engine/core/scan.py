@@ -75,6 +75,7 @@ class Scan:
         pose: Optional[np.ndarray] = None,
         origin_shift: Optional[np.ndarray] = None,
         meta: Optional[Mapping[str, Any]] = None,
+        take_ownership: bool = False,
     ) -> "Scan":
         """Validate file-coordinate points and build a scan.
 
@@ -84,6 +85,8 @@ class Scan:
             dropped (counted in ``meta["dropped_nonfinite"]``); if more than half are, it fails.
         scanner_position : (3,) scanner position in file coordinates; default the file origin.
         intensity : optional (N,) intensities, row-aligned with ``points``.
+        take_ownership : the caller hands ``points`` over (a reader's private float64 array): it is
+            shifted in place and kept, instead of copied (saves one copy of the cloud).
         origin_shift : (3,) local-origin shift to use; by default zero for small coordinates and
             a rounded position near the data for georeferenced ones.
 
@@ -152,8 +155,10 @@ class Scan:
 
         info = dict(meta or {})
         info["dropped_nonfinite"] = n_bad
+        # where the scanner position came from: given (reader, option, project) or the file origin
+        info.setdefault("scanner_position", "given" if scanner_position is not None else "file origin")
         return cls(
-            points=_readonly(np.ascontiguousarray(pts - shift)),
+            points=_readonly(_shifted(pts, shift, in_place=take_ownership and pts is points)),
             scanner_position=_readonly(scanner_file - shift),
             origin_shift=_readonly(shift.copy()),
             intensity=inten,
@@ -224,3 +229,12 @@ class Scan:
 def _readonly(a: np.ndarray) -> np.ndarray:
     a.setflags(write=False)
     return a
+
+
+def _shifted(points: np.ndarray, shift: np.ndarray, *, in_place: bool) -> np.ndarray:
+    """``points - shift`` as a C-contiguous array; in place when allowed (no second copy)."""
+    if in_place and points.flags.c_contiguous and points.flags.writeable:
+        if shift.any():
+            points -= shift
+        return points
+    return np.ascontiguousarray(points - shift)

@@ -37,14 +37,19 @@ def local_covariances(
         return cov, count
     k = min(int(k), n)
     tree = tree if tree is not None else cKDTree(c)
-    padded = np.vstack([c, np.zeros((1, 3))])
+    bounded = bool(np.isfinite(radius_m))  # unbounded: every query has its k neighbours
+    padded = np.vstack([c, np.zeros((1, 3))]) if bounded else c
     for a in range(0, len(q_all), batch):
         q = q_all[a : a + batch]
-        _, idx = tree.query(q, k=k, distance_upper_bound=radius_m, workers=-1)
+        _, idx = tree.query(q, k=k, distance_upper_bound=radius_m, workers=-1 if len(q) >= 5000 else 1)
         idx = idx.reshape(len(q), k)
-        valid = idx < n
-        cnt = valid.sum(axis=1)
-        d = (padded[idx] - q[:, None, :]) * valid[:, :, None]
+        if bounded:
+            valid = idx < n
+            cnt = valid.sum(axis=1)
+            d = (padded[idx] - q[:, None, :]) * valid[:, :, None]
+        else:
+            cnt = np.full(len(q), k, dtype=np.int64)
+            d = c[idx] - q[:, None, :]
         w = np.maximum(cnt, 1)[:, None]
         mean = d.sum(axis=1) / w
         second = np.matmul(d.transpose(0, 2, 1), d) / w[:, :, None]

@@ -11,10 +11,11 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from ..core.transform import rotation_from_vector
+from .features import local_covariances, normals_and_variation
+from .voxel import column_bounds, voxel_downsample
 
 
 @dataclass(frozen=True)
@@ -54,23 +55,47 @@ class IcpResult:
 
 
 def thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Voxel-grid thinning: one averaged point per occupied ``voxel_m`` voxel, (M, 3) float64."""
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.require(points, np.float64, ["C", "W"])))
-    return np.asarray(cloud.voxel_down_sample(voxel_m).points)
+    """Voxel-grid thinning for ICP: one averaged point per occupied ``voxel_m`` voxel, (M, 3)
+    float64 (:func:`~forestreg.engine.geometry.voxel.voxel_downsample`)."""
+    return voxel_downsample(points, voxel_m)
 
 
 def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours: int = 12) -> np.ndarray:
     """Unit normals (arbitrary sign) of ``points[index]`` from their ``neighbours`` nearest
     points (``tree`` is built on ``points``): the least eigenvector of the local covariance."""
-    _, idx = tree.query(points[index], k=min(neighbours, len(points)), workers=-1)
-    nb = points[idx]
-    nb -= nb.mean(axis=1, keepdims=True)
-    _, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
-    return v[:, :, 0]
+    cov, _ = local_covariances(points[index], points, k=neighbours, tree=tree)
+    return normals_and_variation(cov)[0]
+
+
+class IcpReference:
+    """A reference cloud prepared for repeated ICP runs: its voxel-thinned versions, their k-d
+    trees and normals (computed where first needed) are kept per voxel size, so several ICP
+    runs against one reference (candidates, a jackknife) build them once. Not thread-safe."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = np.asarray(points, dtype=np.float64)
+        self._levels: dict[float, tuple[np.ndarray, cKDTree, np.ndarray]] = {}
+        self._full_tree: cKDTree | None = None
+
+    def level(self, voxel_m: float) -> tuple[np.ndarray, cKDTree, np.ndarray]:
+        """(thinned points, their k-d tree, their normals: NaN rows not computed yet)."""
+        key = round(float(voxel_m), 6)
+        if key not in self._levels:
+            # a wider level thins the finest one already made (a fraction of the raw points)
+            finer = [k for k in self._levels if k <= key]
+            ref = thin(self._levels[min(finer)][0] if finer else self.points, voxel_m)
+            self._levels[key] = (ref, cKDTree(ref), np.full((len(ref), 3), np.nan))
+        return self._levels[key]
+
+    @property
+    def full_tree(self) -> cKDTree:
+        if self._full_tree is None:
+            self._full_tree = cKDTree(self.points)
+        return self._full_tree
 
 
 def icp(
-    reference: np.ndarray,
+    reference: "np.ndarray | IcpReference",
     moving: np.ndarray,
     initial: np.ndarray,
     *,
@@ -90,27 +115,36 @@ def icp(
 
     Parameters
     ----------
-    reference, moving : (N, 3) / (M, 3) points, metres.
+    reference, moving : (N, 3) / (M, 3) points, metres; the reference may be an
+        :class:`IcpReference` (prepared once for several runs).
     initial : 4x4 initial moving -> reference matrix (the coarse result).
     max_distances_m : correspondence distance of each stage, largest first.
-    iterations : the most iterations per stage (a stage stops when the update is below
-        0.01 mm and 0.0001 deg).
+    iterations : the most iterations per stage (the last stage stops when the update is below
+        0.01 mm and 0.0001 deg, earlier ones below 0.1 mm and 0.001 deg).
     """
+    prepared = reference if isinstance(reference, IcpReference) else IcpReference(reference)
     rng = np.random.default_rng(seed)
     matrix = np.asarray(initial, dtype=np.float64).copy()
     total_iterations = 0
     fitness, rmse = 0.0, float("nan")
     mov = np.zeros((0, 3))
-    for dist in max_distances_m:
+    # Each cloud is thinned once, at the finest stage's voxel; wider stages thin that copy
+    # (the raw clouds may hold millions of points, the thinned ones a fraction).
+    finest = max(voxel_m, min(max_distances_m) / 2.5) if len(max_distances_m) else voxel_m
+    prepared.level(finest)
+    mov_fine = thin(moving, finest)
+    for stage, dist in enumerate(max_distances_m):
+        # a wide stage only brings the next one into its basin: it stops at 0.1 mm / 0.001 deg
+        # updates; the last stage converges to 0.01 mm / 0.0001 deg
+        final_stage = stage == len(max_distances_m) - 1
+        stop_m, stop_rad = (1e-5, np.radians(1e-4)) if final_stage else (1e-4, np.radians(1e-3))
         voxel = max(voxel_m, dist / 2.5)
-        ref = thin(reference, voxel)
-        mov = thin(moving, voxel)
+        ref, tree, normals = prepared.level(voxel)
+        mov = mov_fine if voxel <= finest else thin(mov_fine, voxel)
         if len(mov) > max_moving_points:
             mov = mov[rng.choice(len(mov), max_moving_points, replace=False)]
         if len(ref) < 20 or len(mov) < 20:
             break
-        tree = cKDTree(ref)
-        normals = np.full((len(ref), 3), np.nan)  # computed where first needed
         for _ in range(iterations):
             total_iterations += 1
             moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
@@ -138,11 +172,11 @@ def icp(
             matrix = step @ matrix
             fitness = float(ok.mean())
             rmse = float(np.sqrt(np.mean(d[ok] ** 2)))
-            if np.linalg.norm(x[3:]) < 1e-5 and np.linalg.norm(x[:3]) < np.radians(1e-4):
+            if np.linalg.norm(x[3:]) < stop_m and np.linalg.norm(x[:3]) < stop_rad:
                 break
     last = float(max_distances_m[-1])
     moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
-    std, mean, count = nearest_distance_stats(np.asarray(reference), moved, last)
+    std, mean, count = nearest_distance_stats(prepared.points, moved, last, tree=prepared.full_tree)
     return IcpResult(
         matrix=matrix,
         fitness=fitness,
@@ -154,13 +188,50 @@ def icp(
     )
 
 
-def nearest_distance_stats(reference: np.ndarray, moved: np.ndarray, max_distance_m: float) -> tuple[float, float, int]:
+def nearest_distance_stats(
+    reference: np.ndarray, moved: np.ndarray, max_distance_m: float, *, tree: cKDTree | None = None
+) -> tuple[float, float, int]:
     """Std and mean of the distances from ``moved`` points to their nearest ``reference`` point,
-    over the pairs closer than ``max_distance_m``; and how many there are (metres)."""
+    over the pairs closer than ``max_distance_m``; and how many there are (metres). ``tree``: a
+    k-d tree of ``reference`` when one exists."""
     if len(reference) == 0 or len(moved) == 0:
         return float("nan"), float("nan"), 0
-    d, _ = cKDTree(reference).query(moved, distance_upper_bound=max_distance_m, workers=-1)
+    if tree is None:
+        # only the reference points within max_distance_m of a moved point can count: keep those
+        # in the cells (of that side) next to the moved points' cells, then build the tree on them
+        reference = reference[_near_cells(reference, moved, max_distance_m)]
+        if len(reference) == 0:
+            return float("nan"), float("nan"), 0
+        tree = cKDTree(reference, balanced_tree=False, compact_nodes=False)  # built once, queried once: a fast build
+    d, _ = tree.query(moved, distance_upper_bound=max_distance_m, workers=-1)
     d = d[np.isfinite(d)]
     if len(d) < 2:
         return float("nan"), float("nan"), int(len(d))
     return float(np.std(d)), float(np.mean(d)), int(len(d))
+
+
+def _near_cells(points: np.ndarray, around: np.ndarray, cell_m: float, chunk: int = 2_000_000) -> np.ndarray:
+    """Mask of the ``points`` in the cubic cells (side ``cell_m``) that touch a cell holding one of
+    ``around``: every point within ``cell_m`` of an ``around`` point is kept. Chunked: no copy
+    of ``points`` is made."""
+    keep = np.zeros(len(points), dtype=bool)
+    if len(points) == 0 or len(around) == 0 or not np.isfinite(cell_m) or cell_m <= 0:
+        keep[:] = len(around) > 0
+        return keep
+    origin = column_bounds(around)[0] - 2.0 * cell_m
+    cells = np.floor((np.asarray(around, dtype=np.float64) - origin) / cell_m).astype(np.int64)
+    span = cells.max(axis=0) + 3
+    offsets = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
+    near = (cells[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
+    wanted = np.unique((near[:, 0] * span[1] + near[:, 1]) * span[2] + near[:, 2])
+    for start in range(0, len(points), chunk):
+        block = points[start:start + chunk]
+        ok = np.ones(len(block), dtype=bool)
+        key = np.zeros(len(block), dtype=np.int64)
+        for axis in range(3):
+            c = np.floor((block[:, axis] - origin[axis]) / cell_m).astype(np.int64)
+            ok &= (c >= 0) & (c < span[axis])
+            key = key * span[axis] + c
+        at = np.minimum(np.searchsorted(wanted, key), len(wanted) - 1)
+        keep[start:start + chunk] = ok & (wanted[at] == key)
+    return keep

@@ -13,7 +13,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..core.errors import ScanReadError
-from .base import RawCloud
+from .base import RawCloud, tune_allocator
 
 #: Coordinate resolution written to LAS/LAZ, metres (keeps sub-mm steps for UTM-sized values).
 LAS_SCALE = 1.0e-4
@@ -79,33 +79,59 @@ def _check_header(path: Path) -> tuple[int, bool]:
     return count, compressed
 
 
-def read_las(path: Path) -> RawCloud:
+#: Points decoded per chunk when reading: bounds the memory of the raw point records (about 30 to
+#: 70 bytes a point) while the coordinates fill one preallocated array.
+READ_CHUNK_POINTS = 2_000_000
+
+
+def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS) -> RawCloud:
     """Read a LAS/LAZ file: scaled x, y, z as float64 (file units) and intensity.
 
-    Intensity is dropped when it is zero for every point (the file holds none).
+    The points are decoded in chunks of ``chunk_points`` (LAZ chunks decompressed in parallel by
+    lazrs), so the peak memory is the coordinate array plus one chunk of raw records, whatever
+    the file's size. Intensity is dropped when it is zero for every point (the file holds none).
     """
     import laspy  # local import: keeps `import forestreg.engine.io` light
 
+    tune_allocator()
     count, compressed = _check_header(path)
+    backend = laspy.LazBackend.detect_available()
     try:
-        las = laspy.read(str(path))
+        with laspy.open(str(path), laz_backend=backend[0] if backend else None) as reader:
+            header = reader.header
+            total = int(header.point_count)
+            has_intensity = "intensity" in header.point_format.dimension_names
+            points = np.empty((total, 3), dtype=np.float64)
+            intensity_all = np.empty(total, dtype=np.uint16) if has_intensity else None
+            n = 0
+            for chunk in reader.chunk_iterator(max(1, int(chunk_points))):
+                k = len(chunk)
+                if k == 0:
+                    break
+                k = min(k, total - n)
+                points[n:n + k, 0] = chunk.x[:k]
+                points[n:n + k, 1] = chunk.y[:k]
+                points[n:n + k, 2] = chunk.z[:k]
+                if intensity_all is not None:
+                    intensity_all[n:n + k] = chunk.intensity[:k]
+                n += k
+                if n >= total:
+                    break
+            version = f"{header.version.major}.{header.version.minor}"
+            point_format = header.point_format.id
     except Exception as exc:  # laspy, lazrs and struct errors: the file is damaged
         raise ScanReadError(f"{path}: cannot be read as {'LAZ' if compressed else 'LAS'} ({_short(exc)}); the file is truncated or corrupt") from exc
-    n = len(las.points)
     if n < count:
         raise ScanReadError(f"{path}: is truncated: the header announces {count:,} points, only {n:,} could be read")
-    points = np.empty((n, 3), dtype=np.float64)
-    points[:, 0] = las.x
-    points[:, 1] = las.y
-    points[:, 2] = las.z
+    if n < total:
+        points = points[:n]
+        intensity_all = None if intensity_all is None else intensity_all[:n]
     intensity: Optional[np.ndarray] = None
-    if "intensity" in las.point_format.dimension_names and n:
-        values = np.asarray(las.intensity)
-        if values.any():
-            intensity = values
+    if intensity_all is not None and n and intensity_all.any():
+        intensity = intensity_all
     meta = {
-        "las_version": f"{las.header.version.major}.{las.header.version.minor}",
-        "las_point_format": las.header.point_format.id,
+        "las_version": version,
+        "las_point_format": point_format,
         "compressed": compressed,
         "point_count_in_file": n,
     }

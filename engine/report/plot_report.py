@@ -141,17 +141,20 @@ def plot_report_html(
         _top_view_section(project, view, colours),
         _links_section(project, view, colours),
     ]
+    body.append(_uncertainty_section(project, states))
     if project.adjustment:
         body.append(_adjustment_section(project))
     if comparison:
         body.append(comparison_section(comparison))
     body.append(_parameters_section(project))
+    body = _numbered(body)
     body.append(
         '<p class="note">Conventions: metres and degrees; a link maps the moving scan onto the reference scan '
         "(<code>p_reference = T @ p_moving</code>); the project frame is the centre scan's file coordinates. "
         "The paper's &ldquo;source&rdquo; scan is our reference (<i>P<sub>s</sub></i>), its &ldquo;target&rdquo; "
         "our moving scan (<i>P<sub>t</sub></i>).</p>"
     )
+    body = _numbered_sections(body)
     return (
         "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
         '<meta name="viewport" content="width=device-width, initial-scale=1">\n'
@@ -302,6 +305,16 @@ def _bars_png(*panels: BarPanel, dpi: int = 100) -> bytes:
 
 # ------------------------------------------------------------------------------------------------
 # sections
+
+
+def _numbered_sections(body: list[str]) -> list[str]:
+    """Number the ``<h2>N. title</h2>`` headings in the order they appear (a section left out, e.g.
+    the global adjustment, leaves no gap)."""
+    import re
+
+    count = iter(range(1, 100))
+    return [re.sub(r"<h2>\d+\. ", lambda m: f"<h2>{next(count)}. ", part) for part in body]
+
 # ------------------------------------------------------------------------------------------------
 
 
@@ -471,6 +484,60 @@ def _links_section(project: Project, view: TopView, colours: Mapping[str, str]) 
                                  "ICP standard deviation per link (bar colour: moving scan)", notes=notes))
         out.append(f"<figure>{_img(png, 'ICP standard deviation per link', 'icpbars')}"
                    "<figcaption>ICP standard deviation of each link (cm); failed links have no bar.</figcaption></figure>")
+    return "\n".join(out)
+
+
+def _numbered(parts: list[str]) -> list[str]:
+    """Number the numbered section headings 1, 2, 3 ... in the order they appear (sections are
+    optional, so the numbers never jump)."""
+    import re
+
+    counter = iter(range(1, 100))
+    return [re.sub(r"<h2>\d+\. ", lambda _m: f"<h2>{next(counter)}. ", part) for part in parts]
+
+
+def _uncertainty_section(project: Project, states: Mapping[str, Any]) -> str:
+    """Per scan: the stated 1-sigma pose uncertainty and the quality figures that need no truth;
+    the links a survey dropped and why."""
+    from ..tls.plot import pose_uncertainty
+
+    adj = project.adjustment or {}
+    try:
+        sigma = pose_uncertainty(project)
+    except Exception:  # noqa: BLE001 - a report never fails on a damaged project
+        sigma = {}
+    quality = adj.get("quality") if isinstance(adj.get("quality"), Mapping) else {}
+    out = ["<h2>9. Pose uncertainty and quality</h2>",
+           "<p>How far to trust each pose without ground truth: the 1-sigma uncertainty relative to the centre scan "
+           "(from the trunks matched in each link, propagated along the most certain chain of links and inflated where "
+           "loops disagree more than stated); the links of each scan and the largest disagreement between a link and "
+           "the final poses.</p>"]
+    rows = []
+    for s in project.scans:
+        u = sigma.get(s.name) if isinstance(sigma, Mapping) else None
+        q = quality.get(s.name) if isinstance(quality, Mapping) else None
+        q = q if isinstance(q, Mapping) else {}
+        t = u.get("translation_m") if isinstance(u, Mapping) else None
+        r = u.get("rotation_deg") if isinstance(u, Mapping) else None
+        rows.append(
+            f"<tr><td>{_e(s.name)}</td><td class=\"num\">{format_cm(t)}</td><td class=\"num\">{_fmt(r, 3)}</td>"
+            f"<td class=\"num\">{_e(str(q.get('links', '-')))}</td><td class=\"num\">{format_cm(q.get('max_residual_m'))}</td>"
+            f"<td class=\"num\">{_fmt(q.get('max_residual_deg'), 3)}</td><td class=\"num\">{_e(str(q.get('dropped_links', '-')))}</td>"
+            f"<td class=\"num\">{format_cm(q.get('terrain_median_m'))}</td><td class=\"num\">{_e(str(q.get('min_matched_vops', '-')))}</td>"
+            f"<td class=\"num\">{_fmt(q.get('max_ambiguity'), 2)}</td></tr>"
+        )
+    out.append(
+        "<table><tr><th>Scan</th><th>Position 1-sigma (cm)</th><th>Rotation 1-sigma (deg)</th><th>Links</th>"
+        "<th>Largest link residual (cm)</th><th>(deg)</th><th>Dropped links</th><th>Terrain disagreement (cm, median)</th>"
+        "<th>Fewest matched trunks</th><th>Ambiguity (2nd / best)</th></tr>" + "".join(rows) + "</table>"
+    )
+    dropped = [d for d in (adj.get("dropped") or []) if isinstance(d, Mapping)]
+    if dropped:
+        out.append("<p><b>Links dropped as inconsistent:</b></p><ul>" + "".join(
+            f"<li>{_e(str(d.get('moving', '?')))} {ARROW} {_e(str(d.get('reference', '?')))}: {_e(str(d.get('reason', '')))}</li>" for d in dropped
+        ) + "</ul>")
+    if _num(adj.get("uncertainty_inflation")) and adj["uncertainty_inflation"] > 1.0:
+        out.append(f"<p class=\"note\">The loops disagree more than the links state: every stated uncertainty was multiplied by {adj['uncertainty_inflation']:.2f}.</p>")
     return "\n".join(out)
 
 

@@ -557,7 +557,9 @@ class ForestScene:
         for t in self.trees:
             if t.id == tree_id:
                 return t
-        raise KeyError(tree_id)
+        from ..core.errors import UnknownNameError
+
+        raise UnknownNameError(f"no tree with id {tree_id!r} in the scene")
 
     def cleared(self, positions: Sequence[Sequence[float]], radius_m: float = 1.0) -> "ForestScene":
         """A copy without the objects standing within ``radius_m`` of the given (x, y) positions.

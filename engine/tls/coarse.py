@@ -496,38 +496,64 @@ def _build_bounds(
     ph = phi[jj * n + ll]
     order = np.argsort(rho_r, kind="stable")
     sorted_r = rho_r[order]
-    lo = np.searchsorted(sorted_r, rm - d_win, side="left")
-    cnt = np.searchsorted(sorted_r, rm + d_win, side="right") - lo
-    mp = np.repeat(np.arange(rm.shape[0]), cnt)  # moving pair of each tuple
-    rp = order[np.repeat(lo - (np.cumsum(cnt) - cnt), cnt) + np.arange(mp.shape[0])]  # reference pair
-    del order, sorted_r, lo, cnt
-
-    anchor_a = (jj * m).astype(np.int32)[mp] + np.repeat(np.arange(m, dtype=np.int32), m)[rp]
-    anchor_b = (ll * m).astype(np.int32)[mp] + np.tile(np.arange(m, dtype=np.int32), m)[rp]
-    rl = rm[mp]
-    rq = rho_r[rp]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cos_hw = (rl * rl + rq * rq - d_win * d_win) / (2.0 * rl * rq)
-    # Half-width in angle-index units, widened by 1e-9 rad against acos/atan2 rounding.
-    hw = (np.arccos(np.clip(cos_hw, -1.0, 1.0)) + 1e-9) * (1.0 / step_rad)
-    peak = (psi[rp] - ph[mp]) * (1.0 / step_rad) + 3.0 * k_count  # in (K, 5K)
-    del rp, mp
-    # floor(x) + 1 instead of ceil(x): an angle exactly on the widened window edge has f = 0.
-    a_lo = (peak - hw).astype(np.int64) + 1
-    a_hi = (peak + hw).astype(np.int64)
+    lo_all = np.searchsorted(sorted_r, rm - d_win, side="left")
+    cnt_all = np.searchsorted(sorted_r, rm + d_win, side="right") - lo_all
     wide_limit = min(max(2 * B, int(_WIDE_WINDOW_DEG / step_deg)), k_count // 2)
-    # Angle-independent bound for: a radius 0 (nan), a window round the whole circle, a wide window.
-    const = ~(cos_hw > -1.0) | (a_hi - a_lo >= wide_limit)
-    const_val = np.maximum((dist + 2.0 * slack) - np.abs(rl[const] - rq[const]), 0.0)
     anchor_const = np.zeros(m * n)
-    for anchor in (anchor_a, anchor_b):
-        anchor_const += np.bincount(anchor[const], weights=const_val, minlength=m * n)
+    row_i = np.repeat(np.arange(m, dtype=np.int32), m)
+    row_q = np.tile(np.arange(m, dtype=np.int32), m)
+    kept: dict[str, list[np.ndarray]] = {k: [] for k in ("peak", "a_lo", "a_hi", "dr2", "prod4", "anchor_a", "anchor_b")}
+    # The tuples are built for blocks of moving pairs (about _TUPLES_PER_CHUNK * 4 tuples at a
+    # time) and only the kept ones are stored: the temporaries stay small for many VOPs.
+    ends = np.cumsum(cnt_all)
+    first = 0
+    while first < rm.shape[0]:
+        start_count = ends[first] - cnt_all[first]
+        last = int(np.searchsorted(ends, start_count + 4 * _TUPLES_PER_CHUNK, side="right"))
+        last = max(last, first + 1)
+        pairs = np.arange(first, last)
+        lo, cnt = lo_all[pairs], cnt_all[pairs]
+        mp = np.repeat(pairs, cnt)  # moving pair of each tuple
+        rp = order[np.repeat(lo - (np.cumsum(cnt) - cnt), cnt) + np.arange(mp.shape[0])]  # reference pair
+        first = last
+
+        anchor_a = (jj[mp] * m).astype(np.int32) + row_i[rp]
+        anchor_b = (ll[mp] * m).astype(np.int32) + row_q[rp]
+        rl = rm[mp]
+        rq = rho_r[rp]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cos_hw = (rl * rl + rq * rq - d_win * d_win) / (2.0 * rl * rq)
+        # Half-width in angle-index units, widened by 1e-9 rad against acos/atan2 rounding.
+        hw = (np.arccos(np.clip(cos_hw, -1.0, 1.0)) + 1e-9) * (1.0 / step_rad)
+        peak = (psi[rp] - ph[mp]) * (1.0 / step_rad) + 3.0 * k_count  # in (K, 5K)
+        del rp, mp
+        # floor(x) + 1 instead of ceil(x): an angle exactly on the widened window edge has f = 0.
+        a_lo = (peak - hw).astype(np.int64) + 1
+        a_hi = (peak + hw).astype(np.int64)
+        del hw
+        # Angle-independent bound for: a radius 0 (nan), a window round the whole circle, a wide window.
+        const = ~(cos_hw > -1.0) | (a_hi - a_lo >= wide_limit)
+        del cos_hw
+        const_val = np.maximum((dist + 2.0 * slack) - np.abs(rl[const] - rq[const]), 0.0)
+        for anchor in (anchor_a, anchor_b):
+            anchor_const += np.bincount(anchor[const], weights=const_val, minlength=m * n)
+        keep = np.flatnonzero(~const & (a_hi >= a_lo))
+        rl, rq = rl[keep], rq[keep]
+        kept["peak"].append(peak[keep])
+        kept["a_lo"].append(a_lo[keep].astype(np.int32))
+        kept["a_hi"].append(a_hi[keep].astype(np.int32))
+        kept["dr2"].append((rl - rq) ** 2)
+        kept["prod4"].append(4.0 * rl * rq)
+        kept["anchor_a"].append(anchor_a[keep])
+        kept["anchor_b"].append(anchor_b[keep])
+    del order, sorted_r, lo_all, cnt_all
     # The moving anchor itself (l = j) against reference points within D_t of R[i] (incl. q = i).
     own = np.maximum((dist + 2.0 * slack) - rho_r.reshape(m, m), 0.0).sum(axis=1)  # per i
     anchor_const += np.tile(own, n)
-
-    keep = np.flatnonzero(~const & (a_hi >= a_lo))
-    rl, rq = rl[keep], rq[keep]
+    dtypes = {"peak": np.float64, "a_lo": np.int32, "a_hi": np.int32, "dr2": np.float64, "prod4": np.float64,
+              "anchor_a": np.int32, "anchor_b": np.int32}
+    joined = {k: (np.concatenate(v) if v else np.zeros(0, dtype=dtypes[k])) for k, v in kept.items()}
+    del kept
     bounds = _Bounds(
         m=m,
         n=n,
@@ -538,12 +564,12 @@ def _build_bounds(
         dist=dist,
         slack=2.0 * slack,
         anchor_const=anchor_const,
-        peak=peak[keep],
-        a_lo=a_lo[keep].astype(np.int32),
-        a_hi=a_hi[keep].astype(np.int32),
-        dr2=(rl - rq) ** 2,
-        prod4=4.0 * rl * rq,
-        anchors=(anchor_a[keep], anchor_b[keep]),
+        peak=joined["peak"],
+        a_lo=joined["a_lo"],
+        a_hi=joined["a_hi"],
+        dr2=joined["dr2"],
+        prod4=joined["prod4"],
+        anchors=(joined["anchor_a"], joined["anchor_b"]),
         wrap=np.arange(6 * n_bins + 2) % n_bins,
     )
     bounds.cell_bound = bounds.coarse()

@@ -11,6 +11,8 @@ from ..core.errors import DataError
 import numpy as np
 from scipy import ndimage
 
+from ..geometry.voxel import column_bounds
+
 
 def lowest_voxel_ground(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """Boolean mask of the paper's ground points: in each (Gx, Gy) column of voxels of side
@@ -23,13 +25,16 @@ def lowest_voxel_ground(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
-    idx = np.floor((points - points.min(axis=0)) / voxel_m).astype(np.int64)
-    ny = int(idx[:, 1].max()) + 1
-    column = idx[:, 0] * ny + idx[:, 1]
-    _, inverse = np.unique(column, return_inverse=True)
-    lowest = np.full(inverse.max() + 1, np.iinfo(np.int64).max)
-    np.minimum.at(lowest, inverse, idx[:, 2])
-    return idx[:, 2] == lowest[inverse]
+    lo = column_bounds(points)[0]
+    ix = np.floor((points[:, 0] - lo[0]) / voxel_m).astype(np.int64)
+    iy = np.floor((points[:, 1] - lo[1]) / voxel_m).astype(np.int64)
+    iz = np.floor((points[:, 2] - lo[2]) / voxel_m).astype(np.int32)
+    ny = int(iy.max()) + 1
+    column = ix * ny + iy  # a dense column index: the columns of a scan's reach are few
+    del ix, iy
+    lowest = np.full(int(column.max()) + 1, np.iinfo(np.int32).max, dtype=np.int32)
+    np.minimum.at(lowest, column, iz)
+    return iz == lowest[column]
 
 
 @dataclass(frozen=True)
@@ -87,11 +92,12 @@ def ground_grid(points: np.ndarray, *, cell_m: float = 0.5, window_m: float = 3.
     """
     if len(points) == 0:
         raise DataError("no points to estimate the ground from near the scanner (a georeferenced scan? give its scanner position: --scanner-position X,Y,Z)")
-    origin = np.floor(points[:, :2].min(axis=0) / cell_m) * cell_m
-    ij = np.floor((points[:, :2] - origin) / cell_m).astype(np.int64)
-    shape = tuple(ij.max(axis=0) + 1)
+    origin = np.floor(column_bounds(points[:, :2])[0] / cell_m) * cell_m
+    i = np.floor((points[:, 0] - origin[0]) / cell_m).astype(np.int64)
+    j = np.floor((points[:, 1] - origin[1]) / cell_m).astype(np.int64)
+    shape = (int(i.max()) + 1, int(j.max()) + 1)
     low = np.full(shape, np.inf)
-    np.minimum.at(low, (ij[:, 0], ij[:, 1]), points[:, 2])
+    np.minimum.at(low, (i, j), points[:, 2].astype(np.float64))
     measured = np.isfinite(low)
     size = max(3, int(round(window_m / cell_m)) | 1)
     filled = np.where(measured, low, np.inf)

@@ -14,8 +14,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-import open3d as o3d
-from scipy.spatial import cKDTree
+
+from ..geometry.features import local_covariances, normals_and_variation
+from ..geometry.voxel import voxel_downsample
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -44,18 +45,18 @@ def surface_normals(points: np.ndarray, *, voxel_m: float = 0.1, radius_m: float
     Returns (M, 3) unit normals (arbitrary sign) and (M,) surface variation
     ``l0 / (l0 + l1 + l2)`` of the local covariance (0 = flat; leaves and clutter are high).
     """
-    near = points[np.einsum("ij,ij->i", points, points) <= radius_m**2]
+    d2 = points[:, 0] ** 2 + points[:, 1] ** 2 + points[:, 2] ** 2
+    near = points[d2 <= radius_m**2]
     if len(near) <= neighbours:
         return np.zeros((0, 3)), np.zeros(0)
-    thinned = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near)).voxel_down_sample(voxel_m).points)
+    thinned = voxel_downsample(near, voxel_m)
     if len(thinned) <= neighbours:
         return np.zeros((0, 3)), np.zeros(0)
     if len(thinned) > 60000:
         thinned = thinned[np.random.default_rng(0).choice(len(thinned), 60000, replace=False)]
-    _, idx = cKDTree(thinned).query(thinned, k=neighbours)
-    nb = thinned[idx] - thinned[idx].mean(axis=1, keepdims=True)
-    w, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
-    return v[:, :, 0], w[:, 0] / np.maximum(w.sum(axis=1), 1e-12)
+    cov, _ = local_covariances(thinned, thinned, k=neighbours)
+    normals, variation = normals_and_variation(cov)
+    return normals, np.nan_to_num(variation, nan=0.0)
 
 
 def _hemisphere_directions(max_tilt_deg: float, step_deg: float, centre: np.ndarray) -> np.ndarray:
@@ -138,13 +139,13 @@ def _trunk_vertical(walls: np.ndarray, max_tilt_deg: float) -> tuple[Optional[np
     when the peak lies on the search's edge (no real peak)."""
     band = np.sin(np.radians(3.0))
     candidates = _hemisphere_directions(max_tilt_deg, 2.0, np.array([0.0, 0.0, 1.0]))
-    votes = (np.abs(walls @ candidates.T) < band).sum(axis=0)
+    votes = _great_circle_votes(walls, candidates, band)
     best = candidates[int(np.argmax(votes))]
     strength = float(votes.max() / max(np.median(votes), 1.0))
     if tilt_deg(best) > max_tilt_deg - 3.0:
         return None, strength
     fine = _hemisphere_directions(3.0, 0.5, best)
-    best = fine[int(np.argmax((np.abs(walls @ fine.T) < band).sum(axis=0)))]
+    best = fine[int(np.argmax(_great_circle_votes(walls, fine, band)))]
     for tol in (6.0, 3.0):
         near = walls[np.abs(walls @ best) < np.sin(np.radians(tol))]
         if len(near) < 30:
@@ -152,6 +153,38 @@ def _trunk_vertical(walls: np.ndarray, max_tilt_deg: float) -> tuple[Optional[np
         _, v = np.linalg.eigh(near.T @ near)
         best = v[:, 0] * np.sign(v[2, 0] + 1e-12)
     return best, strength
+
+
+def _great_circle_votes(normals: np.ndarray, directions: np.ndarray, band: float, block: int = 4096) -> np.ndarray:
+    """For each unit direction, how many unit ``normals`` (upward: ``n_z >= 0``) lie within
+    ``band`` (a sine) of its perpendicular great circle: ``|n . d| < band``.
+
+    A normal at angle ``a`` from z can only be that close to perpendicular to a direction tilted
+    ``t`` from z when ``a > 90 deg - t - asin(band)``, i.e. ``n_z < sin(t + asin(band))``; so
+    directions are taken in groups of similar tilt, each against the normals sorted by ``n_z`` up
+    to its limit (ground normals never reach a near-vertical direction). Counted in blocks: no dense
+    normals x directions matrix."""
+    votes = np.zeros(len(directions), dtype=np.int64)
+    if len(normals) == 0 or len(directions) == 0:
+        return votes
+    normals = normals[np.argsort(normals[:, 2], kind="stable")]
+    nz = normals[:, 2]
+    beta = float(np.arcsin(min(band, 1.0)))
+    tilt = np.arccos(np.clip(directions[:, 2], -1.0, 1.0))
+    by_tilt = np.argsort(tilt, kind="stable")
+    group = 256
+    for g in range(0, len(by_tilt), group):
+        idx = by_tilt[g:g + group]
+        reach = float(tilt[idx].max()) + beta
+        limit = len(nz) if reach >= np.pi / 2 else int(np.searchsorted(nz, np.sin(reach) + 1e-9, side="right"))
+        dt = directions[idx].T
+        count = np.zeros(len(idx), dtype=np.int64)
+        for start in range(0, limit, block):
+            dots = normals[start:min(start + block, limit)] @ dt
+            np.abs(dots, out=dots)
+            count += np.count_nonzero(dots < band, axis=0)
+        votes[idx] = count
+    return votes
 
 
 def _direction_mode(normals: np.ndarray, bandwidth_deg: float = 8.0) -> np.ndarray:

@@ -30,7 +30,8 @@ from .vop import (
 
 @dataclass(frozen=True)
 class PreparedScan:
-    """A scan reduced to ``D_c``, levelled, with its ground (levelled scanner frame, metres)."""
+    """A scan reduced to ``D_c``, levelled, with its ground (levelled scanner frame, metres;
+    ``points`` are float32: within ``D_c`` of the scanner they keep micrometre steps)."""
 
     points: np.ndarray
     local_to_lsf: np.ndarray
@@ -63,12 +64,10 @@ def prepare_scan(
     up : optional known vertical direction in the scan's frame (from an inclination sensor); by
         default estimated from the data when ``params.level_tilted``.
     """
-    centred = points_local - scanner_local
     reach = params.max_range_m
-    keep = np.einsum("ij,ij->i", centred, centred) <= (reach * 1.6) ** 2  # generous before levelling
-    centred = centred[keep]
+    centred, d2 = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2)  # generous before levelling
     if up is None and params.level_tilted:
-        estimate = estimate_up_direction(centred[np.einsum("ij,ij->i", centred, centred) <= 15.0**2])
+        estimate = estimate_up_direction(centred[d2 <= 15.0**2])
         tilt = tilt_deg(estimate.up)
         levelled = tilt >= params.tilt_threshold_deg
         up = estimate.up if levelled else np.array([0.0, 0.0, 1.0])
@@ -78,9 +77,12 @@ def prepare_scan(
         up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=float)
         tilt = tilt_deg(up)
         levelled = tilt > 0.0
+    del d2
     rotation = levelling_rotation(up)
-    lsf = centred @ rotation.T if levelled else centred
-    lsf = lsf[reduce_to_range(lsf, np.zeros(2), reach)]
+    if levelled:
+        centred = centred @ rotation.T.astype(np.float32)
+    lsf = centred[reduce_to_range(centred, np.zeros(2), reach)]
+    del centred
     local_to_lsf = np.eye(4)
     local_to_lsf[:3, :3] = rotation
     local_to_lsf[:3, 3] = -rotation @ scanner_local
@@ -98,6 +100,22 @@ def prepare_scan(
     )
 
 
+def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray]:
+    """The points within ``sqrt(max_d2)`` (3D) of ``origin``, shifted so that ``origin`` is 0, as
+    float32 (a 50 m neighbourhood keeps micrometre steps), and their squared distances. Works
+    column by column: no float64 copy of the whole cloud is made."""
+    origin = np.asarray(origin, dtype=np.float64)
+    columns = [(points[:, k] - origin[k]).astype(np.float32) for k in range(3)]
+    d2 = columns[0] * columns[0]
+    d2 += columns[1] * columns[1]
+    d2 += columns[2] * columns[2]
+    keep = d2 <= max_d2
+    out = np.empty((int(keep.sum()), 3), dtype=np.float32)
+    for k in range(3):
+        out[:, k] = columns[k][keep]
+    return out, d2[keep]
+
+
 @dataclass(frozen=True)
 class SliceLayer:
     """The points of one slice layer (levelled scanner frame), sorted by azimuth."""
@@ -110,7 +128,15 @@ class SliceLayer:
 
 def slice_layers(prepared: PreparedScan, params: RegistrationParams) -> list[SliceLayer]:
     """The slice layers of a prepared scan, one per ``slice_offsets_m`` (non-ground points only)."""
-    pts = prepared.points[~prepared.ground_mask]
+    z = prepared.points[:, 2]
+    half = params.slice_thickness_m / 2.0
+    offsets = np.asarray(params.slice_offsets_m, dtype=np.float64)
+    if params.follow_terrain:  # the layers lie between these heights wherever the ground is
+        low = float(prepared.ground.heights.min()) + prepared.scanner_height_m + offsets.min() - half
+        high = float(prepared.ground.heights.max()) + prepared.scanner_height_m + offsets.max() + half
+    else:
+        low, high = offsets.min() - half, offsets.max() + half
+    pts = prepared.points[~prepared.ground_mask & (z >= low - 1e-3) & (z <= high + 1e-3)]
     layers = []
     for offset in params.slice_offsets_m:
         if params.follow_terrain:

@@ -123,7 +123,7 @@ def connected_components(points_xyz: np.ndarray, *, link_m: float, spacing_rad: 
     that range. Returns an (N,) int label array."""
     if len(points_xyz) == 0:
         return np.zeros(0, dtype=np.int64)
-    reach = np.maximum(link_m, 2.5 * spacing_rad * np.linalg.norm(points_xyz[:, :2], axis=1))
+    reach = np.maximum(link_m, 2.5 * spacing_rad * np.hypot(points_xyz[:, 0], points_xyz[:, 1]))
     return connected_clusters(points_xyz, float(reach.max()), reach_m=reach)
 
 

@@ -173,18 +173,23 @@ class TreeInventory:
     def rows(self) -> list[dict[str, Any]]:
         return [t.row(self.origin_shift) for t in self.trees]
 
-    def write(self, out_dir: str | Path, points: Optional[np.ndarray] = None, *, report: bool = True) -> Path:
+    def write(self, out_dir: str | Path, points: Optional[np.ndarray] = None, *, report: bool = True,
+              unit_scale: float = 1.0) -> Path:
         """Write ``trees.csv``, ``stem_curves.csv``, ``cylinders/tree_NNNN.csv`` and (with the
-        points) ``report.html`` into ``out_dir``; returns the trees.csv path."""
+        points) ``report.html`` into ``out_dir``; returns the trees.csv path. Positions (``x, y,
+        z``, cylinder starts) are written in the input file's unit (``unit_scale`` metres per
+        unit); every ``*_m`` figure stays in metres."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         rows = self.rows()
-        write_text_atomic(out / "trees.csv", _csv(TREE_COLUMNS, rows))
+        file_rows = rows if unit_scale == 1.0 else [
+            {**r, "x": r["x"] / unit_scale, "y": r["y"] / unit_scale, "z": r["z"] / unit_scale} for r in rows]
+        write_text_atomic(out / "trees.csv", _csv(TREE_COLUMNS, file_rows))
         curve_rows = []
         for t in self.trees:
             c = t.curve
             for k in range(len(c.s_m)):
-                centre = c.centres[k] + self.origin_shift if np.isfinite(c.centres[k]).all() else [math.nan] * 3
+                centre = (c.centres[k] + self.origin_shift) / unit_scale if np.isfinite(c.centres[k]).all() else [math.nan] * 3
                 curve_rows.append({
                     "tree_id": t.tree_id, "s_m": c.s_m[k], "height_m": c.heights_m[k],
                     "diameter_m": c.diameter_m[k], "raw_diameter_m": c.raw_diameter_m[k],
@@ -198,7 +203,7 @@ class TreeInventory:
         cyl_dir.mkdir(exist_ok=True)
         for t in self.trees:
             if t.cylinders is not None:
-                shifted = dataclasses.replace(t.cylinders, start=t.cylinders.start + self.origin_shift)
+                shifted = dataclasses.replace(t.cylinders, start=(t.cylinders.start + self.origin_shift) / unit_scale)
                 shifted.write_csv(cyl_dir / f"tree_{t.tree_id:04d}.csv")
         if report and points is not None:
             from ..report.trees_report import write_trees_report

@@ -1,0 +1,243 @@
+"""Benchmark: whole commands side by side -- reading the files, ``forestreg register``, Sylva.
+
+Each pair of scans is simulated once (``forestreg simulate``: LAZ files plus the truth), then three
+commands run as child processes, in turn (read, forestreg, Sylva, read, forestreg, Sylva, ...), so
+that a drift of the machine's speed (other users) hits all three alike:
+
+* ``read``: a Python process that reads both LAZ files with forestreg's reader (the floor: what
+  any tool pays to decode the files);
+* ``forestreg``: ``python -m forestreg.cli register A B --out DIR --quiet``;
+* ``sylva``: ``sylva coreg A B -o DIR --quiet`` (PyPI ``sylva-rs``, the ``bench`` extra), when
+  installed.
+
+Wall time comes from the parent's clock around each child, peak memory from the operating
+system's accounting of the finished child (``os.wait4`` ``ru_maxrss``). Ratios are taken run by
+run (forestreg / Sylva and forestreg / read of the same round) and their median is reported, so
+they hold when the machine's load changes between rounds; the absolute seconds do not.
+Accuracy: each tool's matrix against the simulator's truth.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from forestreg.engine.core.transform import rigid_errors
+
+#: (label, preset, angular step deg, scanner positions, seed): the pairs of the table.
+PAIRS = (
+    ("0.45 M + 0.5 M points (0.25 deg)", "mixed_temperate", 0.25, "-6,0;6,0", 3),
+    ("3.0 M + 3.1 M points (0.1 deg)", "mixed_temperate", 0.1, "-6,0;6,0", 3),
+)
+QUICK_PAIRS = PAIRS[:1]
+
+
+@dataclass
+class Run:
+    """One finished child process: wall seconds, peak resident memory (MB), exit status."""
+
+    wall_s: float
+    peak_mb: float
+    status: int
+
+
+def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeout_s: float = 1800.0) -> Run:
+    """Run ``argv`` to completion; its wall time and the peak memory the kernel accounted to it."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    deadline = t0 + timeout_s
+    while True:
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+        if pid:
+            break
+        if time.perf_counter() > deadline:
+            proc.kill()
+            pid, status, usage = os.wait4(proc.pid, 0)
+            break
+        time.sleep(0.02)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: keep Popen from waiting again
+    return Run(wall_s=wall, peak_mb=usage.ru_maxrss / 1024.0, status=proc.returncode)
+
+
+def sylva_command() -> Optional[str]:
+    """Path of the ``sylva`` command (beside this Python first), or None when not installed."""
+    here = Path(sys.executable).with_name("sylva")
+    if here.exists():
+        return str(here)
+    return shutil.which("sylva")
+
+
+def _python_env() -> dict[str, str]:
+    env = dict(os.environ)
+    return env
+
+
+def simulate_pair(workdir: Path, label: str, preset: str, step_deg: float, positions: str, seed: int) -> Path:
+    """Simulate a pair with the ``forestreg simulate`` command; returns its folder."""
+    out = workdir / f"pair_{preset}_{step_deg}_{seed}"
+    if not (out / "truth.json").exists():
+        subprocess.run(
+            [sys.executable, "-m", "forestreg.cli", "simulate", preset, "--out", str(out), f"--positions={positions}",
+             "--step", str(step_deg), "--seed", str(seed), "--quiet"],
+            check=True, stdout=subprocess.DEVNULL, env=_python_env(),
+        )
+    return out
+
+
+def _truth(folder: Path) -> tuple[np.ndarray, list[int]]:
+    truth = json.loads((folder / "truth.json").read_text())
+    ref, mov = (np.array(s["matrix"], dtype=float) for s in truth["scans"][:2])
+    return np.linalg.inv(ref) @ mov, [int(s["n_points"]) for s in truth["scans"][:2]]
+
+
+def _forestreg_matrix(out: Path) -> Optional[np.ndarray]:
+    try:
+        result = json.loads((out / "result.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return None if result.get("matrix") is None else np.array(result["matrix"], dtype=float)
+
+
+def _sylva_matrix(out: Path) -> Optional[np.ndarray]:
+    try:
+        result = json.loads((out / "transforms.json").read_text())
+    except (OSError, ValueError):
+        return None
+    scans = {int(s["index"]): s for s in result.get("scans", [])}
+    if not all(i in scans and scans[i].get("registered") for i in (0, 1)):
+        return None
+    world = {i: np.array(scans[i]["world_from_scan"], dtype=float) for i in (0, 1)}
+    return np.linalg.inv(world[0]) @ world[1]
+
+
+def bench_pair(folder: Path, label: str, runs: int, sylva: Optional[str]) -> dict[str, Any]:
+    """Time the commands on one pair, ``runs`` rounds after one untimed warm-up round."""
+    a, b = str(folder / "scan_01.laz"), str(folder / "scan_02.laz")
+    out_f, out_s = folder / "out_forestreg", folder / "out_sylva"
+    reader = (
+        "import sys\nfrom forestreg.engine.io import read_scan\n"
+        "for p in sys.argv[1:]:\n    read_scan(p)\n"
+    )
+    commands = {
+        "read": [sys.executable, "-c", reader, a, b],
+        "forestreg": [sys.executable, "-m", "forestreg.cli", "register", a, b, "--out", str(out_f), "--quiet"],
+    }
+    if sylva:
+        commands["sylva"] = [sylva, "coreg", a, b, "-o", str(out_s), "--quiet"]
+    env = _python_env()
+    results: dict[str, list[Run]] = {k: [] for k in commands}
+    for round_ in range(runs + 1):
+        for name, argv in commands.items():
+            own = {"forestreg": out_f, "sylva": out_s}.get(name)
+            if own is not None and own.exists():
+                shutil.rmtree(own)
+            run = run_command(argv, env=env)
+            if round_:
+                results[name].append(run)
+    truth, points = _truth(folder)
+    row: dict[str, Any] = {"label": label, "points": points, "runs": runs, "raw_mb": sum(points) * 3 * 8 / 1e6}
+    for name, rs in results.items():
+        row[name] = {
+            "wall_s": statistics.median(r.wall_s for r in rs),
+            "peak_mb": statistics.median(r.peak_mb for r in rs),
+            "status": sorted({r.status for r in rs}),
+        }
+    for other in [k for k in commands if k != "forestreg"]:
+        row[f"forestreg/{other}"] = {
+            "wall": statistics.median(f.wall_s / o.wall_s for f, o in zip(results["forestreg"], results[other])),
+            "peak": statistics.median(f.peak_mb / o.peak_mb for f, o in zip(results["forestreg"], results[other])),
+        }
+    if sylva:
+        row["sylva/read"] = {"wall": statistics.median(s.wall_s / r.wall_s for s, r in zip(results["sylva"], results["read"]))}
+    for name, matrix in (("forestreg", _forestreg_matrix(out_f)), ("sylva", _sylva_matrix(out_s) if sylva else None)):
+        if name in row:
+            row[name]["error"] = None if matrix is None else dict(zip(("rotation_deg", "translation_m"), rigid_errors(matrix, truth)))
+    return row
+
+
+def run(*, quick: bool = False, runs: int = 3, workdir: Optional[Path] = None) -> list[dict[str, Any]]:
+    """Simulate the pairs and time the commands on each; one row per pair."""
+    sylva = sylva_command()
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="forestreg-peers-") as tmp:
+        base = Path(workdir) if workdir is not None else Path(tmp)
+        for label, preset, step, positions, seed in (QUICK_PAIRS if quick else PAIRS):
+            folder = simulate_pair(base, label, preset, step, positions, seed)
+            rows.append(bench_pair(folder, label, runs, sylva))
+    return rows
+
+
+def _geomean(values: list[float]) -> float:
+    return float(np.exp(np.mean(np.log(values)))) if values else float("nan")
+
+
+def format_rows(rows: list[dict[str, Any]]) -> str:
+    """The table: per pair, each command's median wall time and peak memory, and the ratios."""
+    has_sylva = any("sylva" in r for r in rows)
+    lines = [
+        "Pair registration, whole commands (median of runs; ratios are medians of the run-by-run ratios)",
+    ]
+    head = f"{'pair':<34} {'':>10} {'read':>9} {'forestreg':>10}" + (f" {'Sylva':>9}" if has_sylva else "") + \
+        f" {'fr/read':>8}" + (f" {'fr/Sylva':>9}" if has_sylva else "")
+    lines += [head, "-" * len(head)]
+    for r in rows:
+        syl = r.get("sylva")
+        lines.append(
+            f"{r['label']:<34} {'wall s':>10} {r['read']['wall_s']:>9.2f} {r['forestreg']['wall_s']:>10.2f}"
+            + (f" {syl['wall_s']:>9.2f}" if syl else "")
+            + f" {r['forestreg/read']['wall']:>8.2f}" + (f" {r['forestreg/sylva']['wall']:>9.2f}" if syl else "")
+        )
+        lines.append(
+            f"{'':<34} {'peak MB':>10} {r['read']['peak_mb']:>9.0f} {r['forestreg']['peak_mb']:>10.0f}"
+            + (f" {syl['peak_mb']:>9.0f}" if syl else "")
+            + f" {r['forestreg/read']['peak']:>8.2f}" + (f" {r['forestreg/sylva']['peak']:>9.2f}" if syl else "")
+        )
+        budget = 3 * r["raw_mb"] + 300
+        lines.append(
+            f"{'':<34} raw point arrays {r['raw_mb']:.0f} MB: memory budget 3x + 300 = {budget:.0f} MB, "
+            f"forestreg {r['forestreg']['peak_mb'] / budget:.2f} of it"
+        )
+        errors = []
+        for name in ("forestreg", "sylva"):
+            if name in r:
+                e = r[name].get("error")
+                errors.append(f"{name} " + ("no result" if e is None else f"{e['rotation_deg']:.4f} deg / {1000 * e['translation_m']:.1f} mm"))
+        lines.append(f"{'':<34} error vs truth: " + ", ".join(errors))
+    if len(rows) > 1:
+        lines.append("-" * len(head))
+        g = f"{'geometric mean':<34} {'wall':>10} {'':>9} {'':>10}" + (f" {'':>9}" if has_sylva else "")
+        g += f" {_geomean([r['forestreg/read']['wall'] for r in rows]):>8.2f}"
+        if has_sylva:
+            g += f" {_geomean([r['forestreg/sylva']['wall'] for r in rows if 'forestreg/sylva' in r]):>9.2f}"
+        lines.append(g)
+        g = f"{'':<34} {'peak':>10} {'':>9} {'':>10}" + (f" {'':>9}" if has_sylva else "")
+        g += f" {_geomean([r['forestreg/read']['peak'] for r in rows]):>8.2f}"
+        if has_sylva:
+            g += f" {_geomean([r['forestreg/sylva']['peak'] for r in rows if 'forestreg/sylva' in r]):>9.2f}"
+        lines.append(g)
+    if not has_sylva:
+        lines.append("Sylva not installed (pip install 'forestreg[bench]' or sylva-rs): its columns are left out")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    import argparse
+
+    ap = argparse.ArgumentParser(description="forestreg register vs reading the files vs Sylva coreg")
+    ap.add_argument("--quick", action="store_true", help="the small pair only")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--workdir", type=Path, help="keep the simulated pairs here (reused when present)")
+    args = ap.parse_args()
+    print(format_rows(run(quick=args.quick, runs=args.runs, workdir=args.workdir)))
