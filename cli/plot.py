@@ -309,7 +309,7 @@ def _check_scans_near_their_scanners(project, scans) -> None:
     for s in project.scans:
         try:
             check_near_scanner(scans(s.name), project.params.max_range_m, s.path, "m")
-        except (UsageError, ScannerPositionError) as exc:  # no scanner found from the data either
+        except (UsageError, ScannerPositionError) as exc:  # no scanner near the data: a unit or position problem
             problems.append(str(exc))
         except (ScanReadError, ScanDataError):
             problems.append("")  # unreadable: its link reports it
