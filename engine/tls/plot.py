@@ -28,6 +28,7 @@ from .pair import register
 from .scanner_position import locate_scanner
 from ..core.scan import Scan
 from ..core.transform import format_matrix, rigid_errors, withhold_unless_rigid
+from ..core.transform import apply as apply_transform
 
 log = logging.getLogger("forestreg")
 
@@ -376,7 +377,7 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
         if pose is None:
             continue
         scan = scans(s.name)
-        parts.append(scan.file_points @ pose[:3, :3].T + pose[:3, 3])
+        parts.append(apply_transform(pose, scan.file_points))
         ids.append(np.full(len(scan), k, dtype=np.uint16))
         with_intensity &= scan.intensity is not None
         intensity.append(scan.intensity)
