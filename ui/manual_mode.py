@@ -22,6 +22,7 @@ from PySide6.QtWidgets import QFileDialog, QMenu
 from ..engine.core.errors import ForestregError
 from .manual_panel import ComparisonView, TargetsPanel, next_target_id
 from .worker import TaskWorker, describe_error
+from ..engine.core.transform import apply as apply_transform
 
 log = logging.getLogger("forestreg")
 
@@ -180,7 +181,7 @@ class ManualModeMixin:
                 pose = poses.get(s.name)
                 if pose is None:
                     continue
-                pts = pts @ pose[:3, :3].T + pose[:3, 3] - (origin if origin is not None else 0.0)
+                pts = apply_transform(pose, pts) - (origin if origin is not None else 0.0)
             out.append(pts)
         return np.vstack(out) if out else np.zeros((0, 3))
 

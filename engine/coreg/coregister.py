@@ -40,6 +40,7 @@ from ..core.transform import rotation_angle_deg
 from ..core.params import Params, param_field as _p
 from .keypoints import KeypointParams, Keypoints, extract_keypoints
 from .matching import KeypointMatch, MatchingParams, assign_one_to_one, match_keypoints, residual_statistics
+from ..core.transform import apply as apply_transform
 
 __all__ = ["CoregistrationParams", "CoregistrationResult", "coregister", "coregister_points"]
 
@@ -228,10 +229,6 @@ def _shift_matrix(shift: np.ndarray) -> np.ndarray:
     return m
 
 
-def _apply(matrix: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    return xyz @ matrix[:3, :3].T + matrix[:3, 3]
-
-
 @dataclass(frozen=True, eq=False)
 class _SurfaceGrid:
     """The UAV canopy surface: highest z per ``cell`` (NaN where empty), lattice origin ``x0, y0``."""
@@ -264,7 +261,7 @@ def surface_correlation(ground_canopy: np.ndarray, uav_surface: _SurfaceGrid, ma
     of those cells. The ground-based surface lies below the true canopy where tops were hidden, but
     its shape (crowns, gaps, slope) follows the UAV's under the right transform only; correlation
     ignores the offset and the point densities."""
-    moved = ground_canopy @ matrix[:3, :3].T + matrix[:3, 3]
+    moved = apply_transform(matrix, ground_canopy)
     ny, nx = uav_surface.z.shape
     g = _highest(moved, uav_surface.x0, uav_surface.y0, uav_surface.cell, nx, ny)
     common = np.isfinite(g) & np.isfinite(uav_surface.z)
@@ -460,7 +457,7 @@ def coregister_points(
 
 def _apart_m(a: np.ndarray, b: np.ndarray, xyz: np.ndarray) -> float:
     """Mean distance (m) between the points ``xyz`` moved by ``a`` and by ``b``."""
-    return float(np.mean(np.linalg.norm(_apply(a, xyz) - _apply(b, xyz), axis=1)))
+    return float(np.mean(np.linalg.norm(apply_transform(a, xyz) - apply_transform(b, xyz), axis=1)))
 
 
 def _column_tops(points: np.ndarray, cell: float) -> np.ndarray:
@@ -478,7 +475,7 @@ def _column_tops(points: np.ndarray, cell: float) -> np.ndarray:
 def _overlap(uav: np.ndarray, ground: np.ndarray, matrix: np.ndarray, margin_m: float) -> np.ndarray:
     """Mask of the UAV points whose XY lies within ``margin_m`` of the ground-based cloud's
     footprint (2 m cells it occupies) under ``matrix`` (ground -> UAV)."""
-    g = _apply(matrix, ground[:: max(1, len(ground) // 200_000)])
+    g = apply_transform(matrix, ground[:: max(1, len(ground) // 200_000)])
     cell = 2.0
     lo = g[:, :2].min(axis=0) - margin_m
     occ_ij = np.unique(np.floor((g[:, :2] - lo) / cell).astype(np.int64), axis=0)
@@ -544,7 +541,7 @@ def coregistration_quality(
     * ``canopy_correlation``: Pearson r of those two surfaces.
     """
     inv = np.linalg.inv(matrix)
-    u_ground = _apply(inv, uav[uav_terrain.ground])
+    u_ground = apply_transform(inv, uav[uav_terrain.ground])
     g_ground = ground[ground_terrain.ground]
     out: dict[str, float] = {}
     if len(u_ground) and len(g_ground):
@@ -554,7 +551,7 @@ def coregistration_quality(
         out.update(_robust("ground_dz", dz))
     else:
         out.update(_robust("ground_dz", np.zeros(0)))
-    g_moved = _apply(matrix, thin(ground, 0.2))
+    g_moved = apply_transform(matrix, thin(ground, 0.2))
     grid = _SurfaceGrid.of(thin(uav, 0.2), cell_m)
     ny, nx = grid.z.shape
     g_top = _highest(g_moved, grid.x0, grid.y0, cell_m, nx, ny)
@@ -606,7 +603,7 @@ def jackknife_standard_errors(
         ).matrix
         d = m[:3, :3] @ matrix[:3, :3].T
         rot_vecs.append(_rotation_vector_deg(d))
-        shifts.append(_apply(m, g_centre[None])[0] - _apply(matrix, g_centre[None])[0])
+        shifts.append(apply_transform(m, g_centre[None])[0] - apply_transform(matrix, g_centre[None])[0])
     rv, sh = np.asarray(rot_vecs), np.asarray(shifts)
     n = len(rv)
 

@@ -38,6 +38,7 @@ from ..core.atomic import atomic_path
 from ..core.errors import ParameterError, ScanDataError, ScanWriteError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress, ProgressCallback
+from ..core.transform import apply as apply_transform
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..core.scan import Scan
@@ -571,7 +572,7 @@ def fuse_scans(
     # ground local -> ground file -> UAV file -> UAV local
     local = m.copy()
     local[:3, 3] = m[:3, :3] @ np.asarray(ground.origin_shift, dtype=np.float64) + m[:3, 3] - np.asarray(uav.origin_shift, dtype=np.float64)
-    g = ground.points @ local[:3, :3].T + local[:3, 3]
+    g = apply_transform(local, ground.points)
     g_extra = {"intensity": ground.intensity} if ground.intensity is not None and uav.intensity is not None else None
     u_extra = {"intensity": uav.intensity} if g_extra is not None else None
     return fuse(g, uav.points, params, ground_extra=g_extra, uav_extra=u_extra, progress=progress)

@@ -39,6 +39,7 @@ from scipy.spatial import cKDTree
 from ..core.progress import Progress
 from ..core.transform import fit_rigid
 from ..core.params import Params, param_field as _p
+from ..core.transform import apply as apply_transform
 
 __all__ = [
     "KeypointMatch",
@@ -176,7 +177,7 @@ def _matrix_2d(heading: float, t: np.ndarray, dz: float = 0.0) -> np.ndarray:
 def assign_one_to_one(ground: np.ndarray, uav: np.ndarray, matrix: np.ndarray, threshold_m: float) -> np.ndarray:
     """One-to-one correspondences (Hungarian method on horizontal distance) between transformed
     ground keypoints and UAV keypoints closer than ``threshold_m``: (M, 2) index pairs."""
-    moved = ground @ matrix[:3, :3].T + matrix[:3, 3]
+    moved = apply_transform(matrix, ground)
     tree = cKDTree(uav[:, :2])
     near = tree.query_ball_point(moved[:, :2], threshold_m)
     rows = [g for g, n in enumerate(near) if n]
@@ -293,7 +294,7 @@ def _same(h1: float, t1: np.ndarray, h2: float, t2: np.ndarray, params: Matching
 
 
 def _solution(ground: np.ndarray, uav: np.ndarray, matrix: np.ndarray, pairs: np.ndarray, score: int) -> KeypointMatch:
-    moved = ground[pairs[:, 0]] @ matrix[:3, :3].T + matrix[:3, 3]
+    moved = apply_transform(matrix, ground[pairs[:, 0]])
     res = np.linalg.norm(moved - uav[pairs[:, 1]], axis=1)
     return KeypointMatch(matrix=matrix, pairs=pairs, residuals_m=res, hypothesis_score=score, heading_deg=_heading_deg(matrix))
 

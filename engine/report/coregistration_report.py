@@ -22,6 +22,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..core.atomic import atomic_path, write_text_atomic  # noqa: E402
+from ..core.transform import apply as apply_transform
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..coreg.coregister import CoregistrationResult
@@ -30,10 +31,6 @@ GROUND_COLOUR = "#d62728"
 UAV_COLOUR = "#1f77b4"
 
 __all__ = ["coregistration_figure", "write_coregistration_report"]
-
-
-def _apply(matrix: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    return xyz @ matrix[:3, :3].T + matrix[:3, 3]
 
 
 def _sample(points: np.ndarray, limit: int, seed: int = 0) -> np.ndarray:
@@ -66,7 +63,7 @@ def coregistration_png(
             ax.scatter(u_kp.canopy[::7, 0], u_kp.canopy[::7, 1], s=0.4, c="#9ecae1", linewidths=0)
             ax.scatter(u_kp.xyz[:, 0], u_kp.xyz[:, 1], marker="x", s=36, c=UAV_COLOUR, label=f"UAV keypoints ({len(u_kp)})")
         if g_kp is not None and len(g_kp):
-            kp = g_kp.xyz if moved is None else _apply(moved, g_kp.xyz)
+            kp = g_kp.xyz if moved is None else apply_transform(moved, g_kp.xyz)
             ax.scatter(kp[:, 0], kp[:, 1], s=40, facecolors="none", edgecolors=GROUND_COLOUR, linewidths=1.4,
                        label=f"ground-based keypoints ({len(g_kp)})")
             pairs = None
@@ -84,7 +81,7 @@ def coregistration_png(
         ax.legend(loc="upper right", fontsize=8)
     if panels == 3 and matrix is not None:
         ax = axes[2]
-        g = _apply(matrix, _sample(np.asarray(ground_points), 400_000))
+        g = apply_transform(matrix, _sample(np.asarray(ground_points), 400_000))
         u = _sample(np.asarray(uav_points), 400_000, 1)
         centre = np.median(g[:, 1])
         gs = g[np.abs(g[:, 1] - centre) < 1.0]

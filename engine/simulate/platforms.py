@@ -46,6 +46,7 @@ from .mesh import Material, SceneRaycaster, raycaster_for
 from .plot import simulate_plot
 from .scanner import intensity_model
 from .scene import ForestScene, make_scene
+from ..core.transform import apply as apply_transform
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -247,7 +248,7 @@ class SimulatedCloud:
             m = np.asarray(matrix, dtype=np.float64)
             if m.shape != (4, 4) or not np.isfinite(m).all():
                 raise ParameterError("matrix must be a finite 4x4 array")
-            pts = pts @ m[:3, :3].T + m[:3, 3]
+            pts = apply_transform(m, pts)
             if start is not None:
                 start = m[:3, :3] @ start + m[:3, 3]
         meta = {k: v for k, v in self.meta.items() if isinstance(v, (int, float, str, bool))}
@@ -762,7 +763,7 @@ def simulate_backpack_scan(
             for k in range(n_before, len(chunks.parts)):
                 pts, *rest = chunks.parts[k]
                 true_parts.append(pts)
-                chunks.parts[k] = (pts @ err[:3, :3].T + err[:3, 3], *rest)
+                chunks.parts[k] = (apply_transform(err, pts), *rest)
         if g % report_every == 0:
             prog(0.03 + 0.95 * g / n_groups, f"walking: {g / (setup.rotation_hz * sectors):.0f} s")
 
@@ -785,7 +786,7 @@ def simulate_backpack_scan(
         mapped = np.concatenate([p[0] for p in chunks.parts])
         truth = np.concatenate(true_parts)
         fit = fit_rigid(mapped, truth)  # the best rigid map -> world: what a registration can recover
-        left = mapped @ fit[:3, :3].T + fit[:3, 3] - truth
+        left = apply_transform(fit, mapped) - truth
         meta["slam_fit_matrix"] = fit.tolist()
         meta["slam_residual_rms_m"] = float(np.sqrt(np.mean(np.sum(left**2, axis=1))))
         meta["slam_residual_max_m"] = float(np.sqrt(np.max(np.sum(left**2, axis=1))))

@@ -25,7 +25,6 @@ scan onto a reference scan is ``relative_pose(truth, reference, moving)``.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional, Sequence, Union
@@ -37,6 +36,7 @@ from ..core.errors import ParameterError, UnknownNameError
 from .mesh import Material, raycaster_for
 from .scanner import ScannerSetup, SimulatedScan, simulate_tls_scan
 from .scene import BREAST_HEIGHT_M, ForestScene, make_scene
+from ..core.jsonable import to_jsonable
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -196,7 +196,7 @@ def simulate_plot(
         "seed": int(seed),
         "size_m": float(scene.extent[1] - scene.extent[0]),
         "angular_step_deg": float(angular_step_deg),
-        "scene_overrides": _jsonable(scene_overrides),
+        "scene_overrides": to_jsonable(scene_overrides, nan_as_null=True),
         "clearance_m": float(clearance_m),
         "conventions": {
             "world": "scene frame: plot centred on the origin, x east, y north, z up, metres",
@@ -205,7 +205,7 @@ def simulate_plot(
             "T = inv(matrix_reference) @ matrix_moving, p_reference = T @ p_moving",
             "angles": "degrees; azimuths counter-clockwise from +x",
         },
-        "scene": _jsonable(scene.summary()),
+        "scene": to_jsonable(scene.summary(), nan_as_null=True),
         "scans": truth_scans,
         "trees": [_tree_truth(t) for t in scene.trees],
         "targets": [
@@ -276,22 +276,6 @@ def _tree_truth(t: Any) -> dict[str, Any]:
         "shape": t.shape,
         "breast_height_xyz": [float(v) for v in bh],
     }
-
-
-def _jsonable(v: Any) -> Any:
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, (np.floating,)):
-        return float(v)
-    if isinstance(v, (np.integer,)):
-        return int(v)
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
 
 
 def _matrices(truth_or_plot: Any) -> dict[str, np.ndarray]:

@@ -11,6 +11,7 @@ import numpy as np
 
 from .prepare import SliceLayer
 from .vop import polar
+from ..core.transform import apply as apply_transform
 
 
 def free_space_violation(
@@ -36,7 +37,7 @@ def free_space_violation(
     mov = np.concatenate([layer.xyz for layer in moving_layers]) if moving_layers else np.zeros((0, 3))
     if len(ref) == 0 or len(mov) == 0:
         return float("nan"), 0
-    mov = mov @ moving_to_reference[:3, :3].T + moving_to_reference[:3, 3]
+    mov = apply_transform(moving_to_reference, mov)
     bins = int(round(360.0 / bin_deg))
     az_r, d_r = polar(ref[:, :2])
     az_m, d_m = polar(mov[:, :2])

@@ -31,6 +31,7 @@ from .params import RegistrationParams
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.scan import Scan
 from ..core.transform import rigid_errors, rotation_angle_deg, rotation_from_vector
+from ..core.transform import apply as apply_transform
 
 log = logging.getLogger("forestreg")
 
@@ -498,7 +499,7 @@ def vertical_alignment(reference: PreparedScan, moving: PreparedScan, horizontal
     matrix[:2, :2] = horizontal[:2, :2]
     matrix[:2, 3] = horizontal[:2, 2]
     for _ in range(3 if fit_tilt else 1):
-        moved = centres @ matrix[:3, :3].T + matrix[:3, 3]
+        moved = apply_transform(matrix, centres)
         both = reference.ground.measured_at(moved[:, :2])
         if both.sum() < 10:
             return None
@@ -536,7 +537,7 @@ def terrain_agreement(reference: PreparedScan, moving: PreparedScan, lsf_matrix:
     g = moving.ground
     ix, iy = np.nonzero(g.measured)
     centres = np.column_stack([g.origin + (np.column_stack([ix, iy]) + 0.5) * g.cell_m, g.heights[ix, iy]])
-    moved = centres @ lsf_matrix[:3, :3].T + lsf_matrix[:3, 3]
+    moved = apply_transform(lsf_matrix, centres)
     both = reference.ground.measured_at(moved[:, :2])
     if both.sum() < 10:
         return {"terrain_cells": int(both.sum()), "terrain_median_m": None, "terrain_p90_m": None}

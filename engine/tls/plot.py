@@ -28,6 +28,8 @@ from .pair import register
 from .scanner_position import locate_scanner
 from ..core.scan import Scan
 from ..core.transform import format_matrix, rigid_errors, withhold_unless_rigid
+from ..core.transform import apply as apply_transform
+from ..core.jsonable import to_jsonable
 
 log = logging.getLogger("forestreg")
 
@@ -157,7 +159,7 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
             result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel, prior=prior)
         except DataError as exc:  # e.g. no points near a georeferenced scan's assumed scanner
             return {"status": "failed", "reason": str(exc), "matrix": None}
-    return withhold_unless_rigid(_jsonable(result.to_dict()))
+    return withhold_unless_rigid(to_jsonable(result.to_dict()))
 
 
 def informative_priors(project: Project) -> bool:
@@ -221,18 +223,6 @@ def _register_tilted_without_partner(project: Project, entry: ScanEntry, scans: 
         entry.level_partner = best.reference
     project.replace_link(current, chosen)
     return chosen
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer, np.bool_)):
-        return value.item()
-    return value
 
 
 def link_residuals(project: Project, poses: dict[str, Optional[np.ndarray]]) -> list[dict[str, Any]]:
@@ -376,7 +366,7 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
         if pose is None:
             continue
         scan = scans(s.name)
-        parts.append(scan.file_points @ pose[:3, :3].T + pose[:3, 3])
+        parts.append(apply_transform(pose, scan.file_points))
         ids.append(np.full(len(scan), k, dtype=np.uint16))
         with_intensity &= scan.intensity is not None
         intensity.append(scan.intensity)

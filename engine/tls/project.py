@@ -23,6 +23,7 @@ import numpy as np
 from ..core.atomic import write_text_atomic
 from ..core.errors import InvalidArgumentError, ProjectFileError, UnknownNameError
 from .params import RegistrationParams
+from ..core.jsonable import to_jsonable
 
 FORMAT = "forestreg-project"
 VERSION = 1
@@ -236,7 +237,7 @@ class Project:
         if target is None:
             raise ProjectFileError("the project has no file yet: give a path to save it to")
         target = target.resolve()
-        text = json.dumps(self.to_dict(relative_to=target.parent), indent=1, default=_json_default)
+        text = json.dumps(to_jsonable(self.to_dict(relative_to=target.parent)), indent=1)
         write_text_atomic(target, text + "\n")
         self.path = target
         return target
@@ -325,14 +326,6 @@ def _check_matrices(path: Path, scans: list[ScanEntry], links: list[Link]) -> No
                 raise ProjectFileError(f"project file {path}: the scan {link.moving} is linked to itself; it was left untouched")
     except TransformError as exc:
         raise ProjectFileError(f"project file {path}: {exc}; it was left untouched") from exc
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    raise TypeError(f"cannot write {type(value).__name__} to a project file")
 
 
 @dataclass

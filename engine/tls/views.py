@@ -20,6 +20,7 @@ from .params import RegistrationParams
 from .plot import ScanCache
 from .prepare import extract_vops, prepare_scan, slice_layers
 from .project import Link, Project
+from ..core.transform import apply as apply_transform
 
 #: The pair figures' colours of the reference and the moving scan.
 REFERENCE_COLOUR = "#1f77b4"
@@ -261,10 +262,6 @@ def _prepared(project: Project, scans: ScanCache, name: str, params: Registratio
     return cache[key]
 
 
-def _apply(matrix: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    return xyz @ matrix[:3, :3].T + matrix[:3, 3]
-
-
 def compute_top_view(project: Project, scans: ScanCache) -> TopView:
     """Slices, VOPs and scanners of every registered scan in the project frame, and the VOP pairs
     of each successful link that coincide there (within ``match_distance_m``, mutual nearest)."""
@@ -287,9 +284,9 @@ def compute_top_view(project: Project, scans: ScanCache) -> TopView:
             vops = prep.vops_xyz(radius)
             view.scans[name] = ScanView(
                 name=name,
-                scanner=_apply(poses[name], prep.scanner_file[None, :])[0],
-                slice_xy=_apply(to_project, pts)[:, :2],
-                vops_xy=_apply(to_project, vops)[:, :2],
+                scanner=apply_transform(poses[name], prep.scanner_file[None, :])[0],
+                slice_xy=apply_transform(to_project, pts)[:, :2],
+                vops_xy=apply_transform(to_project, vops)[:, :2],
                 radius_m=radius,
                 points=prep.points,
                 slice_points=n_slice,
@@ -307,7 +304,7 @@ def compute_top_view(project: Project, scans: ScanCache) -> TopView:
             side = {}
             for name in (link.reference, link.moving):
                 prep = _prepared(project, scans, name, params)
-                side[name] = _apply(poses[name] @ prep.lsf_to_file, prep.vops_xyz(radius))[:, :2]
+                side[name] = apply_transform(poses[name] @ prep.lsf_to_file, prep.vops_xyz(radius))[:, :2]
         except (ForestregError, OSError, ValueError, KeyError):
             continue
         pairs = _coinciding(side[link.reference], side[link.moving], project.params.match_distance_m)

@@ -23,7 +23,6 @@ Frame: the cloud's local frame (metres, z up); heights are normalised heights (a
 
 from __future__ import annotations
 
-import dataclasses
 import heapq
 import math
 from dataclasses import dataclass
