@@ -64,6 +64,9 @@ _LAZY = {
     "register_project": ".engine.tls.plot",
     "register_manual": ".engine.tls.manual",
     "compare_auto_manual": ".engine.tls.compare",
+    "register_survey": ".engine.tls.survey",
+    "SurveyParams": ".engine.tls.survey",
+    "locate_scanner": ".engine.tls.scanner_position",
     # System B: co-registration, fusion, trees, evaluation
     "coregister": ".engine.coreg.coregister",
     "CoregistrationParams": ".engine.coreg.coregister",

@@ -2,7 +2,8 @@
 
 Every command is a thin wrapper over the engine's API; none holds algorithm code. One module per
 family: :mod:`.register` (pair), :mod:`.plot` (plot, project, compare, targets), :mod:`.coreg`
-(coregister, fuse), :mod:`.trees` (trees, evaluate), :mod:`.misc` (simulate, demo, gui, params);
+(coregister, fuse), :mod:`.trees` (trees, evaluate), :mod:`.misc` (simulate, demo, gui, params), :mod:`.service`
+(serve, batch);
 :mod:`.common` holds what they share.
 
 Exit codes: 0 ok; 1 the data do not allow the result (a registration that failed, with its reason);
@@ -37,7 +38,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
-    from . import coreg, misc, plot, register, trees
+    from . import coreg, misc, plot, register, service, trees
 
     parser = _Parser(prog="forestreg", description="Marker-free registration of forest laser scans, co-registration with UAV LiDAR, and tree measurements.")
     parser.add_argument("--version", action="version", version=f"forestreg {__version__}")
@@ -48,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     coreg.add_parsers(sub)
     trees.add_parsers(sub)
     misc.add_parsers(sub)
+    service.add_parsers(sub)
     for name, p in sub.choices.items():
         if name not in ("gui", "project"):
             add_global_flags(p)
@@ -111,6 +113,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return code
     except OSError as exc:  # disk full, permission denied, ... on a path forestreg did not foresee
         code, message = EXIT_BAD_INPUT, f"{exc.filename + ': ' if getattr(exc, 'filename', None) else ''}{exc.strerror or exc}"
+        _error(message)
+        return code
+    except Exception as exc:  # a bug: one line (the traceback with -v), never a half-written output
+        code, message = EXIT_FAILED, f"internal error ({type(exc).__name__}: {_one_line(exc)}); please report it (-v shows the traceback)"
+        if args.verbose:
+            import traceback
+
+            traceback.print_exc()
         _error(message)
         return code
     finally:

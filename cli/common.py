@@ -111,6 +111,7 @@ class Reporter:
         self.result: Optional[str] = None
         self._bar = None
         self._last = None
+        self._last_fraction = -1.0
 
     # engine callback
     def __call__(self, fraction: float, message: str = "") -> None:
@@ -118,17 +119,21 @@ class Reporter:
         if self.mode == "jsonl":
             self._emit({"event": "progress", "step": step_id(message or self.command), "fraction": round(f, 4), "message": message})
         elif self.mode == "bar":
-            if not sys.stderr.isatty():  # a log: one line per new step, never cut
-                if message != self._last:
-                    print(f"{self.command}: {100 * f:3.0f}% {message}", file=sys.stderr, flush=True)
-                    self._last = message
+            if not sys.stderr.isatty():  # a log: one line per new step (or 10 % more), never cut
+                if message != self._last or f >= self._last_fraction + 0.1 or (f == 1.0 and self._last_fraction < 1.0):
+                    # "<command>: <message>  NN%|": the layout the plugin hosts have parsed so far
+                    print(f"{self.command}: {message} {100 * f:3.0f}%|", file=sys.stderr, flush=True)
+                    self._last, self._last_fraction = message, f
                 return
-            if self._bar is None:
-                from tqdm import tqdm
+            from tqdm import tqdm
 
-                self._bar = tqdm(total=1000, file=sys.stderr, bar_format="{percentage:3.0f}%|{bar:20}| {elapsed} {desc}", leave=False)
+            if self._bar is None:
+                self._bar = tqdm(total=1000, file=sys.stderr, bar_format="{desc}{percentage:3.0f}%|{bar:30}| {elapsed}",
+                                 desc=f"{self.command} ", leave=False)
+            if message != self._last:  # the whole message on its own line above the bar: never cut
+                tqdm.write(f"{self.command}: {message}", file=sys.stderr)
+                self._last = message
             self._bar.n = int(round(1000 * f))
-            self._bar.set_description_str(f"{self.command}: {message}", refresh=False)
             self._bar.refresh()
 
     def close(self) -> None:
@@ -168,12 +173,19 @@ def progress_mode(args: argparse.Namespace) -> str:
 # ----------------------------------------------------------------------------- parameters
 
 
+PARAMS_HELP = "TOML parameter file: any of the sections [registration], [coregistration], [fusion], [trees] (see 'forestreg params --toml'); options given on the command line win"
+
+
+def product_params(args: argparse.Namespace):
+    """Every parameter of the product: the defaults, or the TOML file of ``--params``."""
+    from ..engine.params import ProductParams, load_params
+
+    return load_params(args.params) if getattr(args, "params", None) else ProductParams()
+
+
 def params_from_args(args: argparse.Namespace):
     """Registration parameters: the TOML file (``--params``) with the command line's overrides."""
-    from ..engine.params import load_params
-    from ..engine.tls.params import RegistrationParams
-
-    params = load_params(args.params).registration if getattr(args, "params", None) else RegistrationParams()
+    params = product_params(args).registration
     changes = {}
     if getattr(args, "dr", None) is not None:
         changes["vop_radius_m"] = args.dr
@@ -201,18 +213,38 @@ def check_inputs_exist(*paths) -> None:
 
 
 def final_result_check(summary: dict) -> dict:
-    """The last check before a result is called "ok": its matrix must be a finite proper rigid
-    transform. Otherwise the result becomes "failed" with the reason (never a NaN "ok")."""
-    from ..engine.core.errors import TransformError
-    from ..engine.core.transform import check_rigid
+    """The last check before a command calls a result "ok" (see
+    :func:`~forestreg.engine.core.transform.withhold_unless_rigid`)."""
+    from ..engine.core.transform import withhold_unless_rigid
 
-    if summary.get("status") != "ok":
-        return summary
+    return withhold_unless_rigid(summary)
+
+
+def check_replaceable_point_file(path, dimension: str, what: str) -> None:
+    """An existing point file at an output path is replaced only when it is an earlier output of
+    the same kind (a LAS/LAZ with the extra ``dimension``); a user's own scan is refused."""
+    from ..engine.core.errors import OutputPathError
+
+    p = Path(path)
+    if not p.exists():
+        return
+    if p.suffix.lower() in (".las", ".laz"):
+        try:
+            import laspy
+
+            with laspy.open(p) as f:
+                names = set(f.header.point_format.dimension_names)
+            if dimension in names:
+                return
+        except Exception:  # unreadable: not ours either
+            pass
+    raise OutputPathError(f"{p} exists and is not an earlier {what}: it would be overwritten; give a new file name")
+
+
+def shown(path) -> Path:
+    """A path as printed: relative to the working folder when inside it (as the user typed it)."""
+    p = Path(path)
     try:
-        check_rigid(summary.get("matrix"), "the result")
-    except TransformError as exc:
-        summary = dict(summary)
-        summary["status"] = "failed"
-        summary["reason"] = f"{exc}; withheld"
-        summary["matrix"] = None
-    return summary
+        return p.relative_to(Path.cwd())
+    except ValueError:
+        return p

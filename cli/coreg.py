@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from .common import UNITS, Reporter, log, number, say
+from .common import PARAMS_HELP, UNITS, Reporter, check_replaceable_point_file, log, number, product_params, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -23,6 +24,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--voxel", type=number("--voxel", positive=True), help="thinning voxel before clustering, m (default 0.3)")
     p.add_argument("--distance-threshold", type=number("--distance-threshold", positive=True), help="D_thr for matched keypoints, m (default 1)")
     p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates; results are written in the same unit")
+    p.add_argument("--params", help=PARAMS_HELP)
     p.set_defaults(func=cmd_coregister, long_running=True)
 
     p = sub.add_parser("fuse", help="fuse co-registered ground-based and UAV clouds (redundancy + noise removal)")
@@ -33,15 +35,13 @@ def add_parsers(sub) -> None:
     p.add_argument("--epsilon", type=number("--epsilon", positive=True), help="redundancy distance, m (default 0.01)")
     p.add_argument("--cube", type=number("--cube", positive=True), help="cube side of the redundancy search, m")
     p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates (and of the fused cloud)")
+    p.add_argument("--params", help=PARAMS_HELP)
     p.set_defaults(func=cmd_fuse, long_running=True)
 
 
 def coregistration_params(args: argparse.Namespace):
-    """Co-registration parameters: the defaults with the command line's options."""
-    from ..engine.coreg.coregister import CoregistrationParams
-    from ..engine.coreg.keypoints import KeypointParams
-    from ..engine.coreg.matching import MatchingParams
-
+    """Co-registration parameters: the defaults (or ``--params``) with the command line's options."""
+    base = product_params(args).coregistration
     kp: dict = {}
     mt: dict = {}
     if getattr(args, "min_cluster_size", None) is not None:
@@ -50,9 +50,7 @@ def coregistration_params(args: argparse.Namespace):
         kp["voxel_m"] = args.voxel
     if getattr(args, "distance_threshold", None) is not None:
         mt["distance_threshold_m"] = args.distance_threshold
-    return CoregistrationParams(
-        keypoints=dataclasses.replace(KeypointParams(), **kp), matching=dataclasses.replace(MatchingParams(), **mt)
-    )
+    return base.replace(keypoints=base.keypoints.replace(**kp), matching=base.matching.replace(**mt))
 
 
 def cmd_coregister(args: argparse.Namespace) -> int:
@@ -77,8 +75,15 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
     ground = read_scan(ground_path, unit_scale=scale)
     uav = read_scan(uav_path, unit_scale=scale)
     read_s = time.perf_counter() - t0
+    def steps(fraction: float, message: str = "") -> None:  # one line per step above a live bar
+        reporter(fraction, message)
+        if reporter.mode == "bar" and message.startswith("[") and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            tqdm.write(message, file=sys.stderr)
+
     try:
-        result = coregister(ground, uav, params, progress=reporter)
+        result = coregister(ground, uav, params, progress=steps)
     finally:
         reporter.close()
     summary = final_result_check(result.to_dict())
@@ -117,26 +122,21 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
     reporter.done("", out / "result.json")
     ns = argparse.Namespace(reporter=reporter)
     if ok:
-        icp = result.icp
-        say(
-            f"ok: {result.n_matched} keypoints matched ({result.matching_percentage:.0f} % of "
-            f"{len(result.ground_keypoints)} / {len(result.uav_keypoints)}), mean residual "
-            f"{100 * summary['residuals_m']['mean']:.1f} cm, ICP fitness {icp.fitness:.2f} -> {out / 'result.json'}", ns,
-        )
         if (out / "report.html").exists():
-            print(f"report: {out / 'report.html'}")
+            print(f"report: {shown(out) / 'report.html'}")
+        say(f"{result.summary()} -> {shown(out) / 'result.json'}", ns)  # the last line: one-line summary
         return 0
-    say(f"failed: {summary['reason']} -> {out / 'result.json'}", ns, err=True)
+    say(f"failed: {summary['reason']} -> {shown(out) / 'result.json'}", ns, err=True)
     return 1
 
 
 def cmd_fuse(args: argparse.Namespace) -> int:
-    return run_fuse(args.ground, args.uav, args.out, transform=args.transform, units=args.units,
+    return run_fuse(args.ground, args.uav, args.out, transform=args.transform, units=args.units, params=product_params(args).fusion,
                     epsilon=args.epsilon, cube=args.cube, reporter=args.reporter)
 
 
 def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", epsilon=None, cube=None,
-             reporter: Optional[Reporter] = None) -> int:
+             params=None, reporter: Optional[Reporter] = None) -> int:
     """Fuse two clouds into the LAS/LAZ ``out`` (refused when it is an input)."""
     from ..engine.core.atomic import check_output_file
     from ..engine.core.transform import read_matrix, to_metres
@@ -149,13 +149,14 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
     check_readable(ground_path)
     check_readable(uav_path)
     out = check_output_file(out, inputs=[ground_path, uav_path, transform], suffixes=(".laz", ".las"))
+    check_replaceable_point_file(out, "source", "fused cloud")
     matrix = to_metres(read_matrix(transform), scale) if transform else np.eye(4)
     kw = {}
     if epsilon is not None:
         kw["redundancy_distance_m"] = epsilon
     if cube is not None:
         kw["cube_side_m"] = cube
-    params = FusionParams(**kw)
+    params = (params or FusionParams()).replace(**kw)
     ground = read_scan(ground_path, unit_scale=scale)
     uav = read_scan(uav_path, unit_scale=scale)
     try:
@@ -170,5 +171,5 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
     for source, c in result.counts.items():
         print(f"{source}: {c['input']:,} in, {c['redundant']:,} redundant, {c['noise']:,} noise, {c['kept']:,} kept")
     reporter.done("", out)
-    say(f"wrote {len(result.points):,} points to {out}", argparse.Namespace(reporter=reporter))
+    say(f"wrote {len(result.points):,} points to {shown(out)}", argparse.Namespace(reporter=reporter))
     return 0

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import Reporter, floats, number, say
+from .common import Reporter, floats, number, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -69,14 +69,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     for s in plot.scans:
         print(f"{s.scan.name}: {len(s.scan)} points")
     args.reporter.done("", out / "truth.json")
-    say(f"wrote {len(plot.scans)} scans and truth.json to {out}", args)
+    say(f"wrote {len(plot.scans)} scans and truth.json to {shown(out)}", args)
     return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """System A: a simulated TLS pair registered from trunk shadows; System B: a simulated plot seen
     from the ground and from a UAV, co-registered, fused and measured. Both against the truth."""
+    from ..engine.core.atomic import check_output_folder
+
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        check_output_folder(out, "demo")  # refuses a file with one line
     codes = []
     if args.system in ("a", "both"):
         codes.append(_demo_system_a(out, args))
@@ -150,8 +154,8 @@ def _demo_system_b(out: Path, args: argparse.Namespace) -> int:
     run_trees(out / "fused.laz", out / "trees_fused", reporter=_sub_reporter(args, "trees"))
     code = run_evaluate([("ground", out / "trees_ground" / "trees.csv"), ("fused", out / "trees_fused" / "trees.csv")], field,
                         out / "evaluation")
-    print(f"reports: {out / 'coregistration' / 'report.html'}, {out / 'trees_fused' / 'report.html'}, "
-          f"{out / 'evaluation' / 'report.html'}")
+    print(f"reports: {shown(out) / 'coregistration' / 'report.html'}, {shown(out) / 'trees_fused' / 'report.html'}, "
+          f"{shown(out) / 'evaluation' / 'report.html'}")
     args.reporter.done("", out / "evaluation" / "evaluation.json")
     return code
 

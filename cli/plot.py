@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import log, number, offsets, params_from_args, say
+from .common import PARAMS_HELP, check_replaceable_point_file, log, number, offsets, params_from_args, say, shown
 
 POINT_SUFFIXES = (".laz", ".las", ".ply", ".xyz", ".txt")
 
@@ -19,7 +19,11 @@ def _add_plot_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dr", type=number("--dr", positive=True), help="VOP radius D_r in metres for every link (default: automatic)")
     p.add_argument("--dc", type=number("--dc", positive=True), help="reduction radius D_c in metres (default 30)")
     p.add_argument("--dh", type=offsets, help="slice offsets dh in metres, comma-separated")
-    p.add_argument("--params", help="TOML parameter file ([registration] table)")
+    p.add_argument("--params", help=PARAMS_HELP)
+    p.add_argument("--pairs", metavar="all|within:D|centre", help="register every pair (or those whose scanners stand within D m), solve a pose graph weighted by each pair's evidence, drop inconsistent links, state each pose's uncertainty")
+    p.add_argument("--positions", metavar="CSV", help="scanner positions: CSV scan,x,y,z in each scan's file coordinates (default: the E57 pose, else found from the data)")
+    p.add_argument("--prior-poses", metavar="FILE", help="prior poses to check links against: poses.json, JSON {scan: 4x4}, or CSV scan,x,y,z[,heading_deg] (GNSS/compass)")
+    p.add_argument("--fixed", action="append", metavar="SCAN,...", help="scans held at their prior poses (with --pairs)")
 
 
 def add_parsers(sub, add_global_flags) -> None:
@@ -70,6 +74,8 @@ def add_parsers(sub, add_global_flags) -> None:
     q.add_argument("project", help="project file (.json)")
     q.add_argument("--out", help="output folder (default: the project's folder)")
     q.add_argument("--rerun", action="store_true", help="run every link again")
+    q.add_argument("--pairs", metavar="all|within:D|centre", help="register every pair (or those within D m), pose graph, inconsistent links dropped, uncertainty per pose")
+    q.add_argument("--fixed", action="append", metavar="SCAN,...", help="scans held at their prior poses (with --pairs)")
     q.add_argument("--merged", help="also write all registered scans into one point file (.laz/.las; never an input)")
     q.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
     add_global_flags(q)
@@ -99,6 +105,7 @@ def _check_extra_outputs(args, inputs) -> None:
 
     if getattr(args, "merged", None):
         check_output_file(args.merged, inputs=inputs, suffixes=POINT_SUFFIXES)
+        check_replaceable_point_file(args.merged, "scan_id", "merged cloud")
     if getattr(args, "e57_out", None):
         check_output_file(args.e57_out, inputs=inputs, suffixes=(".e57",))
     if getattr(args, "registered_dir", None):
@@ -140,6 +147,7 @@ def project_from_args(args: argparse.Namespace):
             if other == entry.name:
                 raise UsageError(f"--tilted {item}: a scan cannot be its own level partner")
             entry.level_partner = other
+    _survey_inputs(project, args, known)
     if getattr(args, "targets", None):
         from ..engine.tls.manual import read_targets_csv
 
@@ -151,14 +159,48 @@ def project_from_args(args: argparse.Namespace):
     return project
 
 
-def _publish(tmp: Path, out: Path) -> None:
+def check_survey_options(args: argparse.Namespace) -> None:
+    """Bad --pairs / --positions / --prior-poses: one line and exit 2, before any work."""
+    from ..engine.tls.survey import parse_pairs, read_positions_csv, read_prior_poses
+
+    if getattr(args, "pairs", None):
+        parse_pairs(args.pairs)
+    if getattr(args, "positions", None):
+        read_positions_csv(args.positions)
+    if getattr(args, "prior_poses", None):
+        read_prior_poses(args.prior_poses)
+
+
+def _survey_inputs(project, args: argparse.Namespace, known) -> None:
+    """Scanner positions (--positions CSV), prior poses (--prior-poses) and --fixed names into the project."""
+    from ..engine.tls.survey import read_positions_csv, read_prior_poses
+
+    if getattr(args, "positions", None):
+        for name, xyz in read_positions_csv(args.positions).items():
+            project.scan(known(name, "--positions")).scanner_position = xyz
+    if getattr(args, "prior_poses", None):
+        for name, pose in read_prior_poses(args.prior_poses).items():
+            project.scan(known(name, "--prior-poses")).prior_pose = pose
+    for name in ",".join(getattr(args, "fixed", None) or []).split(","):
+        if name.strip():
+            known(name.strip(), "--fixed")
+
+
+def _fixed_names(project, args: argparse.Namespace) -> tuple[str, ...]:
+    names = {s.name: s.name for s in project.scans} | {Path(s.path).name: s.name for s in project.scans}
+    return tuple(names.get(n.strip(), n.strip()) for n in ",".join(getattr(args, "fixed", None) or []).split(",") if n.strip())
+
+
+def _publish(tmp: Path, out: Path, scan_names) -> None:
     """Move the finished products from ``tmp`` into ``out`` (each by one rename; poses.json last,
-    so a poses.json always belongs to the transforms beside it), drop the stale transforms."""
+    so a poses.json always belongs to the transforms beside it), and drop the stale transforms of
+    the project's scans (no other file)."""
     import os
     import shutil
 
-    for stale in out.glob("*.transform.txt"):
-        if not (tmp / stale.name).exists():
+    for name in scan_names:
+        stale = out / f"{name}.transform.txt"
+        if stale.is_file() and not (tmp / stale.name).exists():
             stale.unlink()
     files = sorted(tmp.iterdir(), key=lambda p: p.name == "poses.json")
     for f in files:
@@ -170,24 +212,33 @@ def _publish(tmp: Path, out: Path) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
 
 
-def run_project(project, out: Path, args: argparse.Namespace) -> int:
+def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int:
     """Register the project, then write poses, transforms and the report into ``out``."""
     import tempfile
 
     from ..engine.tls.plot import ScanCache, add_neighbour_links, adjust_poses, register_project, write_merged, write_poses
 
-    scans = ScanCache(project)
+    if scans is None:
+        scans = ScanCache(project)
+        _check_scans_near_their_scanners(project, scans)
     reporter = args.reporter
     try:
-        outcome = register_project(project, rerun=getattr(args, "rerun", False), progress=reporter, scans=scans)
-        if getattr(args, "loops", None):
+        if getattr(args, "pairs", None):
+            from ..engine.tls.survey import SurveyParams, parse_pairs, register_survey
+
+            pairs, distance = parse_pairs(args.pairs)
+            survey = SurveyParams(pairs=pairs, max_distance_m=distance, fixed=_fixed_names(project, args))
+            outcome = register_survey(project, survey, rerun=getattr(args, "rerun", False), progress=reporter, scans=scans)
+        else:
+            outcome = register_project(project, rerun=getattr(args, "rerun", False), progress=reporter, scans=scans)
+        if getattr(args, "loops", None) and not getattr(args, "pairs", None):
             added = add_neighbour_links(project, args.loops)
             if added:
                 log.info("closing %d loops between neighbouring scans", len(added))
                 register_project(project, progress=reporter, scans=scans)
     finally:
         reporter.close()
-    adjusted = adjust_poses(project, scans)
+    adjusted = adjust_poses(project, scans) if not getattr(args, "pairs", None) else project.adjustment
     if project.path is not None:
         project.save()
     out.mkdir(parents=True, exist_ok=True)
@@ -200,7 +251,7 @@ def run_project(project, out: Path, args: argparse.Namespace) -> int:
             write_plot_report(project, tmp / "report.html", scans=scans)
         except Exception as exc:  # a report must never lose the result
             log.warning("could not write the report: %s", exc)
-        _publish(tmp, out)
+        _publish(tmp, out, [s.name for s in project.scans])
     except BaseException:
         import shutil
 
@@ -221,21 +272,48 @@ def run_project(project, out: Path, args: argparse.Namespace) -> int:
 
         count = write_registered_e57(project, args.e57_out, scans)
         print(f"wrote {count} registered scans with their poses to {args.e57_out}")
+    from ..engine.tls.plot import pose_uncertainty
+
+    sigma = pose_uncertainty(project)
     for name, status in outcome.status.items():
         extra = f" - {outcome.reasons[name]}" if name in outcome.reasons else ""
         link = project.link_of(name)
         onto = f" onto {link.reference}" if link is not None and status == "ok" else ""
+        u = sigma.get(name) if status == "ok" else None
+        if u and u.get("translation_m") is not None and u.get("rotation_deg") is not None:
+            onto += f" (1 sigma {100 * u['translation_m']:.1f} cm, {u['rotation_deg']:.3f} deg)"
         print(f"{name}: {status}{onto}{extra}")
+    for d in (project.adjustment or {}).get("dropped") or []:
+        print(f"dropped link {d['moving']} -> {d['reference']}: {d['reason']}")
     if adjusted:
         worst = max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0)
         print(f"global adjustment over {len(adjusted['links'])} links: largest link residual {100 * worst:.1f} cm")
     if (out / "report.html").exists():
-        print(f"report: {out / 'report.html'}")
+        print(f"report: {shown(out) / 'report.html'}")
     reporter.done("", out / "poses.json")
     n_ok = len(outcome.registered)
-    summary = f"{n_ok} of {len(outcome.status)} scans registered -> {out / 'poses.json'}"
-    say(f"poses: {out / 'poses.json'}" if not outcome.failed else summary, args, err=bool(outcome.failed))
+    summary = f"{n_ok} of {len(outcome.status)} scans registered -> {shown(out) / 'poses.json'}"
+    say(f"poses: {shown(out) / 'poses.json'}" if not outcome.failed else summary, args, err=bool(outcome.failed))
     return 0 if not outcome.failed else 1
+
+
+def _check_scans_near_their_scanners(project, scans) -> None:
+    """Before the work: when no scan of the plot has points near its scanner (georeferenced scans
+    without scanner positions, or files in cm/mm), refuse with one line instead of failing every
+    link after minutes. A single such scan fails its own link with the reason."""
+    from ..engine.core.errors import ScanDataError, ScanReadError, UsageError
+    from .register import check_near_scanner
+
+    problems = []
+    for s in project.scans:
+        try:
+            check_near_scanner(scans(s.name), project.params.max_range_m, s.path, "m")
+        except UsageError as exc:
+            problems.append(str(exc))
+        except (ScanReadError, ScanDataError):
+            problems.append("")  # unreadable: its link reports it
+    if problems and all(problems) and len(problems) == len(project.scans):
+        raise UsageError(problems[0])
 
 
 def _plot_folder(out, scans) -> Path:
@@ -249,18 +327,31 @@ def _plot_folder(out, scans) -> Path:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    check_survey_options(args)
     _check_scan_files_exist(args.scans)
     _check_extra_outputs(args, args.scans)
     project = project_from_args(args)
+    from ..engine.tls.plot import ScanCache
+
+    scans = ScanCache(project)
+    _check_scans_near_their_scanners(project, scans)  # before anything is written
     out = _plot_folder(args.out, args.scans)
     project.save(out / "project.json")
-    return run_project(project, out, args)
+    return run_project(project, out, args, scans)
 
 
 def _check_scan_files_exist(paths) -> None:
     """A missing scan is a typo (exit 2, before any work); an existing but unreadable scan is
-    reported as failed while the others are registered."""
-    from ..engine.core.errors import ScanReadError
+    reported as failed while the others are registered. A plot needs two scans (or one multi-scan
+    E57 file), each given once."""
+    from ..engine.core.errors import ScanReadError, UsageError
+
+    if len(paths) == 1 and Path(paths[0]).suffix.lower() != ".e57":
+        raise UsageError(f"a plot needs at least two scans (or one multi-scan E57 file); got only {paths[0]}")
+    resolved = [Path(p).resolve() for p in paths]
+    twice = sorted({str(p) for p in paths if resolved.count(Path(p).resolve()) > 1})
+    if twice:
+        raise UsageError(f"a scan is given twice: {', '.join(twice)}")
 
     for p in paths:
         if not Path(p).exists():
@@ -282,6 +373,7 @@ def cmd_project(args: argparse.Namespace) -> int:
         from ..engine.core.atomic import check_output_file
 
         check_output_file(target, inputs=args.scans, suffixes=(".json",))
+        check_survey_options(args)
         _check_scan_files(args.scans)
         project = project_from_args(args)
         path = project.save(target)
@@ -320,6 +412,7 @@ def cmd_project(args: argparse.Namespace) -> int:
         say(f"linked {args.moving} -> {args.reference}{' (extra link)' if args.extra else ''}", args)
         return 0
     inputs = [s.path for s in project.scans]
+    check_survey_options(args)
     _check_extra_outputs(args, inputs)
     if args.out:
         out = _plot_folder(args.out, inputs)
@@ -333,9 +426,15 @@ def cmd_compare(args: argparse.Namespace) -> int:
     from ..engine.tls.compare import compare_auto_manual, write_comparison
     from ..engine.tls.plot import ScanCache, write_poses
 
+    from ..engine.core.errors import UsageError
+
     _check_scan_files_exist(args.scans)
     out = check_output_folder(args.out, "compare", inputs=args.scans + ([args.targets] if args.targets else []))
     project = project_from_args(args)
+    with_targets = [s.name for s in project.scans if s.targets]
+    if len(with_targets) < 2:
+        raise UsageError("compare needs targets in at least two scans (--targets TARGETS.csv with scan,target,x,y,z; "
+                         f"scans with targets: {', '.join(with_targets) or 'none'})")
     scans = ScanCache(project)
     try:
         comparison = compare_auto_manual(project, scans=scans, progress=args.reporter)
@@ -379,7 +478,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     print(f"average target distance residual: auto {fmt(a)}, manual {fmt(m)}"
           + ("" if not comparison.get("target_residual_note") else f" ({comparison['target_residual_note']})"))
     if (out / "report.html").exists():
-        print(f"report: {out / 'report.html'}")
+        print(f"report: {shown(out) / 'report.html'}")
     args.reporter.done("", json_path)
     say(f"comparison: {json_path}" if not failed else f"{len(failed)} registrations failed -> {json_path}", args, err=bool(failed))
     return 0 if not failed else 1

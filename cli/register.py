@@ -10,7 +10,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .common import UNITS, Reporter, direction, floats, log, number, offsets, params_from_args, say
+from .common import PARAMS_HELP, UNITS, Reporter, direction, floats, log, number, offsets, params_from_args, say, shown
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -21,7 +21,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--dr", type=number("--dr", positive=True), help="VOP radius D_r in metres (default: automatic)")
     p.add_argument("--dc", type=number("--dc", positive=True), help="reduction radius D_c in metres (default 30)")
     p.add_argument("--dh", type=offsets, help="slice offsets dh in metres, comma-separated (default 0)")
-    p.add_argument("--params", help="TOML parameter file ([registration] table; see 'forestreg params --toml')")
+    p.add_argument("--params", help=PARAMS_HELP)
     p.add_argument(
         "--scanner-position", action="append", type=lambda s: floats(s, 3, "--scanner-position"),
         metavar="X,Y,Z", help="scanner position in file coordinates: first for the reference, again for the moving scan (default: each file's origin)",
@@ -73,13 +73,22 @@ def run_register(
     from ..engine.tls.pair import register
     from .common import final_result_check
 
+    from ..engine.core.errors import UsageError
+
     reporter = reporter or Reporter("none", "register")
     params = params or RegistrationParams()
+    if Path(reference_path).resolve() == Path(moving_path).resolve():
+        raise UsageError(f"REFERENCE and MOVING are the same file ({reference_path}): a scan cannot be registered onto itself")
     scale = UNITS[units]
     out = check_output_folder(out, "register", inputs=[reference_path, moving_path])
     t0 = time.perf_counter()
     reference = read_scan(reference_path, scanner_position=positions[0] if len(positions) > 0 else None, unit_scale=scale)
     moving = read_scan(moving_path, scanner_position=positions[1] if len(positions) > 1 else None, unit_scale=scale)
+    # no scanner position given and the file origin is not the scanner (project/UTM exports):
+    # find it from the data, or refuse with the reason
+    from ..engine.tls.scanner_position import locate_scanner
+
+    reference, moving = locate_scanner(reference), locate_scanner(moving)
     read_s = time.perf_counter() - t0
     for scan, path in ((reference, reference_path), (moving, moving_path)):
         check_near_scanner(scan, params.max_range_m, path, units)
@@ -121,13 +130,13 @@ def run_register(
         icp = result.icp
         say(
             f"ok: {result.matched} matched VOPs ({result.reference_vops} / {result.moving_vops}), "
-            f"ICP std {1000 * icp.std_m:.1f} mm, fitness {icp.fitness:.2f} -> {out / 'result.json'}",
+            f"ICP std {1000 * icp.std_m:.1f} mm, fitness {icp.fitness:.2f} -> {shown(out) / 'result.json'}",
             _ns(reporter),
         )
         if (out / "registration.png").exists():
-            print(f"figure: {out / 'registration.png'}")
+            print(f"figure: {shown(out) / 'registration.png'}")
         return 0
-    say(f"failed: {summary['reason']} -> {out / 'result.json'}", _ns(reporter), err=True)
+    say(f"failed: {summary['reason']} -> {shown(out) / 'result.json'}", _ns(reporter), err=True)
     return 1
 
 
@@ -140,6 +149,11 @@ def check_near_scanner(scan, max_range_m: float, path, units: str) -> None:
     georeferenced scan without ``--scanner-position`` or a file in another unit than ``--units``."""
     from ..engine.core.errors import UsageError
 
+    span = float(np.ptp(scan.points[:, :2], axis=0).max())
+    if span < 2.0:
+        raise UsageError(
+            f"{path}: with --units {units} the points span only {span:.2f} m horizontally; a forest scan spans tens of metres: "
+            "check the file's unit (--units)")
     d = np.hypot(*(scan.points[:, :2] - scan.scanner_position[:2]).T)
     near = int(np.count_nonzero(d <= max_range_m))
     if near < 1000 or near < 0.01 * len(d):

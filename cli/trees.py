@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .common import UNITS, Reporter, number, say
+from .common import PARAMS_HELP, UNITS, Reporter, number, product_params, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -19,6 +19,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--no-cylinders", action="store_true", help="skip the cylinder models (faster; no volume)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates")
+    p.add_argument("--params", help=PARAMS_HELP)
     p.set_defaults(func=cmd_trees, long_running=True)
 
     p = sub.add_parser("evaluate", help="compare trees.csv with field records: R2, RMSE, rRMSE per parameter (paper table 3)")
@@ -33,12 +34,12 @@ def add_parsers(sub) -> None:
 
 
 def cmd_trees(args: argparse.Namespace) -> int:
-    return run_trees(args.cloud, args.out, transform=args.transform, field=args.field, units=args.units,
+    return run_trees(args.cloud, args.out, transform=args.transform, field=args.field, units=args.units, params=product_params(args).trees,
                      cylinders=not args.no_cylinders, report=not args.no_report, reporter=args.reporter)
 
 
 def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", cylinders: bool = True,
-              report: bool = True, reporter: Optional[Reporter] = None) -> int:
+              report: bool = True, params=None, reporter: Optional[Reporter] = None) -> int:
     """Measure the trees of ``cloud_path`` into the folder ``out`` (a transaction), with
     ``field`` also evaluated into ``out/evaluation``."""
     import dataclasses
@@ -59,27 +60,30 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
     cloud = read_scan(cloud_path, unit_scale=scale)
     if matrix is not None:
         cloud = cloud.transformed(matrix)
-    params = TreeParams()
+    params = params or TreeParams()
     if not cylinders:
         params = dataclasses.replace(params, cylinder_models=False)
     try:
         inventory = measure_trees(cloud.points, params, progress=reporter, origin_shift=cloud.origin_shift)
     finally:
         reporter.close()
-    n_flagged = sum(1 for t in inventory.trees if t.flags)
     with output_folder(out, "trees") as tmp:
-        inventory.write(tmp, cloud.points, report=report)
+        inventory.write(tmp, cloud.points, report=report, unit_scale=scale)
         code = 0
         if field_table is not None:
             code, lines = _evaluate_into(tmp / "evaluation", [("trees", read_tree_table(tmp / "trees.csv"))], field_table,
-                                         by="position", max_distance=1.0)
+                                         by="position", max_distance=1.0 / scale)
     reporter.done("", out / "trees.csv")
-    say(f"{len(inventory.trees)} trees ({n_flagged} flagged as incomplete) -> {out / 'trees.csv'}", argparse.Namespace(reporter=reporter))
+    quiet = argparse.Namespace(reporter=reporter)
+    for step, seconds in inventory.timings.items():  # the steps run, in order
+        say(f"  {step.removesuffix('_s')}: {seconds:.1f} s", quiet)
+    unit_note = "" if units == "m" else f" (positions in {units}, sizes in metres)"
+    say(f"{inventory.summary()}{unit_note} -> {shown(out) / 'trees.csv'}", quiet)
     if report and (out / "report.html").exists():
-        print(f"report: {out / 'report.html'}")
+        print(f"report: {shown(out) / 'report.html'}")
     if field_table is not None:
         for line in lines:
-            print(line.replace(str(tmp), str(out)))
+            print(line.replace(str(tmp), str(shown(out))))
     return code
 
 
@@ -112,7 +116,7 @@ def run_evaluate(named: Sequence[tuple[str, str | Path]], field, out, *, by: str
     reporter.done("", out / "evaluation.json")
     ns = argparse.Namespace(reporter=reporter)
     for line in lines:
-        say(line.replace(str(tmp), str(out)), ns, err=line.startswith("failed"))
+        say(line.replace(str(tmp), str(shown(out))), ns, err=line.startswith("failed"))
     return code
 
 

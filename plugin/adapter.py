@@ -1,10 +1,12 @@
 """What the plugin hosts (QGIS, CloudCompare) share, without any host or Qt import.
 
-The hosts never run the engine in their own process: they build a ``forestreg`` command line,
-run it as a subprocess (:func:`run_cli`, progress parsed from the CLI's progress bar on stderr),
-and read the files it writes (:func:`read_pair_outputs`, :func:`read_plot_outputs`) into plain
-records that a host turns into layers or entities. Only the standard library is used here, so
-this module imports in QGIS's and CloudCompare's Python as they are.
+The hosts never run the engine in their own process: they are thin clients of the forestreg job
+service (``forestreg serve``, started on first use when it is not running): they submit the
+command's arguments as a job (:func:`run_job`), show the job's progress events, cancel it through
+the service, and read the files it writes (:func:`read_pair_outputs`, :func:`read_plot_outputs`)
+into plain records that a host turns into layers or entities. Only the standard library is used
+here (and in :mod:`forestreg.client`), so this module imports in QGIS's and CloudCompare's Python
+as they are.
 
 Conventions are the CLI's: ``p_reference = matrix @ p_moving`` (pair, file coordinates), and
 ``p_centre = matrix @ p_scan`` (plot, ``poses.json``). A scan's scanner stands at its file's
@@ -16,13 +18,9 @@ from __future__ import annotations
 import csv
 import json
 import os
-import queue
-import re
 import shlex
 import shutil
-import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +37,7 @@ EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 
 
 class AdapterError(RuntimeError):
-    """The CLI could not be run, stopped with an error, or left an expected file missing."""
+    """The service could not run the command, it stopped with an error, or left a file missing."""
 
     def __init__(self, message: str, returncode: Optional[int] = None, stderr: str = "") -> None:
         super().__init__(message)
@@ -52,7 +50,7 @@ class BadInputError(AdapterError):
 
 
 class CancelledError(AdapterError):
-    """The run was cancelled and the CLI process was stopped."""
+    """The run was cancelled and the service stopped the job."""
 
 
 # ----------------------------------------------------------------------------- jobs
@@ -119,8 +117,13 @@ def _num(value: float) -> str:
 
 
 def build_pair_command(job: PairJob, cli: Union[None, str, Sequence[str]] = None) -> list[str]:
-    """The full command line of a pair registration (progress bar on, so no ``--quiet``)."""
-    cmd = cli_command(cli) + ["register", str(job.reference), str(job.moving), "--out", str(job.out_dir)]
+    """The full command line of a pair registration (what the service runs, for display)."""
+    return cli_command(cli) + build_pair_args(job)
+
+
+def build_pair_args(job: PairJob) -> list[str]:
+    """The CLI arguments of a pair registration (a job of the service)."""
+    cmd = ["register", str(job.reference), str(job.moving), "--out", str(job.out_dir)]
     if job.vop_radius_m is not None:
         cmd += ["--dr", _num(job.vop_radius_m)]
     if job.params_file:
@@ -135,10 +138,15 @@ def build_pair_command(job: PairJob, cli: Union[None, str, Sequence[str]] = None
 
 
 def build_plot_command(job: PlotJob, cli: Union[None, str, Sequence[str]] = None) -> list[str]:
-    """The full command line of a plot registration."""
+    """The full command line of a plot registration (for display)."""
+    return cli_command(cli) + build_plot_args(job)
+
+
+def build_plot_args(job: PlotJob) -> list[str]:
+    """The CLI arguments of a plot registration (a job of the service)."""
     if not job.scans:
         raise AdapterError("a plot needs at least one scan file")
-    cmd = cli_command(cli) + ["plot", *[str(s) for s in job.scans], "--out", str(job.out_dir)]
+    cmd = ["plot", *[str(s) for s in job.scans], "--out", str(job.out_dir)]
     if job.centre:
         cmd += ["--centre", str(job.centre)]
     if job.vop_radius_m is not None:
@@ -150,39 +158,19 @@ def build_plot_command(job: PlotJob, cli: Union[None, str, Sequence[str]] = None
     return cmd + [str(a) for a in job.extra_args]
 
 
-# ----------------------------------------------------------------------------- running
-
-# a tqdm line of the CLI: "register: slicing          30%|█████      | 00:05"
-_PROGRESS = re.compile(r"^(?P<desc>[\w.-]+)(?::\s*(?P<msg>.*?))?\s+(?P<pct>\d{1,3})%\|")
-_ERROR = re.compile(r"^forestreg: error:\s*(?P<msg>.*)$")
-
-
-def parse_progress(line: str) -> Optional[tuple[float, str]]:
-    """``(fraction, message)`` of one progress-bar line of the CLI, or None for other lines."""
-    m = _PROGRESS.match(line.strip())
-    if m is None:
-        return None
-    return min(max(int(m.group("pct")) / 100.0, 0.0), 1.0), (m.group("msg") or m.group("desc")).strip()
+# ----------------------------------------------------------------------------- running (through the service)
 
 
 @dataclass
-class CliRun:
-    """One finished CLI run."""
+class JobRun:
+    """One finished job of the service."""
 
-    command: list[str]
+    job_id: str
+    args: list[str]
     returncode: int
-    stdout: str
-    stderr_lines: list[str] = field(default_factory=list)  # without the progress-bar lines
+    message: str  # the command's last line ("ok: ..." / "failed: ..." / its error)
+    result: object = None  # the command's result.json (or summary) as the service read it
     seconds: float = 0.0
-
-    @property
-    def error_message(self) -> str:
-        """The CLI's one-line error ("forestreg: error: ..."), else the last stderr line."""
-        for line in reversed(self.stderr_lines):
-            m = _ERROR.match(line)
-            if m:
-                return m.group("msg")
-        return self.stderr_lines[-1] if self.stderr_lines else ""
 
 
 def _subprocess_env(command: Sequence[str]) -> dict[str, str]:
@@ -197,126 +185,63 @@ def _subprocess_env(command: Sequence[str]) -> dict[str, str]:
     return env
 
 
-def run_cli(
-    command: Sequence[str],
+def service_client(cli: Union[None, str, Sequence[str]] = None, state_dir: Optional[Union[str, Path]] = None):
+    """A client of the forestreg job service, started with ``cli serve`` when none runs (its
+    state folder: ``state_dir``, else ``$FORESTREG_SERVICE_DIR`` or the user's data directory)."""
+    from ..client import ServiceError, connect
+
+    command = cli_command(cli)
+    try:
+        return connect(state_dir, command=command, env=_subprocess_env(command))
+    except ServiceError as exc:
+        raise AdapterError(f"the forestreg service is not available: {exc}") from exc
+
+
+def run_job(
+    args: Sequence[str],
     progress: Optional[ProgressCallback] = None,
     log: Optional[LogCallback] = None,
     cancelled: Optional[Callable[[], bool]] = None,
+    cli: Union[None, str, Sequence[str]] = None,
     cwd: Optional[Union[str, Path]] = None,
     timeout_s: Optional[float] = None,
-) -> CliRun:
-    """Run a ``forestreg`` command line in a separate process.
+    state_dir: Optional[Union[str, Path]] = None,
+) -> JobRun:
+    """Run a ``forestreg`` command (its arguments, without the program) as a job of the service.
 
-    ``progress(fraction, message)`` is called for each progress-bar update on stderr, ``log(line)``
-    for every other stderr and stdout line; ``cancelled()`` is polled and a true answer stops the
-    process (:class:`CancelledError`). Exit status 2 raises :class:`BadInputError` with the CLI's
-    message; status 0 and 1 (a registration that failed, with its reason in ``result.json``) return
-    the :class:`CliRun`; any other status raises :class:`AdapterError`.
+    ``progress(fraction, message)`` is called for each progress event of the job, ``log(line)``
+    for each output line; ``cancelled()`` is asked about once a second and a true answer cancels
+    the job (:class:`CancelledError`). Arguments the CLI refuses and exit status 2 raise
+    :class:`BadInputError` with the CLI's message; exit status 0 and 1 (a registration that failed,
+    with its reason in ``result.json``) return the :class:`JobRun`; anything else raises
+    :class:`AdapterError`.
     """
-    command = [str(c) for c in command]
-    kwargs = {}
-    if os.name == "nt":  # no console window from inside a GUI host
-        kwargs["creationflags"] = getattr(subprocess, "CREATE_NO_WINDOW", 0)
+    from ..client import ServiceError
+
+    args = [str(a) for a in args]
+    client = service_client(cli, state_dir)
     t0 = time.monotonic()
     try:
-        proc = subprocess.Popen(
-            command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-            cwd=None if cwd is None else str(cwd), env=_subprocess_env(command), **kwargs,
-        )
-    except OSError as exc:
-        raise AdapterError(f"cannot start the forestreg command {command[0]!r}: {exc}") from exc
-
-    stderr_lines: list[str] = []
-    stdout_parts: list[str] = []
-    events: "queue.Queue[tuple]" = queue.Queue()  # callbacks run in the caller's thread, not the readers'
-
-    def handle_line(line: str) -> None:
-        line = line.rstrip()
-        if not line:
-            return
-        parsed = parse_progress(line)
-        if parsed is not None:
-            events.put(("progress", parsed))
-        else:
-            stderr_lines.append(line)
-            events.put(("log", line))
-
-    def read_stderr() -> None:
-        buf = b""
-        while True:
-            chunk = proc.stderr.read1(4096) if hasattr(proc.stderr, "read1") else proc.stderr.read(1)
-            if not chunk:
-                break
-            buf += chunk
-            parts = re.split(rb"[\r\n]", buf)
-            buf = parts.pop()
-            for raw in parts:
-                handle_line(raw.decode("utf-8", "replace"))
-        if buf:
-            handle_line(buf.decode("utf-8", "replace"))
-
-    def read_stdout() -> None:
-        for raw in iter(proc.stdout.readline, b""):
-            text = raw.decode("utf-8", "replace")
-            stdout_parts.append(text)
-            if text.strip():
-                events.put(("log", text.rstrip()))
-
-    def deliver() -> None:
-        while True:
-            try:
-                kind, payload = events.get_nowait()
-            except queue.Empty:
-                return
-            if kind == "progress" and progress is not None:
-                progress(*payload)
-            elif kind == "log" and log is not None:
-                log(payload)
-
-    threads = [threading.Thread(target=read_stderr, daemon=True), threading.Thread(target=read_stdout, daemon=True)]
-    for t in threads:
-        t.start()
+        job_id = client.submit(args, cwd)
+    except ServiceError as exc:
+        if exc.status == 400:
+            raise BadInputError(f"forestreg: bad input: {exc.detail}", EXIT_BAD_INPUT, exc.detail) from None
+        raise AdapterError(str(exc)) from None
     try:
-        while True:
-            try:
-                proc.wait(timeout=0.1)
-                break
-            except subprocess.TimeoutExpired:
-                pass
-            deliver()
-            if cancelled is not None and cancelled():
-                _stop(proc)
-                raise CancelledError("cancelled: the forestreg process was stopped", proc.returncode)
-            if timeout_s is not None and time.monotonic() - t0 > timeout_s:
-                _stop(proc)
-                raise AdapterError(f"the forestreg process took longer than {timeout_s:.0f} s and was stopped", proc.returncode)
-    finally:
-        for t in threads:
-            t.join(timeout=5)
-        for stream in (proc.stdout, proc.stderr):
-            try:
-                stream.close()
-            except Exception:  # pragma: no cover
-                pass
-    deliver()
-    run = CliRun(command, proc.returncode, "".join(stdout_parts), stderr_lines, time.monotonic() - t0)
-    if run.returncode == EXIT_BAD_INPUT:
-        raise BadInputError(f"forestreg: bad input: {run.error_message}", run.returncode, "\n".join(stderr_lines))
-    if run.returncode not in (EXIT_OK, EXIT_FAILED):
-        raise AdapterError(
-            f"forestreg stopped with exit status {run.returncode}: {run.error_message or 'no message'}",
-            run.returncode, "\n".join(stderr_lines),
-        )
-    return run
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    proc.terminate()
-    try:
-        proc.wait(timeout=5)
-    except subprocess.TimeoutExpired:  # pragma: no cover
-        proc.kill()
-        proc.wait()
+        final = client.wait(job_id, progress=progress, log=log, cancelled=cancelled, timeout=timeout_s)
+    except TimeoutError:
+        client.cancel(job_id)
+        raise AdapterError(f"the forestreg job took longer than {timeout_s:.0f} s and was cancelled") from None
+    except ServiceError as exc:
+        raise AdapterError(str(exc)) from None
+    code, message = final.get("exit_code"), final.get("message") or ""
+    if final["status"] == "cancelled":
+        raise CancelledError("cancelled: the forestreg job was stopped", code)
+    if code == EXIT_BAD_INPUT:
+        raise BadInputError(f"forestreg: bad input: {message}", code, message)
+    if final["status"] != "done" or code not in (EXIT_OK, EXIT_FAILED):
+        raise AdapterError(f"forestreg job {final['status']} (exit status {code}): {message or 'no message'}", code, message)
+    return JobRun(job_id, args, code, message, final.get("result"), time.monotonic() - t0)
 
 
 # ----------------------------------------------------------------------------- reading outputs
@@ -486,9 +411,9 @@ def register_pair(
     log: Optional[LogCallback] = None,
     cancelled: Optional[Callable[[], bool]] = None,
 ) -> HostOutputs:
-    """Run ``forestreg register`` for ``job`` and read what it wrote (also the layer CSVs)."""
-    Path(job.out_dir).mkdir(parents=True, exist_ok=True)
-    run_cli(build_pair_command(job, cli), progress=progress, log=log, cancelled=cancelled)
+    """Run ``forestreg register`` for ``job`` as a job of the service and read what it wrote
+    (also the layer CSVs)."""
+    run_job(build_pair_args(job), progress=progress, log=log, cancelled=cancelled, cli=cli)
     outputs = read_pair_outputs(job.out_dir, job.scanner_positions)
     if outputs.status == "ok":
         _need(Path(job.out_dir) / "transform.txt")
@@ -503,9 +428,9 @@ def register_plot(
     log: Optional[LogCallback] = None,
     cancelled: Optional[Callable[[], bool]] = None,
 ) -> HostOutputs:
-    """Run ``forestreg plot`` for ``job`` and read what it wrote (also the layer CSV)."""
-    Path(job.out_dir).mkdir(parents=True, exist_ok=True)
-    run_cli(build_plot_command(job, cli), progress=progress, log=log, cancelled=cancelled)
+    """Run ``forestreg plot`` for ``job`` as a job of the service and read what it wrote (also the
+    layer CSV)."""
+    run_job(build_plot_args(job), progress=progress, log=log, cancelled=cancelled, cli=cli)
     outputs = read_plot_outputs(job.out_dir)
     write_layer_files(outputs)
     return outputs

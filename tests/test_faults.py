@@ -161,6 +161,8 @@ BAD_INPUT = {
     "coregister --out is an input": ["coregister", "{A}", "{B}", "--out", "{A}"],
     "fuse --out is the ground cloud": ["fuse", "{A}", "{B}", "--out", "{A}"],
     "fuse --out not a point file": ["fuse", "{A}", "{B}", "--out", "{O}.json"],
+    "fuse --out a user's other scan": ["fuse", "{A}", "{B}", "--out", "{C}"],
+    "plot --merged onto a user's other scan": ["plot", "{A}", "{B}", "--out", "{O}", "--merged", "{C}"],
     "fuse reflection": ["fuse", "{A}", "{B}", "--transform", "{X}/reflect.txt", "--out", "{O}.laz"],
     "fuse scale 2": ["fuse", "{A}", "{B}", "--transform", "{X}/scale.txt", "--out", "{O}.laz"],
     "fuse NaN matrix": ["fuse", "{A}", "{B}", "--transform", "{X}/nan.txt", "--out", "{O}.laz"],
@@ -174,6 +176,13 @@ BAD_INPUT = {
     "simulate --size 0": ["simulate", "planted_conifer", "--out", "{O}", "--size", "0"],
     "simulate --out is a scan": ["simulate", "planted_conifer", "--out", "{A}"],
     "gui --size 0x-5": ["gui", "--size", "0x-5"],
+    "register a scan onto itself": ["register", "{A}", "{A}", "--out", "{O}"],
+    "plot of one scan": ["plot", "{A}", "--out", "{O}"],
+    "plot with a scan twice": ["plot", "{A}", "{B}", "{A}", "--out", "{O}"],
+    "compare without targets": ["compare", "{A}", "{B}", "--out", "{O}"],
+    "demo --out is a scan": ["demo", "--out", "{A}"],
+    "missing --params file": ["register", "{A}", "{B}", "--out", "{O}", "--params", "{X}/missing.toml"],
+    "infinite --dc": ["register", "{A}", "{B}", "--out", "{O}", "--dc", "inf"],
     "unknown command": ["registre", "{A}", "{B}"],
 }
 
@@ -184,7 +193,7 @@ def test_bad_input_exits_2_with_one_line_before_any_work(case, tiny, tmp_path, c
     inputs = [*paths, *sorted(bad.iterdir())]
     before = {p: _hash(p) for p in inputs}
     out = tmp_path / "out"
-    argv = [a.format(A=paths[0], B=paths[1], X=bad, O=out, T=paths[0].parent) for a in BAD_INPUT[case]]
+    argv = [a.format(A=paths[0], B=paths[1], C=paths[2], X=bad, O=out, T=paths[0].parent) for a in BAD_INPUT[case]]
     code = main(argv)
     captured = capsys.readouterr()
     assert code == 2, (case, captured.err)
@@ -199,16 +208,20 @@ def test_project_link_and_damaged_project_files_exit_2(tiny, tmp_path, capsys):
     project = tmp_path / "p.json"
     assert main(["project", "create", str(project), *map(str, paths[:2])]) == 0
     before = _hash(project)
+    scans_before = [_hash(p) for p in paths]
     for argv in (
         ["project", "link", str(project), "scan_02.laz", "nope.laz"],
         ["project", "link", str(project), "scan_02.laz", "scan_02.laz"],
         ["project", "link", str(project), "scan_02.laz", "scan_01.laz", "--dr", "-4"],
         ["project", "create", str(project), *map(str, paths[:2])],  # exists already
+        ["project", "run", str(project), "--merged", str(paths[1])],  # onto a scan
+        ["project", "run", str(project), "--e57-out", str(paths[0])],
     ):
         capsys.readouterr()
         assert main(argv) == 2, argv
         _assert_one_line(capsys.readouterr().err)
         assert _hash(project) == before, f"{argv} changed the project file"
+        assert [_hash(p) for p in paths] == scans_before
     # matrices in project files: a 2x2, a scale 2 and a reflection are refused with one line
     data = json.loads(project.read_text())
     for matrix in ([[1, 0], [0, 1]], np.diag([2.0, 2, 2, 1]).tolist(), np.diag([1.0, 1, -1, 1]).tolist()):
@@ -225,12 +238,21 @@ def test_project_link_and_damaged_project_files_exit_2(tiny, tmp_path, capsys):
 
 
 def test_georeferenced_scan_without_its_position_and_a_cm_file_are_refused_before_the_work(tiny, tmp_path, capsys):
+    """A georeferenced scan without a position has it found from the data (issue 13); a cloud
+    that shows no single scanner (two scans merged) is refused with the hint, like a cm file."""
+    from forestreg.engine.core.scan import Scan
+
     _, paths, _ = tiny
     scan = read_scan(paths[1])
+    metres_as_cm = ["--units", "cm"]
+    assert main(["register", str(paths[0]), str(paths[1]), "--out", str(tmp_path / "o"), *metres_as_cm]) == 2
+    assert "--units" in _assert_one_line(capsys.readouterr().err)
+    other = read_scan(paths[2])
     geo, cm = tmp_path / "geo.laz", tmp_path / "cm.laz"
     shift = np.eye(4)
     shift[:3, 3] = [512345.0, 5212345.0, 300.0]
-    write_scan(scan, geo, matrix=shift)
+    merged = np.concatenate([scan.points, other.points + [25.0, 0.0, 0.0]]) + shift[:3, 3]
+    write_scan(Scan.from_points(merged, name="geo"), geo)
     write_scan(scan, cm, matrix=np.diag([100.0, 100.0, 100.0, 1.0]))
     for moving, hint in ((geo, "--scanner-position"), (cm, "--units")):
         assert main(["register", str(paths[0]), str(moving), "--out", str(tmp_path / "o")]) == 2
@@ -564,3 +586,65 @@ def test_the_same_pair_gives_the_same_matrix(tiny, pair_result):
     _, paths, _ = tiny
     again = register(read_scan(paths[0]), read_scan(paths[1]))
     assert again.ok and np.array_equal(again.matrix, pair_result.matrix)
+
+
+def test_an_output_folder_of_another_command_is_not_replaced(tiny, tmp_path, capsys):
+    _, paths, _ = tiny
+    plot = tmp_path / "plot"
+    plot.mkdir()
+    (plot / ".forestreg-output").write_text("plot\n")
+    (plot / "project.json").write_text("{}\n")
+    before = _tree(plot)
+    for argv in (["register", str(paths[0]), str(paths[1]), "--out", str(plot)],
+                 ["simulate", "planted_conifer", "--out", str(plot)]):
+        assert main(argv) == 2, argv
+        assert "forestreg plot" in _assert_one_line(capsys.readouterr().err)
+        assert _tree(plot) == before
+
+
+def test_an_unexpected_error_is_one_line_and_writes_nothing(tiny, tmp_path, capsys, monkeypatch):
+    import forestreg.engine.tls.pair as pair
+
+    _, paths, _ = tiny
+
+    def broken(*a, **k):
+        raise np.linalg.LinAlgError("SVD did not converge")
+
+    monkeypatch.setattr(pair, "register", broken)
+    assert main(["register", str(paths[0]), str(paths[1]), "--out", str(tmp_path / "o"), "-q"]) == 1
+    assert "SVD did not converge" in _assert_one_line(capsys.readouterr().err)
+    assert not (tmp_path / "o").exists() and not _leftovers(tmp_path)
+
+
+def test_tables_and_matrices_are_written_in_the_files_unit(tmp_path):
+    """coregister --units mm and register --units mm share these writers: positions in mm."""
+    from types import SimpleNamespace
+
+    from forestreg.engine.core.transform import to_file_units, to_metres
+    from forestreg.engine.io.tables import write_keypoints_csv, write_vops_csv
+
+    m = np.eye(4)
+    m[:3, 3] = [1.5, -2.0, 0.25]
+    assert np.allclose(to_file_units(m, 0.001)[:3, 3], [1500.0, -2000.0, 250.0])
+    assert np.allclose(to_metres(to_file_units(m, 0.001), 0.001), m)
+    shift = np.eye(4)
+    shift[:3, 3] = [100.0, 200.0, 10.0]
+    kp = SimpleNamespace(xyz=np.array([[1.0, 2.0, 3.0]]), peak_z=np.array([20.0]), cluster_sizes=np.array([50]))
+    write_keypoints_csv(tmp_path / "k.csv", kp, shift, np.array([-1]), unit_scale=0.001)
+    row = (tmp_path / "k.csv").read_text().splitlines()[1].split(",")
+    assert [float(v) for v in row[1:5]] == [101000.0, 202000.0, 13000.0, 30000.0]
+    write_vops_csv(tmp_path / "v.csv", np.array([[1.0, 2.0]]), np.array([3.0]), shift, np.array([0.2]), np.array([9]), [-1],
+                   unit_scale=0.01)
+    row = (tmp_path / "v.csv").read_text().splitlines()[1].split(",")
+    assert [float(v) for v in row[1:4]] == [10100.0, 20200.0, 1300.0] and row[4] == "0.200"
+
+
+def test_a_plot_of_cm_files_is_refused_before_the_work(tiny, tmp_path, capsys):
+    _, paths, _ = tiny
+    cm = []
+    for p in paths[:2]:
+        cm.append(tmp_path / f"cm_{p.name}")
+        write_scan(read_scan(p), cm[-1], matrix=np.diag([100.0, 100.0, 100.0, 1.0]))
+    assert main(["plot", *map(str, cm), "--out", str(tmp_path / "plot"), "-q"]) == 2
+    assert "--units" in _assert_one_line(capsys.readouterr().err)
+    assert not (tmp_path / "plot").exists()

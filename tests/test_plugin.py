@@ -1,6 +1,8 @@
-"""The plugin hosts (issue 4, item 6): the host-free adapter run for real on a simulated pair, the
-QGIS provider headless (where ``qgis.core`` imports), and CloudCompare's ``-APPLY_TRANS`` on our
-``transform.txt`` (where the ``CloudCompare`` binary is installed)."""
+"""The plugin hosts (issue 4, item 6; issue 15: thin clients of the job service): the host-free
+adapter run for real on a simulated pair through the service (started on first use, in a
+temporary state folder), the QGIS provider headless (where ``qgis.core`` imports), and
+CloudCompare's ``-APPLY_TRANS`` on our ``transform.txt`` (where the ``CloudCompare`` binary is
+installed)."""
 
 from __future__ import annotations
 
@@ -9,8 +11,10 @@ import json
 import os
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
+import time
 import types
 from pathlib import Path
 
@@ -26,6 +30,23 @@ CLI = [sys.executable, "-m", "forestreg.cli"]
 def _csv_rows(path: Path) -> list[dict]:
     with path.open(newline="") as fh:
         return list(csv.DictReader(fh))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def service_state(tmp_path_factory):
+    """The service the adapter starts lives in a temporary state folder and is stopped after."""
+    from forestreg.client import read_server_info
+
+    state = tmp_path_factory.mktemp("plugin_service")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FORESTREG_SERVICE_DIR", str(state))
+        yield state
+    info = read_server_info(state)
+    if info:
+        os.kill(info["pid"], signal.SIGTERM)
+        deadline = time.monotonic() + 30
+        while read_server_info(state) and time.monotonic() < deadline:
+            time.sleep(0.1)
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +77,7 @@ def test_pair_and_plot_command_lines():
     cmd = adapter.build_pair_command(job, ["forestreg"])
     assert cmd == ["forestreg", "register", "ref.laz", "mov.laz", "--out", "out", "--dr", "15.0",
                    "--scanner-position", "1.0,2.0,3.0", "--scanner-position", "4.5,5.0,6.0", "--units", "cm"]
-    assert "--quiet" not in cmd  # the progress bar is what the hosts read
+    assert cmd[1:] == adapter.build_pair_args(job)  # the job's arguments, without the program
     plot = adapter.build_plot_command(adapter.PlotJob(["a.laz", "b.laz", "c.laz"], "o", centre="b.laz", vop_radius_m=20), ["forestreg"])
     assert plot == ["forestreg", "plot", "a.laz", "b.laz", "c.laz", "--out", "o", "--centre", "b.laz", "--dr", "20.0"]
     with pytest.raises(adapter.AdapterError):
@@ -77,49 +98,23 @@ def test_cli_command_resolution(monkeypatch, tmp_path):
     assert adapter.cli_command()[1:] == ["-m", "forestreg.cli"]
 
 
-def test_progress_lines_of_the_cli_bar_are_parsed():
-    assert adapter.parse_progress("register: slicing                          30%|█████████       | 00:05") == (0.3, "slicing")
-    assert adapter.parse_progress("plot: registering scan_02.laz   8%|██▎      | 00:04") == (0.08, "registering scan_02.laz")
-    assert adapter.parse_progress("register   0%|                              | 00:00") == (0.0, "register")
-    assert adapter.parse_progress("forestreg: error: a.laz: no such file") is None
-    assert adapter.parse_progress("WARNING forestreg: could not draw the figure") is None
-
-
-# ----------------------------------------------------------------------------- running the CLI
-
-
-def _fake_cli(code: str) -> list[str]:
-    return [sys.executable, "-c", code]
-
-
-def test_exit_status_2_is_a_bad_input_error_with_the_cli_message():
-    with pytest.raises(adapter.BadInputError, match="a.laz: no such file") as info:
-        adapter.run_cli(_fake_cli("import sys; sys.stderr.write('forestreg: error: a.laz: no such file\\n'); sys.exit(2)"))
+def test_refused_arguments_are_a_bad_input_error(tmp_path):
+    with pytest.raises(adapter.BadInputError, match="--units: invalid choice") as info:
+        adapter.run_job(["register", "a.laz", "b.laz", "--out", str(tmp_path), "--units", "parsec"], cli=CLI)
     assert info.value.returncode == 2
 
 
-def test_other_exit_statuses():
-    run = adapter.run_cli(_fake_cli("import sys; print('failed: too few VOPs', file=sys.stderr); sys.exit(1)"))
-    assert run.returncode == 1 and run.stderr_lines == ["failed: too few VOPs"]  # a failed registration is no error
-    with pytest.raises(adapter.AdapterError, match="exit status 3: boom"):
-        adapter.run_cli(_fake_cli("import sys; sys.stderr.write('boom\\n'); sys.exit(3)"))
-    with pytest.raises(adapter.AdapterError, match="cannot start"):
-        adapter.run_cli(["/nonexistent/forestreg", "register"])
+def test_adapter_shows_job_events_and_cancels(scans, tmp_path, service_state):
+    from forestreg.client import connect
 
-
-def test_progress_is_streamed_and_cancel_stops_the_process():
-    code = (
-        "import sys, time\n"
-        "for k in range(5):\n"
-        "    sys.stderr.write(f'\\rregister: step {k}   {20 * k}%|####| 00:0{k}'); sys.stderr.flush(); time.sleep(0.05)\n"
-        "print('done')\n"
-    )
-    seen, logs = [], []
-    run = adapter.run_cli(_fake_cli(code), progress=lambda f, m: seen.append((f, m)), log=logs.append)
-    assert seen == [(k / 5, f"step {k}") for k in range(5)] and logs == ["done"] and run.stdout == "done\n"
-    calls = []
+    seen = []
     with pytest.raises(adapter.CancelledError):
-        adapter.run_cli(_fake_cli("import time; time.sleep(60)"), cancelled=lambda: calls.append(1) or len(calls) > 2)
+        adapter.run_job(["register", str(scans / "scan_01.laz"), str(scans / "scan_02.laz"), "--out", str(tmp_path / "c")],
+                        progress=lambda f, m: seen.append((f, m)), cancelled=lambda: bool(seen), cli=CLI)
+    assert seen and 0.0 <= seen[0][0] < 1.0
+    job = connect(start=False).jobs()[0]  # the newest job of the service the adapter started
+    assert job["status"] == "cancelled" and job["args"][0] == "register"
+    assert not (tmp_path / "c" / "transform.txt").exists()
 
 
 def test_bad_input_through_the_real_cli(tmp_path):
@@ -158,10 +153,11 @@ def test_real_pair_records_match_result_json(pair_run):
     np.testing.assert_allclose(np.array(outputs.matrix), matrix)
     np.testing.assert_allclose(adapter.read_transform_txt(out / "transform.txt"), matrix, atol=1e-9)
 
-    # progress came from the CLI's bar, in order, up to the end
+    # progress came from the job's events, in order, up to the end
     fractions = [f for f, _ in seen["progress"]]
     assert len(fractions) >= 5 and fractions == sorted(fractions) and fractions[-1] >= 0.9
     assert any("occlusion" in m for _, m in seen["progress"])
+    assert any(line.startswith("ok: ") for line in seen["log"])  # the command's output lines reach the log
 
     # scanner positions in the reference frame
     ref, mov = outputs.scanners

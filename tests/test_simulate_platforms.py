@@ -305,3 +305,33 @@ def test_progress_is_reported(scene):
     assert seen[0] == 0.0 and seen[-1] == 1.0
     assert all(b >= a for a, b in zip(seen, seen[1:]))
     assert math.isfinite(sum(seen))
+
+
+def test_backpack_slam_tilt_and_drift(scene):
+    """A SLAM map error: a constant 1.5 deg tilt (down towards azimuth 30 deg) and a drift growing
+    over the walk. The tilt alone is rigid (the fitted map -> world rotation is 1.5 deg, nothing
+    left over); the drift leaves a non-rigid residual that grows with it."""
+    from forestreg.engine.core.transform import rotation_angle_deg
+
+    wp = ((-6.0, -6.0), (6.0, -6.0), (6.0, 6.0), (-6.0, 6.0))
+    tilted = BackpackSetup(waypoints=wp, density_scale=0.01, slam_tilt_deg=1.5, slam_tilt_azimuth_deg=30.0)
+    cloud = simulate_backpack_scan(scene, tilted, seed=2)
+    fit = np.asarray(cloud.meta["slam_fit_matrix"])
+    assert abs(rotation_angle_deg(fit[:3, :3]) - 1.5) < 1e-6
+    assert cloud.meta["slam_residual_rms_m"] < 1e-6
+    # the map sinks towards azimuth 30 deg: a plane through the ground points dips that way
+    g = cloud.points[cloud.labels == Material.GROUND]
+    a, b, _ = np.linalg.lstsq(np.column_stack([g[:, 0], g[:, 1], np.ones(len(g))]), g[:, 2], rcond=None)[0]
+    truth_g = g @ fit[:3, :3].T + fit[:3, 3]
+    a0, b0, _ = np.linalg.lstsq(np.column_stack([truth_g[:, 0], truth_g[:, 1], np.ones(len(g))]), truth_g[:, 2], rcond=None)[0]
+    slope = np.array([a - a0, b - b0])
+    assert abs(np.degrees(np.arctan(np.hypot(*slope))) - 1.5) < 0.05
+    assert abs(np.degrees(np.arctan2(-slope[1], -slope[0])) - 30.0) < 2.0
+
+    drifted = BackpackSetup(waypoints=wp, density_scale=0.01, slam_drift_deg=2.0, slam_drift_m=(0.3, 0.0, 0.1))
+    cloud = simulate_backpack_scan(scene, drifted, seed=2)
+    assert 0.02 < cloud.meta["slam_residual_rms_m"] < 0.5
+    with pytest.raises(ParameterError):
+        BackpackSetup(slam_drift_m=(0.0, float("nan"), 0.0))
+    with pytest.raises(ParameterError):
+        BackpackSetup(slam_tilt_deg=-1.0)

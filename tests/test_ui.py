@@ -100,10 +100,11 @@ def test_run_fills_the_tables(qtbot, window, project_file: Path, tmp_path: Path)
         assert table.value(row, "Status") == "ok" == link.result["status"]
         assert table.value(row, "Matched") == link.result["matched"] >= 4
         assert table.text(row, "Matched") == str(link.result["matched"])
-        assert table.value(row, "ICP std (cm)") == pytest.approx(link.result["icp"]["std_m"])
-        assert table.text(row, "ICP std (cm)") == f"{100 * link.result['icp']['std_m']:.2f}"
-        assert table.value(row, "Fitness") == pytest.approx(link.result["icp"]["fitness"])
-        assert table.value(row, "D_r (m)") == link.result["vop_radius_m"]
+        assert table.value(row, "Fine fit std (cm)") == pytest.approx(link.result["icp"]["std_m"])
+        assert table.text(row, "Fine fit std (cm)") == f"{100 * link.result['icp']['std_m']:.2f}"
+        assert table.value(row, "Overlap") == pytest.approx(link.result["icp"]["fitness"])
+        assert table.value(row, "Search radius (m)") == link.result["vop_radius_m"]
+    assert table.isColumnHidden(table.column("Reason"))  # no link has a reason: no empty column
     # scans table = the poses
     poses = project.poses()
     for row, scan in enumerate(project.scans):
@@ -165,24 +166,25 @@ def test_cancel_stops_and_keeps_the_window_usable(qtbot, window, project_file: P
     assert Project.load(project_file).centre == "scan_02.laz"
 
 
-def test_a_failing_run_shows_a_readable_error(qtbot, window, plot_dir: Path, tmp_path: Path) -> None:
+def test_an_unreadable_scan_fails_its_link_with_a_readable_reason(qtbot, window, plot_dir: Path, tmp_path: Path) -> None:
+    """A scan file that is gone fails its own link (the engine's rule), not the whole run; the
+    reason shows in the links table, whose Reason column appears only now."""
     project = Project(name="broken", params=_params())
     project.add_scan(plot_dir / "scan_01.laz")
     project.add_scan(tmp_path / "gone.laz")
     path = project.save(tmp_path / "broken.json")
     _open(qtbot, window, path)
     assert "gone.laz" in window.scene_view.scene.missing
-    window.interactive = True  # the message box opens without blocking
-    with qtbot.waitSignal(window.runFailed, timeout=RUN_TIMEOUT_MS) as failed:
+    table = window.link_table
+    with qtbot.waitSignal(window.runFinished, timeout=RUN_TIMEOUT_MS):
         assert window.run()
-    message, details = failed.args
-    assert "gone.laz" in message and "Traceback" in details
-    assert window.error_box.isVisible() and window.error_box.detailedText() == details
-    assert window.project.link_of("gone.laz").result is None
     qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
+    result = window.project.link_of("gone.laz").result
+    assert result is not None and result["status"] == "failed" and "gone.laz" in result["reason"]
+    row = [table.value(r, "Moving") for r in range(table.rowCount())].index("gone.laz")
+    assert table.value(row, "Status") == "failed" and table.value(row, "Reason") == result["reason"]
+    assert not table.isColumnHidden(table.column("Reason"))
     assert window.act_run.isEnabled()
-    window.error_box.close()
-    window.interactive = False
 
 
 def test_save_reopen_and_project_edits(qtbot, window, project_file: Path, tmp_path: Path) -> None:

@@ -3,6 +3,8 @@
 Usage::
 
     forestreg gui [--project P] [--offscreen] [--run] [--screenshot OUT.png]
+    forestreg gui --offscreen --trees DIR [--cloud FILE] [--tree ID] --screenshot OUT.png
+    forestreg gui --offscreen --coregistration DIR --screenshot OUT.png
     python -m forestreg.ui.app --offscreen --project P --run --screenshot out.png
 
 ``--offscreen`` needs no display at all: Qt draws the window into memory (its "offscreen"
@@ -10,7 +12,10 @@ platform) and the 3D view renders through VTK's off-screen EGL/OSMesa path into 
 the window (see :mod:`forestreg.ui.scene_view`), so the screenshot shows the points. Without
 ``--offscreen`` the normal interactive window opens (pyvistaqt's OpenGL view; under Xvfb too).
 ``--run`` registers the project and waits for the end; ``--screenshot`` saves the whole window
-once everything is drawn and exits. Exit codes: 0 done, 1 the run failed, 2 bad arguments or an
+once everything is drawn and exits. ``--trees DIR`` opens the result of ``forestreg trees --out
+DIR`` on the Trees tab (map, table, the first tree or ``--tree ID`` in 3D; ``--cloud`` adds the
+measured cloud's points), ``--coregistration DIR`` the result of ``forestreg coregister --out DIR``
+on the Co-registration tab. Exit codes: 0 done, 1 the run failed, 2 bad arguments or an
 unreadable project.
 """
 
@@ -35,6 +40,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--screenshot", metavar="OUT.png", help="save a screenshot of the whole window when everything is drawn, then exit")
     p.add_argument("--size", default=f"{DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}", help="window size WIDTHxHEIGHT for screenshots (default %(default)s)")
     p.add_argument("--sample", action="store_true", help="open the simulated sample plot (made on first use)")
+    p.add_argument("--trees", metavar="DIR", help="open a trees result folder (forestreg trees --out DIR) on the Trees tab")
+    p.add_argument("--cloud", metavar="FILE", help="with --trees: the measured cloud, to draw each tree's points")
+    p.add_argument("--tree", type=int, metavar="ID", help="with --trees: the tree to select (default: the first)")
+    p.add_argument("--coregistration", metavar="DIR", help="open a co-registration result folder (forestreg coregister --out DIR)")
+    p.add_argument("--field", metavar="CSV", help="with --trees: evaluate against field records (Field data tab)")
+    p.add_argument("--also", action="append", default=[], metavar="NAME=DIR",
+                   help="with --field: another trees folder shown side by side (e.g. fused=trees_fused)")
     p.add_argument("--timeout", type=float, default=3600.0, help="longest wait for the run and the views, seconds (default %(default)s)")
     return p
 
@@ -73,7 +85,14 @@ def save_screenshot(window, path: str | Path) -> Path:
     """Render the 3D view now and save a picture of the whole window."""
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    window.scene_view.render_now()
+    view = window.current_scene_view()
+    view.render_now()
+    from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+
+    wait_until(lambda: False, 0.2)
+    for canvas in window.findChildren(FigureCanvasQTAgg):  # at their final size, not a pending idle draw
+        if canvas.isVisible():
+            canvas.draw()
     wait_until(lambda: False, 0.2)
     if not window.grab().save(str(out)):
         raise OSError(f"cannot write the screenshot {out}")
@@ -127,6 +146,23 @@ def main(argv: Optional[list[str]] = None) -> int:
         if args.project and not window.open_project(args.project):
             print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.project}", file=sys.stderr)
             return 2
+        if args.coregistration and not window.open_coregistration(args.coregistration):
+            print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.coregistration}", file=sys.stderr)
+            return 2
+        if args.trees and not window.open_trees(args.trees, args.cloud, select=args.tree):
+            print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.trees}", file=sys.stderr)
+            return 2
+        if args.field:
+            runs = {Path(args.trees).name if args.trees else "trees": args.trees} if args.trees else {}
+            for item in args.also:
+                name, _, folder = item.partition("=")
+                if not folder:
+                    print(f"forestreg gui: --also needs NAME=DIR (got {item!r})", file=sys.stderr)
+                    return 2
+                runs[name] = folder
+            if not runs or not window.evaluate_field(args.field, runs):
+                print(f"forestreg gui: {window.last_error[1] if window.last_error else '--field needs --trees or --also'}", file=sys.stderr)
+                return 2
         if args.sample and not args.project:
             window.open_sample()
             settle(window, args.timeout)
@@ -146,7 +182,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         if args.screenshot:
             settle(window, args.timeout)
             out = save_screenshot(window, args.screenshot)
-            view = window.scene_view
+            view = window.current_scene_view()
             corner = view.mapTo(window, view.rect().topLeft())
             print(f"screenshot: {out}")
             print(f"3d view: {corner.x()} {corner.y()} {view.width()} {view.height()}")

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 from typing import Any, Callable, Optional
 
-from PySide6.QtCore import QModelIndex, QPoint, QSettings, Qt, Signal
+from PySide6.QtCore import QByteArray, QModelIndex, QPoint, QSettings, Qt, QTimer, Signal
 from PySide6.QtGui import QAction, QActionGroup, QCloseEvent, QKeySequence
 from PySide6.QtWidgets import (
     QAbstractItemView,
@@ -39,6 +39,7 @@ from .project_model import ProjectModel
 from .results_tables import LinkResultsTable, ScanPoseTable
 from .scene_data import PreviewCache, build_scene
 from .scene_view import SceneView
+from .system_b import SystemBMixin
 from .tasks import TaskSet
 from .top_view import TopViewWidget
 from .worker import RegistrationWorker, TaskWorker
@@ -47,7 +48,7 @@ log = logging.getLogger("forestreg")
 
 ORGANISATION = "forestreg"
 APPLICATION = "forestreg"
-class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
+class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
     """forestreg's main window over one project.
 
     ``settings``: where recent files and the window layout are kept (default
@@ -118,7 +119,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         split.setStretchFactor(1, 2)
         split.setSizes([620, 420])
         self.view_splitter = split
-        self.setCentralWidget(split)
+        self.setCentralWidget(self._build_system_b(split))
 
         self.tree = QTreeView()
         self.tree.setObjectName("project-tree")
@@ -149,7 +150,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.results_dock = self._dock("Results", self.bottom_tabs, Qt.DockWidgetArea.BottomDockWidgetArea)
         self.resizeDocks([self.tree_dock, self.params_dock], [300, 500], Qt.Orientation.Vertical)
         self.resizeDocks([self.tree_dock], [360], Qt.Orientation.Horizontal)
-        self.resizeDocks([self.results_dock], [250], Qt.Orientation.Vertical)
+        self.resizeDocks([self.results_dock], [170], Qt.Orientation.Vertical)
 
     def _tree_refreshed(self) -> None:
         self.tree.expandAll()
@@ -195,6 +196,12 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
                                 "Write the registered scans into one E57 file, each with its pose")
         self.act_export_report = a("Export HTML &report\u2026", self._ask_export_report, QKeySequence("Ctrl+Shift+E"),
                                    "Write the plot report (one HTML file)")
+        self.act_open_trees = a("Open t&rees result\u2026", self._ask_open_trees, None,
+                                "Show the trees measured by 'forestreg trees --out DIR' (map, table, each tree in 3D)")
+        self.act_open_coreg = a("Open &co-registration result\u2026", self._ask_open_coregistration, None,
+                                "Show a ground-based / UAV co-registration made by 'forestreg coregister --out DIR'")
+        self.act_evaluate = a("&Evaluate against field data\u2026", self._ask_evaluate, None,
+                              "Compare tree tables (e.g. ground-only and fused) with field records: R2, RMSE, rRMSE")
         self.act_quit = a("&Quit", self.close, QKeySequence.StandardKey.Quit, "Close forestreg")
         self.act_run = a("&Run registration", lambda: self.run(), QKeySequence("Ctrl+R"), "Register every scan not registered yet")
         self.act_rerun = a("Run &all links again", lambda: self.run(rerun=True), QKeySequence("Ctrl+Shift+R"),
@@ -212,6 +219,8 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.act_all_points = a("Draw &all points (slower)", self._toggle_all_points, None,
                                 "Draw every point of every scan instead of a 200 000-point sample", checkable=True)
         self.act_reset_camera = a("Reset 3D &camera", self.scene_view.reset_camera, QKeySequence("Ctrl+0"), "Look at all points again")
+        self.act_top_camera = a("3D &top view", self.scene_view.top_view, QKeySequence("Ctrl+3"),
+                                "Look straight down, north up: trunks seen twice mean a poor registration")
         self.act_about = a("&About forestreg", self._about)
         for act in (self.act_new, self.act_open, self.act_save, self.act_add, self.act_run, self.act_cancel):
             act.setShortcutContext(Qt.ShortcutContext.WindowShortcut)
@@ -222,6 +231,9 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         for act in (self.act_new, self.act_open, self.act_sample):
             m.addAction(act)
         self.recent_menu = m.addMenu("Open &recent")
+        m.addAction(self.act_open_trees)
+        m.addAction(self.act_open_coreg)
+        m.addAction(self.act_evaluate)
         m.addSeparator()
         m.addAction(self.act_save)
         m.addAction(self.act_save_as)
@@ -236,7 +248,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         for act in (self.act_run, self.act_rerun, self.act_cancel):
             m.addAction(act)
         m = bar.addMenu("&View")
-        for act in (self.act_before, self.act_after, self.act_all_points, self.act_reset_camera):
+        for act in (self.act_before, self.act_after, self.act_all_points, self.act_reset_camera, self.act_top_camera):
             m.addAction(act)
         m.addSeparator()
         for dock in (self.tree_dock, self.params_dock, self.results_dock):
@@ -260,7 +272,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         for act in (self.act_run, self.act_cancel):
             tb.addAction(act)
         tb.addSeparator()
-        for act in (self.act_before, self.act_after):
+        for act in (self.act_before, self.act_after, self.act_top_camera):
             tb.addAction(act)
         tb.addSeparator()
         for act in (self.act_export_poses, self.act_export_report):
@@ -269,6 +281,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.act_cancel.setIconText("Cancel")
         self.act_before.setIconText("Before")
         self.act_after.setIconText("After")
+        self.act_top_camera.setIconText("Top view")
         self.act_export_poses.setIconText("Export transforms")
         self.act_export_report.setIconText("Report")
         self.act_open.setIconText("Open")
@@ -316,6 +329,7 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.set_scene_mode("after" if registered else "before", refresh=False)
         self.refresh_scene()
         self.refresh_top_view()
+        self._restore_forest()
         self._update_title()
         self._update_actions()
         self.status_label.setText(self.summary())
@@ -511,15 +525,15 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self._start_view_task("top view", self._top_task, self._top_built)
 
     def _top_task(self) -> TaskWorker:
-        from ..engine.report.plot_report import compute_top_view
+        from ..engine.tls.views import compute_top_view
 
         project, scans = self.project, self.scans
         return TaskWorker(lambda progress, cancel: compute_top_view(project, scans), name="top view")
 
     def _top_built(self, view: Any) -> None:
-        from ..engine.report.plot_report import scan_colours
+        from ..engine.tls.views import scan_colours
 
-        self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: slices, VOPs and matches")
+        self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: trunk shadows and matches")
         self.topViewReady.emit()
 
     def _start_view_task(self, name: str, make: Callable[[], TaskWorker], done: Callable[[Any], None]) -> None:
@@ -623,6 +637,15 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
             "transforms or the report.",
         )
 
+    def showEvent(self, event: Any) -> None:  # noqa: N802 - Qt API
+        super().showEvent(event)
+        if not getattr(self, "_docks_sized", False) and not isinstance(self.settings.value("window/state"), QByteArray):
+            # first show without a saved layout: the results tables get a fifth of the height, not half
+            self._docks_sized = True
+            # after the first layout pass (sizing during showEvent is overridden by it)
+            QTimer.singleShot(0, lambda: self.resizeDocks([self.results_dock], [max(150, self.height() // 5)],
+                                                          Qt.Orientation.Vertical))
+
     def closeEvent(self, event: QCloseEvent) -> None:  # noqa: N802 - Qt API
         if self.running and self.interactive:
             answer = QMessageBox.question(self, "Registration running", "A registration is running. Stop it and close?")
@@ -644,4 +667,5 @@ class MainWindow(ManualModeMixin, FileActionsMixin, QMainWindow):
         self.save_settings()
         self.log_pane.detach()
         self.scene_view.close_view()
+        self.trees_view.scene3d.close_view()
         event.accept()

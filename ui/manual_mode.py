@@ -40,8 +40,11 @@ class ManualModeMixin:
         self.last_comparison: Optional[dict[str, Any]] = None
         self.targets_panel = TargetsPanel()
         self.comparison_view = ComparisonView()
-        self.bottom_tabs.insertTab(2, self.targets_panel, "Targets")
-        self.bottom_tabs.insertTab(3, self.comparison_view, "Comparison")
+        # in scroll areas: their minimum heights must not make the results dock take half the window
+        self.targets_tab = _scrolled(self.targets_panel)
+        self.comparison_tab = _scrolled(self.comparison_view)
+        self.bottom_tabs.insertTab(2, self.targets_tab, "Targets")
+        self.bottom_tabs.insertTab(3, self.comparison_tab, "Comparison")
         panel = self.targets_panel
         panel.targetsEdited.connect(self.set_targets)
         panel.editRejected.connect(lambda why: self.show_error("Cannot change the target", why))
@@ -202,7 +205,7 @@ class ManualModeMixin:
             self.set_scene_mode("before")
         self.scene_view.set_pick_mode(on)
         if on:
-            self.bottom_tabs.setCurrentWidget(self.targets_panel)
+            self.bottom_tabs.setCurrentWidget(self.targets_tab)
             self.status_label.setText("Pick target: click a point of a scan in the 3D view; it gets the id typed in the Targets tab")
 
     def _point_picked(self, display_xyz: Any) -> None:
@@ -462,7 +465,7 @@ class ManualModeMixin:
             self._adopt_auto_results(work)
             self.last_comparison = result
             self.comparison_view.show_comparison(result)
-            self.bottom_tabs.setCurrentWidget(self.comparison_view)
+            self.bottom_tabs.setCurrentWidget(self.comparison_tab)
             self.status_label.setText("Comparison ready (Comparison tab)")
             self.comparisonReady.emit(result)
 
@@ -485,3 +488,14 @@ def QKeySequenceText(text: str) -> Any:  # noqa: N802 - reads like the Qt class
     from PySide6.QtGui import QKeySequence
 
     return QKeySequence(text)
+
+
+def _scrolled(widget: Any) -> Any:
+    """``widget`` inside a frameless scroll area that resizes it."""
+    from PySide6.QtWidgets import QFrame, QScrollArea
+
+    area = QScrollArea()
+    area.setWidgetResizable(True)
+    area.setFrameShape(QFrame.Shape.NoFrame)
+    area.setWidget(widget)
+    return area

@@ -24,6 +24,7 @@ from PySide6.QtWidgets import (
     QPushButton,
     QScrollArea,
     QSpinBox,
+    QStyle,
     QVBoxLayout,
     QWidget,
 )
@@ -39,15 +40,54 @@ UNIT_SUFFIX = {"m": " m", "deg": "\u00b0", "points": " points", "VOPs": " VOPs"}
 UNBOUNDED = 1.0e6
 
 
+#: Plain words for the parameters whose name is paper jargon; the paper's symbol goes to the tooltip.
+PLAIN_LABELS = {
+    "max_range_m": "Keep points within",
+    "ground_voxel_m": "Ground search cell",
+    "slice_thickness_m": "Slice thickness",
+    "slice_offsets_m": "Slice heights",
+    "fallback_slice_offsets_m": "Extra slice heights",
+    "follow_terrain": "Slice follows terrain",
+    "angular_step_deg": "Angle step",
+    "radial_step_m": "Distance step",
+    "vop_radius_m": "Trunk-shadow radius",
+    "visibility_gap_m": "Gap behind a trunk",
+    "component_voxel_m": "Trunk search cell",
+    "min_component_points": "Trunk: fewest points",
+    "min_component_height_fraction": "Trunk: least height share",
+    "max_component_width_m": "Trunk: widest",
+    "mean_shift_bandwidth_m": "Trunk centre search",
+    "centre_on_trunk_axis": "Shadows on trunk axis",
+    "match_distance_m": "Match distance",
+    "min_vops": "Fewest shadows per scan",
+    "min_matched": "Fewest matched shadows",
+    "min_match_margin": "Lead over runner-up",
+    "min_match_margin_fraction": "Lead over runner-up (share)",
+    "distinct_rotation_deg": "Distinct if turned by",
+    "distinct_translation_m": "Distinct if moved by",
+    "max_free_space_violation": "Most points in seen-empty space",
+    "level_tilted": "Level tilted scanners",
+    "tilt_threshold_deg": "Ignore tilts below",
+    "icp_voxel_m": "Fine fit cell",
+    "icp_max_distances_m": "Fine fit distances",
+    "icp_iterations": "Fine fit iterations",
+    "icp_min_fitness": "Fine fit: least overlap",
+    "icp_max_correction_m": "Fine fit: largest change",
+}
+
+
 def label_for(name: str, paper: str = "") -> str:
-    """A readable label: ``max_range_m`` -> "Max range", with the paper's symbol when it has one."""
+    """A label in plain words: ``max_range_m`` -> "Keep points within". The paper's symbol
+    (``paper``, e.g. "D_c = 30 m") is not part of the label: it goes to the tooltip."""
+    if name in PLAIN_LABELS:
+        return PLAIN_LABELS[name]
     words = name.split("_")
     if words and words[-1] in ("m", "deg"):
         words = words[:-1]
-    text = " ".join(words).capitalize().replace("Icp", "ICP").replace("icp", "ICP").replace("vop", "VOP").replace("Vop", "VOP")
-    symbol = paper.split("=")[0].strip() if paper else ""
-    if symbol and len(symbol) <= 6 and " " not in symbol:
-        text += f" ({symbol})"
+    text = " ".join(words).capitalize()
+    for jargon, plain in (("Icp", "Fine registration"), ("icp", "fine registration"), ("Vops", "Trunk shadows"),
+                          ("vops", "trunk shadows"), ("Vop", "Trunk-shadow"), ("vop", "trunk-shadow")):
+        text = text.replace(jargon, plain)
     return text
 
 
@@ -79,11 +119,11 @@ class _Field:
         self.default = row["default"]
         self.unit: str = row["unit"] or ""
         lo, hi = row["range"] or (None, None)
-        tip = [row["help"]]
+        tip = [f"{label_for(self.name)}: {row['help']}"]
         if lo is not None or hi is not None:
             tip.append(f"Range: {lo if lo is not None else '-inf'} to {hi if hi is not None else 'inf'} {self.unit}".rstrip())
         if row["paper"]:
-            tip.append(f"Paper: {row['paper']}")
+            tip.append(f"Paper's symbol: {row['paper']}")
         tip.append(f"Default: {self._text(self.default)}   (name: {self.name})")
         self.tooltip = "\n".join(tip)
         self.auto: Optional[QCheckBox] = None
@@ -114,8 +154,12 @@ class _Field:
             self.editor = box
             if self.kind == "optional":
                 self.auto = QCheckBox("auto")
-                self.auto.setToolTip("Let the engine choose (it tries increasing values)")
-                self.auto.toggled.connect(lambda on: box.setEnabled(not on))
+                self.auto.setToolTip("Let the engine choose per scan (it tries increasing values); "
+                                     "untick to set a value")
+                # while "auto" is on no number is shown: a greyed value would read as the one in use
+                self.auto_note = QLabel("per scan")
+                self.auto_note.setStyleSheet("color: #667085;")
+                self.auto.toggled.connect(lambda on: (box.setVisible(not on), self.auto_note.setVisible(on)))
                 self.auto.toggled.connect(panel._edited)
         self.editor.setToolTip(self.tooltip)
         self.editor.setObjectName(f"param_{self.name}")
@@ -136,6 +180,10 @@ class _Field:
         lay.setContentsMargins(0, 0, 0, 0)
         lay.addWidget(self.auto)
         lay.addWidget(self.editor, 1)
+        lay.addWidget(self.auto_note, 1)
+        on = self.auto.isChecked()
+        self.editor.setVisible(not on)
+        self.auto_note.setVisible(on)
         return holder
 
     def set(self, value: Any) -> None:
@@ -194,6 +242,8 @@ class ParameterPanel(QWidget):
         area.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         inner = QWidget()
         form = QFormLayout(inner)
+        # room between the spin boxes' arrows and the scroll bar
+        form.setContentsMargins(4, 4, 4 + area.style().pixelMetric(QStyle.PixelMetric.PM_ScrollBarExtent) // 2, 4)
         form.setFieldGrowthPolicy(QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)
         for row in parameter_table(RegistrationParams):
             f = _Field(row, self)

@@ -16,7 +16,7 @@ from PySide6.QtCore import QByteArray, QMimeData, QModelIndex, QObject, Qt, QTim
 from PySide6.QtGui import QBrush, QColor, QFont, QStandardItem, QStandardItemModel
 
 from ..engine.tls.project import Link, Project
-from ..engine.report.plot_report import scan_colours, scan_states
+from ..engine.tls.views import scan_colours, scan_states
 
 #: Item data roles.
 KIND_ROLE = Qt.ItemDataRole.UserRole + 1  # "group", "scan", "link", "pair"

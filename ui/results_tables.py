@@ -15,20 +15,20 @@ from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import QAbstractItemView, QHeaderView, QTableWidget, QTableWidgetItem, QWidget
 
 from ..engine.tls.project import Project
-from ..engine.report.plot_report import scan_states
+from ..engine.tls.views import scan_states
 from .project_model import STATUS_COLOURS, link_status
 
-LINK_COLUMNS = ("Moving", "Reference", "Method", "Status", "D_r (m)", "VOPs ref / mov", "Matched",
-                "ICP std (cm)", "Fitness", "VOP residual (cm)", "Reason")
+LINK_COLUMNS = ("Moving", "Reference", "Method", "Status", "Search radius (m)", "Trunk shadows ref / mov", "Matched",
+                "Fine fit std (cm)", "Overlap", "Shadow residual (cm)", "Reason")
 SCAN_COLUMNS = ("Scan", "State", "Placed on", "x (m)", "y (m)", "z (m)", "Heading (\u00b0)", "Reason")
 
 LINK_TIPS = {
-    "D_r (m)": "Radius around the scanner in which trunk shadows (VOPs) were extracted",
-    "VOPs ref / mov": "Visual occlusion points (trunk shadows) found in the reference and the moving scan",
-    "Matched": "VOPs of the moving scan that coincide with a reference VOP after the coarse registration",
-    "ICP std (cm)": "Standard deviation of the point distances after the fine registration (ICP)",
-    "Fitness": "Fraction of moving points in the shared area with a reference point near them after ICP",
-    "VOP residual (cm)": "Mean distance of the matched VOPs after the coarse registration",
+    "Search radius (m)": "Radius around the scanner in which trunk shadows were extracted (paper: D_r)",
+    "Trunk shadows ref / mov": "Trunk shadows (the paper's visual occlusion points, VOPs) found in the reference and the moving scan",
+    "Matched": "Trunk shadows of the moving scan that coincide with a reference one after the coarse registration",
+    "Fine fit std (cm)": "Standard deviation of the point distances after the fine registration (ICP)",
+    "Overlap": "Fraction of moving points in the shared area with a reference point near them after the fine registration (ICP fitness)",
+    "Shadow residual (cm)": "Mean distance of the matched trunk shadows (VOPs) after the coarse registration",
 }
 
 
@@ -80,6 +80,15 @@ class _Table(QTableWidget):
         item = self.item(row, self.column(name))
         return "" if item is None else item.text()
 
+    def _hide_empty_reason(self) -> None:
+        """No empty "Reason" column taking the room of the figures: shown only when a row has one."""
+        if "Reason" not in self.columns:
+            return
+        c = self.column("Reason")
+        empty = all(not (self.item(r, c) and self.item(r, c).text().strip()) for r in range(self.rowCount()))
+        self.setColumnHidden(c, empty)
+        self.horizontalHeader().setStretchLastSection(not empty)
+
 
 class LinkResultsTable(_Table):
     """One row per link of the project: status, D_r, VOPs, matched, ICP std, fitness, reason."""
@@ -116,6 +125,7 @@ class LinkResultsTable(_Table):
                 cells[3].setForeground(QBrush(QColor(colour)))
             for c, cell in enumerate(cells):
                 self.setItem(r, c, cell)
+        self._hide_empty_reason()
 
 
 class ScanPoseTable(_Table):
@@ -153,3 +163,4 @@ class ScanPoseTable(_Table):
                 cells[1].setForeground(QBrush(QColor(colour)))
             for c, cell in enumerate(cells):
                 self.setItem(r, c, cell)
+        self._hide_empty_reason()

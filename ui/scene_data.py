@@ -17,7 +17,7 @@ import numpy as np
 
 from ..engine.tls.plot import ScanCache
 from ..engine.tls.project import Project
-from ..engine.report.plot_report import scan_colours
+from ..engine.tls.views import scan_colours
 
 #: Points drawn in the 3D view, all scans together.
 DEFAULT_POINT_BUDGET = 200_000

@@ -48,6 +48,63 @@ def _prefer_egl_without_display() -> None:
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 
+def nice_length(extent_m: float) -> float:
+    """A round scale-bar length (1, 2 or 5 times a power of ten) near a quarter of ``extent_m``."""
+    target = max(float(extent_m) / 4.0, 1e-3)
+    power = 10.0 ** np.floor(np.log10(target))
+    for step in (5.0, 2.0, 1.0):
+        if step * power <= target:
+            return float(step * power)
+    return float(power)
+
+
+def add_guides(pl: Any, bounds: Any) -> None:
+    """A scale bar and a north arrow in the scene, on the ground at the south-west corner of
+    ``bounds`` (xmin, xmax, ymin, ymax, zmin, zmax; metres). North is the frame's +y: grid north
+    for geo-referenced data (UTM), the centre scanner's y axis for a TLS plot in its own frame."""
+    import pyvista as pv
+
+    x0, x1, y0, y1, z0, z1 = (float(v) for v in bounds)
+    if not all(np.isfinite([x0, x1, y0, y1, z0, z1])) or x1 <= x0 or y1 <= y0:
+        return
+    length = nice_length(max(x1 - x0, y1 - y0, z1 - z0))
+    base = np.array([x0, y0 - 0.06 * (y1 - y0), z0])
+    # solid bars, not GL lines (line widths are not honoured by every off-screen renderer)
+    thick = 0.025 * length
+    bar = pv.Line(base, base + [length, 0.0, 0.0]).tube(radius=thick, n_sides=12)
+    pl.add_mesh(bar, color="#111111", name="guide:scale", reset_camera=False, pickable=False)
+    for k in range(2):
+        tick = base + [k * length, 0.0, 0.0]
+        pl.add_mesh(pv.Line(tick - [0, 0, 0.0], tick + [0, 0, 0.12 * length]).tube(radius=thick, n_sides=12),
+                    color="#111111", name=f"guide:tick{k}", reset_camera=False, pickable=False)
+    text = f"{length:g} m"
+    pl.add_point_labels([base + [length / 2.0, 0.0, 0.0]], [text], name="guide:scale-label", font_size=12,
+                        text_color="#111111", shape_color="white", shape_opacity=0.7, show_points=False,
+                        always_visible=True, pickable=False, reset_camera=False)
+    tail = base + [-0.08 * length - 0.02 * (x1 - x0), 0.0, 0.0]
+    arrow = pv.Arrow(start=tail, direction=(0.0, 1.0, 0.0), scale=0.5 * length, tip_length=0.35, tip_radius=0.15,
+                     shaft_radius=0.06)
+    pl.add_mesh(arrow, color="#b42318", name="guide:north", reset_camera=False, pickable=False)
+    pl.add_point_labels([tail + [0.0, 0.62 * length, 0.0]], ["N"], name="guide:north-label", font_size=14, bold=True,
+                        text_color="#b42318", shape_opacity=0.0, show_points=False, always_visible=True,
+                        pickable=False, reset_camera=False)
+
+
+def view_from_south_west(pl: Any) -> None:
+    """Look at the scene obliquely from above, from the south-west (35 degrees down): the scale
+    bar and the north arrow at the south-west corner are in front."""
+    pl.view_vector((-1.0, -1.0, 1.0), viewup=(0.0, 0.0, 1.0))
+
+
+def add_axes_widget(pl: Any) -> None:
+    """The orientation triad (E = x, N = y, Up = z) in the lower right corner (the legend of
+    the scans is in the lower left)."""
+    try:
+        pl.add_axes(xlabel="E", ylabel="N", zlabel="Up", line_width=2, viewport=(0.86, 0.0, 1.0, 0.2))
+    except Exception as exc:  # noqa: BLE001 - a view without the triad still works
+        log.debug("no axes widget: %s", exc)
+
+
 class _ImageLabel(QLabel):
     """The image renderer's surface: shows the rendered frame and turns drags into camera moves."""
 
@@ -129,6 +186,7 @@ class SceneView(QWidget):
                 self._unavailable(exc)
         if self.plotter is not None:
             self.plotter.set_background(BACKGROUND[0], top=BACKGROUND[1])
+            add_axes_widget(self.plotter)
         self._message_actor = None
         self.pick_mode = False
         self.show_scene(None)
@@ -229,9 +287,39 @@ class SceneView(QWidget):
                 pass
         shown = sum(len(c.points) for c in scene.clouds)
         pl.add_text(f"{shown:,} points drawn", position="upper_right", font_size=8, color="#555555", name="count")
-        pl.view_isometric()
+        drawn = [c.points for c in scene.clouds if len(c.points)]
+        if drawn and scene.mode != "before":  # one frame: a scale and north mean something
+            allp = np.concatenate(drawn)
+            lo, hi = np.percentile(allp, 1.0, axis=0), np.percentile(allp, 99.0, axis=0)
+            add_guides(pl, (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]))
+        view_from_south_west(pl)
         pl.reset_camera()
         pl.camera.zoom(1.3)
+
+    def draw(self, painter: Any, *, camera: str = "isometric") -> None:
+        """Replace what is drawn by whatever ``painter(plotter)`` adds (other views' contents:
+        trees, keypoints), then frame it (``camera`` "isometric" or "top")."""
+        self.scene = None
+        pl = self.plotter
+        if pl is None:
+            return
+        pl.suppress_rendering = True
+        try:
+            pl.clear()
+            painter(pl)
+            if camera == "top":
+                pl.view_xy()
+            elif camera == "side":  # from the south, a little above: a tree stands upright
+                pl.view_xz()
+                pl.camera.Elevation(20.0)
+                pl.camera.OrthogonalizeViewUp()
+            else:
+                view_from_south_west(pl)
+            pl.reset_camera()
+            pl.camera.zoom(1.2 if camera == "top" else 1.0)  # no zoom in: the guides at the edge stay in view
+        finally:
+            pl.suppress_rendering = False
+        self._update()
 
     def show_markers(self, points: Any, *, colour: str = "#e0007a", label: str = "targets") -> None:
         """Draw the scans' targets (display coordinates, (N, 3)) over the points; empty clears them."""
@@ -258,9 +346,20 @@ class SceneView(QWidget):
         pl = self.plotter
         if pl is None:
             return
-        pl.view_isometric()
+        view_from_south_west(pl)
         pl.reset_camera()
         pl.camera.zoom(1.3)
+        self._update()
+
+    def top_view(self) -> None:
+        """Look straight down (north up): the plan view in which registration quality shows as
+        trunks drawn once or twice."""
+        pl = self.plotter
+        if pl is None:
+            return
+        pl.view_xy()
+        pl.reset_camera()
+        pl.camera.zoom(1.2)
         self._update()
 
     def orbit(self, azimuth_deg: float, elevation_deg: float) -> None:

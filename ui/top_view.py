@@ -12,9 +12,9 @@ from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle
-from PySide6.QtWidgets import QVBoxLayout, QWidget
+from PySide6.QtWidgets import QSizePolicy, QVBoxLayout, QWidget
 
-from ..engine.report.plot_report import TopView
+from ..engine.tls.views import TopView
 
 MATCH_COLOUR = "#2ca02c"
 
@@ -32,6 +32,10 @@ class TopViewWidget(QWidget):
         self.figure = Figure(figsize=(5, 5), dpi=90, layout="constrained")
         self.canvas = FigureCanvasQTAgg(self.figure)
         self.toolbar = NavigationToolbar2QT(self.canvas, self)
+        # the toolbar must not force the view wider than its pane (that clipped the map's right edge)
+        self.toolbar.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Fixed)
+        self.toolbar.setMinimumWidth(0)
+        self.canvas.setMinimumSize(200, 200)
         lay = QVBoxLayout(self)
         lay.setContentsMargins(0, 0, 0, 0)
         lay.addWidget(self.toolbar)
@@ -74,7 +78,7 @@ class TopViewWidget(QWidget):
             ax.annotate(name, xy=(c[0], c[1]), xytext=(7, 7), textcoords="offset points", fontsize=8, zorder=7,
                         bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=colour, lw=1.0, alpha=0.85))
             handles.append(Line2D([], [], ls="none", marker="o", ms=6, mfc="none", mec=colour, mew=1.4,
-                                  label=f"{name}: {len(sv.vops_xy)} VOPs, D_r {sv.radius_m:.0f} m"))
+                                  label=f"{name}: {len(sv.vops_xy)} trunk shadows (within {sv.radius_m:.0f} m)"))
         n_pairs = 0
         for lv in view.links:
             if not len(lv.pairs):
@@ -84,20 +88,21 @@ class TopViewWidget(QWidget):
             mid = (a + b) / 2
             ax.scatter(mid[:, 0], mid[:, 1], s=90, facecolors="none", edgecolors=MATCH_COLOUR, linewidths=1.6, zorder=4)
         handles.append(Line2D([], [], ls="none", marker="o", ms=9, mfc="none", mec=MATCH_COLOUR, mew=1.6,
-                              label=f"matched VOPs ({n_pairs})"))
+                              label=f"matched trunk shadows ({n_pairs})"))
         allxy = np.concatenate([sv.slice_xy for sv in view.scans.values()] + [sv.scanner[None, :2] for sv in view.scans.values()]) - o
         if len(allxy):
             lo, hi = np.percentile(allxy, 0.5, axis=0) - 2.0, np.percentile(allxy, 99.5, axis=0) + 2.0
             ax.set_xlim(lo[0], hi[0])
             ax.set_ylim(lo[1], hi[1])
-        ax.set_aspect("equal")
+        ax.set_aspect("equal", adjustable="datalim")  # the box fills its room: nothing drawn past the canvas edge
         ax.grid(True, lw=0.3, color="0.85", zorder=0)
         ax.set_xlabel("x (m, from the centre scanner)")
         ax.set_ylabel("y (m)")
         ax.tick_params(labelsize=8)
         if title:
-            ax.set_title(title, fontsize=10)
-        ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.85)
+            ax.set_title(title, fontsize=9, wrap=True)
+        # the legend goes below the map: over it, it hid trunk shadows
+        self.figure.legend(handles=handles, loc="outside lower center", ncols=1, fontsize=7, frameon=False)
         for name, problem in view.problems.items():
             ax.text(0.01, 0.01, f"{name}: {problem}", transform=ax.transAxes, fontsize=7, color="#b42318")
         self.canvas.draw_idle()

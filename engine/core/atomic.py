@@ -84,6 +84,14 @@ def check_output_folder(path: str | os.PathLike[str], kind: str, *, inputs: "tup
         if entries and not (target / MARKER).is_file():
             raise OutputPathError(
                 f"--out {target} already holds other files (not a forestreg output folder): give a new or empty folder")
+        if entries:
+            try:
+                earlier = (target / MARKER).read_text(encoding="utf-8").strip()
+            except (OSError, UnicodeDecodeError):
+                earlier = ""
+            if earlier and earlier != kind:
+                raise OutputPathError(
+                    f"--out {target} holds the output of 'forestreg {earlier}', not of '{kind}': give another folder")
     parent = resolved.parent
     if not parent.exists():
         try:

@@ -155,6 +155,8 @@ class Scan:
 
         info = dict(meta or {})
         info["dropped_nonfinite"] = n_bad
+        # where the scanner position came from: given (reader, option, project) or the file origin
+        info.setdefault("scanner_position", "given" if scanner_position is not None else "file origin")
         return cls(
             points=_readonly(_shifted(pts, shift, in_place=take_ownership and pts is points)),
             scanner_position=_readonly(scanner_file - shift),

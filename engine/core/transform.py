@@ -141,3 +141,21 @@ def to_metres(matrix: np.ndarray, unit_scale: float) -> np.ndarray:
     m = np.array(matrix, dtype=np.float64)
     m[:3, 3] *= unit_scale
     return m
+
+
+def withhold_unless_rigid(summary: dict) -> dict:
+    """The last check before a result dict (``status``, ``reason``, ``matrix``) is called "ok": its
+    matrix must pass :func:`check_rigid`. Otherwise a copy with ``status`` "failed", the reason and
+    ``matrix`` None: never a NaN or scaled "ok"."""
+    from .errors import TransformError
+
+    if summary.get("status") != "ok":
+        return summary
+    try:
+        check_rigid(summary.get("matrix"), "the result")
+    except TransformError as exc:
+        summary = dict(summary)
+        summary["status"] = "failed"
+        summary["reason"] = f"{exc}; withheld"
+        summary["matrix"] = None
+    return summary

@@ -67,8 +67,35 @@ def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours
     return normals_and_variation(cov)[0]
 
 
+class IcpReference:
+    """A reference cloud prepared for repeated ICP runs: its voxel-thinned versions, their k-d
+    trees and normals (computed where first needed) are kept per voxel size, so several ICP
+    runs against one reference (candidates, a jackknife) build them once. Not thread-safe."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = np.asarray(points, dtype=np.float64)
+        self._levels: dict[float, tuple[np.ndarray, cKDTree, np.ndarray]] = {}
+        self._full_tree: cKDTree | None = None
+
+    def level(self, voxel_m: float) -> tuple[np.ndarray, cKDTree, np.ndarray]:
+        """(thinned points, their k-d tree, their normals: NaN rows not computed yet)."""
+        key = round(float(voxel_m), 6)
+        if key not in self._levels:
+            # a wider level thins the finest one already made (a fraction of the raw points)
+            finer = [k for k in self._levels if k <= key]
+            ref = thin(self._levels[min(finer)][0] if finer else self.points, voxel_m)
+            self._levels[key] = (ref, cKDTree(ref), np.full((len(ref), 3), np.nan))
+        return self._levels[key]
+
+    @property
+    def full_tree(self) -> cKDTree:
+        if self._full_tree is None:
+            self._full_tree = cKDTree(self.points)
+        return self._full_tree
+
+
 def icp(
-    reference: np.ndarray,
+    reference: "np.ndarray | IcpReference",
     moving: np.ndarray,
     initial: np.ndarray,
     *,
@@ -88,12 +115,14 @@ def icp(
 
     Parameters
     ----------
-    reference, moving : (N, 3) / (M, 3) points, metres.
+    reference, moving : (N, 3) / (M, 3) points, metres; the reference may be an
+        :class:`IcpReference` (prepared once for several runs).
     initial : 4x4 initial moving -> reference matrix (the coarse result).
     max_distances_m : correspondence distance of each stage, largest first.
     iterations : the most iterations per stage (the last stage stops when the update is below
         0.01 mm and 0.0001 deg, earlier ones below 0.1 mm and 0.001 deg).
     """
+    prepared = reference if isinstance(reference, IcpReference) else IcpReference(reference)
     rng = np.random.default_rng(seed)
     matrix = np.asarray(initial, dtype=np.float64).copy()
     total_iterations = 0
@@ -102,7 +131,7 @@ def icp(
     # Each cloud is thinned once, at the finest stage's voxel; wider stages thin that copy
     # (the raw clouds may hold millions of points, the thinned ones a fraction).
     finest = max(voxel_m, min(max_distances_m) / 2.5) if len(max_distances_m) else voxel_m
-    ref_fine = thin(reference, finest)
+    prepared.level(finest)
     mov_fine = thin(moving, finest)
     for stage, dist in enumerate(max_distances_m):
         # a wide stage only brings the next one into its basin: it stops at 0.1 mm / 0.001 deg
@@ -110,14 +139,12 @@ def icp(
         final_stage = stage == len(max_distances_m) - 1
         stop_m, stop_rad = (1e-5, np.radians(1e-4)) if final_stage else (1e-4, np.radians(1e-3))
         voxel = max(voxel_m, dist / 2.5)
-        ref = ref_fine if voxel <= finest else thin(ref_fine, voxel)
+        ref, tree, normals = prepared.level(voxel)
         mov = mov_fine if voxel <= finest else thin(mov_fine, voxel)
         if len(mov) > max_moving_points:
             mov = mov[rng.choice(len(mov), max_moving_points, replace=False)]
         if len(ref) < 20 or len(mov) < 20:
             break
-        tree = cKDTree(ref)
-        normals = np.full((len(ref), 3), np.nan)  # computed where first needed
         for _ in range(iterations):
             total_iterations += 1
             moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
@@ -149,7 +176,7 @@ def icp(
                 break
     last = float(max_distances_m[-1])
     moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
-    std, mean, count = nearest_distance_stats(np.asarray(reference), moved, last)
+    std, mean, count = nearest_distance_stats(prepared.points, moved, last, tree=prepared.full_tree)
     return IcpResult(
         matrix=matrix,
         fitness=fitness,
@@ -161,17 +188,21 @@ def icp(
     )
 
 
-def nearest_distance_stats(reference: np.ndarray, moved: np.ndarray, max_distance_m: float) -> tuple[float, float, int]:
+def nearest_distance_stats(
+    reference: np.ndarray, moved: np.ndarray, max_distance_m: float, *, tree: cKDTree | None = None
+) -> tuple[float, float, int]:
     """Std and mean of the distances from ``moved`` points to their nearest ``reference`` point,
-    over the pairs closer than ``max_distance_m``; and how many there are (metres)."""
+    over the pairs closer than ``max_distance_m``; and how many there are (metres). ``tree``: a
+    k-d tree of ``reference`` when one exists."""
     if len(reference) == 0 or len(moved) == 0:
         return float("nan"), float("nan"), 0
-    # only the reference points within max_distance_m of a moved point can count: keep those in
-    # the cells (of that side) next to the moved points' cells, then build the tree on them
-    reference = reference[_near_cells(reference, moved, max_distance_m)]
-    if len(reference) == 0:
-        return float("nan"), float("nan"), 0
-    tree = cKDTree(reference, balanced_tree=False, compact_nodes=False)  # built once, queried once: a fast build
+    if tree is None:
+        # only the reference points within max_distance_m of a moved point can count: keep those
+        # in the cells (of that side) next to the moved points' cells, then build the tree on them
+        reference = reference[_near_cells(reference, moved, max_distance_m)]
+        if len(reference) == 0:
+            return float("nan"), float("nan"), 0
+        tree = cKDTree(reference, balanced_tree=False, compact_nodes=False)  # built once, queried once: a fast build
     d, _ = tree.query(moved, distance_upper_bound=max_distance_m, workers=-1)
     d = d[np.isfinite(d)]
     if len(d) < 2:

@@ -60,7 +60,9 @@ def voxel_thin(points: np.ndarray, voxel_m: float, *, keep: Literal["first", "ce
         _, first = np.unique(keys, return_index=True)
         return np.sort(first)
     if keep != "centre":
-        raise ValueError(f"keep must be 'first' or 'centre', not {keep!r}")
+        from ..core.errors import InvalidArgumentError
+
+        raise InvalidArgumentError(f"keep must be 'first' or 'centre', not {keep!r}")
     origin = p.min(axis=0)
     cell = np.floor((p - origin) / voxel_m)
     offset = np.linalg.norm(p - origin - (cell + 0.5) * voxel_m, axis=1)

@@ -159,10 +159,15 @@ def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
 
 
 def check_rigid(pose: np.ndarray, what: str) -> None:
-    """Raise :class:`ScanWriteError` unless ``pose`` is a rigid 4x4 transform (E57 stores no scale)."""
-    r = pose[:3, :3]
-    if not np.allclose(r.T @ r, np.eye(3), atol=1e-6) or np.linalg.det(r) <= 0 or not np.allclose(pose[3], [0, 0, 0, 1]):
-        raise ScanWriteError(f"{what} is not a rigid transform (rotation + translation); E57 cannot store it")
+    """Raise :class:`ScanWriteError` unless ``pose`` is a rigid 4x4 transform (E57 stores no scale);
+    the check is :func:`forestreg.engine.core.transform.check_rigid`."""
+    from ..core.errors import TransformError
+    from ..core.transform import check_rigid as _check
+
+    try:
+        _check(pose, what, atol=1e-6)
+    except TransformError as exc:
+        raise ScanWriteError(f"{exc}; E57 stores only rotation + translation") from exc
 
 
 def write_e57_file(tmp: Path, entries: list[E57Entry]) -> None:

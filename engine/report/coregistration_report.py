@@ -147,7 +147,25 @@ def write_coregistration_report(
     if d["icp"]:
         rows.append(("ICP", f"fitness {d['icp']['fitness']:.2f}, RMSE {100 * d['icp']['rmse_m']:.1f} cm, "
                             f"std {100 * d['icp']['std_m']:.1f} cm"))
-    rows.append(("canopy surface correlation (best / next distinct solution)", f"{d['surface_correlation']:.2f} / {d['alternative_correlation']:.2f}"))
+    rows.append(("canopy surface correlation (result / best distinct alternative, margin)",
+                 f"{d['surface_correlation']:.2f} / {d['alternative_correlation']:.2f} (margin {d['correlation_margin']:.2f}, "
+                 f"{d['candidates_verified']} candidates refined and verified)"))
+    se = d.get("standard_errors")
+    if se:
+        rows.append(("standard errors (jackknife over plot quadrants)",
+                     f"rotation {se['rotation_deg']:.3f} deg (heading {se['heading_deg']:.3f}, tilt {se['tilt_deg']:.3f}), "
+                     f"translation {100 * se['translation_m']:.1f} cm (horizontal {100 * se['horizontal_m']:.1f}, "
+                     f"vertical {100 * se['vertical_m']:.1f})"))
+    q = d.get("quality")
+    if q:
+        if q.get("ground_dz_count") and q.get("ground_dz_median_m") is not None:
+            rows.append(("ground height agreement (UAV ground - ground-based DEM)",
+                         f"median {100 * q['ground_dz_median_m']:+.1f} cm, NMAD {100 * q['ground_dz_nmad_m']:.1f} cm "
+                         f"({q['ground_dz_count']} points)"))
+        if q.get("canopy_dz_count") and q.get("canopy_dz_median_m") is not None:
+            rows.append(("canopy surface residual (UAV top - ground-based top, 1 m cells)",
+                         f"median {100 * q['canopy_dz_median_m']:+.1f} cm, NMAD {100 * q['canopy_dz_nmad_m']:.1f} cm "
+                         f"({q['canopy_dz_count']} cells)"))
     if d["heading_deg"] is not None:
         rows.append(("heading", f"{d['heading_deg']:.3f} deg"))
     table = "\n".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows)

@@ -21,8 +21,7 @@ from ..core.errors import InvalidArgumentError  # noqa: E402
 if TYPE_CHECKING:  # pragma: no cover
     from ..tls.pair import PairResult
 
-REFERENCE_COLOUR = "#1f77b4"
-MOVING_COLOUR = "#d95f02"
+from ..tls.views import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402,F401 - one definition of the scan colours
 
 
 def _slice_points(layers, radius: float, limit: int = 60000) -> np.ndarray:

@@ -29,8 +29,7 @@ import html
 import io
 import math
 import os
-import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence
 
 import matplotlib
@@ -40,26 +39,23 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import to_rgb  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
 
 from ..core.atomic import write_text_atomic  # noqa: E402
-from ..core.errors import ForestregError  # noqa: E402
-from ..tls.prepare import extract_vops, prepare_scan, slice_layers  # noqa: E402
 from ..tls.params import RegistrationParams  # noqa: E402
 from ..tls.plot import ScanCache  # noqa: E402
 from ..tls.project import Link, Project  # noqa: E402
-from .figures import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402
-
-#: VOP radius (D_r, m) drawn for a scan whose link does not say which one it used.
-DEFAULT_VOP_RADIUS_M = 15.0
-#: At most this many slice points are drawn in the top view (all scans together).
-MAX_TOP_VIEW_POINTS = 100_000
-#: Scan colours: the pair figure's reference and moving colours first; no green (matched VOPs).
-SCAN_COLOURS = (
-    REFERENCE_COLOUR, MOVING_COLOUR, "#7b3fb5", "#8c564b", "#e377c2", "#17becf",
-    "#bcbd22", "#d62728", "#393b79", "#7f7f7f", "#ff9896", "#637939",
+from ..tls.views import (  # noqa: E402
+    MATCH_COLOUR,
+    MOVING_COLOUR,
+    REFERENCE_COLOUR,
+    ScanState,
+    TopView,
+    compute_top_view,
+    failure_reason,
+    scan_colours,
+    scan_states,
 )
-MATCH_COLOUR = "#2ca02c"
+
 AUTO_COLOUR = REFERENCE_COLOUR
 MANUAL_COLOUR = MOVING_COLOUR
 DASH = "\u2013"
@@ -145,17 +141,20 @@ def plot_report_html(
         _top_view_section(project, view, colours),
         _links_section(project, view, colours),
     ]
+    body.append(_uncertainty_section(project, states))
     if project.adjustment:
         body.append(_adjustment_section(project))
     if comparison:
         body.append(comparison_section(comparison))
     body.append(_parameters_section(project))
+    body = _numbered(body)
     body.append(
         '<p class="note">Conventions: metres and degrees; a link maps the moving scan onto the reference scan '
         "(<code>p_reference = T @ p_moving</code>); the project frame is the centre scan's file coordinates. "
         "The paper's &ldquo;source&rdquo; scan is our reference (<i>P<sub>s</sub></i>), its &ldquo;target&rdquo; "
         "our moving scan (<i>P<sub>t</sub></i>).</p>"
     )
+    body = _numbered_sections(body)
     return (
         "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
         '<meta name="viewport" content="width=device-width, initial-scale=1">\n'
@@ -170,289 +169,6 @@ def top_view_png(project: Project, scans: Optional[ScanCache] = None, *, dpi: in
     scans = scans or ScanCache(project)
     view = compute_top_view(project, scans)
     return _top_view_figure(project, view, scan_colours(project), dpi=dpi)
-
-
-# ------------------------------------------------------------------------------------------------
-# scan states and colours
-# ------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class ScanState:
-    """How a scan ended up: ``status`` is "centre", "registered" or "failed"."""
-
-    name: str
-    status: str
-    reason: str = ""
-    reference: Optional[str] = None
-
-
-def scan_states(project: Project) -> dict[str, ScanState]:
-    """Per scan: centre / registered / failed, with the reason of a failure (from its link)."""
-    poses = project.poses()
-    out: dict[str, ScanState] = {}
-    for s in project.scans:
-        link = project.link_of(s.name)
-        ref = link.reference if link is not None else None
-        if s.name == project.centre:
-            out[s.name] = ScanState(s.name, "centre")
-        elif poses.get(s.name) is not None:
-            out[s.name] = ScanState(s.name, "registered", reference=ref)
-        elif link is None:
-            out[s.name] = ScanState(s.name, "failed", "not linked to any scan")
-        elif not isinstance(link.result, Mapping):
-            out[s.name] = ScanState(s.name, "failed", "not registered yet (its link was never run)", ref)
-        elif link.result.get("status") != "ok":
-            out[s.name] = ScanState(s.name, "failed", _failure_reason(link.result), ref)
-        else:
-            out[s.name] = ScanState(s.name, "failed", f"its reference scan {ref} could not be registered", ref)
-    return out
-
-
-def _failure_reason(result: Mapping[str, Any]) -> str:
-    reason = str(result.get("reason") or "").strip() or f"status {result.get('status', 'unknown')!s} (no reason recorded)"
-    retried = result.get("retried")
-    if isinstance(retried, list) and retried:
-        tries = "; ".join(
-            f"onto {t.get('reference', '?')}: {t.get('reason', '') or 'failed'}" for t in retried if isinstance(t, Mapping)
-        )
-        reason += f" (also tried {tries})"
-    return reason
-
-
-def scan_colours(project: Project) -> dict[str, str]:
-    """One colour per scan, in project order (the centre scan gets the first)."""
-    names = [project.centre] if project.centre is not None else []
-    names += [s.name for s in project.scans if s.name != project.centre]
-    return {n: SCAN_COLOURS[k % len(SCAN_COLOURS)] for k, n in enumerate(names)}
-
-
-# ------------------------------------------------------------------------------------------------
-# top view data
-# ------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class ScanView:
-    """One registered scan in the project frame (metres)."""
-
-    name: str
-    scanner: np.ndarray
-    slice_xy: np.ndarray
-    vops_xy: np.ndarray
-    radius_m: float
-    points: int
-    slice_points: int
-
-
-@dataclass
-class LinkView:
-    """The VOPs of a link's two scans that coincide in the project frame (after registration)."""
-
-    moving: str
-    reference: str
-    pairs: np.ndarray  # (K, 2, 2): reference xy, moving xy
-    radius_m: float
-
-
-@dataclass
-class TopView:
-    scans: dict[str, ScanView] = field(default_factory=dict)
-    links: list[LinkView] = field(default_factory=list)
-    problems: dict[str, str] = field(default_factory=dict)
-    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    match_distance_m: float = 0.2
-
-
-# Prepared slices per ScanCache: a report read from the same cache reuses them.
-_PREPARED: "weakref.WeakKeyDictionary[ScanCache, dict]" = weakref.WeakKeyDictionary()
-
-
-def _cache_for(scans: ScanCache) -> dict:
-    try:
-        return _PREPARED.setdefault(scans, {})
-    except TypeError:  # pragma: no cover - an object that takes no weak reference
-        return {}
-
-
-def _slice_params(params: RegistrationParams) -> RegistrationParams:
-    """The parameters the slice and VOPs depend on, normalised for caching."""
-    return params.replace(vop_radius_m=None) if params.vop_radius_m is not None else params
-
-
-def _result_params(link: Link, project: Project) -> RegistrationParams:
-    """The parameters a link was run with (its stored result's, else the project's with the link's
-    overrides), with the slice layers of the attempt it chose (a fallback may have added layers)."""
-    result = link.result if isinstance(link.result, Mapping) else {}
-    params = link.params(project.params)
-    stored = result.get("parameters")
-    if isinstance(stored, Mapping):
-        try:
-            params = RegistrationParams.from_mapping(stored)
-        except (ForestregError, TypeError, ValueError):
-            pass
-    offsets = _chosen_slice_offsets(result)
-    if offsets is not None and tuple(offsets) != tuple(params.slice_offsets_m):
-        try:
-            params = params.replace(slice_offsets_m=tuple(offsets))
-        except (ForestregError, TypeError, ValueError):
-            pass
-    return params
-
-
-def _chosen_slice_offsets(result: Mapping[str, Any]) -> Optional[tuple[float, ...]]:
-    """The slice offsets (dh) of the coarse attempt a result kept, where the result says."""
-
-    def clean(value: Any) -> Optional[tuple[float, ...]]:
-        if isinstance(value, (list, tuple)) and value and all(_num(v) for v in value):
-            return tuple(float(v) for v in value)
-        return None
-
-    direct = clean(result.get("slice_offsets_m"))
-    if direct is not None:
-        return direct
-    attempts = result.get("attempts")
-    if not isinstance(attempts, list):
-        return None
-    keys = ("vop_radius_m", "reference_vops", "moving_vops", "matched")
-    for a in attempts:
-        if isinstance(a, Mapping) and all(a.get(k) == result.get(k) for k in keys):
-            offsets = clean(a.get("slice_offsets_m"))
-            if offsets is not None:
-                return offsets
-    return None
-
-
-def _known_tilt(project: Project, name: str) -> Optional[float]:
-    """The tilt (deg) the registration estimated for a scan, from any link result naming it."""
-    for link in project.links:
-        result = link.result if isinstance(link.result, Mapping) else {}
-        for side, key in ((link.moving, "moving_tilt_deg"), (link.reference, "reference_tilt_deg")):
-            value = result.get(key)
-            if side == name and isinstance(value, (int, float)) and math.isfinite(value):
-                return float(value)
-    return None
-
-
-def _link_radius(link: Optional[Link]) -> Optional[float]:
-    if link is None:
-        return None
-    result = link.result if isinstance(link.result, Mapping) else {}
-    for value in (result.get("vop_radius_m"), link.vop_radius_m):
-        if isinstance(value, (int, float)) and math.isfinite(value) and value > 0:
-            return float(value)
-    return None
-
-
-def _scan_radius(project: Project, name: str) -> float:
-    """The D_r a scan's VOPs are drawn at: its own link's, for the centre scan the largest of the
-    links onto it, else :data:`DEFAULT_VOP_RADIUS_M`."""
-    if name == project.centre:
-        radii = [_link_radius(link) for link in project.links if link.reference == name and link.ok]
-        radii = [r for r in radii if r is not None]
-        return max(radii) if radii else DEFAULT_VOP_RADIUS_M
-    return _link_radius(project.link_of(name)) or DEFAULT_VOP_RADIUS_M
-
-
-class _Prepared:
-    """A scan's slice layers in its LSF and the matrix LSF -> file, with VOPs per radius."""
-
-    def __init__(self, project: Project, scans: ScanCache, name: str, params: RegistrationParams) -> None:
-        scan = scans(name)
-        tilt = _known_tilt(project, name)
-        up = np.array([0.0, 0.0, 1.0]) if tilt == 0.0 else None
-        prepared = prepare_scan(scan.points, scan.scanner_position, params, up=up)
-        self.params = params
-        self.layers = slice_layers(prepared, params)
-        self.lsf_to_file = scan.local_to_file_matrix() @ np.linalg.inv(prepared.local_to_lsf)
-        self.points = len(scan)
-        self.scanner_file = scan.scanner_position_file
-        self._vops: dict[float, np.ndarray] = {}
-
-    def slice_xyz(self) -> np.ndarray:
-        return np.concatenate([layer.xyz for layer in self.layers]) if self.layers else np.zeros((0, 3))
-
-    def vops_xyz(self, radius: float) -> np.ndarray:
-        """VOPs within ``radius`` as (N, 3) LSF points (horizontal position, slice height)."""
-        key = round(float(radius), 6)
-        if key not in self._vops:
-            v = extract_vops(self.layers, self.params, float(radius))
-            self._vops[key] = np.column_stack([v.xy, v.z]) if len(v) else np.zeros((0, 3))
-        return self._vops[key]
-
-
-def _prepared(project: Project, scans: ScanCache, name: str, params: RegistrationParams) -> _Prepared:
-    cache = _cache_for(scans)
-    params = _slice_params(params)
-    entry = project.scan(name)
-    key = (name, str(entry.path), params)  # a known tilt only saves the estimate: same result
-    if key not in cache:
-        cache[key] = _Prepared(project, scans, name, params)
-    return cache[key]
-
-
-def _apply(matrix: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    return xyz @ matrix[:3, :3].T + matrix[:3, 3]
-
-
-def compute_top_view(project: Project, scans: ScanCache) -> TopView:
-    """Slices, VOPs and scanners of every registered scan in the project frame, and the VOP pairs
-    of each successful link that coincide there (within ``match_distance_m``, mutual nearest)."""
-    poses = project.poses()
-    view = TopView(match_distance_m=float(project.params.match_distance_m))
-    registered = [s.name for s in project.scans if poses.get(s.name) is not None]
-    per_scan_limit = max(2000, MAX_TOP_VIEW_POINTS // max(len(registered), 1))
-    rng = np.random.default_rng(0)
-    for name in registered:
-        link = project.link_of(name)
-        params = _result_params(link, project) if (link is not None and name != project.centre) else project.params
-        try:
-            prep = _prepared(project, scans, name, params)
-            radius = _scan_radius(project, name)
-            to_project = poses[name] @ prep.lsf_to_file
-            pts = prep.slice_xyz()
-            n_slice = len(pts)
-            if len(pts) > per_scan_limit:
-                pts = pts[rng.choice(len(pts), per_scan_limit, replace=False)]
-            vops = prep.vops_xyz(radius)
-            view.scans[name] = ScanView(
-                name=name,
-                scanner=_apply(poses[name], prep.scanner_file[None, :])[0],
-                slice_xy=_apply(to_project, pts)[:, :2],
-                vops_xy=_apply(to_project, vops)[:, :2],
-                radius_m=radius,
-                points=prep.points,
-                slice_points=n_slice,
-            )
-        except (ForestregError, OSError, ValueError, KeyError) as exc:
-            view.problems[name] = f"could not be drawn: {exc}"
-    if project.centre in view.scans:
-        view.origin = view.scans[project.centre].scanner.copy()
-    for link in project.links:
-        if not link.ok or link.moving not in view.scans or link.reference not in view.scans:
-            continue
-        params = _result_params(link, project)
-        radius = _link_radius(link) or DEFAULT_VOP_RADIUS_M
-        try:
-            side = {}
-            for name in (link.reference, link.moving):
-                prep = _prepared(project, scans, name, params)
-                side[name] = _apply(poses[name] @ prep.lsf_to_file, prep.vops_xyz(radius))[:, :2]
-        except (ForestregError, OSError, ValueError, KeyError):
-            continue
-        pairs = _coinciding(side[link.reference], side[link.moving], project.params.match_distance_m)
-        view.links.append(LinkView(link.moving, link.reference, pairs, radius))
-    return view
-
-
-def _coinciding(reference_xy: np.ndarray, moving_xy: np.ndarray, distance: float) -> np.ndarray:
-    """Mutual nearest VOPs closer than ``distance``: (K, 2, 2) [reference xy, moving xy]."""
-    if len(reference_xy) == 0 or len(moving_xy) == 0:
-        return np.zeros((0, 2, 2))
-    d_mr, i_mr = cKDTree(reference_xy).query(moving_xy)
-    _, i_rm = cKDTree(moving_xy).query(reference_xy)
-    keep = (d_mr < distance) & (i_rm[i_mr] == np.arange(len(moving_xy)))
-    return np.stack([reference_xy[i_mr[keep]], moving_xy[keep]], axis=1)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -589,6 +305,16 @@ def _bars_png(*panels: BarPanel, dpi: int = 100) -> bytes:
 
 # ------------------------------------------------------------------------------------------------
 # sections
+
+
+def _numbered_sections(body: list[str]) -> list[str]:
+    """Number the ``<h2>N. title</h2>`` headings in the order they appear (a section left out, e.g.
+    the global adjustment, leaves no gap)."""
+    import re
+
+    count = iter(range(1, 100))
+    return [re.sub(r"<h2>\d+\. ", lambda m: f"<h2>{next(count)}. ", part) for part in body]
+
 # ------------------------------------------------------------------------------------------------
 
 
@@ -721,7 +447,7 @@ def _links_section(project: Project, view: TopView, colours: Mapping[str, str]) 
                     "; ".join(f"{t.get('reference', '?')} ({t.get('reason', '')})" for t in after if isinstance(t, Mapping))
                 ) + "</span>"
         else:
-            status = f'<span class="bad">failed</span>: {_e(_failure_reason(r))}'
+            status = f'<span class="bad">failed</span>: {_e(failure_reason(r))}'
         std = icp.get("std_m")
         rows.append(
             f'<tr class="{"" if ok else "failed"}">'
@@ -758,6 +484,60 @@ def _links_section(project: Project, view: TopView, colours: Mapping[str, str]) 
                                  "ICP standard deviation per link (bar colour: moving scan)", notes=notes))
         out.append(f"<figure>{_img(png, 'ICP standard deviation per link', 'icpbars')}"
                    "<figcaption>ICP standard deviation of each link (cm); failed links have no bar.</figcaption></figure>")
+    return "\n".join(out)
+
+
+def _numbered(parts: list[str]) -> list[str]:
+    """Number the numbered section headings 1, 2, 3 ... in the order they appear (sections are
+    optional, so the numbers never jump)."""
+    import re
+
+    counter = iter(range(1, 100))
+    return [re.sub(r"<h2>\d+\. ", lambda _m: f"<h2>{next(counter)}. ", part) for part in parts]
+
+
+def _uncertainty_section(project: Project, states: Mapping[str, Any]) -> str:
+    """Per scan: the stated 1-sigma pose uncertainty and the quality figures that need no truth;
+    the links a survey dropped and why."""
+    from ..tls.plot import pose_uncertainty
+
+    adj = project.adjustment or {}
+    try:
+        sigma = pose_uncertainty(project)
+    except Exception:  # noqa: BLE001 - a report never fails on a damaged project
+        sigma = {}
+    quality = adj.get("quality") if isinstance(adj.get("quality"), Mapping) else {}
+    out = ["<h2>9. Pose uncertainty and quality</h2>",
+           "<p>How far to trust each pose without ground truth: the 1-sigma uncertainty relative to the centre scan "
+           "(from the trunks matched in each link, propagated along the most certain chain of links and inflated where "
+           "loops disagree more than stated); the links of each scan and the largest disagreement between a link and "
+           "the final poses.</p>"]
+    rows = []
+    for s in project.scans:
+        u = sigma.get(s.name) if isinstance(sigma, Mapping) else None
+        q = quality.get(s.name) if isinstance(quality, Mapping) else None
+        q = q if isinstance(q, Mapping) else {}
+        t = u.get("translation_m") if isinstance(u, Mapping) else None
+        r = u.get("rotation_deg") if isinstance(u, Mapping) else None
+        rows.append(
+            f"<tr><td>{_e(s.name)}</td><td class=\"num\">{format_cm(t)}</td><td class=\"num\">{_fmt(r, 3)}</td>"
+            f"<td class=\"num\">{_e(str(q.get('links', '-')))}</td><td class=\"num\">{format_cm(q.get('max_residual_m'))}</td>"
+            f"<td class=\"num\">{_fmt(q.get('max_residual_deg'), 3)}</td><td class=\"num\">{_e(str(q.get('dropped_links', '-')))}</td>"
+            f"<td class=\"num\">{format_cm(q.get('terrain_median_m'))}</td><td class=\"num\">{_e(str(q.get('min_matched_vops', '-')))}</td>"
+            f"<td class=\"num\">{_fmt(q.get('max_ambiguity'), 2)}</td></tr>"
+        )
+    out.append(
+        "<table><tr><th>Scan</th><th>Position 1-sigma (cm)</th><th>Rotation 1-sigma (deg)</th><th>Links</th>"
+        "<th>Largest link residual (cm)</th><th>(deg)</th><th>Dropped links</th><th>Terrain disagreement (cm, median)</th>"
+        "<th>Fewest matched trunks</th><th>Ambiguity (2nd / best)</th></tr>" + "".join(rows) + "</table>"
+    )
+    dropped = [d for d in (adj.get("dropped") or []) if isinstance(d, Mapping)]
+    if dropped:
+        out.append("<p><b>Links dropped as inconsistent:</b></p><ul>" + "".join(
+            f"<li>{_e(str(d.get('moving', '?')))} {ARROW} {_e(str(d.get('reference', '?')))}: {_e(str(d.get('reason', '')))}</li>" for d in dropped
+        ) + "</ul>")
+    if _num(adj.get("uncertainty_inflation")) and adj["uncertainty_inflation"] > 1.0:
+        out.append(f"<p class=\"note\">The loops disagree more than the links state: every stated uncertainty was multiplied by {adj['uncertainty_inflation']:.2f}.</p>")
     return "\n".join(out)
 
 

@@ -164,7 +164,13 @@ def _clean_row(row: Mapping[str, Any], k: int) -> dict[str, Any]:
     else:
         text = str(flag).strip()
         out["flag"] = "" if text.lower() in ("", "ok", "false", "0", "none") else text
+    # trust of each measure: the part after the last "; " of its quality column (if given)
+    out["trust"] = {m: str(row.get(f"{m}_quality") or "").rsplit("; ", 1)[-1] for m in QUALITY_MEASURES}
     return out
+
+
+#: Measures with a quality column ``<measure>_quality`` (``"<how>; <trust>"``) in trees.csv.
+QUALITY_MEASURES = ("dbh", "height", "crown", "volume")
 
 
 def _num(value: Any) -> float:
@@ -391,18 +397,21 @@ def _summary_section(rows: Sequence[Mapping[str, Any]], ids: np.ndarray, wood: O
 
 
 def _table_section(rows: Sequence[Mapping[str, Any]], drawn: set[str]) -> str:
-    head = "<tr><th>Tree</th>" + "".join(f"<th>{esc(h)}</th>" for _, h, _, _ in TABLE_COLUMNS) + "<th>Flag</th></tr>"
+    head = "<tr><th>Tree</th>" + "".join(f"<th>{esc(h)}</th>" for _, h, _, _ in TABLE_COLUMNS) + "<th>Trust (DBH / H / crown / V)</th><th>Flag</th></tr>"
     body = []
     for r in sorted(rows, key=lambda r: _natural(r["tree_id"])):
         tid = str(r["tree_id"])
         name = f'<a href="#tree-{esc(_file_stem(tid))}">{esc(tid)}</a>' if tid in drawn else esc(tid)
         cells = "".join(f'<td class="num">{fmt(r[k], d, s)}</td>' for k, _, s, d in TABLE_COLUMNS)
         flag = f'<span class="bad">{esc(r["flag"])}</span>' if r["flag"] else ""
-        body.append(f'<tr class="{"flagged" if r["flag"] else ""}" id="row-{esc(_file_stem(tid))}"><td>{name}</td>{cells}<td>{flag}</td></tr>')
+        trust = r.get("trust") or {}
+        trust_cell = " / ".join(esc(trust.get(m) or "-") for m in QUALITY_MEASURES)
+        body.append(f'<tr class="{"flagged" if r["flag"] else ""}" id="row-{esc(_file_stem(tid))}"><td>{name}</td>{cells}<td>{trust_cell}</td><td>{flag}</td></tr>')
     return (
         "<h2>3. Trees</h2><table>" + head + "".join(body) + "</table>"
         '<p class="note">DBH: diameter at breast height (1.3 m); H: height; CBH: crown base height; CA: crown projection area; '
-        "CV: crown volume; V: wood volume of the cylinder model. Flagged trees (red) need a look: the flag says why.</p>"
+        "CV: crown volume; V: wood volume of the cylinder model. Trust of each measure (high, medium, low, none; how it was "
+        "obtained is in trees.csv's quality columns). Flagged trees (red) need a look: the flag says why.</p>"
     )
 
 

@@ -41,6 +41,7 @@ from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 from ..core.scan import Scan
+from ..core.transform import fit_rigid
 from .mesh import Material, SceneRaycaster, raycaster_for
 from .plot import simulate_plot
 from .scanner import intensity_model
@@ -126,8 +127,17 @@ class BackpackSetup(Params):
     edge_margin_m: float = _p(2.0, "m", 0.0, 100.0, "Default serpentine: distance kept from the plot edge")
     clearance_m: float = _p(0.5, "m", 0.0, 5.0, "Least distance between the sensor path and a stem surface, target pole or building")
     sectors_per_rotation: int = _p(4, "", 1, 64, "Ray groups per rotation, each cast from its own position")
+    slam_tilt_deg: float = _p(0.0, "deg", 0.0, 20.0, "SLAM map error: constant tilt of the whole map (about a horizontal axis through the walk's start)", "real MLS: ~1-2 deg")
+    slam_tilt_azimuth_deg: float = _p(30.0, "deg", -360.0, 360.0, "Direction (mathematical azimuth) in which the map tilts down")
+    slam_drift_deg: float = _p(0.0, "deg", 0.0, 20.0, "SLAM map error: rotation drift accumulated linearly over the walk (its heading part)")
+    slam_drift_tilt_deg: float = _p(0.0, "deg", 0.0, 20.0, "SLAM map error: tilt drift accumulated linearly over the walk (about the x axis)")
+    slam_drift_m: tuple[float, float, float] = _p((0.0, 0.0, 0.0), "m", None, None, "SLAM map error: position drift (x, y, z) accumulated linearly over the walk")
 
     def _check(self) -> None:
+        drift = tuple(float(v) for v in self.slam_drift_m)
+        if len(drift) != 3 or not all(math.isfinite(v) and abs(v) <= 50.0 for v in drift):
+            raise ParameterError(f"slam_drift_m must be three finite numbers within 50 m, got {self.slam_drift_m!r}")
+        object.__setattr__(self, "slam_drift_m", drift)
         if self.waypoints is not None:
             wp = np.asarray(self.waypoints, dtype=np.float64)
             if wp.ndim != 2 or wp.shape[1] != 2 or len(wp) < 2 or not np.isfinite(wp).all():
@@ -147,6 +157,32 @@ class BackpackSetup(Params):
     @property
     def pulses_per_second(self) -> float:
         return self.n_channels * self.rotation_hz * 360.0 / self.azimuth_step_deg * self.density_scale
+
+    @property
+    def has_slam_error(self) -> bool:
+        return bool(self.slam_tilt_deg or self.slam_drift_deg or self.slam_drift_tilt_deg or any(self.slam_drift_m))
+
+    def slam_error(self, fraction: float, start: np.ndarray) -> np.ndarray:
+        """4x4 map error of the SLAM trajectory at ``fraction`` (0-1) of the walk: world -> map
+        (``p_map = E @ p_world``). A constant tilt of ``slam_tilt_deg`` (the map sinks towards
+        ``slam_tilt_azimuth_deg``) and a drift growing linearly with time (rotation about z by
+        ``fraction * slam_drift_deg``, about x by ``fraction * slam_drift_tilt_deg``, a shift of
+        ``fraction * slam_drift_m``), all about the walk's ``start`` (world frame, metres)."""
+        az = math.radians(self.slam_tilt_azimuth_deg)
+        axis = np.array([-math.sin(az), math.cos(az), 0.0])  # tilting about it lowers the azimuth side
+        rot = _axis_rotation(axis, math.radians(self.slam_tilt_deg))
+        rot = rot @ _axis_rotation(np.array([0.0, 0.0, 1.0]), math.radians(fraction * self.slam_drift_deg))
+        rot = rot @ _axis_rotation(np.array([1.0, 0.0, 0.0]), math.radians(fraction * self.slam_drift_tilt_deg))
+        m = np.eye(4)
+        m[:3, :3] = rot
+        m[:3, 3] = start - rot @ start + fraction * np.asarray(self.slam_drift_m)
+        return m
+
+
+def _axis_rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """3x3 rotation by ``angle_rad`` about the unit ``axis`` (Rodrigues)."""
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + math.sin(angle_rad) * k + (1.0 - math.cos(angle_rad)) * (k @ k)
 
 
 def _channels(n: int, fov_deg: float) -> np.ndarray:
@@ -707,6 +743,7 @@ def simulate_backpack_scan(
     n_rot = int(math.ceil(n_groups / sectors))
     phases = rng_phase.uniform(0.0, step, size=n_rot)
     report_every = max(1, n_groups // 50)
+    true_parts: list[np.ndarray] = []
     for g in range(n_groups):
         rot, sec = divmod(g, sectors)
         az = np.radians(phases[rot] + np.arange(bounds[sec], bounds[sec + 1]) * step)
@@ -718,7 +755,14 @@ def simulate_backpack_scan(
         ch, sh = math.cos(heading[g]), math.sin(heading[g])
         rz = np.array([[ch, -sh, 0.0], [sh, ch, 0.0], [0.0, 0.0, 1.0]])
         rot_m = rz @ body
+        n_before = len(chunks.parts)
         chunks.cast(traj[g], d_s.reshape(-1, 3) @ rot_m.T)
+        if setup.has_slam_error:  # the SLAM map places this group's points with its pose error
+            err = setup.slam_error(g / max(n_groups - 1, 1), traj[0])
+            for k in range(n_before, len(chunks.parts)):
+                pts, *rest = chunks.parts[k]
+                true_parts.append(pts)
+                chunks.parts[k] = (pts @ err[:3, :3].T + err[:3, 3], *rest)
         if g % report_every == 0:
             prog(0.03 + 0.95 * g / n_groups, f"walking: {g / (setup.rotation_hz * sectors):.0f} s")
 
@@ -737,6 +781,14 @@ def simulate_backpack_scan(
         "duration_s": duration,
         "speed_m_s": xy_len / duration if duration > 0 else float("nan"),
     }
+    if setup.has_slam_error and true_parts:
+        mapped = np.concatenate([p[0] for p in chunks.parts])
+        truth = np.concatenate(true_parts)
+        fit = fit_rigid(mapped, truth)  # the best rigid map -> world: what a registration can recover
+        left = mapped @ fit[:3, :3].T + fit[:3, 3] - truth
+        meta["slam_fit_matrix"] = fit.tolist()
+        meta["slam_residual_rms_m"] = float(np.sqrt(np.mean(np.sum(left**2, axis=1))))
+        meta["slam_residual_max_m"] = float(np.sqrt(np.max(np.sum(left**2, axis=1))))
     cloud = _cloud(chunks, traj, meta, "backpack walk")
     prog(1.0, "done")
     return cloud
@@ -756,6 +808,9 @@ class CoregistrationCase:
     ground : the ground data (backpack, or merged TLS scans) in the ground platform's own frame.
     uav : the UAV cloud in the UAV frame (world frame plus ``world_offset``).
     matrix : 4x4 ground frame -> UAV frame: ``p_uav = matrix @ p_ground`` (homogeneous columns).
+        With a SLAM map error (:attr:`BackpackSetup.slam_tilt_deg` and the drifts) it holds the
+        best rigid answer: the least-squares rigid fit of the drifted map onto the true points
+        (``meta["slam_residual_rms_m"]`` is what no rigid transform can remove).
     scene : the simulated plot (world frame).
     ground_labels, uav_labels : (N,) uint8 :class:`~.mesh.Material`, row-aligned with the scans.
     ground_object_ids, uav_object_ids : (N,) int32 object ids (tree ids; 0 = ground).
@@ -933,11 +988,14 @@ def simulate_coregistration_case(
     ground_cloud.meta["n_points_before_crop"] = len(raw)
 
     prog(0.96, "placing the frames")
-    mis = misalignment_matrix(heading_deg, off)
+    frame = misalignment_matrix(heading_deg, off)  # ground frame -> map frame (the world without SLAM error)
+    ground = ground_cloud.to_scan(f"{ground_platform}_ground", matrix=_rigid_inverse(frame))
+    mis = frame
+    if "slam_fit_matrix" in raw.meta:  # a drifted/tilted SLAM map: the best rigid map -> world
+        mis = np.asarray(raw.meta["slam_fit_matrix"], dtype=np.float64) @ frame
     to_uav = np.eye(4)
     to_uav[:3, 3] = w_off
     matrix = to_uav @ mis
-    ground = ground_cloud.to_scan(f"{ground_platform}_ground", matrix=_rigid_inverse(mis))
     uav_scan = uav_cloud.to_scan("uav", matrix=to_uav if w_off.any() else None)
     for a in (matrix, mis, w_off):
         a.setflags(write=False)
@@ -953,6 +1011,7 @@ def simulate_coregistration_case(
         "n_ground_points": len(ground),
         "n_uav_points": len(uav_scan),
         "uav_canopy_density_per_m2": uav_cloud.meta.get("canopy_density_per_m2"),
+        "slam_residual_rms_m": raw.meta.get("slam_residual_rms_m", 0.0),
         "conventions": "p_uav = matrix @ p_ground; p_world = misalignment @ p_ground; p_uav = p_world + world_offset",
     }
     prog(1.0, "done")

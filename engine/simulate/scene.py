@@ -224,6 +224,9 @@ class Tree:
     stem_height_fraction: float = 1.0
     #: butt flare: radius at the base is ``(1 + flare) * r_bh``
     flare: float = 0.15
+    #: height (along the axis) up to which the flare reaches: 1 m for ordinary trees, up to
+    #: 1.3 m for buttressed giants (above breast height the DBH would no longer be ``dbh_m``)
+    flare_height_m: float = 1.0
     #: number of main branches
     n_branches: int = 4
     #: leaf area density of the crown, m^2 of leaf per m^3 of crown
@@ -264,15 +267,16 @@ class Tree:
         def lin(s: float) -> float:
             return r_bh + (BREAST_HEIGHT_M - s) * slope
 
-        s_list = [0.0, 0.3, 0.6, 1.0]
+        fh = min(max(self.flare_height_m, 0.1), BREAST_HEIGHT_M)
+        s_list = [0.0, 0.3 * fh, 0.6 * fh, fh]
         r_list = [
             lin(0.0) + self.flare * r_bh,
-            lin(0.3) + self.flare * r_bh * 0.45,
-            lin(0.6) + self.flare * r_bh * 0.15,
-            lin(1.0),
+            lin(0.3 * fh) + self.flare * r_bh * 0.45,
+            lin(0.6 * fh) + self.flare * r_bh * 0.15,
+            lin(fh),
         ]
         step = 2.0
-        s = 1.0 + step
+        s = fh + step
         while s < length - 0.5:
             s_list.append(s)
             r_list.append(lin(s))
@@ -553,7 +557,9 @@ class ForestScene:
         for t in self.trees:
             if t.id == tree_id:
                 return t
-        raise KeyError(tree_id)
+        from ..core.errors import UnknownNameError
+
+        raise UnknownNameError(f"no tree with id {tree_id!r} in the scene")
 
     def cleared(self, positions: Sequence[Sequence[float]], radius_m: float = 1.0) -> "ForestScene":
         """A copy without the objects standing within ``radius_m`` of the given (x, y) positions.

@@ -7,7 +7,10 @@
 * :mod:`.evidence` - free-space checks that tell right from wrong solutions;
 * :mod:`.pair` - the pair pipeline and its :class:`~.pair.PairResult`;
 * :mod:`.project`, :mod:`.plot` - plot projects, linking, retries, pose graph;
-* :mod:`.manual`, :mod:`.compare` - targets, manual registration, manual-vs-auto comparison.
+* :mod:`.manual`, :mod:`.compare` - targets, manual registration, manual-vs-auto comparison;
+* :mod:`.scanner_position` - where the scanner stood, from the data (georeferenced exports);
+* :mod:`.survey`, :mod:`.uncertainty` - whole surveys: every pair, consistency, pose graph,
+  uncertainty and quality without ground truth.
 """
 
 from .coarse import CoarseMatch, match_vops, match_vops_literal

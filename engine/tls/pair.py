@@ -23,12 +23,14 @@ import numpy as np
 from .coarse import CoarseMatch, match_vops
 from .evidence import mutual_free_space_violation
 from ..geometry.icp import IcpResult, icp
+from .scanner_position import locate_scanner
+from .uncertainty import pair_uncertainty
 from .prepare import PreparedScan, SliceLayer, extract_vops, prepare_scan, slice_layers
 from .vop import VisualOcclusionPoints
 from .params import RegistrationParams
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.scan import Scan
-from ..core.transform import rotation_angle_deg, rotation_from_vector
+from ..core.transform import rigid_errors, rotation_angle_deg, rotation_from_vector
 
 log = logging.getLogger("forestreg")
 
@@ -119,6 +121,9 @@ class PairResult:
     params: RegistrationParams
     free_space_violation: Optional[float] = None
     attempts: list[dict[str, Any]] = field(default_factory=list)
+    ambiguity_resolved: str = ""
+    uncertainty: Optional[dict[str, Any]] = None
+    quality: Optional[dict[str, Any]] = None
     details: Optional[PairDetails] = field(default=None, repr=False, compare=False)
 
     @property
@@ -161,6 +166,9 @@ class PairResult:
             "free_space_violation": self.free_space_violation,
             "timings": dict(self.timings),
             "attempts": list(self.attempts),
+            "ambiguity_resolved": self.ambiguity_resolved,
+            "uncertainty": self.uncertainty,
+            "quality": self.quality,
             "parameters": self.params.to_dict(),
         }
 
@@ -186,6 +194,8 @@ def register(
     cancel: Optional[CancelToken] = None,
     reference_up: Optional[np.ndarray] = None,
     moving_up: Optional[np.ndarray] = None,
+    prior: Optional[np.ndarray] = None,
+    prior_tolerance: tuple[float, float] = (12.0, 70.0),
 ) -> PairResult:
     """Register ``moving`` onto ``reference`` from trunk shadows, then ICP.
 
@@ -197,6 +207,10 @@ def register(
     cancel : optional token; cancelling raises :class:`~forestreg.engine.core.errors.Cancelled`.
     reference_up, moving_up : optional known vertical directions in each scan's local frame
         (from an inclination sensor); default estimated when ``params.level_tilted``.
+    prior : optional rough moving-file -> reference-file matrix (GNSS/compass placement, E57/SOP
+        poses); used only to decide between two coarse solutions that pass every check, the one
+        within ``prior_tolerance`` (metres at the moving scanner, degrees of heading) of it winning.
+        Never trusted on its own: a result is always judged by its own evidence.
 
     Returns
     -------
@@ -215,6 +229,8 @@ def register(
         timings[name] = timings.get(name, 0.0) + time.perf_counter() - t0
         return out
 
+    # scans exported in project/UTM coordinates carry no scanner position: find it from the data
+    reference, moving = locate_scanner(reference), locate_scanner(moving)
     step(0.0, "preparing both scans")
     # the two preparations are independent and mostly numpy (which releases the GIL): in parallel
     with ThreadPoolExecutor(max_workers=2) as pool:
@@ -243,9 +259,70 @@ def register(
         attempts=[a.summary() for a in attempts],
     )
     details = dict(reference=ref_prep, moving=mov_prep, reference_layers=chosen.reference_layers, moving_layers=chosen.moving_layers, attempts=attempts, chosen=chosen)
-    if chosen.problem:
+    ambiguous = chosen.problem.startswith("ambiguous") and chosen.match is not None and chosen.match.second_translation is not None
+    if chosen.problem and not ambiguous:
         return _failed(chosen.problem, chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
+    if not ambiguous:
+        return _finish(reference, moving, ref_prep, mov_prep, chosen, base, details, params, timed, step)
+    # Two coarse solutions are nearly as good: let evidence the VOP score did not use decide (the
+    # ground overlap, ICP, the VOPs confirmed after ICP, free space). Only when exactly one of them
+    # passes every check is it taken; otherwise the pair stays ambiguous and fails.
+    log.info("%s - checking both solutions with ICP and free-space evidence", chosen.problem)
+    outcomes = []
+    for candidate in (dataclasses.replace(chosen, problem=""), _second_candidate(chosen, params.match_distance_m)):
+        outcomes.append(_finish(reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed, Progress(None, cancel=cancel)))
+    passed = [r for r in outcomes if r.ok]
+    if len(passed) == 1 and passed[0].matched >= params.min_matched:
+        other = outcomes[1] if passed[0] is outcomes[0] else outcomes[0]
+        note = f"{chosen.problem}; resolved: the other solution fails its checks ({other.reason})"
+        log.info("ambiguity resolved by ICP/free-space evidence")
+        return dataclasses.replace(passed[0], ambiguity_resolved=note)
+    if len(passed) == 2:
+        rot, trans = rigid_errors(passed[0].matrix, passed[1].matrix)
+        if rot < 0.2 and trans < 0.05:  # ICP took both to the same place: not two solutions
+            return dataclasses.replace(passed[0], ambiguity_resolved=f"{chosen.problem}; resolved: ICP takes both solutions to the same pose")
+        if prior is not None:
+            near = [r for r in passed if _within_prior(r.matrix, prior, moving, prior_tolerance)]
+            if len(near) == 1:
+                return dataclasses.replace(near[0], ambiguity_resolved=f"{chosen.problem}; resolved: only this solution agrees with the prior pose")
+    why = "both pass every check" if len(passed) == 2 else "neither passes every check"
+    return _failed(f"{chosen.problem}; ICP and free-space evidence cannot decide ({why})", chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
 
+
+def _within_prior(matrix: np.ndarray, prior: np.ndarray, moving: Scan, tolerance: tuple[float, float]) -> bool:
+    """Whether a file -> file matrix puts the moving scanner within ``tolerance`` (m, deg of
+    heading) of where the prior matrix puts it."""
+    s = moving.scanner_position_file
+    off = float(np.linalg.norm((matrix[:3, :3] @ s + matrix[:3, 3] - prior[:3, :3] @ s - prior[:3, 3])[:2]))
+    turn = np.degrees(np.arctan2(matrix[1, 0], matrix[0, 0]) - np.arctan2(prior[1, 0], prior[0, 0]))
+    turn = abs((turn + 180.0) % 360.0 - 180.0)
+    return off <= tolerance[0] and turn <= tolerance[1]
+
+
+def _second_candidate(attempt: CoarseAttempt, match_distance_m: float) -> CoarseAttempt:
+    """The attempt with its best distinct coarse solution in place of the best one (matched VOP
+    pairs recomputed: each moving VOP with its nearest reference VOP within ``match_distance_m``)."""
+    from scipy.spatial import cKDTree
+
+    m = attempt.match
+    theta = np.deg2rad(m.second_rotation_deg)
+    rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    moved = attempt.moving_vops.xy @ rot.T + np.asarray(m.second_translation)
+    d, idx = cKDTree(attempt.reference_vops.xy).query(moved)
+    hit = np.flatnonzero(d < match_distance_m)
+    pairs = np.column_stack([idx[hit], hit]).astype(np.int64).reshape(-1, 2)
+    second = dataclasses.replace(
+        m,
+        rotation_deg=m.second_rotation_deg, translation=np.asarray(m.second_translation), score=m.second_score,
+        matched=int(len(pairs)), matched_pairs=pairs,
+        second_score=m.score, second_matched=m.matched, second_rotation_deg=m.rotation_deg, second_translation=m.translation,
+    )
+    return dataclasses.replace(attempt, match=second, problem="")
+
+
+def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, chosen: CoarseAttempt,
+            base: dict[str, Any], details: dict[str, Any], params: RegistrationParams, timed, step) -> PairResult:
+    """From a confident coarse VOP match to the result: vertical offset, ICP, evidence checks."""
     step(0.6, "vertical alignment")
     coarse = timed("vertical", vertical_alignment, ref_prep, mov_prep, chosen.match.matrix(), fit_tilt=ref_prep.levelled or mov_prep.levelled)
     if coarse is None:
@@ -288,10 +365,18 @@ def register(
         )
     matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, fine.matrix)
     coarse_matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, coarse)
+    uncertainty = _pair_uncertainty(chosen, fine, params.match_distance_m)
+    quality = {
+        **terrain_agreement(ref_prep, mov_prep, fine.matrix),
+        "ambiguity": (chosen.match.second_matched or 0) / max(chosen.matched, 1),
+        "confirmed_vops": confirmed,
+        "icp_std_m": fine.std_m,
+        "icp_fitness": fine.fitness,
+    }
     step(1.0, "done")
     log.info(
         "ok: %d matched VOPs, ICP std %.1f mm, fitness %.2f (%.1f s)",
-        chosen.matched, 1000 * fine.std_m, fine.fitness, sum(timings.values()),
+        chosen.matched, 1000 * fine.std_m, fine.fitness, sum(base["timings"].values()),
     )
     return PairResult(
         status="ok",
@@ -308,6 +393,8 @@ def register(
         vop_residual_m=vop_residual,
         vertical_offset_m=dz,
         details=full_details,
+        uncertainty=uncertainty,
+        quality=quality,
         **common,
     )
 
@@ -440,6 +527,32 @@ def _vop_confirmation(attempt: CoarseAttempt, lsf_matrix: np.ndarray, match_dist
     moved = attempt.moving_vops.xy[pairs[:, 1]] @ lsf_matrix[:2, :2].T + lsf_matrix[:2, 3]
     d = np.hypot(*(moved - attempt.reference_vops.xy[pairs[:, 0]]).T)
     return float(np.mean(d)), int(np.sum(d < 0.75 * match_distance_m))
+
+
+def terrain_agreement(reference: PreparedScan, moving: PreparedScan, lsf_matrix: np.ndarray) -> dict[str, Any]:
+    """How well the two ground models agree under a moving-LSF -> reference-LSF matrix: the median
+    and the 90th percentile of the absolute height differences (m) over the ground cells both
+    measured, and their count. Needs no ground truth."""
+    g = moving.ground
+    ix, iy = np.nonzero(g.measured)
+    centres = np.column_stack([g.origin + (np.column_stack([ix, iy]) + 0.5) * g.cell_m, g.heights[ix, iy]])
+    moved = centres @ lsf_matrix[:3, :3].T + lsf_matrix[:3, 3]
+    both = reference.ground.measured_at(moved[:, :2])
+    if both.sum() < 10:
+        return {"terrain_cells": int(both.sum()), "terrain_median_m": None, "terrain_p90_m": None}
+    diff = np.abs(reference.ground.height_at(moved[both, :2]) - moved[both, 2])
+    return {"terrain_cells": int(both.sum()), "terrain_median_m": float(np.median(diff)), "terrain_p90_m": float(np.percentile(diff, 90))}
+
+
+def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, match_distance_m: float) -> dict[str, Any]:
+    """1-sigma uncertainty of the result from the matched trunks that still coincide after ICP
+    (see :func:`~forestreg.engine.tls.uncertainty.pair_uncertainty`)."""
+    pairs = attempt.match.matched_pairs
+    lsf = fine.matrix
+    moved = attempt.moving_vops.xy[pairs[:, 1]] @ lsf[:2, :2].T + lsf[:2, 3]
+    ref = attempt.reference_vops.xy[pairs[:, 0]]
+    keep = np.hypot(*(moved - ref).T) < 0.75 * match_distance_m
+    return pair_uncertainty(ref[keep], moved[keep], lsf[:2, 3], icp_std_m=fine.std_m)
 
 
 def lsf_to_file_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, lsf_matrix: np.ndarray) -> np.ndarray:

@@ -25,8 +25,9 @@ from ..io import read_scan, write_points
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, Project, ScanEntry
 from .pair import register
+from .scanner_position import locate_scanner
 from ..core.scan import Scan
-from ..core.transform import format_matrix, rigid_errors
+from ..core.transform import format_matrix, rigid_errors, withhold_unless_rigid
 
 log = logging.getLogger("forestreg")
 
@@ -44,7 +45,8 @@ class ScanCache:
     def __call__(self, name: str) -> Scan:
         if name not in self._scans:
             entry = self.project.scan(name)
-            self._scans[name] = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
+            scan = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
+            self._scans[name] = locate_scanner(scan)
         return self._scans[name]
 
 
@@ -139,8 +141,9 @@ def register_project(
 def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> dict[str, Any]:
     try:
         reference, moving = scans(link.reference), scans(link.moving)
-    except (ScanReadError, ScanDataError) as exc:  # one unreadable scan must not stop the plot
-        return {"status": "failed", "reason": str(exc), "matrix": None}
+    except (ScanReadError, ScanDataError) as exc:
+        # one unusable scan (unreadable, no scanner position to be found) fails its links, not the plot
+        return {"status": "failed", "reason": str(exc), "matrix": None, "reference": link.reference, "moving": link.moving}
     if link.method == "manual":
         from .manual import register_manual
 
@@ -149,11 +152,31 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
             link.params(project.params), progress=progress, cancel=cancel,
         )
     else:
+        prior = _link_prior(project, link, reference, moving)
         try:
-            result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel)
+            result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel, prior=prior)
         except DataError as exc:  # e.g. no points near a georeferenced scan's assumed scanner
             return {"status": "failed", "reason": str(exc), "matrix": None}
-    return _jsonable(result.to_dict())
+    return withhold_unless_rigid(_jsonable(result.to_dict()))
+
+
+def informative_priors(project: Project) -> bool:
+    """False when every scan's prior pose is the same matrix (e.g. an E57 whose scans all carry
+    identity poses: they are not placed in a common frame, so the poses say nothing)."""
+    priors = [np.asarray(s.prior_pose) for s in project.scans if s.prior_pose is not None]
+    return len(priors) >= 2 and not all(np.allclose(p, priors[0]) for p in priors[1:])
+
+
+def _link_prior(project: Project, link: Link, reference: Scan, moving: Scan) -> Optional[np.ndarray]:
+    """A rough moving-file -> reference-file matrix from the scans' prior poses (E57/SOP, a
+    positions/headings file), or identity when both files share a georeferenced frame; None
+    otherwise. Used only to decide between solutions that pass every check."""
+    a, b = project.scan(link.moving).prior_pose, project.scan(link.reference).prior_pose
+    if a is not None and b is not None and informative_priors(project):
+        return np.linalg.inv(np.asarray(b)) @ np.asarray(a)
+    if np.abs(reference.origin_shift).max() > 0.0 and np.abs(moving.origin_shift).max() > 0.0:
+        return np.eye(4)
+    return None
 
 
 def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> Link:
@@ -301,11 +324,44 @@ def write_poses(project: Project, out_dir: str | Path, outcome: Optional[PlotOut
         body["scans"][s.name] = entry
         if pose is not None:
             write_text_atomic(out / f"{s.name}.transform.txt", format_matrix(pose))
-    if project.adjustment:
-        body["adjustment"] = project.adjustment.get("links")
+    uncertainty = pose_uncertainty(project)
+    quality = (project.adjustment or {}).get("quality") or {}
+    for name, entry in body["scans"].items():
+        if entry["status"] == "ok":
+            entry["uncertainty"] = uncertainty.get(name)
+        if name in quality:
+            entry["quality"] = quality[name]
+    # always present (None without loops), so readers never meet a missing key
+    body["adjustment"] = (project.adjustment or {}).get("links")
+    if project.adjustment and project.adjustment.get("method") == "survey":
+        body["dropped_links"] = project.adjustment.get("dropped", [])
+        body["loops"] = project.adjustment.get("triangles", [])
+        body["uncertainty_inflation"] = project.adjustment.get("uncertainty_inflation")
     path = out / "poses.json"
     write_text_atomic(path, json.dumps(body, indent=2) + "\n")
     return path
+
+
+def pose_uncertainty(project: Project) -> dict[str, Optional[dict[str, float]]]:
+    """1-sigma uncertainty (``translation_m``, ``rotation_deg``) of every registered pose relative
+    to the frame scan: the survey solution's where there is one, else propagated along the links
+    from each pair's own uncertainty (see :mod:`~forestreg.engine.tls.uncertainty`)."""
+    from .uncertainty import propagate_uncertainty
+
+    stored = (project.adjustment or {}).get("uncertainty")
+    if stored:
+        return dict(stored)
+    poses = project.poses()
+    positions = {n: p[:3, 3] for n, p in poses.items() if p is not None}
+    rows = []
+    for link in project.links:
+        u = (link.result or {}).get("uncertainty") or {}
+        if link.ok and link.moving in positions and link.reference in positions:
+            rows.append({"moving": link.moving, "reference": link.reference, "translation_m": u.get("translation_m"), "rotation_deg": u.get("rotation_deg")})
+    if project.centre is None:
+        return {}
+    found = propagate_uncertainty(project.centre, positions, rows)
+    return {n: found.get(n) for n in positions}
 
 
 def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] = None) -> int:

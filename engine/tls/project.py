@@ -97,6 +97,8 @@ class Project:
     params: RegistrationParams = field(default_factory=RegistrationParams)
     path: Optional[Path] = None
     adjustment: Optional[dict[str, Any]] = None
+    #: System B: clouds and results beyond the TLS scans (see :class:`ForestResults`)
+    forest: "ForestResults" = field(default_factory=lambda: ForestResults())
 
     # ------------------------------------------------------------------ editing
 
@@ -225,6 +227,7 @@ class Project:
                 for link in self.links
             ],
             "adjustment": self.adjustment,
+            **({"forest": self.forest.to_dict(rel)} if not self.forest.empty else {}),
         }
 
     def save(self, path: Optional[str | Path] = None) -> Path:
@@ -283,6 +286,7 @@ class Project:
                 for link in data.get("links", [])
             ]
             params = RegistrationParams.from_mapping(data.get("parameters") or {})
+            forest = ForestResults.from_dict(data.get("forest") or {}, folder)
         except (KeyError, TypeError, ValueError) as exc:
             raise ProjectFileError(f"project file {p} is damaged ({exc!r}); it was left untouched") from exc
         project = cls(
@@ -293,6 +297,7 @@ class Project:
             params=params,
             path=p.resolve(),
             adjustment=data.get("adjustment"),
+            forest=forest,
         )
         _check_matrices(p, scans, links)
         names = {s.name for s in scans}
@@ -328,3 +333,63 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, (np.floating, np.integer)):
         return value.item()
     raise TypeError(f"cannot write {type(value).__name__} to a project file")
+
+
+@dataclass
+class ForestResults:
+    """The System B part of a project: the ground-based cloud (the registered plot or a
+    backpack/handheld file), UAV/ALS clouds, the co-registration result folder and the user's
+    decision on it ("", "accepted", "rejected"), the fused cloud, tree result folders by name
+    (e.g. "ground", "fused"), the field data file, and the tree edits made by hand
+    (:meth:`forestreg.engine.trees.edit.TreeEdit.to_dict` records, in order). Paths are absolute
+    in memory and relative to the project file on disk."""
+
+    ground_cloud: Optional[Path] = None
+    uav_clouds: list[Path] = field(default_factory=list)
+    coregistration: Optional[Path] = None
+    coregistration_decision: str = ""
+    fused_cloud: Optional[Path] = None
+    trees: dict[str, Path] = field(default_factory=dict)
+    field_data: Optional[Path] = None
+    tree_edits: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def empty(self) -> bool:
+        return not (self.ground_cloud or self.uav_clouds or self.coregistration or self.fused_cloud or self.trees
+                    or self.field_data or self.tree_edits or self.coregistration_decision)
+
+    def to_dict(self, rel: Any = str) -> dict[str, Any]:
+        """JSON form; ``rel`` turns an absolute path into the stored (relative) text."""
+        def one(p: Optional[Path]) -> Optional[str]:
+            return None if p is None else rel(Path(p))
+
+        return {
+            "ground_cloud": one(self.ground_cloud),
+            "uav_clouds": [rel(Path(p)) for p in self.uav_clouds],
+            "coregistration": one(self.coregistration),
+            "coregistration_decision": self.coregistration_decision,
+            "fused_cloud": one(self.fused_cloud),
+            "trees": {k: rel(Path(v)) for k, v in self.trees.items()},
+            "field_data": one(self.field_data),
+            "tree_edits": list(self.tree_edits),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], folder: Path) -> "ForestResults":
+        """Read :meth:`to_dict`'s form, paths resolved against the project's folder."""
+        def one(v: Any) -> Optional[Path]:
+            return None if v in (None, "") else (Path(folder) / str(v)).resolve()
+
+        decision = str(d.get("coregistration_decision") or "")
+        if decision not in ("", "accepted", "rejected"):
+            raise ValueError(f"unknown co-registration decision {decision!r}")
+        return cls(
+            ground_cloud=one(d.get("ground_cloud")),
+            uav_clouds=[one(v) for v in d.get("uav_clouds") or [] if v],
+            coregistration=one(d.get("coregistration")),
+            coregistration_decision=decision,
+            fused_cloud=one(d.get("fused_cloud")),
+            trees={str(k): one(v) for k, v in (d.get("trees") or {}).items() if v},
+            field_data=one(d.get("field_data")),
+            tree_edits=[dict(e) for e in d.get("tree_edits") or []],
+        )

@@ -18,7 +18,7 @@ import io
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -29,22 +29,28 @@ from ..core.errors import ScanDataError
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
 from ..core.params import Params, param_field as _p
+from .canopy import CanopyParams, CanopyTree, canopy_trees
+from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
 from .crown import CrownMeasurement, CrownParams, measure_crown
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
 from .segmentation import CompletenessParams, SegmentationParams, segment_trees, tree_completeness
-from .stems import DbhMeasurement, Stem, StemCurve, StemParams, detect_stems, measure_dbh, stem_curve
+from .stems import DbhMeasurement, Stem, StemCurve, StemParams, detect_stems_adaptive, measure_dbh, stem_curve
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TREE_COLUMNS", "TreeInventory", "TreeParams", "TreeRecord", "measure_trees"]
+__all__ = ["TREE_COLUMNS", "TreeInventory", "TreeParams", "TreeRecord", "measure_trees", "tree_record"]
 
 #: Columns of ``trees.csv`` (positions in file coordinates; metres, m^2, m^3).
 TREE_COLUMNS = (
     "tree_id", "x", "y", "z", "dbh_m", "height_m", "crown_base_m", "crown_width_ew_m", "crown_width_ns_m",
     "crown_area_m2", "crown_volume_m3", "volume_m3", "stem_volume_m3", "branch_volume_m3", "qsm_dbh_m",
-    "n_cylinders", "n_branches", "lean_deg", "dbh_arc_coverage", "dbh_rms_mm", "n_points", "wood_fraction", "flag",
+    "n_cylinders", "n_branches", "lean_deg", "dbh_arc_coverage", "dbh_rms_mm", "n_points", "wood_fraction",
+    "stem_form_factor", "source", "dbh_quality", "height_quality", "crown_quality", "volume_quality", "flag",
 )
+
+#: Trust levels of the quality columns (``"<how the value was obtained>; <trust>"``).
+TRUST_LEVELS = ("high", "medium", "low", "none")
 
 
 @dataclass(frozen=True)
@@ -58,6 +64,8 @@ class TreeParams(Params):
     crown: CrownParams = CrownParams()
     leafwood: LeafWoodParams = LeafWoodParams()
     qsm: QsmParams = QsmParams()
+    canopy: CanopyParams = CanopyParams()
+    form_factors: FormFactorBounds = FormFactorBounds()
     #: points with a wood probability at least this are wood (input of the cylinder model)
     wood_threshold: float = _p(0.5, "", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
@@ -77,6 +85,15 @@ class TreeRecord:
     n_points: int
     wood_fraction: float
     flags: tuple[str, ...]
+    #: DBH reported (the stem curve at breast height; NaN when not measured)
+    dbh_m: float = math.nan
+    #: wood volume reported (NaN when withheld) and the stem form factor V_stem / (BA * H)
+    volume_m3: float = math.nan
+    stem_form_factor: float = math.nan
+    #: "stem" (found from its stem) or "canopy" (from the canopy height model only)
+    source: str = "stem"
+    #: per measure: "<how>; <trust>" (trust: high, medium, low, none)
+    quality: dict[str, str] = field(default_factory=dict)
 
     @property
     def flag(self) -> str:
@@ -92,14 +109,14 @@ class TreeRecord:
             "x": self.stem.x + float(origin_shift[0]),
             "y": self.stem.y + float(origin_shift[1]),
             "z": self.stem.ground_z + float(origin_shift[2]),
-            "dbh_m": self.dbh.dbh_m,
+            "dbh_m": self.dbh_m,
             "height_m": self.crown.height_m,
             "crown_base_m": self.crown.crown_base_m,
             "crown_width_ew_m": self.crown.crown_width_ew_m,
             "crown_width_ns_m": self.crown.crown_width_ns_m,
             "crown_area_m2": self.crown.crown_area_m2,
             "crown_volume_m3": self.crown.crown_volume_m3,
-            "volume_m3": qsm.total_volume_m3 if qsm is not None else math.nan,
+            "volume_m3": self.volume_m3,
             "stem_volume_m3": qsm.stem_volume_m3 if qsm is not None else math.nan,
             "branch_volume_m3": qsm.branch_volume_m3 if qsm is not None else math.nan,
             "qsm_dbh_m": qsm.dbh_from_cylinders_m if qsm is not None else math.nan,
@@ -110,6 +127,12 @@ class TreeRecord:
             "dbh_rms_mm": 1000.0 * fit.rms_residual_m if fit is not None else math.nan,
             "n_points": self.n_points,
             "wood_fraction": self.wood_fraction,
+            "stem_form_factor": self.stem_form_factor,
+            "source": self.source,
+            "dbh_quality": self.quality.get("dbh", ""),
+            "height_quality": self.quality.get("height", ""),
+            "crown_quality": self.quality.get("crown", ""),
+            "volume_quality": self.quality.get("volume", ""),
             "flag": self.flag,
         }
 
@@ -130,22 +153,43 @@ class TreeInventory:
     dem: Dem
     origin_shift: np.ndarray
     timings: dict[str, float]
+    #: how the trees were found: "fine" / "noisy" stem profile (see stems.detect_stems_adaptive)
+    #: or "canopy" (tree tops of the canopy height model: an airborne cloud without stems)
+    method: str = "fine"
+
+    def summary(self) -> str:
+        """One line: trees found, measured (DBH, height, volume) and flagged."""
+        n = len(self.trees)
+        dbh = sum(1 for t in self.trees if math.isfinite(t.dbh_m))
+        h = sum(1 for t in self.trees if math.isfinite(t.crown.height_m))
+        vol = sum(1 for t in self.trees if math.isfinite(t.volume_m3))
+        flagged = sum(1 for t in self.trees if t.flags)
+        how = {"fine": "from stems", "noisy": "from stems (noisy/sparse profile)", "canopy": "from the canopy (no stems)"}.get(self.method, self.method)
+        canopy = sum(1 for t in self.trees if t.source == "canopy")
+        if self.method != "canopy" and canopy:
+            how += f" and {canopy} from the canopy"
+        return f"{n} trees found {how}: {dbh} with DBH, {h} with height, {vol} with volume; {flagged} flagged"
 
     def rows(self) -> list[dict[str, Any]]:
         return [t.row(self.origin_shift) for t in self.trees]
 
-    def write(self, out_dir: str | Path, points: Optional[np.ndarray] = None, *, report: bool = True) -> Path:
+    def write(self, out_dir: str | Path, points: Optional[np.ndarray] = None, *, report: bool = True,
+              unit_scale: float = 1.0) -> Path:
         """Write ``trees.csv``, ``stem_curves.csv``, ``cylinders/tree_NNNN.csv`` and (with the
-        points) ``report.html`` into ``out_dir``; returns the trees.csv path."""
+        points) ``report.html`` into ``out_dir``; returns the trees.csv path. Positions (``x, y,
+        z``, cylinder starts) are written in the input file's unit (``unit_scale`` metres per
+        unit); every ``*_m`` figure stays in metres."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         rows = self.rows()
-        write_text_atomic(out / "trees.csv", _csv(TREE_COLUMNS, rows))
+        file_rows = rows if unit_scale == 1.0 else [
+            {**r, "x": r["x"] / unit_scale, "y": r["y"] / unit_scale, "z": r["z"] / unit_scale} for r in rows]
+        write_text_atomic(out / "trees.csv", _csv(TREE_COLUMNS, file_rows))
         curve_rows = []
         for t in self.trees:
             c = t.curve
             for k in range(len(c.s_m)):
-                centre = c.centres[k] + self.origin_shift if np.isfinite(c.centres[k]).all() else [math.nan] * 3
+                centre = (c.centres[k] + self.origin_shift) / unit_scale if np.isfinite(c.centres[k]).all() else [math.nan] * 3
                 curve_rows.append({
                     "tree_id": t.tree_id, "s_m": c.s_m[k], "height_m": c.heights_m[k],
                     "diameter_m": c.diameter_m[k], "raw_diameter_m": c.raw_diameter_m[k],
@@ -159,7 +203,7 @@ class TreeInventory:
         cyl_dir.mkdir(exist_ok=True)
         for t in self.trees:
             if t.cylinders is not None:
-                shifted = dataclasses.replace(t.cylinders, start=t.cylinders.start + self.origin_shift)
+                shifted = dataclasses.replace(t.cylinders, start=(t.cylinders.start + self.origin_shift) / unit_scale)
                 shifted.write_csv(cyl_dir / f"tree_{t.tree_id:04d}.csv")
         if report and points is not None:
             from ..report.trees_report import write_trees_report
@@ -185,6 +229,19 @@ def _csv(columns: Sequence[str], rows: Sequence[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
+def _no_ground_dem(p: np.ndarray, resolution_m: float) -> Dem:
+    """The stand-in DEM of a cloud without ground: the lowest points within 5 m (stem feet of a
+    plot whose ground was removed, on a slope), or within the whole cloud when it is at most 12 m
+    across (a single tree: its crown must not lift its own ground)."""
+    extent = float(max(np.ptp(p[:, 0]), np.ptp(p[:, 1])))
+    return lowest_points_dem(p, resolution_m, window_m=2.0 * extent + resolution_m if extent <= 12.0 else 5.0)
+
+
+def _trust(*levels: str) -> str:
+    """The lowest of the trust levels given."""
+    return max(levels, key=TRUST_LEVELS.index)
+
+
 def measure_trees(
     points: np.ndarray,
     params: TreeParams = TreeParams(),
@@ -192,15 +249,19 @@ def measure_trees(
     *,
     origin_shift: Optional[np.ndarray] = None,
 ) -> TreeInventory:
-    """Detect, segment and measure every tree of a ground-based or fused cloud.
+    """Detect, segment and measure every tree of a ground-based, airborne or fused cloud.
 
-    ``points`` (N, 3) float64, local frame (metres, z up). Trees that are too incomplete to
-    measure (stem cut by the data's edge, top missing, DBH fit failed, ...) are kept and flagged.
+    ``points`` (N, 3) float64, local frame (metres, z up). Stems are detected with the settings
+    fitting the cloud (fine for TLS, noisy/sparse for MLS/ULS: :func:`.stems.detect_stems_adaptive`);
+    a cloud without any stem (ALS) gives trees from its canopy height model (:mod:`.canopy`):
+    positions, heights and crowns, DBH and volume flagged as not measured. Trees that are too
+    incomplete to measure are kept and flagged; each row says how each value was obtained and how
+    far to trust it (``quality``).
 
     Raises
     ------
     ScanDataError
-        Empty/NaN input, or no stem found (not a forest plot, or wrong units).
+        Empty/NaN input, or neither a stem nor a tree crown found (not a forest cloud, or wrong units).
     """
     progress = as_progress(progress)
     p = np.asarray(points, dtype=np.float64)
@@ -210,6 +271,7 @@ def measure_trees(
         raise ScanDataError("trees: the cloud holds NaN or infinite coordinates")
     timings: dict[str, float] = {}
     t = time.perf_counter()
+    progress(0.0, "terrain: ground and DEM")
     model = terrain_model(p, params.terrain, progress.sub(0.0, 0.08))
     heights = model.dem.normalise(p)
     below = float(np.mean(heights < -0.5))
@@ -218,7 +280,7 @@ def measure_trees(
             "%.0f %% of the points lie more than 0.5 m below the ground model: the cloud seems to have "
             "no ground; heights are taken above the lowest points instead", 100 * below,
         )
-        model = TerrainModel(ground=np.zeros(len(p), dtype=bool), dem=lowest_points_dem(p, params.terrain.dem_resolution_m))
+        model = TerrainModel(ground=np.zeros(len(p), dtype=bool), dem=_no_ground_dem(p, params.terrain.dem_resolution_m))
         heights = model.dem.normalise(p)
         no_ground = True
     else:
@@ -227,20 +289,25 @@ def measure_trees(
 
     t = time.perf_counter()
     progress(0.08, "detecting stems")
-    stems = detect_stems(p, heights, params.stems, progress.sub(0.08, 0.2))
-    if not stems:
-        raise ScanDataError(
-            "no stems found at breast height: is this a forest plot in metres, seen from the ground?"
-        )
+    stems, stem_params, method = detect_stems_adaptive(p, heights, params.stems, progress.sub(0.08, 0.2))
     timings["stems_s"] = time.perf_counter() - t
+    if not stems:
+        return _canopy_inventory(p, heights, model, no_ground, params, progress, origin_shift, timings)
 
     t = time.perf_counter()
-    progress(0.2, f"{len(stems)} stems: DBH and stem curves")
+    progress(0.2, f"{len(stems)} stems ({method} profile): DBH and stem curves")
     from scipy.spatial import cKDTree
 
     index = cKDTree(p)  # one spatial index for every stem's slices
-    dbh = {s.id: measure_dbh(p, heights, s, params.stems, search_tree=index) for s in stems}
-    curves = {s.id: stem_curve(p, heights, s, params.stems, search_tree=index) for s in stems}
+    dbh = {s.id: measure_dbh(p, heights, s, stem_params, search_tree=index) for s in stems}
+    curves = {s.id: stem_curve(p, heights, s, stem_params, search_tree=index) for s in stems}
+    if method == "noisy":  # thin stems found with the noisy settings may still be measured finely
+        for s in stems:
+            if not dbh[s.id].ok and s.radius_m < 0.1:
+                fine = measure_dbh(p, heights, s, params.stems, search_tree=index)
+                if fine.ok:
+                    dbh[s.id] = fine
+                    curves[s.id] = stem_curve(p, heights, s, params.stems, search_tree=index)
     timings["dbh_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -255,47 +322,372 @@ def measure_trees(
     wood = np.zeros(len(p))
     if np.count_nonzero(vegetation) >= 50:
         wood[vegetation] = wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
+    # the stem as the stem curve traces it is wood, whatever its covariance features say
+    tol = max(2.0 * stem_params.inlier_tolerance_m, 0.03)
+    for s in stems:
+        wood[stem_curve_wood(p, index, s, curves[s.id], tol)] = 1.0
     timings["leafwood_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     records: list[TreeRecord] = []
     order = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[order], [s.id for s in stems] + [s.id + 1 for s in stems])
+    ground_xy = cKDTree(p[model.ground, :2]) if model.ground.any() else None
+    crowns: dict[int, CrownMeasurement] = {}
     for k, stem in enumerate(stems):
-        progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: crown and cylinder model")
         idx = order[bounds[k] : bounds[k + len(stems)]]
-        tree_pts = p[idx]
         try:
-            crown = measure_crown(tree_pts, heights[idx], stem, params.crown)
+            crowns[stem.id] = measure_crown(p[idx], heights[idx], stem, params.crown)
         except ScanDataError as exc:  # no points reached this stem
             nan = math.nan
-            crown = CrownMeasurement(
+            crowns[stem.id] = CrownMeasurement(
                 tree_id=stem.id, x=stem.x, y=stem.y, height_m=nan, crown_base_m=nan, crown_width_ew_m=nan,
                 crown_width_ns_m=nan, crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan,
                 crown_volume_m3=nan, n_points=int(len(idx)), top=(nan, nan, nan), ok=False, reasons=(str(exc),),
             )
-        flags = list(complete[stem.id].reasons) if stem.id in complete else []
-        if no_ground:
-            flags.append("no ground in the cloud: heights above the lowest points")
-        if not crown.ok:
-            flags += [f"crown: {r}" for r in crown.reasons]
-        cylinders = None
-        if params.cylinder_models and len(idx) >= 50:
-            w = wood[idx] >= params.wood_threshold
-            qsm_pts = tree_pts[w] if np.count_nonzero(w) >= 200 else tree_pts
-            try:
-                cylinders = fit_qsm(qsm_pts, params.qsm, base=stem.base)
-            except ScanDataError as exc:
-                flags.append(f"cylinder model failed: {exc}")
-        records.append(TreeRecord(
-            tree_id=stem.id, stem=stem, dbh=dbh[stem.id], curve=curves[stem.id], crown=crown, cylinders=cylinders,
-            n_points=int(len(idx)), wood_fraction=float(np.mean(wood[idx] >= params.wood_threshold)) if len(idx) else 0.0,
-            flags=tuple(dict.fromkeys(flags)),
+    shared = _shared_tops(p, labels, stems, crowns)
+    for k, stem in enumerate(stems):
+        progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: crown and cylinder model")
+        idx = order[bounds[k] : bounds[k + len(stems)]]
+        records.append(tree_record(
+            p, stem, idx, dbh[stem.id], curves[stem.id], crowns[stem.id], wood,
+            complete[stem.id].reasons if stem.id in complete else (), params, stem_params=stem_params, method=method,
+            no_ground=no_ground, ground_xy=ground_xy, shared_flag=shared.get(stem.id),
         ))
     timings["trees_s"] = time.perf_counter() - t
+    if method == "noisy" and _airborne_like(heights):  # stems sparse and hardly sampled: the canopy decides
+        t = time.perf_counter()
+        progress(0.98, "airborne cloud: trees without a sampled stem from the canopy height model")
+        records, labels = _add_canopy_trees(p, heights, labels, records, no_ground, params)
+        timings["canopy_s"] = time.perf_counter() - t
     progress(1.0, f"{len(records)} trees measured")
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=wood, ground=model.ground, dem=model.dem,
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings,
+        timings=timings, method=method,
     )
+
+
+def tree_record(
+    p: np.ndarray,
+    stem: Stem,
+    idx: np.ndarray,
+    d: DbhMeasurement,
+    curve: StemCurve,
+    crown: CrownMeasurement,
+    wood: np.ndarray,
+    reasons: Sequence[str],
+    params: TreeParams = TreeParams(),
+    *,
+    stem_params: Optional[StemParams] = None,
+    method: str = "fine",
+    no_ground: bool = False,
+    ground_xy: Any = None,
+    shared_flag: Optional[str] = None,
+) -> TreeRecord:
+    """One tree's record from its measurements: the reported DBH (the stem curve at breast
+    height; none from a failed fit), the height's checks, the cylinder model on its wood points
+    made consistent with the stem curve, the form-factor check, the flags and the quality of each
+    measure. ``idx`` are the tree's point indices into ``p``; ``wood`` the wood probability of
+    every point (the stem traced by the curve already counted as wood); ``reasons`` the
+    completeness reasons; ``ground_xy`` a ``cKDTree`` of the ground points' x, y (or None);
+    ``shared_flag`` the reason its top is unsure, if any. Local frame, metres."""
+    stem_params = stem_params or params.stems
+    flags = list(reasons)
+    quality: dict[str, str] = {}
+    tree_pts = p[idx]
+    # --- DBH: the stem curve at breast height; a failed fit gives no value
+    d_curve = curve_dbh(curve, stem, stem_params.breast_height_m)
+    fit = d.fit
+    if math.isfinite(d_curve) and (d.ok or "inconsistent slices" in d.reasons):
+        dbh_value = d_curve
+        trust = "high" if d.ok else "medium"
+        if fit is not None and fit.arc_coverage < 0.5:
+            trust = _trust(trust, "medium")
+        if method == "noisy":
+            trust = _trust(trust, "medium")
+        if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d_curve, 0.008):
+            trust = _trust(trust, "low")
+            flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
+                         f"{1000 * d_curve:.0f} mm stem (noisy or ghosted shell)")
+        if math.isfinite(d.dbh_m) and abs(d.dbh_m - d_curve) > 0.1 * d_curve:
+            trust = _trust(trust, "low")
+            flags.append(f"DBH slices ({d.dbh_m:.3f} m) and stem curve ({d_curve:.3f} m) disagree")
+        how = "stem curve at 1.3 m" + (" (noisy/sparse profile)" if method == "noisy" else "")
+        quality["dbh"] = f"{how}, arc {fit.arc_coverage:.2f}; {trust}" if fit is not None else f"{how}; {trust}"
+    elif d.ok and math.isfinite(d.dbh_m):
+        dbh_value = d.dbh_m
+        trust = "medium"
+        if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d.dbh_m, 0.008):
+            trust = "low"
+            flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
+                         f"{1000 * d.dbh_m:.0f} mm stem (noisy or ghosted shell)")
+        quality["dbh"] = f"circle fits at 1.3 m (no stem-curve section there); {trust}"
+    else:
+        dbh_value = math.nan
+        why = ", ".join(d.reasons) or "no stem-curve section at breast height"
+        quality["dbh"] = f"not measured: {why}; none"
+        if "DBH not measured" not in flags:
+            flags.append(f"DBH fit failed: {why}")
+    # --- height: the tree's top above the ground under its stem
+    h_trust = "high"
+    h_how = "highest tree point above the stem's ground"
+    if no_ground:
+        flags.append("no ground in the cloud: heights above the lowest points")
+        h_trust, h_how = "low", "highest tree point above the cloud's lowest points (no ground)"
+    elif ground_xy is not None and not ground_xy.query_ball_point([stem.x, stem.y], 3.0):
+        flags.append("no ground points within 3 m of the stem: ground interpolated")
+        h_trust = _trust(h_trust, "medium")
+    lowest = _lowest_stem_point(tree_pts, stem)
+    if math.isfinite(lowest) and lowest < stem.ground_z - 0.25:
+        flags.append(f"stem points reach {stem.ground_z - lowest:.2f} m below the ground found: ground uncertain")
+        h_trust = _trust(h_trust, "low")
+    if "top missing" in reasons:
+        h_trust = _trust(h_trust, "low")
+        h_how += ", top missing in the data"
+    elif any(r.startswith(("too few crown points", "too few points")) for r in reasons):
+        h_trust = _trust(h_trust, "low")
+        h_how += ", crown too sparse to confirm the top"
+    if shared_flag:
+        flags.append(shared_flag)
+        h_trust = _trust(h_trust, "low")
+        h_how += ", top shared with a taller neighbour"
+    quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
+    if math.isfinite(dbh_value):  # a DBH is reported: no "fit failed" flag, say what is unsure
+        failed = [f for f in flags if f.startswith("DBH fit failed")]
+        flags = [f for f in flags if not f.startswith("DBH fit failed")]
+        if failed:
+            flags.append("DBH slices inconsistent: the stem curve's value is given (" + quality["dbh"].rsplit("; ", 1)[-1] + " trust)")
+    if not crown.ok:
+        flags += [f"crown: {r}" for r in crown.reasons]
+    c_trust = "high" if crown.ok else "none"
+    if crown.ok and any("cut by the plot edge" in r for r in reasons):
+        c_trust = "low"
+    elif crown.ok and shared_flag:
+        c_trust = "low"
+    quality["crown"] = f"crown points of the segmented tree; {c_trust}"
+    # --- cylinder model, on the wood points, its stem made consistent with the stem curve
+    cylinders = None
+    if params.cylinder_models and len(idx) >= 50:
+        w = wood[idx] >= params.wood_threshold
+        if np.count_nonzero(w) >= 200:
+            try:
+                cylinders = fit_qsm(tree_pts[w], params.qsm, base=stem.base)
+                cylinders, _ = reconcile_stem(cylinders, stem, curve, crown.height_m)
+            except ScanDataError as exc:
+                flags.append(f"cylinder model failed: {exc}")
+        else:
+            flags.append(f"cylinder model not fitted: too few wood points ({int(np.count_nonzero(w))})")
+    if cylinders is not None:
+        volume, ff, quality["volume"], vflag = form_factor_check(
+            cylinders.total_volume_m3, cylinders.stem_volume_m3, dbh_value, crown.height_m, params.form_factors)
+        if vflag:
+            flags.append(vflag)
+        n_top = int(cylinders.meta.get("stem_cylinders_added_to_top", 0))
+        if n_top and "; high" in quality["volume"]:
+            quality["volume"] = quality["volume"].replace("; high", f", upper stem ({n_top} cylinders) tapered to the top; medium")
+        if "top missing" in reasons and "; high" in quality["volume"]:
+            quality["volume"] = quality["volume"].replace("; high", "; medium")
+    else:
+        volume, ff, quality["volume"] = math.nan, math.nan, "no cylinder model; none"
+    return TreeRecord(
+        tree_id=stem.id, stem=stem, dbh=d, curve=curve, crown=crown, cylinders=cylinders,
+        n_points=int(len(idx)), wood_fraction=float(np.mean(wood[idx] >= params.wood_threshold)) if len(idx) else 0.0,
+        flags=tuple(dict.fromkeys(flags)), dbh_m=dbh_value, volume_m3=volume, stem_form_factor=ff,
+        source="stem", quality=quality,
+    )
+
+
+def _lowest_stem_point(tree_pts: np.ndarray, stem: Stem) -> float:
+    """z of the lowest tree point close to the stem axis (within the radius plus 0.1 m, up to 2 m
+    along it): the stem's own foot as the data show it."""
+    if len(tree_pts) == 0:
+        return math.nan
+    d = tree_pts - stem.base
+    s = d @ stem.axis
+    radial = np.linalg.norm(d - s[:, None] * stem.axis, axis=1)
+    near = (radial <= stem.radius_m + 0.1) & (s <= 2.0)
+    return float(tree_pts[near, 2].min()) if near.any() else math.nan
+
+
+def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crowns: dict[int, CrownMeasurement]) -> dict[int, str]:
+    """Trees whose top is not their own or was not seen: points of no tree stand above the top
+    (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
+    stand above the top (within 1 m horizontally, more than 1 m higher), or the top lies nearer
+    (horizontally) to a taller neighbour's stem than to its own. Returns {tree id: flag}."""
+    from scipy.spatial import cKDTree
+
+    out: dict[int, str] = {}
+    tree_mask = labels > 0
+    if not tree_mask.any():
+        return out
+    xy_index = cKDTree(p[tree_mask, :2])
+    z_all = p[tree_mask, 2]
+    lab_all = labels[tree_mask]
+    free = np.flatnonzero(~tree_mask)
+    free_index = cKDTree(p[free, :2]) if len(free) else None
+    pos = {s.id: np.array([s.x, s.y]) for s in stems}
+    for s in stems:
+        c = crowns.get(s.id)
+        if c is None or not np.isfinite(c.top).all():
+            continue
+        top = np.asarray(c.top)
+        if free_index is not None:
+            widths = [w for w in (c.crown_width_ew_m, c.crown_width_ns_m) if math.isfinite(w)]
+            reach = max([2.0] + [0.5 * w for w in widths])
+            near = free[np.asarray(free_index.query_ball_point([s.x, s.y], reach), dtype=np.int64)]
+            if np.count_nonzero(p[near, 2] > top[2] + 1.0) >= 20:
+                out[s.id] = "points of no tree above the top: top probably higher (height unsure)"
+                continue
+        near = np.asarray(xy_index.query_ball_point(top[:2], 1.0), dtype=np.int64)
+        over = near[(lab_all[near] != s.id) & (z_all[near] > top[2] + 1.0)]
+        if len(over) >= 5:
+            out[s.id] = "top under a neighbour's crown: height unsure (top unseen or shared)"
+            continue
+        own = float(np.hypot(*(top[:2] - pos[s.id])))
+        for o in stems:
+            if o.id == s.id:
+                continue
+            co = crowns.get(o.id)
+            if co is None or not math.isfinite(co.height_m) or not math.isfinite(c.height_m) or co.height_m <= c.height_m:
+                continue
+            if float(np.hypot(*(top[:2] - pos[o.id]))) < own and own > 1.0:
+                out[s.id] = f"top shared with taller tree {o.id}: height unsure"
+                break
+    return out
+
+
+def _canopy_inventory(
+    p: np.ndarray, heights: np.ndarray, model: TerrainModel, no_ground: bool, params: TreeParams,
+    progress: Progress, origin_shift: Optional[np.ndarray], timings: dict[str, float],
+) -> TreeInventory:
+    """Trees of a cloud without stems (airborne): tops and crowns from the canopy height model."""
+    t = time.perf_counter()
+    progress(0.3, "no stems at breast height: trees from the canopy height model")
+    trees, labels = canopy_trees(p, heights, params.canopy)
+    timings["canopy_s"] = time.perf_counter() - t
+    if not trees:
+        raise ScanDataError(
+            "no stems found at breast height and no tree crowns in the canopy: is this a forest cloud in metres?"
+        )
+    records = [_canopy_record(ct, ct.tree_id, no_ground) for ct in trees]
+    progress(1.0, f"{len(records)} trees from the canopy")
+    return TreeInventory(
+        trees=records, labels=labels, heights=heights, wood_probability=np.zeros(len(p)), ground=model.ground,
+        dem=model.dem, origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
+        timings=timings, method="canopy",
+    )
+
+
+def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool) -> TreeRecord:
+    """The record of a tree found from the canopy (no stem): position, height, crown; DBH and
+    volume not measured (flagged)."""
+    nan = math.nan
+    base = np.array([ct.top[0], ct.top[1], ct.ground_z])
+    stem = Stem(id=tree_id, base=base, axis=np.array([0.0, 0.0, 1.0]), radius_m=nan, point_indices=np.zeros(0, dtype=np.int64))
+    dbh = DbhMeasurement(tree_id, nan, base + [0, 0, 1.3], 1.3, None, False, ("stem not sampled",))
+    empty = np.zeros(0)
+    curve = StemCurve(tree_id, empty, empty, empty, empty, np.zeros(0, bool), np.zeros(0, bool), np.zeros((0, 3)), ())
+    crown = CrownMeasurement(
+        tree_id=tree_id, x=float(ct.top[0]), y=float(ct.top[1]), height_m=ct.height_m, crown_base_m=ct.crown_base_m,
+        crown_width_ew_m=ct.crown_width_ew_m, crown_width_ns_m=ct.crown_width_ns_m, crown_area_m2=ct.crown_area_m2,
+        crown_diameter_m=0.5 * (ct.crown_width_ew_m + ct.crown_width_ns_m), crown_length_m=ct.height_m - ct.crown_base_m,
+        crown_volume_m3=ct.crown_volume_m3, n_points=len(ct.point_indices), top=tuple(float(v) for v in ct.top), ok=True, reasons=(),
+    )
+    flags = ["DBH not measured: stem not sampled (tree from the canopy)"]
+    h_trust = "high"
+    if no_ground:
+        flags.append("no ground in the cloud: heights above the lowest points")
+        h_trust = "low"
+    if ct.beside_taller:
+        flags.append("top beside a taller crown: height unsure (tops not separable)")
+        h_trust = "low"
+    return TreeRecord(
+        tree_id=tree_id, stem=stem, dbh=dbh, curve=curve, crown=crown, cylinders=None,
+        n_points=len(ct.point_indices), wood_fraction=nan, flags=tuple(flags), source="canopy",
+        quality={
+            "dbh": "not measured: stem not sampled; none",
+            "height": f"highest crown point above the DEM (canopy height model); {h_trust}",
+            "crown": "crown segment of the canopy height model; medium",
+            "volume": "not measured (no stem); none",
+        },
+    )
+
+
+#: Points at 1-3 m per point above 3 m below which a cloud whose stems are sparsely sampled (noisy
+#: profile) is taken as airborne (ALS/ULS); ground-based clouds hold 0.1 and more (a TLS plot of tall
+#: trees without ground 0.04, but its stems are dense), airborne ones 0.005-0.03.
+AIRBORNE_BAND_RATIO = 0.08
+
+
+def _airborne_like(heights: np.ndarray) -> bool:
+    band = np.count_nonzero((heights > 1.0) & (heights < 3.0))
+    above = np.count_nonzero(heights > 3.0)
+    return above > 0 and band / above < AIRBORNE_BAND_RATIO
+
+
+def _add_canopy_trees(
+    p: np.ndarray, heights: np.ndarray, labels: np.ndarray, records: list[TreeRecord], no_ground: bool, params: TreeParams
+) -> tuple[list[TreeRecord], np.ndarray]:
+    """Airborne clouds: the canopy height model decides the crowns, stems attach to them.
+
+    Each stem joins the canopy segment holding most crown points within 1.5 m of it; of the stems
+    of one segment the one nearest its top owns it (height, crown base, widths, area and volume
+    of the segment; its crown points relabelled), the others are under its crown (their height is
+    flagged as unsure). Segments without a sampled stem become trees from the canopy. Returns the
+    records and the labels."""
+    from scipy.spatial import cKDTree
+
+    trees, canopy_labels = canopy_trees(p, heights, params.canopy)
+    if not trees:
+        return records, labels
+    labels = labels.copy()
+    crown_pts = np.flatnonzero(canopy_labels > 0)
+    index = cKDTree(p[crown_pts, :2])
+    by_segment: dict[int, list[int]] = {}
+    for k, r in enumerate(records):
+        near = crown_pts[np.asarray(index.query_ball_point([r.stem.x, r.stem.y], 1.5), dtype=np.int64)]
+        if len(near) == 0:
+            continue
+        seg = int(np.bincount(canopy_labels[near]).argmax())
+        by_segment.setdefault(seg, []).append(k)
+    out = list(records)
+    next_id = max((r.tree_id for r in records), default=0) + 1
+    for ct in trees:
+        members = by_segment.get(ct.tree_id, [])
+        if not members:
+            labels[ct.point_indices] = next_id
+            out.append(_canopy_record(ct, next_id, no_ground))
+            next_id += 1
+            continue
+        owner = min(members, key=lambda k: math.hypot(records[k].stem.x - ct.top[0], records[k].stem.y - ct.top[1]))
+        r = records[owner]
+        labels[ct.point_indices] = r.tree_id
+        crown = dataclasses.replace(
+            r.crown, height_m=float(ct.top[2] - r.stem.ground_z), crown_base_m=ct.crown_base_m,
+            crown_width_ew_m=ct.crown_width_ew_m, crown_width_ns_m=ct.crown_width_ns_m, crown_area_m2=ct.crown_area_m2,
+            crown_diameter_m=0.5 * (ct.crown_width_ew_m + ct.crown_width_ns_m),
+            crown_length_m=float(ct.top[2] - r.stem.ground_z) - ct.crown_base_m, crown_volume_m3=ct.crown_volume_m3,
+            top=tuple(float(v) for v in ct.top), ok=True, reasons=(),
+        )
+        quality = dict(r.quality)
+        offset = math.hypot(r.stem.x - ct.top[0], r.stem.y - ct.top[1])
+        far = offset > max(1.5, 0.25 * (ct.crown_width_ew_m + ct.crown_width_ns_m) / 2.0)
+        trust = "low" if (no_ground or ct.beside_taller or far) else "high"
+        quality["height"] = f"highest point of its canopy segment above the stem's ground; {trust}"
+        quality["crown"] = "crown segment of the canopy height model; medium"
+        flags = [f for f in r.flags if not f.startswith(("top ", "points of no tree", "crown:", "too few crown"))]
+        if ct.beside_taller:
+            flags.append("top beside a taller crown: height unsure (tops not separable)")
+        if far:
+            flags.append(f"canopy top {offset:.1f} m from the stem: it may be a neighbour's (height unsure)")
+        out[owner] = dataclasses.replace(r, crown=crown, quality=quality, flags=tuple(dict.fromkeys(flags)))
+        for k in members:
+            if k == owner:
+                continue
+            o = out[k]
+            quality = dict(o.quality)
+            quality["height"] = quality.get("height", "").rsplit("; ", 1)[0] + ", under the crown of tree " + f"{r.tree_id}; low"
+            out[k] = dataclasses.replace(o, quality=quality, flags=tuple(dict.fromkeys(
+                list(o.flags) + [f"under the crown of tree {r.tree_id}: own top unseen (height unsure)"])))
+    return out, labels

@@ -62,6 +62,7 @@ class SegmentationParams(Params):
     axis_max_gap_m: float = param_field(3.0, "m", 0.0, 50.0, "...with gaps (occluded stem) of at most this length; 0 = no axis continuation")
     orphan_max_distance_m: float = param_field(1.0, "m", 0.0, 10.0, "Unreached voxels join the nearest reached voxel within this distance")
     orphan_min_height_m: float = param_field(2.0, "m", 0.0, 50.0, "...if they stand at least this high above the ground")
+    orphan_passes: int = param_field(20, "passes", 1, 1000, "...repeated this many times at most, so chains of detached parts (a sparse crown) are reached")
 
 
 def _stem_axis_members(points: np.ndarray, stems: Sequence[Stem], margin_m: float, s_max: float) -> np.ndarray:
@@ -150,10 +151,18 @@ def segment_trees(
     if params.orphan_max_distance_m > 0 and reached.any() and (~reached).any():
         vox_height = np.bincount(vox_of, weights=h[up_idx], minlength=n_vox) / np.bincount(vox_of, minlength=n_vox)
         orphan = np.flatnonzero(~reached & (vox_height >= params.orphan_min_height_m))
-        if len(orphan):
+        # repeated, so that a sparse crown (a tall tree seen from far below) is reached as a
+        # chain of detached parts, each within the distance of the part before
+        for _ in range(params.orphan_passes):
+            if len(orphan) == 0 or not reached.any():
+                break
             dist, nn = cKDTree(centroids[reached]).query(centroids[orphan], distance_upper_bound=params.orphan_max_distance_m)
             ok = np.isfinite(dist)
+            if not ok.any():
+                break
             vox_label[orphan[ok]] = vox_label[np.flatnonzero(reached)[nn[ok]]]
+            reached = vox_label > 0
+            orphan = orphan[~ok]
     labels[up_idx] = vox_label[vox_of]
     report(1.0, "segmented")
     return labels

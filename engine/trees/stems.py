@@ -653,6 +653,63 @@ def detect_stems(points: Any, heights: Any, params: StemParams = StemParams(), p
     return stems
 
 
+#: Changes to :class:`StemParams` for sparse or noisy stems (mobile/backpack/handheld SLAM clouds
+#: with thick or ghosted bark shells, UAV clouds with few stem returns): coarser neighbourhoods
+#: and clustering, a wider inlier band and residual, fewer points per slice.
+NOISY_STEM_CHANGES: dict[str, Any] = {
+    "detection_voxel_m": 0.02,
+    "neighbour_radius_m": 0.2,
+    "cluster_distance_m": 0.2,
+    "inlier_tolerance_m": 0.04,
+    "max_fit_residual_m": 0.04,
+    "max_surface_variation": 0.25,
+    "max_normal_tilt_deg": 35.0,
+    "min_slice_points": 10,
+    "detection_min_slice_points": 8,
+    "max_interior_fraction": 0.1,
+    "search_margin_m": 0.15,
+}
+
+#: Band points whose median distance to their 4th neighbour exceeds this (m) are sampled too
+#: sparsely (or too noisily) for the fine profile: the noisy profile is used.
+SPARSE_SPACING_M = 0.03
+
+
+def band_spacing(points: np.ndarray, heights: np.ndarray, params: StemParams = StemParams(), sample: int = 20000) -> float:
+    """Median distance (m) from a detection-band point to its 4th nearest band neighbour (NaN when
+    the band holds fewer than 5 points): the sampling density of the stems."""
+    band = np.flatnonzero((heights >= params.band_low_m) & (heights <= params.band_high_m))
+    if len(band) < 5:
+        return float("nan")
+    q = points[band]
+    probe = q if len(q) <= sample else q[np.random.default_rng(0).choice(len(q), sample, replace=False)]
+    d, _ = cKDTree(q).query(probe, k=[5])
+    return float(np.median(d))
+
+
+def detect_stems_adaptive(
+    points: Any, heights: Any, params: StemParams = StemParams(), progress: Optional[Progress] = None
+) -> tuple[list[Stem], StemParams, str]:
+    """:func:`detect_stems` with the settings chosen for the cloud's stem sampling.
+
+    Dense, clean stems (TLS) use ``params`` ("fine" profile). Where the band points are spaced more
+    than :data:`SPARSE_SPACING_M` apart (mobile, backpack, UAV clouds), or the fine profile finds
+    nothing, ``params`` with :data:`NOISY_STEM_CHANGES` are used ("noisy" profile: thick shells,
+    ghosts, few points); when the profile chosen by the spacing finds nothing, the other is tried. Returns (stems, the parameters used, the profile name); the DBH and stem
+    curves must be measured with the same parameters.
+    """
+    p, h = check_cloud(points, heights)
+    assert h is not None
+    spacing = band_spacing(p, h, params)
+    noisy = params.replace(**NOISY_STEM_CHANGES)
+    order = [(noisy, "noisy"), (params, "fine")] if math.isfinite(spacing) and spacing > SPARSE_SPACING_M else [(params, "fine"), (noisy, "noisy")]
+    for prm, name in order:
+        stems = detect_stems(p, h, prm, progress)
+        if stems:
+            return stems, prm, name
+    return [], order[0][0], order[0][1]
+
+
 def _interior_fraction(points: np.ndarray, heights: np.ndarray, tree_xy: cKDTree, cand: _Candidate, params: StemParams) -> float:
     """Points inside a candidate stem (closer to its axis than its radius minus a margin) per
     point on its surface, in the detection band: about 0 for a trunk (nothing can be seen inside
@@ -832,8 +889,8 @@ def measure_dbh(points: Any, heights: Any, stem: Stem, params: StemParams = Stem
         if fit is not None and not reasons:
             good.append((offset, fit.diameter_m, fit, centre))
     if not good:
-        dbh = first_fit.diameter_m if first_fit is not None and math.isfinite(first_fit.radius_m) else float("nan")
-        return DbhMeasurement(stem.id, dbh, first_centre, bh, first_fit, False, first_reasons or ("no slice could be fitted",))
+        # a failed fit reports no value (the fit itself stays for diagnosis)
+        return DbhMeasurement(stem.id, float("nan"), first_centre, bh, first_fit, False, first_reasons or ("no slice could be fitted",))
     near = [g for g in good if abs(g[0]) <= 0.1 + 1e-9]
     note = ""
     if not near:

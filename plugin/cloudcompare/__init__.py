@@ -2,8 +2,9 @@
 
 Select two point clouds (the reference first, then the moving one), run "forestreg: register
 selected pair": both clouds are written to temporary binary PLY files in their global
-coordinates, ``forestreg register`` runs in a separate process through
-:mod:`forestreg.plugin.adapter`, and the resulting matrix (``p_reference = matrix @ p_moving``) is
+coordinates, ``forestreg register`` runs as a job of the forestreg service (started on first use;
+its progress events are printed to the console) through :mod:`forestreg.plugin.adapter`, and the
+resulting matrix (``p_reference = matrix @ p_moving``) is
 applied to the moving cloud. A failed registration changes nothing and shows the reason.
 
 The runtime discovers the plugin through the entry point group ``cloudcompare.plugins``::
@@ -39,7 +40,8 @@ def register_files(
     log: Optional[adapter.LogCallback] = None,
     scanner_positions: Sequence[Sequence[float]] = (),
 ) -> adapter.HostOutputs:
-    """Run the CLI on two files; the outputs' ``matrix`` is None when the registration failed."""
+    """Register two files as a job of the service; the outputs' ``matrix`` is None when the
+    registration failed."""
     job = adapter.PairJob(reference, moving, out_dir, vop_radius_m=vop_radius_m, scanner_positions=scanner_positions)
     return adapter.register_pair(job, cli, progress=progress, log=log)
 

@@ -1,5 +1,6 @@
-"""forestreg in QGIS: a menu action and a Processing provider that run the ``forestreg`` CLI in a
-separate process and load the scanner positions and VOPs as point layers.
+"""forestreg in QGIS: a menu action and a Processing provider that submit jobs to the forestreg
+job service (started when it is not running), show their progress, and load the scanner positions
+and VOPs as point layers.
 
 QGIS has its own Qt binding: nothing here imports PySide6, and ``qgis`` is imported only by the
 modules QGIS loads through :func:`classFactory` (``host``, ``provider``), never by this package.

@@ -30,7 +30,7 @@ class ForestregPlugin:
         parent = self.iface.mainWindow() if self.iface is not None else None
         self.action = QAction(ACTION_TEXT, parent)
         self.action.setObjectName("forestregRegisterScans")
-        self.action.setToolTip("Register two TLS scans from trunk shadows (runs the forestreg command line)")
+        self.action.setToolTip("Register two TLS scans from trunk shadows (a job of the forestreg service)")
         self.action.triggered.connect(self.run)
         if self.iface is not None:
             self.iface.addPluginToMenu(MENU, self.action)

@@ -1,8 +1,9 @@
 """The forestreg Processing provider: "Register TLS pair (trunk shadows)" and "Register plot".
 
-Each algorithm runs the ``forestreg`` CLI in a separate process through :mod:`forestreg.plugin.adapter`
-(progress and log lines go to the Processing feedback, Cancel stops the process), then loads the
-scanner positions and the VOPs as delimited-text point layers when the algorithm completes.
+Each algorithm submits its command as a job to the forestreg job service through
+:mod:`forestreg.plugin.adapter` (the service is started on first use when it is not running): the
+job's progress events and output lines go to the Processing feedback, Cancel cancels the job, and
+the scanner positions and the VOPs are loaded as delimited-text point layers when it completes.
 """
 
 from __future__ import annotations
@@ -49,7 +50,9 @@ def _run_and_report(run, feedback):
         feedback.pushConsoleInfo(line)
 
     try:
-        return run(progress, log, feedback.isCanceled)
+        outputs = run(progress, log, feedback.isCanceled)
+        feedback.setProgress(100.0)  # the job ended: its last event may stop short of 1.0
+        return outputs
     except adapter.CancelledError as exc:
         raise QgsProcessingException(str(exc)) from exc
     except adapter.AdapterError as exc:
@@ -96,7 +99,7 @@ class _Base(QgsProcessingAlgorithm):
         crs.setFlags(crs.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
         self.addParameter(crs)
         cli = QgsProcessingParameterString(
-            self.CLI, "forestreg command (path, or e.g. 'python3 -m forestreg.cli'; empty: forestreg on PATH)",
+            self.CLI, "forestreg command that starts the service (path, or e.g. 'python3 -m forestreg.cli'; empty: forestreg on PATH)",
             defaultValue=QgsSettings().value(SETTINGS_CLI, "", type=str), optional=True,
         )
         cli.setFlags(cli.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
@@ -129,7 +132,7 @@ class RegisterPairAlgorithm(_Base):
     def shortHelpString(self):  # noqa: N802
         return (
             "Registers the moving scan onto the reference scan from the shadows the trunks cast "
-            "(visual occlusion points), then ICP, by running 'forestreg register' in a separate process. "
+            "(visual occlusion points), then ICP, as a 'forestreg register' job of the forestreg service. "
             "Writes result.json, transform.txt (p_reference = matrix @ p_moving), the VOP files and a figure "
             "into the output folder, and loads the scanner positions and the VOPs (in the reference scan's "
             "coordinates; 'matched' = 1 for matched VOPs) as point layers."
@@ -153,7 +156,7 @@ class RegisterPairAlgorithm(_Base):
             vop_radius_m=self._dr(parameters, context),
         )
         cli = self._cli(parameters, context)
-        feedback.pushInfo("running: " + " ".join(adapter.build_pair_command(job, cli)))
+        feedback.pushInfo("job: forestreg " + " ".join(adapter.build_pair_args(job)))
         outputs = _run_and_report(lambda p, l, c: adapter.register_pair(job, cli, p, l, c), feedback)
         if outputs.status != "ok":
             feedback.reportError(f"registration failed: {outputs.reason}")
@@ -184,8 +187,8 @@ class RegisterPlotAlgorithm(_Base):
 
     def shortHelpString(self):  # noqa: N802
         return (
-            "Registers all scans of a plot onto the centre scan (the first one unless given) by running "
-            "'forestreg plot' in a separate process. Writes project.json, poses.json (p_centre = matrix @ p_scan), "
+            "Registers all scans of a plot onto the centre scan (the first one unless given) as a "
+            "'forestreg plot' job of the forestreg service. Writes project.json, poses.json (p_centre = matrix @ p_scan), "
             "one <scan>.transform.txt per registered scan and report.html into the output folder, and loads the "
             "scanner positions in the centre scan's coordinates as a point layer."
         )
@@ -217,7 +220,7 @@ class RegisterPlotAlgorithm(_Base):
             vop_radius_m=self._dr(parameters, context),
         )
         cli = self._cli(parameters, context)
-        feedback.pushInfo("running: " + " ".join(adapter.build_plot_command(job, cli)))
+        feedback.pushInfo("job: forestreg " + " ".join(adapter.build_plot_args(job)))
         outputs = _run_and_report(lambda p, l, c: adapter.register_plot(job, cli, p, l, c), feedback)
         if outputs.status != "ok":
             feedback.reportError(f"not every scan was registered: {outputs.reason}")

@@ -1,0 +1,55 @@
+"""The HTML overview of a batch of plots (``forestreg batch``): one row per plot, failures first.
+
+Uses the report style and helpers of the evaluation report (one self-contained file, written
+atomically). Each row links to the plot's own ``report.html`` when it has one.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from ..core.atomic import write_text_atomic
+from .evaluation_report import esc, generated_line, html_page
+
+_STATUS_COLOUR = {"ok": "#1a7f37", "failed": "#b35900", "error": "#c62828"}
+_ORDER = {"error": 0, "failed": 1, "ok": 2}
+
+
+def batch_report_html(rows: Sequence[Mapping[str, Any]], out_dir: Path, *, title: str, facts: Mapping[str, Any]) -> str:
+    """The overview page of ``rows`` (the rows of ``summary.csv``) for the batch in ``out_dir``."""
+    counts: dict[str, int] = {}
+    for r in rows:
+        counts[str(r["status"])] = counts.get(str(r["status"]), 0) + 1
+    body = [f"<h1>{esc(title)}</h1>", f"<p class=\"small\">{esc(generated_line())}</p>"]
+    body.append("<p>" + ", ".join(f"<b>{n}</b> {esc(s)}" for s, n in sorted(counts.items(), key=lambda kv: _ORDER.get(kv[0], 3)))
+                + f" of {len(rows)} plots. " + "; ".join(f"{esc(k)}: {esc(v)}" for k, v in facts.items()) + "</p>")
+    with_trees = any(str(r.get("trees") or "") for r in rows)
+    head = ["plot", "status", "scans", "registered"] + (["trees"] if with_trees else []) + ["seconds", "reason", "outputs"]
+    body.append("<table><thead><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr></thead><tbody>")
+    for r in sorted(rows, key=lambda r: (_ORDER.get(str(r["status"]), 3), str(r["plot"]))):
+        folder = out_dir / str(r["plot"])
+        links = []
+        for name in ("report.html", "poses.json", "result.json", "trees.csv"):
+            if (folder / name).is_file():
+                links.append(f'<a href="{esc(os.path.relpath(folder / name, out_dir))}">{esc(name)}</a>')
+        colour = _STATUS_COLOUR.get(str(r["status"]), "#555")
+        seconds = r.get("seconds")
+        cells = [
+            esc(r["plot"]), f'<b style="color:{colour}">{esc(r["status"])}</b>', esc(r.get("scans", "")),
+            esc(r.get("registered", "")), *([esc(r.get("trees", ""))] if with_trees else []),
+            esc(f"{float(seconds):.1f}" if seconds not in (None, "") else ""),
+            esc(r.get("reason", "")), " ".join(links),
+        ]
+        body.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    body.append("</tbody></table>")
+    return html_page(title, body)
+
+
+def write_batch_report(rows: Sequence[Mapping[str, Any]], out_dir: str | os.PathLike[str], *, title: str = "forestreg batch", facts: Mapping[str, Any] = {}) -> Path:
+    """Write ``OUT/index.html`` for the batch; returns its path."""
+    out = Path(out_dir)
+    path = out / "index.html"
+    write_text_atomic(path, batch_report_html(rows, out, title=title, facts=facts))
+    return path

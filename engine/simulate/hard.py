@@ -1,0 +1,100 @@
+"""Scenes and effects that make the simulator as hard as real clouds (issue 12, item 5).
+
+Scenes (flat ground of the ``planted_conifer`` preset, trees placed by hand):
+
+- :func:`big_tree_scene`: a buttressed giant (DBH 1.5 m, 48 m, flare doubling the radius at the
+  foot up to 1.2 m), ordinary trees and a thin one (DBH 6 cm).
+- :func:`suppressed_scene`: dominant broadleaves (26 m) with small suppressed trees (8 m) under
+  their crowns: the small trees' tops are hidden in or beside a neighbour's crown.
+
+Effects on clouds (world frame, metres):
+
+- :func:`mls_ghosting`: a mobile (SLAM) cloud's look: range noise thickening every surface and a
+  second pass of part of the cloud shifted by a few centimetres, so stems show double shells.
+- :func:`leaf_off`: the scene without most of its foliage (a leaf-off UAV flight sees more wood);
+  with :func:`~.platforms.simulate_uav_scan` this gives ULS leaf-on / leaf-off clouds whose stems
+  get few returns.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+
+from .scene import BROADLEAF, CONIFER, ForestScene, Tree, make_scene
+
+__all__ = ["big_tree_scene", "leaf_off", "mls_ghosting", "suppressed_scene"]
+
+
+def _with_trees(base: ForestScene, trees: list[Tree]) -> ForestScene:
+    """``base`` (terrain) with ``trees`` placed on its ground, no shrubs, lianas or targets."""
+    placed = [dataclasses.replace(t, z=float(base.ground_z(t.x, t.y))) for t in trees]
+    return dataclasses.replace(base, trees=tuple(placed), shrubs=(), lianas=(), targets=(), boxes=())
+
+
+def big_tree_scene(seed: int = 0, size_m: float = 30.0) -> ForestScene:
+    """A buttressed giant at the origin (DBH 1.5 m, height 48 m, crown from 24 m, radius 8 m,
+    the foot twice the breast-height radius, flaring up to 1.2 m), three ordinary conifers
+    (DBH 0.25-0.4 m, 20-24 m) and a thin tree (DBH 6 cm, 6 m)."""
+    base = make_scene("planted_conifer", seed=seed, size_m=size_m, slope_deg=(0.0, 0.0))
+    trees = [
+        Tree(1, 0.0, 0.0, 0.0, dbh_m=1.5, height_m=48.0, crown_base_m=24.0, crown_radius_m=8.0, shape=BROADLEAF,
+             top_radius_fraction=0.3, stem_height_fraction=0.8, flare=1.0, flare_height_m=1.2, n_branches=6,
+             leaf_area_density=0.4),
+        Tree(2, 7.0, -6.0, 0.0, dbh_m=0.4, height_m=24.0, crown_base_m=12.0, crown_radius_m=2.5, shape=CONIFER),
+        Tree(3, -7.5, -5.0, 0.0, dbh_m=0.3, height_m=22.0, crown_base_m=11.0, crown_radius_m=2.2, shape=CONIFER),
+        Tree(4, -6.0, 7.5, 0.0, dbh_m=0.25, height_m=20.0, crown_base_m=10.0, crown_radius_m=2.0, shape=CONIFER),
+        Tree(5, 5.5, 6.5, 0.0, dbh_m=0.06, height_m=6.0, crown_base_m=3.0, crown_radius_m=0.8, shape=CONIFER, flare=0.1),
+    ]
+    return _with_trees(base, trees)
+
+
+def suppressed_scene(seed: int = 0, size_m: float = 24.0) -> ForestScene:
+    """Four dominant broadleaves (DBH 0.45-0.5 m, 25-27 m, crowns of radius 4.5 m from 12 m) on a
+    10 m square and, 2.5 m from each, a suppressed tree (DBH 0.10-0.14 m, 7-9 m, crown radius
+    1.2 m from 3 m) under the dominant's crown."""
+    base = make_scene("planted_conifer", seed=seed, size_m=size_m, slope_deg=(0.0, 0.0))
+    rng = np.random.default_rng([seed, 12])
+    trees: list[Tree] = []
+    k = 1
+    for i, (x, y) in enumerate([(-5.0, -5.0), (5.0, -5.0), (-5.0, 5.0), (5.0, 5.0)]):
+        trees.append(Tree(k, x, y, 0.0, dbh_m=float(rng.uniform(0.45, 0.5)), height_m=float(rng.uniform(25.0, 27.0)),
+                          crown_base_m=12.0, crown_radius_m=4.5, shape=BROADLEAF, top_radius_fraction=0.3,
+                          stem_height_fraction=0.8, n_branches=5))
+        k += 1
+        ang = float(rng.uniform(0.0, 2.0 * np.pi))
+        trees.append(Tree(k, x + 2.5 * np.cos(ang), y + 2.5 * np.sin(ang), 0.0, dbh_m=float(rng.uniform(0.10, 0.14)),
+                          height_m=float(rng.uniform(7.0, 9.0)), crown_base_m=3.0, crown_radius_m=1.2, shape=CONIFER))
+        k += 1
+    return _with_trees(base, trees)
+
+
+def leaf_off(scene: ForestScene, factor: float = 0.1) -> ForestScene:
+    """The scene with every crown's leaf area density times ``factor`` (leaf-off season)."""
+    trees = tuple(dataclasses.replace(t, leaf_area_density=t.leaf_area_density * factor) for t in scene.trees)
+    return dataclasses.replace(scene, trees=trees)
+
+
+def mls_ghosting(
+    points: np.ndarray,
+    *,
+    noise_m: float = 0.015,
+    ghost_fraction: float = 0.5,
+    ghost_shift_m: float = 0.05,
+    seed: int = 0,
+    trajectory_split: Optional[np.ndarray] = None,
+) -> np.ndarray:
+    """A mobile-laser-scanning version of ``points`` (N, 3): Gaussian noise of ``noise_m`` on every
+    coordinate (thick shells), and ``ghost_fraction`` of the points (a second pass; by default a
+    random half, or the points where ``trajectory_split`` is True) shifted horizontally by
+    ``ghost_shift_m`` in a random direction plus 0.3 of it vertically (SLAM drift between passes):
+    every stem shows a double shell. Returns a new array."""
+    rng = np.random.default_rng(seed)
+    p = np.asarray(points, dtype=np.float64)
+    out = p + rng.normal(0.0, noise_m, p.shape)
+    second = trajectory_split if trajectory_split is not None else rng.uniform(size=len(p)) < ghost_fraction
+    ang = rng.uniform(0.0, 2.0 * np.pi)
+    out[second] += ghost_shift_m * np.array([np.cos(ang), np.sin(ang), 0.3])
+    return out

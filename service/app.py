@@ -1,0 +1,293 @@
+"""The HTTP/JSON API of ``forestreg serve`` (FastAPI on uvicorn).
+
+Every route but ``GET /v1/health`` needs ``Authorization: Bearer <token>`` (the token lives in
+``STATE/token``, readable by the user only). The OpenAPI description is ``/v1/openapi.json``.
+
+    GET    /v1/health                 {"status": "ok", "version": ...}
+    POST   /v1/jobs                   {"args": [...], "cwd": optional} -> 201 {"id": ...}; 400 bad arguments
+    GET    /v1/jobs                   {"jobs": [...]} (newest first)
+    GET    /v1/jobs/{id}              the job: status, progress, step, message, exit_code, result
+    GET    /v1/jobs/{id}/events       server-sent events: status, progress, log, end
+    DELETE /v1/jobs/{id}              cancel (SIGINT to the job's process group, SIGKILL after a grace)
+    POST   /v1/jobs/{id}/resubmit     the same arguments as a new job -> 201 {"id": ...}
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import json
+import logging
+import os
+import secrets
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Optional
+
+from fastapi import Depends, FastAPI, HTTPException, Request
+from fastapi.responses import JSONResponse, StreamingResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import BaseModel, Field
+
+from ..client import default_state_dir, read_server_info
+from .jobs import ArgumentError, JobManager
+from .store import FINAL, JobStore
+
+log = logging.getLogger("forestreg.service")
+
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 8754
+
+
+def ensure_token(state_dir: Path) -> str:
+    """``STATE/token``: created on first start (mode 0600), read afterwards."""
+    state_dir.mkdir(parents=True, exist_ok=True)
+    with contextlib.suppress(OSError):
+        os.chmod(state_dir, 0o700)
+    path = state_dir / "token"
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        with contextlib.suppress(OSError):
+            os.chmod(path, 0o600)  # readable by the user only, also if someone loosened it
+        token = path.read_text(encoding="utf-8").strip()
+        if token:
+            return token
+        path.unlink()
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    token = secrets.token_urlsafe(32)
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        fh.write(token + "\n")
+    return token
+
+
+class JobRequest(BaseModel):
+    args: list[str] = Field(..., description="the CLI's arguments, e.g. ['register', 'A.laz', 'B.laz', '--out', 'D']")
+    cwd: Optional[str] = Field(None, description="working directory for relative paths (default: the service's)")
+
+
+class JobId(BaseModel):
+    id: str
+
+
+def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = None, on_shutdown: Optional[Callable[[], None]] = None) -> FastAPI:
+    """The application with its job store and worker threads (started on application start-up)."""
+    from .. import __version__
+
+    state_dir = Path(state_dir)
+    token = ensure_token(state_dir)
+    store = JobStore(state_dir / "jobs.sqlite")
+    manager = JobManager(store, workers=workers, **({} if grace_s is None else {"grace_s": grace_s}))
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI):
+        manager.start()
+        try:
+            yield
+        finally:
+            if on_shutdown is not None:
+                on_shutdown()
+            await asyncio.to_thread(manager.shutdown)
+            store.close()
+
+    app = FastAPI(
+        title="forestreg job service", version=__version__, lifespan=lifespan,
+        openapi_url=None, docs_url=None, redoc_url=None,
+        description="Queue forestreg commands (the CLI's arguments), watch their progress, cancel them.",
+    )
+    app.state.manager = manager
+    app.state.store = store
+    bearer = HTTPBearer(auto_error=False)
+
+    @app.middleware("http")
+    async def touch(request: Request, call_next):
+        manager.last_activity = time.monotonic()  # for --idle-exit
+        return await call_next(request)
+
+    def authorised(credentials: Optional[HTTPAuthorizationCredentials] = Depends(bearer)) -> None:
+        if credentials is None or credentials.scheme.lower() != "bearer" or not secrets.compare_digest(credentials.credentials, token):
+            raise HTTPException(401, "missing or wrong token (Authorization: Bearer <STATE/token>)", headers={"WWW-Authenticate": "Bearer"})
+
+    def job_or_404(job_id: str) -> dict:
+        job = store.get(job_id)
+        if job is None:
+            raise HTTPException(404, f"no job {job_id}")
+        return job
+
+    @app.get("/v1/openapi.json", dependencies=[Depends(authorised)], include_in_schema=False)
+    def openapi() -> dict:
+        return app.openapi()
+
+    @app.get("/v1/health")
+    def health() -> dict:
+        return {"status": "ok", "service": "forestreg", "version": __version__, "workers": manager.workers}
+
+    @app.post("/v1/jobs", status_code=201, response_model=JobId, dependencies=[Depends(authorised)])
+    def submit(request: JobRequest) -> dict:
+        try:
+            return {"id": manager.submit(request.args, request.cwd)}
+        except ArgumentError as exc:
+            raise HTTPException(400, str(exc)) from None
+
+    @app.get("/v1/jobs", dependencies=[Depends(authorised)])
+    def jobs(limit: int = 1000) -> dict:
+        return {"jobs": store.list(limit)}
+
+    @app.get("/v1/jobs/{job_id}", dependencies=[Depends(authorised)])
+    def job(job_id: str) -> dict:
+        return job_or_404(job_id)
+
+    @app.delete("/v1/jobs/{job_id}", status_code=202, dependencies=[Depends(authorised)])
+    def cancel(job_id: str) -> dict:
+        job_or_404(job_id)
+        return manager.cancel(job_id)
+
+    @app.post("/v1/jobs/{job_id}/resubmit", status_code=201, response_model=JobId, dependencies=[Depends(authorised)])
+    def resubmit(job_id: str) -> dict:
+        old = job_or_404(job_id)
+        try:
+            return {"id": manager.submit(old["args"], old["cwd"])}
+        except ArgumentError as exc:
+            raise HTTPException(400, str(exc)) from None
+
+    @app.get("/v1/jobs/{job_id}/events", dependencies=[Depends(authorised)])
+    async def events(job_id: str, request: Request) -> StreamingResponse:
+        job_or_404(job_id)
+        try:
+            after = int(request.headers.get("last-event-id") or request.query_params.get("after") or 0)
+        except ValueError:
+            after = 0
+
+        async def stream():
+            nonlocal after
+            last_sent = time.monotonic()
+            while True:
+                for n, event in store.events(job_id, after):
+                    after = n
+                    yield f"id: {n}\nevent: {event.get('event', 'message')}\ndata: {json.dumps(event)}\n\n"
+                    last_sent = time.monotonic()
+                    if event.get("event") == "end":
+                        return
+                job = store.get(job_id)
+                if job is None or (job["status"] in FINAL and not store.events(job_id, after)):
+                    if job is not None and job["status"] in ("cancelled", "interrupted"):
+                        yield f"event: end\ndata: {json.dumps({'event': 'end', 'status': job['status'], 'exit_code': job['exit_code'], 'message': job['message'], 'result': None})}\n\n"
+                    return
+                if await request.is_disconnected():
+                    return
+                if time.monotonic() - last_sent > 1.0:  # a comment line keeps readers' loops turning
+                    yield ": keep-alive\n\n"
+                    last_sent = time.monotonic()
+                await asyncio.sleep(0.2)
+
+        return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"})
+
+    @app.exception_handler(ArgumentError)
+    async def bad_arguments(request: Request, exc: ArgumentError) -> JSONResponse:  # pragma: no cover - defensive
+        return JSONResponse({"detail": str(exc)}, status_code=400)
+
+    return app
+
+
+# ----------------------------------------------------------------------------- running
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class ServiceRunning(RuntimeError):
+    """Another service already runs with the same state directory."""
+
+
+def _lock(state_dir: Path):
+    """An exclusive lock on ``STATE/service.lock`` (released by the OS when the process dies)."""
+    fh = open(state_dir / "service.lock", "a+")
+    try:
+        import fcntl
+
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except ImportError:  # pragma: no cover - Windows: no lock
+        pass
+    except OSError:
+        fh.close()
+        info = read_server_info(state_dir) or {}
+        raise ServiceRunning(f"a forestreg service already runs with {state_dir} at {info.get('url', '?')} (pid {info.get('pid', '?')})") from None
+    return fh
+
+
+def serve(
+    host: str = DEFAULT_HOST,
+    port: int = DEFAULT_PORT,
+    state_dir: Optional[Path] = None,
+    workers: int = 1,
+    idle_exit_s: Optional[float] = None,
+    grace_s: Optional[float] = None,
+) -> int:
+    """Run the service until interrupted (or idle for ``idle_exit_s``). Port 0 picks a free port;
+    the address is written to ``STATE/server.json`` once the service listens."""
+    import uvicorn
+
+    from ..engine.core.atomic import write_text_atomic
+
+    state_dir = Path(state_dir) if state_dir else default_state_dir()
+    state_dir.mkdir(parents=True, exist_ok=True)
+    lock = _lock(state_dir)
+    if not _is_loopback(host):
+        print(f"forestreg serve: warning: listening on {host}, not only on this machine: anyone who can reach it "
+              "and has the token can run commands as this user", file=sys.stderr)
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as exc:
+        sock.close()
+        lock.close()
+        raise OSError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+    sock.listen(128)
+    port = sock.getsockname()[1]
+    def forget_address() -> None:  # before uvicorn re-raises SIGTERM, which ends the process
+        current = read_server_info(state_dir)
+        if current and current.get("pid") == os.getpid():
+            with contextlib.suppress(OSError):
+                (state_dir / "server.json").unlink()
+
+    app = create_app(state_dir, workers=workers, grace_s=grace_s, on_shutdown=forget_address)
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on"))
+    url_host = f"[{host}]" if ":" in host else host
+    info = {"url": f"http://{url_host}:{port}", "host": host, "port": port, "pid": os.getpid(), "state": str(state_dir)}
+
+    def announce() -> None:
+        while not server.started and not server.should_exit:
+            time.sleep(0.05)
+        if server.started:
+            write_text_atomic(state_dir / "server.json", json.dumps(info) + "\n")
+            print(f"forestreg service at {info['url']} (token in {state_dir / 'token'}; jobs in {state_dir / 'jobs.sqlite'})", file=sys.stderr, flush=True)
+
+    def idle_watch() -> None:
+        manager: JobManager = app.state.manager
+        while not server.should_exit:
+            time.sleep(1.0)
+            if not manager.busy() and time.monotonic() - manager.last_activity > idle_exit_s:
+                print(f"forestreg serve: idle for {idle_exit_s:.0f} s, stopping", file=sys.stderr)
+                server.should_exit = True
+
+    threading.Thread(target=announce, daemon=True).start()
+    if idle_exit_s:
+        threading.Thread(target=idle_watch, daemon=True).start()
+    try:
+        server.run(sockets=[sock])
+    finally:
+        forget_address()
+        lock.close()
+    return 0

@@ -1,0 +1,385 @@
+"""Running jobs: each one is a ``forestreg`` CLI process in its own process group.
+
+A job's arguments are the CLI's (``["register", "A.laz", "B.laz", "--out", "D"]``), checked by the
+CLI's own argparse parser before they are queued (:func:`validate_args`). A worker thread of the
+service starts ``forestreg ... --progress jsonl`` and reads its JSON-lines events on stderr:
+
+    {"event": "progress", "step": "<id>", "fraction": 0..1, "message": "<text>"}
+    {"event": "end", "exit_code": N, "message": "<one line>", "result": "<path or null>"}
+
+Other lines are kept as log events. Cancelling sends SIGINT to the job's process group and SIGKILL
+after a grace period; the CLI writes its output folders as transactions, so a cancelled job leaves
+them complete or absent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+from .store import FINAL, JobStore
+
+log = logging.getLogger("forestreg.service")
+
+#: commands that cannot run as jobs (interactive, or the service itself)
+NOT_JOBS = frozenset({"gui", "serve"})
+
+#: seconds between SIGINT and SIGKILL when a job is cancelled
+CANCEL_GRACE_S = 10.0
+
+
+class ArgumentError(ValueError):
+    """Arguments the CLI would refuse; the message is the CLI's one line."""
+
+
+# ----------------------------------------------------------------------------- arguments
+
+
+def _raising(parser: argparse.ArgumentParser) -> None:
+    """Make ``parser`` and its sub-parsers raise :class:`ArgumentError` instead of exiting."""
+
+    def error(message: str, _p=parser):
+        raise ArgumentError(f"{_p.prog}: error: {message}")
+
+    def exit_(status: int = 0, message: Optional[str] = None, _p=parser):
+        raise ArgumentError(f"{_p.prog}: error: {(message or 'help and version are not jobs').strip()}")
+
+    parser.error = error  # type: ignore[method-assign]
+    parser.exit = exit_  # type: ignore[method-assign]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _raising(sub)
+        elif isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
+            pass
+
+
+def _parser() -> argparse.ArgumentParser:
+    from .. import cli
+
+    parser = cli.build_parser()
+    _raising(parser)
+    return parser
+
+
+def validate_args(args: Sequence[str]) -> argparse.Namespace:
+    """Parse ``args`` with the CLI's parser; :class:`ArgumentError` with its message if refused."""
+    if not isinstance(args, (list, tuple)) or not all(isinstance(a, str) for a in args):
+        raise ArgumentError("forestreg: error: args must be a list of strings")
+    if not args:
+        raise ArgumentError("forestreg: error: no command given")
+    if args[0] in NOT_JOBS:
+        raise ArgumentError(f"forestreg: error: '{args[0]}' cannot run as a job")
+    try:
+        return _parser().parse_args(list(args))
+    except argparse.ArgumentTypeError as exc:  # pragma: no cover - argparse turns these into error()
+        raise ArgumentError(f"forestreg: error: {exc}") from exc
+
+
+def _package_env() -> dict[str, str]:
+    """The environment of a job: this process's, with the ``forestreg`` package importable."""
+    import forestreg
+
+    env = dict(os.environ)
+    env["PYTHONUNBUFFERED"] = "1"
+    env.setdefault("MPLBACKEND", "Agg")
+    package = Path(forestreg.__file__).parent  # not resolved: a symlinked package keeps its name
+    if package.name == "forestreg":
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(package.parent), env.get("PYTHONPATH", "")) if p)
+    return env
+
+
+def job_command(args: Sequence[str]) -> list[str]:
+    """The command line that runs ``args`` with JSON-lines progress on stderr (the CLI's global
+    ``--progress jsonl``, unless the job chose its own ``--progress``)."""
+    args = list(args)
+    cli = [sys.executable, "-m", "forestreg.cli"]
+    if any(a == "--progress" or a.startswith("--progress=") for a in args):
+        return cli + args
+    return cli + args + ["--progress", "jsonl"]
+
+
+def guess_result(args: Sequence[str], cwd: Optional[str] = None) -> Optional[str]:
+    """The result file a command wrote into its ``--out`` folder, if any."""
+    args = list(args)
+    out = None
+    for k, a in enumerate(args):
+        if a == "--out" and k + 1 < len(args):
+            out = args[k + 1]
+        elif a.startswith("--out="):
+            out = a.split("=", 1)[1]
+    if out is None:
+        return None
+    folder = Path(cwd or ".") / out
+    for name in ("result.json", "poses.json", "summary.csv", "comparison.json", "trees.csv"):
+        if (folder / name).is_file():
+            return str((folder / name).resolve())
+    return None
+
+
+def read_result(path: Optional[str], cwd: Optional[str] = None) -> Any:
+    """A result file as the API shows it: a JSON file's content, a CSV's rows, else the path."""
+    if not path:
+        return None
+    p = Path(cwd or ".") / path
+    try:
+        if p.suffix == ".json" and p.stat().st_size < 20_000_000:
+            return json.loads(p.read_text(encoding="utf-8"))
+        if p.suffix == ".csv" and p.stat().st_size < 5_000_000:
+            with p.open(newline="", encoding="utf-8") as fh:
+                return {"path": str(p), "rows": list(csv.DictReader(fh))}
+    except (OSError, ValueError):
+        pass
+    return {"path": str(p)}
+
+
+def parse_event(line: str) -> Optional[dict]:
+    """One JSON-lines event (``progress`` or ``end``) of the CLI, else None."""
+    line = line.strip()
+    if not line.startswith("{"):
+        return None
+    try:
+        event = json.loads(line)
+    except ValueError:
+        return None
+    if not isinstance(event, dict) or event.get("event") not in ("progress", "end"):
+        return None
+    return event
+
+
+# ----------------------------------------------------------------------------- the manager
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+        return True
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+
+
+def _is_job_process(pid: int) -> bool:
+    try:
+        return b"forestreg" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return os.name != "posix" or not Path("/proc").is_dir()
+
+
+def _signal_group(pid: int, sig: int) -> None:
+    try:
+        if os.name == "posix":
+            os.killpg(pid, sig)  # the job leads its own session: pgid == pid
+        else:  # pragma: no cover
+            os.kill(pid, signal.CTRL_BREAK_EVENT if sig == signal.SIGINT else signal.SIGTERM)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+class JobManager:
+    """Queues jobs in the store and runs up to ``workers`` of them at once."""
+
+    def __init__(self, store: JobStore, workers: int = 1, grace_s: float = CANCEL_GRACE_S) -> None:
+        self.store = store
+        self.workers = max(1, int(workers))
+        self.grace_s = grace_s
+        self._procs: dict[str, subprocess.Popen] = {}
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self.last_activity = time.monotonic()
+
+    # ----------------------------------------------------------------------------- life cycle
+
+    def start(self) -> None:
+        orphans = [job["pid"] for job in self.store.recover() if job.get("pid") and _alive(job["pid"]) and _is_job_process(job["pid"])]
+        if orphans:  # jobs of a service that was killed still run: stop them as a cancel would
+            threading.Thread(target=self._stop_orphans, args=(orphans,), daemon=True).start()
+        for k in range(self.workers):
+            t = threading.Thread(target=self._loop, name=f"forestreg-job-{k}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def _stop_orphans(self, pids: list[int]) -> None:
+        for pid in pids:
+            _signal_group(pid, signal.SIGINT)  # the CLI removes its temporary output folder
+        deadline = time.monotonic() + self.grace_s
+        while time.monotonic() < deadline and any(_alive(p) for p in pids):
+            time.sleep(0.2)
+        for pid in pids:
+            if _alive(pid):
+                _signal_group(pid, signal.SIGKILL)
+
+    def shutdown(self) -> None:
+        """Stop taking jobs; stop the running ones (they are marked interrupted)."""
+        self._stop.set()
+        self._wake.set()
+        with self._lock:
+            procs = dict(self._procs)
+        for proc in procs.values():
+            _signal_group(proc.pid, signal.SIGINT)
+        deadline = time.monotonic() + self.grace_s
+        for proc in procs.values():
+            try:
+                proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                _signal_group(proc.pid, signal.SIGKILL)
+        for t in self._threads:
+            t.join(timeout=5)
+
+    def busy(self) -> bool:
+        return self.store.count("running") > 0 or self.store.count("queued") > 0
+
+    # ----------------------------------------------------------------------------- requests
+
+    def submit(self, args: Sequence[str], cwd: Optional[str] = None) -> str:
+        validate_args(args)
+        if cwd is not None and not Path(cwd).is_dir():
+            raise ArgumentError(f"forestreg: error: working directory {cwd} does not exist")
+        job_id = self.store.add(list(args), cwd)
+        self.last_activity = time.monotonic()
+        self._wake.set()
+        return job_id
+
+    def cancel(self, job_id: str) -> Optional[dict]:
+        job = self.store.get(job_id)
+        if job is None or job["status"] in FINAL:
+            return job
+        self.store.update(job_id, cancel_requested=1)
+        if job["status"] == "queued":
+            self.store.update(job_id, status="cancelled", message="cancelled before it started", finished=time.time())
+            self.store.add_event(job_id, {"event": "status", "status": "cancelled"})
+            return self.store.get(job_id)
+        with self._lock:
+            proc = self._procs.get(job_id)
+        if proc is not None:
+            self.store.update(job_id, message="cancelling")
+            _signal_group(proc.pid, signal.SIGINT)
+
+            def kill_later() -> None:
+                try:
+                    proc.wait(timeout=self.grace_s)
+                except subprocess.TimeoutExpired:
+                    _signal_group(proc.pid, signal.SIGKILL)
+
+            threading.Thread(target=kill_later, daemon=True).start()
+        return self.store.get(job_id)
+
+    # ----------------------------------------------------------------------------- running
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            job = self.store.claim_next()
+            if job is None:
+                self._wake.wait(0.5)
+                self._wake.clear()
+                continue
+            try:
+                self._run(job)
+            except Exception as exc:  # never lose the worker thread
+                log.exception("job %s", job["id"])
+                self.store.update(job["id"], status="error", message=f"the service could not run the job: {exc}", finished=time.time())
+                self.store.add_event(job["id"], {"event": "status", "status": "error"})
+            self.last_activity = time.monotonic()
+
+    def _run(self, job: dict) -> None:
+        job_id, args, cwd = job["id"], job["args"], job["cwd"]
+        cmd = job_command(args)
+        try:
+            proc = subprocess.Popen(
+                cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                cwd=cwd or None, env=_package_env(), start_new_session=True,
+            )
+        except OSError as exc:
+            self.store.update(job_id, status="error", message=f"cannot start the job: {exc}", finished=time.time())
+            self.store.add_event(job_id, {"event": "status", "status": "error"})
+            return
+        with self._lock:
+            self._procs[job_id] = proc
+        self.store.update(job_id, pid=proc.pid, message="running")
+        if self.store.raw(job_id)["cancel_requested"]:  # cancelled between claim and start
+            _signal_group(proc.pid, signal.SIGINT)
+        lines: list[str] = []  # non-event lines, for the message of a failure
+        end: dict = {}
+
+        def read_stdout() -> None:
+            for raw in iter(proc.stdout.readline, b""):
+                text = raw.decode("utf-8", "replace").rstrip()
+                if text:
+                    lines.append(text)
+                    self.store.add_event(job_id, {"event": "log", "stream": "stdout", "message": text})
+
+        reader = threading.Thread(target=read_stdout, daemon=True)
+        reader.start()
+        last = {"t": 0.0, "fraction": -1.0, "step": None, "message": None}
+        for raw in iter(proc.stderr.readline, b""):
+            text = raw.decode("utf-8", "replace").rstrip()
+            if not text:
+                continue
+            event = parse_event(text)
+            if event is None:
+                lines.append(text)
+                self.store.add_event(job_id, {"event": "log", "stream": "stderr", "message": text})
+                continue
+            if event["event"] == "end":
+                end = event
+                continue
+            fraction = min(max(float(event.get("fraction") or 0.0), 0.0), 1.0)
+            step, message = str(event.get("step") or ""), str(event.get("message") or "")
+            now = time.monotonic()
+            # keep every change of step or message; thin out a fast stream of fractions
+            if step == last["step"] and message == last["message"] and abs(fraction - last["fraction"]) < 0.01 and now - last["t"] < 0.5:
+                continue
+            last.update(t=now, fraction=fraction, step=step, message=message)
+            self.store.update(job_id, progress=fraction, step=step, message=message)
+            self.store.add_event(job_id, {"event": "progress", "step": step, "fraction": fraction, "message": message})
+        proc.wait()
+        reader.join(timeout=10)
+        for stream in (proc.stdout, proc.stderr):
+            stream.close()
+        with self._lock:
+            self._procs.pop(job_id, None)
+        code = proc.returncode
+        if end.get("exit_code") is not None and code == 0:
+            code = int(end["exit_code"])
+        cancelled = bool(self.store.raw(job_id)["cancel_requested"])
+        if cancelled:
+            status, message = "cancelled", "cancelled: the run was stopped"
+        elif self._stop.is_set() and code != 0:
+            status, message = "interrupted", "interrupted: the service stopped while the job ran (resubmit it)"
+        elif code in (0, 1):
+            status = "done"
+            message = str(end.get("message") or (lines[-1] if lines else "done"))
+        else:
+            status = "error"
+            message = str(end.get("message") or _error_line(lines) or f"the command stopped with exit status {code}")
+        result_path = None if cancelled else (end.get("result") or guess_result(args, cwd))
+        if result_path:
+            result_path = str((Path(cwd or ".") / result_path).resolve())
+        fields: dict[str, Any] = dict(status=status, exit_code=code, message=message, finished=time.time())
+        if status == "done":
+            fields["progress"] = 1.0
+        if result_path:
+            fields["result"] = json.dumps(read_result(result_path, cwd))
+            fields["result_path"] = str(result_path)
+        self.store.update(job_id, **fields)
+        self.store.add_event(job_id, {"event": "end", "status": status, "exit_code": code, "message": message, "result": result_path})
+
+
+def _error_line(lines: list[str]) -> str:
+    for line in reversed(lines):
+        if "error:" in line:
+            return line.split("error:", 1)[1].strip()
+    return lines[-1] if lines else ""

@@ -1,0 +1,158 @@
+"""Batches of plots on Dask (issue 15): three small simulated plots on a local cluster with two
+workers (one plot without trees fails, the others register against the simulator's truth), the
+summary and overview, and a rerun that skips them; plot discovery and manifests."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from forestreg.engine.core.errors import ParameterError
+from forestreg.service.batch import discover_plots
+
+CLI = [sys.executable, "-m", "forestreg.cli"]
+
+
+def _rows(path: Path) -> dict[str, dict]:
+    with path.open(newline="") as fh:
+        return {r["plot"]: r for r in csv.DictReader(fh)}
+
+
+@pytest.fixture(scope="module")
+def plots(tmp_path_factory):
+    """``plots/a`` and ``plots/b``: two-scan conifer plots (``a`` names scan_02 its centre);
+    ``plots/c``: an open field without trees. Returns the folder and the true relative poses."""
+    from forestreg.engine.simulate import simulate_plot
+
+    root = tmp_path_factory.mktemp("batch_plots")
+    truth = {}
+    for name, preset, positions, seed in (("a", "planted_conifer", [(0, 0), (9, 4)], 1),
+                                          ("b", "planted_conifer", [(0, 0), (8, -5)], 3),
+                                          ("c", "open_field", [(0, 0), (9, 4)], 1)):
+        plot = simulate_plot(preset, positions, seed=seed, angular_step_deg=0.4, size_m=30, out_dir=root / name)
+        (root / name / "truth.json").unlink()
+        truth[name] = plot
+    (root / "a" / "centre.txt").write_text("scan_02.laz\n")
+    return root, truth
+
+
+@pytest.fixture(scope="module")
+def batch_run(plots, tmp_path_factory):
+    root, _ = plots
+    out = tmp_path_factory.mktemp("batch_out") / "out"
+    run = subprocess.run(CLI + ["batch", str(root), "--out", str(out), "--workers", "2", "--quiet"], capture_output=True, text=True, timeout=900)
+    return out, run
+
+
+@pytest.mark.slow
+def test_batch_of_three_plots_on_two_workers(plots, batch_run):
+    from forestreg.engine.core.transform import rigid_errors
+
+    root, truth = plots
+    out, run = batch_run
+    assert run.returncode == 0, run.stdout + run.stderr[-3000:]  # every plot processed, whatever its result
+    rows = _rows(out / "summary.csv")
+    assert list(rows) == ["a", "b", "c"]
+    assert {k: (r["status"], r["scans"], r["registered"]) for k, r in rows.items()} == {
+        "a": ("ok", "2", "2"), "b": ("ok", "2", "2"), "c": ("failed", "2", "1")}
+    assert rows["c"]["reason"].startswith("scan_02.laz: ") and len(rows["c"]["reason"]) > 20  # the honest reason
+    assert rows["c"]["exit_code"] == "1" and all(float(r["seconds"]) > 0 for r in rows.values())
+    # registered as `forestreg plot` would, with the centre of centre.txt, against the truth
+    for name, centre, other in (("a", "scan_02", "scan_01"), ("b", "scan_01", "scan_02")):
+        poses = json.loads((out / name / "poses.json").read_text())
+        assert poses["frame"] == f"{centre}.laz"
+        rot, trans = rigid_errors(np.array(poses["scans"][f"{other}.laz"]["matrix"]), truth[name].relative_pose(centre, other))
+        assert rot < 0.1 and trans < 0.05, (name, rot, trans)
+        assert (out / name / "report.html").is_file()
+    assert json.loads((out / "c" / "poses.json").read_text())["scans"]["scan_02.laz"]["matrix"] is None
+    overview = (out / "index.html").read_text()
+    assert overview.count("<tr>") == 4 and "failed" in overview and 'href="a/report.html"' in overview
+    assert "3 plots: 1 failed, 2 ok" in run.stdout
+
+
+@pytest.mark.slow
+def test_rerun_skips_the_processed_plots(batch_run, plots):
+    root, _ = plots
+    out, _ = batch_run
+    before = {name: (out / name / "poses.json").stat().st_mtime_ns for name in "abc"}
+    first = _rows(out / "summary.csv")
+    run = subprocess.run(CLI + ["batch", str(root), "--out", str(out), "--workers", "2", "--quiet"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "(3 done before, skipped)" in run.stdout
+    rows = _rows(out / "summary.csv")
+    assert all(r["resumed"] == "1" for r in rows.values())
+    assert {k: r["status"] for k, r in rows.items()} == {k: r["status"] for k, r in first.items()}
+    assert {name: (out / name / "poses.json").stat().st_mtime_ns for name in "abc"} == before
+
+
+def test_plot_discovery_and_manifests(tmp_path):
+    plots = tmp_path / "plots"
+    (plots / "p1").mkdir(parents=True)
+    (plots / "p2").mkdir()
+    for name in ("s1.laz", "s2.laz", "centre.txt", "targets.csv"):
+        (plots / "p1" / name).write_text("x")
+    (plots / "p1" / "centre.txt").write_text("s2.laz")
+    (plots / "p2" / "only.laz").write_text("x")
+    tasks = {t.name: t for t in discover_plots(plots, tmp_path / "out")}
+    p1 = tasks["p1"]
+    assert p1.inputs == 2 and not p1.problem
+    assert p1.args[:1] == ["plot"] and [Path(a).name for a in p1.args[1:3]] == ["s1.laz", "s2.laz"]
+    assert p1.args[p1.args.index("--centre") + 1] == "s2.laz" and "--targets" in p1.args
+    assert p1.out_dir == str((tmp_path / "out" / "p1").resolve())
+    assert "at least two" in tasks["p2"].problem
+
+    # trees: one cloud per folder, or a manifest with transform/field
+    trees = {t.name: t for t in discover_plots(plots, tmp_path / "out", "trees")}
+    assert trees["p2"].args[:2] == ["trees", str((plots / "p2" / "only.laz").resolve())] and not trees["p2"].problem
+    assert "manifest" in trees["p1"].problem
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("plot,ground,uav\np1,s1.laz,s2.laz\n")
+    (co,) = discover_plots(plots, tmp_path / "out", "coregister", manifest)
+    assert co.args[:3] == ["coregister", str((plots / "p1" / "s1.laz").resolve()), str((plots / "p1" / "s2.laz").resolve())]
+    with pytest.raises(ParameterError, match="needs --manifest"):
+        discover_plots(plots, tmp_path / "out", "coregister")
+    with pytest.raises(ParameterError, match="no such folder"):
+        discover_plots(tmp_path / "nope", tmp_path / "out")
+    (tmp_path / "bad.csv").write_text("name,cloud\nx,y\n")
+    with pytest.raises(ParameterError, match="'plot' column"):
+        discover_plots(plots, tmp_path / "out", "trees", tmp_path / "bad.csv")
+
+
+def test_bad_batch_input_is_exit_2(tmp_path):
+    run = subprocess.run(CLI + ["batch", str(tmp_path / "nope"), "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and run.stderr.strip().splitlines()[-1] == f"forestreg: error: {tmp_path / 'nope'}: no such folder"
+
+
+def test_batch_on_an_existing_scheduler(tmp_path):
+    """``--scheduler ADDRESS``: the plots go to a cluster started elsewhere (here a loopback
+    Dask cluster of this test process); a plot that cannot run is an error row: exit 1."""
+    from dask.distributed import LocalCluster
+
+    plots = tmp_path / "plots"
+    (plots / "lonely").mkdir(parents=True)
+    (plots / "lonely" / "only.laz").write_text("x")
+    (plots / "garbage").mkdir()
+    for name in ("a.laz", "b.laz"):
+        (plots / "garbage" / name).write_text("not a point cloud")
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, host="127.0.0.1", scheduler_port=0, dashboard_address=":0", protocol="tcp") as cluster:
+        run = subprocess.run(CLI + ["batch", str(plots), "--out", str(tmp_path / "out"), "--scheduler", cluster.scheduler_address, "-q"],
+                             capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1, run.stderr[-2000:]
+    rows = _rows(tmp_path / "out" / "summary.csv")
+    # unreadable scans: the plot command runs to its end and says why (failed); one scan: no plot (error)
+    assert {k: r["status"] for k, r in rows.items()} == {"garbage": "failed", "lonely": "error"}
+    assert rows["garbage"]["exit_code"] == "1" and "a.laz" in rows["garbage"]["reason"] and "not a valid LAS/LAZ" in rows["garbage"]["reason"]
+    assert "at least two" in rows["lonely"]["reason"]
+    assert cluster.scheduler_address in (tmp_path / "out" / "index.html").read_text()
+    # a folder of other files is never used as a batch's OUT
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    run = subprocess.run(CLI + ["batch", str(plots), "--out", str(other), "-q"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "already holds other files" in run.stderr and (other / "notes.txt").read_text() == "mine"
