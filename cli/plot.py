@@ -302,13 +302,14 @@ def _check_scans_near_their_scanners(project, scans) -> None:
     without scanner positions, or files in cm/mm), refuse with one line instead of failing every
     link after minutes. A single such scan fails its own link with the reason."""
     from ..engine.core.errors import ScanDataError, ScanReadError, UsageError
+    from ..engine.tls.scanner_position import ScannerPositionError
     from .register import check_near_scanner
 
     problems = []
     for s in project.scans:
         try:
             check_near_scanner(scans(s.name), project.params.max_range_m, s.path, "m")
-        except UsageError as exc:
+        except (UsageError, ScannerPositionError) as exc:  # no scanner near the data: a unit or position problem
             problems.append(str(exc))
         except (ScanReadError, ScanDataError):
             problems.append("")  # unreadable: its link reports it
