@@ -53,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
     for name, p in sub.choices.items():
         if name not in ("gui", "project"):
             add_global_flags(p)
+    # the job service and batches check their jobs' arguments with this very parser: handed over
+    # to them (they never import the CLI, which starts them)
+    parser.set_defaults(build_parser=build_parser)
     return parser
 
 

@@ -37,8 +37,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     try:
         from ..service.app import ServiceRunning, serve
+        from ..service.jobs import use_parser
     except ImportError as exc:
         raise UsageError(f"the service needs FastAPI and uvicorn (pip install forestreg): {exc}") from None
+    use_parser(args.build_parser)
     if args.workers < 1 or not 0 <= args.port < 65536:
         raise UsageError("--workers must be at least 1 and --port 0..65535")
     try:
@@ -54,6 +56,9 @@ def cmd_batch(args: argparse.Namespace) -> int:
     """Many plots on Dask distributed (see :mod:`forestreg.service.batch`)."""
     from ..engine.core.errors import UsageError
     from ..service.batch import run_batch
+    from ..service.jobs import use_parser
+
+    use_parser(args.build_parser)
 
     if args.workers is not None and args.workers < 1:
         raise UsageError("--workers must be at least 1")

@@ -25,7 +25,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 from .store import FINAL, JobStore
 
@@ -64,10 +64,24 @@ def _raising(parser: argparse.ArgumentParser) -> None:
             pass
 
 
-def _parser() -> argparse.ArgumentParser:
-    from .. import cli
+#: Builds the parser jobs are checked with: the CLI's own, handed over by the ``serve`` and
+#: ``batch`` commands through :func:`use_parser` (the service never imports the CLI that starts it).
+_parser_factory: Optional[Callable[[], argparse.ArgumentParser]] = None
 
-    parser = cli.build_parser()
+
+def use_parser(factory: Callable[[], argparse.ArgumentParser]) -> None:
+    """Check every job's arguments with the parser ``factory()`` builds (the CLI's)."""
+    global _parser_factory
+    _parser_factory = factory
+
+
+def _parser() -> argparse.ArgumentParser:
+    if _parser_factory is None:
+        raise RuntimeError(
+            "no command-line parser to check jobs with: call forestreg.service.jobs.use_parser(forestreg.cli.build_parser) "
+            "first (the 'serve' and 'batch' commands do)"
+        )
+    parser = _parser_factory()
     _raising(parser)
     return parser
 

@@ -19,6 +19,15 @@ from forestreg.service.batch import discover_plots
 CLI = [sys.executable, "-m", "forestreg.cli"]
 
 
+
+@pytest.fixture(autouse=True)
+def _cli_parser():
+    """Batches check their plots' arguments with the CLI's parser (handed over by the commands)."""
+    from forestreg.cli import build_parser
+    from forestreg.service.jobs import use_parser
+
+    use_parser(build_parser)
+
 def _rows(path: Path) -> dict[str, dict]:
     with path.open(newline="") as fh:
         return {r["plot"]: r for r in csv.DictReader(fh)}
