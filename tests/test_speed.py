@@ -11,6 +11,7 @@ import pytest
 
 from forestreg.engine.geometry import cluster
 from forestreg.engine.geometry.voxel import column_bounds, voxel_downsample
+from forestreg.engine.io.base import PointsToWrite
 from forestreg.engine.io.las import read_las, write_las
 from forestreg.engine.tls import coarse
 from forestreg.engine.tls.level import _great_circle_votes, _hemisphere_directions
@@ -64,7 +65,7 @@ def test_chunked_las_reading_equals_one_chunk(tmp_path):
     rng = np.random.default_rng(4)
     local = rng.uniform(-20, 20, (10007, 3))
     path = tmp_path / "a.laz"
-    write_las(path, local, np.array([500000.0, 5000000.0, 100.0]), intensity=rng.integers(0, 60000, len(local)), scan_id=None, compress=True)
+    write_las(path, PointsToWrite(local, np.array([500000.0, 5000000.0, 100.0]), intensity=rng.integers(0, 60000, len(local))), compress=True)
     whole = read_las(path, chunk_points=10**7)
     chunked = read_las(path, chunk_points=997)
     np.testing.assert_array_equal(whole.points, chunked.points)

@@ -31,7 +31,7 @@ from . import las as _las
 from . import pcd as _pcd
 from . import ply as _ply
 from . import xyz as _xyz
-from .base import PathLike, RawCloud, as_column, as_matrix, as_points, build_scan, check_readable, check_unit_scale
+from .base import PathLike, PointsToWrite, RawCloud, as_column, as_matrix, as_points, build_scan, check_readable, check_unit_scale
 from .sniff import READ_SUFFIXES, detect_format
 
 __all__ = [
@@ -195,7 +195,7 @@ def write_scan(scan: Scan, path: PathLike, *, matrix: Optional[np.ndarray] = Non
         shift = np.round(moved_shift)
         # local coordinates stay small; the large part of the transform goes into the shift
         local = local @ rotation.T + (moved_shift - shift)
-    _write(Path(path), local, np.asarray(shift, dtype=np.float64), scan.intensity, None, scan.name or "scan")
+    _write(Path(path), PointsToWrite(local, np.asarray(shift, dtype=np.float64), scan.intensity, None, scan.name or "scan"))
 
 
 def write_points(
@@ -237,7 +237,7 @@ def write_points(
         if not np.isfinite(ids_f).all() or (ids_f < 0).any() or (ids_f > 65535).any() or (ids_f != np.round(ids_f)).any():
             raise ParameterError("scan_id must hold whole numbers 0..65535")
         ids = ids_f.astype(np.uint16)
-    _write(Path(path), pts, shift, inten, ids, Path(path).stem)
+    _write(Path(path), PointsToWrite(pts, shift, inten, ids, Path(path).stem))
 
 
 def write_e57(path: PathLike, scans: list[Scan], poses: Optional[list[Optional[np.ndarray]]] = None) -> None:
@@ -273,27 +273,20 @@ def write_e57(path: PathLike, scans: list[Scan], poses: Optional[list[Optional[n
     _atomic(target, lambda tmp: _e57.write_e57_file(tmp, entries))
 
 
-def _write(
-    target: Path,
-    local: np.ndarray,
-    shift: np.ndarray,
-    intensity: Optional[np.ndarray],
-    scan_id: Optional[np.ndarray],
-    name: str,
-) -> None:
-    """Write points ``local + shift`` in the format the suffix of ``target`` names."""
+def _write(target: Path, cloud: PointsToWrite) -> None:
+    """Write points ``cloud.local + cloud.shift`` in the format the suffix of ``target`` names."""
     suffix = target.suffix.lower()
     if suffix in (".las", ".laz"):
         def body(tmp: Path) -> None:
-            _las.write_las(tmp, local, shift, intensity=intensity, scan_id=scan_id, compress=suffix == ".laz")
+            _las.write_las(tmp, cloud, compress=suffix == ".laz")
     elif suffix == ".ply":
         def body(tmp: Path) -> None:
-            _ply.write_ply(tmp, local, shift, intensity=intensity, scan_id=scan_id)
+            _ply.write_ply(tmp, cloud)
     elif suffix in (".xyz", ".txt"):
         def body(tmp: Path) -> None:
-            _xyz.write_text(tmp, local, shift, intensity=intensity, scan_id=scan_id)
+            _xyz.write_text(tmp, cloud)
     elif suffix == ".e57":
-        entries = _e57_entries(local, shift, intensity, scan_id, name)
+        entries = _e57_entries(cloud)
 
         def body(tmp: Path) -> None:
             _e57.write_e57_file(tmp, entries)
@@ -304,9 +297,9 @@ def _write(
     _atomic(target, body)
 
 
-def _e57_entries(
-    local: np.ndarray, shift: np.ndarray, intensity: Optional[np.ndarray], scan_id: Optional[np.ndarray], name: str
-) -> list[_e57.E57Entry]:
+def _e57_entries(cloud: PointsToWrite) -> list[_e57.E57Entry]:
+    """One E57 entry for the cloud, or one per scan id when it has them."""
+    local, shift, intensity, scan_id, name = cloud.local, cloud.shift, cloud.intensity, cloud.scan_id, cloud.name
     if scan_id is None:
         return [_e57.E57Entry(local, shift, intensity, np.eye(4), name)]
     entries = []

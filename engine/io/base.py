@@ -47,6 +47,26 @@ class RawCloud:
 _ALLOCATOR_TUNED = False
 
 
+@dataclass(frozen=True)
+class PointsToWrite:
+    """Points a writer puts into a file: the file coordinates are ``local + shift`` (metres).
+
+    Attributes
+    ----------
+    local : (N, 3) float64 coordinates relative to ``shift``, metres.
+    shift : (3,) float64 origin shift, metres.
+    intensity : optional (N,) intensities.
+    scan_id : optional (N,) uint16 scan indices.
+    name : scan name (formats that store one, E57).
+    """
+
+    local: np.ndarray
+    shift: np.ndarray
+    intensity: Optional[np.ndarray] = None
+    scan_id: Optional[np.ndarray] = None
+    name: str = "scan"
+
+
 def tune_allocator(threshold_bytes: int = 4 << 20) -> None:
     """Make freed large arrays go back to the operating system at once (glibc only; once per
     process; a no-op elsewhere or when ``MALLOC_MMAP_THRESHOLD_`` is set by the user).

@@ -13,7 +13,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..core.errors import ScanReadError
-from .base import RawCloud, tune_allocator
+from .base import PointsToWrite, RawCloud, tune_allocator
 
 #: Coordinate resolution written to LAS/LAZ, metres (keeps sub-mm steps for UTM-sized values).
 LAS_SCALE = 1.0e-4
@@ -210,19 +210,11 @@ def las_points(
     return las
 
 
-def write_las(
-    tmp: Path,
-    local: np.ndarray,
-    shift: np.ndarray,
-    *,
-    intensity: Optional[np.ndarray],
-    scan_id: Optional[np.ndarray],
-    compress: bool,
-) -> None:
-    """Write points ``local + shift`` (file coordinates, metres) as LAS 1.4 point format 6
-    (:func:`las_points`); ``scan_id`` becomes a uint16 extra-bytes dimension named ``scan_id``."""
-    extra = [("scan_id", np.uint16, "scan index")] if scan_id is not None else []
-    las = las_points(local, shift, intensity=intensity, extra_dims=extra)
-    if scan_id is not None:
-        las.scan_id = np.asarray(scan_id).astype(np.uint16)
+def write_las(tmp: Path, cloud: PointsToWrite, *, compress: bool) -> None:
+    """Write points ``cloud.local + cloud.shift`` (file coordinates, metres) as LAS 1.4 point
+    format 6 (:func:`las_points`); ``scan_id`` becomes a uint16 extra-bytes dimension named ``scan_id``."""
+    extra = [("scan_id", np.uint16, "scan index")] if cloud.scan_id is not None else []
+    las = las_points(cloud.local, cloud.shift, intensity=cloud.intensity, extra_dims=extra)
+    if cloud.scan_id is not None:
+        las.scan_id = np.asarray(cloud.scan_id).astype(np.uint16)
     las.write(str(tmp), do_compress=compress)

@@ -12,7 +12,7 @@ from typing import Optional
 import numpy as np
 
 from ..core.errors import ScanReadError
-from .base import RawCloud
+from .base import PointsToWrite, RawCloud
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -144,16 +144,10 @@ def _read_ascii(path: Path, before: list[_Element], vertex: _Element, header_len
     return data
 
 
-def write_ply(
-    tmp: Path,
-    local: np.ndarray,
-    shift: np.ndarray,
-    *,
-    intensity: Optional[np.ndarray],
-    scan_id: Optional[np.ndarray],
-) -> None:
-    """Write points ``local + shift`` as binary little-endian PLY: double x, y, z; float
-    ``intensity``; ushort ``scan_id``."""
+def write_ply(tmp: Path, cloud: PointsToWrite) -> None:
+    """Write points ``cloud.local + cloud.shift`` as binary little-endian PLY: double x, y, z;
+    float ``intensity``; ushort ``scan_id``."""
+    local, shift, intensity, scan_id = cloud.local, cloud.shift, cloud.intensity, cloud.scan_id
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     header = ["ply", "format binary_little_endian 1.0", "comment written by forestreg",
               f"element vertex {len(local)}", "property double x", "property double y", "property double z"]

@@ -16,7 +16,7 @@ from typing import Optional
 import numpy as np
 
 from ..core.errors import ScanReadError
-from .base import RawCloud
+from .base import PointsToWrite, RawCloud
 
 #: Lines searched for the first x y z row.
 _HEADER_SCAN_LINES = 200
@@ -143,16 +143,10 @@ def _read_tolerant(path: Path, skip: int, usecols: list[int]) -> tuple[np.ndarra
     return np.array(rows, dtype=np.float64).reshape(-1, len(usecols)), bad
 
 
-def write_text(
-    tmp: Path,
-    local: np.ndarray,
-    shift: np.ndarray,
-    *,
-    intensity: Optional[np.ndarray],
-    scan_id: Optional[np.ndarray],
-) -> None:
-    """Write ``x y z [intensity] [scan_id]`` lines (file coordinates, 0.1 mm steps) with a
-    ``//x y z ...`` header line (CloudCompare's convention)."""
+def write_text(tmp: Path, cloud: PointsToWrite) -> None:
+    """Write ``x y z [intensity] [scan_id]`` lines (file coordinates ``cloud.local + cloud.shift``,
+    0.1 mm steps) with a ``//x y z ...`` header line (CloudCompare's convention)."""
+    local, shift, intensity, scan_id = cloud.local, cloud.shift, cloud.intensity, cloud.scan_id
     names = ["x", "y", "z"]
     row_format = "%.4f %.4f %.4f"
     columns = [local[:, 0] + shift[0], local[:, 1] + shift[1], local[:, 2] + shift[2]]
