@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 from PySide6.QtCore import QByteArray, QUrl
 from PySide6.QtGui import QDesktopServices
@@ -158,82 +158,88 @@ class FileActionsMixin:
             except ForestregError as exc:
                 self.show_error("Cannot read the parameters", str(exc))
 
-    def _ask_export_poses(self) -> None:
-        folder = QFileDialog.getExistingDirectory(self, "Folder for poses.json and the transforms", self._last_dir())
+    def _ask_folder(self, title: str) -> str:
+        """A folder from the dialog (remembered as the last folder), or ``""`` when cancelled."""
+        folder = QFileDialog.getExistingDirectory(self, title, self._last_dir())
         if folder:
             self._remember_dir(folder)
+        return folder
+
+    def _ask_save(self, title: str, default_name: str, filters: str) -> str:
+        """A file to write from the dialog (its folder remembered), or ``""`` when cancelled."""
+        path, _ = QFileDialog.getSaveFileName(self, title, str(Path(self._last_dir()) / default_name), filters)
+        if path:
+            self._remember_dir(path)
+        return path
+
+    def _ask_export_poses(self) -> None:
+        folder = self._ask_folder("Folder for poses.json and the transforms")
+        if folder:
             self.export_poses(folder)
 
     def _ask_export_merged(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Merged point cloud", str(Path(self._last_dir()) / "merged.laz"),
-                                              "LAZ (*.laz);;LAS (*.las);;PLY (*.ply)")
+        path = self._ask_save("Merged point cloud", "merged.laz", "LAZ (*.laz);;LAS (*.las);;PLY (*.ply)")
         if path:
-            self._remember_dir(path)
             self.export_merged(path)
 
     def _ask_export_scans(self) -> None:
-        folder = QFileDialog.getExistingDirectory(self, "Folder for the registered scans (one LAZ each)", self._last_dir())
+        folder = self._ask_folder("Folder for the registered scans (one LAZ each)")
         if folder:
-            self._remember_dir(folder)
             self.export_scans(folder)
 
     def _ask_export_e57(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Registered scans", str(Path(self._last_dir()) / "registered.e57"), "E57 (*.e57)")
+        path = self._ask_save("Registered scans", "registered.e57", "E57 (*.e57)")
         if path:
-            self._remember_dir(path)
             self.export_e57(path)
 
     def _ask_export_report(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "HTML report", str(Path(self._last_dir()) / "report.html"), "HTML (*.html)")
+        path = self._ask_save("HTML report", "report.html", "HTML (*.html)")
         if path:
-            self._remember_dir(path)
             self.export_report(path, open_after=self.interactive)
 
     # ---------------------------------------------------------------- exports
+
+    def _export(self, name: str, write: Callable[[], Any], done: Callable[[Any], None], failure: str) -> None:
+        """Run ``write()`` in the background as task ``name``; ``done(result)`` on success, an
+        error dialog titled ``failure`` otherwise."""
+        self._start_task(
+            TaskWorker(lambda progress, cancel: write(), name=name),
+            succeeded=done,
+            failed=lambda m, d: self.show_error(failure, m, d),
+        )
 
     def export_poses(self, folder: str | Path) -> None:
         """``write_poses`` into ``folder`` (in the background)."""
         from ..engine.tls.plot import write_poses
 
         project, outcome = self.project, self.last_outcome
-        self._start_task(
-            TaskWorker(lambda progress, cancel: write_poses(project, folder, outcome), name="export transforms"),
-            succeeded=lambda path: self._exported(f"Wrote {path} and the transforms"),
-            failed=lambda m, d: self.show_error("Cannot export the transforms", m, d),
-        )
+        self._export("export transforms", lambda: write_poses(project, folder, outcome),
+                     lambda path: self._exported(f"Wrote {path} and the transforms"), "Cannot export the transforms")
 
     def export_merged(self, path: str | Path) -> None:
         """``write_merged`` to ``path`` (in the background)."""
         from ..engine.tls.plot import write_merged
 
         project, scans = self.project, self.scans
-        self._start_task(
-            TaskWorker(lambda progress, cancel: write_merged(project, path, scans), name="export merged"),
-            succeeded=lambda count: self._exported(f"Wrote {count:,} points to {path}"),
-            failed=lambda m, d: self.show_error("Cannot export the merged cloud", m, d),
-        )
+        self._export("export merged", lambda: write_merged(project, path, scans),
+                     lambda count: self._exported(f"Wrote {count:,} points to {path}"), "Cannot export the merged cloud")
 
     def export_scans(self, folder: str | Path) -> None:
         """``write_registered_scans`` into ``folder`` (in the background)."""
         from ..engine.tls.plot import write_registered_scans
 
         project, scans = self.project, self.scans
-        self._start_task(
-            TaskWorker(lambda progress, cancel: write_registered_scans(project, folder, scans), name="export scans"),
-            succeeded=lambda count: self._exported(f"Wrote {count} registered scans to {folder}"),
-            failed=lambda m, d: self.show_error("Cannot export the registered scans", m, d),
-        )
+        self._export("export scans", lambda: write_registered_scans(project, folder, scans),
+                     lambda count: self._exported(f"Wrote {count} registered scans to {folder}"),
+                     "Cannot export the registered scans")
 
     def export_e57(self, path: str | Path) -> None:
         """``write_registered_e57`` to ``path`` (in the background)."""
         from ..engine.tls.plot import write_registered_e57
 
         project, scans = self.project, self.scans
-        self._start_task(
-            TaskWorker(lambda progress, cancel: write_registered_e57(project, path, scans), name="export e57"),
-            succeeded=lambda count: self._exported(f"Wrote {count} registered scans to {path}"),
-            failed=lambda m, d: self.show_error("Cannot export the E57 file", m, d),
-        )
+        self._export("export e57", lambda: write_registered_e57(project, path, scans),
+                     lambda count: self._exported(f"Wrote {count} registered scans to {path}"), "Cannot export the E57 file")
 
     def export_report(self, path: str | Path, *, open_after: bool = False) -> None:
         """``write_plot_report`` to ``path`` (in the background); opens it in the browser if asked."""
@@ -246,11 +252,7 @@ class FileActionsMixin:
             if open_after:
                 QDesktopServices.openUrl(QUrl.fromLocalFile(str(Path(path).resolve())))
 
-        self._start_task(
-            TaskWorker(lambda progress, cancel: write_plot_report(project, path, scans=scans), name="export report"),
-            succeeded=done,
-            failed=lambda m, d: self.show_error("Cannot write the report", m, d),
-        )
+        self._export("export report", lambda: write_plot_report(project, path, scans=scans), done, "Cannot write the report")
 
     def _exported(self, text: str) -> None:
         log.info("%s", text)
