@@ -220,6 +220,36 @@ def final_result_check(summary: dict) -> dict:
     return withhold_unless_rigid(summary)
 
 
+def run_summary(result, facts: dict, units: str, scale: float, matrix_keys: tuple[str, ...] = ("matrix",)) -> tuple[dict, bool]:
+    """The ``result.json`` summary of a registration-like ``result`` and whether it is "ok".
+
+    ``facts`` holds ``{"timings": {...read times...}, ...input facts...}``: the read times go in
+    front of the result's own timings, the other facts follow in order, then the unit; the
+    matrices named by ``matrix_keys`` are turned into the files' unit."""
+    import numpy as np
+
+    from ..engine.core.transform import to_file_units
+
+    summary = final_result_check(result.to_dict())
+    ok = summary["status"] == "ok"
+    facts = dict(facts)
+    summary["timings"] = {**facts.pop("timings"), **summary["timings"]}
+    summary.update(facts)
+    summary["unit"] = units
+    summary["unit_scale"] = scale
+    for key in matrix_keys:
+        if summary.get(key) is not None:
+            summary[key] = to_file_units(np.asarray(summary[key]), scale).tolist()
+    return summary, ok
+
+
+def add_units_params(p: argparse.ArgumentParser, units_help: str, func) -> None:
+    """The ``--units`` and ``--params`` options that end a long-running command, and its handler."""
+    p.add_argument("--units", choices=sorted(UNITS), default="m", help=units_help)
+    p.add_argument("--params", help=PARAMS_HELP)
+    p.set_defaults(func=func, long_running=True)
+
+
 def check_replaceable_point_file(path, dimension: str, what: str) -> None:
     """An existing point file at an output path is replaced only when it is an earlier output of
     the same kind (a LAS/LAZ with the extra ``dimension``); a user's own scan is refused."""

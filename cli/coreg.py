@@ -12,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from .common import PARAMS_HELP, UNITS, Reporter, check_replaceable_point_file, log, number, product_params, say, shown
+from .common import UNITS, Reporter, add_units_params, check_replaceable_point_file, log, number, product_params, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -23,9 +23,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--min-cluster-size", type=number("--min-cluster-size", minimum=2, integer=True), help="HDBSCAN MinClusterSize, at least 2 (default: from the point density)")
     p.add_argument("--voxel", type=number("--voxel", positive=True), help="thinning voxel before clustering, m (default 0.3)")
     p.add_argument("--distance-threshold", type=number("--distance-threshold", positive=True), help="D_thr for matched keypoints, m (default 1)")
-    p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates; results are written in the same unit")
-    p.add_argument("--params", help=PARAMS_HELP)
-    p.set_defaults(func=cmd_coregister, long_running=True)
+    add_units_params(p, "units of the input coordinates; results are written in the same unit", cmd_coregister)
 
     p = sub.add_parser("fuse", help="fuse co-registered ground-based and UAV clouds (redundancy + noise removal)")
     p.add_argument("ground", help="ground-based cloud")
@@ -34,9 +32,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="fused cloud to write (.laz/.las; never one of the inputs) with a per-point source label")
     p.add_argument("--epsilon", type=number("--epsilon", positive=True), help="redundancy distance, m (default 0.01)")
     p.add_argument("--cube", type=number("--cube", positive=True), help="cube side of the redundancy search, m")
-    p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates (and of the fused cloud)")
-    p.add_argument("--params", help=PARAMS_HELP)
-    p.set_defaults(func=cmd_fuse, long_running=True)
+    add_units_params(p, "units of the input coordinates (and of the fused cloud)", cmd_fuse)
 
 
 def coregistration_params(args: argparse.Namespace):
@@ -60,11 +56,11 @@ def cmd_coregister(args: argparse.Namespace) -> int:
 def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m", reporter: Optional[Reporter] = None) -> int:
     """Co-register ``ground_path`` onto ``uav_path``; the output folder ``out`` is a transaction."""
     from ..engine.core.atomic import check_output_folder, output_folder, write_text_atomic
-    from ..engine.core.transform import format_matrix, to_file_units
+    from ..engine.core.transform import format_matrix
     from ..engine.coreg.coregister import coregister
     from ..engine.io import read_scan
     from ..engine.io.tables import write_keypoints_csv
-    from .common import final_result_check
+    from .common import run_summary
 
     reporter = reporter or Reporter("none", "coregister")
     if params is None:
@@ -86,16 +82,12 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
         result = coregister(ground, uav, params, progress=steps)
     finally:
         reporter.close()
-    summary = final_result_check(result.to_dict())
-    ok = summary["status"] == "ok"
-    summary["timings"] = {"read_s": read_s, **summary["timings"]}
-    summary["ground_file"] = str(Path(ground_path).resolve())
-    summary["uav_file"] = str(Path(uav_path).resolve())
-    summary["distance_threshold_m"] = params.matching.distance_threshold_m
-    summary["unit"] = units
-    summary["unit_scale"] = scale
-    if summary.get("matrix") is not None:
-        summary["matrix"] = to_file_units(np.asarray(summary["matrix"]), scale).tolist()
+    summary, ok = run_summary(result, {
+        "timings": {"read_s": read_s},
+        "ground_file": str(Path(ground_path).resolve()),
+        "uav_file": str(Path(uav_path).resolve()),
+        "distance_threshold_m": params.matching.distance_threshold_m,
+    }, units, scale)
     pairs = result.matched_after_icp if result.matched_after_icp is not None else (
         result.match.pairs if result.match is not None else np.zeros((0, 2), dtype=int))
     with output_folder(out, "coregister") as tmp:

@@ -67,11 +67,11 @@ def run_register(
     transaction. Returns the exit code (0 ok, 1 failed with a reason)."""
     from ..engine.core.atomic import check_output_folder, output_folder, write_text_atomic
     from ..engine.tls.params import RegistrationParams
-    from ..engine.core.transform import format_matrix, to_file_units
+    from ..engine.core.transform import format_matrix
     from ..engine.io import read_scan, write_scan
     from ..engine.io.tables import pair_vop_tables, write_vops_csv
     from ..engine.tls.pair import register
-    from .common import final_result_check
+    from .common import run_summary
 
     from ..engine.core.errors import UsageError
 
@@ -99,16 +99,11 @@ def run_register(
         )
     finally:
         reporter.close()
-    summary = final_result_check(result.to_dict())
-    ok = summary["status"] == "ok"
-    summary["timings"] = {"read": read_s, **summary["timings"]}
-    summary["reference_file"] = str(Path(reference_path).resolve())
-    summary["moving_file"] = str(Path(moving_path).resolve())
-    summary["unit"] = units
-    summary["unit_scale"] = scale
-    for key in ("matrix", "coarse_matrix"):
-        if summary.get(key) is not None:
-            summary[key] = to_file_units(np.asarray(summary[key]), scale).tolist()
+    summary, ok = run_summary(result, {
+        "timings": {"read": read_s},
+        "reference_file": str(Path(reference_path).resolve()),
+        "moving_file": str(Path(moving_path).resolve()),
+    }, units, scale, ("matrix", "coarse_matrix"))
     with output_folder(out, "register") as tmp:
         for scan, to_file, vops, matched, name in pair_vop_tables(result, reference, moving):
             write_vops_csv(tmp / name, vops.xy, vops.z, to_file, vops.radius, vops.support, matched, unit_scale=scale)

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .common import PARAMS_HELP, UNITS, Reporter, number, product_params, say, shown
+from .common import UNITS, Reporter, add_units_params, number, product_params, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -18,9 +18,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--field", help="field records CSV: evaluate the trees against them into OUT/evaluation")
     p.add_argument("--no-cylinders", action="store_true", help="skip the cylinder models (faster; no volume)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
-    p.add_argument("--units", choices=sorted(UNITS), default="m", help="units of the input coordinates")
-    p.add_argument("--params", help=PARAMS_HELP)
-    p.set_defaults(func=cmd_trees, long_running=True)
+    add_units_params(p, "units of the input coordinates", cmd_trees)
 
     p = sub.add_parser("evaluate", help="compare trees.csv with field records: R2, RMSE, rRMSE per parameter (paper table 3)")
     p.add_argument("trees", help="trees.csv of `forestreg trees`")
