@@ -115,6 +115,26 @@ class _Base(QgsProcessingAlgorithm):
     def _cli(self, parameters, context):
         return (self.parameterAsString(parameters, self.CLI, context) or "").strip() or None
 
+    def _run_job(self, args, run, failure, layer_name, parameters, context, feedback):
+        """Run the service job ``args`` through ``run(cli, progress, log, cancelled)``, report a
+        failure as ``failure: reason``, write the layer CSVs and load the scanner positions as
+        ``scanners (layer_name)``. Returns the outputs, the CRS, the layer files and the common
+        result entries (output folder, scanners layer, status, reason)."""
+        cli = self._cli(parameters, context)
+        feedback.pushInfo("job: forestreg " + " ".join(args))
+        outputs = _run_and_report(lambda p, l, c: run(cli, p, l, c), feedback)
+        if outputs.status != "ok":
+            feedback.reportError(f"{failure}: {outputs.reason}")
+        crs = self.parameterAsCrs(parameters, self.CRS, context)
+        files = adapter.write_layer_files(outputs)
+        scanners = _load_point_layer(files["scanners"], f"scanners ({layer_name})", crs, context, self.SCANNERS, feedback)
+        return outputs, crs, files, {
+            self.OUTPUT: self.parameterAsString(parameters, self.OUTPUT, context),
+            self.SCANNERS: scanners,
+            self.STATUS: outputs.status,
+            self.REASON: outputs.reason,
+        }
+
 
 class RegisterPairAlgorithm(_Base):
     REFERENCE = "REFERENCE"
@@ -155,22 +175,15 @@ class RegisterPairAlgorithm(_Base):
             out_dir=out,
             vop_radius_m=self._dr(parameters, context),
         )
-        cli = self._cli(parameters, context)
-        feedback.pushInfo("job: forestreg " + " ".join(adapter.build_pair_args(job)))
-        outputs = _run_and_report(lambda p, l, c: adapter.register_pair(job, cli, p, l, c), feedback)
-        if outputs.status != "ok":
-            feedback.reportError(f"registration failed: {outputs.reason}")
-        crs = self.parameterAsCrs(parameters, self.CRS, context)
-        files = adapter.write_layer_files(outputs)
         stem = f"{Path(job.moving).stem} onto {Path(job.reference).stem}"
-        summary = outputs.summary
+        outputs, crs, files, results = self._run_job(
+            adapter.build_pair_args(job), lambda *a: adapter.register_pair(job, *a), "registration failed", stem,
+            parameters, context, feedback,
+        )
         return {
-            self.OUTPUT: out,
-            self.SCANNERS: _load_point_layer(files["scanners"], f"scanners ({stem})", crs, context, self.SCANNERS, feedback),
+            **results,
             self.VOPS: _load_point_layer(files["vops"], f"VOPs ({stem})", crs, context, self.VOPS, feedback),
-            self.STATUS: outputs.status,
-            self.REASON: outputs.reason,
-            self.MATCHED: summary.get("matched") or 0,
+            self.MATCHED: outputs.summary.get("matched") or 0,
             self.TRANSFORM: str(Path(out) / "transform.txt") if outputs.status == "ok" else "",
         }
 
@@ -219,19 +232,10 @@ class RegisterPlotAlgorithm(_Base):
             centre=(self.parameterAsString(parameters, self.CENTRE, context) or "").strip() or None,
             vop_radius_m=self._dr(parameters, context),
         )
-        cli = self._cli(parameters, context)
-        feedback.pushInfo("job: forestreg " + " ".join(adapter.build_plot_args(job)))
-        outputs = _run_and_report(lambda p, l, c: adapter.register_plot(job, cli, p, l, c), feedback)
-        if outputs.status != "ok":
-            feedback.reportError(f"not every scan was registered: {outputs.reason}")
-        crs = self.parameterAsCrs(parameters, self.CRS, context)
-        files = adapter.write_layer_files(outputs)
-        return {
-            self.OUTPUT: out,
-            self.SCANNERS: _load_point_layer(files["scanners"], f"scanners ({Path(out).name})", crs, context, self.SCANNERS, feedback),
-            self.STATUS: outputs.status,
-            self.REASON: outputs.reason,
-        }
+        return self._run_job(
+            adapter.build_plot_args(job), lambda *a: adapter.register_plot(job, *a), "not every scan was registered",
+            Path(out).name, parameters, context, feedback,
+        )[3]
 
 
 class ForestregProvider(QgsProcessingProvider):
