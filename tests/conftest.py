@@ -66,3 +66,20 @@ def _simulated_plot(
         size_m=size,
         tilted=dict(tilted) if tilted else None,
     )
+
+
+@pytest.fixture
+def window(qtbot, tmp_path: Path):
+    """The main window, shown, non-interactive (no dialogs), with its settings in ``tmp_path``;
+    afterwards any run or task is cancelled and awaited."""
+    from PySide6.QtCore import QSettings
+
+    from forestreg.ui.main_window import MainWindow
+
+    w = MainWindow(settings=QSettings(str(tmp_path / "settings.ini"), QSettings.Format.IniFormat), interactive=False)
+    qtbot.addWidget(w)
+    w.show()
+    yield w
+    w.cancel_run()
+    w.tasks.cancel_all()
+    qtbot.waitUntil(lambda: not w.busy, timeout=400_000)

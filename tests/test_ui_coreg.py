@@ -4,7 +4,6 @@ simulator's truth, accept, fusion with the counts per source, and a result folde
 from __future__ import annotations
 
 import functools
-from pathlib import Path
 
 import pytest
 
@@ -12,7 +11,6 @@ pytest.importorskip("PySide6")
 pytest.importorskip("pyvista")
 pytest.importorskip("pytestqt")
 
-from PySide6.QtCore import QSettings  # noqa: E402
 
 TIMEOUT_MS = 400_000
 
@@ -34,18 +32,6 @@ def files(tmp_path_factory):
     write_scan(case.ground, folder / "ground.laz")
     write_scan(case.uav, folder / "uav.laz")
     return case, folder / "ground.laz", folder / "uav.laz"
-
-
-@pytest.fixture
-def window(qtbot, tmp_path: Path):
-    from forestreg.ui.main_window import MainWindow
-
-    w = MainWindow(settings=QSettings(str(tmp_path / "s.ini"), QSettings.Format.IniFormat), interactive=False)
-    qtbot.addWidget(w)
-    w.show()
-    yield w
-    w.tasks.cancel_all()
-    qtbot.waitUntil(lambda: not w.busy, timeout=TIMEOUT_MS)
 
 
 def test_cancel_stops_the_run(qtbot, window, files):

@@ -13,7 +13,6 @@ pytest.importorskip("PySide6")
 pytest.importorskip("pyvista")
 pytest.importorskip("pytestqt")
 
-from PySide6.QtCore import QSettings  # noqa: E402
 
 from forestreg.engine.tls.params import RegistrationParams  # noqa: E402
 from forestreg.engine.tls.project import Project  # noqa: E402
@@ -45,19 +44,6 @@ def project_file(plot, tmp_path: Path) -> Path:
     for f in sorted(folder.glob("scan_*.laz")):
         project.add_scan(f)
     return project.save(tmp_path / "plot.json")
-
-
-@pytest.fixture
-def window(qtbot, tmp_path: Path):
-    from forestreg.ui.main_window import MainWindow
-
-    w = MainWindow(settings=QSettings(str(tmp_path / "settings.ini"), QSettings.Format.IniFormat), interactive=False)
-    qtbot.addWidget(w)
-    w.show()
-    yield w
-    w.cancel_run()
-    w.tasks.cancel_all()
-    qtbot.waitUntil(lambda: not w.busy, timeout=RUN_TIMEOUT_MS)
 
 
 def _open(qtbot, window, path: Path) -> None:

@@ -45,15 +45,10 @@ def trees_dir(cloud, tmp_path_factory):
 
 
 @pytest.fixture
-def window(qtbot, tmp_path: Path):
-    from forestreg.ui.main_window import MainWindow
-
-    w = MainWindow(settings=QSettings(str(tmp_path / "s.ini"), QSettings.Format.IniFormat), interactive=False)
-    qtbot.addWidget(w)
-    w.resize(1280, 800)
-    w.show()
-    yield w
-    qtbot.waitUntil(lambda: not w.busy, timeout=TIMEOUT_MS)
+def window(window):
+    """The shared main window (conftest), at a desktop size."""
+    window.resize(1280, 800)
+    return window
 
 
 def test_trees_folder_map_table_and_3d(qtbot, window, cloud, trees_dir):
