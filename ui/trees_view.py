@@ -175,7 +175,19 @@ class TreeTable(QTableWidget):
         return None if not rows else int(self.value(rows[0].row(), "tree_id"))
 
 
-class TreeMap(QWidget):
+class _FigurePanel(QWidget):
+    """A widget filled by one matplotlib figure (``figure``, drawn on ``canvas``) of ``size`` inches."""
+
+    def __init__(self, size: float, parent: Optional[QWidget] = None) -> None:
+        super().__init__(parent)
+        self.figure = Figure(figsize=(size, size), dpi=90, layout="constrained")
+        self.canvas = FigureCanvasQTAgg(self.figure)
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(0, 0, 0, 0)
+        lay.addWidget(self.canvas)
+
+
+class TreeMap(_FigurePanel):
     """The plot map: stems (dot size ~ DBH), crowns (ellipses from the E-W and N-S widths),
     flagged trees red, the selected tree blue. A click selects the nearest tree."""
 
@@ -183,12 +195,7 @@ class TreeMap(QWidget):
     positionClicked = Signal(float, float)  # file coordinates (m)
 
     def __init__(self, parent: Optional[QWidget] = None) -> None:
-        super().__init__(parent)
-        self.figure = Figure(figsize=(4, 4), dpi=90, layout="constrained")
-        self.canvas = FigureCanvasQTAgg(self.figure)
-        lay = QVBoxLayout(self)
-        lay.setContentsMargins(0, 0, 0, 0)
-        lay.addWidget(self.canvas)
+        super().__init__(4, parent)
         self.out: Optional[TreesOutput] = None
         self.selected: Optional[int] = None
         self.origin = np.zeros(2)
@@ -248,17 +255,12 @@ class TreeMap(QWidget):
             self.treeClicked.emit(int(self.out.trees[int(np.argmin(d))].tree_id))
 
 
-class StemCurvePlot(QWidget):
+class StemCurvePlot(_FigurePanel):
     """Diameter against height of the selected tree (accepted fits, interpolated ones, rejected
     raw fits) with the DBH at 1.3 m."""
 
     def __init__(self, parent: Optional[QWidget] = None) -> None:
-        super().__init__(parent)
-        self.figure = Figure(figsize=(3, 3), dpi=90, layout="constrained")
-        self.canvas = FigureCanvasQTAgg(self.figure)
-        lay = QVBoxLayout(self)
-        lay.setContentsMargins(0, 0, 0, 0)
-        lay.addWidget(self.canvas)
+        super().__init__(3, parent)
 
     def show_tree(self, out: Optional[TreesOutput], tree_id: Optional[int]) -> None:
         self.figure.clear()
