@@ -45,7 +45,7 @@ from ..core.transform import fit_rigid
 from .mesh import Material, SceneRaycaster, raycaster_for
 from .plot import simulate_plot
 from .scanner import intensity_model
-from .scene import ForestScene, make_scene
+from .scene import ForestScene, given_or_made_scene
 from ..core.transform import apply as apply_transform
 
 ProgressCallback = Callable[[float, str], None]
@@ -935,10 +935,7 @@ def simulate_coregistration_case(
     if not math.isfinite(heading_deg):
         raise ParameterError(f"heading_deg must be finite, got {heading_deg}")
     prog(0.0, "building the scene")
-    if scene is None:
-        scene = make_scene(preset, seed=seed, size_m=size_m, **scene_overrides)
-    elif scene_overrides:
-        raise ParameterError("give either a scene or scene overrides, not both")
+    scene = given_or_made_scene(scene, preset, seed, size_m, scene_overrides)
     xmin, xmax, ymin, ymax = scene.extent
     cx, cy = (xmin + xmax) / 2.0, (ymin + ymax) / 2.0
     plot_side = min(xmax - xmin, ymax - ymin)

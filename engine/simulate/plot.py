@@ -35,7 +35,7 @@ from ..core.atomic import write_text_atomic
 from ..core.errors import ParameterError, UnknownNameError
 from .mesh import Material, raycaster_for
 from .scanner import ScannerSetup, SimulatedScan, simulate_tls_scan
-from .scene import BREAST_HEIGHT_M, ForestScene, make_scene
+from .scene import BREAST_HEIGHT_M, ForestScene, given_or_made_scene
 from ..core.jsonable import to_jsonable
 
 ProgressCallback = Callable[[float, str], None]
@@ -130,10 +130,7 @@ def simulate_plot(
         raise ParameterError(f"scanner_options cannot set {', '.join(sorted(bad))}; use the dedicated arguments")
 
     report(0.0, "building the scene")
-    if scene is None:
-        scene = make_scene(preset, seed=seed, size_m=size_m, **scene_overrides)
-    elif scene_overrides:
-        raise ParameterError("give either a scene or scene overrides, not both")
+    scene = given_or_made_scene(scene, preset, seed, size_m, scene_overrides)
     xmin, xmax, ymin, ymax = scene.extent
     outside = (pos[:, 0] <= xmin) | (pos[:, 0] >= xmax) | (pos[:, 1] <= ymin) | (pos[:, 1] >= ymax)
     if outside.any():

@@ -706,6 +706,23 @@ def make_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **overrides:
     )
 
 
+def given_or_made_scene(
+    scene: Optional[ForestScene], preset: str, seed: int, size_m: float, overrides: dict[str, Any]
+) -> ForestScene:
+    """``scene`` when given, else :func:`make_scene` ``(preset, seed, size_m, **overrides)``.
+
+    Raises
+    ------
+    ParameterError
+        Both a scene and overrides are given, or as :func:`make_scene`.
+    """
+    if scene is None:
+        return make_scene(preset, seed=seed, size_m=size_m, **overrides)
+    if overrides:
+        raise ParameterError("give either a scene or scene overrides, not both")
+    return scene
+
+
 def _stable_hash(text: str) -> int:
     h = 0
     for ch in text.encode("utf-8"):
