@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from ..geometry.vectors import cross3, perpendicular_frame
 from .scene import BROADLEAF, ForestScene, Tree
 
 
@@ -138,19 +139,6 @@ class _Builder:
 # --------------------------------------------------------------------------------------------
 
 
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
-
-def _frame(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors perpendicular to unit ``d`` and to each other."""
-    ref = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = _cross3(d, ref)
-    u /= math.sqrt(float(u @ u))
-    v = _cross3(d, u)
-    return u, v
-
-
 def area_equivalent_factor(n_seg: int) -> float:
     """Vertex radius / circle radius so that a regular ``n_seg``-gon has the circle's area."""
     return math.sqrt(2.0 * math.pi / (n_seg * math.sin(2.0 * math.pi / n_seg)))
@@ -181,21 +169,21 @@ def tube(
     ca, sa = np.cos(a), np.sin(a)
     if k == 2 or np.allclose(dirs, dirs[0], atol=1e-12):
         # straight tube: one frame for all rings
-        u, v = _frame(dirs[0])
+        u, v = perpendicular_frame(dirs[0])
         ring = ca[:, None] * u + sa[:, None] * v  # (n_seg, 3)
         verts = c[:, None, :] + r[:, None, None] * ring[None, :, :]
     else:
-        u, _ = _frame(dirs[0])
+        u, _ = perpendicular_frame(dirs[0])
         verts = np.empty((k, n_seg, 3))
         for i in range(k):
             d = dirs[i]
             u = u - d * float(d @ u)  # parallel transport of the reference vector
             nu = math.sqrt(float(u @ u))
             if nu < 1e-9:
-                u, _ = _frame(d)
+                u, _ = perpendicular_frame(d)
             else:
                 u = u / nu
-            v = _cross3(d, u)
+            v = cross3(d, u)
             verts[i] = c[i] + r[i] * (ca[:, None] * u + sa[:, None] * v)
     verts = verts.reshape(-1, 3)
     j = np.arange(n_seg)

@@ -65,6 +65,7 @@ from ..core.atomic import write_text_atomic
 from ..core.errors import ParameterError, ScanDataError, ScanReadError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
+from ..geometry.vectors import perpendicular_frame
 from ..geometry.voxel import voxel_centroids
 from .leafwood import check_points
 
@@ -836,18 +837,6 @@ def fit_circle(xy: np.ndarray, iterations: int = 15, tolerance: float = 1e-5) ->
     return c + m, abs(float(r))
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
-
-def _perpendicular_frame(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors completing ``axis`` to a right-handed orthonormal frame."""
-    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = _cross(axis, helper)
-    u /= math.sqrt(float(u @ u))
-    return u, _cross(axis, u)
-
-
 def surface_coverage(angles: np.ndarray, t: np.ndarray, t_min: float, t_max: float, radius: float) -> float:
     """Fraction of the cells of a cylinder surface that hold points.
 
@@ -876,7 +865,7 @@ def refine_cylinder(
     ones = np.ones(len(points))
     scale = 0.0
     for it in range(iterations):
-        u, v = _perpendicular_frame(a)
+        u, v = perpendicular_frame(a)
         d = points - c
         t = d @ a
         w = d - t[:, None] * a
@@ -925,7 +914,7 @@ def fit_cylinder(points: np.ndarray, direction: np.ndarray, params: QsmParams) -
         return CylinderFit(mean, axis, max(r, params.min_radius_m), float(t.min(initial=0.0)), float(t.max(initial=0.0)), float("nan"), 0.0, n, False)
 
     def measure(centre: np.ndarray, axis: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray, float, float]:
-        u, v2 = _perpendicular_frame(axis)
+        u, v2 = perpendicular_frame(axis)
         rel = np.column_stack([(points - centre) @ u, (points - centre) @ v2])
         tt = (points - centre) @ axis
         dist = np.linalg.norm(rel, axis=1)
@@ -933,7 +922,7 @@ def fit_cylinder(points: np.ndarray, direction: np.ndarray, params: QsmParams) -
         cov = surface_coverage(np.arctan2(rel[:, 1], rel[:, 0]), tt, float(tt.min()), float(tt.max()), r)
         return rel, tt, mad, cov
 
-    u, v2 = _perpendicular_frame(axis)
+    u, v2 = perpendicular_frame(axis)
     xy = np.column_stack([(points - mean) @ u, (points - mean) @ v2])
     c2, r = fit_circle(xy)
     centre = mean + c2[0] * u + c2[1] * v2
