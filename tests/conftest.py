@@ -83,3 +83,31 @@ def window(qtbot, tmp_path: Path):
     w.cancel_run()
     w.tasks.cancel_all()
     qtbot.waitUntil(lambda: not w.busy, timeout=400_000)
+
+
+@pytest.fixture
+def open_project(qtbot, window):
+    """``open_project(path)``: open a project file in the main window and wait until its scene is
+    shown and nothing runs any more."""
+
+    def _open(path: Path) -> None:
+        with qtbot.waitSignal(window.sceneReady, timeout=60_000):
+            assert window.open_project(path)
+        qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
+
+    return _open
+
+
+@pytest.fixture
+def scans_project(tmp_path: Path):
+    """``scans_project(folder, name, params)``: an unregistered project of the ``scan_*.laz`` files
+    of ``folder`` (in name order), saved as ``plot.json`` in the test's own folder."""
+    from forestreg.engine.tls.project import Project
+
+    def _make(folder: Path, name: str, params) -> Path:
+        project = Project(name=name, params=params)
+        for f in sorted(Path(folder).glob("scan_*.laz")):
+            project.add_scan(f)
+        return project.save(tmp_path / "plot.json")
+
+    return _make

@@ -45,22 +45,13 @@ def _params() -> RegistrationParams:
 
 
 @pytest.fixture
-def project_file(plot_dir: Path, tmp_path: Path) -> Path:
+def project_file(plot_dir: Path, scans_project) -> Path:
     """An unregistered project of the three scans, saved in the test's own folder."""
-    project = Project(name="test plot", params=_params())
-    for f in sorted(plot_dir.glob("scan_*.laz")):
-        project.add_scan(f)
-    return project.save(tmp_path / "plot.json")
+    return scans_project(plot_dir, "test plot", _params())
 
 
-def _open(qtbot, window, path: Path) -> None:
-    with qtbot.waitSignal(window.sceneReady, timeout=60_000):
-        assert window.open_project(path)
-    qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
-
-
-def test_run_fills_the_tables(qtbot, window, project_file: Path, tmp_path: Path) -> None:
-    _open(qtbot, window, project_file)
+def test_run_fills_the_tables(qtbot, window, open_project, project_file: Path, tmp_path: Path) -> None:
+    open_project(project_file)
     assert [window.link_table.rowCount(), window.scan_table.rowCount()] == [0, 3]
     assert window.scene_mode == "before" and len(window.scene_view.scene.clouds) == 3
     progress: list[tuple[float, str]] = []
@@ -131,8 +122,8 @@ def test_run_fills_the_tables(qtbot, window, project_file: Path, tmp_path: Path)
     _REGISTERED["project"] = keep
 
 
-def test_cancel_stops_and_keeps_the_window_usable(qtbot, window, project_file: Path) -> None:
-    _open(qtbot, window, project_file)
+def test_cancel_stops_and_keeps_the_window_usable(qtbot, window, open_project, project_file: Path) -> None:
+    open_project(project_file)
     before = project_file.read_text()
     with qtbot.waitSignal(window.runCancelled, timeout=RUN_TIMEOUT_MS):
         assert window.run()
@@ -152,14 +143,14 @@ def test_cancel_stops_and_keeps_the_window_usable(qtbot, window, project_file: P
     assert Project.load(project_file).centre == "scan_02.laz"
 
 
-def test_an_unreadable_scan_fails_its_link_with_a_readable_reason(qtbot, window, plot_dir: Path, tmp_path: Path) -> None:
+def test_an_unreadable_scan_fails_its_link_with_a_readable_reason(qtbot, window, open_project, plot_dir: Path, tmp_path: Path) -> None:
     """A scan file that is gone fails its own link (the engine's rule), not the whole run; the
     reason shows in the links table, whose Reason column appears only now."""
     project = Project(name="broken", params=_params())
     project.add_scan(plot_dir / "scan_01.laz")
     project.add_scan(tmp_path / "gone.laz")
     path = project.save(tmp_path / "broken.json")
-    _open(qtbot, window, path)
+    open_project(path)
     assert "gone.laz" in window.scene_view.scene.missing
     table = window.link_table
     with qtbot.waitSignal(window.runFinished, timeout=RUN_TIMEOUT_MS):
@@ -173,8 +164,8 @@ def test_an_unreadable_scan_fails_its_link_with_a_readable_reason(qtbot, window,
     assert window.act_run.isEnabled()
 
 
-def test_save_reopen_and_project_edits(qtbot, window, project_file: Path, tmp_path: Path) -> None:
-    _open(qtbot, window, project_file)
+def test_save_reopen_and_project_edits(qtbot, window, open_project, project_file: Path, tmp_path: Path) -> None:
+    open_project(project_file)
     model = window.model
     model.set_tilted("scan_03.laz", True, "scan_02.laz")
     # drag scan_02 onto scan_03: link it there

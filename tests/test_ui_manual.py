@@ -38,18 +38,8 @@ def picked_targets(sim, index: int, seed: int = 0) -> dict[str, np.ndarray]:
 
 
 @pytest.fixture
-def project_file(plot, tmp_path: Path) -> Path:
-    _, folder = plot
-    project = Project(name="manual plot", params=RegistrationParams(angular_step_deg=0.3, icp_voxel_m=0.2, icp_iterations=20))
-    for f in sorted(folder.glob("scan_*.laz")):
-        project.add_scan(f)
-    return project.save(tmp_path / "plot.json")
-
-
-def _open(qtbot, window, path: Path) -> None:
-    with qtbot.waitSignal(window.sceneReady, timeout=60_000):
-        assert window.open_project(path)
-    qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
+def project_file(plot, scans_project) -> Path:
+    return scans_project(plot[1], "manual plot", RegistrationParams(angular_step_deg=0.3, icp_voxel_m=0.2, icp_iterations=20))
 
 
 def _pick_all(window, sim) -> dict[str, dict[str, np.ndarray]]:
@@ -61,11 +51,11 @@ def _pick_all(window, sim) -> dict[str, dict[str, np.ndarray]]:
     return picked
 
 
-def test_picked_targets_and_manual_registration(qtbot, window, plot, project_file: Path) -> None:
+def test_picked_targets_and_manual_registration(qtbot, window, open_project, plot, project_file: Path) -> None:
     from forestreg.engine.core.transform import rigid_errors
 
     sim, _ = plot
-    _open(qtbot, window, project_file)
+    open_project(project_file)
     names = [s.name for s in window.project.scans]
     picked = _pick_all(window, sim)
     panel = window.targets_panel
@@ -126,11 +116,11 @@ def test_picked_targets_and_manual_registration(qtbot, window, plot, project_fil
     assert window.project.link_of(names[1]).method == "auto" and window.project.link_of(names[1]).result is None
 
 
-def test_targets_table_csv_round_trip_and_reflectors(qtbot, window, plot, project_file: Path, tmp_path: Path) -> None:
+def test_targets_table_csv_round_trip_and_reflectors(qtbot, window, open_project, plot, project_file: Path, tmp_path: Path) -> None:
     from forestreg.engine.tls.manual import read_targets_csv, write_targets_csv
 
     sim, _ = plot
-    _open(qtbot, window, project_file)
+    open_project(project_file)
     names = [s.name for s in window.project.scans]
     wanted = {n: picked_targets(sim, i) for i, n in enumerate(names)}
     source = tmp_path / "in.csv"
@@ -180,9 +170,9 @@ def test_targets_table_csv_round_trip_and_reflectors(qtbot, window, plot, projec
     assert "R1" in window.targets_of(names[1])
 
 
-def test_compare_auto_and_manual(qtbot, window, plot, project_file: Path, tmp_path: Path) -> None:
+def test_compare_auto_and_manual(qtbot, window, open_project, plot, project_file: Path, tmp_path: Path) -> None:
     sim, _ = plot
-    _open(qtbot, window, project_file)
+    open_project(project_file)
     names = [s.name for s in window.project.scans]
     for i, n in enumerate(names):
         window.set_targets(n, picked_targets(sim, i))
