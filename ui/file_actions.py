@@ -158,44 +158,34 @@ class FileActionsMixin:
             except ForestregError as exc:
                 self.show_error("Cannot read the parameters", str(exc))
 
-    def _ask_folder(self, title: str) -> str:
-        """A folder from the dialog (remembered as the last folder), or ``""`` when cancelled."""
+    def _ask_folder(self, title: str, then: Callable[[str], None]) -> None:
+        """Ask for a folder; if one is chosen, remember it as the last folder and call ``then(folder)``."""
         folder = QFileDialog.getExistingDirectory(self, title, self._last_dir())
         if folder:
             self._remember_dir(folder)
-        return folder
+            then(folder)
 
-    def _ask_save(self, title: str, default_name: str, filters: str) -> str:
-        """A file to write from the dialog (its folder remembered), or ``""`` when cancelled."""
+    def _ask_save(self, title: str, default_name: str, filters: str, then: Callable[[str], None]) -> None:
+        """Ask for a file to write; if one is chosen, remember its folder and call ``then(path)``."""
         path, _ = QFileDialog.getSaveFileName(self, title, str(Path(self._last_dir()) / default_name), filters)
         if path:
             self._remember_dir(path)
-        return path
+            then(path)
 
     def _ask_export_poses(self) -> None:
-        folder = self._ask_folder("Folder for poses.json and the transforms")
-        if folder:
-            self.export_poses(folder)
+        self._ask_folder("Folder for poses.json and the transforms", self.export_poses)
 
     def _ask_export_merged(self) -> None:
-        path = self._ask_save("Merged point cloud", "merged.laz", "LAZ (*.laz);;LAS (*.las);;PLY (*.ply)")
-        if path:
-            self.export_merged(path)
+        self._ask_save("Merged point cloud", "merged.laz", "LAZ (*.laz);;LAS (*.las);;PLY (*.ply)", self.export_merged)
 
     def _ask_export_scans(self) -> None:
-        folder = self._ask_folder("Folder for the registered scans (one LAZ each)")
-        if folder:
-            self.export_scans(folder)
+        self._ask_folder("Folder for the registered scans (one LAZ each)", self.export_scans)
 
     def _ask_export_e57(self) -> None:
-        path = self._ask_save("Registered scans", "registered.e57", "E57 (*.e57)")
-        if path:
-            self.export_e57(path)
+        self._ask_save("Registered scans", "registered.e57", "E57 (*.e57)", self.export_e57)
 
     def _ask_export_report(self) -> None:
-        path = self._ask_save("HTML report", "report.html", "HTML (*.html)")
-        if path:
-            self.export_report(path, open_after=self.interactive)
+        self._ask_save("HTML report", "report.html", "HTML (*.html)", lambda path: self.export_report(path, open_after=self.interactive))
 
     # ---------------------------------------------------------------- exports
 
