@@ -220,21 +220,24 @@ def final_result_check(summary: dict) -> dict:
     return withhold_unless_rigid(summary)
 
 
-def run_summary(result, facts: dict, units: str, scale: float, matrix_keys: tuple[str, ...] = ("matrix",)) -> tuple[dict, bool]:
+def run_summary(
+    result, read: dict, inputs: dict, units: str, scale: float, *,
+    facts: Optional[dict] = None, matrix_keys: tuple[str, ...] = ("matrix",),
+) -> tuple[dict, bool]:
     """The ``result.json`` summary of a registration-like ``result`` and whether it is "ok".
 
-    ``facts`` holds ``{"timings": {...read times...}, ...input facts...}``: the read times go in
-    front of the result's own timings, the other facts follow in order, then the unit; the
-    matrices named by ``matrix_keys`` are turned into the files' unit."""
+    ``read`` (read times) goes in front of the result's own timings; ``inputs`` (key -> input
+    file) follow as absolute paths, then ``facts``, then the unit; the matrices named by
+    ``matrix_keys`` are turned into the files' unit."""
     import numpy as np
 
     from ..engine.core.transform import to_file_units
 
     summary = final_result_check(result.to_dict())
     ok = summary["status"] == "ok"
-    facts = dict(facts)
-    summary["timings"] = {**facts.pop("timings"), **summary["timings"]}
-    summary.update(facts)
+    summary["timings"] = {**read, **summary["timings"]}
+    summary.update({key: str(Path(path).resolve()) for key, path in inputs.items()})
+    summary.update(facts or {})
     summary["unit"] = units
     summary["unit_scale"] = scale
     for key in matrix_keys:

@@ -7,7 +7,6 @@ import dataclasses
 import json
 import sys
 import time
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -82,12 +81,8 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
         result = coregister(ground, uav, params, progress=steps)
     finally:
         reporter.close()
-    summary, ok = run_summary(result, {
-        "timings": {"read_s": read_s},
-        "ground_file": str(Path(ground_path).resolve()),
-        "uav_file": str(Path(uav_path).resolve()),
-        "distance_threshold_m": params.matching.distance_threshold_m,
-    }, units, scale)
+    summary, ok = run_summary(result, {"read_s": read_s}, {"ground_file": ground_path, "uav_file": uav_path}, units, scale,
+                              facts={"distance_threshold_m": params.matching.distance_threshold_m})
     pairs = result.matched_after_icp if result.matched_after_icp is not None else (
         result.match.pairs if result.match is not None else np.zeros((0, 2), dtype=int))
     with output_folder(out, "coregister") as tmp:

@@ -99,11 +99,8 @@ def run_register(
         )
     finally:
         reporter.close()
-    summary, ok = run_summary(result, {
-        "timings": {"read": read_s},
-        "reference_file": str(Path(reference_path).resolve()),
-        "moving_file": str(Path(moving_path).resolve()),
-    }, units, scale, ("matrix", "coarse_matrix"))
+    summary, ok = run_summary(result, {"read": read_s}, {"reference_file": reference_path, "moving_file": moving_path}, units, scale,
+                              matrix_keys=("matrix", "coarse_matrix"))
     with output_folder(out, "register") as tmp:
         for scan, to_file, vops, matched, name in pair_vop_tables(result, reference, moving):
             write_vops_csv(tmp / name, vops.xy, vops.z, to_file, vops.radius, vops.support, matched, unit_scale=scale)
