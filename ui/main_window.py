@@ -532,8 +532,10 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
 
     def _top_built(self, view: Any) -> None:
         from ..engine.tls.views import scan_colours
+        from .top_view import SurveyOverlay
 
-        self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: trunk shadows and matches")
+        self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: trunk shadows, matches and pose uncertainty",
+                                overlay=SurveyOverlay.of(self.project))
         self.topViewReady.emit()
 
     def _start_view_task(self, name: str, make: Callable[[], TaskWorker], done: Callable[[Any], None]) -> None:
