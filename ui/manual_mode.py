@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Mapping, Optional
 
 import numpy as np
-from PySide6.QtCore import QPoint, Qt
+from PySide6.QtCore import QPoint, Qt, QTimer
 from PySide6.QtWidgets import QFileDialog, QMenu
 
 from ..engine.core.errors import ForestregError
@@ -278,8 +278,9 @@ class ManualModeMixin:
         on_targets = self.bottom_tabs.currentWidget() is self.targets_tab
         if on_targets and not self.tie_view.scanners:
             self.show_tie_points()
-        height = max(320, int(self.height() * 0.45)) if on_targets else 170
-        self.resizeDocks([self.results_dock], [height], Qt.Orientation.Vertical)
+        height = max(320, int(self.height() * 0.5)) if on_targets else max(150, self.height() // 5)
+        # after any pending layout pass (the first show sizes the dock too)
+        QTimer.singleShot(0, lambda: self.resizeDocks([self.results_dock], [height], Qt.Orientation.Vertical))
 
     def _tie_picked(self, scan_name: str, file_xyz: Any) -> None:
         """A point picked in one of the side-by-side views: a target of that scan. The id stays
