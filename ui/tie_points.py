@@ -9,12 +9,11 @@ keeps the targets in ``ScanEntry.targets`` (file coordinates) and registers from
 
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping, Optional
+from typing import Any, Mapping, Optional
 
 import numpy as np
-from PySide6.QtCore import Signal
+from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import QComboBox, QHBoxLayout, QLabel, QSplitter, QVBoxLayout, QWidget
-from PySide6.QtCore import Qt
 
 from .scene_data import Scene, SceneCloud
 from .scene_view import SceneView
@@ -162,9 +161,3 @@ class TiePointsView(QWidget):
         for view in self.views.values():
             view.close_view()
 
-
-def load_side(view: TiePointsView, side: str, name: str, subset: Callable[[str], tuple[np.ndarray, np.ndarray, int]],
-              colour: str, targets: Mapping[str, Any]) -> None:
-    """Draw scan ``name`` on ``side`` from ``subset(name) -> (file points, scanner, total)``."""
-    pts, scanner, total = subset(name)
-    view.show_side(side, name, pts, scanner, colour, total, targets)
