@@ -124,19 +124,23 @@ class TiePointsView(QWidget):
         targets = self.targets[side]
         display = {k: v - self.scanners[side] for k, v in targets.items()}
         view.show_markers(np.array(list(display.values())) if display else np.zeros((0, 3)), colour=TARGET_COLOUR)
-        for name in ("target-labels", "target-highlight"):
+        for name in ("target-labels", "target-highlight", "target-highlight-label"):
             try:
                 pl.remove_actor(name, render=False)
             except Exception:  # noqa: BLE001 - nothing drawn yet
                 pass
         if display and view.scene is not None:
-            pts = np.array(list(display.values()))
-            pl.add_point_labels(pts, list(display), name="target-labels", font_size=11, point_size=1,
-                                shape_opacity=0.6, always_visible=True, pickable=False, reset_camera=False)
+            others = [k for k in display if k != self.highlighted]
+            if others:
+                pl.add_point_labels(np.array([display[k] for k in others]), others, name="target-labels", font_size=11,
+                                    point_size=1, shape_opacity=0.6, always_visible=True, pickable=False, reset_camera=False)
             if self.highlighted in display:
-                pl.add_mesh(pv.PolyData(display[self.highlighted][None, :].astype(np.float32)), color=HIGHLIGHT_COLOUR,
-                            point_size=22, style="points", render_points_as_spheres=True, name="target-highlight",
-                            reset_camera=False, pickable=False)
+                at = display[self.highlighted][None, :].astype(np.float32)
+                pl.add_mesh(pv.PolyData(at), color=HIGHLIGHT_COLOUR, point_size=22, style="points", render_points_as_spheres=True,
+                            name="target-highlight", reset_camera=False, pickable=False)
+                pl.add_point_labels(at, [self.highlighted], name="target-highlight-label", font_size=14, bold=True,
+                                    text_color="black", shape_color=HIGHLIGHT_COLOUR, shape_opacity=0.95, point_size=1,
+                                    always_visible=True, pickable=False, reset_camera=False)
         name = self.combos[side].currentText()
         here = f"target {self.highlighted} " + ("placed" if self.highlighted in targets else "not placed yet") if self.highlighted else ""
         self.captions[side].setText(f"{name}: {len(targets)} target(s)" + (f"; {here}" if here else ""))
