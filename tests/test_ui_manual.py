@@ -222,3 +222,63 @@ def test_compare_auto_and_manual(qtbot, window, open_project, plot, project_file
     shot = tmp_path / "gui_compare.png"  # tests never write into docs/images
     assert window.grab().save(str(shot), "PNG", 0)  # 0: smallest file
     assert 20_000 < shot.stat().st_size < 500_000
+
+
+def test_tie_points_side_by_side(qtbot, window, plot, project_file: Path) -> None:
+    """Issue 16 item 7: the reference and the moving scan in two 3D views next to each other; a
+    pick in either view is a target of that scan, the id waits for the other scan, the same id is
+    highlighted in both, and the manual registration from those picks is within tolerance."""
+    from scipy.spatial import cKDTree
+
+    from forestreg.engine.core.transform import rigid_errors
+
+    sim, _ = plot
+    _open(qtbot, window, project_file)
+    names = [s.name for s in window.project.scans]
+    window.bottom_tabs.setCurrentWidget(window.targets_tab)
+    tie = window.tie_view
+    assert tie.pair == (names[0], names[1])  # the first moving scan and its link's reference
+    for side, name in (("reference", names[0]), ("moving", names[1])):
+        scene = tie.views[side].scene
+        assert scene is not None and [c.name for c in scene.clouds] == [name]
+        # drawn centred on its scanner: the drawn points are the file points minus the scanner
+        scanner = window.scans(name).scanner_position_file
+        pts = scene.clouds[0].points[:50].astype(float) + scanner
+        d, _ = cKDTree(window.scans(name).file_points).query(pts)
+        assert d.max() < 1e-3
+    window.set_pick_mode(True)
+    assert all(v.pick_mode for v in tie.views.values())
+    panel = window.targets_panel
+    for link_scans in ((names[0], names[1]), (names[0], names[2])):
+        if link_scans[1] != tie.pair[1]:
+            tie.combos["moving"].setCurrentText(link_scans[1])  # the user chooses the next pair
+        assert tie.pair == link_scans
+        ref_targets = picked_targets(sim, names.index(link_scans[0]))
+        mov_targets = picked_targets(sim, names.index(link_scans[1]))
+        for tid in sorted(set(ref_targets) & set(mov_targets)):
+            panel.id_edit.setText(tid)
+            for side, scan, targets in (("reference", link_scans[0], ref_targets), ("moving", link_scans[1], mov_targets)):
+                display = targets[tid] - tie.scanners[side]  # what the view's point picker reports
+                with qtbot.waitSignal(window.targetsChanged, timeout=5000) as changed:
+                    tie.views[side].pointPicked.emit(display)
+                assert changed.args[0] == scan
+                assert window.targets_of(scan)[tid] == pytest.approx(targets[tid])
+                # the id waits for the other scan, and is highlighted in both views
+                assert panel.id_edit.text() == tid or side == "moving"
+                assert tie.highlighted == tid and tid in tie.targets[side]
+                assert tie.captions[side].text().endswith(f"target {tid} placed")
+            # the targets table lists the scan picked last, with the picked coordinates
+            assert panel.scan == link_scans[1]
+            row = panel.row_of(tid)
+            assert panel.value(row, "x (m)") == pytest.approx(mov_targets[tid][0])
+    window.set_pick_mode(False)
+    assert set(window.targets_of(names[1])) & set(window.targets_of(names[0]))
+    panel.manual_all_button.click()
+    with qtbot.waitSignal(window.runFinished, timeout=RUN_TIMEOUT_MS):
+        assert window.run_manual()
+    qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
+    poses = window.project.poses()
+    for row, link in enumerate(window.project.links):
+        assert window.link_table.value(row, "Method") == "manual" and window.link_table.value(row, "Status") == "ok", link.result
+        rot, trans = rigid_errors(poses[link.moving], sim.relative_pose(0, names.index(link.moving)))
+        assert rot < 0.05 and trans < 0.02, (link.moving, rot, trans)

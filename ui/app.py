@@ -47,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--field", metavar="CSV", help="with --trees: evaluate against field records (Field data tab)")
     p.add_argument("--also", action="append", default=[], metavar="NAME=DIR",
                    help="with --field: another trees folder shown side by side (e.g. fused=trees_fused)")
+    p.add_argument("--results-tab", metavar="NAME", help="show this tab of the results dock (Links, Scans, Targets, Comparison, Log)")
     p.add_argument("--timeout", type=float, default=3600.0, help="longest wait for the run and the views, seconds (default %(default)s)")
     return p
 
@@ -179,6 +180,14 @@ def main(argv: Optional[list[str]] = None) -> int:
             elif window.last_error is not None and window.last_error[0] == "The registration failed":
                 print(f"forestreg gui: {window.last_error[1]}", file=sys.stderr)
                 code = 1
+        if args.results_tab:
+            tabs = window.bottom_tabs
+            found = [k for k in range(tabs.count()) if tabs.tabText(k).replace("&", "").lower() == args.results_tab.lower()]
+            if not found:
+                names = ", ".join(tabs.tabText(k).replace("&", "") for k in range(tabs.count()))
+                print(f"forestreg gui: no results tab {args.results_tab!r} (one of {names})", file=sys.stderr)
+                return 2
+            tabs.setCurrentIndex(found[0])
         if args.screenshot:
             settle(window, args.timeout)
             out = save_screenshot(window, args.screenshot)

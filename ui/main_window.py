@@ -334,6 +334,10 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self._update_actions()
         self.status_label.setText(self.summary())
         self._manual_refresh()
+        if hasattr(self, "tie_view"):  # the side-by-side views are drawn again when next shown
+            self.tie_view.scanners.clear()
+            if self.bottom_tabs.currentWidget() is self.targets_tab:
+                self.show_tie_points()
         self.projectLoaded.emit()
 
     def summary(self) -> str:
@@ -532,8 +536,10 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
 
     def _top_built(self, view: Any) -> None:
         from ..engine.tls.views import scan_colours
+        from .top_view import SurveyOverlay
 
-        self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: trunk shadows and matches")
+        self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: trunk shadows, matches and pose uncertainty",
+                                overlay=SurveyOverlay.of(self.project))
         self.topViewReady.emit()
 
     def _start_view_task(self, name: str, make: Callable[[], TaskWorker], done: Callable[[Any], None]) -> None:
@@ -668,4 +674,5 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self.log_pane.detach()
         self.scene_view.close_view()
         self.trees_view.scene3d.close_view()
+        self.tie_view.close_views()
         event.accept()

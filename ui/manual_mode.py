@@ -16,11 +16,12 @@ from pathlib import Path
 from typing import Any, Mapping, Optional
 
 import numpy as np
-from PySide6.QtCore import QPoint, Qt
+from PySide6.QtCore import QPoint, Qt, QTimer
 from PySide6.QtWidgets import QFileDialog, QMenu
 
 from ..engine.core.errors import ForestregError
 from .manual_panel import ComparisonView, TargetsPanel, next_target_id
+from .tie_points import TIE_POINTS_PER_SCAN, TiePointsView
 from .worker import TaskWorker, describe_error
 from ..engine.core.transform import apply as apply_transform
 
@@ -41,8 +42,16 @@ class ManualModeMixin:
         self.last_comparison: Optional[dict[str, Any]] = None
         self.targets_panel = TargetsPanel()
         self.comparison_view = ComparisonView()
+        # tie points side by side: the reference and the moving scan next to the targets table
+        self.tie_view = TiePointsView(renderer=self.scene_view.renderer)
+        from PySide6.QtWidgets import QSplitter
+
+        self.targets_tab = QSplitter(Qt.Orientation.Horizontal)
         # in scroll areas: their minimum heights must not make the results dock take half the window
-        self.targets_tab = _scrolled(self.targets_panel)
+        self.targets_tab.addWidget(_scrolled(self.targets_panel))
+        self.targets_tab.addWidget(self.tie_view)
+        self.targets_tab.setStretchFactor(0, 2)
+        self.targets_tab.setStretchFactor(1, 5)
         self.comparison_tab = _scrolled(self.comparison_view)
         self.bottom_tabs.insertTab(2, self.targets_tab, "Targets")
         self.bottom_tabs.insertTab(3, self.comparison_tab, "Comparison")
@@ -58,6 +67,11 @@ class ManualModeMixin:
         panel.run_manual_button.clicked.connect(lambda: self.run_manual())
         panel.compare_button.clicked.connect(lambda: self.compare_auto_manual())
         self.scene_view.pointPicked.connect(self._point_picked)
+        self.tie_view.picked.connect(self._tie_picked)
+        self.tie_view.pairChosen.connect(lambda ref, mov: self.show_tie_points(ref, mov))
+        panel.table.itemSelectionChanged.connect(lambda: self.tie_view.highlight(panel.id_edit.text().strip()))
+        panel.id_edit.textEdited.connect(lambda text: self.tie_view.highlight(text.strip()))
+        self.bottom_tabs.currentChanged.connect(self._bottom_tab_changed)
         self.sceneReady.connect(self.draw_target_markers)
         self.link_table.setContextMenuPolicy(Qt.ContextMenuPolicy.CustomContextMenu)
         self.link_table.customContextMenuRequested.connect(self._link_table_menu)
@@ -139,6 +153,9 @@ class ManualModeMixin:
             self.targets_panel.select_scan(scan_name)
         self._show_targets(scan_name)
         self.draw_target_markers()
+        side = self.tie_view.side_of(scan_name)
+        if side is not None:
+            self.tie_view.set_targets(side, self.project.scan(scan_name).targets)
         self.targetsChanged.emit(scan_name)
 
     def add_picked_target(self, scan_name: str, target_id: Optional[str], xyz_file_coords: Any) -> str:
@@ -205,6 +222,7 @@ class ManualModeMixin:
         if on and self.scene_mode != "before":
             self.set_scene_mode("before")
         self.scene_view.set_pick_mode(on)
+        self.tie_view.set_pick_mode(on)
         if on:
             self.bottom_tabs.setCurrentWidget(self.targets_tab)
             self.status_label.setText("Pick target: click a point of a scan in the 3D view; it gets the id typed in the Targets tab")
@@ -219,6 +237,65 @@ class ManualModeMixin:
             self.add_picked_target(name, None, file_xyz)
         except (KeyError, ValueError) as exc:
             self.show_error("Cannot place the target", str(exc))
+
+    # ---------------------------------------------------------------- tie points side by side
+
+    def default_tie_pair(self) -> Optional[tuple[str, str]]:
+        """(reference, moving): the scan in the Targets tab and its link's reference, else the
+        first scan that is not the centre and its reference."""
+        p = self.project
+        if len(p.scans) < 2:
+            return None
+        chosen = self.targets_panel.scan
+        names = [s.name for s in p.scans]
+        moving = chosen if chosen in names and chosen != p.centre else next(n for n in names if n != p.centre)
+        link = p.link_of(moving)
+        reference = link.reference if link is not None else (p.centre or names[0])
+        return reference, moving
+
+    def show_tie_points(self, reference: Optional[str] = None, moving: Optional[str] = None) -> bool:
+        """Draw ``reference`` and ``moving`` (default: :meth:`default_tie_pair`) side by side in the
+        Targets tab, each with its targets. Returns False when there is no pair to show."""
+        pair = self.default_tie_pair()
+        if pair is None:
+            return False
+        reference, moving = reference or pair[0], moving or pair[1]
+        names = [s.name for s in self.project.scans]
+        self.tie_view.set_scans(names, reference, moving)
+        colours = scan_colours_of(self.project)
+        for side, name in (("reference", reference), ("moving", moving)):
+            try:
+                pts, scanner, total = self.previews.subset(self.project, name, TIE_POINTS_PER_SCAN)
+            except (ForestregError, OSError, ValueError) as exc:
+                log.warning("%s cannot be drawn: %s", name, exc)
+                continue
+            self.tie_view.show_side(side, name, pts, scanner, colours.get(name, "#777777"), total, self.project.scan(name).targets)
+        self.tie_view.highlight(self.targets_panel.id_edit.text().strip() or None)
+        return True
+
+    def _bottom_tab_changed(self, _index: int) -> None:
+        """The Targets tab needs room for its two 3D views: the results dock grows while it is shown."""
+        on_targets = self.bottom_tabs.currentWidget() is self.targets_tab
+        if on_targets and not self.tie_view.scanners:
+            self.show_tie_points()
+        height = max(320, int(self.height() * 0.5)) if on_targets else max(150, self.height() // 5)
+        # after any pending layout pass (the first show sizes the dock too)
+        QTimer.singleShot(0, lambda: self.resizeDocks([self.results_dock], [height], Qt.Orientation.Vertical))
+
+    def _tie_picked(self, scan_name: str, file_xyz: Any) -> None:
+        """A point picked in one of the side-by-side views: a target of that scan. The id stays
+        in the Targets tab until the other scan of the pair has it too (pick it there next)."""
+        try:
+            tid = self.add_picked_target(scan_name, None, file_xyz)
+        except (KeyError, ValueError) as exc:
+            self.show_error("Cannot place the target", str(exc))
+            return
+        reference, moving = self.tie_view.pair
+        other = moving if scan_name == reference else reference
+        if other in [s.name for s in self.project.scans] and tid not in self.project.scan(other).targets:
+            self.targets_panel.id_edit.setText(tid)
+            self.status_label.setText(f"Target {tid} placed in {scan_name}: now pick {tid} in {other}")
+        self.tie_view.highlight(tid)
 
     def scan_at(self, display_xyz: Any) -> Optional[tuple[str, np.ndarray]]:
         """The scan whose drawn point is nearest to a picked display point, and that point in the
@@ -483,6 +560,12 @@ class ManualModeMixin:
                                     name="compare"),
                          succeeded=done, failed=failed, progress=self._show_progress, ended=ended)
         return True
+
+
+def scan_colours_of(project: Any) -> dict[str, str]:
+    from ..engine.tls.views import scan_colours
+
+    return scan_colours(project)
 
 
 def QKeySequenceText(text: str) -> Any:  # noqa: N802 - reads like the Qt class

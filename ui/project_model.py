@@ -112,6 +112,7 @@ class ProjectModel(QStandardItemModel):
             self._colour(state_item, status)
             scans.appendRow([name_item, state_item])
         links = self._group(f"Links ({len(p.links)})")
+        dropped = {(d["moving"], d["reference"]): str(d.get("reason") or "") for d in (p.adjustment or {}).get("dropped") or []}
         for k, link in enumerate(p.links):
             status = link_status(link)
             item = QStandardItem(link_label(link))
@@ -127,6 +128,10 @@ class ProjectModel(QStandardItemModel):
                 state_item.setToolTip(str(link.result["reason"]))
                 item.setToolTip(str(link.result["reason"]))
             self._colour(state_item, status)
+            if (link.moving, link.reference) in dropped:  # registered, but the survey adjustment left it out
+                state_item.setText(detail + ", dropped")
+                state_item.setToolTip(f"dropped by the survey adjustment: {dropped[(link.moving, link.reference)]}")
+                state_item.setForeground(QBrush(QColor("#b42318")))
             links.appendRow([item, state_item])
         pairs = self._group("Tilted pairs")
         for s in p.scans:

@@ -14,13 +14,18 @@ from PySide6.QtCore import Qt
 from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import QAbstractItemView, QHeaderView, QTableWidget, QTableWidgetItem, QWidget
 
-from ..engine.tls.project import Project
+from ..engine.tls.plot import pose_uncertainty
+from ..engine.tls.project import Link, Project
 from ..engine.tls.views import scan_states
 from .project_model import STATUS_COLOURS, link_status
 
 LINK_COLUMNS = ("Moving", "Reference", "Method", "Status", "Search radius (m)", "Trunk shadows ref / mov", "Matched",
-                "Fine fit std (cm)", "Overlap", "Shadow residual (cm)", "Reason")
-SCAN_COLUMNS = ("Scan", "State", "Placed on", "x (m)", "y (m)", "z (m)", "Heading (\u00b0)", "Reason")
+                "Fine fit std (cm)", "Overlap", "Shadow residual (cm)", "Pose uncertainty (cm / deg)", "Terrain agreement (cm)",
+                "Ambiguity", "Dropped", "Reason")
+SCAN_COLUMNS = ("Scan", "State", "Placed on", "x (m)", "y (m)", "z (m)", "Heading (\u00b0)", "Pose uncertainty (cm / deg)",
+                "Terrain agreement (cm)", "Ambiguity", "Loop residual (cm)", "Dropped", "Reason")
+#: Survey quality columns: hidden while no row has a value (a project registered before them).
+QUALITY_COLUMNS = ("Pose uncertainty (cm / deg)", "Terrain agreement (cm)", "Ambiguity", "Loop residual (cm)", "Dropped")
 
 LINK_TIPS = {
     "Search radius (m)": "Radius around the scanner in which trunk shadows were extracted (paper: D_r)",
@@ -29,6 +34,17 @@ LINK_TIPS = {
     "Fine fit std (cm)": "Standard deviation of the point distances after the fine registration (ICP)",
     "Overlap": "Fraction of moving points in the shared area with a reference point near them after the fine registration (ICP fitness)",
     "Shadow residual (cm)": "Mean distance of the matched trunk shadows (VOPs) after the coarse registration",
+    "Pose uncertainty (cm / deg)": "How far to trust the pose, without ground truth (1 sigma): position error at the scanner "
+                                   "in cm and rotation error in degrees. For a link: from its matched trunks after the fine "
+                                   "registration; for a scan: propagated from the centre scan along the most certain links",
+    "Terrain agreement (cm)": "Median height difference of the two scans' ground models where both saw the ground, after "
+                              "registration (for a scan: the worst of its links). Small = the scans agree on the terrain",
+    "Ambiguity": "Trunks matched by the second-best coarse solution divided by those of the best (paper: I_A): near 0 = "
+                 "unambiguous, near 1 = two placements explain the trunks almost equally well (for a scan: its worst link)",
+    "Loop residual (cm)": "Largest disagreement, at the scanner, between this scan's links and the adjusted poses "
+                          "(only where links close loops)",
+    "Dropped": "Links the survey adjustment left out because they disagree with the priors or with the other links' loops "
+               "(the reason is in the cell's tooltip); for a scan: how many of its links were dropped",
 }
 
 
@@ -49,6 +65,32 @@ def _item(value: Any, text: Optional[str] = None, *, tip: str = "") -> QTableWid
 
 def _fmt(value: Any, digits: int, scale: float = 1.0) -> Optional[str]:
     return f"{value * scale:.{digits}f}" if _num(value) else None
+
+
+DROPPED_COLOUR = "#b42318"
+
+
+def dropped_links(project: Project) -> dict[tuple[str, str], str]:
+    """The links the survey adjustment dropped, ``(moving, reference) -> reason`` (empty without one)."""
+    return {(d["moving"], d["reference"]): str(d.get("reason") or "") for d in (project.adjustment or {}).get("dropped") or []}
+
+
+def _uncertainty_item(u: Any) -> QTableWidgetItem:
+    """``translation_m`` / ``rotation_deg`` as "1.23 / 0.045" (cm / deg); the raw pair as the value."""
+    u = u if isinstance(u, Mapping) else {}
+    t, r = u.get("translation_m"), u.get("rotation_deg")
+    if not (_num(t) and _num(r)):
+        return _item(None, tip=str(u.get("method") or ""))
+    tip = "held fixed" if u.get("fixed") else str(u.get("method") or "")
+    item = _item((float(t), float(r)), f"{100 * t:.2f} / {r:.3f}", tip=tip)
+    item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+    return item
+
+
+def _link_ambiguity(link: Link) -> Optional[float]:
+    res = link.result or {}
+    value = (res.get("quality") or {}).get("ambiguity")
+    return float(value) if _num(value) else None
 
 
 class _Table(QTableWidget):
@@ -81,7 +123,12 @@ class _Table(QTableWidget):
         return "" if item is None else item.text()
 
     def _hide_empty_reason(self) -> None:
-        """No empty "Reason" column taking the room of the figures: shown only when a row has one."""
+        """No empty "Reason" column taking the room of the figures: shown only when a row has one;
+        the survey quality columns likewise only when a row has a value."""
+        for name in QUALITY_COLUMNS:
+            if name in self.columns:
+                c = self.column(name)
+                self.setColumnHidden(c, all(self.value(r, name) is None for r in range(self.rowCount())))
         if "Reason" not in self.columns:
             return
         c = self.column("Reason")
@@ -99,9 +146,12 @@ class LinkResultsTable(_Table):
     def show_project(self, project: Project) -> None:
         self.setRowCount(0)
         self.setRowCount(len(project.links))
+        dropped = dropped_links(project)
         for r, link in enumerate(project.links):
             res: Mapping[str, Any] = link.result or {}
             icp = res.get("icp") if isinstance(res.get("icp"), Mapping) else {}
+            terrain = (res.get("quality") or {}).get("terrain_median_m") if isinstance(res.get("quality"), Mapping) else None
+            drop_reason = dropped.get((link.moving, link.reference))
             status = link_status(link)
             reason = str(res.get("reason") or "")
             if res.get("retried_after"):
@@ -118,11 +168,17 @@ class LinkResultsTable(_Table):
                 _item(icp.get("std_m"), _fmt(icp.get("std_m"), 2, 100.0)),
                 _item(icp.get("fitness"), _fmt(icp.get("fitness"), 3)),
                 _item(res.get("vop_residual_m"), _fmt(res.get("vop_residual_m"), 2, 100.0)),
+                _uncertainty_item(res.get("uncertainty")),
+                _item(terrain, _fmt(terrain, 1, 100.0)),
+                _item(_link_ambiguity(link), _fmt(_link_ambiguity(link), 2)),
+                _item(drop_reason, "dropped" if drop_reason is not None else "", tip=drop_reason or ""),
                 _item(reason, reason, tip=reason),
             ]
             colour = STATUS_COLOURS.get(status)
             if colour:
                 cells[3].setForeground(QBrush(QColor(colour)))
+            if drop_reason is not None:
+                cells[self.column("Dropped")].setForeground(QBrush(QColor(DROPPED_COLOUR)))
             for c, cell in enumerate(cells):
                 self.setItem(r, c, cell)
         self._hide_empty_reason()
@@ -140,6 +196,11 @@ class ScanPoseTable(_Table):
         self.setRowCount(len(project.scans))
         states = scan_states(project) if project.scans else {}
         poses = project.poses() if project.scans else {}
+        try:
+            uncertainty = pose_uncertainty(project) if project.scans and project.centre else {}
+        except (KeyError, ValueError, TypeError):  # links of an older project without the figures
+            uncertainty = {}
+        quality = (project.adjustment or {}).get("quality") or {}
         for r, s in enumerate(project.scans):
             state = states.get(s.name)
             pose = poses.get(s.name)
@@ -150,17 +211,29 @@ class ScanPoseTable(_Table):
             t = pose[:3, 3] if pose is not None else (None, None, None)
             heading = math.degrees(math.atan2(pose[1, 0], pose[0, 0])) if pose is not None else None
             reason = state.reason if state is not None and status == "failed" else ""
+            q = quality.get(s.name) or {}
+            ambiguity = q.get("max_ambiguity")
+            if ambiguity is None and link is not None and link.ok:  # no survey: the scan's own link
+                ambiguity = _link_ambiguity(link)
+            drop_tip = "; ".join(f"{m} \u2192 {ref}: {why}" for (m, ref), why in dropped_links(project).items() if s.name in (m, ref))
             cells = [
                 _item(s.name),
                 _item(status),
                 _item(state.reference if state else None, (state.reference or "") if state else ""),
                 *(_item(None if v is None else float(v), _fmt(v, 3)) for v in t),
                 _item(heading, _fmt(heading, 2)),
+                _uncertainty_item(uncertainty.get(s.name) if pose is not None else None),
+                _item(q.get("terrain_median_m"), _fmt(q.get("terrain_median_m"), 1, 100.0)),
+                _item(ambiguity, _fmt(ambiguity, 2)),
+                _item(q.get("max_residual_m"), _fmt(q.get("max_residual_m"), 2, 100.0)),
+                _item(q.get("dropped_links"), None if q.get("dropped_links") is not None else "", tip=drop_tip),
                 _item(reason, reason, tip=reason),
             ]
             colour = STATUS_COLOURS.get(status)
             if colour:
                 cells[1].setForeground(QBrush(QColor(colour)))
+            if q.get("dropped_links"):
+                cells[self.column("Dropped")].setForeground(QBrush(QColor(DROPPED_COLOUR)))
             for c, cell in enumerate(cells):
                 self.setItem(r, c, cell)
         self._hide_empty_reason()

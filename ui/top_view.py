@@ -1,10 +1,15 @@
 """The 2D top view: each scan's slice, its trunk shadows (VOPs), the scanners and the matched VOP
 pairs, in the project frame, from the engine's :func:`compute_top_view` (nothing is recomputed
-here; this only draws). Zoom and pan with the matplotlib toolbar."""
+here; this only draws). With the project, the survey quality goes on the map too: each scanner's
+pose uncertainty (a circle, enlarged by a stated factor, and a label in cm / deg), the links
+between scanners and the links the survey adjustment dropped (red, dashed). Zoom and pan with the
+matplotlib toolbar."""
 
 from __future__ import annotations
 
-from typing import Mapping, Optional
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Optional
 
 import numpy as np
 from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg, NavigationToolbar2QT
@@ -14,9 +19,49 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle
 from PySide6.QtWidgets import QSizePolicy, QVBoxLayout, QWidget
 
+from ..engine.tls.plot import pose_uncertainty
+from ..engine.tls.project import Project
 from ..engine.tls.views import TopView
 
 MATCH_COLOUR = "#2ca02c"
+LINK_COLOUR = "0.45"
+DROPPED_COLOUR = "#b42318"
+UNCERTAINTY_COLOUR = "#6a3d9a"
+#: The largest uncertainty circle is drawn about this big (m) on the map: the factor is a power of 10.
+UNCERTAINTY_DRAWN_M = 3.0
+
+
+@dataclass
+class SurveyOverlay:
+    """What the map shows of the survey quality, straight from the engine: per scan the pose
+    uncertainty (``translation_m``, ``rotation_deg``, 1 sigma, relative to the centre scan), the
+    successful links kept by the adjustment and the dropped ones with their reasons."""
+
+    uncertainty: dict[str, dict[str, Any]] = field(default_factory=dict)
+    links: list[tuple[str, str]] = field(default_factory=list)
+    dropped: dict[tuple[str, str], str] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, project: Project) -> "SurveyOverlay":
+        try:
+            found = pose_uncertainty(project) if project.centre else {}
+        except (KeyError, ValueError, TypeError):
+            found = {}
+        dropped = {(d["moving"], d["reference"]): str(d.get("reason") or "") for d in (project.adjustment or {}).get("dropped") or []}
+        links = [(x.moving, x.reference) for x in project.links if x.ok and (x.moving, x.reference) not in dropped]
+        return cls({k: dict(v) for k, v in found.items() if isinstance(v, Mapping)}, links, dropped)
+
+
+def uncertainty_scale(uncertainty: Mapping[str, Mapping[str, Any]]) -> float:
+    """The factor (1, 2 or 5 times a power of 10, >= 1) the uncertainty circles are drawn enlarged
+    by, so the largest is at most :data:`UNCERTAINTY_DRAWN_M` on the map."""
+    largest = max((float(u["translation_m"]) for u in uncertainty.values()
+                   if isinstance(u.get("translation_m"), (int, float)) and u["translation_m"] > 0), default=0.0)
+    if largest <= 0 or largest >= UNCERTAINTY_DRAWN_M:
+        return 1.0
+    wanted = UNCERTAINTY_DRAWN_M / largest
+    power = 10.0 ** math.floor(math.log10(wanted))
+    return float(max(m * power for m in (1.0, 2.0, 5.0) if m * power <= wanted))
 
 
 def _lighter(colour: str, amount: float) -> tuple[float, float, float]:
@@ -41,6 +86,10 @@ class TopViewWidget(QWidget):
         lay.addWidget(self.toolbar)
         lay.addWidget(self.canvas, 1)
         self.view: Optional[TopView] = None
+        self.overlay: Optional[SurveyOverlay] = None
+        #: per scan, the uncertainty label drawn at its scanner (for tests and the screenshot check)
+        self.uncertainty_labels: dict[str, str] = {}
+        self.uncertainty_factor = 1.0
         self.show_message("Run the registration to see the slices, trunk shadows (VOPs) and matches.")
 
     def show_message(self, text: str) -> None:
@@ -52,9 +101,13 @@ class TopViewWidget(QWidget):
         ax.text(0.5, 0.5, text, ha="center", va="center", wrap=True, fontsize=11, color="0.35", transform=ax.transAxes)
         self.canvas.draw_idle()
 
-    def show_view(self, view: TopView, colours: Mapping[str, str], title: str = "") -> None:
-        """Draw slices, VOPs (circles), VOP radius, scanners (triangles) and matched pairs (green)."""
+    def show_view(self, view: TopView, colours: Mapping[str, str], title: str = "", overlay: Optional[SurveyOverlay] = None) -> None:
+        """Draw slices, VOPs (circles), VOP radius, scanners (triangles) and matched pairs (green);
+        with ``overlay`` the links between scanners (grey; dropped ones red dashed) and each
+        scanner's pose uncertainty (circle and label)."""
         self.view = view
+        self.overlay = overlay
+        self.uncertainty_labels = {}
         self.figure.clear()
         ax = self.figure.add_subplot()
         if not view.scans:
@@ -89,6 +142,8 @@ class TopViewWidget(QWidget):
             ax.scatter(mid[:, 0], mid[:, 1], s=90, facecolors="none", edgecolors=MATCH_COLOUR, linewidths=1.6, zorder=4)
         handles.append(Line2D([], [], ls="none", marker="o", ms=9, mfc="none", mec=MATCH_COLOUR, mew=1.6,
                               label=f"matched trunk shadows ({n_pairs})"))
+        if overlay is not None:
+            handles += self._draw_overlay(ax, view, overlay, o)
         allxy = np.concatenate([sv.slice_xy for sv in view.scans.values()] + [sv.scanner[None, :2] for sv in view.scans.values()]) - o
         if len(allxy):
             lo, hi = np.percentile(allxy, 0.5, axis=0) - 2.0, np.percentile(allxy, 99.5, axis=0) + 2.0
@@ -106,3 +161,51 @@ class TopViewWidget(QWidget):
         for name, problem in view.problems.items():
             ax.text(0.01, 0.01, f"{name}: {problem}", transform=ax.transAxes, fontsize=7, color="#b42318")
         self.canvas.draw_idle()
+
+    def _draw_overlay(self, ax, view: TopView, overlay: SurveyOverlay, o: np.ndarray) -> list:
+        """Links between scanners, dropped links and the pose uncertainty at each scanner."""
+        handles = []
+        where = {name: sv.scanner[:2] - o for name, sv in view.scans.items()}
+
+        def segment(a: str, b: str, **style: Any) -> bool:
+            if a not in where or b not in where:
+                return False
+            (x0, y0), (x1, y1) = where[a], where[b]
+            ax.plot([x0, x1], [y0, y1], **style)
+            return True
+
+        if sum(segment(m, r, color=LINK_COLOUR, lw=1.0, alpha=0.8, zorder=5) for m, r in overlay.links):
+            handles.append(Line2D([], [], color=LINK_COLOUR, lw=1.0, label="link used for the poses"))
+        n_dropped = 0
+        for (m, r), why in overlay.dropped.items():
+            if segment(m, r, color=DROPPED_COLOUR, lw=1.8, ls=(0, (5, 3)), zorder=5):
+                n_dropped += 1
+                mid = (where[m] + where[r]) / 2
+                ax.annotate("dropped", xy=tuple(mid), xytext=(6, 0), textcoords="offset points", fontsize=7,
+                            color=DROPPED_COLOUR, zorder=7, bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8))
+        if n_dropped:
+            handles.append(Line2D([], [], color=DROPPED_COLOUR, lw=1.8, ls=(0, (5, 3)),
+                                  label=f"dropped link ({n_dropped}): disagrees with the other links"))
+        factor = uncertainty_scale(overlay.uncertainty)
+        self.uncertainty_factor = factor
+        drawn = 0
+        for name, u in overlay.uncertainty.items():
+            t, r = u.get("translation_m"), u.get("rotation_deg")
+            if name not in where or not isinstance(t, (int, float)) or not isinstance(r, (int, float)):
+                continue
+            c = where[name]
+            if u.get("fixed") or (t == 0 and r == 0):
+                text = "held fixed" if u.get("fixed") else "frame scan"
+            else:
+                text = f"\u00b1{100 * t:.1f} cm, {r:.2f}\u00b0"
+                ax.add_patch(Circle(tuple(c), t * factor, fill=True, fc=UNCERTAINTY_COLOUR, alpha=0.18,
+                                    ec=UNCERTAINTY_COLOUR, lw=1.2, zorder=5))
+                drawn += 1
+            self.uncertainty_labels[name] = text
+            ax.annotate(text, xy=tuple(c), xytext=(7, -16), textcoords="offset points", fontsize=7,
+                        color=UNCERTAINTY_COLOUR, zorder=7,
+                        bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8))
+        if drawn:
+            handles.append(Line2D([], [], ls="none", marker="o", ms=9, mfc=(0.42, 0.24, 0.6, 0.18), mec=UNCERTAINTY_COLOUR,
+                                  label=f"pose uncertainty, 1 sigma (circle drawn {factor:g}x larger)"))
+        return handles
