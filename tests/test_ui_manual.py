@@ -224,7 +224,7 @@ def test_compare_auto_and_manual(qtbot, window, open_project, plot, project_file
     assert 20_000 < shot.stat().st_size < 500_000
 
 
-def test_tie_points_side_by_side(qtbot, window, plot, project_file: Path) -> None:
+def test_tie_points_side_by_side(qtbot, window, open_project, plot, project_file: Path) -> None:
     """Issue 16 item 7: the reference and the moving scan in two 3D views next to each other; a
     pick in either view is a target of that scan, the id waits for the other scan, the same id is
     highlighted in both, and the manual registration from those picks is within tolerance."""
@@ -233,7 +233,7 @@ def test_tie_points_side_by_side(qtbot, window, plot, project_file: Path) -> Non
     from forestreg.engine.core.transform import rigid_errors
 
     sim, _ = plot
-    _open(qtbot, window, project_file)
+    open_project(project_file)
     names = [s.name for s in window.project.scans]
     window.bottom_tabs.setCurrentWidget(window.targets_tab)
     tie = window.tie_view
