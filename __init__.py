@@ -48,6 +48,8 @@ _LAZY = {
     "ScanReadError": ".engine.core.errors",
     "Cancelled": ".engine.core.errors",
     "CancelToken": ".engine.core.progress",
+    "Outcome": ".engine.core.outcome",
+    "OutcomeRecord": ".engine.core.outcome",
     "read_scan": ".engine.io",
     "read_scans": ".engine.io",
     "write_scan": ".engine.io",
@@ -59,6 +61,8 @@ _LAZY = {
     # System A: pairs, plots, targets
     "register": ".engine.tls.pair",
     "PairResult": ".engine.tls.pair",
+    "ManualResult": ".engine.tls.manual",
+    "LinkResult": ".engine.tls.project",
     "RegistrationParams": ".engine.tls.params",
     "Project": ".engine.tls.project",
     "register_project": ".engine.tls.plot",

@@ -60,7 +60,7 @@ SIZE_M = 60.0
 SEPARATION_M = 12.0
 #: (label, angular step deg); the first is the ~3 M point pair that --quick skips.
 PAIRS = (("large", 0.1), ("small", 0.25))
-REGISTRATION_STEPS = ("prepare_reference", "prepare_moving", "slice", "vops", "coarse", "vertical", "icp")
+REGISTRATION_STEPS = ("prepare_reference_s", "prepare_moving_s", "slice_s", "vops_s", "coarse_s", "vertical_s", "icp_s")
 
 
 # ------------------------------------------------------------------------------------- environment

@@ -99,7 +99,7 @@ def run_register(
         )
     finally:
         reporter.close()
-    summary, ok = run_summary(result, {"read": read_s}, {"reference_file": reference_path, "moving_file": moving_path}, units, scale,
+    summary, ok = run_summary(result, {"read_s": read_s}, {"reference_file": reference_path, "moving_file": moving_path}, units, scale,
                               matrix_keys=("matrix", "coarse_matrix"))
     with output_folder(out, "register") as tmp:
         for scan, to_file, vops, matched, name in pair_vop_tables(result, reference, moving):

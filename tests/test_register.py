@@ -26,7 +26,7 @@ def _check_against_truth(result, truth) -> None:
     assert result.matched >= 4
     assert result.matched - (result.second_matched or 0) >= 2
     assert result.icp.std_m < 0.03
-    assert set(result.timings) >= {"prepare_reference", "prepare_moving", "slice", "vops", "coarse", "vertical", "icp"}
+    assert set(result.timings) >= {"prepare_reference_s", "prepare_moving_s", "slice_s", "vops_s", "coarse_s", "vertical_s", "icp_s"}
 
 
 @pytest.mark.parametrize(

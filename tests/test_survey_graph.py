@@ -48,7 +48,7 @@ def test_one_wrong_link_among_all_pairs_is_found():
     poses, scanner, rng = _survey()
     links = [_link(poses, a, b, rng) for a, b in itertools.combinations(sorted(poses), 2)]
     wrong = links[4]
-    wrong.result["matrix"] = (matrix_from_yaw(6.0, np.array([0.8, -0.4, 0.0])) @ np.array(wrong.result["matrix"])).tolist()
+    wrong.result = wrong.result.replace(matrix=(matrix_from_yaw(6.0, np.array([0.8, -0.4, 0.0])) @ wrong.result.matrix).tolist())
     culprits, rows = inconsistent_links(links, scanner, 4.0)
     assert culprits == [wrong]
     assert sum(not r["closes"] for r in rows if "closes" in r) == len(poses) - 2

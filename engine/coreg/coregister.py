@@ -33,6 +33,7 @@ from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError
 from ..geometry.icp import IcpReference, IcpResult, icp, thin
+from ..core.outcome import Outcome
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..core.scan import Scan
 from ..terrain.dem import TerrainModel, TerrainParams, terrain_model
@@ -98,8 +99,9 @@ class CoregistrationParams(Params):
 
 
 @dataclass(frozen=True, eq=False)
-class CoregistrationResult:
-    """Outcome of one co-registration; see :meth:`to_dict` for ``result.json``.
+class CoregistrationResult(Outcome):
+    """Outcome of one co-registration (the shared :class:`~forestreg.engine.core.outcome.Outcome`
+    shape; ``timings`` in ``*_s`` keys); see :meth:`to_dict` for ``result.json``.
 
     ``matrix`` maps ground-based file coordinates to UAV file coordinates; ``local_matrix`` the
     same between the scans' local frames (``Scan.points``). ``status`` is "ok" or "failed"; a
@@ -151,9 +153,22 @@ class CoregistrationResult:
             line += f", ground offset {100 * self.quality['ground_dz_median_m']:+.1f} cm"
         return line
 
-    @property
-    def ok(self) -> bool:
-        return self.status == "ok"
+    method = "canopy keypoints + ICP"
+    convention = "p_uav = matrix @ p_ground (file coordinates, homogeneous column vectors)"
+
+    def evidence(self) -> dict[str, Any]:
+        """Matched keypoints (count, percent), the canopy correlation and its margin over the best
+        alternative, the standard errors and the ground offset when computed."""
+        return {
+            "matched": self.n_matched,
+            "matching_percentage": self.matching_percentage,
+            "surface_correlation": self.surface_correlation,
+            "correlation_margin": self.correlation_margin,
+            "standard_errors": None if not self.standard_errors else {
+                k: self.standard_errors.get(k) for k in ("rotation_deg", "translation_m") if k in self.standard_errors
+            },
+            "ground_dz_median_m": None if not self.quality else self.quality.get("ground_dz_median_m"),
+        }
 
     @property
     def n_matched(self) -> int:
@@ -181,12 +196,9 @@ class CoregistrationResult:
         return {
             "format": "forestreg-coregistration",
             "version": 1,
-            "status": self.status,
-            "reason": self.reason,
+            **self.outcome_dict(),
             "ground": self.ground_name,
             "uav": self.uav_name,
-            "convention": "p_uav = matrix @ p_ground (file coordinates, homogeneous column vectors)",
-            "matrix": mat(self.matrix),
             "keypoint_matrix": mat(self._file_matrix(self.keypoint_matrix)),
             "heading_deg": heading,
             "keypoints": {
@@ -207,7 +219,6 @@ class CoregistrationResult:
             "quality": _finite_or_none(self.quality),
             "standard_errors": _finite_or_none(self.standard_errors),
             "icp": None if self.icp is None else self.icp.to_dict(),
-            "timings": dict(self.timings),
         }
 
     def _file_matrix(self, local: Optional[np.ndarray]) -> Optional[np.ndarray]:

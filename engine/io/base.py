@@ -94,6 +94,20 @@ def tune_allocator(threshold_bytes: int = 4 << 20) -> None:
         pass
 
 
+def read_text_lines(path: PathLike, error: type[Exception], what: str) -> tuple[Path, list[tuple[int, str]]]:
+    """The lines of a small text table (UTF-8, a byte-order mark allowed) that are neither blank
+    nor ``#`` comments, each with its 1-based line number. A missing or unreadable file raises
+    ``error`` with one line naming ``what`` (e.g. "target file") and the path."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except FileNotFoundError as exc:
+        raise error(f"{what} {p} does not exist") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"{what} {p} cannot be read: {getattr(exc, 'strerror', None) or exc}") from exc
+    return p, [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip() and not line.lstrip().startswith("#")]
+
+
 def check_unit_scale(unit_scale: float) -> float:
     """Return ``unit_scale`` as a float, or raise :class:`ParameterError` unless finite and > 0."""
     try:

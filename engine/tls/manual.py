@@ -35,6 +35,7 @@ from ..core.errors import TargetError
 from ..geometry.icp import IcpResult
 from .prepare import prepare_scan
 from .params import RegistrationParams
+from ..core.outcome import Outcome, StepTimer
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .pair import file_to_lsf_matrix, fine_registration, lsf_to_file_matrix
 from ..core.scan import Scan
@@ -78,14 +79,9 @@ def read_targets_csv(path: str | Path) -> dict[str, Targets]:
         not a finite number, an empty scan or target name, or the same (scan, target) twice; the
         message gives the line.
     """
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError as exc:
-        raise TargetError(f"target file {p} does not exist") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TargetError(f"target file {p} cannot be read: {exc}") from exc
-    lines = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip() and not line.lstrip().startswith("#")]
+    from ..io.base import read_text_lines
+
+    p, lines = read_text_lines(path, TargetError, "target file")
     if not lines:
         raise TargetError(f"target file {p} is empty; it needs a header line 'scan,target,x,y,z' and one line per target")
     header_no, header_line = lines[0]
@@ -311,8 +307,9 @@ def _consensus_outliers(reference_targets: Mapping[str, Any], moving_targets: Ma
 
 
 @dataclass(frozen=True)
-class ManualResult:
-    """Result of registering a moving scan onto a reference scan from targets, then ICP.
+class ManualResult(Outcome):
+    """Result of registering a moving scan onto a reference scan from targets, then ICP (the
+    shared :class:`~forestreg.engine.core.outcome.Outcome` shape; ``timings`` in ``*_s`` keys).
 
     ``status`` is "ok" or "failed"; a failed result has ``matrix = None`` and a ``reason``.
     ``matrix`` maps moving file coordinates to reference file coordinates; ``target_fit.matrix``
@@ -332,21 +329,27 @@ class ManualResult:
     icp_correction_deg: Optional[float] = None
     suspects: list[str] = field(default_factory=list)
 
-    @property
-    def ok(self) -> bool:
-        return self.status == "ok"
+    method = "manual (targets + ICP)"
+    convention = "p_reference = matrix @ p_moving (file coordinates, homogeneous column vectors)"
 
-    def __bool__(self) -> bool:
-        return self.ok
+    def evidence(self) -> dict[str, Any]:
+        """The target fit (count, RMS, worst target), suspects, and how far ICP moved it."""
+        fit = self.target_fit
+        return {
+            "targets": None if fit is None else len(fit.target_ids),
+            "target_rms_m": None if fit is None else fit.rmse_m,
+            "worst_target": None if fit is None else fit.worst_id,
+            "suspect_targets": list(self.suspects),
+            "icp_std_m": None if self.icp is None else self.icp.std_m,
+            "icp_fitness": None if self.icp is None else self.icp.fitness,
+            "icp_correction_m": self.icp_correction_m,
+            "icp_correction_deg": self.icp_correction_deg,
+        }
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able summary."""
+        """JSON-able summary: the shared outcome keys, then the manual-specific figures."""
         return {
-            "method": "manual (targets + ICP)",
-            "status": self.status,
-            "reason": self.reason,
-            "matrix": None if self.matrix is None else self.matrix.tolist(),
-            "convention": "p_reference = matrix @ p_moving (file coordinates, homogeneous column vectors)",
+            **self.outcome_dict(),
             "reference": self.reference_name,
             "moving": self.moving_name,
             "target_fit": None if self.target_fit is None else self.target_fit.to_dict(),
@@ -354,7 +357,6 @@ class ManualResult:
             "icp": None if self.icp is None else self.icp.to_dict(),
             "icp_correction_m": self.icp_correction_m,
             "icp_correction_deg": self.icp_correction_deg,
-            "timings": dict(self.timings),
         }
 
 
@@ -388,7 +390,7 @@ def register_manual(
     """
     params = params or RegistrationParams()
     step = Progress(progress, cancel=cancel)
-    timings: dict[str, float] = {}
+    timings = StepTimer()
     base = dict(reference_name=reference.name, moving_name=moving.name, timings=timings)
     log.info("manual registration of %s onto %s", moving.name, reference.name)
 
@@ -399,12 +401,12 @@ def register_manual(
     try:
         fit = fit_to_targets(ref_t, mov_t)
     except TargetError as exc:
-        timings["target_fit"] = time.perf_counter() - t0
+        timings.add("target_fit", time.perf_counter() - t0)
         return _failed(str(exc), base)
     if fit.rmse_m > MAX_TARGET_RMSE_M:
         outliers = _consensus_outliers(ref_t, mov_t, MAX_TARGET_RMSE_M)
         suspects = outliers or []
-        timings["target_fit"] = time.perf_counter() - t0
+        timings.add("target_fit", time.perf_counter() - t0)
         worst = suspects[0] if suspects else fit.worst_id
         detail = ", ".join(f"{t} {r:.2f} m" for t, r in sorted(zip(fit.target_ids, fit.residuals_m), key=lambda x: -x[1]))
         if suspects:
@@ -421,14 +423,10 @@ def register_manual(
             f"(limit {MAX_TARGET_RMSE_M:.2f} m; residuals {detail}). Worst target: {worst}; {why}",
             base, target_fit=fit, suspects=suspects,
         )
-    timings["target_fit"] = time.perf_counter() - t0
+    timings.add("target_fit", time.perf_counter() - t0)
     log.info("target fit: %d targets, RMS %.1f mm", len(fit.target_ids), 1000 * fit.rmse_m)
 
-    def timed(name: str, fn, *args, **kwargs):
-        t = time.perf_counter()
-        out = fn(*args, **kwargs)
-        timings[name] = timings.get(name, 0.0) + time.perf_counter() - t
-        return out
+    timed = timings.run
 
     step(0.05, "preparing reference scan")
     ref_prep = timed("prepare_reference", prepare_scan, reference.points, reference.scanner_position, params)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Optional
@@ -28,6 +27,7 @@ from .uncertainty import pair_uncertainty
 from .prepare import PreparedScan, SliceLayer, extract_vops, prepare_scan, slice_layers
 from .vop import VisualOcclusionPoints
 from .params import RegistrationParams
+from ..core.outcome import Outcome, StepTimer
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.scan import Scan
 from ..core.transform import rigid_errors, rotation_angle_deg, rotation_from_vector
@@ -92,13 +92,18 @@ class PairDetails:
 
 
 @dataclass(frozen=True)
-class PairResult:
-    """Result of registering a moving scan onto a reference scan.
+class PairResult(Outcome):
+    """Result of registering a moving scan onto a reference scan (the shared
+    :class:`~forestreg.engine.core.outcome.Outcome` shape).
 
     ``status`` is "ok" or "failed"; a failed result has ``matrix = None`` and a ``reason``.
     ``matrix`` maps moving file coordinates to reference file coordinates; ``coarse_matrix`` is
-    the coarse (VOP + ground) solution ICP started from, in the same frames.
+    the coarse (VOP + ground) solution ICP started from, in the same frames. ``timings`` are
+    seconds per step (``*_s`` keys).
     """
+
+    method = "auto (trunk shadows + ICP)"
+    convention = "p_reference = matrix @ p_moving (file coordinates, homogeneous column vectors)"
 
     status: str
     reason: str
@@ -128,27 +133,34 @@ class PairResult:
     details: Optional[PairDetails] = field(default=None, repr=False, compare=False)
 
     @property
-    def ok(self) -> bool:
-        return self.status == "ok"
-
-    def __bool__(self) -> bool:
-        return self.ok
-
-    @property
     def score_gap_m(self) -> Optional[float]:
         """Overlap-distance gap between the best and the next distinct coarse solution, metres."""
         if self.score_m is None or self.second_score_m is None:
             return None
         return self.second_score_m - self.score_m
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-able summary (what ``result.json`` holds)."""
+    def evidence(self) -> dict[str, Any]:
+        """Matched trunk shadows and the margin over the next solution, the fine fit, the
+        free-space check, and the calibrated standard errors when computed."""
         return {
-            "status": self.status,
-            "reason": self.reason,
-            "matrix": None if self.matrix is None else self.matrix.tolist(),
+            "matched": self.matched,
+            "second_matched": self.second_matched,
+            "score_gap_m": self.score_gap_m,
+            "vop_residual_m": self.vop_residual_m,
+            "icp_std_m": None if self.icp is None else self.icp.std_m,
+            "icp_fitness": None if self.icp is None else self.icp.fitness,
+            "free_space_violation": self.free_space_violation,
+            "standard_errors": None if not self.uncertainty else {
+                k: self.uncertainty.get(k) for k in ("rotation_deg", "translation_m") if k in self.uncertainty
+            },
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able summary (what ``result.json`` holds): the shared outcome keys, then the
+        pair-specific figures."""
+        return {
+            **self.outcome_dict(),
             "coarse_matrix": None if self.coarse_matrix is None else self.coarse_matrix.tolist(),
-            "convention": "p_reference = matrix @ p_moving (file coordinates, homogeneous column vectors)",
             "reference": self.reference_name,
             "moving": self.moving_name,
             "reference_vops": self.reference_vops,
@@ -165,7 +177,6 @@ class PairResult:
             "moving_tilt_deg": self.moving_tilt_deg,
             "icp": None if self.icp is None else self.icp.to_dict(),
             "free_space_violation": self.free_space_violation,
-            "timings": dict(self.timings),
             "attempts": list(self.attempts),
             "ambiguity_resolved": self.ambiguity_resolved,
             "uncertainty": self.uncertainty,
@@ -221,14 +232,9 @@ def register(
     params = params or RegistrationParams()
     reference_up, moving_up = _checked_up(reference_up, "reference_up"), _checked_up(moving_up, "moving_up")
     step = Progress(progress, cancel=cancel)
-    timings: dict[str, float] = {}
+    timings = StepTimer()
+    timed = timings.run
     log.info("registering %s onto %s", moving.name, reference.name)
-
-    def timed(name: str, fn, *args, **kwargs):
-        t0 = time.perf_counter()
-        out = fn(*args, **kwargs)
-        timings[name] = timings.get(name, 0.0) + time.perf_counter() - t0
-        return out
 
     # scans exported in project/UTM coordinates carry no scanner position: find it from the data
     reference, moving = locate_scanner(reference), locate_scanner(moving)
@@ -377,7 +383,7 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
     step(1.0, "done")
     log.info(
         "ok: %d matched VOPs, ICP std %.1f mm, fitness %.2f (%.1f s)",
-        chosen.matched, 1000 * fine.std_m, fine.fitness, sum(base["timings"].values()),
+        chosen.matched, 1000 * fine.std_m, fine.fitness, base["timings"].get("total_s", sum(base["timings"].values())),
     )
     return PairResult(
         status="ok",

@@ -23,13 +23,12 @@ from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanRe
 from ..core.atomic import write_text_atomic
 from ..io import read_scan, write_points
 from ..core.progress import CancelToken, Progress, ProgressCallback
-from .project import Link, Project, ScanEntry
+from .project import Link, LinkResult, Project, ScanEntry
 from .pair import register
 from .scanner_position import locate_scanner
 from ..core.scan import Scan
-from ..core.transform import format_matrix, rigid_errors, withhold_unless_rigid
+from ..core.transform import format_matrix, rigid_errors
 from ..core.transform import apply as apply_transform
-from ..core.jsonable import to_jsonable
 
 log = logging.getLogger("forestreg")
 
@@ -140,12 +139,14 @@ def register_project(
     return outcome
 
 
-def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> dict[str, Any]:
+def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> LinkResult:
+    """Run one link (auto or manual) and return its typed result; an unusable scan or data that
+    do not allow it give a "failed" result with the reason, not an exception."""
     try:
         reference, moving = scans(link.reference), scans(link.moving)
     except (ScanReadError, ScanDataError) as exc:
         # one unusable scan (unreadable, no scanner position to be found) fails its links, not the plot
-        return {"status": "failed", "reason": str(exc), "matrix": None, "reference": link.reference, "moving": link.moving}
+        return LinkResult.from_dict({"status": "failed", "reason": str(exc), "matrix": None, "reference": link.reference, "moving": link.moving})
     if link.method == "manual":
         from .manual import register_manual
 
@@ -158,8 +159,8 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
         try:
             result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel, prior=prior)
         except DataError as exc:  # e.g. no points near a georeferenced scan's assumed scanner
-            return {"status": "failed", "reason": str(exc), "matrix": None}
-    return withhold_unless_rigid(to_jsonable(result.to_dict()))
+            return LinkResult.from_dict({"status": "failed", "reason": str(exc), "matrix": None})
+    return LinkResult.from_dict(result.to_dict())
 
 
 def informative_priors(project: Project) -> bool:
@@ -194,7 +195,7 @@ def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, p
         link = Link(moving=entry.name, reference=name, method=failed.method, vop_radius_m=failed.vop_radius_m, slice_offsets_m=failed.slice_offsets_m)
         link.result = _run_link(project, link, scans, progress.sub(k / len(candidates), (k + 1) / len(candidates)), cancel)
         if link.ok:
-            link.result["retried_after"] = tried
+            link.result = link.result.replace(retried_after=tried)
             project.replace_link(failed, link)
             log.info("%s registered onto %s after %d failed attempt(s)", entry.name, name, len(tried))
             return link

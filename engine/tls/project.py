@@ -24,6 +24,7 @@ from ..core.atomic import write_text_atomic
 from ..core.errors import InvalidArgumentError, ProjectFileError, UnknownNameError
 from .params import RegistrationParams
 from ..core.jsonable import to_jsonable
+from ..core.outcome import OutcomeRecord
 
 FORMAT = "forestreg-project"
 VERSION = 1
@@ -49,14 +50,32 @@ class ScanEntry:
     targets: dict[str, np.ndarray] = field(default_factory=dict)
 
 
+class LinkResult(OutcomeRecord):
+    """The outcome of a link's last run, typed (status, reason, matrix, evidence, timings) over
+    its JSON form (the result's ``to_dict()``, also readable as a mapping: ``r["matched"]``)."""
+
+    @property
+    def matched(self) -> Optional[int]:
+        """Matched trunk shadows (auto links), None otherwise."""
+        m = self.data.get("matched")
+        return None if m is None else int(m)
+
+    @property
+    def uncertainty(self) -> dict[str, Any]:
+        """The calibrated standard errors and their covariance (empty when not computed)."""
+        u = self.data.get("uncertainty")
+        return dict(u) if isinstance(u, dict) else {}
+
+
 @dataclass
 class Link:
     """A registration of ``moving`` onto ``reference`` and its outcome.
 
     ``method`` is "auto" (trunk shadows) or "manual" (targets). ``vop_radius_m`` and
     ``slice_offsets_m`` override the project parameters for this link. ``result`` is the
-    ``to_dict()`` of the last run (None until run); ``matrix`` its 4x4 when it succeeded. An
-    ``extra`` link does not place its scan; it closes a loop for the global adjustment.
+    :class:`LinkResult` of the last run (None until run; a result dict assigned to it is read into
+    one); ``matrix`` its 4x4 when it succeeded. An ``extra`` link does not place its scan; it
+    closes a loop for the global adjustment.
     """
 
     moving: str
@@ -64,18 +83,23 @@ class Link:
     method: str = "auto"
     vop_radius_m: Optional[float] = None
     slice_offsets_m: Optional[tuple[float, ...]] = None
-    result: Optional[dict[str, Any]] = None
+    result: Optional[LinkResult] = None
     extra: bool = False
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name == "result" and value is not None and type(value) is not LinkResult:
+            value = LinkResult.from_dict(value)
+        object.__setattr__(self, name, value)
 
     @property
     def ok(self) -> bool:
-        return self.result is not None and self.result.get("status") == "ok"
+        return self.result is not None and self.result.ok
 
     @property
     def matrix(self) -> Optional[np.ndarray]:
-        if not self.ok or self.result.get("matrix") is None:
+        if not self.ok or self.result.matrix is None:
             return None
-        return np.array(self.result["matrix"], dtype=float)
+        return np.array(self.result.matrix, dtype=float)
 
     def params(self, base: RegistrationParams) -> RegistrationParams:
         """The project parameters with this link's overrides."""
@@ -222,7 +246,7 @@ class Project:
                     "method": link.method,
                     "vop_radius_m": link.vop_radius_m,
                     "slice_offsets_m": None if link.slice_offsets_m is None else list(link.slice_offsets_m),
-                    "result": link.result,
+                    "result": None if link.result is None else link.result.to_dict(),
                     "extra": link.extra,
                 }
                 for link in self.links
@@ -274,6 +298,8 @@ class Project:
                 )
                 for s in data["scans"]
             ]
+            raw_links = data.get("links", [])
+            _check_matrices(p, scans, raw_links)
             links = [
                 Link(
                     moving=str(link["moving"]),
@@ -284,7 +310,7 @@ class Project:
                     result=link.get("result"),
                     extra=bool(link.get("extra", False)),
                 )
-                for link in data.get("links", [])
+                for link in raw_links
             ]
             params = RegistrationParams.from_mapping(data.get("parameters") or {})
             forest = ForestResults.from_dict(data.get("forest") or {}, folder)
@@ -300,7 +326,6 @@ class Project:
             adjustment=data.get("adjustment"),
             forest=forest,
         )
-        _check_matrices(p, scans, links)
         names = {s.name for s in scans}
         bad = [link for link in links if link.moving not in names or link.reference not in names]
         if bad or (project.centre is not None and project.centre not in names):
@@ -308,9 +333,9 @@ class Project:
         return project
 
 
-def _check_matrices(path: Path, scans: list[ScanEntry], links: list[Link]) -> None:
-    """Every 4x4 of a project file (link results, prior poses) is a finite proper rigid transform
-    (no scale, no reflection); otherwise :class:`ProjectFileError` naming it."""
+def _check_matrices(path: Path, scans: list[ScanEntry], links: list[dict[str, Any]]) -> None:
+    """Every 4x4 of a project file (link results as read, prior poses) is a finite proper rigid
+    transform (no scale, no reflection); otherwise :class:`ProjectFileError` naming it."""
     from ..core.errors import TransformError
     from ..core.transform import check_rigid
 
@@ -319,11 +344,13 @@ def _check_matrices(path: Path, scans: list[ScanEntry], links: list[Link]) -> No
             if s.prior_pose is not None:
                 check_rigid(s.prior_pose, f"the prior pose of {s.name}")
         for link in links:
-            r = link.result
+            if not isinstance(link, dict):
+                raise ProjectFileError(f"project file {path} is damaged (a link is {type(link).__name__}, not an object); it was left untouched")
+            r, moving, reference = link.get("result"), link["moving"], link["reference"]
             if isinstance(r, dict) and r.get("matrix") is not None:
-                check_rigid(r["matrix"], f"the link {link.moving} -> {link.reference}")
-            if link.moving == link.reference:
-                raise ProjectFileError(f"project file {path}: the scan {link.moving} is linked to itself; it was left untouched")
+                check_rigid(r["matrix"], f"the link {moving} -> {reference}")
+            if moving == reference:
+                raise ProjectFileError(f"project file {path}: the scan {moving} is linked to itself; it was left untouched")
     except TransformError as exc:
         raise ProjectFileError(f"project file {path}: {exc}; it was left untouched") from exc
 

@@ -456,24 +456,22 @@ def read_positions_csv(path: str) -> dict[str, tuple[float, float, float]]:
     """Scanner positions from a CSV ``scan,x,y,z`` (file coordinates of each scan, metres; a header
     line is allowed). Raises :class:`~forestreg.engine.core.errors.ParameterError` on bad rows."""
     import csv
-    from pathlib import Path
 
     from ..core.errors import ParameterError
+    from ..io.base import read_text_lines
 
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise ParameterError(f"positions CSV {path}: {exc.strerror or exc}") from exc
+    _, lines = read_text_lines(path, ParameterError, "positions CSV")
     out: dict[str, tuple[float, float, float]] = {}
-    for k, row in enumerate(csv.reader(text.splitlines()), start=1):
-        if not row or not "".join(row).strip() or row[0].strip().startswith("#"):
+    for k, line in lines:
+        row = next(csv.reader([line]))
+        if not "".join(row).strip():
             continue
         if len(row) < 4:
             raise ParameterError(f"positions CSV {path}, line {k}: expected scan,x,y,z, got {','.join(row)!r}")
         try:
             xyz = tuple(float(v) for v in row[1:4])
         except ValueError:
-            if k == 1:
+            if k == lines[0][0]:
                 continue  # header
             raise ParameterError(f"positions CSV {path}, line {k}: x,y,z must be numbers, got {','.join(row[1:4])!r}") from None
         if not np.isfinite(xyz).all():

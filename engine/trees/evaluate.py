@@ -125,14 +125,10 @@ def read_tree_table(path: Union[str, os.PathLike[str]]) -> TreeTable:
         The file is missing or unreadable, lacks a required column, has duplicate tree ids,
         non-numbers, negative or implausible values.
     """
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError as exc:
-        raise TreeTableError(f"tree table {p} does not exist") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TreeTableError(f"tree table {p} cannot be read: {exc}") from exc
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    from ..io.base import read_text_lines
+
+    p, numbered = read_text_lines(path, TreeTableError, "tree table")
+    lines = [ln for _, ln in numbered]
     if not lines:
         raise TreeTableError(f"tree table {p} is empty")
     delimiter = max((",", ";", "\t"), key=lambda d: lines[0].count(d))
