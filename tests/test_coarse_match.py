@@ -54,6 +54,19 @@ def random_case(seed: int, m_range: tuple[int, int] = (15, 25), radius: float = 
     return reference, moving[rng.permutation(len(moving))], theta, t
 
 
+def _realistic(seed: int, n: int, radius: float = 22.0):
+    """n VOPs per side over a 22 m disc: 60 % shared trees, 10 % unique trees, 30 % false VOPs."""
+    rng = np.random.default_rng(seed)
+    shared, false = int(round(0.6 * n)), int(round(0.3 * n))
+    unique = n - shared - false
+    trees = spread_points(rng, shared + 2 * unique, radius)
+    ref = np.vstack([trees[: shared + unique], spread_points(rng, false, radius, 0.5)])
+    mov_world = np.vstack([trees[:shared], trees[shared + unique :], spread_points(rng, false, radius, 0.5)])
+    theta, t = float(rng.uniform(0, 360)), rng.uniform(-10, 10, 2)
+    mov = (mov_world - t) @ rot(theta) + rng.normal(0.0, 0.02, mov_world.shape)
+    return rng.permutation(ref), rng.permutation(mov), theta, t, shared
+
+
 def literal_array(reference: np.ndarray, moving: np.ndarray, step: float, dist: float = DT) -> np.ndarray:
     """Every literal score, shape (m, n, K), axis 2 is k = 1..K (same arithmetic as the matchers)."""
     k_count = coarse._angle_count(step)
@@ -216,6 +229,41 @@ def test_dense_clutter_optimum_and_second_match_brute_force(seed: int) -> None:
     assert expected is not None and fast.second_score == pytest.approx(expected[0], abs=1e-9)
 
 
+def _exactness_cases():
+    """Realistic sets (60 % shared trees, 30 % false VOPs) and degenerate ones, small enough for the
+    literal enumeration at a few degrees."""
+    rng = np.random.default_rng(17)
+    cases = {f"realistic {n} VOPs, seed {seed}": _realistic(seed, n)[:2] for seed, n in [(70, 14), (71, 16), (72, 18)]}
+    line = np.column_stack([np.linspace(0.0, 18.0, 12), np.zeros(12)])
+    cases["collinear"] = (line, (line[::-1] - [3.0, 1.0]) @ rot(70.0).T + rng.normal(0.0, 0.02, line.shape))
+    cases["two vs two"] = (np.array([[0.0, 0.0], [4.0, 1.0]]), np.array([[1.0, 1.0], [1.5, 5.0]]))
+    cases["two vs five"] = (np.array([[0.0, 0.0], [3.0, 4.0]]), rng.uniform(-5.0, 5.0, (5, 2)))
+    disc = rng.uniform(-0.35, 0.35, (14, 2))
+    cases["14 VOPs in a 0.7 m square"] = (disc, disc[rng.permutation(14)[:11]] @ rot(25.0).T + [0.1, -0.2])
+    return cases
+
+
+@pytest.mark.parametrize("name", list(_exactness_cases()))
+def test_best_and_second_equal_the_literal_enumeration(name: str) -> None:
+    """Same optimum (i, j, k) and score as the literal loop, and the same best distinct solution."""
+    reference, moving = _exactness_cases()[name]
+    step = 3.0
+    fast = match_vops(reference, moving, angle_step_deg=step)
+    literal = match_vops_literal(reference, moving, angle_step_deg=step)
+    assert (fast.anchor, fast.angle_index, fast.score) == (literal.anchor, literal.angle_index, literal.score)
+    np.testing.assert_array_equal(fast.translation, literal.translation)
+    scores = literal_array(reference, moving, step)
+    expected = brute_second(scores, reference, moving, step)
+    if expected is None:
+        assert fast.second_score is None
+        return
+    s2, (i, j, k) = expected
+    assert fast.second_score == s2
+    if np.count_nonzero(scores == s2) == 1:
+        assert fast.second_rotation_deg == k * step
+        np.testing.assert_allclose(fast.second_translation, reference[i] - rot(k * step) @ moving[j], atol=1e-12)
+
+
 # --------------------------------------------------------------------------------------------------
 # Second (distinct) solution
 # --------------------------------------------------------------------------------------------------
@@ -305,19 +353,6 @@ def test_recovers_the_true_transform_at_fine_step(seed: int) -> None:
     true = rot(theta) @ c + t
     assert np.hypot(*(est - true)) < 0.10
     assert 0.0 < fast.rotation_deg <= 360.0
-
-
-def _realistic(seed: int, n: int, radius: float = 22.0):
-    """n VOPs per side over a 22 m disc: 60 % shared trees, 10 % unique trees, 30 % false VOPs."""
-    rng = np.random.default_rng(seed)
-    shared, false = int(round(0.6 * n)), int(round(0.3 * n))
-    unique = n - shared - false
-    trees = spread_points(rng, shared + 2 * unique, radius)
-    ref = np.vstack([trees[: shared + unique], spread_points(rng, false, radius, 0.5)])
-    mov_world = np.vstack([trees[:shared], trees[shared + unique :], spread_points(rng, false, radius, 0.5)])
-    theta, t = float(rng.uniform(0, 360)), rng.uniform(-10, 10, 2)
-    mov = (mov_world - t) @ rot(theta) + rng.normal(0.0, 0.02, mov_world.shape)
-    return rng.permutation(ref), rng.permutation(mov), theta, t, shared
 
 
 def test_80_by_80_at_a_tenth_of_a_degree() -> None:
