@@ -219,3 +219,40 @@ def test_registered_scans_are_written_one_file_each_in_the_centre_frame(four_sca
     truth = plot.relative_pose(0, 2)
     expected = original.file_points @ truth[:3, :3].T + truth[:3, 3]
     assert len(moved) == len(original) and np.abs(moved.file_points - expected).max() < 0.03
+
+
+def test_a_plot_larger_than_the_scan_cache_registers_and_merges_the_same(four_scan_files, registered_four, tmp_path):
+    """Out of core: with room for one scan in memory, scans are read again when needed; the links
+    are bit for bit those of the run that kept every scan, and the merged LAZ (written one scan at a
+    time) and PLY (gathered) hold every point of every scan in the centre frame."""
+    from forestreg.engine.tls.plot import ScanCache, write_merged
+
+    plot, paths = four_scan_files
+    done = Project.load(registered_four[0])
+    project = Project(name="small-cache")
+    for p in paths[:3]:
+        project.add_scan(p)
+    scans = ScanCache(project, max_bytes=1)
+    register_project(project, scans=scans)
+    assert scans.reads > 3 and len(scans._scans) == 1, "scans were let go and read again"
+    for p in paths[1:3]:
+        assert project.link_of(p.name).reference == done.link_of(p.name).reference
+        assert np.array_equal(project.link_of(p.name).matrix, done.link_of(p.name).matrix)
+
+    originals = [read_scan(p) for p in paths[:3]]
+    poses = project.poses()
+    for suffix in (".laz", ".ply"):
+        n = write_merged(project, tmp_path / f"merged{suffix}", scans)
+        assert n == sum(len(s) for s in originals)
+        merged = read_scan(tmp_path / f"merged{suffix}")
+        assert len(merged) == n
+        expected = np.vstack([s.file_points @ poses[p.name][:3, :3].T + poses[p.name][:3, 3] for s, p in zip(originals, paths)])
+        lo, hi = merged.file_points.min(axis=0), merged.file_points.max(axis=0)
+        assert np.allclose(lo, expected.min(axis=0), atol=2e-4) and np.allclose(hi, expected.max(axis=0), atol=2e-4)
+        if suffix == ".laz":
+            import laspy
+
+            las = laspy.read(tmp_path / "merged.laz")
+            assert np.bincount(las.scan_id).tolist() == [len(s) for s in originals]
+            first = np.column_stack([las.x, las.y, las.z])[las.scan_id == 1]
+            assert np.abs(first - expected[len(originals[0]): len(originals[0]) + len(originals[1])]).max() < 2e-4

@@ -19,7 +19,7 @@ from __future__ import annotations
 import operator
 import os
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Iterable, Optional, Sequence
 
 import numpy as np
 
@@ -40,6 +40,7 @@ __all__ = [
     "read_scan",
     "read_scans",
     "write_e57",
+    "write_point_chunks",
     "write_points",
     "write_scan",
 ]
@@ -222,14 +223,87 @@ def write_points(
     ScanWriteError, ParameterError
         As :func:`write_scan`; also for empty or non-finite points and bad column lengths.
     """
-    pts = as_points(points)
+    pts, inten, ids = _checked_columns(path, points, intensity, scan_id)
     if len(pts) == 0:
         raise ParameterError(f"{path}: there are no points to write")
-    if not np.isfinite(pts).all():
-        raise ParameterError(f"{path}: {int((~np.isfinite(pts).all(axis=1)).sum())} points have NaN or infinite coordinates")
+    _write(Path(path), PointsToWrite(pts, _checked_shift(origin_shift), inten, ids, Path(path).stem))
+
+
+def write_point_chunks(
+    path: PathLike,
+    chunks: Iterable[tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]],
+    *,
+    bounds: tuple[np.ndarray, np.ndarray],
+    origin_shift: Optional[np.ndarray] = None,
+    with_intensity: bool = True,
+    with_scan_id: bool = False,
+) -> int:
+    """Write a cloud that arrives in chunks (e.g. one registered scan at a time) into one file.
+
+    LAS/LAZ are written chunk by chunk (:class:`~forestreg.engine.io.las.LasChunkWriter`), so
+    only one chunk is in memory at a time; other formats gather the chunks and write them as
+    :func:`write_points` does. Written through a temporary file like every writer: a failure
+    leaves no partial file and the previous file intact.
+
+    Parameters
+    ----------
+    chunks : iterable of ``(points, intensity, scan_id)``: (N, 3) coordinates in metres relative
+        to ``origin_shift`` (file coordinates without it), optional (N,) intensities and (N,)
+        scan ids 0..65535 (required when ``with_scan_id``).
+    bounds : ``(lo, hi)`` (3,) each: bounds that hold every point to come, relative to
+        ``origin_shift`` like the points (generous bounds are fine).
+    with_intensity : write intensities (chunks without them get 0).
+
+    Returns the number of points written. Raises as :func:`write_points`; no points at all is a
+    :class:`ParameterError`.
+    """
+    target = Path(path)
+    shift = _checked_shift(origin_shift)
+    if target.suffix.lower() not in (".las", ".laz"):
+        parts = [_checked_columns(path, *chunk) for chunk in chunks]
+        if not parts or not sum(len(p) for p, _, _ in parts):
+            raise ParameterError(f"{path}: there are no points to write")
+        keep = with_intensity and all(i is not None for _, i, _ in parts)
+        write_points(
+            target, np.concatenate([p for p, _, _ in parts]), origin_shift=shift,
+            intensity=np.concatenate([i for _, i, _ in parts]) if keep else None,
+            scan_id=np.concatenate([d for _, _, d in parts]) if with_scan_id else None,
+        )
+        return int(sum(len(p) for p, _, _ in parts))
+    lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) + shift for b in bounds)
+    written = [0]
+
+    def body(tmp: Path) -> None:
+        with _las.LasChunkWriter(tmp, lo, hi, compress=target.suffix.lower() == ".laz", with_scan_id=with_scan_id) as out:
+            for chunk in chunks:
+                pts, inten, ids = _checked_columns(path, *chunk)
+                if with_scan_id and ids is None and len(pts):
+                    raise ParameterError(f"{path}: every chunk needs a scan_id per point")
+                out.write(pts, shift, intensity=inten if with_intensity else None, scan_id=ids)
+            written[0] = out.count
+        if not written[0]:
+            raise ParameterError(f"{path}: there are no points to write")
+
+    _atomic(target, body)
+    return written[0]
+
+
+def _checked_shift(origin_shift: Optional[np.ndarray]) -> np.ndarray:
+    """``origin_shift`` as three finite floats (zeros when None); ParameterError otherwise."""
     shift = np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64).reshape(-1)
     if shift.shape != (3,) or not np.isfinite(shift).all():
         raise ParameterError(f"origin_shift must be three finite numbers, got {origin_shift!r}")
+    return shift
+
+
+def _checked_columns(
+    path: PathLike, points: np.ndarray, intensity: Optional[np.ndarray] = None, scan_id: Optional[np.ndarray] = None,
+) -> tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
+    """Points (N, 3) finite, intensity (N,) and scan ids (N,) whole numbers 0..65535 as uint16;
+    ParameterError naming ``path`` otherwise."""
+    pts = as_points(points)
+    if not np.isfinite(pts).all():
+        raise ParameterError(f"{path}: {int((~np.isfinite(pts).all(axis=1)).sum())} points have NaN or infinite coordinates")
     inten = as_column(intensity, len(pts), "intensity")
     ids = as_column(scan_id, len(pts), "scan_id")
     if ids is not None:
@@ -237,7 +311,7 @@ def write_points(
         if not np.isfinite(ids_f).all() or (ids_f < 0).any() or (ids_f > 65535).any() or (ids_f != np.round(ids_f)).any():
             raise ParameterError("scan_id must hold whole numbers 0..65535")
         ids = ids_f.astype(np.uint16)
-    _write(Path(path), PointsToWrite(pts, shift, inten, ids, Path(path).stem))
+    return pts, inten, ids
 
 
 def write_e57(path: PathLike, scans: list[Scan], poses: Optional[list[Optional[np.ndarray]]] = None) -> None:

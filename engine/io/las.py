@@ -168,28 +168,22 @@ def intensity_to_uint16(intensity: np.ndarray) -> np.ndarray:
     return np.clip(np.round(out), 0, 65535).astype(np.uint16)
 
 
-def las_points(
-    local: np.ndarray,
-    shift: np.ndarray,
+def las_header(
+    lo: np.ndarray,
+    hi: np.ndarray,
     *,
-    intensity: Optional[np.ndarray] = None,
     extra_dims: Sequence[tuple[str, type, str]] = (),
     system_identifier: str = "forestreg",
 ):
-    """A ``laspy.LasData`` (LAS 1.4, point format 6) of the points ``local + shift`` (file
-    coordinates, metres), single returns, with empty extra-bytes dimensions ``(name, dtype,
-    description)`` for the caller to fill.
-
-    Header offsets are the floor of the data minimum, scales :data:`LAS_SCALE` (coarser only if
-    the extent would overflow int32), so georeferenced coordinates keep 0.1 mm steps.
-    """
+    """A LAS 1.4 point format 6 header for points within ``lo``..``hi`` (file coordinates,
+    metres; bounds may be generous): offsets the floor of ``lo``, scales :data:`LAS_SCALE` (coarser
+    only if the extent would overflow int32), so georeferenced coordinates keep 0.1 mm steps; extra
+    bytes dimensions ``(name, dtype, description)``."""
     import laspy
 
-    lo_local = local.min(axis=0)
-    hi_local = local.max(axis=0)
-    offset = np.floor(lo_local + shift)
+    offset = np.floor(np.asarray(lo, dtype=np.float64))
     scale = LAS_SCALE
-    while float(((hi_local + shift) - offset).max()) / scale > 2.0e9:
+    while float((np.asarray(hi, dtype=np.float64) - offset).max()) / scale > 2.0e9:
         scale *= 10.0
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.offsets = offset
@@ -198,16 +192,83 @@ def las_points(
     header.system_identifier = system_identifier
     for name, dtype, description in extra_dims:
         header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dtype, description=description))
-    las = laspy.LasData(header)
+    return header
+
+
+def _fill(record, local: np.ndarray, shift: np.ndarray, offset: np.ndarray, scale: float, intensity: Optional[np.ndarray]) -> None:
+    """Set the integer coordinates (``local + shift`` in the header's offset and scale), single
+    returns and intensity of a laspy point record or LasData of ``len(local)`` points."""
     rel = local - (offset - shift)  # small numbers: no precision lost to large offsets
-    las.X = np.round(rel[:, 0] / scale).astype(np.int32)
-    las.Y = np.round(rel[:, 1] / scale).astype(np.int32)
-    las.Z = np.round(rel[:, 2] / scale).astype(np.int32)
-    las.return_number = np.ones(len(local), dtype=np.uint8)
-    las.number_of_returns = np.ones(len(local), dtype=np.uint8)
+    record.X = np.round(rel[:, 0] / scale).astype(np.int32)
+    record.Y = np.round(rel[:, 1] / scale).astype(np.int32)
+    record.Z = np.round(rel[:, 2] / scale).astype(np.int32)
+    record.return_number = np.ones(len(local), dtype=np.uint8)
+    record.number_of_returns = np.ones(len(local), dtype=np.uint8)
     if intensity is not None:
-        las.intensity = intensity_to_uint16(intensity)
+        record.intensity = intensity_to_uint16(intensity)
+
+
+def las_points(
+    local: np.ndarray,
+    shift: np.ndarray,
+    *,
+    intensity: Optional[np.ndarray] = None,
+    extra_dims: Sequence[tuple[str, type, str]] = (),
+    system_identifier: str = "forestreg",
+):
+    """A ``laspy.LasData`` (LAS 1.4, point format 6, header :func:`las_header` of the data's
+    bounds) of the points ``local + shift`` (file coordinates, metres), single returns, with empty
+    extra-bytes dimensions ``(name, dtype, description)`` for the caller to fill."""
+    import laspy
+
+    header = las_header(local.min(axis=0) + shift, local.max(axis=0) + shift, extra_dims=extra_dims, system_identifier=system_identifier)
+    las = laspy.LasData(header)
+    _fill(las, local, shift, header.offsets, float(header.scales[0]), intensity)
     return las
+
+
+class LasChunkWriter:
+    """Writes one LAS/LAZ file chunk by chunk, so a cloud larger than memory can be written.
+
+    The header is made up front from bounds that hold every point to come (file coordinates,
+    metres; generous bounds cost nothing but a coarser scale beyond 200 km); the written header's
+    bounds and counts are the points'. Each :meth:`write` takes points ``local + shift`` with
+    optional intensity and a ``scan_id`` per point when the writer was made ``with_scan_id``.
+    Intensities are mapped to uint16 chunk by chunk (:func:`intensity_to_uint16`).
+    """
+
+    def __init__(self, path: Path, lo: np.ndarray, hi: np.ndarray, *, compress: bool, with_scan_id: bool = False) -> None:
+        import laspy
+
+        extra = [("scan_id", np.uint16, "scan index")] if with_scan_id else []
+        self.header = las_header(lo, hi, extra_dims=extra)
+        self.with_scan_id = with_scan_id
+        self._writer = laspy.open(str(path), mode="w", header=self.header, do_compress=compress)
+        self.count = 0
+
+    def write(self, local: np.ndarray, shift: np.ndarray, *, intensity: Optional[np.ndarray] = None,
+              scan_id: Optional[np.ndarray] = None) -> None:
+        """Append points ``local + shift`` (N, 3), metres."""
+        import laspy
+
+        if len(local) == 0:
+            return
+        record = laspy.ScaleAwarePointRecord.zeros(len(local), header=self.header)
+        _fill(record, np.asarray(local, dtype=np.float64), np.asarray(shift, dtype=np.float64),
+              self.header.offsets, float(self.header.scales[0]), intensity)
+        if self.with_scan_id:
+            record.scan_id = np.asarray(scan_id).astype(np.uint16)
+        self._writer.write_points(record)
+        self.count += len(local)
+
+    def close(self) -> None:
+        self._writer.close()
+
+    def __enter__(self) -> "LasChunkWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def write_las(tmp: Path, cloud: PointsToWrite, *, compress: bool) -> None:

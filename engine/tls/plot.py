@@ -11,8 +11,10 @@ scan's file coordinates).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional
@@ -21,7 +23,7 @@ import numpy as np
 
 from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanReadError
 from ..core.atomic import write_text_atomic
-from ..io import read_scan, write_points
+from ..io import read_scan, write_point_chunks
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, LinkResult, Project, ScanEntry
 from .pair import register
@@ -37,18 +39,64 @@ TILTED_PARTNER_RADIUS_M = 10.0
 
 
 class ScanCache:
-    """Reads each scan of a project once, on first use."""
+    """Reads the scans of a project on first use and keeps the most recently used ones in memory,
+    up to ``max_bytes`` of point arrays (default :data:`SCAN_CACHE_BYTES`), so a plot of many large
+    scans never holds them all: one scan over the budget is still read, used and then let go.
 
-    def __init__(self, project: Project) -> None:
+    A scanner position found from the data (:func:`locate_scanner`) is remembered, so a scan read
+    again is not searched again.
+    """
+
+    def __init__(self, project: Project, max_bytes: Optional[int] = None) -> None:
         self.project = project
-        self._scans: dict[str, Scan] = {}
+        self.max_bytes = SCAN_CACHE_BYTES if max_bytes is None else int(max_bytes)
+        self._scans: OrderedDict[str, Scan] = OrderedDict()
+        self._located: dict[str, tuple[np.ndarray, np.ndarray, dict[str, Any]]] = {}
+        #: how many times a scan file was read (a scan read twice was let go in between)
+        self.reads = 0
 
     def __call__(self, name: str) -> Scan:
-        if name not in self._scans:
-            entry = self.project.scan(name)
-            scan = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
-            self._scans[name] = locate_scanner(scan)
-        return self._scans[name]
+        if name in self._scans:
+            self._scans.move_to_end(name)
+            return self._scans[name]
+        entry = self.project.scan(name)
+        scan = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
+        self.reads += 1
+        known = self._located.get(name)
+        if known is not None and np.array_equal(known[1], scan.origin_shift):
+            scan = dataclasses.replace(scan, scanner_position=known[0], meta=known[2])
+        else:
+            scan = locate_scanner(scan)
+            self._located[name] = (scan.scanner_position, scan.origin_shift, scan.meta)
+        self._scans[name] = scan
+        while len(self._scans) > 1 and sum(_scan_bytes(s) for s in self._scans.values()) > self.max_bytes:
+            self._scans.popitem(last=False)
+        return scan
+
+    def bounds(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper corner of a scan's points (file coordinates, metres): from a LAS/LAZ
+        header without reading the points, else from the points."""
+        entry = self.project.scan(name)
+        if name not in self._scans and entry.path.suffix.lower() in (".las", ".laz"):
+            import laspy
+
+            try:
+                with laspy.open(str(entry.path)) as f:
+                    return np.asarray(f.header.mins, dtype=float), np.asarray(f.header.maxs, dtype=float)
+            except Exception:  # an odd header: read the points instead (the reader says what is wrong)
+                pass
+        pts = self(name).points
+        shift = self(name).origin_shift
+        return pts.min(axis=0) + shift, pts.max(axis=0) + shift
+
+
+#: Point arrays a :class:`ScanCache` keeps in memory by default, bytes: some twenty 3 M-point
+#: scans, or two 30 M-point scans (a 0.04 deg RIEGL scan) with room left for registering them.
+SCAN_CACHE_BYTES = 2_000_000_000
+
+
+def _scan_bytes(scan: Scan) -> int:
+    return int(scan.points.nbytes + (0 if scan.intensity is None else scan.intensity.nbytes))
 
 
 @dataclass
@@ -357,29 +405,39 @@ def pose_uncertainty(project: Project) -> dict[str, Optional[dict[str, float]]]:
 
 def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] = None) -> int:
     """Write every registered scan, in the centre scan's file coordinates, into one point file
-    with a ``scan_id`` per point (the scan's index in the project). Returns the point count."""
+    with a ``scan_id`` per point (the scan's index in the project). Returns the point count.
+
+    LAS/LAZ are written one scan at a time (:func:`~forestreg.engine.io.write_point_chunks`), so a
+    plot larger than memory can be merged; intensities are written when every scan has them."""
     scans = scans or ScanCache(project)
     poses = project.poses()
-    parts, intensity, ids = [], [], []
-    with_intensity = True
-    for k, s in enumerate(project.scans):
-        pose = poses.get(s.name)
-        if pose is None:
-            continue
-        scan = scans(s.name)
-        parts.append(apply_transform(pose, scan.file_points))
-        ids.append(np.full(len(scan), k, dtype=np.uint16))
-        with_intensity &= scan.intensity is not None
-        intensity.append(scan.intensity)
-    if not parts:
+    placed = [(k, s.name, poses[s.name]) for k, s in enumerate(project.scans) if poses.get(s.name) is not None]
+    if not placed:
         raise DataError("no scan is registered: nothing to merge")
-    write_points(
-        path,
-        np.concatenate(parts),
-        intensity=np.concatenate(intensity) if with_intensity else None,
-        scan_id=np.concatenate(ids),
+    corners = []
+    for _, name, pose in placed:
+        lo, hi = scans.bounds(name)
+        box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        corners.append(apply_transform(pose, box))
+    corners = np.vstack(corners)
+    margin = 1.0  # metres: header bounds are rounded; the written header has the exact ones
+
+    def chunks():
+        for k, name, pose in placed:
+            scan = scans(name)
+            yield apply_transform(pose, scan.file_points), scan.intensity, np.full(len(scan), k, dtype=np.uint16)
+
+    return write_point_chunks(
+        path, chunks(), bounds=(corners.min(axis=0) - margin, corners.max(axis=0) + margin),
+        with_intensity=all(_has_intensity(scans, project.scan(name)) for _, name, _ in placed), with_scan_id=True,
     )
-    return int(sum(len(p) for p in parts))
+
+
+def _has_intensity(scans: ScanCache, entry: ScanEntry) -> bool:
+    """Whether a scan has intensities (a LAS/LAZ always has the field; other formats: read it)."""
+    if entry.path.suffix.lower() in (".las", ".laz"):
+        return True
+    return scans(entry.name).intensity is not None
 
 
 def project_from_e57(path: str | Path, *, name: Optional[str] = None) -> Project:
