@@ -10,10 +10,12 @@ Printed: the per-step timings of ``TreeInventory.timings`` (``*_s``, seconds) an
 the accuracy: true trees (DBH >= 0.1 m, inside the plot less 1 m) found within 0.3 m, false
 stems, DBH rRMSE, median height error of the trees whose top was scanned, median crown-width
 error, and the summed cylinder-model volume. ``--save NAME`` also writes the per-tree figures to
-``bench_out/trees_speed/NAME.json`` (to compare two versions tree by tree), ``--profile`` writes
-cProfile statistics to ``bench_out/trees_speed/profile.pstats`` and prints the top entries.
+``bench_out/trees_speed/NAME.json``, ``--compare NAME`` counts the trees whose figures differ from
+that saved run (two versions compared tree by tree), ``--profile`` writes cProfile statistics to
+``bench_out/trees_speed/profile.pstats`` and prints the top entries. The process CPU time (all
+threads) is printed beside the wall time: on a busy machine it is the steadier of the two.
 
-Run from the repository root: ``python -m benchmarks.trees_speed [--save NAME] [--profile]``.
+Run from the repository root: ``python -m benchmarks.trees_speed [--save NAME] [--compare NAME] [--profile]``.
 """
 
 from __future__ import annotations
@@ -101,6 +103,7 @@ def per_tree(inventory: Any) -> list[dict[str, Any]]:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--save", help="write the per-tree figures to bench_out/trees_speed/NAME.json")
+    ap.add_argument("--compare", help="count the trees differing from bench_out/trees_speed/NAME.json")
     ap.add_argument("--profile", action="store_true", help="profile measure_trees with cProfile")
     args = ap.parse_args(argv)
     from forestreg.engine.trees.inventory import measure_trees
@@ -112,21 +115,26 @@ def main(argv: list[str] | None = None) -> None:
         import pstats
 
         prof = cProfile.Profile()
-        t = time.perf_counter()
+        cpu, t = time.process_time(), time.perf_counter()
         inventory = prof.runcall(measure_trees, points)
-        total = time.perf_counter() - t
+        total, cpu = time.perf_counter() - t, time.process_time() - cpu
         prof.dump_stats(str(OUT / "profile.pstats"))
         pstats.Stats(prof).sort_stats("cumulative").print_stats(45)
     else:
-        t = time.perf_counter()
+        cpu, t = time.process_time(), time.perf_counter()
         inventory = measure_trees(points)
-        total = time.perf_counter() - t
-    print("timings (s): " + "  ".join(f"{k} {v:.1f}" for k, v in inventory.timings.items()) + f"  total {total:.1f}")
+        total, cpu = time.perf_counter() - t, time.process_time() - cpu
+    print("timings (s): " + "  ".join(f"{k} {v:.1f}" for k, v in inventory.timings.items()) + f"  total {total:.1f}  (cpu {cpu:.1f})")
     acc = accuracy(inventory, truth)
     print("accuracy: " + "  ".join(f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in acc.items()))
+    trees = per_tree(inventory)
+    if args.compare:
+        saved = json.loads((OUT / f"{args.compare}.json").read_text())["trees"]
+        differ = sum(json.dumps(a) != json.dumps(b) for a, b in zip(saved, trees)) + abs(len(saved) - len(trees))
+        print(f"compared with {args.compare}: {differ} of {len(trees)} trees differ")
     if args.save:
         (OUT / f"{args.save}.json").write_text(json.dumps(
-            {"timings": {**inventory.timings, "total_s": total}, "accuracy": acc, "trees": per_tree(inventory)}, indent=1))
+            {"timings": {**inventory.timings, "total_s": total, "cpu_s": cpu}, "accuracy": acc, "trees": trees}, indent=1))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -28,7 +28,7 @@ def local_covariances(
     Sums are taken of offsets from the query point (small numbers: no loss of precision far from
     the origin): ``cov = E[d d^T] - E[d] E[d]^T``. A query with no neighbour has a zero matrix.
     Only the neighbours found enter the sums (one flat list per batch, summed per query with
-    ``bincount``), so sparse spheres cost what they hold, not ``k``.
+    ``reduceat``), so sparse spheres cost what they hold, not ``k``.
     """
     q_all = np.asarray(queries, dtype=np.float64)
     c = np.asarray(cloud, dtype=np.float64)
@@ -46,16 +46,18 @@ def local_covariances(
         idx = idx.reshape(len(q), k)
         valid = idx < n  # neighbours beyond the radius come last, with index n
         cnt = valid.sum(axis=1)
-        row = np.repeat(np.arange(len(q)), cnt)
+        rows = np.flatnonzero(cnt)  # queries with neighbours; their neighbours lie in runs
+        starts = np.cumsum(cnt)[rows] - cnt[rows]
         nb = idx[valid]
-        d = [columns[axis][nb] - q[row, axis] for axis in range(3)]
-        w = np.maximum(cnt, 1).astype(np.float64)
-        mean = [np.bincount(row, weights=d[i], minlength=len(q)) / w for i in range(3)]
+        at = np.repeat(rows, cnt[rows])
+        d = [columns[axis][nb] - q[at, axis] for axis in range(3)]
+        w = cnt[rows].astype(np.float64)
+        mean = [np.add.reduceat(d[i], starts) / w for i in range(3)]
         block = cov[a : a + batch]
         for i in range(3):
             for j in range(i, 3):
-                block[:, i, j] = np.bincount(row, weights=d[i] * d[j], minlength=len(q)) / w - mean[i] * mean[j]
-                block[:, j, i] = block[:, i, j]
+                block[rows, i, j] = np.add.reduceat(d[i] * d[j], starts) / w - mean[i] * mean[j]
+                block[rows, j, i] = block[rows, i, j]
         count[a : a + batch] = cnt
     return cov, count
 
