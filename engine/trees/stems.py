@@ -924,29 +924,31 @@ def measure_stems(
     return dbh, curves
 
 
-#: Points projected at a time by :func:`tops_along_axes` (bounds its (chunk, stems) temporaries).
-_TOP_CHUNK_POINTS = 200_000
-
-
 def tops_along_axes(p: np.ndarray, stems: list[Stem]) -> np.ndarray:
     """(S,) the largest ``(p - stem.base) . stem.axis`` over the points (m along each stem's axis
     from its base): how far up the cloud reaches along each stem.
 
-    One pass of ``p @ axes`` over the cloud; the points within 1e-6 m of each chunk's maximum
-    (far more than the rounding difference between ``p . a - b . a`` and ``(p - b) . a`` for
-    coordinates below 1e6 m) are evaluated as ``(p - b) . a``, so the result is exactly that
-    expression's maximum."""
+    Only points high enough to beat the cloud's highest point can hold the maximum: along an
+    upward axis ``a`` a point's value is at most ``a_z (z - b_z)`` plus the largest horizontal
+    term over the cloud's extent, so the candidates are the points above a height found from
+    that bound (a thin top layer for near-vertical stems), and the expression is evaluated
+    exactly on them."""
     if not stems:
         return np.zeros(0)
-    axes = np.array([s.axis for s in stems], dtype=np.float64)
-    bases = np.array([s.base for s in stems], dtype=np.float64)
-    top = np.full(len(stems), -np.inf)
-    for a in range(0, len(p), _TOP_CHUNK_POINTS):
-        chunk = p[a : a + _TOP_CHUNK_POINTS]
-        proj = chunk @ axes.T
-        row, col = np.nonzero(proj >= proj.max(axis=0) - 1e-6)
-        np.maximum.at(top, col, np.einsum("ij,ij->i", chunk[row] - bases[col], axes[col]))
-    return top
+    z = p[:, 2]
+    top_point = p[int(np.argmax(z))]
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    floors = []
+    for s in stems:
+        a, b = s.axis, s.base
+        if a[2] <= 0.0:
+            floors.append(-np.inf)
+            continue
+        reach = sum(abs(a[i]) * max(abs(lo[i] - b[i]), abs(hi[i] - b[i])) for i in range(2))
+        best_known = float((top_point - b) @ a)
+        floors.append(b[2] + (best_known - reach) / a[2] - 1e-6)  # 1e-6 m: safe from rounding
+    high = p[z >= min(floors)]
+    return np.array([float(((high[high[:, 2] >= f] - s.base) @ s.axis).max()) for s, f in zip(stems, floors)])
 
 
 def _running_median(values: np.ndarray, window: int) -> np.ndarray:
