@@ -494,10 +494,10 @@ def local_geometry(points: np.ndarray, radius_m: float, min_neighbours: int, max
     Points with fewer than ``min_neighbours`` neighbours get a NaN normal and variation.
     """
     cov, counts = local_covariances(points, points, k=max_neighbours, radius_m=radius_m)
-    normals, variation = normals_and_variation(cov)
-    few = counts < min_neighbours
-    normals[few] = np.nan
-    variation[few] = np.nan
+    normals = np.full((len(points), 3), np.nan)
+    variation = np.full(len(points), np.nan)
+    enough = counts >= min_neighbours  # the others stay NaN: no decomposition spent on them
+    normals[enough], variation[enough] = normals_and_variation(cov[enough])
     return normals, variation, counts
 
 
