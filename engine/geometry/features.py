@@ -27,6 +27,8 @@ def local_covariances(
 
     Sums are taken of offsets from the query point (small numbers: no loss of precision far from
     the origin): ``cov = E[d d^T] - E[d] E[d]^T``. A query with no neighbour has a zero matrix.
+    Only the neighbours found enter the sums (one flat list per batch, summed per query with
+    ``reduceat``), so sparse spheres cost what they hold, not ``k``.
     """
     q_all = np.asarray(queries, dtype=np.float64)
     c = np.asarray(cloud, dtype=np.float64)
@@ -37,23 +39,25 @@ def local_covariances(
         return cov, count
     k = min(int(k), n)
     tree = tree if tree is not None else cKDTree(c)
-    bounded = bool(np.isfinite(radius_m))  # unbounded: every query has its k neighbours
-    padded = np.vstack([c, np.zeros((1, 3))]) if bounded else c
+    columns = [np.ascontiguousarray(c[:, axis]) for axis in range(3)]
     for a in range(0, len(q_all), batch):
         q = q_all[a : a + batch]
         _, idx = tree.query(q, k=k, distance_upper_bound=radius_m, workers=-1 if len(q) >= 5000 else 1)
         idx = idx.reshape(len(q), k)
-        if bounded:
-            valid = idx < n
-            cnt = valid.sum(axis=1)
-            d = (padded[idx] - q[:, None, :]) * valid[:, :, None]
-        else:
-            cnt = np.full(len(q), k, dtype=np.int64)
-            d = c[idx] - q[:, None, :]
-        w = np.maximum(cnt, 1)[:, None]
-        mean = d.sum(axis=1) / w
-        second = np.matmul(d.transpose(0, 2, 1), d) / w[:, :, None]
-        cov[a : a + batch] = second - mean[:, :, None] * mean[:, None, :]
+        valid = idx < n  # neighbours beyond the radius come last, with index n
+        cnt = valid.sum(axis=1)
+        rows = np.flatnonzero(cnt)  # queries with neighbours; their neighbours lie in runs
+        starts = np.cumsum(cnt)[rows] - cnt[rows]
+        nb = idx[valid]
+        at = np.repeat(rows, cnt[rows])
+        d = [columns[axis][nb] - q[at, axis] for axis in range(3)]
+        w = cnt[rows].astype(np.float64)
+        mean = [np.add.reduceat(d[i], starts) / w for i in range(3)]
+        block = cov[a : a + batch]
+        for i in range(3):
+            for j in range(i, 3):
+                block[rows, i, j] = np.add.reduceat(d[i] * d[j], starts) / w - mean[i] * mean[j]
+                block[rows, j, i] = block[rows, i, j]
         count[a : a + batch] = cnt
     return cov, count
 

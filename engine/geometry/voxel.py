@@ -83,8 +83,7 @@ def voxel_centroids(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.
     _, first, inverse, counts = np.unique(keys, return_index=True, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
     anchor = p[first]
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inverse, p - anchor[inverse])
+    sums = np.column_stack([np.bincount(inverse, weights=p[:, axis] - anchor[inverse, axis], minlength=len(counts)) for axis in range(3)])
     return anchor + sums / counts[:, None], inverse
 
 

@@ -35,7 +35,7 @@ from .crown import CrownMeasurement, CrownParams, measure_crown
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
 from .segmentation import CompletenessParams, SegmentationParams, segment_trees, tree_completeness
-from .stems import DbhMeasurement, Stem, StemCurve, StemParams, detect_stems_adaptive, measure_dbh, stem_curve
+from .stems import DbhMeasurement, Stem, StemCurve, StemParams, detect_stems_adaptive, measure_stems
 
 log = logging.getLogger(__name__)
 
@@ -299,15 +299,14 @@ def measure_trees(
     from scipy.spatial import cKDTree
 
     index = cKDTree(p)  # one spatial index for every stem's slices
-    dbh = {s.id: measure_dbh(p, heights, s, stem_params, search_tree=index) for s in stems}
-    curves = {s.id: stem_curve(p, heights, s, stem_params, search_tree=index) for s in stems}
+    dbh, curves = measure_stems(p, heights, stems, stem_params, search_tree=index)
     if method == "noisy":  # thin stems found with the noisy settings may still be measured finely
-        for s in stems:
-            if not dbh[s.id].ok and s.radius_m < 0.1:
-                fine = measure_dbh(p, heights, s, params.stems, search_tree=index)
-                if fine.ok:
-                    dbh[s.id] = fine
-                    curves[s.id] = stem_curve(p, heights, s, params.stems, search_tree=index)
+        thin = [s for s in stems if not dbh[s.id].ok and s.radius_m < 0.1]
+        fine_dbh, fine_curves = measure_stems(p, heights, thin, params.stems, search_tree=index)
+        for s in thin:
+            if fine_dbh[s.id].ok:
+                dbh[s.id] = fine_dbh[s.id]
+                curves[s.id] = fine_curves[s.id]
     timings["dbh_s"] = time.perf_counter() - t
 
     t = time.perf_counter()

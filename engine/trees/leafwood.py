@@ -194,8 +194,9 @@ def _features_on(
         cloud, voxel_of_base = voxel_centroids(base, radius / prm.thinning_ratio)
         tree = cKDTree(cloud)
         cov, count = local_covariances(cloud, cloud, k=prm.max_neighbours, radius_m=radius, tree=tree)
-        f = eigen_features(cov)
-        f[count < prm.min_neighbours] = np.nan
+        f = np.full((len(cloud), FEATURES_PER_SCALE), np.nan)
+        enough = count >= prm.min_neighbours  # the others stay NaN: no decomposition spent on them
+        f[enough] = eigen_features(cov[enough])
         out[:, s * FEATURES_PER_SCALE : (s + 1) * FEATURES_PER_SCALE] = f[voxel_of_base]
         counts[:, s] = count[voxel_of_base]
     progress(1.0, "covariance features done")

@@ -494,10 +494,10 @@ def local_geometry(points: np.ndarray, radius_m: float, min_neighbours: int, max
     Points with fewer than ``min_neighbours`` neighbours get a NaN normal and variation.
     """
     cov, counts = local_covariances(points, points, k=max_neighbours, radius_m=radius_m)
-    normals, variation = normals_and_variation(cov)
-    few = counts < min_neighbours
-    normals[few] = np.nan
-    variation[few] = np.nan
+    normals = np.full((len(points), 3), np.nan)
+    variation = np.full(len(points), np.nan)
+    enough = counts >= min_neighbours  # the others stay NaN: no decomposition spent on them
+    normals[enough], variation[enough] = normals_and_variation(cov[enough])
     return normals, variation, counts
 
 
@@ -871,7 +871,11 @@ def measure_dbh(points: Any, heights: Any, stem: Stem, params: StemParams = Stem
     stems and slopes are measured along the stem.
     """
     p, _ = check_cloud(points, heights)
-    tree = search_tree if search_tree is not None else cKDTree(p)
+    return _measure_dbh(p, stem, params, search_tree if search_tree is not None else cKDTree(p))
+
+
+def _measure_dbh(p: np.ndarray, stem: Stem, params: StemParams, tree: cKDTree) -> DbhMeasurement:
+    """:func:`measure_dbh` of checked points ``p`` with their ``cKDTree``."""
     search = stem.radius_m * 1.25 + params.search_margin_m
     bh = params.breast_height_m
     offsets = sorted({0.0, *params.dbh_slice_offsets_m}, key=lambda o: (abs(o), -o))
@@ -905,6 +909,48 @@ def measure_dbh(points: Any, heights: Any, stem: Stem, params: StemParams = Stem
     return DbhMeasurement(stem.id, dbh, main[3], bh + main[0], main[2], not reasons_out, tuple(reasons_out), note)
 
 
+def measure_stems(
+    points: Any, heights: Any, stems: list[Stem], params: StemParams = StemParams(), *, search_tree: Optional[cKDTree] = None
+) -> tuple[dict[int, DbhMeasurement], dict[int, StemCurve]]:
+    """:func:`measure_dbh` and :func:`stem_curve` of every stem, by stem id: the cloud is checked
+    and indexed (``search_tree``, a ``cKDTree`` of ``points``, if not given) once, and the stems'
+    tops along their axes are found in one pass over it. Same results as the two functions called
+    stem by stem."""
+    p, _ = check_cloud(points, heights)
+    tree = search_tree if search_tree is not None else cKDTree(p)
+    tops = tops_along_axes(p, stems)
+    dbh = {s.id: _measure_dbh(p, s, params, tree) for s in stems}
+    curves = {s.id: _stem_curve(p, s, params, tree, float(top)) for s, top in zip(stems, tops)}
+    return dbh, curves
+
+
+def tops_along_axes(p: np.ndarray, stems: list[Stem]) -> np.ndarray:
+    """(S,) the largest ``(p - stem.base) . stem.axis`` over the points (m along each stem's axis
+    from its base): how far up the cloud reaches along each stem.
+
+    Only points high enough to beat the cloud's highest point can hold the maximum: along an
+    upward axis ``a`` a point's value is at most ``a_z (z - b_z)`` plus the largest horizontal
+    term over the cloud's extent, so the candidates are the points above a height found from
+    that bound (a thin top layer for near-vertical stems), and the expression is evaluated
+    exactly on them."""
+    if not stems:
+        return np.zeros(0)
+    z = p[:, 2]
+    top_point = p[int(np.argmax(z))]
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    floors = []
+    for s in stems:
+        a, b = s.axis, s.base
+        if a[2] <= 0.0:
+            floors.append(-np.inf)
+            continue
+        reach = sum(abs(a[i]) * max(abs(lo[i] - b[i]), abs(hi[i] - b[i])) for i in range(2))
+        best_known = float((top_point - b) @ a)
+        floors.append(b[2] + (best_known - reach) / a[2] - 1e-6)  # 1e-6 m: safe from rounding
+    high = p[z >= min(floors)]
+    return np.array([float(((high[high[:, 2] >= f] - s.base) @ s.axis).max()) for s, f in zip(stems, floors)])
+
+
 def _running_median(values: np.ndarray, window: int) -> np.ndarray:
     """Median of each value's window (edges: the window shrinks), NaN-free input."""
     half = window // 2
@@ -929,9 +975,13 @@ def stem_curve(points: Any, heights: Any, stem: Stem, params: StemParams = StemP
     """
     p, _ = check_cloud(points, heights)
     tree = search_tree if search_tree is not None else cKDTree(p)
-    u, v = _perpendicular_basis(stem.axis)
+    return _stem_curve(p, stem, params, tree, float(tops_along_axes(p, [stem])[0]))
+
+
+def _stem_curve(p: np.ndarray, stem: Stem, params: StemParams, tree: cKDTree, s_top: float) -> StemCurve:
+    """:func:`stem_curve` of checked points ``p`` with their ``cKDTree``; ``s_top`` is the
+    highest point along the stem's axis (:func:`tops_along_axes`), where the sections end."""
     step = params.stem_curve_step_m
-    s_top = float(((p - stem.base) @ stem.axis).max())
     s_values: list[float] = []
     raw: list[float] = []
     rms: list[float] = []
