@@ -268,18 +268,21 @@ def match_keypoints(
     progress(0.7, "refining the best hypotheses")
     order = np.argsort(-scores, kind="stable")
     solutions: list[KeypointMatch] = []
-    tried: list[tuple[float, np.ndarray]] = []
+    tried = _SolutionSet(4 * params.n_solutions + 1, params)
+    kept = _SolutionSet(params.n_solutions + 1, params)
     for k in order[: 40 * params.n_solutions]:
         h, t = float(heading[k]), trans[k]
-        if any(_same(h, t, h2, t2, params) for h2, t2 in tried):
+        if tried.has(h, t):
             continue
-        tried.append((h, t))
+        tried.add(h, t)
         matrix, pairs = _refine(ground, uav, _matrix_2d(h, t), params)
         if len(pairs) < 2:
             continue
         sol = _solution(ground, uav, matrix, pairs, int(scores[k]))
-        if any(_same(math.radians(sol.heading_deg), sol.matrix[:2, 3], math.radians(o.heading_deg), o.matrix[:2, 3], params) for o in solutions):
+        sol_h = math.radians(sol.heading_deg)
+        if kept.has(sol_h, sol.matrix[:2, 3]):
             continue
+        kept.add(sol_h, sol.matrix[:2, 3])
         solutions.append(sol)
         if len(tried) >= 4 * params.n_solutions and len(solutions) >= params.n_solutions:
             break
@@ -288,9 +291,35 @@ def match_keypoints(
     return solutions[: params.n_solutions]
 
 
-def _same(h1: float, t1: np.ndarray, h2: float, t2: np.ndarray, params: MatchingParams) -> bool:
-    dh = abs((h1 - h2 + math.pi) % (2 * math.pi) - math.pi)
-    return math.degrees(dh) < params.distinct_heading_deg and float(np.hypot(*(t1 - t2))) < params.distinct_translation_m
+class _SolutionSet:
+    """Headings (rad) and XY translations (m) met so far, for the question "is this the same
+    solution as one of them": within ``distinct_heading_deg`` and ``distinct_translation_m``
+    (one vectorised test against all of them)."""
+
+    def __init__(self, capacity: int, params: MatchingParams) -> None:
+        self.heading = np.empty(capacity)
+        self.xy = np.empty((capacity, 2))
+        self.n = 0
+        self.params = params
+
+    def __len__(self) -> int:
+        return self.n
+
+    def has(self, heading: float, xy: np.ndarray) -> bool:
+        if self.n == 0:
+            return False
+        dh = np.abs((heading - self.heading[: self.n] + math.pi) % (2 * math.pi) - math.pi)
+        d = self.xy[: self.n] - xy[:2]
+        same = (np.degrees(dh) < self.params.distinct_heading_deg) & (np.hypot(d[:, 0], d[:, 1]) < self.params.distinct_translation_m)
+        return bool(same.any())
+
+    def add(self, heading: float, xy: np.ndarray) -> None:
+        if self.n == len(self.heading):
+            self.heading = np.concatenate([self.heading, np.empty(len(self.heading))])
+            self.xy = np.concatenate([self.xy, np.empty_like(self.xy)])
+        self.heading[self.n] = heading
+        self.xy[self.n] = xy[:2]
+        self.n += 1
 
 
 def _solution(ground: np.ndarray, uav: np.ndarray, matrix: np.ndarray, pairs: np.ndarray, score: int) -> KeypointMatch:
