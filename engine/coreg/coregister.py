@@ -413,13 +413,15 @@ def _coregister_points(
     # must agree under the refined solution, far better than under any distinct alternative
     t = time.perf_counter()
     g_ref = IcpReference(ground)  # thinned levels, trees and normals shared by every ICP run below
+    g_ref.level(params.icp_voxel_m)  # the finest first: the coarser levels thin it, not the cloud
+    u_icp = thin(uav, params.icp_voxel_m)  # the moving points of every ICP run below
     refined: list[tuple[float, int, np.ndarray]] = []
     for k, i in enumerate(candidates):
         progress(0.75 + 0.1 * k / len(candidates), f"candidate {k + 1}/{len(candidates)}: coarse ICP and canopy check")
         sol = solutions[i]
         m = _icp_uav_onto_ground(
-            g_ref, uav, sol.matrix, params.coarse_voxel_m, params.coarse_icp_distances_m, params.icp_iterations,
-            max_moving_points=8000,
+            g_ref, u_icp, sol.matrix, params.coarse_voxel_m, params.coarse_icp_distances_m, params.icp_iterations,
+            max_moving_points=8000, final_tolerance=COARSE_TOLERANCE, statistics=False,
         ).matrix
         if _apart_m(m, sol.matrix, g_kp.xyz) > params.max_icp_shift_m or rotation_angle_deg(
             (np.linalg.inv(sol.matrix) @ m)[:3, :3]
@@ -456,7 +458,7 @@ def _coregister_points(
     t = time.perf_counter()
     progress(0.86, f"[5/6] fine ICP from the best candidate (correlation {best_r:.2f}, margin {best_r - alt:.2f})")
     result = _icp_uav_onto_ground(
-        g_ref, uav, coarse, params.icp_voxel_m, params.icp_distances_m, params.icp_iterations,
+        g_ref, u_icp, coarse, params.icp_voxel_m, params.icp_distances_m, params.icp_iterations,
     )
     timings["icp_s"] = time.perf_counter() - t
     shift = _apart_m(result.matrix, best.matrix, g_kp.xyz)
@@ -490,7 +492,7 @@ def _coregister_points(
     progress(0.92, "[6/6] quality figures and standard errors (jackknife over plot quadrants)")
     common["quality"] = coregistration_quality(ground, uav, g_terrain, u_terrain, result.matrix, params.surface_cell_m)
     if params.jackknife:
-        common["standard_errors"] = jackknife_standard_errors(g_ref, uav, result.matrix, params)
+        common["standard_errors"] = jackknife_standard_errors(g_ref, u_icp, result.matrix, params)
     timings["quality_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
     progress(1.0, f"co-registered: {len(pairs_after)} keypoints matched ({pct:.0f} %), canopy correlation {final_r:.2f} "
@@ -498,6 +500,11 @@ def _coregister_points(
     return CoregistrationResult(
         status="ok", reason="", matrix=result.matrix, local_matrix=result.matrix, timings=timings, **common
     )
+
+
+#: (m, deg): the coarse ICP of a candidate stops at updates below these: it only brings the
+#: solution into the fine ICP's basin
+COARSE_TOLERANCE = (1e-4, 1e-3)
 
 
 def _terrain_of(
@@ -557,12 +564,16 @@ def _icp_uav_onto_ground(
     *,
     max_moving_points: int = 30000,
     keep: Optional[np.ndarray] = None,
+    final_tolerance: tuple[float, float] = (1e-5, 1e-4),
+    statistics: bool = True,
 ) -> IcpResult:
     """ICP with the UAV points (within the ground-based footprint) as the moving cloud and the
     denser ground-based cloud as the reference: a sparse cloud's points land on the dense cloud's
     well-sampled surfaces (ground, stems, crowns), which is markedly more accurate than the other
     way round (real MLS onto ALS: 0.46 deg / 8 cm off the other way). Returns the result with
-    ``matrix`` ground -> UAV (the inverse of the fitted UAV -> ground transform)."""
+    ``matrix`` ground -> UAV (the inverse of the fitted UAV -> ground transform).
+
+    ``final_tolerance`` and ``statistics`` as in :func:`~forestreg.engine.geometry.icp.icp`."""
     near = _overlap(uav, ground.level(0.5)[0], matrix, margin_m=max(2.0, 2 * max(distances_m)))
     if keep is not None:
         near &= keep
@@ -572,6 +583,7 @@ def _icp_uav_onto_ground(
     res = icp(
         ground, moving, np.linalg.inv(matrix), voxel_m=voxel_m, max_distances_m=distances_m,
         iterations=iterations, max_moving_points=max_moving_points,
+        final_tolerance=final_tolerance, statistics=statistics,
     )
     return dataclasses.replace(res, matrix=np.linalg.inv(res.matrix))
 
@@ -654,7 +666,7 @@ def jackknife_standard_errors(
     for k in range(4):
         m = _icp_uav_onto_ground(
             ground, uav, matrix, params.icp_voxel_m, stages, 15,
-            max_moving_points=10000, keep=q != k,
+            max_moving_points=10000, keep=q != k, statistics=False,
         ).matrix
         d = m[:3, :3] @ matrix[:3, :3].T
         rot_vecs.append(_rotation_vector_deg(d))
