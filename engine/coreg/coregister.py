@@ -383,9 +383,12 @@ def _coregister_points(
     # 4. rank the candidate solutions by the canopy surfaces (fast), keep the best few distinct
     t = time.perf_counter()
     progress(0.72, f"[4/6] ranking {len(solutions)} keypoint solutions by the canopy surfaces; the best {params.candidates_verified} distinct are refined")
-    g_thin = thin(ground, 0.2)
+    g_ref = IcpReference(ground)  # thinned levels, trees and normals shared by every ICP run below
+    g_ref.level(params.icp_voxel_m)  # the finest first: the coarser levels thin it, not the cloud
+    u_icp = thin(uav, params.icp_voxel_m)  # the moving points of every ICP run below
+    g_thin = g_ref.level(0.2)[0]
     g_canopy = _column_tops(g_thin[g_terrain.dem.normalise(g_thin) > params.surface_min_height_m], 0.25)
-    uav_surface = _SurfaceGrid.of(thin(uav, 0.2), params.surface_cell_m)
+    uav_surface = _SurfaceGrid.of(thin(u_icp, 0.2), params.surface_cell_m)
     ranked = []
     for i, sol in enumerate(solutions):
         if sol.n_matched < 3:  # the canopy surfaces decide; the count is checked at the final transform
@@ -412,16 +415,13 @@ def _coregister_points(
     # 5. coarse 6-DoF ICP from each candidate, then verification AFTER ICP: the canopy surfaces
     # must agree under the refined solution, far better than under any distinct alternative
     t = time.perf_counter()
-    g_ref = IcpReference(ground)  # thinned levels, trees and normals shared by every ICP run below
-    g_ref.level(params.icp_voxel_m)  # the finest first: the coarser levels thin it, not the cloud
-    u_icp = thin(uav, params.icp_voxel_m)  # the moving points of every ICP run below
     refined: list[tuple[float, int, np.ndarray]] = []
     for k, i in enumerate(candidates):
         progress(0.75 + 0.1 * k / len(candidates), f"candidate {k + 1}/{len(candidates)}: coarse ICP and canopy check")
         sol = solutions[i]
         m = _icp_uav_onto_ground(
             g_ref, u_icp, sol.matrix, params.coarse_voxel_m, params.coarse_icp_distances_m, params.icp_iterations,
-            max_moving_points=8000, final_tolerance=COARSE_TOLERANCE, statistics=False,
+            max_moving_points=4000, final_tolerance=COARSE_TOLERANCE, statistics=False,
         ).matrix
         if _apart_m(m, sol.matrix, g_kp.xyz) > params.max_icp_shift_m or rotation_angle_deg(
             (np.linalg.inv(sol.matrix) @ m)[:3, :3]
