@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -339,33 +340,37 @@ def _coregister_points(
         base.update(kw)
         return CoregistrationResult(status="failed", reason=reason, **base)
 
-    # 0. one thinned copy of each cloud serves every step (a 3.4 M-point backpack cloud keeps ~0.9 M)
-    t = time.perf_counter()
-    g_keep = voxel_thin(ground, params.work_voxel_m)
-    u_keep = voxel_thin(uav, params.work_voxel_m)
-    ground, uav = ground[g_keep], uav[u_keep]
-    timings["thinning_s"] = time.perf_counter() - t
+    # 0-2. the two clouds' thinning, terrain and keypoints are independent: each step runs for both
+    # at once in two threads (numpy, CSF and the k-d trees release the GIL for much of it)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        # 0. one thinned copy of each cloud serves every step (3.4 M backpack points keep ~0.9 M)
+        t = time.perf_counter()
+        g_keep, u_keep = pool.map(lambda p: voxel_thin(p, params.work_voxel_m), (ground, uav))
+        ground, uav = ground[g_keep], uav[u_keep]
+        timings["thinning_s"] = time.perf_counter() - t
 
-    # 1. terrain
-    t = time.perf_counter()
-    progress(0.0, "[1/6] terrain: ground and DEM of the ground-based cloud")
-    g_terrain = _terrain_of(ground, g_keep, ground_terrain, params.terrain, progress.sub(0.0, 0.12))
-    progress(0.12, "[1/6] terrain: ground and DEM of the UAV cloud")
-    u_terrain = _terrain_of(uav, u_keep, uav_terrain, params.terrain, progress.sub(0.12, 0.22))
-    timings["terrain_s"] = time.perf_counter() - t
+        # 1. terrain
+        t = time.perf_counter()
+        progress(0.0, "[1/6] terrain: ground and DEM of both clouds")
+        g_terrain, u_terrain = pool.map(
+            lambda a: _terrain_of(*a, params.terrain), ((ground, g_keep, ground_terrain), (uav, u_keep, uav_terrain))
+        )
+        timings["terrain_s"] = time.perf_counter() - t
 
-    # 2. keypoints
-    t = time.perf_counter()
-    progress(0.22, f"[2/6] canopy keypoints (terrain: {g_terrain.n_ground:,} / {u_terrain.n_ground:,} ground points)")
-    try:
-        g_kp = extract_keypoints(ground, g_terrain.dem, params.keypoints, progress.sub(0.22, 0.42))
-    except ScanDataError as exc:
-        return failed(f"ground-based cloud: {exc}")
-    try:
-        u_kp = extract_keypoints(uav, u_terrain.dem, params.keypoints, progress.sub(0.42, 0.62))
-    except ScanDataError as exc:
-        return failed(f"UAV cloud: {exc}", ground_keypoints=g_kp)
-    timings["keypoints_s"] = time.perf_counter() - t
+        # 2. keypoints
+        t = time.perf_counter()
+        progress(0.22, f"[2/6] canopy keypoints of both clouds (terrain: {g_terrain.n_ground:,} / {u_terrain.n_ground:,} ground points)")
+        g_job = pool.submit(extract_keypoints, ground, g_terrain.dem, params.keypoints)
+        u_job = pool.submit(extract_keypoints, uav, u_terrain.dem, params.keypoints)
+        try:
+            g_kp = g_job.result()
+        except ScanDataError as exc:
+            return failed(f"ground-based cloud: {exc}")
+        try:
+            u_kp = u_job.result()
+        except ScanDataError as exc:
+            return failed(f"UAV cloud: {exc}", ground_keypoints=g_kp)
+        timings["keypoints_s"] = time.perf_counter() - t
     if min(len(g_kp), len(u_kp)) < params.min_matched:
         return failed(
             f"too few keypoints to match: {len(g_kp)} ground-based, {len(u_kp)} UAV (need {params.min_matched})",
@@ -416,20 +421,28 @@ def _coregister_points(
     # must agree under the refined solution, far better than under any distinct alternative
     t = time.perf_counter()
     refined: list[tuple[float, int, np.ndarray]] = []
-    for k, i in enumerate(candidates):
-        progress(0.75 + 0.1 * k / len(candidates), f"candidate {k + 1}/{len(candidates)}: coarse ICP and canopy check")
-        sol = solutions[i]
-        m = _icp_uav_onto_ground(
-            g_ref, u_icp, sol.matrix, params.coarse_voxel_m, params.coarse_icp_distances_m, params.icp_iterations,
-            max_moving_points=4000, final_tolerance=COARSE_TOLERANCE, statistics=False,
+    progress(0.75, f"[4/6] coarse ICP of {len(candidates)} candidates and canopy checks")
+    # the candidates' ICP runs are independent: two at a time (k-d tree queries and numpy release
+    # the GIL) on a reference prepared beforehand, which they then only read
+    g_ref.prepare(params.coarse_voxel_m, params.coarse_icp_distances_m)
+    g_ref.level(OVERLAP_VOXEL_M)
+
+    def coarse_icp(i: int) -> np.ndarray:
+        return _icp_uav_onto_ground(
+            g_ref, u_icp, solutions[i].matrix, params.coarse_voxel_m, params.coarse_icp_distances_m,
+            params.icp_iterations, max_moving_points=4000, final_tolerance=COARSE_TOLERANCE, statistics=False,
         ).matrix
-        if _apart_m(m, sol.matrix, g_kp.xyz) > params.max_icp_shift_m or rotation_angle_deg(
-            (np.linalg.inv(sol.matrix) @ m)[:3, :3]
-        ) > params.max_icp_rotation_deg:
-            m = sol.matrix  # ICP ran away: keep the keypoint solution as it is
-        r, n = surface_correlation(g_canopy, uav_surface, m)
-        refined.append((r if n >= params.min_surface_cells else 0.0, i, m))
-        progress(0.75 + 0.1 * (k + 1) / len(candidates), f"[4/6] candidate {k + 1}/{len(candidates)}: {solutions[i].n_matched} keypoints, canopy correlation {ranked_r[i]:.2f} -> {refined[-1][0]:.2f} after ICP")
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for k, (i, m) in enumerate(zip(candidates, pool.map(coarse_icp, candidates))):
+            sol = solutions[i]
+            if _apart_m(m, sol.matrix, g_kp.xyz) > params.max_icp_shift_m or rotation_angle_deg(
+                (np.linalg.inv(sol.matrix) @ m)[:3, :3]
+            ) > params.max_icp_rotation_deg:
+                m = sol.matrix  # ICP ran away: keep the keypoint solution as it is
+            r, n = surface_correlation(g_canopy, uav_surface, m)
+            refined.append((r if n >= params.min_surface_cells else 0.0, i, m))
+            progress(0.75 + 0.1 * (k + 1) / len(candidates), f"[4/6] candidate {k + 1}/{len(candidates)}: {sol.n_matched} keypoints, canopy correlation {ranked_r[i]:.2f} -> {refined[-1][0]:.2f} after ICP")
     refined.sort(key=lambda v: -v[0])
     best_r, best_i, coarse = refined[0]
     best = solutions[best_i]
@@ -502,18 +515,18 @@ def _coregister_points(
     )
 
 
+#: the ICP reference level (voxel, m) whose footprint selects the UAV points of an ICP run
+OVERLAP_VOXEL_M = 0.5
 #: (m, deg): the coarse ICP of a candidate stops at updates below these: it only brings the
 #: solution into the fine ICP's basin
 COARSE_TOLERANCE = (1e-4, 1e-3)
 
 
-def _terrain_of(
-    points: np.ndarray, keep: np.ndarray, given: Optional[TerrainModel], params: TerrainParams, progress: Progress
-) -> TerrainModel:
+def _terrain_of(points: np.ndarray, keep: np.ndarray, given: Optional[TerrainModel], params: TerrainParams) -> TerrainModel:
     """The terrain model of the thinned cloud ``points`` (rows ``keep`` of the cloud as given):
     ``given`` (a model of the cloud as given) restricted to those rows, or computed."""
     if given is None:
-        return terrain_model(points, params, progress)
+        return terrain_model(points, params)
     return TerrainModel(ground=np.asarray(given.ground)[keep], dem=given.dem)
 
 
@@ -574,7 +587,7 @@ def _icp_uav_onto_ground(
     ``matrix`` ground -> UAV (the inverse of the fitted UAV -> ground transform).
 
     ``final_tolerance`` and ``statistics`` as in :func:`~forestreg.engine.geometry.icp.icp`."""
-    near = _overlap(uav, ground.level(0.5)[0], matrix, margin_m=max(2.0, 2 * max(distances_m)))
+    near = _overlap(uav, ground.level(OVERLAP_VOXEL_M)[0], matrix, margin_m=max(2.0, 2 * max(distances_m)))
     if keep is not None:
         near &= keep
     moving = uav[near]
@@ -657,10 +670,10 @@ def jackknife_standard_errors(
     without each quadrant in turn. Standard errors ``sqrt((n-1)/n * sum((x_i - mean)^2))`` of the
     rotation (deg; total, and its heading and tilt parts) and of the translation of the
     ground-based cloud's centre (m; total, horizontal and vertical)."""
-    near = _overlap(uav, ground.level(0.5)[0], matrix, margin_m=1.0)
+    near = _overlap(uav, ground.level(OVERLAP_VOXEL_M)[0], matrix, margin_m=1.0)
     centre = np.median(uav[near, :2], axis=0) if near.any() else np.median(uav[:, :2], axis=0)
     q = (uav[:, 0] > centre[0]).astype(int) + 2 * (uav[:, 1] > centre[1]).astype(int)
-    g_centre = np.median(ground.level(0.5)[0], axis=0)
+    g_centre = np.median(ground.level(OVERLAP_VOXEL_M)[0], axis=0)
     stages = params.icp_distances_m[-1:]
     rot_vecs, shifts = [], []
     for k in range(4):

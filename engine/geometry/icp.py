@@ -70,7 +70,8 @@ def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours
 class IcpReference:
     """A reference cloud prepared for repeated ICP runs: its voxel-thinned versions, their k-d
     trees and normals (computed where first needed) are kept per voxel size, so several ICP
-    runs against one reference (candidates, a jackknife) build them once. Not thread-safe."""
+    runs against one reference (candidates, a jackknife) build them once. Not thread-safe, except
+    for runs whose levels and normals :meth:`prepare` made beforehand (they only read)."""
 
     def __init__(self, points: np.ndarray) -> None:
         pts = np.asarray(points)
@@ -89,12 +90,26 @@ class IcpReference:
             self._levels[key] = (ref, cKDTree(ref), np.full((len(ref), 3), np.nan))
         return self._levels[key]
 
+    def prepare(self, voxel_m: float, max_distances_m: Sequence[float]) -> None:
+        """Make every level an :func:`icp` run with these settings uses, with all their normals:
+        such runs then only read this reference (several may run in threads at once)."""
+        for voxel in stage_voxels(voxel_m, max_distances_m):
+            ref, tree, normals = self.level(voxel)
+            todo = np.flatnonzero(np.isnan(normals[:, 0]))
+            if len(todo):
+                normals[todo] = _normals_at(ref, tree, todo)
+
     @property
     def full_tree(self) -> cKDTree:
         """A k-d tree of all the points (built on first use, unbalanced: a fast build)."""
         if self._full_tree is None:
             self._full_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
         return self._full_tree
+
+
+def stage_voxels(voxel_m: float, max_distances_m: Sequence[float]) -> list[float]:
+    """The thinning voxel (m) of each :func:`icp` stage: ``max(voxel_m, distance / 2.5)``."""
+    return [max(voxel_m, float(dist) / 2.5) for dist in max_distances_m]
 
 
 def icp(
@@ -141,15 +156,15 @@ def icp(
     mov = np.zeros((0, 3))
     # Each cloud is thinned once, at the finest stage's voxel; wider stages thin that copy
     # (the raw clouds may hold millions of points, the thinned ones a fraction).
-    finest = max(voxel_m, min(max_distances_m) / 2.5) if len(max_distances_m) else voxel_m
+    voxels = stage_voxels(voxel_m, max_distances_m)
+    finest = min(voxels) if voxels else voxel_m
     prepared.level(finest)
     mov_fine = thin(moving, finest)
-    for stage, dist in enumerate(max_distances_m):
+    for stage, (dist, voxel) in enumerate(zip(max_distances_m, voxels)):
         # a wide stage only brings the next one into its basin: it stops at 0.1 mm / 0.001 deg
         # updates; the last stage converges to 0.01 mm / 0.0001 deg
         final_stage = stage == len(max_distances_m) - 1
         stop_m, stop_rad = (final_tolerance[0], np.radians(final_tolerance[1])) if final_stage else (1e-4, np.radians(1e-3))
-        voxel = max(voxel_m, dist / 2.5)
         ref, tree, normals = prepared.level(voxel)
         mov = mov_fine if voxel <= finest else thin(mov_fine, voxel)
         if len(mov) > max_moving_points:
