@@ -423,9 +423,7 @@ def _coregister_points(
     refined: list[tuple[float, int, np.ndarray]] = []
     progress(0.75, f"[4/6] coarse ICP of {len(candidates)} candidates and canopy checks")
     # the candidates' ICP runs are independent: two at a time (k-d tree queries and numpy release
-    # the GIL) on a reference prepared beforehand, which they then only read
-    g_ref.prepare(params.coarse_voxel_m, params.coarse_icp_distances_m)
-    g_ref.level(OVERLAP_VOXEL_M)
+    # the GIL) on the shared reference
 
     def coarse_icp(i: int) -> np.ndarray:
         return _icp_uav_onto_ground(
@@ -667,7 +665,7 @@ def jackknife_standard_errors(
 ) -> dict[str, Any]:
     """Delete-one-quadrant jackknife of the fine ICP: the UAV points of the overlap are split into
     four quadrants about the overlap's centre; the last ICP stage is re-run from ``matrix``
-    without each quadrant in turn. Standard errors ``sqrt((n-1)/n * sum((x_i - mean)^2))`` of the
+    without each quadrant (two runs at a time). Standard errors ``sqrt((n-1)/n * sum((x_i - mean)^2))`` of the
     rotation (deg; total, and its heading and tilt parts) and of the translation of the
     ground-based cloud's centre (m; total, horizontal and vertical)."""
     near = _overlap(uav, ground.level(OVERLAP_VOXEL_M)[0], matrix, margin_m=1.0)
@@ -676,11 +674,16 @@ def jackknife_standard_errors(
     g_centre = np.median(ground.level(OVERLAP_VOXEL_M)[0], axis=0)
     stages = params.icp_distances_m[-1:]
     rot_vecs, shifts = [], []
-    for k in range(4):
-        m = _icp_uav_onto_ground(
+
+    def without(k: int) -> np.ndarray:
+        return _icp_uav_onto_ground(
             ground, uav, matrix, params.icp_voxel_m, stages, 15,
             max_moving_points=10000, keep=q != k, statistics=False,
         ).matrix
+
+    with ThreadPoolExecutor(max_workers=2) as pool:  # independent runs on a shared reference
+        runs = list(pool.map(without, range(4)))
+    for m in runs:
         d = m[:3, :3] @ matrix[:3, :3].T
         rot_vecs.append(_rotation_vector_deg(d))
         shifts.append(apply_transform(m, g_centre[None])[0] - apply_transform(matrix, g_centre[None])[0])

@@ -7,6 +7,7 @@ the reference frame (``p_reference = matrix @ p_moving``). (Open3D would call th
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -70,8 +71,8 @@ def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours
 class IcpReference:
     """A reference cloud prepared for repeated ICP runs: its voxel-thinned versions, their k-d
     trees and normals (computed where first needed) are kept per voxel size, so several ICP
-    runs against one reference (candidates, a jackknife) build them once. Not thread-safe, except
-    for runs whose levels and normals :meth:`prepare` made beforehand (they only read)."""
+    runs against one reference (candidates, a jackknife) build them once. Thread-safe: runs in
+    several threads may share one (levels and normals are made under a lock)."""
 
     def __init__(self, points: np.ndarray) -> None:
         pts = np.asarray(points)
@@ -79,37 +80,38 @@ class IcpReference:
         self.points = pts if pts.dtype in (np.float32, np.float64) else pts.astype(np.float64)
         self._levels: dict[float, tuple[np.ndarray, cKDTree, np.ndarray]] = {}
         self._full_tree: cKDTree | None = None
+        self._lock = threading.RLock()
 
     def level(self, voxel_m: float) -> tuple[np.ndarray, cKDTree, np.ndarray]:
         """(thinned points, their k-d tree, their normals: NaN rows not computed yet)."""
         key = round(float(voxel_m), 6)
-        if key not in self._levels:
-            # a wider level thins the finest one already made (a fraction of the raw points)
-            finer = [k for k in self._levels if k <= key]
-            ref = thin(self._levels[min(finer)][0] if finer else self.points, voxel_m)
-            self._levels[key] = (ref, cKDTree(ref), np.full((len(ref), 3), np.nan))
-        return self._levels[key]
+        with self._lock:
+            if key not in self._levels:
+                # a wider level thins the finest one already made (a fraction of the raw points)
+                finer = [k for k in self._levels if k <= key]
+                ref = thin(self._levels[min(finer)][0] if finer else self.points, voxel_m)
+                self._levels[key] = (ref, cKDTree(ref), np.full((len(ref), 3), np.nan))
+            return self._levels[key]
 
-    def prepare(self, voxel_m: float, max_distances_m: Sequence[float]) -> None:
-        """Make every level an :func:`icp` run with these settings uses, with all their normals:
-        such runs then only read this reference (several may run in threads at once)."""
-        for voxel in stage_voxels(voxel_m, max_distances_m):
-            ref, tree, normals = self.level(voxel)
-            todo = np.flatnonzero(np.isnan(normals[:, 0]))
-            if len(todo):
-                normals[todo] = _normals_at(ref, tree, todo)
+    def normals(self, voxel_m: float, index: np.ndarray) -> np.ndarray:
+        """Unit normals (arbitrary sign) of the points ``index`` of a level, computed where first
+        needed."""
+        ref, tree, normals = self.level(voxel_m)
+        with self._lock:
+            seen = np.zeros(len(ref), dtype=bool)
+            seen[index] = True
+            need = np.flatnonzero(seen & np.isnan(normals[:, 0]))
+            if len(need):
+                normals[need] = _normals_at(ref, tree, need)
+            return normals[index]
 
     @property
     def full_tree(self) -> cKDTree:
         """A k-d tree of all the points (built on first use, unbalanced: a fast build)."""
-        if self._full_tree is None:
-            self._full_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
-        return self._full_tree
-
-
-def stage_voxels(voxel_m: float, max_distances_m: Sequence[float]) -> list[float]:
-    """The thinning voxel (m) of each :func:`icp` stage: ``max(voxel_m, distance / 2.5)``."""
-    return [max(voxel_m, float(dist) / 2.5) for dist in max_distances_m]
+        with self._lock:
+            if self._full_tree is None:
+                self._full_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+            return self._full_tree
 
 
 def icp(
@@ -156,16 +158,16 @@ def icp(
     mov = np.zeros((0, 3))
     # Each cloud is thinned once, at the finest stage's voxel; wider stages thin that copy
     # (the raw clouds may hold millions of points, the thinned ones a fraction).
-    voxels = stage_voxels(voxel_m, max_distances_m)
-    finest = min(voxels) if voxels else voxel_m
+    finest = max(voxel_m, min(max_distances_m) / 2.5) if len(max_distances_m) else voxel_m
     prepared.level(finest)
     mov_fine = thin(moving, finest)
-    for stage, (dist, voxel) in enumerate(zip(max_distances_m, voxels)):
+    for stage, dist in enumerate(max_distances_m):
         # a wide stage only brings the next one into its basin: it stops at 0.1 mm / 0.001 deg
         # updates; the last stage converges to 0.01 mm / 0.0001 deg
         final_stage = stage == len(max_distances_m) - 1
         stop_m, stop_rad = (final_tolerance[0], np.radians(final_tolerance[1])) if final_stage else (1e-4, np.radians(1e-3))
-        ref, tree, normals = prepared.level(voxel)
+        voxel = max(voxel_m, dist / 2.5)
+        ref, tree, _ = prepared.level(voxel)
         mov = mov_fine if voxel <= finest else thin(mov_fine, voxel)
         if len(mov) > max_moving_points:
             mov = mov[rng.choice(len(mov), max_moving_points, replace=False)]
@@ -178,12 +180,7 @@ def icp(
             ok = np.isfinite(d)
             if ok.sum() < 6:
                 break
-            seen = np.zeros(len(ref), dtype=bool)
-            seen[j[ok]] = True
-            need = np.flatnonzero(seen & np.isnan(normals[:, 0]))
-            if len(need):
-                normals[need] = _normals_at(ref, tree, need)
-            p, q, n = moved[ok], ref[j[ok]], normals[j[ok]]
+            p, q, n = moved[ok], ref[j[ok]], prepared.normals(voxel, j[ok])
             r = np.einsum("ij,ij->i", p - q, n)
             w = (1.0 - (d[ok] / dist) ** 2) ** 2
             jac = np.hstack([np.cross(p, n), n])
