@@ -70,6 +70,8 @@ def run_once(ground: Scan, uav: Scan, truth: np.ndarray) -> dict[str, float | st
     result = coregister(ground, uav)
     row: dict[str, float | str] = {"wall_s": time.perf_counter() - t, "status": result.status, "reason": result.reason}
     row.update(result.timings)
+    if result.ground_keypoints is not None and result.uav_keypoints is not None:
+        row["keypoints"] = f"{len(result.ground_keypoints)}/{len(result.uav_keypoints)}, {result.n_matched} matched"
     if result.matrix is not None:
         rot, trans = rigid_errors(result.matrix, truth)
         row.update(rotation_error_deg=rot, translation_error_m=trans)
@@ -98,7 +100,7 @@ def main() -> None:  # pragma: no cover
         steps = "  ".join(f"{key[:-2]} {v:.2f}" for key, v in row.items() if key.endswith("_s") and isinstance(v, float))
         err = (f"error {row['rotation_error_deg']:.4f} deg / {1000 * row['translation_error_m']:.1f} mm"
                if "rotation_error_deg" in row else f"{row['status']}: {row['reason']}")
-        print(f"run {k + 1}: {steps}  |  {err}", flush=True)
+        print(f"run {k + 1}: {steps}  |  keypoints {row.get('keypoints', '-')}  |  {err}", flush=True)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -340,8 +340,8 @@ def _coregister_points(
         base.update(kw)
         return CoregistrationResult(status="failed", reason=reason, **base)
 
-    # 0-2. the two clouds' thinning, terrain and keypoints are independent: each step runs for both
-    # at once in two threads (numpy, CSF and the k-d trees release the GIL for much of it)
+    # 0-2. the two clouds' thinning, terrain and keypoints are independent: thinning and keypoints
+    # run for both at once in two threads (numpy and the k-d trees release the GIL for much of it)
     with ThreadPoolExecutor(max_workers=2) as pool:
         # 0. one thinned copy of each cloud serves every step (3.4 M backpack points keep ~0.9 M)
         t = time.perf_counter()
@@ -349,12 +349,13 @@ def _coregister_points(
         ground, uav = ground[g_keep], uav[u_keep]
         timings["thinning_s"] = time.perf_counter() - t
 
-        # 1. terrain
+        # 1. terrain, one cloud after the other (the cloth simulation holds the GIL, and its
+        # silenced console output must not be silenced twice at once)
         t = time.perf_counter()
-        progress(0.0, "[1/6] terrain: ground and DEM of both clouds")
-        g_terrain, u_terrain = pool.map(
-            lambda a: _terrain_of(*a, params.terrain), ((ground, g_keep, ground_terrain), (uav, u_keep, uav_terrain))
-        )
+        progress(0.0, "[1/6] terrain: ground and DEM of the ground-based cloud")
+        g_terrain = _terrain_of(ground, g_keep, ground_terrain, params.terrain, progress.sub(0.0, 0.12))
+        progress(0.12, "[1/6] terrain: ground and DEM of the UAV cloud")
+        u_terrain = _terrain_of(uav, u_keep, uav_terrain, params.terrain, progress.sub(0.12, 0.22))
         timings["terrain_s"] = time.perf_counter() - t
 
         # 2. keypoints
@@ -520,11 +521,13 @@ OVERLAP_VOXEL_M = 0.5
 COARSE_TOLERANCE = (1e-4, 1e-3)
 
 
-def _terrain_of(points: np.ndarray, keep: np.ndarray, given: Optional[TerrainModel], params: TerrainParams) -> TerrainModel:
+def _terrain_of(
+    points: np.ndarray, keep: np.ndarray, given: Optional[TerrainModel], params: TerrainParams, progress: Progress
+) -> TerrainModel:
     """The terrain model of the thinned cloud ``points`` (rows ``keep`` of the cloud as given):
     ``given`` (a model of the cloud as given) restricted to those rows, or computed."""
     if given is None:
-        return terrain_model(points, params)
+        return terrain_model(points, params, progress)
     return TerrainModel(ground=np.asarray(given.ground)[keep], dem=given.dem)
 
 

@@ -61,7 +61,7 @@ class KeypointParams(Params):
     #: the cutoff distance d_c of the local density (m)
     cutoff_distance_m: float = _p(0.75, "m", 0.01, 50.0, "d_c of the local density", "d_c")
     #: at most this many canopy points are clustered (a random subset beyond; speed)
-    max_canopy_points: int = _p(30_000, "points", 100, 100000000, "canopy points clustered at most")
+    max_canopy_points: int = _p(60_000, "points", 100, 100000000, "canopy points clustered at most")
     seed: int = _p(0, "", 0, 2**31 - 1, "random seed of the canopy subset")
 
     def _check(self) -> None:
