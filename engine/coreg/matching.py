@@ -268,8 +268,8 @@ def match_keypoints(
     progress(0.7, "refining the best hypotheses")
     order = np.argsort(-scores, kind="stable")
     solutions: list[KeypointMatch] = []
-    tried = _SolutionSet(4 * params.n_solutions + 1, params)
-    kept = _SolutionSet(params.n_solutions + 1, params)
+    tried = _SolutionSet(params)
+    kept = _SolutionSet(params)
     for k in order[: 40 * params.n_solutions]:
         h, t = float(heading[k]), trans[k]
         if tried.has(h, t):
@@ -293,32 +293,38 @@ def match_keypoints(
 
 class _SolutionSet:
     """Headings (rad) and XY translations (m) met so far, for the question "is this the same
-    solution as one of them": within ``distinct_heading_deg`` and ``distinct_translation_m``
-    (one vectorised test against all of them)."""
+    solution as one of them": within ``distinct_heading_deg`` and ``distinct_translation_m``.
+    They are kept in bins at least that wide (heading bins wrap around), so a question looks at
+    the entries of the 27 bins around its own only."""
 
-    def __init__(self, capacity: int, params: MatchingParams) -> None:
-        self.heading = np.empty(capacity)
-        self.xy = np.empty((capacity, 2))
-        self.n = 0
+    def __init__(self, params: MatchingParams) -> None:
         self.params = params
+        self.heading_bins = max(1, int(360.0 // params.distinct_heading_deg))
+        self.bins: dict[tuple[int, int, int], list[tuple[float, float, float]]] = {}
+        self.n = 0
 
     def __len__(self) -> int:
         return self.n
 
+    def _bin(self, heading: float, xy: np.ndarray) -> tuple[int, int, int]:
+        h = int((math.degrees(heading) % 360.0) / 360.0 * self.heading_bins) % self.heading_bins
+        step = self.params.distinct_translation_m
+        return h, int(math.floor(float(xy[0]) / step)), int(math.floor(float(xy[1]) / step))
+
     def has(self, heading: float, xy: np.ndarray) -> bool:
-        if self.n == 0:
-            return False
-        dh = np.abs((heading - self.heading[: self.n] + math.pi) % (2 * math.pi) - math.pi)
-        d = self.xy[: self.n] - xy[:2]
-        same = (np.degrees(dh) < self.params.distinct_heading_deg) & (np.hypot(d[:, 0], d[:, 1]) < self.params.distinct_translation_m)
-        return bool(same.any())
+        h, i, j = self._bin(heading, xy)
+        x, y = float(xy[0]), float(xy[1])
+        for dh in (-1, 0, 1):
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    for h2, x2, y2 in self.bins.get(((h + dh) % self.heading_bins, i + di, j + dj), ()):
+                        d = abs((heading - h2 + math.pi) % (2 * math.pi) - math.pi)
+                        if math.degrees(d) < self.params.distinct_heading_deg and math.hypot(x - x2, y - y2) < self.params.distinct_translation_m:
+                            return True
+        return False
 
     def add(self, heading: float, xy: np.ndarray) -> None:
-        if self.n == len(self.heading):
-            self.heading = np.concatenate([self.heading, np.empty(len(self.heading))])
-            self.xy = np.concatenate([self.xy, np.empty_like(self.xy)])
-        self.heading[self.n] = heading
-        self.xy[self.n] = xy[:2]
+        self.bins.setdefault(self._bin(heading, xy), []).append((heading, float(xy[0]), float(xy[1])))
         self.n += 1
 
 
