@@ -342,7 +342,7 @@ def _coregister_points(
 
     # 0-2. the two clouds' thinning, terrain and keypoints are independent: thinning and keypoints
     # run for both at once in two threads (numpy and the k-d trees release the GIL for much of it)
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    with ThreadPoolExecutor(max_workers=3) as pool:
         # 0. one thinned copy of each cloud serves every step (3.4 M backpack points keep ~0.9 M)
         t = time.perf_counter()
         g_keep, u_keep = pool.map(lambda p: voxel_thin(p, params.work_voxel_m), (ground, uav))
@@ -361,6 +361,8 @@ def _coregister_points(
         # 2. keypoints
         t = time.perf_counter()
         progress(0.22, f"[2/6] canopy keypoints of both clouds (terrain: {g_terrain.n_ground:,} / {u_terrain.n_ground:,} ground points)")
+        # meanwhile a third thread thins the clouds for the ICP runs (voxel sorts: the GIL is free)
+        icp_job = pool.submit(_icp_inputs, ground, uav, params.icp_voxel_m)
         g_job = pool.submit(extract_keypoints, ground, g_terrain.dem, params.keypoints)
         u_job = pool.submit(extract_keypoints, uav, u_terrain.dem, params.keypoints)
         try:
@@ -372,6 +374,7 @@ def _coregister_points(
         except ScanDataError as exc:
             return failed(f"UAV cloud: {exc}", ground_keypoints=g_kp)
         timings["keypoints_s"] = time.perf_counter() - t
+        g_ref, u_icp = icp_job.result()
     if min(len(g_kp), len(u_kp)) < params.min_matched:
         return failed(
             f"too few keypoints to match: {len(g_kp)} ground-based, {len(u_kp)} UAV (need {params.min_matched})",
@@ -389,9 +392,6 @@ def _coregister_points(
     # 4. rank the candidate solutions by the canopy surfaces (fast), keep the best few distinct
     t = time.perf_counter()
     progress(0.72, f"[4/6] ranking {len(solutions)} keypoint solutions by the canopy surfaces; the best {params.candidates_verified} distinct are refined")
-    g_ref = IcpReference(ground)  # thinned levels, trees and normals shared by every ICP run below
-    g_ref.level(params.icp_voxel_m)  # the finest first: the coarser levels thin it, not the cloud
-    u_icp = thin(uav, params.icp_voxel_m)  # the moving points of every ICP run below
     g_thin = g_ref.level(0.2)[0]
     g_canopy = _column_tops(g_thin[g_terrain.dem.normalise(g_thin) > params.surface_min_height_m], 0.25)
     uav_surface = _SurfaceGrid.of(thin(u_icp, 0.2), params.surface_cell_m)
@@ -519,6 +519,16 @@ OVERLAP_VOXEL_M = 0.5
 #: (m, deg): the coarse ICP of a candidate stops at updates below these: it only brings the
 #: solution into the fine ICP's basin
 COARSE_TOLERANCE = (1e-4, 1e-3)
+
+
+def _icp_inputs(ground: np.ndarray, uav: np.ndarray, voxel_m: float) -> tuple[IcpReference, np.ndarray]:
+    """The ground-based cloud prepared as the reference of every ICP run (its ``voxel_m`` and
+    0.2 m levels made: the coarser levels thin the former, the canopy ranking uses the latter)
+    and the UAV cloud thinned to ``voxel_m``: the moving points of every ICP run."""
+    g_ref = IcpReference(ground)
+    g_ref.level(voxel_m)
+    g_ref.level(0.2)
+    return g_ref, thin(uav, voxel_m)
 
 
 def _terrain_of(
