@@ -678,9 +678,10 @@ def jackknife_standard_errors(
 ) -> dict[str, Any]:
     """Delete-one-quadrant jackknife of the fine ICP: the UAV points of the overlap are split into
     four quadrants about the overlap's centre; the last ICP stage is re-run from ``matrix``
-    without each quadrant (two runs at a time). Standard errors ``sqrt((n-1)/n * sum((x_i - mean)^2))`` of the
-    rotation (deg; total, and its heading and tilt parts) and of the translation of the
-    ground-based cloud's centre (m; total, horizontal and vertical)."""
+    without each quadrant (two runs at a time). Standard errors
+    ``sqrt((n-1)/n * sum((x_i - mean)^2))`` of the rotation (deg; total, and its heading and tilt
+    parts) and of the translation of the ground-based cloud's centre (m; total, horizontal and
+    vertical)."""
     near = _overlap(uav, ground.level(OVERLAP_VOXEL_M)[0], matrix, margin_m=1.0)
     centre = np.median(uav[near, :2], axis=0) if near.any() else np.median(uav[:, :2], axis=0)
     q = (uav[:, 0] > centre[0]).astype(int) + 2 * (uav[:, 1] > centre[1]).astype(int)
