@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -37,6 +38,7 @@ from ..core.outcome import Outcome
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..core.scan import Scan
 from ..terrain.dem import TerrainModel, TerrainParams, terrain_model
+from ..geometry.voxel import voxel_thin
 from ..core.transform import rotation_angle_deg
 from ..core.params import Params, param_field as _p
 from .keypoints import KeypointParams, Keypoints, extract_keypoints
@@ -53,6 +55,10 @@ class CoregistrationParams(Params):
     terrain: TerrainParams = TerrainParams()
     keypoints: KeypointParams = KeypointParams()
     matching: MatchingParams = MatchingParams()
+    #: both clouds are thinned to one point per voxel of this side (m) before any step: every step
+    #: works on coarser grids (0.1 m ICP voxels, 0.3 m keypoint voxels, 0.5 m DEM cells), so a
+    #: dense ground-based cloud's extra points only cost time; 0 keeps every point
+    work_voxel_m: float = _p(0.05, "m", 0.0, 1.0, "thinning of both clouds before co-registration")
     #: voxel of the clouds used to verify solutions and for ICP (m)
     icp_voxel_m: float = _p(0.1, "m", 0.005, 5.0, "ICP thinning voxel")
     #: ICP correspondence distance per stage (m), largest first
@@ -295,10 +301,32 @@ def coregister_points(
     uav_terrain: Optional[TerrainModel] = None,
 ) -> CoregistrationResult:
     """Co-register two clouds given as (N, 3) arrays in local frames (metres, z up):
-    ``p_uav = local_matrix @ p_ground``. See :func:`coregister` for scans with file frames."""
+    ``p_uav = local_matrix @ p_ground``. See :func:`coregister` for scans with file frames.
+
+    ``ground_terrain`` / ``uav_terrain``: terrain models of the clouds as given (their ground masks
+    row-aligned with ``ground`` / ``uav``) when already computed.
+
+    BLAS and OpenMP run single-threaded meanwhile: every linear-algebra call here is tiny (3x3
+    eigenproblems, 6x6 solves, the DEM's per-triangle interpolation weights), and a second BLAS
+    thread only adds hand-overs (on a busy 2-core machine they made a 0.01 s interpolation take
+    0.3-4 s). The k-d tree queries keep their own threads."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"), threadpool_limits(limits=1, user_api="openmp"):
+        return _coregister_points(ground, uav, params, as_progress(progress), ground_terrain, uav_terrain)
+
+
+def _coregister_points(
+    ground: np.ndarray,
+    uav: np.ndarray,
+    params: CoregistrationParams,
+    progress: Progress,
+    ground_terrain: Optional[TerrainModel],
+    uav_terrain: Optional[TerrainModel],
+) -> CoregistrationResult:
+    """:func:`coregister_points` in the threading set up there."""
     from ..core.errors import ScanDataError
 
-    progress = as_progress(progress)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -312,26 +340,41 @@ def coregister_points(
         base.update(kw)
         return CoregistrationResult(status="failed", reason=reason, **base)
 
-    # 1. terrain
-    t = time.perf_counter()
-    progress(0.0, "[1/6] terrain: ground and DEM of the ground-based cloud")
-    g_terrain = ground_terrain or terrain_model(ground, params.terrain, progress.sub(0.0, 0.12))
-    progress(0.12, "[1/6] terrain: ground and DEM of the UAV cloud")
-    u_terrain = uav_terrain or terrain_model(uav, params.terrain, progress.sub(0.12, 0.22))
-    timings["terrain_s"] = time.perf_counter() - t
+    # 0-2. the two clouds' thinning, terrain and keypoints are independent: thinning and keypoints
+    # run for both at once in two threads (numpy and the k-d trees release the GIL for much of it)
+    with ThreadPoolExecutor(max_workers=3) as pool:
+        # 0. one thinned copy of each cloud serves every step (3.4 M backpack points keep ~0.9 M)
+        t = time.perf_counter()
+        g_keep, u_keep = pool.map(lambda p: voxel_thin(p, params.work_voxel_m), (ground, uav))
+        ground, uav = ground[g_keep], uav[u_keep]
+        timings["thinning_s"] = time.perf_counter() - t
 
-    # 2. keypoints
-    t = time.perf_counter()
-    progress(0.22, f"[2/6] canopy keypoints (terrain: {g_terrain.n_ground:,} / {u_terrain.n_ground:,} ground points)")
-    try:
-        g_kp = extract_keypoints(ground, g_terrain.dem, params.keypoints, progress.sub(0.22, 0.42))
-    except ScanDataError as exc:
-        return failed(f"ground-based cloud: {exc}")
-    try:
-        u_kp = extract_keypoints(uav, u_terrain.dem, params.keypoints, progress.sub(0.42, 0.62))
-    except ScanDataError as exc:
-        return failed(f"UAV cloud: {exc}", ground_keypoints=g_kp)
-    timings["keypoints_s"] = time.perf_counter() - t
+        # 1. terrain, one cloud after the other (the cloth simulation holds the GIL, and its
+        # silenced console output must not be silenced twice at once)
+        t = time.perf_counter()
+        progress(0.0, "[1/6] terrain: ground and DEM of the ground-based cloud")
+        g_terrain = _terrain_of(ground, g_keep, ground_terrain, params.terrain, progress.sub(0.0, 0.12))
+        progress(0.12, "[1/6] terrain: ground and DEM of the UAV cloud")
+        u_terrain = _terrain_of(uav, u_keep, uav_terrain, params.terrain, progress.sub(0.12, 0.22))
+        timings["terrain_s"] = time.perf_counter() - t
+
+        # 2. keypoints
+        t = time.perf_counter()
+        progress(0.22, f"[2/6] canopy keypoints of both clouds (terrain: {g_terrain.n_ground:,} / {u_terrain.n_ground:,} ground points)")
+        # meanwhile a third thread thins the clouds for the ICP runs (voxel sorts: the GIL is free)
+        icp_job = pool.submit(_icp_inputs, ground, uav, params.icp_voxel_m)
+        g_job = pool.submit(extract_keypoints, ground, g_terrain.dem, params.keypoints)
+        u_job = pool.submit(extract_keypoints, uav, u_terrain.dem, params.keypoints)
+        try:
+            g_kp = g_job.result()
+        except ScanDataError as exc:
+            return failed(f"ground-based cloud: {exc}")
+        try:
+            u_kp = u_job.result()
+        except ScanDataError as exc:
+            return failed(f"UAV cloud: {exc}", ground_keypoints=g_kp)
+        timings["keypoints_s"] = time.perf_counter() - t
+        g_ref, u_icp = icp_job.result()
     if min(len(g_kp), len(u_kp)) < params.min_matched:
         return failed(
             f"too few keypoints to match: {len(g_kp)} ground-based, {len(u_kp)} UAV (need {params.min_matched})",
@@ -349,9 +392,9 @@ def coregister_points(
     # 4. rank the candidate solutions by the canopy surfaces (fast), keep the best few distinct
     t = time.perf_counter()
     progress(0.72, f"[4/6] ranking {len(solutions)} keypoint solutions by the canopy surfaces; the best {params.candidates_verified} distinct are refined")
-    g_thin = thin(ground, 0.2)
+    g_thin = g_ref.level(0.2)[0]
     g_canopy = _column_tops(g_thin[g_terrain.dem.normalise(g_thin) > params.surface_min_height_m], 0.25)
-    uav_surface = _SurfaceGrid.of(thin(uav, 0.2), params.surface_cell_m)
+    uav_surface = _SurfaceGrid.of(thin(u_icp, 0.2), params.surface_cell_m)
     ranked = []
     for i, sol in enumerate(solutions):
         if sol.n_matched < 3:  # the canopy surfaces decide; the count is checked at the final transform
@@ -378,22 +421,27 @@ def coregister_points(
     # 5. coarse 6-DoF ICP from each candidate, then verification AFTER ICP: the canopy surfaces
     # must agree under the refined solution, far better than under any distinct alternative
     t = time.perf_counter()
-    g_ref = IcpReference(ground)  # thinned levels, trees and normals shared by every ICP run below
     refined: list[tuple[float, int, np.ndarray]] = []
-    for k, i in enumerate(candidates):
-        progress(0.75 + 0.1 * k / len(candidates), f"candidate {k + 1}/{len(candidates)}: coarse ICP and canopy check")
-        sol = solutions[i]
-        m = _icp_uav_onto_ground(
-            g_ref, uav, sol.matrix, params.coarse_voxel_m, params.coarse_icp_distances_m, params.icp_iterations,
-            max_moving_points=8000,
+    progress(0.75, f"[4/6] coarse ICP of {len(candidates)} candidates and canopy checks")
+    # the candidates' ICP runs are independent: two at a time (k-d tree queries and numpy release
+    # the GIL) on the shared reference
+
+    def coarse_icp(i: int) -> np.ndarray:
+        return _icp_uav_onto_ground(
+            g_ref, u_icp, solutions[i].matrix, params.coarse_voxel_m, params.coarse_icp_distances_m,
+            params.icp_iterations, max_moving_points=4000, final_tolerance=COARSE_TOLERANCE, statistics=False,
         ).matrix
-        if _apart_m(m, sol.matrix, g_kp.xyz) > params.max_icp_shift_m or rotation_angle_deg(
-            (np.linalg.inv(sol.matrix) @ m)[:3, :3]
-        ) > params.max_icp_rotation_deg:
-            m = sol.matrix  # ICP ran away: keep the keypoint solution as it is
-        r, n = surface_correlation(g_canopy, uav_surface, m)
-        refined.append((r if n >= params.min_surface_cells else 0.0, i, m))
-        progress(0.75 + 0.1 * (k + 1) / len(candidates), f"[4/6] candidate {k + 1}/{len(candidates)}: {solutions[i].n_matched} keypoints, canopy correlation {ranked_r[i]:.2f} -> {refined[-1][0]:.2f} after ICP")
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for k, (i, m) in enumerate(zip(candidates, pool.map(coarse_icp, candidates))):
+            sol = solutions[i]
+            if _apart_m(m, sol.matrix, g_kp.xyz) > params.max_icp_shift_m or rotation_angle_deg(
+                (np.linalg.inv(sol.matrix) @ m)[:3, :3]
+            ) > params.max_icp_rotation_deg:
+                m = sol.matrix  # ICP ran away: keep the keypoint solution as it is
+            r, n = surface_correlation(g_canopy, uav_surface, m)
+            refined.append((r if n >= params.min_surface_cells else 0.0, i, m))
+            progress(0.75 + 0.1 * (k + 1) / len(candidates), f"[4/6] candidate {k + 1}/{len(candidates)}: {sol.n_matched} keypoints, canopy correlation {ranked_r[i]:.2f} -> {refined[-1][0]:.2f} after ICP")
     refined.sort(key=lambda v: -v[0])
     best_r, best_i, coarse = refined[0]
     best = solutions[best_i]
@@ -422,7 +470,7 @@ def coregister_points(
     t = time.perf_counter()
     progress(0.86, f"[5/6] fine ICP from the best candidate (correlation {best_r:.2f}, margin {best_r - alt:.2f})")
     result = _icp_uav_onto_ground(
-        g_ref, uav, coarse, params.icp_voxel_m, params.icp_distances_m, params.icp_iterations,
+        g_ref, u_icp, coarse, params.icp_voxel_m, params.icp_distances_m, params.icp_iterations,
     )
     timings["icp_s"] = time.perf_counter() - t
     shift = _apart_m(result.matrix, best.matrix, g_kp.xyz)
@@ -456,7 +504,7 @@ def coregister_points(
     progress(0.92, "[6/6] quality figures and standard errors (jackknife over plot quadrants)")
     common["quality"] = coregistration_quality(ground, uav, g_terrain, u_terrain, result.matrix, params.surface_cell_m)
     if params.jackknife:
-        common["standard_errors"] = jackknife_standard_errors(g_ref, uav, result.matrix, params)
+        common["standard_errors"] = jackknife_standard_errors(g_ref, u_icp, result.matrix, params)
     timings["quality_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
     progress(1.0, f"co-registered: {len(pairs_after)} keypoints matched ({pct:.0f} %), canopy correlation {final_r:.2f} "
@@ -464,6 +512,33 @@ def coregister_points(
     return CoregistrationResult(
         status="ok", reason="", matrix=result.matrix, local_matrix=result.matrix, timings=timings, **common
     )
+
+
+#: the ICP reference level (voxel, m) whose footprint selects the UAV points of an ICP run
+OVERLAP_VOXEL_M = 0.5
+#: (m, deg): the coarse ICP of a candidate stops at updates below these: it only brings the
+#: solution into the fine ICP's basin
+COARSE_TOLERANCE = (1e-4, 1e-3)
+
+
+def _icp_inputs(ground: np.ndarray, uav: np.ndarray, voxel_m: float) -> tuple[IcpReference, np.ndarray]:
+    """The ground-based cloud prepared as the reference of every ICP run (its ``voxel_m`` and
+    0.2 m levels made: the coarser levels thin the former, the canopy ranking uses the latter)
+    and the UAV cloud thinned to ``voxel_m``: the moving points of every ICP run."""
+    g_ref = IcpReference(ground)
+    g_ref.level(voxel_m)
+    g_ref.level(0.2)
+    return g_ref, thin(uav, voxel_m)
+
+
+def _terrain_of(
+    points: np.ndarray, keep: np.ndarray, given: Optional[TerrainModel], params: TerrainParams, progress: Progress
+) -> TerrainModel:
+    """The terrain model of the thinned cloud ``points`` (rows ``keep`` of the cloud as given):
+    ``given`` (a model of the cloud as given) restricted to those rows, or computed."""
+    if given is None:
+        return terrain_model(points, params, progress)
+    return TerrainModel(ground=np.asarray(given.ground)[keep], dem=given.dem)
 
 
 def _apart_m(a: np.ndarray, b: np.ndarray, xyz: np.ndarray) -> float:
@@ -513,13 +588,17 @@ def _icp_uav_onto_ground(
     *,
     max_moving_points: int = 30000,
     keep: Optional[np.ndarray] = None,
+    final_tolerance: tuple[float, float] = (1e-5, 1e-4),
+    statistics: bool = True,
 ) -> IcpResult:
     """ICP with the UAV points (within the ground-based footprint) as the moving cloud and the
     denser ground-based cloud as the reference: a sparse cloud's points land on the dense cloud's
     well-sampled surfaces (ground, stems, crowns), which is markedly more accurate than the other
     way round (real MLS onto ALS: 0.46 deg / 8 cm off the other way). Returns the result with
-    ``matrix`` ground -> UAV (the inverse of the fitted UAV -> ground transform)."""
-    near = _overlap(uav, ground.level(0.5)[0], matrix, margin_m=max(2.0, 2 * max(distances_m)))
+    ``matrix`` ground -> UAV (the inverse of the fitted UAV -> ground transform).
+
+    ``final_tolerance`` and ``statistics`` as in :func:`~forestreg.engine.geometry.icp.icp`."""
+    near = _overlap(uav, ground.level(OVERLAP_VOXEL_M)[0], matrix, margin_m=max(2.0, 2 * max(distances_m)))
     if keep is not None:
         near &= keep
     moving = uav[near]
@@ -528,6 +607,7 @@ def _icp_uav_onto_ground(
     res = icp(
         ground, moving, np.linalg.inv(matrix), voxel_m=voxel_m, max_distances_m=distances_m,
         iterations=iterations, max_moving_points=max_moving_points,
+        final_tolerance=final_tolerance, statistics=statistics,
     )
     return dataclasses.replace(res, matrix=np.linalg.inv(res.matrix))
 
@@ -598,20 +678,26 @@ def jackknife_standard_errors(
 ) -> dict[str, Any]:
     """Delete-one-quadrant jackknife of the fine ICP: the UAV points of the overlap are split into
     four quadrants about the overlap's centre; the last ICP stage is re-run from ``matrix``
-    without each quadrant in turn. Standard errors ``sqrt((n-1)/n * sum((x_i - mean)^2))`` of the
-    rotation (deg; total, and its heading and tilt parts) and of the translation of the
-    ground-based cloud's centre (m; total, horizontal and vertical)."""
-    near = _overlap(uav, ground.level(0.5)[0], matrix, margin_m=1.0)
+    without each quadrant (two runs at a time). Standard errors
+    ``sqrt((n-1)/n * sum((x_i - mean)^2))`` of the rotation (deg; total, and its heading and tilt
+    parts) and of the translation of the ground-based cloud's centre (m; total, horizontal and
+    vertical)."""
+    near = _overlap(uav, ground.level(OVERLAP_VOXEL_M)[0], matrix, margin_m=1.0)
     centre = np.median(uav[near, :2], axis=0) if near.any() else np.median(uav[:, :2], axis=0)
     q = (uav[:, 0] > centre[0]).astype(int) + 2 * (uav[:, 1] > centre[1]).astype(int)
-    g_centre = np.median(ground.level(0.5)[0], axis=0)
+    g_centre = np.median(ground.level(OVERLAP_VOXEL_M)[0], axis=0)
     stages = params.icp_distances_m[-1:]
     rot_vecs, shifts = [], []
-    for k in range(4):
-        m = _icp_uav_onto_ground(
+
+    def without(k: int) -> np.ndarray:
+        return _icp_uav_onto_ground(
             ground, uav, matrix, params.icp_voxel_m, stages, 15,
-            max_moving_points=10000, keep=q != k,
+            max_moving_points=10000, keep=q != k, statistics=False,
         ).matrix
+
+    with ThreadPoolExecutor(max_workers=2) as pool:  # independent runs on a shared reference
+        runs = list(pool.map(without, range(4)))
+    for m in runs:
         d = m[:3, :3] @ matrix[:3, :3].T
         rot_vecs.append(_rotation_vector_deg(d))
         shifts.append(apply_transform(m, g_centre[None])[0] - apply_transform(matrix, g_centre[None])[0])

@@ -140,8 +140,7 @@ def local_density(points: np.ndarray, cutoff_distance_m: float) -> np.ndarray:
     """Eq. 1: the number of other points within ``d_c`` of each point (float; ties between equal
     counts are broken by a tiny Gaussian-kernel term so that one peak is unique)."""
     tree = cKDTree(points)
-    pairs = tree.query_ball_point(points, cutoff_distance_m)
-    rho = np.array([len(n) - 1 for n in pairs], dtype=np.float64)
+    rho = tree.query_ball_point(points, cutoff_distance_m, return_length=True).astype(np.float64) - 1.0
     d, _ = tree.query(points, k=min(8, len(points)))
     d = np.atleast_2d(d)
     kernel = np.exp(-((d[:, 1:] / cutoff_distance_m) ** 2)).sum(axis=1) if d.shape[1] > 1 else 0.0

@@ -268,18 +268,21 @@ def match_keypoints(
     progress(0.7, "refining the best hypotheses")
     order = np.argsort(-scores, kind="stable")
     solutions: list[KeypointMatch] = []
-    tried: list[tuple[float, np.ndarray]] = []
+    tried = _SolutionSet(params)
+    kept = _SolutionSet(params)
     for k in order[: 40 * params.n_solutions]:
         h, t = float(heading[k]), trans[k]
-        if any(_same(h, t, h2, t2, params) for h2, t2 in tried):
+        if tried.has(h, t):
             continue
-        tried.append((h, t))
+        tried.add(h, t)
         matrix, pairs = _refine(ground, uav, _matrix_2d(h, t), params)
         if len(pairs) < 2:
             continue
         sol = _solution(ground, uav, matrix, pairs, int(scores[k]))
-        if any(_same(math.radians(sol.heading_deg), sol.matrix[:2, 3], math.radians(o.heading_deg), o.matrix[:2, 3], params) for o in solutions):
+        sol_h = math.radians(sol.heading_deg)
+        if kept.has(sol_h, sol.matrix[:2, 3]):
             continue
+        kept.add(sol_h, sol.matrix[:2, 3])
         solutions.append(sol)
         if len(tried) >= 4 * params.n_solutions and len(solutions) >= params.n_solutions:
             break
@@ -288,9 +291,41 @@ def match_keypoints(
     return solutions[: params.n_solutions]
 
 
-def _same(h1: float, t1: np.ndarray, h2: float, t2: np.ndarray, params: MatchingParams) -> bool:
-    dh = abs((h1 - h2 + math.pi) % (2 * math.pi) - math.pi)
-    return math.degrees(dh) < params.distinct_heading_deg and float(np.hypot(*(t1 - t2))) < params.distinct_translation_m
+class _SolutionSet:
+    """Headings (rad) and XY translations (m) met so far, for the question "is this the same
+    solution as one of them": within ``distinct_heading_deg`` and ``distinct_translation_m``.
+    They are kept in bins at least that wide (heading bins wrap around), so a question looks at
+    the entries of the 27 bins around its own only."""
+
+    def __init__(self, params: MatchingParams) -> None:
+        self.params = params
+        self.heading_bins = max(1, int(360.0 // params.distinct_heading_deg))
+        self.bins: dict[tuple[int, int, int], list[tuple[float, float, float]]] = {}
+        self.n = 0
+
+    def __len__(self) -> int:
+        return self.n
+
+    def _bin(self, heading: float, xy: np.ndarray) -> tuple[int, int, int]:
+        h = int((math.degrees(heading) % 360.0) / 360.0 * self.heading_bins) % self.heading_bins
+        step = self.params.distinct_translation_m
+        return h, int(math.floor(float(xy[0]) / step)), int(math.floor(float(xy[1]) / step))
+
+    def has(self, heading: float, xy: np.ndarray) -> bool:
+        h, i, j = self._bin(heading, xy)
+        x, y = float(xy[0]), float(xy[1])
+        for dh in (-1, 0, 1):
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    for h2, x2, y2 in self.bins.get(((h + dh) % self.heading_bins, i + di, j + dj), ()):
+                        d = abs((heading - h2 + math.pi) % (2 * math.pi) - math.pi)
+                        if math.degrees(d) < self.params.distinct_heading_deg and math.hypot(x - x2, y - y2) < self.params.distinct_translation_m:
+                            return True
+        return False
+
+    def add(self, heading: float, xy: np.ndarray) -> None:
+        self.bins.setdefault(self._bin(heading, xy), []).append((heading, float(xy[0]), float(xy[1])))
+        self.n += 1
 
 
 def _solution(ground: np.ndarray, uav: np.ndarray, matrix: np.ndarray, pairs: np.ndarray, score: int) -> KeypointMatch:

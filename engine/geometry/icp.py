@@ -7,6 +7,7 @@ the reference frame (``p_reference = matrix @ p_moving``). (Open3D would call th
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -70,7 +71,8 @@ def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours
 class IcpReference:
     """A reference cloud prepared for repeated ICP runs: its voxel-thinned versions, their k-d
     trees and normals (computed where first needed) are kept per voxel size, so several ICP
-    runs against one reference (candidates, a jackknife) build them once. Not thread-safe."""
+    runs against one reference (candidates, a jackknife) build them once. Thread-safe: runs in
+    several threads may share one (levels and normals are made under a lock)."""
 
     def __init__(self, points: np.ndarray) -> None:
         pts = np.asarray(points)
@@ -78,22 +80,38 @@ class IcpReference:
         self.points = pts if pts.dtype in (np.float32, np.float64) else pts.astype(np.float64)
         self._levels: dict[float, tuple[np.ndarray, cKDTree, np.ndarray]] = {}
         self._full_tree: cKDTree | None = None
+        self._lock = threading.RLock()
 
     def level(self, voxel_m: float) -> tuple[np.ndarray, cKDTree, np.ndarray]:
         """(thinned points, their k-d tree, their normals: NaN rows not computed yet)."""
         key = round(float(voxel_m), 6)
-        if key not in self._levels:
-            # a wider level thins the finest one already made (a fraction of the raw points)
-            finer = [k for k in self._levels if k <= key]
-            ref = thin(self._levels[min(finer)][0] if finer else self.points, voxel_m)
-            self._levels[key] = (ref, cKDTree(ref), np.full((len(ref), 3), np.nan))
-        return self._levels[key]
+        with self._lock:
+            if key not in self._levels:
+                # a wider level thins the finest one already made (a fraction of the raw points)
+                finer = [k for k in self._levels if k <= key]
+                ref = thin(self._levels[min(finer)][0] if finer else self.points, voxel_m)
+                self._levels[key] = (ref, cKDTree(ref), np.full((len(ref), 3), np.nan))
+            return self._levels[key]
+
+    def normals(self, voxel_m: float, index: np.ndarray) -> np.ndarray:
+        """Unit normals (arbitrary sign) of the points ``index`` of a level, computed where first
+        needed."""
+        ref, tree, normals = self.level(voxel_m)
+        with self._lock:
+            seen = np.zeros(len(ref), dtype=bool)
+            seen[index] = True
+            need = np.flatnonzero(seen & np.isnan(normals[:, 0]))
+            if len(need):
+                normals[need] = _normals_at(ref, tree, need)
+            return normals[index]
 
     @property
     def full_tree(self) -> cKDTree:
-        if self._full_tree is None:
-            self._full_tree = cKDTree(self.points)
-        return self._full_tree
+        """A k-d tree of all the points (built on first use, unbalanced: a fast build)."""
+        with self._lock:
+            if self._full_tree is None:
+                self._full_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+            return self._full_tree
 
 
 def icp(
@@ -106,6 +124,8 @@ def icp(
     iterations: int,
     max_moving_points: int = 30000,
     seed: int = 0,
+    final_tolerance: tuple[float, float] = (1e-5, 1e-4),
+    statistics: bool = True,
 ) -> IcpResult:
     """Coarse-to-fine point-to-plane ICP from ``initial``.
 
@@ -122,7 +142,12 @@ def icp(
     initial : 4x4 initial moving -> reference matrix (the coarse result).
     max_distances_m : correspondence distance of each stage, largest first.
     iterations : the most iterations per stage (the last stage stops when the update is below
-        0.01 mm and 0.0001 deg, earlier ones below 0.1 mm and 0.001 deg).
+        ``final_tolerance``, earlier ones below 0.1 mm and 0.001 deg).
+    final_tolerance : (metres, degrees) update below which the last stage stops; default 0.01 mm
+        and 0.0001 deg (a run that only brings a solution into a finer ICP's basin can stop at
+        the earlier stages' 0.1 mm and 0.001 deg).
+    statistics : compute ``std_m``, ``mean_distance_m`` and ``correspondences`` against all the
+        reference points (NaN, NaN, 0 without: for runs whose matrix alone is used).
     """
     shared = isinstance(reference, IcpReference)  # prepared by the caller for several runs
     prepared = reference if shared else IcpReference(reference)
@@ -140,9 +165,9 @@ def icp(
         # a wide stage only brings the next one into its basin: it stops at 0.1 mm / 0.001 deg
         # updates; the last stage converges to 0.01 mm / 0.0001 deg
         final_stage = stage == len(max_distances_m) - 1
-        stop_m, stop_rad = (1e-5, np.radians(1e-4)) if final_stage else (1e-4, np.radians(1e-3))
+        stop_m, stop_rad = (final_tolerance[0], np.radians(final_tolerance[1])) if final_stage else (1e-4, np.radians(1e-3))
         voxel = max(voxel_m, dist / 2.5)
-        ref, tree, normals = prepared.level(voxel)
+        ref, tree, _ = prepared.level(voxel)
         mov = mov_fine if voxel <= finest else thin(mov_fine, voxel)
         if len(mov) > max_moving_points:
             mov = mov[rng.choice(len(mov), max_moving_points, replace=False)]
@@ -155,11 +180,7 @@ def icp(
             ok = np.isfinite(d)
             if ok.sum() < 6:
                 break
-            need = np.unique(j[ok])
-            need = need[np.isnan(normals[need, 0])]
-            if len(need):
-                normals[need] = _normals_at(ref, tree, need)
-            p, q, n = moved[ok], ref[j[ok]], normals[j[ok]]
+            p, q, n = moved[ok], ref[j[ok]], prepared.normals(voxel, j[ok])
             r = np.einsum("ij,ij->i", p - q, n)
             w = (1.0 - (d[ok] / dist) ** 2) ** 2
             jac = np.hstack([np.cross(p, n), n])
@@ -177,11 +198,14 @@ def icp(
             rmse = float(np.sqrt(np.mean(d[ok] ** 2)))
             if np.linalg.norm(x[3:]) < stop_m and np.linalg.norm(x[:3]) < stop_rad:
                 break
-    last = float(max_distances_m[-1])
-    moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
-    # a reference shared by several runs keeps one tree of all its points; a single run builds a
-    # small one on the points near the moved ones instead (no tree of millions of points)
-    std, mean, count = nearest_distance_stats(prepared.points, moved, last, tree=prepared.full_tree if shared else None)
+    std, mean, count = float("nan"), float("nan"), 0
+    if statistics:
+        moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
+        # a reference shared by several runs keeps one tree of all its points; a single run builds
+        # a small one on the points near the moved ones instead (no tree of millions of points)
+        std, mean, count = nearest_distance_stats(
+            prepared.points, moved, float(max_distances_m[-1]), tree=prepared.full_tree if shared else None
+        )
     return IcpResult(
         matrix=matrix,
         fitness=fitness,
