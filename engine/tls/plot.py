@@ -85,9 +85,8 @@ class ScanCache:
                     return np.asarray(f.header.mins, dtype=float), np.asarray(f.header.maxs, dtype=float)
             except Exception:  # an odd header: read the points instead (the reader says what is wrong)
                 pass
-        pts = self(name).points
-        shift = self(name).origin_shift
-        return pts.min(axis=0) + shift, pts.max(axis=0) + shift
+        scan = self(name)
+        return scan.points.min(axis=0) + scan.origin_shift, scan.points.max(axis=0) + scan.origin_shift
 
 
 #: Point arrays a :class:`ScanCache` keeps in memory by default, bytes: some twenty 3 M-point
