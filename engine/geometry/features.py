@@ -53,11 +53,11 @@ def local_covariances(
         d = [columns[axis][nb] - q[at, axis] for axis in range(3)]
         w = cnt[rows].astype(np.float64)
         mean = [np.add.reduceat(d[i], starts) / w for i in range(3)]
-        block = cov[a : a + batch]
+        block = np.empty((len(rows), 3, 3))
         for i in range(3):
             for j in range(i, 3):
-                block[rows, i, j] = np.add.reduceat(d[i] * d[j], starts) / w - mean[i] * mean[j]
-                block[rows, j, i] = block[rows, i, j]
+                block[:, i, j] = block[:, j, i] = np.add.reduceat(d[i] * d[j], starts) / w - mean[i] * mean[j]
+        cov[a + rows] = block
         count[a : a + batch] = cnt
     return cov, count
 

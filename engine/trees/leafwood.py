@@ -187,7 +187,7 @@ def _features_on(
     handed to the base points of each voxel: a shape seen through a sphere of radius ``r``
     changes little over ``r / thinning_ratio``.
     """
-    out = np.full((len(base), FEATURES_PER_SCALE * len(prm.radii_m)), np.nan)
+    out = np.empty((len(base), FEATURES_PER_SCALE * len(prm.radii_m)))  # every column is written below
     counts = np.zeros((len(base), len(prm.radii_m)), dtype=np.int64)
     for s, radius in enumerate(prm.radii_m):
         progress(s / len(prm.radii_m), f"covariance features at {radius:g} m")
@@ -219,7 +219,19 @@ def shape_measures(features: np.ndarray, scale: int) -> tuple[np.ndarray, np.nda
     return linearity, planarity, upright
 
 
-def woodness_score(features: np.ndarray, counts: np.ndarray, params: LeafWoodParams = LeafWoodParams()) -> np.ndarray:
+def _scale_measures(features: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`shape_measures` of every scale of a feature matrix (computed once, shared by the
+    woodness score and the mixture's features)."""
+    return [shape_measures(features, s) for s in range(features.shape[1] // FEATURES_PER_SCALE)]
+
+
+def woodness_score(
+    features: np.ndarray,
+    counts: np.ndarray,
+    params: LeafWoodParams = LeafWoodParams(),
+    *,
+    measures: Optional[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = None,
+) -> np.ndarray:
     """Rule-based woodness in [0, 1] per point from multi-scale features (no training).
 
     At each scale the evidence for wood is ``max(linearity, planarity * sin^2(zenith3))``: a branch
@@ -227,14 +239,16 @@ def woodness_score(features: np.ndarray, counts: np.ndarray, params: LeafWoodPar
     is neither. Scales are averaged with weights growing with the scale (1, 2, 3, ...: the larger
     spheres see past single leaves) and with the neighbour count (a sphere with few points looks
     falsely linear: full weight from ``full_weight_neighbours``). A point with no usable scale
-    scores 0 (isolated points are not taken for wood).
+    scores 0 (isolated points are not taken for wood). ``measures``: the features'
+    :func:`shape_measures` per scale when already computed.
     """
     n_scales = features.shape[1] // FEATURES_PER_SCALE
+    measures = measures if measures is not None else _scale_measures(features)
     num = np.zeros(len(features))
     den = np.zeros(len(features))
     span = params.full_weight_neighbours - params.min_neighbours
     for s in range(n_scales):
-        linearity, planarity, upright = shape_measures(features, s)
+        linearity, planarity, upright = measures[s]
         evidence = np.maximum(linearity, planarity * upright)
         weight = np.clip((counts[:, s] - params.min_neighbours) / span, 0.0, 1.0) * (s + 1)
         ok = np.isfinite(evidence) & (weight > 0)
@@ -243,22 +257,37 @@ def woodness_score(features: np.ndarray, counts: np.ndarray, params: LeafWoodPar
     return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
 
 
-def mixture_features(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def mixture_features(
+    features: np.ndarray, *, measures: Optional[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-scale (linearity, planarity, cos zenith1, cos zenith3) for the Gaussian mixture, with
     a scale lacking neighbours filled from the next larger scale; and the mask of rows that are
-    complete (the largest scale has enough neighbours)."""
+    complete (the largest scale has enough neighbours). ``measures``: the features'
+    :func:`shape_measures` per scale when already computed.
+
+    A scale lacks neighbours where its ``l1`` is NaN (then all its six columns are). The shape
+    measures of a filled row are those of the scale it was filled from, so the measures are filled
+    instead of the features (the same values, without copying the feature matrix).
+    """
     n_scales = features.shape[1] // FEATURES_PER_SCALE
-    filled = features.copy()
-    for s in range(n_scales - 2, -1, -1):
-        a, b = s * FEATURES_PER_SCALE, (s + 1) * FEATURES_PER_SCALE
-        missing = np.isnan(filled[:, a])
-        filled[missing, a:b] = filled[missing, b : b + FEATURES_PER_SCALE]
-    cols = []
-    for s in range(n_scales):
-        linearity, planarity, _ = shape_measures(filled, s)
-        f = filled[:, s * FEATURES_PER_SCALE : (s + 1) * FEATURES_PER_SCALE]
-        cols += [linearity, planarity, np.cos(np.radians(f[:, 3])), np.cos(np.radians(f[:, 5]))]
-    x = np.column_stack(cols)
+    measures = measures if measures is not None else _scale_measures(features)
+    x = np.empty((len(features), 4 * n_scales))
+    above: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]] = None  # the filled columns of scale s + 1
+    for s in range(n_scales - 1, -1, -1):
+        a = s * FEATURES_PER_SCALE
+        linearity, planarity, _ = measures[s]
+        zenith1, zenith3 = features[:, a + 3], features[:, a + 5]
+        if above is not None:
+            missing = np.isnan(features[:, a])
+            linearity, planarity = linearity.copy(), planarity.copy()
+            zenith1, zenith3 = zenith1.copy(), zenith3.copy()
+            for mine, theirs in zip((linearity, planarity, zenith1, zenith3), above):
+                mine[missing] = theirs[missing]
+        x[:, 4 * s] = linearity
+        x[:, 4 * s + 1] = planarity
+        x[:, 4 * s + 2] = np.cos(np.radians(zenith1))
+        x[:, 4 * s + 3] = np.cos(np.radians(zenith3))
+        above = (linearity, planarity, zenith1, zenith3)
     return x, np.isfinite(x).all(axis=1)
 
 
@@ -341,10 +370,12 @@ def wood_probability(
     prm = params
     base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0))
     features, counts = _features_on(base, prm, progress.sub(0.0, 0.7))
-    score = woodness_score(features, counts, prm)
+    measures = _scale_measures(features)
+    score = woodness_score(features, counts, prm, measures=measures)
     rule = score >= prm.wood_score_threshold
     progress(0.75, "fitting the mixture")
-    x, complete = mixture_features(features)
+    x, complete = mixture_features(features, measures=measures)
+    del measures
     prob = np.zeros(len(base))
     if complete.any():
         share = mixture_wood_share(x[complete], rule[complete], prm)
