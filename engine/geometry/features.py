@@ -49,8 +49,7 @@ def local_covariances(
         rows = np.flatnonzero(cnt)  # queries with neighbours; their neighbours lie in runs
         starts = np.cumsum(cnt)[rows] - cnt[rows]
         nb = idx[valid]
-        at = np.repeat(rows, cnt[rows])
-        d = [columns[axis][nb] - q[at, axis] for axis in range(3)]
+        d = [columns[axis][nb] - np.repeat(q[rows, axis], cnt[rows]) for axis in range(3)]
         w = cnt[rows].astype(np.float64)
         mean = [np.add.reduceat(d[i], starts) / w for i in range(3)]
         block = np.empty((len(rows), 3, 3))

@@ -196,7 +196,7 @@ def _features_on(
         cov, count = local_covariances(cloud, cloud, k=prm.max_neighbours, radius_m=radius, tree=tree)
         f = np.full((len(cloud), FEATURES_PER_SCALE), np.nan)
         enough = count >= prm.min_neighbours  # the others stay NaN: no decomposition spent on them
-        f[enough] = eigen_features(cov[enough])
+        f[enough] = eigen_features(cov if enough.all() else cov[enough])
         out[:, s * FEATURES_PER_SCALE : (s + 1) * FEATURES_PER_SCALE] = f[voxel_of_base]
         counts[:, s] = count[voxel_of_base]
     progress(1.0, "covariance features done")
