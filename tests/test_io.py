@@ -582,3 +582,19 @@ def test_real_cloud_txt() -> None:
     np.testing.assert_allclose(np.ptp(scan.points, axis=0), [2.5, 2.0, 3.7], atol=0.06)
     lo, hi = scan.file_points.min(axis=0), scan.file_points.max(axis=0)
     assert 253.5 < lo[2] < 254.0 and 257.0 < hi[2] < 258.0
+
+
+def test_chunked_las_never_wraps_coordinates_outside_its_bounds(tmp_path):
+    """Bounds too small for the points (a LAS header with empty bounds) are refused, not written
+    as wrapped int32 coordinates; the target is left absent."""
+    from forestreg.engine.core.errors import ScanWriteError
+    from forestreg.engine.io import write_point_chunks
+
+    pts = np.array([[500000.0, 6000000.0, 300.0], [500010.0, 6000005.0, 310.0]])
+    target = tmp_path / "merged.laz"
+    with pytest.raises(ScanWriteError, match="do not hold them"):
+        write_point_chunks(target, [(pts, None, None)], bounds=(np.zeros(3), np.ones(3)))
+    assert not target.exists() and not list(tmp_path.iterdir())
+    assert write_point_chunks(target, [(pts, None, None)], bounds=(pts.min(axis=0), pts.max(axis=0))) == 2
+    las = laspy.read(target)
+    assert np.allclose(np.column_stack([las.x, las.y, las.z]), pts, atol=1e-4)

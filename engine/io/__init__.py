@@ -263,6 +263,8 @@ def write_point_chunks(
         parts = [_checked_columns(path, *chunk) for chunk in chunks]
         if not parts or not sum(len(p) for p, _, _ in parts):
             raise ParameterError(f"{path}: there are no points to write")
+        if with_scan_id and any(d is None for _, _, d in parts):
+            raise ParameterError(f"{path}: every chunk needs a scan_id per point")
         keep = with_intensity and all(i is not None for _, i, _ in parts)
         write_points(
             target, np.concatenate([p for p, _, _ in parts]), origin_shift=shift,

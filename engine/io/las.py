@@ -12,7 +12,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..core.errors import ScanReadError
+from ..core.errors import ScanReadError, ScanWriteError
 from .base import PointsToWrite, RawCloud, tune_allocator
 
 #: Coordinate resolution written to LAS/LAZ, metres (keeps sub-mm steps for UTM-sized values).
@@ -199,9 +199,16 @@ def _fill(record, local: np.ndarray, shift: np.ndarray, offset: np.ndarray, scal
     """Set the integer coordinates (``local + shift`` in the header's offset and scale), single
     returns and intensity of a laspy point record or LasData of ``len(local)`` points."""
     rel = local - (offset - shift)  # small numbers: no precision lost to large offsets
-    record.X = np.round(rel[:, 0] / scale).astype(np.int32)
-    record.Y = np.round(rel[:, 1] / scale).astype(np.int32)
-    record.Z = np.round(rel[:, 2] / scale).astype(np.int32)
+    steps = np.round(rel / scale)
+    if len(steps) and float(np.abs(steps).max()) > np.iinfo(np.int32).max:
+        # never a silent int32 wrap: the points lie far outside the bounds the header was made for
+        raise ScanWriteError(
+            f"points lie more than {np.iinfo(np.int32).max * scale / 1000:.0f} km from the header offset "
+            f"{np.asarray(offset).tolist()}: the bounds given for the file do not hold them"
+        )
+    record.X = steps[:, 0].astype(np.int32)
+    record.Y = steps[:, 1].astype(np.int32)
+    record.Z = steps[:, 2].astype(np.int32)
     record.return_number = np.ones(len(local), dtype=np.uint8)
     record.number_of_returns = np.ones(len(local), dtype=np.uint8)
     if intensity is not None:

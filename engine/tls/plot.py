@@ -82,7 +82,10 @@ class ScanCache:
 
             try:
                 with laspy.open(str(entry.path)) as f:
-                    return np.asarray(f.header.mins, dtype=float), np.asarray(f.header.maxs, dtype=float)
+                    lo, hi = np.asarray(f.header.mins, dtype=float), np.asarray(f.header.maxs, dtype=float)
+                # some writers leave the bounds empty (zeros) or wrong way round: read the points then
+                if np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all() and (lo != 0).any() | (hi != 0).any():
+                    return lo, hi
             except Exception:  # an odd header: read the points instead (the reader says what is wrong)
                 pass
         scan = self(name)
