@@ -141,15 +141,17 @@ def check_near_scanner(scan, max_range_m: float, path, units: str) -> None:
     georeferenced scan without ``--scanner-position`` or a file in another unit than ``--units``."""
     from ..engine.core.errors import UsageError
 
-    span = float(np.ptp(scan.points[:, :2], axis=0).max())
+    x, y = scan.points[:, 0], scan.points[:, 1]
+    span = max(float(x.max() - x.min()), float(y.max() - y.min()))
     if span < 2.0:
         raise UsageError(
             f"{path}: with --units {units} the points span only {span:.2f} m horizontally; a forest scan spans tens of metres: "
             "check the file's unit (--units)")
-    d = np.hypot(*(scan.points[:, :2] - scan.scanner_position[:2]).T)
-    near = int(np.count_nonzero(d <= max_range_m))
-    if near < 1000 or near < 0.01 * len(d):
+    d2 = (x - scan.scanner_position[0]) ** 2
+    d2 += (y - scan.scanner_position[1]) ** 2
+    near = int(np.count_nonzero(d2 <= max_range_m**2))
+    if near < 1000 or near < 0.01 * len(d2):
         pos = ", ".join(f"{v:.2f}" for v in scan.scanner_position_file / UNITS[units])
         raise UsageError(
-            f"{path}: only {near} of {len(d)} points lie within D_c = {max_range_m:g} m of the scanner position ({pos} {units}); "
+            f"{path}: only {near} of {len(d2)} points lie within D_c = {max_range_m:g} m of the scanner position ({pos} {units}); "
             "for a georeferenced scan give --scanner-position X,Y,Z, and check the file's unit (--units cm|mm|ft)")

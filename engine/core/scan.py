@@ -101,8 +101,10 @@ class Scan:
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ScanDataError(f"{label}: points must be an (N, 3) array, got shape {pts.shape}")
         n_in = len(pts)
-        finite = np.isfinite(pts).all(axis=1)
-        n_bad = int(n_in - finite.sum())
+        # a finite total means every value is finite (NaN and +-inf propagate): the row-by-row
+        # test only for clouds that hold some
+        finite = np.isfinite(pts).all(axis=1) if not np.isfinite(pts.sum()) else None
+        n_bad = 0 if finite is None else int(n_in - finite.sum())
         if n_in and n_bad > MAX_NONFINITE_FRACTION * n_in:
             raise ScanDataError(
                 f"{label}: {n_bad} of {n_in} points have NaN or infinite coordinates; "
@@ -114,7 +116,9 @@ class Scan:
                         label, n_bad, n_in, 100.0 * n_bad / n_in)
         if len(pts) < MIN_POINTS:
             raise ScanDataError(f"{label}: only {len(pts)} valid points; a scan needs at least {MIN_POINTS}")
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        # column by column: a reduction along the long axis is many times faster than min(axis=0)
+        lo = np.array([pts[:, k].min() for k in range(3)])
+        hi = np.array([pts[:, k].max() for k in range(3)])
         extent = float((hi - lo).max())
         if extent > MAX_EXTENT_M:
             raise ScanDataError(

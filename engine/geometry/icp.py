@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 
 from ..core.transform import rotation_from_vector
 from .features import local_covariances, normals_and_variation
-from .voxel import column_bounds, voxel_downsample
+from .voxel import VoxelGrid, column_bounds, voxel_downsample
 
 
 @dataclass(frozen=True)
@@ -74,13 +74,19 @@ class IcpReference:
     runs against one reference (candidates, a jackknife) build them once. Thread-safe: runs in
     several threads may share one (levels and normals are made under a lock)."""
 
-    def __init__(self, points: np.ndarray) -> None:
+    def __init__(self, points: np.ndarray, grid: VoxelGrid | None = None) -> None:
+        """``grid``: optional :func:`~forestreg.engine.geometry.voxel.voxel_grid` of ``points``
+        made beforehand (e.g. while a scan was prepared): its centroids are the level of its voxel
+        size, and its member lists find the points near a moved cloud for the statistics."""
         pts = np.asarray(points)
         # float32 levelled points stay float32 (a 30 M-point scan: 360 MB, not 720 MB)
         self.points = pts if pts.dtype in (np.float32, np.float64) else pts.astype(np.float64)
         self._levels: dict[float, tuple[np.ndarray, cKDTree, np.ndarray]] = {}
         self._full_tree: cKDTree | None = None
         self._lock = threading.RLock()
+        self.grid = grid
+        if grid is not None:
+            self._levels[round(float(grid.voxel_m), 6)] = (grid.centroids, cKDTree(grid.centroids), np.full((len(grid.centroids), 3), np.nan))
 
     def level(self, voxel_m: float) -> tuple[np.ndarray, cKDTree, np.ndarray]:
         """(thinned points, their k-d tree, their normals: NaN rows not computed yet)."""
@@ -105,6 +111,22 @@ class IcpReference:
                 normals[need] = _normals_at(ref, tree, need)
             return normals[index]
 
+    def distance_stats(self, moved: np.ndarray, max_distance_m: float, *, use_full_tree: bool = False) -> tuple[float, float, int]:
+        """:func:`nearest_distance_stats` of ``moved`` against all the reference points. With a
+        grid, only the points of the voxels whose centroid lies within ``max_distance_m`` plus a
+        voxel diagonal of a moved point are searched (a point and its voxel's centroid are at most
+        a diagonal apart: the same nearest points, exactly); else a tree of all the points
+        (``use_full_tree``, kept for further runs) or of the points in the cells near the moved ones."""
+        if self.grid is not None and len(moved) and len(self.points):
+            centroids, tree, _ = self.level(self.grid.voxel_m)
+            reach = float(max_distance_m) + self.grid.voxel_m * np.sqrt(3.0)
+            pairs = cKDTree(moved).sparse_distance_matrix(tree, reach, output_type="ndarray")
+            near = self.points[self.grid.members(np.unique(pairs["j"]))]
+            if len(near) == 0:
+                return float("nan"), float("nan"), 0
+            return nearest_distance_stats(near, moved, max_distance_m, tree=cKDTree(near, balanced_tree=False, compact_nodes=False))
+        return nearest_distance_stats(self.points, moved, max_distance_m, tree=self.full_tree if use_full_tree else None)
+
     @property
     def full_tree(self) -> cKDTree:
         """A k-d tree of all the points (built on first use, unbalanced: a fast build)."""
@@ -126,6 +148,7 @@ def icp(
     seed: int = 0,
     final_tolerance: tuple[float, float] = (1e-5, 1e-4),
     statistics: bool = True,
+    moving_voxel_m: float | None = None,
 ) -> IcpResult:
     """Coarse-to-fine point-to-plane ICP from ``initial``.
 
@@ -148,6 +171,9 @@ def icp(
         the earlier stages' 0.1 mm and 0.001 deg).
     statistics : compute ``std_m``, ``mean_distance_m`` and ``correspondences`` against all the
         reference points (NaN, NaN, 0 without: for runs whose matrix alone is used).
+    moving_voxel_m : the moving points are already the centroids of this voxel grid
+        (:func:`~forestreg.engine.geometry.voxel.voxel_downsample`); when it is the finest stage's
+        voxel they are not thinned again.
     """
     shared = isinstance(reference, IcpReference)  # prepared by the caller for several runs
     prepared = reference if shared else IcpReference(reference)
@@ -160,7 +186,7 @@ def icp(
     # (the raw clouds may hold millions of points, the thinned ones a fraction).
     finest = max(voxel_m, min(max_distances_m) / 2.5) if len(max_distances_m) else voxel_m
     prepared.level(finest)
-    mov_fine = thin(moving, finest)
+    mov_fine = np.asarray(moving, dtype=np.float64) if moving_voxel_m is not None and abs(moving_voxel_m - finest) < 1e-9 else thin(moving, finest)
     for stage, dist in enumerate(max_distances_m):
         # a wide stage only brings the next one into its basin: it stops at 0.1 mm / 0.001 deg
         # updates; the last stage converges to 0.01 mm / 0.0001 deg
@@ -203,9 +229,7 @@ def icp(
         moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
         # a reference shared by several runs keeps one tree of all its points; a single run builds
         # a small one on the points near the moved ones instead (no tree of millions of points)
-        std, mean, count = nearest_distance_stats(
-            prepared.points, moved, float(max_distances_m[-1]), tree=prepared.full_tree if shared else None
-        )
+        std, mean, count = prepared.distance_stats(moved, float(max_distances_m[-1]), use_full_tree=shared)
     return IcpResult(
         matrix=matrix,
         fitness=fitness,

@@ -8,16 +8,18 @@ result depends only on the points, not on their frame's origin. Points are (N, 3
 * :func:`voxel_centroids` - one averaged point per voxel and each point's voxel (for features
   computed on voxels and mapped back to points);
 * :func:`voxel_downsample` - an averaged voxel grid whose grid starts half a voxel below the
-  minimum corner, as Open3D's (for ICP inputs and normals; one sort, no (N, 3) temporaries).
+  minimum corner, as Open3D's (for ICP inputs and normals; one sort, no (N, 3) temporaries);
+  :func:`voxel_grid` the same with each voxel's member points.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
-__all__ = ["column_bounds", "voxel_centroids", "voxel_downsample", "voxel_keys", "voxel_thin"]
+__all__ = ["VoxelGrid", "column_bounds", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_thin"]
 
 
 def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,26 +99,76 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     points' minimum corner (Open3D's grid), sorted by voxel. Float32 or float64 input; sums are
     taken relative to a point of each voxel (exact for large coordinates). Large clouds are
     processed in slabs of whole voxel columns along x: memory stays bounded."""
+    return _grid(points, voxel_m, members=False)[0]
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    """Points grouped by the voxels of :func:`voxel_downsample`'s grid.
+
+    ``centroids`` (M, 3) float64 is exactly :func:`voxel_downsample`'s result (the mean point of
+    each occupied voxel, metres, the points' frame); the points of voxel ``v`` are
+    ``order[starts[v]:starts[v + 1]]`` (indices into the points the grid was made from).
+    """
+
+    voxel_m: float
+    centroids: np.ndarray
+    order: np.ndarray
+    starts: np.ndarray
+
+    def members(self, voxels: np.ndarray) -> np.ndarray:
+        """Indices of the points in the given voxels (voxel by voxel, in ``voxels``' order)."""
+        v = np.asarray(voxels, dtype=np.int64).ravel()
+        counts = self.starts[v + 1] - self.starts[v]
+        total = int(counts.sum())
+        if total == 0:
+            return np.zeros(0, dtype=np.int64)
+        first = np.repeat(self.starts[v] - (np.cumsum(counts) - counts), counts)
+        return self.order[first + np.arange(total)].astype(np.int64, copy=False)
+
+
+def voxel_grid(points: np.ndarray, voxel_m: float) -> VoxelGrid:
+    """The :func:`voxel_downsample` grid of ``points`` with each voxel's member points (for work
+    that goes from the thinned cloud back to the points: one sort of the cloud serves both)."""
+    centroids, order, starts = _grid(points, voxel_m, members=True)
+    return VoxelGrid(float(voxel_m), centroids, order, starts)
+
+
+def _grid(points: np.ndarray, voxel_m: float, *, members: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     pts = np.asarray(points)
+    index_type = np.int32 if len(pts) < 2**31 - 1 else np.int64
     if len(pts) == 0:
-        return np.zeros((0, 3))
+        return np.zeros((0, 3)), np.zeros(0, dtype=index_type), np.zeros(1, dtype=np.int64)
     lo, hi = column_bounds(pts)
     origin = lo - voxel_m / 2.0
     slabs = int(np.ceil(len(pts) / DOWNSAMPLE_POINTS_PER_SLAB))
     if slabs <= 1:
-        return _downsample(pts, voxel_m, origin)
+        centroids, order, starts = _downsample(pts, voxel_m, origin, members=members)
+        if not members:
+            return centroids, None, None
+        return centroids, order.astype(index_type), np.append(starts, len(pts)).astype(np.int64)
     columns = int(np.floor((hi[0] - origin[0]) / voxel_m)) + 1
     edges = np.unique(np.linspace(0, columns, slabs + 1).astype(np.int64))
-    parts = []
+    parts, orders, starts_parts = [], [], []
     ix = np.floor((pts[:, 0] - origin[0]) / voxel_m).astype(np.int32)
+    done = 0
     for a, b in zip(edges[:-1], edges[1:]):
         inside = np.flatnonzero((ix >= a) & (ix < b))
         if len(inside):
-            parts.append(_downsample(pts[inside], voxel_m, origin))
-    return np.concatenate(parts) if parts else np.zeros((0, 3))
+            centroids, order, starts = _downsample(pts[inside], voxel_m, origin, members=members)
+            parts.append(centroids)
+            if members:
+                orders.append(inside[order].astype(index_type))
+                starts_parts.append(starts + done)
+                done += len(inside)
+    if not parts:
+        return np.zeros((0, 3)), np.zeros(0, dtype=index_type), np.zeros(1, dtype=np.int64)
+    if not members:
+        return np.concatenate(parts), None, None
+    return np.concatenate(parts), np.concatenate(orders), np.append(np.concatenate(starts_parts), done).astype(np.int64)
 
 
-def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray) -> np.ndarray:
+def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray, *, members: bool = False) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     key = voxel_keys(pts, voxel_m, origin=origin)
     order = np.argsort(key)
     key = key[order]
@@ -129,4 +181,4 @@ def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray) -> np.ndarr
         column = pts[order, axis].astype(np.float64)
         column -= np.repeat(anchor[:, axis], counts)
         out[:, axis] = anchor[:, axis] + np.add.reduceat(column, starts) / counts
-    return out
+    return out, (order if members else None), starts

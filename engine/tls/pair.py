@@ -21,7 +21,7 @@ import numpy as np
 
 from .coarse import CoarseMatch, match_vops
 from .evidence import mutual_free_space_violation
-from ..geometry.icp import IcpResult, icp
+from ..geometry.icp import IcpReference, IcpResult, icp
 from .scanner_position import locate_scanner
 from .uncertainty import pair_uncertainty
 from .prepare import PreparedScan, SliceLayer, extract_vops, prepare_scan, slice_layers
@@ -412,11 +412,16 @@ def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: Reg
     ref_layers = timed("slice", slice_layers, ref_prep, params)
     mov_layers = timed("slice", slice_layers, mov_prep, params)
     radii = (params.vop_radius_m,) if params.vop_radius_m is not None else tuple(r for r in AUTO_VOP_RADII_M if r <= params.max_range_m - 3.0)
+    step(0.0, f"visual occlusion points within {', '.join(f'{r:.0f}' for r in radii)} m")
+    # every (scan, radius) extraction is independent and mostly k-d tree and numpy work (which
+    # releases the GIL): two at a time
+    jobs = [(layers, radius) for radius in radii for layers in (ref_layers, mov_layers)]
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        found = timed("vops", lambda: list(pool.map(lambda job: extract_vops(job[0], params, job[1]), jobs)))
     attempts = []
     for k, radius in enumerate(radii):
-        step(k / len(radii), f"visual occlusion points within {radius:.0f} m")
-        ref_vops = timed("vops", extract_vops, ref_layers, params, radius)
-        mov_vops = timed("vops", extract_vops, mov_layers, params, radius)
+        step((k + 1) / (len(radii) + 1), f"matching the visual occlusion points within {radius:.0f} m")
+        ref_vops, mov_vops = found[2 * k], found[2 * k + 1]
         attempt = timed("coarse", _coarse_attempt, ref_vops, mov_vops, radius, params)
         attempt = dataclasses.replace(attempt, slice_offsets_m=tuple(params.slice_offsets_m), reference_layers=ref_layers, moving_layers=mov_layers)
         log.info(
@@ -467,6 +472,22 @@ def _choose_attempt(attempts: list[CoarseAttempt]) -> CoarseAttempt:
 def fine_registration(reference: PreparedScan, moving: PreparedScan, coarse_lsf: np.ndarray, params: RegistrationParams) -> IcpResult:
     """ICP (paper sec. 2.6) from a coarse moving-LSF -> reference-LSF matrix, on the points the two
     scans can share (see :func:`overlap_region`)."""
+    if reference.icp_grid is not None and moving.icp_grid is not None:
+        # the grids made while preparing: the moving scan's voxel centroids that the reference
+        # scanner can see; the whole reference (correspondences lie within the last stage's
+        # distance of the moving points, so the reference's overlap is found by the search)
+        centroids = moving.icp_grid.centroids
+        reference_scanner = np.linalg.inv(coarse_lsf)[:2, 3]
+        near = (centroids[:, 0] - reference_scanner[0]) ** 2 + (centroids[:, 1] - reference_scanner[1]) ** 2 <= params.max_range_m**2
+        return icp(
+            IcpReference(reference.points, reference.icp_grid),
+            centroids[near],
+            coarse_lsf,
+            voxel_m=params.icp_voxel_m,
+            max_distances_m=params.icp_max_distances_m,
+            iterations=params.icp_iterations,
+            moving_voxel_m=moving.icp_grid.voxel_m,
+        )
     ref_overlap, mov_overlap = overlap_region(reference.points, moving.points, coarse_lsf, params.max_range_m)
     return icp(
         ref_overlap,

@@ -12,6 +12,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..geometry.voxel import VoxelGrid, voxel_grid
 from .params import RegistrationParams
 from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
 from .level import estimate_up_direction, levelling_rotation, tilt_deg
@@ -40,6 +41,9 @@ class PreparedScan:
     scanner_height_m: float
     tilt_deg: float
     levelled: bool
+    icp_grid: Optional[VoxelGrid] = None
+    """The points' voxel grid at the finest ICP stage's voxel (``icp_voxel_m`` or the last
+    correspondence distance / 2.5): made here, where both scans are prepared in parallel."""
 
 
 def reduce_to_range(points: np.ndarray, scanner_xy: np.ndarray, max_range_m: float) -> np.ndarray:
@@ -89,7 +93,9 @@ def prepare_scan(
     ground_mask = lowest_voxel_ground(lsf, params.ground_voxel_m)
     grid = ground_grid(lsf[ground_mask], cell_m=params.ground_voxel_m)
     height = scanner_height_above_ground(grid, np.zeros(3))
+    icp_voxel = max(params.icp_voxel_m, min(params.icp_max_distances_m) / 2.5) if len(params.icp_max_distances_m) else params.icp_voxel_m
     return PreparedScan(
+        icp_grid=voxel_grid(lsf, icp_voxel),
         points=lsf,
         local_to_lsf=local_to_lsf,
         ground_mask=ground_mask,

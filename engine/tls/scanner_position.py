@@ -42,6 +42,7 @@ __all__ = [
     "ScannerEstimate",
     "estimate_scanner_position",
     "origin_is_plausible",
+    "origin_is_density_peak",
     "locate_scanner",
 ]
 
@@ -341,6 +342,39 @@ def origin_is_plausible(points: np.ndarray, candidate: np.ndarray, estimate: Opt
     return near >= 0.5 * at_estimate
 
 
+def origin_is_density_peak(points: np.ndarray, origin: np.ndarray, params: Optional[ScannerPositionParams] = None) -> bool:
+    """Whether the file origin (local frame) is as dense a place as the scan's density peak: the
+    origin's ``near_m`` disc holds at least 100 points and 80 % of the points of the disc around
+    the peak of the smoothed density map. The quick confirmation of a scanner-centred export (the
+    common case; one density map and two disc counts); where it does not hold,
+    :func:`locate_scanner` runs the full estimate. A sufficient condition for the full estimate's
+    verdict "file origin confirmed", which needs half the points of the estimate's disc (the mean
+    shift starts at this peak and ends at the centre of the ring of dense ground around it)."""
+    p = params or ScannerPositionParams()
+    pts = np.asarray(points)
+    if len(pts) < 1000:
+        return False
+    o = np.asarray(origin, dtype=np.float64)
+    x, y = pts[:, 0], pts[:, 1]
+    lo_x, hi_x, lo_y, hi_y = float(x.min()), float(x.max()), float(y.min()), float(y.max())
+    cell = max(p.cell_m, max(hi_x - lo_x, hi_y - lo_y) / 1500.0)
+    lo = np.array([lo_x, lo_y]) - 2 * cell
+    shape = (int(np.ceil((hi_x + 2 * cell - lo[0]) / cell)), int(np.ceil((hi_y + 2 * cell - lo[1]) / cell)))
+    key = ((x - lo[0]) / cell).astype(np.int64)
+    key *= shape[1]
+    key += ((y - lo[1]) / cell).astype(np.int64)
+    counts = np.bincount(key, minlength=shape[0] * shape[1]).reshape(shape).astype(np.float64)
+    del key
+    smooth = ndimage.gaussian_filter(counts, sigma=max(p.smooth_m / cell, 1.0), mode="constant")
+    peak = lo + (np.array(np.unravel_index(int(np.argmax(smooth)), smooth.shape)) + 0.5) * cell
+
+    def disc(c: np.ndarray) -> int:
+        return int(np.count_nonzero((x - c[0]) ** 2 + (y - c[1]) ** 2 <= p.near_m**2))
+
+    at_origin = disc(o[:2])
+    return at_origin >= 100 and at_origin >= 0.8 * disc(peak)
+
+
 def _origin_inside_data(points: np.ndarray, origin: np.ndarray) -> bool:
     """Whether a candidate lies within the data's horizontal extent with >= 1000 points within 15 m."""
     lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
@@ -364,6 +398,10 @@ def locate_scanner(scan: Scan, params: Optional[ScannerPositionParams] = None) -
     source = scan.meta.get("scanner_position", "given")
     if source != "file origin":
         return scan
+    origin = scan.scanner_position
+    confirmed = dataclasses.replace(scan, meta={**scan.meta, "scanner_position": "file origin (confirmed by the data)"})
+    if origin_is_density_peak(scan.points, origin, p):
+        return confirmed
     try:
         estimate = estimate_scanner_position(scan.points, p)
         problem = ""
@@ -378,8 +416,6 @@ def locate_scanner(scan: Scan, params: Optional[ScannerPositionParams] = None) -
         if hole is not None:
             log.info("%s: no density peak under the scanner, but one blind circle in the ground", scan.name)
             estimate, problem = hole, ""
-    origin = scan.scanner_position
-    confirmed = dataclasses.replace(scan, meta={**scan.meta, "scanner_position": "file origin (confirmed by the data)"})
     if estimate is not None and not problem:
         if np.hypot(*(estimate.position[:2] - origin[:2])) <= p.origin_keep_distance_m:
             return confirmed
