@@ -24,7 +24,7 @@ from .evidence import mutual_free_space_violation
 from ..geometry.icp import IcpReference, IcpResult, icp
 from .scanner_position import locate_scanner
 from .uncertainty import pair_uncertainty
-from .prepare import PreparedScan, SliceLayer, extract_vops, prepare_scan, slice_layers
+from .prepare import PreparedScan, PreparedScans, SliceLayer, derived, extract_vops, prepare_scan, slice_layers
 from .vop import VisualOcclusionPoints
 from .params import RegistrationParams
 from ..core.outcome import Outcome, StepTimer
@@ -208,6 +208,7 @@ def register(
     moving_up: Optional[np.ndarray] = None,
     prior: Optional[np.ndarray] = None,
     prior_tolerance: tuple[float, float] = (12.0, 70.0),
+    prepared: Optional[PreparedScans] = None,
 ) -> PairResult:
     """Register ``moving`` onto ``reference`` from trunk shadows, then ICP.
 
@@ -223,6 +224,8 @@ def register(
         poses); used only to decide between two coarse solutions that pass every check, the one
         within ``prior_tolerance`` (metres at the moving scanner, degrees of heading) of it winning.
         Never trusted on its own: a result is always judged by its own evidence.
+    prepared : optional cache of prepared scans shared by several calls (the links of a plot):
+        each scan is prepared, sliced and searched for VOPs once.
 
     Returns
     -------
@@ -241,8 +244,12 @@ def register(
     step(0.0, "preparing both scans")
     # the two preparations are independent and mostly numpy (which releases the GIL): in parallel
     with ThreadPoolExecutor(max_workers=2) as pool:
-        ref_job = pool.submit(timed, "prepare_reference", prepare_scan, reference.points, reference.scanner_position, params, up=reference_up)
-        mov_job = pool.submit(timed, "prepare_moving", prepare_scan, moving.points, moving.scanner_position, params, up=moving_up)
+        if prepared is None:
+            ref_job = pool.submit(timed, "prepare_reference", prepare_scan, reference.points, reference.scanner_position, params, up=reference_up)
+            mov_job = pool.submit(timed, "prepare_moving", prepare_scan, moving.points, moving.scanner_position, params, up=moving_up)
+        else:
+            ref_job = pool.submit(timed, "prepare_reference", prepared.get, reference, params, reference_up)
+            mov_job = pool.submit(timed, "prepare_moving", prepared.get, moving, params, moving_up)
         ref_prep, mov_prep = ref_job.result(), mov_job.result()
     for name, prep in ((reference.name, ref_prep), (moving.name, mov_prep)):
         log.info(
@@ -409,15 +416,20 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
 def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: RegistrationParams, timed, step: Progress) -> list[CoarseAttempt]:
     """Slice both scans at ``params.slice_offsets_m`` and match their VOPs at ``params``'s VOP
     radius, or at each automatic radius."""
-    ref_layers = timed("slice", slice_layers, ref_prep, params)
-    mov_layers = timed("slice", slice_layers, mov_prep, params)
+    ref_layers = timed("slice", derived, ref_prep, ("layers", params), lambda: slice_layers(ref_prep, params))
+    mov_layers = timed("slice", derived, mov_prep, ("layers", params), lambda: slice_layers(mov_prep, params))
     radii = (params.vop_radius_m,) if params.vop_radius_m is not None else tuple(r for r in AUTO_VOP_RADII_M if r <= params.max_range_m - 3.0)
     step(0.0, f"visual occlusion points within {', '.join(f'{r:.0f}' for r in radii)} m")
     # every (scan, radius) extraction is independent and mostly k-d tree and numpy work (which
     # releases the GIL): two at a time
-    jobs = [(layers, radius) for radius in radii for layers in (ref_layers, mov_layers)]
+    jobs = [(prep, layers, radius) for radius in radii for prep, layers in ((ref_prep, ref_layers), (mov_prep, mov_layers))]
+
+    def vops(job: tuple) -> VisualOcclusionPoints:
+        prep, layers, radius = job
+        return derived(prep, ("vops", params, radius), lambda: extract_vops(layers, params, radius))
+
     with ThreadPoolExecutor(max_workers=2) as pool:
-        found = timed("vops", lambda: list(pool.map(lambda job: extract_vops(job[0], params, job[1]), jobs)))
+        found = timed("vops", lambda: list(pool.map(vops, jobs)))
     attempts = []
     for k, radius in enumerate(radii):
         step((k + 1) / (len(radii) + 1), f"matching the visual occlusion points within {radius:.0f} m")

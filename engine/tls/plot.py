@@ -27,6 +27,7 @@ from ..io import read_scan, write_point_chunks
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, LinkResult, Project, ScanEntry
 from .pair import register
+from .prepare import PreparedScans
 from .scanner_position import locate_scanner
 from ..core.scan import Scan
 from ..core.transform import format_matrix, rigid_errors
@@ -44,7 +45,9 @@ class ScanCache:
     scans never holds them all: one scan over the budget is still read, used and then let go.
 
     A scanner position found from the data (:func:`locate_scanner`) is remembered, so a scan read
-    again is not searched again.
+    again is not searched again. ``prepared`` keeps the scans prepared for registration (reduced,
+    levelled, sliced, their VOPs) for the links, within half of ``max_bytes`` when one is given,
+    else :data:`PREPARED_CACHE_BYTES`.
     """
 
     def __init__(self, project: Project, max_bytes: Optional[int] = None) -> None:
@@ -54,6 +57,8 @@ class ScanCache:
         self._located: dict[str, tuple[np.ndarray, np.ndarray, dict[str, Any]]] = {}
         #: how many times a scan file was read (a scan read twice was let go in between)
         self.reads = 0
+        #: the scans prepared for registration, shared by the links (each scan prepared once)
+        self.prepared = PreparedScans(max_bytes=PREPARED_CACHE_BYTES if max_bytes is None else max(int(max_bytes) // 2, 1))
 
     def __call__(self, name: str) -> Scan:
         if name in self._scans:
@@ -95,6 +100,9 @@ class ScanCache:
 #: Point arrays a :class:`ScanCache` keeps in memory by default, bytes: some twenty 3 M-point
 #: scans, or two 30 M-point scans (a 0.04 deg RIEGL scan) with room left for registering them.
 SCAN_CACHE_BYTES = 2_000_000_000
+#: Prepared scans (:class:`~forestreg.engine.tls.prepare.PreparedScans`) a :class:`ScanCache`
+#: keeps for its links by default, bytes (a 3 M-point scan holds about 70 MB prepared).
+PREPARED_CACHE_BYTES = 1_000_000_000
 
 
 def _scan_bytes(scan: Scan) -> int:
@@ -207,7 +215,7 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
     else:
         prior = _link_prior(project, link, reference, moving)
         try:
-            result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel, prior=prior)
+            result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel, prior=prior, prepared=scans.prepared)
         except DataError as exc:  # e.g. no points near a georeferenced scan's assumed scanner
             return LinkResult.from_dict({"status": "failed", "reason": str(exc), "matrix": None})
     return LinkResult.from_dict(result.to_dict())

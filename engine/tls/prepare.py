@@ -7,7 +7,7 @@ the scan's local frame (see :class:`~forestreg.engine.core.scan.Scan`) into it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
 import numpy as np
@@ -44,6 +44,70 @@ class PreparedScan:
     icp_grid: Optional[VoxelGrid] = None
     """The points' voxel grid at the finest ICP stage's voxel (``icp_voxel_m`` or the last
     correspondence distance / 2.5): made here, where both scans are prepared in parallel."""
+    derived: dict = field(default_factory=dict, compare=False, repr=False)
+    """What is computed from this scan for registration settings (slice layers, VOPs per radius,
+    the ICP reference), kept by :func:`derived` so the links of a plot compute each once."""
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the points, ground mask and ICP grid (for caches with a memory budget)."""
+        grid = 0 if self.icp_grid is None else self.icp_grid.centroids.nbytes + self.icp_grid.order.nbytes + self.icp_grid.starts.nbytes
+        return int(self.points.nbytes + self.ground_mask.nbytes + grid)
+
+
+def derived(prepared: PreparedScan, key: tuple, make):
+    """``make()`` computed once per ``key`` for a prepared scan (``key`` holds everything the
+    result depends on besides the scan, e.g. the registration parameters and a VOP radius)."""
+    memo = prepared.derived
+    if key not in memo:
+        memo[key] = make()
+    return memo[key]
+
+
+class PreparedScans:
+    """Prepared scans kept between the links of a plot, most recently used first, up to
+    ``max_bytes`` (default :data:`PREPARED_CACHE_BYTES`): a scan in three links is reduced,
+    levelled, grounded, gridded and sliced once, and its VOPs found once per radius. Thread-safe;
+    a scan over the budget is still prepared, used and let go.
+
+    Scans are told apart by name, scanner position, point count and the first and last point, and
+    preparations by every registration parameter and the vertical given.
+    """
+
+    def __init__(self, max_bytes: Optional[int] = None) -> None:
+        import threading
+        from collections import OrderedDict
+
+        self.max_bytes = PREPARED_CACHE_BYTES if max_bytes is None else int(max_bytes)
+        self._prepared: "OrderedDict[tuple, PreparedScan]" = OrderedDict()
+        self._lock = threading.Lock()
+        #: how many preparations were made (a scan let go and needed again is prepared again)
+        self.made = 0
+
+    def get(self, scan, params: RegistrationParams, up: Optional[np.ndarray] = None) -> PreparedScan:
+        """The prepared ``scan`` (a :class:`~forestreg.engine.core.scan.Scan`) for ``params``."""
+        pts = scan.points
+        key = (
+            scan.name, tuple(np.round(np.asarray(scan.scanner_position, dtype=float), 9)), len(pts),
+            tuple(pts[0]) if len(pts) else (), tuple(pts[-1]) if len(pts) else (),
+            params, None if up is None else tuple(np.asarray(up, dtype=float)),
+        )
+        with self._lock:
+            if key in self._prepared:
+                self._prepared.move_to_end(key)
+                return self._prepared[key]
+        prepared = prepare_scan(pts, scan.scanner_position, params, up=up)
+        with self._lock:
+            self.made += 1
+            self._prepared[key] = prepared
+            while len(self._prepared) > 1 and sum(p.nbytes for p in self._prepared.values()) > self.max_bytes:
+                self._prepared.popitem(last=False)
+        return prepared
+
+
+#: Bytes of prepared scans a :class:`PreparedScans` keeps by default (a 3 M-point scan holds
+#: about 60 MB prepared; two 30 M-point scans fit).
+PREPARED_CACHE_BYTES = 1_500_000_000
 
 
 def reduce_to_range(points: np.ndarray, scanner_xy: np.ndarray, max_range_m: float) -> np.ndarray:

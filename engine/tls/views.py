@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from ..core.errors import ForestregError
 from .params import RegistrationParams
 from .plot import ScanCache
-from .prepare import extract_vops, prepare_scan, slice_layers
+from .prepare import derived, extract_vops, prepare_scan, slice_layers
 from .project import Link, Project
 from ..core.transform import apply as apply_transform
 
@@ -230,11 +230,17 @@ class _Prepared:
 
     def __init__(self, project: Project, scans: ScanCache, name: str, params: RegistrationParams) -> None:
         scan = scans(name)
-        tilt = _known_tilt(project, name)
-        up = np.array([0.0, 0.0, 1.0]) if tilt == 0.0 else None
-        prepared = prepare_scan(scan.points, scan.scanner_position, params, up=up)
+        cache = getattr(scans, "prepared", None)
+        if cache is not None:
+            # the preparation the links of this run made (the same parameters give the same scan)
+            prepared = cache.get(scan, params)
+        else:
+            tilt = _known_tilt(project, name)
+            up = np.array([0.0, 0.0, 1.0]) if tilt == 0.0 else None
+            prepared = prepare_scan(scan.points, scan.scanner_position, params, up=up)
+        self.prepared = prepared
         self.params = params
-        self.layers = slice_layers(prepared, params)
+        self.layers = derived(prepared, ("layers", params), lambda: slice_layers(prepared, params))
         self.lsf_to_file = scan.local_to_file_matrix() @ np.linalg.inv(prepared.local_to_lsf)
         self.points = len(scan)
         self.scanner_file = scan.scanner_position_file
@@ -247,7 +253,7 @@ class _Prepared:
         """VOPs within ``radius`` as (N, 3) LSF points (horizontal position, slice height)."""
         key = round(float(radius), 6)
         if key not in self._vops:
-            v = extract_vops(self.layers, self.params, float(radius))
+            v = derived(self.prepared, ("vops", self.params, float(radius)), lambda: extract_vops(self.layers, self.params, float(radius)))
             self._vops[key] = np.column_stack([v.xy, v.z]) if len(v) else np.zeros((0, 3))
         return self._vops[key]
 
