@@ -218,6 +218,8 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
             result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel, prior=prior, prepared=scans.prepared)
         except DataError as exc:  # e.g. no points near a georeferenced scan's assumed scanner
             return LinkResult.from_dict({"status": "failed", "reason": str(exc), "matrix": None})
+        finally:
+            scans.prepared.release(("icp_reference",))  # the ICP trees: tens of MB per scan
     return LinkResult.from_dict(result.to_dict())
 
 

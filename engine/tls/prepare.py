@@ -105,6 +105,14 @@ class PreparedScans:
         return prepared
 
 
+    def release(self, key: tuple) -> None:
+        """Let go of what was derived under ``key`` from every kept scan (e.g. the ICP trees of
+        a link's reference, large and cheap to build again)."""
+        with self._lock:
+            for prepared in self._prepared.values():
+                prepared.derived.pop(key, None)
+
+
 #: Bytes of prepared scans a :class:`PreparedScans` keeps by default (a 3 M-point scan holds
 #: about 60 MB prepared; two 30 M-point scans fit).
 PREPARED_CACHE_BYTES = 1_500_000_000
