@@ -23,6 +23,7 @@ or the surfaces correlate poorly after it.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -343,6 +344,9 @@ def _coregister_points(
     # 0-2. the two clouds' thinning, terrain and keypoints are independent: thinning and keypoints
     # run for both at once in two threads (numpy and the k-d trees release the GIL for much of it)
     with ThreadPoolExecutor(max_workers=3) as pool:
+        # the clustering library (with scikit-learn: ~1 s to import) loads while the clouds are
+        # thinned (voxel sorts leave the GIL free); the keypoints wait for it if they get there first
+        pool.submit(importlib.import_module, "hdbscan")
         # 0. one thinned copy of each cloud serves every step (3.4 M backpack points keep ~0.9 M)
         t = time.perf_counter()
         g_keep, u_keep = pool.map(lambda p: voxel_thin(p, params.work_voxel_m), (ground, uav))
