@@ -69,6 +69,11 @@ from scipy.spatial import cKDTree
 
 from ..core.errors import InvalidArgumentError
 
+try:  # compiled bounds (same bounds, faster); the numpy path below is used without numba
+    from . import coarse_kernels as _kernels
+except ImportError:  # pragma: no cover - numba is a dependency; kept for stripped installs
+    _kernels = None
+
 __all__ = ["CoarseMatch", "match_vops", "match_vops_literal", "overlap_score"]
 
 #: Scores within this many metres of the best are treated as ties (searched exhaustively).
@@ -386,6 +391,8 @@ class _Bounds:
     wrap: np.ndarray  # offset bin index -> bin index in [0, n_bins)
     cell_bound: np.ndarray = field(default_factory=lambda: np.empty(0))  # level-1 bound per cell
     _table: np.ndarray | None = None
+    #: Compiled path only: each anchor's tuples (CSR start per anchor, tuple ids); None = numpy path.
+    lists: tuple[np.ndarray, np.ndarray] | None = None
 
     def values(self, tup: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Upper bound of ``max(0, D_t - distance)`` over the angle indices ``lo..hi`` of each tuple.
@@ -437,6 +444,12 @@ class _Bounds:
         ``(cells[r] % n_bins) * B + s`` of anchor ``cells[r] // n_bins``.
         """
         B, n_bins = self.bin_size, self.n_bins
+        if self.lists is not None:
+            return _kernels.fine_bounds(
+                np.ascontiguousarray(cells, dtype=np.int64), B, n_bins, self.step_rad, self.dist + self.slack,
+                self.lists[0], self.lists[1], self.peak, self.a_lo, self.a_hi, self.dr2, self.prod4,
+                self.anchor_const,
+            )
         if self._table is None:
             self._table = np.full(self.m * self.n * n_bins, -1, dtype=np.int64)
         table = self._table
@@ -477,8 +490,15 @@ def _build_bounds(
     step_deg: float,
     dist: float,
     bin_deg: float = _COARSE_BIN_DEG,
+    compiled: bool | None = None,
 ) -> _Bounds:
-    """Level-1 bounds from all radius-compatible (i, q, j, l) tuples (see the module docstring)."""
+    """Level-1 bounds from all radius-compatible (i, q, j, l) tuples (see the module docstring).
+
+    ``compiled``: use the numba kernels (default: when numba is importable) or the numpy path; both
+    give the same bounds up to the summation order, which the slack covers.
+    """
+    if compiled is None:
+        compiled = _kernels is not None
     m, n = reference.shape[0], moving.shape[0]
     step_rad = float(np.deg2rad(step_deg))
     B = _bin_size(k_count, step_deg, bin_deg)
@@ -496,9 +516,25 @@ def _build_bounds(
     ph = phi[jj * n + ll]
     order = np.argsort(rho_r, kind="stable")
     sorted_r = rho_r[order]
+    wide_limit = min(max(2 * B, int(_WIDE_WINDOW_DEG / step_deg)), k_count // 2)
+    # The moving anchor itself (l = j) against reference points within D_t of R[i] (incl. q = i).
+    own = np.maximum((dist + 2.0 * slack) - rho_r.reshape(m, m), 0.0).sum(axis=1)  # per i
+    if compiled:
+        anchor_const = np.tile(own, n)
+        cell_bound = np.zeros(m * n * n_bins)
+        peak, a_lo, a_hi, dr2, prod4, anchor_a, anchor_b = _kernels.build_bounds(
+            sorted_r, order.astype(np.int64), psi, rm, ph, jj.astype(np.int64), ll.astype(np.int64), m, k_count,
+            B, n_bins, step_rad, d_win, wide_limit, cell_bound, anchor_const,
+        )
+        cell_bound.reshape(m * n, n_bins)[:] += anchor_const[:, None]
+        return _Bounds(
+            m=m, n=n, k_count=k_count, bin_size=B, n_bins=n_bins, step_rad=step_rad, dist=dist,
+            slack=2.0 * slack, anchor_const=anchor_const, peak=peak, a_lo=a_lo, a_hi=a_hi, dr2=dr2,
+            prod4=prod4, anchors=(anchor_a, anchor_b), wrap=np.arange(6 * n_bins + 2) % n_bins,
+            cell_bound=cell_bound, lists=_kernels.anchor_lists(anchor_a, anchor_b, m * n),
+        )
     lo_all = np.searchsorted(sorted_r, rm - d_win, side="left")
     cnt_all = np.searchsorted(sorted_r, rm + d_win, side="right") - lo_all
-    wide_limit = min(max(2 * B, int(_WIDE_WINDOW_DEG / step_deg)), k_count // 2)
     anchor_const = np.zeros(m * n)
     row_i = np.repeat(np.arange(m, dtype=np.int32), m)
     row_q = np.tile(np.arange(m, dtype=np.int32), m)
@@ -547,8 +583,6 @@ def _build_bounds(
         kept["anchor_a"].append(anchor_a[keep])
         kept["anchor_b"].append(anchor_b[keep])
     del order, sorted_r, lo_all, cnt_all
-    # The moving anchor itself (l = j) against reference points within D_t of R[i] (incl. q = i).
-    own = np.maximum((dist + 2.0 * slack) - rho_r.reshape(m, m), 0.0).sum(axis=1)  # per i
     anchor_const += np.tile(own, n)
     dtypes = {"peak": np.float64, "a_lo": np.int32, "a_hi": np.int32, "dr2": np.float64, "prod4": np.float64,
               "anchor_a": np.int32, "anchor_b": np.int32}
