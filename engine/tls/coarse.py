@@ -391,8 +391,11 @@ class _Bounds:
     wrap: np.ndarray  # offset bin index -> bin index in [0, n_bins)
     cell_bound: np.ndarray = field(default_factory=lambda: np.empty(0))  # level-1 bound per cell
     _table: np.ndarray | None = None
-    #: Compiled path only: each anchor's tuples (CSR start per anchor, tuple ids); None = numpy path.
-    lists: tuple[np.ndarray, np.ndarray] | None = None
+    #: Compiled path only (else None): per-row sorted pair radii/directions (see coarse_kernels),
+    #: the widest windowed tuple (angles) and every anchor's largest level-1 bound.
+    rows: tuple[np.ndarray, ...] | None = None
+    wide_limit: int = 0
+    anchor_max: np.ndarray | None = None
 
     def values(self, tup: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Upper bound of ``max(0, D_t - distance)`` over the angle indices ``lo..hi`` of each tuple.
@@ -444,11 +447,10 @@ class _Bounds:
         ``(cells[r] % n_bins) * B + s`` of anchor ``cells[r] // n_bins``.
         """
         B, n_bins = self.bin_size, self.n_bins
-        if self.lists is not None:
+        if self.rows is not None:
             return _kernels.fine_bounds(
-                np.ascontiguousarray(cells, dtype=np.int64), B, n_bins, self.step_rad, self.dist + self.slack,
-                self.lists[0], self.lists[1], self.peak, self.a_lo, self.a_hi, self.dr2, self.prod4,
-                self.anchor_const,
+                np.ascontiguousarray(cells, dtype=np.int64), *self.rows, self.anchor_const, self.k_count, B,
+                n_bins, self.step_rad, self.dist + self.slack, self.wide_limit,
             )
         if self._table is None:
             self._table = np.full(self.m * self.n * n_bins, -1, dtype=np.int64)
@@ -511,28 +513,37 @@ def _build_bounds(
 
     rho_r, psi = _pair_polar(reference)  # index i*m + q
     rho_m, phi = _pair_polar(moving)  # index j*n + l
+    wide_limit = min(max(2 * B, int(_WIDE_WINDOW_DEG / step_deg)), k_count // 2)
+    # The moving anchor itself (l = j) against reference points within D_t of R[i] (incl. q = i).
+    own = np.maximum((dist + 2.0 * slack) - rho_r.reshape(m, m), 0.0).sum(axis=1)  # per i
+    if compiled:
+        # Per-row sorted pair radii for the anchor-by-anchor merge join (coarse_kernels).
+        ref_order = np.argsort(rho_r.reshape(m, m), axis=1, kind="stable")
+        mov_order = np.argsort(rho_m.reshape(n, n), axis=1, kind="stable")
+        rows = (
+            np.take_along_axis(rho_r.reshape(m, m), ref_order, axis=1),
+            np.take_along_axis(psi.reshape(m, m), ref_order, axis=1),
+            np.take_along_axis(rho_m.reshape(n, n), mov_order, axis=1),
+            np.take_along_axis(phi.reshape(n, n), mov_order, axis=1),
+            mov_order.astype(np.int64),
+        )
+        order = np.argsort(rho_r, kind="stable")
+        cell_bound, anchor_const, anchor_max = _kernels.coarse_bounds(
+            rho_r[order], order // m, order % m, psi[order], rho_m.reshape(n, n), phi.reshape(n, n), own, k_count, B, n_bins,
+            step_rad, d_win, wide_limit,
+        )
+        empty_f, empty_i = np.zeros(0), np.zeros(0, dtype=np.int32)
+        return _Bounds(
+            m=m, n=n, k_count=k_count, bin_size=B, n_bins=n_bins, step_rad=step_rad, dist=dist,
+            slack=2.0 * slack, anchor_const=anchor_const, peak=empty_f, a_lo=empty_i, a_hi=empty_i, dr2=empty_f,
+            prod4=empty_f, anchors=(empty_i, empty_i), wrap=np.arange(6 * n_bins + 2) % n_bins,
+            cell_bound=cell_bound, rows=rows, wide_limit=wide_limit, anchor_max=anchor_max,
+        )
     jj, ll = np.triu_indices(n, 1)  # one twin per moving pair: j < l
     rm = rho_m[jj * n + ll]
     ph = phi[jj * n + ll]
     order = np.argsort(rho_r, kind="stable")
     sorted_r = rho_r[order]
-    wide_limit = min(max(2 * B, int(_WIDE_WINDOW_DEG / step_deg)), k_count // 2)
-    # The moving anchor itself (l = j) against reference points within D_t of R[i] (incl. q = i).
-    own = np.maximum((dist + 2.0 * slack) - rho_r.reshape(m, m), 0.0).sum(axis=1)  # per i
-    if compiled:
-        anchor_const = np.tile(own, n)
-        cell_bound = np.zeros(m * n * n_bins)
-        peak, a_lo, a_hi, dr2, prod4, anchor_a, anchor_b = _kernels.build_bounds(
-            sorted_r, order.astype(np.int64), psi, rm, ph, jj.astype(np.int64), ll.astype(np.int64), m, k_count,
-            B, n_bins, step_rad, d_win, wide_limit, cell_bound, anchor_const,
-        )
-        cell_bound.reshape(m * n, n_bins)[:] += anchor_const[:, None]
-        return _Bounds(
-            m=m, n=n, k_count=k_count, bin_size=B, n_bins=n_bins, step_rad=step_rad, dist=dist,
-            slack=2.0 * slack, anchor_const=anchor_const, peak=peak, a_lo=a_lo, a_hi=a_hi, dr2=dr2,
-            prod4=prod4, anchors=(anchor_a, anchor_b), wrap=np.arange(6 * n_bins + 2) % n_bins,
-            cell_bound=cell_bound, lists=_kernels.anchor_lists(anchor_a, anchor_b, m * n),
-        )
     lo_all = np.searchsorted(sorted_r, rm - d_win, side="left")
     cnt_all = np.searchsorted(sorted_r, rm + d_win, side="right") - lo_all
     anchor_const = np.zeros(m * n)
@@ -650,7 +661,7 @@ def _search(
         return -np.inf if not np.isfinite(best[0]) else total - best[0] - TIE_TOLERANCE_M
 
     grid = bounds.cell_bound.reshape(m * n, n_bins)
-    anchor_max = grid.max(axis=1)
+    anchor_max = grid.max(axis=1) if bounds.anchor_max is None else bounds.anchor_max
     ranked = np.sort(anchor_max)[::-1]
     u_min = float(grid.min())
     upper = np.inf

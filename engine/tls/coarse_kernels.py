@@ -1,13 +1,19 @@
-"""Compiled (numba) kernels of the coarse VOP matcher's bounds; see :mod:`.coarse` for the maths.
+"""Compiled (numba) bounds of the exact coarse VOP matcher; see :mod:`.coarse` for the maths.
 
 Frames and units are those of :mod:`.coarse`: radii in metres (pair radii of VOPs in their own scan's
-horizontal plane), directions in radians, angles as integer indices ``a`` of the angle step (offset
-by ``3K`` so that they stay positive; ``a mod K`` is the angle index, ``a = 0`` is ``k = K``).
+horizontal plane), directions in radians, angles as integer indices ``a`` of the angle step, offset
+by ``3K`` inside a window so that they stay positive (``a mod K`` is the angle index, ``a = 0`` is
+``k = K``).
 
-Every kernel computes the same bounds as the numpy path of :mod:`.coarse` (the same formulas per
-tuple and angle); only the summation order of a bound differs, which the bound's slack covers. The
-exact scores are never computed here (they stay with the k-d tree scorer both matchers share).
+Unlike the numpy path, which joins all pair radii once and stores every tuple, these kernels work
+anchor by anchor: the tuples (q, l) of anchor (i, j) come from a merge of reference row ``i``'s and
+moving row ``j``'s pair radii, each sorted beforehand, and are summed into that anchor's bins while
+they are in cache. Nothing is stored per tuple, so the memory stays O(m*n*bins) however packed the
+VOPs are. The per-(tuple, angle-set) value is the numpy path's formula; the angular window is
+bounded without ``acos`` (``asin(y) <= y (1 + y^2)`` for ``y^2 <= 1/2``), a window at least as wide as the numpy
+path's, so every bound stays >= the true improvement (module docstring of :mod:`.coarse`).
 
+The exact scores are never computed here: they stay with the k-d tree scorer both matchers share.
 Importing this module needs numba; :mod:`.coarse` falls back to its numpy path without it.
 """
 
@@ -17,9 +23,13 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _window_value(peak: float, lo: int, hi: int, half_step: float, dr2: float, prod4: float, d_win: float) -> float:
-    """Bound of ``max(0, D_t - distance)`` over angle indices ``lo..hi`` (metres; ``d_win = D_t + slack``)."""
+    """Bound of ``max(0, D_t - distance)`` over angle indices ``lo..hi`` (metres; ``d_win = D_t + slack``).
+
+    The distance is smallest at the angle nearest the peak; ``sin(x) >= x - x^3/6`` (x = half the
+    angle from the peak, < pi/4 here) bounds it from below.
+    """
     c = peak
     if c < lo:
         c = lo
@@ -27,195 +37,277 @@ def _window_value(peak: float, lo: int, hi: int, half_step: float, dr2: float, p
         c = hi
     x = abs(c - peak) * half_step
     s = x * (1.0 - x * x * (1.0 / 6.0))
-    d = np.sqrt(dr2 + prod4 * (s * s))
-    v = d_win - d
+    v = d_win - np.sqrt(dr2 + prod4 * (s * s))
     return v if v > 0.0 else 0.0
 
 
-@njit(cache=True, nogil=True)
-def build_bounds(
+@njit(cache=True, nogil=True, error_model="numpy")
+def _anchor_tuples(
+    i: int,
+    j: int,
+    ref_r: np.ndarray,
+    ref_psi: np.ndarray,
+    mov_r: np.ndarray,
+    mov_phi: np.ndarray,
+    mov_idx: np.ndarray,
+    inv_step: float,
+    offset: float,
+    d_win: float,
+    wide_limit: int,
+    peak: np.ndarray,
+    a_lo: np.ndarray,
+    a_hi: np.ndarray,
+    dr2: np.ndarray,
+    prod4: np.ndarray,
+) -> tuple[int, float]:
+    """Windowed tuples (q, l) of anchor (i, j), written to the first ``count`` slots of the outputs.
+
+    Returns ``(count, const)``: ``const`` (metres) sums the angle-independent bounds of the anchor's
+    other pairs (a zero radius, a window round the circle or wider than ``wide_limit`` angles).
+    The moving anchor itself (l = j) is not included (``coarse._build_bounds`` adds it).
+    """
+    rr = ref_r[i]
+    m = rr.shape[0]
+    mr = mov_r[j]
+    dw2 = d_win * d_win
+    count = 0
+    const = 0.0
+    first = 0
+    for e in range(mr.shape[0]):
+        if mov_idx[j, e] == j:
+            continue
+        rl = mr[e]
+        while first < m and rr[first] < rl - d_win:
+            first += 1
+        phi = mov_phi[j, e]
+        for f in range(first, m):
+            rq = rr[f]
+            if rq > rl + d_win:
+                break
+            diff = rl - rq
+            gap = dw2 - diff * diff
+            if gap < 0.0:
+                continue  # |rl - rq| within rounding of d_win: f is 0 everywhere
+            prod = rl * rq
+            if prod == 0.0:
+                const += d_win - abs(diff)
+                continue
+            y2 = gap / (4.0 * prod)  # sin^2 of half the window (>= 1: the whole circle)
+            if y2 > 0.5:  # a window of 90 deg or more: wider than wide_limit (<= 40 deg), constant
+                const += d_win - abs(diff)
+                continue
+            # Half-width 2 asin(y) <= 2 y (1 + y^2) for y^2 <= 1/2, widened against rounding.
+            hw = (2.0 * np.sqrt(y2) * (1.0 + y2) * (1.0 + 1e-12) + 1e-9) * inv_step
+            pk = (ref_psi[i, f] - phi) * inv_step + offset
+            # floor(x) + 1 instead of ceil(x): an angle exactly on the widened edge has f = 0.
+            lo = np.int64(pk - hw) + 1
+            hi = np.int64(pk + hw)
+            if hi - lo >= wide_limit:
+                const += d_win - abs(diff)
+                continue
+            if hi < lo:
+                continue
+            peak[count] = pk
+            a_lo[count] = lo
+            a_hi[count] = hi
+            dr2[count] = diff * diff
+            prod4[count] = 4.0 * prod
+            count += 1
+    return count, const
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def coarse_bounds(
     sorted_r: np.ndarray,
-    order: np.ndarray,
-    psi: np.ndarray,
-    rm: np.ndarray,
-    ph: np.ndarray,
-    jj: np.ndarray,
-    ll: np.ndarray,
-    m: int,
+    sorted_i: np.ndarray,
+    sorted_q: np.ndarray,
+    sorted_psi: np.ndarray,
+    mov_r: np.ndarray,
+    mov_phi: np.ndarray,
+    own: np.ndarray,
     k_count: int,
     bin_size: int,
     n_bins: int,
     step_rad: float,
     d_win: float,
     wide_limit: int,
-    cell_bound: np.ndarray,
-    anchor_const: np.ndarray,
-):
-    """Join the pair radii into tuples and accumulate the level-1 bounds (see ``coarse._build_bounds``).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Level-1 bounds (metres) of every cell, the anchors' constant parts and the anchors' maxima.
 
-    ``sorted_r`` are the m*m reference pair radii (m) in increasing order, ``order`` their flat index
-    ``i*m + q`` and ``psi`` (by flat index) their directions (rad); ``rm``, ``ph`` are the radii and
-    directions of the moving pairs ``(jj, ll)`` with ``jj < ll``. Adds every tuple's bound to
-    ``cell_bound`` (anchor ``j*m + i`` times ``n_bins`` plus bin) and angle-independent bounds to
-    ``anchor_const``, in place. Returns the kept tuples: peak, a_lo, a_hi, (rho_l - rho_q)^2,
-    4 rho_l rho_q, and the two twins' anchors.
+    ``sorted_r`` are all m*m reference pair radii ``|R[q] - R[i]|`` in increasing order,
+    ``sorted_i``, ``sorted_q`` and ``sorted_psi`` the pair's points and direction (rad); ``mov_r``
+    and ``mov_phi`` (n, n) the moving pair radii and directions ``M[l] - M[j]``; ``own`` (m,) the
+    bound of the moving anchor itself. Each moving pair j < l is joined with one contiguous run of
+    the sorted reference radii, and every tuple (i, q, j, l) adds its bounds to both twins' anchors
+    ``j*m + i`` and ``l*m + q``. The windows and the first two bins' values are computed first for
+    the whole run without branches (the compiler vectorises that loop), then added to the cells.
+    Returns ``cell_bound`` (m*n*n_bins,), cell = ``(j*m + i) * n_bins + bin``, ``anchor_const``
+    and ``anchor_max`` (m*n,).
     """
+    m, n = own.shape[0], mov_r.shape[0]
     inv_step = 1.0 / step_rad
     half_step = 0.5 * step_rad
-    dw2 = d_win * d_win
     offset = 3.0 * k_count
-    n_ref = sorted_r.shape[0]
-    cap = 1024
-    peak_o = np.empty(cap)
-    lo_o = np.empty(cap, dtype=np.int32)
-    hi_o = np.empty(cap, dtype=np.int32)
-    dr2_o = np.empty(cap)
-    prod4_o = np.empty(cap)
-    anc_a_o = np.empty(cap, dtype=np.int32)
-    anc_b_o = np.empty(cap, dtype=np.int32)
-    count = 0
-    for p in range(rm.shape[0]):
-        rl = rm[p]
-        first = np.searchsorted(sorted_r, rl - d_win, side="left")
-        last = np.searchsorted(sorted_r, rl + d_win, side="right")
-        base_a = jj[p] * m
-        base_b = ll[p] * m
-        phi = ph[p]
-        for t in range(first, min(last, n_ref)):
-            rp = order[t]
-            rq = sorted_r[t]
-            i = rp // m
-            q = rp - i * m
-            anchor_a = base_a + i
-            anchor_b = base_b + q
-            prod = 2.0 * rl * rq
-            const = prod == 0.0
-            if not const:
-                c = (rl * rl + rq * rq - dw2) / prod
-                if not (c > -1.0):
-                    const = True
-                else:
-                    hw = (np.arccos(min(c, 1.0)) + 1e-9) * inv_step
-                    peak = (psi[rp] - phi) * inv_step + offset
-                    # floor(x) + 1 instead of ceil(x): an angle exactly on the widened edge has f = 0.
-                    a_lo = np.int64(peak - hw) + 1
-                    a_hi = np.int64(peak + hw)
-                    if a_hi - a_lo >= wide_limit:
-                        const = True
-            if const:
-                v = d_win - abs(rl - rq)
-                if v > 0.0:
-                    anchor_const[anchor_a] += v
-                    anchor_const[anchor_b] += v
-                continue
-            if a_hi < a_lo:
-                continue
-            dr2 = (rl - rq) * (rl - rq)
-            prod4 = 4.0 * rl * rq
-            if count == cap:
-                cap *= 2
-                peak_o = _grow(peak_o, cap)
-                lo_o = _grow(lo_o, cap)
-                hi_o = _grow(hi_o, cap)
-                dr2_o = _grow(dr2_o, cap)
-                prod4_o = _grow(prod4_o, cap)
-                anc_a_o = _grow(anc_a_o, cap)
-                anc_b_o = _grow(anc_b_o, cap)
-            peak_o[count] = peak
-            lo_o[count] = a_lo
-            hi_o[count] = a_hi
-            dr2_o[count] = dr2
-            prod4_o[count] = prod4
-            anc_a_o[count] = anchor_a
-            anc_b_o[count] = anchor_b
-            count += 1
-            row_a = anchor_a * n_bins
-            row_b = anchor_b * n_bins
-            for ob in range(a_lo // bin_size, a_hi // bin_size + 1):
+    dw2 = d_win * d_win
+    inv_bin = 1.0 / bin_size
+    inv_nb = 1.0 / n_bins
+    cell_bound = np.zeros(m * n * n_bins)
+    cap = sorted_r.shape[0]
+    b_const = np.empty(cap)
+    b_v0 = np.empty(cap)
+    b_v1 = np.empty(cap)
+    b_c0 = np.empty(cap, dtype=np.int64)
+    b_c1 = np.empty(cap, dtype=np.int64)
+    b_more = np.empty(cap, dtype=np.bool_)
+    b_lo = np.empty(cap, dtype=np.int64)
+    b_hi = np.empty(cap, dtype=np.int64)
+    b_pk = np.empty(cap)
+    anchor_const = np.zeros(m * n)
+    anchor_max = np.empty(m * n)
+    for j in range(n):
+        anchor_const[j * m : j * m + m] = own
+    for j in range(n):
+        block = j * m
+        for l in range(j + 1, n):
+            block_b = l * m
+            rl = mov_r[j, l]
+            phi = mov_phi[j, l]
+            first = np.searchsorted(sorted_r, rl - d_win, side="left")
+            last = np.searchsorted(sorted_r, rl + d_win, side="right")
+            cnt = last - first
+            # Phase 1, branch-free (vectorisable): windows and the first two bins' values.
+            for u in range(cnt):
+                t = first + u
+                rq = sorted_r[t]
+                diff = rl - rq
+                gap = dw2 - diff * diff
+                prod = rl * rq
+                y2 = gap / (4.0 * prod)
+                yc = min(max(y2, 0.0), 0.5)
+                hw = (2.0 * np.sqrt(yc) * (1.0 + yc) * (1.0 + 1e-12) + 1e-9) * inv_step
+                pk = (sorted_psi[t] - phi) * inv_step + offset
+                lo = np.int64(pk - hw) + 1
+                hi = np.int64(pk + hw)
+                ob = np.int64((lo + 0.5) * inv_bin)
                 start = ob * bin_size
-                v = _window_value(
-                    peak, max(a_lo, start), min(a_hi, start + bin_size - 1), half_step, dr2, prod4, d_win
-                )
-                if v > 0.0:
-                    b = ob % n_bins
-                    cell_bound[row_a + b] += v
-                    cell_bound[row_b + b] += v
-    return (
-        peak_o[:count].copy(),
-        lo_o[:count].copy(),
-        hi_o[:count].copy(),
-        dr2_o[:count].copy(),
-        prod4_o[:count].copy(),
-        anc_a_o[:count].copy(),
-        anc_b_o[:count].copy(),
-    )
+                x0 = abs(min(max(pk, lo), min(hi, start + bin_size - 1)) - pk) * half_step
+                s0 = x0 * (1.0 - x0 * x0 * (1.0 / 6.0))
+                v0 = d_win - np.sqrt(diff * diff + 4.0 * prod * (s0 * s0))
+                start += bin_size
+                x1 = abs(min(max(pk, start), min(hi, start + bin_size - 1)) - pk) * half_step
+                s1 = x1 * (1.0 - x1 * x1 * (1.0 / 6.0))
+                v1 = d_win - np.sqrt(diff * diff + 4.0 * prod * (s1 * s1))
+                good = gap >= 0.0
+                windowed = good & (y2 <= 0.5) & (hi - lo < wide_limit)
+                b_const[u] = (d_win - abs(diff)) if (good and not windowed) else 0.0
+                windowed = windowed & (hi >= lo)
+                b_v0[u] = max(v0, 0.0) if windowed else 0.0
+                b_v1[u] = max(v1, 0.0) if (windowed and hi >= start) else 0.0
+                wrapped = ob - n_bins * np.int64((ob + 0.5) * inv_nb)
+                b_c0[u] = wrapped
+                b_c1[u] = 0 if wrapped == n_bins - 1 else wrapped + 1
+                b_more[u] = windowed and (hi >= start + bin_size)
+                b_lo[u] = lo
+                b_hi[u] = hi
+                b_pk[u] = pk
+            # Phase 2: add to the anchors' cells.
+            for u in range(cnt):
+                t = first + u
+                anchor = block + sorted_i[t]
+                anchor_b = block_b + sorted_q[t]
+                anchor_const[anchor] += b_const[u]
+                anchor_const[anchor_b] += b_const[u]
+                base = anchor * n_bins
+                base_b = anchor_b * n_bins
+                cell_bound[base + b_c0[u]] += b_v0[u]
+                cell_bound[base + b_c1[u]] += b_v1[u]
+                cell_bound[base_b + b_c0[u]] += b_v0[u]
+                cell_bound[base_b + b_c1[u]] += b_v1[u]
+                if b_more[u]:  # windows over more than two bins (rare)
+                    pk, lo, hi = b_pk[u], b_lo[u], b_hi[u]
+                    diff = rl - sorted_r[t]
+                    d2 = diff * diff
+                    p4 = 4.0 * rl * sorted_r[t]
+                    for ob in range(np.int64((lo + 0.5) * inv_bin) + 2, np.int64((hi + 0.5) * inv_bin) + 1):
+                        start = ob * bin_size
+                        v = _window_value(pk, start, min(hi, start + bin_size - 1), half_step, d2, p4, d_win)
+                        cell_bound[base + ob - n_bins * np.int64((ob + 0.5) * inv_nb)] += v
+                        cell_bound[base_b + ob - n_bins * np.int64((ob + 0.5) * inv_nb)] += v
+    for j in range(n):
+        block = j * m
+        for i in range(m):
+            anchor = block + i
+            const = anchor_const[anchor]
+            base = anchor * n_bins
+            best = -np.inf
+            for b in range(n_bins):
+                v = cell_bound[base + b] + const
+                cell_bound[base + b] = v
+                if v > best:
+                    best = v
+            anchor_max[anchor] = best
+    return cell_bound, anchor_const, anchor_max
 
 
-@njit(cache=True, nogil=True)
-def _grow(arr: np.ndarray, cap: int) -> np.ndarray:
-    out = np.empty(cap, dtype=arr.dtype)
-    out[: arr.shape[0]] = arr
-    return out
-
-
-@njit(cache=True, nogil=True)
-def anchor_lists(anc_a: np.ndarray, anc_b: np.ndarray, anchors: int) -> tuple[np.ndarray, np.ndarray]:
-    """Tuples of every anchor (either twin): CSR ``start`` (anchors + 1,) and tuple ids, by anchor."""
-    start = np.zeros(anchors + 1, dtype=np.int64)
-    for t in range(anc_a.shape[0]):
-        start[anc_a[t] + 1] += 1
-        start[anc_b[t] + 1] += 1
-    for a in range(anchors):
-        start[a + 1] += start[a]
-    fill = start[:-1].copy()
-    ids = np.empty(2 * anc_a.shape[0], dtype=np.int32)
-    for t in range(anc_a.shape[0]):
-        ids[fill[anc_a[t]]] = t
-        fill[anc_a[t]] += 1
-        ids[fill[anc_b[t]]] = t
-        fill[anc_b[t]] += 1
-    return start, ids
-
-
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def fine_bounds(
     cells: np.ndarray,
+    ref_r: np.ndarray,
+    ref_psi: np.ndarray,
+    mov_r: np.ndarray,
+    mov_phi: np.ndarray,
+    mov_idx: np.ndarray,
+    anchor_const: np.ndarray,
+    k_count: int,
     bin_size: int,
     n_bins: int,
     step_rad: float,
     d_win: float,
-    start: np.ndarray,
-    ids: np.ndarray,
-    peak: np.ndarray,
-    a_lo: np.ndarray,
-    a_hi: np.ndarray,
-    dr2: np.ndarray,
-    prod4: np.ndarray,
-    anchor_const: np.ndarray,
+    wide_limit: int,
 ) -> np.ndarray:
     """Level-2 bound (metres) of every angle of ``cells``, shape (len(cells), bin_size).
 
     Row r, column s bounds angle ``(cells[r] % n_bins) * bin_size + s`` of anchor
-    ``cells[r] // n_bins``; ``start``/``ids`` list each anchor's tuples (:func:`anchor_lists`).
+    ``cells[r] // n_bins`` (anchor ``j*m + i``). Each anchor's tuples are built once per call.
     """
+    m = ref_r.shape[0]
+    n = mov_r.shape[0]
+    inv_step = 1.0 / step_rad
     half_step = 0.5 * step_rad
-    out = np.empty((cells.shape[0], bin_size))
+    offset = 3.0 * k_count
     span = n_bins * bin_size  # = K
-    for r in range(cells.shape[0]):
+    cap = m * n
+    peak = np.empty(cap)
+    a_lo = np.empty(cap, dtype=np.int64)
+    a_hi = np.empty(cap, dtype=np.int64)
+    dr2 = np.empty(cap)
+    prod4 = np.empty(cap)
+    out = np.zeros((cells.shape[0], bin_size))
+    order = np.argsort(cells)
+    current = -1
+    count = 0
+    for o in range(order.shape[0]):
+        r = order[o]
         anchor = cells[r] // n_bins
         b = cells[r] - anchor * n_bins
-        const = anchor_const[anchor]
-        for s in range(bin_size):
-            out[r, s] = 0.0
-        for e in range(start[anchor], start[anchor + 1]):
-            t = ids[e]
-            lo_t, hi_t, p = a_lo[t], a_hi[t], peak[t]
-            # The window (offset angles, inside [K/2, 5.5K]) meets this bin in at most one copy.
-            first = b * bin_size + ((lo_t - b * bin_size - bin_size + 1 + span - 1) // span) * span
+        if anchor != current:
+            current = anchor
+            j = anchor // m
+            i = anchor - j * m
+            count, _ = _anchor_tuples(
+                i, j, ref_r, ref_psi, mov_r, mov_phi, mov_idx, inv_step, offset, d_win, wide_limit,
+                peak, a_lo, a_hi, dr2, prod4,
+            )
+        for t in range(count):
+            lo_t, hi_t = a_lo[t], a_hi[t]
+            # The window (offset angles, narrower than K/2) meets this bin in at most one copy:
+            # the first copy b*B + u*K whose last angle is >= lo_t.
+            first = b * bin_size + ((lo_t - b * bin_size - bin_size + span) // span) * span
             lo = max(lo_t, first)
             hi = min(hi_t, first + bin_size - 1)
             for a in range(lo, hi + 1):
-                out[r, a - first] += _window_value(p, a, a, half_step, dr2[t], prod4[t], d_win)
+                out[r, a - first] += _window_value(peak[t], a, a, half_step, dr2[t], prod4[t], d_win)
+        const = anchor_const[anchor]
         for s in range(bin_size):
             out[r, s] += const
     return out
