@@ -61,6 +61,7 @@ optimum. Candidates that are not distinct are skipped before being scored.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -158,10 +159,17 @@ def _check_distance(match_distance_m: float) -> float:
     return dist
 
 
+@functools.lru_cache(maxsize=8)
 def _angle_table(k_count: int, angle_step_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """cos and sin of ``theta_k = k * I_A`` for ``k = 0 .. K`` (index by k; entry 0 is unused)."""
+    """cos and sin of ``theta_k = k * I_A`` for ``k = 0 .. K`` (index by k; entry 0 is unused).
+
+    Cached per (K, step) and read-only (the same arrays serve every match).
+    """
     theta = np.deg2rad(np.arange(k_count + 1, dtype=np.float64) * float(angle_step_deg))
-    return np.cos(theta), np.sin(theta)
+    cos_k, sin_k = np.cos(theta), np.sin(theta)
+    cos_k.flags.writeable = False
+    sin_k.flags.writeable = False
+    return cos_k, sin_k
 
 
 def _transform(

@@ -215,8 +215,9 @@ def coarse_bounds(
                 t = first + u
                 anchor = block + sorted_i[t]
                 anchor_b = block_b + sorted_q[t]
-                anchor_const[anchor] += b_const[u]
-                anchor_const[anchor_b] += b_const[u]
+                if b_const[u] != 0.0:  # rare: predicted
+                    anchor_const[anchor] += b_const[u]
+                    anchor_const[anchor_b] += b_const[u]
                 base = anchor * n_bins
                 base_b = anchor_b * n_bins
                 cell_bound[base + b_c0[u]] += b_v0[u]
