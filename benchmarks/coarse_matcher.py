@@ -74,7 +74,7 @@ def packed_pair(n: int = 80, seed: int = 0, radius: float = 2.0) -> tuple[np.nda
 def run_packed(n: int = 80, repeats: int = 2, angle_step_deg: float = 0.1) -> list[dict]:
     """Worst case: wall time (s) of the compiled and the numpy bounds, alternately, same results."""
     reference, moving = packed_pair(n)
-    kernels = coarse._kernels
+    kernels = coarse._compiled_kernels()
     times: dict[str, list[float]] = {"numba": [], "numpy": []}
     results = {}
     try:

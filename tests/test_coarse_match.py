@@ -434,7 +434,7 @@ def _bound_path_cases():
     return cases
 
 
-@pytest.mark.skipif(coarse._kernels is None, reason="numba is not installed")
+@pytest.mark.skipif(coarse._compiled_kernels() is None, reason="numba is not installed")
 @pytest.mark.parametrize("name", list(_bound_path_cases()))
 def test_compiled_and_numpy_bounds_give_identical_results(name: str, monkeypatch) -> None:
     """The numba kernels and the numpy path: same optimum, same second solution, bit for bit."""
@@ -454,7 +454,7 @@ def test_compiled_and_numpy_bounds_give_identical_results(name: str, monkeypatch
         np.testing.assert_array_equal(compiled.second_translation, plain.second_translation)
 
 
-@pytest.mark.skipif(coarse._kernels is None, reason="numba is not installed")
+@pytest.mark.skipif(coarse._compiled_kernels() is None, reason="numba is not installed")
 def test_compiled_and_numpy_agree_at_fine_step_on_80_realistic_vops() -> None:
     """80 x 80 realistic VOPs at 0.1 deg: compiled and numpy paths agree (incl. the second solution)."""
     reference, moving, _, _, _ = _realistic(4, 80)
@@ -474,7 +474,7 @@ def test_compiled_and_numpy_agree_at_fine_step_on_80_realistic_vops() -> None:
 @pytest.mark.parametrize(("seed", "step", "dist", "bin_deg"), [(26, 1.0, DT, 2.0), (27, 2.0, 2.5, 4.0), (28, 1.5, 0.5, 3.0)])
 def test_both_bound_paths_are_never_below_the_true_improvement(compiled, seed, step, dist, bin_deg) -> None:
     """Level-1 and level-2 bounds of the numba and of the numpy path >= the true G (incl. packed VOPs)."""
-    if compiled and coarse._kernels is None:
+    if compiled and coarse._compiled_kernels() is None:
         pytest.skip("numba is not installed")
     reference, moving, _, _ = random_case(seed, m_range=(10, 14))
     if seed == 28:  # packed: many pairs within D_t of each other

@@ -70,10 +70,23 @@ from scipy.spatial import cKDTree
 
 from ..core.errors import InvalidArgumentError
 
-try:  # compiled bounds (same bounds, faster); the numpy path below is used without numba
-    from . import coarse_kernels as _kernels
-except ImportError:  # pragma: no cover - numba is a dependency; kept for stripped installs
-    _kernels = None
+#: The numba kernels module once :func:`_compiled_kernels` has imported it; None: the numpy path.
+_kernels = None
+_kernels_tried = False
+
+
+def _compiled_kernels():
+    """The compiled bounds (:mod:`.coarse_kernels`), imported on first use so that importing this
+    module does not import numba; None when numba is missing (the numpy path gives the same bounds)."""
+    global _kernels, _kernels_tried
+    if not _kernels_tried:
+        _kernels_tried = True
+        try:
+            from . import coarse_kernels
+        except ImportError:  # pragma: no cover - numba is a dependency; kept for stripped installs
+            coarse_kernels = None
+        _kernels = coarse_kernels
+    return _kernels
 
 __all__ = ["CoarseMatch", "match_vops", "match_vops_literal", "overlap_score"]
 
@@ -456,7 +469,9 @@ class _Bounds:
         """
         B, n_bins = self.bin_size, self.n_bins
         if self.rows is not None:
-            return _kernels.fine_bounds(
+            from . import coarse_kernels  # imported already: these bounds were built with it
+
+            return coarse_kernels.fine_bounds(
                 np.ascontiguousarray(cells, dtype=np.int64), *self.rows, self.anchor_const, self.k_count, B,
                 n_bins, self.step_rad, self.dist + self.slack, self.wide_limit,
             )
@@ -507,8 +522,9 @@ def _build_bounds(
     ``compiled``: use the numba kernels (default: when numba is importable) or the numpy path; both
     give the same bounds up to the summation order, which the slack covers.
     """
+    kernels = _compiled_kernels()
     if compiled is None:
-        compiled = _kernels is not None
+        compiled = kernels is not None
     m, n = reference.shape[0], moving.shape[0]
     step_rad = float(np.deg2rad(step_deg))
     B = _bin_size(k_count, step_deg, bin_deg)
@@ -525,7 +541,7 @@ def _build_bounds(
     # The moving anchor itself (l = j) against reference points within D_t of R[i] (incl. q = i).
     own = np.maximum((dist + 2.0 * slack) - rho_r.reshape(m, m), 0.0).sum(axis=1)  # per i
     if compiled:
-        # Per-row sorted pair radii for the anchor-by-anchor merge join (coarse_kernels).
+        # Row-sorted pair radii for the level-2 merge join of one anchor (coarse_kernels.fine_bounds).
         ref_order = np.argsort(rho_r.reshape(m, m), axis=1, kind="stable")
         mov_order = np.argsort(rho_m.reshape(n, n), axis=1, kind="stable")
         rows = (
@@ -536,7 +552,7 @@ def _build_bounds(
             mov_order.astype(np.int64),
         )
         order = np.argsort(rho_r, kind="stable")
-        cell_bound, anchor_const, anchor_max = _kernels.coarse_bounds(
+        cell_bound, anchor_const, anchor_max = kernels.coarse_bounds(
             rho_r[order], order // m, order % m, psi[order], rho_m.reshape(n, n), phi.reshape(n, n), own, k_count, B, n_bins,
             step_rad, d_win, wide_limit,
         )

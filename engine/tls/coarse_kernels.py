@@ -5,13 +5,15 @@ horizontal plane), directions in radians, angles as integer indices ``a`` of the
 by ``3K`` inside a window so that they stay positive (``a mod K`` is the angle index, ``a = 0`` is
 ``k = K``).
 
-Unlike the numpy path, which joins all pair radii once and stores every tuple, these kernels work
-anchor by anchor: the tuples (q, l) of anchor (i, j) come from a merge of reference row ``i``'s and
-moving row ``j``'s pair radii, each sorted beforehand, and are summed into that anchor's bins while
-they are in cache. Nothing is stored per tuple, so the memory stays O(m*n*bins) however packed the
-VOPs are. The per-(tuple, angle-set) value is the numpy path's formula; the angular window is
-bounded without ``acos`` (a series of ``asin`` with a bounded tail), a window at least as wide
-as the numpy path's, so every bound stays >= the true improvement (module docstring of :mod:`.coarse`).
+Level 1 (:func:`coarse_bounds`) joins the pair radii as the numpy path does -- each moving pair
+j < l against one contiguous run of the sorted reference pair radii -- but adds every tuple's bounds
+to both twins' cells at once instead of storing the tuple. Level 2 (:func:`fine_bounds`) rebuilds
+the tuples of one anchor (i, j) when needed, from a merge of reference row ``i``'s and moving row
+``j``'s pair radii, each sorted beforehand. Nothing is stored per tuple, so the memory stays
+O(m*n*bins) however packed the VOPs are. The per-(tuple, angle-set) value is the numpy path's
+formula; the angular window is bounded without ``acos`` (a series of ``asin`` with a bounded tail),
+a window at least as wide as the numpy path's and wider by < 1e-6 rad, so every bound stays >= the
+true improvement (module docstring of :mod:`.coarse`) and prunes as much as the numpy path's.
 
 The exact scores are never computed here: they stay with the k-d tree scorer both matchers share.
 Importing this module needs numba; :mod:`.coarse` falls back to its numpy path without it.
@@ -23,7 +25,17 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+def _compiled(fn):
+    """``njit`` with the machine code cached on disk (next to this file, or numba's user-wide cache
+    directory when the package folder is read-only); compiled afresh in every process when neither
+    is writable (numba refuses ``cache=True`` then)."""
+    try:
+        return njit(cache=True, nogil=True, error_model="numpy")(fn)
+    except RuntimeError:  # "cannot cache function ...: no locator available"
+        return njit(cache=False, nogil=True, error_model="numpy")(fn)
+
+
+@_compiled
 def _window_value(peak: float, lo: int, hi: int, half_step: float, dr2: float, prod4: float, d_win: float) -> float:
     """Bound of ``max(0, D_t - distance)`` over angle indices ``lo..hi`` (metres; ``d_win = D_t + slack``).
 
@@ -41,7 +53,7 @@ def _window_value(peak: float, lo: int, hi: int, half_step: float, dr2: float, p
     return v if v > 0.0 else 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_compiled
 def _half_window(y2: float) -> float:
     """Upper bound (rad) of ``2 asin(sqrt(y2)) = acos(1 - 2 y2)`` for ``0 <= y2 <= 1/2``.
 
@@ -54,7 +66,7 @@ def _half_window(y2: float) -> float:
     ) * (1.0 + 1e-12)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_compiled
 def _anchor_tuples(
     i: int,
     j: int,
@@ -128,7 +140,7 @@ def _anchor_tuples(
     return count, const
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_compiled
 def coarse_bounds(
     sorted_r: np.ndarray,
     sorted_i: np.ndarray,
@@ -262,7 +274,7 @@ def coarse_bounds(
     return cell_bound, anchor_const, anchor_max
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_compiled
 def fine_bounds(
     cells: np.ndarray,
     ref_r: np.ndarray,
