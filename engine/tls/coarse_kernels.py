@@ -85,18 +85,20 @@ def _anchor_tuples(
     dr2: np.ndarray,
     prod4: np.ndarray,
 ) -> tuple[int, float]:
-    """Windowed tuples (q, l) of anchor (i, j), written to the first ``count`` slots of the outputs.
+    """Radius-compatible tuples (q, l) of anchor (i, j), in the first ``count`` slots of the outputs.
 
     Returns ``(count, const)``: ``const`` (metres) sums the angle-independent bounds of the anchor's
-    other pairs (a zero radius, a window round the circle or wider than ``wide_limit`` angles).
+    pairs with a zero radius or a window round the circle or wider than ``wide_limit`` angles;
+    those tuples, and the ones whose window holds no angle, get an empty window (a_lo > a_hi).
     The moving anchor itself (l = j) is not included (``coarse._build_bounds`` adds it).
     """
     rr = ref_r[i]
     m = rr.shape[0]
     mr = mov_r[j]
     dw2 = d_win * d_win
+    # Merge of the two sorted rows: radius-compatible candidates (the peak direction goes to
+    # ``peak``, the moving radius to ``dr2``, the reference radius to ``prod4`` for now).
     count = 0
-    const = 0.0
     first = 0
     for e in range(mr.shape[0]):
         if mov_idx[j, e] == j:
@@ -105,38 +107,37 @@ def _anchor_tuples(
         while first < m and rr[first] < rl - d_win:
             first += 1
         phi = mov_phi[j, e]
-        for f in range(first, m):
-            rq = rr[f]
-            if rq > rl + d_win:
-                break
-            diff = rl - rq
-            gap = dw2 - diff * diff
-            if gap < 0.0:
-                continue  # |rl - rq| within rounding of d_win: f is 0 everywhere
-            prod = rl * rq
-            if prod == 0.0:
-                const += d_win - abs(diff)
-                continue
-            y2 = gap / (4.0 * prod)  # sin^2 of half the window (>= 1: the whole circle)
-            if y2 > 0.5:  # a window of 90 deg or more: wider than wide_limit (<= 40 deg), constant
-                const += d_win - abs(diff)
-                continue
-            hw = (_half_window(y2) + 1e-9) * inv_step  # widened by 1e-9 rad, as the numpy path
-            pk = (ref_psi[i, f] - phi) * inv_step + offset
-            # floor(x) + 1 instead of ceil(x): an angle exactly on the widened edge has f = 0.
-            lo = np.int64(pk - hw) + 1
-            hi = np.int64(pk + hw)
-            if hi - lo >= wide_limit:
-                const += d_win - abs(diff)
-                continue
-            if hi < lo:
-                continue
-            peak[count] = pk
-            a_lo[count] = lo
-            a_hi[count] = hi
-            dr2[count] = diff * diff
-            prod4[count] = 4.0 * prod
+        f = first
+        while f < m and rr[f] <= rl + d_win:
+            peak[count] = ref_psi[i, f] - phi
+            dr2[count] = rl
+            prod4[count] = rr[f]
             count += 1
+            f += 1
+    # Windows, without branches (vectorised); the numpy path's classification.
+    const = 0.0
+    for t in range(count):
+        rl = dr2[t]
+        rq = prod4[t]
+        diff = rl - rq
+        gap = dw2 - diff * diff
+        prod = rl * rq
+        y2 = gap / (4.0 * prod)  # sin^2 of half the window; NaN/inf for a zero radius
+        yc = min(max(y2, 0.0), 0.5)
+        hw = (_half_window(yc) + 1e-9) * inv_step  # widened by 1e-9 rad, as the numpy path
+        pk = peak[t] * inv_step + offset
+        # floor(x) + 1 instead of ceil(x): an angle exactly on the widened edge has f = 0.
+        lo = np.int64(pk - hw) + 1
+        hi = np.int64(pk + hw)
+        good = gap >= 0.0  # else |rl - rq| is d_win within rounding: f is 0 everywhere
+        # A zero radius, a window of 90 deg or more, or one wider than wide_limit: constant.
+        windowed = good & (y2 <= 0.5) & (hi - lo < wide_limit)
+        const += (d_win - abs(diff)) if (good and not windowed) else 0.0
+        peak[t] = pk
+        a_lo[t] = lo if windowed else 1
+        a_hi[t] = hi if windowed else 0  # an empty window
+        dr2[t] = diff * diff
+        prod4[t] = 4.0 * prod
     return count, const
 
 
@@ -301,6 +302,7 @@ def fine_bounds(
     half_step = 0.5 * step_rad
     offset = 3.0 * k_count
     span = n_bins * bin_size  # = K
+    inv_span = 1.0 / span
     cap = m * n
     peak = np.empty(cap)
     a_lo = np.empty(cap, dtype=np.int64)
@@ -327,7 +329,8 @@ def fine_bounds(
             lo_t, hi_t = a_lo[t], a_hi[t]
             # The window (offset angles, narrower than K/2) meets this bin in at most one copy:
             # the first copy b*B + u*K whose last angle is >= lo_t.
-            first = b * bin_size + ((lo_t - b * bin_size - bin_size + span) // span) * span
+            # (the numerator is > 0; floor by a float product, exact here, not an integer division)
+            first = b * bin_size + np.int64((lo_t - b * bin_size - bin_size + span + 0.5) * inv_span) * span
             lo = max(lo_t, first)
             hi = min(hi_t, first + bin_size - 1)
             for a in range(lo, hi + 1):
