@@ -492,6 +492,7 @@ def test_both_bound_paths_are_never_below_the_true_improvement(compiled, seed, s
     assert np.all(level1 >= level2.reshape(m * n, n_bins, B).max(axis=2) - 1e-12)
     if bounds.anchor_max is not None:
         np.testing.assert_array_equal(bounds.anchor_max, level1.max(axis=1))
+        assert bounds.cell_min == level1.min()
     # Shuffled cells give the same rows (the compiled level 2 groups cells by anchor internally).
     cells = np.random.default_rng(seed).permutation(m * n * n_bins)[:50]
     np.testing.assert_array_equal(bounds.fine(cells), level2.reshape(m * n * n_bins, B)[cells])

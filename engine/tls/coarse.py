@@ -413,10 +413,11 @@ class _Bounds:
     cell_bound: np.ndarray = field(default_factory=lambda: np.empty(0))  # level-1 bound per cell
     _table: np.ndarray | None = None
     #: Compiled path only (else None): per-row sorted pair radii/directions (see coarse_kernels),
-    #: the widest windowed tuple (angles) and every anchor's largest level-1 bound.
+    #: the widest windowed tuple (angles), every anchor's largest and the smallest level-1 bound.
     rows: tuple[np.ndarray, ...] | None = None
     wide_limit: int = 0
     anchor_max: np.ndarray | None = None
+    cell_min: float | None = None
 
     def values(self, tup: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Upper bound of ``max(0, D_t - distance)`` over the angle indices ``lo..hi`` of each tuple.
@@ -552,7 +553,7 @@ def _build_bounds(
             mov_order.astype(np.int64),
         )
         order = np.argsort(rho_r, kind="stable")
-        cell_bound, anchor_const, anchor_max = kernels.coarse_bounds(
+        cell_bound, anchor_const, anchor_max, cell_min = kernels.coarse_bounds(
             rho_r[order], order // m, order % m, psi[order], rho_m.reshape(n, n), phi.reshape(n, n), own, k_count, B, n_bins,
             step_rad, d_win, wide_limit,
         )
@@ -561,7 +562,7 @@ def _build_bounds(
             m=m, n=n, k_count=k_count, bin_size=B, n_bins=n_bins, step_rad=step_rad, dist=dist,
             slack=2.0 * slack, anchor_const=anchor_const, peak=empty_f, a_lo=empty_i, a_hi=empty_i, dr2=empty_f,
             prod4=empty_f, anchors=(empty_i, empty_i), wrap=np.arange(6 * n_bins + 2) % n_bins,
-            cell_bound=cell_bound, rows=rows, wide_limit=wide_limit, anchor_max=anchor_max,
+            cell_bound=cell_bound, rows=rows, wide_limit=wide_limit, anchor_max=anchor_max, cell_min=cell_min,
         )
     jj, ll = np.triu_indices(n, 1)  # one twin per moving pair: j < l
     rm = rho_m[jj * n + ll]
@@ -687,7 +688,7 @@ def _search(
     grid = bounds.cell_bound.reshape(m * n, n_bins)
     anchor_max = grid.max(axis=1) if bounds.anchor_max is None else bounds.anchor_max
     ranked = np.sort(anchor_max)[::-1]
-    u_min = float(grid.min())
+    u_min = float(grid.min()) if bounds.cell_min is None else bounds.cell_min
     upper = np.inf
     rnd = 0
     while True:

@@ -156,8 +156,8 @@ def coarse_bounds(
     step_rad: float,
     d_win: float,
     wide_limit: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Level-1 bounds (metres) of every cell, the anchors' constant parts and the anchors' maxima.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Level-1 bounds (metres) of every cell, the anchors' constant parts and maxima, the lowest cell.
 
     ``sorted_r`` are all m*m reference pair radii ``|R[q] - R[i]|`` in increasing order,
     ``sorted_i``, ``sorted_q`` and ``sorted_psi`` the pair's points and direction (rad); ``mov_r``
@@ -167,7 +167,7 @@ def coarse_bounds(
     ``j*m + i`` and ``l*m + q``. The windows and the first two bins' values are computed first for
     the whole run without branches (the compiler vectorises that loop), then added to the cells.
     Returns ``cell_bound`` (m*n*n_bins,), cell = ``(j*m + i) * n_bins + bin``, ``anchor_const``
-    and ``anchor_max`` (m*n,).
+    and ``anchor_max`` (m*n,), and the smallest cell bound.
     """
     m, n = own.shape[0], mov_r.shape[0]
     inv_step = 1.0 / step_rad
@@ -259,6 +259,7 @@ def coarse_bounds(
                         v = _window_value(pk, start, min(hi, start + bin_size - 1), half_step, d2, p4, d_win)
                         cell_bound[base + ob - n_bins * np.int64((ob + 0.5) * inv_nb)] += v
                         cell_bound[base_b + ob - n_bins * np.int64((ob + 0.5) * inv_nb)] += v
+    lowest = np.inf
     for j in range(n):
         block = j * m
         for i in range(m):
@@ -269,10 +270,10 @@ def coarse_bounds(
             for b in range(n_bins):
                 v = cell_bound[base + b] + const
                 cell_bound[base + b] = v
-                if v > best:
-                    best = v
+                best = max(best, v)
+                lowest = min(lowest, v)
             anchor_max[anchor] = best
-    return cell_bound, anchor_const, anchor_max
+    return cell_bound, anchor_const, anchor_max, lowest
 
 
 @_compiled
