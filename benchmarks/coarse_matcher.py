@@ -89,7 +89,9 @@ def run_packed(n: int = 80, repeats: int = 2, angle_step_deg: float = 0.1) -> li
                 results[name] = res
     finally:
         coarse._kernels = kernels
-    keys = {k: (r.anchor, r.angle_index, r.score, r.second_score, r.second_rotation_deg) for k, r in results.items()}
+    keys = {
+        k: (r.anchor, r.angle_index, r.score, r.second_score, r.second_rotation_deg) for k, r in results.items()
+    }
     if len(set(keys.values())) != 1:
         raise AssertionError(f"packed case: the bound paths disagree: {keys}")
     return [

@@ -36,7 +36,9 @@ def _compiled(fn):
 
 
 @_compiled
-def _window_value(peak: float, lo: int, hi: int, half_step: float, dr2: float, prod4: float, d_win: float) -> float:
+def _window_value(
+    peak: float, lo: int, hi: int, half_step: float, dr2: float, prod4: float, d_win: float
+) -> float:
     """Bound of ``max(0, D_t - distance)`` over angle indices ``lo..hi`` (metres; ``d_win = D_t + slack``).
 
     The distance is smallest at the angle nearest the peak; ``sin(x) >= x - x^3/6`` (x = half the
