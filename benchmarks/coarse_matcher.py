@@ -7,10 +7,16 @@ several runs) and with the literal enumeration. When the literal enumeration is 
 (m*n > ``literal_full_max_pairs``) it is timed on a random sample of anchor pairs -- every angle k
 and every moving point l, the same code path as :func:`match_vops_literal` -- and extrapolated
 linearly to all m*n anchor pairs (``literal_extrapolated: True``).
+
+``python benchmarks/coarse_matcher.py --packed`` times the worst case instead: 80 VOPs per scan
+packed in a disc of 2 m radius (70 % shared, 2 cm noise), where many VOPs lie within ``D_t`` of each
+other and the bounds are loose. It runs the compiled bounds (numba, the default) and the numpy
+bounds (the code before the numba kernels) alternately and checks that both give the same result.
 """
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import time
 
@@ -41,6 +47,58 @@ def realistic_pair(n: int, seed: int = 0, radius: float = 22.0) -> tuple[np.ndar
     moving = (world - rng.uniform(-10.0, 10.0, 2)) @ np.array([[c, -s], [s, c]])
     moving += rng.normal(0.0, 0.02, moving.shape)
     return rng.permutation(ref), rng.permutation(moving), theta
+
+
+def packed_pair(n: int = 80, seed: int = 0, radius: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, moving): n VOPs per side uniform in a disc of ``radius`` metres (worst case).
+
+    70 % of the moving VOPs are reference VOPs (rotated, shifted, 2 cm noise), the rest random.
+    """
+    rng = np.random.default_rng(seed)
+
+    def disc(count: int) -> np.ndarray:
+        a = rng.uniform(0.0, 2.0 * np.pi, count)
+        d = radius * np.sqrt(rng.uniform(0.0, 1.0, count))
+        return np.column_stack([d * np.cos(a), d * np.sin(a)])
+
+    reference = disc(n)
+    shared = int(round(0.7 * n))
+    world = np.vstack([reference[rng.permutation(n)[:shared]], disc(n - shared)])
+    theta = np.deg2rad(rng.uniform(0.0, 360.0))
+    c, s = np.cos(theta), np.sin(theta)
+    moving = (world - rng.uniform(-1.0, 1.0, 2)) @ np.array([[c, -s], [s, c]])
+    moving += rng.normal(0.0, 0.02, moving.shape)
+    return reference, rng.permutation(moving)
+
+
+def run_packed(n: int = 80, repeats: int = 2, angle_step_deg: float = 0.1) -> list[dict]:
+    """Worst case: wall time (s) of the compiled and the numpy bounds, alternately, same results."""
+    reference, moving = packed_pair(n)
+    kernels = coarse._compiled_kernels()
+    times: dict[str, list[float]] = {"numba": [], "numpy": []}
+    results = {}
+    try:
+        for _ in range(repeats):
+            for name in ("numba", "numpy"):
+                if name == "numba" and kernels is None:
+                    continue
+                coarse._kernels = kernels if name == "numba" else None
+                t0 = time.perf_counter()
+                res = coarse.match_vops(reference, moving, angle_step_deg=angle_step_deg)
+                times[name].append(time.perf_counter() - t0)
+                results[name] = res
+    finally:
+        coarse._kernels = kernels
+    keys = {
+        k: (r.anchor, r.angle_index, r.score, r.second_score, r.second_rotation_deg) for k, r in results.items()
+    }
+    if len(set(keys.values())) != 1:
+        raise AssertionError(f"packed case: the bound paths disagree: {keys}")
+    return [
+        {"path": k, "median_s": statistics.median(v), "runs_s": v, "evaluated": results[k].evaluated}
+        for k, v in times.items()
+        if v
+    ]
 
 
 def _time_literal(
@@ -125,4 +183,14 @@ def _format(rows: list[dict]) -> str:
 
 
 if __name__ == "__main__":
-    print(_format(run()))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--packed", action="store_true", help="time the packed worst case (numba vs numpy bounds)")
+    parser.add_argument("--repeats", type=int, default=2, help="alternations of the packed case")
+    args = parser.parse_args()
+    if args.packed:
+        for row in run_packed(repeats=args.repeats):
+            runs = ", ".join(f"{t:.1f}" for t in row["runs_s"])
+            print(f"packed 80 VOPs, {row['path']:>5} bounds: {row['median_s']:.1f} s (runs: {runs}), "
+                  f"{row['evaluated']} exact scores")
+    else:
+        print(_format(run()))

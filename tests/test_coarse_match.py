@@ -419,3 +419,81 @@ def test_package_exports() -> None:
     assert match.match_vops is match_vops
     assert match.match_vops_literal is match_vops_literal
     assert match.CoarseMatch is CoarseMatch
+
+
+# --------------------------------------------------------------------------------------------------
+# Compiled (numba) and numpy bounds
+# --------------------------------------------------------------------------------------------------
+
+
+def _bound_path_cases():
+    cases = dict(_exactness_cases())
+    cases.update({f"degenerate: {k}": v for k, v in _degenerate_cases().items()})
+    cases["dense clutter"] = dense_clutter(3)
+    cases["random set"] = random_case(5)[:2]
+    return cases
+
+
+@pytest.mark.skipif(coarse._compiled_kernels() is None, reason="numba is not installed")
+@pytest.mark.parametrize("name", list(_bound_path_cases()))
+def test_compiled_and_numpy_bounds_give_identical_results(name: str, monkeypatch) -> None:
+    """The numba kernels and the numpy path: same optimum, same second solution, bit for bit."""
+    reference, moving = _bound_path_cases()[name]
+    step = 3.0
+    compiled = match_vops(reference, moving, angle_step_deg=step)
+    monkeypatch.setattr(coarse, "_kernels", None)
+    monkeypatch.setattr(coarse, "_TUPLES_PER_CHUNK", 64)  # the numpy path's tuples in many blocks
+    plain = match_vops(reference, moving, angle_step_deg=step)
+    assert (compiled.anchor, compiled.angle_index, compiled.score) == (plain.anchor, plain.angle_index, plain.score)
+    np.testing.assert_array_equal(compiled.translation, plain.translation)
+    np.testing.assert_array_equal(compiled.matched_pairs, plain.matched_pairs)
+    assert compiled.second_score == plain.second_score
+    assert compiled.second_rotation_deg == plain.second_rotation_deg
+    if plain.second_translation is None:
+        assert compiled.second_translation is None
+    else:
+        np.testing.assert_array_equal(compiled.second_translation, plain.second_translation)
+
+
+@pytest.mark.skipif(coarse._compiled_kernels() is None, reason="numba is not installed")
+def test_compiled_and_numpy_agree_at_fine_step_on_80_realistic_vops() -> None:
+    """80 x 80 realistic VOPs at 0.1 deg: compiled and numpy paths agree (incl. the second solution)."""
+    reference, moving, _, _, _ = _realistic(4, 80)
+    compiled = match_vops(reference, moving)
+    saved = coarse._kernels
+    try:
+        coarse._kernels = None
+        plain = match_vops(reference, moving)
+    finally:
+        coarse._kernels = saved
+    assert (compiled.anchor, compiled.angle_index, compiled.score) == (plain.anchor, plain.angle_index, plain.score)
+    assert compiled.second_score == plain.second_score
+    assert compiled.second_rotation_deg == plain.second_rotation_deg
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+@pytest.mark.parametrize(("seed", "step", "dist", "bin_deg"), [(26, 1.0, DT, 2.0), (27, 2.0, 2.5, 4.0), (28, 1.5, 0.5, 3.0)])
+def test_both_bound_paths_are_never_below_the_true_improvement(compiled, seed, step, dist, bin_deg) -> None:
+    """Level-1 and level-2 bounds of the numba and of the numpy path >= the true G (incl. packed VOPs)."""
+    if compiled and coarse._compiled_kernels() is None:
+        pytest.skip("numba is not installed")
+    reference, moving, _, _ = random_case(seed, m_range=(10, 14))
+    if seed == 28:  # packed: many pairs within D_t of each other
+        reference, moving = dense_clutter(seed, m=12, half_width=1.0)
+    m, n = len(reference), len(moving)
+    k_count = coarse._angle_count(step)
+    truth = n * dist - literal_array(reference, moving, step, dist)
+    truth = np.roll(truth.transpose(1, 0, 2).reshape(m * n, k_count), 1, axis=1)
+    bounds = coarse._build_bounds(reference, moving, k_count, step, dist, bin_deg, compiled=compiled)
+    n_bins, B = bounds.n_bins, bounds.bin_size
+    level1 = bounds.cell_bound.reshape(m * n, n_bins)
+    assert np.all(level1 >= truth.reshape(m * n, n_bins, B).max(axis=2))
+    level2 = bounds.fine(np.arange(m * n * n_bins)).reshape(m * n, k_count)
+    assert np.all(level2 >= truth)
+    assert np.all(level1 >= level2.reshape(m * n, n_bins, B).max(axis=2) - 1e-12)
+    if bounds.anchor_max is not None:
+        np.testing.assert_array_equal(bounds.anchor_max, level1.max(axis=1))
+        assert bounds.cell_min == level1.min()
+    # Shuffled cells give the same rows (the compiled level 2 groups cells by anchor internally).
+    cells = np.random.default_rng(seed).permutation(m * n * n_bins)[:50]
+    np.testing.assert_array_equal(bounds.fine(cells), level2.reshape(m * n * n_bins, B)[cells])
