@@ -40,12 +40,11 @@ from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
-from ..geometry.features import eigen_features, local_covariances
+from ..geometry.features import eigen_features, local_covariances, neighbour_means
 from ..geometry.voxel import voxel_centroids
 
 #: Features per scale: l1, l2, l3 (normalised eigenvalues), zenith of e1, e2, e3 (degrees).
@@ -192,8 +191,7 @@ def _features_on(
     for s, radius in enumerate(prm.radii_m):
         progress(s / len(prm.radii_m), f"covariance features at {radius:g} m")
         cloud, voxel_of_base = voxel_centroids(base, radius / prm.thinning_ratio)
-        tree = cKDTree(cloud)
-        cov, count = local_covariances(cloud, cloud, k=prm.max_neighbours, radius_m=radius, tree=tree)
+        cov, count = local_covariances(cloud, cloud, k=prm.max_neighbours, radius_m=radius)
         f = np.full((len(cloud), FEATURES_PER_SCALE), np.nan)
         enough = count >= prm.min_neighbours  # the others stay NaN: no decomposition spent on them
         f[enough] = eigen_features(cov if enough.all() else cov[enough])
@@ -331,21 +329,12 @@ def mixture_wood_share(
     return posterior @ share
 
 
-def smooth_over_neighbours(points: np.ndarray, values: np.ndarray, radius: float, k: int, batch: int = 100000) -> np.ndarray:
+def smooth_over_neighbours(points: np.ndarray, values: np.ndarray, radius: float, k: int) -> np.ndarray:
     """Mean of ``values`` over each point's (at most ``k`` nearest) neighbours within ``radius``
-    (the point itself included)."""
+    (the point itself included; :func:`~forestreg.engine.geometry.features.neighbour_means`)."""
     if radius <= 0 or k <= 1 or len(points) < 2:
         return values.copy()
-    tree = cKDTree(points)
-    k = min(k, len(points))
-    padded = np.append(values, 0.0)
-    out = np.empty_like(values)
-    for a in range(0, len(points), batch):
-        _, idx = tree.query(points[a : a + batch], k=k, distance_upper_bound=radius, workers=-1)
-        idx = idx.reshape(-1, k)
-        valid = idx < len(points)
-        out[a : a + batch] = padded[idx].sum(axis=1) / valid.sum(axis=1)
-    return out
+    return neighbour_means(points, values, radius, k)
 
 
 def wood_probability(
