@@ -45,6 +45,7 @@ from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 from ..geometry.features import eigen_features, local_covariances, neighbour_means
+from ..geometry.jit import run_blocks
 from ..geometry.voxel import voxel_centroids
 
 #: Features per scale: l1, l2, l3 (normalised eigenvalues), zenith of e1, e2, e3 (degrees).
@@ -319,10 +320,14 @@ def mixture_wood_share(
     with threadpool_limits(1), warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         mixture.fit(x[fit])
-        # row by row the same posteriors, in blocks that stay in the cache (a third of the time)
+        # row by row the same posteriors, in blocks that stay in the cache (a third of the time),
+        # on threads (NumPy's array operations release the interpreter lock)
         posterior = np.empty((len(x), k))
-        for a in range(0, len(x), _POSTERIOR_BLOCK):
-            posterior[a : a + _POSTERIOR_BLOCK] = mixture.predict_proba(x[a : a + _POSTERIOR_BLOCK])
+
+        def block(a: int, b: int) -> None:
+            posterior[a:b] = mixture.predict_proba(x[a:b])
+
+        run_blocks(block, len(x), block=_POSTERIOR_BLOCK)
     mass = posterior.sum(axis=0)
     share = (posterior * is_wood_by_rule[:, None]).sum(axis=0) / np.maximum(mass, 1e-12)
     share = np.clip((share - 0.3) / 0.4, 0.0, 1.0)
