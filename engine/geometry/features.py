@@ -334,23 +334,39 @@ def neighbour_means(points: np.ndarray, values: np.ndarray, radius_m: float, k: 
     return out
 
 
+#: Matrices decomposed at a time (blocks run on threads: LAPACK releases the interpreter lock).
+_EIGEN_BLOCK = 65536
+
+
 def normals_and_variation(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (Q, 3; the eigenvector of the smallest eigenvalue, arbitrary sign) and surface
     variation ``l_min / (l1 + l2 + l3)`` (Q,; 0 = flat, 1/3 = isotropic; NaN for a zero matrix)."""
-    w, v = np.linalg.eigh(cov)
-    total = w.sum(axis=1)
-    variation = np.where(total > 0, w[:, 0] / np.maximum(total, 1e-30), np.nan)
-    return v[:, :, 0], variation
+    normals = np.empty((len(cov), 3))
+    variation = np.empty(len(cov))
+
+    def block(a: int, b: int) -> None:
+        w, v = np.linalg.eigh(cov[a:b])
+        total = w.sum(axis=1)
+        variation[a:b] = np.where(total > 0, w[:, 0] / np.maximum(total, 1e-30), np.nan)
+        normals[a:b] = v[:, :, 0]
+
+    run_blocks(block, len(cov), block=_EIGEN_BLOCK)
+    return normals, variation
 
 
 def eigen_features(cov: np.ndarray) -> np.ndarray:
     """(Q, 6) features of covariance matrices (Q, 3, 3): normalised eigenvalues ``l1 >= l2 >=
     l3`` (sum 1) and the zenith angles (degrees, 0-90) of their eigenvectors ``e1, e2, e3``
     (Fekry et al. 2022, eq. 7-8)."""
-    w, v = np.linalg.eigh(cov)  # ascending
-    w = np.clip(w[:, ::-1], 0.0, None)
-    v = v[:, :, ::-1]
-    total = w.sum(axis=1, keepdims=True)
-    lam = np.where(total > 0, w / np.where(total > 0, total, 1.0), 1.0 / 3.0)
-    zenith = np.degrees(np.arccos(np.clip(np.abs(v[:, 2, :]), 0.0, 1.0)))
-    return np.hstack([lam, zenith])
+    out = np.empty((len(cov), 6))
+
+    def block(a: int, b: int) -> None:
+        w, v = np.linalg.eigh(cov[a:b])  # ascending
+        w = np.clip(w[:, ::-1], 0.0, None)
+        v = v[:, :, ::-1]
+        total = w.sum(axis=1, keepdims=True)
+        out[a:b, :3] = np.where(total > 0, w / np.where(total > 0, total, 1.0), 1.0 / 3.0)
+        out[a:b, 3:] = np.degrees(np.arccos(np.clip(np.abs(v[:, 2, :]), 0.0, 1.0)))
+
+    run_blocks(block, len(cov), block=_EIGEN_BLOCK)
+    return out

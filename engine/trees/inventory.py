@@ -18,6 +18,7 @@ import io
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
@@ -294,40 +295,37 @@ def measure_trees(
     if not stems:
         return _canopy_inventory(p, heights, model, no_ground, params, progress, origin_shift, timings)
 
-    t = time.perf_counter()
-    progress(0.2, f"{len(stems)} stems ({method} profile): DBH and stem curves")
-    from scipy.spatial import cKDTree
+    # DBH and stem curves (many small fits, mostly holding the interpreter lock) are measured in a
+    # second thread while the trees are segmented and the leaf-wood separation runs here
+    # (compiled kernels and array operations, mostly outside the lock): neither needs the other.
+    progress(0.2, f"{len(stems)} stems ({method} profile): DBH and stem curves, segmentation, leaf-wood")
+    with ThreadPoolExecutor(1) as pool:
+        stems_job = pool.submit(_measure_stems_timed, p, heights, stems, stem_params, params.stems, method)
+        t = time.perf_counter()
+        labels = segment_trees(p, heights, stems, params.segmentation, progress.sub(0.3, 0.45))
+        timings["segmentation_s"] = time.perf_counter() - t
 
-    index = cKDTree(p)  # one spatial index for every stem's slices
-    dbh, curves = measure_stems(p, heights, stems, stem_params, search_tree=index)
-    if method == "noisy":  # thin stems found with the noisy settings may still be measured finely
-        thin = [s for s in stems if not dbh[s.id].ok and s.radius_m < 0.1]
-        fine_dbh, fine_curves = measure_stems(p, heights, thin, params.stems, search_tree=index)
-        for s in thin:
-            if fine_dbh[s.id].ok:
-                dbh[s.id] = fine_dbh[s.id]
-                curves[s.id] = fine_curves[s.id]
-    timings["dbh_s"] = time.perf_counter() - t
-
+        t = time.perf_counter()
+        progress(0.45, "leaf-wood separation")
+        vegetation = (labels > 0) | (heights > params.segmentation.ground_clearance_m)
+        wood = np.zeros(len(p))
+        if np.count_nonzero(vegetation) >= 50:
+            wood[vegetation] = wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
+        timings["leafwood_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        index, dbh, curves, timings["dbh_s"] = stems_job.result()
+        timings["dbh_wait_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    progress(0.3, "segmenting trees")
-    labels = segment_trees(p, heights, stems, params.segmentation, progress.sub(0.3, 0.45))
     complete = {c.tree_id: c for c in tree_completeness(p, heights, labels, stems, params.completeness, dbh)}
-    timings["segmentation_s"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    progress(0.45, "leaf-wood separation")
-    vegetation = (labels > 0) | (heights > params.segmentation.ground_clearance_m)
-    wood = np.zeros(len(p))
-    if np.count_nonzero(vegetation) >= 50:
-        wood[vegetation] = wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
     # the stem as the stem curve traces it is wood, whatever its covariance features say
     tol = max(2.0 * stem_params.inlier_tolerance_m, 0.03)
     for s in stems:
         wood[stem_curve_wood(p, index, s, curves[s.id], tol)] = 1.0
-    timings["leafwood_s"] = time.perf_counter() - t
+    timings["completeness_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    from scipy.spatial import cKDTree
+
     records: list[TreeRecord] = []
     order = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[order], [s.id for s in stems] + [s.id + 1 for s in stems])
@@ -365,6 +363,27 @@ def measure_trees(
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
         timings=timings, method=method,
     )
+
+
+def _measure_stems_timed(
+    p: np.ndarray, heights: np.ndarray, stems: list[Stem], stem_params: StemParams, fine_params: StemParams, method: str
+) -> tuple[Any, dict[int, DbhMeasurement], dict[int, StemCurve], float]:
+    """A spatial index of the cloud (a ``cKDTree``), every stem's DBH and stem curve (with the
+    ``noisy`` profile, thin stems not measured are tried again with ``fine_params``) and the
+    seconds it took."""
+    from scipy.spatial import cKDTree
+
+    t = time.perf_counter()
+    index = cKDTree(p)  # one spatial index for every stem's slices
+    dbh, curves = measure_stems(p, heights, stems, stem_params, search_tree=index)
+    if method == "noisy":  # thin stems found with the noisy settings may still be measured finely
+        thin = [s for s in stems if not dbh[s.id].ok and s.radius_m < 0.1]
+        fine_dbh, fine_curves = measure_stems(p, heights, thin, fine_params, search_tree=index)
+        for s in thin:
+            if fine_dbh[s.id].ok:
+                dbh[s.id] = fine_dbh[s.id]
+                curves[s.id] = fine_curves[s.id]
+    return index, dbh, curves, time.perf_counter() - t
 
 
 def tree_record(
