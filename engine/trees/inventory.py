@@ -295,15 +295,17 @@ def measure_trees(
     if not stems:
         return _canopy_inventory(p, heights, model, no_ground, params, progress, origin_shift, timings)
 
-    # DBH and stem curves (many small fits, mostly holding the interpreter lock) are measured in a
-    # second thread while the trees are segmented and the leaf-wood separation runs here
-    # (compiled kernels and array operations, mostly outside the lock): neither needs the other.
+    # DBH and stem curves, then the crowns (many small fits and queries, mostly holding the
+    # interpreter lock), are measured in a second thread while the trees are segmented and the
+    # leaf-wood separation runs here (compiled kernels and array operations, mostly outside the
+    # lock): none needs another's results. ``dbh_s`` and ``crowns_s`` are that thread's times.
     progress(0.2, f"{len(stems)} stems ({method} profile): DBH and stem curves, segmentation, leaf-wood")
     with ThreadPoolExecutor(1) as pool:
         stems_job = pool.submit(_measure_stems_timed, p, heights, stems, stem_params, params.stems, method)
         t = time.perf_counter()
         labels = segment_trees(p, heights, stems, params.segmentation, progress.sub(0.3, 0.45))
         timings["segmentation_s"] = time.perf_counter() - t
+        crowns_job = pool.submit(_crowns_timed, p, heights, labels, stems, model.ground, params.crown, timings)
 
         t = time.perf_counter()
         progress(0.45, "leaf-wood separation")
@@ -314,7 +316,8 @@ def measure_trees(
         timings["leafwood_s"] = time.perf_counter() - t
         t = time.perf_counter()
         index, dbh, curves, timings["dbh_s"] = stems_job.result()
-        timings["dbh_wait_s"] = time.perf_counter() - t
+        order, bounds, crowns, shared, ground_xy = crowns_job.result()
+        timings["waiting_s"] = time.perf_counter() - t  # for the second thread
     t = time.perf_counter()
     complete = {c.tree_id: c for c in tree_completeness(p, heights, labels, stems, params.completeness, dbh)}
     # the stem as the stem curve traces it is wood, whatever its covariance features say
@@ -324,25 +327,7 @@ def measure_trees(
     timings["completeness_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    from scipy.spatial import cKDTree
-
     records: list[TreeRecord] = []
-    order = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[order], [s.id for s in stems] + [s.id + 1 for s in stems])
-    ground_xy = cKDTree(p[model.ground, :2]) if model.ground.any() else None
-    crowns: dict[int, CrownMeasurement] = {}
-    for k, stem in enumerate(stems):
-        idx = order[bounds[k] : bounds[k + len(stems)]]
-        try:
-            crowns[stem.id] = measure_crown(p[idx], heights[idx], stem, params.crown)
-        except ScanDataError as exc:  # no points reached this stem
-            nan = math.nan
-            crowns[stem.id] = CrownMeasurement(
-                tree_id=stem.id, x=stem.x, y=stem.y, height_m=nan, crown_base_m=nan, crown_width_ew_m=nan,
-                crown_width_ns_m=nan, crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan,
-                crown_volume_m3=nan, n_points=int(len(idx)), top=(nan, nan, nan), ok=False, reasons=(str(exc),),
-            )
-    shared = _shared_tops(p, labels, stems, crowns)
     for k, stem in enumerate(stems):
         progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: crown and cylinder model")
         idx = order[bounds[k] : bounds[k + len(stems)]]
@@ -363,6 +348,37 @@ def measure_trees(
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
         timings=timings, method=method,
     )
+
+
+def _crowns_timed(
+    p: np.ndarray, heights: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], ground: np.ndarray,
+    params: CrownParams, timings: dict[str, float],
+) -> tuple[np.ndarray, np.ndarray, dict[int, CrownMeasurement], dict[int, str], Any]:
+    """Every tree's crown (:func:`.crown.measure_crown`) and the flags of tops not their own
+    (:func:`_shared_tops`), with what the tree records need: the point order by label and each
+    stem's bounds in it, and a ``cKDTree`` of the ground points' x, y (None without ground).
+    Stores its seconds in ``timings["crowns_s"]``."""
+    from scipy.spatial import cKDTree
+
+    t = time.perf_counter()
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], [s.id for s in stems] + [s.id + 1 for s in stems])
+    ground_xy = cKDTree(p[ground, :2]) if ground.any() else None
+    crowns: dict[int, CrownMeasurement] = {}
+    for k, stem in enumerate(stems):
+        idx = order[bounds[k] : bounds[k + len(stems)]]
+        try:
+            crowns[stem.id] = measure_crown(p[idx], heights[idx], stem, params)
+        except ScanDataError as exc:  # no points reached this stem
+            nan = math.nan
+            crowns[stem.id] = CrownMeasurement(
+                tree_id=stem.id, x=stem.x, y=stem.y, height_m=nan, crown_base_m=nan, crown_width_ew_m=nan,
+                crown_width_ns_m=nan, crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan,
+                crown_volume_m3=nan, n_points=int(len(idx)), top=(nan, nan, nan), ok=False, reasons=(str(exc),),
+            )
+    shared = _shared_tops(p, labels, stems, crowns)
+    timings["crowns_s"] = time.perf_counter() - t
+    return order, bounds, crowns, shared, ground_xy
 
 
 def _measure_stems_timed(
