@@ -299,8 +299,12 @@ def measure_trees(
     # interpreter lock), are measured in a second thread while the trees are segmented and the
     # leaf-wood separation runs here (compiled kernels and array operations, mostly outside the
     # lock): none needs another's results. ``dbh_s`` and ``crowns_s`` are that thread's times.
+    # BLAS runs single-threaded meanwhile: its thread count is one setting for the whole process,
+    # and changing it (the mixture does) while another thread is inside BLAS is not safe.
+    from threadpoolctl import threadpool_limits
+
     progress(0.2, f"{len(stems)} stems ({method} profile): DBH and stem curves, segmentation, leaf-wood")
-    with ThreadPoolExecutor(1) as pool:
+    with threadpool_limits(1), ThreadPoolExecutor(1) as pool:
         stems_job = pool.submit(_measure_stems_timed, p, heights, stems, stem_params, params.stems, method)
         t = time.perf_counter()
         labels = segment_trees(p, heights, stems, params.segmentation, progress.sub(0.3, 0.45))
