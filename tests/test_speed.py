@@ -165,3 +165,17 @@ def test_sphere_neighbourhoods_on_the_grid_equal_kd_tree_queries_with_numpy_sums
     at = np.arange(0, len(flat[0]), 12)
     m = [np.add.reduceat(flat[a], at) / 12 for a in range(3)]
     np.testing.assert_array_equal(cov_knn[:, 0, 1], np.add.reduceat(flat[0] * flat[1], at) / 12 - m[0] * m[1])
+
+
+def test_qsm_median_equals_numpy_median():
+    from forestreg.engine.trees.qsm import _median
+
+    rng = np.random.default_rng(6)
+    for n in list(range(1, 40)) * 20:
+        x = rng.normal(size=n) * 10 ** rng.uniform(-6, 2)
+        x[rng.random(n) < 0.2] = 0.0
+        if rng.random() < 0.1:
+            x = -0.0 * np.abs(x)  # signed zeros: NumPy's mean makes them +0
+        want = float(np.median(x))
+        assert _median(x) == want and np.signbit(_median(x)) == np.signbit(want)
+    assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))
