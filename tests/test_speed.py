@@ -38,15 +38,32 @@ def test_voxel_downsample_averages_each_voxel(dtype):
     np.testing.assert_array_equal(hi, pts.max(axis=0).astype(np.float64))
 
 
-def test_clustering_in_blocks_equals_clustering_at_once(monkeypatch):
+def _brute_clusters(pts: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """Components of the graph of all pairs (k-d tree pairs, squared distances against the squared
+    larger reach), numbered by their first point (csgraph's order)."""
+    from scipy import sparse
+    from scipy.sparse import csgraph
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(pts).query_pairs(float(reach.max()), output_type="ndarray")
+    i, j = pairs[:, 0], pairs[:, 1]
+    gap2 = ((pts[i, 0] - pts[j, 0]) ** 2 + (pts[i, 1] - pts[j, 1]) ** 2) + (pts[i, 2] - pts[j, 2]) ** 2
+    pairs = pairs[gap2 <= np.maximum(reach[i], reach[j]) ** 2]
+    graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(pts), len(pts)))
+    return csgraph.connected_components(graph, directed=False)[1].astype(np.int64)
+
+
+def test_clustering_on_the_grid_equals_the_graph_of_all_pairs():
     rng = np.random.default_rng(2)
-    pts = rng.uniform(0, 6, (4000, 3)) * [1, 1, 0.05]
+    pts = np.round(rng.uniform(0, 6, (4000, 3)) * [1, 1, 0.05], 3)  # a millimetre grid: pairs at the limits
     reach = np.maximum(0.05, 0.01 * np.hypot(pts[:, 0], pts[:, 1]))
-    at_once = cluster.connected_clusters(pts, float(reach.max()), reach_m=reach)
-    monkeypatch.setattr(cluster, "_PAIRS_PER_CHUNK", 2000)  # forces many blocks
-    in_blocks = cluster.connected_clusters(pts, float(reach.max()), reach_m=reach)
-    np.testing.assert_array_equal(at_once, in_blocks)
-    assert 1 < at_once.max() < len(pts) - 1  # neither one cluster nor all singletons: the test can fail
+    np.testing.assert_array_equal(cluster.connected_clusters(pts, float(reach.max()), reach_m=reach), _brute_clusters(pts, reach))
+    fixed = np.full(len(pts), 0.06)
+    labels = cluster.connected_clusters(pts, 0.06)
+    np.testing.assert_array_equal(labels, _brute_clusters(pts, fixed))
+    assert 1 < labels.max() < len(pts) - 1  # neither one cluster nor all singletons: the test can fail
+    flat = cluster.connected_clusters(pts[:, :2], 0.06)  # 2D points: the same as on the plane z = 0
+    np.testing.assert_array_equal(flat, cluster.connected_clusters(pts * [1, 1, 0], 0.06))
 
 
 def test_trunk_votes_equal_the_dense_count():
@@ -111,3 +128,54 @@ def test_icp_distance_figures_equal_a_full_nearest_neighbour_search():
     std, mean, count = nearest_distance_stats(reference, moved, 0.08)
     assert count == len(d) > 100
     assert std == pytest.approx(np.std(d), rel=1e-9) and mean == pytest.approx(np.mean(d), rel=1e-9)
+
+
+def test_sphere_neighbourhoods_on_the_grid_equal_kd_tree_queries_with_numpy_sums():
+    from scipy.spatial import cKDTree
+
+    from forestreg.engine.geometry.features import local_covariances, neighbour_means
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(0, 2, (6000, 3)) * [1, 1, 0.3] + [5000.0, 3000.0, 200.0]
+    queries = np.vstack([pts[::3], rng.uniform(-0.5, 2.5, (500, 3)) * [1, 1, 0.3] + [5000.0, 3000.0, 200.0]])
+    k, radius = 40, 0.12
+    tree = cKDTree(pts)
+    _, idx = tree.query(queries, k=k, distance_upper_bound=radius)
+    valid = idx < len(pts)
+    count = valid.sum(axis=1)
+    rows = np.flatnonzero(count)
+    starts = np.cumsum(count)[rows] - count[rows]
+    d = [pts[idx[valid], a] - np.repeat(queries[rows, a], count[rows]) for a in range(3)]
+    mean = [np.add.reduceat(d[a], starts) / count[rows] for a in range(3)]
+    want = np.zeros((len(queries), 3, 3))
+    for a in range(3):
+        for b in range(3):
+            want[rows, a, b] = np.add.reduceat(d[a] * d[b], starts) / count[rows] - mean[a] * mean[b]
+    cov, got_count = local_covariances(queries, pts, k=k, radius_m=radius)
+    np.testing.assert_array_equal(got_count, count)
+    np.testing.assert_array_equal(cov, want)  # the same sums in the same order: to the last bit
+    values = rng.random(len(pts))
+    _, idx = tree.query(pts, k=16, distance_upper_bound=radius)
+    want_mean = np.append(values, 0.0)[idx].sum(axis=1) / (idx < len(pts)).sum(axis=1)
+    np.testing.assert_array_equal(neighbour_means(pts, values, radius, 16), want_mean)
+    cov_knn, _ = local_covariances(queries, pts, k=12)  # no radius: the k-d tree's lists
+    _, idx = tree.query(queries, k=12)
+    d = pts[idx] - queries[:, None, :]
+    flat = [d[:, :, a].ravel() for a in range(3)]
+    at = np.arange(0, len(flat[0]), 12)
+    m = [np.add.reduceat(flat[a], at) / 12 for a in range(3)]
+    np.testing.assert_array_equal(cov_knn[:, 0, 1], np.add.reduceat(flat[0] * flat[1], at) / 12 - m[0] * m[1])
+
+
+def test_qsm_median_equals_numpy_median():
+    from forestreg.engine.trees.qsm import _median
+
+    rng = np.random.default_rng(6)
+    for n in list(range(1, 40)) * 20:
+        x = rng.normal(size=n) * 10 ** rng.uniform(-6, 2)
+        x[rng.random(n) < 0.2] = 0.0
+        if rng.random() < 0.1:
+            x = -0.0 * np.abs(x)  # signed zeros: NumPy's mean makes them +0
+        want = float(np.median(x))
+        assert _median(x) == want and np.signbit(_median(x)) == np.signbit(want)
+    assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))

@@ -1,77 +1,108 @@
 """Single-linkage clustering of points (connected components of a distance graph): one
-implementation for stems, trunk shadows, reflectors and segmentation. Points (N, D), metres."""
+implementation for stems, trunk shadows, reflectors and segmentation. Points (N, D), D <= 3,
+metres."""
 
 from __future__ import annotations
 
 from typing import Optional
 
 import numpy as np
-from scipy import sparse
-from scipy.sparse import csgraph
-from scipy.spatial import cKDTree
+
+from .features import SphereGrid, _first_at_least
+from .jit import kernel
 
 __all__ = ["connected_clusters"]
 
-#: Candidate pairs examined at a time: bounds memory on dense clouds (a 0.04 deg scan's trunks give
-#: hundreds of millions of pairs within a few centimetres).
-_PAIRS_PER_CHUNK = 1_000_000
+
+@kernel
+def _root(parent: np.ndarray, i: int) -> int:
+    """Root of ``i`` in a union-find forest (halving the path on the way)."""
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@kernel
+def _link_pairs(
+    d2_max: float, reach2: np.ndarray, parent: np.ndarray,
+    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
+    cell_z: np.ndarray, pts: np.ndarray,
+) -> None:
+    """Join in ``parent`` (union-find over the original indices) every pair of grid points whose
+    squared distance ``(dx^2 + dy^2) + dz^2`` is at most ``d2_max`` and, when ``reach2`` is not
+    empty, at most the larger of the two points' ``reach2``. Each pair is examined once, and not
+    at all when its points are joined already."""
+    use_reach = len(reach2) > 0
+    for s in range(len(pts)):
+        i = index[s]
+        ix = int(np.floor((pts[s, 0] - origin[0]) / cell))
+        iy = int(np.floor((pts[s, 1] - origin[1]) / cell))
+        iz = cell_z[s]
+        for ax in range(max(ix - 1, 0), min(ix + 2, nx)):
+            for ay in range(max(iy - 1, 0), min(iy + 2, ny)):
+                col = ax * ny + ay
+                a1 = column_start[col + 1]
+                t = _first_at_least(cell_z, column_start[col], a1, iz - 1)
+                while t < a1 and cell_z[t] <= iz + 1:
+                    if t > s:
+                        ri = _root(parent, i)
+                        j = index[t]
+                        rj = _root(parent, j)
+                        if ri != rj:
+                            ex = pts[t, 0] - pts[s, 0]
+                            ey = pts[t, 1] - pts[s, 1]
+                            ez = pts[t, 2] - pts[s, 2]
+                            d2 = ex * ex + ey * ey + ez * ez
+                            if d2 <= d2_max and (not use_reach or d2 <= max(reach2[i], reach2[j])):
+                                if ri < rj:
+                                    parent[rj] = ri
+                                else:
+                                    parent[ri] = rj
+                    t += 1
+
+
+@kernel
+def _number_by_first_point(parent: np.ndarray) -> np.ndarray:
+    """Label (N,) of each point's component, components numbered in the order of their first
+    point."""
+    n = len(parent)
+    label_of_root = np.full(n, -1, dtype=np.int64)
+    out = np.empty(n, dtype=np.int64)
+    nxt = 0
+    for i in range(n):
+        r = _root(parent, i)
+        if label_of_root[r] < 0:
+            label_of_root[r] = nxt
+            nxt += 1
+        out[i] = label_of_root[r]
+    return out
 
 
 def connected_clusters(points: np.ndarray, distance_m: float, *, reach_m: Optional[np.ndarray] = None) -> np.ndarray:
-    """(N,) int64 cluster label per point; points closer than ``distance_m`` are linked.
+    """(N,) int64 cluster label per point; points within ``distance_m`` of each other are linked.
 
     ``reach_m`` (optional, (N,)) gives each point its own link distance (e.g. growing with range
     for a scan's point spacing): two points link when their distance is within the larger of
     their reaches; ``distance_m`` is then the largest reach considered.
 
     Labels number the clusters in the order of their first point (as a graph search over the
-    points in order would). The pairs are found block by block of points and merged into the labels
-    as they come, so memory stays bounded however dense the cloud.
+    points in order would). Distances are compared squared, ``(dx^2 + dy^2) + dz^2`` against the
+    squared limits, as a k-d tree's pair search compares them. The pairs are found on a grid of
+    cells ``distance_m`` wide and joined as they come (union-find): memory stays linear however
+    dense the cloud.
     """
     p = np.asarray(points, dtype=np.float64)
     n = len(p)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
-    tree = cKDTree(p)
-    # estimate the pair count from a sample to size the blocks of query points
-    sample = p[:: max(1, n // 1000)]
-    per_point = max(1.0, float(np.mean(tree.query_ball_point(sample, float(distance_m), return_length=True))))
-    if per_point * n <= _PAIRS_PER_CHUNK:  # few pairs: all at once
-        pairs = tree.query_pairs(float(distance_m), output_type="ndarray")
-        if reach_m is not None and len(pairs):
-            i, j = pairs[:, 0], pairs[:, 1]
-            gap2 = np.zeros(len(pairs))
-            for axis in range(p.shape[1]):  # axis by axis: no (pairs, D) temporaries
-                gap2 += (p[i, axis] - p[j, axis]) ** 2
-            pairs = pairs[gap2 <= np.maximum(reach_m[i], reach_m[j]) ** 2]
-        graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else sparse.coo_matrix((n, n))
-        _, labels = csgraph.connected_components(graph, directed=False)
-        return labels.astype(np.int64)
-    block = int(max(1000, min(n, _PAIRS_PER_CHUNK / per_point)))
-    labels = np.arange(n)
-    for start in range(0, n, block):
-        stop = min(n, start + block)
-        sub = cKDTree(p[start:stop])
-        pairs = sub.sparse_distance_matrix(tree, float(distance_m), output_type="ndarray")
-        i = pairs["i"].astype(np.int64) + start
-        j = pairs["j"].astype(np.int64)
-        keep = j > i  # each pair once (and no self pairs); pairs with j < i come from j's block
-        if reach_m is not None:
-            keep &= pairs["v"] <= np.maximum(reach_m[i], reach_m[j])
-        i, j = i[keep], j[keep]
-        del pairs, keep
-        if len(i) == 0:
-            continue
-        # merge: a graph on the current labels, its components become the new labels
-        a, b = labels[i], labels[j]
-        differ = a != b
-        if not differ.any():
-            continue
-        graph = sparse.coo_matrix((np.ones(int(differ.sum())), (a[differ], b[differ])), shape=(n, n))
-        _, comp = csgraph.connected_components(graph, directed=False)
-        labels = comp[labels]
-    # number clusters by their first point, as csgraph does on the whole graph
-    _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
-    rank = np.empty(len(first), dtype=np.int64)
-    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
-    return rank[inverse.ravel()]
+    if p.ndim != 2 or p.shape[1] > 3:
+        raise ValueError(f"connected_clusters takes (N, D) points with D <= 3, got shape {p.shape}")
+    if p.shape[1] < 3:  # zero coordinates add nothing to the squared distances
+        p = np.hstack([p, np.zeros((n, 3 - p.shape[1]))])
+    grid = SphereGrid(p, max(float(distance_m), 1e-9))
+    reach2 = np.zeros(0) if reach_m is None else np.ascontiguousarray(np.asarray(reach_m, dtype=np.float64) ** 2)
+    parent = np.arange(n, dtype=np.int64)
+    d = float(distance_m)
+    _link_pairs(d * d, reach2, parent, *grid.args())
+    return _number_by_first_point(parent)

@@ -1,6 +1,12 @@
 """Local covariance of point neighbourhoods and the features derived from it (normals, surface
 variation, normalised eigenvalues and eigenvector zenith angles): one implementation for stem
 detection, leaf-wood separation, levelling and ICP normals. Points (N, 3), metres, z up.
+
+Neighbourhoods within a radius are found on a grid of cells at least the radius wide (compiled
+kernels, blocks of queries on threads); each query's neighbours are ordered by squared distance
+(ties by index) and the sums are taken in that order with NumPy's own summation scheme, so the
+results are those of a k-d tree query followed by NumPy sums, to the last bit (up to the order
+of neighbours at exactly equal distances, which a k-d tree leaves to its traversal).
 """
 
 from __future__ import annotations
@@ -10,7 +16,251 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["eigen_features", "local_covariances", "normals_and_variation"]
+from .jit import kernel, run_blocks
+
+__all__ = ["SphereGrid", "eigen_features", "local_covariances", "neighbour_means", "normals_and_variation"]
+
+
+# --------------------------------------------------------------------------------------------
+# Sums in NumPy's order
+# --------------------------------------------------------------------------------------------
+
+
+@kernel
+def _block_sum(a: np.ndarray, start: int, n: int) -> float:
+    """NumPy's pairwise sum of ``a[start:start + n]`` for ``n <= 128``: below 8 values one after
+    the other, else eight running sums combined in pairs, then the rest."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[start + i]
+        return res
+    r0, r1, r2, r3 = a[start], a[start + 1], a[start + 2], a[start + 3]
+    r4, r5, r6, r7 = a[start + 4], a[start + 5], a[start + 6], a[start + 7]
+    i = 8
+    whole = n - n % 8
+    while i < whole:
+        j = start + i
+        r0 += a[j]
+        r1 += a[j + 1]
+        r2 += a[j + 2]
+        r3 += a[j + 3]
+        r4 += a[j + 4]
+        r5 += a[j + 5]
+        r6 += a[j + 6]
+        r7 += a[j + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[start + i]
+        i += 1
+    return res
+
+
+@kernel
+def _pairwise_sum(a: np.ndarray, start: int, n: int) -> float:
+    """Sum of ``a[start:start + n]`` as NumPy's ``add.reduce`` of a contiguous float64 array
+    with the initial value 0 takes it: blocks of at most 128 values (:func:`_block_sum`), longer
+    runs split in two (the first half a multiple of 8) and the halves' sums added. The halving is
+    walked with an explicit stack (cached kernels must not recurse)."""
+    if n <= 128:
+        return _block_sum(a, start, n)
+    lo = np.empty(64, dtype=np.int64)  # depth <= log2(n)
+    size = np.empty(64, dtype=np.int64)
+    left = np.empty(64)
+    state = np.zeros(64, dtype=np.int64)  # 0: left half pending, 1: right half pending
+    top = 0
+    lo[0], size[0], state[0] = start, n, 0
+    while True:
+        if size[top] > 128:  # descend into the left half
+            half = size[top] // 2
+            half -= half % 8
+            lo[top + 1], size[top + 1], state[top + 1] = lo[top], half, 0
+            top += 1
+            continue
+        v = _block_sum(a, lo[top], size[top])
+        top -= 1
+        while top >= 0 and state[top] == 1:  # both halves done: add them, go up
+            v = left[top] + v
+            top -= 1
+        if top < 0:
+            return v
+        left[top] = v  # left half done: the right half next
+        state[top] = 1
+        half = size[top] // 2
+        half -= half % 8
+        lo[top + 1], size[top + 1], state[top + 1] = lo[top] + half, size[top] - half, 0
+        top += 1
+
+
+@kernel
+def _segment_sum(a: np.ndarray, n: int) -> float:
+    """Sum of ``a[:n]`` (n >= 1) as ``np.add.reduceat`` takes a segment: the first value plus the
+    pairwise sum of the rest."""
+    return a[0] + _pairwise_sum(a, 1, n - 1)
+
+
+@kernel
+def _offset_covariance(
+    pts: np.ndarray, sel: np.ndarray, m: int, qx: float, qy: float, qz: float,
+    dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, pr: np.ndarray, out: np.ndarray,
+) -> None:
+    """Covariance (3, 3) into ``out`` of the points ``pts[sel[:m]]`` as offsets from the query
+    ``(qx, qy, qz)``: ``E[d d^T] - E[d] E[d]^T``, means over ``m`` (>= 1); scratch arrays of
+    length >= m."""
+    for t in range(m):
+        s = sel[t]
+        dx[t] = pts[s, 0] - qx
+        dy[t] = pts[s, 1] - qy
+        dz[t] = pts[s, 2] - qz
+    w = float(m)
+    mx = _segment_sum(dx, m) / w
+    my = _segment_sum(dy, m) / w
+    mz = _segment_sum(dz, m) / w
+    for t in range(m):
+        pr[t] = dx[t] * dx[t]
+    out[0, 0] = _segment_sum(pr, m) / w - mx * mx
+    for t in range(m):
+        pr[t] = dx[t] * dy[t]
+    out[0, 1] = out[1, 0] = _segment_sum(pr, m) / w - mx * my
+    for t in range(m):
+        pr[t] = dx[t] * dz[t]
+    out[0, 2] = out[2, 0] = _segment_sum(pr, m) / w - mx * mz
+    for t in range(m):
+        pr[t] = dy[t] * dy[t]
+    out[1, 1] = _segment_sum(pr, m) / w - my * my
+    for t in range(m):
+        pr[t] = dy[t] * dz[t]
+    out[1, 2] = out[2, 1] = _segment_sum(pr, m) / w - my * mz
+    for t in range(m):
+        pr[t] = dz[t] * dz[t]
+    out[2, 2] = _segment_sum(pr, m) / w - mz * mz
+
+
+# --------------------------------------------------------------------------------------------
+# Neighbours within a radius on a grid
+# --------------------------------------------------------------------------------------------
+
+
+class SphereGrid:
+    """Points sorted into columns of a grid of square cells at least ``radius_m`` wide, for
+    queries of the (at most ``k``) nearest points strictly within ``radius_m`` of any point.
+
+    Attributes (all in the sorted order): ``points`` (N, 3) float64; ``index`` (N,) the original
+    index of each; ``cell_z`` (N,) its cell layer; ``column_start`` (nx * ny + 1,) where each column
+    (``ix * ny + iy``) begins. Cells are counted from ``origin`` (the minimum corner) in steps of
+    ``cell_m``; the cell grows past the radius only to keep the column count near the point count.
+    """
+
+    def __init__(self, points: np.ndarray, radius_m: float) -> None:
+        p = np.asarray(points, dtype=np.float64)
+        self.radius_m = float(radius_m)
+        self.origin = p.min(axis=0) if len(p) else np.zeros(3)
+        extent = (p.max(axis=0) - self.origin) if len(p) else np.zeros(3)
+        cell = max(self.radius_m, 1e-9)
+        while (extent[0] / cell + 1) * (extent[1] / cell + 1) > max(4 * len(p), 1 << 20):
+            cell *= 2.0
+        self.cell_m = cell
+        ix, iy, iz = (np.floor((p[:, a] - self.origin[a]) / cell).astype(np.int64) for a in range(3))
+        self.nx = int(ix.max()) + 1 if len(p) else 1
+        self.ny = int(iy.max()) + 1 if len(p) else 1
+        column = ix * self.ny + iy
+        self.index = np.lexsort((iz, column))
+        self.points = np.ascontiguousarray(p[self.index])
+        self.cell_z = np.ascontiguousarray(iz[self.index])
+        self.column_start = np.searchsorted(column[self.index], np.arange(self.nx * self.ny + 1))
+
+    def args(self) -> tuple:
+        """The grid as the kernels take it."""
+        return (self.origin, self.cell_m, self.nx, self.ny, self.index, self.column_start, self.cell_z, self.points)
+
+
+@kernel
+def _first_at_least(a: np.ndarray, lo: int, hi: int, v: int) -> int:
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if a[mid] < v:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@kernel
+def _nearest_in_sphere(
+    qx: float, qy: float, qz: float, origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray,
+    column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int,
+    best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
+) -> int:
+    """The (at most ``k``) grid points with squared distance below ``r2`` from the query, nearest
+    first (ties by original index): their sorted positions into ``best[:m]``; returns ``m``. The
+    squared distance is ``(dx^2 + dy^2) + dz^2``, as a k-d tree computes it."""
+    ix = int(np.floor((qx - origin[0]) / cell))
+    iy = int(np.floor((qy - origin[1]) / cell))
+    iz = int(np.floor((qz - origin[2]) / cell))
+    m = 0
+    for ax in range(max(ix - 1, 0), min(ix + 2, nx)):
+        for ay in range(max(iy - 1, 0), min(iy + 2, ny)):
+            col = ax * ny + ay
+            a1 = column_start[col + 1]
+            s = _first_at_least(cell_z, column_start[col], a1, iz - 1)
+            while s < a1 and cell_z[s] <= iz + 1:
+                ex = pts[s, 0] - qx
+                ey = pts[s, 1] - qy
+                ez = pts[s, 2] - qz
+                d2 = ex * ex + ey * ey + ez * ez
+                if d2 < r2:
+                    oi = index[s]
+                    if m < k or d2 < best_d2[m - 1] or (d2 == best_d2[m - 1] and oi < best_index[m - 1]):
+                        j = m if m < k else k - 1
+                        while j > 0 and (best_d2[j - 1] > d2 or (best_d2[j - 1] == d2 and best_index[j - 1] > oi)):
+                            best_d2[j] = best_d2[j - 1]
+                            best_index[j] = best_index[j - 1]
+                            best[j] = best[j - 1]
+                            j -= 1
+                        best_d2[j] = d2
+                        best_index[j] = oi
+                        best[j] = s
+                        if m < k:
+                            m += 1
+                s += 1
+    return m
+
+
+@kernel
+def _sphere_covariance_rows(
+    start: int, stop: int, q: np.ndarray, r2: float, k: int, cov: np.ndarray, count: np.ndarray,
+    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
+    cell_z: np.ndarray, pts: np.ndarray,
+) -> None:
+    """Rows ``start:stop`` of :func:`local_covariances` on a :class:`SphereGrid`."""
+    best_d2 = np.empty(k)
+    best_index = np.empty(k, dtype=np.int64)
+    best = np.empty(k, dtype=np.int64)
+    dx, dy, dz, pr = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
+    for i in range(start, stop):
+        qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
+        m = _nearest_in_sphere(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)
+        count[i] = m
+        if m > 0:
+            _offset_covariance(pts, best, m, qx, qy, qz, dx, dy, dz, pr, cov[i])
+
+
+@kernel
+def _listed_covariance_rows(
+    start: int, stop: int, q: np.ndarray, cloud: np.ndarray, idx: np.ndarray, cov: np.ndarray, count: np.ndarray
+) -> None:
+    """Covariances of rows ``start:stop`` from neighbour lists ``idx`` (Q, k), nearest first,
+    padded with ``len(cloud)`` (a k-d tree's output)."""
+    n, k = cloud.shape[0], idx.shape[1]
+    dx, dy, dz, pr = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
+    for i in range(start, stop):
+        m = 0
+        while m < k and idx[i, m] < n:
+            m += 1
+        count[i] = m
+        if m > 0:
+            _offset_covariance(cloud, idx[i], m, q[i, 0], q[i, 1], q[i, 2], dx, dy, dz, pr, cov[i])
 
 
 def local_covariances(
@@ -22,62 +272,101 @@ def local_covariances(
     tree: Optional[cKDTree] = None,
     batch: int = 50000,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Covariance (Q, 3, 3) of the (at most ``k`` nearest) ``cloud`` points within ``radius_m`` of
-    each query point, and the neighbour count (Q,). ``tree`` may be a cKDTree built on ``cloud``.
+    """Covariance (Q, 3, 3) of the (at most ``k``) nearest ``cloud`` points strictly within
+    ``radius_m`` of each query point, and the neighbour count (Q,).
 
     Sums are taken of offsets from the query point (small numbers: no loss of precision far from
     the origin): ``cov = E[d d^T] - E[d] E[d]^T``. A query with no neighbour has a zero matrix.
-    Only the neighbours found enter the sums (one flat list per batch, summed per query with
-    ``reduceat``), so sparse spheres cost what they hold, not ``k``.
+    With a finite radius the neighbours come from a :class:`SphereGrid` (``tree`` is not used);
+    without one, from a k-d tree query of ``k`` neighbours (``tree`` may be a cKDTree built on
+    ``cloud``; ``batch`` queries at a time).
     """
-    q_all = np.asarray(queries, dtype=np.float64)
-    c = np.asarray(cloud, dtype=np.float64)
+    q_all = np.ascontiguousarray(queries, dtype=np.float64)
+    c = np.ascontiguousarray(cloud, dtype=np.float64)
     n = len(c)
     cov = np.zeros((len(q_all), 3, 3))
     count = np.zeros(len(q_all), dtype=np.int64)
     if n == 0 or len(q_all) == 0:
         return cov, count
     k = min(int(k), n)
+    if np.isfinite(radius_m):
+        grid = SphereGrid(c, radius_m)
+        run_blocks(_sphere_covariance_rows, len(q_all), q_all, float(radius_m) * float(radius_m), k, cov, count, *grid.args())
+        return cov, count
     tree = tree if tree is not None else cKDTree(c)
-    columns = [np.ascontiguousarray(c[:, axis]) for axis in range(3)]
     for a in range(0, len(q_all), batch):
         q = q_all[a : a + batch]
-        _, idx = tree.query(q, k=k, distance_upper_bound=radius_m, workers=-1 if len(q) >= 5000 else 1)
-        idx = idx.reshape(len(q), k)
-        valid = idx < n  # neighbours beyond the radius come last, with index n
-        cnt = valid.sum(axis=1)
-        rows = np.flatnonzero(cnt)  # queries with neighbours; their neighbours lie in runs
-        starts = np.cumsum(cnt)[rows] - cnt[rows]
-        nb = idx[valid]
-        d = [columns[axis][nb] - np.repeat(q[rows, axis], cnt[rows]) for axis in range(3)]
-        w = cnt[rows].astype(np.float64)
-        mean = [np.add.reduceat(d[i], starts) / w for i in range(3)]
-        block = np.empty((len(rows), 3, 3))
-        for i in range(3):
-            for j in range(i, 3):
-                block[:, i, j] = block[:, j, i] = np.add.reduceat(d[i] * d[j], starts) / w - mean[i] * mean[j]
-        cov[a + rows] = block
-        count[a : a + batch] = cnt
+        _, idx = tree.query(q, k=k, workers=-1 if len(q) >= 5000 else 1)
+        idx = np.ascontiguousarray(idx.reshape(len(q), k), dtype=np.int64)
+        _listed_covariance_rows(0, len(q), q, c, idx, cov[a : a + batch], count[a : a + batch])
     return cov, count
+
+
+@kernel
+def _neighbour_mean_rows(
+    start: int, stop: int, q: np.ndarray, values: np.ndarray, r2: float, k: int, out: np.ndarray,
+    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
+    cell_z: np.ndarray, pts: np.ndarray,
+) -> None:
+    """Rows ``start:stop`` of :func:`neighbour_means` on a :class:`SphereGrid`."""
+    best_d2 = np.empty(k)
+    best_index = np.empty(k, dtype=np.int64)
+    best = np.empty(k, dtype=np.int64)
+    slots = np.empty(k)
+    for i in range(start, stop):
+        m = _nearest_in_sphere(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)
+        for t in range(k):
+            slots[t] = values[best_index[t]] if t < m else 0.0
+        out[i] = _pairwise_sum(slots, 0, k) / m if m > 0 else np.nan
+
+
+def neighbour_means(points: np.ndarray, values: np.ndarray, radius_m: float, k: int) -> np.ndarray:
+    """Mean (N,) of ``values`` (N,) over each point's (at most ``k``) nearest points strictly
+    within ``radius_m`` (the point itself included), summed nearest first as NumPy sums a row of
+    ``k`` slots (the empty ones 0)."""
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    v = np.ascontiguousarray(values, dtype=np.float64)
+    out = np.empty(len(p))
+    if len(p) == 0:
+        return out
+    grid = SphereGrid(p, radius_m)
+    run_blocks(_neighbour_mean_rows, len(p), p, v, float(radius_m) * float(radius_m), min(int(k), len(p)), out, *grid.args())
+    return out
+
+
+#: Matrices decomposed at a time (blocks run on threads: LAPACK releases the interpreter lock).
+_EIGEN_BLOCK = 65536
 
 
 def normals_and_variation(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (Q, 3; the eigenvector of the smallest eigenvalue, arbitrary sign) and surface
     variation ``l_min / (l1 + l2 + l3)`` (Q,; 0 = flat, 1/3 = isotropic; NaN for a zero matrix)."""
-    w, v = np.linalg.eigh(cov)
-    total = w.sum(axis=1)
-    variation = np.where(total > 0, w[:, 0] / np.maximum(total, 1e-30), np.nan)
-    return v[:, :, 0], variation
+    normals = np.empty((len(cov), 3))
+    variation = np.empty(len(cov))
+
+    def block(a: int, b: int) -> None:
+        w, v = np.linalg.eigh(cov[a:b])
+        total = w.sum(axis=1)
+        variation[a:b] = np.where(total > 0, w[:, 0] / np.maximum(total, 1e-30), np.nan)
+        normals[a:b] = v[:, :, 0]
+
+    run_blocks(block, len(cov), block=_EIGEN_BLOCK)
+    return normals, variation
 
 
 def eigen_features(cov: np.ndarray) -> np.ndarray:
     """(Q, 6) features of covariance matrices (Q, 3, 3): normalised eigenvalues ``l1 >= l2 >=
     l3`` (sum 1) and the zenith angles (degrees, 0-90) of their eigenvectors ``e1, e2, e3``
     (Fekry et al. 2022, eq. 7-8)."""
-    w, v = np.linalg.eigh(cov)  # ascending
-    w = np.clip(w[:, ::-1], 0.0, None)
-    v = v[:, :, ::-1]
-    total = w.sum(axis=1, keepdims=True)
-    lam = np.where(total > 0, w / np.where(total > 0, total, 1.0), 1.0 / 3.0)
-    zenith = np.degrees(np.arccos(np.clip(np.abs(v[:, 2, :]), 0.0, 1.0)))
-    return np.hstack([lam, zenith])
+    out = np.empty((len(cov), 6))
+
+    def block(a: int, b: int) -> None:
+        w, v = np.linalg.eigh(cov[a:b])  # ascending
+        w = np.clip(w[:, ::-1], 0.0, None)
+        v = v[:, :, ::-1]
+        total = w.sum(axis=1, keepdims=True)
+        out[a:b, :3] = np.where(total > 0, w / np.where(total > 0, total, 1.0), 1.0 / 3.0)
+        out[a:b, 3:] = np.degrees(np.arccos(np.clip(np.abs(v[:, 2, :]), 0.0, 1.0)))
+
+    run_blocks(block, len(cov), block=_EIGEN_BLOCK)
+    return out

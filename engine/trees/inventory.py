@@ -18,6 +18,7 @@ import io
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
@@ -142,7 +143,10 @@ class TreeInventory:
     """Trees of one cloud and the per-point results.
 
     ``labels`` (N,) tree id per point (0 = none), ``heights`` (N,) height above the DEM,
-    ``wood_probability`` (N,), ``ground`` (N,) bool; ``origin_shift`` of the cloud.
+    ``wood_probability`` (N,), ``ground`` (N,) bool; ``origin_shift`` of the cloud; ``timings``
+    wall seconds per step (``*_s``): ``dbh_s`` and ``crowns_s`` run in a second thread while
+    ``segmentation_s`` and ``leafwood_s`` run (``waiting_s``: for that thread afterwards), so
+    the steps add up to more than the whole.
     """
 
     trees: list[TreeRecord]
@@ -294,57 +298,43 @@ def measure_trees(
     if not stems:
         return _canopy_inventory(p, heights, model, no_ground, params, progress, origin_shift, timings)
 
-    t = time.perf_counter()
-    progress(0.2, f"{len(stems)} stems ({method} profile): DBH and stem curves")
-    from scipy.spatial import cKDTree
+    # DBH and stem curves, then the crowns (many small fits and queries, mostly holding the
+    # interpreter lock), are measured in a second thread while the trees are segmented and the
+    # leaf-wood separation runs here (compiled kernels and array operations, mostly outside the
+    # lock): none needs another's results. ``dbh_s`` and ``crowns_s`` are that thread's times.
+    # BLAS runs single-threaded meanwhile: its thread count is one setting for the whole process,
+    # and changing it (the mixture does) while another thread is inside BLAS is not safe.
+    from threadpoolctl import threadpool_limits
 
-    index = cKDTree(p)  # one spatial index for every stem's slices
-    dbh, curves = measure_stems(p, heights, stems, stem_params, search_tree=index)
-    if method == "noisy":  # thin stems found with the noisy settings may still be measured finely
-        thin = [s for s in stems if not dbh[s.id].ok and s.radius_m < 0.1]
-        fine_dbh, fine_curves = measure_stems(p, heights, thin, params.stems, search_tree=index)
-        for s in thin:
-            if fine_dbh[s.id].ok:
-                dbh[s.id] = fine_dbh[s.id]
-                curves[s.id] = fine_curves[s.id]
-    timings["dbh_s"] = time.perf_counter() - t
+    progress(0.2, f"{len(stems)} stems ({method} profile): DBH and stem curves, segmentation, leaf-wood")
+    with threadpool_limits(1), ThreadPoolExecutor(1) as pool:
+        stems_job = pool.submit(_measure_stems_timed, p, heights, stems, stem_params, params.stems, method)
+        t = time.perf_counter()
+        labels = segment_trees(p, heights, stems, params.segmentation, progress.sub(0.3, 0.45))
+        timings["segmentation_s"] = time.perf_counter() - t
+        crowns_job = pool.submit(_crowns_timed, p, heights, labels, stems, model.ground, params.crown, timings)
 
+        t = time.perf_counter()
+        progress(0.45, "leaf-wood separation")
+        vegetation = (labels > 0) | (heights > params.segmentation.ground_clearance_m)
+        wood = np.zeros(len(p))
+        if np.count_nonzero(vegetation) >= 50:
+            wood[vegetation] = wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
+        timings["leafwood_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        index, dbh, curves, timings["dbh_s"] = stems_job.result()
+        order, bounds, crowns, shared, ground_xy = crowns_job.result()
+        timings["waiting_s"] = time.perf_counter() - t  # for the second thread
     t = time.perf_counter()
-    progress(0.3, "segmenting trees")
-    labels = segment_trees(p, heights, stems, params.segmentation, progress.sub(0.3, 0.45))
     complete = {c.tree_id: c for c in tree_completeness(p, heights, labels, stems, params.completeness, dbh)}
-    timings["segmentation_s"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    progress(0.45, "leaf-wood separation")
-    vegetation = (labels > 0) | (heights > params.segmentation.ground_clearance_m)
-    wood = np.zeros(len(p))
-    if np.count_nonzero(vegetation) >= 50:
-        wood[vegetation] = wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
     # the stem as the stem curve traces it is wood, whatever its covariance features say
     tol = max(2.0 * stem_params.inlier_tolerance_m, 0.03)
     for s in stems:
         wood[stem_curve_wood(p, index, s, curves[s.id], tol)] = 1.0
-    timings["leafwood_s"] = time.perf_counter() - t
+    timings["completeness_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     records: list[TreeRecord] = []
-    order = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[order], [s.id for s in stems] + [s.id + 1 for s in stems])
-    ground_xy = cKDTree(p[model.ground, :2]) if model.ground.any() else None
-    crowns: dict[int, CrownMeasurement] = {}
-    for k, stem in enumerate(stems):
-        idx = order[bounds[k] : bounds[k + len(stems)]]
-        try:
-            crowns[stem.id] = measure_crown(p[idx], heights[idx], stem, params.crown)
-        except ScanDataError as exc:  # no points reached this stem
-            nan = math.nan
-            crowns[stem.id] = CrownMeasurement(
-                tree_id=stem.id, x=stem.x, y=stem.y, height_m=nan, crown_base_m=nan, crown_width_ew_m=nan,
-                crown_width_ns_m=nan, crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan,
-                crown_volume_m3=nan, n_points=int(len(idx)), top=(nan, nan, nan), ok=False, reasons=(str(exc),),
-            )
-    shared = _shared_tops(p, labels, stems, crowns)
     for k, stem in enumerate(stems):
         progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: crown and cylinder model")
         idx = order[bounds[k] : bounds[k + len(stems)]]
@@ -365,6 +355,58 @@ def measure_trees(
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
         timings=timings, method=method,
     )
+
+
+def _crowns_timed(
+    p: np.ndarray, heights: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], ground: np.ndarray,
+    params: CrownParams, timings: dict[str, float],
+) -> tuple[np.ndarray, np.ndarray, dict[int, CrownMeasurement], dict[int, str], Any]:
+    """Every tree's crown (:func:`.crown.measure_crown`) and the flags of tops not their own
+    (:func:`_shared_tops`), with what the tree records need: the point order by label and each
+    stem's bounds in it, and a ``cKDTree`` of the ground points' x, y (None without ground).
+    Stores its seconds in ``timings["crowns_s"]``."""
+    from scipy.spatial import cKDTree
+
+    t = time.perf_counter()
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], [s.id for s in stems] + [s.id + 1 for s in stems])
+    ground_xy = cKDTree(p[ground, :2]) if ground.any() else None
+    crowns: dict[int, CrownMeasurement] = {}
+    for k, stem in enumerate(stems):
+        idx = order[bounds[k] : bounds[k + len(stems)]]
+        try:
+            crowns[stem.id] = measure_crown(p[idx], heights[idx], stem, params)
+        except ScanDataError as exc:  # no points reached this stem
+            nan = math.nan
+            crowns[stem.id] = CrownMeasurement(
+                tree_id=stem.id, x=stem.x, y=stem.y, height_m=nan, crown_base_m=nan, crown_width_ew_m=nan,
+                crown_width_ns_m=nan, crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan,
+                crown_volume_m3=nan, n_points=int(len(idx)), top=(nan, nan, nan), ok=False, reasons=(str(exc),),
+            )
+    shared = _shared_tops(p, labels, stems, crowns)
+    timings["crowns_s"] = time.perf_counter() - t
+    return order, bounds, crowns, shared, ground_xy
+
+
+def _measure_stems_timed(
+    p: np.ndarray, heights: np.ndarray, stems: list[Stem], stem_params: StemParams, fine_params: StemParams, method: str
+) -> tuple[Any, dict[int, DbhMeasurement], dict[int, StemCurve], float]:
+    """A spatial index of the cloud (a ``cKDTree``), every stem's DBH and stem curve (with the
+    ``noisy`` profile, thin stems not measured are tried again with ``fine_params``) and the
+    seconds it took."""
+    from scipy.spatial import cKDTree
+
+    t = time.perf_counter()
+    index = cKDTree(p)  # one spatial index for every stem's slices
+    dbh, curves = measure_stems(p, heights, stems, stem_params, search_tree=index)
+    if method == "noisy":  # thin stems found with the noisy settings may still be measured finely
+        thin = [s for s in stems if not dbh[s.id].ok and s.radius_m < 0.1]
+        fine_dbh, fine_curves = measure_stems(p, heights, thin, fine_params, search_tree=index)
+        for s in thin:
+            if fine_dbh[s.id].ok:
+                dbh[s.id] = fine_dbh[s.id]
+                curves[s.id] = fine_curves[s.id]
+    return index, dbh, curves, time.perf_counter() - t
 
 
 def tree_record(

@@ -59,6 +59,7 @@ from ..core.params import Params, param_field
 from ..core.progress import Progress
 from ..geometry.cluster import connected_clusters
 from ..geometry.features import local_covariances, normals_and_variation
+from ..geometry.jit import kernel
 from ..geometry.voxel import voxel_thin
 
 # --------------------------------------------------------------------------------------------
@@ -347,6 +348,20 @@ def _geometric_circle(xy: np.ndarray, start: tuple[float, float, float], f_scale
     return float(v[0]), float(v[1]), float(abs(v[2]))
 
 
+@kernel
+def _inlier_counts(x: np.ndarray, y: np.ndarray, cx: np.ndarray, cy: np.ndarray, r: np.ndarray, tolerance: float) -> np.ndarray:
+    """For each circle ``(cx, cy, r)`` (C,), the number of points ``(x, y)`` (M,) whose distance
+    from it, ``|hypot(x - cx, y - cy) - r|``, is below ``tolerance`` (metres)."""
+    counts = np.zeros(len(cx), dtype=np.int64)
+    for c in range(len(cx)):
+        n = 0
+        for i in range(len(x)):
+            if abs(math.hypot(x[i] - cx[c], y[i] - cy[c]) - r[c]) < tolerance:
+                n += 1
+        counts[c] = n
+    return counts
+
+
 def _ransac_circle(xy: np.ndarray, tolerance: float, iterations: int, r_range: tuple[float, float], rng: np.random.Generator) -> Optional[tuple[float, float, float]]:
     """Best three-point circle by inlier count (vectorised RANSAC); None if none is plausible."""
     n = len(xy)
@@ -368,8 +383,7 @@ def _ransac_circle(xy: np.ndarray, tolerance: float, iterations: int, r_range: t
     if not plausible.any():
         return None
     ux, uy, r = ux[plausible], uy[plausible], r[plausible]
-    dist = np.hypot(score_xy[None, :, 0] - ux[:, None], score_xy[None, :, 1] - uy[:, None])
-    counts = (np.abs(dist - r[:, None]) < tolerance).sum(axis=1)
+    counts = _inlier_counts(np.ascontiguousarray(score_xy[:, 0]), np.ascontiguousarray(score_xy[:, 1]), ux, uy, r, float(tolerance))
     best = int(np.argmax(counts))
     return float(ux[best]), float(uy[best]), float(r[best])
 
