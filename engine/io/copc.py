@@ -5,7 +5,7 @@ dimension) whose points are grouped into the nodes of an octree, one variable-si
 node; a ``copc`` info VLR (first VLR) gives the octree's cube and a hierarchy EVLR lists every
 node's key, byte range and point count, so a viewer (QGIS, potree, ``laspy.CopcReader``) reads only
 the nodes of the region and level of detail it shows. The nodes are additive: level 0 holds an even
-subsample of the whole cloud (one point per cell of a 128^3 grid over the root cube), each level
+subsample of the whole cloud (one point per cell of a 128^3 grid over the root cube, :func:`grid_bits`), each level
 down holds one point per cell of a grid twice as fine among the points its ancestors did not take,
 and a node with few points left (``node_points``) keeps them all. Every point is stored exactly once.
 
@@ -48,8 +48,6 @@ COPC_SUFFIX = ".copc.laz"
 NODE_POINTS = 100_000
 #: Points of one subtree built in memory; larger nodes are split while streaming from disk.
 MEMORY_POINTS = 4_000_000
-#: Cells per node side of the sampling grid, as a power of two (128).
-GRID_BITS = 7
 #: Points handled at a time when streaming.
 BATCH_POINTS = 1_000_000
 
@@ -61,6 +59,13 @@ _EVLR_HEAD = 60
 _INFO_SIZE = 160
 _ENTRY = struct.Struct("<iiiiQii")  # VoxelKey (level, x, y, z), offset, byte size, point count
 _HEADER = struct.Struct("<4sHH16sBB32s32sHHHIIBHI5I3d3d6dQQIQ15Q")
+
+
+def grid_bits(node_points: int) -> int:
+    """Cells per side of a node's sampling grid, as a power of two: 128 for the default
+    :data:`NODE_POINTS` (a surface crossing a node then leaves some 16k-100k points in it),
+    coarser for smaller nodes."""
+    return int(min(7, max(2, round(math.log2(math.sqrt(node_points / 4.0))))))
 
 
 def is_copc_path(path) -> bool:
@@ -119,8 +124,9 @@ class CopcWriter:
         self.m = np.floor((lo - self.offset) / scale).astype(np.int64)
         top = np.ceil((hi - self.offset) / scale).astype(np.int64)
         side = int((top - self.m).max()) + 1
-        self.s = max(int(math.ceil(math.log2(side))), GRID_BITS + 1)
-        self.max_level = self.s - GRID_BITS
+        self.g = grid_bits(self.node_points)
+        self.s = max(int(math.ceil(math.log2(side))), self.g + 1)
+        self.max_level = self.s - self.g
         self._las_dtype = _las_record_dtype(self.with_scan_id)
         self.count = 0
         self._nodes: list[tuple[int, int, int, int, int]] = []  # key + point count, in file order
@@ -190,8 +196,8 @@ class CopcWriter:
     def _grid_index(self, rec: np.ndarray, key: tuple[int, int, int, int]) -> np.ndarray:
         """Each point's cell in the node's sampling grid (0 .. 128^3 - 1)."""
         level, kx, ky, kz = key
-        cx, cy, cz = self._cells(rec, self.s - level - GRID_BITS)
-        g = GRID_BITS
+        g = self.g
+        cx, cy, cz = self._cells(rec, self.s - level - g)
         return ((cx - (kx << g)) << (2 * g)) | ((cy - (ky << g)) << g) | (cz - (kz << g))
 
     def _octant(self, rec: np.ndarray, level: int) -> np.ndarray:
@@ -206,7 +212,7 @@ class CopcWriter:
     def _choose(self, grid: np.ndarray, occ: np.ndarray) -> np.ndarray:
         """One point per grid cell not yet occupied (marked occupied now): a boolean mask."""
         if self._scratch is None:
-            self._scratch = np.empty(1 << (3 * GRID_BITS), dtype=np.int64)
+            self._scratch = np.empty(1 << (3 * self.g), dtype=np.int32)
         idx = np.flatnonzero(~occ[grid])
         mask = np.zeros(len(grid), dtype=bool)
         if len(idx):
@@ -223,7 +229,7 @@ class CopcWriter:
             self._emit(key, rec)
             return
         if self._occ is None:
-            self._occ = np.zeros(1 << (3 * GRID_BITS), dtype=bool)
+            self._occ = np.zeros(1 << (3 * self.g), dtype=bool)
         grid = self._grid_index(rec, key)
         keep = self._choose(grid, self._occ)
         self._occ[grid] = False
@@ -317,7 +323,7 @@ class CopcWriter:
     def _vlrs(self, evlr_start: int, page_size: int) -> bytes:
         half = 2 ** (self.s - 1) * self.scale
         centre = self.offset + (self.m - 0.5 + 2 ** (self.s - 1)) * self.scale
-        copc = struct.pack("<3dddQQdd88x", *centre, half, 2 * half / (1 << GRID_BITS),
+        copc = struct.pack("<3dddQQdd88x", *centre, half, 2 * half / (1 << self.g),
                            evlr_start + _EVLR_HEAD if evlr_start else 0, page_size, 0.0, 0.0)
         out = _vlr("copc", 1, "COPC info", copc)
         out += _vlr("laszip encoded", 22204, "lazrs variable chunks", bytes(self._laz_vlr.record_data()))
@@ -374,7 +380,7 @@ class _Node:
             self.held.append(rec)
             self.count += len(rec)
             if self.count > self.w.memory_points and self.key[0] < self.w.max_level:
-                self.occ = np.zeros(1 << (3 * GRID_BITS), dtype=bool)
+                self.occ = np.zeros(1 << (3 * self.w.g), dtype=bool)
                 held, self.held = self.held, []
                 for part in held:
                     self._split(part)
