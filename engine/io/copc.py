@@ -97,18 +97,21 @@ class CopcWriter:
         the octree's cube is made from them, the written header has the points' own bounds).
     with_scan_id : write a uint16 ``scan_id`` extra dimension (also put in ``point_source_id``,
         which viewers offer for colouring); every :meth:`write` then needs one id per point.
-    node_points, memory_points : leaf size and in-memory subtree size, points (see the module).
+    node_points, memory_points : leaf size and in-memory subtree size, points (see the module;
+        default :data:`NODE_POINTS`, :data:`MEMORY_POINTS`).
 
     Use as a context manager: on a clean exit the file is written; on an exception nothing more is
     written and the temporary folder is removed.
     """
 
     def __init__(self, path: Path, lo: np.ndarray, hi: np.ndarray, *, with_scan_id: bool = False,
-                 node_points: int = NODE_POINTS, memory_points: int = MEMORY_POINTS) -> None:
+                 node_points: Optional[int] = None, memory_points: Optional[int] = None) -> None:
         lo = np.asarray(lo, dtype=np.float64).reshape(3)
         hi = np.asarray(hi, dtype=np.float64).reshape(3)
         if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()):
             raise ParameterError(f"{path}: bounds must be finite with hi >= lo, got {lo.tolist()} .. {hi.tolist()}")
+        node_points = NODE_POINTS if node_points is None else node_points
+        memory_points = MEMORY_POINTS if memory_points is None else memory_points
         if int(node_points) < 1 or int(memory_points) < int(node_points):
             raise ParameterError("node_points must be 1 or more and memory_points at least node_points")
         self.path = Path(path)
@@ -175,6 +178,8 @@ class CopcWriter:
                     f"{int(outside.sum())} points lie outside the bounds given for {self.path.name} "
                     f"({(self.offset + self.m * self.scale).tolist()} and {2 ** self.s * self.scale:.1f} m on)")
             rec["X"], rec["Y"], rec["Z"] = steps[:, 0], steps[:, 1], steps[:, 2]
+            self._mins = np.minimum(self._mins, steps.min(axis=0).astype(np.int64))
+            self._maxs = np.maximum(self._maxs, steps.max(axis=0).astype(np.int64))
             if inten is not None:
                 rec["intensity"] = inten[a:b]
             if self.with_scan_id:
@@ -201,9 +206,16 @@ class CopcWriter:
         return ((cx - (kx << g)) << (2 * g)) | ((cy - (ky << g)) << g) | (cz - (kz << g))
 
     def _octant(self, rec: np.ndarray, level: int) -> np.ndarray:
-        """Which child (0..7, x bit 4, y bit 2, z bit 1) of its level-``level`` node each point is in."""
+        """Which child (0..7, x bit 4, y bit 2, z bit 1) of its level-``level`` node each point is
+        in (uint8)."""
         cx, cy, cz = self._cells(rec, self.s - level - 1)
-        return ((cx & 1) << 2) | ((cy & 1) << 1) | (cz & 1)
+        return (((cx & 1) << 2) | ((cy & 1) << 1) | (cz & 1)).astype(np.uint8)
+
+    @staticmethod
+    def _by_octant(rec: np.ndarray, octant: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The points grouped by child (order kept within each; a radix sort) and the counts."""
+        order = np.argsort(octant, kind="stable")
+        return rec[order], np.bincount(octant, minlength=8)
 
     def _child_key(self, key: tuple[int, int, int, int], octant: int) -> tuple[int, int, int, int]:
         level, x, y, z = key
@@ -236,11 +248,7 @@ class CopcWriter:
         self._emit(key, rec[keep])
         rest = rec[~keep]
         del rec, grid, keep
-        octant = self._octant(rest, level)
-        order = np.argsort(octant, kind="stable")
-        counts = np.bincount(octant, minlength=8)
-        rest = rest[order]
-        del order, octant
+        rest, counts = self._by_octant(rest, self._octant(rest, level))
         start = 0
         for o in range(8):
             if counts[o]:
@@ -259,10 +267,6 @@ class CopcWriter:
         if self.with_scan_id:
             out["scan_id"] = rec["scan_id"]
             out["point_source_id"] = rec["scan_id"]
-        for axis, name in enumerate("XYZ"):
-            v = rec[name]
-            self._mins[axis] = min(self._mins[axis], int(v.min()))
-            self._maxs[axis] = max(self._maxs[axis], int(v.max()))
         if self._open_chunk:
             self._compressor.finish_current_chunk()
         self._compressor.compress_many(out.view(np.uint8))
@@ -393,16 +397,17 @@ class _Node:
         keep = w._choose(w._grid_index(rec, self.key), self.occ)
         self.kept.append(rec[keep])
         rest = rec[~keep]
-        octant = w._octant(rest, self.key[0])
+        rest, counts = w._by_octant(rest, w._octant(rest, self.key[0]))
+        start = 0
         for o in range(8):
-            part = rest[octant == o]
-            if not len(part):
-                continue
-            if self.children[o] is None:
-                path = w._spill_file()
-                self.children[o] = (path, open(path, "wb"))
-            self.children[o][1].write(part.tobytes())
-            self.child_counts[o] += len(part)
+            stop = start + int(counts[o])
+            if stop > start:
+                if self.children[o] is None:
+                    path = w._spill_file()
+                    self.children[o] = (path, open(path, "wb"))
+                rest[start:stop].tofile(self.children[o][1])
+                self.child_counts[o] += stop - start
+            start = stop
 
     def finish(self) -> None:
         w = self.w
