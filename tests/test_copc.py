@@ -168,6 +168,7 @@ def test_bad_input_is_refused_with_no_partial_file(tmp_path):
         with pytest.raises(error) as info:
             write_point_chunks(target, chunks, bounds=bounds, with_scan_id=True)
         assert words in str(info.value) and "\n" not in str(info.value)
+        assert str(target) in str(info.value) and ".tmp" not in str(info.value), "the target is named, not a temporary file"
         assert target.read_bytes() == before, "the previous file is left as it was"
         assert [p.name for p in tmp_path.iterdir()] == ["merged.copc.laz"], "no temporary file or folder left"
     with pytest.raises(ParameterError):

@@ -283,7 +283,7 @@ def write_point_chunks(
 
     def writer(tmp: Path):
         if _copc.is_copc_path(target):
-            return _copc.CopcWriter(tmp, lo, hi, with_scan_id=with_scan_id)
+            return _copc.CopcWriter(tmp, lo, hi, with_scan_id=with_scan_id, label=str(path))
         return _las.LasChunkWriter(tmp, lo, hi, compress=target.suffix.lower() == ".laz", with_scan_id=with_scan_id)
 
     def body(tmp: Path) -> None:
@@ -294,8 +294,8 @@ def write_point_chunks(
                     raise ParameterError(f"{path}: every chunk needs a scan_id per point")
                 out.write(pts, shift, intensity=inten if with_intensity else None, scan_id=ids)
             written[0] = out.count
-        if not written[0]:
-            raise ParameterError(f"{path}: there are no points to write")
+            if not written[0]:
+                raise ParameterError(f"{path}: there are no points to write")
 
     _atomic(target, body)
     return written[0]
@@ -365,7 +365,7 @@ def _write(target: Path, cloud: PointsToWrite) -> None:
     suffix = target.suffix.lower()
     if _copc.is_copc_path(target):
         def body(tmp: Path) -> None:
-            _copc.write_copc(tmp, cloud)
+            _copc.write_copc(tmp, cloud, label=str(target))
     elif suffix in (".las", ".laz"):
         def body(tmp: Path) -> None:
             _las.write_las(tmp, cloud, compress=suffix == ".laz")

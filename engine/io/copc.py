@@ -47,7 +47,7 @@ COPC_SUFFIX = ".copc.laz"
 #: A node with at most this many points left keeps them all (a leaf).
 NODE_POINTS = 100_000
 #: Points of one subtree built in memory; larger nodes are split while streaming from disk.
-MEMORY_POINTS = 4_000_000
+MEMORY_POINTS = 1_000_000
 #: Points handled at a time when streaming.
 BATCH_POINTS = 1_000_000
 
@@ -99,17 +99,21 @@ class CopcWriter:
         which viewers offer for colouring); every :meth:`write` then needs one id per point.
     node_points, memory_points : leaf size and in-memory subtree size, points (see the module;
         default :data:`NODE_POINTS`, :data:`MEMORY_POINTS`).
+    label : the file's name in error messages (default ``path``; the caller's target when ``path``
+        is a temporary file).
 
     Use as a context manager: on a clean exit the file is written; on an exception nothing more is
     written and the temporary folder is removed.
     """
 
     def __init__(self, path: Path, lo: np.ndarray, hi: np.ndarray, *, with_scan_id: bool = False,
-                 node_points: Optional[int] = None, memory_points: Optional[int] = None) -> None:
+                 node_points: Optional[int] = None, memory_points: Optional[int] = None,
+                 label: Optional[str] = None) -> None:
+        self.label = str(path) if label is None else str(label)
         lo = np.asarray(lo, dtype=np.float64).reshape(3)
         hi = np.asarray(hi, dtype=np.float64).reshape(3)
         if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()):
-            raise ParameterError(f"{path}: bounds must be finite with hi >= lo, got {lo.tolist()} .. {hi.tolist()}")
+            raise ParameterError(f"{self.label}: bounds must be finite with hi >= lo, got {lo.tolist()} .. {hi.tolist()}")
         node_points = NODE_POINTS if node_points is None else node_points
         memory_points = MEMORY_POINTS if memory_points is None else memory_points
         if int(node_points) < 1 or int(memory_points) < int(node_points):
@@ -129,6 +133,8 @@ class CopcWriter:
         side = int((top - self.m).max()) + 1
         self.g = grid_bits(self.node_points)
         self.s = max(int(math.ceil(math.log2(side))), self.g + 1)
+        if (self.m < -2 ** 31).any() or (self.m + 2 ** self.s > 2 ** 31).any():
+            raise ScanWriteError(f"{self.label}: the bounds {lo.tolist()} .. {hi.tolist()} are too large for one COPC file")
         self.max_level = self.s - self.g
         self._las_dtype = _las_record_dtype(self.with_scan_id)
         self.count = 0
@@ -164,22 +170,22 @@ class CopcWriter:
         if n == 0:
             return
         if self.with_scan_id and scan_id is None:
-            raise ParameterError(f"{self.path}: every chunk needs a scan_id per point")
+            raise ParameterError(f"{self.label}: every chunk needs a scan_id per point")
         shift = np.asarray(shift, dtype=np.float64).reshape(3)
         inten = None if intensity is None else intensity_to_uint16(intensity)
         for a in range(0, n, BATCH_POINTS):
             b = min(n, a + BATCH_POINTS)
             rec = np.zeros(b - a, dtype=_REC)
             steps = np.round((local[a:b] - (self.offset - shift)) / self.scale)
-            rel = steps - self.m
-            outside = ((rel < 0) | (rel >= 2 ** self.s) | (np.abs(steps) > np.iinfo(np.int32).max)).any(axis=1)
-            if outside.any():
+            lo, hi = steps.min(axis=0), steps.max(axis=0)
+            if (lo < self.m).any() or (hi >= self.m + 2 ** self.s).any():
+                outside = ((steps < self.m) | (steps >= self.m + 2 ** self.s)).any(axis=1)
                 raise ScanWriteError(
-                    f"{int(outside.sum())} points lie outside the bounds given for {self.path.name} "
+                    f"{self.label}: {int(outside.sum())} points lie outside the bounds given for the file "
                     f"({(self.offset + self.m * self.scale).tolist()} and {2 ** self.s * self.scale:.1f} m on)")
             rec["X"], rec["Y"], rec["Z"] = steps[:, 0], steps[:, 1], steps[:, 2]
-            self._mins = np.minimum(self._mins, steps.min(axis=0).astype(np.int64))
-            self._maxs = np.maximum(self._maxs, steps.max(axis=0).astype(np.int64))
+            self._mins = np.minimum(self._mins, lo.astype(np.int64))
+            self._maxs = np.maximum(self._maxs, hi.astype(np.int64))
             if inten is not None:
                 rec["intensity"] = inten[a:b]
             if self.with_scan_id:
@@ -286,7 +292,7 @@ class CopcWriter:
         self._closed = True
         try:
             if self.count == 0:
-                raise ParameterError(f"{self.path}: there are no points to write")
+                raise ParameterError(f"{self.label}: there are no points to write")
             self._root.finish()
             self._root = None
             self._scratch = self._occ = None
@@ -297,7 +303,7 @@ class CopcWriter:
 
             table = lazrs.read_chunk_table(self._fh, self._laz_vlr)
             if [c for c, _ in table] != [n for *_, n in self._nodes]:
-                raise ScanWriteError(f"{self.path}: the LAZ chunk table does not match the octree nodes")
+                raise ScanWriteError(f"{self.label}: the LAZ chunk table does not match the octree nodes")
             pos = start + 8
             page = bytearray()
             for (level, x, y, z, n), (_, size) in zip(self._nodes, table):
