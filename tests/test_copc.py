@@ -71,6 +71,35 @@ def test_round_trip_every_point_exactly_once(written):
     assert len(read_scan(path)) == len(pts)
 
 
+def test_file_layout_follows_the_copc_specification(written):
+    """LAS 1.4 point format 6, 'copc' info VLR first, LAZ with variable-size chunks, one chunk per
+    node, the hierarchy in a 'copc' 1000 EVLR after the points, and its entries tiling the point data."""
+    import struct
+
+    path, pts, *_ = written
+    data = path.read_bytes()
+    assert data[:4] == b"LASF" and (data[24], data[25]) == (1, 4)
+    header_size, point_offset, n_vlr, fmt = struct.unpack_from("<HIIB", data, 94)
+    assert header_size == 375 and fmt & 0x3F == 6 and fmt & 0x80
+    assert struct.unpack_from("<I", data, 107)[0] == 0, "legacy point count is 0 for point format 6"
+    assert struct.unpack_from("<H", data, 6)[0] & 16, "WKT bit (required for point format 6)"
+    user_id, record_id, length = struct.unpack_from("<16sHH", data, 377)
+    assert (user_id.rstrip(b"\0"), record_id, length) == (b"copc", 1, 160)
+    evlr_start, n_evlr, count = struct.unpack_from("<QIQ", data, 235)
+    assert n_evlr == 1 and count == len(pts) and evlr_start > point_offset
+    user_id, record_id, length = struct.unpack_from("<16sHQ", data, evlr_start + 2)
+    assert (user_id.rstrip(b"\0"), record_id) == (b"copc", 1000) and evlr_start + 60 + length == len(data)
+    with laspy.CopcReader.open(path) as r:
+        import lazrs
+
+        assert lazrs.LazVlr(r.laszip_vlr.record_data).uses_variable_size_chunks()
+        assert r.copc_info.hierarchy_root_offset == evlr_start + 60 and r.copc_info.hierarchy_root_size == length
+        entries = sorted(r.root_page.entries.values(), key=lambda e: e.offset)
+    assert entries[0].offset == point_offset + 8, "the first chunk follows the chunk table offset"
+    assert all(a.offset + a.byte_size == b.offset for a, b in zip(entries, entries[1:])), "chunks back to back"
+    assert all(e.point_count > 0 for e in entries)
+
+
 def test_nodes_hold_the_points_of_their_cube(written):
     path, *_ = written
     with laspy.CopcReader.open(path) as r:
