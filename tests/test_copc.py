@@ -57,6 +57,7 @@ def test_round_trip_every_point_exactly_once(written):
         entries = r.root_page.entries
     assert header.point_count == len(pts) == len(rec) == sum(e.point_count for e in entries.values())
     assert max(k.level for k in entries) >= 3, "small nodes make a deep octree"
+    assert max(e.point_count for e in entries.values()) <= 1_500, "no node over the budget"
     back = np.column_stack([rec.x, rec.y, rec.z]) - SHIFT
     # every point exactly once: the integer records (coordinates, intensity, scan id) as multisets
     scale = header.scales[0]

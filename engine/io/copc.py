@@ -6,8 +6,10 @@ node; a ``copc`` info VLR (first VLR) gives the octree's cube and a hierarchy EV
 node's key, byte range and point count, so a viewer (QGIS, potree, ``laspy.CopcReader``) reads only
 the nodes of the region and level of detail it shows. The nodes are additive: level 0 holds an even
 subsample of the whole cloud (one point per cell of a 128^3 grid over the root cube, :func:`grid_bits`), each level
-down holds one point per cell of a grid twice as fine among the points its ancestors did not take,
-and a node with few points left (``node_points``) keeps them all. Every point is stored exactly once.
+down holds one point per cell of a grid twice as fine among the points its ancestors did not take
+(a sample larger than ``node_points`` is thinned on a coarser grid), and a node with few points
+left (``node_points``) keeps them all, so nodes hold at most ``node_points`` points (only the
+deepest possible nodes, 1.28 cm wide, keep more when that many points share them). Every point is stored exactly once.
 
 Units and frame: points arrive as ``local + shift`` (metres, file coordinates of the output, as in
 :class:`~forestreg.engine.io.las.LasChunkWriter`) and are stored as 0.1 mm integers
@@ -204,10 +206,11 @@ class CopcWriter:
             out.append((2 * rel + 1) >> (shift_bits + 1))
         return out[0], out[1], out[2]
 
-    def _grid_index(self, rec: np.ndarray, key: tuple[int, int, int, int]) -> np.ndarray:
-        """Each point's cell in the node's sampling grid (0 .. 128^3 - 1)."""
+    def _grid_index(self, rec: np.ndarray, key: tuple[int, int, int, int], bits: Optional[int] = None) -> np.ndarray:
+        """Each point's cell in the node's sampling grid of ``2**bits`` cells a side (default the
+        writer's grid, 128: cells 0 .. 128^3 - 1)."""
         level, kx, ky, kz = key
-        g = self.g
+        g = self.g if bits is None else bits
         cx, cy, cz = self._cells(rec, self.s - level - g)
         return ((cx - (kx << g)) << (2 * g)) | ((cy - (ky << g)) << g) | (cz - (kz << g))
 
@@ -240,6 +243,23 @@ class CopcWriter:
             occ[cells] = True
         return mask
 
+    def _thin(self, key: tuple[int, int, int, int], rec: np.ndarray) -> np.ndarray:
+        """A node's sample that exceeds ``node_points`` (a volume of branches fills many cells)
+        thinned on coarser grids (64, 32, ... cells a side) until it fits: a boolean mask."""
+        if self._occ is None:
+            self._occ = np.zeros(1 << (3 * self.g), dtype=bool)
+        sel = np.arange(len(rec))
+        bits = self.g
+        while len(sel) > self.node_points and bits > 1:
+            bits -= 1
+            grid = self._grid_index(rec[sel], key, bits)
+            keep = self._choose(grid, self._occ)
+            self._occ[grid] = False
+            sel = sel[keep]
+        mask = np.zeros(len(rec), dtype=bool)
+        mask[sel] = True
+        return mask
+
     def _build(self, key: tuple[int, int, int, int], rec: np.ndarray) -> None:
         """Write the subtree of the points ``rec`` (all in memory) under the node ``key``."""
         level = key[0]
@@ -251,6 +271,9 @@ class CopcWriter:
         grid = self._grid_index(rec, key)
         keep = self._choose(grid, self._occ)
         self._occ[grid] = False
+        if int(keep.sum()) > self.node_points:
+            chosen = np.flatnonzero(keep)
+            keep[chosen[~self._thin(key, rec[chosen])]] = False
         self._emit(key, rec[keep])
         rest = rec[~keep]
         del rec, grid, keep
@@ -402,7 +425,11 @@ class _Node:
         w = self.w
         keep = w._choose(w._grid_index(rec, self.key), self.occ)
         self.kept.append(rec[keep])
-        rest = rec[~keep]
+        self._spill(rec[~keep])
+
+    def _spill(self, rest: np.ndarray) -> None:
+        """Append points to the files of the children they fall in."""
+        w = self.w
         rest, counts = w._by_octant(rest, w._octant(rest, self.key[0]))
         start = 0
         for o in range(8):
@@ -423,8 +450,13 @@ class _Node:
             w._build(self.key, rec)
             return
         self.occ = None
-        kept, self.kept = self.kept, []
-        w._emit(self.key, np.concatenate(kept))
+        kept = np.concatenate(self.kept)
+        self.kept = []
+        if len(kept) > w.node_points:
+            fits = w._thin(self.key, kept)
+            self._spill(kept[~fits])
+            kept = kept[fits]
+        w._emit(self.key, kept)
         del kept
         for o in range(8):
             if self.children[o] is not None:
