@@ -8,7 +8,9 @@ points (NaN, wrong units, too few) raise :class:`~forestreg.engine.core.errors.S
 :meth:`Scan.from_points <forestreg.engine.core.scan.Scan.from_points>`.
 
 Writing picks the format from the suffix and always goes through a temporary file renamed onto
-the target, so a failed write leaves no partial file and the previous file intact.
+the target, so a failed write leaves no partial file and the previous file intact. A name ending in
+``.copc.laz`` is written as COPC (:mod:`~forestreg.engine.io.copc`: a LAZ whose points are laid out
+in octree nodes, which viewers stream), out of core like chunked LAS/LAZ.
 
 Frames: readers return file coordinates (scaled to metres by ``unit_scale``); an E57 scan's file
 coordinates are its own coordinates and ``Scan.pose`` maps them into the E57 common frame.
@@ -26,6 +28,7 @@ import numpy as np
 from ..core.atomic import atomic_path
 from ..core.errors import ForestregError, ParameterError, ScanReadError, ScanWriteError
 from ..core.scan import Scan
+from . import copc as _copc
 from . import e57 as _e57
 from . import las as _las
 from . import pcd as _pcd
@@ -47,7 +50,8 @@ __all__ = [
 
 #: Suffixes (lower case) the readers accept; the content decides the format where it can.
 SUPPORTED_READ_SUFFIXES: tuple[str, ...] = tuple(s for group in READ_SUFFIXES.values() for s in group)
-#: Suffixes (lower case) :func:`write_scan` and :func:`write_points` can write.
+#: Suffixes (lower case) :func:`write_scan` and :func:`write_points` can write (``.copc.laz``
+#: names a COPC file, :mod:`~forestreg.engine.io.copc`).
 SUPPORTED_WRITE_SUFFIXES: tuple[str, ...] = (".laz", ".las", ".ply", ".xyz", ".txt", ".e57")
 
 
@@ -241,8 +245,10 @@ def write_point_chunks(
     """Write a cloud that arrives in chunks (e.g. one registered scan at a time) into one file.
 
     LAS/LAZ are written chunk by chunk (:class:`~forestreg.engine.io.las.LasChunkWriter`), so
-    only one chunk is in memory at a time; other formats gather the chunks and write them as
-    :func:`write_points` does. Written through a temporary file like every writer: a failure
+    only one chunk is in memory at a time; ``*.copc.laz`` is written as COPC out of core
+    (:class:`~forestreg.engine.io.copc.CopcWriter`: the points are spilled into an octree of
+    temporary files beside the target, then written node by node); other formats gather the
+    chunks and write them as :func:`write_points` does. Written through a temporary file like every writer: a failure
     leaves no partial file and the previous file intact.
 
     Parameters
@@ -275,16 +281,21 @@ def write_point_chunks(
     lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) + shift for b in bounds)
     written = [0]
 
+    def writer(tmp: Path):
+        if _copc.is_copc_path(target):
+            return _copc.CopcWriter(tmp, lo, hi, with_scan_id=with_scan_id, label=str(path))
+        return _las.LasChunkWriter(tmp, lo, hi, compress=target.suffix.lower() == ".laz", with_scan_id=with_scan_id)
+
     def body(tmp: Path) -> None:
-        with _las.LasChunkWriter(tmp, lo, hi, compress=target.suffix.lower() == ".laz", with_scan_id=with_scan_id) as out:
+        with writer(tmp) as out:
             for chunk in chunks:
                 pts, inten, ids = _checked_columns(path, *chunk)
                 if with_scan_id and ids is None and len(pts):
                     raise ParameterError(f"{path}: every chunk needs a scan_id per point")
                 out.write(pts, shift, intensity=inten if with_intensity else None, scan_id=ids)
             written[0] = out.count
-        if not written[0]:
-            raise ParameterError(f"{path}: there are no points to write")
+            if not written[0]:
+                raise ParameterError(f"{path}: there are no points to write")
 
     _atomic(target, body)
     return written[0]
@@ -352,7 +363,10 @@ def write_e57(path: PathLike, scans: list[Scan], poses: Optional[list[Optional[n
 def _write(target: Path, cloud: PointsToWrite) -> None:
     """Write points ``cloud.local + cloud.shift`` in the format the suffix of ``target`` names."""
     suffix = target.suffix.lower()
-    if suffix in (".las", ".laz"):
+    if _copc.is_copc_path(target):
+        def body(tmp: Path) -> None:
+            _copc.write_copc(tmp, cloud, label=str(target))
+    elif suffix in (".las", ".laz"):
         def body(tmp: Path) -> None:
             _las.write_las(tmp, cloud, compress=suffix == ".laz")
     elif suffix == ".ply":

@@ -420,7 +420,8 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
     with a ``scan_id`` per point (the scan's index in the project). Returns the point count.
 
     LAS/LAZ are written one scan at a time (:func:`~forestreg.engine.io.write_point_chunks`), so a
-    plot larger than memory can be merged; intensities are written when every scan has them."""
+    plot larger than memory can be merged; a ``*.copc.laz`` path gives a COPC file, also out of
+    core (:mod:`~forestreg.engine.io.copc`); intensities are written when every scan has them."""
     scans = scans or ScanCache(project)
     poses = project.poses()
     placed = [(k, s.name, poses[s.name]) for k, s in enumerate(project.scans) if poses.get(s.name) is not None]
