@@ -18,12 +18,15 @@ import numba
 __all__ = ["kernel", "run_blocks", "worker_count"]
 
 
-def kernel(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """``numba.njit(cache=True, nogil=True)``; without a writable cache location, uncached."""
+def kernel(fn: Callable[..., Any] | None = None, **options: Any) -> Any:
+    """``numba.njit(cache=True, nogil=True, **options)``; without a writable cache location,
+    uncached. Use as ``@kernel`` or ``@kernel(error_model="numpy")``."""
+    if fn is None:
+        return lambda f: kernel(f, **options)
     try:
-        return numba.njit(cache=True, nogil=True)(fn)
+        return numba.njit(cache=True, nogil=True, **options)(fn)
     except RuntimeError:  # numba found no directory to cache in
-        return numba.njit(nogil=True)(fn)
+        return numba.njit(nogil=True, **options)(fn)
 
 
 def worker_count() -> int:

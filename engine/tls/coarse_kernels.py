@@ -22,17 +22,11 @@ Importing this module needs numba; :mod:`.coarse` falls back to its numpy path w
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
+from ..geometry.jit import kernel
 
-def _compiled(fn):
-    """``njit`` with the machine code cached on disk (next to this file, or numba's user-wide cache
-    directory when the package folder is read-only); compiled afresh in every process when neither
-    is writable (numba refuses ``cache=True`` then)."""
-    try:
-        return njit(cache=True, nogil=True, error_model="numpy")(fn)
-    except RuntimeError:  # "cannot cache function ...: no locator available"
-        return njit(cache=False, nogil=True, error_model="numpy")(fn)
+#: numpy's float semantics (a division by zero gives inf, not an exception), as the numpy path
+_compiled = kernel(error_model="numpy")
 
 
 @_compiled
