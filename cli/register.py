@@ -92,9 +92,14 @@ def run_register(
     read_s = time.perf_counter() - t0
     for scan, path in ((reference, reference_path), (moving, moving_path)):
         check_near_scanner(scan, params.max_range_m, path, units)
+    # hand the scans over: the engine lets their points go once both are prepared (the moving
+    # scan's points are kept only when they are written out registered)
+    handed = [reference, moving]
+    registered_points = moving if write_registered else None
+    reference, moving = reference.without_points(), moving.without_points()
     try:
         result = register(
-            reference, moving, params, progress=reporter,
+            handed.pop(0), handed.pop(0), params, progress=reporter,
             reference_up=ups[0] if len(ups) > 0 else None, moving_up=ups[1] if len(ups) > 1 else None,
         )
     finally:
@@ -115,7 +120,7 @@ def run_register(
             write_text_atomic(tmp / "transform.txt", format_matrix(np.asarray(summary["matrix"])))
             if write_registered:
                 to_units = np.diag([1.0 / scale, 1.0 / scale, 1.0 / scale, 1.0])
-                write_scan(moving, tmp / f"{moving.name}_registered.laz", matrix=to_units @ result.matrix)
+                write_scan(registered_points, tmp / f"{moving.name}_registered.laz", matrix=to_units @ result.matrix)
         write_text_atomic(tmp / "result.json", json.dumps(summary, indent=2) + "\n")
     reporter.done("", out / "result.json")
     if ok:

@@ -13,6 +13,7 @@ origin ``(0, 0, 0)`` unless a position is given (E57 pose, project file, or opti
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Optional
@@ -184,6 +185,13 @@ class Scan:
     def scanner_position_file(self) -> np.ndarray:
         """(3,) scanner position in file coordinates."""
         return self.scanner_position + self.origin_shift
+
+    def without_points(self) -> "Scan":
+        """The scan's frame, scanner position, name, pose and facts, with no points (for what needs
+        to know where a scan is, not its points: a large cloud can then be let go)."""
+        empty = np.zeros((0, 3))
+        empty.setflags(write=False)
+        return dataclasses.replace(self, points=empty, intensity=None)
 
     def local_to_file_matrix(self) -> np.ndarray:
         """4x4 matrix mapping this scan's local frame to its file coordinates."""

@@ -251,6 +251,9 @@ def register(
             ref_job = pool.submit(timed, "prepare_reference", prepared.get, reference, params, reference_up)
             mov_job = pool.submit(timed, "prepare_moving", prepared.get, moving, params, moving_up)
         ref_prep, mov_prep = ref_job.result(), mov_job.result()
+    # from here on only where the scans are matters, not their points: a caller that handed the
+    # scans over (the register command) lets two large clouds go before ICP
+    reference, moving = reference.without_points(), moving.without_points()
     for name, prep in ((reference.name, ref_prep), (moving.name, mov_prep)):
         log.info(
             "%s: %d points within %.0f m, tilt %.2f deg%s, scanner %.2f m above ground",
