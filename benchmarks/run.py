@@ -1,4 +1,4 @@
-"""forestreg benchmarks: pair registration per step and against Sylva, memory, the coarse matcher, System B.
+"""forestreg benchmarks: pair registration per step and against Sylva, a 4-scan plot, memory, the coarse matcher, System B.
 
 Run from the repository root (about 30 minutes on 2 cores with the 30 M-point scan; `--quick`: a few minutes)::
 
@@ -16,9 +16,11 @@ Run from the repository root (about 30 minutes on 2 cores with the 30 M-point sc
 3. Whole commands side by side (:mod:`benchmarks.peers`): reading both LAZ files, ``forestreg
    register`` and Sylva's ``coreg`` (``pip install 'forestreg[bench]'``) on the same simulated
    pairs, in turn, with wall time and peak memory per process and their run-by-run ratios.
-4. Peak memory of ``forestreg register`` on a ~30 M-point scan (:mod:`benchmarks.big_scan`; long:
+4. A 4-scan plot, every pair registered (:mod:`benchmarks.plot_speed`): ``forestreg plot --pairs
+   all`` against Sylva's multi-scan ``coreg`` (left out by ``--quick``).
+5. Peak memory of ``forestreg register`` on a ~30 M-point scan (:mod:`benchmarks.big_scan`; long:
    left out by ``--quick``).
-5. System B at full size (:mod:`benchmarks.system_b`): ground-based/UAV co-registration, fusion
+6. System B at full size (:mod:`benchmarks.system_b`): ground-based/UAV co-registration, fusion
    and the tree inventory of the fused cloud.
 
 Timings are wall-clock seconds of one run (``time.perf_counter``); nothing is asserted on them.
@@ -42,12 +44,13 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import big_scan, coarse_matcher, peers, system_b
+    from . import big_scan, coarse_matcher, peers, plot_speed, system_b
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import big_scan  # type: ignore[no-redef]
     import coarse_matcher  # type: ignore[no-redef]
     import peers  # type: ignore[no-redef]
+    import plot_speed  # type: ignore[no-redef]
     import system_b  # type: ignore[no-redef]
 
 from forestreg.engine.io import read_scan, write_scan
@@ -299,8 +302,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated plot and of the VOP sets (default 0)")
     ap.add_argument("--json", metavar="FILE", type=Path, help="also write every row to this JSON file")
     ap.add_argument("--runs", type=int, default=3, help="timed rounds of the whole-command comparison (default 3)")
-    ap.add_argument("--only", choices=("pairs", "peers", "big", "coarse", "system_b"), action="append",
-                    help="run only these parts (repeatable; default all; --quick leaves out big)")
+    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "coarse", "system_b"), action="append",
+                    help="run only these parts (repeatable; default all; --quick leaves out plot and big)")
     args = ap.parse_args(argv)
 
     t_start = time.perf_counter()
@@ -309,7 +312,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     print(f"seed {args.seed}{', quick (no ~3 M point pair)' if args.quick else ''}", flush=True)
     print()
 
-    parts = set(args.only or (("pairs", "peers", "coarse", "system_b") if args.quick else ("pairs", "peers", "big", "coarse", "system_b")))
+    parts = set(args.only or (("pairs", "peers", "coarse", "system_b") if args.quick else ("pairs", "peers", "plot", "big", "coarse", "system_b")))
     pair_rows: list[dict[str, Any]] = []
     peer_rows: list[dict[str, Any]] = []
     coarse_rows: list[dict[str, Any]] = []
@@ -317,6 +320,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     if "peers" in parts:
         peer_rows = peers.run(quick=args.quick, runs=args.runs)
         print(peers.format_rows(peer_rows))
+        print(flush=True)
+    plot_row: Optional[dict[str, Any]] = None
+    if "plot" in parts:
+        with tempfile.TemporaryDirectory(prefix="forestreg-plot-") as tmp:
+            plot_row = plot_speed.run(runs=max(1, args.runs - 1), workdir=Path(tmp))
+        print(plot_speed.format_row(plot_row))
         print(flush=True)
     big_row: Optional[dict[str, Any]] = None
     if "big" in parts:
@@ -347,7 +356,7 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     if args.json is not None:
         payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
-                   "pairs": pair_rows, "peers": peer_rows, "big_scan": big_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows}
+                   "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows}
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0
