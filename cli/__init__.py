@@ -131,22 +131,32 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if previous_term is not None:
             import signal
 
-            signal.signal(signal.SIGTERM, previous_term)
+            for signum, previous in zip((signal.SIGTERM, signal.SIGINT), previous_term):
+                if previous is not None:
+                    signal.signal(signum, previous)
 
 
 def _terminate_as_interrupt():
     """SIGTERM (a job service stopping a run) unwinds like Ctrl-C: temporary folders are removed
-    and the exit code is 130. Returns the previous handler (None off the main thread)."""
+    and the exit code is 130. Both are latched (:data:`~forestreg.cli.common.INTERRUPTED`): the
+    next progress step raises again should a library swallow the first KeyboardInterrupt. Returns
+    the previous (SIGTERM, SIGINT) handlers (None off the main thread; an ignored Ctrl-C stays
+    ignored, its entry None)."""
     import signal
     import threading
 
+    from .common import INTERRUPTED
+
     if threading.current_thread() is not threading.main_thread():
         return None
+    INTERRUPTED.clear()
 
     def handler(signum, frame):
+        INTERRUPTED.set()
         raise KeyboardInterrupt
 
-    return signal.signal(signal.SIGTERM, handler)
+    previous_int = signal.signal(signal.SIGINT, handler) if signal.getsignal(signal.SIGINT) is signal.default_int_handler else None
+    return signal.signal(signal.SIGTERM, handler), previous_int
 
 
 def _wants_jsonl(argv: Sequence[str]) -> bool:

@@ -10,6 +10,7 @@ import logging
 import math
 import re
 import sys
+import threading
 from pathlib import Path
 from typing import Optional
 
@@ -97,6 +98,11 @@ def step_id(message: str) -> str:
     return "-".join(words) or "work"
 
 
+#: Set by the command line's Ctrl-C / SIGTERM handler: every later progress step raises
+#: KeyboardInterrupt again, so an interrupt is never lost.
+INTERRUPTED = threading.Event()
+
+
 class Reporter:
     """Progress of one command on stderr (tqdm bar, JSON lines, or nothing) and its final line.
 
@@ -115,6 +121,10 @@ class Reporter:
 
     # engine callback
     def __call__(self, fraction: float, message: str = "") -> None:
+        if INTERRUPTED.is_set():
+            # Ctrl-C / SIGTERM came and its KeyboardInterrupt was swallowed on the way (a library's
+            # broad "except:"): stop at this step instead of finishing as if nothing happened
+            raise KeyboardInterrupt
         f = min(max(float(fraction), 0.0), 1.0)
         if self.mode == "jsonl":
             self._emit({"event": "progress", "step": step_id(message or self.command), "fraction": round(f, 4), "message": message})
