@@ -140,8 +140,10 @@ def _terminate_as_interrupt():
     """SIGTERM (a job service stopping a run) unwinds like Ctrl-C: temporary folders are removed
     and the exit code is 130. Both are latched (:data:`~forestreg.cli.common.INTERRUPTED`): the
     next progress step raises again should a library swallow the first KeyboardInterrupt. Returns
-    the previous (SIGTERM, SIGINT) handlers (None off the main thread; an ignored Ctrl-C stays
-    ignored, its entry None)."""
+    the previous (SIGTERM, SIGINT) handlers (None off the main thread). A Ctrl-C ignored from the
+    start (a command run with nohup or "&") stays ignored, unless ``FORESTREG_INTERRUPTIBLE=1``
+    (set by the job service, which cancels its jobs with SIGINT); then its entry is None."""
+    import os
     import signal
     import threading
 
@@ -155,7 +157,9 @@ def _terminate_as_interrupt():
         INTERRUPTED.set()
         raise KeyboardInterrupt
 
-    previous_int = signal.signal(signal.SIGINT, handler) if signal.getsignal(signal.SIGINT) is signal.default_int_handler else None
+    current = signal.getsignal(signal.SIGINT)
+    wanted = current is signal.default_int_handler or (current == signal.SIG_IGN and os.environ.get("FORESTREG_INTERRUPTIBLE") == "1")
+    previous_int = signal.signal(signal.SIGINT, handler) if wanted else None
     return signal.signal(signal.SIGTERM, handler), previous_int
 
 

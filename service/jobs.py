@@ -106,6 +106,9 @@ def _package_env() -> dict[str, str]:
 
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
+    # cancelling sends SIGINT: honoured even when this service was started with Ctrl-C ignored
+    # (nohup, "&" in a script), which every job would inherit
+    env["FORESTREG_INTERRUPTIBLE"] = "1"
     env.setdefault("MPLBACKEND", "Agg")
     package = Path(forestreg.__file__).parent  # not resolved: a symlinked package keeps its name
     if package.name == "forestreg":

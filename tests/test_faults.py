@@ -109,6 +109,8 @@ def _leftovers(folder: Path) -> list[str]:
 def _cli(*args: str, stderr=subprocess.PIPE) -> subprocess.Popen:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([p for p in sys.path if p] + [env.get("PYTHONPATH", "")])
+    # Ctrl-C as from a terminal, even when the tests themselves run with SIGINT ignored (nohup, "&")
+    env["FORESTREG_INTERRUPTIBLE"] = "1"
     return subprocess.Popen([sys.executable, "-m", "forestreg.cli", *args], stdout=subprocess.DEVNULL, stderr=stderr,
                             text=True, env=env)
 
