@@ -81,3 +81,39 @@ def test_covariance_features_of_a_plane_a_line_and_a_vertical_stem():
     lone = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
     _, count = local_covariances(lone, lone, k=2, radius_m=1.0)
     assert count.tolist() == [1, 1]
+
+
+def test_voxel_grid_members_are_the_points_of_each_voxel_in_slabs_or_not(monkeypatch):
+    """voxel_grid's centroids are voxel_downsample's, and each voxel's members average to its
+    centroid, whether the cloud is sorted in one piece or in slabs along x."""
+    from forestreg.engine.geometry import voxel
+
+    p = np.random.default_rng(4).random((50_000, 3)).astype(np.float32) * 12.0
+    whole = voxel.voxel_grid(p, 0.4)
+    assert np.array_equal(whole.centroids, voxel_downsample(p, 0.4))
+    monkeypatch.setattr(voxel, "DOWNSAMPLE_POINTS_PER_SLAB", 7_000)
+    slabbed = voxel.voxel_grid(p, 0.4)
+    for grid in (whole, slabbed):
+        members = grid.members(np.arange(len(grid.centroids)))
+        assert np.array_equal(np.sort(members), np.arange(len(p))), "every point in exactly one voxel"
+        for v in (0, len(grid.centroids) // 2, len(grid.centroids) - 1):
+            assert np.allclose(p[grid.members([v])].astype(float).mean(axis=0), grid.centroids[v], atol=1e-5)
+    assert np.allclose(np.sort(slabbed.centroids, axis=0), np.sort(whole.centroids, axis=0))
+
+
+def test_icp_statistics_through_the_voxel_grid_equal_the_brute_force_ones():
+    """IcpReference.distance_stats with a grid searches only the voxels near the moved points: the
+    same std, mean and count as the nearest points over the whole reference."""
+    from scipy.spatial import cKDTree
+
+    from forestreg.engine.geometry.icp import IcpReference
+    from forestreg.engine.geometry.voxel import voxel_grid
+
+    rng = np.random.default_rng(5)
+    ref = rng.random((80_000, 3)).astype(np.float32) * np.array([20.0, 20.0, 0.5], dtype=np.float32)
+    moved = rng.random((5_000, 3)) * np.array([20.0, 20.0, 0.5])
+    d, _ = cKDTree(ref).query(moved, distance_upper_bound=0.08)
+    d = d[np.isfinite(d)]
+    std, mean, count = IcpReference(ref, voxel_grid(ref, 0.05)).distance_stats(moved, 0.08)
+    assert count == len(d) > 1000
+    assert std == pytest.approx(float(np.std(d)), rel=1e-12) and mean == pytest.approx(float(np.mean(d)), rel=1e-12)

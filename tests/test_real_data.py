@@ -56,3 +56,14 @@ def test_scans_simulated_from_real_plots_register(shared_data, name, first, seco
     crot, ctrans = rigid_errors(result.coarse_matrix, truth)
     assert crot < 0.5 and ctrans < 0.25, f"coarse {crot:.3f} deg, {ctrans:.3f} m"
     assert result.matched >= 6
+
+
+def test_real_riegl_scan_origin_is_confirmed_quickly_and_a_moved_origin_is_not(shared_data):
+    """The scanner-position shortcut on a real RIEGL scan: the file origin (the scanner) is the
+    density peak; 20 m away it is not, and the full estimate runs instead."""
+    from forestreg.engine.tls.scanner_position import estimate_scanner_position, origin_is_density_peak
+
+    scan = read_scan(shared_data / "TLS_scan_scanner_at_origin.laz")
+    assert origin_is_density_peak(scan.points, scan.scanner_position)
+    assert np.hypot(*estimate_scanner_position(scan.points).position[:2]) < 0.5, "the full estimate agrees"
+    assert not origin_is_density_peak(scan.points, scan.scanner_position + np.array([20.0, 5.0, 0.0]))
