@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -71,7 +70,7 @@ def run_register(
     from ..engine.io import read_scan, write_scan
     from ..engine.io.tables import pair_vop_tables, write_vops_csv
     from ..engine.tls.pair import register
-    from .common import run_summary
+    from .common import import_in_background, run_summary
 
     from ..engine.core.errors import UsageError
 
@@ -81,29 +80,37 @@ def run_register(
         raise UsageError(f"REFERENCE and MOVING are the same file ({reference_path}): a scan cannot be registered onto itself")
     scale = UNITS[units]
     out = check_output_folder(out, "register", inputs=[reference_path, moving_path])
-    t0 = time.perf_counter()
-    reference = read_scan(reference_path, scanner_position=positions[0] if len(positions) > 0 else None, unit_scale=scale)
-    moving = read_scan(moving_path, scanner_position=positions[1] if len(positions) > 1 else None, unit_scale=scale)
-    # no scanner position given and the file origin is not the scanner (project/UTM exports):
-    # find it from the data, or refuse with the reason
+    # each scan is read, located and checked in the thread that prepares it (one is read while
+    # the other is prepared); the engine keeps only the prepared scans, and the moving scan's points
+    # only when they are written out registered
     from ..engine.tls.scanner_position import locate_scanner
 
-    reference, moving = locate_scanner(reference), locate_scanner(moving)
-    read_s = time.perf_counter() - t0
-    for scan, path in ((reference, reference_path), (moving, moving_path)):
-        check_near_scanner(scan, params.max_range_m, path, units)
-    # hand the scans over: the engine lets their points go once both are prepared (the moving
-    # scan's points are kept only when they are written out registered)
-    handed = [reference, moving]
-    registered_points = moving if write_registered else None
-    reference, moving = reference.without_points(), moving.without_points()
+    import_in_background(".engine.report.figures")
+    kept: dict = {}
+
+    def reader(path, index: int, role: str):
+        def read():
+            scan = read_scan(path, scanner_position=positions[index] if len(positions) > index else None, unit_scale=scale)
+            # no scanner position given and the file origin is not the scanner (project/UTM
+            # exports): find it from the data, or refuse with the reason
+            scan = locate_scanner(scan)
+            check_near_scanner(scan, params.max_range_m, path, units)
+            kept[role] = scan.without_points()
+            if role == "moving" and write_registered:
+                kept["registered_points"] = scan
+            return scan
+        return read
+
     try:
         result = register(
-            handed.pop(0), handed.pop(0), params, progress=reporter,
+            reader(reference_path, 0, "reference"), reader(moving_path, 1, "moving"), params, progress=reporter,
             reference_up=ups[0] if len(ups) > 0 else None, moving_up=ups[1] if len(ups) > 1 else None,
         )
     finally:
         reporter.close()
+    reference, moving = kept["reference"], kept["moving"]
+    registered_points = kept.get("registered_points")
+    read_s = sum(result.timings.get(f"read_{role}_s", 0.0) for role in ("reference", "moving"))
     summary, ok = run_summary(result, {"read_s": read_s}, {"reference_file": reference_path, "moving_file": moving_path}, units, scale,
                               matrix_keys=("matrix", "coarse_matrix"))
     with output_folder(out, "register") as tmp:

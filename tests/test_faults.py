@@ -77,7 +77,14 @@ def fast_register(monkeypatch, pair_result):
     import forestreg.engine.tls.pair as pair
 
     state = {"result": pair_result}
-    monkeypatch.setattr(pair, "register", lambda *a, **k: state["result"])
+
+    def fake_register(reference, moving, *args, **kwargs):
+        for source in (reference, moving):  # the command hands over readers: read as the engine would
+            if callable(source):
+                source()
+        return state["result"]
+
+    monkeypatch.setattr(pair, "register", fake_register)
     return state
 
 

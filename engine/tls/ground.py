@@ -11,6 +11,7 @@ from ..core.errors import DataError
 import numpy as np
 from scipy import ndimage
 
+from ..geometry.jit import kernel
 from ..geometry.voxel import column_bounds
 
 
@@ -25,16 +26,27 @@ def lowest_voxel_ground(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
-    lo = column_bounds(points)[0]
-    ix = np.floor((points[:, 0] - lo[0]) / voxel_m).astype(np.int64)
-    iy = np.floor((points[:, 1] - lo[1]) / voxel_m).astype(np.int64)
-    iz = np.floor((points[:, 2] - lo[2]) / voxel_m).astype(np.int32)
-    ny = int(iy.max()) + 1
-    column = ix * ny + iy  # a dense column index: the columns of a scan's reach are few
-    del ix, iy
-    lowest = np.full(int(column.max()) + 1, np.iinfo(np.int32).max, dtype=np.int32)
-    np.minimum.at(lowest, column, iz)
-    return iz == lowest[column]
+    lo, hi = column_bounds(points)
+    ny = int(np.floor((hi[1] - lo[1]) / voxel_m)) + 1
+    columns = (int(np.floor((hi[0] - lo[0]) / voxel_m)) + 1) * ny  # the columns of a scan's reach are few
+    mask = np.empty(len(points), dtype=bool)
+    _lowest_voxel_kernel(points, lo, float(voxel_m), ny, np.full(columns, np.iinfo(np.int64).max, dtype=np.int64), mask)
+    return mask
+
+
+@kernel
+def _lowest_voxel_kernel(points, lo, voxel_m, ny, lowest, mask):  # pragma: no cover - compiled
+    """``mask[i]``: point ``i`` lies in the lowest occupied voxel of its column (float64 cell
+    arithmetic); ``lowest`` (columns,) is scratch filled with int64's maximum."""
+    n = points.shape[0]
+    for i in range(n):
+        c = np.int64(np.floor((np.float64(points[i, 0]) - lo[0]) / voxel_m)) * ny + np.int64(np.floor((np.float64(points[i, 1]) - lo[1]) / voxel_m))
+        iz = np.int64(np.floor((np.float64(points[i, 2]) - lo[2]) / voxel_m))
+        if iz < lowest[c]:
+            lowest[c] = iz
+    for i in range(n):
+        c = np.int64(np.floor((np.float64(points[i, 0]) - lo[0]) / voxel_m)) * ny + np.int64(np.floor((np.float64(points[i, 1]) - lo[1]) / voxel_m))
+        mask[i] = np.int64(np.floor((np.float64(points[i, 2]) - lo[2]) / voxel_m)) == lowest[c]
 
 
 @dataclass(frozen=True)
@@ -61,20 +73,35 @@ class GroundGrid:
 
     def height_at(self, xy: np.ndarray) -> np.ndarray:
         """Ground z at (N, 2) positions, bilinear between cell centres; edges extend outward."""
-        u = (np.asarray(xy)[:, :2] - self.origin) / self.cell_m - 0.5
-        nx, ny = self.heights.shape
-        u0 = np.clip(np.floor(u).astype(np.int64), 0, [nx - 1, ny - 1])
-        u1 = np.clip(u0 + 1, 0, [nx - 1, ny - 1])
-        f = np.clip(u - u0, 0.0, 1.0)
-        h = self.heights
-        top = h[u0[:, 0], u0[:, 1]] * (1 - f[:, 0]) + h[u1[:, 0], u0[:, 1]] * f[:, 0]
-        bottom = h[u0[:, 0], u1[:, 1]] * (1 - f[:, 0]) + h[u1[:, 0], u1[:, 1]] * f[:, 0]
-        return top * (1 - f[:, 1]) + bottom * f[:, 1]
+        xy = np.asarray(xy)
+        out = np.empty(len(xy))
+        if len(xy):
+            _bilinear_kernel(xy, np.asarray(self.origin, dtype=np.float64), float(self.cell_m), np.asarray(self.heights, dtype=np.float64), out)
+        return out
 
     def measured_at(self, xy: np.ndarray) -> np.ndarray:
         """Whether each (N, 2) position falls in a measured cell."""
         ix, iy, inside = self.cell_index(xy)
         return inside & self.measured[ix, iy]
+
+
+@kernel
+def _bilinear_kernel(xy, origin, cell_m, h, out):  # pragma: no cover - compiled
+    """``out[i]``: ``h`` interpolated bilinearly between cell centres at ``xy[i]`` (cells of side
+    ``cell_m`` from ``origin``; outside the grid the edge cells' values extend outward)."""
+    nx, ny = h.shape
+    for i in range(xy.shape[0]):
+        ux = (np.float64(xy[i, 0]) - origin[0]) / cell_m - 0.5
+        uy = (np.float64(xy[i, 1]) - origin[1]) / cell_m - 0.5
+        x0 = min(max(np.int64(np.floor(ux)), 0), nx - 1)
+        y0 = min(max(np.int64(np.floor(uy)), 0), ny - 1)
+        x1 = min(x0 + 1, nx - 1)
+        y1 = min(y0 + 1, ny - 1)
+        fx = min(max(ux - x0, 0.0), 1.0)
+        fy = min(max(uy - y0, 0.0), 1.0)
+        top = h[x0, y0] * (1 - fx) + h[x1, y0] * fx
+        bottom = h[x0, y1] * (1 - fx) + h[x1, y1] * fx
+        out[i] = top * (1 - fy) + bottom * fy
 
 
 def ground_grid(points: np.ndarray, *, cell_m: float = 0.5, window_m: float = 3.0, max_step_m: float = 0.6) -> GroundGrid:

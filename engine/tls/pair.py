@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any, Callable, Optional, Union
 
 import numpy as np
 
@@ -197,9 +197,13 @@ def _checked_up(up: Optional[np.ndarray], what: str) -> Optional[np.ndarray]:
     return v / np.linalg.norm(v)
 
 
+#: A scan, or a function without arguments that reads it (see :func:`register`).
+ScanSource = Union[Scan, Callable[[], Scan]]
+
+
 def register(
-    reference: Scan,
-    moving: Scan,
+    reference: ScanSource,
+    moving: ScanSource,
     params: Optional[RegistrationParams] = None,
     *,
     progress: Optional[ProgressCallback] = None,
@@ -214,7 +218,10 @@ def register(
 
     Parameters
     ----------
-    reference, moving : the two scans (each in its own frame, scanner position known).
+    reference, moving : the two scans (each in its own frame, scanner position known), or
+        functions without arguments that read them (e.g. ``lambda: read_scan(path)``): the scans
+        are then read in parallel, each prepared as soon as it is read, and only the prepared
+        scans stay in memory.
     params : settings; default the paper's table 2 with an automatic ``D_r``.
     progress : optional ``progress(fraction, message)`` callback.
     cancel : optional token; cancelling raises :class:`~forestreg.engine.core.errors.Cancelled`.
@@ -237,23 +244,35 @@ def register(
     step = Progress(progress, cancel=cancel)
     timings = StepTimer()
     timed = timings.run
-    log.info("registering %s onto %s", moving.name, reference.name)
 
-    # scans exported in project/UTM coordinates carry no scanner position: find it from the data
-    reference, moving = locate_scanner(reference), locate_scanner(moving)
-    step(0.0, "preparing both scans")
-    # the two preparations are independent and mostly numpy (which releases the GIL): in parallel
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    def load(source: ScanSource, role: str) -> Scan:
+        # a scan given as a reader is read here, in a worker thread, so that one scan is read
+        # while the other is prepared; scans exported in project/UTM coordinates carry no scanner
+        # position: it is found from the data
+        return locate_scanner(timed(f"read_{role}", source) if callable(source) else source)
+
+    def prepare(scan: Scan, up: Optional[np.ndarray]) -> PreparedScan:
         if prepared is None:
-            ref_job = pool.submit(timed, "prepare_reference", prepare_scan, reference.points, reference.scanner_position, params, up=reference_up)
-            mov_job = pool.submit(timed, "prepare_moving", prepare_scan, moving.points, moving.scanner_position, params, up=moving_up)
-        else:
-            ref_job = pool.submit(timed, "prepare_reference", prepared.get, reference, params, reference_up)
-            mov_job = pool.submit(timed, "prepare_moving", prepared.get, moving, params, moving_up)
-        ref_prep, mov_prep = ref_job.result(), mov_job.result()
-    # from here on only where the scans are matters, not their points: a caller that handed the
-    # scans over (the register command) lets two large clouds go before ICP
-    reference, moving = reference.without_points(), moving.without_points()
+            return prepare_scan(scan.points, scan.scanner_position, params, up=up)
+        return prepared.get(scan, params, up)
+
+    # the two scans are read and prepared in two threads (mostly compiled or numpy code, which
+    # releases the GIL); each preparation starts as soon as its scan is read. A file that cannot
+    # be read ends the run here, before any progress is shown.
+    ups = {"reference": reference_up, "moving": moving_up}
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        reads = {pool.submit(load, reference, "reference"): "reference", pool.submit(load, moving, "moving"): "moving"}
+        del reference, moving
+        scans, jobs = {}, {}
+        for job in as_completed(list(reads)):
+            role = reads.pop(job)
+            scan = job.result()
+            scans[role] = scan.without_points()  # only where it is: the points go once prepared
+            jobs[role] = pool.submit(timed, f"prepare_{role}", prepare, scan, ups[role])
+            del job, scan
+        step(0.0, "preparing both scans")
+        (reference, ref_prep), (moving, mov_prep) = ((scans[role], jobs[role].result()) for role in ("reference", "moving"))
+    log.info("registering %s onto %s", moving.name, reference.name)
     for name, prep in ((reference.name, ref_prep), (moving.name, mov_prep)):
         log.info(
             "%s: %d points within %.0f m, tilt %.2f deg%s, scanner %.2f m above ground",
