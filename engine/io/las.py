@@ -81,7 +81,7 @@ def _check_header(path: Path) -> tuple[int, bool]:
 
 #: Points decoded per chunk when reading: bounds the memory of the raw point records (about 30 to
 #: 70 bytes a point) while the coordinates fill one preallocated array.
-READ_CHUNK_POINTS = 2_000_000
+READ_CHUNK_POINTS = 500_000
 
 
 def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS) -> RawCloud:

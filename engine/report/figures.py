@@ -73,11 +73,13 @@ def pair_figure(result: "PairResult", path: str | os.PathLike[str], *, dpi: int 
     ax.scatter(att.reference_vops.xy[:, 0], att.reference_vops.xy[:, 1], s=28, facecolors="none", edgecolors=REFERENCE_COLOUR, linewidths=1.4, label="reference VOPs")
     if len(mov_vops):
         ax.scatter(mov_vops[:, 0], mov_vops[:, 1], s=14, c=MOVING_COLOUR, marker="+", linewidths=1.2, label="moving VOPs")
-    if att.match is not None and len(mov_vops):
-        for i, j in att.match.matched_pairs:
-            a, b = att.reference_vops.xy[i], mov_vops[j]
-            ax.plot([a[0], b[0]], [a[1], b[1]], color="#2ca02c", lw=2.2)
-            ax.plot(a[0], a[1], "o", ms=9, mfc="none", mec="#2ca02c", mew=1.6)
+    if att.match is not None and len(mov_vops) and len(att.match.matched_pairs):
+        from matplotlib.collections import LineCollection
+
+        pairs = np.asarray(att.match.matched_pairs, dtype=np.int64).reshape(-1, 2)
+        a, b = att.reference_vops.xy[pairs[:, 0]], mov_vops[pairs[:, 1]]
+        ax.add_collection(LineCollection(np.stack([a, b], axis=1), colors="#2ca02c", linewidths=2.2))
+        ax.scatter(a[:, 0], a[:, 1], s=81, facecolors="none", edgecolors="#2ca02c", linewidths=1.6)
     ax.plot(0, 0, marker="^", color=REFERENCE_COLOUR, ms=9)
     status = "ok" if result.ok else f"FAILED: {result.reason[:70]}"
     ax.set_title(f"registered: {result.matched} matched VOPs (green) - {status}")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Union
@@ -245,11 +246,17 @@ def register(
     timings = StepTimer()
     timed = timings.run
 
+    reading = threading.Lock()
+
     def load(source: ScanSource, role: str) -> Scan:
         # a scan given as a reader is read here, in a worker thread, so that one scan is read
-        # while the other is prepared; scans exported in project/UTM coordinates carry no scanner
-        # position: it is found from the data
-        return locate_scanner(timed(f"read_{role}", source) if callable(source) else source)
+        # while the other is prepared (one read at a time: the reader decompresses on every core,
+        # and two raw clouds and two preparations are never in memory at once); scans exported in
+        # project/UTM coordinates carry no scanner position: it is found from the data
+        if callable(source):
+            with reading:
+                source = timed(f"read_{role}", source)
+        return locate_scanner(source)
 
     def prepare(scan: Scan, up: Optional[np.ndarray]) -> PreparedScan:
         if prepared is None:
