@@ -64,15 +64,13 @@ def run_register(
 ) -> int:
     """Register ``moving_path`` onto ``reference_path`` and write the output folder ``out`` as a
     transaction. Returns the exit code (0 ok, 1 failed with a reason)."""
-    from ..engine.core.atomic import check_output_folder, output_folder, write_text_atomic
-    from ..engine.tls.params import RegistrationParams
-    from ..engine.core.transform import format_matrix
-    from ..engine.io import read_scan, write_scan
-    from ..engine.io.tables import pair_vop_tables, write_vops_csv
-    from ..engine.tls.pair import register
-    from .common import import_in_background, run_summary
+    from concurrent.futures import ThreadPoolExecutor
 
+    from ..engine.core.atomic import check_output_folder, output_folder, write_text_atomic
     from ..engine.core.errors import UsageError
+    from ..engine.io import read_scan, write_scan
+    from ..engine.tls.params import RegistrationParams
+    from .common import import_in_background, run_summary
 
     reporter = reporter or Reporter("none", "register")
     params = params or RegistrationParams()
@@ -80,17 +78,30 @@ def run_register(
         raise UsageError(f"REFERENCE and MOVING are the same file ({reference_path}): a scan cannot be registered onto itself")
     scale = UNITS[units]
     out = check_output_folder(out, "register", inputs=[reference_path, moving_path])
-    # each scan is read, located and checked in the thread that prepares it (one is read while
-    # the other is prepared); the engine keeps only the prepared scans, and the moving scan's points
-    # only when they are written out registered
+
+    def read(path, index: int):
+        return read_scan(path, scanner_position=positions[index] if len(positions) > index else None, unit_scale=scale)
+
+    # the reference is read (compiled decompression) while the registration engine is imported
+    early = ThreadPoolExecutor(1, thread_name_prefix="forestreg-read")
+    pending = {0: early.submit(read, reference_path, 0)}  # popped when used: the scan's points are not held
+    early.shutdown(wait=False)
+    import_in_background(".engine.report.figures")
+    from ..engine.core.transform import format_matrix
+    from ..engine.io.tables import pair_vop_tables, write_vops_csv
+    from ..engine.tls.pair import register
     from ..engine.tls.scanner_position import locate_scanner
 
-    import_in_background(".engine.report.figures")
+    # each scan is located and checked in the thread that prepares it (one is read while the
+    # other is prepared); the engine keeps only the prepared scans, and the moving scan's points
+    # only when they are written out registered
     kept: dict = {}
 
     def reader(path, index: int, role: str):
-        def read():
-            scan = read_scan(path, scanner_position=positions[index] if len(positions) > index else None, unit_scale=scale)
+        def load():
+            job = pending.pop(index, None)
+            scan = job.result() if job is not None else read(path, index)
+            del job
             # no scanner position given and the file origin is not the scanner (project/UTM
             # exports): find it from the data, or refuse with the reason
             scan = locate_scanner(scan)
@@ -99,7 +110,7 @@ def run_register(
             if role == "moving" and write_registered:
                 kept["registered_points"] = scan
             return scan
-        return read
+        return load
 
     try:
         result = register(

@@ -13,6 +13,13 @@
   uncertainty and quality without ground truth.
 """
 
-from .coarse import CoarseMatch, match_vops, match_vops_literal
-
 __all__ = ["CoarseMatch", "match_vops", "match_vops_literal"]
+
+
+def __getattr__(name: str):
+    # imported on first use: ``forestreg.engine.tls.params`` stays light (no compiled kernels)
+    if name in __all__:
+        from . import coarse
+
+        return getattr(coarse, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

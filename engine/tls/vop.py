@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 
 from .ground import GroundGrid
 from ..geometry.cluster import connected_clusters
+from ..geometry.jit import kernel
 
 
 @dataclass(frozen=True)
@@ -131,18 +132,36 @@ def density_mode(points_xy: np.ndarray, *, bandwidth_m: float, max_iterations: i
     """Mean shift (flat kernel of radius ``bandwidth_m``) seeded at the centroid of the most
     populated ``bandwidth_m`` voxel: the (2,) density mode of the points (horizontal, metres)."""
     cells = np.floor(points_xy / bandwidth_m).astype(np.int64)
-    uniq, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    cells -= cells.min(axis=0)
+    key = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]  # orders cells as (x, y) rows
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     centre = points_xy[inverse.reshape(-1) == int(np.argmax(counts))].mean(axis=0)
+    return _mean_shift(np.ascontiguousarray(points_xy, dtype=np.float64), centre, float(bandwidth_m), int(max_iterations))
+
+
+@kernel
+def _mean_shift(points_xy, centre, bandwidth_m, max_iterations):  # pragma: no cover - compiled
+    """Flat-kernel mean shift from ``centre``: the mean of the points within ``bandwidth_m``
+    (squared distances compared), until it moves less than 0.1 mm."""
+    cx, cy = centre[0], centre[1]
+    r2 = bandwidth_m * bandwidth_m
     for _ in range(max_iterations):
-        near = points_xy[np.sum((points_xy - centre) ** 2, axis=1) <= bandwidth_m**2]
-        if len(near) == 0:
+        sx = sy = 0.0
+        m = 0
+        for i in range(points_xy.shape[0]):
+            dx, dy = points_xy[i, 0] - cx, points_xy[i, 1] - cy
+            if dx * dx + dy * dy <= r2:
+                sx += points_xy[i, 0]
+                sy += points_xy[i, 1]
+                m += 1
+        if m == 0:
             break
-        moved = near.mean(axis=0)
-        if np.hypot(*(moved - centre)) < 1e-4:
-            centre = moved
+        mx, my = sx / m, sy / m
+        shift = np.hypot(mx - cx, my - cy)
+        cx, cy = mx, my
+        if shift < 1e-4:
             break
-        centre = moved
-    return centre
+    return np.array([cx, cy])
 
 
 def trunk_axis(points_xy: np.ndarray, bark_xy: np.ndarray, *, max_radius_m: float = 1.0) -> tuple[np.ndarray, float]:
