@@ -305,7 +305,11 @@ def register_survey(
     ``project.adjustment`` (``method: "survey"``), which :meth:`Project.poses` returns."""
     params = params or SurveyParams()
     scans = scans or ScanCache(project)
-    outcome = register_project(project, rerun=rerun, progress=progress, cancel=cancel, scans=scans)
+    step = Progress(progress, cancel=cancel)
+    # the links to the centre take the first part of the progress, the further pairs the rest
+    # (about as many again for "all" pairs)
+    share = 1.0 if params.pairs == "centre" else 0.5
+    outcome = register_project(project, rerun=rerun, progress=step.sub(0.0, share), cancel=cancel, scans=scans)
     frame = project.centre
     if params.pairs != "centre":
         positions = _prior_positions(project, scans, project.chained_poses())
@@ -324,9 +328,12 @@ def register_survey(
         if pending:
             log.info("registering %d further pairs", len(pending))
         for k, link in enumerate(pending):
-            link.result = _run_link(project, link, scans, Progress(None, cancel=cancel), cancel)
+            sub = step.sub(share + (1 - share) * k / len(pending), share + (1 - share) * (k + 1) / len(pending))
+            sub(0.0, f"registering further pair {k + 1} of {len(pending)}: {link.moving} onto {link.reference}")
+            link.result = _run_link(project, link, scans, sub, cancel)
             if project.path is not None:
                 project.save()
+        step(1.0, "done")
     scanner = {s.name: _scanner_file(scans, s.name) for s in project.scans if _usable(scans, s.name)}
     if frame not in scanner:  # the centre scan itself is unusable: nothing can be placed
         for s in project.scans:
