@@ -459,12 +459,13 @@ def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: Reg
 
     with ThreadPoolExecutor(max_workers=2) as pool:
         found = timed("vops", lambda: list(pool.map(vops, jobs)))
+        step(0.5, f"matching the visual occlusion points within {', '.join(f'{r:.0f}' for r in radii)} m")
+        # the radii are matched independently (compiled kernels, without the GIL): two at a time
+        matched = timed("coarse", lambda: list(pool.map(lambda k: _coarse_attempt(found[2 * k], found[2 * k + 1], radii[k], params), range(len(radii)))))
     attempts = []
     for k, radius in enumerate(radii):
-        step((k + 1) / (len(radii) + 1), f"matching the visual occlusion points within {radius:.0f} m")
         ref_vops, mov_vops = found[2 * k], found[2 * k + 1]
-        attempt = timed("coarse", _coarse_attempt, ref_vops, mov_vops, radius, params)
-        attempt = dataclasses.replace(attempt, slice_offsets_m=tuple(params.slice_offsets_m), reference_layers=ref_layers, moving_layers=mov_layers)
+        attempt = dataclasses.replace(matched[k], slice_offsets_m=tuple(params.slice_offsets_m), reference_layers=ref_layers, moving_layers=mov_layers)
         log.info(
             "D_r %.0f m, dh %s: %d / %d VOPs, %d matched (next distinct: %s)%s",
             radius, params.slice_offsets_m, len(ref_vops), len(mov_vops), attempt.matched,
