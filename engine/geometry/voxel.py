@@ -19,6 +19,9 @@ from typing import Literal
 
 import numpy as np
 
+from .features import _segment_sum
+from .jit import kernel, run_blocks
+
 __all__ = ["VoxelGrid", "column_bounds", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_thin"]
 
 
@@ -33,16 +36,29 @@ def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def voxel_keys(points: np.ndarray, voxel_m: float, *, origin: np.ndarray | None = None) -> np.ndarray:
     """(N,) int64 key of each point's voxel; keys order voxels lexicographically by (ix, iy, iz).
-    The grid starts at ``origin`` (default: the points' minimum corner). Computed axis by axis
-    on float32 or float64 input: no (N, 3) temporaries."""
-    pts = np.asarray(points)
-    lo = column_bounds(pts)[0] if origin is None else np.asarray(origin, dtype=np.float64)
+    The grid starts at ``origin`` (default: the points' minimum corner). Computed point by point
+    (a compiled kernel, blocks on threads) on float32 or float64 input: no temporaries."""
+    pts = np.ascontiguousarray(points)
     key = np.zeros(len(pts), dtype=np.int64)
-    for axis in range(3):
-        cell = np.floor((pts[:, axis] - lo[axis]) / voxel_m).astype(np.int64)
-        key *= int(cell.max()) + 1 if len(cell) else 1
-        key += cell
+    if len(pts) == 0:
+        return key
+    lo, hi = column_bounds(pts)
+    lo = lo if origin is None else np.asarray(origin, dtype=np.float64)
+    # the largest cell of each axis is the highest point's (the cell grows with the coordinate)
+    span = np.floor((hi - lo) / voxel_m).astype(np.int64) + 1
+    run_blocks(_key_rows, len(pts), pts, lo, float(voxel_m), span, key, block=262144)
     return key
+
+
+@kernel
+def _key_rows(start: int, stop: int, pts: np.ndarray, lo: np.ndarray, voxel_m: float, span: np.ndarray, key: np.ndarray) -> None:
+    """Rows ``start:stop`` of :func:`voxel_keys`: ``(ix * span_y + iy) * span_z + iz`` with the
+    cells ``floor((p - lo) / voxel_m)`` computed in float64."""
+    for i in range(start, stop):
+        k = np.int64(0)
+        for axis in range(3):
+            k = k * span[axis] + np.int64(np.floor((np.float64(pts[i, axis]) - lo[axis]) / voxel_m))
+        key[i] = k
 
 
 def voxel_thin(points: np.ndarray, voxel_m: float, *, keep: Literal["first", "centre"] = "first") -> np.ndarray:
@@ -174,11 +190,32 @@ def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray, *, members:
     key = key[order]
     starts = np.flatnonzero(np.concatenate(([True], key[1:] != key[:-1])))
     del key
-    counts = np.diff(np.append(starts, len(pts)))
-    anchor = pts[order[starts]].astype(np.float64)
+    bounds = np.append(starts, len(pts)).astype(np.int64)
+    longest = int(np.max(np.diff(bounds)))
     out = np.empty((len(starts), 3))
-    for axis in range(3):
-        column = pts[order, axis].astype(np.float64)
-        column -= np.repeat(anchor[:, axis], counts)
-        out[:, axis] = anchor[:, axis] + np.add.reduceat(column, starts) / counts
+    run_blocks(_centroid_rows, len(starts), np.ascontiguousarray(pts), order, bounds, longest, out, block=65536)
     return out, (order if members else None), starts
+
+
+@kernel
+def _centroid_rows(start: int, stop: int, pts: np.ndarray, order: np.ndarray, bounds: np.ndarray, longest: int, out: np.ndarray) -> None:
+    """Voxels ``start:stop`` of :func:`_downsample`: the mean of the points ``pts[order[bounds[v]:
+    bounds[v + 1]]]`` into ``out[v]`` (float64), taken as the offsets from the voxel's first point
+    summed in ``np.add.reduceat``'s order, divided by the count and added back to that point."""
+    offsets = np.empty((3, longest))
+    for v in range(start, stop):
+        a = bounds[v]
+        n = bounds[v + 1] - a
+        first = order[a]
+        ax, ay, az = np.float64(pts[first, 0]), np.float64(pts[first, 1]), np.float64(pts[first, 2])
+        for t in range(n):
+            i = order[a + t]
+            offsets[0, t] = np.float64(pts[i, 0]) - ax
+            offsets[1, t] = np.float64(pts[i, 1]) - ay
+            offsets[2, t] = np.float64(pts[i, 2]) - az
+        if n == 1:
+            out[v, 0], out[v, 1], out[v, 2] = ax, ay, az
+        else:
+            out[v, 0] = ax + _segment_sum(offsets[0], n) / n
+            out[v, 1] = ay + _segment_sum(offsets[1], n) / n
+            out[v, 2] = az + _segment_sum(offsets[2], n) / n
