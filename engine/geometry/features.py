@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from .jit import kernel, run_blocks
 
-__all__ = ["SphereGrid", "eigen_features", "local_covariances", "neighbour_means", "normals_and_variation"]
+__all__ = ["SphereGrid", "eigen_features", "local_covariances", "nearest_within", "neighbour_means", "normals_and_variation"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,32 +147,46 @@ class SphereGrid:
     queries of the (at most ``k``) nearest points strictly within ``radius_m`` of any point.
 
     Attributes (all in the sorted order): ``points`` (N, 3) float64; ``index`` (N,) the original
-    index of each; ``cell_z`` (N,) its cell layer; ``column_start`` (nx * ny + 1,) where each column
-    (``ix * ny + iy``) begins. Cells are counted from ``origin`` (the minimum corner) in steps of
+    index of each; ``cell_z`` (N,) its cell layer (of ``layers``); ``column_start`` (nx * ny + 1,)
+    where each column (``ix * ny + iy``) begins. Cells are counted from ``origin`` (the minimum corner) in steps of
     ``cell_m``; the cell grows past the radius only to keep the column count near the point count.
     """
 
     def __init__(self, points: np.ndarray, radius_m: float) -> None:
-        p = np.asarray(points, dtype=np.float64)
+        p = np.ascontiguousarray(points, dtype=np.float64)
         self.radius_m = float(radius_m)
-        self.origin = p.min(axis=0) if len(p) else np.zeros(3)
-        extent = (p.max(axis=0) - self.origin) if len(p) else np.zeros(3)
+        # column by column: a reduction along the long axis is many times faster
+        self.origin = np.array([p[:, a].min() for a in range(3)]) if len(p) else np.zeros(3)
+        extent = (np.array([p[:, a].max() for a in range(3)]) - self.origin) if len(p) else np.zeros(3)
         cell = max(self.radius_m, 1e-9)
         while (extent[0] / cell + 1) * (extent[1] / cell + 1) > max(4 * len(p), 1 << 20):
             cell *= 2.0
         self.cell_m = cell
-        ix, iy, iz = (np.floor((p[:, a] - self.origin[a]) / cell).astype(np.int64) for a in range(3))
-        self.nx = int(ix.max()) + 1 if len(p) else 1
-        self.ny = int(iy.max()) + 1 if len(p) else 1
-        column = ix * self.ny + iy
-        self.index = np.lexsort((iz, column))
-        self.points = np.ascontiguousarray(p[self.index])
-        self.cell_z = np.ascontiguousarray(iz[self.index])
-        self.column_start = np.searchsorted(column[self.index], np.arange(self.nx * self.ny + 1))
+        # the highest cell of each axis is the farthest point's (cells grow with the coordinate)
+        self.nx, self.ny, self.layers = (int(np.floor(e / cell)) + 1 for e in extent)
+        key = np.empty(len(p), dtype=np.int64)
+        run_blocks(_cell_key_rows, len(p), p, self.origin, cell, self.ny, self.layers, key, block=262144)
+        # by column, then layer, then input order: one stable sort of (column, layer) keys
+        self.index = np.argsort(key, kind="stable")
+        key = key[self.index]
+        self.points = p[self.index]
+        self.cell_z = key % self.layers
+        self.column_start = np.searchsorted(key // self.layers, np.arange(self.nx * self.ny + 1))
 
     def args(self) -> tuple:
         """The grid as the kernels take it."""
         return (self.origin, self.cell_m, self.nx, self.ny, self.index, self.column_start, self.cell_z, self.points)
+
+
+@kernel
+def _cell_key_rows(start: int, stop: int, p: np.ndarray, origin: np.ndarray, cell: float, ny: int, layers: int, key: np.ndarray) -> None:
+    """Rows ``start:stop`` of a :class:`SphereGrid`'s sort key: ``(ix * ny + iy) * layers + iz``,
+    cells ``floor((p - origin) / cell)``."""
+    for i in range(start, stop):
+        ix = np.int64(np.floor((p[i, 0] - origin[0]) / cell))
+        iy = np.int64(np.floor((p[i, 1] - origin[1]) / cell))
+        iz = np.int64(np.floor((p[i, 2] - origin[2]) / cell))
+        key[i] = (ix * ny + iy) * layers + iz
 
 
 @kernel
@@ -194,37 +208,93 @@ def _nearest_in_sphere(
 ) -> int:
     """The (at most ``k``) grid points with squared distance below ``r2`` from the query, nearest
     first (ties by original index): their sorted positions into ``best[:m]``; returns ``m``. The
-    squared distance is ``(dx^2 + dy^2) + dz^2``, as a k-d tree computes it."""
+    squared distance is ``(dx^2 + dy^2) + dz^2``, as a k-d tree computes it. ``r2`` must not
+    exceed the squared cell (the 27 cells around the query's are searched)."""
+    return _nearest_in_cells(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, 1, best_d2, best_index, best)
+
+
+@kernel
+def _nearest_in_cells(
+    qx: float, qy: float, qz: float, origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray,
+    column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int, ring: int,
+    best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
+) -> int:
+    """:func:`_nearest_in_sphere` over the cells at most ``ring`` cells from the query's in each
+    axis: every point nearer than ``ring`` cells is among them. The query's column is searched
+    first; a column or layer farther from the query than the ``k``-th point found is skipped."""
     ix = int(np.floor((qx - origin[0]) / cell))
     iy = int(np.floor((qy - origin[1]) / cell))
     iz = int(np.floor((qz - origin[2]) / cell))
+    slack = 1e-9 * cell  # a cell's points may lie a rounding error outside it
     m = 0
-    for ax in range(max(ix - 1, 0), min(ix + 2, nx)):
-        for ay in range(max(iy - 1, 0), min(iy + 2, ny)):
-            col = ax * ny + ay
-            a1 = column_start[col + 1]
-            s = _first_at_least(cell_z, column_start[col], a1, iz - 1)
-            while s < a1 and cell_z[s] <= iz + 1:
-                ex = pts[s, 0] - qx
-                ey = pts[s, 1] - qy
-                ez = pts[s, 2] - qz
-                d2 = ex * ex + ey * ey + ez * ez
-                if d2 < r2:
-                    oi = index[s]
-                    if m < k or d2 < best_d2[m - 1] or (d2 == best_d2[m - 1] and oi < best_index[m - 1]):
-                        j = m if m < k else k - 1
-                        while j > 0 and (best_d2[j - 1] > d2 or (best_d2[j - 1] == d2 and best_index[j - 1] > oi)):
-                            best_d2[j] = best_d2[j - 1]
-                            best_index[j] = best_index[j - 1]
-                            best[j] = best[j - 1]
-                            j -= 1
-                        best_d2[j] = d2
-                        best_index[j] = oi
-                        best[j] = s
-                        if m < k:
-                            m += 1
-                s += 1
+    x0, x1 = max(ix - ring, 0), min(ix + ring + 1, nx)
+    y0, y1 = max(iy - ring, 0), min(iy + ring + 1, ny)
+    if x1 <= x0 or y1 <= y0:
+        return 0
+    own = x0 <= ix < x1 and y0 <= iy < y1
+    for c in range(-1 if own else 0, (x1 - x0) * (y1 - y0)):
+        if c < 0:
+            ax, ay = ix, iy
+        else:
+            ax, ay = x0 + c // (y1 - y0), y0 + c % (y1 - y0)
+            if own and ax == ix and ay == iy:
+                continue
+        bound = r2 if m < k else best_d2[k - 1]
+        gx = max(origin[0] + ax * cell - qx, qx - origin[0] - (ax + 1) * cell, 0.0)
+        gy = max(origin[1] + ay * cell - qy, qy - origin[1] - (ay + 1) * cell, 0.0)
+        gx = max(gx - slack, 0.0)
+        gy = max(gy - slack, 0.0)
+        if gx * gx + gy * gy > bound:
+            continue
+        col = ax * ny + ay
+        a1 = column_start[col + 1]
+        s = _first_at_least(cell_z, column_start[col], a1, iz - ring)
+        while s < a1 and cell_z[s] <= iz + ring:
+            ex = pts[s, 0] - qx
+            ey = pts[s, 1] - qy
+            ez = pts[s, 2] - qz
+            d2 = ex * ex + ey * ey + ez * ez
+            if d2 < r2:
+                oi = index[s]
+                if m < k or d2 < best_d2[m - 1] or (d2 == best_d2[m - 1] and oi < best_index[m - 1]):
+                    j = m if m < k else k - 1
+                    while j > 0 and (best_d2[j - 1] > d2 or (best_d2[j - 1] == d2 and best_index[j - 1] > oi)):
+                        best_d2[j] = best_d2[j - 1]
+                        best_index[j] = best_index[j - 1]
+                        best[j] = best[j - 1]
+                        j -= 1
+                    best_d2[j] = d2
+                    best_index[j] = oi
+                    best[j] = s
+                    if m < k:
+                        m += 1
+            s += 1
     return m
+
+
+@kernel
+def _k_nearest(
+    qx: float, qy: float, qz: float, origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray,
+    column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, layers: int, k: int,
+    best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
+) -> int:
+    """The ``k`` nearest grid points of the query at any distance (all of them when there are
+    fewer; none for a query that is not finite), as :func:`_nearest_in_sphere` orders them: the
+    searched block of cells doubles until the ``k``-th is no farther than the block's edge (no
+    point outside it can be nearer) or the block holds the whole grid (``layers`` cells high)."""
+    if not (np.isfinite(qx) and np.isfinite(qy) and np.isfinite(qz)):
+        return 0
+    ix = np.floor((qx - origin[0]) / cell)
+    iy = np.floor((qy - origin[1]) / cell)
+    iz = np.floor((qz - origin[2]) / cell)
+    whole = min(max(abs(ix), abs(nx - 1 - ix), abs(iy), abs(ny - 1 - iy), abs(iz), abs(layers - 1 - iz)), 2.0**40)
+    ring = 1
+    while True:
+        m = _nearest_in_cells(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, np.inf, k, ring, best_d2, best_index, best)
+        reach = ring * cell
+        if ring >= whole or (m == k and best_d2[k - 1] <= reach * reach):
+            return m
+        ring = int(min(2 * ring, whole))
 
 
 @kernel
@@ -241,6 +311,57 @@ def _sphere_covariance_rows(
     for i in range(start, stop):
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
         m = _nearest_in_sphere(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)
+        count[i] = m
+        if m > 0:
+            _offset_covariance(pts, best, m, qx, qy, qz, dx, dy, dz, pr, cov[i])
+
+
+@kernel
+def _nearest_rows(
+    start: int, stop: int, q: np.ndarray, r2: float, ring: int, distance: np.ndarray, nearest: np.ndarray,
+    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
+    cell_z: np.ndarray, pts: np.ndarray,
+) -> None:
+    """Rows ``start:stop`` of :func:`nearest_within`."""
+    best_d2 = np.empty(1)
+    best_index = np.empty(1, dtype=np.int64)
+    best = np.empty(1, dtype=np.int64)
+    for i in range(start, stop):
+        if _nearest_in_cells(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, index, column_start, cell_z, pts, r2, 1, ring, best_d2, best_index, best):
+            distance[i] = np.sqrt(best_d2[0])
+            nearest[i] = best_index[0]
+
+
+def nearest_within(queries: np.ndarray, grid: SphereGrid, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The nearest of a :class:`SphereGrid`'s points strictly within ``radius_m`` (any, the grid's
+    cell being no limit) of each query, as a k-d tree's ``query(queries,
+    distance_upper_bound=radius_m)`` gives it: distances (Q,) in metres, ``inf`` where there is
+    none, and the points' indices (Q,) into the points the grid was made from, ``len(points)``
+    where there is none (ties go to the lower index)."""
+    q = np.ascontiguousarray(queries, dtype=np.float64)
+    distance = np.full(len(q), np.inf)
+    nearest = np.full(len(q), len(grid.points), dtype=np.int64)
+    if len(q) and len(grid.points) and radius_m > 0:
+        ring = max(1, int(np.ceil(float(radius_m) / grid.cell_m)))
+        run_blocks(_nearest_rows, len(q), q, float(radius_m) ** 2, ring, distance, nearest, *grid.args(), block=8192)
+    return distance, nearest
+
+
+@kernel
+def _nearest_covariance_rows(
+    start: int, stop: int, q: np.ndarray, k: int, layers: int, cov: np.ndarray, count: np.ndarray,
+    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
+    cell_z: np.ndarray, pts: np.ndarray,
+) -> None:
+    """Rows ``start:stop`` of :func:`local_covariances` from the ``k`` nearest points at any
+    distance on a :class:`SphereGrid`."""
+    best_d2 = np.empty(k)
+    best_index = np.empty(k, dtype=np.int64)
+    best = np.empty(k, dtype=np.int64)
+    dx, dy, dz, pr = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
+    for i in range(start, stop):
+        qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
+        m = _k_nearest(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, layers, k, best_d2, best_index, best)
         count[i] = m
         if m > 0:
             _offset_covariance(pts, best, m, qx, qy, qz, dx, dy, dz, pr, cov[i])
@@ -270,6 +391,7 @@ def local_covariances(
     k: int,
     radius_m: float = np.inf,
     tree: Optional[cKDTree] = None,
+    grid: Optional[SphereGrid] = None,
     batch: int = 50000,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Covariance (Q, 3, 3) of the (at most ``k``) nearest ``cloud`` points strictly within
@@ -278,8 +400,9 @@ def local_covariances(
     Sums are taken of offsets from the query point (small numbers: no loss of precision far from
     the origin): ``cov = E[d d^T] - E[d] E[d]^T``. A query with no neighbour has a zero matrix.
     With a finite radius the neighbours come from a :class:`SphereGrid` (``tree`` is not used);
-    without one, from a k-d tree query of ``k`` neighbours (``tree`` may be a cKDTree built on
-    ``cloud``; ``batch`` queries at a time).
+    without one, from ``grid`` when given (a :class:`SphereGrid` of ``cloud``, any cell size: its
+    search widens until the ``k`` nearest are certain), else from a k-d tree query of ``k``
+    neighbours (``tree`` may be a cKDTree built on ``cloud``; ``batch`` queries at a time).
     """
     q_all = np.ascontiguousarray(queries, dtype=np.float64)
     c = np.ascontiguousarray(cloud, dtype=np.float64)
@@ -292,6 +415,9 @@ def local_covariances(
     if np.isfinite(radius_m):
         grid = SphereGrid(c, radius_m)
         run_blocks(_sphere_covariance_rows, len(q_all), q_all, float(radius_m) * float(radius_m), k, cov, count, *grid.args())
+        return cov, count
+    if grid is not None:
+        run_blocks(_nearest_covariance_rows, len(q_all), q_all, k, grid.layers, cov, count, *grid.args())
         return cov, count
     tree = tree if tree is not None else cKDTree(c)
     for a in range(0, len(q_all), batch):
