@@ -170,8 +170,10 @@ class SphereGrid:
         self.index = np.argsort(key, kind="stable")
         key = key[self.index]
         self.points = p[self.index]
-        self.cell_z = key % self.layers
-        self.column_start = np.searchsorted(key // self.layers, np.arange(self.nx * self.ny + 1))
+        column = key // self.layers
+        self.cell_z = key - column * self.layers
+        self.column_start = np.zeros(self.nx * self.ny + 1, dtype=np.int64)
+        np.cumsum(np.bincount(column, minlength=self.nx * self.ny), out=self.column_start[1:])
 
     def args(self) -> tuple:
         """The grid as the kernels take it."""

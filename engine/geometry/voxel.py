@@ -39,14 +39,18 @@ def voxel_keys(points: np.ndarray, voxel_m: float, *, origin: np.ndarray | None 
     The grid starts at ``origin`` (default: the points' minimum corner). Computed point by point
     (a compiled kernel, blocks on threads) on float32 or float64 input: no temporaries."""
     pts = np.ascontiguousarray(points)
-    key = np.zeros(len(pts), dtype=np.int64)
     if len(pts) == 0:
-        return key
+        return np.zeros(0, dtype=np.int64)
     lo, hi = column_bounds(pts)
-    lo = lo if origin is None else np.asarray(origin, dtype=np.float64)
+    return _keys(pts, voxel_m, lo if origin is None else np.asarray(origin, dtype=np.float64), hi)
+
+
+def _keys(pts: np.ndarray, voxel_m: float, origin: np.ndarray, top: np.ndarray) -> np.ndarray:
+    """:func:`voxel_keys` of contiguous ``pts`` whose column maxima are ``top`` (float64)."""
+    key = np.zeros(len(pts), dtype=np.int64)
     # the largest cell of each axis is the highest point's (the cell grows with the coordinate)
-    span = np.floor((hi - lo) / voxel_m).astype(np.int64) + 1
-    run_blocks(_key_rows, len(pts), pts, lo, float(voxel_m), span, key, block=262144)
+    span = np.floor((top - origin) / voxel_m).astype(np.int64) + 1
+    run_blocks(_key_rows, len(pts), pts, origin, float(voxel_m), span, key, block=262144)
     return key
 
 
@@ -159,7 +163,7 @@ def _grid(points: np.ndarray, voxel_m: float, *, members: bool) -> tuple[np.ndar
     origin = lo - voxel_m / 2.0
     slabs = int(np.ceil(len(pts) / DOWNSAMPLE_POINTS_PER_SLAB))
     if slabs <= 1:
-        centroids, order, starts = _downsample(pts, voxel_m, origin, members=members)
+        centroids, order, starts = _downsample(pts, voxel_m, origin, members=members, top=hi)
         if not members:
             return centroids, None, None
         return centroids, order.astype(index_type), np.append(starts, len(pts)).astype(np.int64)
@@ -184,8 +188,11 @@ def _grid(points: np.ndarray, voxel_m: float, *, members: bool) -> tuple[np.ndar
     return np.concatenate(parts), np.concatenate(orders), np.append(np.concatenate(starts_parts), done).astype(np.int64)
 
 
-def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray, *, members: bool = False) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-    key = voxel_keys(pts, voxel_m, origin=origin)
+def _downsample(
+    pts: np.ndarray, voxel_m: float, origin: np.ndarray, *, members: bool = False, top: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    pts = np.ascontiguousarray(pts)
+    key = voxel_keys(pts, voxel_m, origin=origin) if top is None else _keys(pts, voxel_m, origin, top)
     order = np.argsort(key)
     key = key[order]
     starts = np.flatnonzero(np.concatenate(([True], key[1:] != key[:-1])))
@@ -193,7 +200,7 @@ def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray, *, members:
     bounds = np.append(starts, len(pts)).astype(np.int64)
     longest = int(np.max(np.diff(bounds)))
     out = np.empty((len(starts), 3))
-    run_blocks(_centroid_rows, len(starts), np.ascontiguousarray(pts), order, bounds, longest, out, block=65536)
+    run_blocks(_centroid_rows, len(starts), pts, order, bounds, longest, out, block=65536)
     return out, (order if members else None), starts
 
 
