@@ -210,93 +210,131 @@ def _nearest_in_sphere(
 ) -> int:
     """The (at most ``k``) grid points with squared distance below ``r2`` from the query, nearest
     first (ties by original index): their sorted positions into ``best[:m]``; returns ``m``. The
-    squared distance is ``(dx^2 + dy^2) + dz^2``, as a k-d tree computes it. ``r2`` must not
-    exceed the squared cell (the 27 cells around the query's are searched)."""
-    return _nearest_in_cells(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, 1, best_d2, best_index, best)
-
-
-@kernel
-def _nearest_in_cells(
-    qx: float, qy: float, qz: float, origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray,
-    column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int, ring: int,
-    best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
-) -> int:
-    """:func:`_nearest_in_sphere` over the cells at most ``ring`` cells from the query's in each
-    axis: every point nearer than ``ring`` cells is among them. The query's column is searched
-    first; a column or layer farther from the query than the ``k``-th point found is skipped."""
+    squared distance is ``(dx^2 + dy^2) + dz^2``, as a k-d tree computes it."""
     ix = int(np.floor((qx - origin[0]) / cell))
     iy = int(np.floor((qy - origin[1]) / cell))
     iz = int(np.floor((qz - origin[2]) / cell))
-    slack = 1e-9 * cell  # a cell's points may lie a rounding error outside it
     m = 0
-    x0, x1 = max(ix - ring, 0), min(ix + ring + 1, nx)
-    y0, y1 = max(iy - ring, 0), min(iy + ring + 1, ny)
-    if x1 <= x0 or y1 <= y0:
-        return 0
-    own = x0 <= ix < x1 and y0 <= iy < y1
-    for c in range(-1 if own else 0, (x1 - x0) * (y1 - y0)):
-        if c < 0:
-            ax, ay = ix, iy
-        else:
-            ax, ay = x0 + c // (y1 - y0), y0 + c % (y1 - y0)
-            if own and ax == ix and ay == iy:
-                continue
-        bound = r2 if m < k else best_d2[k - 1]
-        gx = max(origin[0] + ax * cell - qx, qx - origin[0] - (ax + 1) * cell, 0.0)
-        gy = max(origin[1] + ay * cell - qy, qy - origin[1] - (ay + 1) * cell, 0.0)
-        gx = max(gx - slack, 0.0)
-        gy = max(gy - slack, 0.0)
-        if gx * gx + gy * gy > bound:
-            continue
-        col = ax * ny + ay
-        a1 = column_start[col + 1]
-        s = _first_at_least(cell_z, column_start[col], a1, iz - ring)
-        while s < a1 and cell_z[s] <= iz + ring:
-            ex = pts[s, 0] - qx
-            ey = pts[s, 1] - qy
-            ez = pts[s, 2] - qz
-            d2 = ex * ex + ey * ey + ez * ez
-            if d2 < r2:
-                oi = index[s]
-                if m < k or d2 < best_d2[m - 1] or (d2 == best_d2[m - 1] and oi < best_index[m - 1]):
-                    j = m if m < k else k - 1
-                    while j > 0 and (best_d2[j - 1] > d2 or (best_d2[j - 1] == d2 and best_index[j - 1] > oi)):
-                        best_d2[j] = best_d2[j - 1]
-                        best_index[j] = best_index[j - 1]
-                        best[j] = best[j - 1]
-                        j -= 1
-                    best_d2[j] = d2
-                    best_index[j] = oi
-                    best[j] = s
-                    if m < k:
-                        m += 1
-            s += 1
+    for ax in range(max(ix - 1, 0), min(ix + 2, nx)):
+        for ay in range(max(iy - 1, 0), min(iy + 2, ny)):
+            col = ax * ny + ay
+            a1 = column_start[col + 1]
+            s = _first_at_least(cell_z, column_start[col], a1, iz - 1)
+            while s < a1 and cell_z[s] <= iz + 1:
+                ex = pts[s, 0] - qx
+                ey = pts[s, 1] - qy
+                ez = pts[s, 2] - qz
+                d2 = ex * ex + ey * ey + ez * ez
+                if d2 < r2:
+                    oi = index[s]
+                    if m < k or d2 < best_d2[m - 1] or (d2 == best_d2[m - 1] and oi < best_index[m - 1]):
+                        j = m if m < k else k - 1
+                        while j > 0 and (best_d2[j - 1] > d2 or (best_d2[j - 1] == d2 and best_index[j - 1] > oi)):
+                            best_d2[j] = best_d2[j - 1]
+                            best_index[j] = best_index[j - 1]
+                            best[j] = best[j - 1]
+                            j -= 1
+                        best_d2[j] = d2
+                        best_index[j] = oi
+                        best[j] = s
+                        if m < k:
+                            m += 1
+                s += 1
     return m
 
 
 @kernel
-def _k_nearest(
-    qx: float, qy: float, qz: float, origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray,
-    column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, layers: int, k: int,
+def _offer_layers(
+    ax: int, ay: int, z0: int, z1: int, qx: float, qy: float, qz: float, ny: int, index: np.ndarray,
+    column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int, m: int,
     best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
 ) -> int:
-    """The ``k`` nearest grid points of the query at any distance (all of them when there are
-    fewer; none for a query that is not finite), as :func:`_nearest_in_sphere` orders them: the
-    searched block of cells doubles until the ``k``-th is no farther than the block's edge (no
-    point outside it can be nearer) or the block holds the whole grid (``layers`` cells high)."""
+    """Offer the points of the layers ``z0..z1`` of the column ``(ax, ay)`` to the list of the
+    (at most ``k``) nearest found so far (``m`` of them, kept as :func:`_nearest_in_sphere` keeps
+    it); returns the new count."""
+    col = ax * ny + ay
+    a1 = column_start[col + 1]
+    s = _first_at_least(cell_z, column_start[col], a1, z0)
+    while s < a1 and cell_z[s] <= z1:
+        ex = pts[s, 0] - qx
+        ey = pts[s, 1] - qy
+        ez = pts[s, 2] - qz
+        d2 = ex * ex + ey * ey + ez * ez
+        if d2 < r2:
+            oi = index[s]
+            if m < k or d2 < best_d2[m - 1] or (d2 == best_d2[m - 1] and oi < best_index[m - 1]):
+                j = m if m < k else k - 1
+                while j > 0 and (best_d2[j - 1] > d2 or (best_d2[j - 1] == d2 and best_index[j - 1] > oi)):
+                    best_d2[j] = best_d2[j - 1]
+                    best_index[j] = best_index[j - 1]
+                    best[j] = best[j - 1]
+                    j -= 1
+                best_d2[j] = d2
+                best_index[j] = oi
+                best[j] = s
+                if m < k:
+                    m += 1
+        s += 1
+    return m
+
+
+@kernel
+def _nearest_growing(
+    qx: float, qy: float, qz: float, origin: np.ndarray, cell: float, nx: int, ny: int, layers: int,
+    index: np.ndarray, column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int,
+    best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
+) -> int:
+    """The (at most ``k``) grid points nearest the query with a squared distance below ``r2``
+    (``inf``: at any distance), as :func:`_nearest_in_sphere` lists them; none for a query that
+    is not finite. The search starts in the query's cell (or in the nearest block of cells around
+    it that reaches the grid) and adds a shell of cells at a time until no point outside the
+    searched block can enter the list: the block's nearest face (with grid beyond it) is no nearer
+    than the ``k``-th point found, or than ``sqrt(r2)`` while fewer are found, or the block holds
+    the whole grid (``layers`` cells high). Columns farther than the ``k``-th point are skipped."""
     if not (np.isfinite(qx) and np.isfinite(qy) and np.isfinite(qz)):
         return 0
-    ix = np.floor((qx - origin[0]) / cell)
-    iy = np.floor((qy - origin[1]) / cell)
-    iz = np.floor((qz - origin[2]) / cell)
-    whole = min(max(abs(ix), abs(nx - 1 - ix), abs(iy), abs(ny - 1 - iy), abs(iz), abs(layers - 1 - iz)), 2.0**40)
-    ring = 1
+    far = 2.0**40  # cells: beyond any real grid, within the integers
+    ix = int(min(max(np.floor((qx - origin[0]) / cell), -far), far))
+    iy = int(min(max(np.floor((qy - origin[1]) / cell), -far), far))
+    iz = int(min(max(np.floor((qz - origin[2]) / cell), -far), far))
+    whole = max(abs(ix), abs(nx - 1 - ix), abs(iy), abs(ny - 1 - iy), abs(iz), abs(layers - 1 - iz))
+    ring = max(0, -ix, ix - (nx - 1), -iy, iy - (ny - 1), -iz, iz - (layers - 1))
+    slack = 1e-9 * cell  # a cell's points may lie a rounding error outside it
+    m = 0
+    first = True
     while True:
-        m = _nearest_in_cells(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, np.inf, k, ring, best_d2, best_index, best)
-        reach = ring * cell
-        if ring >= whole or (m == k and best_d2[k - 1] <= reach * reach):
+        for ax in range(max(ix - ring, 0), min(ix + ring, nx - 1) + 1):
+            gx = max(max(origin[0] + ax * cell - qx, qx - origin[0] - (ax + 1) * cell) - slack, 0.0)
+            for ay in range(max(iy - ring, 0), min(iy + ring, ny - 1) + 1):
+                gy = max(max(origin[1] + ay * cell - qy, qy - origin[1] - (ay + 1) * cell) - slack, 0.0)
+                if gx * gx + gy * gy > (r2 if m < k else best_d2[k - 1]):
+                    continue
+                if first or max(abs(ax - ix), abs(ay - iy)) == ring:  # a new column: all the block's layers
+                    m = _offer_layers(ax, ay, iz - ring, iz + ring, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
+                else:  # a column searched before: its new layers below and above
+                    m = _offer_layers(ax, ay, iz - ring, iz - ring, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
+                    m = _offer_layers(ax, ay, iz + ring, iz + ring, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
+        first = False
+        if ring >= whole:
             return m
-        ring = int(min(2 * ring, whole))
+        # the distance from the query to the nearest face of the block with grid cells beyond it
+        face = np.inf
+        if ix - ring > 0:
+            face = min(face, qx - origin[0] - (ix - ring) * cell)
+        if ix + ring < nx - 1:
+            face = min(face, origin[0] + (ix + ring + 1) * cell - qx)
+        if iy - ring > 0:
+            face = min(face, qy - origin[1] - (iy - ring) * cell)
+        if iy + ring < ny - 1:
+            face = min(face, origin[1] + (iy + ring + 1) * cell - qy)
+        if iz - ring > 0:
+            face = min(face, qz - origin[2] - (iz - ring) * cell)
+        if iz + ring < layers - 1:
+            face = min(face, origin[2] + (iz + ring + 1) * cell - qz)
+        face -= slack
+        if face > 0.0 and (r2 if m < k else best_d2[k - 1]) <= face * face:
+            return m
+        ring += 1
 
 
 @kernel
@@ -320,16 +358,17 @@ def _sphere_covariance_rows(
 
 @kernel
 def _nearest_rows(
-    start: int, stop: int, q: np.ndarray, r2: float, ring: int, distance: np.ndarray, nearest: np.ndarray,
+    start: int, stop: int, rows: np.ndarray, q: np.ndarray, r2: float, layers: int, distance: np.ndarray, nearest: np.ndarray,
     origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
     cell_z: np.ndarray, pts: np.ndarray,
 ) -> None:
-    """Rows ``start:stop`` of :func:`nearest_within`."""
+    """Rows ``rows[start:stop]`` of :func:`nearest_within`."""
     best_d2 = np.empty(1)
     best_index = np.empty(1, dtype=np.int64)
     best = np.empty(1, dtype=np.int64)
-    for i in range(start, stop):
-        if _nearest_in_cells(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, index, column_start, cell_z, pts, r2, 1, ring, best_d2, best_index, best):
+    for t in range(start, stop):
+        i = rows[t]
+        if _nearest_growing(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, layers, index, column_start, cell_z, pts, r2, 1, best_d2, best_index, best):
             distance[i] = np.sqrt(best_d2[0])
             nearest[i] = best_index[0]
 
@@ -344,8 +383,10 @@ def nearest_within(queries: np.ndarray, grid: SphereGrid, radius_m: float) -> tu
     distance = np.full(len(q), np.inf)
     nearest = np.full(len(q), len(grid.points), dtype=np.int64)
     if len(q) and len(grid.points) and radius_m > 0:
-        ring = max(1, int(np.ceil(float(radius_m) / grid.cell_m)))
-        run_blocks(_nearest_rows, len(q), q, float(radius_m) ** 2, ring, distance, nearest, *grid.args(), block=8192)
+        # queries taken cell by cell: neighbouring queries read the same grid points from the cache
+        key = np.empty(len(q), dtype=np.int64)
+        run_blocks(_cell_key_rows, len(q), q, grid.origin, grid.cell_m, grid.ny, grid.layers, key, block=262144)
+        run_blocks(_nearest_rows, len(q), np.argsort(key), q, float(radius_m) ** 2, grid.layers, distance, nearest, *grid.args(), block=8192)
     return distance, nearest
 
 
@@ -363,7 +404,7 @@ def _nearest_covariance_rows(
     dx, dy, dz, pr = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
     for i in range(start, stop):
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
-        m = _k_nearest(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, layers, k, best_d2, best_index, best)
+        m = _nearest_growing(qx, qy, qz, origin, cell, nx, ny, layers, index, column_start, cell_z, pts, np.inf, k, best_d2, best_index, best)
         count[i] = m
         if m > 0:
             _offset_covariance(pts, best, m, qx, qy, qz, dx, dy, dz, pr, cov[i])
