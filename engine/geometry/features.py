@@ -6,7 +6,10 @@ Neighbourhoods within a radius are found on a grid of cells at least the radius 
 kernels, blocks of queries on threads); each query's neighbours are ordered by squared distance
 (ties by index) and the sums are taken in that order with NumPy's own summation scheme, so the
 results are those of a k-d tree query followed by NumPy sums, to the last bit (up to the order
-of neighbours at exactly equal distances, which a k-d tree leaves to its traversal).
+of neighbours at exactly equal distances, which a k-d tree leaves to its traversal). The nearest
+points at any distance, or within a radius wider than the cells (ICP's matches and normals), are
+found on the same grid by a search that grows shell by shell until no farther cell can hold a
+nearer point: again a k-d tree's answer.
 """
 
 from __future__ import annotations

@@ -101,6 +101,7 @@ class IcpReference:
 
     @staticmethod
     def _level_of(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, SphereGrid, np.ndarray]:
+        """The level of ``points`` thinned to ``voxel_m``: them, their search grid, no normals yet."""
         return points, SphereGrid(points, CELL_VOXELS * voxel_m), np.full((len(points), 3), np.nan)
 
     def level(self, voxel_m: float) -> tuple[np.ndarray, SphereGrid, np.ndarray]:
