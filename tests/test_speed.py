@@ -167,6 +167,38 @@ def test_sphere_neighbourhoods_on_the_grid_equal_kd_tree_queries_with_numpy_sums
     np.testing.assert_array_equal(cov_knn[:, 0, 1], np.add.reduceat(flat[0] * flat[1], at) / 12 - m[0] * m[1])
 
 
+@pytest.mark.parametrize("cell_m", [0.03, 0.3, 3.0])
+def test_grid_nearest_and_k_nearest_equal_kd_tree_queries(cell_m):
+    """ICP's searches on a SphereGrid of any cell size (the nearest within a radius, the 12
+    nearest at any distance) give a k-d tree's answers: the same distances, the same covariances
+    to the last bit; queries outside the grid, far away or not finite included."""
+    from scipy.spatial import cKDTree
+
+    from forestreg.engine.geometry.features import SphereGrid, local_covariances, nearest_within
+
+    rng = np.random.default_rng(8)
+    pts = np.round(rng.uniform(0, 3, (8000, 3)) * [1, 1, 0.2], 2) + [700.0, 400.0, 90.0]  # centimetre steps: ties, points on faces
+    pts[:5] += 6.0  # a few isolated points
+    queries = np.vstack([pts[::5] + rng.normal(0, 0.05, (1600, 3)), rng.uniform(-1, 4, (400, 3)) + [700.0, 400.0, 90.0], [[1e7, 0, 0]]])
+    grid, tree = SphereGrid(pts, cell_m), cKDTree(pts)
+    for radius in (0.02, 0.1, 0.7):
+        d, j = nearest_within(queries, grid, radius)
+        want_d, _ = tree.query(queries, distance_upper_bound=radius)
+        np.testing.assert_array_equal(d, want_d)
+        found = np.isfinite(d)
+        np.testing.assert_array_equal(np.sqrt(((pts[j[found]] - queries[found]) ** 2).sum(axis=1)), d[found])
+        assert np.all(j[~found] == len(pts))
+    got, got_count = local_covariances(queries, pts, k=12, grid=grid)
+    want, want_count = local_covariances(queries, pts, k=12, tree=tree)
+    np.testing.assert_array_equal(got_count, want_count)
+    dk, _ = tree.query(queries, k=13)
+    unique = dk[:, 11] < dk[:, 12]  # where the 12th neighbour is not tied with the 13th
+    assert unique.mean() > 0.5
+    np.testing.assert_array_equal(got[unique], want[unique])
+    cov, count = local_covariances(np.array([[np.nan, 0.0, 0.0]]), pts, k=12, grid=grid)
+    assert count[0] == 0 and not cov.any()
+
+
 def test_qsm_median_equals_numpy_median():
     from forestreg.engine.trees.qsm import _median
 

@@ -6,7 +6,10 @@ Neighbourhoods within a radius are found on a grid of cells at least the radius 
 kernels, blocks of queries on threads); each query's neighbours are ordered by squared distance
 (ties by index) and the sums are taken in that order with NumPy's own summation scheme, so the
 results are those of a k-d tree query followed by NumPy sums, to the last bit (up to the order
-of neighbours at exactly equal distances, which a k-d tree leaves to its traversal).
+of neighbours at exactly equal distances, which a k-d tree leaves to its traversal). The nearest
+points at any distance, or within a radius wider than the cells (ICP's matches and normals), are
+found on the same grid by a search that grows shell by shell until no farther cell can hold a
+nearer point: again a k-d tree's answer.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from .jit import kernel, run_blocks
 
-__all__ = ["SphereGrid", "eigen_features", "local_covariances", "neighbour_means", "normals_and_variation"]
+__all__ = ["SphereGrid", "eigen_features", "local_covariances", "nearest_within", "neighbour_means", "normals_and_variation"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,32 +150,62 @@ class SphereGrid:
     queries of the (at most ``k``) nearest points strictly within ``radius_m`` of any point.
 
     Attributes (all in the sorted order): ``points`` (N, 3) float64; ``index`` (N,) the original
-    index of each; ``cell_z`` (N,) its cell layer; ``column_start`` (nx * ny + 1,) where each column
-    (``ix * ny + iy``) begins. Cells are counted from ``origin`` (the minimum corner) in steps of
+    index of each; ``cell_z`` (N,) its cell layer (of ``layers``); ``column_start`` (nx * ny + 1,)
+    where each column (``ix * ny + iy``) begins. ``index`` and ``cell_z`` are int32 where they fit. Cells are counted from ``origin`` (the minimum corner) in steps of
     ``cell_m``; the cell grows past the radius only to keep the column count near the point count.
     """
 
     def __init__(self, points: np.ndarray, radius_m: float) -> None:
-        p = np.asarray(points, dtype=np.float64)
+        p = np.ascontiguousarray(points, dtype=np.float64)
         self.radius_m = float(radius_m)
-        self.origin = p.min(axis=0) if len(p) else np.zeros(3)
-        extent = (p.max(axis=0) - self.origin) if len(p) else np.zeros(3)
+        # column by column: a reduction along the long axis is many times faster
+        self.origin = np.array([p[:, a].min() for a in range(3)]) if len(p) else np.zeros(3)
+        extent = (np.array([p[:, a].max() for a in range(3)]) - self.origin) if len(p) else np.zeros(3)
         cell = max(self.radius_m, 1e-9)
         while (extent[0] / cell + 1) * (extent[1] / cell + 1) > max(4 * len(p), 1 << 20):
             cell *= 2.0
         self.cell_m = cell
-        ix, iy, iz = (np.floor((p[:, a] - self.origin[a]) / cell).astype(np.int64) for a in range(3))
-        self.nx = int(ix.max()) + 1 if len(p) else 1
-        self.ny = int(iy.max()) + 1 if len(p) else 1
-        column = ix * self.ny + iy
-        self.index = np.lexsort((iz, column))
-        self.points = np.ascontiguousarray(p[self.index])
-        self.cell_z = np.ascontiguousarray(iz[self.index])
-        self.column_start = np.searchsorted(column[self.index], np.arange(self.nx * self.ny + 1))
+        # the highest cell of each axis is the farthest point's (cells grow with the coordinate)
+        self.nx, self.ny, self.layers = (int(np.floor(e / cell)) + 1 for e in extent)
+        key = np.empty(len(p), dtype=np.int64)
+        run_blocks(_cell_key_rows, len(p), p, self.origin, cell, self.ny, self.layers, key, block=262144)
+        # by column, then layer, then input order: one stable sort of (column, layer) keys
+        order = np.argsort(key, kind="stable")
+        key = key[order]
+        self.points = p[order]
+        # indices and layers in 32 bits where they fit: a level of ICP holds 8 bytes a point less
+        self.index = order.astype(np.int32) if len(p) < 2**31 else order
+        del order
+        self.column_start = np.zeros(self.nx * self.ny + 1, dtype=np.int64)
+        _split_cell_keys(key, self.layers, self.column_start)
+        self.cell_z = key.astype(np.int32) if self.layers < 2**31 else key
+        del key
+        np.cumsum(self.column_start, out=self.column_start)
 
     def args(self) -> tuple:
         """The grid as the kernels take it."""
         return (self.origin, self.cell_m, self.nx, self.ny, self.index, self.column_start, self.cell_z, self.points)
+
+
+@kernel
+def _cell_key_rows(start: int, stop: int, p: np.ndarray, origin: np.ndarray, cell: float, ny: int, layers: int, key: np.ndarray) -> None:
+    """Rows ``start:stop`` of a :class:`SphereGrid`'s sort key: ``(ix * ny + iy) * layers + iz``,
+    cells ``floor((p - origin) / cell)``."""
+    for i in range(start, stop):
+        ix = np.int64(np.floor((p[i, 0] - origin[0]) / cell))
+        iy = np.int64(np.floor((p[i, 1] - origin[1]) / cell))
+        iz = np.int64(np.floor((p[i, 2] - origin[2]) / cell))
+        key[i] = (ix * ny + iy) * layers + iz
+
+
+@kernel
+def _split_cell_keys(key: np.ndarray, layers: int, counts: np.ndarray) -> None:
+    """Turn sorted :func:`_cell_key_rows` keys into their layers, in place, and count the points
+    of each column into ``counts[column + 1]``."""
+    for i in range(len(key)):
+        column = key[i] // layers
+        counts[column + 1] += 1
+        key[i] -= column * layers
 
 
 @kernel
@@ -228,6 +261,100 @@ def _nearest_in_sphere(
 
 
 @kernel
+def _offer_layers(
+    ax: int, ay: int, z0: int, z1: int, qx: float, qy: float, qz: float, ny: int, index: np.ndarray,
+    column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int, m: int,
+    best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
+) -> int:
+    """Offer the points of the layers ``z0..z1`` of the column ``(ax, ay)`` to the list of the
+    (at most ``k``) nearest found so far (``m`` of them, kept as :func:`_nearest_in_sphere` keeps
+    it); returns the new count."""
+    col = ax * ny + ay
+    a1 = column_start[col + 1]
+    s = _first_at_least(cell_z, column_start[col], a1, z0)
+    while s < a1 and cell_z[s] <= z1:
+        ex = pts[s, 0] - qx
+        ey = pts[s, 1] - qy
+        ez = pts[s, 2] - qz
+        d2 = ex * ex + ey * ey + ez * ez
+        if d2 < r2:
+            oi = index[s]
+            if m < k or d2 < best_d2[m - 1] or (d2 == best_d2[m - 1] and oi < best_index[m - 1]):
+                j = m if m < k else k - 1
+                while j > 0 and (best_d2[j - 1] > d2 or (best_d2[j - 1] == d2 and best_index[j - 1] > oi)):
+                    best_d2[j] = best_d2[j - 1]
+                    best_index[j] = best_index[j - 1]
+                    best[j] = best[j - 1]
+                    j -= 1
+                best_d2[j] = d2
+                best_index[j] = oi
+                best[j] = s
+                if m < k:
+                    m += 1
+        s += 1
+    return m
+
+
+@kernel
+def _nearest_growing(
+    qx: float, qy: float, qz: float, origin: np.ndarray, cell: float, nx: int, ny: int, layers: int,
+    index: np.ndarray, column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int,
+    best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
+) -> int:
+    """The (at most ``k``) grid points nearest the query with a squared distance below ``r2``
+    (``inf``: at any distance), as :func:`_nearest_in_sphere` lists them; none for a query that
+    is not finite. The search starts in the query's cell (or in the nearest block of cells around
+    it that reaches the grid) and adds a shell of cells at a time until no point outside the
+    searched block can enter the list: the block's nearest face (with grid beyond it) is no nearer
+    than the ``k``-th point found, or than ``sqrt(r2)`` while fewer are found, or the block holds
+    the whole grid (``layers`` cells high). Columns farther than the ``k``-th point are skipped."""
+    if not (np.isfinite(qx) and np.isfinite(qy) and np.isfinite(qz)):
+        return 0
+    far = 2.0**40  # cells: beyond any real grid, within the integers
+    ix = int(min(max(np.floor((qx - origin[0]) / cell), -far), far))
+    iy = int(min(max(np.floor((qy - origin[1]) / cell), -far), far))
+    iz = int(min(max(np.floor((qz - origin[2]) / cell), -far), far))
+    whole = max(abs(ix), abs(nx - 1 - ix), abs(iy), abs(ny - 1 - iy), abs(iz), abs(layers - 1 - iz))
+    ring = max(0, -ix, ix - (nx - 1), -iy, iy - (ny - 1), -iz, iz - (layers - 1))
+    slack = 1e-9 * cell  # a cell's points may lie a rounding error outside it
+    m = 0
+    first = True
+    while True:
+        for ax in range(max(ix - ring, 0), min(ix + ring, nx - 1) + 1):
+            gx = max(max(origin[0] + ax * cell - qx, qx - origin[0] - (ax + 1) * cell) - slack, 0.0)
+            for ay in range(max(iy - ring, 0), min(iy + ring, ny - 1) + 1):
+                gy = max(max(origin[1] + ay * cell - qy, qy - origin[1] - (ay + 1) * cell) - slack, 0.0)
+                if gx * gx + gy * gy > (r2 if m < k else best_d2[k - 1]):
+                    continue
+                if first or max(abs(ax - ix), abs(ay - iy)) == ring:  # a new column: all the block's layers
+                    m = _offer_layers(ax, ay, iz - ring, iz + ring, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
+                else:  # a column searched before: its new layers below and above
+                    m = _offer_layers(ax, ay, iz - ring, iz - ring, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
+                    m = _offer_layers(ax, ay, iz + ring, iz + ring, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
+        first = False
+        if ring >= whole:
+            return m
+        # the distance from the query to the nearest face of the block with grid cells beyond it
+        face = np.inf
+        if ix - ring > 0:
+            face = min(face, qx - origin[0] - (ix - ring) * cell)
+        if ix + ring < nx - 1:
+            face = min(face, origin[0] + (ix + ring + 1) * cell - qx)
+        if iy - ring > 0:
+            face = min(face, qy - origin[1] - (iy - ring) * cell)
+        if iy + ring < ny - 1:
+            face = min(face, origin[1] + (iy + ring + 1) * cell - qy)
+        if iz - ring > 0:
+            face = min(face, qz - origin[2] - (iz - ring) * cell)
+        if iz + ring < layers - 1:
+            face = min(face, origin[2] + (iz + ring + 1) * cell - qz)
+        face -= slack
+        if face > 0.0 and (r2 if m < k else best_d2[k - 1]) <= face * face:
+            return m
+        ring += 1
+
+
+@kernel
 def _sphere_covariance_rows(
     start: int, stop: int, q: np.ndarray, r2: float, k: int, cov: np.ndarray, count: np.ndarray,
     origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
@@ -241,6 +368,60 @@ def _sphere_covariance_rows(
     for i in range(start, stop):
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
         m = _nearest_in_sphere(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)
+        count[i] = m
+        if m > 0:
+            _offset_covariance(pts, best, m, qx, qy, qz, dx, dy, dz, pr, cov[i])
+
+
+@kernel
+def _nearest_rows(
+    start: int, stop: int, rows: np.ndarray, q: np.ndarray, r2: float, layers: int, distance: np.ndarray, nearest: np.ndarray,
+    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
+    cell_z: np.ndarray, pts: np.ndarray,
+) -> None:
+    """Rows ``rows[start:stop]`` of :func:`nearest_within`."""
+    best_d2 = np.empty(1)
+    best_index = np.empty(1, dtype=np.int64)
+    best = np.empty(1, dtype=np.int64)
+    for t in range(start, stop):
+        i = rows[t]
+        if _nearest_growing(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, layers, index, column_start, cell_z, pts, r2, 1, best_d2, best_index, best):
+            distance[i] = np.sqrt(best_d2[0])
+            nearest[i] = best_index[0]
+
+
+def nearest_within(queries: np.ndarray, grid: SphereGrid, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The nearest of a :class:`SphereGrid`'s points strictly within ``radius_m`` (any, the grid's
+    cell being no limit) of each query, as a k-d tree's ``query(queries,
+    distance_upper_bound=radius_m)`` gives it: distances (Q,) in metres, ``inf`` where there is
+    none, and the points' indices (Q,) into the points the grid was made from, ``len(points)``
+    where there is none (ties go to the lower index)."""
+    q = np.ascontiguousarray(queries, dtype=np.float64)
+    distance = np.full(len(q), np.inf)
+    nearest = np.full(len(q), len(grid.points), dtype=np.int64)
+    if len(q) and len(grid.points) and radius_m > 0:
+        # queries taken cell by cell: neighbouring queries read the same grid points from the cache
+        key = np.empty(len(q), dtype=np.int64)
+        run_blocks(_cell_key_rows, len(q), q, grid.origin, grid.cell_m, grid.ny, grid.layers, key, block=262144)
+        run_blocks(_nearest_rows, len(q), np.argsort(key), q, float(radius_m) ** 2, grid.layers, distance, nearest, *grid.args(), block=8192)
+    return distance, nearest
+
+
+@kernel
+def _nearest_covariance_rows(
+    start: int, stop: int, q: np.ndarray, k: int, layers: int, cov: np.ndarray, count: np.ndarray,
+    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
+    cell_z: np.ndarray, pts: np.ndarray,
+) -> None:
+    """Rows ``start:stop`` of :func:`local_covariances` from the ``k`` nearest points at any
+    distance on a :class:`SphereGrid`."""
+    best_d2 = np.empty(k)
+    best_index = np.empty(k, dtype=np.int64)
+    best = np.empty(k, dtype=np.int64)
+    dx, dy, dz, pr = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
+    for i in range(start, stop):
+        qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
+        m = _nearest_growing(qx, qy, qz, origin, cell, nx, ny, layers, index, column_start, cell_z, pts, np.inf, k, best_d2, best_index, best)
         count[i] = m
         if m > 0:
             _offset_covariance(pts, best, m, qx, qy, qz, dx, dy, dz, pr, cov[i])
@@ -270,6 +451,7 @@ def local_covariances(
     k: int,
     radius_m: float = np.inf,
     tree: Optional[cKDTree] = None,
+    grid: Optional[SphereGrid] = None,
     batch: int = 50000,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Covariance (Q, 3, 3) of the (at most ``k``) nearest ``cloud`` points strictly within
@@ -278,8 +460,9 @@ def local_covariances(
     Sums are taken of offsets from the query point (small numbers: no loss of precision far from
     the origin): ``cov = E[d d^T] - E[d] E[d]^T``. A query with no neighbour has a zero matrix.
     With a finite radius the neighbours come from a :class:`SphereGrid` (``tree`` is not used);
-    without one, from a k-d tree query of ``k`` neighbours (``tree`` may be a cKDTree built on
-    ``cloud``; ``batch`` queries at a time).
+    without one, from ``grid`` when given (a :class:`SphereGrid` of ``cloud``, any cell size: its
+    search widens until the ``k`` nearest are certain), else from a k-d tree query of ``k``
+    neighbours (``tree`` may be a cKDTree built on ``cloud``; ``batch`` queries at a time).
     """
     q_all = np.ascontiguousarray(queries, dtype=np.float64)
     c = np.ascontiguousarray(cloud, dtype=np.float64)
@@ -292,6 +475,9 @@ def local_covariances(
     if np.isfinite(radius_m):
         grid = SphereGrid(c, radius_m)
         run_blocks(_sphere_covariance_rows, len(q_all), q_all, float(radius_m) * float(radius_m), k, cov, count, *grid.args())
+        return cov, count
+    if grid is not None:
+        run_blocks(_nearest_covariance_rows, len(q_all), q_all, k, grid.layers, cov, count, *grid.args())
         return cov, count
     tree = tree if tree is not None else cKDTree(c)
     for a in range(0, len(q_all), batch):

@@ -15,7 +15,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.transform import rotation_from_vector
-from .features import local_covariances, normals_and_variation
+from .features import SphereGrid, _first_at_least, local_covariances, nearest_within, normals_and_variation
+from .jit import kernel, run_blocks
 from .voxel import VoxelGrid, column_bounds, voxel_downsample
 
 
@@ -61,18 +62,28 @@ def thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return voxel_downsample(points, voxel_m)
 
 
-def _normals_at(points: np.ndarray, tree: cKDTree, index: np.ndarray, neighbours: int = 12) -> np.ndarray:
+#: Side of a level's search cells in its voxels: a stage's correspondence distance is at most
+#: 2.5 of its voxels (:func:`icp` thins a stage's clouds to a 2.5th of its distance), so its
+#: matches lie in the 27 cells around a point, and the 12 nearest points for a normal mostly too.
+CELL_VOXELS = 2.5
+
+#: Neighbours of a reference point whose covariance gives its normal.
+NORMAL_NEIGHBOURS = 12
+
+
+def _normals_at(points: np.ndarray, grid: SphereGrid, index: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> np.ndarray:
     """Unit normals (arbitrary sign) of ``points[index]`` from their ``neighbours`` nearest
-    points (``tree`` is built on ``points``): the least eigenvector of the local covariance."""
-    cov, _ = local_covariances(points[index], points, k=neighbours, tree=tree)
+    points (``grid`` is made of ``points``): the least eigenvector of the local covariance."""
+    cov, _ = local_covariances(points[index], points, k=neighbours, grid=grid)
     return normals_and_variation(cov)[0]
 
 
 class IcpReference:
-    """A reference cloud prepared for repeated ICP runs: its voxel-thinned versions, their k-d
-    trees and normals (computed where first needed) are kept per voxel size, so several ICP
-    runs against one reference (candidates, a jackknife) build them once. Thread-safe: runs in
-    several threads may share one (levels and normals are made under a lock)."""
+    """A reference cloud prepared for repeated ICP runs: its voxel-thinned versions, their search
+    grids (:class:`~forestreg.engine.geometry.features.SphereGrid`, cells of
+    :data:`CELL_VOXELS` voxels) and normals (computed where first needed) are kept per voxel size,
+    so several ICP runs against one reference (candidates, a jackknife) build them once.
+    Thread-safe: runs in several threads may share one (levels and normals are made under a lock)."""
 
     def __init__(self, points: np.ndarray, grid: VoxelGrid | None = None) -> None:
         """``grid``: optional :func:`~forestreg.engine.geometry.voxel.voxel_grid` of ``points``
@@ -81,50 +92,58 @@ class IcpReference:
         pts = np.asarray(points)
         # float32 levelled points stay float32 (a 30 M-point scan: 360 MB, not 720 MB)
         self.points = pts if pts.dtype in (np.float32, np.float64) else pts.astype(np.float64)
-        self._levels: dict[float, tuple[np.ndarray, cKDTree, np.ndarray]] = {}
+        self._levels: dict[float, tuple[np.ndarray, SphereGrid, np.ndarray]] = {}
         self._full_tree: cKDTree | None = None
         self._lock = threading.RLock()
         self.grid = grid
         if grid is not None:
-            self._levels[round(float(grid.voxel_m), 6)] = (grid.centroids, cKDTree(grid.centroids), np.full((len(grid.centroids), 3), np.nan))
+            self._levels[round(float(grid.voxel_m), 6)] = self._level_of(grid.centroids, grid.voxel_m)
 
-    def level(self, voxel_m: float) -> tuple[np.ndarray, cKDTree, np.ndarray]:
-        """(thinned points, their k-d tree, their normals: NaN rows not computed yet)."""
+    @staticmethod
+    def _level_of(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, SphereGrid, np.ndarray]:
+        """The level of ``points`` thinned to ``voxel_m``: them, their search grid, no normals yet."""
+        return points, SphereGrid(points, CELL_VOXELS * voxel_m), np.full((len(points), 3), np.nan)
+
+    def level(self, voxel_m: float) -> tuple[np.ndarray, SphereGrid, np.ndarray]:
+        """(thinned points (M, 3) float64, their search grid, their normals: NaN rows not
+        computed yet)."""
         key = round(float(voxel_m), 6)
         with self._lock:
             if key not in self._levels:
                 # a wider level thins the finest one already made (a fraction of the raw points)
                 finer = [k for k in self._levels if k <= key]
-                ref = thin(self._levels[min(finer)][0] if finer else self.points, voxel_m)
-                self._levels[key] = (ref, cKDTree(ref), np.full((len(ref), 3), np.nan))
+                self._levels[key] = self._level_of(thin(self._levels[min(finer)][0] if finer else self.points, voxel_m), voxel_m)
             return self._levels[key]
 
     def normals(self, voxel_m: float, index: np.ndarray) -> np.ndarray:
         """Unit normals (arbitrary sign) of the points ``index`` of a level, computed where first
         needed."""
-        ref, tree, normals = self.level(voxel_m)
+        ref, grid, normals = self.level(voxel_m)
         with self._lock:
-            seen = np.zeros(len(ref), dtype=bool)
-            seen[index] = True
-            need = np.flatnonzero(seen & np.isnan(normals[:, 0]))
+            wanted = np.unique(index)
+            need = wanted[np.isnan(normals[wanted, 0])]
             if len(need):
-                normals[need] = _normals_at(ref, tree, need)
+                normals[need] = _normals_at(ref, grid, need)
             return normals[index]
 
     def distance_stats(self, moved: np.ndarray, max_distance_m: float, *, use_full_tree: bool = False) -> tuple[float, float, int]:
         """:func:`nearest_distance_stats` of ``moved`` against all the reference points. With a
         grid, only the points of the voxels whose centroid lies within ``max_distance_m`` plus a
         voxel diagonal of a moved point are searched (a point and its voxel's centroid are at most
-        a diagonal apart: the same nearest points, exactly); else a tree of all the points
-        (``use_full_tree``, kept for further runs) or of the points in the cells near the moved ones."""
+        a diagonal apart: the same nearest points, exactly), found on the grid's level; else a tree
+        of all the points (``use_full_tree``, kept for further runs) or of the points in the cells
+        near the moved ones."""
         if self.grid is not None and len(moved) and len(self.points):
-            centroids, tree, _ = self.level(self.grid.voxel_m)
-            reach = float(max_distance_m) + self.grid.voxel_m * np.sqrt(3.0)
-            pairs = cKDTree(moved).sparse_distance_matrix(tree, reach, output_type="ndarray")
-            near = self.points[self.grid.members(np.unique(pairs["j"]))]
-            if len(near) == 0:
-                return float("nan"), float("nan"), 0
-            return nearest_distance_stats(near, moved, max_distance_m, tree=cKDTree(near, balanced_tree=False, compact_nodes=False))
+            _, cells, _ = self.level(self.grid.voxel_m)
+            q = np.ascontiguousarray(moved, dtype=np.float64)
+            reach = float(max_distance_m) + self.grid.voxel_m * np.sqrt(3.0) + 1e-6  # (a micrometre for rounding)
+            distance = np.full(len(q), np.inf)
+            ring = max(1, int(np.ceil(reach / cells.cell_m)))
+            run_blocks(
+                _nearest_member_rows, len(q), q, float(max_distance_m) ** 2, reach * reach, ring, self.points,
+                self.grid.order, self.grid.starts, distance, *cells.args(), block=4096,
+            )
+            return _stats(distance)
         return nearest_distance_stats(self.points, moved, max_distance_m, tree=self.full_tree if use_full_tree else None)
 
     @property
@@ -193,7 +212,7 @@ def icp(
         final_stage = stage == len(max_distances_m) - 1
         stop_m, stop_rad = (final_tolerance[0], np.radians(final_tolerance[1])) if final_stage else (1e-4, np.radians(1e-3))
         voxel = max(voxel_m, dist / 2.5)
-        ref, tree, _ = prepared.level(voxel)
+        ref, grid, _ = prepared.level(voxel)
         mov = mov_fine if voxel <= finest else thin(mov_fine, voxel)
         if len(mov) > max_moving_points:
             mov = mov[rng.choice(len(mov), max_moving_points, replace=False)]
@@ -202,7 +221,7 @@ def icp(
         for _ in range(iterations):
             total_iterations += 1
             moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
-            d, j = tree.query(moved, distance_upper_bound=dist, workers=-1)
+            d, j = nearest_within(moved, grid, dist)
             ok = np.isfinite(d)
             if ok.sum() < 6:
                 break
@@ -257,10 +276,57 @@ def nearest_distance_stats(
             return float("nan"), float("nan"), 0
         tree = cKDTree(reference, balanced_tree=False, compact_nodes=False)  # built once, queried once: a fast build
     d, _ = tree.query(moved, distance_upper_bound=max_distance_m, workers=-1)
-    d = d[np.isfinite(d)]
+    return _stats(d)
+
+
+def _stats(distance: np.ndarray) -> tuple[float, float, int]:
+    """Std and mean of the finite ``distance`` values and their count (NaN, NaN below two)."""
+    d = distance[np.isfinite(distance)]
     if len(d) < 2:
         return float("nan"), float("nan"), int(len(d))
     return float(np.std(d)), float(np.mean(d)), int(len(d))
+
+
+@kernel
+def _nearest_member_rows(
+    start: int, stop: int, q: np.ndarray, max2: float, reach2: float, ring: int, points: np.ndarray,
+    order: np.ndarray, starts: np.ndarray, distance: np.ndarray,
+    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
+    cell_z: np.ndarray, centroids: np.ndarray,
+) -> None:
+    """Rows ``start:stop`` of :meth:`IcpReference.distance_stats` on a voxel grid: the distance
+    from each query to its nearest point (``points[order[starts[v]:starts[v + 1]]]`` for the
+    voxels ``v`` whose centroid is within ``sqrt(reach2)``, found on the centroids' search grid,
+    ``ring`` cells around) when its square is below ``max2`` (else left as it is). Squares summed
+    ``(dx^2 + dy^2) + dz^2`` in float64, as a k-d tree sums them."""
+    for i in range(start, stop):
+        qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
+        ix = int(np.floor((qx - origin[0]) / cell))
+        iy = int(np.floor((qy - origin[1]) / cell))
+        iz = int(np.floor((qz - origin[2]) / cell))
+        best = max2
+        for ax in range(max(ix - ring, 0), min(ix + ring + 1, nx)):
+            for ay in range(max(iy - ring, 0), min(iy + ring + 1, ny)):
+                col = ax * ny + ay
+                a1 = column_start[col + 1]
+                s = _first_at_least(cell_z, column_start[col], a1, iz - ring)
+                while s < a1 and cell_z[s] <= iz + ring:
+                    ex = centroids[s, 0] - qx
+                    ey = centroids[s, 1] - qy
+                    ez = centroids[s, 2] - qz
+                    if ex * ex + ey * ey + ez * ez <= reach2:
+                        v = index[s]
+                        for t in range(starts[v], starts[v + 1]):
+                            p = order[t]
+                            dx = np.float64(points[p, 0]) - qx
+                            dy = np.float64(points[p, 1]) - qy
+                            dz = np.float64(points[p, 2]) - qz
+                            d2 = dx * dx + dy * dy + dz * dz
+                            if d2 < best:
+                                best = d2
+                    s += 1
+        if best < max2:
+            distance[i] = np.sqrt(best)
 
 
 def _near_cells(points: np.ndarray, around: np.ndarray, cell_m: float, chunk: int = 2_000_000) -> np.ndarray:

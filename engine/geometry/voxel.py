@@ -19,7 +19,8 @@ from typing import Literal
 
 import numpy as np
 
-from .jit import kernel
+from .features import _segment_sum
+from .jit import kernel, run_blocks
 
 __all__ = ["VoxelGrid", "column_bounds", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_thin"]
 
@@ -62,16 +63,33 @@ def _bounds_kernel(pts, lo, hi):  # pragma: no cover - compiled
 
 def voxel_keys(points: np.ndarray, voxel_m: float, *, origin: np.ndarray | None = None) -> np.ndarray:
     """(N,) int64 key of each point's voxel; keys order voxels lexicographically by (ix, iy, iz).
-    The grid starts at ``origin`` (default: the points' minimum corner). Computed axis by axis
-    on float32 or float64 input: no (N, 3) temporaries."""
-    pts = np.asarray(points)
-    lo = column_bounds(pts)[0] if origin is None else np.asarray(origin, dtype=np.float64)
+    The grid starts at ``origin`` (default: the points' minimum corner). Computed point by point
+    (a compiled kernel, blocks on threads) on float32 or float64 input: no temporaries."""
+    pts = np.ascontiguousarray(points)
+    if len(pts) == 0:
+        return np.zeros(0, dtype=np.int64)
+    lo, hi = column_bounds(pts)
+    return _keys(pts, voxel_m, lo if origin is None else np.asarray(origin, dtype=np.float64), hi)
+
+
+def _keys(pts: np.ndarray, voxel_m: float, origin: np.ndarray, top: np.ndarray) -> np.ndarray:
+    """:func:`voxel_keys` of contiguous ``pts`` whose column maxima are ``top`` (float64)."""
     key = np.zeros(len(pts), dtype=np.int64)
-    for axis in range(3):
-        cell = np.floor((pts[:, axis] - lo[axis]) / voxel_m).astype(np.int64)
-        key *= int(cell.max()) + 1 if len(cell) else 1
-        key += cell
+    # the largest cell of each axis is the highest point's (the cell grows with the coordinate)
+    span = np.floor((top - origin) / voxel_m).astype(np.int64) + 1
+    run_blocks(_key_rows, len(pts), pts, origin, float(voxel_m), span, key, block=262144)
     return key
+
+
+@kernel
+def _key_rows(start: int, stop: int, pts: np.ndarray, lo: np.ndarray, voxel_m: float, span: np.ndarray, key: np.ndarray) -> None:
+    """Rows ``start:stop`` of :func:`voxel_keys`: ``(ix * span_y + iy) * span_z + iz`` with the
+    cells ``floor((p - lo) / voxel_m)`` computed in float64."""
+    for i in range(start, stop):
+        k = np.int64(0)
+        for axis in range(3):
+            k = k * span[axis] + np.int64(np.floor((np.float64(pts[i, axis]) - lo[axis]) / voxel_m))
+        key[i] = k
 
 
 def voxel_thin(points: np.ndarray, voxel_m: float, *, keep: Literal["first", "centre"] = "first") -> np.ndarray:
@@ -199,15 +217,14 @@ def _grid(points: np.ndarray, voxel_m: float, *, members: bool) -> tuple[np.ndar
 
 def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray, hi: np.ndarray, *, members: bool = False) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Centroids of the occupied voxels of a grid starting at ``origin`` (the points lie below
-    ``hi``), in key order, each
-    voxel's first position in ``order`` (``starts``) and, with ``members``, ``order``: the point
-    indices sorted by voxel (input order within a voxel). Compiled: one pass for the keys, a
-    stable radix sort, one pass for the sums."""
+    ``hi``), in key order, each voxel's first position in ``order`` (``starts``) and, with
+    ``members``, ``order``: the point indices sorted by voxel (input order within a voxel). Compiled: one pass for the keys, a
+    stable radix sort, the sums on threads."""
     n = len(pts)
     index_type = np.int32 if n < 2**31 - 1 else np.int64
+    pts = np.ascontiguousarray(pts)
     size = [int(np.floor((hi[k] - origin[k]) / voxel_m)) + 1 for k in range(3)]
-    keys = np.empty(n, dtype=np.int64)
-    _voxel_key_kernel(pts, np.asarray(origin, dtype=np.float64), float(voxel_m), size[1], size[2], keys)
+    keys = _keys(pts, voxel_m, np.asarray(origin, dtype=np.float64), hi)
     bits = max(1, int(np.ceil(np.log2(float(size[0]) * size[1] * size[2] + 1.0))))
     passes = int(np.ceil(bits / 11))  # 2,048 buckets a pass: the counts stay in cache
     digit = int(np.ceil(bits / passes))
@@ -218,20 +235,10 @@ def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray, hi: np.ndar
     del spare_keys, spare_order
     starts = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
     del keys
+    bounds = np.append(starts, n).astype(np.int64)
     centroids = np.empty((len(starts), 3))
-    _centroid_kernel(pts, order, starts, centroids)
+    run_blocks(_centroid_rows, len(starts), pts, order, bounds, int(np.max(np.diff(bounds))), centroids, block=65536)
     return centroids, (order if members else None), starts
-
-
-@kernel
-def _voxel_key_kernel(pts, origin, voxel_m, ny, nz, keys):  # pragma: no cover - compiled
-    """``keys[i]`` = (ix * ny + iy) * nz + iz of point ``i``'s voxel (float64 arithmetic, as
-    :func:`voxel_keys`)."""
-    for i in range(pts.shape[0]):
-        ix = np.int64(np.floor((np.float64(pts[i, 0]) - origin[0]) / voxel_m))
-        iy = np.int64(np.floor((np.float64(pts[i, 1]) - origin[1]) / voxel_m))
-        iz = np.int64(np.floor((np.float64(pts[i, 2]) - origin[2]) / voxel_m))
-        keys[i] = (ix * ny + iy) * nz + iz
 
 
 @kernel
@@ -267,22 +274,24 @@ def _radix_argsort(keys, spare_keys, order, spare_order, digit, passes):  # prag
 
 
 @kernel
-def _centroid_kernel(pts, order, starts, out):  # pragma: no cover - compiled
-    """Mean of each voxel's points, summed relative to the voxel's first point (float64)."""
-    n = order.shape[0]
-    m = starts.shape[0]
-    for v in range(m):
-        a = starts[v]
-        b = starts[v + 1] if v + 1 < m else n
+def _centroid_rows(start: int, stop: int, pts: np.ndarray, order: np.ndarray, bounds: np.ndarray, longest: int, out: np.ndarray) -> None:
+    """Voxels ``start:stop`` of :func:`_downsample`: the mean of the points ``pts[order[bounds[v]:
+    bounds[v + 1]]]`` into ``out[v]`` (float64), taken as the offsets from the voxel's first point
+    summed in ``np.add.reduceat``'s order, divided by the count and added back to that point."""
+    offsets = np.empty((3, longest))
+    for v in range(start, stop):
+        a = bounds[v]
+        n = bounds[v + 1] - a
         first = order[a]
         ax, ay, az = np.float64(pts[first, 0]), np.float64(pts[first, 1]), np.float64(pts[first, 2])
-        sx = sy = sz = 0.0
-        for j in range(a, b):
-            i = order[j]
-            sx += np.float64(pts[i, 0]) - ax
-            sy += np.float64(pts[i, 1]) - ay
-            sz += np.float64(pts[i, 2]) - az
-        c = b - a
-        out[v, 0] = ax + sx / c
-        out[v, 1] = ay + sy / c
-        out[v, 2] = az + sz / c
+        for t in range(n):
+            i = order[a + t]
+            offsets[0, t] = np.float64(pts[i, 0]) - ax
+            offsets[1, t] = np.float64(pts[i, 1]) - ay
+            offsets[2, t] = np.float64(pts[i, 2]) - az
+        if n == 1:
+            out[v, 0], out[v, 1], out[v, 2] = ax, ay, az
+        else:
+            out[v, 0] = ax + _segment_sum(offsets[0], n) / n
+            out[v, 1] = ay + _segment_sum(offsets[1], n) / n
+            out[v, 2] = az + _segment_sum(offsets[2], n) / n
