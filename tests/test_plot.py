@@ -274,3 +274,22 @@ def test_the_scanner_check_reads_one_scan_when_it_passes(four_scan_files, regist
     scans = ScanCache(project)
     _check_scans_near_their_scanners(project, scans)
     assert scans.reads == 1
+
+
+def test_a_link_holds_one_scan_s_points_the_centre_is_read_once(four_scan_files, registered_four):
+    """With room for one scan's points, the centre scan is prepared once and its links run on the
+    kept preparation: it is not read again for each link (it was: both scans of a link were held),
+    and the links are bit for bit those of the run that kept every scan."""
+    from forestreg.engine.tls.plot import ScanCache
+
+    plot, paths = four_scan_files
+    done = Project.load(registered_four[0])
+    project = Project(name="one-scan-room")
+    for p in paths[:3]:
+        project.add_scan(p)
+    scans = ScanCache(project)
+    scans.max_bytes = max(read_scan(p).points.nbytes for p in paths[:3]) + 1
+    register_project(project, scans=scans)
+    assert scans.reads == 3, "each scan read once"
+    for p in paths[1:3]:
+        assert np.array_equal(project.link_of(p.name).matrix, done.link_of(p.name).matrix)

@@ -37,6 +37,8 @@ log = logging.getLogger("forestreg")
 
 #: VOP radii (D_r, metres) tried in turn when none is given.
 AUTO_VOP_RADII_M = (10.0, 15.0, 20.0, 25.0)
+#: When both scans of a pair hold more points than this, they are prepared one after the other.
+SEQUENTIAL_PREPARE_POINTS = 15_000_000
 
 
 @dataclass(frozen=True)
@@ -242,8 +244,11 @@ def register(
     # scans exported in project/UTM coordinates carry no scanner position: find it from the data
     reference, moving = locate_scanner(reference), locate_scanner(moving)
     step(0.0, "preparing both scans")
-    # the two preparations are independent and mostly numpy (which releases the GIL): in parallel
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    # the two preparations are independent and mostly numpy (which releases the GIL): in parallel,
+    # unless both scans are large (a plot of 30 M-point scans): then one after the other, so that
+    # the two preparations' working arrays (~1 GB each) are not held at once
+    workers = 1 if min(len(reference), len(moving)) > SEQUENTIAL_PREPARE_POINTS else 2
+    with ThreadPoolExecutor(max_workers=workers) as pool:
         if prepared is None:
             ref_job = pool.submit(timed, "prepare_reference", prepare_scan, reference.points, reference.scanner_position, params, up=reference_up)
             mov_job = pool.submit(timed, "prepare_moving", prepare_scan, moving.points, moving.scanner_position, params, up=moving_up)
