@@ -293,3 +293,25 @@ def test_a_link_holds_one_scan_s_points_the_centre_is_read_once(four_scan_files,
     assert scans.reads == 3, "each scan read once"
     for p in paths[1:3]:
         assert np.array_equal(project.link_of(p.name).matrix, done.link_of(p.name).matrix)
+
+
+
+def test_the_top_view_keeps_no_prepared_scan(four_scan_files, registered_four):
+    """The report's top view keeps each scan's slices and VOPs, not its prepared scan (points and
+    ICP grid, 0.5 GB at 30 M points): once the cache lets them go, they are freed."""
+    import gc
+    import weakref
+
+    from forestreg.engine.tls.plot import ScanCache
+    from forestreg.engine.tls.views import compute_top_view
+
+    project = Project.load(registered_four[0])
+    scans = ScanCache(project)
+    view = compute_top_view(project, scans)
+    assert len(view.scans) == 4
+    alive = [weakref.ref(p) for p in scans.prepared._prepared.values()]
+    assert alive
+    scans.prepared.clear()
+    gc.collect()
+    assert all(r() is None for r in alive)
+    assert len(compute_top_view(project, scans).scans) == 4  # drawn again from what the view kept
