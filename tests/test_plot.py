@@ -315,3 +315,34 @@ def test_the_top_view_keeps_no_prepared_scan(four_scan_files, registered_four):
     gc.collect()
     assert all(r() is None for r in alive)
     assert len(compute_top_view(project, scans).scans) == 4  # drawn again from what the view kept
+
+
+
+def test_merged_laz_written_in_blocks_keeps_every_point_in_order(four_scan_files, registered_four, tmp_path, monkeypatch):
+    """Merging moves each scan in blocks (not kept in the cache): the LAZ holds every point of
+    every scan in order, in the centre frame, with its intensity and scan id."""
+    import laspy
+
+    from forestreg.engine.io.las import intensity_to_uint16
+    from forestreg.engine.tls import plot as plot_module
+
+    plot, paths = four_scan_files
+    project = Project.load(registered_four[0])
+    scans = plot_module.ScanCache(project)
+    monkeypatch.setattr(plot_module, "MERGE_BLOCK_POINTS", 7777)
+    n = plot_module.write_merged(project, tmp_path / "merged.laz", scans)
+    assert not scans._scans, "the scans were not kept"
+    las = laspy.read(tmp_path / "merged.laz")
+    poses = project.poses()
+    originals = [read_scan(p) for p in paths]
+    assert n == len(las) == sum(len(s) for s in originals)
+    assert np.bincount(las.scan_id).tolist() == [len(s) for s in originals]
+    got = np.column_stack([las.x, las.y, las.z])
+    start = 0
+    for s, p in zip(originals, paths):
+        want = s.file_points @ poses[p.name][:3, :3].T + poses[p.name][:3, 3]
+        assert np.abs(got[start:start + len(s)] - want).max() < 2e-4
+        if s.intensity is not None:
+            assert np.array_equal(np.asarray(las.intensity[start:start + len(s)]), intensity_to_uint16(s.intensity))
+        start += len(s)
+

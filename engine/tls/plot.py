@@ -24,6 +24,7 @@ import numpy as np
 from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanReadError
 from ..core.atomic import write_text_atomic
 from ..io import read_scan, write_point_chunks
+from ..io.las import intensity_to_uint16
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, LinkResult, Project, ScanEntry
 from .pair import register
@@ -494,6 +495,7 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
     placed = [(k, s.name, poses[s.name]) for k, s in enumerate(project.scans) if poses.get(s.name) is not None]
     if not placed:
         raise DataError("no scan is registered: nothing to merge")
+    scans.prepared.clear()  # merging needs the points only: prepared scans (0.5 GB each at 30 M points) go
     corners = []
     for _, name, pose in placed:
         lo, hi = scans.bounds(name)
@@ -502,15 +504,32 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
     corners = np.vstack(corners)
     margin = 1.0  # metres: header bounds are rounded; the written header has the exact ones
 
+    # LAS/LAZ/COPC are written chunk by chunk: there a scan goes in blocks, its intensities mapped
+    # to uint16 once for the whole scan (as the writer maps each chunk), so every block keeps the
+    # scan's mapping; other formats gather the chunks anyway and take each scan whole
+    streamed = Path(path).suffix.lower() in (".las", ".laz")
+
     def chunks():
         for k, name, pose in placed:
-            scan = scans(name)
-            yield apply_transform(pose, scan.file_points), scan.intensity, np.full(len(scan), k, dtype=np.uint16)
+            scan = scans(name, keep=False)  # each scan is merged once: not kept
+            if not streamed:
+                yield apply_transform(pose, scan.file_points), scan.intensity, np.full(len(scan), k, dtype=np.uint16)
+                continue
+            intensity = None if scan.intensity is None else intensity_to_uint16(scan.intensity)
+            for a in range(0, len(scan), MERGE_BLOCK_POINTS):
+                b = min(len(scan), a + MERGE_BLOCK_POINTS)
+                moved = apply_transform(pose, scan.points[a:b] + scan.origin_shift)
+                yield moved, None if intensity is None else intensity[a:b], np.full(b - a, k, dtype=np.uint16)
+            del scan, intensity
 
     return write_point_chunks(
         path, chunks(), bounds=(corners.min(axis=0) - margin, corners.max(axis=0) + margin),
         with_intensity=all(_has_intensity(scans, project.scan(name)) for _, name, _ in placed), with_scan_id=True,
     )
+
+
+#: Points of a scan transformed and handed to the writer at a time by :func:`write_merged`.
+MERGE_BLOCK_POINTS = 2_000_000
 
 
 def _has_intensity(scans: ScanCache, entry: ScanEntry) -> bool:
