@@ -52,10 +52,16 @@ class Run:
     status: int
 
 
-def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeout_s: float = 1800.0) -> Run:
-    """Run ``argv`` to completion; its wall time and the peak memory the kernel accounted to it."""
+def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeout_s: float = 1800.0, log: Optional[Path] = None) -> Run:
+    """Run ``argv`` to completion; its wall time and the peak memory the kernel accounted to it.
+    Its output is dropped, or written to ``log`` (stdout and stderr) when given."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    sink = subprocess.DEVNULL if log is None else open(log, "wb")
+    try:
+        proc = subprocess.Popen(argv, stdout=sink, stderr=subprocess.STDOUT if log is not None else subprocess.DEVNULL, env=env)
+    finally:
+        if log is not None:
+            sink.close()
     deadline = t0 + timeout_s
     while True:
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)

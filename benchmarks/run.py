@@ -1,6 +1,7 @@
 """forestreg benchmarks: pair registration per step and against Sylva, a 4-scan plot, memory, the coarse matcher, System B.
 
-Run from the repository root (about 30 minutes on 2 cores with the 30 M-point scan; `--quick`: a few minutes)::
+Run from the repository root (about 30 minutes on 2 cores with the 30 M-point scan, without the ten-scan
+plot of `--only bigplot`; `--quick`: a few minutes)::
 
     .venv/bin/python benchmarks/run.py            # or: python -m benchmarks.run
     .venv/bin/python benchmarks/run.py --quick    # smoke run: skips the ~3 M point pair
@@ -22,6 +23,9 @@ Run from the repository root (about 30 minutes on 2 cores with the 30 M-point sc
    left out by ``--quick``).
 6. System B at full size (:mod:`benchmarks.system_b`): ground-based/UAV co-registration, fusion
    and the tree inventory of the fused cloud.
+7. A plot of ten ~30 M-point scans registered and merged into one COPC file within 4 GB
+   (:mod:`benchmarks.big_plot`; about an hour: only with ``--only bigplot``, left out by default
+   and by ``--quick``).
 
 Timings are wall-clock seconds of one run (``time.perf_counter``); nothing is asserted on them.
 An untimed warm-up (a coarse 0.5 deg pair) runs first so imports and library initialisation do
@@ -44,9 +48,10 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import big_scan, coarse_matcher, peers, plot_speed, system_b
+    from . import big_plot, big_scan, coarse_matcher, peers, plot_speed, system_b
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import big_plot  # type: ignore[no-redef]
     import big_scan  # type: ignore[no-redef]
     import coarse_matcher  # type: ignore[no-redef]
     import peers  # type: ignore[no-redef]
@@ -302,8 +307,10 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated plot and of the VOP sets (default 0)")
     ap.add_argument("--json", metavar="FILE", type=Path, help="also write every row to this JSON file")
     ap.add_argument("--runs", type=int, default=3, help="timed rounds of the whole-command comparison (default 3)")
-    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "coarse", "system_b"), action="append",
-                    help="run only these parts (repeatable; default all; --quick leaves out plot and big)")
+    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b"), action="append",
+                    help="run only these parts (repeatable; default all but bigplot; --quick leaves out plot and big). "
+                         "bigplot: ten ~30 M-point scans registered and merged as COPC, about an hour, so only when named")
+    ap.add_argument("--workdir", type=Path, help="bigplot: keep its simulated and densified scans here (default bench_out/; reused)")
     args = ap.parse_args(argv)
 
     t_start = time.perf_counter()
@@ -332,6 +339,11 @@ def main(argv: Optional[list[str]] = None) -> int:
         big_row = big_scan.run()
         print(big_scan.format_row(big_row))
         print(flush=True)
+    big_plot_row: Optional[dict[str, Any]] = None
+    if "bigplot" in parts:
+        big_plot_row = big_plot.run(workdir=args.workdir)
+        print(big_plot.format_row(big_plot_row))
+        print(flush=True)
     if "pairs" in parts:
         pairs = PAIRS[1:] if args.quick else PAIRS
         with tempfile.TemporaryDirectory(prefix="forestreg-bench-") as tmp:
@@ -356,7 +368,7 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     if args.json is not None:
         payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
-                   "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows}
+                   "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "big_plot": big_plot_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows}
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0

@@ -311,9 +311,11 @@ def _check_scans_near_their_scanners(project, scans) -> None:
             check_near_scanner(scans(s.name), project.params.max_range_m, s.path, "m")
         except (UsageError, ScannerPositionError) as exc:  # no scanner near the data: a unit or position problem
             problems.append(str(exc))
+            continue
         except (ScanReadError, ScanDataError):
-            problems.append("")  # unreadable: its link reports it
-    if problems and all(problems) and len(problems) == len(project.scans):
+            pass  # unreadable: its link reports it
+        break  # one scan without the problem: the plot goes on (reading every scan first costs minutes)
+    if problems and len(problems) == len(project.scans):
         raise UsageError(problems[0])
 
 

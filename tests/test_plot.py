@@ -261,3 +261,88 @@ def test_a_plot_larger_than_the_scan_cache_registers_and_merges_the_same(four_sc
                 with laspy.CopcReader.open(tmp_path / f"merged{suffix}") as copc:
                     assert len(copc.query()) == n and len(copc.level_query(0)) < n
             assert np.abs(first - want).max() < 2e-4
+
+
+
+def test_the_scanner_check_reads_one_scan_when_it_passes(four_scan_files, registered_four):
+    """The check before a plot run (no scan near its scanner: refuse) stops at the first scan that
+    passes instead of reading every scan first."""
+    from forestreg.cli.plot import _check_scans_near_their_scanners
+    from forestreg.engine.tls.plot import ScanCache
+
+    project = Project.load(registered_four[0])
+    scans = ScanCache(project)
+    _check_scans_near_their_scanners(project, scans)
+    assert scans.reads == 1
+
+
+def test_a_link_holds_one_scan_s_points_the_centre_is_read_once(four_scan_files, registered_four):
+    """With room for one scan's points, the centre scan is prepared once and its links run on the
+    kept preparation: it is not read again for each link (it was: both scans of a link were held),
+    and the links are bit for bit those of the run that kept every scan."""
+    from forestreg.engine.tls.plot import ScanCache
+
+    plot, paths = four_scan_files
+    done = Project.load(registered_four[0])
+    project = Project(name="one-scan-room")
+    for p in paths[:3]:
+        project.add_scan(p)
+    scans = ScanCache(project)
+    scans.max_bytes = max(read_scan(p).points.nbytes for p in paths[:3]) + 1
+    register_project(project, scans=scans)
+    assert scans.reads == 3, "each scan read once"
+    for p in paths[1:3]:
+        assert np.array_equal(project.link_of(p.name).matrix, done.link_of(p.name).matrix)
+
+
+
+def test_the_top_view_keeps_no_prepared_scan(four_scan_files, registered_four):
+    """The report's top view keeps each scan's slices and VOPs, not its prepared scan (points and
+    ICP grid, 0.5 GB at 30 M points): once the cache lets them go, they are freed."""
+    import gc
+    import weakref
+
+    from forestreg.engine.tls.plot import ScanCache
+    from forestreg.engine.tls.views import compute_top_view
+
+    project = Project.load(registered_four[0])
+    scans = ScanCache(project)
+    view = compute_top_view(project, scans)
+    assert len(view.scans) == 4
+    alive = [weakref.ref(p) for p in scans.prepared._prepared.values()]
+    assert alive
+    scans.prepared.clear()
+    gc.collect()
+    assert all(r() is None for r in alive)
+    assert len(compute_top_view(project, scans).scans) == 4  # drawn again from what the view kept
+
+
+
+def test_merged_laz_written_in_blocks_keeps_every_point_in_order(four_scan_files, registered_four, tmp_path, monkeypatch):
+    """Merging moves each scan in blocks (not kept in the cache): the LAZ holds every point of
+    every scan in order, in the centre frame, with its intensity and scan id."""
+    import laspy
+
+    from forestreg.engine.io.las import intensity_to_uint16
+    from forestreg.engine.tls import plot as plot_module
+
+    plot, paths = four_scan_files
+    project = Project.load(registered_four[0])
+    scans = plot_module.ScanCache(project)
+    monkeypatch.setattr(plot_module, "MERGE_BLOCK_POINTS", 7777)
+    n = plot_module.write_merged(project, tmp_path / "merged.laz", scans)
+    assert not scans._scans, "the scans were not kept"
+    las = laspy.read(tmp_path / "merged.laz")
+    poses = project.poses()
+    originals = [read_scan(p) for p in paths]
+    assert n == len(las) == sum(len(s) for s in originals)
+    assert np.bincount(las.scan_id).tolist() == [len(s) for s in originals]
+    got = np.column_stack([las.x, las.y, las.z])
+    start = 0
+    for s, p in zip(originals, paths):
+        want = s.file_points @ poses[p.name][:3, :3].T + poses[p.name][:3, 3]
+        assert np.abs(got[start:start + len(s)] - want).max() < 2e-4
+        if s.intensity is not None:
+            assert np.array_equal(np.asarray(las.intensity[start:start + len(s)]), intensity_to_uint16(s.intensity))
+        start += len(s)
+

@@ -45,8 +45,13 @@ def surface_normals(points: np.ndarray, *, voxel_m: float = 0.1, radius_m: float
     Returns (M, 3) unit normals (arbitrary sign) and (M,) surface variation
     ``l0 / (l0 + l1 + l2)`` of the local covariance (0 = flat; leaves and clutter are high).
     """
-    d2 = points[:, 0] ** 2 + points[:, 1] ** 2 + points[:, 2] ** 2
-    near = points[d2 <= radius_m**2]
+    d2 = points[:, 0] ** 2
+    d2 += points[:, 1] ** 2
+    d2 += points[:, 2] ** 2
+    inside = d2 <= radius_m**2
+    del d2
+    near = points if inside.all() else points[inside]  # callers often give only near points: no copy
+    del inside
     if len(near) <= neighbours:
         return np.zeros((0, 3)), np.zeros(0)
     thinned = voxel_downsample(near, voxel_m)

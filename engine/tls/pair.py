@@ -38,6 +38,9 @@ log = logging.getLogger("forestreg")
 
 #: VOP radii (D_r, metres) tried in turn when none is given.
 AUTO_VOP_RADII_M = (10.0, 15.0, 20.0, 25.0)
+#: Scans of more points than this are prepared one at a time (a pair of two such scans one after
+#: the other).
+SEQUENTIAL_PREPARE_POINTS = 15_000_000
 
 
 @dataclass(frozen=True)
@@ -246,19 +249,27 @@ def register(
     timings = StepTimer()
     timed = timings.run
 
-    reading = threading.Lock()
+    reading, preparing_large = threading.Lock(), threading.Lock()
 
     def load(source: ScanSource, role: str) -> Scan:
         # a scan given as a reader is read here, in a worker thread, so that one scan is read
         # while the other is prepared (one read at a time: the reader decompresses on every core,
-        # and two raw clouds and two preparations are never in memory at once); scans exported in
-        # project/UTM coordinates carry no scanner position: it is found from the data
+        # and the two scans' reading peaks do not meet); scans exported in project/UTM
+        # coordinates carry no scanner position: it is found from the data
         if callable(source):
             with reading:
                 source = timed(f"read_{role}", source)
         return locate_scanner(source)
 
     def prepare(scan: Scan, up: Optional[np.ndarray]) -> PreparedScan:
+        # two large scans (a plot of 30 M-point scans) are prepared one after the other, so that
+        # the two preparations' working arrays (~1 GB each) are not held at once
+        if len(scan) > SEQUENTIAL_PREPARE_POINTS:
+            with preparing_large:
+                return _prepare(scan, up)
+        return _prepare(scan, up)
+
+    def _prepare(scan: Scan, up: Optional[np.ndarray]) -> PreparedScan:
         if prepared is None:
             return prepare_scan(scan.points, scan.scanner_position, params, up=up)
         return prepared.get(scan, params, up)

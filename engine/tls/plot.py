@@ -24,10 +24,11 @@ import numpy as np
 from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanReadError
 from ..core.atomic import write_text_atomic
 from ..io import read_scan, write_point_chunks
+from ..io.las import intensity_to_uint16
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, LinkResult, Project, ScanEntry
 from .pair import register
-from .prepare import PreparedScans
+from .prepare import PreparedScans, scan_identity
 from .scanner_position import locate_scanner
 from ..core.scan import Scan
 from ..core.transform import format_matrix, rigid_errors
@@ -55,16 +56,22 @@ class ScanCache:
         self.max_bytes = SCAN_CACHE_BYTES if max_bytes is None else int(max_bytes)
         self._scans: OrderedDict[str, Scan] = OrderedDict()
         self._located: dict[str, tuple[np.ndarray, np.ndarray, dict[str, Any]]] = {}
+        #: each scan read: its frame (the scan without points) and its identity for prepared scans
+        self._frames: dict[str, tuple[Scan, tuple]] = {}
         #: how many times a scan file was read (a scan read twice was let go in between)
         self.reads = 0
         #: the scans prepared for registration, shared by the links (each scan prepared once)
         self.prepared = PreparedScans(max_bytes=PREPARED_CACHE_BYTES if max_bytes is None else max(int(max_bytes) // 2, 1))
 
-    def __call__(self, name: str) -> Scan:
+    def __call__(self, name: str, *, keep: bool = True) -> Scan:
+        """The scan ``name`` (read unless kept). ``keep=False``: a scan not in memory is read and
+        handed over without being kept (for a single pass over the plot, e.g. merging)."""
         if name in self._scans:
             self._scans.move_to_end(name)
             return self._scans[name]
         entry = self.project.scan(name)
+        if keep:
+            self._make_room(_file_scan_bytes(entry.path))
         scan = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
         self.reads += 1
         known = self._located.get(name)
@@ -73,10 +80,52 @@ class ScanCache:
         else:
             scan = locate_scanner(scan)
             self._located[name] = (scan.scanner_position, scan.origin_shift, scan.meta)
+        self._frames[name] = (scan.without_points(), scan_identity(scan))
+        if not keep:
+            return scan
         self._scans[name] = scan
-        while len(self._scans) > 1 and sum(_scan_bytes(s) for s in self._scans.values()) > self.max_bytes:
-            self._scans.popitem(last=False)
+        self._make_room(0)
         return scan
+
+    def clear(self) -> None:
+        """Let go of every kept scan and preparation (scanner positions and frames stay known)."""
+        self._scans.clear()
+        self.prepared.clear()
+
+    def frame(self, name: str) -> Scan:
+        """The scan ``name`` without its points (frame, scanner position, name, facts): read once,
+        then known without reading the points again."""
+        if name not in self._frames:
+            self(name)
+        return self._frames[name][0]
+
+    def point_count(self, name: str) -> int:
+        """How many points the scan ``name`` has (read once, then known)."""
+        self.frame(name)
+        return int(self._frames[name][1][2])
+
+    def for_link(self, name: str, params, *, prepare: bool = True) -> Scan:
+        """The scan ``name`` for a link registered with ``params``: when its preparation is kept
+        (or, with ``prepare``, made now), a stand-in without points that carries it
+        (:meth:`~forestreg.engine.tls.prepare.PreparedScans.stand_in`), so the link does not hold
+        the scan's points; otherwise the scan itself."""
+        known = self._frames.get(name)
+        prepared = None if known is None else self.prepared.kept(known[1], params)
+        if prepared is None:
+            if not prepare:
+                return self(name)
+            prepared = self.prepared.get(self(name), params)
+            known = self._frames[name]
+        return self.prepared.stand_in(known[0], known[1], prepared, params)
+
+    def _make_room(self, incoming: int) -> None:
+        """Let go of the least recently used scans until the kept ones and ``incoming`` bytes fit
+        in ``max_bytes`` (the most recently used one stays): done before a read, so a scan being
+        read does not sit beside one that is about to be dropped."""
+        while self._scans and sum(_scan_bytes(s) for s in self._scans.values()) + incoming > self.max_bytes:
+            if len(self._scans) == 1 and not incoming:
+                break
+            self._scans.popitem(last=False)
 
     def bounds(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper corner of a scan's points (file coordinates, metres): from a LAS/LAZ
@@ -97,16 +146,33 @@ class ScanCache:
         return scan.points.min(axis=0) + scan.origin_shift, scan.points.max(axis=0) + scan.origin_shift
 
 
-#: Point arrays a :class:`ScanCache` keeps in memory by default, bytes: some twenty 3 M-point
-#: scans, or two 30 M-point scans (a 0.04 deg RIEGL scan) with room left for registering them.
-SCAN_CACHE_BYTES = 2_000_000_000
+#: Point arrays a :class:`ScanCache` keeps in memory by default, bytes: some twelve 3 M-point
+#: scans, or one 30 M-point scan (a 0.04 deg RIEGL scan, 0.8 GB). A link holds one scan's points
+#: at a time (its reference is prepared first and kept prepared, :meth:`ScanCache.for_link`), so
+#: with :data:`PREPARED_CACHE_BYTES` a plot of 30 M-point scans registers within 4 GB.
+SCAN_CACHE_BYTES = 1_000_000_000
 #: Prepared scans (:class:`~forestreg.engine.tls.prepare.PreparedScans`) a :class:`ScanCache`
-#: keeps for its links by default, bytes (a 3 M-point scan holds about 70 MB prepared).
-PREPARED_CACHE_BYTES = 1_000_000_000
+#: keeps for its links by default, bytes: the centre scan and the scan being linked to it when
+#: both are 30 M-point scans (0.55 GB each prepared; a 3 M-point scan holds about 60 MB).
+PREPARED_CACHE_BYTES = 1_500_000_000
 
 
 def _scan_bytes(scan: Scan) -> int:
     return int(scan.points.nbytes + (0 if scan.intensity is None else scan.intensity.nbytes))
+
+
+def _file_scan_bytes(path: Path) -> int:
+    """Bytes the points of a LAS/LAZ file take once read (float64 x, y, z and a uint16 intensity),
+    from its header; 0 for other formats or an unreadable header (the read then says why)."""
+    if Path(path).suffix.lower() not in (".las", ".laz"):
+        return 0
+    import laspy
+
+    try:
+        with laspy.open(str(path)) as f:
+            return int(f.header.point_count) * (3 * 8 + 2)
+    except Exception:  # an odd header: no estimate
+        return 0
 
 
 @dataclass
@@ -201,8 +267,15 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
     """Run one link (auto or manual) and return its typed result; an unusable scan or data that
     do not allow it give a "failed" result with the reason, not an exception."""
     try:
-        reference, moving = scans(link.reference), scans(link.moving)
-    except (ScanReadError, ScanDataError) as exc:
+        if link.method == "manual":
+            reference, moving = scans(link.reference), scans(link.moving)
+        else:
+            # the reference prepared first and held as a stand-in without points, then the moving
+            # scan (a stand-in too when its preparation is kept): one scan's points at a time
+            params = link.params(project.params)
+            reference = scans.for_link(link.reference, params)
+            moving = scans.for_link(link.moving, params, prepare=False)
+    except (ScanReadError, ScanDataError, DataError) as exc:
         # one unusable scan (unreadable, no scanner position to be found) fails its links, not the plot
         return LinkResult.from_dict({"status": "failed", "reason": str(exc), "matrix": None, "reference": link.reference, "moving": link.moving})
     if link.method == "manual":
@@ -427,6 +500,7 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
     placed = [(k, s.name, poses[s.name]) for k, s in enumerate(project.scans) if poses.get(s.name) is not None]
     if not placed:
         raise DataError("no scan is registered: nothing to merge")
+    scans.clear()  # merging reads each scan once: kept scans and preparations (0.8 / 0.5 GB each at 30 M points) go
     corners = []
     for _, name, pose in placed:
         lo, hi = scans.bounds(name)
@@ -435,15 +509,32 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
     corners = np.vstack(corners)
     margin = 1.0  # metres: header bounds are rounded; the written header has the exact ones
 
+    # LAS/LAZ/COPC are written chunk by chunk: there a scan goes in blocks, its intensities mapped
+    # to uint16 once for the whole scan (as the writer maps each chunk), so every block keeps the
+    # scan's mapping; other formats gather the chunks anyway and take each scan whole
+    streamed = Path(path).suffix.lower() in (".las", ".laz")
+
     def chunks():
         for k, name, pose in placed:
-            scan = scans(name)
-            yield apply_transform(pose, scan.file_points), scan.intensity, np.full(len(scan), k, dtype=np.uint16)
+            scan = scans(name, keep=False)  # each scan is merged once: not kept
+            if not streamed:
+                yield apply_transform(pose, scan.file_points), scan.intensity, np.full(len(scan), k, dtype=np.uint16)
+                continue
+            intensity = None if scan.intensity is None else intensity_to_uint16(scan.intensity)
+            for a in range(0, len(scan), MERGE_BLOCK_POINTS):
+                b = min(len(scan), a + MERGE_BLOCK_POINTS)
+                moved = apply_transform(pose, scan.points[a:b] + scan.origin_shift)
+                yield moved, None if intensity is None else intensity[a:b], np.full(b - a, k, dtype=np.uint16)
+            del scan, intensity
 
     return write_point_chunks(
         path, chunks(), bounds=(corners.min(axis=0) - margin, corners.max(axis=0) + margin),
         with_intensity=all(_has_intensity(scans, project.scan(name)) for _, name, _ in placed), with_scan_id=True,
     )
+
+
+#: Points of a scan transformed and handed to the writer at a time by :func:`write_merged`.
+MERGE_BLOCK_POINTS = 2_000_000
 
 
 def _has_intensity(scans: ScanCache, entry: ScanEntry) -> bool:

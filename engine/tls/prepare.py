@@ -7,6 +7,7 @@ the scan's local frame (see :class:`~forestreg.engine.core.scan.Scan`) into it.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
@@ -64,6 +65,16 @@ def derived(prepared: PreparedScan, key: tuple, make):
     return memo[key]
 
 
+def scan_identity(scan) -> tuple:
+    """What tells a scan's points apart from another's, for caches: name, scanner position (local
+    frame, metres, to the nanometre), point count, and the first and last point."""
+    pts = scan.points
+    return (
+        scan.name, tuple(np.round(np.asarray(scan.scanner_position, dtype=float), 9)), len(pts),
+        tuple(pts[0]) if len(pts) else (), tuple(pts[-1]) if len(pts) else (),
+    )
+
+
 class PreparedScans:
     """Prepared scans kept between the links of a plot, most recently used first, up to
     ``max_bytes`` (default :data:`PREPARED_CACHE_BYTES`): a scan in three links is reduced,
@@ -81,21 +92,57 @@ class PreparedScans:
         self.max_bytes = PREPARED_CACHE_BYTES if max_bytes is None else int(max_bytes)
         self._prepared: "OrderedDict[tuple, PreparedScan]" = OrderedDict()
         self._lock = threading.Lock()
+        #: stand-ins (scans without points) -> (key, scan identity, their preparation)
+        self._pinned: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
         #: how many preparations were made (a scan let go and needed again is prepared again)
         self.made = 0
 
-    def get(self, scan, params: RegistrationParams, up: Optional[np.ndarray] = None) -> PreparedScan:
-        """The prepared ``scan`` (a :class:`~forestreg.engine.core.scan.Scan`) for ``params``."""
-        pts = scan.points
-        key = (
-            scan.name, tuple(np.round(np.asarray(scan.scanner_position, dtype=float), 9)), len(pts),
-            tuple(pts[0]) if len(pts) else (), tuple(pts[-1]) if len(pts) else (),
-            params, None if up is None else tuple(np.asarray(up, dtype=float)),
-        )
+    @staticmethod
+    def _key(identity: tuple, params: RegistrationParams, up: Optional[np.ndarray]) -> tuple:
+        return (identity, params, None if up is None else tuple(np.asarray(up, dtype=float)))
+
+    def kept(self, identity: tuple, params: RegistrationParams, up: Optional[np.ndarray] = None) -> Optional[PreparedScan]:
+        """The kept preparation of the scan of ``identity`` (:func:`scan_identity`) for ``params``,
+        or None (marked as just used when found)."""
+        key = self._key(identity, params, up)
         with self._lock:
             if key in self._prepared:
                 self._prepared.move_to_end(key)
                 return self._prepared[key]
+        return None
+
+    def stand_in(self, frame, identity: tuple, prepared: PreparedScan, params: RegistrationParams, up: Optional[np.ndarray] = None):
+        """A stand-in for a scan whose preparation for ``params`` is ``prepared``: ``frame`` (the
+        scan without its points, :meth:`~forestreg.engine.core.scan.Scan.without_points`) copied,
+        which :meth:`get` answers with ``prepared`` for as long as the stand-in lives, so a link
+        can run without the scan's points in memory. ``identity`` is the scan's
+        :func:`scan_identity` (taken while its points were there)."""
+        import dataclasses
+
+        light = dataclasses.replace(frame)
+        with self._lock:
+            self._pinned[light] = (self._key(identity, params, up), identity, prepared)
+        return light
+
+    def get(self, scan, params: RegistrationParams, up: Optional[np.ndarray] = None) -> PreparedScan:
+        """The prepared ``scan`` (a :class:`~forestreg.engine.core.scan.Scan`, or a stand-in from
+        :meth:`stand_in`) for ``params``."""
+        with self._lock:
+            pinned = self._pinned.get(scan)
+        key = self._key(scan_identity(scan) if pinned is None else pinned[1], params, up)
+        if pinned is not None and pinned[0] == key:
+            return pinned[2]
+        pts = scan.points
+        with self._lock:
+            if key in self._prepared:
+                self._prepared.move_to_end(key)
+                return self._prepared[key]
+            if pinned is not None:
+                raise ValueError(f"{scan.name}: a stand-in without points cannot be prepared for other parameters")
+            # room first: a scan being prepared should not sit beside one that is about to be dropped
+            incoming = len(pts) * PREPARED_BYTES_PER_POINT
+            while self._prepared and sum(p.nbytes for p in self._prepared.values()) + incoming > self.max_bytes:
+                self._prepared.popitem(last=False)
         prepared = prepare_scan(pts, scan.scanner_position, params, up=up)
         with self._lock:
             self.made += 1
@@ -104,6 +151,11 @@ class PreparedScans:
                 self._prepared.popitem(last=False)
         return prepared
 
+
+    def clear(self) -> None:
+        """Let go of every kept preparation (stand-ins still alive keep theirs)."""
+        with self._lock:
+            self._prepared.clear()
 
     def release(self, key: tuple) -> None:
         """Let go of what was derived under ``key`` from every kept scan (e.g. the ICP trees of
@@ -116,6 +168,9 @@ class PreparedScans:
 #: Bytes of prepared scans a :class:`PreparedScans` keeps by default (a 3 M-point scan holds
 #: about 60 MB prepared; two 30 M-point scans fit).
 PREPARED_CACHE_BYTES = 1_500_000_000
+#: Bytes a scan takes prepared, per point given, at most (float32 points, the ground mask, the
+#: ICP grid's member order and a share of its voxels): what :meth:`PreparedScans.get` makes room for.
+PREPARED_BYTES_PER_POINT = 20
 
 
 def reduce_to_range(points: np.ndarray, scanner_xy: np.ndarray, max_range_m: float) -> np.ndarray:
@@ -180,18 +235,31 @@ def prepare_scan(
 
 def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray]:
     """The points within ``sqrt(max_d2)`` (3D) of ``origin``, shifted so that ``origin`` is 0, as
-    float32 (a 50 m neighbourhood keeps micrometre steps), and their squared distances. Works
-    column by column: no float64 copy of the whole cloud is made."""
+    float32 (a 50 m neighbourhood keeps micrometre steps), and their squared distances (m^2, in
+    the points' order). Works column by column on blocks of :data:`CENTRE_BLOCK_POINTS` written
+    into the result: no float64 copy of the cloud is made, and the working arrays are a block's
+    (the result may be a view of a buffer sized for every point)."""
     origin = np.asarray(origin, dtype=np.float64)
-    columns = [(points[:, k] - origin[k]).astype(np.float32) for k in range(3)]
-    d2 = columns[0] * columns[0]
-    d2 += columns[1] * columns[1]
-    d2 += columns[2] * columns[2]
-    keep = d2 <= max_d2
-    out = np.empty((int(keep.sum()), 3), dtype=np.float32)
-    for k in range(3):
-        out[:, k] = columns[k][keep]
-    return out, d2[keep]
+    out = np.empty((len(points), 3), dtype=np.float32)
+    d2_out = np.empty(len(points), dtype=np.float32)
+    kept = 0
+    for a in range(0, len(points), CENTRE_BLOCK_POINTS):
+        block = points[a:a + CENTRE_BLOCK_POINTS]
+        columns = [(block[:, k] - origin[k]).astype(np.float32) for k in range(3)]
+        d2 = columns[0] * columns[0]
+        d2 += columns[1] * columns[1]
+        d2 += columns[2] * columns[2]
+        keep = d2 <= max_d2
+        n = int(keep.sum())
+        for k in range(3):
+            out[kept:kept + n, k] = columns[k][keep]
+        d2_out[kept:kept + n] = d2[keep]
+        kept += n
+    return out[:kept], d2_out[:kept]
+
+
+#: Points :func:`_centred_float32` handles at a time.
+CENTRE_BLOCK_POINTS = 2_000_000
 
 
 @dataclass(frozen=True)

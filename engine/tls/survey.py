@@ -71,7 +71,7 @@ def _link_sigma(link: Link) -> tuple[float, float]:
 
 
 def _scanner_file(scans: ScanCache, name: str) -> np.ndarray:
-    return np.asarray(scans(name).scanner_position_file, dtype=float)
+    return np.asarray(scans.frame(name).scanner_position_file, dtype=float)
 
 
 def _usable(scans: ScanCache, name: str) -> bool:
@@ -79,7 +79,7 @@ def _usable(scans: ScanCache, name: str) -> bool:
     from ..core.errors import ScanDataError, ScanReadError
 
     try:
-        scans(name)
+        scans.frame(name)
         return True
     except (ScanReadError, ScanDataError):
         return False
@@ -110,7 +110,7 @@ def _prior_positions(project: Project, scans: ScanCache, poses: dict[str, Option
 
 
 def _georeferenced(scans: ScanCache, name: str) -> bool:
-    return bool(np.abs(scans(name).origin_shift).max() > 0.0)
+    return bool(np.abs(scans.frame(name).origin_shift).max() > 0.0)
 
 
 def _prior_relative(project: Project, scans: ScanCache, moving: str, reference: str) -> Optional[np.ndarray]:

@@ -229,20 +229,25 @@ class _Prepared:
     """A scan's slice layers in its LSF and the matrix LSF -> file, with VOPs per radius."""
 
     def __init__(self, project: Project, scans: ScanCache, name: str, params: RegistrationParams) -> None:
-        scan = scans(name)
         cache = getattr(scans, "prepared", None)
         if cache is not None:
-            # the preparation the links of this run made (the same parameters give the same scan)
+            # the preparation the links of this run made (the same parameters give the same scan),
+            # through a stand-in: the scan's points are read (and prepared) only when it is not kept
+            scan = scans.for_link(name, params)
             prepared = cache.get(scan, params)
+            self.points = scans.point_count(name)
         else:
+            scan = scans(name)
+            self.points = len(scan)
             tilt = _known_tilt(project, name)
             up = np.array([0.0, 0.0, 1.0]) if tilt == 0.0 else None
             prepared = prepare_scan(scan.points, scan.scanner_position, params, up=up)
-        self.prepared = prepared
         self.params = params
         self.layers = derived(prepared, ("layers", params), lambda: slice_layers(prepared, params))
+        # the VOPs the links found are reused; the prepared scan itself (its points and ICP grid,
+        # hundreds of MB for a 30 M-point scan) is not kept: a plot's views hold every scan
+        self._found = {key[2]: v for key, v in prepared.derived.items() if len(key) == 3 and key[0] == "vops" and key[1] == params}
         self.lsf_to_file = scan.local_to_file_matrix() @ np.linalg.inv(prepared.local_to_lsf)
-        self.points = len(scan)
         self.scanner_file = scan.scanner_position_file
         self._vops: dict[float, np.ndarray] = {}
 
@@ -253,7 +258,9 @@ class _Prepared:
         """VOPs within ``radius`` as (N, 3) LSF points (horizontal position, slice height)."""
         key = round(float(radius), 6)
         if key not in self._vops:
-            v = derived(self.prepared, ("vops", self.params, float(radius)), lambda: extract_vops(self.layers, self.params, float(radius)))
+            if float(radius) not in self._found:
+                self._found[float(radius)] = extract_vops(self.layers, self.params, float(radius))
+            v = self._found[float(radius)]
             self._vops[key] = np.column_stack([v.xy, v.z]) if len(v) else np.zeros((0, 3))
         return self._vops[key]
 
