@@ -11,7 +11,7 @@ from ..core.errors import DataError
 import numpy as np
 from scipy import ndimage
 
-from ..geometry.voxel import column_bounds
+from ..geometry.voxel import column_bounds, floor_cells
 
 
 def lowest_voxel_ground(points: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -26,12 +26,14 @@ def lowest_voxel_ground(points: np.ndarray, voxel_m: float) -> np.ndarray:
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
     lo = column_bounds(points)[0]
-    ix = np.floor((points[:, 0] - lo[0]) / voxel_m).astype(np.int64)
-    iy = np.floor((points[:, 1] - lo[1]) / voxel_m).astype(np.int64)
-    iz = np.floor((points[:, 2] - lo[2]) / voxel_m).astype(np.int32)
+    ix = floor_cells(points[:, 0], lo[0], voxel_m)
+    iy = floor_cells(points[:, 1], lo[1], voxel_m)
+    iz = floor_cells(points[:, 2], lo[2], voxel_m, np.int32)
     ny = int(iy.max()) + 1
-    column = ix * ny + iy  # a dense column index: the columns of a scan's reach are few
-    del ix, iy
+    ix *= ny
+    ix += iy
+    column = ix  # a dense column index: the columns of a scan's reach are few
+    del iy
     lowest = np.full(int(column.max()) + 1, np.iinfo(np.int32).max, dtype=np.int32)
     np.minimum.at(lowest, column, iz)
     return iz == lowest[column]
