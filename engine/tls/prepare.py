@@ -174,9 +174,14 @@ PREPARED_BYTES_PER_POINT = 20
 
 
 def reduce_to_range(points: np.ndarray, scanner_xy: np.ndarray, max_range_m: float) -> np.ndarray:
-    """Mask of the points within ``max_range_m`` horizontally of the scanner (paper eq. 1)."""
-    d2 = (points[:, 0] - scanner_xy[0]) ** 2 + (points[:, 1] - scanner_xy[1]) ** 2
-    return d2 <= max_range_m**2
+    """Mask of the points within ``max_range_m`` horizontally of the scanner (paper eq. 1);
+    block by block (no full-length float64 temporaries)."""
+    mask = np.empty(len(points), dtype=bool)
+    for a in range(0, len(points), CENTRE_BLOCK_POINTS):
+        block = points[a:a + CENTRE_BLOCK_POINTS]
+        d2 = (block[:, 0] - scanner_xy[0]) ** 2 + (block[:, 1] - scanner_xy[1]) ** 2
+        mask[a:a + CENTRE_BLOCK_POINTS] = d2 <= max_range_m**2
+    return mask
 
 
 def prepare_scan(
@@ -197,8 +202,11 @@ def prepare_scan(
     """
     reach = params.max_range_m
     centred, d2 = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2)  # generous before levelling
-    if up is None and params.level_tilted:
-        estimate = estimate_up_direction(centred[d2 <= 15.0**2])
+    near = centred[d2 <= 15.0**2] if (up is None and params.level_tilted) else None
+    del d2
+    if near is not None:
+        estimate = estimate_up_direction(near)
+        del near
         tilt = tilt_deg(estimate.up)
         levelled = tilt >= params.tilt_threshold_deg
         up = estimate.up if levelled else np.array([0.0, 0.0, 1.0])
@@ -208,7 +216,6 @@ def prepare_scan(
         up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=float)
         tilt = tilt_deg(up)
         levelled = tilt > 0.0
-    del d2
     rotation = levelling_rotation(up)
     if levelled:
         centred = centred @ rotation.T.astype(np.float32)
