@@ -318,6 +318,31 @@ def test_the_top_view_keeps_no_prepared_scan(four_scan_files, registered_four):
 
 
 
+def test_the_report_draws_let_go_scans_without_reading_them_again(four_scan_files, registered_four):
+    """Scans whose preparations the caches let go during the links are drawn in the report's top
+    view from what their preparations left (slice layers, VOPs): no scan is read or prepared again
+    (ten 30 M-point scans: minutes, and the run's memory peak), and the view is the same."""
+    from forestreg.engine.tls.plot import ScanCache
+    from forestreg.engine.tls.views import compute_top_view
+
+    plot, paths = four_scan_files
+    project = Project(name="one-scan-room")
+    for p in paths[:3]:
+        project.add_scan(p)
+    scans = ScanCache(project)
+    scans.max_bytes = max(read_scan(p).points.nbytes for p in paths[:3]) + 1
+    scans.prepared.max_bytes = 1  # one preparation kept at a time
+    register_project(project, scans=scans)
+    reads, made = scans.reads, scans.prepared.made
+    view = compute_top_view(project, scans)
+    assert (scans.reads, scans.prepared.made) == (reads, made), "no scan read or prepared again"
+    full = compute_top_view(project, ScanCache(project))  # every scan prepared for the view
+    assert len(view.scans) == 3 and set(view.scans) == set(full.scans)
+    for name, a in view.scans.items():
+        b = full.scans[name]
+        assert np.allclose(a.slice_xy, b.slice_xy) and np.allclose(a.vops_xy, b.vops_xy)
+
+
 def test_merged_laz_written_in_blocks_keeps_every_point_in_order(four_scan_files, registered_four, tmp_path, monkeypatch):
     """Merging moves each scan in blocks (not kept in the cache): the LAZ holds every point of
     every scan in order, in the centre frame, with its intensity and scan id."""

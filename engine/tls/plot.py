@@ -104,6 +104,13 @@ class ScanCache:
         self.frame(name)
         return int(self._frames[name][1][2])
 
+    def outline(self, name: str, params) -> Optional[tuple[np.ndarray, dict]]:
+        """What the preparation of scan ``name`` for ``params`` left for drawing, kept or let go
+        (:meth:`~forestreg.engine.tls.prepare.PreparedScans.outline`), without reading the scan;
+        None when it was not prepared in this run."""
+        known = self._frames.get(name)
+        return None if known is None else self.prepared.outline(known[1], params)
+
     def for_link(self, name: str, params, *, prepare: bool = True) -> Scan:
         """The scan ``name`` for a link registered with ``params``: when its preparation is kept
         (or, with ``prepare``, made now), a stand-in without points that carries it

@@ -94,8 +94,29 @@ class PreparedScans:
         self._lock = threading.Lock()
         #: stand-ins (scans without points) -> (key, scan identity, their preparation)
         self._pinned: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+        #: what let-go preparations leave behind: key -> (local_to_lsf, their derived results)
+        self._outlines: dict[tuple, tuple[np.ndarray, dict]] = {}
         #: how many preparations were made (a scan let go and needed again is prepared again)
         self.made = 0
+
+    def _let_go(self) -> None:
+        """Drop the least recently used kept preparation (the lock is held), keeping its outline: the LSF matrix, slice layers and VOPs (a few MB even at 30 M points),
+        which a plot's report draws without preparing the scan again."""
+        key, prepared = self._prepared.popitem(last=False)
+        # the derived dict itself: a link still running on this preparation (a stand-in) may add
+        # its layers and VOPs after it was let go; what else lands there is let go by release()
+        self._outlines[key] = (prepared.local_to_lsf, prepared.derived)
+
+    def outline(self, identity: tuple, params: RegistrationParams, up: Optional[np.ndarray] = None) -> Optional[tuple[np.ndarray, dict]]:
+        """``(local_to_lsf, {derived key: value})`` of the scan of ``identity`` for ``params``:
+        its kept preparation's matrix, slice layers and VOPs (keys as for :func:`derived`), or
+        what it left when it was let go; None when it was never prepared or left nothing."""
+        key = self._key(identity, params, up)
+        with self._lock:
+            found = (self._prepared[key].local_to_lsf, self._prepared[key].derived) if key in self._prepared else self._outlines.get(key)
+            if found is None:
+                return None
+            return found[0], {k: v for k, v in list(found[1].items()) if k and k[0] in ("layers", "vops")}
 
     @staticmethod
     def _key(identity: tuple, params: RegistrationParams, up: Optional[np.ndarray]) -> tuple:
@@ -142,20 +163,21 @@ class PreparedScans:
             # room first: a scan being prepared should not sit beside one that is about to be dropped
             incoming = len(pts) * PREPARED_BYTES_PER_POINT
             while self._prepared and sum(p.nbytes for p in self._prepared.values()) + incoming > self.max_bytes:
-                self._prepared.popitem(last=False)
+                self._let_go()
         prepared = prepare_scan(pts, scan.scanner_position, params, up=up)
         with self._lock:
             self.made += 1
             self._prepared[key] = prepared
             while len(self._prepared) > 1 and sum(p.nbytes for p in self._prepared.values()) > self.max_bytes:
-                self._prepared.popitem(last=False)
+                self._let_go()
         return prepared
 
 
     def clear(self) -> None:
-        """Let go of every kept preparation (stand-ins still alive keep theirs)."""
+        """Let go of every kept preparation (stand-ins still alive keep theirs; outlines stay)."""
         with self._lock:
-            self._prepared.clear()
+            while self._prepared:
+                self._let_go()
 
     def release(self, key: tuple) -> None:
         """Let go of what was derived under ``key`` from every kept scan (e.g. the ICP trees of
@@ -163,6 +185,8 @@ class PreparedScans:
         with self._lock:
             for prepared in self._prepared.values():
                 prepared.derived.pop(key, None)
+            for _, found in self._outlines.values():
+                found.pop(key, None)
 
 
 #: Bytes of prepared scans a :class:`PreparedScans` keeps by default (a 3 M-point scan holds

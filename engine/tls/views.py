@@ -230,24 +230,35 @@ class _Prepared:
 
     def __init__(self, project: Project, scans: ScanCache, name: str, params: RegistrationParams) -> None:
         cache = getattr(scans, "prepared", None)
-        if cache is not None:
-            # the preparation the links of this run made (the same parameters give the same scan),
-            # through a stand-in: the scan's points are read (and prepared) only when it is not kept
-            scan = scans.for_link(name, params)
-            prepared = cache.get(scan, params)
+        outline = scans.outline(name, params) if cache is not None else None
+        if outline is not None and ("layers", params) in outline[1]:
+            # drawn from what the links' preparation left (kept or let go): the scan is neither
+            # read nor prepared again (ten 30 M-point scans: minutes and the run's memory peak)
+            scan = scans.frame(name)
+            local_to_lsf, found = outline
+            layers = found[("layers", params)]
             self.points = scans.point_count(name)
         else:
-            scan = scans(name)
-            self.points = len(scan)
-            tilt = _known_tilt(project, name)
-            up = np.array([0.0, 0.0, 1.0]) if tilt == 0.0 else None
-            prepared = prepare_scan(scan.points, scan.scanner_position, params, up=up)
+            if cache is not None:
+                # the preparation the links of this run made (the same parameters give the same
+                # scan), through a stand-in: the points are read (and prepared) only when not kept
+                scan = scans.for_link(name, params)
+                prepared = cache.get(scan, params)
+                self.points = scans.point_count(name)
+            else:
+                scan = scans(name)
+                self.points = len(scan)
+                tilt = _known_tilt(project, name)
+                up = np.array([0.0, 0.0, 1.0]) if tilt == 0.0 else None
+                prepared = prepare_scan(scan.points, scan.scanner_position, params, up=up)
+            layers = derived(prepared, ("layers", params), lambda: slice_layers(prepared, params))
+            local_to_lsf, found = prepared.local_to_lsf, prepared.derived
         self.params = params
-        self.layers = derived(prepared, ("layers", params), lambda: slice_layers(prepared, params))
+        self.layers = layers
         # the VOPs the links found are reused; the prepared scan itself (its points and ICP grid,
         # hundreds of MB for a 30 M-point scan) is not kept: a plot's views hold every scan
-        self._found = {key[2]: v for key, v in prepared.derived.items() if len(key) == 3 and key[0] == "vops" and key[1] == params}
-        self.lsf_to_file = scan.local_to_file_matrix() @ np.linalg.inv(prepared.local_to_lsf)
+        self._found = {key[2]: v for key, v in found.items() if len(key) == 3 and key[0] == "vops" and key[1] == params}
+        self.lsf_to_file = scan.local_to_file_matrix() @ np.linalg.inv(local_to_lsf)
         self.scanner_file = scan.scanner_position_file
         self._vops: dict[float, np.ndarray] = {}
 
