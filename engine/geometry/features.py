@@ -234,29 +234,7 @@ def _nearest_in_sphere(
     m = 0
     for ax in range(max(ix - 1, 0), min(ix + 2, nx)):
         for ay in range(max(iy - 1, 0), min(iy + 2, ny)):
-            col = ax * ny + ay
-            a1 = column_start[col + 1]
-            s = _first_at_least(cell_z, column_start[col], a1, iz - 1)
-            while s < a1 and cell_z[s] <= iz + 1:
-                ex = pts[s, 0] - qx
-                ey = pts[s, 1] - qy
-                ez = pts[s, 2] - qz
-                d2 = ex * ex + ey * ey + ez * ez
-                if d2 < r2:
-                    oi = index[s]
-                    if m < k or d2 < best_d2[m - 1] or (d2 == best_d2[m - 1] and oi < best_index[m - 1]):
-                        j = m if m < k else k - 1
-                        while j > 0 and (best_d2[j - 1] > d2 or (best_d2[j - 1] == d2 and best_index[j - 1] > oi)):
-                            best_d2[j] = best_d2[j - 1]
-                            best_index[j] = best_index[j - 1]
-                            best[j] = best[j - 1]
-                            j -= 1
-                        best_d2[j] = d2
-                        best_index[j] = oi
-                        best[j] = s
-                        if m < k:
-                            m += 1
-                s += 1
+            m = _offer_layers(ax, ay, iz - 1, iz + 1, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
     return m
 
 
