@@ -101,6 +101,7 @@ def test_run_fills_the_tables(qtbot, window, open_project, project_file: Path, t
     assert not window.dirty and window.act_export_report.isEnabled()
     # exports
     out = tmp_path / "out"
+    out.mkdir()  # the exports run at once: the merged cloud must not wait for the poses to make it
     with qtbot.waitSignal(window.tasks.idle, timeout=60_000):
         window.export_poses(out)
         window.export_merged(out / "merged.laz")
