@@ -224,8 +224,8 @@ def register(
     ----------
     reference, moving : the two scans (each in its own frame, scanner position known), or
         functions without arguments that read them (e.g. ``lambda: read_scan(path)``): the scans
-        are then read in parallel, each prepared as soon as it is read, and only the prepared
-        scans stay in memory.
+        are then read one after the other in worker threads, each prepared as soon as it is read
+        (while the other is read), and only the prepared scans stay in memory.
     params : settings; default the paper's table 2 with an automatic ``D_r``.
     progress : optional ``progress(fraction, message)`` callback.
     cancel : optional token; cancelling raises :class:`~forestreg.engine.core.errors.Cancelled`.

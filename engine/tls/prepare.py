@@ -100,8 +100,9 @@ class PreparedScans:
         self.made = 0
 
     def _let_go(self) -> None:
-        """Drop the least recently used kept preparation (the lock is held), keeping its outline: the LSF matrix, slice layers and VOPs (a few MB even at 30 M points),
-        which a plot's report draws without preparing the scan again."""
+        """Drop the least recently used kept preparation (the lock is held), keeping its outline:
+        the LSF matrix, slice layers and VOPs (a few MB even at 30 M points), which a plot's
+        report draws without preparing the scan again."""
         key, prepared = self._prepared.popitem(last=False)
         # the derived dict itself: a link still running on this preparation (a stand-in) may add
         # its layers and VOPs after it was let go; what else lands there is let go by release()
@@ -110,7 +111,7 @@ class PreparedScans:
     def outline(self, identity: tuple, params: RegistrationParams, up: Optional[np.ndarray] = None) -> Optional[tuple[np.ndarray, dict]]:
         """``(local_to_lsf, {derived key: value})`` of the scan of ``identity`` for ``params``:
         its kept preparation's matrix, slice layers and VOPs (keys as for :func:`derived`), or
-        what it left when it was let go; None when it was never prepared or left nothing."""
+        what it left when it was let go; None when it was never prepared for ``params``."""
         key = self._key(identity, params, up)
         with self._lock:
             found = (self._prepared[key].local_to_lsf, self._prepared[key].derived) if key in self._prepared else self._outlines.get(key)
