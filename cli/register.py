@@ -82,9 +82,10 @@ def run_register(
     def read(path, index: int):
         return read_scan(path, scanner_position=positions[index] if len(positions) > index else None, unit_scale=scale)
 
-    # the reference is read (compiled decompression) while the registration engine is imported
+    # both scans are read, one after the other (the decompression is multi-core), while the
+    # registration engine is imported
     early = ThreadPoolExecutor(1, thread_name_prefix="forestreg-read")
-    pending = {0: early.submit(read, reference_path, 0)}  # popped when used: the scan's points are not held
+    pending = {0: early.submit(read, reference_path, 0), 1: early.submit(read, moving_path, 1)}  # popped when used: the scan's points are not held
     early.shutdown(wait=False)
     import_in_background(".engine.report.figures")
     from ..engine.core.transform import format_matrix
@@ -164,17 +165,18 @@ def check_near_scanner(scan, max_range_m: float, path, units: str) -> None:
     georeferenced scan without ``--scanner-position`` or a file in another unit than ``--units``."""
     from ..engine.core.errors import UsageError
 
-    x, y = scan.points[:, 0], scan.points[:, 1]
-    span = max(float(x.max() - x.min()), float(y.max() - y.min()))
+    from ..engine.geometry.voxel import column_bounds
+    from ..engine.tls.scanner_position import points_within
+
+    lo, hi = column_bounds(scan.points)
+    span = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]))
     if span < 2.0:
         raise UsageError(
             f"{path}: with --units {units} the points span only {span:.2f} m horizontally; a forest scan spans tens of metres: "
             "check the file's unit (--units)")
-    d2 = (x - scan.scanner_position[0]) ** 2
-    d2 += (y - scan.scanner_position[1]) ** 2
-    near = int(np.count_nonzero(d2 <= max_range_m**2))
-    if near < 1000 or near < 0.01 * len(d2):
+    near = points_within(scan.points, scan.scanner_position, max_range_m)
+    if near < 1000 or near < 0.01 * len(scan.points):
         pos = ", ".join(f"{v:.2f}" for v in scan.scanner_position_file / UNITS[units])
         raise UsageError(
-            f"{path}: only {near} of {len(d2)} points lie within D_c = {max_range_m:g} m of the scanner position ({pos} {units}); "
+            f"{path}: only {near} of {len(scan.points)} points lie within D_c = {max_range_m:g} m of the scanner position ({pos} {units}); "
             "for a georeferenced scan give --scanner-position X,Y,Z, and check the file's unit (--units cm|mm|ft)")

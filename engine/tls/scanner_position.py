@@ -33,6 +33,8 @@ from scipy import ndimage
 from ..core.errors import ScanDataError
 from ..core.params import Params, param_field
 from ..core.scan import Scan
+from ..geometry.jit import kernel
+from ..geometry.voxel import column_bounds
 
 log = logging.getLogger("forestreg")
 
@@ -355,24 +357,50 @@ def origin_is_density_peak(points: np.ndarray, origin: np.ndarray, params: Optio
     if len(pts) < 1000:
         return False
     o = np.asarray(origin, dtype=np.float64)
-    x, y = pts[:, 0], pts[:, 1]
-    lo_x, hi_x, lo_y, hi_y = float(x.min()), float(x.max()), float(y.min()), float(y.max())
+    lo_xyz, hi_xyz = column_bounds(pts)
+    lo_x, hi_x, lo_y, hi_y = float(lo_xyz[0]), float(hi_xyz[0]), float(lo_xyz[1]), float(hi_xyz[1])
     cell = max(p.cell_m, max(hi_x - lo_x, hi_y - lo_y) / 1500.0)
     lo = np.array([lo_x, lo_y]) - 2 * cell
     shape = (int(np.ceil((hi_x + 2 * cell - lo[0]) / cell)), int(np.ceil((hi_y + 2 * cell - lo[1]) / cell)))
-    key = ((x - lo[0]) / cell).astype(np.int64)
-    key *= shape[1]
-    key += ((y - lo[1]) / cell).astype(np.int64)
-    counts = np.bincount(key, minlength=shape[0] * shape[1]).reshape(shape).astype(np.float64)
-    del key
-    smooth = ndimage.gaussian_filter(counts, sigma=max(p.smooth_m / cell, 1.0), mode="constant")
+    counts = np.zeros(shape[0] * shape[1], dtype=np.int64)
+    _xy_histogram(pts, float(lo[0]), float(lo[1]), float(cell), shape[1], counts)
+    smooth = ndimage.gaussian_filter(counts.reshape(shape).astype(np.float64), sigma=max(p.smooth_m / cell, 1.0), mode="constant")
     peak = lo + (np.array(np.unravel_index(int(np.argmax(smooth)), smooth.shape)) + 0.5) * cell
+    at_origin, at_peak = _disc_counts(pts, float(o[0]), float(o[1]), float(peak[0]), float(peak[1]), float(p.near_m) ** 2)
+    return at_origin >= 100 and at_origin >= 0.8 * at_peak
 
-    def disc(c: np.ndarray) -> int:
-        return int(np.count_nonzero((x - c[0]) ** 2 + (y - c[1]) ** 2 <= p.near_m**2))
 
-    at_origin = disc(o[:2])
-    return at_origin >= 100 and at_origin >= 0.8 * disc(peak)
+def points_within(points: np.ndarray, centre: np.ndarray, radius_m: float) -> int:
+    """How many of the (N, 3) points lie within ``radius_m`` horizontally of ``centre`` (x, y;
+    same frame, metres): one compiled pass, no temporaries."""
+    c = np.asarray(centre, dtype=np.float64)
+    return int(_disc_counts(np.asarray(points), float(c[0]), float(c[1]), float(c[0]), float(c[1]), float(radius_m) ** 2)[0])
+
+
+@kernel
+def _xy_histogram(pts, lo_x, lo_y, cell, ny, counts):  # pragma: no cover - compiled
+    """Points per ``cell`` of a horizontal grid from (``lo_x``, ``lo_y``), ``ny`` cells along y,
+    added into the flat ``counts`` (cells ``trunc((x - lo) / cell)`` in float64, as numpy's cast)."""
+    for i in range(pts.shape[0]):
+        ix = np.int64((np.float64(pts[i, 0]) - lo_x) / cell)
+        iy = np.int64((np.float64(pts[i, 1]) - lo_y) / cell)
+        counts[ix * ny + iy] += 1
+
+
+@kernel
+def _disc_counts(pts, ax, ay, bx, by, r2):  # pragma: no cover - compiled
+    """How many points lie horizontally within ``sqrt(r2)`` of (``ax``, ``ay``) and of (``bx``,
+    ``by``), in one pass (float64, ``dx*dx + dy*dy <= r2``)."""
+    na = 0
+    nb = 0
+    for i in range(pts.shape[0]):
+        x = np.float64(pts[i, 0])
+        y = np.float64(pts[i, 1])
+        if (x - ax) * (x - ax) + (y - ay) * (y - ay) <= r2:
+            na += 1
+        if (x - bx) * (x - bx) + (y - by) * (y - by) <= r2:
+            nb += 1
+    return na, nb
 
 
 def _origin_inside_data(points: np.ndarray, origin: np.ndarray) -> bool:
