@@ -371,3 +371,73 @@ def test_merged_laz_written_in_blocks_keeps_every_point_in_order(four_scan_files
             assert np.array_equal(np.asarray(las.intensity[start:start + len(s)]), intensity_to_uint16(s.intensity))
         start += len(s)
 
+
+
+def test_the_next_scan_is_prepared_while_a_link_runs_and_the_links_are_the_same(four_scan_files, registered_four, monkeypatch):
+    """A plot of small scans reads and prepares the next link's scan in a background thread while
+    a link runs: every scan is still read and prepared once, and the links are bit for bit those
+    of the run that reads and prepares one scan at a time."""
+    import threading
+
+    from forestreg.engine.tls import plot as plot_module
+    from forestreg.engine.tls import prepare as prepare_module
+    from forestreg.engine.tls.plot import ScanCache
+
+    plot, paths = four_scan_files
+    where = []
+    real = prepare_module.prepare_scan
+
+    def recorded(*args, **kwargs):
+        where.append(threading.current_thread().name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(prepare_module, "prepare_scan", recorded)
+    project = Project(name="ahead")
+    for p in paths:
+        project.add_scan(p)
+    scans = ScanCache(project)
+    register_project(project, scans=scans)
+    assert (scans.reads, scans.prepared.made) == (4, 4), "each scan read and prepared once"
+    assert where.count("forestreg-prepare-ahead") == 3, where  # every moving scan; the centre by its link
+
+    monkeypatch.setattr(plot_module, "SEQUENTIAL_PREPARE_POINTS", 0)  # no scan is small: one at a time
+    one_by_one = Project(name="one-by-one")
+    for p in paths:
+        one_by_one.add_scan(p)
+    where.clear()
+    register_project(one_by_one)
+    assert "forestreg-prepare-ahead" not in where
+    for p in paths[1:]:
+        assert np.array_equal(project.link_of(p.name).matrix, one_by_one.link_of(p.name).matrix)
+
+
+def test_further_pairs_run_two_at_a_time_with_the_same_results(four_scan_files, registered_four, monkeypatch):
+    """``--pairs all`` registers the further pairs of a small plot two at a time on the kept
+    preparations (the scans' points let go): the same link matrices as one at a time, and no scan
+    read again."""
+    from forestreg.engine.tls import survey as survey_module
+    from forestreg.engine.tls.plot import ScanCache
+    from forestreg.engine.tls.survey import SurveyParams, register_survey
+
+    def run(parallel: bool):
+        monkeypatch.setattr(survey_module, "small_scans", lambda *a: parallel)
+        project = Project.load(registered_four[0])
+        scans = ScanCache(project)
+        for s in project.scans:  # as the links to the centre leave them (here loaded as done)
+            scans.for_link(s.name, project.params)
+        messages = []
+        register_survey(project, SurveyParams(pairs="all"), scans=scans, progress=lambda fraction, message: messages.append(message))
+        assert any("two at a time" in m for m in messages) == parallel
+        further = {(link.moving, link.reference): link for link in project.links if link.extra}
+        return further, scans
+
+    together, scans = run(True)
+    assert scans.prepared.made == 4, "no scan prepared again"
+    assert len(together) == 3 and sum(link.ok for link in together.values()) >= 2
+    assert scans.reads == 4 and len(scans._scans) == 0, "each scan read once, the points let go"
+    alone, _ = run(False)
+    assert together.keys() == alone.keys()
+    for key, link in together.items():
+        assert link.ok == alone[key].ok and link.result.get("reason") == alone[key].result.get("reason"), key
+        if link.ok:
+            assert np.array_equal(link.matrix, alone[key].matrix), key

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,8 +28,8 @@ from ..io import read_scan, write_point_chunks
 from ..io.las import intensity_to_uint16
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, LinkResult, Project, ScanEntry
-from .pair import register
-from .prepare import PreparedScans, scan_identity
+from .pair import SEQUENTIAL_PREPARE_POINTS, register
+from .prepare import PREPARED_BYTES_PER_POINT, PreparedScans, scan_identity
 from .scanner_position import locate_scanner
 from ..core.scan import Scan
 from ..core.transform import format_matrix, rigid_errors
@@ -49,11 +50,17 @@ class ScanCache:
     again is not searched again. ``prepared`` keeps the scans prepared for registration (reduced,
     levelled, sliced, their VOPs) for the links, within half of ``max_bytes`` when one is given,
     else :data:`PREPARED_CACHE_BYTES`.
+
+    Thread-safe: one scan is read and prepared by one thread at a time (a thread asking for a scan
+    another is reading or preparing waits for it, then finds it kept); different scans may be read
+    and prepared at once (:func:`register_project` prepares the next link's scan while a link runs).
     """
 
     def __init__(self, project: Project, max_bytes: Optional[int] = None) -> None:
         self.project = project
         self.max_bytes = SCAN_CACHE_BYTES if max_bytes is None else int(max_bytes)
+        self._lock = threading.RLock()  # the dictionaries below
+        self._scan_locks: dict[str, threading.RLock] = {}  # one per scan: its reading and preparing
         self._scans: OrderedDict[str, Scan] = OrderedDict()
         self._located: dict[str, tuple[np.ndarray, np.ndarray, dict[str, Any]]] = {}
         #: each scan read: its frame (the scan without points) and its identity for prepared scans
@@ -66,30 +73,52 @@ class ScanCache:
     def __call__(self, name: str, *, keep: bool = True) -> Scan:
         """The scan ``name`` (read unless kept). ``keep=False``: a scan not in memory is read and
         handed over without being kept (for a single pass over the plot, e.g. merging)."""
-        if name in self._scans:
-            self._scans.move_to_end(name)
-            return self._scans[name]
-        entry = self.project.scan(name)
-        if keep:
-            self._make_room(_file_scan_bytes(entry.path))
-        scan = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
-        self.reads += 1
-        known = self._located.get(name)
-        if known is not None and np.array_equal(known[1], scan.origin_shift):
-            scan = dataclasses.replace(scan, scanner_position=known[0], meta=known[2])
-        else:
-            scan = locate_scanner(scan)
-            self._located[name] = (scan.scanner_position, scan.origin_shift, scan.meta)
-        self._frames[name] = (scan.without_points(), scan_identity(scan))
-        if not keep:
+        with self._scan_lock(name):
+            with self._lock:
+                if name in self._scans:
+                    self._scans.move_to_end(name)
+                    return self._scans[name]
+            entry = self.project.scan(name)
+            if keep:
+                with self._lock:
+                    self._make_room(_file_scan_bytes(entry.path))
+            scan = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
+            with self._lock:
+                self.reads += 1
+                known = self._located.get(name)
+            if known is not None and np.array_equal(known[1], scan.origin_shift):
+                scan = dataclasses.replace(scan, scanner_position=known[0], meta=known[2])
+            else:
+                scan = locate_scanner(scan)
+            with self._lock:
+                self._located[name] = (scan.scanner_position, scan.origin_shift, scan.meta)
+                self._frames[name] = (scan.without_points(), scan_identity(scan))
+                if not keep:
+                    return scan
+                self._scans[name] = scan
+                self._make_room(0)
             return scan
-        self._scans[name] = scan
-        self._make_room(0)
-        return scan
+
+    def is_prepared(self, name: str, params) -> bool:
+        """Whether the scan ``name``'s preparation for ``params`` is kept."""
+        known = self._frames.get(name)
+        return known is not None and self.prepared.kept(known[1], params) is not None
+
+    def let_go_of_points(self) -> None:
+        """Let go of the kept scans' points (frames, scanner positions and preparations stay):
+        links whose scans are kept prepared run on stand-ins without them, and a scan needed
+        whole again is read again."""
+        with self._lock:
+            self._scans.clear()
+
+    def _scan_lock(self, name: str) -> threading.RLock:
+        with self._lock:
+            return self._scan_locks.setdefault(name, threading.RLock())
 
     def clear(self) -> None:
         """Let go of every kept scan and preparation (scanner positions and frames stay known)."""
-        self._scans.clear()
+        with self._lock:
+            self._scans.clear()
         self.prepared.clear()
 
     def frame(self, name: str) -> Scan:
@@ -116,14 +145,15 @@ class ScanCache:
         (or, with ``prepare``, made now), a stand-in without points that carries it
         (:meth:`~forestreg.engine.tls.prepare.PreparedScans.stand_in`), so the link does not hold
         the scan's points; otherwise the scan itself."""
-        known = self._frames.get(name)
-        prepared = None if known is None else self.prepared.kept(known[1], params)
-        if prepared is None:
-            if not prepare:
-                return self(name)
-            prepared = self.prepared.get(self(name), params)
-            known = self._frames[name]
-        return self.prepared.stand_in(known[0], known[1], prepared, params)
+        with self._scan_lock(name):
+            known = self._frames.get(name)
+            prepared = None if known is None else self.prepared.kept(known[1], params)
+            if prepared is None:
+                if not prepare:
+                    return self(name)
+                prepared = self.prepared.get(self(name), params)
+                known = self._frames[name]
+            return self.prepared.stand_in(known[0], known[1], prepared, params)
 
     def _make_room(self, incoming: int) -> None:
         """Let go of the least recently used scans until the kept ones and ``incoming`` bytes fit
@@ -168,6 +198,10 @@ def _scan_bytes(scan: Scan) -> int:
     return int(scan.points.nbytes + (0 if scan.intensity is None else scan.intensity.nbytes))
 
 
+#: Bytes per point in :func:`_file_scan_bytes`' estimate.
+_FILE_BYTES_PER_POINT = 3 * 8 + 2
+
+
 def _file_scan_bytes(path: Path) -> int:
     """Bytes the points of a LAS/LAZ file take once read (float64 x, y, z and a uint16 intensity),
     from its header; 0 for other formats or an unreadable header (the read then says why)."""
@@ -177,7 +211,7 @@ def _file_scan_bytes(path: Path) -> int:
 
     try:
         with laspy.open(str(path)) as f:
-            return int(f.header.point_count) * (3 * 8 + 2)
+            return int(f.header.point_count) * _FILE_BYTES_PER_POINT
     except Exception:  # an odd header: no estimate
         return 0
 
@@ -233,7 +267,34 @@ def register_project(
     step = Progress(progress, cancel=cancel)
     order = [s for s in project.scans if s.name != project.centre and not s.tilted] + [s for s in project.scans if s.tilted and s.name != project.centre]
     outcome = PlotOutcome(status={project.centre: "centre"})
+    ahead = _PrepareAhead.start(project, order, scans, rerun=rerun, cancel=cancel)
+    try:
+        _register_links(project, order, scans, outcome, step, ahead, rerun=rerun, cancel=cancel, on_link=on_link)
+    finally:
+        if ahead is not None:
+            ahead.stop()
+    extra = [link for link in project.links if link.extra and (rerun or link.result is None)]
+    for link in extra:
+        link.result = _run_link(project, link, scans, Progress(None, cancel=cancel), cancel)
+        if project.path is not None:
+            project.save()
+    # a scan whose chain to the centre is broken has no pose even if its own link worked
+    poses = project.chained_poses()
+    for name, pose in poses.items():
+        if pose is None and outcome.status.get(name) == "ok":
+            outcome.status[name] = "failed"
+            outcome.reasons[name] = "its reference scan could not be registered"
+    step(1.0, "done")
+    return outcome
+
+
+def _register_links(project: Project, order: list[ScanEntry], scans: ScanCache, outcome: PlotOutcome, step: Progress,
+                    ahead: Optional["_PrepareAhead"], *, rerun: bool, cancel: Optional[CancelToken],
+                    on_link: Optional[Callable[[Link], None]]) -> None:
+    """The links of :func:`register_project`, one after the other in ``order``."""
     for k, entry in enumerate(order):
+        if ahead is not None:
+            ahead.at(k)
         sub = step.sub(k / max(len(order), 1), (k + 1) / max(len(order), 1))
         link = project.link_of(entry.name)
         if link.ok and not rerun:
@@ -255,19 +316,80 @@ def register_project(
             project.save()
         if on_link is not None:
             on_link(link)
-    extra = [link for link in project.links if link.extra and (rerun or link.result is None)]
-    for link in extra:
-        link.result = _run_link(project, link, scans, Progress(None, cancel=cancel), cancel)
-        if project.path is not None:
-            project.save()
-    # a scan whose chain to the centre is broken has no pose even if its own link worked
-    poses = project.chained_poses()
-    for name, pose in poses.items():
-        if pose is None and outcome.status.get(name) == "ok":
-            outcome.status[name] = "failed"
-            outcome.reasons[name] = "its reference scan could not be registered"
-    step(1.0, "done")
-    return outcome
+
+
+def small_scans(project: Project, scans: ScanCache, names: list[str]) -> bool:
+    """Whether the scans ``names`` are small enough for two of them to be read, prepared or
+    registered at once and for all of them to stay prepared: LAS/LAZ files (their point counts
+    known from the headers) of at most :data:`~forestreg.engine.tls.pair.SEQUENTIAL_PREPARE_POINTS`
+    points each, whose preparations fit the cache's budget together. Larger plots are worked one
+    scan and one link at a time (their memory stays within what the caches allow)."""
+    points = [_file_scan_bytes(project.scan(name).path) // _FILE_BYTES_PER_POINT for name in dict.fromkeys(names)]
+    return bool(points) and min(points) > 0 and max(points) <= SEQUENTIAL_PREPARE_POINTS \
+        and sum(points) * PREPARED_BYTES_PER_POINT <= scans.prepared.max_bytes
+
+
+class _PrepareAhead:
+    """Reads and prepares, in a background thread, the scans of the next link while a link is
+    registered (a link's coarse matching and ICP leave a core free; reading and preparing the next
+    scan fills it), one link ahead: the preparations are kept by the :class:`ScanCache`, where the
+    next link finds them. Only for plots of :func:`small_scans`; larger plots read and prepare one
+    scan at a time. A scan that cannot be read or prepared here is left to its link, which reads it
+    again and says why."""
+
+    def __init__(self, scans: ScanCache, plan: list[tuple[int, str, Any]], cancel: Optional[CancelToken]) -> None:
+        self._scans, self._plan, self._cancel = scans, plan, cancel
+        self._current = -1
+        self._stopped = False
+        self._wake = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name="forestreg-prepare-ahead", daemon=True)
+
+    @classmethod
+    def start(cls, project: Project, order: list[ScanEntry], scans: ScanCache, *, rerun: bool,
+              cancel: Optional[CancelToken]) -> Optional["_PrepareAhead"]:
+        """The preparer for the links of ``order`` that will run, started; None when the plot is not
+        eligible (see the class)."""
+        plan: list[tuple[int, str, Any]] = []
+        seen: set = set()
+        for k, entry in enumerate(order):
+            link = project.link_of(entry.name)
+            if link is None or (link.ok and not rerun) or link.method == "manual" or (entry.tilted and not entry.level_partner):
+                continue
+            params = link.params(project.params)
+            if not plan:  # the first link prepares its reference itself, while its moving scan is prepared here
+                seen.add((link.reference, params))
+            for name in (link.reference, link.moving):
+                if (name, params) not in seen:
+                    seen.add((name, params))
+                    plan.append((k, name, params))
+        if not plan or not small_scans(project, scans, [s.name for s in project.scans]):
+            return None
+        ahead = cls(scans, plan, cancel)
+        ahead._thread.start()
+        return ahead
+
+    def at(self, k: int) -> None:
+        """The links have reached ``order[k]``: the scans of link ``k + 1`` may be prepared."""
+        with self._wake:
+            self._current = k
+            self._wake.notify_all()
+
+    def stop(self) -> None:
+        """Prepare nothing more (a preparation under way finishes in its daemon thread)."""
+        with self._wake:
+            self._stopped = True
+            self._wake.notify_all()
+
+    def _run(self) -> None:
+        for k, name, params in self._plan:
+            with self._wake:
+                self._wake.wait_for(lambda: self._stopped or k <= self._current + 1)
+                if self._stopped or (self._cancel is not None and self._cancel.cancelled):
+                    return
+            try:
+                self._scans.for_link(name, params)
+            except Exception as exc:  # the link reads the scan again and reports why
+                log.debug("%s was not prepared ahead: %s", name, exc)
 
 
 def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> LinkResult:

@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 from ..core.params import Params, param_field
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.transform import rigid_errors
-from .plot import PlotOutcome, ScanCache, _run_link, informative_priors, register_project
+from .plot import PlotOutcome, ScanCache, _run_link, informative_priors, register_project, small_scans
 from .project import Link, Project
 from .uncertainty import propagate_uncertainty
 
@@ -291,6 +291,42 @@ def _spanning_poses(frame: str, links: Sequence[Link], fixed: dict[str, np.ndarr
     return poses
 
 
+def _register_two_at_a_time(project: Project, pending: list[Link], scans: ScanCache, step: Progress, cancel: Optional[CancelToken]) -> None:
+    """Register the further pairs ``pending`` two at a time (threads: a link's coarse matching and
+    ICP keep about one core busy), for plots of :func:`~forestreg.engine.tls.plot.small_scans`
+    whose scans the links to the centre left prepared (all of them kept). Two links running at once have different
+    references where the order allows (each builds its reference's ICP search structures). The
+    scans' points are let go first (:meth:`~forestreg.engine.tls.plot.ScanCache.let_go_of_points`:
+    the links need only the preparations; two links' work takes about their room). The project is saved and the progress advanced as each link ends; results are those of the same
+    links run one after the other."""
+    from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+
+    # the links run on the kept preparations: the scans' points make room for two links' work
+    scans.let_go_of_points()
+    queue, running, done = list(pending), {}, 0
+    step(0.0, f"registering {len(pending)} further pairs, two at a time")
+    with ThreadPoolExecutor(2, thread_name_prefix="forestreg-pair") as pool:
+        def submit() -> None:
+            busy = {link.reference for link in running.values()}
+            link = next((x for x in queue if x.reference not in busy), queue[0])
+            queue.remove(link)
+            running[pool.submit(_run_link, project, link, scans, Progress(None, cancel=cancel), cancel)] = link
+
+        while queue and len(running) < 2:
+            submit()
+        while running:
+            finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            for future in finished:
+                link = running.pop(future)
+                link.result = future.result()
+                done += 1
+                step(done / len(pending), f"registered further pair {done} of {len(pending)}: {link.moving} onto {link.reference}")
+                if project.path is not None:
+                    project.save()
+            while queue and len(running) < 2:
+                submit()
+
+
 def register_survey(
     project: Project,
     params: Optional[SurveyParams] = None,
@@ -327,7 +363,12 @@ def register_survey(
         pending = [link for link in project.links if link.extra and link.result is None]
         if pending:
             log.info("registering %d further pairs", len(pending))
+        if len(pending) > 1 and small_scans(project, scans, [s.name for s in project.scans]) and all(
+                scans.is_prepared(name, link.params(project.params)) for link in pending for name in (link.reference, link.moving)):
+            _register_two_at_a_time(project, pending, scans, step.sub(share, 1.0), cancel)
         for k, link in enumerate(pending):
+            if link.result is not None:
+                continue
             sub = step.sub(share + (1 - share) * k / len(pending), share + (1 - share) * (k + 1) / len(pending))
             sub(0.0, f"registering further pair {k + 1} of {len(pending)}: {link.moving} onto {link.reference}")
             link.result = _run_link(project, link, scans, sub, cancel)
