@@ -598,3 +598,28 @@ def test_chunked_las_never_wraps_coordinates_outside_its_bounds(tmp_path):
     assert write_point_chunks(target, [(pts, None, None)], bounds=(pts.min(axis=0), pts.max(axis=0))) == 2
     las = laspy.read(target)
     assert np.allclose(np.column_stack([las.x, las.y, las.z]), pts, atol=1e-4)
+
+
+@pytest.mark.parametrize("kind", ["laz", "copc"])
+def test_laz_points_are_decoded_straight_by_lazrs_as_laspy_reads_them(tmp_path: Path, kind: str) -> None:
+    """LAZ points are decompressed straight from the file's chunks by lazrs (without Python's
+    interpreter lock, a group of chunks per call): fixed-size chunks (a LAZ file, the last chunk
+    short) and variable-size ones (COPC) give exactly laspy's x, y, z and intensity."""
+    from forestreg.engine.io import las as las_module
+
+    rng = np.random.default_rng(5)
+    n = 123_457  # two full 50,000-point chunks and a short one
+    pts = np.column_stack([rng.uniform(-40, 40, n), rng.uniform(-40, 40, n), rng.uniform(-2, 30, n)]) + [512_000.0, 5_300_000.0, 400.0]
+    inten = rng.integers(1, 60_000, n).astype(np.uint16)
+    path = tmp_path / f"cloud.{'copc.laz' if kind == 'copc' else 'laz'}"
+    write_scan(Scan.from_points(pts, intensity=inten.astype(np.float32)), path)  # .copc.laz: COPC
+    with laspy.open(str(path)) as reader:
+        header = reader.header
+        direct = np.empty((header.point_count, 3))
+        direct_intensity = np.empty(header.point_count, dtype=np.uint16)
+        assert las_module._read_laz_direct(path, header, direct, direct_intensity, 30_000) == n, "the straight path was not taken"
+    ref = laspy.read(str(path))
+    expected = np.column_stack([np.asarray(ref.x), np.asarray(ref.y), np.asarray(ref.z)])
+    assert np.array_equal(direct, expected) and np.array_equal(direct_intensity, np.asarray(ref.intensity))
+    raw = las_module.read_las(path)
+    assert np.array_equal(raw.points, expected) and np.array_equal(raw.intensity, np.asarray(ref.intensity))

@@ -170,12 +170,11 @@ class SphereGrid:
         key = np.empty(len(p), dtype=np.int64)
         run_blocks(_cell_key_rows, len(p), p, self.origin, cell, self.ny, self.layers, key, block=262144)
         # by column, then layer, then input order: one stable sort of (column, layer) keys
-        order = np.argsort(key, kind="stable")
-        key = key[order]
-        self.points = p[order]
+        from .sorting import sort_keys
+
         # indices and layers in 32 bits where they fit: a level of ICP holds 8 bytes a point less
-        self.index = order.astype(np.int32) if len(p) < 2**31 else order
-        del order
+        self.index, key = sort_keys(key, float(self.nx) * self.ny * self.layers, np.int32 if len(p) < 2**31 - 1 else np.int64)
+        self.points = p[self.index]
         self.column_start = np.zeros(self.nx * self.ny + 1, dtype=np.int64)
         _split_cell_keys(key, self.layers, self.column_start)
         self.cell_z = key.astype(np.int32) if self.layers < 2**31 else key

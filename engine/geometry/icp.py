@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.transform import rotation_from_vector
 from .features import SphereGrid, _first_at_least, local_covariances, nearest_within, normals_and_variation
-from .jit import kernel, run_blocks
+from .jit import kernel, run_blocks, worker_count
 from .voxel import VoxelGrid, column_bounds, voxel_downsample
 
 
@@ -92,7 +92,9 @@ class IcpReference:
         pts = np.asarray(points)
         # float32 levelled points stay float32 (a 30 M-point scan: 360 MB, not 720 MB)
         self.points = pts if pts.dtype in (np.float32, np.float64) else pts.astype(np.float64)
-        self._levels: dict[float, tuple[np.ndarray, SphereGrid, np.ndarray]] = {}
+        self._levels: dict[float, tuple[np.ndarray, SphereGrid]] = {}
+        #: per level: its normals (rows filled where computed) and which rows are
+        self._normals: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         self._full_tree: cKDTree | None = None
         self._lock = threading.RLock()
         self.grid = grid
@@ -100,30 +102,63 @@ class IcpReference:
             self._levels[round(float(grid.voxel_m), 6)] = self._level_of(grid.centroids, grid.voxel_m)
 
     @staticmethod
-    def _level_of(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, SphereGrid, np.ndarray]:
-        """The level of ``points`` thinned to ``voxel_m``: them, their search grid, no normals yet."""
-        return points, SphereGrid(points, CELL_VOXELS * voxel_m), np.full((len(points), 3), np.nan)
+    def _level_of(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, SphereGrid]:
+        """The level of ``points`` thinned to ``voxel_m``: them and their search grid."""
+        return points, SphereGrid(points, CELL_VOXELS * voxel_m)
 
-    def level(self, voxel_m: float) -> tuple[np.ndarray, SphereGrid, np.ndarray]:
-        """(thinned points (M, 3) float64, their search grid, their normals: NaN rows not
-        computed yet)."""
+    def level(self, voxel_m: float) -> tuple[np.ndarray, SphereGrid]:
+        """(thinned points (M, 3) float64, their search grid)."""
         key = round(float(voxel_m), 6)
         with self._lock:
             if key not in self._levels:
-                # a wider level thins the finest one already made (a fraction of the raw points)
-                finer = [k for k in self._levels if k <= key]
-                self._levels[key] = self._level_of(thin(self._levels[min(finer)][0] if finer else self.points, voxel_m), voxel_m)
+                self.make_levels([voxel_m])
             return self._levels[key]
+
+    def make_levels(self, voxels: Sequence[float]) -> None:
+        """Make the levels of ``voxels`` (metres) not made yet, as :meth:`level` would one after
+        the other in this order: a wider level thins the finest one already made (a fraction of
+        the raw points). Levels thinned from a level that exists are made at once, in threads
+        (the thinning and the search grid are compiled and release the interpreter lock)."""
+        with self._lock:
+            made = set(self._levels)
+            sources: dict[float, Optional[float]] = {}
+            for v in voxels:
+                key = round(float(v), 6)
+                if key in made:
+                    continue
+                finer = [k for k in made if k <= key]
+                sources[key] = min(finer) if finer else None
+                made.add(key)
+
+            def make(key: float) -> tuple[np.ndarray, SphereGrid]:
+                source = sources[key]
+                return self._level_of(thin(self._levels[source][0] if source is not None else self.points, key), key)
+
+            now = [k for k, src in sources.items() if src is None or src in self._levels]
+            if len(now) > 1:
+                from concurrent.futures import ThreadPoolExecutor
+
+                with ThreadPoolExecutor(min(len(now), worker_count()), thread_name_prefix="forestreg-icp-levels") as pool:
+                    for key, level in zip(now, pool.map(make, now)):
+                        self._levels[key] = level
+            for key in sources:
+                if key not in self._levels:
+                    self._levels[key] = make(key)
 
     def normals(self, voxel_m: float, index: np.ndarray) -> np.ndarray:
         """Unit normals (arbitrary sign) of the points ``index`` of a level, computed where first
         needed."""
-        ref, grid, normals = self.level(voxel_m)
+        ref, grid = self.level(voxel_m)
+        key = round(float(voxel_m), 6)
         with self._lock:
+            if key not in self._normals:  # rows are written where computed: nothing to fill now
+                self._normals[key] = (np.empty((len(ref), 3)), np.zeros(len(ref), dtype=bool))
+            normals, done = self._normals[key]
             wanted = np.unique(index)
-            need = wanted[np.isnan(normals[wanted, 0])]
+            need = wanted[~done[wanted]]
             if len(need):
                 normals[need] = _normals_at(ref, grid, need)
+                done[need] = True
             return normals[index]
 
     def distance_stats(self, moved: np.ndarray, max_distance_m: float, *, use_full_tree: bool = False) -> tuple[float, float, int]:
@@ -134,7 +169,7 @@ class IcpReference:
         of all the points (``use_full_tree``, kept for further runs) or of the points in the cells
         near the moved ones."""
         if self.grid is not None and len(moved) and len(self.points):
-            _, cells, _ = self.level(self.grid.voxel_m)
+            _, cells = self.level(self.grid.voxel_m)
             q = np.ascontiguousarray(moved, dtype=np.float64)
             reach = float(max_distance_m) + self.grid.voxel_m * np.sqrt(3.0) + 1e-6  # (a micrometre for rounding)
             distance = np.full(len(q), np.inf)
@@ -204,16 +239,26 @@ def icp(
     # Each cloud is thinned once, at the finest stage's voxel; wider stages thin that copy
     # (the raw clouds may hold millions of points, the thinned ones a fraction).
     finest = max(voxel_m, min(max_distances_m) / 2.5) if len(max_distances_m) else voxel_m
+    stage_voxels = [max(voxel_m, dist / 2.5) for dist in max_distances_m]
     prepared.level(finest)
     mov_fine = np.asarray(moving, dtype=np.float64) if moving_voxel_m is not None and abs(moving_voxel_m - finest) < 1e-9 else thin(moving, finest)
+    # every stage's thinned clouds made at once in threads: the reference's levels and the moving
+    # cloud's wider stages (each thinned from the finest, as one at a time)
+    from concurrent.futures import ThreadPoolExecutor
+
+    wider = list(dict.fromkeys(v for v in stage_voxels if v > finest))
+    with ThreadPoolExecutor(2, thread_name_prefix="forestreg-icp-thin") as pool:
+        moving_levels = {v: pool.submit(thin, mov_fine, v) for v in wider}
+        prepared.make_levels(stage_voxels)
+        moving_levels = {v: job.result() for v, job in moving_levels.items()}
     for stage, dist in enumerate(max_distances_m):
         # a wide stage only brings the next one into its basin: it stops at 0.1 mm / 0.001 deg
         # updates; the last stage converges to 0.01 mm / 0.0001 deg
         final_stage = stage == len(max_distances_m) - 1
         stop_m, stop_rad = (final_tolerance[0], np.radians(final_tolerance[1])) if final_stage else (1e-4, np.radians(1e-3))
-        voxel = max(voxel_m, dist / 2.5)
-        ref, grid, _ = prepared.level(voxel)
-        mov = mov_fine if voxel <= finest else thin(mov_fine, voxel)
+        voxel = stage_voxels[stage]
+        ref, grid = prepared.level(voxel)
+        mov = mov_fine if voxel <= finest else moving_levels[voxel]
         if len(mov) > max_moving_points:
             mov = mov[rng.choice(len(mov), max_moving_points, replace=False)]
         if len(ref) < 20 or len(mov) < 20:

@@ -10,6 +10,7 @@ run in parallel threads.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
 
@@ -41,17 +42,41 @@ def run_blocks(fn: Callable[..., Any], n: int, *args: Any, block: int = 32768) -
     """Call ``fn(start, stop, *args)`` for consecutive blocks of ``block`` rows covering
     ``range(n)``; ``fn`` writes its rows' results into arrays among ``args`` (blocks must be
     independent). The first block runs in the calling thread (where the kernel is compiled or
-    loaded, never in two threads at once), the others on a pool of threads when there are more
-    than one core."""
+    loaded, never in two threads at once), the others on the process's pool of one thread per
+    core (:func:`_pool`), when there are more than one core. ``fn`` must not wait for other blocks
+    (compiled kernels never do): callers in several threads share the pool."""
     if n <= 0:
         return
     fn(0, min(n, block), *args)
     starts = list(range(block, n, block))
-    workers = min(worker_count(), len(starts))
-    if workers <= 1:
+    if min(worker_count(), len(starts)) <= 1:
         for a in starts:
             fn(a, min(n, a + block), *args)
         return
-    with ThreadPoolExecutor(workers) as pool:
-        for f in [pool.submit(fn, a, min(n, a + block), *args) for a in starts]:
-            f.result()
+    pool = _pool()
+    for f in [pool.submit(fn, a, min(n, a + block), *args) for a in starts]:
+        f.result()
+
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _pool() -> ThreadPoolExecutor:
+    """The threads :func:`run_blocks` runs blocks on: one per core, made on first use and kept
+    (a registration calls it hundreds of times; starting threads each time cost ~0.1 s of an ICP
+    run). A forked child makes its own."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(worker_count(), thread_name_prefix="forestreg-blocks")
+        return _POOL
+
+
+def _forget_pool() -> None:
+    global _POOL, _POOL_LOCK
+    _POOL, _POOL_LOCK = None, threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)

@@ -21,6 +21,7 @@ import numpy as np
 
 from .features import _segment_sum
 from .jit import kernel, run_blocks
+from .sorting import sort_keys
 
 __all__ = ["VoxelGrid", "column_bounds", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_thin"]
 
@@ -239,52 +240,13 @@ def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray, hi: np.ndar
     pts = np.ascontiguousarray(pts)
     size = [int(np.floor((hi[k] - origin[k]) / voxel_m)) + 1 for k in range(3)]
     keys = _keys(pts, voxel_m, np.asarray(origin, dtype=np.float64), hi)
-    bits = max(1, int(np.ceil(np.log2(float(size[0]) * size[1] * size[2] + 1.0))))
-    passes = int(np.ceil(bits / 11))  # 2,048 buckets a pass: the counts stay in cache
-    digit = int(np.ceil(bits / passes))
-    order = np.empty(n, dtype=index_type)
-    spare_keys, spare_order = np.empty_like(keys), np.empty_like(order)
-    if _radix_argsort(keys, spare_keys, order, spare_order, digit, passes):
-        keys, order = spare_keys, spare_order
-    del spare_keys, spare_order
+    order, keys = sort_keys(keys, float(size[0]) * size[1] * size[2], index_type)
     starts = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
     del keys
     bounds = np.append(starts, n).astype(np.int64)
     centroids = np.empty((len(starts), 3))
     run_blocks(_centroid_rows, len(starts), pts, order, bounds, int(np.max(np.diff(bounds))), centroids, block=65536)
     return centroids, (order if members else None), starts
-
-
-@kernel
-def _radix_argsort(keys, spare_keys, order, spare_order, digit, passes):  # pragma: no cover - compiled
-    """Stable least-significant-digit radix sort of non-negative ``keys`` (``digit`` bits per
-    pass), ``order`` the sorting permutation. Returns True when the result ended in the spare
-    arrays (an odd number of passes moved it there)."""
-    n = keys.shape[0]
-    for i in range(n):
-        order[i] = i
-    mask = (np.int64(1) << digit) - 1
-    count = np.zeros((1 << digit) + 1, dtype=np.int64)
-    in_spare = False
-    for p in range(passes):
-        shift = p * digit
-        src_k, dst_k = (spare_keys, keys) if in_spare else (keys, spare_keys)
-        src_o, dst_o = (spare_order, order) if in_spare else (order, spare_order)
-        count[:] = 0
-        for i in range(n):
-            count[((src_k[i] >> shift) & mask) + 1] += 1
-        if count.max() == n:  # one digit value: this pass would not move anything
-            continue
-        for d in range(1, count.shape[0]):
-            count[d] += count[d - 1]
-        for i in range(n):
-            d = (src_k[i] >> shift) & mask
-            j = count[d]
-            count[d] = j + 1
-            dst_k[j] = src_k[i]
-            dst_o[j] = src_o[i]
-        in_spare = not in_spare
-    return in_spare
 
 
 @kernel

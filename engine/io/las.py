@@ -84,6 +84,88 @@ def _check_header(path: Path) -> tuple[int, bool]:
 READ_CHUNK_POINTS = 500_000
 
 
+def _read_chunks(reader, points: np.ndarray, intensity: Optional[np.ndarray], chunk_points: int) -> int:
+    """Decode the points of an open laspy reader into ``points`` and ``intensity``, ``chunk_points``
+    at a time; returns how many were read."""
+    total, n = len(points), 0
+    for chunk in reader.chunk_iterator(max(1, int(chunk_points))):
+        k = len(chunk)
+        if k == 0:
+            break
+        k = min(k, total - n)
+        points[n:n + k, 0] = chunk.x[:k]
+        points[n:n + k, 1] = chunk.y[:k]
+        points[n:n + k, 2] = chunk.z[:k]
+        if intensity is not None:
+            intensity[n:n + k] = chunk.intensity[:k]
+        n += k
+        if n >= total:
+            break
+    return n
+
+
+def _read_laz_direct(path: Path, header, points: np.ndarray, intensity: Optional[np.ndarray], chunk_points: int) -> Optional[int]:
+    """Decode a LAZ file's points into ``points`` (scaled x, y, z) and ``intensity`` straight with
+    lazrs, a group of LAZ chunks (about ``chunk_points`` points) per call; returns the points read,
+    or None when the file is not laid out as this expects (no LASzip VLR, another record size, a
+    chunk table that does not add up), for laspy's reader to take over.
+
+    Each call decompresses its chunks in parallel *without holding Python's interpreter lock*
+    (laspy's reader makes lazrs read through a Python file object, taking the lock for every few
+    kB: a thread running Python beside it slowed a 3 M-point read from 0.5 to 2.4 s). The values
+    are laspy's: ``X * scale + offset`` in float64."""
+    try:
+        import lazrs
+    except ImportError:
+        return None
+    vlr = next((v for v in header.vlrs if getattr(v, "record_id", None) == 22204 and str(getattr(v, "user_id", "")).startswith("laszip")), None)
+    if vlr is None:
+        return None
+    total = len(points)
+    dtype = header.point_format.dtype()
+    try:
+        laz = lazrs.LazVlr(vlr.record_data)
+        if laz.item_size() != dtype.itemsize:
+            return None
+        with open(path, "rb") as f:
+            f.seek(int(header.offset_to_point_data))
+            table = [(int(p), int(b)) for p, b in lazrs.read_chunk_table(f, laz)]
+            if not table:
+                return None
+            if not laz.uses_variable_size_chunks():  # every chunk holds chunk_size points, the last the rest
+                size = int(laz.chunk_size())
+                table = [(size, b) for _, b in table[:-1]] + [(total - size * (len(table) - 1), table[-1][1])]
+            if any(p <= 0 or b <= 0 for p, b in table) or sum(p for p, _ in table) != total:
+                return None
+            position = int(header.offset_to_point_data) + 8  # after the chunk table's offset
+            scales, offsets = np.asarray(header.scales, dtype=np.float64), np.asarray(header.offsets, dtype=np.float64)
+            n, k = 0, 0
+            while k < len(table):
+                group = [table[k]]
+                while k + len(group) < len(table) and sum(p for p, _ in group) < chunk_points:
+                    group.append(table[k + len(group)])
+                count, size_bytes = sum(p for p, _ in group), sum(b for _, b in group)
+                f.seek(position)
+                compressed = f.read(size_bytes)
+                if len(compressed) != size_bytes:
+                    return None
+                raw = bytearray(count * dtype.itemsize)
+                lazrs.decompress_points_with_chunk_table(compressed, vlr.record_data, raw, group)
+                del compressed
+                records = np.frombuffer(raw, dtype=dtype)
+                for axis, name in enumerate(("X", "Y", "Z")):
+                    points[n:n + count, axis] = records[name] * scales[axis] + offsets[axis]
+                if intensity is not None:
+                    intensity[n:n + count] = records["intensity"]
+                del records, raw
+                n += count
+                position += size_bytes
+                k += len(group)
+            return n
+    except Exception:  # damaged or unusual: laspy reads it, or says what is wrong
+        return None
+
+
 def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS) -> RawCloud:
     """Read a LAS/LAZ file: scaled x, y, z as float64 (file units) and intensity.
 
@@ -103,20 +185,9 @@ def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS) -> RawCloud:
             has_intensity = "intensity" in header.point_format.dimension_names
             points = np.empty((total, 3), dtype=np.float64)
             intensity_all = np.empty(total, dtype=np.uint16) if has_intensity else None
-            n = 0
-            for chunk in reader.chunk_iterator(max(1, int(chunk_points))):
-                k = len(chunk)
-                if k == 0:
-                    break
-                k = min(k, total - n)
-                points[n:n + k, 0] = chunk.x[:k]
-                points[n:n + k, 1] = chunk.y[:k]
-                points[n:n + k, 2] = chunk.z[:k]
-                if intensity_all is not None:
-                    intensity_all[n:n + k] = chunk.intensity[:k]
-                n += k
-                if n >= total:
-                    break
+            n = _read_laz_direct(path, header, points, intensity_all, chunk_points) if compressed else None
+            if n is None:
+                n = _read_chunks(reader, points, intensity_all, chunk_points)
             version = f"{header.version.major}.{header.version.minor}"
             point_format = header.point_format.id
     except Exception as exc:  # laspy, lazrs and struct errors: the file is damaged

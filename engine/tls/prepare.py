@@ -13,6 +13,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..geometry.jit import kernel
 from ..geometry.voxel import VoxelGrid, voxel_grid
 from .params import RegistrationParams
 from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
@@ -199,14 +200,20 @@ PREPARED_BYTES_PER_POINT = 20
 
 
 def reduce_to_range(points: np.ndarray, scanner_xy: np.ndarray, max_range_m: float) -> np.ndarray:
-    """Mask of the points within ``max_range_m`` horizontally of the scanner (paper eq. 1);
-    block by block (no full-length float64 temporaries)."""
+    """Mask of the points within ``max_range_m`` horizontally of the scanner (paper eq. 1): one
+    compiled pass, the squared distances in float64 (no temporaries)."""
     mask = np.empty(len(points), dtype=bool)
-    for a in range(0, len(points), CENTRE_BLOCK_POINTS):
-        block = points[a:a + CENTRE_BLOCK_POINTS]
-        d2 = (block[:, 0] - scanner_xy[0]) ** 2 + (block[:, 1] - scanner_xy[1]) ** 2
-        mask[a:a + CENTRE_BLOCK_POINTS] = d2 <= max_range_m**2
+    xy = np.asarray(scanner_xy, dtype=np.float64)
+    _range_mask(np.asarray(points), float(xy[0]), float(xy[1]), float(max_range_m) ** 2, mask)
     return mask
+
+
+@kernel
+def _range_mask(points, sx, sy, r2, mask):  # pragma: no cover - compiled
+    for i in range(points.shape[0]):
+        dx = np.float64(points[i, 0]) - sx
+        dy = np.float64(points[i, 1]) - sy
+        mask[i] = dx * dx + dy * dy <= r2
 
 
 def prepare_scan(
@@ -274,24 +281,30 @@ def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float) -> t
     origin = np.asarray(origin, dtype=np.float64)
     out = np.empty((len(points), 3), dtype=np.float32)
     d2_out = np.empty(len(points), dtype=np.float32)
-    kept = 0
-    for a in range(0, len(points), CENTRE_BLOCK_POINTS):
-        block = points[a:a + CENTRE_BLOCK_POINTS]
-        columns = [(block[:, k] - origin[k]).astype(np.float32) for k in range(3)]
-        d2 = columns[0] * columns[0]
-        d2 += columns[1] * columns[1]
-        d2 += columns[2] * columns[2]
-        keep = d2 <= max_d2
-        n = int(keep.sum())
-        for k in range(3):
-            out[kept:kept + n, k] = columns[k][keep]
-        d2_out[kept:kept + n] = d2[keep]
-        kept += n
+    # the limit as float32, as numpy compares a float32 array with a Python float
+    kept = _centre_rows(np.asarray(points), origin, np.float32(max_d2), out, d2_out)
     return out[:kept], d2_out[:kept]
 
 
-#: Points :func:`_centred_float32` handles at a time.
-CENTRE_BLOCK_POINTS = 2_000_000
+@kernel
+def _centre_rows(points, origin, max_d2, out, d2_out):  # pragma: no cover - compiled
+    """:func:`_centred_float32` in one pass: each coordinate minus the origin in float64, then
+    float32; the squared distance summed in float32 (x, then y, then z); kept rows packed in order."""
+    kept = 0
+    for i in range(points.shape[0]):
+        x = np.float32(np.float64(points[i, 0]) - origin[0])
+        y = np.float32(np.float64(points[i, 1]) - origin[1])
+        z = np.float32(np.float64(points[i, 2]) - origin[2])
+        d2 = x * x
+        d2 += y * y
+        d2 += z * z
+        if d2 <= max_d2:
+            out[kept, 0] = x
+            out[kept, 1] = y
+            out[kept, 2] = z
+            d2_out[kept] = d2
+            kept += 1
+    return kept
 
 
 @dataclass(frozen=True)
