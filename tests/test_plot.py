@@ -441,3 +441,49 @@ def test_further_pairs_run_two_at_a_time_with_the_same_results(four_scan_files, 
         assert link.ok == alone[key].ok and link.result.get("reason") == alone[key].result.get("reason"), key
         if link.ok:
             assert np.array_equal(link.matrix, alone[key].matrix), key
+
+
+def test_a_survey_of_every_pair_registers_further_pairs_beside_the_centre_links(four_scan_files, monkeypatch):
+    """``--pairs all`` on small scans: the thread that prepares scans ahead registers further pairs
+    whose scans are prepared while the links to the centre run (then two at a time); the scans'
+    points are let go once prepared, each scan is read and prepared once, and every link matrix and
+    the survey's poses are bit for bit those of the run that does one thing at a time."""
+    import threading
+
+    from forestreg.engine.tls import plot as plot_module
+    from forestreg.engine.tls import survey as survey_module
+    from forestreg.engine.tls.plot import ScanCache
+    from forestreg.engine.tls.survey import SurveyParams, register_survey
+
+    plot, paths = four_scan_files
+    threads: dict[tuple, str] = {}
+    real = plot_module._run_link
+
+    def recorded(project, link, *args, **kwargs):
+        threads[(link.moving, link.reference)] = threading.current_thread().name
+        return real(project, link, *args, **kwargs)
+
+    monkeypatch.setattr(plot_module, "_run_link", recorded)
+    monkeypatch.setattr(survey_module, "_run_link", recorded)
+
+    def run():
+        project = Project(name="every-pair")
+        for p in paths:
+            project.add_scan(p)
+        scans = ScanCache(project)
+        register_survey(project, SurveyParams(pairs="all"), scans=scans)
+        return project, scans
+
+    project, scans = run()
+    further = {(link.moving, link.reference): link for link in project.links if link.extra}
+    assert len(further) == 3 and (scans.reads, scans.prepared.made) == (4, 4) and len(scans._scans) == 0
+    assert any(threads[key] == "forestreg-prepare-ahead" for key in further), threads
+    threads.clear()
+    monkeypatch.setattr(plot_module, "SEQUENTIAL_PREPARE_POINTS", 0)  # no scan is small: one at a time
+    alone, _ = run()
+    assert set(threads.values()) == {"MainThread"}
+    assert [(link.moving, link.reference, link.extra) for link in alone.links] == [(link.moving, link.reference, link.extra) for link in project.links]
+    for a, b in zip(project.links, alone.links):
+        assert a.ok == b.ok and (not a.ok or np.array_equal(a.matrix, b.matrix)), (a.moving, a.reference)
+    for name, pose in project.poses().items():
+        assert (pose is None) == (alone.poses()[name] is None) and (pose is None or np.array_equal(pose, alone.poses()[name])), name

@@ -61,6 +61,10 @@ class ScanCache:
         self.max_bytes = SCAN_CACHE_BYTES if max_bytes is None else int(max_bytes)
         self._lock = threading.RLock()  # the dictionaries below
         self._scan_locks: dict[str, threading.RLock] = {}  # one per scan: its reading and preparing
+        self._small: Optional[bool] = None
+        #: whether a scan's points stay kept once it is prepared (False: links run on the kept
+        #: preparations and nothing else of the run needs the points, e.g. a survey of small scans)
+        self.keep_prepared_points = True
         self._scans: OrderedDict[str, Scan] = OrderedDict()
         self._located: dict[str, tuple[np.ndarray, np.ndarray, dict[str, Any]]] = {}
         #: each scan read: its frame (the scan without points) and its identity for prepared scans
@@ -98,6 +102,15 @@ class ScanCache:
                 self._scans[name] = scan
                 self._make_room(0)
             return scan
+
+    @property
+    def small(self) -> bool:
+        """Whether the project's scans are :func:`small_scans` (known once asked): links then
+        keep each scan's ICP search structures for the next link that uses it as its reference
+        instead of building them again (their room is what a small plot's caches leave)."""
+        if self._small is None:
+            self._small = small_scans(self.project, self, [s.name for s in self.project.scans])
+        return self._small
 
     def is_prepared(self, name: str, params) -> bool:
         """Whether the scan ``name``'s preparation for ``params`` is kept."""
@@ -153,6 +166,9 @@ class ScanCache:
                     return self(name)
                 prepared = self.prepared.get(self(name), params)
                 known = self._frames[name]
+                if not self.keep_prepared_points:
+                    with self._lock:
+                        self._scans.pop(name, None)
             return self.prepared.stand_in(known[0], known[1], prepared, params)
 
     def _make_room(self, incoming: int) -> None:
@@ -253,12 +269,17 @@ def register_project(
     cancel: Optional[CancelToken] = None,
     on_link: Optional[Callable[[Link], None]] = None,
     scans: Optional[ScanCache] = None,
+    beside: Optional[LinkQueue] = None,
 ) -> PlotOutcome:
     """Register every scan of the project along its link, retrying failed links.
 
     Links that already succeeded are kept unless ``rerun``. After each link the project is saved
     (when it has a file) and ``on_link`` is called, so an interrupted run loses nothing already
     computed. Level scans are registered before tilted ones (their partners must be placed first).
+
+    ``beside``: further links (not in the project yet) that the thread preparing scans ahead
+    registers once its preparations are done, while the links to the centre run (a survey's
+    further pairs); the caller finishes the queue.
 
     Returns a :class:`PlotOutcome`; the link results and poses are in the project.
     """
@@ -267,7 +288,7 @@ def register_project(
     step = Progress(progress, cancel=cancel)
     order = [s for s in project.scans if s.name != project.centre and not s.tilted] + [s for s in project.scans if s.tilted and s.name != project.centre]
     outcome = PlotOutcome(status={project.centre: "centre"})
-    ahead = _PrepareAhead.start(project, order, scans, rerun=rerun, cancel=cancel)
+    ahead = _PrepareAhead.start(project, order, scans, rerun=rerun, cancel=cancel, beside=beside)
     try:
         _register_links(project, order, scans, outcome, step, ahead, rerun=rerun, cancel=cancel, on_link=on_link)
     finally:
@@ -329,6 +350,98 @@ def small_scans(project: Project, scans: ScanCache, names: list[str]) -> bool:
         and sum(points) * PREPARED_BYTES_PER_POINT <= scans.prepared.max_bytes
 
 
+class LinkQueue:
+    """Links (further pairs of a survey) registered by whichever thread is free: the thread that
+    prepares scans ahead, once its preparations are done (beside the links to the centre), and the
+    calling thread after them (:meth:`finish`). Two links running at once have different
+    references where the queue allows (each builds its reference's ICP search structures). Each
+    link's result is what it would be run alone (a link depends only on its two prepared scans);
+    the project is not saved from here (the caller saves)."""
+
+    def __init__(self, project: Project, links: list[Link], scans: ScanCache, cancel: Optional[CancelToken]) -> None:
+        self.project, self.links, self._scans, self._cancel = project, list(links), scans, cancel
+        self._waiting = list(links)
+        self._running: list[Link] = []
+        self._helpers = 0  # threads in run()
+        self._closed = False
+        self._changed = threading.Condition()
+
+    def _take(self, prepared_only: bool) -> Optional[Link]:
+        with self._changed:
+            if self._closed or (self._cancel is not None and self._cancel.cancelled):
+                return None
+            ready = [link for link in self._waiting if not prepared_only or all(
+                self._scans.is_prepared(name, link.params(self.project.params)) for name in (link.reference, link.moving))]
+            busy = {link.reference for link in self._running}
+            link = next((x for x in ready if x.reference not in busy), ready[0] if ready else None)
+            if link is not None:
+                self._waiting.remove(link)
+                self._running.append(link)
+            return link
+
+    def _done(self, link: Link) -> None:
+        with self._changed:
+            self._running.remove(link)
+            self._changed.notify_all()
+
+    def run(self, prepared_only: bool = False) -> None:
+        """Register waiting links until none is left (with ``prepared_only``, only links whose
+        two scans are kept prepared: a thread beside the links to the centre reads no scan)."""
+        with self._changed:
+            self._helpers += 1
+        try:
+            while (link := self._take(prepared_only)) is not None:
+                try:
+                    link.result = _run_link(self.project, link, self._scans, Progress(None, cancel=self._cancel), self._cancel)
+                finally:
+                    self._done(link)
+        finally:
+            with self._changed:
+                self._helpers -= 1
+
+    def discard(self, link: Link) -> None:
+        """Do not register ``link`` (if it has not started)."""
+        with self._changed:
+            if link in self._waiting:
+                self._waiting.remove(link)
+
+    def close(self) -> None:
+        """Start no further link (one running finishes)."""
+        with self._changed:
+            self._closed = True
+            self._changed.notify_all()
+
+    def finish(self, step: Progress, after: Optional[Callable[[], None]] = None) -> None:
+        """Register the links still waiting in this thread and one more (the thread already serving
+        the queue, else one started here), then wait for those running in others;
+        ``step`` advances and ``after`` (e.g. saving the project) is called as links end here. A
+        link whose thread failed (cancelled) is left without a result, for the caller."""
+        total = len(self.links)
+        with self._changed:
+            helped = self._helpers > 0
+        if not helped and len(self._waiting) > 1:  # no other thread serves the queue: start one
+            threading.Thread(target=self.run, name="forestreg-pair", daemon=True).start()
+
+        def ended() -> int:
+            return sum(link.result is not None for link in self.links)
+
+        step(ended() / max(total, 1), f"registering {total} further pairs, two at a time")
+        while (link := self._take(False)) is not None:
+            try:
+                link.result = _run_link(self.project, link, self._scans, Progress(None, cancel=self._cancel), self._cancel)
+            finally:
+                self._done(link)
+            step(ended() / max(total, 1), f"registered further pair {ended()} of {total}: {link.moving} onto {link.reference}")
+            if after is not None:
+                after()
+        with self._changed:
+            while self._running:
+                self._changed.wait()
+        if after is not None:
+            after()
+        step(1.0, f"registered {ended()} further pairs")
+
+
 class _PrepareAhead:
     """Reads and prepares, in a background thread, the scans of the next link while a link is
     registered (a link's coarse matching and ICP leave a core free; reading and preparing the next
@@ -337,8 +450,8 @@ class _PrepareAhead:
     scan at a time. A scan that cannot be read or prepared here is left to its link, which reads it
     again and says why."""
 
-    def __init__(self, scans: ScanCache, plan: list[tuple[int, str, Any]], cancel: Optional[CancelToken]) -> None:
-        self._scans, self._plan, self._cancel = scans, plan, cancel
+    def __init__(self, scans: ScanCache, plan: list[tuple[int, str, Any]], cancel: Optional[CancelToken], beside: Optional[LinkQueue]) -> None:
+        self._scans, self._plan, self._cancel, self._beside = scans, plan, cancel, beside
         self._current = -1
         self._stopped = False
         self._wake = threading.Condition()
@@ -346,9 +459,10 @@ class _PrepareAhead:
 
     @classmethod
     def start(cls, project: Project, order: list[ScanEntry], scans: ScanCache, *, rerun: bool,
-              cancel: Optional[CancelToken]) -> Optional["_PrepareAhead"]:
+              cancel: Optional[CancelToken], beside: Optional[LinkQueue] = None) -> Optional["_PrepareAhead"]:
         """The preparer for the links of ``order`` that will run, started; None when the plot is not
-        eligible (see the class)."""
+        eligible (see the class). With ``beside``, once its preparations are done the thread
+        registers the queue's links whose scans are prepared."""
         plan: list[tuple[int, str, Any]] = []
         seen: set = set()
         for k, entry in enumerate(order):
@@ -364,7 +478,7 @@ class _PrepareAhead:
                     plan.append((k, name, params))
         if not plan or not small_scans(project, scans, [s.name for s in project.scans]):
             return None
-        ahead = cls(scans, plan, cancel)
+        ahead = cls(scans, plan, cancel, beside)
         ahead._thread.start()
         return ahead
 
@@ -390,6 +504,8 @@ class _PrepareAhead:
                 self._scans.for_link(name, params)
             except Exception as exc:  # the link reads the scan again and reports why
                 log.debug("%s was not prepared ahead: %s", name, exc)
+        if self._beside is not None:
+            self._beside.run(prepared_only=True)
 
 
 def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> LinkResult:
@@ -402,6 +518,7 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
             # the reference prepared first and held as a stand-in without points, then the moving
             # scan (a stand-in too when its preparation is kept): one scan's points at a time
             params = link.params(project.params)
+            progress(0.0, "preparing both scans")  # (or waiting for the thread preparing them ahead)
             reference = scans.for_link(link.reference, params)
             moving = scans.for_link(link.moving, params, prepare=False)
     except (ScanReadError, ScanDataError, DataError) as exc:
@@ -421,7 +538,8 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
         except DataError as exc:  # e.g. no points near a georeferenced scan's assumed scanner
             return LinkResult.from_dict({"status": "failed", "reason": str(exc), "matrix": None})
         finally:
-            scans.prepared.release(("icp_reference",))  # the ICP trees: tens of MB per scan
+            if not scans.small:  # the ICP search structures: ~30 bytes a point of each scan
+                scans.prepared.release(("icp_reference",))
     return LinkResult.from_dict(result.to_dict())
 
 

@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 from ..core.params import Params, param_field
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.transform import rigid_errors
-from .plot import PlotOutcome, ScanCache, _run_link, informative_priors, register_project, small_scans
+from .plot import LinkQueue, PlotOutcome, ScanCache, _run_link, default_links, informative_priors, register_project, small_scans
 from .project import Link, Project
 from .uncertainty import propagate_uncertainty
 
@@ -294,37 +294,20 @@ def _spanning_poses(frame: str, links: Sequence[Link], fixed: dict[str, np.ndarr
 def _register_two_at_a_time(project: Project, pending: list[Link], scans: ScanCache, step: Progress, cancel: Optional[CancelToken]) -> None:
     """Register the further pairs ``pending`` two at a time (threads: a link's coarse matching and
     ICP keep about one core busy), for plots of :func:`~forestreg.engine.tls.plot.small_scans`
-    whose scans the links to the centre left prepared (all of them kept). Two links running at once have different
-    references where the order allows (each builds its reference's ICP search structures). The
+    whose scans the links to the centre left prepared (all of them kept), on a
+    :class:`~forestreg.engine.tls.plot.LinkQueue` served by this thread and one more. The
     scans' points are let go first (:meth:`~forestreg.engine.tls.plot.ScanCache.let_go_of_points`:
-    the links need only the preparations; two links' work takes about their room). The project is saved and the progress advanced as each link ends; results are those of the same
-    links run one after the other."""
-    from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
-
+    the links need only the preparations; two links' work takes about their room). The project is
+    saved and the progress advanced as each link ends; results are those of the same links run
+    one after the other."""
     # the links run on the kept preparations: the scans' points make room for two links' work
     scans.let_go_of_points()
-    queue, running, done = list(pending), {}, 0
-    step(0.0, f"registering {len(pending)} further pairs, two at a time")
-    with ThreadPoolExecutor(2, thread_name_prefix="forestreg-pair") as pool:
-        def submit() -> None:
-            busy = {link.reference for link in running.values()}
-            link = next((x for x in queue if x.reference not in busy), queue[0])
-            queue.remove(link)
-            running[pool.submit(_run_link, project, link, scans, Progress(None, cancel=cancel), cancel)] = link
-
-        while queue and len(running) < 2:
-            submit()
-        while running:
-            finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
-            for future in finished:
-                link = running.pop(future)
-                link.result = future.result()
-                done += 1
-                step(done / len(pending), f"registered further pair {done} of {len(pending)}: {link.moving} onto {link.reference}")
-                if project.path is not None:
-                    project.save()
-            while queue and len(running) < 2:
-                submit()
+    queue = LinkQueue(project, pending, scans, cancel)
+    try:
+        queue.finish(step, after=project.save if project.path is not None else None)
+    except BaseException:
+        queue.close()
+        raise
 
 
 def register_survey(
@@ -345,12 +328,28 @@ def register_survey(
     # the links to the centre take the first part of the progress, the further pairs the rest
     # (about as many again for "all" pairs)
     share = 1.0 if params.pairs == "centre" else 0.5
-    outcome = register_project(project, rerun=rerun, progress=step.sub(0.0, share), cancel=cancel, scans=scans)
+    names = [s.name for s in project.scans]
+    beside = None
+    if params.pairs == "all" and len(names) > 2 and small_scans(project, scans, names):
+        # every pair is known before the links to the centre run: those whose scans are prepared
+        # are registered beside them, by the thread that prepares the scans ahead
+        default_links(project)
+        scans.keep_prepared_points = False  # the links run on the preparations: room for two at once
+        linked = {frozenset((link.moving, link.reference)) for link in project.links}
+        beside = LinkQueue(project, [Link(moving=b, reference=a, extra=True) for a, b in itertools.combinations(names, 2)
+                                     if frozenset((a, b)) not in linked], scans, cancel)
+    try:
+        outcome = register_project(project, rerun=rerun, progress=step.sub(0.0, share), cancel=cancel, scans=scans, beside=beside)
+    except BaseException:
+        if beside is not None:
+            beside.close()
+        raise
     frame = project.centre
     if params.pairs != "centre":
         positions = _prior_positions(project, scans, project.chained_poses())
         linked = {frozenset((link.moving, link.reference)) for link in project.links}
-        names = [s.name for s in project.scans]
+        early = {frozenset((link.moving, link.reference)): link for link in (beside.links if beside is not None else [])}
+        added: list[Link] = []
         for a, b in itertools.combinations(names, 2):
             if frozenset((a, b)) in linked:
                 continue
@@ -359,11 +358,20 @@ def register_survey(
                     continue
                 if np.linalg.norm(positions[a][:2] - positions[b][:2]) > params.max_distance_m:
                     continue
-            project.add_link(b, a)
-        pending = [link for link in project.links if link.extra and link.result is None]
+            if frozenset((a, b)) in early:  # registered (or under way) beside the links to the centre
+                added.append(early.pop(frozenset((a, b))))
+                project.links.append(added[-1])
+            else:
+                added.append(project.add_link(b, a))
+        for link in early.values():  # a retried link now joins these scans
+            beside.discard(link)
+        pending = [link for link in project.links if link.extra and (link.result is None or any(link is x for x in added))]
         if pending:
             log.info("registering %d further pairs", len(pending))
-        if len(pending) > 1 and small_scans(project, scans, [s.name for s in project.scans]) and all(
+        if beside is not None:
+            scans.let_go_of_points()  # the links run on the kept preparations: room for two at once
+            beside.finish(step.sub(share, 1.0), after=project.save if project.path is not None else None)
+        elif len(pending) > 1 and small_scans(project, scans, names) and all(
                 scans.is_prepared(name, link.params(project.params)) for link in pending for name in (link.reference, link.moving)):
             _register_two_at_a_time(project, pending, scans, step.sub(share, 1.0), cancel)
         for k, link in enumerate(pending):
