@@ -154,9 +154,9 @@ class IcpReference:
             if key not in self._normals:  # rows are written where computed: nothing to fill now
                 self._normals[key] = (np.empty((len(ref), 3)), np.zeros(len(ref), dtype=bool))
             normals, done = self._normals[key]
-            wanted = np.unique(index)
-            need = wanted[~done[wanted]]
+            need = index[~done[index]]  # after a stage's first iteration, few
             if len(need):
+                need = np.unique(need)
                 normals[need] = _normals_at(ref, grid, need)
                 done[need] = True
             return normals[index]
