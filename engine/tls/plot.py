@@ -375,13 +375,13 @@ class LinkQueue:
             busy = {link.reference for link in self._running}
             link = next((x for x in ready if x.reference not in busy), ready[0] if ready else None)
             if link is not None:
-                self._waiting.remove(link)
+                self._waiting = [x for x in self._waiting if x is not link]
                 self._running.append(link)
             return link
 
     def _done(self, link: Link) -> None:
         with self._changed:
-            self._running.remove(link)
+            self._running = [x for x in self._running if x is not link]
             self._changed.notify_all()
 
     def run(self, prepared_only: bool = False) -> None:
@@ -402,8 +402,7 @@ class LinkQueue:
     def discard(self, link: Link) -> None:
         """Do not register ``link`` (if it has not started)."""
         with self._changed:
-            if link in self._waiting:
-                self._waiting.remove(link)
+            self._waiting = [x for x in self._waiting if x is not link]
 
     def close(self) -> None:
         """Start no further link (one running finishes)."""

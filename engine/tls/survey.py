@@ -370,7 +370,11 @@ def register_survey(
             log.info("registering %d further pairs", len(pending))
         if beside is not None:
             scans.let_go_of_points()  # the links run on the kept preparations: room for two at once
-            beside.finish(step.sub(share, 1.0), after=project.save if project.path is not None else None)
+            try:
+                beside.finish(step.sub(share, 1.0), after=project.save if project.path is not None else None)
+            except BaseException:
+                beside.close()
+                raise
         elif len(pending) > 1 and small_scans(project, scans, names) and all(
                 scans.is_prepared(name, link.params(project.params)) for link in pending for name in (link.reference, link.moving)):
             _register_two_at_a_time(project, pending, scans, step.sub(share, 1.0), cancel)
