@@ -487,3 +487,43 @@ def test_a_survey_of_every_pair_registers_further_pairs_beside_the_centre_links(
         assert a.ok == b.ok and (not a.ok or np.array_equal(a.matrix, b.matrix)), (a.moving, a.reference)
     for name, pose in project.poses().items():
         assert (pose is None) == (alone.poses()[name] is None) and (pose is None or np.array_equal(pose, alone.poses()[name])), name
+
+
+def test_cancelling_a_survey_of_every_pair_stops_every_thread_quietly(four_scan_files, monkeypatch):
+    """Cancelled while the links to the centre run and further pairs are registered beside them:
+    the run ends with Cancelled, no background thread dies with an error, and no thread starts
+    another link afterwards."""
+    import threading
+    import time
+
+    from forestreg.engine.core.progress import CancelToken
+    from forestreg.engine.tls import plot as plot_module
+    from forestreg.engine.tls.plot import ScanCache
+    from forestreg.engine.tls.survey import SurveyParams, register_survey
+
+    plot, paths = four_scan_files
+    died: list = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: died.append(args.exc_value))
+    started: list = []
+    real = plot_module._run_link
+
+    def recorded(project, link, *args, **kwargs):
+        started.append(time.monotonic())
+        return real(project, link, *args, **kwargs)
+
+    monkeypatch.setattr(plot_module, "_run_link", recorded)
+    project = Project(name="cancelled")
+    for p in paths:
+        project.add_scan(p)
+    token = CancelToken()
+
+    def progress(fraction: float, message: str) -> None:
+        if "registering scan_04" in message or fraction >= 0.3:
+            token.cancel()
+
+    with pytest.raises(Cancelled):
+        register_survey(project, SurveyParams(pairs="all"), scans=ScanCache(project), progress=progress, cancel=token)
+    stopped = time.monotonic()
+    time.sleep(3.0)  # a link under way in another thread ends at its next step
+    assert died == [], died
+    assert all(t <= stopped for t in started), "a link started after the run was cancelled"

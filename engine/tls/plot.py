@@ -393,6 +393,9 @@ class LinkQueue:
             while (link := self._take(prepared_only)) is not None:
                 try:
                     link.result = _run_link(self.project, link, self._scans, Progress(None, cancel=self._cancel), self._cancel)
+                except Exception as exc:  # cancelled, or an error the calling thread meets again and reports
+                    log.debug("%s onto %s left to the calling thread: %s", link.moving, link.reference, exc)
+                    return
                 finally:
                     self._done(link)
         finally:
@@ -504,7 +507,7 @@ class _PrepareAhead:
             except Exception as exc:  # the link reads the scan again and reports why
                 log.debug("%s was not prepared ahead: %s", name, exc)
         if self._beside is not None:
-            self._beside.run(prepared_only=True)
+            self._beside.run(prepared_only=True)  # (errors are left to the calling thread)
 
 
 def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> LinkResult:
