@@ -275,9 +275,9 @@ def prepare_scan(
 def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray]:
     """The points within ``sqrt(max_d2)`` (3D) of ``origin``, shifted so that ``origin`` is 0, as
     float32 (a 50 m neighbourhood keeps micrometre steps), and their squared distances (m^2, in
-    the points' order). Works column by column on blocks of :data:`CENTRE_BLOCK_POINTS` written
-    into the result: no float64 copy of the cloud is made, and the working arrays are a block's
-    (the result may be a view of a buffer sized for every point)."""
+    the points' order), float32 as well. One compiled pass writes the kept points into the result:
+    no float64 copy of the cloud and no working arrays (the result may be a view of a buffer sized
+    for every point)."""
     origin = np.asarray(origin, dtype=np.float64)
     out = np.empty((len(points), 3), dtype=np.float32)
     d2_out = np.empty(len(points), dtype=np.float32)
