@@ -399,6 +399,8 @@ def test_the_next_scan_is_prepared_while_a_link_runs_and_the_links_are_the_same(
     register_project(project, scans=scans)
     assert (scans.reads, scans.prepared.made) == (4, 4), "each scan read and prepared once"
     assert where.count("forestreg-prepare-ahead") == 3, where  # every moving scan; the centre by its link
+    # the ICP search structures kept from link to link are let go once the links are done
+    assert not any(("icp_reference",) in p.derived for p in scans.prepared._prepared.values())
 
     monkeypatch.setattr(plot_module, "SEQUENTIAL_PREPARE_POINTS", 0)  # no scan is small: one at a time
     one_by_one = Project(name="one-by-one")
@@ -477,6 +479,7 @@ def test_a_survey_of_every_pair_registers_further_pairs_beside_the_centre_links(
     project, scans = run()
     further = {(link.moving, link.reference): link for link in project.links if link.extra}
     assert len(further) == 3 and (scans.reads, scans.prepared.made) == (4, 4) and len(scans._scans) == 0
+    assert not any(("icp_reference",) in p.derived for p in scans.prepared._prepared.values()), "ICP structures kept after the links"
     assert any(threads[key] == "forestreg-prepare-ahead" for key in further), threads
     threads.clear()
     monkeypatch.setattr(plot_module, "SEQUENTIAL_PREPARE_POINTS", 0)  # no scan is small: one at a time

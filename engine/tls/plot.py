@@ -279,7 +279,8 @@ def register_project(
 
     ``beside``: further links (not in the project yet) that the thread preparing scans ahead
     registers once its preparations are done, while the links to the centre run (a survey's
-    further pairs); the caller finishes the queue.
+    further pairs); the caller finishes the queue, then lets the scans' ICP search structures go
+    (``scans.prepared.release(("icp_reference",))``), which this function does otherwise.
 
     Returns a :class:`PlotOutcome`; the link results and poses are in the project.
     """
@@ -299,6 +300,8 @@ def register_project(
         link.result = _run_link(project, link, scans, Progress(None, cancel=cancel), cancel)
         if project.path is not None:
             project.save()
+    if beside is None:  # the links are done: their ICP search structures go (the caller's queue still needs them)
+        scans.prepared.release(("icp_reference",))
     # a scan whose chain to the centre is broken has no pose even if its own link worked
     poses = project.chained_poses()
     for name, pose in poses.items():

@@ -386,6 +386,7 @@ def register_survey(
             link.result = _run_link(project, link, scans, sub, cancel)
             if project.path is not None:
                 project.save()
+        scans.prepared.release(("icp_reference",))  # the links are done: their ICP search structures go
         step(1.0, "done")
     scanner = {s.name: _scanner_file(scans, s.name) for s in project.scans if _usable(scans, s.name)}
     if frame not in scanner:  # the centre scan itself is unusable: nothing can be placed
