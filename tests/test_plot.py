@@ -417,12 +417,12 @@ def test_further_pairs_run_two_at_a_time_with_the_same_results(four_scan_files, 
     """``--pairs all`` registers the further pairs of a small plot two at a time on the kept
     preparations (the scans' points let go): the same link matrices as one at a time, and no scan
     read again."""
-    from forestreg.engine.tls import survey as survey_module
+    from forestreg.engine.tls import plot as plot_module
     from forestreg.engine.tls.plot import ScanCache
     from forestreg.engine.tls.survey import SurveyParams, register_survey
 
     def run(parallel: bool):
-        monkeypatch.setattr(survey_module, "small_scans", lambda *a: parallel)
+        monkeypatch.setattr(plot_module, "small_scans", lambda *a: parallel)  # what ScanCache.small asks
         project = Project.load(registered_four[0])
         scans = ScanCache(project)
         for s in project.scans:  # as the links to the centre leave them (here loaded as done)

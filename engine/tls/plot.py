@@ -105,9 +105,10 @@ class ScanCache:
 
     @property
     def small(self) -> bool:
-        """Whether the project's scans are :func:`small_scans` (known once asked): links then
-        keep each scan's ICP search structures for the next link that uses it as its reference
-        instead of building them again (their room is what a small plot's caches leave)."""
+        """Whether the project's scans are :func:`small_scans` (their headers read once, when first
+        asked). Then the next link's scan is prepared ahead, a survey's further pairs run beside the
+        links and two at a time, and links keep each scan's ICP search structures for the next link
+        on the same reference (their room is what a small plot's caches leave)."""
         if self._small is None:
             self._small = small_scans(self.project, self, [s.name for s in self.project.scans])
         return self._small
@@ -481,7 +482,7 @@ class _PrepareAhead:
                 if (name, params) not in seen:
                     seen.add((name, params))
                     plan.append((k, name, params))
-        if not plan or not small_scans(project, scans, [s.name for s in project.scans]):
+        if not plan or not scans.small:
             return None
         ahead = cls(scans, plan, cancel, beside)
         ahead._thread.start()

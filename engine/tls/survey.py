@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 from ..core.params import Params, param_field
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.transform import rigid_errors
-from .plot import LinkQueue, PlotOutcome, ScanCache, _run_link, default_links, informative_priors, register_project, small_scans
+from .plot import LinkQueue, PlotOutcome, ScanCache, _run_link, default_links, informative_priors, register_project
 from .project import Link, Project
 from .uncertainty import propagate_uncertainty
 
@@ -330,7 +330,7 @@ def register_survey(
     share = 1.0 if params.pairs == "centre" else 0.5
     names = [s.name for s in project.scans]
     beside = None
-    if params.pairs == "all" and len(names) > 2 and small_scans(project, scans, names):
+    if params.pairs == "all" and len(names) > 2 and scans.small:
         # every pair is known before the links to the centre run: those whose scans are prepared
         # are registered beside them, by the thread that prepares the scans ahead
         default_links(project)
@@ -375,7 +375,7 @@ def register_survey(
             except BaseException:
                 beside.close()
                 raise
-        elif len(pending) > 1 and small_scans(project, scans, names) and all(
+        elif len(pending) > 1 and scans.small and all(
                 scans.is_prepared(name, link.params(project.params)) for link in pending for name in (link.reference, link.moving)):
             _register_two_at_a_time(project, pending, scans, step.sub(share, 1.0), cancel)
         for k, link in enumerate(pending):
