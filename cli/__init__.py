@@ -99,6 +99,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         code = 0
         return 0
     except KeyboardInterrupt:
+        from .common import INTERRUPTED
+
+        INTERRUPTED.set()  # also when Python's own handler raised it (Ctrl-C off our handler)
         code, message = EXIT_INTERRUPTED, "interrupted: the output was left as it was before the run"
         _error(message)
         return code
@@ -145,7 +148,13 @@ def entry() -> None:
     and the log handlers are flushed, and the process leaves with :func:`os._exit`. A worker thread
     still reading or preparing a scan after Ctrl-C is not waited for either. The desktop
     application (``gui``) exits the usual way (Qt tears its windows down itself)."""
-    code = main()
+    try:
+        code = main()
+    except KeyboardInterrupt:  # Ctrl-C before the command's own handling began (building the parser)
+        code = EXIT_INTERRUPTED
+        _error("interrupted")
+        if _wants_jsonl(sys.argv[1:]):
+            Reporter("jsonl", "forestreg").end(code, "interrupted")
     if sys.argv[1:2] == ["gui"]:
         sys.exit(code)
     import os
@@ -175,15 +184,72 @@ def _terminate_as_interrupt():
     if threading.current_thread() is not threading.main_thread():
         return None
     INTERRUPTED.clear()
-
-    def handler(signum, frame):
-        INTERRUPTED.set()
-        raise KeyboardInterrupt
+    _quiet_collateral_after_interrupt()
 
     current = signal.getsignal(signal.SIGINT)
     wanted = current is signal.default_int_handler or (current == signal.SIG_IGN and os.environ.get("FORESTREG_INTERRUPTIBLE") == "1")
-    previous_int = signal.signal(signal.SIGINT, handler) if wanted else None
-    return signal.signal(signal.SIGTERM, handler), previous_int
+    previous_int = signal.signal(signal.SIGINT, _interrupt) if wanted else None
+    return signal.signal(signal.SIGTERM, _interrupt), previous_int
+
+
+#: seconds after which an interrupt that came inside Python's import machinery is delivered again
+_IMPORT_RETRY_S = 0.02
+
+
+def _interrupt(signum, frame) -> None:
+    """The Ctrl-C / SIGTERM handler: latch the interrupt and raise KeyboardInterrupt.
+
+    Not inside Python's import machinery (``importlib._bootstrap`` frames): an exception raised
+    between its lock calls can leave the global import lock held, and the next import in any
+    thread (a scan being read beside the engine's import) then waits forever, and the run with it.
+    There the signal is sent again a moment later, until it lands in ordinary code."""
+    import threading
+
+    from .common import INTERRUPTED
+
+    INTERRUPTED.set()
+    if frame is not None and frame.f_code.co_filename.startswith("<frozen importlib"):
+        timer = threading.Timer(_IMPORT_RETRY_S, _deliver_again, (signum,))
+        timer.daemon = True
+        timer.start()
+        return
+    raise KeyboardInterrupt
+
+
+def _deliver_again(signum: int) -> None:
+    # only while the run still has this handler (the run may have ended meanwhile)
+    import os
+    import signal
+
+    if signal.getsignal(signum) is _interrupt:
+        os.kill(os.getpid(), signum)
+
+
+def _quiet_collateral_after_interrupt() -> None:
+    """After Ctrl-C / SIGTERM, errors raised in a library's ``__del__`` go to the log, not stderr.
+
+    The KeyboardInterrupt can land inside a library's constructor (llvmlite building a compiled
+    kernel, for one); the half-built object's ``__del__`` then fails when it is collected and
+    Python prints "Exception ignored in ..." with a traceback under the one-line "interrupted".
+    Those are consequences of the interrupt, so they are logged at debug level (``-v`` shows
+    them). Without an interrupt, unraisable errors are printed as usual. Installed once a process;
+    the previous hook is kept and called."""
+    from .common import INTERRUPTED
+
+    previous = sys.unraisablehook
+    if getattr(previous, "_forestreg", False):
+        return
+
+    def hook(unraisable) -> None:
+        if INTERRUPTED.is_set():
+            logging.getLogger("forestreg").debug(
+                "after the interrupt, ignored in %r: %s: %s", unraisable.object, type(unraisable.exc_value).__name__, unraisable.exc_value
+            )
+            return
+        previous(unraisable)
+
+    hook._forestreg = True  # type: ignore[attr-defined]
+    sys.unraisablehook = hook
 
 
 def _wants_jsonl(argv: Sequence[str]) -> bool:
