@@ -148,6 +148,7 @@ def entry() -> None:
     and the log handlers are flushed, and the process leaves with :func:`os._exit`. A worker thread
     still reading or preparing a scan after Ctrl-C is not waited for either. The desktop
     application (``gui``) exits the usual way (Qt tears its windows down itself)."""
+    _tune_malloc()
     try:
         code = main()
     except KeyboardInterrupt:  # Ctrl-C before the command's own handling began (building the parser)
@@ -166,6 +167,42 @@ def entry() -> None:
             pass
     logging.shutdown()
     os._exit(code)
+
+
+#: glibc's malloc settings for a command (see :func:`_tune_malloc`): bytes, bytes, bytes, arenas
+MALLOC_MMAP_THRESHOLD = 512 * 2**20
+MALLOC_TRIM_THRESHOLD = 64 * 2**20
+MALLOC_TOP_PAD = 64 * 2**20
+MALLOC_ARENA_MAX = 2
+
+
+def _tune_malloc() -> None:
+    """Keep freed large arrays for the next ones instead of returning them to the system.
+
+    A registration allocates and frees point-sized arrays (tens of MB) thousands of times. glibc
+    serves each above 32 MB with a fresh ``mmap`` and returns the heap's free top at once, and
+    the kernel zeroes every page again on first touch: on a 4-scan plot, 2.3 s of system time in
+    11 s. Here large blocks come from the heap (``M_MMAP_THRESHOLD`` 512 MB), which grows by 64 MB
+    more than asked (``M_TOP_PAD``) and is given back only beyond 64 MB free
+    (``M_TRIM_THRESHOLD``); the threads share two arenas (``M_ARENA_MAX``), so a block one thread
+    freed serves the next. Measured (A/B, 5 runs each): 4-scan plot system time 2.26 -> 1.35 s,
+    wall 0.96x, peak +45 MB; pair 0.95x, +16 MB; 30 M-point scan +55 MB. Only with glibc, and not
+    when the user set a ``MALLOC_*`` variable or ``GLIBC_TUNABLES`` (theirs win)."""
+    import os
+
+    if any(name.startswith("MALLOC_") for name in os.environ) or os.environ.get("GLIBC_TUNABLES"):
+        return
+    try:
+        if not (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"):
+            return
+        import ctypes
+
+        libc = ctypes.CDLL(None)
+        # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, M_TOP_PAD, M_ARENA_MAX
+        for option, value in ((-3, MALLOC_MMAP_THRESHOLD), (-1, MALLOC_TRIM_THRESHOLD), (-2, MALLOC_TOP_PAD), (-8, MALLOC_ARENA_MAX)):
+            libc.mallopt(option, value)
+    except (OSError, ValueError, AttributeError):  # no glibc to ask (macOS, Windows, musl): the defaults stay
+        return
 
 
 def _terminate_as_interrupt():

@@ -569,6 +569,34 @@ def test_ctrl_c_inside_the_import_machinery_is_delivered_again_not_raised_there(
         INTERRUPTED.clear()
 
 
+def test_malloc_is_tuned_for_a_command_unless_the_user_set_it(monkeypatch):
+    import ctypes
+
+    import forestreg.cli as cli
+
+    calls = []
+
+    class Libc:
+        def mallopt(self, option, value):
+            calls.append((option, value))
+            return 1
+
+    monkeypatch.setattr(ctypes, "CDLL", lambda name: Libc())
+    monkeypatch.setattr(os, "confstr", lambda name: "glibc 2.36")
+    for name in [n for n in os.environ if n.startswith("MALLOC_")] + ["GLIBC_TUNABLES"]:
+        monkeypatch.delenv(name, raising=False)
+    cli._tune_malloc()
+    assert dict(calls) == {-3: cli.MALLOC_MMAP_THRESHOLD, -1: cli.MALLOC_TRIM_THRESHOLD, -2: cli.MALLOC_TOP_PAD, -8: cli.MALLOC_ARENA_MAX}
+    calls.clear()
+    monkeypatch.setenv("MALLOC_ARENA_MAX", "4")  # the user's own setting wins: nothing changed
+    cli._tune_malloc()
+    assert calls == []
+    monkeypatch.delenv("MALLOC_ARENA_MAX")
+    monkeypatch.setattr(os, "confstr", lambda name: None)  # not glibc (musl, macOS): nothing asked
+    cli._tune_malloc()
+    assert calls == []
+
+
 def test_ctrl_c_mid_run_exits_130_with_one_line_and_leaves_the_previous_result(tiny, tmp_path):
     _, paths, _ = tiny
     out = tmp_path / "o"
