@@ -117,3 +117,19 @@ def test_icp_statistics_through_the_voxel_grid_equal_the_brute_force_ones():
     std, mean, count = IcpReference(ref, voxel_grid(ref, 0.05)).distance_stats(moved, 0.08)
     assert count == len(d) > 1000
     assert std == pytest.approx(float(np.std(d)), rel=1e-12) and mean == pytest.approx(float(np.mean(d)), rel=1e-12)
+
+
+@pytest.mark.parametrize("key_count", [1, 7, 2**14, 2**15 + 3, 2**24, 2**30 + 5, 2**40])
+def test_radix_sort_is_numpys_stable_argsort(key_count):
+    # one to three passes (an odd count ends in the spare arrays), many equal keys, int32 and int64 order
+    from forestreg.engine.geometry.sorting import sort_keys
+
+    rng = np.random.default_rng(key_count % 1000)
+    keys = rng.integers(0, key_count, 200_000, dtype=np.int64)
+    keys[::3] = keys[0]  # long runs of one key: stability matters
+    expected = np.argsort(keys, kind="stable")
+    for index_type in (np.int32, np.int64):
+        order, sorted_keys = sort_keys(keys.copy(), float(key_count), index_type)
+        assert order.dtype == index_type
+        np.testing.assert_array_equal(order, expected)
+        np.testing.assert_array_equal(sorted_keys, keys[expected])
