@@ -436,7 +436,8 @@ def local_covariances(
 
     Sums are taken of offsets from the query point (small numbers: no loss of precision far from
     the origin): ``cov = E[d d^T] - E[d] E[d]^T``. A query with no neighbour has a zero matrix.
-    With a finite radius the neighbours come from a :class:`SphereGrid` (``tree`` is not used);
+    With a finite radius the neighbours come from a :class:`SphereGrid` of that radius (``grid``
+    when it is one, made of ``cloud``: queries taken in blocks share it; ``tree`` is not used);
     without one, from ``grid`` when given (a :class:`SphereGrid` of ``cloud``, any cell size: its
     search widens until the ``k`` nearest are certain), else from a k-d tree query of ``k``
     neighbours (``tree`` may be a cKDTree built on ``cloud``; ``batch`` queries at a time).
@@ -450,7 +451,8 @@ def local_covariances(
         return cov, count
     k = min(int(k), n)
     if np.isfinite(radius_m):
-        grid = SphereGrid(c, radius_m)
+        if grid is None or grid.radius_m != float(radius_m):
+            grid = SphereGrid(c, radius_m)
         run_blocks(_sphere_covariance_rows, len(q_all), q_all, float(radius_m) * float(radius_m), k, cov, count, *grid.args())
         return cov, count
     if grid is not None:

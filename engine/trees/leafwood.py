@@ -44,7 +44,7 @@ import numpy as np
 from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
-from ..geometry.features import eigen_features, local_covariances, neighbour_means
+from ..geometry.features import SphereGrid, eigen_features, local_covariances, neighbour_means
 from ..geometry.jit import run_blocks
 from ..geometry.voxel import voxel_centroids
 
@@ -177,29 +177,49 @@ def covariance_features(
     return feats[base_of_point]
 
 
+#: Points whose covariance features are computed at a time (:func:`_features_on`).
+_FEATURE_BLOCK = 262_144
+
+
 def _features_on(
     base: np.ndarray, prm: LeafWoodParams, progress: Progress
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Features (M, 6 * scales) and neighbour counts (M, scales) of the base points.
-
-    At each scale the base points are thinned to voxels of ``radius / thinning_ratio``; the
-    features are computed at the voxel centroids (neighbours from the same thinned cloud) and
-    handed to the base points of each voxel: a shape seen through a sphere of radius ``r``
-    changes little over ``r / thinning_ratio``.
-    """
+    """Features (M, 6 * scales) and neighbour counts (M, scales) of the base points
+    (:func:`_scale_features` of every scale, handed to the base points)."""
     out = np.empty((len(base), FEATURES_PER_SCALE * len(prm.radii_m)))  # every column is written below
     counts = np.zeros((len(base), len(prm.radii_m)), dtype=np.int64)
+    for s, f, count, voxel_of_base in _scale_features(base, prm, progress):
+        out[:, s * FEATURES_PER_SCALE : (s + 1) * FEATURES_PER_SCALE] = f[voxel_of_base]
+        counts[:, s] = count[voxel_of_base]
+    return out, counts
+
+
+def _scale_features(base: np.ndarray, prm: LeafWoodParams, progress: Progress):
+    """For each scale ``s``: ``(s, features (V, 6), neighbour counts (V,), voxel of each base
+    point (M,))`` of the base points thinned to voxels of ``radius / thinning_ratio``.
+
+    The features are computed at the voxel centroids (neighbours from the same thinned cloud), and
+    a base point takes those of its voxel: a shape seen through a sphere of radius ``r`` changes
+    little over ``r / thinning_ratio``. A voxel with fewer than ``min_neighbours`` neighbours has
+    NaN features.
+    """
     for s, radius in enumerate(prm.radii_m):
         progress(s / len(prm.radii_m), f"covariance features at {radius:g} m")
         cloud, voxel_of_base = voxel_centroids(base, radius / prm.thinning_ratio)
-        cov, count = local_covariances(cloud, cloud, k=prm.max_neighbours, radius_m=radius)
+        grid = SphereGrid(cloud, radius)
         f = np.full((len(cloud), FEATURES_PER_SCALE), np.nan)
-        enough = count >= prm.min_neighbours  # the others stay NaN: no decomposition spent on them
-        f[enough] = eigen_features(cov if enough.all() else cov[enough])
-        out[:, s * FEATURES_PER_SCALE : (s + 1) * FEATURES_PER_SCALE] = f[voxel_of_base]
-        counts[:, s] = count[voxel_of_base]
+        count = np.empty(len(cloud), dtype=np.int64)
+        # the covariances (72 bytes a point) and their decomposition a block of points at a time:
+        # the same values as all at once, without the whole cloud's matrices in memory
+        for a in range(0, len(cloud), _FEATURE_BLOCK):
+            b = min(a + _FEATURE_BLOCK, len(cloud))
+            cov, count[a:b] = local_covariances(cloud[a:b], cloud, k=prm.max_neighbours, radius_m=radius, grid=grid)
+            enough = count[a:b] >= prm.min_neighbours  # the others stay NaN: no decomposition spent on them
+            f[a:b][enough] = eigen_features(cov if enough.all() else cov[enough])
+            del cov
+        del grid, cloud
+        yield s, f, count, voxel_of_base
     progress(1.0, "covariance features done")
-    return out, counts
 
 
 # --------------------------------------------------------------------------------------------
@@ -241,14 +261,19 @@ def woodness_score(
     scores 0 (isolated points are not taken for wood). ``measures``: the features'
     :func:`shape_measures` per scale when already computed.
     """
-    n_scales = features.shape[1] // FEATURES_PER_SCALE
     measures = measures if measures is not None else _scale_measures(features)
-    num = np.zeros(len(features))
-    den = np.zeros(len(features))
+    return _woodness([(linearity, planarity, features[:, s * FEATURES_PER_SCALE + 5]) for s, (linearity, planarity, _) in enumerate(measures)], counts, params)
+
+
+def _woodness(scales: list[tuple[np.ndarray, np.ndarray, np.ndarray]], counts: np.ndarray, params: LeafWoodParams) -> np.ndarray:
+    """:func:`woodness_score` from each scale's (linearity, planarity, zenith3 in degrees)."""
+    num = np.zeros(len(counts))
+    den = np.zeros(len(counts))
     span = params.full_weight_neighbours - params.min_neighbours
-    for s in range(n_scales):
-        linearity, planarity, upright = measures[s]
+    for s, (linearity, planarity, zenith3) in enumerate(scales):
+        upright = np.sin(np.radians(zenith3)) ** 2  # as shape_measures has it
         evidence = np.maximum(linearity, planarity * upright)
+        del upright
         weight = np.clip((counts[:, s] - params.min_neighbours) / span, 0.0, 1.0) * (s + 1)
         ok = np.isfinite(evidence) & (weight > 0)
         num[ok] += weight[ok] * evidence[ok]
@@ -268,16 +293,23 @@ def mixture_features(
     measures of a filled row are those of the scale it was filled from, so the measures are filled
     instead of the features (the same values, without copying the feature matrix).
     """
-    n_scales = features.shape[1] // FEATURES_PER_SCALE
     measures = measures if measures is not None else _scale_measures(features)
-    x = np.empty((len(features), 4 * n_scales))
-    above: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]] = None  # the filled columns of scale s + 1
-    for s in range(n_scales - 1, -1, -1):
+    scales = []
+    for s, (linearity, planarity, _) in enumerate(measures):
         a = s * FEATURES_PER_SCALE
-        linearity, planarity, _ = measures[s]
-        zenith1, zenith3 = features[:, a + 3], features[:, a + 5]
+        scales.append((linearity, planarity, features[:, a + 3], features[:, a + 5], np.isnan(features[:, a])))
+    return _mixture_x(scales)
+
+
+def _mixture_x(scales: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`mixture_features` from each scale's (linearity, planarity, zenith1, zenith3 in
+    degrees, lacking neighbours)."""
+    n_scales = len(scales)
+    x = np.empty((len(scales[0][0]), 4 * n_scales))
+    above: Optional[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = None  # the filled columns of scale s + 1
+    for s in range(n_scales - 1, -1, -1):
+        linearity, planarity, zenith1, zenith3, missing = scales[s]
         if above is not None:
-            missing = np.isnan(features[:, a])
             linearity, planarity = linearity.copy(), planarity.copy()
             zenith1, zenith3 = zenith1.copy(), zenith3.copy()
             for mine, theirs in zip((linearity, planarity, zenith1, zenith3), above):
@@ -370,17 +402,27 @@ def wood_probability(
     progress = progress or Progress()
     prm = params
     base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0))
-    features, counts = _features_on(base, prm, progress.sub(0.0, 0.7))
-    measures = _scale_measures(features)
-    score = woodness_score(features, counts, prm, measures=measures)
-    rule = score >= prm.wood_score_threshold
+    # per scale only what the rule and the mixture read (33 bytes a base point, not the 72 of the
+    # features and their shape measures), each computed on the scale's voxels, then handed to the
+    # base points: the same values as from the whole feature matrix
+    scales, counts = [], np.zeros((len(base), len(prm.radii_m)), dtype=np.int64)
+    for s, f, count, voxel_of_base in _scale_features(base, prm, progress.sub(0.0, 0.7)):
+        linearity, planarity, _ = shape_measures(f, 0)
+        scales.append(tuple(v[voxel_of_base] for v in (linearity, planarity, f[:, 3], f[:, 5], np.isnan(f[:, 0]))))
+        counts[:, s] = count[voxel_of_base]
+        del f, count, voxel_of_base, linearity, planarity
+    rule = _woodness([(lin, pla, zen3) for lin, pla, _, zen3, _ in scales], counts, prm) >= prm.wood_score_threshold
+    del counts
     progress(0.75, "fitting the mixture")
-    x, complete = mixture_features(features, measures=measures)
-    del measures
+    x, complete = _mixture_x(scales)
+    del scales  # not needed past here: let go before the mixture
     prob = np.zeros(len(base))
-    if complete.any():
+    if complete.all():  # the usual case: no copy of the mixture's features
+        prob[:] = prm.score_weight * rule + (1.0 - prm.score_weight) * mixture_wood_share(x, rule, prm)
+    elif complete.any():
         share = mixture_wood_share(x[complete], rule[complete], prm)
         prob[complete] = prm.score_weight * rule[complete] + (1.0 - prm.score_weight) * share
+    del x
     progress(0.9, "smoothing")
     prob = smooth_over_neighbours(base, prob, prm.smoothing_radius_m, prm.smoothing_neighbours)
     progress(1.0, "leaf-wood separation done")
