@@ -88,7 +88,7 @@ def main(argv: Optional[Sequence[str]] = None, *, tune_malloc: bool = False) -> 
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     elif args.verbose:
         logging.getLogger("forestreg").setLevel(logging.INFO)
-    if tune_malloc and args.command in MALLOC_TUNED_COMMANDS:
+    if tune_malloc and args.command in MALLOC_TUNED_COMMANDS and _small_scans(args):
         _tune_malloc()
     mode = progress_mode(args)
     if not getattr(args, "long_running", False) and mode == "bar":
@@ -172,10 +172,36 @@ def entry() -> None:
     os._exit(code)
 
 
-#: The commands run with glibc's malloc tuned (:func:`_tune_malloc`): the registrations, where it
-#: was measured faster. Trees (+83 MB, no faster) and co-registration (+26 MB, 0.95x) keep the
-#: defaults.
+#: The commands run with glibc's malloc tuned (:func:`_tune_malloc`): the registrations of small
+#: scans, where it was measured faster. Trees (+83 MB, no faster), co-registration (+26 MB, 0.95x)
+#: and plots of large scans (ten 30 M-point scans: +226 MB) keep the defaults.
 MALLOC_TUNED_COMMANDS = ("register", "plot")
+#: Points a scan may hold for :func:`_tune_malloc` (the engine's limit for preparing two at once)
+MALLOC_TUNED_MAX_POINTS = 15_000_000
+
+
+def _small_scans(args) -> bool:
+    """Whether every scan of a register / plot command is a LAS/LAZ file of at most
+    :data:`MALLOC_TUNED_MAX_POINTS` points, from the point count in its header (read here with
+    ``struct``: no import). False when any count is unknown."""
+    import struct
+
+    paths = [args.reference, args.moving] if args.command == "register" else list(getattr(args, "scans", []) or [])
+    if not paths:
+        return False
+    for path in paths:
+        try:
+            with open(path, "rb") as f:
+                head = f.read(255)
+        except (OSError, TypeError):
+            return False
+        if len(head) < 111 or head[:4] != b"LASF":
+            return False
+        legacy = struct.unpack_from("<I", head, 107)[0]
+        count = struct.unpack_from("<Q", head, 247)[0] if head[25] >= 4 and len(head) >= 255 else legacy
+        if not 0 < max(count, legacy) <= MALLOC_TUNED_MAX_POINTS:
+            return False
+    return True
 #: glibc's malloc settings for a command (see :func:`_tune_malloc`): bytes, bytes, bytes, arenas
 MALLOC_MMAP_THRESHOLD = 512 * 2**20
 MALLOC_TRIM_THRESHOLD = 64 * 2**20
@@ -193,8 +219,9 @@ def _tune_malloc() -> None:
     more than asked (``M_TOP_PAD``) and is given back only beyond 64 MB free
     (``M_TRIM_THRESHOLD``); the threads share two arenas (``M_ARENA_MAX``), so a block one thread
     freed serves the next. Measured (A/B, 5 runs each): 4-scan plot system time 2.26 -> 1.35 s,
-    wall 0.96x, peak +45 MB; pair 0.95x, +16 MB; 30 M-point scan +55 MB. Only with glibc, and not
-    when the user set a ``MALLOC_*`` variable or ``GLIBC_TUNABLES`` (theirs win)."""
+    wall 0.96x, peak +45 MB; pair 0.95x, +16 MB. Not for large scans (:func:`_small_scans`: a
+    plot of ten 30 M-point scans peaked 226 MB higher with it). Only with glibc, and not when the
+    user set a ``MALLOC_*`` variable or ``GLIBC_TUNABLES`` (theirs win)."""
     import os
 
     if any(name.startswith("MALLOC_") for name in os.environ) or os.environ.get("GLIBC_TUNABLES"):

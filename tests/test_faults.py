@@ -597,6 +597,32 @@ def test_malloc_is_tuned_for_a_command_unless_the_user_set_it(monkeypatch):
     assert calls == []
 
 
+def test_malloc_is_tuned_only_for_registrations_of_small_las_scans(tiny, tmp_path):
+    import argparse
+    import struct
+
+    import forestreg.cli as cli
+    from forestreg.engine.tls.pair import SEQUENTIAL_PREPARE_POINTS
+
+    assert cli.MALLOC_TUNED_MAX_POINTS == SEQUENTIAL_PREPARE_POINTS
+    _, paths, _ = tiny
+    las = [str(p) for p in paths if str(p).lower().endswith((".las", ".laz"))]
+    assert len(las) >= 2
+    assert cli._small_scans(argparse.Namespace(command="register", reference=las[0], moving=las[1]))
+    assert cli._small_scans(argparse.Namespace(command="plot", scans=las))
+    # a header announcing 30 M points (legacy count and the LAS 1.4 count), a text cloud, no file
+    big = tmp_path / "big.las"
+    head = bytearray(Path(las[0]).read_bytes()[:375]) if las[0].endswith(".las") else bytearray(b"LASF" + bytes(371))
+    head[24:26] = bytes([1, 4])
+    struct.pack_into("<I", head, 107, 0)
+    struct.pack_into("<Q", head, 247, 30_000_000)
+    big.write_bytes(bytes(head))
+    text = tmp_path / "cloud.xyz"
+    text.write_text("0 0 0\n")
+    for scans in ([las[0], str(big)], [las[0], str(text)], [las[0], str(tmp_path / "missing.laz")]):
+        assert not cli._small_scans(argparse.Namespace(command="plot", scans=scans))
+
+
 def test_ctrl_c_mid_run_exits_130_with_one_line_and_leaves_the_previous_result(tiny, tmp_path):
     _, paths, _ = tiny
     out = tmp_path / "o"
