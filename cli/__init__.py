@@ -202,6 +202,8 @@ def _small_scans(args) -> bool:
         if not 0 < max(count, legacy) <= MALLOC_TUNED_MAX_POINTS:
             return False
     return True
+
+
 #: glibc's malloc settings for a command (see :func:`_tune_malloc`): bytes, bytes, bytes, arenas
 MALLOC_MMAP_THRESHOLD = 512 * 2**20
 MALLOC_TRIM_THRESHOLD = 64 * 2**20
@@ -302,8 +304,8 @@ def _quiet_collateral_after_interrupt() -> None:
     The KeyboardInterrupt can land inside a library's constructor (llvmlite building a compiled
     kernel, for one); the half-built object's ``__del__`` then fails when it is collected and
     Python prints "Exception ignored in ..." with a traceback under the one-line "interrupted".
-    Those are consequences of the interrupt, so they are logged at debug level (``-v`` shows
-    them). Without an interrupt, unraisable errors are printed as usual. Installed once a process;
+    Those are consequences of the interrupt, so they go to the ``forestreg`` logger at debug
+    level. Without an interrupt, unraisable errors are printed as usual. Installed once a process;
     the previous hook is kept and called."""
     from .common import INTERRUPTED
 

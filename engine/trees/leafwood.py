@@ -177,7 +177,7 @@ def covariance_features(
     return feats[base_of_point]
 
 
-#: Points whose covariance features are computed at a time (:func:`_features_on`).
+#: Points whose covariance features are computed at a time (:func:`_scale_features`).
 _FEATURE_BLOCK = 262_144
 
 
@@ -402,9 +402,9 @@ def wood_probability(
     progress = progress or Progress()
     prm = params
     base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0))
-    # per scale only what the rule and the mixture read (33 bytes a base point, not the 72 of the
-    # features and their shape measures), each computed on the scale's voxels, then handed to the
-    # base points: the same values as from the whole feature matrix
+    # per scale only what the rule and the mixture read (33 bytes a base point and scale, not the
+    # 72 of the features and their shape measures), each computed on the scale's voxels, then
+    # handed to the base points: the same values as from the whole feature matrix
     scales, counts = [], np.zeros((len(base), len(prm.radii_m)), dtype=np.int64)
     for s, f, count, voxel_of_base in _scale_features(base, prm, progress.sub(0.0, 0.7)):
         linearity, planarity, _ = shape_measures(f, 0)
