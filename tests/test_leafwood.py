@@ -123,3 +123,24 @@ def test_real_pine_stem_is_wood_and_crown_is_not() -> None:
     assert stem.sum() > 10000
     assert stem_wood >= 0.9, f"stem wood fraction {stem_wood:.3f}"
     assert crown_wood <= 0.3, f"far crown wood fraction {crown_wood:.3f}"
+
+
+def test_wood_probability_equals_the_composition_of_the_public_steps(simulated: dict[str, np.ndarray]) -> None:
+    # wood_probability keeps per scale only what the rule and the mixture read (memory); its values
+    # must be exactly those of the steps composed on the whole feature matrix
+    from forestreg.engine.core.progress import Progress
+    from forestreg.engine.geometry.voxel import voxel_centroids
+    from forestreg.engine.trees import leafwood as lw
+
+    pts, prm = simulated["points"], LeafWoodParams()
+    base, base_of_point = voxel_centroids(pts, min(prm.base_voxel_m, prm.radii_m[0] / 2.0))
+    features, counts = lw._features_on(base, prm, Progress())
+    rule = lw.woodness_score(features, counts, prm) >= prm.wood_score_threshold
+    x, complete = lw.mixture_features(features)
+    prob = np.zeros(len(base))
+    share = lw.mixture_wood_share(x[complete], rule[complete], prm)
+    prob[complete] = prm.score_weight * rule[complete] + (1.0 - prm.score_weight) * share
+    prob = lw.smooth_over_neighbours(base, prob, prm.smoothing_radius_m, prm.smoothing_neighbours)
+    expected = np.clip(prob[base_of_point], 0.0, 1.0)
+    assert complete.mean() > 0.5 and 0.01 < (expected >= 0.5).mean() < 0.99  # a real mix of wood and leaves
+    np.testing.assert_array_equal(simulated["prob"], expected)
