@@ -344,7 +344,10 @@ def statistical_noise(
     tree = _tree(sorted_pts)
     mean_d = np.empty(len(pts), dtype=np.float64)
     neighbours = np.empty((len(pts), k), dtype=np.int32 if len(pts) < 2**31 else np.int64)
-    batch = params.batch_points
+    # a quarter of batch_points a query: its distances and indices (16 bytes a neighbour, ~210 MB
+    # for a million points and k = 12) are most of the filter's peak; the results do not depend
+    # on the batches
+    batch = max(1, params.batch_points // 4)
     for lo in range(0, len(pts), batch):
         d, idx = tree.query(sorted_pts[lo : lo + batch], k=k + 1, workers=_workers())
         mean_d[lo : lo + batch] = d[:, 1:].mean(axis=1)
