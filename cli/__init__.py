@@ -15,10 +15,15 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import signal
+import struct
 import sys
+import threading
 from typing import Optional, Sequence
 
-from .common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, Reporter, add_global_flags, progress_mode
+# imported here, not in the signal handler: an interrupt may arrive inside the import machinery
+from .common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, INTERRUPTED, Reporter, add_global_flags, progress_mode
 
 __all__ = ["build_parser", "entry", "main"]
 
@@ -103,8 +108,6 @@ def main(argv: Optional[Sequence[str]] = None, *, tune_malloc: bool = False) -> 
         code = 0
         return 0
     except KeyboardInterrupt:
-        from .common import INTERRUPTED
-
         INTERRUPTED.set()  # also when Python's own handler raised it (Ctrl-C off our handler)
         code, message = EXIT_INTERRUPTED, "interrupted: the output was left as it was before the run"
         _error(message)
@@ -136,8 +139,6 @@ def main(argv: Optional[Sequence[str]] = None, *, tune_malloc: bool = False) -> 
     finally:
         args.reporter.end(code, message)
         if previous_term is not None:
-            import signal
-
             for signum, previous in zip((signal.SIGTERM, signal.SIGINT), previous_term):
                 if previous is not None:
                     signal.signal(signum, previous)
@@ -161,8 +162,6 @@ def entry() -> None:
             Reporter("jsonl", "forestreg").end(code, "interrupted")
     if sys.argv[1:2] == ["gui"]:
         sys.exit(code)
-    import os
-
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
@@ -184,8 +183,6 @@ def _small_scans(args) -> bool:
     """Whether every scan of a register / plot command is a LAS/LAZ file of at most
     :data:`MALLOC_TUNED_MAX_POINTS` points, from the point count in its header (read here with
     ``struct``: no import). False when any count is unknown."""
-    import struct
-
     paths = [args.reference, args.moving] if args.command == "register" else list(getattr(args, "scans", []) or [])
     if not paths:
         return False
@@ -224,8 +221,6 @@ def _tune_malloc() -> None:
     wall 0.96x, peak +45 MB; pair 0.95x, +16 MB. Not for large scans (:func:`_small_scans`: a
     plot of ten 30 M-point scans peaked 226 MB higher with it). Only with glibc, and not when the
     user set a ``MALLOC_*`` variable or ``GLIBC_TUNABLES`` (theirs win)."""
-    import os
-
     if any(name.startswith("MALLOC_") for name in os.environ) or os.environ.get("GLIBC_TUNABLES"):
         return
     try:
@@ -248,12 +243,6 @@ def _terminate_as_interrupt():
     the previous (SIGTERM, SIGINT) handlers (None off the main thread). A Ctrl-C ignored from the
     start (a command run with nohup or "&") stays ignored, unless ``FORESTREG_INTERRUPTIBLE=1``
     (set by the job service, which cancels its jobs with SIGINT); then its entry is None."""
-    import os
-    import signal
-    import threading
-
-    from .common import INTERRUPTED
-
     if threading.current_thread() is not threading.main_thread():
         return None
     INTERRUPTED.clear()
@@ -276,10 +265,6 @@ def _interrupt(signum, frame) -> None:
     between its lock calls can leave the global import lock held, and the next import in any
     thread (a scan being read beside the engine's import) then waits forever, and the run with it.
     There the signal is sent again a moment later, until it lands in ordinary code."""
-    import threading
-
-    from .common import INTERRUPTED
-
     INTERRUPTED.set()
     if frame is not None and frame.f_code.co_filename.startswith("<frozen importlib"):
         timer = threading.Timer(_IMPORT_RETRY_S, _deliver_again, (signum,))
@@ -291,9 +276,6 @@ def _interrupt(signum, frame) -> None:
 
 def _deliver_again(signum: int) -> None:
     # only while the run still has this handler (the run may have ended meanwhile)
-    import os
-    import signal
-
     if signal.getsignal(signum) is _interrupt:
         os.kill(os.getpid(), signum)
 
@@ -307,8 +289,6 @@ def _quiet_collateral_after_interrupt() -> None:
     Those are consequences of the interrupt, so they go to the ``forestreg`` logger at debug
     level. Without an interrupt, unraisable errors are printed as usual. Installed once a process;
     the previous hook is kept and called."""
-    from .common import INTERRUPTED
-
     previous = sys.unraisablehook
     if getattr(previous, "_forestreg", False):
         return
