@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -127,8 +126,7 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
     """Fuse two clouds into the LAS/LAZ ``out`` (refused when it is an input)."""
     from ..engine.core.atomic import check_output_file
     from ..engine.core.transform import read_matrix, to_metres
-    from ..engine.coreg.fusion import FusionParams, fuse_scans, write_fused
-    from ..engine.io import read_scan
+    from ..engine.coreg.fusion import FusionParams, fuse_files, write_fused
     from ..engine.io.base import check_readable
 
     reporter = reporter or Reporter("none", "fuse")
@@ -144,17 +142,11 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
     if cube is not None:
         kw["cube_side_m"] = cube
     params = (params or FusionParams()).replace(**kw)
-    ground = read_scan(ground_path, unit_scale=scale)
-    uav = read_scan(uav_path, unit_scale=scale)
-    try:
-        result = fuse_scans(ground, uav, matrix, params, progress=reporter)
+    try:  # the ground-based cloud is read inside, and let go once merged: a scan's points less to hold
+        result, shift = fuse_files(ground_path, uav_path, matrix, params, unit_scale=scale, progress=reporter)
     finally:
         reporter.close()
-    shift = uav.origin_shift
-    if scale != 1.0:
-        result = dataclasses.replace(result, points=result.points / scale)
-        shift = shift / scale
-    write_fused(out, result, origin_shift=shift)
+    write_fused(out, result, origin_shift=shift, unit_scale=scale)
     for source, c in result.counts.items():
         print(f"{source}: {c['input']:,} in, {c['redundant']:,} redundant, {c['noise']:,} noise, {c['kept']:,} kept")
     reporter.done("", out)

@@ -351,3 +351,110 @@ def test_tree_tips_the_uav_adds_survive_the_noise_filter():
     assert fused.points[:, 2].max() > 19.9
     bare = fuse(ground, uav, FusionParams(canopy_top_cell_m=0.0))
     assert bare.points[:, 2].max() < 19.0  # what the protection is for: the density test drops the tip
+
+
+# ------------------------------------------------------------------------------------------------
+# the memory-lean steps compute what the whole-cloud computations do, exactly
+# ------------------------------------------------------------------------------------------------
+
+
+def _plain_canopy_top(points, cell_m, per_cell):
+    """The whole-cloud computation the streamed canopy_top replaces: sort by cell, highest first,
+    earlier first; the first per_cell of each cell."""
+    ij = np.floor((points[:, :2] - points[:, :2].min(axis=0)) / cell_m).astype(np.int64)
+    flat = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    order = np.lexsort((-points[:, 2], flat))
+    f = flat[order]
+    start = np.r_[True, f[1:] != f[:-1]]
+    rank = np.arange(len(f)) - np.maximum.accumulate(np.where(start, np.arange(len(f)), 0))
+    mask = np.zeros(len(points), dtype=bool)
+    mask[order[rank < per_cell]] = True
+    return mask
+
+
+def test_streamed_steps_equal_whole_cloud_steps(planted, monkeypatch):
+    """Chunks of 1,000 points and k-d tree batches of 62 give, bit for bit, what one chunk and one
+    batch give: the spatial order is np.lexsort of the cube coordinates, the canopy top is the
+    whole-cloud sort (ties in height included), the noise filter's figures and the fused cloud
+    are identical; the local figure equals its definition computed with every neighbour at once."""
+    from forestreg.engine.coreg import fusion
+
+    g, u = planted["ground"], planted["uav"]
+    pts = np.vstack([g, u])
+    rows = np.flatnonzero(np.random.default_rng(1).random(len(pts)) < 0.7)
+    z_ties = pts.copy()
+    z_ties[:, 2] = np.round(z_ties[:, 2], 1)  # many points of equal height in a cell
+    whole = (
+        fusion._spatial_order(pts, 0.5),
+        fusion._spatial_order(pts, 0.5, rows=rows),
+        fusion.canopy_top(z_ties, 0.5, 3),
+        statistical_noise(pts),
+        statistical_noise(pts, FusionParams(noise_method="paper")),
+        fuse(g, u),
+    )
+    monkeypatch.setattr(fusion, "_CHUNK", 1000)
+    small = FusionParams(batch_points=1000)
+    key = np.floor((pts - pts.min(axis=0)) / 0.5).astype(np.int64)
+    key_rows = np.floor((pts[rows] - pts[rows].min(axis=0)) / 0.5).astype(np.int64)
+    streamed_order = fusion._spatial_order(pts, 0.5)
+    np.testing.assert_array_equal(streamed_order, np.lexsort((key[:, 2], key[:, 1], key[:, 0])))
+    np.testing.assert_array_equal(streamed_order, whole[0])
+    np.testing.assert_array_equal(fusion._spatial_order(pts, 0.5, rows=rows), np.lexsort((key_rows[:, 2], key_rows[:, 1], key_rows[:, 0])))
+    np.testing.assert_array_equal(fusion._spatial_order(pts, 0.5, rows=rows), whole[1])
+    top = fusion.canopy_top(z_ties, 0.5, 3)
+    assert top.sum() > 100
+    np.testing.assert_array_equal(top, _plain_canopy_top(z_ties, 0.5, 3))
+    np.testing.assert_array_equal(top, whole[2])
+    perm = np.random.default_rng(2).permutation(len(z_ties))  # a permuted copy, mapped back
+    np.testing.assert_array_equal(fusion._canopy_top_of(z_ties[perm], perm, 0.5, 3), top)
+    for mine, ref in zip(statistical_noise(pts, small), whole[3]):
+        np.testing.assert_array_equal(mine, ref)
+    for mine, ref in zip(statistical_noise(pts, small.replace(noise_method="paper")), whole[4]):
+        np.testing.assert_array_equal(mine, ref)
+    fused = fuse(g, u, small)
+    for name in ("points", "source", "ground_index", "uav_index", "noise_probability"):
+        np.testing.assert_array_equal(getattr(fused, name), getattr(whole[5], name))
+    assert fused.counts == whole[5].counts
+    # the local figure by its definition, every neighbour at once (a tree over the unsorted cloud)
+    d, idx = cKDTree(pts).query(pts, k=13)
+    mean_d = np.maximum(d[:, 1:].mean(axis=1), 1e-4)
+    stat = np.log(mean_d / mean_d[idx[:, 1:]].mean(axis=1))
+    z = (stat - stat.mean()) / stat.std()
+    prob, noise = statistical_noise(pts, small)
+    np.testing.assert_allclose(prob, fusion.ndtr(z), atol=1e-9)
+    assert (noise != (z > 3.0)).sum() <= 2  # only a tie between equidistant neighbours may differ
+
+
+def test_fuse_files_and_unit_scaled_chunked_writing(planted, tmp_path, monkeypatch):
+    """fuse_files (the ground file read inside the fusion) gives fuse_scans' result; write_fused
+    writes chunk by chunk in the file's units the coordinates, intensities and labels of one
+    whole write."""
+    from forestreg.engine.coreg import fusion
+    from forestreg.engine.io import read_scan, write_points
+
+    g, u = planted["ground"], planted["uav"]
+    shift = np.array([500000.0, 4000000.0, 100.0])
+    write_points(tmp_path / "g.laz", g, origin_shift=shift, intensity=np.arange(len(g)) % 3000)
+    write_points(tmp_path / "u.laz", u, origin_shift=shift, intensity=np.arange(len(u)) % 500 + 7)
+    matrix = np.eye(4)
+    matrix[:3, 3] = [0.02, -0.01, 0.005]
+    by_scans = fusion.fuse_scans(read_scan(tmp_path / "g.laz"), read_scan(tmp_path / "u.laz"), matrix)
+    by_files, origin = fusion.fuse_files(tmp_path / "g.laz", tmp_path / "u.laz", matrix)
+    np.testing.assert_array_equal(origin, read_scan(tmp_path / "u.laz").origin_shift)
+    for name in ("points", "source", "ground_index", "uav_index", "noise_probability"):
+        np.testing.assert_array_equal(getattr(by_files, name), getattr(by_scans, name))
+    np.testing.assert_array_equal(by_files.extra["intensity"], by_scans.extra["intensity"])
+    with pytest.raises(Exception, match="missing.laz"):
+        fusion.fuse_files(tmp_path / "missing.laz", tmp_path / "u.laz", matrix)
+
+    write_fused(tmp_path / "whole.laz", by_files, origin_shift=origin)
+    monkeypatch.setattr(fusion, "_CHUNK", 997)
+    write_fused(tmp_path / "chunks.laz", by_files, origin_shift=origin)
+    write_fused(tmp_path / "cm.las", by_files, origin_shift=origin, unit_scale=0.01)
+    a, b, cm = (laspy.read(str(tmp_path / f)) for f in ("whole.laz", "chunks.laz", "cm.las"))
+    for name in ("X", "Y", "Z", "intensity", "point_source_id", "source"):
+        np.testing.assert_array_equal(np.asarray(a[name]), np.asarray(b[name]))
+    np.testing.assert_array_equal(a.header.mins, b.header.mins)
+    assert len(cm.points) == len(by_files)
+    np.testing.assert_allclose(np.c_[cm.x, cm.y, cm.z] * 0.01, by_files.points + origin, atol=2e-6)
+    assert np.abs(np.c_[a.x, a.y, a.z] - (by_files.points + origin)).max() < 1e-4

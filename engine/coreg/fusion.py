@@ -28,7 +28,7 @@ import math
 import os
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Iterator, Mapping, Optional
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -39,6 +39,7 @@ from ..core.errors import ParameterError, ScanDataError, ScanWriteError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress, ProgressCallback
 from ..core.transform import apply as apply_transform
+from ..geometry.sorting import sort_keys
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..core.scan import Scan
@@ -59,6 +60,9 @@ PAPER_PR_MAX = 1.0 - math.exp(-1.0)
 _MIN_DISTANCE_M = 1.0e-4
 #: Seed of the order in which points of one source are visited (results are reproducible).
 _ORDER_SEED = 20220
+#: Rows handled at once where a step only walks through the points (keys, gathers, transforms):
+#: bounds its temporaries at a few tens of MB without costing time.
+_CHUNK = 1 << 20
 
 
 
@@ -176,7 +180,7 @@ def remove_redundancy(
     # 2. the losing source: dropped where a kept winning point is within epsilon
     survivors = lose_idx
     if len(lose_idx) and keep[win_idx].any():
-        near = _within_distance(pts[win_idx[keep[win_idx]]], pts[lose_idx], eps, params.batch_points)
+        near = _within_distance(_take(pts, win_idx[keep[win_idx]]), pts[lose_idx], eps, params.batch_points)
         survivors = lose_idx[~near]
     prog(0.6, "redundancy: thinning the second source")
     # 3. the rest of the losing source: thinned within itself (scope "all")
@@ -200,13 +204,60 @@ def _within_distance(reference: np.ndarray, query: np.ndarray, distance: float, 
     return out
 
 
-def _spatial_order(points: np.ndarray, cell: float) -> np.ndarray:
+def _spatial_order(points: np.ndarray, cell: float, rows: Optional[np.ndarray] = None) -> np.ndarray:
     """A permutation that puts the points of each cube of side ``cell`` together (cube by cube):
-    k-d tree queries in this order reuse the cache and run several times faster."""
-    if len(points) == 0:
+    k-d tree queries in this order reuse the cache and run several times faster.
+
+    The permutation of ``points[rows]`` (all points when ``rows`` is None) that sorts the cubes'
+    integer coordinates (x, then y, then z), stably: ``np.lexsort`` of the three, exactly. One
+    int64 key a point is built :data:`_CHUNK` points at a time and radix-sorted, so the sort holds
+    about 32 bytes a point, not the 70 of three key columns and their temporaries.
+    """
+    n = len(points) if rows is None else len(rows)
+    if n == 0:
         return np.zeros(0, dtype=np.int64)
-    key = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
-    return np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
+
+    def part(lo: int) -> np.ndarray:
+        return points[lo : lo + _CHUNK] if rows is None else points[rows[lo : lo + _CHUNK]]
+
+    lo_xyz = np.min([part(lo).min(axis=0) for lo in range(0, n, _CHUNK)], axis=0)
+    hi_xyz = np.max([part(lo).max(axis=0) for lo in range(0, n, _CHUNK)], axis=0)
+    # floor is monotonic: the largest cube coordinate is that of the largest coordinate
+    extent = np.floor((hi_xyz - lo_xyz) / cell).astype(np.int64) + 1
+    if float(extent[0]) * float(extent[1]) * float(extent[2]) >= 2.0**62:  # keys would overflow
+        key3 = np.floor(((points if rows is None else points[rows]) - lo_xyz) / cell).astype(np.int64)
+        return np.lexsort((key3[:, 2], key3[:, 1], key3[:, 0]))
+    keys = np.empty(n, dtype=np.int64)
+    for lo in range(0, n, _CHUNK):
+        k = np.floor((part(lo) - lo_xyz) / cell).astype(np.int64)
+        keys[lo : lo + _CHUNK] = (k[:, 0] * extent[1] + k[:, 1]) * extent[2] + k[:, 2]
+    return sort_keys(keys, float(extent[0] * extent[1] * extent[2]), index_type=np.int32 if n < 2**31 else np.int64)[0]
+
+
+def _take(points: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``points[rows]`` for strictly ascending ``rows`` (``np.flatnonzero``'s); a view, not a
+    copy, when they are a contiguous range (a source's points in the merged cloud)."""
+    if len(rows) and rows[-1] - rows[0] + 1 == len(rows):
+        return points[rows[0] : rows[-1] + 1]
+    return points[rows]
+
+
+def _gather(points: np.ndarray, rows: np.ndarray, through: Optional[np.ndarray] = None) -> np.ndarray:
+    """``points[rows]``, or ``points[through[rows]]``, gathered :data:`_CHUNK` rows at a time (no
+    temporaries of the result's length)."""
+    out = np.empty((len(rows),) + points.shape[1:], dtype=points.dtype)
+    for lo in range(0, len(rows), _CHUNK):
+        at = rows[lo : lo + _CHUNK]
+        out[lo : lo + _CHUNK] = points[at if through is None else through[at]]
+    return out
+
+
+def _inverse(order: np.ndarray) -> np.ndarray:
+    """The inverse permutation of ``order``: ``inv[order[i]] == i``."""
+    inv = np.empty_like(order)
+    for lo in range(0, len(order), _CHUNK):
+        inv[order[lo : lo + _CHUNK]] = np.arange(lo, min(lo + _CHUNK, len(order)), dtype=order.dtype)
+    return inv
 
 
 def _tree(points: np.ndarray) -> cKDTree:
@@ -334,55 +385,92 @@ def statistical_noise(
     """
     pts = _check_points(points, "points")
     prog = progress if isinstance(progress, Progress) else Progress(progress)
-    if params.noise_method == "paper":
-        return _paper_noise(pts, params, prog)
-    k = params.k_neighbours
-    if len(pts) < k + 2:
-        raise ScanDataError(f"the noise filter needs at least {k + 2} points (k_neighbours = {k}); got {len(pts)}")
+    _check_noise_size(len(pts), params)
     order = _spatial_order(pts, params.cube_side_m)  # neighbouring queries together: far faster
-    sorted_pts = pts[order]
-    tree = _tree(sorted_pts)
-    mean_d = np.empty(len(pts), dtype=np.float64)
-    neighbours = np.empty((len(pts), k), dtype=np.int32 if len(pts) < 2**31 else np.int64)
-    # a quarter of batch_points a query: its distances and indices (16 bytes a neighbour, ~210 MB
-    # for a million points and k = 12) are most of the filter's peak; the results do not depend
-    # on the batches
-    batch = max(1, params.batch_points // 4)
-    for lo in range(0, len(pts), batch):
-        d, idx = tree.query(sorted_pts[lo : lo + batch], k=k + 1, workers=_workers())
-        mean_d[lo : lo + batch] = d[:, 1:].mean(axis=1)
-        neighbours[lo : lo + batch] = idx[:, 1:]
-        prog(0.9 * min(1.0, (lo + batch) / len(pts)), "noise: neighbour distances")
-    del tree
-    mean_d = np.maximum(mean_d, _MIN_DISTANCE_M)
-    if params.noise_method == "global":
-        stat_sorted = mean_d
-    else:
-        stat_sorted = np.empty(len(pts), dtype=np.float64)
-        for lo in range(0, len(pts), batch):
-            around = mean_d[neighbours[lo : lo + batch]].mean(axis=1)
-            stat_sorted[lo : lo + batch] = np.log(mean_d[lo : lo + batch] / around)
-    del neighbours
-    stat = np.empty(len(pts), dtype=np.float64)
+    return _noise_of_sorted(_gather(pts, order), order, params, prog)
+
+
+def _check_noise_size(n: int, params: FusionParams) -> None:
+    need = 2 if params.noise_method == "paper" else params.k_neighbours + 2
+    if n < need:
+        what = "" if params.noise_method == "paper" else f" (k_neighbours = {params.k_neighbours})"
+        raise ScanDataError(f"the noise filter needs at least {need} points{what}; got {n}")
+
+
+def _noise_of_sorted(
+    sorted_pts: np.ndarray, order: np.ndarray, params: FusionParams, prog: Progress
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`statistical_noise` of ``points`` given as ``sorted_pts = points[order]`` (``order``
+    from :func:`_spatial_order`); probability and mask in the order of ``points``."""
+    if params.noise_method == "paper":
+        pr_sorted, count_sorted = _paper_noise_sorted(sorted_pts, params, prog)
+        pr = np.empty(len(order))
+        pr[order] = pr_sorted
+        del pr_sorted
+        count = np.empty(len(order), dtype=np.int64)
+        count[order] = count_sorted
+        return pr, (pr > params.sigma) | (count < params.min_neighbours)
+    stat_sorted = _distance_statistic_sorted(sorted_pts, params, prog.sub(0.0, 0.9))
+    stat = np.empty(len(order), dtype=np.float64)
     stat[order] = stat_sorted
+    del stat_sorted
     mu, sd = float(stat.mean()), float(stat.std())
-    z = np.zeros(len(pts)) if sd <= 0.0 else (stat - mu) / sd
+    if sd <= 0.0:
+        stat[:] = 0.0
+    else:  # the z-score, in place
+        stat -= mu
+        stat /= sd
     prog(1.0, "noise found")
-    return ndtr(z), z > params.std_ratio
+    return ndtr(stat), stat > params.std_ratio
 
 
-def _paper_noise(pts: np.ndarray, params: FusionParams, prog: Progress) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 4-6 literally (see :func:`statistical_noise`)."""
-    if len(pts) < 2:
-        raise ScanDataError(f"the noise filter needs at least 2 points; got {len(pts)}")
-    order = _spatial_order(pts, params.cube_side_m)
-    sorted_pts = pts[order]
+def _distance_statistic_sorted(sorted_pts: np.ndarray, params: FusionParams, prog: Progress) -> np.ndarray:
+    """Per point of the spatially sorted cloud, the figure the "global" or "local" filter judges:
+    ``D_i``, the mean distance to the ``k`` nearest neighbours (floored at ``_MIN_DISTANCE_M``),
+    or ``log(D_i / mean_j D_j)`` over those neighbours j.
+
+    The k-d tree is queried a sixteenth of ``batch_points`` at a time. The local figure of a
+    point is computed as soon as the D of all its neighbours are known: in the sorted order that
+    is within a batch or two, so only the neighbours of those few points are held, not 12 a point
+    for the whole cloud. Results do not depend on the batches.
+    """
+    k = params.k_neighbours
+    n = len(sorted_pts)
     tree = _tree(sorted_pts)
-    kmax = min(params.max_neighbours, len(pts) - 1)
-    pr_sorted = np.empty(len(pts), dtype=np.float64)
-    count_sorted = np.empty(len(pts), dtype=np.int64)
+    mean_d = np.empty(n, dtype=np.float64)
+    local = params.noise_method == "local"
+    stat = np.empty(n, dtype=np.float64) if local else mean_d
+    index_type = np.int32 if n < 2**31 else np.int64
+    waiting_rows = np.zeros(0, dtype=np.int64)
+    waiting_nbrs = np.zeros((0, k), dtype=index_type)
+    batch = max(1, params.batch_points // 16)
+    for lo in range(0, n, batch):
+        hi = min(n, lo + batch)
+        d, idx = tree.query(sorted_pts[lo:hi], k=k + 1, workers=_workers())
+        mean_d[lo:hi] = np.maximum(d[:, 1:].mean(axis=1), _MIN_DISTANCE_M)
+        del d
+        if local:
+            rows = np.concatenate([waiting_rows, np.arange(lo, hi)])
+            nbrs = np.concatenate([waiting_nbrs, idx[:, 1:].astype(index_type)])
+            ready = nbrs.max(axis=1) < hi  # every neighbour's D is known
+            r = rows[ready]
+            stat[r] = np.log(mean_d[r] / mean_d[nbrs[ready]].mean(axis=1))
+            waiting_rows, waiting_nbrs = rows[~ready], nbrs[~ready]
+        del idx
+        prog(hi / n, "noise: neighbour distances")
+    return stat
+
+
+def _paper_noise_sorted(sorted_pts: np.ndarray, params: FusionParams, prog: Progress) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 4-6 literally (see :func:`statistical_noise`) on the spatially sorted cloud: Pr and the
+    neighbour count within ``nu`` of each point, in the sorted order."""
+    n = len(sorted_pts)
+    tree = _tree(sorted_pts)
+    kmax = min(params.max_neighbours, n - 1)
+    pr_sorted = np.empty(n, dtype=np.float64)
+    count_sorted = np.empty(n, dtype=np.int64)
     batch = max(1, params.batch_points // 8)
-    for lo in range(0, len(pts), batch):
+    for lo in range(0, n, batch):
         d, _ = tree.query(sorted_pts[lo : lo + batch], k=kmax + 1, distance_upper_bound=params.noise_radius_m, workers=_workers())
         d = d[:, 1:]
         valid = np.isfinite(d)
@@ -394,13 +482,8 @@ def _paper_noise(pts: np.ndarray, params: FusionParams, prog: Progress) -> tuple
         gd = np.where(mean_d > 0, gd, 1.0)  # every neighbour on the point itself: not noise
         pr_sorted[lo : lo + batch] = np.where(k > 0, 1.0 - gd, 1.0)  # eq. 6
         count_sorted[lo : lo + batch] = k
-        prog(min(1.0, (lo + batch) / len(pts)), "noise: eq. 4-6")
-    pr = np.empty(len(pts))
-    pr[order] = pr_sorted
-    count = np.empty(len(pts), dtype=np.int64)
-    count[order] = count_sorted
-    noise = (pr > params.sigma) | (count < params.min_neighbours)
-    return pr, noise
+        prog(min(1.0, (lo + batch) / n), "noise: eq. 4-6")
+    return pr_sorted, count_sorted
 
 
 # ------------------------------------------------------------------------------------------------
@@ -467,11 +550,31 @@ def fuse(
         raise ScanDataError("both clouds are empty: nothing to fuse")
     g_extra = _check_extra(ground_extra, len(g), "ground_extra")
     u_extra = _check_extra(uav_extra, len(u), "uav_extra")
-    prog = progress if isinstance(progress, Progress) else Progress(progress)
-    seconds: dict[str, float] = {}
+    return _fuse(lambda: _Merged(np.concatenate([g, u]), len(g), g_extra, u_extra), params,
+                 progress if isinstance(progress, Progress) else Progress(progress))
 
-    pts = np.concatenate([g, u])
-    src = np.concatenate([np.full(len(g), GROUND, np.uint8), np.full(len(u), UAV, np.uint8)])
+
+@dataclass
+class _Merged:
+    """The merged cloud a fusion works on: the ground points (``n_ground``), then the UAV points,
+    one frame, metres; each source's per-point attributes."""
+
+    points: np.ndarray
+    n_ground: int
+    ground_extra: dict[str, np.ndarray]
+    uav_extra: dict[str, np.ndarray]
+
+
+def _fuse(merge: Callable[[], _Merged], params: FusionParams, prog: Progress) -> FusionResult:
+    """:func:`fuse` of the merged cloud ``merge()`` makes. The merged points are this function's
+    own, so they are let go as soon as the noise filter holds its spatially sorted copy of the
+    points still needed: the fusion holds about two copies of the points at its peak, not four."""
+    seconds: dict[str, float] = {}
+    merged = merge()
+    pts, n_ground, g_extra, u_extra = merged.points, merged.n_ground, merged.ground_extra, merged.uav_extra
+    del merged
+    n = len(pts)
+    src = np.concatenate([np.full(n_ground, GROUND, np.uint8), np.full(n - n_ground, UAV, np.uint8)])
     t0 = time.perf_counter()
     prog(0.0, "fusion: removing redundant points")
     keep_r = remove_redundancy(pts, src, params, prog.sub(0.0, 0.5))
@@ -480,27 +583,38 @@ def fuse(
     t0 = time.perf_counter()
     prog(0.5, "fusion: removing noise")
     idx_r = np.flatnonzero(keep_r)
-    prob_r, noise_r = statistical_noise(pts[idx_r], params, prog.sub(0.5, 1.0))
-    noise_r &= np.isin(src[idx_r], params.noise_sources)
+    _check_noise_size(len(idx_r), params)
+    order = _spatial_order(pts, params.cube_side_m, rows=idx_r)
+    sorted_pts = _gather(pts, order, through=idx_r)
+    src_r = src[idx_r]
+    del pts, idx_r  # the sorted copy holds every point still needed
+    prob_r, noise_r = _noise_of_sorted(sorted_pts, order, params, prog.sub(0.5, 0.95))
+    noise_r &= np.isin(src_r, params.noise_sources)
     if params.canopy_top_cell_m > 0:
-        noise_r &= ~canopy_top(pts[idx_r], params.canopy_top_cell_m, params.canopy_top_points)
+        noise_r &= ~_canopy_top_of(sorted_pts, order, params.canopy_top_cell_m, params.canopy_top_points)
     seconds["noise"] = time.perf_counter() - t0
 
+    keep_sorted = _inverse(order)[~noise_r]  # where each kept point sits in the sorted copy
+    del order
+    points = _gather(sorted_pts, keep_sorted)
+    del sorted_pts, keep_sorted
+    idx_r = np.flatnonzero(keep_r)
     kept = idx_r[~noise_r]
     prob = prob_r[~noise_r]
+    del prob_r
     counts: dict[str, dict[str, int]] = {}
     for code, name in SOURCE_NAMES.items():
-        in_src = src == code
         counts[name] = {
-            "input": int(in_src.sum()),
-            "redundant": int((in_src & ~keep_r).sum()),
-            "noise": int(in_src[idx_r[noise_r]].sum()),
-            "kept": int(in_src[kept].sum()),
+            "input": int((src == code).sum()),
+            "redundant": int(((src == code) & ~keep_r).sum()),
+            "noise": int((src_r[noise_r] == code).sum()),
+            "kept": int((src_r[~noise_r] == code).sum()),
         }
     counts["total"] = {key: counts["ground"][key] + counts["uav"][key] for key in ("input", "redundant", "noise", "kept")}
 
-    ground_index = kept[src[kept] == GROUND]
-    uav_index = kept[src[kept] == UAV] - len(g)
+    source = src[kept]
+    ground_index = kept[source == GROUND]
+    uav_index = kept[source == UAV] - n_ground
     extra: dict[str, np.ndarray] = {}
     for name in sorted(set(g_extra) | set(u_extra)):
         a = g_extra.get(name)
@@ -509,10 +623,10 @@ def fuse(
         a_kept = a[ground_index] if a is not None else np.zeros((len(ground_index),) + b.shape[1:], dtype)
         b_kept = b[uav_index] if b is not None else np.zeros((len(uav_index),) + a.shape[1:], dtype)
         extra[name] = np.concatenate([a_kept.astype(dtype), b_kept.astype(dtype)])
-    prog(1.0, f"fusion: kept {len(kept):,} of {len(pts):,} points")
+    prog(1.0, f"fusion: kept {len(kept):,} of {n:,} points")
     return FusionResult(
-        points=pts[kept],
-        source=src[kept],
+        points=points,
+        source=source,
         ground_index=ground_index,
         uav_index=uav_index,
         noise_probability=prob,
@@ -526,19 +640,43 @@ def fuse(
 def canopy_top(points: np.ndarray, cell_m: float, per_cell: int) -> np.ndarray:
     """Mask of the ``per_cell`` highest points of every ``cell_m`` XY cell: the canopy surface
     (tree tops), which the UAV sees sparsely and which a density-based noise test would otherwise
-    thin out exactly where the UAV adds what the ground-based cloud lacks."""
-    if len(points) == 0:
-        return np.zeros(0, dtype=bool)
-    ij = np.floor((points[:, :2] - points[:, :2].min(axis=0)) / cell_m).astype(np.int64)
-    flat = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
-    order = np.lexsort((-points[:, 2], flat))
-    f = flat[order]
-    start = np.ones(len(f), dtype=bool)
-    start[1:] = f[1:] != f[:-1]
-    run_start = np.maximum.accumulate(np.where(start, np.arange(len(f)), 0))
-    rank = np.arange(len(f)) - run_start
-    mask = np.zeros(len(points), dtype=bool)
-    mask[order[rank < per_cell]] = True
+    thin out exactly where the UAV adds what the ground-based cloud lacks. Among points of equal
+    height the earlier one counts as higher."""
+    return _canopy_top_of(points, None, cell_m, per_cell)
+
+
+def _canopy_top_of(points: np.ndarray, index: Optional[np.ndarray], cell_m: float, per_cell: int) -> np.ndarray:
+    """:func:`canopy_top` of the cloud whose point ``index[i]`` is ``points[i]`` (``index`` a
+    permutation; None = the identity), as a mask over that cloud.
+
+    Streamed: each :data:`_CHUNK` points' highest ``per_cell`` of each cell join the best found so
+    far, and only those are kept, so it holds a few arrays of the chunk's size and of the number
+    of occupied cells, not six of the cloud's.
+    """
+    n = len(points)
+    mask = np.zeros(n, dtype=bool)
+    if n == 0:
+        return mask
+    lo_xy = np.min([points[lo : lo + _CHUNK, :2].min(axis=0) for lo in range(0, n, _CHUNK)], axis=0)
+    hi_xy = np.max([points[lo : lo + _CHUNK, :2].max(axis=0) for lo in range(0, n, _CHUNK)], axis=0)
+    rows = int(np.floor((hi_xy[1] - lo_xy[1]) / cell_m)) + 1  # floor is monotonic: the largest j
+    best_cell = np.zeros(0, dtype=np.int64)
+    best_neg_z = np.zeros(0, dtype=np.float64)
+    best_index = np.zeros(0, dtype=np.int64)
+    for lo in range(0, n, _CHUNK):
+        p = points[lo : lo + _CHUNK]
+        ij = np.floor((p[:, :2] - lo_xy) / cell_m).astype(np.int64)
+        cell = np.concatenate([best_cell, ij[:, 0] * rows + ij[:, 1]])
+        neg_z = np.concatenate([best_neg_z, -p[:, 2]])
+        at = np.arange(lo, lo + len(p)) if index is None else index[lo : lo + _CHUNK]
+        index_all = np.concatenate([best_index, at])
+        o = np.lexsort((index_all, neg_z, cell))  # by cell, highest first, earlier first
+        c = cell[o]
+        start = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
+        rank = np.arange(len(c)) - np.repeat(start, np.diff(np.r_[start, len(c)]))
+        top = o[rank < per_cell]
+        best_cell, best_neg_z, best_index = cell[top], neg_z[top], index_all[top]
+    mask[best_index] = True
     return mask
 
 
@@ -569,16 +707,62 @@ def fuse_scans(
     coordinates (as written by ``forestreg coregister``). The result's points are in the UAV
     scan's local frame; write them with ``write_fused(path, result, origin_shift=uav.origin_shift)``.
     Intensities are carried along when both scans have them."""
+    m = _check_matrix(matrix)
+    return _fuse(lambda: _merge_scans(ground, uav, m), params, progress if isinstance(progress, Progress) else Progress(progress))
+
+
+def fuse_files(
+    ground_path: str | os.PathLike[str],
+    uav_path: str | os.PathLike[str],
+    matrix: np.ndarray,
+    params: FusionParams = FusionParams(),
+    *,
+    unit_scale: float = 1.0,
+    progress: Optional[ProgressCallback | Progress] = None,
+) -> tuple[FusionResult, np.ndarray]:
+    """:func:`fuse_scans` of two point files (any format :func:`~forestreg.engine.io.read_scan`
+    reads; ``unit_scale`` metres per file unit, ``matrix`` in metres): the result and the UAV
+    scan's origin shift, for :func:`write_fused`.
+
+    The ground-based file is read only when the merged cloud is built and its points are let go
+    right after, so the fusion of files holds one scan's points less than reading the scans and
+    calling :func:`fuse_scans`.
+    """
+    from ..io import read_scan
+    from ..io.base import check_readable
+
+    m = _check_matrix(matrix)
+    check_readable(ground_path)  # read only once the work starts: a missing file is said first
+    uav = read_scan(uav_path, unit_scale=unit_scale)
+    result = _fuse(lambda: _merge_scans(read_scan(ground_path, unit_scale=unit_scale), uav, m), params,
+                   progress if isinstance(progress, Progress) else Progress(progress))
+    return result, np.asarray(uav.origin_shift, dtype=np.float64)
+
+
+def _check_matrix(matrix: np.ndarray) -> np.ndarray:
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape != (4, 4) or not np.isfinite(m).all():
         raise ParameterError("the transform must be a finite 4x4 matrix")
+    return m
+
+
+def _merge_scans(ground: "Scan", uav: "Scan", matrix: np.ndarray) -> _Merged:
+    """The merged cloud of :func:`fuse_scans`: the ground points brought into the UAV scan's local
+    frame (file matrix ``matrix``) written straight into it, :data:`_CHUNK` at a time, then the
+    UAV points; intensities when both scans have them."""
     # ground local -> ground file -> UAV file -> UAV local
-    local = m.copy()
-    local[:3, 3] = m[:3, :3] @ np.asarray(ground.origin_shift, dtype=np.float64) + m[:3, 3] - np.asarray(uav.origin_shift, dtype=np.float64)
-    g = apply_transform(local, ground.points)
-    g_extra = {"intensity": ground.intensity} if ground.intensity is not None and uav.intensity is not None else None
-    u_extra = {"intensity": uav.intensity} if g_extra is not None else None
-    return fuse(g, uav.points, params, ground_extra=g_extra, uav_extra=u_extra, progress=progress)
+    local = matrix.copy()
+    local[:3, 3] = matrix[:3, :3] @ np.asarray(ground.origin_shift, dtype=np.float64) + matrix[:3, 3] - np.asarray(uav.origin_shift, dtype=np.float64)
+    n_g = len(ground.points)
+    if n_g + len(uav.points) == 0:
+        raise ScanDataError("both clouds are empty: nothing to fuse")
+    pts = np.empty((n_g + len(uav.points), 3), dtype=np.float64)
+    for lo in range(0, n_g, _CHUNK):
+        hi = min(lo + _CHUNK, n_g)
+        pts[lo:hi] = apply_transform(local, ground.points[lo:hi])
+    pts[n_g:] = uav.points
+    both = ground.intensity is not None and uav.intensity is not None
+    return _Merged(pts, n_g, {"intensity": ground.intensity} if both else {}, {"intensity": uav.intensity} if both else {})
 
 
 def write_fused(
@@ -586,16 +770,18 @@ def write_fused(
     result: FusionResult,
     *,
     origin_shift: Optional[np.ndarray] = None,
+    unit_scale: float = 1.0,
 ) -> None:
     """Write the fused cloud as LAS 1.4 (point format 6), LAZ if ``path`` ends in ``.laz``.
 
-    Coordinates are ``result.points + origin_shift`` (file coordinates; shift default zero), at
-    0.1 mm resolution. Each point's source (1 ground-based, 2 UAV) is in ``point_source_id`` and in
-    an extra uint8 dimension ``source``; ``result.extra["intensity"]``, when present, becomes the
-    intensity. Written atomically (temporary file, then renamed).
+    Coordinates are ``(result.points + origin_shift) / unit_scale`` (file coordinates in the
+    file's units; shift default zero, metres), at 0.1 mm resolution. Each point's source (1
+    ground-based, 2 UAV) is in ``point_source_id`` and in an extra uint8 dimension ``source``;
+    ``result.extra["intensity"]``, when present, becomes the intensity. Written
+    :data:`_CHUNK` points at a time, atomically (temporary file, then renamed).
     """
 
-    from ..io.las import las_points
+    from ..io.las import LasChunkWriter, intensity_to_uint16
 
     target = str(path)
     suffix = os.path.splitext(target)[1].lower()
@@ -604,15 +790,20 @@ def write_fused(
     pts = np.asarray(result.points, dtype=np.float64)
     if len(pts) == 0:
         raise ScanWriteError(f"{target}: the fused cloud is empty; nothing to write")
-    shift = np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64).reshape(3)
-    las = las_points(
-        pts, shift, intensity=result.extra.get("intensity"), system_identifier="forestreg fusion",
-        extra_dims=[("source", np.uint8, "1 ground-based, 2 UAV")],
-    )
-    las.point_source_id = np.asarray(result.source).astype(np.uint16)
-    las.source = np.asarray(result.source).astype(np.uint8)
+    scale = float(unit_scale)
+    shift = (np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64).reshape(3)) / scale
+    lo = np.min([(pts[i : i + _CHUNK] / scale).min(axis=0) for i in range(0, len(pts), _CHUNK)], axis=0) + shift
+    hi = np.max([(pts[i : i + _CHUNK] / scale).max(axis=0) for i in range(0, len(pts), _CHUNK)], axis=0) + shift
+    intensity = result.extra.get("intensity")
+    intensity = None if intensity is None else intensity_to_uint16(intensity)  # over the whole cloud, then by chunk
+    source = np.asarray(result.source)
     with atomic_path(target) as tmp:
-        las.write(str(tmp), do_compress=suffix == ".laz")
+        with LasChunkWriter(tmp, lo, hi, compress=suffix == ".laz", system_identifier="forestreg fusion",
+                            extra_dims=[("source", np.uint8, "1 ground-based, 2 UAV")]) as out:
+            for i in range(0, len(pts), _CHUNK):
+                part = source[i : i + _CHUNK]
+                out.write(pts[i : i + _CHUNK] / scale, shift, intensity=None if intensity is None else intensity[i : i + _CHUNK],
+                          fields={"point_source_id": part.astype(np.uint16), "source": part.astype(np.uint8)})
 
 
 def _workers() -> int:
@@ -630,5 +821,6 @@ __all__ = [
     "statistical_noise",
     "fuse",
     "fuse_scans",
+    "fuse_files",
     "write_fused",
 ]

@@ -312,21 +312,25 @@ class LasChunkWriter:
     metres; generous bounds cost nothing but a coarser scale beyond 200 km); the written header's
     bounds and counts are the points'. Each :meth:`write` takes points ``local + shift`` with
     optional intensity and a ``scan_id`` per point when the writer was made ``with_scan_id``.
-    Intensities are mapped to uint16 chunk by chunk (:func:`intensity_to_uint16`).
+    Intensities are mapped to uint16 chunk by chunk (:func:`intensity_to_uint16`): map them over
+    the whole cloud first when they are not uint16 already. ``extra_dims`` (name, dtype,
+    description) are further extra-bytes dimensions, filled through :meth:`write`'s ``fields``.
     """
 
-    def __init__(self, path: Path, lo: np.ndarray, hi: np.ndarray, *, compress: bool, with_scan_id: bool = False) -> None:
+    def __init__(self, path: Path, lo: np.ndarray, hi: np.ndarray, *, compress: bool, with_scan_id: bool = False,
+                 extra_dims: Sequence[tuple[str, type, str]] = (), system_identifier: str = "forestreg") -> None:
         import laspy
 
-        extra = [("scan_id", np.uint16, "scan index")] if with_scan_id else []
-        self.header = las_header(lo, hi, extra_dims=extra)
+        extra = ([("scan_id", np.uint16, "scan index")] if with_scan_id else []) + list(extra_dims)
+        self.header = las_header(lo, hi, extra_dims=extra, system_identifier=system_identifier)
         self.with_scan_id = with_scan_id
         self._writer = laspy.open(str(path), mode="w", header=self.header, do_compress=compress)
         self.count = 0
 
     def write(self, local: np.ndarray, shift: np.ndarray, *, intensity: Optional[np.ndarray] = None,
-              scan_id: Optional[np.ndarray] = None) -> None:
-        """Append points ``local + shift`` (N, 3), metres."""
+              scan_id: Optional[np.ndarray] = None, fields: Optional[dict[str, np.ndarray]] = None) -> None:
+        """Append points ``local + shift`` (N, 3), metres; ``fields`` maps point dimension names
+        (standard ones such as ``point_source_id`` or the ``extra_dims``) to (N,) values."""
         import laspy
 
         if len(local) == 0:
@@ -336,6 +340,8 @@ class LasChunkWriter:
               self.header.offsets, float(self.header.scales[0]), intensity)
         if self.with_scan_id:
             record.scan_id = np.asarray(scan_id).astype(np.uint16)
+        for name, values in (fields or {}).items():
+            record[name] = values
         self._writer.write_points(record)
         self.count += len(local)
 
