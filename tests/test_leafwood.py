@@ -144,3 +144,45 @@ def test_wood_probability_equals_the_composition_of_the_public_steps(simulated: 
     expected = np.clip(prob[base_of_point], 0.0, 1.0)
     assert complete.mean() > 0.5 and 0.01 < (expected >= 0.5).mean() < 0.99  # a real mix of wood and leaves
     np.testing.assert_array_equal(simulated["prob"], expected)
+
+
+def test_mixture_columns_fill_a_scale_lacking_neighbours_from_the_next_larger() -> None:
+    # three scales on three voxel sets; base point rows made on demand equal the matrix built by
+    # hand: a scale lacking neighbours takes the next larger scale's (itself filled first), the
+    # largest scale is never filled (its NaN rows are the incomplete ones)
+    from forestreg.engine.trees import leafwood as lw
+
+    rng = np.random.default_rng(4)
+    m, sizes = 40, (30, 12, 5)
+    index = [rng.integers(0, v, m) for v in sizes]
+    for at in index:
+        at[0] = 0
+    measures = []
+    for v in sizes:
+        lin, pla, zen1, zen3 = rng.random(v), rng.random(v), rng.uniform(0, 90, v), rng.uniform(0, 90, v)
+        missing = rng.random(v) < 0.4
+        missing[0] = True  # base point 0 lacks neighbours at every scale (an incomplete row)
+        for a in (lin, pla, zen1, zen3):
+            a[missing] = np.nan
+        measures.append((lin, pla, zen1, zen3, missing))
+    columns = lw._MixtureColumns()
+    for (lin, pla, zen1, zen3, missing), at in zip(measures, index):
+        columns.add(lin, pla, zen1, zen3, missing, at)
+    expected = np.empty((m, 12))
+    for i in range(m):
+        above = None
+        for s in (2, 1, 0):
+            lin, pla, zen1, zen3, missing = measures[s]
+            j = index[s][i]
+            row = np.array([lin[j], pla[j], np.cos(np.radians(zen1[j])), np.cos(np.radians(zen3[j]))])
+            expected[i, 4 * s : 4 * s + 4] = above if (missing[j] and above is not None) else row
+            above = expected[i, 4 * s : 4 * s + 4]
+    np.testing.assert_array_equal(columns.rows(slice(None)), expected)
+    pick = rng.permutation(m)[:17]
+    np.testing.assert_array_equal(columns.rows(pick), expected[pick])
+    assert 0 < np.isfinite(expected).all(axis=1).sum() < m  # complete and incomplete rows both occur
+    # the public function on base-point measures gives the same matrix
+    gathered = [tuple(a[at] for a in scale) for scale, at in zip(measures, index)]
+    x, complete = lw._mixture_x(gathered)
+    np.testing.assert_array_equal(x, expected)
+    np.testing.assert_array_equal(complete, np.isfinite(expected).all(axis=1))

@@ -37,7 +37,7 @@ points of each voxel, and every original point takes the values of its base voxe
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -269,15 +269,30 @@ def _woodness(scales: list[tuple[np.ndarray, np.ndarray, np.ndarray]], counts: n
     """:func:`woodness_score` from each scale's (linearity, planarity, zenith3 in degrees)."""
     num = np.zeros(len(counts))
     den = np.zeros(len(counts))
-    span = params.full_weight_neighbours - params.min_neighbours
     for s, (linearity, planarity, zenith3) in enumerate(scales):
-        upright = np.sin(np.radians(zenith3)) ** 2  # as shape_measures has it
-        evidence = np.maximum(linearity, planarity * upright)
-        del upright
-        weight = np.clip((counts[:, s] - params.min_neighbours) / span, 0.0, 1.0) * (s + 1)
-        ok = np.isfinite(evidence) & (weight > 0)
-        num[ok] += weight[ok] * evidence[ok]
-        den[ok] += weight[ok]
+        _accumulate(num, den, *_scale_evidence(s, linearity, planarity, zenith3, counts[:, s], params))
+    return _rule_score(num, den)
+
+
+def _scale_evidence(s: int, linearity: np.ndarray, planarity: np.ndarray, zenith3: np.ndarray, count: np.ndarray,
+                    params: LeafWoodParams) -> tuple[np.ndarray, np.ndarray]:
+    """Scale ``s``'s evidence for wood, ``max(linearity, planarity * sin^2(zenith3))``, and its
+    weight in the woodness average (the neighbour count's ramp times ``s + 1``), per point."""
+    upright = np.sin(np.radians(zenith3)) ** 2  # as shape_measures has it
+    evidence = np.maximum(linearity, planarity * upright)
+    span = params.full_weight_neighbours - params.min_neighbours
+    return evidence, np.clip((count - params.min_neighbours) / span, 0.0, 1.0) * (s + 1)
+
+
+def _accumulate(num: np.ndarray, den: np.ndarray, evidence: np.ndarray, weight: np.ndarray) -> None:
+    """Add a scale's weighted evidence to the woodness average's sums (scales in increasing order)."""
+    ok = np.isfinite(evidence) & (weight > 0)
+    num[ok] += weight[ok] * evidence[ok]
+    den[ok] += weight[ok]
+
+
+def _rule_score(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """The woodness average; 0 where no scale counted."""
     return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
 
 
@@ -304,22 +319,44 @@ def mixture_features(
 def _mixture_x(scales: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, np.ndarray]:
     """:func:`mixture_features` from each scale's (linearity, planarity, zenith1, zenith3 in
     degrees, lacking neighbours)."""
-    n_scales = len(scales)
-    x = np.empty((len(scales[0][0]), 4 * n_scales))
-    above: Optional[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = None  # the filled columns of scale s + 1
-    for s in range(n_scales - 1, -1, -1):
-        linearity, planarity, zenith1, zenith3, missing = scales[s]
-        if above is not None:
-            linearity, planarity = linearity.copy(), planarity.copy()
-            zenith1, zenith3 = zenith1.copy(), zenith3.copy()
-            for mine, theirs in zip((linearity, planarity, zenith1, zenith3), above):
-                mine[missing] = theirs[missing]
-        x[:, 4 * s] = linearity
-        x[:, 4 * s + 1] = planarity
-        x[:, 4 * s + 2] = np.cos(np.radians(zenith1))
-        x[:, 4 * s + 3] = np.cos(np.radians(zenith3))
-        above = (linearity, planarity, zenith1, zenith3)
+    columns = _MixtureColumns()
+    for scale in scales:
+        columns.add(*scale)
+    x = columns.rows(slice(None))
     return x, np.isfinite(x).all(axis=1)
+
+
+class _MixtureColumns:
+    """The mixture's features, kept scale by scale on the points each scale was computed on (its
+    voxels), with each base point's index into them; rows of the (M, 4 * scales) matrix of
+    :func:`mixture_features` are made when needed. Four float64 columns a voxel and a 4-byte
+    index a base point per scale, instead of 32 bytes a base point per scale."""
+
+    def __init__(self) -> None:
+        self.columns: list[np.ndarray] = []
+        self.missing: list[np.ndarray] = []
+        self.index: list[Optional[np.ndarray]] = []
+
+    def add(self, linearity: np.ndarray, planarity: np.ndarray, zenith1: np.ndarray, zenith3: np.ndarray,
+            missing: np.ndarray, index: Optional[np.ndarray] = None) -> None:
+        """The next larger scale: its measures (zeniths in degrees) and where it lacks neighbours,
+        per point of that scale; ``index`` (M,): each base point's row among them (None: the
+        base points themselves)."""
+        self.columns.append(np.column_stack([linearity, planarity, np.cos(np.radians(zenith1)), np.cos(np.radians(zenith3))]))
+        self.missing.append(np.asarray(missing, dtype=bool))
+        self.index.append(None if index is None else index.astype(np.int32 if len(self.columns[-1]) < 2**31 else np.int64))
+
+    def rows(self, which) -> np.ndarray:
+        """Rows ``which`` (indices or a slice of the base points) of the matrix, a scale lacking
+        neighbours filled from the next larger scale (itself filled first)."""
+        at = [which if index is None else index[which] for index in self.index]
+        x = np.empty((len(self.columns[0][at[0]]), 4 * len(self.columns)))
+        for s, columns in enumerate(self.columns):
+            x[:, 4 * s : 4 * s + 4] = columns[at[s]]
+        for s in range(len(self.columns) - 2, -1, -1):
+            lacking = self.missing[s][at[s]]
+            x[lacking, 4 * s : 4 * s + 4] = x[lacking, 4 * s + 4 : 4 * s + 8]
+        return x
 
 
 #: Rows of the mixture's posteriors computed at a time.
@@ -336,6 +373,13 @@ def mixture_wood_share(
     each mapped through a ramp (share 0.3 -> 0, 0.7 -> 1) so a component of mixed verdicts stays
     undecided. Too few points for a mixture: the rule's verdict itself.
     """
+    return _mixture_share(lambda which: x[which], len(x), np.asarray(is_wood_by_rule, dtype=bool), params)
+
+
+def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: np.ndarray, params: LeafWoodParams) -> np.ndarray:
+    """:func:`mixture_wood_share` of the ``n`` rows ``take(which)`` gives (``which``: indices or a
+    slice): the sample the mixture is fitted to and each block of posteriors are made as they are
+    needed, never the whole matrix. ``is_wood_by_rule``: bool, one per row."""
     import warnings
 
     from sklearn.exceptions import ConvergenceWarning
@@ -343,25 +387,27 @@ def mixture_wood_share(
     from threadpoolctl import threadpool_limits
 
     k = params.n_components
-    if len(x) < 20 * k:
+    if n < 20 * k:
         return is_wood_by_rule.astype(np.float64)
     rng = np.random.default_rng(params.seed)
-    fit = rng.choice(len(x), size=min(len(x), params.max_fit_points), replace=False)
+    fit = rng.choice(n, size=min(n, params.max_fit_points), replace=False)
     mixture = GaussianMixture(k, covariance_type="full", reg_covar=1e-4, random_state=params.seed, max_iter=100)
     # small matrices: BLAS threads only fight each other (several times slower on a busy machine)
     with threadpool_limits(1), warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        mixture.fit(x[fit])
+        mixture.fit(take(fit))
         # row by row the same posteriors, in blocks that stay in the cache (a third of the time),
         # on threads (NumPy's array operations release the interpreter lock)
-        posterior = np.empty((len(x), k))
+        posterior = np.empty((n, k))
 
         def block(a: int, b: int) -> None:
-            posterior[a:b] = mixture.predict_proba(x[a:b])
+            posterior[a:b] = mixture.predict_proba(take(slice(a, b)))
 
-        run_blocks(block, len(x), block=_POSTERIOR_BLOCK)
+        run_blocks(block, n, block=_POSTERIOR_BLOCK)
     mass = posterior.sum(axis=0)
-    share = (posterior * is_wood_by_rule[:, None]).sum(axis=0) / np.maximum(mass, 1e-12)
+    # the rows the rule calls wood, summed: what the sum of posterior * rule gives (the other rows
+    # add exact zeros), without a temporary the size of the posteriors
+    share = posterior[is_wood_by_rule].sum(axis=0) / np.maximum(mass, 1e-12)
     share = np.clip((share - 0.3) / 0.4, 0.0, 1.0)
     return posterior @ share
 
@@ -402,27 +448,31 @@ def wood_probability(
     progress = progress or Progress()
     prm = params
     base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0))
-    # per scale only what the rule and the mixture read (33 bytes a base point and scale, not the
-    # 72 of the features and their shape measures), each computed on the scale's voxels, then
-    # handed to the base points: the same values as from the whole feature matrix
-    scales, counts = [], np.zeros((len(base), len(prm.radii_m)), dtype=np.int64)
+    # scale by scale into what the rule and the mixture read: the rule's weighted sums over the
+    # base points, and the mixture's columns kept on the scale's voxels (:class:`_MixtureColumns`);
+    # the same values as from the whole feature matrix
+    columns = _MixtureColumns()
+    num, den = np.zeros(len(base)), np.zeros(len(base))
     for s, f, count, voxel_of_base in _scale_features(base, prm, progress.sub(0.0, 0.7)):
         linearity, planarity, _ = shape_measures(f, 0)
-        scales.append(tuple(v[voxel_of_base] for v in (linearity, planarity, f[:, 3], f[:, 5], np.isnan(f[:, 0]))))
-        counts[:, s] = count[voxel_of_base]
-        del f, count, voxel_of_base, linearity, planarity
-    rule = _woodness([(lin, pla, zen3) for lin, pla, _, zen3, _ in scales], counts, prm) >= prm.wood_score_threshold
-    del counts
+        evidence, weight = _scale_evidence(s, linearity, planarity, f[:, 5], count, prm)
+        _accumulate(num, den, evidence[voxel_of_base], weight[voxel_of_base])
+        columns.add(linearity, planarity, f[:, 3], f[:, 5], np.isnan(f[:, 0]), voxel_of_base)
+        del f, count, voxel_of_base, linearity, planarity, evidence, weight
+    rule = _rule_score(num, den) >= prm.wood_score_threshold
+    del num, den
     progress(0.75, "fitting the mixture")
-    x, complete = _mixture_x(scales)
-    del scales  # not needed past here: let go before the mixture
+    complete = np.empty(len(base), dtype=bool)
+    for a in range(0, len(base), _POSTERIOR_BLOCK):
+        complete[a : a + _POSTERIOR_BLOCK] = np.isfinite(columns.rows(slice(a, a + _POSTERIOR_BLOCK))).all(axis=1)
     prob = np.zeros(len(base))
-    if complete.all():  # the usual case: no copy of the mixture's features
-        prob[:] = prm.score_weight * rule + (1.0 - prm.score_weight) * mixture_wood_share(x, rule, prm)
+    if complete.all():
+        prob[:] = prm.score_weight * rule + (1.0 - prm.score_weight) * _mixture_share(columns.rows, len(base), rule, prm)
     elif complete.any():
-        share = mixture_wood_share(x[complete], rule[complete], prm)
-        prob[complete] = prm.score_weight * rule[complete] + (1.0 - prm.score_weight) * share
-    del x
+        rows = np.flatnonzero(complete)
+        share = _mixture_share(lambda which: columns.rows(rows[which]), len(rows), rule[rows], prm)
+        prob[rows] = prm.score_weight * rule[rows] + (1.0 - prm.score_weight) * share
+    columns = None  # let go before the smoothing
     progress(0.9, "smoothing")
     prob = smooth_over_neighbours(base, prob, prm.smoothing_radius_m, prm.smoothing_neighbours)
     progress(1.0, "leaf-wood separation done")
