@@ -23,7 +23,9 @@ plot of `--only bigplot`; `--quick`: a few minutes)::
    left out by ``--quick``).
 6. System B at full size (:mod:`benchmarks.system_b`): ground-based/UAV co-registration, fusion
    and the tree inventory of the fused cloud.
-7. A plot of ten ~30 M-point scans registered and merged into one COPC file within 4 GB
+7. Peak memory of System B's commands (``coregister``, ``fuse``, ``trees``) against the budget of
+   3x their raw point arrays + 300 MB (:mod:`benchmarks.command_memory`; left out by ``--quick``).
+8. A plot of ten ~30 M-point scans registered and merged into one COPC file within 4 GB
    (:mod:`benchmarks.big_plot`; about an hour: only with ``--only bigplot``, left out by default
    and by ``--quick``).
 
@@ -48,12 +50,13 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import big_plot, big_scan, coarse_matcher, peers, plot_speed, system_b
+    from . import big_plot, big_scan, coarse_matcher, command_memory, peers, plot_speed, system_b
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import big_plot  # type: ignore[no-redef]
     import big_scan  # type: ignore[no-redef]
     import coarse_matcher  # type: ignore[no-redef]
+    import command_memory  # type: ignore[no-redef]
     import peers  # type: ignore[no-redef]
     import plot_speed  # type: ignore[no-redef]
     import system_b  # type: ignore[no-redef]
@@ -307,8 +310,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated plot and of the VOP sets (default 0)")
     ap.add_argument("--json", metavar="FILE", type=Path, help="also write every row to this JSON file")
     ap.add_argument("--runs", type=int, default=3, help="timed rounds of the whole-command comparison (default 3)")
-    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b"), action="append",
-                    help="run only these parts (repeatable; default all but bigplot; --quick leaves out plot and big). "
+    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands"), action="append",
+                    help="run only these parts (repeatable; default all but bigplot; --quick leaves out plot, big and commands). "
                          "bigplot: ten ~30 M-point scans registered and merged as COPC, about an hour, so only when named")
     ap.add_argument("--workdir", type=Path, help="bigplot: keep its simulated and densified scans here (default bench_out/; reused)")
     args = ap.parse_args(argv)
@@ -319,7 +322,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     print(f"seed {args.seed}{', quick (no ~3 M point pair)' if args.quick else ''}", flush=True)
     print()
 
-    parts = set(args.only or (("pairs", "peers", "coarse", "system_b") if args.quick else ("pairs", "peers", "plot", "big", "coarse", "system_b")))
+    parts = set(args.only or (("pairs", "peers", "coarse", "system_b") if args.quick else ("pairs", "peers", "plot", "big", "coarse", "system_b", "commands")))
     pair_rows: list[dict[str, Any]] = []
     peer_rows: list[dict[str, Any]] = []
     coarse_rows: list[dict[str, Any]] = []
@@ -363,12 +366,17 @@ def main(argv: Optional[list[str]] = None) -> int:
         system_b_rows = system_b.run(seed=args.seed, quick=args.quick)
         print(system_b.format_rows(system_b_rows))
         print()
+    command_rows: list[dict[str, Any]] = []
+    if "commands" in parts:
+        command_rows = command_memory.run(runs=args.runs)
+        print(command_memory.format_rows(command_rows))
+        print(flush=True)
     wall = time.perf_counter() - t_start
     print(f"total benchmark wall time {wall:.0f} s")
 
     if args.json is not None:
         payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
-                   "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "big_plot": big_plot_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows}
+                   "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "big_plot": big_plot_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows, "commands": command_rows}
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0
