@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -66,9 +67,11 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
     scale = UNITS[units]
     out = check_output_folder(out, "coregister", inputs=[ground_path, uav_path])
     t0 = time.perf_counter()
-    ground = read_scan(ground_path, unit_scale=scale)
-    uav = read_scan(uav_path, unit_scale=scale)
+    # the intensities serve neither the co-registration nor its report: not held (3.4 M points: 13 MB)
+    ground = dataclasses.replace(read_scan(ground_path, unit_scale=scale), intensity=None)
+    uav = dataclasses.replace(read_scan(uav_path, unit_scale=scale), intensity=None)
     read_s = time.perf_counter() - t0
+
     def steps(fraction: float, message: str = "") -> None:  # one line per step above a live bar
         reporter(fraction, message)
         if reporter.mode == "bar" and message.startswith("[") and sys.stderr.isatty():
