@@ -217,7 +217,11 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
     import tempfile
 
     from ..engine.tls.plot import ScanCache, add_neighbour_links, adjust_poses, register_project, write_merged, write_poses
+    from .common import import_in_background
 
+    # the report's figures need matplotlib (~0.4 s of imports): loaded while the scans are
+    # registered, not on the single thread that writes the report at the end
+    import_in_background(".engine.report.plot_report")
     if scans is None:
         scans = ScanCache(project)
         _check_scans_near_their_scanners(project, scans)
