@@ -448,6 +448,9 @@ def wood_probability(
     progress = progress or Progress()
     prm = params
     base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0))
+    # the points are not needed past their thinning: an array made for this call (the caller's
+    # p[vegetation]) is let go here, not at the return
+    del p, points
     # scale by scale into what the rule and the mixture read: the rule's weighted sums over the
     # base points, and the mixture's columns kept on the scale's voxels (:class:`_MixtureColumns`);
     # the same values as from the whole feature matrix
