@@ -77,6 +77,7 @@ _LAZY = {
     "CoregistrationResult": ".engine.coreg.coregister",
     "fuse": ".engine.coreg.fusion",
     "fuse_scans": ".engine.coreg.fusion",
+    "fuse_files": ".engine.coreg.fusion",
     "FusionParams": ".engine.coreg.fusion",
     "FusionResult": ".engine.coreg.fusion",
     "measure_trees": ".engine.trees.inventory",

@@ -54,7 +54,10 @@ class Run:
 
 def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeout_s: float = 1800.0, log: Optional[Path] = None) -> Run:
     """Run ``argv`` to completion; its wall time and the peak memory the kernel accounted to it.
-    Its output is dropped, or written to ``log`` (stdout and stderr) when given."""
+    Its output is dropped, or written to ``log`` (stdout and stderr) when given.
+
+    The peak is the child's ``ru_maxrss``, which includes the memory of this process at the fork
+    (the kernel keeps the larger of the two across ``exec``): call it from a small process."""
     t0 = time.perf_counter()
     sink = subprocess.DEVNULL if log is None else open(log, "wb")
     try:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -59,6 +58,7 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
     from ..engine.coreg.coregister import coregister
     from ..engine.io import read_scan
     from ..engine.io.tables import write_keypoints_csv
+    from ..engine.report.samples import profile_sample
     from .common import run_summary
 
     reporter = reporter or Reporter("none", "coregister")
@@ -66,11 +66,18 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
         params = coregistration_params(argparse.Namespace())
     scale = UNITS[units]
     out = check_output_folder(out, "coregister", inputs=[ground_path, uav_path])
-    t0 = time.perf_counter()
-    # the intensities serve neither the co-registration nor its report: not held (3.4 M points: 13 MB)
-    ground = dataclasses.replace(read_scan(ground_path, unit_scale=scale), intensity=None)
-    uav = dataclasses.replace(read_scan(uav_path, unit_scale=scale), intensity=None)
-    read_s = time.perf_counter() - t0
+    # the scans are read inside the co-registration, which lets each full cloud go once thinned;
+    # kept here: each scan's frame and the points its figure draws
+    kept: dict = {"read_s": 0.0}
+
+    def reader(path, role: str):
+        def load():
+            t0 = time.perf_counter()
+            scan = read_scan(path, unit_scale=scale)
+            kept["read_s"] += time.perf_counter() - t0
+            kept[role], kept[role + "_profile"] = scan.without_points(), profile_sample(scan.points, role)
+            return scan
+        return load
 
     def steps(fraction: float, message: str = "") -> None:  # one line per step above a live bar
         reporter(fraction, message)
@@ -80,10 +87,11 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
             tqdm.write(message, file=sys.stderr)
 
     try:
-        result = coregister(ground, uav, params, progress=steps)
+        result = coregister(reader(ground_path, "ground"), reader(uav_path, "uav"), params, progress=steps)
     finally:
         reporter.close()
-    summary, ok = run_summary(result, {"read_s": read_s}, {"ground_file": ground_path, "uav_file": uav_path}, units, scale,
+    ground, uav = kept["ground"], kept["uav"]
+    summary, ok = run_summary(result, {"read_s": kept["read_s"]}, {"ground_file": ground_path, "uav_file": uav_path}, units, scale,
                               facts={"distance_threshold_m": params.matching.distance_threshold_m})
     pairs = result.matched_after_icp if result.matched_after_icp is not None else (
         result.match.pairs if result.match is not None else np.zeros((0, 2), dtype=int))
@@ -102,7 +110,7 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
             try:
                 from ..engine.report.coregistration_report import write_coregistration_report
 
-                write_coregistration_report(result, tmp, ground.points, uav.points)
+                write_coregistration_report(result, tmp, kept["ground_profile"], kept["uav_profile"])
             except Exception as exc:  # a figure must never lose the result
                 log.warning("could not draw the figure: %s", exc)
         if ok:

@@ -408,3 +408,24 @@ def test_real_coarse_icp_corrects_a_keypoint_solution_degrees_off(shared_data):
         ).matrix
         rot, shift = _errors_at_centre(m, fine, mls.points)
         assert rot < 0.2 and shift < 0.1, (yaw, rot, shift)
+
+
+def test_scans_given_as_readers_give_the_same_result():
+    # coregister reads a scan given as a function itself (once), and lets its full cloud go once
+    # thinned: the same result as the scans given whole, frames (names, shifts) included
+    case, whole = _result(*CASES["TLS, heading -75 deg, UTM coordinates"])
+    calls = []
+
+    def reader(scan):
+        def read():
+            calls.append(scan.name)
+            return scan
+        return read
+
+    read = coregister(reader(case.ground), reader(case.uav))
+    assert calls == [case.ground.name, case.uav.name]
+    assert read.ok and whole.ok
+    np.testing.assert_array_equal(read.matrix, whole.matrix)
+    np.testing.assert_array_equal(read.ground_shift, case.ground.origin_shift)
+    np.testing.assert_array_equal(read.uav_shift, case.uav.origin_shift)
+    assert (read.ground_name, read.uav_name) == (whole.ground_name, whole.uav_name)

@@ -28,7 +28,7 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any, Callable, Optional, Union
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -311,21 +311,28 @@ def coregister_points(
     eigenproblems, 6x6 solves, the DEM's per-triangle interpolation weights), and a second BLAS
     thread only adds hand-overs (on a busy 2-core machine they made a 0.01 s interpolation take
     0.3-4 s). The k-d tree queries keep their own threads."""
+    return _limited(lambda: (ground, uav), params, as_progress(progress), ground_terrain, uav_terrain)
+
+
+def _limited(load: Callable[[], tuple[np.ndarray, np.ndarray]], params: CoregistrationParams, progress: Progress,
+             ground_terrain: Optional[TerrainModel], uav_terrain: Optional[TerrainModel]) -> CoregistrationResult:
+    """:func:`_coregister_points` with BLAS and OpenMP single-threaded (see :func:`coregister_points`)."""
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1, user_api="blas"), threadpool_limits(limits=1, user_api="openmp"):
-        return _coregister_points(ground, uav, params, as_progress(progress), ground_terrain, uav_terrain)
+        return _coregister_points(load, params, progress, ground_terrain, uav_terrain)
 
 
 def _coregister_points(
-    ground: np.ndarray,
-    uav: np.ndarray,
+    load: Callable[[], tuple[np.ndarray, np.ndarray]],
     params: CoregistrationParams,
     progress: Progress,
     ground_terrain: Optional[TerrainModel],
     uav_terrain: Optional[TerrainModel],
 ) -> CoregistrationResult:
-    """:func:`coregister_points` in the threading set up there."""
+    """:func:`coregister_points` of the clouds ``load()`` returns, in the threading set up there.
+    The full clouds are used only to thin them: when ``load`` made them (files read for this
+    call), they are let go once thinned."""
     from ..core.errors import ScanDataError
 
     timings: dict[str, float] = {}
@@ -349,6 +356,7 @@ def _coregister_points(
         pool.submit(importlib.import_module, "hdbscan")
         # 0. one thinned copy of each cloud serves every step (3.4 M backpack points keep ~0.9 M)
         t = time.perf_counter()
+        ground, uav = load()
         g_keep, u_keep = pool.map(lambda p: voxel_thin(p, params.work_voxel_m), (ground, uav))
         ground, uav = ground[g_keep], uav[u_keep]
         timings["thinning_s"] = time.perf_counter() - t
@@ -732,9 +740,13 @@ def _rotation_vector_deg(r: np.ndarray) -> np.ndarray:
     return axis * math.degrees(angle)
 
 
+#: A scan, or a function that reads one (called once, inside :func:`coregister`).
+ScanSource = Union[Scan, Callable[[], Scan]]
+
+
 def coregister(
-    ground: Scan,
-    uav: Scan,
+    ground: ScanSource,
+    uav: ScanSource,
     params: CoregistrationParams = CoregistrationParams(),
     progress: Optional[Progress | ProgressCallback] = None,
 ) -> CoregistrationResult:
@@ -742,9 +754,20 @@ def coregister(
 
     Both scans' points are taken in their local frames; the result's ``matrix`` maps the
     ground-based *file* coordinates (``Scan.file_points``) to the UAV file coordinates:
-    ``p_uav = matrix @ p_ground``.
+    ``p_uav = matrix @ p_ground``. A scan given as a function that reads it (e.g.
+    ``lambda: read_scan(path)``) is read here, and its full cloud let go once thinned (3.4 M
+    points: 80 MB less held through the work).
     """
-    res = coregister_points(ground.points, uav.points, params, as_progress(progress))
+    frames: dict[str, Scan] = {}
+
+    def load() -> tuple[np.ndarray, np.ndarray]:
+        g = ground() if callable(ground) else ground
+        u = uav() if callable(uav) else uav
+        frames["ground"], frames["uav"] = g.without_points(), u.without_points()
+        return g.points, u.points
+
+    res = _limited(load, params, as_progress(progress), None, None)
+    ground, uav = frames["ground"], frames["uav"]
     g_shift = np.asarray(ground.origin_shift, dtype=np.float64)
     u_shift = np.asarray(uav.origin_shift, dtype=np.float64)
     file_matrix = None

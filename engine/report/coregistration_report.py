@@ -23,6 +23,7 @@ import numpy as np  # noqa: E402
 
 from ..core.atomic import atomic_path, write_text_atomic  # noqa: E402
 from ..core.transform import apply as apply_transform
+from .samples import profile_sample
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..coreg.coregister import CoregistrationResult
@@ -31,13 +32,6 @@ GROUND_COLOUR = "#d62728"
 UAV_COLOUR = "#1f77b4"
 
 __all__ = ["coregistration_figure", "write_coregistration_report"]
-
-
-def _sample(points: np.ndarray, limit: int, seed: int = 0) -> np.ndarray:
-    if len(points) <= limit:
-        return points
-    rng = np.random.default_rng(seed)
-    return points[rng.choice(len(points), limit, replace=False)]
 
 
 def coregistration_png(
@@ -81,8 +75,8 @@ def coregistration_png(
         ax.legend(loc="upper right", fontsize=8)
     if panels == 3 and matrix is not None:
         ax = axes[2]
-        g = apply_transform(matrix, _sample(np.asarray(ground_points), 400_000))
-        u = _sample(np.asarray(uav_points), 400_000, 1)
+        g = apply_transform(matrix, profile_sample(ground_points, "ground"))
+        u = profile_sample(uav_points, "uav")
         centre = np.median(g[:, 1])
         gs = g[np.abs(g[:, 1] - centre) < 1.0]
         us = u[np.abs(u[:, 1] - centre) < 1.0]
