@@ -211,7 +211,8 @@ def _spatial_order(points: np.ndarray, cell: float, rows: Optional[np.ndarray] =
     The permutation of ``points[rows]`` (all points when ``rows`` is None) that sorts the cubes'
     integer coordinates (x, then y, then z), stably: ``np.lexsort`` of the three, exactly. One
     int64 key a point is built :data:`_CHUNK` points at a time and radix-sorted, so the sort holds
-    about 32 bytes a point, not the 70 of three key columns and their temporaries.
+    about 24 bytes a point (the keys, their spare and two int32 orders), not the 70 of three key
+    columns and their temporaries.
     """
     n = len(points) if rows is None else len(rows)
     if n == 0:
