@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from forestreg.engine.core.errors import ParameterError, ScanDataError, ScanWriteError
+from forestreg.engine.core.errors import ParameterError, ScanDataError, ScanReadError, ScanWriteError
 from forestreg.engine.coreg.fusion import (
     GROUND,
     PAPER_PR_MAX,
@@ -444,7 +444,7 @@ def test_fuse_files_and_unit_scaled_chunked_writing(planted, tmp_path, monkeypat
     for name in ("points", "source", "ground_index", "uav_index", "noise_probability"):
         np.testing.assert_array_equal(getattr(by_files, name), getattr(by_scans, name))
     np.testing.assert_array_equal(by_files.extra["intensity"], by_scans.extra["intensity"])
-    with pytest.raises(Exception, match="missing.laz"):
+    with pytest.raises(ScanReadError, match="missing.laz: no such file"):
         fusion.fuse_files(tmp_path / "missing.laz", tmp_path / "u.laz", matrix)
 
     write_fused(tmp_path / "whole.laz", by_files, origin_shift=origin)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Callable, Mapping, Optional, Union
 
 import logging
 
@@ -250,3 +250,8 @@ def _shifted(points: np.ndarray, shift: np.ndarray, *, in_place: bool) -> np.nda
             points -= shift
         return points
     return np.ascontiguousarray(points - shift)
+
+
+#: A scan, or a function without arguments that reads it (called once, where the scan is
+#: needed: a registration or co-registration can then let its points go early).
+ScanSource = Union[Scan, Callable[[], Scan]]

@@ -28,7 +28,7 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, Optional, Union
+from typing import Any, Callable, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -37,7 +37,7 @@ from ..core.errors import ParameterError
 from ..geometry.icp import IcpReference, IcpResult, icp, thin
 from ..core.outcome import Outcome
 from ..core.progress import Progress, ProgressCallback, as_progress
-from ..core.scan import Scan
+from ..core.scan import Scan, ScanSource
 from ..terrain.dem import TerrainModel, TerrainParams, terrain_model
 from ..geometry.voxel import voxel_thin
 from ..core.transform import rotation_angle_deg
@@ -740,10 +740,6 @@ def _rotation_vector_deg(r: np.ndarray) -> np.ndarray:
         return np.zeros(3)
     axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2.0 * math.sin(angle))
     return axis * math.degrees(angle)
-
-
-#: A scan, or a function that reads one (called once, inside :func:`coregister`).
-ScanSource = Union[Scan, Callable[[], Scan]]
 
 
 def coregister(

@@ -16,7 +16,7 @@ import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
-from typing import Any, Callable, Optional, Union
+from typing import Any, Optional
 
 import numpy as np
 
@@ -30,7 +30,7 @@ from .vop import VisualOcclusionPoints
 from .params import RegistrationParams
 from ..core.outcome import Outcome, StepTimer
 from ..core.progress import CancelToken, Progress, ProgressCallback
-from ..core.scan import Scan
+from ..core.scan import Scan, ScanSource
 from ..core.transform import rigid_errors, rotation_angle_deg, rotation_from_vector
 from ..core.transform import apply as apply_transform
 
@@ -200,9 +200,6 @@ def _checked_up(up: Optional[np.ndarray], what: str) -> Optional[np.ndarray]:
         raise ParameterError(f"{what} must be a finite non-zero direction (3 numbers), got {up!r}")
     return v / np.linalg.norm(v)
 
-
-#: A scan, or a function without arguments that reads it (see :func:`register`).
-ScanSource = Union[Scan, Callable[[], Scan]]
 
 
 def register(
