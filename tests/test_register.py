@@ -107,3 +107,47 @@ def test_free_space_violation_is_small_for_a_correct_registration(sim_plot):
     plot = sim_plot("mixed_temperate", ((0.0, 0.0), (12.0, -3.0)), seed=2)
     result = register(plot.scans[0].scan, plot.scans[1].scan)
     assert result.ok and result.free_space_violation is not None and result.free_space_violation < 0.1
+
+
+def test_scans_read_by_the_engine_are_let_go_once_centred(sim_plot, monkeypatch):
+    """Scans given as readers: each scan's own points are gone before its levelling and grids
+    (only the float32 centred copy is held), and the result is that of the scans given whole."""
+    import dataclasses
+    import gc
+    import threading
+    import weakref
+
+    from forestreg.engine.tls import pair as pair_module
+
+    plot = sim_plot("planted_conifer", ((0.0, 0.0), (9.0, 4.0)), seed=1)
+    ref, mov = plot.scans
+    raw: list = []  # weak references to the points each reader made
+
+    def reader(scan):
+        def read():
+            copy = dataclasses.replace(scan.scan, points=scan.scan.points.copy())
+            raw.append(weakref.ref(copy.points))
+            return copy
+        return read
+
+    centring: dict = {}  # thread -> the raw points it centred
+    alive: list[bool] = []
+    real_centre, real_prepare = pair_module.centre_scan, pair_module.prepare_centred
+
+    def centre(points, *args, **kwargs):
+        centring[threading.get_ident()] = next(r for r in raw if r() is points)
+        return real_centre(points, *args, **kwargs)
+
+    def prepare(*args, **kwargs):
+        gc.collect()
+        alive.append(centring[threading.get_ident()]() is not None)
+        return real_prepare(*args, **kwargs)
+
+    monkeypatch.setattr(pair_module, "centre_scan", centre)
+    monkeypatch.setattr(pair_module, "prepare_centred", prepare)
+    read = register(reader(ref), reader(mov))
+    monkeypatch.undo()
+    whole = register(ref.scan, mov.scan)
+    assert len(raw) == 2 and alive == [False, False]
+    np.testing.assert_array_equal(read.matrix, whole.matrix)
+    _check_against_truth(read, plot.relative_pose(0, 1))

@@ -211,3 +211,41 @@ def test_qsm_median_equals_numpy_median():
         want = float(np.median(x))
         assert _median(x) == want and np.signbit(_median(x)) == np.signbit(want)
     assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))
+
+
+def test_centring_keeps_the_near_points_a_mask_would():
+    from forestreg.engine.tls.prepare import _centred_float32
+
+    rng = np.random.default_rng(11)
+    pts = rng.uniform(-60, 60, (40000, 3)) * [1, 1, 0.2] + [1000.0, -2000.0, 50.0]
+    origin = np.array([1003.5, -1998.25, 51.0])
+    centred, near = _centred_float32(pts, origin, 48.0**2, 15.0**2)
+    # the plain computation: float64 differences cast to float32, squared distances in float32
+    c = (pts - origin).astype(np.float32)
+    d2 = c[:, 0] * c[:, 0]
+    d2 += c[:, 1] * c[:, 1]
+    d2 += c[:, 2] * c[:, 2]
+    want = c[d2 <= np.float32(48.0**2)]
+    np.testing.assert_array_equal(centred, want)
+    np.testing.assert_array_equal(near, want[d2[d2 <= np.float32(48.0**2)] <= np.float32(15.0**2)])
+    assert 1000 < len(near) < len(centred) < len(pts)
+    again, none = _centred_float32(pts, origin, 48.0**2)
+    np.testing.assert_array_equal(again, want)
+    assert none is None
+
+
+def test_icp_normals_kept_row_by_row_equal_the_normals_of_the_whole_level():
+    from forestreg.engine.geometry.icp import IcpReference, _normals_at
+
+    rng = np.random.default_rng(12)
+    pts = rng.uniform(0, 4, (30000, 3)) * [1, 1, 0.25]
+    reference = IcpReference(pts)
+    level, grid = reference.level(0.1)
+    whole = _normals_at(level, grid, np.arange(len(level)))
+    seen = np.zeros(len(level), dtype=bool)
+    for _ in range(5):  # overlapping requests, repeated rows, as ICP iterations ask
+        index = rng.integers(0, len(level), 700)
+        np.testing.assert_array_equal(reference.normals(0.1, index), whole[index])
+        seen[index] = True
+    row, computed = reference._normals[round(0.1, 6)]
+    assert len(computed) == seen.sum() and (row >= 0).sum() == seen.sum()  # only the rows asked for

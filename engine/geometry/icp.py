@@ -93,7 +93,7 @@ class IcpReference:
         # float32 levelled points stay float32 (a 30 M-point scan: 360 MB, not 720 MB)
         self.points = pts if pts.dtype in (np.float32, np.float64) else pts.astype(np.float64)
         self._levels: dict[float, tuple[np.ndarray, SphereGrid]] = {}
-        #: per level: its normals (rows filled where computed) and which rows are
+        #: per level: each point's row among its normals computed so far (-1: none), and those rows
         self._normals: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         self._full_tree: cKDTree | None = None
         self._lock = threading.RLock()
@@ -151,15 +151,19 @@ class IcpReference:
         ref, grid = self.level(voxel_m)
         key = round(float(voxel_m), 6)
         with self._lock:
-            if key not in self._normals:  # rows are written where computed: nothing to fill now
-                self._normals[key] = (np.empty((len(ref), 3)), np.zeros(len(ref), dtype=bool))
-            normals, done = self._normals[key]
-            need = index[~done[index]]  # after a stage's first iteration, few
+            if key not in self._normals:
+                # each level point's row among the normals computed so far (-1: none yet), and
+                # those rows: 4 bytes a level point, not 25 for a full (M, 3) array of which an
+                # ICP run fills a few per cent
+                self._normals[key] = (np.full(len(ref), -1, dtype=np.int32 if len(ref) < 2**31 else np.int64), np.zeros((0, 3)))
+            row, computed = self._normals[key]
+            need = index[row[index] < 0]  # after a stage's first iteration, few
             if len(need):
                 need = np.unique(need)
-                normals[need] = _normals_at(ref, grid, need)
-                done[need] = True
-            return normals[index]
+                row[need] = np.arange(len(computed), len(computed) + len(need))
+                computed = np.concatenate([computed, _normals_at(ref, grid, need)])
+                self._normals[key] = (row, computed)
+            return computed[row[index]]
 
     def distance_stats(self, moved: np.ndarray, max_distance_m: float, *, use_full_tree: bool = False) -> tuple[float, float, int]:
         """:func:`nearest_distance_stats` of ``moved`` against all the reference points. With a

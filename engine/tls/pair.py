@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -25,7 +25,7 @@ from .evidence import mutual_free_space_violation
 from ..geometry.icp import IcpReference, IcpResult, icp
 from .scanner_position import locate_scanner
 from .uncertainty import pair_uncertainty
-from .prepare import PreparedScan, PreparedScans, SliceLayer, derived, extract_vops, prepare_scan, slice_layers
+from .prepare import PreparedScan, PreparedScans, SliceLayer, centre_scan, derived, extract_vops, prepare_centred, slice_layers
 from .vop import VisualOcclusionPoints
 from .params import RegistrationParams
 from ..core.outcome import Outcome, StepTimer
@@ -258,33 +258,56 @@ def register(
                 source = timed(f"read_{role}", source)
         return locate_scanner(source)
 
-    def prepare(scan: Scan, up: Optional[np.ndarray]) -> PreparedScan:
-        # two large scans (a plot of 30 M-point scans) are prepared one after the other, so that
-        # the two preparations' working arrays (~1 GB each) are not held at once
-        if len(scan) > SEQUENTIAL_PREPARE_POINTS:
+    def prepare(held: list, up: Optional[np.ndarray]) -> PreparedScan:
+        # ``held``: the scan, in the only reference to it, taken out here; two large scans (a plot
+        # of 30 M-point scans) are prepared one after the other, so that the two preparations'
+        # working arrays (~1 GB each) are not held at once
+        if len(held[0]) > SEQUENTIAL_PREPARE_POINTS:
             with preparing_large:
-                return _prepare(scan, up)
-        return _prepare(scan, up)
+                return _prepare(held, up)
+        return _prepare(held, up)
 
-    def _prepare(scan: Scan, up: Optional[np.ndarray]) -> PreparedScan:
-        if prepared is None:
-            return prepare_scan(scan.points, scan.scanner_position, params, up=up)
-        return prepared.get(scan, params, up)
+    def _prepare(held: list, up: Optional[np.ndarray]) -> PreparedScan:
+        scan = held.pop()
+        if prepared is not None:
+            return prepared.get(scan, params, up)
+        # the scan's own points go once centred (float32): they are not held through the
+        # levelling and the grids, while the other scan is read or prepared beside
+        centred, position = centre_scan(scan.points, scan.scanner_position, params, up=up), scan.scanner_position
+        del scan
+        return prepare_centred(centred, position, params, up=up)
+
+    def read_and_prepare(source: ScanSource, role: str) -> Optional[PreparedScan]:
+        # one thread a scan: it is read (one read at a time) and prepared as soon as it is read;
+        # only this frame holds the scan's points, handed on to the preparation that lets go of them
+        try:
+            scan = load(source, role)
+            scans[role] = scan.without_points()
+        except BaseException as exc:
+            failed.append(exc)
+            raise
+        finally:
+            read[role].set()
+            del source
+        if failed:  # the other scan could not be read: the run ends, no preparation is spent
+            return None
+        held = [scan]
+        del scan
+        return timed(f"prepare_{role}", prepare, held, ups[role])
 
     # the two scans are read and prepared in two threads (mostly compiled or numpy code, which
-    # releases the GIL); each preparation starts as soon as its scan is read. A file that cannot
-    # be read ends the run here, before any progress is shown.
+    # releases the GIL). A file that cannot be read ends the run here, before any progress is shown.
     ups = {"reference": reference_up, "moving": moving_up}
+    scans: dict[str, Scan] = {}
+    read = {role: threading.Event() for role in ("reference", "moving")}
+    failed: list[BaseException] = []
     with ThreadPoolExecutor(max_workers=2) as pool:
-        reads = {pool.submit(load, reference, "reference"): "reference", pool.submit(load, moving, "moving"): "moving"}
+        jobs = {"reference": pool.submit(read_and_prepare, reference, "reference"), "moving": pool.submit(read_and_prepare, moving, "moving")}
         del reference, moving
-        scans, jobs = {}, {}
-        for job in as_completed(list(reads)):
-            role = reads.pop(job)
-            scan = job.result()
-            scans[role] = scan.without_points()  # only where it is: the points go once prepared
-            jobs[role] = pool.submit(timed, f"prepare_{role}", prepare, scan, ups[role])
-            del job, scan
+        for role in ("reference", "moving"):
+            read[role].wait()
+        if failed:
+            raise failed[0]
         step(0.0, "preparing both scans")
         (reference, ref_prep), (moving, mov_prep) = ((scans[role], jobs[role].result()) for role in ("reference", "moving"))
     log.info("registering %s onto %s", moving.name, reference.name)

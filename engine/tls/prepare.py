@@ -223,7 +223,7 @@ def prepare_scan(
     *,
     up: Optional[np.ndarray] = None,
 ) -> PreparedScan:
-    """Reduce, level and ground one scan.
+    """Reduce, level and ground one scan (:func:`centre_scan`, then :func:`prepare_centred`).
 
     Parameters
     ----------
@@ -232,10 +232,45 @@ def prepare_scan(
     up : optional known vertical direction in the scan's frame (from an inclination sensor); by
         default estimated from the data when ``params.level_tilted``.
     """
+    return prepare_centred(centre_scan(points_local, scanner_local, params, up=up), scanner_local, params, up=up)
+
+
+@dataclass(frozen=True)
+class CentredScan:
+    """The first step of a preparation: the points within ``1.6 D_c`` (3D) of the scanner,
+    scanner-centred, float32 (the scan's axes, metres), and the ones within 15 m that estimate the
+    vertical (None when it is not estimated). Once made, the scan's own points are no longer
+    needed (a caller holding them in the only reference can let them go before the rest)."""
+
+    points: np.ndarray
+    near: Optional[np.ndarray]
+
+
+def centre_scan(
+    points_local: np.ndarray, scanner_local: np.ndarray, params: RegistrationParams, *, up: Optional[np.ndarray] = None
+) -> CentredScan:
+    """The :class:`CentredScan` of a scan's points (local frame, metres) around its scanner
+    position (the same frame); ``up`` as for :func:`prepare_scan` (given: no points kept to
+    estimate it)."""
     reach = params.max_range_m
-    centred, d2 = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2)  # generous before levelling
-    near = centred[d2 <= 15.0**2] if (up is None and params.level_tilted) else None
-    del d2
+    estimate = up is None and params.level_tilted
+    # generous before levelling; the vertical is estimated from the points within 15 m
+    centred, near = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2, 15.0**2 if estimate else None)
+    return CentredScan(centred, near)
+
+
+def prepare_centred(
+    centred_scan: CentredScan,
+    scanner_local: np.ndarray,
+    params: RegistrationParams,
+    *,
+    up: Optional[np.ndarray] = None,
+) -> PreparedScan:
+    """Level, reduce to ``D_c`` and ground a :class:`CentredScan` (made with the same ``up``)
+    whose scanner lies at ``scanner_local`` (the scan's local frame, metres)."""
+    reach = params.max_range_m
+    centred, near = centred_scan.points, centred_scan.near
+    del centred_scan
     if near is not None:
         estimate = estimate_up_direction(near)
         del near
@@ -272,25 +307,27 @@ def prepare_scan(
     )
 
 
-def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray]:
+def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near_d2: Optional[float] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """The points within ``sqrt(max_d2)`` (3D) of ``origin``, shifted so that ``origin`` is 0, as
-    float32 (a 50 m neighbourhood keeps micrometre steps), and their squared distances (m^2, in
-    the points' order), float32 as well. One compiled pass writes the kept points into the result:
-    no float64 copy of the cloud and no working arrays (the result may be a view of a buffer sized
-    for every point)."""
+    float32 (a 50 m neighbourhood keeps micrometre steps), and, with ``near_d2``, those of them
+    within ``sqrt(near_d2)`` (else None); both in the points' order. One compiled pass writes
+    the kept points into the results: no float64 copy of the cloud, no distances or masks (the
+    results may be views of buffers sized for every point)."""
     origin = np.asarray(origin, dtype=np.float64)
     out = np.empty((len(points), 3), dtype=np.float32)
-    d2_out = np.empty(len(points), dtype=np.float32)
-    # the limit as float32, as numpy compares a float32 array with a Python float
-    kept = _centre_rows(np.asarray(points), origin, np.float32(max_d2), out, d2_out)
-    return out[:kept], d2_out[:kept]
+    near = np.empty((len(points) if near_d2 is not None else 0, 3), dtype=np.float32)
+    # the limits as float32, as numpy compares a float32 array with a Python float
+    kept, close = _centre_rows(np.asarray(points), origin, np.float32(max_d2), np.float32(-1.0 if near_d2 is None else near_d2), out, near)
+    return out[:kept], (near[:close] if near_d2 is not None else None)
 
 
 @kernel
-def _centre_rows(points, origin, max_d2, out, d2_out):  # pragma: no cover - compiled
+def _centre_rows(points, origin, max_d2, near_d2, out, near):  # pragma: no cover - compiled
     """:func:`_centred_float32` in one pass: each coordinate minus the origin in float64, then
-    float32; the squared distance summed in float32 (x, then y, then z); kept rows packed in order."""
+    float32; the squared distance summed in float32 (x, then y, then z); kept rows packed in
+    order, those within ``near_d2`` (negative: none) into ``near`` as well."""
     kept = 0
+    close = 0
     for i in range(points.shape[0]):
         x = np.float32(np.float64(points[i, 0]) - origin[0])
         y = np.float32(np.float64(points[i, 1]) - origin[1])
@@ -302,9 +339,13 @@ def _centre_rows(points, origin, max_d2, out, d2_out):  # pragma: no cover - com
             out[kept, 0] = x
             out[kept, 1] = y
             out[kept, 2] = z
-            d2_out[kept] = d2
             kept += 1
-    return kept
+            if d2 <= near_d2:
+                near[close, 0] = x
+                near[close, 1] = y
+                near[close, 2] = z
+                close += 1
+    return kept, close
 
 
 @dataclass(frozen=True)
