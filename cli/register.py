@@ -80,7 +80,9 @@ def run_register(
     out = check_output_folder(out, "register", inputs=[reference_path, moving_path])
 
     def read(path, index: int):
-        return read_scan(path, scanner_position=positions[index] if len(positions) > index else None, unit_scale=scale)
+        # the registration uses the coordinates alone: intensity only for the registered scan written
+        return read_scan(path, scanner_position=positions[index] if len(positions) > index else None, unit_scale=scale,
+                         with_intensity=write_registered and index == 1)
 
     # both scans are read, one after the other (the decompression is multi-core), while the
     # registration engine is imported

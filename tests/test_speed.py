@@ -90,6 +90,29 @@ def test_chunked_las_reading_equals_one_chunk(tmp_path):
     np.testing.assert_allclose(chunked.points - [500000.0, 5000000.0, 100.0], local, atol=1e-4)
 
 
+
+@pytest.mark.parametrize("point_format", [6, 1])  # LAZ 1.4 layers (x, y, z decoded alone), and a LAS 1.2 record
+def test_reading_without_intensity_gives_the_same_points(tmp_path, point_format):
+    import laspy
+
+    rng = np.random.default_rng(5)
+    local = rng.uniform(-20, 20, (20011, 3))
+    path = tmp_path / "a.laz"
+    if point_format == 6:
+        write_las(path, PointsToWrite(local, np.array([500000.0, 5000000.0, 100.0]), intensity=rng.integers(0, 60000, len(local))), compress=True)
+    else:
+        las = laspy.create(point_format=1, file_version="1.2")
+        las.header.scales, las.header.offsets = [0.001] * 3, [0.0] * 3
+        las.x, las.y, las.z = local.T
+        las.intensity = rng.integers(0, 60000, len(local))
+        las.gps_time = rng.uniform(0, 1e5, len(local))
+        las.write(str(path), do_compress=True)
+    full = read_las(path, chunk_points=4999)
+    bare = read_las(path, chunk_points=4999, with_intensity=False)
+    assert full.intensity is not None and bare.intensity is None
+    np.testing.assert_array_equal(bare.points, full.points)
+    np.testing.assert_allclose(bare.points - (0.0 if point_format == 1 else [500000.0, 5000000.0, 100.0]), local, atol=1e-3)
+
 def test_coarse_bounds_built_in_blocks_keep_the_literal_optimum(monkeypatch):
     rng = np.random.default_rng(5)
     ref = rng.uniform(-8, 8, (9, 2))

@@ -63,6 +63,7 @@ def read_scan(
     scanner_position: Optional[Sequence[float] | np.ndarray] = None,
     unit_scale: float = 1.0,
     scan_index: Optional[int] = None,
+    with_intensity: bool = True,
 ) -> Scan:
     """Read one scan from a file.
 
@@ -74,6 +75,8 @@ def read_scan(
     unit_scale : metres per file unit (0.001 for mm, 0.01 for cm, 0.3048 for feet); multiplies
         the coordinates, the scanner position and an E57 pose translation.
     scan_index : which scan of a multi-scan E57 (0-based); not needed when the file has one.
+    with_intensity : False: no intensity is read (LAS/LAZ: less memory, and a LAZ 1.4 file's
+        layers other than x, y, z are not decompressed); work that uses the coordinates alone.
 
     Returns
     -------
@@ -103,7 +106,7 @@ def read_scan(
                           label=f"scan {chosen} ({raw.name})" if count > 1 else None)
     if index not in (None, 0):
         raise ScanReadError(f"{p}: holds a single scan; scan_index {index} does not exist (use 0 or leave it out)")
-    raw, name = _read_single(p, fmt)
+    raw, name = _read_single(p, fmt, with_intensity=with_intensity)
     return build_scan(raw, p, fmt=name, unit_scale=scale, scanner_position=_position(scanner_position))
 
 
@@ -124,10 +127,11 @@ def read_scans(path: PathLike, *, unit_scale: float = 1.0) -> list[Scan]:
     ]
 
 
-def _read_single(p: Path, fmt: str) -> tuple[RawCloud, str]:
-    """Read a one-scan format; return the raw cloud and the format name for ``meta``."""
+def _read_single(p: Path, fmt: str, *, with_intensity: bool = True) -> tuple[RawCloud, str]:
+    """Read a one-scan format; return the raw cloud and the format name for ``meta`` (LAS/LAZ
+    without intensity when ``with_intensity`` is False)."""
     if fmt == "las":
-        raw = _las.read_las(p)
+        raw = _las.read_las(p, with_intensity=with_intensity)
         return raw, "laz" if raw.meta.get("compressed") else "las"
     if fmt == "ply":
         return _ply.read_ply(p), "ply"

@@ -139,6 +139,7 @@ def _read_laz_direct(path: Path, header, points: np.ndarray, intensity: Optional
                 return None
             position = int(header.offset_to_point_data) + 8  # after the chunk table's offset
             scales, offsets = np.asarray(header.scales, dtype=np.float64), np.asarray(header.offsets, dtype=np.float64)
+            xyz_only = lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_XY_RETURNS_CHANNEL | lazrs.SELECTIVE_DECOMPRESS_Z)
             n, k = 0, 0
             while k < len(table):
                 group = [table[k]]
@@ -150,7 +151,10 @@ def _read_laz_direct(path: Path, header, points: np.ndarray, intensity: Optional
                 if len(compressed) != size_bytes:
                     return None
                 raw = bytearray(count * dtype.itemsize)
-                lazrs.decompress_points_with_chunk_table(compressed, vlr.record_data, raw, group)
+                if intensity is None:  # x, y, z alone (LAZ 1.4 layers; older formats decode every field)
+                    lazrs.decompress_points_with_chunk_table(compressed, vlr.record_data, raw, group, xyz_only)
+                else:
+                    lazrs.decompress_points_with_chunk_table(compressed, vlr.record_data, raw, group)
                 del compressed
                 records = np.frombuffer(raw, dtype=dtype)
                 for axis, name in enumerate(("X", "Y", "Z")):
@@ -166,8 +170,9 @@ def _read_laz_direct(path: Path, header, points: np.ndarray, intensity: Optional
         return None
 
 
-def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS) -> RawCloud:
-    """Read a LAS/LAZ file: scaled x, y, z as float64 (file units) and intensity.
+def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS, with_intensity: bool = True) -> RawCloud:
+    """Read a LAS/LAZ file: scaled x, y, z as float64 (file units) and intensity (not with
+    ``with_intensity=False``: then a LAZ 1.4 file's other layers are not even decompressed).
 
     The points are decoded in chunks of ``chunk_points`` (LAZ chunks decompressed in parallel by
     lazrs), so the peak memory is the coordinate array plus one chunk of raw records, whatever
@@ -182,7 +187,7 @@ def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS) -> RawCloud:
         with laspy.open(str(path), laz_backend=backend[0] if backend else None) as reader:
             header = reader.header
             total = int(header.point_count)
-            has_intensity = "intensity" in header.point_format.dimension_names
+            has_intensity = with_intensity and "intensity" in header.point_format.dimension_names
             points = np.empty((total, 3), dtype=np.float64)
             intensity_all = np.empty(total, dtype=np.uint16) if has_intensity else None
             n = _read_laz_direct(path, header, points, intensity_all, chunk_points) if compressed else None
