@@ -212,6 +212,12 @@ def _publish(tmp: Path, out: Path, scan_names) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
 
 
+def _writes_scans(args: argparse.Namespace) -> bool:
+    """Whether the run writes registered points (merged, per scan or E57), which carry the
+    scans' intensity; otherwise the scans are read without it."""
+    return any(getattr(args, name, None) for name in ("merged", "registered_dir", "e57_out"))
+
+
 def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int:
     """Register the project, then write poses, transforms and the report into ``out``."""
     import tempfile
@@ -223,7 +229,7 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
     # registered, not on the single thread that writes the report at the end
     import_in_background(".engine.report.plot_report")
     if scans is None:
-        scans = ScanCache(project)
+        scans = ScanCache(project, with_intensity=_writes_scans(args))
         _check_scans_near_their_scanners(project, scans)
     reporter = args.reporter
     try:
@@ -340,7 +346,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     project = project_from_args(args)
     from ..engine.tls.plot import ScanCache
 
-    scans = ScanCache(project)
+    scans = ScanCache(project, with_intensity=_writes_scans(args))
     _check_scans_near_their_scanners(project, scans)  # before anything is written
     out = _plot_folder(args.out, args.scans)
     project.save(out / "project.json")

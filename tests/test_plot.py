@@ -180,10 +180,31 @@ def test_plot_and_project_commands(four_scan_files, tmp_path, capsys):
         rot, trans = rigid_errors(np.array(body["scans"][p.name]["matrix"]), plot.relative_pose(0, k))
         assert rot < 0.05 and trans < 0.02
     cloud = read_scan(merged)
-    assert len(cloud) == sum(len(read_scan(p)) for p in paths[:3])
+    inputs = [read_scan(p) for p in paths[:3]]
+    assert len(cloud) == sum(len(s) for s in inputs)
+    # the command reads scans without intensity only when it writes no points: the merged file keeps it
+    from forestreg.engine.io.las import intensity_to_uint16
+
+    assert all(s.intensity is not None for s in inputs)
+    np.testing.assert_array_equal(cloud.intensity, np.concatenate([intensity_to_uint16(s.intensity) for s in inputs]))
     assert main(["project", "show", str(out / "project.json")]) == 0
     assert "matched VOPs" in capsys.readouterr().out
     assert main(["project", "run", str(out / "project.json"), "--quiet"]) == 0
+
+
+def test_a_cache_without_intensity_holds_the_same_points(four_scan_files):
+    from forestreg.engine.tls.plot import ScanCache
+
+    plot, paths = four_scan_files
+    project = Project(name="bare")
+    for p in paths[:2]:
+        project.add_scan(p)
+    bare, full = ScanCache(project, with_intensity=False), ScanCache(project)
+    for p in paths[:2]:
+        a, b = bare(p.name), full(p.name)
+        assert a.intensity is None and b.intensity is not None
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.scanner_position, b.scanner_position)
 
 
 def test_multi_scan_e57_opens_as_a_project_and_poses_are_written_back(four_scan_files, tmp_path):

@@ -56,8 +56,12 @@ class ScanCache:
     and prepared at once (:func:`register_project` prepares the next link's scan while a link runs).
     """
 
-    def __init__(self, project: Project, max_bytes: Optional[int] = None) -> None:
+    def __init__(self, project: Project, max_bytes: Optional[int] = None, *, with_intensity: bool = True) -> None:
+        """``with_intensity=False``: the scans are read without intensity (registration, reports and
+        comparisons use the coordinates alone; merged and registered scans written from this
+        cache would lack it)."""
         self.project = project
+        self.with_intensity = with_intensity
         self.max_bytes = SCAN_CACHE_BYTES if max_bytes is None else int(max_bytes)
         self._lock = threading.RLock()  # the dictionaries below
         self._scan_locks: dict[str, threading.RLock] = {}  # one per scan: its reading and preparing
@@ -86,7 +90,7 @@ class ScanCache:
             if keep:
                 with self._lock:
                     self._make_room(_file_scan_bytes(entry.path))
-            scan = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index)
+            scan = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index, with_intensity=self.with_intensity)
             with self._lock:
                 self.reads += 1
                 known = self._located.get(name)
