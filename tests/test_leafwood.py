@@ -186,3 +186,30 @@ def test_mixture_columns_fill_a_scale_lacking_neighbours_from_the_next_larger() 
     x, complete = lw._mixture_x(gathered)
     np.testing.assert_array_equal(x, expected)
     np.testing.assert_array_equal(complete, np.isfinite(expected).all(axis=1))
+
+
+def test_mixture_share_in_two_passes_equals_the_whole_posterior_matrix(monkeypatch) -> None:
+    # the posteriors are made block by block twice (sums, then weights) instead of held whole: the
+    # values must be exactly those of the plain computation on the (n, k) matrix
+    import warnings
+
+    from sklearn.mixture import GaussianMixture
+
+    from forestreg.engine.trees import leafwood as lw
+
+    rng = np.random.default_rng(9)
+    x = np.vstack([rng.normal(c, 0.3, (6000, 5)) for c in (0.0, 1.0, 2.5)])
+    rule = (x[:, 0] + rng.normal(0, 0.5, len(x))) > 1.2
+    prm = LeafWoodParams()
+    monkeypatch.setattr(lw, "_POSTERIOR_BLOCK", 997)  # many blocks, the last one short
+    got = lw.mixture_wood_share(x, rule, prm)
+    fit = np.random.default_rng(prm.seed).choice(len(x), size=min(len(x), prm.max_fit_points), replace=False)
+    mixture = GaussianMixture(prm.n_components, covariance_type="full", reg_covar=1e-4, random_state=prm.seed, max_iter=100)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mixture.fit(x[fit])
+    posterior = mixture.predict_proba(x)
+    share = np.clip((posterior[rule].sum(axis=0) / np.maximum(posterior.sum(axis=0), 1e-12) - 0.3) / 0.4, 0.0, 1.0)
+    want = posterior @ share
+    assert 0.05 < (want >= 0.5).mean() < 0.95
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)

@@ -45,7 +45,7 @@ from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 from ..geometry.features import SphereGrid, eigen_features, local_covariances, neighbour_means
-from ..geometry.jit import run_blocks
+from ..geometry.jit import run_blocks, worker_count
 from ..geometry.voxel import voxel_centroids
 
 #: Features per scale: l1, l2, l3 (normalised eigenvalues), zenith of e1, e2, e3 (degrees).
@@ -203,23 +203,42 @@ def _scale_features(base: np.ndarray, prm: LeafWoodParams, progress: Progress):
     little over ``r / thinning_ratio``. A voxel with fewer than ``min_neighbours`` neighbours has
     NaN features.
     """
+    for s, blocks in _scale_blocks(base, prm, progress):
+        n, voxel_of_base = next(blocks)
+        f = np.empty((n, FEATURES_PER_SCALE))
+        count = np.empty(n, dtype=np.int64)
+        for a, b, f_block, count_block in blocks:
+            f[a:b], count[a:b] = f_block, count_block
+        yield s, f, count, voxel_of_base
+
+
+def _scale_blocks(base: np.ndarray, prm: LeafWoodParams, progress: Progress):
+    """For each scale ``s``: ``(s, blocks)``, ``blocks`` the scale's :func:`_feature_blocks`."""
     for s, radius in enumerate(prm.radii_m):
         progress(s / len(prm.radii_m), f"covariance features at {radius:g} m")
-        cloud, voxel_of_base = voxel_centroids(base, radius / prm.thinning_ratio)
-        grid = SphereGrid(cloud, radius)
-        f = np.full((len(cloud), FEATURES_PER_SCALE), np.nan)
-        count = np.empty(len(cloud), dtype=np.int64)
-        # the covariances (72 bytes a point) and their decomposition a block of points at a time:
-        # the same values as all at once, without the whole cloud's matrices in memory
-        for a in range(0, len(cloud), _FEATURE_BLOCK):
-            b = min(a + _FEATURE_BLOCK, len(cloud))
-            cov, count[a:b] = local_covariances(cloud[a:b], cloud, k=prm.max_neighbours, radius_m=radius, grid=grid)
-            enough = count[a:b] >= prm.min_neighbours  # the others stay NaN: no decomposition spent on them
-            f[a:b][enough] = eigen_features(cov if enough.all() else cov[enough])
-            del cov
-        del grid, cloud
-        yield s, f, count, voxel_of_base
+        yield s, _feature_blocks(base, radius, prm)
     progress(1.0, "covariance features done")
+
+
+def _feature_blocks(base: np.ndarray, radius: float, prm: LeafWoodParams):
+    """One scale of :func:`_scale_features` in blocks. Yields first ``(V, voxel of each base
+    point (M,))`` (the base points thinned to voxels of ``radius / thinning_ratio``), then
+    ``(a, b, features (b - a, 6), neighbour counts (b - a,))`` of the voxels ``a:b``,
+    :data:`_FEATURE_BLOCK` at a time: the covariances (72 bytes a point) and their decomposition
+    a block at a time, and no (V, 6) matrix unless the caller makes one. The thinned cloud and its
+    search grid go when the last block is taken."""
+    cloud, voxel_of_base = voxel_centroids(base, radius / prm.thinning_ratio)
+    yield len(cloud), voxel_of_base
+    del voxel_of_base
+    grid = SphereGrid(cloud, radius)
+    for a in range(0, len(cloud), _FEATURE_BLOCK):
+        b = min(a + _FEATURE_BLOCK, len(cloud))
+        cov, count = local_covariances(cloud[a:b], cloud, k=prm.max_neighbours, radius_m=radius, grid=grid)
+        enough = count >= prm.min_neighbours  # the others stay NaN: no decomposition spent on them
+        f = np.full((b - a, FEATURES_PER_SCALE), np.nan)
+        f[enough] = eigen_features(cov if enough.all() else cov[enough])
+        del cov
+        yield a, b, f, count
 
 
 # --------------------------------------------------------------------------------------------
@@ -326,6 +345,12 @@ def _mixture_x(scales: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, np.nda
     return x, np.isfinite(x).all(axis=1)
 
 
+def _mixture_block(linearity: np.ndarray, planarity: np.ndarray, zenith1: np.ndarray, zenith3: np.ndarray) -> np.ndarray:
+    """One scale's mixture columns (n, 4) of some points: linearity, planarity, cos zenith1, cos
+    zenith3 (zeniths given in degrees)."""
+    return np.column_stack([linearity, planarity, np.cos(np.radians(zenith1)), np.cos(np.radians(zenith3))])
+
+
 class _MixtureColumns:
     """The mixture's features, kept scale by scale on the points each scale was computed on (its
     voxels), with each base point's index into them; rows of the (M, 4 * scales) matrix of
@@ -342,9 +367,13 @@ class _MixtureColumns:
         """The next larger scale: its measures (zeniths in degrees) and where it lacks neighbours,
         per point of that scale; ``index`` (M,): each base point's row among them (None: the
         base points themselves)."""
-        self.columns.append(np.column_stack([linearity, planarity, np.cos(np.radians(zenith1)), np.cos(np.radians(zenith3))]))
+        self.add_columns(_mixture_block(linearity, planarity, zenith1, zenith3), missing, index)
+
+    def add_columns(self, columns: np.ndarray, missing: np.ndarray, index: Optional[np.ndarray] = None) -> None:
+        """:meth:`add` of a scale whose (V, 4) columns are made already (:func:`_mixture_block`)."""
+        self.columns.append(columns)
         self.missing.append(np.asarray(missing, dtype=bool))
-        self.index.append(None if index is None else index.astype(np.int32 if len(self.columns[-1]) < 2**31 else np.int64))
+        self.index.append(None if index is None else index.astype(np.int32 if len(columns) < 2**31 else np.int64))
 
     def rows(self, which) -> np.ndarray:
         """Rows ``which`` (indices or a slice of the base points) of the matrix, a scale lacking
@@ -397,19 +426,32 @@ def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: n
         warnings.simplefilter("ignore", ConvergenceWarning)
         mixture.fit(take(fit))
         # row by row the same posteriors, in blocks that stay in the cache (a third of the time),
-        # on threads (NumPy's array operations release the interpreter lock)
-        posterior = np.empty((n, k))
+        # on threads (NumPy's array operations release the interpreter lock); never all of them
+        # at once (8 bytes a row and component): a first pass sums them, a second weighs the
+        # components' shares
+        def posterior(a: int) -> np.ndarray:
+            return mixture.predict_proba(take(slice(a, min(a + _POSTERIOR_BLOCK, n))))
 
-        def block(a: int, b: int) -> None:
-            posterior[a:b] = mixture.predict_proba(take(slice(a, b)))
+        from concurrent.futures import ThreadPoolExecutor
 
-        run_blocks(block, n, block=_POSTERIOR_BLOCK)
-    mass = posterior.sum(axis=0)
-    # the rows the rule calls wood, summed: what the sum of posterior * rule gives (the other rows
-    # add exact zeros), without a temporary the size of the posteriors
-    share = posterior[is_wood_by_rule].sum(axis=0) / np.maximum(mass, 1e-12)
-    share = np.clip((share - 0.3) / 0.4, 0.0, 1.0)
-    return posterior @ share
+        mass, wood = np.zeros(k), np.zeros(k)
+        with ThreadPoolExecutor(worker_count(), thread_name_prefix="forestreg-posteriors") as pool:
+            for a, block in zip(range(0, n, _POSTERIOR_BLOCK), pool.map(posterior, range(0, n, _POSTERIOR_BLOCK))):
+                # each block added to the running sums row after row: the sums of the whole
+                # matrix (posterior.sum(axis=0), and over the rows the rule calls wood), exactly
+                rows = np.concatenate([mass[None], block])
+                mass = rows.sum(axis=0)
+                rows[0] = wood
+                wood = rows.sum(axis=0, where=np.concatenate([[True], is_wood_by_rule[a : a + len(block)]])[:, None])
+                del rows, block
+        share = np.clip((wood / np.maximum(mass, 1e-12) - 0.3) / 0.4, 0.0, 1.0)
+        out = np.empty(n)
+
+        def weigh(a: int, b: int) -> None:
+            out[a:b] = posterior(a) @ share
+
+        run_blocks(weigh, n, block=_POSTERIOR_BLOCK)
+    return out
 
 
 def smooth_over_neighbours(points: np.ndarray, values: np.ndarray, radius: float, k: int) -> np.ndarray:
@@ -448,6 +490,7 @@ def wood_probability(
     progress = progress or Progress()
     prm = params
     base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0))
+    base_of_point = base_of_point.astype(np.int32 if len(base) < 2**31 else np.int64)  # held to the end: 4 bytes a point
     # the points are not needed past their thinning: an array made for this call (the caller's
     # p[vegetation]) is let go here, not at the return
     del p, points
@@ -456,12 +499,21 @@ def wood_probability(
     # the same values as from the whole feature matrix
     columns = _MixtureColumns()
     num, den = np.zeros(len(base)), np.zeros(len(base))
-    for s, f, count, voxel_of_base in _scale_features(base, prm, progress.sub(0.0, 0.7)):
-        linearity, planarity, _ = shape_measures(f, 0)
-        evidence, weight = _scale_evidence(s, linearity, planarity, f[:, 5], count, prm)
+    for s, blocks in _scale_blocks(base, prm, progress.sub(0.0, 0.7)):
+        # block by block into the scale's mixture columns and the rule's evidence and weight: no
+        # (V, 6) feature matrix of the scale
+        n, voxel_of_base = next(blocks)
+        scale_columns, missing = np.empty((n, 4)), np.empty(n, dtype=bool)
+        evidence, weight = np.empty(n), np.empty(n)
+        for a, b, f, count in blocks:
+            linearity, planarity, _ = shape_measures(f, 0)
+            evidence[a:b], weight[a:b] = _scale_evidence(s, linearity, planarity, f[:, 5], count, prm)
+            scale_columns[a:b] = _mixture_block(linearity, planarity, f[:, 3], f[:, 5])
+            missing[a:b] = np.isnan(f[:, 0])
+            del f, count, linearity, planarity
         _accumulate(num, den, evidence[voxel_of_base], weight[voxel_of_base])
-        columns.add(linearity, planarity, f[:, 3], f[:, 5], np.isnan(f[:, 0]), voxel_of_base)
-        del f, count, voxel_of_base, linearity, planarity, evidence, weight
+        columns.add_columns(scale_columns, missing, voxel_of_base)
+        del blocks, scale_columns, missing, voxel_of_base, evidence, weight
     rule = _rule_score(num, den) >= prm.wood_score_threshold
     del num, den
     progress(0.75, "fitting the mixture")
