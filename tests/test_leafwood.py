@@ -188,9 +188,9 @@ def test_mixture_columns_fill_a_scale_lacking_neighbours_from_the_next_larger() 
     np.testing.assert_array_equal(complete, np.isfinite(expected).all(axis=1))
 
 
-def test_mixture_share_in_two_passes_equals_the_whole_posterior_matrix(monkeypatch) -> None:
-    # the posteriors are made block by block twice (sums, then weights) instead of held whole: the
-    # values must be exactly those of the plain computation on the (n, k) matrix
+def test_mixture_share_equals_the_plain_computation_on_the_whole_matrices(monkeypatch) -> None:
+    # rows made block by block, posteriors predicted in blocks, the rule's rows summed by a masked
+    # sum (no copy of them): the values must be those of the plain computation on whole matrices
     import warnings
 
     from sklearn.mixture import GaussianMixture

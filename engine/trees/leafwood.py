@@ -45,7 +45,7 @@ from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 from ..geometry.features import SphereGrid, eigen_features, local_covariances, neighbour_means
-from ..geometry.jit import run_blocks, worker_count
+from ..geometry.jit import run_blocks
 from ..geometry.voxel import voxel_centroids
 
 #: Features per scale: l1, l2, l3 (normalised eigenvalues), zenith of e1, e2, e3 (degrees).
@@ -407,8 +407,8 @@ def mixture_wood_share(
 
 def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: np.ndarray, params: LeafWoodParams) -> np.ndarray:
     """:func:`mixture_wood_share` of the ``n`` rows ``take(which)`` gives (``which``: indices or a
-    slice): the sample the mixture is fitted to and each block of posteriors are made as they are
-    needed, never the whole matrix. ``is_wood_by_rule``: bool, one per row."""
+    slice): the sample the mixture is fitted to and each block of rows are made as they are
+    needed, never the whole feature matrix. ``is_wood_by_rule``: bool, one per row."""
     import warnings
 
     from sklearn.exceptions import ConvergenceWarning
@@ -426,32 +426,20 @@ def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: n
         warnings.simplefilter("ignore", ConvergenceWarning)
         mixture.fit(take(fit))
         # row by row the same posteriors, in blocks that stay in the cache (a third of the time),
-        # on threads (NumPy's array operations release the interpreter lock); never all of them
-        # at once (8 bytes a row and component): a first pass sums them, a second weighs the
-        # components' shares
-        def posterior(a: int) -> np.ndarray:
-            return mixture.predict_proba(take(slice(a, min(a + _POSTERIOR_BLOCK, n))))
+        # on threads (NumPy's array operations release the interpreter lock)
+        posterior = np.empty((n, k))
 
-        from concurrent.futures import ThreadPoolExecutor
+        def block(a: int, b: int) -> None:
+            posterior[a:b] = mixture.predict_proba(take(slice(a, b)))
 
-        mass, wood = np.zeros(k), np.zeros(k)
-        with ThreadPoolExecutor(worker_count(), thread_name_prefix="forestreg-posteriors") as pool:
-            for a, block in zip(range(0, n, _POSTERIOR_BLOCK), pool.map(posterior, range(0, n, _POSTERIOR_BLOCK))):
-                # each block added to the running sums row after row: the sums of the whole
-                # matrix (posterior.sum(axis=0), and over the rows the rule calls wood), exactly
-                rows = np.concatenate([mass[None], block])
-                mass = rows.sum(axis=0)
-                rows[0] = wood
-                wood = rows.sum(axis=0, where=np.concatenate([[True], is_wood_by_rule[a : a + len(block)]])[:, None])
-                del rows, block
-        share = np.clip((wood / np.maximum(mass, 1e-12) - 0.3) / 0.4, 0.0, 1.0)
-        out = np.empty(n)
-
-        def weigh(a: int, b: int) -> None:
-            out[a:b] = posterior(a) @ share
-
-        run_blocks(weigh, n, block=_POSTERIOR_BLOCK)
-    return out
+        run_blocks(block, n, block=_POSTERIOR_BLOCK)
+    mass = posterior.sum(axis=0)
+    # the rows the rule calls wood, summed: what the sum of posterior * rule gives (the other rows
+    # add exact zeros), without a temporary the size of the posteriors or a copy of those rows
+    # (a masked sum adds the same rows in the same order as posterior[is_wood_by_rule].sum(axis=0))
+    share = posterior.sum(axis=0, where=is_wood_by_rule[:, None]) / np.maximum(mass, 1e-12)
+    share = np.clip((share - 0.3) / 0.4, 0.0, 1.0)
+    return posterior @ share
 
 
 def smooth_over_neighbours(points: np.ndarray, values: np.ndarray, radius: float, k: int) -> np.ndarray:
