@@ -407,8 +407,8 @@ def mixture_wood_share(
 
 def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: np.ndarray, params: LeafWoodParams) -> np.ndarray:
     """:func:`mixture_wood_share` of the ``n`` rows ``take(which)`` gives (``which``: indices or a
-    slice): the sample the mixture is fitted to and each block of rows are made as they are
-    needed, never the whole feature matrix. ``is_wood_by_rule``: bool, one per row."""
+    slice): the sample the mixture is fitted to and each block of rows is made when needed,
+    never the whole feature matrix. ``is_wood_by_rule``: bool, one per row."""
     import warnings
 
     from sklearn.exceptions import ConvergenceWarning
