@@ -30,6 +30,7 @@ import numpy as np
 from ..core.errors import ParameterError, ScanDataError
 from ..core.progress import Progress
 from ..core.params import Params, param_field as _p
+from ..geometry.jit import kernel, run_blocks
 from ..geometry.voxel import voxel_thin
 
 __all__ = ["Dem", "TerrainModel", "TerrainParams", "build_dem", "classify_ground", "lowest_points_dem", "terrain_model"]
@@ -75,27 +76,46 @@ class Dem:
     def height_at(self, xy: np.ndarray) -> np.ndarray:
         """Ground height (m) at (N, 2) positions: bilinear between cell centres, clamped outside."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        ny, nx = self.heights.shape
-        fx = np.clip((xy[:, 0] - self.x0) / self.resolution_m - 0.5, 0.0, nx - 1.0)
-        fy = np.clip((xy[:, 1] - self.y0) / self.resolution_m - 0.5, 0.0, ny - 1.0)
-        c0 = np.minimum(np.floor(fx).astype(np.int64), max(nx - 2, 0))
-        r0 = np.minimum(np.floor(fy).astype(np.int64), max(ny - 2, 0))
-        c1 = np.minimum(c0 + 1, nx - 1)
-        r1 = np.minimum(r0 + 1, ny - 1)
-        tx = fx - c0
-        ty = fy - r0
-        h = self.heights
-        return (
-            h[r0, c0] * (1 - tx) * (1 - ty)
-            + h[r0, c1] * tx * (1 - ty)
-            + h[r1, c0] * (1 - tx) * ty
-            + h[r1, c1] * tx * ty
-        )
+        out = np.empty(len(xy))
+        self._interpolate(xy[:, 0], xy[:, 1], None, out)
+        return out
 
     def normalise(self, points: np.ndarray) -> np.ndarray:
         """Height above ground (m) of (N, 3) points."""
         p = np.asarray(points, dtype=np.float64)
-        return p[:, 2] - self.height_at(p[:, :2])
+        out = np.empty(len(p))
+        self._interpolate(p[:, 0], p[:, 1], p[:, 2], out)
+        return out
+
+    def _interpolate(self, x: np.ndarray, y: np.ndarray, z: Optional[np.ndarray], out: np.ndarray) -> None:
+        """``out`` = the ground height at (x, y), or ``z`` minus it: point by point in a compiled
+        kernel (blocks on threads), no temporaries the size of the input (a 2.9 M-point cloud
+        needed ~200 MB of them as array operations); the same arithmetic, value for value."""
+        h = np.ascontiguousarray(self.heights, dtype=np.float64)
+        run_blocks(_bilinear_rows, len(out), x, y, z if z is not None else x, z is not None,
+                   float(self.x0), float(self.y0), float(self.resolution_m), h, out, block=262144)
+
+
+@kernel
+def _bilinear_rows(start: int, stop: int, x: np.ndarray, y: np.ndarray, z: np.ndarray, subtract: bool,
+                   x0: float, y0: float, resolution: float, h: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Rows ``start:stop`` of :meth:`Dem.height_at` (``subtract``: of ``z`` minus it): the cell
+    coordinate clamped to the grid, the lower cell at most the last but one, the four corners
+    weighted in the order the array expression had them."""
+    ny, nx = h.shape
+    last_c0, last_r0 = max(nx - 2, 0), max(ny - 2, 0)
+    for i in range(start, stop):
+        fx = min(max((x[i] - x0) / resolution - 0.5, 0.0), nx - 1.0)
+        fy = min(max((y[i] - y0) / resolution - 0.5, 0.0), ny - 1.0)
+        c0 = min(np.int64(np.floor(fx)), last_c0)
+        r0 = min(np.int64(np.floor(fy)), last_r0)
+        c1 = min(c0 + 1, nx - 1)
+        r1 = min(r0 + 1, ny - 1)
+        tx = fx - c0
+        ty = fy - r0
+        g = (h[r0, c0] * (1 - tx) * (1 - ty) + h[r0, c1] * tx * (1 - ty)
+             + h[r1, c0] * (1 - tx) * ty + h[r1, c1] * tx * ty)
+        out[i] = z[i] - g if subtract else g
 
 
 @dataclass(frozen=True, eq=False)
