@@ -272,3 +272,48 @@ def test_icp_normals_kept_row_by_row_equal_the_normals_of_the_whole_level():
         seen[index] = True
     row, computed = reference._normals[round(0.1, 6)]
     assert len(computed) == seen.sum() and (row >= 0).sum() == seen.sum()  # only the rows asked for
+
+
+@pytest.mark.parametrize("shape", [(61, 47), (1, 1), (1, 6), (5, 1), (2, 2)])
+def test_ground_heights_point_by_point_equal_the_array_expression(shape):
+    # the DEM is interpolated in a compiled kernel; the plain bilinear expression over whole
+    # arrays (as it was computed before) must give the same values, also clamped outside the grid
+    from forestreg.engine.terrain.dem import Dem
+
+    rng = np.random.default_rng(4)
+    dem = Dem(x0=2.3, y0=-1.7, resolution_m=0.5, heights=rng.normal(0, 3, shape))
+    p = rng.uniform(-4, 40, (20000, 3))
+    p[:50, 0], p[50:100, 1] = 2.3, -1.7  # on the grid's edges
+    ny, nx = shape
+    fx = np.clip((p[:, 0] - dem.x0) / dem.resolution_m - 0.5, 0.0, nx - 1.0)
+    fy = np.clip((p[:, 1] - dem.y0) / dem.resolution_m - 0.5, 0.0, ny - 1.0)
+    c0 = np.minimum(np.floor(fx).astype(np.int64), max(nx - 2, 0))
+    r0 = np.minimum(np.floor(fy).astype(np.int64), max(ny - 2, 0))
+    c1, r1 = np.minimum(c0 + 1, nx - 1), np.minimum(r0 + 1, ny - 1)
+    tx, ty = fx - c0, fy - r0
+    h = dem.heights
+    want = h[r0, c0] * (1 - tx) * (1 - ty) + h[r0, c1] * tx * (1 - ty) + h[r1, c0] * (1 - tx) * ty + h[r1, c1] * tx * ty
+    np.testing.assert_array_equal(dem.height_at(p[:, :2]), want)
+    np.testing.assert_array_equal(dem.normalise(p), p[:, 2] - want)
+    np.testing.assert_array_equal(dem.height_at(p[7, :2]), want[7:8])  # one position
+
+
+@pytest.mark.parametrize("extent", [10.0, 5000.0])  # a dense grid (bits), a sparse one (sorted keys)
+def test_voxel_thinning_keeps_the_first_point_of_each_voxel(extent, monkeypatch):
+    from forestreg.engine.geometry import voxel
+
+    rng = np.random.default_rng(5)
+    p = rng.uniform(0, extent, (50000, 3)) * [1, 1, 0.2]
+    p = np.vstack([p, p[:7000] + 0.001])  # repeats in the same voxels, later in the input
+    calls = []
+    real = voxel._mark_first
+    monkeypatch.setattr(voxel, "_mark_first", lambda *a: (calls.append(1), real(*a)))
+    got = voxel.voxel_thin(p, 0.1)
+    assert bool(calls) == (extent < 100)
+    seen, want = set(), []
+    lo = p.min(axis=0)
+    for i, cell in enumerate(map(tuple, np.floor((p - lo) / 0.1).astype(np.int64))):
+        if cell not in seen:
+            seen.add(cell)
+            want.append(i)
+    np.testing.assert_array_equal(got, want)
