@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from ..core.atomic import write_text_atomic
 from ..core.errors import ParameterError, ScanDataError
 from .crown import CrownMeasurement, measure_crown
-from .inventory import TreeInventory, TreeParams, TreeRecord, tree_record
+from .inventory import TreeInventory, TreeParams, TreeRecord, ground_near_stems, tree_record
 from .segmentation import tree_completeness
 from .consistency import stem_curve_wood
 from .stems import NOISY_STEM_CHANGES, Stem, detect_stems, measure_dbh, stem_curve
@@ -145,10 +145,10 @@ def measure_tree(
     wood[stem_curve_wood(p, index, stem, curve, max(2.0 * stem_params.inlier_tolerance_m, 0.03))] = 1.0
     ground = np.asarray(inventory.ground, dtype=bool)
     no_ground = not ground.any()
-    ground_xy = cKDTree(p[ground, :2]) if ground.any() else None
     return tree_record(
         p, stem, np.asarray(indices), dbh, curve, crown, wood, complete[0].reasons if complete else (), params,
-        stem_params=stem_params, method=getattr(inventory, "method", "fine"), no_ground=no_ground, ground_xy=ground_xy,
+        stem_params=stem_params, method=getattr(inventory, "method", "fine"), no_ground=no_ground,
+        ground_near=ground_near_stems(p, ground, [stem]).get(stem.id),
     )
 
 

@@ -298,12 +298,14 @@ def measure_trees(
     if not stems:
         return _canopy_inventory(p, heights, model, no_ground, params, progress, origin_shift, timings)
 
-    # DBH and stem curves, then the crowns (many small fits and queries, mostly holding the
-    # interpreter lock), are measured in a second thread while the trees are segmented and the
-    # leaf-wood separation runs here (compiled kernels and array operations, mostly outside the
-    # lock): none needs another's results. ``dbh_s`` and ``crowns_s`` are that thread's times.
-    # BLAS runs single-threaded meanwhile: its thread count is one setting for the whole process,
-    # and changing it (the mixture does) while another thread is inside BLAS is not safe.
+    # DBH and stem curves (many small fits and queries, mostly holding the interpreter lock) are
+    # measured in a second thread while the trees are segmented (compiled kernels, mostly outside
+    # the lock) and their crowns measured; none needs another's results. The leaf-wood separation
+    # then runs alone: its peak memory is the command's, and the stems' k-d tree of the whole
+    # cloud (~60 MB for 2.9 M points) or the crowns' work beside it added ~200 MB to it
+    # (``dbh_s`` is the second thread's time). BLAS runs single-threaded meanwhile: its thread
+    # count is one setting for the whole process, and changing it (the mixture does) while
+    # another thread is inside BLAS is not safe.
     from scipy.spatial import cKDTree
     from threadpoolctl import threadpool_limits
 
@@ -313,22 +315,24 @@ def measure_trees(
         t = time.perf_counter()
         labels = segment_trees(p, heights, stems, params.segmentation, progress.sub(0.3, 0.45))
         timings["segmentation_s"] = time.perf_counter() - t
-        crowns_job = pool.submit(_crowns_timed, p, heights, labels, stems, model.ground, params.crown, timings)
+        order, bounds, crowns, shared, ground_near = _crowns_timed(p, heights, labels, stems, model.ground, params.crown, timings)
+        t = time.perf_counter()
+        dbh, curves, timings["dbh_s"] = stems_job.result()  # its k-d tree went with its call
+        timings["waiting_s"] = time.perf_counter() - t  # for the second thread
 
         t = time.perf_counter()
         progress(0.45, "leaf-wood separation")
         vegetation = (labels > 0) | (heights > params.segmentation.ground_clearance_m)
-        wood = np.zeros(len(p))
-        if np.count_nonzero(vegetation) >= 50:
-            wood[vegetation] = wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
+        vegetation_wood = (
+            wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
+            if np.count_nonzero(vegetation) >= 50 else 0.0
+        )
+        wood = np.zeros(len(p))  # made after the separation: not held through its peak
+        wood[vegetation] = vegetation_wood
+        del vegetation, vegetation_wood
         timings["leafwood_s"] = time.perf_counter() - t
-        t = time.perf_counter()
-        dbh, curves, timings["dbh_s"] = stems_job.result()
-        order, bounds, crowns, shared, ground_xy = crowns_job.result()
-        timings["waiting_s"] = time.perf_counter() - t  # for the second thread
         # a k-d tree of the cloud for the stem-curve wood below, built in the second thread beside
-        # the completeness checks: the stems' own tree is not held through the leaf-wood
-        # separation (~80 MB for 2.9 M points)
+        # the completeness checks
         index_job = pool.submit(cKDTree, p)
         t = time.perf_counter()
         complete = {c.tree_id: c for c in tree_completeness(p, heights, labels, stems, params.completeness, dbh)}
@@ -348,7 +352,7 @@ def measure_trees(
         records.append(tree_record(
             p, stem, idx, dbh[stem.id], curves[stem.id], crowns[stem.id], wood,
             complete[stem.id].reasons if stem.id in complete else (), params, stem_params=stem_params, method=method,
-            no_ground=no_ground, ground_xy=ground_xy, shared_flag=shared.get(stem.id),
+            no_ground=no_ground, ground_near=ground_near.get(stem.id), shared_flag=shared.get(stem.id),
         ))
     timings["trees_s"] = time.perf_counter() - t
     if method == "noisy" and _airborne_like(heights):  # stems sparse and hardly sampled: the canopy decides
@@ -367,17 +371,15 @@ def measure_trees(
 def _crowns_timed(
     p: np.ndarray, heights: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], ground: np.ndarray,
     params: CrownParams, timings: dict[str, float],
-) -> tuple[np.ndarray, np.ndarray, dict[int, CrownMeasurement], dict[int, str], Any]:
+) -> tuple[np.ndarray, np.ndarray, dict[int, CrownMeasurement], dict[int, str], dict[int, bool]]:
     """Every tree's crown (:func:`.crown.measure_crown`) and the flags of tops not their own
     (:func:`_shared_tops`), with what the tree records need: the point order by label and each
-    stem's bounds in it, and a ``cKDTree`` of the ground points' x, y (None without ground).
-    Stores its seconds in ``timings["crowns_s"]``."""
-    from scipy.spatial import cKDTree
-
+    stem's bounds in it, and whether ground points lie within 3 m of each stem (none: the cloud
+    has no ground). Stores its seconds in ``timings["crowns_s"]``."""
     t = time.perf_counter()
-    order = np.argsort(labels, kind="stable")
+    # 4 bytes a point, held through the leaf-wood separation
+    order = np.argsort(labels, kind="stable").astype(np.int32 if len(labels) < 2**31 else np.int64)
     bounds = np.searchsorted(labels[order], [s.id for s in stems] + [s.id + 1 for s in stems])
-    ground_xy = cKDTree(p[ground, :2]) if ground.any() else None
     crowns: dict[int, CrownMeasurement] = {}
     for k, stem in enumerate(stems):
         idx = order[bounds[k] : bounds[k + len(stems)]]
@@ -392,7 +394,23 @@ def _crowns_timed(
             )
     shared = _shared_tops(p, labels, stems, crowns)
     timings["crowns_s"] = time.perf_counter() - t
-    return order, bounds, crowns, shared, ground_xy
+    return order, bounds, crowns, shared, ground_near_stems(p, ground, stems)
+
+
+#: A stem's height is measured above the ground interpolated under it; without a ground point this
+#: near (horizontally, m) it is flagged.
+GROUND_NEAR_STEM_M = 3.0
+
+
+def ground_near_stems(p: np.ndarray, ground: np.ndarray, stems: Sequence[Stem]) -> dict[int, bool]:
+    """Whether any ground point (``ground``: a mask of ``p``) lies within :data:`GROUND_NEAR_STEM_M`
+    horizontally of each stem's position; empty when the cloud has no ground."""
+    from scipy.spatial import cKDTree
+
+    if not ground.any() or not stems:
+        return {}
+    near = cKDTree(p[ground, :2]).query_ball_point([[s.x, s.y] for s in stems], GROUND_NEAR_STEM_M, return_length=True)
+    return {s.id: bool(n) for s, n in zip(stems, near)}
 
 
 def _measure_stems_timed(
@@ -430,7 +448,7 @@ def tree_record(
     stem_params: Optional[StemParams] = None,
     method: str = "fine",
     no_ground: bool = False,
-    ground_xy: Any = None,
+    ground_near: Optional[bool] = None,
     shared_flag: Optional[str] = None,
 ) -> TreeRecord:
     """One tree's record from its measurements: the reported DBH (the stem curve at breast
@@ -438,7 +456,8 @@ def tree_record(
     made consistent with the stem curve, the form-factor check, the flags and the quality of each
     measure. ``idx`` are the tree's point indices into ``p``; ``wood`` the wood probability of
     every point (the stem traced by the curve already counted as wood); ``reasons`` the
-    completeness reasons; ``ground_xy`` a ``cKDTree`` of the ground points' x, y (or None);
+    completeness reasons; ``ground_near`` whether ground points lie within
+    :data:`GROUND_NEAR_STEM_M` of the stem (None: not known);
     ``shared_flag`` the reason its top is unsure, if any. Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
@@ -483,7 +502,7 @@ def tree_record(
     if no_ground:
         flags.append("no ground in the cloud: heights above the lowest points")
         h_trust, h_how = "low", "highest tree point above the cloud's lowest points (no ground)"
-    elif ground_xy is not None and not ground_xy.query_ball_point([stem.x, stem.y], 3.0):
+    elif ground_near is False:
         flags.append("no ground points within 3 m of the stem: ground interpolated")
         h_trust = _trust(h_trust, "medium")
     lowest = _lowest_stem_point(tree_pts, stem)
