@@ -174,7 +174,8 @@ def test_mixture_columns_fill_a_scale_lacking_neighbours_from_the_next_larger() 
         for s in (2, 1, 0):
             lin, pla, zen1, zen3, missing = measures[s]
             j = index[s][i]
-            row = np.array([lin[j], pla[j], np.cos(np.radians(zen1[j])), np.cos(np.radians(zen3[j]))])
+            # the columns are kept in float32
+            row = np.array([lin[j], pla[j], np.cos(np.radians(zen1[j])), np.cos(np.radians(zen3[j]))]).astype(np.float32)
             expected[i, 4 * s : 4 * s + 4] = above if (missing[j] and above is not None) else row
             above = expected[i, 4 * s : 4 * s + 4]
     np.testing.assert_array_equal(columns.rows(slice(None)), expected)
@@ -188,9 +189,9 @@ def test_mixture_columns_fill_a_scale_lacking_neighbours_from_the_next_larger() 
     np.testing.assert_array_equal(complete, np.isfinite(expected).all(axis=1))
 
 
-def test_mixture_share_equals_the_plain_computation_on_the_whole_matrices(monkeypatch) -> None:
-    # rows made block by block, posteriors predicted in blocks, the rule's rows summed by a masked
-    # sum (no copy of them): the values must be those of the plain computation on whole matrices
+def test_mixture_share_in_two_passes_equals_the_whole_posterior_matrix(monkeypatch) -> None:
+    # the posteriors are made block by block twice (sums, then weights) instead of held whole: the
+    # values must be exactly those of the plain computation on the (n, k) matrix
     import warnings
 
     from sklearn.mixture import GaussianMixture

@@ -45,7 +45,7 @@ from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 from ..geometry.features import SphereGrid, eigen_features, local_covariances, neighbour_means
-from ..geometry.jit import run_blocks
+from ..geometry.jit import run_blocks, worker_count
 from ..geometry.voxel import voxel_centroids
 
 #: Features per scale: l1, l2, l3 (normalised eigenvalues), zenith of e1, e2, e3 (degrees).
@@ -354,8 +354,10 @@ def _mixture_block(linearity: np.ndarray, planarity: np.ndarray, zenith1: np.nda
 class _MixtureColumns:
     """The mixture's features, kept scale by scale on the points each scale was computed on (its
     voxels), with each base point's index into them; rows of the (M, 4 * scales) matrix of
-    :func:`mixture_features` are made when needed. Four float64 columns a voxel and a 4-byte
-    index a base point per scale, instead of 32 bytes a base point per scale."""
+    :func:`mixture_features` are made when needed (float64). Four float32 columns a voxel (the
+    measures and cosines lie in [0, 1]: seven significant digits are plenty for a mixture of a
+    few components) and a 4-byte index a base point per scale, instead of 32 bytes a base point
+    per scale."""
 
     def __init__(self) -> None:
         self.columns: list[np.ndarray] = []
@@ -371,7 +373,7 @@ class _MixtureColumns:
 
     def add_columns(self, columns: np.ndarray, missing: np.ndarray, index: Optional[np.ndarray] = None) -> None:
         """:meth:`add` of a scale whose (V, 4) columns are made already (:func:`_mixture_block`)."""
-        self.columns.append(columns)
+        self.columns.append(np.asarray(columns, dtype=np.float32))
         self.missing.append(np.asarray(missing, dtype=bool))
         self.index.append(None if index is None else index.astype(np.int32 if len(columns) < 2**31 else np.int64))
 
@@ -407,8 +409,9 @@ def mixture_wood_share(
 
 def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: np.ndarray, params: LeafWoodParams) -> np.ndarray:
     """:func:`mixture_wood_share` of the ``n`` rows ``take(which)`` gives (``which``: indices or a
-    slice): the sample the mixture is fitted to and each block of rows is made when needed,
-    never the whole feature matrix. ``is_wood_by_rule``: bool, one per row."""
+    slice): the sample the mixture is fitted to, each block of rows and each block of posteriors
+    are made when needed, never the whole feature or posterior matrix. ``is_wood_by_rule``: bool,
+    one per row."""
     import warnings
 
     from sklearn.exceptions import ConvergenceWarning
@@ -426,20 +429,32 @@ def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: n
         warnings.simplefilter("ignore", ConvergenceWarning)
         mixture.fit(take(fit))
         # row by row the same posteriors, in blocks that stay in the cache (a third of the time),
-        # on threads (NumPy's array operations release the interpreter lock)
-        posterior = np.empty((n, k))
+        # on threads (NumPy's array operations release the interpreter lock); never all of them
+        # at once (8 bytes a row and component): a first pass sums them, a second weighs the
+        # components' shares
+        def posterior(a: int) -> np.ndarray:
+            return mixture.predict_proba(take(slice(a, min(a + _POSTERIOR_BLOCK, n))))
 
-        def block(a: int, b: int) -> None:
-            posterior[a:b] = mixture.predict_proba(take(slice(a, b)))
+        from concurrent.futures import ThreadPoolExecutor
 
-        run_blocks(block, n, block=_POSTERIOR_BLOCK)
-    mass = posterior.sum(axis=0)
-    # the rows the rule calls wood, summed: what the sum of posterior * rule gives (the other rows
-    # add exact zeros), without a temporary the size of the posteriors or a copy of those rows
-    # (a masked sum adds the same rows in the same order as posterior[is_wood_by_rule].sum(axis=0))
-    share = posterior.sum(axis=0, where=is_wood_by_rule[:, None]) / np.maximum(mass, 1e-12)
-    share = np.clip((share - 0.3) / 0.4, 0.0, 1.0)
-    return posterior @ share
+        mass, wood = np.zeros(k), np.zeros(k)
+        with ThreadPoolExecutor(worker_count(), thread_name_prefix="forestreg-posteriors") as pool:
+            for a, block in zip(range(0, n, _POSTERIOR_BLOCK), pool.map(posterior, range(0, n, _POSTERIOR_BLOCK))):
+                # each block added to the running sums row after row: the sums of the whole
+                # matrix (posterior.sum(axis=0), and over the rows the rule calls wood), exactly
+                rows = np.concatenate([mass[None], block])
+                mass = rows.sum(axis=0)
+                rows[0] = wood
+                wood = rows.sum(axis=0, where=np.concatenate([[True], is_wood_by_rule[a : a + len(block)]])[:, None])
+                del rows, block
+        share = np.clip((wood / np.maximum(mass, 1e-12) - 0.3) / 0.4, 0.0, 1.0)
+        out = np.empty(n)
+
+        def weigh(a: int, b: int) -> None:
+            out[a:b] = posterior(a) @ share
+
+        run_blocks(weigh, n, block=_POSTERIOR_BLOCK)
+    return out
 
 
 def smooth_over_neighbours(points: np.ndarray, values: np.ndarray, radius: float, k: int) -> np.ndarray:
@@ -491,7 +506,7 @@ def wood_probability(
         # block by block into the scale's mixture columns and the rule's evidence and weight: no
         # (V, 6) feature matrix of the scale
         n, voxel_of_base = next(blocks)
-        scale_columns, missing = np.empty((n, 4)), np.empty(n, dtype=bool)
+        scale_columns, missing = np.empty((n, 4), dtype=np.float32), np.empty(n, dtype=bool)
         evidence, weight = np.empty(n), np.empty(n)
         for a, b, f, count in blocks:
             linearity, planarity, _ = shape_measures(f, 0)
