@@ -317,3 +317,21 @@ def test_voxel_thinning_keeps_the_first_point_of_each_voxel(extent, monkeypatch)
             seen.add(cell)
             want.append(i)
     np.testing.assert_array_equal(got, want)
+
+
+def test_voxel_centroids_equal_unique_and_bincount():
+    # the centroids are summed in a compiled kernel over a radix sort of the keys; np.unique and
+    # np.bincount (as they were computed before) must give the same values and voxel numbers
+    from forestreg.engine.geometry.voxel import voxel_centroids, voxel_keys
+
+    rng = np.random.default_rng(6)
+    for n, extent, voxel_m in [(60000, 12.0, 0.1), (20000, 3000.0, 0.05), (1, 1.0, 0.1)]:
+        p = rng.uniform(0, extent, (n, 3)) * [1, 1, 0.3] + [512_000.0, 4_100_000.0, 310.0]  # georeferenced
+        keys = voxel_keys(p, voxel_m)
+        _, first, inverse, counts = np.unique(keys, return_index=True, return_inverse=True, return_counts=True)
+        anchor = p[first]
+        sums = np.column_stack([np.bincount(inverse, weights=p[:, a] - anchor[inverse, a], minlength=len(counts)) for a in range(3)])
+        centroids, voxel_of_point = voxel_centroids(p, voxel_m)
+        np.testing.assert_array_equal(centroids, anchor + sums / counts[:, None])
+        np.testing.assert_array_equal(voxel_of_point, inverse)
+        assert voxel_of_point.dtype == np.int64
