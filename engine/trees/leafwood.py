@@ -228,7 +228,7 @@ def _feature_blocks(base: np.ndarray, radius: float, prm: LeafWoodParams):
     a block at a time, and no (V, 6) matrix unless the caller makes one. The thinned cloud and its
     search grid go when the last block is taken."""
     cloud, voxel_of_base = voxel_centroids(base, radius / prm.thinning_ratio)
-    yield len(cloud), voxel_of_base
+    yield len(cloud), voxel_of_base.astype(np.int32 if len(cloud) < 2**31 else np.int64)  # held to the end: 4 bytes a point
     del voxel_of_base
     grid = SphereGrid(cloud, radius)
     for a in range(0, len(cloud), _FEATURE_BLOCK):
@@ -375,7 +375,7 @@ class _MixtureColumns:
         """:meth:`add` of a scale whose (V, 4) columns are made already (:func:`_mixture_block`)."""
         self.columns.append(np.asarray(columns, dtype=np.float32))
         self.missing.append(np.asarray(missing, dtype=bool))
-        self.index.append(None if index is None else index.astype(np.int32 if len(columns) < 2**31 else np.int64))
+        self.index.append(None if index is None else index.astype(np.int32 if len(columns) < 2**31 else np.int64, copy=False))
 
     def rows(self, which) -> np.ndarray:
         """Rows ``which`` (indices or a slice of the base points) of the matrix, a scale lacking
