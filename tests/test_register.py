@@ -151,3 +151,24 @@ def test_scans_read_by_the_engine_are_let_go_once_centred(sim_plot, monkeypatch)
     assert len(raw) == 2 and alive == [False, False]
     np.testing.assert_array_equal(read.matrix, whole.matrix)
     _check_against_truth(read, plot.relative_pose(0, 1))
+
+
+@pytest.mark.parametrize("turn_deg, shift_m", [(8.0, 1.5), (3.0, 0.8), (0.0, 1.0)])
+def test_free_space_check_refuses_a_plausible_wrong_pose(sim_plot, turn_deg, shift_m):
+    # the same pair, the registration moved by a wrong link's error (turned about the reference
+    # scanner, shifted): the moving scan's points at the reference's slice heights stand in the
+    # reference scanner's free space far beyond what a correct pose leaves (< 10 %)
+    from forestreg.engine.tls.evidence import mutual_free_space_violation
+
+    plot = sim_plot("mixed_temperate", ((0.0, 0.0), (12.0, -3.0)), seed=2)
+    result = register(plot.scans[0].scan, plot.scans[1].scan)
+    d = result.details
+    params = RegistrationParams()
+    right, _ = mutual_free_space_violation(d.reference, d.moving, d.reference_layers, d.moving_layers, d.lsf_matrix, params)
+    wrong = np.eye(4)
+    c, s = np.cos(np.radians(turn_deg)), np.sin(np.radians(turn_deg))
+    wrong[:2, :2] = [[c, -s], [s, c]]
+    wrong[:2, 3] = (shift_m * 0.6, shift_m * 0.8)
+    violation, tested = mutual_free_space_violation(d.reference, d.moving, d.reference_layers, d.moving_layers, wrong @ d.lsf_matrix, params)
+    assert right < 0.1 and tested >= 100
+    assert violation > params.max_free_space_violation, (right, violation)

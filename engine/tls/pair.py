@@ -424,7 +424,7 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
             f"{0.75 * params.match_distance_m:.2f} m (need {needed}): the VOP match was chance, not the same trunks",
             chosen, common, full_details,
         )
-    violation, tested = mutual_free_space_violation(chosen.reference_layers, chosen.moving_layers, fine.matrix)
+    violation, tested = mutual_free_space_violation(ref_prep, mov_prep, chosen.reference_layers, chosen.moving_layers, fine.matrix, params)
     if tested >= 100 and violation > params.max_free_space_violation:
         return _failed(
             f"{100 * violation:.0f} % of one scan's trunk-slice points stand where the other scanner saw empty space "
