@@ -335,3 +335,35 @@ def test_voxel_centroids_equal_unique_and_bincount():
         np.testing.assert_array_equal(centroids, anchor + sums / counts[:, None])
         np.testing.assert_array_equal(voxel_of_point, inverse)
         assert voxel_of_point.dtype == np.int64
+
+
+@pytest.mark.parametrize("follow_terrain", [True, False])
+def test_free_space_pick_equals_slicing_the_moved_points(sim_plot, follow_terrain):
+    # the free-space check picks the other scan's points in this scan's layers in one compiled
+    # pass; moving every non-ground point and slicing it with slice_layer must pick the same ones
+    from forestreg.engine.core.transform import apply as apply_transform
+    from forestreg.engine.tls import evidence
+    from forestreg.engine.tls.pair import register
+    from forestreg.engine.tls.params import RegistrationParams
+    from forestreg.engine.tls.vop import slice_layer
+
+    params = RegistrationParams(follow_terrain=follow_terrain, slice_offsets_m=(0.0, 0.6))
+    plot = sim_plot("sloped", ((0.0, 0.0), (10.0, 3.0)), seed=4)
+    d = register(plot.scans[0].scan, plot.scans[1].scan, params).details
+    picked = []
+    monkey = evidence.apply_transform
+    evidence.apply_transform = lambda m, p: (picked.append(p), monkey(m, p))[1]
+    try:
+        evidence._side(d.reference, d.reference_layers, d.moving, d.lsf_matrix, params, 15.0, dict(bin_deg=0.5, margin_m=0.5, near_m=2.0, reach_m=15.0))
+    finally:
+        evidence.apply_transform = monkey
+    moved = apply_transform(d.lsf_matrix, d.moving.points[~d.moving.ground_mask].astype(np.float64))
+    want = np.zeros(len(moved), dtype=bool)
+    for offset in (0.0, 0.6):
+        if follow_terrain:
+            want |= slice_layer(moved, d.reference.ground, centre_height_m=d.reference.scanner_height_m + offset, thickness_m=params.slice_thickness_m)
+        else:
+            want |= slice_layer(moved, None, centre_height_m=offset, thickness_m=params.slice_thickness_m)
+    want &= np.hypot(moved[:, 0], moved[:, 1]) < 15.0
+    assert len(picked) == 1 and want.sum() > 1000
+    np.testing.assert_array_equal(picked[0], d.moving.points[~d.moving.ground_mask][want].astype(np.float64))

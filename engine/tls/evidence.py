@@ -11,7 +11,8 @@ import numpy as np
 
 from ..geometry.jit import kernel
 from .params import RegistrationParams
-from .prepare import PreparedScan, SliceLayer, slice_span, points_in_slices
+from .ground import ground_at
+from .prepare import PreparedScan, SliceLayer
 from .vop import polar
 from ..core.transform import apply as apply_transform
 
@@ -78,7 +79,7 @@ def mutual_free_space_violation(
 
     Each scanner's free space is that of its own slice layers; the other scan's points tested
     there are those at the same heights: its non-ground points, moved by the registration, that
-    lie in this scan's layers (:func:`~.prepare.points_in_slices`), not its own layers. Each
+    lie in this scan's layers (the test of :func:`~.vop.slice_layer`), not its own layers. Each
     scan's layers stand at its scanner's height above the ground, and a scanner position found
     from the data may be some 0.2 m too high (the default instrument height): the other scan's
     layers then lie 0.2 m higher in the world, where other stems and branches stand, and put 15 %
@@ -98,42 +99,49 @@ def _side(this: PreparedScan, this_layers: Sequence[SliceLayer], other: Prepared
     offsets = [layer.offset_m for layer in this_layers]
     if len(seen) == 0 or len(other.points) == 0:
         return float("nan"), 0
-    # the other scan's non-ground points within reach and within this scan's layers' span of
-    # heights, picked point by point (no temporaries the size of the scan) before any is moved
-    low, high = slice_span(this, params, offsets)
+    # the other scan's non-ground points that the registration moves into this scan's layers
+    # (within reach), picked point by point: only those (some 20 k of a 3 M-point scan) are moved
+    # in float64
+    half = params.slice_thickness_m / 2.0
+    if params.follow_terrain:
+        centres = np.array([this.scanner_height_m + o for o in offsets])
+        ground = this.ground
+        origin, cell, heights = np.asarray(ground.origin, dtype=np.float64), float(ground.cell_m), np.asarray(ground.heights, dtype=np.float64)
+    else:
+        centres = np.asarray(offsets, dtype=np.float64)
+        origin, cell, heights = np.zeros(2), 1.0, np.zeros((0, 0))
     m = np.asarray(other_to_this, dtype=np.float64)
-    args = (other.points, other.ground_mask, m, low - 0.1, high + 0.1, reach_m * reach_m)
-    picked = np.empty(_pick_near(*args, np.empty(0, dtype=np.int64)), dtype=np.int64)
-    _pick_near(*args, picked)
-    # moved and sliced a block at a time: the span of a sloped plot's layers holds many more
-    # points than the layers (780 k and 20 k of a 3 M-point scan)
-    kept = []
-    for a in range(0, len(picked), _MOVE_BLOCK):
-        moved = apply_transform(m, other.points[picked[a : a + _MOVE_BLOCK]].astype(np.float64))
-        kept.append(moved[points_in_slices(moved, this, params, offsets)])
-    return _violation(seen, np.concatenate(kept) if kept else np.zeros((0, 3)), **options)
-
-
-#: Points of the other scan moved into a scanner's frame at a time (:func:`_side`).
-_MOVE_BLOCK = 131072
+    args = (other.points, other.ground_mask, m, reach_m * reach_m, params.follow_terrain, origin, cell, heights, centres, half)
+    picked = np.empty(_pick_in_layers(*args, np.empty(0, dtype=np.int64)), dtype=np.int64)
+    _pick_in_layers(*args, picked)
+    return _violation(seen, apply_transform(m, other.points[picked].astype(np.float64)), **options)
 
 
 @kernel
-def _pick_near(points: np.ndarray, ground: np.ndarray, m: np.ndarray, low: float, high: float, reach2: float,
-               out: np.ndarray) -> int:  # pragma: no cover - compiled
+def _pick_in_layers(points: np.ndarray, ground: np.ndarray, m: np.ndarray, reach2: float, follow_terrain: bool,
+                    origin: np.ndarray, cell_m: float, heights: np.ndarray, centres: np.ndarray, half: float,
+                    out: np.ndarray) -> int:  # pragma: no cover - compiled
     """Count (``out`` empty) or list into ``out`` the non-``ground`` points that ``m`` moves within
-    horizontal distance ``sqrt(reach2)`` of the origin and to heights in ``[low, high]``."""
+    horizontal distance ``sqrt(reach2)`` of the origin and into a slice layer: a height (above
+    the ground grid ``origin, cell_m, heights`` when ``follow_terrain``, else z) within ``half``
+    of one of ``centres`` (:func:`~.vop.slice_layer`'s test)."""
     count = 0
     for i in range(len(points)):
         if ground[i]:
             continue
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
-        z = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
-        if z < low or z > high:
-            continue
         x = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3]
         y = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3]
         if x * x + y * y >= reach2:
+            continue
+        z = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
+        if follow_terrain:
+            z -= ground_at(x, y, origin, cell_m, heights)
+        inside = False
+        for c in centres:
+            if abs(z - c) <= half:
+                inside = True
+        if not inside:
             continue
         if len(out):
             out[count] = i

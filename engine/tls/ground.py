@@ -87,21 +87,28 @@ class GroundGrid:
 
 @kernel
 def _bilinear_kernel(xy, origin, cell_m, h, out):  # pragma: no cover - compiled
-    """``out[i]``: ``h`` interpolated bilinearly between cell centres at ``xy[i]`` (cells of side
-    ``cell_m`` from ``origin``; outside the grid the edge cells' values extend outward)."""
-    nx, ny = h.shape
+    """``out[i]``: :func:`ground_at` ``xy[i]``."""
     for i in range(xy.shape[0]):
-        ux = (np.float64(xy[i, 0]) - origin[0]) / cell_m - 0.5
-        uy = (np.float64(xy[i, 1]) - origin[1]) / cell_m - 0.5
-        x0 = min(max(np.int64(np.floor(ux)), 0), nx - 1)
-        y0 = min(max(np.int64(np.floor(uy)), 0), ny - 1)
-        x1 = min(x0 + 1, nx - 1)
-        y1 = min(y0 + 1, ny - 1)
-        fx = min(max(ux - x0, 0.0), 1.0)
-        fy = min(max(uy - y0, 0.0), 1.0)
-        top = h[x0, y0] * (1 - fx) + h[x1, y0] * fx
-        bottom = h[x0, y1] * (1 - fx) + h[x1, y1] * fx
-        out[i] = top * (1 - fy) + bottom * fy
+        out[i] = ground_at(np.float64(xy[i, 0]), np.float64(xy[i, 1]), origin, cell_m, h)
+
+
+@kernel
+def ground_at(x, y, origin, cell_m, h):  # pragma: no cover - compiled
+    """``h`` interpolated bilinearly between cell centres at ``(x, y)`` (cells of side ``cell_m``
+    from ``origin``; outside the grid the edge cells' values extend outward): the ground height of
+    :meth:`GroundGrid.height_at`, callable from other kernels."""
+    nx, ny = h.shape
+    ux = (x - origin[0]) / cell_m - 0.5
+    uy = (y - origin[1]) / cell_m - 0.5
+    x0 = min(max(np.int64(np.floor(ux)), 0), nx - 1)
+    y0 = min(max(np.int64(np.floor(uy)), 0), ny - 1)
+    x1 = min(x0 + 1, nx - 1)
+    y1 = min(y0 + 1, ny - 1)
+    fx = min(max(ux - x0, 0.0), 1.0)
+    fy = min(max(uy - y0, 0.0), 1.0)
+    top = h[x0, y0] * (1 - fx) + h[x1, y0] * fx
+    bottom = h[x0, y1] * (1 - fx) + h[x1, y1] * fx
+    return top * (1 - fy) + bottom * fy
 
 
 def ground_grid(points: np.ndarray, *, cell_m: float = 0.5, window_m: float = 3.0, max_step_m: float = 0.6) -> GroundGrid:

@@ -358,44 +358,24 @@ class SliceLayer:
     offset_m: float
 
 
-def slice_span(prepared: PreparedScan, params: RegistrationParams, offsets: Sequence[float]) -> tuple[float, float]:
-    """The lowest and highest z (the scan's frame, m) of its slice layers at ``offsets``, wherever
-    its ground is."""
-    half = params.slice_thickness_m / 2.0
-    offsets = np.asarray(offsets, dtype=np.float64)
-    if params.follow_terrain:
-        return (float(prepared.ground.heights.min()) + prepared.scanner_height_m + offsets.min() - half,
-                float(prepared.ground.heights.max()) + prepared.scanner_height_m + offsets.max() + half)
-    return float(offsets.min() - half), float(offsets.max() + half)
-
-
-def _in_slice(points: np.ndarray, prepared: PreparedScan, params: RegistrationParams, offset: float) -> np.ndarray:
-    """Mask of ``points`` (the prepared scan's frame) in its slice layer at ``offset``."""
-    if params.follow_terrain:
-        return slice_layer(points, prepared.ground, centre_height_m=prepared.scanner_height_m + offset, thickness_m=params.slice_thickness_m)
-    return slice_layer(points, None, centre_height_m=offset, thickness_m=params.slice_thickness_m)
-
-
-def points_in_slices(points: np.ndarray, prepared: PreparedScan, params: RegistrationParams, offsets: Sequence[float]) -> np.ndarray:
-    """Mask of ``points`` (N, 3), given in the prepared scan's frame (e.g. another scan's points
-    moved there by a registration), that lie in its slice layers at ``offsets``: the same heights
-    above its ground as its own layers."""
-    low, high = slice_span(prepared, params, offsets)
-    inside = np.flatnonzero((points[:, 2] >= low - 1e-3) & (points[:, 2] <= high + 1e-3))
-    mask = np.zeros(len(points), dtype=bool)
-    for offset in offsets:
-        mask[inside[_in_slice(points[inside], prepared, params, float(offset))]] = True
-    return mask
-
-
 def slice_layers(prepared: PreparedScan, params: RegistrationParams) -> list[SliceLayer]:
     """The slice layers of a prepared scan, one per ``slice_offsets_m`` (non-ground points only)."""
     z = prepared.points[:, 2]
-    low, high = slice_span(prepared, params, params.slice_offsets_m)  # the layers lie between these heights
+    half = params.slice_thickness_m / 2.0
+    offsets = np.asarray(params.slice_offsets_m, dtype=np.float64)
+    if params.follow_terrain:  # the layers lie between these heights wherever the ground is
+        low = float(prepared.ground.heights.min()) + prepared.scanner_height_m + offsets.min() - half
+        high = float(prepared.ground.heights.max()) + prepared.scanner_height_m + offsets.max() + half
+    else:
+        low, high = offsets.min() - half, offsets.max() + half
     pts = prepared.points[~prepared.ground_mask & (z >= low - 1e-3) & (z <= high + 1e-3)]
     layers = []
     for offset in params.slice_offsets_m:
-        xyz = pts[_in_slice(pts, prepared, params, offset)]
+        if params.follow_terrain:
+            mask = slice_layer(pts, prepared.ground, centre_height_m=prepared.scanner_height_m + offset, thickness_m=params.slice_thickness_m)
+        else:
+            mask = slice_layer(pts, None, centre_height_m=offset, thickness_m=params.slice_thickness_m)
+        xyz = pts[mask]
         az, dist = polar(xyz[:, :2])
         order = np.argsort(az, kind="stable")
         layers.append(SliceLayer(xyz=xyz[order], azimuth=az[order], distance=dist[order], offset_m=float(offset)))
