@@ -87,10 +87,11 @@ def environment() -> dict[str, Any]:
         "numpy": np.__version__,
         "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
     }
-    try:
-        import open3d
+    try:  # the version without importing it: ~200 MB this process would hold, which every child
+        # measured later would count (a child's ru_maxrss starts at its parent's high-water mark)
+        from importlib.metadata import version
 
-        info["open3d"] = open3d.__version__
+        info["open3d"] = version("open3d")
     except Exception:  # pragma: no cover - open3d is a dependency
         pass
     try:
