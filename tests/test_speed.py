@@ -338,7 +338,7 @@ def test_voxel_centroids_equal_unique_and_bincount():
 
 
 @pytest.mark.parametrize("follow_terrain", [True, False])
-def test_free_space_pick_equals_slicing_the_moved_points(sim_plot, follow_terrain):
+def test_free_space_pick_equals_slicing_the_moved_points(sim_plot, follow_terrain, monkeypatch):
     # the free-space check picks the other scan's points in this scan's layers in one compiled
     # pass; moving every non-ground point and slicing it with slice_layer must pick the same ones
     from forestreg.engine.core.transform import apply as apply_transform
@@ -351,12 +351,8 @@ def test_free_space_pick_equals_slicing_the_moved_points(sim_plot, follow_terrai
     plot = sim_plot("sloped", ((0.0, 0.0), (10.0, 3.0)), seed=4)
     d = register(plot.scans[0].scan, plot.scans[1].scan, params).details
     picked = []
-    monkey = evidence.apply_transform
-    evidence.apply_transform = lambda m, p: (picked.append(p), monkey(m, p))[1]
-    try:
-        evidence._side(d.reference, d.reference_layers, d.moving, d.lsf_matrix, params, 15.0, dict(bin_deg=0.5, margin_m=0.5, near_m=2.0, reach_m=15.0))
-    finally:
-        evidence.apply_transform = monkey
+    monkeypatch.setattr(evidence, "apply_transform", lambda m, p: (picked.append(p), apply_transform(m, p))[1])
+    evidence._side(d.reference, d.reference_layers, d.moving, d.lsf_matrix, params, 15.0, dict(bin_deg=0.5, margin_m=0.5, near_m=2.0, reach_m=15.0))
     moved = apply_transform(d.lsf_matrix, d.moving.points[~d.moving.ground_mask].astype(np.float64))
     want = np.zeros(len(moved), dtype=bool)
     for offset in (0.0, 0.6):

@@ -87,6 +87,13 @@ def voxel_keys(points: np.ndarray, voxel_m: float, *, origin: np.ndarray | None 
     return _keys(pts, voxel_m, lo if origin is None else np.asarray(origin, dtype=np.float64), hi)
 
 
+def _keys_and_cells(pts: np.ndarray, voxel_m: float) -> tuple[np.ndarray, float]:
+    """:func:`voxel_keys` of contiguous ``pts`` (the grid from their minimum corner) and the
+    grid's cell count (the keys lie below it)."""
+    lo, hi = column_bounds(pts)
+    return _keys(pts, voxel_m, lo, hi), float(np.prod(np.floor((hi - lo) / voxel_m) + 1.0))
+
+
 def _keys(pts: np.ndarray, voxel_m: float, origin: np.ndarray, top: np.ndarray) -> np.ndarray:
     """:func:`voxel_keys` of contiguous ``pts`` whose column maxima are ``top`` (float64)."""
     key = np.zeros(len(pts), dtype=np.int64)
@@ -120,10 +127,7 @@ def voxel_thin(points: np.ndarray, voxel_m: float, *, keep: Literal["first", "ce
     if voxel_m <= 0:
         return np.arange(len(p))
     if keep == "first":
-        pts = np.ascontiguousarray(p)
-        lo, hi = column_bounds(pts)
-        keys = _keys(pts, voxel_m, lo, hi)
-        cells = float(np.prod(np.floor((hi - lo) / voxel_m) + 1.0))
+        keys, cells = _keys_and_cells(np.ascontiguousarray(p), voxel_m)
         if cells <= _SEEN_BITS_PER_POINT * len(p):
             # one pass in input order, a bit per cell of the grid: no sort of the keys and none of
             # its three key-sized temporaries (~100 MB for 2.9 M points)
@@ -169,15 +173,13 @@ def voxel_centroids(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.
 
     The keys are sorted by :func:`~.sorting.sort_keys` (a stable radix sort, 4-byte order) and the
     sums added point by point in input order in a compiled kernel: the values of ``np.unique`` and
-    ``np.bincount``, exactly, with some 90 bytes a point of temporaries instead of ~110 (and
-    none the size of the cloud per axis)."""
+    ``np.bincount``, exactly, with about a third of their temporaries (2.9 M points: +60 MB,
+    not +175 MB)."""
     p = np.asarray(points, dtype=np.float64)
     if len(p) == 0:
         return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
     pts = np.ascontiguousarray(p)
-    lo, hi = column_bounds(pts)
-    keys = _keys(pts, voxel_m, lo, hi)
-    cells = float(np.prod(np.floor((hi - lo) / voxel_m) + 1.0))
+    keys, cells = _keys_and_cells(pts, voxel_m)
     order, sorted_keys = sort_keys(keys, cells, np.int32 if len(p) < 2**31 - 1 else np.int64)
     del keys
     voxel_of_point = np.empty(len(p), dtype=np.int64)
