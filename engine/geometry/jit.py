@@ -41,14 +41,17 @@ def worker_count() -> int:
 def run_blocks(fn: Callable[..., Any], n: int, *args: Any, block: int = 32768) -> None:
     """Call ``fn(start, stop, *args)`` for consecutive blocks of ``block`` rows covering
     ``range(n)``; ``fn`` writes its rows' results into arrays among ``args`` (blocks must be
-    independent). The first block runs in the calling thread (where the kernel is compiled or
-    loaded, never in two threads at once), the others on the process's pool of one thread per
-    core (:func:`_pool`), when there are more than one core. ``fn`` must not wait for other blocks
+    independent). The blocks run on the process's pool of one thread per core (:func:`_pool`),
+    when there are more than one core; the first block runs alone in the calling thread while
+    ``fn`` is a kernel not compiled or loaded yet (one thread compiles it, the others would wait),
+    or a Python function (which may call such kernels). ``fn`` must not wait for other blocks
     (compiled kernels never do): callers in several threads share the pool."""
     if n <= 0:
         return
-    fn(0, min(n, block), *args)
-    starts = list(range(block, n, block))
+    starts = list(range(0, n, block))
+    if not getattr(fn, "signatures", None):  # not a kernel, or one not compiled or loaded yet
+        fn(0, min(n, block), *args)
+        starts = starts[1:]
     if min(worker_count(), len(starts)) <= 1:
         for a in starts:
             fn(a, min(n, a + block), *args)
