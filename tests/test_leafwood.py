@@ -192,11 +192,8 @@ def test_mixture_columns_fill_a_scale_lacking_neighbours_from_the_next_larger() 
 def test_mixture_share_in_two_passes_equals_the_whole_posterior_matrix(monkeypatch) -> None:
     # the posteriors are made block by block twice (sums, then weights) instead of held whole: the
     # values must be exactly those of the plain computation on the (n, k) matrix
-    import warnings
-
-    from sklearn.mixture import GaussianMixture
-
     from forestreg.engine.trees import leafwood as lw
+    from forestreg.engine.trees.mixture import fit_gaussian_mixture
 
     rng = np.random.default_rng(9)
     x = np.vstack([rng.normal(c, 0.3, (6000, 5)) for c in (0.0, 1.0, 2.5)])
@@ -205,10 +202,7 @@ def test_mixture_share_in_two_passes_equals_the_whole_posterior_matrix(monkeypat
     monkeypatch.setattr(lw, "_POSTERIOR_BLOCK", 997)  # many blocks, the last one short
     got = lw.mixture_wood_share(x, rule, prm)
     fit = np.random.default_rng(prm.seed).choice(len(x), size=min(len(x), prm.max_fit_points), replace=False)
-    mixture = GaussianMixture(prm.n_components, covariance_type="full", reg_covar=1e-4, random_state=prm.seed, max_iter=100)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        mixture.fit(x[fit])
+    mixture = fit_gaussian_mixture(x[fit], prm.n_components, reg_covar=1e-4, max_iter=100, seed=prm.seed)
     posterior = mixture.predict_proba(x)
     share = np.clip((posterior[rule].sum(axis=0) / np.maximum(posterior.sum(axis=0), 1e-12) - 0.3) / 0.4, 0.0, 1.0)
     want = posterior @ share
