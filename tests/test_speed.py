@@ -335,6 +335,12 @@ def test_voxel_centroids_equal_unique_and_bincount():
         np.testing.assert_array_equal(centroids, anchor + sums / counts[:, None])
         np.testing.assert_array_equal(voxel_of_point, inverse)
         assert voxel_of_point.dtype == np.int64
+        # a subset given by its rows: the centroids of that subset's copy, exactly
+        rows = np.flatnonzero(rng.random(n) < 0.6).astype(np.int32) if n > 1 else np.array([0], dtype=np.int32)
+        want = voxel_centroids(p[rows], voxel_m)
+        got = voxel_centroids(p, voxel_m, rows=rows)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
 
 
 @pytest.mark.parametrize("follow_terrain", [True, False])
@@ -363,3 +369,36 @@ def test_free_space_pick_equals_slicing_the_moved_points(sim_plot, follow_terrai
     want &= np.hypot(moved[:, 0], moved[:, 1]) < 15.0
     assert len(picked) == 1 and want.sum() > 1000
     np.testing.assert_array_equal(picked[0], d.moving.points[~d.moving.ground_mask][want].astype(np.float64))
+
+
+def test_counting_sort_by_label_equals_stable_argsort():
+    from forestreg.engine.geometry.sorting import order_by_label
+
+    rng = np.random.default_rng(4)
+    for n, labels_max in [(0, 1), (1, 1), (5000, 3), (200_000, 70)]:
+        labels = rng.integers(0, labels_max, n).astype(np.int32)
+        order, starts = order_by_label(labels, np.int32)
+        assert order.dtype == np.int32
+        np.testing.assert_array_equal(order, np.argsort(labels, kind="stable"))
+        counts = np.bincount(labels, minlength=1)
+        np.testing.assert_array_equal(np.diff(starts), counts)
+        for v in range(len(counts)):
+            assert np.all(labels[order[starts[v] : starts[v + 1]]] == v)
+
+
+@pytest.mark.parametrize("offset", [0.0, 5e5])
+def test_column_index_discs_equal_kd_tree_ball_queries(offset):
+    from scipy.spatial import cKDTree
+
+    from forestreg.engine.geometry.columns import ColumnIndex
+
+    rng = np.random.default_rng(6)
+    p = np.column_stack([rng.uniform(-30, 30, 60_000) + offset, rng.uniform(-20, 25, 60_000) + offset, rng.uniform(0, 30, 60_000)])
+    p[:200, :2] = np.round(p[:200, :2])  # points on cell borders
+    tree = cKDTree(p[:, :2])
+    for cell in (0.7, 1.0, 3.0):
+        columns = ColumnIndex(p, cell)
+        for x, y, r in [(0, 0, 2.0), (29.5, 24.0, 3.0), (-31, -21, 1.5), (100, 100, 5.0), (3, -4, 0.0), (10.2, 5.3, 12.0)]:
+            got = columns.within(x + offset, y + offset, r)
+            want = np.sort(tree.query_ball_point([x + offset, y + offset], r))
+            np.testing.assert_array_equal(got, want)

@@ -12,7 +12,7 @@ import numpy as np
 
 from .jit import kernel
 
-__all__ = ["sort_keys"]
+__all__ = ["order_by_label", "sort_keys"]
 
 
 def sort_keys(keys: np.ndarray, key_count: float, index_type=np.int64) -> tuple[np.ndarray, np.ndarray]:
@@ -63,3 +63,32 @@ def _radix_argsort(keys, spare_keys, order, spare_order, digit, passes):  # prag
             dst_o[j] = src_o[i]
         in_spare = not in_spare
     return in_spare
+
+
+def order_by_label(labels: np.ndarray, index_type=np.int64) -> tuple[np.ndarray, np.ndarray]:
+    """``(order, starts)`` of (N,) non-negative integer ``labels`` (tree ids, cluster ids):
+    ``order`` (``index_type``) is the stable sorting permutation (``np.argsort(labels,
+    kind="stable")``, exactly) and the rows of label ``v`` are ``order[starts[v]:starts[v + 1]]``
+    (``starts``: (max label + 2,) int64). A counting sort: one pass to count, one to place, and no
+    array but the permutation (4 bytes a row with int32, where ``argsort`` makes 8 and a merge
+    buffer)."""
+    labels = np.asarray(labels)
+    if labels.ndim != 1:
+        raise ValueError(f"labels must be one-dimensional, got shape {labels.shape}")
+    if len(labels) and int(labels.min()) < 0:
+        raise ValueError("labels must be non-negative")
+    counts = np.bincount(labels, minlength=1) if len(labels) else np.zeros(1, dtype=np.int64)
+    starts = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(counts, out=starts[1:])
+    order = np.empty(len(labels), dtype=index_type)
+    _place_by_label(labels, starts[:-1].copy(), order)
+    return order, starts
+
+
+@kernel
+def _place_by_label(labels, next_slot, order):  # pragma: no cover - compiled
+    """Each row's index into the next free slot of its label (rows in input order: stable)."""
+    for i in range(labels.shape[0]):
+        v = labels[i]
+        order[next_slot[v]] = i
+        next_slot[v] += 1
