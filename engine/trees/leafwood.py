@@ -45,8 +45,9 @@ from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 from ..geometry.features import SphereGrid, eigen_features, local_covariances, neighbour_means
-from ..geometry.jit import run_blocks, worker_count
+from ..geometry.jit import kernel, run_blocks, worker_count
 from ..geometry.voxel import voxel_centroids
+from .mixture import fit_gaussian_mixture
 
 #: Features per scale: l1, l2, l3 (normalised eigenvalues), zenith of e1, e2, e3 (degrees).
 FEATURES_PER_SCALE = 6
@@ -178,7 +179,7 @@ def covariance_features(
 
 
 #: Points whose covariance features are computed at a time (:func:`_scale_features`).
-_FEATURE_BLOCK = 262_144
+_FEATURE_BLOCK = 65_536
 
 
 def _features_on(
@@ -225,12 +226,19 @@ def _feature_blocks(base: np.ndarray, radius: float, prm: LeafWoodParams):
     point (M,))`` (the base points thinned to voxels of ``radius / thinning_ratio``), then
     ``(a, b, features (b - a, 6), neighbour counts (b - a,))`` of the voxels ``a:b``,
     :data:`_FEATURE_BLOCK` at a time: the covariances (72 bytes a point) and their decomposition
-    a block at a time, and no (V, 6) matrix unless the caller makes one. The thinned cloud and its
-    search grid go when the last block is taken."""
+    a block at a time, and no (V, 6) matrix unless the caller makes one. The voxels are numbered
+    in the order of their search grid, whose sorted copy of them is the only one kept (the
+    features of a voxel do not depend on the order the voxels are taken in); the grid goes when
+    the last block is taken."""
     cloud, voxel_of_base = voxel_centroids(base, radius / prm.thinning_ratio)
-    yield len(cloud), voxel_of_base.astype(np.int32 if len(cloud) < 2**31 else np.int64)  # held to the end: 4 bytes a point
-    del voxel_of_base
+    index_type = np.int32 if len(cloud) < 2**31 else np.int64
     grid = SphereGrid(cloud, radius)
+    del cloud
+    rank = np.empty(len(grid.index), dtype=index_type)  # the grid's row of each voxel
+    rank[grid.index] = np.arange(len(grid.index), dtype=index_type)
+    yield len(grid.points), rank[voxel_of_base]  # held to the end: 4 bytes a point
+    del voxel_of_base, rank
+    cloud = grid.points
     for a in range(0, len(cloud), _FEATURE_BLOCK):
         b = min(a + _FEATURE_BLOCK, len(cloud))
         cov, count = local_covariances(cloud[a:b], cloud, k=prm.max_neighbours, radius_m=radius, grid=grid)
@@ -303,11 +311,22 @@ def _scale_evidence(s: int, linearity: np.ndarray, planarity: np.ndarray, zenith
     return evidence, np.clip((count - params.min_neighbours) / span, 0.0, 1.0) * (s + 1)
 
 
-def _accumulate(num: np.ndarray, den: np.ndarray, evidence: np.ndarray, weight: np.ndarray) -> None:
-    """Add a scale's weighted evidence to the woodness average's sums (scales in increasing order)."""
-    ok = np.isfinite(evidence) & (weight > 0)
-    num[ok] += weight[ok] * evidence[ok]
-    den[ok] += weight[ok]
+def _accumulate(num: np.ndarray, den: np.ndarray, evidence: np.ndarray, weight: np.ndarray, at: Optional[np.ndarray] = None) -> None:
+    """Add a scale's weighted evidence to the woodness average's sums (scales in increasing order):
+    point ``i`` takes ``evidence[at[i]]`` and ``weight[at[i]]`` (``at``: each point's row among
+    them, None: the same rows), where the evidence is finite and the weight positive. A compiled
+    pass: no gathered copies of the scale's values (16 bytes a point) and no masks."""
+    _accumulate_rows(num, den, evidence, weight, np.arange(len(num)) if at is None else at)
+
+
+@kernel
+def _accumulate_rows(num, den, evidence, weight, at):  # pragma: no cover - compiled
+    for i in range(num.shape[0]):
+        e = evidence[at[i]]
+        w = weight[at[i]]
+        if np.isfinite(e) and w > 0:
+            num[i] += w * e
+            den[i] += w
 
 
 def _rule_score(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -391,7 +410,7 @@ class _MixtureColumns:
 
 
 #: Rows of the mixture's posteriors computed at a time.
-_POSTERIOR_BLOCK = 65536
+_POSTERIOR_BLOCK = 16384
 
 
 def mixture_wood_share(
@@ -412,10 +431,6 @@ def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: n
     slice): the sample the mixture is fitted to, each block of rows and each block of posteriors
     are made when needed, never the whole feature or posterior matrix. ``is_wood_by_rule``: bool,
     one per row."""
-    import warnings
-
-    from sklearn.exceptions import ConvergenceWarning
-    from sklearn.mixture import GaussianMixture
     from threadpoolctl import threadpool_limits
 
     k = params.n_components
@@ -423,11 +438,9 @@ def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: n
         return is_wood_by_rule.astype(np.float64)
     rng = np.random.default_rng(params.seed)
     fit = rng.choice(n, size=min(n, params.max_fit_points), replace=False)
-    mixture = GaussianMixture(k, covariance_type="full", reg_covar=1e-4, random_state=params.seed, max_iter=100)
     # small matrices: BLAS threads only fight each other (several times slower on a busy machine)
-    with threadpool_limits(1), warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        mixture.fit(take(fit))
+    with threadpool_limits(1):
+        mixture = fit_gaussian_mixture(take(fit), k, reg_covar=1e-4, max_iter=100, seed=params.seed)
         # row by row the same posteriors, in blocks that stay in the cache (a third of the time),
         # on threads (NumPy's array operations release the interpreter lock); never all of them
         # at once (8 bytes a row and component): a first pass sums them, a second weighs the
@@ -514,7 +527,7 @@ def wood_probability(
             scale_columns[a:b] = _mixture_block(linearity, planarity, f[:, 3], f[:, 5])
             missing[a:b] = np.isnan(f[:, 0])
             del f, count, linearity, planarity
-        _accumulate(num, den, evidence[voxel_of_base], weight[voxel_of_base])
+        _accumulate(num, den, evidence, weight, voxel_of_base)
         columns.add_columns(scale_columns, missing, voxel_of_base)
         del blocks, scale_columns, missing, voxel_of_base, evidence, weight
     rule = _rule_score(num, den) >= prm.wood_score_threshold

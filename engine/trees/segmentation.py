@@ -47,6 +47,7 @@ from ..core.errors import ScanDataError
 from ..core.progress import Progress
 from ..core.params import Params, param_field
 from .stems import DbhMeasurement, Stem, check_cloud
+from ..geometry.columns import ColumnIndex
 from ..geometry.voxel import voxel_centroids
 
 
@@ -65,17 +66,21 @@ class SegmentationParams(Params):
     orphan_passes: int = param_field(20, "passes", 1, 1000, "...repeated this many times at most, so chains of detached parts (a sparse crown) are reached")
 
 
-def _stem_axis_members(points: np.ndarray, stems: Sequence[Stem], margin_m: float, s_max: float) -> np.ndarray:
-    """Label (stem id or 0) of points within a stem's radius + margin of its axis, between
-    0.5 m below its base and ``s_max`` along it."""
-    labels = np.zeros(len(points), dtype=np.int64)
+def _label_stem_bases(points: np.ndarray, which: np.ndarray, stems: Sequence[Stem], margin_m: float, s_max: float,
+                      labels: np.ndarray) -> None:
+    """Label (stem id) the points of mask ``which`` within a stem's radius + margin of its axis,
+    between 0.5 m below its base and ``s_max`` along it, into ``labels`` (a later stem wins a
+    point two stems reach). The candidates of each stem come from a
+    :class:`~forestreg.engine.geometry.columns.ColumnIndex` of the points (4 bytes a point, not a
+    copy and a k-d tree of the low points)."""
     if not stems or len(points) == 0:
-        return labels
-    tree = cKDTree(points[:, :2])
+        return
+    columns = ColumnIndex(points, 1.0)
     for stem in stems:
         reach = stem.radius_m * 1.3 + margin_m
         lean_shift = s_max * math.sqrt(max(0.0, 1.0 - float(stem.axis[2]) ** 2))
-        idx = np.asarray(tree.query_ball_point(stem.base[:2], reach + lean_shift + 0.01), dtype=np.int64)
+        idx = columns.within(stem.base[0], stem.base[1], reach + lean_shift + 0.01)
+        idx = idx[which[idx]]
         if len(idx) == 0:
             continue
         d = points[idx] - stem.base
@@ -83,7 +88,6 @@ def _stem_axis_members(points: np.ndarray, stems: Sequence[Stem], margin_m: floa
         radial = np.linalg.norm(d - s[:, None] * stem.axis, axis=1)
         on = (s >= -0.5) & (s <= s_max) & (radial <= reach)
         labels[idx[on]] = stem.id
-    return labels
 
 
 def segment_trees(
@@ -111,33 +115,45 @@ def segment_trees(
             raise ScanDataError(f"stem {stem.id} refers to point {int(np.max(stem.point_indices))}, but there are {len(p)} points: stems must come from the same points")
     report(0.0, "assigning stem bases")
     low = h < params.ground_clearance_m
-    low_idx = np.flatnonzero(low)
-    if len(low_idx):
-        labels[low_idx] = _stem_axis_members(p[low_idx], stems, params.stem_margin_m, params.ground_clearance_m + 0.5)
-    up_idx = np.flatnonzero(~low)
+    if low.any():
+        _label_stem_bases(p, low, stems, params.stem_margin_m, params.ground_clearance_m + 0.5, labels)
+    index_type = np.int32 if len(p) < 2**31 else np.int64  # N-long index arrays: 4 bytes a point
+    up_idx = np.flatnonzero(~low).astype(index_type)
+    del low
     if len(up_idx) == 0:
         return labels
     report(0.1, "building the voxel graph")
-    centroids, vox_of = voxel_centroids(p[up_idx], params.voxel_m)
+    centroids, vox_of = voxel_centroids(p, params.voxel_m, rows=up_idx)
+    vox_of = vox_of.astype(index_type)
     n_vox = len(centroids)
-    pairs = cKDTree(centroids).query_pairs(params.link_distance_m, output_type="ndarray")
-    weights = np.linalg.norm(centroids[pairs[:, 0]] - centroids[pairs[:, 1]], axis=1)
-    weights = np.maximum(weights, 1e-6)  # zero weights would read as missing links
-    rows, cols, wts = [pairs[:, 0]], [pairs[:, 1]], [weights]
+    centroid_tree = cKDTree(centroids)
+    pairs = centroid_tree.query_pairs(params.link_distance_m, output_type="ndarray")
     n_nodes = n_vox
+    axis_rows, axis_cols, axis_weights = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
     if params.axis_max_gap_m > 0:
-        r_, c_, w_, n_nodes = _axis_links(centroids, stems, params)
-        rows.append(r_)
-        cols.append(c_)
-        wts.append(w_)
-    graph = sparse.csr_matrix((np.concatenate(wts), (np.concatenate(rows), np.concatenate(cols))), shape=(n_nodes, n_nodes))
-    # seeds: voxels of each stem's detection points (first stem wins a shared voxel)
-    pos_in_up = np.full(len(p), -1, dtype=np.int64)
-    pos_in_up[up_idx] = np.arange(len(up_idx))
+        axis_rows, axis_cols, axis_weights, n_nodes = _axis_links(centroids, stems, params, centroid_tree)
+    del centroid_tree
+    # the links' ends and lengths straight into the arrays the sparse matrix is made of (4-byte
+    # node numbers where they fit): no per-part copies and no (pairs, 3) gathered coordinates
+    node_type = np.int32 if n_nodes < 2**31 else np.int64
+    total = len(pairs) + len(axis_rows)
+    rows, cols, weights = np.empty(total, dtype=node_type), np.empty(total, dtype=node_type), np.empty(total)
+    rows[: len(pairs)], cols[: len(pairs)] = pairs[:, 0], pairs[:, 1]
+    for a in range(0, len(pairs), 262144):
+        ends = pairs[a : a + 262144]
+        weights[a : a + len(ends)] = np.linalg.norm(centroids[ends[:, 0]] - centroids[ends[:, 1]], axis=1)
+    np.maximum(weights[: len(pairs)], 1e-6, out=weights[: len(pairs)])  # zero weights would read as missing links
+    rows[len(pairs) :], cols[len(pairs) :], weights[len(pairs) :] = axis_rows, axis_cols, axis_weights
+    del pairs, axis_rows, axis_cols, axis_weights
+    graph = sparse.csr_matrix((weights, (rows, cols)), shape=(n_nodes, n_nodes))
+    del rows, cols, weights
+    # seeds: voxels of each stem's detection points (first stem wins a shared voxel); a point's
+    # row among the points above the clearance is found in the sorted up_idx
     seed_stem = np.zeros(n_nodes, dtype=np.int64)
     for stem in stems:
-        ix = pos_in_up[np.asarray(stem.point_indices, dtype=np.int64)]
-        ix = ix[ix >= 0]
+        points_of_stem = np.asarray(stem.point_indices, dtype=np.int64)
+        ix = np.minimum(np.searchsorted(up_idx, points_of_stem), len(up_idx) - 1)
+        ix = ix[up_idx[ix] == points_of_stem]
         vox = np.unique(vox_of[ix])
         vox = vox[seed_stem[vox] == 0]
         seed_stem[vox] = stem.id
@@ -164,20 +180,22 @@ def segment_trees(
             vox_label[orphan[ok]] = vox_label[np.flatnonzero(reached)[nn[ok]]]
             reached = vox_label > 0
             orphan = orphan[~ok]
-    labels[up_idx] = vox_label[vox_of]
+    labels[up_idx] = vox_label.astype(labels.dtype)[vox_of]
     report(1.0, "segmented")
     return labels
 
 
-def _axis_links(centroids: np.ndarray, stems: Sequence[Stem], params: SegmentationParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def _axis_links(centroids: np.ndarray, stems: Sequence[Stem], params: SegmentationParams,
+                tree: Optional[cKDTree] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Graph links of the stems' continued axes: (rows, cols, weights, total node count).
 
     Axis nodes are numbered after the voxels. Each stem's nodes run every ``voxel_m`` along its
     axis from 1 m up to the last height with voxels around the axis (gaps up to
     ``axis_max_gap_m``); consecutive nodes are linked, and each node to the voxels within the
-    stem radius plus ``link_distance_m``, at their distance.
+    stem radius plus ``link_distance_m``, at their distance. ``tree``: a k-d tree of the
+    centroids when one is made already.
     """
-    tree = cKDTree(centroids)
+    tree = tree if tree is not None else cKDTree(centroids)
     z_top = float(centroids[:, 2].max())
     step = params.voxel_m
     rows: list[np.ndarray] = []
