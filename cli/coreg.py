@@ -73,7 +73,7 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
     def reader(path, role: str):
         def load():
             t0 = time.perf_counter()
-            scan = read_scan(path, unit_scale=scale)
+            scan = read_scan(path, unit_scale=scale, with_intensity=False)  # the co-registration uses x, y, z alone
             kept["read_s"] += time.perf_counter() - t0
             kept[role], kept[role + "_profile"] = scan.without_points(), profile_sample(scan.points, role)
             return scan

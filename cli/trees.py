@@ -55,7 +55,7 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
     out = check_output_folder(out, "trees", inputs=[cloud_path, transform, field])
     matrix = to_metres(read_matrix(transform), scale) if transform else None
     field_table = read_tree_table(field) if field else None  # checked before the work
-    cloud = read_scan(cloud_path, unit_scale=scale)
+    cloud = read_scan(cloud_path, unit_scale=scale, with_intensity=False)  # the trees use x, y, z alone
     if matrix is not None:
         cloud = cloud.transformed(matrix)
     params = params or TreeParams()
