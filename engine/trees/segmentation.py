@@ -48,6 +48,7 @@ from ..core.progress import Progress
 from ..core.params import Params, param_field
 from .stems import DbhMeasurement, Stem, check_cloud
 from ..geometry.columns import ColumnIndex
+from ..geometry.jit import kernel
 from ..geometry.voxel import voxel_centroids
 
 
@@ -166,7 +167,7 @@ def segment_trees(
     report(0.8, "attaching detached crown parts")
     reached = vox_label > 0
     if params.orphan_max_distance_m > 0 and reached.any() and (~reached).any():
-        vox_height = np.bincount(vox_of, weights=h[up_idx], minlength=n_vox) / np.bincount(vox_of, minlength=n_vox)
+        vox_height = _group_means(vox_of, h, up_idx, n_vox)
         orphan = np.flatnonzero(~reached & (vox_height >= params.orphan_min_height_m))
         # repeated, so that a sparse crown (a tall tree seen from far below) is reached as a
         # chain of detached parts, each within the distance of the part before
@@ -183,6 +184,24 @@ def segment_trees(
     labels[up_idx] = vox_label.astype(labels.dtype)[vox_of]
     report(1.0, "segmented")
     return labels
+
+
+def _group_means(group: np.ndarray, values: np.ndarray, rows: np.ndarray, n_groups: int) -> np.ndarray:
+    """Mean (n_groups,) of ``values[rows[i]]`` over the ``i`` of each group ``group[i]``: the
+    values of ``np.bincount(group, weights=values[rows]) / np.bincount(group)`` exactly (the
+    same sums in the same order), without the gathered values and the 8-byte copies of ``group``
+    they make (~24 MB for 1.5 M points). An empty group is NaN."""
+    sums, counts = np.zeros(n_groups), np.zeros(n_groups, dtype=np.int64)
+    _add_by_group(group, values, rows, sums, counts)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return sums / counts
+
+
+@kernel
+def _add_by_group(group, values, rows, sums, counts):  # pragma: no cover - compiled
+    for i in range(group.shape[0]):
+        sums[group[i]] += values[rows[i]]
+        counts[group[i]] += 1
 
 
 def _axis_links(centroids: np.ndarray, stems: Sequence[Stem], params: SegmentationParams,
