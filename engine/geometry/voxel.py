@@ -190,9 +190,9 @@ def voxel_centroids(points: np.ndarray, voxel_m: float, rows: Optional[np.ndarra
     else:
         lo, hi = np.empty(3), np.empty(3)
         _bounds_at(pts, rows, lo, hi)
-        keys, cells = np.zeros(n, dtype=np.int64), float(np.prod(np.floor((hi - lo) / voxel_m) + 1.0))
-        span = np.floor((hi - lo) / voxel_m).astype(np.int64) + 1
-        run_blocks(_key_rows_at, n, pts, rows, lo, float(voxel_m), span, keys, block=262144)
+        cells_per_axis = np.floor((hi - lo) / voxel_m) + 1.0  # as _keys_and_cells counts them
+        keys, cells = np.zeros(n, dtype=np.int64), float(np.prod(cells_per_axis))
+        run_blocks(_key_rows_at, n, pts, rows, lo, float(voxel_m), cells_per_axis.astype(np.int64), keys, block=262144)
     order, sorted_keys = sort_keys(keys, cells, np.int32 if n < 2**31 - 1 else np.int64)
     del keys
     voxel_of_point = np.empty(n, dtype=np.int64)
