@@ -402,3 +402,11 @@ def test_column_index_discs_equal_kd_tree_ball_queries(offset):
             got = columns.within(x + offset, y + offset, r)
             want = np.sort(tree.query_ball_point([x + offset, y + offset], r))
             np.testing.assert_array_equal(got, want)
+    # a few points spread over kilometres: the columns grow instead of their count
+    far = np.vstack([p[:500], p[:500] + [4000.0, 7000.0, 0.0]])
+    columns = ColumnIndex(far, 1.0)
+    assert columns.shape[0] * columns.shape[1] <= 1 << 20 and columns.cell_m > 1.0
+    far_tree = cKDTree(far[:, :2])
+    for x, y, r in [(0.0, 0.0, 3.0), (4000.0, 7000.0, 25.0), (2000.0, 3500.0, 100.0), (4010.0, 6990.0, 2.5)]:
+        got = columns.within(x + offset, y + offset, r)
+        np.testing.assert_array_equal(got, np.sort(far_tree.query_ball_point([x + offset, y + offset], r)))

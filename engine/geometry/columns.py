@@ -19,7 +19,8 @@ __all__ = ["ColumnIndex"]
 
 
 class ColumnIndex:
-    """The rows of ``points`` (N, >= 2; x, y in metres, any frame) by columns of side ``cell_m``.
+    """The rows of ``points`` (N, >= 2; x, y in metres, any frame) by columns of side ``cell_m``
+    (doubled until the grid has at most ``max(4 N, 2**20)`` columns).
 
     :meth:`within` gives the rows within a horizontal distance of a position, exactly those a
     ``cKDTree(points[:, :2]).query_ball_point(xy, r)`` gives (distance <= r), sorted. The index
@@ -39,6 +40,10 @@ class ColumnIndex:
         if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
             raise ValueError("ColumnIndex: the points hold NaN or infinite coordinates")
         self.origin = lo
+        # a cell grows past the asked size only to keep the column count near the point count (a
+        # cloud over kilometres at 1 m cells would need more memory for its columns than points)
+        while float(np.prod(np.floor((hi - lo) / self.cell_m) + 1.0)) > max(4 * n, 1 << 20):
+            self.cell_m *= 2.0
         nx, ny = (np.floor((hi - lo) / self.cell_m).astype(np.int64) + 1).tolist()
         self.shape = (int(nx), int(ny))
         index_type = np.int32 if n < 2**31 and nx * ny < 2**31 else np.int64
