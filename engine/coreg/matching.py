@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from ..core.progress import Progress
@@ -190,6 +189,8 @@ def assign_one_to_one(ground: np.ndarray, uav: np.ndarray, matrix: np.ndarray, t
     for r, g in enumerate(rows):
         for u in near[g]:
             cost[r, col_index[u]] = np.hypot(*(moved[g, :2] - uav[u, :2]))
+    from scipy.optimize import linear_sum_assignment  # here: every command imports this module's parameters
+
     r_idx, c_idx = linear_sum_assignment(cost)
     ok = cost[r_idx, c_idx] < big
     return np.column_stack([np.asarray(rows)[r_idx[ok]], np.asarray(cols)[c_idx[ok]]]).astype(np.int64)
