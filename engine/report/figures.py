@@ -17,6 +17,7 @@ import numpy as np  # noqa: E402
 
 from ..core.atomic import atomic_path  # noqa: E402
 from ..core.errors import InvalidArgumentError  # noqa: E402
+from .raster import add_points  # noqa: E402
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..tls.pair import PairResult
@@ -50,7 +51,7 @@ def pair_figure(result: "PairResult", path: str | os.PathLike[str], *, dpi: int 
         (axes[1], det.moving_layers, att.moving_vops, MOVING_COLOUR, f"moving {result.moving_name}"),
     ):
         pts = _slice_points(layers, radius)
-        ax.scatter(pts[:, 0], pts[:, 1], s=1.0, c="0.45", linewidths=0)
+        add_points(ax, [(pts[:, :2], "0.45", 2.0)])  # opaque dots: a little larger than the antialiased s=1 scatter was
         if len(vops.rejected_xy):
             ax.scatter(vops.rejected_xy[:, 0], vops.rejected_xy[:, 1], marker="x", s=14, c="0.35", linewidths=0.8, label="rejected (visibility)")
         ax.scatter(vops.xy[:, 0], vops.xy[:, 1], s=28, facecolors="none", edgecolors=colour, linewidths=1.4, label=f"{len(vops)} VOPs")
@@ -61,11 +62,11 @@ def pair_figure(result: "PairResult", path: str | os.PathLike[str], *, dpi: int 
     ax = axes[2]
     matrix = det.lsf_matrix if det.lsf_matrix is not None else det.coarse_lsf_matrix
     ref_pts = _slice_points(det.reference_layers, radius)
-    ax.scatter(ref_pts[:, 0], ref_pts[:, 1], s=1.0, c="#6baed6", linewidths=0)
+    add_points(ax, [(ref_pts[:, :2], "#6baed6", 2.0)])
     if matrix is not None:
         mov_pts = _slice_points(det.moving_layers, radius)
         moved = _apply2(matrix, mov_pts[:, :2])
-        ax.scatter(moved[:, 0], moved[:, 1], s=1.0, c="#fd8d3c", linewidths=0)
+        add_points(ax, [(moved, "#fd8d3c", 2.0)])
         mov_vops = _apply2(matrix, att.moving_vops.xy)
         ax.plot(matrix[0, 3], matrix[1, 3], marker="^", color=MOVING_COLOUR, ms=9)
     else:

@@ -33,6 +33,7 @@ from matplotlib.patches import Circle, Patch  # noqa: E402
 
 from ..core.atomic import atomic_path, write_text_atomic  # noqa: E402
 from ..core.errors import ScanDataError  # noqa: E402
+from .raster import add_points  # noqa: E402
 from .evaluation_report import DASH, esc, fmt, generated_line, html_page, img_tag, png_bytes  # noqa: E402
 
 #: Per-tree figures drawn at most (the rest of the trees are listed without one).
@@ -228,8 +229,12 @@ def _cylinder_table(cylinders: Mapping[Any, Mapping[str, np.ndarray]], tid: Any)
 _TREE_PALETTE = np.array([plt.get_cmap("tab20")(i) for i in (0, 2, 4, 8, 10, 12, 16, 18, 1, 3, 5, 9, 11, 13, 17, 19)])
 
 
+_TREE_PALETTE_BYTES = (_TREE_PALETTE * 255.0 + 0.5).astype(np.uint8)
+
+
 def _tree_colours(ids: np.ndarray) -> np.ndarray:
-    return _TREE_PALETTE[np.mod(ids, len(_TREE_PALETTE))].reshape(-1, 4)
+    """(N, 4) RGBA bytes of the trees ``ids`` (the palette repeats every 16 trees)."""
+    return _TREE_PALETTE_BYTES[np.mod(ids, len(_TREE_PALETTE))].reshape(-1, 4)
 
 
 def _auto_scale(rows: Sequence[Mapping[str, Any]], extent: float) -> float:
@@ -247,18 +252,16 @@ def _scale_text(scale: float) -> str:
 def _map_png(pts: np.ndarray, ids: np.ndarray, rows: Sequence[Mapping[str, Any]], dbh_scale: Optional[float]) -> tuple[bytes, float]:
     rng = np.random.default_rng(_RNG_SEED)
     sel = np.arange(len(pts)) if len(pts) <= MAX_MAP_POINTS else np.sort(rng.choice(len(pts), MAX_MAP_POINTS, replace=False))
-    p, t = pts[sel], ids[sel]
+    p, t = pts[sel, :2], ids[sel]
     stems = np.array([[r["x"], r["y"]] for r in rows if math.isfinite(r["x"]) and math.isfinite(r["y"])]).reshape(-1, 2)
-    xy_all = np.vstack([p[:, :2], stems]) if len(p) or len(stems) else np.zeros((1, 2))
+    corners = np.vstack([p.min(axis=0), p.max(axis=0)] if len(p) else np.zeros((0, 2)))
+    xy_all = np.vstack([corners, stems]) if len(p) or len(stems) else np.zeros((1, 2))
     extent = float(np.ptp(xy_all, axis=0).max()) if len(xy_all) > 1 else 1.0
     scale = float(dbh_scale) if dbh_scale else _auto_scale(rows, extent)
     fig, ax = plt.subplots(figsize=(9.5, 9.0))
     none = t <= 0
     size = float(np.clip(4.0e4 / max(len(p), 1), 0.6, 4.0))
-    if none.any():
-        ax.scatter(p[none, 0], p[none, 1], s=size * 0.7, c="0.8", linewidths=0, rasterized=True)
-    if (~none).any():
-        ax.scatter(p[~none, 0], p[~none, 1], s=size, c=_tree_colours(t[~none]), linewidths=0, rasterized=True)
+    add_points(ax, [(p[none], "0.8", size * 0.7), (p[~none], _tree_colours(t[~none]), size)])
     fontsize = 8 if len(rows) <= 60 else 6 if len(rows) <= 200 else 4
     for r in rows:
         if not (math.isfinite(r["x"]) and math.isfinite(r["y"])):
@@ -315,12 +318,12 @@ def _tree_png(row: Mapping[str, Any], pts: np.ndarray, wood: Optional[np.ndarray
     extent = [pts[:, [0, 2]]] if len(pts) else []
     if len(pts):
         if wood is None:
-            ax_p.scatter(pts[:, 0], pts[:, 2], s=0.6, c=UNCLASSIFIED_COLOUR, linewidths=0, rasterized=True)
+            add_points(ax_p, [(pts[:, [0, 2]], UNCLASSIFIED_COLOUR, 0.6)])
         else:
             is_wood = wood >= WOOD_THRESHOLD
-            ax_p.scatter(pts[~is_wood, 0], pts[~is_wood, 2], s=0.6, c=LEAF_COLOUR, linewidths=0, rasterized=True, label="leaf")
-            ax_p.scatter(pts[is_wood, 0], pts[is_wood, 2], s=0.8, c=WOOD_COLOUR, linewidths=0, rasterized=True, label="wood")
-            ax_p.legend(loc="upper right", fontsize=7, markerscale=8)
+            add_points(ax_p, [(pts[~is_wood][:, [0, 2]], LEAF_COLOUR, 0.6), (pts[is_wood][:, [0, 2]], WOOD_COLOUR, 0.8)])
+            ax_p.legend(handles=[plt.Line2D([], [], ls="", marker="o", ms=4, color=c, label=name)
+                                 for c, name in ((LEAF_COLOUR, "leaf"), (WOOD_COLOUR, "wood"))], loc="upper right", fontsize=7)
     else:
         ax_p.text(0.5, 0.5, "no points", transform=ax_p.transAxes, ha="center", va="center", color="0.4")
     n_cyl = 0
