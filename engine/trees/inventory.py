@@ -325,10 +325,14 @@ def measure_trees(
         t = time.perf_counter()
         progress(0.45, "leaf-wood separation")
         vegetation = (labels > 0) | (heights > params.segmentation.ground_clearance_m)
+        # the heights are not held through the separation's peak (8 bytes a point): made again
+        # after it from the same DEM, the same values
+        heights = None
         vegetation_wood = (
             wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
             if np.count_nonzero(vegetation) >= 50 else 0.0
         )
+        heights = model.dem.normalise(p)
         wood = np.zeros(len(p))  # made after the separation: not held through its peak
         wood[vegetation] = vegetation_wood
         del vegetation, vegetation_wood
