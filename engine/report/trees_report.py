@@ -17,6 +17,7 @@ ground). The number of per-tree figures and of points drawn are capped so the fi
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import re
@@ -33,7 +34,7 @@ from matplotlib.patches import Circle, Patch  # noqa: E402
 
 from ..core.atomic import atomic_path, write_text_atomic  # noqa: E402
 from ..core.errors import ScanDataError  # noqa: E402
-from .raster import add_points  # noqa: E402
+from .raster import PointRaster, add_points  # noqa: E402
 from .evaluation_report import DASH, esc, fmt, generated_line, html_page, img_tag, png_bytes  # noqa: E402
 
 #: Per-tree figures drawn at most (the rest of the trees are listed without one).
@@ -123,15 +124,19 @@ def write_trees_report(
     drawn: dict[str, bytes] = {}
     order = sorted(rows, key=lambda r: _natural(r["tree_id"]))
     problems: list[str] = []
-    for row in order[: max(0, int(max_tree_figures))]:
-        tid = row["tree_id"]
-        sel = groups.get(_int_id(tid), np.zeros(0, dtype=np.int64))
-        cyl, issue = _cylinder_table(cylinders, tid)
-        if issue:
-            problems.append(f"tree {tid}: {issue}")
-        png = _tree_png(row, pts[sel], None if wood is None else wood[sel], cyl)
-        drawn[str(tid)] = png
-        _write_png(fig_dir / f"tree_{_file_stem(str(tid))}.png", png)
+    figure = _TreeFigure()
+    try:
+        for row in order[: max(0, int(max_tree_figures))]:
+            tid = row["tree_id"]
+            sel = groups.get(_int_id(tid), np.zeros(0, dtype=np.int64))
+            cyl, issue = _cylinder_table(cylinders, tid)
+            if issue:
+                problems.append(f"tree {tid}: {issue}")
+            png = figure.png(row, pts[sel], None if wood is None else wood[sel], cyl)
+            drawn[str(tid)] = png
+            _write_png(fig_dir / f"tree_{_file_stem(str(tid))}.png", png)
+    finally:
+        figure.close()
 
     body = [
         f"<h1>{esc(title)}</h1>",
@@ -308,58 +313,81 @@ def cylinder_polygons(cyl: Mapping[str, np.ndarray], axes: tuple[int, int] = (0,
     return np.stack([start + n, end + n, end - n, start - n], axis=1)
 
 
-def _tree_png(row: Mapping[str, Any], pts: np.ndarray, wood: Optional[np.ndarray], cyl: Optional[Mapping[str, np.ndarray]]) -> bytes:
-    rng = np.random.default_rng(_RNG_SEED)
-    if len(pts) > MAX_TREE_POINTS:
-        keep = np.sort(rng.choice(len(pts), MAX_TREE_POINTS, replace=False))
-        pts = pts[keep]
-        wood = None if wood is None else wood[keep]
-    fig, (ax_p, ax_c) = plt.subplots(1, 2, figsize=(9.0, 5.6))
-    extent = [pts[:, [0, 2]]] if len(pts) else []
-    if len(pts):
-        if wood is None:
-            add_points(ax_p, [(pts[:, [0, 2]], UNCLASSIFIED_COLOUR, 0.6)])
+class _TreeFigure:
+    """The per-tree figure (points coloured leaf / wood beside the cylinder model, side view x-z,
+    the same window on both), made once and redrawn for every tree: a figure of its own per tree,
+    laid out by ``tight_layout``, cost 0.13 s a tree (7.4 s of a 58-tree plot's 32 s run); the
+    layout is fixed instead (both panels keep equal axes, centred in their halves)."""
+
+    def __init__(self) -> None:
+        self.fig, (self.ax_p, self.ax_c) = plt.subplots(1, 2, figsize=(9.0, 5.6))
+        self.fig.subplots_adjust(left=0.08, right=0.98, bottom=0.1, top=0.88, wspace=0.2)
+        for ax in (self.ax_p, self.ax_c):
+            ax.set_aspect("equal", adjustable="box")
+            ax.set_xlabel("x (m)")
+            ax.grid(True, lw=0.3)
+        self.ax_p.set_ylabel("z (m)")
+        self._tree_artists: list[Any] = []
+
+    def close(self) -> None:
+        plt.close(self.fig)
+
+    def png(self, row: Mapping[str, Any], pts: np.ndarray, wood: Optional[np.ndarray], cyl: Optional[Mapping[str, np.ndarray]]) -> bytes:
+        """PNG bytes of one tree: ``pts`` (N, 3) its points (metres), ``wood`` their wood
+        probability or None, ``cyl`` its cylinder table or None."""
+        for artist in self._tree_artists:  # the previous tree's
+            artist.remove()
+        drawn = self._tree_artists = []
+        ax_p, ax_c = self.ax_p, self.ax_c
+        rng = np.random.default_rng(_RNG_SEED)
+        if len(pts) > MAX_TREE_POINTS:
+            keep = np.sort(rng.choice(len(pts), MAX_TREE_POINTS, replace=False))
+            pts = pts[keep]
+            wood = None if wood is None else wood[keep]
+        extent = [pts[:, [0, 2]]] if len(pts) else []
+        if len(pts):
+            if wood is None:
+                drawn.append(ax_p.add_artist(PointRaster([(pts[:, [0, 2]], UNCLASSIFIED_COLOUR, 0.6)])))
+            else:
+                is_wood = wood >= WOOD_THRESHOLD
+                drawn.append(ax_p.add_artist(PointRaster([(pts[~is_wood][:, [0, 2]], LEAF_COLOUR, 0.6), (pts[is_wood][:, [0, 2]], WOOD_COLOUR, 0.8)])))
+                drawn.append(ax_p.legend(handles=[plt.Line2D([], [], ls="", marker="o", ms=4, color=c, label=name)
+                                                  for c, name in ((LEAF_COLOUR, "leaf"), (WOOD_COLOUR, "wood"))], loc="upper right", fontsize=7))
         else:
-            is_wood = wood >= WOOD_THRESHOLD
-            add_points(ax_p, [(pts[~is_wood][:, [0, 2]], LEAF_COLOUR, 0.6), (pts[is_wood][:, [0, 2]], WOOD_COLOUR, 0.8)])
-            ax_p.legend(handles=[plt.Line2D([], [], ls="", marker="o", ms=4, color=c, label=name)
-                                 for c, name in ((LEAF_COLOUR, "leaf"), (WOOD_COLOUR, "wood"))], loc="upper right", fontsize=7)
-    else:
-        ax_p.text(0.5, 0.5, "no points", transform=ax_p.transAxes, ha="center", va="center", color="0.4")
-    n_cyl = 0
-    if cyl is not None and len(cyl["start_x"]):
-        polys = cylinder_polygons(cyl)
-        order = np.clip(np.asarray(cyl["branch_order"]).astype(int), 0, len(ORDER_COLOURS) - 1)
-        draw = np.argsort(order, kind="stable")  # stem first, higher orders on top
-        coll = PolyCollection(polys[draw], facecolors=[ORDER_COLOURS[o] for o in order[draw]], edgecolors="none")
-        ax_c.add_collection(coll)
-        extent.append(polys.reshape(-1, 2))
-        n_cyl = len(polys)
-        present = sorted(set(order.tolist()))
-        ax_c.legend(handles=[Patch(color=ORDER_COLOURS[o], label="stem" if o == 0 else f"order {o}" + ("+" if o == len(ORDER_COLOURS) - 1 else ""))
-                             for o in present], loc="upper right", fontsize=7)
-    else:
-        ax_c.text(0.5, 0.5, "no cylinder model", transform=ax_c.transAxes, ha="center", va="center", color="0.4")
-    if extent:  # the same window on both panels
-        xz = np.vstack(extent)
-        lo, hi = xz.min(axis=0), xz.max(axis=0)
-        pad = 0.05 * float((hi - lo).max()) + 0.2
+            drawn.append(ax_p.text(0.5, 0.5, "no points", transform=ax_p.transAxes, ha="center", va="center", color="0.4"))
+        n_cyl = 0
+        if cyl is not None and len(cyl["start_x"]):
+            polys = cylinder_polygons(cyl)
+            order = np.clip(np.asarray(cyl["branch_order"]).astype(int), 0, len(ORDER_COLOURS) - 1)
+            draw = np.argsort(order, kind="stable")  # stem first, higher orders on top
+            drawn.append(ax_c.add_collection(PolyCollection(polys[draw], facecolors=[ORDER_COLOURS[o] for o in order[draw]], edgecolors="none"),
+                                             autolim=False))
+            extent.append(polys.reshape(-1, 2))
+            n_cyl = len(polys)
+            present = sorted(set(order.tolist()))
+            drawn.append(ax_c.legend(handles=[Patch(color=ORDER_COLOURS[o], label="stem" if o == 0 else f"order {o}" + ("+" if o == len(ORDER_COLOURS) - 1 else ""))
+                                              for o in present], loc="upper right", fontsize=7))
+        else:
+            drawn.append(ax_c.text(0.5, 0.5, "no cylinder model", transform=ax_c.transAxes, ha="center", va="center", color="0.4"))
+        if extent:  # the same window on both panels
+            xz = np.vstack(extent)
+            lo, hi = xz.min(axis=0), xz.max(axis=0)
+            pad = 0.05 * float((hi - lo).max()) + 0.2
+            window = ((lo[0] - pad, hi[0] + pad), (lo[1] - pad, hi[1] + pad))
+        else:
+            window = ((0.0, 1.0), (0.0, 1.0))
         for ax in (ax_p, ax_c):
-            ax.set_xlim(lo[0] - pad, hi[0] + pad)
-            ax.set_ylim(lo[1] - pad, hi[1] + pad)
-    for ax in (ax_p, ax_c):
-        ax.set_aspect("equal", adjustable="box")
-        ax.set_xlabel("x (m)")
-        ax.grid(True, lw=0.3)
-    ax_p.set_ylabel("z (m)")
-    ax_p.set_title(f"points ({len(pts):,} drawn)", fontsize=9)
-    ax_c.set_title(f"cylinder model ({n_cyl} cylinders, width 2r)", fontsize=9)
-    head = f"Tree {row['tree_id']}: DBH {fmt(row['dbh_m'], 1, 100.0)} cm, H {fmt(row['height_m'], 2)} m, V {fmt(row['volume_m3'], 3)} m³"
-    if row["flag"]:
-        head += f"  [{row['flag'][:60]}]"
-    fig.suptitle(head.replace("$", r"\$"), fontsize=10, color=FLAG_COLOUR if row["flag"] else "k")
-    fig.tight_layout()
-    return png_bytes(fig, 80)
+            ax.set_xlim(*window[0])
+            ax.set_ylim(*window[1])
+        ax_p.set_title(f"points ({len(pts):,} drawn)", fontsize=9)
+        ax_c.set_title(f"cylinder model ({n_cyl} cylinders, width 2r)", fontsize=9)
+        head = f"Tree {row['tree_id']}: DBH {fmt(row['dbh_m'], 1, 100.0)} cm, H {fmt(row['height_m'], 2)} m, V {fmt(row['volume_m3'], 3)} m³"
+        if row["flag"]:
+            head += f"  [{row['flag'][:60]}]"
+        self.fig.suptitle(head.replace("$", r"\$"), fontsize=10, color=FLAG_COLOUR if row["flag"] else "k")
+        buf = io.BytesIO()
+        self.fig.savefig(buf, format="png", dpi=80)
+        return buf.getvalue()
 
 
 def _write_png(path: Path, png: bytes) -> None:
