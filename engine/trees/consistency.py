@@ -28,6 +28,8 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..geometry.columns import ColumnIndex
+
 from ..core.params import Params, param_field
 from .qsm import CylinderModel
 from .stems import Stem, StemCurve
@@ -52,10 +54,13 @@ def curve_dbh(curve: StemCurve, stem: Stem, breast_height_m: float) -> float:
     return float(curve.diameter_at(s))
 
 
-def stem_curve_wood(points: np.ndarray, index: cKDTree, stem: Stem, curve: StemCurve, tolerance_m: float) -> np.ndarray:
+def stem_curve_wood(points: np.ndarray, index: "cKDTree | ColumnIndex", stem: Stem, curve: StemCurve, tolerance_m: float) -> np.ndarray:
     """Indices of the points on the stem as traced by ``curve`` (within each section's radius plus
-    ``tolerance_m`` of its centre, within half a step along the axis). ``index`` is a
-    ``cKDTree`` of ``points``."""
+    ``tolerance_m`` of its centre, within half a step along the axis), sorted. ``index`` is a
+    ``cKDTree`` of ``points``, or a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of
+    them (4 bytes a point instead of a k-d tree's ~20): then the points in the stem's footprint
+    are indexed alone, and the result is the same (each ball only gathers the candidates the
+    exact tests below decide on)."""
     good = np.flatnonzero(np.isfinite(curve.diameter_m))
     if len(good) == 0:
         return np.zeros(0, dtype=np.int64)
@@ -69,28 +74,52 @@ def stem_curve_wood(points: np.ndarray, index: cKDTree, stem: Stem, curve: StemC
                 centres[j] = np.array([np.interp(curve.s_m[j], curve.s_m[fitted], centres[fitted, d]) for d in range(3)])
             else:
                 centres[j] = stem.point_at(curve.s_m[j])
-    found: list[np.ndarray] = []
+    # the balls that gather the candidates: one per section, and the butt below the first section
+    balls = []
     for j in good:
         r = 0.5 * float(curve.diameter_m[j]) + tolerance_m
-        idx = np.asarray(index.query_ball_point(centres[j], math.hypot(r, 0.5 * step) + 1e-6), dtype=np.int64)
-        if len(idx) == 0:
-            continue
-        d = points[idx] - centres[j]
-        along = d @ stem.axis
-        radial = np.linalg.norm(d - along[:, None] * stem.axis, axis=1)
-        found.append(idx[(np.abs(along) <= 0.5 * step + 1e-9) & (radial <= r)])
-    # the butt below the first section
+        balls.append((centres[j], math.hypot(r, 0.5 * step) + 1e-6, r, j))
     first = good[0]
     if curve.s_m[first] > 0:
         r = 0.5 * float(curve.diameter_m[first]) * 1.3 + tolerance_m
-        c = stem.point_at(0.5 * curve.s_m[first])
-        idx = np.asarray(index.query_ball_point(c, math.hypot(r, 0.5 * curve.s_m[first] + 0.1)), dtype=np.int64)
-        if len(idx):
+        balls.append((stem.point_at(0.5 * curve.s_m[first]), math.hypot(r, 0.5 * curve.s_m[first] + 0.1), r, None))
+    ball_points = _ball_query(points, index, [(c, reach) for c, reach, _, _ in balls])
+    found: list[np.ndarray] = []
+    for (c, _, r, j), idx in zip(balls, ball_points):
+        if len(idx) == 0:
+            continue
+        if j is not None:
+            d = points[idx] - c
+            along = d @ stem.axis
+            radial = np.linalg.norm(d - along[:, None] * stem.axis, axis=1)
+            found.append(idx[(np.abs(along) <= 0.5 * step + 1e-9) & (radial <= r)])
+        else:
             d = points[idx] - stem.base
             along = d @ stem.axis
             radial = np.linalg.norm(d - along[:, None] * stem.axis, axis=1)
             found.append(idx[(along >= -0.05) & (along <= curve.s_m[first]) & (radial <= r)])
     return np.unique(np.concatenate(found)) if found else np.zeros(0, dtype=np.int64)
+
+
+def _ball_query(points: np.ndarray, index: "cKDTree | ColumnIndex", balls: list[tuple[np.ndarray, float]]) -> list[np.ndarray]:
+    """The indices (int64) of the points within each ball ``(centre (3,), radius)``: from the k-d
+    tree, or from a k-d tree of the points of a :class:`ColumnIndex` in the balls' footprint (the
+    disc around all of them, and their height range)."""
+    if isinstance(index, cKDTree):
+        return [np.asarray(index.query_ball_point(c, reach), dtype=np.int64) for c, reach in balls]
+    if not balls:
+        return []
+    centres = np.array([c for c, _ in balls])
+    reach = np.array([r for _, r in balls])
+    lo, hi = (centres - reach[:, None]).min(axis=0), (centres + reach[:, None]).max(axis=0)
+    middle = 0.5 * (lo + hi)
+    rows = index.within(float(middle[0]), float(middle[1]), 0.5 * math.hypot(hi[0] - lo[0], hi[1] - lo[1]))
+    z = points[rows, 2]
+    rows = rows[(z >= lo[2]) & (z <= hi[2])]
+    if len(rows) == 0:
+        return [np.zeros(0, dtype=np.int64) for _ in balls]
+    local = cKDTree(points[rows])
+    return [rows[np.asarray(local.query_ball_point(c, r), dtype=np.int64)] for c, r in balls]
 
 
 def reconcile_stem(model: CylinderModel, stem: Stem, curve: StemCurve, height_m: float) -> tuple[CylinderModel, int]:

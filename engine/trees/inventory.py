@@ -308,7 +308,6 @@ def measure_trees(
     # (``dbh_s`` is the second thread's time). BLAS runs single-threaded meanwhile: its thread
     # count is one setting for the whole process, and changing it (the mixture does) while
     # another thread is inside BLAS is not safe.
-    from scipy.spatial import cKDTree
     from threadpoolctl import threadpool_limits
 
     progress(0.2, f"{len(stems)} stems ({method} profile): DBH and stem curves, segmentation, leaf-wood")
@@ -337,9 +336,10 @@ def measure_trees(
         wood[vegetation] = vegetation_wood
         del vegetation, vegetation_wood
         timings["leafwood_s"] = time.perf_counter() - t
-        # a k-d tree of the cloud for the stem-curve wood below, built in the second thread beside
-        # the completeness checks
-        index_job = pool.submit(cKDTree, p)
+        # a column index of the cloud for the stem-curve wood below (4 bytes a point, not a k-d
+        # tree's ~20: this phase was the command's peak), built in the second thread beside the
+        # completeness checks
+        index_job = pool.submit(ColumnIndex, p, 1.0)
         t = time.perf_counter()
         complete = {c.tree_id: c for c in tree_completeness(p, heights, labels, stems, params.completeness, dbh)}
         index = index_job.result()
