@@ -4,7 +4,8 @@
 Agg: a plot map of 150,000 points cost 0.9 s and 34 MB of peak memory in every ``trees`` run.
 :class:`PointRaster` paints the points straight into an RGBA image the size of the axes, in
 screen pixels, when the figure is drawn (so at the final layout and dpi), and hands it to the
-renderer as one image: 0.1 s and a few MB. A point is a disc of the diameter a scatter marker of
+renderer as one image: that map figure, all of it, 0.9 -> 0.35 s and 34 -> 25 MB of peak memory (most
+of what is left is matplotlib's own: the canvas, the text, the PNG). A point is a disc of the diameter a scatter marker of
 the same size ``s`` (points squared) would have, at least one pixel; later points and layers
 cover earlier ones, as in a scatter. Points are opaque and not antialiased: these are clouds of
 thousands of one- or two-pixel dots, where neither is seen.
@@ -20,9 +21,6 @@ from matplotlib.colors import to_rgba_array
 
 __all__ = ["PointRaster", "add_points"]
 
-#: Added to a marker's radius (pixels): an antialiased marker's edge spreads about this far.
-_EDGE_PX = 0.0
-
 
 class PointRaster(Artist):
     """Layers of points drawn as one image in the data coordinates of an axes.
@@ -31,8 +29,8 @@ class PointRaster(Artist):
     ----------
     layers : ``(xy (N, 2), colours, size)`` per layer, drawn in order: ``xy`` in data units;
         ``colours`` one matplotlib colour, or one per point (colours, or an (N, 4) uint8 RGBA
-        array, used as it is); ``size`` the marker area in points
-        squared (as ``scatter``'s ``s``).
+        array, used as it is); ``size`` the marker area in points squared (as ``scatter``'s
+        ``s``).
     """
 
     def __init__(self, layers: Sequence[tuple[np.ndarray, Any, float]]) -> None:
@@ -78,10 +76,10 @@ class PointRaster(Artist):
             pixels[:, 0] -= x0
             pixels[:, 1] -= y0
             colours = rgba if len(rgba) > 1 else None
-            # the pixels whose centres lie within the marker's radius (plus the spread of an
-            # antialiased edge) of the point, and the point's own pixel always; the outer rings
-            # first, so that each point's own pixel is not covered by its neighbours' rims
-            radius = 0.5 * np.sqrt(max(size, 0.0)) * dots_per_point + _EDGE_PX
+            # the pixels whose centres lie within the marker's radius of the point (the ink of
+            # an antialiased marker of that size), and the point's own pixel always; the outer
+            # rings first, so that each point's own pixel is not covered by its neighbours' rims
+            radius = 0.5 * np.sqrt(max(size, 0.0)) * dots_per_point
             col, row = np.floor(pixels[:, 0]).astype(np.int64), np.floor(pixels[:, 1]).astype(np.int64)
             reach = int(np.ceil(radius))
             rings = sorted(((dc, dr) for dr in range(-reach, reach + 1) for dc in range(-reach, reach + 1)), key=lambda o: -(o[0] ** 2 + o[1] ** 2))

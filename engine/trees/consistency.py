@@ -28,9 +28,8 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry.columns import ColumnIndex
-
 from ..core.params import Params, param_field
+from ..geometry.columns import ColumnIndex
 from .qsm import CylinderModel
 from .stems import Stem, StemCurve
 
