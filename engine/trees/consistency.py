@@ -87,16 +87,13 @@ def stem_curve_wood(points: np.ndarray, index: "cKDTree | ColumnIndex", stem: St
     for (c, _, r, j), idx in zip(balls, ball_points):
         if len(idx) == 0:
             continue
-        if j is not None:
-            d = points[idx] - c
-            along = d @ stem.axis
-            radial = np.linalg.norm(d - along[:, None] * stem.axis, axis=1)
-            found.append(idx[(np.abs(along) <= 0.5 * step + 1e-9) & (radial <= r)])
-        else:
-            d = points[idx] - stem.base
-            along = d @ stem.axis
-            radial = np.linalg.norm(d - along[:, None] * stem.axis, axis=1)
-            found.append(idx[(along >= -0.05) & (along <= curve.s_m[first]) & (radial <= r)])
+        # a section: within half a step of its centre along the axis; the butt: from the base
+        # to the first section
+        d = points[idx] - (c if j is not None else stem.base)
+        along = d @ stem.axis
+        radial = np.linalg.norm(d - along[:, None] * stem.axis, axis=1)
+        between = (np.abs(along) <= 0.5 * step + 1e-9) if j is not None else (along >= -0.05) & (along <= curve.s_m[first])
+        found.append(idx[between & (radial <= r)])
     return np.unique(np.concatenate(found)) if found else np.zeros(0, dtype=np.int64)
 
 
