@@ -95,6 +95,8 @@ def main(argv: Optional[Sequence[str]] = None, *, tune_malloc: bool = False) -> 
         logging.getLogger("forestreg").setLevel(logging.INFO)
     if tune_malloc and args.command in MALLOC_TUNED_COMMANDS and _small_scans(args):
         _tune_malloc()
+    elif tune_malloc and args.command in MALLOC_LEAN_COMMANDS:
+        _tune_malloc(MALLOC_LEAN_OPTIONS)
     mode = progress_mode(args)
     if not getattr(args, "long_running", False) and mode == "bar":
         mode = "none"
@@ -153,6 +155,7 @@ def entry() -> None:
     and the log handlers are flushed, and the process leaves with :func:`os._exit`. A worker thread
     still reading or preparing a scan after Ctrl-C is not waited for either. The desktop
     application (``gui``) exits the usual way (Qt tears its windows down itself)."""
+    _without_http_client()
     try:
         code = main(tune_malloc=True)
     except KeyboardInterrupt:  # Ctrl-C before the command's own handling began (building the parser)
@@ -172,8 +175,9 @@ def entry() -> None:
 
 
 #: The commands run with glibc's malloc tuned (:func:`_tune_malloc`): the registrations of small
-#: scans, where it was measured faster. Trees (+83 MB, no faster), co-registration (+26 MB, 0.95x)
-#: and plots of large scans (ten 30 M-point scans: +226 MB) keep the defaults.
+#: scans, where it was measured faster. Trees (+83 MB, no faster: :data:`MALLOC_LEAN_COMMANDS`
+#: instead), co-registration (+26 MB, 0.95x) and plots of large scans (ten 30 M-point scans:
+#: +226 MB) keep the defaults.
 MALLOC_TUNED_COMMANDS = ("register", "plot")
 #: Points a scan may hold for :func:`_tune_malloc` (the engine's limit for preparing two at once)
 MALLOC_TUNED_MAX_POINTS = 15_000_000
@@ -206,10 +210,22 @@ MALLOC_MMAP_THRESHOLD = 512 * 2**20
 MALLOC_TRIM_THRESHOLD = 64 * 2**20
 MALLOC_TOP_PAD = 64 * 2**20
 MALLOC_ARENA_MAX = 2
+#: :func:`_tune_malloc`'s options (``mallopt`` parameter numbers: M_MMAP_THRESHOLD,
+#: M_TRIM_THRESHOLD, M_TOP_PAD, M_ARENA_MAX) and values
+MALLOC_FAST_OPTIONS = ((-3, MALLOC_MMAP_THRESHOLD), (-1, MALLOC_TRIM_THRESHOLD), (-2, MALLOC_TOP_PAD), (-8, MALLOC_ARENA_MAX))
+#: The commands whose threads share two malloc arenas (:data:`MALLOC_LEAN_OPTIONS`) and nothing
+#: else changed. ``trees``: glibc gives each thread (the stems' thread, the kernels' and the
+#: mixture's pools) an arena of its own, and what one thread freed then stays in its arena
+#: while another asks for more. Measured on ``LPine1_demo`` (1.5 M points, 3 runs each): peak
+#: 405-406 -> 397-400 MiB, wall time unchanged (21.5-21.9 s / 21.0-22.7 s).
+MALLOC_LEAN_COMMANDS = ("trees",)
+MALLOC_LEAN_OPTIONS = ((-8, MALLOC_ARENA_MAX),)
 
 
-def _tune_malloc() -> None:
-    """Keep freed large arrays for the next ones instead of returning them to the system.
+def _tune_malloc(options: Sequence[tuple[int, int]] = MALLOC_FAST_OPTIONS) -> None:
+    """Keep freed large arrays for the next ones instead of returning them to the system
+    (``options``: pairs of a ``mallopt`` parameter and its value; the default is the tuning
+    described here, :data:`MALLOC_LEAN_OPTIONS` only shares two arenas between the threads).
 
     A registration allocates and frees point-sized arrays (tens of MB) thousands of times. glibc
     serves each above 32 MB with a fresh ``mmap`` and returns the heap's free top at once, and
@@ -229,11 +245,21 @@ def _tune_malloc() -> None:
         import ctypes
 
         libc = ctypes.CDLL(None)
-        # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, M_TOP_PAD, M_ARENA_MAX
-        for option, value in ((-3, MALLOC_MMAP_THRESHOLD), (-1, MALLOC_TRIM_THRESHOLD), (-2, MALLOC_TOP_PAD), (-8, MALLOC_ARENA_MAX)):
+        for option, value in options:
             libc.mallopt(option, value)
     except (OSError, ValueError, AttributeError):  # no glibc to ask (macOS, Windows, musl): the defaults stay
         return
+
+
+def _without_http_client() -> None:
+    """Mark the ``requests`` package absent in the ``forestreg`` process (not in a caller's).
+
+    laspy imports it, when it is installed, for reading COPC files over HTTP: 35 ms and ~7 MB of
+    objects (``requests``, ``urllib3``, ``charset_normalizer``) in every command, which read and
+    write local files only. laspy is written for its absence (its HTTP reading then says that
+    ``requests`` is needed). Nothing is changed when either is imported already."""
+    if "requests" not in sys.modules and "laspy" not in sys.modules:
+        sys.modules["requests"] = None  # an import of it raises ModuleNotFoundError
 
 
 def _terminate_as_interrupt():

@@ -592,9 +592,32 @@ def test_malloc_is_tuned_for_a_command_unless_the_user_set_it(monkeypatch):
     cli._tune_malloc()
     assert calls == []
     monkeypatch.delenv("MALLOC_ARENA_MAX")
+    cli._tune_malloc(cli.MALLOC_LEAN_OPTIONS)  # the trees' tuning: two arenas, nothing else
+    assert calls == [(-8, 2)]
+    calls.clear()
     monkeypatch.setattr(os, "confstr", lambda name: None)  # not glibc (musl, macOS): nothing asked
     cli._tune_malloc()
     assert calls == []
+
+
+def test_the_command_reads_las_files_without_the_http_client(tmp_path):
+    # the forestreg process marks `requests` absent before laspy is imported (laspy's HTTP reading
+    # of COPC files only): laspy still reads and writes local files
+    import subprocess
+
+    code = (
+        "import sys, numpy as np\n"
+        "from forestreg.cli import _without_http_client\n"
+        "_without_http_client()\n"
+        "import laspy, laspy.copc\n"
+        "assert laspy.copc.requests is None and sys.modules['requests'] is None\n"
+        "h = laspy.LasHeader(point_format=3, version='1.2'); h.scales = [0.01] * 3\n"
+        "las = laspy.LasData(h); las.x, las.y, las.z = np.arange(5.0), np.zeros(5), np.ones(5)\n"
+        f"las.write({str(tmp_path / 'a.laz')!r})\n"
+        f"assert laspy.read({str(tmp_path / 'a.laz')!r}).header.point_count == 5\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
 
 
 def test_malloc_is_tuned_only_for_registrations_of_small_las_scans(tiny, tmp_path):

@@ -146,6 +146,30 @@ def test_wood_probability_equals_the_composition_of_the_public_steps(simulated: 
     np.testing.assert_array_equal(simulated["prob"], expected)
 
 
+def test_wood_probability_does_not_depend_on_its_block_sizes(simulated: dict[str, np.ndarray], monkeypatch) -> None:
+    # the features are made, and the woodness evidence added to the base points' sums, block by
+    # block of voxels (memory); many small blocks must give the same values to the last bit
+    from forestreg.engine.trees import leafwood as lw
+
+    monkeypatch.setattr(lw, "_FEATURE_BLOCK", 1000)
+    monkeypatch.setattr(lw, "_EVIDENCE_BLOCK", 3000)
+    monkeypatch.setattr(lw, "_POSTERIOR_BLOCK", 2500)
+    np.testing.assert_array_equal(lw.wood_probability(simulated["points"]), simulated["prob"])
+
+
+def test_rule_score_and_blend_in_place_equal_their_expressions() -> None:
+    from forestreg.engine.trees import leafwood as lw
+
+    rng = np.random.default_rng(3)
+    den = rng.uniform(0, 4, 5000) * (rng.random(5000) < 0.8)
+    num = rng.uniform(0, 1, 5000) * den
+    want = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    np.testing.assert_array_equal(lw._rule_score(num, den), want)
+    np.testing.assert_array_equal(lw._rule_score(num.copy(), den, in_place=True), want)
+    rule, share = rng.random(5000) < 0.4, rng.random(5000)
+    np.testing.assert_array_equal(lw._blend(rule, share.copy(), 0.3), 0.3 * rule + (1.0 - 0.3) * share)
+
+
 def test_mixture_columns_fill_a_scale_lacking_neighbours_from_the_next_larger() -> None:
     # three scales on three voxel sets; base point rows made on demand equal the matrix built by
     # hand: a scale lacking neighbours takes the next larger scale's (itself filled first), the

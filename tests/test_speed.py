@@ -222,6 +222,26 @@ def test_grid_nearest_and_k_nearest_equal_kd_tree_queries(cell_m):
     assert count[0] == 0 and not cov.any()
 
 
+def test_sphere_grid_sorted_in_place_equals_its_sorted_copy():
+    # reorder=True sorts the caller's array into the grid's order instead of copying it: the same
+    # grid, and the caller's array is the grid's points
+    from forestreg.engine.geometry.features import SphereGrid
+
+    rng = np.random.default_rng(9)
+    pts = rng.uniform(0, 5, (30000, 3)) * [1, 1, 0.4] + [400_000.0, 5_000_000.0, 200.0]
+    copy = SphereGrid(pts, 0.1)
+    mine = pts.copy()
+    grid = SphereGrid(mine, 0.1, reorder=True)
+    assert grid.points is mine
+    for name in ("points", "index", "cell_z", "column_start", "origin"):
+        np.testing.assert_array_equal(getattr(grid, name), getattr(copy, name))
+    np.testing.assert_array_equal(mine, pts[copy.index])
+    view = pts[:, :3][::2]  # not C-ordered: sorted as a copy, the caller's array untouched
+    kept = view.copy()
+    assert SphereGrid(view, 0.1, reorder=True).points is not view
+    np.testing.assert_array_equal(view, kept)
+
+
 def test_qsm_median_equals_numpy_median():
     from forestreg.engine.trees.qsm import _median
 
@@ -335,6 +355,10 @@ def test_voxel_centroids_equal_unique_and_bincount():
         np.testing.assert_array_equal(centroids, anchor + sums / counts[:, None])
         np.testing.assert_array_equal(voxel_of_point, inverse)
         assert voxel_of_point.dtype == np.int64
+        centroids32, voxel_of_point32 = voxel_centroids(p, voxel_m, index_dtype=np.int32)
+        np.testing.assert_array_equal(centroids32, centroids)
+        np.testing.assert_array_equal(voxel_of_point32, inverse)
+        assert voxel_of_point32.dtype == np.int32
         # a subset given by its rows: the centroids of that subset's copy, exactly
         rows = np.flatnonzero(rng.random(n) < 0.6).astype(np.int32) if n > 1 else np.array([0], dtype=np.int32)
         want = voxel_centroids(p[rows], voxel_m)

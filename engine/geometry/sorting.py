@@ -16,7 +16,7 @@ __all__ = ["order_by_label", "sort_keys"]
 
 
 def sort_keys(keys: np.ndarray, key_count: float, index_type=np.int64) -> tuple[np.ndarray, np.ndarray]:
-    """``(order, sorted keys)`` of (N,) int64 ``keys`` in ``[0, key_count)``: ``order`` (``index_type``)
+    """``(order, sorted keys)`` of (N,) int32 or int64 ``keys`` in ``[0, key_count)``: ``order`` (``index_type``)
     is the stable sorting permutation (``np.argsort(keys, kind="stable")``) and the sorted keys are
     ``keys[order]``. ``keys`` is used as working space (its content is undefined afterwards)."""
     n = len(keys)

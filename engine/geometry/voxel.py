@@ -84,7 +84,7 @@ def voxel_keys(points: np.ndarray, voxel_m: float, *, origin: np.ndarray | None 
     if len(pts) == 0:
         return np.zeros(0, dtype=np.int64)
     lo, hi = column_bounds(pts)
-    return _keys(pts, voxel_m, lo if origin is None else np.asarray(origin, dtype=np.float64), hi)
+    return _keys(pts, voxel_m, lo if origin is None else np.asarray(origin, dtype=np.float64), hi, narrow=False)
 
 
 def _keys_and_cells(pts: np.ndarray, voxel_m: float) -> tuple[np.ndarray, float]:
@@ -94,11 +94,14 @@ def _keys_and_cells(pts: np.ndarray, voxel_m: float) -> tuple[np.ndarray, float]
     return _keys(pts, voxel_m, lo, hi), float(np.prod(np.floor((hi - lo) / voxel_m) + 1.0))
 
 
-def _keys(pts: np.ndarray, voxel_m: float, origin: np.ndarray, top: np.ndarray) -> np.ndarray:
-    """:func:`voxel_keys` of contiguous ``pts`` whose column maxima are ``top`` (float64)."""
-    key = np.zeros(len(pts), dtype=np.int64)
+def _keys(pts: np.ndarray, voxel_m: float, origin: np.ndarray, top: np.ndarray, *, narrow: bool = True) -> np.ndarray:
+    """:func:`voxel_keys` of contiguous ``pts`` whose column maxima are ``top`` (float64); int32
+    when the grid's cells fit and ``narrow`` (the same values: a sort of them takes 8 bytes a
+    point less), else int64."""
     # the largest cell of each axis is the highest point's (the cell grows with the coordinate)
     span = np.floor((top - origin) / voxel_m).astype(np.int64) + 1
+    narrow = narrow and float(np.prod(span.astype(np.float64))) < 2**31 - 1
+    key = np.zeros(len(pts), dtype=np.int32 if narrow else np.int64)
     run_blocks(_key_rows, len(pts), pts, origin, float(voxel_m), span, key, block=262144)
     return key
 
@@ -166,12 +169,16 @@ def _mark_first(keys: np.ndarray, seen: np.ndarray, first: np.ndarray) -> None: 
             first[i] = True
 
 
-def voxel_centroids(points: np.ndarray, voxel_m: float, rows: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+def voxel_centroids(
+    points: np.ndarray, voxel_m: float, rows: Optional[np.ndarray] = None, *, index_dtype: type = np.int64,
+) -> tuple[np.ndarray, np.ndarray]:
     """``(centroids (M, 3), voxel_of_point (N,))``: the mean point of every occupied voxel (in
     key order) and the voxel index of each point. Sums are taken relative to a point of the voxel,
     so large (georeferenced) coordinates keep their precision. ``rows``: optional indices of the
     points to take (``voxel_centroids(points[rows])``, exactly, without that copy: 24 bytes a
-    point); ``voxel_of_point`` is then one per row.
+    point); ``voxel_of_point`` is then one per row. ``index_dtype``: the integer type of
+    ``voxel_of_point`` (``np.int32`` holds 4 bytes a point less; the caller makes sure it holds
+    the voxel count, which is at most the point count).
 
     The keys are sorted by :func:`~.sorting.sort_keys` (a stable radix sort, 4-byte order) and the
     sums added point by point in input order in a compiled kernel: the values of ``np.unique`` and
@@ -184,18 +191,19 @@ def voxel_centroids(points: np.ndarray, voxel_m: float, rows: Optional[np.ndarra
             raise ValueError(f"rows must be a one-dimensional integer array, got {rows.dtype} of shape {rows.shape}")
     n = len(pts) if rows is None else len(rows)
     if n == 0:
-        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        return np.zeros((0, 3)), np.zeros(0, dtype=index_dtype)
     if rows is None:
         keys, cells = _keys_and_cells(pts, voxel_m)
     else:
         lo, hi = np.empty(3), np.empty(3)
         _bounds_at(pts, rows, lo, hi)
         cells_per_axis = np.floor((hi - lo) / voxel_m) + 1.0  # as _keys_and_cells counts them
-        keys, cells = np.zeros(n, dtype=np.int64), float(np.prod(cells_per_axis))
+        cells = float(np.prod(cells_per_axis))
+        keys = np.zeros(n, dtype=np.int32 if cells < 2**31 - 1 else np.int64)  # as _keys narrows them
         run_blocks(_key_rows_at, n, pts, rows, lo, float(voxel_m), cells_per_axis.astype(np.int64), keys, block=262144)
     order, sorted_keys = sort_keys(keys, cells, np.int32 if n < 2**31 - 1 else np.int64)
     del keys
-    voxel_of_point = np.empty(n, dtype=np.int64)
+    voxel_of_point = np.empty(n, dtype=index_dtype)
     first = np.empty(n, dtype=order.dtype)  # the first `count` entries are used
     count = _number_runs(sorted_keys, order, voxel_of_point, first)
     del sorted_keys, order

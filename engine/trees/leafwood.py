@@ -36,6 +36,8 @@ points of each voxel, and every original point takes the values of its base voxe
 
 from __future__ import annotations
 
+import itertools
+from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
@@ -179,7 +181,11 @@ def covariance_features(
 
 
 #: Points whose covariance features are computed at a time (:func:`_scale_features`).
-_FEATURE_BLOCK = 65_536
+_FEATURE_BLOCK = 16_384
+
+#: Voxels whose woodness evidence is added to the base points' sums at a time (each addition
+#: passes over every base point once).
+_EVIDENCE_BLOCK = 65_536
 
 
 def _features_on(
@@ -230,9 +236,9 @@ def _feature_blocks(base: np.ndarray, radius: float, prm: LeafWoodParams):
     in the order of their search grid, whose sorted copy of them is the only one kept (the
     features of a voxel do not depend on the order the voxels are taken in); the grid goes when
     the last block is taken."""
-    cloud, voxel_of_base = voxel_centroids(base, radius / prm.thinning_ratio)
-    index_type = np.int32 if len(cloud) < 2**31 else np.int64
-    grid = SphereGrid(cloud, radius)
+    index_type = np.int32 if len(base) < 2**31 else np.int64  # the voxels are at most the base points
+    cloud, voxel_of_base = voxel_centroids(base, radius / prm.thinning_ratio, index_dtype=index_type)
+    grid = SphereGrid(cloud, radius, reorder=True)  # the grid's sorted points are the cloud itself
     del cloud
     rank = np.empty(len(grid.index), dtype=index_type)  # the grid's row of each voxel
     rank[grid.index] = np.arange(len(grid.index), dtype=index_type)
@@ -311,27 +317,41 @@ def _scale_evidence(s: int, linearity: np.ndarray, planarity: np.ndarray, zenith
     return evidence, np.clip((count - params.min_neighbours) / span, 0.0, 1.0) * (s + 1)
 
 
-def _accumulate(num: np.ndarray, den: np.ndarray, evidence: np.ndarray, weight: np.ndarray, at: Optional[np.ndarray] = None) -> None:
+def _accumulate(num: np.ndarray, den: np.ndarray, evidence: np.ndarray, weight: np.ndarray,
+                at: Optional[np.ndarray] = None, first: int = 0) -> None:
     """Add a scale's weighted evidence to the woodness average's sums (scales in increasing order):
-    point ``i`` takes ``evidence[at[i]]`` and ``weight[at[i]]`` (``at``: each point's row among
-    them, None: the same rows), where the evidence is finite and the weight positive. A compiled
-    pass: no gathered copies of the scale's values (16 bytes a point) and no masks."""
-    _accumulate_rows(num, den, evidence, weight, np.arange(len(num)) if at is None else at)
+    point ``i`` takes ``evidence[at[i] - first]`` and ``weight[at[i] - first]`` (``at``: each
+    point's row among the scale's values, None: the same rows; ``evidence`` and ``weight`` the
+    rows ``first:first + len(evidence)`` of them, and points whose row lies outside take
+    nothing), where the evidence is finite and the weight positive. A compiled pass: no gathered
+    copies of the scale's values (16 bytes a point) and no masks; a scale may be added block by
+    block of its rows (each point takes one row of a scale: the same sums)."""
+    _accumulate_rows(num, den, evidence, weight, np.arange(len(num)) if at is None else at, int(first))
 
 
 @kernel
-def _accumulate_rows(num, den, evidence, weight, at):  # pragma: no cover - compiled
+def _accumulate_rows(num, den, evidence, weight, at, first):  # pragma: no cover - compiled
+    stop = first + evidence.shape[0]
     for i in range(num.shape[0]):
-        e = evidence[at[i]]
-        w = weight[at[i]]
+        j = at[i]
+        if j < first or j >= stop:
+            continue
+        e = evidence[j - first]
+        w = weight[j - first]
         if np.isfinite(e) and w > 0:
             num[i] += w * e
             den[i] += w
 
 
-def _rule_score(num: np.ndarray, den: np.ndarray) -> np.ndarray:
-    """The woodness average; 0 where no scale counted."""
-    return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+def _rule_score(num: np.ndarray, den: np.ndarray, *, in_place: bool = False) -> np.ndarray:
+    """The woodness average ``num / den``; 0 where no scale counted (``den`` 0). ``in_place``:
+    written over ``num`` (no full-length temporaries but a mask)."""
+    counted = den > 0
+    out = num if in_place else np.zeros(len(num))
+    np.divide(num, den, out=out, where=counted)
+    if in_place:
+        out[~counted] = 0.0
+    return out
 
 
 def mixture_features(
@@ -451,8 +471,17 @@ def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: n
         from concurrent.futures import ThreadPoolExecutor
 
         mass, wood = np.zeros(k), np.zeros(k)
+        starts = iter(range(0, n, _POSTERIOR_BLOCK))
         with ThreadPoolExecutor(worker_count(), thread_name_prefix="forestreg-posteriors") as pool:
-            for a, block in zip(range(0, n, _POSTERIOR_BLOCK), pool.map(posterior, range(0, n, _POSTERIOR_BLOCK))):
+            # one block a thread in flight, taken in order: the finished blocks do not pile up
+            # while the sums are made (``pool.map`` would start them all at once)
+            pending = deque((a, pool.submit(posterior, a)) for a in itertools.islice(starts, worker_count()))
+            while pending:
+                a, job = pending.popleft()
+                block = job.result()
+                a_next = next(starts, None)
+                if a_next is not None:
+                    pending.append((a_next, pool.submit(posterior, a_next)))
                 # each block added to the running sums row after row: the sums of the whole
                 # matrix (posterior.sum(axis=0), and over the rows the rule calls wood), exactly
                 rows = np.concatenate([mass[None], block])
@@ -468,6 +497,16 @@ def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: n
 
         run_blocks(weigh, n, block=_POSTERIOR_BLOCK)
     return out
+
+
+def _blend(rule: np.ndarray, share: np.ndarray, score_weight: float) -> np.ndarray:
+    """``score_weight * rule + (1 - score_weight) * share`` (``rule`` bool, ``share`` float64,
+    overwritten by the result and returned), in place: no full-length temporaries (four of 8
+    bytes a point at the separation's peak). The same values: ``score_weight * True`` is
+    ``score_weight`` and a sum of two terms does not depend on their order."""
+    share *= 1.0 - score_weight
+    np.add(share, score_weight, out=share, where=rule)
+    return share
 
 
 def smooth_over_neighbours(points: np.ndarray, values: np.ndarray, radius: float, k: int) -> np.ndarray:
@@ -505,8 +544,9 @@ def wood_probability(
     p = check_points(points, MIN_POINTS)
     progress = progress or Progress()
     prm = params
-    base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0))
-    base_of_point = base_of_point.astype(np.int32 if len(base) < 2**31 else np.int64)  # held to the end: 4 bytes a point
+    # held to the end: 4 bytes a point
+    base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0),
+                                          index_dtype=np.int32 if len(p) < 2**31 else np.int64)
     # the points are not needed past their thinning: an array made for this call (the caller's
     # p[vegetation]) is let go here, not at the return
     del p, points
@@ -516,33 +556,44 @@ def wood_probability(
     columns = _MixtureColumns()
     num, den = np.zeros(len(base)), np.zeros(len(base))
     for s, blocks in _scale_blocks(base, prm, progress.sub(0.0, 0.7)):
-        # block by block into the scale's mixture columns and the rule's evidence and weight: no
-        # (V, 6) feature matrix of the scale
+        # block by block into the scale's mixture columns and the rule's sums: no (V, 6) feature
+        # matrix of the scale, and its evidence and weight (16 bytes a voxel) only for the
+        # voxels of one :data:`_EVIDENCE_BLOCK` at a time
         n, voxel_of_base = next(blocks)
         scale_columns, missing = np.empty((n, 4), dtype=np.float32), np.empty(n, dtype=bool)
-        evidence, weight = np.empty(n), np.empty(n)
+        evidence, weight = np.empty(min(n, _EVIDENCE_BLOCK)), np.empty(min(n, _EVIDENCE_BLOCK))
+        first = 0  # the voxel whose evidence is evidence[0]
         for a, b, f, count in blocks:
             linearity, planarity, _ = shape_measures(f, 0)
-            evidence[a:b], weight[a:b] = _scale_evidence(s, linearity, planarity, f[:, 5], count, prm)
+            if b - first > len(evidence):
+                _accumulate(num, den, evidence[: a - first], weight[: a - first], voxel_of_base, first)
+                first = a
+            evidence[a - first : b - first], weight[a - first : b - first] = _scale_evidence(
+                s, linearity, planarity, f[:, 5], count, prm)
             scale_columns[a:b] = _mixture_block(linearity, planarity, f[:, 3], f[:, 5])
             missing[a:b] = np.isnan(f[:, 0])
             del f, count, linearity, planarity
-        _accumulate(num, den, evidence, weight, voxel_of_base)
+        _accumulate(num, den, evidence[: n - first], weight[: n - first], voxel_of_base, first)
         columns.add_columns(scale_columns, missing, voxel_of_base)
         del blocks, scale_columns, missing, voxel_of_base, evidence, weight
-    rule = _rule_score(num, den) >= prm.wood_score_threshold
+    rule = _rule_score(num, den, in_place=True) >= prm.wood_score_threshold
     del num, den
     progress(0.75, "fitting the mixture")
     complete = np.empty(len(base), dtype=bool)
     for a in range(0, len(base), _POSTERIOR_BLOCK):
         complete[a : a + _POSTERIOR_BLOCK] = np.isfinite(columns.rows(slice(a, a + _POSTERIOR_BLOCK))).all(axis=1)
-    prob = np.zeros(len(base))
     if complete.all():
-        prob[:] = prm.score_weight * rule + (1.0 - prm.score_weight) * _mixture_share(columns.rows, len(base), rule, prm)
+        prob = _blend(rule, _mixture_share(columns.rows, len(base), rule, prm), prm.score_weight)
     elif complete.any():
-        rows = np.flatnonzero(complete)
-        share = _mixture_share(lambda which: columns.rows(rows[which]), len(rows), rule[rows], prm)
-        prob[rows] = prm.score_weight * rule[rows] + (1.0 - prm.score_weight) * share
+        rows = np.flatnonzero(complete).astype(np.int32 if len(base) < 2**31 else np.int64)
+        del complete
+        share = _blend(rule[rows], _mixture_share(lambda which: columns.rows(rows[which]), len(rows), rule[rows], prm),
+                       prm.score_weight)
+        prob = np.zeros(len(base))  # made after the mixture: not held through its peak
+        prob[rows] = share
+        del rows, share
+    else:
+        prob = np.zeros(len(base))
     columns = None  # let go before the smoothing
     progress(0.9, "smoothing")
     prob = smooth_over_neighbours(base, prob, prm.smoothing_radius_m, prm.smoothing_neighbours)
