@@ -6,7 +6,8 @@ a point) plus 300 MB. The cases are the other System B benchmarks' (cached under
 simulated when missing): the backpack (3.4 M points) and UAV (0.4 M) clouds of
 :mod:`benchmarks.coreg_speed` for ``coregister`` and ``fuse`` (the transform is the one
 ``coregister`` just wrote), and the 2.9 M-point TLS plot of :mod:`benchmarks.trees_speed` for
-``trees``. Peak memory is the kernel's accounting of the finished child (``os.wait4``
+``trees``; and ``trees`` on each real cloud of ``../shared/data`` (:data:`REAL_CLOUDS`, those
+present: TLS, MLS, ALS and ULS). Peak memory is the kernel's accounting of the finished child (``os.wait4``
 ``ru_maxrss``, KiB), printed in MB (10^6 bytes) like the budget; wall time from the parent's clock.
 Each command runs ``--runs`` times; the table has the medians. Nothing is asserted.
 
@@ -36,6 +37,9 @@ else:  # run as a script
 RAW_BYTES_PER_POINT = 24
 #: The budget's allowance beyond 3x the raw arrays, MB.
 BUDGET_ALLOWANCE_MB = 300.0
+#: The real clouds (beside the repository, as the tests find them) measured with ``trees``.
+REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+REAL_CLOUDS = ("LPine1_demo", "spanner_MLS_Clip", "pine_plot", "TLS_scan_scanner_at_origin", "spanner_ALS_Clip", "lidR_MixedConifer")
 
 
 def _points_in(path: Path) -> int:
@@ -82,6 +86,10 @@ def run(runs: int = 3, workdir: Optional[Path] = None) -> list[dict[str, Any]]:
         rows.append(_measure("fuse", exe + ["fuse", str(ground), str(uav), "--transform", str(transform), "--out", str(out / "fused.laz"), "--quiet"],
                              n_coreg, runs))
         rows.append(_measure("trees", exe + ["trees", str(plot), "--out", str(out / "trees"), "--quiet"], _points_in(plot), runs))
+        for name in REAL_CLOUDS:
+            cloud = REAL_DATA / f"{name}.laz"
+            if cloud.exists():
+                rows.append(_measure(f"trees {name}", exe + ["trees", str(cloud), "--out", str(out / name), "--quiet"], _points_in(cloud), runs))
     return rows
 
 

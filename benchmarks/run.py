@@ -23,8 +23,9 @@ plot of `--only bigplot`; `--quick`: a few minutes)::
    left out by ``--quick``).
 6. System B at full size (:mod:`benchmarks.system_b`): ground-based/UAV co-registration, fusion
    and the tree inventory of the fused cloud.
-7. Peak memory of System B's commands (``coregister``, ``fuse``, ``trees``) against the budget of
-   3x their raw point arrays + 300 MB (:mod:`benchmarks.command_memory`; left out by ``--quick``).
+7. Peak memory of System B's commands (``coregister``, ``fuse``, ``trees``; ``trees`` also on
+   each real cloud of ``../shared/data``) against the budget of 3x their raw point arrays + 300
+   MB (:mod:`benchmarks.command_memory`; left out by ``--quick``).
 8. A plot of ten ~30 M-point scans registered and merged into one COPC file within 4 GB
    (:mod:`benchmarks.big_plot`; about an hour: only with ``--only bigplot``, left out by default
    and by ``--quick``).

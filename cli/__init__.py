@@ -217,7 +217,7 @@ MALLOC_FAST_OPTIONS = ((-3, MALLOC_MMAP_THRESHOLD), (-1, MALLOC_TRIM_THRESHOLD),
 #: else changed. ``trees``: glibc gives each thread (the stems' thread, the kernels' and the
 #: mixture's pools) an arena of its own, and what one thread freed then stays in its arena
 #: while another asks for more. Measured on ``LPine1_demo`` (1.5 M points, 3 runs each): peak
-#: 405-406 -> 397-400 MiB, wall time unchanged (21.5-21.9 s / 21.0-22.7 s).
+#: 415 -> 407-409 MB, wall time unchanged (21.5-21.9 s / 21.0-22.7 s).
 MALLOC_LEAN_COMMANDS = ("trees",)
 MALLOC_LEAN_OPTIONS = ((-8, MALLOC_ARENA_MAX),)
 
