@@ -211,15 +211,24 @@ def params_from_args(args: argparse.Namespace):
     return params.replace(**changes) if changes else params
 
 
-def import_in_background(*modules: str) -> None:
+def import_in_background(*modules: str, kernels: bool = False) -> None:
     """Import ``modules`` (relative to this package's parent, e.g. ``".engine.report.figures"``)
     in a daemon thread: a command imports what it needs only at the end (matplotlib for the
-    figure, ~0.3 s) while its compiled work runs. An import that fails here fails again, with
-    its message, where the module is used."""
+    figure, ~0.3 s) while its compiled work runs. With ``kernels``, the thread first loads one
+    compiled kernel (:func:`~forestreg.engine.geometry.jit.warm_up`: LLVM's start-up, ~0.3 s)
+    while the command reads its files. An import that fails here fails again, with its message,
+    where the module is used."""
     import importlib
     import threading
 
     def run() -> None:
+        if kernels:
+            try:
+                from ..engine.geometry.jit import warm_up
+
+                warm_up()
+            except Exception:  # the kernel is loaded (or its failure reported) where it is used
+                pass
         for name in modules:
             try:
                 importlib.import_module(name, __package__.rpartition(".")[0])

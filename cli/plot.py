@@ -227,7 +227,7 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
 
     # the report's figures need matplotlib (~0.4 s of imports): loaded while the scans are
     # registered, not on the single thread that writes the report at the end
-    import_in_background(".engine.report.plot_report")
+    import_in_background(".engine.report.plot_report", kernels=True)
     if scans is None:
         scans = ScanCache(project, with_intensity=_writes_scans(args))
         _check_scans_near_their_scanners(project, scans)

@@ -89,7 +89,7 @@ def run_register(
     early = ThreadPoolExecutor(1, thread_name_prefix="forestreg-read")
     pending = {0: early.submit(read, reference_path, 0), 1: early.submit(read, moving_path, 1)}  # popped when used: the scan's points are not held
     early.shutdown(wait=False)
-    import_in_background(".engine.report.figures")
+    import_in_background(".engine.report.figures", kernels=True)
     from ..engine.core.transform import format_matrix
     from ..engine.io.tables import pair_vop_tables, write_vops_csv
     from ..engine.tls.pair import register

@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import numba
 
-__all__ = ["kernel", "run_blocks", "worker_count"]
+__all__ = ["kernel", "run_blocks", "warm_up", "worker_count"]
 
 
 def kernel(fn: Callable[..., Any] | None = None, **options: Any) -> Any:
@@ -28,6 +28,19 @@ def kernel(fn: Callable[..., Any] | None = None, **options: Any) -> Any:
         return numba.njit(cache=True, nogil=True, **options)(fn)
     except RuntimeError:  # numba found no directory to cache in
         return numba.njit(nogil=True, **options)(fn)
+
+
+def warm_up() -> None:
+    """Load one small compiled kernel now (from the cache, or compiled): the first kernel a
+    process loads starts numba's compiler, LLVM (~0.3 s and ~40 MB, whichever kernel it is; each
+    later one takes a few milliseconds). A command calls this in a background thread while its
+    files are read (:func:`forestreg.cli.common.import_in_background`), so that the start-up is
+    not spent in its first step."""
+    import numpy as np
+
+    from .voxel import column_bounds
+
+    column_bounds(np.zeros((1, 3)))  # the signature the commands' own calls load
 
 
 def worker_count() -> int:
