@@ -155,7 +155,8 @@ def entry() -> None:
     and the log handlers are flushed, and the process leaves with :func:`os._exit`. A worker thread
     still reading or preparing a scan after Ctrl-C is not waited for either. The desktop
     application (``gui``) exits the usual way (Qt tears its windows down itself)."""
-    _without_http_client()
+    if sys.argv[1:2] != ["gui"]:  # the desktop application keeps its libraries whole (pyvista's downloads)
+        _without_http_client()
     try:
         code = main(tune_malloc=True)
     except KeyboardInterrupt:  # Ctrl-C before the command's own handling began (building the parser)
@@ -252,7 +253,8 @@ def _tune_malloc(options: Sequence[tuple[int, int]] = MALLOC_FAST_OPTIONS) -> No
 
 
 def _without_http_client() -> None:
-    """Mark the ``requests`` package absent in the ``forestreg`` process (not in a caller's).
+    """Mark the ``requests`` package absent in the ``forestreg`` process (not in a caller's, nor
+    in the desktop application's).
 
     laspy imports it, when it is installed, for reading COPC files over HTTP: 35 ms and ~7 MB of
     objects (``requests``, ``urllib3``, ``charset_normalizer``) in every command, which read and
