@@ -172,3 +172,30 @@ def test_free_space_check_refuses_a_plausible_wrong_pose(sim_plot, turn_deg, shi
     violation, tested = mutual_free_space_violation(d.reference, d.moving, d.reference_layers, d.moving_layers, wrong @ d.lsf_matrix, params)
     assert right < 0.1 and tested >= 100
     assert violation > params.max_free_space_violation, (right, violation)
+
+
+def test_each_scans_vops_are_found_once_in_the_thread_that_prepared_it(sim_plot, monkeypatch):
+    """The slice layers and VOPs of each scan at every radius are made once, in the thread that
+    prepared the scan (the first scan's while the second is still read or prepared), and the
+    coarse attempts use those: the result is that of the scans found after both were prepared."""
+    import threading
+
+    from forestreg.engine.tls import pair as pair_module
+
+    plot = sim_plot("planted_conifer", ((0.0, 0.0), (9.0, 4.0)), seed=1)
+    ref, mov = plot.scans
+    made: list = []  # (thread, layers' first point, radius) per extraction
+    real_extract = pair_module.extract_vops
+
+    def extract(layers, params, radius):
+        made.append((threading.current_thread().name, layers[0].xyz[:1].tobytes(), radius))
+        return real_extract(layers, params, radius)
+
+    monkeypatch.setattr(pair_module, "extract_vops", extract)
+    result = register(ref.scan, mov.scan)
+    monkeypatch.undo()
+    radii = pair_module.vop_radii(RegistrationParams())
+    assert len(made) == 2 * len(radii) and len({(scan, radius) for _, scan, radius in made}) == 2 * len(radii)
+    assert all(name.startswith("forestreg-vops") for name, _, _ in made)
+    assert [a.radius_m for a in result.details.attempts] == list(radii)
+    _check_against_truth(result, plot.relative_pose(0, 1))

@@ -490,3 +490,38 @@ def test_dem_holes_filled_as_scipy_interpolate_fills_them():
     assert outside.any() and (~outside).any()
     want[outside] = NearestNDInterpolator(known, dem.heights[kr, kc])(query[outside])
     np.testing.assert_array_equal(dem.heights[hr, hc], want)
+
+
+def test_normals_on_the_grid_and_in_blocks_equal_a_kd_tree_and_one_decomposition(monkeypatch):
+    # the levelling's surface normals: neighbours found on a search grid equal a k-d tree's k
+    # nearest, and covariances decomposed a block per core equal one eigh of them all
+    from scipy.spatial import cKDTree
+
+    from forestreg.engine.geometry import features
+    from forestreg.engine.tls import level
+
+    rng = np.random.default_rng(4)
+    ground = np.column_stack([rng.uniform(-10, 10, (120000, 2)), rng.normal(0.0, 0.08, 120000)])  # rough, within 15 m
+    angle = rng.uniform(0, 2 * np.pi, 20000)
+    trunk = np.column_stack([3.0 + 0.2 * np.cos(angle), 2.0 + 0.2 * np.sin(angle), rng.uniform(0, 3, 20000)])
+    cloud = np.concatenate([ground, trunk])
+    normals, variation = level.surface_normals(cloud)
+    thinned = voxel_downsample(cloud, 0.1)
+    assert len(thinned) > 60000  # a random 60,000 of them, as surface_normals takes
+    thinned = thinned[np.random.default_rng(0).choice(len(thinned), 60000, replace=False)]
+    _, idx = cKDTree(thinned).query(thinned, k=20)
+    offsets = thinned[idx] - thinned[:, None, :]
+    mean = offsets.mean(axis=1)
+    cov = np.einsum("nki,nkj->nij", offsets, offsets) / 20 - np.einsum("ni,nj->nij", mean, mean)
+    w, v = np.linalg.eigh(cov)
+    np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", normals, v[:, :, 0])), 1.0, atol=1e-6)
+    np.testing.assert_allclose(variation, w[:, 0] / w.sum(axis=1), atol=1e-9)
+    grid_cov, _ = features.local_covariances(thinned, thinned, k=20, grid=features.SphereGrid(thinned, level.NORMAL_SEARCH_CELL_M))
+    tree_cov, _ = features.local_covariances(thinned, thinned, k=20)
+    np.testing.assert_array_equal(grid_cov, tree_cov)
+    monkeypatch.setattr(features, "worker_count", lambda: 1)
+    one = features.normals_and_variation(tree_cov)
+    monkeypatch.setattr(features, "worker_count", lambda: 4)
+    blocks = features.normals_and_variation(tree_cov)
+    np.testing.assert_array_equal(one[0], blocks[0])
+    np.testing.assert_array_equal(one[1], blocks[1])

@@ -528,7 +528,9 @@ def normals_and_variation(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         variation[a:b] = np.where(total > 0, w[:, 0] / np.maximum(total, 1e-30), np.nan)
         normals[a:b] = v[:, :, 0]
 
-    run_blocks(block, len(cov), block=_EIGEN_BLOCK)
+    # at most _EIGEN_BLOCK matrices a block, and a block per core (each matrix is decomposed on
+    # its own: any blocks give the same values)
+    run_blocks(block, len(cov), block=min(_EIGEN_BLOCK, max(4096, -(-len(cov) // worker_count()))))
     return normals, variation
 
 

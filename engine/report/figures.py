@@ -7,6 +7,7 @@ visual occlusion points, and both after registration with the matched VOP pairs 
 from __future__ import annotations
 
 import os
+import textwrap
 from typing import TYPE_CHECKING
 
 import matplotlib
@@ -23,6 +24,11 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..tls.pair import PairResult
 
 from ..tls.views import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402,F401 - one definition of the scan colours
+
+
+#: PNG settings of the figures: zlib's fastest level (flat colours and dots compress well at any
+#: level; the default level 6 took ~3x as long for a file a fifth smaller)
+FAST_PNG = {"compress_level": 1}
 
 
 def _slice_points(layers, radius: float, limit: int = 60000) -> np.ndarray:
@@ -82,15 +88,17 @@ def pair_figure(result: "PairResult", path: str | os.PathLike[str], *, dpi: int 
         ax.add_collection(LineCollection(np.stack([a, b], axis=1), colors="#2ca02c", linewidths=2.2))
         ax.scatter(a[:, 0], a[:, 1], s=81, facecolors="none", edgecolors="#2ca02c", linewidths=1.6)
     ax.plot(0, 0, marker="^", color=REFERENCE_COLOUR, ms=9)
-    status = "ok" if result.ok else f"FAILED: {result.reason[:70]}"
-    ax.set_title(f"registered: {result.matched} matched VOPs (green) - {status}")
+    title = f"registered: {result.matched} matched VOPs (green) - " + ("ok" if result.ok else f"FAILED: {result.reason}")
+    ax.set_title(textwrap.fill(title, 62, max_lines=2, placeholder=" ..."), multialignment="center")  # within its panel
     ax.legend(loc="upper right", fontsize=8)
     for ax in axes:
         ax.set_aspect("equal")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
         ax.grid(True, lw=0.3)
-    fig.tight_layout()
+    # fixed margins for this fixed layout (three equal-aspect panels): ``tight_layout`` measured
+    # every tick label and title for ~0.13 s of a 0.33 s figure
+    fig.subplots_adjust(left=0.04, right=0.99, bottom=0.08, top=0.94 if "\n" not in ax.get_title() else 0.9, wspace=0.14)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
+        fig.savefig(tmp, dpi=dpi, format="png", pil_kwargs=FAST_PNG)
     plt.close(fig)

@@ -15,7 +15,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..geometry.features import local_covariances, normals_and_variation
+from ..geometry.features import SphereGrid, local_covariances, normals_and_variation
 from ..geometry.voxel import voxel_downsample
 
 
@@ -36,6 +36,11 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return 2.0 * np.outer(axis, axis) - np.eye(3)
     vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
     return np.eye(3) + vx + vx @ vx * ((1 - c) / s**2)
+
+
+#: Cell side (metres) of the grid on which :func:`surface_normals` finds each thinned point's
+#: nearest neighbours (any side gives the same neighbours; about five 0.1 m voxels is fastest).
+NORMAL_SEARCH_CELL_M = 0.5
 
 
 def surface_normals(points: np.ndarray, *, voxel_m: float = 0.1, radius_m: float = 15.0, neighbours: int = 20) -> tuple[np.ndarray, np.ndarray]:
@@ -59,7 +64,9 @@ def surface_normals(points: np.ndarray, *, voxel_m: float = 0.1, radius_m: float
         return np.zeros((0, 3)), np.zeros(0)
     if len(thinned) > 60000:
         thinned = thinned[np.random.default_rng(0).choice(len(thinned), 60000, replace=False)]
-    cov, _ = local_covariances(thinned, thinned, k=neighbours)
+    # the k nearest found on a search grid of half-metre cells (compiled, on every core): the
+    # same neighbours and covariances as a k-d tree's, in half the time
+    cov, _ = local_covariances(thinned, thinned, k=neighbours, grid=SphereGrid(thinned, NORMAL_SEARCH_CELL_M))
     normals, variation = normals_and_variation(cov)
     return normals, np.nan_to_num(variation, nan=0.0)
 

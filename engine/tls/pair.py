@@ -293,7 +293,9 @@ def register(
             return None
         held = [scan]
         del scan
-        return timed(f"prepare_{role}", prepare, held, ups[role])
+        prepared_scan = timed(f"prepare_{role}", prepare, held, ups[role])
+        scan_vops(prepared_scan, params, timed)
+        return prepared_scan
 
     # the two scans are read and prepared in two threads (mostly compiled or numpy code, which
     # releases the GIL). A file that cannot be read ends the run here, before any progress is shown.
@@ -478,7 +480,7 @@ def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: Reg
     radius, or at each automatic radius."""
     ref_layers = timed("slice", derived, ref_prep, ("layers", params), lambda: slice_layers(ref_prep, params))
     mov_layers = timed("slice", derived, mov_prep, ("layers", params), lambda: slice_layers(mov_prep, params))
-    radii = (params.vop_radius_m,) if params.vop_radius_m is not None else tuple(r for r in AUTO_VOP_RADII_M if r <= params.max_range_m - 3.0)
+    radii = vop_radii(params)
     step(0.0, f"visual occlusion points within {', '.join(f'{r:.0f}' for r in radii)} m")
     # every (scan, radius) extraction is independent and mostly k-d tree and numpy work (which
     # releases the GIL): two at a time
@@ -505,6 +507,31 @@ def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: Reg
         )
         attempts.append(attempt)
     return attempts
+
+
+def vop_radii(params: RegistrationParams) -> tuple[float, ...]:
+    """The VOP radii ``D_r`` (metres) a pair is matched at: ``params.vop_radius_m``, or each
+    automatic radius within the scans' reach."""
+    if params.vop_radius_m is not None:
+        return (params.vop_radius_m,)
+    return tuple(r for r in AUTO_VOP_RADII_M if r <= params.max_range_m - 3.0)
+
+
+def scan_vops(prepared: PreparedScan, params: RegistrationParams, timed=None) -> None:
+    """Make a prepared scan's slice layers and its VOPs at every radius of :func:`vop_radii` (kept
+    in ``prepared.derived``, where :func:`_coarse_attempts` finds them). :func:`register` calls
+    this in the thread that prepared the scan, as soon as it is prepared: the first scan's VOPs
+    are found while the second is still being read or prepared, not after both."""
+    run = timed or (lambda name, fn, *args: fn(*args))
+    layers = run("slice", derived, prepared, ("layers", params), lambda: slice_layers(prepared, params))
+
+    def vops(radius: float) -> None:
+        derived(prepared, ("vops", params, radius), lambda: extract_vops(layers, params, radius))
+
+    # the radii two at a time (mostly k-d tree and numpy work, which releases the GIL): the
+    # second scan's VOPs are the only ones left when it is prepared
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="forestreg-vops") as pool:
+        run("vops", lambda: list(pool.map(vops, vop_radii(params))))
 
 
 def _coarse_attempt(ref_vops: VisualOcclusionPoints, mov_vops: VisualOcclusionPoints, radius: float, params: RegistrationParams) -> CoarseAttempt:
