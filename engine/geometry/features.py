@@ -460,16 +460,16 @@ def local_covariances(
     if n == 0 or len(q_all) == 0:
         return cov, count
     k = min(int(k), n)
+    # blocks of at most 32,768 queries, at least one per core (a caller's small block of queries,
+    # e.g. the normals an ICP iteration needs, still runs on every core)
+    block = min(32768, max(1024, -(-len(q_all) // worker_count())))
     if np.isfinite(radius_m):
         if grid is None or grid.radius_m != float(radius_m):
             grid = SphereGrid(c, radius_m)
-        # blocks of at most 32,768 queries, at least one per core (a caller's small block of
-        # queries still runs on every core)
-        block = min(32768, max(1024, -(-len(q_all) // worker_count())))
         run_blocks(_sphere_covariance_rows, len(q_all), q_all, float(radius_m) * float(radius_m), k, cov, count, *grid.args(), block=block)
         return cov, count
     if grid is not None:
-        run_blocks(_nearest_covariance_rows, len(q_all), q_all, k, grid.layers, cov, count, *grid.args())
+        run_blocks(_nearest_covariance_rows, len(q_all), q_all, k, grid.layers, cov, count, *grid.args(), block=block)
         return cov, count
     tree = tree if tree is not None else cKDTree(c)
     for a in range(0, len(q_all), batch):
@@ -530,7 +530,7 @@ def normals_and_variation(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     # at most _EIGEN_BLOCK matrices a block, and a block per core (each matrix is decomposed on
     # its own: any blocks give the same values)
-    run_blocks(block, len(cov), block=min(_EIGEN_BLOCK, max(4096, -(-len(cov) // worker_count()))))
+    run_blocks(block, len(cov), block=min(_EIGEN_BLOCK, max(4096, -(-len(cov) // worker_count()))), compiles=False)
     return normals, variation
 
 

@@ -51,18 +51,19 @@ def worker_count() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def run_blocks(fn: Callable[..., Any], n: int, *args: Any, block: int = 32768) -> None:
+def run_blocks(fn: Callable[..., Any], n: int, *args: Any, block: int = 32768, compiles: bool = True) -> None:
     """Call ``fn(start, stop, *args)`` for consecutive blocks of ``block`` rows covering
     ``range(n)``; ``fn`` writes its rows' results into arrays among ``args`` (blocks must be
     independent). The blocks run on the process's pool of one thread per core (:func:`_pool`),
     when there are more than one core; the first block runs alone in the calling thread while
     ``fn`` is a kernel not compiled or loaded yet (one thread compiles it, the others would wait),
-    or a Python function (which may call such kernels). ``fn`` must not wait for other blocks
-    (compiled kernels never do): callers in several threads share the pool."""
+    or a Python function (which may call such kernels; ``compiles=False``: it calls none, e.g.
+    only NumPy or LAPACK, and all its blocks go to the pool at once). ``fn`` must not wait for
+    other blocks (compiled kernels never do): callers in several threads share the pool."""
     if n <= 0:
         return
     starts = list(range(0, n, block))
-    if not getattr(fn, "signatures", None):  # not a kernel, or one not compiled or loaded yet
+    if compiles and not getattr(fn, "signatures", None):  # not a kernel, or one not compiled or loaded yet
         fn(0, min(n, block), *args)
         starts = starts[1:]
     if min(worker_count(), len(starts)) <= 1:
