@@ -199,3 +199,35 @@ def test_each_scans_vops_are_found_once_in_the_thread_that_prepared_it(sim_plot,
     assert all(name.startswith("forestreg-vops") for name, _, _ in made)
     assert [a.radius_m for a in result.details.attempts] == list(radii)
     _check_against_truth(result, plot.relative_pose(0, 1))
+
+
+@pytest.mark.parametrize("failed", [False, True])
+def test_pair_figure_keeps_each_title_over_its_own_panel(sim_plot, tmp_path, monkeypatch, failed):
+    """The pair figure (fixed margins): every title, a long failure reason's too (wrapped on two
+    lines), lies within its panel's width and inside the image; the PNG is written."""
+    import dataclasses
+
+    import matplotlib.pyplot as plt
+
+    from forestreg.engine.report import figures
+
+    plot = sim_plot("planted_conifer", ((0.0, 0.0), (9.0, 4.0)), seed=1)
+    result = register(plot.scans[0].scan, plot.scans[1].scan)
+    if failed:
+        reason = "ambiguous: the best solution matches 12 VOPs and a different one 11 (need a margin of 3) - regular planting or too few common trunks"
+        result = dataclasses.replace(result, status="failed", reason=reason)
+    drawn: list = []
+    monkeypatch.setattr(figures.plt, "close", lambda fig: drawn.append(fig))
+    figures.pair_figure(result, tmp_path / "pair.png")
+    fig = drawn[0]
+    renderer = fig.canvas.get_renderer()
+    width, height = fig.bbox.width, fig.bbox.height
+    for ax in fig.axes:
+        title, panel = ax.title.get_window_extent(renderer), ax.get_window_extent(renderer)
+        assert panel.x0 - 30 <= title.x0 and title.x1 <= panel.x1 + 30, ax.get_title()
+        assert title.y1 <= height and panel.x0 >= 0 and panel.x1 <= width
+        labels = ax.get_tightbbox(renderer)
+        assert labels.x0 >= 0 and labels.y0 >= 0  # tick labels and axis labels within the image
+    assert fig.axes[2].get_title().count("\n") == (1 if failed else 0)
+    plt.close(fig)
+    assert (tmp_path / "pair.png").stat().st_size > 10_000
