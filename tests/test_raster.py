@@ -63,3 +63,28 @@ def test_colour_count_must_match_the_points():
     with pytest.raises(ValueError, match="3 colours for 2 points"):
         add_points(ax, [(np.zeros((2, 2)), ["r", "g", "b"], 1.0)])
     plt.close(fig)
+
+
+@pytest.mark.parametrize("radius", [0.3, 0.75, 1.08, 2.16, 3.5])
+def test_painted_discs_equal_a_pixel_by_pixel_painting(radius):
+    """paint_discs (rings pruned to those a disc can reach, outer rings first) paints what a
+    point-by-point, pixel-by-pixel painting in the same order of rings paints."""
+    from forestreg.engine.report.pixels import paint_discs
+
+    rng = np.random.default_rng(int(radius * 100))
+    pixels = rng.uniform(-3, 43, (300, 2))
+    colours = rng.integers(0, 255, (300, 3), dtype=np.uint8)
+    got = np.zeros((40, 40, 3), dtype=np.uint8)
+    paint_discs(got, pixels, colours[0], radius, colours)
+    want = np.zeros_like(got)
+    reach = int(np.ceil(radius)) + 1  # one ring more than needed: the pruning must not matter
+    rings = sorted(((dc, dr) for dr in range(-reach, reach + 1) for dc in range(-reach, reach + 1)), key=lambda o: -(o[0] ** 2 + o[1] ** 2))
+    for dc, dr in rings:
+        for k, (x, y) in enumerate(pixels):
+            c, r = int(np.floor(x)) + dc, int(np.floor(y)) + dr
+            if not (0 <= c < 40 and 0 <= r < 40):
+                continue
+            if (dc or dr) and (c + 0.5 - x) ** 2 + (r + 0.5 - y) ** 2 > radius * radius:
+                continue
+            want[r, c] = colours[k]
+    np.testing.assert_array_equal(got, want)
