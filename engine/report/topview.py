@@ -98,9 +98,7 @@ class Canvas:
     def draw(self) -> ImageDraw.ImageDraw:
         """The drawing on the canvas (after the points: nothing is painted into :attr:`pixels`
         from then on)."""
-        if self._image is None:
-            self._image = Image.fromarray(self.pixels)
-        return ImageDraw.Draw(self._image)
+        return ImageDraw.Draw(self.image)
 
     @property
     def image(self) -> Image.Image:
