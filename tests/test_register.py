@@ -201,11 +201,12 @@ def test_each_scans_vops_are_found_once_in_the_thread_that_prepared_it(sim_plot,
     _check_against_truth(result, plot.relative_pose(0, 1))
 
 
-@pytest.mark.parametrize("failed", [False, True])
-def test_pair_figure_keeps_each_title_over_its_own_panel(sim_plot, tmp_path, failed):
-    """The pair figure: every title, a long failure reason's too (wrapped on two lines), lies
-    over its own panel and inside the image; the panels hold what they show (the scanner, the
-    VOPs in the scans' colours, the matched pairs in green); the PNG is written at its size."""
+@pytest.mark.parametrize("failed, long_name", [(False, False), (True, False), (False, True)])
+def test_pair_figure_keeps_each_title_over_its_own_panel(sim_plot, tmp_path, failed, long_name):
+    """The pair figure: every title, a long failure reason's or scan name's too (wrapped on two
+    lines), lies over its own panel and inside the image; the panels hold what they show (the
+    scanner, the VOPs in the scans' colours, the matched pairs in green); the PNG is written at
+    its size."""
     import dataclasses
 
     from PIL import Image
@@ -219,6 +220,8 @@ def test_pair_figure_keeps_each_title_over_its_own_panel(sim_plot, tmp_path, fai
     if failed:
         reason = "ambiguous: the best solution matches 12 VOPs and a different one 11 (need a margin of 3) - regular planting or too few common trunks"
         result = dataclasses.replace(result, status="failed", reason=reason)
+    if long_name:  # a real scan's name (../shared/data): its title takes two lines
+        result = dataclasses.replace(result, reference_name="TLS_scan_scanner_at_origin")
     canvas, panels = figures.draw_pair(result)
     width, height = canvas.image.size
     for panel in panels:
@@ -226,8 +229,9 @@ def test_pair_figure_keeps_each_title_over_its_own_panel(sim_plot, tmp_path, fai
         assert panel.left - 30 <= x0 and x1 <= panel.right + 30 and y0 >= 0
         assert 0 <= panel.left < panel.right <= width and 0 <= panel.top < panel.bottom <= height
     assert panels[0].right < panels[1].left and panels[1].right < panels[2].left
-    lines = (panels[2].title_box[3] - panels[2].title_box[1]) / (panels[0].title_box[3] - panels[0].title_box[1])
-    assert (lines > 1.5) == failed  # the failure reason on a second line
+    one_line = panels[1].title_box[3] - panels[1].title_box[1]
+    assert ((panels[2].title_box[3] - panels[2].title_box[1]) > 1.5 * one_line) == failed  # the reason on a second line
+    assert ((panels[0].title_box[3] - panels[0].title_box[1]) > 1.5 * one_line) == long_name
     pixels = np.asarray(canvas.image)
 
     def colours_near(panel, xy, reach=12):

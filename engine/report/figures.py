@@ -23,6 +23,11 @@ if TYPE_CHECKING:  # pragma: no cover
 from ..tls.views import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402,F401 - one definition of the scan colours
 
 
+#: Characters of a panel's title line: a longer title (a long scan name, a failure's reason) is
+#: wrapped on two lines, and the panels start lower.
+TITLE_WIDTH = 62
+
+
 def _slice_points(layers, radius: float, limit: int = 60000) -> np.ndarray:
     pts = np.concatenate([layer.xyz for layer in layers]) if layers else np.zeros((0, 3))
     pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= radius + 5.0]
@@ -69,9 +74,14 @@ def draw_pair(result: "PairResult", *, dpi: int = 110) -> tuple[Canvas, list[Pan
     att = det.chosen
     radius = att.radius_m
     matrix = det.lsf_matrix if det.lsf_matrix is not None else det.coarse_lsf_matrix
-    title = f"registered: {result.matched} matched VOPs (green) - " + ("ok" if result.ok else f"FAILED: {result.reason}")
+    within = f"(D_r\u00a0{radius:.0f}\u00a0m)"  # no-break spaces: wrapped as one word
+    titles = [
+        f"reference {result.reference_name}: slice and VOPs {within}",
+        f"moving {result.moving_name}: slice and VOPs {within}",
+        f"registered: {result.matched} matched VOPs (green) - " + ("ok" if result.ok else f"FAILED: {result.reason}"),
+    ]
     canvas = Canvas(18.0, 6.2, dpi)
-    boxes = _boxes(len(title) > 62)
+    boxes = _boxes(any(len(t) > TITLE_WIDTH for t in titles))  # room for titles on two lines
     sides = []
     for box, layers, vops in ((boxes[0], det.reference_layers, att.reference_vops), (boxes[1], det.moving_layers, att.moving_vops)):
         pts = _slice_points(layers, radius)[:, :2]
@@ -86,18 +96,15 @@ def draw_pair(result: "PairResult", *, dpi: int = 110) -> tuple[Canvas, list[Pan
     joint = Panel(canvas, boxes[2], *_extent(ref_pts, moved, att.reference_vops.xy, mov_vops, scanner))
     joint.points(ref_pts, "#6baed6", 2.0)
     joint.points(moved, "#fd8d3c", 2.0)
-    for panel, vops, colour, name in (
-        (sides[0], att.reference_vops, REFERENCE_COLOUR, f"reference {result.reference_name}"),
-        (sides[1], att.moving_vops, MOVING_COLOUR, f"moving {result.moving_name}"),
-    ):
-        panel.frame(f"{name}: slice and VOPs (D_r {radius:.0f} m)")
+    for panel, vops, colour, title in ((sides[0], att.reference_vops, REFERENCE_COLOUR, titles[0]), (sides[1], att.moving_vops, MOVING_COLOUR, titles[1])):
+        panel.frame(title, wrap=TITLE_WIDTH)
         if len(vops.rejected_xy):
             panel.markers(vops.rejected_xy, "x", "0.35", size=14, line_pt=0.8, label="rejected (visibility)")
         panel.markers(vops.xy, "o", colour, size=28, line_pt=1.4, label=f"{len(vops)} VOPs")
         panel.circle((0.0, 0.0), radius, "0.3", line_pt=0.8)
         panel.markers(np.zeros((1, 2)), "^", "#000000", size=81)
         panel.legend()
-    joint.frame(title)
+    joint.frame(titles[2], wrap=TITLE_WIDTH)
     if len(scanner):
         joint.markers(scanner, "^", MOVING_COLOUR, size=81)
     joint.markers(att.reference_vops.xy, "o", REFERENCE_COLOUR, size=28, line_pt=1.4, label="reference VOPs")
