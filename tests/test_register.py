@@ -258,3 +258,21 @@ def test_the_pair_figure_needs_no_matplotlib():
     code = "import sys; import forestreg.engine.report.figures; print(any(m.split('.')[0] == 'matplotlib' for m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_pair_figure_of_a_result_without_a_finite_matrix(sim_plot, tmp_path):
+    """A failed result whose matrix holds NaN still gets its figure (the scans' own panels and the
+    reference's in the third), not an error."""
+    import dataclasses
+
+    from PIL import Image
+
+    from forestreg.engine.report import figures
+
+    plot = sim_plot("planted_conifer", ((0.0, 0.0), (9.0, 4.0)), seed=1)
+    result = register(plot.scans[0].scan, plot.scans[1].scan)
+    details = dataclasses.replace(result.details, lsf_matrix=None, coarse_lsf_matrix=np.full((4, 4), np.nan))
+    failed = dataclasses.replace(result, status="failed", reason="the matrix is not finite", details=details)
+    figures.pair_figure(failed, tmp_path / "pair.png")
+    with Image.open(tmp_path / "pair.png") as png:
+        assert png.size == (1980, 682)

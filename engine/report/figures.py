@@ -41,12 +41,13 @@ def _apply2(matrix: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def _extent(*clouds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lower and upper corner (x, y) of the non-empty (N, 2) clouds; a 1 m square without any."""
-    xy = [c.reshape(-1, 2) for c in clouds if len(c)]
-    if not xy:
+    """Lower and upper corner (x, y) of the clouds' finite points ((N, 2) each); a 1 m square
+    without any (a failed result's matrix may hold NaN)."""
+    xy = np.concatenate([np.asarray(c, dtype=float).reshape(-1, 2) for c in clouds]) if clouds else np.zeros((0, 2))
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    if not len(xy):
         return np.array([-0.5, -0.5]), np.array([0.5, 0.5])
-    both = np.concatenate(xy)
-    return both.min(axis=0), both.max(axis=0)
+    return xy.min(axis=0), xy.max(axis=0)
 
 
 def _boxes(two_line_title: bool) -> list[tuple[float, float, float, float]]:
