@@ -102,7 +102,7 @@ def draw_pair(result: "PairResult", *, dpi: int = 110) -> tuple[Canvas, list[Pan
         if len(vops.rejected_xy):
             panel.markers(vops.rejected_xy, "x", "0.35", size=14, line_pt=0.8, label="rejected (visibility)")
         panel.markers(vops.xy, "o", colour, size=28, line_pt=1.4, label=f"{len(vops)} VOPs")
-        panel.circle((0.0, 0.0), radius, "0.3", line_pt=0.8)
+        panel.dashed_circle((0.0, 0.0), radius, "0.3", line_pt=0.8)
         panel.markers(np.zeros((1, 2)), "^", "#000000", size=81)
         panel.legend()
     joint.frame(titles[2], wrap=TITLE_WIDTH)

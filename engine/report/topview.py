@@ -62,10 +62,7 @@ def nice_step(span: float, target: int = 9) -> float:
         return 1.0
     raw = span / target
     power = 10.0 ** math.floor(math.log10(raw))
-    for m in (1.0, 2.0, 2.5, 5.0, 10.0):
-        if m * power >= raw:
-            return m * power
-    return 10.0 * power
+    return next(m * power for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * power >= raw)
 
 
 def _tick_label(value: float, step: float) -> str:
@@ -212,14 +209,11 @@ class Panel:
         if label is not None:
             self._legend.append(_Entry(label, marker, fill, size, line_pt))
 
-    def circle(self, centre: Sequence[float], radius_m: float, colour: str, *, line_pt: float = 0.8, dashed: bool = True) -> None:
-        """A circle of ``radius_m`` metres (dashed: matplotlib's ``--``)."""
+    def dashed_circle(self, centre: Sequence[float], radius_m: float, colour: str, *, line_pt: float = 0.8) -> None:
+        """A dashed circle of ``radius_m`` metres (matplotlib's ``--``)."""
         c, d = self.canvas, self.canvas.draw()
         (x, y), r = self.to_px(np.asarray(centre, dtype=float)[None, :2])[0], radius_m * self.unit
         width, fill = max(1, round(c.px(line_pt))), rgb(colour)
-        if not dashed:
-            d.ellipse([x - r, y - r, x + r, y + r], outline=fill, width=width)
-            return
         # dashes of 3.7 and gaps of 1.6 line widths (matplotlib's "--"), each a short polyline
         dash, gap = c.px(3.7 * line_pt * 1.6), c.px(1.6 * line_pt * 1.6)
         step, on = (dash + gap) / max(r, 1e-9), dash / max(r, 1e-9)

@@ -16,7 +16,7 @@ import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -294,7 +294,8 @@ def register(
         held = [scan]
         del scan
         prepared_scan = timed(f"prepare_{role}", prepare, held, ups[role])
-        scan_vops(prepared_scan, params, timed)
+        if not failed:  # the other scan could be read: its VOPs will be matched with these
+            scan_vops(prepared_scan, params, timed)
         return prepared_scan
 
     # the two scans are read and prepared in two threads (mostly compiled or numpy code, which
@@ -517,13 +518,13 @@ def vop_radii(params: RegistrationParams) -> tuple[float, ...]:
     return tuple(r for r in AUTO_VOP_RADII_M if r <= params.max_range_m - 3.0)
 
 
-def scan_vops(prepared: PreparedScan, params: RegistrationParams, timed=None) -> None:
+def scan_vops(prepared: PreparedScan, params: RegistrationParams, timed: Callable[..., Any]) -> None:
     """Make a prepared scan's slice layers and its VOPs at every radius of :func:`vop_radii` (kept
     in ``prepared.derived``, where :func:`_coarse_attempts` finds them). :func:`register` calls
     this in the thread that prepared the scan, as soon as it is prepared: the first scan's VOPs
-    are found while the second is still being read or prepared, not after both."""
-    run = timed or (lambda name, fn, *args: fn(*args))
-    layers = run("slice", derived, prepared, ("layers", params), lambda: slice_layers(prepared, params))
+    are found while the second is still being read or prepared, not after both. ``timed``:
+    the run's :meth:`~forestreg.engine.core.outcome.StepTimer.run`."""
+    layers = timed("slice", derived, prepared, ("layers", params), lambda: slice_layers(prepared, params))
 
     def vops(radius: float) -> None:
         derived(prepared, ("vops", params, radius), lambda: extract_vops(layers, params, radius))
@@ -531,7 +532,7 @@ def scan_vops(prepared: PreparedScan, params: RegistrationParams, timed=None) ->
     # the radii two at a time (mostly k-d tree and numpy work, which releases the GIL): the
     # second scan's VOPs are the only ones left when it is prepared
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="forestreg-vops") as pool:
-        run("vops", lambda: list(pool.map(vops, vop_radii(params))))
+        timed("vops", lambda: list(pool.map(vops, vop_radii(params))))
 
 
 def _coarse_attempt(ref_vops: VisualOcclusionPoints, mov_vops: VisualOcclusionPoints, radius: float, params: RegistrationParams) -> CoarseAttempt:
