@@ -157,6 +157,7 @@ def entry() -> None:
     application (``gui``) exits the usual way (Qt tears its windows down itself)."""
     if sys.argv[1:2] != ["gui"]:  # the desktop application keeps its libraries whole (pyvista's downloads)
         _without_http_client()
+    _one_blas_thread()
     try:
         code = main(tune_malloc=True)
     except KeyboardInterrupt:  # Ctrl-C before the command's own handling began (building the parser)
@@ -262,6 +263,21 @@ def _without_http_client() -> None:
     ``requests`` is needed). Nothing is changed when either is imported already."""
     if "requests" not in sys.modules and "laspy" not in sys.modules:
         sys.modules["requests"] = None  # an import of it raises ModuleNotFoundError
+
+
+def _one_blas_thread() -> None:
+    """Let the BLAS libraries of NumPy and SciPy (OpenBLAS) start one thread, not one per core, in
+    the ``forestreg`` process; a user's ``OPENBLAS_NUM_THREADS`` is kept. Does nothing once NumPy
+    is imported (the variable is read when the library loads).
+
+    The engine runs its own threads, one per core (:mod:`forestreg.engine.geometry.jit`), and its
+    algebra is on 3 x 3 and N x 3 arrays, which OpenBLAS's threads do not speed up. Those threads
+    start when NumPy and SciPy are imported and wait busily: measured, 0.25 s of CPU taken from
+    the reading of the scans in every command. A/B in turns: the 3 M-point pair 3.56-3.87 ->
+    3.49-3.76 s (5 runs each, 0.3 s less CPU); ``coregister`` 8.70-9.02 -> 8.62-8.84 s and
+    ``trees`` of 2.9 M points the same, 26.8-27.8 vs 27.0-28.2 s (3 runs each); the peaks the same."""
+    if "numpy" not in sys.modules:
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 def _terminate_as_interrupt():

@@ -600,6 +600,25 @@ def test_malloc_is_tuned_for_a_command_unless_the_user_set_it(monkeypatch):
     assert calls == []
 
 
+def test_the_command_starts_one_blas_thread_unless_the_user_asks_for_more():
+    # OpenBLAS's own threads only wait busily beside the engine's threads (one per core)
+    code = (
+        "import sys\n"
+        "from forestreg.cli import _one_blas_thread\n"
+        "_one_blas_thread()\n"
+        "import numpy, scipy.linalg, threadpoolctl\n"
+        "print(max(p['num_threads'] for p in threadpoolctl.threadpool_info() if p['user_api'] == 'blas'))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["1"]
+    if (os.cpu_count() or 1) > 1:  # the user's own setting wins
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=dict(env, OPENBLAS_NUM_THREADS="2"))
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.split() == ["2"]
+
+
 def test_the_command_reads_las_files_without_the_http_client(tmp_path):
     # the forestreg process marks `requests` absent before laspy is imported (laspy's HTTP reading
     # of COPC files only): laspy still reads and writes local files
