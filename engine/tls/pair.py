@@ -23,9 +23,10 @@ import numpy as np
 from .coarse import CoarseMatch, match_vops
 from .evidence import mutual_free_space_violation
 from ..geometry.icp import IcpReference, IcpResult, icp
+from ..geometry.voxel import voxel_grid
 from .scanner_position import locate_scanner
 from .uncertainty import pair_uncertainty
-from .prepare import PreparedScan, PreparedScans, SliceLayer, centre_scan, derived, extract_vops, prepare_centred, slice_layers
+from .prepare import PreparedScan, PreparedScans, SliceLayer, centre_scan, derived, extract_vops, icp_grid_voxel, prepare_centred, slice_layers
 from .vop import VisualOcclusionPoints
 from .params import RegistrationParams
 from ..core.outcome import Outcome, StepTimer
@@ -261,13 +262,13 @@ def register(
     def prepare(held: list, up: Optional[np.ndarray]) -> PreparedScan:
         # ``held``: the scan, in the only reference to it, taken out here; two large scans (a plot
         # of 30 M-point scans) are prepared one after the other, so that the two preparations'
-        # working arrays (~1 GB each) are not held at once
+        # working arrays (~1 GB each) are not held at once (their ICP grids made within too)
         if len(held[0]) > SEQUENTIAL_PREPARE_POINTS:
             with preparing_large:
-                return _prepare(held, up)
-        return _prepare(held, up)
+                return _prepare(held, up, with_icp_grid=True)
+        return _prepare(held, up, with_icp_grid=False)
 
-    def _prepare(held: list, up: Optional[np.ndarray]) -> PreparedScan:
+    def _prepare(held: list, up: Optional[np.ndarray], *, with_icp_grid: bool) -> PreparedScan:
         scan = held.pop()
         if prepared is not None:
             return prepared.get(scan, params, up)
@@ -275,7 +276,7 @@ def register(
         # levelling and the grids, while the other scan is read or prepared beside
         centred, position = centre_scan(scan.points, scan.scanner_position, params, up=up), scan.scanner_position
         del scan
-        return prepare_centred(centred, position, params, up=up)
+        return prepare_centred(centred, position, params, up=up, with_icp_grid=with_icp_grid)
 
     def read_and_prepare(source: ScanSource, role: str) -> Optional[PreparedScan]:
         # one thread a scan: it is read (one read at a time) and prepared as soon as it is read;
@@ -294,8 +295,18 @@ def register(
         held = [scan]
         del scan
         prepared_scan = timed(f"prepare_{role}", prepare, held, ups[role])
+        # the ICP grid (a sort of the scan's points) is made in a thread of its own beside the
+        # slicing and the VOPs, which do not use it: the last scan's preparation, which nothing
+        # else runs beside, is shorter by as much (a large scan's is made with it, see above)
+        grid = None
+        if prepared_scan.icp_grid is None:
+            grid = ThreadPoolExecutor(1, thread_name_prefix="forestreg-icp-grid")
+            grid_job = grid.submit(voxel_grid, prepared_scan.points, icp_grid_voxel(params))
+            grid.shutdown(wait=False)
         if not failed:  # the other scan could be read: its VOPs will be matched with these
             scan_vops(prepared_scan, params, timed)
+        if grid is not None:
+            prepared_scan = dataclasses.replace(prepared_scan, icp_grid=grid_job.result())
         return prepared_scan
 
     # the two scans are read and prepared in two threads (mostly compiled or numpy code, which

@@ -265,9 +265,12 @@ def prepare_centred(
     params: RegistrationParams,
     *,
     up: Optional[np.ndarray] = None,
+    with_icp_grid: bool = True,
 ) -> PreparedScan:
     """Level, reduce to ``D_c`` and ground a :class:`CentredScan` (made with the same ``up``)
-    whose scanner lies at ``scanner_local`` (the scan's local frame, metres)."""
+    whose scanner lies at ``scanner_local`` (the scan's local frame, metres). With
+    ``with_icp_grid=False`` its ``icp_grid`` is left None, for the caller to make
+    (``voxel_grid(prepared.points, icp_grid_voxel(params))``) beside other work."""
     reach = params.max_range_m
     centred, near = centred_scan.points, centred_scan.near
     del centred_scan
@@ -294,9 +297,8 @@ def prepare_centred(
     ground_mask = lowest_voxel_ground(lsf, params.ground_voxel_m)
     grid = ground_grid(lsf[ground_mask], cell_m=params.ground_voxel_m)
     height = scanner_height_above_ground(grid, np.zeros(3))
-    icp_voxel = max(params.icp_voxel_m, min(params.icp_max_distances_m) / 2.5) if len(params.icp_max_distances_m) else params.icp_voxel_m
     return PreparedScan(
-        icp_grid=voxel_grid(lsf, icp_voxel),
+        icp_grid=voxel_grid(lsf, icp_grid_voxel(params)) if with_icp_grid else None,
         points=lsf,
         local_to_lsf=local_to_lsf,
         ground_mask=ground_mask,
@@ -305,6 +307,12 @@ def prepare_centred(
         tilt_deg=tilt,
         levelled=levelled,
     )
+
+
+def icp_grid_voxel(params: RegistrationParams) -> float:
+    """The voxel (metres) of a prepared scan's ICP grid: the finest ICP stage's, ``icp_voxel_m``
+    or the last correspondence distance / 2.5 (:func:`~forestreg.engine.geometry.icp.icp`)."""
+    return max(params.icp_voxel_m, min(params.icp_max_distances_m) / 2.5) if len(params.icp_max_distances_m) else params.icp_voxel_m
 
 
 def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near_d2: Optional[float] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
