@@ -75,7 +75,7 @@ def test_trunk_votes_equal_the_dense_count():
     band = np.sin(np.radians(3.0))
     directions = _hemisphere_directions(50.0, 2.0, np.array([0.0, 0.0, 1.0]))
     dense = (np.abs(normals @ directions.T) < band).sum(axis=0)
-    np.testing.assert_array_equal(_great_circle_votes(normals, directions, band, block=700), dense)
+    np.testing.assert_array_equal(_great_circle_votes(normals, directions, band), dense)
 
 
 def test_chunked_las_reading_equals_one_chunk(tmp_path):

@@ -16,6 +16,7 @@ from typing import Optional
 import numpy as np
 
 from ..geometry.features import SphereGrid, local_covariances, normals_and_variation
+from ..geometry.jit import kernel, run_blocks
 from ..geometry.voxel import voxel_downsample
 
 
@@ -167,36 +168,39 @@ def _trunk_vertical(walls: np.ndarray, max_tilt_deg: float) -> tuple[Optional[np
     return best, strength
 
 
-def _great_circle_votes(normals: np.ndarray, directions: np.ndarray, band: float, block: int = 4096) -> np.ndarray:
+def _great_circle_votes(normals: np.ndarray, directions: np.ndarray, band: float) -> np.ndarray:
     """For each unit direction, how many unit ``normals`` (upward: ``n_z >= 0``) lie within
     ``band`` (a sine) of its perpendicular great circle: ``|n . d| < band``.
 
     A normal at angle ``a`` from z can only be that close to perpendicular to a direction tilted
-    ``t`` from z when ``a > 90 deg - t - asin(band)``, i.e. ``n_z < sin(t + asin(band))``; so
-    directions are taken in groups of similar tilt, each against the normals sorted by ``n_z`` up
-    to its limit (ground normals never reach a near-vertical direction). Counted in blocks: no dense
-    normals x directions matrix."""
+    ``t`` from z when ``a > 90 deg - t - asin(band)``, i.e. ``n_z < sin(t + asin(band))``; so each
+    direction is tested against the normals sorted by ``n_z`` up to its limit (ground normals
+    never reach a near-vertical direction). Compiled, the directions on every core: no normals x
+    directions matrix."""
     votes = np.zeros(len(directions), dtype=np.int64)
     if len(normals) == 0 or len(directions) == 0:
         return votes
     normals = normals[np.argsort(normals[:, 2], kind="stable")]
-    nz = normals[:, 2]
     beta = float(np.arcsin(min(band, 1.0)))
-    tilt = np.arccos(np.clip(directions[:, 2], -1.0, 1.0))
-    by_tilt = np.argsort(tilt, kind="stable")
-    group = 256
-    for g in range(0, len(by_tilt), group):
-        idx = by_tilt[g:g + group]
-        reach = float(tilt[idx].max()) + beta
-        limit = len(nz) if reach >= np.pi / 2 else int(np.searchsorted(nz, np.sin(reach) + 1e-9, side="right"))
-        dt = directions[idx].T
-        count = np.zeros(len(idx), dtype=np.int64)
-        for start in range(0, limit, block):
-            dots = normals[start:min(start + block, limit)] @ dt
-            np.abs(dots, out=dots)
-            count += np.count_nonzero(dots < band, axis=0)
-        votes[idx] = count
+    reach = np.arccos(np.clip(directions[:, 2], -1.0, 1.0)) + beta
+    limits = np.where(reach >= np.pi / 2, len(normals), np.searchsorted(normals[:, 2], np.sin(np.minimum(reach, np.pi / 2)) + 1e-9, side="right"))
+    columns = np.ascontiguousarray(normals.T, dtype=np.float64)  # x, y, z each contiguous: the test runs 4 normals at a time
+    run_blocks(_vote_rows, len(directions), columns, np.ascontiguousarray(directions, dtype=np.float64), limits.astype(np.int64), float(band), votes, block=64)
     return votes
+
+
+@kernel
+def _vote_rows(start: int, stop: int, columns: np.ndarray, directions: np.ndarray, limits: np.ndarray, band: float, votes: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Directions ``start:stop`` of :func:`_great_circle_votes`: ``votes[k]`` the normals among
+    the first ``limits[k]`` (``columns``: their x, y and z rows) with ``|n . d_k| < band``."""
+    x, y, z = columns[0], columns[1], columns[2]
+    for k in range(start, stop):
+        dx, dy, dz = directions[k, 0], directions[k, 1], directions[k, 2]
+        count = 0
+        for i in range(limits[k]):
+            if abs(x[i] * dx + y[i] * dy + z[i] * dz) < band:
+                count += 1
+        votes[k] = count
 
 
 def _direction_mode(normals: np.ndarray, bandwidth_deg: float = 8.0) -> np.ndarray:
