@@ -267,11 +267,26 @@ def test_qsm_median_equals_numpy_median():
     assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))
 
 
+def _first_in_voxels(c: np.ndarray, radius: float, voxel: float) -> np.ndarray:
+    """The plain computation of a levelling sample: of the float32 points within ``radius``
+    (squared distances summed in float32), the first of each voxel (cells floor(x / voxel) in
+    float64), in the points' order."""
+    c = c.astype(np.float32)
+    d2 = c[:, 0] * c[:, 0]
+    d2 += c[:, 1] * c[:, 1]
+    d2 += c[:, 2] * c[:, 2]
+    inside = c[d2 <= np.float32(radius**2)]
+    cells = np.floor(inside.astype(np.float64) / voxel).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return inside[np.sort(first)]
+
+
 def test_centring_keeps_the_near_points_a_mask_would():
     from forestreg.engine.tls.prepare import _centred_float32
 
     rng = np.random.default_rng(11)
     pts = rng.uniform(-60, 60, (40000, 3)) * [1, 1, 0.2] + [1000.0, -2000.0, 50.0]
+    pts = np.concatenate([pts, pts[:5000] + rng.normal(0, 0.02, (5000, 3))])  # voxels holding several points
     origin = np.array([1003.5, -1998.25, 51.0])
     centred, near = _centred_float32(pts, origin, 48.0**2, 15.0**2)
     # the plain computation: float64 differences cast to float32, squared distances in float32
@@ -281,11 +296,26 @@ def test_centring_keeps_the_near_points_a_mask_would():
     d2 += c[:, 2] * c[:, 2]
     want = c[d2 <= np.float32(48.0**2)]
     np.testing.assert_array_equal(centred, want)
-    np.testing.assert_array_equal(near, want[d2[d2 <= np.float32(48.0**2)] <= np.float32(15.0**2)])
-    assert 1000 < len(near) < len(centred) < len(pts)
+    # near: the levelling sample, the first point of each 0.1 m voxel within 15 m
+    np.testing.assert_array_equal(near, _first_in_voxels(want, 15.0, 0.1))
+    assert 1000 < len(near) < int((d2 <= np.float32(15.0**2)).sum()) < len(centred) < len(pts)  # some voxels held several
     again, none = _centred_float32(pts, origin, 48.0**2)
     np.testing.assert_array_equal(again, want)
     assert none is None
+
+
+def test_the_levelling_sample_is_the_first_point_of_each_voxel_within_reach():
+    from forestreg.engine.tls import level
+
+    rng = np.random.default_rng(5)
+    near_field = rng.normal(0.0, 0.5, (200000, 3))  # dense around the scanner: many points a voxel
+    far = rng.uniform(-20, 20, (50000, 3))
+    cloud = np.concatenate([near_field, far, [[15.0, 0.0, 0.0], [-15.0, 0.0, 0.0], [0.0, 0.0, -15.0]]])  # on the sphere: kept
+    sample = level.level_sample(cloud)
+    np.testing.assert_array_equal(sample, _first_in_voxels(cloud, 15.0, 0.1))
+    assert len(sample) < len(cloud) // 2
+    np.testing.assert_array_equal(level.level_sample(sample), sample)  # a sample is its own sample
+    np.testing.assert_array_equal(level.level_sample(cloud.astype(np.float32), voxel_m=0.25, radius_m=8.0), _first_in_voxels(cloud, 8.0, 0.25))
 
 
 def test_icp_normals_kept_row_by_row_equal_the_normals_of_the_whole_level():
@@ -505,10 +535,10 @@ def test_normals_on_the_grid_and_in_blocks_equal_a_kd_tree_and_one_decomposition
     angle = rng.uniform(0, 2 * np.pi, 20000)
     trunk = np.column_stack([3.0 + 0.2 * np.cos(angle), 2.0 + 0.2 * np.sin(angle), rng.uniform(0, 3, 20000)])
     cloud = np.concatenate([ground, trunk])
-    normals, variation = level.surface_normals(cloud)
-    thinned = voxel_downsample(cloud, 0.1)
-    assert len(thinned) > 60000  # a random 60,000 of them, as surface_normals takes
-    thinned = thinned[np.random.default_rng(0).choice(len(thinned), 60000, replace=False)]
+    sample = level.level_sample(cloud)
+    normals, variation = level.surface_normals(sample)
+    assert len(sample) > 60000  # a random 60,000 of them, as surface_normals takes
+    thinned = sample.astype(np.float64)[np.random.default_rng(0).choice(len(sample), 60000, replace=False)]
     _, idx = cKDTree(thinned).query(thinned, k=20)
     offsets = thinned[idx] - thinned[:, None, :]
     mean = offsets.mean(axis=1)

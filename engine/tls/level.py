@@ -17,7 +17,6 @@ import numpy as np
 
 from ..geometry.features import SphereGrid, local_covariances, normals_and_variation
 from ..geometry.jit import kernel, run_blocks
-from ..geometry.voxel import voxel_downsample
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -39,35 +38,91 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx * ((1 - c) / s**2)
 
 
-#: Cell side (metres) of the grid on which :func:`surface_normals` finds each thinned point's
+#: Cell side (metres) of the grid on which :func:`surface_normals` finds each sample point's
 #: nearest neighbours (any side gives the same neighbours; about five 0.1 m voxels is fastest).
 NORMAL_SEARCH_CELL_M = 0.5
 
+#: Voxel (metres) and radius (metres, around the scanner) of :func:`level_sample`.
+LEVEL_VOXEL_M = 0.1
+LEVEL_RADIUS_M = 15.0
 
-def surface_normals(points: np.ndarray, *, voxel_m: float = 0.1, radius_m: float = 15.0, neighbours: int = 20) -> tuple[np.ndarray, np.ndarray]:
-    """Normals and surface variation of a ``voxel_m`` thinned copy of the points within
-    ``radius_m`` of the origin.
+#: Sample points whose normals :func:`surface_normals` computes (a random subset of them beyond).
+LEVEL_SAMPLE_POINTS = 60000
+
+
+def level_sample(points: np.ndarray, *, voxel_m: float = LEVEL_VOXEL_M, radius_m: float = LEVEL_RADIUS_M) -> np.ndarray:
+    """The even sample whose normals estimate a scan's vertical: of the points (scanner-centred,
+    metres) within ``radius_m`` of the scanner, the first (in the points' order) in each
+    ``voxel_m`` voxel of a grid with a corner at the scanner; float32 (M, 3), in the points'
+    order. One compiled pass: no sort, no copy of the points (a scan's dense near field, millions
+    of points within a few metres, gives one point a voxel)."""
+    pts = np.asarray(points)
+    occupied = voxel_bitmap(voxel_m, radius_m)
+    out = np.empty((len(pts), 3), dtype=np.float32)  # only the rows written are ever touched
+    count = _first_in_voxels(pts, np.float32(radius_m * radius_m), float(voxel_m), int(np.ceil(radius_m / voxel_m)), occupied, out)
+    return out[:count].copy()
+
+
+def voxel_bitmap(voxel_m: float, radius_m: float) -> np.ndarray:
+    """The zeroed bit per voxel of the cube of ``voxel_m`` voxels around a scanner that holds its
+    ``radius_m`` sphere (:func:`claim_voxel`), as uint64 words."""
+    cells = 2 * int(np.ceil(radius_m / voxel_m)) + 1
+    return np.zeros((cells**3 + 63) // 64, dtype=np.uint64)
+
+
+@kernel(inline="always")
+def claim_voxel(x: float, y: float, z: float, voxel_m: float, half: int, occupied: np.ndarray) -> bool:  # pragma: no cover - compiled
+    """Whether the point ``(x, y, z)`` (scanner-centred, within the sphere of the bitmap, see
+    :func:`voxel_bitmap`; ``half`` its cells on each side of the scanner) is the first in its
+    ``voxel_m`` voxel: its bit in ``occupied`` was clear (it is set now)."""
+    n = 2 * half + 1
+    ix = np.int64(np.floor(np.float64(x) / voxel_m)) + half
+    iy = np.int64(np.floor(np.float64(y) / voxel_m)) + half
+    iz = np.int64(np.floor(np.float64(z) / voxel_m)) + half
+    if ix < 0 or iy < 0 or iz < 0 or ix >= n or iy >= n or iz >= n:
+        return False
+    cell = (ix * n + iy) * n + iz
+    word, bit = cell >> 6, np.uint64(1) << np.uint64(cell & 63)
+    if occupied[word] & bit:
+        return False
+    occupied[word] |= bit
+    return True
+
+
+@kernel
+def _first_in_voxels(points: np.ndarray, r2: float, voxel_m: float, half: int, occupied: np.ndarray, out: np.ndarray) -> int:  # pragma: no cover - compiled
+    """:func:`level_sample`: rows of ``points`` within ``sqrt(r2)`` (float32 sum of squares) that
+    claim their voxel, packed into ``out``; returns how many."""
+    count = 0
+    for i in range(points.shape[0]):
+        x, y, z = np.float32(points[i, 0]), np.float32(points[i, 1]), np.float32(points[i, 2])
+        d2 = x * x
+        d2 += y * y
+        d2 += z * z
+        if d2 <= r2 and claim_voxel(x, y, z, voxel_m, half, occupied):
+            out[count, 0] = x
+            out[count, 1] = y
+            out[count, 2] = z
+            count += 1
+    return count
+
+
+def surface_normals(sample: np.ndarray, *, neighbours: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Normals and surface variation of a :func:`level_sample` (a random
+    :data:`LEVEL_SAMPLE_POINTS` of it when larger; scanner-centred, metres), each from its
+    ``neighbours`` nearest points of that sample.
 
     Returns (M, 3) unit normals (arbitrary sign) and (M,) surface variation
     ``l0 / (l0 + l1 + l2)`` of the local covariance (0 = flat; leaves and clutter are high).
     """
-    d2 = points[:, 0] ** 2
-    d2 += points[:, 1] ** 2
-    d2 += points[:, 2] ** 2
-    inside = d2 <= radius_m**2
-    del d2
-    near = points if inside.all() else points[inside]  # callers often give only near points: no copy
-    del inside
-    if len(near) <= neighbours:
+    sample = np.asarray(sample, dtype=np.float64)
+    if len(sample) <= neighbours:
         return np.zeros((0, 3)), np.zeros(0)
-    thinned = voxel_downsample(near, voxel_m)
-    if len(thinned) <= neighbours:
-        return np.zeros((0, 3)), np.zeros(0)
-    if len(thinned) > 60000:
-        thinned = thinned[np.random.default_rng(0).choice(len(thinned), 60000, replace=False)]
+    if len(sample) > LEVEL_SAMPLE_POINTS:
+        sample = sample[np.random.default_rng(0).choice(len(sample), LEVEL_SAMPLE_POINTS, replace=False)]
     # the k nearest found on a search grid of half-metre cells (compiled, on every core): the
     # same neighbours and covariances as a k-d tree's, in half the time
-    cov, _ = local_covariances(thinned, thinned, k=neighbours, grid=SphereGrid(thinned, NORMAL_SEARCH_CELL_M))
+    cov, _ = local_covariances(sample, sample, k=neighbours, grid=SphereGrid(sample, NORMAL_SEARCH_CELL_M))
     normals, variation = normals_and_variation(cov)
     return normals, np.nan_to_num(variation, nan=0.0)
 
@@ -104,6 +159,7 @@ class UpEstimate:
 def estimate_up_direction(
     points: np.ndarray,
     *,
+    sampled: bool = False,
     max_tilt_deg: float = 50.0,
     ground_only_min_tilt_deg: float = 20.0,
     min_trunk_strength: float = 2.4,
@@ -123,10 +179,11 @@ def estimate_up_direction(
 
     Parameters
     ----------
-    points : (N, 3) scanner-centred coordinates (scanner at the origin), metres.
+    points : (N, 3) scanner-centred coordinates (scanner at the origin), metres; with
+        ``sampled``, their :func:`level_sample` already.
     """
     z = np.array([0.0, 0.0, 1.0])
-    normals, variation = surface_normals(points)
+    normals, variation = surface_normals(points if sampled else level_sample(points))
     flat = normals[variation < 0.02]
     if len(flat) < 100:
         return UpEstimate(z, z, None, 0.0, "too few flat surfaces: taken as level")

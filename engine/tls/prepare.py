@@ -17,7 +17,7 @@ from ..geometry.jit import kernel
 from ..geometry.voxel import VoxelGrid, voxel_grid
 from .params import RegistrationParams
 from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
-from .level import estimate_up_direction, levelling_rotation, tilt_deg
+from .level import LEVEL_RADIUS_M, LEVEL_VOXEL_M, claim_voxel, estimate_up_direction, levelling_rotation, tilt_deg, voxel_bitmap
 from .vop import (
     VisualOcclusionPoints,
     angular_spacing,
@@ -238,9 +238,10 @@ def prepare_scan(
 @dataclass(frozen=True)
 class CentredScan:
     """The first step of a preparation: the points within ``1.6 D_c`` (3D) of the scanner,
-    scanner-centred, float32 (the scan's axes, metres), and the ones within 15 m that estimate the
-    vertical (None when it is not estimated). Once made, the scan's own points are no longer
-    needed (a caller holding them in the only reference can let them go before the rest)."""
+    scanner-centred, float32 (the scan's axes, metres), and the :func:`~.level.level_sample` of
+    those within 15 m, that estimates the vertical (None when it is not estimated). Once made,
+    the scan's own points are no longer needed (a caller holding them in the only reference can
+    let them go before the rest)."""
 
     points: np.ndarray
     near: Optional[np.ndarray]
@@ -255,7 +256,7 @@ def centre_scan(
     reach = params.max_range_m
     estimate = up is None and params.level_tilted
     # generous before levelling; the vertical is estimated from the points within 15 m
-    centred, near = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2, 15.0**2 if estimate else None)
+    centred, near = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2, LEVEL_RADIUS_M**2 if estimate else None)
     return CentredScan(centred, near)
 
 
@@ -275,7 +276,7 @@ def prepare_centred(
     centred, near = centred_scan.points, centred_scan.near
     del centred_scan
     if near is not None:
-        estimate = estimate_up_direction(near)
+        estimate = estimate_up_direction(near, sampled=True)
         del near
         tilt = tilt_deg(estimate.up)
         levelled = tilt >= params.tilt_threshold_deg
@@ -317,23 +318,29 @@ def icp_grid_voxel(params: RegistrationParams) -> float:
 
 def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near_d2: Optional[float] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """The points within ``sqrt(max_d2)`` (3D) of ``origin``, shifted so that ``origin`` is 0, as
-    float32 (a 50 m neighbourhood keeps micrometre steps), and, with ``near_d2``, those of them
-    within ``sqrt(near_d2)`` (else None); both in the points' order. One compiled pass writes
-    the kept points into the results: no float64 copy of the cloud, no distances or masks (the
-    results may be views of buffers sized for every point)."""
+    float32 (a 50 m neighbourhood keeps micrometre steps), and, with ``near_d2``, the
+    :func:`~.level.level_sample` of those within ``sqrt(near_d2)`` (the first of each
+    :data:`~.level.LEVEL_VOXEL_M` voxel; else None); both in the points' order. One compiled pass
+    writes the kept points into the results: no float64 copy of the cloud, no distances or masks
+    (the results may be views of buffers sized for every point, of which only the rows written
+    are ever touched)."""
     origin = np.asarray(origin, dtype=np.float64)
     out = np.empty((len(points), 3), dtype=np.float32)
     near = np.empty((len(points) if near_d2 is not None else 0, 3), dtype=np.float32)
+    radius = float(np.sqrt(near_d2)) if near_d2 is not None else 0.0
+    occupied = voxel_bitmap(LEVEL_VOXEL_M, radius) if near_d2 is not None else np.zeros(0, dtype=np.uint64)
     # the limits as float32, as numpy compares a float32 array with a Python float
-    kept, close = _centre_rows(np.asarray(points), origin, np.float32(max_d2), np.float32(-1.0 if near_d2 is None else near_d2), out, near)
-    return out[:kept], (near[:close] if near_d2 is not None else None)
+    kept, close = _centre_rows(np.asarray(points), origin, np.float32(max_d2), np.float32(-1.0 if near_d2 is None else near_d2),
+                               LEVEL_VOXEL_M, int(np.ceil(radius / LEVEL_VOXEL_M)), occupied, out, near)
+    return out[:kept], (near[:close].copy() if near_d2 is not None else None)
 
 
 @kernel
-def _centre_rows(points, origin, max_d2, near_d2, out, near):  # pragma: no cover - compiled
+def _centre_rows(points, origin, max_d2, near_d2, voxel_m, half, occupied, out, near):  # pragma: no cover - compiled
     """:func:`_centred_float32` in one pass: each coordinate minus the origin in float64, then
     float32; the squared distance summed in float32 (x, then y, then z); kept rows packed in
-    order, those within ``near_d2`` (negative: none) into ``near`` as well."""
+    order, those within ``near_d2`` (negative: none) that claim their voxel (``voxel_m``, the
+    bitmap ``occupied``, ``half`` cells a side: :func:`~.level.claim_voxel`) into ``near``."""
     kept = 0
     close = 0
     for i in range(points.shape[0]):
@@ -348,7 +355,7 @@ def _centre_rows(points, origin, max_d2, near_d2, out, near):  # pragma: no cove
             out[kept, 1] = y
             out[kept, 2] = z
             kept += 1
-            if d2 <= near_d2:
+            if d2 <= near_d2 and claim_voxel(x, y, z, voxel_m, half, occupied):
                 near[close, 0] = x
                 near[close, 1] = y
                 near[close, 2] = z
