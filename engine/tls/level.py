@@ -241,7 +241,7 @@ def _great_circle_votes(normals: np.ndarray, directions: np.ndarray, band: float
     beta = float(np.arcsin(min(band, 1.0)))
     reach = np.arccos(np.clip(directions[:, 2], -1.0, 1.0)) + beta
     limits = np.where(reach >= np.pi / 2, len(normals), np.searchsorted(normals[:, 2], np.sin(np.minimum(reach, np.pi / 2)) + 1e-9, side="right"))
-    columns = np.ascontiguousarray(normals.T, dtype=np.float64)  # x, y, z each contiguous: the test runs 4 normals at a time
+    columns = np.ascontiguousarray(normals.T, dtype=np.float64)  # x, y and z each contiguous, read in order
     run_blocks(_vote_rows, len(directions), columns, np.ascontiguousarray(directions, dtype=np.float64), limits.astype(np.int64), float(band), votes, block=64)
     return votes
 
