@@ -255,7 +255,7 @@ def centre_scan(
     estimate it)."""
     reach = params.max_range_m
     estimate = up is None and params.level_tilted
-    # generous before levelling; the vertical is estimated from the points within 15 m
+    # generous before levelling; the vertical is estimated from a sample of the points within 15 m (one a 0.1 m voxel)
     centred, near = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2, LEVEL_RADIUS_M**2 if estimate else None)
     return CentredScan(centred, near)
 
