@@ -85,7 +85,8 @@ def test_covariance_features_of_a_plane_a_line_and_a_vertical_stem():
 
 def test_voxel_grid_members_are_the_points_of_each_voxel_in_slabs_or_not(monkeypatch):
     """voxel_grid's centroids are voxel_downsample's, and each voxel's members average to its
-    centroid, whether the cloud is sorted in one piece or in slabs along x."""
+    centroid, whether the cloud is sorted in one piece or in slabs along x; its member lists are
+    int32 (4 bytes a point and a voxel)."""
     from forestreg.engine.geometry import voxel
 
     p = np.random.default_rng(4).random((50_000, 3)).astype(np.float32) * 12.0
@@ -94,6 +95,7 @@ def test_voxel_grid_members_are_the_points_of_each_voxel_in_slabs_or_not(monkeyp
     monkeypatch.setattr(voxel, "DOWNSAMPLE_POINTS_PER_SLAB", 7_000)
     slabbed = voxel.voxel_grid(p, 0.4)
     for grid in (whole, slabbed):
+        assert grid.order.dtype == np.int32 and grid.starts.dtype == np.int32 and grid.starts[-1] == len(p)
         members = grid.members(np.arange(len(grid.centroids)))
         assert np.array_equal(np.sort(members), np.arange(len(p))), "every point in exactly one voxel"
         for v in (0, len(grid.centroids) // 2, len(grid.centroids) - 1):

@@ -308,7 +308,8 @@ class VoxelGrid:
 
     ``centroids`` (M, 3) float64 is exactly :func:`voxel_downsample`'s result (the mean point of
     each occupied voxel, metres, the points' frame); the points of voxel ``v`` are
-    ``order[starts[v]:starts[v + 1]]`` (indices into the points the grid was made from).
+    ``order[starts[v]:starts[v + 1]]`` (indices into the points the grid was made from). ``order``
+    and ``starts`` are int32 where the point count fits (4 bytes a point and a voxel less).
     """
 
     voxel_m: float
@@ -338,7 +339,7 @@ def _grid(points: np.ndarray, voxel_m: float, *, members: bool) -> tuple[np.ndar
     pts = np.asarray(points)
     index_type = np.int32 if len(pts) < 2**31 - 1 else np.int64
     if len(pts) == 0:
-        return np.zeros((0, 3)), np.zeros(0, dtype=index_type), np.zeros(1, dtype=np.int64)
+        return np.zeros((0, 3)), np.zeros(0, dtype=index_type), np.zeros(1, dtype=index_type)
     lo, hi = column_bounds(pts)
     origin = lo - voxel_m / 2.0
     slabs = int(np.ceil(len(pts) / DOWNSAMPLE_POINTS_PER_SLAB))
@@ -346,7 +347,7 @@ def _grid(points: np.ndarray, voxel_m: float, *, members: bool) -> tuple[np.ndar
         centroids, order, starts = _downsample(pts, voxel_m, origin, hi, members=members)
         if not members:
             return centroids, None, None
-        return centroids, order.astype(index_type, copy=False), np.append(starts, len(pts)).astype(np.int64)
+        return centroids, order.astype(index_type, copy=False), np.append(starts, len(pts)).astype(index_type)
     columns = int(np.floor((hi[0] - origin[0]) / voxel_m)) + 1
     edges = np.unique(np.linspace(0, columns, slabs + 1).astype(np.int64))
     parts, orders, starts_parts = [], [], []
@@ -362,10 +363,10 @@ def _grid(points: np.ndarray, voxel_m: float, *, members: bool) -> tuple[np.ndar
                 starts_parts.append(starts + done)
                 done += len(inside)
     if not parts:
-        return np.zeros((0, 3)), np.zeros(0, dtype=index_type), np.zeros(1, dtype=np.int64)
+        return np.zeros((0, 3)), np.zeros(0, dtype=index_type), np.zeros(1, dtype=index_type)
     if not members:
         return np.concatenate(parts), None, None
-    return np.concatenate(parts), np.concatenate(orders), np.append(np.concatenate(starts_parts), done).astype(np.int64)
+    return np.concatenate(parts), np.concatenate(orders), np.append(np.concatenate(starts_parts), done).astype(index_type)
 
 
 def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray, hi: np.ndarray, *, members: bool = False) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
