@@ -11,10 +11,16 @@ that a drift of the machine's speed (other users) hits all three alike:
   installed.
 
 Wall time comes from the parent's clock around each child, peak memory from the operating
-system's accounting of the finished child (``os.wait4`` ``ru_maxrss``). Ratios are taken run by
+system's accounting of the finished child (``os.wait4`` ``ru_maxrss``: every resident page, the
+shared libraries' code included); beside it, the largest anonymous and file-backed parts seen
+while the child ran (``/proc/PID/status`` every 20 ms, :func:`_resident_parts`). Ratios are taken run by
 run (forestreg / Sylva and forestreg / read of the same round) and their median is reported, so
 they hold when the machine's load changes between rounds; the absolute seconds do not.
 Accuracy: each tool's matrix against the simulator's truth.
+
+A third, tiny pair (:data:`FLOOR_PAIR`, left out by ``--quick``) measures the runtime's floor: what
+``forestreg register`` holds whatever the scans (the interpreter and its libraries, numba's LLVM
+library and kernels, the figure), set beside Sylva's peak on the largest pair.
 """
 
 from __future__ import annotations
@@ -41,15 +47,42 @@ PAIRS = (
     ("3.0 M + 3.1 M points (0.1 deg)", "mixed_temperate", 0.1, "-6,0;6,0", 3),
 )
 QUICK_PAIRS = PAIRS[:1]
+#: A pair small enough that its points weigh nothing next to the runtime: ``forestreg register``'s
+#: peak memory on it is the floor under any pair's (Python, NumPy, SciPy, numba with its LLVM
+#: library and loaded kernels, the figure), set beside Sylva's peak on the largest pair.
+FLOOR_PAIR = ("0.12 M + 0.12 M points (0.5 deg)", "mixed_temperate", 0.5, "-6,0;6,0", 3)
 
 
 @dataclass
 class Run:
-    """One finished child process: wall seconds, peak resident memory (MB), exit status."""
+    """One finished child process: wall seconds, peak resident memory (MB), exit status, and the
+    largest anonymous and file-backed parts of its resident memory seen while it ran (MB, sampled
+    every 20 ms from ``/proc``; NaN where there is no ``/proc``)."""
 
     wall_s: float
     peak_mb: float
     status: int
+    anon_mb: float = float("nan")
+    file_mb: float = float("nan")
+
+
+def _resident_parts(pid: int) -> tuple[float, float]:
+    """(anonymous, file-backed) resident memory of process ``pid`` now, MiB; NaN when unknown.
+    File-backed pages are mostly shared library code: how many the kernel maps into a process
+    depends on how the library's pages sit in the page cache (a freshly installed numba maps about
+    60 MB less of its LLVM library than one whose pages were read back in large folios), so the
+    anonymous part is the steadier measure of what a run itself allocates."""
+    anon = file_ = float("nan")
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("RssAnon:"):
+                    anon = int(line.split()[1]) / 1024.0
+                elif line.startswith("RssFile:"):
+                    file_ = int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    return anon, file_
 
 
 def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeout_s: float = 1800.0, log: Optional[Path] = None) -> Run:
@@ -66,7 +99,10 @@ def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeou
         if log is not None:
             sink.close()
     deadline = t0 + timeout_s
+    anon_mb = file_mb = float("nan")
     while True:
+        anon, file_ = _resident_parts(proc.pid)
+        anon_mb, file_mb = np.fmax(anon_mb, anon), np.fmax(file_mb, file_)
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid:
             break
@@ -77,7 +113,7 @@ def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeou
         time.sleep(0.02)
     wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: keep Popen from waiting again
-    return Run(wall_s=wall, peak_mb=usage.ru_maxrss / 1024.0, status=proc.returncode)
+    return Run(wall_s=wall, peak_mb=usage.ru_maxrss / 1024.0, status=proc.returncode, anon_mb=float(anon_mb), file_mb=float(file_mb))
 
 
 def sylva_command() -> Optional[str]:
@@ -161,12 +197,15 @@ def bench_pair(folder: Path, label: str, runs: int, sylva: Optional[str]) -> dic
         row[name] = {
             "wall_s": statistics.median(r.wall_s for r in rs),
             "peak_mb": statistics.median(r.peak_mb for r in rs),
+            "anon_mb": statistics.median(r.anon_mb for r in rs),
+            "file_mb": statistics.median(r.file_mb for r in rs),
             "status": sorted({r.status for r in rs}),
         }
     for other in [k for k in commands if k != "forestreg"]:
         row[f"forestreg/{other}"] = {
             "wall": statistics.median(f.wall_s / o.wall_s for f, o in zip(results["forestreg"], results[other])),
             "peak": statistics.median(f.peak_mb / o.peak_mb for f, o in zip(results["forestreg"], results[other])),
+            "anon": statistics.median(f.anon_mb / o.anon_mb for f, o in zip(results["forestreg"], results[other])),
         }
     if sylva:
         row["sylva/read"] = {"wall": statistics.median(s.wall_s / r.wall_s for s, r in zip(results["sylva"], results["read"]))}
@@ -185,6 +224,9 @@ def run(*, quick: bool = False, runs: int = 3, workdir: Optional[Path] = None) -
         for label, preset, step, positions, seed in (QUICK_PAIRS if quick else PAIRS):
             folder = simulate_pair(base, label, preset, step, positions, seed)
             rows.append(bench_pair(folder, label, runs, sylva))
+        if not quick:
+            label, preset, step, positions, seed = FLOOR_PAIR
+            rows.append({**bench_pair(simulate_pair(base, label, preset, step, positions, seed), label, runs, sylva), "floor": True})
     return rows
 
 
@@ -193,7 +235,11 @@ def _geomean(values: list[float]) -> float:
 
 
 def format_rows(rows: list[dict[str, Any]]) -> str:
-    """The table: per pair, each command's median wall time and peak memory, and the ratios."""
+    """The table: per pair, each command's median wall time and peak memory, and the ratios; the
+    floor pair (:data:`FLOOR_PAIR`, when measured) is left out of the means and set against the
+    largest pair's Sylva peak instead."""
+    floor = next((r for r in rows if r.get("floor")), None)
+    rows = [r for r in rows if not r.get("floor")]
     has_sylva = any("sylva" in r for r in rows)
     lines = [
         "Pair registration, whole commands (median of runs; ratios are medians of the run-by-run ratios)",
@@ -212,6 +258,12 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
             f"{'':<34} {'peak MB':>10} {r['read']['peak_mb']:>9.0f} {r['forestreg']['peak_mb']:>10.0f}"
             + (f" {syl['peak_mb']:>9.0f}" if syl else "")
             + f" {r['forestreg/read']['peak']:>8.2f}" + (f" {r['forestreg/sylva']['peak']:>9.2f}" if syl else "")
+        )
+        lines.append(
+            f"{'':<34} {'of it anon.':>10} {r['read']['anon_mb']:>9.0f} {r['forestreg']['anon_mb']:>10.0f}"
+            + (f" {syl['anon_mb']:>9.0f}" if syl else "")
+            + f" {r['forestreg/read']['anon']:>8.2f}" + (f" {r['forestreg/sylva']['anon']:>9.2f}" if syl else "")
+            + f"   (file-backed: forestreg {r['forestreg']['file_mb']:.0f}" + (f", Sylva {syl['file_mb']:.0f}" if syl else "") + ")"
         )
         budget = 3 * r["raw_mb"] + 300
         lines.append(
@@ -236,6 +288,21 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
         if has_sylva:
             g += f" {_geomean([r['forestreg/sylva']['peak'] for r in rows if 'forestreg/sylva' in r]):>9.2f}"
         lines.append(g)
+    if floor is not None:
+        lines.append("-" * len(head))
+        lines.append(
+            f"runtime floor: forestreg register peaks at {floor['forestreg']['peak_mb']:.0f} MB on the {floor['label']} pair "
+            f"(Sylva {floor['sylva']['peak_mb']:.0f} MB)" if "sylva" in floor else
+            f"runtime floor: forestreg register peaks at {floor['forestreg']['peak_mb']:.0f} MB on the {floor['label']} pair"
+        )
+        largest = max(rows, key=lambda r: r["raw_mb"], default=None)
+        if largest is not None and "sylva" in largest:
+            half = 0.5 * largest["sylva"]["peak_mb"]
+            lines.append(
+                f"{'':<15}= {floor['forestreg']['peak_mb'] / largest['sylva']['peak_mb']:.2f}x Sylva's peak on the {largest['label']} pair; "
+                f"half of that peak ({half:.0f} MB) leaves {half - floor['forestreg']['peak_mb']:.0f} MB above the floor for "
+                f"{largest['raw_mb']:.0f} MB of raw point arrays"
+            )
     if not has_sylva:
         lines.append("Sylva not installed (pip install 'forestreg[bench]' or sylva-rs): its columns are left out")
     return "\n".join(lines)
