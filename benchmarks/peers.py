@@ -10,9 +10,10 @@ that a drift of the machine's speed (other users) hits all three alike:
 * ``sylva``: ``sylva coreg A B -o DIR --quiet`` (PyPI ``sylva-rs``, the ``bench`` extra), when
   installed.
 
-Wall time comes from the parent's clock around each child, peak memory from the operating
-system's accounting of the finished child (``os.wait4`` ``ru_maxrss``: every resident page, the
-shared libraries' code included); beside it, the largest anonymous and file-backed parts seen
+Wall time comes from the clock around each child, peak memory from the operating system's
+accounting of the finished child (``os.wait4`` ``ru_maxrss``: every resident page, the shared
+libraries' code included; each command is started by a small launcher process, so that the
+benchmark's own memory does not count into it, :data:`_LAUNCHER`); beside it, the largest anonymous and file-backed parts seen
 while the child ran (``/proc/PID/status`` every 20 ms, :func:`_resident_parts`). Ratios are taken run by
 run (forestreg / Sylva and forestreg / read of the same round) and their median is reported, so
 they hold when the machine's load changes between rounds; the absolute seconds do not.
@@ -85,35 +86,75 @@ def _resident_parts(pid: int) -> tuple[float, float]:
     return anon, file_
 
 
+#: A small Python process that starts the measured command as its own child, waits for it and
+#: writes its wall time (from the fork to its end), ``ru_maxrss`` (KiB) and wait status to the
+#: file ``argv[1]``: the command is forked from this interpreter of ~10 MB, not from the benchmark
+#: process, whose resident memory at the fork the kernel would count into the command's peak (it
+#: keeps the larger of the two across ``exec``).
+_LAUNCHER = """
+import json, os, sys, time
+t0 = time.perf_counter()
+pid = os.fork()
+if pid == 0:
+    try:
+        os.execvp(sys.argv[2], sys.argv[2:])
+    finally:
+        os._exit(127)
+_, status, usage = os.wait4(pid, 0)
+wall = time.perf_counter() - t0
+with open(sys.argv[1], "w") as f:
+    json.dump({"wall_s": wall, "maxrss_kib": usage.ru_maxrss, "status": status}, f)
+"""
+
+
 def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeout_s: float = 1800.0, log: Optional[Path] = None) -> Run:
     """Run ``argv`` to completion; its wall time and the peak memory the kernel accounted to it.
     Its output is dropped, or written to ``log`` (stdout and stderr) when given.
 
-    The peak is the child's ``ru_maxrss``, which includes the memory of this process at the fork
-    (the kernel keeps the larger of the two across ``exec``): call it from a small process."""
-    t0 = time.perf_counter()
+    The command runs under :data:`_LAUNCHER` (its own session: a timeout ends it and its
+    children), so its peak is its own whatever the size of the calling process. Its anonymous
+    and file-backed memory are sampled every 20 ms meanwhile (:func:`_resident_parts`)."""
+    fd, report_name = tempfile.mkstemp(prefix="forestreg-run-", suffix=".json")
+    os.close(fd)
+    report = Path(report_name)
     sink = subprocess.DEVNULL if log is None else open(log, "wb")
     try:
-        proc = subprocess.Popen(argv, stdout=sink, stderr=subprocess.STDOUT if log is not None else subprocess.DEVNULL, env=env)
+        launcher = subprocess.Popen(
+            [sys.executable, "-c", _LAUNCHER, str(report), *argv], stdout=sink,
+            stderr=subprocess.STDOUT if log is not None else subprocess.DEVNULL, env=env, start_new_session=True,
+        )
     finally:
         if log is not None:
             sink.close()
-    deadline = t0 + timeout_s
+    deadline = time.perf_counter() + timeout_s
     anon_mb = file_mb = float("nan")
-    while True:
-        anon, file_ = _resident_parts(proc.pid)
-        anon_mb, file_mb = np.fmax(anon_mb, anon), np.fmax(file_mb, file_)
-        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-        if pid:
-            break
-        if time.perf_counter() > deadline:
-            proc.kill()
-            pid, status, usage = os.wait4(proc.pid, 0)
-            break
-        time.sleep(0.02)
-    wall = time.perf_counter() - t0
-    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: keep Popen from waiting again
-    return Run(wall_s=wall, peak_mb=usage.ru_maxrss / 1024.0, status=proc.returncode, anon_mb=float(anon_mb), file_mb=float(file_mb))
+    child = None
+    try:
+        while launcher.poll() is None:
+            if child is None:
+                try:
+                    kids = Path(f"/proc/{launcher.pid}/task/{launcher.pid}/children").read_text().split()
+                    child = int(kids[0]) if kids else None
+                except (OSError, ValueError):
+                    pass
+            if child is not None:
+                anon, file_ = _resident_parts(child)
+                anon_mb, file_mb = np.fmax(anon_mb, anon), np.fmax(file_mb, file_)
+            if time.perf_counter() > deadline:
+                os.killpg(launcher.pid, 9)
+                launcher.wait()
+                return Run(wall_s=float(timeout_s), peak_mb=float("nan"), status=-9, anon_mb=float(anon_mb), file_mb=float(file_mb))
+            time.sleep(0.02)
+        try:
+            result = json.loads(report.read_text())
+        except (OSError, ValueError):  # the launcher itself failed
+            return Run(wall_s=float("nan"), peak_mb=float("nan"), status=launcher.returncode or -1)
+    finally:
+        report.unlink(missing_ok=True)
+    return Run(
+        wall_s=float(result["wall_s"]), peak_mb=result["maxrss_kib"] / 1024.0, status=os.waitstatus_to_exitcode(result["status"]),
+        anon_mb=float(anon_mb), file_mb=float(file_mb),
+    )
 
 
 def sylva_command() -> Optional[str]:
