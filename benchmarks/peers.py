@@ -13,10 +13,11 @@ that a drift of the machine's speed (other users) hits all three alike:
 Wall time comes from the clock around each child, peak memory from the operating system's
 accounting of the finished child (``os.wait4`` ``ru_maxrss``: every resident page, the shared
 libraries' code included; each command is started by a small launcher process, so that the
-benchmark's own memory does not count into it, :data:`_LAUNCHER`); beside it, the largest anonymous and file-backed parts seen
-while the child ran (``/proc/PID/status`` every 20 ms, :func:`_resident_parts`). Ratios are taken run by
-run (forestreg / Sylva and forestreg / read of the same round) and their median is reported, so
-they hold when the machine's load changes between rounds; the absolute seconds do not.
+benchmark's own memory does not count into it, :data:`_LAUNCHER`); beside it, the largest
+anonymous and file-backed parts seen while the child ran (``/proc/PID/status`` every 20 ms,
+:func:`_resident_parts`). Ratios are taken run by run (forestreg / Sylva and forestreg / read of
+the same round) and their median is reported, so they hold when the machine's load changes
+between rounds; the absolute seconds do not.
 Accuracy: each tool's matrix against the simulator's truth.
 
 A third, tiny pair (:data:`FLOOR_PAIR`, left out by ``--quick``) measures the runtime's floor: what
@@ -70,9 +71,10 @@ class Run:
 def _resident_parts(pid: int) -> tuple[float, float]:
     """(anonymous, file-backed) resident memory of process ``pid`` now, MiB; NaN when unknown.
     File-backed pages are mostly shared library code: how many the kernel maps into a process
-    depends on how the library's pages sit in the page cache (a freshly installed numba maps about
-    60 MB less of its LLVM library than one whose pages were read back in large folios), so the
-    anonymous part is the steadier measure of what a run itself allocates."""
+    depends on how the library's pages sit in the page cache (on this project's machine,
+    ``import llvmlite.binding`` took 117 MB or 56 MB of resident memory, the same file before and
+    after it was dropped from the cache and read back), so the anonymous part is the steadier
+    measure of what a run itself allocates."""
     anon = file_ = float("nan")
     try:
         with open(f"/proc/{pid}/status") as f:
