@@ -120,12 +120,15 @@ def run(
     sizes: tuple[int, ...] = (20, 40, 80),
     angle_step_deg: float = 0.1,
     *,
-    repeats: int = 5,
+    repeats: int = 15,
     literal_full_max_pairs: int = 400,
-    literal_sample_pairs: int = 12,
+    literal_sample_pairs: int = 48,
     seed: int = 0,
 ) -> list[dict]:
-    """One row per size: fast and literal wall time (s), their ratio, exact scores computed."""
+    """One row per size: fast and literal wall time (s), their ratio, exact scores computed.
+    ``repeats`` runs of the fast matcher (their median) and ``literal_sample_pairs`` sampled
+    anchor pairs of the enumeration: with 5 and 12 the ratio at 80 VOPs ranged over
+    8,700-12,500x in three runs on one machine within minutes (a 16 ms median, 12 anchors)."""
     rows = []
     for n in sizes:
         reference, moving, theta = realistic_pair(n, seed)
