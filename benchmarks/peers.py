@@ -151,6 +151,11 @@ def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeou
             result = json.loads(report.read_text())
         except (OSError, ValueError):  # the launcher itself failed
             return Run(wall_s=float("nan"), peak_mb=float("nan"), status=launcher.returncode or -1)
+    except BaseException:  # Ctrl-C: the command, in a session of its own, does not get it from the terminal
+        if launcher.poll() is None:
+            os.killpg(launcher.pid, 9)
+            launcher.wait()
+        raise
     finally:
         report.unlink(missing_ok=True)
     return Run(
