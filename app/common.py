@@ -11,8 +11,7 @@ import numpy as np
 
 from ..engine.core.outcome import Outcome
 
-#: Metres per unit of the files' coordinates (the ``--units`` choices).
-UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048, "usft": 1200.0 / 3937.0}
+from .units import UNITS  # noqa: F401 - metres per unit of the files' coordinates
 
 ProgressCallback = Callable[[float, str], None]
 

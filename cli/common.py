@@ -16,7 +16,7 @@ from typing import Optional
 
 log = logging.getLogger("forestreg")
 
-from ..app.common import UNITS, check_replaceable_point_file  # noqa: F401 - the ``--units`` choices
+from ..app.units import UNITS  # noqa: F401 - the ``--units`` choices
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
