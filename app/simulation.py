@@ -69,17 +69,19 @@ class CoregistrationCase:
     truth: np.ndarray
 
 
-def simulated_coregistration(folder: Path, *, seed: int = 1) -> CoregistrationCase:
-    """A 28 m plot: merged TLS scans (ground-based, own frame, turned 120 deg and shifted 7 m) and
-    a UAV flight at 86 m, written into ``folder`` with the field records."""
+def simulated_coregistration(folder: Path, *, seed: int = 1, size_m: float = 28.0, ground_extent_m: float = 18.0,
+                             tls_step_deg: float = 0.3) -> CoregistrationCase:
+    """A plot ``size_m`` across (28 m): merged TLS scans over ``ground_extent_m`` (ground-based, own
+    frame, turned 120 deg and shifted 7 m) and a UAV flight at 86 m, written into ``folder`` with
+    the field records."""
     from ..engine.core.atomic import write_text_atomic
     from ..engine.io import write_scan
     from ..engine.simulate.platforms import simulate_coregistration_case
 
     folder.mkdir(parents=True, exist_ok=True)
     case = simulate_coregistration_case(
-        "planted_conifer", seed=seed, size_m=28.0, ground_platform="tls", ground_extent_m=18.0,
-        heading_deg=120.0, offset_m=(5.0, -5.0, 1.0), uav_density_scale=0.5, tls_step_deg=0.3,
+        "planted_conifer", seed=seed, size_m=size_m, ground_platform="tls", ground_extent_m=ground_extent_m,
+        heading_deg=120.0, offset_m=(5.0, -5.0, 1.0), uav_density_scale=0.5, tls_step_deg=tls_step_deg,
     )
     write_scan(case.ground, folder / "ground.laz")
     write_scan(case.uav, folder / "uav.laz")
