@@ -156,3 +156,14 @@ def test_no_development_history_in_user_facing_text():
             if HISTORY.search(line):
                 offenders.append(f"{f.relative_to(ROOT)}:{n}: {line.strip()[:100]}")
     assert offenders == []
+
+
+def test_a_page_missing_from_the_nav_is_added_to_it(tmp_path):
+    hooks = _hooks()
+    docs = tmp_path / "docs"
+    (docs / "guide").mkdir(parents=True)
+    (docs / "index.md").write_text("# Home\n")
+    (docs / "notes.md").write_text("Intro\n\n# Design notes\n")
+    config = {"nav": [{"Home": "index.md"}], "docs_dir": str(docs)}
+    hooks.on_config(config)
+    assert config["nav"] == [{"Home": "index.md"}, {"Design notes": "notes.md"}]
