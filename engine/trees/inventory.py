@@ -73,7 +73,7 @@ class TreeParams(Params):
     #: single-tree clouds (one tree, little or no ground): recognised, forced or ruled out
     single_tree: SingleTreeParams = SingleTreeParams()
     #: points with a wood probability at least this are wood (input of the cylinder model)
-    wood_threshold: float = _p(0.5, "", 0.0, 1.0, "wood probability threshold")
+    wood_threshold: float = _p(0.5, "1", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
     cylinder_models: bool = _p(True, "", None, None, "fit cylinder models")
 

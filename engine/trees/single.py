@@ -42,7 +42,7 @@ class SingleTreeParams(Params):
     mode: str = _p("auto", "", None, None, "single-tree cloud: auto (decide from the cloud), yes, no")
     base_band_m: tuple[float, float] = _p((0.3, 1.5), "m", 0.0, 10.0, "Heights above the base of the band whose points must form one patch")
     link_m: float = _p(0.3, "m", 0.05, 2.0, "Points of the band closer than about this are linked into one patch (grid cell)")
-    min_patch_fraction: float = _p(0.85, "", 0.5, 1.0, "The largest patch holds at least this fraction of the band's points")
+    min_patch_fraction: float = _p(0.85, "1", 0.5, 1.0, "The largest patch holds at least this fraction of the band's points")
     max_base_width_m: float = _p(3.0, "m", 0.2, 20.0, "The largest patch is at most this across (one trunk or one multi-stemmed base)")
     max_extent_m: float = _p(30.0, "m", 1.0, 200.0, "A single-tree cloud is at most this across")
     min_band_points: int = _p(30, "points", 3, 10**6, "Fewer band points than this: no base to decide on")
