@@ -134,7 +134,7 @@ def test_readme_is_short_and_its_commands_are_the_ci_commands():
     for command in ("bash scripts/setup.sh && .venv/bin/forestreg demo --out demo_out", "bash scripts/setup.sh && .venv/bin/python -m pytest -q"):
         assert command in readme and command in ci
     for link in re.findall(r"\]\(((?:docs/|CHANGELOG)[^)#]*)", readme):
-        assert (ROOT / link).is_file() or link in {f"docs/{p}" for p in _hooks().GENERATED}, link
+        assert (ROOT / link).is_file(), link  # a generated page exists only in the built site
 
 
 HISTORY = re.compile(r"\b(issues? ?#?\d+|sessions? \d+|rounds? \d+ of development)\b", re.I)
