@@ -167,3 +167,31 @@ def test_a_page_missing_from_the_nav_is_added_to_it(tmp_path):
     config = {"nav": [{"Home": "index.md"}], "docs_dir": str(docs)}
     hooks.on_config(config)
     assert config["nav"] == [{"Home": "index.md"}, {"Design notes": "notes.md"}]
+
+
+REASON_SOURCES = ("engine/tls/pair.py", "engine/coreg/coregister.py", "engine/tls/scanner_position.py")
+
+
+def _words(text: str) -> list[str]:
+    """The literal words of a reason: placeholders (``{...}`` in the code, a lone capital such as
+    ``N`` or ``X`` in the docs) and punctuation left out."""
+    text = re.sub(r"\{[^}]*\}", " ", text)
+    return [w.lower() for w in re.findall(r"[A-Za-z%][A-Za-z0-9%'-]*", text.replace("`", " "))]
+
+
+def test_troubleshooting_explains_every_failure_reason():
+    """Every reason a registration or co-registration fails with, as the code words it, is
+    explained on the troubleshooting page (matched on its first literal words)."""
+    page = " ".join(_words(re.sub(r"(?<![A-Za-z])[A-Z](?![A-Za-z])", " ", (ROOT / "docs" / "troubleshooting.md").read_text(encoding="utf-8"))))
+    pattern = re.compile(r'(?:\b(?:_failed|failed|CoarseAttempt)\(\s*(?:[^"\n()]*,\s*)?|\bproblem\s*=\s*\(?\s*)f?"([^"\n]{8,})"')
+    missing, checked = [], 0
+    for source in REASON_SOURCES:
+        for m in pattern.finditer((ROOT / source).read_text(encoding="utf-8")):
+            words = _words(m.group(1))
+            if len(words) < 3:  # a wrapper such as "UAV cloud: {exc}" around another reason
+                continue
+            checked += 1
+            if " ".join(words[:3]) not in page:
+                missing.append(f"{source}: {m.group(1)[:80]}")
+    assert checked >= 15  # the reasons were found in the code
+    assert missing == [], "failure reasons not explained in docs/troubleshooting.md"
