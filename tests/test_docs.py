@@ -127,6 +127,28 @@ def test_the_output_reference_names_every_key_of_a_real_result(tmp_path, sim_plo
     assert [f for f in files if f"`{f}`" not in page] == []
 
 
+def test_the_output_reference_names_every_key_of_a_coregistration_result(tmp_path):
+    """A co-registration of two flat clouds (no canopy: it fails at once, its ``result.json``
+    holding every key with empty values): every key is named in the output reference."""
+    import numpy as np
+
+    from forestreg.engine.core.scan import Scan
+    from forestreg.engine.io import write_scan
+
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(0, 30, (20000, 2)), rng.normal(0, 0.02, 20000)]
+    for name, pts in (("ground", ground), ("uav", ground + [0, 0, 0.1])):
+        write_scan(Scan(pts, np.zeros(3), np.zeros(3), name=name), tmp_path / f"{name}.laz")
+    out = tmp_path / "coreg"
+    run = subprocess.run([sys.executable, "-m", "forestreg.cli", "coregister", str(tmp_path / "ground.laz"), str(tmp_path / "uav.laz"),
+                          "--out", str(out), "-q"], env=_env(), capture_output=True, text=True, timeout=600)
+    assert run.returncode == 1 and "too little canopy" in run.stderr, run.stderr
+    page = (ROOT / "docs" / "reference" / "outputs.md").read_text(encoding="utf-8")
+    section = page[page.index("### `forestreg coregister`"):]
+    result = json.loads((out / "result.json").read_text())
+    assert [k for k in result if f"`{k}`" not in section] == []
+
+
 def test_readme_is_short_and_its_commands_are_the_ci_commands():
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     assert len(readme.splitlines()) <= 300
