@@ -26,7 +26,7 @@ import numba
 from numba.core import caching, sigutils
 from numba.core.compiler_lock import global_compiler_lock
 
-__all__ = ["kernel", "kernel_cache_dir", "kernels", "run_blocks", "warm_up", "worker_count"]
+__all__ = ["kernel", "kernel_cache_dir", "kernels", "run_blocks", "worker_count"]
 
 log = logging.getLogger(__name__)
 
@@ -285,19 +285,6 @@ def _locked_compile(dispatcher: Any) -> None:
                 return compile_now(sig)
 
     dispatcher.compile = compile
-
-
-def warm_up() -> None:
-    """Load one small compiled kernel now (from the cache, or compiled): the first kernel a
-    process loads starts numba's compiler, LLVM (~0.3 s and ~40 MB, whichever kernel it is; each
-    later one takes a few milliseconds). A command calls this in a background thread while its
-    files are read (:func:`forestreg.cli.common.import_in_background`), so that the start-up is
-    not spent in its first step."""
-    import numpy as np
-
-    from .voxel import column_bounds
-
-    column_bounds(np.zeros((1, 3)))  # the signature the commands' own calls load
 
 
 def worker_count() -> int:
