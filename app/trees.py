@@ -87,7 +87,11 @@ def measure_trees_file(
     written = None
     if out is not None:
         with output_folder(out, "trees") as tmp:
-            inventory.write(tmp, cloud.points, report=report, unit_scale=scale)
+            inventory.write(tmp, unit_scale=scale)
+            if report:
+                from ..engine.report.trees_report import write_inventory_report
+
+                write_inventory_report(tmp, inventory, cloud.points)
             written = (tmp / "report.html").exists()
             if field_table is not None:
                 evaluation = evaluate_into(tmp / "evaluation", [("trees", read_tree_table(tmp / "trees.csv"))], field_table,
@@ -125,9 +129,17 @@ def edit_notes(base, steps) -> dict:
     return notes(base, steps)
 
 
-def save_edited(folder, inventory, notes, edits, points):
-    """Write the edited inventory into ``folder`` (``trees.csv`` marks edited trees;
-    ``edits.json``); returns the path written."""
-    from ..engine.trees.edit import write_edited
+def save_edited(folder, inventory, notes, edits, points=None, *, report: bool = True) -> Path:
+    """Write the edited inventory like ``forestreg trees`` (with the points: also the report),
+    then add an ``edited`` column to ``trees.csv`` (the notes of each tree's edits, "" for the
+    others) and the edits as ``edits.json`` (replayable with
+    :func:`~forestreg.engine.trees.edit.apply_edits`). Returns the trees.csv path."""
+    from ..engine.io.results import write_edits
 
-    return write_edited(folder, inventory, notes, edits, points)
+    path = inventory.write(folder)
+    if report and points is not None:
+        from ..engine.report.trees_report import write_inventory_report
+
+        write_inventory_report(folder, inventory, points)
+    write_edits(path, notes, [e.to_dict() for e in edits])
+    return path

@@ -304,7 +304,7 @@ def _register_two_at_a_time(project: Project, pending: list[Link], scans: ScanCa
     scans.let_go_of_points()
     queue = LinkQueue(project, pending, scans, cancel)
     try:
-        queue.finish(step, after=project.save if project.path is not None else None)
+        queue.finish(step, after=project.checkpoint)
     except BaseException:
         queue.close()
         raise
@@ -371,7 +371,7 @@ def register_survey(
         if beside is not None:
             scans.let_go_of_points()  # the links run on the kept preparations: room for two at once
             try:
-                beside.finish(step.sub(share, 1.0), after=project.save if project.path is not None else None)
+                beside.finish(step.sub(share, 1.0), after=project.checkpoint)
             except BaseException:
                 beside.close()
                 raise
@@ -384,8 +384,7 @@ def register_survey(
             sub = step.sub(share + (1 - share) * k / len(pending), share + (1 - share) * (k + 1) / len(pending))
             sub(0.0, f"registering further pair {k + 1} of {len(pending)}: {link.moving} onto {link.reference}")
             link.result = _run_link(project, link, scans, sub, cancel)
-            if project.path is not None:
-                project.save()
+            project.checkpoint()
         scans.prepared.release(("icp_reference",))  # the links are done: their ICP search structures go
         step(1.0, "done")
     scanner = {s.name: _scanner_file(scans, s.name) for s in project.scans if _usable(scans, s.name)}
@@ -469,8 +468,7 @@ def register_survey(
         "quality": quality,
         "pairs": params.pairs,
     }
-    if project.path is not None:
-        project.save()
+    project.checkpoint()
     return outcome
 
 

@@ -7,8 +7,8 @@ inventory in which only the edited trees were measured again (with the same step
 
 Edits are described by :class:`TreeEdit` records (JSON-friendly: :meth:`TreeEdit.to_dict`), so a
 list of them can be kept in a project or next to ``trees.csv`` (``edits.json``) and replayed on
-the same cloud with :func:`apply_edits`. :func:`write_edited` writes the inventory like
-``forestreg trees`` does and adds an ``edited`` column to ``trees.csv`` naming each tree's edits.
+the same cloud with :func:`apply_edits` (:func:`forestreg.app.trees.save_edited` writes the edited
+inventory like ``forestreg trees`` does, with an ``edited`` column naming each tree's edits).
 
 Frame: the inventory's local frame (the points given to ``measure_trees``; metres, z up). A
 clicked position from a file-coordinate view is converted by subtracting ``origin_shift``.
@@ -16,9 +16,7 @@ clicked position from a file-coordinate view is converted by subtracting ``origi
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import json
 import math
 from dataclasses import dataclass
@@ -28,7 +26,6 @@ from typing import Any, Iterable, Mapping, Optional, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.atomic import write_text_atomic
 from ..core.errors import ParameterError, ScanDataError
 from .crown import CrownMeasurement, measure_crown
 from .inventory import TreeInventory, TreeParams, TreeRecord, ground_near_stems, tree_record
@@ -49,7 +46,6 @@ __all__ = [
     "merge_trees",
     "read_edits",
     "split_tree",
-    "write_edited",
 ]
 
 EDIT_KINDS = ("delete", "merge", "split", "add", "dbh_height")
@@ -328,32 +324,6 @@ def edit_notes(before: TreeInventory, edits: Sequence[tuple[TreeEdit, TreeInvent
         prev = after
     alive = {r.tree_id for r in prev.trees}
     return {k: "; ".join(dict.fromkeys(v)) for k, v in notes.items() if k in alive}
-
-
-def write_edited(out_dir: str | Path, inventory: TreeInventory, notes: Mapping[int, str], edits: Sequence[TreeEdit],
-                 points: Optional[np.ndarray] = None, *, report: bool = True) -> Path:
-    """Write the edited inventory like ``forestreg trees`` (:meth:`TreeInventory.write`), then add
-    an ``edited`` column to ``trees.csv`` (the notes of each tree's edits, "" for the others) and
-    the edits as ``edits.json`` (replayable with :func:`apply_edits`). Returns the trees.csv path."""
-    path = inventory.write(out_dir, points, report=report)
-    text = path.read_text(encoding="utf-8")
-    rows = list(csv.reader(io.StringIO(text)))
-    if rows:
-        header = rows[0]
-        if "edited" not in header:
-            header.append("edited")
-            k = header.index("tree_id")
-            for row in rows[1:]:
-                try:
-                    row.append(notes.get(int(float(row[k])), ""))
-                except (ValueError, IndexError):
-                    row.append("")
-        buf = io.StringIO()
-        csv.writer(buf, lineterminator="\n").writerows(rows)
-        write_text_atomic(path, buf.getvalue())
-    write_text_atomic(Path(out_dir) / "edits.json",
-                      json.dumps({"format": "forestreg-tree-edits", "version": 1, "edits": [e.to_dict() for e in edits]}, indent=2) + "\n")
-    return path
 
 
 def read_edits(path: str | Path) -> list[TreeEdit]:

@@ -16,7 +16,7 @@ per parameter, the paper's figures:
   (%); ``bias = mean (est - field)``;
 
 and the detection figures: matched trees, omitted field trees (no estimate), commission
-(estimated trees with no field tree). :func:`forestreg.engine.io.evaluation.write_evaluation` writes CSV, JSON, scatter plots
+(estimated trees with no field tree). :func:`forestreg.app.evaluation.write_evaluation` writes CSV, JSON, scatter plots
 and an HTML report for one or several runs side by side (e.g. "ground" against "fused").
 """
 
