@@ -71,9 +71,8 @@ def evaluate_into(folder: Path, named, field_table, *, by: str, max_distance: fl
         figures = ", ".join(
             f"{p} R2 {st.r2:.2f} rRMSE {st.rrmse_percent:.1f} %" for p, st in ev.stats.items() if st.n >= 2
         )
-        if d.matched == 0:
-            how = "no shared tree ids" if by == "id" else f"no tree within {max_distance:g} m of a field tree (same coordinates and units?)"
-            failed.append(f"{name}: 0 of {d.field_trees} field trees matched ({how})")
+        if not ev:  # no tree matched: the reason
+            failed.append(f"{name}: {ev.reason}")
             lines.append(f"failed: {failed[-1]}")
         else:
             lines.append(f"{name}: {d.matched} of {d.field_trees} field trees matched; {figures}")

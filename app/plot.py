@@ -39,7 +39,7 @@ class PlotRun(RunOutcome):
     written: dict = field(default_factory=dict)
 
     def evidence(self) -> dict:
-        return {"status": dict(self.result.status) if self.result is not None else {}}
+        return self.result.evidence() if self.result is not None else {}
 
 
 # ----------------------------------------------------------------------------- inputs

@@ -85,6 +85,9 @@ def measure_trees_file(
     inventory = measure_trees_in(cloud, params, progress=progress, cancel=cancel)
     evaluation = None
     written = None
+    if not inventory:  # the data do not allow trees: the reason, and no folder (complete or absent)
+        return TreesOutcome(status="failed", reason=inventory.reason, timings=dict(inventory.timings), out=out, result=inventory,
+                            points=cloud.points)
     if out is not None:
         with output_folder(out, "trees") as tmp:
             inventory.write(tmp, unit_scale=scale)

@@ -82,7 +82,7 @@ def test_pair_registration_same_verdict_on_the_command_line_and_the_desktop(pair
     worker = RegistrationWorker(project)
     outcome = worker._register(lambda f, m: None, CancelToken())  # the desktop's task code
     link = project.link_of(project.scans[1].name)
-    assert outcome.status[project.scans[1].name] == cli["status"]
+    assert outcome.scans[project.scans[1].name] == cli["status"]
     assert link.result.status == cli["status"]
     np.testing.assert_allclose(link.result.matrix, np.array(cli["matrix"]), atol=1e-6)
 

@@ -506,11 +506,14 @@ class TreesView(QWidget):
 
         def task(progress: Any, cancel: Any) -> tuple[Any, np.ndarray]:
             from ..app.trees import measure_trees_in
+            from ..engine.core.errors import ScanDataError
             from ..engine.io import read_scan
 
             progress(0.0, "reading the cloud")
             scan = read_scan(cloud)
             inv = measure_trees_in(scan, params, progress=lambda f, m: progress(0.05 + 0.95 * f, m), cancel=cancel)
+            if not inv:  # the data do not allow trees: said as the window says any failure
+                raise ScanDataError(inv.reason)
             return inv, scan.points
 
         def done(result: tuple[Any, np.ndarray]) -> None:

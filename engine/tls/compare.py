@@ -49,7 +49,7 @@ def compare_auto_manual(
         )
         if manual.ok:
             manual_links[link.moving] = manual.matrix
-        auto = link.result or {}
+        auto = link.result if link.result is not None else {}
         row: dict[str, Any] = {
             "moving": link.moving,
             "reference": link.reference,

@@ -24,6 +24,7 @@ import numpy as np
 from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanReadError
 from ..io import read_scan
 from ..io.las import intensity_to_uint16
+from ..core.outcome import Outcome
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, LinkResult, Project, ScanEntry
 from .pair import SEQUENTIAL_PREPARE_POINTS, register
@@ -235,20 +236,38 @@ def _file_scan_bytes(path: Path) -> int:
         return 0
 
 
-@dataclass
-class PlotOutcome:
-    """What a plot run did: per scan "ok"/"failed"/"centre", and the reasons of failures."""
+@dataclass(eq=False)
+class PlotOutcome(Outcome):
+    """What a plot run did: ``scans`` per scan "ok"/"failed"/"centre", and the reasons of failures
+    (``reasons``). Its ``status`` is "ok" when no scan failed, else "failed" with the reasons;
+    the poses are in the project (``matrix`` None)."""
 
-    status: dict[str, str] = field(default_factory=dict)
+    scans: dict[str, str] = field(default_factory=dict)
     reasons: dict[str, str] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    method = "auto (trunk shadows + ICP), per link"
+    convention = "each scan's pose in the project"
+    matrix = None
+
+    @property
+    def status(self) -> str:  # type: ignore[override]
+        return "failed" if self.failed else "ok"
+
+    @property
+    def reason(self) -> str:  # type: ignore[override]
+        return "; ".join(f"{name}: {self.reasons.get(name) or 'failed'}" for name in self.failed)
 
     @property
     def registered(self) -> list[str]:
-        return [k for k, v in self.status.items() if v in ("ok", "centre")]
+        return [k for k, v in self.scans.items() if v in ("ok", "centre")]
 
     @property
     def failed(self) -> list[str]:
-        return [k for k, v in self.status.items() if v == "failed"]
+        return [k for k, v in self.scans.items() if v == "failed"]
+
+    def evidence(self) -> dict[str, Any]:
+        return {"scans": dict(self.scans), "reasons": dict(self.reasons)}
 
 
 def default_links(project: Project) -> None:
@@ -291,7 +310,7 @@ def register_project(
     scans = scans or ScanCache(project)
     step = Progress(progress, cancel=cancel)
     order = [s for s in project.scans if s.name != project.centre and not s.tilted] + [s for s in project.scans if s.tilted and s.name != project.centre]
-    outcome = PlotOutcome(status={project.centre: "centre"})
+    outcome = PlotOutcome(scans={project.centre: "centre"})
     ahead = _PrepareAhead.start(project, order, scans, rerun=rerun, cancel=cancel, beside=beside)
     try:
         _register_links(project, order, scans, outcome, step, ahead, rerun=rerun, cancel=cancel, on_link=on_link)
@@ -307,8 +326,8 @@ def register_project(
     # a scan whose chain to the centre is broken has no pose even if its own link worked
     poses = project.chained_poses()
     for name, pose in poses.items():
-        if pose is None and outcome.status.get(name) == "ok":
-            outcome.status[name] = "failed"
+        if pose is None and outcome.scans.get(name) == "ok":
+            outcome.scans[name] = "failed"
             outcome.reasons[name] = "its reference scan could not be registered"
     step(1.0, "done")
     return outcome
@@ -324,7 +343,7 @@ def _register_links(project: Project, order: list[ScanEntry], scans: ScanCache, 
         sub = step.sub(k / max(len(order), 1), (k + 1) / max(len(order), 1))
         link = project.link_of(entry.name)
         if link.ok and not rerun:
-            outcome.status[entry.name] = "ok"
+            outcome.scans[entry.name] = "ok"
             continue
         sub(0.0, f"registering {entry.name}")
         if entry.tilted and not entry.level_partner:
@@ -333,9 +352,9 @@ def _register_links(project: Project, order: list[ScanEntry], scans: ScanCache, 
             link.result = _run_link(project, link, scans, sub.sub(0.0, 0.5), cancel)
             if not link.ok:
                 link = _retry(project, entry, link, scans, sub.sub(0.5, 1.0), cancel)
-        outcome.status[entry.name] = "ok" if link.ok else "failed"
+        outcome.scans[entry.name] = "ok" if link.ok else "failed"
         if not link.ok:
-            outcome.reasons[entry.name] = link.result.get("reason", "") if link.result else "not run"
+            outcome.reasons[entry.name] = link.result.get("reason", "") if link.result is not None else "not run"
             log.warning("%s could not be registered: %s", entry.name, outcome.reasons[entry.name])
         project.adjustment = None
         project.checkpoint()
@@ -576,7 +595,7 @@ def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, p
     candidates = [n for n, p in poses.items() if p is not None and n not in (entry.name, failed.reference)]
     if first is not None:
         candidates.sort(key=lambda n: float(np.linalg.norm(poses[n][:3, 3] - first[:3, 3])))
-    tried = [{"reference": failed.reference, "reason": (failed.result or {}).get("reason", "")}]
+    tried = [{"reference": failed.reference, "reason": (failed.result if failed.result is not None else {}).get("reason", "")}]
     for k, name in enumerate(candidates):
         link = Link(moving=entry.name, reference=name, method=failed.method, vop_radius_m=failed.vop_radius_m, slice_offsets_m=failed.slice_offsets_m)
         link.result = _run_link(project, link, scans, progress.sub(k / len(candidates), (k + 1) / len(candidates)), cancel)
@@ -586,7 +605,7 @@ def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, p
             log.info("%s registered onto %s after %d failed attempt(s)", entry.name, name, len(tried))
             return link
         tried.append({"reference": name, "reason": link.result.get("reason", "")})
-    failed.result = dict(failed.result or {}, retried=tried[1:])
+    failed.result = dict(failed.result if failed.result is not None else {}, retried=tried[1:])
     return failed
 
 
@@ -730,7 +749,7 @@ def pose_uncertainty(project: Project) -> dict[str, Optional[dict[str, float]]]:
     positions = {n: p[:3, 3] for n, p in poses.items() if p is not None}
     rows = []
     for link in project.links:
-        u = (link.result or {}).get("uncertainty") or {}
+        u = (link.result if link.result is not None else {}).get("uncertainty") or {}
         if link.ok and link.moving in positions and link.reference in positions:
             rows.append({"moving": link.moving, "reference": link.reference, "translation_m": u.get("translation_m"), "rotation_deg": u.get("rotation_deg")})
     if project.centre is None:

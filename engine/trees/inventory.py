@@ -23,6 +23,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from ..core.errors import ScanDataError
+from ..core.outcome import Outcome
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
 from ..core.params import Params, param_field as _p
@@ -133,7 +134,7 @@ class TreeRecord:
 
 
 @dataclass(frozen=True, eq=False)
-class TreeInventory(TreeTablesFile):
+class TreeInventory(TreeTablesFile, Outcome):
     """Trees of one cloud and the per-point results.
 
     ``labels`` (N,) tree id per point (0 = none), ``heights`` (N,) height above the DEM,
@@ -157,9 +158,29 @@ class TreeInventory(TreeTablesFile):
     method: str = "fine"
     #: why the cloud was (or was not) taken as a single tree, one line ("" when not decided)
     single_tree_reason: str = ""
+    #: "ok", or "failed" when the data do not allow any tree (the reason says why)
+    status: str = "ok"
+    reason: str = ""
+
+    convention = "local frame of the cloud (metres); files add origin_shift"
+    matrix = None
+
+    @classmethod
+    def failed(cls, reason: str, n_points: int, origin_shift: Optional[np.ndarray] = None,
+               timings: Optional[dict[str, float]] = None) -> "TreeInventory":
+        """The outcome of a cloud the data do not allow trees in: no tree, the reason."""
+        return cls(trees=[], labels=np.zeros(n_points, dtype=np.int64), heights=np.full(n_points, np.nan),
+                   wood_probability=np.zeros(n_points), ground=np.zeros(n_points, dtype=bool), dem=None,
+                   origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
+                   timings=dict(timings or {}), status="failed", reason=reason)
+
+    def evidence(self) -> dict[str, Any]:
+        return {"trees": len(self.trees), "method": self.method, "flagged": sum(1 for t in self.trees if t.flags)}
 
     def summary(self) -> str:
         """One line: trees found, measured (DBH, height, volume) and flagged."""
+        if not self.ok:
+            return f"failed: {self.reason}"
         n = len(self.trees)
         dbh = sum(1 for t in self.trees if math.isfinite(t.dbh_m))
         h = sum(1 for t in self.trees if math.isfinite(t.crown.height_m))
@@ -210,11 +231,35 @@ def measure_trees(
     height is the cloud's top above the tree's base; ``single_tree`` True / False forces or rules
     it out (default: ``params.single_tree.mode``, "auto": decided from the cloud).
 
+    Returns a failed (falsy) inventory with the reason when the data do not allow trees: neither
+    a stem nor a tree crown found (not a forest cloud, or wrong units), or a single tree asked
+    for in a cloud that is not one.
+
     Raises
     ------
     ScanDataError
-        Empty/NaN input, or neither a stem nor a tree crown found (not a forest cloud, or wrong units).
+        Empty or NaN input.
     """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        raise ScanDataError("trees: expected a non-empty (N, 3) cloud")
+    if not np.isfinite(p).all():
+        raise ScanDataError("trees: the cloud holds NaN or infinite coordinates")
+    try:
+        return _measure_trees(p, params, progress, origin_shift=origin_shift, single_tree=single_tree)
+    except ScanDataError as exc:  # the data do not allow it: a failed outcome, as a registration gives
+        return TreeInventory.failed(str(exc), len(p), origin_shift)
+
+
+def _measure_trees(
+    points: np.ndarray,
+    params: TreeParams,
+    progress: Optional[Progress | ProgressCallback],
+    *,
+    origin_shift: Optional[np.ndarray],
+    single_tree: Optional[bool],
+) -> TreeInventory:
+    """:func:`measure_trees` of a checked cloud; raises ScanDataError when the data do not allow trees."""
     progress = as_progress(progress)
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
