@@ -140,16 +140,12 @@ def _project_cloud(path: Path, scale: float):
         raise UsageError(f"project {path}: no scans")
     if missing:
         raise UsageError(f"project {path}: scan(s) {', '.join(missing)} not registered: run 'forestreg project run' first")
-    parts, shift = [], None
+    parts = []
     for s in project.scans:
         scan = read_scan(s.path, unit_scale=scale, scan_index=s.scan_index, with_intensity=False)
         pose = to_metres(poses[s.name], scale)
-        file_xyz = scan.points + scan.origin_shift
-        merged = file_xyz @ pose[:3, :3].T + pose[:3, 3]
-        if shift is None:
-            shift = np.floor(merged.mean(axis=0)) if np.abs(merged).max() > 1e4 else np.zeros(3)
-        parts.append(merged - shift)
-    cloud = Scan.from_points(np.vstack(parts), origin_shift=shift, name=path.stem)
+        parts.append((scan.points + scan.origin_shift) @ pose[:3, :3].T + pose[:3, 3])  # project frame (file coordinates)
+    cloud = Scan.from_points(np.vstack(parts), name=path.stem, take_ownership=True)
     return cloud, f"{len(project.scans)} registered scans of project {path.name}"
 
 
