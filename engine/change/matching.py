@@ -8,8 +8,8 @@ either survey gets a status:
   stem points (it was occluded or not measured there: flagged, its values there left empty);
 - ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
 - ``new``: a stem of the later survey whose place the earlier survey saw without a stem;
-- ``outside``: the other survey has no point near the tree (it did not cover the place): not
-  compared.
+- ``outside``: the other survey has no point near the tree (it did not cover the place; for a
+  table: the tree lies beyond the hull of its stems grown by 2 m): not compared.
 
 Values per tree: DBH and height in each survey with their 1-sigma, and their changes. The DBH
 change of a stem measured in both clouds is the median difference of the two stem curves between
@@ -130,9 +130,9 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     before_in_a = _apply(inv, before.breast_points())
 
     def indexes(epoch: EpochTrees):
-        band = cKDTree(epoch.band[:, :2]) if epoch.has_points else None
-        cover = np.vstack([epoch.band[:, :2], epoch.ground[:, :2]]) if epoch.has_points else epoch.xy
-        return band, (cKDTree(cover) if len(cover) else None)
+        if not epoch.has_points:  # a table: the plot is the hull of its stems (see _inside_hull)
+            return None, None
+        return cKDTree(epoch.band[:, :2]), cKDTree(np.vstack([epoch.band[:, :2], epoch.ground[:, :2]]))
 
     band_b, cover_b = indexes(before)
     band_a, cover_a = indexes(after)
@@ -149,14 +149,14 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     if len(rest_b):
         where = before_in_a[rest_b, :2]
         present = _stem_points_at(after, where, before_in_a[rest_b, 2] - 1.3, np.array([radius(before, k) for k in rest_b]), band_a)
-        seen = _covered(after, where, params.coverage_radius_m if after.has_points else 4.0 * params.tree_match_distance_m + 3.0, cover_a)
+        seen = _covered(after, where, params.coverage_radius_m, cover_a) if after.has_points else np.array([_inside_hull(after.xy, w) for w in where])
         for j, k in enumerate(rest_b):
             base = _one_side(before, int(k), "before")
             if after.has_points and present[j] >= params.presence_points:
                 out.append(TreeChange(status="persisting", **base,
                                       flag=_join(before.flags[k] and f"BEFORE: {before.flags[k]}",
                                                  "stem present in AFTER but not measured there (occluded or unsure): no change")))
-            elif not seen[j] or (not after.has_points and not _inside_hull(after.xy, where[j])):
+            elif not seen[j]:
                 out.append(TreeChange(status="outside", **base, flag="outside the AFTER survey: not compared"))
             else:
                 why = f"no stem in AFTER at its place ({present[j]} points)" if after.has_points else "no stem in the AFTER table at its place"
@@ -166,14 +166,14 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     if len(rest_a):
         where_b = after_in_b[rest_a, :2]
         present = _stem_points_at(before, where_b, after_in_b[rest_a, 2] - 1.3, np.array([radius(after, k) for k in rest_a]), band_b)
-        seen = _covered(before, where_b, params.coverage_radius_m if before.has_points else 4.0 * params.tree_match_distance_m + 3.0, cover_b)
+        seen = _covered(before, where_b, params.coverage_radius_m, cover_b) if before.has_points else np.array([_inside_hull(before.xy, w) for w in where_b])
         for j, k in enumerate(rest_a):
             base = _one_side(after, int(k), "after", xy=where_b[j])
             if before.has_points and present[j] >= params.presence_points:
                 out.append(TreeChange(status="persisting", **base,
                                       flag=_join(after.flags[k] and f"AFTER: {after.flags[k]}",
                                                  "stem present in BEFORE but not measured there (occluded or unsure): no change")))
-            elif not seen[j] or (not before.has_points and not _inside_hull(before.xy, where_b[j])):
+            elif not seen[j]:
                 out.append(TreeChange(status="outside", **base, flag="outside the BEFORE survey: not compared"))
             else:
                 why = f"no stem in BEFORE at its place ({present[j]} points)" if before.has_points else "no stem in the BEFORE table at its place"
