@@ -299,3 +299,35 @@ def test_simulated_resurvey_six_years_later_meets_the_goals():
     assert math.sqrt(np.mean(np.square(dbh_err))) <= 0.005
     # the stated uncertainty covers the true error
     assert result.uncertainty["rotation_deg"] >= rot and result.uncertainty["translation_m"] >= 0.5 * shift
+
+
+# --------------------------------------------------------------------------------------------- service and batch
+
+
+def test_change_is_a_service_job_and_a_batch_command(tmp_path):
+    from dataclasses import asdict
+
+    from forestreg.cli import build_parser
+    from forestreg.service import jobs
+    from forestreg.service.batch import discover_plots, run_plot
+
+    jobs.use_parser(build_parser)
+    plots = tmp_path / "plots"
+    for k, seed in enumerate((5, 6)):
+        folder = plots / f"plot{k + 1}"
+        folder.mkdir(parents=True)
+        before, after, _ = _resurvey_tables(30.0 + 50 * k, seed=seed)
+        _write_table(folder / "before.csv", before)
+        _write_table(folder / "after.csv", after)
+    (plots / "plot3").mkdir()  # no surveys: an error row, not a crash
+    tasks = {t.name: t for t in discover_plots(plots, tmp_path / "out", "change")}
+    assert tasks["plot1"].args[0] == "change" and tasks["plot1"].args[1].endswith("before.csv")
+    assert "before.*" in tasks["plot3"].problem
+    args = jobs.validate_args(tasks["plot1"].args)  # the service checks a job as the CLI would
+    assert args.command == "change"
+    with pytest.raises(jobs.ArgumentError):
+        jobs.validate_args(["change", "only_one.laz", "--out", str(tmp_path / "x")])
+    row = run_plot(asdict(tasks["plot1"]))
+    assert row["status"] == "ok" and row["registered"] == 1 and row["trees"] == 66, row
+    assert jobs.guess_result(tasks["plot1"].args) == str((tmp_path / "out" / "plot1" / "result.json").resolve())
+    assert run_plot(asdict(tasks["plot3"]))["status"] == "error"
