@@ -133,6 +133,14 @@ def epoch_from_cloud(
     progress(0.0, f"{name}: ground and DEM")
     model = terrain_model(p, params.terrain, progress.sub(0.0, 0.1))
     heights = model.dem.normalise(p)
+    no_ground = float(np.mean(heights < -0.5)) > 0.02
+    if no_ground:  # the "ground" found lies above part of the cloud: no ground
+        from ..terrain.dem import TerrainModel, lowest_points_dem
+
+        extent = float(max(np.ptp(p[:, 0]), np.ptp(p[:, 1])))
+        dem = lowest_points_dem(p, params.terrain.dem_resolution_m, window_m=2.0 * extent + 0.5 if extent <= 12.0 else 5.0)
+        model = TerrainModel(ground=np.zeros(len(p), dtype=bool), dem=dem)  # as the tree inventory does
+        heights = model.dem.normalise(p)
     timings["terrain_s"] = time.perf_counter() - t
     t = time.perf_counter()
     progress(0.1, f"{name}: stems")
@@ -194,15 +202,17 @@ def epoch_from_cloud(
         except ScanDataError:
             h = math.nan
         h_trust = "high"
-        if any(r.startswith(("top missing", "too few crown points", "too few points")) for r in reasons):
+        if no_ground:
             h_trust = "low"
+            reasons.append("no ground in the cloud: heights above the lowest points")
+        elif any(r.startswith(("top missing", "too few crown points", "too few points")) for r in reasons):
+            h_trust = "low"
+            reasons.append("top unseen")
         elif any("plot edge" in r for r in reasons):
             h_trust = "medium"
         out["h"][k] = h
         out["h_sd"][k] = HEIGHT_SIGMA_M[h_trust] if math.isfinite(h) else math.nan
         h_ok[k] = math.isfinite(h) and h_trust != "low"
-        if math.isfinite(h) and h_trust == "low":
-            reasons.append("top unseen")
         flags.append("; ".join(dict.fromkeys(reasons)))
     band_mask = (heights >= BAND_M[0]) & (heights <= BAND_M[1])
     band = p[band_mask]

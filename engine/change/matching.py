@@ -239,10 +239,10 @@ def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance:
         h_change = ha - hb
         h_sigma = math.hypot(float(before.height_sigma_m[b]), float(after.height_sigma_m[a]))
     else:
-        if not before.height_ok[b]:
-            flags.append("height not supported in BEFORE (top unseen)")
-        if not after.height_ok[a]:
-            flags.append("height not supported in AFTER (top unseen)")
+        for epoch, k, which in ((before, b, "BEFORE"), (after, a, "AFTER")):
+            if not epoch.height_ok[k]:
+                why = "no ground" if "no ground" in epoch.flags[k] else "top unseen" if math.isfinite(epoch.height_m[k]) else "no height"
+                flags.append(f"height not supported in {which} ({why})")
     return TreeChange(
         status="persisting", x=float(before.xy[b, 0]), y=float(before.xy[b, 1]),
         tree_id_before=int(before.ids[b]), tree_id_after=int(after.ids[a]),
