@@ -20,7 +20,6 @@ and ``report.html`` only.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path

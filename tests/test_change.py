@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from forestreg.engine.change import ChangeParams, EpochTrees, detect_change, epoch_from_table
+from forestreg.engine.change import EpochTrees, detect_change, epoch_from_table
 from forestreg.engine.simulate.resurvey import frame_matrix, grow_scene
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
