@@ -70,7 +70,8 @@ def params_toml(params: Params = ProductParams()) -> str:
             if isinstance(v, Params):
                 nested.append((f"{name}.{f.name}", v))
                 continue
-            note = " ".join(x for x in (f.metadata.get("unit", ""), f.metadata.get("help", "")) if x)
+            unit = f.metadata.get("unit", "")
+            note = " ".join(x for x in (unit if unit != "1" else "", f.metadata.get("help", "")) if x)
             paper = f.metadata.get("paper", "")
             if paper:
                 note += f" (paper: {paper})"

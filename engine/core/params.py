@@ -37,7 +37,12 @@ P = TypeVar("P", bound="Params")
 
 def param_field(default: Any, unit: str = "", lo: Optional[float] = None, hi: Optional[float] = None, help: str = "", paper: str = "") -> Any:
     """A dataclass field carrying ``unit``, ``range`` (lo, hi), ``help`` and ``paper`` metadata;
-    lists become tuples (parameters are immutable)."""
+    lists become tuples (parameters are immutable).
+
+    Every number has a unit: ``"m"``, ``"deg"``, a count's noun (``"points"``, ``"iterations"``)
+    or ``"1"`` for a dimensionless ratio, fraction, factor or seed; switches and names have none.
+    The documentation's parameter reference is generated from these, and its test fails for a
+    parameter without help or a number without a unit."""
     meta = {"unit": unit, "range": (lo, hi), "help": help, "paper": paper}
     if isinstance(default, (list, tuple)):
         return field(default=tuple(default), metadata=meta)

@@ -64,9 +64,9 @@ class CoregistrationParams(Params):
     icp_voxel_m: float = _p(0.1, "m", 0.005, 5.0, "ICP thinning voxel")
     #: ICP correspondence distance per stage (m), largest first
     icp_distances_m: tuple[float, ...] = _p((1.0, 0.5, 0.25, 0.12), "m", 0.001, 100.0, "ICP correspondence distance per stage, largest first")
-    icp_iterations: int = _p(40, "", 1, 10000, "ICP iterations per stage")
+    icp_iterations: int = _p(40, "iterations", 1, 10000, "ICP iterations per stage")
     #: fewer matched keypoints than this fail
-    min_matched: int = _p(3, "", 3, 100000, "fewest matched keypoints (the canopy surface check carries the rest of the evidence)")
+    min_matched: int = _p(3, "keypoints", 3, 100000, "fewest matched keypoints (the canopy surface check carries the rest of the evidence)")
     #: a lower matching percentage fails (%)
     min_matching_percentage: float = _p(15.0, "%", 0.0, 100.0, "lowest matching percentage")
     #: verification: the canopy surface models (highest point per cell of this size, m) of the
@@ -77,7 +77,7 @@ class CoregistrationParams(Params):
     #: a solution whose canopy surfaces correlate less than this fails (Pearson r)
     #: (after the coarse ICP: right solutions reach 0.8-0.95 on simulated and real plots, wrong
     #: ones and unrelated real plots 0.3-0.65)
-    min_surface_correlation: float = _p(0.65, "", -1.0, 1.0, "lowest canopy surface correlation (after the coarse ICP)")
+    min_surface_correlation: float = _p(0.65, "1", -1.0, 1.0, "lowest canopy surface correlation (after the coarse ICP)")
     #: solutions moving the ground-based keypoints by more than this on average (m) are distinct
     distinct_solution_m: float = _p(2.5, "m", 0.01, 1000.0, "distinct solution distance")
     #: fewer common cells than this make no evidence
@@ -88,13 +88,13 @@ class CoregistrationParams(Params):
     #: this many best distinct keypoint solutions (by canopy correlation) are refined by a coarse
     #: 6-DoF ICP and verified after it: a keypoint solution a few degrees off (tilt, drift, a
     #: shifted keypoint) is corrected before it is judged
-    candidates_verified: int = _p(6, "", 1, 100, "keypoint solutions refined by a coarse ICP and verified")
+    candidates_verified: int = _p(6, "solutions", 1, 100, "keypoint solutions refined by a coarse ICP and verified")
     #: the coarse ICP of the candidates: correspondence distances (m) and thinning voxel (m)
     coarse_icp_distances_m: tuple[float, ...] = _p((3.0, 1.5, 0.75), "m", 0.001, 100.0, "coarse ICP correspondence distance per stage, largest first")
     coarse_voxel_m: float = _p(0.3, "m", 0.005, 5.0, "coarse ICP thinning voxel")
     #: the best refined solution must correlate at least this much better (Pearson r) than the
     #: best distinct alternative
-    min_correlation_margin: float = _p(0.15, "", 0.0, 2.0, "least canopy correlation margin over the best distinct alternative")
+    min_correlation_margin: float = _p(0.15, "1", 0.0, 2.0, "least canopy correlation margin over the best distinct alternative")
     #: standard errors by a delete-one-quadrant jackknife of the fine ICP (4 more short ICP runs)
     jackknife: bool = _p(True, "", None, None, "standard errors by a jackknife over plot quadrants")
 

@@ -1,4 +1,4 @@
-"""Scenes and effects that make the simulator as hard as real clouds (issue 12, item 5).
+"""Scenes and effects that make the simulator as hard as real clouds.
 
 Scenes (flat ground of the ``planted_conifer`` preset, trees placed by hand):
 

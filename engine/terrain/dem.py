@@ -45,7 +45,7 @@ class TerrainParams(Params):
     #: points closer than this to the settled cloth are ground, metres
     class_threshold_m: float = _p(0.3, "m", 0.01, 5.0, "CSF ground distance")
     #: cloth stiffness: 1 steep terrain, 2 relief, 3 flat (CSF's ``rigidness``)
-    rigidness: int = _p(2, "", 1, 3, "CSF rigidness: 1 steep, 2 relief, 3 flat")
+    rigidness: int = _p(2, "1", 1, 3, "CSF rigidness: 1 steep, 2 relief, 3 flat")
     #: DEM cell size, metres (paper: 0.5 m)
     dem_resolution_m: float = _p(0.5, "m", 0.05, 20.0, "DEM cell size", "0.5 m")
     #: the cloud is thinned to one point per this voxel before CSF (speed), metres; 0 keeps all

@@ -42,9 +42,9 @@ class FormFactorBounds(Params):
     (a cone is 1/3, a paraboloid 1/2, a cylinder 1), with a margin; whole tree (stem and
     branches) up to 1.0. Beyond ``withhold_factor`` times the bounds the volume is withheld."""
 
-    stem: tuple[float, float] = param_field((0.25, 0.8), "", 0.0, 2.0, "Plausible stem form factors V_stem / (BA * H); outside: volume flagged")
-    total: tuple[float, float] = param_field((0.25, 1.1), "", 0.0, 3.0, "Plausible whole-tree form factors V / (BA * H); outside: volume flagged")
-    withhold_factor: float = param_field(2.0, "", 1.0, 100.0, "Beyond this factor outside the whole-tree bounds the volume is withheld")
+    stem: tuple[float, float] = param_field((0.25, 0.8), "1", 0.0, 2.0, "Plausible stem form factors V_stem / (BA * H); outside: volume flagged")
+    total: tuple[float, float] = param_field((0.25, 1.1), "1", 0.0, 3.0, "Plausible whole-tree form factors V / (BA * H); outside: volume flagged")
+    withhold_factor: float = param_field(2.0, "1", 1.0, 100.0, "Beyond this factor outside the whole-tree bounds the volume is withheld")
 
 
 def curve_dbh(curve: StemCurve, stem: Stem, breast_height_m: float) -> float:

@@ -70,7 +70,7 @@ class TreeParams(Params):
     canopy: CanopyParams = CanopyParams()
     form_factors: FormFactorBounds = FormFactorBounds()
     #: points with a wood probability at least this are wood (input of the cylinder model)
-    wood_threshold: float = _p(0.5, "", 0.0, 1.0, "wood probability threshold")
+    wood_threshold: float = _p(0.5, "1", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
     cylinder_models: bool = _p(True, "", None, None, "fit cylinder models")
 
