@@ -203,19 +203,26 @@ def test_command_refuses_bad_input(tmp_path, capsys):
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
 
 
+#: The three stems nearest the centre of each real plot (file coordinates), removed in AFTER.
+REAL_REMOVED = {
+    "pine_plot.laz": [[3.393, 3.540], [3.443, 5.719], [6.427, 4.713]],
+    "LPine1_demo.laz": [[7.183, 2.254], [8.880, 3.854], [5.907, 0.264]],
+}
+
+
 @functools.lru_cache(maxsize=None)
-def _real_pair(tmp: str):
-    """pine_plot.laz as BEFORE; AFTER: a copy without the 3 stems nearest the plot centre, 80 % of
+def _real_pair(tmp: str, name: str = "pine_plot.laz"):
+    """A real plot as BEFORE; AFTER: a copy without the 3 stems nearest the plot centre, 80 % of
     its points with 3 mm noise, turned by 73 deg and shifted by (1000.5, -2000.3, 12) m."""
     from forestreg.engine.core.scan import Scan
     from forestreg.engine.io import read_scan, write_scan
 
-    src = DATA / "pine_plot.laz"
+    src = DATA / name
     if not src.exists():
         pytest.skip(f"real data not found: {src}")
     scan = read_scan(src, with_intensity=False)
     p = scan.points + scan.origin_shift
-    stems = np.array([[3.393, 3.540], [3.443, 5.719], [6.427, 4.713]])  # the three stems nearest the centre
+    stems = np.array(REAL_REMOVED[name])
     keep = np.ones(len(p), dtype=bool)
     for s in stems:
         keep &= np.hypot(*(p[:, :2] - s).T) > 0.6
@@ -225,13 +232,16 @@ def _real_pair(tmp: str):
     q = q + rng.normal(0.0, 0.003, q.shape)
     frame = frame_matrix(73.0, (1000.5, -2000.3, 12.0))
     after = (q - frame[:3, 3]) @ frame[:3, :3]
-    path = Path(tmp) / "pine_after.laz"
+    path = Path(tmp) / f"after_{name}"
     write_scan(Scan.from_points(after, name="after"), path)
     return src, path, frame, stems
 
 
-def test_real_plot_modified_copy(tmp_path_factory):
-    src, after, frame, removed = _real_pair(str(tmp_path_factory.mktemp("real")))
+@pytest.mark.parametrize("name", ["pine_plot.laz", pytest.param("LPine1_demo.laz", marks=pytest.mark.slow)])
+def test_real_plot_modified_copy(tmp_path_factory, name):
+    """pine_plot has ground; LPine1 has almost none (heights and the height offset then come from
+    the lowest points and the stems' feet)."""
+    src, after, frame, removed = _real_pair(str(tmp_path_factory.mktemp("real")), name)
     out = tmp_path_factory.mktemp("out") / "change"
     assert _run("change", str(src), str(after), "--out", str(out)) == 0
     summary = json.loads((out / "result.json").read_text())

@@ -133,6 +133,11 @@ def detect_change(
     local, icp_figures = refine_on_stems(before, after, match, params)
     timings["refine_s"] = time.perf_counter() - t
     figures["refinement"] = icp_figures
+    figures["vertical_from"] = match.vertical_from
+    figures["vertical_spread_m"] = match.vertical_spread_m
+    if icp_figures.get("disagree"):
+        return _failed(f"the persisting stems and the stem slices/terrain disagree: {icp_figures['why']} "
+                       f"(more than {params.max_icp_correction_m:g} m)", figures, before, timings, sources)
     # the persisting stems after the final fit: residuals and uncertainty
     from ..tls.uncertainty import pair_uncertainty
 
@@ -146,8 +151,15 @@ def detect_change(
     unc = pair_uncertainty(before.xy[b_idx], moved[:, :2], centre, icp_std_m=icp_std if math.isfinite(icp_std) else 0.0)
     # the stem positions are measured, not exact: their scatter after the fit is the noise of one
     # stem; the stated value is what the persisting stems allow at the plot centre
-    uncertainty = {"translation_m": unc["translation_m"], "rotation_deg": unc["rotation_deg"],
-                   "horizontal_m": unc.get("horizontal_m"), "vertical_m": unc.get("vertical_m"),
+    vertical = float(unc.get("vertical_m") or 0.0)
+    if match.vertical_from != "terrain" or not icp_figures.get("used"):
+        # the height offset of the stems (feet or ground under them): their spread over sqrt(n),
+        # at least 2 cm for feet (a foot is a stem's lowest point, not a surface both surveys share)
+        floor = 0.02 if match.vertical_from != "terrain" else 0.0
+        vertical = max(vertical, match.vertical_spread_m / math.sqrt(n), floor)
+    translation = max(float(unc["translation_m"]), math.hypot(float(unc.get("horizontal_m") or 0.0), vertical))
+    uncertainty = {"translation_m": translation, "rotation_deg": unc["rotation_deg"],
+                   "horizontal_m": unc.get("horizontal_m"), "vertical_m": vertical, "vertical_from": match.vertical_from,
                    "heading_deg": unc.get("heading_deg"), "stems": n, "at": "plot centre (the persisting stems' centroid)",
                    "method": unc.get("method")}
     t = time.perf_counter()

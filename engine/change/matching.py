@@ -8,8 +8,9 @@ either survey gets a status:
   stem points (it was occluded or not measured there: flagged, its values there left empty);
 - ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
 - ``new``: a stem of the later survey whose place the earlier survey saw without a stem;
-- ``outside``: the other survey has no point near the tree (it did not cover the place; for a
-  table: the tree lies beyond the hull of its stems grown by 2 m): not compared.
+- ``outside``: the other survey did not cover the place: outside its footprint (a cloud's points,
+  holes such as a harvest gap filled; a table's stems, their hull grown by 2 m) or, for a tree of
+  the later survey, without any point of the earlier one near it: not compared.
 
 Values per tree: DBH and height in each survey with their 1-sigma, and their changes. The DBH
 change of a stem measured in both clouds is the median difference of the two stem curves between
@@ -130,12 +131,12 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     before_in_a = _apply(inv, before.breast_points())
 
     def indexes(epoch: EpochTrees):
-        if not epoch.has_points:  # a table: the plot is the hull of its stems (see _inside_hull)
+        if not epoch.has_points:  # a table: the plot is the hull of its stems (EpochTrees.covers)
             return None, None
         return cKDTree(epoch.band[:, :2]), cKDTree(np.vstack([epoch.band[:, :2], epoch.ground[:, :2]]))
 
     band_b, cover_b = indexes(before)
-    band_a, cover_a = indexes(after)
+    band_a, _ = indexes(after)
     out: list[TreeChange] = []
 
     def radius(epoch: EpochTrees, k: int) -> float:
@@ -149,7 +150,8 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     if len(rest_b):
         where = before_in_a[rest_b, :2]
         present = _stem_points_at(after, where, before_in_a[rest_b, 2] - 1.3, np.array([radius(before, k) for k in rest_b]), band_a)
-        seen = _covered(after, where, params.coverage_radius_m, cover_a) if after.has_points else np.array([_inside_hull(after.xy, w) for w in where])
+        # AFTER covered the place: inside its footprint (a harvest gap inside the plot is)
+        seen = after.covers(where)
         for j, k in enumerate(rest_b):
             base = _one_side(before, int(k), "before")
             if after.has_points and present[j] >= params.presence_points:
@@ -166,7 +168,11 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     if len(rest_a):
         where_b = after_in_b[rest_a, :2]
         present = _stem_points_at(before, where_b, after_in_b[rest_a, 2] - 1.3, np.array([radius(after, k) for k in rest_a]), band_b)
-        seen = _covered(before, where_b, params.coverage_radius_m, cover_b) if before.has_points else np.array([_inside_hull(before.xy, w) for w in where_b])
+        # BEFORE saw the place: inside its footprint and with points near it (never a false new tree
+        # where BEFORE was blind)
+        seen = before.covers(where_b)
+        if before.has_points:
+            seen &= _covered(before, where_b, params.coverage_radius_m, cover_b)
         for j, k in enumerate(rest_a):
             base = _one_side(after, int(k), "after", xy=where_b[j])
             if before.has_points and present[j] >= params.presence_points:
@@ -180,20 +186,6 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
                 out.append(TreeChange(status="new", **base, flag=_join(why, after.flags[k] and f"AFTER: {after.flags[k]}")))
     order = {s: i for i, s in enumerate(STATUSES)}
     return sorted(out, key=lambda t: (order[t.status], t.x, t.y))
-
-
-def _inside_hull(xy: np.ndarray, p: np.ndarray) -> bool:
-    """Whether ``p`` lies inside the convex hull of ``xy`` grown by 2 m (a table's plot)."""
-    from scipy.spatial import ConvexHull, QhullError
-
-    if len(xy) < 3:
-        return False
-    try:
-        hull = ConvexHull(xy)
-    except QhullError:
-        return False
-    eq = hull.equations  # a x + b y + c <= 0 inside
-    return bool(np.all(eq[:, :2] @ p + eq[:, 2] <= 2.0))
 
 
 def _join(*parts: str) -> str:

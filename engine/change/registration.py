@@ -8,7 +8,8 @@ Steps (pure functions; local frames of the two :class:`~.epoch.EpochTrees`, metr
    *distinct* alternative as evidence of ambiguity); matched pairs whose DBH change is not
    plausible growth are dropped, the 2-D rigid fit of the rest is iterated with every stem pair
    it brings within the match distance. Removed and new trees simply stay unmatched.
-2. the height offset from the ground under the persisting stems (median);
+2. the height offset from the ground under the persisting stems (median), or from the stems' feet
+   when a survey has no usable terrain (then no refinement: stem slices alone hold no height);
 3. :func:`refine_on_stems` -- point-to-plane ICP (:func:`~forestreg.engine.geometry.icp.icp`) on
    the persisting stems' slices (0.5-3 m) and the terrain, never the crowns; each later stem is
    first shrunk radially by its DBH growth so that a grown stem does not pull the fit;
@@ -52,6 +53,11 @@ class StemMatch:
     dbh_rejected: int
     rotation_deg: float
     coarse_evaluated: int = 0
+    #: where the height offset comes from: "terrain" (the ground under the stems in both surveys)
+    #: or "stem feet" (a survey without usable terrain), and the spread (1.4826 MAD, m) of the
+    #: per-stem offsets
+    vertical_from: str = "terrain"
+    vertical_spread_m: float = 0.0
     notes: tuple[str, ...] = field(default_factory=tuple)
 
     @property
@@ -102,14 +108,28 @@ def stem_pairs(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, max_di
     return np.column_stack([ur[r[keep]], uc[c[keep]]]).astype(np.int64)
 
 
+def _vertical(before: EpochTrees, after: EpochTrees, pairs: np.ndarray) -> tuple[float, str, float]:
+    """The height offset (before minus after, m) of the paired stems, where it comes from and the
+    spread of the per-stem offsets: the ground under the stems when both surveys have usable
+    terrain, else the stems' feet (the lowest points on them)."""
+    b, a = pairs[:, 0], pairs[:, 1]
+    if before.terrain and after.terrain:
+        dz, source = before.ground_z[b] - after.ground_z[a], "terrain"
+    else:
+        fb = before.foot_z if before.foot_z is not None else before.ground_z
+        fa = after.foot_z if after.foot_z is not None else after.ground_z
+        dz, source = fb[b] - fa[a], "stem feet"
+    med = float(np.median(dz))
+    return med, source, float(1.4826 * np.median(np.abs(dz - med)))
+
+
 def _fit(before: EpochTrees, after: EpochTrees, pairs: np.ndarray) -> np.ndarray:
-    """4x4 from the 2-D rigid fit of the paired stem positions and the median ground offset."""
+    """4x4 from the 2-D rigid fit of the paired stem positions and the height offset."""
     from ..tls.uncertainty import rigid_fit_2d
 
     b, a = pairs[:, 0], pairs[:, 1]
     angle, t = rigid_fit_2d(after.xy[a], before.xy[b])
-    dz = float(np.median(before.ground_z[b] - after.ground_z[a]))
-    return rigid_2d_matrix(angle, t, dz)
+    return rigid_2d_matrix(angle, t, _vertical(before, after, pairs)[0])
 
 
 def persisting_stems(before: EpochTrees, after: EpochTrees, params: ChangeParams = ChangeParams()) -> StemMatch:
@@ -141,8 +161,10 @@ def persisting_stems(before: EpochTrees, after: EpochTrees, params: ChangeParams
             matrix = _fit(before, after, pairs)
             if same:
                 break
+    _, source, spread = _vertical(before, after, pairs) if len(pairs) else (0.0, "terrain", 0.0)
     return StemMatch(matrix=matrix, pairs=pairs, matched_coarse=int(coarse.matched), second_matched=coarse.second_matched,
-                     dbh_rejected=rejected, rotation_deg=float(coarse.rotation_deg), coarse_evaluated=int(coarse.evaluated))
+                     dbh_rejected=rejected, rotation_deg=float(coarse.rotation_deg), coarse_evaluated=int(coarse.evaluated),
+                     vertical_from=source, vertical_spread_m=spread)
 
 
 def _stem_slices(epoch: EpochTrees, idx: np.ndarray, heights: tuple[float, float], margin_m: float,
@@ -187,8 +209,8 @@ def refine_on_stems(before: EpochTrees, after: EpochTrees, match: StemMatch, par
 
     Returns ``(matrix, figures)``: the refined 4x4 (after -> before) or the stem solution when the
     refinement cannot run (a survey without points, too few slice points) or moved it more than
-    ``max_icp_correction_m``; ``figures`` says which (``used``), and the ICP's fitness, rmse and
-    residual spread (``std_m``).
+    ``max_icp_correction_m`` (then ``figures["disagree"]``: the caller refuses the result);
+    ``figures`` says which (``used``), and the ICP's fitness, rmse and residual spread (``std_m``).
     """
     from ..geometry.icp import icp
 
@@ -212,15 +234,37 @@ def refine_on_stems(before: EpochTrees, after: EpochTrees, match: StemMatch, par
         d, _ = cKDTree(xy).query(ground[:, :2], k=1, distance_upper_bound=4.0)
         return ground[np.isfinite(d)]
 
+    if not (before.terrain and after.terrain):
+        # stem slices alone hold neither the height nor the tilt, and their height bands are
+        # measured from different references when a survey has no ground: the stems' solution
+        # (levelled surveys, z up) is kept
+        missing = " and ".join(e.name or "a survey" for e in (before, after) if not e.terrain)
+        return match.matrix, {"used": False, "why": f"no usable terrain in {missing}: the persisting stems alone"}
     ref_all = np.vstack([ref, near_stems(before.ground, before.xy[b_idx])])
     mov_all = np.vstack([mov, near_stems(after.ground, after.xy[a_idx])])
     result = icp(ref_all, mov_all, match.matrix, voxel_m=params.icp_voxel_m, max_distances_m=params.icp_max_distances_m,
                  iterations=params.icp_iterations, max_moving_points=40000)
+    matrix = result.matrix
+    probe = after.breast_points()[a_idx]
     figures = {"fitness": result.fitness, "rmse_m": result.rmse_m, "std_m": result.std_m,
                "stem_points": int(len(mov)), "ground_points": int(len(mov_all) - len(mov))}
-    probe = after.breast_points()[a_idx]
-    shift = float(np.max(np.linalg.norm(_apply(result.matrix, probe) - _apply(match.matrix, probe), axis=1)))
+    shift = float(np.max(np.linalg.norm(_apply(matrix, probe) - _apply(match.matrix, probe), axis=1)))
     figures["correction_m"] = shift
-    if not np.isfinite(result.matrix).all() or shift > params.max_icp_correction_m:
-        return match.matrix, {**figures, "used": False, "why": f"the refinement moved the stems by {shift:.2f} m: kept the stem solution"}
-    return result.matrix, {**figures, "used": True}
+    # the persisting stems must still land on their partners: the refinement may not pull them
+    # apart (a slide along the terrain, slices of other parts)
+    before_rms = _stem_rms(before, after, match.pairs, match.matrix)
+    after_rms = _stem_rms(before, after, match.pairs, matrix)
+    figures["stem_rms_before_m"], figures["stem_rms_after_m"] = before_rms, after_rms
+    if not np.isfinite(matrix).all() or shift > params.max_icp_correction_m:
+        return match.matrix, {**figures, "used": False, "disagree": True,
+                              "why": f"the stem slices and terrain move the stem solution by {shift:.2f} m"}
+    if after_rms > max(2.0 * before_rms, 0.02):
+        return match.matrix, {**figures, "used": False, "disagree": True,
+                              "why": f"the stem slices and terrain pull the persisting stems apart (rms {100 * before_rms:.1f} -> {100 * after_rms:.1f} cm)"}
+    return matrix, {**figures, "used": True}
+
+
+def _stem_rms(before: EpochTrees, after: EpochTrees, pairs: np.ndarray, matrix: np.ndarray) -> float:
+    """RMS horizontal distance (m) of the paired stems once AFTER is moved by ``matrix``."""
+    moved = _apply(matrix, after.breast_points()[pairs[:, 1]])[:, :2]
+    return float(np.sqrt(np.mean(np.sum((moved - before.xy[pairs[:, 0]]) ** 2, axis=1))))
