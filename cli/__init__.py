@@ -43,7 +43,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
-    from . import change, coreg, misc, plot, register, service, trees
+    from . import change, coreg, misc, plot, register, service, trees, warmup
 
     parser = _Parser(prog="forestreg", description="Marker-free registration of forest laser scans, co-registration with UAV LiDAR, and tree measurements.")
     parser.add_argument("--version", action="version", version=f"forestreg {__version__}")
@@ -56,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_parsers(sub)
     misc.add_parsers(sub)
     service.add_parsers(sub)
+    warmup.add_parser(sub)
     for name, p in sub.choices.items():
         if name not in ("gui", "project"):
             add_global_flags(p)

@@ -17,6 +17,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--transform", help="move the cloud first (transform.txt of `coregister`: into the UAV/field frame)")
     p.add_argument("--field", help="field records CSV: evaluate the trees against them into OUT/evaluation")
     p.add_argument("--no-cylinders", action="store_true", help="skip the cylinder models (faster; no volume)")
+    p.add_argument("--single-tree", nargs="?", const="yes", choices=("auto", "yes", "no"),
+                   help="the cloud is one tree (TreeQSM/AdTree-style, little or no ground): one tree, its height the cloud's "
+                        "top above its base; 'no' for a plot; default: decided from the cloud")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     add_units_params(p, "units of the input coordinates", cmd_trees)
 
@@ -32,7 +35,10 @@ def add_parsers(sub) -> None:
 
 
 def cmd_trees(args: argparse.Namespace) -> int:
-    return run_trees(args.cloud, args.out, transform=args.transform, field=args.field, units=args.units, params=product_params(args).trees,
+    params = product_params(args).trees
+    if getattr(args, "single_tree", None):
+        params = params.replace(single_tree=params.single_tree.replace(mode=args.single_tree))
+    return run_trees(args.cloud, args.out, transform=args.transform, field=args.field, units=args.units, params=params,
                      cylinders=not args.no_cylinders, report=not args.no_report, reporter=args.reporter)
 
 
@@ -76,6 +82,8 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
     for step, seconds in inventory.timings.items():  # the steps run, in order
         say(f"  {step.removesuffix('_s')}: {seconds:.1f} s", quiet)
     unit_note = "" if units == "m" else f" (positions in {units}, sizes in metres)"
+    if inventory.method == "single":
+        say(f"  single-tree cloud: {inventory.single_tree_reason}", quiet)
     say(f"{inventory.summary()}{unit_note} -> {shown(out) / 'trees.csv'}", quiet)
     if report and (out / "report.html").exists():
         print(f"report: {shown(out) / 'report.html'}")

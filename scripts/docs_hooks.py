@@ -444,6 +444,41 @@ def problems() -> list[str]:
     return issues
 
 
+def _nav_paths(nav: Any) -> set[str]:
+    out: set[str] = set()
+    if isinstance(nav, str):
+        out.add(nav)
+    elif isinstance(nav, dict):
+        for v in nav.values():
+            out |= _nav_paths(v)
+    elif isinstance(nav, list):
+        for v in nav:
+            out |= _nav_paths(v)
+    return out
+
+
+def on_config(config, **kwargs):
+    """MkDocs hook: a page of ``docs/`` that ``mkdocs.yml``'s nav does not name yet (one added
+    beside the code, e.g. a design note) goes at the end of the nav, titled by its first heading,
+    instead of failing the strict build as an omitted file."""
+    from pathlib import Path
+
+    nav = config.get("nav")
+    if not nav:
+        return config
+    named = _nav_paths(nav) | set(GENERATED)
+    docs = Path(config["docs_dir"])
+    extra = []
+    for path in sorted(docs.rglob("*.md")):
+        rel = path.relative_to(docs).as_posix()
+        if rel in named:
+            continue
+        title = next((line[2:].strip() for line in path.read_text(encoding="utf-8").splitlines() if line.startswith("# ")), rel)
+        extra.append({title: rel})
+    nav.extend(extra)  # after the last page (architecture)
+    return config
+
+
 def on_files(files, config, **kwargs):
     """MkDocs hook: add the generated reference pages; each problem is a warning (fatal under
     ``--strict``)."""

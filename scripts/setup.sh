@@ -70,6 +70,9 @@ fi
 # install leaves that to the first import, and where PYTHONDONTWRITEBYTECODE is set (CI machines,
 # containers) no import ever writes it, so every command compiled each of its modules anew (~0.07 s)
 .venv/bin/python -m compileall -q -j 0 __init__.py client.py cli engine plugin service ui >/dev/null
+# the numerical kernels compiled now, into the per-version cache (~45 s on 2 cores, once): otherwise
+# the first command after an install compiles those it needs
+.venv/bin/forestreg warmup
 .venv/bin/python -m pip list --format=freeze 2>/dev/null | grep -iE '^(numpy|scipy|open3d|hdbscan|scikit-learn|laspy|matplotlib)==' | tr '\n' ' ' | sed 's/^/setup: versions: /' >&2 || true
 echo >&2
 echo "setup: ready (.venv/bin/forestreg)" >&2
