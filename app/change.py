@@ -23,58 +23,30 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Optional
+from typing import ClassVar
 
 import numpy as np
 
-from ..engine.core.outcome import Outcome
+from .common import UNITS, RunOutcome, with_cancel
 
-__all__ = ["ChangeOutcome", "detect_change_files", "read_epoch", "UNITS"]
-
-#: Metres per unit of the files' coordinates (the ``--units`` choices).
-UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048, "usft": 1200.0 / 3937.0}
+__all__ = ["ChangeOutcome", "detect_change_files", "read_epoch"]
 
 
 @dataclass(frozen=True, eq=False)
-class ChangeOutcome(Outcome):
+class ChangeOutcome(RunOutcome):
     """The outcome of ``change``: ``status``, ``reason``, ``matrix`` (4x4, file coordinates in the
     files' unit, or None), ``timings``, ``out`` (the folder written, or None), ``summary`` (the
     ``result.json``), ``result`` (the engine's :class:`~forestreg.engine.change.ChangeResult`),
     ``rows`` (the ``tree_changes.csv`` rows). Falsy when not ok."""
 
-    status: str
-    reason: str = ""
-    matrix: Optional[np.ndarray] = None
-    timings: dict = field(default_factory=dict)
-    out: Optional[Path] = None
-    summary: dict = field(default_factory=dict)
-    result: Any = None
     rows: list = field(default_factory=list)
 
     method: ClassVar[str] = "re-survey (persisting stems from any heading + ICP on stem slices and terrain)"
     convention: ClassVar[str] = "p_before = matrix @ p_after (file coordinates of BEFORE and AFTER)"
 
-    def evidence(self) -> dict[str, Any]:
-        return dict(self.summary.get("evidence") or {})
-
-    def to_dict(self) -> dict[str, Any]:
-        return dict(self.summary) if self.summary else self.outcome_dict()
-
     def line(self) -> str:
         """One line for a terminal."""
         return self.result.summary() if self.result is not None else f"{self.status}: {self.reason}"
-
-
-def _with_cancel(progress, cancel):
-    if cancel is None:
-        return progress
-
-    def report(fraction: float, message: str = "") -> None:
-        cancel.raise_if_cancelled()
-        if progress is not None:
-            progress(fraction, message)
-
-    return report
 
 
 def _input_kind(path: Path) -> str:
@@ -167,7 +139,7 @@ def read_epoch(path, role: str, *, units: str = "m", tree_params=None, progress=
             return _read_table(cloud, role, scale), note
     else:
         cloud, note = read_scan(p, unit_scale=scale, with_intensity=False), f"cloud {p.name}"
-    epoch = epoch_from_cloud(cloud.points, tree_params, _with_cancel(progress, cancel), origin_shift=cloud.origin_shift, name=role)
+    epoch = epoch_from_cloud(cloud.points, tree_params, with_cancel(progress, cancel), origin_shift=cloud.origin_shift, name=role)
     return epoch, f"{note}, {len(cloud.points):,} points"
 
 
@@ -199,7 +171,7 @@ def detect_change_files(
     kinds = (_input_kind(b_path), _input_kind(a_path))  # both checked before any work
     if out is not None:
         out = check_output_folder(out, "change", inputs=[b_path, a_path])
-    prog = as_progress(_with_cancel(progress, cancel))
+    prog = as_progress(with_cancel(progress, cancel))
     t0 = time.perf_counter()
     b_epoch, b_note = read_epoch(b_path, "BEFORE", units=units, tree_params=tree_params, progress=prog.sub(0.0, 0.45))
     a_epoch, a_note = read_epoch(a_path, "AFTER", units=units, tree_params=tree_params, progress=prog.sub(0.45, 0.9))

@@ -28,8 +28,7 @@ from PySide6.QtWidgets import (
 )
 
 from ..engine.core.errors import ForestregError
-from ..engine.tls.plot import ScanCache
-from ..engine.tls.project import Project
+from ..app.plot import Project, ScanCache
 from .icons import icon
 from .file_actions import FileActionsMixin
 from .log_pane import LogPane
@@ -532,13 +531,13 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self._start_view_task("top view", self._top_task, self._top_built)
 
     def _top_task(self) -> TaskWorker:
-        from ..engine.tls.views import compute_top_view
+        from ..engine.report.views import compute_top_view
 
         project, scans = self.project, self.scans
         return TaskWorker(lambda progress, cancel: compute_top_view(project, scans), name="top view")
 
     def _top_built(self, view: Any) -> None:
-        from ..engine.tls.views import scan_colours
+        from ..engine.report.views import scan_colours
         from .top_view import SurveyOverlay
 
         self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: trunk shadows, matches and pose uncertainty",

@@ -187,13 +187,10 @@ class SystemBMixin:
     def evaluate_field(self, field_csv: str | Path, runs: dict[str, str | Path]) -> bool:
         """Compare tree tables (``runs``: name -> trees.csv or a trees folder) with a field CSV
         (the engine's matching and figures) and show them side by side on the Field data tab."""
-        from ..engine.trees.evaluate import evaluate
+        from ..app.evaluation import evaluate_files
 
-        results = {}
         try:
-            for name, path in runs.items():
-                p = Path(path)
-                results[name] = evaluate(p / "trees.csv" if p.is_dir() else p, field_csv)
+            results = evaluate_files(runs, field_csv)
         except ForestregError as exc:
             self.show_error("Cannot evaluate", str(exc))
             return False
