@@ -199,6 +199,8 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
                                 "Show the trees measured by 'forestreg trees --out DIR' (map, table, each tree in 3D)")
         self.act_open_coreg = a("Open &co-registration result\u2026", self._ask_open_coregistration, None,
                                 "Show a ground-based / UAV co-registration made by 'forestreg coregister --out DIR'")
+        self.act_open_change = a("Open re-&survey result\u2026", self._ask_open_change, None,
+                                 "Show two surveys of one plot compared by 'forestreg change BEFORE AFTER --out DIR'")
         self.act_evaluate = a("&Evaluate against field data\u2026", self._ask_evaluate, None,
                               "Compare tree tables (e.g. ground-only and fused) with field records: R2, RMSE, rRMSE")
         self.act_quit = a("&Quit", self.close, QKeySequence.StandardKey.Quit, "Close forestreg")
@@ -232,6 +234,7 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self.recent_menu = m.addMenu("Open &recent")
         m.addAction(self.act_open_trees)
         m.addAction(self.act_open_coreg)
+        m.addAction(self.act_open_change)
         m.addAction(self.act_evaluate)
         m.addSeparator()
         m.addAction(self.act_save)
