@@ -1,5 +1,5 @@
-"""Benchmark: peak memory of System B's commands against issue 14's budget, each command a child
-process (``forestreg coregister``, ``forestreg fuse``, ``forestreg trees``).
+"""Benchmark: peak memory of System B's commands against their memory budget, each command a
+child process (``forestreg coregister``, ``forestreg fuse``, ``forestreg trees``).
 
 The budget of a command is 3x its raw point arrays (float64 x, y, z of every input point, 24 bytes
 a point) plus 300 MB. The cases are the other System B benchmarks' (cached under ``bench_out/``,

@@ -1,1 +1,1 @@
-"""forestreg.plugin: thin host adapters (QGIS, CloudCompare) that run the CLI (issue 4)."""
+"""forestreg.plugin: thin host adapters (QGIS, CloudCompare) that run the CLI."""

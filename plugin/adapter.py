@@ -20,6 +20,7 @@ import json
 import os
 import shlex
 import shutil
+import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -185,12 +186,68 @@ def _subprocess_env(command: Sequence[str]) -> dict[str, str]:
     return env
 
 
+#: What the engine imports (``forestreg serve`` and its jobs): a Python needs these before it can
+#: run ``python -m forestreg.cli``. (The hosts themselves need only the standard library.)
+ENGINE_MODULES = ("numpy", "scipy", "open3d", "laspy", "numba", "hdbscan", "fastapi", "uvicorn")
+
+
+def _version() -> str:
+    try:
+        from .. import __version__
+
+        return __version__
+    except ImportError:  # pragma: no cover - the adapter outside its package
+        return "VERSION"
+
+
+def engine_problem(cli: Union[None, str, Sequence[str]] = None) -> Optional[str]:
+    """``None`` when the command that starts the service can run forestreg's engine, else one
+    message naming what is missing and the two ways to install it.
+
+    A ``forestreg`` command (on PATH, ``FORESTREG_CLI`` or the host's setting) is a Python
+    environment of its own, trusted here (if it is broken the service's start says why). When
+    the command is ``python -m forestreg.cli`` (no ``forestreg`` command found), that Python
+    must have the engine's modules (:data:`ENGINE_MODULES`); they are looked up without being
+    imported."""
+    command = cli_command(cli)
+    if "forestreg.cli" not in command:
+        return None
+    python = command[0]
+    code = f"import importlib.util as u; print(' '.join(m for m in {ENGINE_MODULES!r} if u.find_spec(m) is None))"
+    try:
+        run = subprocess.run([python, "-c", code], capture_output=True, text=True, timeout=60, env=_subprocess_env(command))
+        missing = run.stdout.split() if run.returncode == 0 else ["(the interpreter failed: " + (run.stderr.strip().splitlines() or ["?"])[-1] + ")"]
+    except (OSError, subprocess.SubprocessError) as exc:
+        missing = [f"(the interpreter cannot be run: {exc})"]
+    if not missing:
+        return None
+    wheel = f"forestreg-{_version()}-py3-none-any.whl"
+    return (
+        f"forestreg cannot run its engine: no 'forestreg' command was found, and the Python at {python} "
+        f"lacks {', '.join(missing)}. Install forestreg in one of two ways: "
+        f"(1) in its own environment, 'python3 -m venv ~/forestreg-env' then "
+        f"'~/forestreg-env/bin/pip install {wheel}', and set the environment variable {CLI_ENV} "
+        f"(or the algorithm's 'forestreg command') to ~/forestreg-env/bin/forestreg; or "
+        f"(2) into this Python: '{python} -m pip install --user {wheel}'. "
+        f"Then restart QGIS (or CloudCompare). See the documentation's QGIS page."
+    )
+
+
 def service_client(cli: Union[None, str, Sequence[str]] = None, state_dir: Optional[Union[str, Path]] = None):
     """A client of the forestreg job service, started with ``cli serve`` when none runs (its
-    state folder: ``state_dir``, else ``$FORESTREG_SERVICE_DIR`` or the user's data directory)."""
+    state folder: ``state_dir``, else ``$FORESTREG_SERVICE_DIR`` or the user's data directory).
+    When none runs and the command cannot run the engine (:func:`engine_problem`), an
+    :class:`AdapterError` says what is missing and how to install it."""
     from ..client import ServiceError, connect
 
     command = cli_command(cli)
+    try:
+        return connect(state_dir, start=False)
+    except ServiceError:
+        pass
+    problem = engine_problem(command)
+    if problem:
+        raise AdapterError(problem)
     try:
         return connect(state_dir, command=command, env=_subprocess_env(command))
     except ServiceError as exc:

@@ -6,7 +6,9 @@ in the folder's optional ``centre.txt``, else the plot command's default (the fi
 order), and a ``targets.csv`` in the folder is passed as ``--targets``. With ``--command trees`` or
 ``coregister`` a manifest CSV names each plot's inputs (``plot,cloud[,transform,field]`` or
 ``plot,ground,uav``; relative paths are looked up in ``PLOTS_DIR/<plot>/``, then beside the
-manifest); ``trees`` also works without a manifest when each plot folder holds one cloud.
+manifest); ``trees`` also works without a manifest when each plot folder holds one cloud. With
+``--command change`` each plot folder holds two surveys named ``before.*`` and ``after.*`` (clouds,
+project files or trees tables), or a manifest names them (``plot,before,after``).
 
 Each plot is one Dask task that runs the CLI in its own process (so a crash or a memory blow-up of
 one plot costs only that plot), on a ``LocalCluster`` (``--workers N`` processes, one thread each)
@@ -37,7 +39,7 @@ from typing import Callable, Optional, Sequence
 
 log = logging.getLogger("forestreg.batch")
 
-COMMANDS = ("plot", "trees", "coregister")
+COMMANDS = ("plot", "trees", "coregister", "change")
 SUMMARY_FIELDS = ["plot", "status", "scans", "registered", "seconds", "reason", "command", "exit_code", "trees", "worker", "resumed"]
 PROCESSED = ("ok", "failed")
 _NOT_SCANS = {"centre.txt", "center.txt", "targets.csv", "manifest.csv", "batch.json"}
@@ -166,6 +168,19 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
             for key, option in (("transform", "--transform"), ("field", "--field")):
                 if row.get(key):
                     task.args += [option, _resolve(row[key], plot_dir, manifest_dir)]
+        elif command == "change":
+            row = (rows or {}).get(name, {})
+            pair = []
+            for role in ("before", "after"):
+                if row.get(role):
+                    pair.append(_resolve(row[role], plot_dir, manifest_dir))
+                    continue
+                found = sorted(p for p in plot_dir.iterdir() if p.stem.lower() == role and not p.name.startswith(".")) if plot_dir.is_dir() else []
+                pair.append(str(found[0].resolve()) if len(found) == 1 else "")
+                if len(found) != 1 and not task.problem:
+                    task.problem = f"{len(found)} files named {role}.* in {plot_dir}: name the surveys in a manifest (plot,before,after)"
+            task.inputs = 2
+            task.args = ["change", *pair, "--out", target]
         else:
             row = rows[name]
             if not row.get("ground") or not row.get("uav"):
@@ -233,10 +248,12 @@ def run_plot(task: dict) -> dict:
             row["registered"] = sum(1 for s in scans.values() if s.get("matrix") is not None)
             reasons = [f"{n}: {s.get('reason') or 'not registered'}" for n, s in scans.items() if s.get("matrix") is None]
             row["reason"] = "; ".join(reasons)
-        elif t.command == "coregister":
+        elif t.command in ("coregister", "change"):
             result = _read_json(out / "result.json") or {}
             row["registered"] = 1 if result.get("status") == "ok" else 0
             row["reason"] = result.get("reason") or ""
+            if t.command == "change" and isinstance(result.get("trees"), dict):
+                row["trees"] = sum(int(v) for v in result["trees"].values())
         else:
             try:
                 with (out / "trees.csv").open(newline="", encoding="utf-8") as fh:

@@ -1,4 +1,4 @@
-"""Batches of plots on Dask (issue 15): three small simulated plots on a local cluster with two
+"""Batches of plots on Dask: three small simulated plots on a local cluster with two
 workers (one plot without trees fails, the others register against the simulator's truth), the
 summary and overview, and a rerun that skips them; plot discovery and manifests."""
 

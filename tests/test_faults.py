@@ -247,7 +247,7 @@ def test_project_link_and_damaged_project_files_exit_2(tiny, tmp_path, capsys):
 
 
 def test_georeferenced_scan_without_its_position_and_a_cm_file_are_refused_before_the_work(tiny, tmp_path, capsys):
-    """A georeferenced scan without a position has it found from the data (issue 13); a cloud
+    """A georeferenced scan without a position has it found from the data; a cloud
     that shows no single scanner (two scans merged) is refused with the hint, like a cm file."""
     from forestreg.engine.core.scan import Scan
 

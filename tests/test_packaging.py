@@ -42,3 +42,69 @@ def test_qgis_metadata_has_the_required_fields():
     meta.read(ROOT / "metadata.txt")
     for key in ("name", "qgisMinimumVersion", "description", "version", "author", "email", "about"):
         assert meta.get("general", key).strip(), key
+
+
+def _version() -> str:
+    import forestreg
+
+    return forestreg.__version__
+
+
+def test_versions_agree():
+    """One version: the package's, pyproject's (dynamic, read from it), QGIS's metadata.txt and
+    the newest entry of CHANGELOG.md."""
+    meta = configparser.ConfigParser()
+    meta.read(ROOT / "metadata.txt")
+    assert meta.get("general", "version") == _version()
+    assert 'dynamic = ["version"]' in (ROOT / "pyproject.toml").read_text()
+    newest = re.search(r"^## (\S+)", (ROOT / "CHANGELOG.md").read_text(), re.M)
+    assert newest and newest.group(1) == _version()
+
+
+def test_every_package_folder_is_packaged():
+    """Every folder of the package that holds modules is in pyproject's ``packages`` (else the
+    wheel and the QGIS zip would leave it out)."""
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover
+        import tomli as tomllib
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    skip = {"tests", "benchmarks", "scripts", "docs", "build", "dist", "site", ".venv", ".git", "demo_out", "bench_out"}
+    found = set()
+    for init in ROOT.rglob("__init__.py"):
+        rel = init.parent.relative_to(ROOT)
+        if rel.parts and (rel.parts[0] in skip or rel.parts[0].startswith(".") or rel.parts[0].endswith(".egg-info")):
+            continue
+        found.add(".".join(("forestreg",) + rel.parts))
+    assert found - listed == set()
+
+
+def test_qgis_zip_from_metadata(tmp_path):
+    import zipfile
+
+    run = subprocess.run([sys.executable, str(ROOT / "scripts" / "package_qgis.py"), "--out", str(tmp_path)], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    path = tmp_path / f"forestreg-qgis-{_version()}.zip"
+    names = zipfile.ZipFile(path).namelist()
+    assert {n.split("/")[0] for n in names} == {"forestreg"}
+    for needed in ("forestreg/metadata.txt", "forestreg/__init__.py", "forestreg/plugin/qgis/host.py", "forestreg/plugin/qgis/provider.py",
+                   "forestreg/plugin/adapter.py", "forestreg/client.py", "forestreg/cli/__init__.py", "forestreg/engine/tls/pair.py",
+                   "forestreg/resources/icons/forestreg.svg"):
+        assert needed in names, needed
+    assert not [n for n in names if n.endswith((".pyc", ".pyo")) or "/tests/" in n or "__pycache__" in n]
+    meta = configparser.ConfigParser()
+    meta.read_string(zipfile.ZipFile(path).read("forestreg/metadata.txt").decode())
+    assert meta.get("general", "version") == _version()
+    assert "def classFactory" in zipfile.ZipFile(path).read("forestreg/__init__.py").decode()
+
+
+def test_qgis_zip_refuses_a_metadata_version_that_is_not_the_package_version(tmp_path):
+    import shutil
+
+    copy = tmp_path / "src"
+    shutil.copytree(ROOT, copy, ignore=shutil.ignore_patterns(".git", ".venv", "tests", "benchmarks", "docs", "__pycache__", "build", "dist", "site"))
+    text = (copy / "metadata.txt").read_text().replace(f"version={_version()}", "version=0.0.1")
+    (copy / "metadata.txt").write_text(text)
+    run = subprocess.run([sys.executable, str(copy / "scripts" / "package_qgis.py"), "--out", str(tmp_path / "out")], capture_output=True, text=True)
+    assert run.returncode == 2 and run.stderr.count("\n") == 1 and "version 0.0.1" in run.stderr
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())

@@ -1,4 +1,4 @@
-"""The plugin hosts (issue 4, item 6; issue 15: thin clients of the job service): the host-free
+"""The plugin hosts (thin clients of the job service): the host-free
 adapter run for real on a simulated pair through the service (started on first use, in a
 temporary state folder), the QGIS provider headless (where ``qgis.core`` imports), and
 CloudCompare's ``-APPLY_TRANS`` on our ``transform.txt`` (where the ``CloudCompare`` binary is
@@ -428,3 +428,112 @@ def test_qgis_provider_headless(pair_run, scans, tmp_path):
 
     assert report["menu"] == [["&forestreg", "forestreg: register scans…"], ["removed", "&forestreg"]]
     assert report["provider_registered"] and not report["provider_after_unload"]
+
+
+# ----------------------------------------------------------------------------- a missing engine
+
+
+def test_engine_problem_names_the_missing_modules_and_how_to_install(monkeypatch, tmp_path):
+    command = [sys.executable, "-m", "forestreg.cli"]
+    assert adapter.engine_problem(command) is None  # this Python has the engine
+    monkeypatch.setattr(adapter, "ENGINE_MODULES", adapter.ENGINE_MODULES + ("forestreg_no_such_module",))
+    problem = adapter.engine_problem(command)
+    assert problem is not None and "lacks forestreg_no_such_module" in problem
+    assert "pip install" in problem and "forestreg-env" in problem and adapter.CLI_ENV in problem
+    script = tmp_path / "forestreg"  # a forestreg command of its own environment: trusted
+    script.write_text("#!/bin/sh\n")
+    assert adapter.engine_problem(str(script)) is None
+    # no service runs for this state folder: the job stops with the same message before any start
+    with pytest.raises(adapter.AdapterError, match="forestreg_no_such_module"):
+        adapter.service_client(command, state_dir=tmp_path / "state")
+    assert not (tmp_path / "state" / "server.json").exists()
+
+
+QGIS_MISSING_SCRIPT = r"""
+import json, os, sys
+from qgis.core import QgsApplication
+app = QgsApplication([], False)
+app.initQgis()
+import forestreg
+from forestreg.plugin import adapter
+adapter.ENGINE_MODULES = adapter.ENGINE_MODULES + ("forestreg_no_such_module",)
+messages = []
+class Bar:
+    def pushMessage(self, title, text, level, duration): messages.append([title, text])
+class Iface:
+    def mainWindow(self): return None
+    def messageBar(self): return Bar()
+    def addPluginToMenu(self, name, action): pass
+    def removePluginMenu(self, name, action): pass
+report = {}
+os.environ["FORESTREG_CLI"] = sys.executable + " -m forestreg.cli"
+plugin = forestreg.classFactory(Iface()); plugin.initGui(); plugin.unload()
+report["missing"] = messages[:]
+del messages[:]
+os.environ["FORESTREG_CLI"] = sys.argv[1]
+plugin = forestreg.classFactory(Iface()); plugin.initGui(); plugin.unload()
+report["installed"] = messages[:]
+print("REPORT" + json.dumps(report))
+app.exitQgis()
+"""
+
+
+def test_qgis_plugin_says_when_the_engine_is_missing(tmp_path):
+    exe = _python_with_qgis()
+    if exe is None:
+        pytest.skip("qgis.core does not import here (Debian: apt-get install python3-qgis, for /usr/bin/python3)")
+    plugins = tmp_path / "plugins"
+    plugins.mkdir()
+    (plugins / "forestreg").symlink_to(ROOT, target_is_directory=True)
+    command = tmp_path / "forestreg"
+    command.write_text("#!/bin/sh\n")
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "PYTHONPATH": str(plugins), "HOME": str(tmp_path)}
+    run = subprocess.run([exe, "-c", QGIS_MISSING_SCRIPT, str(command)], capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    lines = [l for l in run.stdout.splitlines() if l.startswith("REPORT")]
+    assert run.returncode == 0 and lines, run.stdout[-3000:] + run.stderr[-3000:]
+    report = json.loads(lines[-1][len("REPORT"):])
+    assert len(report["missing"]) == 1 and report["missing"][0][0] == "forestreg"
+    assert "forestreg_no_such_module" in report["missing"][0][1] and "pip install" in report["missing"][0][1]
+    assert report["installed"] == []
+
+
+QGIS_ZIP_SCRIPT = r"""
+import json, sys
+from qgis.core import QgsApplication
+app = QgsApplication([], False)
+app.initQgis()
+import forestreg
+class Iface:
+    def mainWindow(self): return None
+    def messageBar(self): return None
+    def addPluginToMenu(self, name, action): pass
+    def removePluginMenu(self, name, action): pass
+plugin = forestreg.classFactory(Iface())
+plugin.initProcessing()
+provider = QgsApplication.processingRegistry().providerById("forestreg")
+print("REPORT" + json.dumps({"file": forestreg.__file__, "version": forestreg.__version__,
+                             "algorithms": sorted(a.id() for a in provider.algorithms())}))
+plugin.unload()
+app.exitQgis()
+"""
+
+
+def test_qgis_loads_the_packaged_zip(tmp_path):
+    """The zip of scripts/package_qgis.py, unpacked into a plugins folder as QGIS's plugin
+    manager does, loads in QGIS with its Processing provider."""
+    import zipfile
+
+    exe = _python_with_qgis()
+    if exe is None:
+        pytest.skip("qgis.core does not import here (Debian: apt-get install python3-qgis, for /usr/bin/python3)")
+    run = subprocess.run([sys.executable, str(ROOT / "scripts" / "package_qgis.py"), "--out", str(tmp_path)], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    plugins = tmp_path / "plugins"
+    zipfile.ZipFile(next(tmp_path.glob("forestreg-qgis-*.zip"))).extractall(plugins)
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "PYTHONPATH": str(plugins), "HOME": str(tmp_path)}
+    run = subprocess.run([exe, "-c", QGIS_ZIP_SCRIPT], capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    lines = [l for l in run.stdout.splitlines() if l.startswith("REPORT")]
+    assert run.returncode == 0 and lines, run.stdout[-3000:] + run.stderr[-3000:]
+    report = json.loads(lines[-1][len("REPORT"):])
+    assert Path(report["file"]).resolve().is_relative_to(plugins.resolve())
+    assert report["algorithms"] == ["forestreg:register_pair", "forestreg:register_plot"]

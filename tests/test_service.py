@@ -1,4 +1,4 @@
-"""The job service (issue 15): ``forestreg serve`` on a random loopback port with its own state
+"""The job service: ``forestreg serve`` on a random loopback port with its own state
 folder; health, 401, a register job with progress to the simulator's truth, cancel, restart after
 ``kill -9``, concurrent jobs, and the Python client. Every wait is bounded in time."""
 

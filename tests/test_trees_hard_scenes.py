@@ -1,4 +1,4 @@
-"""Trees on the hard simulated scenes (issue 12, item 5): a buttressed giant and a thin stem,
+"""Trees on the hard simulated scenes: a buttressed giant and a thin stem,
 suppressed trees under dominant crowns, a mobile (MLS) look with ghosted double shells, and UAV
 (ULS) clouds leaf-on and leaf-off with few stem returns. Figures against the simulator's truth."""
 

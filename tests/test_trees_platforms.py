@@ -1,4 +1,4 @@
-"""Trees on real clouds of every platform (issue 12): stems of a real mobile (MLS) plot against the
+"""Trees on real clouds of every platform: stems of a real mobile (MLS) plot against the
 rings counted by hand, trees of a real airborne (ALS) stand from the canopy against the cloud's own
 canopy, DBH and volumes of real single stems against independent circle fits and form-factor
 bounds; and the consistency rules (stem curve vs cylinder model, form factors, failed fits)."""

@@ -225,7 +225,7 @@ def test_compare_auto_and_manual(qtbot, window, open_project, plot, project_file
 
 
 def test_tie_points_side_by_side(qtbot, window, open_project, plot, project_file: Path) -> None:
-    """Issue 16 item 7: the reference and the moving scan in two 3D views next to each other; a
+    """The reference and the moving scan in two 3D views next to each other; a
     pick in either view is a target of that scan, the id waits for the other scan, the same id is
     highlighted in both, and the manual registration from those picks is within tolerance."""
     from scipy.spatial import cKDTree

@@ -1,4 +1,4 @@
-"""Survey quality in the desktop window (issue 16 item 6): the pose uncertainty, terrain agreement,
+"""Survey quality in the desktop window: the pose uncertainty, terrain agreement,
 ambiguity and dropped links that the survey registration computes, in the results tables and on
 the 2D top view, checked cell by cell against the engine's values.
 

@@ -1,4 +1,4 @@
-"""forestreg.ui: the PySide6 + pyvista desktop GUI over the engine's project model (issue 4).
+"""forestreg.ui: the PySide6 + pyvista desktop GUI over the engine's project model.
 
 Nothing here may be imported by the engine; the engine never imports Qt. Modules:
 

@@ -35,7 +35,7 @@ from ..engine.params import load_params
 from ..engine.tls.params import RegistrationParams
 
 #: Units shown after a value (the metadata's short forms spelt out where useful).
-UNIT_SUFFIX = {"m": " m", "deg": "\u00b0", "points": " points", "VOPs": " VOPs"}
+UNIT_SUFFIX = {"m": " m", "deg": "\u00b0", "points": " points", "VOPs": " VOPs", "1": ""}  # "1": dimensionless
 #: Largest value a spin box offers where the metadata gives no upper bound.
 UNBOUNDED = 1.0e6
 

@@ -15,8 +15,8 @@ from typing import Iterable, Optional, Sequence
 from PySide6.QtCore import QByteArray, QMimeData, QModelIndex, QObject, Qt, QTimer, Signal
 from PySide6.QtGui import QBrush, QColor, QFont, QStandardItem, QStandardItemModel
 
-from ..engine.tls.project import Link, Project
-from ..engine.tls.views import scan_colours, scan_states
+from ..app.plot import Link, Project
+from ..engine.report.views import scan_colours, scan_states
 
 #: Item data roles.
 KIND_ROLE = Qt.ItemDataRole.UserRole + 1  # "group", "scan", "link", "pair"

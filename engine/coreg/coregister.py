@@ -85,9 +85,9 @@ class CoregistrationParams(Params):
     icp_voxel_m: float = _p(0.1, "m", 0.005, 5.0, "ICP thinning voxel")
     #: ICP correspondence distance per stage (m), largest first
     icp_distances_m: tuple[float, ...] = _p((1.0, 0.5, 0.25, 0.12), "m", 0.001, 100.0, "ICP correspondence distance per stage, largest first")
-    icp_iterations: int = _p(40, "", 1, 10000, "ICP iterations per stage")
+    icp_iterations: int = _p(40, "iterations", 1, 10000, "ICP iterations per stage")
     #: fewer matched keypoints than this fail
-    min_matched: int = _p(3, "", 3, 100000, "fewest matched keypoints (the canopy surface check carries the rest of the evidence)")
+    min_matched: int = _p(3, "keypoints", 3, 100000, "fewest matched keypoints (the canopy surface check carries the rest of the evidence)")
     #: a lower matching percentage fails (%)
     min_matching_percentage: float = _p(15.0, "%", 0.0, 100.0, "lowest matching percentage")
     #: verification: the canopy surface models (highest point per cell of this size, m) of the
@@ -98,7 +98,7 @@ class CoregistrationParams(Params):
     #: a solution whose canopy surfaces correlate less than this fails (Pearson r)
     #: (after the coarse ICP: right solutions reach 0.8-0.95 on simulated and real plots, wrong
     #: ones and unrelated real plots 0.3-0.65)
-    min_surface_correlation: float = _p(0.65, "", -1.0, 1.0, "lowest canopy surface correlation (after the coarse ICP)")
+    min_surface_correlation: float = _p(0.65, "1", -1.0, 1.0, "lowest canopy surface correlation (after the coarse ICP)")
     #: solutions moving the ground-based keypoints by more than this on average (m) are distinct
     distinct_solution_m: float = _p(2.5, "m", 0.01, 1000.0, "distinct solution distance")
     #: fewer common cells than this make no evidence
@@ -109,18 +109,18 @@ class CoregistrationParams(Params):
     #: this many best distinct keypoint solutions (by canopy correlation) are refined by a coarse
     #: 6-DoF ICP and verified after it: a keypoint solution a few degrees off (tilt, drift, a
     #: shifted keypoint) is corrected before it is judged
-    candidates_verified: int = _p(5, "", 1, 100, "keypoint solutions refined by a coarse ICP and verified")
+    candidates_verified: int = _p(5, "solutions", 1, 100, "keypoint solutions refined by a coarse ICP and verified")
     #: the coarse ICP of the candidates: correspondence distances (m) and thinning voxel (m)
     coarse_icp_distances_m: tuple[float, ...] = _p((3.0, 1.5, 0.75), "m", 0.001, 100.0, "coarse ICP correspondence distance per stage, largest first")
     coarse_voxel_m: float = _p(0.3, "m", 0.005, 5.0, "coarse ICP thinning voxel")
     #: the best refined solution must correlate at least this much better (Pearson r) than the
     #: best distinct alternative
-    min_correlation_margin: float = _p(0.15, "", 0.0, 2.0, "least canopy correlation margin over the best distinct alternative")
+    min_correlation_margin: float = _p(0.15, "1", 0.0, 2.0, "least canopy correlation margin over the best distinct alternative")
     #: the canopy search: the ground-based canopy surface turned by this step (deg) over all
     #: headings and correlated with the UAV surface at every shift; its best distinct peaks join
     #: the keypoint solutions as candidates
     heading_step_deg: float = _p(2.0, "deg", 0.25, 30.0, "heading step of the canopy surface search")
-    canopy_peaks: int = _p(4, "", 0, 100, "best distinct canopy-search peaks refined and verified")
+    canopy_peaks: int = _p(4, "solutions", 0, 100, "best distinct canopy-search peaks refined and verified")
     #: ICP uses the UAV points no higher than the ground-based cloud's highest point in their
     #: 0.5 m column plus this (m; twice this in the coarse ICP): leaf-on foliage above every
     #: ground-based return has no counterpart and pulls ICP off (real MLS onto a leaf-on ULS-like
@@ -129,8 +129,8 @@ class CoregistrationParams(Params):
     #: without matched keypoints (fewer than ``min_matched`` or below ``min_matching_percentage``)
     #: the canopy surfaces decide when they correlate at least this much, with at least this
     #: margin over the best distinct alternative (or the stems decide, see below)
-    decisive_correlation: float = _p(0.75, "", -1.0, 1.0, "canopy correlation that decides without matched keypoints")
-    decisive_margin: float = _p(0.3, "", 0.0, 2.0, "canopy margin that decides without matched keypoints")
+    decisive_correlation: float = _p(0.75, "1", -1.0, 1.0, "canopy correlation that decides without matched keypoints")
+    decisive_margin: float = _p(0.3, "1", 0.0, 2.0, "canopy margin that decides without matched keypoints")
     #: the terrains must agree under the result (where at least 100 UAV ground points compare):
     #: the plane through the UAV ground minus the ground-based DEM no steeper than this (deg) and
     #: its residuals' NMAD no wider than this (m)
@@ -139,11 +139,11 @@ class CoregistrationParams(Params):
     #: where the UAV sees at least this many points 0.5-2.5 m above its ground (stems, understorey),
     #: at least this fraction must lie within 0.3 m of the ground-based cloud
     min_stem_layer_points: int = _p(50, "points", 1, 100000000, "fewest UAV stem-layer points that make stem evidence")
-    min_stem_layer_agreement: float = _p(0.3, "", 0.0, 1.0, "least fraction of UAV stem-layer points near the ground-based cloud")
+    min_stem_layer_agreement: float = _p(0.3, "1", 0.0, 1.0, "least fraction of UAV stem-layer points near the ground-based cloud")
     #: ... and with at least this fraction near (and the terrains compared and agreeing) the stems
     #: decide without matched keypoints (right solutions: 0.93-0.95 on the real MLS against a
     #: leaf-on ULS-like cloud; a solution 5 deg off: 0.57)
-    decisive_stem_agreement: float = _p(0.8, "", 0.0, 1.0, "stem-layer agreement that decides without matched keypoints")
+    decisive_stem_agreement: float = _p(0.8, "1", 0.0, 1.0, "stem-layer agreement that decides without matched keypoints")
     #: standard errors by a delete-one-quadrant jackknife of the fine ICP (4 more short ICP runs)
     jackknife: bool = _p(True, "", None, None, "standard errors by a jackknife over plot quadrants")
 

@@ -34,12 +34,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
-from ..core.atomic import atomic_path
-from ..core.errors import ParameterError, ScanDataError, ScanWriteError
+from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress, ProgressCallback
 from ..core.transform import apply as apply_transform
 from ..geometry.sorting import sort_keys
+from ..io.las import write_fused  # noqa: F401 - the fused cloud's writer lives with the LAS format
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..core.scan import Scan
@@ -79,18 +79,18 @@ class FusionParams(Params):
     cube_side_m: float = _p(0.5, "m", 0.02, 50.0, "Side of the cubes the cloud is partitioned into; only sets the size of the work batches (pairs across cube faces are found too)", "l")
     redundancy_distance_m: float = _p(0.01, "m", 1e-4, 0.5, "Points of the merged cloud closer than this are the same surface sampled twice: one is kept", "epsilon")
     redundancy_scope: str = _p("between_sources", "", None, None, "'between_sources': a point is redundant when a point of the winning source lies within epsilon (the same surface sampled by both platforms; each source keeps its own density); 'all': any two points of the merged cloud closer than epsilon, so each source is also thinned to an epsilon spacing")
-    keep_source: int = _p(GROUND, "", 1, 2, "Which source wins a duplicate: 1 = the ground-based point (denser, more precise), 2 = the UAV point")
+    keep_source: int = _p(GROUND, "1", 1, 2, "Which source wins a duplicate: 1 = the ground-based point (denser, more precise), 2 = the UAV point")
     # --- noise (paper 4.2.2)
     noise_method: str = _p("local", "", None, None, "'local' (default): mean distance to the k nearest neighbours relative to the same figure of those neighbours, points beyond mean + std_ratio * std of that ratio are noise (density-independent); 'global': Ning et al. / statistical outlier removal on the mean k-NN distance itself; 'paper': eq. 4-6 literally (nu, sigma, min_neighbours)")
     k_neighbours: int = _p(12, "points", 3, 200, "Neighbours of each point for the 'local' and 'global' noise filters")
     std_ratio: float = _p(3.0, "std", 0.5, 10.0, "Noise beyond mean + std_ratio * standard deviation of the distance statistic ('local' and 'global')")
     noise_radius_m: float = _p(0.15, "m", 0.01, 5.0, "Radius of the neighbourhood of eq. 4-5 (method 'paper')", "nu")
-    sigma: float = _p(0.625, "", 0.0, 1.0, "Probability threshold of eq. 6 (method 'paper'); Pr never exceeds 1 - 1/e = 0.632, see statistical_noise", "sigma")
+    sigma: float = _p(0.625, "1", 0.0, 1.0, "Probability threshold of eq. 6 (method 'paper'); Pr never exceeds 1 - 1/e = 0.632, see statistical_noise", "sigma")
     min_neighbours: int = _p(2, "points", 0, 1000, "Method 'paper': points with fewer neighbours than this within nu are isolated: noise")
     max_neighbours: int = _p(64, "points", 4, 1000, "Method 'paper': at most this many (the nearest) neighbours within nu are used")
     canopy_top_cell_m: float = _p(0.5, "m", 0.0, 10.0, "The highest points of every cell of this size (the canopy surface, tree tops) are never removed as noise; 0 = no protection")
     canopy_top_points: int = _p(3, "points", 1, 1000, "How many of the highest points per cell are protected")
-    noise_sources: tuple[int, ...] = _p((GROUND, UAV), "", 1, 2, "Sources whose points the noise filter may remove (the statistics use every point)")
+    noise_sources: tuple[int, ...] = _p((GROUND, UAV), "1", 1, 2, "Sources whose points the noise filter may remove (the statistics use every point)")
     # --- work size
     batch_points: int = _p(1_000_000, "points", 1000, 100_000_000, "Points handled at once (memory bound)")
 
@@ -764,47 +764,6 @@ def _merge_scans(ground: "Scan", uav: "Scan", matrix: np.ndarray) -> _Merged:
     pts[n_g:] = uav.points
     both = ground.intensity is not None and uav.intensity is not None
     return _Merged(pts, n_g, {"intensity": ground.intensity} if both else {}, {"intensity": uav.intensity} if both else {})
-
-
-def write_fused(
-    path: str | os.PathLike[str],
-    result: FusionResult,
-    *,
-    origin_shift: Optional[np.ndarray] = None,
-    unit_scale: float = 1.0,
-) -> None:
-    """Write the fused cloud as LAS 1.4 (point format 6), LAZ if ``path`` ends in ``.laz``.
-
-    Coordinates are ``(result.points + origin_shift) / unit_scale`` (file coordinates in the
-    file's units; shift default zero, metres), at 0.1 mm resolution. Each point's source (1
-    ground-based, 2 UAV) is in ``point_source_id`` and in an extra uint8 dimension ``source``;
-    ``result.extra["intensity"]``, when present, becomes the intensity. Written
-    :data:`_CHUNK` points at a time, atomically (temporary file, then renamed).
-    """
-
-    from ..io.las import LasChunkWriter, intensity_to_uint16
-
-    target = str(path)
-    suffix = os.path.splitext(target)[1].lower()
-    if suffix not in (".las", ".laz"):
-        raise ScanWriteError(f"{target}: the fused cloud is written as .las or .laz, not {suffix or 'no extension'}")
-    pts = np.asarray(result.points, dtype=np.float64)
-    if len(pts) == 0:
-        raise ScanWriteError(f"{target}: the fused cloud is empty; nothing to write")
-    scale = float(unit_scale)
-    shift = (np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64).reshape(3)) / scale
-    lo = np.min([(pts[i : i + _CHUNK] / scale).min(axis=0) for i in range(0, len(pts), _CHUNK)], axis=0) + shift
-    hi = np.max([(pts[i : i + _CHUNK] / scale).max(axis=0) for i in range(0, len(pts), _CHUNK)], axis=0) + shift
-    intensity = result.extra.get("intensity")
-    intensity = None if intensity is None else intensity_to_uint16(intensity)  # over the whole cloud, then by chunk
-    source = np.asarray(result.source)
-    with atomic_path(target) as tmp:
-        with LasChunkWriter(tmp, lo, hi, compress=suffix == ".laz", system_identifier="forestreg fusion",
-                            extra_dims=[("source", np.uint8, "1 ground-based, 2 UAV")]) as out:
-            for i in range(0, len(pts), _CHUNK):
-                part = source[i : i + _CHUNK]
-                out.write(pts[i : i + _CHUNK] / scale, shift, intensity=None if intensity is None else intensity[i : i + _CHUNK],
-                          fields={"point_source_id": part.astype(np.uint16), "source": part.astype(np.uint8)})
 
 
 def _workers() -> int:

@@ -52,7 +52,7 @@ class KeypointParams(Params):
     #: canopy = points at least this high above the DEM (m)
     canopy_min_height_m: float = _p(3.0, "m", 0.0, 100.0, "lowest canopy height")
     #: ... and above this fraction of the cloud's top height (95th percentile of heights above 2 m)
-    canopy_relative_height: float = _p(0.4, "", 0.0, 0.99, "canopy lower bound / top height")
+    canopy_relative_height: float = _p(0.4, "1", 0.0, 0.99, "canopy lower bound / top height")
     #: HDBSCAN MinClusterSize; 0 derives it from the point density (paper: "derived from the point
     #: cloud density") as the points of ``cluster_area_m2`` of canopy
     min_cluster_size: int = _p(0, "points", 0, 10000000, "HDBSCAN MinClusterSize (0 = from density)")
@@ -62,7 +62,7 @@ class KeypointParams(Params):
     cutoff_distance_m: float = _p(0.75, "m", 0.01, 50.0, "d_c of the local density", "d_c")
     #: at most this many canopy points are clustered (a random subset beyond; speed)
     max_canopy_points: int = _p(60_000, "points", 100, 100000000, "canopy points clustered at most")
-    seed: int = _p(0, "", 0, 2**31 - 1, "random seed of the canopy subset")
+    seed: int = _p(0, "1", 0, 2**31 - 1, "random seed of the canopy subset")
 
     def _check(self) -> None:
         if self.min_cluster_size == 1:

@@ -61,13 +61,13 @@ class MatchingParams(Params):
     #: keypoint pairs closer than this are not used as hypotheses (m): their bearing is uncertain
     min_pair_distance_m: float = _p(4.0, "m", 0.0, 1000.0, "shortest seed pair")
     #: at most this many ground keypoint pairs seed hypotheses (a fixed random subset beyond)
-    max_seed_pairs: int = _p(1500, "", 1, 10000000, "ground pairs tried")
+    max_seed_pairs: int = _p(1500, "pairs", 1, 10000000, "ground pairs tried")
     #: this many best distinct solutions are refined and kept
-    n_solutions: int = _p(400, "", 1, 100000, "distinct solutions kept")
+    n_solutions: int = _p(400, "solutions", 1, 100000, "distinct solutions kept")
     #: solutions closer than this in heading (deg) and translation (m) are the same solution
     distinct_heading_deg: float = _p(3.0, "deg", 0.01, 180.0, "distinct heading")
     distinct_translation_m: float = _p(1.5, "m", 0.01, 1000.0, "distinct translation")
-    seed: int = _p(0, "", 0, 2**31 - 1, "random seed of the subset of seed pairs")
+    seed: int = _p(0, "1", 0, 2**31 - 1, "random seed of the subset of seed pairs")
 
 
 

@@ -1,33 +1,290 @@
 """Compiled kernels: one decorator for every numba kernel of the geometry and tree code, and a
 helper that runs a kernel over blocks of rows on a pool of threads.
 
-Kernels are compiled on first use and cached on disk (beside the source, or in the user's cache
-directory when the package folder is read-only; without any writable place they are compiled
-in each process). They release the interpreter lock (``nogil``), so blocks of independent rows
-run in parallel threads.
+Kernels are compiled on first use and cached on disk, in one folder per forestreg and numba
+version (:func:`kernel_cache_dir`; ``NUMBA_CACHE_DIR``, when set, wins; without any writable
+place they are compiled in each process). ``forestreg warmup`` (run by ``scripts/setup.sh``)
+compiles them all ahead, so that no command pays for it. The cache is safe when several processes
+compile at once (batch workers, the service's jobs): a kernel is compiled under a lock file of its
+own (one process compiles it, the others wait and load it), an entry's data file is written before
+the index that names it (each written whole, then renamed into place), and an entry is loaded only
+when it holds the signature asked for; anything else is compiled again. Kernels release the
+interpreter lock (``nogil``), so blocks of independent rows run in parallel threads.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Callable
+from typing import Any, Callable, Iterable, Iterator, Optional
 
 import numba
+from numba.core import caching, sigutils
+from numba.core.compiler_lock import global_compiler_lock
 
-__all__ = ["kernel", "run_blocks", "warm_up", "worker_count"]
+__all__ = ["kernel", "kernel_cache_dir", "kernels", "run_blocks", "warm_up", "worker_count"]
+
+log = logging.getLogger(__name__)
+
+#: Every kernel made by :func:`kernel`, in the order their modules defined them.
+_KERNELS: list[Any] = []
 
 
 def kernel(fn: Callable[..., Any] | None = None, **options: Any) -> Any:
-    """``numba.njit(cache=True, nogil=True, **options)``; without a writable cache location,
-    uncached. Use as ``@kernel`` or ``@kernel(error_model="numpy")``."""
+    """``numba.njit(nogil=True, **options)``, cached on disk by :class:`_KernelCache` (without a
+    writable cache location, uncached). Use as ``@kernel`` or ``@kernel(error_model="numpy")``."""
     if fn is None:
         return lambda f: kernel(f, **options)
+    dispatcher = numba.njit(nogil=True, **options)(fn)
     try:
-        return numba.njit(cache=True, nogil=True, **options)(fn)
-    except RuntimeError:  # numba found no directory to cache in
-        return numba.njit(nogil=True, **options)(fn)
+        dispatcher._cache = _KernelCache(dispatcher.py_func)
+    except RuntimeError:  # no directory to cache in: compiled in each process
+        pass
+    else:
+        _locked_compile(dispatcher)
+    _KERNELS.append(dispatcher)
+    return dispatcher
+
+
+def kernels() -> list[Any]:
+    """Every kernel of the modules imported so far (numba dispatchers)."""
+    return list(_KERNELS)
+
+
+def kernel_cache_dir() -> Optional[str]:
+    """The folder the compiled kernels are cached in: ``NUMBA_CACHE_DIR`` when set, else one
+    folder per forestreg, numba and Python version in the user's cache folder
+    (``$XDG_CACHE_HOME/forestreg/kernels/...``, by default ``~/.cache/forestreg/kernels/...``).
+    None when neither is set (no home folder)."""
+    if numba.config.CACHE_DIR:
+        return str(numba.config.CACHE_DIR)
+    base = os.environ.get("XDG_CACHE_HOME") or (os.path.join(os.path.expanduser("~"), ".cache") if os.path.expanduser("~") != "~" else "")
+    if not base:
+        return None
+    from ... import __version__
+
+    tag = f"{__version__}-numba{numba.__version__}-py{sys.version_info[0]}{sys.version_info[1]}"
+    return os.path.join(base, "forestreg", "kernels", tag)
+
+
+#: The file ``forestreg warmup`` writes into :func:`kernel_cache_dir` once every kernel is
+#: compiled: the source files of the kernels and a hash of each (JSON).
+WARM_MARK = "warmed.json"
+
+
+def _source_hashes(files: Iterable[str]) -> dict[str, str]:
+    import hashlib
+
+    out = {}
+    for name in files:
+        try:
+            with open(name, "rb") as f:
+                out[name] = hashlib.sha256(f.read()).hexdigest()
+        except OSError:
+            out[name] = ""
+    return out
+
+
+def cache_is_warm(files: Optional[Iterable[str]] = None) -> bool:
+    """Whether ``forestreg warmup`` has compiled the kernels of the source ``files`` (default:
+    every file it compiled) into :func:`kernel_cache_dir`, and they have not changed since."""
+    import json
+
+    folder = kernel_cache_dir()
+    if not folder:
+        return False
+    try:
+        with open(os.path.join(folder, WARM_MARK), encoding="utf-8") as f:
+            recorded = json.load(f)["files"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    files = list(recorded) if files is None else list(files)
+    return bool(files) and all(recorded.get(k) == v for k, v in _source_hashes(files).items())
+
+
+def mark_cache_warm() -> None:
+    """Record in :func:`kernel_cache_dir` that the kernels of every module imported so far are
+    compiled (``forestreg warmup``), with a hash of each source file."""
+    import json
+
+    folder = kernel_cache_dir()
+    if folder:
+        os.makedirs(folder, exist_ok=True)
+        files = sorted({k.py_func.__code__.co_filename for k in _KERNELS})
+        tmp = os.path.join(folder, f"{WARM_MARK}.{os.getpid()}.tmp")
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump({"kernels": len(_KERNELS), "files": _source_hashes(files)}, f, indent=1)
+        os.replace(tmp, os.path.join(folder, WARM_MARK))
+
+
+# numba's names (public since numba 0.62, with a leading underscore before)
+_UserLocator = getattr(caching, "UserProvidedCacheLocator", None) or getattr(caching, "_UserProvidedCacheLocator")
+_ResultCacheImpl = caching.CompileResultCacheImpl
+
+
+class _VersionedLocator(_UserLocator):
+    """numba's locator of ``NUMBA_CACHE_DIR``, pointed at :func:`kernel_cache_dir`."""
+
+    def __init__(self, py_func: Any, py_file: str) -> None:
+        self._py_file = py_file
+        self._lineno = py_func.__code__.co_firstlineno
+        self._cache_path = os.path.join(kernel_cache_dir() or "", self.get_suitable_cache_subpath(py_file))
+
+    @classmethod
+    def from_function(cls, py_func: Any, py_file: str) -> Any:
+        if not kernel_cache_dir():
+            return None
+        return caching._SourceFileBackedLocatorMixin.from_function.__func__(cls, py_func, py_file)
+
+
+class _KernelCacheImpl(_ResultCacheImpl):
+    # NUMBA_CACHE_DIR (when set), then the per-version folder, then numba's own places
+    _locator_classes = [_UserLocator, _VersionedLocator] + [c for c in _ResultCacheImpl._locator_classes if c is not _UserLocator]
+
+
+class _CheckedCacheFile(caching.IndexDataCacheFile):
+    """numba's index and data files, with the order of writes made safe and every load checked.
+
+    numba saves an entry by writing the index (naming a data file) and then the data file, each
+    atomically; two processes that compile two signatures of one kernel at once may choose the
+    same data file for different signatures, and a process killed between the two writes leaves
+    an index naming a data file it never wrote. Here the data file is written first, an entry is
+    written under the kernel's lock (:func:`_locked_compile`), and a loaded entry is used only
+    when it is the signature asked for and unpickles whole; otherwise the kernel is compiled again."""
+
+    def save(self, key: Any, data: Any) -> None:
+        overloads = self._load_index()
+        name = overloads.get(key)
+        if name is None:
+            existing = set(overloads.values())
+            number = 1
+            while self._data_name(number) in existing:
+                number += 1
+            name = self._data_name(number)
+        self._save_data(name, data)
+        overloads = self._load_index()  # as it is now (under the kernel's lock: unchanged)
+        overloads[key] = name
+        self._save_index(overloads)
+
+    def load(self, key: Any) -> Any:
+        try:
+            data = super().load(key)
+        except Exception as exc:  # a damaged file: compiled again (and the entry rewritten)
+            log.info("compiled kernel cache: entry not readable (%s: %s); compiling again", type(exc).__name__, exc)
+            return None
+        if data is None:
+            return None
+        try:
+            wanted = tuple(sigutils.normalize_signature(key[0])[0])
+            held = tuple(data[3].args)  # CompileResult._reduce(): (library, fndesc, env, signature, ...)
+        except Exception:
+            return None
+        if held != wanted:
+            log.info("compiled kernel cache: an entry holds another signature; compiling again")
+            return None
+        return data
+
+
+class _KernelCache(caching.FunctionCache):
+    """numba's cache of compiled functions, in :func:`kernel_cache_dir` with checked entries."""
+
+    _impl_class = _KernelCacheImpl
+
+    def __init__(self, py_func: Any) -> None:
+        super().__init__(py_func)
+        self._cache_file.__class__ = _CheckedCacheFile
+
+    def load_overload(self, sig: Any, target_context: Any) -> Any:
+        data = super().load_overload(sig, target_context)
+        if data is None:
+            _say_compiling(self._py_func.__code__.co_filename)
+        return data
+
+    @property
+    def lock_path(self) -> str:
+        return os.path.join(self._cache_path, self._cache_file._index_name[: -len(".nbi")] + ".lock")
+
+
+_SAID = False
+
+
+def _say_compiling(source: str) -> None:
+    """Say once in a process that the kernels are being compiled, when ``forestreg warmup`` has
+    not compiled them ahead (the first command after an install pays for it); ``source``: the
+    file of the kernel being compiled."""
+    global _SAID
+    if _SAID:
+        return
+    _SAID = True
+    if os.environ.get("FORESTREG_WARMUP") or cache_is_warm([source]):
+        log.info("compiling a kernel not compiled ahead")
+        return
+    log.warning(
+        "compiling the numerical kernels for this machine: about %d s, only on the first run "
+        "('forestreg warmup' does it ahead; they are kept in %s)", FIRST_COMPILE_S, kernel_cache_dir() or "no cache folder"
+    )
+
+
+#: Seconds the first command after an install spends compiling its kernels (measured on 2 cores).
+FIRST_COMPILE_S = 45
+
+#: Lock files this process holds (path -> depth); changed only under numba's compiler lock.
+_HELD: dict[str, int] = {}
+
+
+@contextlib.contextmanager
+def _lock_file(path: str) -> Iterator[None]:
+    """An exclusive lock on ``path`` between processes (``flock``; re-entrant within this process,
+    whose threads compile one at a time under numba's compiler lock). Without ``fcntl`` (Windows),
+    or when the file cannot be made, no lock: numba's own atomic writes remain."""
+    if path in _HELD:
+        _HELD[path] += 1
+        try:
+            yield
+        finally:
+            _HELD[path] -= 1
+        return
+    try:
+        import fcntl
+
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except (ImportError, OSError):
+        yield
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        _HELD[path] = 1
+        try:
+            yield
+        finally:
+            del _HELD[path]
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
+
+
+def _locked_compile(dispatcher: Any) -> None:
+    """Make ``dispatcher.compile`` (numba calls it for every signature not yet in memory) hold
+    numba's compiler lock and then the kernel's lock file: of several processes compiling one
+    kernel, one compiles and saves it, the others then load it from the cache. The order of the
+    two locks is the same everywhere, and a kernel's lock is taken before those of the kernels it
+    calls (kernels do not call each other in cycles), so no two holders wait for each other."""
+    compile_now = dispatcher.compile
+    cache = dispatcher._cache
+
+    def compile(sig: Any) -> Any:
+        with global_compiler_lock:
+            args, _ = sigutils.normalize_signature(sig)
+            if tuple(args) in dispatcher.overloads:
+                return compile_now(sig)
+            with _lock_file(cache.lock_path):
+                return compile_now(sig)
+
+    dispatcher.compile = compile
 
 
 def warm_up() -> None:

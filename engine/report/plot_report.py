@@ -44,7 +44,7 @@ from ..core.atomic import write_text_atomic  # noqa: E402
 from ..tls.params import RegistrationParams  # noqa: E402
 from ..tls.plot import ScanCache  # noqa: E402
 from ..tls.project import Link, Project  # noqa: E402
-from ..tls.views import (  # noqa: E402
+from .views import (  # noqa: E402
     MATCH_COLOUR,
     MOVING_COLOUR,
     REFERENCE_COLOUR,
@@ -678,7 +678,7 @@ def _parameters_section(project: Project) -> str:
         unit = f.metadata.get("unit", "")
         paper = f.metadata.get("paper", "")
         changed = value != getattr(default, f.name)
-        text = _param_value(value) + (f" {unit}" if unit and value is not None else "")
+        text = _param_value(value) + (f" {unit}" if unit and unit != "1" and value is not None else "")
         cells.append(
             f'<td title="{_e(f.metadata.get("help", ""))}"><code>{_e(f.name)}</code>'
             + (f'<br><span class="note">{_e(paper)}</span>' if paper else "")

@@ -73,6 +73,7 @@ optimum. Candidates that are not distinct are skipped before being scored.
 from __future__ import annotations
 
 import functools
+import threading
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -84,19 +85,23 @@ from ..core.errors import InvalidArgumentError
 #: The numba kernels module once :func:`_compiled_kernels` has imported it; None: the numpy path.
 _kernels = None
 _kernels_tried = False
+_kernels_lock = threading.Lock()
 
 
 def _compiled_kernels():
     """The compiled bounds (:mod:`.coarse_kernels`), imported on first use so that importing this
-    module does not import numba; None when numba is missing (the numpy path gives the same bounds)."""
+    module does not import numba; None when numba is missing (the numpy path gives the same bounds).
+    Threads asking at once (a plot's links) wait for the one importing: none takes the numpy path
+    meanwhile."""
     global _kernels, _kernels_tried
-    if not _kernels_tried:
-        _kernels_tried = True
-        try:
-            from . import coarse_kernels
-        except ImportError:  # pragma: no cover - numba is a dependency; kept for stripped installs
-            coarse_kernels = None
-        _kernels = coarse_kernels
+    with _kernels_lock:
+        if not _kernels_tried:
+            try:
+                from . import coarse_kernels
+            except ImportError:  # pragma: no cover - numba is a dependency; kept for stripped installs
+                coarse_kernels = None
+            _kernels = coarse_kernels
+            _kernels_tried = True
     return _kernels
 
 __all__ = ["CoarseMatch", "match_vops", "match_vops_literal", "overlap_score"]

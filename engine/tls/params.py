@@ -18,7 +18,7 @@ __all__ = ["RegistrationParams"]
 
 @dataclass(frozen=True)
 class RegistrationParams(Params):
-    """Every setting of marker-free pair registration (METHOD.md, System A)."""
+    """Every setting of marker-free pair registration (System A; defaults: Guan et al. 2020, table 2)."""
 
     # --- data reduction and ground (paper 2.4, 2.5.1)
     max_range_m: float = _p(30.0, "m", 5.0, 200.0, "Points farther than this horizontally from the scanner are dropped", "D_c = 30 m")
@@ -35,7 +35,7 @@ class RegistrationParams(Params):
     visibility_gap_m: float = _p(0.5, "m", 0.0, 5.0, "Start of the visibility buffer behind a candidate", "D_e = 0.5 m")
     component_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size of the connected-component labelling of candidate points")
     min_component_points: int = _p(8, "points", 2, 10000, "Smallest connected component kept as a trunk candidate")
-    min_component_height_fraction: float = _p(0.5, "", 0.0, 1.0, "A trunk component spans at least this fraction of the slice thickness vertically")
+    min_component_height_fraction: float = _p(0.5, "1", 0.0, 1.0, "A trunk component spans at least this fraction of the slice thickness vertically")
     max_component_width_m: float = _p(2.0, "m", 0.1, 10.0, "Components wider than this (walls, rocks, dense bushes) are not trunks")
     mean_shift_bandwidth_m: float = _p(0.1, "m", 0.01, 1.0, "Flat-kernel radius of the mean shift that finds a component's density mode")
     centre_on_trunk_axis: bool = _p(True, "", None, None, "Move each VOP from the visible bark to the estimated trunk axis (half the arc width behind it along the ray), so VOPs of one trunk from two scans coincide. Off = the paper's density mode")
@@ -45,18 +45,18 @@ class RegistrationParams(Params):
     min_vops: int = _p(4, "VOPs", 3, 1000, "Fewest VOPs per scan to attempt a registration")
     min_matched: int = _p(4, "VOPs", 3, 1000, "Fewest matched VOPs for a registration to count (the paper sees failures below 3)")
     min_match_margin: int = _p(2, "VOPs", 0, 1000, "The best solution must match at least this many more VOPs than the best distinct alternative")
-    min_match_margin_fraction: float = _p(0.1, "", 0.0, 1.0, "...and at least this fraction of its matched VOPs more (a plantation's grid lets another plot's trunks coincide by the dozen)")
+    min_match_margin_fraction: float = _p(0.1, "1", 0.0, 1.0, "...and at least this fraction of its matched VOPs more (a plantation's grid lets another plot's trunks coincide by the dozen)")
     distinct_rotation_deg: float = _p(5.0, "deg", 0.5, 180.0, "Alternatives rotated more than this from the best are distinct solutions")
     distinct_translation_m: float = _p(1.0, "m", 0.1, 50.0, "Alternatives displaced more than this from the best are distinct solutions")
-    max_free_space_violation: float = _p(0.15, "", 0.0, 1.0, "Largest fraction of one scan's slice points allowed where the other scanner saw empty space, after ICP (a wrong match puts trunks there)")
+    max_free_space_violation: float = _p(0.15, "1", 0.0, 1.0, "Largest fraction of one scan's slice points allowed where the other scanner saw empty space, after ICP (a wrong match puts trunks there)")
     # --- levelling of tilted scans
     level_tilted: bool = _p(True, "", None, None, "Detect a tilted scanner from its own data (ground and trunk directions) and level the scan before slicing")
     tilt_threshold_deg: float = _p(10.0, "deg", 0.1, 45.0, "Estimated tilts below this are treated as a level scanner (small tilts are taken up by the ground fit and ICP)")
     # --- fine registration (ICP, paper 2.6)
     icp_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size to which both clouds are thinned for ICP")
     icp_max_distances_m: tuple[float, ...] = _p((0.5, 0.2, 0.08), "m", 0.005, 5.0, "Correspondence distances of the successive ICP stages")
-    icp_iterations: int = _p(40, "", 1, 1000, "Iterations per ICP stage")
-    icp_min_fitness: float = _p(0.1, "", 0.0, 1.0, "Least fraction of the moving points in the shared area that must have a reference point within the last ICP distance")
+    icp_iterations: int = _p(40, "iterations", 1, 1000, "Iterations per ICP stage")
+    icp_min_fitness: float = _p(0.1, "1", 0.0, 1.0, "Least fraction of the moving points in the shared area that must have a reference point within the last ICP distance")
     icp_max_correction_m: float = _p(1.0, "m", 0.0, 10.0, "ICP may move the coarse result by at most this much (more means the coarse result was wrong)")
 
     def _check(self) -> None:

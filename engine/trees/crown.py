@@ -49,7 +49,7 @@ class CrownParams(Params):
     top_min_neighbours: int = param_field(2, "points", 0, 1000, "Points needed around the top (fewer: a stray point, skipped)")
     profile_bin_m: float = param_field(0.25, "m", 0.05, 5.0, "Height bin of the vertical profile that gives the crown base")
     stem_clearance_m: float = param_field(0.3, "m", 0.0, 5.0, "Points farther than the stem radius plus this from the stem axis spread beyond the stem (crown)")
-    min_bin_fraction: float = param_field(0.1, "", 0.0, 1.0, "A profile bin belongs to the live crown when it holds this fraction of the fullest bin's points")
+    min_bin_fraction: float = param_field(0.1, "1", 0.0, 1.0, "A profile bin belongs to the live crown when it holds this fraction of the fullest bin's points")
     min_crown_run_m: float = param_field(1.0, "m", 0.0, 20.0, "The live crown starts with at least this height of crown bins in a row")
     max_crown_gap_m: float = param_field(1.0, "m", 0.0, 20.0, "Crown bins separated by at most this belong to one crown; the crown is the run holding the most points")
     width_percentile: float = param_field(0.5, "%", 0.0, 25.0, "Crown widths run from this percentile of x (y) to 100 minus it (robust to stray points)")

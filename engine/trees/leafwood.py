@@ -77,7 +77,7 @@ class LeafWoodParams(Params):
     min_neighbours: int = _p(6, "points", 4, 1000, "Fewest neighbours in a sphere for its covariance to count")
     max_neighbours: int = _p(48, "points", 8, 1000, "At most this many nearest neighbours in a sphere are used (speed)")
     thinning_ratio: float = _p(
-        4.0, "", 1.0, 20.0,
+        4.0, "1", 1.0, 20.0,
         "Each scale's neighbours come from the cloud thinned to voxels of radius / this ratio",
     )
     base_voxel_m: float = _p(
@@ -91,20 +91,20 @@ class LeafWoodParams(Params):
         "(linearly less down to min_neighbours): sparse spheres look falsely linear",
     )
     wood_score_threshold: float = _p(
-        0.55, "", 0.0, 1.0,
+        0.55, "1", 0.0, 1.0,
         "Rule-based woodness at or above which a point looks like wood (trunk surface or branch line)",
     )
-    n_components: int = _p(6, "", 2, 20, "Components of the Gaussian mixture fitted to the features")
+    n_components: int = _p(6, "components", 2, 20, "Components of the Gaussian mixture fitted to the features")
     max_fit_points: int = _p(10000, "points", 1000, 10_000_000, "The mixture is fitted to at most this many points (random sample)")
     score_weight: float = _p(
-        0.3, "", 0.0, 1.0,
+        0.3, "1", 0.0, 1.0,
         "Weight of a point's own rule-based verdict against its mixture components' wood share",
     )
     smoothing_radius_m: float = _p(
         0.1, "m", 0.0, 2.0, "Probabilities are averaged over neighbours within this radius (0 = off)",
     )
     smoothing_neighbours: int = _p(16, "points", 1, 200, "At most this many nearest neighbours are averaged")
-    seed: int = _p(0, "", 0, 2**31 - 1, "Seed of the random sample and the mixture's initialisation")
+    seed: int = _p(0, "1", 0, 2**31 - 1, "Seed of the random sample and the mixture's initialisation")
 
     def _check(self) -> None:
         if not self.radii_m:

@@ -102,13 +102,13 @@ class QsmParams(Params):
     base_radius_m: float = _p(1.0, "m", 0.05, 10.0, "With a given base point: cover sets within this horizontal distance of it can start the shortest paths")
     min_branch_shells: int = _p(2, "shells", 1, 100, "A side shoot spanning fewer shells than this is not a branch: its points join the node it grows from")
     min_branch_points: int = _p(10, "points", 1, 100000, "A longer side shoot with fewer (thinned) points than this is noise: left out")
-    cylinder_relative_length: float = _p(3.0, "", 0.5, 20.0, "Cylinder length as a multiple of its radius (at least one shell)", "TreeQSM lcyl")
+    cylinder_relative_length: float = _p(3.0, "1", 0.5, 20.0, "Cylinder length as a multiple of its radius (at least one shell)", "TreeQSM lcyl")
     max_cylinder_length_m: float = _p(1.0, "m", 0.05, 10.0, "Longest cylinder")
     min_fit_points: int = _p(10, "points", 5, 10000, "Fewest points for a circle fit; below, the radius comes from the taper")
-    min_surface_coverage: float = _p(0.35, "", 0.0, 1.0, "Least fraction of the cylinder surface (sectors x length bins) holding points for a fit to count")
-    max_relative_mad: float = _p(0.35, "", 0.01, 10.0, "Largest mean absolute distance of points from the fitted surface, relative to the radius, for a fit to count")
+    min_surface_coverage: float = _p(0.35, "1", 0.0, 1.0, "Least fraction of the cylinder surface (sectors x length bins) holding points for a fit to count")
+    max_relative_mad: float = _p(0.35, "1", 0.01, 10.0, "Largest mean absolute distance of points from the fitted surface, relative to the radius, for a fit to count")
     min_radius_m: float = _p(0.002, "m", 0.0, 0.1, "Smallest radius of any cylinder")
-    taper_tolerance: float = _p(0.25, "", 0.01, 10.0, "A fit more than this fraction below the branch's robust taper line (or twice this above it) is treated as poor")
+    taper_tolerance: float = _p(0.25, "1", 0.01, 10.0, "A fit more than this fraction below the branch's robust taper line (or twice this above it) is treated as poor")
     enforce_taper: bool = _p(True, "", None, None, "Radii never increase along a branch and a child is never thicker than its parent cylinder")
 
     def _check(self) -> None:

@@ -267,13 +267,13 @@ class CompletenessParams(Params):
 
     footprint_cell_m: float = param_field(0.25, "m", 0.05, 10.0, "Cell size of the map of where the data reach (the plot footprint); edges are known to within a cell")
     stem_edge_margin_m: float = param_field(1.0, "m", 0.0, 20.0, "A stem closer than this to the edge of the data is flagged as cut by the edge")
-    max_edge_point_fraction: float = param_field(0.05, "", 0.0, 1.0, "A tree with more than this fraction of its points in the outermost cells of the footprint is flagged as cut by the edge")
+    max_edge_point_fraction: float = param_field(0.05, "1", 0.0, 1.0, "A tree with more than this fraction of its points in the outermost cells of the footprint is flagged as cut by the edge")
     min_tree_points: int = param_field(200, "points", 1, 10**9, "Trees with fewer points are flagged as too sparse")
     crown_clearance_m: float = param_field(0.5, "m", 0.0, 10.0, "Points farther than the stem radius plus this from the stem axis count as crown points")
     min_crown_points: int = param_field(100, "points", 0, 10**9, "Trees with fewer crown points are flagged")
     top_layer_m: float = param_field(1.0, "m", 0.05, 10.0, "Depth of the top layer examined for a missing top")
     min_top_points: int = param_field(5, "points", 0, 10**6, "Fewer points in the top layer: the top rests on a sparse tip, the true top was probably not seen")
-    max_top_spread_ratio: float = param_field(0.9, "", 0.0, 1.0, "A top layer wider than this fraction of the tree's widest layer: the crown is cut flat at the top (clipped data or a top hidden behind other crowns)")
+    max_top_spread_ratio: float = param_field(0.9, "1", 0.0, 1.0, "A top layer wider than this fraction of the tree's widest layer: the crown is cut flat at the top (clipped data or a top hidden behind other crowns)")
 
 
 @dataclass(frozen=True)

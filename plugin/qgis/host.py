@@ -27,6 +27,7 @@ class ForestregPlugin:
 
     def initGui(self) -> None:  # noqa: N802 - QGIS naming
         self.initProcessing()
+        self.check_engine()
         parent = self.iface.mainWindow() if self.iface is not None else None
         self.action = QAction(ACTION_TEXT, parent)
         self.action.setObjectName("forestregRegisterScans")
@@ -34,6 +35,22 @@ class ForestregPlugin:
         self.action.triggered.connect(self.run)
         if self.iface is not None:
             self.iface.addPluginToMenu(MENU, self.action)
+
+    def check_engine(self) -> None:
+        """Say in QGIS's message bar (and the log) when the forestreg engine cannot run: which
+        modules are missing and how to install them (:func:`~forestreg.plugin.adapter.engine_problem`)."""
+        from qgis.core import Qgis, QgsMessageLog, QgsSettings
+
+        from .. import adapter
+        from .provider import SETTINGS_CLI
+
+        problem = adapter.engine_problem(QgsSettings().value(SETTINGS_CLI, "", type=str) or None)
+        if problem is None:
+            return
+        QgsMessageLog.logMessage(problem, "forestreg", Qgis.Warning)
+        bar = getattr(self.iface, "messageBar", None)
+        if bar is not None:
+            bar().pushMessage("forestreg", problem, Qgis.Warning, 0)
 
     def unload(self) -> None:
         if self.action is not None:

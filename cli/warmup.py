@@ -1,0 +1,85 @@
+"""``forestreg warmup``: compile every numerical kernel ahead, so that no command pays for it.
+
+The kernels (numba) are compiled for the machine they run on and kept in a per-version cache
+folder (:func:`~forestreg.engine.geometry.jit.kernel_cache_dir`). Without this step the first
+command after an install compiles the kernels it needs (about 45 s on 2 cores) and says so once.
+The warm-up runs each command once on small simulated data in a temporary folder (the signatures
+the commands use, from the same file readers), then records that the cache is complete.
+``scripts/setup.sh`` runs it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import os
+import tempfile
+import time
+from pathlib import Path
+
+from .common import say
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "warmup",
+        help="compile the numerical kernels now, into the per-version cache (scripts/setup.sh runs it; "
+        "otherwise the first command after an install does it, about 45 s)",
+    )
+    p.add_argument("--force", action="store_true", help="compile again even when the cache says the kernels are compiled")
+    p.set_defaults(func=cmd_warmup, long_running=False)
+
+
+def cmd_warmup(args: argparse.Namespace) -> int:
+    from ..app.warmup import cache_folder, cache_is_warm, compiled, mark_cache_warm
+
+    if not args.force and cache_is_warm():
+        say(f"the kernels are compiled already (in {cache_folder()}; --force compiles them again)", args)
+        return 0
+    t0 = time.perf_counter()
+    os.environ["FORESTREG_WARMUP"] = "1"  # no "compiling ... on the first run" line from the kernels
+    try:
+        # the commands' own result lines are not the warm-up's (their errors still go to stderr)
+        with tempfile.TemporaryDirectory(prefix="forestreg-warmup-") as folder, contextlib.redirect_stdout(io.StringIO()):
+            code = _run_commands(Path(folder))
+    finally:
+        os.environ.pop("FORESTREG_WARMUP", None)
+    signatures, kernels = compiled()
+    if code != 0:
+        say(f"warmup: a command failed (exit {code}); the kernels it reached are compiled", args, err=True)
+        return code
+    mark_cache_warm()
+    say(f"compiled {signatures} signatures of {kernels} kernels in "
+        f"{time.perf_counter() - t0:.0f} s into {cache_folder() or 'memory (no cache folder)'}", args)
+    return 0
+
+
+def _run_commands(folder: Path) -> int:
+    """Each command once on small simulated data in ``folder``; the first non-zero exit code."""
+    from ..app.simulation import simulated_coregistration
+    from . import main
+
+    quiet = ["-q", "--progress", "none"]
+    plot = folder / "plot"
+    code = main(["simulate", "planted_conifer", "--out", str(plot), "--positions", "0,0;8,0;4,7", "--size", "30", "--step", "0.4", *quiet])
+    scans = [str(plot / f"scan_0{k}.laz") for k in (1, 2, 3)]
+    runs = [
+        ["register", scans[0], scans[1], "--out", str(folder / "pair"), *quiet],
+        ["plot", *scans, "--out", str(folder / "plot_out"), *quiet],
+        ["trees", scans[0], "--out", str(folder / "trees_tls"), "--no-report", *quiet],
+    ]
+    for argv in runs:
+        if code == 0:
+            code = main(argv)
+    if code != 0:
+        return code
+    simulated_coregistration(folder, seed=1, size_m=24.0, ground_extent_m=14.0, tls_step_deg=0.5)
+    for argv in (
+        ["coregister", str(folder / "ground.laz"), str(folder / "uav.laz"), "--out", str(folder / "coreg"), *quiet],
+        ["trees", str(folder / "uav.laz"), "--out", str(folder / "trees_uav"), "--no-report", *quiet],
+    ):
+        code = main(argv)
+        if code != 0:
+            return code
+    return 0
