@@ -336,11 +336,11 @@ def _client(workers: Optional[int], scheduler: Optional[str]):
     if scheduler:
         return Client(scheduler, timeout="30s"), None
     n = workers or max(1, (os.cpu_count() or 2))
-    # the workers' own logs only for what loses work: a worker's heartbeat to a scheduler that is
-    # closing at the end of the batch is no error of the batch (it printed a traceback)
-    # the worker processes start with Ctrl-C ignored: a Ctrl-C in the terminal reaches the whole
+    # The worker processes start with Ctrl-C ignored: a Ctrl-C in the terminal reaches the whole
     # process group, and the batch (not each worker, with a traceback) stops them; each plot's CLI
-    # still honours it (FORESTREG_INTERRUPTIBLE) and leaves its folder complete or resumable
+    # still honours it (FORESTREG_INTERRUPTIBLE) and leaves its folder complete or resumable. The
+    # workers log only what loses work: a heartbeat to a scheduler closing at the end of the batch
+    # is no error of the batch (it printed a traceback).
     import signal
     import threading
 

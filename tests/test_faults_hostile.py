@@ -567,7 +567,7 @@ def test_utm_sized_float32_plys_are_warned_about_before_the_work(tiny, tmp_path)
     lines = run.stderr.splitlines()
     warned = [k for k, line in enumerate(lines) if "32-bit floats" in line]
     assert len(warned) == 2, run.stderr
-    assert all("0.5 m apart" in lines[k] for k in warned), run.stderr
+    assert all("only 0.5 apart (0.5 m in a file in metres)" in lines[k] for k in warned), run.stderr
     first_step = next((k for k, line in enumerate(lines) if line.startswith("{") and '"registering' in line.lower()), len(lines))
     assert max(warned) < first_step or first_step == len(lines)
     assert {p: _hash(p) for p in plys} == before

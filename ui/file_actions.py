@@ -103,9 +103,8 @@ class FileActionsMixin:
                 s.path = hit.resolve()
                 found.append(s.name)
         if found:
-            dirty = True
             self.set_project(self.project)  # fresh caches: the scans are read from their new places
-            self.dirty = dirty
+            self.dirty = True
             self._update_title()
             log.info("relinked %s to %s", ", ".join(found), folder)
             self.statusBar().showMessage(f"Relinked {len(found)} scans to {folder}", 5000)

@@ -11,6 +11,7 @@ import logging
 import math
 import os
 import sys
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -224,7 +225,7 @@ def as_matrix(matrix: Optional[np.ndarray], what: str = "matrix") -> Optional[np
 #: a coordinate step of a 32-bit float file (file units) from which a warning is logged: 1 mm
 FLOAT32_STEP_WARN = 0.001
 _float32_warned: set = set()
-_float32_lock = __import__("threading").Lock()
+_float32_lock = threading.Lock()
 
 
 def float32_precision(path: Path, points: np.ndarray, meta: dict[str, Any]) -> None:
@@ -244,8 +245,7 @@ def float32_precision(path: Path, points: np.ndarray, meta: dict[str, Any]) -> N
         if key in _float32_warned:
             return
         _float32_warned.add(key)
-    shown = f"{step:.3g} m" if step < 1000 else f"{step:.3g}"
     logging.getLogger("forestreg.io").warning(
-        "%s stores x, y, z as 32-bit floats: at coordinates of %.3g its values are only %s apart (file units); "
-        "that precision is lost in the file and no result can be finer (write it with 64-bit floats, or shifted near 0)",
-        Path(path).name, big, shown)
+        "%s stores x, y, z as 32-bit floats: at coordinates of %.3g its values are only %.3g apart (%.3g m in a file "
+        "in metres); that precision is lost in the file and no result can be finer (write it with 64-bit floats, or "
+        "shifted near 0)", Path(path).name, big, step, step)
