@@ -36,7 +36,7 @@ def _stand(n=60, size=30.0, seed=0):
     return np.array(xy), rng.uniform(0.15, 0.45, n), rng.uniform(15.0, 25.0, n)
 
 
-def _resurvey_tables(heading_deg, seed=0, removed=15, new=6, noise_m=0.01):
+def _resurvey_tables(heading_deg, seed=0, removed=15, new=6, noise_m=0.01, shift=(512.0, -300.0, 40.0)):
     """BEFORE and AFTER tables of a synthetic stand: ``removed`` trees nearest the centre gone,
     ``new`` thin trees grown in, 1-3 cm DBH growth, AFTER in a frame turned by ``heading_deg``."""
     rng = np.random.default_rng(seed + 7)
@@ -51,7 +51,7 @@ def _resurvey_tables(heading_deg, seed=0, removed=15, new=6, noise_m=0.01):
     a_xy = np.vstack([xy[keep], np.reshape(new_xy, (-1, 2))]) + rng.normal(0, noise_m, (len(keep) + new, 2))
     a_dbh = np.concatenate([dbh[keep] + rng.uniform(0.01, 0.03, len(keep)), rng.uniform(0.07, 0.1, new)])
     a_h = np.concatenate([h[keep] + 2.0, rng.uniform(5, 8, new)])
-    frame = frame_matrix(heading_deg, (512.0, -300.0, 40.0))  # p_before = frame @ p_after
+    frame = frame_matrix(heading_deg, shift)  # p_before = frame @ p_after
     inv = np.linalg.inv(frame)
     a_local = np.column_stack([a_xy, np.zeros(len(a_xy)), np.ones(len(a_xy))]) @ inv.T
     order = rng.permutation(len(a_xy))
@@ -90,6 +90,19 @@ def test_stems_register_from_any_heading_and_trees_are_matched(heading):
     growth = [t.dbh_change_m for t in result.trees if t.status == "persisting"]
     assert all(0.0 < g < 0.035 for g in growth)
     assert result.uncertainty["translation_m"] > 0 and result.uncertainty["rotation_deg"] > 0
+
+
+def test_georeferenced_after_survey(tmp_path):
+    """AFTER in UTM-like coordinates (half a million metres): the matrix in file coordinates."""
+    before, after, truth = _resurvey_tables(-48.0, seed=3, shift=(-512345.6, -5123456.7, -310.2))
+    _write_table(tmp_path / "before.csv", before)
+    _write_table(tmp_path / "after.csv", after)
+    assert _run("change", str(tmp_path / "before.csv"), str(tmp_path / "after.csv"), "--out", str(tmp_path / "out")) == 0
+    m = np.array(json.loads((tmp_path / "out" / "result.json").read_text())["matrix"])
+    probe = np.column_stack([before.xy + before.origin_shift[:2], np.zeros(len(before)), np.ones(len(before))])
+    probe = probe @ np.linalg.inv(truth["frame"]).T
+    assert np.abs(probe[:, 0]).min() > 1e5  # the AFTER file's coordinates are large
+    assert np.abs(probe @ m.T - probe @ truth["frame"].T).max() < 0.03
 
 
 def test_unrelated_plots_and_too_few_persisting_stems_are_refused():

@@ -389,3 +389,299 @@ def test_edits_replayed_on_another_cloud_of_the_same_size_are_refused(tmp_path, 
         E.apply_edits(other, inv, read, params)
     assert "another cloud" in str(info.value) and "\n" not in str(info.value)
     assert _tree(tmp_path / "edited") == files
+
+
+# ----------------------------------------------------------------------------- plot and batch
+
+
+def _garbage_las(path: Path) -> Path:
+    path.write_bytes(b"LASF" + b"\x00" * 50)
+    return path
+
+
+def test_an_unreadable_centre_scan_is_never_ok_and_a_readable_centre_is_taken(tiny, tmp_path):
+    """Row 4: ``plot garbage.laz A B`` reported the unreadable scan "ok" with an identity matrix
+    and registered nothing. Now a readable scan is the centre, the unreadable one is "failed"
+    with its reason, the others are registered, and the exit code is 1 (not everything asked
+    for succeeded)."""
+    _, paths = tiny
+    garbage = _garbage_las(tmp_path / "aaa_garbage.laz")
+    inputs = [garbage, *paths]
+    before = {p: _hash(p) for p in inputs}
+    run = _run("plot", *inputs, "--out", tmp_path / "out")
+    assert run.returncode == 1, run.stderr
+    assert "Traceback" not in run.stderr
+    poses = json.loads((tmp_path / "out" / "poses.json").read_text())
+    assert poses["frame"] == paths[0].name
+    bad = poses["scans"][garbage.name]
+    assert bad["status"] == "failed" and bad["matrix"] is None and "too short" in bad["reason"]
+    assert all(poses["scans"][p.name]["status"] == "ok" for p in paths), poses["scans"]
+    assert "3 of 4 scans registered" in run.stderr
+    assert {p: _hash(p) for p in inputs} == before
+
+
+def test_no_thread_of_a_plot_run_outlives_it(tiny, tmp_path):
+    """Row 10 (the cause): the thread preparing the next scan ahead still ran (importing modules)
+    when the plot went on to import open3d, whose import walks ``sys.modules``: "dictionary
+    changed size during iteration" one run in three. A run now ends with its threads."""
+    import threading
+
+    from forestreg.engine.tls.plot import ScanCache, register_project
+    from forestreg.engine.tls.project import Project
+
+    _, paths = tiny
+    project = Project()
+    for p in [_garbage_las(tmp_path / "aaa_garbage.laz"), *paths]:
+        project.add_scan(p)
+    before = {t for t in threading.enumerate()}
+    scans = ScanCache(project)
+    scans._small = True  # small scans: the next link's scan is prepared ahead in a thread
+    register_project(project, scans=scans)
+    left = [t.name for t in threading.enumerate() if t not in before and t.name in ("forestreg-prepare-ahead", "forestreg-pair")]
+    assert left == []
+
+
+@pytest.fixture
+def plots_dir(tiny, tmp_path):
+    """A batch's plots folder: p1 with an unreadable scan first in name order (the centre), p2
+    with good scans only; each holding a user's notes.txt and field.csv."""
+    import shutil
+
+    _, paths = tiny
+    root = tmp_path / "plots"
+    for name in ("p1", "p2"):
+        (root / name).mkdir(parents=True)
+        for p in paths:
+            shutil.copy(p, root / name / p.name)
+        (root / name / "notes.txt").write_text("windy; tripod moved once\n")
+        (root / name / "field.csv").write_text("tree_id,x,y,dbh_m\n1,0.5,1.5,0.31\n")
+    _garbage_las(root / "p1" / "aaa_garbage.laz")
+    return root
+
+
+def test_batch_takes_only_point_clouds_as_scans_and_skips_its_own_output(plots_dir, tmp_path):
+    """Row 9: every .txt and .csv was taken as a scan (field.csv became the centre, the plot failed,
+    the batch exited 0), and a batch output folder inside PLOTS_DIR became an error plot the next
+    time. Now scans are the files whose content is a point cloud, and the product's own output
+    folders are skipped."""
+    from forestreg.cli import build_parser
+    from forestreg.service.batch import discover_plots
+    from forestreg.service.jobs import use_parser
+
+    use_parser(build_parser)
+    for p in plots_dir.glob("*/field.csv"):  # a user's table named first in name order
+        p.rename(p.with_name("a_field.csv"))
+    tasks = discover_plots(plots_dir, tmp_path / "out")
+    for task in tasks:
+        names = [Path(a).name for a in task.args[1:task.args.index("--out")]]
+        assert "a_field.csv" not in names and "notes.txt" not in names, names
+    before = _tree(plots_dir)
+    out = plots_dir / "batch_out"
+    run = _run("batch", plots_dir, "--out", out, "--workers", "1", "--progress", "jsonl", timeout=900)
+    assert "Traceback" not in run.stderr
+    rows = {r["plot"]: r for r in __import__("csv").DictReader((out / "summary.csv").open())}
+    assert set(rows) == {"p1", "p2"} and rows["p2"]["status"] == "ok", rows
+    after = {k: v for k, v in _tree(plots_dir).items() if not k.startswith("batch_out")}
+    assert after == before
+    tasks = discover_plots(plots_dir, tmp_path / "elsewhere")  # the earlier output is no plot
+    assert sorted(t.name for t in tasks) == ["p1", "p2"]
+
+
+def test_batch_exit_code_is_1_when_a_plot_failed_and_0_when_all_succeeded(plots_dir, tmp_path):
+    """Row 12: 0 only when everything asked for succeeded; 1 when some plot failed (the others
+    written, the failures in summary.csv and on stderr in one line)."""
+    out = tmp_path / "out"
+    run = _run("batch", plots_dir, "--out", out, "--workers", "1", "--progress", "jsonl", timeout=900)
+    assert run.returncode == 1, run.stderr
+    assert "Traceback" not in run.stderr
+    assert "p1" in _assert_one_line(run.stderr)
+    rows = {r["plot"]: r for r in __import__("csv").DictReader((out / "summary.csv").open())}
+    assert rows["p1"]["status"] == "failed" and "aaa_garbage.laz" in rows["p1"]["reason"]
+    assert rows["p2"]["status"] == "ok" and (out / "p2" / "poses.json").is_file()
+    import shutil
+
+    shutil.rmtree(plots_dir / "p1")
+    run = _run("batch", plots_dir, "--out", tmp_path / "out2", "--workers", "1", "--progress", "jsonl", timeout=900)
+    assert run.returncode == 0, run.stderr
+
+
+@pytest.mark.slow
+def test_batch_with_an_unreadable_centre_on_two_workers_ten_times(plots_dir, tmp_path):
+    """Row 10: a batch with an unreadable centre scan on two workers, ten times: never an internal
+    error, always a poses.json for each plot."""
+    for k in range(10):
+        out = tmp_path / f"out{k}"
+        run = _run("batch", plots_dir, "--out", out, "--workers", "2", "--progress", "jsonl", timeout=900)
+        assert "Traceback" not in run.stderr and "internal error" not in run.stderr, run.stderr
+        text = (out / "summary.csv").read_text()
+        assert "internal error" not in text, text
+        assert (out / "p1" / "poses.json").is_file() and (out / "p2" / "poses.json").is_file()
+
+
+# ----------------------------------------------------------------------------- project run
+
+
+def test_project_run_without_out_never_replaces_the_users_files(tiny, tmp_path):
+    """Row 1: ``project run P.json`` without ``--out`` in a folder holding the user's own
+    report.html and poses.json replaced both. Now it writes into a folder of its own beside the
+    project file and the user's files are untouched."""
+    _, paths = tiny
+    folder = tmp_path / "work"
+    folder.mkdir()
+    (folder / "report.html").write_text("<html>my own report</html>\n")
+    (folder / "poses.json").write_text('{"mine": true}\n')
+    project = folder / "P.json"
+    assert main(["project", "create", str(project), str(paths[0]), str(paths[1]), "-q"]) == 0
+    before = {k: v for k, v in _tree(folder).items() if k != "P.json"}
+    inputs = {p: _hash(p) for p in paths}
+    run = _run("project", "run", project, "--progress", "jsonl")
+    assert run.returncode == 0, run.stderr
+    assert "Traceback" not in run.stderr
+    assert {k: v for k, v in _tree(folder).items() if k in before} == before
+    assert (folder / "P_results" / "poses.json").is_file() and (folder / "P_results" / "report.html").is_file()
+    assert {p: _hash(p) for p in paths} == inputs
+
+
+# ----------------------------------------------------------------------------- 32-bit float files
+
+
+def _float32_ply(path: Path, points: np.ndarray) -> Path:
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+              "property float x\nproperty float y\nproperty float z\nend_header\n").encode()
+    path.write_bytes(header + np.ascontiguousarray(points, dtype="<f4").tobytes())
+    return path
+
+
+def test_utm_sized_float32_plys_are_warned_about_before_the_work(tiny, tmp_path):
+    """Row 13: two UTM-sized float32 PLYs (5.2e6 m: the file holds 0.5 m steps) gave "the VOP
+    match was chance" and nothing more. Now a warning names the precision lost in each file before
+    the registration starts; the files are unchanged."""
+    from forestreg.engine.io import read_scan
+
+    _, paths = tiny
+    shift = np.array([512_345.0, 5_212_345.0, 100.0])
+    plys = [_float32_ply(tmp_path / f"utm_{k}.ply", read_scan(p).file_points + shift) for k, p in enumerate(paths[:2])]
+    before = {p: _hash(p) for p in plys}
+    run = _run("register", *plys, "--out", tmp_path / "out", "--progress", "jsonl")
+    assert "Traceback" not in run.stderr
+    lines = run.stderr.splitlines()
+    warned = [k for k, line in enumerate(lines) if "32-bit floats" in line]
+    assert len(warned) == 2, run.stderr
+    assert all("only 0.5 apart (0.5 m in a file in metres)" in lines[k] for k in warned), run.stderr
+    first_step = next((k for k, line in enumerate(lines) if line.startswith("{") and '"registering' in line.lower()), len(lines))
+    assert max(warned) < first_step or first_step == len(lines)
+    assert {p: _hash(p) for p in plys} == before
+
+
+def test_text_ply_with_float_properties_keeps_its_digits(tmp_path):
+    """An ASCII PLY declaring float x, y, z holds the digits as written: read as float64, no warning."""
+    from forestreg.engine.io import read_scan
+
+    path = tmp_path / "ascii.ply"
+    rows = "\n".join(f"{5212345.125 + k:.3f} {512345.5:.3f} {100.25 + k:.3f}" for k in range(200))
+    path.write_text(f"ply\nformat ascii 1.0\nelement vertex 200\nproperty float x\nproperty float y\nproperty float z\nend_header\n{rows}\n")
+    scan = read_scan(path)
+    assert np.allclose(scan.file_points[:2, 0], [5212345.125, 5212346.125], atol=1e-6)
+    assert "float32_step" not in scan.meta
+
+
+# ----------------------------------------------------------------------------- trees
+
+
+def test_trees_without_cylinders_writes_no_empty_folder_and_says_why_no_volume(tmp_path):
+    """Row 17: ``trees --no-cylinders`` left an empty ``cylinders/`` folder and said "0 with
+    volume" without saying why. Now there is no such folder and the summary says volumes were not
+    asked for."""
+    from forestreg.engine.io import write_scan
+    from forestreg.engine.simulate import simulate_plot
+
+    plot = simulate_plot("planted_conifer", [(0.0, 0.0)], seed=3, angular_step_deg=0.5, size_m=14.0)
+    cloud = tmp_path / "cloud.laz"
+    write_scan(plot.scans[0].scan, cloud)
+    before = _hash(cloud)
+    run = _run("trees", cloud, "--out", tmp_path / "out", "--no-cylinders", "--no-report")
+    assert run.returncode == 0, run.stderr
+    assert "Traceback" not in run.stderr
+    assert (tmp_path / "out" / "trees.csv").is_file() and not (tmp_path / "out" / "cylinders").exists()
+    summary = [line for line in run.stdout.splitlines() if "found" in line]
+    assert summary and "volume not asked for" in summary[-1] and "0 with volume" not in summary[-1], run.stdout
+    assert _hash(cloud) == before
+
+
+def test_ctrl_c_during_a_batch_keeps_the_finished_plots_and_says_so(plots_dir, tiny, tmp_path):
+    """Row 11: Ctrl-C during ``batch`` gave exit 130 with two worker tracebacks and "the output was
+    left as it was before the run" although the finished plots were kept. Now: exit 130, no
+    traceback, one line saying how many plots finished and were kept; their folders are whole."""
+    import shutil
+
+    for name in ("p3", "p4"):
+        shutil.copytree(plots_dir / "p2", plots_dir / name)
+    before = _tree(plots_dir)
+    out = tmp_path / "out"
+    proc = subprocess.Popen([*CLI, "batch", str(plots_dir), "--out", str(out), "--workers", "2", "--progress", "jsonl"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), start_new_session=True)
+    try:
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline and not list(out.glob("*/batch.json")) and proc.poll() is None:
+            time.sleep(0.2)
+        assert proc.poll() is None, "the batch ended before it could be interrupted"
+        time.sleep(1.0)
+        os.killpg(proc.pid, signal.SIGINT)  # as the terminal does: the whole process group
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err, err
+    line = _assert_one_line(err)
+    assert "kept" in line and "left as it was" not in line, line
+    finished = [p.parent for p in out.glob("*/batch.json")]
+    assert finished and all((p / "poses.json").is_file() for p in finished)
+    assert _tree(plots_dir) == before
+
+
+# ----------------------------------------------------------------------------- the desktop
+
+
+def test_desktop_names_moved_scans_and_relinks_them(qtbot, window, tiny, tmp_path):
+    """Row 15: a project whose scans were moved opened with exit 0, the tree said "registered",
+    the 3D view was grey and nothing offered to relink. Now the window names the missing files,
+    the tree says "file missing", and File > Relink missing scans points the project at the
+    folder that holds them now (the files themselves are never touched)."""
+    import shutil
+
+    from forestreg.app.plot import Project
+
+    _, paths = tiny
+    old = tmp_path / "old"
+    old.mkdir()
+    for p in paths:
+        shutil.copy(p, old / p.name)
+    project = Project(name="moved")
+    for p in paths:
+        project.add_scan(old / p.name)
+    saved = project.save(tmp_path / "moved.json")
+    new = tmp_path / "new" / "scans"
+    new.parent.mkdir()
+    shutil.move(str(old), str(new))
+    files = _tree(new)
+    project_bytes = _hash(saved)
+    assert window.open_project(saved)
+    title, message, _ = window.last_error
+    assert title == "Scans not found" and all(p.name in message for p in paths) and "Relink" in message
+    model = window.model
+
+    def status(name: str) -> str:
+        index = model.index_of_scan(name)
+        return model.itemFromIndex(index.siblingAtColumn(1)).text()
+
+    assert [status(p.name) for p in paths] == ["file missing"] * 3
+    assert window.act_relink.isEnabled() and window.act_relink in window.menuBar().actions()[0].menu().actions()
+    qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
+    assert window.relink_scans(new.parent) == [p.name for p in paths]  # found one level down
+    assert window.missing_scans() == [] and window.last_error is None
+    assert [status(p.name) for p in paths] != ["file missing"] * 3
+    assert all(s.path == (new / s.path.name).resolve() for s in window.project.scans)
+    assert window.dirty
+    qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
+    assert _tree(new) == files and _hash(saved) == project_bytes

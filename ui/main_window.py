@@ -186,6 +186,8 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self.act_save = a("&Save project", self._save, QKeySequence.StandardKey.Save, "Save the project")
         self.act_save_as = a("Save project &as\u2026", self._ask_save_as, QKeySequence("Ctrl+Shift+S"), "Save the project to another file")
         self.act_add = a("&Add scans\u2026", self._ask_add_scans, QKeySequence("Ctrl+I"), "Add scan files (LAS, LAZ, PLY, PCD, E57, XYZ)")
+        self.act_relink = a("Re&link missing scans\u2026", self._ask_relink, None,
+                            "Point the project's scans that were moved at the folder that holds them now")
         self.act_export_poses = a("Export &transforms and poses\u2026", self._ask_export_poses, QKeySequence("Ctrl+E"),
                                   "Write poses.json and one <scan>.transform.txt per registered scan")
         self.act_export_merged = a("Export &merged LAZ\u2026", self._ask_export_merged, None, "Write all registered scans into one LAZ file")
@@ -241,6 +243,7 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         m.addAction(self.act_save_as)
         m.addSeparator()
         m.addAction(self.act_add)
+        m.addAction(self.act_relink)
         m.addSeparator()
         for act in (self.act_export_poses, self.act_export_merged, self.act_export_scans, self.act_export_e57, self.act_export_report):
             m.addAction(act)

@@ -8,6 +8,8 @@ either survey gets a status:
   stem points (it was occluded or not measured there: flagged, its values there left empty);
 - ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
 - ``new``: a stem of the later survey whose place the earlier survey saw without a stem;
+- (a stem found in one survey alone, without a DBH and without points of its own 1.0-1.6 m above
+  the ground, is left out: no evidence of a tree removed or grown in);
 - ``outside``: the other survey did not cover the place: outside its footprint (a cloud's points,
   holes such as a harvest gap filled; a table's stems, their hull grown by 2 m) or, for a tree of
   the later survey, without any point of the earlier one near it: not compared.
@@ -81,9 +83,10 @@ def _apply(matrix: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ matrix[:3, :3].T + matrix[:3, 3]
 
 
-def _stem_points_at(epoch: EpochTrees, xy: np.ndarray, ground_z: np.ndarray, radius: np.ndarray, index) -> np.ndarray:
-    """Points of ``epoch``'s stem band 1-2.5 m above the ground within ``radius`` + 5 cm of each
-    position (its own local frame). ``index``: a cKDTree of the band's xy."""
+def _stem_points_at(epoch: EpochTrees, xy: np.ndarray, ground_z: np.ndarray, radius: np.ndarray, index,
+                    heights: tuple[float, float] = (1.0, 2.5)) -> np.ndarray:
+    """Points of ``epoch``'s stem band ``heights`` above the ground within ``radius`` + 5 cm of
+    each position (its own local frame). ``index``: a cKDTree of the band's xy."""
     out = np.zeros(len(xy), dtype=np.int64)
     if index is None:
         return out
@@ -91,7 +94,7 @@ def _stem_points_at(epoch: EpochTrees, xy: np.ndarray, ground_z: np.ndarray, rad
         near = np.asarray(index.query_ball_point(xy[k], float(radius[k]) + 0.05), dtype=np.int64)
         if len(near):
             h = epoch.band_heights[near]
-            out[k] = int(np.count_nonzero((h >= 1.0) & (h <= 2.5)))
+            out[k] = int(np.count_nonzero((h >= heights[0]) & (h <= heights[1])))
     return out
 
 
@@ -118,9 +121,13 @@ def _curve_change(cb: Optional[tuple[np.ndarray, np.ndarray]], ca: Optional[tupl
     return float(np.median(da[ok] - db[ok])), int(np.count_nonzero(ok))
 
 
-def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, params: ChangeParams = ChangeParams()) -> list[TreeChange]:
+def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, params: ChangeParams = ChangeParams(),
+                skipped: Optional[list] = None) -> list[TreeChange]:
     """Every tree of both surveys with its status and values (module docstring). ``matrix``:
-    ``p_before = matrix @ p_after`` (local frames). Ordered: persisting, removed, new, outside."""
+    ``p_before = matrix @ p_after`` (local frames). Ordered: persisting, removed, new, outside.
+    Stems found in one survey alone without a DBH (nothing measured at breast height) are left
+    out; ``skipped`` (a list) receives one entry per such stem."""
+    skipped = [] if skipped is None else skipped
     from scipy.spatial import cKDTree
 
     inv = np.linalg.inv(matrix)
@@ -137,6 +144,7 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
 
     band_b, cover_b = indexes(before)
     band_a, _ = indexes(after)
+
     out: list[TreeChange] = []
 
     def radius(epoch: EpochTrees, k: int) -> float:
@@ -146,6 +154,16 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     for b, a in pairs:
         out.append(_persisting(before, after, int(b), int(a), float(np.hypot(*(after_in_b[a, :2] - before.xy[b]))), params))
     # --- stems of BEFORE alone: removed, not found in AFTER, or outside AFTER
+    # a stem of one survey alone without a DBH and without points of its own at 1.0-1.6 m is
+    # no evidence of a tree removed or grown in (a crown part or branch whorl taken for a stem):
+    # left out, counted
+    for epoch, paired, band in ((before, paired_b, band_b), (after, paired_a, band_a)):
+        alone = np.array([k for k in sorted(set(range(len(epoch))) - paired) if not math.isfinite(epoch.dbh_m[k])], dtype=np.int64)
+        if len(alone) and epoch.has_points:
+            own = _stem_points_at(epoch, epoch.xy[alone], epoch.ground_z[alone], np.full(len(alone), 0.15), band, (1.0, 1.6))
+            alone = alone[own < params.presence_points]
+        skipped.extend(int(k) for k in alone)
+        paired |= set(alone.tolist())
     rest_b = np.array(sorted(set(range(len(before))) - paired_b), dtype=np.int64)
     if len(rest_b):
         where = before_in_a[rest_b, :2]
