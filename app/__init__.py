@@ -18,5 +18,6 @@ matrix, the files' unit) and the transactional writing of the output folder happ
 ``trees``              tree detection and measurement (``trees``)
 ``evaluation``         trees against field records (``evaluate``)
 ``simulation``         simulated scans and plots with their truth (``simulate``, ``demo``)
+``change``             two surveys of one plot compared tree by tree (``change``)
 =====================  ==========================================================
 """

@@ -135,14 +135,17 @@ def edit_notes(base, steps) -> dict:
 def save_edited(folder, inventory, notes, edits, points=None, *, report: bool = True) -> Path:
     """Write the edited inventory like ``forestreg trees`` (with the points: also the report),
     then add an ``edited`` column to ``trees.csv`` (the notes of each tree's edits, "" for the
-    others) and the edits as ``edits.json`` (replayable with
-    :func:`~forestreg.engine.trees.edit.apply_edits`). Returns the trees.csv path."""
+    others) and the edits as ``edits.json`` with the content hash of the cloud they were made on
+    (replayable on that cloud with :func:`~forestreg.engine.trees.edit.apply_edits`). Returns the
+    trees.csv path."""
     from ..engine.io.results import write_edits
+    from ..engine.trees.edit import cloud_digest
 
     path = inventory.write(folder)
     if report and points is not None:
         from ..engine.report.trees_report import write_inventory_report
 
         write_inventory_report(folder, inventory, points)
-    write_edits(path, notes, [e.to_dict() for e in edits])
+    cloud = None if points is None else {"points": int(len(points)), "sha256": cloud_digest(points)}
+    write_edits(path, notes, [e.to_dict() for e in edits], cloud)
     return path

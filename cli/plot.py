@@ -67,7 +67,7 @@ def add_parsers(sub, add_global_flags) -> None:
     q.set_defaults(func=cmd_project, long_running=False)
     q = psub.add_parser("run", help="register the project's scans (links that succeeded are kept unless --rerun)")
     q.add_argument("project", help="project file (.json)")
-    q.add_argument("--out", help="output folder (default: the project's folder)")
+    q.add_argument("--out", help="output folder (default: the project's folder when forestreg made it, else <project>_results beside the project file)")
     q.add_argument("--rerun", action="store_true", help="run every link again")
     q.add_argument("--pairs", metavar="all|within:D|centre", help="register every pair (or those within D m), pose graph, inconsistent links dropped, uncertainty per pose")
     q.add_argument("--fixed", action="append", metavar="SCAN,...", help="scans held at their prior poses (with --pairs)")
@@ -221,8 +221,22 @@ def cmd_project(args: argparse.Namespace) -> int:
     if args.out:
         out = plot_folder(args.out, inputs)
     else:
-        out = project.path.parent
+        out = _default_project_out(project, inputs)
     return run_project(project, out, args)
+
+
+def _default_project_out(project, inputs) -> Path:
+    """Where ``project run`` without ``--out`` writes: the project's folder when it is an output
+    folder of forestreg (a plot's, holding its project.json), else ``<project>_results`` beside
+    the project file; never over a user's own files (a report.html or poses.json of theirs)."""
+    from ..app.plot import plot_folder
+    from ..engine.core.atomic import MARKER
+
+    folder = project.path.parent
+    if (folder / MARKER).is_file():
+        return plot_folder(folder, inputs)
+    out = folder / f"{project.path.stem}_results"
+    return plot_folder(out, inputs)
 
 
 def cmd_compare(args: argparse.Namespace) -> int:

@@ -370,10 +370,10 @@ def write_trees_tables(out_dir: PathLike, inventory: Any, *, unit_scale: float =
                 "x": centre[0], "y": centre[1], "z": centre[2], "reason": c.reasons[k],
             })
     write_text_atomic(out / "stem_curves.csv", csv_text(STEM_CURVE_COLUMNS, curve_rows))
-    cyl_dir = out / "cylinders"
-    cyl_dir.mkdir(exist_ok=True)
+    cyl_dir = out / "cylinders"  # only when a tree has a cylinder model: no empty folder
     for t in inventory.trees:
         if t.cylinders is not None:
+            cyl_dir.mkdir(exist_ok=True)
             table = dict(t.cylinders.to_table())
             start = (t.cylinders.start + shift) / unit_scale
             table.update(start_x=start[:, 0], start_y=start[:, 1], start_z=start[:, 2])
@@ -441,9 +441,11 @@ class TreeTablesFile:
         return write_trees_tables(out_dir, self, unit_scale=unit_scale)
 
 
-def write_edits(trees_csv: PathLike, notes: Mapping[int, str], edits: Sequence[Mapping[str, Any]]) -> None:
+def write_edits(trees_csv: PathLike, notes: Mapping[int, str], edits: Sequence[Mapping[str, Any]],
+                cloud: Optional[Mapping[str, Any]] = None) -> None:
     """Add an ``edited`` column to ``trees_csv`` (the note of each tree's edits, "" for the others)
-    and write the edits (their dicts) as ``edits.json`` beside it (replayable)."""
+    and write the edits (their dicts) as ``edits.json`` beside it (replayable), with ``cloud``
+    (``points`` and ``sha256`` of the cloud they were made on, or None)."""
     path = Path(trees_csv)
     text = path.read_text(encoding="utf-8")
     rows = list(csv.reader(io.StringIO(text)))
@@ -461,7 +463,8 @@ def write_edits(trees_csv: PathLike, notes: Mapping[int, str], edits: Sequence[M
         csv.writer(buf, lineterminator="\n").writerows(rows)
         write_text_atomic(path, buf.getvalue())
     write_text_atomic(path.parent / "edits.json",
-                      json.dumps({"format": "forestreg-tree-edits", "version": 1, "edits": list(edits)}, indent=2) + "\n")
+                      json.dumps({"format": "forestreg-tree-edits", "version": 1, "cloud": None if cloud is None else dict(cloud),
+                                  "edits": list(edits)}, indent=2) + "\n")
 
 
 def write_poses_files(out_dir: PathLike, body: Mapping[str, Any], transforms: Mapping[str, str]) -> Path:

@@ -158,6 +158,8 @@ class TreeInventory(TreeTablesFile, Outcome):
     method: str = "fine"
     #: why the cloud was (or was not) taken as a single tree, one line ("" when not decided)
     single_tree_reason: str = ""
+    #: whether volumes were asked for (cylinder models fitted); False: no ``cylinders/`` folder
+    volume_asked: bool = True
     #: "ok", or "failed" when the data do not allow any tree (the reason says why)
     status: str = "ok"
     reason: str = ""
@@ -191,7 +193,8 @@ class TreeInventory(TreeTablesFile, Outcome):
         canopy = sum(1 for t in self.trees if t.source == "canopy")
         if self.method != "canopy" and canopy:
             how += f" and {canopy} from the canopy"
-        return f"{n} tree{'' if n == 1 else 's'} found {how}: {dbh} with DBH, {h} with height, {vol} with volume; {flagged} flagged"
+        volume = f"{vol} with volume" if self.volume_asked else "volume not asked for (no cylinder models)"
+        return f"{n} tree{'' if n == 1 else 's'} found {how}: {dbh} with DBH, {h} with height, {volume}; {flagged} flagged"
 
     def rows(self) -> list[dict[str, Any]]:
         return [t.row(self.origin_shift) for t in self.trees]
@@ -370,7 +373,7 @@ def _measure_trees(
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=wood, ground=model.ground, dem=model.dem,
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method=method,
+        timings=timings, method=method, volume_asked=params.cylinder_models,
     )
 
 
@@ -652,7 +655,7 @@ def _canopy_inventory(
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=np.zeros(len(p)), ground=model.ground,
         dem=model.dem, origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method="canopy",
+        timings=timings, method="canopy", volume_asked=params.cylinder_models,
     )
 
 
@@ -850,6 +853,6 @@ def _single_tree_inventory(
     return TreeInventory(
         trees=[record], labels=labels, heights=heights, wood_probability=wood, ground=ground, dem=model.dem,
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method="single",
+        timings=timings, method="single", volume_asked=params.cylinder_models,
         single_tree_reason=evidence.reason if evidence.single else f"taken as one tree as asked, though {evidence.reason}",
     )
