@@ -168,6 +168,8 @@ class TreeInventory:
     method: str = "fine"
     #: why the cloud was (or was not) taken as a single tree, one line ("" when not decided)
     single_tree_reason: str = ""
+    #: whether volumes were asked for (cylinder models fitted); False: no ``cylinders/`` folder
+    volume_asked: bool = True
 
     def summary(self) -> str:
         """One line: trees found, measured (DBH, height, volume) and flagged."""
@@ -181,7 +183,8 @@ class TreeInventory:
         canopy = sum(1 for t in self.trees if t.source == "canopy")
         if self.method != "canopy" and canopy:
             how += f" and {canopy} from the canopy"
-        return f"{n} tree{'' if n == 1 else 's'} found {how}: {dbh} with DBH, {h} with height, {vol} with volume; {flagged} flagged"
+        volume = f"{vol} with volume" if self.volume_asked else "volume not asked for (no cylinder models)"
+        return f"{n} tree{'' if n == 1 else 's'} found {how}: {dbh} with DBH, {h} with height, {volume}; {flagged} flagged"
 
     def rows(self) -> list[dict[str, Any]]:
         return [t.row(self.origin_shift) for t in self.trees]
@@ -212,10 +215,10 @@ class TreeInventory:
         write_text_atomic(out / "stem_curves.csv", _csv(
             ("tree_id", "s_m", "height_m", "diameter_m", "raw_diameter_m", "accepted", "interpolated", "x", "y", "z", "reason"),
             curve_rows))
-        cyl_dir = out / "cylinders"
-        cyl_dir.mkdir(exist_ok=True)
+        cyl_dir = out / "cylinders"  # only when a tree has a cylinder model: no empty folder
         for t in self.trees:
             if t.cylinders is not None:
+                cyl_dir.mkdir(exist_ok=True)
                 shifted = dataclasses.replace(t.cylinders, start=(t.cylinders.start + self.origin_shift) / unit_scale)
                 shifted.write_csv(cyl_dir / f"tree_{t.tree_id:04d}.csv")
         if report and points is not None:
@@ -391,7 +394,7 @@ def measure_trees(
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=wood, ground=model.ground, dem=model.dem,
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method=method,
+        timings=timings, method=method, volume_asked=params.cylinder_models,
     )
 
 
@@ -703,7 +706,7 @@ def _canopy_inventory(
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=np.zeros(len(p)), ground=model.ground,
         dem=model.dem, origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method="canopy",
+        timings=timings, method="canopy", volume_asked=params.cylinder_models,
     )
 
 
@@ -926,6 +929,6 @@ def _single_tree_inventory(
     return TreeInventory(
         trees=[record], labels=labels, heights=heights, wood_probability=wood, ground=ground, dem=model.dem,
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method="single",
+        timings=timings, method="single", volume_asked=params.cylinder_models,
         single_tree_reason=evidence.reason if evidence.single else f"taken as one tree as asked, though {evidence.reason}",
     )
