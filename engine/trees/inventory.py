@@ -556,6 +556,11 @@ def tree_record(
         flags.append(shared_flag)
         h_trust = _trust(h_trust, "low")
         h_how += ", top shared with a taller neighbour"
+    elif math.isfinite(dbh_value) and dbh_value > 0 and crown.height_m / dbh_value > MAX_SLENDERNESS:
+        flags.append(f"height {crown.height_m:.1f} m on a {100 * dbh_value:.0f} cm stem (slenderness {crown.height_m / dbh_value:.0f}, "
+                     f"beyond {MAX_SLENDERNESS:.0f}): the top may be a neighbour's (height unsure)")
+        h_trust = _trust(h_trust, "low")
+        h_how += ", too tall for its stem"
     quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
     if "stem cut by the plot edge" in reasons and math.isfinite(dbh_value) and not quality["dbh"].endswith(("low", "none")):
         quality["dbh"] = quality["dbh"].rsplit("; ", 1)[0] + ", stem cut by the plot edge; low"
@@ -607,6 +612,11 @@ def tree_record(
     )
 
 
+#: Height over DBH (both in metres) beyond which a stem hardly stands: a thin tree measured taller
+#: has a neighbour's crown for its top (suppressed trees under a neighbour), or its DBH is wrong.
+MAX_SLENDERNESS = 140.0
+
+
 def _flags_that_matter(flags: Sequence[str], quality: dict[str, str]) -> list[str]:
     """The flags, or none when every value of the tree is trusted (high or medium): a flag says
     that a value is weak, and a tree whose values all stand is not flagged (a volume not asked for
@@ -636,7 +646,8 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
                  columns: ColumnIndex) -> dict[int, str]:
     """Trees whose top is not their own or was not seen: points of no tree stand above the top
     (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
-    stand above the top (within 1 m horizontally, more than 1 m higher), or the top lies nearer
+    stand above the top (within 1 m horizontally, more than 1 m higher), thicker neighbours' points
+    surround the top at its level (:data:`SHARED_TOP_MIN_POINTS`), or the top lies nearer
     (horizontally) to a taller neighbour's stem than to its own. Returns {tree id: flag}.
     ``columns``: a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of ``p`` for the few
     disc queries (two k-d trees of the xy of the tree points and of the others took ~110 MB for
@@ -672,7 +683,7 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
             ids, counts = np.unique(labels[amid], return_counts=True)
             thicker = [(int(c), int(i)) for i, c in zip(ids, counts) if int(i) in radius and radius[int(i)] > radius[s.id]]
             if thicker and sum(c for c, _ in thicker) >= SHARED_TOP_MIN_POINTS:
-                out[s.id] = f"top amid the crown of thicker tree {max(thicker)[1]}: height unsure (the top may be its)"
+                out[s.id] = f"top amid the crown of thicker tree {max(thicker)[1]}: height unsure (the top may be that tree's)"
                 continue
         own = float(np.hypot(*(top[:2] - pos[s.id])))
         for o in stems:
@@ -832,7 +843,7 @@ def _add_canopy_trees(
         trust = "low" if (no_ground or ct.beside_taller or far) else "high"
         quality["height"] = f"highest point of its canopy segment above the stem's ground; {trust}"
         quality["crown"] = "crown segment of the canopy height model; medium"
-        flags = [f for f in r.flags if not f.startswith(("top ", "points of no tree", "crown:", "too few crown"))]
+        flags = [f for f in r.flags if not f.startswith(("top ", "points of no tree", "crown:", "too few crown", "height "))]
         if ct.beside_taller:
             flags.append("top beside a taller crown: height unsure (tops not separable)")
         if far:
