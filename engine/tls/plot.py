@@ -26,6 +26,7 @@ from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanRe
 from ..core.atomic import write_text_atomic
 from ..io import read_scan, write_point_chunks
 from ..io.las import intensity_to_uint16
+from ..core.imports import import_open3d
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, LinkResult, Project, ScanEntry
 from .pair import SEQUENTIAL_PREPARE_POINTS, register
@@ -192,7 +193,10 @@ class ScanCache:
         if name not in self._scans and entry.path.suffix.lower() in (".las", ".laz"):
             import laspy
 
+            from ..io.las import check_las_header
+
             try:
+                check_las_header(entry.path)  # a damaged header is not handed to laspy (see _file_scan_bytes)
                 with laspy.open(str(entry.path)) as f:
                     lo, hi = np.asarray(f.header.mins, dtype=float), np.asarray(f.header.maxs, dtype=float)
                 # some writers leave the bounds empty (zeros) or wrong way round: read the points then
@@ -228,12 +232,11 @@ def _file_scan_bytes(path: Path) -> int:
     from its header; 0 for other formats or an unreadable header (the read then says why)."""
     if Path(path).suffix.lower() not in (".las", ".laz"):
         return 0
-    import laspy
+    from ..io.las import check_las_header
 
-    try:
-        with laspy.open(str(path)) as f:
-            return int(f.header.point_count) * _FILE_BYTES_PER_POINT
-    except Exception:  # an odd header: no estimate
+    try:  # the header checked first: laspy itself would walk a damaged header's VLR counts (GBs)
+        return check_las_header(Path(path))[0] * _FILE_BYTES_PER_POINT
+    except Exception:  # an odd header: no estimate (the read says what is wrong)
         return 0
 
 
@@ -687,7 +690,7 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
     if len(links) <= len(names) - 1:
         project.adjustment = None
         return None
-    import open3d as o3d
+    o3d = import_open3d()
     scans = scans or ScanCache(project)
     index = {n: i for i, n in enumerate(names)}
     reg = o3d.pipelines.registration
