@@ -164,7 +164,9 @@ def detect_change(
                    "method": unc.get("method")}
     t = time.perf_counter()
     progress(0.6, "matching trees")
-    trees = match_trees(before, after, local, params)
+    skipped: list = []
+    trees = match_trees(before, after, local, params, skipped)
+    figures["single_stems_without_dbh"] = len(skipped)
     timings["trees_match_s"] = time.perf_counter() - t
     progress(1.0, "done")
     return ChangeResult("ok", "", file_matrix(before, after, local), local, uncertainty, tuple(trees), figures,
