@@ -134,6 +134,25 @@ def test_implausible_dbh_change_is_not_a_persisting_stem():
     assert sorted(t.status for t in at) == ["new", "removed"]
 
 
+def test_uncertain_values_are_flagged_and_their_change_withheld():
+    """A DBH of medium trust in one survey (1 sigma 12 mm) gives a change too uncertain to tell
+    growth: withheld and flagged; a height whose top was unseen gives no height change."""
+    xy, dbh, h = _stand(seed=6)
+    before = _table_epoch(xy, dbh, h)
+    rows = [{"tree_id": k + 1, "x": x, "y": y, "z": 0.0, "dbh_m": d + 0.02, "height_m": hh + 2.0, "source": "stem",
+             "dbh_quality": "stem curve; medium" if k == 0 else "stem curve; high",
+             "height_quality": "top; low" if k == 1 else "top; high", "flag": ""}
+            for k, ((x, y), d, hh) in enumerate(zip(xy, dbh, h))]
+    result = detect_change(before, epoch_from_table(rows))
+    assert result.ok
+    shift = result.origin_shift[:2]
+    by_pos = {int(np.argmin(np.hypot(*(xy - ([t.x, t.y] + shift)).T))): t for t in result.trees}
+    first, second, third = by_pos[0], by_pos[1], by_pos[2]
+    assert math.isnan(first.dbh_change_m) and "withheld" in first.flag and math.isfinite(first.dbh_after_m)
+    assert math.isnan(second.height_change_m) and "height not supported in AFTER" in second.flag
+    assert abs(third.dbh_change_m - 0.02) < 1e-3 and abs(third.height_change_m - 2.0) < 1e-3 and third.flag == ""
+
+
 def test_grow_scene_truth():
     from forestreg.engine.simulate import make_scene
 

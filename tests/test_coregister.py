@@ -493,6 +493,7 @@ def test_real_tilted_mls_onto_a_leaf_on_uls_like_cloud(shared_data, heading):
     ev = result.coarse
     assert 1.2 < ev.tilt_deg < 1.8  # the SLAM tilt, estimated
     assert ev.stem_layer_points >= 100 and ev.stem_layer_agreement > 0.8
+    assert "stems" in ev.decided_by and "decided by the" in result.summary()
     assert ev.terrain_points >= 100 and ev.terrain_tilt_deg < 1.0
     d = result.to_dict()
     assert d["evidence"]["coarse"]["stem_layer_agreement"] == pytest.approx(ev.stem_layer_agreement)
@@ -527,3 +528,29 @@ def test_a_cloud_onto_itself_has_no_ground_offset(shared_data):
     assert rot < 0.01 and trans < 0.01
     assert abs(result.quality["ground_dz_median_m"]) < 1e-4
     assert "ground offset 0.0 cm" in result.summary()
+    assert set(result.coarse.decided_by) == {"keypoints", "canopy surfaces", "stems"}
+    assert result.to_dict()["evidence"]["coarse"]["decided_by"] == list(result.coarse.decided_by)
+
+
+@pytest.mark.slow
+def test_simulated_leaf_on_uav_and_a_tilted_backpack():
+    """A leaf-on broadleaf stand (the UAV sees the dominant crowns' foliage, the backpack the stems
+    and lower crowns; at most 2 keypoints match) and a backpack map tilted 1.5 deg by its SLAM:
+    within 0.3 deg / 15 cm of the truth, the tilt estimated, the stems deciding."""
+    from forestreg.engine.simulate.platforms import LEAF_ON_BROADLEAF, BackpackSetup
+
+    walk = BackpackSetup(extent_m=16.0, centre=(0.0, 0.0), density_scale=0.04, slam_tilt_deg=1.5, slam_tilt_azimuth_deg=60.0)
+    case = simulate_coregistration_case(
+        "mixed_temperate", seed=7, size_m=34.0, ground_platform="backpack", heading_deg=143.0, offset_m=(-6.0, 6.5, 1.0),
+        uav_density_scale=0.2, backpack_setup=walk, **LEAF_ON_BROADLEAF,
+    )
+    result = coregister(case.ground, case.uav)
+    assert result.ok, result.reason
+    rot, _ = rigid_errors(result.matrix, case.matrix)
+    centre = case.ground.file_points.mean(axis=0)
+    shift = np.linalg.norm((result.matrix[:3, :3] - case.matrix[:3, :3]) @ centre + result.matrix[:3, 3] - case.matrix[:3, 3])
+    print(f"leaf-on simulated: {rot:.4f} deg, {100 * shift:.2f} cm; {result.summary()}")
+    assert rot < 0.3 and shift < 0.15, (rot, shift)
+    assert result.matching_percentage < 15.0  # the keypoints alone would not decide
+    assert abs(result.coarse.tilt_deg - 1.5) < 0.2
+    assert result.coarse.stem_layer_agreement > 0.8 and "stems" in result.coarse.decided_by

@@ -202,8 +202,30 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
             else:
                 why = f"no stem in BEFORE at its place ({present[j]} points)" if before.has_points else "no stem in the BEFORE table at its place"
                 out.append(TreeChange(status="new", **base, flag=_join(why, after.flags[k] and f"AFTER: {after.flags[k]}")))
+    out = _height_outliers(out, params)
     order = {s: i for i, s in enumerate(STATUSES)}
     return sorted(out, key=lambda t: (order[t.status], t.x, t.y))
+
+
+def _height_outliers(trees: list[TreeChange], params: ChangeParams) -> list[TreeChange]:
+    """Height changes far from the stand's (more than ``height_outlier_m`` and 3 robust sigma from
+    the median of the persisting trees, at least 5 of them) are withheld and flagged: a top unseen
+    in one survey or a neighbour's crown taken for the top, not growth."""
+    import dataclasses
+
+    values = np.array([t.height_change_m for t in trees if t.status == "persisting" and math.isfinite(t.height_change_m)])
+    if len(values) < 5:
+        return trees
+    med = float(np.median(values))
+    limit = max(params.height_outlier_m, 3.0 * 1.4826 * float(np.median(np.abs(values - med))))
+    out = []
+    for t in trees:
+        if t.status == "persisting" and math.isfinite(t.height_change_m) and abs(t.height_change_m - med) > limit:
+            t = dataclasses.replace(t, height_change_m=math.nan, height_change_sigma_m=math.nan, flag=_join(
+                t.flag, f"height change withheld: {t.height_change_m:+.1f} m against the stand's {med:+.1f} m "
+                        "(a top unseen in one survey or a neighbour's crown taken for it)"))
+        out.append(t)
+    return out
 
 
 def _join(*parts: str) -> str:
@@ -236,7 +258,10 @@ def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance:
             d_sigma = math.hypot(sb, sa) / math.sqrt(max(1.0, n / 2.0))
         else:
             d_change, d_sigma = da - db, math.hypot(sb, sa)
-        if d_change < -params.max_dbh_decrease_sigma * d_sigma:
+        if d_sigma > params.max_dbh_change_sigma_m:
+            flags.append(f"DBH change withheld: too uncertain (1 sigma {1000 * d_sigma:.0f} mm; partial arcs or noisy stem)")
+            d_change = math.nan
+        elif d_change < -params.max_dbh_decrease_sigma * d_sigma:
             flags.append(f"DBH shrank by {-1000 * d_change:.0f} mm (more than {params.max_dbh_decrease_sigma:g} sigma): check the stem")
     else:
         if not before.dbh_ok[b]:
@@ -251,7 +276,8 @@ def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance:
     else:
         for epoch, k, which in ((before, b, "BEFORE"), (after, a, "AFTER")):
             if not epoch.height_ok[k]:
-                why = "no ground" if "no ground" in epoch.flags[k] else "top unseen" if math.isfinite(epoch.height_m[k]) else "no height"
+                why = ("no ground" if "no ground" in epoch.flags[k] else "top not its own" if "top " in epoch.flags[k] and "unseen" not in epoch.flags[k]
+                       else "top unseen" if math.isfinite(epoch.height_m[k]) else "no height")
                 flags.append(f"height not supported in {which} ({why})")
     return TreeChange(
         status="persisting", x=float(before.xy[b, 0]), y=float(before.xy[b, 1]),
