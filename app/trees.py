@@ -107,6 +107,15 @@ def measure_trees_file(
                         trees=len(inventory.trees))
 
 
+def read_trees_folder(folder):
+    """A ``forestreg trees`` output folder (:class:`~forestreg.engine.io.results.TreesOutput`),
+    its cylinder files read as :class:`~forestreg.engine.trees.qsm.CylinderModel`\ s."""
+    from ..engine.io.results import read_trees_dir
+    from ..engine.trees.qsm import CylinderModel
+
+    return read_trees_dir(folder, cylinder_model=CylinderModel)
+
+
 # ----------------------------------------------------------------------------- edits
 
 

@@ -1,7 +1,7 @@
 """The trees view: a plot map linked to a sortable table of every tree and measure, and the
 selected tree in 3D (its cylinder model, its stem circles, the points around it) with its stem
 curve. It shows a ``forestreg trees --out DIR`` folder read by
-:func:`forestreg.engine.io.results.read_trees_dir`; nothing is measured here.
+:func:`forestreg.app.trees.read_trees_folder`; nothing is measured here.
 
 Flagged trees (incomplete, failed fits, ...) are drawn red on the map and their rows are tinted,
 with the engine's reason in the "Flag" column and as tooltip.
