@@ -317,6 +317,12 @@ def register_project(
             project.save()
     if beside is None:  # the links are done: their ICP search structures go (the caller's queue still needs them)
         scans.prepared.release(("icp_reference",))
+    if not any(link.ok for link in project.links) and project.centre not in scans._frames:
+        try:  # the centre's header looked right but no link could read it: never "ok" unread
+            scans.frame(project.centre)
+        except (ScanReadError, ScanDataError) as exc:
+            outcome.status[project.centre] = "failed"
+            outcome.reasons[project.centre] = str(exc)
     # a scan whose chain to the centre is broken has no pose even if its own link worked
     poses = project.chained_poses()
     for name, pose in poses.items():
@@ -750,6 +756,8 @@ def write_poses(project: Project, out_dir: str | Path, outcome: Optional[PlotOut
     body: dict[str, Any] = {"frame": project.centre, "convention": "p_centre = matrix @ p_scan (file coordinates)", "scans": {}}
     for s in project.scans:
         pose = poses.get(s.name)
+        if outcome is not None and outcome.status.get(s.name) == "failed":
+            pose = None  # e.g. a centre scan that could not be read: no identity matrix for it
         entry: dict[str, Any] = {"status": "ok" if pose is not None else "failed", "matrix": None if pose is None else pose.tolist()}
         if pose is None and outcome is not None and s.name in outcome.reasons:
             entry["reason"] = outcome.reasons[s.name]
