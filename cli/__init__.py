@@ -2,7 +2,7 @@
 
 Every command is a thin wrapper over the engine's API; none holds algorithm code. One module per
 family: :mod:`.register` (pair), :mod:`.plot` (plot, project, compare, targets), :mod:`.coreg`
-(coregister, fuse), :mod:`.trees` (trees, evaluate), :mod:`.misc` (simulate, demo, gui, params), :mod:`.service`
+(coregister, fuse), :mod:`.trees` (trees, evaluate), :mod:`.change` (change), :mod:`.misc` (simulate, demo, gui, params), :mod:`.service`
 (serve, batch);
 :mod:`.common` holds what they share.
 
@@ -43,7 +43,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
-    from . import coreg, misc, plot, register, service, trees, warmup
+    from . import change, coreg, misc, plot, register, service, trees, warmup
 
     parser = _Parser(prog="forestreg", description="Marker-free registration of forest laser scans, co-registration with UAV LiDAR, and tree measurements.")
     parser.add_argument("--version", action="version", version=f"forestreg {__version__}")
@@ -53,6 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_parsers(sub, add_global_flags)
     coreg.add_parsers(sub)
     trees.add_parsers(sub)
+    change.add_parsers(sub)
     misc.add_parsers(sub)
     service.add_parsers(sub)
     warmup.add_parser(sub)

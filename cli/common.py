@@ -16,8 +16,7 @@ from typing import Optional
 
 log = logging.getLogger("forestreg")
 
-#: Metres per unit of the ``--units`` choices.
-UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048, "usft": 1200.0 / 3937.0}
+from ..app.units import UNITS  # noqa: F401 - the ``--units`` choices
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -211,33 +210,6 @@ def params_from_args(args: argparse.Namespace):
     return params.replace(**changes) if changes else params
 
 
-def import_in_background(*modules: str, kernels: bool = False) -> None:
-    """Import ``modules`` (relative to this package's parent, e.g. ``".engine.report.figures"``)
-    in a daemon thread: a command imports what it needs only at the end (matplotlib for the
-    figure, ~0.3 s) while its compiled work runs. With ``kernels``, the thread first loads one
-    compiled kernel (:func:`~forestreg.engine.geometry.jit.warm_up`: LLVM's start-up, ~0.3 s)
-    while the command reads its files. An import that fails here fails again, with its message,
-    where the module is used."""
-    import importlib
-    import threading
-
-    def run() -> None:
-        if kernels:
-            try:
-                from ..engine.geometry.jit import warm_up
-
-                warm_up()
-            except Exception:  # the kernel is loaded (or its failure reported) where it is used
-                pass
-        for name in modules:
-            try:
-                importlib.import_module(name, __package__.rpartition(".")[0])
-            except Exception:  # reported where the module is used
-                pass
-
-    threading.Thread(target=run, name="forestreg-imports", daemon=True).start()
-
-
 def say(message: str, args: Optional[argparse.Namespace] = None, *, err: bool = False) -> None:
     """One result line on stdout (stderr with ``err``), remembered for the final event."""
     print(message, file=sys.stderr if err else sys.stdout, flush=True)
@@ -245,75 +217,11 @@ def say(message: str, args: Optional[argparse.Namespace] = None, *, err: bool = 
         args.reporter.message = message
 
 
-def check_inputs_exist(*paths) -> None:
-    """Every input file exists and is a readable file (one line otherwise, before any work)."""
-    from ..engine.io.base import check_readable
-
-    for p in paths:
-        if p is not None:
-            check_readable(p)
-
-
-def final_result_check(summary: dict) -> dict:
-    """The last check before a command calls a result "ok" (see
-    :func:`~forestreg.engine.core.transform.withhold_unless_rigid`)."""
-    from ..engine.core.transform import withhold_unless_rigid
-
-    return withhold_unless_rigid(summary)
-
-
-def run_summary(
-    result, read: dict, inputs: dict, units: str, scale: float, *,
-    facts: Optional[dict] = None, matrix_keys: tuple[str, ...] = ("matrix",),
-) -> tuple[dict, bool]:
-    """The ``result.json`` summary of a registration-like ``result`` and whether it is "ok".
-
-    ``read`` (read times) goes in front of the result's own timings; ``inputs`` (key -> input
-    file) follow as absolute paths, then ``facts``, then the unit; the matrices named by
-    ``matrix_keys`` are turned into the files' unit."""
-    import numpy as np
-
-    from ..engine.core.transform import to_file_units
-
-    summary = final_result_check(result.to_dict())
-    ok = summary["status"] == "ok"
-    summary["timings"] = {**read, **summary["timings"]}
-    summary.update({key: str(Path(path).resolve()) for key, path in inputs.items()})
-    summary.update(facts or {})
-    summary["unit"] = units
-    summary["unit_scale"] = scale
-    for key in matrix_keys:
-        if summary.get(key) is not None:
-            summary[key] = to_file_units(np.asarray(summary[key]), scale).tolist()
-    return summary, ok
-
-
 def add_units_params(p: argparse.ArgumentParser, units_help: str, func) -> None:
     """The ``--units`` and ``--params`` options that end a long-running command, and its handler."""
     p.add_argument("--units", choices=sorted(UNITS), default="m", help=units_help)
     p.add_argument("--params", help=PARAMS_HELP)
     p.set_defaults(func=func, long_running=True)
-
-
-def check_replaceable_point_file(path, dimension: str, what: str) -> None:
-    """An existing point file at an output path is replaced only when it is an earlier output of
-    the same kind (a LAS/LAZ with the extra ``dimension``); a user's own scan is refused."""
-    from ..engine.core.errors import OutputPathError
-
-    p = Path(path)
-    if not p.exists():
-        return
-    if p.suffix.lower() in (".las", ".laz"):
-        try:
-            import laspy
-
-            with laspy.open(p) as f:
-                names = set(f.header.point_format.dimension_names)
-            if dimension in names:
-                return
-        except Exception:  # unreadable: not ours either
-            pass
-    raise OutputPathError(f"{p} exists and is not an earlier {what}: it would be overwritten; give a new file name")
 
 
 def shown(path) -> Path:

@@ -3,13 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import csv
-import io
-import json
+import math
 import sys
 from pathlib import Path
-
-import numpy as np
 
 from .common import Reporter, floats, number, say, shown
 
@@ -44,9 +40,8 @@ def add_parsers(sub) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from ..engine.core.atomic import check_output_folder, output_folder
+    from ..app.simulation import simulate_scans
     from ..engine.core.errors import UsageError
-    from ..engine.simulate import simulate_plot
 
     positions = [tuple(floats(p, 2, "--positions")) for p in args.positions.split(";")] if args.positions else [(0.0, 0.0), (10.0, 0.0)]
     tilted = {}
@@ -56,20 +51,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             k, d = int(index), float(deg or 30.0)
         except ValueError as exc:
             raise UsageError(f"--tilt {item}: expected INDEX:DEG, e.g. 1:30") from exc
-        if not 0 <= k < len(positions) or not np.isfinite(d):
+        if not 0 <= k < len(positions) or not math.isfinite(d):
             raise UsageError(f"--tilt {item}: scan index must be 0..{len(positions) - 1} and the angle finite")
         tilted[k] = d
-    out = check_output_folder(args.out, "simulate")
     try:
-        with output_folder(out, "simulate") as tmp:
-            plot = simulate_plot(args.preset, positions, out_dir=tmp, seed=args.seed, angular_step_deg=args.step,
-                                 tilted=tilted or None, size_m=args.size, progress=args.reporter)
+        run = simulate_scans(args.preset, positions, args.out, seed=args.seed, step_deg=args.step, tilted=tilted,
+                             size_m=args.size, progress=args.reporter)
     finally:
         args.reporter.close()
-    for s in plot.scans:
-        print(f"{s.scan.name}: {len(s.scan)} points")
-    args.reporter.done("", out / "truth.json")
-    say(f"wrote {len(plot.scans)} scans and truth.json to {shown(out)}", args)
+    for name, count in run.scans:
+        print(f"{name}: {count} points")
+    args.reporter.done("", run.out / "truth.json")
+    say(f"wrote {len(run.scans)} scans and truth.json to {shown(run.out)}", args)
     return 0
 
 
@@ -96,20 +89,21 @@ def _sub_reporter(args: argparse.Namespace, command: str) -> Reporter:
 
 def _demo_system_a(out: Path, args: argparse.Namespace) -> int:
     """Simulate a mixed forest pair 12 m apart, register it, and compare with the truth."""
-    from ..engine.core.transform import rigid_errors
-    from ..engine.simulate import relative_pose, simulate_plot
-    from .register import run_register
+    from ..app.pair import register_pair
+    from ..app.simulation import errors_against, simulated_pair
+    from .register import print_register
 
     data = out / "scans"
-    data.mkdir(parents=True, exist_ok=True)
     print(f"System A: simulating a '{args.preset}' plot with two scans 12 m apart in {data} ...")
-    plot = simulate_plot(args.preset, [(0.0, 0.0), (12.0, 3.0)], out_dir=data, seed=args.seed, angular_step_deg=args.step, size_m=50.0)
-    names = [s.scan.name for s in plot.scans]
-    code = run_register(data / f"{names[0]}.laz", data / f"{names[1]}.laz", out / "registration", reporter=_sub_reporter(args, "register"))
-    result = json.loads((out / "registration" / "result.json").read_text())
-    if result["matrix"] is not None:
-        truth = relative_pose(plot, names[0], names[1])
-        rot, trans = rigid_errors(np.array(result["matrix"]), truth)
+    case = simulated_pair(data, args.preset, seed=args.seed, step_deg=args.step)
+    reporter = _sub_reporter(args, "register")
+    try:
+        outcome = register_pair(case.reference, case.moving, out / "registration", progress=reporter)
+    finally:
+        reporter.close()
+    code = print_register(outcome, reporter)
+    if outcome.matrix is not None:
+        rot, trans = errors_against(outcome.matrix, case.truth)
         print(f"against the simulator's truth: rotation error {rot:.4f} deg, translation error {100 * trans:.2f} cm")
     args.reporter.done("", out / "registration" / "result.json")
     return code
@@ -119,40 +113,29 @@ def _demo_system_b(out: Path, args: argparse.Namespace) -> int:
     """A 28 m plot: merged TLS scans (ground-based, own frame, turned 120 deg and shifted 7 m) and
     a UAV flight at 86 m; co-register, fuse, measure the trees ground-only and fused, and
     evaluate both against the simulator's trees (the 'field data')."""
-    from ..engine.core.transform import rigid_errors
-    from ..engine.io import write_scan
-    from ..engine.simulate.platforms import simulate_coregistration_case
-    from .coreg import run_coregister, run_fuse
+    from ..app.coregistration import coregister_clouds
+    from ..app.simulation import errors_against, simulated_coregistration
+    from .coreg import print_coregister, run_fuse
     from .trees import run_evaluate, run_trees
 
     data = out / "data"
-    data.mkdir(parents=True, exist_ok=True)
     print(f"System B: simulating a plot seen by TLS and by a UAV in {data} ...")
-    case = simulate_coregistration_case(
-        "planted_conifer", seed=args.seed, size_m=28.0, ground_platform="tls", ground_extent_m=18.0,
-        heading_deg=120.0, offset_m=(5.0, -5.0, 1.0), uav_density_scale=0.5, tls_step_deg=0.3,
-    )
-    write_scan(case.ground, data / "ground.laz")
-    write_scan(case.uav, data / "uav.laz")
-    field = data / "field.csv"
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["tree_id", "x", "y", "dbh_m", "height_m"])
-    for t in case.scene.trees:
-        if abs(t.x) < 9.0 and abs(t.y) < 9.0:
-            w.writerow([f"T{t.id}", f"{t.x + case.world_offset[0]:.3f}", f"{t.y + case.world_offset[1]:.3f}", f"{t.dbh_m:.4f}", f"{t.height_m:.3f}"])
-    field.write_text(buf.getvalue())
-    code = run_coregister(data / "ground.laz", data / "uav.laz", out / "coregistration", reporter=_sub_reporter(args, "coregister"))
+    case = simulated_coregistration(data, seed=args.seed)
+    reporter = _sub_reporter(args, "coregister")
+    try:
+        outcome = coregister_clouds(case.ground, case.uav, out / "coregistration", progress=reporter)
+    finally:
+        reporter.close()
+    code = print_coregister(outcome, reporter)
     if code != 0:
         return code
-    result = json.loads((out / "coregistration" / "result.json").read_text())
-    rot, trans = rigid_errors(np.array(result["matrix"]), case.matrix)
+    rot, trans = errors_against(outcome.matrix, case.truth)
     print(f"against the simulator's truth: rotation error {rot:.4f} deg, translation error {100 * trans:.2f} cm")
     transform = out / "coregistration" / "transform.txt"
-    run_fuse(data / "ground.laz", data / "uav.laz", out / "fused.laz", transform=transform, reporter=_sub_reporter(args, "fuse"))
-    run_trees(data / "ground.laz", out / "trees_ground", transform=transform, reporter=_sub_reporter(args, "trees"))
+    run_fuse(case.ground, case.uav, out / "fused.laz", transform=transform, reporter=_sub_reporter(args, "fuse"))
+    run_trees(case.ground, out / "trees_ground", transform=transform, reporter=_sub_reporter(args, "trees"))
     run_trees(out / "fused.laz", out / "trees_fused", reporter=_sub_reporter(args, "trees"))
-    code = run_evaluate([("ground", out / "trees_ground" / "trees.csv"), ("fused", out / "trees_fused" / "trees.csv")], field,
+    code = run_evaluate([("ground", out / "trees_ground" / "trees.csv"), ("fused", out / "trees_fused" / "trees.csv")], case.field,
                         out / "evaluation")
     print(f"reports: {shown(out) / 'coregistration' / 'report.html'}, {shown(out) / 'trees_fused' / 'report.html'}, "
           f"{shown(out) / 'evaluation' / 'report.html'}")

@@ -24,8 +24,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="output folder: OUT/<plot>/, summary.csv, index.html (a rerun resumes)")
     p.add_argument("--workers", type=int, help="local cluster worker processes (default: the number of cores)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="an existing Dask scheduler, e.g. tcp://host:8786")
-    p.add_argument("--command", choices=("plot", "trees", "coregister"), default="plot", help="what to run per plot (default plot)")
-    p.add_argument("--manifest", help="CSV naming each plot's inputs (plot,scans[,centre] / plot,cloud[,transform,field] / plot,ground,uav)")
+    p.add_argument("--command", choices=("plot", "trees", "coregister", "change"), default="plot", help="what to run per plot (default plot)")
+    p.add_argument("--manifest", help="CSV naming each plot's inputs (plot,scans[,centre] / plot,cloud[,transform,field] / plot,ground,uav / plot,before,after)")
     p.add_argument("--params", help="TOML parameter file passed to every plot")
     p.add_argument("--extra", metavar="ARGS", help="more options for every plot's command, e.g. --extra='--no-cylinders --no-report'")
     p.set_defaults(func=cmd_batch, long_running=True)
@@ -55,7 +55,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 def cmd_batch(args: argparse.Namespace) -> int:
     """Many plots on Dask distributed (see :mod:`forestreg.service.batch`)."""
     from ..engine.core.errors import UsageError
-    from ..service.batch import run_batch
+    from ..service.batch import BatchInterrupted, run_batch
     from ..service.jobs import use_parser
 
     use_parser(args.build_parser)
@@ -67,11 +67,17 @@ def cmd_batch(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"--extra: {exc}") from None
     reporter = args.reporter
-    outcome = run_batch(
-        Path(args.plots_dir), Path(args.out), workers=args.workers, scheduler=args.scheduler, command=args.command,
-        manifest=Path(args.manifest) if args.manifest else None,
-        extra_args=(["--params", args.params] if args.params else []) + extra, progress=reporter,
-    )
+    try:
+        outcome = run_batch(
+            Path(args.plots_dir), Path(args.out), workers=args.workers, scheduler=args.scheduler, command=args.command,
+            manifest=Path(args.manifest) if args.manifest else None,
+            extra_args=(["--params", args.params] if args.params else []) + extra, progress=reporter,
+        )
+    except BatchInterrupted as exc:  # the finished plots are kept: say so (not "left as it was")
+        reporter.close()
+        reporter.done(str(exc))
+        print(f"forestreg batch: {exc}", file=sys.stderr)
+        return 130
     reporter.close()
     counts: dict[str, int] = {}
     for r in outcome.rows:
@@ -80,6 +86,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     reporter.done("", outcome.summary)
     say(f"{len(outcome.rows)} plots: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
         + (f" ({resumed} done before, skipped)" if resumed else "") + f", {outcome.seconds:.1f} s -> {outcome.summary}, {outcome.overview}", args)
-    if not outcome.complete:
-        print("forestreg batch: not every plot could run (status 'error' in summary.csv)", file=sys.stderr)
-    return 0 if outcome.complete else 1
+    if not outcome.succeeded:  # exit 0 only when every plot succeeded; the others are written
+        bad = outcome.not_ok
+        print(f"forestreg batch: {len(bad)} of {len(outcome.rows)} plots did not succeed ({', '.join(bad[:10])}"
+              f"{', ...' if len(bad) > 10 else ''}): see the reasons in {outcome.summary}", file=sys.stderr)
+    return 0 if outcome.succeeded else 1

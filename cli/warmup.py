@@ -32,10 +32,10 @@ def add_parser(sub) -> None:
 
 
 def cmd_warmup(args: argparse.Namespace) -> int:
-    from ..engine.geometry.jit import cache_is_warm, kernel_cache_dir, kernels, mark_cache_warm
+    from ..app.warmup import cache_folder, cache_is_warm, compiled, mark_cache_warm
 
     if not args.force and cache_is_warm():
-        say(f"the kernels are compiled already (in {kernel_cache_dir()}; --force compiles them again)", args)
+        say(f"the kernels are compiled already (in {cache_folder()}; --force compiles them again)", args)
         return 0
     t0 = time.perf_counter()
     os.environ["FORESTREG_WARMUP"] = "1"  # no "compiling ... on the first run" line from the kernels
@@ -45,20 +45,19 @@ def cmd_warmup(args: argparse.Namespace) -> int:
             code = _run_commands(Path(folder))
     finally:
         os.environ.pop("FORESTREG_WARMUP", None)
-    compiled = [k for k in kernels() if k.signatures]
+    signatures, kernels = compiled()
     if code != 0:
         say(f"warmup: a command failed (exit {code}); the kernels it reached are compiled", args, err=True)
         return code
     mark_cache_warm()
-    say(f"compiled {sum(len(k.signatures) for k in compiled)} signatures of {len(compiled)} kernels in "
-        f"{time.perf_counter() - t0:.0f} s into {kernel_cache_dir() or 'memory (no cache folder)'}", args)
+    say(f"compiled {signatures} signatures of {kernels} kernels in "
+        f"{time.perf_counter() - t0:.0f} s into {cache_folder() or 'memory (no cache folder)'}", args)
     return 0
 
 
 def _run_commands(folder: Path) -> int:
     """Each command once on small simulated data in ``folder``; the first non-zero exit code."""
-    from ..engine.io import write_scan
-    from ..engine.simulate.platforms import simulate_coregistration_case
+    from ..app.simulation import simulated_coregistration
     from . import main
 
     quiet = ["-q", "--progress", "none"]
@@ -75,12 +74,7 @@ def _run_commands(folder: Path) -> int:
             code = main(argv)
     if code != 0:
         return code
-    case = simulate_coregistration_case(
-        "planted_conifer", seed=1, size_m=24.0, ground_platform="tls", ground_extent_m=14.0,
-        heading_deg=120.0, offset_m=(5.0, -5.0, 1.0), uav_density_scale=0.5, tls_step_deg=0.5,
-    )
-    write_scan(case.ground, folder / "ground.laz")
-    write_scan(case.uav, folder / "uav.laz")
+    simulated_coregistration(folder, seed=1, size_m=24.0, ground_extent_m=14.0, tls_step_deg=0.5)
     for argv in (
         ["coregister", str(folder / "ground.laz"), str(folder / "uav.laz"), "--out", str(folder / "coreg"), *quiet],
         ["trees", str(folder / "uav.laz"), "--out", str(folder / "trees_uav"), "--no-report", *quiet],

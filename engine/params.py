@@ -8,6 +8,7 @@ tables)::
     [coregistration.terrain]  ... with its nested steps ([coregistration.keypoints], ...)
     [fusion]                  redundancy and noise removal (sec. 4.2)
     [trees]                   tree measurement ([trees.stems], [trees.qsm], ...)
+    [change]                  re-surveys: persisting stems, registration, tree matching
 
 Every command accepts such a file with ``--params``; ``forestreg params --toml`` prints the
 defaults as a template. A file may set only the values it changes.
@@ -20,6 +21,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 from .core.params import Params, read_toml
+from .change.params import ChangeParams
 from .coreg.coregister import CoregistrationParams
 from .coreg.fusion import FusionParams
 from .tls.params import RegistrationParams
@@ -36,6 +38,7 @@ class ProductParams(Params):
     coregistration: CoregistrationParams = CoregistrationParams()
     fusion: FusionParams = FusionParams()
     trees: TreeParams = TreeParams()
+    change: ChangeParams = ChangeParams()
 
 
 def load_params(path: str | Path) -> ProductParams:

@@ -306,16 +306,32 @@ COLUMN_HELP: dict[str, str] = {
     "crown_quality": "how the crown was obtained; trust `high`, `medium`, `low` or `none`",
     "volume_quality": "how the volume was obtained; trust `high`, `medium`, `low` or `none`",
     "flag": "why a value of this tree is doubtful (empty when none is)",
+    # tree_changes.csv
+    "tree_id_before": "the tree's `tree_id` in the BEFORE survey (empty when not found there)",
+    "tree_id_after": "the tree's `tree_id` in the AFTER survey (empty when not found there)",
+    "dbh_before_m": "DBH in the BEFORE survey, metres; empty when not measured",
+    "dbh_after_m": "DBH in the AFTER survey, metres; empty when not measured",
+    "dbh_change_m": "DBH growth (after minus before; paired stem sections 1.0-2.6 m where both clouds hold them), metres; empty where a survey cannot support it",
+    "height_before_m": "tree height in the BEFORE survey, metres",
+    "height_after_m": "tree height in the AFTER survey, metres",
+    "height_change_m": "height growth (after minus before), metres; empty where a survey cannot support it (top unseen)",
+    "dbh_before_sigma_m": "1-sigma uncertainty of `dbh_before_m`, metres",
+    "dbh_after_sigma_m": "1-sigma uncertainty of `dbh_after_m`, metres",
+    "dbh_change_sigma_m": "1-sigma uncertainty of `dbh_change_m`, metres",
+    "height_before_sigma_m": "1-sigma uncertainty of `height_before_m`, metres",
+    "height_after_sigma_m": "1-sigma uncertainty of `height_after_m`, metres",
+    "height_change_sigma_m": "1-sigma uncertainty of `height_change_m`, metres",
+    "match_distance_m": "distance between the tree's stems of the two surveys after the registration, metres",
     # batch summary
     "plot": "plot folder name",
-    "status": "`ok`, `failed` (the data did not allow every result) or `error` (bad input, crash)",
+    "status": "`ok`, `failed` (the data did not allow every result) or `error` (bad input, crash); in `tree_changes.csv`: `persisting`, `removed`, `new` or `outside` (the other survey did not cover the place)",
     "scans": "scans found in the plot folder",
     "registered": "scans registered",
     "seconds": "wall time of the plot, seconds",
     "reason": "why the plot failed or ended in error",
     "command": "the forestreg command run for the plot",
     "exit_code": "the command's exit code",
-    "trees": "trees found (`--command trees`)",
+    "trees": "trees found (`--command trees`) or compared (`--command change`)",
     "worker": "the Dask worker that ran the plot",
     "resumed": "`true` when an earlier run's result was kept",
 }
@@ -323,6 +339,7 @@ COLUMN_HELP: dict[str, str] = {
 
 def _column_tables() -> list[tuple[str, str, tuple[str, ...]]]:
     """(file, where it comes from, columns) of every CSV the commands write."""
+    from forestreg.engine.change.matching import CHANGE_COLUMNS
     from forestreg.engine.io.tables import KEYPOINT_COLUMNS, VOP_COLUMNS
     from forestreg.engine.tls.manual import CSV_COLUMNS
     from forestreg.engine.trees.inventory import TREE_COLUMNS
@@ -333,6 +350,7 @@ def _column_tables() -> list[tuple[str, str, tuple[str, ...]]]:
         ("`keypoints_ground.csv`, `keypoints_uav.csv`", "`forestreg coregister`: the canopy keypoints of each cloud", tuple(KEYPOINT_COLUMNS)),
         ("targets CSV", "`--targets` of `plot`, `compare`, `project create`; written by `forestreg targets`: one row per target and scan, coordinates in that scan's own frame", tuple(CSV_COLUMNS)),
         ("`trees.csv`", "`forestreg trees`: one row per tree, positions in the cloud's file coordinates", tuple(TREE_COLUMNS)),
+        ("`tree_changes.csv`", "`forestreg change`: one row per tree of either survey, `x`, `y` in BEFORE's file coordinates", tuple(CHANGE_COLUMNS)),
         ("`summary.csv`", "`forestreg batch`: one row per plot", tuple(SUMMARY_FIELDS)),
     ]
 
@@ -424,6 +442,41 @@ def problems() -> list[str]:
     for fn in GENERATED.values():
         globals()[fn](issues)
     return issues
+
+
+def _nav_paths(nav: Any) -> set[str]:
+    out: set[str] = set()
+    if isinstance(nav, str):
+        out.add(nav)
+    elif isinstance(nav, dict):
+        for v in nav.values():
+            out |= _nav_paths(v)
+    elif isinstance(nav, list):
+        for v in nav:
+            out |= _nav_paths(v)
+    return out
+
+
+def on_config(config, **kwargs):
+    """MkDocs hook: a page of ``docs/`` that ``mkdocs.yml``'s nav does not name yet (one added
+    beside the code, e.g. a design note) goes at the end of the nav, titled by its first heading,
+    instead of failing the strict build as an omitted file."""
+    from pathlib import Path
+
+    nav = config.get("nav")
+    if not nav:
+        return config
+    named = _nav_paths(nav) | set(GENERATED)
+    docs = Path(config["docs_dir"])
+    extra = []
+    for path in sorted(docs.rglob("*.md")):
+        rel = path.relative_to(docs).as_posix()
+        if rel in named:
+            continue
+        title = next((line[2:].strip() for line in path.read_text(encoding="utf-8").splitlines() if line.startswith("# ")), rel)
+        extra.append({title: rel})
+    nav.extend(extra)  # after the last page (architecture)
+    return config
 
 
 def on_files(files, config, **kwargs):

@@ -4,12 +4,20 @@ Every route but ``GET /v1/health`` needs ``Authorization: Bearer <token>`` (the 
 ``STATE/token``, readable by the user only). The OpenAPI description is ``/v1/openapi.json``.
 
     GET    /v1/health                 {"status": "ok", "version": ...}
-    POST   /v1/jobs                   {"args": [...], "cwd": optional} -> 201 {"id": ...}; 400 bad arguments
+    POST   /v1/jobs                   {"args": [...], "cwd": "/abs/folder"} -> 201 {"id": ...}; 400 arguments the
+                                      CLI refuses; 413 a body over 1 MiB; 422 no absolute cwd, over 2,000
+                                      arguments, an argument over 4,096 characters, or a NUL byte
     GET    /v1/jobs                   {"jobs": [...]} (newest first)
     GET    /v1/jobs/{id}              the job: status, progress, step, message, exit_code, result
     GET    /v1/jobs/{id}/events       server-sent events: status, progress, log, end
     DELETE /v1/jobs/{id}              cancel (SIGINT to the job's process group, SIGKILL after a grace)
+                                      -> 202; 409 when the job has already ended (the answer names its status)
     POST   /v1/jobs/{id}/resubmit     the same arguments as a new job -> 201 {"id": ...}
+
+A job runs in the working folder ``cwd`` the client sends (an absolute path; the Python client sends
+its own working folder): relative paths in ``args`` are taken from there, never from the service's
+own working folder. SIGTERM or Ctrl-C stops the service: running jobs are stopped (marked
+``interrupted``) and the state folder is unlocked, also when a request is still being answered.
 """
 
 from __future__ import annotations
@@ -31,7 +39,8 @@ from typing import Callable, Optional
 from fastapi import Depends, FastAPI, HTTPException, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel, Field
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, Field, field_validator
 
 from ..client import default_state_dir, read_server_info
 from .jobs import ArgumentError, JobManager
@@ -41,6 +50,14 @@ log = logging.getLogger("forestreg.service")
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8754
+
+#: the largest request body read (bytes); a larger one is refused with 413 before it is parsed
+MAX_BODY_BYTES = 1 << 20
+#: the most arguments of one job, and the longest argument (characters)
+MAX_ARGS = 2000
+MAX_ARG_CHARS = 4096
+#: seconds a stopping service waits for open requests before it closes them
+SHUTDOWN_GRACE_S = 3.0
 
 
 def ensure_token(state_dir: Path) -> str:
@@ -66,12 +83,87 @@ def ensure_token(state_dir: Path) -> str:
 
 
 class JobRequest(BaseModel):
-    args: list[str] = Field(..., description="the CLI's arguments, e.g. ['register', 'A.laz', 'B.laz', '--out', 'D']")
-    cwd: Optional[str] = Field(None, description="working directory for relative paths (default: the service's)")
+    args: list[str] = Field(..., description=f"the CLI's arguments, e.g. ['register', 'A.laz', 'B.laz', '--out', 'D'] (at most {MAX_ARGS})")
+    cwd: str = Field(..., description="the client's working folder, an absolute path: the job runs there and relative paths in args are taken from it")
+
+    @field_validator("args")
+    @classmethod
+    def _args(cls, args: list[str]) -> list[str]:
+        if len(args) > MAX_ARGS:
+            raise ValueError(f"{len(args)} arguments: at most {MAX_ARGS}")
+        for a in args:
+            if len(a) > MAX_ARG_CHARS:
+                raise ValueError(f"an argument of {len(a)} characters: at most {MAX_ARG_CHARS}")
+            if "\x00" in a:
+                raise ValueError("an argument holds a NUL byte")
+        return args
+
+    @field_validator("cwd")
+    @classmethod
+    def _cwd(cls, cwd: str) -> str:
+        if "\x00" in cwd:
+            raise ValueError("the working folder holds a NUL byte")
+        if not os.path.isabs(cwd):
+            raise ValueError("must be the client's working folder as an absolute path (relative paths in args are taken from it)")
+        return cwd
 
 
 class JobId(BaseModel):
     id: str
+
+
+class BodyLimit:
+    """ASGI middleware: a request body over ``limit`` bytes is answered 413 before anything parses it
+    (the declared Content-Length, or the bytes received when the client does not declare it)."""
+
+    def __init__(self, app, limit: int = MAX_BODY_BYTES) -> None:
+        self.app = app
+        self.limit = limit
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        for name, value in scope.get("headers", ()):
+            if name == b"content-length":
+                try:
+                    declared = int(value)
+                except ValueError:
+                    declared = self.limit + 1
+                if declared > self.limit:
+                    return await self._refuse(send, receive, more=True)
+        messages, size = [], 0
+        if scope.get("method") in ("POST", "PUT", "PATCH"):
+            while True:  # read the body (bounded), then hand it on
+                message = await receive()
+                messages.append(message)
+                if message["type"] != "http.request":
+                    break
+                size += len(message.get("body", b""))
+                if size > self.limit:
+                    return await self._refuse(send, receive, more=message.get("more_body", False))
+                if not message.get("more_body", False):
+                    break
+        pending = list(messages)
+
+        async def replay():
+            if pending:
+                return pending.pop(0)
+            return await receive()
+
+        return await self.app(scope, replay, send)
+
+    async def _refuse(self, send, receive, more: bool) -> None:
+        drained = 0  # read (and drop) a moderate rest, so the client is not cut off while it sends
+        while more and drained < 64 * self.limit:
+            message = await receive()
+            if message["type"] != "http.request":
+                break
+            drained += len(message.get("body", b""))
+            more = message.get("more_body", False)
+        body = json.dumps({"detail": f"request body over {self.limit} bytes"}).encode()
+        await send({"type": "http.response.start", "status": 413,
+                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()), (b"connection", b"close")]})
+        await send({"type": "http.response.body", "body": body})
 
 
 def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = None, on_shutdown: Optional[Callable[[], None]] = None) -> FastAPI:
@@ -101,6 +193,8 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
     )
     app.state.manager = manager
     app.state.store = store
+    app.state.stopping = threading.Event()  # set when the service is asked to stop: event streams end
+    app.add_middleware(BodyLimit, limit=MAX_BODY_BYTES)
     bearer = HTTPBearer(auto_error=False)
 
     @app.middleware("http")
@@ -143,12 +237,16 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
 
     @app.delete("/v1/jobs/{job_id}", status_code=202, dependencies=[Depends(authorised)])
     def cancel(job_id: str) -> dict:
-        job_or_404(job_id)
+        job = job_or_404(job_id)
+        if job["status"] in FINAL:
+            raise HTTPException(409, f"job {job_id} has already ended: {job['status']}")
         return manager.cancel(job_id)
 
     @app.post("/v1/jobs/{job_id}/resubmit", status_code=201, response_model=JobId, dependencies=[Depends(authorised)])
     def resubmit(job_id: str) -> dict:
         old = job_or_404(job_id)
+        if not old["cwd"] or not os.path.isabs(old["cwd"]):
+            raise HTTPException(422, f"job {job_id} has no absolute working folder: submit its arguments again with cwd")
         try:
             return {"id": manager.submit(old["args"], old["cwd"])}
         except ArgumentError as exc:
@@ -179,12 +277,28 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
                     return
                 if await request.is_disconnected():
                     return
+                if app.state.stopping.is_set():
+                    yield f"event: status\ndata: {json.dumps({'event': 'status', 'status': 'service stopping'})}\n\n"
+                    return
                 if time.monotonic() - last_sent > 1.0:  # a comment line keeps readers' loops turning
                     yield ": keep-alive\n\n"
                     last_sent = time.monotonic()
                 await asyncio.sleep(0.2)
 
         return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"})
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        """422 with one line naming the first wrong field (not pydantic's list of dicts)."""
+        errors = exc.errors()
+        first = errors[0] if errors else {}
+        where = ".".join(str(p) for p in first.get("loc", ()) if p != "body") or "body"
+        what = str(first.get("msg", "invalid request")).removeprefix("Value error, ")
+        if where == "cwd" and first.get("type") != "value_error":
+            what = "required: the client's working folder as an absolute path (relative paths in args are taken from it)"
+        elif first.get("type") == "missing":
+            what = "missing"
+        return JSONResponse({"detail": f"{where}: {what}"}, status_code=422)
 
     @app.exception_handler(ArgumentError)
     async def bad_arguments(request: Request, exc: ArgumentError) -> JSONResponse:  # pragma: no cover - defensive
@@ -263,7 +377,8 @@ def serve(
                 (state_dir / "server.json").unlink()
 
     app = create_app(state_dir, workers=workers, grace_s=grace_s, on_shutdown=forget_address)
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on"))
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on",
+                                           timeout_graceful_shutdown=SHUTDOWN_GRACE_S))
     url_host = f"[{host}]" if ":" in host else host
     info = {"url": f"http://{url_host}:{port}", "host": host, "port": port, "pid": os.getpid(), "state": str(state_dir)}
 
@@ -282,7 +397,24 @@ def serve(
                 print(f"forestreg serve: idle for {idle_exit_s:.0f} s, stopping", file=sys.stderr)
                 server.should_exit = True
 
+    def exit_watch() -> None:
+        """Once asked to stop, the service ends within its grace even if a request or a job hangs:
+        the jobs' process groups are killed, the address forgotten, the process ends (the OS
+        releases the state folder's lock)."""
+        while not server.should_exit:
+            time.sleep(0.1)
+        app.state.stopping.set()
+        manager: JobManager = app.state.manager
+        time.sleep(SHUTDOWN_GRACE_S + manager.grace_s + 10.0)
+        with contextlib.suppress(Exception):
+            manager.kill_all()
+        with contextlib.suppress(Exception):
+            forget_address()
+        print("forestreg serve: stopped (a request or a job did not end in time)", file=sys.stderr, flush=True)
+        os._exit(0)
+
     threading.Thread(target=announce, daemon=True).start()
+    threading.Thread(target=exit_watch, daemon=True).start()
     if idle_exit_s:
         threading.Thread(target=idle_watch, daemon=True).start()
     try:

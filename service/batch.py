@@ -6,7 +6,9 @@ in the folder's optional ``centre.txt``, else the plot command's default (the fi
 order), and a ``targets.csv`` in the folder is passed as ``--targets``. With ``--command trees`` or
 ``coregister`` a manifest CSV names each plot's inputs (``plot,cloud[,transform,field]`` or
 ``plot,ground,uav``; relative paths are looked up in ``PLOTS_DIR/<plot>/``, then beside the
-manifest); ``trees`` also works without a manifest when each plot folder holds one cloud.
+manifest); ``trees`` also works without a manifest when each plot folder holds one cloud. With
+``--command change`` each plot folder holds two surveys named ``before.*`` and ``after.*`` (clouds,
+project files or trees tables), or a manifest names them (``plot,before,after``).
 
 Each plot is one Dask task that runs the CLI in its own process (so a crash or a memory blow-up of
 one plot costs only that plot), on a ``LocalCluster`` (``--workers N`` processes, one thread each)
@@ -37,7 +39,7 @@ from typing import Callable, Optional, Sequence
 
 log = logging.getLogger("forestreg.batch")
 
-COMMANDS = ("plot", "trees", "coregister")
+COMMANDS = ("plot", "trees", "coregister", "change")
 SUMMARY_FIELDS = ["plot", "status", "scans", "registered", "seconds", "reason", "command", "exit_code", "trees", "worker", "resumed"]
 PROCESSED = ("ok", "failed")
 _NOT_SCANS = {"centre.txt", "center.txt", "targets.csv", "manifest.csv", "batch.json"}
@@ -65,8 +67,18 @@ class BatchOutcome:
 
     @property
     def complete(self) -> bool:
-        """Every plot was processed (registered or honestly failed): the batch's exit status 0."""
+        """Every plot was processed (registered or honestly failed): a rerun has nothing to redo."""
         return all(r["status"] in PROCESSED for r in self.rows)
+
+    @property
+    def succeeded(self) -> bool:
+        """Every plot succeeded (status ``ok``): the batch's exit status 0, else 1."""
+        return all(r["status"] == "ok" for r in self.rows)
+
+    @property
+    def not_ok(self) -> list[str]:
+        """The plots that did not succeed (``failed`` or ``error``), in name order."""
+        return [r["plot"] for r in self.rows if r["status"] != "ok"]
 
 
 # ----------------------------------------------------------------------------- discovering plots
@@ -106,6 +118,25 @@ def _resolve(value: str, plot_dir: Path, manifest_dir: Optional[Path]) -> str:
     return str((plot_dir / p).resolve())
 
 
+def _product_folder(folder: Path) -> bool:
+    """Whether ``folder`` is an output folder of forestreg (a batch's, a plot's, ...): not a plot."""
+    from ..engine.core.atomic import MARKER
+
+    return (folder / MARKER).is_file()
+
+
+def _clouds_in(plot_dir: Path) -> list[Path]:
+    """The point-cloud files of a plot folder in name order, told by their content (notes, tables
+    and the folder's own centre.txt / targets.csv are not scans)."""
+    from ..engine.io.sniff import is_point_cloud_file
+
+    if not plot_dir.is_dir():
+        return []
+    suffixes = _scan_suffixes()
+    return sorted(p for p in plot_dir.iterdir() if p.is_file() and p.suffix.lower() in suffixes
+                  and p.name.lower() not in _NOT_SCANS and not p.name.startswith(".") and is_point_cloud_file(p))
+
+
 def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: Optional[Path] = None, extra_args: Sequence[str] = ()) -> list[PlotTask]:
     """The plots of a batch, in name order (subfolders of ``plots_dir``, or the manifest's rows)."""
     from ..engine.core.errors import ParameterError
@@ -120,18 +151,17 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
     manifest_dir = manifest.resolve().parent if manifest is not None else None
     out_resolved = out.resolve()
     names = sorted(rows) if rows is not None else sorted(
-        p.name for p in plots_dir.iterdir() if p.is_dir() and not p.name.startswith(".") and p.resolve() != out_resolved)
+        p.name for p in plots_dir.iterdir() if p.is_dir() and not p.name.startswith(".") and p.resolve() != out_resolved
+        and not _product_folder(p))
     if not names:
         raise ParameterError(f"{plots_dir}: no plot subfolders" + (" in the manifest" if rows is not None else ""))
-    suffixes = _scan_suffixes()
     tasks = []
     for name in names:
         plot_dir = plots_dir / name
         target = str((out / name).resolve())
         task = PlotTask(name, command, [], target, 0)
         if command == "plot":
-            scans = sorted(p for p in plot_dir.iterdir() if p.is_file() and p.suffix.lower() in suffixes
-                           and p.name.lower() not in _NOT_SCANS and not p.name.startswith(".")) if plot_dir.is_dir() else []
+            scans = _clouds_in(plot_dir)
             if rows is not None and rows[name].get("scans"):
                 scans = [Path(_resolve(s, plot_dir, manifest_dir)) for s in rows[name]["scans"].split(";") if s.strip()]
             task.inputs = len(scans)
@@ -156,8 +186,7 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
             if row.get("cloud"):
                 cloud = _resolve(row["cloud"], plot_dir, manifest_dir)
             else:
-                clouds = sorted(p for p in plot_dir.iterdir() if p.is_file() and p.suffix.lower() in suffixes
-                                and p.name.lower() not in _NOT_SCANS) if plot_dir.is_dir() else []
+                clouds = _clouds_in(plot_dir)
                 cloud = str(clouds[0].resolve()) if len(clouds) == 1 else ""
                 if not cloud:
                     task.problem = f"{len(clouds)} clouds in {plot_dir}: name the cloud in a manifest (plot,cloud)"
@@ -166,6 +195,19 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
             for key, option in (("transform", "--transform"), ("field", "--field")):
                 if row.get(key):
                     task.args += [option, _resolve(row[key], plot_dir, manifest_dir)]
+        elif command == "change":
+            row = (rows or {}).get(name, {})
+            pair = []
+            for role in ("before", "after"):
+                if row.get(role):
+                    pair.append(_resolve(row[role], plot_dir, manifest_dir))
+                    continue
+                found = sorted(p for p in plot_dir.iterdir() if p.stem.lower() == role and not p.name.startswith(".")) if plot_dir.is_dir() else []
+                pair.append(str(found[0].resolve()) if len(found) == 1 else "")
+                if len(found) != 1 and not task.problem:
+                    task.problem = f"{len(found)} files named {role}.* in {plot_dir}: name the surveys in a manifest (plot,before,after)"
+            task.inputs = 2
+            task.args = ["change", *pair, "--out", target]
         else:
             row = rows[name]
             if not row.get("ground") or not row.get("uav"):
@@ -233,10 +275,12 @@ def run_plot(task: dict) -> dict:
             row["registered"] = sum(1 for s in scans.values() if s.get("matrix") is not None)
             reasons = [f"{n}: {s.get('reason') or 'not registered'}" for n, s in scans.items() if s.get("matrix") is None]
             row["reason"] = "; ".join(reasons)
-        elif t.command == "coregister":
+        elif t.command in ("coregister", "change"):
             result = _read_json(out / "result.json") or {}
             row["registered"] = 1 if result.get("status") == "ok" else 0
             row["reason"] = result.get("reason") or ""
+            if t.command == "change" and isinstance(result.get("trees"), dict):
+                row["trees"] = sum(int(v) for v in result["trees"].values())
         else:
             try:
                 with (out / "trees.csv").open(newline="", encoding="utf-8") as fh:
@@ -274,6 +318,16 @@ def _write_summary(out: Path, rows: list[dict], facts: dict) -> tuple[Path, Path
     return summary, overview
 
 
+class BatchInterrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM) during a batch: ``done`` of ``total`` plots finished; their folders and
+    rows in ``OUT/summary.csv`` are kept, and a rerun into ``out`` resumes the others."""
+
+    def __init__(self, done: int, total: int, out: Path) -> None:
+        super().__init__(f"interrupted: {done} of {total} plots finished and kept in {out} (summary.csv); "
+                         f"a rerun into {out} runs the others")
+        self.done, self.total, self.out = done, total, out
+
+
 def _client(workers: Optional[int], scheduler: Optional[str]):
     from dask.distributed import Client, LocalCluster
 
@@ -282,7 +336,21 @@ def _client(workers: Optional[int], scheduler: Optional[str]):
     if scheduler:
         return Client(scheduler, timeout="30s"), None
     n = workers or max(1, (os.cpu_count() or 2))
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR)
+    # The worker processes start with Ctrl-C ignored: a Ctrl-C in the terminal reaches the whole
+    # process group, and the batch (not each worker, with a traceback) stops them; each plot's CLI
+    # still honours it (FORESTREG_INTERRUPTIBLE) and leaves its folder complete or resumable. The
+    # workers log only what loses work: a heartbeat to a scheduler closing at the end of the batch
+    # is no error of the batch (it printed a traceback).
+    import signal
+    import threading
+
+    ignore = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if ignore else None
+    try:
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.CRITICAL)
+    finally:
+        if ignore:
+            signal.signal(signal.SIGINT, previous)
     return Client(cluster), cluster
 
 
@@ -341,6 +409,8 @@ def run_batch(
                 facts["seconds"] = f"{time.perf_counter() - t0:.1f}"
                 _write_summary(out, list(rows.values()), facts)
                 report(len(rows) / total, f"{task.name}: {row['status']}")
+        except KeyboardInterrupt:
+            raise BatchInterrupted(len(rows), total, out) from None
         finally:
             client.close()
             if cluster is not None:

@@ -92,6 +92,8 @@ def validate_args(args: Sequence[str]) -> argparse.Namespace:
         raise ArgumentError("forestreg: error: args must be a list of strings")
     if not args:
         raise ArgumentError("forestreg: error: no command given")
+    if any("\x00" in a for a in args):
+        raise ArgumentError("forestreg: error: an argument holds a NUL byte")
     if args[0] in NOT_JOBS:
         raise ArgumentError(f"forestreg: error: '{args[0]}' cannot run as a job")
     try:
@@ -256,6 +258,13 @@ class JobManager:
         for t in self._threads:
             t.join(timeout=5)
 
+    def kill_all(self) -> None:
+        """SIGKILL every running job's process group (the last resort of a service that must end)."""
+        with self._lock:
+            procs = list(self._procs.values())
+        for proc in procs:
+            _signal_group(proc.pid, signal.SIGKILL)
+
     def busy(self) -> bool:
         return self.store.count("running") > 0 or self.store.count("queued") > 0
 
@@ -263,6 +272,8 @@ class JobManager:
 
     def submit(self, args: Sequence[str], cwd: Optional[str] = None) -> str:
         validate_args(args)
+        if cwd is not None and "\x00" in cwd:
+            raise ArgumentError("forestreg: error: the working directory holds a NUL byte")
         if cwd is not None and not Path(cwd).is_dir():
             raise ArgumentError(f"forestreg: error: working directory {cwd} does not exist")
         job_id = self.store.add(list(args), cwd)

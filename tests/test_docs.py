@@ -127,6 +127,28 @@ def test_the_output_reference_names_every_key_of_a_real_result(tmp_path, sim_plo
     assert [f for f in files if f"`{f}`" not in page] == []
 
 
+def test_the_output_reference_names_every_key_of_a_coregistration_result(tmp_path):
+    """A co-registration of two flat clouds (no canopy: it fails at once, its ``result.json``
+    holding every key with empty values): every key is named in the output reference."""
+    import numpy as np
+
+    from forestreg.engine.core.scan import Scan
+    from forestreg.engine.io import write_scan
+
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(0, 30, (20000, 2)), rng.normal(0, 0.02, 20000)]
+    for name, pts in (("ground", ground), ("uav", ground + [0, 0, 0.1])):
+        write_scan(Scan(pts, np.zeros(3), np.zeros(3), name=name), tmp_path / f"{name}.laz")
+    out = tmp_path / "coreg"
+    run = subprocess.run([sys.executable, "-m", "forestreg.cli", "coregister", str(tmp_path / "ground.laz"), str(tmp_path / "uav.laz"),
+                          "--out", str(out), "-q"], env=_env(), capture_output=True, text=True, timeout=600)
+    assert run.returncode == 1 and "too little canopy" in run.stderr, run.stderr
+    page = (ROOT / "docs" / "reference" / "outputs.md").read_text(encoding="utf-8")
+    section = page[page.index("### `forestreg coregister`"):]
+    result = json.loads((out / "result.json").read_text())
+    assert [k for k in result if f"`{k}`" not in section] == []
+
+
 def test_readme_is_short_and_its_commands_are_the_ci_commands():
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     assert len(readme.splitlines()) <= 300
@@ -134,7 +156,7 @@ def test_readme_is_short_and_its_commands_are_the_ci_commands():
     for command in ("bash scripts/setup.sh && .venv/bin/forestreg demo --out demo_out", "bash scripts/setup.sh && .venv/bin/python -m pytest -q"):
         assert command in readme and command in ci
     for link in re.findall(r"\]\(((?:docs/|CHANGELOG)[^)#]*)", readme):
-        assert (ROOT / link).is_file() or link in {f"docs/{p}" for p in _hooks().GENERATED}, link
+        assert (ROOT / link).is_file(), link  # a generated page exists only in the built site
 
 
 HISTORY = re.compile(r"\b(issues? ?#?\d+|sessions? \d+|rounds? \d+ of development)\b", re.I)
@@ -156,3 +178,42 @@ def test_no_development_history_in_user_facing_text():
             if HISTORY.search(line):
                 offenders.append(f"{f.relative_to(ROOT)}:{n}: {line.strip()[:100]}")
     assert offenders == []
+
+
+def test_a_page_missing_from_the_nav_is_added_to_it(tmp_path):
+    hooks = _hooks()
+    docs = tmp_path / "docs"
+    (docs / "guide").mkdir(parents=True)
+    (docs / "index.md").write_text("# Home\n")
+    (docs / "notes.md").write_text("Intro\n\n# Design notes\n")
+    config = {"nav": [{"Home": "index.md"}], "docs_dir": str(docs)}
+    hooks.on_config(config)
+    assert config["nav"] == [{"Home": "index.md"}, {"Design notes": "notes.md"}]
+
+
+REASON_SOURCES = ("engine/tls/pair.py", "engine/coreg/coregister.py", "engine/tls/scanner_position.py")
+
+
+def _words(text: str) -> list[str]:
+    """The literal words of a reason: placeholders (``{...}`` in the code, a lone capital such as
+    ``N`` or ``X`` in the docs) and punctuation left out."""
+    text = re.sub(r"\{[^}]*\}", " ", text)
+    return [w.lower() for w in re.findall(r"[A-Za-z%][A-Za-z0-9%'-]*", text.replace("`", " "))]
+
+
+def test_troubleshooting_explains_every_failure_reason():
+    """Every reason a registration or co-registration fails with, as the code words it, is
+    explained on the troubleshooting page (matched on its first literal words)."""
+    page = " ".join(_words(re.sub(r"(?<![A-Za-z])[A-Z](?![A-Za-z])", " ", (ROOT / "docs" / "troubleshooting.md").read_text(encoding="utf-8"))))
+    pattern = re.compile(r'(?:\b(?:_failed|failed|CoarseAttempt)\(\s*(?:[^"\n()]*,\s*)?|\bproblem\s*=\s*\(?\s*)f?"([^"\n]{8,})"')
+    missing, checked = [], 0
+    for source in REASON_SOURCES:
+        for m in pattern.finditer((ROOT / source).read_text(encoding="utf-8")):
+            words = _words(m.group(1))
+            if len(words) < 3:  # a wrapper such as "UAV cloud: {exc}" around another reason
+                continue
+            checked += 1
+            if " ".join(words[:3]) not in page:
+                missing.append(f"{source}: {m.group(1)[:80]}")
+    assert checked >= 15  # the reasons were found in the code
+    assert missing == [], "failure reasons not explained in docs/troubleshooting.md"

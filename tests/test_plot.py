@@ -324,7 +324,7 @@ def test_the_top_view_keeps_no_prepared_scan(four_scan_files, registered_four):
     import weakref
 
     from forestreg.engine.tls.plot import ScanCache
-    from forestreg.engine.tls.views import compute_top_view
+    from forestreg.engine.report.views import compute_top_view
 
     project = Project.load(registered_four[0])
     scans = ScanCache(project)
@@ -344,7 +344,7 @@ def test_the_report_draws_let_go_scans_without_reading_them_again(four_scan_file
     view from what their preparations left (slice layers, VOPs): no scan is read or prepared again
     (ten 30 M-point scans: minutes, and the run's memory peak), and the view is the same."""
     from forestreg.engine.tls.plot import ScanCache
-    from forestreg.engine.tls.views import compute_top_view
+    from forestreg.engine.report.views import compute_top_view
 
     plot, paths = four_scan_files
     project = Project(name="one-scan-room")

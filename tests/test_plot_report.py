@@ -18,7 +18,7 @@ from forestreg.engine.io import write_scan
 from forestreg.engine.tls.plot import ScanCache, register_project
 from forestreg.engine.tls.project import Project
 from forestreg.engine.report.plot_report import format_cm, write_plot_report
-from forestreg.engine.tls.views import compute_top_view
+from forestreg.engine.report.views import compute_top_view
 
 POSITIONS = ((0.0, 0.0), (10.0, 2.0), (-8.0, 6.0))
 ODD_NAME = "scan <b>2</b> & co"

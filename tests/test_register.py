@@ -213,7 +213,7 @@ def test_pair_figure_keeps_each_title_over_its_own_panel(sim_plot, tmp_path, fai
 
     from forestreg.engine.report import figures
     from forestreg.engine.report.topview import rgb
-    from forestreg.engine.tls.views import MOVING_COLOUR, REFERENCE_COLOUR
+    from forestreg.engine.report.views import MOVING_COLOUR, REFERENCE_COLOUR
 
     plot = sim_plot("planted_conifer", ((0.0, 0.0), (9.0, 4.0)), seed=1)
     result = register(plot.scans[0].scan, plot.scans[1].scan)

@@ -15,6 +15,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tarfile
 import zipfile
 from pathlib import Path
 
@@ -70,7 +71,10 @@ def test_build_makes_a_wheel_and_an_sdist_with_the_version(dist):
     for needed in ("forestreg/__init__.py", "forestreg/metadata.txt", "forestreg/cli/__init__.py", "forestreg/engine/tls/pair.py",
                    "forestreg/resources/default_params.toml", "forestreg/resources/icons/run.svg", "forestreg/plugin/qgis/provider.py"):
         assert needed in names, needed
-    assert not any(n.startswith(("forestreg/tests/", "tests/")) for n in names)
+    assert not any(n.startswith(("forestreg/tests/", "tests/", "forestreg/docs/", "forestreg/scripts/", "forestreg/benchmarks/")) for n in names)
+    archive = tarfile.open(sdist).getnames()
+    for needed in ("CHANGELOG.md", "README.md", "mkdocs.yml", "docs/index.md", "scripts/docs_hooks.py", "scripts/package_qgis.py", "tests/test_docs.py"):
+        assert f"forestreg-{version}/{needed}" in archive, needed
     meta = zipfile.ZipFile(wheel).read(f"forestreg-{version}.dist-info/METADATA").decode()
     assert f"Version: {version}" in meta
     entry = zipfile.ZipFile(wheel).read(f"forestreg-{version}.dist-info/entry_points.txt").decode()

@@ -308,16 +308,18 @@ class CoregistrationView(QWidget):
     def run(self, ground_file: str, uav_file: str) -> None:
         """Co-register two cloud files in a worker (the engine's defaults)."""
         def task(progress: Callable[[float, str], None], cancel: Any) -> CoregistrationShown:
-            from ..engine.coreg.coregister import coregister
+            from ..app.coregistration import coregister_clouds
             from ..engine.io import read_scan
             from ..engine.report.coregistration_report import coregistration_png
 
             progress(0.0, "reading the clouds")
             ground, uav = read_scan(ground_file), read_scan(uav_file)
-            result = coregister(ground, uav, progress=lambda f, m: progress(0.05 + 0.85 * f, m))
+            # the same use case as the command line: its last check withholds a matrix that is not rigid
+            outcome = coregister_clouds(ground, uav, None, progress=lambda f, m: progress(0.05 + 0.85 * f, m), cancel=cancel)
             progress(0.92, "drawing the figure")
+            result = outcome.result
             png = coregistration_png(result, ground.points, uav.points) if result.ground_keypoints is not None else None
-            return CoregistrationShown(summary=result.to_dict(), png=png, ground_file=str(ground_file), uav_file=str(uav_file))
+            return CoregistrationShown(summary=outcome.to_dict(), png=png, ground_file=str(ground_file), uav_file=str(uav_file))
 
         def done(shown: CoregistrationShown) -> None:
             self.show_result(shown)
@@ -333,15 +335,12 @@ class CoregistrationView(QWidget):
         matrix = shown.matrix
 
         def task(progress: Callable[[float, str], None], cancel: Any) -> dict[str, dict[str, int]]:
-            from ..engine.coreg.fusion import fuse_scans, write_fused
-            from ..engine.io import read_scan
+            from ..app.fusion import fuse_clouds
 
             progress(0.0, "reading the clouds")
-            ground, uav = read_scan(shown.ground_file), read_scan(shown.uav_file)
-            result = fuse_scans(ground, uav, matrix, progress=lambda f, m: progress(0.1 + 0.8 * f, m))
-            progress(0.92, "writing")
-            write_fused(out_file, result, origin_shift=uav.origin_shift)
-            return {k: dict(v) for k, v in result.counts.items()}
+            outcome = fuse_clouds(shown.ground_file, shown.uav_file, out_file, matrix=matrix,
+                                  progress=lambda f, m: progress(0.05 + 0.9 * f, m), cancel=cancel)
+            return outcome.counts
 
         def done(counts: dict[str, dict[str, int]]) -> None:
             self.fusion_counts = counts

@@ -17,7 +17,7 @@ from PySide6.QtWidgets import QFileDialog, QMessageBox
 
 from ..engine.core.errors import ForestregError
 from ..engine.io import SUPPORTED_READ_SUFFIXES
-from ..engine.tls.project import Project
+from ..app.plot import Project
 from .worker import TaskWorker, describe_error
 
 log = logging.getLogger("forestreg")
@@ -56,7 +56,64 @@ class FileActionsMixin:
         self.set_project(project)
         self._add_recent(project.path)
         log.info("opened %s (%d scans)", project.path, len(project.scans))
+        if self.missing_scans():
+            self._report_missing_scans()
         return True
+
+    def missing_scans(self) -> list:
+        """The project's scans whose files are not where the project says (moved or deleted)."""
+        return [s for s in self.project.scans if not Path(s.path).is_file()]
+
+    def _report_missing_scans(self) -> None:
+        """A clear message naming the missing files; interactively, an offer to relink them."""
+        missing = self.missing_scans()
+        names = "\n".join(f"  {s.name}: {s.path}" for s in missing[:20]) + ("\n  ..." if len(missing) > 20 else "")
+        message = (f"{len(missing)} of the {len(self.project.scans)} scans of this project are not where it says "
+                   f"(moved or deleted):\n{names}\n\nPoint the project at the folder that holds them now with "
+                   "File > Relink missing scans…")
+        if not self.interactive:
+            self.show_error("Scans not found", message)
+            return
+        answer = QMessageBox.question(self, "Scans not found", message + "\n\nChoose that folder now?",
+                                      QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No, QMessageBox.StandardButton.Yes)
+        self.last_error = ("Scans not found", message, "")
+        if answer == QMessageBox.StandardButton.Yes:
+            self._ask_relink()
+
+    def _ask_relink(self) -> None:
+        if not self.missing_scans():
+            self.statusBar().showMessage("Every scan of the project is where it says", 5000)
+            return
+        folder = QFileDialog.getExistingDirectory(self, "Folder that holds the missing scans now", self._last_dir())
+        if folder:
+            self.relink_scans(folder)
+
+    def relink_scans(self, folder: str | Path) -> list[str]:
+        """Point the missing scans at files of the same name in ``folder`` (or a subfolder, two
+        levels down); the project is changed (save it to keep the new places). Returns the names
+        relinked; the ones still missing are named in a message."""
+        folder = Path(folder)
+        if self.running:
+            return []
+        found: list[str] = []
+        for s in self.missing_scans():
+            candidates = [folder / s.path.name] + sorted(folder.glob(f"*/{s.path.name}")) + sorted(folder.glob(f"*/*/{s.path.name}"))
+            hit = next((c for c in candidates if c.is_file()), None)
+            if hit is not None:
+                s.path = hit.resolve()
+                found.append(s.name)
+        if found:
+            self.set_project(self.project)  # fresh caches: the scans are read from their new places
+            self.dirty = True
+            self._update_title()
+            log.info("relinked %s to %s", ", ".join(found), folder)
+            self.statusBar().showMessage(f"Relinked {len(found)} scans to {folder}", 5000)
+        still = self.missing_scans()
+        if still:
+            self.show_error("Scans not found", f"{len(still)} scans are not in {folder} either: " + ", ".join(s.path.name for s in still))
+        else:
+            self.last_error = None
+        return found
 
     def save_project(self, path: Optional[str | Path] = None) -> bool:
         """Save atomically (``Project.save``); to ``path`` or the project's own file."""
@@ -200,7 +257,7 @@ class FileActionsMixin:
 
     def export_poses(self, folder: str | Path) -> None:
         """``write_poses`` into ``folder`` (in the background)."""
-        from ..engine.tls.plot import write_poses
+        from ..app.plot import export_poses as write_poses
 
         project, outcome = self.project, self.last_outcome
         self._export("export transforms", lambda: write_poses(project, folder, outcome),
@@ -208,7 +265,7 @@ class FileActionsMixin:
 
     def export_merged(self, path: str | Path) -> None:
         """``write_merged`` to ``path`` (in the background)."""
-        from ..engine.tls.plot import write_merged
+        from ..app.plot import export_merged as write_merged
 
         project, scans = self.project, self.scans
         self._export("export merged", lambda: write_merged(project, path, scans),
@@ -216,7 +273,7 @@ class FileActionsMixin:
 
     def export_scans(self, folder: str | Path) -> None:
         """``write_registered_scans`` into ``folder`` (in the background)."""
-        from ..engine.tls.plot import write_registered_scans
+        from ..app.plot import export_scans as write_registered_scans
 
         project, scans = self.project, self.scans
         self._export("export scans", lambda: write_registered_scans(project, folder, scans),
@@ -225,7 +282,7 @@ class FileActionsMixin:
 
     def export_e57(self, path: str | Path) -> None:
         """``write_registered_e57`` to ``path`` (in the background)."""
-        from ..engine.tls.plot import write_registered_e57
+        from ..app.plot import export_e57 as write_registered_e57
 
         project, scans = self.project, self.scans
         self._export("export e57", lambda: write_registered_e57(project, path, scans),

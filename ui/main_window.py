@@ -28,8 +28,7 @@ from PySide6.QtWidgets import (
 )
 
 from ..engine.core.errors import ForestregError
-from ..engine.tls.plot import ScanCache
-from ..engine.tls.project import Project
+from ..app.plot import Project, ScanCache
 from .icons import icon
 from .file_actions import FileActionsMixin
 from .log_pane import LogPane
@@ -187,6 +186,8 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self.act_save = a("&Save project", self._save, QKeySequence.StandardKey.Save, "Save the project")
         self.act_save_as = a("Save project &as\u2026", self._ask_save_as, QKeySequence("Ctrl+Shift+S"), "Save the project to another file")
         self.act_add = a("&Add scans\u2026", self._ask_add_scans, QKeySequence("Ctrl+I"), "Add scan files (LAS, LAZ, PLY, PCD, E57, XYZ)")
+        self.act_relink = a("Re&link missing scans\u2026", self._ask_relink, None,
+                            "Point the project's scans that were moved at the folder that holds them now")
         self.act_export_poses = a("Export &transforms and poses\u2026", self._ask_export_poses, QKeySequence("Ctrl+E"),
                                   "Write poses.json and one <scan>.transform.txt per registered scan")
         self.act_export_merged = a("Export &merged LAZ\u2026", self._ask_export_merged, None, "Write all registered scans into one LAZ file")
@@ -200,6 +201,8 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
                                 "Show the trees measured by 'forestreg trees --out DIR' (map, table, each tree in 3D)")
         self.act_open_coreg = a("Open &co-registration result\u2026", self._ask_open_coregistration, None,
                                 "Show a ground-based / UAV co-registration made by 'forestreg coregister --out DIR'")
+        self.act_open_change = a("Open re-&survey result\u2026", self._ask_open_change, None,
+                                 "Show two surveys of one plot compared by 'forestreg change BEFORE AFTER --out DIR'")
         self.act_evaluate = a("&Evaluate against field data\u2026", self._ask_evaluate, None,
                               "Compare tree tables (e.g. ground-only and fused) with field records: R2, RMSE, rRMSE")
         self.act_quit = a("&Quit", self.close, QKeySequence.StandardKey.Quit, "Close forestreg")
@@ -233,12 +236,14 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self.recent_menu = m.addMenu("Open &recent")
         m.addAction(self.act_open_trees)
         m.addAction(self.act_open_coreg)
+        m.addAction(self.act_open_change)
         m.addAction(self.act_evaluate)
         m.addSeparator()
         m.addAction(self.act_save)
         m.addAction(self.act_save_as)
         m.addSeparator()
         m.addAction(self.act_add)
+        m.addAction(self.act_relink)
         m.addSeparator()
         for act in (self.act_export_poses, self.act_export_merged, self.act_export_scans, self.act_export_e57, self.act_export_report):
             m.addAction(act)
@@ -529,13 +534,13 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self._start_view_task("top view", self._top_task, self._top_built)
 
     def _top_task(self) -> TaskWorker:
-        from ..engine.tls.views import compute_top_view
+        from ..engine.report.views import compute_top_view
 
         project, scans = self.project, self.scans
         return TaskWorker(lambda progress, cancel: compute_top_view(project, scans), name="top view")
 
     def _top_built(self, view: Any) -> None:
-        from ..engine.tls.views import scan_colours
+        from ..engine.report.views import scan_colours
         from .top_view import SurveyOverlay
 
         self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: trunk shadows, matches and pose uncertainty",

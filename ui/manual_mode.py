@@ -338,7 +338,7 @@ class ManualModeMixin:
         """Read a target CSV (``engine.manual.read_targets_csv``) into the matching scans (by file
         name, stem or scan name); returns the number of targets read. Targets of a scan in the
         file replace that scan's targets with the same ids."""
-        from ..engine.tls.manual import read_targets_csv
+        from ..app.targets import read_targets as read_targets_csv
 
         try:
             by_scan = read_targets_csv(path)
@@ -370,7 +370,7 @@ class ManualModeMixin:
 
     def export_targets_csv(self, path: str | Path) -> bool:
         """Write every scan's targets (``engine.manual.write_targets_csv``, scan file names)."""
-        from ..engine.tls.manual import write_targets_csv
+        from ..app.targets import write_targets as write_targets_csv
 
         data = {s.name: dict(s.targets) for s in self.project.scans if s.targets}
         try:
@@ -390,7 +390,7 @@ class ManualModeMixin:
         """Find reflectors in a scan in the background (``engine.manual.detect_reflectors``). When
         the scan already has targets the detections are named after them
         (``match_detected_to_known`` within ``max_distance_m``); otherwise they are added as R1, R2..."""
-        from ..engine.tls.manual import detect_reflectors, match_detected_to_known
+        from ..app.targets import reflectors_in
 
         name = scan_name or self.targets_panel.scan
         if not name or self.running:
@@ -399,9 +399,7 @@ class ManualModeMixin:
 
         def work(progress: Any, cancel: Any) -> Any:
             progress(0.1, f"looking for reflectors in {name}")
-            found = detect_reflectors(scans(name))
-            named = match_detected_to_known(found, known, max_distance_m) if known else {}
-            return found, named
+            return reflectors_in(scans(name), known, max_distance_m)
 
         def done(result: Any) -> None:
             found, named = result
@@ -434,7 +432,7 @@ class ManualModeMixin:
     def set_link_method(self, moving: str, method: str) -> None:
         """Register ``moving`` with ``method`` ("auto" or "manual") along its link (its result
         is forgotten); a scan without a link gets the default one first."""
-        from ..engine.tls.plot import default_links
+        from ..app.plot import default_links
 
         if method not in ("auto", "manual"):
             raise ValueError(f"method must be 'auto' or 'manual', not {method!r}")
@@ -448,7 +446,7 @@ class ManualModeMixin:
         self.model._changed()
 
     def set_all_link_methods(self, method: str) -> None:
-        from ..engine.tls.plot import default_links
+        from ..app.plot import default_links
 
         if self.running or not self.project.scans:
             return
@@ -519,8 +517,8 @@ class ManualModeMixin:
         """Register the plot automatically and from the targets, in the background, on a copy of
         the project, and show the comparison. The window's project keeps its manual links as they
         are; its auto links that had not been run get the automatic results."""
-        from ..engine.tls.compare import compare_auto_manual
-        from ..engine.tls.project import Link
+        from ..app.comparison import compare_in_memory as compare_auto_manual
+        from ..app.plot import Link
 
         if self.running or self.tasks.busy("compare") or len(self.project.scans) < 2:
             return False
@@ -563,7 +561,7 @@ class ManualModeMixin:
 
 
 def scan_colours_of(project: Any) -> dict[str, str]:
-    from ..engine.tls.views import scan_colours
+    from ..engine.report.views import scan_colours
 
     return scan_colours(project)
 

@@ -15,8 +15,8 @@ from typing import Iterable, Optional, Sequence
 from PySide6.QtCore import QByteArray, QMimeData, QModelIndex, QObject, Qt, QTimer, Signal
 from PySide6.QtGui import QBrush, QColor, QFont, QStandardItem, QStandardItemModel
 
-from ..engine.tls.project import Link, Project
-from ..engine.tls.views import scan_colours, scan_states
+from ..app.plot import Link, Project
+from ..engine.report.views import scan_colours, scan_states
 
 #: Item data roles.
 KIND_ROLE = Qt.ItemDataRole.UserRole + 1  # "group", "scan", "link", "pair"
@@ -24,7 +24,8 @@ NAME_ROLE = Qt.ItemDataRole.UserRole + 2  # scan name (scan, pair) or link index
 #: MIME type of a dragged scan (its name, UTF-8).
 SCAN_MIME = "application/x-forestreg-scan"
 
-STATUS_COLOURS = {"ok": "#1a7f37", "registered": "#1a7f37", "centre": "#0b5cad", "failed": "#b42318", "not run": "#6e6e6e"}
+STATUS_COLOURS = {"ok": "#1a7f37", "registered": "#1a7f37", "centre": "#0b5cad", "failed": "#b42318", "not run": "#6e6e6e",
+                  "file missing": "#b42318"}
 
 
 def link_status(link: Link) -> str:
@@ -104,10 +105,15 @@ class ProjectModel(QStandardItemModel):
             link = p.link_of(s.name)
             if state is not None and state.status == "failed" and (link is None or link.result is None):
                 status = "not run"
+            missing = not Path(s.path).is_file()
+            if missing:  # moved or deleted since the project was saved: say so, whatever the run said
+                status = "file missing"
             state_item = QStandardItem(status)
             state_item.setData("scan", KIND_ROLE)
             state_item.setData(s.name, NAME_ROLE)
-            if state is not None and state.reason:
+            if missing:
+                state_item.setToolTip(f"not found: {s.path} (File > Relink missing scans…)")
+            elif state is not None and state.reason:
                 state_item.setToolTip(state.reason)
             self._colour(state_item, status)
             scans.appendRow([name_item, state_item])

@@ -14,9 +14,8 @@ from PySide6.QtCore import Qt
 from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import QAbstractItemView, QHeaderView, QTableWidget, QTableWidgetItem, QWidget
 
-from ..engine.tls.plot import pose_uncertainty
-from ..engine.tls.project import Link, Project
-from ..engine.tls.views import scan_states
+from ..app.plot import Link, Project, pose_uncertainty
+from ..engine.report.views import scan_states
 from .project_model import STATUS_COLOURS, link_status
 
 LINK_COLUMNS = ("Moving", "Reference", "Method", "Status", "Search radius (m)", "Trunk shadows ref / mov", "Matched",

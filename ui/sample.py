@@ -10,7 +10,7 @@ from typing import Callable, Optional
 from ..engine.core.errors import Cancelled
 from ..engine.tls.params import RegistrationParams
 from ..engine.core.progress import CancelToken
-from ..engine.tls.project import Project
+from ..app.plot import Project
 
 PRESET = "mixed_temperate"
 POSITIONS = [(0.0, 0.0), (10.0, 2.0), (-8.0, 6.0)]
@@ -41,7 +41,7 @@ def make_sample_project(
     path = folder / PROJECT_FILE
     if path.is_file():
         return path
-    from ..engine.simulate import simulate_plot
+    from ..app.simulation import simulate_files
 
     folder.mkdir(parents=True, exist_ok=True)
 
@@ -51,10 +51,10 @@ def make_sample_project(
         if progress is not None:
             progress(0.95 * fraction, f"simulating the sample plot: {message}")
 
-    plot = simulate_plot(PRESET, POSITIONS, seed=SEED, angular_step_deg=STEP_DEG, size_m=SIZE_M, out_dir=folder, progress=report)
+    files = simulate_files(PRESET, POSITIONS, folder, seed=SEED, step_deg=STEP_DEG, size_m=SIZE_M, progress=report)
     # the angular step of the search matches the simulated scanner's resolution (faster, same result)
     project = Project(name="sample plot (simulated)", params=RegistrationParams(angular_step_deg=STEP_DEG))
-    for f in plot.files:
+    for f in files:
         project.add_scan(f)
     project.save(path)
     if progress is not None:

@@ -15,9 +15,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..engine.tls.plot import ScanCache
-from ..engine.tls.project import Project
-from ..engine.tls.views import scan_colours
+from ..app.plot import Project, ScanCache
+from ..engine.report.views import scan_colours
 
 #: Points drawn in the 3D view, all scans together.
 DEFAULT_POINT_BUDGET = 200_000

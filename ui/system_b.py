@@ -11,6 +11,7 @@ from typing import Any, Optional
 from PySide6.QtWidgets import QFileDialog, QTabWidget
 
 from ..engine.core.errors import ForestregError
+from .change_view import ChangeView
 from .coreg_view import CoregistrationView, shown_from_folder
 from .evaluation_view import EvaluationView
 from .trees_view import TreesView
@@ -19,6 +20,7 @@ log = logging.getLogger("forestreg")
 
 #: Tab titles of the central area.
 TAB_TLS, TAB_COREG, TAB_TREES, TAB_EVAL = "TLS registration", "Co-registration", "Trees", "Field data"
+TAB_CHANGE = "Re-survey"
 
 
 class SystemBMixin:
@@ -36,6 +38,8 @@ class SystemBMixin:
         self.central_tabs.addTab(self.trees_view, TAB_TREES)
         self.evaluation_view = EvaluationView()
         self.central_tabs.addTab(self.evaluation_view, TAB_EVAL)
+        self.change_view = ChangeView()
+        self.central_tabs.addTab(self.change_view, TAB_CHANGE)
         self.coreg_view.run_button.clicked.connect(self._ask_coregister)
         self.coreg_view.fuse_button.clicked.connect(self._ask_fuse)
         self.coreg_view.decided.connect(self._coreg_decided)
@@ -183,13 +187,10 @@ class SystemBMixin:
     def evaluate_field(self, field_csv: str | Path, runs: dict[str, str | Path]) -> bool:
         """Compare tree tables (``runs``: name -> trees.csv or a trees folder) with a field CSV
         (the engine's matching and figures) and show them side by side on the Field data tab."""
-        from ..engine.trees.evaluate import evaluate
+        from ..app.evaluation import evaluate_files
 
-        results = {}
         try:
-            for name, path in runs.items():
-                p = Path(path)
-                results[name] = evaluate(p / "trees.csv" if p.is_dir() else p, field_csv)
+            results = evaluate_files(runs, field_csv)
         except ForestregError as exc:
             self.show_error("Cannot evaluate", str(exc))
             return False
@@ -222,6 +223,26 @@ class SystemBMixin:
             cloud, _ = QFileDialog.getOpenFileName(self, "The measured cloud (optional: cancel to skip)", self._last_dir(),
                                                    "Point clouds (*.las *.laz *.ply *.pcd *.xyz *.txt *.e57)")
             self.open_trees(folder, cloud or None)
+
+    def open_change(self, folder: str | Path) -> bool:
+        """Show a ``forestreg change --out DIR`` folder (re-survey). False with :attr:`last_error`
+        on failure."""
+        from ..engine.io.change import read_change_dir
+
+        try:
+            out = read_change_dir(folder)
+        except ForestregError as exc:
+            self.show_error("Cannot open the re-survey result", str(exc))
+            return False
+        self.change_view.show_output(out)
+        self.show_tab(TAB_CHANGE)
+        log.info("re-survey: %d trees from %s", len(out.rows), folder)
+        return True
+
+    def _ask_open_change(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Re-survey result folder (forestreg change --out DIR)", self._last_dir())
+        if folder:
+            self.open_change(folder)
 
     def _ask_open_coregistration(self) -> None:
         folder = QFileDialog.getExistingDirectory(self, "Co-registration result folder (forestreg coregister --out DIR)", self._last_dir())

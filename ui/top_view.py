@@ -19,9 +19,8 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle
 from PySide6.QtWidgets import QSizePolicy, QVBoxLayout, QWidget
 
-from ..engine.tls.plot import pose_uncertainty
-from ..engine.tls.project import Project
-from ..engine.tls.views import TopView
+from ..app.plot import Project, pose_uncertainty
+from ..engine.report.views import TopView
 
 MATCH_COLOUR = "#2ca02c"
 LINK_COLOUR = "0.45"

@@ -363,7 +363,7 @@ class TreesView(QWidget):
         self.points: Optional[np.ndarray] = None
         self.selected: Optional[int] = None
         self._start_task = start_task
-        from ..engine.trees.inventory import TreeParams
+        from ..engine.params import TreeParams
 
         self.params = TreeParams()
         self.inventory: Any = None  # a TreeInventory measured in this session (edits need it)
@@ -505,13 +505,12 @@ class TreesView(QWidget):
         params = self.params
 
         def task(progress: Any, cancel: Any) -> tuple[Any, np.ndarray]:
+            from ..app.trees import measure_trees_in
             from ..engine.io import read_scan
-            from ..engine.trees.inventory import measure_trees
 
             progress(0.0, "reading the cloud")
             scan = read_scan(cloud)
-            inv = measure_trees(scan.points, params, progress=lambda f, m: progress(0.05 + 0.95 * f, m),
-                                origin_shift=scan.origin_shift)
+            inv = measure_trees_in(scan, params, progress=lambda f, m: progress(0.05 + 0.95 * f, m), cancel=cancel)
             return inv, scan.points
 
         def done(result: tuple[Any, np.ndarray]) -> None:
@@ -524,7 +523,7 @@ class TreesView(QWidget):
         return self._work("Measuring the trees", task, done)
 
     def _notes(self) -> dict[int, str]:
-        from ..engine.trees.edit import edit_notes
+        from ..app.trees import edit_notes
 
         return edit_notes(self.base_inventory, self.steps) if self.base_inventory is not None else {}
 
@@ -552,10 +551,10 @@ class TreesView(QWidget):
         inv, pts, params = self.inventory, self.local_points, self.params
 
         def task(progress: Any, cancel: Any) -> Any:
-            from ..engine.trees.edit import apply_edit
+            from ..app.trees import apply_tree_edit
 
             progress(0.1, edit.describe())
-            return apply_edit(pts, inv, edit, params)
+            return apply_tree_edit(pts, inv, edit, params)
 
         def done(after: Any) -> None:
             self.steps.append((edit, after))
@@ -571,30 +570,30 @@ class TreesView(QWidget):
         return self._work(edit.describe(), task, done)
 
     def delete_selected(self) -> bool:
-        from ..engine.trees.edit import TreeEdit
+        from ..app.trees import edit as TreeEdit
 
         return self.selected is not None and self.apply(TreeEdit("delete", (self.selected,)))
 
     def merge_selected_with(self, other: int) -> bool:
-        from ..engine.trees.edit import TreeEdit
+        from ..app.trees import edit as TreeEdit
 
         return self.selected is not None and self.apply(TreeEdit("merge", (self.selected, int(other))))
 
     def split_selected_at(self, x: float, y: float) -> bool:
         """Split the selected tree at the second stem near (x, y) (file coordinates)."""
-        from ..engine.trees.edit import TreeEdit
+        from ..app.trees import edit as TreeEdit
 
         return self.selected is not None and self.inventory is not None and \
             self.apply(TreeEdit("split", (self.selected,), xy=self._to_local(x, y)))
 
     def add_stem_at(self, x: float, y: float) -> bool:
         """Add the stem near (x, y) (file coordinates)."""
-        from ..engine.trees.edit import TreeEdit
+        from ..app.trees import edit as TreeEdit
 
         return self.inventory is not None and self.apply(TreeEdit("add", (), xy=self._to_local(x, y)))
 
     def dbh_height_selected(self, height_m: float) -> bool:
-        from ..engine.trees.edit import TreeEdit
+        from ..app.trees import edit as TreeEdit
 
         return self.selected is not None and self.apply(TreeEdit("dbh_height", (self.selected,), height_m=float(height_m)))
 
@@ -610,9 +609,9 @@ class TreesView(QWidget):
 
     def save_edits(self, folder: str) -> Any:
         """Write the edited inventory (engine's writer; trees.csv marks edited trees; edits.json)."""
-        from ..engine.trees.edit import write_edited
+        from ..app.trees import save_edited
 
-        return write_edited(folder, self.inventory, self._notes(), [e for e, _ in self.steps], self.local_points)
+        return save_edited(folder, self.inventory, self._notes(), [e for e, _ in self.steps], self.local_points)
 
     def _ask_save(self) -> None:
         from PySide6.QtWidgets import QFileDialog

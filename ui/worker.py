@@ -108,24 +108,10 @@ class RegistrationWorker(TaskWorker):
         self.succeeded.connect(self.finished)
 
     def _register(self, progress: Callable[[float, str], None], cancel: CancelToken) -> Any:
-        from ..engine.tls.plot import ScanCache, adjust_poses, register_project
+        from ..app.plot import register_plot_project
 
-        scans = self.scans if self.scans is not None else ScanCache(self.project)
-        outcome = register_project(
-            self.project,
-            rerun=self.rerun,
-            progress=lambda f, m: progress(0.95 * f, m),
-            cancel=cancel,
-            on_link=lambda link: self.link_done.emit(link.moving),
-            scans=scans,
-        )
-        cancel.raise_if_cancelled()
-        progress(0.96, "global adjustment")
-        adjust_poses(self.project, scans)
-        if self.project.path is not None:
-            self.project.save()
-        progress(1.0, "done")
-        return outcome
+        return register_plot_project(self.project, self.scans, rerun=self.rerun, progress=progress, cancel=cancel,
+                                     on_link=lambda link: self.link_done.emit(link.moving))
 
 
 def make_thread(worker: TaskWorker, parent: Optional[QObject] = None) -> QThread:

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
+import re
 import sys
 from dataclasses import field
 from pathlib import Path
@@ -30,7 +32,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-__all__ = ["Params", "param_field", "parameter_table", "read_toml", "validate_ranges"]
+__all__ = ["Params", "param_field", "parameter_table", "read_toml", "validate_ranges", "validate_types"]
 
 P = TypeVar("P", bound="Params")
 
@@ -49,10 +51,81 @@ def param_field(default: Any, unit: str = "", lo: Optional[float] = None, hi: Op
     return field(default=default, metadata=meta)
 
 
+def _kind(f: dataclasses.Field) -> str:
+    """A field's annotation as compact text: ``float``, ``Optional[float]``, ``tuple[int,...]``."""
+    t = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", None) or str(f.type)
+    return t.replace("typing.", "").replace(" ", "")
+
+
+def _is_bool(v: Any) -> bool:
+    return isinstance(v, bool) or type(v).__name__ == "bool_"  # numpy's bool too
+
+
+def _matches(kind: str, v: Any) -> Optional[str]:
+    """None when ``v`` is of the annotated ``kind``, else what belongs there (for the message);
+    kinds this checker does not know pass."""
+    m = re.fullmatch(r"Optional\[(.+)\]|(.+)\|None|None\|(.+)", kind)
+    if m:
+        return None if v is None else _matches(next(g for g in m.groups() if g), v)
+    if kind == "bool":
+        return None if _is_bool(v) else "true or false"
+    if kind == "int":
+        return None if isinstance(v, numbers.Integral) and not _is_bool(v) else "a whole number"
+    if kind == "float":
+        return None if isinstance(v, numbers.Real) and not _is_bool(v) else "a number"
+    if kind == "str":
+        return None if isinstance(v, str) else "a text (in quotes)"
+    m = re.fullmatch(r"tuple\[(.+)\]", kind)
+    if m:
+        parts = m.group(1).split(",")
+        if len(parts) == 2 and parts[1] == "...":
+            element, count = parts[0], None
+        elif len(set(parts)) == 1:
+            element, count = parts[0], len(parts)
+        else:
+            return None
+        noun = {"float": "numbers", "int": "whole numbers", "str": "texts", "bool": "true/false values"}.get(element, element)
+        what = f"a list of {f'{count} ' if count else ''}{noun}"
+        if not isinstance(v, tuple) or (count is not None and len(v) != count):
+            return what
+        return what if any(_matches(element, x) for x in v) else None
+    return None
+
+
+def _shown(v: Any) -> str:
+    """A value as the user wrote it in TOML (a string in quotes, a tuple as a list)."""
+    if isinstance(v, str):
+        return f'"{v}" (a text)'
+    if isinstance(v, tuple):
+        return str(list(v))
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, Mapping):
+        return "a table"
+    return repr(v)
+
+
+def validate_types(params: Any) -> None:
+    """Raise :class:`ParameterError` for a field whose value is not of its annotated type: a
+    string, a boolean or a list where a number belongs, a number or a string where a boolean
+    belongs, a fraction where a count belongs."""
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if isinstance(f.default, Params):
+            if not isinstance(value, type(f.default)):
+                raise ParameterError(f"{f.name}: {_shown(value)} where a table of {type(f.default).__name__} belongs")
+            continue
+        wanted = _matches(_kind(f), value)
+        if wanted is not None:
+            unit = f.metadata.get("unit", "")
+            raise ParameterError(f"{f.name} = {_shown(value)}: {wanted}{f' ({unit})' if unit and wanted != 'true or false' else ''} belongs here")
+
+
 def validate_ranges(params: Any) -> None:
-    """Raise :class:`ParameterError` for a numeric field of a parameter dataclass that is not a
-    finite number inside its metadata ``range`` (booleans, strings, ``None`` and nested
-    parameter sets are skipped; nested sets validate themselves)."""
+    """Raise :class:`ParameterError` for a field of a parameter dataclass that is not of its
+    annotated type (:func:`validate_types`), or a numeric one that is not a finite number inside
+    its metadata ``range`` (nested parameter sets validate themselves)."""
+    validate_types(params)
     for f in dataclasses.fields(params):
         value = getattr(params, f.name)
         if value is None or isinstance(value, (bool, str, Params)):
@@ -72,6 +145,15 @@ def _flat(value: Any) -> list[Any]:
     if isinstance(value, tuple):
         return [x for v in value for x in _flat(v)]
     return [value]
+
+
+def _whole(kind: str, v: Any) -> Any:
+    """A whole float where a count belongs (TOML ``40.0``) as the int it is; anything else as is."""
+    if isinstance(v, float) and v.is_integer() and kind in ("int", "Optional[int]"):
+        return int(v)
+    if isinstance(v, tuple) and kind == "tuple[int,...]":
+        return tuple(int(x) if isinstance(x, float) and x.is_integer() else x for x in v)
+    return v
 
 
 class Params:
@@ -124,13 +206,17 @@ class Params:
                 v = type(default).from_mapping(v, f"{where}.{k}" if where else k)
             elif isinstance(v, list):
                 v = tuple(v)
-            elif isinstance(default, tuple) and isinstance(v, (int, float)):
+            elif isinstance(default, tuple) and isinstance(v, (int, float)) and not isinstance(v, bool):
                 v = (v,)
-            clean[k] = v
+            clean[k] = _whole(_kind(fields[k]), v)
         try:
             return cls(**clean)
         except TypeError as exc:
             raise ParameterError(f"[{where or cls.__name__}]: {exc}") from exc
+        except ParameterError as exc:
+            if str(exc).startswith("["):
+                raise
+            raise ParameterError(f"[{where or cls.__name__}] {exc}") from None
 
     @classmethod
     def table(cls, prefix: str = "") -> list[dict[str, Any]]:

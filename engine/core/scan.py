@@ -7,7 +7,7 @@ clouds (UTM and the like) have coordinates too large for float32 steps, so a sca
 in a *local frame*: ``file = local + origin_shift``. For a scan in its scanner's own coordinate
 system (SOCS) the shift is zero and the local frame is the SOCS.
 
-The scanner position is kept in the local frame; by convention (``METHOD.md``) it is the file
+The scanner position is kept in the local frame; by convention it is the file
 origin ``(0, 0, 0)`` unless a position is given (E57 pose, project file, or option).
 """
 

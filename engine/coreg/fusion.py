@@ -34,12 +34,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
-from ..core.atomic import atomic_path
-from ..core.errors import ParameterError, ScanDataError, ScanWriteError
+from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress, ProgressCallback
 from ..core.transform import apply as apply_transform
 from ..geometry.sorting import sort_keys
+from ..io.las import write_fused  # noqa: F401 - the fused cloud's writer lives with the LAS format
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..core.scan import Scan
@@ -764,47 +764,6 @@ def _merge_scans(ground: "Scan", uav: "Scan", matrix: np.ndarray) -> _Merged:
     pts[n_g:] = uav.points
     both = ground.intensity is not None and uav.intensity is not None
     return _Merged(pts, n_g, {"intensity": ground.intensity} if both else {}, {"intensity": uav.intensity} if both else {})
-
-
-def write_fused(
-    path: str | os.PathLike[str],
-    result: FusionResult,
-    *,
-    origin_shift: Optional[np.ndarray] = None,
-    unit_scale: float = 1.0,
-) -> None:
-    """Write the fused cloud as LAS 1.4 (point format 6), LAZ if ``path`` ends in ``.laz``.
-
-    Coordinates are ``(result.points + origin_shift) / unit_scale`` (file coordinates in the
-    file's units; shift default zero, metres), at 0.1 mm resolution. Each point's source (1
-    ground-based, 2 UAV) is in ``point_source_id`` and in an extra uint8 dimension ``source``;
-    ``result.extra["intensity"]``, when present, becomes the intensity. Written
-    :data:`_CHUNK` points at a time, atomically (temporary file, then renamed).
-    """
-
-    from ..io.las import LasChunkWriter, intensity_to_uint16
-
-    target = str(path)
-    suffix = os.path.splitext(target)[1].lower()
-    if suffix not in (".las", ".laz"):
-        raise ScanWriteError(f"{target}: the fused cloud is written as .las or .laz, not {suffix or 'no extension'}")
-    pts = np.asarray(result.points, dtype=np.float64)
-    if len(pts) == 0:
-        raise ScanWriteError(f"{target}: the fused cloud is empty; nothing to write")
-    scale = float(unit_scale)
-    shift = (np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64).reshape(3)) / scale
-    lo = np.min([(pts[i : i + _CHUNK] / scale).min(axis=0) for i in range(0, len(pts), _CHUNK)], axis=0) + shift
-    hi = np.max([(pts[i : i + _CHUNK] / scale).max(axis=0) for i in range(0, len(pts), _CHUNK)], axis=0) + shift
-    intensity = result.extra.get("intensity")
-    intensity = None if intensity is None else intensity_to_uint16(intensity)  # over the whole cloud, then by chunk
-    source = np.asarray(result.source)
-    with atomic_path(target) as tmp:
-        with LasChunkWriter(tmp, lo, hi, compress=suffix == ".laz", system_identifier="forestreg fusion",
-                            extra_dims=[("source", np.uint8, "1 ground-based, 2 UAV")]) as out:
-            for i in range(0, len(pts), _CHUNK):
-                part = source[i : i + _CHUNK]
-                out.write(pts[i : i + _CHUNK] / scale, shift, intensity=None if intensity is None else intensity[i : i + _CHUNK],
-                          fields={"point_source_id": part.astype(np.uint16), "source": part.astype(np.uint8)})
 
 
 def _workers() -> int:

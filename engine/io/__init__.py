@@ -35,6 +35,7 @@ from . import pcd as _pcd
 from . import ply as _ply
 from . import xyz as _xyz
 from .base import PathLike, PointsToWrite, RawCloud, as_column, as_matrix, as_points, build_scan, check_readable, check_unit_scale
+from .las import write_fused  # noqa: F401 - the fused cloud (System B)
 from .sniff import READ_SUFFIXES, detect_format
 
 __all__ = [

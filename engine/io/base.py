@@ -7,9 +7,11 @@ once, in :func:`build_scan`.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import sys
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -218,3 +220,32 @@ def as_matrix(matrix: Optional[np.ndarray], what: str = "matrix") -> Optional[np
     if m.shape != (4, 4) or not np.isfinite(m).all():
         raise ParameterError(f"{what} must be a finite 4x4 matrix, got shape {m.shape}")
     return m
+
+
+#: a coordinate step of a 32-bit float file (file units) from which a warning is logged: 1 mm
+FLOAT32_STEP_WARN = 0.001
+_float32_warned: set = set()
+_float32_lock = threading.Lock()
+
+
+def float32_precision(path: Path, points: np.ndarray, meta: dict[str, Any]) -> None:
+    """For a file storing x, y, z as 32-bit floats: the step between neighbouring values at its
+    largest coordinate (``meta["float32_step"]``, file units) and, when it is 1 mm or more, one
+    warning naming the precision lost in the file (a UTM easting of 5.2e6 m in float32 moves in
+    0.5 m steps: no registration can be finer than the file). Logged once per file."""
+    if not len(points):
+        return
+    big = float(np.nanmax(np.abs(points))) if np.isfinite(points).any() else 0.0
+    step = float(np.spacing(np.float32(big)))
+    meta["float32_step"] = step
+    if step < FLOAT32_STEP_WARN:
+        return
+    key = str(Path(path).resolve())
+    with _float32_lock:
+        if key in _float32_warned:
+            return
+        _float32_warned.add(key)
+    logging.getLogger("forestreg.io").warning(
+        "%s stores x, y, z as 32-bit floats: at coordinates of %.3g its values are only %.3g apart (%.3g m in a file "
+        "in metres); that precision is lost in the file and no result can be finer (write it with 64-bit floats, or "
+        "shifted near 0)", Path(path).name, big, step, step)

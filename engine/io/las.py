@@ -6,12 +6,14 @@ for a long time, so the public header is checked with :mod:`struct` first.
 
 from __future__ import annotations
 
+import os
 import struct
 from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
+from ..core.atomic import atomic_path
 from ..core.errors import ScanReadError, ScanWriteError
 from .base import PointsToWrite, RawCloud, tune_allocator
 
@@ -376,3 +378,47 @@ def write_las(tmp: Path, cloud: PointsToWrite, *, compress: bool) -> None:
     if cloud.scan_id is not None:
         las.scan_id = np.asarray(cloud.scan_id).astype(np.uint16)
     las.write(str(tmp), do_compress=compress)
+
+
+#: Points written per chunk of a fused cloud.
+WRITE_CHUNK_POINTS = 1 << 20
+
+
+def write_fused(
+    path: str | os.PathLike[str],
+    result,
+    *,
+    origin_shift: Optional[np.ndarray] = None,
+    unit_scale: float = 1.0,
+) -> None:
+    """Write a fused cloud (:class:`~forestreg.engine.coreg.fusion.FusionResult`: ``points``,
+    ``source``, ``extra``) as LAS 1.4 (point format 6), LAZ if ``path`` ends in ``.laz``.
+
+    Coordinates are ``(result.points + origin_shift) / unit_scale`` (file coordinates in the
+    file's units; shift default zero, metres), at 0.1 mm resolution. Each point's source (1
+    ground-based, 2 UAV) is in ``point_source_id`` and in an extra uint8 dimension ``source``;
+    ``result.extra["intensity"]``, when present, becomes the intensity. Written
+    :data:`WRITE_CHUNK_POINTS` points at a time, atomically (temporary file, then renamed).
+    """
+
+    target = str(path)
+    suffix = os.path.splitext(target)[1].lower()
+    if suffix not in (".las", ".laz"):
+        raise ScanWriteError(f"{target}: the fused cloud is written as .las or .laz, not {suffix or 'no extension'}")
+    pts = np.asarray(result.points, dtype=np.float64)
+    if len(pts) == 0:
+        raise ScanWriteError(f"{target}: the fused cloud is empty; nothing to write")
+    scale = float(unit_scale)
+    shift = (np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64).reshape(3)) / scale
+    lo = np.min([(pts[i : i + WRITE_CHUNK_POINTS] / scale).min(axis=0) for i in range(0, len(pts), WRITE_CHUNK_POINTS)], axis=0) + shift
+    hi = np.max([(pts[i : i + WRITE_CHUNK_POINTS] / scale).max(axis=0) for i in range(0, len(pts), WRITE_CHUNK_POINTS)], axis=0) + shift
+    intensity = result.extra.get("intensity")
+    intensity = None if intensity is None else intensity_to_uint16(intensity)  # over the whole cloud, then by chunk
+    source = np.asarray(result.source)
+    with atomic_path(target) as tmp:
+        with LasChunkWriter(tmp, lo, hi, compress=suffix == ".laz", system_identifier="forestreg fusion",
+                            extra_dims=[("source", np.uint8, "1 ground-based, 2 UAV")]) as out:
+            for i in range(0, len(pts), WRITE_CHUNK_POINTS):
+                part = source[i : i + WRITE_CHUNK_POINTS]
+                out.write(pts[i : i + WRITE_CHUNK_POINTS] / scale, shift, intensity=None if intensity is None else intensity[i : i + WRITE_CHUNK_POINTS],
+                          fields={"point_source_id": part.astype(np.uint16), "source": part.astype(np.uint8)})

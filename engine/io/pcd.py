@@ -12,7 +12,7 @@ from typing import Optional
 import numpy as np
 
 from ..core.errors import ScanReadError
-from .base import RawCloud
+from .base import RawCloud, float32_precision
 from .ply import INTENSITY_NAMES
 
 _MAX_HEADER = 1 << 16
@@ -81,8 +81,11 @@ def read_pcd(path: Path) -> RawCloud:
     if count == 0:
         raise ScanReadError(f"{path}: contains no points (PCD POINTS 0)")
     kind = (entries["DATA"] or [""])[0].lower()
+    float32_meta: dict = {}
     if kind == "ascii":
-        data = _read_ascii(path, dtype, count, header_len)
+        # the text holds the digits as written: kept as float64 even where the header says 4 bytes
+        wide = np.dtype([(n, (np.float64, dtype[n].shape) if dtype[n].kind == "f" else dtype[n]) for n in dtype.names])
+        data = _read_ascii(path, wide, count, header_len)
         xyz = np.column_stack([data[a] for a in "xyz"]).astype(np.float64)
         intensity = _intensity(data, names)
     elif kind == "binary":
@@ -91,6 +94,8 @@ def read_pcd(path: Path) -> RawCloud:
         data = np.fromfile(path, dtype=dtype, count=count, offset=header_len)
         xyz = np.column_stack([data[a] for a in "xyz"]).astype(np.float64)
         intensity = _intensity(data, names)
+        if any(dtype[a].itemsize == 4 and dtype[a].kind == "f" for a in "xyz"):
+            float32_precision(path, xyz[np.isfinite(xyz).all(axis=1)], float32_meta)
     elif kind == "binary_compressed":
         xyz, intensity = _read_with_open3d(path)
     else:
@@ -100,7 +105,7 @@ def read_pcd(path: Path) -> RawCloud:
     if dropped:
         xyz = xyz[finite]
         intensity = None if intensity is None else intensity[finite]
-    meta = {"pcd_data": kind, "point_count_in_file": count, "dropped_invalid": dropped}
+    meta = {"pcd_data": kind, "point_count_in_file": count, "dropped_invalid": dropped, **float32_meta}
     if "VIEWPOINT" in entries:
         meta["pcd_viewpoint"] = [float(v) for v in entries["VIEWPOINT"]]
     return RawCloud(points=xyz, intensity=intensity, meta=meta)

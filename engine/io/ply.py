@@ -12,7 +12,7 @@ from typing import Optional
 import numpy as np
 
 from ..core.errors import ScanReadError
-from .base import PointsToWrite, RawCloud
+from .base import PointsToWrite, RawCloud, float32_precision
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -100,7 +100,10 @@ def read_ply(path: Path) -> RawCloud:
         if candidate in lower:
             intensity = np.asarray(data[lower[candidate]])
             break
-    return RawCloud(points=points, intensity=intensity, meta={"ply_format": fmt, "point_count_in_file": vertex.count})
+    meta = {"ply_format": fmt, "point_count_in_file": vertex.count}
+    if fmt != "ascii" and any(t == "f4" for n, t in vertex.props if n in ("x", "y", "z")):
+        float32_precision(path, points, meta)
+    return RawCloud(points=points, intensity=intensity, meta=meta)
 
 
 def _read_binary(path: Path, before: list[_Element], vertex: _Element, header_len: int, endian: str) -> np.ndarray:
@@ -123,7 +126,8 @@ def _read_binary(path: Path, before: list[_Element], vertex: _Element, header_le
 
 def _read_ascii(path: Path, before: list[_Element], vertex: _Element, header_len: int) -> np.ndarray:
     skip_lines = sum(el.count for el in before)
-    dtype = np.dtype([(n, t) for n, t in vertex.props])
+    # the text holds the digits as written: kept as float64 even where the header says float
+    dtype = np.dtype([(n, "f8" if t == "f4" else t) for n, t in vertex.props])
     try:
         with open(path, "rb") as fh:
             fh.seek(header_len)

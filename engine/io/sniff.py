@@ -90,3 +90,38 @@ def detect_format(path: Path) -> str:
     raise ScanReadError(
         f"{path}: unknown scan format (not LAS/LAZ, PLY, PCD, E57 or a text point list)"
     )
+
+
+#: lines of a text file looked at by :func:`is_point_cloud_file`
+_SNIFF_LINES = 50
+
+
+def is_point_cloud_file(path: Path) -> bool:
+    """Whether a file is meant as a point cloud, by its content: a file whose first bytes name a
+    point-cloud format (LAS/LAZ, PLY, PCD, E57), or whose suffix names a binary one (a damaged
+    scan is still a scan: reading it says what is wrong), or a text file whose first data line
+    holds three or more numbers under no header or a header naming x, y and z. A table of other
+    columns (``tree_id,x,y,dbh_m``), notes, or anything unreadable is not."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8192)
+    except OSError:
+        return False
+    if sniff_bytes(head[:64]) is not None or format_from_suffix(path) in _BINARY_NAMES:
+        return True
+    if format_from_suffix(path) != "xyz" or not looks_like_text(head):
+        return False
+    from .xyz import _is_number, _words
+
+    header: list[str] = []
+    for line in head.decode("latin-1").splitlines()[:_SNIFF_LINES]:
+        stripped = line.strip()
+        if not stripped:
+            continue
+        words = _words(stripped)
+        if len(words) >= 3 and all(_is_number(w) for w in words):
+            names = {h.lower() for h in header}
+            return not header or {"x", "y", "z"} <= names
+        header = words
+    return False

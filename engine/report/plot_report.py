@@ -44,7 +44,7 @@ from ..core.atomic import write_text_atomic  # noqa: E402
 from ..tls.params import RegistrationParams  # noqa: E402
 from ..tls.plot import ScanCache  # noqa: E402
 from ..tls.project import Link, Project  # noqa: E402
-from ..tls.views import (  # noqa: E402
+from .views import (  # noqa: E402
     MATCH_COLOUR,
     MOVING_COLOUR,
     REFERENCE_COLOUR,

@@ -4,6 +4,7 @@ Scenes (flat ground of the ``planted_conifer`` preset, trees placed by hand):
 
 - :func:`big_tree_scene`: a buttressed giant (DBH 1.5 m, 48 m, flare doubling the radius at the
   foot up to 1.2 m), ordinary trees and a thin one (DBH 6 cm).
+- :func:`single_tree_scene`: one open-grown broadleaf with a wide crown (a park or street tree).
 - :func:`suppressed_scene`: dominant broadleaves (26 m) with small suppressed trees (8 m) under
   their crowns: the small trees' tops are hidden in or beside a neighbour's crown.
 
@@ -25,7 +26,7 @@ import numpy as np
 
 from .scene import BROADLEAF, CONIFER, ForestScene, Tree, make_scene
 
-__all__ = ["big_tree_scene", "leaf_off", "mls_ghosting", "suppressed_scene"]
+__all__ = ["big_tree_scene", "leaf_off", "mls_ghosting", "single_tree_scene", "suppressed_scene"]
 
 
 def _with_trees(base: ForestScene, trees: list[Tree]) -> ForestScene:
@@ -69,6 +70,16 @@ def suppressed_scene(seed: int = 0, size_m: float = 24.0) -> ForestScene:
                           height_m=float(rng.uniform(7.0, 9.0)), crown_base_m=3.0, crown_radius_m=1.2, shape=CONIFER))
         k += 1
     return _with_trees(base, trees)
+
+
+def single_tree_scene(seed: int = 0, size_m: float = 24.0) -> ForestScene:
+    """One open-grown broadleaf on flat ground, as in a park or a street: DBH 0.42 m, 12 m high, a
+    wide crown (radius 5 m) from 3 m, eight main branches; nothing else (a single-tree cloud of the
+    kind TreeQSM and AdTree take, once its ground is cut away)."""
+    base = make_scene("planted_conifer", seed=seed, size_m=size_m, slope_deg=(0.0, 0.0))
+    tree = Tree(1, 0.0, 0.0, 0.0, dbh_m=0.42, height_m=12.0, crown_base_m=3.0, crown_radius_m=5.0, shape=BROADLEAF,
+                top_radius_fraction=0.3, stem_height_fraction=0.75, n_branches=8, leaf_area_density=0.3)
+    return _with_trees(base, [tree])
 
 
 def leaf_off(scene: ForestScene, factor: float = 0.1) -> ForestScene:

@@ -321,6 +321,49 @@ def terrain_mesh(scene: ForestScene) -> tuple[np.ndarray, np.ndarray]:
     return verts, tris.astype(np.int64)
 
 
+#: Radius (m) of a main branch at its tip.
+BRANCH_TIP_RADIUS_M = 0.008
+
+
+def _branches(tree: Tree, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
+    """The main branches of ``tree`` as meshed: (start, end, start radius, tip radius), drawn from
+    ``rng`` (the tree's own stream, see :func:`build_scene_mesh`)."""
+    out = []
+    length = tree.height_m - tree.crown_base_m
+    stem_top_h = tree.stem_height_fraction * tree.height_m
+    for _ in range(tree.n_branches):
+        if tree.shape == BROADLEAF:
+            hb = rng.uniform(tree.crown_base_m, max(stem_top_h, tree.crown_base_m + 0.1))
+            el = math.radians(rng.uniform(25.0, 60.0))
+            blen = tree.crown_radius_m * rng.uniform(0.7, 1.0) / max(math.cos(el), 0.3)
+        else:
+            hb = rng.uniform(tree.crown_base_m, tree.crown_base_m + 0.6 * length)
+            el = math.radians(rng.uniform(-15.0, 15.0))
+            frac = 1.0 - (hb - tree.crown_base_m) / max(length, 1e-6)
+            blen = max(tree.crown_radius_m * frac * rng.uniform(0.6, 0.9), 0.3)
+        az = rng.uniform(0.0, 2.0 * math.pi)
+        p0 = tree.point_at_height(hb)
+        d = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        rb = max(0.3 * tree.radius_at(hb / math.cos(math.radians(tree.lean_deg))), 0.012)
+        out.append((p0, p0 + blen * d, float(rb), BRANCH_TIP_RADIUS_M))
+    return out
+
+
+def tree_wood_volume(scene: ForestScene, tree: Tree) -> tuple[float, float]:
+    """(stem, branch) wood volume (m^3) of ``tree`` as :func:`build_scene_mesh` meshes it: the stem
+    profile (frusta between its sections, from the ground up) and the main branches (frusta); the
+    truth a cylinder model's volume is checked against. The part of a branch inside the stem is
+    counted too (a few cm^3)."""
+    s, r = tree.profile()
+    ds = np.diff(s)
+    stem = float(np.sum(math.pi * ds * (r[:-1] ** 2 + r[:-1] * r[1:] + r[1:] ** 2) / 3.0))
+    rng = np.random.default_rng([scene.seed, 1, tree.id])
+    branch = 0.0
+    for p0, p1, rb, rt in _branches(tree, rng):
+        branch += math.pi * float(np.linalg.norm(p1 - p0)) * (rb * rb + rb * rt + rt * rt) / 3.0
+    return stem, branch
+
+
 def build_scene_mesh(
     scene: ForestScene,
     *,
@@ -359,24 +402,8 @@ def build_scene_mesh(
         r = np.concatenate([[r[0]], r])
         v, t = tube(tree.point_at(s), r, trunk_segments, cap_end=True)
         b.add(Material.TRUNK, v, t, tree.id)
-        # main branches
-        length = tree.height_m - tree.crown_base_m
-        stem_top_h = tree.stem_height_fraction * tree.height_m
-        for _ in range(tree.n_branches):
-            if tree.shape == BROADLEAF:
-                hb = rng.uniform(tree.crown_base_m, max(stem_top_h, tree.crown_base_m + 0.1))
-                el = math.radians(rng.uniform(25.0, 60.0))
-                blen = tree.crown_radius_m * rng.uniform(0.7, 1.0) / max(math.cos(el), 0.3)
-            else:
-                hb = rng.uniform(tree.crown_base_m, tree.crown_base_m + 0.6 * length)
-                el = math.radians(rng.uniform(-15.0, 15.0))
-                frac = 1.0 - (hb - tree.crown_base_m) / max(length, 1e-6)
-                blen = max(tree.crown_radius_m * frac * rng.uniform(0.6, 0.9), 0.3)
-            az = rng.uniform(0.0, 2.0 * math.pi)
-            p0 = tree.point_at_height(hb)
-            d = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-            rb = max(0.3 * tree.radius_at(hb / math.cos(math.radians(tree.lean_deg))), 0.012)
-            v, t = tube(np.vstack([p0, p0 + blen * d]), np.array([rb, 0.008]), 8, cap_end=False)
+        for p0, p1, rb, rt in _branches(tree, rng):
+            v, t = tube(np.vstack([p0, p1]), np.array([rb, rt]), 8, cap_end=False)
             b.add(Material.BRANCH, v, t, tree.id)
         # leaves (triangles made below, all trees at once)
         n_leaf = int(round(tree.leaf_area_density * crown_volume(tree) / _leaf_area(leaf_side)))

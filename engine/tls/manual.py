@@ -1,4 +1,4 @@
-"""Manual (target-based) registration: the paper's comparison method (sec. 2.7, METHOD.md).
+"""Manual (target-based) registration: the paper's comparison method (sec. 2.7).
 
 The operator identifies the same high-reflectance targets (reflectors) in two scans; a rigid
 transform is fitted to these tie points by least squares (>= 3 shared, non-collinear targets) and

@@ -1,6 +1,6 @@
 """Marker-free pair registration (System A): the pipeline from two scans to a :class:`PairResult`.
 
-Steps (METHOD.md): reduce -> level -> ground -> slice -> VOPs -> horizontal coarse match ->
+Steps: reduce -> level -> ground -> slice -> VOPs -> horizontal coarse match ->
 vertical offset from the ground overlap -> ICP -> evidence. Each step is a function of
 ``engine.occlusion`` / ``engine.match``; this module only composes them, times them and decides,
 from the evidence, whether the result can be trusted.

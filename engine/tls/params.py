@@ -18,7 +18,7 @@ __all__ = ["RegistrationParams"]
 
 @dataclass(frozen=True)
 class RegistrationParams(Params):
-    """Every setting of marker-free pair registration (METHOD.md, System A)."""
+    """Every setting of marker-free pair registration (System A; defaults: Guan et al. 2020, table 2)."""
 
     # --- data reduction and ground (paper 2.4, 2.5.1)
     max_range_m: float = _p(30.0, "m", 5.0, 200.0, "Points farther than this horizontally from the scanner are dropped", "D_c = 30 m")

@@ -291,15 +291,22 @@ def register_project(
     """
     default_links(project)
     scans = scans or ScanCache(project)
+    _readable_centre(project, scans)
     step = Progress(progress, cancel=cancel)
     order = [s for s in project.scans if s.name != project.centre and not s.tilted] + [s for s in project.scans if s.tilted and s.name != project.centre]
     outcome = PlotOutcome(status={project.centre: "centre"})
     ahead = _PrepareAhead.start(project, order, scans, rerun=rerun, cancel=cancel, beside=beside)
     try:
         _register_links(project, order, scans, outcome, step, ahead, rerun=rerun, cancel=cancel, on_link=on_link)
-    finally:
-        if ahead is not None:
+    except BaseException:
+        if ahead is not None:  # cancelled or failed: a preparation under way ends in its daemon thread
             ahead.stop()
+        raise
+    if ahead is not None:
+        # the links are done: the thread preparing ahead ends before the run goes on, so nothing of
+        # this run still imports or reads while the caller carries on (an import of open3d walks
+        # sys.modules and breaks when another thread imports at the same time)
+        ahead.stop(wait=beside is None)
     extra = [link for link in project.links if link.extra and (rerun or link.result is None)]
     for link in extra:
         link.result = _run_link(project, link, scans, Progress(None, cancel=cancel), cancel)
@@ -315,6 +322,39 @@ def register_project(
             outcome.reasons[name] = "its reference scan could not be registered"
     step(1.0, "done")
     return outcome
+
+
+def _readable_centre(project: Project, scans: ScanCache) -> None:
+    """The centre scan must be readable: an unreadable one (missing, corrupt, no points) would
+    place every scan in no frame. Then the first readable level scan becomes the centre, the
+    links to the old centre are made to the new one, and the unreadable scan gets a link of its
+    own (which fails with the reason). Without any readable scan: DataError with the reason."""
+    old = project.centre
+    try:
+        scans.frame(old)
+        return
+    except (ScanReadError, ScanDataError) as exc:
+        reason = str(exc)
+    new = None
+    for s in sorted(project.scans, key=lambda s: s.tilted):
+        if s.name == old:
+            continue
+        try:
+            scans.frame(s.name)
+        except (ScanReadError, ScanDataError):
+            continue
+        new = s.name
+        break
+    if new is None:
+        raise DataError(f"no scan of the plot can be read (the centre scan {old}: {reason})")
+    log.warning("the centre scan %s cannot be read (%s): %s is the centre instead", old, reason, new)
+    project.centre = new
+    project.links = [link for link in project.links if not (link.moving == new and not link.extra)]
+    for link in list(project.links):
+        if link.reference == old and not link.extra and link.method != "manual":
+            project.set_link(link.moving, new, vop_radius_m=link.vop_radius_m, slice_offsets_m=link.slice_offsets_m)
+    if project.link_of(old) is None:
+        project.set_link(old, new)
 
 
 def _register_links(project: Project, order: list[ScanEntry], scans: ScanCache, outcome: PlotOutcome, step: Progress,
@@ -498,11 +538,14 @@ class _PrepareAhead:
             self._current = k
             self._wake.notify_all()
 
-    def stop(self) -> None:
-        """Prepare nothing more (a preparation under way finishes in its daemon thread)."""
+    def stop(self, wait: bool = False) -> None:
+        """Prepare nothing more; ``wait``: until a preparation under way has finished (else it
+        finishes in its daemon thread)."""
         with self._wake:
             self._stopped = True
             self._wake.notify_all()
+        if wait and self._thread is not threading.current_thread():
+            self._thread.join()
 
     def _run(self) -> None:
         for k, name, params in self._plan:
@@ -638,14 +681,13 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
     Stores and returns ``{"poses": {name: 4x4 | None}, "links": [per-link residuals before and
     after]}`` in ``project.adjustment``; returns None (and clears it) where there is no loop.
     """
-    import open3d as o3d
-
     chained = project.chained_poses()
     names = [s.name for s in project.scans if chained.get(s.name) is not None]
     links = [link for link in project.links if link.ok and link.moving in names and link.reference in names]
     if len(links) <= len(names) - 1:
         project.adjustment = None
         return None
+    import open3d as o3d
     scans = scans or ScanCache(project)
     index = {n: i for i, n in enumerate(names)}
     reg = o3d.pipelines.registration

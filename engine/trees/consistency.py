@@ -44,6 +44,9 @@ class FormFactorBounds(Params):
 
     stem: tuple[float, float] = param_field((0.25, 0.8), "1", 0.0, 2.0, "Plausible stem form factors V_stem / (BA * H); outside: volume flagged")
     total: tuple[float, float] = param_field((0.25, 1.1), "1", 0.0, 3.0, "Plausible whole-tree form factors V / (BA * H); outside: volume flagged")
+    #: an open-grown tree (a single-tree cloud: urban, park, solitary) carries much of its wood in
+    #: its branches: TreeQSM gives whole-tree form factors of 1.5-2.1 on such real trees
+    open_grown_total: tuple[float, float] = param_field((0.25, 2.5), "1", 0.0, 5.0, "Plausible whole-tree form factors of an open-grown single tree; outside: volume flagged")
     withhold_factor: float = param_field(2.0, "1", 1.0, 100.0, "Beyond this factor outside the whole-tree bounds the volume is withheld")
 
 

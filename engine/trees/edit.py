@@ -6,8 +6,9 @@ inventory in which only the edited trees were measured again (with the same step
 :func:`~forestreg.engine.trees.inventory.measure_trees`); the others are untouched.
 
 Edits are described by :class:`TreeEdit` records (JSON-friendly: :meth:`TreeEdit.to_dict`), so a
-list of them can be kept in a project or next to ``trees.csv`` (``edits.json``) and replayed on
-the same cloud with :func:`apply_edits`. :func:`write_edited` writes the inventory like
+list of them can be kept in a project or next to ``trees.csv`` (``edits.json``, which also records
+the content hash of the cloud they were made on) and replayed on the same cloud with
+:func:`apply_edits` (another cloud is refused, also one with the same number of points). :func:`write_edited` writes the inventory like
 ``forestreg trees`` does and adds an ``edited`` column to ``trees.csv`` naming each tree's edits.
 
 Frame: the inventory's local frame (the points given to ``measure_trees``; metres, z up). A
@@ -39,9 +40,11 @@ from .stems import NOISY_STEM_CHANGES, Stem, detect_stems, measure_dbh, stem_cur
 __all__ = [
     "EDIT_KINDS",
     "TreeEdit",
+    "TreeEdits",
     "add_stem",
     "apply_edit",
     "apply_edits",
+    "cloud_digest",
     "dbh_at_height",
     "delete_tree",
     "measure_tree",
@@ -72,6 +75,23 @@ class TreeEdit:
     def __post_init__(self) -> None:
         if self.kind not in EDIT_KINDS:
             raise ParameterError(f"unknown tree edit '{self.kind}' (one of {', '.join(EDIT_KINDS)})")
+        for name in ("trees", "xy"):  # a list from a caller is taken as the tuple it stands for
+            if isinstance(getattr(self, name), list):
+                object.__setattr__(self, name, tuple(getattr(self, name)))
+        if not isinstance(self.trees, tuple) or not all(_is_id(t) for t in self.trees):
+            raise ParameterError(f"a {self.kind} edit: trees must be a list of tree ids (whole numbers), not {self.trees!r}")
+        wanted = {"delete": 1, "merge": 2, "split": 1, "add": 0, "dbh_height": 1}[self.kind]
+        if len(self.trees) != wanted:
+            count = {0: "no tree", 1: "one tree", 2: "two trees"}[wanted]
+            raise ParameterError(f"a {self.kind} needs {count}, not {len(self.trees)}")
+        if self.xy is not None and not (isinstance(self.xy, tuple) and len(self.xy) == 2 and all(_is_number(v) for v in self.xy)):
+            raise ParameterError(f"a {self.kind} edit: the position must be two finite numbers (x, y in m), not {self.xy!r}")
+        if self.kind in ("split", "add") and self.xy is None:
+            raise ParameterError(f"a {self.kind} needs a position (x, y in m)")
+        if self.height_m is not None and not _is_number(self.height_m):
+            raise ParameterError(f"a {self.kind} edit: the height must be a finite number (m), not {self.height_m!r}")
+        if self.kind == "dbh_height" and self.height_m is None:
+            raise ParameterError("a dbh_height needs a height (m)")
 
     def describe(self) -> str:
         """A short note for trees.csv and the report."""
@@ -91,13 +111,48 @@ class TreeEdit:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "TreeEdit":
-        try:
-            xy = d.get("xy")
-            return cls(kind=str(d["kind"]), trees=tuple(int(t) for t in d.get("trees") or ()),
-                       xy=None if xy is None else (float(xy[0]), float(xy[1])),
-                       height_m=None if d.get("height_m") is None else float(d["height_m"]))
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
-            raise ParameterError(f"not a tree edit: {d!r} ({exc})") from exc
+        """An edit from its JSON form; ParameterError naming what is wrong (values are taken as
+        they are, never converted: ``"12"`` is not a list of tree ids)."""
+        if not isinstance(d, Mapping):
+            raise ParameterError(f"not a tree edit: {d!r} (an edit is an object with kind, trees, xy, height_m)")
+        unknown = sorted(set(d) - {"kind", "trees", "xy", "height_m"})
+        if unknown:
+            raise ParameterError(f"not a tree edit: unknown field(s) {', '.join(map(str, unknown))}")
+        if not isinstance(d.get("kind"), str):
+            raise ParameterError(f"not a tree edit: kind must be one of {', '.join(EDIT_KINDS)}, not {d.get('kind')!r}")
+        trees, xy = d.get("trees", []), d.get("xy")
+        if trees is None:
+            trees = []
+        if not isinstance(trees, list):
+            raise ParameterError(f"a {d['kind']} edit: trees must be a list of tree ids (whole numbers), not {trees!r}")
+        if xy is not None and not isinstance(xy, list):
+            raise ParameterError(f"a {d['kind']} edit: the position must be two finite numbers (x, y in m), not {xy!r}")
+        return cls(kind=d["kind"], trees=tuple(trees),
+                   xy=None if xy is None else tuple(xy), height_m=d.get("height_m"))
+
+
+def _is_id(v: Any) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v)
+
+
+class TreeEdits(list):
+    """The edits of an ``edits.json`` (a list of :class:`TreeEdit`) with ``cloud``: the content
+    hash of the cloud they were made on (:func:`cloud_digest`), None in files that lack it."""
+
+    cloud: Optional[str] = None
+
+
+def cloud_digest(points: np.ndarray) -> str:
+    """The content hash of a cloud (SHA-256 of its x, y, z as float64, in order): edits replay
+    only on the cloud with this hash."""
+    import hashlib
+
+    p = np.ascontiguousarray(np.asarray(points)[:, :3], dtype=np.float64)
+    return hashlib.sha256(p.tobytes()).hexdigest()
 
 
 # --------------------------------------------------------------------------------------------
@@ -309,7 +364,12 @@ def apply_edit(points: np.ndarray, inventory: TreeInventory, edit: TreeEdit, par
 
 def apply_edits(points: np.ndarray, inventory: TreeInventory, edits: Iterable[TreeEdit],
                 params: TreeParams = TreeParams()) -> TreeInventory:
-    """Replay edits in order (e.g. those read from ``edits.json`` on the same cloud)."""
+    """Replay edits in order (e.g. those read from ``edits.json`` on the same cloud). Edits read
+    from a file that records its cloud's hash (:class:`TreeEdits`) are refused on another cloud."""
+    recorded = getattr(edits, "cloud", None)
+    if recorded is not None and cloud_digest(points) != recorded:
+        raise ParameterError("these tree edits were made on another cloud (its content differs; the same number of "
+                             "points is not enough): open the cloud they were made on")
     for e in edits:
         inventory = apply_edit(points, inventory, e, params)
     return inventory
@@ -351,17 +411,34 @@ def write_edited(out_dir: str | Path, inventory: TreeInventory, notes: Mapping[i
         buf = io.StringIO()
         csv.writer(buf, lineterminator="\n").writerows(rows)
         write_text_atomic(path, buf.getvalue())
+    cloud = None if points is None else {"points": int(len(points)), "sha256": cloud_digest(points)}
     write_text_atomic(Path(out_dir) / "edits.json",
-                      json.dumps({"format": "forestreg-tree-edits", "version": 1, "edits": [e.to_dict() for e in edits]}, indent=2) + "\n")
+                      json.dumps({"format": "forestreg-tree-edits", "version": 1, "cloud": cloud,
+                                  "edits": [e.to_dict() for e in edits]}, indent=2) + "\n")
     return path
 
 
-def read_edits(path: str | Path) -> list[TreeEdit]:
-    """The edits of an ``edits.json``; ParameterError if it is not one."""
+def read_edits(path: str | Path) -> TreeEdits:
+    """The edits of an ``edits.json`` with the hash of their cloud; ParameterError naming what is
+    wrong if it is not one."""
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ParameterError(f"cannot read the tree edits {path}: {exc}") from exc
     if not isinstance(data, dict) or data.get("format") != "forestreg-tree-edits":
         raise ParameterError(f"{path} is not a forestreg tree edits file")
-    return [TreeEdit.from_dict(e) for e in data.get("edits") or []]
+    items = data.get("edits", [])
+    if not isinstance(items, list):
+        raise ParameterError(f"{path}: edits must be a list of edits, not {items!r}")
+    edits = TreeEdits()
+    for k, item in enumerate(items):
+        try:
+            edits.append(TreeEdit.from_dict(item))
+        except ParameterError as exc:
+            raise ParameterError(f"{path}: edit {k + 1}: {exc}") from None
+    cloud = data.get("cloud")
+    if cloud is not None:
+        if not isinstance(cloud, dict) or not isinstance(cloud.get("sha256"), str):
+            raise ParameterError(f"{path}: cloud must be an object with the cloud's sha256")
+        edits.cloud = cloud["sha256"]
+    return edits

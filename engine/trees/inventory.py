@@ -38,6 +38,7 @@ from .crown import CrownMeasurement, CrownParams, measure_crown
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
 from .segmentation import CompletenessParams, SegmentationParams, segment_trees, tree_completeness
+from .single import SingleTreeEvidence, SingleTreeParams, base_stem, single_tree_evidence
 from .stems import DbhMeasurement, Stem, StemCurve, StemParams, detect_stems_adaptive, measure_stems
 
 log = logging.getLogger(__name__)
@@ -69,6 +70,8 @@ class TreeParams(Params):
     qsm: QsmParams = QsmParams()
     canopy: CanopyParams = CanopyParams()
     form_factors: FormFactorBounds = FormFactorBounds()
+    #: single-tree clouds (one tree, little or no ground): recognised, forced or ruled out
+    single_tree: SingleTreeParams = SingleTreeParams()
     #: points with a wood probability at least this are wood (input of the cylinder model)
     wood_threshold: float = _p(0.5, "1", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
@@ -160,8 +163,13 @@ class TreeInventory:
     origin_shift: np.ndarray
     timings: dict[str, float]
     #: how the trees were found: "fine" / "noisy" stem profile (see stems.detect_stems_adaptive)
-    #: or "canopy" (tree tops of the canopy height model: an airborne cloud without stems)
+    #: or "canopy" (tree tops of the canopy height model: an airborne cloud without stems), or
+    #: "single" (a single-tree cloud: one tree, every point above the ground its own)
     method: str = "fine"
+    #: why the cloud was (or was not) taken as a single tree, one line ("" when not decided)
+    single_tree_reason: str = ""
+    #: whether volumes were asked for (cylinder models fitted); False: no ``cylinders/`` folder
+    volume_asked: bool = True
 
     def summary(self) -> str:
         """One line: trees found, measured (DBH, height, volume) and flagged."""
@@ -170,11 +178,13 @@ class TreeInventory:
         h = sum(1 for t in self.trees if math.isfinite(t.crown.height_m))
         vol = sum(1 for t in self.trees if math.isfinite(t.volume_m3))
         flagged = sum(1 for t in self.trees if t.flags)
-        how = {"fine": "from stems", "noisy": "from stems (noisy/sparse profile)", "canopy": "from the canopy (no stems)"}.get(self.method, self.method)
+        how = {"fine": "from stems", "noisy": "from stems (noisy/sparse profile)", "canopy": "from the canopy (no stems)",
+               "single": "in a single-tree cloud"}.get(self.method, self.method)
         canopy = sum(1 for t in self.trees if t.source == "canopy")
         if self.method != "canopy" and canopy:
             how += f" and {canopy} from the canopy"
-        return f"{n} trees found {how}: {dbh} with DBH, {h} with height, {vol} with volume; {flagged} flagged"
+        volume = f"{vol} with volume" if self.volume_asked else "volume not asked for (no cylinder models)"
+        return f"{n} tree{'' if n == 1 else 's'} found {how}: {dbh} with DBH, {h} with height, {volume}; {flagged} flagged"
 
     def rows(self) -> list[dict[str, Any]]:
         return [t.row(self.origin_shift) for t in self.trees]
@@ -205,10 +215,10 @@ class TreeInventory:
         write_text_atomic(out / "stem_curves.csv", _csv(
             ("tree_id", "s_m", "height_m", "diameter_m", "raw_diameter_m", "accepted", "interpolated", "x", "y", "z", "reason"),
             curve_rows))
-        cyl_dir = out / "cylinders"
-        cyl_dir.mkdir(exist_ok=True)
+        cyl_dir = out / "cylinders"  # only when a tree has a cylinder model: no empty folder
         for t in self.trees:
             if t.cylinders is not None:
+                cyl_dir.mkdir(exist_ok=True)
                 shifted = dataclasses.replace(t.cylinders, start=(t.cylinders.start + self.origin_shift) / unit_scale)
                 shifted.write_csv(cyl_dir / f"tree_{t.tree_id:04d}.csv")
         if report and points is not None:
@@ -254,6 +264,7 @@ def measure_trees(
     progress: Optional[Progress | ProgressCallback] = None,
     *,
     origin_shift: Optional[np.ndarray] = None,
+    single_tree: Optional[bool] = None,
 ) -> TreeInventory:
     """Detect, segment and measure every tree of a ground-based, airborne or fused cloud.
 
@@ -263,6 +274,10 @@ def measure_trees(
     positions, heights and crowns, DBH and volume flagged as not measured. Trees that are too
     incomplete to measure are kept and flagged; each row says how each value was obtained and how
     far to trust it (``quality``).
+
+    A single-tree cloud (one tree, little or no ground: :mod:`.single`) gives one tree whose
+    height is the cloud's top above the tree's base; ``single_tree`` True / False forces or rules
+    it out (default: ``params.single_tree.mode``, "auto": decided from the cloud).
 
     Raises
     ------
@@ -297,6 +312,14 @@ def measure_trees(
     progress(0.08, "detecting stems")
     stems, stem_params, method = detect_stems_adaptive(p, heights, params.stems, progress.sub(0.08, 0.2))
     timings["stems_s"] = time.perf_counter() - t
+    mode = params.single_tree.mode if single_tree is None else ("yes" if single_tree else "no")
+    evidence = single_tree_evidence(p, heights, stems, params.single_tree) if mode != "no" else None
+    if evidence is not None and (evidence.single or mode == "yes"):
+        if not evidence.single and not math.isfinite(evidence.base_width_m):
+            raise ScanDataError(f"a single tree was asked for, but {evidence.reason}")
+        log.info("single-tree cloud: %s", evidence.reason if mode == "auto" else "as asked")
+        return _single_tree_inventory(p, heights, model, no_ground, stems, stem_params, method, evidence, params, progress,
+                                      origin_shift, timings)
     if not stems:
         return _canopy_inventory(p, heights, model, no_ground, params, progress, origin_shift, timings)
 
@@ -371,7 +394,7 @@ def measure_trees(
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=wood, ground=model.ground, dem=model.dem,
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method=method,
+        timings=timings, method=method, volume_asked=params.cylinder_models,
     )
 
 
@@ -653,7 +676,7 @@ def _canopy_inventory(
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=np.zeros(len(p)), ground=model.ground,
         dem=model.dem, origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method="canopy",
+        timings=timings, method="canopy", volume_asked=params.cylinder_models,
     )
 
 
@@ -769,3 +792,88 @@ def _add_canopy_trees(
             out[k] = dataclasses.replace(o, quality=quality, flags=tuple(dict.fromkeys(
                 list(o.flags) + [f"under the crown of tree {r.tree_id}: own top unseen (height unsure)"])))
     return out, labels
+
+
+def _single_tree_inventory(
+    p: np.ndarray, heights: np.ndarray, model: TerrainModel, no_ground: bool, stems: Sequence[Stem], stem_params: StemParams,
+    method: str, evidence: SingleTreeEvidence, params: TreeParams, progress: Progress, origin_shift: Optional[np.ndarray],
+    timings: dict[str, float],
+) -> TreeInventory:
+    """One tree: every point above the ground is the tree's; its height is the cloud's top above
+    the tree's base (the ground under the stem, or without ground the lowest point at the trunk);
+    DBH, stem curve, crown and cylinder model as for any tree, without the plot's edge checks (the
+    cloud's edges are the tree's own)."""
+    from scipy.spatial import cKDTree
+
+    t = time.perf_counter()
+    progress(0.25, "single-tree cloud: one tree, every point above the ground")
+    centre = evidence.base_xy
+    found = min(stems, key=lambda s: math.hypot(s.x - centre[0], s.y - centre[1])) if stems else None
+    if found is not None:
+        centre = np.array([found.x, found.y])
+    if not no_ground and model.ground.any():
+        base_z = float(found.ground_z) if found is not None else float(model.dem.height_at(centre[None, :])[0])
+        near = np.hypot(p[model.ground, 0] - centre[0], p[model.ground, 1] - centre[1]) <= GROUND_NEAR_STEM_M
+        base_how = "the ground under the stem" + ("" if near.any() else f", interpolated: no ground point within {GROUND_NEAR_STEM_M:g} m")
+    else:
+        r = max(1.0, 2.0 * evidence.base_width_m)
+        near = np.hypot(p[:, 0] - centre[0], p[:, 1] - centre[1]) <= r
+        base_z = float(p[near, 2].min()) if near.any() else float(p[:, 2].min())
+        base_how = "the lowest point at the trunk: no ground in the cloud"
+    stem = base_stem(p, evidence, stems, base_z)
+    ground = model.ground
+    if not no_ground:
+        foot = _lowest_stem_point(p, stem)
+        g = p[ground]
+        r = np.hypot(g[:, 0] - stem.x, g[:, 1] - stem.y)
+        around = int(np.count_nonzero((r > 1.0) & (r <= GROUND_NEAR_STEM_M)))
+        # the "ground" found is the trunk's foot or low twigs: the trunk reaches below it, and no
+        # ground spreads around the stem (or the trunk reaches far below it)
+        if math.isfinite(foot) and foot < base_z - 0.25 and (around < 20 or foot < base_z - 1.0):
+            base_how = f"the lowest point at the trunk: the ground found lay {base_z - foot:.2f} m above the stem's foot, so the cloud has no ground"
+            base_z = foot
+            stem = base_stem(p, evidence, stems, base_z)
+            ground = np.zeros(len(p), dtype=bool)
+    labels = np.where(ground, 0, stem.id).astype(np.int64)
+    if not (labels > 0).any():
+        raise ScanDataError("the single-tree cloud holds ground points only")
+    index = cKDTree(p)
+    dbh, curves = measure_stems(p, heights, [stem], stem_params, search_tree=index)
+    d, curve = dbh[stem.id], curves[stem.id]
+    if method == "noisy" and not d.ok:  # a thin stem of a noisy profile may still be measured finely
+        fine_dbh, fine_curves = measure_stems(p, heights, [stem], params.stems, search_tree=index)
+        if fine_dbh[stem.id].ok:
+            d, curve = fine_dbh[stem.id], fine_curves[stem.id]
+    idx = np.flatnonzero(labels > 0)
+    # the cloud's top: a twig sampled sparsely still counts (a point alone, farther than 1.5 m
+    # from any other, is a stray return)
+    crown = measure_crown(p[idx], heights[idx], stem, params.crown.replace(top_neighbour_radius_m=1.5, top_min_neighbours=1))
+    timings["single_tree_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    progress(0.4, "leaf-wood separation")
+    wood = np.zeros(len(p))
+    if len(idx) >= 50:
+        wood[idx] = wood_probability(p[idx], params.leafwood, progress.sub(0.4, 0.7))
+    tol = max(2.0 * stem_params.inlier_tolerance_m, 0.03)
+    wood[stem_curve_wood(p, index, stem, curve, tol)] = 1.0
+    del index
+    timings["leafwood_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    progress(0.7, "cylinder model")
+    open_grown = dataclasses.replace(params, form_factors=params.form_factors.replace(total=params.form_factors.open_grown_total))
+    record = tree_record(p, stem, idx, d, curve, crown, wood, (), open_grown, stem_params=stem_params, method=method)
+    quality = dict(record.quality)
+    flags = list(record.flags)
+    if math.isfinite(crown.height_m):
+        quality["height"] = f"top of the single-tree cloud above its base ({base_how}); high"
+    if crown.ok:
+        quality["crown"] = "crown points of the single-tree cloud; high"
+    record = dataclasses.replace(record, quality=quality, flags=tuple(dict.fromkeys(flags)))
+    timings["trees_s"] = time.perf_counter() - t
+    progress(1.0, "1 tree measured (single-tree cloud)")
+    return TreeInventory(
+        trees=[record], labels=labels, heights=heights, wood_probability=wood, ground=ground, dem=model.dem,
+        origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
+        timings=timings, method="single", volume_asked=params.cylinder_models,
+        single_tree_reason=evidence.reason if evidence.single else f"taken as one tree as asked, though {evidence.reason}",
+    )

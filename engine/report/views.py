@@ -16,10 +16,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ForestregError
-from .params import RegistrationParams
-from .plot import ScanCache
-from .prepare import derived, extract_vops, prepare_scan, slice_layers
-from .project import Link, Project
+from ..tls.params import RegistrationParams
+from ..tls.plot import ScanCache
+from ..tls.prepare import derived, extract_vops, prepare_scan, slice_layers
+from ..tls.project import Link, Project
 from ..core.transform import apply as apply_transform
 
 #: The pair figures' colours of the reference and the moving scan.

@@ -1,0 +1,212 @@
+"""Change: two surveys of one plot years apart, registered on what persisted, compared tree by tree.
+
+:func:`detect_change_files` reads BEFORE and AFTER (each a merged ground-based cloud in any frame,
+a saved plot project, or a ``trees.csv`` / folder of ``forestreg trees``), measures the trees of
+each cloud, registers AFTER onto BEFORE from the persisting stems and the terrain
+(:func:`forestreg.engine.change.detect_change`), checks the result (a rigid matrix, the files'
+unit) and writes the output folder as one transaction:
+
+- ``result.json``: status, reason, ``matrix`` (``p_before = matrix @ p_after``, file coordinates,
+  the files' unit), ``convention``, evidence, ``uncertainty`` {``translation_m``,
+  ``rotation_deg``} (1 sigma), the tree counts, the inputs;
+- ``tree_changes.csv``: one row per tree (status, x, y in BEFORE file coordinates, DBH and height
+  in each survey and their changes in metres, flag, ids and 1-sigma values);
+- ``report.html``: the change map and the figures.
+
+A registration that the data do not allow (unrelated plots, too few persisting stems, an
+ambiguous heading) gives an outcome "failed" with the reason, and a folder with ``result.json``
+and ``report.html`` only.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from .common import UNITS, RunOutcome, with_cancel
+
+__all__ = ["ChangeOutcome", "detect_change_files", "read_epoch"]
+
+
+@dataclass(frozen=True, eq=False)
+class ChangeOutcome(RunOutcome):
+    """The outcome of ``change``: ``status``, ``reason``, ``matrix`` (4x4, file coordinates in the
+    files' unit, or None), ``timings``, ``out`` (the folder written, or None), ``summary`` (the
+    ``result.json``), ``result`` (the engine's :class:`~forestreg.engine.change.ChangeResult`),
+    ``rows`` (the ``tree_changes.csv`` rows). Falsy when not ok."""
+
+    rows: list = field(default_factory=list)
+
+    method: ClassVar[str] = "re-survey (persisting stems from any heading + ICP on stem slices and terrain)"
+    convention: ClassVar[str] = "p_before = matrix @ p_after (file coordinates of BEFORE and AFTER)"
+
+    def line(self) -> str:
+        """One line for a terminal."""
+        return self.result.summary() if self.result is not None else f"{self.status}: {self.reason}"
+
+
+def _input_kind(path: Path) -> str:
+    """"table" (a ``trees.csv`` or a folder holding one), "project" (a plot project file) or
+    "cloud"; a missing or unreadable input is a one-line error."""
+    from ..engine.core.errors import UsageError
+    from ..engine.io.base import check_readable
+
+    if path.is_dir():
+        if (path / "trees.csv").is_file():
+            return "table"
+        raise UsageError(f"{path} is a folder without trees.csv: give a cloud, a project file or the trees.csv of 'forestreg trees'")
+    check_readable(path)
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        return "project"
+    if suffix == ".csv":
+        try:
+            head = path.open(encoding="utf-8", errors="replace").readline().lower()
+        except OSError:
+            head = ""
+        columns = {c.strip() for c in head.replace(";", ",").split(",")}
+        if {"x", "y", "dbh_m"} <= columns:
+            return "table"
+    return "cloud"
+
+
+def _read_table(path: Path, role: str, scale: float):
+    from ..engine.change import epoch_from_table
+    from ..engine.core.errors import UsageError
+    from ..engine.io.results import read_csv_rows
+
+    table = path / "trees.csv" if path.is_dir() else path
+    header, rows = read_csv_rows(table)
+    missing = [c for c in ("x", "y", "dbh_m") if c not in header]
+    if missing:
+        raise UsageError(f"{table}: not a trees.csv of 'forestreg trees' (no column {', '.join(missing)})")
+    return epoch_from_table(rows, name=role, unit_scale=scale)
+
+
+def _project_cloud(path: Path, scale: float):
+    """The cloud of a saved plot project (local frame, metres) and where it came from: its
+    trees folder's ``trees.csv`` when it has one (returned as a path), else its ground-based or
+    fused cloud, else its registered scans merged in the project frame."""
+    from ..engine.core.errors import UsageError
+    from ..engine.core.scan import Scan
+    from ..engine.core.transform import to_metres
+    from ..engine.io import read_scan
+    from ..engine.tls.project import Project
+
+    project = Project.load(path)
+    for name in ("ground", "fused", *project.forest.trees):
+        folder = project.forest.trees.get(name)
+        if folder is not None and (Path(folder) / "trees.csv").is_file():
+            return Path(folder) / "trees.csv", f"trees of project {path.name} ({name})"
+    for cloud in (project.forest.ground_cloud, project.forest.fused_cloud):
+        if cloud is not None and Path(cloud).is_file():
+            return read_scan(cloud, unit_scale=scale, with_intensity=False), f"cloud of project {path.name} ({Path(cloud).name})"
+    poses = project.poses()
+    missing = [s.name for s in project.scans if poses.get(s.name) is None]
+    if not project.scans:
+        raise UsageError(f"project {path}: no scans")
+    if missing:
+        raise UsageError(f"project {path}: scan(s) {', '.join(missing)} not registered: run 'forestreg project run' first")
+    parts = []
+    for s in project.scans:
+        scan = read_scan(s.path, unit_scale=scale, scan_index=s.scan_index, with_intensity=False)
+        pose = to_metres(poses[s.name], scale)
+        parts.append((scan.points + scan.origin_shift) @ pose[:3, :3].T + pose[:3, 3])  # project frame (file coordinates)
+    cloud = Scan.from_points(np.vstack(parts), name=path.stem, take_ownership=True)
+    return cloud, f"{len(project.scans)} registered scans of project {path.name}"
+
+
+def read_epoch(path, role: str, *, units: str = "m", tree_params=None, progress=None, cancel=None):
+    """One survey (``role`` "BEFORE" or "AFTER") as :class:`~forestreg.engine.change.EpochTrees`
+    and a note on what was read: a cloud's trees are measured (the tree inventory's steps), a
+    table's are taken as they are."""
+    from ..engine.change import epoch_from_cloud
+    from ..engine.core.scan import Scan
+    from ..engine.io import read_scan
+
+    scale = UNITS[units]
+    p = Path(path)
+    kind = _input_kind(p)
+    if kind == "table":
+        return _read_table(p, role, scale), f"trees table {p.name}"
+    if kind == "project":
+        cloud, note = _project_cloud(p, scale)
+        if not isinstance(cloud, Scan):
+            return _read_table(cloud, role, scale), note
+    else:
+        cloud, note = read_scan(p, unit_scale=scale, with_intensity=False), f"cloud {p.name}"
+    epoch = epoch_from_cloud(cloud.points, tree_params, with_cancel(progress, cancel), origin_shift=cloud.origin_shift, name=role)
+    return epoch, f"{note}, {len(cloud.points):,} points"
+
+
+def detect_change_files(
+    before, after, out, params=None, *, units: str = "m", report: bool = True, progress=None, cancel=None,
+) -> ChangeOutcome:
+    """Compare the surveys ``before`` and ``after`` (paths: clouds, project files, trees tables)
+    into the folder ``out`` (a transaction; None: nothing written). ``params``: a
+    :class:`~forestreg.engine.params.ProductParams` (its ``change`` and ``trees`` sections) or a
+    :class:`~forestreg.engine.change.ChangeParams`. Returns a :class:`ChangeOutcome`."""
+    from ..engine.change import CHANGE_COLUMNS, ChangeParams, detect_change
+    from ..engine.core.atomic import check_output_folder, output_folder
+    from ..engine.core.errors import UsageError
+    from ..engine.core.progress import as_progress
+    from ..engine.core.transform import to_file_units, withhold_unless_rigid
+    from ..engine.trees.inventory import TreeParams
+
+    if units not in UNITS:
+        raise UsageError(f"unknown unit {units!r}: one of {', '.join(UNITS)}")
+    scale = UNITS[units]
+    change_params, tree_params = ChangeParams(), TreeParams()
+    if isinstance(params, ChangeParams):
+        change_params = params
+    elif params is not None:
+        change_params, tree_params = params.change, params.trees
+    b_path, a_path = Path(before), Path(after)
+    if b_path.resolve() == a_path.resolve():
+        raise UsageError("BEFORE and AFTER are the same file: give the two surveys")
+    kinds = (_input_kind(b_path), _input_kind(a_path))  # both checked before any work
+    if out is not None:
+        out = check_output_folder(out, "change", inputs=[b_path, a_path])
+    prog = as_progress(with_cancel(progress, cancel))
+    t0 = time.perf_counter()
+    b_epoch, b_note = read_epoch(b_path, "BEFORE", units=units, tree_params=tree_params, progress=prog.sub(0.0, 0.45))
+    a_epoch, a_note = read_epoch(a_path, "AFTER", units=units, tree_params=tree_params, progress=prog.sub(0.45, 0.9))
+    read_s = time.perf_counter() - t0
+    result = detect_change(b_epoch, a_epoch, change_params, prog.sub(0.9, 1.0))
+    summary = withhold_unless_rigid(result.to_dict())  # the last check before "ok"
+    if summary.get("matrix") is not None:
+        summary["matrix"] = to_file_units(np.asarray(summary["matrix"]), scale).tolist()
+    summary["timings"] = {"read_and_trees_s": read_s, **summary.get("timings", {})}
+    summary.update(before=str(b_path.resolve()), after=str(a_path.resolve()), before_read=b_note, after_read=a_note,
+                   inputs={"before": kinds[0], "after": kinds[1]}, unit=units, unit_scale=scale,
+                   columns="tree_changes.csv: x, y in BEFORE file coordinates (the files' unit); DBH and heights in metres")
+    ok = summary["status"] == "ok"
+    rows_local = [t.row(np.zeros(3)) for t in result.trees] if ok else []
+    rows = [{**r, "x": (r["x"] + float(result.origin_shift[0])) / scale, "y": (r["y"] + float(result.origin_shift[1])) / scale}
+            for r in rows_local]
+    if out is not None:
+        from ..engine.io.change import write_change_files
+
+        with output_folder(out, "change") as tmp:
+            if ok:
+                write_change_files(tmp, summary, rows, CHANGE_COLUMNS)
+            else:
+                from ..engine.core.atomic import write_text_atomic
+                import json
+
+                from ..engine.core.jsonable import to_jsonable
+
+                write_text_atomic(tmp / "result.json", json.dumps(to_jsonable(summary, nan_as_null=True), indent=1) + "\n")
+            if report:
+                from ..engine.report.change_report import write_change_report
+
+                background = b_epoch.band[::7, :2] if b_epoch.has_points else None
+                write_change_report(tmp, summary, rows_local, background, file_rows=rows)
+    m = summary.get("matrix")
+    return ChangeOutcome(status=str(summary["status"]), reason=str(summary.get("reason") or ""),
+                         matrix=None if m is None else np.asarray(m, dtype=float), timings=dict(summary["timings"]),
+                         out=out, summary=summary, result=result, rows=rows)

@@ -1,0 +1,131 @@
+"""Co-registration: a ground-based cloud (merged TLS, backpack, handheld) onto a UAV cloud by
+canopy keypoints (System B).
+
+:func:`coregister_clouds` reads both clouds (or takes them as scans), co-registers
+(:func:`forestreg.engine.coreg.coregister.coregister`), applies the last rigid check, converts the
+matrix into the files' unit and writes the output folder (``result.json``, ``transform.txt``, the
+keypoint tables, the report) as one transaction.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from .common import UNITS, RunOutcome, outcome_of, run_summary, with_cancel
+
+log = logging.getLogger("forestreg")
+
+
+@dataclass(frozen=True, eq=False)
+class CoregistrationOutcome(RunOutcome):
+    """A co-registered (or failed) pair of clouds: ``result`` is the engine's
+    :class:`~forestreg.engine.coreg.coregister.CoregistrationResult`; ``matrix`` maps the ground
+    file coordinates onto the UAV file coordinates (files' unit); ``report`` the HTML report
+    written (or None); ``ground`` / ``uav`` the clouds' frames (scans without points)."""
+
+    method = "canopy keypoints + ICP"
+    convention = "p_uav = matrix @ p_ground (files' coordinates)"
+    report: Optional[Path] = None
+    ground: Any = None
+    uav: Any = None
+
+    def line(self) -> str:
+        """The one-line summary of the run."""
+        return self.result.summary() if self.result is not None else f"{self.status}: {self.reason}"
+
+
+def default_params():
+    """The co-registration parameters of the product (defaults)."""
+    from ..engine.params import ProductParams
+
+    return ProductParams().coregistration
+
+
+def coregister_clouds(
+    ground, uav, out: Optional[str | Path], params=None, *, units: str = "m", progress=None, cancel=None,
+) -> CoregistrationOutcome:
+    """Co-register ``ground`` onto ``uav`` (each a file path or a
+    :class:`~forestreg.engine.core.scan.Scan`); with ``out``, write that output folder as a
+    transaction (``None``: nothing written). The outcome is checked the same way whichever door
+    asked: a matrix that is not rigid is withheld."""
+    from ..engine.core.atomic import check_output_folder
+    from ..engine.coreg.coregister import coregister
+    from ..engine.io import read_scan
+    from ..engine.report.samples import profile_sample
+
+    if params is None:
+        params = default_params()
+    scale = UNITS[units]
+    paths = [x for x in (ground, uav) if isinstance(x, (str, Path))]
+    if out is not None:
+        out = check_output_folder(out, "coregister", inputs=paths)
+    progress = with_cancel(progress, cancel)
+    # the scans are read inside the co-registration, which lets each full cloud go once thinned;
+    # kept here: each scan's frame and the points its figure draws
+    kept: dict = {"read_s": 0.0}
+
+    def reader(source, role: str):
+        def load():
+            t0 = time.perf_counter()
+            if isinstance(source, (str, Path)):
+                scan = read_scan(source, unit_scale=scale, with_intensity=False)  # the co-registration uses x, y, z alone
+            else:
+                scan = source
+            kept["read_s"] += time.perf_counter() - t0
+            kept[role] = scan.without_points()
+            if out is not None:
+                kept[role + "_profile"] = profile_sample(scan.points, role)
+            return scan
+        return load
+
+    result = coregister(reader(ground, "ground"), reader(uav, "uav"), params, progress=progress)
+    inputs = {key: src for key, src in (("ground_file", ground), ("uav_file", uav)) if isinstance(src, (str, Path))}
+    summary, ok = run_summary(result, {"read_s": kept["read_s"]}, inputs, units, scale,
+                              facts={"distance_threshold_m": params.matching.distance_threshold_m})
+    report = None
+    if out is not None:
+        report = _write_coregistration_folder(out, result, summary, kept, scale)
+    return outcome_of(summary, out=out, result=result, cls=CoregistrationOutcome, report=report,
+                      ground=kept["ground"], uav=kept["uav"])
+
+
+def _write_coregistration_folder(out: Path, result, summary: dict, kept: dict, scale: float) -> Optional[Path]:
+    from ..engine.core.atomic import output_folder, write_text_atomic
+    from ..engine.core.transform import format_matrix
+    from ..engine.io.tables import write_keypoints_csv
+
+    ok = summary["status"] == "ok"
+    ground, uav = kept["ground"], kept["uav"]
+    pairs = result.matched_after_icp if result.matched_after_icp is not None else (
+        result.match.pairs if result.match is not None else np.zeros((0, 2), dtype=int))
+    drawn = False
+    with output_folder(out, "coregister") as tmp:
+        for scan, kp, column, other, name in (
+            (ground, result.ground_keypoints, 0, 1, "keypoints_ground.csv"),
+            (uav, result.uav_keypoints, 1, 0, "keypoints_uav.csv"),
+        ):
+            if kp is None:
+                continue
+            matched = np.full(len(kp), -1)
+            if len(pairs):
+                matched[pairs[:, column]] = pairs[:, other]
+            write_keypoints_csv(tmp / name, kp, scan.local_to_file_matrix(), matched, unit_scale=scale)
+        if result.ground_keypoints is not None:
+            try:
+                from ..engine.report.coregistration_report import write_coregistration_report
+
+                write_coregistration_report(result, tmp, kept["ground_profile"], kept["uav_profile"])
+                drawn = (tmp / "report.html").exists()
+            except Exception as exc:  # a figure must never lose the result
+                log.warning("could not draw the figure: %s", exc)
+        if ok:
+            write_text_atomic(tmp / "transform.txt", format_matrix(np.asarray(summary["matrix"])))
+        write_text_atomic(tmp / "result.json", json.dumps(summary, indent=2) + "\n")
+    return out / "report.html" if drawn else None

@@ -1,0 +1,148 @@
+"""Pair registration: a moving TLS scan onto a reference scan from trunk shadows (System A).
+
+:func:`register_pair` reads both scans, locates and checks their scanners, registers
+(:func:`forestreg.engine.tls.pair.register`), applies the last rigid check, converts the matrices
+into the files' unit and writes the output folder (``result.json``, ``transform.txt``, the VOP
+tables, the figure, optionally the registered scan) as one transaction.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from .common import UNITS, RunOutcome, check_near_scanner, import_in_background, outcome_of, run_summary, with_cancel
+
+log = logging.getLogger("forestreg")
+
+
+@dataclass(frozen=True, eq=False)
+class PairOutcome(RunOutcome):
+    """A registered (or failed) pair: ``result`` is the engine's
+    :class:`~forestreg.engine.tls.pair.PairResult` (metres); ``matrix`` and ``summary`` are in the
+    files' unit; ``figure`` is the figure written (or None)."""
+
+    method = "auto (trunk shadows + ICP)"
+    convention = "p_reference = matrix @ p_moving (files' coordinates)"
+    figure: Optional[Path] = None
+
+
+def register_pair(
+    reference_path: str | Path,
+    moving_path: str | Path,
+    out: Optional[str | Path],
+    params=None,
+    *,
+    positions: Sequence = (),
+    ups: Sequence = (),
+    units: str = "m",
+    write_registered: bool = False,
+    progress=None,
+    cancel=None,
+) -> PairOutcome:
+    """Register ``moving_path`` onto ``reference_path``; with ``out``, write that output folder as
+    a transaction (``None``: nothing written). ``positions`` (0-2 scanner positions in file
+    coordinates) and ``ups`` (0-2 vertical directions) are for the reference, then the moving scan.
+    Raises on bad input (:class:`~forestreg.engine.core.errors.UsageError`, ...); a pair the data
+    do not allow comes back as a failed outcome with the reason."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ..engine.core.atomic import check_output_folder
+    from ..engine.core.errors import UsageError
+    from ..engine.io import read_scan
+    from ..engine.tls.params import RegistrationParams
+
+    params = params or RegistrationParams()
+    if len(positions) > 2:
+        raise UsageError("--scanner-position is given at most twice (reference, then moving)")
+    if len(ups) > 2:
+        raise UsageError("--up is given at most twice (reference, then moving)")
+    if Path(reference_path).resolve() == Path(moving_path).resolve():
+        raise UsageError(f"REFERENCE and MOVING are the same file ({reference_path}): a scan cannot be registered onto itself")
+    scale = UNITS[units]
+    if out is not None:
+        out = check_output_folder(out, "register", inputs=[reference_path, moving_path])
+    progress = with_cancel(progress, cancel)
+
+    def read(path, index: int):
+        # the registration uses the coordinates alone: intensity only for the registered scan written
+        return read_scan(path, scanner_position=positions[index] if len(positions) > index else None, unit_scale=scale,
+                         with_intensity=write_registered and index == 1)
+
+    # both scans are read, one after the other (the decompression is multi-core), while the
+    # registration engine is imported
+    early = ThreadPoolExecutor(1, thread_name_prefix="forestreg-read")
+    pending = {0: early.submit(read, reference_path, 0), 1: early.submit(read, moving_path, 1)}  # popped when used: the scan's points are not held
+    early.shutdown(wait=False)
+    if out is not None:
+        import_in_background(".engine.report.figures", kernels=True)
+    from ..engine.tls.pair import register
+    from ..engine.tls.scanner_position import locate_scanner
+
+    # each scan is located and checked in the thread that prepares it (one is read while the
+    # other is prepared); the engine keeps only the prepared scans, and the moving scan's points
+    # only when they are written out registered
+    kept: dict = {}
+
+    def reader(path, index: int, role: str):
+        def load():
+            job = pending.pop(index, None)
+            scan = job.result() if job is not None else read(path, index)
+            del job
+            # no scanner position given and the file origin is not the scanner (project/UTM
+            # exports): find it from the data, or refuse with the reason
+            scan = locate_scanner(scan)
+            check_near_scanner(scan, params.max_range_m, path, units)
+            kept[role] = scan.without_points()
+            if role == "moving" and write_registered:
+                kept["registered_points"] = scan
+            return scan
+        return load
+
+    ups = [None if u is None else np.asarray(u, dtype=float) for u in ups]
+    result = register(
+        reader(reference_path, 0, "reference"), reader(moving_path, 1, "moving"), params, progress=progress,
+        reference_up=ups[0] if len(ups) > 0 else None, moving_up=ups[1] if len(ups) > 1 else None,
+    )
+    read_s = sum(result.timings.get(f"read_{role}_s", 0.0) for role in ("reference", "moving"))
+    summary, ok = run_summary(result, {"read_s": read_s}, {"reference_file": reference_path, "moving_file": moving_path}, units, scale,
+                              matrix_keys=("matrix", "coarse_matrix"))
+    figure = None
+    if out is not None:
+        figure = _write_pair_folder(out, result, summary, kept, scale, write_registered)
+    return outcome_of(summary, out=out, result=result, cls=PairOutcome, figure=figure)
+
+
+def _write_pair_folder(out: Path, result, summary: dict, kept: dict, scale: float, write_registered: bool) -> Optional[Path]:
+    """The output folder of a pair, as one transaction; returns the figure's path (or None)."""
+    from ..engine.core.atomic import output_folder, write_text_atomic
+    from ..engine.core.transform import format_matrix
+    from ..engine.io import write_scan
+    from ..engine.io.tables import pair_vop_tables, write_vops_csv
+
+    ok = summary["status"] == "ok"
+    reference, moving = kept["reference"], kept["moving"]
+    drawn = False
+    with output_folder(out, "register") as tmp:
+        for scan, to_file, vops, matched, name in pair_vop_tables(result, reference, moving):
+            write_vops_csv(tmp / name, vops.xy, vops.z, to_file, vops.radius, vops.support, matched, unit_scale=scale)
+        if result.details is not None and result.details.chosen is not None:
+            try:
+                from ..engine.report.figures import pair_figure
+
+                pair_figure(result, tmp / "registration.png")
+                drawn = (tmp / "registration.png").exists()
+            except Exception as exc:  # a figure must never lose the result
+                log.warning("could not draw the figure: %s", exc)
+        if ok:
+            write_text_atomic(tmp / "transform.txt", format_matrix(np.asarray(summary["matrix"])))
+            if write_registered:
+                to_units = np.diag([1.0 / scale, 1.0 / scale, 1.0 / scale, 1.0])
+                write_scan(kept["registered_points"], tmp / f"{moving.name}_registered.laz", matrix=to_units @ result.matrix)
+        write_text_atomic(tmp / "result.json", json.dumps(summary, indent=2) + "\n")
+    return out / "registration.png" if drawn else None

@@ -1,0 +1,300 @@
+"""Plot and project runs: every TLS scan of a plot registered (each to the centre scan, tilted ones
+to their level partner, or every pair with a pose graph), poses adjusted, and the plot folder
+written (``project.json``, ``poses.json``, ``<scan>.transform.txt``, ``report.html``; optionally
+a merged cloud, registered scans, an E57 file).
+
+:func:`new_project` builds a project from scan files and the user's marks; :func:`run_plot`
+registers it and writes the products (``forestreg plot``, ``project run``);
+:func:`register_plot_project` is the desktop's run (the project saved, no folder written).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
+
+from ..engine.tls.plot import PlotOutcome, ScanCache, default_links, pose_uncertainty  # noqa: F401 - the plot's types, for the front doors
+from ..engine.tls.plot import write_merged as export_merged  # noqa: F401 - the registered scans as one cloud
+from ..engine.tls.plot import write_poses as export_poses  # noqa: F401 - poses.json and the transforms
+from ..engine.tls.plot import write_registered_e57 as export_e57  # noqa: F401 - the registered scans with their poses
+from ..engine.tls.plot import write_registered_scans as export_scans  # noqa: F401 - each registered scan as a LAZ
+from ..engine.tls.project import Link, Project, ScanEntry  # noqa: F401 - the saved plot project
+from .common import RunOutcome, check_near_scanner, check_replaceable_point_file, import_in_background, with_cancel
+
+log = logging.getLogger("forestreg")
+
+#: Point files a merged cloud may be written as.
+POINT_SUFFIXES = (".laz", ".las", ".ply", ".xyz", ".txt")
+
+
+@dataclass(frozen=True, eq=False)
+class PlotRun(RunOutcome):
+    """A plot run: ``result`` is the engine's :class:`~forestreg.engine.tls.plot.PlotOutcome`
+    (per scan "ok"/"failed"/"centre" and the reasons), ``project`` the registered project,
+    ``adjusted`` the global adjustment (or None), ``uncertainty`` per scan (1 sigma), ``written``
+    the extra products (what -> (path, count)). Failed when a scan could not be registered."""
+
+    method = "auto (trunk shadows + ICP), per link"
+    project: Any = None
+    adjusted: Optional[dict] = None
+    uncertainty: dict = field(default_factory=dict)
+    written: dict = field(default_factory=dict)
+
+    def evidence(self) -> dict:
+        return {"status": dict(self.result.status) if self.result is not None else {}}
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def check_scan_files_exist(paths: Sequence) -> None:
+    """A missing scan is a typo (exit 2, before any work); an existing but unreadable scan is
+    reported as failed while the others are registered. A plot needs two scans (or one multi-scan
+    E57 file), each given once."""
+    from ..engine.core.errors import ScanReadError, UsageError
+
+    if len(paths) == 1 and Path(paths[0]).suffix.lower() != ".e57":
+        raise UsageError(f"a plot needs at least two scans (or one multi-scan E57 file); got only {paths[0]}")
+    resolved = [Path(p).resolve() for p in paths]
+    twice = sorted({str(p) for p in paths if resolved.count(Path(p).resolve()) > 1})
+    if twice:
+        raise UsageError(f"a scan is given twice: {', '.join(twice)}")
+
+    for p in paths:
+        if not Path(p).exists():
+            raise ScanReadError(f"{p}: no such file")
+        if Path(p).is_dir():
+            raise ScanReadError(f"{p}: is a folder, not a scan file")
+
+
+def check_scan_files(paths: Sequence) -> None:
+    """Every scan can be read (missing, empty, corrupt or garbage files: one line, exit 2)."""
+    from ..engine.io import read_scan
+    from ..engine.io.base import check_readable
+
+    for p in paths:
+        if Path(p).suffix.lower() == ".e57":
+            check_readable(p)
+            continue
+        read_scan(p)
+
+
+def check_extra_outputs(inputs: Sequence, *, merged=None, e57_out=None, registered_dir=None) -> None:
+    """A merged cloud, an E57 file and a folder of registered scans: refused before the work when
+    they would overwrite an input or a file of another kind."""
+    from ..engine.core.atomic import check_output_file, check_output_folder
+
+    if merged:
+        check_output_file(merged, inputs=inputs, suffixes=POINT_SUFFIXES)
+        check_replaceable_point_file(merged, "scan_id", "merged cloud")
+    if e57_out:
+        check_output_file(e57_out, inputs=inputs, suffixes=(".e57",))
+    if registered_dir:
+        check_output_folder(registered_dir, "registered-scans", inputs=inputs)
+
+
+def new_project(
+    scans: Sequence, params, *, name: str = "plot", centre: Optional[str] = None, tilted: Sequence[str] = (),
+    targets: Optional[str] = None, positions: Optional[str] = None, prior_poses: Optional[str] = None, fixed: Sequence[str] = (),
+):
+    """A new :class:`~forestreg.engine.tls.project.Project` from scan files (or one multi-scan
+    E57 file), the centre scan, tilted marks (``SCAN[:PARTNER],...``), a targets CSV, scanner
+    positions, prior poses and fixed scans. A name that is not one of the scans raises
+    :class:`~forestreg.engine.core.errors.UsageError`."""
+    from ..engine.core.errors import UsageError
+    from .survey import survey_inputs
+
+    if len(scans) == 1 and Path(scans[0]).suffix.lower() == ".e57":
+        from ..engine.tls.plot import project_from_e57
+
+        project = project_from_e57(scans[0])
+        project.params = params
+    else:
+        project = Project(name=name, params=params)
+        for path in scans:
+            project.add_scan(path)
+    names = {Path(p).name: s.name for p, s in zip(scans, project.scans)} if len(scans) == len(project.scans) else {}
+
+    def known(name: str, option: str) -> str:
+        resolved = names.get(Path(name).name, name)
+        if not project.has_scan(resolved):
+            raise UsageError(f"{option} {name}: not one of the plot's scans ({', '.join(s.name for s in project.scans)})")
+        return resolved
+
+    if centre:
+        project.centre = known(centre, "--centre")
+    for item in ",".join(tilted or []).split(","):
+        if not item.strip():
+            continue
+        moving, _, partner = item.partition(":")
+        entry = project.scan(known(moving, "--tilted"))
+        entry.tilted = True
+        if partner:
+            other = known(partner, "--tilted")
+            if other == entry.name:
+                raise UsageError(f"--tilted {item}: a scan cannot be its own level partner")
+            entry.level_partner = other
+    survey_inputs(project, known, positions=positions, prior_poses=prior_poses, fixed=fixed)
+    if targets:
+        from ..engine.tls.manual import read_targets_csv
+
+        for scan_name, found in read_targets_csv(targets).items():
+            if project.has_scan(scan_name):
+                project.scan(scan_name).targets = found
+            else:
+                log.warning("targets for %s: no such scan in the plot", scan_name)
+    return project
+
+
+def load_project(path):
+    """A saved :class:`~forestreg.engine.tls.project.Project`."""
+    return Project.load(path)
+
+
+def scan_cache(project, *, with_intensity: bool = True):
+    """The plot's scans, read once and prepared on demand
+    (:class:`~forestreg.engine.tls.plot.ScanCache`)."""
+    return ScanCache(project, with_intensity=with_intensity)
+
+
+def check_scans_near_their_scanners(project, scans) -> None:
+    """Before the work: when no scan of the plot has points near its scanner (georeferenced scans
+    without scanner positions, or files in cm/mm), refuse with one line instead of failing every
+    link after minutes. A single such scan fails its own link with the reason."""
+    from ..engine.core.errors import ScanDataError, ScanReadError, UsageError
+    from ..engine.tls.scanner_position import ScannerPositionError
+
+    problems = []
+    for s in project.scans:
+        try:
+            check_near_scanner(scans(s.name), project.params.max_range_m, s.path, "m")
+        except (UsageError, ScannerPositionError) as exc:  # no scanner near the data: a unit or position problem
+            problems.append(str(exc))
+            continue
+        except (ScanReadError, ScanDataError):
+            pass  # unreadable: its link reports it
+        break  # one scan without the problem: the plot goes on (reading every scan first costs minutes)
+    if problems and len(problems) == len(project.scans):
+        raise UsageError(problems[0])
+
+
+def plot_folder(out, scans: Sequence) -> Path:
+    """The plot's working folder: absent, empty or an earlier plot folder (marked)."""
+    from ..engine.core.atomic import MARKER, check_output_folder
+
+    folder = check_output_folder(out, "plot", inputs=scans)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / MARKER).write_text("plot\n", encoding="utf-8")
+    return folder
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+def register_plot_project(project, scans=None, *, rerun: bool = False, progress=None, cancel=None,
+                          on_link: Optional[Callable[[Any], None]] = None):
+    """Register the project's links, adjust the poses and save the project (the desktop's run:
+    no folder written). Returns the engine's :class:`~forestreg.engine.tls.plot.PlotOutcome`."""
+    from ..engine.tls.plot import adjust_poses, register_project
+
+    scans = scans if scans is not None else ScanCache(project)
+    report = progress or (lambda f, m: None)
+    outcome = register_project(project, rerun=rerun, progress=lambda f, m: report(0.95 * f, m), cancel=cancel,
+                               on_link=on_link, scans=scans)
+    if cancel is not None:
+        cancel.raise_if_cancelled()
+    report(0.96, "global adjustment")
+    adjust_poses(project, scans)
+    if project.path is not None:
+        project.save()
+    report(1.0, "done")
+    return outcome
+
+
+def run_plot(
+    project, out: Path, *, scans=None, pairs: Optional[str] = None, fixed: Sequence[str] = (), rerun: bool = False,
+    loops: Optional[float] = None, merged=None, registered_dir=None, e57_out=None, progress=None, cancel=None,
+) -> PlotRun:
+    """Register the project (``pairs``: every pair with a pose graph, see
+    :mod:`forestreg.app.survey`; ``loops``: also link scans within that many metres), then write
+    poses, transforms and the report into ``out`` (each product replaced by one rename, poses.json
+    last) and the extra products asked for."""
+    import tempfile
+
+    from ..engine.tls.plot import add_neighbour_links, adjust_poses, register_project
+
+    # the report's figures need matplotlib (~0.4 s of imports): loaded while the scans are
+    # registered, not on the single thread that writes the report at the end
+    import_in_background(".engine.report.plot_report", kernels=True)
+    writes_points = bool(merged or registered_dir or e57_out)
+    if scans is None:
+        scans = scan_cache(project, with_intensity=writes_points)
+        check_scans_near_their_scanners(project, scans)
+    step = with_cancel(progress, cancel)
+    if pairs:
+        from .survey import register_survey
+
+        outcome = register_survey(project, pairs, fixed=fixed, rerun=rerun, scans=scans, progress=step)
+    else:
+        outcome = register_project(project, rerun=rerun, progress=step, scans=scans, cancel=cancel)
+    if loops and not pairs:
+        added = add_neighbour_links(project, loops)
+        if added:
+            log.info("closing %d loops between neighbouring scans", len(added))
+            register_project(project, progress=step, scans=scans, cancel=cancel)
+    adjusted = adjust_poses(project, scans) if not pairs else project.adjustment
+    if project.path is not None:
+        project.save()
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".forestreg-tmp-products.", dir=out))
+    try:
+        export_poses(project, tmp, outcome)
+        try:
+            from ..engine.report.plot_report import write_plot_report
+
+            write_plot_report(project, tmp / "report.html", scans=scans)
+        except Exception as exc:  # a report must never lose the result
+            log.warning("could not write the report: %s", exc)
+        _publish(tmp, out, [s.name for s in project.scans])
+    except BaseException:
+        import shutil
+
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    written: dict = {}
+    if merged:
+        written["merged"] = (Path(merged), export_merged(project, merged, scans))
+    if registered_dir:
+        from ..engine.core.atomic import output_folder
+
+        with output_folder(registered_dir, "registered-scans") as rtmp:
+            written["registered_dir"] = (Path(registered_dir), export_scans(project, rtmp, scans))
+    if e57_out:
+        written["e57_out"] = (Path(e57_out), export_e57(project, e57_out, scans))
+    failed = outcome.failed
+    reason = "; ".join(f"{n}: {outcome.reasons.get(n, 'failed')}" for n in failed)
+    return PlotRun(status="failed" if failed else "ok", reason=reason, out=out, result=outcome, project=project,
+                   adjusted=adjusted, uncertainty=pose_uncertainty(project), written=written)
+
+
+def _publish(tmp: Path, out: Path, scan_names) -> None:
+    """Move the finished products from ``tmp`` into ``out`` (each by one rename; poses.json last,
+    so a poses.json always belongs to the transforms beside it), and drop the stale transforms of
+    the project's scans (no other file)."""
+    import os
+    import shutil
+
+    for name in scan_names:
+        stale = out / f"{name}.transform.txt"
+        if stale.is_file() and not (tmp / stale.name).exists():
+            stale.unlink()
+    files = sorted(tmp.iterdir(), key=lambda p: p.name == "poses.json")
+    for f in files:
+        target = out / f.name
+        if f.is_dir():
+            if target.exists():
+                shutil.rmtree(target)
+        os.replace(f, target)
+    shutil.rmtree(tmp, ignore_errors=True)

@@ -1,0 +1,133 @@
+"""Trees: detect and measure every tree (DBH, height, crown, stem curve, cylinder models) of a
+ground-based, airborne or fused cloud (System B).
+
+:func:`measure_trees_file` reads the cloud (moved first by a co-registration's transform when
+given), measures (:func:`forestreg.engine.trees.inventory.measure_trees`) and writes the output
+folder (``trees.csv``, ``stem_curves.csv``, ``cylinders/``, ``report.html``, and with field records
+``evaluation/``) as one transaction.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+from .common import UNITS, RunOutcome, with_cancel
+
+
+@dataclass(frozen=True, eq=False)
+class TreesOutcome(RunOutcome):
+    """Measured trees: ``result`` is the engine's
+    :class:`~forestreg.engine.trees.inventory.TreeInventory` (local frame, metres), ``points``
+    the cloud measured (local frame), ``evaluation`` the outcome of the check against field
+    records (or None), ``report`` the HTML report written (or None)."""
+
+    method = "stems, segmentation, QSM"
+    points: Any = None
+    evaluation: Any = None
+    report: Optional[Path] = None
+    trees: int = 0
+
+    def evidence(self) -> dict:
+        return {"trees": self.trees, "method": getattr(self.result, "method", "")}
+
+    def line(self) -> str:
+        return self.result.summary() if self.result is not None else f"{self.status}: {self.reason}"
+
+
+def default_params():
+    from ..engine.trees.inventory import TreeParams
+
+    return TreeParams()
+
+
+def measure_trees_in(cloud, params=None, *, progress=None, cancel=None):
+    """The trees of ``cloud`` (a :class:`~forestreg.engine.core.scan.Scan`, local frame), no file
+    written: the engine's :class:`~forestreg.engine.trees.inventory.TreeInventory`."""
+    from ..engine.trees.inventory import measure_trees
+
+    return measure_trees(cloud.points, params or default_params(), progress=with_cancel(progress, cancel),
+                         origin_shift=cloud.origin_shift)
+
+
+def measure_trees_file(
+    cloud_path, out: Optional[str | Path], params=None, *, transform=None, field=None, units: str = "m",
+    cylinders: bool = True, report: bool = True, progress=None, cancel=None,
+) -> TreesOutcome:
+    """Measure the trees of ``cloud_path`` (a file, or a :class:`~forestreg.engine.core.scan.Scan`)
+    into the folder ``out`` (a transaction; ``None``: nothing written); with ``field`` (field
+    records CSV) the trees are also evaluated into ``out/evaluation``. ``transform`` (a
+    co-registration's ``transform.txt``, files' unit) moves the cloud first."""
+    from ..engine.core.atomic import check_output_folder, output_folder
+    from ..engine.core.transform import read_matrix, to_metres
+    from ..engine.io import read_scan
+    from ..engine.io.base import check_readable
+    from ..engine.trees.evaluate import read_tree_table
+    from .evaluation import evaluate_into
+
+    scale = UNITS[units]
+    is_path = isinstance(cloud_path, (str, Path))
+    if is_path:
+        check_readable(cloud_path)
+    if out is not None:
+        out = check_output_folder(out, "trees", inputs=[cloud_path if is_path else None, transform, field])
+    matrix = to_metres(read_matrix(transform), scale) if transform else None
+    field_table = read_tree_table(field) if field else None  # checked before the work
+    # the trees use x, y, z alone
+    cloud = read_scan(cloud_path, unit_scale=scale, with_intensity=False) if is_path else cloud_path
+    if matrix is not None:
+        cloud = cloud.transformed(matrix)
+    params = params or default_params()
+    if not cylinders:
+        params = dataclasses.replace(params, cylinder_models=False)
+    inventory = measure_trees_in(cloud, params, progress=progress, cancel=cancel)
+    evaluation = None
+    written = None
+    if out is not None:
+        with output_folder(out, "trees") as tmp:
+            inventory.write(tmp, cloud.points, report=report, unit_scale=scale)
+            written = (tmp / "report.html").exists()
+            if field_table is not None:
+                evaluation = evaluate_into(tmp / "evaluation", [("trees", read_tree_table(tmp / "trees.csv"))], field_table,
+                                           by="position", max_distance=1.0 / scale, shown_as=out / "evaluation")
+    status, reason = "ok", ""
+    if evaluation is not None and not evaluation:
+        status, reason = "failed", evaluation.reason
+    return TreesOutcome(status=status, reason=reason, timings=dict(inventory.timings), out=out, result=inventory,
+                        points=cloud.points, evaluation=evaluation, report=out / "report.html" if written else None,
+                        trees=len(inventory.trees))
+
+
+# ----------------------------------------------------------------------------- edits
+
+
+def edit(kind: str, trees=(), **where):
+    """A :class:`~forestreg.engine.trees.edit.TreeEdit`: "delete", "merge", "split", "add",
+    "dbh_height" of the trees ``trees`` (``xy`` local coordinates, ``height_m``)."""
+    from ..engine.trees.edit import TreeEdit
+
+    return TreeEdit(kind, tuple(trees), **where)
+
+
+def apply_tree_edit(points, inventory, change, params=None):
+    """The inventory after ``change`` (only its trees measured again)."""
+    from ..engine.trees.edit import apply_edit
+
+    return apply_edit(points, inventory, change, params or default_params())
+
+
+def edit_notes(base, steps) -> dict:
+    """Tree id -> the note of each tree changed by the edits ``steps`` ([(edit, inventory), ...])."""
+    from ..engine.trees.edit import edit_notes as notes
+
+    return notes(base, steps)
+
+
+def save_edited(folder, inventory, notes, edits, points):
+    """Write the edited inventory into ``folder`` (``trees.csv`` marks edited trees;
+    ``edits.json``); returns the path written."""
+    from ..engine.trees.edit import write_edited
+
+    return write_edited(folder, inventory, notes, edits, points)

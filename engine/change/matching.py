@@ -1,0 +1,245 @@
+"""Trees matched across two registered surveys: persisting, removed, new; growth with uncertainty.
+
+Once the later survey is registered (``p_before = matrix @ p_after``, local frames), each tree of
+either survey gets a status:
+
+- ``persisting``: a stem of each survey within ``tree_match_distance_m`` with a plausible DBH
+  change; or a stem found in one survey whose place in the other survey still (or already) holds
+  stem points (it was occluded or not measured there: flagged, its values there left empty);
+- ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
+- ``new``: a stem of the later survey whose place the earlier survey saw without a stem;
+- ``outside``: the other survey did not cover the place: outside its footprint (a cloud's points,
+  holes such as a harvest gap filled; a table's stems, their hull grown by 2 m) or, for a tree of
+  the later survey, without any point of the earlier one near it: not compared.
+
+Values per tree: DBH and height in each survey with their 1-sigma, and their changes. The DBH
+change of a stem measured in both clouds is the median difference of the two stem curves between
+1.0 and 2.6 m along the stem (paired sections: the noise of one section is not the change), else
+the difference of the two DBH values. A value one survey cannot support (stem occluded, DBH fit
+unsure, top unseen) is flagged and its change left empty.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import numpy as np
+
+from .epoch import EpochTrees
+from .params import ChangeParams
+from .registration import stem_pairs
+
+__all__ = ["TreeChange", "STATUSES", "match_trees", "CHANGE_COLUMNS"]
+
+STATUSES = ("persisting", "removed", "new", "outside")
+
+#: Columns of ``tree_changes.csv`` (x, y in BEFORE file coordinates; metres).
+CHANGE_COLUMNS = (
+    "status", "x", "y", "dbh_before_m", "dbh_after_m", "dbh_change_m", "height_before_m", "height_after_m",
+    "height_change_m", "flag", "tree_id_before", "tree_id_after", "dbh_before_sigma_m", "dbh_after_sigma_m",
+    "dbh_change_sigma_m", "height_before_sigma_m", "height_after_sigma_m", "height_change_sigma_m", "match_distance_m",
+)
+
+
+@dataclass(frozen=True)
+class TreeChange:
+    """One tree across the surveys (BEFORE local frame, metres; NaN where not known)."""
+
+    status: str
+    x: float
+    y: float
+    tree_id_before: Optional[int]
+    tree_id_after: Optional[int]
+    dbh_before_m: float = math.nan
+    dbh_after_m: float = math.nan
+    dbh_change_m: float = math.nan
+    dbh_before_sigma_m: float = math.nan
+    dbh_after_sigma_m: float = math.nan
+    dbh_change_sigma_m: float = math.nan
+    height_before_m: float = math.nan
+    height_after_m: float = math.nan
+    height_change_m: float = math.nan
+    height_before_sigma_m: float = math.nan
+    height_after_sigma_m: float = math.nan
+    height_change_sigma_m: float = math.nan
+    match_distance_m: float = math.nan
+    flag: str = ""
+
+    def row(self, origin_shift: np.ndarray = np.zeros(3)) -> dict[str, Any]:
+        """The ``tree_changes.csv`` row (x, y in BEFORE file coordinates)."""
+        d = {c: getattr(self, c) for c in CHANGE_COLUMNS}
+        d["x"] = self.x + float(origin_shift[0])
+        d["y"] = self.y + float(origin_shift[1])
+        d["tree_id_before"] = "" if self.tree_id_before is None else self.tree_id_before
+        d["tree_id_after"] = "" if self.tree_id_after is None else self.tree_id_after
+        return d
+
+
+def _apply(matrix: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def _stem_points_at(epoch: EpochTrees, xy: np.ndarray, ground_z: np.ndarray, radius: np.ndarray, index) -> np.ndarray:
+    """Points of ``epoch``'s stem band 1-2.5 m above the ground within ``radius`` + 5 cm of each
+    position (its own local frame). ``index``: a cKDTree of the band's xy."""
+    out = np.zeros(len(xy), dtype=np.int64)
+    if index is None:
+        return out
+    for k in range(len(xy)):
+        near = np.asarray(index.query_ball_point(xy[k], float(radius[k]) + 0.05), dtype=np.int64)
+        if len(near):
+            h = epoch.band_heights[near]
+            out[k] = int(np.count_nonzero((h >= 1.0) & (h <= 2.5)))
+    return out
+
+
+def _covered(epoch: EpochTrees, xy: np.ndarray, radius_m: float, index_all) -> np.ndarray:
+    """Whether ``epoch`` has any point (band or ground; stems for a table) within ``radius_m``."""
+    if index_all is None:
+        return np.zeros(len(xy), dtype=bool)
+    d, _ = index_all.query(xy, k=1, distance_upper_bound=radius_m)
+    return np.isfinite(d)
+
+
+def _curve_change(cb: Optional[tuple[np.ndarray, np.ndarray]], ca: Optional[tuple[np.ndarray, np.ndarray]],
+                  lean_b: float, lean_a: float) -> tuple[float, int]:
+    """Median difference (after minus before) of two stem curves over their common sections
+    1.0-2.6 m along the stem, and the number of sections; (NaN, 0) without 3 common sections."""
+    if cb is None or ca is None:
+        return math.nan, 0
+    s = np.arange(1.0, 2.61, 0.25)
+    db = np.interp(s, cb[0], cb[1], left=np.nan, right=np.nan) if len(cb[0]) >= 2 else np.full(len(s), np.nan)
+    da = np.interp(s, ca[0], ca[1], left=np.nan, right=np.nan) if len(ca[0]) >= 2 else np.full(len(s), np.nan)
+    ok = np.isfinite(db) & np.isfinite(da)
+    if np.count_nonzero(ok) < 3:
+        return math.nan, 0
+    return float(np.median(da[ok] - db[ok])), int(np.count_nonzero(ok))
+
+
+def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, params: ChangeParams = ChangeParams()) -> list[TreeChange]:
+    """Every tree of both surveys with its status and values (module docstring). ``matrix``:
+    ``p_before = matrix @ p_after`` (local frames). Ordered: persisting, removed, new, outside."""
+    from scipy.spatial import cKDTree
+
+    inv = np.linalg.inv(matrix)
+    pairs = stem_pairs(before, after, matrix, params.tree_match_distance_m, params.dbh_change_range_m)
+    paired_b = set(pairs[:, 0].tolist())
+    paired_a = set(pairs[:, 1].tolist())
+    after_in_b = _apply(matrix, after.breast_points())  # after stems in the BEFORE frame
+    before_in_a = _apply(inv, before.breast_points())
+
+    def indexes(epoch: EpochTrees):
+        if not epoch.has_points:  # a table: the plot is the hull of its stems (EpochTrees.covers)
+            return None, None
+        return cKDTree(epoch.band[:, :2]), cKDTree(np.vstack([epoch.band[:, :2], epoch.ground[:, :2]]))
+
+    band_b, cover_b = indexes(before)
+    band_a, _ = indexes(after)
+    out: list[TreeChange] = []
+
+    def radius(epoch: EpochTrees, k: int) -> float:
+        return 0.5 * epoch.dbh_m[k] if math.isfinite(epoch.dbh_m[k]) else 0.15
+
+    # --- stems found in both surveys
+    for b, a in pairs:
+        out.append(_persisting(before, after, int(b), int(a), float(np.hypot(*(after_in_b[a, :2] - before.xy[b]))), params))
+    # --- stems of BEFORE alone: removed, not found in AFTER, or outside AFTER
+    rest_b = np.array(sorted(set(range(len(before))) - paired_b), dtype=np.int64)
+    if len(rest_b):
+        where = before_in_a[rest_b, :2]
+        present = _stem_points_at(after, where, before_in_a[rest_b, 2] - 1.3, np.array([radius(before, k) for k in rest_b]), band_a)
+        # AFTER covered the place: inside its footprint (a harvest gap inside the plot is)
+        seen = after.covers(where)
+        for j, k in enumerate(rest_b):
+            base = _one_side(before, int(k), "before")
+            if after.has_points and present[j] >= params.presence_points:
+                out.append(TreeChange(status="persisting", **base,
+                                      flag=_join(before.flags[k] and f"BEFORE: {before.flags[k]}",
+                                                 "stem present in AFTER but not measured there (occluded or unsure): no change")))
+            elif not seen[j]:
+                out.append(TreeChange(status="outside", **base, flag="outside the AFTER survey: not compared"))
+            else:
+                why = f"no stem in AFTER at its place ({present[j]} points)" if after.has_points else "no stem in the AFTER table at its place"
+                out.append(TreeChange(status="removed", **base, flag=_join(why, before.flags[k] and f"BEFORE: {before.flags[k]}")))
+    # --- stems of AFTER alone: new, not found in BEFORE, or outside BEFORE
+    rest_a = np.array(sorted(set(range(len(after))) - paired_a), dtype=np.int64)
+    if len(rest_a):
+        where_b = after_in_b[rest_a, :2]
+        present = _stem_points_at(before, where_b, after_in_b[rest_a, 2] - 1.3, np.array([radius(after, k) for k in rest_a]), band_b)
+        # BEFORE saw the place: inside its footprint and with points near it (never a false new tree
+        # where BEFORE was blind)
+        seen = before.covers(where_b)
+        if before.has_points:
+            seen &= _covered(before, where_b, params.coverage_radius_m, cover_b)
+        for j, k in enumerate(rest_a):
+            base = _one_side(after, int(k), "after", xy=where_b[j])
+            if before.has_points and present[j] >= params.presence_points:
+                out.append(TreeChange(status="persisting", **base,
+                                      flag=_join(after.flags[k] and f"AFTER: {after.flags[k]}",
+                                                 "stem present in BEFORE but not measured there (occluded or unsure): no change")))
+            elif not seen[j]:
+                out.append(TreeChange(status="outside", **base, flag="outside the BEFORE survey: not compared"))
+            else:
+                why = f"no stem in BEFORE at its place ({present[j]} points)" if before.has_points else "no stem in the BEFORE table at its place"
+                out.append(TreeChange(status="new", **base, flag=_join(why, after.flags[k] and f"AFTER: {after.flags[k]}")))
+    order = {s: i for i, s in enumerate(STATUSES)}
+    return sorted(out, key=lambda t: (order[t.status], t.x, t.y))
+
+
+def _join(*parts: str) -> str:
+    return "; ".join(p for p in parts if p)
+
+
+def _one_side(epoch: EpochTrees, k: int, which: str, xy: Optional[np.ndarray] = None) -> dict[str, Any]:
+    """The fields of a tree seen in one survey only (``which``: "before" or "after")."""
+    pos = epoch.xy[k] if xy is None else xy
+    d = {"x": float(pos[0]), "y": float(pos[1]), "tree_id_before": None, "tree_id_after": None}
+    d[f"tree_id_{which}"] = int(epoch.ids[k])
+    d[f"dbh_{which}_m"] = float(epoch.dbh_m[k])
+    d[f"dbh_{which}_sigma_m"] = float(epoch.dbh_sigma_m[k])
+    d[f"height_{which}_m"] = float(epoch.height_m[k])
+    d[f"height_{which}_sigma_m"] = float(epoch.height_sigma_m[k])
+    return d
+
+
+def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance: float, params: ChangeParams) -> TreeChange:
+    """A stem found in both surveys: its values and changes, flagged where a survey cannot support one."""
+    flags: list[str] = []
+    db, da = float(before.dbh_m[b]), float(after.dbh_m[a])
+    sb, sa = float(before.dbh_sigma_m[b]), float(after.dbh_sigma_m[a])
+    d_change = d_sigma = math.nan
+    if before.dbh_ok[b] and after.dbh_ok[a]:
+        paired, n = _curve_change(before.curves[b], after.curves[a], 0.0, 0.0)
+        if math.isfinite(paired):
+            d_change = paired
+            # paired sections: the sections' own noise averages out over about n / 2 independent ones
+            d_sigma = math.hypot(sb, sa) / math.sqrt(max(1.0, n / 2.0))
+        else:
+            d_change, d_sigma = da - db, math.hypot(sb, sa)
+        if d_change < -params.max_dbh_decrease_sigma * d_sigma:
+            flags.append(f"DBH shrank by {-1000 * d_change:.0f} mm (more than {params.max_dbh_decrease_sigma:g} sigma): check the stem")
+    else:
+        if not before.dbh_ok[b]:
+            flags.append("DBH not supported in BEFORE (stem occluded or fit unsure)")
+        if not after.dbh_ok[a]:
+            flags.append("DBH not supported in AFTER (stem occluded or fit unsure)")
+    hb, ha = float(before.height_m[b]), float(after.height_m[a])
+    h_change = h_sigma = math.nan
+    if before.height_ok[b] and after.height_ok[a]:
+        h_change = ha - hb
+        h_sigma = math.hypot(float(before.height_sigma_m[b]), float(after.height_sigma_m[a]))
+    else:
+        for epoch, k, which in ((before, b, "BEFORE"), (after, a, "AFTER")):
+            if not epoch.height_ok[k]:
+                why = "no ground" if "no ground" in epoch.flags[k] else "top unseen" if math.isfinite(epoch.height_m[k]) else "no height"
+                flags.append(f"height not supported in {which} ({why})")
+    return TreeChange(
+        status="persisting", x=float(before.xy[b, 0]), y=float(before.xy[b, 1]),
+        tree_id_before=int(before.ids[b]), tree_id_after=int(after.ids[a]),
+        dbh_before_m=db, dbh_after_m=da, dbh_change_m=d_change, dbh_before_sigma_m=sb, dbh_after_sigma_m=sa,
+        dbh_change_sigma_m=d_sigma, height_before_m=hb, height_after_m=ha, height_change_m=h_change,
+        height_before_sigma_m=float(before.height_sigma_m[b]), height_after_sigma_m=float(after.height_sigma_m[a]),
+        height_change_sigma_m=h_sigma, match_distance_m=distance, flag="; ".join(flags),
+    )

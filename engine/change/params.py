@@ -1,0 +1,47 @@
+"""Parameters of the change detection between two surveys of one plot (``[change]``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..core.errors import ParameterError
+from ..core.params import Params, param_field as _p
+
+__all__ = ["ChangeParams"]
+
+
+@dataclass(frozen=True)
+class ChangeParams(Params):
+    """Settings of the re-survey registration (persisting stems, then stem slices and terrain) and
+    of the tree matching. Distances in metres, angles in degrees. The trees of each survey are
+    measured with the ``[trees]`` parameters."""
+
+    # --- stems that persist: the coarse match from any heading
+    match_distance_m: float = _p(0.3, "m", 0.02, 2.0, "Stems of the two surveys closer than this after the coarse match are taken as one stem (the coarse matcher's D_t)")
+    angle_step_deg: float = _p(0.1, "deg", 0.01, 5.0, "Rotation step of the coarse search over every heading")
+    dbh_change_range_m: tuple[float, float] = _p((-0.03, 0.12), "m", -1.0, 1.0, "Plausible DBH change (after minus before) of a persisting stem; a pair outside is not one stem")
+    min_persisting: int = _p(6, "stems", 3, 10000, "Fewest persisting stems (matched, DBH-consistent) to register the surveys")
+    min_persisting_fraction: float = _p(0.25, "1", 0.0, 1.0, "...and at least this fraction of the smaller survey's stems (unrelated plots match few)")
+    min_match_margin: int = _p(3, "stems", 0, 1000, "The best heading must match this many stems more than the best distinct alternative")
+    min_match_margin_fraction: float = _p(0.25, "1", 0.0, 1.0, "...and this fraction of its matched stems more (a plantation's grid lets another shift match many)")
+    # --- refinement on stem slices and terrain (not crowns)
+    icp: bool = _p(True, "", None, None, "Refine on the persisting stems' slices and the terrain (clouds only; tables are registered on stem positions)")
+    icp_voxel_m: float = _p(0.02, "m", 0.005, 0.5, "Voxel to which the stem slices are thinned for ICP")
+    icp_max_distances_m: tuple[float, ...] = _p((0.25, 0.1, 0.05), "m", 0.005, 5.0, "Correspondence distance of each ICP stage, largest first")
+    icp_iterations: int = _p(30, "iterations", 1, 500, "Iterations per ICP stage")
+    slice_heights_m: tuple[float, float] = _p((0.5, 3.0), "m", 0.0, 10.0, "Heights above the ground of the stem slices used by the refinement")
+    max_icp_correction_m: float = _p(0.3, "m", 0.01, 5.0, "The refinement may move the stem solution by at most this much (more: it slid on the terrain)")
+    # --- trees matched across the surveys
+    tree_match_distance_m: float = _p(0.5, "m", 0.05, 5.0, "Trees of the two surveys closer than this after the registration are one tree")
+    presence_points: int = _p(25, "points", 1, 100000, "Points of the other survey on a stem (1-2.5 m above the ground, within its radius + 5 cm) that show the stem is still (or already) there")
+    coverage_radius_m: float = _p(1.5, "m", 0.1, 20.0, "A tree of the later survey is outside the earlier one when that survey has no point within this distance of it (never a new tree where the earlier survey was blind)")
+    max_dbh_decrease_sigma: float = _p(3.0, "sigma", 0.0, 100.0, "A DBH that shrank by more than this many sigma is flagged")
+
+    def _check(self) -> None:
+        lo, hi = self.dbh_change_range_m
+        if not lo < 0.0 < hi:
+            raise ParameterError("dbh_change_range_m must hold 0: (lowest, highest) with lowest < 0 < highest")
+        if len(self.slice_heights_m) != 2 or not self.slice_heights_m[0] < self.slice_heights_m[1]:
+            raise ParameterError("slice_heights_m must be (low, high) with low < high")
+        if len(self.icp_max_distances_m) == 0:
+            raise ParameterError("icp_max_distances_m must hold at least one distance")

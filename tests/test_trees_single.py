@@ -1,0 +1,133 @@
+"""Single-tree clouds (the kind TreeQSM, AdTree and aRchi take: one tree, little or no ground):
+recognised from their base, one tree each, its height the cloud's top above its base, its volume
+against the simulator's truth; plots are never taken for one tree."""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import pytest
+
+from forestreg.engine.trees.inventory import measure_trees
+
+#: The real single trees of ../shared/data (no or little ground; pine and spruce with ground).
+SINGLE = ["AdTree_tree1.xyz", "AdTree_tree7.xyz", "AdTree_Lille_2.xyz", "aRchi_Tree_2_point_cloud.las", "pine.laz",
+          "spruce.laz", "cloud.txt"]
+#: Real plots and stands: never one tree.
+PLOTS = ["pine_plot.laz", "spanner_ALS_Clip.laz", "lidR_MixedConifer.laz", "spanner_MLS_Clip.laz"]
+
+
+@functools.lru_cache(maxsize=None)
+def _points(path: str) -> np.ndarray:
+    from forestreg.engine.io import read_scan
+
+    return read_scan(path).points
+
+
+def _evidence(p: np.ndarray):
+    from forestreg.engine.terrain.dem import terrain_model
+    from forestreg.engine.trees.inventory import _no_ground_dem
+    from forestreg.engine.trees.single import single_tree_evidence
+    from forestreg.engine.trees.stems import detect_stems_adaptive
+
+    h = terrain_model(p).dem.normalise(p)
+    if np.mean(h < -0.5) > 0.02:
+        h = _no_ground_dem(p, 0.5).normalise(p)
+    stems, _, _ = detect_stems_adaptive(p, h)
+    return single_tree_evidence(p, h, stems)
+
+
+@pytest.mark.parametrize("name", SINGLE + PLOTS)
+def test_single_tree_clouds_are_told_from_plots(shared_data, name):
+    e = _evidence(_points(str(shared_data / name)))
+    assert e.single == (name in SINGLE), e.reason
+    if name in SINGLE:
+        assert e.patch_fraction >= 0.95 and e.base_width_m <= 3.0
+
+
+@functools.lru_cache(maxsize=None)
+def _single(kind: str, ground: bool):
+    from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.simulate.hard import leaf_off, single_tree_scene
+
+    scene = single_tree_scene(0)
+    if kind == "leaf-off":
+        scene = leaf_off(scene)
+    plot = simulate_plot("single", [(-7.0, -3.0), (6.0, -4.0), (1.0, 7.0)], scene=scene, seed=1, angular_step_deg=0.25,
+                         clearance_m=0.5)
+    pts = np.vstack([s.world_points() for s in plot.scans])
+    ids = np.concatenate([s.object_ids for s in plot.scans])
+    tree_pts = pts[ids == 1]
+    if ground:  # the ground around the tree, 8 m from its stem
+        pts = pts[np.hypot(pts[:, 0], pts[:, 1]) < 8.0]
+    else:
+        pts = tree_pts
+    return scene, pts, float(tree_pts[:, 2].max())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind, ground", [("leaf-off", False), ("leaf-on", True)])
+def test_simulated_single_tree_one_tree_its_extent_and_volume(kind, ground):
+    """One open-grown broadleaf scanned from three positions (leaf-off without ground, leaf-on with
+    the ground around it): one tree; DBH within 3 %; height the cloud's top above the true foot
+    within 1 %; wood volume within 15 % of the meshed stem and branches."""
+    from forestreg.engine.simulate.mesh import tree_wood_volume
+
+    scene, p, top = _single(kind, ground)
+    tree = scene.trees[0]
+    inv = measure_trees(p)
+    assert inv.method == "single" and len(inv.trees) == 1, inv.summary()
+    r = inv.trees[0]
+    assert r.dbh_m == pytest.approx(tree.dbh_m, rel=0.03)
+    assert r.crown.height_m == pytest.approx(top - tree.z, rel=0.01)
+    assert r.quality["height"].endswith("high") and not r.flags, r.flags
+    stem_v, branch_v = tree_wood_volume(scene, tree)
+    assert r.volume_m3 == pytest.approx(stem_v + branch_v, rel=0.15)
+    assert r.quality["volume"].endswith(("high", "medium"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", SINGLE)
+def test_real_single_trees_give_one_tree_of_the_clouds_extent(shared_data, name):
+    """Before: "stem cut by the plot edge" and "no ground: heights above the lowest points" on
+    every one, the height trusted low; a single urban tree could be cut into several trees."""
+    p = _points(str(shared_data / name))
+    inv = measure_trees(p)
+    assert inv.method == "single" and len(inv.trees) == 1
+    r = inv.trees[0]
+    assert r.crown.height_m == pytest.approx(float(p[:, 2].max()) - r.stem.ground_z, abs=0.05)
+    if not inv.ground.any():  # no ground: the base is the trunk's foot
+        foot = p[np.hypot(p[:, 0] - r.stem.x, p[:, 1] - r.stem.y) < 1.0, 2].min()
+        assert r.stem.ground_z == pytest.approx(foot, abs=0.05)
+    assert r.quality["height"].endswith("high")
+    assert not any("plot edge" in f or "no ground" in f for f in r.flags), r.flags
+    assert math.isfinite(r.volume_m3) or r.quality["volume"].endswith("none")
+
+
+def test_single_tree_can_be_forced_or_ruled_out(shared_data):
+    p = _points(str(shared_data / "AdTree_tree1.xyz"))
+    from forestreg.engine.trees.inventory import TreeParams
+
+    inv = measure_trees(p, TreeParams(cylinder_models=False), single_tree=False)
+    assert inv.method != "single"
+    params = TreeParams(cylinder_models=False)
+    params = params.replace(single_tree=params.single_tree.replace(mode="no"))
+    assert measure_trees(p, params).method != "single"
+    with pytest.raises(Exception):
+        params.single_tree.replace(mode="maybe")
+
+
+def test_trees_command_single_tree_option(shared_data, tmp_path, capsys):
+    import csv
+
+    from forestreg.cli import main
+
+    assert main(["trees", str(shared_data / "aRchi_Tree_2_point_cloud.las"), "--out", str(tmp_path / "t"), "--no-report",
+                 "--no-cylinders", "--single-tree"]) == 0
+    out = capsys.readouterr().out
+    assert "single-tree cloud:" in out and "1 tree found in a single-tree cloud" in out
+    with (tmp_path / "t" / "trees.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 1 and rows[0]["height_quality"].startswith("top of the single-tree cloud")

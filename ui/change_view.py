@@ -1,0 +1,155 @@
+"""The re-survey view: a ``forestreg change`` folder shown as its change map and its table of trees.
+
+The headline says whether AFTER was registered onto BEFORE (with the uncertainty) and counts the
+trees per status; the map (drawn by :func:`forestreg.engine.report.change_report.change_map_png`,
+BEFORE file coordinates) colours persisting trees by DBH growth and marks removed and new trees;
+the table lists every tree (filterable by status) with its changes and flags. Nothing is computed
+here but the layout: the folder is read with :func:`forestreg.engine.io.change.read_change_dir`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Optional
+
+from PySide6.QtCore import Qt
+from PySide6.QtGui import QPixmap
+from PySide6.QtWidgets import (
+    QAbstractItemView,
+    QComboBox,
+    QHBoxLayout,
+    QHeaderView,
+    QLabel,
+    QSizePolicy,
+    QSplitter,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+#: Table columns: (header, row key, scale, decimals).
+COLUMNS = (
+    ("Status", "status", None, 0), ("x", "x", 1.0, 2), ("y", "y", 1.0, 2),
+    ("DBH before (cm)", "dbh_before_m", 100.0, 1), ("DBH after (cm)", "dbh_after_m", 100.0, 1),
+    ("DBH change (mm)", "dbh_change_m", 1000.0, 1), ("\u00b1 (mm)", "dbh_change_sigma_m", 1000.0, 1),
+    ("Height before (m)", "height_before_m", 1.0, 1), ("Height after (m)", "height_after_m", 1.0, 1),
+    ("Height change (m)", "height_change_m", 1.0, 2), ("Flag", "flag", None, 0),
+)
+FILTERS = ("all trees", "persisting", "removed", "new", "outside", "flagged")
+
+
+class ChangeView(QWidget):
+    """Headline, change map and tree table of one re-survey comparison."""
+
+    def __init__(self, parent: Optional[QWidget] = None) -> None:
+        super().__init__(parent)
+        self.output: Any = None
+        self.headline = QLabel("Compare two surveys of one plot: run 'forestreg change BEFORE AFTER --out DIR', "
+                               "then File \u25b8 Open re-survey result\u2026")
+        self.headline.setWordWrap(True)
+        self.headline.setStyleSheet("padding: 4px;")
+        self.map = QLabel()
+        self.map.setAlignment(Qt.AlignmentFlag.AlignCenter)
+        self.map.setMinimumSize(200, 200)
+        self.map.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
+        self._pixmap: Optional[QPixmap] = None
+        self.filter = QComboBox()
+        self.filter.addItems(list(FILTERS))
+        self.filter.currentTextChanged.connect(lambda _: self._fill_table())
+        self.table = QTableWidget(0, len(COLUMNS))
+        self.table.setHorizontalHeaderLabels([c[0] for c in COLUMNS])
+        self.table.verticalHeader().setVisible(False)
+        self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
+        self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        self.table.horizontalHeader().setStretchLastSection(True)
+        self.table.verticalHeader().setDefaultSectionSize(22)
+        right = QWidget()
+        rl = QVBoxLayout(right)
+        rl.setContentsMargins(0, 0, 0, 0)
+        row = QHBoxLayout()
+        row.addWidget(QLabel("Show:"))
+        row.addWidget(self.filter)
+        row.addStretch(1)
+        rl.addLayout(row)
+        rl.addWidget(self.table, 1)
+        split = QSplitter(Qt.Orientation.Horizontal)
+        split.addWidget(self.map)
+        split.addWidget(right)
+        split.setSizes([520, 680])
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(4, 4, 4, 4)
+        lay.addWidget(self.headline)
+        lay.addWidget(split, 1)
+
+    # ------------------------------------------------------------------ content
+
+    def show_output(self, output: Any) -> None:
+        """Show a :class:`~forestreg.engine.io.change.ChangeOutput` (a folder read back)."""
+        from ..engine.report.change_report import change_map_png
+
+        self.output = output
+        result = output.result
+        counts = result.get("trees") or {}
+        if result.get("status") == "ok":
+            unc = result.get("uncertainty") or {}
+            t, r = unc.get("translation_m"), unc.get("rotation_deg")
+            how = f" (\u00b1 {100 * t:.1f} cm, {r:.3f}\u00b0)" if t is not None and r is not None else ""
+            text = (f"<b>AFTER registered onto BEFORE</b>{how} from {(result.get('evidence') or {}).get('persisting_stems', '?')} "
+                    f"persisting stems: {counts.get('persisting', 0)} persisting, {counts.get('removed', 0)} removed, "
+                    f"{counts.get('new', 0)} new" + (f", {counts['outside']} outside the other survey" if counts.get("outside") else ""))
+        else:
+            text = f"<b style='color:#b42318'>Not compared:</b> {result.get('reason', '')}"
+        self.headline.setText(text)
+        rows = output.rows
+        if rows:
+            png = change_map_png(rows, title="change map (BEFORE file coordinates)")
+            pix = QPixmap()
+            pix.loadFromData(png, "PNG")
+            self._pixmap = pix
+        else:
+            self._pixmap = None
+            self.map.setText("no trees to show")
+        self._scale_map()
+        self._fill_table()
+
+    def shown_rows(self) -> list[dict]:
+        """The rows the table shows under the current filter."""
+        rows = self.output.rows if self.output is not None else []
+        f = self.filter.currentText()
+        if f == "all trees":
+            return list(rows)
+        if f == "flagged":
+            return [r for r in rows if r.get("flag")]
+        return [r for r in rows if r.get("status") == f]
+
+    def _fill_table(self) -> None:
+        rows = self.shown_rows()
+        self.table.setRowCount(len(rows))
+        for i, r in enumerate(rows):
+            for j, (_, key, scale, digits) in enumerate(COLUMNS):
+                v = r.get(key, "")
+                if scale is None:
+                    text = str(v or "")
+                else:
+                    try:
+                        f = float(v)
+                    except (TypeError, ValueError):
+                        f = math.nan
+                    text = "" if not math.isfinite(f) else f"{f * scale:.{digits}f}"
+                item = QTableWidgetItem(text)
+                if scale is not None:
+                    item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+                if key == "flag" and text:
+                    item.setToolTip(text)
+                self.table.setItem(i, j, item)
+
+    def _scale_map(self) -> None:
+        if self._pixmap is not None and not self._pixmap.isNull():
+            self.map.setPixmap(self._pixmap.scaled(self.map.size(), Qt.AspectRatioMode.KeepAspectRatio,
+                                                   Qt.TransformationMode.SmoothTransformation))
+
+    def resizeEvent(self, event: Any) -> None:  # noqa: N802 - Qt's name
+        super().resizeEvent(event)
+        self._scale_map()
