@@ -71,12 +71,12 @@ def score(case, before, after, result) -> dict[str, Any]:
     return row
 
 
-def run(seeds: Sequence[int] = (1,), quick: bool = False) -> list[dict[str, Any]]:
+def run(seeds: Sequence[int] = (1,), quick: bool = False, preset: str = "planted_conifer") -> list[dict[str, Any]]:
     """One row per seed (see the module docstring)."""
     rows = []
     for seed in seeds:
         t = time.perf_counter()
-        case = simulate_resurvey(seed=seed, angular_step_deg=0.4 if quick else 0.3)
+        case = simulate_resurvey(preset, seed=seed, angular_step_deg=0.4 if quick else 0.3)
         sim_s = time.perf_counter() - t
         t = time.perf_counter()
         before = epoch_from_cloud(case.before, name="BEFORE")
@@ -85,7 +85,7 @@ def run(seeds: Sequence[int] = (1,), quick: bool = False) -> list[dict[str, Any]
         t = time.perf_counter()
         result = detect_change(before, after)
         change_s = time.perf_counter() - t
-        row = {"seed": seed, "points_before": len(case.before), "points_after": len(case.after), "simulate_s": sim_s,
+        row = {"preset": preset, "seed": seed, "points_before": len(case.before), "points_after": len(case.after), "simulate_s": sim_s,
                "trees_both_surveys_s": trees_s, "register_and_match_s": change_s, **score(case, before, after, result)}
         rows.append(row)
         print(json.dumps(row, default=float), flush=True)
@@ -96,8 +96,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--quick", action="store_true", help="a coarser scanner (0.4 deg)")
+    ap.add_argument("--preset", default="planted_conifer", help="the simulated stand (default planted_conifer)")
     args = ap.parse_args(argv)
-    run(args.seeds, args.quick)
+    run(args.seeds, args.quick, args.preset)
     return 0
 
 

@@ -26,7 +26,10 @@ plot of `--only bigplot`; `--quick`: a few minutes)::
 7. Peak memory of System B's commands (``coregister``, ``fuse``, ``trees``; ``trees`` also on
    each real cloud of ``../shared/data``) against the budget of 3x their raw point arrays + 300
    MB (:mod:`benchmarks.command_memory`; left out by ``--quick``).
-8. A plot of ten ~30 M-point scans registered and merged into one COPC file within 4 GB
+8. Trees side by side with Sylva (:mod:`benchmarks.trees_compare`): ``forestreg trees`` against
+   ``sylva ground`` + ``sylva trees`` and ``sylva qsm`` on the same simulated (with truth) and real
+   clouds: found, false stems, DBH, height, volume, time and memory.
+9. A plot of ten ~30 M-point scans registered and merged into one COPC file within 4 GB
    (:mod:`benchmarks.big_plot`; about an hour: only with ``--only bigplot``, left out by default
    and by ``--quick``).
 
@@ -51,7 +54,7 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import big_plot, big_scan, coarse_matcher, command_memory, peers, plot_speed, system_b
+    from . import big_plot, big_scan, coarse_matcher, command_memory, peers, plot_speed, system_b, trees_compare
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import big_plot  # type: ignore[no-redef]
@@ -61,6 +64,7 @@ else:  # run as a script: python benchmarks/run.py
     import peers  # type: ignore[no-redef]
     import plot_speed  # type: ignore[no-redef]
     import system_b  # type: ignore[no-redef]
+    import trees_compare  # type: ignore[no-redef]
 
 from forestreg.engine.io import read_scan, write_scan
 from forestreg.engine.tls.pair import register
@@ -312,7 +316,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated plot and of the VOP sets (default 0)")
     ap.add_argument("--json", metavar="FILE", type=Path, help="also write every row to this JSON file")
     ap.add_argument("--runs", type=int, default=3, help="timed rounds of the whole-command comparison (default 3)")
-    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands"), action="append",
+    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands", "trees"), action="append",
                     help="run only these parts (repeatable; default all but bigplot; --quick leaves out plot, big and commands). "
                          "bigplot: ten ~30 M-point scans registered and merged as COPC, about an hour, so only when named")
     ap.add_argument("--workdir", type=Path, help="bigplot: keep its simulated and densified scans here (default bench_out/; reused)")
@@ -324,7 +328,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     print(f"seed {args.seed}{', quick (no ~3 M point pair)' if args.quick else ''}", flush=True)
     print()
 
-    parts = set(args.only or (("pairs", "peers", "coarse", "system_b") if args.quick else ("pairs", "peers", "plot", "big", "coarse", "system_b", "commands")))
+    parts = set(args.only or (("pairs", "peers", "coarse", "system_b", "trees") if args.quick else ("pairs", "peers", "plot", "big", "coarse", "system_b", "commands", "trees")))
     pair_rows: list[dict[str, Any]] = []
     peer_rows: list[dict[str, Any]] = []
     coarse_rows: list[dict[str, Any]] = []
@@ -336,6 +340,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     if "commands" in parts:
         command_rows = command_memory.run(runs=args.runs)
         print(command_memory.format_rows(command_rows))
+        print(flush=True)
+    trees_rows: list[dict[str, Any]] = []
+    if "trees" in parts:  # child processes too: while this process is small
+        trees_rows = trees_compare.run()
+        print(trees_compare.format_rows(trees_rows))
         print(flush=True)
     if "peers" in parts:
         peer_rows = peers.run(quick=args.quick, runs=args.runs)
@@ -381,7 +390,8 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     if args.json is not None:
         payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
-                   "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "big_plot": big_plot_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows, "commands": command_rows}
+                   "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "big_plot": big_plot_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows, "commands": command_rows,
+                   "trees_compare": trees_rows}
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0

@@ -36,7 +36,7 @@ def _stand(n=60, size=30.0, seed=0):
     return np.array(xy), rng.uniform(0.15, 0.45, n), rng.uniform(15.0, 25.0, n)
 
 
-def _resurvey_tables(heading_deg, seed=0, removed=15, new=6, noise_m=0.01):
+def _resurvey_tables(heading_deg, seed=0, removed=15, new=6, noise_m=0.01, shift=(512.0, -300.0, 40.0)):
     """BEFORE and AFTER tables of a synthetic stand: ``removed`` trees nearest the centre gone,
     ``new`` thin trees grown in, 1-3 cm DBH growth, AFTER in a frame turned by ``heading_deg``."""
     rng = np.random.default_rng(seed + 7)
@@ -51,7 +51,7 @@ def _resurvey_tables(heading_deg, seed=0, removed=15, new=6, noise_m=0.01):
     a_xy = np.vstack([xy[keep], np.reshape(new_xy, (-1, 2))]) + rng.normal(0, noise_m, (len(keep) + new, 2))
     a_dbh = np.concatenate([dbh[keep] + rng.uniform(0.01, 0.03, len(keep)), rng.uniform(0.07, 0.1, new)])
     a_h = np.concatenate([h[keep] + 2.0, rng.uniform(5, 8, new)])
-    frame = frame_matrix(heading_deg, (512.0, -300.0, 40.0))  # p_before = frame @ p_after
+    frame = frame_matrix(heading_deg, shift)  # p_before = frame @ p_after
     inv = np.linalg.inv(frame)
     a_local = np.column_stack([a_xy, np.zeros(len(a_xy)), np.ones(len(a_xy))]) @ inv.T
     order = rng.permutation(len(a_xy))
@@ -92,6 +92,19 @@ def test_stems_register_from_any_heading_and_trees_are_matched(heading):
     assert result.uncertainty["translation_m"] > 0 and result.uncertainty["rotation_deg"] > 0
 
 
+def test_georeferenced_after_survey(tmp_path):
+    """AFTER in UTM-like coordinates (half a million metres): the matrix in file coordinates."""
+    before, after, truth = _resurvey_tables(-48.0, seed=3, shift=(-512345.6, -5123456.7, -310.2))
+    _write_table(tmp_path / "before.csv", before)
+    _write_table(tmp_path / "after.csv", after)
+    assert _run("change", str(tmp_path / "before.csv"), str(tmp_path / "after.csv"), "--out", str(tmp_path / "out")) == 0
+    m = np.array(json.loads((tmp_path / "out" / "result.json").read_text())["matrix"])
+    probe = np.column_stack([before.xy + before.origin_shift[:2], np.zeros(len(before)), np.ones(len(before))])
+    probe = probe @ np.linalg.inv(truth["frame"]).T
+    assert np.abs(probe[:, 0]).min() > 1e5  # the AFTER file's coordinates are large
+    assert np.abs(probe @ m.T - probe @ truth["frame"].T).max() < 0.03
+
+
 def test_unrelated_plots_and_too_few_persisting_stems_are_refused():
     a = _table_epoch(*_stand(seed=1))
     b = _table_epoch(*_stand(seed=2))
@@ -119,6 +132,25 @@ def test_implausible_dbh_change_is_not_a_persisting_stem():
     shift = result.origin_shift[:2]
     at = [t for t in result.trees if np.hypot(t.x + shift[0] - xy[0, 0], t.y + shift[1] - xy[0, 1]) < 0.2]
     assert sorted(t.status for t in at) == ["new", "removed"]
+
+
+def test_uncertain_values_are_flagged_and_their_change_withheld():
+    """A DBH of medium trust in one survey (1 sigma 12 mm) gives a change too uncertain to tell
+    growth: withheld and flagged; a height whose top was unseen gives no height change."""
+    xy, dbh, h = _stand(seed=6)
+    before = _table_epoch(xy, dbh, h)
+    rows = [{"tree_id": k + 1, "x": x, "y": y, "z": 0.0, "dbh_m": d + 0.02, "height_m": hh + 2.0, "source": "stem",
+             "dbh_quality": "stem curve; medium" if k == 0 else "stem curve; high",
+             "height_quality": "top; low" if k == 1 else "top; high", "flag": ""}
+            for k, ((x, y), d, hh) in enumerate(zip(xy, dbh, h))]
+    result = detect_change(before, epoch_from_table(rows))
+    assert result.ok
+    shift = result.origin_shift[:2]
+    by_pos = {int(np.argmin(np.hypot(*(xy - ([t.x, t.y] + shift)).T))): t for t in result.trees}
+    first, second, third = by_pos[0], by_pos[1], by_pos[2]
+    assert math.isnan(first.dbh_change_m) and "withheld" in first.flag and math.isfinite(first.dbh_after_m)
+    assert math.isnan(second.height_change_m) and "height not supported in AFTER" in second.flag
+    assert abs(third.dbh_change_m - 0.02) < 1e-3 and abs(third.height_change_m - 2.0) < 1e-3 and third.flag == ""
 
 
 def test_grow_scene_truth():

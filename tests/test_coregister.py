@@ -429,3 +429,125 @@ def test_scans_given_as_readers_give_the_same_result():
     np.testing.assert_array_equal(read.ground_shift, case.ground.origin_shift)
     np.testing.assert_array_equal(read.uav_shift, case.uav.origin_shift)
     assert (read.ground_name, read.uav_name) == (whole.ground_name, whole.uav_name)
+
+
+# --------------------------------------------------------------------------------------------
+# leaf-on UAV clouds: the tops the UAV sees are not the ones the ground sees
+# --------------------------------------------------------------------------------------------
+
+
+def test_leaf_on_view_hides_a_suppressed_top_under_a_dominant_crown():
+    """A 20 m crown next to a 12 m one 2 m away: the leaf-on view's envelope covers the lower top
+    (no point within 1 m of it stays visible), keeps the dominant top, and glimpses only a few
+    stem points under the foliage."""
+    from forestreg.engine.simulate.leaf_on import FOLIAGE, UNDER, leaf_on_uav_view
+
+    rng = np.random.default_rng(0)
+    ground = np.column_stack([rng.uniform(-8, 8, (6000, 2)), rng.normal(0, 0.02, 6000)])
+    tall = rng.normal([0.0, 0.0, 17.0], [1.2, 1.2, 1.5], (3000, 3))
+    low = rng.normal([2.0, 0.0, 10.5], [0.6, 0.6, 0.8], (1500, 3))
+    stems = np.column_stack([rng.normal(0, 0.1, (800, 2)), rng.uniform(0, 12, 800)])
+    pts, lab = leaf_on_uav_view(np.vstack([ground, tall, low, stems]), seed=1)
+    assert len(pts) == len(lab) and (lab == FOLIAGE).sum() > 1000
+    near_low_top = np.hypot(pts[:, 0] - 2.0, pts[:, 1]) < 0.5
+    assert pts[near_low_top, 2].max() > 13.0  # the foliage over the low top belongs to the tall crown
+    assert pts[:, 2].max() > 19.0
+    under_stem = (lab == UNDER) & (np.hypot(pts[:, 0], pts[:, 1]) < 0.4) & (pts[:, 2] > 1.0) & (pts[:, 2] < 8.0)
+    assert 0 < under_stem.sum() < 0.1 * 800
+
+
+@functools.lru_cache(maxsize=None)
+def _leaf_on_pair(data: str):
+    """A leaf-on ULS-like cloud in the airborne frame made from the real ALS clip and a third of
+    the real MLS points (the SLAM tilt removed by ``fine``): the foliage envelope of the crowns
+    (:func:`~forestreg.engine.simulate.leaf_on.leaf_on_uav_view`, crowns spreading 1.5 m) hides
+    the sub-canopy tops, the stems show through at 2 %, 3 cm noise. The ground-based cloud is the
+    other two thirds of the raw MLS (tilted 1.5 deg by its SLAM): no point is in both."""
+    from forestreg.engine.core.scan import Scan
+    from forestreg.engine.core.transform import apply
+    from forestreg.engine.simulate.leaf_on import leaf_on_uav_view
+
+    mls, als, _, fine = _real_pair(data)
+    idx = np.arange(len(mls.points))
+    src = np.vstack([als.points, apply(fine, mls.points[idx % 3 == 0])])
+    pts, _ = leaf_on_uav_view(src, crown_spread_m=1.5, curvature_radius_m=3.0)
+    pts = pts + np.random.default_rng(1).normal(0.0, 0.03, pts.shape)
+    uls = Scan.from_points(pts, name="uls_leaf_on", origin_shift=np.zeros(3))
+    rest = Scan.from_points(mls.points[idx % 3 != 0], name="mls", origin_shift=np.zeros(3))
+    return rest, uls, fine
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("heading", [0.0, 143.0])
+def test_real_tilted_mls_onto_a_leaf_on_uls_like_cloud(shared_data, heading):
+    """Few keypoints match (the UAV's tops are not the MLS's); the canopy search, the terrain
+    levelling and the UAV's stem layer bring the raw, tilted MLS within 0.3 deg / 15 cm of the
+    fine alignment, and the stems decide."""
+    mls, uls, fine = _leaf_on_pair(str(shared_data))
+    ground, a = _moved_mls(mls, heading, (8.7 * math.cos(1.0), 8.7 * math.sin(1.0), 0.5))
+    result = coregister(ground, uls)
+    assert result.ok, result.reason
+    rot, shift = _errors_at_centre(result.local_matrix, fine @ np.linalg.inv(a), ground.points)
+    print(f"leaf-on ULS-like, heading {heading}: {rot:.4f} deg, {100 * shift:.2f} cm; {result.summary()}")
+    assert rot < 0.3 and shift < 0.15, (rot, shift)
+    ev = result.coarse
+    assert 1.2 < ev.tilt_deg < 1.8  # the SLAM tilt, estimated
+    assert ev.stem_layer_points >= 100 and ev.stem_layer_agreement > 0.8
+    assert ev.terrain_points >= 100 and ev.terrain_tilt_deg < 1.0
+    d = result.to_dict()
+    assert d["evidence"]["coarse"]["stem_layer_agreement"] == pytest.approx(ev.stem_layer_agreement)
+    assert d["coarse_source"] in ("keypoints", "canopy surfaces")
+
+
+@pytest.mark.slow
+def test_other_real_clouds_are_refused(shared_data):
+    """The MLS clip's west part against the ALS clip's east part (the same stand, no overlap), and
+    the MLS against a TLS plot of another stand (LPine1): refused, never a matrix."""
+    from forestreg.engine.core.scan import Scan
+    from forestreg.engine.io import read_scan
+
+    mls, als, _, _ = _real_pair(str(shared_data))
+    west = Scan.from_points(mls.points[mls.points[:, 0] < -2.0], name="mls_west", origin_shift=np.zeros(3))
+    east = Scan.from_points(als.points[als.points[:, 0] > 2.0], name="als_east", origin_shift=np.zeros(3))
+    for g, u in ((west, east), (mls, read_scan(shared_data / "LPine1_demo.laz"))):
+        result = coregister(g, u)
+        print(f"{g.name} onto {u.name}: {result.summary()}")
+        assert not result.ok and result.matrix is None, result.summary()
+
+
+def test_a_cloud_onto_itself_has_no_ground_offset(shared_data):
+    """The real ALS clip co-registered onto itself: the identity, and the ground offset reads
+    exactly 0.0 cm (each UAV ground point against the nearest ground-based one)."""
+    from forestreg.engine.io import read_scan
+
+    als = read_scan(shared_data / "spanner_ALS_Clip.laz")
+    result = coregister(als, als)
+    assert result.ok, result.reason
+    rot, trans = rigid_errors(result.matrix, np.eye(4))
+    assert rot < 0.01 and trans < 0.01
+    assert abs(result.quality["ground_dz_median_m"]) < 1e-4
+    assert "ground offset 0.0 cm" in result.summary()
+
+
+@pytest.mark.slow
+def test_simulated_leaf_on_uav_and_a_tilted_backpack():
+    """A leaf-on broadleaf stand (the UAV sees the dominant crowns' foliage, the backpack the stems
+    and lower crowns; at most 2 keypoints match) and a backpack map tilted 1.5 deg by its SLAM:
+    within 0.3 deg / 15 cm of the truth, the tilt estimated, the stems deciding."""
+    from forestreg.engine.simulate.platforms import LEAF_ON_BROADLEAF, BackpackSetup
+
+    walk = BackpackSetup(extent_m=16.0, centre=(0.0, 0.0), density_scale=0.04, slam_tilt_deg=1.5, slam_tilt_azimuth_deg=60.0)
+    case = simulate_coregistration_case(
+        "mixed_temperate", seed=7, size_m=34.0, ground_platform="backpack", heading_deg=143.0, offset_m=(-6.0, 6.5, 1.0),
+        uav_density_scale=0.2, backpack_setup=walk, **LEAF_ON_BROADLEAF,
+    )
+    result = coregister(case.ground, case.uav)
+    assert result.ok, result.reason
+    rot, _ = rigid_errors(result.matrix, case.matrix)
+    centre = case.ground.file_points.mean(axis=0)
+    shift = np.linalg.norm((result.matrix[:3, :3] - case.matrix[:3, :3]) @ centre + result.matrix[:3, 3] - case.matrix[:3, 3])
+    print(f"leaf-on simulated: {rot:.4f} deg, {100 * shift:.2f} cm; {result.summary()}")
+    assert rot < 0.3 and shift < 0.15, (rot, shift)
+    assert result.matching_percentage < 15.0  # the keypoints alone would not decide
+    assert abs(result.coarse.tilt_deg - 1.5) < 0.2
+    assert result.coarse.stem_layer_agreement > 0.8

@@ -685,3 +685,53 @@ def test_desktop_names_moved_scans_and_relinks_them(qtbot, window, tiny, tmp_pat
     assert window.dirty
     qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
     assert _tree(new) == files and _hash(saved) == project_bytes
+
+
+def test_a_scan_with_a_random_header_is_refused_without_reading_gigabytes(tiny, tmp_path):
+    """Found on the way (row 4 with random bytes after 'LASF'): the plot's memory estimate handed
+    the damaged header to laspy, which followed its counts (11 GB, minutes). The header is checked
+    first: the scan is reported unreadable within seconds, the others registered."""
+    import random
+    import resource
+
+    _, paths = tiny
+    rng = random.Random(5)
+    garbage = tmp_path / "aaa_random.laz"
+    garbage.write_bytes(b"LASF" + bytes(rng.getrandbits(8) for _ in range(3000)))
+    from forestreg.engine.tls.plot import _file_scan_bytes
+
+    t0 = time.monotonic()
+    assert _file_scan_bytes(garbage) == 0
+    assert time.monotonic() - t0 < 1.0
+    limit = 3 * 1024**3  # a plot of two tiny scans never needs 3 GB
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    run = subprocess.run([*CLI, "plot", str(garbage), str(paths[0]), str(paths[1]), "--out", str(tmp_path / "out")],
+                         capture_output=True, text=True, env=_env(), timeout=600, preexec_fn=cap)
+    assert run.returncode == 1, run.stderr
+    assert "Traceback" not in run.stderr and "memory" not in run.stderr
+    poses = json.loads((tmp_path / "out" / "poses.json").read_text())
+    assert poses["scans"][garbage.name]["status"] == "failed" and poses["frame"] == paths[0].name
+
+
+def test_open3d_is_imported_while_another_thread_imports(monkeypatch):
+    """Row 10 (the other half): an import of open3d that meets another thread's import is tried
+    again instead of failing the run."""
+    import builtins
+
+    import forestreg.engine.core.imports as imports
+
+    real = builtins.__import__
+    calls = {"n": 0}
+
+    def flaky(name, *args, **kwargs):
+        if name == "open3d":
+            calls["n"] += 1
+            if calls["n"] == 1:
+                raise RuntimeError("dictionary changed size during iteration")
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", flaky)
+    assert imports.import_open3d().__name__ == "open3d" and calls["n"] == 2

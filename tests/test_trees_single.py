@@ -131,3 +131,22 @@ def test_trees_command_single_tree_option(shared_data, tmp_path, capsys):
     with (tmp_path / "t" / "trees.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 1 and rows[0]["height_quality"].startswith("top of the single-tree cloud")
+
+
+@pytest.mark.slow
+def test_uav_cloud_of_a_single_urban_tree_is_one_tree():
+    """A UAV flight over one open-grown broadleaf (crown 10 m wide), the ground around it kept to
+    9 m: before, the canopy height model cut its crown into two trees (15.2 m and 12.7 m); now one
+    tree of the cloud's height."""
+    from forestreg.engine.simulate import UavSetup, simulate_uav_scan
+    from forestreg.engine.simulate.hard import single_tree_scene
+    from forestreg.engine.trees.inventory import TreeParams
+
+    scene = single_tree_scene(0)
+    cloud = simulate_uav_scan(scene, UavSetup(altitude_m=50.0, line_spacing_m=20.0, density_scale=0.5), seed=1)
+    p = np.asarray(cloud.points)
+    p = p[np.hypot(p[:, 0], p[:, 1]) < 9.0]
+    inv = measure_trees(p, TreeParams(cylinder_models=False))
+    assert inv.method == "single" and len(inv.trees) == 1
+    assert inv.trees[0].crown.height_m == pytest.approx(float(p[:, 2].max()) - scene.trees[0].z, rel=0.01)
+    assert len(measure_trees(p, TreeParams(cylinder_models=False), single_tree=False).trees) >= 2  # the plot's way

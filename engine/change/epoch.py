@@ -151,7 +151,7 @@ def epoch_from_cloud(
 
     from ..geometry.icp import thin
     from ..trees.consistency import curve_dbh
-    from ..trees.crown import measure_crown
+    from ..trees.inventory import _crowns_timed  # the inventory's crown step (heights, shared tops)
     from ..trees.inventory import TreeParams
     from ..trees.segmentation import segment_trees, tree_completeness
     from ..trees.stems import detect_stems_adaptive, measure_stems
@@ -195,8 +195,9 @@ def epoch_from_cloud(
     progress(0.7, f"{name}: trees and heights")
     labels = segment_trees(p, heights, stems, params.segmentation, progress.sub(0.7, 0.85))
     complete = {c.tree_id: c for c in tree_completeness(p, heights, labels, stems, params.completeness, dbh)}
-    order = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[order], [[s.id, s.id + 1] for s in stems])
+    # heights and crowns as the tree inventory measures them, with its flags of tops not a tree's
+    # own (under a neighbour's crown, shared with a taller tree, points of no tree above)
+    crowns, shared, _ = _crowns_timed(p, heights, labels, stems, model.ground, params.crown, {})
     timings["trees_s"] = time.perf_counter() - t
 
     n = len(stems)
@@ -234,12 +235,7 @@ def epoch_from_cloud(
             reasons.append("stem not measured at breast height" if trust == "none" else "DBH uncertain")
         good = c.accepted & np.isfinite(c.raw_diameter_m)
         curve_list.append((c.s_m[good].copy(), c.raw_diameter_m[good].copy()) if good.any() else None)
-        idx = order[bounds[k, 0]:bounds[k, 1]]
-        try:
-            crown = measure_crown(p[idx], heights[idx], s, params.crown)
-            h = crown.height_m
-        except ScanDataError:
-            h = math.nan
+        h = crowns[s.id].height_m if s.id in crowns else math.nan
         h_trust = "high"
         if no_ground:
             h_trust = "low"
@@ -247,6 +243,9 @@ def epoch_from_cloud(
         elif any(r.startswith(("top missing", "too few crown points", "too few points")) for r in reasons):
             h_trust = "low"
             reasons.append("top unseen")
+        elif s.id in shared:
+            h_trust = "low"
+            reasons.append(shared[s.id])
         elif any("plot edge" in r for r in reasons):
             h_trust = "medium"
         out["h"][k] = h

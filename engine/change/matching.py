@@ -8,6 +8,8 @@ either survey gets a status:
   stem points (it was occluded or not measured there: flagged, its values there left empty);
 - ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
 - ``new``: a stem of the later survey whose place the earlier survey saw without a stem;
+- (a stem found in one survey alone, without a DBH and without points of its own 1.0-1.6 m above
+  the ground, is left out: no evidence of a tree removed or grown in);
 - ``outside``: the other survey did not cover the place: outside its footprint (a cloud's points,
   holes such as a harvest gap filled; a table's stems, their hull grown by 2 m) or, for a tree of
   the later survey, without any point of the earlier one near it: not compared.
@@ -81,9 +83,10 @@ def _apply(matrix: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ matrix[:3, :3].T + matrix[:3, 3]
 
 
-def _stem_points_at(epoch: EpochTrees, xy: np.ndarray, ground_z: np.ndarray, radius: np.ndarray, index) -> np.ndarray:
-    """Points of ``epoch``'s stem band 1-2.5 m above the ground within ``radius`` + 5 cm of each
-    position (its own local frame). ``index``: a cKDTree of the band's xy."""
+def _stem_points_at(epoch: EpochTrees, xy: np.ndarray, ground_z: np.ndarray, radius: np.ndarray, index,
+                    heights: tuple[float, float] = (1.0, 2.5)) -> np.ndarray:
+    """Points of ``epoch``'s stem band ``heights`` above the ground within ``radius`` + 5 cm of
+    each position (its own local frame). ``index``: a cKDTree of the band's xy."""
     out = np.zeros(len(xy), dtype=np.int64)
     if index is None:
         return out
@@ -91,7 +94,7 @@ def _stem_points_at(epoch: EpochTrees, xy: np.ndarray, ground_z: np.ndarray, rad
         near = np.asarray(index.query_ball_point(xy[k], float(radius[k]) + 0.05), dtype=np.int64)
         if len(near):
             h = epoch.band_heights[near]
-            out[k] = int(np.count_nonzero((h >= 1.0) & (h <= 2.5)))
+            out[k] = int(np.count_nonzero((h >= heights[0]) & (h <= heights[1])))
     return out
 
 
@@ -118,9 +121,13 @@ def _curve_change(cb: Optional[tuple[np.ndarray, np.ndarray]], ca: Optional[tupl
     return float(np.median(da[ok] - db[ok])), int(np.count_nonzero(ok))
 
 
-def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, params: ChangeParams = ChangeParams()) -> list[TreeChange]:
+def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, params: ChangeParams = ChangeParams(),
+                skipped: Optional[list] = None) -> list[TreeChange]:
     """Every tree of both surveys with its status and values (module docstring). ``matrix``:
-    ``p_before = matrix @ p_after`` (local frames). Ordered: persisting, removed, new, outside."""
+    ``p_before = matrix @ p_after`` (local frames). Ordered: persisting, removed, new, outside.
+    Stems found in one survey alone without a DBH (nothing measured at breast height) are left
+    out; ``skipped`` (a list) receives one entry per such stem."""
+    skipped = [] if skipped is None else skipped
     from scipy.spatial import cKDTree
 
     inv = np.linalg.inv(matrix)
@@ -137,6 +144,7 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
 
     band_b, cover_b = indexes(before)
     band_a, _ = indexes(after)
+
     out: list[TreeChange] = []
 
     def radius(epoch: EpochTrees, k: int) -> float:
@@ -146,6 +154,16 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     for b, a in pairs:
         out.append(_persisting(before, after, int(b), int(a), float(np.hypot(*(after_in_b[a, :2] - before.xy[b]))), params))
     # --- stems of BEFORE alone: removed, not found in AFTER, or outside AFTER
+    # a stem of one survey alone without a DBH and without points of its own at 1.0-1.6 m is
+    # no evidence of a tree removed or grown in (a crown part or branch whorl taken for a stem):
+    # left out, counted
+    for epoch, paired, band in ((before, paired_b, band_b), (after, paired_a, band_a)):
+        alone = np.array([k for k in sorted(set(range(len(epoch))) - paired) if not math.isfinite(epoch.dbh_m[k])], dtype=np.int64)
+        if len(alone) and epoch.has_points:
+            own = _stem_points_at(epoch, epoch.xy[alone], epoch.ground_z[alone], np.full(len(alone), 0.15), band, (1.0, 1.6))
+            alone = alone[own < params.presence_points]
+        skipped.extend(int(k) for k in alone)
+        paired |= set(alone.tolist())
     rest_b = np.array(sorted(set(range(len(before))) - paired_b), dtype=np.int64)
     if len(rest_b):
         where = before_in_a[rest_b, :2]
@@ -184,8 +202,30 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
             else:
                 why = f"no stem in BEFORE at its place ({present[j]} points)" if before.has_points else "no stem in the BEFORE table at its place"
                 out.append(TreeChange(status="new", **base, flag=_join(why, after.flags[k] and f"AFTER: {after.flags[k]}")))
+    out = _height_outliers(out, params)
     order = {s: i for i, s in enumerate(STATUSES)}
     return sorted(out, key=lambda t: (order[t.status], t.x, t.y))
+
+
+def _height_outliers(trees: list[TreeChange], params: ChangeParams) -> list[TreeChange]:
+    """Height changes far from the stand's (more than ``height_outlier_m`` and 3 robust sigma from
+    the median of the persisting trees, at least 5 of them) are withheld and flagged: a top unseen
+    in one survey or a neighbour's crown taken for the top, not growth."""
+    import dataclasses
+
+    values = np.array([t.height_change_m for t in trees if t.status == "persisting" and math.isfinite(t.height_change_m)])
+    if len(values) < 5:
+        return trees
+    med = float(np.median(values))
+    limit = max(params.height_outlier_m, 3.0 * 1.4826 * float(np.median(np.abs(values - med))))
+    out = []
+    for t in trees:
+        if t.status == "persisting" and math.isfinite(t.height_change_m) and abs(t.height_change_m - med) > limit:
+            t = dataclasses.replace(t, height_change_m=math.nan, height_change_sigma_m=math.nan, flag=_join(
+                t.flag, f"height change withheld: {t.height_change_m:+.1f} m against the stand's {med:+.1f} m "
+                        "(a top unseen in one survey or a neighbour's crown taken for it)"))
+        out.append(t)
+    return out
 
 
 def _join(*parts: str) -> str:
@@ -218,7 +258,10 @@ def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance:
             d_sigma = math.hypot(sb, sa) / math.sqrt(max(1.0, n / 2.0))
         else:
             d_change, d_sigma = da - db, math.hypot(sb, sa)
-        if d_change < -params.max_dbh_decrease_sigma * d_sigma:
+        if d_sigma > params.max_dbh_change_sigma_m:
+            flags.append(f"DBH change withheld: too uncertain (1 sigma {1000 * d_sigma:.0f} mm; partial arcs or noisy stem)")
+            d_change = math.nan
+        elif d_change < -params.max_dbh_decrease_sigma * d_sigma:
             flags.append(f"DBH shrank by {-1000 * d_change:.0f} mm (more than {params.max_dbh_decrease_sigma:g} sigma): check the stem")
     else:
         if not before.dbh_ok[b]:
@@ -233,7 +276,8 @@ def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance:
     else:
         for epoch, k, which in ((before, b, "BEFORE"), (after, a, "AFTER")):
             if not epoch.height_ok[k]:
-                why = "no ground" if "no ground" in epoch.flags[k] else "top unseen" if math.isfinite(epoch.height_m[k]) else "no height"
+                why = ("no ground" if "no ground" in epoch.flags[k] else "top not its own" if "top " in epoch.flags[k] and "unseen" not in epoch.flags[k]
+                       else "top unseen" if math.isfinite(epoch.height_m[k]) else "no height")
                 flags.append(f"height not supported in {which} ({why})")
     return TreeChange(
         status="persisting", x=float(before.xy[b, 0]), y=float(before.xy[b, 1]),

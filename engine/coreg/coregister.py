@@ -1,23 +1,35 @@
 """Ground-based / UAV co-registration pipeline (paper section 4.1): DEMs, canopy keypoints,
-matching, then the best few distinct keypoint solutions each refined by a coarse 6-DoF ICP and
+matching, a search of the canopy surfaces over every heading and shift, then the best few
+distinct candidates from both each levelled on the terrain, refined by a coarse 6-DoF ICP and
 verified *after* it (canopy surface correlation, a margin over the best distinct alternative), a
-fine ICP, and the evidence: standard errors (jackknife over plot quadrants) and quality figures
-that need no ground truth (ground height agreement, canopy surface residuals).
+fine ICP, and the evidence: terrain, stems, keypoints, standard errors (jackknife over plot
+quadrants) and quality figures that need no ground truth (ground height agreement, canopy
+surface residuals).
 
-A ground-based cloud whose SLAM map is tilted or drifts by a few degrees gives keypoint solutions
-a few degrees off; the coarse ICP corrects them before they are judged (real MLS clip: solutions
-8-15 deg / 1.5 m off come back to 0.07 deg / 4 cm of the fine alignment).
+The coarse stage does not depend on matched tree tops. In a leaf-on UAV cloud the dominant
+crowns' foliage hides the lower tops a ground-based scanner sees, so few keypoints match; the
+candidates therefore also come from the canopy surfaces correlated over heading and shift
+(:func:`.surfaces.canopy_search`). Each candidate is levelled on the terrain (the plane through
+the UAV ground minus the ground-based DEM gives the vertical offset and the tilt, e.g. a SLAM
+map's ~1.5 deg), refined by ICP of the UAV points the ground can have seen (foliage above every
+ground-based return has no counterpart) and then of the UAV's stem layer and ground alone (stems
+and terrain have exact counterparts). A ground-based cloud whose SLAM map is tilted or drifts by a
+few degrees gives keypoint solutions a few degrees off; this refinement corrects them before they
+are judged.
 
 ``p_uav = matrix @ p_ground`` (homogeneous column vectors) in the two inputs' *file* frames; the
 work runs in each scan's local frame (large georeferenced coordinates shifted) and the shifts are
 folded into the final matrix.
 
-Failure (``status == "failed"``, with a ``reason``) when: either cloud has too little canopy for
-keypoints; fewer than ``min_matched`` keypoints match; the matching percentage is below
-``min_matching_percentage``; the canopy surfaces (highest point per 1 m cell) of the two clouds
-do not correlate under any refined solution, or a distinct refined solution comes within
-``min_correlation_margin`` (a repetitive plantation); ICP moves far from the keypoint solution,
-or the surfaces correlate poorly after it.
+The decision weighs the evidence together. Failure (``status == "failed"``, with a ``reason``)
+when: either cloud has too little canopy; the canopy surfaces (highest point per 1 m cell) do not
+correlate under any refined solution, or a distinct refined solution comes within
+``min_correlation_margin`` (a repetitive plantation); ICP moves far from the coarse solution, or
+the surfaces correlate poorly after it; the terrains or the stems (where the UAV sees them)
+disagree under the result; or none of the three decides: enough keypoints match
+(``min_matching_percentage``), the canopy surfaces are decisive on their own
+(``decisive_correlation`` and ``decisive_margin``), or the UAV's stem-layer points lie on the
+ground-based cloud (``decisive_stem_agreement``) with the terrains compared.
 """
 
 from __future__ import annotations
@@ -44,9 +56,18 @@ from ..core.transform import rotation_angle_deg
 from ..core.params import Params, param_field as _p
 from .keypoints import KeypointParams, Keypoints, extract_keypoints
 from .matching import KeypointMatch, MatchingParams, assign_one_to_one, match_keypoints, residual_statistics
+from .surfaces import (
+    SurfaceGrid,
+    canopy_search,
+    highest_per_cell,
+    seen_from_ground,
+    stem_layer_agreement,
+    surface_correlation,
+    terrain_levelling,
+)
 from ..core.transform import apply as apply_transform
 
-__all__ = ["CoregistrationParams", "CoregistrationResult", "coregister", "coregister_points"]
+__all__ = ["CoarseEvidence", "CoregistrationParams", "CoregistrationResult", "coregister", "coregister_points"]
 
 
 @dataclass(frozen=True)
@@ -88,13 +109,41 @@ class CoregistrationParams(Params):
     #: this many best distinct keypoint solutions (by canopy correlation) are refined by a coarse
     #: 6-DoF ICP and verified after it: a keypoint solution a few degrees off (tilt, drift, a
     #: shifted keypoint) is corrected before it is judged
-    candidates_verified: int = _p(6, "solutions", 1, 100, "keypoint solutions refined by a coarse ICP and verified")
+    candidates_verified: int = _p(5, "solutions", 1, 100, "keypoint solutions refined by a coarse ICP and verified")
     #: the coarse ICP of the candidates: correspondence distances (m) and thinning voxel (m)
     coarse_icp_distances_m: tuple[float, ...] = _p((3.0, 1.5, 0.75), "m", 0.001, 100.0, "coarse ICP correspondence distance per stage, largest first")
     coarse_voxel_m: float = _p(0.3, "m", 0.005, 5.0, "coarse ICP thinning voxel")
     #: the best refined solution must correlate at least this much better (Pearson r) than the
     #: best distinct alternative
     min_correlation_margin: float = _p(0.15, "1", 0.0, 2.0, "least canopy correlation margin over the best distinct alternative")
+    #: the canopy search: the ground-based canopy surface turned by this step (deg) over all
+    #: headings and correlated with the UAV surface at every shift; its best distinct peaks join
+    #: the keypoint solutions as candidates
+    heading_step_deg: float = _p(2.0, "deg", 0.25, 30.0, "heading step of the canopy surface search")
+    canopy_peaks: int = _p(4, "solutions", 0, 100, "best distinct canopy-search peaks refined and verified")
+    #: ICP uses the UAV points no higher than the ground-based cloud's highest point in their
+    #: 0.5 m column plus this (m; twice this in the coarse ICP): leaf-on foliage above every
+    #: ground-based return has no counterpart and pulls ICP off (real MLS onto a leaf-on ULS-like
+    #: cloud: 2 deg / 0.9 m off without, 0.01 deg with); 0 uses every UAV point
+    visible_tolerance_m: float = _p(0.5, "m", 0.0, 100.0, "UAV points above the ground-based cloud's top by more than this are left out of ICP")
+    #: without matched keypoints (fewer than ``min_matched`` or below ``min_matching_percentage``)
+    #: the canopy surfaces decide when they correlate at least this much, with at least this
+    #: margin over the best distinct alternative (or the stems decide, see below)
+    decisive_correlation: float = _p(0.75, "1", -1.0, 1.0, "canopy correlation that decides without matched keypoints")
+    decisive_margin: float = _p(0.3, "1", 0.0, 2.0, "canopy margin that decides without matched keypoints")
+    #: the terrains must agree under the result (where at least 100 UAV ground points compare):
+    #: the plane through the UAV ground minus the ground-based DEM no steeper than this (deg) and
+    #: its residuals' NMAD no wider than this (m)
+    max_terrain_tilt_deg: float = _p(1.0, "deg", 0.0, 90.0, "largest tilt between the terrains after co-registration")
+    max_terrain_nmad_m: float = _p(0.5, "m", 0.0, 100.0, "largest spread of the terrain heights after co-registration")
+    #: where the UAV sees at least this many points 0.5-2.5 m above its ground (stems, understorey),
+    #: at least this fraction must lie within 0.3 m of the ground-based cloud
+    min_stem_layer_points: int = _p(50, "points", 1, 100000000, "fewest UAV stem-layer points that make stem evidence")
+    min_stem_layer_agreement: float = _p(0.3, "1", 0.0, 1.0, "least fraction of UAV stem-layer points near the ground-based cloud")
+    #: ... and with at least this fraction near (and the terrains compared and agreeing) the stems
+    #: decide without matched keypoints (right solutions: 0.93-0.95 on the real MLS against a
+    #: leaf-on ULS-like cloud; a solution 5 deg off: 0.57)
+    decisive_stem_agreement: float = _p(0.8, "1", 0.0, 1.0, "stem-layer agreement that decides without matched keypoints")
     #: standard errors by a delete-one-quadrant jackknife of the fine ICP (4 more short ICP runs)
     jackknife: bool = _p(True, "", None, None, "standard errors by a jackknife over plot quadrants")
 
@@ -103,6 +152,35 @@ class CoregistrationParams(Params):
             raise ParameterError("icp_distances_m: needs at least one value")
         if not self.coarse_icp_distances_m:
             raise ParameterError("coarse_icp_distances_m: needs at least one value")
+
+
+@dataclass(frozen=True)
+class CoarseEvidence:
+    """The evidence of the coarse stage and of the result beyond the canopy correlation.
+
+    ``source``: where the winning candidate came from ("keypoints": a keypoint solution, or
+    "canopy surfaces": the heading and shift search of the surfaces); ``canopy_peaks`` and
+    ``keypoint_candidates``: how many candidates each gave. ``terrain_*``: the plane through the
+    UAV ground heights minus the ground-based DEM under the result (tilt between the terrains,
+    deg; offset and residual NMAD, m; UAV ground points compared), None where fewer than 50
+    compare. ``stem_layer_points``: UAV points 0.5-2.5 m above its ground within the ground-based
+    footprint, ``stem_layer_agreement`` the fraction of them within 0.3 m of a ground-based point
+    (None without any). ``tilt_deg``: the tilt of the ground-based cloud against the UAV's
+    vertical in the result (estimated, e.g. a SLAM map's tilt)."""
+
+    source: str
+    canopy_peaks: int
+    keypoint_candidates: int
+    terrain_tilt_deg: Optional[float]
+    terrain_offset_m: Optional[float]
+    terrain_nmad_m: Optional[float]
+    terrain_points: int
+    stem_layer_points: int
+    stem_layer_agreement: Optional[float]
+    tilt_deg: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return _finite_or_none(dataclasses.asdict(self))  # type: ignore[return-value]
 
 
 @dataclass(frozen=True, eq=False)
@@ -139,6 +217,10 @@ class CoregistrationResult(Outcome):
     quality: Optional[dict[str, float]] = None
     #: standard errors of the result (:func:`jackknife_standard_errors`)
     standard_errors: Optional[dict[str, Any]] = None
+    #: where the winning candidate came from: "keypoints" or "canopy surfaces" ("" before any)
+    coarse_source: str = ""
+    #: terrain, stem and tilt evidence (:class:`CoarseEvidence`), when the fine ICP ran
+    coarse: Optional[CoarseEvidence] = None
 
     @property
     def correlation_margin(self) -> float:
@@ -153,20 +235,27 @@ class CoregistrationResult(Outcome):
             f"ok: {self.n_matched} keypoints matched ({self.matching_percentage:.0f} %), canopy correlation "
             f"{self.surface_correlation:.2f} (margin {self.correlation_margin:.2f} over the best alternative)"
         )
+        if self.coarse is not None:
+            line += f", tilt {self.coarse.tilt_deg:.2f} deg"
+            if self.coarse.stem_layer_agreement is not None:
+                line += f", stems {100 * self.coarse.stem_layer_agreement:.0f} % of {self.coarse.stem_layer_points}"
         if self.standard_errors:
             se = self.standard_errors
             line += f", standard errors {se['rotation_deg']:.3f} deg / {100 * se['translation_m']:.1f} cm"
         if self.quality and np.isfinite(self.quality.get("ground_dz_median_m", float("nan"))):
-            line += f", ground offset {100 * self.quality['ground_dz_median_m']:+.1f} cm"
+            line += f", ground offset {_cm(self.quality['ground_dz_median_m'])} cm"
         return line
 
-    method = "canopy keypoints + ICP"
+    method = "canopy keypoints and canopy surface search + ICP"
     convention = "p_uav = matrix @ p_ground (file coordinates, homogeneous column vectors)"
 
     def evidence(self) -> dict[str, Any]:
-        """Matched keypoints (count, percent), the canopy correlation and its margin over the best
-        alternative, the standard errors and the ground offset when computed."""
+        """Where the coarse solution came from, matched keypoints (count, percent), the canopy
+        correlation and its margin over the best alternative, the terrain, stem and tilt figures
+        (:class:`CoarseEvidence`), the standard errors and the ground offset when computed."""
         return {
+            "coarse_source": self.coarse_source or None,
+            "coarse": None if self.coarse is None else self.coarse.to_dict(),
             "matched": self.n_matched,
             "matching_percentage": self.matching_percentage,
             "surface_correlation": self.surface_correlation,
@@ -223,6 +312,8 @@ class CoregistrationResult(Outcome):
             "alternative_correlation": self.alternative_correlation,
             "correlation_margin": self.correlation_margin,
             "candidates_verified": self.candidates_verified,
+            "coarse_source": self.coarse_source or None,
+            "coarse": None if self.coarse is None else self.coarse.to_dict(),
             "quality": _finite_or_none(self.quality),
             "standard_errors": _finite_or_none(self.standard_errors),
             "icp": None if self.icp is None else self.icp.to_dict(),
@@ -232,6 +323,13 @@ class CoregistrationResult(Outcome):
         if local is None:
             return None
         return _shift_matrix(self.uav_shift) @ local @ _shift_matrix(-self.ground_shift)
+
+
+def _cm(metres: float) -> str:
+    """``metres`` in centimetres with a sign and one decimal; a value that rounds to zero reads
+    "0.0" (never "-0.0")."""
+    v = round(100.0 * float(metres), 1) + 0.0
+    return f"{v:+.1f}" if v else "0.0"
 
 
 def _finite_or_none(values: Optional[dict[str, Any]]) -> Optional[dict[str, Any]]:
@@ -247,49 +345,9 @@ def _shift_matrix(shift: np.ndarray) -> np.ndarray:
     return m
 
 
-@dataclass(frozen=True, eq=False)
-class _SurfaceGrid:
-    """The UAV canopy surface: highest z per ``cell`` (NaN where empty), lattice origin ``x0, y0``."""
-
-    x0: float
-    y0: float
-    cell: float
-    z: np.ndarray
-
-    @classmethod
-    def of(cls, points: np.ndarray, cell: float) -> "_SurfaceGrid":
-        x0, y0 = points[:, 0].min(), points[:, 1].min()
-        nx = int((points[:, 0].max() - x0) // cell) + 1
-        ny = int((points[:, 1].max() - y0) // cell) + 1
-        return cls(float(x0), float(y0), cell, _highest(points, x0, y0, cell, nx, ny))
-
-
-def _highest(points: np.ndarray, x0: float, y0: float, cell: float, nx: int, ny: int) -> np.ndarray:
-    ij = np.floor((points[:, :2] - (x0, y0)) / cell).astype(np.int64)
-    inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] < ny)
-    top = np.full(ny * nx, -np.inf)
-    np.maximum.at(top, ij[inside, 1] * nx + ij[inside, 0], points[inside, 2])
-    top[~np.isfinite(top)] = np.nan
-    return top.reshape(ny, nx)
-
-
-def surface_correlation(ground_canopy: np.ndarray, uav_surface: _SurfaceGrid, matrix: np.ndarray) -> tuple[float, int]:
-    """Pearson correlation of the canopy surfaces (highest point per cell) of the ground-based
-    canopy points moved by ``matrix`` and of the UAV cloud, over their common cells, and the number
-    of those cells. The ground-based surface lies below the true canopy where tops were hidden, but
-    its shape (crowns, gaps, slope) follows the UAV's under the right transform only; correlation
-    ignores the offset and the point densities."""
-    moved = apply_transform(matrix, ground_canopy)
-    ny, nx = uav_surface.z.shape
-    g = _highest(moved, uav_surface.x0, uav_surface.y0, uav_surface.cell, nx, ny)
-    common = np.isfinite(g) & np.isfinite(uav_surface.z)
-    n = int(common.sum())
-    if n < 3:
-        return 0.0, n
-    a, b = g[common], uav_surface.z[common]
-    if a.std() < 1e-9 or b.std() < 1e-9:
-        return 0.0, n
-    return float(np.corrcoef(a, b)[0, 1]), n
+#: the canopy surface helpers under their former names (kept for callers of this module)
+_SurfaceGrid = SurfaceGrid
+_highest = highest_per_cell
 
 
 def coregister_points(
@@ -389,115 +447,160 @@ def _coregister_points(
             return failed(f"UAV cloud: {exc}", ground_keypoints=g_kp)
         timings["keypoints_s"] = time.perf_counter() - t
         g_ref, u_icp = icp_job.result()
-    if min(len(g_kp), len(u_kp)) < params.min_matched:
-        return failed(
-            f"too few keypoints to match: {len(g_kp)} ground-based, {len(u_kp)} UAV (need {params.min_matched})",
-            ground_keypoints=g_kp, uav_keypoints=u_kp,
-        )
-
-    # 3. matching
+    # 3. matching (keypoints are one source of candidates: too few of them leave the canopy search)
     t = time.perf_counter()
-    progress(0.62, f"[3/6] matching {len(g_kp)} ground-based with {len(u_kp)} UAV keypoints")
-    solutions = match_keypoints(g_kp.xyz, u_kp.xyz, params.matching, progress.sub(0.62, 0.72))
+    solutions: list[KeypointMatch] = []
+    if min(len(g_kp), len(u_kp)) >= params.min_matched:
+        progress(0.62, f"[3/6] matching {len(g_kp)} ground-based with {len(u_kp)} UAV keypoints")
+        solutions = match_keypoints(g_kp.xyz, u_kp.xyz, params.matching, progress.sub(0.62, 0.68))
     timings["matching_s"] = time.perf_counter() - t
-    if not solutions:
-        return failed("no consistent keypoint correspondences", ground_keypoints=g_kp, uav_keypoints=u_kp)
 
-    # 4. rank the candidate solutions by the canopy surfaces (fast), keep the best few distinct
+    # 4. candidates: the keypoint solutions ranked by the canopy surfaces, and the canopy surfaces
+    # searched over every heading and shift (no matched tops needed)
     t = time.perf_counter()
-    progress(0.72, f"[4/6] ranking {len(solutions)} keypoint solutions by the canopy surfaces; the best {params.candidates_verified} distinct are refined")
     g_thin = g_ref.level(0.2)[0]
     g_canopy = _column_tops(g_thin[g_terrain.dem.normalise(g_thin) > params.surface_min_height_m], 0.25)
-    uav_surface = _SurfaceGrid.of(thin(u_icp, 0.2), params.surface_cell_m)
+    if len(g_canopy) < params.min_surface_cells:
+        return failed(f"ground-based cloud: too little canopy above {params.surface_min_height_m:.0f} m for the canopy surfaces",
+                      ground_keypoints=g_kp, uav_keypoints=u_kp)
+    uav_surface = SurfaceGrid.of(thin(u_icp, 0.2), params.surface_cell_m)
+    sample = g_canopy[:: max(1, len(g_canopy) // 500)]
+    progress(0.68, f"[3/6] canopy surfaces searched over every {params.heading_step_deg:g} deg of heading and every shift")
+    peaks = canopy_search(g_canopy, uav_surface, heading_step_deg=params.heading_step_deg,
+                          n_peaks=params.canopy_peaks, distinct_m=params.distinct_solution_m)
+    timings["canopy_search_s"] = time.perf_counter() - t
+    t = time.perf_counter()
     ranked = []
     for i, sol in enumerate(solutions):
-        if sol.n_matched < 3:  # the canopy surfaces decide; the count is checked at the final transform
+        if sol.n_matched < 3:
             continue
         r, n = surface_correlation(g_canopy, uav_surface, sol.matrix)
         ranked.append((r if n >= params.min_surface_cells else 0.0, i))
-    n_min = min(len(g_kp), len(u_kp))
-    if not ranked:
-        best = solutions[0]
-        return failed(
-            f"only {best.n_matched} keypoints match (need {params.min_matched})",
-            ground_keypoints=g_kp, uav_keypoints=u_kp, match=best, keypoint_matrix=best.matrix,
-        )
     ranked.sort(key=lambda v: -v[0])
-    candidates: list[int] = []
-    ranked_r = {i: r for r, i in ranked}
+    starts: list[tuple[str, np.ndarray, Optional[KeypointMatch]]] = []
     for r, i in ranked:
-        if len(candidates) >= params.candidates_verified:
+        if sum(src == "keypoints" for src, _, _ in starts) >= params.candidates_verified:
             break
-        if all(_apart_m(solutions[i].matrix, solutions[c].matrix, g_kp.xyz) > params.distinct_solution_m for c in candidates):
-            candidates.append(i)
+        if all(_apart_m(solutions[i].matrix, m, sample) > params.distinct_solution_m for _, m, _ in starts):
+            starts.append(("keypoints", solutions[i].matrix, solutions[i]))
+    for pk in peaks:
+        if all(_apart_m(pk.matrix, m, sample) > params.distinct_solution_m for _, m, _ in starts):
+            starts.append(("canopy surfaces", pk.matrix, None))
+    if not starts:
+        return failed("no candidate: neither the keypoints nor the canopy surfaces give a transform",
+                      ground_keypoints=g_kp, uav_keypoints=u_kp)
     timings["ranking_s"] = time.perf_counter() - t
 
-    # 5. coarse 6-DoF ICP from each candidate, then verification AFTER ICP: the canopy surfaces
-    # must agree under the refined solution, far better than under any distinct alternative
+    # 5. each candidate levelled on the terrain (vertical offset and tilt), refined by a coarse
+    # 6-DoF ICP of the UAV points the ground can have seen, and verified AFTER it: the canopy
+    # surfaces must agree under the refined solution, far better than under any distinct alternative
     t = time.perf_counter()
-    refined: list[tuple[float, int, np.ndarray]] = []
-    progress(0.75, f"[4/6] coarse ICP of {len(candidates)} candidates and canopy checks")
-    # the candidates' ICP runs are independent: two at a time (k-d tree queries and numpy release
-    # the GIL) on the shared reference
+    g_ground_pts = ground[g_terrain.ground]
+    u_ground_pts = uav[u_terrain.ground]
+    visible_ref = g_ref.level(0.2)[0]
+    # the UAV's stem layer and ground (below 2.5 m above its DEM): stems and terrain have exact
+    # counterparts in the ground-based cloud, leaf-on foliage does not (real MLS onto a leaf-on
+    # ULS-like cloud: candidates 2.5-14 deg off come to 0.01 deg by these points alone)
+    low = u_terrain.dem.normalise(u_icp) < STEM_LAYER_M[1]
+    low = low if low.sum() >= 200 else None
+    progress(0.75, f"[4/6] coarse ICP of {len(starts)} candidates ({sum(s == 'keypoints' for s, _, _ in starts)} from keypoints) and canopy checks")
 
-    def coarse_icp(i: int) -> np.ndarray:
-        return _icp_uav_onto_ground(
-            g_ref, u_icp, solutions[i].matrix, params.coarse_voxel_m, params.coarse_icp_distances_m,
-            params.icp_iterations, max_moving_points=4000, final_tolerance=COARSE_TOLERANCE, statistics=False,
+    def coarse_icp(start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        fit = terrain_levelling(g_ground_pts, g_terrain.dem, u_ground_pts, start)
+        level = start @ fit.correction if fit is not None else start
+        keep = _visible(u_icp, visible_ref, level, params.visible_tolerance_m * 2.0)  # what the ground can have seen
+        m = _icp_uav_onto_ground(
+            g_ref, u_icp, level, params.coarse_voxel_m, params.coarse_icp_distances_m, params.icp_iterations,
+            max_moving_points=4000, final_tolerance=COARSE_TOLERANCE, statistics=False, keep=keep,
         ).matrix
+        if low is not None:  # the stems and ground the UAV sees, onto the ground-based cloud
+            m = _icp_uav_onto_ground(
+                g_ref, u_icp, m, params.icp_voxel_m, LOW_LAYER_ICP_M, params.icp_iterations,
+                max_moving_points=8000, final_tolerance=COARSE_TOLERANCE, statistics=False, keep=low,
+            ).matrix
+        if _apart_m(m, level, sample) > params.max_icp_shift_m or rotation_angle_deg(
+            (np.linalg.inv(level) @ m)[:3, :3]
+        ) > params.max_icp_rotation_deg:
+            m = level  # ICP ran away: keep the levelled start as it is
+        return level, m
 
+    refined: list[tuple[float, int, np.ndarray, np.ndarray]] = []
     with ThreadPoolExecutor(max_workers=2) as pool:
-        for k, (i, m) in enumerate(zip(candidates, pool.map(coarse_icp, candidates))):
-            sol = solutions[i]
-            if _apart_m(m, sol.matrix, g_kp.xyz) > params.max_icp_shift_m or rotation_angle_deg(
-                (np.linalg.inv(sol.matrix) @ m)[:3, :3]
-            ) > params.max_icp_rotation_deg:
-                m = sol.matrix  # ICP ran away: keep the keypoint solution as it is
+        for k, (level, m) in enumerate(pool.map(coarse_icp, [m for _, m, _ in starts])):
             r, n = surface_correlation(g_canopy, uav_surface, m)
-            refined.append((r if n >= params.min_surface_cells else 0.0, i, m))
-            progress(0.75 + 0.1 * (k + 1) / len(candidates), f"[4/6] candidate {k + 1}/{len(candidates)}: {sol.n_matched} keypoints, canopy correlation {ranked_r[i]:.2f} -> {refined[-1][0]:.2f} after ICP")
+            refined.append((r if n >= params.min_surface_cells else 0.0, k, level, m))
+            progress(0.75 + 0.1 * (k + 1) / len(starts), f"[4/6] candidate {k + 1}/{len(starts)} ({starts[k][0]}): canopy correlation {r:.2f} after ICP")
     refined.sort(key=lambda v: -v[0])
-    best_r, best_i, coarse = refined[0]
-    best = solutions[best_i]
-    alt = 0.0  # the best alternative that is a different solution: it puts the keypoints elsewhere
-    for r, i, m in refined[1:]:
-        if _apart_m(m, coarse, g_kp.xyz) > params.distinct_solution_m:
+    best_r, best_k, best_level, coarse = refined[0]
+    source, _, best_match = starts[best_k]
+    alt = 0.0  # the best alternative that is a different solution: it puts the canopy elsewhere
+    for r, k, _, m in refined[1:]:
+        if _apart_m(m, coarse, sample) > params.distinct_solution_m:
             alt = max(r, 0.0)
             break
     timings["verification_s"] = time.perf_counter() - t
-    common = dict(ground_keypoints=g_kp, uav_keypoints=u_kp, match=best, keypoint_matrix=best.matrix,
-                  surface_correlation=best_r, alternative_correlation=alt, candidates_verified=len(candidates))
+    common = dict(ground_keypoints=g_kp, uav_keypoints=u_kp, match=best_match,
+                  keypoint_matrix=None if best_match is None else best_match.matrix,
+                  surface_correlation=best_r, alternative_correlation=alt, candidates_verified=len(starts),
+                  coarse_source=source)
     if best_r < params.min_surface_correlation:
         return failed(
-            f"the canopy surfaces do not agree under any of {len(candidates)} refined solutions: correlation "
+            f"the canopy surfaces do not agree under any of {len(starts)} refined solutions: correlation "
             f"{best_r:.2f} (need {params.min_surface_correlation:.2f}); are these clouds of the same plot?",
             **common,
         )
     if best_r - alt < params.min_correlation_margin:
         return failed(
             f"ambiguous: a distinct solution fits the canopy almost as well (correlation {alt:.2f} vs "
-            f"{best_r:.2f}, margin {best_r - alt:.2f}, need {params.min_correlation_margin:.2f}); the keypoint pattern repeats",
+            f"{best_r:.2f}, margin {best_r - alt:.2f}, need {params.min_correlation_margin:.2f}); the canopy pattern repeats",
             **common,
         )
 
-    # 6. fine ICP on the full clouds: the (sparser) UAV cloud onto the ground-based surfaces
+    # 6. fine ICP from the best candidate: the UAV points the ground can have seen onto the
+    # ground-based surfaces
     t = time.perf_counter()
-    progress(0.86, f"[5/6] fine ICP from the best candidate (correlation {best_r:.2f}, margin {best_r - alt:.2f})")
+    progress(0.86, f"[5/6] fine ICP from the best candidate ({source}; correlation {best_r:.2f}, margin {best_r - alt:.2f})")
+    keep = _visible(u_icp, visible_ref, coarse, params.visible_tolerance_m)
     result = _icp_uav_onto_ground(
-        g_ref, u_icp, coarse, params.icp_voxel_m, params.icp_distances_m, params.icp_iterations,
+        g_ref, u_icp, coarse, params.icp_voxel_m, params.icp_distances_m, params.icp_iterations, keep=keep,
     )
     timings["icp_s"] = time.perf_counter() - t
-    shift = _apart_m(result.matrix, best.matrix, g_kp.xyz)
-    rot = rotation_angle_deg((np.linalg.inv(best.matrix) @ result.matrix)[:3, :3])
+    shift = _apart_m(result.matrix, best_level, sample)
+    rot = rotation_angle_deg((np.linalg.inv(best_level) @ result.matrix)[:3, :3])
     final_r, _ = surface_correlation(g_canopy, uav_surface, result.matrix)
-    pairs_after = assign_one_to_one(g_kp.xyz, u_kp.xyz, result.matrix, params.matching.distance_threshold_m)
-    moved = g_kp.xyz[pairs_after[:, 0]] @ result.matrix[:3, :3].T + result.matrix[:3, 3]
-    res_after = np.linalg.norm(moved - u_kp.xyz[pairs_after[:, 1]], axis=1)
-    common.update(icp=result, matched_after_icp=pairs_after, residuals_after_icp_m=res_after)
+    if len(g_kp) and len(u_kp):
+        pairs_after = assign_one_to_one(g_kp.xyz, u_kp.xyz, result.matrix, params.matching.distance_threshold_m)
+        moved = g_kp.xyz[pairs_after[:, 0]] @ result.matrix[:3, :3].T + result.matrix[:3, 3]
+        res_after = np.linalg.norm(moved - u_kp.xyz[pairs_after[:, 1]], axis=1)
+    else:
+        pairs_after, res_after = np.zeros((0, 2), dtype=np.int64), np.zeros(0)
+    common.update(icp=result, matched_after_icp=pairs_after, residuals_after_icp_m=res_after, surface_correlation=final_r)
+
+    # 7. the evidence together: canopy (correlation, margin), terrain (offset, tilt, spread), stems
+    # where the UAV sees them, keypoints matched
+    terrain = terrain_levelling(g_ground_pts, g_terrain.dem, u_ground_pts, result.matrix, max_tilt_deg=90.0)
+    footprint = _overlap(uav, ground[:: max(1, len(ground) // 50_000)], result.matrix, margin_m=0.0)
+    n_stem, stem_frac = stem_layer_agreement(uav, u_terrain.dem, g_ref.full_tree, result.matrix, footprint,
+                                             band_m=STEM_LAYER_M)
+    n_min = min(len(g_kp), len(u_kp))
+    pct = 100.0 * len(pairs_after) / n_min if n_min else 0.0
+    evidence = CoarseEvidence(
+        source=source,
+        canopy_peaks=len(peaks),
+        keypoint_candidates=sum(s == "keypoints" for s, _, _ in starts),
+        terrain_tilt_deg=None if terrain is None else terrain.tilt_deg,
+        terrain_offset_m=None if terrain is None else terrain.offset_m,
+        terrain_nmad_m=None if terrain is None else terrain.nmad_m,
+        terrain_points=0 if terrain is None else terrain.count,
+        stem_layer_points=n_stem,
+        stem_layer_agreement=None if not n_stem else stem_frac,
+        tilt_deg=math.degrees(math.acos(float(np.clip(result.matrix[2, 2], -1.0, 1.0)))),
+    )
+    common["coarse"] = evidence
     if shift > params.max_icp_shift_m or rot > params.max_icp_rotation_deg:
         return failed(
-            f"ICP moved the keypoint solution by {shift:.2f} m / {rot:.2f} deg (limit {params.max_icp_shift_m} m / "
-            f"{params.max_icp_rotation_deg} deg): the keypoint match is not trustworthy",
+            f"the fine ICP moved the coarse solution by {shift:.2f} m / {rot:.2f} deg (limit {params.max_icp_shift_m} m / "
+            f"{params.max_icp_rotation_deg} deg): the coarse solution is not trustworthy",
             **common,
         )
     if final_r < params.min_surface_correlation:
@@ -506,28 +609,65 @@ def _coregister_points(
         return failed(
             f"ambiguous after the fine ICP: correlation {final_r:.2f} vs {alt:.2f} of a distinct solution", **common
         )
-    if len(pairs_after) < params.min_matched:
-        return failed(f"only {len(pairs_after)} keypoints match (need {params.min_matched})", **common)
-    pct = 100.0 * len(pairs_after) / n_min
-    if pct < params.min_matching_percentage:
-        return failed(f"matching percentage {pct:.0f} % is below {params.min_matching_percentage:.0f} %", **common)
-    common["surface_correlation"] = final_r
+    keypoints_agree = len(pairs_after) >= params.min_matched and pct >= params.min_matching_percentage
+    canopy_decisive = final_r >= params.decisive_correlation and final_r - alt >= params.decisive_margin
+    stems_decisive = (
+        n_stem >= params.min_stem_layer_points and stem_frac >= params.decisive_stem_agreement
+        and terrain is not None and terrain.count >= 100
+    )
+    if not (keypoints_agree or canopy_decisive or stems_decisive):
+        stems = (f"{100 * stem_frac:.0f} % of {n_stem} UAV stem-layer points near the ground-based cloud"
+                 if n_stem else "no UAV stem-layer points")
+        return failed(
+            f"the evidence is too weak: {len(pairs_after)} keypoints match ({pct:.0f} %, need {params.min_matching_percentage:.0f} %), "
+            f"the canopy surfaces alone are not decisive (correlation {final_r:.2f}, margin {final_r - alt:.2f}; "
+            f"need {params.decisive_correlation:.2f} and {params.decisive_margin:.2f}), and the stems do not decide ({stems}; "
+            f"need {100 * params.decisive_stem_agreement:.0f} % of at least {params.min_stem_layer_points} with the terrain compared)",
+            **common,
+        )
+    if terrain is not None and terrain.count >= 100 and (
+        terrain.tilt_deg > params.max_terrain_tilt_deg or terrain.nmad_m > params.max_terrain_nmad_m
+    ):
+        return failed(
+            f"the terrains disagree under the solution: tilted {terrain.tilt_deg:.2f} deg to each other, "
+            f"spread {100 * terrain.nmad_m:.0f} cm (limits {params.max_terrain_tilt_deg} deg, {100 * params.max_terrain_nmad_m:.0f} cm)",
+            **common,
+        )
+    if n_stem >= params.min_stem_layer_points and stem_frac < params.min_stem_layer_agreement:
+        return failed(
+            f"the stems disagree: only {100 * stem_frac:.0f} % of the {n_stem} UAV points 0.5-2.5 m above the ground lie near "
+            f"the ground-based cloud (need {100 * params.min_stem_layer_agreement:.0f} %)",
+            **common,
+        )
 
-    # 7. quality figures without ground truth, and standard errors (jackknife over quadrants)
+    # 8. quality figures without ground truth, and standard errors (jackknife over quadrants)
     t = time.perf_counter()
     progress(0.92, "[6/6] quality figures and standard errors (jackknife over plot quadrants)")
     common["quality"] = coregistration_quality(ground, uav, g_terrain, u_terrain, result.matrix, params.surface_cell_m)
     if params.jackknife:
-        common["standard_errors"] = jackknife_standard_errors(g_ref, u_icp, result.matrix, params)
+        common["standard_errors"] = jackknife_standard_errors(g_ref, u_icp, result.matrix, params, keep)
     timings["quality_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
-    progress(1.0, f"co-registered: {len(pairs_after)} keypoints matched ({pct:.0f} %), canopy correlation {final_r:.2f} "
-                  f"(margin {final_r - alt:.2f}), ICP fitness {result.fitness:.2f}")
+    progress(1.0, f"co-registered from the {source}: {len(pairs_after)} keypoints matched ({pct:.0f} %), canopy correlation "
+                  f"{final_r:.2f} (margin {final_r - alt:.2f}), ICP fitness {result.fitness:.2f}")
     return CoregistrationResult(
         status="ok", reason="", matrix=result.matrix, local_matrix=result.matrix, timings=timings, **common
     )
 
 
+def _visible(uav: np.ndarray, ground: np.ndarray, matrix: np.ndarray, tolerance_m: float) -> Optional[np.ndarray]:
+    """The UAV points the ground can have seen under ``matrix`` (:func:`.surfaces.seen_from_ground`),
+    or None (all) when ``tolerance_m`` is 0 or too few are left."""
+    if tolerance_m <= 0:
+        return None
+    keep = seen_from_ground(uav, ground, matrix, tolerance_m=tolerance_m)
+    return keep if keep.sum() >= 200 else None
+
+
+#: the stem layer (m above the UAV's DEM): stems and understorey a UAV glimpses through foliage
+STEM_LAYER_M = (0.5, 2.5)
+#: correspondence distances (m) of the ICP of the UAV's stem layer and ground in the coarse stage
+LOW_LAYER_ICP_M = (2.0, 1.0, 0.5, 0.25, 0.12)
 #: the ICP reference level (voxel, m) whose footprint selects the UAV points of an ICP run
 OVERLAP_VOXEL_M = 0.5
 #: (m, deg): the coarse ICP of a candidate stops at updates below these: it only brings the
@@ -637,7 +777,7 @@ def coregistration_quality(
     """Quality figures of a co-registration that need no ground truth (local frames, metres).
 
     * ``ground_dz_*``: the UAV's ground points moved into the ground-based frame minus the
-      ground-based DEM, where the ground-based cloud has ground points within 0.5 m (XY): median
+      nearest ground-based ground point (XY, within 0.5 m): median
       (a vertical offset), NMAD (1.4826 x median absolute deviation: spread, tilt shows here) and
       count;
     * ``canopy_dz_*``: UAV canopy surface (highest point per ``cell_m`` cell) minus the moved
@@ -650,10 +790,11 @@ def coregistration_quality(
     g_ground = ground[ground_terrain.ground]
     out: dict[str, float] = {}
     if len(u_ground) and len(g_ground):
-        d, _ = cKDTree(g_ground[:, :2]).query(u_ground[:, :2], distance_upper_bound=0.5, workers=-1)
-        sel = u_ground[np.isfinite(d)]
-        dz = sel[:, 2] - ground_terrain.dem.height_at(sel[:, :2])
-        out.update(_robust("ground_dz", dz))
+        # each UAV ground point against the nearest ground-based ground point (XY, within 0.5 m):
+        # no interpolated surface in between, so a cloud against itself gives exactly 0
+        d, j = cKDTree(g_ground[:, :2]).query(u_ground[:, :2], distance_upper_bound=0.5, workers=-1)
+        ok = np.isfinite(d)
+        out.update(_robust("ground_dz", u_ground[ok, 2] - g_ground[j[ok], 2]))
     else:
         out.update(_robust("ground_dz", np.zeros(0)))
     g_moved = apply_transform(matrix, thin(ground, 0.2))
@@ -688,14 +829,15 @@ def _robust(name: str, values: np.ndarray) -> dict[str, float]:
 
 
 def jackknife_standard_errors(
-    ground: IcpReference, uav: np.ndarray, matrix: np.ndarray, params: "CoregistrationParams"
+    ground: IcpReference, uav: np.ndarray, matrix: np.ndarray, params: "CoregistrationParams",
+    use: Optional[np.ndarray] = None,
 ) -> dict[str, Any]:
     """Delete-one-quadrant jackknife of the fine ICP: the UAV points of the overlap are split into
     four quadrants about the overlap's centre; the last ICP stage is re-run from ``matrix``
     without each quadrant (two runs at a time). Standard errors
     ``sqrt((n-1)/n * sum((x_i - mean)^2))`` of the rotation (deg; total, and its heading and tilt
     parts) and of the translation of the ground-based cloud's centre (m; total, horizontal and
-    vertical)."""
+    vertical). ``use``: mask of the UAV points the fine ICP used (default all)."""
     near = _overlap(uav, ground.level(OVERLAP_VOXEL_M)[0], matrix, margin_m=1.0)
     centre = np.median(uav[near, :2], axis=0) if near.any() else np.median(uav[:, :2], axis=0)
     q = (uav[:, 0] > centre[0]).astype(int) + 2 * (uav[:, 1] > centre[1]).astype(int)
@@ -706,7 +848,7 @@ def jackknife_standard_errors(
     def without(k: int) -> np.ndarray:
         return _icp_uav_onto_ground(
             ground, uav, matrix, params.icp_voxel_m, stages, 15,
-            max_moving_points=10000, keep=q != k, statistics=False,
+            max_moving_points=10000, keep=(q != k) if use is None else (q != k) & use, statistics=False,
         ).matrix
 
     with ThreadPoolExecutor(max_workers=2) as pool:  # independent runs on a shared reference

@@ -81,6 +81,13 @@ def _check_header(path: Path) -> tuple[int, bool]:
     return count, compressed
 
 
+def check_las_header(path: Path) -> tuple[int, bool]:
+    """The point count and whether the points are compressed, from a LAS/LAZ public header
+    checked against itself and the file's size; ScanReadError for a damaged or truncated file
+    (before laspy, which would follow a damaged header's counts)."""
+    return _check_header(Path(path))
+
+
 #: Points decoded per chunk when reading: bounds the memory of the raw point records (about 30 to
 #: 70 bytes a point) while the coordinates fill one preallocated array.
 READ_CHUNK_POINTS = 500_000

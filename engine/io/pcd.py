@@ -142,7 +142,9 @@ def _read_ascii(path: Path, dtype: np.dtype, count: int, header_len: int) -> np.
 
 def _read_with_open3d(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """binary_compressed (LZF) PCD via open3d's tensor reader, which keeps intensity."""
-    import open3d as o3d
+    from ..core.imports import import_open3d
+
+    o3d = import_open3d()
 
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         cloud = o3d.t.io.read_point_cloud(str(path))

@@ -836,6 +836,17 @@ class CoregistrationCase:
     meta: Mapping[str, Any] = field(default_factory=dict)
 
 
+#: scene overrides (:func:`~.scene.make_scene`) of a leaf-on broadleaf stand for
+#: :func:`simulate_coregistration_case`: dominant crowns up to 28 m over suppressed trees from 6 m,
+#: leafy crowns (leaf area density 0.5) spreading 1 m + 5 x DBH. The UAV sees the dominant crowns'
+#: foliage and few stems; a backpack sees the stems, the lower crowns and the tops through gaps: of
+#: ~27 UAV and ~11 ground-based canopy keypoints, at most 2 match.
+LEAF_ON_BROADLEAF: Mapping[str, Any] = {
+    "conifer_fraction": 0.0, "leaf_area_density": 0.5, "stems_per_ha": 1000.0, "height_m": (6.0, 28.0),
+    "dbh_power": 1.5, "crown_radius_ab": (1.0, 5.0), "crown_base_fraction": (0.35, 0.55),
+}
+
+
 def _derived_seed(seed: int, stream: int) -> int:
     return int(np.random.SeedSequence([int(seed), 8117, int(stream)]).generate_state(1)[0])
 

@@ -26,6 +26,7 @@ from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanRe
 from ..core.atomic import write_text_atomic
 from ..io import read_scan, write_point_chunks
 from ..io.las import intensity_to_uint16
+from ..core.imports import import_open3d
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, LinkResult, Project, ScanEntry
 from .pair import SEQUENTIAL_PREPARE_POINTS, register
@@ -192,7 +193,10 @@ class ScanCache:
         if name not in self._scans and entry.path.suffix.lower() in (".las", ".laz"):
             import laspy
 
+            from ..io.las import check_las_header
+
             try:
+                check_las_header(entry.path)  # a damaged header is not handed to laspy (see _file_scan_bytes)
                 with laspy.open(str(entry.path)) as f:
                     lo, hi = np.asarray(f.header.mins, dtype=float), np.asarray(f.header.maxs, dtype=float)
                 # some writers leave the bounds empty (zeros) or wrong way round: read the points then
@@ -228,12 +232,11 @@ def _file_scan_bytes(path: Path) -> int:
     from its header; 0 for other formats or an unreadable header (the read then says why)."""
     if Path(path).suffix.lower() not in (".las", ".laz"):
         return 0
-    import laspy
+    from ..io.las import check_las_header
 
-    try:
-        with laspy.open(str(path)) as f:
-            return int(f.header.point_count) * _FILE_BYTES_PER_POINT
-    except Exception:  # an odd header: no estimate
+    try:  # the header checked first: laspy itself would walk a damaged header's VLR counts (GBs)
+        return check_las_header(Path(path))[0] * _FILE_BYTES_PER_POINT
+    except Exception:  # an odd header: no estimate (the read says what is wrong)
         return 0
 
 
@@ -291,7 +294,7 @@ def register_project(
     """
     default_links(project)
     scans = scans or ScanCache(project)
-    _readable_centre(project, scans)
+    _readable_centre(project)
     step = Progress(progress, cancel=cancel)
     order = [s for s in project.scans if s.name != project.centre and not s.tilted] + [s for s in project.scans if s.tilted and s.name != project.centre]
     outcome = PlotOutcome(status={project.centre: "centre"})
@@ -324,27 +327,36 @@ def register_project(
     return outcome
 
 
-def _readable_centre(project: Project, scans: ScanCache) -> None:
-    """The centre scan must be readable: an unreadable one (missing, corrupt, no points) would
-    place every scan in no frame. Then the first readable level scan becomes the centre, the
-    links to the old centre are made to the new one, and the unreadable scan gets a link of its
-    own (which fails with the reason). Without any readable scan: DataError with the reason."""
-    old = project.centre
+def _unreadable(path: Path) -> Optional[str]:
+    """Why a scan file cannot be read, from what is known without reading its points (missing,
+    empty, content not of its format, a damaged or truncated LAS/LAZ header); None when nothing
+    is known against it (reading it may still fail: its links then say why)."""
+    from ..io.base import check_readable
+    from ..io.las import check_las_header
+    from ..io.sniff import detect_format
+
     try:
-        scans.frame(old)
-        return
+        check_readable(path)
+        if detect_format(Path(path)) == "las":
+            check_las_header(Path(path))
     except (ScanReadError, ScanDataError) as exc:
-        reason = str(exc)
-    new = None
-    for s in sorted(project.scans, key=lambda s: s.tilted):
-        if s.name == old:
-            continue
-        try:
-            scans.frame(s.name)
-        except (ScanReadError, ScanDataError):
-            continue
-        new = s.name
-        break
+        return str(exc)
+    return None
+
+
+def _readable_centre(project: Project) -> None:
+    """The centre scan must be readable: an unreadable one (missing, corrupt, empty) would be
+    reported "ok" with an identity matrix while every scan fails onto it. Then the first level
+    scan with nothing known against it becomes the centre, the links to the old centre are made
+    to the new one, and the unreadable scan gets a link of its own (which fails with the reason).
+    Without such a scan: DataError with the reason. Known from the files' headers, no points
+    read (:func:`_unreadable`)."""
+    old = project.centre
+    reason = _unreadable(project.scan(old).path)
+    if reason is None:
+        return
+    new = next((s.name for s in sorted(project.scans, key=lambda s: s.tilted)
+                if s.name != old and _unreadable(s.path) is None), None)
     if new is None:
         raise DataError(f"no scan of the plot can be read (the centre scan {old}: {reason})")
     log.warning("the centre scan %s cannot be read (%s): %s is the centre instead", old, reason, new)
@@ -687,7 +699,7 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
     if len(links) <= len(names) - 1:
         project.adjustment = None
         return None
-    import open3d as o3d
+    o3d = import_open3d()
     scans = scans or ScanCache(project)
     index = {n: i for i, n in enumerate(names)}
     reg = o3d.pipelines.registration

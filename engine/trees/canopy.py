@@ -247,3 +247,69 @@ def canopy_trees(points: Any, heights: Any, params: CanopyParams = CanopyParams(
         ))
     labels = new_id[labels]
     return trees, labels
+
+
+@dataclass(frozen=True)
+class GroundEvidence:
+    """How the ground under a tree top was found (metres, local frame): ``n_under`` ground returns
+    within half the crown radius of the top (the crown's core), ``nearest_m`` the horizontal distance to the nearest one,
+    ``n_ring`` ground returns in the ring just outside the crown, ``dem_z`` the DEM under the top,
+    ``ring_z`` a plane through the ring's returns evaluated under the top (NaN with too few),
+    ``unsure`` when the two disagree by more than ``tolerance`` of the height (or no return lies
+    under the crown and too few around it to check), ``text`` one line."""
+
+    n_under: int
+    nearest_m: float
+    n_ring: int
+    dem_z: float
+    ring_z: float
+    unsure: bool
+    text: str
+
+
+#: Ground returns needed in the ring around a crown for the plane that checks the DEM under its top.
+RING_MIN_POINTS = 10
+#: Width of that ring beyond the crown radius, m.
+RING_WIDTH_M = 5.0
+
+
+def ground_evidence(ground_xyz: np.ndarray, ground_index: Any, top: np.ndarray, crown_radius_m: float, dem_z: float,
+                    height_m: float, tolerance: float = 0.05) -> GroundEvidence:
+    """The evidence for the ground under ``top`` (see :class:`GroundEvidence`). ``ground_xyz``
+    (G, 3) the ground returns, ``ground_index`` a ``cKDTree`` of their x, y. Where few returns lie
+    under the crown (sparse ground under a dense crown, the DEM interpolated across it, or crown
+    undersides taken for ground), a plane through the open ground around the crown must agree with
+    the DEM under the top within ``tolerance`` of the height, else the height is unsure."""
+    nan = math.nan
+    r = max(float(crown_radius_m), 1.0) if math.isfinite(crown_radius_m) else 2.0
+    if len(ground_xyz) == 0:
+        return GroundEvidence(0, nan, 0, dem_z, nan, True, "no ground return in the cloud")
+    nearest = float(ground_index.query(top[:2])[0])
+    core = 0.5 * r  # the crown's core: where the ground under the top is read
+    n_under = len(ground_index.query_ball_point(top[:2], core))
+    ring = np.asarray(ground_index.query_ball_point(top[:2], r + RING_WIDTH_M), dtype=np.int64)
+    g = ground_xyz[ring]
+    d = np.hypot(g[:, 0] - top[0], g[:, 1] - top[1])
+    g = g[d > r]
+    ring_z = nan
+    if len(g) >= RING_MIN_POINTS:
+        a = np.column_stack([g[:, 0] - top[0], g[:, 1] - top[1], np.ones(len(g))])
+        coef, *_ = np.linalg.lstsq(a, g[:, 2], rcond=None)
+        ring_z = float(coef[2])
+    dense = n_under >= max(5, int(0.5 * math.pi * core * core))  # a return per 2 m2 under the core
+    off = abs(dem_z - ring_z) if math.isfinite(ring_z) else nan
+    # returns under the crown that stand off the open ground around it are crown undersides or
+    # low vegetation taken for ground as much as a sparse ground interpolated wrongly
+    unsure = (math.isfinite(off) and off > tolerance * height_m) or (not dense and not math.isfinite(off) and nearest > r)
+    if dense:
+        text = f"ground from {n_under} returns within {core:.1f} m of the top"
+        if math.isfinite(off):
+            text += f", {dem_z - ring_z:+.2f} m from the plane of {len(g)} returns around the crown"
+    else:
+        text = (f"ground under the crown sparse ({n_under} returns within {core:.1f} m of the top, nearest {nearest:.1f} m): "
+                f"DEM interpolated")
+        if math.isfinite(off):
+            text += f", {dem_z - ring_z:+.2f} m from the plane of {len(g)} returns around the crown"
+        else:
+            text += ", too few returns around the crown to check it"
+    return GroundEvidence(n_under, nearest, len(g), float(dem_z), ring_z, bool(unsure), text)

@@ -32,7 +32,7 @@ from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, t
 from ..core.params import Params, param_field as _p
 from ..geometry.columns import ColumnIndex
 from ..geometry.sorting import order_by_label
-from .canopy import CanopyParams, CanopyTree, canopy_trees
+from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
 from .crown import CrownMeasurement, CrownParams, measure_crown
 from .leafwood import LeafWoodParams, wood_probability
@@ -388,7 +388,7 @@ def measure_trees(
     if method == "noisy" and _airborne_like(heights):  # stems sparse and hardly sampled: the canopy decides
         t = time.perf_counter()
         progress(0.98, "airborne cloud: trees without a sampled stem from the canopy height model")
-        records, labels = _add_canopy_trees(p, heights, labels, records, no_ground, params)
+        records, labels = _add_canopy_trees(p, heights, labels, records, no_ground, params, model.ground)
         timings["canopy_s"] = time.perf_counter() - t
     progress(1.0, f"{len(records)} trees measured")
     return TreeInventory(
@@ -556,7 +556,14 @@ def tree_record(
         flags.append(shared_flag)
         h_trust = _trust(h_trust, "low")
         h_how += ", top shared with a taller neighbour"
+    elif math.isfinite(dbh_value) and dbh_value > 0 and crown.height_m / dbh_value > MAX_SLENDERNESS:
+        flags.append(f"height {crown.height_m:.1f} m on a {100 * dbh_value:.0f} cm stem (slenderness {crown.height_m / dbh_value:.0f}, "
+                     f"beyond {MAX_SLENDERNESS:.0f}): the top may be a neighbour's (height unsure)")
+        h_trust = _trust(h_trust, "low")
+        h_how += ", too tall for its stem"
     quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
+    if "stem cut by the plot edge" in reasons and math.isfinite(dbh_value) and not quality["dbh"].endswith(("low", "none")):
+        quality["dbh"] = quality["dbh"].rsplit("; ", 1)[0] + ", stem cut by the plot edge; low"
     if math.isfinite(dbh_value):  # a DBH is reported: no "fit failed" flag, say what is unsure
         failed = [f for f in flags if f.startswith("DBH fit failed")]
         flags = [f for f in flags if not f.startswith("DBH fit failed")]
@@ -594,12 +601,28 @@ def tree_record(
             quality["volume"] = quality["volume"].replace("; high", "; medium")
     else:
         volume, ff, quality["volume"] = math.nan, math.nan, "no cylinder model; none"
+    if params.cylinder_models is False and quality["volume"] == "no cylinder model; none":
+        quality["volume"] = "not asked for (no cylinder models); none"
+    flags = _flags_that_matter(flags, quality)
     return TreeRecord(
         tree_id=stem.id, stem=stem, dbh=d, curve=curve, crown=crown, cylinders=cylinders,
         n_points=int(len(idx)), wood_fraction=float(np.mean(wood[idx] >= params.wood_threshold)) if len(idx) else 0.0,
         flags=tuple(dict.fromkeys(flags)), dbh_m=dbh_value, volume_m3=volume, stem_form_factor=ff,
         source="stem", quality=quality,
     )
+
+
+#: Height over DBH (both in metres) beyond which a stem hardly stands: a thin tree measured taller
+#: has a neighbour's crown for its top (suppressed trees under a neighbour), or its DBH is wrong.
+MAX_SLENDERNESS = 140.0
+
+
+def _flags_that_matter(flags: Sequence[str], quality: dict[str, str]) -> list[str]:
+    """The flags, or none when every value of the tree is trusted (high or medium): a flag says
+    that a value is weak, and a tree whose values all stand is not flagged (a volume not asked for
+    does not count)."""
+    weak = [k for k, q in quality.items() if q.endswith(("; low", "; none")) and not q.startswith("not asked for")]
+    return list(flags) if weak else []
 
 
 def _lowest_stem_point(tree_pts: np.ndarray, stem: Stem) -> float:
@@ -614,11 +637,17 @@ def _lowest_stem_point(tree_pts: np.ndarray, stem: Stem) -> float:
     return float(tree_pts[near, 2].min()) if near.any() else math.nan
 
 
+#: Points of thicker neighbours within 1 m of a tree's top (and not more than 0.5 m below it) from
+#: which the top is taken as possibly the neighbour's.
+SHARED_TOP_MIN_POINTS = 6
+
+
 def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crowns: dict[int, CrownMeasurement],
                  columns: ColumnIndex) -> dict[int, str]:
     """Trees whose top is not their own or was not seen: points of no tree stand above the top
     (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
-    stand above the top (within 1 m horizontally, more than 1 m higher), or the top lies nearer
+    stand above the top (within 1 m horizontally, more than 1 m higher), thicker neighbours' points
+    surround the top at its level (:data:`SHARED_TOP_MIN_POINTS`), or the top lies nearer
     (horizontally) to a taller neighbour's stem than to its own. Returns {tree id: flag}.
     ``columns``: a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of ``p`` for the few
     disc queries (two k-d trees of the xy of the tree points and of the others took ~110 MB for
@@ -627,6 +656,7 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
     if not (labels > 0).any():
         return out
     pos = {s.id: np.array([s.x, s.y]) for s in stems}
+    radius = {s.id: float(s.radius_m) for s in stems}
     for s in stems:
         c = crowns.get(s.id)
         if c is None or not np.isfinite(c.top).all():
@@ -645,6 +675,16 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
         if len(over) >= 5:
             out[s.id] = "top under a neighbour's crown: height unsure (top unseen or shared)"
             continue
+        # the top amid the crown of a thicker neighbour (crowns intermixed at the same level): the
+        # top found may be the neighbour's
+        near = columns.within(top[0], top[1], 1.0)
+        amid = near[(labels[near] > 0) & (labels[near] != s.id) & (p[near, 2] > top[2] - 0.5)]
+        if len(amid):
+            ids, counts = np.unique(labels[amid], return_counts=True)
+            thicker = [(int(c), int(i)) for i, c in zip(ids, counts) if int(i) in radius and radius[int(i)] > radius[s.id]]
+            if thicker and sum(c for c, _ in thicker) >= SHARED_TOP_MIN_POINTS:
+                out[s.id] = f"top amid the crown of thicker tree {max(thicker)[1]}: height unsure (the top may be that tree's)"
+                continue
         own = float(np.hypot(*(top[:2] - pos[s.id])))
         for o in stems:
             if o.id == s.id:
@@ -671,7 +711,8 @@ def _canopy_inventory(
         raise ScanDataError(
             "no stems found at breast height and no tree crowns in the canopy: is this a forest cloud in metres?"
         )
-    records = [_canopy_record(ct, ct.tree_id, no_ground) for ct in trees]
+    evidence = _ground_evidence_fn(p, model.ground, no_ground)
+    records = [_canopy_record(ct, ct.tree_id, no_ground, evidence(ct)) for ct in trees]
     progress(1.0, f"{len(records)} trees from the canopy")
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=np.zeros(len(p)), ground=model.ground,
@@ -680,7 +721,24 @@ def _canopy_inventory(
     )
 
 
-def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool) -> TreeRecord:
+def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool):
+    """A function giving the :class:`~.canopy.GroundEvidence` under a canopy tree's top (None
+    without ground: the heights are flagged for that already)."""
+    from scipy.spatial import cKDTree
+
+    if no_ground or not ground.any():
+        return lambda ct: None
+    g = p[ground]
+    index = cKDTree(g[:, :2])
+
+    def evidence(ct: CanopyTree) -> GroundEvidence:
+        radius = 0.25 * (ct.crown_width_ew_m + ct.crown_width_ns_m)
+        return ground_evidence(g, index, np.asarray(ct.top), radius, ct.ground_z, ct.height_m)
+
+    return evidence
+
+
+def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool, ground_ev: Optional[GroundEvidence] = None) -> TreeRecord:
     """The record of a tree found from the canopy (no stem): position, height, crown; DBH and
     volume not measured (flagged)."""
     nan = math.nan
@@ -703,12 +761,18 @@ def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool) -> TreeRecord:
     if ct.beside_taller:
         flags.append("top beside a taller crown: height unsure (tops not separable)")
         h_trust = "low"
+    ground_how = ""
+    if ground_ev is not None:
+        ground_how = f"; {ground_ev.text}"
+        if ground_ev.unsure:
+            flags.append(f"{ground_ev.text}: height unsure")
+            h_trust = "low"
     return TreeRecord(
         tree_id=tree_id, stem=stem, dbh=dbh, curve=curve, crown=crown, cylinders=None,
         n_points=len(ct.point_indices), wood_fraction=nan, flags=tuple(flags), source="canopy",
         quality={
             "dbh": "not measured: stem not sampled; none",
-            "height": f"highest crown point above the DEM (canopy height model); {h_trust}",
+            "height": f"highest crown point above the DEM (canopy height model){ground_how}; {h_trust}",
             "crown": "crown segment of the canopy height model; medium",
             "volume": "not measured (no stem); none",
         },
@@ -728,7 +792,8 @@ def _airborne_like(heights: np.ndarray) -> bool:
 
 
 def _add_canopy_trees(
-    p: np.ndarray, heights: np.ndarray, labels: np.ndarray, records: list[TreeRecord], no_ground: bool, params: TreeParams
+    p: np.ndarray, heights: np.ndarray, labels: np.ndarray, records: list[TreeRecord], no_ground: bool, params: TreeParams,
+    ground: np.ndarray,
 ) -> tuple[list[TreeRecord], np.ndarray]:
     """Airborne clouds: the canopy height model decides the crowns, stems attach to them.
 
@@ -743,6 +808,7 @@ def _add_canopy_trees(
     if not trees:
         return records, labels
     labels = labels.copy()
+    evidence = _ground_evidence_fn(p, ground, no_ground)
     crown_pts = np.flatnonzero(canopy_labels > 0)
     index = cKDTree(p[crown_pts, :2])
     by_segment: dict[int, list[int]] = {}
@@ -758,7 +824,7 @@ def _add_canopy_trees(
         members = by_segment.get(ct.tree_id, [])
         if not members:
             labels[ct.point_indices] = next_id
-            out.append(_canopy_record(ct, next_id, no_ground))
+            out.append(_canopy_record(ct, next_id, no_ground, evidence(ct)))
             next_id += 1
             continue
         owner = min(members, key=lambda k: math.hypot(records[k].stem.x - ct.top[0], records[k].stem.y - ct.top[1]))
@@ -777,7 +843,7 @@ def _add_canopy_trees(
         trust = "low" if (no_ground or ct.beside_taller or far) else "high"
         quality["height"] = f"highest point of its canopy segment above the stem's ground; {trust}"
         quality["crown"] = "crown segment of the canopy height model; medium"
-        flags = [f for f in r.flags if not f.startswith(("top ", "points of no tree", "crown:", "too few crown"))]
+        flags = [f for f in r.flags if not f.startswith(("top ", "points of no tree", "crown:", "too few crown", "height "))]
         if ct.beside_taller:
             flags.append("top beside a taller crown: height unsure (tops not separable)")
         if far:

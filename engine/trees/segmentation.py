@@ -266,7 +266,8 @@ class CompletenessParams(Params):
     """Settings of the completeness checks of segmented trees. Distances in metres."""
 
     footprint_cell_m: float = param_field(0.25, "m", 0.05, 10.0, "Cell size of the map of where the data reach (the plot footprint); edges are known to within a cell")
-    stem_edge_margin_m: float = param_field(1.0, "m", 0.0, 20.0, "A stem closer than this to the edge of the data is flagged as cut by the edge")
+    stem_edge_margin_m: float = param_field(0.25, "m", 0.0, 20.0, "A stem whose circle comes closer than this to the edge of the data, and whose breast-height section is not whole, is flagged as cut by the edge")
+    min_whole_arc: float = param_field(0.6, "1", 0.0, 1.0, "A breast-height section covering at least this fraction of the circle is whole (a stem near the edge is not cut)")
     max_edge_point_fraction: float = param_field(0.05, "1", 0.0, 1.0, "A tree with more than this fraction of its points in the outermost cells of the footprint is flagged as cut by the edge")
     min_tree_points: int = param_field(200, "points", 1, 10**9, "Trees with fewer points are flagged as too sparse")
     crown_clearance_m: float = param_field(0.5, "m", 0.0, 10.0, "Points farther than the stem radius plus this from the stem axis count as crown points")
@@ -360,8 +361,13 @@ def tree_completeness(
         idx = np.flatnonzero(lab == stem.id)
         reasons: list[str] = []
         n_crown = 0
-        if footprint.distance_to_edge(stem.x, stem.y) < params.stem_edge_margin_m:
-            reasons.append("stem cut by the plot edge")
+        if footprint.distance_to_edge(stem.x, stem.y) < stem.radius_m + params.stem_edge_margin_m:
+            # the edge is known to a cell: a stem whose breast-height section is (nearly) whole
+            # round is not cut, however near the edge
+            m = dbh.get(stem.id) if dbh is not None else None
+            fit = getattr(m, "fit", None)
+            if fit is None or fit.arc_coverage < params.min_whole_arc:
+                reasons.append("stem cut by the plot edge")
         if len(idx) < params.min_tree_points:
             reasons.append(f"too few points ({len(idx)})")
         if len(idx):

@@ -1,0 +1,290 @@
+"""Benchmark: trees side by side with Sylva -- the same clouds in the same run, with truth where there is one.
+
+Commands, each a child process under :func:`benchmarks.peers.run_command` (wall time and peak
+memory per command):
+
+* forestreg: ``python -m forestreg.cli trees IN --out DIR --no-report --quiet``;
+* Sylva (PyPI ``sylva-rs``): ``sylva ground IN NORM`` then ``sylva trees NORM -o trees.csv``
+  (plots; the two commands' seconds added, the larger peak), ``sylva qsm IN OUT`` (single trees).
+
+Cases (small, so the whole runs in a few minutes on a shared machine):
+
+* ``sim plot``: a simulated ``mixed_temperate`` plot, 30 m square, four TLS scans merged (the
+  truth: every tree's position, DBH, height and top seen or not). Figures over the true trees
+  within :data:`RADIUS_M` of the centre with DBH >= 0.1 m: found (a stem within 0.5 m), false
+  stems (detected within the radius, no true tree within 0.5 m), DBH rRMSE, height rRMSE of every
+  matched tree and of forestreg's unflagged heights (Sylva flags none), summed volume.
+* ``pine_plot.laz``: the real TLS plot, against its 16 stem rings counted by hand.
+* ``sim single tree``: one open-grown broadleaf, leaf-off, no ground (the simulator's meshed stem
+  and branches are the volume truth): forestreg ``trees`` against ``sylva qsm``.
+* ``aRchi_Tree_2``: the real single TLS tree; :data:`TREEQSM_ARCHI` is TreeQSM's figure for it
+  (PyPI ``pytlidar`` 1.1.2, a Python port of TreeQSM, default inputs; run apart, it needs numba
+  0.61).
+
+The simulated clouds are cached under ``bench_out/trees_compare/``. Run from the repository root:
+``python -m benchmarks.trees_compare`` (or through ``benchmarks/run.py --only trees``).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+if __package__:
+    from .peers import run_command, sylva_command
+else:  # run as a script
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from peers import run_command, sylva_command  # type: ignore[no-redef]
+
+OUT = Path("bench_out") / "trees_compare"
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+RADIUS_M = 11.0
+MATCH_M = 0.5
+#: TreeQSM (pytlidar 1.1.2, default inputs) on aRchi_Tree_2_point_cloud.las: total volume (m3),
+#: DBH (m, its 1.3 m cylinder), height (m).
+TREEQSM_ARCHI = {"volume_m3": 0.0369, "dbh_m": 0.0727, "height_m": 6.20}
+#: Stem rings of pine_plot.laz counted by hand (m from the cloud's minimum corner; see
+#: tests/test_trees_platforms.py).
+PINE_PLOT_RINGS = [
+    (0.4, 0.0), (0.3, 2.0), (0.4, 4.0), (0.5, 6.1), (0.4, 8.2), (3.5, 1.5), (3.4, 3.6), (3.5, 5.7), (3.5, 7.7),
+    (6.2, 1.0), (6.4, 4.7), (8.0, 4.6), (9.4, 1.2), (9.3, 3.4), (9.3, 5.4), (9.3, 7.5),
+]
+
+
+def sim_plot(out: Path = OUT) -> tuple[Path, list[dict[str, Any]]]:
+    """The simulated 4-scan plot (LAZ) and its true trees; simulated once and cached."""
+    laz, truth = out / "sim_plot.laz", out / "sim_plot.json"
+    if not (laz.exists() and truth.exists()):
+        from scipy.spatial import cKDTree
+
+        from forestreg.engine.io import write_points
+        from forestreg.engine.simulate import simulate_plot
+
+        plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=3,
+                             angular_step_deg=0.35, size_m=30.0)
+        pts = np.vstack([s.world_points() for s in plot.scans])
+        ids = np.concatenate([s.object_ids for s in plot.scans])
+        trees = []
+        for t in plot.scene.trees:
+            mine = pts[ids == t.id]
+            seen = len(mine) > 0 and float(cKDTree(mine).query(t.point_at_height(t.height_m))[0]) < 0.3
+            trees.append({"id": t.id, "x": t.x, "y": t.y, "dbh_m": t.dbh_m, "height_m": t.height_m, "top_seen": bool(seen)})
+        out.mkdir(parents=True, exist_ok=True)
+        write_points(laz, pts)
+        truth.write_text(json.dumps(trees, indent=1))
+    return laz, json.loads(truth.read_text())
+
+
+def sim_single(out: Path = OUT) -> tuple[Path, dict[str, float]]:
+    """The simulated single tree without ground (LAZ) and its truth (DBH, height to the cloud's
+    top, meshed wood volume); simulated once and cached."""
+    laz, truth = out / "sim_single.laz", out / "sim_single.json"
+    if not (laz.exists() and truth.exists()):
+        from forestreg.engine.io import write_points
+        from forestreg.engine.simulate import simulate_plot
+        from forestreg.engine.simulate.hard import leaf_off, single_tree_scene
+        from forestreg.engine.simulate.mesh import tree_wood_volume
+
+        scene = leaf_off(single_tree_scene(0))
+        plot = simulate_plot("single", [(-7.0, -3.0), (6.0, -4.0), (1.0, 7.0)], scene=scene, seed=1, angular_step_deg=0.25,
+                             clearance_m=0.5)
+        pts = np.vstack([s.world_points() for s in plot.scans])
+        pts = pts[np.concatenate([s.object_ids for s in plot.scans]) == 1]
+        tree = scene.trees[0]
+        stem, branch = tree_wood_volume(scene, tree)
+        out.mkdir(parents=True, exist_ok=True)
+        write_points(laz, pts)
+        truth.write_text(json.dumps({"dbh_m": tree.dbh_m, "height_m": float(pts[:, 2].max() - tree.z), "volume_m3": stem + branch}))
+    return laz, json.loads(truth.read_text())
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _num(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _rrmse(pairs: list[tuple[float, float]]) -> float:
+    a = np.array([p for p in pairs if math.isfinite(p[0])], dtype=float).reshape(-1, 2)
+    return 100.0 * math.sqrt(float(np.mean((a[:, 0] - a[:, 1]) ** 2))) / float(np.mean(a[:, 1])) if len(a) else math.nan
+
+
+def _forestreg(cloud: Path, work: Path, extra: tuple[str, ...] = ()) -> tuple[Any, list[dict[str, str]]]:
+    out = work / f"fr_{cloud.stem}"
+    run = run_command([sys.executable, "-m", "forestreg.cli", "trees", str(cloud), "--out", str(out), "--no-report", "--quiet", *extra],
+                      log=work / f"fr_{cloud.stem}.log")
+    return run, _rows(out / "trees.csv") if run.status == 0 else []
+
+
+def _sylva_trees(sylva: str, cloud: Path, work: Path) -> tuple[dict[str, float], list[dict[str, str]]]:
+    norm, table = work / f"sy_{cloud.stem}_norm.laz", work / f"sy_{cloud.stem}_trees.csv"
+    g = run_command([sylva, "--no-progress", "ground", str(cloud), str(norm)])
+    t = run_command([sylva, "--no-progress", "trees", str(norm), "-o", str(table)]) if g.status == 0 else g
+    ok = g.status == 0 and t.status == 0
+    return ({"wall_s": g.wall_s + t.wall_s, "peak_mb": max(g.peak_mb, t.peak_mb), "status": 0 if ok else (t.status or g.status)},
+            _rows(table) if ok else [])
+
+
+def _sylva_qsm(sylva: str, cloud: Path, work: Path) -> tuple[dict[str, float], dict[str, float]]:
+    log = work / f"sy_{cloud.stem}_qsm.log"
+    run = run_command([sylva, "--no-progress", "qsm", str(cloud), str(work / f"sy_{cloud.stem}_qsm.csv")], log=log)
+    text = log.read_text(errors="replace") if log.exists() else ""
+
+    def grab(key: str) -> float:
+        m = re.search(rf"{key}:\s*([-0-9.eE+]+)", text)
+        return float(m.group(1)) if m else math.nan
+
+    return {"wall_s": run.wall_s, "peak_mb": run.peak_mb, "status": run.status}, {"volume_m3": grab("total_volume_m3"), "dbh_m": grab("dbh_m")}
+
+
+def _plot_figures(rows: list[dict[str, str]], truth: list[dict[str, Any]], *, dbh_key: str, height_key: str, flagged=None) -> dict[str, Any]:
+    """Found, false stems, DBH and height rRMSE against the simulated truth (see the module docstring)."""
+    inside = [t for t in truth if math.hypot(t["x"], t["y"]) < RADIUS_M and t["dbh_m"] >= 0.1]
+    txy = np.array([(t["x"], t["y"]) for t in truth])
+    pairs, false = [], 0
+    for r in rows:
+        x, y = _num(r["x"]), _num(r["y"])
+        d = np.hypot(txy[:, 0] - x, txy[:, 1] - y)
+        k = int(np.argmin(d))
+        if d[k] < MATCH_M:
+            pairs.append((r, truth[k]))
+        elif math.hypot(x, y) < RADIUS_M and math.isfinite(_num(r.get(dbh_key))):
+            false += 1
+    ids = {t["id"] for t in inside}
+    found = [(r, t) for r, t in pairs if t["id"] in ids]
+    out = {
+        "true": len(inside), "found": len({t["id"] for _, t in found}), "false_stems": false,
+        "dbh_rrmse_pct": _rrmse([(_num(r[dbh_key]), t["dbh_m"]) for r, t in found]),
+        "height_rrmse_pct": _rrmse([(_num(r[height_key]), t["height_m"]) for r, t in found]),
+    }
+    if flagged is not None:
+        unflagged = [(r, t) for r, t in found if not flagged(r)]
+        errs = [abs(_num(r[height_key]) - t["height_m"]) / t["height_m"] for r, t in unflagged if math.isfinite(_num(r[height_key]))]
+        out.update(heights_unflagged=len(errs), unflagged_height_rrmse_pct=_rrmse([(_num(r[height_key]), t["height_m"]) for r, t in unflagged]),
+                   unflagged_height_max_pct=100.0 * max(errs) if errs else math.nan)
+    return out
+
+
+def _height_low(r: dict[str, str]) -> bool:
+    return r.get("height_quality", "").endswith(("low", "none"))
+
+
+def _rings_found(rows: list[dict[str, str]], corner: np.ndarray) -> dict[str, Any]:
+    xy = np.array([(_num(r["x"]), _num(r["y"])) for r in rows]).reshape(-1, 2) - corner
+    rings = np.array(PINE_PLOT_RINGS)
+    hit = [bool(len(xy)) and float(np.min(np.hypot(*(xy - ring).T))) < MATCH_M for ring in rings]
+    matched = [bool(np.min(np.hypot(*(rings - p).T)) < MATCH_M) for p in xy]
+    return {"true": len(rings), "found": int(sum(hit)), "false_stems": int(len(xy) - sum(matched))}
+
+
+def run(workdir: Optional[Path] = None) -> list[dict[str, Any]]:
+    """Every case, forestreg and Sylva in turn; one row per (case, tool)."""
+    sylva = sylva_command()
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="forestreg-trees-compare-") as tmp:
+        work = Path(workdir or tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        laz, truth = sim_plot()
+        run_, fr = _forestreg(laz, work)
+        fig = _plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low)
+        fig["volume_m3"] = float(np.nansum([_num(r["volume_m3"]) for r in fr]))
+        rows.append({"case": "sim plot", "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status, **fig})
+        if sylva:
+            res, sy = _sylva_trees(sylva, laz, work)
+            rows.append({"case": "sim plot", "tool": "sylva ground + trees", **res,
+                         **_plot_figures(sy, truth, dbh_key="dbh", height_key="height")})
+
+        real = DATA / "pine_plot.laz"
+        if real.exists():
+            from forestreg.engine.io import read_scan
+
+            scan = read_scan(real)
+            corner = scan.points[:, :2].min(axis=0) + scan.origin_shift[:2]
+            run_, fr = _forestreg(real, work)
+            flagged = sum(1 for r in fr if r["flag"])
+            rows.append({"case": "pine_plot.laz (real)", "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb,
+                         "status": run_.status, **_rings_found(fr, corner), "flagged": flagged,
+                         "heights_unflagged": sum(1 for r in fr if not _height_low(r)),
+                         "volume_m3": float(np.nansum([_num(r["volume_m3"]) for r in fr]))})
+            if sylva:
+                res, sy = _sylva_trees(sylva, real, work)
+                rows.append({"case": "pine_plot.laz (real)", "tool": "sylva ground + trees", **res, **_rings_found(sy, corner)})
+
+        laz, t = sim_single()
+        singles = [("sim single tree", laz, t)]
+        archi = DATA / "aRchi_Tree_2_point_cloud.las"
+        if archi.exists():
+            singles.append(("aRchi_Tree_2 (real)", archi, {"treeqsm_" + k: v for k, v in TREEQSM_ARCHI.items()}))
+        for case, cloud, ref in singles:
+            run_, fr = _forestreg(cloud, work)
+            r = fr[0] if len(fr) == 1 else {}
+            rows.append({"case": case, "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status,
+                         "trees": len(fr), "dbh_m": _num(r.get("dbh_m")), "height_m": _num(r.get("height_m")),
+                         "volume_m3": _num(r.get("volume_m3")), **{f"true_{k}": v for k, v in ref.items() if not k.startswith("treeqsm")},
+                         **{k: v for k, v in ref.items() if k.startswith("treeqsm")}})
+            if sylva:
+                res, q = _sylva_qsm(sylva, cloud, work)
+                rows.append({"case": case, "tool": "sylva qsm", **res, "trees": 1, **q})
+    return rows
+
+
+def _f(v: Any, fmt: str) -> str:
+    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, fmt)
+
+
+def format_rows(rows: list[dict[str, Any]]) -> str:
+    """A Markdown table of the rows."""
+    head = ("| case | tool | found | false stems | DBH rRMSE % | height rRMSE % (unflagged: n, rRMSE, max) | DBH m | height m | volume m3 "
+            "| s | MB |")
+    lines = ["Trees side by side with Sylva (one run; seconds and MB of each command)", "", head, "|" + "---|" * 11]
+    for r in rows:
+        found = f"{r['found']}/{r['true']}" if "found" in r else "-"
+        hr = _f(r.get("height_rrmse_pct"), ".1f")
+        if "heights_unflagged" in r and "unflagged_height_rrmse_pct" in r:
+            hr += f" ({r['heights_unflagged']}, {_f(r['unflagged_height_rrmse_pct'], '.1f')}, {_f(r['unflagged_height_max_pct'], '.0f')})"
+        elif "heights_unflagged" in r:
+            hr = f"- ({r['heights_unflagged']} unflagged, {r.get('flagged', 0)} trees flagged)"
+        truth = ""
+        if "true_volume_m3" in r:
+            truth = f" (true {r['true_volume_m3']:.3f})"
+        elif "treeqsm_volume_m3" in r:
+            truth = f" (TreeQSM {r['treeqsm_volume_m3']:.4f})"
+        dbh = _f(r.get("dbh_m"), ".3f") + (f" (true {r['true_dbh_m']:.3f})" if "true_dbh_m" in r else
+                                           f" (TreeQSM {r['treeqsm_dbh_m']:.3f})" if "treeqsm_dbh_m" in r else "")
+        status = "" if r.get("status", 0) == 0 else f" (failed, status {r['status']})"
+        lines.append(f"| {r['case']} | {r['tool']}{status} | {found} | {r.get('false_stems', '-')} | {_f(r.get('dbh_rrmse_pct'), '.1f')} | {hr} "
+                     f"| {dbh} | {_f(r.get('height_m'), '.2f')} | {_f(r.get('volume_m3'), '.3f')}{truth} | {_f(r.get('wall_s'), '.0f')} "
+                     f"| {_f(r.get('peak_mb'), '.0f')} |")
+    return "\n".join(lines)
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--json", type=Path, help="also write the rows to this JSON file")
+    ap.add_argument("--workdir", type=Path, help="keep the outputs of every command here")
+    args = ap.parse_args(argv)
+    rows = run(args.workdir)
+    print(format_rows(rows))
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1, default=float) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
