@@ -493,6 +493,7 @@ def test_real_tilted_mls_onto_a_leaf_on_uls_like_cloud(shared_data, heading):
     ev = result.coarse
     assert 1.2 < ev.tilt_deg < 1.8  # the SLAM tilt, estimated
     assert ev.stem_layer_points >= 100 and ev.stem_layer_agreement > 0.8
+    assert "stems" in ev.decided_by and "decided by the" in result.summary()
     assert ev.terrain_points >= 100 and ev.terrain_tilt_deg < 1.0
     d = result.to_dict()
     assert d["evidence"]["coarse"]["stem_layer_agreement"] == pytest.approx(ev.stem_layer_agreement)
@@ -527,6 +528,8 @@ def test_a_cloud_onto_itself_has_no_ground_offset(shared_data):
     assert rot < 0.01 and trans < 0.01
     assert abs(result.quality["ground_dz_median_m"]) < 1e-4
     assert "ground offset 0.0 cm" in result.summary()
+    assert set(result.coarse.decided_by) == {"keypoints", "canopy surfaces", "stems"}
+    assert result.to_dict()["evidence"]["coarse"]["decided_by"] == list(result.coarse.decided_by)
 
 
 @pytest.mark.slow
@@ -550,4 +553,4 @@ def test_simulated_leaf_on_uav_and_a_tilted_backpack():
     assert rot < 0.3 and shift < 0.15, (rot, shift)
     assert result.matching_percentage < 15.0  # the keypoints alone would not decide
     assert abs(result.coarse.tilt_deg - 1.5) < 0.2
-    assert result.coarse.stem_layer_agreement > 0.8
+    assert result.coarse.stem_layer_agreement > 0.8 and "stems" in result.coarse.decided_by

@@ -100,8 +100,9 @@ def detect_change(
     the trees (persisting, removed, new) with DBH and height changes.
 
     Fails (status "failed", with the reason; never a guess) when a survey has too few stems, when
-    too few stems persist (unrelated plots, or too much change), or when another heading or shift
-    matches nearly as many stems (ambiguous).
+    too few stems persist (unrelated plots, or too much change), when another heading or shift
+    matches nearly as many stems (ambiguous), or when the stem slices and terrain pull the stems'
+    solution away (more than ``max_icp_correction_m``, or the persisting stems apart).
     """
     progress = as_progress(progress)
     timings: dict[str, float] = {**{f"before_{k}": v for k, v in before.timings.items()},

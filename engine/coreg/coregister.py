@@ -178,9 +178,15 @@ class CoarseEvidence:
     stem_layer_points: int
     stem_layer_agreement: Optional[float]
     tilt_deg: float
+    #: the evidence that decided an accepted result: any of "keypoints" (enough matched),
+    #: "canopy surfaces" (decisive on their own), "stems" (the UAV's stem layer on the
+    #: ground-based cloud); empty when the result was refused
+    decided_by: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
-        return _finite_or_none(dataclasses.asdict(self))  # type: ignore[return-value]
+        d = _finite_or_none(dataclasses.asdict(self)) or {}
+        d["decided_by"] = list(self.decided_by)
+        return d
 
 
 @dataclass(frozen=True, eq=False)
@@ -236,6 +242,8 @@ class CoregistrationResult(Outcome):
             f"{self.surface_correlation:.2f} (margin {self.correlation_margin:.2f} over the best alternative)"
         )
         if self.coarse is not None:
+            if self.coarse.decided_by:
+                line += f"; decided by the {' and the '.join(self.coarse.decided_by)}"
             line += f", tilt {self.coarse.tilt_deg:.2f} deg"
             if self.coarse.stem_layer_agreement is not None:
                 line += f", stems {100 * self.coarse.stem_layer_agreement:.0f} % of {self.coarse.stem_layer_points}"
@@ -615,7 +623,9 @@ def _coregister_points(
         n_stem >= params.min_stem_layer_points and stem_frac >= params.decisive_stem_agreement
         and terrain is not None and terrain.count >= 100
     )
-    if not (keypoints_agree or canopy_decisive or stems_decisive):
+    decided_by = tuple(name for name, held in (("keypoints", keypoints_agree), ("canopy surfaces", canopy_decisive),
+                                               ("stems", stems_decisive)) if held)
+    if not decided_by:
         stems = (f"{100 * stem_frac:.0f} % of {n_stem} UAV stem-layer points near the ground-based cloud"
                  if n_stem else "no UAV stem-layer points")
         return failed(
@@ -640,6 +650,8 @@ def _coregister_points(
             **common,
         )
 
+    common["coarse"] = dataclasses.replace(evidence, decided_by=decided_by)
+
     # 8. quality figures without ground truth, and standard errors (jackknife over quadrants)
     t = time.perf_counter()
     progress(0.92, "[6/6] quality figures and standard errors (jackknife over plot quadrants)")
@@ -648,7 +660,7 @@ def _coregister_points(
         common["standard_errors"] = jackknife_standard_errors(g_ref, u_icp, result.matrix, params, keep)
     timings["quality_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
-    progress(1.0, f"co-registered from the {source}: {len(pairs_after)} keypoints matched ({pct:.0f} %), canopy correlation "
+    progress(1.0, f"co-registered from the {source}, decided by the {' and the '.join(decided_by)}: {len(pairs_after)} keypoints matched ({pct:.0f} %), canopy correlation "
                   f"{final_r:.2f} (margin {final_r - alt:.2f}), ICP fitness {result.fitness:.2f}")
     return CoregistrationResult(
         status="ok", reason="", matrix=result.matrix, local_matrix=result.matrix, timings=timings, **common

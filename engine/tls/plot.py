@@ -724,7 +724,7 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
         return clouds[name]
 
     for link in links:
-        information = reg.get_information_matrix_from_point_clouds(cloud(link.moving), cloud(link.reference), max_distance_m, link.matrix)
+        information = information_matrix(np.asarray(cloud(link.moving).points), np.asarray(cloud(link.reference).points), max_distance_m, link.matrix)
         graph.edges.append(reg.PoseGraphEdge(index[link.moving], index[link.reference], link.matrix, information, uncertain=link.extra))
     option = reg.GlobalOptimizationOption(max_correspondence_distance=max_distance_m, edge_prune_threshold=0.25, reference_node=index[project.centre])
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
@@ -744,6 +744,30 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
         })
     project.adjustment = {"poses": {k: (None if v is None else v.tolist()) for k, v in adjusted.items()}, "links": rows}
     return project.adjustment
+
+
+def information_matrix(moving: np.ndarray, reference: np.ndarray, max_distance_m: float, matrix: np.ndarray) -> np.ndarray:
+    """The 6 x 6 information matrix of a link (rotation first, then translation; Choi et al.
+    2015, as open3d's ``get_information_matrix_from_point_clouds``): each ``moving`` point moved by
+    ``matrix`` and its nearest ``reference`` point within ``max_distance_m`` (both (N, 3), metres)
+    adds ``G.T @ G`` for ``G = [-[q]x | I]`` at that reference point ``q``. Summed in a fixed order
+    (open3d sums per thread and adds the threads' sums as they finish: its result changed in the
+    last bits from run to run)."""
+    from scipy.spatial import cKDTree
+
+    moved = np.asarray(moving, dtype=np.float64) @ np.asarray(matrix)[:3, :3].T + np.asarray(matrix)[:3, 3]
+    if len(moved) == 0 or len(reference) == 0:
+        return np.zeros((6, 6))
+    distance, index = cKDTree(np.asarray(reference, dtype=np.float64)).query(moved, distance_upper_bound=float(max_distance_m))
+    q = np.asarray(reference, dtype=np.float64)[index[np.isfinite(distance)]]
+    x, y, z = q[:, 0], q[:, 1], q[:, 2]
+    zero, one = np.zeros(len(q)), np.ones(len(q))
+    g = np.concatenate([
+        np.stack([zero, z, -y, one, zero, zero], axis=1),
+        np.stack([-z, zero, x, zero, one, zero], axis=1),
+        np.stack([y, -x, zero, zero, zero, one], axis=1),
+    ])
+    return np.einsum("ni,nj->ij", g, g)
 
 
 def write_poses(project: Project, out_dir: str | Path, outcome: Optional[PlotOutcome] = None) -> Path:
