@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import io
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Iterator
 
 from .common import say
 
@@ -41,7 +42,7 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     os.environ["FORESTREG_WARMUP"] = "1"  # no "compiling ... on the first run" line from the kernels
     try:
         # the commands' own result lines are not the warm-up's (their errors still go to stderr)
-        with tempfile.TemporaryDirectory(prefix="forestreg-warmup-") as folder, contextlib.redirect_stdout(io.StringIO()):
+        with tempfile.TemporaryDirectory(prefix="forestreg-warmup-") as folder, _silent_stdout():
             code = _run_commands(Path(folder))
     finally:
         os.environ.pop("FORESTREG_WARMUP", None)
@@ -53,6 +54,22 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     say(f"compiled {signatures} signatures of {kernels} kernels in "
         f"{time.perf_counter() - t0:.0f} s into {cache_folder() or 'memory (no cache folder)'}", args)
     return 0
+
+
+@contextlib.contextmanager
+def _silent_stdout() -> Iterator[None]:
+    """Standard output (file descriptor 1: also the libraries' C prints) sent to the null device."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    sink = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(sink, 1)
+    os.close(sink)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 def _run_commands(folder: Path) -> int:

@@ -736,3 +736,23 @@ def test_open3d_is_imported_while_another_thread_imports(monkeypatch):
 
     monkeypatch.setattr(builtins, "__import__", flaky)
     assert imports.import_open3d().__name__ == "open3d" and calls["n"] == 2
+
+
+def test_a_centre_scan_with_a_good_header_but_damaged_points_is_never_ok(tiny, tmp_path):
+    """Row 4, the deeper case: a LAZ centre scan whose header is whole but whose compressed points
+    are damaged cannot be told from its header. No link can read it: the plot reports every scan
+    failed with the reason (exit 1) and the centre has no matrix, never "ok" with an identity."""
+    _, paths = tiny
+    data = bytearray(paths[0].read_bytes())
+    start = len(data) // 3
+    data[start:start + 4096] = bytes(4096)  # zeros over the compressed points
+    centre = tmp_path / "aaa_damaged.laz"
+    centre.write_bytes(bytes(data))
+    inputs = [centre, paths[1]]
+    before = {p: _hash(p) for p in inputs}
+    run = _run("plot", *inputs, "--out", tmp_path / "out")
+    assert run.returncode == 1 and "Traceback" not in run.stderr, run.stderr
+    poses = json.loads((tmp_path / "out" / "poses.json").read_text())
+    assert poses["scans"][centre.name]["status"] == "failed" and poses["scans"][centre.name]["matrix"] is None
+    assert "0 of 2 scans registered" in run.stderr
+    assert {p: _hash(p) for p in inputs} == before

@@ -206,7 +206,7 @@ def classify_ground(points: np.ndarray, params: TerrainParams = TerrainParams())
     # one OpenMP thread: the cloth's parallel loop moves each particle's neighbours while other
     # threads move theirs, so with more threads the ground found depended on their timing
     # (measured on the real ALS clip under load: 8,381 or 8,382 ground points from one input);
-    # alone it is the same every run, and faster on a busy machine (1.3 s of CPU against 6.9 s)
+    # alone it is the same every run, and cheaper on a busy machine (three runs: 0.12 s of CPU, not 1.6 s)
     from threadpoolctl import threadpool_limits
 
     with _quiet_stdout(), threadpool_limits(1, user_api="openmp"):

@@ -285,7 +285,7 @@ def register(
             scan = load(source, role)
             scans[role] = scan.without_points()
         except BaseException as exc:
-            failed.append(exc)
+            failed.append((role, exc))
             raise
         finally:
             read[role].set()
@@ -314,14 +314,14 @@ def register(
     ups = {"reference": reference_up, "moving": moving_up}
     scans: dict[str, Scan] = {}
     read = {role: threading.Event() for role in ("reference", "moving")}
-    failed: list[BaseException] = []
+    failed: list[tuple[str, BaseException]] = []
     with ThreadPoolExecutor(max_workers=2) as pool:
         jobs = {"reference": pool.submit(read_and_prepare, reference, "reference"), "moving": pool.submit(read_and_prepare, moving, "moving")}
         del reference, moving
         for role in ("reference", "moving"):
             read[role].wait()
-        if failed:
-            raise failed[0]
+        if failed:  # the reference's error first when both fail, whichever thread failed first
+            raise dict(failed).get("reference", failed[0][1])
         step(0.0, "preparing both scans")
         (reference, ref_prep), (moving, mov_prep) = ((scans[role], jobs[role].result()) for role in ("reference", "moving"))
     log.info("registering %s onto %s", moving.name, reference.name)

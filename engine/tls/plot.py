@@ -333,6 +333,12 @@ def register_project(
         project.checkpoint()
     if beside is None:  # the links are done: their ICP search structures go (the caller's queue still needs them)
         scans.prepared.release(("icp_reference",))
+    if not any(link.ok for link in project.links) and project.centre not in scans._frames:
+        try:  # the centre's header looked right but no link could read it: never "ok" unread
+            scans.frame(project.centre)
+        except (ScanReadError, ScanDataError) as exc:
+            outcome.scans[project.centre] = "failed"
+            outcome.reasons[project.centre] = str(exc)
     # a scan whose chain to the centre is broken has no pose even if its own link worked
     poses = project.chained_poses()
     for name, pose in poses.items():
@@ -733,7 +739,7 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
         return clouds[name]
 
     for link in links:
-        information = reg.get_information_matrix_from_point_clouds(cloud(link.moving), cloud(link.reference), max_distance_m, link.matrix)
+        information = information_matrix(np.asarray(cloud(link.moving).points), np.asarray(cloud(link.reference).points), max_distance_m, link.matrix)
         graph.edges.append(reg.PoseGraphEdge(index[link.moving], index[link.reference], link.matrix, information, uncertain=link.extra))
     option = reg.GlobalOptimizationOption(max_correspondence_distance=max_distance_m, edge_prune_threshold=0.25, reference_node=index[project.centre])
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
@@ -755,6 +761,30 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
     return project.adjustment
 
 
+def information_matrix(moving: np.ndarray, reference: np.ndarray, max_distance_m: float, matrix: np.ndarray) -> np.ndarray:
+    """The 6 x 6 information matrix of a link (rotation first, then translation; Choi et al.
+    2015, as open3d's ``get_information_matrix_from_point_clouds``): each ``moving`` point moved by
+    ``matrix`` and its nearest ``reference`` point within ``max_distance_m`` (both (N, 3), metres)
+    adds ``G.T @ G`` for ``G = [-[q]x | I]`` at that reference point ``q``. Summed in a fixed order
+    (open3d sums per thread and adds the threads' sums as they finish: its result changed in the
+    last bits from run to run)."""
+    from scipy.spatial import cKDTree
+
+    moved = np.asarray(moving, dtype=np.float64) @ np.asarray(matrix)[:3, :3].T + np.asarray(matrix)[:3, 3]
+    if len(moved) == 0 or len(reference) == 0:
+        return np.zeros((6, 6))
+    distance, index = cKDTree(np.asarray(reference, dtype=np.float64)).query(moved, distance_upper_bound=float(max_distance_m))
+    q = np.asarray(reference, dtype=np.float64)[index[np.isfinite(distance)]]
+    x, y, z = q[:, 0], q[:, 1], q[:, 2]
+    zero, one = np.zeros(len(q)), np.ones(len(q))
+    g = np.concatenate([
+        np.stack([zero, z, -y, one, zero, zero], axis=1),
+        np.stack([-z, zero, x, zero, one, zero], axis=1),
+        np.stack([y, -x, zero, zero, zero, one], axis=1),
+    ])
+    return np.einsum("ni,nj->ij", g, g)
+
+
 def poses_document(project: Project, outcome: Optional[PlotOutcome] = None) -> tuple[dict[str, Any], dict[str, str]]:
     """The body of ``poses.json`` (``{"frame": centre, "scans": {name: {"status", "matrix"}}}``,
     each matrix mapping that scan's file coordinates into the centre scan's) and the text of one
@@ -765,6 +795,8 @@ def poses_document(project: Project, outcome: Optional[PlotOutcome] = None) -> t
     transforms: dict[str, str] = {}
     for s in project.scans:
         pose = poses.get(s.name)
+        if outcome is not None and outcome.scans.get(s.name) == "failed":
+            pose = None  # e.g. a centre scan that could not be read: no identity matrix for it
         entry: dict[str, Any] = {"status": "ok" if pose is not None else "failed", "matrix": None if pose is None else pose.tolist()}
         if pose is None and outcome is not None and s.name in outcome.reasons:
             entry["reason"] = outcome.reasons[s.name]
