@@ -93,7 +93,7 @@ def _project_cloud(path: Path, scale: float):
     fused cloud, else its registered scans merged in the project frame."""
     from ..engine.core.errors import UsageError
     from ..engine.core.scan import Scan
-    from ..engine.core.transform import to_metres
+    from ..engine.core.transform import apply, to_metres
     from ..engine.io import read_scan
     from ..engine.tls.project import Project
 
@@ -115,7 +115,7 @@ def _project_cloud(path: Path, scale: float):
     for s in project.scans:
         scan = read_scan(s.path, unit_scale=scale, scan_index=s.scan_index, with_intensity=False)
         pose = to_metres(poses[s.name], scale)
-        parts.append((scan.points + scan.origin_shift) @ pose[:3, :3].T + pose[:3, 3])  # project frame (file coordinates)
+        parts.append(apply(pose, scan.points + scan.origin_shift))  # project frame (file coordinates)
     cloud = Scan.from_points(np.vstack(parts), name=path.stem, take_ownership=True)
     return cloud, f"{len(project.scans)} registered scans of project {path.name}"
 

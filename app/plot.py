@@ -25,6 +25,51 @@ log = logging.getLogger("forestreg")
 POINT_SUFFIXES = (".laz", ".las", ".ply", ".xyz", ".txt")
 
 
+@dataclass(frozen=True)
+class PoseSigma:
+    """1-sigma uncertainty of a registered pose relative to the frame scan (None where unknown)."""
+
+    translation_m: Optional[float]
+    rotation_deg: Optional[float]
+
+    @classmethod
+    def of(cls, d) -> Optional["PoseSigma"]:
+        return None if not d else cls(d.get("translation_m"), d.get("rotation_deg"))
+
+    @property
+    def known(self) -> bool:
+        return self.translation_m is not None and self.rotation_deg is not None
+
+
+@dataclass(frozen=True)
+class DroppedLink:
+    """A link the survey left out as inconsistent, and why."""
+
+    moving: str
+    reference: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class LinkSummary:
+    """What a project shows of one link's last run: status, matched VOPs, ICP std (m), reason."""
+
+    reference: str
+    status: str
+    matched: Any = None
+    icp_std_m: Optional[float] = None
+    reason: str = ""
+
+
+def link_summary(link) -> Optional[LinkSummary]:
+    """The :class:`LinkSummary` of a link (None when it has not run)."""
+    if link is None or link.result is None:
+        return None
+    r = link.result
+    icp = r.get("icp") or {}
+    return LinkSummary(link.reference, r.status, r.get("matched"), icp.get("std_m"), r.reason)
+
+
 @dataclass(frozen=True, eq=False)
 class PlotRun(RunOutcome):
     """A plot run: ``result`` is the engine's :class:`~forestreg.engine.tls.plot.PlotOutcome`
@@ -37,6 +82,10 @@ class PlotRun(RunOutcome):
     adjusted: Optional[dict] = None
     uncertainty: dict = field(default_factory=dict)
     written: dict = field(default_factory=dict)
+    #: links the survey dropped (:class:`DroppedLink`)
+    dropped: tuple = ()
+    #: after the global adjustment: (links adjusted, largest link residual in m), or None
+    residual: Optional[tuple] = None
 
     def evidence(self) -> dict:
         return self.result.evidence() if self.result is not None else {}
@@ -269,10 +318,13 @@ def run_plot(
             written["registered_dir"] = (Path(registered_dir), write_registered_scans(project, rtmp, scans))
     if e57_out:
         written["e57_out"] = (Path(e57_out), write_registered_e57(project, e57_out, scans))
-    failed = outcome.failed
-    reason = "; ".join(f"{n}: {outcome.reasons.get(n, 'failed')}" for n in failed)
-    return PlotRun(status="failed" if failed else "ok", reason=reason, out=out, result=outcome, project=project,
-                   adjusted=adjusted, uncertainty=pose_uncertainty(project), written=written)
+    dropped = tuple(DroppedLink(d["moving"], d["reference"], d["reason"]) for d in (project.adjustment or {}).get("dropped") or [])
+    residual = None
+    if adjusted:
+        residual = (len(adjusted["links"]), max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0))
+    return PlotRun(status=outcome.status, reason=outcome.reason, out=out, result=outcome, project=project, adjusted=adjusted,
+                   uncertainty={name: PoseSigma.of(u) for name, u in pose_uncertainty(project).items()}, written=written,
+                   dropped=dropped, residual=residual)
 
 
 def _publish(tmp: Path, out: Path, scan_names) -> None:

@@ -210,6 +210,15 @@ def params_from_args(args: argparse.Namespace):
     return params.replace(**changes) if changes else params
 
 
+def run_outcome(reporter: "Reporter", use_case, *args, progress=None, **kwargs):
+    """``use_case(*args, progress=progress or reporter, **kwargs)`` (a use case of
+    :mod:`forestreg.app`): its outcome, the reporter's bar closed after it whatever happened."""
+    try:
+        return use_case(*args, progress=progress or reporter, **kwargs)
+    finally:
+        reporter.close()
+
+
 def say(message: str, args: Optional[argparse.Namespace] = None, *, err: bool = False) -> None:
     """One result line on stdout (stderr with ``err``), remembered for the final event."""
     print(message, file=sys.stderr if err else sys.stdout, flush=True)

@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Optional
 
-from .common import Reporter, add_units_params, number, product_params, say, shown
+from .common import Reporter, add_units_params, number, product_params, run_outcome, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -63,11 +63,7 @@ def run_coregister(ground_path, uav_path, out, *, params=None, units: str = "m",
 
             tqdm.write(message, file=sys.stderr)
 
-    try:
-        outcome = coregister_clouds(ground_path, uav_path, out, params, units=units, progress=steps)
-    finally:
-        reporter.close()
-    return print_coregister(outcome, reporter)
+    return print_coregister(run_outcome(reporter, coregister_clouds, ground_path, uav_path, out, params, units=units, progress=steps), reporter)
 
 
 def print_coregister(outcome, reporter: Reporter) -> int:
@@ -101,11 +97,7 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
     if cube is not None:
         kw["cube_side_m"] = cube
     params = (params or default_params()).replace(**kw)
-    try:
-        outcome = fuse_clouds(ground_path, uav_path, out, params, transform=transform, units=units, progress=reporter)
-    finally:
-        reporter.close()
-    return print_fuse(outcome, reporter)
+    return print_fuse(run_outcome(reporter, fuse_clouds, ground_path, uav_path, out, params, transform=transform, units=units), reporter)
 
 
 def print_fuse(outcome, reporter: Reporter) -> int:

@@ -7,7 +7,7 @@ import math
 import sys
 from pathlib import Path
 
-from .common import Reporter, floats, number, say, shown
+from .common import Reporter, floats, number, run_outcome, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -54,11 +54,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         if not 0 <= k < len(positions) or not math.isfinite(d):
             raise UsageError(f"--tilt {item}: scan index must be 0..{len(positions) - 1} and the angle finite")
         tilted[k] = d
-    try:
-        run = simulate_scans(args.preset, positions, args.out, seed=args.seed, step_deg=args.step, tilted=tilted,
-                             size_m=args.size, progress=args.reporter)
-    finally:
-        args.reporter.close()
+    run = run_outcome(args.reporter, simulate_scans, args.preset, positions, args.out, seed=args.seed, step_deg=args.step,
+                      tilted=tilted, size_m=args.size)
     for name, count in run.scans:
         print(f"{name}: {count} points")
     args.reporter.done("", run.out / "truth.json")
@@ -97,10 +94,7 @@ def _demo_system_a(out: Path, args: argparse.Namespace) -> int:
     print(f"System A: simulating a '{args.preset}' plot with two scans 12 m apart in {data} ...")
     case = simulated_pair(data, args.preset, seed=args.seed, step_deg=args.step)
     reporter = _sub_reporter(args, "register")
-    try:
-        outcome = register_pair(case.reference, case.moving, out / "registration", progress=reporter)
-    finally:
-        reporter.close()
+    outcome = run_outcome(reporter, register_pair, case.reference, case.moving, out / "registration")
     code = print_register(outcome, reporter)
     if outcome.matrix is not None:
         rot, trans = errors_against(outcome.matrix, case.truth)
@@ -122,10 +116,7 @@ def _demo_system_b(out: Path, args: argparse.Namespace) -> int:
     print(f"System B: simulating a plot seen by TLS and by a UAV in {data} ...")
     case = simulated_coregistration(data, seed=args.seed)
     reporter = _sub_reporter(args, "coregister")
-    try:
-        outcome = coregister_clouds(case.ground, case.uav, out / "coregistration", progress=reporter)
-    finally:
-        reporter.close()
+    outcome = run_outcome(reporter, coregister_clouds, case.ground, case.uav, out / "coregistration")
     code = print_coregister(outcome, reporter)
     if code != 0:
         return code

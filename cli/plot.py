@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import PARAMS_HELP, number, offsets, params_from_args, say, shown
+from .common import PARAMS_HELP, number, offsets, params_from_args, run_outcome, say, shown
 
 def _add_plot_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--centre", help="the centre (root) scan: the project frame (default: the first scan)")
@@ -106,12 +106,9 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
     from ..app.plot import run_plot
 
     reporter = args.reporter
-    try:
-        run = run_plot(project, out, scans=scans, pairs=getattr(args, "pairs", None), fixed=getattr(args, "fixed", None) or [],
-                       rerun=getattr(args, "rerun", False), loops=getattr(args, "loops", None), progress=reporter,
-                       **_extra_outputs(args))
-    finally:
-        reporter.close()
+    run = run_outcome(reporter, run_plot, project, out, scans=scans, pairs=getattr(args, "pairs", None),
+                      fixed=getattr(args, "fixed", None) or [], rerun=getattr(args, "rerun", False), loops=getattr(args, "loops", None),
+                      **_extra_outputs(args))
     outcome = run.result
     for what, (path, count) in run.written.items():
         if what == "merged":
@@ -126,15 +123,14 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
         link = project.link_of(name)
         onto = f" onto {link.reference}" if link is not None and status == "ok" else ""
         u = sigma.get(name) if status == "ok" else None
-        if u and u.get("translation_m") is not None and u.get("rotation_deg") is not None:
-            onto += f" (1 sigma {100 * u['translation_m']:.1f} cm, {u['rotation_deg']:.3f} deg)"
+        if u is not None and u.known:
+            onto += f" (1 sigma {100 * u.translation_m:.1f} cm, {u.rotation_deg:.3f} deg)"
         print(f"{name}: {status}{onto}{extra}")
-    for d in (project.adjustment or {}).get("dropped") or []:
-        print(f"dropped link {d['moving']} -> {d['reference']}: {d['reason']}")
-    adjusted = run.adjusted
-    if adjusted:
-        worst = max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0)
-        print(f"global adjustment over {len(adjusted['links'])} links: largest link residual {100 * worst:.1f} cm")
+    for d in run.dropped:
+        print(f"dropped link {d.moving} -> {d.reference}: {d.reason}")
+    if run.residual is not None:
+        links, worst = run.residual
+        print(f"global adjustment over {links} links: largest link residual {100 * worst:.1f} cm")
     if (out / "report.html").exists():
         print(f"report: {shown(out) / 'report.html'}")
     reporter.done("", out / "poses.json")
@@ -165,7 +161,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_project(args: argparse.Namespace) -> int:
-    from ..app.plot import check_extra_outputs, check_scan_files, load_project, plot_folder
+    from ..app.plot import check_extra_outputs, check_scan_files, link_summary, load_project, plot_folder
     from ..engine.core.errors import OutputPathError, UsageError
 
     if args.action == "create":
@@ -188,16 +184,15 @@ def cmd_project(args: argparse.Namespace) -> int:
         poses = project.poses()
         print(f"project {project.name}: {len(project.scans)} scans, centre {project.centre}")
         for s in project.scans:
-            link = project.link_of(s.name)
-            state = "centre" if s.name == project.centre else ("not run" if link is None or link.result is None else link.result.get("status"))
+            run = link_summary(project.link_of(s.name))
+            state = "centre" if s.name == project.centre else ("not run" if run is None else run.status)
             details = ""
-            if link is not None and link.result is not None:
-                r = link.result
-                details = f" onto {link.reference}, {r.get('matched', '-')} matched VOPs"
-                if r.get("icp"):
-                    details += f", ICP std {1000 * r['icp']['std_m']:.1f} mm"
-                if r.get("reason"):
-                    details += f" ({r['reason']})"
+            if run is not None:
+                details = f" onto {run.reference}, {'-' if run.matched is None else run.matched} matched VOPs"
+                if run.icp_std_m is not None:
+                    details += f", ICP std {1000 * run.icp_std_m:.1f} mm"
+                if run.reason:
+                    details += f" ({run.reason})"
             t = " [tilted]" if s.tilted else ""
             placed = "" if poses.get(s.name) is None else f" at ({poses[s.name][0, 3]:.2f}, {poses[s.name][1, 3]:.2f}, {poses[s.name][2, 3]:.2f})"
             print(f"  {s.name}{t}: {state}{details}{placed}")
@@ -248,10 +243,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     inputs = args.scans + ([args.targets] if args.targets else [])
     out = check_output_folder(args.out, "compare", inputs=inputs)
     project = project_from_args(args)
-    try:
-        run = compare_plot(project, out, inputs=inputs, progress=args.reporter)
-    finally:
-        args.reporter.close()
+    run = run_outcome(args.reporter, compare_plot, project, out, inputs=inputs)
     json_path = run.json_path
     print(f"{'pair':32} {'auto std':>9} {'VOPs':>5} {'manual std':>11} {'targets':>7} {'rot diff':>9} {'shift':>8}")
 
@@ -283,10 +275,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_targets(args: argparse.Namespace) -> int:
     from ..app.targets import detect_targets
 
-    try:
-        run = detect_targets(args.scans, args.out, known=args.known, max_distance=args.max_distance, progress=args.reporter)
-    finally:
-        args.reporter.close()
+    run = run_outcome(args.reporter, detect_targets, args.scans, args.out, known=args.known, max_distance=args.max_distance)
     for t in run.scans:
         print(f"{t.name}: {t.detected} reflectors detected" + (f", {t.named} named after known targets" if t.named is not None else ""))
     args.reporter.done("", args.out)

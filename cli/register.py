@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .common import PARAMS_HELP, UNITS, Reporter, direction, floats, number, offsets, params_from_args, say, shown
+from .common import PARAMS_HELP, UNITS, Reporter, direction, floats, number, offsets, params_from_args, run_outcome, say, shown
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -57,12 +57,8 @@ def run_register(
     from ..app.pair import register_pair
 
     reporter = reporter or Reporter("none", "register")
-    try:
-        outcome = register_pair(reference_path, moving_path, out, params, positions=positions, ups=ups, units=units,
-                                write_registered=write_registered, progress=reporter)
-    finally:
-        reporter.close()
-    return print_register(outcome, reporter)
+    return print_register(run_outcome(reporter, register_pair, reference_path, moving_path, out, params, positions=positions,
+                                      ups=ups, units=units, write_registered=write_registered), reporter)
 
 
 def print_register(outcome, reporter: Reporter) -> int:

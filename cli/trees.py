@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .common import Reporter, add_units_params, number, product_params, say, shown
+from .common import Reporter, add_units_params, number, product_params, run_outcome, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -49,11 +49,8 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
     from ..app.trees import measure_trees_file
 
     reporter = reporter or Reporter("none", "trees")
-    try:
-        outcome = measure_trees_file(cloud_path, out, params, transform=transform, field=field, units=units,
-                                     cylinders=cylinders, report=report, progress=reporter)
-    finally:
-        reporter.close()
+    outcome = run_outcome(reporter, measure_trees_file, cloud_path, out, params, transform=transform, field=field, units=units,
+                          cylinders=cylinders, report=report)
     return print_trees(outcome, reporter, units)
 
 

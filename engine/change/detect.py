@@ -17,6 +17,7 @@ import numpy as np
 
 from ..core.outcome import Outcome
 from ..core.progress import Progress, ProgressCallback, as_progress
+from ..core.transform import apply as apply_transform
 from .epoch import EpochTrees
 from .matching import STATUSES, TreeChange, match_trees
 from .params import ChangeParams
@@ -143,7 +144,7 @@ def detect_change(
     from ..tls.uncertainty import pair_uncertainty
 
     b_idx, a_idx = match.pairs[:, 0], match.pairs[:, 1]
-    moved = after.breast_points()[a_idx] @ local[:3, :3].T + local[:3, 3]
+    moved = apply_transform(local, after.breast_points()[a_idx])
     res = np.hypot(*(moved[:, :2] - before.xy[b_idx]).T)
     figures["stem_residual_rms_m"] = float(np.sqrt(np.mean(res**2)))
     figures["stem_residual_max_m"] = float(res.max())

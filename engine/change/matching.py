@@ -29,6 +29,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ..core.transform import apply as apply_transform
 from .epoch import EpochTrees
 from .params import ChangeParams
 from .registration import stem_pairs
@@ -77,10 +78,6 @@ class TreeChange:
         d["tree_id_before"] = "" if self.tree_id_before is None else self.tree_id_before
         d["tree_id_after"] = "" if self.tree_id_after is None else self.tree_id_after
         return d
-
-
-def _apply(matrix: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return p @ matrix[:3, :3].T + matrix[:3, 3]
 
 
 def _stem_points_at(epoch: EpochTrees, xy: np.ndarray, ground_z: np.ndarray, radius: np.ndarray, index,
@@ -134,8 +131,8 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     pairs = stem_pairs(before, after, matrix, params.tree_match_distance_m, params.dbh_change_range_m)
     paired_b = set(pairs[:, 0].tolist())
     paired_a = set(pairs[:, 1].tolist())
-    after_in_b = _apply(matrix, after.breast_points())  # after stems in the BEFORE frame
-    before_in_a = _apply(inv, before.breast_points())
+    after_in_b = apply_transform(matrix, after.breast_points())  # after stems in the BEFORE frame
+    before_in_a = apply_transform(inv, before.breast_points())
 
     def indexes(epoch: EpochTrees):
         if not epoch.has_points:  # a table: the plot is the hull of its stems (EpochTrees.covers)

@@ -29,6 +29,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ..core.transform import apply as apply_transform
 from .epoch import EpochTrees
 from .params import ChangeParams
 
@@ -75,10 +76,6 @@ def rigid_2d_matrix(angle_rad: float, t: np.ndarray, dz: float = 0.0) -> np.ndar
     return m
 
 
-def _apply(matrix: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return p @ matrix[:3, :3].T + matrix[:3, 3]
-
-
 def stem_pairs(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, max_distance_m: float,
                dbh_change_range_m: tuple[float, float]) -> np.ndarray:
     """(k, 2) indices (before, after) of stems within ``max_distance_m`` of each other once the
@@ -89,7 +86,7 @@ def stem_pairs(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, max_di
 
     if len(before) == 0 or len(after) == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    moved = _apply(matrix, after.breast_points())[:, :2]
+    moved = apply_transform(matrix, after.breast_points())[:, :2]
     near = cKDTree(before.xy).sparse_distance_matrix(cKDTree(moved), max_distance_m, output_type="coo_matrix")
     if near.nnz == 0:
         return np.zeros((0, 2), dtype=np.int64)
@@ -248,7 +245,7 @@ def refine_on_stems(before: EpochTrees, after: EpochTrees, match: StemMatch, par
     probe = after.breast_points()[a_idx]
     figures = {"fitness": result.fitness, "rmse_m": result.rmse_m, "std_m": result.std_m,
                "stem_points": int(len(mov)), "ground_points": int(len(mov_all) - len(mov))}
-    shift = float(np.max(np.linalg.norm(_apply(matrix, probe) - _apply(match.matrix, probe), axis=1)))
+    shift = float(np.max(np.linalg.norm(apply_transform(matrix, probe) - apply_transform(match.matrix, probe), axis=1)))
     figures["correction_m"] = shift
     # the persisting stems must still land on their partners: the refinement may not pull them
     # apart (a slide along the terrain, slices of other parts)
@@ -266,5 +263,5 @@ def refine_on_stems(before: EpochTrees, after: EpochTrees, match: StemMatch, par
 
 def _stem_rms(before: EpochTrees, after: EpochTrees, pairs: np.ndarray, matrix: np.ndarray) -> float:
     """RMS horizontal distance (m) of the paired stems once AFTER is moved by ``matrix``."""
-    moved = _apply(matrix, after.breast_points()[pairs[:, 1]])[:, :2]
+    moved = apply_transform(matrix, after.breast_points()[pairs[:, 1]])[:, :2]
     return float(np.sqrt(np.mean(np.sum((moved - before.xy[pairs[:, 0]]) ** 2, axis=1))))

@@ -578,7 +578,7 @@ def _coregister_points(
     final_r, _ = surface_correlation(g_canopy, uav_surface, result.matrix)
     if len(g_kp) and len(u_kp):
         pairs_after = assign_one_to_one(g_kp.xyz, u_kp.xyz, result.matrix, params.matching.distance_threshold_m)
-        moved = g_kp.xyz[pairs_after[:, 0]] @ result.matrix[:3, :3].T + result.matrix[:3, 3]
+        moved = apply_transform(result.matrix, g_kp.xyz[pairs_after[:, 0]])
         res_after = np.linalg.norm(moved - u_kp.xyz[pairs_after[:, 1]], axis=1)
     else:
         pairs_after, res_after = np.zeros((0, 2), dtype=np.int64), np.zeros(0)

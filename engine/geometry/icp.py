@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.transform import rotation_from_vector
+from ..core.transform import apply as apply_transform
 from .features import SphereGrid, first_at_least, local_covariances, nearest_within, normals_and_variation
 from .jit import kernel, run_blocks, worker_count
 from .voxel import VoxelGrid, column_bounds, voxel_downsample
@@ -269,7 +270,7 @@ def icp(
             break
         for _ in range(iterations):
             total_iterations += 1
-            moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
+            moved = apply_transform(matrix, mov)
             d, j = nearest_within(moved, grid, dist)
             ok = np.isfinite(d)
             if ok.sum() < 6:
@@ -294,7 +295,7 @@ def icp(
                 break
     std, mean, count = float("nan"), float("nan"), 0
     if statistics:
-        moved = mov @ matrix[:3, :3].T + matrix[:3, 3]
+        moved = apply_transform(matrix, mov)
         # a reference shared by several runs keeps one tree of all its points; a single run builds
         # a small one on the points near the moved ones instead (no tree of millions of points)
         std, mean, count = prepared.distance_stats(moved, float(max_distances_m[-1]), use_full_tree=shared)

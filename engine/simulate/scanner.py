@@ -37,6 +37,7 @@ import numpy as np
 
 from ..core.errors import ParameterError
 from ..core.scan import Scan
+from ..core.transform import apply as apply_transform
 from .mesh import Material, SceneRaycaster, raycaster_for
 from .scene import ForestScene
 
@@ -174,7 +175,7 @@ class SimulatedScan:
 
     def world_points(self) -> np.ndarray:
         """(N, 3) points in the world frame (``pose`` applied)."""
-        return self.scan.points @ self.pose[:3, :3].T + self.pose[:3, 3]
+        return apply_transform(self.pose, self.scan.points)
 
     def to_socs(self, world_xyz: np.ndarray) -> np.ndarray:
         """World-frame points (…, 3) in this scan's SOCS."""

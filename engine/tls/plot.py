@@ -770,7 +770,7 @@ def information_matrix(moving: np.ndarray, reference: np.ndarray, max_distance_m
     last bits from run to run)."""
     from scipy.spatial import cKDTree
 
-    moved = np.asarray(moving, dtype=np.float64) @ np.asarray(matrix)[:3, :3].T + np.asarray(matrix)[:3, 3]
+    moved = apply_transform(np.asarray(matrix), np.asarray(moving, dtype=np.float64))
     if len(moved) == 0 or len(reference) == 0:
         return np.zeros((6, 6))
     distance, index = cKDTree(np.asarray(reference, dtype=np.float64)).query(moved, distance_upper_bound=float(max_distance_m))
