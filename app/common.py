@@ -156,7 +156,7 @@ def import_in_background(*modules: str, kernels: bool = False) -> None:
     def run() -> None:
         if kernels:
             try:
-                from ..engine.geometry.jit import warm_up
+                from ..engine.geometry.voxel import warm_up
 
                 warm_up()
             except Exception:  # the kernel is loaded (or its failure reported) where it is used

@@ -70,8 +70,10 @@ def compare_plot(project, out, *, inputs: Sequence = (), progress=None, cancel=N
     """Register ``project`` (whose scans carry targets) both ways and write the folder ``out``."""
     from ..engine.core.atomic import check_output_folder, output_folder
     from ..engine.core.errors import UsageError
-    from ..engine.tls.compare import compare_auto_manual, write_comparison
-    from ..engine.tls.plot import ScanCache, write_poses
+    from ..engine.io.results import write_comparison
+    from ..engine.tls.compare import compare_auto_manual
+    from ..engine.tls.plot import ScanCache
+    from .plot import write_poses
 
     out = check_output_folder(out, "compare", inputs=list(inputs))
     with_targets = [s.name for s in project.scans if s.targets]

@@ -10,9 +10,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
+import os
+from typing import TYPE_CHECKING, Any, Mapping, Optional, Sequence, Union
 
 from .common import RunOutcome
+
+if TYPE_CHECKING:
+    from ..engine.trees.evaluate import Evaluation
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,8 +63,6 @@ def evaluate_runs(named, field_table, *, by: str = "position", max_distance: flo
 def evaluate_into(folder: Path, named, field_table, *, by: str, max_distance: float, shown_as: Optional[Path] = None) -> EvaluationOutcome:
     """Evaluate and write into ``folder`` (inside a transaction); the outcome's ``lines`` name the
     files as they will be (``shown_as``, the folder's final place)."""
-    from ..engine.io.evaluation import write_evaluation
-
     runs = evaluate_runs(named, field_table, by=by, max_distance=max_distance)
     paths = write_evaluation(folder, runs)
     lines, failed = [], []
@@ -69,9 +71,8 @@ def evaluate_into(folder: Path, named, field_table, *, by: str, max_distance: fl
         figures = ", ".join(
             f"{p} R2 {st.r2:.2f} rRMSE {st.rrmse_percent:.1f} %" for p, st in ev.stats.items() if st.n >= 2
         )
-        if d.matched == 0:
-            how = "no shared tree ids" if by == "id" else f"no tree within {max_distance:g} m of a field tree (same coordinates and units?)"
-            failed.append(f"{name}: 0 of {d.field_trees} field trees matched ({how})")
+        if not ev:  # no tree matched: the reason
+            failed.append(f"{name}: {ev.reason}")
             lines.append(f"failed: {failed[-1]}")
         else:
             lines.append(f"{name}: {d.matched} of {d.field_trees} field trees matched; {figures}")
@@ -93,3 +94,99 @@ def evaluate_files(runs: dict, field_csv) -> dict:
         p = Path(path)
         results[name] = evaluate(p / "trees.csv" if p.is_dir() else p, field_csv)
     return results
+
+
+# ----------------------------------------------------------------------------- the folder
+
+
+#: The figures of the wide table (paper table 3 layout), each with its runs side by side.
+TABLE_METRICS = ("n", "r2", "rmse", "rrmse_percent", "bias")
+
+
+def write_evaluation(
+    out_dir: Union[str, os.PathLike[str]],
+    runs: Mapping[str, Evaluation],
+    *,
+    title: Optional[str] = None,
+) -> dict[str, Path]:
+    """Write the evaluation of one or several runs into ``out_dir`` (created if missing).
+
+    Files (each written atomically):
+
+    * ``evaluation.csv``: one row per parameter; per figure (n, r2, rmse, rrmse_percent, bias)
+      one column per run, side by side as in the paper's table 3 (``r2_ground, r2_fused, ...``);
+      RMSE and bias in the parameter's unit (metres, m², m³);
+    * ``detection.csv``: one row per run: field trees, estimated trees, matched, omitted,
+      commission and the two rates;
+    * ``matches_<run>.csv``: the pairs of each run with both values of every parameter;
+    * ``evaluation.json``: all of it;
+    * ``figures/scatter_<parameter>.png``: estimate against field value, one colour per run,
+      with the 1:1 line;
+    * ``report.html``: a self-contained report (:mod:`forestreg.engine.report.evaluation_report`).
+
+    Returns the paths by name ("csv", "detection", "json", "html", "scatter_<parameter>",
+    "matches_<run>").
+    """
+    from ..engine.core.errors import ParameterError
+    from ..engine.io.results import file_stem, write_evaluation_files
+    from ..engine.report.evaluation_report import scatter_png, write_evaluation_report
+    from ..engine.trees.evaluate import PARAMETERS, pair_rows
+
+    if not runs:
+        raise ParameterError("no runs to write: give at least one evaluation")
+    names = [str(n) for n in runs]
+    if any(not n.strip() for n in names):
+        raise ParameterError("run names must not be empty")
+    stems = [file_stem(n) for n in names]
+    if len(set(stems)) != len(stems):
+        raise ParameterError(f"run names {names} are not distinct as file names")
+    out = Path(out_dir)
+    params = _run_parameters(runs)
+    tables: dict = {"evaluation": (_wide_rows(runs, params), None),
+                    "detection": ([{"run": name, **ev.detection.to_dict()} for name, ev in runs.items()], None)}
+    for (name, ev), stem in zip(runs.items(), stems):
+        tables[f"matches_{stem}"] = (pair_rows(ev), ["field_id", "estimated_id", "distance_m"])
+    doc = {
+        "definitions": {
+            "r2": "1 - SS_res/SS_tot, SS_res = sum (estimate - field)^2, SS_tot = sum (field - mean field)^2",
+            "rmse": "sqrt(mean (estimate - field)^2), in the parameter's unit",
+            "rrmse_percent": "100 * RMSE / mean field value",
+            "bias": "mean (estimate - field)",
+            "omitted": "field trees with no estimated tree",
+            "commission": "estimated trees with no field tree",
+        },
+        "units": {p: PARAMETERS[p].unit for p in params},
+        "runs": {name: ev.to_dict() for name, ev in runs.items()},
+    }
+    figures: dict[str, bytes] = {}
+    for p in params:
+        png = scatter_png(runs, p)
+        if png is not None:
+            figures[p] = png
+    paths = write_evaluation_files(out, tables, doc, {f"scatter_{p}": png for p, png in figures.items()})
+    paths["csv"] = paths.pop("evaluation")
+    paths["html"] = out / "report.html"
+    write_evaluation_report(paths["html"], runs, title=title, figures=figures)
+    return paths
+
+
+def _run_parameters(runs: Mapping[str, Evaluation]) -> list[str]:
+    from ..engine.trees.evaluate import PARAMETERS
+
+    present = {p for ev in runs.values() for p in ev.stats}
+    return [p for p in PARAMETERS if p in present]
+
+
+def _wide_rows(runs: Mapping[str, Evaluation], params: Sequence[str]) -> list[dict[str, Any]]:
+    from ..engine.trees.evaluate import PARAMETERS
+
+    rows = []
+    for p in params:
+        info = PARAMETERS[p]
+        row: dict[str, Any] = {"parameter": p, "label": info.label, "unit": info.unit}
+        for metric in TABLE_METRICS:
+            for name, ev in runs.items():
+                s = ev.stats.get(p)
+                row[f"{metric}_{name}"] = (s.n if metric == "n" else getattr(s, metric)) if s is not None else None
+        rows.append(row)
+    return rows

@@ -16,10 +16,6 @@ from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 from ..engine.tls.plot import PlotOutcome, ScanCache, default_links, pose_uncertainty  # noqa: F401 - the plot's types, for the front doors
-from ..engine.tls.plot import write_merged as export_merged  # noqa: F401 - the registered scans as one cloud
-from ..engine.tls.plot import write_poses as export_poses  # noqa: F401 - poses.json and the transforms
-from ..engine.tls.plot import write_registered_e57 as export_e57  # noqa: F401 - the registered scans with their poses
-from ..engine.tls.plot import write_registered_scans as export_scans  # noqa: F401 - each registered scan as a LAZ
 from ..engine.tls.project import Link, Project, ScanEntry  # noqa: F401 - the saved plot project
 from .common import RunOutcome, check_near_scanner, check_replaceable_point_file, import_in_background, with_cancel
 
@@ -43,7 +39,7 @@ class PlotRun(RunOutcome):
     written: dict = field(default_factory=dict)
 
     def evidence(self) -> dict:
-        return {"status": dict(self.result.status) if self.result is not None else {}}
+        return self.result.evidence() if self.result is not None else {}
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -250,7 +246,7 @@ def run_plot(
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".forestreg-tmp-products.", dir=out))
     try:
-        export_poses(project, tmp, outcome)
+        write_poses(project, tmp, outcome)
         try:
             from ..engine.report.plot_report import write_plot_report
 
@@ -265,14 +261,14 @@ def run_plot(
         raise
     written: dict = {}
     if merged:
-        written["merged"] = (Path(merged), export_merged(project, merged, scans))
+        written["merged"] = (Path(merged), write_merged(project, merged, scans))
     if registered_dir:
         from ..engine.core.atomic import output_folder
 
         with output_folder(registered_dir, "registered-scans") as rtmp:
-            written["registered_dir"] = (Path(registered_dir), export_scans(project, rtmp, scans))
+            written["registered_dir"] = (Path(registered_dir), write_registered_scans(project, rtmp, scans))
     if e57_out:
-        written["e57_out"] = (Path(e57_out), export_e57(project, e57_out, scans))
+        written["e57_out"] = (Path(e57_out), write_registered_e57(project, e57_out, scans))
     failed = outcome.failed
     reason = "; ".join(f"{n}: {outcome.reasons.get(n, 'failed')}" for n in failed)
     return PlotRun(status="failed" if failed else "ok", reason=reason, out=out, result=outcome, project=project,
@@ -298,3 +294,59 @@ def _publish(tmp: Path, out: Path, scan_names) -> None:
                 shutil.rmtree(target)
         os.replace(f, target)
     shutil.rmtree(tmp, ignore_errors=True)
+
+
+# ----------------------------------------------------------------------------- products
+
+
+def write_poses(project, out_dir, outcome=None) -> Path:
+    """Write ``poses.json`` (``{"frame": centre, "scans": {name: {"status", "matrix"}}}``, each
+    matrix mapping that scan's file coordinates into the centre scan's) and one
+    ``<scan>.transform.txt`` per registered scan. Returns the path of ``poses.json``."""
+    from ..engine.io.results import write_poses_files
+    from ..engine.tls.plot import poses_document
+
+    body, transforms = poses_document(project, outcome)
+    return write_poses_files(out_dir, body, transforms)
+
+
+def write_merged(project, path, scans=None) -> int:
+    """Write every registered scan, in the centre scan's file coordinates, into one point file
+    with a ``scan_id`` per point (the scan's index in the project). Returns the point count.
+
+    LAS/LAZ are written one scan at a time, so a plot larger than memory can be merged; a
+    ``*.copc.laz`` path gives a COPC file, also out of core; intensities are written when every
+    scan has them."""
+    from ..engine.io import write_point_chunks
+    from ..engine.tls.plot import merged_chunks
+
+    chunks, bounds, with_intensity = merged_chunks(project, path, scans)
+    return write_point_chunks(path, chunks, bounds=bounds, with_intensity=with_intensity, with_scan_id=True)
+
+
+def write_registered_e57(project, path, scans=None) -> int:
+    """Write the registered scans into one E57 file, each with its registered pose (its own
+    coordinates -> the centre scan's). Returns how many scans were written."""
+    from ..engine.io import write_e57
+    from ..engine.tls.plot import registered_scans
+
+    chosen = registered_scans(project, scans)
+    write_e57(path, [scan() for _, scan, _ in chosen], [pose for _, _, pose in chosen])
+    return len(chosen)
+
+
+def write_registered_scans(project, folder, scans=None, *, suffix: str = ".laz") -> int:
+    """Write each registered scan, transformed into the centre scan's file coordinates, as its own
+    file ``<folder>/<scan stem>_registered<suffix>``. Returns how many were written."""
+    from ..engine.io import write_scan
+    from ..engine.tls.plot import registered_scans
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    written = 0
+    for name, scan, pose in registered_scans(project, scans):
+        stem = Path(name).stem if Path(name).suffix else name
+        write_scan(scan(), out / f"{stem.replace('#', '_')}_registered{suffix}", matrix=pose)
+        written += 1
+    return written
+

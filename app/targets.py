@@ -39,7 +39,8 @@ def detect_targets(scans: Sequence, out, *, known: Optional[str] = None, max_dis
     from ..engine.core.atomic import check_output_file
     from ..engine.io import read_scan
     from ..engine.io.base import check_readable
-    from ..engine.tls.manual import detect_reflectors, match_detected_to_known, read_targets_csv, write_targets_csv
+    from ..engine.io.results import write_targets_csv
+    from ..engine.tls.manual import detect_reflectors, match_detected_to_known, read_targets_csv
 
     for p in scans:
         check_readable(p)
@@ -71,7 +72,7 @@ def read_targets(path) -> dict:
 
 def write_targets(path, targets_by_scan) -> None:
     """Write every scan's targets as a targets CSV (atomically)."""
-    from ..engine.tls.manual import write_targets_csv
+    from ..engine.io.results import write_targets_csv
 
     write_targets_csv(path, targets_by_scan)
 

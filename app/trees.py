@@ -85,9 +85,16 @@ def measure_trees_file(
     inventory = measure_trees_in(cloud, params, progress=progress, cancel=cancel)
     evaluation = None
     written = None
+    if not inventory:  # the data do not allow trees: the reason, and no folder (complete or absent)
+        return TreesOutcome(status="failed", reason=inventory.reason, timings=dict(inventory.timings), out=out, result=inventory,
+                            points=cloud.points)
     if out is not None:
         with output_folder(out, "trees") as tmp:
-            inventory.write(tmp, cloud.points, report=report, unit_scale=scale)
+            inventory.write(tmp, unit_scale=scale)
+            if report:
+                from ..engine.report.trees_report import write_inventory_report
+
+                write_inventory_report(tmp, inventory, cloud.points)
             written = (tmp / "report.html").exists()
             if field_table is not None:
                 evaluation = evaluate_into(tmp / "evaluation", [("trees", read_tree_table(tmp / "trees.csv"))], field_table,
@@ -98,6 +105,15 @@ def measure_trees_file(
     return TreesOutcome(status=status, reason=reason, timings=dict(inventory.timings), out=out, result=inventory,
                         points=cloud.points, evaluation=evaluation, report=out / "report.html" if written else None,
                         trees=len(inventory.trees))
+
+
+def read_trees_folder(folder):
+    """A ``forestreg trees`` output folder (:class:`~forestreg.engine.io.results.TreesOutput`),
+    its cylinder files read as :class:`~forestreg.engine.trees.qsm.CylinderModel`\ s."""
+    from ..engine.io.results import read_trees_dir
+    from ..engine.trees.qsm import CylinderModel
+
+    return read_trees_dir(folder, cylinder_model=CylinderModel)
 
 
 # ----------------------------------------------------------------------------- edits
@@ -125,9 +141,20 @@ def edit_notes(base, steps) -> dict:
     return notes(base, steps)
 
 
-def save_edited(folder, inventory, notes, edits, points):
-    """Write the edited inventory into ``folder`` (``trees.csv`` marks edited trees;
-    ``edits.json``); returns the path written."""
-    from ..engine.trees.edit import write_edited
+def save_edited(folder, inventory, notes, edits, points=None, *, report: bool = True) -> Path:
+    """Write the edited inventory like ``forestreg trees`` (with the points: also the report),
+    then add an ``edited`` column to ``trees.csv`` (the notes of each tree's edits, "" for the
+    others) and the edits as ``edits.json`` with the content hash of the cloud they were made on
+    (replayable on that cloud with :func:`~forestreg.engine.trees.edit.apply_edits`). Returns the
+    trees.csv path."""
+    from ..engine.io.results import write_edits
+    from ..engine.trees.edit import cloud_digest
 
-    return write_edited(folder, inventory, notes, edits, points)
+    path = inventory.write(folder)
+    if report and points is not None:
+        from ..engine.report.trees_report import write_inventory_report
+
+        write_inventory_report(folder, inventory, points)
+    cloud = None if points is None else {"points": int(len(points)), "sha256": cloud_digest(points)}
+    write_edits(path, notes, [e.to_dict() for e in edits], cloud)
+    return path

@@ -20,10 +20,18 @@ def cache_is_warm() -> bool:
 
 
 def mark_cache_warm() -> None:
-    """Record that the cache is complete."""
-    from ..engine.geometry.jit import mark_cache_warm as mark
+    """Record in the cache folder that the kernels of every module imported so far are compiled,
+    with a hash of each source file (what :func:`cache_is_warm` checks)."""
+    import json
+    import os
 
-    mark()
+    from ..engine.core.atomic import write_text_atomic
+    from ..engine.geometry.jit import WARM_MARK, kernel_cache_dir, warm_record
+
+    folder = kernel_cache_dir()
+    if folder:
+        os.makedirs(folder, exist_ok=True)
+        write_text_atomic(os.path.join(folder, WARM_MARK), json.dumps(warm_record(), indent=1))
 
 
 def compiled() -> tuple[int, int]:

@@ -121,7 +121,7 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
         else:
             print(f"wrote {count} registered scans with their poses to {args.e57_out}")
     sigma = run.uncertainty
-    for name, status in outcome.status.items():
+    for name, status in outcome.scans.items():
         extra = f" - {outcome.reasons[name]}" if name in outcome.reasons else ""
         link = project.link_of(name)
         onto = f" onto {link.reference}" if link is not None and status == "ok" else ""
@@ -139,7 +139,7 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
         print(f"report: {shown(out) / 'report.html'}")
     reporter.done("", out / "poses.json")
     n_ok = len(outcome.registered)
-    summary = f"{n_ok} of {len(outcome.status)} scans registered -> {shown(out) / 'poses.json'}"
+    summary = f"{n_ok} of {len(outcome.scans)} scans registered -> {shown(out) / 'poses.json'}"
     say(f"poses: {shown(out) / 'poses.json'}" if not outcome.failed else summary, args, err=bool(outcome.failed))
     return 0 if run else 1
 

@@ -60,6 +60,9 @@ def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", 
 def print_trees(outcome, reporter: Reporter, units: str = "m") -> int:
     """The lines of a trees run's outcome; returns the exit code."""
     out = outcome.out
+    if not outcome and outcome.evaluation is None:  # no tree: nothing written
+        say(f"failed: {outcome.reason}", argparse.Namespace(reporter=reporter), err=True)
+        return 1
     reporter.done("", out / "trees.csv")
     quiet = argparse.Namespace(reporter=reporter)
     for step, seconds in outcome.timings.items():  # the steps run, in order

@@ -73,30 +73,30 @@ def _silent_stdout() -> Iterator[None]:
 
 
 def _run_commands(folder: Path) -> int:
-    """Each command once on small simulated data in ``folder``; the first non-zero exit code."""
-    from ..app.simulation import simulated_coregistration
-    from . import main
+    """Each use case once on small simulated data in ``folder`` (the calls the commands make);
+    the first non-zero exit code."""
+    from ..app.coregistration import coregister_clouds
+    from ..app.pair import register_pair
+    from ..app.plot import new_project, plot_folder, run_plot
+    from ..app.simulation import simulate_scans, simulated_coregistration
+    from ..app.trees import measure_trees_file
+    from ..engine.params import ProductParams
 
-    quiet = ["-q", "--progress", "none"]
+    params = ProductParams()
     plot = folder / "plot"
-    code = main(["simulate", "planted_conifer", "--out", str(plot), "--positions", "0,0;8,0;4,7", "--size", "30", "--step", "0.4", *quiet])
-    scans = [str(plot / f"scan_0{k}.laz") for k in (1, 2, 3)]
+    simulate_scans("planted_conifer", [(0.0, 0.0), (8.0, 0.0), (4.0, 7.0)], plot, size_m=30.0, step_deg=0.4)
+    scans = [plot / f"scan_0{k}.laz" for k in (1, 2, 3)]
     runs = [
-        ["register", scans[0], scans[1], "--out", str(folder / "pair"), *quiet],
-        ["plot", *scans, "--out", str(folder / "plot_out"), *quiet],
-        ["trees", scans[0], "--out", str(folder / "trees_tls"), "--no-report", *quiet],
+        lambda: register_pair(scans[0], scans[1], folder / "pair", params.registration),
+        lambda: run_plot(new_project(scans, params.registration, name="plot_out"), plot_folder(folder / "plot_out", scans)),
+        lambda: measure_trees_file(scans[0], folder / "trees_tls", params.trees, report=False),
     ]
-    for argv in runs:
-        if code == 0:
-            code = main(argv)
-    if code != 0:
-        return code
-    simulated_coregistration(folder, seed=1, size_m=24.0, ground_extent_m=14.0, tls_step_deg=0.5)
-    for argv in (
-        ["coregister", str(folder / "ground.laz"), str(folder / "uav.laz"), "--out", str(folder / "coreg"), *quiet],
-        ["trees", str(folder / "uav.laz"), "--out", str(folder / "trees_uav"), "--no-report", *quiet],
-    ):
-        code = main(argv)
-        if code != 0:
-            return code
+    case = simulated_coregistration(folder, seed=1, size_m=24.0, ground_extent_m=14.0, tls_step_deg=0.5)
+    runs += [
+        lambda: coregister_clouds(case.ground, case.uav, folder / "coreg", params.coregistration),
+        lambda: measure_trees_file(case.uav, folder / "trees_uav", params.trees, report=False),
+    ]
+    for run in runs:
+        if not run():
+            return 1
     return 0

@@ -5,9 +5,7 @@ the same status and the same matrix (the same trees), because both call the same
 
 from __future__ import annotations
 
-import functools
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +15,6 @@ pytest.importorskip("pytestqt")
 
 from forestreg.cli import main  # noqa: E402
 from forestreg.engine.core.progress import CancelToken  # noqa: E402
-from forestreg.engine.io import write_scan  # noqa: E402
 
 
 def _run_now(worker, *, succeeded=None, failed=None, cancelled=None, progress=None, ended=None, **_):
@@ -37,40 +34,27 @@ def _run_now(worker, *, succeeded=None, failed=None, cancelled=None, progress=No
 
 
 @pytest.fixture(scope="module")
-def pair_files(tmp_path_factory, sim_plot):
-    plot = sim_plot("planted_conifer", ((0.0, 0.0), (9.0, 4.0)), seed=1)
-    folder = tmp_path_factory.mktemp("app_pair")
-    paths = []
-    for s in plot.scans:
-        path = folder / f"{s.scan.name}.laz"
-        write_scan(s.scan, path)
-        paths.append(path)
-    return paths
+def pair_case(tmp_path_factory):
+    """The demo's TLS pair (two simulated scans 12 m apart)."""
+    from forestreg.app.simulation import simulated_pair
 
-
-@functools.lru_cache(maxsize=None)
-def _coreg_case():
-    from forestreg.engine.simulate.platforms import simulate_coregistration_case
-
-    return simulate_coregistration_case("planted_conifer", seed=0, size_m=28.0, ground_platform="backpack", heading_deg=120.0,
-                                        offset_m=(5.0, -5.0, 1.0), uav_density_scale=0.3, backpack_density_scale=0.1)
+    return simulated_pair(tmp_path_factory.mktemp("app_pair"), "planted_conifer", seed=1, step_deg=0.25)
 
 
 @pytest.fixture(scope="module")
-def coreg_files(tmp_path_factory):
-    case = _coreg_case()
-    folder = tmp_path_factory.mktemp("app_coreg")
-    write_scan(case.ground, folder / "ground.laz")
-    write_scan(case.uav, folder / "uav.laz")
-    return folder / "ground.laz", folder / "uav.laz"
+def coreg_case(tmp_path_factory):
+    """The demo's ground-based and UAV clouds of one plot."""
+    from forestreg.app.simulation import simulated_coregistration
+
+    return simulated_coregistration(tmp_path_factory.mktemp("app_coreg"), seed=1, size_m=24.0, ground_extent_m=14.0, tls_step_deg=0.5)
 
 
-def test_pair_registration_same_verdict_on_the_command_line_and_the_desktop(pair_files, tmp_path):
+def test_pair_registration_same_verdict_on_the_command_line_and_the_desktop(pair_case, tmp_path):
     from forestreg.app.plot import Project
     from forestreg.engine.params import ProductParams
     from forestreg.ui.worker import RegistrationWorker
 
-    ref, mov = pair_files
+    ref, mov = pair_case.reference, pair_case.moving
     out = tmp_path / "cli"
     code = main(["register", str(ref), str(mov), "--out", str(out), "--quiet"])
     cli = json.loads((out / "result.json").read_text())
@@ -82,15 +66,15 @@ def test_pair_registration_same_verdict_on_the_command_line_and_the_desktop(pair
     worker = RegistrationWorker(project)
     outcome = worker._register(lambda f, m: None, CancelToken())  # the desktop's task code
     link = project.link_of(project.scans[1].name)
-    assert outcome.status[project.scans[1].name] == cli["status"]
+    assert outcome.scans[project.scans[1].name] == cli["status"]
     assert link.result.status == cli["status"]
     np.testing.assert_allclose(link.result.matrix, np.array(cli["matrix"]), atol=1e-6)
 
 
-def test_coregistration_same_verdict_on_the_command_line_and_the_desktop(qtbot, coreg_files, tmp_path):
+def test_coregistration_same_verdict_on_the_command_line_and_the_desktop(qtbot, coreg_case, tmp_path):
     from forestreg.ui.coreg_view import CoregistrationView
 
-    ground, uav = coreg_files
+    ground, uav = coreg_case.ground, coreg_case.uav
     out = tmp_path / "cli"
     code = main(["coregister", str(ground), str(uav), "--out", str(out), "--quiet"])
     cli = json.loads((out / "result.json").read_text())
@@ -115,11 +99,11 @@ def test_coregistration_withheld_matrix_is_withheld_everywhere():
     assert summary["status"] == "failed" and summary["matrix"] is None and "withheld" in summary["reason"]
 
 
-def test_trees_same_trees_on_the_command_line_and_the_desktop(qtbot, coreg_files, tmp_path):
+def test_trees_same_trees_on_the_command_line_and_the_desktop(qtbot, coreg_case, tmp_path):
     from forestreg.engine.io.results import read_trees_dir, trees_output_from_inventory
     from forestreg.ui.trees_view import TreesView
 
-    ground, _ = coreg_files
+    ground = coreg_case.ground
     out = tmp_path / "cli"
     code = main(["trees", str(ground), "--out", str(out), "--no-report", "--quiet"])
     assert code == 0
@@ -130,7 +114,7 @@ def test_trees_same_trees_on_the_command_line_and_the_desktop(qtbot, coreg_files
     assert view.measure(str(ground))
     assert view.base_inventory is not None
     desk = trees_output_from_inventory(view.base_inventory)
-    assert len(desk.trees) == len(cli.trees) > 10
+    assert len(desk.trees) == len(cli.trees) > 3
     # the same trees; the two runs are not bit-identical (measured: stem centres 3 mm apart), so
     # positions agree within 2 cm and diameters within 1 cm
     far = [(a.tree_id, b.tree_id) for a, b in zip(desk.trees, cli.trees) if np.hypot(a.x - b.x, a.y - b.y) > 0.02]

@@ -11,7 +11,7 @@ import pytest
 from forestreg.cli import main
 from forestreg.engine.tls.compare import compare_auto_manual
 from forestreg.engine.io import write_scan
-from forestreg.engine.tls.manual import write_targets_csv
+from forestreg.engine.io.results import write_targets_csv
 from forestreg.engine.tls.project import Project
 
 POSITIONS = ((0.0, 0.0), (9.0, 3.0), (-7.0, 7.0), (2.0, -10.0))

@@ -19,7 +19,7 @@ from forestreg.engine.trees.evaluate import (
     read_tree_table,
     tree_table_from_rows,
 )
-from forestreg.engine.io.evaluation import write_evaluation
+from forestreg.app.evaluation import write_evaluation
 
 
 def _write(path, text):

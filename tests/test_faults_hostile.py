@@ -372,13 +372,14 @@ def test_edits_replayed_on_another_cloud_of_the_same_size_are_refused(tmp_path, 
     """Row 8: edits.json records the content hash of the cloud they were made on; replaying them
     on another cloud with the same number of points is refused (the same cloud replays)."""
     from forestreg.engine.core.errors import ParameterError
+    from forestreg.app.trees import save_edited
     from forestreg.engine.trees import edit as E
 
     points, inv, params = inventory
     tree = inv.trees[0].tree_id
     edits = [E.TreeEdit("delete", (tree,))]
     after = E.apply_edits(points, inv, edits, params)
-    E.write_edited(tmp_path / "edited", after, E.edit_notes(inv, [(edits[0], after)]), edits, points, report=False)
+    save_edited(tmp_path / "edited", after, E.edit_notes(inv, [(edits[0], after)]), edits, points, report=False)
     files = _tree(tmp_path / "edited")
     assert json.loads((tmp_path / "edited" / "edits.json").read_text())["cloud"]["points"] == len(points)
     read = E.read_edits(tmp_path / "edited" / "edits.json")

@@ -20,8 +20,8 @@ from forestreg.engine.tls.manual import (
     suspect_targets,
     target_residuals,
     targets_for,
-    write_targets_csv,
 )
+from forestreg.engine.io.results import write_targets_csv
 from forestreg.engine.tls.params import RegistrationParams
 from forestreg.engine.core.progress import CancelToken
 from forestreg.engine.core.scan import Scan

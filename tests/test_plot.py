@@ -11,7 +11,8 @@ import pytest
 from forestreg.cli import main
 from forestreg.engine.core.errors import Cancelled, ProjectFileError
 from forestreg.engine.io import read_scan, write_scan
-from forestreg.engine.tls.plot import adjust_poses, register_project, write_poses
+from forestreg.app.plot import write_poses
+from forestreg.engine.tls.plot import adjust_poses, register_project
 from forestreg.engine.tls.project import Project
 from forestreg.engine.core.transform import rigid_errors
 
@@ -209,7 +210,8 @@ def test_a_cache_without_intensity_holds_the_same_points(four_scan_files):
 
 def test_multi_scan_e57_opens_as_a_project_and_poses_are_written_back(four_scan_files, tmp_path):
     from forestreg.engine.io import read_scans, write_e57
-    from forestreg.engine.tls.plot import ScanCache, project_from_e57, write_registered_e57
+    from forestreg.app.plot import write_registered_e57
+    from forestreg.engine.tls.plot import ScanCache, project_from_e57
 
     plot, paths = four_scan_files
     e57 = tmp_path / "plot.e57"
@@ -230,7 +232,7 @@ def test_multi_scan_e57_opens_as_a_project_and_poses_are_written_back(four_scan_
 
 
 def test_registered_scans_are_written_one_file_each_in_the_centre_frame(four_scan_files, registered_four, tmp_path):
-    from forestreg.engine.tls.plot import write_registered_scans
+    from forestreg.app.plot import write_registered_scans
 
     plot, paths = four_scan_files
     project = Project.load(registered_four[0])
@@ -246,7 +248,8 @@ def test_a_plot_larger_than_the_scan_cache_registers_and_merges_the_same(four_sc
     """Out of core: with room for one scan in memory, scans are read again when needed; the links
     are bit for bit those of the run that kept every scan, and the merged LAZ (written one scan at a
     time) and PLY (gathered) hold every point of every scan in the centre frame."""
-    from forestreg.engine.tls.plot import ScanCache, write_merged
+    from forestreg.app.plot import write_merged
+    from forestreg.engine.tls.plot import ScanCache
 
     plot, paths = four_scan_files
     done = Project.load(registered_four[0])
@@ -369,6 +372,7 @@ def test_merged_laz_written_in_blocks_keeps_every_point_in_order(four_scan_files
     every scan in order, in the centre frame, with its intensity and scan id."""
     import laspy
 
+    from forestreg.app.plot import write_merged
     from forestreg.engine.io.las import intensity_to_uint16
     from forestreg.engine.tls import plot as plot_module
 
@@ -376,7 +380,7 @@ def test_merged_laz_written_in_blocks_keeps_every_point_in_order(four_scan_files
     project = Project.load(registered_four[0])
     scans = plot_module.ScanCache(project)
     monkeypatch.setattr(plot_module, "MERGE_BLOCK_POINTS", 7777)
-    n = plot_module.write_merged(project, tmp_path / "merged.laz", scans)
+    n = write_merged(project, tmp_path / "merged.laz", scans)
     assert not scans._scans, "the scans were not kept"
     las = laspy.read(tmp_path / "merged.laz")
     poses = project.poses()

@@ -245,9 +245,9 @@ def test_sphere_grid_sorted_in_place_equals_its_sorted_copy():
 def test_warm_up_loads_the_kernel_the_commands_load_first():
     # a command loads one kernel in a background thread while it reads its files (LLVM's
     # start-up); the signature loaded must be the one the commands' own calls use
-    from forestreg.engine.geometry import jit, voxel
+    from forestreg.engine.geometry import voxel
 
-    jit.warm_up()
+    voxel.warm_up()
     signatures = list(voxel._bounds_kernel.signatures)
     voxel.column_bounds(np.random.default_rng(1).random((50, 3)) * 100.0)
     assert signatures and list(voxel._bounds_kernel.signatures) == signatures

@@ -12,7 +12,8 @@ import pytest
 from forestreg.engine.core.scan import Scan
 from forestreg.engine.core.transform import matrix_from_yaw, rigid_errors
 from forestreg.engine.io import read_scan, write_scan
-from forestreg.engine.tls.plot import ScanCache, write_poses
+from forestreg.app.plot import write_poses
+from forestreg.engine.tls.plot import ScanCache
 from forestreg.engine.tls.project import Project
 from forestreg.engine.tls.scanner_position import ScannerPositionError, locate_scanner
 from forestreg.engine.tls.survey import SurveyParams, register_survey

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from forestreg.engine.core.errors import ParameterError, ScanDataError
+from forestreg.app.trees import save_edited
 from forestreg.engine.io.results import read_trees_dir
 from forestreg.engine.trees import edit as E
 from forestreg.engine.trees.inventory import TreeParams, measure_trees
@@ -104,7 +105,7 @@ def test_edits_are_written_marked_and_replayed(tmp_path):
         steps.append((e, cur))
     notes = E.edit_notes(inv, steps)
     assert set(notes) == {a.tree_id} and "merged with tree" in notes[a.tree_id] and "1.60 m" in notes[a.tree_id]
-    E.write_edited(tmp_path, cur, notes, edits, report=False)
+    save_edited(tmp_path, cur, notes, edits, report=False)
     out = read_trees_dir(tmp_path)
     assert len(out.trees) == len(inv.trees) - 1
     marked = {t.tree_id: t.edited for t in out.trees if t.edited}

@@ -117,7 +117,8 @@ def test_picked_targets_and_manual_registration(qtbot, window, open_project, plo
 
 
 def test_targets_table_csv_round_trip_and_reflectors(qtbot, window, open_project, plot, project_file: Path, tmp_path: Path) -> None:
-    from forestreg.engine.tls.manual import read_targets_csv, write_targets_csv
+    from forestreg.engine.io.results import write_targets_csv
+    from forestreg.engine.tls.manual import read_targets_csv
 
     sim, _ = plot
     open_project(project_file)

@@ -40,7 +40,7 @@ def trees_dir(cloud, tmp_path_factory):
     _, _, scan = cloud
     inv = measure_trees(scan.points, TreeParams(), origin_shift=scan.origin_shift)
     folder = tmp_path_factory.mktemp("trees_out")
-    inv.write(folder, report=False)
+    inv.write(folder)
     return folder, inv
 
 

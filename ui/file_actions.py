@@ -257,7 +257,7 @@ class FileActionsMixin:
 
     def export_poses(self, folder: str | Path) -> None:
         """``write_poses`` into ``folder`` (in the background)."""
-        from ..app.plot import export_poses as write_poses
+        from ..app.plot import write_poses
 
         project, outcome = self.project, self.last_outcome
         self._export("export transforms", lambda: write_poses(project, folder, outcome),
@@ -265,7 +265,7 @@ class FileActionsMixin:
 
     def export_merged(self, path: str | Path) -> None:
         """``write_merged`` to ``path`` (in the background)."""
-        from ..app.plot import export_merged as write_merged
+        from ..app.plot import write_merged
 
         project, scans = self.project, self.scans
         self._export("export merged", lambda: write_merged(project, path, scans),
@@ -273,7 +273,7 @@ class FileActionsMixin:
 
     def export_scans(self, folder: str | Path) -> None:
         """``write_registered_scans`` into ``folder`` (in the background)."""
-        from ..app.plot import export_scans as write_registered_scans
+        from ..app.plot import write_registered_scans
 
         project, scans = self.project, self.scans
         self._export("export scans", lambda: write_registered_scans(project, folder, scans),
@@ -282,7 +282,7 @@ class FileActionsMixin:
 
     def export_e57(self, path: str | Path) -> None:
         """``write_registered_e57`` to ``path`` (in the background)."""
-        from ..app.plot import export_e57 as write_registered_e57
+        from ..app.plot import write_registered_e57
 
         project, scans = self.project, self.scans
         self._export("export e57", lambda: write_registered_e57(project, path, scans),

@@ -87,7 +87,7 @@ def _uncertainty_item(u: Any) -> QTableWidgetItem:
 
 
 def _link_ambiguity(link: Link) -> Optional[float]:
-    res = link.result or {}
+    res = link.result if link.result is not None else {}
     value = (res.get("quality") or {}).get("ambiguity")
     return float(value) if _num(value) else None
 
@@ -147,7 +147,7 @@ class LinkResultsTable(_Table):
         self.setRowCount(len(project.links))
         dropped = dropped_links(project)
         for r, link in enumerate(project.links):
-            res: Mapping[str, Any] = link.result or {}
+            res: Mapping[str, Any] = link.result if link.result is not None else {}
             icp = res.get("icp") if isinstance(res.get("icp"), Mapping) else {}
             terrain = (res.get("quality") or {}).get("terrain_median_m") if isinstance(res.get("quality"), Mapping) else None
             drop_reason = dropped.get((link.moving, link.reference))

@@ -121,10 +121,10 @@ class SystemBMixin:
 
     def _show_trees(self, folder: str | Path, cloud: Optional[str | Path] = None, *, select: Optional[int] = None) -> bool:
         from ..engine.io import read_scan
-        from ..engine.io.results import read_trees_dir
+        from ..app.trees import read_trees_folder
 
         try:
-            out = read_trees_dir(folder)
+            out = read_trees_folder(folder)
             points = read_scan(cloud).file_points if cloud else None
         except ForestregError as exc:
             self.show_error("Cannot open the trees result", str(exc))

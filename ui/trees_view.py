@@ -1,7 +1,7 @@
 """The trees view: a plot map linked to a sortable table of every tree and measure, and the
 selected tree in 3D (its cylinder model, its stem circles, the points around it) with its stem
 curve. It shows a ``forestreg trees --out DIR`` folder read by
-:func:`forestreg.engine.io.results.read_trees_dir`; nothing is measured here.
+:func:`forestreg.app.trees.read_trees_folder`; nothing is measured here.
 
 Flagged trees (incomplete, failed fits, ...) are drawn red on the map and their rows are tinted,
 with the engine's reason in the "Flag" column and as tooltip.
@@ -506,11 +506,14 @@ class TreesView(QWidget):
 
         def task(progress: Any, cancel: Any) -> tuple[Any, np.ndarray]:
             from ..app.trees import measure_trees_in
+            from ..engine.core.errors import ScanDataError
             from ..engine.io import read_scan
 
             progress(0.0, "reading the cloud")
             scan = read_scan(cloud)
             inv = measure_trees_in(scan, params, progress=lambda f, m: progress(0.05 + 0.95 * f, m), cancel=cancel)
+            if not inv:  # the data do not allow trees: said as the window says any failure
+                raise ScanDataError(inv.reason)
             return inv, scan.points
 
         def done(result: tuple[Any, np.ndarray]) -> None:

@@ -190,3 +190,40 @@ def _final_dir_mode() -> int:
     umask = os.umask(0)
     os.umask(umask)
     return 0o777 & ~umask
+
+
+# ----------------------------------------------------------------------------- locks between processes
+
+#: Lock files this process holds (path -> depth); changed by one thread at a time (the caller's lock).
+_HELD_LOCKS: dict[str, int] = {}
+
+
+@contextlib.contextmanager
+def file_lock(path: str) -> Iterator[None]:
+    """An exclusive lock on ``path`` between processes (``flock``; re-entrant within this process,
+    whose threads take it one at a time under the caller's own lock, e.g. numba's compiler
+    lock). Without ``fcntl`` (Windows), or when the file cannot be made, no lock."""
+    if path in _HELD_LOCKS:
+        _HELD_LOCKS[path] += 1
+        try:
+            yield
+        finally:
+            _HELD_LOCKS[path] -= 1
+        return
+    try:
+        import fcntl
+
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except (ImportError, OSError):
+        yield
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        _HELD_LOCKS[path] = 1
+        try:
+            yield
+        finally:
+            del _HELD_LOCKS[path]
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)

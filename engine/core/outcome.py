@@ -182,8 +182,8 @@ class OutcomeRecord(Mapping):
     def ok(self) -> bool:
         return self.status == "ok"
 
-    def __bool__(self) -> bool:  # a failed record is still a record: test ``is None`` for "not run"
-        return True
+    def __bool__(self) -> bool:  # falsy when not ok, as every outcome; test ``is None`` for "not run"
+        return self.ok
 
     # read-only mapping over the JSON data
     def __getitem__(self, key: str) -> Any:

@@ -35,6 +35,7 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
 from ..core.errors import ParameterError, ScanDataError
+from ..core.outcome import Outcome
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress, ProgressCallback
 from ..core.transform import apply as apply_transform
@@ -493,7 +494,7 @@ def _paper_noise_sorted(sorted_pts: np.ndarray, params: FusionParams, prog: Prog
 
 
 @dataclass(frozen=True, eq=False)
-class FusionResult:
+class FusionResult(Outcome):
     """The fused cloud.
 
     Attributes
@@ -521,9 +522,26 @@ class FusionResult:
     extra: dict[str, np.ndarray]
     params: FusionParams
     seconds: dict[str, float] = field(default_factory=dict)
+    status: str = "ok"
+    reason: str = ""
+
+    method = "redundancy + statistical noise removal"
+    convention = "points in the inputs' common frame"
+    matrix = None
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def __bool__(self) -> bool:  # an outcome (falsy when not ok), not a container
+        return self.ok
+
+    @property
+    def timings(self) -> dict[str, float]:  # type: ignore[override]
+        """Seconds per step (``seconds``)."""
+        return self.seconds
+
+    def evidence(self) -> dict[str, Any]:
+        return {"counts": self.counts, "points": len(self.points)}
 
     def summary(self) -> dict[str, Any]:
         """JSON-able counts, parameters and timings."""

@@ -8,7 +8,7 @@ from typing import Optional
 
 import numpy as np
 
-from .features import SphereGrid, _first_at_least
+from .features import SphereGrid, first_at_least
 from .jit import kernel
 
 __all__ = ["connected_clusters"]
@@ -43,7 +43,7 @@ def _link_pairs(
             for ay in range(max(iy - 1, 0), min(iy + 2, ny)):
                 col = ax * ny + ay
                 a1 = column_start[col + 1]
-                t = _first_at_least(cell_z, column_start[col], a1, iz - 1)
+                t = first_at_least(cell_z, column_start[col], a1, iz - 1)
                 while t < a1 and cell_z[t] <= iz + 1:
                     if t > s:
                         ri = _root(parent, i)

@@ -20,87 +20,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .jit import kernel, run_blocks, worker_count
+from .sums import pairwise_sum, segment_sum
 
 __all__ = ["SphereGrid", "eigen_features", "local_covariances", "nearest_within", "neighbour_means", "normals_and_variation"]
-
-
-# --------------------------------------------------------------------------------------------
-# Sums in NumPy's order
-# --------------------------------------------------------------------------------------------
-
-
-@kernel
-def _block_sum(a: np.ndarray, start: int, n: int) -> float:
-    """NumPy's pairwise sum of ``a[start:start + n]`` for ``n <= 128``: below 8 values one after
-    the other, else eight running sums combined in pairs, then the rest."""
-    if n < 8:
-        res = 0.0
-        for i in range(n):
-            res += a[start + i]
-        return res
-    r0, r1, r2, r3 = a[start], a[start + 1], a[start + 2], a[start + 3]
-    r4, r5, r6, r7 = a[start + 4], a[start + 5], a[start + 6], a[start + 7]
-    i = 8
-    whole = n - n % 8
-    while i < whole:
-        j = start + i
-        r0 += a[j]
-        r1 += a[j + 1]
-        r2 += a[j + 2]
-        r3 += a[j + 3]
-        r4 += a[j + 4]
-        r5 += a[j + 5]
-        r6 += a[j + 6]
-        r7 += a[j + 7]
-        i += 8
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[start + i]
-        i += 1
-    return res
-
-
-@kernel
-def _pairwise_sum(a: np.ndarray, start: int, n: int) -> float:
-    """Sum of ``a[start:start + n]`` as NumPy's ``add.reduce`` of a contiguous float64 array
-    with the initial value 0 takes it: blocks of at most 128 values (:func:`_block_sum`), longer
-    runs split in two (the first half a multiple of 8) and the halves' sums added. The halving is
-    walked with an explicit stack (cached kernels must not recurse)."""
-    if n <= 128:
-        return _block_sum(a, start, n)
-    lo = np.empty(64, dtype=np.int64)  # depth <= log2(n)
-    size = np.empty(64, dtype=np.int64)
-    left = np.empty(64)
-    state = np.zeros(64, dtype=np.int64)  # 0: left half pending, 1: right half pending
-    top = 0
-    lo[0], size[0], state[0] = start, n, 0
-    while True:
-        if size[top] > 128:  # descend into the left half
-            half = size[top] // 2
-            half -= half % 8
-            lo[top + 1], size[top + 1], state[top + 1] = lo[top], half, 0
-            top += 1
-            continue
-        v = _block_sum(a, lo[top], size[top])
-        top -= 1
-        while top >= 0 and state[top] == 1:  # both halves done: add them, go up
-            v = left[top] + v
-            top -= 1
-        if top < 0:
-            return v
-        left[top] = v  # left half done: the right half next
-        state[top] = 1
-        half = size[top] // 2
-        half -= half % 8
-        lo[top + 1], size[top + 1], state[top + 1] = lo[top] + half, size[top] - half, 0
-        top += 1
-
-
-@kernel
-def _segment_sum(a: np.ndarray, n: int) -> float:
-    """Sum of ``a[:n]`` (n >= 1) as ``np.add.reduceat`` takes a segment: the first value plus the
-    pairwise sum of the rest."""
-    return a[0] + _pairwise_sum(a, 1, n - 1)
 
 
 @kernel
@@ -117,27 +39,27 @@ def _offset_covariance(
         dy[t] = pts[s, 1] - qy
         dz[t] = pts[s, 2] - qz
     w = float(m)
-    mx = _segment_sum(dx, m) / w
-    my = _segment_sum(dy, m) / w
-    mz = _segment_sum(dz, m) / w
+    mx = segment_sum(dx, m) / w
+    my = segment_sum(dy, m) / w
+    mz = segment_sum(dz, m) / w
     for t in range(m):
         pr[t] = dx[t] * dx[t]
-    out[0, 0] = _segment_sum(pr, m) / w - mx * mx
+    out[0, 0] = segment_sum(pr, m) / w - mx * mx
     for t in range(m):
         pr[t] = dx[t] * dy[t]
-    out[0, 1] = out[1, 0] = _segment_sum(pr, m) / w - mx * my
+    out[0, 1] = out[1, 0] = segment_sum(pr, m) / w - mx * my
     for t in range(m):
         pr[t] = dx[t] * dz[t]
-    out[0, 2] = out[2, 0] = _segment_sum(pr, m) / w - mx * mz
+    out[0, 2] = out[2, 0] = segment_sum(pr, m) / w - mx * mz
     for t in range(m):
         pr[t] = dy[t] * dy[t]
-    out[1, 1] = _segment_sum(pr, m) / w - my * my
+    out[1, 1] = segment_sum(pr, m) / w - my * my
     for t in range(m):
         pr[t] = dy[t] * dz[t]
-    out[1, 2] = out[2, 1] = _segment_sum(pr, m) / w - my * mz
+    out[1, 2] = out[2, 1] = segment_sum(pr, m) / w - my * mz
     for t in range(m):
         pr[t] = dz[t] * dz[t]
-    out[2, 2] = _segment_sum(pr, m) / w - mz * mz
+    out[2, 2] = segment_sum(pr, m) / w - mz * mz
 
 
 # --------------------------------------------------------------------------------------------
@@ -218,7 +140,7 @@ def _split_cell_keys(key: np.ndarray, layers: int, counts: np.ndarray) -> None:
 
 
 @kernel
-def _first_at_least(a: np.ndarray, lo: int, hi: int, v: int) -> int:
+def first_at_least(a: np.ndarray, lo: int, hi: int, v: int) -> int:
     while lo < hi:
         mid = (lo + hi) >> 1
         if a[mid] < v:
@@ -258,7 +180,7 @@ def _offer_layers(
     it); returns the new count."""
     col = ax * ny + ay
     a1 = column_start[col + 1]
-    s = _first_at_least(cell_z, column_start[col], a1, z0)
+    s = first_at_least(cell_z, column_start[col], a1, z0)
     while s < a1 and cell_z[s] <= z1:
         ex = pts[s, 0] - qx
         ey = pts[s, 1] - qy
@@ -495,7 +417,7 @@ def _neighbour_mean_rows(
         m = _nearest_in_sphere(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)
         for t in range(k):
             slots[t] = values[best_index[t]] if t < m else 0.0
-        out[i] = _pairwise_sum(slots, 0, k) / m if m > 0 else np.nan
+        out[i] = pairwise_sum(slots, 0, k) / m if m > 0 else np.nan
 
 
 def neighbour_means(points: np.ndarray, values: np.ndarray, radius_m: float, k: int) -> np.ndarray:

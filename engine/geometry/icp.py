@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.transform import rotation_from_vector
-from .features import SphereGrid, _first_at_least, local_covariances, nearest_within, normals_and_variation
+from .features import SphereGrid, first_at_least, local_covariances, nearest_within, normals_and_variation
 from .jit import kernel, run_blocks, worker_count
 from .voxel import VoxelGrid, column_bounds, voxel_downsample
 
@@ -358,7 +358,7 @@ def _nearest_member_rows(
             for ay in range(max(iy - ring, 0), min(iy + ring + 1, ny)):
                 col = ax * ny + ay
                 a1 = column_start[col + 1]
-                s = _first_at_least(cell_z, column_start[col], a1, iz - ring)
+                s = first_at_least(cell_z, column_start[col], a1, iz - ring)
                 while s < a1 and cell_z[s] <= iz + ring:
                     ex = centroids[s, 0] - qx
                     ey = centroids[s, 1] - qy

@@ -26,7 +26,9 @@ import numba
 from numba.core import caching, sigutils
 from numba.core.compiler_lock import global_compiler_lock
 
-__all__ = ["kernel", "kernel_cache_dir", "kernels", "run_blocks", "warm_up", "worker_count"]
+from ..core.atomic import file_lock
+
+__all__ = ["kernel", "kernel_cache_dir", "kernels", "run_blocks", "worker_count"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +91,13 @@ def _source_hashes(files: Iterable[str]) -> dict[str, str]:
     return out
 
 
+def warm_record() -> dict[str, Any]:
+    """What :func:`cache_is_warm` checks, for the kernels of every module imported so far: their
+    count and a hash of each source file (written by ``forestreg warmup`` as :data:`WARM_MARK`)."""
+    files = sorted({k.py_func.__code__.co_filename for k in _KERNELS})
+    return {"kernels": len(_KERNELS), "files": _source_hashes(files)}
+
+
 def cache_is_warm(files: Optional[Iterable[str]] = None) -> bool:
     """Whether ``forestreg warmup`` has compiled the kernels of the source ``files`` (default:
     every file it compiled) into :func:`kernel_cache_dir`, and they have not changed since."""
@@ -104,21 +113,6 @@ def cache_is_warm(files: Optional[Iterable[str]] = None) -> bool:
         return False
     files = list(recorded) if files is None else list(files)
     return bool(files) and all(recorded.get(k) == v for k, v in _source_hashes(files).items())
-
-
-def mark_cache_warm() -> None:
-    """Record in :func:`kernel_cache_dir` that the kernels of every module imported so far are
-    compiled (``forestreg warmup``), with a hash of each source file."""
-    import json
-
-    folder = kernel_cache_dir()
-    if folder:
-        os.makedirs(folder, exist_ok=True)
-        files = sorted({k.py_func.__code__.co_filename for k in _KERNELS})
-        tmp = os.path.join(folder, f"{WARM_MARK}.{os.getpid()}.tmp")
-        with open(tmp, "w", encoding="utf-8") as f:
-            json.dump({"kernels": len(_KERNELS), "files": _source_hashes(files)}, f, indent=1)
-        os.replace(tmp, os.path.join(folder, WARM_MARK))
 
 
 # numba's names (public since numba 0.62, with a leading underscore before)
@@ -232,41 +226,6 @@ def _say_compiling(source: str) -> None:
 #: Seconds the first command after an install spends compiling its kernels (measured on 2 cores).
 FIRST_COMPILE_S = 45
 
-#: Lock files this process holds (path -> depth); changed only under numba's compiler lock.
-_HELD: dict[str, int] = {}
-
-
-@contextlib.contextmanager
-def _lock_file(path: str) -> Iterator[None]:
-    """An exclusive lock on ``path`` between processes (``flock``; re-entrant within this process,
-    whose threads compile one at a time under numba's compiler lock). Without ``fcntl`` (Windows),
-    or when the file cannot be made, no lock: numba's own atomic writes remain."""
-    if path in _HELD:
-        _HELD[path] += 1
-        try:
-            yield
-        finally:
-            _HELD[path] -= 1
-        return
-    try:
-        import fcntl
-
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
-    except (ImportError, OSError):
-        yield
-        return
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        _HELD[path] = 1
-        try:
-            yield
-        finally:
-            del _HELD[path]
-            fcntl.flock(fd, fcntl.LOCK_UN)
-    finally:
-        os.close(fd)
-
-
 def _locked_compile(dispatcher: Any) -> None:
     """Make ``dispatcher.compile`` (numba calls it for every signature not yet in memory) hold
     numba's compiler lock and then the kernel's lock file: of several processes compiling one
@@ -281,23 +240,10 @@ def _locked_compile(dispatcher: Any) -> None:
             args, _ = sigutils.normalize_signature(sig)
             if tuple(args) in dispatcher.overloads:
                 return compile_now(sig)
-            with _lock_file(cache.lock_path):
+            with file_lock(cache.lock_path):
                 return compile_now(sig)
 
     dispatcher.compile = compile
-
-
-def warm_up() -> None:
-    """Load one small compiled kernel now (from the cache, or compiled): the first kernel a
-    process loads starts numba's compiler, LLVM (~0.3 s and ~40 MB, whichever kernel it is; each
-    later one takes a few milliseconds). A command calls this in a background thread while its
-    files are read (:func:`forestreg.cli.common.import_in_background`), so that the start-up is
-    not spent in its first step."""
-    import numpy as np
-
-    from .voxel import column_bounds
-
-    column_bounds(np.zeros((1, 3)))  # the signature the commands' own calls load
 
 
 def worker_count() -> int:

@@ -19,11 +19,11 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from .features import _segment_sum
+from .sums import segment_sum
 from .jit import kernel, run_blocks
 from .sorting import sort_keys
 
-__all__ = ["VoxelGrid", "column_bounds", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_thin"]
+__all__ = ["VoxelGrid", "column_bounds", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_thin", "warm_up"]
 
 
 def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -407,6 +407,15 @@ def _centroid_rows(start: int, stop: int, pts: np.ndarray, order: np.ndarray, bo
         if n == 1:
             out[v, 0], out[v, 1], out[v, 2] = ax, ay, az
         else:
-            out[v, 0] = ax + _segment_sum(offsets[0], n) / n
-            out[v, 1] = ay + _segment_sum(offsets[1], n) / n
-            out[v, 2] = az + _segment_sum(offsets[2], n) / n
+            out[v, 0] = ax + segment_sum(offsets[0], n) / n
+            out[v, 1] = ay + segment_sum(offsets[1], n) / n
+            out[v, 2] = az + segment_sum(offsets[2], n) / n
+
+
+def warm_up() -> None:
+    """Load one small compiled kernel now (from the cache, or compiled): the first kernel a
+    process loads starts numba's compiler, LLVM (~0.3 s and ~40 MB, whichever kernel it is; each
+    later one takes a few milliseconds). A command calls this in a background thread while its
+    files are read (:func:`forestreg.app.common.import_in_background`), so that the start-up is
+    not spent in its first step."""
+    column_bounds(np.zeros((1, 3)))  # the signature the commands' own calls load

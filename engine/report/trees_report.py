@@ -66,6 +66,15 @@ TABLE_COLUMNS = (
 _RNG_SEED = 7
 
 
+def write_inventory_report(out_dir: str | os.PathLike[str], inventory: Any, points: np.ndarray, *, title: str = "forestreg trees") -> Path:
+    """:func:`write_trees_report` of a tree inventory (``rows()``, ``trees``, ``labels``,
+    ``wood_probability``, ``origin_shift``) and the cloud it was measured in (local frame)."""
+    shift = np.asarray(inventory.origin_shift, dtype=np.float64)
+    cyl = {t.tree_id: t.cylinders.to_table() for t in inventory.trees if t.cylinders is not None}
+    rows = [{**r, "x": r["x"] - shift[0], "y": r["y"] - shift[1]} for r in inventory.rows()]
+    return write_trees_report(out_dir, rows, points, inventory.labels, inventory.wood_probability, cyl, title=title)
+
+
 def write_trees_report(
     out_dir: str | os.PathLike[str],
     trees: Sequence[Mapping[str, Any]],

@@ -9,15 +9,10 @@ centres of the same target seen from different scans once every scan is in the c
 
 from __future__ import annotations
 
-import csv
-import io
-import json
-from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
 
-from ..core.atomic import write_text_atomic
 from .manual import register_manual, target_residuals
 from .plot import ScanCache, register_project
 from ..core.progress import CancelToken, Progress, ProgressCallback
@@ -54,7 +49,7 @@ def compare_auto_manual(
         )
         if manual.ok:
             manual_links[link.moving] = manual.matrix
-        auto = link.result or {}
+        auto = link.result if link.result is not None else {}
         row: dict[str, Any] = {
             "moving": link.moving,
             "reference": link.reference,
@@ -120,32 +115,3 @@ def _compose(project: Project, link_matrices: dict[str, np.ndarray]) -> dict[str
                 poses[s.name] = poses[link.reference] @ link_matrices[s.name]
     return poses
 
-
-def write_comparison(comparison: dict[str, Any], out_dir: str | Path) -> tuple[Path, Path]:
-    """Write ``comparison.json`` and ``comparison.csv`` (one row per pair) into ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    json_path = out / "comparison.json"
-    write_text_atomic(json_path, json.dumps(comparison, indent=2) + "\n")
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["moving", "reference", "auto_status", "auto_matched_vops", "auto_icp_std_m", "manual_status", "manual_targets",
-                "manual_icp_std_m", "rotation_difference_deg", "translation_difference_m"])
-    for p in comparison["pairs"]:
-        w.writerow([p["moving"], p["reference"], p["auto"]["status"], _fmt(p["auto"]["matched"]), _fmt(p["auto"]["icp_std_m"]),
-                    p["manual"]["status"], _fmt(p["manual"]["targets"]), _fmt(p["manual"]["icp_std_m"]),
-                    _fmt(p["rotation_difference_deg"]), _fmt(p["translation_difference_m"])])
-    w.writerow([])
-    w.writerow(["plot", "", "auto_target_residual_m", _fmt(comparison["auto_target_residual_m"]), "", "manual_target_residual_m",
-                _fmt(comparison["manual_target_residual_m"])])
-    csv_path = out / "comparison.csv"
-    write_text_atomic(csv_path, buf.getvalue())
-    return json_path, csv_path
-
-
-def _fmt(value: Any) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, float):
-        return f"{value:.6f}"
-    return str(value)

@@ -30,7 +30,6 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
-from ..core.atomic import write_text_atomic
 from ..core.errors import TargetError
 from ..geometry.icp import IcpResult
 from .prepare import prepare_scan
@@ -123,25 +122,6 @@ def read_targets_csv(path: str | Path) -> dict[str, Targets]:
             raise TargetError(f"target file {p}, line {line_no}: target {target!r} of scan {scan!r} is listed twice")
         per_scan[target] = np.array(xyz, dtype=np.float64)
     return out
-
-
-def write_targets_csv(path: str | Path, targets_by_scan: Mapping[str, Mapping[str, Any]]) -> None:
-    """Write ``{scan: {target: xyz}}`` as a target CSV (``scan,target,x,y,z``), atomically.
-
-    Coordinates are written with full float precision (a read gives the same numbers back).
-    """
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(CSV_COLUMNS)
-    for scan, targets in targets_by_scan.items():
-        for target, xyz in targets.items():
-            v = np.asarray(xyz, dtype=np.float64).reshape(-1)
-            if v.shape != (3,) or not np.isfinite(v).all():
-                raise TargetError(f"target {target!r} of scan {scan!r}: a centre must be three finite numbers, got {xyz!r}")
-            if not str(scan).strip() or not str(target).strip():
-                raise TargetError("scan and target names must not be empty")
-            writer.writerow([scan, target, *(repr(float(c)) for c in v)])
-    write_text_atomic(path, buf.getvalue())
 
 
 def targets_for(targets_by_scan: Mapping[str, Targets], scan: Scan) -> Targets:

@@ -12,7 +12,6 @@ scan's file coordinates).
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import threading
 from collections import OrderedDict
@@ -23,9 +22,9 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanReadError
-from ..core.atomic import write_text_atomic
-from ..io import read_scan, write_point_chunks
+from ..io import read_scan
 from ..io.las import intensity_to_uint16
+from ..core.outcome import Outcome
 from ..core.imports import import_open3d
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Link, LinkResult, Project, ScanEntry
@@ -240,20 +239,38 @@ def _file_scan_bytes(path: Path) -> int:
         return 0
 
 
-@dataclass
-class PlotOutcome:
-    """What a plot run did: per scan "ok"/"failed"/"centre", and the reasons of failures."""
+@dataclass(eq=False)
+class PlotOutcome(Outcome):
+    """What a plot run did: ``scans`` per scan "ok"/"failed"/"centre", and the reasons of failures
+    (``reasons``). Its ``status`` is "ok" when no scan failed, else "failed" with the reasons;
+    the poses are in the project (``matrix`` None)."""
 
-    status: dict[str, str] = field(default_factory=dict)
+    scans: dict[str, str] = field(default_factory=dict)
     reasons: dict[str, str] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    method = "auto (trunk shadows + ICP), per link"
+    convention = "each scan's pose in the project"
+    matrix = None
+
+    @property
+    def status(self) -> str:  # type: ignore[override]
+        return "failed" if self.failed else "ok"
+
+    @property
+    def reason(self) -> str:  # type: ignore[override]
+        return "; ".join(f"{name}: {self.reasons.get(name) or 'failed'}" for name in self.failed)
 
     @property
     def registered(self) -> list[str]:
-        return [k for k, v in self.status.items() if v in ("ok", "centre")]
+        return [k for k, v in self.scans.items() if v in ("ok", "centre")]
 
     @property
     def failed(self) -> list[str]:
-        return [k for k, v in self.status.items() if v == "failed"]
+        return [k for k, v in self.scans.items() if v == "failed"]
+
+    def evidence(self) -> dict[str, Any]:
+        return {"scans": dict(self.scans), "reasons": dict(self.reasons)}
 
 
 def default_links(project: Project) -> None:
@@ -297,7 +314,7 @@ def register_project(
     _readable_centre(project)
     step = Progress(progress, cancel=cancel)
     order = [s for s in project.scans if s.name != project.centre and not s.tilted] + [s for s in project.scans if s.tilted and s.name != project.centre]
-    outcome = PlotOutcome(status={project.centre: "centre"})
+    outcome = PlotOutcome(scans={project.centre: "centre"})
     ahead = _PrepareAhead.start(project, order, scans, rerun=rerun, cancel=cancel, beside=beside)
     try:
         _register_links(project, order, scans, outcome, step, ahead, rerun=rerun, cancel=cancel, on_link=on_link)
@@ -313,21 +330,20 @@ def register_project(
     extra = [link for link in project.links if link.extra and (rerun or link.result is None)]
     for link in extra:
         link.result = _run_link(project, link, scans, Progress(None, cancel=cancel), cancel)
-        if project.path is not None:
-            project.save()
+        project.checkpoint()
     if beside is None:  # the links are done: their ICP search structures go (the caller's queue still needs them)
         scans.prepared.release(("icp_reference",))
     if not any(link.ok for link in project.links) and project.centre not in scans._frames:
         try:  # the centre's header looked right but no link could read it: never "ok" unread
             scans.frame(project.centre)
         except (ScanReadError, ScanDataError) as exc:
-            outcome.status[project.centre] = "failed"
+            outcome.scans[project.centre] = "failed"
             outcome.reasons[project.centre] = str(exc)
     # a scan whose chain to the centre is broken has no pose even if its own link worked
     poses = project.chained_poses()
     for name, pose in poses.items():
-        if pose is None and outcome.status.get(name) == "ok":
-            outcome.status[name] = "failed"
+        if pose is None and outcome.scans.get(name) == "ok":
+            outcome.scans[name] = "failed"
             outcome.reasons[name] = "its reference scan could not be registered"
     step(1.0, "done")
     return outcome
@@ -385,7 +401,7 @@ def _register_links(project: Project, order: list[ScanEntry], scans: ScanCache, 
         sub = step.sub(k / max(len(order), 1), (k + 1) / max(len(order), 1))
         link = project.link_of(entry.name)
         if link.ok and not rerun:
-            outcome.status[entry.name] = "ok"
+            outcome.scans[entry.name] = "ok"
             continue
         sub(0.0, f"registering {entry.name}")
         if entry.tilted and not entry.level_partner:
@@ -394,13 +410,12 @@ def _register_links(project: Project, order: list[ScanEntry], scans: ScanCache, 
             link.result = _run_link(project, link, scans, sub.sub(0.0, 0.5), cancel)
             if not link.ok:
                 link = _retry(project, entry, link, scans, sub.sub(0.5, 1.0), cancel)
-        outcome.status[entry.name] = "ok" if link.ok else "failed"
+        outcome.scans[entry.name] = "ok" if link.ok else "failed"
         if not link.ok:
-            outcome.reasons[entry.name] = link.result.get("reason", "") if link.result else "not run"
+            outcome.reasons[entry.name] = link.result.get("reason", "") if link.result is not None else "not run"
             log.warning("%s could not be registered: %s", entry.name, outcome.reasons[entry.name])
         project.adjustment = None
-        if project.path is not None:
-            project.save()
+        project.checkpoint()
         if on_link is not None:
             on_link(link)
 
@@ -641,7 +656,7 @@ def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, p
     candidates = [n for n, p in poses.items() if p is not None and n not in (entry.name, failed.reference)]
     if first is not None:
         candidates.sort(key=lambda n: float(np.linalg.norm(poses[n][:3, 3] - first[:3, 3])))
-    tried = [{"reference": failed.reference, "reason": (failed.result or {}).get("reason", "")}]
+    tried = [{"reference": failed.reference, "reason": (failed.result if failed.result is not None else {}).get("reason", "")}]
     for k, name in enumerate(candidates):
         link = Link(moving=entry.name, reference=name, method=failed.method, vop_radius_m=failed.vop_radius_m, slice_offsets_m=failed.slice_offsets_m)
         link.result = _run_link(project, link, scans, progress.sub(k / len(candidates), (k + 1) / len(candidates)), cancel)
@@ -651,7 +666,7 @@ def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, p
             log.info("%s registered onto %s after %d failed attempt(s)", entry.name, name, len(tried))
             return link
         tried.append({"reference": name, "reason": link.result.get("reason", "")})
-    failed.result = dict(failed.result or {}, retried=tried[1:])
+    failed.result = dict(failed.result if failed.result is not None else {}, retried=tried[1:])
     return failed
 
 
@@ -770,17 +785,17 @@ def information_matrix(moving: np.ndarray, reference: np.ndarray, max_distance_m
     return np.einsum("ni,nj->ij", g, g)
 
 
-def write_poses(project: Project, out_dir: str | Path, outcome: Optional[PlotOutcome] = None) -> Path:
-    """Write ``poses.json`` (``{"frame": centre, "scans": {name: {"status", "matrix"}}}``, each
-    matrix mapping that scan's file coordinates into the centre scan's) and one
-    ``<scan>.transform.txt`` per registered scan. Returns the path of ``poses.json``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+def poses_document(project: Project, outcome: Optional[PlotOutcome] = None) -> tuple[dict[str, Any], dict[str, str]]:
+    """The body of ``poses.json`` (``{"frame": centre, "scans": {name: {"status", "matrix"}}}``,
+    each matrix mapping that scan's file coordinates into the centre scan's) and the text of one
+    ``<scan>.transform.txt`` per registered scan (scan -> text); written by
+    :func:`forestreg.engine.io.results.write_poses_files`."""
     poses = project.poses()
     body: dict[str, Any] = {"frame": project.centre, "convention": "p_centre = matrix @ p_scan (file coordinates)", "scans": {}}
+    transforms: dict[str, str] = {}
     for s in project.scans:
         pose = poses.get(s.name)
-        if outcome is not None and outcome.status.get(s.name) == "failed":
+        if outcome is not None and outcome.scans.get(s.name) == "failed":
             pose = None  # e.g. a centre scan that could not be read: no identity matrix for it
         entry: dict[str, Any] = {"status": "ok" if pose is not None else "failed", "matrix": None if pose is None else pose.tolist()}
         if pose is None and outcome is not None and s.name in outcome.reasons:
@@ -790,7 +805,7 @@ def write_poses(project: Project, out_dir: str | Path, outcome: Optional[PlotOut
             entry["reference"] = link.reference
         body["scans"][s.name] = entry
         if pose is not None:
-            write_text_atomic(out / f"{s.name}.transform.txt", format_matrix(pose))
+            transforms[s.name] = format_matrix(pose)
     uncertainty = pose_uncertainty(project)
     quality = (project.adjustment or {}).get("quality") or {}
     for name, entry in body["scans"].items():
@@ -804,9 +819,7 @@ def write_poses(project: Project, out_dir: str | Path, outcome: Optional[PlotOut
         body["dropped_links"] = project.adjustment.get("dropped", [])
         body["loops"] = project.adjustment.get("triangles", [])
         body["uncertainty_inflation"] = project.adjustment.get("uncertainty_inflation")
-    path = out / "poses.json"
-    write_text_atomic(path, json.dumps(body, indent=2) + "\n")
-    return path
+    return body, transforms
 
 
 def pose_uncertainty(project: Project) -> dict[str, Optional[dict[str, float]]]:
@@ -822,7 +835,7 @@ def pose_uncertainty(project: Project) -> dict[str, Optional[dict[str, float]]]:
     positions = {n: p[:3, 3] for n, p in poses.items() if p is not None}
     rows = []
     for link in project.links:
-        u = (link.result or {}).get("uncertainty") or {}
+        u = (link.result if link.result is not None else {}).get("uncertainty") or {}
         if link.ok and link.moving in positions and link.reference in positions:
             rows.append({"moving": link.moving, "reference": link.reference, "translation_m": u.get("translation_m"), "rotation_deg": u.get("rotation_deg")})
     if project.centre is None:
@@ -831,13 +844,14 @@ def pose_uncertainty(project: Project) -> dict[str, Optional[dict[str, float]]]:
     return {n: found.get(n) for n in positions}
 
 
-def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] = None) -> int:
-    """Write every registered scan, in the centre scan's file coordinates, into one point file
-    with a ``scan_id`` per point (the scan's index in the project). Returns the point count.
-
-    LAS/LAZ are written one scan at a time (:func:`~forestreg.engine.io.write_point_chunks`), so a
-    plot larger than memory can be merged; a ``*.copc.laz`` path gives a COPC file, also out of
-    core (:mod:`~forestreg.engine.io.copc`); intensities are written when every scan has them."""
+def merged_chunks(project: Project, path: str | Path, scans: Optional[ScanCache] = None) -> tuple[Any, tuple[np.ndarray, np.ndarray], bool]:
+    """Every registered scan in the centre scan's file coordinates, for one point file with a
+    ``scan_id`` per point (the scan's index in the project): the chunks ``(points, intensity,
+    scan_id)`` (a generator: one scan read at a time, so a plot larger than memory can be
+    merged), the bounds of all points and whether every scan has intensities. For LAS/LAZ/COPC
+    (``path``'s suffix) a scan goes in blocks of :data:`MERGE_BLOCK_POINTS`, its intensities mapped
+    to uint16 once for the whole scan (as the writer maps each chunk); other formats take each
+    scan whole. Written by :func:`~forestreg.engine.io.write_point_chunks`."""
     scans = scans or ScanCache(project)
     poses = project.poses()
     placed = [(k, s.name, poses[s.name]) for k, s in enumerate(project.scans) if poses.get(s.name) is not None]
@@ -851,10 +865,6 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
         corners.append(apply_transform(pose, box))
     corners = np.vstack(corners)
     margin = 1.0  # metres: header bounds are rounded; the written header has the exact ones
-
-    # LAS/LAZ/COPC are written chunk by chunk: there a scan goes in blocks, its intensities mapped
-    # to uint16 once for the whole scan (as the writer maps each chunk), so every block keeps the
-    # scan's mapping; other formats gather the chunks anyway and take each scan whole
     streamed = Path(path).suffix.lower() in (".las", ".laz")
 
     def chunks():
@@ -870,13 +880,11 @@ def write_merged(project: Project, path: str | Path, scans: Optional[ScanCache] 
                 yield moved, None if intensity is None else intensity[a:b], np.full(b - a, k, dtype=np.uint16)
             del scan, intensity
 
-    return write_point_chunks(
-        path, chunks(), bounds=(corners.min(axis=0) - margin, corners.max(axis=0) + margin),
-        with_intensity=all(_has_intensity(scans, project.scan(name)) for _, name, _ in placed), with_scan_id=True,
-    )
+    with_intensity = all(_has_intensity(scans, project.scan(name)) for _, name, _ in placed)
+    return chunks(), (corners.min(axis=0) - margin, corners.max(axis=0) + margin), with_intensity
 
 
-#: Points of a scan transformed and handed to the writer at a time by :func:`write_merged`.
+#: Points of a scan transformed and handed to the writer at a time by :func:`merged_chunks`.
 MERGE_BLOCK_POINTS = 2_000_000
 
 
@@ -900,18 +908,25 @@ def project_from_e57(path: str | Path, *, name: Optional[str] = None) -> Project
     return project
 
 
-def write_registered_e57(project: Project, path: str | Path, scans: Optional[ScanCache] = None) -> int:
-    """Write the registered scans into one E57 file, each with its registered pose (its own
-    coordinates -> the centre scan's). Returns how many scans were written."""
-    from ..io import write_e57
-
+def registered_scans(project: Project, scans: Optional[ScanCache] = None) -> list[tuple[str, Any, np.ndarray]]:
+    """``(name, scan, pose)`` of every registered scan, the pose mapping its own file coordinates
+    into the centre scan's (scans read on demand: a list of names with a reader behind)."""
     scans = scans or ScanCache(project)
     poses = project.poses()
     chosen = [s.name for s in project.scans if poses.get(s.name) is not None]
     if not chosen:
         raise DataError("no scan is registered: nothing to write")
-    write_e57(path, [scans(n) for n in chosen], [poses[n] for n in chosen])
-    return len(chosen)
+    return [(n, _Lazy(scans, n), poses[n]) for n in chosen]
+
+
+class _Lazy:
+    """A scan of a :class:`ScanCache`, read when asked for (``scan()``)."""
+
+    def __init__(self, scans: ScanCache, name: str) -> None:
+        self.scans, self.name = scans, name
+
+    def __call__(self) -> Scan:
+        return self.scans(self.name)
 
 
 def add_neighbour_links(project: Project, max_distance_m: float) -> list[Link]:
@@ -929,23 +944,3 @@ def add_neighbour_links(project: Project, max_distance_m: float) -> list[Link]:
             if np.linalg.norm(poses[a][:2, 3] - poses[b][:2, 3]) <= max_distance_m:
                 added.append(project.add_link(b, a))
     return added
-
-
-def write_registered_scans(project: Project, folder: str | Path, scans: Optional[ScanCache] = None, *, suffix: str = ".laz") -> int:
-    """Write each registered scan, transformed into the centre scan's file coordinates, as its own
-    file ``<folder>/<scan stem>_registered<suffix>``. Returns how many were written."""
-    from ..io import write_scan
-
-    scans = scans or ScanCache(project)
-    out = Path(folder)
-    out.mkdir(parents=True, exist_ok=True)
-    written = 0
-    poses = project.poses()
-    for s in project.scans:
-        pose = poses.get(s.name)
-        if pose is None:
-            continue
-        stem = Path(s.name).stem if Path(s.name).suffix else s.name
-        write_scan(scans(s.name), out / f"{stem.replace('#', '_')}_registered{suffix}", matrix=pose)
-        written += 1
-    return written

@@ -20,11 +20,10 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..core.atomic import write_text_atomic
 from ..core.errors import InvalidArgumentError, ProjectFileError, UnknownNameError
 from .params import RegistrationParams
-from ..core.jsonable import to_jsonable
 from ..core.outcome import OutcomeRecord
+from ..io.results import ProjectFile
 
 FORMAT = "forestreg-project"
 VERSION = 1
@@ -112,7 +111,7 @@ class Link:
 
 
 @dataclass
-class Project:
+class Project(ProjectFile):
     """Scans, links and results of one plot (see the module docstring for frames)."""
 
     name: str = "plot"
@@ -254,17 +253,6 @@ class Project:
             "adjustment": self.adjustment,
             **({"forest": self.forest.to_dict(rel)} if not self.forest.empty else {}),
         }
-
-    def save(self, path: Optional[str | Path] = None) -> Path:
-        """Write the project file atomically (scan paths relative to it) and remember the path."""
-        target = Path(path) if path is not None else self.path
-        if target is None:
-            raise ProjectFileError("the project has no file yet: give a path to save it to")
-        target = target.resolve()
-        text = json.dumps(to_jsonable(self.to_dict(relative_to=target.parent)), indent=1)
-        write_text_atomic(target, text + "\n")
-        self.path = target
-        return target
 
     @classmethod
     def load(cls, path: str | Path) -> "Project":

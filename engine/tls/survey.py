@@ -63,7 +63,7 @@ class SurveyParams(Params):
 
 def _link_sigma(link: Link) -> tuple[float, float]:
     """A link's stated 1-sigma (translation m, rotation deg); manual/old links get a cautious default."""
-    u = (link.result or {}).get("uncertainty") or {}
+    u = (link.result if link.result is not None else {}).get("uncertainty") or {}
     t, r = u.get("translation_m"), u.get("rotation_deg")
     if t is None or r is None:
         return 0.05, 0.1
@@ -207,7 +207,7 @@ def inconsistent_links(links: Sequence[Link], scanner: dict[str, np.ndarray], cl
     if not culprits and drop:
         # the loops cannot single the culprit out (e.g. one lone triangle): the link with the
         # weakest evidence (largest stated uncertainty) goes, reported as such
-        culprits = [max(drop, key=lambda x: (_link_sigma(x)[0], -((x.result or {}).get("matched") or 0)))]
+        culprits = [max(drop, key=lambda x: (_link_sigma(x)[0], -((x.result if x.result is not None else {}).get("matched") or 0)))]
         rows.append({"note": f"loops cannot single out the wrong link; the weakest ({culprits[0].moving} -> {culprits[0].reference}) is dropped"})
     return culprits, rows
 
@@ -304,7 +304,7 @@ def _register_two_at_a_time(project: Project, pending: list[Link], scans: ScanCa
     scans.let_go_of_points()
     queue = LinkQueue(project, pending, scans, cancel)
     try:
-        queue.finish(step, after=project.save if project.path is not None else None)
+        queue.finish(step, after=project.checkpoint)
     except BaseException:
         queue.close()
         raise
@@ -371,7 +371,7 @@ def register_survey(
         if beside is not None:
             scans.let_go_of_points()  # the links run on the kept preparations: room for two at once
             try:
-                beside.finish(step.sub(share, 1.0), after=project.save if project.path is not None else None)
+                beside.finish(step.sub(share, 1.0), after=project.checkpoint)
             except BaseException:
                 beside.close()
                 raise
@@ -384,14 +384,13 @@ def register_survey(
             sub = step.sub(share + (1 - share) * k / len(pending), share + (1 - share) * (k + 1) / len(pending))
             sub(0.0, f"registering further pair {k + 1} of {len(pending)}: {link.moving} onto {link.reference}")
             link.result = _run_link(project, link, scans, sub, cancel)
-            if project.path is not None:
-                project.save()
+            project.checkpoint()
         scans.prepared.release(("icp_reference",))  # the links are done: their ICP search structures go
         step(1.0, "done")
     scanner = {s.name: _scanner_file(scans, s.name) for s in project.scans if _usable(scans, s.name)}
     if frame not in scanner:  # the centre scan itself is unusable: nothing can be placed
         for s in project.scans:
-            outcome.status[s.name] = "failed"
+            outcome.scans[s.name] = "failed"
             outcome.reasons.setdefault(s.name, f"the centre scan {frame} cannot be used")
         project.adjustment = None
         return outcome
@@ -446,12 +445,12 @@ def register_survey(
     quality = _quality(project, kept, rows, dropped)
     all_poses: dict[str, Optional[list]] = {s.name: (poses[s.name].tolist() if s.name in poses else None) for s in project.scans}
     for s in project.scans:
-        if s.name in poses and outcome.status.get(s.name) == "failed":
-            outcome.status[s.name] = "ok"
+        if s.name in poses and outcome.scans.get(s.name) == "failed":
+            outcome.scans[s.name] = "ok"
             outcome.reasons.pop(s.name, None)
             log.info("%s placed through its neighbours", s.name)
-        elif s.name not in poses and outcome.status.get(s.name) in ("ok", "centre") and s.name != frame:
-            outcome.status[s.name] = "failed"
+        elif s.name not in poses and outcome.scans.get(s.name) in ("ok", "centre") and s.name != frame:
+            outcome.scans[s.name] = "failed"
             outcome.reasons[s.name] = "no consistent link connects it to the others"
     project.adjustment = {
         "method": "survey",
@@ -469,8 +468,7 @@ def register_survey(
         "quality": quality,
         "pairs": params.pairs,
     }
-    if project.path is not None:
-        project.save()
+    project.checkpoint()
     return outcome
 
 
@@ -483,7 +481,7 @@ def _quality(project: Project, kept: Sequence[Link], rows: Sequence[dict[str, An
         mine = [x for x in kept if s.name in (x.moving, x.reference)]
         items = []
         for x in mine:
-            res = x.result or {}
+            res = x.result if x.result is not None else {}
             icp = res.get("icp") or {}
             r = residual.get((x.moving, x.reference), {})
             matched = res.get("matched") or 0

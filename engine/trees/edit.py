@@ -8,8 +8,9 @@ inventory in which only the edited trees were measured again (with the same step
 Edits are described by :class:`TreeEdit` records (JSON-friendly: :meth:`TreeEdit.to_dict`), so a
 list of them can be kept in a project or next to ``trees.csv`` (``edits.json``, which also records
 the content hash of the cloud they were made on) and replayed on the same cloud with
-:func:`apply_edits` (another cloud is refused, also one with the same number of points). :func:`write_edited` writes the inventory like
-``forestreg trees`` does and adds an ``edited`` column to ``trees.csv`` naming each tree's edits.
+:func:`apply_edits` (another cloud is refused, also one with the same number of points).
+:func:`forestreg.app.trees.save_edited` writes the edited inventory like ``forestreg trees`` does,
+with an ``edited`` column naming each tree's edits.
 
 Frame: the inventory's local frame (the points given to ``measure_trees``; metres, z up). A
 clicked position from a file-coordinate view is converted by subtracting ``origin_shift``.
@@ -17,9 +18,7 @@ clicked position from a file-coordinate view is converted by subtracting ``origi
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import json
 import math
 from dataclasses import dataclass
@@ -29,7 +28,6 @@ from typing import Any, Iterable, Mapping, Optional, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.atomic import write_text_atomic
 from ..core.errors import ParameterError, ScanDataError
 from .crown import CrownMeasurement, measure_crown
 from .inventory import TreeInventory, TreeParams, TreeRecord, ground_near_stems, tree_record
@@ -52,7 +50,6 @@ __all__ = [
     "merge_trees",
     "read_edits",
     "split_tree",
-    "write_edited",
 ]
 
 EDIT_KINDS = ("delete", "merge", "split", "add", "dbh_height")
@@ -388,34 +385,6 @@ def edit_notes(before: TreeInventory, edits: Sequence[tuple[TreeEdit, TreeInvent
         prev = after
     alive = {r.tree_id for r in prev.trees}
     return {k: "; ".join(dict.fromkeys(v)) for k, v in notes.items() if k in alive}
-
-
-def write_edited(out_dir: str | Path, inventory: TreeInventory, notes: Mapping[int, str], edits: Sequence[TreeEdit],
-                 points: Optional[np.ndarray] = None, *, report: bool = True) -> Path:
-    """Write the edited inventory like ``forestreg trees`` (:meth:`TreeInventory.write`), then add
-    an ``edited`` column to ``trees.csv`` (the notes of each tree's edits, "" for the others) and
-    the edits as ``edits.json`` (replayable with :func:`apply_edits`). Returns the trees.csv path."""
-    path = inventory.write(out_dir, points, report=report)
-    text = path.read_text(encoding="utf-8")
-    rows = list(csv.reader(io.StringIO(text)))
-    if rows:
-        header = rows[0]
-        if "edited" not in header:
-            header.append("edited")
-            k = header.index("tree_id")
-            for row in rows[1:]:
-                try:
-                    row.append(notes.get(int(float(row[k])), ""))
-                except (ValueError, IndexError):
-                    row.append("")
-        buf = io.StringIO()
-        csv.writer(buf, lineterminator="\n").writerows(rows)
-        write_text_atomic(path, buf.getvalue())
-    cloud = None if points is None else {"points": int(len(points)), "sha256": cloud_digest(points)}
-    write_text_atomic(Path(out_dir) / "edits.json",
-                      json.dumps({"format": "forestreg-tree-edits", "version": 1, "cloud": cloud,
-                                  "edits": [e.to_dict() for e in edits]}, indent=2) + "\n")
-    return path
 
 
 def read_edits(path: str | Path) -> TreeEdits:

@@ -16,7 +16,7 @@ per parameter, the paper's figures:
   (%); ``bias = mean (est - field)``;
 
 and the detection figures: matched trees, omitted field trees (no estimate), commission
-(estimated trees with no field tree). :func:`forestreg.engine.io.evaluation.write_evaluation` writes CSV, JSON, scatter plots
+(estimated trees with no field tree). :func:`forestreg.app.evaluation.write_evaluation` writes CSV, JSON, scatter plots
 and an HTML report for one or several runs side by side (e.g. "ground" against "fused").
 """
 
@@ -27,12 +27,13 @@ import io
 import math
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
+from ..core.outcome import Outcome
 from ..core.errors import ForestregError, ParameterError
 
 
@@ -438,14 +439,24 @@ class Detection:
 
 
 @dataclass(frozen=True, eq=False)
-class Evaluation:
-    """The comparison of one set of estimates (a "run", e.g. ground-based or fused) with the field."""
+class Evaluation(Outcome):
+    """The comparison of one set of estimates (a "run", e.g. ground-based or fused) with the field.
+    Failed (falsy) when no estimated tree matched a field tree (the reason says why)."""
 
     match: TreeMatch
     detection: Detection
     stats: dict[str, ParameterStats]
     estimated: TreeTable
     field_table: TreeTable
+    status: str = "ok"
+    reason: str = ""
+    timings: dict[str, float] = field(default_factory=dict)
+
+    method = "field records matched by position or id"
+    matrix = None
+
+    def evidence(self) -> dict[str, Any]:
+        return {"detection": self.detection.to_dict()}
 
     def to_dict(self, *, pairs: bool = True) -> dict[str, Any]:
         """JSON-able figures (and, with ``pairs``, every matched pair with its values)."""
@@ -498,6 +509,10 @@ def evaluate(
         )
         _check_value_units(name, e_all[ok], f_all[ok], fld.source)
     detection = Detection(len(fld), len(est), len(match), len(match.omitted), len(match.commission))
+    if detection.matched == 0:
+        how = "no shared tree ids" if by == "id" else f"no tree within {max_distance_m:g} m of a field tree (same coordinates and units?)"
+        return Evaluation(match, detection, stats, est, fld, status="failed",
+                          reason=f"0 of {detection.field_trees} field trees matched ({how})")
     return Evaluation(match, detection, stats, est, fld)
 
 

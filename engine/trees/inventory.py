@@ -2,9 +2,9 @@
 individual trees, leaf-wood separation, a cylinder model per tree, and the parameters.
 
 ``measure_trees(points)`` composes the steps of :mod:`.stems`, :mod:`.segmentation`,
-:mod:`.leafwood`, :mod:`.qsm` and :mod:`.crown`; :meth:`TreeInventory.write` writes
-``trees.csv``, ``stem_curves.csv``, one cylinder table per tree (``cylinders/tree_0001.csv``,
-TreeQSM's fields) and the report.
+:mod:`.leafwood`, :mod:`.qsm` and :mod:`.crown`; :meth:`TreeInventory.write` (the format is
+:mod:`forestreg.engine.io.results`) writes ``trees.csv``, ``stem_curves.csv`` and one cylinder
+table per tree (``cylinders/tree_0001.csv``, TreeQSM's fields).
 
 Frame: the cloud's local frame (metres, z up); positions written to files add the cloud's
 ``origin_shift`` back (file coordinates).
@@ -12,26 +12,24 @@ Frame: the cloud's local frame (metres, z up); positions written to files add th
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import logging
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from ..core.atomic import write_text_atomic
 from ..core.errors import ScanDataError
+from ..core.outcome import Outcome
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
 from ..core.params import Params, param_field as _p
 from ..geometry.columns import ColumnIndex
 from ..geometry.sorting import order_by_label
+from ..io.results import TREE_COLUMNS, TreeTablesFile  # noqa: F401 - the columns of trees.csv
 from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
 from .crown import CrownMeasurement, CrownParams, measure_crown
@@ -44,14 +42,6 @@ from .stems import DbhMeasurement, Stem, StemCurve, StemParams, detect_stems_ada
 log = logging.getLogger(__name__)
 
 __all__ = ["TREE_COLUMNS", "TreeInventory", "TreeParams", "TreeRecord", "measure_trees", "tree_record"]
-
-#: Columns of ``trees.csv`` (positions in file coordinates; metres, m^2, m^3).
-TREE_COLUMNS = (
-    "tree_id", "x", "y", "z", "dbh_m", "height_m", "crown_base_m", "crown_width_ew_m", "crown_width_ns_m",
-    "crown_area_m2", "crown_volume_m3", "volume_m3", "stem_volume_m3", "branch_volume_m3", "qsm_dbh_m",
-    "n_cylinders", "n_branches", "lean_deg", "dbh_arc_coverage", "dbh_rms_mm", "n_points", "wood_fraction",
-    "stem_form_factor", "source", "dbh_quality", "height_quality", "crown_quality", "volume_quality", "flag",
-)
 
 #: Trust levels of the quality columns (``"<how the value was obtained>; <trust>"``).
 TRUST_LEVELS = ("high", "medium", "low", "none")
@@ -144,7 +134,7 @@ class TreeRecord:
 
 
 @dataclass(frozen=True, eq=False)
-class TreeInventory:
+class TreeInventory(TreeTablesFile, Outcome):
     """Trees of one cloud and the per-point results.
 
     ``labels`` (N,) tree id per point (0 = none), ``heights`` (N,) height above the DEM,
@@ -170,9 +160,29 @@ class TreeInventory:
     single_tree_reason: str = ""
     #: whether volumes were asked for (cylinder models fitted); False: no ``cylinders/`` folder
     volume_asked: bool = True
+    #: "ok", or "failed" when the data do not allow any tree (the reason says why)
+    status: str = "ok"
+    reason: str = ""
+
+    convention = "local frame of the cloud (metres); files add origin_shift"
+    matrix = None
+
+    @classmethod
+    def failed(cls, reason: str, n_points: int, origin_shift: Optional[np.ndarray] = None,
+               timings: Optional[dict[str, float]] = None) -> "TreeInventory":
+        """The outcome of a cloud the data do not allow trees in: no tree, the reason."""
+        return cls(trees=[], labels=np.zeros(n_points, dtype=np.int64), heights=np.full(n_points, np.nan),
+                   wood_probability=np.zeros(n_points), ground=np.zeros(n_points, dtype=bool), dem=None,
+                   origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
+                   timings=dict(timings or {}), status="failed", reason=reason)
+
+    def evidence(self) -> dict[str, Any]:
+        return {"trees": len(self.trees), "method": self.method, "flagged": sum(1 for t in self.trees if t.flags)}
 
     def summary(self) -> str:
         """One line: trees found, measured (DBH, height, volume) and flagged."""
+        if not self.ok:
+            return f"failed: {self.reason}"
         n = len(self.trees)
         dbh = sum(1 for t in self.trees if math.isfinite(t.dbh_m))
         h = sum(1 for t in self.trees if math.isfinite(t.crown.height_m))
@@ -188,61 +198,6 @@ class TreeInventory:
 
     def rows(self) -> list[dict[str, Any]]:
         return [t.row(self.origin_shift) for t in self.trees]
-
-    def write(self, out_dir: str | Path, points: Optional[np.ndarray] = None, *, report: bool = True,
-              unit_scale: float = 1.0) -> Path:
-        """Write ``trees.csv``, ``stem_curves.csv``, ``cylinders/tree_NNNN.csv`` and (with the
-        points) ``report.html`` into ``out_dir``; returns the trees.csv path. Positions (``x, y,
-        z``, cylinder starts) are written in the input file's unit (``unit_scale`` metres per
-        unit); every ``*_m`` figure stays in metres."""
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        rows = self.rows()
-        file_rows = rows if unit_scale == 1.0 else [
-            {**r, "x": r["x"] / unit_scale, "y": r["y"] / unit_scale, "z": r["z"] / unit_scale} for r in rows]
-        write_text_atomic(out / "trees.csv", _csv(TREE_COLUMNS, file_rows))
-        curve_rows = []
-        for t in self.trees:
-            c = t.curve
-            for k in range(len(c.s_m)):
-                centre = (c.centres[k] + self.origin_shift) / unit_scale if np.isfinite(c.centres[k]).all() else [math.nan] * 3
-                curve_rows.append({
-                    "tree_id": t.tree_id, "s_m": c.s_m[k], "height_m": c.heights_m[k],
-                    "diameter_m": c.diameter_m[k], "raw_diameter_m": c.raw_diameter_m[k],
-                    "accepted": int(c.accepted[k]), "interpolated": int(c.interpolated[k]),
-                    "x": centre[0], "y": centre[1], "z": centre[2], "reason": c.reasons[k],
-                })
-        write_text_atomic(out / "stem_curves.csv", _csv(
-            ("tree_id", "s_m", "height_m", "diameter_m", "raw_diameter_m", "accepted", "interpolated", "x", "y", "z", "reason"),
-            curve_rows))
-        cyl_dir = out / "cylinders"  # only when a tree has a cylinder model: no empty folder
-        for t in self.trees:
-            if t.cylinders is not None:
-                cyl_dir.mkdir(exist_ok=True)
-                shifted = dataclasses.replace(t.cylinders, start=(t.cylinders.start + self.origin_shift) / unit_scale)
-                shifted.write_csv(cyl_dir / f"tree_{t.tree_id:04d}.csv")
-        if report and points is not None:
-            from ..report.trees_report import write_trees_report
-
-            cyl = {t.tree_id: t.cylinders.to_table() for t in self.trees if t.cylinders is not None}
-            write_trees_report(out, [{**r, "x": r["x"] - self.origin_shift[0], "y": r["y"] - self.origin_shift[1]} for r in rows],
-                               points, self.labels, self.wood_probability, cyl, title="forestreg trees")
-        return out / "trees.csv"
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, (float, np.floating)):
-        return "" if not np.isfinite(v) else f"{float(v):.4f}"
-    return str(v)
-
-
-def _csv(columns: Sequence[str], rows: Sequence[dict[str, Any]]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(columns)
-    for r in rows:
-        w.writerow([_fmt(r.get(c, "")) for c in columns])
-    return buf.getvalue()
 
 
 def _no_ground_dem(p: np.ndarray, resolution_m: float) -> Dem:
@@ -279,11 +234,35 @@ def measure_trees(
     height is the cloud's top above the tree's base; ``single_tree`` True / False forces or rules
     it out (default: ``params.single_tree.mode``, "auto": decided from the cloud).
 
+    Returns a failed (falsy) inventory with the reason when the data do not allow trees: neither
+    a stem nor a tree crown found (not a forest cloud, or wrong units), or a single tree asked
+    for in a cloud that is not one.
+
     Raises
     ------
     ScanDataError
-        Empty/NaN input, or neither a stem nor a tree crown found (not a forest cloud, or wrong units).
+        Empty or NaN input.
     """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        raise ScanDataError("trees: expected a non-empty (N, 3) cloud")
+    if not np.isfinite(p).all():
+        raise ScanDataError("trees: the cloud holds NaN or infinite coordinates")
+    try:
+        return _measure_trees(p, params, progress, origin_shift=origin_shift, single_tree=single_tree)
+    except ScanDataError as exc:  # the data do not allow it: a failed outcome, as a registration gives
+        return TreeInventory.failed(str(exc), len(p), origin_shift)
+
+
+def _measure_trees(
+    points: np.ndarray,
+    params: TreeParams,
+    progress: Optional[Progress | ProgressCallback],
+    *,
+    origin_shift: Optional[np.ndarray],
+    single_tree: Optional[bool],
+) -> TreeInventory:
+    """:func:`measure_trees` of a checked cloud; raises ScanDataError when the data do not allow trees."""
     progress = as_progress(progress)
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:

@@ -52,7 +52,6 @@ stored; the axis is a unit vector from the cylinder's start (base side) to its e
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional, Sequence
 
@@ -61,10 +60,10 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from ..core.atomic import write_text_atomic
-from ..core.errors import ParameterError, ScanDataError, ScanReadError
+from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
+from ..io.results import CYLINDER_COLUMNS, CylinderTableFile
 from ..geometry.vectors import perpendicular_frame
 from ..geometry.voxel import voxel_centroids
 from .leafwood import check_points
@@ -76,12 +75,7 @@ MIN_POINTS = 30
 #: A cylinder is fitted to at most this many of its points (evenly picked).
 MAX_FIT_POINTS = 1500
 #: Columns of :meth:`CylinderModel.to_table` and of the CSV file, in order.
-TABLE_COLUMNS: tuple[str, ...] = (
-    "cylinder_id", "parent_id", "extension_id", "branch_id", "branch_order", "position_in_branch",
-    "start_x", "start_y", "start_z", "axis_x", "axis_y", "axis_z",
-    "length_m", "radius_m", "surface_coverage", "mad_m", "added",
-)
-_INT_COLUMNS = {"cylinder_id", "parent_id", "extension_id", "branch_id", "branch_order", "position_in_branch"}
+TABLE_COLUMNS = CYLINDER_COLUMNS  # the columns of a cylinder table (engine/io/results.py owns the format)
 
 
 @dataclass(frozen=True)
@@ -129,7 +123,7 @@ class QsmParams(Params):
 
 
 @dataclass(frozen=True, eq=False)
-class CylinderModel:
+class CylinderModel(CylinderTableFile):
     """A tree as K cylinders (arrays of length K, in TreeQSM's order: branch by branch, base to tip).
 
     Attributes
@@ -277,44 +271,9 @@ class CylinderModel:
             "added": self.added.astype(np.int64),
         }
 
-    def write_csv(self, path: str | os.PathLike[str]) -> None:
-        """Write the cylinder table as CSV (header line of :data:`TABLE_COLUMNS`), atomically."""
-        table = self.to_table()
-        lines = [",".join(TABLE_COLUMNS)]
-        cols = [table[c] for c in TABLE_COLUMNS]
-        for i in range(len(self)):
-            cells = []
-            for name, col in zip(TABLE_COLUMNS, cols):
-                v = col[i]
-                cells.append(str(int(v)) if name in _INT_COLUMNS or name == "added" else repr(float(v)))
-            lines.append(",".join(cells))
-        write_text_atomic(path, "\n".join(lines) + "\n")
-
     @classmethod
-    def read_csv(cls, path: str | os.PathLike[str]) -> "CylinderModel":
-        """Read a table written by :meth:`write_csv` (columns found by name, any order, extra
-        columns ignored). A missing, unreadable or damaged file raises
-        :class:`~forestreg.engine.core.errors.ScanReadError`."""
-        try:
-            with open(path, encoding="utf-8") as fh:
-                lines = [line.strip() for line in fh if line.strip()]
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ScanReadError(f"cannot read cylinder table {path}: {exc}") from exc
-        header = lines[0].split(",") if lines else []
-        missing = [c for c in TABLE_COLUMNS if c not in header]
-        if missing:
-            raise ScanReadError(f"{path}: not a cylinder table, missing column(s) {', '.join(missing)}")
-        cells = [line.split(",") for line in lines[1:]]
-        short = [i + 2 for i, row in enumerate(cells) if len(row) != len(header)]
-        if short:
-            raise ScanReadError(f"{path}: damaged cylinder table, line {short[0]} does not have {len(header)} values")
-        try:
-            data = np.array([[float(v) for v in row] for row in cells], dtype=np.float64).reshape(len(cells), len(header))
-        except ValueError as exc:
-            raise ScanReadError(f"{path}: damaged cylinder table ({exc})") from exc
-        col = {name: data[:, header.index(name)] for name in TABLE_COLUMNS}
-        order = np.argsort(col["cylinder_id"], kind="stable")
-        col = {k: v[order] for k, v in col.items()}
+    def from_table(cls, col: dict[str, np.ndarray], source: str = "") -> "CylinderModel":
+        """A model from the columns of its table (:data:`TABLE_COLUMNS`, rows in cylinder order)."""
 
         def as_int(name: str) -> np.ndarray:
             return np.rint(col[name]).astype(np.int64)
@@ -332,7 +291,7 @@ class CylinderModel:
             added=as_int("added").astype(bool),
             mad_m=col["mad_m"].copy(),
             surface_coverage=col["surface_coverage"].copy(),
-            meta={"source": str(path)},
+            meta={"source": str(source)},
         )
 
 
