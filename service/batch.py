@@ -291,7 +291,7 @@ def run_plot(task: dict) -> dict:
             row["reason"] = _last_error(stderr)
     else:
         row["reason"] = _last_error(stderr) or f"the command stopped with exit status {code}"
-    if out.is_dir():
+    if out.is_dir() and code != 130:  # an interrupted plot is not finished: no batch.json, a rerun runs it
         write_text_atomic(out / "batch.json", json.dumps(row, indent=2) + "\n")
     return row
 
