@@ -109,7 +109,7 @@ def measure_trees_file(
 
 def read_trees_folder(folder):
     """A ``forestreg trees`` output folder (:class:`~forestreg.engine.io.results.TreesOutput`),
-    its cylinder files read as :class:`~forestreg.engine.trees.qsm.CylinderModel`\ s."""
+    its cylinder files read as cylinder models (:class:`~forestreg.engine.trees.qsm.CylinderModel`)."""
     from ..engine.io.results import read_trees_dir
     from ..engine.trees.qsm import CylinderModel
 

@@ -29,7 +29,9 @@ plot of `--only bigplot`; `--quick`: a few minutes)::
 8. Trees side by side with Sylva (:mod:`benchmarks.trees_compare`): ``forestreg trees`` against
    ``sylva ground`` + ``sylva trees`` and ``sylva qsm`` on the same simulated (with truth) and real
    clouds: found, false stems, DBH, height, volume, time and memory.
-9. A plot of ten ~30 M-point scans registered and merged into one COPC file within 4 GB
+9. A re-survey (:mod:`benchmarks.resurvey`): a simulated stand measured again six years later,
+   ``forestreg change`` against the simulator's truth (registration error, statuses, growth).
+10. A plot of ten ~30 M-point scans registered and merged into one COPC file within 4 GB
    (:mod:`benchmarks.big_plot`; about an hour: only with ``--only bigplot``, left out by default
    and by ``--quick``).
 
@@ -54,7 +56,7 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import big_plot, big_scan, coarse_matcher, command_memory, peers, plot_speed, system_b, trees_compare
+    from . import big_plot, big_scan, coarse_matcher, command_memory, peers, plot_speed, resurvey, system_b, trees_compare
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import big_plot  # type: ignore[no-redef]
@@ -63,6 +65,7 @@ else:  # run as a script: python benchmarks/run.py
     import command_memory  # type: ignore[no-redef]
     import peers  # type: ignore[no-redef]
     import plot_speed  # type: ignore[no-redef]
+    import resurvey  # type: ignore[no-redef]
     import system_b  # type: ignore[no-redef]
     import trees_compare  # type: ignore[no-redef]
 
@@ -316,7 +319,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated plot and of the VOP sets (default 0)")
     ap.add_argument("--json", metavar="FILE", type=Path, help="also write every row to this JSON file")
     ap.add_argument("--runs", type=int, default=3, help="timed rounds of the whole-command comparison (default 3)")
-    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands", "trees"), action="append",
+    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands", "trees", "resurvey"), action="append",
                     help="run only these parts (repeatable; default all but bigplot; --quick leaves out plot, big and commands). "
                          "bigplot: ten ~30 M-point scans registered and merged as COPC, about an hour, so only when named")
     ap.add_argument("--workdir", type=Path, help="bigplot: keep its simulated and densified scans here (default bench_out/; reused)")
@@ -328,7 +331,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     print(f"seed {args.seed}{', quick (no ~3 M point pair)' if args.quick else ''}", flush=True)
     print()
 
-    parts = set(args.only or (("pairs", "peers", "coarse", "system_b", "trees") if args.quick else ("pairs", "peers", "plot", "big", "coarse", "system_b", "commands", "trees")))
+    parts = set(args.only or (("pairs", "peers", "coarse", "system_b", "trees", "resurvey") if args.quick else ("pairs", "peers", "plot", "big", "coarse", "system_b", "commands", "trees", "resurvey")))
     pair_rows: list[dict[str, Any]] = []
     peer_rows: list[dict[str, Any]] = []
     coarse_rows: list[dict[str, Any]] = []
@@ -385,13 +388,18 @@ def main(argv: Optional[list[str]] = None) -> int:
         system_b_rows = system_b.run(seed=args.seed, quick=args.quick)
         print(system_b.format_rows(system_b_rows))
         print()
+    resurvey_rows: list[dict[str, Any]] = []
+    if "resurvey" in parts:
+        resurvey_rows = resurvey.run(seeds=(1,), quick=args.quick)
+        print(resurvey.format_rows(resurvey_rows))
+        print(flush=True)
     wall = time.perf_counter() - t_start
     print(f"total benchmark wall time {wall:.0f} s")
 
     if args.json is not None:
         payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
                    "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "big_plot": big_plot_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows, "commands": command_rows,
-                   "trees_compare": trees_rows}
+                   "trees_compare": trees_rows, "resurvey": resurvey_rows}
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0
