@@ -69,7 +69,7 @@ fi
 # the package's modules compiled to bytecode now, as pip does when it installs a package: an editable
 # install leaves that to the first import, and where PYTHONDONTWRITEBYTECODE is set (CI machines,
 # containers) no import ever writes it, so every command compiled each of its modules anew (~0.07 s)
-.venv/bin/python -m compileall -q -j 0 __init__.py client.py cli engine plugin service ui >/dev/null
+.venv/bin/python -m compileall -q -j 0 __init__.py client.py app cli engine plugin service ui >/dev/null
 # the numerical kernels compiled now, into the per-version cache (~45 s on 2 cores, once): otherwise
 # the first command after an install compiles those it needs
 .venv/bin/forestreg warmup
