@@ -437,7 +437,7 @@ def _links_section(project: Project, view: TopView, colours: Mapping[str, str]) 
             method += f"<br><span class=\"note\">{len(ids) if isinstance(ids, list) else '?'} targets, fit RMSE {_fmt(tf.get('rmse_m'), 1, 100)} cm</span>"
         if link.extra:
             method += '<br><span class="note">loop link (adjustment only)</span>'
-        if not r:
+        if len(r) == 0:  # no result yet (a failed result is a falsy record, but it was run)
             status = '<span class="bad">not run</span>'
         elif ok:
             status = '<span class="ok">ok</span>'
