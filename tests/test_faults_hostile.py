@@ -10,7 +10,6 @@ status and how fast it comes, and that SIGTERM always ends the service and unloc
 from __future__ import annotations
 
 import fcntl
-import hashlib
 import json
 import os
 import signal
@@ -32,25 +31,8 @@ CLI = [sys.executable, "-m", "forestreg.cli"]
 # ----------------------------------------------------------------------------- helpers
 
 
-def _hash(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
-def _tree(folder: Path) -> dict[str, str]:
-    """{relative path: sha256} of every file under ``folder`` (its full state)."""
-    return {str(p.relative_to(folder)): _hash(p) for p in sorted(Path(folder).rglob("*")) if p.is_file()}
-
-
-def _error_lines(err: str) -> list[str]:
-    """The lines of stderr that are not JSON progress events or logged warnings."""
-    return [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("{") and not ln.startswith("WARNING ")]
-
-
-def _assert_one_line(err: str) -> str:
-    assert "Traceback" not in err, err
-    lines = _error_lines(err)
-    assert len(lines) == 1, f"expected one line, got {lines}"
-    return lines[0]
+# the user's-files and one-line checks are the fault suite's own
+from test_faults import _assert_one_line, _error_lines, _hash, _tree  # noqa: E402
 
 
 def _env() -> dict:
