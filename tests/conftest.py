@@ -10,8 +10,28 @@ from typing import Optional
 import pytest
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+# The test process itself never talks to the X server pytest-xvfb starts: Qt draws offscreen and
+# VTK renders through EGL. Only the subprocess that opens the interactive window uses the display.
+# (An X client still connected when Xvfb stops at exit makes Xlib end the process with status 1.)
+os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Close every 3D view and window while the virtual display still runs."""
+    import gc
+    import sys
+
+    if "pyvista" in sys.modules:
+        sys.modules["pyvista"].close_all()
+    qtwidgets = sys.modules.get("PySide6.QtWidgets")
+    if qtwidgets is not None and qtwidgets.QApplication.instance() is not None:
+        for widget in qtwidgets.QApplication.topLevelWidgets():
+            widget.close()
+            widget.deleteLater()
+        qtwidgets.QApplication.processEvents()
+    gc.collect()
 
 
 def pytest_collection_modifyitems(config, items):

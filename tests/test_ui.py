@@ -301,6 +301,7 @@ def test_interactive_window_screenshot_under_xvfb(plot_dir: Path, tmp_path: Path
     project = _registered_project(plot_dir, tmp_path)
     env = dict(os.environ, QT_QPA_PLATFORM="xcb")
     env.pop("FORESTREG_3D", None)
+    env.pop("VTK_DEFAULT_OPENGL_WINDOW", None)  # the window's OpenGL view draws on the X display
     out = tmp_path / "window.png"
     rect = _screenshot(["--project", str(project)], env, out)
     _check_screenshot(out, rect)
