@@ -233,7 +233,7 @@ def test_every_command_gives_the_same_bytes_five_times(inputs, tmp_path):
 # ----------------------------------------------------------------------------------- kernel cache
 
 _KERNEL_MODULE = '''
-from forestreg.engine.geometry.jit import kernel
+from forestreg.engine.core.jit import kernel
 
 @kernel
 def weighted_sum(a):

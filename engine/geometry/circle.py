@@ -21,7 +21,7 @@ from typing import Any, Literal, Optional
 
 import numpy as np
 
-from .jit import kernel
+from ..core.jit import kernel
 from .robust import huber_weights, robust_scale, soft_l1_weights, weighted_step
 
 __all__ = ["Circle", "algebraic_circle", "fit_circle", "ransac_circle", "refine_circle", "robust_circle"]

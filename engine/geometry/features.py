@@ -19,7 +19,7 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .jit import kernel, run_blocks, worker_count
+from ..core.jit import kernel, run_blocks, worker_count
 from .sums import pairwise_sum, segment_sum
 
 __all__ = ["SphereGrid", "eigen_features", "local_covariances", "nearest_within", "neighbour_means", "normals_and_variation"]

@@ -30,7 +30,7 @@ import numpy as np
 from ..core.errors import ParameterError, ScanDataError
 from ..core.progress import Progress
 from ..core.params import Params, param_field as _p
-from ..geometry.jit import kernel, run_blocks
+from ..core.jit import kernel, run_blocks
 from ..geometry.voxel import voxel_thin
 
 __all__ = ["Dem", "TerrainModel", "TerrainParams", "build_dem", "classify_ground", "lowest_points_dem", "terrain_model"]

@@ -13,11 +13,11 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..geometry.jit import kernel
-from ..geometry.voxel import VoxelGrid, voxel_grid
+from ..core.jit import kernel
+from ..geometry.voxel import VoxelGrid, claim_voxel, voxel_bitmap, voxel_grid
 from .params import RegistrationParams
 from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
-from .level import LEVEL_RADIUS_M, LEVEL_VOXEL_M, claim_voxel, estimate_up_direction, levelling_rotation, tilt_deg, voxel_bitmap
+from .level import LEVEL_RADIUS_M, LEVEL_VOXEL_M, estimate_up_direction, levelling_rotation, tilt_deg
 from .vop import (
     VisualOcclusionPoints,
     angular_spacing,
@@ -340,7 +340,7 @@ def _centre_rows(points, origin, max_d2, near_d2, voxel_m, half, occupied, out, 
     """:func:`_centred_float32` in one pass: each coordinate minus the origin in float64, then
     float32; the squared distance summed in float32 (x, then y, then z); kept rows packed in
     order, those within ``near_d2`` (negative: none) that claim their voxel (``voxel_m``, the
-    bitmap ``occupied``, ``half`` cells a side: :func:`~.level.claim_voxel`) into ``near``."""
+    bitmap ``occupied``, ``half`` cells a side: :func:`~..geometry.voxel.claim_voxel`) into ``near``."""
     kept = 0
     close = 0
     for i in range(points.shape[0]):

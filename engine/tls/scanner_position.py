@@ -33,7 +33,7 @@ from scipy import ndimage
 from ..core.errors import ScanDataError
 from ..core.params import Params, param_field
 from ..core.scan import Scan
-from ..geometry.jit import kernel
+from ..core.jit import kernel
 from ..geometry.voxel import column_bounds
 
 log = logging.getLogger("forestreg")

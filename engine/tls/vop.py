@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from .ground import GroundGrid
 from ..geometry.circle import algebraic_circle
 from ..geometry.cluster import connected_clusters
-from ..geometry.jit import kernel
+from ..core.jit import kernel
 
 
 @dataclass(frozen=True)

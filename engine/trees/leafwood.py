@@ -47,7 +47,7 @@ from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 from ..geometry.features import SphereGrid, eigen_features, local_covariances, neighbour_means
-from ..geometry.jit import kernel, run_blocks, worker_count
+from ..core.jit import kernel, run_blocks, worker_count
 from ..geometry.voxel import voxel_centroids
 from .mixture import fit_gaussian_mixture
 
