@@ -98,7 +98,7 @@ class ScanCache:
             if known is not None and np.array_equal(known[1], scan.origin_shift):
                 scan = dataclasses.replace(scan, scanner_position=known[0], meta=known[2])
             else:
-                scan = locate_scanner(scan)
+                scan = locate_scanner(scan, self.project.scanner_params)
             with self._lock:
                 self._located[name] = (scan.scanner_position, scan.origin_shift, scan.meta)
                 self._frames[name] = (scan.without_points(), scan_identity(scan))
