@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-from dataclasses import dataclass
 from typing import Any, Optional, Sequence
 
 import numpy as np

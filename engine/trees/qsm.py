@@ -60,6 +60,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from ..core.scan import check_points
 from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
@@ -68,7 +69,6 @@ from ..geometry.circle import fit_circle
 from ..geometry.robust import huber_weights, median, robust_scale, weighted_step
 from ..geometry.vectors import perpendicular_frame
 from ..geometry.voxel import voxel_centroids
-from .leafwood import check_points
 
 #: Breast height (m) above the stem base at which the DBH is taken.
 BREAST_HEIGHT_M = 1.3
@@ -1138,7 +1138,7 @@ def fit_qsm(
         that is not finite.
     """
     progress = progress or Progress()
-    raw = check_points(points, MIN_POINTS, "a cylinder model")
+    raw = check_points(points, "a cylinder model", min_points=MIN_POINTS)
     base_pt: Optional[np.ndarray] = None
     if base is not None:
         base_pt = np.asarray(base, dtype=np.float64).reshape(-1)

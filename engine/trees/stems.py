@@ -54,6 +54,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from ..core.scan import check_points
 from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field
 from ..core.progress import Progress
@@ -73,14 +74,7 @@ def check_cloud(points: Any, heights: Any = None, *, what: str = "points") -> tu
     Returns float64 arrays; raises :class:`ScanDataError` for wrong shapes, empty arrays and NaN or
     infinite values.
     """
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ScanDataError(f"{what} must be an (N, 3) array of x, y, z, got shape {p.shape}")
-    if len(p) == 0:
-        raise ScanDataError(f"{what} is empty: there are no points to measure trees in")
-    if not np.isfinite(p).all():
-        bad = int((~np.isfinite(p).all(axis=1)).sum())
-        raise ScanDataError(f"{what} holds {bad} point(s) with NaN or infinite coordinates; remove them first")
+    p = check_points(points, what)
     h: Optional[np.ndarray] = None
     if heights is not None:
         h = np.asarray(heights, dtype=np.float64)
