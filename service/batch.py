@@ -653,10 +653,13 @@ def run_batch(
             # A plot whose worker dies (killed, lost, over Dask's memory limit) is run again on
             # another worker by the scheduler itself, up to distributed.scheduler.allowed-failures
             # times (default 3); run_plot never raises, so there is nothing for retries= to redo.
+            # the largest plots (by their input files) start first: the batch does not end waiting
+            # for one large plot started last while the other workers sit idle
             futures = {}
-            for t in todo:
+            for rank, t in enumerate(sorted(todo, key=lambda t: -_input_bytes(t))):
                 t.threads, t.memory_limit, t.run = threads, memory_limit, run_id
-                futures[client.submit(run_plot, asdict(t), key=f"forestreg-plot-{t.name}-{run_id}", pure=False, retries=0)] = t
+                futures[client.submit(run_plot, asdict(t), key=f"forestreg-plot-{t.name}-{run_id}", pure=False, retries=0,
+                                      priority=len(todo) - rank)] = t
             for future in as_completed(futures):
                 task = futures[future]
                 try:
@@ -684,6 +687,19 @@ def run_batch(
     outcome.summary, outcome.overview = _write_summary(out, outcome.rows, facts)
     log.info("summary rewritten %d times in %.2f s", summary.writes + 1, summary.seconds)
     return outcome
+
+
+def _input_bytes(task: PlotTask) -> int:
+    """Bytes of the plot's input files (its scans or clouds): a measure of its work."""
+    total = 0
+    for a in task.args:
+        if a.startswith("-") or a == task.out_dir:
+            continue
+        try:
+            total += os.path.getsize(a) if os.path.isfile(a) else 0
+        except OSError:
+            pass
+    return total
 
 
 def _usable_cores() -> int:
