@@ -17,7 +17,9 @@ threads (default: the usable cores shared out among the local workers, 1 on an e
 the numerical thread pools (OpenMP, BLAS, Numba, forestreg's own) are sized by environment
 variables, so N workers keep N cores busy and no more. The process dies with its worker (a worker
 killed or lost takes its plot's process along: no orphan writes into ``OUT``); Dask then runs the
-plot again on another worker, and its row says so (``attempts``, ``retried_after``). Its peak
+plot again on another worker, and its row says so (``attempts``, ``retried_after``). A ``plot``
+stopped half-way (worker lost, batch killed) resumes from the links its project file kept
+(``project run``); one that cannot is started over in an emptied folder. Its peak
 memory (``peak_mb``, the process tree's high-water mark) and CPU time are in its row; with
 ``--memory-limit`` a plot whose processes outgrow the limit is stopped (an ``error`` row with the
 peak) and the local workers get the same limit.
@@ -357,6 +359,53 @@ def _remove_unfinished(out: Path) -> None:
         shutil.rmtree(out, ignore_errors=True)
 
 
+#: Options of ``plot`` kept in its project file (a resumed run needs them no more), and those
+#: ``project run`` takes as they are; with any other option a stopped plot runs again from the start.
+_IN_PROJECT = {"--centre", "--tilted", "--targets", "--dr", "--dc", "--dh", "--params", "--positions", "--prior-poses"}
+_PASSED_ON = {"--pairs", "--fixed", "--merged", "--e57-out"}
+
+
+def _resume_args(t: PlotTask) -> Optional[tuple[list[str], int, int]]:
+    """``project run`` arguments that finish a plot an earlier attempt left unfinished (its
+    project file in ``OUT/<plot>`` saved after every link, no ``batch.json``), keeping the links
+    that attempt registered: (arguments, links done, links); None when there is nothing to resume
+    (no such folder, other scans, no link done, or options ``project run`` does not take)."""
+    from ..engine.core.atomic import MARKER
+
+    out = Path(t.out_dir)
+    try:
+        if (out / MARKER).read_text(encoding="utf-8").strip() != "plot" or (out / "batch.json").exists():
+            return None
+    except (OSError, UnicodeDecodeError):
+        return None
+    project = _read_json(out / "project.json")
+    if not isinstance(project, dict):
+        return None
+    options = [k for k, a in enumerate(t.args) if a.startswith("--")]
+    first = options[0] if options else len(t.args)
+    scans = {str(Path(a).resolve()) for a in t.args[1:first]}
+    try:
+        saved = {str((out / s["path"]).resolve()) for s in project.get("scans", [])}
+        links = [link for link in project.get("links", []) if isinstance(link, dict)]
+    except (TypeError, KeyError, AttributeError):
+        return None
+    done = sum(1 for link in links if isinstance(link.get("result"), dict) and link["result"].get("status") == "ok")
+    if saved != scans or not done:
+        return None
+    args = ["project", "run", str(out / "project.json"), "--out", str(out)]
+    k = first
+    while k < len(t.args):
+        option = t.args[k].split("=", 1)[0]
+        takes_value = "=" not in t.args[k] and k + 1 < len(t.args) and not t.args[k + 1].startswith("--")
+        value = t.args[k:k + 1 + int(takes_value)]
+        if option in _PASSED_ON:
+            args += value
+        elif option not in _IN_PROJECT and option != "--out":
+            return None
+        k += len(value)
+    return args, done, len(links)
+
+
 def _note_attempt(t: PlotTask, worker: str) -> tuple[int, str]:
     """Note this attempt in ``OUT/.forestreg-batch/<plot>.json``; returns (attempts of this run so
     far, including this one; why the previous attempt did not finish, "" for a first attempt)."""
@@ -455,10 +504,17 @@ def run_plot(task: dict) -> dict:
     row["attempts"], row["retried_after"] = _note_attempt(t, worker)
     if row["attempts"] > 1 or row["retried_after"]:
         _remove_leftovers(out)
+    args = t.args
     if t.command == "plot":
-        _remove_unfinished(out)
+        resume = _resume_args(t)  # an attempt stopped after some links: they are kept
+        if resume is not None:
+            args, done, total_links = resume
+            note = f"resumed with {done} of {total_links} links done"
+            row["retried_after"] = f"{row['retried_after']}; {note}" if row["retried_after"] else note
+        else:
+            _remove_unfinished(out)
     t0 = time.perf_counter()
-    code, stderr, peak, cpu, over = _run_cli(t.args, t.threads, t.memory_limit)
+    code, stderr, peak, cpu, over = _run_cli(args, t.threads, t.memory_limit)
     row["seconds"] = round(time.perf_counter() - t0, 2)
     row["exit_code"] = code
     row["peak_mb"], row["cpu_s"] = round(peak, 1), round(cpu, 2)

@@ -175,21 +175,22 @@ def test_batch_on_an_existing_scheduler(tmp_path):
 
 @pytest.fixture(scope="module")
 def small_plots(tmp_path_factory):
-    """Three two-scan conifer plots at 0.5 deg (a few seconds each)."""
+    """Three three-scan conifer plots at 0.5 deg (a few seconds each)."""
     from forestreg.engine.simulate import simulate_plot
 
     root = tmp_path_factory.mktemp("batch_small")
     for name, seed in (("p1", 1), ("p2", 2), ("p3", 3)):
-        simulate_plot("planted_conifer", [(0, 0), (9, 4)], seed=seed, angular_step_deg=0.5, size_m=30, out_dir=root / name)
+        simulate_plot("planted_conifer", [(0, 0), (9, 4), (-3, 9)], seed=seed, angular_step_deg=0.5, size_m=30, out_dir=root / name)
         (root / name / "truth.json").unlink()
     return root
 
 
 @pytest.mark.slow
 def test_a_killed_worker_loses_no_plot(small_plots, tmp_path):
-    """SIGKILL of a worker while its plot's command runs: the command dies with it (no orphan
-    writing into OUT), Dask runs the plot again on a live worker, every plot ends ok, the retried
-    one says so in summary.csv and index.html, and no half-written folder is left."""
+    """SIGKILL of a worker while its plot's command runs, after its first link: the command dies
+    with it (no orphan writing into OUT), Dask runs the plot again on a live worker, which keeps
+    the link already registered, every plot ends ok, the retried one says so in summary.csv and
+    index.html, and no half-written folder is left."""
     import os
     import signal
     import time
@@ -209,8 +210,13 @@ def test_a_killed_worker_loses_no_plot(small_plots, tmp_path):
                     children = psutil.Process(attempt["pid"]).children()
                 except (ValueError, KeyError, psutil.Error):
                     continue
-                # the plot's command is running and has started its folder: kill its worker now
-                if children and (out / note.stem / "project.json").is_file():
+                # the plot's command is running and has registered a link: kill its worker now
+                project = out / note.stem / "project.json"
+                try:
+                    links = json.loads(project.read_text())["links"] if project.is_file() else []
+                except (ValueError, KeyError, OSError):
+                    continue
+                if children and any((link.get("result") or {}).get("status") == "ok" for link in links) and not (out / note.stem / "poses.json").exists():
                     victim, killed_cli = note.stem, children[0].pid
                     os.kill(attempt["pid"], signal.SIGKILL)
                     break
@@ -225,8 +231,9 @@ def test_a_killed_worker_loses_no_plot(small_plots, tmp_path):
     assert batch.returncode == 0, stderr[-3000:]
     rows = _rows(out / "summary.csv")
     assert {k: r["status"] for k, r in rows.items()} == {"p1": "ok", "p2": "ok", "p3": "ok"}
-    assert {k: r["registered"] for k, r in rows.items()} == {"p1": "2", "p2": "2", "p3": "2"}
+    assert {k: r["registered"] for k, r in rows.items()} == {"p1": "3", "p2": "3", "p3": "3"}
     assert rows[victim]["attempts"] == "2" and rows[victim]["retried_after"].startswith("worker lost (tcp://"), rows[victim]
+    assert rows[victim]["retried_after"].endswith("; resumed with 1 of 2 links done"), rows[victim]
     assert all(r["attempts"] == "1" and not r["retried_after"] for k, r in rows.items() if k != victim)
     assert "retried after: worker lost" in (out / "index.html").read_text()
     assert not [p.name for p in out.iterdir() if p.name.startswith(".forestreg-tmp")]
@@ -277,3 +284,34 @@ def test_a_long_batch_spaces_its_summary_rewrites(tmp_path):
     assert len(_rows(out / "summary.csv")) == 1000
     html = (out / "index.html").read_text()
     assert html.count("<tr>") == 1001 and 'href="plot_0999/report.html"' in html
+
+
+def test_a_stopped_plot_resumes_from_its_registered_links(tmp_path):
+    """A plot folder an attempt left unfinished (its project file, saved after each link, holds a
+    registered link; no batch.json) is finished by ``project run``, keeping the link; with other
+    scans, no link done, a finished folder or an option ``project run`` lacks, it starts over."""
+    from forestreg.engine.core.atomic import MARKER
+    from forestreg.service.batch import PlotTask, _resume_args
+
+    scans = tmp_path / "plots" / "p"
+    scans.mkdir(parents=True)
+    for name in ("s1.laz", "s2.laz", "s3.laz"):
+        (scans / name).write_text("x")
+    out = tmp_path / "out" / "p"
+    out.mkdir(parents=True)
+    (out / MARKER).write_text("plot\n")
+    links = [{"moving": "s2.laz", "reference": "s1.laz", "result": {"status": "ok"}}, {"moving": "s3.laz", "reference": "s1.laz", "result": None}]
+    project = {"scans": [{"name": n, "path": f"../../plots/p/{n}"} for n in ("s1.laz", "s2.laz", "s3.laz")], "links": links}
+    (out / "project.json").write_text(json.dumps(project))
+    args = ["plot", *[str(scans / n) for n in ("s1.laz", "s2.laz", "s3.laz")], "--out", str(out), "--centre", "s2.laz", "--pairs", "all"]
+    task = PlotTask("p", "plot", args, str(out), 3)
+    resumed, done, total = _resume_args(task)
+    assert resumed == ["project", "run", str(out / "project.json"), "--out", str(out), "--pairs", "all"] and (done, total) == (1, 2)
+    assert _resume_args(PlotTask("p", "plot", args + ["--registered-dir", str(tmp_path / "r")], str(out), 3)) is None
+    assert _resume_args(PlotTask("p", "plot", args[:1] + args[2:], str(out), 2)) is None  # other scans
+    (out / "batch.json").write_text("{}")
+    assert _resume_args(task) is None  # finished: nothing to resume
+    (out / "batch.json").unlink()
+    links[0]["result"] = {"status": "failed"}
+    (out / "project.json").write_text(json.dumps(project))
+    assert _resume_args(task) is None  # no link registered yet
