@@ -368,10 +368,10 @@ def _remove_leftovers(out: Path) -> None:
 
 
 def _remove_unfinished(out: Path) -> None:
-    """Remove ``OUT/<plot>`` before the ``plot`` command runs into it again, and after it was
-    stopped: the command fills its folder in place (the others write theirs by one rename), so a
-    plot's folder in a batch is complete (with its ``batch.json``, written last) or absent whenever
-    the plot is not running. Only a folder of forestreg's ``plot`` (its marker file) is removed."""
+    """Remove ``OUT/<plot>`` before the ``plot`` command starts it over (nothing to resume), and
+    after it was stopped over its memory limit: the command fills its folder in place (the others
+    write theirs by one rename), so no product of an earlier attempt is mixed into the new one. Only
+    a folder of forestreg's ``plot`` (its marker file) is removed."""
     from ..engine.core.atomic import MARKER
 
     try:
