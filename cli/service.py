@@ -79,10 +79,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         print(f"forestreg batch: {exc}", file=sys.stderr)
         return 130
     reporter.close()
-    counts: dict[str, int] = {}
-    for r in outcome.rows:
-        counts[r["status"]] = counts.get(r["status"], 0) + 1
-    resumed = sum(1 for r in outcome.rows if r.get("resumed"))
+    counts, resumed = outcome.counts(), outcome.resumed
     reporter.done("", outcome.summary)
     say(f"{len(outcome.rows)} plots: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
         + (f" ({resumed} done before, skipped)" if resumed else "") + f", {outcome.seconds:.1f} s -> {outcome.summary}, {outcome.overview}", args)

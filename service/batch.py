@@ -37,6 +37,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
+from ..app.saved import SavedFileError, SavedPoses, SavedResult
+
 log = logging.getLogger("forestreg.batch")
 
 COMMANDS = ("plot", "trees", "coregister", "change")
@@ -74,6 +76,18 @@ class BatchOutcome:
     def succeeded(self) -> bool:
         """Every plot succeeded (status ``ok``): the batch's exit status 0, else 1."""
         return all(r["status"] == "ok" for r in self.rows)
+
+    def counts(self) -> dict[str, int]:
+        """Plots per status ("ok", "failed", "error", ...)."""
+        found: dict[str, int] = {}
+        for r in self.rows:
+            found[r["status"]] = found.get(r["status"], 0) + 1
+        return found
+
+    @property
+    def resumed(self) -> int:
+        """Plots done by an earlier run of the batch (skipped by this one)."""
+        return sum(1 for r in self.rows if r.get("resumed"))
 
     @property
     def not_ok(self) -> list[str]:
@@ -238,6 +252,15 @@ def _read_json(path: Path) -> Optional[dict]:
         return None
 
 
+def _read_saved(kind, path: Path):
+    """A saved file read as ``kind`` (:class:`~forestreg.app.saved.SavedResult` or
+    :class:`~forestreg.app.saved.SavedPoses`), or None when it is missing or unreadable."""
+    try:
+        return kind.read(path)
+    except SavedFileError:
+        return None
+
+
 def _last_error(text: str) -> str:
     lines = [l.strip() for l in text.splitlines() if l.strip() and not l.lstrip().startswith("{")]
     for line in reversed(lines):
@@ -269,18 +292,16 @@ def run_plot(task: dict) -> dict:
     if code in (0, 1):
         row["status"] = "ok" if code == 0 else "failed"
         if t.command == "plot":
-            poses = _read_json(out / "poses.json") or {}
-            scans = poses.get("scans") or {}
-            row["scans"] = len(scans) or t.inputs
-            row["registered"] = sum(1 for s in scans.values() if s.get("matrix") is not None)
-            reasons = [f"{n}: {s.get('reason') or 'not registered'}" for n, s in scans.items() if s.get("matrix") is None]
-            row["reason"] = "; ".join(reasons)
+            poses = _read_saved(SavedPoses, out / "poses.json") or SavedPoses("")
+            row["scans"] = len(poses.scans) or t.inputs
+            row["registered"] = len(poses.scans) - len(poses.not_registered)
+            row["reason"] = poses.reason()
         elif t.command in ("coregister", "change"):
-            result = _read_json(out / "result.json") or {}
-            row["registered"] = 1 if result.get("status") == "ok" else 0
-            row["reason"] = result.get("reason") or ""
-            if t.command == "change" and isinstance(result.get("trees"), dict):
-                row["trees"] = sum(int(v) for v in result["trees"].values())
+            result = _read_saved(SavedResult, out / "result.json")
+            row["registered"] = 1 if result is not None and result.ok else 0
+            row["reason"] = result.reason if result is not None else ""
+            if t.command == "change" and result is not None and result.trees:
+                row["trees"] = sum(result.trees.values())
         else:
             try:
                 with (out / "trees.csv").open(newline="", encoding="utf-8") as fh:
