@@ -4,8 +4,8 @@ The plots: 20 simulated ``planted_conifer`` plots of 40 m side, each scanned fro
 at 0.25 deg (about 0.4 M points per scan), seeds 1..20, simulated once into ``--workdir`` (reused).
 The same batch then runs as a whole command (``forestreg batch PLOTS --out OUT --workers N
 --threads 1``, a child process: cluster start-up, 20 plot processes, summary) with 1 worker and
-with 2 workers, in turn, ``--rounds`` times; each plot's process runs one thread, so N workers use
-N cores. Reported per run: wall time from the parent's clock, the 1-minute load average before
+with 2 workers, in turn, ``--rounds`` times (the order swapped every round); each plot's process
+runs one thread, so N workers use N cores. Reported per run: wall time from the parent's clock, the 1-minute load average before
 and after (the machine may be shared), the CPU time of the whole process tree, and from the
 batch's ``summary.csv`` each plot's wall time, CPU time and peak memory (its process tree's
 high-water mark). Speed-up = wall(1 worker) / wall(2 workers) of the same round. Accuracy: every
@@ -126,8 +126,8 @@ def run(workdir: Optional[Path] = None, rounds: int = 1, plots: int = 20) -> dic
     simulate_s = time.perf_counter() - t
     points = [int(s["n_points"]) for s in json.loads((root / "plot_01" / "truth.json").read_text())["scans"]]
     runs: list[dict[str, Any]] = []
-    for _ in range(rounds):
-        for workers in (1, 2):
+    for k in range(rounds):  # in turn, the order swapped every round (a drifting load favours neither)
+        for workers in ((1, 2) if k % 2 == 0 else (2, 1)):
             runs.append(run_batch(root, workdir / f"batch_out_{workers}", workers))
     one = [r for r in runs if r["workers"] == 1]
     two = [r for r in runs if r["workers"] == 2]
