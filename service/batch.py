@@ -483,29 +483,37 @@ def _run_cli(args: list[str], threads: int, memory_limit: int) -> tuple[int, str
                                     preexec_fn=_die_with_parent if _PRCTL is not None else None)
         except OSError as exc:
             return -1, f"error: cannot start the CLI: {exc}", 0.0, 0.0, 0.0
-        over = 0.0
+        over = sampled = 0.0
+        usage = None
         next_check = time.monotonic() + 1.0
         try:
             while True:
-                pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-                if pid:
+                if hasattr(os, "wait4"):
+                    pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+                    if pid:
+                        proc.returncode = os.waitstatus_to_exitcode(status)
+                        break
+                elif proc.poll() is not None:  # Windows: no rusage of a child; its memory sampled
                     break
-                if memory_limit and time.monotonic() >= next_check:
+                if (memory_limit or usage is None) and time.monotonic() >= next_check:
                     next_check = time.monotonic() + 0.5
                     rss = _tree_rss(proc.pid)
-                    if rss > memory_limit:
+                    sampled = max(sampled, rss / 1e6)
+                    if memory_limit and rss > memory_limit:
                         over = rss / 1e6
                         _kill_tree(proc.pid)
                 time.sleep(_POLL_S)
         except BaseException:
             _kill_tree(proc.pid)  # the worker thread stops (interrupt): the plot stops with it
             raise
-        proc.returncode = code = os.waitstatus_to_exitcode(status)
+        code = proc.returncode
         err.seek(0)
         stderr = err.read().decode("utf-8", "replace")
-    # ru_maxrss: KiB on Linux; the process and the children it waited for (its subprocess tree)
+    if usage is None:
+        return code, stderr, sampled, 0.0, over
+    # ru_maxrss: KiB on Linux, bytes on macOS; the process and the children it waited for (its tree)
     peak = usage.ru_maxrss / 1024.0 if sys.platform.startswith("linux") else usage.ru_maxrss / 1e6
-    return code, stderr, peak, usage.ru_utime + usage.ru_stime, over
+    return code, stderr, max(peak, sampled), usage.ru_utime + usage.ru_stime, over
 
 
 def run_plot(task: dict) -> dict:
