@@ -23,13 +23,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Optional
 
 import numpy as np
 
 from .common import UNITS, RunOutcome, with_cancel
 
-__all__ = ["ChangeOutcome", "detect_change_files", "read_epoch"]
+__all__ = ["ChangeOutcome", "ChangeSummary", "change_rows", "detect_change_files", "read_change_folder", "read_epoch"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,6 +47,72 @@ class ChangeOutcome(RunOutcome):
     def line(self) -> str:
         """One line for a terminal."""
         return self.result.summary() if self.result is not None else f"{self.status}: {self.reason}"
+
+
+@dataclass(frozen=True)
+class ChangeSummary:
+    """A re-survey's ``result.json``, typed: ``status``, ``reason``, the persisting stems the
+    registration used, the trees per status (persisting, removed, new, outside the other survey)
+    and the registration's 1-sigma uncertainty (position at the scanner, m; rotation, degrees;
+    None where unknown)."""
+
+    status: str
+    reason: str = ""
+    persisting_stems: Optional[int] = None
+    persisting: int = 0
+    removed: int = 0
+    new: int = 0
+    outside: int = 0
+    translation_m: Optional[float] = None
+    rotation_deg: Optional[float] = None
+
+    @classmethod
+    def of(cls, d) -> "ChangeSummary":
+        from ..engine.core.outcome import OutcomeRecord
+
+        rec = OutcomeRecord.from_dict(d)
+        trees = rec.get("trees") if isinstance(rec.get("trees"), dict) else {}
+        unc = rec.get("uncertainty") if isinstance(rec.get("uncertainty"), dict) else {}
+        stems = rec.evidence.get("persisting_stems")
+
+        def number(v):
+            return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+        return cls(rec.status, rec.reason, None if number(stems) is None else int(stems),
+                   *(int(trees.get(k) or 0) for k in ("persisting", "removed", "new", "outside")),
+                   number(unc.get("translation_m")), number(unc.get("rotation_deg")))
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def trees(self) -> int:
+        """Trees in the table (every status)."""
+        return self.persisting + self.removed + self.new + self.outside
+
+
+#: What a change table can be filtered by: every tree, the flagged ones, or one status.
+ROW_FILTERS = ("all trees", "persisting", "removed", "new", "outside", "flagged")
+
+
+def change_rows(rows, shown: str = "all trees") -> list:
+    """The rows of ``tree_changes.csv`` (as :func:`~forestreg.engine.io.change.read_change_dir`
+    reads them) that ``shown`` (one of :data:`ROW_FILTERS`) selects."""
+    if shown == "all trees":
+        return list(rows)
+    if shown == "flagged":
+        return [r for r in rows if r.get("flag")]
+    return [r for r in rows if r.get("status") == shown]
+
+
+def read_change_folder(folder):
+    """A ``forestreg change --out DIR`` folder (:class:`~forestreg.engine.io.change.ChangeOutput`)
+    and its typed :class:`ChangeSummary`."""
+    from ..engine.io.change import read_change_dir
+
+    out = read_change_dir(folder)
+    return out, ChangeSummary.of(out.result)
 
 
 def _input_kind(path: Path) -> str:

@@ -9,7 +9,8 @@ and writes the folder (``comparison.json``/``.csv``, ``project.json``, ``poses.j
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -21,17 +22,22 @@ log = logging.getLogger("forestreg")
 @dataclass(frozen=True)
 class SideResult:
     """One registration of a pair (automatic or from targets): status, reason, ICP std (m),
-    matched VOPs (automatic) or targets used (manual)."""
+    matched VOPs (automatic) or targets used (manual), and the trunk shadows (VOPs) found in the
+    reference and the moving scan (automatic)."""
 
     status: str
     reason: str = ""
     icp_std_m: Optional[float] = None
     matched: Optional[int] = None
     targets: Optional[int] = None
+    reference_vops: Optional[int] = None
+    moving_vops: Optional[int] = None
 
     @classmethod
-    def of(cls, d: dict) -> "SideResult":
-        return cls(str(d.get("status") or "failed"), str(d.get("reason") or ""), d.get("icp_std_m"), d.get("matched"), d.get("targets"))
+    def of(cls, d) -> "SideResult":
+        d = d if isinstance(d, Mapping) else {}
+        return cls(str(d.get("status") or "failed"), str(d.get("reason") or ""), d.get("icp_std_m"), d.get("matched"), d.get("targets"),
+                   d.get("reference_vops"), d.get("moving_vops"))
 
     @property
     def ok(self) -> bool:
@@ -48,6 +54,33 @@ class PairComparison:
     manual: SideResult
     rotation_difference_deg: Optional[float]
     translation_difference_m: Optional[float]
+
+
+    @classmethod
+    def of(cls, d: Mapping) -> "PairComparison":
+        return cls(str(d.get("moving")), str(d.get("reference")), SideResult.of(d.get("auto")), SideResult.of(d.get("manual")),
+                   d.get("rotation_difference_deg"), d.get("translation_difference_m"))
+
+
+@dataclass(frozen=True)
+class ComparisonFigures:
+    """A comparison (what :func:`compare_in_memory` returns, or ``comparison.json``), typed: the
+    pairs, the average target distance residual of each way (m) with its note, and each target's
+    residual (target id -> m) of each way."""
+
+    pairs: tuple = ()
+    auto_target_residual_m: Optional[float] = None
+    manual_target_residual_m: Optional[float] = None
+    target_residual_note: str = ""
+    auto_targets: dict = field(default_factory=dict)
+    manual_targets: dict = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, d: Mapping) -> "ComparisonFigures":
+        targets = d.get("targets") if isinstance(d.get("targets"), Mapping) else {}
+        return cls(tuple(PairComparison.of(p) for p in d.get("pairs") or [] if isinstance(p, Mapping)),
+                   d.get("auto_target_residual_m"), d.get("manual_target_residual_m"), str(d.get("target_residual_note") or ""),
+                   dict(targets.get("auto") or {}), dict(targets.get("manual") or {}))
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,14 +129,14 @@ def compare_plot(project, out, *, inputs: Sequence = (), progress=None, cancel=N
             log.warning("could not write the report: %s", exc)
     # the project file was saved inside the temporary folder: point it at its final place
     project.path = out / "project.json"
-    pairs = tuple(PairComparison(p["moving"], p["reference"], SideResult.of(p["auto"]), SideResult.of(p["manual"]),
-                                 p["rotation_difference_deg"], p["translation_difference_m"]) for p in comparison["pairs"])
+    figures = ComparisonFigures.of(comparison)
+    pairs = figures.pairs
     failed = tuple(f"{p.moving} -> {p.reference} {name}: {side.reason or 'failed'}"
                    for p in pairs for name, side in (("auto", p.auto), ("manual", p.manual)) if not side.ok)
     return ComparisonOutcome(status="failed" if failed else "ok", reason="; ".join(failed), out=out, summary=comparison,
-                             result=comparison, pairs=pairs, auto_target_residual_m=comparison["auto_target_residual_m"],
-                             manual_target_residual_m=comparison["manual_target_residual_m"],
-                             target_residual_note=str(comparison.get("target_residual_note") or ""), failed=failed,
+                             result=comparison, pairs=pairs, auto_target_residual_m=figures.auto_target_residual_m,
+                             manual_target_residual_m=figures.manual_target_residual_m,
+                             target_residual_note=figures.target_residual_note, failed=failed,
                              json_path=out / Path(json_path).name, report=out / "report.html" if drawn else None)
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
@@ -39,6 +39,98 @@ class CoregistrationOutcome(RunOutcome):
     def line(self) -> str:
         """The one-line summary of the run."""
         return self.result.summary() if self.result is not None else f"{self.status}: {self.reason}"
+
+    @property
+    def figures(self) -> "CoregistrationSummary":
+        """The ``result.json`` summary, typed."""
+        return CoregistrationSummary.of(self.to_dict())
+
+
+def _number(value) -> Optional[float]:
+    """A finite number as float, else None (a saved figure may be missing, null or text)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return float(value) if np.isfinite(value) else None
+
+
+def _mapping(value) -> dict:
+    return dict(value) if isinstance(value, dict) else {}
+
+
+@dataclass(frozen=True)
+class CoregistrationSummary:
+    """A co-registration's ``result.json`` (the outcome's summary, or the file read back), typed:
+    ``status``, ``reason``, ``matrix`` (p_uav = matrix @ p_ground, files' unit; None when failed or
+    not a rigid 4x4), the clouds' names and files, keypoints found in each cloud, matched
+    keypoints (and their share of the ground-based ones, %), the canopy surface correlation and
+    that of the best distinct alternative, the heading (degrees), the keypoint residuals after
+    the registration (mean, RMS; m), the fine fit (ICP overlap and std, m), the engine's standard
+    errors by name and the engine time (s)."""
+
+    status: str
+    reason: str = ""
+    matrix: Optional[np.ndarray] = None
+    ground: str = ""
+    uav: str = ""
+    ground_file: str = ""
+    uav_file: str = ""
+    keypoints_ground: Optional[int] = None
+    keypoints_uav: Optional[int] = None
+    matched: Optional[int] = None
+    matching_percentage: Optional[float] = None
+    surface_correlation: Optional[float] = None
+    alternative_correlation: Optional[float] = None
+    heading_deg: Optional[float] = None
+    residual_mean_m: Optional[float] = None
+    residual_rms_m: Optional[float] = None
+    icp_fitness: Optional[float] = None
+    icp_std_m: Optional[float] = None
+    standard_errors: dict = field(default_factory=dict)
+    total_s: Optional[float] = None
+
+    @classmethod
+    def of(cls, d) -> "CoregistrationSummary":
+        """The summary of a ``result.json`` dict (any version; the last rigid check applied)."""
+        from ..engine.core.outcome import OutcomeRecord
+
+        rec = OutcomeRecord.from_dict(d)
+        data = rec.data
+        kp = _mapping(data.get("keypoints"))
+        res = _mapping(data.get("residuals_after_icp_m")) or _mapping(data.get("residuals_m"))
+        icp = _mapping(data.get("icp"))
+        errors = _mapping(data.get("standard_errors")) or _mapping(data.get("uncertainty"))
+        count = [_number(v) for v in (kp.get("ground"), kp.get("uav"), data.get("matched"))]
+        return cls(rec.status, rec.reason, rec.matrix, str(data.get("ground") or ""), str(data.get("uav") or ""),
+                   str(data.get("ground_file") or ""), str(data.get("uav_file") or ""),
+                   *(None if c is None else int(c) for c in count),
+                   matching_percentage=_number(data.get("matching_percentage")),
+                   surface_correlation=_number(data.get("surface_correlation")),
+                   alternative_correlation=_number(data.get("alternative_correlation")),
+                   heading_deg=_number(data.get("heading_deg")), residual_mean_m=_number(res.get("mean")),
+                   residual_rms_m=_number(res.get("rms")), icp_fitness=_number(icp.get("fitness")), icp_std_m=_number(icp.get("std_m")),
+                   standard_errors={str(k): float(v) for k, v in errors.items() if _number(v) is not None},
+                   total_s=_number(rec.timings.get("total_s")))
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok" and self.matrix is not None
+
+    @property
+    def margin(self) -> Optional[float]:
+        """The surface correlation's margin over the best alternative (None without both)."""
+        if self.surface_correlation is None or self.alternative_correlation is None:
+            return None
+        return self.surface_correlation - self.alternative_correlation
+
+
+def read_coregistration_folder(folder):
+    """A ``forestreg coregister --out DIR`` folder
+    (:class:`~forestreg.engine.io.results.CoregistrationOutput`) and its typed
+    :class:`CoregistrationSummary`."""
+    from ..engine.io.results import read_coregistration_dir
+
+    out = read_coregistration_dir(folder)
+    return out, CoregistrationSummary.of(out.result)
 
 
 def default_params():

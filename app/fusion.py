@@ -16,6 +16,25 @@ import numpy as np
 from .common import UNITS, RunOutcome, check_replaceable_point_file, with_cancel
 
 
+@dataclass(frozen=True)
+class SourceCounts:
+    """Points of one source ("ground", "uav" or "total") through the fusion: read in, removed as
+    duplicates of the other cloud, removed as noise, and kept."""
+
+    input: int
+    redundant: int
+    noise: int
+    kept: int
+
+    @classmethod
+    def of(cls, d) -> "SourceCounts":
+        return cls(*(int(d.get(k) or 0) for k in ("input", "redundant", "noise", "kept")))
+
+    def line(self, source: str) -> str:
+        """``ground: 1,000 in, 10 redundant, 5 noise, 985 kept``."""
+        return f"{source}: {self.input:,} in, {self.redundant:,} redundant, {self.noise:,} noise, {self.kept:,} kept"
+
+
 @dataclass(frozen=True, eq=False)
 class FusionOutcome(RunOutcome):
     """The fused cloud written to ``out``: ``counts`` per source ("ground", "uav", "total": input,
@@ -29,6 +48,11 @@ class FusionOutcome(RunOutcome):
 
     def evidence(self) -> dict:
         return {"counts": self.counts, "points": self.points}
+
+    @property
+    def sources(self) -> dict[str, SourceCounts]:
+        """The counts per source, typed ("ground", "uav", "total")."""
+        return {source: SourceCounts.of(c) for source, c in self.counts.items()}
 
 
 def default_params():

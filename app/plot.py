@@ -11,6 +11,8 @@ registers it and writes the products (``forestreg plot``, ``project run``);
 from __future__ import annotations
 
 import logging
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
@@ -25,16 +27,33 @@ log = logging.getLogger("forestreg")
 POINT_SUFFIXES = (".laz", ".las", ".ply", ".xyz", ".txt")
 
 
+def _number(value) -> Optional[float]:
+    """A finite number as float, else None (a saved figure may be missing, null or text)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return float(value) if math.isfinite(value) else None
+
+
+def _mapping(value) -> Mapping:
+    return value if isinstance(value, Mapping) else {}
+
+
 @dataclass(frozen=True)
 class PoseSigma:
-    """1-sigma uncertainty of a registered pose relative to the frame scan (None where unknown)."""
+    """1-sigma uncertainty of a registered pose relative to the frame scan (None where unknown):
+    position error at the scanner (m) and rotation error (degrees); ``fixed`` when the survey held
+    the pose fixed, ``method`` how it was found."""
 
     translation_m: Optional[float]
     rotation_deg: Optional[float]
+    method: str = ""
+    fixed: bool = False
 
     @classmethod
     def of(cls, d) -> Optional["PoseSigma"]:
-        return None if not d else cls(d.get("translation_m"), d.get("rotation_deg"))
+        if not isinstance(d, Mapping) or not d:
+            return None
+        return cls(_number(d.get("translation_m")), _number(d.get("rotation_deg")), str(d.get("method") or ""), bool(d.get("fixed")))
 
     @property
     def known(self) -> bool:
@@ -50,15 +69,72 @@ class DroppedLink:
     reason: str
 
 
+def dropped_links(project) -> tuple[DroppedLink, ...]:
+    """The links the survey adjustment of ``project`` dropped (empty without one)."""
+    return tuple(DroppedLink(str(d.get("moving")), str(d.get("reference")), str(d.get("reason") or ""))
+                 for d in _mapping(project.adjustment).get("dropped") or [] if isinstance(d, Mapping))
+
+
+@dataclass(frozen=True)
+class ScanQuality:
+    """The survey's quality figures of one scan (None where not computed): the worst terrain
+    agreement of its links (m), its worst link's ambiguity, the largest loop residual at the scanner
+    (m) and how many of its links were dropped."""
+
+    terrain_median_m: Optional[float] = None
+    max_ambiguity: Optional[float] = None
+    max_residual_m: Optional[float] = None
+    dropped_links: Optional[int] = None
+
+
+def scan_quality(project) -> dict[str, ScanQuality]:
+    """Scan name -> :class:`ScanQuality` from the project's survey adjustment (empty without one)."""
+    found = {}
+    for name, q in _mapping(_mapping(project.adjustment).get("quality")).items():
+        q = _mapping(q)
+        dropped = q.get("dropped_links")
+        found[str(name)] = ScanQuality(_number(q.get("terrain_median_m")), _number(q.get("max_ambiguity")),
+                                       _number(q.get("max_residual_m")), int(dropped) if _number(dropped) is not None else None)
+    return found
+
+
+def pose_sigmas(project) -> dict[str, Optional[PoseSigma]]:
+    """Scan name -> the 1-sigma uncertainty of its pose (:func:`pose_uncertainty`; None where
+    unknown); empty without a centre scan or when a link of an older project lacks the figures."""
+    if not project.scans or not project.centre:
+        return {}
+    try:
+        found = pose_uncertainty(project)
+    except (KeyError, ValueError, TypeError):  # links of an older project without the figures
+        return {}
+    return {name: PoseSigma.of(u) for name, u in found.items()}
+
+
 @dataclass(frozen=True)
 class LinkSummary:
-    """What a project shows of one link's last run: status, matched VOPs, ICP std (m), reason."""
+    """What a project shows of one link's last run: status, reason, the search radius D_r (m),
+    trunk shadows (VOPs) of each scan, matched VOPs, the fine fit (ICP std in m, overlap), the VOP
+    residual (m), the pair's uncertainty, the terrain agreement (m), the ambiguity and the number
+    of failed attempts before it was placed."""
 
     reference: str
     status: str
     matched: Any = None
     icp_std_m: Optional[float] = None
     reason: str = ""
+    icp_fitness: Optional[float] = None
+    vop_radius_m: Optional[float] = None
+    reference_vops: Optional[int] = None
+    moving_vops: Optional[int] = None
+    vop_residual_m: Optional[float] = None
+    uncertainty: Optional[PoseSigma] = None
+    terrain_median_m: Optional[float] = None
+    ambiguity: Optional[float] = None
+    retried: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
 
 
 def link_summary(link) -> Optional[LinkSummary]:
@@ -66,8 +142,14 @@ def link_summary(link) -> Optional[LinkSummary]:
     if link is None or link.result is None:
         return None
     r = link.result
-    icp = r.get("icp") or {}
-    return LinkSummary(link.reference, r.status, r.get("matched"), icp.get("std_m"), r.reason)
+    icp, quality = _mapping(r.get("icp")), _mapping(r.get("quality"))
+    vops = [_number(r.get(k)) for k in ("reference_vops", "moving_vops")]
+    return LinkSummary(link.reference, r.status, r.get("matched"), _number(icp.get("std_m")), r.reason,
+                       icp_fitness=_number(icp.get("fitness")), vop_radius_m=_number(r.get("vop_radius_m")),
+                       reference_vops=None if vops[0] is None else int(vops[0]), moving_vops=None if vops[1] is None else int(vops[1]),
+                       vop_residual_m=_number(r.get("vop_residual_m")), uncertainty=PoseSigma.of(r.get("uncertainty")),
+                       terrain_median_m=_number(quality.get("terrain_median_m")), ambiguity=_number(quality.get("ambiguity")),
+                       retried=len(r.get("retried_after") or ()))
 
 
 @dataclass(frozen=True, eq=False)
@@ -324,7 +406,7 @@ def run_plot(
             written["registered_dir"] = (Path(registered_dir), write_registered_scans(project, rtmp, scans))
     if e57_out:
         written["e57_out"] = (Path(e57_out), write_registered_e57(project, e57_out, scans))
-    dropped = tuple(DroppedLink(d["moving"], d["reference"], d["reason"]) for d in (project.adjustment or {}).get("dropped") or [])
+    dropped = dropped_links(project)
     residual = None
     if adjusted:
         residual = (len(adjusted["links"]), max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0))

@@ -66,6 +66,9 @@ class Run:
     status: int
     anon_mb: float = float("nan")
     file_mb: float = float("nan")
+    tree_mb: float = float("nan")
+    """The largest sum of resident memory over the command's whole process tree seen while it ran
+    (MiB, sampled every 20 ms; NaN where there is no ``/proc``)."""
 
 
 def _resident_parts(pid: int) -> tuple[float, float]:
@@ -109,6 +112,28 @@ with open(sys.argv[1], "w") as f:
 """
 
 
+def _tree_rss_mb(pid: int) -> float:
+    """Resident memory summed over process ``pid`` and all its descendants now, MiB (NaN when
+    unknown)."""
+    total, seen, todo = 0.0, set(), [pid]
+    while todo:
+        p = todo.pop()
+        if p in seen:
+            continue
+        seen.add(p)
+        try:
+            with open(f"/proc/{p}/status") as f:
+                for line in f:
+                    if line.startswith("VmRSS:"):
+                        total += int(line.split()[1]) / 1024.0
+                        break
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, ValueError):
+            continue
+    return total if seen else float("nan")
+
+
 def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeout_s: float = 1800.0, log: Optional[Path] = None) -> Run:
     """Run ``argv`` to completion; its wall time and the peak memory the kernel accounted to it.
     Its output is dropped, or written to ``log`` (stdout and stderr) when given.
@@ -129,7 +154,7 @@ def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeou
         if log is not None:
             sink.close()
     deadline = time.perf_counter() + timeout_s
-    anon_mb = file_mb = float("nan")
+    anon_mb = file_mb = tree_mb = float("nan")
     child = None
     try:
         while launcher.poll() is None:
@@ -142,10 +167,12 @@ def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeou
             if child is not None:
                 anon, file_ = _resident_parts(child)
                 anon_mb, file_mb = np.fmax(anon_mb, anon), np.fmax(file_mb, file_)
+                tree_mb = np.fmax(tree_mb, _tree_rss_mb(child))
             if time.perf_counter() > deadline:
                 os.killpg(launcher.pid, 9)
                 launcher.wait()
-                return Run(wall_s=float(timeout_s), peak_mb=float("nan"), status=-9, anon_mb=float(anon_mb), file_mb=float(file_mb))
+                return Run(wall_s=float(timeout_s), peak_mb=float("nan"), status=-9, anon_mb=float(anon_mb), file_mb=float(file_mb),
+                           tree_mb=float(tree_mb))
             time.sleep(0.02)
         try:
             result = json.loads(report.read_text())
@@ -160,7 +187,7 @@ def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeou
         report.unlink(missing_ok=True)
     return Run(
         wall_s=float(result["wall_s"]), peak_mb=result["maxrss_kib"] / 1024.0, status=os.waitstatus_to_exitcode(result["status"]),
-        anon_mb=float(anon_mb), file_mb=float(file_mb),
+        anon_mb=float(anon_mb), file_mb=float(file_mb), tree_mb=float(tree_mb),
     )
 
 

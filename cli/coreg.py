@@ -102,8 +102,8 @@ def run_fuse(ground_path, uav_path, out, *, transform=None, units: str = "m", ep
 
 def print_fuse(outcome, reporter: Reporter) -> int:
     """The lines of a fusion's outcome; returns the exit code."""
-    for source, c in outcome.counts.items():
-        print(f"{source}: {c['input']:,} in, {c['redundant']:,} redundant, {c['noise']:,} noise, {c['kept']:,} kept")
+    for source, c in outcome.sources.items():
+        print(c.line(source))
     reporter.done("", outcome.out)
     say(f"wrote {outcome.points:,} points to {shown(outcome.out)}", argparse.Namespace(reporter=reporter))
     return 0

@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Sequence, Union
 
+from ..app.saved import SavedFileError, SavedPoses, SavedResult, read_scanner_positions
+
 Matrix = list  # 4x4 nested lists of floats
 ProgressCallback = Callable[[float, str], None]
 LogCallback = Callable[[str], None]
@@ -311,11 +313,13 @@ def _need(path: Path) -> Path:
 
 
 def read_json(path: Union[str, Path]) -> dict:
-    path = _need(Path(path))
+    """The JSON object of an output file (:class:`AdapterError` when missing or not valid JSON)."""
+    from ..app.saved import read_json_object
+
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except ValueError as exc:
-        raise AdapterError(f"{path}: not valid JSON ({exc})") from exc
+        return read_json_object(_need(Path(path)))
+    except SavedFileError as exc:
+        raise AdapterError(str(exc)) from exc
 
 
 def apply_matrix(matrix: Matrix, point: Sequence[float]) -> tuple[float, float, float]:
@@ -359,15 +363,28 @@ class HostOutputs:
     out_dir: Path
     status: str  # "ok" / "failed" for a pair; "ok" when every scan registered, else "failed"
     frame: str  # the scan whose coordinates the records are in (reference / centre scan)
-    summary: dict  # result.json (pair) or poses.json (plot)
+    summary: dict  # result.json (pair) or poses.json (plot), as written, for a host to show
     scanners: list[dict] = field(default_factory=list)  # name, role, status, x, y, z, reason
     vops: list[dict] = field(default_factory=list)
     reason: str = ""
+    #: the pair's ``result.json``, typed (None for a plot)
+    result: Optional[SavedResult] = None
 
     @property
     def matrix(self) -> Optional[Matrix]:
         """The pair's ``p_reference = matrix @ p_moving`` (None for a failed pair or a plot)."""
-        return self.summary.get("matrix") if self.kind == "pair" else None
+        return self.result.matrix if self.result is not None else None
+
+    @property
+    def matched(self) -> int:
+        """The pair's matched trunk shadows (VOPs); 0 for a plot or when none were matched."""
+        return (self.result.matched or 0) if self.result is not None else 0
+
+
+def _scanner(name: str, role: str, status: str, position: Sequence[float], registered: bool, reason: str, **more: str) -> dict:
+    """A scanner record (:data:`SCANNER_FIELDS`)."""
+    x, y, z = position
+    return {"name": name, "role": role, "status": status, "registered": registered, "x": x, "y": y, "z": z, "reason": reason, **more}
 
 
 def read_pair_outputs(out_dir: Union[str, Path], scanner_positions: Sequence[Sequence[float]] = ()) -> HostOutputs:
@@ -375,51 +392,41 @@ def read_pair_outputs(out_dir: Union[str, Path], scanner_positions: Sequence[Seq
     reference scan's coordinates: the moving scan's VOPs and scanner are mapped by the matrix
     when the registration is ok (left in the moving file's coordinates, flagged, when it failed)."""
     out = Path(out_dir)
-    result = read_json(out / "result.json")
-    status = result.get("status", "failed")
-    matrix = result.get("matrix") if status == "ok" else None
-    ref_name = result.get("reference") or "reference"
-    mov_name = result.get("moving") or "moving"
+    summary = read_json(out / "result.json")
+    result = SavedResult.from_dict(summary)
+    matrix = result.matrix
+    ref_name = result.reference or "reference"
+    mov_name = result.moving or "moving"
     ref_pos = tuple(scanner_positions[0]) if len(scanner_positions) > 0 else (0.0, 0.0, 0.0)
     mov_pos = tuple(scanner_positions[1]) if len(scanner_positions) > 1 else (0.0, 0.0, 0.0)
-    scanners = [{"name": ref_name, "role": "reference", "status": "ok", "registered": True, "x": ref_pos[0], "y": ref_pos[1], "z": ref_pos[2], "reason": ""}]
-    m = apply_matrix(matrix, mov_pos) if matrix is not None else mov_pos
-    scanners.append({"name": mov_name, "role": "moving", "status": status, "registered": matrix is not None, "x": m[0], "y": m[1], "z": m[2], "reason": result.get("reason") or ""})
+    scanners = [_scanner(ref_name, "reference", "ok", ref_pos, True, ""),
+                _scanner(mov_name, "moving", result.status, apply_matrix(matrix, mov_pos) if matrix is not None else mov_pos,
+                         matrix is not None, result.reason)]
     vops: list[dict] = []
     # a registration that fails before VOPs exist writes no VOP files: that is not an error
-    if (out / "reference_vops.csv").is_file() or status == "ok":
-        vops += read_vops_csv(out / "reference_vops.csv", ref_name)
-        vops += read_vops_csv(out / "moving_vops.csv", mov_name, to_frame=matrix)
-    for row in vops:
-        row["registered"] = row["scan"] == ref_name or matrix is not None
-    return HostOutputs("pair", out, status, ref_name, result, scanners, vops, result.get("reason") or "")
+    if (out / "reference_vops.csv").is_file() or result.ok:
+        vops += [dict(v, registered=True) for v in read_vops_csv(out / "reference_vops.csv", ref_name)]
+        vops += [dict(v, registered=matrix is not None) for v in read_vops_csv(out / "moving_vops.csv", mov_name, to_frame=matrix)]
+    return HostOutputs("pair", out, result.status, ref_name, summary, scanners, vops, result.reason, result)
 
 
 def read_plot_outputs(out_dir: Union[str, Path]) -> HostOutputs:
     """``poses.json`` of ``forestreg plot`` as scanner records in the centre scan's coordinates
     (scanner positions from ``project.json`` where given, else each file's origin)."""
     out = Path(out_dir)
-    poses = read_json(out / "poses.json")
-    positions: dict[str, tuple] = {}
+    summary = read_json(out / "poses.json")
+    poses = SavedPoses.from_dict(summary)
     project_file = out / "project.json"
-    if project_file.is_file():
-        for s in read_json(project_file).get("scans", []):
-            if s.get("scanner_position"):
-                positions[s["name"]] = tuple(float(v) for v in s["scanner_position"][:3])
-    frame = poses.get("frame") or ""
+    try:
+        positions = read_scanner_positions(project_file) if project_file.is_file() else {}
+    except SavedFileError as exc:
+        raise AdapterError(str(exc)) from exc
     scanners = []
-    for name, entry in (poses.get("scans") or {}).items():
-        matrix = entry.get("matrix")
-        p = positions.get(name, (0.0, 0.0, 0.0))
-        q = apply_matrix(matrix, p) if matrix is not None else p
-        scanners.append({
-            "name": name, "role": "centre" if name == frame else "scan", "status": entry.get("status", "failed"),
-            "registered": matrix is not None, "x": q[0], "y": q[1], "z": q[2],
-            "reason": entry.get("reason") or "", "reference": entry.get("reference") or "",
-        })
-    failed = [s["name"] for s in scanners if not s["registered"]]
-    reason = "; ".join(f"{s['name']}: {s['reason'] or 'not registered'}" for s in scanners if not s["registered"])
-    return HostOutputs("plot", out, "ok" if not failed else "failed", frame, poses, scanners, [], reason)
+    for s in poses.scans:
+        p = positions.get(s.name, (0.0, 0.0, 0.0))
+        scanners.append(_scanner(s.name, "centre" if s.name == poses.frame else "scan", s.status,
+                                 apply_matrix(s.matrix, p) if s.registered else p, s.registered, s.reason, reference=s.reference))
+    return HostOutputs("plot", out, "ok" if not poses.not_registered else "failed", poses.frame, summary, scanners, [], poses.reason())
 
 
 # ----------------------------------------------------------------------------- layer files
@@ -441,13 +448,19 @@ def write_layer_csv(path: Union[str, Path], records: Sequence[dict], fields: Seq
     return path
 
 
-def write_layer_files(outputs: HostOutputs) -> dict[str, Path]:
-    """``layer_scanners.csv`` (and ``layer_vops.csv`` for a pair) in the output folder; returns
-    ``{"scanners": path, "vops": path}``."""
-    files = {"scanners": write_layer_csv(outputs.out_dir / "layer_scanners.csv", outputs.scanners, SCANNER_FIELDS)}
-    if outputs.kind == "pair":
-        files["vops"] = write_layer_csv(outputs.out_dir / "layer_vops.csv", outputs.vops, VOP_FIELDS)
-    return files
+@dataclass(frozen=True)
+class LayerFiles:
+    """The layer CSVs written for a host: the scanners, and the VOPs of a pair (None for a plot)."""
+
+    scanners: Path
+    vops: Optional[Path] = None
+
+
+def write_layer_files(outputs: HostOutputs) -> LayerFiles:
+    """``layer_scanners.csv`` (and ``layer_vops.csv`` for a pair) in the output folder."""
+    scanners = write_layer_csv(outputs.out_dir / "layer_scanners.csv", outputs.scanners, SCANNER_FIELDS)
+    vops = write_layer_csv(outputs.out_dir / "layer_vops.csv", outputs.vops, VOP_FIELDS) if outputs.kind == "pair" else None
+    return LayerFiles(scanners, vops)
 
 
 def delimited_text_uri(path: Union[str, Path], crs: Optional[str] = None) -> str:

@@ -235,6 +235,75 @@ def package_graph() -> dict[str, set[str]]:
     return out
 
 
+# ----------------------------------------------------------------------------- reads by string key
+
+#: The front doors whose code reads results through typed attributes (an outcome's fields, the
+#: typed records of :mod:`forestreg.app`), never a result dict by string key.
+KEY_READ_DOORS = ("cli", "ui", "service", "plugin")
+
+#: The reads by string key left in the front doors, each of something that is not a result, an
+#: outcome or a saved record: module -> {the receiver, as written: what it is}. Every other
+#: ``x["key"]`` or ``x.get("key")`` in those folders fails :func:`test_front_doors_read_no_result_by_string_key`.
+NOT_RESULTS: dict[str, dict[str, str]] = {
+    "cli": {"os.environ": "environment variables"},
+    "cli.misc": {"values": "the gui command's own options (--size, --project, ...), parsed by hand",
+                 "r": "rows of the parameter table (name, unit, paper, help) that `forestreg params` prints"},
+    "ui.sample": {"os.environ": "environment variables"},
+    "ui.scene_view": {"os.environ": "environment variables"},
+    "ui.params_panel": {"row": "rows of the parameter table (name, default, unit, range, paper, help) the panel edits"},
+    "ui.tie_points": {"self.combos": "the panel's two combo boxes by side"},
+    "ui.trees_view": {"t": "a trees.csv row's measure by column name (TreeRow.get; the table's columns are open-ended)",
+                      "tree": "a trees.csv row's measure by column name (TreeRow.get)",
+                      "out.tree(int(tree_id))": "a trees.csv row's measure by column name (TreeRow.get)"},
+    "plugin.adapter": {"env": "the environment of the service's process",
+                       "row": "rows of a *_vops.csv (csv.DictReader), read into the host's records",
+                       "final": "the service's job record (status, exit code, message) as its HTTP API returns it"},
+    "service.app": {"scope": "the ASGI scope", "message": "ASGI messages", "request.headers": "HTTP headers",
+                    "request.query_params": "the URL's query", "info": "the service's own state file (url, token, pid)",
+                    "job": "the service's job records (its SQLite table, served as JSON)",
+                    "old": "a job record being resubmitted", "first": "the first event of a job's event stream",
+                    "event": "a job's events (progress, log, end)", "current": "a job record being polled",
+                    "app": "the ASGI application's state"},
+    "service.jobs": {"env": "the environment of a job's process", "job": "the service's job records (its SQLite table)",
+                     "event": "the progress events a job prints (one JSON line each)", "end": "a job's end event",
+                     "last": "the last progress event kept", "self.store.raw(job_id)": "a job's raw SQLite row"},
+    "service.store": {"row": "SQLite rows of the job table", "r": "SQLite rows of the job table",
+                      "fields": "the columns of a job record being updated"},
+    "service.batch": {"r": "the batch's own summary rows (one per plot: summary.csv, batch.json)",
+                      "row": "the batch's own summary rows, and a manifest's CSV row (the user's file)",
+                      "previous": "the batch's own row of a plot done by an earlier run (batch.json)",
+                      "rows[name]": "a manifest's CSV row (the user's file)",
+                      "(rows or {}).get(name, {})": "a manifest's CSV row (the user's file)",
+                      "client.scheduler_info()": "Dask's scheduler description"},
+}
+
+
+def string_key_reads() -> dict[str, list[tuple[str, int, str]]]:
+    """module -> every read by a string constant in it: ``(receiver as written, line, the read)``
+    for ``x["key"]`` (loads only) and ``x.get("key", ...)``."""
+    found: dict[str, list[tuple[str, int, str]]] = {}
+    for mod, (_, tree) in sources().items():
+        if not any(within(mod, d) for d in KEY_READ_DOORS):
+            continue
+        for node in ast.walk(tree):
+            receiver = None
+            if (isinstance(node, ast.Subscript) and isinstance(node.ctx, ast.Load) and isinstance(node.slice, ast.Constant)
+                    and isinstance(node.slice.value, str)):
+                receiver = node.value
+            elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "get" and node.args
+                  and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+                receiver = node.func.value
+            if receiver is not None:
+                found.setdefault(mod, []).append((ast.unparse(receiver), node.lineno, ast.unparse(node)))
+    return found
+
+
+def result_key_reads() -> list[str]:
+    """The reads by string key in the front doors that :data:`NOT_RESULTS` does not name."""
+    return sorted(f"{mod}:{line}: {text}" for mod, reads in string_key_reads().items()
+                  for receiver, line, text in reads if receiver not in NOT_RESULTS.get(mod, {}))
+
+
 # ----------------------------------------------------------------------------- the rules
 
 
@@ -293,6 +362,31 @@ def test_no_module_cycles():
     assert cycles(module_graph()) == []
 
 
+def test_front_doors_read_no_result_by_string_key():
+    """Results reach the front doors typed (an outcome's attributes, :mod:`forestreg.app`'s
+    records such as ``link_summary``, ``CoregistrationSummary``, ``SavedResult``): a read by string
+    key is of something named in :data:`NOT_RESULTS`, and each entry there is still used."""
+    assert result_key_reads() == []
+    reads = string_key_reads()
+    stale = [f"{mod}: {receiver}" for mod, named in NOT_RESULTS.items() for receiver in named
+             if not any(r == receiver for r, _, _ in reads.get(mod, []))]
+    assert stale == []
+
+
+def test_the_key_read_checker_sees_result_reads(monkeypatch):
+    """The checker itself: a result dict read by string key, by subscript or ``get``, is found,
+    whatever the variable is called; a store is not a read."""
+    code = ('def show(outcome, link, x):\n    a = outcome.summary["matched"]\n    b = link.result.get("reason")\n'
+            '    c = x["status"]\n    x["status"] = "ok"\n')
+    fake = {"ui.fake": (Path("fake.py"), ast.parse(code))}
+    import sys
+
+    module = sys.modules[__name__]
+    monkeypatch.setattr(module, "sources", lambda: fake)
+    assert [r.split(": ", 1)[1] for r in result_key_reads()] == [
+        "outcome.summary['matched']", "link.result.get('reason')", "x['status']"]
+
+
 def test_the_checker_sees_lazy_imports_and_writes():
     """The checker itself: an import inside a function counts, and so does a write."""
     tree = ast.parse("def f():\n    from .engine.tls import pair\n    open('x', 'w').write('y')\n")
@@ -312,4 +406,8 @@ if __name__ == "__main__":  # a report of the measures
     for line in layer_violations():
         print("  ", line)
     print("package cycles:", cycles(package_graph()))
+    print("front-door reads by string key:", sum(len(v) for v in string_key_reads().values()),
+          "of which not named as a non-result:", len(result_key_reads()))
+    for line in result_key_reads():
+        print("  ", line)
     print("module cycles:", cycles(module_graph()))

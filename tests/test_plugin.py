@@ -197,7 +197,7 @@ def test_real_pair_layer_files(pair_run):
     vops = _csv_rows(out / "layer_vops.csv")
     assert [s["name"] for s in scanners] == [s["name"] for s in outputs.scanners]
     assert len(vops) == len(outputs.vops)
-    assert sum(int(v["matched"]) for v in vops) == 2 * outputs.summary["matched"]
+    assert sum(int(v["matched"]) for v in vops) == 2 * outputs.matched
     uri = adapter.delimited_text_uri(out / "layer_vops.csv", "EPSG:25832")
     assert uri.startswith("file:///") and "xField=x" in uri and "yField=y" in uri and uri.endswith("crs=EPSG:25832")
 

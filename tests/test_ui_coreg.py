@@ -63,9 +63,9 @@ def test_run_accept_and_fuse(qtbot, window, files, tmp_path):
     s = view.shown.summary
     rot, trans = rigid_errors(view.shown.matrix, case.matrix)
     assert rot < 0.1 and trans < 0.05
-    assert view.value("Matched keypoints") == s["matched"] >= 3
-    assert view.value("Canopy surface correlation") == pytest.approx(s["surface_correlation"])
-    assert view.value("Margin over the alternative") == pytest.approx(s["surface_correlation"] - s["alternative_correlation"])
+    assert view.value("Matched keypoints") == s.matched >= 3
+    assert view.value("Canopy surface correlation") == pytest.approx(s.surface_correlation)
+    assert view.value("Margin over the alternative") == pytest.approx(s.surface_correlation - s.alternative_correlation)
     assert view.value("Margin over the alternative") > 0.2
     assert view.picture.pixmap() is not None and not view.picture.pixmap().isNull()
     assert not view.fuse_button.isEnabled()  # only an accepted transform is fused
@@ -76,8 +76,8 @@ def test_run_accept_and_fuse(qtbot, window, files, tmp_path):
     qtbot.waitUntil(lambda: view.worker is None, timeout=TIMEOUT_MS)
     counts = view.fusion_counts
     assert counts is not None, view.headline.text()
-    assert len(read_scan(out)) == counts["total"]["kept"] == counts["ground"]["kept"] + counts["uav"]["kept"]
+    assert len(read_scan(out)) == counts["total"].kept == counts["ground"].kept + counts["uav"].kept
     for source, n in (("ground", len(case.ground)), ("uav", len(case.uav))):
         c = counts[source]
-        assert c["input"] == n and c["kept"] == n - c["redundant"] - c["noise"]
-        assert f"{c['kept']:,} kept" in view.fusion_label.text()
+        assert c.input == n and c.kept == n - c.redundant - c.noise
+        assert f"{c.kept:,} kept" in view.fusion_label.text()

@@ -22,6 +22,7 @@ pytest.importorskip("pytestqt")
 from PySide6.QtCore import QSettings  # noqa: E402
 from matplotlib.colors import to_hex  # noqa: E402
 
+from forestreg.app.plot import PoseSigma  # noqa: E402
 from forestreg.engine.core.transform import matrix_from_yaw  # noqa: E402
 from forestreg.engine.tls.params import RegistrationParams  # noqa: E402
 from forestreg.engine.tls.plot import ScanCache, pose_uncertainty  # noqa: E402
@@ -132,7 +133,7 @@ def test_survey_quality_in_the_tables_and_on_the_map(qtbot, window, surveyed: Pr
             assert top.uncertainty_labels[name] == "frame scan"
         else:
             assert top.uncertainty_labels[name] == f"\u00b1{100 * u['translation_m']:.1f} cm, {u['rotation_deg']:.2f}\u00b0"
-    assert top.uncertainty_factor == uncertainty_scale(engine_u) > 1
+    assert top.uncertainty_factor == uncertainty_scale({n: PoseSigma.of(u) for n, u in engine_u.items()}) > 1
     ax = top.figure.axes[0]
     o = top.view.origin[:2]
     (moving, reference), = dropped

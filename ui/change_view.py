@@ -4,7 +4,8 @@ The headline says whether AFTER was registered onto BEFORE (with the uncertainty
 trees per status; the map (drawn by :func:`forestreg.engine.report.change_report.change_map_png`,
 BEFORE file coordinates) colours persisting trees by DBH growth and marks removed and new trees;
 the table lists every tree (filterable by status) with its changes and flags. Nothing is computed
-here but the layout: the folder is read with :func:`forestreg.engine.io.change.read_change_dir`.
+here but the layout: the folder is read with :func:`forestreg.engine.io.change.read_change_dir` and its
+result with :class:`forestreg.app.change.ChangeSummary`.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from ..app.change import ROW_FILTERS, ChangeSummary, change_rows
+
 #: Table columns: (header, row key, scale, decimals).
 COLUMNS = (
     ("Status", "status", None, 0), ("x", "x", 1.0, 2), ("y", "y", 1.0, 2),
@@ -36,7 +39,7 @@ COLUMNS = (
     ("Height before (m)", "height_before_m", 1.0, 1), ("Height after (m)", "height_after_m", 1.0, 1),
     ("Height change (m)", "height_change_m", 1.0, 2), ("Flag", "flag", None, 0),
 )
-FILTERS = ("all trees", "persisting", "removed", "new", "outside", "flagged")
+FILTERS = ROW_FILTERS
 
 
 class ChangeView(QWidget):
@@ -90,17 +93,16 @@ class ChangeView(QWidget):
         from ..engine.report.change_report import change_map_png
 
         self.output = output
-        result = output.result
-        counts = result.get("trees") or {}
-        if result.get("status") == "ok":
-            unc = result.get("uncertainty") or {}
-            t, r = unc.get("translation_m"), unc.get("rotation_deg")
-            how = f" (\u00b1 {100 * t:.1f} cm, {r:.3f}\u00b0)" if t is not None and r is not None else ""
-            text = (f"<b>AFTER registered onto BEFORE</b>{how} from {(result.get('evidence') or {}).get('persisting_stems', '?')} "
-                    f"persisting stems: {counts.get('persisting', 0)} persisting, {counts.get('removed', 0)} removed, "
-                    f"{counts.get('new', 0)} new" + (f", {counts['outside']} outside the other survey" if counts.get("outside") else ""))
+        summary = ChangeSummary.of(output.result)
+        if summary.ok:
+            how = (f" (\u00b1 {100 * summary.translation_m:.1f} cm, {summary.rotation_deg:.3f}\u00b0)"
+                   if summary.translation_m is not None and summary.rotation_deg is not None else "")
+            stems = "?" if summary.persisting_stems is None else summary.persisting_stems
+            text = (f"<b>AFTER registered onto BEFORE</b>{how} from {stems} persisting stems: {summary.persisting} persisting, "
+                    f"{summary.removed} removed, {summary.new} new"
+                    + (f", {summary.outside} outside the other survey" if summary.outside else ""))
         else:
-            text = f"<b style='color:#b42318'>Not compared:</b> {result.get('reason', '')}"
+            text = f"<b style='color:#b42318'>Not compared:</b> {summary.reason}"
         self.headline.setText(text)
         rows = output.rows
         if rows:
@@ -116,13 +118,7 @@ class ChangeView(QWidget):
 
     def shown_rows(self) -> list[dict]:
         """The rows the table shows under the current filter."""
-        rows = self.output.rows if self.output is not None else []
-        f = self.filter.currentText()
-        if f == "all trees":
-            return list(rows)
-        if f == "flagged":
-            return [r for r in rows if r.get("flag")]
-        return [r for r in rows if r.get("status") == f]
+        return change_rows(self.output.rows if self.output is not None else [], self.filter.currentText())
 
     def _fill_table(self) -> None:
         rows = self.shown_rows()

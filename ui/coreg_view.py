@@ -4,9 +4,9 @@ surface correlation and its margin over the best alternative, residuals, ICP), t
 with the counts removed per source.
 
 A result comes either from a ``forestreg coregister --out DIR`` folder
-(:func:`forestreg.engine.io.results.read_coregistration_dir`) or from a run in this window: the
-engine's :func:`~forestreg.engine.coreg.coregister.coregister` in a worker thread with progress and
-Cancel. Nothing is computed here.
+(:func:`forestreg.app.coregistration.read_coregistration_folder`) or from a run in this window: the
+use case :func:`~forestreg.app.coregistration.coregister_clouds` in a worker thread with progress
+and Cancel. Nothing is computed here.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
@@ -34,6 +34,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from ..app.coregistration import CoregistrationSummary
+from ..app.fusion import SourceCounts
 from .worker import TaskWorker
 
 OK_COLOUR = "#1f7a3f"
@@ -42,10 +44,11 @@ BAD_COLOUR = "#b42318"
 
 @dataclass
 class CoregistrationShown:
-    """What the view shows: the result's summary (``result.json`` form), the figure (PNG bytes or
-    a file), the two input files (for fusion), and the user's decision ("", "accepted", "rejected")."""
+    """What the view shows: the result's summary (:class:`~forestreg.app.coregistration.
+    CoregistrationSummary`), the figure (PNG bytes or a file), the two input files (for fusion),
+    and the user's decision ("", "accepted", "rejected")."""
 
-    summary: Mapping[str, Any]
+    summary: CoregistrationSummary
     png: Optional[bytes] = None
     figure_path: Optional[Path] = None
     ground_file: str = ""
@@ -54,58 +57,50 @@ class CoregistrationShown:
 
     @property
     def ok(self) -> bool:
-        return self.summary.get("status") == "ok" and self.summary.get("matrix") is not None
+        return self.summary.ok
 
     @property
     def matrix(self) -> Optional[np.ndarray]:
-        m = self.summary.get("matrix")
-        return None if m is None else np.asarray(m, dtype=np.float64).reshape(4, 4)
+        return self.summary.matrix
 
 
 def _num(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def evidence_rows(summary: Mapping[str, Any]) -> list[tuple[str, Any, str, str]]:
+def evidence_rows(summary: CoregistrationSummary) -> list[tuple[str, Any, str, str]]:
     """(label, raw value, text, meaning) of each figure of a co-registration summary."""
     rows: list[tuple[str, Any, str, str]] = []
+    dash = "\u2013"
 
     def add(label: str, value: Any, text: Optional[str], meaning: str) -> None:
-        rows.append((label, value, text if text is not None else ("\u2013" if value is None else str(value)), meaning))
+        rows.append((label, value, text if text is not None else (dash if value is None else str(value)), meaning))
 
-    kp = summary.get("keypoints") or {}
-    add("Result", summary.get("status"), str(summary.get("status", "")).upper(),
-        summary.get("reason") or "the ground-based cloud was placed on the UAV cloud")
-    dash = "\u2013"
-    add("Keypoints ground / UAV", (kp.get("ground"), kp.get("uav")), f"{kp.get('ground', dash)} / {kp.get('uav', dash)}",
-        "tree tops found in each cloud's canopy (paper: canopy keypoints)")
-    pct = summary.get("matching_percentage")
-    add("Matched keypoints", summary.get("matched"),
-        f"{summary.get('matched', dash)}" + (f"  ({pct:.0f} % of the ground-based)" if _num(pct) else ""),
+    def shown(value: Any) -> str:
+        return dash if value is None else str(value)
+
+    add("Result", summary.status, summary.status.upper(), summary.reason or "the ground-based cloud was placed on the UAV cloud")
+    add("Keypoints ground / UAV", (summary.keypoints_ground, summary.keypoints_uav),
+        f"{shown(summary.keypoints_ground)} / {shown(summary.keypoints_uav)}", "tree tops found in each cloud's canopy (paper: canopy keypoints)")
+    pct = summary.matching_percentage
+    add("Matched keypoints", summary.matched, shown(summary.matched) + (f"  ({pct:.0f} % of the ground-based)" if _num(pct) else ""),
         "ground-based tree tops that coincide with a UAV tree top after the registration")
-    corr, alt = summary.get("surface_correlation"), summary.get("alternative_correlation")
+    corr, alt, margin = summary.surface_correlation, summary.alternative_correlation, summary.margin
     add("Canopy surface correlation", corr, f"{corr:.2f}" if _num(corr) else None,
         "how well the two canopy surfaces agree after the registration (1 = identical; right answers 0.8-0.9)")
     add("Best alternative", alt, f"{alt:.2f}" if _num(alt) else None, "correlation of the best distinct other solution")
-    margin = corr - alt if _num(corr) and _num(alt) else None
     add("Margin over the alternative", margin, f"{margin:.2f}" if margin is not None else None,
         "a large margin means the solution is not a guess between look-alike placements")
-    heading = summary.get("heading_deg")
+    heading = summary.heading_deg
     add("Turn about the vertical", heading, f"{heading:.2f}\u00b0" if _num(heading) else None, "heading of the ground-based cloud in the UAV frame")
-    res = summary.get("residuals_after_icp_m") or summary.get("residuals_m") or {}
-    for key, label in (("mean", "Keypoint residual, mean"), ("rms", "Keypoint residual, RMS")):
-        v = res.get(key)
+    for v, label in ((summary.residual_mean_m, "Keypoint residual, mean"), (summary.residual_rms_m, "Keypoint residual, RMS")):
         add(label, v, f"{100 * v:.1f} cm" if _num(v) else None, "distance between matched tree tops after the registration")
-    icp = summary.get("icp") or {}
-    f, s = icp.get("fitness"), icp.get("std_m")
+    f, s = summary.icp_fitness, summary.icp_std_m
     add("Fine fit overlap", f, f"{f:.2f}" if _num(f) else None, "share of points with a partner in the other cloud after ICP")
     add("Fine fit std", s, f"{100 * s:.1f} cm" if _num(s) else None, "standard deviation of the point distances after ICP")
-    se = summary.get("standard_errors") or summary.get("uncertainty") or {}
-    if isinstance(se, Mapping):
-        for key, v in se.items():
-            if _num(v):
-                add(f"Standard error {key}", v, f"{v:.4g}", "uncertainty of the transform estimated by the engine")
-    t = (summary.get("timings") or {}).get("total_s")
+    for key, v in summary.standard_errors.items():
+        add(f"Standard error {key}", v, f"{v:.4g}", "uncertainty of the transform estimated by the engine")
+    t = summary.total_s
     add("Time", t, f"{t:.0f} s" if _num(t) else None, "engine time")
     return rows
 
@@ -216,11 +211,11 @@ class CoregistrationView(QWidget):
         self.fusion_label.setText("")
         s = shown.summary
         if shown.ok:
-            self.headline.setText(f"<b style='color:{OK_COLOUR}'>Co-registered</b>: {s.get('ground', 'ground')} \u2192 "
-                                  f"{s.get('uav', 'uav')}. Check the figure (matched tree tops joined by black lines, "
+            self.headline.setText(f"<b style='color:{OK_COLOUR}'>Co-registered</b>: {s.ground or 'ground'} \u2192 "
+                                  f"{s.uav or 'uav'}. Check the figure (matched tree tops joined by black lines, "
                                   "the profile on the right), then accept or reject.")
         else:
-            self.headline.setText(f"<b style='color:{BAD_COLOUR}'>Not co-registered</b>: {s.get('reason') or 'no reason given'}")
+            self.headline.setText(f"<b style='color:{BAD_COLOUR}'>Not co-registered</b>: {s.reason or 'no reason given'}")
         rows = evidence_rows(s)
         self.table.setRowCount(len(rows))
         for r, (label, value, text, meaning) in enumerate(rows):
@@ -319,7 +314,7 @@ class CoregistrationView(QWidget):
             progress(0.92, "drawing the figure")
             result = outcome.result
             png = coregistration_png(result, ground.points, uav.points) if result.ground_keypoints is not None else None
-            return CoregistrationShown(summary=outcome.to_dict(), png=png, ground_file=str(ground_file), uav_file=str(uav_file))
+            return CoregistrationShown(summary=outcome.figures, png=png, ground_file=str(ground_file), uav_file=str(uav_file))
 
         def done(shown: CoregistrationShown) -> None:
             self.show_result(shown)
@@ -334,31 +329,29 @@ class CoregistrationView(QWidget):
             return
         matrix = shown.matrix
 
-        def task(progress: Callable[[float, str], None], cancel: Any) -> dict[str, dict[str, int]]:
+        def task(progress: Callable[[float, str], None], cancel: Any) -> dict[str, SourceCounts]:
             from ..app.fusion import fuse_clouds
 
             progress(0.0, "reading the clouds")
             outcome = fuse_clouds(shown.ground_file, shown.uav_file, out_file, matrix=matrix,
                                   progress=lambda f, m: progress(0.05 + 0.9 * f, m), cancel=cancel)
-            return outcome.counts
+            return outcome.sources
 
-        def done(counts: dict[str, dict[str, int]]) -> None:
+        def done(counts: dict[str, SourceCounts]) -> None:
             self.fusion_counts = counts
             self.fused_path = out_file
             lines = [f"<b>Fused</b> into {out_file}:"]
             for source in ("ground", "uav", "total"):
                 c = counts.get(source)
                 if c:
-                    lines.append(f"{source}: {c['input']:,} in, {c['redundant']:,} duplicates and {c['noise']:,} noise removed, "
-                                 f"{c['kept']:,} kept")
+                    lines.append(f"{source}: {c.input:,} in, {c.redundant:,} duplicates and {c.noise:,} noise removed, {c.kept:,} kept")
             self.fusion_label.setText("<br>".join(lines))
             self.fused.emit(counts)
 
         self._begin(TaskWorker(task, name="fusion"), done, "Fusion")
 
 
-def shown_from_folder(out: Any) -> CoregistrationShown:
-    """A :class:`CoregistrationShown` of a :class:`~forestreg.engine.io.results.CoregistrationOutput`."""
-    s = dict(out.result)
-    return CoregistrationShown(summary=s, figure_path=out.figure, ground_file=str(s.get("ground_file") or ""),
-                               uav_file=str(s.get("uav_file") or ""))
+def shown_from_folder(out: Any, summary: CoregistrationSummary) -> CoregistrationShown:
+    """A :class:`CoregistrationShown` of a folder read by
+    :func:`~forestreg.app.coregistration.read_coregistration_folder` (its output and summary)."""
+    return CoregistrationShown(summary=summary, figure_path=out.figure, ground_file=summary.ground_file, uav_file=summary.uav_file)

@@ -29,6 +29,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from ..app.comparison import ComparisonFigures
 from .project_model import STATUS_COLOURS
 from .results_tables import _fmt, _item, _num, _Table
 
@@ -302,24 +303,25 @@ class ComparisonView(QWidget):
         from ..engine.report.plot_report import comparison_section
 
         self.comparison = dict(comparison)
-        pairs = [p for p in comparison.get("pairs") or [] if isinstance(p, Mapping)]
+        figures = ComparisonFigures.of(comparison)
+        pairs = figures.pairs
         t = self.pairs_table
         t.setRowCount(0)
         t.setRowCount(len(pairs))
         for r, p in enumerate(pairs):
-            a, m = p.get("auto") or {}, p.get("manual") or {}
+            a, m = p.auto, p.manual
             cells = [
-                _item(f"{p.get('moving')} \u2192 {p.get('reference')}"),
-                _item(a.get("reference_vops"), None if a.get("reference_vops") is not None else "\u2013"),
-                _item(a.get("moving_vops"), None if a.get("moving_vops") is not None else "\u2013"),
-                _item(a.get("matched"), None if a.get("matched") is not None else "\u2013"),
-                _item(a.get("icp_std_m"), _fmt(a.get("icp_std_m"), 2, 100.0)),
-                _item(m.get("icp_std_m"), _fmt(m.get("icp_std_m"), 2, 100.0)),
-                _item(m.get("targets"), None if m.get("targets") is not None else "\u2013"),
-                _item(p.get("rotation_difference_deg"), _fmt(p.get("rotation_difference_deg"), 3)),
-                _item(p.get("translation_difference_m"), _fmt(p.get("translation_difference_m"), 2, 100.0)),
-                _item(a.get("status"), tip=str(a.get("reason") or "")),
-                _item(m.get("status"), tip=str(m.get("reason") or "")),
+                _item(f"{p.moving} \u2192 {p.reference}"),
+                _item(a.reference_vops, None if a.reference_vops is not None else "\u2013"),
+                _item(a.moving_vops, None if a.moving_vops is not None else "\u2013"),
+                _item(a.matched, None if a.matched is not None else "\u2013"),
+                _item(a.icp_std_m, _fmt(a.icp_std_m, 2, 100.0)),
+                _item(m.icp_std_m, _fmt(m.icp_std_m, 2, 100.0)),
+                _item(m.targets, None if m.targets is not None else "\u2013"),
+                _item(p.rotation_difference_deg, _fmt(p.rotation_difference_deg, 3)),
+                _item(p.translation_difference_m, _fmt(p.translation_difference_m, 2, 100.0)),
+                _item(a.status, tip=a.reason),
+                _item(m.status, tip=m.reason),
             ]
             for c in (9, 10):
                 colour = STATUS_COLOURS.get(str(cells[c].text()))
@@ -330,11 +332,10 @@ class ComparisonView(QWidget):
         t.resizeColumnsToContents()
         height = t.horizontalHeader().height() + 2 * t.frameWidth() + sum(t.rowHeight(r) for r in range(t.rowCount()))
         t.setMaximumHeight(height + t.horizontalScrollBar().sizeHint().height() + 6)
-        targets = comparison.get("targets") or {}
-        seen = len(set(targets.get("auto") or {}) | set(targets.get("manual") or {}))
-        auto_r, manual_r = comparison.get("auto_target_residual_m"), comparison.get("manual_target_residual_m")
+        t_auto, t_manual = figures.auto_targets, figures.manual_targets
+        seen = len(set(t_auto) | set(t_manual))
+        auto_r, manual_r = figures.auto_target_residual_m, figures.manual_target_residual_m
         rt = self.residual_table
-        t_auto, t_manual = targets.get("auto") or {}, targets.get("manual") or {}
         ids = sorted(set(t_auto) | set(t_manual), key=lambda i: (len(str(i)), str(i)))
         rt.setRowCount(0)
         rt.setRowCount(1 + len(ids))
@@ -350,7 +351,7 @@ class ComparisonView(QWidget):
             va, vm = t_auto.get(tid), t_manual.get(tid)
             for c, cell in enumerate([_item(f"target {tid}"), _item(va, _fmt(va, 2, 100.0)), _item(vm, _fmt(vm, 2, 100.0)), _item("", "")]):
                 rt.setItem(r, c, cell)
-        ok = sum(1 for p in pairs if (p.get("auto") or {}).get("status") == "ok" and (p.get("manual") or {}).get("status") == "ok")
+        ok = sum(1 for p in pairs if p.auto.ok and p.manual.ok)
         text = f"{len(pairs)} pairs registered both ways, {ok} succeeded with both methods."
         if _num(auto_r) and _num(manual_r):
             text += (f" Average target residual: marker-free {100 * auto_r:.2f} cm, manual {100 * manual_r:.2f} cm "

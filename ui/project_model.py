@@ -15,7 +15,7 @@ from typing import Iterable, Optional, Sequence
 from PySide6.QtCore import QByteArray, QMimeData, QModelIndex, QObject, Qt, QTimer, Signal
 from PySide6.QtGui import QBrush, QColor, QFont, QStandardItem, QStandardItemModel
 
-from ..app.plot import Link, Project
+from ..app.plot import Link, Project, dropped_links, link_summary
 from ..engine.report.views import scan_colours, scan_states
 
 #: Item data roles.
@@ -32,7 +32,7 @@ def link_status(link: Link) -> str:
     """"ok", "failed" or "not run"."""
     if link.result is None:
         return "not run"
-    return "ok" if link.ok else str(link.result.get("status", "failed"))
+    return "ok" if link.ok else link.result.status
 
 
 def link_label(link: Link) -> str:
@@ -118,21 +118,22 @@ class ProjectModel(QStandardItemModel):
             self._colour(state_item, status)
             scans.appendRow([name_item, state_item])
         links = self._group(f"Links ({len(p.links)})")
-        dropped = {(d["moving"], d["reference"]): str(d.get("reason") or "") for d in (p.adjustment or {}).get("dropped") or []}
+        dropped = {(d.moving, d.reference): d.reason for d in dropped_links(p)}
         for k, link in enumerate(p.links):
             status = link_status(link)
             item = QStandardItem(link_label(link))
             item.setData("link", KIND_ROLE)
             item.setData(k, NAME_ROLE)
+            run = link_summary(link)
             detail = status
-            if link.result is not None and link.ok:
-                detail = f"ok, {link.result.get('matched', '?')} matched"
+            if run is not None and run.ok:
+                detail = f"ok, {'?' if run.matched is None else run.matched} matched"
             state_item = QStandardItem(detail)
             state_item.setData("link", KIND_ROLE)
             state_item.setData(k, NAME_ROLE)
-            if link.result is not None and link.result.get("reason"):
-                state_item.setToolTip(str(link.result["reason"]))
-                item.setToolTip(str(link.result["reason"]))
+            if run is not None and run.reason:
+                state_item.setToolTip(run.reason)
+                item.setToolTip(run.reason)
             self._colour(state_item, status)
             if (link.moving, link.reference) in dropped:  # registered, but the survey adjustment left it out
                 state_item.setText(detail + ", dropped")

@@ -1,20 +1,21 @@
 """Result tables: one row per link (the registration's evidence) and one per scan (its pose).
 
-Values come straight from the engine's link results (``Link.result``, the ``to_dict()`` of a
-registration) and :meth:`Project.poses`; each cell keeps the raw value under ``Qt.UserRole`` so
+Values come from each link's last run (:func:`~forestreg.app.plot.link_summary`), the survey's
+figures (:func:`~forestreg.app.plot.scan_quality`, :func:`~forestreg.app.plot.dropped_links`,
+:func:`~forestreg.app.plot.pose_sigmas`) and :meth:`Project.poses`; each cell keeps the raw value under ``Qt.UserRole`` so
 tests and copy-paste see the numbers, not only their formatting.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Optional, Sequence
 
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import QAbstractItemView, QHeaderView, QTableWidget, QTableWidgetItem, QWidget
 
-from ..app.plot import Link, Project, pose_uncertainty
+from ..app.plot import Link, PoseSigma, Project, ScanQuality, dropped_links as survey_dropped, link_summary, pose_sigmas, scan_quality
 from ..engine.report.views import scan_states
 from .project_model import STATUS_COLOURS, link_status
 
@@ -71,25 +72,28 @@ DROPPED_COLOUR = "#b42318"
 
 def dropped_links(project: Project) -> dict[tuple[str, str], str]:
     """The links the survey adjustment dropped, ``(moving, reference) -> reason`` (empty without one)."""
-    return {(d["moving"], d["reference"]): str(d.get("reason") or "") for d in (project.adjustment or {}).get("dropped") or []}
+    return {(d.moving, d.reference): d.reason for d in survey_dropped(project)}
 
 
-def _uncertainty_item(u: Any) -> QTableWidgetItem:
-    """``translation_m`` / ``rotation_deg`` as "1.23 / 0.045" (cm / deg); the raw pair as the value."""
-    u = u if isinstance(u, Mapping) else {}
-    t, r = u.get("translation_m"), u.get("rotation_deg")
-    if not (_num(t) and _num(r)):
-        return _item(None, tip=str(u.get("method") or ""))
-    tip = "held fixed" if u.get("fixed") else str(u.get("method") or "")
-    item = _item((float(t), float(r)), f"{100 * t:.2f} / {r:.3f}", tip=tip)
+def _uncertainty_item(u: Optional[PoseSigma]) -> QTableWidgetItem:
+    """The 1-sigma position / rotation error as "1.23 / 0.045" (cm / deg); the raw pair as the value."""
+    if u is None or not u.known:
+        return _item(None, tip=u.method if u is not None else "")
+    t, r = u.translation_m, u.rotation_deg
+    item = _item((t, r), f"{100 * t:.2f} / {r:.3f}", tip="held fixed" if u.fixed else u.method)
     item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
     return item
 
 
+def _figure_item(run: Any, name: str, digits: int, scale: float = 1.0) -> QTableWidgetItem:
+    """A figure of a link's last run (an attribute of its :class:`~forestreg.app.plot.LinkSummary`)."""
+    value = getattr(run, name) if run is not None else None
+    return _item(value, _fmt(value, digits, scale))
+
+
 def _link_ambiguity(link: Link) -> Optional[float]:
-    res = link.result if link.result is not None else {}
-    value = (res.get("quality") or {}).get("ambiguity")
-    return float(value) if _num(value) else None
+    run = link_summary(link)
+    return run.ambiguity if run is not None else None
 
 
 class _Table(QTableWidget):
@@ -147,29 +151,27 @@ class LinkResultsTable(_Table):
         self.setRowCount(len(project.links))
         dropped = dropped_links(project)
         for r, link in enumerate(project.links):
-            res: Mapping[str, Any] = link.result if link.result is not None else {}
-            icp = res.get("icp") if isinstance(res.get("icp"), Mapping) else {}
-            terrain = (res.get("quality") or {}).get("terrain_median_m") if isinstance(res.get("quality"), Mapping) else None
+            run = link_summary(link)
             drop_reason = dropped.get((link.moving, link.reference))
             status = link_status(link)
-            reason = str(res.get("reason") or "")
-            if res.get("retried_after"):
-                reason = (reason + "; " if reason else "") + f"placed after {len(res['retried_after'])} failed attempt(s)"
+            reason = run.reason if run is not None else ""
+            if run is not None and run.retried:
+                reason = (reason + "; " if reason else "") + f"placed after {run.retried} failed attempt(s)"
+            vops = (run.reference_vops, run.moving_vops) if run is not None else (None, None)
             cells = [
                 _item(link.moving),
                 _item(link.reference),
                 _item(link.method + (" (extra)" if link.extra else "")),
                 _item(status),
-                _item(res.get("vop_radius_m"), _fmt(res.get("vop_radius_m"), 0)),
-                _item((res.get("reference_vops"), res.get("moving_vops")),
-                      f"{res['reference_vops']} / {res['moving_vops']}" if _num(res.get("reference_vops")) and _num(res.get("moving_vops")) else "\u2013"),
-                _item(res.get("matched"), None if res.get("matched") is not None else "\u2013"),
-                _item(icp.get("std_m"), _fmt(icp.get("std_m"), 2, 100.0)),
-                _item(icp.get("fitness"), _fmt(icp.get("fitness"), 3)),
-                _item(res.get("vop_residual_m"), _fmt(res.get("vop_residual_m"), 2, 100.0)),
-                _uncertainty_item(res.get("uncertainty")),
-                _item(terrain, _fmt(terrain, 1, 100.0)),
-                _item(_link_ambiguity(link), _fmt(_link_ambiguity(link), 2)),
+                _figure_item(run, "vop_radius_m", 0),
+                _item(vops, f"{vops[0]} / {vops[1]}" if None not in vops else "\u2013"),
+                _item(run.matched if run is not None else None, None if run is not None and run.matched is not None else "\u2013"),
+                _figure_item(run, "icp_std_m", 2, 100.0),
+                _figure_item(run, "icp_fitness", 3),
+                _figure_item(run, "vop_residual_m", 2, 100.0),
+                _uncertainty_item(run.uncertainty if run is not None else None),
+                _figure_item(run, "terrain_median_m", 1, 100.0),
+                _figure_item(run, "ambiguity", 2),
                 _item(drop_reason, "dropped" if drop_reason is not None else "", tip=drop_reason or ""),
                 _item(reason, reason, tip=reason),
             ]
@@ -195,11 +197,9 @@ class ScanPoseTable(_Table):
         self.setRowCount(len(project.scans))
         states = scan_states(project) if project.scans else {}
         poses = project.poses() if project.scans else {}
-        try:
-            uncertainty = pose_uncertainty(project) if project.scans and project.centre else {}
-        except (KeyError, ValueError, TypeError):  # links of an older project without the figures
-            uncertainty = {}
-        quality = (project.adjustment or {}).get("quality") or {}
+        uncertainty = pose_sigmas(project)
+        quality = scan_quality(project)
+        dropped = dropped_links(project)
         for r, s in enumerate(project.scans):
             state = states.get(s.name)
             pose = poses.get(s.name)
@@ -210,11 +210,11 @@ class ScanPoseTable(_Table):
             t = pose[:3, 3] if pose is not None else (None, None, None)
             heading = math.degrees(math.atan2(pose[1, 0], pose[0, 0])) if pose is not None else None
             reason = state.reason if state is not None and status == "failed" else ""
-            q = quality.get(s.name) or {}
-            ambiguity = q.get("max_ambiguity")
+            q = quality.get(s.name) or ScanQuality()
+            ambiguity = q.max_ambiguity
             if ambiguity is None and link is not None and link.ok:  # no survey: the scan's own link
                 ambiguity = _link_ambiguity(link)
-            drop_tip = "; ".join(f"{m} \u2192 {ref}: {why}" for (m, ref), why in dropped_links(project).items() if s.name in (m, ref))
+            drop_tip = "; ".join(f"{m} \u2192 {ref}: {why}" for (m, ref), why in dropped.items() if s.name in (m, ref))
             cells = [
                 _item(s.name),
                 _item(status),
@@ -222,16 +222,16 @@ class ScanPoseTable(_Table):
                 *(_item(None if v is None else float(v), _fmt(v, 3)) for v in t),
                 _item(heading, _fmt(heading, 2)),
                 _uncertainty_item(uncertainty.get(s.name) if pose is not None else None),
-                _item(q.get("terrain_median_m"), _fmt(q.get("terrain_median_m"), 1, 100.0)),
+                _item(q.terrain_median_m, _fmt(q.terrain_median_m, 1, 100.0)),
                 _item(ambiguity, _fmt(ambiguity, 2)),
-                _item(q.get("max_residual_m"), _fmt(q.get("max_residual_m"), 2, 100.0)),
-                _item(q.get("dropped_links"), None if q.get("dropped_links") is not None else "", tip=drop_tip),
+                _item(q.max_residual_m, _fmt(q.max_residual_m, 2, 100.0)),
+                _item(q.dropped_links, None if q.dropped_links is not None else "", tip=drop_tip),
                 _item(reason, reason, tip=reason),
             ]
             colour = STATUS_COLOURS.get(status)
             if colour:
                 cells[1].setForeground(QBrush(QColor(colour)))
-            if q.get("dropped_links"):
+            if q.dropped_links:
                 cells[self.column("Dropped")].setForeground(QBrush(QColor(DROPPED_COLOUR)))
             for c, cell in enumerate(cells):
                 self.setItem(r, c, cell)

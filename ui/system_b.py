@@ -154,18 +154,18 @@ class SystemBMixin:
         return True
 
     def _show_coregistration(self, folder: str | Path, decision: str = "") -> bool:
-        from ..engine.io.results import read_coregistration_dir
+        from ..app.coregistration import read_coregistration_folder
 
         try:
-            out = read_coregistration_dir(folder)
+            out, summary = read_coregistration_folder(folder)
         except ForestregError as exc:
             self.show_error("Cannot open the co-registration result", str(exc))
             return False
-        shown = shown_from_folder(out)
+        shown = shown_from_folder(out, summary)
         self.coreg_view.show_result(shown)
         if decision:
             self.coreg_view.decide(decision)
-        log.info("co-registration %s: %s", folder, "ok" if out.ok else out.reason)
+        log.info("co-registration %s: %s", folder, "ok" if summary.ok else summary.reason)
         return True
 
     def _coreg_decided(self, decision: str) -> None:

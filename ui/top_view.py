@@ -19,7 +19,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle
 from PySide6.QtWidgets import QSizePolicy, QVBoxLayout, QWidget
 
-from ..app.plot import Project, pose_uncertainty
+from ..app.plot import PoseSigma, Project, dropped_links, pose_sigmas
 from ..engine.report.views import TopView
 
 MATCH_COLOUR = "#2ca02c"
@@ -36,26 +36,21 @@ class SurveyOverlay:
     uncertainty (``translation_m``, ``rotation_deg``, 1 sigma, relative to the centre scan), the
     successful links kept by the adjustment and the dropped ones with their reasons."""
 
-    uncertainty: dict[str, dict[str, Any]] = field(default_factory=dict)
+    uncertainty: dict[str, PoseSigma] = field(default_factory=dict)
     links: list[tuple[str, str]] = field(default_factory=list)
     dropped: dict[tuple[str, str], str] = field(default_factory=dict)
 
     @classmethod
     def of(cls, project: Project) -> "SurveyOverlay":
-        try:
-            found = pose_uncertainty(project) if project.centre else {}
-        except (KeyError, ValueError, TypeError):
-            found = {}
-        dropped = {(d["moving"], d["reference"]): str(d.get("reason") or "") for d in (project.adjustment or {}).get("dropped") or []}
+        dropped = {(d.moving, d.reference): d.reason for d in dropped_links(project)}
         links = [(x.moving, x.reference) for x in project.links if x.ok and (x.moving, x.reference) not in dropped]
-        return cls({k: dict(v) for k, v in found.items() if isinstance(v, Mapping)}, links, dropped)
+        return cls({k: u for k, u in pose_sigmas(project).items() if u is not None}, links, dropped)
 
 
-def uncertainty_scale(uncertainty: Mapping[str, Mapping[str, Any]]) -> float:
+def uncertainty_scale(uncertainty: Mapping[str, PoseSigma]) -> float:
     """The factor (1, 2 or 5 times a power of 10, >= 1) the uncertainty circles are drawn enlarged
     by, so the largest is at most :data:`UNCERTAINTY_DRAWN_M` on the map."""
-    largest = max((float(u["translation_m"]) for u in uncertainty.values()
-                   if isinstance(u.get("translation_m"), (int, float)) and u["translation_m"] > 0), default=0.0)
+    largest = max((u.translation_m for u in uncertainty.values() if u.translation_m is not None and u.translation_m > 0), default=0.0)
     if largest <= 0 or largest >= UNCERTAINTY_DRAWN_M:
         return 1.0
     wanted = UNCERTAINTY_DRAWN_M / largest
@@ -189,12 +184,12 @@ class TopViewWidget(QWidget):
         self.uncertainty_factor = factor
         drawn = 0
         for name, u in overlay.uncertainty.items():
-            t, r = u.get("translation_m"), u.get("rotation_deg")
-            if name not in where or not isinstance(t, (int, float)) or not isinstance(r, (int, float)):
+            t, r = u.translation_m, u.rotation_deg
+            if name not in where or not u.known:
                 continue
             c = where[name]
-            if u.get("fixed") or (t == 0 and r == 0):
-                text = "held fixed" if u.get("fixed") else "frame scan"
+            if u.fixed or (t == 0 and r == 0):
+                text = "held fixed" if u.fixed else "frame scan"
             else:
                 text = f"\u00b1{100 * t:.1f} cm, {r:.2f}\u00b0"
                 ax.add_patch(Circle(tuple(c), t * factor, fill=True, fc=UNCERTAINTY_COLOUR, alpha=0.18,

@@ -505,16 +505,15 @@ class TreesView(QWidget):
         params = self.params
 
         def task(progress: Any, cancel: Any) -> tuple[Any, np.ndarray]:
-            from ..app.trees import measure_trees_in
+            from ..app.trees import measure_trees_file
             from ..engine.core.errors import ScanDataError
-            from ..engine.io import read_scan
 
             progress(0.0, "reading the cloud")
-            scan = read_scan(cloud)
-            inv = measure_trees_in(scan, params, progress=lambda f, m: progress(0.05 + 0.95 * f, m), cancel=cancel)
-            if not inv:  # the data do not allow trees: said as the window says any failure
-                raise ScanDataError(inv.reason)
-            return inv, scan.points
+            # the command line's use case, on the same file with the same parameters; nothing written
+            outcome = measure_trees_file(cloud, None, params, progress=progress, cancel=cancel)
+            if not outcome:  # the data do not allow trees: said as the window says any failure
+                raise ScanDataError(outcome.reason)
+            return outcome.result, outcome.points
 
         def done(result: tuple[Any, np.ndarray]) -> None:
             inv, pts = result

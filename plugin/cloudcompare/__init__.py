@@ -145,8 +145,8 @@ def register_selected(vop_radius_m: Optional[float] = None, cli=None, out_dir: O
         moving.setGlobalShift(pycc.CCVector3d(*s) if hasattr(pycc, "CCVector3d") else s)
     except Exception:
         pass
-    summary = outputs.summary
-    print(f"forestreg: ok, {summary.get('matched')} matched VOPs, ICP std {1000 * (summary.get('icp') or {}).get('std_m', float('nan')):.1f} mm; "
+    std = outputs.result.icp_std_m if outputs.result is not None and outputs.result.icp_std_m is not None else float("nan")
+    print(f"forestreg: ok, {outputs.matched} matched VOPs, ICP std {1000 * std:.1f} mm; "
           f"transform.txt in {outputs.out_dir}")
     cc.updateUI()
     cc.redrawAll()

@@ -127,7 +127,7 @@ class _Base(QgsProcessingAlgorithm):
             feedback.reportError(f"{failure}: {outputs.reason}")
         crs = self.parameterAsCrs(parameters, self.CRS, context)
         files = adapter.write_layer_files(outputs)
-        scanners = _load_point_layer(files["scanners"], f"scanners ({layer_name})", crs, context, self.SCANNERS, feedback)
+        scanners = _load_point_layer(files.scanners, f"scanners ({layer_name})", crs, context, self.SCANNERS, feedback)
         return outputs, crs, files, {
             self.OUTPUT: self.parameterAsString(parameters, self.OUTPUT, context),
             self.SCANNERS: scanners,
@@ -182,8 +182,8 @@ class RegisterPairAlgorithm(_Base):
         )
         return {
             **results,
-            self.VOPS: _load_point_layer(files["vops"], f"VOPs ({stem})", crs, context, self.VOPS, feedback),
-            self.MATCHED: outputs.summary.get("matched") or 0,
+            self.VOPS: _load_point_layer(files.vops, f"VOPs ({stem})", crs, context, self.VOPS, feedback),
+            self.MATCHED: outputs.matched,
             self.TRANSFORM: str(Path(out) / "transform.txt") if outputs.status == "ok" else "",
         }
 

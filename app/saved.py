@@ -1,0 +1,156 @@
+"""What a finished run left in its output folder, read back as typed records: ``result.json`` (a
+pair registration, a co-registration, a re-survey), ``poses.json`` (a plot) and the scanner
+positions of ``project.json``.
+
+These readers use the standard library alone: the plugin hosts (QGIS, CloudCompare) read a job's
+folder with them in a Python that has no NumPy, and the batch runner and the job service read the
+same folders with them. Matrices are 4x4 nested lists of floats; a result's verdict is the one its
+writer recorded (the writer applied the last rigid check).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional, Union
+
+PathLike = Union[str, Path]
+Matrix = list  # 4x4 nested lists of floats
+
+
+class SavedFileError(ValueError):
+    """A saved file is missing, unreadable or not the JSON object its reader expects."""
+
+
+def read_json_object(path: PathLike) -> dict:
+    """The JSON object in ``path``; :class:`SavedFileError` when it is missing, unreadable or not
+    an object."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise SavedFileError(f"{p.name} is missing in {p.parent}") from exc
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise SavedFileError(f"{p}: not valid JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise SavedFileError(f"{p}: not a JSON object")
+    return data
+
+
+def _matrix(value: Any) -> Optional[Matrix]:
+    """A finite 4x4 as nested lists of floats, or None."""
+    try:
+        rows = [[float(v) for v in row] for row in value]
+    except (TypeError, ValueError):
+        return None
+    if len(rows) != 4 or any(len(r) != 4 for r in rows) or not all(math.isfinite(v) for r in rows for v in r):
+        return None
+    return rows
+
+
+def _finite(value: Any) -> Optional[float]:
+    """A finite number as float, else None."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+def _count(value: Any) -> Optional[int]:
+    v = _finite(value)
+    return None if v is None else int(v)
+
+
+@dataclass(frozen=True)
+class SavedResult:
+    """A ``result.json``: ``status`` ("ok" or "failed"), ``reason``, ``matrix`` (None unless ok),
+    the two inputs' names (``reference`` / ``moving`` of a pair), the matched trunk shadows or
+    keypoints, the fine fit's standard deviation (ICP, m) and, for a re-survey, the trees per
+    status."""
+
+    status: str
+    reason: str = ""
+    matrix: Optional[Matrix] = None
+    reference: str = ""
+    moving: str = ""
+    matched: Optional[int] = None
+    icp_std_m: Optional[float] = None
+    trees: Mapping[str, int] = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "SavedResult":
+        matrix = _matrix(d.get("matrix"))
+        status = "ok" if d.get("status") == "ok" and matrix is not None else "failed"
+        reason = str(d.get("reason") or ("no matrix; withheld" if d.get("status") == "ok" and matrix is None else ""))
+        trees = d.get("trees") if isinstance(d.get("trees"), Mapping) else {}
+        icp = d.get("icp") if isinstance(d.get("icp"), Mapping) else {}
+        return cls(status, reason, matrix if status == "ok" else None, str(d.get("reference") or ""), str(d.get("moving") or ""),
+                   _count(d.get("matched")), _finite(icp.get("std_m")),
+                   {str(k): int(v) for k, v in trees.items() if _count(v) is not None})
+
+    @classmethod
+    def read(cls, path: PathLike) -> "SavedResult":
+        """Read a ``result.json`` (:class:`SavedFileError` when missing or unreadable)."""
+        return cls.from_dict(read_json_object(path))
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+@dataclass(frozen=True)
+class SavedPose:
+    """One scan of ``poses.json``: its status, reason, the scan it was placed on and ``matrix``
+    (``p_centre = matrix @ p_scan``, file coordinates; None when not registered)."""
+
+    name: str
+    status: str
+    reason: str = ""
+    reference: str = ""
+    matrix: Optional[Matrix] = None
+
+    @property
+    def registered(self) -> bool:
+        return self.matrix is not None
+
+
+@dataclass(frozen=True)
+class SavedPoses:
+    """A plot's ``poses.json``: the centre scan (``frame``) and every scan's pose, in file order."""
+
+    frame: str
+    scans: tuple[SavedPose, ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "SavedPoses":
+        scans = d.get("scans") if isinstance(d.get("scans"), Mapping) else {}
+        poses = []
+        for name, e in scans.items():
+            e = e if isinstance(e, Mapping) else {}
+            poses.append(SavedPose(str(name), str(e.get("status") or "failed"), str(e.get("reason") or ""),
+                                   str(e.get("reference") or ""), _matrix(e.get("matrix"))))
+        return cls(str(d.get("frame") or ""), tuple(poses))
+
+    @classmethod
+    def read(cls, path: PathLike) -> "SavedPoses":
+        """Read a ``poses.json`` (:class:`SavedFileError` when missing or unreadable)."""
+        return cls.from_dict(read_json_object(path))
+
+    @property
+    def not_registered(self) -> list[SavedPose]:
+        return [s for s in self.scans if not s.registered]
+
+    def reason(self) -> str:
+        """``scan: reason`` of every scan not registered, joined by "; " ("" when all are)."""
+        return "; ".join(f"{s.name}: {s.reason or 'not registered'}" for s in self.not_registered)
+
+
+def read_scanner_positions(project_file: PathLike) -> dict[str, tuple[float, float, float]]:
+    """Scan name -> the scanner position given in a ``project.json`` (file coordinates; scans
+    without one are left out)."""
+    positions = {}
+    for s in read_json_object(project_file).get("scans") or []:
+        if isinstance(s, Mapping) and s.get("scanner_position"):
+            positions[str(s.get("name"))] = tuple(float(v) for v in s.get("scanner_position")[:3])
+    return positions
