@@ -239,8 +239,8 @@ def prepare_scan(
 @dataclass(frozen=True)
 class CentredScan:
     """The first step of a preparation: the points within ``1.6 D_c`` (3D) of the scanner,
-    scanner-centred, float32 (the scan's axes, metres), thinned to the first point of each angular
-    pixel of :func:`thinning_step_deg` (as seen from the scanner), and the
+    scanner-centred, float32 (the scan's axes, metres), thinned to the first point of each pixel
+    of :func:`thinning_pixels` (angular pixels seen from the scanner), and the
     :func:`~.level.level_sample` of those within 15 m, that estimates the vertical (None when it is
     not estimated). Once made, the scan's own points are no longer needed (a caller holding them in
     the only reference can let them go before the rest)."""
@@ -297,8 +297,8 @@ def thinning_pixels(params: RegistrationParams, floor_m: float = THINNING_FLOOR_
     (0.05 deg by default) where that spans at least ``floor_m`` (beyond 23 m with the defaults),
     and nearer the scanner pixels ``floor_m`` across at the inner edge of their shell (ranges in
     steps of :data:`THINNING_SHELL_RATIO`). Every later step works at this resolution or coarser;
-    a scan made at ``I_A`` keeps every point beyond about 11 m and one point per 2 cm nearer, and a
-    finer or densified file of the same scene about as many, so its preparation, VOPs and ICP cost
+    a scan made at ``I_A`` keeps every point beyond about 15 m and about one point per 2 cm nearer,
+    and a finer or densified file of the same scene about as many, so its preparation, VOPs and ICP cost
     what a scan at ``I_A`` costs, whatever the file holds."""
     finest = np.radians(params.angular_step_deg / 2.0)
     far_m = floor_m / finest
