@@ -1,6 +1,6 @@
 """Values set in a nested TOML parameter file reach the step that uses them: the automatic VOP
-radii, the scanner-position estimate (through a project and its scan cache, and the project file)
-and the survey's loop-closure floors."""
+radii, the scanner-position estimate (through a project and its scan cache, and the project file),
+the survey's loop-closure floors and the co-registration's stem layer."""
 
 from __future__ import annotations
 
@@ -95,3 +95,24 @@ def test_bad_values_in_the_new_sections_are_refused(tmp_path):
         path.write_text(text, encoding="utf-8")
         with pytest.raises(ParameterError):
             load_params(path)
+
+
+def test_the_coregistration_stem_layer_comes_from_the_file(tmp_path):
+    """A thinner stem layer from the file: fewer UAV points make the stem evidence, and the
+    co-registration still finds the true transform."""
+    from forestreg.engine.coreg.coregister import coregister
+    from forestreg.engine.core.transform import rigid_errors
+    from forestreg.engine.simulate.platforms import simulate_coregistration_case
+
+    path = tmp_path / "coreg.toml"
+    path.write_text("[coregistration]\nstem_layer_m = [0.5, 1.5]\nlow_layer_icp_distances_m = [2.0, 0.5, 0.12]\n", encoding="utf-8")
+    params = load_params(path).coregistration
+    assert params.low_layer_icp_distances_m == (2.0, 0.5, 0.12)
+    case = simulate_coregistration_case("planted_conifer", seed=0, size_m=40.0, ground_platform="tls", heading_deg=35.0,
+                                        offset_m=(3.0, -2.0, 0.5), uav_density_scale=0.3, tls_step_deg=0.3)
+    default, thin = coregister(case.ground, case.uav), coregister(case.ground, case.uav, params)
+    assert default.ok and thin.ok
+    assert 0 < thin.coarse.stem_layer_points < default.coarse.stem_layer_points
+    for result in (default, thin):
+        rot, trans = rigid_errors(result.matrix, case.matrix)
+        assert rot < 0.2 and trans < 0.1
