@@ -36,6 +36,7 @@ from PySide6.QtWidgets import (
 )
 
 from ..engine.io.results import TreesOutput, trees_output_from_inventory
+from .panes import CellsByName
 from .scene_view import SceneView, add_guides
 from .worker import TaskWorker
 
@@ -98,7 +99,7 @@ def _cell(value: Any, text: str, tip: str = "") -> QTableWidgetItem:
     return item
 
 
-class TreeTable(QTableWidget):
+class TreeTable(CellsByName, QTableWidget):
     """One row per tree; click a header to sort. Raw values under ``Qt.UserRole``."""
 
     def __init__(self, parent: Optional[QWidget] = None) -> None:
@@ -152,19 +153,12 @@ class TreeTable(QTableWidget):
         self.setSortingEnabled(True)
         self.horizontalHeader().setStretchLastSection(True)
 
-    def column_of(self, name: str) -> int:
+    def column(self, name: str) -> int:  # type: ignore[override]
+        """The index of a column by its name in trees.csv."""
         return [c[0] for c in self.columns].index(name)
 
-    def value(self, row: int, name: str) -> Any:
-        item = self.item(row, self.column_of(name))
-        return None if item is None else item.data(Qt.ItemDataRole.UserRole)
-
-    def text(self, row: int, name: str) -> str:
-        item = self.item(row, self.column_of(name))
-        return "" if item is None else item.text()
-
     def row_of(self, tree_id: int) -> int:
-        c = self.column_of("tree_id")
+        c = self.column("tree_id")
         for r in range(self.rowCount()):
             if self.item(r, c).data(Qt.ItemDataRole.UserRole) == tree_id:
                 return r
