@@ -19,11 +19,11 @@ from typing import Any, Callable, Optional
 import numpy as np
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QBrush, QColor, QPixmap, QResizeEvent
-from PySide6.QtWidgets import QHBoxLayout, QLabel, QProgressBar, QPushButton, QSizePolicy, QTableWidgetItem, QVBoxLayout, QWidget
+from PySide6.QtWidgets import QHBoxLayout, QLabel, QPushButton, QSizePolicy, QTableWidgetItem, QVBoxLayout, QWidget
 
 from ..app.coregistration import CoregistrationSummary
 from ..app.fusion import SourceCounts
-from .panes import figures_table, headline, lay_out_view, two_panes
+from .panes import TaskProgress, figures_table, headline, lay_out_view, two_panes
 from .worker import TaskWorker
 
 OK_COLOUR = "#1f7a3f"
@@ -147,12 +147,8 @@ class CoregistrationView(QWidget):
         self.reject_button.setToolTip("Do not use this transform")
         self.fuse_button = QPushButton("Fuse\u2026")
         self.fuse_button.setToolTip("Merge both clouds with the accepted transform, removing duplicates and noise")
-        self.progress = QProgressBar()
-        self.progress.setRange(0, 1000)
-        self.progress.hide()
-        self.cancel_button = QPushButton("Cancel")
-        self.cancel_button.hide()
-        self.cancel_button.clicked.connect(self.cancel)
+        self.task = TaskProgress(self.cancel)
+        self.progress, self.cancel_button = self.task.bar, self.task.cancel_button
         self.accept_button.clicked.connect(lambda: self.decide("accepted"))
         self.reject_button.clicked.connect(lambda: self.decide("rejected"))
         bar = QHBoxLayout()
@@ -242,10 +238,7 @@ class CoregistrationView(QWidget):
     def _begin(self, worker: TaskWorker, succeeded: Callable[[Any], None], what: str) -> None:
         self.worker = worker
         self.last_error = None
-        self.progress.setValue(0)
-        self.progress.setFormat(what)
-        self.progress.show()
-        self.cancel_button.show()
+        self.task.begin(what)
         self._update_buttons()
 
         def failed(message: str, details: str) -> None:
@@ -257,15 +250,10 @@ class CoregistrationView(QWidget):
 
         def ended() -> None:
             self.worker = None
-            self.progress.hide()
-            self.cancel_button.hide()
+            self.task.end()
             self._update_buttons()
 
-        def progress(fraction: float, message: str) -> None:
-            self.progress.setValue(int(1000 * fraction))
-            self.progress.setFormat(f"{message} %p%")
-
-        self._start_task(worker, succeeded=succeeded, failed=failed, cancelled=cancelled, progress=progress, ended=ended)
+        self._start_task(worker, succeeded=succeeded, failed=failed, cancelled=cancelled, progress=self.task.report, ended=ended)
 
     def cancel(self) -> None:
         if self.worker is not None:

@@ -1,10 +1,11 @@
 """The parts the result views (co-registration, re-survey, evaluation) are made of: a headline, a
 read-only table of figures, two panes side by side or one above the other, the view's layout
-(headline, button rows, the panes), and the reading of a result table's cells by column name."""
+(headline, button rows, the panes), the progress bar and Cancel button of a view's background task,
+and the reading of a result table's cells by column name."""
 
 from __future__ import annotations
 
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (
@@ -12,6 +13,8 @@ from PySide6.QtWidgets import (
     QHeaderView,
     QLabel,
     QLayout,
+    QProgressBar,
+    QPushButton,
     QSplitter,
     QTableWidget,
     QVBoxLayout,
@@ -72,3 +75,33 @@ class CellsByName:
     def text(self, row: int, name: str) -> str:
         item = self.item(row, self.column(name))  # type: ignore[attr-defined]
         return "" if item is None else item.text()
+
+
+class TaskProgress:
+    """A view's progress bar (0-1000) and its Cancel button (``on_cancel``), both hidden but while
+    the view's one background task runs."""
+
+    def __init__(self, on_cancel: Callable[[], Any]) -> None:
+        self.bar = QProgressBar()
+        self.bar.setRange(0, 1000)
+        self.bar.hide()
+        self.cancel_button = QPushButton("Cancel")
+        self.cancel_button.hide()
+        self.cancel_button.clicked.connect(on_cancel)
+
+    def begin(self, what: str = "") -> None:
+        """Show both, the bar at zero saying ``what``."""
+        self.bar.setValue(0)
+        if what:
+            self.bar.setFormat(what)
+        self.bar.show()
+        self.cancel_button.show()
+
+    def report(self, fraction: float, message: str) -> None:
+        """The task's progress (a worker's ``progress(fraction, message)``)."""
+        self.bar.setValue(int(1000 * fraction))
+        self.bar.setFormat(f"{message} %p%")
+
+    def end(self) -> None:
+        self.bar.hide()
+        self.cancel_button.hide()
