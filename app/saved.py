@@ -5,7 +5,9 @@ positions of ``project.json``.
 These readers use the standard library alone: the plugin hosts (QGIS, CloudCompare) read a job's
 folder with them in a Python that has no NumPy, and the batch runner and the job service read the
 same folders with them. Matrices are 4x4 nested lists of floats; a result's verdict is the one its
-writer recorded (the writer applied the last rigid check).
+writer recorded (the writer applied the last rigid check). :func:`finite_or_none`,
+:func:`count_or_none` and :func:`mapping_or_empty` read one saved figure or section; every typed
+record of :mod:`forestreg.app` reads its figures with them.
 """
 
 from __future__ import annotations
@@ -50,16 +52,22 @@ def _matrix(value: Any) -> Optional[Matrix]:
     return rows
 
 
-def _finite(value: Any) -> Optional[float]:
-    """A finite number as float, else None."""
+def finite_or_none(value: Any) -> Optional[float]:
+    """A saved figure as a float: None when it is missing, null, text, a boolean or not finite."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         return None
     return float(value)
 
 
-def _count(value: Any) -> Optional[int]:
-    v = _finite(value)
+def count_or_none(value: Any) -> Optional[int]:
+    """A saved count as an int (None as :func:`finite_or_none`)."""
+    v = finite_or_none(value)
     return None if v is None else int(v)
+
+
+def mapping_or_empty(value: Any) -> Mapping:
+    """A saved section (a JSON object), or an empty one when it is missing or not an object."""
+    return value if isinstance(value, Mapping) else {}
 
 
 @dataclass(frozen=True)
@@ -86,8 +94,8 @@ class SavedResult:
         trees = d.get("trees") if isinstance(d.get("trees"), Mapping) else {}
         icp = d.get("icp") if isinstance(d.get("icp"), Mapping) else {}
         return cls(status, reason, matrix if status == "ok" else None, str(d.get("reference") or ""), str(d.get("moving") or ""),
-                   _count(d.get("matched")), _finite(icp.get("std_m")),
-                   {str(k): int(v) for k, v in trees.items() if _count(v) is not None})
+                   count_or_none(d.get("matched")), finite_or_none(icp.get("std_m")),
+                   {str(k): int(v) for k, v in trees.items() if count_or_none(v) is not None})
 
     @classmethod
     def read(cls, path: PathLike) -> "SavedResult":
