@@ -38,6 +38,8 @@ plot of `--only bigplot`; `--quick`: a few minutes)::
    Sylva's ``coreg`` on pairs of 1, 3, 10, 30 and 50 M points per scan (``--sizes``; ``--quick``:
    0.1, 0.3 and 1 M), time, peak memory, ratios and errors against the truth (about 20 minutes
    on 2 cores; only with ``--only scaling``).
+12. ``forestreg batch`` of 20 small simulated plots with 1 and with 2 local Dask workers: wall time,
+   speed-up, memory per plot (:mod:`benchmarks.batch_scaling`; only with ``--only batch``).
 
 Timings are wall-clock seconds of one run (``time.perf_counter``); nothing is asserted on them.
 An untimed warm-up (a coarse 0.5 deg pair) runs first so imports and library initialisation do
@@ -60,9 +62,10 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import big_plot, big_scan, coarse_matcher, command_memory, peers, plot_speed, resurvey, scaling, system_b, trees_compare
+    from . import batch_scaling, big_plot, big_scan, coarse_matcher, command_memory, peers, plot_speed, resurvey, scaling, system_b, trees_compare
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import batch_scaling  # type: ignore[no-redef]
     import big_plot  # type: ignore[no-redef]
     import big_scan  # type: ignore[no-redef]
     import coarse_matcher  # type: ignore[no-redef]
@@ -324,12 +327,13 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated plot and of the VOP sets (default 0)")
     ap.add_argument("--json", metavar="FILE", type=Path, help="also write every row to this JSON file")
     ap.add_argument("--runs", type=int, default=3, help="timed rounds of the whole-command comparison (default 3)")
-    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands", "trees", "resurvey", "scaling"), action="append",
+    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands", "trees", "resurvey", "scaling", "batch"), action="append",
                     help="run only these parts (repeatable; default all but bigplot; --quick leaves out plot, big and commands). "
                          "bigplot: ten ~30 M-point scans registered and merged as COPC, about an hour, so only when named; "
-                         "scaling: the pair at 1-50 M points per scan beside Sylva and reading, only when named")
+                         "scaling: the pair at 1-50 M points per scan beside Sylva and reading, only when named; "
+                         "batch: 20 small plots on 1 and 2 local Dask workers, only when named")
     ap.add_argument("--sizes", help="scaling: points per scan, millions, comma-separated (default 1,3,10,30,50; --quick 0.1,0.3,1)")
-    ap.add_argument("--workdir", type=Path, help="bigplot and scaling: keep their simulated and densified scans here (default bench_out/; reused)")
+    ap.add_argument("--workdir", type=Path, help="bigplot, scaling and batch: keep their simulated and densified scans here (default bench_out/; reused)")
     args = ap.parse_args(argv)
 
     t_start = time.perf_counter()
@@ -384,6 +388,11 @@ def main(argv: Optional[list[str]] = None) -> int:
         big_plot_row = big_plot.run(workdir=args.workdir)
         print(big_plot.format_row(big_plot_row))
         print(flush=True)
+    batch_row: Optional[dict[str, Any]] = None
+    if "batch" in parts:  # only when named: 1 and 2 local workers on 20 plots
+        batch_row = batch_scaling.run(workdir=args.workdir or Path("bench_out"))
+        print(batch_scaling.format_row(batch_row))
+        print(flush=True)
     if "pairs" in parts:
         pairs = PAIRS[1:] if args.quick else PAIRS
         with tempfile.TemporaryDirectory(prefix="forestreg-bench-") as tmp:
@@ -414,7 +423,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     if args.json is not None:
         payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
                    "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "big_plot": big_plot_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows, "commands": command_rows,
-                   "trees_compare": trees_rows, "resurvey": resurvey_rows, "scaling": scaling_rows}
+                   "trees_compare": trees_rows, "resurvey": resurvey_rows, "scaling": scaling_rows, "batch": batch_row}
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0

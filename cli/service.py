@@ -28,6 +28,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--manifest", help="CSV naming each plot's inputs (plot,scans[,centre] / plot,cloud[,transform,field] / plot,ground,uav / plot,before,after)")
     p.add_argument("--params", help="TOML parameter file passed to every plot")
     p.add_argument("--extra", metavar="ARGS", help="more options for every plot's command, e.g. --extra='--no-cylinders --no-report'")
+    p.add_argument("--threads", type=int, help="threads of each plot's process (default: the cores shared out among the local workers; 1 with --scheduler)")
+    p.add_argument("--memory-limit", metavar="SIZE", help="memory per worker, e.g. 4GB: a plot whose processes hold more is stopped (an error row); "
+                   "also the local workers' Dask memory limit (default: none)")
     p.set_defaults(func=cmd_batch, long_running=True)
 
 
@@ -62,16 +65,29 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
     if args.workers is not None and args.workers < 1:
         raise UsageError("--workers must be at least 1")
+    if args.threads is not None and args.threads < 1:
+        raise UsageError("--threads must be at least 1")
     try:
         extra = shlex.split(args.extra or "")
     except ValueError as exc:
         raise UsageError(f"--extra: {exc}") from None
+    memory_limit = 0
+    if args.memory_limit:
+        from dask.utils import parse_bytes
+
+        try:
+            memory_limit = int(parse_bytes(args.memory_limit))
+        except (ValueError, TypeError):
+            raise UsageError(f"--memory-limit {args.memory_limit!r}: give a size such as 4GB or 500MB") from None
+        if memory_limit < 200_000_000:
+            raise UsageError(f"--memory-limit {args.memory_limit}: at least 200MB (a plot's process alone needs about that)")
     reporter = args.reporter
     try:
         outcome = run_batch(
             Path(args.plots_dir), Path(args.out), workers=args.workers, scheduler=args.scheduler, command=args.command,
             manifest=Path(args.manifest) if args.manifest else None,
             extra_args=(["--params", args.params] if args.params else []) + extra, progress=reporter,
+            threads=args.threads, memory_limit=memory_limit,
         )
     except BatchInterrupted as exc:  # the finished plots are kept: say so (not "left as it was")
         reporter.close()

@@ -334,6 +334,11 @@ COLUMN_HELP: dict[str, str] = {
     "trees": "trees found (`--command trees`) or compared (`--command change`)",
     "worker": "the Dask worker that ran the plot",
     "resumed": "`true` when an earlier run's result was kept",
+    "peak_mb": "peak memory of the plot's processes (the command and any process it started), MB",
+    "cpu_s": "CPU time of the plot's processes (user + system), seconds",
+    "threads": "threads each plot's process was given (`--threads`)",
+    "attempts": "times the plot was started in this run (more than 1: its worker was lost and Dask ran it again)",
+    "retried_after": "why the plot was started again: `worker lost (ADDRESS)` (in this run), or an earlier batch stopped during it",
 }
 
 

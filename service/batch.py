@@ -12,11 +12,24 @@ project files or trees tables), or a manifest names them (``plot,before,after``)
 
 Each plot is one Dask task that runs the CLI in its own process (so a crash or a memory blow-up of
 one plot costs only that plot), on a ``LocalCluster`` (``--workers N`` processes, one thread each)
-or on an existing cluster (``--scheduler tcp://host:port``). ``OUT/summary.csv`` (one row per plot:
-``plot,status,scans,registered,seconds,reason,...``) and ``OUT/index.html`` are rewritten after
-every finished plot. A plot's row is also kept in ``OUT/<plot>/batch.json``, written last: a rerun
-into the same ``OUT`` skips every plot that has one with status ``ok`` or ``failed`` (an honest
-result), and runs again those that ended in ``error`` (bad input, crash) or never finished.
+or on an existing cluster (``--scheduler tcp://host:port``). The plot's process runs ``--threads``
+threads (default: the usable cores shared out among the local workers, 1 on an existing cluster):
+the numerical thread pools (OpenMP, BLAS, Numba, forestreg's own) are sized by environment
+variables, so N workers keep N cores busy and no more. The process dies with its worker (a worker
+killed or lost takes its plot's process along: no orphan writes into ``OUT``); Dask then runs the
+plot again on another worker, and its row says so (``attempts``, ``retried_after``). A ``plot``
+stopped half-way (worker lost, batch killed) resumes from the links its project file kept
+(``project run``); one that cannot is started over in an emptied folder. Its peak
+memory (``peak_mb``, the process tree's high-water mark) and CPU time are in its row; with
+``--memory-limit`` a plot whose processes outgrow the limit is stopped (an ``error`` row with the
+peak) and the local workers get the same limit.
+
+``OUT/summary.csv`` (one row per plot: ``plot,status,scans,registered,seconds,reason,...``) and
+``OUT/index.html`` are rewritten as plots finish (at most every few seconds in a long batch: the
+rewrite of 1,000 rows costs tens of milliseconds, so it is spaced to stay a small share of the
+time) and always at the end. A plot's row is also kept in ``OUT/<plot>/batch.json``, written last:
+a rerun into the same ``OUT`` skips every plot that has one with status ``ok`` or ``failed`` (an
+honest result), and runs again those that ended in ``error`` (bad input, crash) or never finished.
 
 Status per plot: ``ok`` every scan registered (or the command succeeded), ``failed`` the command
 ran to its end but could not register everything (exit 1, with the reason), ``error`` bad input
@@ -30,8 +43,12 @@ import io
 import json
 import logging
 import os
+import re
+import shutil
+import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -42,9 +59,18 @@ from ..app.saved import SavedFileError, SavedPoses, SavedResult
 log = logging.getLogger("forestreg.batch")
 
 COMMANDS = ("plot", "trees", "coregister", "change")
-SUMMARY_FIELDS = ["plot", "status", "scans", "registered", "seconds", "reason", "command", "exit_code", "trees", "worker", "resumed"]
+SUMMARY_FIELDS = ["plot", "status", "scans", "registered", "seconds", "reason", "command", "exit_code", "trees", "worker", "resumed",
+                  "peak_mb", "cpu_s", "threads", "attempts", "retried_after"]
 PROCESSED = ("ok", "failed")
 _NOT_SCANS = {"centre.txt", "center.txt", "targets.csv", "manifest.csv", "batch.json"}
+#: Environment variables that size the numerical thread pools of a plot's process (OpenMP for
+#: Open3D, the BLAS libraries, Numba, NumExpr, and forestreg's own block pool).
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
+                    "NUMEXPR_NUM_THREADS", "NUMBA_NUM_THREADS", "FORESTREG_THREADS")
+#: The folder of ``OUT`` where each plot's attempts are noted (one small JSON file per plot).
+ATTEMPTS_DIR = ".forestreg-batch"
+#: Seconds between two checks of a running plot (its exit, and its memory under --memory-limit).
+_POLL_S = 0.1
 
 
 @dataclass
@@ -57,6 +83,9 @@ class PlotTask:
     out_dir: str
     inputs: int
     problem: str = ""  # set when the plot cannot run (no scans, bad manifest row): an error row
+    threads: int = 1  # threads of the plot's process (its numerical thread pools)
+    memory_limit: int = 0  # bytes the plot's process tree may hold; 0: no limit
+    run: str = ""  # the batch run this task belongs to (tells a retry from a resumed plot)
 
 
 @dataclass
@@ -269,26 +298,267 @@ def _last_error(text: str) -> str:
     return lines[-1] if lines else ""
 
 
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """The plot's process gets SIGKILL when the worker thread that started it ends (the worker
+    killed, lost or restarted): no orphan keeps writing into ``OUT`` while Dask runs the plot again
+    elsewhere. Linux only; elsewhere a no-op."""
+    if _PRCTL is not None:
+        _PRCTL(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
+def _load_prctl():
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        import ctypes
+
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+_PRCTL = _load_prctl()
+
+
+def _tree_rss(pid: int) -> int:
+    """Resident bytes of the process ``pid`` and its descendants (0 when it is gone)."""
+    import psutil
+
+    try:
+        root = psutil.Process(pid)
+        procs = [root, *root.children(recursive=True)]
+    except psutil.Error:
+        return 0
+    total = 0
+    for p in procs:
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            pass
+    return total
+
+
+def _kill_tree(pid: int) -> None:
+    import psutil
+
+    try:
+        root = psutil.Process(pid)
+        procs = [*root.children(recursive=True), root]
+    except psutil.Error:
+        return
+    for p in procs:
+        try:
+            p.kill()
+        except psutil.Error:
+            pass
+
+
+def _remove_leftovers(out: Path) -> None:
+    """Remove the temporary folders an attempt of this plot left beside ``OUT/<plot>`` when its
+    process was killed (a folder transaction never finished: the plot's folder itself is the
+    earlier complete one or absent)."""
+    pattern = re.compile(r"\.forestreg-tmp-(old-)?" + re.escape(out.name) + r"\.[A-Za-z0-9_]+$")
+    try:
+        entries = list(out.parent.iterdir())
+    except OSError:
+        return
+    for entry in entries:
+        if pattern.match(entry.name) and entry.is_dir():
+            shutil.rmtree(entry, ignore_errors=True)
+
+
+def _remove_unfinished(out: Path) -> None:
+    """Remove ``OUT/<plot>`` before the ``plot`` command starts it over (nothing to resume), and
+    after it was stopped over its memory limit: the command fills its folder in place (the others
+    write theirs by one rename), so no product of an earlier attempt is mixed into the new one. Only
+    a folder of forestreg's ``plot`` (its marker file) is removed."""
+    from ..engine.core.atomic import MARKER
+
+    try:
+        kind = (out / MARKER).read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError):
+        return
+    if kind == "plot":
+        shutil.rmtree(out, ignore_errors=True)
+
+
+#: Options of ``plot`` kept in its project file (a resumed run needs them no more), and those
+#: ``project run`` takes as they are; with any other option a stopped plot runs again from the start.
+_IN_PROJECT = {"--centre", "--tilted", "--targets", "--dr", "--dc", "--dh", "--params", "--positions", "--prior-poses"}
+_PASSED_ON = {"--pairs", "--fixed", "--merged", "--e57-out"}
+
+
+def _resume_args(t: PlotTask) -> Optional[tuple[list[str], int, int]]:
+    """``project run`` arguments that finish a plot an earlier attempt left unfinished (its
+    project file in ``OUT/<plot>`` saved after every link, no ``batch.json``), keeping the links
+    that attempt registered: (arguments, links done, links); None when there is nothing to resume
+    (no such folder, other scans, no link done, or options ``project run`` does not take)."""
+    from ..engine.core.atomic import MARKER
+
+    out = Path(t.out_dir)
+    try:
+        if (out / MARKER).read_text(encoding="utf-8").strip() != "plot" or (out / "batch.json").exists():
+            return None
+    except (OSError, UnicodeDecodeError):
+        return None
+    project = _read_json(out / "project.json")
+    if not isinstance(project, dict):
+        return None
+    options = [k for k, a in enumerate(t.args) if a.startswith("--")]
+    first = options[0] if options else len(t.args)
+    scans = {str(Path(a).resolve()) for a in t.args[1:first]}
+    try:
+        saved = {str((out / s["path"]).resolve()) for s in project.get("scans", [])}
+        links = [link for link in project.get("links", []) if isinstance(link, dict)]
+    except (TypeError, KeyError, AttributeError):
+        return None
+    done = sum(1 for link in links if isinstance(link.get("result"), dict) and link["result"].get("status") == "ok")
+    if saved != scans or not done:
+        return None
+    args = ["project", "run", str(out / "project.json"), "--out", str(out)]
+    k = first
+    while k < len(t.args):
+        option = t.args[k].split("=", 1)[0]
+        takes_value = "=" not in t.args[k] and k + 1 < len(t.args) and not t.args[k + 1].startswith("--")
+        value = t.args[k:k + 1 + int(takes_value)]
+        if option in _PASSED_ON:
+            args += value
+        elif option not in _IN_PROJECT and option != "--out":
+            return None
+        k += len(value)
+    return args, done, len(links)
+
+
+def _note_attempt(t: PlotTask, worker: str) -> tuple[int, str]:
+    """Note this attempt in ``OUT/.forestreg-batch/<plot>.json``; returns (attempts of this run so
+    far, including this one; why the previous attempt did not finish, "" for a first attempt)."""
+    from ..engine.core.atomic import write_text_atomic
+
+    folder = Path(t.out_dir).parent / ATTEMPTS_DIR
+    path = folder / f"{t.name}.json"
+    earlier = (_read_json(path) or {}).get("attempts", []) if path.is_file() else []
+    earlier = [a for a in earlier if isinstance(a, dict)]
+    mine = [a for a in earlier if a.get("run") == t.run]
+    reason = ""
+    if mine:
+        reason = f"worker lost ({mine[-1].get('worker') or 'unknown worker'})"
+    elif earlier:
+        reason = "an earlier batch stopped during the plot"
+    entry = {"run": t.run, "worker": worker, "pid": os.getpid(), "started": time.time()}
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(path, json.dumps({"attempts": (earlier + [entry])[-20:]}, indent=1) + "\n")
+    except OSError as exc:
+        log.warning("could not note the attempt of plot %s: %s", t.name, exc)
+    return len(mine) + 1, reason
+
+
+def _worker_name() -> str:
+    try:
+        from dask.distributed import get_worker
+
+        return str(get_worker().address)
+    except (ImportError, ValueError):
+        return os.uname().nodename if hasattr(os, "uname") else ""
+
+
+def plot_environment(threads: int) -> dict[str, str]:
+    """The environment of a plot's process: the package importable, every numerical thread pool
+    sized to ``threads`` (a user's own values of these variables are replaced)."""
+    from .jobs import _package_env
+
+    env = _package_env()
+    for name in THREAD_VARIABLES:
+        env[name] = str(max(1, int(threads)))
+    return env
+
+
+def _run_cli(args: list[str], threads: int, memory_limit: int) -> tuple[int, str, float, float, float]:
+    """Run ``forestreg ARGS --quiet``; returns (exit code, stderr, peak MB of the process tree,
+    CPU seconds, peak MB when it was stopped over ``memory_limit`` else 0)."""
+    with tempfile.TemporaryFile(mode="w+b") as err:
+        try:
+            proc = subprocess.Popen([sys.executable, "-m", "forestreg.cli", *args, "--quiet"], stdin=subprocess.DEVNULL,
+                                    stdout=subprocess.DEVNULL, stderr=err, env=plot_environment(threads),
+                                    preexec_fn=_die_with_parent if _PRCTL is not None else None)
+        except OSError as exc:
+            return -1, f"error: cannot start the CLI: {exc}", 0.0, 0.0, 0.0
+        over = sampled = 0.0
+        usage = None
+        next_check = time.monotonic() + 1.0
+        try:
+            while True:
+                if hasattr(os, "wait4"):
+                    pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+                    if pid:
+                        proc.returncode = os.waitstatus_to_exitcode(status)
+                        break
+                elif proc.poll() is not None:  # Windows: no rusage of a child; its memory sampled
+                    break
+                if (memory_limit or usage is None) and time.monotonic() >= next_check:
+                    next_check = time.monotonic() + 0.5
+                    rss = _tree_rss(proc.pid)
+                    sampled = max(sampled, rss / 1e6)
+                    if memory_limit and rss > memory_limit:
+                        over = rss / 1e6
+                        _kill_tree(proc.pid)
+                time.sleep(_POLL_S)
+        except BaseException:
+            _kill_tree(proc.pid)  # the worker thread stops (interrupt): the plot stops with it
+            raise
+        code = proc.returncode
+        err.seek(0)
+        stderr = err.read().decode("utf-8", "replace")
+    if usage is None:
+        return code, stderr, sampled, 0.0, over
+    # ru_maxrss: KiB on Linux, bytes on macOS; the process and the children it waited for (its tree)
+    peak = usage.ru_maxrss / 1024.0 if sys.platform.startswith("linux") else usage.ru_maxrss / 1e6
+    return code, stderr, max(peak, sampled), usage.ru_utime + usage.ru_stime, over
+
+
 def run_plot(task: dict) -> dict:
     """Process one plot in a CLI subprocess and return its summary row (never raises)."""
     from ..engine.core.atomic import write_text_atomic
-    from .jobs import _package_env
 
     t = PlotTask(**task)
+    worker = _worker_name()
     row = {"plot": t.name, "status": "error", "scans": t.inputs, "registered": "", "seconds": 0.0, "reason": "",
-           "command": t.command, "exit_code": "", "trees": "", "worker": os.uname().nodename if hasattr(os, "uname") else "", "resumed": 0}
+           "command": t.command, "exit_code": "", "trees": "", "worker": worker, "resumed": 0,
+           "peak_mb": "", "cpu_s": "", "threads": t.threads, "attempts": 1, "retried_after": "", "run": t.run}
     if t.problem:
         row["reason"] = t.problem
         return row
+    out = Path(t.out_dir)
+    previous = _read_json(out / "batch.json")
+    if previous and previous.get("run") == t.run and t.run:  # finished in this run; its result was lost with its worker
+        return previous
+    row["attempts"], row["retried_after"] = _note_attempt(t, worker)
+    if row["attempts"] > 1 or row["retried_after"]:
+        _remove_leftovers(out)
+    args = t.args
+    if t.command == "plot":
+        resume = _resume_args(t)  # an attempt stopped after some links: they are kept
+        if resume is not None:
+            args, done, total_links = resume
+            note = f"resumed with {done} of {total_links} links done"
+            row["retried_after"] = f"{row['retried_after']}; {note}" if row["retried_after"] else note
+        else:
+            _remove_unfinished(out)
     t0 = time.perf_counter()
-    try:
-        run = subprocess.run([sys.executable, "-m", "forestreg.cli", *t.args, "--quiet"], stdin=subprocess.DEVNULL, capture_output=True, text=True, env=_package_env())
-        code, stderr = run.returncode, run.stderr
-    except OSError as exc:
-        code, stderr = -1, f"error: cannot start the CLI: {exc}"
+    code, stderr, peak, cpu, over = _run_cli(args, t.threads, t.memory_limit)
     row["seconds"] = round(time.perf_counter() - t0, 2)
     row["exit_code"] = code
-    out = Path(t.out_dir)
+    row["peak_mb"], row["cpu_s"] = round(peak, 1), round(cpu, 2)
+    if over or code == 130:  # stopped (over the limit, interrupted): not finished, no batch.json, a rerun runs it
+        _remove_leftovers(out)
+        if t.command == "plot":
+            _remove_unfinished(out)
+        if over:
+            row["reason"] = (f"stopped over the memory limit: its processes held {over:.0f} MB, the limit is "
+                             f"{t.memory_limit / 1e6:.0f} MB per worker (--memory-limit)")
+        else:
+            row["reason"] = _last_error(stderr) or "interrupted"
+        return row
     if code in (0, 1):
         row["status"] = "ok" if code == 0 else "failed"
         if t.command == "plot":
@@ -312,9 +582,14 @@ def run_plot(task: dict) -> dict:
             row["reason"] = _last_error(stderr)
     else:
         row["reason"] = _last_error(stderr) or f"the command stopped with exit status {code}"
-    if out.is_dir() and code != 130:  # an interrupted plot is not finished: no batch.json, a rerun runs it
+    row["outputs"] = [name for name in _LINKED if (out / name).is_file()]  # for the overview: no stat per row later
+    if out.is_dir():
         write_text_atomic(out / "batch.json", json.dumps(row, indent=2) + "\n")
     return row
+
+
+#: The files of a plot's folder the overview links to.
+_LINKED = ("report.html", "poses.json", "result.json", "trees.csv")
 
 
 # ----------------------------------------------------------------------------- the batch
@@ -339,6 +614,28 @@ def _write_summary(out: Path, rows: list[dict], facts: dict) -> tuple[Path, Path
     return summary, overview
 
 
+class _Summary:
+    """Writes ``summary.csv`` and ``index.html`` as plots finish, spaced so that the rewrites (each
+    O(plots)) stay a small share of the batch's time: the next one waits at least 20 times the last
+    one's duration (a 1,000-plot batch: a rewrite of ~50 ms, so at most one per second)."""
+
+    def __init__(self, out: Path, facts: dict, share: float = 0.05) -> None:
+        self.out, self.facts, self.share = out, facts, share
+        self.next_at = 0.0
+        self.writes = 0
+        self.seconds = 0.0
+
+    def update(self, rows: list[dict], *, force: bool = False) -> None:
+        now = time.perf_counter()
+        if not force and now < self.next_at:
+            return
+        _write_summary(self.out, rows, self.facts)
+        spent = time.perf_counter() - now
+        self.writes += 1
+        self.seconds += spent
+        self.next_at = time.perf_counter() + spent / self.share
+
+
 class BatchInterrupted(KeyboardInterrupt):
     """Ctrl-C (or SIGTERM) during a batch: ``done`` of ``total`` plots finished; their folders and
     rows in ``OUT/summary.csv`` are kept, and a rerun into ``out`` resumes the others."""
@@ -349,7 +646,7 @@ class BatchInterrupted(KeyboardInterrupt):
         self.done, self.total, self.out = done, total, out
 
 
-def _client(workers: Optional[int], scheduler: Optional[str]):
+def _client(workers: Optional[int], scheduler: Optional[str], memory_limit: int = 0):
     from dask.distributed import Client, LocalCluster
 
     if not log.isEnabledFor(logging.INFO):  # Dask's own INFO lines only with forestreg -v
@@ -368,7 +665,8 @@ def _client(workers: Optional[int], scheduler: Optional[str]):
     ignore = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if ignore else None
     try:
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.CRITICAL)
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.CRITICAL,
+                               memory_limit=memory_limit or "auto")
     finally:
         if ignore:
             signal.signal(signal.SIGINT, previous)
@@ -385,12 +683,24 @@ def run_batch(
     manifest: Optional[Path] = None,
     extra_args: Sequence[str] = (),
     progress: Optional[Callable[[float, str], None]] = None,
+    threads: Optional[int] = None,
+    memory_limit: int = 0,
 ) -> BatchOutcome:
-    """Process every plot of ``plots_dir`` into ``out`` on Dask; resumes a previous run."""
+    """Process every plot of ``plots_dir`` into ``out`` on Dask; resumes a previous run.
+
+    ``threads``: threads of each plot's process (default: the usable cores shared out among the
+    local workers; 1 on an existing cluster). ``memory_limit``: bytes per worker (0: none): the
+    local workers' Dask memory limit, and the most a plot's processes may hold before the plot is
+    stopped (an ``error`` row)."""
     from ..engine.core.atomic import MARKER, check_output_folder
+    from ..engine.core.errors import ParameterError
 
     t0 = time.perf_counter()
     plots_dir, out = Path(plots_dir), Path(out)
+    if threads is not None and threads < 1:
+        raise ParameterError("--threads must be at least 1")
+    if memory_limit < 0:
+        raise ParameterError("--memory-limit must be positive")
     tasks = discover_plots(plots_dir, out, command, manifest, extra_args)
     check_output_folder(out, "batch", inputs=[plots_dir])  # never mix a batch into a folder of other files
     out.mkdir(parents=True, exist_ok=True)
@@ -410,27 +720,47 @@ def run_batch(
     report(len(rows) / total, f"{len(rows)} of {total} plots already done, {len(todo)} to run")
     outcome = BatchOutcome()
     facts: dict = {"command": command}
+    summary = _Summary(out, facts)
     if todo:
         from dask.distributed import as_completed
 
-        client, cluster = _client(workers, scheduler)
+        client, cluster = _client(workers, scheduler, memory_limit)
         try:
             n_workers = len(client.scheduler_info().get("workers", {}))
+            if threads is None:
+                threads = 1 if scheduler else max(1, _usable_cores() // max(1, n_workers))
             outcome.workers = scheduler or f"local cluster, {n_workers} workers"
             facts["workers"] = outcome.workers
-            futures = {client.submit(run_plot, asdict(t), key=f"forestreg-plot-{t.name}-{time.time_ns()}", pure=False): t for t in todo}
+            facts["threads per plot"] = threads
+            if memory_limit:
+                facts["memory limit per worker"] = f"{memory_limit / 1e6:.0f} MB"
+            run_id = f"{time.time_ns():x}-{os.getpid()}"
+            # A plot whose worker dies (killed, lost, over Dask's memory limit) is run again on
+            # another worker by the scheduler itself, up to distributed.scheduler.allowed-failures
+            # times (default 3); run_plot never raises, so there is nothing for retries= to redo.
+            # the largest plots (by their input files) start first: the batch does not end waiting
+            # for one large plot started last while the other workers sit idle
+            futures = {}
+            for rank, t in enumerate(sorted(todo, key=lambda t: -_input_bytes(t))):
+                t.threads, t.memory_limit, t.run = threads, memory_limit, run_id
+                futures[client.submit(run_plot, asdict(t), key=f"forestreg-plot-{t.name}-{run_id}", pure=False, retries=0,
+                                      priority=len(todo) - rank)] = t
             for future in as_completed(futures):
                 task = futures[future]
                 try:
                     row = future.result()
-                except Exception as exc:  # the worker died (e.g. killed by its memory limit)
+                except Exception as exc:  # the worker died every time it ran the plot (e.g. its memory)
+                    reason = (f"every worker that ran it died ({exc})" if type(exc).__name__ == "KilledWorker"
+                              else f"the task was lost: {type(exc).__name__}: {exc}")
                     row = {"plot": task.name, "status": "error", "scans": task.inputs, "registered": "", "seconds": "",
-                           "reason": f"the task was lost: {type(exc).__name__}: {exc}", "command": command, "exit_code": "", "resumed": 0}
+                           "reason": reason, "command": command, "exit_code": "", "resumed": 0, "threads": threads,
+                           "retried_after": "worker lost"}
                 rows[task.name] = row
                 facts["seconds"] = f"{time.perf_counter() - t0:.1f}"
-                _write_summary(out, list(rows.values()), facts)
+                summary.update(list(rows.values()))
                 report(len(rows) / total, f"{task.name}: {row['status']}")
         except KeyboardInterrupt:
+            summary.update(list(rows.values()), force=True)
             raise BatchInterrupted(len(rows), total, out) from None
         finally:
             client.close()
@@ -440,4 +770,25 @@ def run_batch(
     facts["seconds"] = f"{outcome.seconds:.1f}"
     outcome.rows = sorted(rows.values(), key=lambda r: r["plot"])
     outcome.summary, outcome.overview = _write_summary(out, outcome.rows, facts)
+    log.info("summary rewritten %d times in %.2f s", summary.writes + 1, summary.seconds)
     return outcome
+
+
+def _input_bytes(task: PlotTask) -> int:
+    """Bytes of the plot's input files (its scans or clouds): a measure of its work."""
+    total = 0
+    for a in task.args:
+        if a.startswith("-") or a == task.out_dir:
+            continue
+        try:
+            total += os.path.getsize(a) if os.path.isfile(a) else 0
+        except OSError:
+            pass
+    return total
+
+
+def _usable_cores() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)

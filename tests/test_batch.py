@@ -84,6 +84,11 @@ def test_batch_of_three_plots_on_two_workers(plots, batch_run):
     overview = (out / "index.html").read_text()
     assert overview.count("<tr>") == 4 and "failed" in overview and 'href="a/report.html"' in overview
     assert "3 plots: 1 failed, 2 ok" in run.stdout
+    # each plot's process: one thread (two workers on this machine's cores), its peak memory and CPU time
+    for r in rows.values():
+        assert r["threads"] == "1" and r["attempts"] == "1" and not r["retried_after"]
+        assert 100 < float(r["peak_mb"]) < 4000 and 0 < float(r["cpu_s"]) < 1000
+    assert "peak MB" in overview and not list(out.glob(".forestreg-tmp*"))
 
 
 @pytest.mark.slow
@@ -166,3 +171,147 @@ def test_batch_on_an_existing_scheduler(tmp_path):
     (other / "notes.txt").write_text("mine")
     run = subprocess.run(CLI + ["batch", str(plots), "--out", str(other), "-q"], capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and "already holds other files" in run.stderr and (other / "notes.txt").read_text() == "mine"
+
+
+@pytest.fixture(scope="module")
+def small_plots(tmp_path_factory):
+    """Three three-scan conifer plots at 0.5 deg (a few seconds each)."""
+    from forestreg.engine.simulate import simulate_plot
+
+    root = tmp_path_factory.mktemp("batch_small")
+    for name, seed in (("p1", 1), ("p2", 2), ("p3", 3)):
+        simulate_plot("planted_conifer", [(0, 0), (9, 4), (-3, 9)], seed=seed, angular_step_deg=0.5, size_m=30, out_dir=root / name)
+        (root / name / "truth.json").unlink()
+    return root
+
+
+@pytest.mark.slow
+def test_a_killed_worker_loses_no_plot(small_plots, tmp_path):
+    """SIGKILL of a worker while its plot's command runs, after its first link: the command dies
+    with it (no orphan writing into OUT), Dask runs the plot again on a live worker, which keeps
+    the link already registered, every plot ends ok, the retried one says so in summary.csv and
+    index.html, and no half-written folder is left."""
+    import os
+    import signal
+    import time
+
+    import psutil
+
+    out = tmp_path / "out"
+    batch = subprocess.Popen(CLI + ["batch", str(small_plots), "--out", str(out), "--workers", "2", "--quiet"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        victim = killed_cli = None
+        deadline = time.monotonic() + 300
+        while victim is None and time.monotonic() < deadline and batch.poll() is None:
+            for note in sorted((out / ".forestreg-batch").glob("*.json")) if (out / ".forestreg-batch").is_dir() else []:
+                try:
+                    attempt = json.loads(note.read_text())["attempts"][-1]
+                    children = psutil.Process(attempt["pid"]).children()
+                except (ValueError, KeyError, psutil.Error):
+                    continue
+                # the plot's command is running and has registered a link: kill its worker now
+                project = out / note.stem / "project.json"
+                try:
+                    links = json.loads(project.read_text())["links"] if project.is_file() else []
+                except (ValueError, KeyError, OSError):
+                    continue
+                if children and any((link.get("result") or {}).get("status") == "ok" for link in links) and not (out / note.stem / "poses.json").exists():
+                    victim, killed_cli = note.stem, children[0].pid
+                    os.kill(attempt["pid"], signal.SIGKILL)
+                    break
+            time.sleep(0.05)
+        assert victim is not None, "no plot was seen running"
+        time.sleep(3)
+        assert not psutil.pid_exists(killed_cli) or psutil.Process(killed_cli).status() == psutil.STATUS_ZOMBIE
+        stdout, stderr = batch.communicate(timeout=600)
+    finally:
+        if batch.poll() is None:
+            batch.kill()
+    assert batch.returncode == 0, stderr[-3000:]
+    rows = _rows(out / "summary.csv")
+    assert {k: r["status"] for k, r in rows.items()} == {"p1": "ok", "p2": "ok", "p3": "ok"}
+    assert {k: r["registered"] for k, r in rows.items()} == {"p1": "3", "p2": "3", "p3": "3"}
+    assert rows[victim]["attempts"] == "2" and rows[victim]["retried_after"].startswith("worker lost (tcp://"), rows[victim]
+    assert rows[victim]["retried_after"].endswith("; resumed with 1 of 2 links done"), rows[victim]
+    assert all(r["attempts"] == "1" and not r["retried_after"] for k, r in rows.items() if k != victim)
+    assert "retried after: worker lost" in (out / "index.html").read_text()
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".forestreg-tmp")]
+    for name in rows:  # every folder complete: its products and the batch's record
+        assert {"poses.json", "report.html", "batch.json"} <= {p.name for p in (out / name).iterdir()}
+
+
+def test_a_plot_over_the_memory_limit_is_stopped(small_plots, tmp_path):
+    """``--memory-limit``: a plot whose processes outgrow it is stopped, an error row says so with
+    the memory it held, and its folder is absent; a size too small to run anything is refused."""
+    plots = tmp_path / "plots"
+    plots.mkdir()
+    (plots / "p1").symlink_to(small_plots / "p1", target_is_directory=True)
+    out = tmp_path / "out"
+    run = subprocess.run(CLI + ["batch", str(plots), "--out", str(out), "--workers", "1", "--memory-limit", "200MB", "--quiet"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 1, run.stderr[-3000:]
+    row = _rows(out / "summary.csv")["p1"]
+    assert row["status"] == "error" and "over the memory limit" in row["reason"] and "the limit is 200 MB" in row["reason"], row
+    assert float(row["peak_mb"]) > 200
+    assert not (out / "p1").exists() and not list(out.glob(".forestreg-tmp*"))
+    assert "memory limit per worker: 200 MB" in (out / "index.html").read_text()
+    run = subprocess.run(CLI + ["batch", str(plots), "--out", str(tmp_path / "o2"), "--memory-limit", "50MB"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "at least 200MB" in run.stderr
+
+
+def test_a_long_batch_spaces_its_summary_rewrites(tmp_path):
+    """The summary of 1,000 plots: its rewrite stays a small share of the time (a rewrite per plot
+    would be O(plots^2)); the overview looks up no file per row when each row lists its outputs."""
+    import time
+
+    from forestreg.service.batch import _Summary
+
+    rows = [{"plot": f"plot_{i:04d}", "status": "ok", "scans": 3, "registered": 3, "seconds": 60.0, "reason": "", "command": "plot",
+             "exit_code": 0, "peak_mb": 400.0, "attempts": 1, "outputs": ["report.html", "poses.json"]} for i in range(1000)]
+    out = tmp_path / "out"
+    out.mkdir()
+    summary = _Summary(out, {"command": "plot"})
+    summary.update(rows[:1])  # the first, with the imports of the overview's writer
+    first = summary.seconds
+    t0 = time.perf_counter()
+    for i in range(2, len(rows) + 1):  # a plot finishing every 2 ms (50 workers: about one a second)
+        summary.update(rows[:i])
+        time.sleep(0.002)
+    summary.update(rows, force=True)
+    spent = time.perf_counter() - t0
+    assert summary.writes < 50 and summary.seconds - first <= 0.1 * spent + 0.2, (summary.writes, summary.seconds, spent)
+    assert len(_rows(out / "summary.csv")) == 1000
+    html = (out / "index.html").read_text()
+    assert html.count("<tr>") == 1001 and 'href="plot_0999/report.html"' in html
+
+
+def test_a_stopped_plot_resumes_from_its_registered_links(tmp_path):
+    """A plot folder an attempt left unfinished (its project file, saved after each link, holds a
+    registered link; no batch.json) is finished by ``project run``, keeping the link; with other
+    scans, no link done, a finished folder or an option ``project run`` lacks, it starts over."""
+    from forestreg.engine.core.atomic import MARKER
+    from forestreg.service.batch import PlotTask, _resume_args
+
+    scans = tmp_path / "plots" / "p"
+    scans.mkdir(parents=True)
+    for name in ("s1.laz", "s2.laz", "s3.laz"):
+        (scans / name).write_text("x")
+    out = tmp_path / "out" / "p"
+    out.mkdir(parents=True)
+    (out / MARKER).write_text("plot\n")
+    links = [{"moving": "s2.laz", "reference": "s1.laz", "result": {"status": "ok"}}, {"moving": "s3.laz", "reference": "s1.laz", "result": None}]
+    project = {"scans": [{"name": n, "path": f"../../plots/p/{n}"} for n in ("s1.laz", "s2.laz", "s3.laz")], "links": links}
+    (out / "project.json").write_text(json.dumps(project))
+    args = ["plot", *[str(scans / n) for n in ("s1.laz", "s2.laz", "s3.laz")], "--out", str(out), "--centre", "s2.laz", "--pairs", "all"]
+    task = PlotTask("p", "plot", args, str(out), 3)
+    resumed, done, total = _resume_args(task)
+    assert resumed == ["project", "run", str(out / "project.json"), "--out", str(out), "--pairs", "all"] and (done, total) == (1, 2)
+    assert _resume_args(PlotTask("p", "plot", args + ["--registered-dir", str(tmp_path / "r")], str(out), 3)) is None
+    assert _resume_args(PlotTask("p", "plot", args[:1] + args[2:], str(out), 2)) is None  # other scans
+    (out / "batch.json").write_text("{}")
+    assert _resume_args(task) is None  # finished: nothing to resume
+    (out / "batch.json").unlink()
+    links[0]["result"] = {"status": "failed"}
+    (out / "project.json").write_text(json.dumps(project))
+    assert _resume_args(task) is None  # no link registered yet

@@ -304,6 +304,36 @@ def test_centring_keeps_the_near_points_a_mask_would():
     assert none is None
 
 
+def test_centring_thins_to_the_first_point_of_each_pixel():
+    from forestreg.engine.tls.params import RegistrationParams
+    from forestreg.engine.tls.prepare import _centred_float32, thinning_pixels
+
+    rng = np.random.default_rng(12)
+    pts = rng.uniform(-60, 60, (40000, 3)) * [1, 1, 0.2] + [1000.0, -2000.0, 50.0]
+    pts = np.concatenate([pts, rng.normal(0, 3.0, (20000, 3)) + [1003.5, -1998.25, 51.0]])  # dense near the scanner
+    pts = np.concatenate([pts, pts[:30000] + rng.normal(0, 0.002, (30000, 3))])  # densified: pixels holding two points
+    origin = np.array([1003.5, -1998.25, 51.0])
+    pixels = thinning_pixels(RegistrationParams())
+    thinned, near = _centred_float32(pts, origin, 48.0**2, 15.0**2, thinning=pixels)
+    full, _ = _centred_float32(pts, origin, 48.0**2, 15.0**2)
+    # the plain computation: each kept row's shell and pixel, the first row of each pixel
+    f = full.astype(np.float64)
+    r = np.linalg.norm(f, axis=1)
+    inner = r < pixels.near_m
+    k = np.minimum((np.log(np.maximum(r, pixels.near_m) / pixels.near_m) / np.log(pixels.ratio)).astype(np.int64), len(pixels.step_rad) - 1)
+    step = pixels.step_rad[k]
+    col = np.clip(((np.arctan2(f[:, 1], f[:, 0]) + np.pi) / step).astype(np.int64), 0, pixels.columns[k] - 1)
+    row = np.clip(((np.arctan2(f[:, 2], np.hypot(f[:, 0], f[:, 1])) + np.pi / 2) / step).astype(np.int64), 0, pixels.rows[k] - 1)
+    cell = pixels.offset[k] + row * pixels.columns[k] + col
+    _, first = np.unique(cell[~inner], return_index=True)
+    keep = inner.copy()
+    keep[np.flatnonzero(~inner)[first]] = True
+    np.testing.assert_array_equal(thinned, full[keep])
+    assert len(thinned) < len(full) - 10000  # jittered copies and the dense near field went
+    assert np.degrees(pixels.step_rad[-1]) == 0.05 and np.all(pixels.step_rad[:-1] * pixels.near_m * pixels.ratio ** np.arange(len(pixels.step_rad) - 1) >= 0.02 - 1e-12)
+    np.testing.assert_array_equal(near, _first_in_voxels(thinned, 15.0, 0.1))
+
+
 def test_the_levelling_sample_is_the_first_point_of_each_voxel_within_reach():
     from forestreg.engine.tls import level
 

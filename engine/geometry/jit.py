@@ -247,11 +247,16 @@ def _locked_compile(dispatcher: Any) -> None:
 
 
 def worker_count() -> int:
-    """Cores this process may run on."""
+    """Cores this process may run on: its CPU affinity, at most ``FORESTREG_THREADS`` when that is
+    set (a batch runs each plot's process with the cores it shares out to it)."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        cores = max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
+        cores = max(1, os.cpu_count() or 1)
+    try:
+        return max(1, min(cores, int(os.environ.get("FORESTREG_THREADS") or cores)))
+    except ValueError:
+        return cores
 
 
 def run_blocks(fn: Callable[..., Any], n: int, *args: Any, block: int = 32768, compiles: bool = True) -> None:

@@ -238,10 +238,11 @@ def prepare_scan(
 @dataclass(frozen=True)
 class CentredScan:
     """The first step of a preparation: the points within ``1.6 D_c`` (3D) of the scanner,
-    scanner-centred, float32 (the scan's axes, metres), and the :func:`~.level.level_sample` of
-    those within 15 m, that estimates the vertical (None when it is not estimated). Once made,
-    the scan's own points are no longer needed (a caller holding them in the only reference can
-    let them go before the rest)."""
+    scanner-centred, float32 (the scan's axes, metres), thinned to the first point of each angular
+    pixel of :func:`thinning_step_deg` (as seen from the scanner), and the
+    :func:`~.level.level_sample` of those within 15 m, that estimates the vertical (None when it is
+    not estimated). Once made, the scan's own points are no longer needed (a caller holding them in
+    the only reference can let them go before the rest)."""
 
     points: np.ndarray
     near: Optional[np.ndarray]
@@ -256,8 +257,58 @@ def centre_scan(
     reach = params.max_range_m
     estimate = up is None and params.level_tilted
     # generous before levelling; the vertical is estimated from a sample of the points within 15 m (one a 0.1 m voxel)
-    centred, near = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2, LEVEL_RADIUS_M**2 if estimate else None)
+    centred, near = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2, LEVEL_RADIUS_M**2 if estimate else None,
+                                     thinning=thinning_pixels(params))
     return CentredScan(centred, near)
+
+
+#: The smallest pixel a scan is thinned to, metres across (at the inner edge of its shell; see
+#: :func:`thinning_pixels`): finer than every later step's scale (the 5 cm component and ICP
+#: voxels, the 0.1 m angular-grid distance step and mean-shift bandwidth, the 0.5 m ground voxels).
+THINNING_FLOOR_M = 0.02
+#: Points closer to the scanner than this are all kept (metres).
+THINNING_NEAR_M = 0.25
+#: Ratio of a thinning shell's outer radius to its inner one.
+THINNING_SHELL_RATIO = 1.25
+
+
+@dataclass(frozen=True)
+class ThinningPixels:
+    """Angular pixels (as seen from the scanner) a scan is thinned to, the first point of each
+    kept. Shell ``k`` holds the points at ranges ``near_m * ratio**k`` up to ``ratio`` times that
+    (the last shell: every range beyond) and is cut into ``columns[k]`` azimuth x ``rows[k]``
+    elevation pixels of ``step_rad[k]``; its bits start at ``offset[k]`` of a bitmap of ``bits``."""
+
+    step_rad: np.ndarray
+    columns: np.ndarray
+    rows: np.ndarray
+    offset: np.ndarray
+    near_m: float
+    ratio: float
+
+    @property
+    def bits(self) -> int:
+        return int(self.offset[-1] + self.columns[-1] * self.rows[-1])
+
+
+def thinning_pixels(params: RegistrationParams, floor_m: float = THINNING_FLOOR_M) -> ThinningPixels:
+    """The pixels a scan is thinned to before it is prepared: half the angular grid's step ``I_A``
+    (0.05 deg by default) where that spans at least ``floor_m`` (beyond 23 m with the defaults),
+    and nearer the scanner pixels ``floor_m`` across at the inner edge of their shell (ranges in
+    steps of :data:`THINNING_SHELL_RATIO`). Every later step works at this resolution or coarser;
+    a scan made at ``I_A`` keeps every point beyond about 11 m and one point per 2 cm nearer, and a
+    finer or densified file of the same scene about as many, so its preparation, VOPs and ICP cost
+    what a scan at ``I_A`` costs, whatever the file holds."""
+    finest = np.radians(params.angular_step_deg / 2.0)
+    far_m = floor_m / finest
+    shells = max(0, int(np.ceil(np.log(far_m / THINNING_NEAR_M) / np.log(THINNING_SHELL_RATIO))))
+    inner = THINNING_NEAR_M * THINNING_SHELL_RATIO ** np.arange(shells + 1)
+    step = np.maximum(floor_m / inner, finest)
+    step[-1] = finest
+    columns = np.ceil(2.0 * np.pi / step).astype(np.int64)
+    rows = np.ceil(np.pi / step).astype(np.int64) + 1
+    offset = np.concatenate([[0], np.cumsum(columns * rows)[:-1]]).astype(np.int64)
+    return ThinningPixels(step, columns, rows, offset, THINNING_NEAR_M, THINNING_SHELL_RATIO)
 
 
 def prepare_centred(
@@ -316,9 +367,11 @@ def icp_grid_voxel(params: RegistrationParams) -> float:
     return max(params.icp_voxel_m, min(params.icp_max_distances_m) / 2.5) if len(params.icp_max_distances_m) else params.icp_voxel_m
 
 
-def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near_d2: Optional[float] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
+def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near_d2: Optional[float] = None, *,
+                     thinning: Optional[ThinningPixels] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """The points within ``sqrt(max_d2)`` (3D) of ``origin``, shifted so that ``origin`` is 0, as
-    float32 (a 50 m neighbourhood keeps micrometre steps), and, with ``near_d2``, the
+    float32 (a 50 m neighbourhood keeps micrometre steps), with ``thinning`` only the first of
+    each of its pixels (seen from ``origin``), and, with ``near_d2``, the
     :func:`~.level.level_sample` of those within ``sqrt(near_d2)`` (the first of each
     :data:`~.level.LEVEL_VOXEL_M` voxel; else None); both in the points' order. One compiled pass
     writes the kept points into the results: no float64 copy of the cloud, no distances or masks
@@ -329,20 +382,30 @@ def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near
     near = np.empty((len(points) if near_d2 is not None else 0, 3), dtype=np.float32)
     radius = float(np.sqrt(near_d2)) if near_d2 is not None else 0.0
     occupied = voxel_bitmap(LEVEL_VOXEL_M, radius) if near_d2 is not None else np.zeros(0, dtype=np.uint64)
+    t = thinning
+    if t is None:
+        step, columns, rows, offset, near_m, log_ratio = np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), 0.0, 1.0
+    else:
+        step, columns, rows, offset, near_m, log_ratio = t.step_rad, t.columns, t.rows, t.offset, t.near_m, float(np.log(t.ratio))
+    pixels = np.zeros((0 if t is None else t.bits + 63) // 64, dtype=np.uint64)
     # the limits as float32, as numpy compares a float32 array with a Python float
     kept, close = _centre_rows(np.asarray(points), origin, np.float32(max_d2), np.float32(-1.0 if near_d2 is None else near_d2),
-                               LEVEL_VOXEL_M, int(np.ceil(radius / LEVEL_VOXEL_M)), occupied, out, near)
+                               LEVEL_VOXEL_M, int(np.ceil(radius / LEVEL_VOXEL_M)), occupied,
+                               step, columns, rows, offset, near_m, log_ratio, pixels, out, near)
     return out[:kept], (near[:close].copy() if near_d2 is not None else None)
 
 
 @kernel
-def _centre_rows(points, origin, max_d2, near_d2, voxel_m, half, occupied, out, near):  # pragma: no cover - compiled
+def _centre_rows(points, origin, max_d2, near_d2, voxel_m, half, occupied, step, columns, rows, offset, near_m, log_ratio, pixels, out, near):  # pragma: no cover - compiled
     """:func:`_centred_float32` in one pass: each coordinate minus the origin in float64, then
-    float32; the squared distance summed in float32 (x, then y, then z); kept rows packed in
-    order, those within ``near_d2`` (negative: none) that claim their voxel (``voxel_m``, the
-    bitmap ``occupied``, ``half`` cells a side: :func:`~.level.claim_voxel`) into ``near``."""
+    float32; the squared distance summed in float32 (x, then y, then z); with thinning pixels
+    (``step`` not empty: :class:`ThinningPixels`' arrays, one bit a pixel in ``pixels``) a kept
+    row beyond ``near_m`` must also be the first of its pixel; kept rows packed in order, those
+    within ``near_d2`` (negative: none) that claim their voxel (``voxel_m``, the bitmap
+    ``occupied``, ``half`` cells a side: :func:`~.level.claim_voxel`) into ``near``."""
     kept = 0
     close = 0
+    last = step.shape[0] - 1
     for i in range(points.shape[0]):
         x = np.float32(np.float64(points[i, 0]) - origin[0])
         y = np.float32(np.float64(points[i, 1]) - origin[1])
@@ -351,6 +414,19 @@ def _centre_rows(points, origin, max_d2, near_d2, voxel_m, half, occupied, out, 
         d2 += y * y
         d2 += z * z
         if d2 <= max_d2:
+            if last >= 0:
+                xf, yf, zf = np.float64(x), np.float64(y), np.float64(z)
+                r = np.sqrt(xf * xf + yf * yf + zf * zf)
+                if r >= near_m:
+                    k = min(np.int64(np.log(r / near_m) / log_ratio), last)
+                    s = step[k]
+                    col = min(max(np.int64((np.arctan2(yf, xf) + np.pi) / s), 0), columns[k] - 1)
+                    row = min(max(np.int64((np.arctan2(zf, np.sqrt(xf * xf + yf * yf)) + 0.5 * np.pi) / s), 0), rows[k] - 1)
+                    cell = offset[k] + row * columns[k] + col
+                    word, bit = cell >> 6, np.uint64(1) << np.uint64(cell & 63)
+                    if pixels[word] & bit:
+                        continue
+                    pixels[word] |= bit
             out[kept, 0] = x
             out[kept, 1] = y
             out[kept, 2] = z

@@ -15,6 +15,11 @@ Definitions (paper sec. 5.2.2)
   is the live crown, and its base is the bottom of its first stretch of ``min_crown_run_m`` of
   consecutive crown bins (a few dead branches, or understory below a stretch of bare stem, do not
   count);
+* top offset: the top's horizontal distance from the stem axis continued to its height, also as
+  a fraction of the crown radius ``CD / 2``: a seen apex stands over the stem; a top on the
+  crown's flank (farther than ``max_top_offset`` of the radius, and than the height times the
+  tangent of ``top_axis_tolerance_deg``: :func:`top_over_stem`) is the highest point seen of a
+  crown whose apex was not seen (occluded from below) or a neighbour's, so the height is unsure;
 * crown widths ``a`` (east-west, along x) and ``b`` (north-south, along y): the extent of the crown
   points (those above the crown base) between the ``width_percentile`` and ``100 -
   width_percentile`` percentiles of x and of y;
@@ -54,6 +59,8 @@ class CrownParams(Params):
     max_crown_gap_m: float = param_field(1.0, "m", 0.0, 20.0, "Crown bins separated by at most this belong to one crown; the crown is the run holding the most points")
     width_percentile: float = param_field(0.5, "%", 0.0, 25.0, "Crown widths run from this percentile of x (y) to 100 minus it (robust to stray points)")
     min_points: int = param_field(50, "points", 3, 10**9, "Fewest points of a tree to measure it")
+    max_top_offset: float = param_field(0.4, "1", 0.0, 10.0, "The top counts as seen when the highest point stands over the stem: within this fraction of the crown radius from the stem axis (farther: it is on the crown's flank, the apex above it unseen or a neighbour's)...")
+    top_axis_tolerance_deg: float = param_field(3.0, "deg", 0.0, 30.0, "...or within the height times the tangent of this angle (a stem's sweep, and its lean measured on the lower stem, move the axis at the top)")
 
 
 @dataclass(frozen=True)
@@ -76,6 +83,22 @@ class CrownMeasurement:
     top: tuple[float, float, float]
     ok: bool
     reasons: tuple[str, ...] = ()
+    #: horizontal distance (m) of the top point from the stem axis (continued to the top's height),
+    #: and that as a fraction of the crown radius (half the crown diameter): the evidence that the
+    #: apex itself was seen (small: the top stands over the stem) or only a crown flank (large)
+    top_offset_m: float = float("nan")
+    top_offset_ratio: float = float("nan")
+
+
+def top_over_stem(crown: "CrownMeasurement", params: "CrownParams") -> bool:
+    """Whether the crown's top stands over its stem (the apex seen): its offset from the stem
+    axis within ``max_top_offset`` of the crown radius, or within the height times the tangent of
+    ``top_axis_tolerance_deg``. False when the offset is not known."""
+    if not (math.isfinite(crown.top_offset_m) and math.isfinite(crown.height_m)):
+        return False
+    radius = 0.5 * crown.crown_diameter_m if math.isfinite(crown.crown_diameter_m) else 0.0
+    allowed = max(params.max_top_offset * radius, crown.height_m * math.tan(math.radians(params.top_axis_tolerance_deg)))
+    return crown.top_offset_m <= allowed
 
 
 def tree_top(points: np.ndarray, radius_m: float, min_neighbours: int) -> int:
@@ -154,6 +177,7 @@ def measure_crown(points: Any, heights: Any, stem: Stem, params: CrownParams = C
             b = float(np.percentile(crown[:, 1], 100 - q) - np.percentile(crown[:, 1], q))
     cd = (a + b) / 2.0
     cl = height - cbh
+    offset = float(radial[top_i])
     return CrownMeasurement(
         tree_id=stem.id,
         x=stem.x,
@@ -170,6 +194,8 @@ def measure_crown(points: Any, heights: Any, stem: Stem, params: CrownParams = C
         top=(float(p[top_i, 0]), float(p[top_i, 1]), float(p[top_i, 2])),
         ok=not reasons,
         reasons=tuple(reasons),
+        top_offset_m=offset,
+        top_offset_ratio=offset / (0.5 * cd) if cd > 0 else float("nan"),
     )
 
 

@@ -32,10 +32,10 @@ from ..geometry.sorting import order_by_label
 from ..io.results import TREE_COLUMNS, TreeTablesFile  # noqa: F401 - the columns of trees.csv
 from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
-from .crown import CrownMeasurement, CrownParams, measure_crown
+from .crown import CrownMeasurement, CrownParams, measure_crown, top_over_stem
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
-from .segmentation import CompletenessParams, SegmentationParams, segment_trees, tree_completeness
+from .segmentation import CompletenessParams, SegmentationParams, segment_trees, top_layer, tree_completeness
 from .single import SingleTreeEvidence, SingleTreeParams, base_stem, single_tree_evidence
 from .stems import DbhMeasurement, Stem, StemCurve, StemParams, detect_stems_adaptive, measure_stems
 
@@ -466,6 +466,7 @@ def tree_record(
     no_ground: bool = False,
     ground_near: Optional[bool] = None,
     shared_flag: Optional[str] = None,
+    top_evidence: bool = True,
 ) -> TreeRecord:
     """One tree's record from its measurements: the reported DBH (the stem curve at breast
     height; none from a failed fit), the height's checks, the cylinder model on its wood points
@@ -474,7 +475,9 @@ def tree_record(
     every point (the stem traced by the curve already counted as wood); ``reasons`` the
     completeness reasons; ``ground_near`` whether ground points lie within
     :data:`GROUND_NEAR_STEM_M` of the stem (None: not known);
-    ``shared_flag`` the reason its top is unsure, if any. Local frame, metres."""
+    ``shared_flag`` the reason its top is unsure, if any; ``top_evidence``: whether the top's offset
+    from the stem (:attr:`.crown.CrownMeasurement.top_offset_ratio`) decides the height's trust
+    (False for a single-tree cloud, whose top is the cloud's). Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
     quality: dict[str, str] = {}
@@ -525,7 +528,19 @@ def tree_record(
     if math.isfinite(lowest) and lowest < stem.ground_z - 0.25:
         flags.append(f"stem points reach {stem.ground_z - lowest:.2f} m below the ground found: ground uncertain")
         h_trust = _trust(h_trust, "low")
-    if "top missing" in reasons:
+    ratio = crown.top_offset_ratio
+    over_stem = top_over_stem(crown, params.crown)
+    if top_evidence and math.isfinite(crown.top_offset_m) and not over_stem:
+        flags.append(f"top on the crown's flank, {crown.top_offset_m:.1f} m from the stem axis ({ratio:.2f} of the crown "
+                     f"radius): apex unseen or a neighbour's (height unsure)")
+        h_trust = _trust(h_trust, "low")
+        h_how += f", top {crown.top_offset_m:.1f} m ({ratio:.2f} of the crown radius) from the stem"
+    elif top_evidence and over_stem:
+        h_how += f", top over the stem ({crown.top_offset_m:.1f} m, {ratio:.2f} of the crown radius, from its axis)"
+    if "top missing" in reasons and top_evidence and over_stem and not _flat_top(tree_pts, stem, params.completeness):
+        # a sparse tip over the stem is the apex seen thinly, not a missing top
+        flags = [f for f in flags if f != "top missing"]
+    elif "top missing" in reasons:
         h_trust = _trust(h_trust, "low")
         h_how += ", top missing in the data"
     elif any(r.startswith(("too few crown points", "too few points")) for r in reasons):
@@ -602,6 +617,15 @@ def _flags_that_matter(flags: Sequence[str], quality: dict[str, str]) -> list[st
     does not count)."""
     weak = [k for k, q in quality.items() if q.endswith(("; low", "; none")) and not q.startswith("not asked for")]
     return list(flags) if weak else []
+
+
+def _flat_top(tree_pts: np.ndarray, stem: Stem, params: CompletenessParams) -> bool:
+    """Whether the tree's top layer spreads like its widest layer (a crown cut flat: clipped data
+    or a top hidden behind other crowns), as :func:`.segmentation.tree_completeness` tests it."""
+    d = tree_pts - stem.base
+    s = d @ stem.axis
+    radial = np.linalg.norm(d - s[:, None] * stem.axis, axis=1)
+    return top_layer(tree_pts[:, 2] - stem.ground_z, radial, params.top_layer_m)[1] > params.max_top_spread_ratio
 
 
 def _lowest_stem_point(tree_pts: np.ndarray, stem: Stem) -> float:
@@ -906,7 +930,8 @@ def _single_tree_inventory(
     t = time.perf_counter()
     progress(0.7, "cylinder model")
     open_grown = dataclasses.replace(params, form_factors=params.form_factors.replace(total=params.form_factors.open_grown_total))
-    record = tree_record(p, stem, idx, d, curve, crown, wood, (), open_grown, stem_params=stem_params, method=method)
+    record = tree_record(p, stem, idx, d, curve, crown, wood, (), open_grown, stem_params=stem_params, method=method,
+                         top_evidence=False)
     quality = dict(record.quality)
     flags = list(record.flags)
     if math.isfinite(crown.height_m):

@@ -969,9 +969,10 @@ def taper_radii(
     fits that were kept.
 
     With at least four good fits, a robust line of radius against the distance along the branch
-    (``distance_from_base``: of each cylinder's middle; ``weight``: points x coverage) flags fits
-    more than ``taper_tolerance`` below it, or twice that above it, as poor (sparse partial arcs
-    give too small circles, junctions too large ones). The kept fits get a weighted
+    (``distance_from_base``: of each cylinder's middle; ``weight``: points x coverage; a line
+    rising towards the tip is taken flat, at the fits' robust mean) flags fits more than
+    ``taper_tolerance`` below it, or twice that above it, as poor (sparse partial arcs give too
+    small circles, junctions and leaf clumps too large ones). The kept fits get a weighted
     non-increasing (isotonic) fit; the others are interpolated between kept neighbours. Beyond
     the last kept fit the radius follows the line's slope when the kept fits span a quarter of
     the branch, else it falls straight to ``min_radius_m`` at the tip (``branch_length``). A
@@ -987,6 +988,11 @@ def taper_radii(
     idx = np.flatnonzero(keep)
     if len(idx) >= 4:
         a, b = robust_line(s[idx], r[idx], w_all[idx])
+        if b > 0.0:
+            # a branch does not thicken towards its tip: fits too large there (leaf or twig
+            # clumps, a fork's junction) tilted the line; the branch's level is then its
+            # robust (Huber) mean, and fits far above it are poor
+            a, b = robust_line(np.zeros(len(idx)), r[idx], w_all[idx])[0], 0.0
         model = np.maximum(a + b * s[idx], lo_r)
         rel = r[idx] / model - 1.0
         keep[idx[(rel < -params.taper_tolerance) | (rel > 2.0 * params.taper_tolerance)]] = False
@@ -1254,7 +1260,7 @@ def fit_qsm(
         cap = float(radius[first_parent]) if (first_parent >= 0 and params.enforce_taper) else float("inf")
         from_base = np.cumsum(length[idx]) - 0.5 * length[idx]
         radius[idx], good[idx] = taper_radii(
-            radius[idx], good[idx], n_fit[idx] * coverage[idx], from_base, float(length[idx].sum()), cap, params
+            radius[idx], good[idx], coverage[idx] * length[idx], from_base, float(length[idx].sum()), cap, params
         )
 
     progress(1.0, "cylinder model done")
