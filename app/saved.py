@@ -1,6 +1,6 @@
 """What a finished run left in its output folder, read back as typed records: ``result.json`` (a
-pair registration, a co-registration, a re-survey), ``poses.json`` (a plot) and the scanner
-positions of ``project.json``.
+pair registration, a co-registration, a re-survey), ``poses.json`` (a plot) and ``project.json``
+(its scans' files and scanner positions, each link's last status).
 
 These readers use the standard library alone: the plugin hosts (QGIS, CloudCompare) read a job's
 folder with them in a Python that has no NumPy, and the batch runner and the job service read the
@@ -154,11 +154,54 @@ class SavedPoses:
         return "; ".join(f"{s.name}: {s.reason or 'not registered'}" for s in self.not_registered)
 
 
+@dataclass(frozen=True)
+class SavedScan:
+    """One scan of a ``project.json``: its name, its file (resolved against the project's folder)
+    and the scanner position given for it (file coordinates; None when not given)."""
+
+    name: str
+    path: Path
+    scanner_position: Optional[tuple[float, float, float]] = None
+
+
+@dataclass(frozen=True)
+class SavedProject:
+    """A plot's ``project.json``: its scans and the status of each link's last run ("" when the
+    link has not run)."""
+
+    scans: tuple[SavedScan, ...] = ()
+    link_statuses: tuple[str, ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], folder: PathLike = ".") -> "SavedProject":
+        """The project of a ``project.json`` dict whose relative paths start at ``folder``;
+        :class:`SavedFileError` when a scan has no file or a position is not three numbers."""
+        scans = []
+        for s in d.get("scans") or []:
+            s = mapping_or_empty(s)
+            if not isinstance(s.get("path"), str):
+                raise SavedFileError(f"project: scan {s.get('name')!r} has no file")
+            position = s.get("scanner_position")
+            try:
+                xyz = tuple(float(v) for v in position[:3]) if position else None
+            except (TypeError, ValueError) as exc:
+                raise SavedFileError(f"project: scan {s.get('name')!r}: the scanner position is not three numbers") from exc
+            scans.append(SavedScan(str(s.get("name") or ""), (Path(folder) / s.get("path")).resolve(), xyz))
+        links = [mapping_or_empty(link) for link in d.get("links") or [] if isinstance(link, Mapping)]
+        return cls(tuple(scans), tuple(str(mapping_or_empty(link.get("result")).get("status") or "") for link in links))
+
+    @classmethod
+    def read(cls, path: PathLike) -> "SavedProject":
+        """Read a ``project.json`` (:class:`SavedFileError` when missing, unreadable or malformed)."""
+        return cls.from_dict(read_json_object(path), Path(path).parent)
+
+    @property
+    def links_ok(self) -> int:
+        """Links whose last run succeeded."""
+        return sum(1 for status in self.link_statuses if status == "ok")
+
+
 def read_scanner_positions(project_file: PathLike) -> dict[str, tuple[float, float, float]]:
     """Scan name -> the scanner position given in a ``project.json`` (file coordinates; scans
     without one are left out)."""
-    positions = {}
-    for s in read_json_object(project_file).get("scans") or []:
-        if isinstance(s, Mapping) and s.get("scanner_position"):
-            positions[str(s.get("name"))] = tuple(float(v) for v in s.get("scanner_position")[:3])
-    return positions
+    return {s.name: s.scanner_position for s in SavedProject.read(project_file).scans if s.scanner_position is not None}
