@@ -212,10 +212,12 @@ def check_extra_outputs(inputs: Sequence, *, merged=None, e57_out=None, register
 def new_project(
     scans: Sequence, params, *, name: str = "plot", centre: Optional[str] = None, tilted: Sequence[str] = (),
     targets: Optional[str] = None, positions: Optional[str] = None, prior_poses: Optional[str] = None, fixed: Sequence[str] = (),
+    scanner_params=None,
 ):
     """A new :class:`~forestreg.engine.tls.project.Project` from scan files (or one multi-scan
     E57 file), the centre scan, tilted marks (``SCAN[:PARTNER],...``), a targets CSV, scanner
-    positions, prior poses and fixed scans. A name that is not one of the scans raises
+    positions, prior poses, fixed scans and the scanner-position settings (``scanner_params``, for
+    scans whose files do not say where their scanner stood). A name that is not one of the scans raises
     :class:`~forestreg.engine.core.errors.UsageError`."""
     from ..engine.core.errors import UsageError
     from .survey import survey_inputs
@@ -229,6 +231,8 @@ def new_project(
         project = Project(name=name, params=params)
         for path in scans:
             project.add_scan(path)
+    if scanner_params is not None:
+        project.scanner_params = scanner_params
     names = {Path(p).name: s.name for p, s in zip(scans, project.scans)} if len(scans) == len(project.scans) else {}
 
     def known(name: str, option: str) -> str:
@@ -329,10 +333,12 @@ def register_plot_project(project, scans=None, *, rerun: bool = False, progress=
 
 def run_plot(
     project, out: Path, *, scans=None, pairs: Optional[str] = None, fixed: Sequence[str] = (), rerun: bool = False,
-    loops: Optional[float] = None, merged=None, registered_dir=None, e57_out=None, progress=None, cancel=None,
+    loops: Optional[float] = None, merged=None, registered_dir=None, e57_out=None, survey=None, progress=None, cancel=None,
 ) -> PlotRun:
     """Register the project (``pairs``: every pair with a pose graph, see
-    :mod:`forestreg.app.survey`; ``loops``: also link scans within that many metres), then write
+    :mod:`forestreg.app.survey`, with the other settings of ``survey``, a
+    :class:`~forestreg.engine.tls.params.SurveyParams`; ``loops``: also link scans within that
+    many metres), then write
     poses, transforms and the report into ``out`` (each product replaced by one rename, poses.json
     last) and the extra products asked for."""
     import tempfile
@@ -350,7 +356,7 @@ def run_plot(
     if pairs:
         from .survey import register_survey
 
-        outcome = register_survey(project, pairs, fixed=fixed, rerun=rerun, scans=scans, progress=step)
+        outcome = register_survey(project, pairs, fixed=fixed, rerun=rerun, scans=scans, progress=step, base=survey)
     else:
         outcome = register_project(project, rerun=rerun, progress=step, scans=scans, cancel=cancel)
     if loops and not pairs:

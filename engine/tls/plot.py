@@ -34,6 +34,7 @@ from .scanner_position import locate_scanner
 from ..core.scan import Scan
 from ..core.transform import format_matrix, rigid_errors
 from ..core.transform import apply as apply_transform
+from ..geometry.voxel import voxel_downsample
 
 log = logging.getLogger("forestreg")
 
@@ -97,7 +98,7 @@ class ScanCache:
             if known is not None and np.array_equal(known[1], scan.origin_shift):
                 scan = dataclasses.replace(scan, scanner_position=known[0], meta=known[2])
             else:
-                scan = locate_scanner(scan)
+                scan = locate_scanner(scan, self.project.scanner_params)
             with self._lock:
                 self._located[name] = (scan.scanner_position, scan.origin_shift, scan.meta)
                 self._frames[name] = (scan.without_points(), scan_identity(scan))
@@ -734,12 +735,11 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
             scan = scans(name)
             pts = scan.file_points
             pts = pts[np.sum((pts - scan.scanner_position_file) ** 2, axis=1) <= project.params.max_range_m**2]
-            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts - chained[project.centre][:3, 3]))
-            clouds[name] = pc.voxel_down_sample(voxel_m)
+            clouds[name] = voxel_downsample(pts - chained[project.centre][:3, 3], voxel_m)
         return clouds[name]
 
     for link in links:
-        information = information_matrix(np.asarray(cloud(link.moving).points), np.asarray(cloud(link.reference).points), max_distance_m, link.matrix)
+        information = information_matrix(cloud(link.moving), cloud(link.reference), max_distance_m, link.matrix)
         graph.edges.append(reg.PoseGraphEdge(index[link.moving], index[link.reference], link.matrix, information, uncertain=link.extra))
     option = reg.GlobalOptimizationOption(max_correspondence_distance=max_distance_m, edge_prune_threshold=0.25, reference_node=index[project.centre])
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
