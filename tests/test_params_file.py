@@ -1,6 +1,7 @@
 """Values set in a nested TOML parameter file reach the step that uses them: the automatic VOP
 radii, the scanner-position estimate (through a project and its scan cache, and the project file),
-the survey's loop-closure floors and the co-registration's stem layer."""
+the survey's loop-closure floors, the co-registration's stem layer, the stem profile's spacing
+and the ground evidence under a crown."""
 
 from __future__ import annotations
 
@@ -116,3 +117,33 @@ def test_the_coregistration_stem_layer_comes_from_the_file(tmp_path):
     for result in (default, thin):
         rot, trans = rigid_errors(result.matrix, case.matrix)
         assert rot < 0.2 and trans < 0.1
+
+
+def test_tree_settings_once_module_constants_come_from_the_file(tmp_path):
+    """[trees.stems] sparse_spacing_m picks the noisy stem profile first for a dense cloud, and
+    [trees.canopy] ground_tolerance / ground_ring_width_m decide the ground evidence under a crown."""
+    from scipy.spatial import cKDTree
+
+    from forestreg.engine.trees.canopy import ground_evidence
+    from forestreg.engine.trees.stems import detect_stems_adaptive
+
+    path = tmp_path / "trees.toml"
+    path.write_text("[trees.stems]\nsparse_spacing_m = 0.001\n\n[trees.canopy]\nground_tolerance = 0.001\nground_ring_width_m = 0.5\n", encoding="utf-8")
+    trees = load_params(path).trees
+    # a densely sampled stem on flat ground: the fine profile at the default, the noisy one first
+    # for the file (both find the stem)
+    rng = np.random.default_rng(0)
+    a, z = rng.uniform(0, 2 * np.pi, 60000), rng.uniform(0.0, 3.0, 60000)
+    pts = np.vstack([np.column_stack([0.2 * np.cos(a), 0.2 * np.sin(a), z]),
+                     np.column_stack([rng.uniform(-3, 3, (20000, 2)), np.zeros(20000)])])
+    profiles = [detect_stems_adaptive(pts, pts[:, 2], p) for p in (ProductParams().trees.stems, trees.stems)]
+    assert [(len(stems), name) for stems, _, name in profiles] == [(1, "fine"), (1, "noisy")]
+    # open ground on a slope around a crown without returns under it, the DEM 0.2 m off the plane
+    xy = rng.uniform(-15, 15, (4000, 2))
+    xy = xy[np.hypot(xy[:, 0], xy[:, 1]) > 6.0]
+    g = np.column_stack([xy, 0.15 * xy[:, 0] + rng.normal(0, 0.03, len(xy))])
+    index, top = cKDTree(g[:, :2]), np.array([0.5, 0.0, 20.0])
+    default = ground_evidence(g, index, top, 6.0, 0.15 * 0.5 + 0.2, 20.0)
+    strict = ground_evidence(g, index, top, 6.0, 0.15 * 0.5 + 0.2, 20.0, trees.canopy)
+    assert not default.unsure and strict.unsure
+    assert strict.n_ring < default.n_ring  # the narrower ring holds fewer returns

@@ -714,7 +714,7 @@ def _canopy_inventory(
         raise ScanDataError(
             "no stems found at breast height and no tree crowns in the canopy: is this a forest cloud in metres?"
         )
-    evidence = _ground_evidence_fn(p, model.ground, no_ground)
+    evidence = _ground_evidence_fn(p, model.ground, no_ground, params.canopy)
     records = [_canopy_record(ct, ct.tree_id, no_ground, evidence(ct)) for ct in trees]
     progress(1.0, f"{len(records)} trees from the canopy")
     return TreeInventory(
@@ -724,7 +724,7 @@ def _canopy_inventory(
     )
 
 
-def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool):
+def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool, params: CanopyParams):
     """A function giving the :class:`~.canopy.GroundEvidence` under a canopy tree's top (None
     without ground: the heights are flagged for that already)."""
     from scipy.spatial import cKDTree
@@ -736,7 +736,7 @@ def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool):
 
     def evidence(ct: CanopyTree) -> GroundEvidence:
         radius = 0.25 * (ct.crown_width_ew_m + ct.crown_width_ns_m)
-        return ground_evidence(g, index, np.asarray(ct.top), radius, ct.ground_z, ct.height_m)
+        return ground_evidence(g, index, np.asarray(ct.top), radius, ct.ground_z, ct.height_m, params)
 
     return evidence
 
@@ -811,7 +811,7 @@ def _add_canopy_trees(
     if not trees:
         return records, labels
     labels = labels.copy()
-    evidence = _ground_evidence_fn(p, ground, no_ground)
+    evidence = _ground_evidence_fn(p, ground, no_ground, params.canopy)
     crown_pts = np.flatnonzero(canopy_labels > 0)
     index = cKDTree(p[crown_pts, :2])
     by_segment: dict[int, list[int]] = {}

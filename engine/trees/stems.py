@@ -141,6 +141,8 @@ class StemParams(Params):
     max_taper_deviation: float = param_field(0.12, "1", 0.0, 1.0, "Sections deviating more than this fraction from the running median are rejected")
     max_relative_residual: float = param_field(1.75, "1", 1.0, 100.0, "Sections whose circle residual exceeds this multiple of the stem's median are rejected (branch whorls, foliage)")
     max_section_growth: float = param_field(0.15, "1", 0.0, 2.0, "A section may be at most this fraction wider than the accepted one below it (stems taper upward)")
+    # --- the profile chosen for the cloud (detect_stems_adaptive)
+    sparse_spacing_m: float = param_field(0.03, "m", 0.001, 1.0, "Band points whose median distance to their 4th neighbour exceeds this are sampled too sparsely (or noisily) for the fine profile: the noisy one is tried first (mobile, backpack, UAV clouds)")
 
     def _check(self) -> None:
         if self.band_high_m <= self.band_low_m:
@@ -567,11 +569,6 @@ NOISY_STEM_CHANGES: dict[str, Any] = {
     "search_margin_m": 0.15,
 }
 
-#: Band points whose median distance to their 4th neighbour exceeds this (m) are sampled too
-#: sparsely (or too noisily) for the fine profile: the noisy profile is used.
-SPARSE_SPACING_M = 0.03
-
-
 def band_spacing(points: np.ndarray, heights: np.ndarray, params: StemParams = StemParams(), sample: int = 20000) -> float:
     """Median distance (m) from a detection-band point to its 4th nearest band neighbour (NaN when
     the band holds fewer than 5 points): the sampling density of the stems."""
@@ -590,7 +587,7 @@ def detect_stems_adaptive(
     """:func:`detect_stems` with the settings chosen for the cloud's stem sampling.
 
     Dense, clean stems (TLS) use ``params`` ("fine" profile). Where the band points are spaced more
-    than :data:`SPARSE_SPACING_M` apart (mobile, backpack, UAV clouds), or the fine profile finds
+    than ``params.sparse_spacing_m`` apart (mobile, backpack, UAV clouds), or the fine profile finds
     nothing, ``params`` with :data:`NOISY_STEM_CHANGES` are used ("noisy" profile: thick shells,
     ghosts, few points); when the profile chosen by the spacing finds nothing, the other is tried. Returns (stems, the parameters used, the profile name); the DBH and stem
     curves must be measured with the same parameters.
@@ -599,7 +596,7 @@ def detect_stems_adaptive(
     assert h is not None
     spacing = band_spacing(p, h, params)
     noisy = params.replace(**NOISY_STEM_CHANGES)
-    order = [(noisy, "noisy"), (params, "fine")] if math.isfinite(spacing) and spacing > SPARSE_SPACING_M else [(params, "fine"), (noisy, "noisy")]
+    order = [(noisy, "noisy"), (params, "fine")] if math.isfinite(spacing) and spacing > params.sparse_spacing_m else [(params, "fine"), (noisy, "noisy")]
     for prm, name in order:
         stems = detect_stems(p, h, prm, progress)
         if stems:
