@@ -147,3 +147,28 @@ def test_tree_settings_once_module_constants_come_from_the_file(tmp_path):
     strict = ground_evidence(g, index, top, 6.0, 0.15 * 0.5 + 0.2, 20.0, trees.canopy)
     assert not default.unsure and strict.unsure
     assert strict.n_ring < default.n_ring  # the narrower ring holds fewer returns
+
+
+def test_airborne_ratio_and_tilted_partner_radius_come_from_the_file(tmp_path, monkeypatch):
+    """[trees] airborne_band_ratio decides whether a cloud counts as airborne, and [registration]
+    tilted_partner_vop_radius_m is the D_r of the links that look for a tilted scan's partner."""
+    from forestreg.engine.core.progress import Progress
+    from forestreg.engine.tls import plot
+    from forestreg.engine.trees.inventory import _airborne_like
+
+    path = tmp_path / "p.toml"
+    path.write_text("[registration]\ntilted_partner_vop_radius_m = 12.5\n\n[trees]\nairborne_band_ratio = 0.01\n", encoding="utf-8")
+    params = load_params(path)
+    heights = np.r_[np.full(30, 2.0), np.full(1000, 10.0)]  # 0.03 points low per point high
+    assert _airborne_like(heights, ProductParams().trees.airborne_band_ratio) and not _airborne_like(heights, params.trees.airborne_band_ratio)
+    radii = []
+    monkeypatch.setattr(plot, "_run_link", lambda project, link, *rest: radii.append(link.vop_radius_m))
+    project = Project(name="p", params=params.registration)
+    for name in ("level", "tilted"):
+        (tmp_path / name).write_bytes(b"")
+        project.add_scan(tmp_path / name)
+    project.centre = "level"
+    project.scan("tilted").tilted = True
+    monkeypatch.setattr(Project, "chained_poses", lambda self: {"level": np.eye(4), "tilted": None})
+    plot._register_tilted_without_partner(project, project.scan("tilted"), None, Progress(None), None)
+    assert radii == [12.5]

@@ -34,6 +34,7 @@ class RegistrationParams(Params):
     radial_step_m: float = _p(0.1, "m", 0.02, 1.0, "Distance resolution of the angular grid; width of the visibility buffer", "I_D = 0.1 m")
     vop_radius_m: Optional[float] = _p(None, "m", 2.0, 100.0, "Radius around the scanner in which VOPs are extracted; empty = choose automatically (tries increasing radii)", "D_r (table 3)")
     auto_vop_radii_m: tuple[float, ...] = _p((10.0, 15.0, 20.0, 25.0), "m", 2.0, 100.0, "The radii tried in turn when vop_radius_m is empty (those within 3 m of max_range_m)")
+    tilted_partner_vop_radius_m: float = _p(10.0, "m", 2.0, 100.0, "VOP radius of the links of a tilted scan whose level partner is not named, tried against every registered level scan (the partner stands at the same spot)", "D_r ~ 10 m (sec. 4.3)")
     visibility_gap_m: float = _p(0.5, "m", 0.0, 5.0, "Start of the visibility buffer behind a candidate", "D_e = 0.5 m")
     component_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size of the connected-component labelling of candidate points")
     min_component_points: int = _p(8, "points", 2, 10000, "Smallest connected component kept as a trunk candidate")

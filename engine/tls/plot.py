@@ -38,10 +38,6 @@ from ..geometry.voxel import voxel_downsample
 
 log = logging.getLogger("forestreg")
 
-#: D_r for a tilted scan against its level partner at the same spot (paper sec. 4.3: ~10 m).
-TILTED_PARTNER_RADIUS_M = 10.0
-
-
 class ScanCache:
     """Reads the scans of a project on first use and keeps the most recently used ones in memory,
     up to ``max_bytes`` of point arrays (default :data:`SCAN_CACHE_BYTES`), so a plot of many large
@@ -673,14 +669,14 @@ def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, p
 
 def _register_tilted_without_partner(project: Project, entry: ScanEntry, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> Link:
     """A tilted scan whose level partner is not named: register it to every registered level scan
-    (D_r 10 m) and take the success whose scanner lies closest (the partner stands at the same
-    spot)."""
+    (D_r ``tilted_partner_vop_radius_m``) and take the success whose scanner lies closest (the
+    partner stands at the same spot)."""
     poses = project.chained_poses()
     level = [s.name for s in project.scans if not s.tilted and poses.get(s.name) is not None]
     best: Optional[Link] = None
     last: Optional[Link] = None
     for k, name in enumerate(level):
-        link = Link(moving=entry.name, reference=name, vop_radius_m=TILTED_PARTNER_RADIUS_M)
+        link = Link(moving=entry.name, reference=name, vop_radius_m=project.params.tilted_partner_vop_radius_m)
         link.result = _run_link(project, link, scans, progress.sub(k / len(level), (k + 1) / len(level)), cancel)
         last = link
         if link.ok and (best is None or np.linalg.norm(link.matrix[:3, 3]) < np.linalg.norm(best.matrix[:3, 3])):

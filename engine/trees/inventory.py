@@ -66,6 +66,9 @@ class TreeParams(Params):
     wood_threshold: float = _p(0.5, "1", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
     cylinder_models: bool = _p(True, "", None, None, "fit cylinder models")
+    #: ground-based clouds hold 0.1 and more (a TLS plot of tall trees without ground 0.04, but its
+    #: stems are dense), airborne ones 0.005-0.03
+    airborne_band_ratio: float = _p(0.08, "1", 0.0, 10.0, "points at 1-3 m above the ground per point above 3 m below which a cloud with sparsely sampled stems (noisy profile) is taken as airborne: trees without a sampled stem come from the canopy height model")
 
 
 @dataclass(frozen=True, eq=False)
@@ -364,7 +367,7 @@ def _measure_trees(
             no_ground=no_ground, ground_near=ground_near.get(stem.id), shared_flag=shared.get(stem.id),
         ))
     timings["trees_s"] = time.perf_counter() - t
-    if method == "noisy" and _airborne_like(heights):  # stems sparse and hardly sampled: the canopy decides
+    if method == "noisy" and _airborne_like(heights, params.airborne_band_ratio):  # stems sparse and hardly sampled: the canopy decides
         t = time.perf_counter()
         progress(0.98, "airborne cloud: trees without a sampled stem from the canopy height model")
         records, labels = _add_canopy_trees(p, heights, labels, records, no_ground, params, model.ground)
@@ -782,16 +785,12 @@ def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool, ground_ev: Opt
     )
 
 
-#: Points at 1-3 m per point above 3 m below which a cloud whose stems are sparsely sampled (noisy
-#: profile) is taken as airborne (ALS/ULS); ground-based clouds hold 0.1 and more (a TLS plot of tall
-#: trees without ground 0.04, but its stems are dense), airborne ones 0.005-0.03.
-AIRBORNE_BAND_RATIO = 0.08
-
-
-def _airborne_like(heights: np.ndarray) -> bool:
+def _airborne_like(heights: np.ndarray, band_ratio: float) -> bool:
+    """Whether a cloud holds fewer than ``band_ratio`` points at 1-3 m above the ground per point
+    above 3 m (:attr:`TreeParams.airborne_band_ratio`)."""
     band = np.count_nonzero((heights > 1.0) & (heights < 3.0))
     above = np.count_nonzero(heights > 3.0)
-    return above > 0 and band / above < AIRBORNE_BAND_RATIO
+    return above > 0 and band / above < band_ratio
 
 
 def _add_canopy_trees(
