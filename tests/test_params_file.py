@@ -1,7 +1,7 @@
 """Values set in a nested TOML parameter file reach the step that uses them: the automatic VOP
 radii, the scanner-position estimate (through a project and its scan cache, and the project file),
 the survey's loop-closure floors, the co-registration's stem layer, the stem profile's spacing
-and the ground evidence under a crown."""
+and the noisy profile, the ground evidence under a crown and the trees' flags."""
 
 from __future__ import annotations
 
@@ -172,3 +172,62 @@ def test_airborne_ratio_and_tilted_partner_radius_come_from_the_file(tmp_path, m
     monkeypatch.setattr(Project, "chained_poses", lambda self: {"level": np.eye(4), "tilted": None})
     plot._register_tilted_without_partner(project, project.scan("tilted"), None, Progress(None), None)
     assert radii == [12.5]
+
+
+def test_tree_flags_edit_search_and_noisy_profile_come_from_the_file(tmp_path):
+    """[trees] ground_near_stem_m, shared_top_min_points, max_slenderness and
+    stem_search_radius_m, and [trees.noisy_stems], reach the steps that use them: a stem's ground
+    evidence, the flag of a top amid a thicker neighbour's crown, the slenderness flag, the search
+    around a clicked position, the noisy stem profile."""
+    import math
+
+    from forestreg.engine.core.errors import ScanDataError
+    from forestreg.engine.geometry.columns import ColumnIndex
+    from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.trees import edit as E
+    from forestreg.engine.trees.crown import CrownMeasurement
+    from forestreg.engine.trees.inventory import _shared_tops, ground_near_stems, measure_trees
+    from forestreg.engine.trees.stems import Stem, detect_stems_adaptive
+
+    path = tmp_path / "p.toml"
+    path.write_text("[trees]\nground_near_stem_m = 1.5\nshared_top_min_points = 3\nmax_slenderness = 20.0\nstem_search_radius_m = 0.3\n"
+                    "cylinder_models = false\n\n[trees.noisy_stems]\nmin_slice_points = 40\n", encoding="utf-8")
+    default, trees = ProductParams().trees.replace(cylinder_models=False), load_params(path).trees
+
+    def stem(i, x, r):
+        return Stem(id=i, base=np.array([x, 0.0, 0.0]), axis=np.array([0.0, 0.0, 1.0]), radius_m=r, point_indices=np.zeros(0, dtype=np.int64))
+
+    # ground 2 m from a stem: near with 3 m, not with 1.5 m
+    p = np.array([[2.0, 0.0, 0.0], [0.0, 0.0, 5.0]])
+    ground = np.array([True, False])
+    assert ground_near_stems(p, ground, [stem(1, 0.0, 0.1)], default.ground_near_stem_m) == {1: True}
+    assert ground_near_stems(p, ground, [stem(1, 0.0, 0.1)], trees.ground_near_stem_m) == {1: False}
+    # four points of a thicker neighbour beside a tree's top: a shared top with 3, not with 6
+    nan = math.nan
+    crowns = {i: CrownMeasurement(tree_id=i, x=x, y=0.0, height_m=nan, crown_base_m=nan, crown_width_ew_m=nan, crown_width_ns_m=nan,
+                                  crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan, crown_volume_m3=nan, n_points=0,
+                                  top=(x, 0.0, 10.0), ok=True, reasons=()) for i, x in ((1, 0.0), (2, 5.0))}
+    pts = np.array([[0.0, 0.0, 10.0]] + [[0.5, 0.1 * k, 10.0] for k in range(4)])
+    labels = np.array([1, 2, 2, 2, 2])
+    stems = [stem(1, 0.0, 0.1), stem(2, 5.0, 0.2)]
+    assert _shared_tops(pts, labels, stems, crowns, ColumnIndex(pts, 1.0), default.shared_top_min_points) == {}
+    assert 1 in _shared_tops(pts, labels, stems, crowns, ColumnIndex(pts, 1.0), trees.shared_top_min_points)
+    # a simulated plot: re-measured with the file's slenderness limit, a tree's height is flagged
+    plot = simulate_plot("planted_conifer", [(0.0, 0.0)], seed=3, angular_step_deg=0.5, size_m=10.0)
+    points = np.vstack([s.world_points() for s in plot.scans])
+    inv = measure_trees(points, default)
+    rec = max(inv.trees, key=lambda r: r.crown.height_m / r.dbh_m)
+    assert not any("slenderness" in f for f in rec.flags)
+    idx = np.flatnonzero(inv.labels == rec.tree_id)
+    again = E.measure_tree(points, inv, rec.stem, idx, trees)
+    assert any("slenderness" in f for f in again.flags) and again.quality["height"].endswith("; low")
+    # a click 0.6 m beside a stem finds it within 1 m, not within 0.3 m
+    click = (rec.stem.x + 0.6, rec.stem.y)
+    assert math.hypot(E._stem_near(points, inv, click, default).x - rec.stem.x, E._stem_near(points, inv, click, default).y - rec.stem.y) < 0.1
+    with pytest.raises(ScanDataError):
+        E._stem_near(points, inv, click, trees)
+    # the noisy profile (tried first when the band is sparser than sparse_spacing_m) takes its
+    # slice minimum from [trees.noisy_stems]
+    sparse = default.stems.replace(sparse_spacing_m=0.001)
+    used = [detect_stems_adaptive(points, inv.heights, sparse, None, t.noisy_stems) for t in (default, trees)]
+    assert [(u[2], u[1].min_slice_points) for u in used] == [("noisy", 10), ("noisy", 40)]

@@ -46,7 +46,7 @@ returned with ``ok = False`` and its reasons, never as a confident number.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Optional
 
 import numpy as np
@@ -552,22 +552,37 @@ def detect_stems(points: Any, heights: Any, params: StemParams = StemParams(), p
     return stems
 
 
-#: Changes to :class:`StemParams` for sparse or noisy stems (mobile/backpack/handheld SLAM clouds
-#: with thick or ghosted bark shells, UAV clouds with few stem returns): coarser neighbourhoods
-#: and clustering, a wider inlier band and residual, fewer points per slice.
-NOISY_STEM_CHANGES: dict[str, Any] = {
-    "detection_voxel_m": 0.02,
-    "neighbour_radius_m": 0.2,
-    "cluster_distance_m": 0.2,
-    "inlier_tolerance_m": 0.04,
-    "max_fit_residual_m": 0.04,
-    "max_surface_variation": 0.25,
-    "max_normal_tilt_deg": 35.0,
-    "min_slice_points": 10,
-    "detection_min_slice_points": 8,
-    "max_interior_fraction": 0.1,
-    "search_margin_m": 0.15,
-}
+def _noisy(name: str, default: Any) -> Any:
+    """A field of :class:`NoisyStemParams`: the value of :class:`StemParams`' field ``name`` in the
+    noisy profile, with that field's unit, range and help."""
+    f = {f.name: f for f in fields(StemParams)}[name]
+    lo, hi = f.metadata["range"]
+    return param_field(default, f.metadata["unit"], lo, hi, f"{f.metadata['help']} (noisy profile)")
+
+
+@dataclass(frozen=True)
+class NoisyStemParams(Params):
+    """The :class:`StemParams` values of the "noisy" stem profile, for sparse or noisy stems
+    (mobile/backpack/handheld SLAM clouds with thick or ghosted bark shells, UAV clouds with few
+    stem returns): coarser neighbourhoods and clustering, a wider inlier band and residual, fewer
+    points per slice. Every other stem setting is the fine profile's. Distances in metres."""
+
+    detection_voxel_m: float = _noisy("detection_voxel_m", 0.02)
+    neighbour_radius_m: float = _noisy("neighbour_radius_m", 0.2)
+    cluster_distance_m: float = _noisy("cluster_distance_m", 0.2)
+    inlier_tolerance_m: float = _noisy("inlier_tolerance_m", 0.04)
+    max_fit_residual_m: float = _noisy("max_fit_residual_m", 0.04)
+    max_surface_variation: float = _noisy("max_surface_variation", 0.25)
+    max_normal_tilt_deg: float = _noisy("max_normal_tilt_deg", 35.0)
+    min_slice_points: int = _noisy("min_slice_points", 10)
+    detection_min_slice_points: int = _noisy("detection_min_slice_points", 8)
+    max_interior_fraction: float = _noisy("max_interior_fraction", 0.1)
+    search_margin_m: float = _noisy("search_margin_m", 0.15)
+
+    def apply(self, params: StemParams) -> StemParams:
+        """``params`` with this profile's values."""
+        return params.replace(**{f.name: getattr(self, f.name) for f in fields(self)})
+
 
 def band_spacing(points: np.ndarray, heights: np.ndarray, params: StemParams = StemParams(), sample: int = 20000) -> float:
     """Median distance (m) from a detection-band point to its 4th nearest band neighbour (NaN when
@@ -582,20 +597,21 @@ def band_spacing(points: np.ndarray, heights: np.ndarray, params: StemParams = S
 
 
 def detect_stems_adaptive(
-    points: Any, heights: Any, params: StemParams = StemParams(), progress: Optional[Progress] = None
+    points: Any, heights: Any, params: StemParams = StemParams(), progress: Optional[Progress] = None,
+    noisy_profile: NoisyStemParams = NoisyStemParams(),
 ) -> tuple[list[Stem], StemParams, str]:
     """:func:`detect_stems` with the settings chosen for the cloud's stem sampling.
 
     Dense, clean stems (TLS) use ``params`` ("fine" profile). Where the band points are spaced more
     than ``params.sparse_spacing_m`` apart (mobile, backpack, UAV clouds), or the fine profile finds
-    nothing, ``params`` with :data:`NOISY_STEM_CHANGES` are used ("noisy" profile: thick shells,
+    nothing, ``params`` with the values of ``noisy_profile`` are used ("noisy" profile: thick shells,
     ghosts, few points); when the profile chosen by the spacing finds nothing, the other is tried. Returns (stems, the parameters used, the profile name); the DBH and stem
     curves must be measured with the same parameters.
     """
     p, h = check_cloud(points, heights)
     assert h is not None
     spacing = band_spacing(p, h, params)
-    noisy = params.replace(**NOISY_STEM_CHANGES)
+    noisy = noisy_profile.apply(params)
     order = [(noisy, "noisy"), (params, "fine")] if math.isfinite(spacing) and spacing > params.sparse_spacing_m else [(params, "fine"), (noisy, "noisy")]
     for prm, name in order:
         stems = detect_stems(p, h, prm, progress)
