@@ -66,6 +66,9 @@ class TreeParams(Params):
     wood_threshold: float = _p(0.5, "1", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
     cylinder_models: bool = _p(True, "", None, None, "fit cylinder models")
+    #: ground-based clouds hold 0.1 and more (a TLS plot of tall trees without ground 0.04, but its
+    #: stems are dense), airborne ones 0.005-0.03
+    airborne_band_ratio: float = _p(0.08, "1", 0.0, 10.0, "points at 1-3 m above the ground per point above 3 m below which a cloud with sparsely sampled stems (noisy profile) is taken as airborne: trees without a sampled stem come from the canopy height model")
 
 
 @dataclass(frozen=True, eq=False)
@@ -364,7 +367,7 @@ def _measure_trees(
             no_ground=no_ground, ground_near=ground_near.get(stem.id), shared_flag=shared.get(stem.id),
         ))
     timings["trees_s"] = time.perf_counter() - t
-    if method == "noisy" and _airborne_like(heights):  # stems sparse and hardly sampled: the canopy decides
+    if method == "noisy" and _airborne_like(heights, params.airborne_band_ratio):  # stems sparse and hardly sampled: the canopy decides
         t = time.perf_counter()
         progress(0.98, "airborne cloud: trees without a sampled stem from the canopy height model")
         records, labels = _add_canopy_trees(p, heights, labels, records, no_ground, params, model.ground)
@@ -714,7 +717,7 @@ def _canopy_inventory(
         raise ScanDataError(
             "no stems found at breast height and no tree crowns in the canopy: is this a forest cloud in metres?"
         )
-    evidence = _ground_evidence_fn(p, model.ground, no_ground)
+    evidence = _ground_evidence_fn(p, model.ground, no_ground, params.canopy)
     records = [_canopy_record(ct, ct.tree_id, no_ground, evidence(ct)) for ct in trees]
     progress(1.0, f"{len(records)} trees from the canopy")
     return TreeInventory(
@@ -724,7 +727,7 @@ def _canopy_inventory(
     )
 
 
-def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool):
+def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool, params: CanopyParams):
     """A function giving the :class:`~.canopy.GroundEvidence` under a canopy tree's top (None
     without ground: the heights are flagged for that already)."""
     from scipy.spatial import cKDTree
@@ -736,7 +739,7 @@ def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool):
 
     def evidence(ct: CanopyTree) -> GroundEvidence:
         radius = 0.25 * (ct.crown_width_ew_m + ct.crown_width_ns_m)
-        return ground_evidence(g, index, np.asarray(ct.top), radius, ct.ground_z, ct.height_m)
+        return ground_evidence(g, index, np.asarray(ct.top), radius, ct.ground_z, ct.height_m, params)
 
     return evidence
 
@@ -782,16 +785,12 @@ def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool, ground_ev: Opt
     )
 
 
-#: Points at 1-3 m per point above 3 m below which a cloud whose stems are sparsely sampled (noisy
-#: profile) is taken as airborne (ALS/ULS); ground-based clouds hold 0.1 and more (a TLS plot of tall
-#: trees without ground 0.04, but its stems are dense), airborne ones 0.005-0.03.
-AIRBORNE_BAND_RATIO = 0.08
-
-
-def _airborne_like(heights: np.ndarray) -> bool:
+def _airborne_like(heights: np.ndarray, band_ratio: float) -> bool:
+    """Whether a cloud holds fewer than ``band_ratio`` points at 1-3 m above the ground per point
+    above 3 m (:attr:`TreeParams.airborne_band_ratio`)."""
     band = np.count_nonzero((heights > 1.0) & (heights < 3.0))
     above = np.count_nonzero(heights > 3.0)
-    return above > 0 and band / above < AIRBORNE_BAND_RATIO
+    return above > 0 and band / above < band_ratio
 
 
 def _add_canopy_trees(
@@ -811,7 +810,7 @@ def _add_canopy_trees(
     if not trees:
         return records, labels
     labels = labels.copy()
-    evidence = _ground_evidence_fn(p, ground, no_ground)
+    evidence = _ground_evidence_fn(p, ground, no_ground, params.canopy)
     crown_pts = np.flatnonzero(canopy_labels > 0)
     index = cKDTree(p[crown_pts, :2])
     by_segment: dict[int, list[int]] = {}
