@@ -136,7 +136,7 @@ def _input_kind(path: Path) -> str:
     return "cloud"
 
 
-def _read_table(path: Path, role: str, scale: float):
+def _read_table(path: Path, role: str, scale: float, change_params):
     from ..engine.change import epoch_from_table
     from ..engine.core.errors import UsageError
     from ..engine.io.results import read_csv_rows
@@ -146,7 +146,7 @@ def _read_table(path: Path, role: str, scale: float):
     missing = [c for c in ("x", "y", "dbh_m") if c not in header]
     if missing:
         raise UsageError(f"{table}: not a trees.csv of 'forestreg trees' (no column {', '.join(missing)})")
-    return epoch_from_table(rows, name=role, unit_scale=scale)
+    return epoch_from_table(rows, name=role, unit_scale=scale, change=change_params)
 
 
 def _project_cloud(path: Path, scale: float):
@@ -182,26 +182,30 @@ def _project_cloud(path: Path, scale: float):
     return cloud, f"{len(project.scans)} registered scans of project {path.name}"
 
 
-def read_epoch(path, role: str, *, units: str = "m", tree_params=None, progress=None, cancel=None):
+def read_epoch(path, role: str, *, units: str = "m", tree_params=None, change_params=None, progress=None, cancel=None):
     """One survey (``role`` "BEFORE" or "AFTER") as :class:`~forestreg.engine.change.EpochTrees`
-    and a note on what was read: a cloud's trees are measured (the tree inventory's steps), a
-    table's are taken as they are."""
+    and a note on what was read: a cloud's trees are measured (the tree inventory's steps, with
+    ``tree_params``), a table's are taken as they are; the uncertainties, the no-ground decision and
+    the stem band from ``change_params`` (a :class:`~forestreg.engine.change.ChangeParams`)."""
+    from ..engine.change import ChangeParams
     from ..engine.change import epoch_from_cloud
     from ..engine.core.scan import Scan
     from ..engine.io import read_scan
 
+    change_params = change_params if change_params is not None else ChangeParams()
     scale = UNITS[units]
     p = Path(path)
     kind = _input_kind(p)
     if kind == "table":
-        return _read_table(p, role, scale), f"trees table {p.name}"
+        return _read_table(p, role, scale, change_params), f"trees table {p.name}"
     if kind == "project":
         cloud, note = _project_cloud(p, scale)
         if not isinstance(cloud, Scan):
-            return _read_table(cloud, role, scale), note
+            return _read_table(cloud, role, scale, change_params), note
     else:
         cloud, note = read_scan(p, unit_scale=scale, with_intensity=False), f"cloud {p.name}"
-    epoch = epoch_from_cloud(cloud.points, tree_params, with_cancel(progress, cancel), origin_shift=cloud.origin_shift, name=role)
+    epoch = epoch_from_cloud(cloud.points, tree_params, with_cancel(progress, cancel), origin_shift=cloud.origin_shift, name=role,
+                             change=change_params)
     return epoch, f"{note}, {len(cloud.points):,} points"
 
 
@@ -235,8 +239,8 @@ def detect_change_files(
         out = check_output_folder(out, "change", inputs=[b_path, a_path])
     prog = as_progress(with_cancel(progress, cancel))
     t0 = time.perf_counter()
-    b_epoch, b_note = read_epoch(b_path, "BEFORE", units=units, tree_params=tree_params, progress=prog.sub(0.0, 0.45))
-    a_epoch, a_note = read_epoch(a_path, "AFTER", units=units, tree_params=tree_params, progress=prog.sub(0.45, 0.9))
+    b_epoch, b_note = read_epoch(b_path, "BEFORE", units=units, tree_params=tree_params, change_params=change_params, progress=prog.sub(0.0, 0.45))
+    a_epoch, a_note = read_epoch(a_path, "AFTER", units=units, tree_params=tree_params, change_params=change_params, progress=prog.sub(0.45, 0.9))
     read_s = time.perf_counter() - t0
     result = detect_change(b_epoch, a_epoch, change_params, prog.sub(0.9, 1.0))
     summary = withhold_unless_rigid(result.to_dict())  # the last check before "ok"

@@ -114,6 +114,22 @@ def test_icp_correction_beyond_the_limit_fails(plot):
     assert json.loads(json.dumps(result.to_dict()))["matrix"] is None
 
 
+def test_icp_rotation_limit_comes_from_the_parameter_file(plot, tmp_path):
+    """Targets of the moving scan turned 1.5 deg about its scanner: ICP turns the fit back, within
+    the default limit (5 deg), beyond manual_max_icp_rotation_deg = 0.5 set in a file."""
+    from forestreg.engine.params import load_params
+
+    path = tmp_path / "p.toml"
+    path.write_text("[registration]\nmax_range_m = 15.0\nmanual_max_icp_rotation_deg = 0.5\n", encoding="utf-8")
+    strict = load_params(path).registration
+    ref_t = true_targets(plot, 0)
+    mov_t = {k: apply(matrix_from_yaw(1.5), v[None, :])[0] for k, v in true_targets(plot, 1).items()}
+    ok = register_manual(plot.scans[0].scan, plot.scans[1].scan, ref_t, mov_t, QUICK)
+    assert ok.ok and ok.icp_correction_deg == pytest.approx(1.5, abs=0.2)
+    refused = register_manual(plot.scans[0].scan, plot.scans[1].scan, ref_t, mov_t, strict)
+    assert not refused.ok and "ICP moved the target fit" in refused.reason and "0.5 deg" in refused.reason
+
+
 def test_two_shared_targets_fail_with_a_reason(plot):
     ref_t = true_targets(plot, 0)
     mov_t = {k: v for k, v in true_targets(plot, 1).items() if k in ("T2", "T4")}

@@ -231,3 +231,72 @@ def test_tree_flags_edit_search_and_noisy_profile_come_from_the_file(tmp_path):
     sparse = default.stems.replace(sparse_spacing_m=0.001)
     used = [detect_stems_adaptive(points, inv.heights, sparse, None, t.noisy_stems) for t in (default, trees)]
     assert [(u[2], u[1].min_slice_points) for u in used] == [("noisy", 10), ("noisy", 40)]
+
+
+def test_change_uncertainties_band_and_ground_decision_come_from_the_file(tmp_path):
+    """[change] height_sigma_m and table_dbh_sigma_m give a survey's uncertainties by trust,
+    stem_band_m the band kept for the slices, no_ground_fraction whether a cloud has ground."""
+    from forestreg.engine.change import epoch_from_cloud, epoch_from_table
+    from forestreg.engine.simulate import simulate_plot
+
+    path = tmp_path / "p.toml"
+    path.write_text("[change]\nheight_sigma_m = [0.2, 0.9, 2.0]\ntable_dbh_sigma_m = [0.004, 0.02, 0.05]\n"
+                    "stem_band_m = [0.2, 3.5]\nno_ground_fraction = 0.0\n", encoding="utf-8")
+    default, change = ProductParams().change, load_params(path).change
+    rows = [{"tree_id": "1", "x": "1.0", "y": "2.0", "z": "0.0", "dbh_m": "0.3", "height_m": "20.0",
+             "dbh_quality": "circle fit; medium", "height_quality": "top; low"}]
+    before, after = epoch_from_table(rows, change=default), epoch_from_table(rows, change=change)
+    assert (before.dbh_sigma_m[0], before.height_sigma_m[0]) == (0.012, 1.5)
+    assert (after.dbh_sigma_m[0], after.height_sigma_m[0]) == (0.02, 2.0)
+    plot = simulate_plot("planted_conifer", [(0.0, 0.0)], seed=3, angular_step_deg=0.5, size_m=10.0)
+    points = np.vstack([s.world_points() for s in plot.scans])
+    below = points[: len(points) // 1000] - [0.0, 0.0, 2.0]  # 0.1 % of the points 2 m under the ground
+    trees = ProductParams().trees.replace(cylinder_models=False)
+    a, b = (epoch_from_cloud(np.vstack([points, below]), trees, change=c) for c in (default, change))
+    assert a.band_heights.min() >= 0.3 and a.band_heights.max() <= 3.0
+    assert b.band_heights.min() < 0.3 and b.band_heights.max() > 3.0 and len(b.band) > len(a.band)
+    assert not any("no ground" in f for f in a.flags) and any("no ground" in f for f in b.flags)
+    with pytest.raises(ParameterError):
+        default.replace(stem_band_m=(0.6, 3.0))  # does not hold the slices at 0.5 m
+
+
+def test_uncertainty_floors_and_target_limits_come_from_the_file(tmp_path):
+    """[registration] min_uncertainty_m / min_uncertainty_deg floor a pair's stated uncertainty;
+    manual_max_target_rmse_m and manual_min_target_spread_m decide which target fits are refused
+    and which targets are suspects."""
+    from types import SimpleNamespace
+
+    from forestreg.engine.core.errors import TargetError
+    from forestreg.engine.tls.manual import fit_to_targets, register_manual, suspect_targets
+    from forestreg.engine.tls.pair import _pair_uncertainty
+
+    path = tmp_path / "p.toml"
+    path.write_text("[registration]\nmin_uncertainty_m = 0.05\nmin_uncertainty_deg = 0.2\n"
+                    "manual_max_target_rmse_m = 0.02\nmanual_min_target_spread_m = 0.5\n", encoding="utf-8")
+    default, reg = ProductParams().registration, load_params(path).registration
+    # twenty trunks that coincide within 1 mm after ICP: the floors decide what is stated
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(-12, 12, (20, 2))
+    vops = lambda xy: SimpleNamespace(xy=xy)  # noqa: E731
+    attempt = SimpleNamespace(match=SimpleNamespace(matched_pairs=np.column_stack([np.arange(20), np.arange(20)])),
+                              reference_vops=vops(ref), moving_vops=vops(ref + rng.normal(0, 0.001, ref.shape)))
+    fine = SimpleNamespace(matrix=np.eye(4), std_m=0.001)
+    low, floored = (_pair_uncertainty(attempt, fine, p) for p in (default, reg))
+    assert low["translation_m"] < 0.05 and low["rotation_deg"] < 0.2
+    assert floored["vertical_m"] == 0.05 and floored["translation_m"] == pytest.approx(0.05, abs=1e-4) and floored["rotation_deg"] == 0.2
+    # five targets, one 5 cm off: a suspect at 2 cm, not at 10 cm
+    ref_t = {f"T{k}": np.array(v) for k, v in enumerate([[0, 0, 1], [10, 0, 1.5], [0, 10, 2], [10, 10, 1], [5, 3, 3]])}
+    mov_t = {k: v + ([0.05, 0, 0] if k == "T4" else 0.0) for k, v in ref_t.items()}
+    assert suspect_targets(ref_t, mov_t, inlier_m=default.manual_max_target_rmse_m, min_spread_m=default.manual_min_target_spread_m) == []
+    assert suspect_targets(ref_t, mov_t, inlier_m=reg.manual_max_target_rmse_m, min_spread_m=reg.manual_min_target_spread_m) == ["T4"]
+    # T4 8 cm off: a target fit within the default limit (10 cm RMS), refused at 2 cm
+    mov_t = {k: v + ([0.08, 0, 0] if k == "T4" else 0.0) for k, v in ref_t.items()}
+    assert reg.manual_max_target_rmse_m < fit_to_targets(ref_t, mov_t).rmse_m < default.manual_max_target_rmse_m
+    scan = Scan.from_points(rng.uniform(-5, 5, (1000, 3)), name="s")
+    result = register_manual(scan, scan, ref_t, mov_t, reg)
+    assert not result.ok and "limit 0.02 m" in result.reason and result.suspects == ["T4"]
+    # three targets 0.2 m (RMS) off one straight line: enough at 2 cm, refused at 0.5 m
+    line = {"A": np.array([0.0, 0.0, 0.0]), "B": np.array([5.0, 0.0, 0.0]), "C": np.array([10.0, 0.6, 0.0])}
+    assert fit_to_targets(line, line, min_spread_m=default.manual_min_target_spread_m).rmse_m < 1e-9
+    with pytest.raises(TargetError, match="one straight line"):
+        fit_to_targets(line, line, min_spread_m=reg.manual_min_target_spread_m)

@@ -24,19 +24,19 @@ import numpy as np
 
 from ..core.errors import ScanDataError
 from ..core.progress import Progress, ProgressCallback, as_progress
+from .params import ChangeParams
 
-__all__ = ["EpochTrees", "epoch_from_cloud", "epoch_from_table", "dbh_sigma", "HEIGHT_SIGMA_M"]
+__all__ = ["EpochTrees", "epoch_from_cloud", "epoch_from_table", "dbh_sigma", "by_trust"]
 
-#: 1-sigma height uncertainty (m) by the inventory's trust in the height: the top's sampling
-#: (simulated stands: a high-trust height is within 0.3 m of the truth for most trees).
-HEIGHT_SIGMA_M = {"high": 0.3, "medium": 0.6, "low": 1.5, "none": math.nan}
-#: 1-sigma DBH uncertainty (m) by trust when only a table is given (no circle fit to judge).
-DBH_SIGMA_BY_TRUST_M = {"high": 0.006, "medium": 0.012, "low": 0.03, "none": math.nan}
-#: Fraction of a cloud's points more than 0.5 m below the ground found above which the cloud is
-#: taken to have no ground (heights then above its lowest points).
-NO_GROUND_FRACTION = 0.005
-#: Band of heights above the ground (m) kept for the stem slices and presence checks.
-BAND_M = (0.3, 3.0)
+#: The trust words of the inventory's quality columns, in the order of the ``[change]`` tuples by
+#: trust (:attr:`ChangeParams.height_sigma_m`, :attr:`ChangeParams.table_dbh_sigma_m`).
+TRUSTED = ("high", "medium", "low")
+
+
+def by_trust(values: Sequence[float], trust: str) -> float:
+    """The value of ``values`` (high, medium, low) for the trust word ``trust``; NaN for "none"
+    or an unknown word."""
+    return float(values[TRUSTED.index(trust)]) if trust in TRUSTED else math.nan
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,12 +116,14 @@ def _inside_hull(xy: np.ndarray, p: np.ndarray, margin_m: float = 2.0) -> bool:
     return bool(np.all(eq[:, :2] @ p + eq[:, 2] <= margin_m))
 
 
-def dbh_sigma(rms_m: float, n_inliers: int, arc: float, trust: str = "high") -> float:
+def dbh_sigma(rms_m: float, n_inliers: int, arc: float, trust: str = "high",
+              without_fit_m: Sequence[float] = ChangeParams().table_dbh_sigma_m) -> float:
     """1-sigma DBH uncertainty (m) of a circle fit: the noise of the fitted radius
     (``2 rms / sqrt(n)``, larger on a partial arc), a floor of 3 mm for what a circle does not
-    model (bark, ellipticity, the slice's height), doubled for medium and tripled for low trust."""
+    model (bark, ellipticity, the slice's height), doubled for medium and tripled for low trust.
+    Without a fit's residual: ``without_fit_m`` by trust (:attr:`ChangeParams.table_dbh_sigma_m`)."""
     if not (math.isfinite(rms_m) and n_inliers > 0):
-        return DBH_SIGMA_BY_TRUST_M.get(trust, math.nan)
+        return by_trust(without_fit_m, trust)
     noise = 2.0 * rms_m / math.sqrt(max(n_inliers, 3)) / max(arc, 0.2)
     base = math.hypot(noise, 0.003)
     return base * {"high": 1.0, "medium": 2.0, "low": 3.0}.get(trust, 1.0)
@@ -130,7 +132,7 @@ def dbh_sigma(rms_m: float, n_inliers: int, arc: float, trust: str = "high") -> 
 def _trust(quality: str) -> str:
     """The trust word at the end of a quality string ("...; high")."""
     word = str(quality or "").rsplit(";", 1)[-1].strip()
-    return word if word in HEIGHT_SIGMA_M else "none"
+    return word if word in TRUSTED else "none"
 
 
 def epoch_from_cloud(
@@ -140,10 +142,12 @@ def epoch_from_cloud(
     *,
     origin_shift: Optional[np.ndarray] = None,
     name: str = "",
+    change: ChangeParams = ChangeParams(),
 ) -> EpochTrees:
     """The trees of a merged ground-based cloud (``points`` (N, 3), local frame, metres, z up):
     ground and DEM, stems, DBH and stem curves, segmentation and heights (the tree inventory's
-    steps and parameters, ``params`` a :class:`~forestreg.engine.trees.inventory.TreeParams`).
+    steps and parameters, ``params`` a :class:`~forestreg.engine.trees.inventory.TreeParams`), with
+    their uncertainties, the no-ground decision and the stem band of ``change``.
 
     Raises :class:`ScanDataError` when the cloud is empty or holds no stem.
     """
@@ -172,7 +176,7 @@ def epoch_from_cloud(
     # the "ground" found lies above part of the cloud: the cloud has no ground. Clouds with ground
     # hold ~0 % of their points 0.5 m below it, clouds without 2-10 % (varying from run to run
     # with the cloth simulation): decided at 0.5 %, so the decision does not flip between surveys
-    no_ground = float(np.mean(heights < -0.5)) > NO_GROUND_FRACTION
+    no_ground = float(np.mean(heights < -0.5)) > change.no_ground_fraction
     if no_ground:  # the "ground" found lies above part of the cloud: no ground
         from ..terrain.dem import TerrainModel, lowest_points_dem
 
@@ -229,7 +233,7 @@ def epoch_from_cloud(
             if fit.rms_residual_m > max(0.15 * 0.5 * value, 0.008):
                 trust = "low"
         out["dbh"][k] = value
-        out["dbh_sd"][k] = dbh_sigma(fit.rms_residual_m, fit.n_inliers, fit.arc_coverage, trust) if fit is not None and trust != "none" else math.nan
+        out["dbh_sd"][k] = dbh_sigma(fit.rms_residual_m, fit.n_inliers, fit.arc_coverage, trust, change.table_dbh_sigma_m) if fit is not None and trust != "none" else math.nan
         dbh_ok[k] = math.isfinite(value) and trust in ("high", "medium")
         if not dbh_ok[k]:
             reasons.append("stem not measured at breast height" if trust == "none" else "DBH uncertain")
@@ -249,10 +253,10 @@ def epoch_from_cloud(
         elif any("plot edge" in r for r in reasons):
             h_trust = "medium"
         out["h"][k] = h
-        out["h_sd"][k] = HEIGHT_SIGMA_M[h_trust] if math.isfinite(h) else math.nan
+        out["h_sd"][k] = by_trust(change.height_sigma_m, h_trust) if math.isfinite(h) else math.nan
         h_ok[k] = math.isfinite(h) and h_trust != "low"
         flags.append("; ".join(dict.fromkeys(reasons)))
-    band_mask = (heights >= BAND_M[0]) & (heights <= BAND_M[1])
+    band_mask = (heights >= change.stem_band_m[0]) & (heights <= change.stem_band_m[1])
     band = p[band_mask]
     band_h = heights[band_mask]
     ground = thin(p[model.ground], 0.25) if model.ground.any() else np.zeros((0, 3))
@@ -280,11 +284,13 @@ def epoch_from_cloud(
     )
 
 
-def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_scale: float = 1.0) -> EpochTrees:
+def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_scale: float = 1.0,
+                     change: ChangeParams = ChangeParams()) -> EpochTrees:
     """The trees of a ``trees.csv`` of ``forestreg trees`` (rows as dicts of its columns: x, y, z
     in file coordinates, ``dbh_m``, ``height_m``, the quality columns and ``flag``). Positions
     are the stem bases (the table has no breast-height point); trees without a stem (from the
-    canopy) are left out: they cannot be matched by their stems.
+    canopy) are left out: they cannot be matched by their stems. The uncertainties follow the
+    quality columns' trust (``change.table_dbh_sigma_m``, ``change.height_sigma_m``).
 
     Raises :class:`ScanDataError` when the table holds no tree with a position.
     """
@@ -307,8 +313,8 @@ def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_
     h = np.array([num(r, "height_m") for r in keep])
     d_trust = [_trust(str(r.get("dbh_quality", "") or ("; high" if math.isfinite(num(r, "dbh_m")) else ""))) for r in keep]
     h_trust = [_trust(str(r.get("height_quality", "") or ("; high" if math.isfinite(num(r, "height_m")) else ""))) for r in keep]
-    d_sd = np.array([DBH_SIGMA_BY_TRUST_M[t] for t in d_trust])
-    h_sd = np.array([HEIGHT_SIGMA_M[t] for t in h_trust])
+    d_sd = np.array([by_trust(change.table_dbh_sigma_m, t) for t in d_trust])
+    h_sd = np.array([by_trust(change.height_sigma_m, t) for t in h_trust])
     ids = []
     for k, r in enumerate(keep):
         try:

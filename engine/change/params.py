@@ -38,6 +38,13 @@ class ChangeParams(Params):
     max_dbh_change_sigma_m: float = _p(0.01, "m", 0.001, 1.0, "A DBH change whose 1-sigma uncertainty exceeds this is withheld (flagged): too uncertain to tell growth")
     height_outlier_m: float = _p(1.5, "m", 0.1, 50.0, "A height change farther than this (and 3 robust sigma) from the median change of the persisting trees is withheld (flagged): a top unseen in one survey, not growth")
     max_dbh_decrease_sigma: float = _p(3.0, "sigma", 0.0, 100.0, "A DBH that shrank by more than this many sigma is flagged")
+    # --- each survey's trees and their uncertainties
+    #: simulated stands: a high-trust height is within 0.3 m of the truth for most trees
+    height_sigma_m: tuple[float, float, float] = _p((0.3, 0.6, 1.5), "m", 0.0, 100.0, "1-sigma uncertainty of a tree height the inventory trusts high, medium, low (the top's sampling)")
+    table_dbh_sigma_m: tuple[float, float, float] = _p((0.006, 0.012, 0.03), "m", 0.0, 1.0, "1-sigma uncertainty of a DBH trusted high, medium, low when no circle fit tells it (a trees table)")
+    #: clouds with ground hold ~0 % of their points 0.5 m below it, clouds without 2-10 %
+    no_ground_fraction: float = _p(0.005, "1", 0.0, 1.0, "Fraction of a cloud's points more than 0.5 m below the ground found above which the cloud has no ground (heights then above its lowest points)")
+    stem_band_m: tuple[float, float] = _p((0.3, 3.0), "m", 0.0, 10.0, "Heights above the ground of the band kept for the stem slices and the presence checks (holds slice_heights_m and 1-2.5 m)")
 
     def _check(self) -> None:
         lo, hi = self.dbh_change_range_m
@@ -45,5 +52,8 @@ class ChangeParams(Params):
             raise ParameterError("dbh_change_range_m must hold 0: (lowest, highest) with lowest < 0 < highest")
         if len(self.slice_heights_m) != 2 or not self.slice_heights_m[0] < self.slice_heights_m[1]:
             raise ParameterError("slice_heights_m must be (low, high) with low < high")
+        lo, hi = self.stem_band_m
+        if not (lo < hi and lo <= self.slice_heights_m[0] and self.slice_heights_m[1] <= hi and lo <= 1.0 and hi >= 2.5):
+            raise ParameterError("stem_band_m must be (low, high) with low < high, holding slice_heights_m and 1-2.5 m (the presence check)")
         if len(self.icp_max_distances_m) == 0:
             raise ParameterError("icp_max_distances_m must hold at least one distance")

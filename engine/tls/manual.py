@@ -48,12 +48,8 @@ Targets = dict[str, np.ndarray]
 
 #: The columns a target CSV must have (more columns are allowed and ignored).
 CSV_COLUMNS = ("scan", "target", "x", "y", "z")
-#: A target fit with a larger RMS residual (m) means the ids are mixed up or targets mis-picked.
-MAX_TARGET_RMSE_M = 0.10
-#: ICP may turn the target fit by at most this much (deg); more means the fit was wrong.
-MAX_ICP_ROTATION_DEG = 5.0
-#: Shared targets closer than this (m, RMS) to one straight line do not fix the rotation about it.
-MIN_NONCOLLINEAR_SPREAD_M = 0.02
+#: The limits of a registration from targets (RegistrationParams.manual_*) when none are given.
+_LIMITS = RegistrationParams()
 
 
 # --------------------------------------------------------------------------------------------
@@ -198,9 +194,11 @@ def shared_target_ids(reference_targets: Mapping[str, Any], moving_targets: Mapp
     return [str(k) for k in reference_targets if str(k) in mov]
 
 
-def fit_to_targets(reference_targets: Mapping[str, Any], moving_targets: Mapping[str, Any]) -> TargetFit:
+def fit_to_targets(reference_targets: Mapping[str, Any], moving_targets: Mapping[str, Any], *,
+                   min_spread_m: float = _LIMITS.manual_min_target_spread_m) -> TargetFit:
     """Least-squares rigid transform (no scale) ``reference ~ matrix @ moving`` from the targets
-    the two sets share (by id).
+    the two sets share (by id). ``min_spread_m``: the least RMS distance of the shared targets
+    from one straight line (:attr:`RegistrationParams.manual_min_target_spread_m`).
 
     Raises
     ------
@@ -220,7 +218,7 @@ def fit_to_targets(reference_targets: Mapping[str, Any], moving_targets: Mapping
     b = np.array([ref[i] for i in ids])
     for pts, label in ((b, "reference"), (a, "moving")):
         spread = _line_spread(pts)
-        if spread < MIN_NONCOLLINEAR_SPREAD_M:
+        if spread < min_spread_m:
             raise TargetError(
                 f"the shared targets {', '.join(ids)} lie on one straight line in the {label} scan "
                 f"(within {100 * spread:.1f} cm): the rotation about that line is undetermined; add a target off the line"
@@ -237,18 +235,22 @@ def _line_spread(points: np.ndarray) -> float:
     return float(np.sqrt(np.sum(s[1:] ** 2) / len(points)))
 
 
-def suspect_targets(reference_targets: Mapping[str, Any], moving_targets: Mapping[str, Any], *, inlier_m: float = MAX_TARGET_RMSE_M) -> list[str]:
+def suspect_targets(reference_targets: Mapping[str, Any], moving_targets: Mapping[str, Any], *,
+                    inlier_m: float = _LIMITS.manual_max_target_rmse_m,
+                    min_spread_m: float = _LIMITS.manual_min_target_spread_m) -> list[str]:
     """Shared targets inconsistent with the largest mutually consistent subset (the likely mixed
     up or mis-picked ones), worst first; empty when all fit or no consistent subset of 3 exists.
 
     Every triple of shared targets (a random 3000 of them when there are many) is fitted; the
     fit under which most targets lie within ``inlier_m`` (ties: smallest RMS) defines the
-    consensus, which is refitted; the others are the suspects.
+    consensus, which is refitted; the others are the suspects. Triples closer than
+    ``min_spread_m`` to one straight line are not fitted.
     """
-    return _consensus_outliers(reference_targets, moving_targets, inlier_m) or []
+    return _consensus_outliers(reference_targets, moving_targets, inlier_m, min_spread_m) or []
 
 
-def _consensus_outliers(reference_targets: Mapping[str, Any], moving_targets: Mapping[str, Any], inlier_m: float) -> Optional[list[str]]:
+def _consensus_outliers(reference_targets: Mapping[str, Any], moving_targets: Mapping[str, Any], inlier_m: float,
+                        min_spread_m: float) -> Optional[list[str]]:
     """:func:`suspect_targets`, but None when no 3 targets agree (no consensus at all)."""
     ref = _as_targets(reference_targets, "reference")
     mov = _as_targets(moving_targets, "moving")
@@ -264,7 +266,7 @@ def _consensus_outliers(reference_targets: Mapping[str, Any], moving_targets: Ma
     best: Optional[tuple[int, float, np.ndarray]] = None
     for t in triples:
         t = list(t)
-        if _line_spread(b[t]) < MIN_NONCOLLINEAR_SPREAD_M:
+        if _line_spread(b[t]) < min_spread_m:
             continue
         m = fit_rigid(a[t], b[t])
         d = np.linalg.norm(apply(m, a) - b, axis=1)
@@ -356,15 +358,17 @@ def register_manual(
     Parameters
     ----------
     reference_targets, moving_targets : ``{id: xyz}`` in each scan's file coordinates.
-    params : ICP settings (``icp_*``, ``max_range_m``, levelling); default the paper's.
+    params : ICP settings (``icp_*``, ``max_range_m``, levelling) and the limits of the target
+        fit (``manual_*``); default the paper's.
 
     Returns
     -------
     ManualResult
         ``"failed"`` (matrix None, with the reason) when fewer than 3 targets are shared or they
-        are collinear, when the target fit's RMS residual exceeds 0.10 m (the reason names the
-        suspect targets), when ICP moves the fit by more than ``params.icp_max_correction_m`` or
-        5 deg, or when ICP's fitness is below ``params.icp_min_fitness`` (as in ``register``).
+        lie within ``params.manual_min_target_spread_m`` of one line, when the target fit's RMS
+        residual exceeds ``params.manual_max_target_rmse_m`` (the reason names the suspect
+        targets), when ICP moves the fit by more than ``params.icp_max_correction_m`` or turns it
+        by more than ``params.manual_max_icp_rotation_deg``, or when ICP's fitness is below ``params.icp_min_fitness`` (as in ``register``).
 
     Malformed target coordinates raise :class:`TargetError`.
     """
@@ -379,12 +383,12 @@ def register_manual(
     ref_t = _as_targets(reference_targets, f"{reference.name}:")
     mov_t = _as_targets(moving_targets, f"{moving.name}:")
     try:
-        fit = fit_to_targets(ref_t, mov_t)
+        fit = fit_to_targets(ref_t, mov_t, min_spread_m=params.manual_min_target_spread_m)
     except TargetError as exc:
         timings.add("target_fit", time.perf_counter() - t0)
         return _failed(str(exc), base)
-    if fit.rmse_m > MAX_TARGET_RMSE_M:
-        outliers = _consensus_outliers(ref_t, mov_t, MAX_TARGET_RMSE_M)
+    if fit.rmse_m > params.manual_max_target_rmse_m:
+        outliers = _consensus_outliers(ref_t, mov_t, params.manual_max_target_rmse_m, params.manual_min_target_spread_m)
         suspects = outliers or []
         timings.add("target_fit", time.perf_counter() - t0)
         worst = suspects[0] if suspects else fit.worst_id
@@ -400,7 +404,7 @@ def register_manual(
             why = "the misfit is spread over all targets - check the target coordinates (units, scan names)"
         return _failed(
             f"the targets do not fit: RMS residual {fit.rmse_m:.3f} m over {len(fit.target_ids)} targets "
-            f"(limit {MAX_TARGET_RMSE_M:.2f} m; residuals {detail}). Worst target: {worst}; {why}",
+            f"(limit {params.manual_max_target_rmse_m:.2f} m; residuals {detail}). Worst target: {worst}; {why}",
             base, target_fit=fit, suspects=suspects,
         )
     timings.add("target_fit", time.perf_counter() - t0)
@@ -420,10 +424,10 @@ def register_manual(
     moved_m = float(np.linalg.norm(correction[:3, 3]))
     turned = rotation_angle_deg(correction[:3, :3])
     common = dict(base, target_fit=fit, icp=fine, icp_correction_m=moved_m, icp_correction_deg=turned)
-    if moved_m > params.icp_max_correction_m or turned > MAX_ICP_ROTATION_DEG:
+    if moved_m > params.icp_max_correction_m or turned > params.manual_max_icp_rotation_deg:
         return _failed(
             f"ICP moved the target fit by {moved_m:.2f} m and {turned:.1f} deg (limits {params.icp_max_correction_m:.2f} m, "
-            f"{MAX_ICP_ROTATION_DEG:.0f} deg): the targets and the point clouds disagree - check the target coordinates",
+            f"{params.manual_max_icp_rotation_deg:g} deg): the targets and the point clouds disagree - check the target coordinates",
             common,
         )
     if fine.fitness < params.icp_min_fitness:

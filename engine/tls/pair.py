@@ -454,7 +454,7 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
         )
     matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, fine.matrix)
     coarse_matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, coarse)
-    uncertainty = _pair_uncertainty(chosen, fine, params.match_distance_m)
+    uncertainty = _pair_uncertainty(chosen, fine, params)
     quality = {
         **terrain_agreement(ref_prep, mov_prep, fine.matrix),
         "ambiguity": (chosen.match.second_matched or 0) / max(chosen.matched, 1),
@@ -694,15 +694,17 @@ def terrain_agreement(reference: PreparedScan, moving: PreparedScan, lsf_matrix:
     return {"terrain_cells": int(both.sum()), "terrain_median_m": float(np.median(diff)), "terrain_p90_m": float(np.percentile(diff, 90))}
 
 
-def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, match_distance_m: float) -> dict[str, Any]:
+def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, params: RegistrationParams) -> dict[str, Any]:
     """1-sigma uncertainty of the result from the matched trunks that still coincide after ICP
-    (see :func:`~forestreg.engine.tls.uncertainty.pair_uncertainty`)."""
+    (within 0.75 ``match_distance_m``; see :func:`~forestreg.engine.tls.uncertainty.pair_uncertainty`),
+    not below the floors ``min_uncertainty_m`` / ``min_uncertainty_deg``."""
     pairs = attempt.match.matched_pairs
     lsf = fine.matrix
     moved = attempt.moving_vops.xy[pairs[:, 1]] @ lsf[:2, :2].T + lsf[:2, 3]
     ref = attempt.reference_vops.xy[pairs[:, 0]]
-    keep = np.hypot(*(moved - ref).T) < 0.75 * match_distance_m
-    return pair_uncertainty(ref[keep], moved[keep], lsf[:2, 3], icp_std_m=fine.std_m)
+    keep = np.hypot(*(moved - ref).T) < 0.75 * params.match_distance_m
+    return pair_uncertainty(ref[keep], moved[keep], lsf[:2, 3], icp_std_m=fine.std_m,
+                            floor_m=params.min_uncertainty_m, floor_deg=params.min_uncertainty_deg)
 
 
 def lsf_to_file_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, lsf_matrix: np.ndarray) -> np.ndarray:

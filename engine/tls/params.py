@@ -61,6 +61,14 @@ class RegistrationParams(Params):
     icp_iterations: int = _p(40, "iterations", 1, 1000, "Iterations per ICP stage")
     icp_min_fitness: float = _p(0.1, "1", 0.0, 1.0, "Least fraction of the moving points in the shared area that must have a reference point within the last ICP distance")
     icp_max_correction_m: float = _p(1.0, "m", 0.0, 10.0, "ICP may move the coarse result by at most this much (more means the coarse result was wrong)")
+    # --- the stated uncertainty (trunks matched after ICP)
+    #: the ICP voxel grid and the VOP step: no registration is stated better than this
+    min_uncertainty_m: float = _p(0.002, "m", 0.0, 1.0, "Floor of a pair's stated 1-sigma translation uncertainty (and of its vertical part)")
+    min_uncertainty_deg: float = _p(0.005, "deg", 0.0, 10.0, "Floor of a pair's stated 1-sigma rotation uncertainty")
+    # --- registration from targets (manual method, paper 2.7)
+    manual_max_target_rmse_m: float = _p(0.10, "m", 0.001, 10.0, "Largest RMS residual of the target fit (more: target ids mixed up or targets mis-picked); also the inlier distance that finds the suspect targets")
+    manual_max_icp_rotation_deg: float = _p(5.0, "deg", 0.01, 180.0, "ICP may turn the target fit by at most this much (more: the targets and the clouds disagree)")
+    manual_min_target_spread_m: float = _p(0.02, "m", 0.0, 10.0, "Shared targets closer than this (RMS) to one straight line are refused: they leave the rotation about it undetermined")
 
     def _check(self) -> None:
         for name in ("slice_offsets_m", "icp_max_distances_m", "auto_vop_radii_m"):

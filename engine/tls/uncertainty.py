@@ -21,12 +21,9 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
+from .params import RegistrationParams
+
 __all__ = ["rigid_fit_2d", "pair_uncertainty", "propagate_uncertainty"]
-
-#: Floors: no registration is stated better than this (the ICP voxel grid, the VOP step).
-MIN_TRANSLATION_M = 0.002
-MIN_ROTATION_DEG = 0.005
-
 
 def rigid_fit_2d(source: np.ndarray, target: np.ndarray, weights: Optional[np.ndarray] = None) -> tuple[float, np.ndarray]:
     """Least-squares 2D rotation (radians, counter-clockwise) and translation with
@@ -51,6 +48,8 @@ def pair_uncertainty(
     icp_std_m: float = 0.0,
     samples: int = 200,
     seed: int = 0,
+    floor_m: float = RegistrationParams().min_uncertainty_m,
+    floor_deg: float = RegistrationParams().min_uncertainty_deg,
 ) -> dict[str, Any]:
     """1-sigma uncertainty of a pair registration from its matched trunks.
 
@@ -60,6 +59,8 @@ def pair_uncertainty(
     moved_xy : (n, 2) their moving partners moved by the final transform (same frame).
     scanner_xy : (2,) the moving scanner in that frame (where the translation error is stated).
     icp_std_m : the ICP residual spread (m), a floor for the vertical part.
+    floor_m, floor_deg : no registration is stated better than this (the ICP voxel grid, the VOP
+        step: :attr:`RegistrationParams.min_uncertainty_m` and ``min_uncertainty_deg``).
 
     Returns
     -------
@@ -71,7 +72,7 @@ def pair_uncertainty(
     mov = np.asarray(moved_xy, dtype=float).reshape(-1, 2)
     s = np.asarray(scanner_xy, dtype=float).reshape(2)
     n = len(ref)
-    vertical = max(MIN_TRANSLATION_M, 0.25 * float(icp_std_m))
+    vertical = max(floor_m, 0.25 * float(icp_std_m))
     if n < 3:
         return {
             "translation_m": None, "rotation_deg": None, "pairs": n,
@@ -100,8 +101,8 @@ def pair_uncertainty(
     heading = float(np.hypot(correction_deg, boot_deg))
     tilt = np.degrees(vertical / max(np.hypot(*s), 20.0))
     return {
-        "translation_m": max(MIN_TRANSLATION_M, float(np.hypot(horizontal, vertical))),
-        "rotation_deg": max(MIN_ROTATION_DEG, float(np.hypot(heading, tilt))),
+        "translation_m": max(floor_m, float(np.hypot(horizontal, vertical))),
+        "rotation_deg": max(floor_deg, float(np.hypot(heading, tilt))),
         "horizontal_m": horizontal,
         "vertical_m": vertical,
         "heading_deg": heading,
