@@ -368,7 +368,8 @@ def register_manual(
         lie within ``params.manual_min_target_spread_m`` of one line, when the target fit's RMS
         residual exceeds ``params.manual_max_target_rmse_m`` (the reason names the suspect
         targets), when ICP moves the fit by more than ``params.icp_max_correction_m`` or turns it
-        by more than ``params.manual_max_icp_rotation_deg``, or when ICP's fitness is below ``params.icp_min_fitness`` (as in ``register``).
+        by more than ``params.manual_max_icp_rotation_deg``, or when ICP's fitness is below
+        ``params.icp_min_fitness`` (as in ``register``).
 
     Malformed target coordinates raise :class:`TargetError`.
     """

@@ -25,6 +25,7 @@ from .params import RegistrationParams
 
 __all__ = ["rigid_fit_2d", "pair_uncertainty", "propagate_uncertainty"]
 
+
 def rigid_fit_2d(source: np.ndarray, target: np.ndarray, weights: Optional[np.ndarray] = None) -> tuple[float, np.ndarray]:
     """Least-squares 2D rotation (radians, counter-clockwise) and translation with
     ``target ~ Rot(angle) @ source + t`` (Kabsch in the plane)."""
