@@ -207,7 +207,7 @@ def test_a_killed_worker_loses_no_plot(small_plots, tmp_path):
             for note in sorted((out / ".forestreg-batch").glob("*.json")) if (out / ".forestreg-batch").is_dir() else []:
                 try:
                     attempt = json.loads(note.read_text())["attempts"][-1]
-                    children = psutil.Process(attempt["pid"]).children()
+                    children = [c for c in psutil.Process(attempt["pid"]).children() if "forestreg.cli" in " ".join(c.cmdline())]
                 except (ValueError, KeyError, psutil.Error):
                     continue
                 # the plot's command is running and has registered a link: kill its worker now
