@@ -70,17 +70,13 @@ class ChangeSummary:
     def of(cls, d) -> "ChangeSummary":
         from ..engine.core.outcome import OutcomeRecord
 
+        from .saved import count_or_none, finite_or_none, mapping_or_empty
+
         rec = OutcomeRecord.from_dict(d)
-        trees = rec.get("trees") if isinstance(rec.get("trees"), dict) else {}
-        unc = rec.get("uncertainty") if isinstance(rec.get("uncertainty"), dict) else {}
-        stems = rec.evidence.get("persisting_stems")
-
-        def number(v):
-            return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
-
-        return cls(rec.status, rec.reason, None if number(stems) is None else int(stems),
-                   *(int(trees.get(k) or 0) for k in ("persisting", "removed", "new", "outside")),
-                   number(unc.get("translation_m")), number(unc.get("rotation_deg")))
+        trees, unc = mapping_or_empty(rec.get("trees")), mapping_or_empty(rec.get("uncertainty"))
+        return cls(rec.status, rec.reason, count_or_none(rec.evidence.get("persisting_stems")),
+                   *(count_or_none(trees.get(k)) or 0 for k in ("persisting", "removed", "new", "outside")),
+                   finite_or_none(unc.get("translation_m")), finite_or_none(unc.get("rotation_deg")))
 
     @property
     def ok(self) -> bool:

@@ -19,6 +19,7 @@ from typing import Any, Optional
 import numpy as np
 
 from .common import UNITS, RunOutcome, outcome_of, run_summary, with_cancel
+from .saved import count_or_none, finite_or_none, mapping_or_empty
 
 log = logging.getLogger("forestreg")
 
@@ -44,17 +45,6 @@ class CoregistrationOutcome(RunOutcome):
     def figures(self) -> "CoregistrationSummary":
         """The ``result.json`` summary, typed."""
         return CoregistrationSummary.of(self.to_dict())
-
-
-def _number(value) -> Optional[float]:
-    """A finite number as float, else None (a saved figure may be missing, null or text)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None
-    return float(value) if np.isfinite(value) else None
-
-
-def _mapping(value) -> dict:
-    return dict(value) if isinstance(value, dict) else {}
 
 
 @dataclass(frozen=True)
@@ -95,21 +85,20 @@ class CoregistrationSummary:
 
         rec = OutcomeRecord.from_dict(d)
         data = rec.data
-        kp = _mapping(data.get("keypoints"))
-        res = _mapping(data.get("residuals_after_icp_m")) or _mapping(data.get("residuals_m"))
-        icp = _mapping(data.get("icp"))
-        errors = _mapping(data.get("standard_errors")) or _mapping(data.get("uncertainty"))
-        count = [_number(v) for v in (kp.get("ground"), kp.get("uav"), data.get("matched"))]
+        kp = mapping_or_empty(data.get("keypoints"))
+        res = mapping_or_empty(data.get("residuals_after_icp_m")) or mapping_or_empty(data.get("residuals_m"))
+        icp = mapping_or_empty(data.get("icp"))
+        errors = mapping_or_empty(data.get("standard_errors")) or mapping_or_empty(data.get("uncertainty"))
         return cls(rec.status, rec.reason, rec.matrix, str(data.get("ground") or ""), str(data.get("uav") or ""),
                    str(data.get("ground_file") or ""), str(data.get("uav_file") or ""),
-                   *(None if c is None else int(c) for c in count),
-                   matching_percentage=_number(data.get("matching_percentage")),
-                   surface_correlation=_number(data.get("surface_correlation")),
-                   alternative_correlation=_number(data.get("alternative_correlation")),
-                   heading_deg=_number(data.get("heading_deg")), residual_mean_m=_number(res.get("mean")),
-                   residual_rms_m=_number(res.get("rms")), icp_fitness=_number(icp.get("fitness")), icp_std_m=_number(icp.get("std_m")),
-                   standard_errors={str(k): float(v) for k, v in errors.items() if _number(v) is not None},
-                   total_s=_number(rec.timings.get("total_s")))
+                   count_or_none(kp.get("ground")), count_or_none(kp.get("uav")), count_or_none(data.get("matched")),
+                   matching_percentage=finite_or_none(data.get("matching_percentage")),
+                   surface_correlation=finite_or_none(data.get("surface_correlation")),
+                   alternative_correlation=finite_or_none(data.get("alternative_correlation")),
+                   heading_deg=finite_or_none(data.get("heading_deg")), residual_mean_m=finite_or_none(res.get("mean")),
+                   residual_rms_m=finite_or_none(res.get("rms")), icp_fitness=finite_or_none(icp.get("fitness")), icp_std_m=finite_or_none(icp.get("std_m")),
+                   standard_errors={str(k): float(v) for k, v in errors.items() if finite_or_none(v) is not None},
+                   total_s=finite_or_none(rec.timings.get("total_s")))
 
     @property
     def ok(self) -> bool:

@@ -42,6 +42,7 @@ def register_pair(
     ups: Sequence = (),
     units: str = "m",
     write_registered: bool = False,
+    scanner_params=None,
     progress=None,
     cancel=None,
 ) -> PairOutcome:
@@ -49,7 +50,9 @@ def register_pair(
     a transaction (``None``: nothing written). ``positions`` (0-2 scanner positions in file
     coordinates) and ``ups`` (0-2 vertical directions) are for the reference, then the moving scan.
     Raises on bad input (:class:`~forestreg.engine.core.errors.UsageError`, ...); a pair the data
-    do not allow comes back as a failed outcome with the reason."""
+    do not allow comes back as a failed outcome with the reason. ``scanner_params``: the
+    :class:`~forestreg.engine.tls.params.ScannerPositionParams` of a scan whose file does not
+    say where its scanner stood."""
     from concurrent.futures import ThreadPoolExecutor
 
     from ..engine.core.atomic import check_output_folder
@@ -96,7 +99,7 @@ def register_pair(
             del job
             # no scanner position given and the file origin is not the scanner (project/UTM
             # exports): find it from the data, or refuse with the reason
-            scan = locate_scanner(scan)
+            scan = locate_scanner(scan, scanner_params)
             check_near_scanner(scan, params.max_range_m, path, units)
             kept[role] = scan.without_points()
             if role == "moving" and write_registered:

@@ -11,7 +11,6 @@ registers it and writes the products (``forestreg plot``, ``project run``);
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,22 +19,12 @@ from typing import Any, Callable, Optional, Sequence
 from ..engine.tls.plot import PlotOutcome, ScanCache, default_links, pose_uncertainty  # noqa: F401 - the plot's types, for the front doors
 from ..engine.tls.project import Link, Project, ScanEntry  # noqa: F401 - the saved plot project
 from .common import RunOutcome, check_near_scanner, check_replaceable_point_file, import_in_background, with_cancel
+from .saved import count_or_none, finite_or_none, mapping_or_empty
 
 log = logging.getLogger("forestreg")
 
 #: Point files a merged cloud may be written as.
 POINT_SUFFIXES = (".laz", ".las", ".ply", ".xyz", ".txt")
-
-
-def _number(value) -> Optional[float]:
-    """A finite number as float, else None (a saved figure may be missing, null or text)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None
-    return float(value) if math.isfinite(value) else None
-
-
-def _mapping(value) -> Mapping:
-    return value if isinstance(value, Mapping) else {}
 
 
 @dataclass(frozen=True)
@@ -53,7 +42,7 @@ class PoseSigma:
     def of(cls, d) -> Optional["PoseSigma"]:
         if not isinstance(d, Mapping) or not d:
             return None
-        return cls(_number(d.get("translation_m")), _number(d.get("rotation_deg")), str(d.get("method") or ""), bool(d.get("fixed")))
+        return cls(finite_or_none(d.get("translation_m")), finite_or_none(d.get("rotation_deg")), str(d.get("method") or ""), bool(d.get("fixed")))
 
     @property
     def known(self) -> bool:
@@ -72,7 +61,7 @@ class DroppedLink:
 def dropped_links(project) -> tuple[DroppedLink, ...]:
     """The links the survey adjustment of ``project`` dropped (empty without one)."""
     return tuple(DroppedLink(str(d.get("moving")), str(d.get("reference")), str(d.get("reason") or ""))
-                 for d in _mapping(project.adjustment).get("dropped") or [] if isinstance(d, Mapping))
+                 for d in mapping_or_empty(project.adjustment).get("dropped") or [] if isinstance(d, Mapping))
 
 
 @dataclass(frozen=True)
@@ -90,11 +79,10 @@ class ScanQuality:
 def scan_quality(project) -> dict[str, ScanQuality]:
     """Scan name -> :class:`ScanQuality` from the project's survey adjustment (empty without one)."""
     found = {}
-    for name, q in _mapping(_mapping(project.adjustment).get("quality")).items():
-        q = _mapping(q)
-        dropped = q.get("dropped_links")
-        found[str(name)] = ScanQuality(_number(q.get("terrain_median_m")), _number(q.get("max_ambiguity")),
-                                       _number(q.get("max_residual_m")), int(dropped) if _number(dropped) is not None else None)
+    for name, q in mapping_or_empty(mapping_or_empty(project.adjustment).get("quality")).items():
+        q = mapping_or_empty(q)
+        found[str(name)] = ScanQuality(finite_or_none(q.get("terrain_median_m")), finite_or_none(q.get("max_ambiguity")),
+                                       finite_or_none(q.get("max_residual_m")), count_or_none(q.get("dropped_links")))
     return found
 
 
@@ -142,13 +130,12 @@ def link_summary(link) -> Optional[LinkSummary]:
     if link is None or link.result is None:
         return None
     r = link.result
-    icp, quality = _mapping(r.get("icp")), _mapping(r.get("quality"))
-    vops = [_number(r.get(k)) for k in ("reference_vops", "moving_vops")]
-    return LinkSummary(link.reference, r.status, r.get("matched"), _number(icp.get("std_m")), r.reason,
-                       icp_fitness=_number(icp.get("fitness")), vop_radius_m=_number(r.get("vop_radius_m")),
-                       reference_vops=None if vops[0] is None else int(vops[0]), moving_vops=None if vops[1] is None else int(vops[1]),
-                       vop_residual_m=_number(r.get("vop_residual_m")), uncertainty=PoseSigma.of(r.get("uncertainty")),
-                       terrain_median_m=_number(quality.get("terrain_median_m")), ambiguity=_number(quality.get("ambiguity")),
+    icp, quality = mapping_or_empty(r.get("icp")), mapping_or_empty(r.get("quality"))
+    return LinkSummary(link.reference, r.status, r.get("matched"), finite_or_none(icp.get("std_m")), r.reason,
+                       icp_fitness=finite_or_none(icp.get("fitness")), vop_radius_m=finite_or_none(r.get("vop_radius_m")),
+                       reference_vops=count_or_none(r.get("reference_vops")), moving_vops=count_or_none(r.get("moving_vops")),
+                       vop_residual_m=finite_or_none(r.get("vop_residual_m")), uncertainty=PoseSigma.of(r.get("uncertainty")),
+                       terrain_median_m=finite_or_none(quality.get("terrain_median_m")), ambiguity=finite_or_none(quality.get("ambiguity")),
                        retried=len(r.get("retried_after") or ()))
 
 
@@ -225,10 +212,12 @@ def check_extra_outputs(inputs: Sequence, *, merged=None, e57_out=None, register
 def new_project(
     scans: Sequence, params, *, name: str = "plot", centre: Optional[str] = None, tilted: Sequence[str] = (),
     targets: Optional[str] = None, positions: Optional[str] = None, prior_poses: Optional[str] = None, fixed: Sequence[str] = (),
+    scanner_params=None,
 ):
     """A new :class:`~forestreg.engine.tls.project.Project` from scan files (or one multi-scan
     E57 file), the centre scan, tilted marks (``SCAN[:PARTNER],...``), a targets CSV, scanner
-    positions, prior poses and fixed scans. A name that is not one of the scans raises
+    positions, prior poses, fixed scans and the scanner-position settings (``scanner_params``, for
+    scans whose files do not say where their scanner stood). A name that is not one of the scans raises
     :class:`~forestreg.engine.core.errors.UsageError`."""
     from ..engine.core.errors import UsageError
     from .survey import survey_inputs
@@ -242,6 +231,8 @@ def new_project(
         project = Project(name=name, params=params)
         for path in scans:
             project.add_scan(path)
+    if scanner_params is not None:
+        project.scanner_params = scanner_params
     names = {Path(p).name: s.name for p, s in zip(scans, project.scans)} if len(scans) == len(project.scans) else {}
 
     def known(name: str, option: str) -> str:
@@ -342,10 +333,12 @@ def register_plot_project(project, scans=None, *, rerun: bool = False, progress=
 
 def run_plot(
     project, out: Path, *, scans=None, pairs: Optional[str] = None, fixed: Sequence[str] = (), rerun: bool = False,
-    loops: Optional[float] = None, merged=None, registered_dir=None, e57_out=None, progress=None, cancel=None,
+    loops: Optional[float] = None, merged=None, registered_dir=None, e57_out=None, survey=None, progress=None, cancel=None,
 ) -> PlotRun:
     """Register the project (``pairs``: every pair with a pose graph, see
-    :mod:`forestreg.app.survey`; ``loops``: also link scans within that many metres), then write
+    :mod:`forestreg.app.survey`, with the other settings of ``survey``, a
+    :class:`~forestreg.engine.tls.params.SurveyParams`; ``loops``: also link scans within that
+    many metres), then write
     poses, transforms and the report into ``out`` (each product replaced by one rename, poses.json
     last) and the extra products asked for."""
     import tempfile
@@ -363,7 +356,7 @@ def run_plot(
     if pairs:
         from .survey import register_survey
 
-        outcome = register_survey(project, pairs, fixed=fixed, rerun=rerun, scans=scans, progress=step)
+        outcome = register_survey(project, pairs, fixed=fixed, rerun=rerun, scans=scans, progress=step, base=survey)
     else:
         outcome = register_project(project, rerun=rerun, progress=step, scans=scans, cancel=cancel)
     if loops and not pairs:

@@ -1,11 +1,13 @@
 """What a finished run left in its output folder, read back as typed records: ``result.json`` (a
-pair registration, a co-registration, a re-survey), ``poses.json`` (a plot) and the scanner
-positions of ``project.json``.
+pair registration, a co-registration, a re-survey), ``poses.json`` (a plot) and ``project.json``
+(its scans' files and scanner positions, each link's last status).
 
 These readers use the standard library alone: the plugin hosts (QGIS, CloudCompare) read a job's
 folder with them in a Python that has no NumPy, and the batch runner and the job service read the
 same folders with them. Matrices are 4x4 nested lists of floats; a result's verdict is the one its
-writer recorded (the writer applied the last rigid check).
+writer recorded (the writer applied the last rigid check). :func:`finite_or_none`,
+:func:`count_or_none` and :func:`mapping_or_empty` read one saved figure or section; every typed
+record of :mod:`forestreg.app` reads its figures with them.
 """
 
 from __future__ import annotations
@@ -50,16 +52,22 @@ def _matrix(value: Any) -> Optional[Matrix]:
     return rows
 
 
-def _finite(value: Any) -> Optional[float]:
-    """A finite number as float, else None."""
+def finite_or_none(value: Any) -> Optional[float]:
+    """A saved figure as a float: None when it is missing, null, text, a boolean or not finite."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         return None
     return float(value)
 
 
-def _count(value: Any) -> Optional[int]:
-    v = _finite(value)
+def count_or_none(value: Any) -> Optional[int]:
+    """A saved count as an int (None as :func:`finite_or_none`)."""
+    v = finite_or_none(value)
     return None if v is None else int(v)
+
+
+def mapping_or_empty(value: Any) -> Mapping:
+    """A saved section (a JSON object), or an empty one when it is missing or not an object."""
+    return value if isinstance(value, Mapping) else {}
 
 
 @dataclass(frozen=True)
@@ -86,8 +94,8 @@ class SavedResult:
         trees = d.get("trees") if isinstance(d.get("trees"), Mapping) else {}
         icp = d.get("icp") if isinstance(d.get("icp"), Mapping) else {}
         return cls(status, reason, matrix if status == "ok" else None, str(d.get("reference") or ""), str(d.get("moving") or ""),
-                   _count(d.get("matched")), _finite(icp.get("std_m")),
-                   {str(k): int(v) for k, v in trees.items() if _count(v) is not None})
+                   count_or_none(d.get("matched")), finite_or_none(icp.get("std_m")),
+                   {str(k): int(v) for k, v in trees.items() if count_or_none(v) is not None})
 
     @classmethod
     def read(cls, path: PathLike) -> "SavedResult":
@@ -146,11 +154,54 @@ class SavedPoses:
         return "; ".join(f"{s.name}: {s.reason or 'not registered'}" for s in self.not_registered)
 
 
+@dataclass(frozen=True)
+class SavedScan:
+    """One scan of a ``project.json``: its name, its file (resolved against the project's folder)
+    and the scanner position given for it (file coordinates; None when not given)."""
+
+    name: str
+    path: Path
+    scanner_position: Optional[tuple[float, float, float]] = None
+
+
+@dataclass(frozen=True)
+class SavedProject:
+    """A plot's ``project.json``: its scans and the status of each link's last run ("" when the
+    link has not run)."""
+
+    scans: tuple[SavedScan, ...] = ()
+    link_statuses: tuple[str, ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], folder: PathLike = ".") -> "SavedProject":
+        """The project of a ``project.json`` dict whose relative paths start at ``folder``;
+        :class:`SavedFileError` when a scan has no file or a position is not three numbers."""
+        scans = []
+        for s in d.get("scans") or []:
+            s = mapping_or_empty(s)
+            if not isinstance(s.get("path"), str):
+                raise SavedFileError(f"project: scan {s.get('name')!r} has no file")
+            position = s.get("scanner_position")
+            try:
+                xyz = tuple(float(v) for v in position[:3]) if position else None
+            except (TypeError, ValueError) as exc:
+                raise SavedFileError(f"project: scan {s.get('name')!r}: the scanner position is not three numbers") from exc
+            scans.append(SavedScan(str(s.get("name") or ""), (Path(folder) / s.get("path")).resolve(), xyz))
+        links = [mapping_or_empty(link) for link in d.get("links") or [] if isinstance(link, Mapping)]
+        return cls(tuple(scans), tuple(str(mapping_or_empty(link.get("result")).get("status") or "") for link in links))
+
+    @classmethod
+    def read(cls, path: PathLike) -> "SavedProject":
+        """Read a ``project.json`` (:class:`SavedFileError` when missing, unreadable or malformed)."""
+        return cls.from_dict(read_json_object(path), Path(path).parent)
+
+    @property
+    def links_ok(self) -> int:
+        """Links whose last run succeeded."""
+        return sum(1 for status in self.link_statuses if status == "ok")
+
+
 def read_scanner_positions(project_file: PathLike) -> dict[str, tuple[float, float, float]]:
     """Scan name -> the scanner position given in a ``project.json`` (file coordinates; scans
     without one are left out)."""
-    positions = {}
-    for s in read_json_object(project_file).get("scans") or []:
-        if isinstance(s, Mapping) and s.get("scanner_position"):
-            positions[str(s.get("name"))] = tuple(float(v) for v in s.get("scanner_position")[:3])
-    return positions
+    return {s.name: s.scanner_position for s in SavedProject.read(project_file).scans if s.scanner_position is not None}

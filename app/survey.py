@@ -48,19 +48,22 @@ def fixed_names(project, fixed: Sequence[str] = ()) -> tuple[str, ...]:
     return tuple(names.get(n.strip(), n.strip()) for n in ",".join(fixed or []).split(",") if n.strip())
 
 
-def survey_params(pairs: str, project, fixed: Sequence[str] = ()):
-    """The :class:`~forestreg.engine.tls.survey.SurveyParams` of ``pairs`` ("all", "within:D",
-    "centre") with the fixed scans."""
-    from ..engine.tls.survey import SurveyParams, parse_pairs
+def survey_params(pairs: str, project, fixed: Sequence[str] = (), base=None):
+    """The :class:`~forestreg.engine.tls.params.SurveyParams` of ``pairs`` ("all", "within:D",
+    "centre") with the fixed scans, the other settings from ``base`` (default the defaults)."""
+    from ..engine.tls.params import SurveyParams
+    from ..engine.tls.survey import parse_pairs
 
     which, distance = parse_pairs(pairs)
-    return SurveyParams(pairs=which, max_distance_m=distance, fixed=fixed_names(project, fixed))
+    base = base or SurveyParams()
+    return base.replace(pairs=which, max_distance_m=distance if which == "within" else base.max_distance_m, fixed=fixed_names(project, fixed))
 
 
-def register_survey(project, pairs: str, *, fixed: Sequence[str] = (), rerun: bool = False, scans=None, progress=None, cancel=None):
+def register_survey(project, pairs: str, *, fixed: Sequence[str] = (), rerun: bool = False, scans=None, progress=None, cancel=None, base=None):
     """Register every pair the survey asks for, solve the pose graph and record the uncertainty
-    in the project; returns the engine's :class:`~forestreg.engine.tls.plot.PlotOutcome`."""
+    in the project (``base``: the other :class:`~forestreg.engine.tls.params.SurveyParams`);
+    returns the engine's :class:`~forestreg.engine.tls.plot.PlotOutcome`."""
     from ..engine.tls.survey import register_survey as run
     from .common import with_cancel
 
-    return run(project, survey_params(pairs, project, fixed), rerun=rerun, progress=with_cancel(progress, cancel), scans=scans)
+    return run(project, survey_params(pairs, project, fixed, base), rerun=rerun, progress=with_cancel(progress, cancel), scans=scans)

@@ -7,14 +7,14 @@ from __future__ import annotations
 
 def cache_folder():
     """The per-version kernel cache folder (or None: kernels compiled in memory)."""
-    from ..engine.geometry.jit import kernel_cache_dir
+    from ..engine.core.jit import kernel_cache_dir
 
     return kernel_cache_dir()
 
 
 def cache_is_warm() -> bool:
     """Whether a warm-up completed for this version."""
-    from ..engine.geometry.jit import cache_is_warm as warm
+    from ..engine.core.jit import cache_is_warm as warm
 
     return warm()
 
@@ -26,7 +26,7 @@ def mark_cache_warm() -> None:
     import os
 
     from ..engine.core.atomic import write_text_atomic
-    from ..engine.geometry.jit import WARM_MARK, kernel_cache_dir, warm_record
+    from ..engine.core.jit import WARM_MARK, kernel_cache_dir, warm_record
 
     folder = kernel_cache_dir()
     if folder:
@@ -36,7 +36,7 @@ def mark_cache_warm() -> None:
 
 def compiled() -> tuple[int, int]:
     """(signatures, kernels) compiled in this process."""
-    from ..engine.geometry.jit import kernels
+    from ..engine.core.jit import kernels
 
     done = [k for k in kernels() if k.signatures]
     return sum(len(k.signatures) for k in done), len(done)

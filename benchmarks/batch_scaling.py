@@ -35,6 +35,12 @@ from typing import Any, Optional
 
 import numpy as np
 
+if __package__:
+    from . import peers
+else:  # run as a script
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import peers  # type: ignore[no-redef]
+
 POSITIONS = [(0.0, 0.0), (9.0, 4.0), (-3.0, 9.0)]
 PRESET = "planted_conifer"
 STEP_DEG = 0.25
@@ -168,10 +174,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--json", type=Path, help="also write the row to this JSON file")
     args = ap.parse_args(argv)
     row = run(args.workdir, rounds=args.rounds, plots=args.plots)
-    print(format_row(row))
-    if args.json:
-        args.json.write_text(json.dumps(row, indent=2) + "\n")
-    return 0
+    return peers.show_rows(format_row(row), row, args.json)
 
 
 if __name__ == "__main__":

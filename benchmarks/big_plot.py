@@ -204,6 +204,4 @@ if __name__ == "__main__":
     ap.add_argument("--json", type=Path, help="also write the row to this JSON file")
     args = ap.parse_args()
     row = run(args.scans, args.copies, args.workdir)
-    print(format_row(row))
-    if args.json:
-        args.json.write_text(json.dumps(row, indent=2) + "\n")
+    peers.show_rows(format_row(row), row, args.json)

@@ -12,7 +12,6 @@ resident memory is the operating system's accounting (``os.wait4``). Run::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -35,11 +34,7 @@ def densify(source: Path, target: Path, copies: int, jitter_m: float = 0.002, se
     import laspy
 
     rng = np.random.default_rng(seed)
-    with laspy.open(str(source)) as reader:
-        base = reader.read()
-    header = laspy.LasHeader(point_format=base.header.point_format, version=base.header.version)
-    header.offsets = base.header.offsets
-    header.scales = base.header.scales
+    base, header = peers.read_laz_like(source)
     total = 0
     with laspy.open(str(target), mode="w", header=header, do_compress=True) as writer:
         for _ in range(copies):
@@ -98,6 +93,4 @@ if __name__ == "__main__":
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     row = run(args.copies, args.workdir)
-    print(format_row(row))
-    if args.json:
-        args.json.write_text(json.dumps(row, indent=2) + "\n")
+    peers.show_rows(format_row(row), row, args.json)

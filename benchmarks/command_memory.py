@@ -17,7 +17,6 @@ Run from the repository root: ``python -m benchmarks.command_memory [--runs 3] [
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import subprocess
 import sys
@@ -110,10 +109,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--json", type=Path, help="also write the rows to this JSON file")
     args = ap.parse_args(argv)
     rows = run(args.runs)
-    print(format_rows(rows))
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=2) + "\n")
-    return 0
+    return peers.show_rows(format_rows(rows), rows, args.json)
 
 
 if __name__ == "__main__":

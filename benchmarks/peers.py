@@ -54,6 +54,28 @@ QUICK_PAIRS = PAIRS[:1]
 #: library and loaded kernels, the figure), set beside Sylva's peak on the largest pair.
 FLOOR_PAIR = ("0.12 M + 0.12 M points (0.5 deg)", "mixed_temperate", 0.5, "-6,0;6,0", 3)
 
+def show_rows(text: str, rows: Any, json_path: Optional[Path], **dump: Any) -> int:
+    """Print a benchmark's table ``text`` and, with ``json_path``, keep its ``rows`` there as JSON
+    (``dump``: options of ``json.dumps``; indent 2 unless given). Returns the exit code, 0."""
+    print(text)
+    if json_path:
+        json_path.write_text(json.dumps(rows, **{"indent": 2, **dump}) + "\n")
+    return 0
+
+
+def read_laz_like(source: Path) -> tuple[Any, Any]:
+    """The points of the LAS/LAZ file ``source`` and a new header in its point format, version,
+    offsets and scales: points written under it stay in the source's frame and resolution."""
+    import laspy
+
+    with laspy.open(str(source)) as reader:
+        base = reader.read()
+    header = laspy.LasHeader(point_format=base.header.point_format, version=base.header.version)
+    header.offsets = base.header.offsets
+    header.scales = base.header.scales
+    return base, header
+
+
 
 @dataclass
 class Run:

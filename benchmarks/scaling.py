@@ -31,7 +31,6 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import statistics
 import sys
@@ -67,11 +66,7 @@ def resize(source: Path, target: Path, n_points: int, seed: int = 0, jitter_m: f
     import laspy
 
     rng = np.random.default_rng(seed)
-    with laspy.open(str(source)) as reader:
-        base = reader.read()
-    header = laspy.LasHeader(point_format=base.header.point_format, version=base.header.version)
-    header.offsets = base.header.offsets
-    header.scales = base.header.scales
+    base, header = peers.read_laz_like(source)
     n_base = len(base.points)
     steps = np.round(jitter_m / base.header.scales).astype(np.int64)
     left = int(n_points)
@@ -213,10 +208,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     sizes = QUICK_SIZES_M if args.quick else tuple(float(s) for s in args.sizes.split(","))
     rows = run(sizes, args.runs, args.workdir)
     print()
-    print(format_rows(rows))
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=2) + "\n")
-    return 0
+    return peers.show_rows(format_rows(rows), rows, args.json)
 
 
 if __name__ == "__main__":

@@ -272,7 +272,7 @@ def _one_blas_thread() -> None:
     the ``forestreg`` process; a user's ``OPENBLAS_NUM_THREADS`` is kept. Does nothing once NumPy
     is imported (the variable is read when the library loads).
 
-    The engine runs its own threads, one per core (:mod:`forestreg.engine.geometry.jit`), and its
+    The engine runs its own threads, one per core (:mod:`forestreg.engine.core.jit`), and its
     algebra is on 3 x 3 and N x 3 arrays, which OpenBLAS's threads do not speed up. Those threads
     start when NumPy and SciPy are imported and wait busily: measured, 0.25 s of CPU taken from
     the reading of the scans in every command. A/B in turns: the 3 M-point pair 3.56-3.87 ->

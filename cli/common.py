@@ -182,7 +182,7 @@ def progress_mode(args: argparse.Namespace) -> str:
 # ----------------------------------------------------------------------------- parameters
 
 
-PARAMS_HELP = "TOML parameter file: any of the sections [registration], [coregistration], [fusion], [trees] (see 'forestreg params --toml'); options given on the command line win"
+PARAMS_HELP = "TOML parameter file: any of the sections [registration], [scanner_position], [survey], [coregistration], [fusion], [trees], [change] (see 'forestreg params --toml'); options given on the command line win"
 
 
 def product_params(args: argparse.Namespace):
@@ -190,6 +190,12 @@ def product_params(args: argparse.Namespace):
     from ..engine.params import ProductParams, load_params
 
     return load_params(args.params) if getattr(args, "params", None) else ProductParams()
+
+
+def file_section(args: argparse.Namespace, name: str):
+    """The section ``name`` of the TOML file of ``--params`` (e.g. ``scanner_position``,
+    ``survey``); None without a file (the use case then takes its defaults)."""
+    return getattr(product_params(args), name) if getattr(args, "params", None) else None
 
 
 def params_from_args(args: argparse.Namespace):

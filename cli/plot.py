@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import PARAMS_HELP, number, offsets, params_from_args, run_outcome, say, shown
+from .common import PARAMS_HELP, file_section, number, offsets, params_from_args, run_outcome, say, shown
 
 def _add_plot_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--centre", help="the centre (root) scan: the project frame (default: the first scan)")
@@ -87,7 +87,7 @@ def project_from_args(args: argparse.Namespace):
     return new_project(args.scans, params_from_args(args), name=Path(args.out).name if getattr(args, "out", None) else "plot",
                        centre=args.centre, tilted=args.tilted or [], targets=getattr(args, "targets", None),
                        positions=getattr(args, "positions", None), prior_poses=getattr(args, "prior_poses", None),
-                       fixed=getattr(args, "fixed", None) or [])
+                       fixed=getattr(args, "fixed", None) or [], scanner_params=file_section(args, "scanner_position"))
 
 
 def check_survey_options(args: argparse.Namespace) -> None:
@@ -108,7 +108,7 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
     reporter = args.reporter
     run = run_outcome(reporter, run_plot, project, out, scans=scans, pairs=getattr(args, "pairs", None),
                       fixed=getattr(args, "fixed", None) or [], rerun=getattr(args, "rerun", False), loops=getattr(args, "loops", None),
-                      **_extra_outputs(args))
+                      survey=file_section(args, "survey"), **_extra_outputs(args))
     outcome = run.result
     for what, (path, count) in run.written.items():
         if what == "merged":

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .common import PARAMS_HELP, UNITS, Reporter, direction, floats, number, offsets, params_from_args, run_outcome, say, shown
+from .common import PARAMS_HELP, UNITS, Reporter, direction, file_section, floats, number, offsets, params_from_args, run_outcome, say, shown
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -36,6 +36,7 @@ def cmd_register(args: argparse.Namespace) -> int:
     return run_register(
         args.reference, args.moving, args.out, params=params_from_args(args), positions=args.scanner_position or [],
         ups=args.up or [], units=args.units, write_registered=args.write_registered, reporter=args.reporter,
+        scanner_params=file_section(args, "scanner_position"),
     )
 
 
@@ -50,6 +51,7 @@ def run_register(
     units: str = "m",
     write_registered: bool = False,
     reporter: Optional[Reporter] = None,
+    scanner_params=None,
 ) -> int:
     """Register ``moving_path`` onto ``reference_path`` into the output folder ``out``
     (:func:`forestreg.app.pair.register_pair`) and print the outcome. Returns the exit code (0 ok,
@@ -58,7 +60,7 @@ def run_register(
 
     reporter = reporter or Reporter("none", "register")
     return print_register(run_outcome(reporter, register_pair, reference_path, moving_path, out, params, positions=positions,
-                                      ups=ups, units=units, write_registered=write_registered), reporter)
+                                      ups=ups, units=units, write_registered=write_registered, scanner_params=scanner_params), reporter)
 
 
 def print_register(outcome, reporter: Reporter) -> int:

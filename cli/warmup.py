@@ -1,7 +1,7 @@
 """``forestreg warmup``: compile every numerical kernel ahead, so that no command pays for it.
 
 The kernels (numba) are compiled for the machine they run on and kept in a per-version cache
-folder (:func:`~forestreg.engine.geometry.jit.kernel_cache_dir`). Without this step the first
+folder (:func:`~forestreg.engine.core.jit.kernel_cache_dir`). Without this step the first
 command after an install compiles the kernels it needs (about 45 s on 2 cores) and says so once.
 The warm-up runs each command once on small simulated data in a temporary folder (the signatures
 the commands use, from the same file readers), then records that the cache is complete.

@@ -4,6 +4,8 @@ Sections (each a :class:`~forestreg.engine.core.params.Params` subclass, default
 tables)::
 
     [registration]            System A pair/plot registration (Guan et al. 2020, table 2)
+    [scanner_position]        where the scanner stood, when a file does not say
+    [survey]                  every pair of a plot, pose graph, loop closure
     [coregistration]          System B ground/UAV co-registration (Fekry et al. 2022, sec. 4.1)
     [coregistration.terrain]  ... with its nested steps ([coregistration.keypoints], ...)
     [fusion]                  redundancy and noise removal (sec. 4.2)
@@ -24,7 +26,7 @@ from .core.params import Params, read_toml
 from .change.params import ChangeParams
 from .coreg.coregister import CoregistrationParams
 from .coreg.fusion import FusionParams
-from .tls.params import RegistrationParams
+from .tls.params import RegistrationParams, ScannerPositionParams, SurveyParams
 from .trees.inventory import TreeParams
 
 __all__ = ["ProductParams", "load_params", "params_toml"]
@@ -35,6 +37,8 @@ class ProductParams(Params):
     """Every parameter of the product, one section per product step."""
 
     registration: RegistrationParams = RegistrationParams()
+    scanner_position: ScannerPositionParams = ScannerPositionParams()
+    survey: SurveyParams = SurveyParams()
     coregistration: CoregistrationParams = CoregistrationParams()
     fusion: FusionParams = FusionParams()
     trees: TreeParams = TreeParams()

@@ -54,7 +54,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
-from ..app.saved import SavedFileError, SavedPoses, SavedResult
+from ..app.saved import SavedFileError, SavedPoses, SavedProject, SavedResult
 
 log = logging.getLogger("forestreg.batch")
 
@@ -401,18 +401,15 @@ def _resume_args(t: PlotTask) -> Optional[tuple[list[str], int, int]]:
             return None
     except (OSError, UnicodeDecodeError):
         return None
-    project = _read_json(out / "project.json")
-    if not isinstance(project, dict):
+    try:
+        project = SavedProject.read(out / "project.json")
+    except SavedFileError:
         return None
     options = [k for k, a in enumerate(t.args) if a.startswith("--")]
     first = options[0] if options else len(t.args)
     scans = {str(Path(a).resolve()) for a in t.args[1:first]}
-    try:
-        saved = {str((out / s["path"]).resolve()) for s in project.get("scans", [])}
-        links = [link for link in project.get("links", []) if isinstance(link, dict)]
-    except (TypeError, KeyError, AttributeError):
-        return None
-    done = sum(1 for link in links if isinstance(link.get("result"), dict) and link["result"].get("status") == "ok")
+    saved = {str(s.path) for s in project.scans}
+    done = project.links_ok
     if saved != scans or not done:
         return None
     args = ["project", "run", str(out / "project.json"), "--out", str(out)]
@@ -426,7 +423,7 @@ def _resume_args(t: PlotTask) -> Optional[tuple[list[str], int, int]]:
         elif option not in _IN_PROJECT and option != "--out":
             return None
         k += len(value)
-    return args, done, len(links)
+    return args, done, len(project.link_statuses)
 
 
 def _note_attempt(t: PlotTask, worker: str) -> tuple[int, str]:

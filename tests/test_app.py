@@ -1,7 +1,7 @@
 """One input, one verdict: pair registration, co-registration and trees run through the command
 line and through the desktop's task code (the functions its workers run) on the same files give
-the same status and the same matrix (the same trees), because both call the same use case of
-:mod:`forestreg.app`."""
+the same status and the same matrix, bit for bit (the same trees, byte for byte), because both call
+the same use case of :mod:`forestreg.app`."""
 
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def test_pair_registration_same_verdict_on_the_command_line_and_the_desktop(pair
     link = project.link_of(project.scans[1].name)
     assert outcome.scans[project.scans[1].name] == cli["status"]
     assert link.result.status == cli["status"]
-    np.testing.assert_allclose(link.result.matrix, np.array(cli["matrix"]), atol=1e-6)
+    np.testing.assert_array_equal(link.result.matrix, np.array(cli["matrix"]))
 
 
 def test_coregistration_same_verdict_on_the_command_line_and_the_desktop(qtbot, coreg_case, tmp_path):
@@ -85,7 +85,7 @@ def test_coregistration_same_verdict_on_the_command_line_and_the_desktop(qtbot, 
     view.run(str(ground), str(uav))
     assert view.shown is not None
     assert view.shown.summary.status == cli["status"]
-    np.testing.assert_allclose(view.shown.matrix, np.array(cli["matrix"]), atol=1e-6)
+    np.testing.assert_array_equal(view.shown.matrix, np.array(cli["matrix"]))
 
 
 def test_coregistration_withheld_matrix_is_withheld_everywhere():
@@ -123,3 +123,31 @@ def test_trees_same_trees_on_the_command_line_and_the_desktop(qtbot, coreg_case,
     assert written == sorted(p.relative_to(desk) for p in desk.rglob("*.csv")) and any(p.parts[0] == "cylinders" for p in written)
     for name in written:
         assert (desk / name).read_bytes() == (out / name).read_bytes(), name
+
+
+def test_typed_records_read_old_damaged_and_withheld_results(tmp_path):
+    """The typed records the front doors read instead of result dicts: a figure missing, null, text
+    or not finite is None (never a crash or a NaN shown as a number), a matrix that is not rigid is
+    withheld, and the standard-library reader of a saved folder says which file is missing."""
+    from forestreg.app.change import ChangeSummary
+    from forestreg.app.coregistration import CoregistrationSummary
+    from forestreg.app.saved import SavedFileError, SavedPoses, SavedResult
+
+    scaled = (1.01 * np.eye(4)).tolist()
+    co = CoregistrationSummary.of({"status": "ok", "matrix": scaled, "matched": "7", "icp": {"std_m": float("nan")},
+                                   "keypoints": None, "surface_correlation": 0.9, "alternative_correlation": 0.4})
+    assert not co.ok and co.matrix is None and "withheld" in co.reason
+    assert co.matched is None and co.icp_std_m is None and co.keypoints_ground is None and co.margin == pytest.approx(0.5)
+    change = ChangeSummary.of({"status": "ok", "matrix": np.eye(4).tolist(), "trees": {"persisting": 3, "new": True},
+                               "evidence": {"persisting_stems": 3}, "uncertainty": {"translation_m": 0.01}})
+    assert change.ok and (change.persisting, change.new, change.trees) == (3, 0, 3) and change.rotation_deg is None
+    saved = SavedResult.from_dict({"status": "ok", "matrix": [[1, 0], [0, 1]], "matched": 12})
+    assert not saved.ok and saved.matrix is None and saved.matched == 12
+    poses = SavedPoses.from_dict({"frame": "a", "scans": {"a": {"status": "centre", "matrix": np.eye(4).tolist()},
+                                                          "b": {"status": "failed", "reason": "too few trunks", "matrix": None}}})
+    assert [s.name for s in poses.not_registered] == ["b"] and poses.reason() == "b: too few trunks"
+    with pytest.raises(SavedFileError, match="result.json is missing"):
+        SavedResult.read(tmp_path / "result.json")
+    (tmp_path / "poses.json").write_text("[1, 2]")
+    with pytest.raises(SavedFileError, match="not a JSON object"):
+        SavedPoses.read(tmp_path / "poses.json")

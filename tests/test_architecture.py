@@ -274,7 +274,9 @@ NOT_RESULTS: dict[str, dict[str, str]] = {
                       "previous": "the batch's own row of a plot done by an earlier run (batch.json)",
                       "rows[name]": "a manifest's CSV row (the user's file)",
                       "(rows or {}).get(name, {})": "a manifest's CSV row (the user's file)",
-                      "client.scheduler_info()": "Dask's scheduler description"},
+                      "client.scheduler_info()": "Dask's scheduler description",
+                      "_read_json(path) or {}": "the batch's own notes of a plot's attempts (.forestreg-batch/<plot>.json)",
+                      "a": "an attempt of those notes (run, worker, pid, start)", "mine[-1]": "the last attempt of this run"},
 }
 
 

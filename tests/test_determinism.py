@@ -233,7 +233,7 @@ def test_every_command_gives_the_same_bytes_five_times(inputs, tmp_path):
 # ----------------------------------------------------------------------------------- kernel cache
 
 _KERNEL_MODULE = '''
-from forestreg.engine.geometry.jit import kernel
+from forestreg.engine.core.jit import kernel
 
 @kernel
 def weighted_sum(a):
@@ -333,11 +333,12 @@ def test_warmup_records_the_kernel_sources_and_is_skipped_while_they_are_unchang
     import numba
 
     from forestreg.cli import main
-    from forestreg.engine.geometry import jit
+    from forestreg.engine.core import jit
+    from forestreg.engine.geometry import voxel
 
     monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path))
     assert jit.kernel_cache_dir() == str(tmp_path) and not jit.cache_is_warm()
-    source = Path(jit.__file__).with_name("voxel.py")
+    source = Path(voxel.__file__)
     (tmp_path / jit.WARM_MARK).write_text(json.dumps({"files": {str(source): hashlib.sha256(source.read_bytes()).hexdigest()}}))
     assert jit.cache_is_warm() and jit.cache_is_warm([str(source)]) and not jit.cache_is_warm([str(source.with_name("icp.py"))])
     assert main(["warmup"]) == 0

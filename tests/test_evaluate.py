@@ -79,23 +79,26 @@ def test_read_table_converts_cm_and_reads_missing(tmp_path):
     np.testing.assert_allclose(t.xy, [[1, 2], [3.5, 4], [5, 6]])
 
 
-def test_wrong_units_and_bad_tables_are_errors(tmp_path):
-    with pytest.raises(TreeTableError, match="centimetres"):
-        read_tree_table(_write(tmp_path / "a.csv", "tree_id,x,y,dbh_m\n1,0,0,0.3\n2,1,1,25.3\n"))
-    with pytest.raises(TreeTableError, match="metres"):
-        read_tree_table(_write(tmp_path / "b.csv", "tree_id,x,y,dbh_cm\n1,0,0,0.3\n2,1,1,0.25\n"))
-    with pytest.raises(TreeTableError, match="height_m"):
-        read_tree_table(_write(tmp_path / "c.csv", "tree_id,x,y,height_m\n1,0,0,1850\n"))
-    with pytest.raises(TreeTableError, match="no unit"):
-        read_tree_table(_write(tmp_path / "d.csv", "tree_id,x,y,dbh\n1,0,0,30\n"))
-    with pytest.raises(TreeTableError, match="missing column"):
-        read_tree_table(_write(tmp_path / "e.csv", "tree_id,x,dbh_m\n1,0,0.3\n"))
-    with pytest.raises(TreeTableError, match="duplicate"):
-        read_tree_table(_write(tmp_path / "f.csv", "tree_id,x,y\n1,0,0\n1,1,1\n"))
-    with pytest.raises(TreeTableError, match="not a number"):
-        read_tree_table(_write(tmp_path / "g.csv", "tree_id,x,y,dbh_m\n1,0,0,thick\n"))
-    with pytest.raises(TreeTableError, match="negative"):
-        read_tree_table(_write(tmp_path / "h.csv", "tree_id,x,y,height_m\n1,0,0,-3\n"))
+#: (what the error says, the table's text): tables a reader must refuse
+BAD_TABLES = (
+    ("centimetres", "tree_id,x,y,dbh_m\n1,0,0,0.3\n2,1,1,25.3\n"),
+    ("metres", "tree_id,x,y,dbh_cm\n1,0,0,0.3\n2,1,1,0.25\n"),
+    ("height_m", "tree_id,x,y,height_m\n1,0,0,1850\n"),
+    ("no unit", "tree_id,x,y,dbh\n1,0,0,30\n"),
+    ("missing column", "tree_id,x,dbh_m\n1,0,0.3\n"),
+    ("duplicate", "tree_id,x,y\n1,0,0\n1,1,1\n"),
+    ("not a number", "tree_id,x,y,dbh_m\n1,0,0,thick\n"),
+    ("negative", "tree_id,x,y,height_m\n1,0,0,-3\n"),
+)
+
+
+@pytest.mark.parametrize("message, text", BAD_TABLES, ids=[m for m, _ in BAD_TABLES])
+def test_wrong_units_and_bad_tables_are_errors(tmp_path, message, text):
+    with pytest.raises(TreeTableError, match=message):
+        read_tree_table(_write(tmp_path / "bad.csv", text))
+
+
+def test_a_missing_table_and_rows_in_the_wrong_unit_are_errors(tmp_path):
     with pytest.raises(TreeTableError, match="does not exist"):
         read_tree_table(tmp_path / "none.csv")
     with pytest.raises(TreeTableError, match="centimetres"):

@@ -33,6 +33,8 @@ CLI = [sys.executable, "-m", "forestreg.cli"]
 
 # the user's-files and one-line checks are the fault suite's own
 from test_faults import _assert_one_line, _error_lines, _hash, _tree  # noqa: E402
+# and the service's life cycle checks the service suite's
+from test_service import _signal_and_wait  # noqa: E402
 
 
 def _env() -> dict:
@@ -45,17 +47,6 @@ def _env() -> dict:
 def _run(*args: str, cwd=None, timeout: float = 600) -> subprocess.CompletedProcess:
     """The CLI as a user runs it (its own process)."""
     return subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, env=_env(), cwd=cwd, timeout=timeout)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:  # a zombie (exited, not yet reaped by its parent) counts as gone
-        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-    except OSError:
-        return True
 
 
 def _unlocked(state: Path) -> bool:
@@ -124,13 +115,7 @@ def _detail(answer: dict) -> str:
 
 def _stop_service(state: Path, timeout: float = 30.0) -> float:
     """SIGTERM the service; seconds until it was gone (fails the test if it stays)."""
-    pid = _pid(state)
-    t0 = time.monotonic()
-    os.kill(pid, signal.SIGTERM)
-    while _alive(pid) and time.monotonic() - t0 < timeout:
-        time.sleep(0.05)
-    assert not _alive(pid), f"the service (pid {pid}) was still alive {timeout:.0f} s after SIGTERM"
-    return time.monotonic() - t0
+    return _signal_and_wait(_pid(state), signal.SIGTERM, timeout)
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from forestreg.engine.geometry.circle import algebraic_circle, fit_circle, ransac_circle, robust_circle
 from forestreg.engine.geometry.cluster import connected_clusters
 from forestreg.engine.geometry.features import eigen_features, local_covariances, normals_and_variation
 from forestreg.engine.geometry.voxel import voxel_centroids, voxel_downsample, voxel_thin
@@ -135,3 +136,40 @@ def test_radix_sort_is_numpys_stable_argsort(key_count):
         assert order.dtype == index_type
         np.testing.assert_array_equal(order, expected)
         np.testing.assert_array_equal(sorted_keys, keys[expected])
+
+
+def _ring(r: float, n: int, noise: float, rng: np.random.Generator, centre=(500000.0, 6000000.0), arc_deg: float = 360.0) -> np.ndarray:
+    a = rng.uniform(0.0, np.radians(arc_deg), n)
+    rr = r + rng.normal(0.0, noise, n)
+    return np.column_stack([centre[0] + rr * np.cos(a), centre[1] + rr * np.sin(a)])
+
+
+def test_circle_fits_recover_a_known_circle_far_from_the_origin():
+    rng = np.random.default_rng(1)
+    exact = _ring(0.2, 50, 0.0, rng)
+    for circle in (algebraic_circle(exact), fit_circle(exact), fit_circle(exact, loss="soft_l1", scale_m=0.005), fit_circle(exact, loss="linear")):
+        np.testing.assert_allclose(circle.centre, (500000.0, 6000000.0), atol=1e-6)
+        assert abs(circle.radius_m - 0.2) < 1e-6 and circle.rms_residual_m < 1e-6 and circle.n_points == 50
+    # a half arc with 3 mm noise: centre and radius within a few millimetres
+    half = _ring(0.3, 200, 0.003, rng, arc_deg=180.0)
+    circle = fit_circle(half)
+    assert abs(circle.radius_m - 0.3) < 0.005 and np.hypot(circle.centre[0] - 500000.0, circle.centre[1] - 6000000.0) < 0.005
+    assert 0.002 < circle.rms_residual_m < 0.004
+    assert algebraic_circle(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]])) is None  # collinear
+    assert algebraic_circle(np.zeros((2, 2))) is None
+
+
+def test_robust_circle_fits_ignore_clutter():
+    rng = np.random.default_rng(2)
+    ring = _ring(0.15, 150, 0.002, rng, centre=(1.0, -2.0))
+    clutter = rng.uniform([0.5, -2.5], [1.5, -1.5], (100, 2))
+    pts = np.vstack([ring, clutter])
+    assert abs(algebraic_circle(pts).radius_m - 0.15) > 0.01  # the plain fit is pulled away
+    found = robust_circle(pts, inlier_tolerance_m=0.01, radius_range_m=(0.02, 1.0), seed=0)
+    assert found is not None
+    circle, n_in = found
+    assert abs(circle.radius_m - 0.15) < 0.003 and np.hypot(circle.centre[0] - 1.0, circle.centre[1] + 2.0) < 0.003
+    assert 150 <= n_in < 170
+    r = ransac_circle(pts, 0.01, 300, (0.02, 1.0), np.random.default_rng(0))
+    assert r is not None and abs(r.radius_m - 0.15) < 0.01
+    assert ransac_circle(pts, 0.01, 300, (5.0, 6.0), np.random.default_rng(0)) is None  # no plausible radius

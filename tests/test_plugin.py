@@ -333,6 +333,33 @@ def _python_with_qgis():
     return None
 
 
+def _qgis_or_skip() -> str:
+    """:func:`_python_with_qgis`, or skip the test."""
+    exe = _python_with_qgis()
+    if exe is None:
+        pytest.skip("qgis.core does not import here (Debian: apt-get install python3-qgis, for /usr/bin/python3)")
+    return exe
+
+
+def _repository_as_plugin(tmp_path: Path) -> Path:
+    """A plugins folder in which QGIS's Python sees the repository as the package ``forestreg``,
+    as from its plugins folder."""
+    plugins = tmp_path / "plugins"
+    plugins.mkdir()
+    (plugins / "forestreg").symlink_to(ROOT, target_is_directory=True)
+    return plugins
+
+
+def _qgis_report(exe: str, script: str, plugins: Path, tmp_path: Path, *args: str, timeout: float = 300) -> dict:
+    """Run ``script`` in QGIS's Python with ``plugins`` on its path; the JSON it printed after
+    ``REPORT`` (the run must succeed)."""
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "PYTHONPATH": str(plugins), "HOME": str(tmp_path)}
+    run = subprocess.run([exe, "-c", script, *args], capture_output=True, text=True, timeout=timeout, env=env, cwd=tmp_path)
+    lines = [l for l in run.stdout.splitlines() if l.startswith("REPORT")]
+    assert run.returncode == 0 and lines, run.stdout[-3000:] + run.stderr[-3000:]
+    return json.loads(lines[-1][len("REPORT"):])
+
+
 QGIS_SCRIPT = r"""
 import json, sys
 sys.path.insert(0, "/usr/share/qgis/python/plugins")
@@ -393,20 +420,10 @@ app.exitQgis()
 
 
 def test_qgis_provider_headless(pair_run, scans, tmp_path):
-    exe = _python_with_qgis()
-    if exe is None:
-        pytest.skip("qgis.core does not import here (Debian: apt-get install python3-qgis, for /usr/bin/python3)")
-    # QGIS's Python sees the repository as the package `forestreg`, as from a plugins folder
-    plugins = tmp_path / "plugins"
-    plugins.mkdir()
-    (plugins / "forestreg").symlink_to(ROOT, target_is_directory=True)
+    exe = _qgis_or_skip()
     params = {"REFERENCE": str(scans / "scan_01.laz"), "MOVING": str(scans / "scan_02.laz"),
               "OUTPUT": str(tmp_path / "out"), "CLI": shlex.join(CLI)}
-    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "PYTHONPATH": str(plugins), "HOME": str(tmp_path)}
-    run = subprocess.run([exe, "-c", QGIS_SCRIPT, json.dumps(params)], capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)
-    lines = [l for l in run.stdout.splitlines() if l.startswith("REPORT")]
-    assert run.returncode == 0 and lines, run.stdout[-3000:] + run.stderr[-3000:]
-    report = json.loads(lines[-1][len("REPORT"):])
+    report = _qgis_report(exe, QGIS_SCRIPT, _repository_as_plugin(tmp_path), tmp_path, json.dumps(params), timeout=600)
     assert report["loaded_by_import_forestreg"] == [] and report["pyside6"] == []
     assert report["algorithms"] == {"forestreg:register_pair": "Register TLS pair (trunk shadows)", "forestreg:register_plot": "Register plot"}
     assert {"REFERENCE", "MOVING", "OUTPUT", "DR"} <= set(report["pair_parameters"])
@@ -479,19 +496,11 @@ app.exitQgis()
 
 
 def test_qgis_plugin_says_when_the_engine_is_missing(tmp_path):
-    exe = _python_with_qgis()
-    if exe is None:
-        pytest.skip("qgis.core does not import here (Debian: apt-get install python3-qgis, for /usr/bin/python3)")
-    plugins = tmp_path / "plugins"
-    plugins.mkdir()
-    (plugins / "forestreg").symlink_to(ROOT, target_is_directory=True)
+    exe = _qgis_or_skip()
+    plugins = _repository_as_plugin(tmp_path)
     command = tmp_path / "forestreg"
     command.write_text("#!/bin/sh\n")
-    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "PYTHONPATH": str(plugins), "HOME": str(tmp_path)}
-    run = subprocess.run([exe, "-c", QGIS_MISSING_SCRIPT, str(command)], capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
-    lines = [l for l in run.stdout.splitlines() if l.startswith("REPORT")]
-    assert run.returncode == 0 and lines, run.stdout[-3000:] + run.stderr[-3000:]
-    report = json.loads(lines[-1][len("REPORT"):])
+    report = _qgis_report(exe, QGIS_MISSING_SCRIPT, plugins, tmp_path, str(command))
     assert len(report["missing"]) == 1 and report["missing"][0][0] == "forestreg"
     assert "forestreg_no_such_module" in report["missing"][0][1] and "pip install" in report["missing"][0][1]
     assert report["installed"] == []
@@ -523,17 +532,11 @@ def test_qgis_loads_the_packaged_zip(tmp_path):
     manager does, loads in QGIS with its Processing provider."""
     import zipfile
 
-    exe = _python_with_qgis()
-    if exe is None:
-        pytest.skip("qgis.core does not import here (Debian: apt-get install python3-qgis, for /usr/bin/python3)")
+    exe = _qgis_or_skip()
     run = subprocess.run([sys.executable, str(ROOT / "scripts" / "package_qgis.py"), "--out", str(tmp_path)], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     plugins = tmp_path / "plugins"
     zipfile.ZipFile(next(tmp_path.glob("forestreg-qgis-*.zip"))).extractall(plugins)
-    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "PYTHONPATH": str(plugins), "HOME": str(tmp_path)}
-    run = subprocess.run([exe, "-c", QGIS_ZIP_SCRIPT], capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
-    lines = [l for l in run.stdout.splitlines() if l.startswith("REPORT")]
-    assert run.returncode == 0 and lines, run.stdout[-3000:] + run.stderr[-3000:]
-    report = json.loads(lines[-1][len("REPORT"):])
+    report = _qgis_report(exe, QGIS_ZIP_SCRIPT, plugins, tmp_path)
     assert Path(report["file"]).resolve().is_relative_to(plugins.resolve())
     assert report["algorithms"] == ["forestreg:register_pair", "forestreg:register_plot"]

@@ -12,6 +12,7 @@ import pytest
 
 from forestreg.engine.core.errors import ParameterError, ScanDataError, ScanReadError
 from forestreg.engine.simulate.mesh import Material
+from forestreg.engine.geometry.circle import fit_circle
 from forestreg.engine.simulate.plot import simulate_plot
 from forestreg.engine.simulate.scene import make_scene
 from forestreg.engine.trees.qsm import (
@@ -19,7 +20,6 @@ from forestreg.engine.trees.qsm import (
     CylinderModel,
     QsmParams,
     cover_sets,
-    fit_circle,
     fit_qsm,
 )
 
@@ -143,7 +143,8 @@ def test_cover_sets_have_about_the_requested_size() -> None:
     # surface area 2.5 m2 in cells about 0.08 m across: some hundreds of sets, none much larger
     assert 200 < n < 1500
     assert np.median(extent) < 0.1 and extent.max() < 0.16
-    c, r = fit_circle(pts[:, :2] + [3.0, -2.0])
+    circle = fit_circle(pts[:, :2] + [3.0, -2.0])
+    c, r = np.array(circle.centre), circle.radius_m
     np.testing.assert_allclose(c, [3.0, -2.0], atol=1e-9)
     assert abs(r - 0.2) < 1e-9
 
@@ -179,7 +180,7 @@ def test_real_branchy_section_cloud_txt() -> None:
     # the stem base against a circle fitted to a 6 cm slice 0.3 m above the base
     z0 = m.base_z
     sl = p[np.abs(p[:, 2] - (z0 + 0.3)) < 0.03]
-    _, r_slice = fit_circle(sl[:, :2])
+    r_slice = fit_circle(sl[:, :2]).radius_m
     stem = np.flatnonzero(m.branch_order == 0)
     zc = m.start[stem, 2] + 0.5 * m.length_m[stem] * m.axis[stem, 2]
     r_model = m.radius_m[stem[np.argmin(np.abs(zc - (z0 + 0.3)))]]
@@ -209,7 +210,7 @@ def test_real_pine_stem_volume_and_dbh() -> None:
 
     def slice_radius(h: float) -> float:
         sl = wood[near & (np.abs(wood[:, 2] - (z0 + h)) < 0.05)]
-        return fit_circle(sl[:, :2])[1]
+        return fit_circle(sl[:, :2]).radius_m
 
     dbh_ref = 2.0 * slice_radius(1.3)
     # measured: 0.2485 (model) vs 0.2464 m (slice), +0.9 %

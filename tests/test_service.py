@@ -33,15 +33,20 @@ def _alive(pid: int) -> bool:
         return True
 
 
-def _stop(client: Client, sig: int = signal.SIGTERM, timeout: float = 30.0) -> None:
-    pid = read_server_info(client_state(client))["pid"] if read_server_info(client_state(client)) else None
-    if pid is None:
-        return
+def _signal_and_wait(pid: int, sig: int = signal.SIGTERM, timeout: float = 30.0) -> float:
+    """Send ``sig`` to the service ``pid``; seconds until it was gone (fails the test if it stays)."""
+    t0 = time.monotonic()
     os.kill(pid, sig)
-    deadline = time.monotonic() + timeout
-    while _alive(pid) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not _alive(pid), "the service did not stop"
+    while _alive(pid) and time.monotonic() - t0 < timeout:
+        time.sleep(0.05)
+    assert not _alive(pid), f"the service (pid {pid}) was still alive {timeout:.0f} s after signal {sig}"
+    return time.monotonic() - t0
+
+
+def _stop(client: Client, sig: int = signal.SIGTERM, timeout: float = 30.0) -> None:
+    info = read_server_info(client_state(client))
+    if info is not None:
+        _signal_and_wait(info["pid"], sig, timeout)
 
 
 def client_state(client: Client) -> Path:

@@ -23,7 +23,7 @@ from forestreg.engine.trees.stems import (
     Stem,
     StemParams,
     detect_stems,
-    fit_circle,
+    fit_stem_circle,
     measure_dbh,
     robust_taper,
     stem_curve,
@@ -96,17 +96,17 @@ def _arc(radius: float, start_deg: float, span_deg: float, n: int, noise: float,
 
 def test_fit_circle_full_and_partial_arcs() -> None:
     rng = np.random.default_rng(0)
-    full = fit_circle(_arc(0.15, 0, 360, 300, 0.003, rng))
+    full = fit_stem_circle(_arc(0.15, 0, 360, 300, 0.003, rng))
     assert full.ok and full.reasons == ()
     assert abs(full.radius_m - 0.15) < 0.001
     assert math.hypot(full.centre[0] - 2.0, full.centre[1] + 1.0) < 0.001
     assert full.arc_coverage == pytest.approx(1.0)
     assert full.rms_residual_m == pytest.approx(0.003, abs=0.001)
     # a single scan sees about half a stem: still measured, within 2 %
-    half = fit_circle(_arc(0.15, 30, 150, 150, 0.003, rng))
+    half = fit_stem_circle(_arc(0.15, 30, 150, 150, 0.003, rng))
     assert half.ok and abs(half.radius_m - 0.15) / 0.15 < 0.02
     # a 60 degree sliver is flagged
-    sliver = fit_circle(_arc(0.15, 0, 60, 80, 0.003, rng))
+    sliver = fit_stem_circle(_arc(0.15, 0, 60, 80, 0.003, rng))
     assert not sliver.ok and "partial arc" in sliver.reasons
 
 
@@ -114,23 +114,23 @@ def test_fit_circle_is_robust_to_clutter() -> None:
     rng = np.random.default_rng(1)
     ring = _arc(0.2, 0, 360, 200, 0.003, rng)
     clutter = rng.uniform(-0.45, 0.45, size=(80, 2)) + (2.0, -1.0)  # twigs and leaves, 29 %
-    fit = fit_circle(np.vstack([ring, clutter]))
+    fit = fit_stem_circle(np.vstack([ring, clutter]))
     assert abs(fit.radius_m - 0.2) < 0.003
     assert fit.n_inliers >= 200
 
 
 def test_fit_circle_flags_and_bad_input() -> None:
     rng = np.random.default_rng(2)
-    big = fit_circle(_arc(1.5, 0, 360, 300, 0.003, rng), radius_range_m=(0.025, 1.0))
+    big = fit_stem_circle(_arc(1.5, 0, 360, 300, 0.003, rng), radius_range_m=(0.025, 1.0))
     assert not big.ok and "implausible radius" in big.reasons
-    noisy = fit_circle(_arc(0.15, 0, 360, 300, 0.02, rng))
+    noisy = fit_stem_circle(_arc(0.15, 0, 360, 300, 0.02, rng))
     assert not noisy.ok and "high residual" in noisy.reasons
     with pytest.raises(ScanDataError):
-        fit_circle(np.zeros((2, 2)))
+        fit_stem_circle(np.zeros((2, 2)))
     with pytest.raises(ScanDataError):
-        fit_circle(np.array([[0.0, 1.0], [np.nan, 0.0], [1.0, 1.0]]))
+        fit_stem_circle(np.array([[0.0, 1.0], [np.nan, 0.0], [1.0, 1.0]]))
     with pytest.raises(ScanDataError):
-        fit_circle(np.zeros((5, 3)))
+        fit_stem_circle(np.zeros((5, 3)))
 
 
 def test_robust_taper_ignores_a_bad_section() -> None:

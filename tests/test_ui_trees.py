@@ -69,7 +69,7 @@ def test_trees_folder_map_table_and_3d(qtbot, window, cloud, trees_dir):
             assert table.text(row, "dbh_m") == f"{100 * table.value(row, 'dbh_m'):.1f}"  # cm, as written (4 decimals of m)
         assert table.text(row, "tree_id").startswith("\u26a0") == bool(rows[tid]["flag"])
     # sorting by DBH puts the thinnest measured tree first
-    table.sortItems(table.column_of("dbh_m"), Qt.SortOrder.AscendingOrder)
+    table.sortItems(table.column("dbh_m"), Qt.SortOrder.AscendingOrder)
     dbh = [r["dbh_m"] for r in rows.values() if math.isfinite(r["dbh_m"])]
     assert table.value(0, "dbh_m") == pytest.approx(min(dbh), abs=1e-4)
     # selecting a row shows that tree: cylinders, stem circles, its points, its stem curve

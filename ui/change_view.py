@@ -15,21 +15,10 @@ from typing import Any, Optional
 
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QPixmap
-from PySide6.QtWidgets import (
-    QAbstractItemView,
-    QComboBox,
-    QHBoxLayout,
-    QHeaderView,
-    QLabel,
-    QSizePolicy,
-    QSplitter,
-    QTableWidget,
-    QTableWidgetItem,
-    QVBoxLayout,
-    QWidget,
-)
+from PySide6.QtWidgets import QAbstractItemView, QComboBox, QHBoxLayout, QLabel, QSizePolicy, QTableWidgetItem, QVBoxLayout, QWidget
 
 from ..app.change import ROW_FILTERS, ChangeSummary, change_rows
+from .panes import figures_table, headline, lay_out_view, two_panes
 
 #: Table columns: (header, row key, scale, decimals).
 COLUMNS = (
@@ -48,10 +37,8 @@ class ChangeView(QWidget):
     def __init__(self, parent: Optional[QWidget] = None) -> None:
         super().__init__(parent)
         self.output: Any = None
-        self.headline = QLabel("Compare two surveys of one plot: run 'forestreg change BEFORE AFTER --out DIR', "
-                               "then File \u25b8 Open re-survey result\u2026")
-        self.headline.setWordWrap(True)
-        self.headline.setStyleSheet("padding: 4px;")
+        self.headline = headline("Compare two surveys of one plot: run 'forestreg change BEFORE AFTER --out DIR', "
+                                 "then File \u25b8 Open re-survey result\u2026")
         self.map = QLabel()
         self.map.setAlignment(Qt.AlignmentFlag.AlignCenter)
         self.map.setMinimumSize(200, 200)
@@ -60,14 +47,8 @@ class ChangeView(QWidget):
         self.filter = QComboBox()
         self.filter.addItems(list(FILTERS))
         self.filter.currentTextChanged.connect(lambda _: self._fill_table())
-        self.table = QTableWidget(0, len(COLUMNS))
-        self.table.setHorizontalHeaderLabels([c[0] for c in COLUMNS])
-        self.table.verticalHeader().setVisible(False)
-        self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table = figures_table([c[0] for c in COLUMNS])
         self.table.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
-        self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
-        self.table.horizontalHeader().setStretchLastSection(True)
-        self.table.verticalHeader().setDefaultSectionSize(22)
         right = QWidget()
         rl = QVBoxLayout(right)
         rl.setContentsMargins(0, 0, 0, 0)
@@ -77,14 +58,7 @@ class ChangeView(QWidget):
         row.addStretch(1)
         rl.addLayout(row)
         rl.addWidget(self.table, 1)
-        split = QSplitter(Qt.Orientation.Horizontal)
-        split.addWidget(self.map)
-        split.addWidget(right)
-        split.setSizes([520, 680])
-        lay = QVBoxLayout(self)
-        lay.setContentsMargins(4, 4, 4, 4)
-        lay.addWidget(self.headline)
-        lay.addWidget(split, 1)
+        lay_out_view(self, self.headline, two_panes(Qt.Orientation.Horizontal, self.map, right, (520, 680)))
 
     # ------------------------------------------------------------------ content
 

@@ -19,23 +19,11 @@ from typing import Any, Callable, Optional
 import numpy as np
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QBrush, QColor, QPixmap, QResizeEvent
-from PySide6.QtWidgets import (
-    QAbstractItemView,
-    QHBoxLayout,
-    QHeaderView,
-    QLabel,
-    QProgressBar,
-    QPushButton,
-    QSizePolicy,
-    QSplitter,
-    QTableWidget,
-    QTableWidgetItem,
-    QVBoxLayout,
-    QWidget,
-)
+from PySide6.QtWidgets import QHBoxLayout, QLabel, QPushButton, QSizePolicy, QTableWidgetItem, QVBoxLayout, QWidget
 
 from ..app.coregistration import CoregistrationSummary
 from ..app.fusion import SourceCounts
+from .panes import TaskProgress, figures_table, headline, lay_out_view, two_panes
 from .worker import TaskWorker
 
 OK_COLOUR = "#1f7a3f"
@@ -149,10 +137,8 @@ class CoregistrationView(QWidget):
         self.fusion_counts: Optional[dict[str, dict[str, int]]] = None
         self.fused_path: Optional[str] = None
         self.last_error: Optional[tuple[str, str]] = None
-        self.headline = QLabel("Open a co-registration result (File \u25b8 Open co-registration result\u2026) or run one "
-                               "(Co-register\u2026): the ground-based cloud is placed on the UAV/ALS cloud by tree tops.")
-        self.headline.setWordWrap(True)
-        self.headline.setStyleSheet("padding: 4px;")
+        self.headline = headline("Open a co-registration result (File \u25b8 Open co-registration result\u2026) or run one "
+                                 "(Co-register\u2026): the ground-based cloud is placed on the UAV/ALS cloud by tree tops.")
         self.run_button = QPushButton("Co-register\u2026")
         self.run_button.setToolTip("Choose a ground-based cloud and a UAV/ALS cloud and co-register them")
         self.accept_button = QPushButton("Accept")
@@ -161,12 +147,8 @@ class CoregistrationView(QWidget):
         self.reject_button.setToolTip("Do not use this transform")
         self.fuse_button = QPushButton("Fuse\u2026")
         self.fuse_button.setToolTip("Merge both clouds with the accepted transform, removing duplicates and noise")
-        self.progress = QProgressBar()
-        self.progress.setRange(0, 1000)
-        self.progress.hide()
-        self.cancel_button = QPushButton("Cancel")
-        self.cancel_button.hide()
-        self.cancel_button.clicked.connect(self.cancel)
+        self.task = TaskProgress(self.cancel)
+        self.progress, self.cancel_button = self.task.bar, self.task.cancel_button
         self.accept_button.clicked.connect(lambda: self.decide("accepted"))
         self.reject_button.clicked.connect(lambda: self.decide("rejected"))
         bar = QHBoxLayout()
@@ -175,15 +157,8 @@ class CoregistrationView(QWidget):
         bar.addWidget(self.progress, 1)
         bar.addWidget(self.cancel_button)
         bar.addStretch(0)
-        self.table = QTableWidget(0, 3)
-        self.table.setHorizontalHeaderLabels(["Evidence", "Value", "What it means"])
-        self.table.verticalHeader().setVisible(False)
-        self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table = figures_table(["Evidence", "Value", "What it means"])
         self.table.setWordWrap(False)
-        self.table.horizontalHeader().setSectionResizeMode(0, QHeaderView.ResizeMode.ResizeToContents)
-        self.table.horizontalHeader().setSectionResizeMode(1, QHeaderView.ResizeMode.ResizeToContents)
-        self.table.horizontalHeader().setStretchLastSection(True)
-        self.table.verticalHeader().setDefaultSectionSize(22)
         self.fusion_label = QLabel("")
         self.fusion_label.setWordWrap(True)
         left = QWidget()
@@ -192,15 +167,7 @@ class CoregistrationView(QWidget):
         ll.addWidget(self.table, 1)
         ll.addWidget(self.fusion_label)
         self.picture = _Picture()
-        split = QSplitter(Qt.Orientation.Vertical)
-        split.addWidget(self.picture)
-        split.addWidget(left)
-        split.setSizes([420, 300])
-        lay = QVBoxLayout(self)
-        lay.setContentsMargins(4, 4, 4, 4)
-        lay.addWidget(self.headline)
-        lay.addLayout(bar)
-        lay.addWidget(split, 1)
+        lay_out_view(self, self.headline, two_panes(Qt.Orientation.Vertical, self.picture, left, (420, 300)), rows=[bar])
         self._update_buttons()
 
     # ------------------------------------------------------------------ showing
@@ -271,10 +238,7 @@ class CoregistrationView(QWidget):
     def _begin(self, worker: TaskWorker, succeeded: Callable[[Any], None], what: str) -> None:
         self.worker = worker
         self.last_error = None
-        self.progress.setValue(0)
-        self.progress.setFormat(what)
-        self.progress.show()
-        self.cancel_button.show()
+        self.task.begin(what)
         self._update_buttons()
 
         def failed(message: str, details: str) -> None:
@@ -286,15 +250,10 @@ class CoregistrationView(QWidget):
 
         def ended() -> None:
             self.worker = None
-            self.progress.hide()
-            self.cancel_button.hide()
+            self.task.end()
             self._update_buttons()
 
-        def progress(fraction: float, message: str) -> None:
-            self.progress.setValue(int(1000 * fraction))
-            self.progress.setFormat(f"{message} %p%")
-
-        self._start_task(worker, succeeded=succeeded, failed=failed, cancelled=cancelled, progress=progress, ended=ended)
+        self._start_task(worker, succeeded=succeeded, failed=failed, cancelled=cancelled, progress=self.task.report, ended=ended)
 
     def cancel(self) -> None:
         if self.worker is not None:

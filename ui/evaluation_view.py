@@ -11,16 +11,9 @@ from typing import Any, Mapping, Optional
 from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
 from matplotlib.figure import Figure
 from PySide6.QtCore import Qt
-from PySide6.QtWidgets import (
-    QAbstractItemView,
-    QHeaderView,
-    QLabel,
-    QSplitter,
-    QTableWidget,
-    QTableWidgetItem,
-    QVBoxLayout,
-    QWidget,
-)
+from PySide6.QtWidgets import QTableWidgetItem, QWidget
+
+from .panes import figures_table, headline, lay_out_view, two_panes
 
 RUN_COLOURS = ("#b45309", "#1d4ed8", "#15803d", "#7c3aed")
 COLUMNS = ("Run", "Parameter", "n", "R\u00b2", "RMSE", "rRMSE (%)", "Bias")
@@ -32,16 +25,8 @@ class EvaluationView(QWidget):
     def __init__(self, parent: Optional[QWidget] = None) -> None:
         super().__init__(parent)
         self.runs: dict[str, Any] = {}
-        self.headline = QLabel("Compare tree tables with field records: File \u25b8 Evaluate against field data\u2026")
-        self.headline.setWordWrap(True)
-        self.headline.setStyleSheet("padding: 4px;")
-        self.table = QTableWidget(0, len(COLUMNS))
-        self.table.setHorizontalHeaderLabels(list(COLUMNS))
-        self.table.verticalHeader().setVisible(False)
-        self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
-        self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
-        self.table.horizontalHeader().setStretchLastSection(False)
-        self.table.verticalHeader().setDefaultSectionSize(22)
+        self.headline = headline("Compare tree tables with field records: File \u25b8 Evaluate against field data\u2026")
+        self.table = figures_table(COLUMNS, stretch_last=False)
         tips = {"R\u00b2": "coefficient of determination against the field values", "RMSE": "root mean square error (parameter unit)",
                 "rRMSE (%)": "RMSE relative to the field mean", "Bias": "mean of estimate minus field (parameter unit)",
                 "n": "matched trees with both values"}
@@ -50,14 +35,7 @@ class EvaluationView(QWidget):
                 self.table.horizontalHeaderItem(k).setToolTip(tips[c])
         self.figure = Figure(figsize=(6, 3), dpi=90, layout="constrained")
         self.canvas = FigureCanvasQTAgg(self.figure)
-        split = QSplitter(Qt.Orientation.Vertical)
-        split.addWidget(self.table)
-        split.addWidget(self.canvas)
-        split.setSizes([190, 520])
-        lay = QVBoxLayout(self)
-        lay.setContentsMargins(4, 4, 4, 4)
-        lay.addWidget(self.headline)
-        lay.addWidget(split, 1)
+        lay_out_view(self, self.headline, two_panes(Qt.Orientation.Vertical, self.table, self.canvas, (190, 520)))
 
     def show_evaluations(self, runs: Mapping[str, Any], field_name: str = "field data") -> None:
         """``runs``: name -> :class:`~forestreg.engine.trees.evaluate.Evaluation`."""

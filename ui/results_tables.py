@@ -17,6 +17,7 @@ from PySide6.QtWidgets import QAbstractItemView, QHeaderView, QTableWidget, QTab
 
 from ..app.plot import Link, PoseSigma, Project, ScanQuality, dropped_links as survey_dropped, link_summary, pose_sigmas, scan_quality
 from ..engine.report.views import scan_states
+from .panes import CellsByName
 from .project_model import STATUS_COLOURS, link_status
 
 LINK_COLUMNS = ("Moving", "Reference", "Method", "Status", "Search radius (m)", "Trunk shadows ref / mov", "Matched",
@@ -96,7 +97,7 @@ def _link_ambiguity(link: Link) -> Optional[float]:
     return run.ambiguity if run is not None else None
 
 
-class _Table(QTableWidget):
+class _Table(CellsByName, QTableWidget):
     def __init__(self, columns: Sequence[str], parent: Optional[QWidget] = None) -> None:
         super().__init__(0, len(columns), parent)
         self.columns = tuple(columns)
@@ -115,15 +116,6 @@ class _Table(QTableWidget):
     def column(self, name: str) -> int:  # type: ignore[override]
         """The index of a column by its header."""
         return self.columns.index(name)
-
-    def value(self, row: int, name: str) -> Any:
-        """The raw value of a cell (what the engine reported)."""
-        item = self.item(row, self.column(name))
-        return None if item is None else item.data(Qt.ItemDataRole.UserRole)
-
-    def text(self, row: int, name: str) -> str:
-        item = self.item(row, self.column(name))
-        return "" if item is None else item.text()
 
     def _hide_empty_reason(self) -> None:
         """No empty "Reason" column taking the room of the figures: shown only when a row has one;

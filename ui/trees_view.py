@@ -25,7 +25,6 @@ from PySide6.QtWidgets import (
     QHBoxLayout,
     QHeaderView,
     QLabel,
-    QProgressBar,
     QPushButton,
     QSizePolicy,
     QSplitter,
@@ -36,6 +35,7 @@ from PySide6.QtWidgets import (
 )
 
 from ..engine.io.results import TreesOutput, trees_output_from_inventory
+from .panes import CellsByName, TaskProgress
 from .scene_view import SceneView, add_guides
 from .worker import TaskWorker
 
@@ -98,7 +98,7 @@ def _cell(value: Any, text: str, tip: str = "") -> QTableWidgetItem:
     return item
 
 
-class TreeTable(QTableWidget):
+class TreeTable(CellsByName, QTableWidget):
     """One row per tree; click a header to sort. Raw values under ``Qt.UserRole``."""
 
     def __init__(self, parent: Optional[QWidget] = None) -> None:
@@ -152,19 +152,12 @@ class TreeTable(QTableWidget):
         self.setSortingEnabled(True)
         self.horizontalHeader().setStretchLastSection(True)
 
-    def column_of(self, name: str) -> int:
+    def column(self, name: str) -> int:  # type: ignore[override]
+        """The index of a column by its name in trees.csv."""
         return [c[0] for c in self.columns].index(name)
 
-    def value(self, row: int, name: str) -> Any:
-        item = self.item(row, self.column_of(name))
-        return None if item is None else item.data(Qt.ItemDataRole.UserRole)
-
-    def text(self, row: int, name: str) -> str:
-        item = self.item(row, self.column_of(name))
-        return "" if item is None else item.text()
-
     def row_of(self, tree_id: int) -> int:
-        c = self.column_of("tree_id")
+        c = self.column("tree_id")
         for r in range(self.rowCount()):
             if self.item(r, c).data(Qt.ItemDataRole.UserRole) == tree_id:
                 return r
@@ -434,14 +427,10 @@ class TreesView(QWidget):
         self.edit_status.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
         self.edit_status.setMinimumWidth(40)
         bar.addWidget(self.edit_status, 1)
-        self.edit_progress = QProgressBar()
-        self.edit_progress.setRange(0, 1000)
+        self.edit_task = TaskProgress(lambda: self.worker.cancel() if self.worker is not None else None)
+        self.edit_progress, self.edit_cancel = self.edit_task.bar, self.edit_task.cancel_button
         self.edit_progress.setMaximumWidth(220)
-        self.edit_progress.hide()
         bar.addWidget(self.edit_progress)
-        self.edit_cancel = QPushButton("Cancel")
-        self.edit_cancel.hide()
-        self.edit_cancel.clicked.connect(lambda: self.worker.cancel() if self.worker is not None else None)
         bar.addWidget(self.edit_cancel)
         self._update_edit_buttons()
         return bar
@@ -467,9 +456,7 @@ class TreesView(QWidget):
         self.last_error = None
         worker = TaskWorker(fn, name=f"trees: {what}")
         self.worker = worker
-        self.edit_progress.setValue(0)
-        self.edit_progress.show()
-        self.edit_cancel.show()
+        self.edit_task.begin()
         self.edit_status.setText(f"{what}\u2026")
         self._update_edit_buttons()
 
@@ -480,16 +467,11 @@ class TreesView(QWidget):
 
         def ended() -> None:
             self.worker = None
-            self.edit_progress.hide()
-            self.edit_cancel.hide()
+            self.edit_task.end()
             self._update_edit_buttons()
 
-        def progress(fraction: float, message: str) -> None:
-            self.edit_progress.setValue(int(1000 * fraction))
-            self.edit_progress.setFormat(f"{message} %p%")
-
         self._start_task(worker, succeeded=done, failed=failed, cancelled=lambda: self.edit_status.setText(f"{what}: cancelled"),
-                         progress=progress, ended=ended)
+                         progress=self.edit_task.report, ended=ended)
         return True
 
     def _ask_measure(self) -> None:

@@ -183,7 +183,7 @@ def epoch_from_cloud(
     timings["terrain_s"] = time.perf_counter() - t
     t = time.perf_counter()
     progress(0.1, f"{name}: stems")
-    stems, stem_params, method = detect_stems_adaptive(p, heights, params.stems, progress.sub(0.1, 0.35))
+    stems, stem_params, method = detect_stems_adaptive(p, heights, params.stems, progress.sub(0.1, 0.35), params.noisy_stems)
     timings["stems_s"] = time.perf_counter() - t
     if not stems:
         raise ScanDataError(f"{name or 'cloud'}: no stem found at breast height: a ground-based forest cloud in metres is needed")
@@ -197,7 +197,7 @@ def epoch_from_cloud(
     complete = {c.tree_id: c for c in tree_completeness(p, heights, labels, stems, params.completeness, dbh)}
     # heights and crowns as the tree inventory measures them, with its flags of tops not a tree's
     # own (under a neighbour's crown, shared with a taller tree, points of no tree above)
-    crowns, shared, _ = _crowns_timed(p, heights, labels, stems, model.ground, params.crown, {})
+    crowns, shared, _ = _crowns_timed(p, heights, labels, stems, model.ground, params, {})
     timings["trees_s"] = time.perf_counter() - t
 
     n = len(stems)

@@ -161,44 +161,36 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
             alone = alone[own < params.presence_points]
         skipped.extend(int(k) for k in alone)
         paired |= set(alone.tolist())
-    rest_b = np.array(sorted(set(range(len(before))) - paired_b), dtype=np.int64)
-    if len(rest_b):
-        where = before_in_a[rest_b, :2]
-        present = _stem_points_at(after, where, before_in_a[rest_b, 2] - 1.3, np.array([radius(before, k) for k in rest_b]), band_a)
-        # AFTER covered the place: inside its footprint (a harvest gap inside the plot is)
-        seen = after.covers(where)
-        for j, k in enumerate(rest_b):
-            base = _one_side(before, int(k), "before")
-            if after.has_points and present[j] >= params.presence_points:
+    def alone(epoch: EpochTrees, which: str, other: EpochTrees, rest: np.ndarray, in_other: np.ndarray, band_other, cover_other,
+              status: str, at_other: bool) -> None:
+        """Stems of ``epoch`` alone (``rest``; ``in_other`` its breast points in the other's frame):
+        persisting where the other survey has stem points there, outside where it did not see the
+        place (its footprint; and, with ``cover_other``, points near it: never a false new tree
+        where a survey was blind), else ``status``. ``at_other``: positions in the other's frame."""
+        if not len(rest):
+            return
+        name = "AFTER" if which == "before" else "BEFORE"
+        where = in_other[rest, :2]
+        present = _stem_points_at(other, where, in_other[rest, 2] - 1.3, np.array([radius(epoch, k) for k in rest]), band_other)
+        seen = other.covers(where)
+        if cover_other is not None and other.has_points:
+            seen &= _covered(other, where, params.coverage_radius_m, cover_other)
+        for j, k in enumerate(rest):
+            base = _one_side(epoch, int(k), which, xy=where[j] if at_other else None)
+            own = epoch.flags[k] and f"{which.upper()}: {epoch.flags[k]}"
+            if other.has_points and present[j] >= params.presence_points:
                 out.append(TreeChange(status="persisting", **base,
-                                      flag=_join(before.flags[k] and f"BEFORE: {before.flags[k]}",
-                                                 "stem present in AFTER but not measured there (occluded or unsure): no change")))
+                                      flag=_join(own, f"stem present in {name} but not measured there (occluded or unsure): no change")))
             elif not seen[j]:
-                out.append(TreeChange(status="outside", **base, flag="outside the AFTER survey: not compared"))
+                out.append(TreeChange(status="outside", **base, flag=f"outside the {name} survey: not compared"))
             else:
-                why = f"no stem in AFTER at its place ({present[j]} points)" if after.has_points else "no stem in the AFTER table at its place"
-                out.append(TreeChange(status="removed", **base, flag=_join(why, before.flags[k] and f"BEFORE: {before.flags[k]}")))
+                why = f"no stem in {name} at its place ({present[j]} points)" if other.has_points else f"no stem in the {name} table at its place"
+                out.append(TreeChange(status=status, **base, flag=_join(why, own)))
+
+    # --- stems of BEFORE alone: removed, not found in AFTER, or outside AFTER (its footprint)
+    alone(before, "before", after, np.array(sorted(set(range(len(before))) - paired_b), dtype=np.int64), before_in_a, band_a, None, "removed", False)
     # --- stems of AFTER alone: new, not found in BEFORE, or outside BEFORE
-    rest_a = np.array(sorted(set(range(len(after))) - paired_a), dtype=np.int64)
-    if len(rest_a):
-        where_b = after_in_b[rest_a, :2]
-        present = _stem_points_at(before, where_b, after_in_b[rest_a, 2] - 1.3, np.array([radius(after, k) for k in rest_a]), band_b)
-        # BEFORE saw the place: inside its footprint and with points near it (never a false new tree
-        # where BEFORE was blind)
-        seen = before.covers(where_b)
-        if before.has_points:
-            seen &= _covered(before, where_b, params.coverage_radius_m, cover_b)
-        for j, k in enumerate(rest_a):
-            base = _one_side(after, int(k), "after", xy=where_b[j])
-            if before.has_points and present[j] >= params.presence_points:
-                out.append(TreeChange(status="persisting", **base,
-                                      flag=_join(after.flags[k] and f"AFTER: {after.flags[k]}",
-                                                 "stem present in BEFORE but not measured there (occluded or unsure): no change")))
-            elif not seen[j]:
-                out.append(TreeChange(status="outside", **base, flag="outside the BEFORE survey: not compared"))
-            else:
-                why = f"no stem in BEFORE at its place ({present[j]} points)" if before.has_points else "no stem in the BEFORE table at its place"
-                out.append(TreeChange(status="new", **base, flag=_join(why, after.flags[k] and f"AFTER: {after.flags[k]}")))
+    alone(after, "after", before, np.array(sorted(set(range(len(after))) - paired_a), dtype=np.int64), after_in_b, band_b, cover_b, "new", True)
     out = _height_outliers(out, params)
     order = {s: i for i, s in enumerate(STATUSES)}
     return sorted(out, key=lambda t: (order[t.status], t.x, t.y))

@@ -255,3 +255,18 @@ def _shifted(points: np.ndarray, shift: np.ndarray, *, in_place: bool) -> np.nda
 #: A scan, or a function without arguments that reads it (called once, where the scan is
 #: needed: a registration or co-registration can then let its points go early).
 ScanSource = Union[Scan, Callable[[], Scan]]
+
+
+def check_points(points: Any, what: str = "points", *, min_points: int = 1) -> np.ndarray:
+    """``points`` as a float64 (N, 3) array of x, y, z (metres), or :class:`ScanDataError` saying
+    what is wrong: not (N, 3), fewer than ``min_points`` points (0: an empty array is fine), or
+    points with NaN or infinite coordinates. ``what`` names the points in the message."""
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ScanDataError(f"{what}: expected an (N, 3) array of x, y, z, got shape {p.shape}")
+    if len(p) < min_points:
+        raise ScanDataError(f"{what} is empty" if len(p) == 0 and min_points <= 1 else f"{what} needs at least {min_points} points, got {len(p)}")
+    bad = ~np.isfinite(p).all(axis=1) if not np.isfinite(p.sum()) else None
+    if bad is not None and bad.any():
+        raise ScanDataError(f"{what}: {int(bad.sum())} of {len(p)} points have NaN or infinite coordinates; remove them first")
+    return p

@@ -136,7 +136,12 @@ class CoregistrationParams(Params):
     #: its residuals' NMAD no wider than this (m)
     max_terrain_tilt_deg: float = _p(1.0, "deg", 0.0, 90.0, "largest tilt between the terrains after co-registration")
     max_terrain_nmad_m: float = _p(0.5, "m", 0.0, 100.0, "largest spread of the terrain heights after co-registration")
-    #: where the UAV sees at least this many points 0.5-2.5 m above its ground (stems, understorey),
+    #: the stem layer (m above the UAV's DEM): stems and understorey a UAV glimpses through
+    #: foliage; its points up to the upper height (and the UAV ground) refine every candidate
+    stem_layer_m: tuple[float, float] = _p((0.5, 2.5), "m", 0.0, 50.0, "heights above the UAV's ground of the stem layer (stem evidence; its points and the ground refine each candidate)")
+    #: correspondence distances (m) of that refinement, an ICP of the UAV's stem layer and ground
+    low_layer_icp_distances_m: tuple[float, ...] = _p((2.0, 1.0, 0.5, 0.25, 0.12), "m", 0.001, 100.0, "correspondence distance per stage of the ICP of the UAV's stem layer and ground onto each candidate, largest first")
+    #: where the UAV sees at least this many points in the stem layer (stems, understorey),
     #: at least this fraction must lie within 0.3 m of the ground-based cloud
     min_stem_layer_points: int = _p(50, "points", 1, 100000000, "fewest UAV stem-layer points that make stem evidence")
     min_stem_layer_agreement: float = _p(0.3, "1", 0.0, 1.0, "least fraction of UAV stem-layer points near the ground-based cloud")
@@ -152,6 +157,10 @@ class CoregistrationParams(Params):
             raise ParameterError("icp_distances_m: needs at least one value")
         if not self.coarse_icp_distances_m:
             raise ParameterError("coarse_icp_distances_m: needs at least one value")
+        if not self.low_layer_icp_distances_m:
+            raise ParameterError("low_layer_icp_distances_m: needs at least one value")
+        if not self.stem_layer_m[0] < self.stem_layer_m[1]:
+            raise ParameterError("stem_layer_m: (lowest, highest) with lowest < highest")
 
 
 @dataclass(frozen=True)
@@ -163,7 +172,8 @@ class CoarseEvidence:
     ``keypoint_candidates``: how many candidates each gave. ``terrain_*``: the plane through the
     UAV ground heights minus the ground-based DEM under the result (tilt between the terrains,
     deg; offset and residual NMAD, m; UAV ground points compared), None where fewer than 50
-    compare. ``stem_layer_points``: UAV points 0.5-2.5 m above its ground within the ground-based
+    compare. ``stem_layer_points``: UAV points in the stem layer (``stem_layer_m`` above its
+    ground) within the ground-based
     footprint, ``stem_layer_agreement`` the fraction of them within 0.3 m of a ground-based point
     (None without any). ``tilt_deg``: the tilt of the ground-based cloud against the UAV's
     vertical in the result (estimated, e.g. a SLAM map's tilt)."""
@@ -509,7 +519,7 @@ def _coregister_points(
     # the UAV's stem layer and ground (below 2.5 m above its DEM): stems and terrain have exact
     # counterparts in the ground-based cloud, leaf-on foliage does not (real MLS onto a leaf-on
     # ULS-like cloud: candidates 2.5-14 deg off come to 0.01 deg by these points alone)
-    low = u_terrain.dem.normalise(u_icp) < STEM_LAYER_M[1]
+    low = u_terrain.dem.normalise(u_icp) < params.stem_layer_m[1]
     low = low if low.sum() >= 200 else None
     progress(0.75, f"[4/6] coarse ICP of {len(starts)} candidates ({sum(s == 'keypoints' for s, _, _ in starts)} from keypoints) and canopy checks")
 
@@ -523,7 +533,7 @@ def _coregister_points(
         ).matrix
         if low is not None:  # the stems and ground the UAV sees, onto the ground-based cloud
             m = _icp_uav_onto_ground(
-                g_ref, u_icp, m, params.icp_voxel_m, LOW_LAYER_ICP_M, params.icp_iterations,
+                g_ref, u_icp, m, params.icp_voxel_m, params.low_layer_icp_distances_m, params.icp_iterations,
                 max_moving_points=8000, final_tolerance=COARSE_TOLERANCE, statistics=False, keep=low,
             ).matrix
         if _apart_m(m, level, sample) > params.max_icp_shift_m or rotation_angle_deg(
@@ -589,7 +599,7 @@ def _coregister_points(
     terrain = terrain_levelling(g_ground_pts, g_terrain.dem, u_ground_pts, result.matrix, max_tilt_deg=90.0)
     footprint = _overlap(uav, ground[:: max(1, len(ground) // 50_000)], result.matrix, margin_m=0.0)
     n_stem, stem_frac = stem_layer_agreement(uav, u_terrain.dem, g_ref.full_tree, result.matrix, footprint,
-                                             band_m=STEM_LAYER_M)
+                                             band_m=params.stem_layer_m)
     n_min = min(len(g_kp), len(u_kp))
     pct = 100.0 * len(pairs_after) / n_min if n_min else 0.0
     evidence = CoarseEvidence(
@@ -676,10 +686,6 @@ def _visible(uav: np.ndarray, ground: np.ndarray, matrix: np.ndarray, tolerance_
     return keep if keep.sum() >= 200 else None
 
 
-#: the stem layer (m above the UAV's DEM): stems and understorey a UAV glimpses through foliage
-STEM_LAYER_M = (0.5, 2.5)
-#: correspondence distances (m) of the ICP of the UAV's stem layer and ground in the coarse stage
-LOW_LAYER_ICP_M = (2.0, 1.0, 0.5, 0.25, 0.12)
 #: the ICP reference level (voxel, m) whose footprint selects the UAV points of an ICP run
 OVERLAP_VOXEL_M = 0.5
 #: (m, deg): the coarse ICP of a candidate stops at updates below these: it only brings the

@@ -34,6 +34,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
+from ..core.scan import check_points
 from ..core.errors import ParameterError, ScanDataError
 from ..core.outcome import Outcome
 from ..core.params import Params, param_field as _p
@@ -115,16 +116,6 @@ class FusionParams(Params):
 # ------------------------------------------------------------------------------------------------
 
 
-def _check_points(points: Any, what: str) -> np.ndarray:
-    arr = np.asarray(points, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ScanDataError(f"{what}: expected an (N, 3) array of x, y, z, got shape {arr.shape}")
-    if len(arr) and not np.isfinite(arr).all():
-        bad = int((~np.isfinite(arr).all(axis=1)).sum())
-        raise ScanDataError(f"{what}: {bad:,} points have NaN or infinite coordinates; remove them first")
-    return arr
-
-
 def _check_source(source: Any, n: int) -> np.ndarray:
     src = np.asarray(source)
     if src.shape != (n,):
@@ -162,7 +153,7 @@ def remove_redundancy(
     Either way every dropped point has a kept point within epsilon (no surface is lost); with
     scope "all" no two kept points are within epsilon. Frames: any (both the same), metres.
     """
-    pts = _check_points(points, "points")
+    pts = check_points(points, "points", min_points=0)
     src = _check_source(source, len(pts))
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     eps = params.redundancy_distance_m
@@ -385,7 +376,7 @@ def statistical_noise(
     The returned probability is Pr of eq. 6 for ``"paper"``; for the other two the Gaussian
     probability ``Phi(z)`` of the point's z-score (so noise is ``probability > Phi(std_ratio)``).
     """
-    pts = _check_points(points, "points")
+    pts = check_points(points, "points", min_points=0)
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     _check_noise_size(len(pts), params)
     order = _spatial_order(pts, params.cube_side_m)  # neighbouring queries together: far faster
@@ -563,8 +554,8 @@ def fuse(
     one, or both in the project frame), metres. ``*_extra`` map attribute names (e.g.
     ``"intensity"``) to per-point arrays, carried to the kept points. One cloud may be empty.
     """
-    g = _check_points(ground_points, "ground-based points")
-    u = _check_points(uav_points, "UAV points")
+    g = check_points(ground_points, "ground-based points", min_points=0)
+    u = check_points(uav_points, "UAV points", min_points=0)
     if len(g) + len(u) == 0:
         raise ScanDataError("both clouds are empty: nothing to fuse")
     g_extra = _check_extra(ground_extra, len(g), "ground_extra")

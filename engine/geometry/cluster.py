@@ -9,7 +9,7 @@ from typing import Optional
 import numpy as np
 
 from .features import SphereGrid, first_at_least
-from .jit import kernel
+from ..core.jit import kernel
 
 __all__ = ["connected_clusters"]
 

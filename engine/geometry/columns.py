@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .jit import kernel, run_blocks
+from ..core.jit import kernel, run_blocks
 from .sorting import order_by_label
 from .voxel import column_bounds
 

@@ -19,7 +19,7 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .jit import kernel, run_blocks, worker_count
+from ..core.jit import kernel, run_blocks, worker_count
 from .sums import pairwise_sum, segment_sum
 
 __all__ = ["SphereGrid", "eigen_features", "local_covariances", "nearest_within", "neighbour_means", "normals_and_variation"]
@@ -27,39 +27,23 @@ __all__ = ["SphereGrid", "eigen_features", "local_covariances", "nearest_within"
 
 @kernel
 def _offset_covariance(
-    pts: np.ndarray, sel: np.ndarray, m: int, qx: float, qy: float, qz: float,
-    dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, pr: np.ndarray, out: np.ndarray,
+    pts: np.ndarray, sel: np.ndarray, m: int, qx: float, qy: float, qz: float, d: np.ndarray, pr: np.ndarray, out: np.ndarray,
 ) -> None:
     """Covariance (3, 3) into ``out`` of the points ``pts[sel[:m]]`` as offsets from the query
-    ``(qx, qy, qz)``: ``E[d d^T] - E[d] E[d]^T``, means over ``m`` (>= 1); scratch arrays of
-    length >= m."""
+    ``(qx, qy, qz)``: ``E[d d^T] - E[d] E[d]^T``, means over ``m`` (>= 1); scratch arrays ``d``
+    (3, >= m) and ``pr`` (>= m)."""
     for t in range(m):
         s = sel[t]
-        dx[t] = pts[s, 0] - qx
-        dy[t] = pts[s, 1] - qy
-        dz[t] = pts[s, 2] - qz
+        d[0, t] = pts[s, 0] - qx
+        d[1, t] = pts[s, 1] - qy
+        d[2, t] = pts[s, 2] - qz
     w = float(m)
-    mx = segment_sum(dx, m) / w
-    my = segment_sum(dy, m) / w
-    mz = segment_sum(dz, m) / w
-    for t in range(m):
-        pr[t] = dx[t] * dx[t]
-    out[0, 0] = segment_sum(pr, m) / w - mx * mx
-    for t in range(m):
-        pr[t] = dx[t] * dy[t]
-    out[0, 1] = out[1, 0] = segment_sum(pr, m) / w - mx * my
-    for t in range(m):
-        pr[t] = dx[t] * dz[t]
-    out[0, 2] = out[2, 0] = segment_sum(pr, m) / w - mx * mz
-    for t in range(m):
-        pr[t] = dy[t] * dy[t]
-    out[1, 1] = segment_sum(pr, m) / w - my * my
-    for t in range(m):
-        pr[t] = dy[t] * dz[t]
-    out[1, 2] = out[2, 1] = segment_sum(pr, m) / w - my * mz
-    for t in range(m):
-        pr[t] = dz[t] * dz[t]
-    out[2, 2] = segment_sum(pr, m) / w - mz * mz
+    mean = (segment_sum(d[0], m) / w, segment_sum(d[1], m) / w, segment_sum(d[2], m) / w)
+    for i in range(3):
+        for j in range(i, 3):
+            for t in range(m):
+                pr[t] = d[i, t] * d[j, t]
+            out[i, j] = out[j, i] = segment_sum(pr, m) / w - mean[i] * mean[j]
 
 
 # --------------------------------------------------------------------------------------------
@@ -273,13 +257,13 @@ def _sphere_covariance_rows(
     best_d2 = np.empty(k)
     best_index = np.empty(k, dtype=np.int64)
     best = np.empty(k, dtype=np.int64)
-    dx, dy, dz, pr = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
+    d, pr = np.empty((3, k)), np.empty(k)
     for i in range(start, stop):
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
         m = _nearest_in_sphere(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)
         count[i] = m
         if m > 0:
-            _offset_covariance(pts, best, m, qx, qy, qz, dx, dy, dz, pr, cov[i])
+            _offset_covariance(pts, best, m, qx, qy, qz, d, pr, cov[i])
 
 
 @kernel
@@ -327,13 +311,13 @@ def _nearest_covariance_rows(
     best_d2 = np.empty(k)
     best_index = np.empty(k, dtype=np.int64)
     best = np.empty(k, dtype=np.int64)
-    dx, dy, dz, pr = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
+    d, pr = np.empty((3, k)), np.empty(k)
     for i in range(start, stop):
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
         m = _nearest_growing(qx, qy, qz, origin, cell, nx, ny, layers, index, column_start, cell_z, pts, np.inf, k, best_d2, best_index, best)
         count[i] = m
         if m > 0:
-            _offset_covariance(pts, best, m, qx, qy, qz, dx, dy, dz, pr, cov[i])
+            _offset_covariance(pts, best, m, qx, qy, qz, d, pr, cov[i])
 
 
 @kernel
@@ -343,14 +327,14 @@ def _listed_covariance_rows(
     """Covariances of rows ``start:stop`` from neighbour lists ``idx`` (Q, k), nearest first,
     padded with ``len(cloud)`` (a k-d tree's output)."""
     n, k = cloud.shape[0], idx.shape[1]
-    dx, dy, dz, pr = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
+    d, pr = np.empty((3, k)), np.empty(k)
     for i in range(start, stop):
         m = 0
         while m < k and idx[i, m] < n:
             m += 1
         count[i] = m
         if m > 0:
-            _offset_covariance(cloud, idx[i], m, q[i, 0], q[i, 1], q[i, 2], dx, dy, dz, pr, cov[i])
+            _offset_covariance(cloud, idx[i], m, q[i, 0], q[i, 1], q[i, 2], d, pr, cov[i])
 
 
 def local_covariances(

@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from ..core.transform import rotation_from_vector
 from ..core.transform import apply as apply_transform
 from .features import SphereGrid, first_at_least, local_covariances, nearest_within, normals_and_variation
-from .jit import kernel, run_blocks, worker_count
+from ..core.jit import kernel, run_blocks, worker_count
 from .voxel import VoxelGrid, column_bounds, voxel_downsample
 
 

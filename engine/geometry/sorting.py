@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .jit import kernel
+from ..core.jit import kernel
 
 __all__ = ["order_by_label", "sort_keys"]
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .jit import kernel
+from ..core.jit import kernel
 
 __all__ = ["block_sum", "pairwise_sum", "segment_sum"]
 

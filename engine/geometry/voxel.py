@@ -9,7 +9,12 @@ result depends only on the points, not on their frame's origin. Points are (N, 3
   computed on voxels and mapped back to points);
 * :func:`voxel_downsample` - an averaged voxel grid whose grid starts half a voxel below the
   minimum corner, as Open3D's (for ICP inputs and normals; one sort, no (N, 3) temporaries);
-  :func:`voxel_grid` the same with each voxel's member points.
+  :func:`voxel_grid` the same with each voxel's member points;
+* :func:`claim_voxel` - the streaming form of :func:`voxel_thin` for a loop that reads a scan
+  once: the first point in each voxel of a cube around the scanner (:func:`voxel_bitmap`).
+
+The first point of a voxel keeps it by claiming a bit (:mod:`~forestreg.engine.core.cells`, shared
+with the COPC writer's node sampling).
 """
 
 from __future__ import annotations
@@ -20,10 +25,11 @@ from typing import Literal, Optional
 import numpy as np
 
 from .sums import segment_sum
-from .jit import kernel, run_blocks
+from ..core.cells import cell_bits, claim_cell, first_in_cells
+from ..core.jit import kernel, run_blocks
 from .sorting import sort_keys
 
-__all__ = ["VoxelGrid", "column_bounds", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_thin", "warm_up"]
+__all__ = ["VoxelGrid", "claim_voxel", "column_bounds", "voxel_bitmap", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_thin", "warm_up"]
 
 
 def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -134,9 +140,7 @@ def voxel_thin(points: np.ndarray, voxel_m: float, *, keep: Literal["first", "ce
         if cells <= _SEEN_BITS_PER_POINT * len(p):
             # one pass in input order, a bit per cell of the grid: no sort of the keys and none of
             # its three key-sized temporaries (~100 MB for 2.9 M points)
-            first = np.zeros(len(p), dtype=bool)
-            _mark_first(keys, np.zeros(int(cells) // 8 + 1, dtype=np.uint8), first)
-            return np.flatnonzero(first)
+            return np.flatnonzero(first_in_cells(keys, cell_bits(int(cells))))
         _, first = np.unique(keys, return_index=True)
         return np.sort(first)
     keys = voxel_keys(p, voxel_m)
@@ -158,15 +162,27 @@ def voxel_thin(points: np.ndarray, voxel_m: float, *, keep: Literal["first", "ce
 _SEEN_BITS_PER_POINT = 64
 
 
-@kernel
-def _mark_first(keys: np.ndarray, seen: np.ndarray, first: np.ndarray) -> None:  # pragma: no cover - compiled
-    """``first[i]`` = True where ``keys[i]`` did not occur before ``i``; ``seen``: a zeroed bit
-    per key value."""
-    for i in range(len(keys)):
-        byte, bit = keys[i] >> 3, np.uint8(1) << np.uint8(keys[i] & 7)
-        if not seen[byte] & bit:
-            seen[byte] |= bit
-            first[i] = True
+def voxel_bitmap(voxel_m: float, radius_m: float) -> np.ndarray:
+    """The zeroed bits (:func:`~..core.cells.cell_bits`) of the cube of ``voxel_m`` voxels around
+    a scanner that holds its ``radius_m`` sphere (:func:`claim_voxel`)."""
+    cells = 2 * int(np.ceil(radius_m / voxel_m)) + 1
+    return cell_bits(cells**3)
+
+
+@kernel(inline="always")
+def claim_voxel(x: float, y: float, z: float, voxel_m: float, half: int, occupied: np.ndarray) -> bool:  # pragma: no cover - compiled
+    """Whether the point ``(x, y, z)`` (scanner-centred, within the sphere of the bitmap, see
+    :func:`voxel_bitmap`; ``half`` its cells on each side of the scanner) is the first in its
+    ``voxel_m`` voxel of the grid with a corner at the scanner: its cell was not claimed in
+    ``occupied`` (it is now). The streaming form of :func:`voxel_thin`, for a loop that reads a
+    scan once."""
+    n = 2 * half + 1
+    ix = np.int64(np.floor(np.float64(x) / voxel_m)) + half
+    iy = np.int64(np.floor(np.float64(y) / voxel_m)) + half
+    iz = np.int64(np.floor(np.float64(z) / voxel_m)) + half
+    if ix < 0 or iy < 0 or iz < 0 or ix >= n or iy >= n or iz >= n:
+        return False
+    return claim_cell((ix * n + iy) * n + iz, occupied)
 
 
 def voxel_centroids(

@@ -39,6 +39,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..core.cells import cell_bits, first_in_cells
 from ..core.errors import ParameterError, ScanWriteError
 from .las import LAS_SCALE, intensity_to_uint16
 
@@ -144,8 +145,6 @@ class CopcWriter:
         self._mins = np.full(3, np.iinfo(np.int64).max, dtype=np.int64)
         self._maxs = np.full(3, np.iinfo(np.int64).min, dtype=np.int64)
         self._closed = False
-        self._scratch: Optional[np.ndarray] = None
-        self._occ: Optional[np.ndarray] = None
         self._spill = Path(tempfile.mkdtemp(prefix=f".forestreg-tmp-copc-{self.path.name}.", dir=self.path.parent))
         self._files = 0
         try:
@@ -230,32 +229,18 @@ class CopcWriter:
         level, x, y, z = key
         return (level + 1, 2 * x + (octant >> 2 & 1), 2 * y + (octant >> 1 & 1), 2 * z + (octant & 1))
 
-    def _choose(self, grid: np.ndarray, occ: np.ndarray) -> np.ndarray:
-        """One point per grid cell not yet occupied (marked occupied now): a boolean mask."""
-        if self._scratch is None:
-            self._scratch = np.empty(1 << (3 * self.g), dtype=np.int32)
-        idx = np.flatnonzero(~occ[grid])
-        mask = np.zeros(len(grid), dtype=bool)
-        if len(idx):
-            cells = grid[idx]
-            self._scratch[cells] = idx  # whichever write wins, it is a point of that cell
-            mask[idx[self._scratch[cells] == idx]] = True
-            occ[cells] = True
-        return mask
+    def _cells_bits(self) -> np.ndarray:
+        """No cell claimed yet in a node's sampling grid (the finest: 128^3 cells)."""
+        return cell_bits(1 << (3 * self.g))
 
     def _thin(self, key: tuple[int, int, int, int], rec: np.ndarray) -> np.ndarray:
         """A node's sample that exceeds ``node_points`` (a volume of branches fills many cells)
         thinned on coarser grids (64, 32, ... cells a side) until it fits: a boolean mask."""
-        if self._occ is None:
-            self._occ = np.zeros(1 << (3 * self.g), dtype=bool)
         sel = np.arange(len(rec))
         bits = self.g
         while len(sel) > self.node_points and bits > 1:
             bits -= 1
-            grid = self._grid_index(rec[sel], key, bits)
-            keep = self._choose(grid, self._occ)
-            self._occ[grid] = False
-            sel = sel[keep]
+            sel = sel[first_in_cells(self._grid_index(rec[sel], key, bits), self._cells_bits())]
         mask = np.zeros(len(rec), dtype=bool)
         mask[sel] = True
         return mask
@@ -266,11 +251,8 @@ class CopcWriter:
         if len(rec) <= self.node_points or level >= self.max_level:
             self._emit(key, rec)
             return
-        if self._occ is None:
-            self._occ = np.zeros(1 << (3 * self.g), dtype=bool)
         grid = self._grid_index(rec, key)
-        keep = self._choose(grid, self._occ)
-        self._occ[grid] = False
+        keep = first_in_cells(grid, self._cells_bits())
         if int(keep.sum()) > self.node_points:
             chosen = np.flatnonzero(keep)
             keep[chosen[~self._thin(key, rec[chosen])]] = False
@@ -318,7 +300,6 @@ class CopcWriter:
                 raise ParameterError(f"{self.label}: there are no points to write")
             self._root.finish()
             self._root = None
-            self._scratch = self._occ = None
             self._compressor.done()
             start = _HEADER_SIZE + len(self._vlrs(0, 0))
             self._fh.seek(start)
@@ -413,7 +394,7 @@ class _Node:
             self.held.append(rec)
             self.count += len(rec)
             if self.count > self.w.memory_points and self.key[0] < self.w.max_level:
-                self.occ = np.zeros(1 << (3 * self.w.g), dtype=bool)
+                self.occ = self.w._cells_bits()
                 held, self.held = self.held, []
                 for part in held:
                     self._split(part)
@@ -423,7 +404,7 @@ class _Node:
 
     def _split(self, rec: np.ndarray) -> None:
         w = self.w
-        keep = w._choose(w._grid_index(rec, self.key), self.occ)
+        keep = first_in_cells(w._grid_index(rec, self.key), self.occ)
         self.kept.append(rec[keep])
         self._spill(rec[~keep])
 

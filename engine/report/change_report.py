@@ -22,6 +22,7 @@ from typing import Any, Mapping, Optional, Sequence
 import numpy as np
 
 from ..core.atomic import write_text_atomic
+from .style import REPORT_CSS
 from .topview import Canvas, Panel
 
 __all__ = ["change_map_png", "change_report_html", "write_change_report", "GROWTH_COLOURS"]
@@ -35,24 +36,6 @@ GROWTH_COLOURS = (
 )
 REMOVED_COLOUR = "#d62728"
 NEW_COLOUR = "#1f77b4"
-
-CSS = """
-body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, Arial, sans-serif; margin: 1.5em auto;
-       max-width: 1250px; padding: 0 1em; color: #222; line-height: 1.4; }
-h1 { font-size: 1.6em; margin-bottom: 0.2em; }
-h2 { font-size: 1.25em; border-bottom: 2px solid #ccd; padding-bottom: 0.15em; margin-top: 1.8em; }
-.sub { color: #555; margin-top: 0; }
-table { border-collapse: collapse; margin: 0.5em 0 1em 0; font-size: 0.9em; }
-th, td { border: 1px solid #c8c8d0; padding: 0.25em 0.55em; vertical-align: top; }
-th { background: #eef0f7; text-align: left; font-weight: 600; }
-td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
-.failbox { background: #fdecea; border-left: 6px solid #b42318; padding: 0.6em 1em; margin: 1em 0; }
-.okbox { background: #ecf7ee; border-left: 6px solid #1a7f37; padding: 0.6em 1em; margin: 1em 0; }
-.note { color: #555; font-size: 0.88em; }
-figure img { max-width: 100%; height: auto; border: 1px solid #ddd; }
-figcaption { color: #444; font-size: 0.9em; margin-top: 0.3em; max-width: 70em; }
-"""
-
 
 def _e(text: Any) -> str:
     return html.escape(str(text), quote=True)
@@ -187,7 +170,7 @@ def change_report_html(summary: Mapping[str, Any], rows: Sequence[Mapping[str, A
             f"<tr><td>{_e(r.get('status'))}</td><td class=\"num\">{_fmt(r.get('x'), 2)}</td><td class=\"num\">{_fmt(r.get('y'), 2)}</td>"
             f"<td>{_e(r.get('flag'))}</td></tr>" for r in flagged) + "</table>")
     return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n<title>forestreg change</title>\n"
-            f"<style>{CSS}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n")
+            f"<style>{REPORT_CSS}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n")
 
 
 def write_change_report(folder: str | os.PathLike[str], summary: Mapping[str, Any], rows: Sequence[Mapping[str, Any]],

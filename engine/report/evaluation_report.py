@@ -27,7 +27,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..core.atomic import write_text_atomic  # noqa: E402
-from .plot_report import REPORT_CSS  # noqa: E402
+from .style import REPORT_CSS  # noqa: E402
 from ..trees.evaluate import PARAMETERS  # noqa: E402
 
 if TYPE_CHECKING:  # pragma: no cover

@@ -32,6 +32,7 @@ import numpy as np  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
 from matplotlib.patches import Circle, Patch  # noqa: E402
 
+from ..core.scan import check_points
 from ..core.atomic import atomic_path, write_text_atomic  # noqa: E402
 from ..core.errors import ScanDataError  # noqa: E402
 from .raster import PointRaster, add_points  # noqa: E402
@@ -106,11 +107,7 @@ def write_trees_report(
     dbh_scale : factor the DBH circles of the map are enlarged by; default chosen from the plot
         size (printed on the map).
     """
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ScanDataError(f"points: expected an (N, 3) array, got shape {pts.shape}")
-    if len(pts) and not np.isfinite(pts).all():
-        raise ScanDataError("points: NaN or infinite coordinates")
+    pts = check_points(points, "points", min_points=0)
     ids = np.asarray(tree_ids)
     if ids.shape != (len(pts),):
         raise ScanDataError(f"tree_ids: expected one id per point ({len(pts)}), got shape {ids.shape}")

@@ -27,10 +27,11 @@ from typing import Iterator, Optional
 
 import numpy as np
 
+from ..core.scan import check_points
 from ..core.errors import ParameterError, ScanDataError
 from ..core.progress import Progress
 from ..core.params import Params, param_field as _p
-from ..geometry.jit import kernel, run_blocks
+from ..core.jit import kernel, run_blocks
 from ..geometry.voxel import voxel_thin
 
 __all__ = ["Dem", "TerrainModel", "TerrainParams", "build_dem", "classify_ground", "lowest_points_dem", "terrain_model"]
@@ -130,17 +131,6 @@ class TerrainModel:
         return int(np.count_nonzero(self.ground))
 
 
-def _check_points(points: np.ndarray, what: str = "cloud") -> np.ndarray:
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ScanDataError(f"{what}: expected (N, 3) points, got shape {p.shape}")
-    if len(p) == 0:
-        raise ScanDataError(f"{what} is empty")
-    if not np.isfinite(p).all():
-        raise ScanDataError(f"{what} holds NaN or infinite coordinates")
-    return p
-
-
 #: Guards the silencing of file descriptor 1 (:func:`_quiet_stdout`) between threads.
 _QUIET_LOCK = threading.Lock()
 #: [threads inside :func:`_quiet_stdout`, the descriptor it saved]
@@ -190,7 +180,7 @@ def classify_ground(points: np.ndarray, params: TerrainParams = TerrainParams())
     """
     import CSF
 
-    p = _check_points(points)
+    p = check_points(points, "cloud")
     keep = voxel_thin(p, params.thin_voxel_m)
     sub = p[keep]
     shift = sub.mean(axis=0)
@@ -242,7 +232,7 @@ def build_dem(
 
     ``extent`` (xmin, xmax, ymin, ymax) defaults to the ground points' bounding box.
     """
-    g = _check_points(ground_points, "ground")
+    g = check_points(ground_points, "ground")
     if not (resolution_m > 0):
         raise ParameterError(f"DEM resolution must be positive, got {resolution_m}")
     xmin, xmax, ymin, ymax = extent if extent is not None else _extent(g)
@@ -315,7 +305,7 @@ def terrain_model(
 ) -> TerrainModel:
     """Ground mask and DEM of a cloud (local frame, z up, metres); the DEM covers the cloud's extent."""
     progress = progress or Progress()
-    p = _check_points(points)
+    p = check_points(points, "cloud")
     progress(0.0, "classifying ground (cloth simulation filter)")
     mask = classify_ground(p, params)
     progress(0.7, "building the DEM")
@@ -331,7 +321,7 @@ def lowest_points_dem(points: np.ndarray, resolution_m: float = 0.5, window_m: f
     the lowest vegetation, not above the terrain: use only when the cloud has no ground."""
     from scipy import ndimage
 
-    p = _check_points(points)
+    p = check_points(points, "cloud")
     xmin, xmax, ymin, ymax = _extent(p)
     nx = max(int(np.ceil((xmax - xmin) / resolution_m)), 1) + 1
     ny = max(int(np.ceil((ymax - ymin) / resolution_m)), 1) + 1

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry.jit import kernel
+from ..core.jit import kernel
 
 #: numpy's float semantics (a division by zero gives inf, not an exception), as the numpy path
 _compiled = kernel(error_model="numpy")

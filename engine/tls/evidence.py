@@ -9,7 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..geometry.jit import kernel, run_blocks
+from ..core.jit import kernel, run_blocks
 from .params import RegistrationParams
 from .ground import ground_at
 from .prepare import PreparedScan, SliceLayer

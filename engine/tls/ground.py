@@ -11,7 +11,7 @@ from ..core.errors import DataError
 import numpy as np
 from scipy import ndimage
 
-from ..geometry.jit import kernel
+from ..core.jit import kernel
 from ..geometry.voxel import column_bounds
 
 

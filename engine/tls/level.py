@@ -16,7 +16,8 @@ from typing import Optional
 import numpy as np
 
 from ..geometry.features import SphereGrid, local_covariances, normals_and_variation
-from ..geometry.jit import kernel, run_blocks
+from ..core.jit import kernel, run_blocks
+from ..geometry.voxel import claim_voxel, voxel_bitmap
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -61,32 +62,6 @@ def level_sample(points: np.ndarray, *, voxel_m: float = LEVEL_VOXEL_M, radius_m
     out = np.empty((len(pts), 3), dtype=np.float32)  # only the rows written are ever touched
     count = _first_in_voxels(pts, np.float32(radius_m * radius_m), float(voxel_m), int(np.ceil(radius_m / voxel_m)), occupied, out)
     return out[:count].copy()
-
-
-def voxel_bitmap(voxel_m: float, radius_m: float) -> np.ndarray:
-    """The zeroed bit per voxel of the cube of ``voxel_m`` voxels around a scanner that holds its
-    ``radius_m`` sphere (:func:`claim_voxel`), as uint64 words."""
-    cells = 2 * int(np.ceil(radius_m / voxel_m)) + 1
-    return np.zeros((cells**3 + 63) // 64, dtype=np.uint64)
-
-
-@kernel(inline="always")
-def claim_voxel(x: float, y: float, z: float, voxel_m: float, half: int, occupied: np.ndarray) -> bool:  # pragma: no cover - compiled
-    """Whether the point ``(x, y, z)`` (scanner-centred, within the sphere of the bitmap, see
-    :func:`voxel_bitmap`; ``half`` its cells on each side of the scanner) is the first in its
-    ``voxel_m`` voxel: its bit in ``occupied`` was clear (it is set now)."""
-    n = 2 * half + 1
-    ix = np.int64(np.floor(np.float64(x) / voxel_m)) + half
-    iy = np.int64(np.floor(np.float64(y) / voxel_m)) + half
-    iz = np.int64(np.floor(np.float64(z) / voxel_m)) + half
-    if ix < 0 or iy < 0 or iz < 0 or ix >= n or iy >= n or iz >= n:
-        return False
-    cell = (ix * n + iy) * n + iz
-    word, bit = cell >> 6, np.uint64(1) << np.uint64(cell & 63)
-    if occupied[word] & bit:
-        return False
-    occupied[word] |= bit
-    return True
 
 
 @kernel

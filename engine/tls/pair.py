@@ -28,7 +28,7 @@ from .scanner_position import locate_scanner
 from .uncertainty import pair_uncertainty
 from .prepare import PreparedScan, PreparedScans, SliceLayer, centre_scan, derived, extract_vops, icp_grid_voxel, prepare_centred, slice_layers
 from .vop import VisualOcclusionPoints
-from .params import RegistrationParams
+from .params import RegistrationParams, ScannerPositionParams
 from ..core.outcome import Outcome, StepTimer
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.scan import Scan, ScanSource
@@ -37,8 +37,6 @@ from ..core.transform import apply as apply_transform
 
 log = logging.getLogger("forestreg")
 
-#: VOP radii (D_r, metres) tried in turn when none is given.
-AUTO_VOP_RADII_M = (10.0, 15.0, 20.0, 25.0)
 #: Scans of more points than this are prepared one at a time (a pair of two such scans one after
 #: the other).
 SEQUENTIAL_PREPARE_POINTS = 15_000_000
@@ -215,6 +213,7 @@ def register(
     prior: Optional[np.ndarray] = None,
     prior_tolerance: tuple[float, float] = (12.0, 70.0),
     prepared: Optional[PreparedScans] = None,
+    scanner_params: Optional[ScannerPositionParams] = None,
 ) -> PairResult:
     """Register ``moving`` onto ``reference`` from trunk shadows, then ICP.
 
@@ -225,6 +224,8 @@ def register(
         are then read one after the other in worker threads, each prepared as soon as it is read
         (while the other is read), and only the prepared scans stay in memory.
     params : settings; default the paper's table 2 with an automatic ``D_r``.
+    scanner_params : settings of the scanner-position estimate of a scan that does not say where
+        its scanner stood (:func:`~.scanner_position.locate_scanner`).
     progress : optional ``progress(fraction, message)`` callback.
     cancel : optional token; cancelling raises :class:`~forestreg.engine.core.errors.Cancelled`.
     reference_up, moving_up : optional known vertical directions in each scan's local frame
@@ -257,7 +258,7 @@ def register(
         if callable(source):
             with reading:
                 source = timed(f"read_{role}", source)
-        return locate_scanner(source)
+        return locate_scanner(source, scanner_params)
 
     def prepare(held: list, up: Optional[np.ndarray]) -> PreparedScan:
         # ``held``: the scan, in the only reference to it, taken out here; two large scans (a plot
@@ -526,7 +527,7 @@ def vop_radii(params: RegistrationParams) -> tuple[float, ...]:
     automatic radius within the scans' reach."""
     if params.vop_radius_m is not None:
         return (params.vop_radius_m,)
-    return tuple(r for r in AUTO_VOP_RADII_M if r <= params.max_range_m - 3.0)
+    return tuple(r for r in params.auto_vop_radii_m if r <= params.max_range_m - 3.0)
 
 
 def scan_vops(prepared: PreparedScan, params: RegistrationParams, timed: Callable[..., Any]) -> None:

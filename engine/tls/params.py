@@ -1,4 +1,5 @@
-"""Parameters of the pair registration (System A), as one frozen dataclass.
+"""Parameters of System A: the pair registration, the scanner-position estimate and the whole-survey
+registration, each one frozen dataclass.
 
 Defaults are the paper's table 2 (Guan et al. 2020) where the paper gives a value; the rest are
 ours and documented in the field metadata (``unit``, ``range``, ``help``, ``paper``), which also
@@ -13,7 +14,7 @@ from typing import Optional
 from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
 
-__all__ = ["RegistrationParams"]
+__all__ = ["RegistrationParams", "ScannerPositionParams", "SurveyParams"]
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,8 @@ class RegistrationParams(Params):
     angular_step_deg: float = _p(0.1, "deg", 0.01, 2.0, "Angular resolution of the angular grid and rotation step of the coarse search", "I_A = 0.1 deg")
     radial_step_m: float = _p(0.1, "m", 0.02, 1.0, "Distance resolution of the angular grid; width of the visibility buffer", "I_D = 0.1 m")
     vop_radius_m: Optional[float] = _p(None, "m", 2.0, 100.0, "Radius around the scanner in which VOPs are extracted; empty = choose automatically (tries increasing radii)", "D_r (table 3)")
+    auto_vop_radii_m: tuple[float, ...] = _p((10.0, 15.0, 20.0, 25.0), "m", 2.0, 100.0, "The radii tried in turn when vop_radius_m is empty (those within 3 m of max_range_m)")
+    tilted_partner_vop_radius_m: float = _p(10.0, "m", 2.0, 100.0, "VOP radius of the links of a tilted scan whose level partner is not named, tried against every registered level scan (the partner stands at the same spot)", "D_r ~ 10 m (sec. 4.3)")
     visibility_gap_m: float = _p(0.5, "m", 0.0, 5.0, "Start of the visibility buffer behind a candidate", "D_e = 0.5 m")
     component_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size of the connected-component labelling of candidate points")
     min_component_points: int = _p(8, "points", 2, 10000, "Smallest connected component kept as a trunk candidate")
@@ -60,7 +63,7 @@ class RegistrationParams(Params):
     icp_max_correction_m: float = _p(1.0, "m", 0.0, 10.0, "ICP may move the coarse result by at most this much (more means the coarse result was wrong)")
 
     def _check(self) -> None:
-        for name in ("slice_offsets_m", "icp_max_distances_m"):
+        for name in ("slice_offsets_m", "icp_max_distances_m", "auto_vop_radii_m"):
             if not getattr(self, name):
                 raise ParameterError(f"{name}: needs at least one value")
         if self.vop_radius_m is not None and self.vop_radius_m >= self.max_range_m:
@@ -71,3 +74,36 @@ class RegistrationParams(Params):
         steps = 360.0 / self.angular_step_deg
         if abs(steps - round(steps)) > 1e-6:
             raise ParameterError(f"angular_step_deg = {self.angular_step_deg} must divide 360")
+
+
+@dataclass(frozen=True)
+class ScannerPositionParams(Params):
+    """Settings of the scanner-position estimate (metres)."""
+
+    cell_m: float = _p(0.25, unit="m", lo=0.05, hi=2.0, help="grid cell of the density map")
+    smooth_m: float = _p(1.5, unit="m", lo=0.2, hi=10.0, help="Gaussian smoothing of the density map (wider than the blind circle under the scanner)")
+    disc_m: float = _p(4.0, unit="m", lo=1.0, hi=15.0, help="radius of the mean shift over near-ground points around the peak")
+    ground_band_m: float = _p(0.3, unit="m", lo=0.05, hi=2.0, help="points within this height of the lowest in their 0.5 m cell count as ground")
+    near_m: float = _p(3.0, unit="m", lo=0.5, hi=10.0, help="radius of the disc whose point count tests a candidate position")
+    min_peak_ratio: float = _p(3.0, unit="1", lo=1.0, hi=100.0, help="the disc at the scanner must hold this many times the points of an average occupied disc")
+    max_second_ratio: float = _p(0.6, unit="1", lo=0.1, hi=1.0, help="a second density peak this strong (6 m or more away) means several scanners: refused")
+    default_height_m: float = _p(1.5, unit="m", lo=0.1, hi=5.0, help="instrument height used when the ground profile does not give one")
+    origin_keep_distance_m: float = _p(1.0, unit="m", lo=0.0, hi=10.0, help="an estimate this close to the file origin confirms the origin (kept exactly)")
+
+
+@dataclass(frozen=True)
+class SurveyParams(Params):
+    """Settings of a whole-survey registration."""
+
+    pairs: str = _p("within", help="which extra pairs to register: 'within' (scanners within max_distance_m), 'all', or 'centre' (none)")
+    max_distance_m: float = _p(25.0, unit="m", lo=1.0, hi=1000.0, help="scanners within this distance are paired")
+    closure_sigmas: float = _p(4.0, unit="sigma", lo=1.0, hi=100.0, help="a loop of links must close within this many stated sigmas")
+    prior_position_tolerance_m: float = _p(6.0, unit="m", lo=0.0, hi=1000.0, help="how far each scan's prior position (GNSS, georeferenced file) may be off")
+    prior_heading_tolerance_deg: float = _p(35.0, unit="deg", lo=0.0, hi=180.0, help="how far each scan's prior heading (compass) may be off")
+    fixed: tuple[str, ...] = _p((), help="scans held at their prior poses (besides the frame scan)")
+    min_closure_m: float = _p(0.03, unit="m", lo=0.0, hi=10.0, help="a loop closes within at least this translation, whatever its stated sigmas (they have floors too)")
+    min_closure_deg: float = _p(0.1, unit="deg", lo=0.0, hi=10.0, help="a loop closes within at least this rotation, whatever its stated sigmas")
+
+    def _check(self) -> None:
+        if self.pairs not in ("within", "all", "centre"):
+            raise ParameterError(f"pairs must be 'within', 'all' or 'centre', not {self.pairs!r}")

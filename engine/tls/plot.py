@@ -34,12 +34,9 @@ from .scanner_position import locate_scanner
 from ..core.scan import Scan
 from ..core.transform import format_matrix, rigid_errors
 from ..core.transform import apply as apply_transform
+from ..geometry.voxel import voxel_downsample
 
 log = logging.getLogger("forestreg")
-
-#: D_r for a tilted scan against its level partner at the same spot (paper sec. 4.3: ~10 m).
-TILTED_PARTNER_RADIUS_M = 10.0
-
 
 class ScanCache:
     """Reads the scans of a project on first use and keeps the most recently used ones in memory,
@@ -97,7 +94,7 @@ class ScanCache:
             if known is not None and np.array_equal(known[1], scan.origin_shift):
                 scan = dataclasses.replace(scan, scanner_position=known[0], meta=known[2])
             else:
-                scan = locate_scanner(scan)
+                scan = locate_scanner(scan, self.project.scanner_params)
             with self._lock:
                 self._located[name] = (scan.scanner_position, scan.origin_shift, scan.meta)
                 self._frames[name] = (scan.without_points(), scan_identity(scan))
@@ -672,14 +669,14 @@ def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, p
 
 def _register_tilted_without_partner(project: Project, entry: ScanEntry, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> Link:
     """A tilted scan whose level partner is not named: register it to every registered level scan
-    (D_r 10 m) and take the success whose scanner lies closest (the partner stands at the same
-    spot)."""
+    (D_r ``tilted_partner_vop_radius_m``) and take the success whose scanner lies closest (the
+    partner stands at the same spot)."""
     poses = project.chained_poses()
     level = [s.name for s in project.scans if not s.tilted and poses.get(s.name) is not None]
     best: Optional[Link] = None
     last: Optional[Link] = None
     for k, name in enumerate(level):
-        link = Link(moving=entry.name, reference=name, vop_radius_m=TILTED_PARTNER_RADIUS_M)
+        link = Link(moving=entry.name, reference=name, vop_radius_m=project.params.tilted_partner_vop_radius_m)
         link.result = _run_link(project, link, scans, progress.sub(k / len(level), (k + 1) / len(level)), cancel)
         last = link
         if link.ok and (best is None or np.linalg.norm(link.matrix[:3, 3]) < np.linalg.norm(best.matrix[:3, 3])):
@@ -734,12 +731,11 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
             scan = scans(name)
             pts = scan.file_points
             pts = pts[np.sum((pts - scan.scanner_position_file) ** 2, axis=1) <= project.params.max_range_m**2]
-            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts - chained[project.centre][:3, 3]))
-            clouds[name] = pc.voxel_down_sample(voxel_m)
+            clouds[name] = voxel_downsample(pts - chained[project.centre][:3, 3], voxel_m)
         return clouds[name]
 
     for link in links:
-        information = information_matrix(np.asarray(cloud(link.moving).points), np.asarray(cloud(link.reference).points), max_distance_m, link.matrix)
+        information = information_matrix(cloud(link.moving), cloud(link.reference), max_distance_m, link.matrix)
         graph.edges.append(reg.PoseGraphEdge(index[link.moving], index[link.reference], link.matrix, information, uncertain=link.extra))
     option = reg.GlobalOptimizationOption(max_correspondence_distance=max_distance_m, edge_prune_threshold=0.25, reference_node=index[project.centre])
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):

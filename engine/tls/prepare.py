@@ -13,11 +13,12 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..geometry.jit import kernel
-from ..geometry.voxel import VoxelGrid, voxel_grid
+from ..core.cells import cell_bits, claim_cell
+from ..core.jit import kernel
+from ..geometry.voxel import VoxelGrid, claim_voxel, voxel_bitmap, voxel_grid
 from .params import RegistrationParams
 from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
-from .level import LEVEL_RADIUS_M, LEVEL_VOXEL_M, claim_voxel, estimate_up_direction, levelling_rotation, tilt_deg, voxel_bitmap
+from .level import LEVEL_RADIUS_M, LEVEL_VOXEL_M, estimate_up_direction, levelling_rotation, tilt_deg
 from .vop import (
     VisualOcclusionPoints,
     angular_spacing,
@@ -238,8 +239,8 @@ def prepare_scan(
 @dataclass(frozen=True)
 class CentredScan:
     """The first step of a preparation: the points within ``1.6 D_c`` (3D) of the scanner,
-    scanner-centred, float32 (the scan's axes, metres), thinned to the first point of each angular
-    pixel of :func:`thinning_step_deg` (as seen from the scanner), and the
+    scanner-centred, float32 (the scan's axes, metres), thinned to the first point of each pixel
+    of :func:`thinning_pixels` (angular pixels seen from the scanner), and the
     :func:`~.level.level_sample` of those within 15 m, that estimates the vertical (None when it is
     not estimated). Once made, the scan's own points are no longer needed (a caller holding them in
     the only reference can let them go before the rest)."""
@@ -296,8 +297,8 @@ def thinning_pixels(params: RegistrationParams, floor_m: float = THINNING_FLOOR_
     (0.05 deg by default) where that spans at least ``floor_m`` (beyond 23 m with the defaults),
     and nearer the scanner pixels ``floor_m`` across at the inner edge of their shell (ranges in
     steps of :data:`THINNING_SHELL_RATIO`). Every later step works at this resolution or coarser;
-    a scan made at ``I_A`` keeps every point beyond about 11 m and one point per 2 cm nearer, and a
-    finer or densified file of the same scene about as many, so its preparation, VOPs and ICP cost
+    a scan made at ``I_A`` keeps every point beyond about 15 m and about one point per 2 cm nearer,
+    and a finer or densified file of the same scene about as many, so its preparation, VOPs and ICP cost
     what a scan at ``I_A`` costs, whatever the file holds."""
     finest = np.radians(params.angular_step_deg / 2.0)
     far_m = floor_m / finest
@@ -387,7 +388,7 @@ def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near
         step, columns, rows, offset, near_m, log_ratio = np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), 0.0, 1.0
     else:
         step, columns, rows, offset, near_m, log_ratio = t.step_rad, t.columns, t.rows, t.offset, t.near_m, float(np.log(t.ratio))
-    pixels = np.zeros((0 if t is None else t.bits + 63) // 64, dtype=np.uint64)
+    pixels = cell_bits(0 if t is None else t.bits)
     # the limits as float32, as numpy compares a float32 array with a Python float
     kept, close = _centre_rows(np.asarray(points), origin, np.float32(max_d2), np.float32(-1.0 if near_d2 is None else near_d2),
                                LEVEL_VOXEL_M, int(np.ceil(radius / LEVEL_VOXEL_M)), occupied,
@@ -400,9 +401,10 @@ def _centre_rows(points, origin, max_d2, near_d2, voxel_m, half, occupied, step,
     """:func:`_centred_float32` in one pass: each coordinate minus the origin in float64, then
     float32; the squared distance summed in float32 (x, then y, then z); with thinning pixels
     (``step`` not empty: :class:`ThinningPixels`' arrays, one bit a pixel in ``pixels``) a kept
-    row beyond ``near_m`` must also be the first of its pixel; kept rows packed in order, those
-    within ``near_d2`` (negative: none) that claim their voxel (``voxel_m``, the bitmap
-    ``occupied``, ``half`` cells a side: :func:`~.level.claim_voxel`) into ``near``."""
+    row beyond ``near_m`` must also be the first of its pixel (:func:`~..core.cells.claim_cell`);
+    kept rows packed in order, those within ``near_d2`` (negative: none) that claim their voxel
+    (``voxel_m``, the bitmap ``occupied``, ``half`` cells a side:
+    :func:`~..geometry.voxel.claim_voxel`) into ``near``."""
     kept = 0
     close = 0
     last = step.shape[0] - 1
@@ -422,11 +424,8 @@ def _centre_rows(points, origin, max_d2, near_d2, voxel_m, half, occupied, step,
                     s = step[k]
                     col = min(max(np.int64((np.arctan2(yf, xf) + np.pi) / s), 0), columns[k] - 1)
                     row = min(max(np.int64((np.arctan2(zf, np.sqrt(xf * xf + yf * yf)) + 0.5 * np.pi) / s), 0), rows[k] - 1)
-                    cell = offset[k] + row * columns[k] + col
-                    word, bit = cell >> 6, np.uint64(1) << np.uint64(cell & 63)
-                    if pixels[word] & bit:
+                    if not claim_cell(offset[k] + row * columns[k] + col, pixels):
                         continue
-                    pixels[word] |= bit
             out[kept, 0] = x
             out[kept, 1] = y
             out[kept, 2] = z

@@ -21,7 +21,7 @@ from typing import Any, Optional
 import numpy as np
 
 from ..core.errors import InvalidArgumentError, ProjectFileError, UnknownNameError
-from .params import RegistrationParams
+from .params import RegistrationParams, ScannerPositionParams
 from ..core.outcome import OutcomeRecord
 from ..io.results import ProjectFile
 
@@ -119,6 +119,8 @@ class Project(ProjectFile):
     scans: list[ScanEntry] = field(default_factory=list)
     links: list[Link] = field(default_factory=list)
     params: RegistrationParams = field(default_factory=RegistrationParams)
+    #: how a scan whose file does not say where its scanner stood is located
+    scanner_params: ScannerPositionParams = field(default_factory=ScannerPositionParams)
     path: Optional[Path] = None
     adjustment: Optional[dict[str, Any]] = None
     #: System B: clouds and results beyond the TLS scans (see :class:`ForestResults`)
@@ -225,6 +227,7 @@ class Project(ProjectFile):
             "name": self.name,
             "centre": self.centre,
             "parameters": self.params.to_dict(),
+            "scanner_position_parameters": self.scanner_params.to_dict(),
             "scans": [
                 {
                     "name": s.name,
@@ -301,6 +304,7 @@ class Project(ProjectFile):
                 for link in raw_links
             ]
             params = RegistrationParams.from_mapping(data.get("parameters") or {})
+            scanner_params = ScannerPositionParams.from_mapping(data.get("scanner_position_parameters") or {})
             forest = ForestResults.from_dict(data.get("forest") or {}, folder)
         except (KeyError, TypeError, ValueError) as exc:
             raise ProjectFileError(f"project file {p} is damaged ({exc!r}); it was left untouched") from exc
@@ -310,6 +314,7 @@ class Project(ProjectFile):
             scans=scans,
             links=links,
             params=params,
+            scanner_params=scanner_params,
             path=p.resolve(),
             adjustment=data.get("adjustment"),
             forest=forest,

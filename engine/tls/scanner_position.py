@@ -30,10 +30,10 @@ from typing import Optional
 import numpy as np
 from scipy import ndimage
 
+from .params import ScannerPositionParams
 from ..core.errors import ScanDataError
-from ..core.params import Params, param_field
 from ..core.scan import Scan
-from ..geometry.jit import kernel
+from ..core.jit import kernel
 from ..geometry.voxel import column_bounds
 
 log = logging.getLogger("forestreg")
@@ -51,21 +51,6 @@ __all__ = [
 
 class ScannerPositionError(ScanDataError):
     """The data do not show where the scanner stood (and no position was given)."""
-
-
-@dataclass(frozen=True)
-class ScannerPositionParams(Params):
-    """Settings of the scanner-position estimate (metres)."""
-
-    cell_m: float = param_field(0.25, unit="m", lo=0.05, hi=2.0, help="grid cell of the density map")
-    smooth_m: float = param_field(1.5, unit="m", lo=0.2, hi=10.0, help="Gaussian smoothing of the density map (wider than the blind circle under the scanner)")
-    disc_m: float = param_field(4.0, unit="m", lo=1.0, hi=15.0, help="radius of the mean shift over near-ground points around the peak")
-    ground_band_m: float = param_field(0.3, unit="m", lo=0.05, hi=2.0, help="points within this height of the lowest in their 0.5 m cell count as ground")
-    near_m: float = param_field(3.0, unit="m", lo=0.5, hi=10.0, help="radius of the disc whose point count tests a candidate position")
-    min_peak_ratio: float = param_field(3.0, unit="", lo=1.0, hi=100.0, help="the disc at the scanner must hold this many times the points of an average occupied disc")
-    max_second_ratio: float = param_field(0.6, unit="", lo=0.1, hi=1.0, help="a second density peak this strong (6 m or more away) means several scanners: refused")
-    default_height_m: float = param_field(1.5, unit="m", lo=0.1, hi=5.0, help="instrument height used when the ground profile does not give one")
-    origin_keep_distance_m: float = param_field(1.0, unit="m", lo=0.0, hi=10.0, help="an estimate this close to the file origin confirms the origin (kept exactly)")
 
 
 @dataclass(frozen=True)

@@ -26,14 +26,13 @@ from __future__ import annotations
 
 import itertools
 import logging
-from dataclasses import dataclass
 from typing import Any, Optional, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ..core.params import Params, param_field
+from .params import SurveyParams
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.transform import rigid_errors
 from .plot import LinkQueue, PlotOutcome, ScanCache, _run_link, default_links, informative_priors, register_project
@@ -43,23 +42,6 @@ from .uncertainty import propagate_uncertainty
 log = logging.getLogger("forestreg")
 
 __all__ = ["SurveyParams", "register_survey", "solve_pose_graph", "inconsistent_links"]
-
-#: Loop-closure tolerances never go below these (m, deg): the stated values have floors too.
-MIN_CLOSURE_M = 0.03
-MIN_CLOSURE_DEG = 0.1
-
-
-@dataclass(frozen=True)
-class SurveyParams(Params):
-    """Settings of a whole-survey registration."""
-
-    pairs: str = param_field("within", help="which extra pairs to register: 'within' (scanners within max_distance_m), 'all', or 'centre' (none)")
-    max_distance_m: float = param_field(25.0, unit="m", lo=1.0, hi=1000.0, help="scanners within this distance are paired")
-    closure_sigmas: float = param_field(4.0, unit="sigma", lo=1.0, hi=100.0, help="a loop of links must close within this many stated sigmas")
-    prior_position_tolerance_m: float = param_field(6.0, unit="m", lo=0.0, hi=1000.0, help="how far each scan's prior position (GNSS, georeferenced file) may be off")
-    prior_heading_tolerance_deg: float = param_field(35.0, unit="deg", lo=0.0, hi=180.0, help="how far each scan's prior heading (compass) may be off")
-    fixed: tuple[str, ...] = param_field((), help="scans held at their prior poses (besides the frame scan)")
-
 
 def _link_sigma(link: Link) -> tuple[float, float]:
     """A link's stated 1-sigma (translation m, rotation deg); manual/old links get a cautious default."""
@@ -159,12 +141,14 @@ def _error(link_matrix: np.ndarray, predicted: np.ndarray, at: np.ndarray) -> tu
     return rot, float(np.linalg.norm(d))
 
 
-def inconsistent_links(links: Sequence[Link], scanner: dict[str, np.ndarray], closure_sigmas: float) -> tuple[list[Link], list[dict[str, Any]]]:
+def inconsistent_links(
+    links: Sequence[Link], scanner: dict[str, np.ndarray], closure_sigmas: float, *, min_closure_m: float = 0.03, min_closure_deg: float = 0.1,
+) -> tuple[list[Link], list[dict[str, Any]]]:
     """Links whose triangles all fail to close while at least one closes elsewhere in the graph.
 
     Every triangle ``a -> b -> c -> a`` of links is composed; it closes when the rotation and the
     translation at a scanner stay within ``closure_sigmas`` times the combined stated sigmas (at
-    least ``MIN_CLOSURE_*``). Returns (the links to drop, one row per triangle)."""
+    least ``min_closure_m`` and ``min_closure_deg``). Returns (the links to drop, one row per triangle)."""
     by_pair: dict[frozenset, Link] = {}
     for link in links:
         by_pair.setdefault(frozenset((link.moving, link.reference)), link)
@@ -186,7 +170,7 @@ def inconsistent_links(links: Sequence[Link], scanner: dict[str, np.ndarray], cl
         trio = [by_pair[frozenset(p)] for p in ((a, b), (b, c), (c, a))]
         sig_t = np.sqrt(sum(_link_sigma(x)[0] ** 2 for x in trio))
         sig_r = np.sqrt(sum(_link_sigma(x)[1] ** 2 for x in trio))
-        ok = trans <= max(closure_sigmas * sig_t, MIN_CLOSURE_M) and rot <= max(closure_sigmas * sig_r, MIN_CLOSURE_DEG)
+        ok = trans <= max(closure_sigmas * sig_t, min_closure_m) and rot <= max(closure_sigmas * sig_r, min_closure_deg)
         rows.append({"scans": [a, b, c], "rotation_deg": rot, "translation_m": trans, "closes": bool(ok)})
         for x in trio:
             key = id(x)
@@ -406,7 +390,7 @@ def register_survey(
             kept.append(link)
     triangles: list[dict[str, Any]] = []
     while True:
-        culprits, triangles = inconsistent_links(kept, scanner, params.closure_sigmas)
+        culprits, triangles = inconsistent_links(kept, scanner, params.closure_sigmas, min_closure_m=params.min_closure_m, min_closure_deg=params.min_closure_deg)
         if not culprits:
             break
         worst = max(culprits, key=lambda x: _link_sigma(x)[0])

@@ -23,8 +23,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .ground import GroundGrid
+from ..geometry.circle import algebraic_circle
 from ..geometry.cluster import connected_clusters
-from ..geometry.jit import kernel
+from ..core.jit import kernel
 
 
 @dataclass(frozen=True)
@@ -178,25 +179,17 @@ def trunk_axis(points_xy: np.ndarray, bark_xy: np.ndarray, *, max_radius_m: floa
     width = float(np.ptp(points_xy @ across)) if len(points_xy) > 1 else 0.0
     radius_from_width = min(width / 2.0, max_radius_m)
     if len(points_xy) >= 6 and width > 0.02:
-        x, y = points_xy[:, 0], points_xy[:, 1]
-        a = np.column_stack([x, y, np.ones_like(x)])
-        b = x**2 + y**2
-        try:
-            sol, *_ = np.linalg.lstsq(a, b, rcond=None)
-            cx, cy = sol[0] / 2.0, sol[1] / 2.0
-            r = float(np.sqrt(max(sol[2] + cx**2 + cy**2, 0.0)))
-            centre = np.array([cx, cy])
-            residual = np.sqrt(np.mean((np.hypot(x - cx, y - cy) - r) ** 2))
+        circle = algebraic_circle(points_xy)
+        if circle is not None:
+            centre, r = np.array(circle.centre), circle.radius_m
             behind = float((centre - bark_xy) @ ray)
             if (
                 0.01 <= r <= max_radius_m
-                and residual <= max(0.01, 0.15 * r)
+                and circle.rms_residual_m <= max(0.01, 0.15 * r)
                 and 0.5 * r <= behind <= 1.5 * r
                 and r <= 1.5 * radius_from_width + 0.02
             ):
                 return centre, r
-        except np.linalg.LinAlgError:  # pragma: no cover - lstsq rarely fails
-            pass
     return bark_xy + ray * radius_from_width, radius_from_width
 
 

@@ -53,6 +53,9 @@ class CanopyParams(Params):
     width_percentile: float = param_field(1.0, "%", 0.0, 25.0, "Crown widths run from this percentile of the crown cells' x (y) to 100 minus it")
     min_crown_cells: int = param_field(3, "cells", 1, 10000, "Crowns of fewer cells are dropped (noise)")
     min_crown_points: int = param_field(10, "points", 1, 100000, "Crowns of fewer points are dropped (noise, a fragment of a neighbour's crown)")
+    ground_ring_width_m: float = param_field(5.0, "m", 0.5, 50.0, "Where few ground returns lie under a crown, a plane through those in a ring this wide around it checks the DEM under the top")
+    ground_ring_min_points: int = param_field(10, "points", 3, 100000, "Fewest ground returns in that ring for the plane")
+    ground_tolerance: float = param_field(0.05, "1", 0.0, 1.0, "The DEM under the top may stand off that plane by at most this fraction of the tree height; farther, the height is unsure")
 
 
 @dataclass(frozen=True, eq=False)
@@ -267,19 +270,14 @@ class GroundEvidence:
     text: str
 
 
-#: Ground returns needed in the ring around a crown for the plane that checks the DEM under its top.
-RING_MIN_POINTS = 10
-#: Width of that ring beyond the crown radius, m.
-RING_WIDTH_M = 5.0
-
-
 def ground_evidence(ground_xyz: np.ndarray, ground_index: Any, top: np.ndarray, crown_radius_m: float, dem_z: float,
-                    height_m: float, tolerance: float = 0.05) -> GroundEvidence:
+                    height_m: float, params: CanopyParams = CanopyParams()) -> GroundEvidence:
     """The evidence for the ground under ``top`` (see :class:`GroundEvidence`). ``ground_xyz``
     (G, 3) the ground returns, ``ground_index`` a ``cKDTree`` of their x, y. Where few returns lie
     under the crown (sparse ground under a dense crown, the DEM interpolated across it, or crown
-    undersides taken for ground), a plane through the open ground around the crown must agree with
-    the DEM under the top within ``tolerance`` of the height, else the height is unsure."""
+    undersides taken for ground), a plane through the open ground in a ring ``ground_ring_width_m``
+    wide around the crown (at least ``ground_ring_min_points`` returns) must agree with the DEM
+    under the top within ``ground_tolerance`` of the height, else the height is unsure."""
     nan = math.nan
     r = max(float(crown_radius_m), 1.0) if math.isfinite(crown_radius_m) else 2.0
     if len(ground_xyz) == 0:
@@ -287,12 +285,12 @@ def ground_evidence(ground_xyz: np.ndarray, ground_index: Any, top: np.ndarray, 
     nearest = float(ground_index.query(top[:2])[0])
     core = 0.5 * r  # the crown's core: where the ground under the top is read
     n_under = len(ground_index.query_ball_point(top[:2], core))
-    ring = np.asarray(ground_index.query_ball_point(top[:2], r + RING_WIDTH_M), dtype=np.int64)
+    ring = np.asarray(ground_index.query_ball_point(top[:2], r + params.ground_ring_width_m), dtype=np.int64)
     g = ground_xyz[ring]
     d = np.hypot(g[:, 0] - top[0], g[:, 1] - top[1])
     g = g[d > r]
     ring_z = nan
-    if len(g) >= RING_MIN_POINTS:
+    if len(g) >= params.ground_ring_min_points:
         a = np.column_stack([g[:, 0] - top[0], g[:, 1] - top[1], np.ones(len(g))])
         coef, *_ = np.linalg.lstsq(a, g[:, 2], rcond=None)
         ring_z = float(coef[2])
@@ -300,7 +298,7 @@ def ground_evidence(ground_xyz: np.ndarray, ground_index: Any, top: np.ndarray, 
     off = abs(dem_z - ring_z) if math.isfinite(ring_z) else nan
     # returns under the crown that stand off the open ground around it are crown undersides or
     # low vegetation taken for ground as much as a sparse ground interpolated wrongly
-    unsure = (math.isfinite(off) and off > tolerance * height_m) or (not dense and not math.isfinite(off) and nearest > r)
+    unsure = (math.isfinite(off) and off > params.ground_tolerance * height_m) or (not dense and not math.isfinite(off) and nearest > r)
     if dense:
         text = f"ground from {n_under} returns within {core:.1f} m of the top"
         if math.isfinite(off):

@@ -33,7 +33,7 @@ from .crown import CrownMeasurement, measure_crown
 from .inventory import TreeInventory, TreeParams, TreeRecord, ground_near_stems, tree_record
 from .segmentation import tree_completeness
 from .consistency import stem_curve_wood
-from .stems import NOISY_STEM_CHANGES, Stem, detect_stems, measure_dbh, stem_curve
+from .stems import Stem, detect_stems, measure_dbh, stem_curve
 
 __all__ = [
     "EDIT_KINDS",
@@ -53,9 +53,6 @@ __all__ = [
 ]
 
 EDIT_KINDS = ("delete", "merge", "split", "add", "dbh_height")
-
-#: Radius (m) around a clicked position searched for a stem (add / split).
-STEM_SEARCH_RADIUS_M = 1.0
 
 
 @dataclass(frozen=True)
@@ -176,7 +173,7 @@ def measure_tree(
     completeness flags and cylinder model, with the step functions ``measure_trees`` uses."""
     p = points
     heights = inventory.heights
-    base_params = params.stems.replace(**NOISY_STEM_CHANGES) if getattr(inventory, "method", "fine") == "noisy" else params.stems
+    base_params = params.noisy_stems.apply(params.stems) if getattr(inventory, "method", "fine") == "noisy" else params.stems
     stem_params = base_params if breast_height_m is None else dataclasses.replace(base_params, breast_height_m=float(breast_height_m))
     index = search_tree if search_tree is not None else cKDTree(p)
     dbh = measure_dbh(p, heights, stem, stem_params, search_tree=index)
@@ -200,7 +197,7 @@ def measure_tree(
     return tree_record(
         p, stem, np.asarray(indices), dbh, curve, crown, wood, complete[0].reasons if complete else (), params,
         stem_params=stem_params, method=getattr(inventory, "method", "fine"), no_ground=no_ground,
-        ground_near=ground_near_stems(p, ground, [stem]).get(stem.id),
+        ground_near=ground_near_stems(p, ground, [stem], params.ground_near_stem_m).get(stem.id),
     )
 
 
@@ -219,16 +216,16 @@ def _record(inventory: TreeInventory, tree_id: int) -> TreeRecord:
 def _stem_near(points: np.ndarray, inventory: TreeInventory, xy: Sequence[float], params: TreeParams,
                exclude: Iterable[Stem] = ()) -> Stem:
     """The stem nearest ``xy`` found by the stem detector in the points within
-    :data:`STEM_SEARCH_RADIUS_M` of it (stems in ``exclude`` are not taken); ScanDataError if none."""
+    ``params.stem_search_radius_m`` of it (stems in ``exclude`` are not taken); ScanDataError if none."""
     c = np.asarray(xy, dtype=np.float64)[:2]
-    near = np.flatnonzero(np.hypot(points[:, 0] - c[0], points[:, 1] - c[1]) <= STEM_SEARCH_RADIUS_M)
+    near = np.flatnonzero(np.hypot(points[:, 0] - c[0], points[:, 1] - c[1]) <= params.stem_search_radius_m)
     if len(near) < 30:
-        raise ScanDataError(f"too few points within {STEM_SEARCH_RADIUS_M:g} m of ({c[0]:.2f}, {c[1]:.2f}) to find a stem")
+        raise ScanDataError(f"too few points within {params.stem_search_radius_m:g} m of ({c[0]:.2f}, {c[1]:.2f}) to find a stem")
     found = detect_stems(points[near], inventory.heights[near], params.stems)
     taken = [s for s in exclude]
     found = [s for s in found if all(math.hypot(s.x - t.x, s.y - t.y) > max(s.radius_m, t.radius_m) for t in taken)]
     if not found:
-        raise ScanDataError(f"no stem found within {STEM_SEARCH_RADIUS_M:g} m of ({c[0]:.2f}, {c[1]:.2f})")
+        raise ScanDataError(f"no stem found within {params.stem_search_radius_m:g} m of ({c[0]:.2f}, {c[1]:.2f})")
     best = min(found, key=lambda s: math.hypot(s.x - c[0], s.y - c[1]))
     return dataclasses.replace(best, point_indices=near[best.point_indices])
 

@@ -37,7 +37,7 @@ from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
 from .segmentation import CompletenessParams, SegmentationParams, segment_trees, top_layer, tree_completeness
 from .single import SingleTreeEvidence, SingleTreeParams, base_stem, single_tree_evidence
-from .stems import DbhMeasurement, Stem, StemCurve, StemParams, detect_stems_adaptive, measure_stems
+from .stems import DbhMeasurement, NoisyStemParams, Stem, StemCurve, StemParams, detect_stems_adaptive, measure_stems
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,8 @@ class TreeParams(Params):
 
     terrain: TerrainParams = TerrainParams()
     stems: StemParams = StemParams()
+    #: the stem settings that differ in the "noisy" profile (sparse or noisy stems)
+    noisy_stems: NoisyStemParams = NoisyStemParams()
     segmentation: SegmentationParams = SegmentationParams()
     completeness: CompletenessParams = CompletenessParams()
     crown: CrownParams = CrownParams()
@@ -66,6 +68,18 @@ class TreeParams(Params):
     wood_threshold: float = _p(0.5, "1", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
     cylinder_models: bool = _p(True, "", None, None, "fit cylinder models")
+    #: ground-based clouds hold 0.1 and more (a TLS plot of tall trees without ground 0.04, but its
+    #: stems are dense), airborne ones 0.005-0.03
+    airborne_band_ratio: float = _p(0.08, "1", 0.0, 10.0, "points at 1-3 m above the ground per point above 3 m below which a cloud with sparsely sampled stems (noisy profile) is taken as airborne: trees without a sampled stem come from the canopy height model")
+    #: a stem's height is measured above the ground interpolated under it
+    ground_near_stem_m: float = _p(3.0, "m", 0.1, 50.0, "a stem without a ground point this near (horizontally) has its height flagged: the ground under it is interpolated")
+    #: height over DBH beyond which a stem hardly stands: a thin tree measured taller has a
+    #: neighbour's crown for its top (suppressed trees under a neighbour), or its DBH is wrong
+    max_slenderness: float = _p(140.0, "1", 10.0, 1000.0, "height over DBH (both in metres) beyond which the height is flagged as unsure: the top may be a neighbour's")
+    #: points of thicker neighbours within 1 m of a tree's top (and not more than 0.5 m below it)
+    shared_top_min_points: int = _p(6, "points", 1, 10000, "points of thicker neighbours around a tree's top (within 1 m, not more than 0.5 m below it) from which the top is flagged as possibly the neighbour's")
+    #: the radius around a position clicked in an edit (add a tree, split a tree)
+    stem_search_radius_m: float = _p(1.0, "m", 0.1, 10.0, "radius around a position given in an edit (add, split) searched for a stem")
 
 
 @dataclass(frozen=True, eq=False)
@@ -289,7 +303,7 @@ def _measure_trees(
 
     t = time.perf_counter()
     progress(0.08, "detecting stems")
-    stems, stem_params, method = detect_stems_adaptive(p, heights, params.stems, progress.sub(0.08, 0.2))
+    stems, stem_params, method = detect_stems_adaptive(p, heights, params.stems, progress.sub(0.08, 0.2), params.noisy_stems)
     timings["stems_s"] = time.perf_counter() - t
     mode = params.single_tree.mode if single_tree is None else ("yes" if single_tree else "no")
     evidence = single_tree_evidence(p, heights, stems, params.single_tree) if mode != "no" else None
@@ -318,7 +332,7 @@ def _measure_trees(
         t = time.perf_counter()
         labels = segment_trees(p, heights, stems, params.segmentation, progress.sub(0.3, 0.45))
         timings["segmentation_s"] = time.perf_counter() - t
-        crowns, shared, ground_near = _crowns_timed(p, heights, labels, stems, model.ground, params.crown, timings)
+        crowns, shared, ground_near = _crowns_timed(p, heights, labels, stems, model.ground, params, timings)
         t = time.perf_counter()
         dbh, curves, timings["dbh_s"] = stems_job.result()  # its k-d tree went with its call
         timings["waiting_s"] = time.perf_counter() - t  # for the second thread
@@ -364,7 +378,7 @@ def _measure_trees(
             no_ground=no_ground, ground_near=ground_near.get(stem.id), shared_flag=shared.get(stem.id),
         ))
     timings["trees_s"] = time.perf_counter() - t
-    if method == "noisy" and _airborne_like(heights):  # stems sparse and hardly sampled: the canopy decides
+    if method == "noisy" and _airborne_like(heights, params.airborne_band_ratio):  # stems sparse and hardly sampled: the canopy decides
         t = time.perf_counter()
         progress(0.98, "airborne cloud: trees without a sampled stem from the canopy height model")
         records, labels = _add_canopy_trees(p, heights, labels, records, no_ground, params, model.ground)
@@ -388,18 +402,18 @@ def _points_by_stem(labels: np.ndarray, stems: Sequence[Stem]) -> tuple[np.ndarr
 
 def _crowns_timed(
     p: np.ndarray, heights: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], ground: np.ndarray,
-    params: CrownParams, timings: dict[str, float],
+    params: TreeParams, timings: dict[str, float],
 ) -> tuple[dict[int, CrownMeasurement], dict[int, str], dict[int, bool]]:
     """Every tree's crown (:func:`.crown.measure_crown`) and the flags of tops not their own
-    (:func:`_shared_tops`), with what the tree records need: whether ground points lie within 3 m
-    of each stem (none: the cloud has no ground). Stores its seconds in ``timings["crowns_s"]``."""
+    (:func:`_shared_tops`), with what the tree records need: whether ground points lie within
+    ``params.ground_near_stem_m`` of each stem (none: the cloud has no ground). Stores its seconds in ``timings["crowns_s"]``."""
     t = time.perf_counter()
     order, bounds = _points_by_stem(labels, stems)
     crowns: dict[int, CrownMeasurement] = {}
     for k, stem in enumerate(stems):
         idx = order[bounds[k] : bounds[k + len(stems)]]
         try:
-            crowns[stem.id] = measure_crown(p[idx], heights[idx], stem, params)
+            crowns[stem.id] = measure_crown(p[idx], heights[idx], stem, params.crown)
         except ScanDataError as exc:  # no points reached this stem
             nan = math.nan
             crowns[stem.id] = CrownMeasurement(
@@ -409,24 +423,21 @@ def _crowns_timed(
             )
     del order
     columns = ColumnIndex(p, 1.0)  # for the disc queries of both below
-    shared = _shared_tops(p, labels, stems, crowns, columns)
+    shared = _shared_tops(p, labels, stems, crowns, columns, params.shared_top_min_points)
     timings["crowns_s"] = time.perf_counter() - t
-    return crowns, shared, ground_near_stems(p, ground, stems, columns)
+    return crowns, shared, ground_near_stems(p, ground, stems, params.ground_near_stem_m, columns)
 
 
-#: A stem's height is measured above the ground interpolated under it; without a ground point this
-#: near (horizontally, m) it is flagged.
-GROUND_NEAR_STEM_M = 3.0
-
-
-def ground_near_stems(p: np.ndarray, ground: np.ndarray, stems: Sequence[Stem], columns: Optional[ColumnIndex] = None) -> dict[int, bool]:
-    """Whether any ground point (``ground``: a mask of ``p``) lies within :data:`GROUND_NEAR_STEM_M`
-    horizontally of each stem's position; empty when the cloud has no ground. ``columns``: a
-    :class:`~forestreg.engine.geometry.columns.ColumnIndex` of ``p`` when one is made already."""
+def ground_near_stems(p: np.ndarray, ground: np.ndarray, stems: Sequence[Stem], radius_m: float,
+                      columns: Optional[ColumnIndex] = None) -> dict[int, bool]:
+    """Whether any ground point (``ground``: a mask of ``p``) lies within ``radius_m``
+    (:attr:`TreeParams.ground_near_stem_m`) horizontally of each stem's position; empty when the
+    cloud has no ground. ``columns``: a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of
+    ``p`` when one is made already."""
     if not ground.any() or not stems:
         return {}
-    columns = columns if columns is not None else ColumnIndex(p, GROUND_NEAR_STEM_M)
-    return {s.id: bool(ground[columns.within(s.x, s.y, GROUND_NEAR_STEM_M)].any()) for s in stems}
+    columns = columns if columns is not None else ColumnIndex(p, radius_m)
+    return {s.id: bool(ground[columns.within(s.x, s.y, radius_m)].any()) for s in stems}
 
 
 def _measure_stems_timed(
@@ -474,7 +485,7 @@ def tree_record(
     measure. ``idx`` are the tree's point indices into ``p``; ``wood`` the wood probability of
     every point (the stem traced by the curve already counted as wood); ``reasons`` the
     completeness reasons; ``ground_near`` whether ground points lie within
-    :data:`GROUND_NEAR_STEM_M` of the stem (None: not known);
+    ``params.ground_near_stem_m`` of the stem (None: not known);
     ``shared_flag`` the reason its top is unsure, if any; ``top_evidence``: whether the top's offset
     from the stem (:attr:`.crown.CrownMeasurement.top_offset_ratio`) decides the height's trust
     (False for a single-tree cloud, whose top is the cloud's). Local frame, metres."""
@@ -550,9 +561,9 @@ def tree_record(
         flags.append(shared_flag)
         h_trust = _trust(h_trust, "low")
         h_how += ", top shared with a taller neighbour"
-    elif math.isfinite(dbh_value) and dbh_value > 0 and crown.height_m / dbh_value > MAX_SLENDERNESS:
+    elif math.isfinite(dbh_value) and dbh_value > 0 and crown.height_m / dbh_value > params.max_slenderness:
         flags.append(f"height {crown.height_m:.1f} m on a {100 * dbh_value:.0f} cm stem (slenderness {crown.height_m / dbh_value:.0f}, "
-                     f"beyond {MAX_SLENDERNESS:.0f}): the top may be a neighbour's (height unsure)")
+                     f"beyond {params.max_slenderness:.0f}): the top may be a neighbour's (height unsure)")
         h_trust = _trust(h_trust, "low")
         h_how += ", too tall for its stem"
     quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
@@ -606,11 +617,6 @@ def tree_record(
     )
 
 
-#: Height over DBH (both in metres) beyond which a stem hardly stands: a thin tree measured taller
-#: has a neighbour's crown for its top (suppressed trees under a neighbour), or its DBH is wrong.
-MAX_SLENDERNESS = 140.0
-
-
 def _flags_that_matter(flags: Sequence[str], quality: dict[str, str]) -> list[str]:
     """The flags, or none when every value of the tree is trusted (high or medium): a flag says
     that a value is weak, and a tree whose values all stand is not flagged (a volume not asked for
@@ -640,17 +646,12 @@ def _lowest_stem_point(tree_pts: np.ndarray, stem: Stem) -> float:
     return float(tree_pts[near, 2].min()) if near.any() else math.nan
 
 
-#: Points of thicker neighbours within 1 m of a tree's top (and not more than 0.5 m below it) from
-#: which the top is taken as possibly the neighbour's.
-SHARED_TOP_MIN_POINTS = 6
-
-
 def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crowns: dict[int, CrownMeasurement],
-                 columns: ColumnIndex) -> dict[int, str]:
+                 columns: ColumnIndex, min_points: int) -> dict[int, str]:
     """Trees whose top is not their own or was not seen: points of no tree stand above the top
     (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
     stand above the top (within 1 m horizontally, more than 1 m higher), thicker neighbours' points
-    surround the top at its level (:data:`SHARED_TOP_MIN_POINTS`), or the top lies nearer
+    surround the top at its level (at least ``min_points``: :attr:`TreeParams.shared_top_min_points`), or the top lies nearer
     (horizontally) to a taller neighbour's stem than to its own. Returns {tree id: flag}.
     ``columns``: a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of ``p`` for the few
     disc queries (two k-d trees of the xy of the tree points and of the others took ~110 MB for
@@ -685,7 +686,7 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
         if len(amid):
             ids, counts = np.unique(labels[amid], return_counts=True)
             thicker = [(int(c), int(i)) for i, c in zip(ids, counts) if int(i) in radius and radius[int(i)] > radius[s.id]]
-            if thicker and sum(c for c, _ in thicker) >= SHARED_TOP_MIN_POINTS:
+            if thicker and sum(c for c, _ in thicker) >= min_points:
                 out[s.id] = f"top amid the crown of thicker tree {max(thicker)[1]}: height unsure (the top may be that tree's)"
                 continue
         own = float(np.hypot(*(top[:2] - pos[s.id])))
@@ -714,7 +715,7 @@ def _canopy_inventory(
         raise ScanDataError(
             "no stems found at breast height and no tree crowns in the canopy: is this a forest cloud in metres?"
         )
-    evidence = _ground_evidence_fn(p, model.ground, no_ground)
+    evidence = _ground_evidence_fn(p, model.ground, no_ground, params.canopy)
     records = [_canopy_record(ct, ct.tree_id, no_ground, evidence(ct)) for ct in trees]
     progress(1.0, f"{len(records)} trees from the canopy")
     return TreeInventory(
@@ -724,7 +725,7 @@ def _canopy_inventory(
     )
 
 
-def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool):
+def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool, params: CanopyParams):
     """A function giving the :class:`~.canopy.GroundEvidence` under a canopy tree's top (None
     without ground: the heights are flagged for that already)."""
     from scipy.spatial import cKDTree
@@ -736,7 +737,7 @@ def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool):
 
     def evidence(ct: CanopyTree) -> GroundEvidence:
         radius = 0.25 * (ct.crown_width_ew_m + ct.crown_width_ns_m)
-        return ground_evidence(g, index, np.asarray(ct.top), radius, ct.ground_z, ct.height_m)
+        return ground_evidence(g, index, np.asarray(ct.top), radius, ct.ground_z, ct.height_m, params)
 
     return evidence
 
@@ -782,16 +783,12 @@ def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool, ground_ev: Opt
     )
 
 
-#: Points at 1-3 m per point above 3 m below which a cloud whose stems are sparsely sampled (noisy
-#: profile) is taken as airborne (ALS/ULS); ground-based clouds hold 0.1 and more (a TLS plot of tall
-#: trees without ground 0.04, but its stems are dense), airborne ones 0.005-0.03.
-AIRBORNE_BAND_RATIO = 0.08
-
-
-def _airborne_like(heights: np.ndarray) -> bool:
+def _airborne_like(heights: np.ndarray, band_ratio: float) -> bool:
+    """Whether a cloud holds fewer than ``band_ratio`` points at 1-3 m above the ground per point
+    above 3 m (:attr:`TreeParams.airborne_band_ratio`)."""
     band = np.count_nonzero((heights > 1.0) & (heights < 3.0))
     above = np.count_nonzero(heights > 3.0)
-    return above > 0 and band / above < AIRBORNE_BAND_RATIO
+    return above > 0 and band / above < band_ratio
 
 
 def _add_canopy_trees(
@@ -811,7 +808,7 @@ def _add_canopy_trees(
     if not trees:
         return records, labels
     labels = labels.copy()
-    evidence = _ground_evidence_fn(p, ground, no_ground)
+    evidence = _ground_evidence_fn(p, ground, no_ground, params.canopy)
     crown_pts = np.flatnonzero(canopy_labels > 0)
     index = cKDTree(p[crown_pts, :2])
     by_segment: dict[int, list[int]] = {}
@@ -882,8 +879,8 @@ def _single_tree_inventory(
         centre = np.array([found.x, found.y])
     if not no_ground and model.ground.any():
         base_z = float(found.ground_z) if found is not None else float(model.dem.height_at(centre[None, :])[0])
-        near = np.hypot(p[model.ground, 0] - centre[0], p[model.ground, 1] - centre[1]) <= GROUND_NEAR_STEM_M
-        base_how = "the ground under the stem" + ("" if near.any() else f", interpolated: no ground point within {GROUND_NEAR_STEM_M:g} m")
+        near = np.hypot(p[model.ground, 0] - centre[0], p[model.ground, 1] - centre[1]) <= params.ground_near_stem_m
+        base_how = "the ground under the stem" + ("" if near.any() else f", interpolated: no ground point within {params.ground_near_stem_m:g} m")
     else:
         r = max(1.0, 2.0 * evidence.base_width_m)
         near = np.hypot(p[:, 0] - centre[0], p[:, 1] - centre[1]) <= r
@@ -895,7 +892,7 @@ def _single_tree_inventory(
         foot = _lowest_stem_point(p, stem)
         g = p[ground]
         r = np.hypot(g[:, 0] - stem.x, g[:, 1] - stem.y)
-        around = int(np.count_nonzero((r > 1.0) & (r <= GROUND_NEAR_STEM_M)))
+        around = int(np.count_nonzero((r > 1.0) & (r <= params.ground_near_stem_m)))
         # the "ground" found is the trunk's foot or low twigs: the trunk reaches below it, and no
         # ground spreads around the stem (or the trunk reaches far below it)
         if math.isfinite(foot) and foot < base_z - 0.25 and (around < 20 or foot < base_z - 1.0):

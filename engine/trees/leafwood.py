@@ -43,11 +43,12 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from ..core.errors import ParameterError, ScanDataError
+from ..core.scan import check_points
+from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 from ..geometry.features import SphereGrid, eigen_features, local_covariances, neighbour_means
-from ..geometry.jit import kernel, run_blocks, worker_count
+from ..core.jit import kernel, run_blocks, worker_count
 from ..geometry.voxel import voxel_centroids
 from .mixture import fit_gaussian_mixture
 
@@ -123,21 +124,6 @@ class LeafWoodParams(Params):
 # --------------------------------------------------------------------------------------------
 
 
-def check_points(points: Any, min_points: int, what: str = "leaf-wood separation") -> np.ndarray:
-    """``points`` as a float64 (N, 3) array, or :class:`ScanDataError` saying what is wrong."""
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ScanDataError(f"{what} needs an (N, 3) array of points, got shape {p.shape}")
-    if len(p) < min_points:
-        raise ScanDataError(f"{what} needs at least {min_points} points, got {len(p)}")
-    bad = ~np.isfinite(p).all(axis=1)
-    if bad.any():
-        raise ScanDataError(
-            f"{what}: {int(bad.sum())} of {len(p)} points have NaN or infinite coordinates; remove them first"
-        )
-    return p
-
-
 # --------------------------------------------------------------------------------------------
 # Features (paper eq. 7-8)
 # --------------------------------------------------------------------------------------------
@@ -173,7 +159,7 @@ def covariance_features(
     prm = params or LeafWoodParams()
     r = tuple(float(x) for x in np.atleast_1d(np.asarray(radii, dtype=np.float64)))
     prm = prm.replace(radii_m=r)
-    p = check_points(points, MIN_POINTS)
+    p = check_points(points, "leaf-wood separation", min_points=MIN_POINTS)
     progress = progress or Progress()
     base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, r[0] / 2.0))
     feats, _ = _features_on(base, prm, progress)
@@ -541,7 +527,7 @@ def wood_probability(
     ScanDataError
         Fewer than 50 points, or NaN/infinite coordinates.
     """
-    p = check_points(points, MIN_POINTS)
+    p = check_points(points, "leaf-wood separation", min_points=MIN_POINTS)
     progress = progress or Progress()
     prm = params
     # held to the end: 4 bytes a point

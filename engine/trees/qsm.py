@@ -60,13 +60,15 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from ..core.scan import check_points
 from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field as _p
 from ..core.progress import Progress
 from ..io.results import CYLINDER_COLUMNS, CylinderTableFile
+from ..geometry.circle import fit_circle
+from ..geometry.robust import huber_weights, median, robust_scale, weighted_step
 from ..geometry.vectors import perpendicular_frame
 from ..geometry.voxel import voxel_centroids
-from .leafwood import check_points
 
 #: Breast height (m) above the stem base at which the DBH is taken.
 BREAST_HEIGHT_M = 1.3
@@ -747,69 +749,6 @@ class CylinderFit:
     good: bool
 
 
-def _weighted_step(jac: np.ndarray, res: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Gauss-Newton step minimising ``sum w (res + jac @ step)^2`` (normal equations, with a
-    least-squares fallback when they are singular)."""
-    jw = jac * w[:, None]
-    try:
-        return np.linalg.solve(jw.T @ jac, -(jw.T @ res))
-    except np.linalg.LinAlgError:
-        sw = np.sqrt(w)
-        return np.linalg.lstsq(jac * sw[:, None], -res * sw, rcond=None)[0]
-
-
-def _median(x: np.ndarray) -> float:
-    """``np.median`` of a non-empty 1-D float array, the same value (the middle value, or the mean
-    of the middle two as NumPy's mean adds them; NaN when any value is NaN) at a fraction of its
-    overhead: the fits call it tens of thousands of times."""
-    n = len(x)
-    h = n // 2
-    part = np.partition(x, [h - 1, h, n - 1] if n % 2 == 0 else [h, n - 1])
-    if math.isnan(part[-1]):
-        return math.nan
-    if n % 2:
-        return float(0.0 + part[h])
-    return float(((0.0 + part[h - 1]) + part[h]) / 2.0)
-
-
-def _robust_scale(res: np.ndarray, min_scale: float) -> float:
-    """Robust standard deviation of residuals (1.4826 times the median absolute deviation)."""
-    return max(1.4826 * _median(np.abs(res - _median(res))), min_scale)
-
-
-def _huber_weights(res: np.ndarray, scale: float) -> np.ndarray:
-    """Huber weights (threshold 1.5 robust standard deviations ``scale``) of residuals."""
-    return np.minimum(1.0, 1.5 * scale / np.maximum(np.abs(res), 1e-12))
-
-
-def fit_circle(xy: np.ndarray, iterations: int = 15, tolerance: float = 1e-5) -> tuple[np.ndarray, float]:
-    """Robust least-squares circle through 2D points: algebraic start, then geometric
-    Gauss-Newton with Huber weights, until a step moves less than ``tolerance`` (m). Returns
-    (centre (2,), radius)."""
-    m = xy.mean(axis=0)
-    q = xy - m
-    a = np.column_stack([q, np.ones(len(q))])
-    b = (q**2).sum(axis=1)
-    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
-    c = sol[:2] / 2.0
-    r = math.sqrt(max(sol[2] + c @ c, 1e-12))
-    ones = np.ones(len(q))
-    scale = 0.0
-    for it in range(iterations):
-        diff = q - c
-        dist = np.maximum(np.sqrt((diff**2).sum(axis=1)), 1e-12)
-        res = dist - r
-        if it < 3:  # the residual scale settles within the first steps
-            scale = _robust_scale(res, 1e-4)
-        jac = np.column_stack([-diff / dist[:, None], -ones])
-        step = _weighted_step(jac, res, _huber_weights(res, scale))
-        c = c + step[:2]
-        r = r + step[2]
-        if np.abs(step).max() < tolerance:
-            break
-    return c + m, abs(float(r))
-
-
 def surface_coverage(angles: np.ndarray, t: np.ndarray, t_min: float, t_max: float, radius: float) -> float:
     """Fraction of the cells of a cylinder surface that hold points.
 
@@ -847,8 +786,8 @@ def refine_cylinder(
         nu, nv = (w @ u) / dist, (w @ v) / dist
         jac = np.column_stack([-nu, -nv, -t * nu, -t * nv, -ones])
         if it < 3:
-            scale = _robust_scale(res, 1e-5)
-        step = _weighted_step(jac, res, _huber_weights(res, scale))
+            scale = robust_scale(res, 1e-5)
+        step = weighted_step(jac, res, huber_weights(res, scale))
         c = c + step[0] * u + step[1] * v
         a = a + step[2] * u + step[3] * v
         a /= np.linalg.norm(a)
@@ -883,7 +822,7 @@ def fit_cylinder(points: np.ndarray, direction: np.ndarray, params: QsmParams) -
     t = (points - mean) @ axis
     if n < max(params.min_fit_points, 3):
         spread = np.linalg.norm((points - mean) - t[:, None] * axis, axis=1)
-        r = _median(spread) if n else params.min_radius_m
+        r = median(spread) if n else params.min_radius_m
         return CylinderFit(mean, axis, max(r, params.min_radius_m), float(t.min(initial=0.0)), float(t.max(initial=0.0)), float("nan"), 0.0, n, False)
 
     def measure(centre: np.ndarray, axis: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray, float, float]:
@@ -897,7 +836,8 @@ def fit_cylinder(points: np.ndarray, direction: np.ndarray, params: QsmParams) -
 
     u, v2 = perpendicular_frame(axis)
     xy = np.column_stack([(points - mean) @ u, (points - mean) @ v2])
-    c2, r = fit_circle(xy)
+    circle = fit_circle(xy)
+    c2, r = circle.centre, circle.radius_m
     centre = mean + c2[0] * u + c2[1] * v2
     rel, t, mad, cov = measure(centre, axis, r)
     if cov >= params.min_surface_coverage and n >= 3 * params.min_fit_points:
@@ -918,7 +858,7 @@ def fit_cylinder(points: np.ndarray, direction: np.ndarray, params: QsmParams) -
     if not good:  # keep the axis through the points and a rough radius; the taper decides
         t = (points - mean) @ axis
         centre = mean
-        r = max(_median(np.linalg.norm(rel - rel.mean(axis=0), axis=1)), params.min_radius_m)
+        r = max(median(np.linalg.norm(rel - rel.mean(axis=0), axis=1)), params.min_radius_m)
     return CylinderFit(centre, axis, r, float(t.min()), float(t.max()), mad, cov, n, good)
 
 
@@ -951,7 +891,7 @@ def robust_line(x: np.ndarray, y: np.ndarray, w: np.ndarray, iterations: int = 1
         b = float(np.sum(ww * (x - xm) * (y - ym))) / den if den > 0 else 0.0
         a = ym - b * xm
         res = y - (a + b * x)
-        scale = max(1.4826 * _median(np.abs(res)), 1e-6)
+        scale = max(1.4826 * median(np.abs(res)), 1e-6)
         ww = w * np.minimum(1.0, 1.5 * scale / np.maximum(np.abs(res), 1e-12))
     return a, b
 
@@ -969,9 +909,10 @@ def taper_radii(
     fits that were kept.
 
     With at least four good fits, a robust line of radius against the distance along the branch
-    (``distance_from_base``: of each cylinder's middle; ``weight``: points x coverage) flags fits
-    more than ``taper_tolerance`` below it, or twice that above it, as poor (sparse partial arcs
-    give too small circles, junctions too large ones). The kept fits get a weighted
+    (``distance_from_base``: of each cylinder's middle; ``weight``: points x coverage; a line
+    rising towards the tip is taken flat, at the fits' robust mean) flags fits more than
+    ``taper_tolerance`` below it, or twice that above it, as poor (sparse partial arcs give too
+    small circles, junctions and leaf clumps too large ones). The kept fits get a weighted
     non-increasing (isotonic) fit; the others are interpolated between kept neighbours. Beyond
     the last kept fit the radius follows the line's slope when the kept fits span a quarter of
     the branch, else it falls straight to ``min_radius_m`` at the tip (``branch_length``). A
@@ -987,6 +928,11 @@ def taper_radii(
     idx = np.flatnonzero(keep)
     if len(idx) >= 4:
         a, b = robust_line(s[idx], r[idx], w_all[idx])
+        if b > 0.0:
+            # a branch does not thicken towards its tip: fits too large there (leaf or twig
+            # clumps, a fork's junction) tilted the line; the branch's level is then its
+            # robust (Huber) mean, and fits far above it are poor
+            a, b = robust_line(np.zeros(len(idx)), r[idx], w_all[idx])[0], 0.0
         model = np.maximum(a + b * s[idx], lo_r)
         rel = r[idx] / model - 1.0
         keep[idx[(rel < -params.taper_tolerance) | (rel > 2.0 * params.taper_tolerance)]] = False
@@ -1198,7 +1144,7 @@ def fit_qsm(
         that is not finite.
     """
     progress = progress or Progress()
-    raw = check_points(points, MIN_POINTS, "a cylinder model")
+    raw = check_points(points, "a cylinder model", min_points=MIN_POINTS)
     base_pt: Optional[np.ndarray] = None
     if base is not None:
         base_pt = np.asarray(base, dtype=np.float64).reshape(-1)
@@ -1254,7 +1200,7 @@ def fit_qsm(
         cap = float(radius[first_parent]) if (first_parent >= 0 and params.enforce_taper) else float("inf")
         from_base = np.cumsum(length[idx]) - 0.5 * length[idx]
         radius[idx], good[idx] = taper_radii(
-            radius[idx], good[idx], n_fit[idx] * coverage[idx], from_base, float(length[idx].sum()), cap, params
+            radius[idx], good[idx], coverage[idx] * length[idx], from_base, float(length[idx].sum()), cap, params
         )
 
     progress(1.0, "cylinder model done")

@@ -48,7 +48,7 @@ from ..core.progress import Progress
 from ..core.params import Params, param_field
 from .stems import DbhMeasurement, Stem, check_cloud
 from ..geometry.columns import ColumnIndex
-from ..geometry.jit import kernel
+from ..core.jit import kernel
 from ..geometry.voxel import voxel_centroids
 
 

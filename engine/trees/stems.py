@@ -17,7 +17,7 @@ Method (paper sec. 4.3.1, after Tao et al. 2015: normalisation, stem detection a
    dropped (leaves, grass, twigs in random orientations).
 2. The vertical points are grouped by single-linkage clustering (``cluster_distance_m``);
    clusters too small or too short to be stems are dropped.
-3. In each cluster, circles are fitted to horizontal sub-slices of the band (:func:`fit_circle`:
+3. In each cluster, circles are fitted to horizontal sub-slices of the band (:func:`fit_stem_circle`:
    RANSAC and an algebraic fit, each refined by geometric least squares with a soft-L1 loss). The
    largest consistent set of sub-slice circles (about one radius, stacked along a plausible axis)
    is the stem; a line through their centres gives its axis and lean (vertical when they span
@@ -46,7 +46,7 @@ returned with ``ok = False`` and its reasons, never as a confident number.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Optional
 
 import numpy as np
@@ -54,12 +54,13 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from ..core.scan import check_points
 from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field
 from ..core.progress import Progress
+from ..geometry.circle import robust_circle
 from ..geometry.cluster import connected_clusters
 from ..geometry.features import local_covariances, normals_and_variation
-from ..geometry.jit import kernel
 from ..geometry.voxel import voxel_thin
 
 # --------------------------------------------------------------------------------------------
@@ -73,14 +74,7 @@ def check_cloud(points: Any, heights: Any = None, *, what: str = "points") -> tu
     Returns float64 arrays; raises :class:`ScanDataError` for wrong shapes, empty arrays and NaN or
     infinite values.
     """
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ScanDataError(f"{what} must be an (N, 3) array of x, y, z, got shape {p.shape}")
-    if len(p) == 0:
-        raise ScanDataError(f"{what} is empty: there are no points to measure trees in")
-    if not np.isfinite(p).all():
-        bad = int((~np.isfinite(p).all(axis=1)).sum())
-        raise ScanDataError(f"{what} holds {bad} point(s) with NaN or infinite coordinates; remove them first")
+    p = check_points(points, what)
     h: Optional[np.ndarray] = None
     if heights is not None:
         h = np.asarray(heights, dtype=np.float64)
@@ -147,6 +141,8 @@ class StemParams(Params):
     max_taper_deviation: float = param_field(0.12, "1", 0.0, 1.0, "Sections deviating more than this fraction from the running median are rejected")
     max_relative_residual: float = param_field(1.75, "1", 1.0, 100.0, "Sections whose circle residual exceeds this multiple of the stem's median are rejected (branch whorls, foliage)")
     max_section_growth: float = param_field(0.15, "1", 0.0, 2.0, "A section may be at most this fraction wider than the accepted one below it (stems taper upward)")
+    # --- the profile chosen for the cloud (detect_stems_adaptive)
+    sparse_spacing_m: float = param_field(0.03, "m", 0.001, 1.0, "Band points whose median distance to their 4th neighbour exceeds this are sampled too sparsely (or noisily) for the fine profile: the noisy one is tried first (mobile, backpack, UAV clouds)")
 
     def _check(self) -> None:
         if self.band_high_m <= self.band_low_m:
@@ -299,95 +295,6 @@ class StemCurve:
 # --------------------------------------------------------------------------------------------
 
 
-def _algebraic_circle(xy: np.ndarray) -> Optional[tuple[float, float, float]]:
-    """Least-squares algebraic (Kasa) circle: (cx, cy, r) or None if degenerate."""
-    if len(xy) < 3:
-        return None
-    mean = xy.mean(axis=0)
-    q = xy - mean
-    a = np.column_stack([q, np.ones(len(q))])
-    b = (q**2).sum(axis=1)
-    try:
-        sol, *_ = np.linalg.lstsq(a, b, rcond=None)
-    except np.linalg.LinAlgError:
-        return None
-    cx, cy = sol[0] / 2.0, sol[1] / 2.0
-    r2 = sol[2] + cx * cx + cy * cy
-    if not np.isfinite(r2) or r2 <= 0:
-        return None
-    return float(cx + mean[0]), float(cy + mean[1]), float(math.sqrt(r2))
-
-
-def _geometric_circle(xy: np.ndarray, start: tuple[float, float, float], f_scale: float, iterations: int = 30) -> tuple[float, float, float]:
-    """Geometric circle fit (distances to the circle) with a soft-L1 loss, from ``start``.
-
-    Iteratively reweighted Gauss-Newton: each step solves the weighted normal equations of the
-    residuals ``|p - c| - r`` with the soft-L1 weights ``1 / sqrt(1 + (res / f_scale)^2)``.
-    """
-    v = np.asarray(start, dtype=np.float64).copy()
-    for _ in range(iterations):
-        dx, dy = xy[:, 0] - v[0], xy[:, 1] - v[1]
-        d = np.maximum(np.hypot(dx, dy), 1e-12)
-        res = d - v[2]
-        w = 1.0 / np.sqrt(1.0 + (res / f_scale) ** 2)
-        jac = np.column_stack([-dx / d, -dy / d, -np.ones(len(xy))])
-        jw = jac * w[:, None]
-        a = jw.T @ jac + 1e-12 * np.eye(3)
-        g = jw.T @ res
-        try:
-            delta = -np.linalg.solve(a, g)
-        except np.linalg.LinAlgError:
-            break
-        if not np.isfinite(delta).all():
-            break
-        v += delta
-        if np.abs(delta).max() < 1e-6:
-            break
-    if not np.isfinite(v).all():
-        return start
-    return float(v[0]), float(v[1]), float(abs(v[2]))
-
-
-@kernel
-def _inlier_counts(x: np.ndarray, y: np.ndarray, cx: np.ndarray, cy: np.ndarray, r: np.ndarray, tolerance: float) -> np.ndarray:
-    """For each circle ``(cx, cy, r)`` (C,), the number of points ``(x, y)`` (M,) whose distance
-    from it, ``|hypot(x - cx, y - cy) - r|``, is below ``tolerance`` (metres)."""
-    counts = np.zeros(len(cx), dtype=np.int64)
-    for c in range(len(cx)):
-        n = 0
-        for i in range(len(x)):
-            if abs(math.hypot(x[i] - cx[c], y[i] - cy[c]) - r[c]) < tolerance:
-                n += 1
-        counts[c] = n
-    return counts
-
-
-def _ransac_circle(xy: np.ndarray, tolerance: float, iterations: int, r_range: tuple[float, float], rng: np.random.Generator) -> Optional[tuple[float, float, float]]:
-    """Best three-point circle by inlier count (vectorised RANSAC); None if none is plausible."""
-    n = len(xy)
-    if n < 3:
-        return None
-    score_xy = xy if n <= 600 else xy[rng.choice(n, 600, replace=False)]
-    idx = rng.integers(0, n, size=(iterations, 3))
-    a, b, c = xy[idx[:, 0]], xy[idx[:, 1]], xy[idx[:, 2]]
-    d = 2.0 * (a[:, 0] * (b[:, 1] - c[:, 1]) + b[:, 0] * (c[:, 1] - a[:, 1]) + c[:, 0] * (a[:, 1] - b[:, 1]))
-    valid = np.abs(d) > 1e-12
-    if not valid.any():
-        return None
-    a, b, c, d = a[valid], b[valid], c[valid], d[valid]
-    a2, b2, c2 = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
-    ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / d
-    uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / d
-    r = np.hypot(a[:, 0] - ux, a[:, 1] - uy)
-    plausible = (r >= r_range[0]) & (r <= r_range[1])
-    if not plausible.any():
-        return None
-    ux, uy, r = ux[plausible], uy[plausible], r[plausible]
-    counts = _inlier_counts(np.ascontiguousarray(score_xy[:, 0]), np.ascontiguousarray(score_xy[:, 1]), ux, uy, r, float(tolerance))
-    best = int(np.argmax(counts))
-    return float(ux[best]), float(uy[best]), float(r[best])
-
-
 def _arc_coverage(xy: np.ndarray, cx: float, cy: float, n_sectors: int) -> float:
     if len(xy) == 0:
         return 0.0
@@ -396,7 +303,7 @@ def _arc_coverage(xy: np.ndarray, cx: float, cy: float, n_sectors: int) -> float
     return float(len(np.unique(sector)) / n_sectors)
 
 
-def fit_circle(
+def fit_stem_circle(
     xy: Any,
     *,
     inlier_tolerance_m: float = 0.015,
@@ -409,50 +316,28 @@ def fit_circle(
     ransac_iterations: int = 300,
     seed: int = 0,
 ) -> CircleFit:
-    """Robust circle fit to 2D points ``xy`` (M, 2) in metres.
+    """A stem section's circle in 2D points ``xy`` (M, 2) in metres, with its quality checks.
 
-    Two candidates are fitted: an algebraic (Kasa) circle of all points refined by geometric least
-    squares with a soft-L1 loss, and a RANSAC circle (``ransac_iterations`` random point triples,
-    inliers within ``inlier_tolerance_m``) refined the same way on its inliers. The candidate with
-    more inliers wins (ties: the smaller rms of the inliers). Quality checks set ``ok`` and
-    ``reasons``.
+    The circle is :func:`~forestreg.engine.geometry.circle.robust_circle` (the better of a refined
+    algebraic and a refined RANSAC circle; ``ransac_iterations`` random point triples, inliers
+    within ``inlier_tolerance_m``). Quality checks set ``ok`` and ``reasons``.
 
     Raises :class:`ScanDataError` for fewer than 3 points or NaN/infinite values.
     """
     p = np.asarray(xy, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 2:
-        raise ScanDataError(f"fit_circle needs (M, 2) points, got shape {p.shape}")
+        raise ScanDataError(f"fit_stem_circle needs (M, 2) points, got shape {p.shape}")
     if not np.isfinite(p).all():
-        raise ScanDataError("fit_circle: points hold NaN or infinite values")
+        raise ScanDataError("fit_stem_circle: points hold NaN or infinite values")
     if len(p) < 3:
-        raise ScanDataError(f"fit_circle needs at least 3 points, got {len(p)}")
-    rng = np.random.default_rng(seed)
+        raise ScanDataError(f"fit_stem_circle needs at least 3 points, got {len(p)}")
     tol = inlier_tolerance_m
-    scale = max(tol / 2.0, 1e-4)
-    # the candidates are fitted to at most 1000 points (plenty for a circle); checks use all
-    q = p if len(p) <= 1000 else p[rng.choice(len(p), 1000, replace=False)]
-    candidates: list[tuple[float, float, float]] = []
-    alg = _algebraic_circle(q)
-    if alg is not None:
-        candidates.append(_geometric_circle(q, alg, scale))
-    rs = _ransac_circle(q, tol, ransac_iterations, (radius_range_m[0] * 0.5, radius_range_m[1] * 1.5), rng)
-    if rs is not None:
-        near = np.abs(np.hypot(q[:, 0] - rs[0], q[:, 1] - rs[1]) - rs[2]) < 2.0 * tol
-        sub = q[near] if near.sum() >= 3 else q
-        candidates.append(_geometric_circle(sub, rs, scale))
-    if not candidates:
+    found = robust_circle(p, inlier_tolerance_m=tol, radius_range_m=radius_range_m, ransac_iterations=ransac_iterations, seed=seed)
+    if found is None:
         return CircleFit((float("nan"), float("nan")), float("nan"), float("nan"), 0.0, len(p), 0, False, ("degenerate points",))
-    best: Optional[tuple[int, float, tuple[float, float, float]]] = None
-    for cand in candidates:
-        res = np.abs(np.hypot(p[:, 0] - cand[0], p[:, 1] - cand[1]) - cand[2])
-        inl = res < tol
-        n_in = int(inl.sum())
-        rms = float(np.sqrt(np.mean(res[inl] ** 2))) if n_in else float("inf")
-        if best is None or n_in > best[0] or (n_in == best[0] and rms < best[1]):
-            best = (n_in, rms, cand)
-    assert best is not None
-    n_in, _, (cx, cy, r) = best
-    res = np.abs(np.hypot(p[:, 0] - cx, p[:, 1] - cy) - r)
+    circle, n_in = found
+    (cx, cy), r = circle.centre, circle.radius_m
+    res = circle.distances(p)
     inliers = res < tol
     near = res < 2.0 * tol  # the circle's own points and their noise; farther ones are clutter
     rms = float(np.sqrt(np.mean(res[near] ** 2))) if near.any() else float("inf")
@@ -481,9 +366,9 @@ def fit_circle(
 
 
 def _fit(xy: np.ndarray, params: StemParams, seed: int = 0, min_arc_coverage: Optional[float] = None, min_points: Optional[int] = None) -> CircleFit:
-    """:func:`fit_circle` with the settings of ``params``."""
+    """:func:`fit_stem_circle` with the settings of ``params``."""
     lo, hi = params.dbh_range_m
-    return fit_circle(
+    return fit_stem_circle(
         xy,
         inlier_tolerance_m=params.inlier_tolerance_m,
         max_residual_m=params.max_fit_residual_m,
@@ -667,26 +552,36 @@ def detect_stems(points: Any, heights: Any, params: StemParams = StemParams(), p
     return stems
 
 
-#: Changes to :class:`StemParams` for sparse or noisy stems (mobile/backpack/handheld SLAM clouds
-#: with thick or ghosted bark shells, UAV clouds with few stem returns): coarser neighbourhoods
-#: and clustering, a wider inlier band and residual, fewer points per slice.
-NOISY_STEM_CHANGES: dict[str, Any] = {
-    "detection_voxel_m": 0.02,
-    "neighbour_radius_m": 0.2,
-    "cluster_distance_m": 0.2,
-    "inlier_tolerance_m": 0.04,
-    "max_fit_residual_m": 0.04,
-    "max_surface_variation": 0.25,
-    "max_normal_tilt_deg": 35.0,
-    "min_slice_points": 10,
-    "detection_min_slice_points": 8,
-    "max_interior_fraction": 0.1,
-    "search_margin_m": 0.15,
-}
+def _noisy(name: str, default: Any) -> Any:
+    """A field of :class:`NoisyStemParams`: the value of :class:`StemParams`' field ``name`` in the
+    noisy profile, with that field's unit, range and help."""
+    f = {f.name: f for f in fields(StemParams)}[name]
+    lo, hi = f.metadata["range"]
+    return param_field(default, f.metadata["unit"], lo, hi, f"{f.metadata['help']} (noisy profile)")
 
-#: Band points whose median distance to their 4th neighbour exceeds this (m) are sampled too
-#: sparsely (or too noisily) for the fine profile: the noisy profile is used.
-SPARSE_SPACING_M = 0.03
+
+@dataclass(frozen=True)
+class NoisyStemParams(Params):
+    """The :class:`StemParams` values of the "noisy" stem profile, for sparse or noisy stems
+    (mobile/backpack/handheld SLAM clouds with thick or ghosted bark shells, UAV clouds with few
+    stem returns): coarser neighbourhoods and clustering, a wider inlier band and residual, fewer
+    points per slice. Every other stem setting is the fine profile's. Distances in metres."""
+
+    detection_voxel_m: float = _noisy("detection_voxel_m", 0.02)
+    neighbour_radius_m: float = _noisy("neighbour_radius_m", 0.2)
+    cluster_distance_m: float = _noisy("cluster_distance_m", 0.2)
+    inlier_tolerance_m: float = _noisy("inlier_tolerance_m", 0.04)
+    max_fit_residual_m: float = _noisy("max_fit_residual_m", 0.04)
+    max_surface_variation: float = _noisy("max_surface_variation", 0.25)
+    max_normal_tilt_deg: float = _noisy("max_normal_tilt_deg", 35.0)
+    min_slice_points: int = _noisy("min_slice_points", 10)
+    detection_min_slice_points: int = _noisy("detection_min_slice_points", 8)
+    max_interior_fraction: float = _noisy("max_interior_fraction", 0.1)
+    search_margin_m: float = _noisy("search_margin_m", 0.15)
+
+    def apply(self, params: StemParams) -> StemParams:
+        """``params`` with this profile's values."""
+        return params.replace(**{f.name: getattr(self, f.name) for f in fields(self)})
 
 
 def band_spacing(points: np.ndarray, heights: np.ndarray, params: StemParams = StemParams(), sample: int = 20000) -> float:
@@ -702,21 +597,22 @@ def band_spacing(points: np.ndarray, heights: np.ndarray, params: StemParams = S
 
 
 def detect_stems_adaptive(
-    points: Any, heights: Any, params: StemParams = StemParams(), progress: Optional[Progress] = None
+    points: Any, heights: Any, params: StemParams = StemParams(), progress: Optional[Progress] = None,
+    noisy_profile: NoisyStemParams = NoisyStemParams(),
 ) -> tuple[list[Stem], StemParams, str]:
     """:func:`detect_stems` with the settings chosen for the cloud's stem sampling.
 
     Dense, clean stems (TLS) use ``params`` ("fine" profile). Where the band points are spaced more
-    than :data:`SPARSE_SPACING_M` apart (mobile, backpack, UAV clouds), or the fine profile finds
-    nothing, ``params`` with :data:`NOISY_STEM_CHANGES` are used ("noisy" profile: thick shells,
+    than ``params.sparse_spacing_m`` apart (mobile, backpack, UAV clouds), or the fine profile finds
+    nothing, ``params`` with the values of ``noisy_profile`` are used ("noisy" profile: thick shells,
     ghosts, few points); when the profile chosen by the spacing finds nothing, the other is tried. Returns (stems, the parameters used, the profile name); the DBH and stem
     curves must be measured with the same parameters.
     """
     p, h = check_cloud(points, heights)
     assert h is not None
     spacing = band_spacing(p, h, params)
-    noisy = params.replace(**NOISY_STEM_CHANGES)
-    order = [(noisy, "noisy"), (params, "fine")] if math.isfinite(spacing) and spacing > SPARSE_SPACING_M else [(params, "fine"), (noisy, "noisy")]
+    noisy = noisy_profile.apply(params)
+    order = [(noisy, "noisy"), (params, "fine")] if math.isfinite(spacing) and spacing > params.sparse_spacing_m else [(params, "fine"), (noisy, "noisy")]
     for prm, name in order:
         stems = detect_stems(p, h, prm, progress)
         if stems:

@@ -1,4 +1,4 @@
-"""Compiled kernels: one decorator for every numba kernel of the geometry and tree code, and a
+"""Compiled kernels: one decorator for every numba kernel of the engine, and a
 helper that runs a kernel over blocks of rows on a pool of threads.
 
 Kernels are compiled on first use and cached on disk, in one folder per forestreg and numba
@@ -26,7 +26,7 @@ import numba
 from numba.core import caching, sigutils
 from numba.core.compiler_lock import global_compiler_lock
 
-from ..core.atomic import file_lock
+from .atomic import file_lock
 
 __all__ = ["kernel", "kernel_cache_dir", "kernels", "run_blocks", "worker_count"]
 
