@@ -437,10 +437,11 @@ def _note_attempt(t: PlotTask, worker: str) -> tuple[int, str]:
     earlier = [a for a in earlier if isinstance(a, dict)]
     mine = [a for a in earlier if a.get("run") == t.run]
     reason = ""
-    if mine:
-        reason = f"worker lost ({mine[-1].get('worker') or 'unknown worker'})"
-    elif earlier:
-        reason = "an earlier batch stopped during the plot"
+    if earlier and not earlier[-1].get("finished"):  # the last attempt never came to its end
+        if earlier[-1].get("run") == t.run:
+            reason = f"worker lost ({earlier[-1].get('worker') or 'unknown worker'})"
+        else:
+            reason = "an earlier batch stopped during the plot"
     entry = {"run": t.run, "worker": worker, "pid": os.getpid(), "started": time.time()}
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -448,6 +449,22 @@ def _note_attempt(t: PlotTask, worker: str) -> tuple[int, str]:
     except OSError as exc:
         log.warning("could not note the attempt of plot %s: %s", t.name, exc)
     return len(mine) + 1, reason
+
+
+def _finish_attempt(t: PlotTask) -> None:
+    """Note in ``OUT/.forestreg-batch/<plot>.json`` that this process's attempt came to its end."""
+    from ..engine.core.atomic import write_text_atomic
+
+    path = Path(t.out_dir).parent / ATTEMPTS_DIR / f"{t.name}.json"
+    attempts = (_read_json(path) or {}).get("attempts", [])
+    for a in reversed(attempts):
+        if isinstance(a, dict) and a.get("run") == t.run and a.get("pid") == os.getpid():
+            a["finished"] = True
+            try:
+                write_text_atomic(path, json.dumps({"attempts": attempts}, indent=1) + "\n")
+            except OSError as exc:
+                log.warning("could not note the end of plot %s: %s", t.name, exc)
+            return
 
 
 def _worker_name() -> str:
@@ -553,7 +570,8 @@ def run_plot(task: dict) -> dict:
         if over:
             row["reason"] = (f"stopped over the memory limit: its processes held {over:.0f} MB, the limit is "
                              f"{t.memory_limit / 1e6:.0f} MB per worker (--memory-limit)")
-        else:
+            _finish_attempt(t)
+        else:  # interrupted: unfinished, a rerun says an earlier batch stopped during it
             row["reason"] = _last_error(stderr) or "interrupted"
         return row
     if code in (0, 1):
@@ -582,6 +600,7 @@ def run_plot(task: dict) -> dict:
     row["outputs"] = [name for name in _LINKED if (out / name).is_file()]  # for the overview: no stat per row later
     if out.is_dir():
         write_text_atomic(out / "batch.json", json.dumps(row, indent=2) + "\n")
+    _finish_attempt(t)
     return row
 
 
