@@ -5,8 +5,10 @@ at 0.25 deg (about 0.4 M points per scan), seeds 1..20, simulated once into ``--
 The same batch then runs as a whole command (``forestreg batch PLOTS --out OUT --workers N
 --threads 1``, a child process: cluster start-up, 20 plot processes, summary) with 1 worker and
 with 2 workers, in turn, ``--rounds`` times (the order swapped every round); each plot's process
-runs one thread, so N workers use N cores. Reported per run: wall time from the parent's clock, the 1-minute load average before
-and after (the machine may be shared), the CPU time of the whole process tree, and from the
+runs one thread, so N workers use N cores. Reported per run: wall time from the parent's clock,
+the 1-minute load average before and after (the machine may be shared), the CPU time of the whole process tree (over the wall time:
+the cores the batch got), the plots' wall times summed over the batch's (the plots running at
+once: how busy the batch kept its workers, whatever the machine gave them), and from the
 batch's ``summary.csv`` each plot's wall time, CPU time and peak memory (its process tree's
 high-water mark). Speed-up = wall(1 worker) / wall(2 workers) of the same round. Accuracy: every
 plot's poses against the simulator's truth (the largest rotation and translation error).
@@ -146,18 +148,21 @@ def format_row(row: dict[str, Any]) -> str:
     lines = [f"Batch scaling: {row['plots']} simulated {row['preset']} plots ({row['size_m']:.0f} m, {row['scans_per_plot']} scans at "
              f"{row['step_deg']} deg, {row['points_per_scan'][0] / 1e6:.2f} M points per scan), `forestreg batch --threads 1`, "
              f"{row['cores']} usable cores",
-             f"{'workers':>7} {'wall s':>8} {'load 1-min before/after':>24} {'CPU s':>8} {'ok':>6} {'plot s median (max)':>20} "
+             f"{'workers':>7} {'wall s':>8} {'load 1-min before/after':>24} {'CPU s':>8} {'cores used':>10} {'plots at once':>13} {'ok':>6} {'plot s median (max)':>20} "
              f"{'plot CPU s median':>18} {'peak MB median (max)':>21} {'worst error deg / mm':>21}"]
     for r in row["runs"]:
         e = r["error"]
         lines.append(
             f"{r['workers']:>7} {r['wall_s']:>8.1f} {r['load_before']:>11.2f} / {r['load_after']:<10.2f} {r['cpu_s']:>8.1f} "
+            f"{r['cpu_s'] / r['wall_s']:>10.2f} {sum(r['plot_seconds']) / r['wall_s']:>13.2f} "
             f"{r['ok']:>3}/{r['plots']:<2} {statistics.median(r['plot_seconds']):>10.1f} ({max(r['plot_seconds']):.1f}) "
             f"{statistics.median(r['plot_cpu_s']):>18.1f} {statistics.median(r['plot_peak_mb']):>11.0f} ({max(r['plot_peak_mb']):.0f}) "
             f"{e['rotation_deg']:>11.3f} / {e['translation_m'] * 1000:.1f}" + (f", {e['unregistered']} unregistered" if e["unregistered"] else ""))
         if r["exit_code"]:
             lines.append(f"        exit status {r['exit_code']}: {r['stderr'].strip().splitlines()[-1] if r['stderr'].strip() else ''}")
     lines.append("speed-up with 2 workers (wall 1 / wall 2, per round): " + ", ".join(f"{s:.2f}x" for s in row["speedup"]))
+    lines.append("cores used: CPU time of the whole batch / its wall time (what the machine gave it); plots at once: the plots' "
+                 "wall times summed / the batch's (how busy the batch kept its workers)")
     return "\n".join(lines)
 
 

@@ -338,7 +338,7 @@ COLUMN_HELP: dict[str, str] = {
     "cpu_s": "CPU time of the plot's processes (user + system), seconds",
     "threads": "threads each plot's process was given (`--threads`)",
     "attempts": "times the plot was started in this run (more than 1: its worker was lost and Dask ran it again)",
-    "retried_after": "why the plot was started again: `worker lost (ADDRESS)` (in this run), or an earlier batch stopped during it",
+    "retried_after": "why the plot was started again: `worker lost (ADDRESS)` (the lost worker, in this run) or `an earlier batch stopped during the plot`; then `resumed with K of N links done` when the registered links were kept",
 }
 
 

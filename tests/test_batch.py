@@ -207,7 +207,7 @@ def test_a_killed_worker_loses_no_plot(small_plots, tmp_path):
             for note in sorted((out / ".forestreg-batch").glob("*.json")) if (out / ".forestreg-batch").is_dir() else []:
                 try:
                     attempt = json.loads(note.read_text())["attempts"][-1]
-                    children = psutil.Process(attempt["pid"]).children()
+                    children = [c for c in psutil.Process(attempt["pid"]).children() if "forestreg.cli" in " ".join(c.cmdline())]
                 except (ValueError, KeyError, psutil.Error):
                     continue
                 # the plot's command is running and has registered a link: kill its worker now
@@ -315,3 +315,19 @@ def test_a_stopped_plot_resumes_from_its_registered_links(tmp_path):
     links[0]["result"] = {"status": "failed"}
     (out / "project.json").write_text(json.dumps(project))
     assert _resume_args(task) is None  # no link registered yet
+
+
+def test_attempts_tell_a_lost_worker_from_a_rerun(tmp_path, monkeypatch):
+    """The attempts noted per plot: a second start in the same run after an unfinished one is a
+    lost worker; after an earlier run's unfinished one, a stopped batch; after a finished one
+    (an error row run again), nothing to say."""
+    from forestreg.service import batch
+
+    task = batch.PlotTask("p", "plot", [], str(tmp_path / "out" / "p"), 2, run="r1")
+    assert batch._note_attempt(task, "tcp://a:1") == (1, "")
+    assert batch._note_attempt(task, "tcp://b:2") == (2, "worker lost (tcp://a:1)")  # the first never finished
+    batch._finish_attempt(task)
+    later = batch.PlotTask("p", "plot", [], task.out_dir, 2, run="r2")
+    assert batch._note_attempt(later, "tcp://c:3") == (1, "")  # the last one came to its end
+    again = batch.PlotTask("p", "plot", [], task.out_dir, 2, run="r3")
+    assert batch._note_attempt(again, "tcp://d:4") == (1, "an earlier batch stopped during the plot")
