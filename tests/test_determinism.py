@@ -32,9 +32,12 @@ import forestreg
 PACKAGE_PARENT = str(Path(forestreg.__file__).resolve().parent.parent)
 
 #: Keys of JSON outputs whose values are durations or clock times.
-TIMING_KEYS = re.compile(r"^(timings|seconds|elapsed|started|finished|created|updated|date|time|.*_s|.*_seconds|.*_time)$")
-#: CSV columns holding durations.
-TIMING_COLUMNS = re.compile(r"^(seconds|elapsed|.*_s|time|time \(s\)|duration.*)$", re.I)
+#: Also the batch's record of how a plot ran, not what it gave: the run's id, the Dask worker's
+#: address, the process id and the peak memory.
+TIMING_KEYS = re.compile(r"^(timings|seconds|elapsed|started|finished|created|updated|date|time|.*_s|.*_seconds|.*_time"
+                         r"|run|worker|pid|peak_mb)$")
+#: CSV columns (and HTML table heads) holding durations, and the batch's worker and peak memory.
+TIMING_COLUMNS = re.compile(r"^(seconds|elapsed|.*_s|time|time \(s\)|duration.*|worker|peak_mb|peak MB)$", re.I)
 #: Durations and clock times written in text (reports, logs): "12.3 s", "0.8 s", "1 min 3 s",
 #: "generated 2026-11-28 09:33", "seconds: 119.2", a timings block ``"icp_s": 1.93``.
 TIMING_TEXT = re.compile(rb"\d{4}-\d\d-\d\d[ T]\d\d:\d\d(:\d\d(\.\d+)?)?|\d+(\.\d+)?\s?(s|ms|min)\b|seconds:?\s*\d+(\.\d+)?"

@@ -253,8 +253,8 @@ def test_warm_up_loads_the_kernel_the_commands_load_first():
     assert signatures and list(voxel._bounds_kernel.signatures) == signatures
 
 
-def test_qsm_median_equals_numpy_median():
-    from forestreg.engine.trees.qsm import _median
+def test_robust_median_equals_numpy_median():
+    from forestreg.engine.geometry.robust import median as _median
 
     rng = np.random.default_rng(6)
     for n in list(range(1, 40)) * 20:
@@ -397,8 +397,8 @@ def test_voxel_thinning_keeps_the_first_point_of_each_voxel(extent, monkeypatch)
     p = rng.uniform(0, extent, (50000, 3)) * [1, 1, 0.2]
     p = np.vstack([p, p[:7000] + 0.001])  # repeats in the same voxels, later in the input
     calls = []
-    real = voxel._mark_first
-    monkeypatch.setattr(voxel, "_mark_first", lambda *a: (calls.append(1), real(*a)))
+    real = voxel.first_in_cells
+    monkeypatch.setattr(voxel, "first_in_cells", lambda *a: (calls.append(1), real(*a))[1])
     got = voxel.voxel_thin(p, 0.1)
     assert bool(calls) == (extent < 100)
     seen, want = set(), []
