@@ -436,9 +436,10 @@ def _note_attempt(t: PlotTask, worker: str) -> tuple[int, str]:
     earlier = [a for a in earlier if isinstance(a, dict)]
     mine = [a for a in earlier if a.get("run") == t.run]
     reason = ""
-    if earlier and not earlier[-1].get("finished"):  # the last attempt never came to its end
-        if earlier[-1].get("run") == t.run:
-            reason = f"worker lost ({earlier[-1].get('worker') or 'unknown worker'})"
+    last = earlier[-1] if earlier else None
+    if last is not None and not last.get("finished"):  # the last attempt never came to its end
+        if last.get("run") == t.run:
+            reason = f"worker lost ({last.get('worker') or 'unknown worker'})"
         else:
             reason = "an earlier batch stopped during the plot"
     entry = {"run": t.run, "worker": worker, "pid": os.getpid(), "started": time.time()}

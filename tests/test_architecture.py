@@ -276,7 +276,7 @@ NOT_RESULTS: dict[str, dict[str, str]] = {
                       "(rows or {}).get(name, {})": "a manifest's CSV row (the user's file)",
                       "client.scheduler_info()": "Dask's scheduler description",
                       "_read_json(path) or {}": "the batch's own notes of a plot's attempts (.forestreg-batch/<plot>.json)",
-                      "a": "an attempt of those notes (run, worker, pid, start)", "mine[-1]": "the last attempt of this run"},
+                      "a": "an attempt of those notes (run, worker, pid, start)", "last": "the last attempt noted"},
 }
 
 
