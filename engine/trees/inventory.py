@@ -29,6 +29,7 @@ from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, t
 from ..core.params import Params, param_field as _p
 from ..geometry.columns import ColumnIndex
 from ..geometry.sorting import order_by_label
+from ..geometry.voxel import voxel_representatives
 from ..io.results import TREE_COLUMNS, TreeTablesFile  # noqa: F401 - the columns of trees.csv
 from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
@@ -68,6 +69,10 @@ class TreeParams(Params):
     wood_threshold: float = _p(0.5, "1", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
     cylinder_models: bool = _p(True, "", None, None, "fit cylinder models")
+    #: a cloud denser than the steps need (a merged plot of many fine scans) is measured on one
+    #: point per voxel; every point still gets its tree, height, wood probability and ground flag
+    thin_above_points: int = _p(8_000_000, "points", 0, 1e12, "clouds of more points are measured on one point per voxel of thin_voxel_m (every point still gets its tree, height, wood probability and ground flag); 0: never thinned")
+    thin_voxel_m: float = _p(0.01, "m", 0.001, 0.1, "side of the voxels of that thinning")
     #: ground-based clouds hold 0.1 and more (a TLS plot of tall trees without ground 0.04, but its
     #: stems are dense), airborne ones 0.005-0.03
     airborne_band_ratio: float = _p(0.08, "1", 0.0, 10.0, "points at 1-3 m above the ground per point above 3 m below which a cloud with sparsely sampled stems (noisy profile) is taken as airborne: trees without a sampled stem come from the canopy height model")
@@ -263,9 +268,51 @@ def measure_trees(
     if not np.isfinite(p).all():
         raise ScanDataError("trees: the cloud holds NaN or infinite coordinates")
     try:
+        if params.thin_above_points and len(p) > params.thin_above_points:
+            return _measure_thinned(p, params, progress, origin_shift=origin_shift, single_tree=single_tree)
         return _measure_trees(p, params, progress, origin_shift=origin_shift, single_tree=single_tree)
     except ScanDataError as exc:  # the data do not allow it: a failed outcome, as a registration gives
         return TreeInventory.failed(str(exc), len(p), origin_shift)
+
+
+def _measure_thinned(
+    p: np.ndarray,
+    params: TreeParams,
+    progress: Optional[Progress | ProgressCallback],
+    *,
+    origin_shift: Optional[np.ndarray],
+    single_tree: Optional[bool],
+) -> TreeInventory:
+    """:func:`measure_trees` of a cloud of more than ``params.thin_above_points`` points: the
+    trees measured on the first point of each ``params.thin_voxel_m`` voxel, then the per-point
+    results carried to every point (each point takes its voxel's label, wood probability and
+    ground flag; heights above the same DEM), and each tree's point count and wood fraction
+    counted on the whole cloud. ``thin_s`` and ``expand_s`` in the timings are the two ends."""
+    t = time.perf_counter()
+    keep, inverse = voxel_representatives(p, params.thin_voxel_m)
+    thinned = p[keep]
+    del keep
+    log.info("trees: %d points thinned to %d (one per %.3f m voxel)", len(p), len(thinned), params.thin_voxel_m)
+    thin_s = time.perf_counter() - t
+    inventory = _measure_trees(thinned, params, progress, origin_shift=origin_shift, single_tree=single_tree)
+    del thinned
+    if not inventory:  # the data do not allow trees: the outcome as the whole cloud's
+        return TreeInventory.failed(inventory.reason, len(p), origin_shift, {"thin_s": thin_s, **inventory.timings})
+    t = time.perf_counter()
+    labels = inventory.labels[inverse]
+    wood = inventory.wood_probability[inverse]
+    ground = inventory.ground[inverse]
+    del inverse
+    heights = inventory.dem.normalise(p)
+    n_max = max([int(labels.max()) if len(labels) else 0] + [r.tree_id for r in inventory.trees]) + 1
+    counts = np.bincount(labels, minlength=n_max)
+    woody = np.bincount(labels[wood >= params.wood_threshold], minlength=n_max)
+    trees = [dataclasses.replace(r, n_points=int(counts[r.tree_id]),
+                                 wood_fraction=float(woody[r.tree_id] / counts[r.tree_id]) if counts[r.tree_id] else 0.0)
+             if r.source == "stem" else dataclasses.replace(r, n_points=int(counts[r.tree_id])) for r in inventory.trees]
+    timings = {"thin_s": thin_s, **inventory.timings, "expand_s": time.perf_counter() - t}
+    return dataclasses.replace(inventory, trees=trees, labels=labels, heights=heights, wood_probability=wood, ground=ground,
+                               timings=timings)
 
 
 def _measure_trees(
