@@ -72,7 +72,7 @@ class TreeParams(Params):
     #: a cloud denser than the steps need (a merged plot of many fine scans) is measured on one
     #: point per voxel; every point still gets its tree, height, wood probability and ground flag
     thin_above_points: int = _p(8_000_000, "points", 0, 1e12, "clouds of more points are measured on one point per voxel of thin_voxel_m (every point still gets its tree, height, wood probability and ground flag); 0: never thinned")
-    thin_voxel_m: float = _p(0.01, "m", 0.001, 0.1, "side of the voxels of that thinning")
+    thin_voxel_m: float = _p(0.015, "m", 0.001, 0.1, "side of the voxels of that thinning (finer than the leaf-wood separation's own 0.02 m)")
     #: ground-based clouds hold 0.1 and more (a TLS plot of tall trees without ground 0.04, but its
     #: stems are dense), airborne ones 0.005-0.03
     airborne_band_ratio: float = _p(0.08, "1", 0.0, 10.0, "points at 1-3 m above the ground per point above 3 m below which a cloud with sparsely sampled stems (noisy profile) is taken as airborne: trees without a sampled stem come from the canopy height model")
@@ -248,6 +248,10 @@ def measure_trees(
     positions, heights and crowns, DBH and volume flagged as not measured. Trees that are too
     incomplete to measure are kept and flagged; each row says how each value was obtained and how
     far to trust it (``quality``).
+
+    A cloud of more than ``params.thin_above_points`` points (a merged plot of many fine scans)
+    is measured on the first point of each ``params.thin_voxel_m`` voxel; the per-point results
+    (labels, heights, wood probability, ground) still cover every point.
 
     A single-tree cloud (one tree, little or no ground: :mod:`.single`) gives one tree whose
     height is the cloud's top above the tree's base; ``single_tree`` True / False forces or rules
