@@ -56,6 +56,10 @@ class RegistrationParams(Params):
     distinct_rotation_deg: float = _p(5.0, "deg", 0.5, 180.0, "Alternatives rotated more than this from the best are distinct solutions")
     distinct_translation_m: float = _p(1.0, "m", 0.1, 50.0, "Alternatives displaced more than this from the best are distinct solutions")
     max_free_space_violation: float = _p(0.15, "1", 0.0, 1.0, "Largest fraction of one scan's slice points allowed where the other scanner saw empty space, after ICP (a wrong match puts trunks there)")
+    free_space_bin_deg: float = _p(0.5, "deg", 0.05, 10.0, "A scanner saw empty space up to its first return in each azimuth bin of this width...")
+    free_space_margin_m: float = _p(0.5, "m", 0.0, 5.0, "...and the other scan's points count as inside it when at least this much nearer")
+    free_space_near_m: float = _p(2.0, "m", 0.0, 50.0, "Points nearer to the scanner than this are not tested")
+    free_space_reach_m: float = _p(15.0, "m", 1.0, 200.0, "...nor those farther than this")
     # --- levelling of tilted scans
     level_tilted: bool = _p(True, "", None, None, "Detect a tilted scanner from its own data (ground and trunk directions) and level the scan before slicing")
     tilt_threshold_deg: float = _p(10.0, "deg", 0.1, 45.0, "Estimated tilts below this are treated as a level scanner (small tilts are taken up by the ground fit and ICP)")
