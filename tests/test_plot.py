@@ -481,6 +481,18 @@ def test_the_next_scan_is_prepared_while_a_link_runs_and_the_links_are_the_same(
     for p in paths[1:]:
         assert np.array_equal(project.link_of(p.name).matrix, one_by_one.link_of(p.name).matrix)
 
+    monkeypatch.undo()  # small scans again, but one thread allowed (a batch's plot process on one core)
+    monkeypatch.setattr(prepare_module, "prepare_scan", recorded)
+    monkeypatch.setenv("FORESTREG_THREADS", "1")
+    one_core = Project(name="one-core")
+    for p in paths:
+        one_core.add_scan(p)
+    where.clear()
+    register_project(one_core)
+    assert where and "forestreg-prepare-ahead" not in where, "no thread prepares ahead on one core"
+    for p in paths[1:]:
+        assert np.array_equal(project.link_of(p.name).matrix, one_core.link_of(p.name).matrix)
+
 
 def test_further_pairs_run_two_at_a_time_with_the_same_results(four_scan_files, registered_four, monkeypatch):
     """``--pairs all`` registers the further pairs of a small plot two at a time on the kept
