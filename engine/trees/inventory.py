@@ -313,7 +313,8 @@ def _measure_thinned(
     woody = np.bincount(labels[wood >= params.wood_threshold], minlength=n_max)
     trees = [dataclasses.replace(r, n_points=int(counts[r.tree_id]),
                                  wood_fraction=float(woody[r.tree_id] / counts[r.tree_id]) if counts[r.tree_id] else 0.0)
-             if r.source == "stem" else dataclasses.replace(r, n_points=int(counts[r.tree_id])) for r in inventory.trees]
+             if r.source == "stem" and math.isfinite(r.wood_fraction) else dataclasses.replace(r, n_points=int(counts[r.tree_id]))
+             for r in inventory.trees]
     timings = {"thin_s": thin_s, **inventory.timings, "expand_s": time.perf_counter() - t}
     return dataclasses.replace(inventory, trees=trees, labels=labels, heights=heights, wood_probability=wood, ground=ground,
                                timings=timings)
@@ -388,31 +389,34 @@ def _measure_trees(
         dbh, curves, timings["dbh_s"] = stems_job.result()  # its k-d tree went with its call
         timings["waiting_s"] = time.perf_counter() - t  # for the second thread
 
-        t = time.perf_counter()
-        progress(0.45, "leaf-wood separation")
-        vegetation = (labels > 0) | (heights > params.segmentation.ground_clearance_m)
-        # the heights are not held through the separation's peak (8 bytes a point): made again
-        # after it from the same DEM, the same values
-        heights = None
-        vegetation_wood = (
-            wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
-            if np.count_nonzero(vegetation) >= 50 else 0.0
-        )
-        heights = model.dem.normalise(p)
-        wood = np.zeros(len(p))  # made after the separation: not held through its peak
-        wood[vegetation] = vegetation_wood
-        del vegetation, vegetation_wood
-        timings["leafwood_s"] = time.perf_counter() - t
-        # a column index of the cloud for the stem-curve wood below (4 bytes a point, not a k-d
-        # tree's ~20: this phase was the command's peak), built in the second thread beside the
-        # completeness checks
-        index_job = pool.submit(ColumnIndex, p, 1.0)
+        if params.cylinder_models:
+            t = time.perf_counter()
+            progress(0.45, "leaf-wood separation")
+            vegetation = (labels > 0) | (heights > params.segmentation.ground_clearance_m)
+            # the heights are not held through the separation's peak (8 bytes a point): made again
+            # after it from the same DEM, the same values
+            heights = None
+            vegetation_wood = (
+                wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
+                if np.count_nonzero(vegetation) >= 50 else 0.0
+            )
+            heights = model.dem.normalise(p)
+            wood = np.zeros(len(p))  # made after the separation: not held through its peak
+            wood[vegetation] = vegetation_wood
+            del vegetation, vegetation_wood
+            timings["leafwood_s"] = time.perf_counter() - t
+            # a column index of the cloud for the stem-curve wood below (4 bytes a point, not a k-d
+            # tree's ~20: this phase was the command's peak), built in the second thread beside the
+            # completeness checks
+            index_job = pool.submit(ColumnIndex, p, 1.0)
+        else:  # the leaf-wood separation is the cylinder models' input: without them wood is not measured
+            wood, index_job = np.full(len(p), np.nan), None
         t = time.perf_counter()
         complete = {c.tree_id: c for c in tree_completeness(p, heights, labels, stems, params.completeness, dbh)}
-        index = index_job.result()
+        index = index_job.result() if index_job is not None else None
     # the stem as the stem curve traces it is wood, whatever its covariance features say
     tol = max(2.0 * stem_params.inlier_tolerance_m, 0.03)
-    for s in stems:
+    for s in stems if index is not None else ():
         wood[stem_curve_wood(p, index, s, curves[s.id], tol)] = 1.0
     del index
     timings["completeness_s"] = time.perf_counter() - t
@@ -662,10 +666,21 @@ def tree_record(
     flags = _flags_that_matter(flags, quality)
     return TreeRecord(
         tree_id=stem.id, stem=stem, dbh=d, curve=curve, crown=crown, cylinders=cylinders,
-        n_points=int(len(idx)), wood_fraction=float(np.mean(wood[idx] >= params.wood_threshold)) if len(idx) else 0.0,
+        n_points=int(len(idx)), wood_fraction=_wood_fraction(wood[idx], params.wood_threshold),
         flags=tuple(dict.fromkeys(flags)), dbh_m=dbh_value, volume_m3=volume, stem_form_factor=ff,
         source="stem", quality=quality,
     )
+
+
+def _wood_fraction(wood: np.ndarray, threshold: float) -> float:
+    """The share of a tree's points (their wood probabilities ``wood``) that are wood; NaN when
+    the wood was not measured (NaN probabilities: no leaf-wood separation without cylinder
+    models), 0 for no point."""
+    if len(wood) == 0:
+        return 0.0
+    if np.isnan(wood).any():
+        return math.nan
+    return float(np.mean(wood >= threshold))
 
 
 def _flags_that_matter(flags: Sequence[str], quality: dict[str, str]) -> list[str]:
@@ -967,14 +982,17 @@ def _single_tree_inventory(
     crown = measure_crown(p[idx], heights[idx], stem, params.crown.replace(top_neighbour_radius_m=1.5, top_min_neighbours=1))
     timings["single_tree_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    progress(0.4, "leaf-wood separation")
-    wood = np.zeros(len(p))
-    if len(idx) >= 50:
-        wood[idx] = wood_probability(p[idx], params.leafwood, progress.sub(0.4, 0.7))
-    tol = max(2.0 * stem_params.inlier_tolerance_m, 0.03)
-    wood[stem_curve_wood(p, index, stem, curve, tol)] = 1.0
+    if params.cylinder_models:
+        progress(0.4, "leaf-wood separation")
+        wood = np.zeros(len(p))
+        if len(idx) >= 50:
+            wood[idx] = wood_probability(p[idx], params.leafwood, progress.sub(0.4, 0.7))
+        tol = max(2.0 * stem_params.inlier_tolerance_m, 0.03)
+        wood[stem_curve_wood(p, index, stem, curve, tol)] = 1.0
+        timings["leafwood_s"] = time.perf_counter() - t
+    else:  # the cylinder model's input: without it wood is not measured
+        wood = np.full(len(p), np.nan)
     del index
-    timings["leafwood_s"] = time.perf_counter() - t
     t = time.perf_counter()
     progress(0.7, "cylinder model")
     open_grown = dataclasses.replace(params, form_factors=params.form_factors.replace(total=params.form_factors.open_grown_total))
