@@ -9,7 +9,8 @@ memory per command):
 
 Cases (small, so the whole runs in a few minutes on a shared machine):
 
-* ``sim plot``: a simulated ``mixed_temperate`` plot, 30 m square, four TLS scans merged (the
+* ``sim plot``: a simulated ``mixed_temperate`` plot, 30 m square, four full-dome TLS scans
+  (elevation up to the zenith) merged, suppressed trees 0.5 m below their neighbours' crowns (the
   truth: every tree's position, DBH, height and top seen or not). Figures over the true trees
   within :data:`RADIUS_M` of the centre with DBH >= 0.1 m: found (a stem within 0.5 m), false
   stems (detected within the radius, no true tree within 0.5 m), DBH rRMSE, height rRMSE of every
@@ -61,7 +62,7 @@ PINE_PLOT_RINGS = [
 
 def sim_plot(out: Path = OUT) -> tuple[Path, list[dict[str, Any]]]:
     """The simulated 4-scan plot (LAZ) and its true trees; simulated once and cached."""
-    laz, truth = out / "sim_plot.laz", out / "sim_plot.json"
+    laz, truth = out / "sim_plot_dome.laz", out / "sim_plot_dome.json"
     if not (laz.exists() and truth.exists()):
         from scipy.spatial import cKDTree
 
@@ -69,7 +70,8 @@ def sim_plot(out: Path = OUT) -> tuple[Path, list[dict[str, Any]]]:
         from forestreg.engine.simulate import simulate_plot
 
         plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=3,
-                             angular_step_deg=0.35, size_m=30.0)
+                             angular_step_deg=0.35, size_m=30.0, scanner_options={"elevation_max_deg": 90.0},
+                             suppressed_clearance_m=0.5)
         pts = np.vstack([s.world_points() for s in plot.scans])
         ids = np.concatenate([s.object_ids for s in plot.scans])
         trees = []
