@@ -957,6 +957,43 @@ def taper_radii(
     return np.clip(out, lo_r, max(cap, lo_r)), keep
 
 
+def _child_base_radii(branch: np.ndarray, parent: np.ndarray, radius: np.ndarray, good: np.ndarray) -> dict[int, list[float]]:
+    """For each cylinder that branches fork from, the base radii of those branches as their own
+    fits show them (before any taper): the median of the good fits among each branch's first
+    three cylinders, else its first fit's rough radius; never more than the parent's fit."""
+    out: dict[int, list[float]] = {}
+    for b in np.unique(branch):
+        idx = np.flatnonzero(branch == b)
+        at = int(parent[idx[0]])
+        if at < 0:
+            continue
+        first = idx[:3]
+        fits = radius[first][good[first]]
+        r = float(np.median(fits)) if len(fits) else float(radius[idx[0]])
+        out.setdefault(at, []).append(min(r, float(radius[at])))
+    return out
+
+
+def pipe_caps(radius: np.ndarray, good: np.ndarray, children: Sequence[Sequence[float]], min_radius: float) -> np.ndarray:
+    """Radii of one branch's cylinders (base to tip) whose filled-in values (``good`` False: no
+    fit of their own, the taper's) are held to what the pipe model leaves past each fork: beyond
+    a cylinder with side branches of base radii ``children[j]``, the branch keeps the cross-section
+    area of that cylinder less theirs (at least the share of one of ``len(children[j]) + 1``
+    equal forks). A forked trunk's leader is not given the trunk's taper. Radii still never
+    increase along the branch."""
+    out = np.asarray(radius, dtype=np.float64).copy()
+    cap = math.inf
+    for j in range(len(out)):
+        if not good[j] and out[j] > cap:
+            out[j] = max(cap, min_radius)
+        cap = out[j] if good[j] else min(cap, out[j])
+        kids = children[j]
+        if kids:
+            area = out[j] ** 2 - float(np.sum(np.square(kids)))
+            cap = min(cap, math.sqrt(max(area, out[j] ** 2 / (len(kids) + 1))))
+    return np.minimum.accumulate(out)
+
+
 # --------------------------------------------------------------------------------------------
 # The whole model
 # --------------------------------------------------------------------------------------------
@@ -1194,6 +1231,7 @@ def fit_qsm(
     n_fit = np.array([r["n"] for r in rows], dtype=np.float64)
 
     progress(0.9, "taper")
+    child_base = _child_base_radii(branch, parent, radius, good)
     for b in range(len(seg.branches)):
         idx = np.flatnonzero(branch == b)
         first_parent = parent[idx[0]]
@@ -1202,6 +1240,8 @@ def fit_qsm(
         radius[idx], good[idx] = taper_radii(
             radius[idx], good[idx], coverage[idx] * length[idx], from_base, float(length[idx].sum()), cap, params
         )
+        if params.enforce_taper:
+            radius[idx] = pipe_caps(radius[idx], good[idx], [child_base.get(int(k), []) for k in idx], params.min_radius_m)
 
     progress(1.0, "cylinder model done")
     return CylinderModel(
