@@ -957,6 +957,28 @@ def taper_radii(
     return np.clip(out, lo_r, max(cap, lo_r)), keep
 
 
+def _stem_down_to_base(
+    start: np.ndarray, axis: np.ndarray, length: np.ndarray, branch: np.ndarray, base: np.ndarray, max_gap_m: float = 1.5
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The first stem cylinder lengthened down its axis to the given base's height when the
+    model's stem starts above it (the foot of a stem lost to the ground filter or to the
+    leaf-wood separation; up to ``max_gap_m``, on a stem within 60 degrees of vertical). Returns
+    the starts, the lengths and the length added (m)."""
+    stem = np.flatnonzero(branch == 0)
+    if len(stem) == 0:
+        return start, length, 0.0
+    first = int(stem[0])
+    a = axis[first]
+    gap = float(start[first, 2] - base[2])
+    if a[2] < 0.5 or gap <= 0.0 or gap > max_gap_m:
+        return start, length, 0.0
+    extra = gap / float(a[2])
+    start, length = start.copy(), length.copy()
+    start[first] = start[first] - extra * a
+    length[first] += extra
+    return start, length, extra
+
+
 def _child_base_radii(branch: np.ndarray, parent: np.ndarray, radius: np.ndarray, good: np.ndarray) -> dict[int, list[float]]:
     """For each cylinder that branches fork from, the base radii of those branches as their own
     fits show them (before any taper): the median of the good fits among each branch's first
@@ -1240,13 +1262,19 @@ def fit_qsm(
         radius[idx], good[idx] = taper_radii(
             radius[idx], good[idx], coverage[idx] * length[idx], from_base, float(length[idx].sum()), cap, params
         )
-        if params.enforce_taper:
+        if params.enforce_taper and b == 0:
             radius[idx] = pipe_caps(radius[idx], good[idx], [child_base.get(int(k), []) for k in idx], params.min_radius_m)
+
+    start = np.array([r["start"] for r in rows]).reshape(k, 3)
+    axis = np.array([r["axis"] for r in rows]).reshape(k, 3)
+    to_base = 0.0
+    if base_pt is not None:
+        start, length, to_base = _stem_down_to_base(start, axis, length, branch, base_pt)
 
     progress(1.0, "cylinder model done")
     return CylinderModel(
-        start=np.array([r["start"] for r in rows]).reshape(k, 3),
-        axis=np.array([r["axis"] for r in rows]).reshape(k, 3),
+        start=start,
+        axis=axis,
         length_m=length,
         radius_m=radius,
         parent=parent,
@@ -1266,5 +1294,6 @@ def fit_qsm(
             "shell_width_m": float(shell),
             "neighbour_distance_m": float(np.median(neighbour_m)),
             "thinning_m": float(params.thinning_m),
+            "stem_extended_to_base_m": float(to_base),
         },
     )
