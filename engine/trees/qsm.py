@@ -1039,13 +1039,22 @@ def _node_geometry(points: np.ndarray, node_of_point: np.ndarray, n_nodes: int) 
     return centroid, median, count
 
 
-def _pieces(chain: np.ndarray, node_radius: np.ndarray, shell_width: float, params: QsmParams) -> list[np.ndarray]:
-    """Cut a branch (node chain) into runs of nodes about ``cylinder_relative_length`` radii long."""
+def _pieces(
+    chain: np.ndarray, node_radius: np.ndarray, shell_width: float, params: QsmParams, node_count: Optional[np.ndarray] = None
+) -> list[np.ndarray]:
+    """Cut a branch (node chain) into runs of nodes about ``cylinder_relative_length`` radii long;
+    with ``node_count`` (points per node), a run on a sparsely sampled branch grows (up to
+    ``max_cylinder_length_m``) until it holds ``min_fit_points`` points, so a thin branch far from
+    the scanner is fitted to its own points rather than filled in from its thicker, denser parts."""
     out = []
     i = 0
+    longest = max(1, int(round(params.max_cylinder_length_m / shell_width)))
     while i < len(chain):
         target = float(np.clip(params.cylinder_relative_length * node_radius[chain[i]], shell_width, params.max_cylinder_length_m))
         k = max(1, int(round(target / shell_width)))
+        if node_count is not None:
+            while k < longest and i + k < len(chain) and int(node_count[chain[i : i + k]].sum()) < params.min_fit_points:
+                k += 1
         out.append(chain[i : i + k])
         i += k
     if len(out) > 1 and len(out[-1]) * 2 < len(out[-2]):  # no stub at the tip
@@ -1099,7 +1108,7 @@ def _fit_branches(
     cyl_of_node = np.full(n_nodes, -1, dtype=np.int64)
     up = np.array([0.0, 0.0, 1.0])
     for b, chain in enumerate(seg.branches):
-        pieces = _pieces(chain, node_r, shell, params)
+        pieces = _pieces(chain, node_r, shell, params, node_count)
         fork = int(seg.branch_fork_node[b])
         fits: list[CylinderFit] = []
         first = 0
