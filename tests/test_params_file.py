@@ -300,3 +300,40 @@ def test_uncertainty_floors_and_target_limits_come_from_the_file(tmp_path):
     assert fit_to_targets(line, line, min_spread_m=default.manual_min_target_spread_m).rmse_m < 1e-9
     with pytest.raises(TargetError, match="one straight line"):
         fit_to_targets(line, line, min_spread_m=reg.manual_min_target_spread_m)
+
+
+def test_levelling_sample_comes_from_the_file(tmp_path):
+    """[registration] level_voxel_m and level_radius_m make the sample whose normals estimate a
+    scan's vertical: the points within the radius, one a voxel."""
+    from forestreg.engine.tls.prepare import centre_scan
+
+    path = tmp_path / "p.toml"
+    path.write_text("[registration]\nlevel_voxel_m = 0.3\nlevel_radius_m = 6.0\n", encoding="utf-8")
+    default, reg = ProductParams().registration, load_params(path).registration
+    rng = np.random.default_rng(0)
+    r, a = rng.uniform(1.0, 25.0, 100000), rng.uniform(0.0, 2 * np.pi, 100000)
+    pts = np.column_stack([r * np.cos(a), r * np.sin(a), rng.uniform(-1.5, 1.0, len(r))])
+    near = [np.linalg.norm(centre_scan(pts, np.zeros(3), p).near, axis=1) for p in (default, reg)]
+    assert near[0].max() > 14.0 and near[1].max() <= 6.0
+    assert 0 < len(near[1]) < 0.6 * (near[0] <= 6.0).sum()  # 0.3 m voxels hold fewer points than 0.1 m ones
+
+
+def test_cylinder_model_limits_and_breast_height_come_from_the_file(tmp_path):
+    """[trees.qsm] min_points refuses a tree with too few points, max_fit_points caps the points a
+    cylinder is fitted to, breast_height_m is where the model's DBH is read (a tapering stem)."""
+    from forestreg.engine.core.errors import ScanDataError
+    from forestreg.engine.trees.qsm import fit_qsm
+
+    path = tmp_path / "p.toml"
+    path.write_text("[trees.qsm]\nbreast_height_m = 3.0\nmax_fit_points = 20\n", encoding="utf-8")
+    default, qsm = ProductParams().trees.qsm, load_params(path).trees.qsm
+    rng = np.random.default_rng(0)
+    z, a = rng.uniform(0.0, 4.0, 6000), rng.uniform(0.0, 2 * np.pi, 6000)
+    r = 0.2 - 0.03 * z  # DBH 0.322 m at 1.3 m, 0.22 m at 3 m
+    pts = np.column_stack([r * np.cos(a), r * np.sin(a), z]) + rng.normal(0.0, 0.002, (len(z), 3))
+    model, again = fit_qsm(pts, default), fit_qsm(pts, qsm.replace(max_fit_points=default.max_fit_points))
+    assert abs(model.dbh_from_cylinders_m - 0.322) < 0.015 and abs(again.dbh_from_cylinders_m - 0.22) < 0.015
+    capped = fit_qsm(pts, qsm)
+    assert not np.allclose(capped.radius_m, model.radius_m)  # fitted to 20 points a cylinder, not 1500
+    with pytest.raises(ScanDataError, match="at least 10000 points"):
+        fit_qsm(pts, default.replace(min_points=10000))

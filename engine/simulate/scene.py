@@ -410,6 +410,10 @@ class PresetConfig:
     target_height_m: tuple[float, float] = (1.2, 2.0)
     #: open field: a building-like box and a fence
     structures: bool = False
+    #: crowns do not grow into each other: a tree whose top would stand inside a taller
+    #: neighbour's crown is suppressed to this distance (m) below that crown's lower surface
+    #: (its crown base scaled with it); 0 = crowns may interpenetrate
+    suppressed_clearance_m: float = 0.0
 
 
 #: The preset recipes (see the module docstring for a table).
@@ -861,8 +865,48 @@ def _make_trees(cfg: PresetConfig, extent: tuple[float, ...], terrain: Terrain, 
                 leaf_area_density=float(lad[i]),
             )
         )
+    if cfg.suppressed_clearance_m > 0:
+        trees = _suppress_under_crowns(trees, cfg.suppressed_clearance_m)
     return trees
 
+
+def crown_floor(tree: Tree, x: float, y: float) -> float:
+    """z (scene frame) of the lower surface of ``tree``'s crown volume above (x, y): the flat
+    base of a conifer's cone, the lower half of a broadleaf's ellipsoid; inf outside the crown's
+    reach."""
+    length = max(tree.height_m - tree.crown_base_m, 0.0)
+    r = tree.crown_radius_m
+    if tree.shape == BROADLEAF:
+        c = tree.point_at_height(min(tree.stem_height_fraction * tree.height_m, (tree.crown_base_m + tree.height_m) / 2.0))
+        rho = math.hypot(x - c[0], y - c[1])
+        if rho >= r:
+            return math.inf
+        return tree.z + (tree.crown_base_m + tree.height_m) / 2.0 - 0.5 * length * math.sqrt(1.0 - (rho / r) ** 2)
+    apex = tree.point_at_height(tree.height_m)
+    return tree.z + tree.crown_base_m if math.hypot(x - apex[0], y - apex[1]) < r else math.inf
+
+
+def _suppress_under_crowns(trees: list[Tree], clearance_m: float) -> list[Tree]:
+    """Subordinate trees (at most 85 % of a neighbour's height) whose top would stand inside
+    that neighbour's crown volume, lowered to ``clearance_m`` below the crown's lower surface
+    (their crown base scaled with the height). A tree that would lose more than 40 % of its
+    height keeps it (co-dominant crowns that meet are left as drawn)."""
+    out = list(trees)
+    for i, t in enumerate(trees):
+        over = [o for o in trees if o.id != t.id and t.height_m <= 0.85 * o.height_m]
+        new_h = t.height_m
+        for _ in range(5):  # a leaning stem's apex moves as it is lowered: until it is clear
+            apex = t.point_at_height(new_h)
+            floors = [crown_floor(o, float(apex[0]), float(apex[1])) - clearance_m - t.z for o in over]
+            lowest = min([f for f in floors if f < new_h], default=None)
+            if lowest is None:
+                break
+            new_h = lowest
+        apex = t.point_at_height(new_h)
+        clear = all(crown_floor(o, float(apex[0]), float(apex[1])) - clearance_m - t.z >= new_h - 1e-9 for o in over)
+        if clear and 0.6 * t.height_m <= new_h < t.height_m:
+            out[i] = dataclasses.replace(t, height_m=float(new_h), crown_base_m=float(t.crown_base_m * new_h / t.height_m))
+    return out
 
 def _stem_xy(trees: Sequence[Tree]) -> tuple[np.ndarray, np.ndarray]:
     if not trees:

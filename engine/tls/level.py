@@ -18,6 +18,7 @@ import numpy as np
 from ..geometry.features import SphereGrid, local_covariances, normals_and_variation
 from ..core.jit import kernel, run_blocks
 from ..geometry.voxel import claim_voxel, voxel_bitmap
+from .params import RegistrationParams
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -43,15 +44,11 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 #: nearest neighbours (any side gives the same neighbours; about five 0.1 m voxels is fastest).
 NORMAL_SEARCH_CELL_M = 0.5
 
-#: Voxel (metres) and radius (metres, around the scanner) of :func:`level_sample`.
-LEVEL_VOXEL_M = 0.1
-LEVEL_RADIUS_M = 15.0
-
 #: Sample points whose normals :func:`surface_normals` computes (a random subset of them beyond).
 LEVEL_SAMPLE_POINTS = 60000
 
 
-def level_sample(points: np.ndarray, *, voxel_m: float = LEVEL_VOXEL_M, radius_m: float = LEVEL_RADIUS_M) -> np.ndarray:
+def level_sample(points: np.ndarray, *, voxel_m: float = RegistrationParams.level_voxel_m, radius_m: float = RegistrationParams.level_radius_m) -> np.ndarray:
     """The even sample whose normals estimate a scan's vertical: of the points (scanner-centred,
     metres) within ``radius_m`` of the scanner, the first (in the points' order) in each
     ``voxel_m`` voxel of a grid with a corner at the scanner; float32 (M, 3), in the points'

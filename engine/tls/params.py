@@ -55,6 +55,8 @@ class RegistrationParams(Params):
     # --- levelling of tilted scans
     level_tilted: bool = _p(True, "", None, None, "Detect a tilted scanner from its own data (ground and trunk directions) and level the scan before slicing")
     tilt_threshold_deg: float = _p(10.0, "deg", 0.1, 45.0, "Estimated tilts below this are treated as a level scanner (small tilts are taken up by the ground fit and ICP)")
+    level_voxel_m: float = _p(0.1, "m", 0.02, 1.0, "The scan's vertical is estimated from the normals of one point per voxel of this size")
+    level_radius_m: float = _p(15.0, "m", 2.0, 100.0, "...of the points within this distance of the scanner")
     # --- fine registration (ICP, paper 2.6)
     icp_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size to which both clouds are thinned for ICP")
     icp_max_distances_m: tuple[float, ...] = _p((0.5, 0.2, 0.08), "m", 0.005, 5.0, "Correspondence distances of the successive ICP stages")

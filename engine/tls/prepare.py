@@ -18,7 +18,7 @@ from ..core.jit import kernel
 from ..geometry.voxel import VoxelGrid, claim_voxel, voxel_bitmap, voxel_grid
 from .params import RegistrationParams
 from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
-from .level import LEVEL_RADIUS_M, LEVEL_VOXEL_M, estimate_up_direction, levelling_rotation, tilt_deg
+from .level import estimate_up_direction, levelling_rotation, tilt_deg
 from .vop import (
     VisualOcclusionPoints,
     angular_spacing,
@@ -241,7 +241,7 @@ class CentredScan:
     """The first step of a preparation: the points within ``1.6 D_c`` (3D) of the scanner,
     scanner-centred, float32 (the scan's axes, metres), thinned to the first point of each pixel
     of :func:`thinning_pixels` (angular pixels seen from the scanner), and the
-    :func:`~.level.level_sample` of those within 15 m, that estimates the vertical (None when it is
+    :func:`~.level.level_sample` of those within ``level_radius_m``, that estimates the vertical (None when it is
     not estimated). Once made, the scan's own points are no longer needed (a caller holding them in
     the only reference can let them go before the rest)."""
 
@@ -257,9 +257,10 @@ def centre_scan(
     estimate it)."""
     reach = params.max_range_m
     estimate = up is None and params.level_tilted
-    # generous before levelling; the vertical is estimated from a sample of the points within 15 m (one a 0.1 m voxel)
-    centred, near = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2, LEVEL_RADIUS_M**2 if estimate else None,
-                                     thinning=thinning_pixels(params))
+    # generous before levelling; the vertical is estimated from a sample of the points within
+    # level_radius_m (one a level_voxel_m voxel)
+    centred, near = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2, params.level_radius_m**2 if estimate else None,
+                                     thinning=thinning_pixels(params), level_voxel_m=params.level_voxel_m)
     return CentredScan(centred, near)
 
 
@@ -369,12 +370,12 @@ def icp_grid_voxel(params: RegistrationParams) -> float:
 
 
 def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near_d2: Optional[float] = None, *,
-                     thinning: Optional[ThinningPixels] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
+                     thinning: Optional[ThinningPixels] = None, level_voxel_m: float = RegistrationParams.level_voxel_m) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """The points within ``sqrt(max_d2)`` (3D) of ``origin``, shifted so that ``origin`` is 0, as
     float32 (a 50 m neighbourhood keeps micrometre steps), with ``thinning`` only the first of
     each of its pixels (seen from ``origin``), and, with ``near_d2``, the
     :func:`~.level.level_sample` of those within ``sqrt(near_d2)`` (the first of each
-    :data:`~.level.LEVEL_VOXEL_M` voxel; else None); both in the points' order. One compiled pass
+    ``level_voxel_m`` voxel; else None); both in the points' order. One compiled pass
     writes the kept points into the results: no float64 copy of the cloud, no distances or masks
     (the results may be views of buffers sized for every point, of which only the rows written
     are ever touched)."""
@@ -382,7 +383,7 @@ def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near
     out = np.empty((len(points), 3), dtype=np.float32)
     near = np.empty((len(points) if near_d2 is not None else 0, 3), dtype=np.float32)
     radius = float(np.sqrt(near_d2)) if near_d2 is not None else 0.0
-    occupied = voxel_bitmap(LEVEL_VOXEL_M, radius) if near_d2 is not None else np.zeros(0, dtype=np.uint64)
+    occupied = voxel_bitmap(level_voxel_m, radius) if near_d2 is not None else np.zeros(0, dtype=np.uint64)
     t = thinning
     if t is None:
         step, columns, rows, offset, near_m, log_ratio = np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), 0.0, 1.0
@@ -391,7 +392,7 @@ def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near
     pixels = cell_bits(0 if t is None else t.bits)
     # the limits as float32, as numpy compares a float32 array with a Python float
     kept, close = _centre_rows(np.asarray(points), origin, np.float32(max_d2), np.float32(-1.0 if near_d2 is None else near_d2),
-                               LEVEL_VOXEL_M, int(np.ceil(radius / LEVEL_VOXEL_M)), occupied,
+                               level_voxel_m, int(np.ceil(radius / level_voxel_m)), occupied,
                                step, columns, rows, offset, near_m, log_ratio, pixels, out, near)
     return out[:kept], (near[:close].copy() if near_d2 is not None else None)
 

@@ -70,12 +70,6 @@ from ..geometry.robust import huber_weights, median, robust_scale, weighted_step
 from ..geometry.vectors import perpendicular_frame
 from ..geometry.voxel import voxel_centroids
 
-#: Breast height (m) above the stem base at which the DBH is taken.
-BREAST_HEIGHT_M = 1.3
-#: The fewest points a tree must have for a cylinder model (as given, and after thinning).
-MIN_POINTS = 30
-#: A cylinder is fitted to at most this many of its points (evenly picked).
-MAX_FIT_POINTS = 1500
 #: Columns of :meth:`CylinderModel.to_table` and of the CSV file, in order.
 TABLE_COLUMNS = CYLINDER_COLUMNS  # the columns of a cylinder table (engine/io/results.py owns the format)
 
@@ -106,6 +100,9 @@ class QsmParams(Params):
     min_radius_m: float = _p(0.002, "m", 0.0, 0.1, "Smallest radius of any cylinder")
     taper_tolerance: float = _p(0.25, "1", 0.01, 10.0, "A fit more than this fraction below the branch's robust taper line (or twice this above it) is treated as poor")
     enforce_taper: bool = _p(True, "", None, None, "Radii never increase along a branch and a child is never thicker than its parent cylinder")
+    min_points: int = _p(30, "points", 4, 1000000, "Fewest points a tree must have for a cylinder model (as given, and after thinning)")
+    max_fit_points: int = _p(1500, "points", 10, 1000000, "A cylinder is fitted to at most this many of its points (evenly picked)")
+    breast_height_m: float = _p(1.3, "m", 0.5, 3.0, "Height above the stem base at which the model's stem diameter (its DBH) is read", "DBH at 1.3 m")
 
     def _check(self) -> None:
         if self.patch_diameter2_min_m > self.patch_diameter2_max_m:
@@ -219,12 +216,12 @@ class CylinderModel(CylinderTableFile):
 
     @property
     def dbh_from_cylinders_m(self) -> float:
-        """Diameter of the stem cylinder at breast height (1.3 m above the stem base); NaN when the
-        stem does not reach it."""
+        """Diameter of the stem cylinder at breast height (the model's ``breast_height_m`` above the
+        stem base, 1.3 m by default); NaN when the stem does not reach it."""
         stem = np.flatnonzero(self.branch_order == 0)
         if len(stem) == 0:
             return float("nan")
-        h = self.base_z + BREAST_HEIGHT_M
+        h = self.base_z + float(self.meta.get("breast_height_m", QsmParams.breast_height_m))
         z0 = self.start[stem, 2]
         z1 = self.end[stem, 2]
         lo, hi = np.minimum(z0, z1), np.maximum(z0, z1)
@@ -1100,8 +1097,8 @@ def _fit_branches(
 
     def node_points(nodes: np.ndarray) -> np.ndarray:
         idx = np.concatenate([order_pts[bounds[n] : bounds[n + 1]] for n in nodes])
-        if len(idx) > MAX_FIT_POINTS:
-            idx = idx[np.linspace(0, len(idx) - 1, MAX_FIT_POINTS).astype(np.int64)]
+        if len(idx) > params.max_fit_points:
+            idx = idx[np.linspace(0, len(idx) - 1, params.max_fit_points).astype(np.int64)]
         return raw[idx]
 
     rows: list[dict[str, Any]] = []
@@ -1208,20 +1205,20 @@ def fit_qsm(
     Raises
     ------
     ScanDataError
-        Too few points (fewer than 30 after thinning), NaN/infinite coordinates, or a base point
+        Too few points (fewer than ``params.min_points`` after thinning), NaN/infinite coordinates, or a base point
         that is not finite.
     """
     progress = progress or Progress()
-    raw = check_points(points, "a cylinder model", min_points=MIN_POINTS)
+    raw = check_points(points, "a cylinder model", min_points=params.min_points)
     base_pt: Optional[np.ndarray] = None
     if base is not None:
         base_pt = np.asarray(base, dtype=np.float64).reshape(-1)
         if base_pt.shape != (3,) or not np.isfinite(base_pt).all():
             raise ScanDataError(f"the base must be a finite (x, y, z) point, got {base!r}")
     p, voxel_of_raw = voxel_centroids(raw, params.thinning_m)
-    if len(p) < MIN_POINTS:
+    if len(p) < params.min_points:
         raise ScanDataError(
-            f"a cylinder model needs at least {MIN_POINTS} points after thinning to {params.thinning_m:.3g} m, "
+            f"a cylinder model needs at least {params.min_points} points after thinning to {params.thinning_m:.3g} m, "
             f"got {len(p)}: the tree is too small or too sparsely sampled"
         )
     if params.neighbour_distance_m is not None:
@@ -1304,5 +1301,6 @@ def fit_qsm(
             "neighbour_distance_m": float(np.median(neighbour_m)),
             "thinning_m": float(params.thinning_m),
             "stem_extended_to_base_m": float(to_base),
+            "breast_height_m": float(params.breast_height_m),
         },
     )
