@@ -976,6 +976,33 @@ def _stem_down_to_base(
     return start, length, extra
 
 
+def _stem_forks(branch: np.ndarray, parent: np.ndarray, n_points: np.ndarray, share: float = 0.5) -> set[int]:
+    """The stem cylinders where the trunk forks: a branch grows from them whose points (with its
+    own branches') are at least ``share`` of those the stem carries on above it (with its
+    branches): a co-dominant leader, not a side branch."""
+    n_b = int(branch.max()) + 1
+    own = np.bincount(branch, weights=n_points, minlength=n_b)
+    first = np.array([int(np.flatnonzero(branch == b)[0]) for b in range(n_b)])
+    parent_b = np.where(parent[first] >= 0, branch[np.maximum(parent[first], 0)], -1)
+    sub = own.copy()
+    for b in range(n_b - 1, 0, -1):  # parents come before their children
+        if parent_b[b] >= 0:
+            sub[parent_b[b]] += sub[b]
+    stem = np.flatnonzero(branch == 0)
+    at = {int(k): [] for k in stem}
+    for b in range(1, n_b):
+        if parent_b[b] == 0:
+            at[int(parent[first[b]])].append(b)
+    above = 0.0
+    forks: set[int] = set()
+    for k in stem[::-1]:  # from the top down: what the stem carries above each cylinder
+        kids = at[int(k)]
+        if kids and above > 0 and max(sub[c] for c in kids) >= share * above:
+            forks.add(int(k))
+        above += float(n_points[k]) + float(sum(sub[c] for c in kids))
+    return forks
+
+
 def _child_base_radii(branch: np.ndarray, parent: np.ndarray, radius: np.ndarray, good: np.ndarray) -> dict[int, list[float]]:
     """For each cylinder that branches fork from, the base radii of those branches as their own
     fits show them (before any taper): the median of the good fits among each branch's first
@@ -1260,14 +1287,24 @@ def fit_qsm(
 
     progress(0.9, "taper")
     child_base = _child_base_radii(branch, parent, radius, good)
+    forks = _stem_forks(branch, parent, n_fit)
     for b in range(len(seg.branches)):
         idx = np.flatnonzero(branch == b)
         first_parent = parent[idx[0]]
         cap = float(radius[first_parent]) if (first_parent >= 0 and params.enforce_taper) else float("inf")
-        from_base = np.cumsum(length[idx]) - 0.5 * length[idx]
-        radius[idx], good[idx] = taper_radii(
-            radius[idx], good[idx], coverage[idx] * length[idx], from_base, float(length[idx].sum()), cap, params
-        )
+        # a forked trunk: the stem's taper is judged apart below and above each fork
+        parts = np.split(idx, [j + 1 for j in range(len(idx) - 1) if int(idx[j]) in forks]) if b == 0 else [idx]
+        floor = 0.0
+        for part in parts:
+            from_base = np.cumsum(length[part]) - 0.5 * length[part]
+            radius[part], good[part] = taper_radii(
+                radius[part], good[part], coverage[part] * length[part], from_base, float(length[part].sum()), cap, params
+            )
+            if radius[part[0]] < floor:  # the stem goes on as the largest fork: at least an equal share
+                radius[part] = np.minimum(radius[part] * (floor / radius[part[0]]), cap)
+            at = int(part[-1])
+            cap = float(radius[at]) if params.enforce_taper else cap
+            floor = float(radius[at]) / math.sqrt(len(child_base.get(at, [])) + 1.0)
         if params.enforce_taper and b == 0:
             radius[idx] = pipe_caps(radius[idx], good[idx], [child_base.get(int(k), []) for k in idx], params.min_radius_m)
 
