@@ -39,7 +39,11 @@ does the same in our own way, in these steps (each a small function):
 6. **taper** (:func:`taper_radii`): fits far off the branch's robust taper line are treated as
    poor, radii never increase along a branch (weighted isotonic regression of the good fits),
    the top beyond the last good fit follows the taper line, and a child is never thicker than
-   the cylinder it grows from.
+   the cylinder it grows from. A forked trunk (a branch carrying at least half the points the
+   stem carries on above it) has its stem taper judged apart below and above the fork; past it
+   the stem, the largest fork, keeps at least an equal share of the trunk's cross-section, and
+   its filled-in radii no more than the trunk's cross-section less its side branches' (the pipe
+   model). With a given base, a stem whose lowest points were lost is lengthened down to it.
 
 Conventions: metres; points in any frame with z up (the stem base is the lowest part unless a base
 point is given); branch 0 is the stem (order 0); a cylinder's ``parent`` is the cylinder it grows
