@@ -308,6 +308,46 @@ def plot_folder(out, scans: Sequence) -> Path:
     return folder
 
 
+def resumable_project(out, project: Project) -> tuple[Project, int]:
+    """The project to run into ``out``: the one a stopped run of the same plot saved there, with
+    the links it registered, or ``project`` itself.
+
+    A ``plot`` run saves ``out/project.json`` after every link and writes ``poses.json`` only at
+    its end. A folder with the project file but without ``poses.json`` is an unfinished run
+    (killed, out of memory, power lost); when its scans, centre, tilted marks, targets, positions
+    and parameters are those of ``project``, its links are the ones this run would make, and no
+    scan file changed after it was saved, its registered links are kept. Returns (the project,
+    links kept); anything else (no such folder, a finished run, other settings, a damaged file)
+    gives ``(project, 0)`` and the run starts over."""
+    from ..engine.core.atomic import MARKER
+    from ..engine.tls.project import ProjectFileError
+
+    folder = Path(out)
+    saved_file = folder / "project.json"
+    try:
+        if (folder / MARKER).read_text(encoding="utf-8").strip() != "plot" or (folder / "poses.json").exists():
+            return project, 0
+        saved = Project.load(saved_file)
+        saved_at = saved_file.stat().st_mtime
+        if any(Path(s.path).stat().st_mtime > saved_at for s in project.scans):
+            return project, 0
+    except (OSError, UnicodeDecodeError, ProjectFileError):
+        return project, 0
+    default_links(project)
+
+    def settings(p: Project) -> dict:
+        d = p.to_dict(relative_to=folder)
+        d.pop("adjustment", None)
+        d.pop("forest", None)
+        d["links"] = [{k: v for k, v in link.items() if k != "result"} for link in d["links"]]
+        return d
+
+    done = sum(1 for link in saved.links if link.ok)
+    if not done or settings(saved) != settings(project):
+        return project, 0
+    return saved, done
+
+
 # ----------------------------------------------------------------------------- the run
 
 

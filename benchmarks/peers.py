@@ -37,7 +37,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -156,13 +156,16 @@ def _tree_rss_mb(pid: int) -> float:
     return total if seen else float("nan")
 
 
-def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeout_s: float = 1800.0, log: Optional[Path] = None) -> Run:
+def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeout_s: float = 1800.0, log: Optional[Path] = None,
+                kill_when: Optional[Callable[[], bool]] = None) -> Run:
     """Run ``argv`` to completion; its wall time and the peak memory the kernel accounted to it.
     Its output is dropped, or written to ``log`` (stdout and stderr) when given.
 
     The command runs under :data:`_LAUNCHER` (its own session: a timeout ends it and its
     children), so its peak is its own whatever the size of the calling process. Its anonymous
-    and file-backed memory are sampled every 20 ms meanwhile (:func:`_resident_parts`)."""
+    and file-backed memory are sampled every 20 ms meanwhile (:func:`_resident_parts`).
+    ``kill_when``: asked every 20 ms; once it answers True the command and its children are
+    killed with SIGKILL (a crash, or ``kill -9``, mid-run) and the run's status is -9."""
     fd, report_name = tempfile.mkstemp(prefix="forestreg-run-", suffix=".json")
     os.close(fd)
     report = Path(report_name)
@@ -190,6 +193,12 @@ def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeou
                 anon, file_ = _resident_parts(child)
                 anon_mb, file_mb = np.fmax(anon_mb, anon), np.fmax(file_mb, file_)
                 tree_mb = np.fmax(tree_mb, _tree_rss_mb(child))
+            if kill_when is not None and kill_when():
+                wall = time.perf_counter() - deadline + timeout_s
+                os.killpg(launcher.pid, 9)
+                launcher.wait()
+                return Run(wall_s=float(wall), peak_mb=float("nan"), status=-9, anon_mb=float(anon_mb), file_mb=float(file_mb),
+                           tree_mb=float(tree_mb))
             if time.perf_counter() > deadline:
                 os.killpg(launcher.pid, 9)
                 launcher.wait()

@@ -147,15 +147,20 @@ def _check_scans_near_their_scanners(project, scans) -> None:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from ..app.plot import check_extra_outputs, check_scan_files_exist, check_scans_near_their_scanners, plot_folder, scan_cache
+    from ..app.plot import (check_extra_outputs, check_scan_files_exist, check_scans_near_their_scanners, plot_folder, resumable_project,
+                            scan_cache)
 
     check_survey_options(args)
     check_scan_files_exist(args.scans)
     check_extra_outputs(args.scans, **_extra_outputs(args))
-    project = project_from_args(args)
+    project, kept = project_from_args(args), 0
+    if not getattr(args, "pairs", None) and not getattr(args, "loops", None):
+        project, kept = resumable_project(args.out, project)  # a stopped run of the same plot goes on
     scans = scan_cache(project, with_intensity=any(_extra_outputs(args).values()))
     check_scans_near_their_scanners(project, scans)  # before anything is written
     out = plot_folder(args.out, args.scans)
+    if kept:
+        say(f"resuming the stopped run in {shown(out)}: {kept} of {len(project.links)} links registered before are kept", args, err=True)
     project.save(out / "project.json")
     return run_project(project, out, args, scans)
 

@@ -205,15 +205,16 @@ def _range(lo: Any, hi: Any) -> str:
     return f"{_fmt(lo) if lo is not None else '-inf'} to {_fmt(hi) if hi is not None else 'inf'}"
 
 
-def _sections(cls: type, name: str) -> Iterator[tuple[str, type, list[dataclasses.Field]]]:
-    """(section name, class, its own fields) depth first, as the TOML file nests them."""
+def _sections(params: Any, name: str) -> Iterator[tuple[str, type, list[tuple[dataclasses.Field, Any]]]]:
+    """(section name, class, its own fields with their defaults) depth first, as the TOML file
+    nests them; a nested set's defaults are those its field holds (a product's own ICP)."""
     from forestreg.engine.core.params import Params
 
-    own = [f for f in dataclasses.fields(cls) if not isinstance(f.default, Params)]
-    yield name, cls, own
-    for f in dataclasses.fields(cls):
-        if isinstance(f.default, Params):
-            yield from _sections(type(f.default), f"{name}.{f.name}")
+    values = [(f, getattr(params, f.name)) for f in dataclasses.fields(params)]
+    yield name, type(params), [(f, v) for f, v in values if not isinstance(v, Params)]
+    for f, v in values:
+        if isinstance(v, Params):
+            yield from _sections(v, f"{name}.{f.name}")
 
 
 def parameters_reference(issues: list[str] | None = None) -> str:
@@ -236,9 +237,9 @@ def parameters_reference(issues: list[str] | None = None) -> str:
         "one (Guan et al. 2020 for `[registration]`, Ghorbani et al. 2022 for the others).",
         "",
     ]
+    defaults = ProductParams()
     for f in dataclasses.fields(ProductParams):
-        top = type(f.default)
-        for section, cls, own in _sections(top, f.name):
+        for section, cls, own in _sections(getattr(defaults, f.name), f.name):
             if not own:
                 continue
             doc = (cls.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
@@ -246,16 +247,16 @@ def parameters_reference(issues: list[str] | None = None) -> str:
             if doc and not doc.startswith(cls.__name__ + "("):
                 lines += [doc, ""]
             lines += ["| name | default | unit | range | paper | what it sets |", "|---|---|---|---|---|---|"]
-            for p in own:
+            for p, default in own:
                 meta = p.metadata
                 unit, help_text, paper = meta.get("unit", ""), meta.get("help", ""), meta.get("paper", "")
                 lo, hi = meta.get("range", (None, None))
                 if not help_text.strip():
                     issues.append(f"parameter [{section}] {p.name} has no help text")
-                if (_is_number(p.default) or p.default is None) and not unit:
+                if (_is_number(default) or default is None) and not unit:
                     issues.append(f"parameter [{section}] {p.name} (a number) has no unit")
                 lines.append(
-                    f"| `{p.name}` | {_cell(_fmt(p.default))} | {_cell(unit)} | {_cell(_range(lo, hi))} | {_cell(paper)} | {_cell(help_text)} |"
+                    f"| `{p.name}` | {_cell(_fmt(default))} | {_cell(unit)} | {_cell(_range(lo, hi))} | {_cell(paper)} | {_cell(help_text)} |"
                 )
             lines.append("")
     return "\n".join(lines) + "\n"
@@ -291,7 +292,7 @@ COLUMN_HELP: dict[str, str] = {
     "volume_m3": "wood volume of the cylinder model (stem and branches), cubic metres",
     "stem_volume_m3": "stem volume of the cylinder model, cubic metres",
     "branch_volume_m3": "branch volume of the cylinder model, cubic metres",
-    "qsm_dbh_m": "diameter of the cylinder model at 1.3 m, metres",
+    "qsm_dbh_m": "diameter of the cylinder model at its breast height (`[trees.qsm] breast_height_m`, 1.3 m), metres",
     "n_cylinders": "cylinders in the tree's model",
     "n_branches": "branches in the tree's model",
     "lean_deg": "lean of the stem from the vertical, degrees",

@@ -12,6 +12,7 @@ import pytest
 from forestreg.engine.coreg import coregister, extract_keypoints, match_keypoints
 from forestreg.engine.coreg.keypoints import density_peak
 from forestreg.engine.coreg.matching import MatchingParams
+from forestreg.engine.geometry.icp import IcpParams
 from forestreg.engine.simulate.platforms import simulate_coregistration_case
 from forestreg.engine.terrain.dem import terrain_model
 from forestreg.engine.core.transform import rigid_errors
@@ -253,7 +254,7 @@ def test_drifted_tilted_backpack_onto_uav():
 # ~1.5 deg against the airborne cloud by its SLAM)
 # --------------------------------------------------------------------------------------------
 
-FINE_STAGES_M = (1.0, 0.5, 0.25, 0.12)
+FINE_ICP = IcpParams(voxel_m=0.1, max_distances_m=(1.0, 0.5, 0.25, 0.12), iterations=60)
 
 
 @functools.lru_cache(maxsize=None)
@@ -272,7 +273,7 @@ def _real_pair(data: str):
     als = read_scan(f"{data}/spanner_ALS_Clip.laz")
     assert np.allclose(mls.origin_shift, als.origin_shift)
     ref = IcpReference(mls.points)
-    fine = _icp_uav_onto_ground(ref, als.points, np.eye(4), 0.1, FINE_STAGES_M, 60).matrix
+    fine = _icp_uav_onto_ground(ref, als.points, np.eye(4), FINE_ICP).matrix
     return mls, als, ref, fine
 
 
@@ -325,7 +326,7 @@ def test_real_fine_alignment_is_stable_and_shows_the_slam_tilt(shared_data):
     mls, als, ref, fine = _real_pair(str(shared_data))
     assert 1.2 < math.degrees(math.acos(fine[2, 2])) < 1.8  # the MLS's SLAM tilt against the ALS
     start = matrix_from_yaw(2.0, np.array([0.5, -0.4, 0.3]))
-    again = _icp_uav_onto_ground(ref, als.points, start, 0.1, FINE_STAGES_M, 60).matrix
+    again = _icp_uav_onto_ground(ref, als.points, start, FINE_ICP).matrix
     rot, shift = _errors_at_centre(again, fine, mls.points)
     assert rot < 0.02 and shift < 0.01
 
@@ -403,9 +404,7 @@ def test_real_coarse_icp_corrects_a_keypoint_solution_degrees_off(shared_data):
         wrong = matrix_from_yaw(yaw)
         wrong[:3, 3] = c - wrong[:3, :3] @ c + np.asarray(off)
         start = fine @ wrong
-        m = _icp_uav_onto_ground(
-            ref, als.points, start, p.coarse_voxel_m, p.coarse_icp_distances_m, p.icp_iterations, max_moving_points=8000
-        ).matrix
+        m = _icp_uav_onto_ground(ref, als.points, start, p.coarse_icp.replace(max_moving_points=8000, final_tolerance_m=1e-5, final_tolerance_deg=1e-4)).matrix
         rot, shift = _errors_at_centre(m, fine, mls.points)
         assert rot < 0.2 and shift < 0.1, (yaw, rot, shift)
 

@@ -140,13 +140,18 @@ def _wait_for_progress(proc: subprocess.Popen, min_fraction: float, timeout_s: f
 # ----------------------------------------------------------------------------- bad input: exit 2, one line, nothing written
 
 
+def _pair_into_out(command: str, *options: str) -> list[str]:
+    """``command A B --out O options``: the two tiny scans into a fresh output folder."""
+    return [command, "{A}", "{B}", "--out", "{O}", *options]
+
+
 BAD_INPUT = {
-    "zero --up": ["register", "{A}", "{B}", "--out", "{O}", "--up=0,0,0"],
-    "NaN --up": ["register", "{A}", "{B}", "--out", "{O}", "--up=nan,0,1"],
-    "negative --dr": ["register", "{A}", "{B}", "--out", "{O}", "--dr", "-4"],
-    "short --scanner-position": ["register", "{A}", "{B}", "--out", "{O}", "--scanner-position", "1,2"],
-    "three --up": ["register", "{A}", "{B}", "--out", "{O}", "--up=0,0,1", "--up=0,0,1", "--up=0,0,1"],
-    "unknown unit": ["register", "{A}", "{B}", "--out", "{O}", "--units", "km"],
+    "zero --up": _pair_into_out("register", "--up=0,0,0"),
+    "NaN --up": _pair_into_out("register", "--up=nan,0,1"),
+    "negative --dr": _pair_into_out("register", "--dr", "-4"),
+    "short --scanner-position": _pair_into_out("register", "--scanner-position", "1,2"),
+    "three --up": _pair_into_out("register", "--up=0,0,1", "--up=0,0,1", "--up=0,0,1"),
+    "unknown unit": _pair_into_out("register", "--units", "km"),
     "missing scan": ["register", "{A}", "{X}/missing.laz", "--out", "{O}"],
     "garbage scan": ["register", "{A}", "{X}/garbage.laz", "--out", "{O}"],
     "empty scan": ["register", "{A}", "{X}/empty.laz", "--out", "{O}"],
@@ -154,24 +159,24 @@ BAD_INPUT = {
     "--out is a file": ["register", "{A}", "{B}", "--out", "{X}/other.txt"],
     "--out holds other files": ["register", "{A}", "{B}", "--out", "{X}"],
     "--out holds the inputs": ["register", "{A}", "{B}", "--out", "{T}"],
-    "plot --merged onto a scan": ["plot", "{A}", "{B}", "--out", "{O}", "--merged", "{B}"],
-    "plot --merged a folder": ["plot", "{A}", "{B}", "--out", "{O}", "--merged", "{X}"],
-    "plot unknown --centre": ["plot", "{A}", "{B}", "--out", "{O}", "--centre", "nope.laz"],
-    "plot unknown --tilted": ["plot", "{A}", "{B}", "--out", "{O}", "--tilted", "nope.laz"],
-    "plot tilted onto itself": ["plot", "{A}", "{B}", "--out", "{O}", "--tilted", "scan_02.laz:scan_02.laz"],
-    "plot --loops -3": ["plot", "{A}", "{B}", "--out", "{O}", "--loops", "-3"],
+    "plot --merged onto a scan": _pair_into_out("plot", "--merged", "{B}"),
+    "plot --merged a folder": _pair_into_out("plot", "--merged", "{X}"),
+    "plot unknown --centre": _pair_into_out("plot", "--centre", "nope.laz"),
+    "plot unknown --tilted": _pair_into_out("plot", "--tilted", "nope.laz"),
+    "plot tilted onto itself": _pair_into_out("plot", "--tilted", "scan_02.laz:scan_02.laz"),
+    "plot --loops -3": _pair_into_out("plot", "--loops", "-3"),
     "plot missing scan": ["plot", "{A}", "{X}/missing.laz", "--out", "{O}"],
-    "compare unknown --centre": ["compare", "{A}", "{B}", "--out", "{O}", "--centre", "nope.laz"],
+    "compare unknown --centre": _pair_into_out("compare", "--centre", "nope.laz"),
     "project file forgotten": ["project", "create", "{A}", "{B}"],
     "project unknown --centre": ["project", "create", "{O}.json", "{A}", "{B}", "--centre", "nope.laz"],
     "project missing scan": ["project", "create", "{O}.json", "{A}", "{X}/missing.laz"],
     "project garbage scan": ["project", "create", "{O}.json", "{A}", "{X}/text.csv"],
-    "coregister --min-cluster-size 1": ["coregister", "{A}", "{B}", "--out", "{O}", "--min-cluster-size", "1"],
+    "coregister --min-cluster-size 1": _pair_into_out("coregister", "--min-cluster-size", "1"),
     "coregister --out is an input": ["coregister", "{A}", "{B}", "--out", "{A}"],
     "fuse --out is the ground cloud": ["fuse", "{A}", "{B}", "--out", "{A}"],
     "fuse --out not a point file": ["fuse", "{A}", "{B}", "--out", "{O}.json"],
     "fuse --out a user's other scan": ["fuse", "{A}", "{B}", "--out", "{C}"],
-    "plot --merged onto a user's other scan": ["plot", "{A}", "{B}", "--out", "{O}", "--merged", "{C}"],
+    "plot --merged onto a user's other scan": _pair_into_out("plot", "--merged", "{C}"),
     "fuse reflection": ["fuse", "{A}", "{B}", "--transform", "{X}/reflect.txt", "--out", "{O}.laz"],
     "fuse scale 2": ["fuse", "{A}", "{B}", "--transform", "{X}/scale.txt", "--out", "{O}.laz"],
     "fuse NaN matrix": ["fuse", "{A}", "{B}", "--transform", "{X}/nan.txt", "--out", "{O}.laz"],
@@ -188,10 +193,10 @@ BAD_INPUT = {
     "register a scan onto itself": ["register", "{A}", "{A}", "--out", "{O}"],
     "plot of one scan": ["plot", "{A}", "--out", "{O}"],
     "plot with a scan twice": ["plot", "{A}", "{B}", "{A}", "--out", "{O}"],
-    "compare without targets": ["compare", "{A}", "{B}", "--out", "{O}"],
+    "compare without targets": _pair_into_out("compare"),
     "demo --out is a scan": ["demo", "--out", "{A}"],
-    "missing --params file": ["register", "{A}", "{B}", "--out", "{O}", "--params", "{X}/missing.toml"],
-    "infinite --dc": ["register", "{A}", "{B}", "--out", "{O}", "--dc", "inf"],
+    "missing --params file": _pair_into_out("register", "--params", "{X}/missing.toml"),
+    "infinite --dc": _pair_into_out("register", "--dc", "inf"),
     "unknown command": ["registre", "{A}", "{B}"],
 }
 
@@ -665,13 +670,19 @@ def test_malloc_is_tuned_only_for_registrations_of_small_las_scans(tiny, tmp_pat
         assert not cli._small_scans(argparse.Namespace(command="plot", scans=scans))
 
 
+def _earlier_output(folder: Path, command: str, name: str, text: str) -> dict:
+    """``folder`` as ``command`` left it in an earlier run (its marker and a file ``name``
+    holding ``text``); returns its :func:`_tree`."""
+    folder.mkdir()
+    (folder / ".forestreg-output").write_text(f"{command}\n")
+    (folder / name).write_text(text)
+    return _tree(folder)
+
+
 def test_ctrl_c_mid_run_exits_130_with_one_line_and_leaves_the_previous_result(tiny, tmp_path):
     _, paths, _ = tiny
     out = tmp_path / "o"
-    out.mkdir()
-    (out / ".forestreg-output").write_text("register\n")
-    (out / "result.json").write_text('{"status": "ok"}\n')
-    before = _tree(out)
+    before = _earlier_output(out, "register", "result.json", '{"status": "ok"}\n')
     proc = _cli("register", str(paths[0]), str(paths[1]), "--out", str(out), "--progress", "jsonl")
     _wait_for_progress(proc, 0.05)
     proc.send_signal(signal.SIGINT)
@@ -746,10 +757,7 @@ def test_the_same_pair_gives_the_same_matrix(tiny, pair_result):
 def test_an_output_folder_of_another_command_is_not_replaced(tiny, tmp_path, capsys):
     _, paths, _ = tiny
     plot = tmp_path / "plot"
-    plot.mkdir()
-    (plot / ".forestreg-output").write_text("plot\n")
-    (plot / "project.json").write_text("{}\n")
-    before = _tree(plot)
+    before = _earlier_output(plot, "plot", "project.json", "{}\n")
     for argv in (["register", str(paths[0]), str(paths[1]), "--out", str(plot)],
                  ["simulate", "planted_conifer", "--out", str(plot)]):
         assert main(argv) == 2, argv

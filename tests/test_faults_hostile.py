@@ -233,8 +233,8 @@ BAD_PARAMS = {
     "boolean for a number": ("[registration]\nmax_range_m = true\n", "max_range_m"),
     "list for a number": ("[registration]\nmax_range_m = [30]\n", "max_range_m"),
     "table for a number": ("[registration.max_range_m]\nx = 1\n", "max_range_m"),
-    "fraction for a count": ("[registration]\nicp_iterations = 2.5\n", "icp_iterations"),
-    "string in a list of numbers": ('[registration]\nicp_max_distances_m = [0.5, "0.2"]\n', "icp_max_distances_m"),
+    "fraction for a count": ("[registration.icp]\niterations = 2.5\n", "iterations"),
+    "string in a list of numbers": ('[registration.icp]\nmax_distances_m = [0.5, "0.2"]\n', "max_distances_m"),
     "number for a text": ("[fusion]\nnoise_method = 3\n", "noise_method"),
     "string for an optional number": ('[registration]\nvop_radius_m = "15"\n', "vop_radius_m"),
     "string for a nested number": ('[trees.stems]\nbreast_height_m = "1.3"\n', "breast_height_m"),
@@ -248,10 +248,10 @@ def test_a_parameter_of_the_wrong_type_or_range_is_refused_at_load(case, tiny, t
     naming the parameter, nothing is written, the inputs are unchanged."""
     _, paths = tiny
     text, name = BAD_PARAMS[case]
-    if "icp_iterations" in text:
-        from forestreg.engine.tls.params import RegistrationParams
+    if "registration.icp" in text:
+        from forestreg.engine.geometry.icp import IcpParams
 
-        assert any(f.name == "icp_iterations" for f in __import__("dataclasses").fields(RegistrationParams))
+        assert any(f.name == "iterations" for f in __import__("dataclasses").fields(IcpParams))
     if "breast_height_m" in text:
         from forestreg.engine.trees.stems import StemParams
 
@@ -273,9 +273,9 @@ def test_values_of_the_right_type_still_load(tmp_path):
     """The checks refuse no honest file: integers for floats, whole floats for counts, defaults."""
     from forestreg.engine.params import ProductParams, load_params, params_toml
 
-    p = load_params(_params_file(tmp_path, "[registration]\nmax_range_m = 25\nfollow_terrain = false\nicp_iterations = 40.0\n"))
+    p = load_params(_params_file(tmp_path, "[registration]\nmax_range_m = 25\nfollow_terrain = false\n\n[registration.icp]\niterations = 40.0\n"))
     assert p.registration.max_range_m == 25 and p.registration.follow_terrain is False
-    assert p.registration.icp_iterations == 40 and isinstance(p.registration.icp_iterations, int)
+    assert p.registration.icp.iterations == 40 and isinstance(p.registration.icp.iterations, int)
     assert load_params(_params_file(tmp_path, params_toml())) == ProductParams()
 
 

@@ -106,9 +106,9 @@ def test_the_coregistration_stem_layer_comes_from_the_file(tmp_path):
     from forestreg.engine.simulate.platforms import simulate_coregistration_case
 
     path = tmp_path / "coreg.toml"
-    path.write_text("[coregistration]\nstem_layer_m = [0.5, 1.5]\nlow_layer_icp_distances_m = [2.0, 0.5, 0.12]\n", encoding="utf-8")
+    path.write_text("[coregistration]\nstem_layer_m = [0.5, 1.5]\n\n[coregistration.low_layer_icp]\nmax_distances_m = [2.0, 0.5, 0.12]\n", encoding="utf-8")
     params = load_params(path).coregistration
-    assert params.low_layer_icp_distances_m == (2.0, 0.5, 0.12)
+    assert params.low_layer_icp.max_distances_m == (2.0, 0.5, 0.12)
     case = simulate_coregistration_case("planted_conifer", seed=0, size_m=40.0, ground_platform="tls", heading_deg=35.0,
                                         offset_m=(3.0, -2.0, 0.5), uav_density_scale=0.3, tls_step_deg=0.3)
     default, thin = coregister(case.ground, case.uav), coregister(case.ground, case.uav, params)
@@ -337,3 +337,54 @@ def test_cylinder_model_limits_and_breast_height_come_from_the_file(tmp_path):
     assert not np.allclose(capped.radius_m, model.radius_m)  # fitted to 20 points a cylinder, not 1500
     with pytest.raises(ScanDataError, match="at least 10000 points"):
         fit_qsm(pts, default.replace(min_points=10000))
+
+
+def test_icp_settings_are_one_nested_set_and_old_flat_names_still_read(tmp_path, caplog):
+    """Each product's ICP is an ``IcpParams`` table ([registration.icp], [coregistration.icp],
+    [coregistration.coarse_icp], [coregistration.low_layer_icp], [change.stem_icp]) with the
+    product's own defaults; a file written with the former flat names is read into them, with one
+    warning line per name."""
+    from forestreg.engine.geometry.icp import IcpParams
+    from forestreg.engine.params import params_toml
+
+    p = ProductParams()
+    assert p.registration.icp == IcpParams()
+    assert (p.coregistration.icp.voxel_m, p.coregistration.coarse_icp.voxel_m, p.change.stem_icp.voxel_m) == (0.1, 0.3, 0.02)
+    assert "[coregistration.coarse_icp]\nvoxel_m = 0.3" in params_toml()
+    path = tmp_path / "old.toml"
+    path.write_text("[registration]\nicp_voxel_m = 0.1\nicp_iterations = 30\n\n[coregistration]\ncoarse_voxel_m = 0.4\n"
+                    "\n[change]\nicp_max_distances_m = [0.3, 0.1]\n", encoding="utf-8")
+    with caplog.at_level("WARNING"):
+        old = load_params(path)
+    assert old.registration.icp == IcpParams(voxel_m=0.1, iterations=30)
+    assert old.coregistration.coarse_icp == p.coregistration.coarse_icp.replace(voxel_m=0.4)
+    assert old.change.stem_icp == p.change.stem_icp.replace(max_distances_m=(0.3, 0.1))
+    assert sum("is now [registration.icp] voxel_m" in r.getMessage() for r in caplog.records) == 1
+    with pytest.raises(ParameterError, match="max_distances_m: needs at least one value"):
+        IcpParams(max_distances_m=())
+
+
+def test_icp_normal_neighbours_and_coarse_tolerance_come_from_the_file(tmp_path):
+    """[registration.icp] normal_neighbours sets how many neighbours give a reference normal (the
+    normals, and so the fit, change); [coregistration.coarse_icp] final_tolerance_m/_deg stop the
+    candidates' coarse ICP (a looser tolerance, fewer iterations)."""
+    from forestreg.engine.core.transform import matrix_from_yaw
+    from forestreg.engine.geometry.icp import IcpReference, icp
+
+    path = tmp_path / "p.toml"
+    path.write_text("[registration.icp]\nnormal_neighbours = 40\n\n[coregistration.coarse_icp]\nfinal_tolerance_m = 0.01\n"
+                    "final_tolerance_deg = 0.5\n", encoding="utf-8")
+    default, loaded = ProductParams(), load_params(path)
+    assert loaded.registration.icp.normal_neighbours == 40
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-5, 5, (20000, 2))
+    ref = np.column_stack([xy, 0.3 * np.sin(xy[:, 0]) + 0.2 * np.cos(1.3 * xy[:, 1])])  # a wavy ground
+    reference = IcpReference(ref)
+    index = np.arange(0, len(reference.level(0.1)[0]), 7)
+    twelve, forty = (reference.normals(0.1, index, p.icp.normal_neighbours) for p in (default.registration, loaded.registration))
+    turned = np.degrees(np.arccos(np.clip(np.abs(np.sum(twelve * forty, axis=1)), 0.0, 1.0)))
+    assert turned.mean() > 0.2  # wider neighbourhoods smooth the normals of the wavy ground
+    start = matrix_from_yaw(3.0, np.array([0.3, -0.2, 0.1]))
+    runs = [icp(ref, ref[::3], start, statistics=False, **p.coarse_icp.keywords()) for p in (default.coregistration, loaded.coregistration)]
+    assert runs[1].iterations < runs[0].iterations
+    assert np.abs(runs[0].matrix - np.eye(4)).max() < 0.01  # the default converges

@@ -129,6 +129,50 @@ def test_interrupted_run_keeps_finished_links(four_scan_files, tmp_path):
     _check_poses(saved, plot)
 
 
+def test_a_plot_command_stopped_mid_run_resumes_from_its_saved_links(four_scan_files, registered_four, tmp_path, capsys):
+    """What ``plot`` leaves when killed after its first link (the project file, no poses.json):
+    the same command again keeps that link and registers the rest; other settings, a finished run
+    or a scan file changed since start over."""
+    import os
+
+    from forestreg.app.plot import resumable_project
+    from forestreg.engine.core.atomic import MARKER
+
+    plot, paths = four_scan_files
+    stopped = Project.load(registered_four[0])
+    first = stopped.scans[1].name
+    kept = stopped.link_of(first).result
+    for s in stopped.scans[2:]:
+        stopped.link_of(s.name).result = None
+    out = tmp_path / "four"
+    out.mkdir()
+    (out / MARKER).write_text("plot\n", encoding="utf-8")
+    stopped.save(out / "project.json")
+
+    def fresh(**settings):
+        from forestreg.app.plot import new_project
+        from forestreg.engine.tls.params import RegistrationParams
+
+        return new_project(paths, RegistrationParams(**settings), name="four")
+
+    assert resumable_project(out, fresh())[1] == 1
+    assert resumable_project(out, fresh(max_range_m=25.0))[1] == 0, "other settings: start over"
+    before = os.stat(paths[2]).st_mtime
+    os.utime(paths[2], (before + 3600, before + 3600))
+    try:
+        assert resumable_project(out, fresh())[1] == 0, "a scan changed since the run stopped: start over"
+    finally:
+        os.utime(paths[2], (before, before))
+
+    assert main(["plot", *map(str, paths), "--out", str(out), "--quiet"]) == 0
+    assert "1 of 3 links registered before are kept" in capsys.readouterr().err
+    resumed = Project.load(out / "project.json")
+    assert resumed.link_of(first).result == kept, "the link registered before the stop is not run again"
+    _check_poses(resumed, plot)
+    assert (out / "poses.json").is_file()
+    assert resumable_project(out, fresh())[1] == 0, "a finished run is not resumed"
+
+
 def test_extra_links_close_a_loop_and_the_adjustment_reports_residuals(four_scan_files, registered_four):
     plot, paths = four_scan_files
     project = Project.load(registered_four[0])
@@ -436,6 +480,18 @@ def test_the_next_scan_is_prepared_while_a_link_runs_and_the_links_are_the_same(
     assert "forestreg-prepare-ahead" not in where
     for p in paths[1:]:
         assert np.array_equal(project.link_of(p.name).matrix, one_by_one.link_of(p.name).matrix)
+
+    monkeypatch.undo()  # small scans again, but one thread allowed (a batch's plot process on one core)
+    monkeypatch.setattr(prepare_module, "prepare_scan", recorded)
+    monkeypatch.setenv("FORESTREG_THREADS", "1")
+    one_core = Project(name="one-core")
+    for p in paths:
+        one_core.add_scan(p)
+    where.clear()
+    register_project(one_core)
+    assert where and "forestreg-prepare-ahead" not in where, "no thread prepares ahead on one core"
+    for p in paths[1:]:
+        assert np.array_equal(project.link_of(p.name).matrix, one_core.link_of(p.name).matrix)
 
 
 def test_further_pairs_run_two_at_a_time_with_the_same_results(four_scan_files, registered_four, monkeypatch):

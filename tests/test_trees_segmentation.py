@@ -28,23 +28,20 @@ from forestreg.engine.trees.segmentation import (
     tree_completeness,
 )
 from forestreg.engine.trees.stems import DbhMeasurement, Stem, detect_stems, measure_dbh
+from test_trees_stems import PlotData  # noqa: E402 - the merged plot both test files measure
 
-POSITIONS = ((0.0, 0.0), (8.0, 0.0), (0.0, 8.0))
 WOOD_AND_LEAVES = (Material.TRUNK, Material.BRANCH, Material.LEAF)
 
 
-class Segmented:
-    """A simulated plot: merged points, truth, heights, stems, labels and the stem -> tree match."""
+class Segmented(PlotData):
+    """A simulated plot (:class:`PlotData`: merged points, truth, heights, stems) segmented:
+    ``materials`` are the simulated materials, ``labels`` each point's stem, ``match`` the stem
+    -> tree match (stem by stem, the nearest tree at breast height)."""
 
     def __init__(self, plot) -> None:
-        self.plot = plot
-        self.points = np.concatenate([s.world_points() for s in plot.scans])
-        self.materials = np.concatenate([s.labels for s in plot.scans])
-        self.object_ids = np.concatenate([s.object_ids for s in plot.scans])
-        self.heights = terrain_model(self.points).dem.normalise(self.points)
-        self.stems = detect_stems(self.points, self.heights)
+        super().__init__(plot)
+        self.materials = self.labels
         self.labels = segment_trees(self.points, self.heights, self.stems)
-        self.trees = {t.id: t for t in plot.scene.trees}
         self.match: dict[int, int] = {}
         for st in self.stems:
             p = st.point_at_height(1.3)
@@ -68,12 +65,12 @@ class Segmented:
 
 @pytest.fixture(scope="module")
 def planted(sim_plot) -> Segmented:
-    return Segmented(sim_plot("planted_conifer", POSITIONS, seed=1, step=0.3, size=20.0))
+    return Segmented.simulated(sim_plot, "planted_conifer")
 
 
 @pytest.fixture(scope="module")
 def mixed(sim_plot) -> Segmented:
-    return Segmented(sim_plot("mixed_temperate", POSITIONS, seed=1, step=0.3, size=20.0))
+    return Segmented.simulated(sim_plot, "mixed_temperate")
 
 
 # --------------------------------------------------------------------------------------------

@@ -45,6 +45,11 @@ class PlotData:
         self.trees = {t.id: t for t in plot.scene.trees}
         self.match = match_stems(self.stems, plot.scene.trees)
 
+    @classmethod
+    def simulated(cls, sim_plot, preset: str):
+        """The 20 m plot of ``preset`` (seed 1, three scans 8 m apart at 0.3 deg steps)."""
+        return cls(sim_plot(preset, POSITIONS, seed=1, step=0.3, size=20.0))
+
     def band_trunk_hits(self, tree_id: int) -> int:
         """Truth trunk points of a tree between 1 and 3 m above the ground."""
         m = (self.object_ids == tree_id) & (self.labels == Material.TRUNK)
@@ -75,12 +80,12 @@ def match_stems(stems: list[Stem], trees) -> dict[int, int]:
 
 @pytest.fixture(scope="module")
 def planted(sim_plot) -> PlotData:
-    return PlotData(sim_plot("planted_conifer", POSITIONS, seed=1, step=0.3, size=20.0))
+    return PlotData.simulated(sim_plot, "planted_conifer")
 
 
 @pytest.fixture(scope="module")
 def sloped(sim_plot) -> PlotData:
-    return PlotData(sim_plot("sloped", POSITIONS, seed=1, step=0.3, size=20.0))
+    return PlotData.simulated(sim_plot, "sloped")
 
 
 # --------------------------------------------------------------------------------------------

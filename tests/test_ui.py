@@ -22,6 +22,7 @@ pytest.importorskip("pytestqt")
 
 from PySide6.QtGui import QImage  # noqa: E402
 
+from forestreg.engine.geometry.icp import IcpParams  # noqa: E402
 from forestreg.engine.tls.params import RegistrationParams  # noqa: E402
 from forestreg.engine.tls.project import Project  # noqa: E402
 
@@ -41,7 +42,7 @@ def plot_dir(tmp_path_factory) -> Path:
 
 
 def _params() -> RegistrationParams:
-    return RegistrationParams(angular_step_deg=0.4, icp_voxel_m=0.1, icp_iterations=30)
+    return RegistrationParams(angular_step_deg=0.4, icp=IcpParams(voxel_m=0.1, iterations=30))
 
 
 @pytest.fixture
@@ -228,17 +229,28 @@ def test_parameter_panel_builds_the_params(qtbot) -> None:
     panel = ParameterPanel()
     qtbot.addWidget(panel)
     assert panel.params() == RegistrationParams()
-    assert set(panel.field_names()) == set(RegistrationParams().to_dict())
+    flat = {row["name"]: row["default"] for row in RegistrationParams.table()}  # the ICP's as icp.voxel_m, ...
+    assert set(panel.field_names()) == set(flat) and "icp.normal_neighbours" in flat
     assert "D_c" in panel.editor("max_range_m").toolTip() and panel.editor("max_range_m").suffix() == " m"
     wanted = RegistrationParams(
         max_range_m=25.0, slice_offsets_m=(0.0, 0.6), fallback_slice_offsets_m=(), follow_terrain=False,
-        angular_step_deg=0.25, vop_radius_m=12.5, min_matched=5, icp_max_distances_m=(0.4, 0.1),
+        angular_step_deg=0.25, vop_radius_m=12.5, min_matched=5, icp=IcpParams(max_distances_m=(0.4, 0.1), normal_neighbours=20),
     )
     seen = []
     panel.paramsChanged.connect(seen.append)
-    for name, value in wanted.to_dict().items():
+    for name in flat:
+        value: object = wanted
+        for part in name.split("."):
+            value = getattr(value, part)
         panel.set_value(name, value)
     assert panel.params() == wanted and seen[-1] == wanted
+    assert panel.editor("icp.normal_neighbours").value() == 20
+    count = len(seen)
+    panel.editor("icp.max_distances_m").setText("")  # a nested field the engine refuses: marked, named
+    assert not panel.message.isHidden() and "max_distances_m" in panel.message.text() and len(seen) == count
+    assert "#fde2e1" in panel.editor("icp.max_distances_m").styleSheet()
+    panel.editor("icp.max_distances_m").setText("0.4, 0.1")
+    assert panel.message.isHidden() and panel.params() == wanted
     panel.set_value("vop_radius_m", None)
     assert panel.params() == wanted.replace(vop_radius_m=None)
     count = len(seen)

@@ -14,6 +14,7 @@ pytest.importorskip("pyvista")
 pytest.importorskip("pytestqt")
 
 
+from forestreg.engine.geometry.icp import IcpParams  # noqa: E402
 from forestreg.engine.tls.params import RegistrationParams  # noqa: E402
 from forestreg.engine.tls.project import Project  # noqa: E402
 
@@ -39,7 +40,7 @@ def picked_targets(sim, index: int, seed: int = 0) -> dict[str, np.ndarray]:
 
 @pytest.fixture
 def project_file(plot, scans_project) -> Path:
-    return scans_project(plot[1], "manual plot", RegistrationParams(angular_step_deg=0.3, icp_voxel_m=0.2, icp_iterations=20))
+    return scans_project(plot[1], "manual plot", RegistrationParams(angular_step_deg=0.3, icp=IcpParams(voxel_m=0.2, iterations=20)))
 
 
 def _pick_all(window, sim) -> dict[str, dict[str, np.ndarray]]:

@@ -24,6 +24,7 @@ from matplotlib.colors import to_hex  # noqa: E402
 
 from forestreg.app.plot import PoseSigma  # noqa: E402
 from forestreg.engine.core.transform import matrix_from_yaw  # noqa: E402
+from forestreg.engine.geometry.icp import IcpParams  # noqa: E402
 from forestreg.engine.tls.params import RegistrationParams  # noqa: E402
 from forestreg.engine.tls.plot import ScanCache, pose_uncertainty  # noqa: E402
 from forestreg.engine.tls.project import Project  # noqa: E402
@@ -37,7 +38,7 @@ def surveyed(tmp_path_factory) -> Project:
 
     folder = tmp_path_factory.mktemp("ui_survey")
     simulate_plot("mixed_temperate", [(0, 0), (10, 2), (-8, 6)], seed=3, angular_step_deg=0.4, size_m=40, out_dir=folder)
-    project = Project(name="survey plot", params=RegistrationParams(angular_step_deg=0.4, icp_voxel_m=0.1, icp_iterations=30))
+    project = Project(name="survey plot", params=RegistrationParams(angular_step_deg=0.4, icp=IcpParams(voxel_m=0.1, iterations=30)))
     for f in sorted(folder.glob("scan_*.laz")):
         project.add_scan(f)
     scans = ScanCache(project)

@@ -1,6 +1,7 @@
 """The parameter panel, built from the engine's parameter metadata (:func:`parameter_table`).
 
-One editor per field of :class:`~forestreg.engine.core.params.RegistrationParams`: a spin box with its
+One editor per field of :class:`~forestreg.engine.tls.params.RegistrationParams` (the fields of a
+nested set, such as its ICP settings, under a heading of their own): a spin box with its
 unit, range and help as tooltip for numbers, a check box for switches, comma-separated text for
 lists of heights or distances, and "auto" for an optional value (the VOP radius). The panel never
 judges values itself: :meth:`ParameterPanel.params` builds a ``RegistrationParams`` and the
@@ -68,9 +69,10 @@ PLAIN_LABELS = {
     "max_free_space_violation": "Most points in seen-empty space",
     "level_tilted": "Level tilted scanners",
     "tilt_threshold_deg": "Ignore tilts below",
-    "icp_voxel_m": "Fine fit cell",
-    "icp_max_distances_m": "Fine fit distances",
-    "icp_iterations": "Fine fit iterations",
+    "icp": "Fine fit",
+    "icp.voxel_m": "Fine fit cell",
+    "icp.max_distances_m": "Fine fit distances",
+    "icp.iterations": "Fine fit iterations",
     "icp_min_fitness": "Fine fit: least overlap",
     "icp_max_correction_m": "Fine fit: largest change",
 }
@@ -78,9 +80,13 @@ PLAIN_LABELS = {
 
 def label_for(name: str, paper: str = "") -> str:
     """A label in plain words: ``max_range_m`` -> "Keep points within". The paper's symbol
-    (``paper``, e.g. "D_c = 30 m") is not part of the label: it goes to the tooltip."""
+    (``paper``, e.g. "D_c = 30 m") is not part of the label: it goes to the tooltip. A field of a
+    nested set (``icp.normal_neighbours``) is labelled after its set: "Fine fit: normal neighbours"."""
     if name in PLAIN_LABELS:
         return PLAIN_LABELS[name]
+    if "." in name:
+        group, rest = name.rsplit(".", 1)
+        return f"{label_for(group)}: {label_for(rest).lower()}"
     words = name.split("_")
     if words and words[-1] in ("m", "deg"):
         words = words[:-1]
@@ -108,7 +114,7 @@ def parse_tuple(text: str) -> tuple[float, ...]:
 def _decimals(lo: Optional[float], default: Any) -> int:
     smallest = min(abs(v) for v in (lo, default) if isinstance(v, (int, float)) and v) if any(
         isinstance(v, (int, float)) and v for v in (lo, default)) else 1.0
-    return int(min(4, max(2, math.ceil(-math.log10(smallest)) + 1)))
+    return int(min(6, max(2, math.ceil(-math.log10(smallest)) + 1)))
 
 
 class _Field:
@@ -245,9 +251,16 @@ class ParameterPanel(QWidget):
         # room between the spin boxes' arrows and the scroll bar
         form.setContentsMargins(4, 4, 4 + area.style().pixelMetric(QStyle.PixelMetric.PM_ScrollBarExtent) // 2, 4)
         form.setFieldGrowthPolicy(QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)
+        group = ""
         for row in parameter_table(RegistrationParams):
             f = _Field(row, self)
             self._fields[f.name] = f
+            if f.name.rpartition(".")[0] != group:  # a nested set begins (or ends)
+                group = f.name.rpartition(".")[0]
+                if group:
+                    heading = QLabel(f"<b>{label_for(group)}</b>")
+                    heading.setToolTip(f"The settings of [registration.{group}] in a parameter file")
+                    form.addRow(heading)
             label = QLabel(label_for(f.name, row["paper"]))
             label.setToolTip(f.tooltip)
             form.addRow(label, f.widget())
@@ -283,7 +296,10 @@ class ParameterPanel(QWidget):
         self._loading = True
         try:
             for name, f in self._fields.items():
-                f.set(getattr(params, name))
+                value: Any = params
+                for part in name.split("."):
+                    value = getattr(value, part)
+                f.set(value)
                 f.mark(False)
         finally:
             self._loading = False
@@ -295,8 +311,12 @@ class ParameterPanel(QWidget):
         """The parameters as edited; raises :class:`ParameterError` with the engine's reason."""
         values: dict[str, Any] = {}
         for name, f in self._fields.items():
+            *groups, last = name.split(".")
+            table = values
+            for g in groups:  # a nested set's fields go into its own table
+                table = table.setdefault(g, {})
             try:
-                values[name] = f.get()
+                table[last] = f.get()
             except ParameterError as exc:
                 raise ParameterError(f"{label_for(name)}: {exc}") from exc
         return RegistrationParams.from_mapping(values)
@@ -317,7 +337,8 @@ class ParameterPanel(QWidget):
         except ForestregError as exc:
             text = str(exc)
             for name, f in self._fields.items():
-                if text.startswith(name) or text.startswith(label_for(name)) or f"({name}" in text:
+                group, _, last = name.rpartition(".")
+                if text.startswith(name) or text.startswith(label_for(name)) or f"({name}" in text or (group and f"[{group}] {last}" in text):
                     f.mark(True)
             self.message.setText(text)
             self.message.show()

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
+from ..geometry.icp import IcpParams
 
 __all__ = ["ChangeParams"]
 
@@ -15,6 +17,9 @@ class ChangeParams(Params):
     """Settings of the re-survey registration (persisting stems, then stem slices and terrain) and
     of the tree matching. Distances in metres, angles in degrees. The trees of each survey are
     measured with the ``[trees]`` parameters."""
+
+    #: the ICP settings once named here, now in ``[change.stem_icp]``
+    _moved: ClassVar[dict[str, str]] = {"icp_voxel_m": "stem_icp.voxel_m", "icp_max_distances_m": "stem_icp.max_distances_m", "icp_iterations": "stem_icp.iterations"}
 
     # --- stems that persist: the coarse match from any heading
     match_distance_m: float = _p(0.3, "m", 0.02, 2.0, "Stems of the two surveys closer than this after the coarse match are taken as one stem (the coarse matcher's D_t)")
@@ -26,9 +31,8 @@ class ChangeParams(Params):
     min_match_margin_fraction: float = _p(0.25, "1", 0.0, 1.0, "...and this fraction of its matched stems more (a plantation's grid lets another shift match many)")
     # --- refinement on stem slices and terrain (not crowns)
     icp: bool = _p(True, "", None, None, "Refine on the persisting stems' slices and the terrain (clouds only; tables are registered on stem positions)")
-    icp_voxel_m: float = _p(0.02, "m", 0.005, 0.5, "Voxel to which the stem slices are thinned for ICP")
-    icp_max_distances_m: tuple[float, ...] = _p((0.25, 0.1, 0.05), "m", 0.005, 5.0, "Correspondence distance of each ICP stage, largest first")
-    icp_iterations: int = _p(30, "iterations", 1, 500, "Iterations per ICP stage")
+    #: the ICP of that refinement (the stem slices thinned to 2 cm)
+    stem_icp: IcpParams = IcpParams(voxel_m=0.02, max_distances_m=(0.25, 0.1, 0.05), iterations=30, max_moving_points=40000)
     slice_heights_m: tuple[float, float] = _p((0.5, 3.0), "m", 0.0, 10.0, "Heights above the ground of the stem slices used by the refinement")
     max_icp_correction_m: float = _p(0.3, "m", 0.01, 5.0, "The refinement may move the stem solution by at most this much (more: it slid on the terrain)")
     # --- trees matched across the surveys
@@ -55,5 +59,3 @@ class ChangeParams(Params):
         lo, hi = self.stem_band_m
         if not (lo < hi and lo <= self.slice_heights_m[0] and self.slice_heights_m[1] <= hi and lo <= 1.0 and hi >= 2.5):
             raise ParameterError("stem_band_m must be (low, high) with low < high, holding slice_heights_m and 1-2.5 m (the presence check)")
-        if len(self.icp_max_distances_m) == 0:
-            raise ParameterError("icp_max_distances_m must hold at least one distance")

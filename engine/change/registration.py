@@ -239,8 +239,7 @@ def refine_on_stems(before: EpochTrees, after: EpochTrees, match: StemMatch, par
         return match.matrix, {"used": False, "why": f"no usable terrain in {missing}: the persisting stems alone"}
     ref_all = np.vstack([ref, near_stems(before.ground, before.xy[b_idx])])
     mov_all = np.vstack([mov, near_stems(after.ground, after.xy[a_idx])])
-    result = icp(ref_all, mov_all, match.matrix, voxel_m=params.icp_voxel_m, max_distances_m=params.icp_max_distances_m,
-                 iterations=params.icp_iterations, max_moving_points=40000)
+    result = icp(ref_all, mov_all, match.matrix, **params.stem_icp.keywords())
     matrix = result.matrix
     probe = after.breast_points()[a_idx]
     figures = {"fitness": result.fitness, "rmse_m": result.rmse_m, "std_m": result.std_m,

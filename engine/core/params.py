@@ -17,6 +17,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import numbers
 import re
@@ -35,6 +36,8 @@ else:  # pragma: no cover
 __all__ = ["Params", "param_field", "parameter_table", "read_toml", "validate_ranges", "validate_types"]
 
 P = TypeVar("P", bound="Params")
+
+log = logging.getLogger(__name__)
 
 
 def param_field(default: Any, unit: str = "", lo: Optional[float] = None, hi: Optional[float] = None, help: str = "", paper: str = "") -> Any:
@@ -156,6 +159,25 @@ def _whole(kind: str, v: Any) -> Any:
     return v
 
 
+def _moved_names(cls: type, values: Mapping[str, Any], where: str) -> Mapping[str, Any]:
+    """``values`` with the former names of fields that moved into a nested parameter set
+    (``cls._moved``: ``{old name: "nested.name"}``) put in their new place, each with a one-line
+    deprecation warning; a value also given under its new name wins."""
+    moved = getattr(cls, "_moved", {})
+    old = [k for k in values if k in moved]
+    if not old:
+        return values
+    out = {k: v for k, v in values.items() if k not in moved}
+    for k in old:
+        nested, name = moved[k].split(".", 1)
+        table = out.get(nested, {})
+        if isinstance(table, Mapping):
+            out[nested] = {name: values[k], **table}
+        section = where or cls.__name__
+        log.warning("parameter [%s] %s is now [%s.%s] %s; the old name is read for now", section, k, section, nested, name)
+    return out
+
+
 class Params:
     """Base of every parameter dataclass: validation on construction, :meth:`replace`,
     :meth:`to_dict` / :meth:`from_mapping` (nested, for TOML and JSON) and :meth:`table`.
@@ -187,12 +209,14 @@ class Params:
         return out
 
     @classmethod
-    def from_mapping(cls: type[P], values: Mapping[str, Any], where: str = "") -> P:
+    def from_mapping(cls: type[P], values: Mapping[str, Any], where: str = "", base: Optional[P] = None) -> P:
         """Build from a (nested) mapping, e.g. a TOML table: unknown keys are an error naming the
         known ones, lists become tuples, a number where a tuple is expected becomes a 1-tuple,
-        missing keys keep their defaults."""
+        missing keys keep their defaults (those of ``base`` when given: a nested set keeps the
+        values its field holds, e.g. a product's own ICP settings)."""
         if not isinstance(values, Mapping):
             raise ParameterError(f"[{where or cls.__name__}] must be a table")
+        values = _moved_names(cls, values, where)
         fields = {f.name: f for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - set(fields))
         if unknown:
@@ -201,16 +225,16 @@ class Params:
             )
         clean: dict[str, Any] = {}
         for k, v in values.items():
-            default = fields[k].default
+            default = fields[k].default if base is None else getattr(base, k)
             if isinstance(default, Params):
-                v = type(default).from_mapping(v, f"{where}.{k}" if where else k)
+                v = type(default).from_mapping(v, f"{where}.{k}" if where else k, default)
             elif isinstance(v, list):
                 v = tuple(v)
             elif isinstance(default, tuple) and isinstance(v, (int, float)) and not isinstance(v, bool):
                 v = (v,)
             clean[k] = _whole(_kind(fields[k]), v)
         try:
-            return cls(**clean)
+            return cls(**clean) if base is None else dataclasses.replace(base, **clean)
         except TypeError as exc:
             raise ParameterError(f"[{where or cls.__name__}]: {exc}") from exc
         except ParameterError as exc:
@@ -219,18 +243,20 @@ class Params:
             raise ParameterError(f"[{where or cls.__name__}] {exc}") from None
 
     @classmethod
-    def table(cls, prefix: str = "") -> list[dict[str, Any]]:
+    def table(cls, prefix: str = "", defaults: Optional["Params"] = None) -> list[dict[str, Any]]:
         """One row per parameter (nested ones with dotted names): name, default, unit, range,
-        help, paper symbol; for docs, ``forestreg params`` and the GUI."""
+        help, paper symbol; for docs, ``forestreg params`` and the GUI. A nested set's defaults
+        are those of the instance its field holds (``defaults``), e.g. a product's own ICP."""
         rows: list[dict[str, Any]] = []
         for f in dataclasses.fields(cls):
-            if isinstance(f.default, Params):
-                rows += type(f.default).table(f"{prefix}{f.name}.")
+            default = f.default if defaults is None else getattr(defaults, f.name)
+            if isinstance(default, Params):
+                rows += type(default).table(f"{prefix}{f.name}.", default)
                 continue
             rows.append(
                 {
                     "name": prefix + f.name,
-                    "default": f.default,
+                    "default": default,
                     "unit": f.metadata.get("unit", ""),
                     "range": f.metadata.get("range", (None, None)),
                     "help": f.metadata.get("help", ""),

@@ -40,13 +40,13 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, Optional
+from typing import Any, Callable, ClassVar, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError
-from ..geometry.icp import IcpReference, IcpResult, icp, thin
+from ..geometry.icp import IcpParams, IcpReference, IcpResult, icp, thin
 from ..core.outcome import Outcome
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..core.scan import Scan, ScanSource
@@ -74,6 +74,13 @@ __all__ = ["CoarseEvidence", "CoregistrationParams", "CoregistrationResult", "co
 class CoregistrationParams(Params):
     """All parameters of the co-registration (defaults: the paper's where it gives them)."""
 
+    #: the ICP settings once named here, now in the nested ICP sets
+    _moved: ClassVar[dict[str, str]] = {
+        "icp_voxel_m": "icp.voxel_m", "icp_distances_m": "icp.max_distances_m", "icp_iterations": "icp.iterations",
+        "coarse_icp_distances_m": "coarse_icp.max_distances_m", "coarse_voxel_m": "coarse_icp.voxel_m",
+        "low_layer_icp_distances_m": "low_layer_icp.max_distances_m",
+    }
+
     terrain: TerrainParams = TerrainParams()
     keypoints: KeypointParams = KeypointParams()
     matching: MatchingParams = MatchingParams()
@@ -81,11 +88,9 @@ class CoregistrationParams(Params):
     #: works on coarser grids (0.1 m ICP voxels, 0.3 m keypoint voxels, 0.5 m DEM cells), so a
     #: dense ground-based cloud's extra points only cost time; 0 keeps every point
     work_voxel_m: float = _p(0.05, "m", 0.0, 1.0, "thinning of both clouds before co-registration")
-    #: voxel of the clouds used to verify solutions and for ICP (m)
-    icp_voxel_m: float = _p(0.1, "m", 0.005, 5.0, "ICP thinning voxel")
-    #: ICP correspondence distance per stage (m), largest first
-    icp_distances_m: tuple[float, ...] = _p((1.0, 0.5, 0.25, 0.12), "m", 0.001, 100.0, "ICP correspondence distance per stage, largest first")
-    icp_iterations: int = _p(40, "iterations", 1, 10000, "ICP iterations per stage")
+    #: the fine ICP from the best candidate; its voxel also thins the clouds that verify the
+    #: solutions and that every ICP run moves
+    icp: IcpParams = IcpParams(voxel_m=0.1, max_distances_m=(1.0, 0.5, 0.25, 0.12))
     #: fewer matched keypoints than this fail
     min_matched: int = _p(3, "keypoints", 3, 100000, "fewest matched keypoints (the canopy surface check carries the rest of the evidence)")
     #: a lower matching percentage fails (%)
@@ -110,9 +115,9 @@ class CoregistrationParams(Params):
     #: 6-DoF ICP and verified after it: a keypoint solution a few degrees off (tilt, drift, a
     #: shifted keypoint) is corrected before it is judged
     candidates_verified: int = _p(5, "solutions", 1, 100, "keypoint solutions refined by a coarse ICP and verified")
-    #: the coarse ICP of the candidates: correspondence distances (m) and thinning voxel (m)
-    coarse_icp_distances_m: tuple[float, ...] = _p((3.0, 1.5, 0.75), "m", 0.001, 100.0, "coarse ICP correspondence distance per stage, largest first")
-    coarse_voxel_m: float = _p(0.3, "m", 0.005, 5.0, "coarse ICP thinning voxel")
+    #: the coarse ICP of the candidates: wide distances on few points, stopping once the
+    #: solution is in the fine ICP's basin (updates below 0.1 mm and 0.001 deg)
+    coarse_icp: IcpParams = IcpParams(voxel_m=0.3, max_distances_m=(3.0, 1.5, 0.75), max_moving_points=4000, final_tolerance_m=1e-4, final_tolerance_deg=1e-3)
     #: the best refined solution must correlate at least this much better (Pearson r) than the
     #: best distinct alternative
     min_correlation_margin: float = _p(0.15, "1", 0.0, 2.0, "least canopy correlation margin over the best distinct alternative")
@@ -139,8 +144,9 @@ class CoregistrationParams(Params):
     #: the stem layer (m above the UAV's DEM): stems and understorey a UAV glimpses through
     #: foliage; its points up to the upper height (and the UAV ground) refine every candidate
     stem_layer_m: tuple[float, float] = _p((0.5, 2.5), "m", 0.0, 50.0, "heights above the UAV's ground of the stem layer (stem evidence; its points and the ground refine each candidate)")
-    #: correspondence distances (m) of that refinement, an ICP of the UAV's stem layer and ground
-    low_layer_icp_distances_m: tuple[float, ...] = _p((2.0, 1.0, 0.5, 0.25, 0.12), "m", 0.001, 100.0, "correspondence distance per stage of the ICP of the UAV's stem layer and ground onto each candidate, largest first")
+    #: that refinement, an ICP of the UAV's stem layer and ground onto each candidate (stopping
+    #: as the coarse ICP does)
+    low_layer_icp: IcpParams = IcpParams(voxel_m=0.1, max_distances_m=(2.0, 1.0, 0.5, 0.25, 0.12), max_moving_points=8000, final_tolerance_m=1e-4, final_tolerance_deg=1e-3)
     #: where the UAV sees at least this many points in the stem layer (stems, understorey),
     #: at least this fraction must lie within 0.3 m of the ground-based cloud
     min_stem_layer_points: int = _p(50, "points", 1, 100000000, "fewest UAV stem-layer points that make stem evidence")
@@ -153,12 +159,6 @@ class CoregistrationParams(Params):
     jackknife: bool = _p(True, "", None, None, "standard errors by a jackknife over plot quadrants")
 
     def _check(self) -> None:
-        if not self.icp_distances_m:
-            raise ParameterError("icp_distances_m: needs at least one value")
-        if not self.coarse_icp_distances_m:
-            raise ParameterError("coarse_icp_distances_m: needs at least one value")
-        if not self.low_layer_icp_distances_m:
-            raise ParameterError("low_layer_icp_distances_m: needs at least one value")
         if not self.stem_layer_m[0] < self.stem_layer_m[1]:
             raise ParameterError("stem_layer_m: (lowest, highest) with lowest < highest")
 
@@ -452,7 +452,7 @@ def _coregister_points(
         t = time.perf_counter()
         progress(0.22, f"[2/6] canopy keypoints of both clouds (terrain: {g_terrain.n_ground:,} / {u_terrain.n_ground:,} ground points)")
         # meanwhile a third thread thins the clouds for the ICP runs (voxel sorts: the GIL is free)
-        icp_job = pool.submit(_icp_inputs, ground, uav, params.icp_voxel_m)
+        icp_job = pool.submit(_icp_inputs, ground, uav, params.icp.voxel_m)
         g_job = pool.submit(extract_keypoints, ground, g_terrain.dem, params.keypoints)
         u_job = pool.submit(extract_keypoints, uav, u_terrain.dem, params.keypoints)
         try:
@@ -527,15 +527,9 @@ def _coregister_points(
         fit = terrain_levelling(g_ground_pts, g_terrain.dem, u_ground_pts, start)
         level = start @ fit.correction if fit is not None else start
         keep = _visible(u_icp, visible_ref, level, params.visible_tolerance_m * 2.0)  # what the ground can have seen
-        m = _icp_uav_onto_ground(
-            g_ref, u_icp, level, params.coarse_voxel_m, params.coarse_icp_distances_m, params.icp_iterations,
-            max_moving_points=4000, final_tolerance=COARSE_TOLERANCE, statistics=False, keep=keep,
-        ).matrix
+        m = _icp_uav_onto_ground(g_ref, u_icp, level, params.coarse_icp, statistics=False, keep=keep).matrix
         if low is not None:  # the stems and ground the UAV sees, onto the ground-based cloud
-            m = _icp_uav_onto_ground(
-                g_ref, u_icp, m, params.icp_voxel_m, params.low_layer_icp_distances_m, params.icp_iterations,
-                max_moving_points=8000, final_tolerance=COARSE_TOLERANCE, statistics=False, keep=low,
-            ).matrix
+            m = _icp_uav_onto_ground(g_ref, u_icp, m, params.low_layer_icp, statistics=False, keep=low).matrix
         if _apart_m(m, level, sample) > params.max_icp_shift_m or rotation_angle_deg(
             (np.linalg.inv(level) @ m)[:3, :3]
         ) > params.max_icp_rotation_deg:
@@ -579,9 +573,7 @@ def _coregister_points(
     t = time.perf_counter()
     progress(0.86, f"[5/6] fine ICP from the best candidate ({source}; correlation {best_r:.2f}, margin {best_r - alt:.2f})")
     keep = _visible(u_icp, visible_ref, coarse, params.visible_tolerance_m)
-    result = _icp_uav_onto_ground(
-        g_ref, u_icp, coarse, params.icp_voxel_m, params.icp_distances_m, params.icp_iterations, keep=keep,
-    )
+    result = _icp_uav_onto_ground(g_ref, u_icp, coarse, params.icp, keep=keep)
     timings["icp_s"] = time.perf_counter() - t
     shift = _apart_m(result.matrix, best_level, sample)
     rot = rotation_angle_deg((np.linalg.inv(best_level) @ result.matrix)[:3, :3])
@@ -688,9 +680,6 @@ def _visible(uav: np.ndarray, ground: np.ndarray, matrix: np.ndarray, tolerance_
 
 #: the ICP reference level (voxel, m) whose footprint selects the UAV points of an ICP run
 OVERLAP_VOXEL_M = 0.5
-#: (m, deg): the coarse ICP of a candidate stops at updates below these: it only brings the
-#: solution into the fine ICP's basin
-COARSE_TOLERANCE = (1e-4, 1e-3)
 
 
 def _icp_inputs(ground: np.ndarray, uav: np.ndarray, voxel_m: float) -> tuple[IcpReference, np.ndarray]:
@@ -754,13 +743,9 @@ def _icp_uav_onto_ground(
     ground: IcpReference,
     uav: np.ndarray,
     matrix: np.ndarray,
-    voxel_m: float,
-    distances_m: tuple[float, ...],
-    iterations: int,
+    params: IcpParams,
     *,
-    max_moving_points: int = 30000,
     keep: Optional[np.ndarray] = None,
-    final_tolerance: tuple[float, float] = (1e-5, 1e-4),
     statistics: bool = True,
 ) -> IcpResult:
     """ICP with the UAV points (within the ground-based footprint) as the moving cloud and the
@@ -769,18 +754,14 @@ def _icp_uav_onto_ground(
     way round (real MLS onto ALS: 0.46 deg / 8 cm off the other way). Returns the result with
     ``matrix`` ground -> UAV (the inverse of the fitted UAV -> ground transform).
 
-    ``final_tolerance`` and ``statistics`` as in :func:`~forestreg.engine.geometry.icp.icp`."""
-    near = _overlap(uav, ground.level(OVERLAP_VOXEL_M)[0], matrix, margin_m=max(2.0, 2 * max(distances_m)))
+    ``statistics`` as in :func:`~forestreg.engine.geometry.icp.icp`."""
+    near = _overlap(uav, ground.level(OVERLAP_VOXEL_M)[0], matrix, margin_m=max(2.0, 2 * max(params.max_distances_m)))
     if keep is not None:
         near &= keep
     moving = uav[near]
     if len(moving) < 20:
         moving = uav
-    res = icp(
-        ground, moving, np.linalg.inv(matrix), voxel_m=voxel_m, max_distances_m=distances_m,
-        iterations=iterations, max_moving_points=max_moving_points,
-        final_tolerance=final_tolerance, statistics=statistics,
-    )
+    res = icp(ground, moving, np.linalg.inv(matrix), statistics=statistics, **params.keywords())
     return dataclasses.replace(res, matrix=np.linalg.inv(res.matrix))
 
 
@@ -860,14 +841,12 @@ def jackknife_standard_errors(
     centre = np.median(uav[near, :2], axis=0) if near.any() else np.median(uav[:, :2], axis=0)
     q = (uav[:, 0] > centre[0]).astype(int) + 2 * (uav[:, 1] > centre[1]).astype(int)
     g_centre = np.median(ground.level(OVERLAP_VOXEL_M)[0], axis=0)
-    stages = params.icp_distances_m[-1:]
+    # short runs of the fine ICP's last stage
+    short = params.icp.replace(max_distances_m=params.icp.max_distances_m[-1:], iterations=15, max_moving_points=10000)
     rot_vecs, shifts = [], []
 
     def without(k: int) -> np.ndarray:
-        return _icp_uav_onto_ground(
-            ground, uav, matrix, params.icp_voxel_m, stages, 15,
-            max_moving_points=10000, keep=(q != k) if use is None else (q != k) & use, statistics=False,
-        ).matrix
+        return _icp_uav_onto_ground(ground, uav, matrix, short, keep=(q != k) if use is None else (q != k) & use, statistics=False).matrix
 
     with ThreadPoolExecutor(max_workers=2) as pool:  # independent runs on a shared reference
         runs = list(pool.map(without, range(4)))

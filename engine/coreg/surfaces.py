@@ -115,12 +115,14 @@ def canopy_search(
     ground_canopy: np.ndarray,
     uav_surface: SurfaceGrid,
     *,
-    heading_step_deg: float = 2.0,
+    heading_step_deg: float,
+    n_peaks: int,
+    distinct_m: float,
     min_overlap: float = 0.7,
-    n_peaks: int = 8,
-    distinct_m: float = 2.5,
 ) -> list[CanopyPeak]:
-    """The best distinct level transforms by the canopy surfaces alone, best first.
+    """The best distinct level transforms by the canopy surfaces alone, best first (at most
+    ``n_peaks``; the step and distance are the co-registration's ``heading_step_deg`` and
+    ``distinct_solution_m``).
 
     The ground-based canopy points (column tops above 2 m, its local frame) are turned about their
     centroid by every heading (``heading_step_deg`` apart), gridded like ``uav_surface`` (highest

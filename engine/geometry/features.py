@@ -135,6 +135,13 @@ def first_at_least(a: np.ndarray, lo: int, hi: int, v: int) -> int:
 
 
 @kernel
+def _nearest_scratch(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The work arrays of a search for the ``k`` nearest points (:func:`_nearest_in_sphere`,
+    :func:`_nearest_growing`): squared distances, original indices and sorted positions."""
+    return np.empty(k), np.empty(k, dtype=np.int64), np.empty(k, dtype=np.int64)
+
+
+@kernel
 def _nearest_in_sphere(
     qx: float, qy: float, qz: float, origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray,
     column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int,
@@ -254,9 +261,7 @@ def _sphere_covariance_rows(
     cell_z: np.ndarray, pts: np.ndarray,
 ) -> None:
     """Rows ``start:stop`` of :func:`local_covariances` on a :class:`SphereGrid`."""
-    best_d2 = np.empty(k)
-    best_index = np.empty(k, dtype=np.int64)
-    best = np.empty(k, dtype=np.int64)
+    best_d2, best_index, best = _nearest_scratch(k)
     d, pr = np.empty((3, k)), np.empty(k)
     for i in range(start, stop):
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
@@ -273,9 +278,7 @@ def _nearest_rows(
     cell_z: np.ndarray, pts: np.ndarray,
 ) -> None:
     """Rows ``rows[start:stop]`` of :func:`nearest_within`."""
-    best_d2 = np.empty(1)
-    best_index = np.empty(1, dtype=np.int64)
-    best = np.empty(1, dtype=np.int64)
+    best_d2, best_index, best = _nearest_scratch(1)
     for t in range(start, stop):
         i = rows[t]
         if _nearest_growing(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, layers, index, column_start, cell_z, pts, r2, 1, best_d2, best_index, best):
@@ -308,9 +311,7 @@ def _nearest_covariance_rows(
 ) -> None:
     """Rows ``start:stop`` of :func:`local_covariances` from the ``k`` nearest points at any
     distance on a :class:`SphereGrid`."""
-    best_d2 = np.empty(k)
-    best_index = np.empty(k, dtype=np.int64)
-    best = np.empty(k, dtype=np.int64)
+    best_d2, best_index, best = _nearest_scratch(k)
     d, pr = np.empty((3, k)), np.empty(k)
     for i in range(start, stop):
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
@@ -393,9 +394,7 @@ def _neighbour_mean_rows(
     cell_z: np.ndarray, pts: np.ndarray,
 ) -> None:
     """Rows ``start:stop`` of :func:`neighbour_means` on a :class:`SphereGrid`."""
-    best_d2 = np.empty(k)
-    best_index = np.empty(k, dtype=np.int64)
-    best = np.empty(k, dtype=np.int64)
+    best_d2, best_index, best = _nearest_scratch(k)
     slots = np.empty(k)
     for i in range(start, stop):
         m = _nearest_in_sphere(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)

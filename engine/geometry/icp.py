@@ -14,11 +14,44 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..core.errors import ParameterError
+from ..core.params import Params, param_field as _p
 from ..core.transform import rotation_from_vector
 from ..core.transform import apply as apply_transform
 from .features import SphereGrid, first_at_least, local_covariances, nearest_within, normals_and_variation
 from ..core.jit import kernel, run_blocks, worker_count
 from .voxel import VoxelGrid, column_bounds, voxel_downsample
+
+
+@dataclass(frozen=True)
+class IcpParams(Params):
+    """Settings of one coarse-to-fine point-to-plane ICP; each product nests its own, with its own defaults.
+
+    The class defaults are the pair registration's; :func:`icp` takes them as
+    ``**params.keywords()``. Distances in metres."""
+
+    voxel_m: float = _p(0.05, "m", 0.005, 5.0, "Voxel size to which both clouds are thinned (a stage thins to at least its distance / 2.5)")
+    max_distances_m: tuple[float, ...] = _p((0.5, 0.2, 0.08), "m", 0.001, 100.0, "Correspondence distance of each stage, largest first")
+    iterations: int = _p(40, "iterations", 1, 10000, "Most iterations per stage")
+    max_moving_points: int = _p(30000, "points", 100, 100_000_000, "At most this many moving points (a fixed random subset) are used per stage")
+    final_tolerance_m: float = _p(1e-5, "m", 0.0, 1.0, "The last stage stops when an update moves the cloud less than this...")
+    final_tolerance_deg: float = _p(1e-4, "deg", 0.0, 10.0, "...and turns it less than this (earlier stages stop at 0.1 mm and 0.001 deg)")
+    normal_neighbours: int = _p(12, "points", 3, 200, "Neighbours of a reference point whose covariance gives its normal")
+
+    def _check(self) -> None:
+        if not self.max_distances_m:
+            raise ParameterError("max_distances_m: needs at least one value")
+
+    @property
+    def finest_voxel_m(self) -> float:
+        """The voxel (metres) of the finest stage: ``voxel_m`` or the last distance / 2.5."""
+        return max(self.voxel_m, min(self.max_distances_m) / 2.5)
+
+    def keywords(self) -> dict:
+        """These settings as the keyword arguments of :func:`icp`."""
+        return {"voxel_m": self.voxel_m, "max_distances_m": self.max_distances_m, "iterations": self.iterations,
+                "max_moving_points": self.max_moving_points, "final_tolerance": (self.final_tolerance_m, self.final_tolerance_deg),
+                "normal_neighbours": self.normal_neighbours}
 
 
 @dataclass(frozen=True)
@@ -68,11 +101,7 @@ def thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
 #: matches lie in the 27 cells around a point, and the 12 nearest points for a normal mostly too.
 CELL_VOXELS = 2.5
 
-#: Neighbours of a reference point whose covariance gives its normal.
-NORMAL_NEIGHBOURS = 12
-
-
-def _normals_at(points: np.ndarray, grid: SphereGrid, index: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> np.ndarray:
+def _normals_at(points: np.ndarray, grid: SphereGrid, index: np.ndarray, neighbours: int = IcpParams.normal_neighbours) -> np.ndarray:
     """Unit normals (arbitrary sign) of ``points[index]`` from their ``neighbours`` nearest
     points (``grid`` is made of ``points``): the least eigenvector of the local covariance."""
     cov, _ = local_covariances(points[index], points, k=neighbours, grid=grid)
@@ -94,8 +123,9 @@ class IcpReference:
         # float32 levelled points stay float32 (a 30 M-point scan: 360 MB, not 720 MB)
         self.points = pts if pts.dtype in (np.float32, np.float64) else pts.astype(np.float64)
         self._levels: dict[float, tuple[np.ndarray, SphereGrid]] = {}
-        #: per level: each point's row among its normals computed so far (-1: none), and those rows
-        self._normals: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+        #: per level and neighbour count: each point's row among its normals computed so far (-1:
+        #: none), and those rows
+        self._normals: dict[tuple[float, int], tuple[np.ndarray, np.ndarray]] = {}
         self._full_tree: cKDTree | None = None
         self._lock = threading.RLock()
         self.grid = grid
@@ -146,11 +176,11 @@ class IcpReference:
                 if key not in self._levels:
                     self._levels[key] = make(key)
 
-    def normals(self, voxel_m: float, index: np.ndarray) -> np.ndarray:
-        """Unit normals (arbitrary sign) of the points ``index`` of a level, computed where first
-        needed."""
+    def normals(self, voxel_m: float, index: np.ndarray, neighbours: int = IcpParams.normal_neighbours) -> np.ndarray:
+        """Unit normals (arbitrary sign) of the points ``index`` of a level, each from its
+        ``neighbours`` nearest points of the level, computed where first needed."""
         ref, grid = self.level(voxel_m)
-        key = round(float(voxel_m), 6)
+        key = (round(float(voxel_m), 6), int(neighbours))
         with self._lock:
             if key not in self._normals:
                 # each level point's row among the normals computed so far (-1: none yet), and
@@ -162,7 +192,7 @@ class IcpReference:
             if len(need):
                 need = np.unique(need)
                 row[need] = np.arange(len(computed), len(computed) + len(need))
-                computed = np.concatenate([computed, _normals_at(ref, grid, need)])
+                computed = np.concatenate([computed, _normals_at(ref, grid, need, neighbours)])
                 self._normals[key] = (row, computed)
             return computed[row[index]]
 
@@ -203,11 +233,12 @@ def icp(
     voxel_m: float,
     max_distances_m: Sequence[float],
     iterations: int,
-    max_moving_points: int = 30000,
+    max_moving_points: int = IcpParams.max_moving_points,
     seed: int = 0,
-    final_tolerance: tuple[float, float] = (1e-5, 1e-4),
+    final_tolerance: tuple[float, float] = (IcpParams.final_tolerance_m, IcpParams.final_tolerance_deg),
     statistics: bool = True,
     moving_voxel_m: float | None = None,
+    normal_neighbours: int = IcpParams.normal_neighbours,
 ) -> IcpResult:
     """Coarse-to-fine point-to-plane ICP from ``initial``.
 
@@ -233,6 +264,9 @@ def icp(
     moving_voxel_m : the moving points are already the centroids of this voxel grid
         (:func:`~forestreg.engine.geometry.voxel.voxel_downsample`); when it is the finest stage's
         voxel they are not thinned again.
+    normal_neighbours : neighbours of a reference point whose covariance gives its normal.
+
+    The settings a product tunes are an :class:`IcpParams` (``icp(..., **params.keywords())``).
     """
     shared = isinstance(reference, IcpReference)  # prepared by the caller for several runs
     prepared = reference if shared else IcpReference(reference)
@@ -275,7 +309,7 @@ def icp(
             ok = np.isfinite(d)
             if ok.sum() < 6:
                 break
-            p, q, n = moved[ok], ref[j[ok]], prepared.normals(voxel, j[ok])
+            p, q, n = moved[ok], ref[j[ok]], prepared.normals(voxel, j[ok], normal_neighbours)
             r = np.einsum("ij,ij->i", p - q, n)
             w = (1.0 - (d[ok] / dist) ** 2) ** 2
             jac = np.hstack([np.cross(p, n), n])

@@ -31,7 +31,7 @@ if TYPE_CHECKING:  # pragma: no cover
 GROUND_COLOUR = "#d62728"
 UAV_COLOUR = "#1f77b4"
 
-__all__ = ["coregistration_figure", "write_coregistration_report"]
+__all__ = ["coregistration_png", "write_coregistration_report"]
 
 
 def coregistration_png(
@@ -98,18 +98,6 @@ def coregistration_png(
     fig.savefig(buf, format="png", dpi=dpi)
     plt.close(fig)
     return buf.getvalue()
-
-
-def coregistration_figure(
-    result: "CoregistrationResult",
-    path: str | os.PathLike[str],
-    ground_points: Optional[np.ndarray] = None,
-    uav_points: Optional[np.ndarray] = None,
-) -> None:
-    """Write :func:`coregistration_png` to ``path`` (atomically)."""
-    png = coregistration_png(result, ground_points, uav_points)
-    with atomic_path(path) as tmp:
-        Path(tmp).write_bytes(png)
 
 
 def write_coregistration_report(

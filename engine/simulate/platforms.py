@@ -60,7 +60,25 @@ MAX_RAYS_PER_CAST = 2_000_000
 
 
 @dataclass(frozen=True)
-class UavSetup(Params):
+class SpinningSensor(Params):
+    """The spinning multi-channel laser both platforms carry (defaults: a Velodyne VLP-16, paper
+    table 2): the channels fire together every ``azimuth_step_deg`` of rotation."""
+
+    rotation_hz: float = _p(10.0, "Hz", 1.0, 50.0, "Sensor rotations per second", "5-20 Hz")
+    azimuth_step_deg: float = _p(0.2, "deg", 0.05, 5.0, "Rotation between two firings of the channels", "0.1-0.4 deg")
+    n_channels: int = _p(16, "", 1, 128, "Laser channels, spread evenly over the vertical field of view", "VLP-16")
+    vertical_fov_deg: float = _p(30.0, "deg", 0.0, 90.0, "Spread of the channels out of the rotation plane (along track on a UAV)", "30 deg")
+
+    @property
+    def channel_elevations_deg(self) -> np.ndarray:
+        """Elevations (deg) of the channels, spread evenly over the field of view (VLP-16: -15..15 by 2)."""
+        if self.n_channels == 1:
+            return np.zeros(1)
+        return np.linspace(-self.vertical_fov_deg / 2.0, self.vertical_fov_deg / 2.0, int(self.n_channels))
+
+
+@dataclass(frozen=True)
+class UavSetup(SpinningSensor):
     """A UAV LiDAR flight (paper section 3.2.2 and table 2: VLP-16 at 86 m).
 
     The flight lines run along ``heading_deg`` (alternating direction, serpentine), ``line_spacing_m``
@@ -74,18 +92,10 @@ class UavSetup(Params):
     heading_deg: float = _p(0.0, "deg", -360.0, 360.0, "Direction of the first flight line (counter-clockwise from +x)")
     line_offset_m: float = _p(0.0, "m", -1000.0, 1000.0, "Across-track shift of the line pattern (0: a line passes over the plot centre)")
     margin_m: Optional[float] = _p(None, "m", 0.0, 2000.0, "Lines are flown over the plot plus this margin on either side; empty = the half swath at the ground, so every line that can see the plot is flown")
-    rotation_hz: float = _p(10.0, "Hz", 1.0, 50.0, "Sensor rotations per second", "5-20 Hz")
-    azimuth_step_deg: float = _p(0.2, "deg", 0.05, 5.0, "Rotation between two firings of the channels", "0.1-0.4 deg")
-    n_channels: int = _p(16, "", 1, 128, "Laser channels, spread evenly over the vertical field of view", "VLP-16")
-    vertical_fov_deg: float = _p(30.0, "deg", 0.0, 90.0, "Spread of the channels out of the rotation plane (along track)", "30 deg")
     swath_half_angle_deg: float = _p(45.0, "deg", 1.0, 89.0, "Returns are kept within this angle of nadir in the sweep")
     max_range_m: float = _p(100.0, "m", 1.0, 2000.0, "Farthest return", "100 m")
     range_noise_m: float = _p(0.03, "m", 0.0, 1.0, "Standard deviation of the range noise", "+-3 cm")
     density_scale: float = _p(1.0, "", 1e-4, 4.0, "Fraction of the sensor's pulses fired (scales the point density; 1 = the real sensor)")
-
-    @property
-    def channel_elevations_deg(self) -> np.ndarray:
-        return _channels(self.n_channels, self.vertical_fov_deg)
 
     @property
     def pulses_per_second(self) -> float:
@@ -100,7 +110,7 @@ class UavSetup(Params):
 
 
 @dataclass(frozen=True)
-class BackpackSetup(Params):
+class BackpackSetup(SpinningSensor):
     """A walk with a backpack (or handheld) laser scanner (paper section 3.2.3 and table 2).
 
     The path is ``waypoints`` (scene-frame (x, y) pairs) when given, otherwise a serpentine over a
@@ -113,10 +123,6 @@ class BackpackSetup(Params):
     height_m: float = _p(1.8, "m", 0.2, 5.0, "Sensor height above the ground")
     speed_m_s: float = _p(1.2, "m/s", 0.1, 5.0, "Walking speed")
     tilt_deg: float = _p(45.0, "deg", 0.0, 90.0, "Tilt of the rotation axis back from vertical")
-    rotation_hz: float = _p(10.0, "Hz", 1.0, 50.0, "Sensor rotations per second", "5-20 Hz")
-    azimuth_step_deg: float = _p(0.2, "deg", 0.05, 5.0, "Rotation between two firings of the channels", "0.1-0.4 deg")
-    n_channels: int = _p(16, "", 1, 128, "Laser channels, spread evenly over the vertical field of view", "VLP-16")
-    vertical_fov_deg: float = _p(30.0, "deg", 0.0, 90.0, "Spread of the channels out of the rotation plane", "30 deg")
     min_range_m: float = _p(0.5, "m", 0.0, 10.0, "Nearer returns are dropped (the operator and the backpack)")
     max_range_m: float = _p(30.0, "m", 1.0, 200.0, "Farthest return (a walking scanner's useful range)", "15-20 m (HLS)")
     range_noise_m: float = _p(0.025, "m", 0.0, 1.0, "Standard deviation of the range noise", "+-(2-3) cm")
@@ -152,10 +158,6 @@ class BackpackSetup(Params):
             raise ParameterError(f"min_range_m ({self.min_range_m}) must be below max_range_m ({self.max_range_m})")
 
     @property
-    def channel_elevations_deg(self) -> np.ndarray:
-        return _channels(self.n_channels, self.vertical_fov_deg)
-
-    @property
     def pulses_per_second(self) -> float:
         return self.n_channels * self.rotation_hz * 360.0 / self.azimuth_step_deg * self.density_scale
 
@@ -184,13 +186,6 @@ def _axis_rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """3x3 rotation by ``angle_rad`` about the unit ``axis`` (Rodrigues)."""
     k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
     return np.eye(3) + math.sin(angle_rad) * k + (1.0 - math.cos(angle_rad)) * (k @ k)
-
-
-def _channels(n: int, fov_deg: float) -> np.ndarray:
-    """Elevations (deg) of ``n`` channels spread evenly over ``fov_deg`` (VLP-16: -15..15 by 2)."""
-    if n == 1:
-        return np.zeros(1)
-    return np.linspace(-fov_deg / 2.0, fov_deg / 2.0, int(n))
 
 
 # --------------------------------------------------------------------------------------------

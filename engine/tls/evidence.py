@@ -17,34 +17,16 @@ from .vop import polar
 from ..core.transform import apply as apply_transform
 
 
-def free_space_violation(
-    reference_layers: Sequence[SliceLayer],
-    moving_layers: Sequence[SliceLayer],
-    moving_to_reference: np.ndarray,
-    *,
-    bin_deg: float = 0.5,
-    margin_m: float = 0.5,
-    near_m: float = 2.0,
-    reach_m: float = 15.0,
-) -> tuple[float, int]:
-    """Fraction of the moving scan's slice points that lie where the reference scanner saw
-    through: in front of (``margin_m`` nearer than) the reference's first return in the same
-    azimuth bin of ``bin_deg``. Between ``near_m`` and ``reach_m`` from the reference scanner.
+def _violation(seen: np.ndarray, other: np.ndarray, *, bin_deg: float, margin_m: float, near_m: float, reach_m: float) -> tuple[float, int]:
+    """Fraction of the points ``other`` (N, 3) that lie where the scanner that saw the points
+    ``seen`` saw through: in front of (``margin_m`` nearer than) its first return in the same
+    azimuth bin of ``bin_deg``, between ``near_m`` and ``reach_m`` from the scanner (both in its
+    frame, metres). Returns (fraction, points tested); NaN if none.
 
     Each scan's rays crossed empty space up to their first return; in a correct registration the
     other scan's points cannot stand there (up to leaves in gaps and slice-edge effects, a few per
-    cent, under 10 % in tests). Trunks of a wrongly placed scan land in that free space by the third (40-65 % in
-    tests). Levelled scanner frames, metres. Returns (fraction, points tested); NaN if none.
-    """
-    ref = np.concatenate([layer.xyz for layer in reference_layers]) if reference_layers else np.zeros((0, 3))
-    mov = np.concatenate([layer.xyz for layer in moving_layers]) if moving_layers else np.zeros((0, 3))
-    return _violation(ref, apply_transform(moving_to_reference, mov) if len(mov) else mov,
-                      bin_deg=bin_deg, margin_m=margin_m, near_m=near_m, reach_m=reach_m)
-
-
-def _violation(seen: np.ndarray, other: np.ndarray, *, bin_deg: float, margin_m: float, near_m: float, reach_m: float) -> tuple[float, int]:
-    """:func:`free_space_violation` of ``other`` (N, 3), given in the frame of the scanner that
-    saw the points ``seen``."""
+    cent, under 10 % in tests). Trunks of a wrongly placed scan land in that free space by the
+    third (40-65 % in tests)."""
     if len(seen) == 0 or len(other) == 0:
         return float("nan"), 0
     bins = int(round(360.0 / bin_deg))
@@ -68,14 +50,10 @@ def mutual_free_space_violation(
     moving_layers: Sequence[SliceLayer],
     moving_to_reference: np.ndarray,
     params: RegistrationParams,
-    *,
-    bin_deg: float = 0.5,
-    margin_m: float = 0.5,
-    near_m: float = 2.0,
-    reach_m: float = 15.0,
 ) -> tuple[float, int]:
-    """The larger of the free-space violations (:func:`free_space_violation`) seen from either
-    scanner, and the points tested from the side that gave it.
+    """The larger of the free-space violations seen from either scanner (the fraction of the
+    other scan's points where this scanner saw through, :func:`_violation`, with the
+    ``free_space_*`` settings of ``params``), and the points tested from the side that gave it.
 
     Each scanner's free space is that of its own slice layers; the other scan's points tested
     there are those at the same heights: its non-ground points, moved by the registration, that
@@ -85,7 +63,8 @@ def mutual_free_space_violation(
     layers then lie 0.2 m higher in the world, where other stems and branches stand, and put 15 %
     of a correct pair's points into free space (measured on a real RIEGL scan). Levelled scanner
     frames (the prepared scans'), metres."""
-    options = dict(bin_deg=bin_deg, margin_m=margin_m, near_m=near_m, reach_m=reach_m)
+    reach_m = params.free_space_reach_m
+    options = dict(bin_deg=params.free_space_bin_deg, margin_m=params.free_space_margin_m, near_m=params.free_space_near_m, reach_m=reach_m)
     a = _side(reference, reference_layers, moving, moving_to_reference, params, reach_m, options)
     b = _side(moving, moving_layers, reference, np.linalg.inv(moving_to_reference), params, reach_m, options)
     candidates = [x for x in (a, b) if np.isfinite(x[0])]

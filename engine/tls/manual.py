@@ -358,7 +358,7 @@ def register_manual(
     Parameters
     ----------
     reference_targets, moving_targets : ``{id: xyz}`` in each scan's file coordinates.
-    params : ICP settings (``icp_*``, ``max_range_m``, levelling) and the limits of the target
+    params : ICP settings (``icp``, ``icp_min_fitness``, ``icp_max_correction_m``), ``max_range_m``, levelling and the limits of the target
         fit (``manual_*``); default the paper's.
 
     Returns

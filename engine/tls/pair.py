@@ -596,20 +596,11 @@ def fine_registration(reference: PreparedScan, moving: PreparedScan, coarse_lsf:
             _icp_reference(reference),
             centroids[near],
             coarse_lsf,
-            voxel_m=params.icp_voxel_m,
-            max_distances_m=params.icp_max_distances_m,
-            iterations=params.icp_iterations,
             moving_voxel_m=moving.icp_grid.voxel_m,
+            **params.icp.keywords(),
         )
     ref_overlap, mov_overlap = overlap_region(reference.points, moving.points, coarse_lsf, params.max_range_m)
-    return icp(
-        ref_overlap,
-        mov_overlap,
-        coarse_lsf,
-        voxel_m=params.icp_voxel_m,
-        max_distances_m=params.icp_max_distances_m,
-        iterations=params.icp_iterations,
-    )
+    return icp(ref_overlap, mov_overlap, coarse_lsf, **params.icp.keywords())
 
 
 def _icp_reference(prepared: PreparedScan) -> IcpReference:

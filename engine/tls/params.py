@@ -9,10 +9,11 @@ builds the GUI's parameter panel and the README's table. Distances in metres, an
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import ClassVar, Optional
 
 from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
+from ..geometry.icp import IcpParams
 
 __all__ = ["RegistrationParams", "ScannerPositionParams", "SurveyParams"]
 
@@ -20,6 +21,9 @@ __all__ = ["RegistrationParams", "ScannerPositionParams", "SurveyParams"]
 @dataclass(frozen=True)
 class RegistrationParams(Params):
     """Every setting of marker-free pair registration (System A; defaults: Guan et al. 2020, table 2)."""
+
+    #: the ICP settings once named here, now in ``[registration.icp]``
+    _moved: ClassVar[dict[str, str]] = {"icp_voxel_m": "icp.voxel_m", "icp_max_distances_m": "icp.max_distances_m", "icp_iterations": "icp.iterations"}
 
     # --- data reduction and ground (paper 2.4, 2.5.1)
     max_range_m: float = _p(30.0, "m", 5.0, 200.0, "Points farther than this horizontally from the scanner are dropped", "D_c = 30 m")
@@ -52,15 +56,17 @@ class RegistrationParams(Params):
     distinct_rotation_deg: float = _p(5.0, "deg", 0.5, 180.0, "Alternatives rotated more than this from the best are distinct solutions")
     distinct_translation_m: float = _p(1.0, "m", 0.1, 50.0, "Alternatives displaced more than this from the best are distinct solutions")
     max_free_space_violation: float = _p(0.15, "1", 0.0, 1.0, "Largest fraction of one scan's slice points allowed where the other scanner saw empty space, after ICP (a wrong match puts trunks there)")
+    free_space_bin_deg: float = _p(0.5, "deg", 0.05, 10.0, "A scanner saw empty space up to its first return in each azimuth bin of this width...")
+    free_space_margin_m: float = _p(0.5, "m", 0.0, 5.0, "...and the other scan's points count as inside it when at least this much nearer")
+    free_space_near_m: float = _p(2.0, "m", 0.0, 50.0, "Points nearer to the scanner than this are not tested")
+    free_space_reach_m: float = _p(15.0, "m", 1.0, 200.0, "...nor those farther than this")
     # --- levelling of tilted scans
     level_tilted: bool = _p(True, "", None, None, "Detect a tilted scanner from its own data (ground and trunk directions) and level the scan before slicing")
     tilt_threshold_deg: float = _p(10.0, "deg", 0.1, 45.0, "Estimated tilts below this are treated as a level scanner (small tilts are taken up by the ground fit and ICP)")
     level_voxel_m: float = _p(0.1, "m", 0.02, 1.0, "The scan's vertical is estimated from the normals of one point per voxel of this size")
     level_radius_m: float = _p(15.0, "m", 2.0, 100.0, "...of the points within this distance of the scanner")
     # --- fine registration (ICP, paper 2.6)
-    icp_voxel_m: float = _p(0.05, "m", 0.01, 0.5, "Voxel size to which both clouds are thinned for ICP")
-    icp_max_distances_m: tuple[float, ...] = _p((0.5, 0.2, 0.08), "m", 0.005, 5.0, "Correspondence distances of the successive ICP stages")
-    icp_iterations: int = _p(40, "iterations", 1, 1000, "Iterations per ICP stage")
+    icp: IcpParams = IcpParams()
     icp_min_fitness: float = _p(0.1, "1", 0.0, 1.0, "Least fraction of the moving points in the shared area that must have a reference point within the last ICP distance")
     icp_max_correction_m: float = _p(1.0, "m", 0.0, 10.0, "ICP may move the coarse result by at most this much (more means the coarse result was wrong)")
     # --- the stated uncertainty (trunks matched after ICP)
@@ -73,7 +79,7 @@ class RegistrationParams(Params):
     manual_min_target_spread_m: float = _p(0.02, "m", 0.0, 10.0, "Shared targets closer than this (RMS) to one straight line are refused: they leave the rotation about it undetermined")
 
     def _check(self) -> None:
-        for name in ("slice_offsets_m", "icp_max_distances_m", "auto_vop_radii_m"):
+        for name in ("slice_offsets_m", "auto_vop_radii_m"):
             if not getattr(self, name):
                 raise ParameterError(f"{name}: needs at least one value")
         if self.vop_radius_m is not None and self.vop_radius_m >= self.max_range_m:

@@ -526,8 +526,9 @@ class _PrepareAhead:
     """Reads and prepares, in a background thread, the scans of the next link while a link is
     registered (a link's coarse matching and ICP leave a core free; reading and preparing the next
     scan fills it), one link ahead: the preparations are kept by the :class:`ScanCache`, where the
-    next link finds them. Only for plots of :func:`small_scans`; larger plots read and prepare one
-    scan at a time. A scan that cannot be read or prepared here is left to its link, which reads it
+    next link finds them. Only for plots of :func:`small_scans`, and only when the process may use
+    two cores or more (:func:`~forestreg.engine.core.jit.worker_count`: a batch running each plot
+    on one thread gets one core's work from it); larger plots read and prepare one scan at a time. A scan that cannot be read or prepared here is left to its link, which reads it
     again and says why."""
 
     def __init__(self, scans: ScanCache, plan: list[tuple[int, str, Any]], cancel: Optional[CancelToken], beside: Optional[LinkQueue]) -> None:
@@ -556,7 +557,9 @@ class _PrepareAhead:
                 if (name, params) not in seen:
                     seen.add((name, params))
                     plan.append((k, name, params))
-        if not plan or not scans.small:
+        from ..core.jit import worker_count
+
+        if not plan or not scans.small or worker_count() < 2:  # one core (a batch's one thread a plot): nothing is free
             return None
         ahead = cls(scans, plan, cancel, beside)
         ahead._thread.start()

@@ -45,7 +45,7 @@ class PreparedScan:
     tilt_deg: float
     levelled: bool
     icp_grid: Optional[VoxelGrid] = None
-    """The points' voxel grid at the finest ICP stage's voxel (``icp_voxel_m`` or the last
+    """The points' voxel grid at the finest ICP stage's voxel (``icp.voxel_m`` or the last
     correspondence distance / 2.5): made here, where both scans are prepared in parallel."""
     derived: dict = field(default_factory=dict, compare=False, repr=False)
     """What is computed from this scan for registration settings (slice layers, VOPs per radius,
@@ -364,9 +364,9 @@ def prepare_centred(
 
 
 def icp_grid_voxel(params: RegistrationParams) -> float:
-    """The voxel (metres) of a prepared scan's ICP grid: the finest ICP stage's, ``icp_voxel_m``
+    """The voxel (metres) of a prepared scan's ICP grid: the finest ICP stage's, ``icp.voxel_m``
     or the last correspondence distance / 2.5 (:func:`~forestreg.engine.geometry.icp.icp`)."""
-    return max(params.icp_voxel_m, min(params.icp_max_distances_m) / 2.5) if len(params.icp_max_distances_m) else params.icp_voxel_m
+    return params.icp.finest_voxel_m
 
 
 def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near_d2: Optional[float] = None, *,

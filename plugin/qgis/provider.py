@@ -80,6 +80,17 @@ class _Base(QgsProcessingAlgorithm):
     SCANNERS = "SCANNERS"
     STATUS = "STATUS"
     REASON = "REASON"
+    #: each algorithm's id, title and help text, which QGIS asks for by method
+    NAME = DISPLAY_NAME = HELP = ""
+
+    def name(self):
+        return self.NAME
+
+    def displayName(self):  # noqa: N802
+        return self.DISPLAY_NAME
+
+    def shortHelpString(self):  # noqa: N802
+        return self.HELP
 
     def group(self):
         return "Registration"
@@ -142,21 +153,15 @@ class RegisterPairAlgorithm(_Base):
     VOPS = "VOPS"
     MATCHED = "MATCHED"
     TRANSFORM = "TRANSFORM"
-
-    def name(self):
-        return "register_pair"
-
-    def displayName(self):  # noqa: N802
-        return "Register TLS pair (trunk shadows)"
-
-    def shortHelpString(self):  # noqa: N802
-        return (
-            "Registers the moving scan onto the reference scan from the shadows the trunks cast "
-            "(visual occlusion points), then ICP, as a 'forestreg register' job of the forestreg service. "
-            "Writes result.json, transform.txt (p_reference = matrix @ p_moving), the VOP files and a figure "
-            "into the output folder, and loads the scanner positions and the VOPs (in the reference scan's "
-            "coordinates; 'matched' = 1 for matched VOPs) as point layers."
-        )
+    NAME = "register_pair"
+    DISPLAY_NAME = "Register TLS pair (trunk shadows)"
+    HELP = (
+        "Registers the moving scan onto the reference scan from the shadows the trunks cast "
+        "(visual occlusion points), then ICP, as a 'forestreg register' job of the forestreg service. "
+        "Writes result.json, transform.txt (p_reference = matrix @ p_moving), the VOP files and a figure "
+        "into the output folder, and loads the scanner positions and the VOPs (in the reference scan's "
+        "coordinates; 'matched' = 1 for matched VOPs) as point layers."
+    )
 
     def initAlgorithm(self, config=None):  # noqa: N802
         self.addParameter(QgsProcessingParameterFile(self.REFERENCE, "Reference scan", fileFilter=SCAN_FILTER))
@@ -191,20 +196,14 @@ class RegisterPairAlgorithm(_Base):
 class RegisterPlotAlgorithm(_Base):
     SCANS = "SCANS"
     CENTRE = "CENTRE"
-
-    def name(self):
-        return "register_plot"
-
-    def displayName(self):  # noqa: N802
-        return "Register plot"
-
-    def shortHelpString(self):  # noqa: N802
-        return (
-            "Registers all scans of a plot onto the centre scan (the first one unless given) as a "
-            "'forestreg plot' job of the forestreg service. Writes project.json, poses.json (p_centre = matrix @ p_scan), "
-            "one <scan>.transform.txt per registered scan and report.html into the output folder, and loads the "
-            "scanner positions in the centre scan's coordinates as a point layer."
-        )
+    NAME = "register_plot"
+    DISPLAY_NAME = "Register plot"
+    HELP = (
+        "Registers all scans of a plot onto the centre scan (the first one unless given) as a "
+        "'forestreg plot' job of the forestreg service. Writes project.json, poses.json (p_centre = matrix @ p_scan), "
+        "one <scan>.transform.txt per registered scan and report.html into the output folder, and loads the "
+        "scanner positions in the centre scan's coordinates as a point layer."
+    )
 
     def initAlgorithm(self, config=None):  # noqa: N802
         self.addParameter(QgsProcessingParameterMultipleLayers(self.SCANS, "Scan files", layerType=QgsProcessing.TypeFile))
