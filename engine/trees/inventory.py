@@ -160,10 +160,10 @@ class TreeInventory(TreeTablesFile, Outcome):
     """Trees of one cloud and the per-point results.
 
     ``labels`` (N,) tree id per point (0 = none), ``heights`` (N,) height above the DEM,
-    ``wood_probability`` (N,), ``ground`` (N,) bool; ``origin_shift`` of the cloud; ``timings``
-    wall seconds per step (``*_s``): ``dbh_s`` and ``crowns_s`` run in a second thread while
-    ``segmentation_s`` and ``leafwood_s`` run (``waiting_s``: for that thread afterwards), so
-    the steps add up to more than the whole.
+    ``wood_probability`` (N,) (NaN: not measured, without cylinder models), ``ground`` (N,)
+    bool; ``origin_shift`` of the cloud; ``timings`` wall seconds per step (``*_s``): ``dbh_s``
+    and ``crowns_s`` run in a second thread while ``segmentation_s`` and ``leafwood_s`` run
+    (``waiting_s``: for that thread afterwards), so the steps add up to more than the whole.
     """
 
     trees: list[TreeRecord]
