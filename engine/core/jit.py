@@ -286,8 +286,9 @@ def preload(name: str, wait_s: float = 10.0) -> None:
     """Load, in this thread and in their order, the kernels a process running the use case
     ``name`` loaded last time (:func:`remember_loaded`): called in a background thread while the
     inputs are read and the engine is imported, so that the first calls find them loaded. This
-    thread imports nothing: it waits (at most ``wait_s`` per module) until the use case has
-    imported a kernel's module (two threads importing the same modules at once may deadlock). A
+    thread imports nothing: a kernel whose module the use case has not imported yet is loaded once
+    it has (two threads importing the same modules at once may deadlock; at most ``wait_s``
+    without any new module). A
     kernel that cannot be found or loaded is skipped (it is loaded, or its failure reported, where
     it is called)."""
     import pickle
@@ -299,12 +300,15 @@ def preload(name: str, wait_s: float = 10.0) -> None:
             listed = pickle.load(f)
     except Exception:
         return
-    for module, fn_name, args in listed:
-        until = time.monotonic() + wait_s
-        while not _imported(module):
-            if time.monotonic() > until:
-                return
+    until = time.monotonic() + wait_s
+    while listed and time.monotonic() < until:
+        # the first in their order whose module is imported (a later one while an earlier waits)
+        ready = next((i for i, entry in enumerate(listed) if _imported(entry[0])), None)
+        if ready is None:
             time.sleep(0.005)
+            continue
+        module, fn_name, args = listed.pop(ready)
+        until = time.monotonic() + wait_s
         try:
             dispatcher = getattr(sys.modules[module], fn_name)
             if args not in dispatcher.overloads:
