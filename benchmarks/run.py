@@ -28,7 +28,8 @@ plot of `--only bigplot`; `--quick`: a few minutes)::
    MB (:mod:`benchmarks.command_memory`; left out by ``--quick``).
 8. Trees side by side with Sylva (:mod:`benchmarks.trees_compare`): ``forestreg trees`` against
    ``sylva ground`` + ``sylva trees`` and ``sylva qsm`` on the same simulated (with truth) and real
-   clouds: found, false stems, DBH, height, volume, time and memory.
+   clouds: found, false stems, DBH, height, volume, time and memory; the real single trees'
+   cylinder models beside ``sylva qsm`` and the TreeQSM port's stored figures (total and stem).
 9. A re-survey (:mod:`benchmarks.resurvey`): a simulated stand measured again six years later,
    ``forestreg change`` against the simulator's truth (registration error, statuses, growth).
 10. A plot of ten ~30 M-point scans registered and merged into one COPC file within 4 GB
@@ -359,6 +360,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     if "trees" in parts:  # child processes too: while this process is small
         trees_rows = trees_compare.run()
         print(trees_compare.format_rows(trees_rows))
+        print()
+        print(trees_compare.single_tree_table(trees_rows))
         print(flush=True)
     if "peers" in parts:
         peer_rows = peers.run(quick=args.quick, runs=args.runs)

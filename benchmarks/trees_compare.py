@@ -9,7 +9,8 @@ memory per command):
 
 Cases (small, so the whole runs in a few minutes on a shared machine):
 
-* ``sim plot``: a simulated ``mixed_temperate`` plot, 30 m square, four TLS scans merged (the
+* ``sim plot``: a simulated ``mixed_temperate`` plot, 30 m square, four full-dome TLS scans
+  (elevation up to the zenith) merged, suppressed trees 0.5 m below their neighbours' crowns (the
   truth: every tree's position, DBH, height and top seen or not). Figures over the true trees
   within :data:`RADIUS_M` of the centre with DBH >= 0.1 m: found (a stem within 0.5 m), false
   stems (detected within the radius, no true tree within 0.5 m), DBH rRMSE, height rRMSE of every
@@ -17,9 +18,10 @@ Cases (small, so the whole runs in a few minutes on a shared machine):
 * ``pine_plot.laz``: the real TLS plot, against its 16 stem rings counted by hand.
 * ``sim single tree``: one open-grown broadleaf, leaf-off, no ground (the simulator's meshed stem
   and branches are the volume truth): forestreg ``trees`` against ``sylva qsm``.
-* ``aRchi_Tree_2``: the real single TLS tree; :data:`TREEQSM_ARCHI` is TreeQSM's figure for it
-  (PyPI ``pytlidar`` 1.1.2, a Python port of TreeQSM, default inputs; run apart, it needs numba
-  0.61).
+* real single trees (aRchi, AdTree tree1 and tree7, TreeLS ``pine.laz``, rTwig ``cloud.txt``):
+  forestreg ``trees``, ``sylva qsm`` and the TreeQSM port side by side, total and stem volume.
+  :data:`TREEQSM` holds the TreeQSM port's figures for them (PyPI ``pytlidar`` 1.1.2, default
+  inputs from its ``define_input``; a benchmark reference only, run apart: it pins numba 0.61).
 
 The simulated clouds are cached under ``bench_out/trees_compare/``. Run from the repository root:
 ``python -m benchmarks.trees_compare`` (or through ``benchmarks/run.py --only trees``).
@@ -48,9 +50,15 @@ OUT = Path("bench_out") / "trees_compare"
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 RADIUS_M = 11.0
 MATCH_M = 0.5
-#: TreeQSM (pytlidar 1.1.2, default inputs) on aRchi_Tree_2_point_cloud.las: total volume (m3),
-#: DBH (m, its 1.3 m cylinder), height (m).
-TREEQSM_ARCHI = {"volume_m3": 0.0369, "dbh_m": 0.0727, "height_m": 6.20}
+#: The TreeQSM port (pytlidar 1.1.2, default inputs) on the real single trees: total and stem
+#: (trunk) volume (m3), DBH (m, its 1.3 m cylinder), height (m).
+TREEQSM = {
+    "aRchi_Tree_2_point_cloud.las": {"volume_m3": 0.0366, "stem_volume_m3": 0.0120, "dbh_m": 0.0649, "height_m": 6.20},
+    "AdTree_tree1.xyz": {"volume_m3": 0.2011, "stem_volume_m3": 0.0560, "dbh_m": 0.1596, "height_m": 5.71},
+    "AdTree_tree7.xyz": {"volume_m3": 0.1010, "stem_volume_m3": 0.0272, "dbh_m": 0.0774, "height_m": 5.24},
+    "pine.laz": {"volume_m3": 1.0400, "stem_volume_m3": 0.5941, "dbh_m": 0.3377, "height_m": 20.38},
+    "cloud.txt": {"volume_m3": 0.0234, "stem_volume_m3": 0.0108, "dbh_m": 0.0751, "height_m": 3.70},
+}
 #: Stem rings of pine_plot.laz counted by hand (m from the cloud's minimum corner; see
 #: tests/test_trees_platforms.py).
 PINE_PLOT_RINGS = [
@@ -61,7 +69,7 @@ PINE_PLOT_RINGS = [
 
 def sim_plot(out: Path = OUT) -> tuple[Path, list[dict[str, Any]]]:
     """The simulated 4-scan plot (LAZ) and its true trees; simulated once and cached."""
-    laz, truth = out / "sim_plot.laz", out / "sim_plot.json"
+    laz, truth = out / "sim_plot_dome.laz", out / "sim_plot_dome.json"
     if not (laz.exists() and truth.exists()):
         from scipy.spatial import cKDTree
 
@@ -69,7 +77,8 @@ def sim_plot(out: Path = OUT) -> tuple[Path, list[dict[str, Any]]]:
         from forestreg.engine.simulate import simulate_plot
 
         plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=3,
-                             angular_step_deg=0.35, size_m=30.0)
+                             angular_step_deg=0.35, size_m=30.0, scanner_options={"elevation_max_deg": 90.0},
+                             suppressed_clearance_m=0.5)
         pts = np.vstack([s.world_points() for s in plot.scans])
         ids = np.concatenate([s.object_ids for s in plot.scans])
         trees = []
@@ -148,7 +157,8 @@ def _sylva_qsm(sylva: str, cloud: Path, work: Path) -> tuple[dict[str, float], d
         m = re.search(rf"{key}:\s*([-0-9.eE+]+)", text)
         return float(m.group(1)) if m else math.nan
 
-    return {"wall_s": run.wall_s, "peak_mb": run.peak_mb, "status": run.status}, {"volume_m3": grab("total_volume_m3"), "dbh_m": grab("dbh_m")}
+    return {"wall_s": run.wall_s, "peak_mb": run.peak_mb, "status": run.status}, {
+        "volume_m3": grab("total_volume_m3"), "stem_volume_m3": grab("stem_volume_m3"), "dbh_m": grab("dbh_m")}
 
 
 def _plot_figures(rows: list[dict[str, str]], truth: list[dict[str, Any]], *, dbh_key: str, height_key: str, flagged=None) -> dict[str, Any]:
@@ -191,55 +201,90 @@ def _rings_found(rows: list[dict[str, str]], corner: np.ndarray) -> dict[str, An
     return {"true": len(rings), "found": int(sum(hit)), "false_stems": int(len(xy) - sum(matched))}
 
 
-def run(workdir: Optional[Path] = None) -> list[dict[str, Any]]:
-    """Every case, forestreg and Sylva in turn; one row per (case, tool)."""
+def _plots(sylva: Optional[str], work: Path) -> list[dict[str, Any]]:
+    """The simulated plot and the real ``pine_plot.laz``: forestreg ``trees`` beside Sylva."""
+    rows: list[dict[str, Any]] = []
+    laz, truth = sim_plot()
+    run_, fr = _forestreg(laz, work)
+    fig = _plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low)
+    fig["volume_m3"] = float(np.nansum([_num(r["volume_m3"]) for r in fr]))
+    rows.append({"case": "sim plot", "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status, **fig})
+    if sylva:
+        res, sy = _sylva_trees(sylva, laz, work)
+        rows.append({"case": "sim plot", "tool": "sylva ground + trees", **res,
+                     **_plot_figures(sy, truth, dbh_key="dbh", height_key="height")})
+
+    real = DATA / "pine_plot.laz"
+    if real.exists():
+        from forestreg.engine.io import read_scan
+
+        scan = read_scan(real)
+        corner = scan.points[:, :2].min(axis=0) + scan.origin_shift[:2]
+        run_, fr = _forestreg(real, work)
+        flagged = sum(1 for r in fr if r["flag"])
+        rows.append({"case": "pine_plot.laz (real)", "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb,
+                     "status": run_.status, **_rings_found(fr, corner), "flagged": flagged,
+                     "heights_unflagged": sum(1 for r in fr if not _height_low(r)),
+                     "volume_m3": float(np.nansum([_num(r["volume_m3"]) for r in fr]))})
+        if sylva:
+            res, sy = _sylva_trees(sylva, real, work)
+            rows.append({"case": "pine_plot.laz (real)", "tool": "sylva ground + trees", **res, **_rings_found(sy, corner)})
+    return rows
+
+
+def run(workdir: Optional[Path] = None, single_trees_only: bool = False) -> list[dict[str, Any]]:
+    """Every case (or the single trees only), forestreg and Sylva in turn; one row per (case, tool)."""
     sylva = sylva_command()
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="forestreg-trees-compare-") as tmp:
         work = Path(workdir or tmp)
         work.mkdir(parents=True, exist_ok=True)
-        laz, truth = sim_plot()
-        run_, fr = _forestreg(laz, work)
-        fig = _plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low)
-        fig["volume_m3"] = float(np.nansum([_num(r["volume_m3"]) for r in fr]))
-        rows.append({"case": "sim plot", "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status, **fig})
-        if sylva:
-            res, sy = _sylva_trees(sylva, laz, work)
-            rows.append({"case": "sim plot", "tool": "sylva ground + trees", **res,
-                         **_plot_figures(sy, truth, dbh_key="dbh", height_key="height")})
-
-        real = DATA / "pine_plot.laz"
-        if real.exists():
-            from forestreg.engine.io import read_scan
-
-            scan = read_scan(real)
-            corner = scan.points[:, :2].min(axis=0) + scan.origin_shift[:2]
-            run_, fr = _forestreg(real, work)
-            flagged = sum(1 for r in fr if r["flag"])
-            rows.append({"case": "pine_plot.laz (real)", "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb,
-                         "status": run_.status, **_rings_found(fr, corner), "flagged": flagged,
-                         "heights_unflagged": sum(1 for r in fr if not _height_low(r)),
-                         "volume_m3": float(np.nansum([_num(r["volume_m3"]) for r in fr]))})
-            if sylva:
-                res, sy = _sylva_trees(sylva, real, work)
-                rows.append({"case": "pine_plot.laz (real)", "tool": "sylva ground + trees", **res, **_rings_found(sy, corner)})
-
+        if not single_trees_only:
+            rows += _plots(sylva, work)
         laz, t = sim_single()
         singles = [("sim single tree", laz, t)]
-        archi = DATA / "aRchi_Tree_2_point_cloud.las"
-        if archi.exists():
-            singles.append(("aRchi_Tree_2 (real)", archi, {"treeqsm_" + k: v for k, v in TREEQSM_ARCHI.items()}))
+        for name, ref in TREEQSM.items():
+            if (DATA / name).exists():
+                singles.append((f"{name} (real)", DATA / name, {"treeqsm_" + k: v for k, v in ref.items()}))
         for case, cloud, ref in singles:
             run_, fr = _forestreg(cloud, work)
             r = fr[0] if len(fr) == 1 else {}
             rows.append({"case": case, "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status,
                          "trees": len(fr), "dbh_m": _num(r.get("dbh_m")), "height_m": _num(r.get("height_m")),
-                         "volume_m3": _num(r.get("volume_m3")), **{f"true_{k}": v for k, v in ref.items() if not k.startswith("treeqsm")},
+                         "volume_m3": _num(r.get("volume_m3")), "stem_volume_m3": _num(r.get("stem_volume_m3")),
+                         **{f"true_{k}": v for k, v in ref.items() if not k.startswith("treeqsm")},
                          **{k: v for k, v in ref.items() if k.startswith("treeqsm")}})
             if sylva:
                 res, q = _sylva_qsm(sylva, cloud, work)
                 rows.append({"case": case, "tool": "sylva qsm", **res, "trees": 1, **q})
+            if "treeqsm_volume_m3" in ref:
+                rows.append({"case": case, "tool": "TreeQSM port (pytlidar, stored)", "trees": 1, "dbh_m": ref["treeqsm_dbh_m"],
+                             "height_m": ref["treeqsm_height_m"], "volume_m3": ref["treeqsm_volume_m3"],
+                             "stem_volume_m3": ref["treeqsm_stem_volume_m3"]})
     return rows
+
+
+def single_tree_table(rows: list[dict[str, Any]]) -> str:
+    """The real single trees: total and stem volume of forestreg, ``sylva qsm`` and the TreeQSM
+    port side by side, each against the TreeQSM port (a Markdown table)."""
+    cases: dict[str, dict[str, dict[str, Any]]] = {}
+    for r in rows:
+        if r["case"].endswith("(real)") and ("stem_volume_m3" in r or r["tool"] == "sylva qsm"):
+            cases.setdefault(r["case"], {})[r["tool"].split(" (")[0]] = r
+    lines = ["| tree | forestreg total (stem) m3 | sylva qsm total (stem) m3 | TreeQSM port total (stem) m3 | forestreg / TreeQSM total, stem |",
+             "|---|---:|---:|---:|---:|"]
+    for case, by in cases.items():
+        fr, sy, tq = by.get("forestreg trees", {}), by.get("sylva qsm", {}), by.get("TreeQSM port", {})
+
+        def pair(r: dict[str, Any]) -> str:
+            return f"{_f(r.get('volume_m3'), '.3f')} ({_f(r.get('stem_volume_m3'), '.3f')})"
+
+        def pct(a: Any, b: Any) -> str:
+            return _f(100.0 * (_num(a) / _num(b) - 1.0) if _num(b) > 0 else math.nan, "+.0f") + " %"
+
+        lines.append(f"| {case.replace(' (real)', '')} | {pair(fr)} | {pair(sy)} | {pair(tq)} "
+                     f"| {pct(fr.get('volume_m3'), tq.get('volume_m3'))}, {pct(fr.get('stem_volume_m3'), tq.get('stem_volume_m3'))} |")
+    return "\n".join(lines)
 
 
 def _f(v: Any, fmt: str) -> str:
@@ -259,12 +304,11 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
         elif "heights_unflagged" in r:
             hr = f"- ({r['heights_unflagged']} unflagged, {r.get('flagged', 0)} trees flagged)"
         truth = ""
+        if r.get("stem_volume_m3") is not None and math.isfinite(_num(r.get("stem_volume_m3"))):
+            truth = f" (stem {r['stem_volume_m3']:.3f})"
         if "true_volume_m3" in r:
             truth = f" (true {r['true_volume_m3']:.3f})"
-        elif "treeqsm_volume_m3" in r:
-            truth = f" (TreeQSM {r['treeqsm_volume_m3']:.4f})"
-        dbh = _f(r.get("dbh_m"), ".3f") + (f" (true {r['true_dbh_m']:.3f})" if "true_dbh_m" in r else
-                                           f" (TreeQSM {r['treeqsm_dbh_m']:.3f})" if "treeqsm_dbh_m" in r else "")
+        dbh = _f(r.get("dbh_m"), ".3f") + (f" (true {r['true_dbh_m']:.3f})" if "true_dbh_m" in r else "")
         status = "" if r.get("status", 0) == 0 else f" (failed, status {r['status']})"
         lines.append(f"| {r['case']} | {r['tool']}{status} | {found} | {r.get('false_stems', '-')} | {_f(r.get('dbh_rrmse_pct'), '.1f')} | {hr} "
                      f"| {dbh} | {_f(r.get('height_m'), '.2f')} | {_f(r.get('volume_m3'), '.3f')}{truth} | {_f(r.get('wall_s'), '.0f')} "
@@ -278,9 +322,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, help="also write the rows to this JSON file")
     ap.add_argument("--workdir", type=Path, help="keep the outputs of every command here")
+    ap.add_argument("--single-trees", action="store_true", help="only the single trees (simulated and real)")
     args = ap.parse_args(argv)
-    rows = run(args.workdir)
+    rows = run(args.workdir, single_trees_only=args.single_trees)
     print(format_rows(rows))
+    print()
+    print(single_tree_table(rows))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1, default=float) + "\n")
     return 0

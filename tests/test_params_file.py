@@ -388,3 +388,32 @@ def test_icp_normal_neighbours_and_coarse_tolerance_come_from_the_file(tmp_path)
     runs = [icp(ref, ref[::3], start, statistics=False, **p.coarse_icp.keywords()) for p in (default.coregistration, loaded.coregistration)]
     assert runs[1].iterations < runs[0].iterations
     assert np.abs(runs[0].matrix - np.eye(4)).max() < 0.01  # the default converges
+
+
+def test_crown_reach_settings_come_from_the_file(tmp_path):
+    """[trees.segmentation] axis_dominance_dbh and dominance_ratio, and [trees] crown_reach_dbh,
+    reach the steps that use them: which stems' axes climb into the crowns, and the flag of a
+    stem within a thicker one's crown reach."""
+    from forestreg.engine.trees.inventory import _within_crown_reach
+    from forestreg.engine.trees.segmentation import axis_stems
+    from forestreg.engine.trees.stems import Stem
+
+    path = tmp_path / "p.toml"
+    path.write_text("[trees]\ncrown_reach_dbh = 12.0\n\n[trees.segmentation]\naxis_dominance_dbh = 2.0\ndominance_ratio = 1.1\n",
+                    encoding="utf-8")
+    default, trees = ProductParams().trees, load_params(path).trees
+
+    def stem(i, x, dbh):
+        return Stem(id=i, base=np.array([x, 0.0, 0.0]), axis=np.array([0.0, 0.0, 1.0]), radius_m=dbh / 2,
+                    point_indices=np.zeros(0, dtype=np.int64))
+
+    # a 20 cm stem 2 m from a 40 cm one (6 DBH: 2.4 m), a 23 cm stem 5 m from it
+    stems = [stem(1, 0.0, 0.4), stem(2, 2.0, 0.2), stem(3, -5.0, 0.23)]
+    seg = default.segmentation
+    assert [s.id for s in axis_stems(stems, seg.axis_dominance_dbh, seg.dominance_ratio)] == [1, 3]
+    seg = trees.segmentation
+    assert [s.id for s in axis_stems(stems, seg.axis_dominance_dbh, seg.dominance_ratio)] == [1, 2, 3]
+    # by default the 20 cm stem grows without its axis (no flag) and 5 m is beyond 7 DBH (2.8 m); with
+    # the file its axis climbs, and 2 m is within 12 DBH (4.8 m): flagged
+    assert _within_crown_reach(stems, default) == {}
+    assert set(_within_crown_reach(stems, trees)) == {2}

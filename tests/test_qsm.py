@@ -227,3 +227,32 @@ def test_real_pine_stem_volume_and_dbh() -> None:
     assert abs(model_volume / ref_volume - 1.0) < 0.1, f"{model_volume:.4f} vs {ref_volume:.4f} m3"
     assert 0.2 < m.stem_volume_m3 < 1.0  # a 25 cm pine, 13 m of stem modelled
     assert m.height_m > 10.0
+
+
+def test_pipe_caps_past_a_fork() -> None:
+    """Past a fork a filled-in radius keeps the parent's cross-section less the side branches';
+    a fit of the cylinder's own points stands; radii never increase."""
+    from forestreg.engine.trees.qsm import pipe_caps
+
+    r = np.array([0.10, 0.09, 0.085, 0.08, 0.07, 0.03])
+    good = np.array([True, True, False, False, True, False])
+    kids = [[], [0.05, 0.05], [], [], [], []]
+    out = pipe_caps(r, good, kids, 0.002)
+    cap = math.sqrt(0.09**2 - 2 * 0.05**2)
+    assert out[:2] == pytest.approx([0.10, 0.09])
+    assert out[2] == pytest.approx(cap) and out[3] == pytest.approx(cap)  # filled in: capped
+    assert out[4] == pytest.approx(cap)  # never thicker than the cylinder below
+    assert out[5] == pytest.approx(0.03)
+    assert np.all(np.diff(out) <= 1e-12)
+    # many side branches: never below the share of one of n + 1 equal forks
+    out = pipe_caps(np.array([0.1, 0.1]), np.array([True, False]), [[0.1, 0.1, 0.1], []], 0.002)
+    assert out[1] == pytest.approx(0.1 / 2.0)
+
+
+def test_stem_lengthened_down_to_a_given_base(single_tree: dict[str, Any]) -> None:
+    """A stem whose lowest points were cut off is lengthened down its axis to the given base."""
+    wood = single_tree["wood"]
+    z0 = float(wood[:, 2].min())
+    m = fit_qsm(wood[wood[:, 2] > z0 + 0.5], base=[*np.median(wood[wood[:, 2] < z0 + 1.0, :2], axis=0), z0])
+    assert m.meta["stem_extended_to_base_m"] > 0.4
+    assert m.base_z == pytest.approx(z0, abs=0.02)

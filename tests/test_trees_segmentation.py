@@ -27,7 +27,7 @@ from forestreg.engine.trees.segmentation import (
     segment_trees,
     tree_completeness,
 )
-from forestreg.engine.trees.stems import DbhMeasurement, detect_stems, measure_dbh
+from forestreg.engine.trees.stems import DbhMeasurement, Stem, detect_stems, measure_dbh
 from test_trees_stems import PlotData  # noqa: E402 - the merged plot both test files measure
 
 WOOD_AND_LEAVES = (Material.TRUNK, Material.BRANCH, Material.LEAF)
@@ -289,3 +289,22 @@ def test_real_pine_plot_one_tree_per_stem(shared_data) -> None:
     print(f"pine_plot: points per tree {counts.tolist()}, heights {np.round(heights, 1).tolist()}")
     assert (counts > 1000).all()  # one tree per stem, each with its crown
     assert all(13.0 <= v <= 20.5 for v in heights)
+
+
+def test_a_thin_stem_in_a_thick_ones_crown_reach_gets_no_axis() -> None:
+    """Axes are continued into the crowns for every stem but those with a thicker stem closer
+    than axis_dominance_dbh of its DBH (0: every stem)."""
+    from forestreg.engine.trees.segmentation import axis_stems
+
+    def stem(i: int, x: float, dbh: float) -> Stem:
+        return Stem(id=i, base=np.array([x, 0.0, 0.0]), axis=np.array([0.0, 0.0, 1.0]), radius_m=dbh / 2,
+                    point_indices=np.zeros(0, dtype=np.int64))
+
+    stems = [stem(1, 0.0, 0.5), stem(2, 2.5, 0.15), stem(3, 3.5, 0.2), stem(4, 10.0, 0.1)]
+    # 2 stands 2.5 m from a 0.5 m stem (reach 3 m), 3 stands 3.5 m from it; 4 is alone
+    assert [s.id for s in axis_stems(stems, 6.0)] == [1, 3, 4]
+    assert [s.id for s in axis_stems(stems, 8.0)] == [1, 4]
+    assert [s.id for s in axis_stems(stems, 0.0)] == [1, 2, 3, 4]
+    # a neighbour of about the same DBH is co-dominant: both axes continued
+    assert [s.id for s in axis_stems([stem(1, 0.0, 0.24), stem(2, 1.4, 0.23)], 8.0)] == [1, 2]
+    assert [s.id for s in axis_stems([stem(1, 0.0, 0.24), stem(2, 1.4, 0.14)], 8.0, ratio=1.25)] == [1]

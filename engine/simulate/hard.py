@@ -5,6 +5,8 @@ Scenes (flat ground of the ``planted_conifer`` preset, trees placed by hand):
 - :func:`big_tree_scene`: a buttressed giant (DBH 1.5 m, 48 m, flare doubling the radius at the
   foot up to 1.2 m), ordinary trees and a thin one (DBH 6 cm).
 - :func:`single_tree_scene`: one open-grown broadleaf with a wide crown (a park or street tree).
+- :func:`forked_tree_scene`: a small broadleaf whose trunk forks into three leaders at 1.2 m.
+- :func:`clipped_conifer_scene`: a conifer in full needle, to be cut to a column around its stem.
 - :func:`suppressed_scene`: dominant broadleaves (26 m) with small suppressed trees (8 m) under
   their crowns: the small trees' tops are hidden in or beside a neighbour's crown.
 
@@ -26,7 +28,7 @@ import numpy as np
 
 from .scene import BROADLEAF, CONIFER, ForestScene, Tree, make_scene
 
-__all__ = ["big_tree_scene", "leaf_off", "mls_ghosting", "single_tree_scene", "suppressed_scene"]
+__all__ = ["big_tree_scene", "clipped_conifer_scene", "forked_tree_scene", "leaf_off", "mls_ghosting", "single_tree_scene", "suppressed_scene"]
 
 
 def _with_trees(base: ForestScene, trees: list[Tree]) -> ForestScene:
@@ -79,6 +81,30 @@ def single_tree_scene(seed: int = 0, size_m: float = 24.0) -> ForestScene:
     base = make_scene("planted_conifer", seed=seed, size_m=size_m, slope_deg=(0.0, 0.0))
     tree = Tree(1, 0.0, 0.0, 0.0, dbh_m=0.42, height_m=12.0, crown_base_m=3.0, crown_radius_m=5.0, shape=BROADLEAF,
                 top_radius_fraction=0.3, stem_height_fraction=0.75, n_branches=8, leaf_area_density=0.3)
+    return _with_trees(base, [tree])
+
+
+def forked_tree_scene(seed: int = 0, size_m: float = 16.0) -> ForestScene:
+    """One small open-grown broadleaf whose trunk forks at 1.2 m into three leaders (a garden or
+    street tree of the kind AdTree and aRchi clouds show): trunk 0.18 m thick below the fork, 6 m
+    high, crown radius 2 m from 1.5 m, nine main branches on the leaders. Its DBH is not measurable
+    (breast height lies above the fork); the wood volume is the truth."""
+    base = make_scene("planted_conifer", seed=seed, size_m=size_m, slope_deg=(0.0, 0.0))
+    tree = Tree(1, 0.0, 0.0, 0.0, dbh_m=0.18, height_m=6.0, crown_base_m=1.5, crown_radius_m=2.0, shape=BROADLEAF,
+                top_radius_fraction=1.01, stem_height_fraction=1.2 / 6.0, flare=0.1, n_branches=9, leaf_area_density=0.3,
+                fork_leaders=3)
+    return _with_trees(base, [tree])
+
+
+def clipped_conifer_scene(seed: int = 0, size_m: float = 16.0) -> ForestScene:
+    """One conifer in full needle (DBH 0.26 m, 20 m, crown from 9 m, radius 2.2 m, twelve main
+    branches, leaf area density 0.5): cut to a column a few metres wide around its stem it is
+    the single-stem clouds of TreeLS (``pine.laz``), whose crowns are clipped; its needles
+    surround the thin branches, so a cylinder fitted to needles instead of wood is far too thick
+    (the truth: :func:`~.mesh.tree_wood_volume`, :func:`~.mesh.branch_wood_in_box`)."""
+    base = make_scene("planted_conifer", seed=seed, size_m=size_m, slope_deg=(0.0, 0.0))
+    tree = Tree(1, 0.0, 0.0, 0.0, dbh_m=0.26, height_m=20.0, crown_base_m=9.0, crown_radius_m=2.2, shape=CONIFER,
+                n_branches=12, leaf_area_density=0.5)
     return _with_trees(base, [tree])
 
 

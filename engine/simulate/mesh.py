@@ -328,6 +328,8 @@ BRANCH_TIP_RADIUS_M = 0.008
 def _branches(tree: Tree, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
     """The main branches of ``tree`` as meshed: (start, end, start radius, tip radius), drawn from
     ``rng`` (the tree's own stream, see :func:`build_scene_mesh`)."""
+    if tree.fork_leaders > 0:
+        return _forked_branches(tree, rng)
     out = []
     length = tree.height_m - tree.crown_base_m
     stem_top_h = tree.stem_height_fraction * tree.height_m
@@ -349,6 +351,44 @@ def _branches(tree: Tree, rng: np.random.Generator) -> list[tuple[np.ndarray, np
     return out
 
 
+def _forked_branches(tree: Tree, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
+    """A forked trunk's wood above the fork: ``tree.fork_leaders`` leaders from the stem top (each
+    1/n of the stem's cross-section there, 62-75 deg above the horizontal, up to the tree's
+    height), then the main branches, each from a point of a leader (a quarter to four fifths up
+    it), 20-45 deg above the horizontal, outward, a third of the leader's radius there. The
+    leaders come first."""
+    n = tree.fork_leaders
+    s, r = tree.profile()
+    top = tree.point_at(s[-1])
+    r_leader = float(r[-1]) / math.sqrt(n)
+    rise = tree.height_m - float(top[2] - tree.z)
+    leaders = []
+    az0 = rng.uniform(0.0, 2.0 * math.pi)
+    for k in range(n):
+        el = math.radians(rng.uniform(62.0, 75.0))
+        az = az0 + 2.0 * math.pi * k / n + rng.uniform(-0.3, 0.3)
+        d = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        leaders.append((top, top + rise / math.sin(el) * d, r_leader, BRANCH_TIP_RADIUS_M, az))
+    out = [(p0, p1, rb, rt) for p0, p1, rb, rt, _ in leaders]
+    for j in range(tree.n_branches):
+        p0, p1, rb, rt, az = leaders[j % n]
+        f = rng.uniform(0.25, 0.8)
+        el = math.radians(rng.uniform(20.0, 45.0))
+        a = az + rng.uniform(-1.0, 1.0)
+        d = np.array([math.cos(el) * math.cos(a), math.cos(el) * math.sin(a), math.sin(el)])
+        r_at = rb + (rt - rb) * f
+        blen = tree.crown_radius_m * rng.uniform(0.4, 0.7) / max(math.cos(el), 0.3)
+        out.append((p0 + f * (p1 - p0), p0 + f * (p1 - p0) + blen * d, float(max(r_at / 3.0, 0.01)), BRANCH_TIP_RADIUS_M))
+    return out
+
+
+def _branch_segments(tree: Tree, k: int) -> int:
+    """Sides of the tube meshing branch ``k`` of ``tree``: 24 for a forked trunk's leaders (they
+    carry much of the wood, so their polygon must be nearly round: 1 % below the circle's area),
+    8 for the others."""
+    return 24 if k < tree.fork_leaders else 8
+
+
 def tree_wood_volume(scene: ForestScene, tree: Tree) -> tuple[float, float]:
     """(stem, branch) wood volume (m^3) of ``tree`` as :func:`build_scene_mesh` meshes it: the stem
     profile (frusta between its sections, from the ground up) and the main branches (frusta); the
@@ -362,6 +402,21 @@ def tree_wood_volume(scene: ForestScene, tree: Tree) -> tuple[float, float]:
     for p0, p1, rb, rt in _branches(tree, rng):
         branch += math.pi * float(np.linalg.norm(p1 - p0)) * (rb * rb + rb * rt + rt * rt) / 3.0
     return stem, branch
+
+
+def branch_wood_in_box(scene: ForestScene, tree: Tree, half_width_m: float, samples: int = 2001) -> float:
+    """Wood volume (m^3) of the main branches of ``tree`` whose axis lies within ``half_width_m``
+    of its stem base in x and in y: the branch wood of a cloud clipped to that column (each
+    branch's frustum integrated along its axis over the part inside)."""
+    rng = np.random.default_rng([scene.seed, 1, tree.id])
+    out = 0.0
+    t = np.linspace(0.0, 1.0, samples)
+    for p0, p1, rb, rt in _branches(tree, rng):
+        xyz = p0 + np.outer(t, p1 - p0)
+        r = rb + (rt - rb) * t
+        inside = (np.abs(xyz[:, 0] - tree.x) <= half_width_m) & (np.abs(xyz[:, 1] - tree.y) <= half_width_m)
+        out += float(np.trapezoid(math.pi * r**2 * inside, t * float(np.linalg.norm(p1 - p0))))
+    return out
 
 
 def build_scene_mesh(
@@ -402,8 +457,8 @@ def build_scene_mesh(
         r = np.concatenate([[r[0]], r])
         v, t = tube(tree.point_at(s), r, trunk_segments, cap_end=True)
         b.add(Material.TRUNK, v, t, tree.id)
-        for p0, p1, rb, rt in _branches(tree, rng):
-            v, t = tube(np.vstack([p0, p1]), np.array([rb, rt]), 8, cap_end=False)
+        for k, (p0, p1, rb, rt) in enumerate(_branches(tree, rng)):
+            v, t = tube(np.vstack([p0, p1]), np.array([rb, rt]), _branch_segments(tree, k), cap_end=False)
             b.add(Material.BRANCH, v, t, tree.id)
         # leaves (triangles made below, all trees at once)
         n_leaf = int(round(tree.leaf_area_density * crown_volume(tree) / _leaf_area(leaf_side)))

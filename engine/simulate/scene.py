@@ -231,6 +231,10 @@ class Tree:
     n_branches: int = 4
     #: leaf area density of the crown, m^2 of leaf per m^3 of crown
     leaf_area_density: float = 0.5
+    #: leaders the stem forks into at its top (a forked trunk: the stem ends at the fork, each
+    #: leader takes 1/n of its cross-section and reaches the tree's height; the main branches
+    #: grow from the leaders); 0: an ordinary stem
+    fork_leaders: int = 0
 
     @property
     def axis(self) -> np.ndarray:
@@ -262,7 +266,11 @@ class Tree:
         r_bh = self.dbh_m / 2.0
         length = self.stem_length_m
         r_top = max(self.top_radius_fraction * r_bh, 0.005)
-        slope = (r_bh - r_top) / max(length - BREAST_HEIGHT_M, 1e-6)  # taper per metre
+        below = length - BREAST_HEIGHT_M
+        if below < -1e-6:  # a stem ending below breast height (a trunk forked low): the same line
+            slope = (r_bh - r_top) / below
+        else:
+            slope = (r_bh - r_top) / max(below, 1e-6)  # taper per metre
 
         def lin(s: float) -> float:
             return r_bh + (BREAST_HEIGHT_M - s) * slope

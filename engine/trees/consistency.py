@@ -7,7 +7,8 @@ obtained and how far to trust it.
   leaves to eigenvalue features).
 - :func:`reconcile_stem`: the cylinder model's stem cylinders take the stem curve's radius where the
   curve is measured; above it their radii are kept within 0.85-1.5 times a linear taper (a cone) from the
-  curve's last section to zero at the tree top; a stem that ends below 90 % of the height is
+  curve's last section to zero at the tree top, past a fork (a branch at least half as thick as
+  the stem) from the leader's share of that section's cross-section; a stem that ends below 90 % of the height is
   completed to the top by tapering cylinders (marked ``added``); no branch cylinder is thicker
   than its parent.
 - :func:`form_factor_check`: the wood volume against ``f * BA * H`` (BA basal area from the DBH,
@@ -139,6 +140,7 @@ def reconcile_stem(model: CylinderModel, stem: Stem, curve: StemCurve, height_m:
         mid = model.start[stem_idx] + 0.5 * model.length_m[stem_idx, None] * model.axis[stem_idx]
         s_mid = (mid - stem.base) @ axis
         h_top = max(float(height_m), s_hi + 0.5) if math.isfinite(height_m) else s_hi + 0.5
+        fork_s, fork_r = _leaders(model, stem_idx, s_mid)
         for k, s in zip(stem_idx, s_mid):
             old = radius[k]
             if s_lo <= s <= s_hi:
@@ -147,7 +149,10 @@ def reconcile_stem(model: CylinderModel, stem: Stem, curve: StemCurve, height_m:
                 first = 0.5 * float(d_good[0])
                 new = float(np.clip(old, first, 1.3 * first))
             else:
-                ref = r_top * max(h_top - s, 0.0) / max(h_top - s_hi, 1e-6)
+                # past a fork the stem goes on as one leader: its share of the trunk's cross-section
+                left = fork_r[fork_s < s]
+                r_on = math.sqrt(max(r_top**2 - float(np.sum(left**2)), r_top**2 / (len(left) + 1))) if len(left) else r_top
+                ref = r_on * max(h_top - s, 0.0) / max(h_top - s_hi, 1e-6)
                 new = float(np.clip(old, 0.85 * ref, 1.5 * ref + 0.005))
             new = max(new, 0.002)
             if abs(new - old) > 0.1 * max(old, 1e-6):
@@ -166,6 +171,21 @@ def reconcile_stem(model: CylinderModel, stem: Stem, curve: StemCurve, height_m:
     meta["stem_cylinders_from_curve"] = changed
     meta["stem_cylinders_added_to_top"] = n_added
     return dataclasses.replace(model, radius_m=radius, added=added, meta=meta), changed
+
+
+def _leaders(model: CylinderModel, stem_idx: np.ndarray, s_mid: np.ndarray, ratio: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Where the stem forks: the distance along the stem axis (of the stem cylinder's middle) and
+    the base radius of every branch growing from a stem cylinder with at least ``ratio`` times
+    that cylinder's radius (a co-dominant leader, not a side branch)."""
+    pos = {int(k): float(s) for k, s in zip(stem_idx, s_mid)}
+    fs, fr = [], []
+    first = np.flatnonzero((model.branch_order == 1) & (model.position_in_branch == 1))
+    for c in first:
+        par = int(model.parent[c])
+        if par in pos and model.radius_m[c] >= ratio * model.radius_m[par]:
+            fs.append(pos[par])
+            fr.append(float(model.radius_m[c]))
+    return np.asarray(fs, dtype=np.float64), np.asarray(fr, dtype=np.float64)
 
 
 def _complete_stem(model: CylinderModel, stem: Stem, height_m: float, step_m: float = 1.0) -> tuple[CylinderModel, int]:

@@ -35,7 +35,7 @@ from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconci
 from .crown import CrownMeasurement, CrownParams, measure_crown, top_over_stem
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
-from .segmentation import CompletenessParams, SegmentationParams, segment_trees, top_layer, tree_completeness
+from .segmentation import CompletenessParams, SegmentationParams, axis_stems, segment_trees, top_layer, tree_completeness
 from .single import SingleTreeEvidence, SingleTreeParams, base_stem, single_tree_evidence
 from .stems import DbhMeasurement, NoisyStemParams, Stem, StemCurve, StemParams, detect_stems_adaptive, measure_stems
 
@@ -78,6 +78,9 @@ class TreeParams(Params):
     max_slenderness: float = _p(140.0, "1", 10.0, 1000.0, "height over DBH (both in metres) beyond which the height is flagged as unsure: the top may be a neighbour's")
     #: points of thicker neighbours within 1 m of a tree's top (and not more than 0.5 m below it)
     shared_top_min_points: int = _p(6, "points", 1, 10000, "points of thicker neighbours around a tree's top (within 1 m, not more than 0.5 m below it) from which the top is flagged as possibly the neighbour's")
+    #: a thinner stem this close to a thicker one may stand within that tree's crown; closer
+    #: than segmentation.axis_dominance_dbh its axis is not continued (it grows from its own points)
+    crown_reach_dbh: float = _p(7.0, "DBH", 0.0, 100.0, "a stem whose axis is continued into the crowns, closer than this many of a thicker stem's DBH to it, has its height flagged: its top may be in that tree's crown (0 = no such flag)")
     #: the radius around a position clicked in an edit (add a tree, split a tree)
     stem_search_radius_m: float = _p(1.0, "m", 0.1, 10.0, "radius around a position given in an edit (add, split) searched for a stem")
 
@@ -424,6 +427,7 @@ def _crowns_timed(
     del order
     columns = ColumnIndex(p, 1.0)  # for the disc queries of both below
     shared = _shared_tops(p, labels, stems, crowns, columns, params.shared_top_min_points)
+    shared.update({k: v for k, v in _within_crown_reach(stems, params).items() if k not in shared})
     timings["crowns_s"] = time.perf_counter() - t
     return crowns, shared, ground_near_stems(p, ground, stems, params.ground_near_stem_m, columns)
 
@@ -644,6 +648,26 @@ def _lowest_stem_point(tree_pts: np.ndarray, stem: Stem) -> float:
     radial = np.linalg.norm(d - s[:, None] * stem.axis, axis=1)
     near = (radial <= stem.radius_m + 0.1) & (s <= 2.0)
     return float(tree_pts[near, 2].min()) if near.any() else math.nan
+
+
+def _within_crown_reach(stems: Sequence[Stem], params: TreeParams) -> dict[int, str]:
+    """Trees whose stem axis was continued up into the crowns (:func:`.segmentation.axis_stems`)
+    while a thicker stem (by :attr:`.segmentation.SegmentationParams.dominance_ratio`) stands
+    within :attr:`TreeParams.crown_reach_dbh` of its DBH: the axis
+    may have climbed into that tree's crown, so the top found may be that crown's. Returns
+    {tree id: flag}."""
+    if params.crown_reach_dbh <= 0 or len(stems) < 2:
+        return {}
+    out: dict[int, str] = {}
+    ratio = params.segmentation.dominance_ratio
+    for s in axis_stems(stems, params.segmentation.axis_dominance_dbh, ratio):
+        near = [(math.hypot(o.x - s.x, o.y - s.y), o) for o in stems
+                if o.radius_m >= ratio * s.radius_m and math.hypot(o.x - s.x, o.y - s.y) < params.crown_reach_dbh * 2.0 * o.radius_m]
+        if near:
+            d, o = min(near, key=lambda t: t[0])
+            out[s.id] = (f"stem {d:.1f} m from thicker tree {o.id} ({200 * o.radius_m:.0f} cm), within its crown's reach: "
+                         f"the top may be in that tree's crown (height unsure)")
+    return out
 
 
 def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crowns: dict[int, CrownMeasurement],

@@ -39,7 +39,11 @@ does the same in our own way, in these steps (each a small function):
 6. **taper** (:func:`taper_radii`): fits far off the branch's robust taper line are treated as
    poor, radii never increase along a branch (weighted isotonic regression of the good fits),
    the top beyond the last good fit follows the taper line, and a child is never thicker than
-   the cylinder it grows from.
+   the cylinder it grows from. A forked trunk (a branch carrying at least half the points the
+   stem carries on above it) has its stem taper judged apart below and above the fork; past it
+   the stem, the largest fork, keeps at least an equal share of the trunk's cross-section, and
+   its filled-in radii no more than the trunk's cross-section less its side branches' (the pipe
+   model). With a given base, a stem whose lowest points were lost is lengthened down to it.
 
 Conventions: metres; points in any frame with z up (the stem base is the lowest part unless a base
 point is given); branch 0 is the stem (order 0); a cylinder's ``parent`` is the cylinder it grows
@@ -954,6 +958,92 @@ def taper_radii(
     return np.clip(out, lo_r, max(cap, lo_r)), keep
 
 
+def _stem_down_to_base(
+    start: np.ndarray, axis: np.ndarray, length: np.ndarray, branch: np.ndarray, base: np.ndarray, max_gap_m: float = 1.5
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The first stem cylinder lengthened down its axis to the given base's height when the
+    model's stem starts above it (the foot of a stem lost to the ground filter or to the
+    leaf-wood separation; up to ``max_gap_m``, on a stem within 60 degrees of vertical). Returns
+    the starts, the lengths and the length added (m)."""
+    stem = np.flatnonzero(branch == 0)
+    if len(stem) == 0:
+        return start, length, 0.0
+    first = int(stem[0])
+    a = axis[first]
+    gap = float(start[first, 2] - base[2])
+    if a[2] < 0.5 or gap <= 0.0 or gap > max_gap_m:
+        return start, length, 0.0
+    extra = gap / float(a[2])
+    start, length = start.copy(), length.copy()
+    start[first] = start[first] - extra * a
+    length[first] += extra
+    return start, length, extra
+
+
+def _stem_forks(branch: np.ndarray, parent: np.ndarray, n_points: np.ndarray, share: float = 0.5) -> set[int]:
+    """The stem cylinders where the trunk forks: a branch grows from them whose points (with its
+    own branches') are at least ``share`` of those the stem carries on above it (with its
+    branches): a co-dominant leader, not a side branch."""
+    n_b = int(branch.max()) + 1
+    own = np.bincount(branch, weights=n_points, minlength=n_b)
+    first = np.array([int(np.flatnonzero(branch == b)[0]) for b in range(n_b)])
+    parent_b = np.where(parent[first] >= 0, branch[np.maximum(parent[first], 0)], -1)
+    sub = own.copy()
+    for b in range(n_b - 1, 0, -1):  # parents come before their children
+        if parent_b[b] >= 0:
+            sub[parent_b[b]] += sub[b]
+    stem = np.flatnonzero(branch == 0)
+    at = {int(k): [] for k in stem}
+    for b in range(1, n_b):
+        if parent_b[b] == 0:
+            at[int(parent[first[b]])].append(b)
+    above = 0.0
+    forks: set[int] = set()
+    for k in stem[::-1]:  # from the top down: what the stem carries above each cylinder
+        kids = at[int(k)]
+        if kids and above > 0 and max(sub[c] for c in kids) >= share * above:
+            forks.add(int(k))
+        above += float(n_points[k]) + float(sum(sub[c] for c in kids))
+    return forks
+
+
+def _child_base_radii(branch: np.ndarray, parent: np.ndarray, radius: np.ndarray, good: np.ndarray) -> dict[int, list[float]]:
+    """For each cylinder that branches fork from, the base radii of those branches as their own
+    fits show them (before any taper): the median of the good fits among each branch's first
+    three cylinders, else its first fit's rough radius; never more than the parent's fit."""
+    out: dict[int, list[float]] = {}
+    for b in np.unique(branch):
+        idx = np.flatnonzero(branch == b)
+        at = int(parent[idx[0]])
+        if at < 0:
+            continue
+        first = idx[:3]
+        fits = radius[first][good[first]]
+        r = float(np.median(fits)) if len(fits) else float(radius[idx[0]])
+        out.setdefault(at, []).append(min(r, float(radius[at])))
+    return out
+
+
+def pipe_caps(radius: np.ndarray, good: np.ndarray, children: Sequence[Sequence[float]], min_radius: float) -> np.ndarray:
+    """Radii of one branch's cylinders (base to tip) whose filled-in values (``good`` False: no
+    fit of their own, the taper's) are held to what the pipe model leaves past each fork: beyond
+    a cylinder with side branches of base radii ``children[j]``, the branch keeps the cross-section
+    area of that cylinder less theirs (at least the share of one of ``len(children[j]) + 1``
+    equal forks). A forked trunk's leader is not given the trunk's taper. Radii still never
+    increase along the branch."""
+    out = np.asarray(radius, dtype=np.float64).copy()
+    cap = math.inf
+    for j in range(len(out)):
+        if not good[j] and out[j] > cap:
+            out[j] = max(cap, min_radius)
+        cap = out[j] if good[j] else min(cap, out[j])
+        kids = children[j]
+        if kids:
+            area = out[j] ** 2 - float(np.sum(np.square(kids)))
+            cap = min(cap, math.sqrt(max(area, out[j] ** 2 / (len(kids) + 1))))
+    return np.minimum.accumulate(out)
+
+
 # --------------------------------------------------------------------------------------------
 # The whole model
 # --------------------------------------------------------------------------------------------
@@ -977,13 +1067,22 @@ def _node_geometry(points: np.ndarray, node_of_point: np.ndarray, n_nodes: int) 
     return centroid, median, count
 
 
-def _pieces(chain: np.ndarray, node_radius: np.ndarray, shell_width: float, params: QsmParams) -> list[np.ndarray]:
-    """Cut a branch (node chain) into runs of nodes about ``cylinder_relative_length`` radii long."""
+def _pieces(
+    chain: np.ndarray, node_radius: np.ndarray, shell_width: float, params: QsmParams, node_count: Optional[np.ndarray] = None
+) -> list[np.ndarray]:
+    """Cut a branch (node chain) into runs of nodes about ``cylinder_relative_length`` radii long;
+    with ``node_count`` (points per node), a run on a sparsely sampled branch grows (up to
+    ``max_cylinder_length_m``) until it holds ``min_fit_points`` points, so a thin branch far from
+    the scanner is fitted to its own points rather than filled in from its thicker, denser parts."""
     out = []
     i = 0
+    longest = max(1, int(round(params.max_cylinder_length_m / shell_width)))
     while i < len(chain):
         target = float(np.clip(params.cylinder_relative_length * node_radius[chain[i]], shell_width, params.max_cylinder_length_m))
         k = max(1, int(round(target / shell_width)))
+        if node_count is not None:
+            while k < longest and i + k < len(chain) and int(node_count[chain[i : i + k]].sum()) < params.min_fit_points:
+                k += 1
         out.append(chain[i : i + k])
         i += k
     if len(out) > 1 and len(out[-1]) * 2 < len(out[-2]):  # no stub at the tip
@@ -1037,7 +1136,7 @@ def _fit_branches(
     cyl_of_node = np.full(n_nodes, -1, dtype=np.int64)
     up = np.array([0.0, 0.0, 1.0])
     for b, chain in enumerate(seg.branches):
-        pieces = _pieces(chain, node_r, shell, params)
+        pieces = _pieces(chain, node_r, shell, params, node_count)
         fork = int(seg.branch_fork_node[b])
         fits: list[CylinderFit] = []
         first = 0
@@ -1191,19 +1290,38 @@ def fit_qsm(
     n_fit = np.array([r["n"] for r in rows], dtype=np.float64)
 
     progress(0.9, "taper")
+    child_base = _child_base_radii(branch, parent, radius, good)
+    forks = _stem_forks(branch, parent, n_fit)
     for b in range(len(seg.branches)):
         idx = np.flatnonzero(branch == b)
         first_parent = parent[idx[0]]
         cap = float(radius[first_parent]) if (first_parent >= 0 and params.enforce_taper) else float("inf")
-        from_base = np.cumsum(length[idx]) - 0.5 * length[idx]
-        radius[idx], good[idx] = taper_radii(
-            radius[idx], good[idx], coverage[idx] * length[idx], from_base, float(length[idx].sum()), cap, params
-        )
+        # a forked trunk: the stem's taper is judged apart below and above each fork
+        parts = np.split(idx, [j + 1 for j in range(len(idx) - 1) if int(idx[j]) in forks]) if b == 0 else [idx]
+        floor = 0.0
+        for part in parts:
+            from_base = np.cumsum(length[part]) - 0.5 * length[part]
+            radius[part], good[part] = taper_radii(
+                radius[part], good[part], coverage[part] * length[part], from_base, float(length[part].sum()), cap, params
+            )
+            if radius[part[0]] < floor:  # the stem goes on as the largest fork: at least an equal share
+                radius[part] = np.minimum(radius[part] * (floor / radius[part[0]]), cap)
+            at = int(part[-1])
+            cap = float(radius[at]) if params.enforce_taper else cap
+            floor = float(radius[at]) / math.sqrt(len(child_base.get(at, [])) + 1.0)
+        if params.enforce_taper and b == 0:
+            radius[idx] = pipe_caps(radius[idx], good[idx], [child_base.get(int(k), []) for k in idx], params.min_radius_m)
+
+    start = np.array([r["start"] for r in rows]).reshape(k, 3)
+    axis = np.array([r["axis"] for r in rows]).reshape(k, 3)
+    to_base = 0.0
+    if base_pt is not None:
+        start, length, to_base = _stem_down_to_base(start, axis, length, branch, base_pt)
 
     progress(1.0, "cylinder model done")
     return CylinderModel(
-        start=np.array([r["start"] for r in rows]).reshape(k, 3),
-        axis=np.array([r["axis"] for r in rows]).reshape(k, 3),
+        start=start,
+        axis=axis,
         length_m=length,
         radius_m=radius,
         parent=parent,
@@ -1223,6 +1341,7 @@ def fit_qsm(
             "shell_width_m": float(shell),
             "neighbour_distance_m": float(np.median(neighbour_m)),
             "thinning_m": float(params.thinning_m),
+            "stem_extended_to_base_m": float(to_base),
             "breast_height_m": float(params.breast_height_m),
         },
     )

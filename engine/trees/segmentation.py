@@ -13,7 +13,12 @@ Method (paper sec. 4.3.1: stem detection, then the crowns)
    Each stem's axis is continued upward as a chain of graph nodes (one per voxel length, linked
    to the voxels around the axis) for as long as points lie around it with gaps no longer than
    ``axis_max_gap_m``: the stem inside a crown is often hidden by foliage, and without its axis
-   a crown would be reached only through a neighbour's.
+   a crown would be reached only through a neighbour's. A thinner stem standing within a
+   thicker one's crown reach (at least ``dominance_ratio`` times thinner, and closer than
+   ``axis_dominance_dbh`` times the thicker stem's DBH:
+   :func:`axis_stems`) gets no such axis: it would carry the tree up through the thicker tree's
+   crown above it and take that crown's column for its own (a suppressed tree measured up to
+   its neighbour's top); it grows from its own points only.
 3. One multi-source shortest-path search (Dijkstra) from all seeds at once gives every reachable
    voxel the stem it reaches at least cost: growth goes up each stem along connected geometry,
    and where two crowns touch, each part goes to the tree it is nearer to *through the tree*,
@@ -62,6 +67,8 @@ class SegmentationParams(Params):
     link_distance_m: float = param_field(0.3, "m", 0.02, 3.0, "Voxels whose centroids are closer than this are linked")
     axis_capture_m: float = param_field(0.5, "m", 0.0, 5.0, "A stem's axis is continued upward while points lie within its radius plus this of the axis...")
     axis_max_gap_m: float = param_field(3.0, "m", 0.0, 50.0, "...with gaps (occluded stem) of at most this length; 0 = no axis continuation")
+    axis_dominance_dbh: float = param_field(6.0, "DBH", 0.0, 100.0, "...but not for a stem with a thicker stem closer than this many of the thicker stem's DBH (within its crown reach: the axis would climb through that crown); 0 = every stem's axis continued")
+    dominance_ratio: float = param_field(1.25, "1", 1.0, 10.0, "...thicker: a DBH at least this many times the stem's (neighbours of about the same DBH are co-dominant, each continued)")
     orphan_max_distance_m: float = param_field(1.0, "m", 0.0, 10.0, "Unreached voxels join the nearest reached voxel within this distance")
     orphan_min_height_m: float = param_field(2.0, "m", 0.0, 50.0, "...if they stand at least this high above the ground")
     orphan_passes: int = param_field(20, "passes", 1, 1000, "...repeated this many times at most, so chains of detached parts (a sparse crown) are reached")
@@ -132,7 +139,8 @@ def segment_trees(
     n_nodes = n_vox
     axis_rows, axis_cols, axis_weights = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
     if params.axis_max_gap_m > 0:
-        axis_rows, axis_cols, axis_weights, n_nodes = _axis_links(centroids, stems, params, centroid_tree)
+        axis_rows, axis_cols, axis_weights, n_nodes = _axis_links(centroids, axis_stems(stems, params.axis_dominance_dbh, params.dominance_ratio), params,
+                                                                  centroid_tree)
     del centroid_tree
     # the links' ends and lengths straight into the arrays the sparse matrix is made of (4-byte
     # node numbers where they fit): no per-part copies and no (pairs, 3) gathered coordinates
@@ -202,6 +210,23 @@ def _add_by_group(group, values, rows, sums, counts):  # pragma: no cover - comp
     for i in range(group.shape[0]):
         sums[group[i]] += values[rows[i]]
         counts[group[i]] += 1
+
+
+def axis_stems(stems: Sequence[Stem], dominance_dbh: float, ratio: float = 1.25) -> list[Stem]:
+    """The stems whose axes are continued into the crowns: those with no thicker stem (a DBH at
+    least ``ratio`` times theirs: :attr:`SegmentationParams.dominance_ratio`) closer
+    (horizontally, at their bases) than ``dominance_dbh`` times the thicker stem's DBH
+    (:attr:`SegmentationParams.axis_dominance_dbh`; 0: every stem)."""
+    if dominance_dbh <= 0 or len(stems) < 2:
+        return list(stems)
+    xy = np.array([[s.x, s.y] for s in stems])
+    r = np.array([s.radius_m for s in stems])
+    index = cKDTree(xy)
+    hidden = np.zeros(len(stems), dtype=bool)
+    for j in np.flatnonzero(np.isfinite(r)):  # each stem shadows the thinner ones within its reach
+        near = np.asarray(index.query_ball_point(xy[j], dominance_dbh * 2.0 * r[j]), dtype=np.int64)
+        hidden[near[r[near] * ratio <= r[j]]] = True
+    return [s for s, h in zip(stems, hidden) if not h]
 
 
 def _axis_links(centroids: np.ndarray, stems: Sequence[Stem], params: SegmentationParams,
