@@ -316,7 +316,7 @@ def resumable_project(out, project: Project) -> tuple[Project, int]:
     its end. A folder with the project file but without ``poses.json`` is an unfinished run
     (killed, out of memory, power lost); when its scans, centre, tilted marks, targets, positions
     and parameters are those of ``project``, its links are the ones this run would make, and no
-    scan file changed after it was saved, its registered links are kept. Returns (the project,
+    scan file changed after that run began, its registered links are kept. Returns (the project,
     links kept); anything else (no such folder, a finished run, other settings, a damaged file)
     gives ``(project, 0)`` and the run starts over."""
     from ..engine.core.atomic import MARKER
@@ -328,8 +328,8 @@ def resumable_project(out, project: Project) -> tuple[Project, int]:
         if (folder / MARKER).read_text(encoding="utf-8").strip() != "plot" or (folder / "poses.json").exists():
             return project, 0
         saved = Project.load(saved_file)
-        saved_at = saved_file.stat().st_mtime
-        if any(Path(s.path).stat().st_mtime > saved_at for s in project.scans):
+        started = (folder / MARKER).stat().st_mtime  # written when the stopped run began
+        if any(Path(s.path).stat().st_mtime >= started for s in project.scans):
             return project, 0
     except (OSError, UnicodeDecodeError, ProjectFileError):
         return project, 0

@@ -157,7 +157,7 @@ def test_simulated_forked_trunk_volume(positions, step_deg):
     """A small leaf-off broadleaf whose trunk forks at 1.2 m into three leaders (as the real
     AdTree_tree7), scanned from three sides or from one: one tree, its wood volume within 8 % of
     the meshed truth, and the leader the model's stem follows past the fork no thicker than 1.25
-    times the true leader (before, the stem curve's taper ran on past the fork: +10-12 %)."""
+    times the true leader (a stem curve's taper run on past the fork makes it 10-12 % too much)."""
     from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.simulate.hard import forked_tree_scene, leaf_off
     from forestreg.engine.simulate.mesh import tree_wood_volume

@@ -51,6 +51,7 @@ class ChangeParams(Params):
     stem_band_m: tuple[float, float] = _p((0.3, 3.0), "m", 0.0, 10.0, "Heights above the ground of the band kept for the stem slices and the presence checks (holds slice_heights_m and 1-2.5 m)")
 
     def _check(self) -> None:
+        self.stem_icp.check_within("change.stem_icp", voxel_m=(0.005, 0.5), distances_m=(0.005, 5.0), iterations=(1, 500))
         lo, hi = self.dbh_change_range_m
         if not lo < 0.0 < hi:
             raise ParameterError("dbh_change_range_m must hold 0: (lowest, highest) with lowest < 0 < highest")

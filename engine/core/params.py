@@ -161,20 +161,24 @@ def _whole(kind: str, v: Any) -> Any:
 
 def _moved_names(cls: type, values: Mapping[str, Any], where: str) -> Mapping[str, Any]:
     """``values`` with the former names of fields that moved into a nested parameter set
-    (``cls._moved``: ``{old name: "nested.name"}``) put in their new place, each with a one-line
-    deprecation warning; a value also given under its new name wins."""
+    (``cls._moved``: ``{old name: "nested.name"}``, or a tuple of such places where one former
+    setting now has several homes) put in their new place, each with a one-line deprecation
+    warning; a value also given under its new name wins."""
     moved = getattr(cls, "_moved", {})
     old = [k for k in values if k in moved]
     if not old:
         return values
     out = {k: v for k, v in values.items() if k not in moved}
+    section = where or cls.__name__
     for k in old:
-        nested, name = moved[k].split(".", 1)
-        table = out.get(nested, {})
-        if isinstance(table, Mapping):
-            out[nested] = {name: values[k], **table}
-        section = where or cls.__name__
-        log.warning("parameter [%s] %s is now [%s.%s] %s; the old name is read for now", section, k, section, nested, name)
+        places = (moved[k],) if isinstance(moved[k], str) else tuple(moved[k])
+        for place in places:
+            nested, name = place.split(".", 1)
+            table = out.get(nested, {})
+            if isinstance(table, Mapping):
+                out[nested] = {name: values[k], **table}
+        log.warning("parameter [%s] %s is now %s; the old name is read for now", section, k,
+                    " and ".join(f"[{section}.{p.split('.', 1)[0]}] {p.split('.', 1)[1]}" for p in places))
     return out
 
 

@@ -75,8 +75,10 @@ class CoregistrationParams(Params):
     """All parameters of the co-registration (defaults: the paper's where it gives them)."""
 
     #: the ICP settings once named here, now in the nested ICP sets
-    _moved: ClassVar[dict[str, str]] = {
-        "icp_voxel_m": "icp.voxel_m", "icp_distances_m": "icp.max_distances_m", "icp_iterations": "icp.iterations",
+    #: (the former ICP voxel and iterations were shared by several ICP runs: they set each of them)
+    _moved: ClassVar[dict[str, Any]] = {
+        "icp_voxel_m": ("icp.voxel_m", "low_layer_icp.voxel_m"), "icp_distances_m": "icp.max_distances_m",
+        "icp_iterations": ("icp.iterations", "coarse_icp.iterations", "low_layer_icp.iterations"),
         "coarse_icp_distances_m": "coarse_icp.max_distances_m", "coarse_voxel_m": "coarse_icp.voxel_m",
         "low_layer_icp_distances_m": "low_layer_icp.max_distances_m",
     }

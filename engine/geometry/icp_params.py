@@ -30,6 +30,18 @@ class IcpParams(Params):
         if not self.max_distances_m:
             raise ParameterError("max_distances_m: needs at least one value")
 
+    def check_within(self, section: str, *, voxel_m: tuple[float, float], distances_m: tuple[float, float],
+                     iterations: tuple[int, int]) -> None:
+        """Raise :class:`ParameterError` naming ``[section]`` when a setting lies outside the
+        product's own range (each product's ICP works at its own scale: a pair's voxel of 4 m or
+        a distance of 90 m is absurd where a co-registration's coarse stage is not)."""
+        checks = [("voxel_m", (self.voxel_m,), voxel_m), ("max_distances_m", self.max_distances_m, distances_m),
+                  ("iterations", (self.iterations,), iterations)]
+        for name, values, (lo, hi) in checks:
+            for v in values:
+                if not lo <= v <= hi:
+                    raise ParameterError(f"[{section}] {name} = {v} is outside {lo}..{hi}")
+
     @property
     def finest_voxel_m(self) -> float:
         """The voxel (metres) of the finest stage: ``voxel_m`` or the last distance / 2.5."""

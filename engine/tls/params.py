@@ -79,6 +79,10 @@ class RegistrationParams(Params):
     manual_min_target_spread_m: float = _p(0.02, "m", 0.0, 10.0, "Shared targets closer than this (RMS) to one straight line are refused: they leave the rotation about it undetermined")
 
     def _check(self) -> None:
+        self.icp.check_within("registration.icp", voxel_m=(0.01, 0.5), distances_m=(0.005, 5.0), iterations=(1, 1000))
+        if self.free_space_near_m >= self.free_space_reach_m:
+            raise ParameterError(f"free_space_near_m ({self.free_space_near_m} m) must be smaller than free_space_reach_m "
+                                 f"({self.free_space_reach_m} m): otherwise no point is tested for the free-space check")
         for name in ("slice_offsets_m", "auto_vop_radii_m"):
             if not getattr(self, name):
                 raise ParameterError(f"{name}: needs at least one value")

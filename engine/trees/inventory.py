@@ -647,7 +647,9 @@ def tree_record(
         w = wood[idx] >= params.wood_threshold
         if np.count_nonzero(w) >= 200:
             try:
-                cylinders = fit_qsm(tree_pts[w], params.qsm, base=stem.base)
+                # the model's DBH is read at the inventory's one breast height (its stems')
+                qsm_params = params.qsm.replace(breast_height_m=params.stems.breast_height_m)
+                cylinders = fit_qsm(tree_pts[w], qsm_params, base=stem.base)
                 cylinders, _ = reconcile_stem(cylinders, stem, curve, crown.height_m)
             except ScanDataError as exc:
                 flags.append(f"cylinder model failed: {exc}")
@@ -728,7 +730,7 @@ def _within_crown_reach(stems: Sequence[Stem], params: TreeParams) -> dict[int, 
     ratio = params.segmentation.dominance_ratio
     for s in axis_stems(stems, params.segmentation.axis_dominance_dbh, ratio):
         near = [(math.hypot(o.x - s.x, o.y - s.y), o) for o in stems
-                if o.radius_m >= ratio * s.radius_m and math.hypot(o.x - s.x, o.y - s.y) < params.crown_reach_dbh * 2.0 * o.radius_m]
+                if o is not s and o.radius_m >= ratio * s.radius_m and math.hypot(o.x - s.x, o.y - s.y) < params.crown_reach_dbh * 2.0 * o.radius_m]
         if near:
             d, o = min(near, key=lambda t: t[0])
             out[s.id] = (f"stem {d:.1f} m from thicker tree {o.id} ({200 * o.radius_m:.0f} cm), within its crown's reach: "

@@ -106,7 +106,7 @@ class QsmParams(Params):
     enforce_taper: bool = _p(True, "", None, None, "Radii never increase along a branch and a child is never thicker than its parent cylinder")
     min_points: int = _p(30, "points", 4, 1000000, "Fewest points a tree must have for a cylinder model (as given, and after thinning)")
     max_fit_points: int = _p(1500, "points", 10, 1000000, "A cylinder is fitted to at most this many of its points (evenly picked)")
-    breast_height_m: float = _p(1.3, "m", 0.5, 3.0, "Height above the stem base at which the model's stem diameter (its DBH) is read", "DBH at 1.3 m")
+    breast_height_m: float = _p(1.3, "m", 0.5, 3.0, "Height above the stem base at which the model's stem diameter (its DBH) is read; in a tree inventory the stems' breast_height_m is used, so both DBHs are read at one height", "DBH at 1.3 m")
 
     def _check(self) -> None:
         if self.patch_diameter2_min_m > self.patch_diameter2_max_m:

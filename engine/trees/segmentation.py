@@ -225,6 +225,7 @@ def axis_stems(stems: Sequence[Stem], dominance_dbh: float, ratio: float = 1.25)
     hidden = np.zeros(len(stems), dtype=bool)
     for j in np.flatnonzero(np.isfinite(r)):  # each stem shadows the thinner ones within its reach
         near = np.asarray(index.query_ball_point(xy[j], dominance_dbh * 2.0 * r[j]), dtype=np.int64)
+        near = near[near != j]  # a stem never shadows itself (whatever the ratio)
         hidden[near[r[near] * ratio <= r[j]]] = True
     return [s for s, h in zip(stems, hidden) if not h]
 
