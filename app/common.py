@@ -144,12 +144,14 @@ def check_replaceable_point_file(path, dimension: str, what: str) -> None:
     raise OutputPathError(f"{p} exists and is not an earlier {what}: it would be overwritten; give a new file name")
 
 
-def import_in_background(*modules: str, kernels: bool = False) -> None:
+def import_in_background(*modules: str, kernels: bool | str = False) -> None:
     """Import ``modules`` (relative to the package, e.g. ``".engine.report.figures"``) in a daemon
     thread: a use case imports what it needs only at the end (matplotlib for the figure, ~0.3 s)
     while its compiled work runs. With ``kernels``, the thread first loads one compiled kernel
-    (LLVM's start-up, ~0.3 s) while the inputs are read. An import that fails here fails again,
-    with its message, where the module is used."""
+    (LLVM's start-up, ~0.3 s) while the inputs are read; with the name of a use case (e.g.
+    ``"pair"``), then every kernel that use case loaded in its last run, in their order
+    (:func:`~forestreg.engine.core.jit.preload`, ~40 ms each). An import that fails here fails
+    again, with its message, where the module is used."""
     import importlib
     import threading
 
@@ -159,6 +161,10 @@ def import_in_background(*modules: str, kernels: bool = False) -> None:
                 from ..engine.geometry.voxel import warm_up
 
                 warm_up()
+                if isinstance(kernels, str):
+                    from ..engine.core.jit import preload
+
+                    preload(kernels)
             except Exception:  # the kernel is loaded (or its failure reported) where it is used
                 pass
         for name in modules:

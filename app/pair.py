@@ -83,7 +83,7 @@ def register_pair(
     pending = {0: early.submit(read, reference_path, 0), 1: early.submit(read, moving_path, 1)}  # popped when used: the scan's points are not held
     early.shutdown(wait=False)
     if out is not None:
-        import_in_background(".engine.report.figures", kernels=True)
+        import_in_background(".engine.report.figures", kernels="pair")
     from ..engine.tls.pair import register
     from ..engine.tls.scanner_position import locate_scanner
 
@@ -118,6 +118,9 @@ def register_pair(
     figure = None
     if out is not None:
         figure = _write_pair_folder(out, result, summary, kept, scale, write_registered)
+        from ..engine.core.jit import remember_loaded
+
+        remember_loaded("pair")  # the kernels the next pair loads while its files are read
     return outcome_of(summary, out=out, result=result, cls=PairOutcome, figure=figure)
 
 

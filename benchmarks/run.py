@@ -41,6 +41,10 @@ plot of `--only bigplot`; `--quick`: a few minutes)::
    on 2 cores; only with ``--only scaling``).
 12. ``forestreg batch`` of 20 small simulated plots with 1 and with 2 local Dask workers: wall time,
    speed-up, memory per plot (:mod:`benchmarks.batch_scaling`; only with ``--only batch``).
+13. Trees at scale (:mod:`benchmarks.trees_scale`): ``forestreg trees`` on a 2.9 M-point plot and on
+   the same plot densified to 32 M points, with and without cylinder models, beside Sylva's
+   ``ground`` + ``trees`` and reading the file: time, peak memory, ratios, accuracy against the
+   truth (about 10 minutes on 2 cores; only with ``--only treescale``).
 
 Timings are wall-clock seconds of one run (``time.perf_counter``); nothing is asserted on them.
 An untimed warm-up (a coarse 0.5 deg pair) runs first so imports and library initialisation do
@@ -63,7 +67,7 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import batch_scaling, big_plot, big_scan, coarse_matcher, command_memory, peers, plot_speed, resurvey, scaling, system_b, trees_compare
+    from . import batch_scaling, big_plot, big_scan, coarse_matcher, command_memory, peers, plot_speed, resurvey, scaling, system_b, trees_compare, trees_scale
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import batch_scaling  # type: ignore[no-redef]
@@ -77,6 +81,7 @@ else:  # run as a script: python benchmarks/run.py
     import scaling  # type: ignore[no-redef]
     import system_b  # type: ignore[no-redef]
     import trees_compare  # type: ignore[no-redef]
+    import trees_scale  # type: ignore[no-redef]
 
 from forestreg.engine.io import read_scan, write_scan
 from forestreg.engine.tls.pair import register
@@ -328,13 +333,14 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated plot and of the VOP sets (default 0)")
     ap.add_argument("--json", metavar="FILE", type=Path, help="also write every row to this JSON file")
     ap.add_argument("--runs", type=int, default=3, help="timed rounds of the whole-command comparison (default 3)")
-    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands", "trees", "resurvey", "scaling", "batch"), action="append",
+    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands", "trees", "resurvey", "scaling", "batch", "treescale"), action="append",
                     help="run only these parts (repeatable; default all but bigplot; --quick leaves out plot, big and commands). "
                          "bigplot: ten ~30 M-point scans registered and merged as COPC, about an hour, so only when named; "
                          "scaling: the pair at 1-50 M points per scan beside Sylva and reading, only when named; "
-                         "batch: 20 small plots on 1 and 2 local Dask workers, only when named")
+                         "batch: 20 small plots on 1 and 2 local Dask workers, only when named; "
+                         "treescale: trees of a 32 M-point plot beside Sylva and reading, about 10 minutes, only when named")
     ap.add_argument("--sizes", help="scaling: points per scan, millions, comma-separated (default 1,3,10,30,50; --quick 0.1,0.3,1)")
-    ap.add_argument("--workdir", type=Path, help="bigplot, scaling and batch: keep their simulated and densified scans here (default bench_out/; reused)")
+    ap.add_argument("--workdir", type=Path, help="bigplot, scaling, batch and treescale: keep their simulated and densified scans here (default bench_out/; reused)")
     args = ap.parse_args(argv)
 
     t_start = time.perf_counter()
@@ -396,6 +402,11 @@ def main(argv: Optional[list[str]] = None) -> int:
         batch_row = batch_scaling.run(workdir=args.workdir or Path("bench_out"))
         print(batch_scaling.format_row(batch_row))
         print(flush=True)
+    tree_scale_rows: list[dict[str, Any]] = []
+    if "treescale" in parts:  # only when named: child processes, while this process is small
+        tree_scale_rows = trees_scale.run(workdir=(args.workdir / "trees_scale") if args.workdir else None)
+        print(trees_scale.format_rows(tree_scale_rows))
+        print(flush=True)
     if "pairs" in parts:
         pairs = PAIRS[1:] if args.quick else PAIRS
         with tempfile.TemporaryDirectory(prefix="forestreg-bench-") as tmp:
@@ -426,7 +437,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     if args.json is not None:
         payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
                    "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "big_plot": big_plot_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows, "commands": command_rows,
-                   "trees_compare": trees_rows, "resurvey": resurvey_rows, "scaling": scaling_rows, "batch": batch_row}
+                   "trees_compare": trees_rows, "resurvey": resurvey_rows, "scaling": scaling_rows, "batch": batch_row,
+                   "trees_scale": tree_scale_rows}
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0

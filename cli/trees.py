@@ -16,7 +16,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="output folder (trees.csv, stem_curves.csv, cylinders/, report.html); replaced when the run completes")
     p.add_argument("--transform", help="move the cloud first (transform.txt of `coregister`: into the UAV/field frame)")
     p.add_argument("--field", help="field records CSV: evaluate the trees against them into OUT/evaluation")
-    p.add_argument("--no-cylinders", action="store_true", help="skip the cylinder models (faster; no volume)")
+    p.add_argument("--no-cylinders", action="store_true", help="skip the cylinder models and the leaf-wood separation they are fitted on (faster; no volume, no wood fraction)")
     p.add_argument("--single-tree", nargs="?", const="yes", choices=("auto", "yes", "no"),
                    help="the cloud is one tree (TreeQSM/AdTree-style, little or no ground): one tree, its height the cloud's "
                         "top above its base; 'no' for a plot; default: decided from the cloud")

@@ -253,6 +253,38 @@ def test_warm_up_loads_the_kernel_the_commands_load_first():
     assert signatures and list(voxel._bounds_kernel.signatures) == signatures
 
 
+from forestreg.engine.core.jit import kernel as _kernel  # noqa: E402
+
+
+@_kernel
+def _twice(x):
+    return 2 * x
+
+
+def test_the_kernels_a_use_case_loaded_are_preloaded_in_their_order(tmp_path, monkeypatch):
+    # a pair loads, in a background thread while its files are read, the kernels (and
+    # signatures) the last pair loaded, in their order; the list is kept beside the kernels
+    import pickle
+
+    from numba import types
+
+    from forestreg.engine.core import jit
+
+    monkeypatch.setattr(jit, "kernel_cache_dir", lambda: str(tmp_path))
+    monkeypatch.setattr(jit, "_LOADED", [])
+    assert _twice(1.5) == 3.0
+    jit.remember_loaded("test")
+    with open(tmp_path / "loaded-test.pkl", "rb") as f:
+        listed = pickle.load(f)
+    assert listed == [(_twice.py_func.__module__, "_twice", (types.float64,))]
+    # a signature this process has not loaded: preloaded, then the call finds it
+    with open(tmp_path / "loaded-test.pkl", "wb") as f:
+        pickle.dump([("no.such.module", "k", (types.float64,)), (_twice.py_func.__module__, "_twice", (types.int64,))], f)
+    assert (types.int64,) not in _twice.overloads
+    jit.preload("test", wait_s=0.2)
+    assert (types.int64,) in _twice.overloads and _twice(3) == 6
+
+
 def test_robust_median_equals_numpy_median():
     from forestreg.engine.geometry.robust import median as _median
 

@@ -28,7 +28,7 @@ from numba.core.compiler_lock import global_compiler_lock
 
 from .atomic import file_lock
 
-__all__ = ["kernel", "kernel_cache_dir", "kernels", "run_blocks", "worker_count"]
+__all__ = ["kernel", "kernel_cache_dir", "kernels", "preload", "remember_loaded", "run_blocks", "worker_count"]
 
 log = logging.getLogger(__name__)
 
@@ -241,9 +241,86 @@ def _locked_compile(dispatcher: Any) -> None:
             if tuple(args) in dispatcher.overloads:
                 return compile_now(sig)
             with file_lock(cache.lock_path):
-                return compile_now(sig)
+                made = compile_now(sig)
+            _LOADED.append((dispatcher, tuple(args)))
+            return made
 
     dispatcher.compile = compile
+
+
+#: (kernel, argument types) in the order this process loaded (or compiled) them.
+_LOADED: list[tuple[Any, tuple]] = []
+
+
+def _loaded_list_path(name: str) -> Optional[str]:
+    folder = kernel_cache_dir()
+    return os.path.join(folder, f"loaded-{name}.pkl") if folder else None
+
+
+def remember_loaded(name: str) -> None:
+    """Keep, in :func:`kernel_cache_dir`, the list of the kernels (and signatures) this process has
+    loaded so far, in their order, under ``name`` (a use case, e.g. ``"pair"``), for
+    :func:`preload` in the next process; written only when it differs from the one kept."""
+    import pickle
+
+    path = _loaded_list_path(name)
+    if not path:
+        return
+    listed = [(k.py_func.__module__, k.py_func.__name__, args) for k, args in list(_LOADED)]
+    try:
+        with open(path, "rb") as f:
+            if pickle.load(f) == listed:
+                return
+    except Exception:  # none kept yet, or unreadable: written anew
+        pass
+    try:
+        tmp = f"{path}.{os.getpid()}.tmp"
+        with open(tmp, "wb") as f:
+            pickle.dump(listed, f)
+        os.replace(tmp, path)
+    except OSError:  # a read-only cache: nothing kept
+        pass
+
+
+def preload(name: str, wait_s: float = 10.0) -> None:
+    """Load, in this thread and in their order, the kernels a process running the use case
+    ``name`` loaded last time (:func:`remember_loaded`): called in a background thread while the
+    inputs are read and the engine is imported, so that the first calls find them loaded. This
+    thread imports nothing: a kernel whose module the use case has not imported yet is loaded once
+    it has (two threads importing the same modules at once may deadlock; at most ``wait_s``
+    without any new module). A
+    kernel that cannot be found or loaded is skipped (it is loaded, or its failure reported, where
+    it is called)."""
+    import pickle
+    import time
+
+    path = _loaded_list_path(name)
+    try:
+        with open(path or "", "rb") as f:
+            listed = pickle.load(f)
+    except Exception:
+        return
+    until = time.monotonic() + wait_s
+    while listed and time.monotonic() < until:
+        # the first in their order whose module is imported (a later one while an earlier waits)
+        ready = next((i for i, entry in enumerate(listed) if _imported(entry[0])), None)
+        if ready is None:
+            time.sleep(0.005)
+            continue
+        module, fn_name, args = listed.pop(ready)
+        until = time.monotonic() + wait_s
+        try:
+            dispatcher = getattr(sys.modules[module], fn_name)
+            if args not in dispatcher.overloads:
+                dispatcher.compile(args)
+        except Exception:
+            pass
+
+
+def _imported(module: str) -> bool:
+    """Whether ``module`` is imported whole (not being imported)."""
+    m = sys.modules.get(module)
+    return m is not None and not getattr(getattr(m, "__spec__", None), "_initializing", False)
 
 
 def worker_count() -> int:

@@ -14,44 +14,12 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.errors import ParameterError
-from ..core.params import Params, param_field as _p
+from .icp_params import IcpParams
 from ..core.transform import rotation_from_vector
 from ..core.transform import apply as apply_transform
 from .features import SphereGrid, first_at_least, local_covariances, nearest_within, normals_and_variation
 from ..core.jit import kernel, run_blocks, worker_count
 from .voxel import VoxelGrid, column_bounds, voxel_downsample
-
-
-@dataclass(frozen=True)
-class IcpParams(Params):
-    """Settings of one coarse-to-fine point-to-plane ICP; each product nests its own, with its own defaults.
-
-    The class defaults are the pair registration's; :func:`icp` takes them as
-    ``**params.keywords()``. Distances in metres."""
-
-    voxel_m: float = _p(0.05, "m", 0.005, 5.0, "Voxel size to which both clouds are thinned (a stage thins to at least its distance / 2.5)")
-    max_distances_m: tuple[float, ...] = _p((0.5, 0.2, 0.08), "m", 0.001, 100.0, "Correspondence distance of each stage, largest first")
-    iterations: int = _p(40, "iterations", 1, 10000, "Most iterations per stage")
-    max_moving_points: int = _p(30000, "points", 100, 100_000_000, "At most this many moving points (a fixed random subset) are used per stage")
-    final_tolerance_m: float = _p(1e-5, "m", 0.0, 1.0, "The last stage stops when an update moves the cloud less than this...")
-    final_tolerance_deg: float = _p(1e-4, "deg", 0.0, 10.0, "...and turns it less than this (earlier stages stop at 0.1 mm and 0.001 deg)")
-    normal_neighbours: int = _p(12, "points", 3, 200, "Neighbours of a reference point whose covariance gives its normal")
-
-    def _check(self) -> None:
-        if not self.max_distances_m:
-            raise ParameterError("max_distances_m: needs at least one value")
-
-    @property
-    def finest_voxel_m(self) -> float:
-        """The voxel (metres) of the finest stage: ``voxel_m`` or the last distance / 2.5."""
-        return max(self.voxel_m, min(self.max_distances_m) / 2.5)
-
-    def keywords(self) -> dict:
-        """These settings as the keyword arguments of :func:`icp`."""
-        return {"voxel_m": self.voxel_m, "max_distances_m": self.max_distances_m, "iterations": self.iterations,
-                "max_moving_points": self.max_moving_points, "final_tolerance": (self.final_tolerance_m, self.final_tolerance_deg),
-                "normal_neighbours": self.normal_neighbours}
 
 
 @dataclass(frozen=True)

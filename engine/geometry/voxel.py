@@ -5,6 +5,8 @@ result depends only on the points, not on their frame's origin. Points are (N, 3
 
 * :func:`voxel_thin` - indices of one point per occupied voxel (the first met, or the one
   nearest the voxel centre): the thinned cloud keeps real points and their attributes;
+* :func:`voxel_representatives` - the same first point per voxel with, for every point, its
+  voxel's kept point (to carry results measured on the thinned cloud back to every point);
 * :func:`voxel_centroids` - one averaged point per voxel and each point's voxel (for features
   computed on voxels and mapped back to points);
 * :func:`voxel_downsample` - an averaged voxel grid whose grid starts half a voxel below the
@@ -29,7 +31,7 @@ from ..core.cells import cell_bits, claim_cell, first_in_cells
 from ..core.jit import kernel, run_blocks
 from .sorting import sort_keys
 
-__all__ = ["VoxelGrid", "claim_voxel", "column_bounds", "voxel_bitmap", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_thin", "warm_up"]
+__all__ = ["VoxelGrid", "claim_voxel", "column_bounds", "voxel_bitmap", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_representatives", "voxel_thin", "warm_up"]
 
 
 def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -155,6 +157,44 @@ def voxel_thin(points: np.ndarray, voxel_m: float, *, keep: Literal["first", "ce
     first = np.ones(len(order), dtype=bool)
     first[1:] = keys[order][1:] != keys[order][:-1]
     return np.sort(order[first])
+
+
+def voxel_representatives(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(keep, inverse)``: ``keep`` the sorted indices of the first point (input order) of each
+    occupied voxel of side ``voxel_m`` (:func:`voxel_thin`'s ``keep="first"``, the same points),
+    ``inverse`` (N,) for every point the position in ``keep`` of its voxel's point, so
+    ``values[inverse]`` carries per-point values of ``points[keep]`` back to every point. Both
+    int32 when the point count fits (4 bytes a point less), else int64.
+
+    One stable radix sort of the voxel keys (:func:`~.sorting.sort_keys`): about 33 bytes a point
+    of temporaries besides the two results."""
+    pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
+    n = len(pts)
+    index_type = np.int32 if n < 2**31 - 1 else np.int64
+    if n == 0:
+        return np.zeros(0, dtype=index_type), np.zeros(0, dtype=index_type)
+    keys, cells = _keys_and_cells(pts, voxel_m)
+    order, sorted_keys = sort_keys(keys, cells, index_type)
+    del keys
+    voxel_of_point = np.empty(n, dtype=index_type)
+    first = np.empty(n, dtype=order.dtype)  # the first `count` entries are used
+    count = _number_runs(sorted_keys, order, voxel_of_point, first)
+    del sorted_keys, order
+    first = first[:count]
+    rank = np.argsort(first, kind="stable")
+    keep = first[rank]
+    position = np.empty(count, dtype=index_type)  # voxel (key order) -> its point's place in keep
+    position[rank] = np.arange(count, dtype=index_type)
+    del first, rank
+    _gather_into(voxel_of_point, position)
+    return keep, voxel_of_point
+
+
+@kernel
+def _gather_into(values: np.ndarray, table: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``values[:] = table[values]`` in place (no temporary of ``values``' size)."""
+    for i in range(len(values)):
+        values[i] = table[values[i]]
 
 
 #: :func:`voxel_thin` marks the cells it has met in a bit array when the grid has at most this many

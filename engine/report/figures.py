@@ -20,7 +20,7 @@ from .topview import Canvas, Panel
 if TYPE_CHECKING:  # pragma: no cover
     from ..tls.pair import PairResult
 
-from .views import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402,F401 - one definition of the scan colours
+from .topview import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402,F401 - one definition of the scan colours
 
 
 #: Characters of a panel's title line: a longer title (a long scan name, a failure's reason) is

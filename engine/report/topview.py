@@ -26,6 +26,10 @@ from PIL import Image, ImageDraw, ImageFont
 
 from .pixels import paint_discs
 
+#: The pair figures' colours of the reference and the moving scan.
+REFERENCE_COLOUR = "#1f77b4"
+MOVING_COLOUR = "#d95f02"
+
 __all__ = ["Canvas", "Panel", "rgb"]
 
 #: The figure is drawn this many times larger, then reduced: smooth lines and text.

@@ -73,7 +73,10 @@ def write_inventory_report(out_dir: str | os.PathLike[str], inventory: Any, poin
     shift = np.asarray(inventory.origin_shift, dtype=np.float64)
     cyl = {t.tree_id: t.cylinders.to_table() for t in inventory.trees if t.cylinders is not None}
     rows = [{**r, "x": r["x"] - shift[0], "y": r["y"] - shift[1]} for r in inventory.rows()]
-    return write_trees_report(out_dir, rows, points, inventory.labels, inventory.wood_probability, cyl, title=title)
+    wood = inventory.wood_probability
+    if len(wood) and np.isnan(wood[0]) and np.isnan(wood).all():  # not measured (no cylinder models): grey
+        wood = None
+    return write_trees_report(out_dir, rows, points, inventory.labels, wood, cyl, title=title)
 
 
 def write_trees_report(

@@ -22,9 +22,7 @@ from ..tls.prepare import derived, extract_vops, prepare_scan, slice_layers
 from ..tls.project import Link, Project
 from ..core.transform import apply as apply_transform
 
-#: The pair figures' colours of the reference and the moving scan.
-REFERENCE_COLOUR = "#1f77b4"
-MOVING_COLOUR = "#d95f02"
+from .topview import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402 - the pair figures' colours
 #: VOP radius (D_r, m) drawn for a scan whose link does not say which one it used.
 DEFAULT_VOP_RADIUS_M = 15.0
 #: At most this many slice points are drawn in the top view (all scans together).

@@ -13,7 +13,7 @@ from typing import ClassVar, Optional
 
 from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
-from ..geometry.icp import IcpParams
+from ..geometry.icp_params import IcpParams
 
 __all__ = ["RegistrationParams", "ScannerPositionParams", "SurveyParams"]
 

@@ -29,6 +29,7 @@ from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, t
 from ..core.params import Params, param_field as _p
 from ..geometry.columns import ColumnIndex
 from ..geometry.sorting import order_by_label
+from ..geometry.voxel import voxel_representatives
 from ..io.results import TREE_COLUMNS, TreeTablesFile  # noqa: F401 - the columns of trees.csv
 from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
@@ -68,6 +69,10 @@ class TreeParams(Params):
     wood_threshold: float = _p(0.5, "1", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
     cylinder_models: bool = _p(True, "", None, None, "fit cylinder models")
+    #: a cloud denser than the steps need (a merged plot of many fine scans) is measured on one
+    #: point per voxel; every point still gets its tree, height, wood probability and ground flag
+    thin_above_points: int = _p(8_000_000, "points", 0, 1e12, "clouds of more points are measured on one point per voxel of thin_voxel_m (every point still gets its tree, height, wood probability and ground flag); 0: never thinned")
+    thin_voxel_m: float = _p(0.015, "m", 0.001, 0.1, "side of the voxels of that thinning (finer than the leaf-wood separation's own 0.02 m)")
     #: ground-based clouds hold 0.1 and more (a TLS plot of tall trees without ground 0.04, but its
     #: stems are dense), airborne ones 0.005-0.03
     airborne_band_ratio: float = _p(0.08, "1", 0.0, 10.0, "points at 1-3 m above the ground per point above 3 m below which a cloud with sparsely sampled stems (noisy profile) is taken as airborne: trees without a sampled stem come from the canopy height model")
@@ -155,10 +160,10 @@ class TreeInventory(TreeTablesFile, Outcome):
     """Trees of one cloud and the per-point results.
 
     ``labels`` (N,) tree id per point (0 = none), ``heights`` (N,) height above the DEM,
-    ``wood_probability`` (N,), ``ground`` (N,) bool; ``origin_shift`` of the cloud; ``timings``
-    wall seconds per step (``*_s``): ``dbh_s`` and ``crowns_s`` run in a second thread while
-    ``segmentation_s`` and ``leafwood_s`` run (``waiting_s``: for that thread afterwards), so
-    the steps add up to more than the whole.
+    ``wood_probability`` (N,) (NaN: not measured, without cylinder models), ``ground`` (N,)
+    bool; ``origin_shift`` of the cloud; ``timings`` wall seconds per step (``*_s``): ``dbh_s``
+    and ``crowns_s`` run in a second thread while ``segmentation_s`` and ``leafwood_s`` run
+    (``waiting_s``: for that thread afterwards), so the steps add up to more than the whole.
     """
 
     trees: list[TreeRecord]
@@ -247,6 +252,10 @@ def measure_trees(
     incomplete to measure are kept and flagged; each row says how each value was obtained and how
     far to trust it (``quality``).
 
+    A cloud of more than ``params.thin_above_points`` points (a merged plot of many fine scans)
+    is measured on the first point of each ``params.thin_voxel_m`` voxel; the per-point results
+    (labels, heights, wood probability, ground) still cover every point.
+
     A single-tree cloud (one tree, little or no ground: :mod:`.single`) gives one tree whose
     height is the cloud's top above the tree's base; ``single_tree`` True / False forces or rules
     it out (default: ``params.single_tree.mode``, "auto": decided from the cloud).
@@ -266,9 +275,52 @@ def measure_trees(
     if not np.isfinite(p).all():
         raise ScanDataError("trees: the cloud holds NaN or infinite coordinates")
     try:
+        if params.thin_above_points and len(p) > params.thin_above_points:
+            return _measure_thinned(p, params, progress, origin_shift=origin_shift, single_tree=single_tree)
         return _measure_trees(p, params, progress, origin_shift=origin_shift, single_tree=single_tree)
     except ScanDataError as exc:  # the data do not allow it: a failed outcome, as a registration gives
         return TreeInventory.failed(str(exc), len(p), origin_shift)
+
+
+def _measure_thinned(
+    p: np.ndarray,
+    params: TreeParams,
+    progress: Optional[Progress | ProgressCallback],
+    *,
+    origin_shift: Optional[np.ndarray],
+    single_tree: Optional[bool],
+) -> TreeInventory:
+    """:func:`measure_trees` of a cloud of more than ``params.thin_above_points`` points: the
+    trees measured on the first point of each ``params.thin_voxel_m`` voxel, then the per-point
+    results carried to every point (each point takes its voxel's label, wood probability and
+    ground flag; heights above the same DEM), and each tree's point count and wood fraction
+    counted on the whole cloud. ``thin_s`` and ``expand_s`` in the timings are the two ends."""
+    t = time.perf_counter()
+    keep, inverse = voxel_representatives(p, params.thin_voxel_m)
+    thinned = p[keep]
+    del keep
+    log.info("trees: %d points thinned to %d (one per %.3f m voxel)", len(p), len(thinned), params.thin_voxel_m)
+    thin_s = time.perf_counter() - t
+    inventory = _measure_trees(thinned, params, progress, origin_shift=origin_shift, single_tree=single_tree)
+    del thinned
+    if not inventory:  # the data do not allow trees: the outcome as the whole cloud's
+        return TreeInventory.failed(inventory.reason, len(p), origin_shift, {"thin_s": thin_s, **inventory.timings})
+    t = time.perf_counter()
+    labels = inventory.labels[inverse]
+    wood = inventory.wood_probability[inverse]
+    ground = inventory.ground[inverse]
+    del inverse
+    heights = inventory.dem.normalise(p)
+    n_max = max([int(labels.max()) if len(labels) else 0] + [r.tree_id for r in inventory.trees]) + 1
+    counts = np.bincount(labels, minlength=n_max)
+    woody = np.bincount(labels[wood >= params.wood_threshold], minlength=n_max)
+    trees = [dataclasses.replace(r, n_points=int(counts[r.tree_id]),
+                                 wood_fraction=float(woody[r.tree_id] / counts[r.tree_id]) if counts[r.tree_id] else 0.0)
+             if r.source == "stem" and math.isfinite(r.wood_fraction) else dataclasses.replace(r, n_points=int(counts[r.tree_id]))
+             for r in inventory.trees]
+    timings = {"thin_s": thin_s, **inventory.timings, "expand_s": time.perf_counter() - t}
+    return dataclasses.replace(inventory, trees=trees, labels=labels, heights=heights, wood_probability=wood, ground=ground,
+                               timings=timings)
 
 
 def _measure_trees(
@@ -340,31 +392,34 @@ def _measure_trees(
         dbh, curves, timings["dbh_s"] = stems_job.result()  # its k-d tree went with its call
         timings["waiting_s"] = time.perf_counter() - t  # for the second thread
 
-        t = time.perf_counter()
-        progress(0.45, "leaf-wood separation")
-        vegetation = (labels > 0) | (heights > params.segmentation.ground_clearance_m)
-        # the heights are not held through the separation's peak (8 bytes a point): made again
-        # after it from the same DEM, the same values
-        heights = None
-        vegetation_wood = (
-            wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
-            if np.count_nonzero(vegetation) >= 50 else 0.0
-        )
-        heights = model.dem.normalise(p)
-        wood = np.zeros(len(p))  # made after the separation: not held through its peak
-        wood[vegetation] = vegetation_wood
-        del vegetation, vegetation_wood
-        timings["leafwood_s"] = time.perf_counter() - t
-        # a column index of the cloud for the stem-curve wood below (4 bytes a point, not a k-d
-        # tree's ~20: this phase was the command's peak), built in the second thread beside the
-        # completeness checks
-        index_job = pool.submit(ColumnIndex, p, 1.0)
+        if params.cylinder_models:
+            t = time.perf_counter()
+            progress(0.45, "leaf-wood separation")
+            vegetation = (labels > 0) | (heights > params.segmentation.ground_clearance_m)
+            # the heights are not held through the separation's peak (8 bytes a point): made again
+            # after it from the same DEM, the same values
+            heights = None
+            vegetation_wood = (
+                wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
+                if np.count_nonzero(vegetation) >= 50 else 0.0
+            )
+            heights = model.dem.normalise(p)
+            wood = np.zeros(len(p))  # made after the separation: not held through its peak
+            wood[vegetation] = vegetation_wood
+            del vegetation, vegetation_wood
+            timings["leafwood_s"] = time.perf_counter() - t
+            # a column index of the cloud for the stem-curve wood below (4 bytes a point, not a k-d
+            # tree's ~20: this phase was the command's peak), built in the second thread beside the
+            # completeness checks
+            index_job = pool.submit(ColumnIndex, p, 1.0)
+        else:  # the leaf-wood separation is the cylinder models' input: without them wood is not measured
+            wood, index_job = np.full(len(p), np.nan), None
         t = time.perf_counter()
         complete = {c.tree_id: c for c in tree_completeness(p, heights, labels, stems, params.completeness, dbh)}
-        index = index_job.result()
+        index = index_job.result() if index_job is not None else None
     # the stem as the stem curve traces it is wood, whatever its covariance features say
     tol = max(2.0 * stem_params.inlier_tolerance_m, 0.03)
-    for s in stems:
+    for s in stems if index is not None else ():
         wood[stem_curve_wood(p, index, s, curves[s.id], tol)] = 1.0
     del index
     timings["completeness_s"] = time.perf_counter() - t
@@ -622,10 +677,21 @@ def tree_record(
     flags = _flags_that_matter(flags, quality)
     return TreeRecord(
         tree_id=stem.id, stem=stem, dbh=d, curve=curve, crown=crown, cylinders=cylinders,
-        n_points=int(len(idx)), wood_fraction=float(np.mean(wood[idx] >= params.wood_threshold)) if len(idx) else 0.0,
+        n_points=int(len(idx)), wood_fraction=_wood_fraction(wood[idx], params.wood_threshold),
         flags=tuple(dict.fromkeys(flags)), dbh_m=dbh_value, volume_m3=volume, stem_form_factor=ff,
         source="stem", quality=quality,
     )
+
+
+def _wood_fraction(wood: np.ndarray, threshold: float) -> float:
+    """The share of a tree's points (their wood probabilities ``wood``) that are wood; NaN when
+    the wood was not measured (NaN probabilities: no leaf-wood separation without cylinder
+    models), 0 for no point."""
+    if len(wood) == 0:
+        return 0.0
+    if np.isnan(wood).any():
+        return math.nan
+    return float(np.mean(wood >= threshold))
 
 
 def _flags_that_matter(flags: Sequence[str], quality: dict[str, str]) -> list[str]:
@@ -947,14 +1013,17 @@ def _single_tree_inventory(
     crown = measure_crown(p[idx], heights[idx], stem, params.crown.replace(top_neighbour_radius_m=1.5, top_min_neighbours=1))
     timings["single_tree_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    progress(0.4, "leaf-wood separation")
-    wood = np.zeros(len(p))
-    if len(idx) >= 50:
-        wood[idx] = wood_probability(p[idx], params.leafwood, progress.sub(0.4, 0.7))
-    tol = max(2.0 * stem_params.inlier_tolerance_m, 0.03)
-    wood[stem_curve_wood(p, index, stem, curve, tol)] = 1.0
+    if params.cylinder_models:
+        progress(0.4, "leaf-wood separation")
+        wood = np.zeros(len(p))
+        if len(idx) >= 50:
+            wood[idx] = wood_probability(p[idx], params.leafwood, progress.sub(0.4, 0.7))
+        tol = max(2.0 * stem_params.inlier_tolerance_m, 0.03)
+        wood[stem_curve_wood(p, index, stem, curve, tol)] = 1.0
+        timings["leafwood_s"] = time.perf_counter() - t
+    else:  # the cylinder model's input: without it wood is not measured
+        wood = np.full(len(p), np.nan)
     del index
-    timings["leafwood_s"] = time.perf_counter() - t
     t = time.perf_counter()
     progress(0.7, "cylinder model")
     open_grown = dataclasses.replace(params, form_factors=params.form_factors.replace(total=params.form_factors.open_grown_total))
