@@ -547,7 +547,8 @@ def tree_record(
     ``params.ground_near_stem_m`` of the stem (None: not known);
     ``shared_flag`` the reason its top is unsure, if any; ``top_evidence``: whether the top's offset
     from the stem (:attr:`.crown.CrownMeasurement.top_offset_ratio`) and the spread of its top
-    layer (:func:`.crown.top_cut_flat`) decide the height's trust (False for a single-tree cloud, whose top is the cloud's). Local frame, metres."""
+    layer (:func:`.crown.top_cut_flat`) decide the height's trust (False for a single-tree
+    cloud, whose top is the cloud's). Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
     quality: dict[str, str] = {}
