@@ -241,6 +241,30 @@ def test_a_stray_point_does_not_raise_the_tree(planted: Segmented) -> None:
     assert c.height_m == pytest.approx(base.height_m)
 
 
+def test_a_crown_cut_flat_is_told_from_a_seen_apex() -> None:
+    """A broadleaf crown (ellipsoid shell, 10 m deep, radius 2.5 m, on a 20 m tree) seen whole has
+    its top metre around the apex over the stem; the same crown cut flat 4 m below its apex (a top
+    beyond the scanner's field of view) has its highest points over the stem too, but its top metre
+    is a ring near the crown's rim: only that one is :func:`top_cut_flat`."""
+    from forestreg.engine.trees.crown import top_cut_flat
+
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    shell = np.column_stack([2.5 * u[:, 0], 2.5 * u[:, 1], 15.0 + 5.0 * u[:, 2]])
+    stem_pts = np.column_stack([0.15 * np.cos(np.linspace(0, 60, 2000)), 0.15 * np.sin(np.linspace(0, 60, 2000)),
+                                np.linspace(0.0, 20.0, 2000)])
+    st = Stem(id=1, base=np.zeros(3), axis=np.array([0.0, 0.0, 1.0]), radius_m=0.15, point_indices=np.zeros(0, int))
+    params = CrownParams()
+    whole = np.vstack([shell, stem_pts])
+    seen = measure_crown(whole, whole[:, 2], st, params)
+    cut = whole[whole[:, 2] <= 16.0]
+    flat = measure_crown(cut, cut[:, 2], st, params)
+    assert seen.height_m == pytest.approx(20.0, abs=0.1) and flat.height_m == pytest.approx(16.0, abs=0.1)
+    assert seen.top_layer_offset_ratio < 0.6 and not top_cut_flat(seen, params)
+    assert flat.top_layer_offset_ratio > params.max_top_layer_offset and top_cut_flat(flat, params)
+
+
 # --------------------------------------------------------------------------------------------
 # real plot
 # --------------------------------------------------------------------------------------------

@@ -20,6 +20,11 @@ Definitions (paper sec. 5.2.2)
   crown's flank (farther than ``max_top_offset`` of the radius, and than the height times the
   tangent of ``top_axis_tolerance_deg``: :func:`top_over_stem`) is the highest point seen of a
   crown whose apex was not seen (occluded from below) or a neighbour's, so the height is unsure;
+* top layer: the points of the top ``top_layer_m`` of the tree; their median distance from the
+  stem axis, as a fraction of the crown radius, is small under a seen apex and near 1 when the
+  crown is cut flat (beyond ``max_top_layer_offset``: :func:`top_cut_flat`), its top beyond the
+  scanner's field of view or hidden by other crowns, so that the highest point seen may stand
+  over the stem well below the true top;
 * crown widths ``a`` (east-west, along x) and ``b`` (north-south, along y): the extent of the crown
   points (those above the crown base) between the ``width_percentile`` and ``100 -
   width_percentile`` percentiles of x and of y;
@@ -61,6 +66,8 @@ class CrownParams(Params):
     min_points: int = param_field(50, "points", 3, 10**9, "Fewest points of a tree to measure it")
     max_top_offset: float = param_field(0.4, "1", 0.0, 10.0, "The top counts as seen when the highest point stands over the stem: within this fraction of the crown radius from the stem axis (farther: it is on the crown's flank, the apex above it unseen or a neighbour's)...")
     top_axis_tolerance_deg: float = param_field(3.0, "deg", 0.0, 30.0, "...or within the height times the tangent of this angle (a stem's sweep, and its lean measured on the lower stem, move the axis at the top)")
+    top_layer_m: float = param_field(1.0, "m", 0.05, 10.0, "Depth below the top of the crown's top layer, whose points tell a seen apex from a crown cut flat")
+    max_top_layer_offset: float = param_field(0.8, "1", 0.0, 10.0, "A top layer whose points lie at a median distance from the stem axis beyond this fraction of the crown radius is a cap or ring around the stem, not an apex: the crown was cut flat (its top beyond the scanner's field of view or hidden by other crowns), the height unsure")
 
 
 @dataclass(frozen=True)
@@ -88,6 +95,18 @@ class CrownMeasurement:
     #: apex itself was seen (small: the top stands over the stem) or only a crown flank (large)
     top_offset_m: float = float("nan")
     top_offset_ratio: float = float("nan")
+    #: median horizontal distance from the stem axis of the points in the top ``top_layer_m`` of
+    #: the tree, as a fraction of the crown radius: small for a seen apex (a tip or dome over the
+    #: stem), near 1 for a crown cut flat (its highest points a ring at the crown's rim)
+    top_layer_offset_ratio: float = float("nan")
+
+
+def top_cut_flat(crown: "CrownMeasurement", params: "CrownParams") -> bool:
+    """Whether the crown's top layer is a cap or ring around the stem rather than an apex: its
+    points' median distance from the stem axis beyond ``max_top_layer_offset`` of the crown radius
+    (the top not seen: cut by the scanner's field of view or hidden behind other crowns). False
+    when not known."""
+    return math.isfinite(crown.top_layer_offset_ratio) and crown.top_layer_offset_ratio > params.max_top_layer_offset
 
 
 def top_over_stem(crown: "CrownMeasurement", params: "CrownParams") -> bool:
@@ -178,6 +197,8 @@ def measure_crown(points: Any, heights: Any, stem: Stem, params: CrownParams = C
     cd = (a + b) / 2.0
     cl = height - cbh
     offset = float(radial[top_i])
+    layer = (rel_z >= height - params.top_layer_m) & (rel_z <= height)
+    layer_offset = float(np.median(radial[layer])) if layer.any() else nan
     return CrownMeasurement(
         tree_id=stem.id,
         x=stem.x,
@@ -196,6 +217,7 @@ def measure_crown(points: Any, heights: Any, stem: Stem, params: CrownParams = C
         reasons=tuple(reasons),
         top_offset_m=offset,
         top_offset_ratio=offset / (0.5 * cd) if cd > 0 else float("nan"),
+        top_layer_offset_ratio=layer_offset / (0.5 * cd) if cd > 0 else float("nan"),
     )
 
 

@@ -33,7 +33,7 @@ from ..geometry.voxel import voxel_representatives
 from ..io.results import TREE_COLUMNS, TreeTablesFile  # noqa: F401 - the columns of trees.csv
 from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
-from .crown import CrownMeasurement, CrownParams, measure_crown, top_over_stem
+from .crown import CrownMeasurement, CrownParams, measure_crown, top_cut_flat, top_over_stem
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
 from .segmentation import CompletenessParams, SegmentationParams, axis_stems, segment_trees, top_layer, tree_completeness
@@ -546,8 +546,9 @@ def tree_record(
     completeness reasons; ``ground_near`` whether ground points lie within
     ``params.ground_near_stem_m`` of the stem (None: not known);
     ``shared_flag`` the reason its top is unsure, if any; ``top_evidence``: whether the top's offset
-    from the stem (:attr:`.crown.CrownMeasurement.top_offset_ratio`) decides the height's trust
-    (False for a single-tree cloud, whose top is the cloud's). Local frame, metres."""
+    from the stem (:attr:`.crown.CrownMeasurement.top_offset_ratio`) and the spread of its top
+    layer (:func:`.crown.top_cut_flat`) decide the height's trust (False for a single-tree
+    cloud, whose top is the cloud's). Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
     quality: dict[str, str] = {}
@@ -616,6 +617,13 @@ def tree_record(
     elif any(r.startswith(("too few crown points", "too few points")) for r in reasons):
         h_trust = _trust(h_trust, "low")
         h_how += ", crown too sparse to confirm the top"
+    if top_evidence and over_stem and "top missing" not in flags and top_cut_flat(crown, params.crown):
+        # the highest point stands over the stem, but the top layer is a ring at the crown's rim
+        flags.append(f"top not seen: crown cut flat, its top {params.crown.top_layer_m:g} m a ring at "
+                     f"{crown.top_layer_offset_ratio:.2f} of the crown radius from the stem axis: height unsure "
+                     f"(likely too low)")
+        h_trust = _trust(h_trust, "low")
+        h_how += f", top layer cut flat ({crown.top_layer_offset_ratio:.2f} of the crown radius from the axis)"
     if shared_flag:
         flags.append(shared_flag)
         h_trust = _trust(h_trust, "low")
