@@ -106,6 +106,9 @@ class QsmParams(Params):
     enforce_taper: bool = _p(True, "", None, None, "Radii never increase along a branch and a child is never thicker than its parent cylinder")
     min_points: int = _p(30, "points", 4, 1000000, "Fewest points a tree must have for a cylinder model (as given, and after thinning)")
     max_fit_points: int = _p(1500, "points", 10, 1000000, "A cylinder is fitted to at most this many of its points (evenly picked)")
+    fork_share: float = _p(0.5, "1", 0.05, 1.0, "A branch carrying at least this share of the points the stem carries on above it (each with their branches) forks the trunk: a co-dominant leader, whose stem taper is judged apart from the trunk's")
+    stem_foot_max_gap_m: float = _p(1.5, "m", 0.0, 10.0, "A stem that starts at most this far above the given base (its foot lost to the ground filter or the leaf-wood separation) is lengthened down its axis to it; 0 = never")
+    stem_foot_max_tilt_deg: float = _p(60.0, "deg", 0.0, 89.0, "...when its first cylinder leans at most this much from the vertical")
     breast_height_m: float = _p(1.3, "m", 0.5, 3.0, "Height above the stem base at which the model's stem diameter (its DBH) is read; in a tree inventory the stems' breast_height_m is used, so both DBHs are read at one height", "DBH at 1.3 m")
 
     def _check(self) -> None:
@@ -959,11 +962,13 @@ def taper_radii(
 
 
 def _stem_down_to_base(
-    start: np.ndarray, axis: np.ndarray, length: np.ndarray, branch: np.ndarray, base: np.ndarray, max_gap_m: float = 1.5
+    start: np.ndarray, axis: np.ndarray, length: np.ndarray, branch: np.ndarray, base: np.ndarray, max_gap_m: float,
+    max_tilt_deg: float,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """The first stem cylinder lengthened down its axis to the given base's height when the
     model's stem starts above it (the foot of a stem lost to the ground filter or to the
-    leaf-wood separation; up to ``max_gap_m``, on a stem within 60 degrees of vertical). Returns
+    leaf-wood separation; up to ``max_gap_m``, on a stem within ``max_tilt_deg`` of vertical:
+    :attr:`QsmParams.stem_foot_max_gap_m`, :attr:`QsmParams.stem_foot_max_tilt_deg`). Returns
     the starts, the lengths and the length added (m)."""
     stem = np.flatnonzero(branch == 0)
     if len(stem) == 0:
@@ -971,7 +976,7 @@ def _stem_down_to_base(
     first = int(stem[0])
     a = axis[first]
     gap = float(start[first, 2] - base[2])
-    if a[2] < 0.5 or gap <= 0.0 or gap > max_gap_m:
+    if a[2] < np.cos(np.radians(max_tilt_deg)) or gap <= 0.0 or gap > max_gap_m:
         return start, length, 0.0
     extra = gap / float(a[2])
     start, length = start.copy(), length.copy()
@@ -980,7 +985,7 @@ def _stem_down_to_base(
     return start, length, extra
 
 
-def _stem_forks(branch: np.ndarray, parent: np.ndarray, n_points: np.ndarray, share: float = 0.5) -> set[int]:
+def _stem_forks(branch: np.ndarray, parent: np.ndarray, n_points: np.ndarray, share: float) -> set[int]:
     """The stem cylinders where the trunk forks: a branch grows from them whose points (with its
     own branches') are at least ``share`` of those the stem carries on above it (with its
     branches): a co-dominant leader, not a side branch."""
@@ -1291,7 +1296,7 @@ def fit_qsm(
 
     progress(0.9, "taper")
     child_base = _child_base_radii(branch, parent, radius, good)
-    forks = _stem_forks(branch, parent, n_fit)
+    forks = _stem_forks(branch, parent, n_fit, params.fork_share)
     for b in range(len(seg.branches)):
         idx = np.flatnonzero(branch == b)
         first_parent = parent[idx[0]]
@@ -1316,7 +1321,8 @@ def fit_qsm(
     axis = np.array([r["axis"] for r in rows]).reshape(k, 3)
     to_base = 0.0
     if base_pt is not None:
-        start, length, to_base = _stem_down_to_base(start, axis, length, branch, base_pt)
+        start, length, to_base = _stem_down_to_base(start, axis, length, branch, base_pt, params.stem_foot_max_gap_m,
+                                                      params.stem_foot_max_tilt_deg)
 
     progress(1.0, "cylinder model done")
     return CylinderModel(
