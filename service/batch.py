@@ -65,7 +65,7 @@ _NOT_SCANS = {"centre.txt", "center.txt", "targets.csv", "manifest.csv", "batch.
 #: Environment variables that size the numerical thread pools of a plot's process (OpenMP for
 #: Open3D, the BLAS libraries, Numba, NumExpr, and forestreg's own block pool).
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
-                    "NUMEXPR_NUM_THREADS", "NUMBA_NUM_THREADS", "FORESTREG_THREADS")
+                    "NUMEXPR_NUM_THREADS", "NUMBA_NUM_THREADS", "RAYON_NUM_THREADS", "FORESTREG_THREADS")
 #: The folder of ``OUT`` where each plot's attempts are noted (one small JSON file per plot).
 ATTEMPTS_DIR = ".forestreg-batch"
 #: Seconds between two checks of a running plot (its exit, and its memory under --memory-limit).

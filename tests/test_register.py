@@ -224,6 +224,34 @@ def test_each_scans_vops_are_found_once_in_the_thread_that_prepared_it(sim_plot,
     _check_against_truth(result, plot.relative_pose(0, 1))
 
 
+def test_a_pair_on_one_core_runs_no_second_thread_and_gives_the_same_matrix(sim_plot, monkeypatch):
+    """With one core allowed (``FORESTREG_THREADS=1``, a batch's ``--threads 1``) the two scans'
+    work runs one after the other: one VOP thread (the caller waits for it), no ICP-grid thread
+    beside the pair, and the matrices are bit for bit those of the two-thread run."""
+    import threading
+
+    from forestreg.engine.tls import pair as pair_module
+
+    plot = sim_plot("planted_conifer", ((0.0, 0.0), (9.0, 4.0)), seed=1)
+    ref, mov = plot.scans
+    two = register(ref.scan, mov.scan)
+    names: list = []
+    real_extract = pair_module.extract_vops
+
+    def extract(layers, params, radius):
+        names.append(threading.current_thread().name)
+        return real_extract(layers, params, radius)
+
+    monkeypatch.setattr(pair_module, "extract_vops", extract)
+    monkeypatch.setenv("FORESTREG_THREADS", "1")
+    before = {t.name for t in threading.enumerate()}
+    one = register(ref.scan, mov.scan)
+    assert names and set(names) <= {"forestreg-vops_0"}, names
+    assert not any(t.name.startswith("forestreg-icp-grid") for t in threading.enumerate() if t.name not in before)
+    assert np.array_equal(one.matrix, two.matrix) and np.array_equal(one.coarse_matrix, two.coarse_matrix)
+    _check_against_truth(one, plot.relative_pose(0, 1))
+
+
 @pytest.mark.parametrize("failed, long_name", [(False, False), (True, False), (False, True)])
 def test_pair_figure_keeps_each_title_over_its_own_panel(sim_plot, tmp_path, failed, long_name):
     """The pair figure: every title, a long failure reason's or scan name's too (wrapped on two

@@ -300,7 +300,9 @@ def register(
         # slicing and the VOPs, which do not use it: the last scan's preparation, which nothing
         # else runs beside, is shorter by as much (a large scan's is made with it, see above)
         grid = None
-        if prepared_scan.icp_grid is None:
+        if prepared_scan.icp_grid is None and _pair_threads() < 2:  # one core: nothing to run beside
+            prepared_scan = dataclasses.replace(prepared_scan, icp_grid=voxel_grid(prepared_scan.points, icp_grid_voxel(params)))
+        elif prepared_scan.icp_grid is None:
             grid = ThreadPoolExecutor(1, thread_name_prefix="forestreg-icp-grid")
             grid_job = grid.submit(voxel_grid, prepared_scan.points, icp_grid_voxel(params))
             grid.shutdown(wait=False)
@@ -316,7 +318,7 @@ def register(
     scans: dict[str, Scan] = {}
     read = {role: threading.Event() for role in ("reference", "moving")}
     failed: list[tuple[str, BaseException]] = []
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    with ThreadPoolExecutor(max_workers=_pair_threads()) as pool:
         jobs = {"reference": pool.submit(read_and_prepare, reference, "reference"), "moving": pool.submit(read_and_prepare, moving, "moving")}
         del reference, moving
         for role in ("reference", "moving"):
@@ -503,7 +505,7 @@ def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: Reg
         prep, layers, radius = job
         return derived(prep, ("vops", params, radius), lambda: extract_vops(layers, params, radius))
 
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    with ThreadPoolExecutor(max_workers=_pair_threads()) as pool:
         found = timed("vops", lambda: list(pool.map(vops, jobs)))
         step(0.5, f"matching the visual occlusion points within {', '.join(f'{r:.0f}' for r in radii)} m")
         # the radii are matched independently (compiled kernels, without the GIL): two at a time
@@ -543,8 +545,17 @@ def scan_vops(prepared: PreparedScan, params: RegistrationParams, timed: Callabl
 
     # the radii two at a time (mostly k-d tree and numpy work, which releases the GIL): the
     # second scan's VOPs are the only ones left when it is prepared
-    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="forestreg-vops") as pool:
+    with ThreadPoolExecutor(max_workers=_pair_threads(), thread_name_prefix="forestreg-vops") as pool:
         timed("vops", lambda: list(pool.map(vops, vop_radii(params))))
+
+
+def _pair_threads() -> int:
+    """Threads a pair runs its two scans' work in: two, or one when the process may use one core
+    (:func:`~forestreg.engine.core.jit.worker_count`, e.g. a batch's ``--threads 1``); the
+    results are the same either way."""
+    from ..core.jit import worker_count
+
+    return min(2, worker_count())
 
 
 def _coarse_attempt(ref_vops: VisualOcclusionPoints, mov_vops: VisualOcclusionPoints, radius: float, params: RegistrationParams) -> CoarseAttempt:
