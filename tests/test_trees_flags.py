@@ -135,6 +135,20 @@ def test_pine_plot_flags_only_weak_values(shared_data):
 
 
 @functools.lru_cache(maxsize=None)
+def _matched_trees(plot, inv) -> list:
+    """(measured tree, true tree) for every true tree of DBH >= 0.1 m within 11 m of the plot
+    centre; a true tree without a measured stem within 0.5 m fails the test here."""
+    inside = [t for t in plot.scene.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
+    pairs = []
+    for t in inside:
+        d = [math.hypot(r.stem.x - t.x, r.stem.y - t.y) for r in inv.trees]
+        k = int(np.argmin(d))
+        if d[k] < 0.5:
+            pairs.append((inv.trees[k], t))
+    assert len(pairs) == len(inside), f"{len(inside) - len(pairs)} of {len(inside)} trees not found"
+    return pairs
+
+
 def _four_scan_plot():
     """The mixed plot of the trees benchmark: 30 m square, four full-dome TLS scans 10 m apart
     (elevation up to the zenith), merged; suppressed trees stand 0.5 m below their neighbours'
@@ -160,14 +174,8 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     from forestreg.engine.trees.crown import CrownParams, top_over_stem
 
     plot, inv = _four_scan_plot()
-    inside = [t for t in plot.scene.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
-    pairs = []
-    for t in inside:
-        d = [math.hypot(r.stem.x - t.x, r.stem.y - t.y) for r in inv.trees]
-        k = int(np.argmin(d))
-        if d[k] < 0.5:
-            pairs.append((inv.trees[k], t))
-    assert len(pairs) == len(inside) == 39
+    pairs = _matched_trees(plot, inv)
+    assert len(pairs) == 39
     dbh = np.array([(r.dbh_m, t.dbh_m) for r, t in pairs])
     assert np.isfinite(dbh).all()
     assert math.sqrt(np.mean((dbh[:, 0] - dbh[:, 1]) ** 2)) / dbh[:, 1].mean() <= 0.017
@@ -194,10 +202,10 @@ def test_four_scan_plot_with_the_usual_field_of_view_flags_tops_not_seen():
     """The same plot scanned with a scanner's usual field of view (elevation up to +60 deg, like a
     RIEGL VZ-400), crowns growing into each other: the tops of the tall trees near the scanners
     are beyond every scan's view. The tallest tree (28 m) is seen up to 19.2 m, its highest point
-    over its stem (before: unflagged, 31.6 % too low); its top metre is a ring at 0.91 of the crown
-    radius from the stem axis (seen tops: at most 0.72), flagged "top not seen". No unflagged
-    height more than 20 % off: 10 of 39 unflagged, rRMSE 7.0 %, worst 11.2 % (before: 12, 14.4 %
-    and 31.6 %; the rest are conifers whose tips the view missed: a cone cut lower still tapers)."""
+    over its stem (trusted as it stands, 31.6 % too low); its top metre is a ring at 0.91 of the
+    crown radius from the stem axis (seen tops: at most 0.72), flagged "top not seen". No unflagged
+    height more than 20 % off: 10 of 39 unflagged, rRMSE 7.0 %, worst 11.2 % (conifers whose tips
+    the view missed: a cone cut lower still tapers)."""
     from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.trees.inventory import TreeParams
 
@@ -205,14 +213,8 @@ def test_four_scan_plot_with_the_usual_field_of_view_flags_tops_not_seen():
                          angular_step_deg=0.35, size_m=30.0, scanner_options={"elevation_max_deg": 60.0})
     points = np.vstack([s.world_points() for s in plot.scans])
     inv = measure_trees(points, TreeParams(cylinder_models=False))
-    inside = [t for t in plot.scene.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
-    pairs = []
-    for t in inside:
-        d = [math.hypot(r.stem.x - t.x, r.stem.y - t.y) for r in inv.trees]
-        k = int(np.argmin(d))
-        if d[k] < 0.5:
-            pairs.append((inv.trees[k], t))
-    assert len(pairs) == len(inside) == 39
+    pairs = _matched_trees(plot, inv)
+    assert len(pairs) == 39
     trusted = [(r, t) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))]
     h = np.array([(r.crown.height_m, t.height_m) for r, t in trusted])
     assert len(trusted) >= 9
