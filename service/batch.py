@@ -70,6 +70,16 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
 ATTEMPTS_DIR = ".forestreg-batch"
 #: Seconds between two checks of a running plot (its exit, and its memory under --memory-limit).
 _POLL_S = 0.1
+#: Dask settings of the batch's own local cluster (an existing cluster keeps its own): no stack
+#: sampling, system monitor and memory check once a second, no replica balancing. Its workers
+#: only wait for plot processes (the plots' memory is watched by the batch itself).
+LOCAL_CLUSTER_CONFIG = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.system-monitor.interval": "1s",
+    "distributed.admin.system-monitor.disk": False,
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.scheduler.active-memory-manager.start": False,
+}
 
 
 @dataclass
@@ -678,11 +688,17 @@ def _client(workers: Optional[int], scheduler: Optional[str], memory_limit: int 
     import signal
     import threading
 
+    import dask
+
     ignore = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if ignore else None
     try:
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.CRITICAL,
-                               memory_limit=memory_limit or "auto")
+        # The local workers hold no data: each runs one plot process at a time and waits for it.
+        # Dask's instruments for data-holding workers (a stack sampler every 10 ms, replica
+        # balancing every 2 s, a memory check every 100 ms) only take CPU from the plots.
+        with dask.config.set(LOCAL_CLUSTER_CONFIG):
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   silence_logs=logging.CRITICAL, memory_limit=memory_limit or "auto")
     finally:
         if ignore:
             signal.signal(signal.SIGINT, previous)
