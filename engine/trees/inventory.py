@@ -752,14 +752,13 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
     (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
     stand above the top (within 1 m horizontally, more than 1 m higher), thicker neighbours' points
     surround the top at its level (at least ``min_points``: :attr:`TreeParams.shared_top_min_points`), or the top lies nearer
-    (horizontally) to a taller neighbour's stem than to its own. Returns {tree id: flag}.
+    to a taller neighbour's stem axis than to its own. Returns {tree id: flag}.
     ``columns``: a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of ``p`` for the few
     disc queries (two k-d trees of the xy of the tree points and of the others took ~110 MB for
     2.9 M points, the command's peak then)."""
     out: dict[int, str] = {}
     if not (labels > 0).any():
         return out
-    pos = {s.id: np.array([s.x, s.y]) for s in stems}
     radius = {s.id: float(s.radius_m) for s in stems}
     for s in stems:
         c = crowns.get(s.id)
@@ -789,17 +788,25 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
             if thicker and sum(c for c, _ in thicker) >= min_points:
                 out[s.id] = f"top amid the crown of thicker tree {max(thicker)[1]}: height unsure (the top may be that tree's)"
                 continue
-        own = float(np.hypot(*(top[:2] - pos[s.id])))
+        # each stem's axis taken where it passes the top's height (a leaning stem's top stands
+        # beside its foot)
+        own = _axis_distance(s, top)
         for o in stems:
             if o.id == s.id:
                 continue
             co = crowns.get(o.id)
             if co is None or not math.isfinite(co.height_m) or not math.isfinite(c.height_m) or co.height_m <= c.height_m:
                 continue
-            if float(np.hypot(*(top[:2] - pos[o.id]))) < own and own > 1.0:
+            if _axis_distance(o, top) < own and own > 1.0:
                 out[s.id] = f"top shared with taller tree {o.id}: height unsure"
                 break
     return out
+
+
+def _axis_distance(stem: Stem, point: np.ndarray) -> float:
+    """Distance (m) of ``point`` from the straight line of ``stem``'s axis."""
+    d = np.asarray(point, dtype=np.float64) - stem.base
+    return float(np.linalg.norm(d - float(d @ stem.axis) * stem.axis))
 
 
 def _canopy_inventory(
