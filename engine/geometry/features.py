@@ -14,15 +14,19 @@ nearer point: again a k-d tree's answer.
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..core.jit import kernel, run_blocks, worker_count
 from .sums import pairwise_sum, segment_sum
 
-__all__ = ["SphereGrid", "eigen_features", "local_covariances", "nearest_within", "neighbour_means", "normals_and_variation"]
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
+
+__all__ = [
+    "SphereGrid", "eigen_features", "kth_nearest_distance", "local_covariances", "nearest_within", "neighbour_means", "normals_and_variation",
+]
 
 
 @kernel
@@ -304,6 +308,31 @@ def nearest_within(queries: np.ndarray, grid: SphereGrid, radius_m: float) -> tu
 
 
 @kernel
+def _kth_nearest_rows(
+    start: int, stop: int, q: np.ndarray, k: int, layers: int, distance: np.ndarray,
+    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
+    cell_z: np.ndarray, pts: np.ndarray,
+) -> None:
+    """Rows ``start:stop`` of :func:`kth_nearest_distance`."""
+    best_d2, best_index, best = _nearest_scratch(k)
+    for i in range(start, stop):
+        if _nearest_growing(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, layers, index, column_start, cell_z, pts, np.inf, k, best_d2, best_index, best) == k:
+            distance[i] = np.sqrt(best_d2[k - 1])
+
+
+def kth_nearest_distance(queries: np.ndarray, grid: SphereGrid, k: int) -> np.ndarray:
+    """The distance (metres) from each query to its ``k``-th nearest point of a
+    :class:`SphereGrid` (any cell size), as a k-d tree's ``query(queries, k=k)[0][:, k - 1]``
+    gives it (``inf`` where the grid holds fewer than ``k`` points). Queries that are the grid's
+    own points count themselves: ``k=2`` gives each point's distance to its nearest other point."""
+    q = np.ascontiguousarray(queries, dtype=np.float64)
+    distance = np.full(len(q), np.inf)
+    if len(q) and len(grid.points) and k >= 1:
+        run_blocks(_kth_nearest_rows, len(q), q, int(k), grid.layers, distance, *grid.args(), block=4096)
+    return distance
+
+
+@kernel
 def _nearest_covariance_rows(
     start: int, stop: int, q: np.ndarray, k: int, layers: int, cov: np.ndarray, count: np.ndarray,
     origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
@@ -378,7 +407,10 @@ def local_covariances(
     if grid is not None:
         run_blocks(_nearest_covariance_rows, len(q_all), q_all, k, grid.layers, cov, count, *grid.args(), block=block)
         return cov, count
-    tree = tree if tree is not None else cKDTree(c)
+    if tree is None:
+        from scipy.spatial import cKDTree  # here: the other neighbourhoods need no tree
+
+        tree = cKDTree(c)
     for a in range(0, len(q_all), batch):
         q = q_all[a : a + batch]
         _, idx = tree.query(q, k=k, workers=-1 if len(q) >= 5000 else 1)

@@ -9,10 +9,9 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .icp_params import IcpParams
 from ..core.transform import rotation_from_vector
@@ -20,6 +19,9 @@ from ..core.transform import apply as apply_transform
 from .features import SphereGrid, first_at_least, local_covariances, nearest_within, normals_and_variation
 from ..core.jit import kernel, run_blocks, worker_count
 from .voxel import VoxelGrid, column_bounds, voxel_downsample
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 
 @dataclass(frozen=True)
@@ -189,6 +191,8 @@ class IcpReference:
         """A k-d tree of all the points (built on first use, unbalanced: a fast build)."""
         with self._lock:
             if self._full_tree is None:
+                from scipy.spatial import cKDTree
+
                 self._full_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
             return self._full_tree
 
@@ -326,6 +330,8 @@ def nearest_distance_stats(
         reference = reference[_near_cells(reference, moved, max_distance_m)]
         if len(reference) == 0:
             return float("nan"), float("nan"), 0
+        from scipy.spatial import cKDTree
+
         tree = cKDTree(reference, balanced_tree=False, compact_nodes=False)  # built once, queried once: a fast build
     d, _ = tree.query(moved, distance_upper_bound=max_distance_m, workers=-1)
     return _stats(d)

@@ -46,7 +46,8 @@ is the literal optimum.
 Search levels: (1) bounds per (anchor pair, coarse bin of ``B`` consecutive angles), summed over
 all radius-compatible ``(i, q, j, l)`` tuples, which come from a sorted interval join of the m*m
 reference and n*n moving pair radii; (2) for the surviving coarse bins, the same bound per single
-angle (a bin of one angle); (3) exact scores with a k-d tree. Levels 1 and 2 are compiled numba
+angle (a bin of one angle); (3) exact scores, the nearest reference VOPs found on a grid of cells
+(:class:`~forestreg.engine.geometry.nearest.PlaneNearest`). Levels 1 and 2 are compiled numba
 kernels (:mod:`.coarse_kernels`: one branch-free pass over the join that adds each tuple to both
 twins' cells, and per-anchor merges of row-sorted pair radii for level 2); without numba the same
 bounds come from numpy (tuples stored, ``np.bincount``). Both paths give the same matches.
@@ -75,12 +76,14 @@ from __future__ import annotations
 import functools
 import threading
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..core.errors import InvalidArgumentError
+
+if TYPE_CHECKING:
+    from ..geometry.nearest import PlaneNearest
 
 #: The numba kernels module once :func:`_compiled_kernels` has imported it; None: the numpy path.
 _kernels = None
@@ -114,7 +117,7 @@ _COARSE_BIN_DEG = 2.0
 _WIDE_WINDOW_DEG = 40.0
 #: Tuples expanded into bins at a time (memory cap).
 _TUPLES_PER_CHUNK = 1 << 18
-#: Number of moving points scored per k-d tree call (memory cap).
+#: Number of moving points scored per nearest-VOP search (memory cap).
 _POINTS_PER_QUERY = 1 << 20
 
 
@@ -223,12 +226,11 @@ def _transform(
     return out
 
 
-def _scores_of_points(tree: cKDTree, points: np.ndarray, match_distance_m: float) -> np.ndarray:
-    """``D_overlap`` of each row of ``points`` (C, n, 2): sum over the row of min(nn distance, D_t)."""
+def _scores_of_points(index: PlaneNearest, points: np.ndarray, match_distance_m: float) -> np.ndarray:
+    """``D_overlap`` of each row of ``points`` (C, n, 2): sum over the row of min(nn distance, D_t)
+    (``index``: the reference VOPs, searched within ``match_distance_m``)."""
     count, n = points.shape[0], points.shape[1]
-    flat = points.reshape(-1, 2)
-    workers = -1 if flat.shape[0] >= 20000 else 1
-    dist, _ = tree.query(flat, k=1, distance_upper_bound=match_distance_m, workers=workers)
+    dist, _ = index.query(points.reshape(-1, 2))
     clipped = np.minimum(dist, match_distance_m).reshape(count, n)
     return np.add.reduce(clipped, axis=1)
 
@@ -242,7 +244,9 @@ def overlap_score(reference_xy: np.ndarray, transformed_moving_xy: np.ndarray, m
     reference = np.asarray(reference_xy, dtype=np.float64).reshape(-1, 2)
     points = np.asarray(transformed_moving_xy, dtype=np.float64).reshape(1, -1, 2)
     dist = _check_distance(match_distance_m)
-    return float(_scores_of_points(cKDTree(reference), points, dist)[0])
+    from ..geometry.nearest import PlaneNearest  # here: importing this module does not import numba
+
+    return float(_scores_of_points(PlaneNearest(reference, dist), points, dist)[0])
 
 
 class _Scorer:
@@ -255,7 +259,9 @@ class _Scorer:
         self.moving = moving
         self.cos_k, self.sin_k = _angle_table(k_count, step_deg)
         self.dist = dist
-        self.tree = cKDTree(reference)
+        from ..geometry.nearest import PlaneNearest  # here: importing this module does not import numba
+
+        self.index = PlaneNearest(reference, dist)
         self.evaluated = 0
         self.record = record
         self._keys: list[np.ndarray] = []
@@ -269,7 +275,7 @@ class _Scorer:
         for start in range(0, i.shape[0], per_call):
             sl = slice(start, start + per_call)
             pts = _transform(self.reference, self.moving, i[sl], j[sl], self.cos_k[k[sl]], self.sin_k[k[sl]])
-            out[sl] = _scores_of_points(self.tree, pts, self.dist)
+            out[sl] = _scores_of_points(self.index, pts, self.dist)
         self.evaluated += int(i.shape[0])
         if self.record:
             self._keys.append((i * n + j) * (self.cos_k.shape[0] - 1) + (k - 1))
@@ -294,7 +300,7 @@ class _Scorer:
         pts = _transform(
             self.reference, self.moving, np.array([i]), np.array([j]), self.cos_k[[k]], self.sin_k[[k]]
         )[0]
-        dist, idx = self.tree.query(pts, k=1, distance_upper_bound=self.dist)
+        dist, idx = self.index.query(pts)
         hit = np.flatnonzero(dist < self.dist)
         return np.column_stack([idx[hit], hit]).astype(np.int64).reshape(-1, 2)
 
@@ -546,7 +552,7 @@ def _build_bounds(
     step_rad = float(np.deg2rad(step_deg))
     B = _bin_size(k_count, step_deg, bin_deg)
     n_bins = k_count // B
-    # Rounding slack (metres), generous: covers the k-d tree distances of coordinates of this
+    # Rounding slack (metres), generous: covers the nearest-VOP distances of coordinates of this
     # magnitude, the bound's own arithmetic and the sin polynomial's rounding.
     scale = float(max(np.abs(reference).max(), np.abs(moving).max(), 1.0))
     slack = 1e-9 + 1e-13 * scale

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 from ..core.errors import DataError
 import numpy as np
-from scipy import ndimage
 
 from ..core.jit import kernel
+from ..geometry.filters2d import median3_nearest, minimum_filter_nearest, nearest_cell_indices
 from ..geometry.voxel import column_bounds
 
 
@@ -135,12 +135,12 @@ def ground_grid(points: np.ndarray, *, cell_m: float = 0.5, window_m: float = 3.
     measured = np.isfinite(low)
     size = max(3, int(round(window_m / cell_m)) | 1)
     filled = np.where(measured, low, np.inf)
-    local_min = ndimage.minimum_filter(filled, size=size, mode="nearest")
+    local_min = minimum_filter_nearest(filled, size)
     allowance = max_step_m + (size // 2) * cell_m  # a 45 deg slope rises one cell per cell
     with np.errstate(invalid="ignore"):
         measured &= filled - local_min <= allowance
     heights = _fill_nearest(np.where(measured, low, np.nan))
-    smooth = ndimage.median_filter(heights, size=3, mode="nearest")
+    smooth = median3_nearest(heights)
     heights = np.where(measured, smooth, heights)
     return GroundGrid(origin=origin, cell_m=cell_m, heights=heights, measured=measured)
 
@@ -152,7 +152,7 @@ def _fill_nearest(grid: np.ndarray) -> np.ndarray:
         return grid
     if missing.all():
         raise DataError("no ground cell could be measured near the scanner")
-    _, (ix, iy) = ndimage.distance_transform_edt(missing, return_indices=True)
+    ix, iy = nearest_cell_indices(missing)
     return grid[ix, iy]
 
 

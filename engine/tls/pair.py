@@ -23,6 +23,7 @@ import numpy as np
 from .coarse import CoarseMatch, match_vops
 from .evidence import mutual_free_space_violation
 from ..geometry.icp import IcpReference, IcpResult, icp
+from ..geometry.nearest import PlaneNearest
 from ..geometry.voxel import voxel_grid
 from .scanner_position import locate_scanner
 from .uncertainty import pair_uncertainty
@@ -393,13 +394,11 @@ def _within_prior(matrix: np.ndarray, prior: np.ndarray, moving: Scan, tolerance
 def _second_candidate(attempt: CoarseAttempt, match_distance_m: float) -> CoarseAttempt:
     """The attempt with its best distinct coarse solution in place of the best one (matched VOP
     pairs recomputed: each moving VOP with its nearest reference VOP within ``match_distance_m``)."""
-    from scipy.spatial import cKDTree
-
     m = attempt.match
     theta = np.deg2rad(m.second_rotation_deg)
     rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
     moved = attempt.moving_vops.xy @ rot.T + np.asarray(m.second_translation)
-    d, idx = cKDTree(attempt.reference_vops.xy).query(moved)
+    d, idx = PlaneNearest(attempt.reference_vops.xy, match_distance_m).query(moved)
     hit = np.flatnonzero(d < match_distance_m)
     pairs = np.column_stack([idx[hit], hit]).astype(np.int64).reshape(-1, 2)
     second = dataclasses.replace(

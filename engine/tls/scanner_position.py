@@ -28,12 +28,12 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from scipy import ndimage
 
 from .params import ScannerPositionParams
 from ..core.errors import ScanDataError
 from ..core.scan import Scan
 from ..core.jit import kernel
+from ..geometry.filters2d import gaussian_smooth
 from ..geometry.voxel import column_bounds
 
 log = logging.getLogger("forestreg")
@@ -110,6 +110,7 @@ def estimate_scanner_position(points: np.ndarray, params: Optional[ScannerPositi
 
     Raises :class:`ScannerPositionError` where no single dominant density peak exists.
     """
+    from scipy import ndimage  # here: only for a scan whose file origin is not confirmed at once
     p = params or ScannerPositionParams()
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) < 1000:
@@ -171,6 +172,7 @@ def find_blind_circle(points: np.ndarray, params: Optional[ScannerPositionParams
     ground is not denser near the scanner, e.g. scans resampled from a merged cloud): the one
     round hole, 0.8-4 m in radius, fully enclosed by ground returns, refined by the cone fit.
     Returns None where there is no such hole or more than one."""
+    from scipy import ndimage  # here: only for a scan whose file origin is not confirmed at once
     p = params or ScannerPositionParams()
     pts = np.asarray(points, dtype=np.float64)
     ground = pts[_near_ground(pts, p.ground_band_m)]
@@ -349,7 +351,7 @@ def origin_is_density_peak(points: np.ndarray, origin: np.ndarray, params: Optio
     shape = (int(np.ceil((hi_x + 2 * cell - lo[0]) / cell)), int(np.ceil((hi_y + 2 * cell - lo[1]) / cell)))
     counts = np.zeros(shape[0] * shape[1], dtype=np.int64)
     _xy_histogram(pts, float(lo[0]), float(lo[1]), float(cell), shape[1], counts)
-    smooth = ndimage.gaussian_filter(counts.reshape(shape).astype(np.float64), sigma=max(p.smooth_m / cell, 1.0), mode="constant")
+    smooth = gaussian_smooth(counts.reshape(shape).astype(np.float64), max(p.smooth_m / cell, 1.0))
     peak = lo + (np.array(np.unravel_index(int(np.argmax(smooth)), smooth.shape)) + 0.5) * cell
     at_origin, at_peak = _disc_counts(pts, float(o[0]), float(o[1]), float(peak[0]), float(peak[1]), float(p.near_m) ** 2)
     return at_origin >= 100 and at_origin >= 0.8 * at_peak

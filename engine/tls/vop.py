@@ -20,11 +20,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .ground import GroundGrid
 from ..geometry.circle import algebraic_circle
 from ..geometry.cluster import connected_clusters
+from ..geometry.features import SphereGrid, kth_nearest_distance
 from ..core.jit import kernel
 
 
@@ -113,10 +113,18 @@ def angular_spacing(points_xyz: np.ndarray) -> float:
     if len(points_xyz) < 3:
         return 0.0
     sample = points_xyz if len(points_xyz) <= 20000 else points_xyz[:: len(points_xyz) // 20000 + 1]
-    d, _ = cKDTree(sample).query(sample, k=2)
+    grid = SphereGrid(sample, _spacing_cell(sample))
+    d = kth_nearest_distance(sample, grid, 2)  # the second nearest of a point is its nearest other point
     rng = np.linalg.norm(sample, axis=1)
     ok = rng > 0.5
-    return float(np.median(d[ok, 1] / rng[ok])) if ok.any() else 0.0
+    return float(np.median(d[ok] / rng[ok])) if ok.any() else 0.0
+
+
+def _spacing_cell(points_xyz: np.ndarray) -> float:
+    """A search grid's cell (metres) for the nearest neighbours of ``points_xyz``: about one point
+    per column of the horizontal extent (any cell gives the same neighbours, this one quickly)."""
+    extent = np.ptp(np.asarray(points_xyz[:, :2], dtype=np.float64), axis=0)
+    return float(max(np.sqrt(extent[0] * extent[1] / len(points_xyz)), 1e-3))
 
 
 def connected_components(points_xyz: np.ndarray, *, link_m: float, spacing_rad: float) -> np.ndarray:
