@@ -1,12 +1,7 @@
 """Nearest-point searches without a k-d tree, against SciPy's ``cKDTree`` on random points (ties
-included); and a small pair registered without importing SciPy's spatial or ndimage packages."""
+included)."""
 
 from __future__ import annotations
-
-import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,8 +9,6 @@ from scipy.spatial import cKDTree
 
 from forestreg.engine.geometry.features import SphereGrid, kth_nearest_distance
 from forestreg.engine.geometry.nearest import PlaneNearest
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _plane_sets(seed: int, count: int):
@@ -80,32 +73,18 @@ def test_kth_nearest_distance_is_the_k_d_trees():
                 assert np.array_equal(got, want), (t, k, cell)
 
 
-def test_a_small_pair_registers_without_scipys_spatial_and_ndimage_packages(sim_plot, tmp_path):
-    """Their import costs a small pair's run about 0.1 s: the pair path uses the searches and
-    filters above (SciPy's linear algebra is still imported, by numba)."""
-    from forestreg.engine.io import write_scan
+def test_nearest_within_finds_the_same_in_any_search_order():
+    """ICP searches a stage's queries in the order of their cells at its first iteration: the order
+    changes how fast the search runs, never what it finds."""
+    from forestreg.engine.geometry.features import nearest_within, query_order
 
-    plot = sim_plot("mixed_temperate", ((0.0, 0.0), (12.0, -3.0)), seed=2)
-    paths = []
-    for s in plot.scans:
-        paths.append(tmp_path / f"{s.scan.name}.laz")
-        write_scan(s.scan, paths[-1])
-    code = (
-        "import json, sys\n"
-        "from forestreg.app.pair import register_pair\n"
-        "o = register_pair(sys.argv[1], sys.argv[2], sys.argv[3])\n"
-        "print(json.dumps({'ok': o.result.ok, 'scipy': sorted(m for m in sys.modules if m.startswith(('scipy.spatial', 'scipy.ndimage')))}))\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code, str(paths[0]), str(paths[1]), str(tmp_path / "out")],
-                         capture_output=True, text=True, cwd=tmp_path, env=_env(), timeout=600)
-    assert out.returncode == 0, out.stderr
-    report = json.loads(out.stdout.strip().splitlines()[-1])
-    assert report == {"ok": True, "scipy": []}
-
-
-def _env() -> dict:
-    import os
-
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT.parent) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(20000, 3)) * [8.0, 8.0, 2.0]
+    grid = SphereGrid(pts, 0.5)
+    q = pts[rng.choice(len(pts), 5000)] + rng.normal(size=(5000, 3)) * 0.05
+    want = nearest_within(q, grid, 0.5)
+    for order in (query_order(q + 0.3, grid), rng.permutation(len(q)), np.arange(len(q))):
+        got = nearest_within(q, grid, 0.5, order=order)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    with pytest.raises(ValueError):
+        nearest_within(q, grid, 0.5, order=np.arange(10))

@@ -237,6 +237,7 @@ def _locked_compile(dispatcher: Any) -> None:
 
     def compile(sig: Any) -> Any:
         with global_compiler_lock:
+            _blas_module_alone()
             args, _ = sigutils.normalize_signature(sig)
             if tuple(args) in dispatcher.overloads:
                 return compile_now(sig)
@@ -246,6 +247,46 @@ def _locked_compile(dispatcher: Any) -> None:
             return made
 
     dispatcher.compile = compile
+
+
+_BLAS_CHECKED = False
+
+
+def _blas_module_alone() -> None:
+    """Load SciPy's ``scipy.linalg.cython_blas`` extension module by itself, under its own name,
+    before numba's first compile or load of a kernel in this process (called under numba's
+    compiler lock). numba then checks that BLAS is there by importing that module, which imports
+    the whole ``scipy.linalg`` package first (~0.1 s of a small pair's run, mostly SciPy's array-API
+    layer); found in ``sys.modules``, the module alone serves (numba takes only the addresses of
+    its functions), and a later ``import scipy.linalg`` imports the package as usual. Nothing is
+    done once ``scipy.linalg`` is imported, or when the module cannot be found where SciPy keeps
+    it (numba's own import then runs)."""
+    global _BLAS_CHECKED
+    if _BLAS_CHECKED:
+        return
+    _BLAS_CHECKED = True
+    name = "scipy.linalg.cython_blas"
+    if name in sys.modules or "scipy.linalg" in sys.modules:
+        return
+    try:
+        import importlib.machinery
+        import importlib.util
+
+        scipy_spec = importlib.util.find_spec("scipy")
+        if scipy_spec is None or not scipy_spec.origin:
+            return
+        folder = os.path.join(os.path.dirname(scipy_spec.origin), "linalg")
+        path = next((p for p in (os.path.join(folder, "cython_blas" + s) for s in importlib.machinery.EXTENSION_SUFFIXES) if os.path.exists(p)), None)
+        if path is None:
+            return
+        spec = importlib.util.spec_from_file_location(name, path)
+        if spec is None or spec.loader is None:
+            return
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    except Exception:  # numba imports it the usual way
+        sys.modules.pop(name, None)
 
 
 #: (kernel, argument types) in the order this process loaded (or compiled) them.

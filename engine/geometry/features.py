@@ -26,6 +26,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "SphereGrid", "eigen_features", "kth_nearest_distance", "local_covariances", "nearest_within", "neighbour_means", "normals_and_variation",
+    "query_order",
 ]
 
 
@@ -290,21 +291,35 @@ def _nearest_rows(
             nearest[i] = best_index[0]
 
 
-def nearest_within(queries: np.ndarray, grid: SphereGrid, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+def nearest_within(queries: np.ndarray, grid: SphereGrid, radius_m: float, *, order: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
     """The nearest of a :class:`SphereGrid`'s points strictly within ``radius_m`` (any, the grid's
     cell being no limit) of each query, as a k-d tree's ``query(queries,
     distance_upper_bound=radius_m)`` gives it: distances (Q,) in metres, ``inf`` where there is
     none, and the points' indices (Q,) into the points the grid was made from, ``len(points)``
-    where there is none (ties go to the lower index)."""
+    where there is none (ties go to the lower index).
+
+    ``order``: the queries' rows in the order to search them (a permutation, int64), e.g.
+    :func:`query_order` of the same queries moved a little; by default their own. The order only
+    decides how fast the search runs (neighbouring queries read the same grid points from the
+    cache), never what it finds."""
     q = np.ascontiguousarray(queries, dtype=np.float64)
     distance = np.full(len(q), np.inf)
     nearest = np.full(len(q), len(grid.points), dtype=np.int64)
     if len(q) and len(grid.points) and radius_m > 0:
-        # queries taken cell by cell: neighbouring queries read the same grid points from the cache
-        key = np.empty(len(q), dtype=np.int64)
-        run_blocks(_cell_key_rows, len(q), q, grid.origin, grid.cell_m, grid.ny, grid.layers, key, block=262144)
-        run_blocks(_nearest_rows, len(q), np.argsort(key), q, float(radius_m) ** 2, grid.layers, distance, nearest, *grid.args(), block=8192)
+        rows = query_order(q, grid) if order is None else np.asarray(order, dtype=np.int64)
+        if len(rows) != len(q):
+            raise ValueError(f"order holds {len(rows)} rows for {len(q)} queries")
+        run_blocks(_nearest_rows, len(q), rows, q, float(radius_m) ** 2, grid.layers, distance, nearest, *grid.args(), block=8192)
     return distance, nearest
+
+
+def query_order(queries: np.ndarray, grid: SphereGrid) -> np.ndarray:
+    """The rows of ``queries`` (Q, 3) by their cell of ``grid`` (int64): the order in which
+    :func:`nearest_within` searches them."""
+    q = np.ascontiguousarray(queries, dtype=np.float64)
+    key = np.empty(len(q), dtype=np.int64)
+    run_blocks(_cell_key_rows, len(q), q, grid.origin, grid.cell_m, grid.ny, grid.layers, key, block=262144)
+    return np.argsort(key)
 
 
 @kernel

@@ -28,7 +28,7 @@ def minimum_filter_nearest(values: np.ndarray, size: int) -> np.ndarray:
         n = a.shape[axis]
         out = np.take(padded, np.arange(0, n), axis=axis)
         for s in range(1, size):
-            np.minimum(out, np.take(padded, np.arange(s, s + n), axis=axis), out=out)
+            np.minimum(out, np.moveaxis(np.moveaxis(padded, axis, 0)[s : s + n], 0, axis), out=out)
         a = out
     return a
 
@@ -171,15 +171,19 @@ def gaussian_smooth(values: np.ndarray, sigma: float, truncate: float = 4.0) -> 
     x = np.arange(-radius, radius + 1)
     weights = np.exp(-0.5 / (sd * sd) * x**2)
     weights = weights / weights.sum()
-    for axis in (0, 1):
-        n = out.shape[axis]
-        padded = np.pad(out, [(radius, radius) if k == axis else (0, 0) for k in (0, 1)])  # zeros
+    # along axis 0, then along axis 1 as axis 0 of the transposed grid (rows read whole)
+    return _smooth_rows(_smooth_rows(out, weights, radius).T, weights, radius).T
 
-        def shifted(offset: int) -> np.ndarray:
-            return np.take(padded, np.arange(radius + offset, radius + offset + n), axis=axis)
 
-        acc = shifted(0) * weights[radius]
-        for j in range(radius, 0, -1):
-            acc += (shifted(-j) + shifted(j)) * weights[radius - j]
-        out = acc
-    return out
+def _smooth_rows(values: np.ndarray, weights: np.ndarray, radius: int) -> np.ndarray:
+    """:func:`gaussian_smooth` along axis 0 only."""
+    n = values.shape[0]
+    padded = np.zeros((n + 2 * radius,) + values.shape[1:])
+    padded[radius : radius + n] = values
+    acc = padded[radius : radius + n] * weights[radius]
+    pair = np.empty_like(acc)
+    for j in range(radius, 0, -1):
+        np.add(padded[radius - j : radius - j + n], padded[radius + j : radius + j + n], out=pair)
+        pair *= weights[radius - j]
+        acc += pair
+    return acc

@@ -16,7 +16,7 @@ import numpy as np
 from .icp_params import IcpParams
 from ..core.transform import rotation_from_vector
 from ..core.transform import apply as apply_transform
-from .features import SphereGrid, first_at_least, local_covariances, nearest_within, normals_and_variation
+from .features import SphereGrid, first_at_least, local_covariances, nearest_within, normals_and_variation, query_order
 from ..core.jit import kernel, run_blocks, worker_count
 from .voxel import VoxelGrid, column_bounds, voxel_downsample
 
@@ -274,10 +274,13 @@ def icp(
             mov = mov[rng.choice(len(mov), max_moving_points, replace=False)]
         if len(ref) < 20 or len(mov) < 20:
             break
+        order = None  # the queries' search order: by their cells at the stage's first iteration
         for _ in range(iterations):
             total_iterations += 1
             moved = apply_transform(matrix, mov)
-            d, j = nearest_within(moved, grid, dist)
+            if order is None:
+                order = query_order(moved, grid)
+            d, j = nearest_within(moved, grid, dist, order=order)
             ok = np.isfinite(d)
             if ok.sum() < 6:
                 break

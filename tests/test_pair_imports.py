@@ -1,0 +1,67 @@
+"""What a pair's run imports: neither SciPy's spatial nor its ndimage package (the searches and
+filters of ``geometry.nearest`` and ``geometry.filters2d`` stand in for them), nor the whole of
+``scipy.linalg`` that numba's BLAS check would import -- and numba's BLAS still works."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT.parent), env.get("PYTHONPATH", "")) if p)
+    return env
+
+
+def _run(code: str, *args, cwd: Path) -> dict:
+    out = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True, cwd=cwd, env=_env(), timeout=600)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_a_small_pair_registers_without_scipys_spatial_and_ndimage_packages(sim_plot, tmp_path):
+    """Their import costs a small pair's run about 0.1 s: the pair path uses the searches and
+    filters above (SciPy's linear algebra is still imported, by numba)."""
+    from forestreg.engine.io import write_scan
+
+    plot = sim_plot("mixed_temperate", ((0.0, 0.0), (12.0, -3.0)), seed=2)
+    paths = []
+    for s in plot.scans:
+        paths.append(tmp_path / f"{s.scan.name}.laz")
+        write_scan(s.scan, paths[-1])
+    code = (
+        "import json, sys\n"
+        "from forestreg.app.pair import register_pair\n"
+        "o = register_pair(sys.argv[1], sys.argv[2], sys.argv[3])\n"
+        "heavy = ('scipy.spatial', 'scipy.ndimage', 'scipy.sparse', 'scipy.linalg')\n"
+        "print(json.dumps({'ok': o.result.ok, 'scipy': sorted(m for m in sys.modules if m in heavy or m.startswith(tuple(h + '.' for h in heavy[:3])))}))\n"
+    )
+    report = _run(code, paths[0], paths[1], tmp_path / "out", cwd=tmp_path)
+    assert report == {"ok": True, "scipy": []}
+
+
+def test_numbas_blas_works_without_the_whole_of_scipy_linalg(tmp_path):
+    """The first kernel a process loads leaves ``scipy.linalg`` unimported; a numba function using
+    BLAS still compiles and computes, and ``scipy.linalg`` imports whole afterwards."""
+    code = (
+        "import json, sys\n"
+        "import numpy as np, numba\n"
+        "from forestreg.engine.geometry.voxel import column_bounds\n"
+        "column_bounds(np.arange(9.0).reshape(3, 3))\n"
+        "alone = 'scipy.linalg' not in sys.modules and 'scipy.linalg.cython_blas' in sys.modules\n"
+        "f = numba.njit(lambda a, b: np.dot(a, b))\n"
+        "a = np.arange(16.0).reshape(4, 4)\n"
+        "dot = bool(np.array_equal(f(a, a), a @ a))\n"
+        "import scipy.linalg\n"
+        "from scipy.linalg import cython_blas\n"
+        "m = a + 10 * np.eye(4)\n"
+        "linalg = bool(np.allclose(scipy.linalg.inv(m) @ m, np.eye(4))) and cython_blas is sys.modules['scipy.linalg.cython_blas']\n"
+        "print(json.dumps({'alone': alone, 'dot': dot, 'linalg': linalg}))\n"
+    )
+    assert _run(code, cwd=tmp_path) == {"alone": True, "dot": True, "linalg": True}
