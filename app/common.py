@@ -151,9 +151,16 @@ def import_in_background(*modules: str, kernels: bool | str = False) -> None:
     (LLVM's start-up, ~0.3 s) while the inputs are read; with the name of a use case (e.g.
     ``"pair"``), then every kernel that use case loaded in its last run, in their order
     (:func:`~forestreg.engine.core.jit.preload`, ~40 ms each). An import that fails here fails
-    again, with its message, where the module is used."""
+    again, with its message, where the module is used. A process allowed one core
+    (:func:`~forestreg.engine.core.jit.worker_count`, e.g. a batch's ``--threads 1``) starts no
+    such thread: the modules and kernels load where they are used, on that core."""
     import importlib
     import threading
+
+    from ..engine.core.jit import worker_count
+
+    if worker_count() <= 1:
+        return
 
     def run() -> None:
         if kernels:

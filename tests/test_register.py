@@ -252,6 +252,27 @@ def test_a_pair_on_one_core_runs_no_second_thread_and_gives_the_same_matrix(sim_
     _check_against_truth(one, plot.relative_pose(0, 1))
 
 
+@pytest.mark.parametrize("threads, started", [("1", False), ("2", True)])
+def test_background_imports_only_with_a_second_core(monkeypatch, threads, started):
+    """A use case loads its report modules and kernels in a second thread while it reads; a
+    process allowed one core (a batch's ``--threads 1``) starts no such thread."""
+    import threading
+
+    from forestreg.app.common import import_in_background
+
+    names: list = []
+    real_start = threading.Thread.start
+
+    def start(self):
+        names.append(self.name)
+        return real_start(self)
+
+    monkeypatch.setattr(threading.Thread, "start", start)
+    monkeypatch.setenv("FORESTREG_THREADS", threads)
+    import_in_background(".engine.report.figures")
+    assert ("forestreg-imports" in names) == started, names
+
+
 @pytest.mark.parametrize("failed, long_name", [(False, False), (True, False), (False, True)])
 def test_pair_figure_keeps_each_title_over_its_own_panel(sim_plot, tmp_path, failed, long_name):
     """The pair figure: every title, a long failure reason's or scan name's too (wrapped on two
