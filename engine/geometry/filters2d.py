@@ -26,9 +26,13 @@ def minimum_filter_nearest(values: np.ndarray, size: int) -> np.ndarray:
     for axis in range(a.ndim):
         padded = np.pad(a, [(half, half) if k == axis else (0, 0) for k in range(a.ndim)], mode="edge")
         n = a.shape[axis]
-        out = np.take(padded, np.arange(0, n), axis=axis)
+
+        def window(start: int, padded=padded, n=n, axis=axis) -> np.ndarray:
+            return padded[tuple(slice(start, start + n) if k == axis else slice(None) for k in range(padded.ndim))]
+
+        out = window(0).copy()
         for s in range(1, size):
-            np.minimum(out, np.moveaxis(np.moveaxis(padded, axis, 0)[s : s + n], 0, axis), out=out)
+            np.minimum(out, window(s), out=out)
         a = out
     return a
 
