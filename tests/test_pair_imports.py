@@ -65,3 +65,43 @@ def test_numbas_blas_works_without_the_whole_of_scipy_linalg(tmp_path):
         "print(json.dumps({'alone': alone, 'dot': dot, 'linalg': linalg}))\n"
     )
     assert _run(code, cwd=tmp_path) == {"alone": True, "dot": True, "linalg": True}
+
+
+def test_a_small_pairs_command_runs_without_the_cyclic_collector_unless_it_compiles(sim_plot, tmp_path):
+    """``forestreg register`` of small scans turns Python's cyclic garbage collector off (its full
+    passes over the imports' objects cost a small pair 0.1-0.2 s); a process that has to compile
+    kernels turns it on again."""
+    from forestreg.engine.io import write_scan
+
+    plot = sim_plot("mixed_temperate", ((0.0, 0.0), (12.0, -3.0)), seed=2)
+    paths = []
+    for s in plot.scans:
+        paths.append(tmp_path / f"{s.scan.name}.laz")
+        write_scan(s.scan, paths[-1])
+    code = (
+        "import gc, json, sys\n"
+        "from forestreg import cli\n"
+        "from forestreg.engine.core import jit\n"
+        "code = cli.main(['register', sys.argv[1], sys.argv[2], '--out', sys.argv[3], '--quiet'], tune_malloc=True)\n"
+        "print(json.dumps({'code': code, 'collector': gc.isenabled(), 'compiled': jit._SAID}))\n"
+    )
+    report = _run(code, paths[0], paths[1], tmp_path / "out", cwd=tmp_path)
+    assert report["code"] == 0 and report["collector"] == report["compiled"]
+    # a caller's process (no tuning asked) keeps its collector
+    code = code.replace(", tune_malloc=True", "")
+    report = _run(code, paths[0], paths[1], tmp_path / "out2", cwd=tmp_path)
+    assert report["code"] == 0 and report["collector"] is True
+
+
+def test_compiling_a_kernel_turns_the_cyclic_collector_on(monkeypatch):
+    import gc
+
+    from forestreg.engine.core import jit
+
+    monkeypatch.setattr(jit, "_SAID", True)  # nothing said
+    gc.disable()
+    try:
+        jit._say_compiling(jit.__file__)
+        assert gc.isenabled()
+    finally:
+        gc.enable()

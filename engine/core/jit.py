@@ -209,7 +209,11 @@ _SAID = False
 def _say_compiling(source: str) -> None:
     """Say once in a process that the kernels are being compiled, when ``forestreg warmup`` has
     not compiled them ahead (the first command after an install pays for it); ``source``: the
-    file of the kernel being compiled."""
+    file of the kernel being compiled. Compiling leaves much cyclic garbage: Python's collector,
+    when a command turned it off (a small pair's ``forestreg register``), is turned on again."""
+    import gc
+
+    gc.enable()
     global _SAID
     if _SAID:
         return
