@@ -20,6 +20,10 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
+# the coarse matcher's compiled bounds, imported with the pair (the matcher imports them at its
+# first match): a process that loads a pair's kernels in the background while the scans are read
+# and prepared (:func:`~forestreg.engine.core.jit.preload`) loads these with them
+from . import coarse_kernels  # noqa: F401
 from .coarse import CoarseMatch, match_vops
 from .evidence import mutual_free_space_violation
 from ..geometry.icp import IcpReference, IcpResult, icp
