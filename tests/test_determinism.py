@@ -343,7 +343,12 @@ def test_warmup_records_the_kernel_sources_and_is_skipped_while_they_are_unchang
     assert jit.kernel_cache_dir() == str(tmp_path) and not jit.cache_is_warm()
     source = Path(voxel.__file__)
     (tmp_path / jit.WARM_MARK).write_text(json.dumps({"files": {str(source): hashlib.sha256(source.read_bytes()).hexdigest()}}))
-    assert jit.cache_is_warm() and jit.cache_is_warm([str(source)]) and not jit.cache_is_warm([str(source.with_name("icp.py"))])
+    # a kernel file the record does not hold (a module added since) makes the cache cold
+    assert not jit.cache_is_warm() and jit.cache_is_warm([str(source)]) and not jit.cache_is_warm([str(source.with_name("icp.py"))])
+    every = jit.kernel_source_files()
+    assert str(source) in every and len(every) >= 15
+    (tmp_path / jit.WARM_MARK).write_text(json.dumps({"files": {f: hashlib.sha256(Path(f).read_bytes()).hexdigest() for f in every}}))
+    assert jit.cache_is_warm()
     assert main(["warmup"]) == 0
     assert "compiled already" in capsys.readouterr().out
     (tmp_path / jit.WARM_MARK).write_text(json.dumps({"files": {str(source): "0" * 64}}))

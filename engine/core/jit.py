@@ -91,16 +91,35 @@ def _source_hashes(files: Iterable[str]) -> dict[str, str]:
     return out
 
 
+def kernel_source_files() -> list[str]:
+    """The engine's source files that define compiled kernels (their text holds ``@kernel``)."""
+    engine = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = []
+    for folder, _, names in os.walk(engine):
+        for name in names:
+            if name.endswith(".py"):
+                path = os.path.join(folder, name)
+                try:
+                    with open(path, encoding="utf-8") as f:
+                        if "@kernel" in f.read():
+                            out.append(path)
+                except (OSError, UnicodeDecodeError):
+                    continue
+    return sorted(out)
+
+
 def warm_record() -> dict[str, Any]:
-    """What :func:`cache_is_warm` checks, for the kernels of every module imported so far: their
-    count and a hash of each source file (written by ``forestreg warmup`` as :data:`WARM_MARK`)."""
-    files = sorted({k.py_func.__code__.co_filename for k in _KERNELS})
+    """What :func:`cache_is_warm` checks: the number of kernels of every module imported so far,
+    and a hash of each source file that defines kernels, imported or not (written by
+    ``forestreg warmup`` as :data:`WARM_MARK`)."""
+    files = sorted({k.py_func.__code__.co_filename for k in _KERNELS} | set(kernel_source_files()))
     return {"kernels": len(_KERNELS), "files": _source_hashes(files)}
 
 
 def cache_is_warm(files: Optional[Iterable[str]] = None) -> bool:
     """Whether ``forestreg warmup`` has compiled the kernels of the source ``files`` (default:
-    every file it compiled) into :func:`kernel_cache_dir`, and they have not changed since."""
+    every file it recorded, and every engine file that defines kernels now: a new one makes the
+    cache cold) into :func:`kernel_cache_dir`, and they have not changed since."""
     import json
 
     folder = kernel_cache_dir()
@@ -111,7 +130,9 @@ def cache_is_warm(files: Optional[Iterable[str]] = None) -> bool:
             recorded = json.load(f)["files"]
     except (OSError, ValueError, KeyError, TypeError):
         return False
-    files = list(recorded) if files is None else list(files)
+    if files is None:
+        files = sorted(set(recorded) | set(kernel_source_files()))
+    files = list(files)
     return bool(files) and all(recorded.get(k) == v for k, v in _source_hashes(files).items())
 
 
