@@ -25,16 +25,22 @@ def _run(code: str, *args, cwd: Path) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def test_a_small_pair_registers_without_scipys_spatial_and_ndimage_packages(sim_plot, tmp_path):
-    """Their import costs a small pair's run about 0.1 s: the pair path uses the searches and
-    filters above (SciPy's linear algebra is still imported, by numba)."""
+def _pair_files(sim_plot, folder: Path) -> list[Path]:
+    """A simulated mixed pair written as two LAZ files in ``folder``."""
     from forestreg.engine.io import write_scan
 
     plot = sim_plot("mixed_temperate", ((0.0, 0.0), (12.0, -3.0)), seed=2)
     paths = []
     for s in plot.scans:
-        paths.append(tmp_path / f"{s.scan.name}.laz")
+        paths.append(folder / f"{s.scan.name}.laz")
         write_scan(s.scan, paths[-1])
+    return paths
+
+
+def test_a_small_pair_registers_without_scipys_spatial_and_ndimage_packages(sim_plot, tmp_path):
+    """Their import costs a small pair's run about 0.1 s: the pair path uses the searches and
+    filters above (SciPy's linear algebra is still imported, by numba)."""
+    paths = _pair_files(sim_plot, tmp_path)
     code = (
         "import json, sys\n"
         "from forestreg.app.pair import register_pair\n"
@@ -71,13 +77,7 @@ def test_a_small_pairs_command_runs_without_the_cyclic_collector_unless_it_compi
     """``forestreg register`` of small scans turns Python's cyclic garbage collector off (its full
     passes over the imports' objects cost a small pair 0.1-0.2 s); a process that has to compile
     kernels turns it on again."""
-    from forestreg.engine.io import write_scan
-
-    plot = sim_plot("mixed_temperate", ((0.0, 0.0), (12.0, -3.0)), seed=2)
-    paths = []
-    for s in plot.scans:
-        paths.append(tmp_path / f"{s.scan.name}.laz")
-        write_scan(s.scan, paths[-1])
+    paths = _pair_files(sim_plot, tmp_path)
     code = (
         "import gc, json, sys\n"
         "from forestreg import cli\n"
