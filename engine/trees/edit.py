@@ -198,6 +198,7 @@ def measure_tree(
         p, stem, np.asarray(indices), dbh, curve, crown, wood, complete[0].reasons if complete else (), params,
         stem_params=stem_params, method=getattr(inventory, "method", "fine"), no_ground=no_ground,
         ground_near=ground_near_stems(p, ground, [stem], params.ground_near_stem_m).get(stem.id),
+        height_curve=getattr(inventory, "height_curve", None),
     )
 
 

@@ -33,6 +33,7 @@ from ..geometry.voxel import voxel_representatives
 from ..io.results import TREE_COLUMNS, TreeTablesFile  # noqa: F401 - the columns of trees.csv
 from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
+from .allometry import HeightCurve, HeightCurveParams, fit_height_curve
 from .crown import CrownMeasurement, CrownParams, measure_crown, top_cut_flat, top_over_stem
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
@@ -63,6 +64,8 @@ class TreeParams(Params):
     qsm: QsmParams = QsmParams()
     canopy: CanopyParams = CanopyParams()
     form_factors: FormFactorBounds = FormFactorBounds()
+    #: the plot's height-diameter curve, which decides soft hints about a tree's top
+    height_curve: HeightCurveParams = HeightCurveParams()
     #: single-tree clouds (one tree, little or no ground): recognised, forced or ruled out
     single_tree: SingleTreeParams = SingleTreeParams()
     #: points with a wood probability at least this are wood (input of the cylinder model)
@@ -83,6 +86,9 @@ class TreeParams(Params):
     max_slenderness: float = _p(140.0, "1", 10.0, 1000.0, "height over DBH (both in metres) beyond which the height is flagged as unsure: the top may be a neighbour's")
     #: points of thicker neighbours within 1 m of a tree's top (and not more than 0.5 m below it)
     shared_top_min_points: int = _p(6, "points", 1, 10000, "points of thicker neighbours around a tree's top (within 1 m, not more than 0.5 m below it) from which the top is flagged as possibly the neighbour's")
+    #: a suppressed tree's apex stands clear below the neighbour's crown over it
+    top_clearance_radius_m: float = _p(0.3, "m", 0.05, 3.0, "a top under a neighbour's crown is clear of it when no point of another tree lies within this distance (horizontally) and min_top_clearance_m above it")
+    min_top_clearance_m: float = _p(0.2, "m", 0.0, 5.0, "...a top touching the crown over it (closer) has its height flagged: that crown may hold the tree's upper crown, or the top found is in it")
     #: a thinner stem this close to a thicker one may stand within that tree's crown; closer
     #: than segmentation.axis_dominance_dbh its axis is not continued (it grows from its own points)
     crown_reach_dbh: float = _p(7.0, "DBH", 0.0, 100.0, "a stem whose axis is continued into the crowns, closer than this many of a thicker stem's DBH to it, has its height flagged: its top may be in that tree's crown (0 = no such flag)")
@@ -182,6 +188,9 @@ class TreeInventory(TreeTablesFile, Outcome):
     single_tree_reason: str = ""
     #: whether volumes were asked for (cylinder models fitted); False: no ``cylinders/`` folder
     volume_asked: bool = True
+    #: the plot's height-diameter curve that checked soft hints about the tops (None: too few
+    #: trees, or their heights follow no one relation)
+    height_curve: Optional[HeightCurve] = None
     #: "ok", or "failed" when the data do not allow any tree (the reason says why)
     status: str = "ok"
     reason: str = ""
@@ -199,7 +208,10 @@ class TreeInventory(TreeTablesFile, Outcome):
                    timings=dict(timings or {}), status="failed", reason=reason)
 
     def evidence(self) -> dict[str, Any]:
-        return {"trees": len(self.trees), "method": self.method, "flagged": sum(1 for t in self.trees if t.flags)}
+        out = {"trees": len(self.trees), "method": self.method, "flagged": sum(1 for t in self.trees if t.flags)}
+        if self.height_curve is not None:
+            out["height_curve"] = self.height_curve.describe()
+        return out
 
     def summary(self) -> str:
         """One line: trees found, measured (DBH, height, volume) and flagged."""
@@ -426,6 +438,7 @@ def _measure_trees(
 
     t = time.perf_counter()
     records: list[TreeRecord] = []
+    height_curve = _plot_height_curve(stems, dbh, curves, crowns, shared, complete, stem_params, params)
     order, bounds = _points_by_stem(labels, stems)
     for k, stem in enumerate(stems):
         progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: crown and cylinder model")
@@ -434,6 +447,7 @@ def _measure_trees(
             p, stem, idx, dbh[stem.id], curves[stem.id], crowns[stem.id], wood,
             complete[stem.id].reasons if stem.id in complete else (), params, stem_params=stem_params, method=method,
             no_ground=no_ground, ground_near=ground_near.get(stem.id), shared_flag=shared.get(stem.id),
+            height_curve=height_curve,
         ))
     timings["trees_s"] = time.perf_counter() - t
     if method == "noisy" and _airborne_like(heights, params.airborne_band_ratio):  # stems sparse and hardly sampled: the canopy decides
@@ -445,8 +459,27 @@ def _measure_trees(
     return TreeInventory(
         trees=records, labels=labels, heights=heights, wood_probability=wood, ground=model.ground, dem=model.dem,
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method=method, volume_asked=params.cylinder_models,
+        timings=timings, method=method, volume_asked=params.cylinder_models, height_curve=height_curve,
     )
+
+
+def _plot_height_curve(stems: Sequence[Stem], dbh: dict[int, DbhMeasurement], curves: dict[int, StemCurve],
+                       crowns: dict[int, CrownMeasurement], shared: dict[int, str], complete: dict[int, Any],
+                       stem_params: StemParams, params: TreeParams) -> Optional[HeightCurve]:
+    """The plot's height-diameter curve (:func:`.allometry.fit_height_curve`) from the trees whose
+    tops stand clear: over the stem, not cut flat, not missing, with no hint of a neighbour's
+    crown; None with fewer than :attr:`.allometry.HeightCurveParams.min_trees` of them."""
+    d, h = [], []
+    for s in stems:
+        c = crowns.get(s.id)
+        reasons = complete[s.id].reasons if s.id in complete else ()
+        if (c is None or s.id in shared or "top missing" in reasons or not top_over_stem(c, params.crown)
+                or top_cut_flat(c, params.crown)):
+            continue
+        value = curve_dbh(curves[s.id], s, stem_params.breast_height_m)
+        d.append(value if math.isfinite(value) else dbh[s.id].dbh_m)
+        h.append(c.height_m)
+    return fit_height_curve(np.array(d), np.array(h), params.height_curve)
 
 
 def _points_by_stem(labels: np.ndarray, stems: Sequence[Stem]) -> tuple[np.ndarray, np.ndarray]:
@@ -481,7 +514,8 @@ def _crowns_timed(
             )
     del order
     columns = ColumnIndex(p, 1.0)  # for the disc queries of both below
-    shared = _shared_tops(p, labels, stems, crowns, columns, params.shared_top_min_points)
+    shared = _shared_tops(p, labels, stems, crowns, columns, params.shared_top_min_points, params.top_clearance_radius_m,
+                          params.min_top_clearance_m)
     shared.update({k: v for k, v in _within_crown_reach(stems, params).items() if k not in shared})
     timings["crowns_s"] = time.perf_counter() - t
     return crowns, shared, ground_near_stems(p, ground, stems, params.ground_near_stem_m, columns)
@@ -537,6 +571,7 @@ def tree_record(
     ground_near: Optional[bool] = None,
     shared_flag: Optional[str] = None,
     top_evidence: bool = True,
+    height_curve: Optional[HeightCurve] = None,
 ) -> TreeRecord:
     """One tree's record from its measurements: the reported DBH (the stem curve at breast
     height; none from a failed fit), the height's checks, the cylinder model on its wood points
@@ -548,7 +583,11 @@ def tree_record(
     ``shared_flag`` the reason its top is unsure, if any; ``top_evidence``: whether the top's offset
     from the stem (:attr:`.crown.CrownMeasurement.top_offset_ratio`) and the spread of its top
     layer (:func:`.crown.top_cut_flat`) decide the height's trust (False for a single-tree
-    cloud, whose top is the cloud's). Local frame, metres."""
+    cloud, whose top is the cloud's); ``height_curve`` the plot's height-diameter curve
+    (:func:`.allometry.fit_height_curve`), which decides soft hints about the top (on the crown's
+    flank, a neighbour's crown over or around it): a height that departs from the curve by less
+    than :class:`.allometry.HeightCurveParams` allows keeps a medium trust, one that departs
+    more (or without a curve) is low. Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
     quality: dict[str, str] = {}
@@ -601,10 +640,12 @@ def tree_record(
         h_trust = _trust(h_trust, "low")
     ratio = crown.top_offset_ratio
     over_stem = top_over_stem(crown, params.crown)
+    # soft hints that the top is not the tree's own: decisive only where the height also departs
+    # from the plot's height-diameter curve (most suppressed trees show them and are measured right)
+    soft: list[str] = []
     if top_evidence and math.isfinite(crown.top_offset_m) and not over_stem:
-        flags.append(f"top on the crown's flank, {crown.top_offset_m:.1f} m from the stem axis ({ratio:.2f} of the crown "
-                     f"radius): apex unseen or a neighbour's (height unsure)")
-        h_trust = _trust(h_trust, "low")
+        soft.append(f"top on the crown's flank, {crown.top_offset_m:.1f} m from the stem axis ({ratio:.2f} of the crown "
+                    f"radius): apex unseen or a neighbour's (height unsure)")
         h_how += f", top {crown.top_offset_m:.1f} m ({ratio:.2f} of the crown radius) from the stem"
     elif top_evidence and over_stem:
         h_how += f", top over the stem ({crown.top_offset_m:.1f} m, {ratio:.2f} of the crown radius, from its axis)"
@@ -625,14 +666,36 @@ def tree_record(
         h_trust = _trust(h_trust, "low")
         h_how += f", top layer cut flat ({crown.top_layer_offset_ratio:.2f} of the crown radius from the axis)"
     if shared_flag:
+        h_how += ", " + shared_flag.split(":")[0]  # what the flag found, without its verdict
+    if shared_flag and shared_flag.startswith(SOFT_TOP_HINTS):
+        soft.append(shared_flag)
+    elif shared_flag:
         flags.append(shared_flag)
         h_trust = _trust(h_trust, "low")
-        h_how += ", top shared with a taller neighbour"
-    elif math.isfinite(dbh_value) and dbh_value > 0 and crown.height_m / dbh_value > params.max_slenderness:
+    if math.isfinite(dbh_value) and dbh_value > 0 and crown.height_m / dbh_value > params.max_slenderness:
         flags.append(f"height {crown.height_m:.1f} m on a {100 * dbh_value:.0f} cm stem (slenderness {crown.height_m / dbh_value:.0f}, "
                      f"beyond {params.max_slenderness:.0f}): the top may be a neighbour's (height unsure)")
         h_trust = _trust(h_trust, "low")
         h_how += ", too tall for its stem"
+    soft_consistent = False
+    if soft:
+        departure = height_curve.departure(dbh_value, crown.height_m) if height_curve is not None else math.nan
+        hc = params.height_curve
+        # only a top under a neighbour's crown explains a height well below the curve (a suppressed tree)
+        below = hc.below_under_crown if any(h.startswith(SOFT_TOP_HINTS[0]) for h in soft) else hc.below
+        if math.isfinite(departure) and -below <= departure <= hc.above:
+            soft_consistent = True
+            h_trust = _trust(h_trust, "medium")
+            h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (consistent)"
+        else:
+            flags += soft
+            h_trust = _trust(h_trust, "low")
+            if math.isfinite(departure):
+                flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve "
+                             f"(allowed {-100 * below:.0f} % to +{100 * hc.above:.0f} %)")
+                h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve"
+            else:
+                h_how += ", no height-diameter curve to check it"
     quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
     if "stem cut by the plot edge" in reasons and math.isfinite(dbh_value) and not quality["dbh"].endswith(("low", "none")):
         quality["dbh"] = quality["dbh"].rsplit("; ", 1)[0] + ", stem cut by the plot edge; low"
@@ -647,7 +710,7 @@ def tree_record(
     if crown.ok and any("cut by the plot edge" in r for r in reasons):
         c_trust = "low"
     elif crown.ok and shared_flag:
-        c_trust = "low"
+        c_trust = "medium" if soft_consistent else "low"
     quality["crown"] = f"crown points of the segmented tree; {c_trust}"
     # --- cylinder model, on the wood points, its stem made consistent with the stem curve
     cylinders = None
@@ -746,11 +809,19 @@ def _within_crown_reach(stems: Sequence[Stem], params: TreeParams) -> dict[int, 
     return out
 
 
+#: the beginnings of :func:`_shared_tops`' soft hints: the top under, amid or nearer to a
+#: neighbour's crown (the others, points of no tree above the top and an axis continued into a
+#: thicker tree's crown, stay decisive)
+SOFT_TOP_HINTS = ("top under a neighbour's crown", "top amid the crown of thicker tree", "top shared with taller tree")
+
+
 def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crowns: dict[int, CrownMeasurement],
-                 columns: ColumnIndex, min_points: int) -> dict[int, str]:
+                 columns: ColumnIndex, min_points: int, clearance_radius_m: float = 0.3,
+                 min_clearance_m: float = 0.2) -> dict[int, str]:
     """Trees whose top is not their own or was not seen: points of no tree stand above the top
     (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
-    stand above the top (within 1 m horizontally, more than 1 m higher), thicker neighbours' points
+    stand above the top (within 1 m horizontally, more than 1 m higher; the top clear of them by at
+    least ``min_clearance_m`` within ``clearance_radius_m``, or touching them), thicker neighbours' points
     surround the top at its level (at least ``min_points``: :attr:`TreeParams.shared_top_min_points`), or the top lies nearer
     to a taller neighbour's stem axis than to its own. Returns {tree id: flag}.
     ``columns``: a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of ``p`` for the few
@@ -776,7 +847,18 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
         near = near[labels[near] > 0]
         over = near[(labels[near] != s.id) & (p[near, 2] > top[2] + 1.0)]
         if len(over) >= 5:
-            out[s.id] = "top under a neighbour's crown: height unsure (top unseen or shared)"
+            # a suppressed tree's apex stands clear below the crown over it; a neighbour's points
+            # right above the top mean the crown goes on up (the upper crown went to the neighbour,
+            # or the top found is in the neighbour's crown)
+            column = columns.within(top[0], top[1], clearance_radius_m)
+            column = column[(labels[column] != s.id) & (p[column, 2] > top[2] + 0.02)]
+            gap = float(p[column, 2].min() - top[2]) if len(column) else math.inf
+            if gap >= min_clearance_m:
+                out[s.id] = (f"top under a neighbour's crown, {gap:.1f} m clear of it: suppressed, or its top unseen "
+                             f"(height unsure)")
+            else:
+                out[s.id] = (f"top touching a neighbour's crown ({100 * gap:.0f} cm below it): the crown may go on up "
+                             f"in that tree (height unsure)")
             continue
         # the top amid the crown of a thicker neighbour (crowns intermixed at the same level): the
         # top found may be the neighbour's

@@ -1,0 +1,118 @@
+"""The plot's height-diameter curve: a second, independent witness for a tree's height.
+
+A height read from the highest point of a segmented tree can be wrong in two ways the point
+cloud itself hints at: the top may be a neighbour's (a suppressed tree under another crown, its
+segment holding part of that crown) or the tree's upper crown may have gone to the neighbour.
+Those hints (the top on the crown's flank, a neighbour's crown over or around the top) are soft:
+in a dense stand most suppressed trees show them and are measured right. The trees of one plot
+share a height-diameter relation, so a soft hint is only decisive when the height also departs
+from it. This module fits that relation robustly and says how far a tree's height departs.
+
+The curve is Näslund's (1936), the usual height-diameter model of forest inventories:
+``h = 1.3 + d^2 / (a + b d)^2`` with ``d`` the DBH in centimetres and ``h`` in metres. It is
+started from its linear form ``d / sqrt(h - 1.3) = a + b d`` and fitted on the log heights by
+iteratively reweighted least squares with Tukey's biweight, so trees whose heights are wrong (or
+truly unusual) do not pull it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from ..core.params import Params, param_field as _p
+
+__all__ = ["HeightCurve", "HeightCurveParams", "fit_height_curve"]
+
+
+@dataclass(frozen=True)
+class HeightCurveParams(Params):
+    """Settings of the plot's height-diameter curve and of the consistency it grants."""
+
+    min_trees: int = _p(6, "trees", 3, 100000, "Fewest trees with a DBH and a height for the plot's height-diameter curve; fewer: no curve, and soft hints about a top decide alone")
+    below_under_crown: float = _p(0.30, "1", 0.0, 1.0, "A tree whose top stands clear under a neighbour's crown is consistent with the curve up to this fraction below it (suppressed trees stand well below the curve)")
+    below: float = _p(0.10, "1", 0.0, 1.0, "...any other tree up to this fraction below it (a top on the crown's flank and low: the apex unseen)")
+    above: float = _p(0.20, "1", 0.0, 1.0, "...and up to this fraction above it (a top taken from a neighbour's crown stands above)")
+    max_scatter: float = _p(0.25, "1", 0.01, 2.0, "A curve whose robust scatter (of log heights) exceeds this is not used: the heights of the plot do not follow one relation")
+    iterations: int = _p(10, "rounds", 1, 100, "Reweighting rounds of the robust fit")
+
+
+@dataclass(frozen=True)
+class HeightCurve:
+    """Näslund's height-diameter curve of one plot: ``h = 1.3 + d^2 / (a + b d)^2`` (``d`` DBH in
+    cm, ``h`` in m). ``n_trees`` trees fitted it (``n_inliers`` kept a weight), ``scatter`` is the
+    robust standard deviation of their log height residuals."""
+
+    a: float
+    b: float
+    n_trees: int
+    n_inliers: int
+    scatter: float
+
+    def height_m(self, dbh_m: float) -> float:
+        """The curve's height (m) at a DBH (m); NaN for a DBH that is not positive and finite."""
+        if not (math.isfinite(dbh_m) and dbh_m > 0):
+            return math.nan
+        d = 100.0 * dbh_m
+        return 1.3 + d * d / (self.a + self.b * d) ** 2
+
+    def departure(self, dbh_m: float, height_m: float) -> float:
+        """How far a height departs from the curve, as a fraction of the curve's height (+0.1: 10 %
+        above it); NaN when either value is not known."""
+        ref = self.height_m(dbh_m)
+        if not (math.isfinite(ref) and math.isfinite(height_m) and ref > 0):
+            return math.nan
+        return height_m / ref - 1.0
+
+    def describe(self) -> str:
+        """One line for reports: the curve and what it rests on."""
+        return (f"Näslund h = 1.3 + d^2/({self.a:.3f} + {self.b:.4f} d)^2 (d in cm) from {self.n_trees} trees "
+                f"({self.n_inliers} kept), scatter {100 * self.scatter:.0f} %")
+
+
+def fit_height_curve(dbh_m: np.ndarray, height_m: np.ndarray, params: HeightCurveParams = HeightCurveParams()) -> Optional[HeightCurve]:
+    """Fit the plot's height-diameter curve to trees' DBH (m) and heights (m) robustly. Pairs with
+    a DBH or height that is not finite, a DBH not above 0 or a height not above 1.3 m are left
+    out. Returns None when fewer than ``params.min_trees`` remain, when the fit is degenerate (the
+    curve not rising with the diameter over the measured range), or when its scatter exceeds
+    ``params.max_scatter``."""
+    d = 100.0 * np.asarray(dbh_m, dtype=np.float64)
+    h = np.asarray(height_m, dtype=np.float64)
+    ok = np.isfinite(d) & np.isfinite(h) & (d > 0) & (h > 1.3 + 1e-6)
+    d, h = d[ok], h[ok]
+    if len(d) < params.min_trees:
+        return None
+    from scipy.optimize import least_squares
+
+    def log_residual(ab: np.ndarray) -> np.ndarray:
+        return np.log(h) - np.log(1.3 + d * d / (ab[0] + ab[1] * d) ** 2)
+
+    # a start from the linear form d / sqrt(h - 1.3) = a + b d, then the log residuals themselves
+    # (the linear form weights the trees unevenly), reweighted by the biweight
+    (a, b), *_ = np.linalg.lstsq(np.column_stack([np.ones_like(d), d]), d / np.sqrt(h - 1.3), rcond=None)
+    ab = np.array([a, b], dtype=np.float64)
+    if np.any(ab[0] + ab[1] * d <= 0):
+        return None
+    w = np.ones_like(d)
+    scale = math.nan
+    for _ in range(params.iterations):
+        if np.count_nonzero(w > 0) < 3:
+            return None
+        sw = np.sqrt(w)
+        fit = least_squares(lambda v: sw * log_residual(v), ab, method="lm")
+        ab = fit.x
+        if not np.all(np.isfinite(ab)) or np.any(ab[0] + ab[1] * d <= 0):
+            return None
+        r = log_residual(ab)
+        scale = 1.4826 * float(np.median(np.abs(r[w > 0] - np.median(r[w > 0]))))
+        u = r / (4.685 * max(scale, 0.02))
+        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+    a, b = float(ab[0]), float(ab[1])
+    # the curve rises with the diameter across the measured range (a + b d > 0 and a > 0: the
+    # derivative of d^2/(a+bd)^2 is 2ad/(a+bd)^3)
+    if not (math.isfinite(a) and math.isfinite(b) and a > 0) or scale > params.max_scatter:
+        return None
+    return HeightCurve(a=float(a), b=float(b), n_trees=int(len(d)), n_inliers=int(np.count_nonzero(w > 0)), scatter=float(scale))
