@@ -34,8 +34,10 @@ class HeightCurveParams(Params):
 
     min_trees: int = _p(6, "trees", 3, 100000, "Fewest trees with a DBH and a height for the plot's height-diameter curve; fewer: no curve, and soft hints about a top decide alone")
     below_under_crown: float = _p(0.30, "1", 0.0, 1.0, "A tree whose top stands clear under a neighbour's crown is consistent with the curve up to this fraction below it (suppressed trees stand well below the curve)")
-    below: float = _p(0.10, "1", 0.0, 1.0, "...any other tree up to this fraction below it (a top on the crown's flank and low: the apex unseen)")
-    above: float = _p(0.20, "1", 0.0, 1.0, "...and up to this fraction above it (a top taken from a neighbour's crown stands above)")
+    below: float = _p(0.10, "1", 0.0, 1.0, "...a tree with another hint (its top on the crown's flank, amid or nearer to a neighbour's crown) up to this fraction below it")
+    below_unseen: float = _p(0.05, "1", 0.0, 1.0, "...a tree whose top is missing in the data, cut flat or touching the crown over it up to this fraction below it (such a height can only be short: on the curve, little is missing)")
+    above: float = _p(0.20, "1", 0.0, 1.0, "...and any tree up to this fraction above it (a top taken from a neighbour's crown stands above)")
+    max_scatter_unseen: float = _p(0.08, "1", 0.0, 2.0, "A top not seen is vouched for only by a curve whose scatter is at most this")
     max_scatter: float = _p(0.25, "1", 0.01, 2.0, "A curve whose robust scatter (of log heights) exceeds this is not used: the heights of the plot do not follow one relation")
     iterations: int = _p(10, "rounds", 1, 100, "Reweighting rounds of the robust fit")
 

@@ -640,55 +640,60 @@ def tree_record(
         h_trust = _trust(h_trust, "low")
     ratio = crown.top_offset_ratio
     over_stem = top_over_stem(crown, params.crown)
-    # soft hints that the top is not the tree's own: decisive only where the height also departs
-    # from the plot's height-diameter curve (most suppressed trees show them and are measured right)
-    soft: list[str] = []
+    # hints that the top is not the tree's own or not seen: decisive only where the height also
+    # departs from the plot's height-diameter curve (most suppressed trees show one and are measured
+    # right). Kinds: "under" (clear under a neighbour's crown: a suppressed tree, well below the
+    # curve), "hint" (on the crown's flank, amid or nearer to a neighbour's crown), "unseen" (the
+    # top missing, cut flat or touching the crown over it: the height can only be short)
+    hints: list[tuple[str, str]] = []
     if top_evidence and math.isfinite(crown.top_offset_m) and not over_stem:
-        soft.append(f"top on the crown's flank, {crown.top_offset_m:.1f} m from the stem axis ({ratio:.2f} of the crown "
-                    f"radius): apex unseen or a neighbour's (height unsure)")
+        hints.append(("hint", f"top on the crown's flank, {crown.top_offset_m:.1f} m from the stem axis ({ratio:.2f} of the "
+                              f"crown radius): apex unseen or a neighbour's (height unsure)"))
         h_how += f", top {crown.top_offset_m:.1f} m ({ratio:.2f} of the crown radius) from the stem"
     elif top_evidence and over_stem:
         h_how += f", top over the stem ({crown.top_offset_m:.1f} m, {ratio:.2f} of the crown radius, from its axis)"
-    if "top missing" in reasons and top_evidence and over_stem and not _flat_top(tree_pts, stem, params.completeness):
-        # a sparse tip over the stem is the apex seen thinly, not a missing top
-        flags = [f for f in flags if f != "top missing"]
-    elif "top missing" in reasons:
-        h_trust = _trust(h_trust, "low")
+    # a sparse tip over the stem is the apex seen thinly, not a missing top
+    top_missing = "top missing" in reasons and not (top_evidence and over_stem and not _flat_top(tree_pts, stem, params.completeness))
+    flags = [f for f in flags if f != "top missing"]
+    if top_missing:
+        hints.append(("unseen", "top missing"))
         h_how += ", top missing in the data"
     elif any(r.startswith(("too few crown points", "too few points")) for r in reasons):
         h_trust = _trust(h_trust, "low")
         h_how += ", crown too sparse to confirm the top"
-    if top_evidence and over_stem and "top missing" not in flags and top_cut_flat(crown, params.crown):
+    if top_evidence and over_stem and not top_missing and top_cut_flat(crown, params.crown):
         # the highest point stands over the stem, but the top layer is a ring at the crown's rim
-        flags.append(f"top not seen: crown cut flat, its top {params.crown.top_layer_m:g} m a ring at "
-                     f"{crown.top_layer_offset_ratio:.2f} of the crown radius from the stem axis: height unsure "
-                     f"(likely too low)")
-        h_trust = _trust(h_trust, "low")
+        hints.append(("unseen", f"top not seen: crown cut flat, its top {params.crown.top_layer_m:g} m a ring at "
+                                f"{crown.top_layer_offset_ratio:.2f} of the crown radius from the stem axis: height unsure "
+                                f"(likely too low)"))
         h_how += f", top layer cut flat ({crown.top_layer_offset_ratio:.2f} of the crown radius from the axis)"
     if shared_flag:
         h_how += ", " + shared_flag.split(":")[0]  # what the flag found, without its verdict
-    if shared_flag and shared_flag.startswith(SOFT_TOP_HINTS):
-        soft.append(shared_flag)
-    elif shared_flag:
-        flags.append(shared_flag)
-        h_trust = _trust(h_trust, "low")
+        kind = _top_hint_kind(shared_flag)
+        if kind:
+            hints.append((kind, shared_flag))
+        else:
+            flags.append(shared_flag)
+            h_trust = _trust(h_trust, "low")
     if math.isfinite(dbh_value) and dbh_value > 0 and crown.height_m / dbh_value > params.max_slenderness:
         flags.append(f"height {crown.height_m:.1f} m on a {100 * dbh_value:.0f} cm stem (slenderness {crown.height_m / dbh_value:.0f}, "
                      f"beyond {params.max_slenderness:.0f}): the top may be a neighbour's (height unsure)")
         h_trust = _trust(h_trust, "low")
         h_how += ", too tall for its stem"
-    soft_consistent = False
-    if soft:
-        departure = height_curve.departure(dbh_value, crown.height_m) if height_curve is not None else math.nan
+    hints_consistent = False
+    if hints:
         hc = params.height_curve
-        # only a top under a neighbour's crown explains a height well below the curve (a suppressed tree)
-        below = hc.below_under_crown if any(h.startswith(SOFT_TOP_HINTS[0]) for h in soft) else hc.below
+        kinds = {k for k, _ in hints}
+        below = hc.below_unseen if "unseen" in kinds else hc.below_under_crown if "under" in kinds else hc.below
+        departure = height_curve.departure(dbh_value, crown.height_m) if height_curve is not None else math.nan
+        if "unseen" in kinds and height_curve is not None and height_curve.scatter > hc.max_scatter_unseen:
+            departure = math.nan  # too loose a curve to vouch for a top not seen
         if math.isfinite(departure) and -below <= departure <= hc.above:
-            soft_consistent = True
+            hints_consistent = True
             h_trust = _trust(h_trust, "medium")
             h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (consistent)"
         else:
-            flags += soft
+            flags += [text for _, text in hints]
             h_trust = _trust(h_trust, "low")
             if math.isfinite(departure):
                 flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve "
@@ -710,7 +715,7 @@ def tree_record(
     if crown.ok and any("cut by the plot edge" in r for r in reasons):
         c_trust = "low"
     elif crown.ok and shared_flag:
-        c_trust = "medium" if soft_consistent else "low"
+        c_trust = "medium" if hints_consistent else "low"
     quality["crown"] = f"crown points of the segmented tree; {c_trust}"
     # --- cylinder model, on the wood points, its stem made consistent with the stem curve
     cylinders = None
@@ -809,10 +814,18 @@ def _within_crown_reach(stems: Sequence[Stem], params: TreeParams) -> dict[int, 
     return out
 
 
-#: the beginnings of :func:`_shared_tops`' soft hints: the top under, amid or nearer to a
-#: neighbour's crown (the others, points of no tree above the top and an axis continued into a
-#: thicker tree's crown, stay decisive)
-SOFT_TOP_HINTS = ("top under a neighbour's crown", "top amid the crown of thicker tree", "top shared with taller tree")
+def _top_hint_kind(flag: str) -> str:
+    """The kind of a :func:`_shared_tops` flag as :func:`tree_record` weighs it against the
+    plot's height-diameter curve: "under" (clear under a neighbour's crown), "unseen" (touching the
+    crown over it), "hint" (amid or nearer to a neighbour's crown), or "" for the decisive ones
+    (points of no tree above the top, an axis continued into a thicker tree's crown)."""
+    if flag.startswith("top under a neighbour's crown"):
+        return "under"
+    if flag.startswith("top touching a neighbour's crown"):
+        return "unseen"
+    if flag.startswith(("top amid the crown of thicker tree", "top shared with taller tree")):
+        return "hint"
+    return ""
 
 
 def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crowns: dict[int, CrownMeasurement],
