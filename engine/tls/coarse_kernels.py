@@ -17,7 +17,8 @@ true improvement (module docstring of :mod:`.coarse`) and prunes as much as the 
 
 Both levels take the search's ``grid``: ``(k_count, bin_size, n_bins, step_rad, d_win,
 wide_limit)`` -- the K angles of the full turn, the angles per bin, the bins, the angle step (rad),
-the distance window (m) and the widest window (angles) that is still bounded by its angles.
+the distance window (m), and the window width (angles) from which a tuple's bound is taken as
+constant over the angles.
 
 The exact scores are never computed here: they stay with the k-d tree scorer both matchers share.
 Importing this module needs numba; :mod:`.coarse` falls back to its numpy path without it.
