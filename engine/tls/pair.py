@@ -579,10 +579,10 @@ def _coarse_attempt(ref_vops: VisualOcclusionPoints, mov_vops: VisualOcclusionPo
     )
     problem = ""
     second = match.second_matched or 0
+    need = params.margin.needed(match.matched)
     if match.matched < params.min_matched:
         problem = f"only {match.matched} VOPs match (need {params.min_matched}): the scans share too few trunks - scans too far apart, or D_r too small"
-    elif match.matched - second < params.margin.needed(match.matched):
-        need = params.margin.needed(match.matched)
+    elif match.matched - second < need:
         problem = (
             f"ambiguous: the best solution matches {match.matched} VOPs and a different one {second} "
             f"(need a margin of {need}) - regular planting or too few common trunks"
