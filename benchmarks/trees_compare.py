@@ -41,10 +41,10 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from .peers import run_command, sylva_command
+    from .peers import run_command, show_rows, sylva_command
 else:  # run as a script
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from peers import run_command, sylva_command  # type: ignore[no-redef]
+    from peers import run_command, show_rows, sylva_command  # type: ignore[no-redef]
 
 OUT = Path("bench_out") / "trees_compare"
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -325,12 +325,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--single-trees", action="store_true", help="only the single trees (simulated and real)")
     args = ap.parse_args(argv)
     rows = run(args.workdir, single_trees_only=args.single_trees)
-    print(format_rows(rows))
-    print()
-    print(single_tree_table(rows))
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=1, default=float) + "\n")
-    return 0
+    return show_rows(format_rows(rows) + "\n\n" + single_tree_table(rows), rows, args.json, indent=1, default=float)
 
 
 if __name__ == "__main__":

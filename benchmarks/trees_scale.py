@@ -39,13 +39,13 @@ from typing import Any, Optional
 
 if __package__:
     from . import big_scan, trees_compare, trees_speed
-    from .peers import run_command, sylva_command
+    from .peers import run_command, show_rows, sylva_command
 else:  # run as a script
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import big_scan  # type: ignore[no-redef]
     import trees_compare  # type: ignore[no-redef]
     import trees_speed  # type: ignore[no-redef]
-    from peers import run_command, sylva_command  # type: ignore[no-redef]
+    from peers import run_command, show_rows, sylva_command  # type: ignore[no-redef]
 
 OUT = Path("bench_out") / "trees_scale"
 COPIES = 11
@@ -170,10 +170,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--json", type=Path, help="also write the rows to this JSON file")
     args = ap.parse_args(argv)
     rows = run(args.workdir, args.copies)
-    print(format_rows(rows))
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=1, default=float) + "\n")
-    return 0
+    return show_rows(format_rows(rows), rows, args.json, indent=1, default=float)
 
 
 if __name__ == "__main__":

@@ -474,33 +474,23 @@ def delimited_text_uri(path: Union[str, Path], crs: Optional[str] = None) -> str
 # ----------------------------------------------------------------------------- one call
 
 
-def register_pair(
-    job: PairJob,
+def register(
+    job: Union[PairJob, PlotJob],
     cli: Union[None, str, Sequence[str]] = None,
     progress: Optional[ProgressCallback] = None,
     log: Optional[LogCallback] = None,
     cancelled: Optional[Callable[[], bool]] = None,
 ) -> HostOutputs:
-    """Run ``forestreg register`` for ``job`` as a job of the service and read what it wrote
-    (also the layer CSVs)."""
-    run_job(build_pair_args(job), progress=progress, log=log, cancelled=cancelled, cli=cli)
-    outputs = read_pair_outputs(job.out_dir, job.scanner_positions)
-    if outputs.status == "ok":
+    """Run ``forestreg register`` (a :class:`PairJob`) or ``forestreg plot`` (a :class:`PlotJob`)
+    for ``job`` as a job of the service and read what it wrote (also the layer CSVs)."""
+    pair = isinstance(job, PairJob)
+    run_job(build_pair_args(job) if pair else build_plot_args(job), progress=progress, log=log, cancelled=cancelled, cli=cli)
+    outputs = read_pair_outputs(job.out_dir, job.scanner_positions) if pair else read_plot_outputs(job.out_dir)
+    if pair and outputs.status == "ok":
         _need(Path(job.out_dir) / "transform.txt")
     write_layer_files(outputs)
     return outputs
 
 
-def register_plot(
-    job: PlotJob,
-    cli: Union[None, str, Sequence[str]] = None,
-    progress: Optional[ProgressCallback] = None,
-    log: Optional[LogCallback] = None,
-    cancelled: Optional[Callable[[], bool]] = None,
-) -> HostOutputs:
-    """Run ``forestreg plot`` for ``job`` as a job of the service and read what it wrote (also the
-    layer CSV)."""
-    run_job(build_plot_args(job), progress=progress, log=log, cancelled=cancelled, cli=cli)
-    outputs = read_plot_outputs(job.out_dir)
-    write_layer_files(outputs)
-    return outputs
+#: :func:`register` under the names of its two jobs (the job's type decides what runs)
+register_pair = register_plot = register

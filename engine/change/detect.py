@@ -126,7 +126,7 @@ def detect_change(
     if n < need:
         return _failed(f"too few persisting stems: {n} of {smaller} match (at least {need} needed): "
                        "unrelated plots, or too much changed", figures, before, timings, sources)
-    need_margin = max(params.min_match_margin, math.ceil(params.min_match_margin_fraction * match.matched_coarse))
+    need_margin = params.margin.needed(match.matched_coarse)
     if match.second_matched is not None and match.margin < need_margin:
         return _failed(f"ambiguous: another heading or shift matches {match.second_matched} stems against "
                        f"{match.matched_coarse} (a margin of {need_margin} is needed)", figures, before, timings, sources)

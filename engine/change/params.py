@@ -8,6 +8,7 @@ from typing import ClassVar
 from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
 from ..geometry.icp_params import IcpParams
+from ..geometry.solution_params import DistinctParams, MarginParams
 
 __all__ = ["ChangeParams"]
 
@@ -18,8 +19,9 @@ class ChangeParams(Params):
     of the tree matching. Distances in metres, angles in degrees. The trees of each survey are
     measured with the ``[trees]`` parameters."""
 
-    #: the ICP settings once named here, now in ``[change.stem_icp]``
-    _moved: ClassVar[dict[str, str]] = {"icp_voxel_m": "stem_icp.voxel_m", "icp_max_distances_m": "stem_icp.max_distances_m", "icp_iterations": "stem_icp.iterations"}
+    #: the settings once named here, now in ``[change.stem_icp]`` and ``[change.margin]``
+    _moved: ClassVar[dict[str, str]] = {"icp_voxel_m": "stem_icp.voxel_m", "icp_max_distances_m": "stem_icp.max_distances_m", "icp_iterations": "stem_icp.iterations",
+                                        "min_match_margin": "margin.min_lead", "min_match_margin_fraction": "margin.min_lead_fraction"}
 
     # --- stems that persist: the coarse match from any heading
     match_distance_m: float = _p(0.3, "m", 0.02, 2.0, "Stems of the two surveys closer than this after the coarse match are taken as one stem (the coarse matcher's D_t)")
@@ -27,8 +29,9 @@ class ChangeParams(Params):
     dbh_change_range_m: tuple[float, float] = _p((-0.03, 0.12), "m", -1.0, 1.0, "Plausible DBH change (after minus before) of a persisting stem; a pair outside is not one stem")
     min_persisting: int = _p(6, "stems", 3, 10000, "Fewest persisting stems (matched, DBH-consistent) to register the surveys")
     min_persisting_fraction: float = _p(0.25, "1", 0.0, 1.0, "...and at least this fraction of the smaller survey's stems (unrelated plots match few)")
-    min_match_margin: int = _p(3, "stems", 0, 1000, "The best heading must match this many stems more than the best distinct alternative")
-    min_match_margin_fraction: float = _p(0.25, "1", 0.0, 1.0, "...and this fraction of its matched stems more (a plantation's grid lets another shift match many)")
+    #: when another heading and shift is a distinct solution, and the best one's lead over it
+    distinct: DistinctParams = DistinctParams()
+    margin: MarginParams = MarginParams(min_lead=3, min_lead_fraction=0.25)
     # --- refinement on stem slices and terrain (not crowns)
     icp: bool = _p(True, "", None, None, "Refine on the persisting stems' slices and the terrain (clouds only; tables are registered on stem positions)")
     #: the ICP of that refinement (the stem slices thinned to 2 cm)

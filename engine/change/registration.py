@@ -138,7 +138,7 @@ def persisting_stems(before: EpochTrees, after: EpochTrees, params: ChangeParams
     from ..tls.coarse import match_vops
 
     coarse = match_vops(before.xy, after.xy, angle_step_deg=params.angle_step_deg, match_distance_m=params.match_distance_m,
-                        distinct_rotation_deg=5.0, distinct_translation_m=1.0)
+                        distinct_rotation_deg=params.distinct.rotation_deg, distinct_translation_m=params.distinct.translation_m)
     theta = math.radians(coarse.rotation_deg)
     matrix = rigid_2d_matrix(theta, coarse.translation)
     pairs = coarse.matched_pairs  # (before, after)

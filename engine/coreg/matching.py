@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import ClassVar, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -39,6 +39,7 @@ from ..core.progress import Progress
 from ..core.transform import fit_rigid
 from ..core.params import Params, param_field as _p
 from ..core.transform import apply as apply_transform
+from ..geometry.solution_params import DistinctParams
 
 __all__ = [
     "KeypointMatch",
@@ -54,6 +55,9 @@ __all__ = [
 class MatchingParams(Params):
     """Parameters of keypoint matching."""
 
+    #: the settings once named here, now in ``[coregistration.matching.distinct]``
+    _moved: ClassVar[dict[str, str]] = {"distinct_heading_deg": "distinct.rotation_deg", "distinct_translation_m": "distinct.translation_m"}
+
     #: D_thr: a ground keypoint within this distance (m, horizontal) of a UAV keypoint matches it
     distance_threshold_m: float = _p(1.0, "m", 0.01, 100.0, "D_thr", "1 m")
     #: pairwise distances must agree within this (m) to join two candidate correspondences
@@ -65,8 +69,7 @@ class MatchingParams(Params):
     #: this many best distinct solutions are refined and kept
     n_solutions: int = _p(400, "solutions", 1, 100000, "distinct solutions kept")
     #: solutions closer than this in heading (deg) and translation (m) are the same solution
-    distinct_heading_deg: float = _p(3.0, "deg", 0.01, 180.0, "distinct heading")
-    distinct_translation_m: float = _p(1.5, "m", 0.01, 1000.0, "distinct translation")
+    distinct: DistinctParams = DistinctParams(rotation_deg=3.0, translation_m=1.5)
     seed: int = _p(0, "1", 0, 2**31 - 1, "random seed of the subset of seed pairs")
 
 
@@ -294,13 +297,13 @@ def match_keypoints(
 
 class _SolutionSet:
     """Headings (rad) and XY translations (m) met so far, for the question "is this the same
-    solution as one of them": within ``distinct_heading_deg`` and ``distinct_translation_m``.
+    solution as one of them": within ````distinct.rotation_deg`` and ``distinct.translation_m``.
     They are kept in bins at least that wide (heading bins wrap around), so a question looks at
     the entries of the 27 bins around its own only."""
 
     def __init__(self, params: MatchingParams) -> None:
         self.params = params
-        self.heading_bins = max(1, int(360.0 // params.distinct_heading_deg))
+        self.heading_bins = max(1, int(360.0 // params.distinct.rotation_deg))
         self.bins: dict[tuple[int, int, int], list[tuple[float, float, float]]] = {}
         self.n = 0
 
@@ -309,7 +312,7 @@ class _SolutionSet:
 
     def _bin(self, heading: float, xy: np.ndarray) -> tuple[int, int, int]:
         h = int((math.degrees(heading) % 360.0) / 360.0 * self.heading_bins) % self.heading_bins
-        step = self.params.distinct_translation_m
+        step = self.params.distinct.translation_m
         return h, int(math.floor(float(xy[0]) / step)), int(math.floor(float(xy[1]) / step))
 
     def has(self, heading: float, xy: np.ndarray) -> bool:
@@ -320,7 +323,7 @@ class _SolutionSet:
                 for dj in (-1, 0, 1):
                     for h2, x2, y2 in self.bins.get(((h + dh) % self.heading_bins, i + di, j + dj), ()):
                         d = abs((heading - h2 + math.pi) % (2 * math.pi) - math.pi)
-                        if math.degrees(d) < self.params.distinct_heading_deg and math.hypot(x - x2, y - y2) < self.params.distinct_translation_m:
+                        if math.degrees(d) < self.params.distinct.rotation_deg and math.hypot(x - x2, y - y2) < self.params.distinct.translation_m:
                             return True
         return False
 

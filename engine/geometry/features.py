@@ -260,17 +260,23 @@ def _nearest_growing(
 
 
 @kernel
-def _sphere_covariance_rows(
-    start: int, stop: int, q: np.ndarray, r2: float, k: int, cov: np.ndarray, count: np.ndarray,
+def _covariance_rows(
+    start: int, stop: int, q: np.ndarray, r2: float, k: int, layers: int, cov: np.ndarray, count: np.ndarray,
     origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
     cell_z: np.ndarray, pts: np.ndarray,
 ) -> None:
-    """Rows ``start:stop`` of :func:`local_covariances` on a :class:`SphereGrid`."""
+    """Rows ``start:stop`` of :func:`local_covariances` on a :class:`SphereGrid`: from the ``k``
+    nearest points within the grid's sphere (``r2``, its radius squared, finite) or at any
+    distance (``r2`` infinite; the search widens over the grid's ``layers``)."""
     best_d2, best_index, best = _nearest_scratch(k)
     d, pr = np.empty((3, k)), np.empty(k)
+    sphere = r2 < np.inf
     for i in range(start, stop):
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
-        m = _nearest_in_sphere(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)
+        if sphere:
+            m = _nearest_in_sphere(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)
+        else:
+            m = _nearest_growing(qx, qy, qz, origin, cell, nx, ny, layers, index, column_start, cell_z, pts, np.inf, k, best_d2, best_index, best)
         count[i] = m
         if m > 0:
             _offset_covariance(pts, best, m, qx, qy, qz, d, pr, cov[i])
@@ -348,24 +354,6 @@ def kth_nearest_distance(queries: np.ndarray, grid: SphereGrid, k: int) -> np.nd
 
 
 @kernel
-def _nearest_covariance_rows(
-    start: int, stop: int, q: np.ndarray, k: int, layers: int, cov: np.ndarray, count: np.ndarray,
-    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
-    cell_z: np.ndarray, pts: np.ndarray,
-) -> None:
-    """Rows ``start:stop`` of :func:`local_covariances` from the ``k`` nearest points at any
-    distance on a :class:`SphereGrid`."""
-    best_d2, best_index, best = _nearest_scratch(k)
-    d, pr = np.empty((3, k)), np.empty(k)
-    for i in range(start, stop):
-        qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
-        m = _nearest_growing(qx, qy, qz, origin, cell, nx, ny, layers, index, column_start, cell_z, pts, np.inf, k, best_d2, best_index, best)
-        count[i] = m
-        if m > 0:
-            _offset_covariance(pts, best, m, qx, qy, qz, d, pr, cov[i])
-
-
-@kernel
 def _listed_covariance_rows(
     start: int, stop: int, q: np.ndarray, cloud: np.ndarray, idx: np.ndarray, cov: np.ndarray, count: np.ndarray
 ) -> None:
@@ -417,10 +405,10 @@ def local_covariances(
     if np.isfinite(radius_m):
         if grid is None or grid.radius_m != float(radius_m):
             grid = SphereGrid(c, radius_m)
-        run_blocks(_sphere_covariance_rows, len(q_all), q_all, float(radius_m) * float(radius_m), k, cov, count, *grid.args(), block=block)
+        run_blocks(_covariance_rows, len(q_all), q_all, float(radius_m) * float(radius_m), k, grid.layers, cov, count, *grid.args(), block=block)
         return cov, count
     if grid is not None:
-        run_blocks(_nearest_covariance_rows, len(q_all), q_all, k, grid.layers, cov, count, *grid.args(), block=block)
+        run_blocks(_covariance_rows, len(q_all), q_all, np.inf, k, grid.layers, cov, count, *grid.args(), block=block)
         return cov, count
     if tree is None:
         from scipy.spatial import cKDTree  # here: the other neighbourhoods need no tree

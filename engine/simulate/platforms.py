@@ -808,9 +808,11 @@ class CoregistrationCase:
         best rigid answer: the least-squares rigid fit of the drifted map onto the true points
         (``meta["slam_residual_rms_m"]`` is what no rigid transform can remove).
     scene : the simulated plot (world frame).
-    ground_labels, uav_labels : (N,) uint8 :class:`~.mesh.Material`, row-aligned with the scans.
-    ground_object_ids, uav_object_ids : (N,) int32 object ids (tree ids; 0 = ground).
     ground_cloud, uav_cloud : the same points in the world frame (without ``world_offset``).
+    ground_labels, uav_labels : (N,) uint8 :class:`~.mesh.Material` of the clouds' points,
+        row-aligned with the scans.
+    ground_object_ids, uav_object_ids : (N,) int32 object ids of the clouds' points (tree ids;
+        0 = ground).
     world_offset : (3,) added to world coordinates to make UAV coordinates.
     misalignment : 4x4 ground frame -> world frame (``matrix`` less the world offset).
     meta : settings and counts.
@@ -820,15 +822,27 @@ class CoregistrationCase:
     uav: Scan
     matrix: np.ndarray
     scene: ForestScene
-    ground_labels: np.ndarray
-    uav_labels: np.ndarray
-    ground_object_ids: np.ndarray
-    uav_object_ids: np.ndarray
     ground_cloud: SimulatedCloud
     uav_cloud: SimulatedCloud
     world_offset: np.ndarray
     misalignment: np.ndarray
     meta: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def ground_labels(self) -> np.ndarray:
+        return self.ground_cloud.labels
+
+    @property
+    def uav_labels(self) -> np.ndarray:
+        return self.uav_cloud.labels
+
+    @property
+    def ground_object_ids(self) -> np.ndarray:
+        return self.ground_cloud.object_ids
+
+    @property
+    def uav_object_ids(self) -> np.ndarray:
+        return self.uav_cloud.object_ids
 
 
 #: scene overrides (:func:`~.scene.make_scene`) of a leaf-on broadleaf stand for
@@ -1024,10 +1038,6 @@ def simulate_coregistration_case(
         uav=uav_scan,
         matrix=matrix,
         scene=scene,
-        ground_labels=ground_cloud.labels,
-        uav_labels=uav_cloud.labels,
-        ground_object_ids=ground_cloud.object_ids,
-        uav_object_ids=uav_cloud.object_ids,
         ground_cloud=ground_cloud,
         uav_cloud=uav_cloud,
         world_offset=w_off,

@@ -424,105 +424,53 @@ class PresetConfig:
     suppressed_clearance_m: float = 0.0
 
 
+#: The forest presets' stands, one row a preset: the :class:`PresetConfig` fields named in
+#: :data:`_STAND_FIELDS`, in that order.
+_STAND_FIELDS = (
+    "dbh_m", "dbh_power", "height_m", "conifer_fraction", "crown_base_fraction", "crown_radius_ab", "lean_max_deg",
+    "branches_per_tree", "leaf_area_density", "shrubs_per_ha", "shrub_height_m", "shrub_radius_m", "slope_deg", "roughness_m",
+)
+_STANDS: dict[str, tuple[Any, ...]] = {
+    #                  DBH m         DBH^-p height m      conifer crown base    crown r a+bD lean  branches LAD   shrubs  shrub h     shrub r     slope deg     rough m
+    "planted_conifer": ((0.20, 0.40), 0.0, (15.0, 20.0), 1.0,  (0.50, 0.65), (1.0, 3.5), 2.0,  (3, 5), 0.6,  50.0,   (0.3, 1.0), (0.3, 0.7), (0.0, 2.0),   0.05),
+    "mixed_temperate": ((0.10, 0.60), 1.0, (12.0, 28.0), 0.45, (0.35, 0.55), (0.8, 5.0), 6.0,  (3, 6), 0.5,  400.0,  (0.5, 2.0), (0.4, 1.2), (0.0, 3.0),   0.10),
+    "rainforest":      ((0.08, 0.80), 2.0, (6.0, 40.0),  0.0,  (0.45, 0.70), (0.8, 7.0), 8.0,  (2, 6), 0.45, 2500.0, (0.5, 3.0), (0.4, 1.2), (0.0, 5.0),   0.20),
+    "sloped":          ((0.10, 0.55), 1.0, (12.0, 26.0), 0.5,  (0.40, 0.60), (0.8, 4.5), 10.0, (3, 6), 0.5,  300.0,  (0.4, 1.8), (0.4, 1.0), (15.0, 20.0), 0.30),
+}
+
+
+def _stand(preset: str) -> dict[str, Any]:
+    """The :data:`_STANDS` row of ``preset`` as :class:`PresetConfig` keywords."""
+    return dict(zip(_STAND_FIELDS, _STANDS[preset], strict=True))
+
+
 #: The preset recipes (see the module docstring for a table).
 PRESETS: dict[str, PresetConfig] = {
     "planted_conifer": PresetConfig(
         description="even-aged conifer plantation on a jittered 3 m grid (~1000 stems/ha), "
         "pruned stems, cone crowns, few low shrubs, nearly flat",
-        layout="grid",
-        grid_spacing_m=3.0,
-        grid_jitter_m=(0.2, 0.5),
-        missing_fraction=0.10,
-        dbh_m=(0.20, 0.40),
-        height_m=(15.0, 20.0),
-        conifer_fraction=1.0,
-        crown_base_fraction=(0.50, 0.65),
-        crown_radius_ab=(1.0, 3.5),
-        lean_max_deg=2.0,
-        branches_per_tree=(3, 5),
-        leaf_area_density=0.6,
-        shrubs_per_ha=50.0,
-        shrub_height_m=(0.3, 1.0),
-        shrub_radius_m=(0.3, 0.7),
-        slope_deg=(0.0, 2.0),
-        roughness_m=0.05,
+        layout="grid", grid_spacing_m=3.0, grid_jitter_m=(0.2, 0.5), missing_fraction=0.10, **_stand("planted_conifer"),
     ),
     "mixed_temperate": PresetConfig(
         description="uneven-aged mixed temperate forest (~900 stems/ha, clustered and random), "
         "conifer and broadleaf crowns, moderate shrub layer up to 2 m",
-        layout="clustered",
-        stems_per_ha=900.0,
-        cluster_fraction=0.5,
-        cluster_radius_m=3.0,
-        cluster_size=6.0,
-        dbh_m=(0.10, 0.60),
-        dbh_power=1.0,
-        height_m=(12.0, 28.0),
-        conifer_fraction=0.45,
-        crown_base_fraction=(0.35, 0.55),
-        crown_radius_ab=(0.8, 5.0),
-        lean_max_deg=6.0,
-        branches_per_tree=(3, 6),
-        leaf_area_density=0.5,
-        shrubs_per_ha=400.0,
-        shrub_height_m=(0.5, 2.0),
-        shrub_radius_m=(0.4, 1.2),
-        slope_deg=(0.0, 3.0),
-        roughness_m=0.10,
+        layout="clustered", stems_per_ha=900.0, cluster_fraction=0.5, cluster_radius_m=3.0, cluster_size=6.0,
+        **_stand("mixed_temperate"),
     ),
     "rainforest": PresetConfig(
         description="tropical rainforest: >2000 stems/ha, mostly thin (reverse-J DBH 0.08-0.8 m), "
         "dense understory, lianas and high canopy cover",
-        layout="random",
-        stems_per_ha=2400.0,
-        dbh_m=(0.08, 0.80),
-        dbh_power=2.0,
-        height_m=(6.0, 40.0),
-        conifer_fraction=0.0,
-        crown_base_fraction=(0.45, 0.70),
-        crown_radius_ab=(0.8, 7.0),
-        lean_max_deg=8.0,
-        branches_per_tree=(2, 6),
-        leaf_area_density=0.45,
-        shrubs_per_ha=2500.0,
-        shrub_height_m=(0.5, 3.0),
-        shrub_radius_m=(0.4, 1.2),
-        shrub_leaf_area_density=0.9,
-        lianas_per_ha=120.0,
-        slope_deg=(0.0, 5.0),
-        roughness_m=0.20,
+        layout="random", stems_per_ha=2400.0, shrub_leaf_area_density=0.9, lianas_per_ha=120.0, **_stand("rainforest"),
     ),
     "sloped": PresetConfig(
         description="mixed forest on a 15-20 deg slope with rough ground and leaning trees",
-        layout="random",
-        stems_per_ha=800.0,
-        dbh_m=(0.10, 0.55),
-        dbh_power=1.0,
-        height_m=(12.0, 26.0),
-        conifer_fraction=0.5,
-        crown_base_fraction=(0.40, 0.60),
-        crown_radius_ab=(0.8, 4.5),
-        lean_max_deg=10.0,
-        branches_per_tree=(3, 6),
-        leaf_area_density=0.5,
-        shrubs_per_ha=300.0,
-        shrub_height_m=(0.4, 1.8),
-        shrub_radius_m=(0.4, 1.0),
-        slope_deg=(15.0, 20.0),
-        roughness_m=0.30,
-        roughness_length_m=5.0,
+        layout="random", stems_per_ha=800.0, roughness_length_m=5.0, **_stand("sloped"),
     ),
     "open_field": PresetConfig(
         description="non-forest scene: open ground with low shrubs, a building-like box and a "
         "fence; no trees (a registration by trunk shadows must refuse it)",
-        layout="none",
-        stems_per_ha=0.0,
-        shrubs_per_ha=60.0,
-        shrub_height_m=(0.3, 1.2),
-        shrub_radius_m=(0.3, 1.0),
-        slope_deg=(0.0, 3.0),
-        roughness_m=0.10,
-        structures=True,
+        layout="none", stems_per_ha=0.0, shrubs_per_ha=60.0, shrub_height_m=(0.3, 1.2), shrub_radius_m=(0.3, 1.0),
+        slope_deg=(0.0, 3.0), roughness_m=0.10, structures=True,
     ),
 }
 

@@ -496,8 +496,8 @@ class _Bounds:
             from . import coarse_kernels  # imported already: these bounds were built with it
 
             return coarse_kernels.fine_bounds(
-                np.ascontiguousarray(cells, dtype=np.int64), *self.rows, self.anchor_const, self.k_count, B,
-                n_bins, self.step_rad, self.dist + self.slack, self.wide_limit,
+                np.ascontiguousarray(cells, dtype=np.int64), *self.rows, self.anchor_const,
+                (self.k_count, B, n_bins, self.step_rad, self.dist + self.slack, self.wide_limit),
             )
         if self._table is None:
             self._table = np.full(self.m * self.n * n_bins, -1, dtype=np.int64)
@@ -578,7 +578,7 @@ def _build_bounds(
         order = np.argsort(rho_r, kind="stable")
         cell_bound, anchor_const, anchor_max, cell_min = kernels.coarse_bounds(
             rho_r[order], order // m, order % m, psi[order], rho_m.reshape(n, n), phi.reshape(n, n), own,
-            k_count, B, n_bins, step_rad, d_win, wide_limit,
+            (k_count, B, n_bins, step_rad, d_win, wide_limit),
         )
         empty_f, empty_i = np.zeros(0), np.zeros(0, dtype=np.int32)
         return _Bounds(

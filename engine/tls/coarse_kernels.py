@@ -15,6 +15,11 @@ formula; the angular window is bounded without ``acos`` (a series of ``asin`` wi
 a window at least as wide as the numpy path's and wider by < 1e-6 rad, so every bound stays >= the
 true improvement (module docstring of :mod:`.coarse`) and prunes as much as the numpy path's.
 
+Both levels take the search's ``grid``: ``(k_count, bin_size, n_bins, step_rad, d_win,
+wide_limit)`` -- the K angles of the full turn, the angles per bin, the bins, the angle step (rad),
+the distance window (m), and the window width (angles) from which a tuple's bound is taken as
+constant over the angles.
+
 The exact scores are never computed here: they stay with the k-d tree scorer both matchers share.
 Importing this module needs numba; :mod:`.coarse` falls back to its numpy path without it.
 """
@@ -146,12 +151,7 @@ def coarse_bounds(
     mov_r: np.ndarray,
     mov_phi: np.ndarray,
     own: np.ndarray,
-    k_count: int,
-    bin_size: int,
-    n_bins: int,
-    step_rad: float,
-    d_win: float,
-    wide_limit: int,
+    grid: tuple[int, int, int, float, float, int],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Level-1 bounds (metres) of every cell, the anchors' constant parts and maxima, the lowest cell.
 
@@ -165,6 +165,7 @@ def coarse_bounds(
     Returns ``cell_bound`` (m*n*n_bins,), cell = ``(j*m + i) * n_bins + bin``, ``anchor_const``
     and ``anchor_max`` (m*n,), and the smallest cell bound.
     """
+    k_count, bin_size, n_bins, step_rad, d_win, wide_limit = grid
     m, n = own.shape[0], mov_r.shape[0]
     inv_step = 1.0 / step_rad
     half_step = 0.5 * step_rad
@@ -281,18 +282,14 @@ def fine_bounds(
     mov_phi: np.ndarray,
     mov_idx: np.ndarray,
     anchor_const: np.ndarray,
-    k_count: int,
-    bin_size: int,
-    n_bins: int,
-    step_rad: float,
-    d_win: float,
-    wide_limit: int,
+    grid: tuple[int, int, int, float, float, int],
 ) -> np.ndarray:
     """Level-2 bound (metres) of every angle of ``cells``, shape (len(cells), bin_size).
 
     Row r, column s bounds angle ``(cells[r] % n_bins) * bin_size + s`` of anchor
     ``cells[r] // n_bins`` (anchor ``j*m + i``). Each anchor's tuples are built once per call.
     """
+    k_count, bin_size, n_bins, step_rad, d_win, wide_limit = grid
     m = ref_r.shape[0]
     n = mov_r.shape[0]
     inv_step = 1.0 / step_rad

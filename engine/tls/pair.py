@@ -574,15 +574,15 @@ def _coarse_attempt(ref_vops: VisualOcclusionPoints, mov_vops: VisualOcclusionPo
         mov_vops.xy,
         angle_step_deg=params.angular_step_deg,
         match_distance_m=params.match_distance_m,
-        distinct_rotation_deg=params.distinct_rotation_deg,
-        distinct_translation_m=params.distinct_translation_m,
+        distinct_rotation_deg=params.distinct.rotation_deg,
+        distinct_translation_m=params.distinct.translation_m,
     )
     problem = ""
     second = match.second_matched or 0
+    need = params.margin.needed(match.matched)
     if match.matched < params.min_matched:
         problem = f"only {match.matched} VOPs match (need {params.min_matched}): the scans share too few trunks - scans too far apart, or D_r too small"
-    elif match.matched - second < max(params.min_match_margin, int(np.ceil(params.min_match_margin_fraction * match.matched))):
-        need = max(params.min_match_margin, int(np.ceil(params.min_match_margin_fraction * match.matched)))
+    elif match.matched - second < need:
         problem = (
             f"ambiguous: the best solution matches {match.matched} VOPs and a different one {second} "
             f"(need a margin of {need}) - regular planting or too few common trunks"

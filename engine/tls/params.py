@@ -14,6 +14,7 @@ from typing import ClassVar, Optional
 from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
 from ..geometry.icp_params import IcpParams
+from ..geometry.solution_params import DistinctParams, MarginParams
 
 __all__ = ["RegistrationParams", "ScannerPositionParams", "SurveyParams"]
 
@@ -22,8 +23,11 @@ __all__ = ["RegistrationParams", "ScannerPositionParams", "SurveyParams"]
 class RegistrationParams(Params):
     """Every setting of marker-free pair registration (System A; defaults: Guan et al. 2020, table 2)."""
 
-    #: the ICP settings once named here, now in ``[registration.icp]``
-    _moved: ClassVar[dict[str, str]] = {"icp_voxel_m": "icp.voxel_m", "icp_max_distances_m": "icp.max_distances_m", "icp_iterations": "icp.iterations"}
+    #: the settings once named here, now in ``[registration.icp]``, ``[registration.margin]`` and
+    #: ``[registration.distinct]``
+    _moved: ClassVar[dict[str, str]] = {"icp_voxel_m": "icp.voxel_m", "icp_max_distances_m": "icp.max_distances_m", "icp_iterations": "icp.iterations",
+                                        "min_match_margin": "margin.min_lead", "min_match_margin_fraction": "margin.min_lead_fraction",
+                                        "distinct_rotation_deg": "distinct.rotation_deg", "distinct_translation_m": "distinct.translation_m"}
 
     # --- data reduction and ground (paper 2.4, 2.5.1)
     max_range_m: float = _p(30.0, "m", 5.0, 200.0, "Points farther than this horizontally from the scanner are dropped", "D_c = 30 m")
@@ -51,10 +55,10 @@ class RegistrationParams(Params):
     # --- evidence
     min_vops: int = _p(4, "VOPs", 3, 1000, "Fewest VOPs per scan to attempt a registration")
     min_matched: int = _p(4, "VOPs", 3, 1000, "Fewest matched VOPs for a registration to count (the paper sees failures below 3)")
-    min_match_margin: int = _p(2, "VOPs", 0, 1000, "The best solution must match at least this many more VOPs than the best distinct alternative")
-    min_match_margin_fraction: float = _p(0.1, "1", 0.0, 1.0, "...and at least this fraction of its matched VOPs more (a plantation's grid lets another plot's trunks coincide by the dozen)")
-    distinct_rotation_deg: float = _p(5.0, "deg", 0.5, 180.0, "Alternatives rotated more than this from the best are distinct solutions")
-    distinct_translation_m: float = _p(1.0, "m", 0.1, 50.0, "Alternatives displaced more than this from the best are distinct solutions")
+    #: the lead of the best solution over the best distinct alternative
+    margin: MarginParams = MarginParams()
+    #: when an alternative is a distinct solution (the VOP centroid's displacement)
+    distinct: DistinctParams = DistinctParams()
     max_free_space_violation: float = _p(0.15, "1", 0.0, 1.0, "Largest fraction of one scan's slice points allowed where the other scanner saw empty space, after ICP (a wrong match puts trunks there)")
     free_space_bin_deg: float = _p(0.5, "deg", 0.05, 10.0, "A scanner saw empty space up to its first return in each azimuth bin of this width...")
     free_space_margin_m: float = _p(0.5, "m", 0.0, 5.0, "...and the other scan's points count as inside it when at least this much nearer")

@@ -13,12 +13,13 @@ Frame: the cloud's local frame (metres, z up); positions written to files add th
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
@@ -286,37 +287,32 @@ def measure_trees(
         raise ScanDataError("trees: expected a non-empty (N, 3) cloud")
     if not np.isfinite(p).all():
         raise ScanDataError("trees: the cloud holds NaN or infinite coordinates")
+    measure = functools.partial(_measure_trees, params=params, progress=progress, origin_shift=origin_shift, single_tree=single_tree)
     try:
         if params.thin_above_points and len(p) > params.thin_above_points:
-            return _measure_thinned(p, params, progress, origin_shift=origin_shift, single_tree=single_tree)
-        return _measure_trees(p, params, progress, origin_shift=origin_shift, single_tree=single_tree)
+            return _measure_thinned(p, params, measure)
+        return measure(p)
     except ScanDataError as exc:  # the data do not allow it: a failed outcome, as a registration gives
         return TreeInventory.failed(str(exc), len(p), origin_shift)
 
 
-def _measure_thinned(
-    p: np.ndarray,
-    params: TreeParams,
-    progress: Optional[Progress | ProgressCallback],
-    *,
-    origin_shift: Optional[np.ndarray],
-    single_tree: Optional[bool],
-) -> TreeInventory:
+def _measure_thinned(p: np.ndarray, params: TreeParams, measure: Callable[[np.ndarray], TreeInventory]) -> TreeInventory:
     """:func:`measure_trees` of a cloud of more than ``params.thin_above_points`` points: the
-    trees measured on the first point of each ``params.thin_voxel_m`` voxel, then the per-point
-    results carried to every point (each point takes its voxel's label, wood probability and
-    ground flag; heights above the same DEM), and each tree's point count and wood fraction
-    counted on the whole cloud. ``thin_s`` and ``expand_s`` in the timings are the two ends."""
+    trees measured (``measure``: :func:`_measure_trees` with the call's settings) on the first
+    point of each ``params.thin_voxel_m`` voxel, then the per-point results carried to every point
+    (each point takes its voxel's label, wood probability and ground flag; heights above the same
+    DEM), and each tree's point count and wood fraction counted on the whole cloud. ``thin_s``
+    and ``expand_s`` in the timings are the two ends."""
     t = time.perf_counter()
     keep, inverse = voxel_representatives(p, params.thin_voxel_m)
     thinned = p[keep]
     del keep
     log.info("trees: %d points thinned to %d (one per %.3f m voxel)", len(p), len(thinned), params.thin_voxel_m)
     thin_s = time.perf_counter() - t
-    inventory = _measure_trees(thinned, params, progress, origin_shift=origin_shift, single_tree=single_tree)
+    inventory = measure(thinned)
     del thinned
     if not inventory:  # the data do not allow trees: the outcome as the whole cloud's
-        return TreeInventory.failed(inventory.reason, len(p), origin_shift, {"thin_s": thin_s, **inventory.timings})
+        return TreeInventory.failed(inventory.reason, len(p), inventory.origin_shift, {"thin_s": thin_s, **inventory.timings})
     t = time.perf_counter()
     labels = inventory.labels[inverse]
     wood = inventory.wood_probability[inverse]
@@ -336,20 +332,16 @@ def _measure_thinned(
 
 
 def _measure_trees(
-    points: np.ndarray,
+    p: np.ndarray,
     params: TreeParams,
     progress: Optional[Progress | ProgressCallback],
     *,
     origin_shift: Optional[np.ndarray],
     single_tree: Optional[bool],
 ) -> TreeInventory:
-    """:func:`measure_trees` of a checked cloud; raises ScanDataError when the data do not allow trees."""
+    """:func:`measure_trees` of a checked (N, 3) float64 cloud (finite, not empty); raises
+    ScanDataError when the data do not allow trees."""
     progress = as_progress(progress)
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
-        raise ScanDataError("trees: expected a non-empty (N, 3) cloud")
-    if not np.isfinite(p).all():
-        raise ScanDataError("trees: the cloud holds NaN or infinite coordinates")
     timings: dict[str, float] = {}
     t = time.perf_counter()
     progress(0.0, "terrain: ground and DEM")
