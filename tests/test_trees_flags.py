@@ -121,8 +121,8 @@ def test_simulated_sparse_ground_under_an_airborne_crown():
 
 def test_pine_plot_flags_only_weak_values(shared_data):
     """The real planted plot: its stems are whole, though the 10 m clip passes near 10 of its 16;
-    a tree is flagged only when one of its values is weak, and then says which. The heights of 10
-    of 16 trees stand (measured), 3 of them on the plot's height-diameter curve (from the 7 trees
+    a tree is flagged only when one of its values is weak, and then says which. The heights of 14
+    of 16 trees stand (measured), 7 of them on the plot's height-diameter curve (from the 7 trees
     whose tops stand clear: a plantation's heights hardly vary, scatter 5 %)."""
     _, inv = _inventory(str(shared_data / "pine_plot.laz"))
     assert len(inv.trees) == 16
@@ -134,7 +134,7 @@ def test_pine_plot_flags_only_weak_values(shared_data):
     # a DBH near the edge keeps its trust when its section is whole round
     assert sum(1 for t in inv.trees if t.quality["dbh"].endswith(("high", "medium"))) >= 12
     assert inv.height_curve is not None and inv.height_curve.scatter < 0.1
-    assert sum(1 for t in inv.trees if t.quality["height"].endswith(("high", "medium"))) >= 10
+    assert sum(1 for t in inv.trees if t.quality["height"].endswith(("high", "medium"))) >= 13
 
 
 @functools.lru_cache(maxsize=None)
@@ -172,11 +172,12 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     DBH of a thicker one grows from its own points, not up its axis through that tree's crown: 29
     of the 39 heights within 8 % of the truth (a suppressed tree's axis continued up into its
     neighbour's crown would measure that neighbour's top); a stem within 7 DBH whose axis still
-    climbs has its height flagged. Soft hints about a top (on the crown's flank, clear under a
-    neighbour's crown) decide only with the plot's height-diameter curve: the unflagged heights are
-    20 of 39, rRMSE 5.6 %, worst 16.0 %; 7 of them kept by the curve, all within 16 %. A top
-    touching the crown over it stays flagged. A tree flagged for its height keeps its DBH's trust;
-    a tree is flagged only when a value is weak."""
+    climbs has its height flagged. Hints about a top (on the crown's flank, clear under or touching
+    a neighbour's crown, missing in the data) decide only with the plot's height-diameter curve:
+    the unflagged heights are 25 of 39, rRMSE 5.7 %, worst 16.0 %; 12 of them kept by the curve,
+    all within 16 %; a top not seen (missing, or touching the crown over it) only within 5 % below
+    the curve. A tree flagged for its height keeps its DBH's trust; a tree is flagged only when a
+    value is weak."""
     from forestreg.engine.trees.crown import CrownParams, top_over_stem
 
     plot, inv = _four_scan_plot()
@@ -190,14 +191,18 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     trusted = [(r, t) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))]
     err = np.array([(r.crown.height_m - t.height_m) / t.height_m for r, t in trusted])
     h = np.array([(r.crown.height_m, t.height_m) for r, t in trusted])
-    assert len(trusted) >= 19
+    assert len(trusted) >= 24
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.08
     assert np.max(np.abs(err)) <= 0.20
     assert inv.height_curve is not None and inv.height_curve.n_trees >= 20
     by_curve = [e for (r, _), e in zip(trusted, err) if "height-diameter curve (consistent)" in r.quality["height"]]
-    assert len(by_curve) >= 6 and np.max(np.abs(by_curve)) <= 0.20
-    touching = [r for r, _ in pairs if "top touching a neighbour's crown" in r.quality["height"]]
-    assert touching and all(r.quality["height"].endswith("low") for r in touching)
+    assert len(by_curve) >= 10 and np.max(np.abs(by_curve)) <= 0.20
+    unseen = [(r, t) for r, t in pairs if "top touching a neighbour's crown" in r.quality["height"] or "top missing" in r.quality["height"]]
+    assert len(unseen) >= 8
+    for r, t in unseen:
+        if not r.quality["height"].endswith("low"):
+            assert inv.height_curve.departure(r.dbh_m, r.crown.height_m) >= -0.05
+            assert abs(r.crown.height_m / t.height_m - 1.0) <= 0.10, (t.id, r.quality["height"])
     for r, t in pairs:
         if r.quality["height"].endswith("low"):
             assert r.quality["dbh"].endswith(("high", "medium")), (t.id, r.quality["dbh"])
@@ -215,7 +220,7 @@ def test_four_scan_plot_with_the_usual_field_of_view_flags_tops_not_seen():
     are beyond every scan's view. The tallest tree (28 m) is seen up to 19.2 m, its highest point
     over its stem (trusted as it stands, 31.6 % too low); its top metre is a ring at 0.91 of the
     crown radius from the stem axis (seen tops: at most 0.72), flagged "top not seen". No unflagged
-    height more than 20 % off: 14 of 39 unflagged, rRMSE 7.9 %, worst 11.6 % (conifers whose tips
+    height more than 20 % off: 16 of 39 unflagged, rRMSE 7.7 %, worst 11.6 % (conifers whose tips
     the view missed: a cone cut lower still tapers). The height-diameter curve rests only on
     trees whose tops stand clear, so tops cut by the view do not lower it."""
     from forestreg.engine.simulate import simulate_plot
@@ -229,7 +234,7 @@ def test_four_scan_plot_with_the_usual_field_of_view_flags_tops_not_seen():
     assert len(pairs) == 39
     trusted = [(r, t) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))]
     h = np.array([(r.crown.height_m, t.height_m) for r, t in trusted])
-    assert len(trusted) >= 13
+    assert len(trusted) >= 15
     assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.09
     tallest_r, tallest = max(pairs, key=lambda p: p[1].height_m)
