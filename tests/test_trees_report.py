@@ -127,3 +127,23 @@ def test_bad_inputs(tmp_path):
     bad = {1: dict(cyls[1], radius_m=np.zeros(2))}
     with pytest.raises(ScanDataError, match="differ in length"):
         write_trees_report(tmp_path, rows, pts, ids, wood, bad)
+
+
+def test_report_draws_heights_against_the_height_diameter_curve(tmp_path):
+    """With the plot's curve, a figure of the heights coloured by their trust: the flagged tree's
+    height (low) drawn in the flag colour, the curve's description in the caption."""
+    from forestreg.engine.trees.allometry import HeightCurve
+
+    rows, pts, ids, wood, cyls = _fake_plot()
+    trusts = ("high", "medium", "low")
+    rows = [{**r, "height_quality": f"highest tree point; {q}"} for r, q in zip(rows, trusts)]
+    curve = HeightCurve(a=1.2, b=0.19, n_trees=12, n_inliers=11, scatter=0.05)
+    path = write_trees_report(tmp_path, rows, pts, ids, wood, cyls, height_curve=curve)
+    html = path.read_text()
+    assert "height-diameter curve" in html and "from 12 trees (11 kept)" in html and "20 % below" in html
+    png = tmp_path / "figures" / "height_curve.png"
+    assert png.is_file()
+    assert _share_of_colour(png, FLAG_COLOUR) > 0.0002  # the low height's cross
+    # without a curve, no such figure
+    write_trees_report(tmp_path / "none", rows, pts, ids, wood, cyls)
+    assert not (tmp_path / "none" / "figures" / "height_curve.png").exists()

@@ -5,8 +5,10 @@ matplotlib Agg) and the same PNGs into ``figures/``:
 
 1. a plot map: top view of the points coloured by tree, each stem's position with a circle of
    its DBH (scaled up to be visible; the factor is printed), tree ids, flagged trees in red;
-2. a summary (counts, means, totals) and a table with one row per tree;
-3. per tree a figure: a side view (x against z) of its points, wood brown and leaves green, and
+2. a summary (counts, means, totals), and where the inventory has one, the heights against the
+   plot's height-diameter curve (each tree coloured by the trust of its height);
+3. a table with one row per tree;
+4. per tree a figure: a side view (x against z) of its points, wood brown and leaves green, and
    beside it the cylinder model projected on the same plane, each cylinder a band of width 2r
    along its axis, coloured by branch order.
 
@@ -76,7 +78,8 @@ def write_inventory_report(out_dir: str | os.PathLike[str], inventory: Any, poin
     wood = inventory.wood_probability
     if len(wood) and np.isnan(wood[0]) and np.isnan(wood).all():  # not measured (no cylinder models): grey
         wood = None
-    return write_trees_report(out_dir, rows, points, inventory.labels, wood, cyl, title=title)
+    return write_trees_report(out_dir, rows, points, inventory.labels, wood, cyl, title=title,
+                              height_curve=getattr(inventory, "height_curve", None))
 
 
 def write_trees_report(
@@ -90,6 +93,7 @@ def write_trees_report(
     *,
     max_tree_figures: int = MAX_TREE_FIGURES,
     dbh_scale: Optional[float] = None,
+    height_curve: Optional[Any] = None,
 ) -> Path:
     """Write ``out_dir/report.html`` and ``out_dir/figures/*.png``; return the HTML's path.
 
@@ -109,6 +113,8 @@ def write_trees_report(
     max_tree_figures : per-tree figures drawn at most (by tree id order).
     dbh_scale : factor the DBH circles of the map are enlarged by; default chosen from the plot
         size (printed on the map).
+    height_curve : the plot's height-diameter curve (:class:`forestreg.engine.trees.allometry.HeightCurve`:
+        ``height_m(dbh_m)`` and ``describe()``), drawn with the trees' heights; None: no such figure.
     """
     pts = check_points(points, "points", min_points=0)
     ids = np.asarray(tree_ids)
@@ -130,6 +136,18 @@ def write_trees_report(
     map_png, scale = _map_png(pts, ids, rows, dbh_scale)
     _write_png(fig_dir / "map.png", map_png)
 
+    curve_section = ""
+    if height_curve is not None:
+        curve_png = _height_curve_png(rows, height_curve)
+        _write_png(fig_dir / "height_curve.png", curve_png)
+        curve_section = (
+            "<figure>" + img_tag(curve_png, "heights against the height-diameter curve", "curve") +
+            "<figcaption>Height against DBH: each tree coloured by its height's trust (black high: its top stands clear; "
+            "orange medium: a hint about its top, its height consistent with the curve; red low: flagged). The line is the "
+            f"plot's height-diameter curve, {esc(height_curve.describe())}; dashed, {100 * height_curve.widest_below:.0f} % below "
+            f"and {100 * height_curve.above:.0f} % above it (the widest allowance, for a top clear under a neighbour's crown; "
+            "a top on the crown's flank or not seen is allowed less below).</figcaption></figure>"
+        )
     drawn: dict[str, bytes] = {}
     order = sorted(rows, key=lambda r: _natural(r["tree_id"]))
     problems: list[str] = []
@@ -153,7 +171,7 @@ def write_trees_report(
         "<h2>1. Plot map</h2>",
         f"<figure>{img_tag(map_png, 'plot map', 'map')}<figcaption>Top view: points coloured by tree (grey: no tree), "
         f"stem positions (+) with circles of the DBH enlarged {_scale_text(scale)}, tree ids; flagged trees in red.</figcaption></figure>",
-        _summary_section(rows, ids, wood),
+        _summary_section(rows, ids, wood) + curve_section,
         _table_section(rows, set(drawn)),
         _trees_section(order, drawn, max_tree_figures, problems),
     ]
@@ -300,6 +318,35 @@ def _map_png(pts: np.ndarray, ids: np.ndarray, rows: Sequence[Mapping[str, Any]]
     ax.grid(True, lw=0.3)
     fig.tight_layout()
     return png_bytes(fig, 100), scale
+
+
+def _height_curve_png(rows: Sequence[Mapping[str, Any]], curve: Any) -> bytes:
+    """DBH (cm) against height (m) of every tree with both, coloured by the height's trust, over
+    the plot's height-diameter curve and its widest allowance."""
+    fig, ax = plt.subplots(figsize=(7.5, 5.0))
+    d = np.array([r["dbh_m"] for r in rows], dtype=np.float64)
+    h = np.array([r["height_m"] for r in rows], dtype=np.float64)
+    trust = np.array([r["trust"].get("height", "") for r in rows])
+    ok = np.isfinite(d) & np.isfinite(h) & (d > 0)
+    if ok.any():
+        grid = np.linspace(max(0.02, 0.8 * d[ok].min()), 1.1 * d[ok].max(), 100)
+        line = np.array([curve.height_m(x) for x in grid])
+        ax.plot(100 * grid, line, color="k", lw=1.4, label="height-diameter curve")
+        lo, hi = 1.0 - curve.widest_below, 1.0 + curve.above
+        ax.plot(100 * grid, lo * line, color="k", lw=0.8, ls="--", label=f"-{100 * curve.widest_below:.0f} % / +{100 * curve.above:.0f} %")
+        ax.plot(100 * grid, hi * line, color="k", lw=0.8, ls="--")
+    for level, colour, marker, label in (("high", "k", "o", "high"), ("medium", "#ff7f00", "o", "medium (consistent with the curve)"),
+                                         ("low", FLAG_COLOUR, "x", "low (flagged)")):
+        sel = ok & (trust == level)
+        if sel.any():
+            ax.plot(100 * d[sel], h[sel], ls="", marker=marker, color=colour, ms=6, mew=1.6, label=f"{label}: {int(sel.sum())}")
+    ax.set_xlabel("DBH (cm)")
+    ax.set_ylabel("height (m)")
+    ax.set_title("Heights and the plot's height-diameter curve", fontsize=11)
+    ax.grid(True, lw=0.3)
+    ax.legend(fontsize=8, loc="lower right", framealpha=0.9)
+    fig.tight_layout()
+    return png_bytes(fig, 100)
 
 
 def cylinder_polygons(cyl: Mapping[str, np.ndarray], axes: tuple[int, int] = (0, 2)) -> np.ndarray:

@@ -33,7 +33,7 @@ class HeightCurveParams(Params):
     """Settings of the plot's height-diameter curve and of the consistency it grants."""
 
     min_trees: int = _p(6, "trees", 3, 100000, "Fewest trees with a DBH and a height for the plot's height-diameter curve; fewer: no curve, and soft hints about a top decide alone")
-    below_under_crown: float = _p(0.30, "1", 0.0, 1.0, "A tree whose top stands clear under a neighbour's crown is consistent with the curve up to this fraction below it (suppressed trees stand well below the curve)")
+    below_under_crown: float = _p(0.20, "1", 0.0, 1.0, "A tree whose top stands clear under a neighbour's crown is consistent with the curve up to this fraction below it (suppressed trees stand well below the curve)")
     below: float = _p(0.10, "1", 0.0, 1.0, "...a tree with another hint (its top on the crown's flank, amid or nearer to a neighbour's crown) up to this fraction below it")
     below_unseen: float = _p(0.05, "1", 0.0, 1.0, "...a tree whose top is missing in the data, cut flat or touching the crown over it up to this fraction below it (such a height can only be short: on the curve, little is missing)")
     above: float = _p(0.20, "1", 0.0, 1.0, "...and any tree up to this fraction above it (a top taken from a neighbour's crown stands above)")
@@ -46,13 +46,17 @@ class HeightCurveParams(Params):
 class HeightCurve:
     """Näslund's height-diameter curve of one plot: ``h = 1.3 + d^2 / (a + b d)^2`` (``d`` DBH in
     cm, ``h`` in m). ``n_trees`` trees fitted it (``n_inliers`` kept a weight), ``scatter`` is the
-    robust standard deviation of their log height residuals."""
+    robust standard deviation of their log height residuals; ``widest_below`` and ``above`` the
+    widest band of heights taken as consistent with it (fractions of the curve's height, from the
+    parameters it was fitted with)."""
 
     a: float
     b: float
     n_trees: int
     n_inliers: int
     scatter: float
+    widest_below: float = 0.2
+    above: float = 0.2
 
     def height_m(self, dbh_m: float) -> float:
         """The curve's height (m) at a DBH (m); NaN for a DBH that is not positive and finite."""
@@ -117,4 +121,5 @@ def fit_height_curve(dbh_m: np.ndarray, height_m: np.ndarray, params: HeightCurv
     # derivative of d^2/(a+bd)^2 is 2ad/(a+bd)^3)
     if not (math.isfinite(a) and math.isfinite(b) and a > 0) or scale > params.max_scatter:
         return None
-    return HeightCurve(a=float(a), b=float(b), n_trees=int(len(d)), n_inliers=int(np.count_nonzero(w > 0)), scatter=float(scale))
+    return HeightCurve(a=float(a), b=float(b), n_trees=int(len(d)), n_inliers=int(np.count_nonzero(w > 0)), scatter=float(scale),
+                       widest_below=max(params.below_under_crown, params.below, params.below_unseen), above=params.above)
