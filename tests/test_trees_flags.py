@@ -174,8 +174,9 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     neighbour's crown would measure that neighbour's top); a stem within 7 DBH whose axis still
     climbs has its height flagged. Hints about a top (on the crown's flank, clear under or touching
     a neighbour's crown, missing in the data) decide only with the plot's height-diameter curve:
-    the unflagged heights are 23 of 39, rRMSE 5.7 %, worst 16.0 %; 11 of them kept by the curve,
-    all within 16 %; a top not seen (missing, or touching the crown over it) only within 5 % below
+    the unflagged heights are 25 of 39, rRMSE 5.7 %, worst 16.0 %; 9 of them kept by the curve,
+    all within 16 %, and 3 suppressed conifers by their apex seen as a tip (20-37 % below the
+    curve, within 4 %); a top not seen (missing, or touching the crown over it) only within 5 % below
     the curve. A tree flagged for its height keeps its DBH's trust; a tree is flagged only when a
     value is weak."""
     from forestreg.engine.trees.crown import CrownParams, top_over_stem
@@ -191,12 +192,14 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     trusted = [(r, t) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))]
     err = np.array([(r.crown.height_m - t.height_m) / t.height_m for r, t in trusted])
     h = np.array([(r.crown.height_m, t.height_m) for r, t in trusted])
-    assert len(trusted) >= 22
+    assert len(trusted) >= 24
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.08
     assert np.max(np.abs(err)) <= 0.20
     assert inv.height_curve is not None and inv.height_curve.n_trees >= 20
     by_curve = [e for (r, _), e in zip(trusted, err) if "height-diameter curve (consistent)" in r.quality["height"]]
-    assert len(by_curve) >= 10 and np.max(np.abs(by_curve)) <= 0.20
+    assert len(by_curve) >= 9 and np.max(np.abs(by_curve)) <= 0.20
+    tips = [e for (r, _), e in zip(trusted, err) if "apex seen as a tip" in r.quality["height"]]
+    assert len(tips) >= 3 and np.max(np.abs(tips)) <= 0.05
     unseen = [(r, t) for r, t in pairs if "top touching a neighbour's crown" in r.quality["height"] or "top missing" in r.quality["height"]]
     assert len(unseen) >= 8
     for r, t in unseen:

@@ -67,6 +67,8 @@ class CrownParams(Params):
     max_top_offset: float = param_field(0.4, "1", 0.0, 10.0, "The top counts as seen when the highest point stands over the stem: within this fraction of the crown radius from the stem axis (farther: it is on the crown's flank, the apex above it unseen or a neighbour's)...")
     top_axis_tolerance_deg: float = param_field(3.0, "deg", 0.0, 30.0, "...or within the height times the tangent of this angle (a stem's sweep, and its lean measured on the lower stem, move the axis at the top)")
     top_layer_m: float = param_field(1.0, "m", 0.05, 10.0, "Depth below the top of the crown's top layer, whose points tell a seen apex from a crown cut flat")
+    tip_max_offset: float = param_field(0.1, "1", 0.0, 1.0, "A top within this fraction of the crown radius from the stem axis...")
+    tip_max_layer_offset: float = param_field(0.2, "1", 0.0, 1.0, "...whose top layer lies within this fraction of it is an apex seen as a tip (a cone's tip: neither a crown cut flat nor a neighbour's crown)")
     max_top_layer_offset: float = param_field(0.8, "1", 0.0, 10.0, "A top layer whose points lie at a median distance from the stem axis beyond this fraction of the crown radius is a cap or ring around the stem, not an apex: the crown was cut flat (its top beyond the scanner's field of view or hidden by other crowns), the height unsure")
 
 
@@ -107,6 +109,15 @@ def top_cut_flat(crown: "CrownMeasurement", params: "CrownParams") -> bool:
     (the top not seen: cut by the scanner's field of view or hidden behind other crowns). False
     when not known."""
     return math.isfinite(crown.top_layer_offset_ratio) and crown.top_layer_offset_ratio > params.max_top_layer_offset
+
+
+def apex_tip(crown: "CrownMeasurement", params: "CrownParams") -> bool:
+    """Whether the crown's top is an apex seen as a tip: its highest point within
+    ``tip_max_offset`` of the crown radius from the stem axis and its top layer within
+    ``tip_max_layer_offset`` (a crown cut lower shows a ring, a neighbour's crown does not narrow to
+    a point over this stem). False when not known."""
+    return (math.isfinite(crown.top_offset_ratio) and math.isfinite(crown.top_layer_offset_ratio)
+            and crown.top_offset_ratio <= params.tip_max_offset and crown.top_layer_offset_ratio <= params.tip_max_layer_offset)
 
 
 def top_over_stem(crown: "CrownMeasurement", params: "CrownParams") -> bool:

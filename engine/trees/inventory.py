@@ -35,7 +35,7 @@ from ..io.results import TREE_COLUMNS, TreeTablesFile  # noqa: F401 - the column
 from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
 from .allometry import HeightCurve, HeightCurveParams, fit_height_curve
-from .crown import CrownMeasurement, CrownParams, measure_crown, top_cut_flat, top_over_stem
+from .crown import CrownMeasurement, CrownParams, apex_tip, measure_crown, top_cut_flat, top_over_stem
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
 from .segmentation import CompletenessParams, SegmentationParams, axis_stems, segment_trees, top_layer, tree_completeness
@@ -680,7 +680,12 @@ def tree_record(
         departure = height_curve.departure(dbh_value, crown.height_m) if height_curve is not None else math.nan
         if "unseen" in kinds and height_curve is not None and height_curve.scatter > hc.max_scatter_unseen:
             departure = math.nan  # too loose a curve to vouch for a top not seen
-        if math.isfinite(departure) and -below <= departure <= hc.above:
+        if kinds == {"under"} and top_evidence and apex_tip(crown, params.crown):
+            # a suppressed tree whose apex is seen as a tip: its own top, however far below the curve
+            hints_consistent = True
+            h_trust = _trust(h_trust, "medium")
+            h_how += ", its apex seen as a tip over the stem"
+        elif math.isfinite(departure) and -below <= departure <= hc.above:
             hints_consistent = True
             h_trust = _trust(h_trust, "medium")
             h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (consistent)"
