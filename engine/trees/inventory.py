@@ -864,8 +864,8 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
             column = column[(labels[column] != s.id) & (p[column, 2] > top[2] + 0.02)]
             gap = float(p[column, 2].min() - top[2]) if len(column) else math.inf
             if gap >= min_clearance_m:
-                out[s.id] = (f"top under a neighbour's crown, {gap:.1f} m clear of it: suppressed, or its top unseen "
-                             f"(height unsure)")
+                clear = f"{gap:.1f} m clear of it" if math.isfinite(gap) else f"nothing over the top within {clearance_radius_m:g} m"
+                out[s.id] = f"top under a neighbour's crown, {clear}: suppressed, or its top unseen (height unsure)"
             else:
                 out[s.id] = (f"top touching a neighbour's crown ({100 * gap:.0f} cm below it): the crown may go on up "
                              f"in that tree (height unsure)")
