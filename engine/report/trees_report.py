@@ -143,7 +143,7 @@ def write_trees_report(
         curve_section = (
             "<figure>" + img_tag(curve_png, "heights against the height-diameter curve", "curve") +
             "<figcaption>Height against DBH: each tree coloured by its height's trust (black high: its top stands clear; "
-            "orange medium: a hint about its top, its height consistent with the curve; red low: flagged). The line is the "
+            "orange medium: a hint about its top, its height consistent with the curve or its apex a tip; red low: flagged). The line is the "
             f"plot's height-diameter curve, {esc(height_curve.describe())}; dashed, {100 * height_curve.widest_below:.0f} % below "
             f"and {100 * height_curve.above:.0f} % above it (the widest allowance, for a top clear under a neighbour's crown; "
             "a top on the crown's flank or not seen is allowed less below).</figcaption></figure>"
@@ -335,7 +335,7 @@ def _height_curve_png(rows: Sequence[Mapping[str, Any]], curve: Any) -> bytes:
         lo, hi = 1.0 - curve.widest_below, 1.0 + curve.above
         ax.plot(100 * grid, lo * line, color="k", lw=0.8, ls="--", label=f"-{100 * curve.widest_below:.0f} % / +{100 * curve.above:.0f} %")
         ax.plot(100 * grid, hi * line, color="k", lw=0.8, ls="--")
-    for level, colour, marker, label in (("high", "k", "o", "high"), ("medium", "#ff7f00", "o", "medium (consistent with the curve)"),
+    for level, colour, marker, label in (("high", "k", "o", "high"), ("medium", "#ff7f00", "o", "medium (a hint about the top; consistent)"),
                                          ("low", FLAG_COLOUR, "x", "low (flagged)")):
         sel = ok & (trust == level)
         if sel.any():
