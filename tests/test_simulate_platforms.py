@@ -254,9 +254,9 @@ def test_coregistration_matrix_is_exact(scene, platform):
     # ground data only over the central 12 m, the UAV over the whole plot
     assert np.abs(case.ground_cloud.points[:, :2]).max() <= 6.0
     assert np.abs(case.uav.file_points[:, :2]).max() > 9.0
-    assert len(case.ground_labels) == len(case.ground) and len(case.uav_labels) == len(case.uav)
-    assert (case.ground_labels == Material.TRUNK).sum() > 500
-    assert case.uav_object_ids.shape == case.uav_labels.shape
+    assert len(case.ground_cloud.labels) == len(case.ground) and len(case.uav_cloud.labels) == len(case.uav)
+    assert (case.ground_cloud.labels == Material.TRUNK).sum() > 500
+    assert case.uav_cloud.object_ids.shape == case.uav_cloud.labels.shape
 
 
 def test_coregistration_with_utm_like_coordinates(scene):
@@ -291,7 +291,7 @@ def test_coregistration_is_deterministic_per_seed():
     c = simulate_coregistration_case("planted_conifer", seed=8, **kw)
     assert np.array_equal(a.ground.points, b.ground.points)
     assert np.array_equal(a.uav.points, b.uav.points)
-    assert np.array_equal(a.ground_labels, b.ground_labels)
+    assert np.array_equal(a.ground_cloud.labels, b.ground_cloud.labels)
     assert len(a.ground) != len(c.ground) or not np.array_equal(a.ground.points, c.ground.points)
     with pytest.raises(ParameterError, match="ground_platform"):
         simulate_coregistration_case("planted_conifer", ground_platform="drone")

@@ -297,7 +297,7 @@ def match_keypoints(
 
 class _SolutionSet:
     """Headings (rad) and XY translations (m) met so far, for the question "is this the same
-    solution as one of them": within ````distinct.rotation_deg`` and ``distinct.translation_m``.
+    solution as one of them": within ``distinct.rotation_deg`` and ``distinct.translation_m``.
     They are kept in bins at least that wide (heading bins wrap around), so a question looks at
     the entries of the 27 bins around its own only."""
 

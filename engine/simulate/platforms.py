@@ -808,11 +808,9 @@ class CoregistrationCase:
         best rigid answer: the least-squares rigid fit of the drifted map onto the true points
         (``meta["slam_residual_rms_m"]`` is what no rigid transform can remove).
     scene : the simulated plot (world frame).
-    ground_cloud, uav_cloud : the same points in the world frame (without ``world_offset``).
-    ground_labels, uav_labels : (N,) uint8 :class:`~.mesh.Material` of the clouds' points,
-        row-aligned with the scans.
-    ground_object_ids, uav_object_ids : (N,) int32 object ids of the clouds' points (tree ids;
-        0 = ground).
+    ground_cloud, uav_cloud : the same points in the world frame (without ``world_offset``), with
+        their ``labels`` ((N,) uint8 :class:`~.mesh.Material`) and ``object_ids`` ((N,) int32 tree
+        ids; 0 = ground), row-aligned with the scans.
     world_offset : (3,) added to world coordinates to make UAV coordinates.
     misalignment : 4x4 ground frame -> world frame (``matrix`` less the world offset).
     meta : settings and counts.
@@ -827,22 +825,6 @@ class CoregistrationCase:
     world_offset: np.ndarray
     misalignment: np.ndarray
     meta: Mapping[str, Any] = field(default_factory=dict)
-
-    @property
-    def ground_labels(self) -> np.ndarray:
-        return self.ground_cloud.labels
-
-    @property
-    def uav_labels(self) -> np.ndarray:
-        return self.uav_cloud.labels
-
-    @property
-    def ground_object_ids(self) -> np.ndarray:
-        return self.ground_cloud.object_ids
-
-    @property
-    def uav_object_ids(self) -> np.ndarray:
-        return self.uav_cloud.object_ids
 
 
 #: scene overrides (:func:`~.scene.make_scene`) of a leaf-on broadleaf stand for

@@ -63,8 +63,7 @@ to this module or, when that is read-only, in numba's user cache directory); a n
 loads them in ~0.1 s, plus ~0.3 s to import numba at the first match. The bound is loose when many
 VOPs lie within D_t of each other: 80 VOPs packed in a disc of 2 m radius (``--packed``) take
 ~7 s (~10 s with the numpy-only bounds; 641,860 exact scores either way, mostly their
-nearest-VOP searches; ~11 s when those were k-d tree queries, the same run); the result stays
-exact.
+nearest-VOP searches); the result stays exact.
 
 Evidence of ambiguity: a second pass with the same bounds finds the best *distinct* solution, the
 lowest ``D_overlap`` whose rotation differs from the optimum by more than ``distinct_rotation_deg``

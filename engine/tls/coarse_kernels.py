@@ -20,7 +20,8 @@ wide_limit)`` -- the K angles of the full turn, the angles per bin, the bins, th
 the distance window (m), and the window width (angles) from which a tuple's bound is taken as
 constant over the angles.
 
-The exact scores are never computed here: they stay with the k-d tree scorer both matchers share.
+The exact scores are never computed here: they stay with the nearest-VOP scorer both matchers
+share (:class:`~forestreg.engine.geometry.nearest.PlaneNearest`).
 Importing this module needs numba; :mod:`.coarse` falls back to its numpy path without it.
 """
 

@@ -500,7 +500,7 @@ def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: Reg
     mov_layers = timed("slice", derived, mov_prep, ("layers", params), lambda: slice_layers(mov_prep, params))
     radii = vop_radii(params)
     step(0.0, f"visual occlusion points within {', '.join(f'{r:.0f}' for r in radii)} m")
-    # every (scan, radius) extraction is independent and mostly k-d tree and numpy work (which
+    # every (scan, radius) extraction is independent and mostly compiled-kernel and numpy work (which
     # releases the GIL): two at a time
     jobs = [(prep, layers, radius) for radius in radii for prep, layers in ((ref_prep, ref_layers), (mov_prep, mov_layers))]
 
@@ -546,7 +546,7 @@ def scan_vops(prepared: PreparedScan, params: RegistrationParams, timed: Callabl
     def vops(radius: float) -> None:
         derived(prepared, ("vops", params, radius), lambda: extract_vops(layers, params, radius))
 
-    # the radii two at a time (mostly k-d tree and numpy work, which releases the GIL): the
+    # the radii two at a time (mostly compiled-kernel and numpy work, which releases the GIL): the
     # second scan's VOPs are the only ones left when it is prepared
     with ThreadPoolExecutor(max_workers=_pair_threads(), thread_name_prefix="forestreg-vops") as pool:
         timed("vops", lambda: list(pool.map(vops, vop_radii(params))))
