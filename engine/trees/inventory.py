@@ -92,7 +92,7 @@ class TreeParams(Params):
     min_top_clearance_m: float = _p(0.2, "m", 0.0, 5.0, "...a top touching the crown over it (closer) has its height flagged: that crown may hold the tree's upper crown, or the top found is in it")
     #: a thinner stem this close to a thicker one may stand within that tree's crown; closer
     #: than segmentation.axis_dominance_dbh its axis is not continued (it grows from its own points)
-    crown_reach_dbh: float = _p(7.0, "DBH", 0.0, 100.0, "a stem whose axis is continued into the crowns, closer than this many of a thicker stem's DBH to it, has its height flagged: its top may be in that tree's crown (0 = no such flag)")
+    crown_reach_dbh: float = _p(7.0, "DBH", 0.0, 100.0, "a stem whose axis is continued into the crowns, closer than this many of a thicker stem's DBH to it, has its height checked against the plot's height-diameter curve (flagged without one): its top may be in that tree's crown (0 = no such check)")
     #: the radius around a position clicked in an edit (add a tree, split a tree)
     stem_search_radius_m: float = _p(1.0, "m", 0.1, 10.0, "radius around a position given in an edit (add, split) searched for a stem")
 
@@ -395,6 +395,15 @@ def _measure_trees(
         t = time.perf_counter()
         dbh, curves, timings["dbh_s"] = stems_job.result()  # its k-d tree went with its call
         timings["waiting_s"] = time.perf_counter() - t  # for the second thread
+        caps = _axis_heights(stems, dbh, curves, crowns, shared, stem_params, params)
+        if caps:  # again, each axis held near its tree's expected height
+            t = time.perf_counter()
+            progress(0.44, "segmenting again, each stem's axis held to the plot's height-diameter curve")
+            labels = segment_trees(p, heights, stems, params.segmentation, axis_heights=caps)
+            timings["segmentation_s"] += time.perf_counter() - t
+            crowns_s = timings["crowns_s"]
+            crowns, shared, ground_near = _crowns_timed(p, heights, labels, stems, model.ground, params, timings)
+            timings["crowns_s"] += crowns_s
 
         if params.cylinder_models:
             t = time.perf_counter()
@@ -453,6 +462,31 @@ def _measure_trees(
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
         timings=timings, method=method, volume_asked=params.cylinder_models, height_curve=height_curve,
     )
+
+
+def _axis_heights(stems: Sequence[Stem], dbh: dict[int, DbhMeasurement], curves: dict[int, StemCurve],
+                  crowns: dict[int, CrownMeasurement], shared: dict[int, str], stem_params: StemParams,
+                  params: TreeParams) -> dict[int, float]:
+    """{stem id: height (m above its ground)} to which each continued axis
+    (:func:`.segmentation.axis_stems`) is held in the second segmentation: the plot's
+    height-diameter curve (from the first segmentation's clear tops) at the stem's DBH times
+    :attr:`.segmentation.SegmentationParams.axis_curve_ratio`. Empty (no second segmentation)
+    without a curve, with a ratio of 0, or for fewer than two stems. A stem within a thicker
+    one's reach still gets no axis: held to the curve, it would climb into that tree's crown
+    wherever it is a suppressed tree (well below the curve)."""
+    seg = params.segmentation
+    if seg.axis_curve_ratio <= 0 or seg.axis_max_gap_m <= 0 or len(stems) < 2:
+        return {}
+    curve = _plot_height_curve(stems, dbh, curves, crowns, shared, {}, stem_params, params)
+    if curve is None:
+        return {}
+    out: dict[int, float] = {}
+    for s in axis_stems(stems, seg.axis_dominance_dbh, seg.dominance_ratio):
+        d = curve_dbh(curves[s.id], s, stem_params.breast_height_m)
+        d = d if math.isfinite(d) else dbh[s.id].dbh_m
+        if math.isfinite(d) and d > 0:
+            out[s.id] = seg.axis_curve_ratio * curve.height_m(d)
+    return out
 
 
 def _plot_height_curve(stems: Sequence[Stem], dbh: dict[int, DbhMeasurement], curves: dict[int, StemCurve],
@@ -579,7 +613,8 @@ def tree_record(
     (:func:`.allometry.fit_height_curve`), which decides soft hints about the top (on the crown's
     flank, a neighbour's crown over or around it): a height that departs from the curve by less
     than :class:`.allometry.HeightCurveParams` allows keeps a medium trust, one that departs
-    more (or without a curve) is low. Local frame, metres."""
+    more (or without a curve) is low; a height without such hints is low when it departs from the
+    curve by more than ``max_departure``. Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
     quality: dict[str, str] = {}
@@ -673,6 +708,13 @@ def tree_record(
         h_trust = _trust(h_trust, "low")
         h_how += ", too tall for its stem"
     hints_consistent = False
+    if not hints and top_evidence and height_curve is not None and math.isfinite(crown.height_m):
+        departure = height_curve.departure(dbh_value, crown.height_m)
+        if math.isfinite(departure) and abs(departure) > params.height_curve.max_departure:
+            flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve (beyond "
+                         f"{100 * params.height_curve.max_departure:.0f} % either way): top hidden, or a neighbour's (height unsure)")
+            h_trust = _trust(h_trust, "low")
+            h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve"
     if hints:
         hc = params.height_curve
         kinds = {k for k, _ in hints}
@@ -814,13 +856,14 @@ def _within_crown_reach(stems: Sequence[Stem], params: TreeParams) -> dict[int, 
 def _top_hint_kind(flag: str) -> str:
     """The kind of a :func:`_shared_tops` flag as :func:`tree_record` weighs it against the
     plot's height-diameter curve: "under" (clear under a neighbour's crown), "unseen" (touching the
-    crown over it), "hint" (amid or nearer to a neighbour's crown), or "" for the decisive ones
-    (points of no tree above the top, an axis continued into a thicker tree's crown)."""
+    crown over it), "hint" (amid or nearer to a neighbour's crown, or a stem within a thicker
+    one's crown reach: :func:`_within_crown_reach`), or "" for the decisive ones (points of no
+    tree above the top)."""
     if flag.startswith("top under a neighbour's crown"):
         return "under"
     if flag.startswith("top touching a neighbour's crown"):
         return "unseen"
-    if flag.startswith(("top amid the crown of thicker tree", "top shared with taller tree")):
+    if flag.startswith(("top amid the crown of thicker tree", "top shared with taller tree")) or "within its crown's reach" in flag:
         return "hint"
     return ""
 
