@@ -223,7 +223,7 @@ def test_four_scan_plot_with_the_usual_field_of_view_flags_tops_not_seen():
     are beyond every scan's view. The tallest tree (28 m) is seen up to 19.2 m, its highest point
     over its stem (trusted as it stands, 31.6 % too low); its top metre is a ring at 0.91 of the
     crown radius from the stem axis (seen tops: at most 0.72), flagged "top not seen". No unflagged
-    height more than 20 % off: 16 of 39 unflagged, rRMSE 7.7 %, worst 11.6 % (conifers whose tips
+    height more than 20 % off: 15 of 39 unflagged, rRMSE 7.2 %, worst 11.6 % (conifers whose tips
     the view missed: a cone cut lower still tapers). The height-diameter curve rests only on
     trees whose tops stand clear, so tops cut by the view do not lower it; the tallest tree stands
     21 % below it, which flags its height even without the ring."""
@@ -254,11 +254,11 @@ def test_four_scan_plot_with_the_usual_field_of_view_flags_tops_not_seen():
 def test_intermixed_crowns_no_confident_wrong_height():
     """A 40 m mixed plot, four full-dome scans, crowns growing into each other (no gap between a
     suppressed top and the crown over it): thin conifers whose columns run up into broad
-    neighbours' crowns. The trees are segmented a second time with each continued axis held to
-    1.1 times the plot's height-diameter curve, and every height is checked against that curve
-    (a height with no hint about its top more than 20 % off it, or one with a hint more than 10 %
-    above it, is flagged): no unflagged height more than 20 % off (held to nothing, one measured 27 % too
-    tall, a thin conifer up a broad neighbour's crown), 27 of 38 unflagged, rRMSE 4.3 %, worst 11.4 %."""
+    neighbours' crowns, tops inside a taller neighbour's crown. Every height is checked against the
+    plot's height-diameter curve: one with no hint about its top is flagged beyond 20 % of it either
+    way (a thin conifer taking a broad neighbour's crown measures 27 % too tall with its top over its
+    own stem), one with a hint beyond 10 % above it or 5-15 % below it. No unflagged height more
+    than 20 % off: 26 of 38 unflagged, rRMSE 4.3 %, worst 11.4 %."""
     from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.trees.inventory import TreeParams
 
@@ -270,7 +270,7 @@ def test_intermixed_crowns_no_confident_wrong_height():
     assert len(pairs) == 38
     trusted = [(r, t) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))]
     h = np.array([(r.crown.height_m, t.height_m) for r, t in trusted])
-    assert len(trusted) >= 25
+    assert len(trusted) >= 24
     assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.06
     assert any("from the plot's height-diameter curve (beyond 20 % either way)" in f for r in inv.trees for f in r.flags)

@@ -145,8 +145,8 @@ def write_trees_report(
             "<figcaption>Height against DBH: each tree coloured by its height's trust (black high: its top stands clear; "
             "orange medium: a hint about its top, its height consistent with the curve or its apex a tip; red low: flagged). The line is the "
             f"plot's height-diameter curve, {esc(height_curve.describe())}; dashed, {100 * height_curve.widest_below:.0f} % below "
-            f"and {100 * height_curve.above:.0f} % above it (the widest allowance, for a top clear under a neighbour's crown; "
-            "a top on the crown's flank or not seen is allowed less below).</figcaption></figure>"
+            f"and {100 * height_curve.above:.0f} % above it (the widest allowance, for a top standing clear over its stem; "
+            "a top with a hint about it, under a neighbour's crown, on the crown's flank or not seen, is allowed less).</figcaption></figure>"
         )
     drawn: dict[str, bytes] = {}
     order = sorted(rows, key=lambda r: _natural(r["tree_id"]))

@@ -33,8 +33,8 @@ class HeightCurveParams(Params):
     """Settings of the plot's height-diameter curve and of the consistency it grants."""
 
     min_trees: int = _p(6, "trees", 3, 100000, "Fewest trees with a DBH and a height for the plot's height-diameter curve; fewer: no curve, and soft hints about a top decide alone")
-    below_under_crown: float = _p(0.20, "1", 0.0, 1.0, "A tree whose top stands clear under a neighbour's crown is consistent with the curve up to this fraction below it (suppressed trees stand well below the curve)")
-    below: float = _p(0.10, "1", 0.0, 1.0, "...a tree with another hint (its top on the crown's flank, amid or nearer to a neighbour's crown) up to this fraction below it")
+    below_under_crown: float = _p(0.15, "1", 0.0, 1.0, "A tree whose top stands clear under a neighbour's crown is consistent with the curve up to this fraction below it (suppressed trees stand well below the curve; where crowns grow into each other, such a top is often a tree whose upper crown went to the neighbour)")
+    below: float = _p(0.10, "1", 0.0, 1.0, "...a tree with another hint (its top on the crown's flank, amid or nearer to a neighbour's crown, or its stem within a thicker one's crown reach) up to this fraction below it")
     below_unseen: float = _p(0.05, "1", 0.0, 1.0, "...a tree whose top is missing in the data, cut flat or touching the crown over it up to this fraction below it (such a height can only be short: on the curve, little is missing)")
     above: float = _p(0.10, "1", 0.0, 1.0, "...and any of them up to this fraction above it (a top taken from a neighbour's crown stands above)")
     max_departure: float = _p(0.20, "1", 0.0, 10.0, "A tree with no hint about its top is flagged when its height departs from the curve by more than this fraction either way (a top hidden, or a neighbour's crown taken)")
@@ -123,4 +123,5 @@ def fit_height_curve(dbh_m: np.ndarray, height_m: np.ndarray, params: HeightCurv
     if not (math.isfinite(a) and math.isfinite(b) and a > 0) or scale > params.max_scatter:
         return None
     return HeightCurve(a=float(a), b=float(b), n_trees=int(len(d)), n_inliers=int(np.count_nonzero(w > 0)), scatter=float(scale),
-                       widest_below=max(params.below_under_crown, params.below, params.below_unseen), above=params.above)
+                       widest_below=max(params.below_under_crown, params.below, params.below_unseen, params.max_departure),
+                       above=max(params.above, params.max_departure))

@@ -395,15 +395,6 @@ def _measure_trees(
         t = time.perf_counter()
         dbh, curves, timings["dbh_s"] = stems_job.result()  # its k-d tree went with its call
         timings["waiting_s"] = time.perf_counter() - t  # for the second thread
-        caps = _axis_heights(stems, dbh, curves, crowns, shared, stem_params, params)
-        if caps:  # again, each axis held near its tree's expected height
-            t = time.perf_counter()
-            progress(0.44, "segmenting again, each stem's axis held to the plot's height-diameter curve")
-            labels = segment_trees(p, heights, stems, params.segmentation, axis_heights=caps)
-            timings["segmentation_s"] += time.perf_counter() - t
-            crowns_s = timings["crowns_s"]
-            crowns, shared, ground_near = _crowns_timed(p, heights, labels, stems, model.ground, params, timings)
-            timings["crowns_s"] += crowns_s
 
         if params.cylinder_models:
             t = time.perf_counter()
@@ -462,31 +453,6 @@ def _measure_trees(
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
         timings=timings, method=method, volume_asked=params.cylinder_models, height_curve=height_curve,
     )
-
-
-def _axis_heights(stems: Sequence[Stem], dbh: dict[int, DbhMeasurement], curves: dict[int, StemCurve],
-                  crowns: dict[int, CrownMeasurement], shared: dict[int, str], stem_params: StemParams,
-                  params: TreeParams) -> dict[int, float]:
-    """{stem id: height (m above its ground)} to which each continued axis
-    (:func:`.segmentation.axis_stems`) is held in the second segmentation: the plot's
-    height-diameter curve (from the first segmentation's clear tops) at the stem's DBH times
-    :attr:`.segmentation.SegmentationParams.axis_curve_ratio`. Empty (no second segmentation)
-    without a curve, with a ratio of 0, or for fewer than two stems. A stem within a thicker
-    one's reach still gets no axis: held to the curve, it would climb into that tree's crown
-    wherever it is a suppressed tree (well below the curve)."""
-    seg = params.segmentation
-    if seg.axis_curve_ratio <= 0 or seg.axis_max_gap_m <= 0 or len(stems) < 2:
-        return {}
-    curve = _plot_height_curve(stems, dbh, curves, crowns, shared, {}, stem_params, params)
-    if curve is None:
-        return {}
-    out: dict[int, float] = {}
-    for s in axis_stems(stems, seg.axis_dominance_dbh, seg.dominance_ratio):
-        d = curve_dbh(curves[s.id], s, stem_params.breast_height_m)
-        d = d if math.isfinite(d) else dbh[s.id].dbh_m
-        if math.isfinite(d) and d > 0:
-            out[s.id] = seg.axis_curve_ratio * curve.height_m(d)
-    return out
 
 
 def _plot_height_curve(stems: Sequence[Stem], dbh: dict[int, DbhMeasurement], curves: dict[int, StemCurve],

@@ -18,9 +18,7 @@ Method (paper sec. 4.3.1: stem detection, then the crowns)
    ``axis_dominance_dbh`` times the thicker stem's DBH:
    :func:`axis_stems`) gets no such axis: it would carry the tree up through the thicker tree's
    crown above it and take that crown's column for its own (a suppressed tree measured up to
-   its neighbour's top); it grows from its own points only. The inventory segments twice where
-   the plot has a height-diameter curve: the second time each axis stops a little above the
-   curve's height for its DBH (``axis_curve_ratio``), not in a taller neighbour's crown.
+   its neighbour's top); it grows from its own points only.
 3. One multi-source shortest-path search (Dijkstra) from all seeds at once gives every reachable
    voxel the stem it reaches at least cost: growth goes up each stem along connected geometry,
    and where two crowns touch, each part goes to the tree it is nearer to *through the tree*,
@@ -74,7 +72,6 @@ class SegmentationParams(Params):
     orphan_max_distance_m: float = param_field(1.0, "m", 0.0, 10.0, "Unreached voxels join the nearest reached voxel within this distance")
     orphan_min_height_m: float = param_field(2.0, "m", 0.0, 50.0, "...if they stand at least this high above the ground")
     orphan_passes: int = param_field(20, "passes", 1, 1000, "...repeated this many times at most, so chains of detached parts (a sparse crown) are reached")
-    axis_curve_ratio: float = param_field(1.1, "1", 0.0, 10.0, "Where the plot has a height-diameter curve, the trees are segmented again with each continued axis held to this many times the curve's height at the stem's DBH (an axis climbing a taller neighbour's crown stops near its own tree's top); 0 = one segmentation")
 
 
 def _label_stem_bases(points: np.ndarray, which: np.ndarray, stems: Sequence[Stem], margin_m: float, s_max: float,
@@ -107,16 +104,11 @@ def segment_trees(
     stems: Sequence[Stem],
     params: SegmentationParams = SegmentationParams(),
     progress: Optional[Progress] = None,
-    axis_heights: Optional[Mapping[int, float]] = None,
 ) -> np.ndarray:
     """Tree id (the stem's ``id``) of each point; 0 = ground, understory or not reached.
 
     ``points`` (N, 3) metres, ``heights`` (N,) normalised heights, ``stems`` from
     :func:`~.stems.detect_stems` on the same points (their ``point_indices`` are the seeds).
-    ``axis_heights`` {stem id: metres above its ground}: the height to which each listed stem's
-    axis is continued at most (its expected height, from the plot's height-diameter curve); a
-    listed stem gets an axis even within a thicker stem's reach, the others as :func:`axis_stems`
-    decides, up to the last points around them.
     Returns an (N,) int32 array (held through the whole tree pipeline: 4 bytes a point). Raises
     :class:`ScanDataError` for bad input.
     """
@@ -147,11 +139,8 @@ def segment_trees(
     n_nodes = n_vox
     axis_rows, axis_cols, axis_weights = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
     if params.axis_max_gap_m > 0:
-        continued = axis_stems(stems, params.axis_dominance_dbh, params.dominance_ratio)
-        if axis_heights:
-            ids = {s.id for s in continued}
-            continued = [s for s in stems if s.id in axis_heights or s.id in ids]
-        axis_rows, axis_cols, axis_weights, n_nodes = _axis_links(centroids, continued, params, centroid_tree, axis_heights)
+        axis_rows, axis_cols, axis_weights, n_nodes = _axis_links(centroids, axis_stems(stems, params.axis_dominance_dbh, params.dominance_ratio), params,
+                                                                  centroid_tree)
     del centroid_tree
     # the links' ends and lengths straight into the arrays the sparse matrix is made of (4-byte
     # node numbers where they fit): no per-part copies and no (pairs, 3) gathered coordinates
@@ -242,16 +231,14 @@ def axis_stems(stems: Sequence[Stem], dominance_dbh: float, ratio: float = 1.25)
 
 
 def _axis_links(centroids: np.ndarray, stems: Sequence[Stem], params: SegmentationParams,
-                tree: Optional[cKDTree] = None, heights: Optional[Mapping[int, float]] = None,
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+                tree: Optional[cKDTree] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Graph links of the stems' continued axes: (rows, cols, weights, total node count).
 
     Axis nodes are numbered after the voxels. Each stem's nodes run every ``voxel_m`` along its
     axis from 1 m up to the last height with voxels around the axis (gaps up to
     ``axis_max_gap_m``); consecutive nodes are linked, and each node to the voxels within the
     stem radius plus ``link_distance_m``, at their distance. ``tree``: a k-d tree of the
-    centroids when one is made already; ``heights`` {stem id: metres above its ground}: no node
-    of a listed stem stands higher.
+    centroids when one is made already.
     """
     tree = tree if tree is not None else cKDTree(centroids)
     z_top = float(centroids[:, 2].max())
@@ -261,10 +248,7 @@ def _axis_links(centroids: np.ndarray, stems: Sequence[Stem], params: Segmentati
     wts: list[np.ndarray] = []
     next_node = len(centroids)
     for stem in stems:
-        top = z_top - stem.ground_z
-        if heights is not None and stem.id in heights:
-            top = min(top, float(heights[stem.id]))
-        s_max = top / max(float(stem.axis[2]), 0.1)
+        s_max = (z_top - stem.ground_z) / max(float(stem.axis[2]), 0.1)
         s = np.arange(1.0, max(s_max, 1.0) + step, step)
         nodes = stem.point_at(s)
         capture = tree.query_ball_point(nodes, stem.radius_m + params.axis_capture_m)
