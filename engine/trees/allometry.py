@@ -37,7 +37,8 @@ class HeightCurveParams(Params):
     below: float = _p(0.10, "1", 0.0, 1.0, "...a tree with another hint (its top on the crown's flank, amid or nearer to a neighbour's crown, or its stem within a thicker one's crown reach) up to this fraction below it")
     below_unseen: float = _p(0.05, "1", 0.0, 1.0, "...a tree whose top is missing in the data, cut flat or touching the crown over it up to this fraction below it (such a height can only be short: on the curve, little is missing)")
     above: float = _p(0.10, "1", 0.0, 1.0, "...and any of them up to this fraction above it (a top taken from a neighbour's crown stands above)")
-    max_departure: float = _p(0.20, "1", 0.0, 10.0, "A tree with no hint about its top is flagged when its height departs from the curve by more than this fraction either way (a top hidden, or a neighbour's crown taken)")
+    max_departure: float = _p(0.20, "1", 0.0, 10.0, "A tree with no hint about its top is flagged when its height departs from the curve by more than this fraction either way (a top hidden, or a neighbour's crown taken)...")
+    max_departure_scatter: float = _p(2.5, "1", 0.0, 100.0, "...or by more than this many times the curve's scatter, where that is wider (a loose curve, as of a stand of several species, flags only what is unusual for it)")
     max_scatter_unseen: float = _p(0.08, "1", 0.0, 2.0, "A top not seen is vouched for only by a curve whose scatter is at most this")
     max_scatter: float = _p(0.25, "1", 0.01, 2.0, "A curve whose robust scatter (of log heights) exceeds this is not used: the heights of the plot do not follow one relation")
     iterations: int = _p(10, "rounds", 1, 100, "Reweighting rounds of the robust fit")
@@ -73,6 +74,12 @@ class HeightCurve:
         if not (math.isfinite(ref) and math.isfinite(height_m) and ref > 0):
             return math.nan
         return height_m / ref - 1.0
+
+    def max_departure(self, params: "HeightCurveParams") -> float:
+        """The departure (fraction of the curve's height) beyond which a top with no hint about it
+        is flagged: ``params.max_departure``, or ``params.max_departure_scatter`` times this curve's
+        scatter where that is wider."""
+        return max(params.max_departure, params.max_departure_scatter * self.scatter)
 
     def describe(self) -> str:
         """One line for reports: the curve and what it rests on."""
@@ -123,5 +130,6 @@ def fit_height_curve(dbh_m: np.ndarray, height_m: np.ndarray, params: HeightCurv
     if not (math.isfinite(a) and math.isfinite(b) and a > 0) or scale > params.max_scatter:
         return None
     return HeightCurve(a=float(a), b=float(b), n_trees=int(len(d)), n_inliers=int(np.count_nonzero(w > 0)), scatter=float(scale),
-                       widest_below=max(params.below_under_crown, params.below, params.below_unseen, params.max_departure),
-                       above=max(params.above, params.max_departure))
+                       widest_below=max(params.below_under_crown, params.below, params.below_unseen, params.max_departure,
+                                        params.max_departure_scatter * scale),
+                       above=max(params.above, params.max_departure, params.max_departure_scatter * scale))

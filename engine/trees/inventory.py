@@ -580,7 +580,7 @@ def tree_record(
     flank, a neighbour's crown over or around it): a height that departs from the curve by less
     than :class:`.allometry.HeightCurveParams` allows keeps a medium trust, one that departs
     more (or without a curve) is low; a height without such hints is low when it departs from the
-    curve by more than ``max_departure``. Local frame, metres."""
+    curve by more than :meth:`.allometry.HeightCurve.max_departure`. Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
     quality: dict[str, str] = {}
@@ -676,9 +676,10 @@ def tree_record(
     hints_consistent = False
     if not hints and top_evidence and height_curve is not None and math.isfinite(crown.height_m):
         departure = height_curve.departure(dbh_value, crown.height_m)
-        if math.isfinite(departure) and abs(departure) > params.height_curve.max_departure:
+        allowed = height_curve.max_departure(params.height_curve)
+        if math.isfinite(departure) and abs(departure) > allowed:
             flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve (beyond "
-                         f"{100 * params.height_curve.max_departure:.0f} % either way): top hidden, or a neighbour's (height unsure)")
+                         f"{100 * allowed:.0f} % either way): top hidden, or a neighbour's (height unsure)")
             h_trust = _trust(h_trust, "low")
             h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve"
     if hints:
