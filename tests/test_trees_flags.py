@@ -152,18 +152,26 @@ def _matched_trees(plot, inv) -> list:
     return pairs
 
 
-def _four_scan_plot():
-    """The mixed plot of the trees benchmark: 30 m square, four full-dome TLS scans 10 m apart
-    (elevation up to the zenith), merged; suppressed trees stand 0.5 m below their neighbours'
-    crowns (crowns that do not grow into each other)."""
+def _four_scan_plot(seed: int = 3, size_m: float = 30.0, elevation_max_deg: float = 90.0, **scene_overrides):
+    """A mixed plot of the trees benchmark: four TLS scans 10 m apart (elevation up to
+    ``elevation_max_deg``), merged, measured without cylinder models. Default: the 30 m square
+    with full-dome scans; ``suppressed_clearance_m=0.5`` stands suppressed trees 0.5 m below their
+    neighbours' crowns (crowns that do not grow into each other). Returns (plot, inventory)."""
     from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.trees.inventory import TreeParams
 
-    plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=3,
-                         angular_step_deg=0.35, size_m=30.0, scanner_options={"elevation_max_deg": 90.0},
-                         suppressed_clearance_m=0.5)
+    plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=seed,
+                         angular_step_deg=0.35, size_m=size_m, scanner_options={"elevation_max_deg": elevation_max_deg},
+                         **scene_overrides)
     points = np.vstack([s.world_points() for s in plot.scans])
     return plot, measure_trees(points, TreeParams(cylinder_models=False))
+
+
+def _trusted_heights(pairs) -> tuple[list, np.ndarray]:
+    """The (measured, true) pairs whose height is trusted (not low or none), and their (K, 2)
+    measured and true heights (m)."""
+    trusted = [(r, t) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))]
+    return trusted, np.array([(r.crown.height_m, t.height_m) for r, t in trusted])
 
 
 @pytest.mark.slow
@@ -174,14 +182,14 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     neighbour's crown would measure that neighbour's top); a stem within 7 DBH whose axis still
     climbs has its height checked against the plot's height-diameter curve. Hints about a top (on
     the crown's flank, clear under or touching a neighbour's crown, missing in the data) decide only
-    with that curve: the unflagged heights are 26 of 39, rRMSE 5.6 %, worst 16.0 %; 9 of them kept by the curve,
-    all within 16 %, and 3 suppressed conifers by their apex seen as a tip (20-37 % below the
+    with that curve: the unflagged heights are 26 of 39, rRMSE 5.6 %, worst 16.0 %; 9 of them
+    kept by the curve, all within 16 %, and 3 suppressed conifers by their apex seen as a tip (20-37 % below the
     curve, within 4 %); a top not seen (missing, or touching the crown over it) only within 5 % below
     the curve. A tree flagged for its height keeps its DBH's trust; a tree is flagged only when a
     value is weak."""
     from forestreg.engine.trees.crown import CrownParams, top_over_stem
 
-    plot, inv = _four_scan_plot()
+    plot, inv = _four_scan_plot(suppressed_clearance_m=0.5)
     pairs = _matched_trees(plot, inv)
     assert len(pairs) == 39
     dbh = np.array([(r.dbh_m, t.dbh_m) for r, t in pairs])
@@ -189,9 +197,8 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     assert math.sqrt(np.mean((dbh[:, 0] - dbh[:, 1]) ** 2)) / dbh[:, 1].mean() <= 0.017
     err_all = np.array([(r.crown.height_m - t.height_m) / t.height_m for r, t in pairs])
     assert np.count_nonzero(np.abs(err_all) <= 0.08) >= 27
-    trusted = [(r, t) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))]
-    err = np.array([(r.crown.height_m - t.height_m) / t.height_m for r, t in trusted])
-    h = np.array([(r.crown.height_m, t.height_m) for r, t in trusted])
+    trusted, h = _trusted_heights(pairs)
+    err = h[:, 0] / h[:, 1] - 1.0
     assert len(trusted) >= 24
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.08
     assert np.max(np.abs(err)) <= 0.20
@@ -227,17 +234,10 @@ def test_four_scan_plot_with_the_usual_field_of_view_flags_tops_not_seen():
     the view missed: a cone cut lower still tapers). The height-diameter curve rests only on
     trees whose tops stand clear, so tops cut by the view do not lower it; the tallest tree stands
     21 % below it, which flags its height even without the ring."""
-    from forestreg.engine.simulate import simulate_plot
-    from forestreg.engine.trees.inventory import TreeParams
-
-    plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=3,
-                         angular_step_deg=0.35, size_m=30.0, scanner_options={"elevation_max_deg": 60.0})
-    points = np.vstack([s.world_points() for s in plot.scans])
-    inv = measure_trees(points, TreeParams(cylinder_models=False))
+    plot, inv = _four_scan_plot(elevation_max_deg=60.0)
     pairs = _matched_trees(plot, inv)
     assert len(pairs) == 39
-    trusted = [(r, t) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))]
-    h = np.array([(r.crown.height_m, t.height_m) for r, t in trusted])
+    trusted, h = _trusted_heights(pairs)
     assert len(trusted) >= 15
     assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.09
@@ -259,17 +259,10 @@ def test_intermixed_crowns_no_confident_wrong_height():
     way (a thin conifer taking a broad neighbour's crown measures 27 % too tall with its top over its
     own stem), one with a hint beyond 10 % above it or 5-15 % below it. No unflagged height more
     than 20 % off: 26 of 38 unflagged, rRMSE 4.3 %, worst 11.4 %."""
-    from forestreg.engine.simulate import simulate_plot
-    from forestreg.engine.trees.inventory import TreeParams
-
-    plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=6,
-                         angular_step_deg=0.35, size_m=40.0, scanner_options={"elevation_max_deg": 90.0})
-    points = np.vstack([s.world_points() for s in plot.scans])
-    inv = measure_trees(points, TreeParams(cylinder_models=False))
+    plot, inv = _four_scan_plot(seed=6, size_m=40.0)
     pairs = _matched_trees(plot, inv)
     assert len(pairs) == 38
-    trusted = [(r, t) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))]
-    h = np.array([(r.crown.height_m, t.height_m) for r, t in trusted])
+    trusted, h = _trusted_heights(pairs)
     assert len(trusted) >= 24
     assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.06
