@@ -283,7 +283,9 @@ COLUMN_HELP: dict[str, str] = {
     # trees.csv
     "tree_id": "tree number within this inventory",
     "dbh_m": "diameter at breast height (1.3 m above the ground), metres; empty when not measured",
-    "height_m": "tree height above the ground, metres",
+    "height_m": "tree height above the ground, metres: the tree's highest point, or the plot's height-diameter curve where that point is not the tree's top (see `height_source`)",
+    "height_source": "where the height comes from: `points` (the tree's highest point) or `curve` (the plot's height-diameter curve at the DBH: the top was hidden or a neighbour's)",
+    "height_points_m": "the tree's highest point above the ground, metres, whether or not it was taken as the height",
     "crown_base_m": "height of the live crown's base above the ground, metres",
     "crown_width_ew_m": "crown width east-west, metres",
     "crown_width_ns_m": "crown width north-south, metres",

@@ -78,3 +78,36 @@ def test_a_loose_curve_flags_only_what_is_unusual_for_it():
     assert tight is not None and tight.scatter < 0.08
     assert tight.max_departure(params) == params.max_departure == 0.2
     assert tight.widest_below == 0.2 and tight.above == 0.2
+
+
+def test_the_curve_stands_in_only_where_it_is_tight_and_the_plot_shows_no_suppressed_trees():
+    """A curve from 30 trees with 4 % scatter stands in for a hidden top at a DBH within the fitted
+    range (widened by 10 %), once at least 5 trees with their apex seen as a tip follow it; not
+    when one of them stands more than 20 % below it (a suppressed tree: where those grow, a hidden
+    top may be one), not from a loose curve (12 %), not from fewer than 10 trees, not outside the
+    fitted diameters, and not when asked not to."""
+    rng = np.random.default_rng(3)
+    d = rng.uniform(0.15, 0.5, 30)
+    h = _naslund(1.5, 0.19, d) * np.exp(rng.normal(0.0, 0.04, 30))
+    params = HeightCurveParams()
+    curve = fit_height_curve(d, h)
+    assert curve is not None and curve.scatter < params.max_scatter_fill
+    assert abs(curve.dbh_min_m - d.min()) < 1e-9 and abs(curve.dbh_max_m - d.max()) < 1e-9
+    # not yet checked on trees whose own apex is seen: no stand-in
+    assert "tip" in curve.fill_refusal(params) and math.isnan(curve.fill_height_m(0.3, params))
+    tips_d = np.array([0.15, 0.2, 0.3, 0.4, 0.45])
+    follows = curve.with_tips(tips_d, np.array([curve.height_m(x) for x in tips_d]) * np.array([0.95, 1.02, 0.9, 1.05, 0.97]), params)
+    assert follows.n_tips == 5 and follows.n_tips_below == 0 and follows.fill_refusal(params) == ""
+    assert follows.fill_height_m(0.3, params) == curve.height_m(0.3)
+    assert "stands in for heights the points cannot give" in follows.describe()
+    assert math.isnan(follows.fill_height_m(1.15 * d.max(), params)) and math.isnan(follows.fill_height_m(0.85 * d.min(), params))
+    assert math.isfinite(follows.fill_height_m(1.05 * d.max(), params))
+    assert math.isnan(follows.fill_height_m(0.3, params.replace(fill=False)))
+    suppressed = curve.with_tips(tips_d, np.array([curve.height_m(x) for x in tips_d]) * np.array([0.95, 1.02, 0.7, 1.05, 0.97]), params)
+    assert suppressed.n_tips_below == 1 and "suppressed" in suppressed.fill_refusal(params)
+    assert math.isnan(suppressed.fill_height_m(0.3, params)) and "does not stand in" in suppressed.describe()
+    h_loose = _naslund(1.5, 0.19, d) * np.exp(rng.normal(0.0, 0.12, 30))
+    loose = fit_height_curve(d, h_loose).with_tips(tips_d, np.array([1.0, 1.0, 1.0, 1.0, 1.0]) * 20.0, params)
+    assert "scatter" in loose.fill_refusal(params) and math.isnan(loose.fill_height_m(0.3, params))
+    few = fit_height_curve(d[:8], h[:8]).with_tips(tips_d, np.array([curve.height_m(x) for x in tips_d]), params)
+    assert "fewer than 10" in few.fill_refusal(params) and math.isnan(few.fill_height_m(0.3, params))

@@ -38,7 +38,7 @@ def _match(inv, scene, max_d: float = 0.3):
 
 def _height_ok_or_flagged(r, t, tol: float = 0.05) -> bool:
     """Never a confident wrong height: within ``tol`` of the truth, or its quality says low."""
-    return abs(r.crown.height_m - t.height_m) <= tol * t.height_m or r.quality["height"].endswith("low")
+    return abs(r.height_m - t.height_m) <= tol * t.height_m or r.quality["height"].endswith("low")
 
 
 def test_scene_profiles_keep_dbh():

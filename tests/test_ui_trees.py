@@ -149,6 +149,32 @@ def test_correction_loop_edits_undo_and_save(qtbot, window, cloud, tmp_path):
     assert sorted(r.tree_id for r in replayed.trees) == sorted(t.tree_id for t in out.trees)
 
 
+def test_a_height_from_the_curve_is_marked_in_the_table(window, cloud, trees_dir, tmp_path):
+    """A height predicted from the plot's height-diameter curve (``height_source`` "curve") shows
+    as "(curve)" beside its value, the reason in its tip; the others show the bare value."""
+    import csv
+    import shutil
+
+    folder, inv = trees_dir
+    copy = tmp_path / "curve"
+    shutil.copytree(folder, copy)
+    with (copy / "trees.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    rows[0].update(height_source="curve", height_m="21.5",
+                   height_quality="from the plot's height-diameter curve at the DBH: the points' top (14.2 m) not taken; medium")
+    with (copy / "trees.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    assert window.open_trees(copy, cloud[1])
+    table = window.trees_view.table
+    first = table.row_of(int(rows[0]["tree_id"]))
+    assert table.text(first, "height_m") == "21.5 (curve)" and table.value(first, "height_m") == 21.5
+    assert "not taken" in table.item(first, table.column("height_m")).toolTip()
+    other = table.row_of(int(rows[1]["tree_id"]))
+    assert not table.text(other, "height_m").endswith("(curve)")
+
+
 def test_offscreen_screenshot_of_a_trees_folder(trees_dir, cloud, tmp_path):
     """``forestreg gui --offscreen --trees DIR --screenshot OUT.png`` with no display at all."""
     import os

@@ -50,7 +50,8 @@ BRANCH_COLOUR = "#c9a36b"
 #: figures added later) follow with their own names.
 KNOWN_COLUMNS: tuple[tuple[str, str, float, int, str], ...] = (
     ("dbh_m", "DBH (cm)", 100.0, 1, "Stem diameter at breast height (1.3 m above the ground), from circle fits"),
-    ("height_m", "Height (m)", 1.0, 1, "Tree height: its highest point above the ground model"),
+    ("height_m", "Height (m)", 1.0, 1, "Tree height above the ground model: its highest point, or the plot's height-diameter curve where that point is not the tree's top (see Height source)"),
+    ("height_points_m", "Highest point (m)", 1.0, 1, "The tree's highest point above the ground model, whether or not it was taken as the height"),
     ("crown_base_m", "Crown base (m)", 1.0, 1, "Height of the lowest live crown above the ground"),
     ("crown_width_ew_m", "Crown E-W (m)", 1.0, 1, "Crown width east-west"),
     ("crown_width_ns_m", "Crown N-S (m)", 1.0, 1, "Crown width north-south"),
@@ -140,6 +141,10 @@ class TreeTable(CellsByName, QTableWidget):
                     item = _cell(flag, flag, tip=flag)
                     if flag:
                         item.setForeground(QBrush(QColor(FLAG_COLOUR)))
+                elif name == "height_m" and t.height_source == "curve":
+                    # predicted from the plot's height-diameter curve: marked, the reason in the tip
+                    v = t.get(name)
+                    item = _cell(v, f"{v * scale:.{digits}f} (curve)", tip=t.quality("height"))
                 else:
                     v = t.get(name)
                     text = "\u2013" if not math.isfinite(v) else f"{v * scale:.{digits}f}"

@@ -51,8 +51,8 @@ PathLike = Union[str, os.PathLike[str]]
 
 #: Columns of ``trees.csv``, in order (one row per tree; positions in the file's unit, sizes in metres).
 TREE_COLUMNS = (
-    "tree_id", "x", "y", "z", "dbh_m", "height_m", "crown_base_m", "crown_width_ew_m", "crown_width_ns_m",
-    "crown_area_m2", "crown_volume_m3", "volume_m3", "stem_volume_m3", "branch_volume_m3", "qsm_dbh_m",
+    "tree_id", "x", "y", "z", "dbh_m", "height_m", "height_source", "height_points_m", "crown_base_m",
+    "crown_width_ew_m", "crown_width_ns_m", "crown_area_m2", "crown_volume_m3", "volume_m3", "stem_volume_m3", "branch_volume_m3", "qsm_dbh_m",
     "n_cylinders", "n_branches", "lean_deg", "dbh_arc_coverage", "dbh_rms_mm", "n_points", "wood_fraction",
     "stem_form_factor", "source", "dbh_quality", "height_quality", "crown_quality", "volume_quality", "flag",
 )
@@ -67,7 +67,7 @@ CYLINDER_COLUMNS: tuple[str, ...] = (
 CYLINDER_INT_COLUMNS = {"cylinder_id", "parent_id", "extension_id", "branch_id", "branch_order", "position_in_branch", "added"}
 
 #: Columns of trees.csv read as text (everything else is a number; empty cells are NaN).
-TEXT_COLUMNS = ("flag", "flags", "edited", "edit", "tree_id", "species", "source", "dbh_quality", "height_quality", "crown_quality", "volume_quality")
+TEXT_COLUMNS = ("flag", "flags", "edited", "edit", "tree_id", "species", "source", "height_source", "dbh_quality", "height_quality", "crown_quality", "volume_quality")
 
 
 def read_csv_rows(path: PathLike) -> tuple[list[str], list[dict[str, str]]]:
@@ -114,6 +114,17 @@ class TreeRow:
     @property
     def flagged(self) -> bool:
         return bool(self.flag.strip())
+
+    @property
+    def height_source(self) -> str:
+        """Where the height comes from: "points" (the tree's highest point) or "curve" (the
+        plot's height-diameter curve); "points" when the table does not say."""
+        return str(self.extra.get("height_source", "") or "points")
+
+    def quality(self, measure: str) -> str:
+        """The quality text of a measure ("dbh", "height", "crown", "volume"): "<how>; <trust>"
+        ("" when the table has none)."""
+        return str(self.extra.get(f"{measure}_quality", "") or "")
 
     @property
     def edited(self) -> str:
@@ -237,7 +248,9 @@ def trees_output_from_inventory(inventory: Any, notes: Optional[Mapping[int, str
     for rec in inventory.trees:
         row = rec.row(shift)
         values = {c: float(row[c]) for c in TREE_COLUMNS if c not in TEXT_COLUMNS and c in row}
-        extra = {"edited": notes[rec.tree_id]} if notes.get(rec.tree_id) else {}
+        extra = {c: str(row[c]) for c in TEXT_COLUMNS if c in row and c not in ("flag", "tree_id")}
+        if notes.get(rec.tree_id):
+            extra["edited"] = notes[rec.tree_id]
         trees.append(TreeRow(tree_id=int(rec.tree_id), x=values["x"], y=values["y"], z=values["z"], values=values,
                              flag=str(row.get("flag") or ""), extra=extra))
         c = rec.curve

@@ -143,7 +143,8 @@ def write_trees_report(
         curve_section = (
             "<figure>" + img_tag(curve_png, "heights against the height-diameter curve", "curve") +
             "<figcaption>Height against DBH: each tree coloured by its height's trust (black high: its top stands clear; "
-            "orange medium: a hint about its top, its height consistent with the curve or its apex a tip; red low: flagged). The line is the "
+            "orange medium: a hint about its top, its height consistent with the curve or its apex a tip; red low: flagged; blue squares: "
+            "heights predicted from the curve where the points' top was hidden or a neighbour's, a dot at that top). The line is the "
             f"plot's height-diameter curve, {esc(height_curve.describe())}; dashed, {100 * height_curve.widest_below:.0f} % below "
             f"and {100 * height_curve.above:.0f} % above it (the widest allowance, for a top standing clear over its stem; "
             "a top with a hint about it, under a neighbour's crown, on the crown's flank or not seen, is allowed less).</figcaption></figure>"
@@ -199,6 +200,8 @@ def _clean_row(row: Mapping[str, Any], k: int) -> dict[str, Any]:
         out["flag"] = "" if text.lower() in ("", "ok", "false", "0", "none") else text
     # trust of each measure: the part after the last "; " of its quality column (if given)
     out["trust"] = {m: str(row.get(f"{m}_quality") or "").rsplit("; ", 1)[-1] for m in QUALITY_MEASURES}
+    out["height_source"] = str(row.get("height_source") or "points")
+    out["height_points_m"] = _num(row.get("height_points_m"))
     return out
 
 
@@ -335,11 +338,22 @@ def _height_curve_png(rows: Sequence[Mapping[str, Any]], curve: Any) -> bytes:
         lo, hi = 1.0 - curve.widest_below, 1.0 + curve.above
         ax.plot(100 * grid, lo * line, color="k", lw=0.8, ls="--", label=f"-{100 * curve.widest_below:.0f} % / +{100 * curve.above:.0f} %")
         ax.plot(100 * grid, hi * line, color="k", lw=0.8, ls="--")
+    fill = np.array([str(r.get("height_source") or "") == "curve" for r in rows])
+    top = np.array([r["height_points_m"] for r in rows], dtype=np.float64)
     for level, colour, marker, label in (("high", "k", "o", "high"), ("medium", "#ff7f00", "o", "medium (a hint about the top; consistent)"),
                                          ("low", FLAG_COLOUR, "x", "low (flagged)")):
-        sel = ok & (trust == level)
+        sel = ok & (trust == level) & ~fill
         if sel.any():
             ax.plot(100 * d[sel], h[sel], ls="", marker=marker, color=colour, ms=6, mew=1.6, label=f"{label}: {int(sel.sum())}")
+    sel = ok & fill
+    if sel.any():
+        # the curve's height, and a thin line to the points' top it stands in for
+        for x, a, b in zip(100 * d[sel], h[sel], top[sel]):
+            if math.isfinite(b):
+                ax.plot([x, x], [a, b], color="#1f77b4", lw=0.7, alpha=0.7)
+        ax.plot(100 * d[sel], top[sel], ls="", marker=".", color="#1f77b4", ms=4)
+        ax.plot(100 * d[sel], h[sel], ls="", marker="s", mfc="none", color="#1f77b4", ms=6, mew=1.4,
+                label=f"from the curve: {int(sel.sum())} (dot: the points' top, not taken)")
     ax.set_xlabel("DBH (cm)")
     ax.set_ylabel("height (m)")
     ax.set_title("Heights and the plot's height-diameter curve", fontsize=11)

@@ -40,8 +40,9 @@ open_field       0         -          -         60, 0.3-1.2 m    0-3 deg  buildi
                                                                           trees
 ===============  ========  =========  ========  ===============  =======  ==========================
 
-Heights grow with DBH (``h = low + (high - low) * sqrt(dbh fraction)``, +-10 %); trees lean by
-``lean_max_deg * U^2`` in a random direction; stems keep at least ``r_i + r_j + 0.3 m`` apart.
+Heights grow with DBH (``h = low + (high - low) * sqrt(dbh fraction)``, +-10 %, then times
+``exp(N(0, height_scatter))``); trees lean by ``lean_max_deg * U^2`` in a random direction; stems
+keep at least ``r_i + r_j + 0.3 m`` apart.
 
 Every preset places 6-8 reflector targets (10 cm reflective cylinders) on poles 1.2-2.0 m high,
 spread over the central part of the plot (3 m to 30 % of the plot size from the centre).
@@ -394,6 +395,10 @@ class PresetConfig:
     #: DBH density ~ d^(-dbh_power) on dbh_m; 0 = uniform, 2 = reverse-J (many thin stems)
     dbh_power: float = 0.0
     height_m: tuple[float, float] = (15.0, 20.0)
+    #: each tree's height (and crown base) times exp(N(0, height_scatter)): a wider scatter about
+    #: the height-diameter relation than the presets' (about 3 %), as of a stand of several
+    #: species or ages (0 = the preset's relation alone)
+    height_scatter: float = 0.0
     #: fraction of conifers (cone crowns, stem to the top); the rest are broadleaves
     conifer_fraction: float = 1.0
     #: crown base as a fraction of the tree height
@@ -799,6 +804,9 @@ def _make_trees(cfg: PresetConfig, extent: tuple[float, ...], terrain: Terrain, 
     top_frac = np.where(conifer, 0.05, rng.uniform(0.25, 0.4, size=n))
     stem_frac = np.where(conifer, 1.0, rng.uniform(0.7, 0.85, size=n))
     lad = cfg.leaf_area_density * rng.uniform(0.8, 1.2, size=n)
+    if cfg.height_scatter > 0:  # drawn last: the other draws stay those of the preset
+        factor = np.exp(rng.normal(0.0, cfg.height_scatter, size=n))
+        height, cb = height * factor, cb * factor
     z = terrain.z(pos[:, 0], pos[:, 1]) if n else np.zeros(0)
     trees = []
     for i in range(n):

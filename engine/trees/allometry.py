@@ -8,6 +8,12 @@ in a dense stand most suppressed trees show them and are measured right. The tre
 share a height-diameter relation, so a soft hint is only decisive when the height also departs
 from it. This module fits that relation robustly and says how far a tree's height departs.
 
+Where the points cannot give a tree's height (its top hidden, or a neighbour's), the curve can:
+forest inventories predict the heights of trees not measured from the plot's height-diameter
+curve. :meth:`HeightCurve.fill_height_m` gives that prediction only where the curve is tight,
+rests on enough trees and is followed by the trees whose own apex is seen (no suppressed trees
+among them), and only within the diameters it was fitted over.
+
 The curve is Näslund's (1936), the usual height-diameter model of forest inventories:
 ``h = 1.3 + d^2 / (a + b d)^2`` with ``d`` the DBH in centimetres and ``h`` in metres. It is
 started from its linear form ``d / sqrt(h - 1.3) = a + b d`` and fitted on the log heights by
@@ -18,7 +24,7 @@ truly unusual) do not pull it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional
 
 import numpy as np
@@ -42,6 +48,11 @@ class HeightCurveParams(Params):
     max_scatter_unseen: float = _p(0.08, "1", 0.0, 2.0, "A top not seen is vouched for only by a curve whose scatter is at most this")
     max_scatter: float = _p(0.25, "1", 0.01, 2.0, "A curve whose robust scatter (of log heights) exceeds this is not used: the heights of the plot do not follow one relation")
     iterations: int = _p(10, "rounds", 1, 100, "Reweighting rounds of the robust fit")
+    fill: bool = _p(True, "", None, None, "A height the points cannot give (flagged for its top: hidden, or a neighbour's) is predicted from the curve instead, as inventories do for trees not measured, and reported as such (height_source 'curve'; the points' top kept in height_points_m)")
+    max_scatter_fill: float = _p(0.06, "1", 0.0, 2.0, "...only from a curve whose scatter is at most this (the prediction is as good as the curve's scatter)")
+    min_inliers_fill: int = _p(10, "trees", 3, 100000, "...resting on at least this many trees")
+    fill_dbh_margin: float = _p(0.1, "1", 0.0, 10.0, "...for a DBH at most this fraction outside the range of the trees it was fitted to")
+    min_tips_fill: int = _p(5, "trees", 0, 100000, "...and in a plot where at least this many trees show their own apex as a tip over the stem, none of them further below the curve than a clear top may stand (such a tree is suppressed, and where suppressed trees grow a hidden top may be one: the curve would stand it too tall)")
 
 
 @dataclass(frozen=True)
@@ -59,6 +70,15 @@ class HeightCurve:
     scatter: float
     widest_below: float = 0.2
     above: float = 0.2
+    #: the DBH range (m) of the trees that kept a weight in the fit
+    dbh_min_m: float = math.nan
+    dbh_max_m: float = math.nan
+    #: trees whose own apex is seen as a tip over the stem, and how many of them stand further
+    #: below the curve than a clear top may (suppressed trees; see :meth:`fill_refusal`)
+    n_tips: int = 0
+    n_tips_below: int = 0
+    #: whether it stands in for heights the points cannot give, and if not why (set by :meth:`with_tips`)
+    fill_note: str = ""
 
     def height_m(self, dbh_m: float) -> float:
         """The curve's height (m) at a DBH (m); NaN for a DBH that is not positive and finite."""
@@ -81,10 +101,52 @@ class HeightCurve:
         scatter where that is wider."""
         return max(params.max_departure, params.max_departure_scatter * self.scatter)
 
+    def fill_refusal(self, params: "HeightCurveParams") -> str:
+        """Why this curve may not stand in for heights the points cannot give ("" when it may): it
+        must be tight (scatter at most ``params.max_scatter_fill``), rest on at least
+        ``params.min_inliers_fill`` trees, and the plot must show no suppressed trees: of at least
+        ``params.min_tips_fill`` trees whose own apex is seen as a tip, none more than
+        :meth:`max_departure` below the curve. Trees hidden under others' crowns are the ones whose
+        tops go unseen; the curve speaks for them only where the trees that can be checked follow it."""
+        if not params.fill:
+            return "not asked for"
+        if self.scatter > params.max_scatter_fill:
+            return f"scatter {100 * self.scatter:.0f} % (beyond {100 * params.max_scatter_fill:.0f} %)"
+        if self.n_inliers < params.min_inliers_fill:
+            return f"{self.n_inliers} trees (fewer than {params.min_inliers_fill})"
+        if self.n_tips < params.min_tips_fill:
+            return f"{self.n_tips} tree{'' if self.n_tips == 1 else 's'} with its apex seen as a tip to check it on (fewer than {params.min_tips_fill})"
+        if self.n_tips_below:
+            return (f"{self.n_tips_below} of {self.n_tips} trees with their apex seen as a tip stand more than "
+                    f"{100 * self.max_departure(params):.0f} % below it: suppressed trees grow here")
+        return ""
+
+    def fill_height_m(self, dbh_m: float, params: "HeightCurveParams") -> float:
+        """The curve's height (m) at a DBH (m) as a stand-in for a height the points cannot give:
+        NaN when :meth:`fill_refusal` gives a reason, or for a DBH outside the range of the
+        trees the curve was fitted to, widened by ``params.fill_dbh_margin`` either way."""
+        if self.fill_refusal(params):
+            return math.nan
+        lo, hi = self.dbh_min_m * (1.0 - params.fill_dbh_margin), self.dbh_max_m * (1.0 + params.fill_dbh_margin)
+        if not (math.isfinite(dbh_m) and lo <= dbh_m <= hi):
+            return math.nan
+        return self.height_m(dbh_m)
+
+    def with_tips(self, dbh_m: np.ndarray, height_m: np.ndarray, params: "HeightCurveParams") -> "HeightCurve":
+        """This curve with the trees whose own apex is seen as a tip (their DBH and height, m)
+        counted, and those more than :meth:`max_departure` below it (see :meth:`fill_refusal`)."""
+        dep = np.array([self.departure(float(d), float(h)) for d, h in zip(dbh_m, height_m)], dtype=np.float64)
+        dep = dep[np.isfinite(dep)]
+        out = replace(self, n_tips=int(len(dep)), n_tips_below=int(np.count_nonzero(dep < -self.max_departure(params))))
+        refusal = out.fill_refusal(params)
+        note = ("stands in for heights the points cannot give" if not refusal
+                else f"does not stand in for heights the points cannot give: {refusal}")
+        return replace(out, fill_note=note)
+
     def describe(self) -> str:
         """One line for reports: the curve and what it rests on."""
         return (f"Näslund h = 1.3 + d^2/({self.a:.3f} + {self.b:.4f} d)^2 (d in cm) from {self.n_trees} trees "
-                f"({self.n_inliers} kept), scatter {100 * self.scatter:.0f} %")
+                f"({self.n_inliers} kept), scatter {100 * self.scatter:.0f} %" + (f"; {self.fill_note}" if self.fill_note else ""))
 
 
 def fit_height_curve(dbh_m: np.ndarray, height_m: np.ndarray, params: HeightCurveParams = HeightCurveParams()) -> Optional[HeightCurve]:
@@ -129,7 +191,9 @@ def fit_height_curve(dbh_m: np.ndarray, height_m: np.ndarray, params: HeightCurv
     # derivative of d^2/(a+bd)^2 is 2ad/(a+bd)^3)
     if not (math.isfinite(a) and math.isfinite(b) and a > 0) or scale > params.max_scatter:
         return None
+    kept = d[w > 0]
     return HeightCurve(a=float(a), b=float(b), n_trees=int(len(d)), n_inliers=int(np.count_nonzero(w > 0)), scatter=float(scale),
+                       dbh_min_m=float(kept.min()) / 100.0, dbh_max_m=float(kept.max()) / 100.0,
                        widest_below=max(params.below_under_crown, params.below, params.below_unseen, params.max_departure,
                                         params.max_departure_scatter * scale),
                        above=max(params.above, params.max_departure, params.max_departure_scatter * scale))

@@ -119,6 +119,20 @@ class TreeRecord:
     source: str = "stem"
     #: per measure: "<how>; <trust>" (trust: high, medium, low, none)
     quality: dict[str, str] = field(default_factory=dict)
+    #: the height predicted by the plot's height-diameter curve where the points' top was not the
+    #: tree's (NaN: the height is the points' own, ``crown.height_m``)
+    height_from_curve_m: float = math.nan
+
+    @property
+    def height_m(self) -> float:
+        """The height reported (m): the curve's prediction where the points' top was not taken,
+        else the highest tree point above the ground (``crown.height_m``)."""
+        return self.height_from_curve_m if math.isfinite(self.height_from_curve_m) else self.crown.height_m
+
+    @property
+    def height_source(self) -> str:
+        """"points" (the tree's highest point) or "curve" (the plot's height-diameter curve)."""
+        return "curve" if math.isfinite(self.height_from_curve_m) else "points"
 
     @property
     def flag(self) -> str:
@@ -135,7 +149,9 @@ class TreeRecord:
             "y": self.stem.y + float(origin_shift[1]),
             "z": self.stem.ground_z + float(origin_shift[2]),
             "dbh_m": self.dbh_m,
-            "height_m": self.crown.height_m,
+            "height_m": self.height_m,
+            "height_source": self.height_source,
+            "height_points_m": self.crown.height_m,
             "crown_base_m": self.crown.crown_base_m,
             "crown_width_ew_m": self.crown.crown_width_ew_m,
             "crown_width_ns_m": self.crown.crown_width_ns_m,
@@ -212,6 +228,7 @@ class TreeInventory(TreeTablesFile, Outcome):
         out = {"trees": len(self.trees), "method": self.method, "flagged": sum(1 for t in self.trees if t.flags)}
         if self.height_curve is not None:
             out["height_curve"] = self.height_curve.describe()
+            out["heights_from_curve"] = sum(1 for t in self.trees if t.height_source == "curve")
         return out
 
     def summary(self) -> str:
@@ -220,7 +237,7 @@ class TreeInventory(TreeTablesFile, Outcome):
             return f"failed: {self.reason}"
         n = len(self.trees)
         dbh = sum(1 for t in self.trees if math.isfinite(t.dbh_m))
-        h = sum(1 for t in self.trees if math.isfinite(t.crown.height_m))
+        h = sum(1 for t in self.trees if math.isfinite(t.height_m))
         vol = sum(1 for t in self.trees if math.isfinite(t.volume_m3))
         flagged = sum(1 for t in self.trees if t.flags)
         how = {"fine": "from stems", "noisy": "from stems (noisy/sparse profile)", "canopy": "from the canopy (no stems)",
@@ -229,7 +246,9 @@ class TreeInventory(TreeTablesFile, Outcome):
         if self.method != "canopy" and canopy:
             how += f" and {canopy} from the canopy"
         volume = f"{vol} with volume" if self.volume_asked else "volume not asked for (no cylinder models)"
-        return f"{n} tree{'' if n == 1 else 's'} found {how}: {dbh} with DBH, {h} with height, {volume}; {flagged} flagged"
+        by_curve = sum(1 for t in self.trees if t.height_source == "curve")
+        height = f"{h} with height" + (f" ({by_curve} from the height-diameter curve)" if by_curve else "")
+        return f"{n} tree{'' if n == 1 else 's'} found {how}: {dbh} with DBH, {height}, {volume}; {flagged} flagged"
 
     def rows(self) -> list[dict[str, Any]]:
         return [t.row(self.origin_shift) for t in self.trees]
@@ -460,7 +479,9 @@ def _plot_height_curve(stems: Sequence[Stem], dbh: dict[int, DbhMeasurement], cu
                        stem_params: StemParams, params: TreeParams) -> Optional[HeightCurve]:
     """The plot's height-diameter curve (:func:`.allometry.fit_height_curve`) from the trees whose
     tops stand clear: over the stem, not cut flat, not missing, with no hint of a neighbour's
-    crown; None with fewer than :attr:`.allometry.HeightCurveParams.min_trees` of them."""
+    crown; None with fewer than :attr:`.allometry.HeightCurveParams.min_trees` of them. The trees
+    whose own apex is seen as a tip (:func:`.crown.apex_tip`) are counted on it
+    (:meth:`.allometry.HeightCurve.with_tips`): they say whether suppressed trees grow here."""
     d, h = [], []
     for s in stems:
         c = crowns.get(s.id)
@@ -468,10 +489,22 @@ def _plot_height_curve(stems: Sequence[Stem], dbh: dict[int, DbhMeasurement], cu
         if (c is None or s.id in shared or "top missing" in reasons or not top_over_stem(c, params.crown)
                 or top_cut_flat(c, params.crown)):
             continue
-        value = curve_dbh(curves[s.id], s, stem_params.breast_height_m)
-        d.append(value if math.isfinite(value) else dbh[s.id].dbh_m)
+        d.append(_curve_or_slices_dbh(s, dbh, curves, stem_params))
         h.append(c.height_m)
-    return fit_height_curve(np.array(d), np.array(h), params.height_curve)
+    curve = fit_height_curve(np.array(d), np.array(h), params.height_curve)
+    if curve is None:
+        return None
+    tips = [(_curve_or_slices_dbh(s, dbh, curves, stem_params), crowns[s.id].height_m) for s in stems
+            if s.id in crowns and apex_tip(crowns[s.id], params.crown)]
+    tips_arr = np.array(tips, dtype=np.float64).reshape(-1, 2)
+    return curve.with_tips(tips_arr[:, 0], tips_arr[:, 1], params.height_curve)
+
+
+def _curve_or_slices_dbh(s: Stem, dbh: dict[int, DbhMeasurement], curves: dict[int, StemCurve], stem_params: StemParams) -> float:
+    """A stem's DBH (m) for the height-diameter curve: the stem curve's at breast height, else the
+    circle fits'."""
+    value = curve_dbh(curves[s.id], s, stem_params.breast_height_m)
+    return value if math.isfinite(value) else dbh[s.id].dbh_m
 
 
 def _points_by_stem(labels: np.ndarray, stems: Sequence[Stem]) -> tuple[np.ndarray, np.ndarray]:
@@ -631,6 +664,8 @@ def tree_record(
     if math.isfinite(lowest) and lowest < stem.ground_z - 0.25:
         flags.append(f"stem points reach {stem.ground_z - lowest:.2f} m below the ground found: ground uncertain")
         h_trust = _trust(h_trust, "low")
+    ground_trust = h_trust  # what the ground allows; the checks of the top below lower it further
+    top_flags: list[str] = []
     ratio = crown.top_offset_ratio
     over_stem = top_over_stem(crown, params.crown)
     # hints that the top is not the tree's own or not seen: decisive only where the height also
@@ -666,11 +701,11 @@ def tree_record(
         if kind:
             hints.append((kind, shared_flag))
         else:
-            flags.append(shared_flag)
+            top_flags.append(shared_flag)
             h_trust = _trust(h_trust, "low")
     if math.isfinite(dbh_value) and dbh_value > 0 and crown.height_m / dbh_value > params.max_slenderness:
-        flags.append(f"height {crown.height_m:.1f} m on a {100 * dbh_value:.0f} cm stem (slenderness {crown.height_m / dbh_value:.0f}, "
-                     f"beyond {params.max_slenderness:.0f}): the top may be a neighbour's (height unsure)")
+        top_flags.append(f"height {crown.height_m:.1f} m on a {100 * dbh_value:.0f} cm stem (slenderness {crown.height_m / dbh_value:.0f}, "
+                         f"beyond {params.max_slenderness:.0f}): the top may be a neighbour's (height unsure)")
         h_trust = _trust(h_trust, "low")
         h_how += ", too tall for its stem"
     hints_consistent = False
@@ -678,8 +713,8 @@ def tree_record(
         departure = height_curve.departure(dbh_value, crown.height_m)
         allowed = height_curve.max_departure(params.height_curve)
         if math.isfinite(departure) and abs(departure) > allowed:
-            flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve (beyond "
-                         f"{100 * allowed:.0f} % either way): top hidden, or a neighbour's (height unsure)")
+            top_flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve (beyond "
+                             f"{100 * allowed:.0f} % either way): top hidden, or a neighbour's (height unsure)")
             h_trust = _trust(h_trust, "low")
             h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve"
     if hints:
@@ -699,17 +734,29 @@ def tree_record(
             h_trust = _trust(h_trust, "medium")
             h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (consistent)"
         else:
-            flags += [text for _, text in hints]
+            top_flags += [text for _, text in hints]
             h_trust = _trust(h_trust, "low")
             if math.isfinite(departure):
-                flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve "
-                             f"(allowed {-100 * below:.0f} % to +{100 * hc.above:.0f} %)")
+                top_flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve "
+                                 f"(allowed {-100 * below:.0f} % to +{100 * hc.above:.0f} %)")
                 h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve"
             else:
                 h_how += ", no height-diameter curve to check it"
-    quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
     if "stem cut by the plot edge" in reasons and math.isfinite(dbh_value) and not quality["dbh"].endswith(("low", "none")):
         quality["dbh"] = quality["dbh"].rsplit("; ", 1)[0] + ", stem cut by the plot edge; low"
+    height_fill = math.nan
+    if (h_trust == "low" and ground_trust != "low" and height_curve is not None and math.isfinite(crown.height_m)
+            and not quality["dbh"].endswith(("low", "none"))):
+        height_fill = height_curve.fill_height_m(dbh_value, params.height_curve)
+    if math.isfinite(height_fill):
+        # the points' top is not the tree's: the plot's curve predicts the height, as good as its scatter
+        why = "; ".join(dict.fromkeys(top_flags)) or "top unsure"
+        h_trust = _trust(ground_trust, "medium")
+        h_how = (f"from the plot's height-diameter curve at the DBH (scatter {100 * height_curve.scatter:.0f} %, "
+                 f"{height_curve.n_inliers} trees): the points' top ({crown.height_m:.1f} m) not taken: {why}")
+    else:
+        flags += top_flags
+    quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
     if math.isfinite(dbh_value):  # a DBH is reported: no "fit failed" flag, say what is unsure
         failed = [f for f in flags if f.startswith("DBH fit failed")]
         flags = [f for f in flags if not f.startswith("DBH fit failed")]
@@ -722,6 +769,10 @@ def tree_record(
         c_trust = "low"
     elif crown.ok and shared_flag:
         c_trust = "medium" if hints_consistent else "low"
+        if c_trust == "low" and math.isfinite(height_fill):
+            # the top's flag went with the height the curve replaced; the crown's doubt stays
+            flags.append(f"crown unsure: {shared_flag.split(':')[0]} (its points may hold part of a neighbour's crown, "
+                         f"or miss its own top)")
     quality["crown"] = f"crown points of the segmented tree; {c_trust}"
     # --- cylinder model, on the wood points, its stem made consistent with the stem curve
     cylinders = None
@@ -739,7 +790,8 @@ def tree_record(
             flags.append(f"cylinder model not fitted: too few wood points ({int(np.count_nonzero(w))})")
     if cylinders is not None:
         volume, ff, quality["volume"], vflag = form_factor_check(
-            cylinders.total_volume_m3, cylinders.stem_volume_m3, dbh_value, crown.height_m, params.form_factors)
+            cylinders.total_volume_m3, cylinders.stem_volume_m3, dbh_value,
+            height_fill if math.isfinite(height_fill) else crown.height_m, params.form_factors)
         if vflag:
             flags.append(vflag)
         n_top = int(cylinders.meta.get("stem_cylinders_added_to_top", 0))
@@ -756,7 +808,7 @@ def tree_record(
         tree_id=stem.id, stem=stem, dbh=d, curve=curve, crown=crown, cylinders=cylinders,
         n_points=int(len(idx)), wood_fraction=_wood_fraction(wood[idx], params.wood_threshold),
         flags=tuple(dict.fromkeys(flags)), dbh_m=dbh_value, volume_m3=volume, stem_form_factor=ff,
-        source="stem", quality=quality,
+        source="stem", quality=quality, height_from_curve_m=height_fill,
     )
 
 
