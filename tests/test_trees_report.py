@@ -147,3 +147,21 @@ def test_report_draws_heights_against_the_height_diameter_curve(tmp_path):
     # without a curve, no such figure
     write_trees_report(tmp_path / "none", rows, pts, ids, wood, cyls)
     assert not (tmp_path / "none" / "figures" / "height_curve.png").exists()
+
+
+def test_report_marks_heights_from_the_curve(tmp_path):
+    """A height from the plot's height-diameter curve is marked in the table (a superscript c,
+    explained under it) and drawn as a blue square with its points' top; the others are not."""
+    from forestreg.engine.trees.allometry import HeightCurve
+
+    rows, pts, ids, wood, cyls = _fake_plot()
+    rows = [{**r, "height_quality": "highest tree point; high", "height_source": "points", "height_points_m": r["height_m"]} for r in rows]
+    rows[1].update(height_source="curve", height_points_m=0.6 * rows[1]["height_m"],
+                   height_quality="from the plot's height-diameter curve at the DBH: the points' top not taken; medium")
+    curve = HeightCurve(a=1.2, b=0.19, n_trees=12, n_inliers=11, scatter=0.05)
+    html = write_trees_report(tmp_path, rows, pts, ids, wood, cyls, height_curve=curve).read_text()
+    assert html.count("<sup>c</sup>") == 2  # the one height and the note under the table
+    assert _share_of_colour(tmp_path / "figures" / "height_curve.png", "#1f77b4") > 0.0002
+    plain = write_trees_report(tmp_path / "plain", [{**r, "height_source": "points"} for r in rows], pts, ids, wood, cyls,
+                               height_curve=curve).read_text()
+    assert plain.count("<sup>c</sup>") == 1

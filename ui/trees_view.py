@@ -50,7 +50,7 @@ BRANCH_COLOUR = "#c9a36b"
 #: figures added later) follow with their own names.
 KNOWN_COLUMNS: tuple[tuple[str, str, float, int, str], ...] = (
     ("dbh_m", "DBH (cm)", 100.0, 1, "Stem diameter at breast height (1.3 m above the ground), from circle fits"),
-    ("height_m", "Height (m)", 1.0, 1, "Tree height above the ground model: its highest point, or the plot's height-diameter curve where that point is not the tree's top (see Height source)"),
+    ("height_m", "Height (m)", 1.0, 1, "Tree height above the ground model: its highest point, or the plot's height-diameter curve where that point is not the tree's top (marked \"(curve)\", the reason in its tip)"),
     ("height_points_m", "Highest point (m)", 1.0, 1, "The tree's highest point above the ground model, whether or not it was taken as the height"),
     ("crown_base_m", "Crown base (m)", 1.0, 1, "Height of the lowest live crown above the ground"),
     ("crown_width_ew_m", "Crown E-W (m)", 1.0, 1, "Crown width east-west"),

@@ -503,14 +503,18 @@ def _table_section(rows: Sequence[Mapping[str, Any]], drawn: set[str]) -> str:
     for r in sorted(rows, key=lambda r: _natural(r["tree_id"])):
         tid = str(r["tree_id"])
         name = f'<a href="#tree-{esc(_file_stem(tid))}">{esc(tid)}</a>' if tid in drawn else esc(tid)
-        cells = "".join(f'<td class="num">{fmt(r[k], d, s)}</td>' for k, _, s, d in TABLE_COLUMNS)
+        # a height from the plot's height-diameter curve is marked "c"
+        cells = "".join(f'<td class="num">{fmt(r[k], d, s)}'
+                        + ("<sup>c</sup>" if k == "height_m" and r.get("height_source") == "curve" else "") + "</td>"
+                        for k, _, s, d in TABLE_COLUMNS)
         flag = f'<span class="bad">{esc(r["flag"])}</span>' if r["flag"] else ""
         trust = r.get("trust") or {}
         trust_cell = " / ".join(esc(trust.get(m) or "-") for m in QUALITY_MEASURES)
         body.append(f'<tr class="{"flagged" if r["flag"] else ""}" id="row-{esc(_file_stem(tid))}"><td>{name}</td>{cells}<td>{trust_cell}</td><td>{flag}</td></tr>')
     return (
         "<h2>3. Trees</h2><table>" + head + "".join(body) + "</table>"
-        '<p class="note">DBH: diameter at breast height (1.3 m); H: height; CBH: crown base height; CA: crown projection area; '
+        '<p class="note">DBH: diameter at breast height (1.3 m); H: height (<sup>c</sup>: from the plot\'s height-diameter '
+        "curve, the points' top hidden or a neighbour's); CBH: crown base height; CA: crown projection area; "
         "CV: crown volume; V: wood volume of the cylinder model. Trust of each measure (high, medium, low, none; how it was "
         "obtained is in trees.csv's quality columns). Flagged trees (red) need a look: the flag says why.</p>"
     )
