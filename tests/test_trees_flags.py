@@ -182,11 +182,12 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     neighbour's crown would measure that neighbour's top); a stem within 7 DBH whose axis still
     climbs has its height checked against the plot's height-diameter curve. Hints about a top (on
     the crown's flank, clear under or touching a neighbour's crown, missing in the data) decide only
-    with that curve: the unflagged heights are 26 of 39, rRMSE 5.6 %, worst 16.0 %; 9 of them
-    kept by the curve, all within 16 %, and 3 suppressed conifers by their apex seen as a tip (20-37 % below the
-    curve, within 4 %); a top not seen (missing, or touching the crown over it) only within 5 % below
-    the curve. A tree flagged for its height keeps its DBH's trust; a tree is flagged only when a
-    value is weak."""
+    with that curve; but 2 of the 11 trees whose apex is seen as a tip stand 20-37 % below it:
+    suppressed trees grow here, and the curve vouches for no top under or touching a neighbour's
+    crown (7 such, -16 % to +6 %, flagged). The unflagged heights are 19 of 39, rRMSE 2.8 %, worst
+    6.4 %: 3 kept by the curve (on the crown's flank, within 4 %), 3 suppressed conifers by their
+    apex seen as a tip (within 4 %). A tree flagged for its height keeps its DBH's trust; a tree is
+    flagged only when a value is weak."""
     from forestreg.engine.trees.crown import CrownParams, top_over_stem
 
     plot, inv = _four_scan_plot(suppressed_clearance_m=0.5)
@@ -199,16 +200,17 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     assert np.count_nonzero(np.abs(err_all) <= 0.08) >= 27
     trusted, h = _trusted_heights(pairs)
     err = h[:, 0] / h[:, 1] - 1.0
-    assert len(trusted) >= 24
-    assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.08
-    assert np.max(np.abs(err)) <= 0.20
+    assert len(trusted) >= 18
+    assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.05
+    assert np.max(np.abs(err)) <= 0.10
     assert inv.height_curve is not None and inv.height_curve.n_trees >= 20
+    assert sum(1 for r in inv.trees if any(f.startswith("suppressed trees grow here") for f in r.flags)) >= 5
     # suppressed conifers with their apex seen as a tip stand 20-37 % below the curve: it does not
     # stand in for the tops not seen here (a hidden top may be a suppressed tree's)
     assert inv.height_curve.n_tips_below >= 1 and "suppressed" in inv.height_curve.fill_note
     assert all(r.height_source == "points" for r in inv.trees)
     by_curve = [e for (r, _), e in zip(trusted, err) if "height-diameter curve (consistent)" in r.quality["height"]]
-    assert len(by_curve) >= 9 and np.max(np.abs(by_curve)) <= 0.20
+    assert len(by_curve) >= 2 and np.max(np.abs(by_curve)) <= 0.10
     tips = [e for (r, _), e in zip(trusted, err) if "apex seen as a tip" in r.quality["height"]]
     assert len(tips) >= 3 and np.max(np.abs(tips)) <= 0.05
     unseen = [(r, t) for r, t in pairs if "top touching a neighbour's crown" in r.quality["height"] or "top missing" in r.quality["height"]]
@@ -234,15 +236,17 @@ def test_four_scan_plot_with_the_usual_field_of_view_flags_tops_not_seen():
     are beyond every scan's view. The tallest tree (28 m) is seen up to 19.2 m, its highest point
     over its stem (trusted as it stands, 31.6 % too low); its top metre is a ring at 0.91 of the
     crown radius from the stem axis (seen tops: at most 0.72), flagged "top not seen". No unflagged
-    height more than 20 % off: 15 of 39 unflagged, rRMSE 7.2 %, worst 11.6 % (conifers whose tips
-    the view missed: a cone cut lower still tapers). The height-diameter curve rests only on
+    height more than 20 % off: 12 of 39 unflagged, rRMSE 7.2 %, worst 11.2 % (conifers whose tips
+    the view missed: a cone cut lower still tapers). One such cut cone looks like an apex tip 46 %
+    below the curve, so here the curve vouches for no top under or touching a neighbour's crown
+    (3 more flagged, all within 12 %). The height-diameter curve rests only on
     trees whose tops stand clear, so tops cut by the view do not lower it; the tallest tree stands
     21 % below it, which flags its height even without the ring."""
     plot, inv = _four_scan_plot(elevation_max_deg=60.0)
     pairs = _matched_trees(plot, inv)
     assert len(pairs) == 39
     trusted, h = _trusted_heights(pairs)
-    assert len(trusted) >= 15
+    assert len(trusted) >= 11
     assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.09
     tallest_r, tallest = max(pairs, key=lambda p: p[1].height_m)
@@ -313,6 +317,29 @@ def test_a_loose_height_diameter_relation_gives_no_heights_from_the_curve():
     trusted, h = _trusted_heights(pairs)
     assert len(trusted) >= 12
     assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
+
+
+@pytest.mark.slow
+def test_a_40_m_plot_with_suppressed_trees_trusts_no_top_in_a_neighbours_crown():
+    """A 40 m mixed plot whose suppressed trees stand 0.5 m below their neighbours' crowns, scanned
+    four times full-dome. A thin suppressed tree's segment can reach up into the crowns over it to
+    a height the curve calls consistent (a 13 cm stem, truly 10.1 m, measured 16.0 m: +59 %, its
+    top touching a crown above). 2 of the 16 trees whose own apex is seen as a tip stand more than
+    20 % below the curve, so the curve vouches for no top under or touching a neighbour's crown
+    and gives no height: 19 of the 39 found unflagged, rRMSE 4.6 %, worst 12 %."""
+    plot, inv = _four_scan_plot(seed=3, size_m=40.0, suppressed_clearance_m=0.5)
+    inside = [t for t in plot.scene.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
+    xy = np.array([(r.stem.x, r.stem.y) for r in inv.trees])
+    nearest = [(int(np.argmin(np.hypot(*(xy - (t.x, t.y)).T))), t) for t in inside]
+    pairs = [(inv.trees[k], t) for k, t in nearest if math.hypot(inv.trees[k].stem.x - t.x, inv.trees[k].stem.y - t.y) < 0.5]
+    assert len(inside) == 40 and len(pairs) == 39  # a 14 cm stem 1.2 m from two 57 cm ones is not found
+    assert inv.height_curve is not None and inv.height_curve.n_tips_below >= 1
+    assert all(r.height_source == "points" for r in inv.trees)
+    trusted, h = _trusted_heights(pairs)
+    assert len(trusted) >= 16
+    assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
+    assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.08
+    assert any(r.crown.height_m > 1.3 * t.height_m and r.quality["height"].endswith("low") for r, t in pairs)
 
 
 def test_a_leaning_tree_keeps_its_own_top_beside_a_taller_neighbour():

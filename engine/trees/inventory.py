@@ -724,19 +724,31 @@ def tree_record(
         departure = height_curve.departure(dbh_value, crown.height_m) if height_curve is not None else math.nan
         if "unseen" in kinds and height_curve is not None and height_curve.scatter > hc.max_scatter_unseen:
             departure = math.nan  # too loose a curve to vouch for a top not seen
+        suppressed_here = ""
+        if kinds & {"under", "unseen"} and height_curve is not None and height_curve.n_tips_below:
+            # suppressed trees grow here (trees whose own apex is seen stand far below the curve): a
+            # top under or touching a neighbour's crown may be one's, its segment reaching up into
+            # that crown to a height the curve would call consistent; only a tip vouches for it
+            suppressed_here = (f"suppressed trees grow here ({height_curve.n_tips_below} of {height_curve.n_tips} trees with "
+                               f"their apex seen as a tip stand more than {100 * height_curve.max_departure(hc):.0f} % below the "
+                               f"plot's height-diameter curve): the curve does not vouch for a top under or touching a "
+                               f"neighbour's crown")
         if kinds == {"under"} and top_evidence and apex_tip(crown, params.crown):
             # a suppressed tree whose apex is seen as a tip: its own top, however far below the curve
             hints_consistent = True
             h_trust = _trust(h_trust, "medium")
             h_how += ", its apex seen as a tip over the stem"
-        elif math.isfinite(departure) and -below <= departure <= hc.above:
+        elif math.isfinite(departure) and -below <= departure <= hc.above and not suppressed_here:
             hints_consistent = True
             h_trust = _trust(h_trust, "medium")
             h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (consistent)"
         else:
             top_flags += [text for _, text in hints]
             h_trust = _trust(h_trust, "low")
-            if math.isfinite(departure):
+            if suppressed_here and math.isfinite(departure) and -below <= departure <= hc.above:
+                top_flags.append(suppressed_here)
+                h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (not vouched for: suppressed trees grow here)"
+            elif math.isfinite(departure):
                 top_flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve "
                                  f"(allowed {-100 * below:.0f} % to +{100 * hc.above:.0f} %)")
                 h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve"
