@@ -613,7 +613,11 @@ def tree_record(
     flank, a neighbour's crown over or around it): a height that departs from the curve by less
     than :class:`.allometry.HeightCurveParams` allows keeps a medium trust, one that departs
     more (or without a curve) is low; a height without such hints is low when it departs from the
-    curve by more than :meth:`.allometry.HeightCurve.max_departure`. Local frame, metres."""
+    curve by more than :meth:`.allometry.HeightCurve.max_departure`. In a plot where suppressed
+    trees grow (:attr:`.allometry.HeightCurve.n_tips_below`) the curve vouches for no top under or
+    touching a neighbour's crown. A height low for its top (not its ground) is replaced by the
+    curve's where it may stand in (:meth:`.allometry.HeightCurve.fill_height_m`): the record's
+    ``height_m`` reports it, ``crown.height_m`` keeps the points' top. Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
     quality: dict[str, str] = {}
