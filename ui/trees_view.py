@@ -746,7 +746,7 @@ class TreesView(QWidget):
             if math.isfinite(dbh):
                 title += f"   DBH {100 * dbh:.1f} cm"
             if math.isfinite(height):
-                title += f"   height {height:.1f} m"
+                title += f"   height {height:.1f} m" + (" (curve)" if tree.height_source == "curve" else "")
             if tree.flagged:
                 title += "   \u26a0 flagged"
             pl.add_text(title, position="upper_left", font_size=10, color=FLAG_COLOUR if tree.flagged else "#222222", name="title")
