@@ -15,6 +15,8 @@ Cases (small, so the whole runs in a few minutes on a shared machine):
   within :data:`RADIUS_M` of the centre with DBH >= 0.1 m: found (a stem within 0.5 m), false
   stems (detected within the radius, no true tree within 0.5 m), DBH rRMSE, height rRMSE of every
   matched tree and of forestreg's unflagged heights (Sylva flags none), summed volume.
+* ``sim plot, crowns intermixed``: the same kind of plot, 40 m square, crowns growing into each
+  other (no gap over a suppressed top): tops hidden or inside a neighbour's crown.
 * ``pine_plot.laz``: the real TLS plot, against its 16 stem rings counted by hand.
 * ``sim single tree``: one open-grown broadleaf, leaf-off, no ground (the simulator's meshed stem
   and branches are the volume truth): forestreg ``trees`` against ``sylva qsm``.
@@ -67,18 +69,28 @@ PINE_PLOT_RINGS = [
 ]
 
 
-def sim_plot(out: Path = OUT) -> tuple[Path, list[dict[str, Any]]]:
-    """The simulated 4-scan plot (LAZ) and its true trees; simulated once and cached."""
-    laz, truth = out / "sim_plot_dome.laz", out / "sim_plot_dome.json"
+#: The simulated plots: (case, file stem, seed, plot size m, suppressed trees' clearance m: 0 =
+#: crowns growing into each other).
+SIM_PLOTS = (
+    ("sim plot", "sim_plot_dome", 3, 30.0, 0.5),
+    ("sim plot, crowns intermixed", "sim_plot_intermixed", 6, 40.0, 0.0),
+)
+
+
+def sim_plot(out: Path = OUT, stem: str = "sim_plot_dome", seed: int = 3, size_m: float = 30.0,
+             clearance_m: float = 0.5) -> tuple[Path, list[dict[str, Any]]]:
+    """A simulated 4-scan plot (LAZ) and its true trees (see :data:`SIM_PLOTS`); simulated once
+    and cached."""
+    laz, truth = out / f"{stem}.laz", out / f"{stem}.json"
     if not (laz.exists() and truth.exists()):
         from scipy.spatial import cKDTree
 
         from forestreg.engine.io import write_points
         from forestreg.engine.simulate import simulate_plot
 
-        plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=3,
-                             angular_step_deg=0.35, size_m=30.0, scanner_options={"elevation_max_deg": 90.0},
-                             suppressed_clearance_m=0.5)
+        plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=seed,
+                             angular_step_deg=0.35, size_m=size_m, scanner_options={"elevation_max_deg": 90.0},
+                             suppressed_clearance_m=clearance_m)
         pts = np.vstack([s.world_points() for s in plot.scans])
         ids = np.concatenate([s.object_ids for s in plot.scans])
         trees = []
@@ -202,17 +214,18 @@ def _rings_found(rows: list[dict[str, str]], corner: np.ndarray) -> dict[str, An
 
 
 def _plots(sylva: Optional[str], work: Path) -> list[dict[str, Any]]:
-    """The simulated plot and the real ``pine_plot.laz``: forestreg ``trees`` beside Sylva."""
+    """The simulated plots and the real ``pine_plot.laz``: forestreg ``trees`` beside Sylva."""
     rows: list[dict[str, Any]] = []
-    laz, truth = sim_plot()
-    run_, fr = _forestreg(laz, work)
-    fig = _plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low)
-    fig["volume_m3"] = float(np.nansum([_num(r["volume_m3"]) for r in fr]))
-    rows.append({"case": "sim plot", "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status, **fig})
-    if sylva:
-        res, sy = _sylva_trees(sylva, laz, work)
-        rows.append({"case": "sim plot", "tool": "sylva ground + trees", **res,
-                     **_plot_figures(sy, truth, dbh_key="dbh", height_key="height")})
+    for case, stem, seed, size_m, clearance_m in SIM_PLOTS:
+        laz, truth = sim_plot(OUT, stem, seed, size_m, clearance_m)
+        run_, fr = _forestreg(laz, work)
+        fig = _plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low)
+        fig["volume_m3"] = float(np.nansum([_num(r["volume_m3"]) for r in fr]))
+        rows.append({"case": case, "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status, **fig})
+        if sylva:
+            res, sy = _sylva_trees(sylva, laz, work)
+            rows.append({"case": case, "tool": "sylva ground + trees", **res,
+                         **_plot_figures(sy, truth, dbh_key="dbh", height_key="height")})
 
     real = DATA / "pine_plot.laz"
     if real.exists():
