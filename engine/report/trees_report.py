@@ -338,7 +338,7 @@ def _height_curve_png(rows: Sequence[Mapping[str, Any]], curve: Any) -> bytes:
         lo, hi = 1.0 - curve.widest_below, 1.0 + curve.above
         ax.plot(100 * grid, lo * line, color="k", lw=0.8, ls="--", label=f"-{100 * curve.widest_below:.0f} % / +{100 * curve.above:.0f} %")
         ax.plot(100 * grid, hi * line, color="k", lw=0.8, ls="--")
-    fill = np.array([str(r.get("height_source") or "") == "curve" for r in rows])
+    fill = np.array([r["height_source"] == "curve" for r in rows])
     top = np.array([r["height_points_m"] for r in rows], dtype=np.float64)
     for level, colour, marker, label in (("high", "k", "o", "high"), ("medium", "#ff7f00", "o", "medium (a hint about the top; consistent)"),
                                          ("low", FLAG_COLOUR, "x", "low (flagged)")):
@@ -505,7 +505,7 @@ def _table_section(rows: Sequence[Mapping[str, Any]], drawn: set[str]) -> str:
         name = f'<a href="#tree-{esc(_file_stem(tid))}">{esc(tid)}</a>' if tid in drawn else esc(tid)
         # a height from the plot's height-diameter curve is marked "c"
         cells = "".join(f'<td class="num">{fmt(r[k], d, s)}'
-                        + ("<sup>c</sup>" if k == "height_m" and r.get("height_source") == "curve" else "") + "</td>"
+                        + ("<sup>c</sup>" if k == "height_m" and r["height_source"] == "curve" else "") + "</td>"
                         for k, _, s, d in TABLE_COLUMNS)
         flag = f'<span class="bad">{esc(r["flag"])}</span>' if r["flag"] else ""
         trust = r.get("trust") or {}

@@ -728,6 +728,7 @@ def tree_record(
         departure = height_curve.departure(dbh_value, crown.height_m) if height_curve is not None else math.nan
         if "unseen" in kinds and height_curve is not None and height_curve.scatter > hc.max_scatter_unseen:
             departure = math.nan  # too loose a curve to vouch for a top not seen
+        within = math.isfinite(departure) and -below <= departure <= hc.above
         suppressed_here = ""
         if kinds & {"under", "unseen"} and height_curve is not None and height_curve.n_tips_below:
             # suppressed trees grow here (trees whose own apex is seen stand far below the curve): a
@@ -742,14 +743,14 @@ def tree_record(
             hints_consistent = True
             h_trust = _trust(h_trust, "medium")
             h_how += ", its apex seen as a tip over the stem"
-        elif math.isfinite(departure) and -below <= departure <= hc.above and not suppressed_here:
+        elif within and not suppressed_here:
             hints_consistent = True
             h_trust = _trust(h_trust, "medium")
             h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (consistent)"
         else:
             top_flags += [text for _, text in hints]
             h_trust = _trust(h_trust, "low")
-            if suppressed_here and math.isfinite(departure) and -below <= departure <= hc.above:
+            if suppressed_here and within:
                 top_flags.append(suppressed_here)
                 h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (not vouched for: suppressed trees grow here)"
             elif math.isfinite(departure):
