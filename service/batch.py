@@ -145,19 +145,52 @@ def _scan_suffixes() -> tuple[str, ...]:
 def _read_manifest(path: Path) -> dict[str, dict]:
     from ..engine.core.errors import ParameterError
 
+    from ..engine.core.errors import InvalidArgumentError
+    from ..engine.core.names import safe_name, same_name_key
+
+    rows: list[tuple[int, dict]] = []  # (the row's number as a spreadsheet shows it: the header is row 1, its fields)
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.DictReader(fh))
+            reader = csv.DictReader(fh)
+            line = 1
+            for r in reader:
+                rows.append((line + 1, r))
+                line = reader.line_num
     except OSError as exc:
         raise ParameterError(f"cannot read the manifest {path}: {exc}") from None
-    if not rows or "plot" not in rows[0]:
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise ParameterError(f"{path}: not a readable CSV manifest ({exc})") from None
+    if not rows or "plot" not in rows[0][1]:
         raise ParameterError(f"{path}: a manifest needs a header with a 'plot' column and one row per plot")
+    # Each name becomes the folder OUT/<plot> (and OUT/<plot>.json files): one plain name, checked
+    # before any work, never dropped, never shared by two rows (one would silently replace the other).
     out: dict[str, dict] = {}
-    for r in rows:
-        name = (r.get("plot") or "").strip()
-        if name:
-            out[name] = {k.strip(): (v or "").strip() for k, v in r.items() if k}
+    seen: dict[str, tuple[str, list[int]]] = {}
+    for number, r in rows:
+        fields = {k.strip(): (v or "").strip() for k, v in r.items() if isinstance(k, str) and k.strip()}
+        if not any(fields.values()) and not any(r.get(None) or ()):
+            continue  # a row of separators only (a spreadsheet's trailing rows): no plot
+        name = fields.get("plot", "")
+        try:
+            safe_name(name, f"{path} row {number}: plot")
+        except InvalidArgumentError as exc:
+            raise ParameterError(str(exc)) from None
+        first, numbers = seen.setdefault(same_name_key(name), (name, []))
+        numbers.append(number)
+        out[name] = fields
+    for key, (first, numbers) in seen.items():
+        if len(numbers) > 1:
+            names = sorted({n for n in out if same_name_key(n) == key})
+            if len(names) == 1:
+                raise ParameterError(f"{path}: plot {first!r} is named in rows {_and(numbers)}: give each plot its own name")
+            raise ParameterError(f"{path}: plots {_and([repr(n) for n in names])} (rows {_and(numbers)}) differ only in case or "
+                                 "accents: they would be one folder on macOS and Windows; give each plot its own name")
     return out
+
+
+def _and(items) -> str:
+    items = [str(i) for i in items]
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
 
 
 def _resolve(value: str, plot_dir: Path, manifest_dir: Optional[Path]) -> str:

@@ -1,0 +1,160 @@
+"""Names and output folders of batches and service jobs, tried as a hostile user would: manifest
+plot names that climb out of ``--out``, empty and duplicated names, two runs writing one output
+folder (two CLI runs, two service jobs), service jobs without a working folder, the memory limit
+of a short plot, and the temporaries of an unfinished folder transaction."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from forestreg.engine.core.errors import InvalidArgumentError
+
+CLI = [sys.executable, "-m", "forestreg.cli"]
+
+
+@pytest.fixture(autouse=True)
+def _cli_parser():
+    """Batches and jobs are checked with the CLI's parser (handed over by the commands)."""
+    from forestreg.cli import build_parser
+    from forestreg.service.jobs import use_parser
+
+    use_parser(build_parser)
+
+
+def _run(*argv, cwd=None, timeout=120) -> subprocess.CompletedProcess:
+    return subprocess.run([*CLI, *map(str, argv)], capture_output=True, text=True, timeout=timeout, cwd=cwd)
+
+
+def _last_line(run: subprocess.CompletedProcess) -> str:
+    lines = run.stderr.strip().splitlines()
+    return lines[-1] if lines else ""
+
+
+def _trees_tables(folder: Path, seed: int = 3) -> tuple[Path, Path]:
+    """``before.csv`` and ``after.csv``: 40 trees of a 30 m plot, 36 of them again five years
+    later (10 mm thicker); ``forestreg change`` on them takes about a second."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 30, (40, 2))
+    dbh = rng.uniform(0.12, 0.5, 40)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, count, growth in (("before.csv", 40, 0.0), ("after.csv", 36, 0.01)):
+        path = folder / name
+        with path.open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["tree_id", "x", "y", "z", "dbh_m", "height_m"])
+            for k in range(count):
+                w.writerow([k + 1, f"{xy[k, 0] + 500:.3f}", f"{xy[k, 1] - 200:.3f}", "100.0", f"{dbh[k] + growth:.3f}",
+                            f"{8 + 40 * dbh[k]:.2f}"])
+        paths.append(path)
+    return paths[0], paths[1]
+
+
+def _listing(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+# ----------------------------------------------------------------------------- one checked rule for names
+
+
+@pytest.mark.parametrize("name", ["plot_01", "Plot A", "Fläche 3", "a.b", "x" * 200, "2021-05-03"])
+def test_safe_name_keeps_plain_names(name):
+    from forestreg.engine.core.names import safe_name
+
+    assert safe_name(name, "plot") == name
+
+
+@pytest.mark.parametrize("name, says", [
+    ("", "is empty"), ("   ", "is empty"), (".", "the folder itself"), ("..", "the parent folder"),
+    ("../escape", "'/' or '\\'"), ("a/b", "'/' or '\\'"), ("..\\escape", "'/' or '\\'"), ("/etc/passwd", "absolute path"),
+    ("C:\\data", "absolute path"), ("a:b", "':'"), ("a\x00b", "NUL"), ("a\nb", "control character"),
+    (".hidden", "starts with '.'"), (".forestreg-output", "starts with '.'"), ("x" * 201, "201 bytes long: at most 200"),
+    ("é" * 101, "202 bytes long"),
+])
+def test_safe_name_refuses_what_is_not_one_plain_name(name, says):
+    from forestreg.engine.core.names import safe_name
+
+    with pytest.raises(InvalidArgumentError) as info:
+        safe_name(name, "m.csv row 2: plot")
+    assert str(info.value).startswith("m.csv row 2: plot ") and says in str(info.value), str(info.value)
+    assert "\n" not in str(info.value)
+
+
+# ----------------------------------------------------------------------------- manifest names
+
+
+@pytest.mark.parametrize("name", ["../escape", ".", "..", "ABSOLUTE", "", "sub/dir", ".hidden"])
+def test_a_manifest_name_that_is_not_one_plain_name_is_refused_before_any_work(tmp_path, name):
+    """A manifest's plot name becomes ``OUT/<plot>``: a name that climbs out of ``--out`` (or is
+    the folder itself, a path, hidden or empty) is refused with exit 2 and one line naming the row
+    and the name, before the cluster starts; nothing is written anywhere."""
+    before, after = _trees_tables(tmp_path / "data")
+    (tmp_path / "plots").mkdir()
+    if name == "ABSOLUTE":
+        name = str(tmp_path / "abs")
+    manifest = tmp_path / "m.csv"
+    manifest.write_text(f"plot,before,after\nfine,{before},{after}\n{name},{before},{after}\n")
+    listing = _listing(tmp_path)
+    t0 = time.monotonic()
+    run = _run("batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", cwd=tmp_path)
+    assert run.returncode == 2, run.stdout + run.stderr
+    assert _last_line(run).startswith(f"forestreg: error: m.csv row 3: plot {name!r} "), run.stderr
+    assert time.monotonic() - t0 < 30
+    assert _listing(tmp_path) == listing  # no OUT, no escape/, no escape.json, nothing beside the absolute path
+    assert not (tmp_path / "escape").exists() and not (tmp_path / "abs").exists()
+
+
+def test_an_empty_name_is_refused_and_a_row_of_separators_only_is_no_plot(tmp_path):
+    from forestreg.engine.core.errors import ParameterError
+    from forestreg.service.batch import discover_plots
+
+    before, after = _trees_tables(tmp_path / "data")
+    (tmp_path / "plots").mkdir()
+    manifest = tmp_path / "m.csv"
+    manifest.write_text(f"plot,before,after\np1,{before},{after}\n,,\n")  # a spreadsheet's trailing row
+    assert [t.name for t in discover_plots(tmp_path / "plots", tmp_path / "o", "change", manifest)] == ["p1"]
+    manifest.write_text(f"plot,before,after\np1,{before},{after}\n ,{before},{after}\n")
+    with pytest.raises(ParameterError, match=r"m\.csv row 3: plot '' is empty: give a name"):
+        discover_plots(tmp_path / "plots", tmp_path / "o", "change", manifest)
+
+
+def test_duplicated_plot_names_are_refused_naming_the_name_and_its_rows(tmp_path):
+    """Two rows of one name were one folder: the earlier row was dropped ("1 plots: 1 ok")."""
+    before, after = _trees_tables(tmp_path / "data")
+    (tmp_path / "plots").mkdir()
+    (tmp_path / "m.csv").write_text(f"plot,before,after\na,{before},{after}\nb,{before},{after}\na,{after},{before}\n")
+    run = _run("batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", cwd=tmp_path)
+    assert run.returncode == 2, run.stdout + run.stderr
+    assert _last_line(run) == "forestreg: error: m.csv: plot 'a' is named in rows 2 and 4: give each plot its own name"
+    assert not (tmp_path / "o").exists()
+    # names that differ only in case are one folder on macOS and Windows
+    (tmp_path / "m.csv").write_text(f"plot,before,after\nPlot1,{before},{after}\nplot1,{before},{after}\n")
+    run = _run("batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", cwd=tmp_path)
+    assert run.returncode == 2 and "plots 'Plot1' and 'plot1' (rows 2 and 3) differ only in case" in _last_line(run), run.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_manifest_batch_writes_only_into_its_output_folder(tmp_path):
+    """The control: plain names run, each into ``OUT/<plot>``, and nothing else is written."""
+    before, after = _trees_tables(tmp_path / "data")
+    (tmp_path / "plots").mkdir()
+    (tmp_path / "m.csv").write_text(f"plot,before,after\nstand 1,{before},{after}\n")
+    listing = _listing(tmp_path)
+    run = _run("batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", "-q", cwd=tmp_path,
+               timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert [p for p in _listing(tmp_path) if not p.startswith("o")] == listing  # nothing beside OUT (no lock file left)
+    assert json.loads((tmp_path / "o" / "stand 1" / "batch.json").read_text())["status"] == "ok"
+    assert not [p for p in os.listdir(tmp_path / "o") if p.startswith(".forestreg-lock")]
