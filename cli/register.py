@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Optional, Sequence
 
+from ..engine.core.uncertainty import evidence_notes
 from .common import PARAMS_HELP, UNITS, Reporter, direction, file_section, floats, number, offsets, params_from_args, run_outcome, say, shown
 
 
@@ -76,6 +77,8 @@ def print_register(outcome, reporter: Reporter) -> int:
             f"ICP std {1000 * icp.std_m:.1f} mm, fitness {icp.fitness:.2f} -> {shown(out) / 'result.json'}",
             ns,
         )
+        for note in evidence_notes(result.uncertainty):
+            say(f"  uncertainty: {note}", ns)
         if outcome.figure is not None:
             print(f"figure: {shown(out) / 'registration.png'}")
         return 0

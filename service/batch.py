@@ -42,7 +42,6 @@ import io
 import json
 import logging
 import os
-import re
 import shutil
 import signal
 import subprocess
@@ -399,14 +398,10 @@ def _remove_leftovers(out: Path) -> None:
     """Remove the temporary folders an attempt of this plot left beside ``OUT/<plot>`` when its
     process was killed (a folder transaction never finished: the plot's folder itself is the
     earlier complete one or absent)."""
-    pattern = re.compile(r"\.forestreg-tmp-(old-)?" + re.escape(out.name) + r"\.[A-Za-z0-9_]+$")
-    try:
-        entries = list(out.parent.iterdir())
-    except OSError:
-        return
-    for entry in entries:
-        if pattern.match(entry.name) and entry.is_dir():
-            shutil.rmtree(entry, ignore_errors=True)
+    from ..engine.core.atomic import unfinished_outputs
+
+    for entry in unfinished_outputs(out.parent, out):
+        shutil.rmtree(entry, ignore_errors=True)
 
 
 def _remove_unfinished(out: Path) -> None:

@@ -302,7 +302,7 @@ def test_pair_figure_keeps_each_title_over_its_own_panel(sim_plot, tmp_path, fai
         assert 0 <= panel.left < panel.right <= width and 0 <= panel.top < panel.bottom <= height
     assert panels[0].right < panels[1].left and panels[1].right < panels[2].left
     one_line = panels[1].title_box[3] - panels[1].title_box[1]
-    assert ((panels[2].title_box[3] - panels[2].title_box[1]) > 1.5 * one_line) == failed  # the reason on a second line
+    assert (panels[2].title_box[3] - panels[2].title_box[1]) > 1.5 * one_line  # the reason, or the stated uncertainty, on a second line
     assert ((panels[0].title_box[3] - panels[0].title_box[1]) > 1.5 * one_line) == long_name
     pixels = np.asarray(canvas.image)
 

@@ -158,3 +158,38 @@ def test_a_manifest_batch_writes_only_into_its_output_folder(tmp_path):
     assert [p for p in _listing(tmp_path) if not p.startswith("o")] == listing  # nothing beside OUT (no lock file left)
     assert json.loads((tmp_path / "o" / "stand 1" / "batch.json").read_text())["status"] == "ok"
     assert not [p for p in os.listdir(tmp_path / "o") if p.startswith(".forestreg-lock")]
+
+
+# ----------------------------------------------------------------------------- the temporaries of a transaction
+
+
+def test_the_leftovers_of_one_plot_are_told_from_another_plots_running_transaction(tmp_path):
+    """A retried plot ``x`` removes the temporary folders its killed attempt left beside
+    ``OUT/x``, and never the running transaction of a plot named ``old-x`` (a pattern matched
+    ``.forestreg-tmp-old-x.*`` as both)."""
+    from forestreg.engine.core.atomic import output_folder
+    from forestreg.service.batch import _remove_leftovers
+
+    out = tmp_path / "out"
+    out.mkdir()
+    with output_folder(out / "old-x", "trees") as running:
+        (running / "trees.csv").write_text("tree_id\n")
+        with output_folder(out / "x", "trees") as killed:  # stands for the folder a killed attempt of x left
+            _remove_leftovers(out / "x")
+            assert running.is_dir(), "the running transaction of plot old-x was removed"
+            assert not killed.exists()
+            killed.mkdir()  # the transaction of x ends as usual
+    assert (out / "old-x" / "trees.csv").is_file()
+
+
+def test_the_temporaries_of_a_transaction_are_named_by_one_function(tmp_path):
+    from forestreg.engine.core.atomic import is_unfinished_output, output_folder, unfinished_outputs
+
+    out = tmp_path / "out"
+    out.mkdir()
+    with output_folder(out / "old-x", "trees") as running, output_folder(out / "x", "trees") as other:
+        assert unfinished_outputs(out, out / "x") == [other] and unfinished_outputs(out, out / "old-x") == [running]
+        assert unfinished_outputs(out) == sorted([running, other])
+        assert is_unfinished_output(other) and not is_unfinished_output(other, out / "old-x")
+        assert not is_unfinished_output(out / "old-x") and not is_unfinished_output(tmp_path / ".forestreg-tmp-products.abc")
+    assert not unfinished_outputs(out) and sorted(os.listdir(out)) == ["old-x", "x"]

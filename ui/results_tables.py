@@ -21,8 +21,8 @@ from .panes import CellsByName
 from .project_model import STATUS_COLOURS, link_status
 
 LINK_COLUMNS = ("Moving", "Reference", "Method", "Status", "Search radius (m)", "Trunk shadows ref / mov", "Matched",
-                "Fine fit std (cm)", "Overlap", "Shadow residual (cm)", "Pose uncertainty (cm / deg)", "Terrain agreement (cm)",
-                "Ambiguity", "Dropped", "Reason")
+                "Fine fit std (cm)", "Overlap", "Shadow residual (cm)", "Pose uncertainty (cm / deg)", "Weak motion / alternative",
+                "Terrain agreement (cm)", "Ambiguity", "Dropped", "Reason")
 SCAN_COLUMNS = ("Scan", "State", "Placed on", "x (m)", "y (m)", "z (m)", "Heading (\u00b0)", "Pose uncertainty (cm / deg)",
                 "Terrain agreement (cm)", "Ambiguity", "Loop residual (cm)", "Dropped", "Reason")
 #: Survey quality columns: hidden while no row has a value (a project registered before them).
@@ -38,6 +38,10 @@ LINK_TIPS = {
     "Pose uncertainty (cm / deg)": "How far to trust the pose, without ground truth (1 sigma): position error at the scanner "
                                    "in cm and rotation error in degrees. For a link: from its matched trunks after the fine "
                                    "registration; for a scan: propagated from the centre scan along the most certain links",
+    "Weak motion / alternative": "What the stated uncertainty counted beyond the fit: a motion the surfaces hardly pin "
+                                 "(walls or a row along it, a lone trunk) and a distinct solution that fitted nearly as "
+                                 "well (counted in the uncertainty, or excluded with the reason). The full text is in the "
+                                 "cell's tooltip",
     "Terrain agreement (cm)": "Median height difference of the two scans' ground models where both saw the ground, after "
                               "registration (for a scan: the worst of its links). Small = the scans agree on the terrain",
     "Ambiguity": "Trunks matched by the second-best coarse solution divided by those of the best (paper: I_A): near 0 = "
@@ -84,6 +88,24 @@ def _uncertainty_item(u: Optional[PoseSigma]) -> QTableWidgetItem:
     item = _item((t, r), f"{100 * t:.2f} / {r:.3f}", tip="held fixed" if u.fixed else u.method)
     item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
     return item
+
+
+def _notes_item(u: Optional[PoseSigma]) -> QTableWidgetItem:
+    """The uncertainty's weak motions and alternatives, shortened in the cell, whole in the tooltip."""
+    notes = u.notes if u is not None else ()
+    if not notes:
+        return _item("", "")
+    short = []
+    for note in notes:
+        if note.startswith("translation along"):
+            short.append("free " + note.split(" weakly")[0])
+        elif note.startswith("rotation about"):
+            short.append("free " + note.split(" weakly")[0])
+        elif note.startswith("a distinct solution"):
+            where = note[len("a distinct solution "):].split(" away")[0]
+            verdict = "counted" if "is counted" in note else ("same pose" if "same pose" in note else "excluded")
+            short.append(f"alternative {where} ({verdict})")
+    return _item("; ".join(notes), "; ".join(short), tip="\n".join(notes))
 
 
 def _figure_item(run: Any, name: str, digits: int, scale: float = 1.0) -> QTableWidgetItem:
@@ -162,6 +184,7 @@ class LinkResultsTable(_Table):
                 _figure_item(run, "icp_fitness", 3),
                 _figure_item(run, "vop_residual_m", 2, 100.0),
                 _uncertainty_item(run.uncertainty if run is not None else None),
+                _notes_item(run.uncertainty if run is not None else None),
                 _figure_item(run, "terrain_median_m", 1, 100.0),
                 _figure_item(run, "ambiguity", 2),
                 _item(drop_reason, "dropped" if drop_reason is not None else "", tip=drop_reason or ""),

@@ -56,6 +56,41 @@ def _final_mode(target: Path) -> int:
 
 #: Name of the marker file every output folder of forestreg holds (its kind: "register", ...).
 MARKER = ".forestreg-output"
+#: Start of the name of every temporary file or folder forestreg makes beside its outputs.
+TMP_PREFIX = ".forestreg-tmp-"
+#: The folder transaction's temporaries beside ``OUT``: the new folder being written
+#: (``.forestreg-tmp-new-OUT.XXXXXXXX``) and an earlier one moved aside while the new one is put in
+#: its place (``.forestreg-tmp-old-OUT.XXXXXXXX``); both are removed when the transaction ends.
+_NEW, _OLD = TMP_PREFIX + "new-", TMP_PREFIX + "old-"
+
+
+def is_unfinished_output(path: str | os.PathLike[str], target: str | os.PathLike[str] | None = None) -> bool:
+    """Whether ``path`` is a temporary folder a folder transaction (:func:`output_folder`) left
+    when its process was killed before the transaction ended: the unfinished new folder or an
+    earlier one moved aside. With ``target``, only those of that output folder (beside it, of its
+    name; ``.forestreg-tmp-new-x.*`` is never taken for one of ``new-x``)."""
+    p = Path(path)
+    name = p.name
+    for prefix in (_NEW, _OLD):
+        if name.startswith(prefix):
+            of, dot, random = name[len(prefix):].rpartition(".")
+            if not (dot and of and random) or not all(c.isascii() and (c.isalnum() or c == "_") for c in random):
+                return False
+            if target is None:
+                return True
+            t = Path(target)
+            return of == t.name and os.path.abspath(p.parent) == os.path.abspath(t.parent if str(t.parent) else ".")
+    return False
+
+
+def unfinished_outputs(folder: str | os.PathLike[str], target: str | os.PathLike[str] | None = None) -> list[Path]:
+    """The temporary folders of unfinished folder transactions in ``folder`` (of the output
+    folder ``target`` only, when given), in name order; none when ``folder`` cannot be listed."""
+    try:
+        entries = list(Path(folder).iterdir())
+    except OSError:
+        return []
+    return sorted(e for e in entries if is_unfinished_output(e, target) and e.is_dir())
 
 
 def check_output_folder(path: str | os.PathLike[str], kind: str, *, inputs: "tuple | list" = ()) -> Path:
@@ -80,7 +115,7 @@ def check_output_folder(path: str | os.PathLike[str], kind: str, *, inputs: "tup
     if target.exists() and not target.is_dir():
         raise OutputPathError(f"--out {target} is an existing file, not a folder: give a new folder")
     if target.is_dir():
-        entries = [e for e in target.iterdir() if not e.name.startswith(".forestreg-tmp")]
+        entries = [e for e in target.iterdir() if not e.name.startswith(TMP_PREFIX)]
         if entries and not (target / MARKER).is_file():
             raise OutputPathError(
                 f"--out {target} already holds other files (not a forestreg output folder): give a new or empty folder")
@@ -140,7 +175,7 @@ def output_folder(path: str | os.PathLike[str], kind: str) -> Iterator[Path]:
     target = Path(path).expanduser().resolve()
     target.parent.mkdir(parents=True, exist_ok=True)
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".forestreg-tmp-{target.name}.", dir=target.parent))
+        tmp = Path(tempfile.mkdtemp(prefix=f"{_NEW}{target.name}.", dir=target.parent))
     except OSError as exc:
         raise ScanWriteError(f"cannot write into {target.parent}: {exc.strerror or exc}") from exc
     try:
@@ -166,7 +201,7 @@ def _swap_in(tmp: Path, target: Path, attempts: int = 20) -> None:
     for attempt in range(attempts):
         old = None
         if target.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".forestreg-tmp-old-{target.name}.", dir=target.parent))
+            old = Path(tempfile.mkdtemp(prefix=f"{_OLD}{target.name}.", dir=target.parent))
             try:
                 os.replace(target, old / "x")
             except FileNotFoundError:  # another run moved it first

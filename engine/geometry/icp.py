@@ -48,6 +48,11 @@ class IcpResult:
     mean_distance_m: float
     correspondences: int
     iterations: int
+    #: the last iteration's weighted point-to-plane normal matrix (6x6: rotation about x, y, z in
+    #: radians, then translation x, y, z in metres; rotations about the reference frame's origin)
+    #: divided by the sum of the weights: how strongly the surfaces pin each motion (None: no
+    #: iteration ran). See :func:`~forestreg.engine.core.uncertainty.weak_directions`.
+    information: Optional[np.ndarray] = None
 
     def to_dict(self) -> dict:
         return {
@@ -246,6 +251,7 @@ def icp(
     matrix = np.asarray(initial, dtype=np.float64).copy()
     total_iterations = 0
     fitness, rmse = 0.0, float("nan")
+    information: Optional[np.ndarray] = None
     mov = np.zeros((0, 3))
     # Each cloud is thinned once, at the finest stage's voxel; wider stages thin that copy
     # (the raw clouds may hold millions of points, the thinned ones a fraction).
@@ -290,6 +296,7 @@ def icp(
             jac = np.hstack([np.cross(p, n), n])
             a = jac.T @ (jac * w[:, None])
             b = -jac.T @ (w * r)
+            information = a / max(float(w.sum()), 1e-12)
             try:
                 x = np.linalg.solve(a + 1e-9 * np.eye(6), b)
             except np.linalg.LinAlgError:
@@ -316,6 +323,7 @@ def icp(
         mean_distance_m=mean,
         correspondences=count,
         iterations=total_iterations,
+        information=information,
     )
 
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..core.atomic import atomic_path
 from ..core.errors import InvalidArgumentError
+from ..core.uncertainty import evidence_notes
 from .topview import Canvas, Panel
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -66,6 +67,17 @@ def pair_figure(result: "PairResult", path: str | os.PathLike[str], *, dpi: int 
         canvas.save(tmp)
 
 
+def _uncertainty_line(result: "PairResult") -> str:
+    """The stated 1-sigma uncertainty of an ok result and what it counted (weak motions, the
+    alternative), for the registered panel's title; "" for a failed one (its reason says it)."""
+    u = result.uncertainty or {}
+    if not result.ok or u.get("translation_m") is None:
+        return ""
+    line = f"; 1 sigma {100 * u['translation_m']:.1f} cm / {u['rotation_deg']:.3f} deg"
+    notes = evidence_notes(u)
+    return line + ("; " + "; ".join(notes) if notes else "")
+
+
 def draw_pair(result: "PairResult", *, dpi: int = 110) -> tuple[Canvas, list[Panel]]:
     """The pair figure drawn (:func:`pair_figure`), not written: its canvas and its three
     panels."""
@@ -79,7 +91,8 @@ def draw_pair(result: "PairResult", *, dpi: int = 110) -> tuple[Canvas, list[Pan
     titles = [
         f"reference {result.reference_name}: slice and VOPs {within}",
         f"moving {result.moving_name}: slice and VOPs {within}",
-        f"registered: {result.matched} matched VOPs (green) - " + ("ok" if result.ok else f"FAILED: {result.reason}"),
+        f"registered: {result.matched} matched VOPs (green) - " + ("ok" if result.ok else f"FAILED: {result.reason}")
+        + _uncertainty_line(result),
     ]
     canvas = Canvas(18.0, 6.2, dpi)
     boxes = _boxes(any(len(t) > TITLE_WIDTH for t in titles))  # room for titles on two lines

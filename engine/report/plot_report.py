@@ -41,6 +41,7 @@ from matplotlib.colors import to_rgb  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
 from ..core.atomic import write_text_atomic  # noqa: E402
+from ..core.uncertainty import evidence_notes  # noqa: E402
 from .style import REPORT_CSS  # noqa: E402
 from ..tls.params import RegistrationParams  # noqa: E402
 from ..tls.plot import ScanCache  # noqa: E402
@@ -503,6 +504,14 @@ def _uncertainty_section(project: Project, states: Mapping[str, Any]) -> str:
         "<th>Largest link residual (cm)</th><th>(deg)</th><th>Dropped links</th><th>Terrain disagreement (cm, median)</th>"
         "<th>Fewest matched trunks</th><th>Ambiguity (2nd / best)</th></tr>" + "".join(rows) + "</table>"
     )
+    counted = []
+    for link in project.links:
+        notes = evidence_notes(link.result.uncertainty) if link.result is not None else []
+        if notes:
+            counted.append(f"<li>{_e(link.moving)} {ARROW} {_e(link.reference)}: {'; '.join(_e(n) for n in notes)}</li>")
+    if counted:
+        out.append("<p><b>What the links' uncertainties counted</b> (motions the surfaces hardly pin, distinct "
+                   "solutions that fitted nearly as well):</p><ul>" + "".join(counted) + "</ul>")
     dropped = [d for d in (adj.get("dropped") or []) if isinstance(d, Mapping)]
     if dropped:
         out.append("<p><b>Links dropped as inconsistent:</b></p><ul>" + "".join(

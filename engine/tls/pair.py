@@ -16,7 +16,7 @@ import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
@@ -31,6 +31,7 @@ from ..geometry.nearest import PlaneNearest
 from ..geometry.voxel import voxel_grid
 from .scanner_position import locate_scanner
 from .uncertainty import pair_uncertainty
+from ..core.uncertainty import Alternative, WeakDirection, alternative_weight, icp_covariance_at, judge, weak_directions, with_alternatives
 from .prepare import PreparedScan, PreparedScans, SliceLayer, centre_scan, derived, extract_vops, icp_grid_voxel, prepare_centred, slice_layers
 from .vop import VisualOcclusionPoints
 from .params import RegistrationParams, ScannerPositionParams
@@ -359,7 +360,11 @@ def register(
     if chosen.problem and not ambiguous:
         return _failed(chosen.problem, chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
     if not ambiguous:
-        return _finish(reference, moving, ref_prep, mov_prep, chosen, base, details, params, timed, step)
+        result = _finish(reference, moving, ref_prep, mov_prep, chosen, base, details, params, timed, step)
+        if not result.ok:
+            return result
+        return _count_alternative(result, chosen, moving, params, lambda candidate: _finish(
+            reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed, Progress(None, cancel=cancel)))
     # Two coarse solutions are nearly as good: let evidence the VOP score did not use decide (the
     # ground overlap, ICP, the VOPs confirmed after ICP, free space). Only when exactly one of them
     # passes every check is it taken; otherwise the pair stays ambiguous and fails.
@@ -372,15 +377,19 @@ def register(
         other = outcomes[1] if passed[0] is outcomes[0] else outcomes[0]
         note = f"{chosen.problem}; resolved: the other solution fails its checks ({other.reason})"
         log.info("ambiguity resolved by ICP/free-space evidence")
-        return dataclasses.replace(passed[0], ambiguity_resolved=note)
+        excluded = _alternative(passed[0], other, moving, params, f"excluded: it fails its checks ({other.reason})")
+        return _settle(dataclasses.replace(passed[0], ambiguity_resolved=note), [excluded], params)
     if len(passed) == 2:
         rot, trans = rigid_errors(passed[0].matrix, passed[1].matrix)
         if rot < 0.2 and trans < 0.05:  # ICP took both to the same place: not two solutions
-            return dataclasses.replace(passed[0], ambiguity_resolved=f"{chosen.problem}; resolved: ICP takes both solutions to the same pose")
+            same = _alternative(passed[0], passed[1], moving, params, "the same pose after ICP")
+            return _settle(dataclasses.replace(passed[0], ambiguity_resolved=f"{chosen.problem}; resolved: ICP takes both solutions to the same pose"), [same], params)
         if prior is not None:
             near = [r for r in passed if _within_prior(r.matrix, prior, moving, prior_tolerance)]
             if len(near) == 1:
-                return dataclasses.replace(near[0], ambiguity_resolved=f"{chosen.problem}; resolved: only this solution agrees with the prior pose")
+                other = passed[1] if near[0] is passed[0] else passed[0]
+                excluded = _alternative(near[0], other, moving, params, "excluded: it disagrees with the prior pose")
+                return _settle(dataclasses.replace(near[0], ambiguity_resolved=f"{chosen.problem}; resolved: only this solution agrees with the prior pose"), [excluded], params)
     why = "both pass every check" if len(passed) == 2 else "neither passes every check"
     return _failed(f"{chosen.problem}; ICP and free-space evidence cannot decide ({why})", chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
 
@@ -459,7 +468,7 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
         )
     matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, fine.matrix)
     coarse_matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, coarse)
-    uncertainty = _pair_uncertainty(chosen, fine, params)
+    uncertainty = _pair_uncertainty(chosen, fine, params, _lsf_to_file_rotation(reference, ref_prep))
     quality = {
         **terrain_agreement(ref_prep, mov_prep, fine.matrix),
         "ambiguity": (chosen.match.second_matched or 0) / max(chosen.matched, 1),
@@ -699,17 +708,165 @@ def terrain_agreement(reference: PreparedScan, moving: PreparedScan, lsf_matrix:
     return {"terrain_cells": int(both.sum()), "terrain_median_m": float(np.median(diff)), "terrain_p90_m": float(np.percentile(diff, 90))}
 
 
-def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, params: RegistrationParams) -> dict[str, Any]:
-    """1-sigma uncertainty of the result from the matched trunks that still coincide after ICP
-    (within 0.75 ``match_distance_m``; see :func:`~forestreg.engine.tls.uncertainty.pair_uncertainty`),
-    not below the floors ``min_uncertainty_m`` / ``min_uncertainty_deg``."""
+def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, params: RegistrationParams, to_file: np.ndarray) -> dict[str, Any]:
+    """1-sigma uncertainty of the result at the moving scanner: the ICP's precision from its
+    normal matrix, the matched trunks that still coincide after ICP (within 0.75
+    ``match_distance_m``; :func:`~forestreg.engine.tls.uncertainty.pair_uncertainty`) as the
+    independent evidence, and the directions the surfaces cannot pin (see
+    :func:`combine_with_fit`). ``to_file``: the rotation from the reference's levelled frame to its
+    file frame (the weak directions are stated in the file frame)."""
     pairs = attempt.match.matched_pairs
     lsf = fine.matrix
     moved = attempt.moving_vops.xy[pairs[:, 1]] @ lsf[:2, :2].T + lsf[:2, 3]
     ref = attempt.reference_vops.xy[pairs[:, 0]]
     keep = np.hypot(*(moved - ref).T) < 0.75 * params.match_distance_m
-    return pair_uncertainty(ref[keep], moved[keep], lsf[:2, 3], icp_std_m=fine.std_m,
-                            floor_m=params.min_uncertainty_m, floor_deg=params.min_uncertainty_deg)
+    trunks = pair_uncertainty(ref[keep], moved[keep], lsf[:2, 3], icp_std_m=fine.std_m,
+                              floor_m=params.min_uncertainty_m, floor_deg=params.min_uncertainty_deg)
+    return combine_with_fit(trunks, fine, lsf[:3, 3], params, to_file)
+
+
+def _lsf_to_file_rotation(scan: Scan, prepared: PreparedScan) -> np.ndarray:
+    """3x3 rotation from a prepared scan's levelled frame to its file frame."""
+    return (scan.local_to_file_matrix() @ np.linalg.inv(prepared.local_to_lsf))[:3, :3]
+
+
+def _alternative(result: PairResult, other: PairResult, moving: Scan, params: RegistrationParams, status: str) -> Alternative:
+    """The distinct solution ``other`` as the chosen ``result``'s uncertainty counts it: its weight
+    from the matched VOPs it trails by (0 unless ``status`` is "counted"), where it puts the
+    moving scanner against the chosen matrix (m, deg), from its ICP result when it has one, else
+    from its coarse VOP solution."""
+    s = moving.scanner_position_file
+    if other.matrix is not None:
+        here = result.matrix[:3, :3] @ s + result.matrix[:3, 3]
+        there = other.matrix[:3, :3] @ s + other.matrix[:3, 3]
+        offset = there - here
+        turn = rotation_angle_deg(result.matrix[:3, :3].T @ other.matrix[:3, :3])
+    else:
+        offset, turn = np.zeros(3), 0.0
+        if other.details is not None and other.details.chosen is not None and other.details.chosen.match is not None \
+                and result.details is not None and result.details.chosen is not None and result.details.chosen.match is not None:
+            a, b = result.details.chosen.match, other.details.chosen.match
+            offset = np.append(np.asarray(b.translation, dtype=float) - np.asarray(a.translation, dtype=float), 0.0)
+            turn = abs((float(b.rotation_deg) - float(a.rotation_deg) + 180.0) % 360.0 - 180.0)
+    weight = alternative_weight(result.matched - other.matched, params.uncertainty) if status == "counted" else 0.0
+    direction = float(np.degrees(np.arctan2(offset[1], offset[0])) % 360.0) if np.hypot(offset[0], offset[1]) > 1e-6 else None
+    return Alternative(weight=weight, offset_m=float(np.linalg.norm(offset)), offset_deg=float(turn), support=float(other.matched),
+                       chosen_support=float(result.matched), status=status, direction_deg=direction)
+
+
+def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, params: RegistrationParams,
+                       finish: Callable[[CoarseAttempt], PairResult]) -> PairResult:
+    """The chosen solution's result with its best distinct alternative counted: an alternative
+    likely enough to matter (:attr:`~forestreg.engine.core.uncertainty.UncertaintyParams.min_alternative_weight`)
+    is refined and checked like the chosen one; one that fails its checks, or that ICP takes to the
+    same pose, is excluded, one that passes widens the stated uncertainty (and may refuse it)."""
+    m = chosen.match
+    if m is None or m.second_translation is None or not m.second_matched:
+        return _settle(result, [], params)
+    prior_weight = alternative_weight(chosen.matched - int(m.second_matched), params.uncertainty)
+    if prior_weight < params.uncertainty.min_alternative_weight:
+        return _settle(result, [], params)
+    log.info("a distinct solution matches %d VOPs against %d: refining and checking it too", m.second_matched, chosen.matched)
+    _checking.alternative = True
+    try:
+        other = finish(_second_candidate(chosen, params.match_distance_m))
+    finally:
+        _checking.alternative = False
+    if not other.ok:
+        status = f"excluded: it fails its checks ({other.reason})"
+    else:
+        rot, trans = rigid_errors(result.matrix, other.matrix)
+        status = "the same pose after ICP" if rot < 0.2 and trans < 0.05 else "counted"
+    return _settle(result, [_alternative(result, other, moving, params, status)], params)
+
+
+def _settle(result: PairResult, alternatives: Sequence[Alternative], params: RegistrationParams) -> PairResult:
+    """The result with its alternatives in its uncertainty (widened by the counted ones), refused
+    when the stated uncertainty exceeds the limits of ``params.uncertainty``."""
+    u = dict(result.uncertainty or {})
+    u["alternatives"] = [a.to_dict() for a in alternatives]
+    t, r = u.get("translation_m"), u.get("rotation_deg")
+    if t is not None and r is not None:
+        u["translation_m"], u["rotation_deg"] = with_alternatives(t, r, alternatives)
+        if any(a.status == "counted" and a.weight > 0 for a in alternatives):
+            u["without_alternatives"] = {"translation_m": t, "rotation_deg": r}
+    weak = [WeakDirection(w["kind"], tuple(w["vector"]), w["share"], w["azimuth_deg"]) for w in u.get("weak_directions", [])]
+    reason = judge(u.get("translation_m"), u.get("rotation_deg"), params.uncertainty, weak=weak, alternatives=alternatives)
+    if not reason:
+        return dataclasses.replace(result, uncertainty=u)
+    log.warning("registration refused: %s", reason)
+    return dataclasses.replace(result, status="failed", reason=reason, matrix=None, coarse_matrix=None, uncertainty=u)
+
+
+def combine_with_fit(trunks: dict[str, Any], fine: IcpResult, at: np.ndarray, params: RegistrationParams,
+                     to_file: np.ndarray = np.eye(3)) -> dict[str, Any]:
+    """The stated 1-sigma uncertainty at ``at`` (the moving scanner in the reference's levelled
+    frame) from the ICP's normal matrix and the trunks' figures (``trunks``, from
+    :func:`~forestreg.engine.tls.uncertainty.pair_uncertainty`).
+
+    Along the motions the surfaces pin, the ICP's precision
+    (:func:`~forestreg.engine.core.uncertainty.icp_covariance_at`) plus
+    :attr:`~forestreg.engine.core.uncertainty.UncertaintyParams.evidence_share` of the trunks'
+    correction and bootstrap (the trunks check the fit; a fit they disagree with is less certain);
+    along a weak motion (:func:`~forestreg.engine.core.uncertainty.weak_directions`) the trunks
+    alone. Without a usable normal matrix, or with fewer than 3 trunks, the trunks' figures as
+    they are. Adds ``weak_directions`` (stated in the file frame by ``to_file``), ``fit_m`` /
+    ``fit_deg`` (the ICP's own precision) and ``trunks_m`` / ``trunks_deg`` (the trunks' figures).
+    """
+    u = dict(trunks)
+    info = fine.information
+    if info is None or u.get("translation_m") is None or not np.all(np.isfinite(info)) or not np.isfinite(fine.std_m):
+        u["weak_directions"] = []
+        return u
+    up = params.uncertainty
+    weak = weak_directions(info, up)
+    extra = np.zeros((6, 6))
+    d = np.asarray(u["correction_vector_m"], dtype=float)
+    boot = np.asarray(u["bootstrap_cov_m2"], dtype=float)
+    trunk_cov = np.outer(d, d) + np.where(np.isfinite(boot), boot, 1e6)
+    heading_var = np.radians(float(u["correction_deg"])) ** 2 + np.radians(float(u["bootstrap_deg"])) ** 2
+    at = np.asarray(at, dtype=float)
+    for w in weak:  # the trunks' own constraint along a motion the surfaces leave free
+        v = np.asarray(w.vector, dtype=float)
+        if w.kind == "translation":
+            h = v[:2]
+            var = float(h @ trunk_cov @ h) + 1e-12 if np.hypot(*h) > 0.5 else 1e6
+            g = np.concatenate([np.cross(at, v), v])  # the moving scanner's position along v
+        else:  # the trunks pin a heading; a tilt only the surfaces can
+            var = heading_var + 1e-12 if abs(v[2]) > 0.9 else 1e6
+            g = np.concatenate([v, np.zeros(3)])
+        extra += np.outer(g, g) / var
+    pos_cov, rot_cov = icp_covariance_at(info, float(fine.std_m), at, up.independent_patches, up.rotation_patches, extra)
+    weak_h = [np.asarray(w.vector[:2]) / max(np.hypot(*w.vector[:2]), 1e-12) for w in weak if w.kind == "translation" and w.azimuth_deg is not None]
+    strong = np.eye(2)
+    for h in weak_h:
+        strong = strong - np.outer(h, h)
+    share = up.evidence_share**2
+    horizontal = pos_cov[:2, :2] + share * strong @ trunk_cov @ strong.T
+    heading_weak = any(w.kind == "rotation" for w in weak)
+    heading = rot_cov[2, 2] + (0.0 if heading_weak else share * heading_var)
+    vertical = max(float(np.sqrt(max(pos_cov[2, 2], 0.0))), params.min_uncertainty_m)
+    u.update(
+        trunks_m=u["translation_m"], trunks_deg=u["rotation_deg"],
+        fit_m=float(np.sqrt(max(np.trace(pos_cov), 0.0))), fit_deg=float(np.degrees(np.sqrt(max(np.trace(rot_cov), 0.0)))),
+        horizontal_m=float(np.sqrt(max(np.trace(horizontal), 0.0))),
+        vertical_m=vertical,
+        heading_deg=float(np.degrees(np.sqrt(max(heading, 0.0)))),
+        translation_m=max(params.min_uncertainty_m, float(np.sqrt(max(np.trace(horizontal), 0.0) + vertical**2))),
+        rotation_deg=max(params.min_uncertainty_deg, float(np.degrees(np.sqrt(max(heading + rot_cov[0, 0] + rot_cov[1, 1], 0.0))))),
+        weak_directions=[_in_file_frame(w, to_file).to_dict() for w in weak],
+        method=("ICP normal matrix (the surfaces' precision) with the matched trunks after ICP as the check; "
+                "along weak directions the trunks alone; distinct alternatives counted"),
+    )
+    return u
+
+
+def _in_file_frame(w: WeakDirection, to_file: np.ndarray) -> WeakDirection:
+    """A weak direction with its vector turned from the levelled frame into the file frame."""
+    v = np.asarray(to_file, dtype=float) @ np.asarray(w.vector, dtype=float)
+    v = v / max(float(np.linalg.norm(v)), 1e-12)
+    az = None if w.kind == "rotation" or np.hypot(v[0], v[1]) < 0.5 else float(np.degrees(np.arctan2(v[1], v[0])) % 180.0)
+    return WeakDirection(w.kind, tuple(float(x) for x in v), w.share, az)
 
 
 def lsf_to_file_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, lsf_matrix: np.ndarray) -> np.ndarray:
@@ -724,8 +881,12 @@ def file_to_lsf_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mo
     return ref_prep.local_to_lsf @ np.linalg.inv(reference.local_to_file_matrix()) @ file_matrix @ moving.local_to_file_matrix() @ np.linalg.inv(mov_prep.local_to_lsf)
 
 
+#: set in a thread while it checks an alternative solution: its failures are evidence, not news
+_checking = threading.local()
+
+
 def _failed(reason: str, attempt: CoarseAttempt, common: dict[str, Any], details: PairDetails) -> PairResult:
-    log.warning("registration failed: %s", reason)
+    (log.info if getattr(_checking, "alternative", False) else log.warning)("registration failed: %s", reason)
     m = attempt.match
     fields = dict(common)
     fields.setdefault("icp", None)

@@ -13,6 +13,7 @@ from typing import ClassVar, Optional
 
 from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
+from ..core.uncertainty import UncertaintyParams
 from ..geometry.icp_params import IcpParams
 from ..geometry.solution_params import DistinctParams, MarginParams
 
@@ -77,6 +78,9 @@ class RegistrationParams(Params):
     #: the ICP voxel grid and the VOP step: no registration is stated better than this
     min_uncertainty_m: float = _p(0.002, "m", 0.0, 1.0, "Floor of a pair's stated 1-sigma translation uncertainty (and of its vertical part)")
     min_uncertainty_deg: float = _p(0.005, "deg", 0.0, 10.0, "Floor of a pair's stated 1-sigma rotation uncertainty")
+    #: how the stated uncertainty counts the fit's precision, weak directions and alternatives,
+    #: and the widest it may be for an "ok"
+    uncertainty: UncertaintyParams = UncertaintyParams()
     # --- registration from targets (manual method, paper 2.7)
     manual_max_target_rmse_m: float = _p(0.10, "m", 0.001, 10.0, "Largest RMS residual of the target fit (more: target ids mixed up or targets mis-picked); also the inlier distance that finds the suspect targets")
     manual_max_icp_rotation_deg: float = _p(5.0, "deg", 0.01, 180.0, "ICP may turn the target fit by at most this much (more: the targets and the clouds disagree)")

@@ -67,7 +67,8 @@ def pair_uncertainty(
     -------
     dict with ``translation_m``, ``rotation_deg`` (the stated 1-sigma values), ``horizontal_m``,
     ``vertical_m``, ``heading_deg``, ``correction_m``/``correction_deg`` (what the trunks ask for),
-    ``bootstrap_m``/``bootstrap_deg`` (spread), ``pairs`` and ``method``.
+    ``bootstrap_m``/``bootstrap_deg`` (spread), ``correction_vector_m`` (the correction's 2D
+    displacement at the scanner) and ``bootstrap_cov_m2`` (its 2x2 spread), ``pairs`` and ``method``.
     """
     ref = np.asarray(reference_xy, dtype=float).reshape(-1, 2)
     mov = np.asarray(moved_xy, dtype=float).reshape(-1, 2)
@@ -96,6 +97,7 @@ def pair_uncertainty(
         a, t = rigid_fit_2d(mov[pick], ref[pick])
         moves.append(displacement(a, t) - d0)
         turns.append(np.degrees(a - angle0))
+    boot_cov = np.cov(np.asarray(moves).T, bias=True) + np.outer(np.mean(moves, axis=0), np.mean(moves, axis=0)) if len(moves) > 1 else np.full((2, 2), np.inf)
     boot_m = float(np.sqrt(np.mean(np.sum(np.square(moves), axis=1)))) if moves else float("inf")
     boot_deg = float(np.sqrt(np.mean(np.square(turns)))) if turns else float("inf")
     horizontal = float(np.hypot(correction_m, boot_m))
@@ -109,6 +111,8 @@ def pair_uncertainty(
         "heading_deg": heading,
         "correction_m": correction_m,
         "correction_deg": correction_deg,
+        "correction_vector_m": [float(v) for v in d0],
+        "bootstrap_cov_m2": np.asarray(boot_cov, dtype=float).tolist(),
         "bootstrap_m": boot_m,
         "bootstrap_deg": boot_deg,
         "pairs": n,
