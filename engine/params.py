@@ -22,6 +22,7 @@ import json
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+from .core.errors import ParameterError
 from .core.params import Params, read_toml
 from .change.params import ChangeParams
 from .coreg.coregister import CoregistrationParams
@@ -46,13 +47,36 @@ class ProductParams(Params):
 
 
 def load_params(path: str | Path) -> ProductParams:
-    """Read a nested parameter file. For files written before the sections existed, top-level
-    registration keys (no section at all) are read as ``[registration]``."""
+    """Read a nested parameter file. A key outside every section is refused, naming the sections
+    whose parameter sets have a field of that name (a key is never guessed into a section)."""
     data = read_toml(path)
     sections = {f.name for f in fields(ProductParams)}
-    if data and not set(data) & sections and all(not isinstance(v, dict) for v in data.values()):
-        data = {"registration": data}
+    loose = [k for k, v in data.items() if k not in sections and not isinstance(v, dict)]
+    if loose:
+        raise ParameterError(f"parameter file {path}: " + "; ".join(_homes_of(k) for k in loose))
     return ProductParams.from_mapping(data, where="")
+
+
+def _sections_with(name: str, params: Params, prefix: str = "") -> list[str]:
+    """The sections (dotted) of ``params`` whose parameter set has a field ``name``."""
+    out = []
+    for f in fields(params):
+        value = getattr(params, f.name)
+        if isinstance(value, Params):
+            here = f"{prefix}{f.name}"
+            if any(g.name == name and not isinstance(getattr(value, g.name), Params) for g in fields(value)):
+                out.append(here)
+            out += _sections_with(name, value, here + ".")
+    return out
+
+
+def _homes_of(key: str) -> str:
+    """Where a key found outside every section belongs, as one clause of the refusal."""
+    homes = _sections_with(key, ProductParams())
+    if homes:
+        return f"{key} is outside every section: put it under {' or '.join(f'[{h}]' for h in homes)}"
+    return (f"{key} is outside every section, and no section has a parameter of that name "
+            f"(sections: {', '.join(f'[{f.name}]' for f in fields(ProductParams))}; 'forestreg params' lists them all)")
 
 
 def _toml_value(v: object) -> str:

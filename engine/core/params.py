@@ -276,10 +276,11 @@ def parameter_table(cls: type) -> list[dict[str, Any]]:
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
-    """A TOML file as a dict; a missing or unreadable file is a :class:`ParameterError`."""
+    """A TOML file (UTF-8, a byte-order mark allowed) as a dict; a missing or unreadable file is a
+    :class:`ParameterError`."""
     p = Path(path)
     try:
-        return tomllib.loads(p.read_text(encoding="utf-8"))
+        return tomllib.loads(p.read_text(encoding="utf-8-sig"))
     except FileNotFoundError as exc:
         raise ParameterError(f"parameter file {p} does not exist") from exc
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
