@@ -137,7 +137,7 @@ def scatter_png(runs: Mapping[str, "Evaluation"], parameter: str, *, dpi: int = 
     for k, (name, s) in enumerate(series):
         e, f = s.estimate * scale, s.field_value * scale
         lo, hi = min(lo, e.min(), f.min()), max(hi, e.max(), f.max())
-        label = f"{name}: n={s.n}, R²={fmt(s.r2, 2)}, RMSE={fmt(s.rmse, digits, scale)} {unit}"
+        label = f"{name}: n={s.n}, R²={s.r2_text()}, RMSE={fmt(s.rmse, digits, scale)} {unit}"
         ax.scatter(f, e, s=26, c=run_colour(k), marker=RUN_MARKERS[k % len(RUN_MARKERS)], alpha=0.8,
                    edgecolors="white", linewidths=0.4, label=label, zorder=3)
     pad = 0.05 * (hi - lo) if hi > lo else max(abs(hi), 1.0) * 0.1
@@ -262,17 +262,27 @@ def _table3_section(runs: Mapping[str, "Evaluation"], params: Sequence[str]) -> 
             best = None
             if key is not None and len(names) > 1 and len(finite) > 1:
                 best = min(finite, key=key)
-            for v in values:
+            for n, v in zip(names, values):
+                s = runs[n].stats.get(p)
+                tip = ""
                 if metric == "n":
                     text = DASH if v is None else str(int(v))
                 elif metric in ("rmse", "bias"):
                     text = fmt(v, digits, scale)
+                elif metric == "r2" and s is not None and v is not None and not math.isfinite(float(v)):
+                    text, tip = "n/a", s.r2_note or "undefined"
                 else:
                     text = fmt(v, 2)
                 cls = "num best" if best is not None and v is not None and v == best else "num"
-                cells.append(f'<td class="{cls}">{text}</td>')
+                title = f' title="R² undefined: {esc(tip)}"' if tip else ""
+                cells.append(f'<td class="{cls}"{title}>{esc(text)}</td>')
         rows.append("<tr>" + "".join(cells) + "</tr>")
     table = "<table>" + head1 + head2 + "".join(rows) + "</table>" if rows else "<p>No parameter to compare.</p>"
+    undefined = sorted({f"{PARAMETERS[p].label} ({esc(n)}): {esc(runs[n].stats[p].r2_note)}" for p in params for n in names
+                        if p in runs[n].stats and runs[n].stats[p].n > 0 and runs[n].stats[p].r2_note})
+    if undefined:
+        table += ('<p class="note">R² n/a: undefined where the field values do not spread (SS<sub>tot</sub> = 0) or there are '
+                  "fewer than 2 pairs: " + "; ".join(undefined) + ".</p>")
     return (
         "<h2>2. Evaluation of the estimated parameters (paper table 3)</h2>" + table
         + '<p class="note">RMSE and bias in the unit given after the parameter (DBH in cm); the better run of each figure '

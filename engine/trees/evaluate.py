@@ -11,7 +11,8 @@ per parameter, the paper's figures:
 * ``R2 = 1 - SS_res / SS_tot``, the coefficient of determination of the estimates as predictions
   of the field values (``SS_res = sum (est - field)^2``, ``SS_tot = sum (field - mean field)^2``;
   not the squared correlation of a fitted line: a biased estimate lowers it, and it can be
-  negative when the estimates are worse than the field mean);
+  negative when the estimates are worse than the field mean); undefined (NaN, with the reason in
+  ``r2_note``) with fewer than 2 pairs or field values that are all equal;
 * ``RMSE = sqrt(mean (est - field)^2)`` in the parameter's unit; ``rRMSE = 100 RMSE / mean field``
   (%); ``bias = mean (est - field)``;
 
@@ -375,24 +376,36 @@ class ParameterStats:
     field_value: np.ndarray
     estimated_ids: np.ndarray
     field_ids: np.ndarray
+    #: why R2 is undefined (NaN), e.g. "field values all equal"; empty when it is defined
+    r2_note: str = ""
 
     @property
     def info(self) -> ParameterInfo:
         return PARAMETERS[self.parameter]
 
+    def r2_text(self, digits: int = 2) -> str:
+        """R2 for a line of text: ``0.93``, or ``n/a (<why>)`` where it is undefined."""
+        if math.isfinite(self.r2):
+            return f"{self.r2:.{digits}f}"
+        return f"n/a ({self.r2_note})" if self.r2_note else "n/a"
+
     def to_dict(self) -> dict[str, Any]:
         info = self.info
-        return {
+        out = {
             "parameter": self.parameter, "label": info.label, "unit": info.unit, "n": self.n,
             "r2": _json_num(self.r2), "rmse": _json_num(self.rmse), "rrmse_percent": _json_num(self.rrmse_percent),
             "bias": _json_num(self.bias), "field_mean": _json_num(self.field_mean),
         }
+        if not math.isfinite(self.r2):
+            out["r2_note"] = self.r2_note or "undefined"
+        return out
 
 
 def agreement(estimate: Iterable[float], field_value: Iterable[float]) -> dict[str, float]:
     """``n``, ``r2``, ``rmse``, ``rrmse_percent``, ``bias`` and ``field_mean`` of estimates
     against field values (pairs with a missing value are skipped; NaN where undefined: no pairs,
-    R2 with fewer than 2 pairs or no spread in the field values, rRMSE with a zero field mean)."""
+    R2 with fewer than 2 pairs or no spread in the field values (:func:`r2_undefined`), rRMSE
+    with a zero field mean)."""
     e = np.asarray(list(estimate) if not isinstance(estimate, np.ndarray) else estimate, dtype=np.float64)
     f = np.asarray(list(field_value) if not isinstance(field_value, np.ndarray) else field_value, dtype=np.float64)
     ok = np.isfinite(e) & np.isfinite(f)
@@ -405,9 +418,22 @@ def agreement(estimate: Iterable[float], field_value: Iterable[float]) -> dict[s
     rmse = float(np.sqrt(np.mean(diff**2)))
     mean_f = float(f.mean())
     ss_tot = float(np.sum((f - mean_f) ** 2))
-    r2 = 1.0 - float(np.sum(diff**2)) / ss_tot if n >= 2 and ss_tot > 0 else nan
+    r2 = nan if r2_undefined(f) or ss_tot <= 0 else 1.0 - float(np.sum(diff**2)) / ss_tot
     rrmse = 100.0 * rmse / mean_f if mean_f != 0 else nan
     return {"n": n, "r2": r2, "rmse": rmse, "rrmse_percent": rrmse, "bias": float(diff.mean()), "field_mean": mean_f}
+
+
+def r2_undefined(field_value: Iterable[float]) -> str:
+    """Why R2 cannot be computed over these field values (the finite ones), or "" when it can:
+    fewer than 2 values, or values that are all equal (no spread to explain: SS_tot is 0, or only
+    the rounding of their mean, which would give an R2 of -1e30)."""
+    f = np.asarray(list(field_value) if not isinstance(field_value, np.ndarray) else field_value, dtype=np.float64)
+    f = f[np.isfinite(f)]
+    if len(f) < 2:
+        return f"fewer than 2 pairs ({len(f)})"
+    if float(np.ptp(f)) <= 1e-9 * max(float(np.abs(f).max()), 1e-300):
+        return f"field values all equal ({f[0]:.6g})"
+    return ""
 
 
 @dataclass(frozen=True)
@@ -458,6 +484,16 @@ class Evaluation(Outcome):
     def evidence(self) -> dict[str, Any]:
         return {"detection": self.detection.to_dict()}
 
+    def summary(self) -> str:
+        """One line: the field trees matched and, per parameter with a pair, R2 (or "n/a" and
+        why) and rRMSE; the reason when no tree matched."""
+        if not self.ok:
+            return self.reason
+        d = self.detection
+        figures = ", ".join(f"{p} R2 {st.r2_text()} rRMSE {_text(st.rrmse_percent, '.1f')} %"
+                            for p, st in self.stats.items() if st.n >= 1)
+        return f"{d.matched} of {d.field_trees} field trees matched" + (f"; {figures}" if figures else "")
+
     def to_dict(self, *, pairs: bool = True) -> dict[str, Any]:
         """JSON-able figures (and, with ``pairs``, every matched pair with its values)."""
         out: dict[str, Any] = {
@@ -506,6 +542,7 @@ def evaluate(
         stats[name] = ParameterStats(
             name, int(fig["n"]), fig["r2"], fig["rmse"], fig["rrmse_percent"], fig["bias"], fig["field_mean"],
             e_all[ok], f_all[ok], est.tree_id[match.estimated_index][ok], fld.tree_id[match.field_index][ok],
+            r2_undefined(f_all[ok]),
         )
         _check_value_units(name, e_all[ok], f_all[ok], fld.source)
     detection = Detection(len(fld), len(est), len(match), len(match.omitted), len(match.commission))
@@ -583,6 +620,11 @@ def pair_rows(evaluation: Evaluation) -> list[dict[str, Any]]:
     return rows
 
 
+def _text(value: float, spec: str) -> str:
+    """A figure for a line of text; "n/a" where it is undefined."""
+    return format(value, spec) if math.isfinite(value) else "n/a"
+
+
 def _json_num(value: Any) -> Optional[float]:
     if value is None:
         return None
@@ -605,6 +647,7 @@ __all__ = [
     "as_tree_table",
     "match_trees",
     "agreement",
+    "r2_undefined",
     "evaluate",
     "pair_rows",
 ]
