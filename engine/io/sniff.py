@@ -1,4 +1,5 @@
-"""Which format a file holds: by its first bytes, then by its suffix."""
+"""Which format a file holds: by its first bytes, then by its suffix; and whether a text file is
+a point list or a table of trees (:func:`is_tree_table`)."""
 
 from __future__ import annotations
 
@@ -100,8 +101,8 @@ def is_point_cloud_file(path: Path) -> bool:
     """Whether a file is meant as a point cloud, by its content: a file whose first bytes name a
     point-cloud format (LAS/LAZ, PLY, PCD, E57), or whose suffix names a binary one (a damaged
     scan is still a scan: reading it says what is wrong), or a text file whose first data line
-    holds three or more numbers under no header or a header naming x, y and z. A table of other
-    columns (``tree_id,x,y,dbh_m``), notes, or anything unreadable is not."""
+    holds three or more numbers under no header or a header naming x, y and z. A table of trees
+    (:func:`is_tree_table`: ``tree_id,x,y,z,dbh_m``), notes, or anything unreadable is not."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
@@ -110,7 +111,7 @@ def is_point_cloud_file(path: Path) -> bool:
         return False
     if sniff_bytes(head[:64]) is not None or format_from_suffix(path) in _BINARY_NAMES:
         return True
-    if format_from_suffix(path) != "xyz" or not looks_like_text(head):
+    if format_from_suffix(path) != "xyz" or not looks_like_text(head) or is_tree_table(path):
         return False
     from .xyz import _is_number, _words
 
@@ -125,3 +126,73 @@ def is_point_cloud_file(path: Path) -> bool:
             return not header or {"x", "y", "z"} <= names
         header = words
     return False
+
+
+# ------------------------------------------------------------------------------------ tables
+
+#: The delimiters a table may use, in the order a tie is decided.
+TABLE_DELIMITERS = (",", ";", "\t")
+#: Column names (normalised: :func:`column_key`) that only a table of trees has: a file whose
+#: header names one of them is a table, never a point list (a tree id or a height can be a
+#: point's attribute in a segmented or normalised cloud; a diameter or a species cannot).
+TREE_TABLE_MARKERS = frozenset({
+    "dbh", "dbh_m", "dbh_cm", "dbh_mm", "diameter", "diameter_m", "diameter_cm", "diameter_mm",
+    "crown_base_m", "crown_area_m2", "crown_volume_m3", "volume_m3", "species",
+})
+
+
+def column_key(name: object) -> str:
+    """A column name as tables are matched: no byte-order mark or surrounding space or quotes,
+    lower case, spaces and dashes as underscores (``" DBH-cm"`` -> ``"dbh_cm"``)."""
+    text = str(name).replace("\ufeff", "").strip().strip("\"'").strip().lower()
+    return "_".join(text.replace("-", " ").split())
+
+
+def table_delimiter(line: str) -> str:
+    """The delimiter of a table's header line: the one of ``,`` ``;`` and tab it holds most of
+    (a tie, or none, is ``,``)."""
+    counts = [line.count(d) for d in TABLE_DELIMITERS]
+    return TABLE_DELIMITERS[counts.index(max(counts))] if max(counts) > 0 else ","
+
+
+def table_header(head: str) -> tuple[str, list[str]] | None:
+    """``(delimiter, column names as written)`` of the first line of ``head`` that is neither
+    blank nor a ``#`` comment, when it is a header (not every field a number); else None."""
+    from .xyz import _is_number
+
+    for line in head.lstrip("\ufeff").splitlines()[:_SNIFF_LINES]:
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        delimiter = table_delimiter(stripped)
+        names = [n.strip().strip("\"'") for n in stripped.split(delimiter)]
+        if all(_is_number(n) for n in names if n):
+            return None
+        return delimiter, names
+    return None
+
+
+def is_tree_table_header(names) -> bool:
+    """Whether header names (as written, any case) are those of a table of trees: one names a
+    tree's diameter, crown, volume or species (:data:`TREE_TABLE_MARKERS`), or x and y are there
+    without z (a map of positions, not points)."""
+    keys = {column_key(n) for n in names}
+    return bool(keys & TREE_TABLE_MARKERS) or ({"x", "y"} <= keys and "z" not in keys)
+
+
+def is_tree_table(path: Path) -> bool:
+    """Whether a text file is a table of trees (``trees.csv`` of ``forestreg trees``, a field
+    sheet): its header, in any case and delimited by ``,`` ``;`` or tab, names a tree's diameter
+    (or crown, volume, species), or x and y without z (:func:`is_tree_table_header`). A point
+    list, with or without an ``x y z`` header (also one with a tree id per point), binary data or
+    an unreadable file is not."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8192)
+    except OSError:
+        return False
+    if sniff_bytes(head[:64]) is not None or not looks_like_text(head):
+        return False
+    found = table_header(head.decode("utf-8", errors="replace"))
+    return found is not None and is_tree_table_header(found[1])
