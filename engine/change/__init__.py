@@ -14,7 +14,7 @@ Example::
 """
 
 from .detect import ChangeResult, detect_change, file_matrix
-from .epoch import EpochTrees, epoch_from_cloud, epoch_from_table
+from .epoch import EpochTrees, epoch_from_cloud, epoch_from_table, position_unit_mismatch
 from .matching import CHANGE_COLUMNS, STATUSES, TreeChange, match_trees
 from .params import ChangeParams
 from .registration import StemMatch, persisting_stems, refine_on_stems
@@ -22,5 +22,5 @@ from .registration import StemMatch, persisting_stems, refine_on_stems
 __all__ = [
     "CHANGE_COLUMNS", "ChangeParams", "ChangeResult", "EpochTrees", "STATUSES", "StemMatch", "TreeChange",
     "detect_change", "epoch_from_cloud", "epoch_from_table", "file_matrix", "match_trees", "persisting_stems",
-    "refine_on_stems",
+    "position_unit_mismatch", "refine_on_stems",
 ]

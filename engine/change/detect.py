@@ -120,7 +120,8 @@ def detect_change(
     timings["stems_match_s"] = time.perf_counter() - t
     n = len(match.pairs)
     figures.update(persisting_stems=n, coarse_matched=match.matched_coarse, second_matched=match.second_matched,
-                   margin=match.margin, dbh_rejected=match.dbh_rejected, coarse_heading_deg=match.rotation_deg,
+                   margin=match.margin, dbh_rejected=match.dbh_rejected,
+                   coarse_heading_deg=round(float(match.rotation_deg) % 360.0, 9) % 360.0 + 0.0,  # in [0, 360): never 360.0
                    persisting_fraction=n / smaller)
     need = max(params.min_persisting, math.ceil(params.min_persisting_fraction * smaller))
     if n < need:

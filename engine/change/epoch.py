@@ -26,7 +26,7 @@ from ..core.errors import ScanDataError
 from ..core.progress import Progress, ProgressCallback, as_progress
 from .params import ChangeParams
 
-__all__ = ["EpochTrees", "epoch_from_cloud", "epoch_from_table", "dbh_sigma", "by_trust"]
+__all__ = ["EpochTrees", "epoch_from_cloud", "epoch_from_table", "dbh_sigma", "by_trust", "position_unit_mismatch"]
 
 #: The trust words of the inventory's quality columns, in the order of the ``[change]`` tuples by
 #: trust (:attr:`ChangeParams.height_sigma_m`, :attr:`ChangeParams.table_dbh_sigma_m`).
@@ -48,7 +48,8 @@ class EpochTrees:
     ``height_sigma_m``, ``dbh_ok``/``height_ok`` (the survey supports the value), ``flags`` (the
     inventory's reasons, "; "-joined); ``curves`` per tree (s along the axis, diameter) or None.
     ``band`` (k, 3) stem-band points and ``ground`` (g, 3) thinned ground points (empty for a
-    table); ``source`` "cloud" or "table"; ``timings`` seconds per step (``*_s``).
+    table); ``source`` "cloud" or "table"; ``timings`` seconds per step (``*_s``); ``notes``
+    what reading left out.
     """
 
     ids: np.ndarray
@@ -77,6 +78,8 @@ class EpochTrees:
     source: str = "cloud"
     name: str = ""
     timings: dict[str, float] = field(default_factory=dict)
+    #: what was done on reading that a user should know (rows left out)
+    notes: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -284,35 +287,168 @@ def epoch_from_cloud(
     )
 
 
+#: The largest DBH (m) a table may give: a larger one is a unit or typing error.
+MAX_TABLE_DBH_M = 5.0
+#: The largest tree height (m) a table may give.
+MAX_TABLE_HEIGHT_M = 150.0
+#: Two rows of one table whose stems stand closer than this (m) and whose DBH differ by less than
+#: :data:`DUPLICATE_DBH_M` are one tree listed twice (two stems cannot stand so close).
+DUPLICATE_DISTANCE_M = 0.05
+DUPLICATE_DBH_M = 0.01
+#: Cells read as "no value" (a tree whose DBH or height was not measured).
+_EMPTY = {"", "nan", "na", "n/a", "none", "null", "-"}
+#: Rows named in a message before "and N more".
+_NAMED = 8
+
+
+def _value(r: Mapping[str, Any], key: str) -> tuple[float, bool]:
+    """``(value, given)`` of a cell: NaN and False for an empty cell ("", "nan", "NA", ...); NaN
+    and True for text that is not a number (the caller refuses it)."""
+    v = r.get(key)
+    if v is None or (isinstance(v, str) and v.strip().lower() in _EMPTY):
+        return math.nan, False
+    try:
+        f = float(v.strip() if isinstance(v, str) else v)
+    except (TypeError, ValueError):
+        return math.nan, True
+    return (math.nan, False) if isinstance(v, float) and math.isnan(f) else (f, True)
+
+
+class _Rows:
+    """How the rows of a table are named in messages: their file line numbers, else their
+    1-based place, with the tree ids."""
+
+    def __init__(self, rows: Sequence[Mapping[str, Any]], name: str, lines: Optional[Sequence[int]]):
+        self.rows, self.name = rows, name or "table"
+        self.lines = list(lines) if lines is not None and len(lines) == len(rows) else None
+
+    def number(self, i: int) -> int:
+        return int(self.lines[i]) if self.lines is not None else i + 1
+
+    def named(self, idx: Sequence[int], column: Optional[str] = None) -> str:
+        """"lines 4, 9 (tree_id 3, 8; dbh_m '-0.2', 'abc')" for the rows ``idx``."""
+        idx = list(idx)
+        word = ("line" if self.lines is not None else "row") + ("s" if len(idx) > 1 else "")
+        shown = idx[:_NAMED]
+        more = f" and {len(idx) - _NAMED} more" if len(idx) > _NAMED else ""
+        ids = [str(self.rows[i].get("tree_id", "") or "").strip() for i in shown]
+        detail = []
+        if any(ids):
+            detail.append("tree_id " + ", ".join(t or "-" for t in ids))
+        if column is not None:
+            detail.append(f"{column} " + ", ".join(repr(str(self.rows[i].get(column, "")).strip()) for i in shown))
+        return f"{word} {', '.join(str(self.number(i)) for i in shown)}{more}" + (f" ({'; '.join(detail)})" if detail else "")
+
+
+def _dbh_unit_hint(median: float) -> str:
+    """What DBH values are likely in whose median, read as metres, is ``median`` (above 3)."""
+    if median > 150.0:
+        return "millimetres: name the column dbh_mm (it is converted), or convert the values to metres"
+    return "centimetres: name the column dbh_cm (it is converted), or convert the values to metres"
+
+
 def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_scale: float = 1.0,
-                     change: ChangeParams = ChangeParams()) -> EpochTrees:
+                     change: ChangeParams = ChangeParams(), lines: Optional[Sequence[int]] = None,
+                     dbh_column: str = "dbh_m") -> EpochTrees:
     """The trees of a ``trees.csv`` of ``forestreg trees`` (rows as dicts of its columns: x, y, z
     in file coordinates, ``dbh_m``, ``height_m``, the quality columns and ``flag``). Positions
     are the stem bases (the table has no breast-height point); trees without a stem (from the
-    canopy) are left out: they cannot be matched by their stems. The uncertainties follow the
-    quality columns' trust (``change.table_dbh_sigma_m``, ``change.height_sigma_m``).
+    canopy) are left out, and said so in ``notes``: they cannot be matched by their stems. The
+    uncertainties follow the quality columns' trust (``change.table_dbh_sigma_m``,
+    ``change.height_sigma_m``).
 
-    Raises :class:`ScanDataError` when the table holds no tree with a position.
+    Every row is checked first, and a table with bad rows is refused whole, naming the column and
+    the rows (``lines``: each row's line in the file; else rows are counted from 1;
+    ``dbh_column``: the column the file gave the DBH in, when it was converted into ``dbh_m``):
+    x and y must be finite numbers, z too when the column gives any; a DBH, where given, a
+    number above 0 and at most :data:`MAX_TABLE_DBH_M` (a median above 3 m is a unit error:
+    millimetres or centimetres), a height at least 0 and at most :data:`MAX_TABLE_HEIGHT_M`; no
+    stem twice (two rows within :data:`DUPLICATE_DISTANCE_M` of each other with DBH within
+    :data:`DUPLICATE_DBH_M`).
+
+    Raises :class:`ScanDataError` for such rows, or when the table holds no tree with a stem.
     """
+    named = _Rows(rows, name, lines)
+    who = named.name
+    n_all = len(rows)
+    problems: list[str] = []
 
-    def num(r: Mapping[str, Any], key: str) -> float:
-        try:
-            v = float(r.get(key, "") or "nan")
-        except (TypeError, ValueError):
-            return math.nan
-        return v
+    def values(key: str) -> tuple[np.ndarray, np.ndarray]:
+        got = [_value(r, key) for r in rows]
+        return np.array([v for v, _ in got], dtype=float), np.array([g for _, g in got], dtype=bool)
 
-    keep = [r for r in rows if math.isfinite(num(r, "x")) and math.isfinite(num(r, "y")) and str(r.get("source", "stem") or "stem") == "stem"]
-    if not keep:
-        raise ScanDataError(f"{name or 'table'}: no tree with a stem position")
-    xyz = np.array([[num(r, "x"), num(r, "y"), num(r, "z") if math.isfinite(num(r, "z")) else 0.0] for r in keep]) * unit_scale
+    xyz = np.zeros((n_all, 3))
+    for k, key in enumerate(("x", "y")):
+        v, _ = values(key)
+        bad = np.flatnonzero(~np.isfinite(v))
+        if len(bad):
+            problems.append(f"column {key} is not a finite number at {named.named(bad, key)}")
+        xyz[:, k] = v
+    z, z_given = values("z")
+    if np.isfinite(z).any():
+        bad = np.flatnonzero(~np.isfinite(z))
+        if len(bad):
+            problems.append(f"column z is not a finite number at {named.named(bad, 'z')} (the other rows give z)")
+        xyz[:, 2] = z
+    else:
+        bad = np.flatnonzero(z_given)
+        if len(bad):
+            problems.append(f"column z is not a finite number at {named.named(bad, 'z')}")
+    if problems:
+        raise ScanDataError(f"{who}: " + "; ".join(problems) + ": every tree needs its position; correct or remove these rows")
+    stem = np.array([str(r.get("source", "stem") or "stem").strip().lower() == "stem" for r in rows], dtype=bool)
+    dbh, dbh_given = values("dbh_m")
+    bad = np.flatnonzero(stem & dbh_given & ~np.isfinite(dbh))
+    if len(bad):
+        problems.append(f"column {dbh_column} is not a number at {named.named(bad, dbh_column)}")
+    sized = stem & np.isfinite(dbh) & (dbh > 0)
+    median = float(np.median(dbh[sized])) if sized.any() else math.nan
+    if median > 3.0:
+        raw = np.median([_value(rows[i], dbh_column)[0] for i in np.flatnonzero(sized)])
+        raise ScanDataError(f"{who}: column {dbh_column} has a median of {raw:.4g} over {int(sized.sum())} trees, "
+                            f"{median:.3g} m as a DBH (a DBH in metres is below 3): the values look like {_dbh_unit_hint(median)}")
+    if dbh_column != "dbh_m" and median < 0.02:
+        raise ScanDataError(f"{who}: column {dbh_column} has a median of {median:.3g} m as a DBH over {int(sized.sum())} trees: "
+                            "the values look like metres: name the column dbh_m")
+    bad = np.flatnonzero(stem & np.isfinite(dbh) & (dbh <= 0))
+    if len(bad):
+        problems.append(f"column {dbh_column} is zero or negative at {named.named(bad, dbh_column)}")
+    bad = np.flatnonzero(stem & np.isfinite(dbh) & (dbh > MAX_TABLE_DBH_M))
+    if len(bad):
+        problems.append(f"column {dbh_column} is above {MAX_TABLE_DBH_M:g} m at {named.named(bad, dbh_column)}")
+    height, h_given = values("height_m")
+    bad = np.flatnonzero(h_given & ~np.isfinite(height))
+    if len(bad):
+        problems.append(f"column height_m is not a number at {named.named(bad, 'height_m')}")
+    bad = np.flatnonzero(np.isfinite(height) & ((height < 0) | (height > MAX_TABLE_HEIGHT_M)))
+    if len(bad):
+        problems.append(f"column height_m is negative or above {MAX_TABLE_HEIGHT_M:g} m at {named.named(bad, 'height_m')}")
+    if problems:
+        raise ScanDataError(f"{who}: " + "; ".join(problems) + ": correct or remove these rows")
+    keep_idx = np.flatnonzero(stem)
+    if not len(keep_idx):
+        raise ScanDataError(f"{who}: no tree with a stem position")
+    twice = _listed_twice(xyz[keep_idx, :2] * unit_scale, dbh[keep_idx])
+    if twice:
+        pairs = [(int(keep_idx[i]), int(keep_idx[j])) for i, j in twice]
+        word = "lines" if named.lines is not None else "rows"
+        shown = ", ".join(f"{named.number(i)} and {named.number(j)}" for i, j in pairs[:_NAMED])
+        more = f" and {len(pairs) - _NAMED} more pairs" if len(pairs) > _NAMED else ""
+        raise ScanDataError(
+            f"{who}: {len(pairs)} tree(s) listed twice (the same place within {100 * DUPLICATE_DISTANCE_M:g} cm and the same "
+            f"DBH within {100 * DUPLICATE_DBH_M:g} cm): {word} {shown}{more}; remove the repeated rows")
+    keep = [rows[i] for i in keep_idx]
+    notes = []
+    if len(keep) < n_all:
+        notes.append(f"{n_all - len(keep)} of {n_all} trees without a stem (source not 'stem') left out: they cannot be matched by their stems")
+    xyz = xyz[keep_idx] * unit_scale
     shift = np.floor(xyz.mean(axis=0))
     local = xyz - shift
     n = len(keep)
-    dbh = np.array([num(r, "dbh_m") for r in keep])
-    h = np.array([num(r, "height_m") for r in keep])
-    d_trust = [_trust(str(r.get("dbh_quality", "") or ("; high" if math.isfinite(num(r, "dbh_m")) else ""))) for r in keep]
-    h_trust = [_trust(str(r.get("height_quality", "") or ("; high" if math.isfinite(num(r, "height_m")) else ""))) for r in keep]
+    dbh = dbh[keep_idx]
+    h = height[keep_idx]
+    d_trust = [_trust(str(r.get("dbh_quality", "") or ("; high" if math.isfinite(d) else ""))) for r, d in zip(keep, dbh)]
+    h_trust = [_trust(str(r.get("height_quality", "") or ("; high" if math.isfinite(v) else ""))) for r, v in zip(keep, h)]
     d_sd = np.array([by_trust(change.table_dbh_sigma_m, t) for t in d_trust])
     h_sd = np.array([by_trust(change.height_sigma_m, t) for t in h_trust])
     ids = []
@@ -328,5 +464,66 @@ def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_
         height_ok=np.isfinite(h) & np.array([t in ("high", "medium") for t in h_trust]),
         flags=tuple(str(r.get("flag", "") or "") for r in keep), curves=tuple(None for _ in keep),
         band=np.zeros((0, 3)), band_heights=np.zeros(0), ground=np.zeros((0, 3)), origin_shift=shift,
-        foot_z=local[:, 2].copy(), terrain=True, source="table", name=name,
+        foot_z=local[:, 2].copy(), terrain=True, source="table", name=name, notes=tuple(notes),
     )
+
+
+def _listed_twice(xy: np.ndarray, dbh: np.ndarray) -> list[tuple[int, int]]:
+    """Pairs (i < j) of rows at the same place (within :data:`DUPLICATE_DISTANCE_M`, metres) with
+    the same DBH (within :data:`DUPLICATE_DBH_M`, or both unknown), in row order."""
+    from scipy.spatial import cKDTree
+
+    if len(xy) < 2:
+        return []
+    out = []
+    for i, j in sorted(cKDTree(xy).query_pairs(DUPLICATE_DISTANCE_M)):
+        a, b = dbh[i], dbh[j]
+        if (math.isnan(a) and math.isnan(b)) or abs(a - b) <= DUPLICATE_DBH_M:
+            out.append((int(i), int(j)))
+    return out
+
+
+#: Units whose factor two surveys' positions may be off by: (name, metres per unit).
+POSITION_UNITS = (("feet", 0.3048), ("centimetres", 0.01), ("millimetres", 0.001))
+#: How close (as a ratio) the spacing and extent ratios of two surveys must both come to a unit
+#: factor to say the surveys are in different units.
+UNIT_RATIO_TOLERANCE = 1.2
+
+
+def position_unit_mismatch(before: EpochTrees, after: EpochTrees) -> Optional[dict[str, Any]]:
+    """Whether the tree positions of two surveys of one plot differ by a unit factor (one survey
+    in feet, centimetres or millimetres read as the other's unit): both the median spacing of
+    neighbouring stems and the plot's width (the largest distance between two stems, whatever
+    the heading) are ~3.28, ~100 or ~1000 times larger in one survey
+    (within :data:`UNIT_RATIO_TOLERANCE`). A harvest widens the spacing but keeps the extent; a
+    larger survey widens the extent but keeps the spacing: only a unit does both.
+
+    Returns None, or ``{"larger": "BEFORE"|"AFTER", "unit": name, "factor": metres per unit,
+    "why": the figures}``: ``larger``'s numbers are ``1 / factor`` times the other's."""
+    from scipy.spatial import cKDTree
+
+    if len(before) < 5 or len(after) < 5:
+        return None
+
+    def figures(e: EpochTrees) -> tuple[float, float]:
+        """(median distance to the nearest other stem, the largest distance between two stems)."""
+        from scipy.spatial import ConvexHull, QhullError
+
+        d, _ = cKDTree(e.xy).query(e.xy, k=2)
+        try:
+            rim = e.xy[ConvexHull(e.xy).vertices]
+        except QhullError:  # stems on a line
+            rim = e.xy
+        return float(np.median(d[:, 1])), float(np.max(np.hypot(*(rim[:, None, :] - rim[None, :, :]).transpose(2, 0, 1))))
+
+    (sb, eb), (sa, ea) = figures(before), figures(after)
+    if min(sb, eb, sa, ea) <= 0:
+        return None
+    spacing, extent = sa / sb, ea / eb
+    for unit, metres in POSITION_UNITS:
+        for larger, ratio in (("AFTER", 1.0 / metres), ("BEFORE", metres)):
+            if all(abs(math.log(r / ratio)) < math.log(UNIT_RATIO_TOLERANCE) for r in (spacing, extent)):
+                why = (f"AFTER's stems are {spacing:.3g} times as far apart as BEFORE's (median spacing {sa:.3g} against "
+                       f"{sb:.3g}) over a {extent:.3g} times wider plot (widest {ea:.4g} against {eb:.4g})")
+                return {"larger": larger, "unit": unit, "factor": metres, "why": why}
+    return None
