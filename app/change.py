@@ -37,9 +37,11 @@ class ChangeOutcome(RunOutcome):
     """The outcome of ``change``: ``status``, ``reason``, ``matrix`` (4x4, file coordinates in the
     files' unit, or None), ``timings``, ``out`` (the folder written, or None), ``summary`` (the
     ``result.json``), ``result`` (the engine's :class:`~forestreg.engine.change.ChangeResult`),
-    ``rows`` (the ``tree_changes.csv`` rows). Falsy when not ok."""
+    ``rows`` (the ``tree_changes.csv`` rows), ``notes`` (what reading the inputs did that a user
+    should know: a DBH column converted, rows left out). Falsy when not ok."""
 
     rows: list = field(default_factory=list)
+    notes: tuple = ()
 
     method: ClassVar[str] = "re-survey (persisting stems from any heading + ICP on stem slices and terrain)"
     convention: ClassVar[str] = "p_before = matrix @ p_after (file coordinates of BEFORE and AFTER)"
@@ -112,41 +114,46 @@ def read_change_folder(folder):
 
 
 def _input_kind(path: Path) -> str:
-    """"table" (a ``trees.csv`` or a folder holding one), "project" (a plot project file) or
-    "cloud"; a missing or unreadable input is a one-line error."""
+    """"table" (a table of trees, :func:`~forestreg.engine.io.sniff.is_tree_table`, or a folder
+    holding a ``trees.csv``), "project" (a plot project file) or "cloud"; a missing or unreadable
+    input is a one-line error."""
     from ..engine.core.errors import UsageError
     from ..engine.io.base import check_readable
+    from ..engine.io.sniff import is_tree_table
 
     if path.is_dir():
         if (path / "trees.csv").is_file():
             return "table"
         raise UsageError(f"{path} is a folder without trees.csv: give a cloud, a project file or the trees.csv of 'forestreg trees'")
     check_readable(path)
-    suffix = path.suffix.lower()
-    if suffix == ".json":
+    if path.suffix.lower() == ".json":
         return "project"
-    if suffix == ".csv":
-        try:
-            head = path.open(encoding="utf-8", errors="replace").readline().lower()
-        except OSError:
-            head = ""
-        columns = {c.strip() for c in head.replace(";", ",").split(",")}
-        if {"x", "y", "dbh_m"} <= columns:
-            return "table"
-    return "cloud"
+    return "table" if is_tree_table(path) else "cloud"
+
+
+def _real_input(path: Path) -> Path:
+    """The file an input stands for: a folder's ``trees.csv``, links and ``..`` resolved."""
+    return ((path / "trees.csv") if path.is_dir() else path).resolve()
+
+
+def _same_input(a: Path, b: Path) -> bool:
+    import os
+
+    try:
+        return a == b or os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 def _read_table(path: Path, role: str, scale: float, change_params):
+    """The trees of a table (a ``trees.csv`` or a folder holding one) and what reading it did."""
     from ..engine.change import epoch_from_table
-    from ..engine.core.errors import UsageError
-    from ..engine.io.results import read_csv_rows
+    from ..engine.io.tables import read_trees_table
 
-    table = path / "trees.csv" if path.is_dir() else path
-    header, rows = read_csv_rows(table)
-    missing = [c for c in ("x", "y", "dbh_m") if c not in header]
-    if missing:
-        raise UsageError(f"{table}: not a trees.csv of 'forestreg trees' (no column {', '.join(missing)})")
-    return epoch_from_table(rows, name=role, unit_scale=scale, change=change_params)
+    table = read_trees_table(path / "trees.csv" if path.is_dir() else path)
+    epoch = epoch_from_table(table.rows, name=f"{role} ({table.path.name})", unit_scale=scale, change=change_params,
+                             lines=table.lines, dbh_column=table.dbh_column)
+    return epoch, table.notes + epoch.notes
 
 
 def _project_cloud(path: Path, scale: float):
@@ -185,8 +192,16 @@ def _project_cloud(path: Path, scale: float):
 def read_epoch(path, role: str, *, units: str = "m", tree_params=None, change_params=None, progress=None, cancel=None):
     """One survey (``role`` "BEFORE" or "AFTER") as :class:`~forestreg.engine.change.EpochTrees`
     and a note on what was read: a cloud's trees are measured (the tree inventory's steps, with
-    ``tree_params``), a table's are taken as they are; the uncertainties, the no-ground decision and
-    the stem band from ``change_params`` (a :class:`~forestreg.engine.change.ChangeParams`)."""
+    ``tree_params``), a table's are taken as they are, after checking every row; the
+    uncertainties, the no-ground decision and the stem band from ``change_params`` (a
+    :class:`~forestreg.engine.change.ChangeParams`)."""
+    epoch, note, _, _ = _read_survey(Path(path), role, units, tree_params, change_params, progress, cancel)
+    return epoch, note
+
+
+def _read_survey(p: Path, role: str, units: str, tree_params, change_params, progress=None, cancel=None):
+    """:func:`read_epoch`, with the file the trees came from (a project's table) and the notes a
+    user should see (a DBH column converted, rows left out)."""
     from ..engine.change import ChangeParams
     from ..engine.change import epoch_from_cloud
     from ..engine.core.scan import Scan
@@ -194,62 +209,124 @@ def read_epoch(path, role: str, *, units: str = "m", tree_params=None, change_pa
 
     change_params = change_params if change_params is not None else ChangeParams()
     scale = UNITS[units]
-    p = Path(path)
     kind = _input_kind(p)
     if kind == "table":
-        return _read_table(p, role, scale, change_params), f"trees table {p.name}"
+        epoch, notes = _read_table(p, role, scale, change_params)
+        note = f"trees table {p.name}" + (f" ({'; '.join(notes)})" if notes else "")
+        return epoch, note, _real_input(p), notes
     if kind == "project":
         cloud, note = _project_cloud(p, scale)
         if not isinstance(cloud, Scan):
-            return _read_table(cloud, role, scale, change_params), note
+            epoch, notes = _read_table(cloud, role, scale, change_params)
+            return epoch, note + (f" ({'; '.join(notes)})" if notes else ""), _real_input(cloud), notes
     else:
         cloud, note = read_scan(p, unit_scale=scale, with_intensity=False), f"cloud {p.name}"
     epoch = epoch_from_cloud(cloud.points, tree_params, with_cancel(progress, cancel), origin_shift=cloud.origin_shift, name=role,
                              change=change_params)
-    return epoch, f"{note}, {len(cloud.points):,} points"
+    return epoch, f"{note}, {len(cloud.points):,} points", _real_input(p), ()
+
+
+def _unit_mismatch(before, after, units_before: str, units_after: str) -> None:
+    """Refuse two surveys whose tree positions differ by a unit factor
+    (:func:`~forestreg.engine.change.position_unit_mismatch`), naming the units that would agree."""
+    from ..engine.change import position_unit_mismatch
+    from ..engine.core.errors import UsageError
+
+    found = position_unit_mismatch(before, after)
+    if found is None:
+        return
+    larger = found["larger"]
+    given = {"BEFORE": units_before, "AFTER": units_after}
+    smaller = "AFTER" if larger == "BEFORE" else "BEFORE"
+
+    def unit_for(scale: float) -> Optional[str]:
+        return next((u for u, s in UNITS.items() if abs(s / scale - 1.0) < 0.01), None)
+
+    # the larger numbers are in a unit `factor` times the given one's, or the other survey's in one 1/factor times
+    fixes = []
+    u = unit_for(UNITS[given[larger]] * found["factor"])
+    if u is not None:
+        fixes.append(f"--units-{larger.lower()} {u}")
+    u = unit_for(UNITS[given[smaller]] / found["factor"])
+    if u is not None:
+        fixes.append(f"--units-{smaller.lower()} {u}")
+    same = units_before == units_after
+    read_as = f"both read as {units_before}" if same else f"BEFORE read as {units_before}, AFTER as {units_after}"
+    hint = f"; give each survey's unit: {' or '.join(fixes)}" if fixes else "; give each survey's unit (--units-before, --units-after)"
+    raise UsageError(f"the two surveys look like different units ({read_as}): {found['why']}: {larger} looks like "
+                     f"{found['unit']} against {smaller}'s unit{hint}")
 
 
 def detect_change_files(
-    before, after, out, params=None, *, units: str = "m", report: bool = True, progress=None, cancel=None,
+    before, after, out, params=None, *, units: str = "m", units_before: Optional[str] = None, units_after: Optional[str] = None,
+    report: bool = True, progress=None, cancel=None,
 ) -> ChangeOutcome:
     """Compare the surveys ``before`` and ``after`` (paths: clouds, project files, trees tables)
     into the folder ``out`` (a transaction; None: nothing written). ``params``: a
     :class:`~forestreg.engine.params.ProductParams` (its ``change`` and ``trees`` sections) or a
-    :class:`~forestreg.engine.change.ChangeParams`. Returns a :class:`ChangeOutcome`."""
+    :class:`~forestreg.engine.change.ChangeParams`. ``units``: the unit of both surveys' files;
+    ``units_before`` / ``units_after`` one survey's, when they differ. Returns a :class:`ChangeOutcome`.
+
+    Refused (:class:`~forestreg.engine.core.errors.UsageError` or
+    :class:`~forestreg.engine.core.errors.ScanDataError`, before anything is written): the same
+    file twice (also a folder and its ``trees.csv``), a table with bad rows (positions that are no
+    finite number, a DBH not above 0 or in another unit, a tree listed twice), and surveys whose
+    positions differ by a unit factor."""
     from ..engine.change import CHANGE_COLUMNS, ChangeParams, detect_change
     from ..engine.core.atomic import check_output_folder, output_folder
     from ..engine.core.errors import UsageError
     from ..engine.core.progress import as_progress
-    from ..engine.core.transform import to_file_units, withhold_unless_rigid
+    from ..engine.core.transform import withhold_unless_rigid
     from ..engine.trees.inventory import TreeParams
 
-    if units not in UNITS:
-        raise UsageError(f"unknown unit {units!r}: one of {', '.join(UNITS)}")
-    scale = UNITS[units]
+    units_before = units if units_before is None else units_before
+    units_after = units if units_after is None else units_after
+    for u in (units, units_before, units_after):
+        if u not in UNITS:
+            raise UsageError(f"unknown unit {u!r}: one of {', '.join(UNITS)}")
+    scale, scale_after = UNITS[units_before], UNITS[units_after]
     change_params, tree_params = ChangeParams(), TreeParams()
     if isinstance(params, ChangeParams):
         change_params = params
     elif params is not None:
         change_params, tree_params = params.change, params.trees
     b_path, a_path = Path(before), Path(after)
-    if b_path.resolve() == a_path.resolve():
-        raise UsageError("BEFORE and AFTER are the same file: give the two surveys")
+
+    def same_refused(b: Path, a: Path) -> None:
+        if _same_input(b, a):
+            raise UsageError(f"BEFORE and AFTER are the same file ({b}): give the two surveys")
+
+    same_refused(b_path.resolve(), a_path.resolve())
     kinds = (_input_kind(b_path), _input_kind(a_path))  # both checked before any work
+    same_refused(_real_input(b_path), _real_input(a_path))
     if out is not None:
         out = check_output_folder(out, "change", inputs=[b_path, a_path])
     prog = as_progress(with_cancel(progress, cancel))
     t0 = time.perf_counter()
-    b_epoch, b_note = read_epoch(b_path, "BEFORE", units=units, tree_params=tree_params, change_params=change_params, progress=prog.sub(0.0, 0.45))
-    a_epoch, a_note = read_epoch(a_path, "AFTER", units=units, tree_params=tree_params, change_params=change_params, progress=prog.sub(0.45, 0.9))
+    b_epoch, b_note, b_real, b_notes = _read_survey(b_path, "BEFORE", units_before, tree_params, change_params, prog.sub(0.0, 0.45))
+    if kinds[0] == "project":
+        same_refused(b_real, _real_input(a_path))
+    a_epoch, a_note, a_real, a_notes = _read_survey(a_path, "AFTER", units_after, tree_params, change_params, prog.sub(0.45, 0.9))
+    same_refused(b_real, a_real)
+    _unit_mismatch(b_epoch, a_epoch, units_before, units_after)
     read_s = time.perf_counter() - t0
     result = detect_change(b_epoch, a_epoch, change_params, prog.sub(0.9, 1.0))
     summary = withhold_unless_rigid(result.to_dict())  # the last check before "ok"
     if summary.get("matrix") is not None:
-        summary["matrix"] = to_file_units(np.asarray(summary["matrix"]), scale).tolist()
+        # file coordinates of each survey in its own unit: p_before = M @ p_after holds the unit ratio
+        m = np.array(summary["matrix"], dtype=float)
+        m[:3, :3] *= scale_after / scale
+        m[:3, 3] /= scale
+        summary["matrix"] = m.tolist()
     summary["timings"] = {"read_and_trees_s": read_s, **summary.get("timings", {})}
+    notes = [f"BEFORE: {n}" for n in b_notes] + [f"AFTER: {n}" for n in a_notes]
     summary.update(before=str(b_path.resolve()), after=str(a_path.resolve()), before_read=b_note, after_read=a_note,
-                   inputs={"before": kinds[0], "after": kinds[1]}, unit=units, unit_scale=scale,
-                   columns="tree_changes.csv: x, y in BEFORE file coordinates (the files' unit); DBH and heights in metres")
+                   inputs={"before": kinds[0], "after": kinds[1]}, unit=units_before, unit_scale=scale,
+                   unit_after=units_after, unit_scale_after=scale_after, notes=notes,
+                   columns="tree_changes.csv: x, y in BEFORE file coordinates (BEFORE's unit); DBH and heights in metres")
+    if units_before != units_after:
+        summary["convention"] = (f"{summary.get('convention') or ChangeOutcome.convention}; BEFORE in {units_before}, AFTER in "
+                                 f"{units_after}: the matrix scales by {scale_after / scale:.6g}")
     ok = summary["status"] == "ok"
     rows_local = [t.row(np.zeros(3)) for t in result.trees] if ok else []
     rows = [{**r, "x": (r["x"] + float(result.origin_shift[0])) / scale, "y": (r["y"] + float(result.origin_shift[1])) / scale}
@@ -275,4 +352,4 @@ def detect_change_files(
     m = summary.get("matrix")
     return ChangeOutcome(status=str(summary["status"]), reason=str(summary.get("reason") or ""),
                          matrix=None if m is None else np.asarray(m, dtype=float), timings=dict(summary["timings"]),
-                         out=out, summary=summary, result=result, rows=rows)
+                         out=out, summary=summary, result=result, rows=rows, notes=tuple(notes))

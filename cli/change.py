@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..app.units import UNITS
 from .common import Reporter, add_units_params, product_params, say, shown
 
 
@@ -19,7 +20,10 @@ def add_parsers(sub) -> None:
     p.add_argument("after", help="the later survey: a cloud, a project file or a trees.csv")
     p.add_argument("--out", required=True, help="output folder (result.json, tree_changes.csv, report.html); replaced when the run completes")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
-    add_units_params(p, "units of the input coordinates", cmd_change)
+    add_units_params(p, "unit of both surveys' coordinates", cmd_change)
+    for role in ("before", "after"):
+        p.add_argument(f"--units-{role}", choices=sorted(UNITS), default=None,
+                       help=f"unit of the {role.upper()} survey's coordinates, when the two differ (default: --units)")
 
 
 def cmd_change(args: argparse.Namespace) -> int:
@@ -28,12 +32,15 @@ def cmd_change(args: argparse.Namespace) -> int:
     reporter: Reporter = args.reporter
     try:
         outcome = detect_change_files(args.before, args.after, args.out, product_params(args), units=args.units,
+                                      units_before=args.units_before, units_after=args.units_after,
                                       report=not args.no_report, progress=reporter)
     finally:
         reporter.close()
     out = outcome.out
     reporter.done("" if outcome.ok else outcome.reason, out / "result.json")
     ns = argparse.Namespace(reporter=reporter)
+    for note in outcome.notes:
+        print(f"note: {note}")
     if outcome.ok:
         say(f"ok: {outcome.line()} -> {shown(out) / 'tree_changes.csv'}", ns)
         if (out / "report.html").exists():
