@@ -110,6 +110,8 @@ class Reporter:
     """
 
     def __init__(self, mode: str, command: str) -> None:
+        from ..engine.core.atomic import held_output_locks
+
         self.mode = mode
         self.command = command
         self.message: str = ""
@@ -117,6 +119,7 @@ class Reporter:
         self._bar = None
         self._last = None
         self._last_fraction = -1.0
+        self._locks_before = set(held_output_locks())
 
     # engine callback
     def __call__(self, fraction: float, message: str = "") -> None:
@@ -156,8 +159,14 @@ class Reporter:
             self.result = str(result)
 
     def end(self, exit_code: int, message: str = "") -> None:
-        """The last event (JSON lines only)."""
+        """The last event (JSON lines only). The command has ended: the output folders it locked
+        are released and their lock files removed (the process may then leave without its exit
+        handlers, and a command run inside a longer-lived process holds no lock after it)."""
         self.close()
+        from ..engine.core.atomic import held_output_locks, release_output_folder
+
+        for folder in set(held_output_locks()) - self._locks_before:
+            release_output_folder(folder)
         if self.mode == "jsonl":
             self._emit({"event": "end", "exit_code": int(exit_code), "message": (message or self.message).splitlines()[0] if (message or self.message) else "",
                         "result": self.result})

@@ -160,6 +160,77 @@ def test_a_manifest_batch_writes_only_into_its_output_folder(tmp_path):
     assert not [p for p in os.listdir(tmp_path / "o") if p.startswith(".forestreg-lock")]
 
 
+# ----------------------------------------------------------------------------- one run per output folder
+
+
+def _hold(folder: Path, out: str) -> subprocess.Popen:
+    """A process that takes the lock of the output folder ``out`` (as a forestreg run does) and
+    sleeps; it prints "held" once it holds it."""
+    code = ("import sys, time; from forestreg.engine.core.atomic import check_output_folder; "
+            f"check_output_folder({out!r}, 'change'); print('held', flush=True); time.sleep(120)")
+    holder = subprocess.Popen([sys.executable, "-c", code], cwd=folder, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held", holder.stderr.read() if holder.poll() is not None else ""
+    return holder
+
+
+def test_a_second_run_into_the_same_output_folder_is_refused_and_a_killed_ones_lock_blocks_nothing(tmp_path):
+    before, after = _trees_tables(tmp_path)
+    holder = _hold(tmp_path, "o")
+    try:
+        t0 = time.monotonic()
+        run = _run("change", before, after, "--out", "o", cwd=tmp_path)
+        assert run.returncode == 2, run.stdout + run.stderr
+        assert _last_line(run) == (f"forestreg: error: o is being written by another forestreg run (pid {holder.pid}): "
+                                   "wait for it to end, or give another output folder")
+        assert time.monotonic() - t0 < 20 and not (tmp_path / "o").exists()
+    finally:
+        holder.kill()  # SIGKILL: no exit handler runs, its lock file stays
+        holder.wait(timeout=10)
+    assert (tmp_path / ".forestreg-lock-o").exists()
+    run = _run("change", before, after, "--out", "o", cwd=tmp_path)  # the operating system released its lock
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert json.loads((tmp_path / "o" / "result.json").read_text())["status"] == "ok"
+    assert not (tmp_path / ".forestreg-lock-o").exists()  # removed by the run that took it over
+
+
+def test_two_cli_runs_at_once_into_one_folder(tmp_path):
+    """Two real runs: the second, started while the first writes ``o``, is refused at once and the
+    first one's result is whole; after it, the folder is free again."""
+    first = subprocess.Popen([*CLI, "simulate", "open_field", "--out", "o", "--positions", "0,0;9,4", "--size", "40", "--step", "0.25",
+                              "-q"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not (tmp_path / ".forestreg-lock-o").exists() and first.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert first.poll() is None, "the first run ended before the second could start"
+        second = _run("simulate", "open_field", "--out", "o", "--positions", "0,0", "--size", "20", "--step", "0.6", cwd=tmp_path)
+        assert first.poll() is None, "the first run ended before the second was refused: the test proves nothing"
+        assert second.returncode == 2 and f"o is being written by another forestreg run (pid {first.pid})" in _last_line(second), \
+            second.stderr
+        _, err = first.communicate(timeout=300)
+        assert first.returncode == 0, err[-2000:]
+    finally:
+        if first.poll() is None:
+            first.kill()
+    assert sorted(p.name for p in (tmp_path / "o").glob("*.laz")) == ["scan_01.laz", "scan_02.laz"]  # the first run's two scans
+    assert sorted(os.listdir(tmp_path)) == ["o"]
+    assert _run("simulate", "open_field", "--out", "o", "--positions", "0,0", "--size", "20", "--step", "0.6", "-q",
+                cwd=tmp_path).returncode == 0
+
+
+def test_two_batches_into_one_output_folder(tmp_path):
+    """A batch holds its ``OUT`` for its whole run: a second batch into it is refused (exit 2)."""
+    before, after = _trees_tables(tmp_path / "plots" / "p1")
+    holder = _hold(tmp_path, "out")
+    try:
+        run = _run("batch", "plots", "--out", "out", "--command", "change", "--workers", "1", cwd=tmp_path)
+        assert run.returncode == 2 and f"out is being written by another forestreg run (pid {holder.pid})" in _last_line(run), run.stderr
+        assert not (tmp_path / "out").exists()
+    finally:
+        holder.kill()
+        holder.wait(timeout=10)
+
+
 # ----------------------------------------------------------------------------- the temporaries of a transaction
 
 

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import tempfile
+import threading
 from pathlib import Path
 from typing import Iterator
 
@@ -62,6 +64,8 @@ TMP_PREFIX = ".forestreg-tmp-"
 #: (``.forestreg-tmp-new-OUT.XXXXXXXX``) and an earlier one moved aside while the new one is put in
 #: its place (``.forestreg-tmp-old-OUT.XXXXXXXX``); both are removed when the transaction ends.
 _NEW, _OLD = TMP_PREFIX + "new-", TMP_PREFIX + "old-"
+#: Start of the name of the lock file beside ``OUT`` while a run writes it (``.forestreg-lock-OUT``).
+LOCK_PREFIX = ".forestreg-lock-"
 
 
 def is_unfinished_output(path: str | os.PathLike[str], target: str | os.PathLike[str] | None = None) -> bool:
@@ -115,7 +119,7 @@ def check_output_folder(path: str | os.PathLike[str], kind: str, *, inputs: "tup
     if target.exists() and not target.is_dir():
         raise OutputPathError(f"--out {target} is an existing file, not a folder: give a new folder")
     if target.is_dir():
-        entries = [e for e in target.iterdir() if not e.name.startswith(TMP_PREFIX)]
+        entries = [e for e in target.iterdir() if not e.name.startswith((TMP_PREFIX, LOCK_PREFIX))]
         if entries and not (target / MARKER).is_file():
             raise OutputPathError(
                 f"--out {target} already holds other files (not a forestreg output folder): give a new or empty folder")
@@ -135,6 +139,7 @@ def check_output_folder(path: str | os.PathLike[str], kind: str, *, inputs: "tup
             raise OutputPathError(f"cannot create the folder {parent}: {exc.strerror or exc}") from exc
     if not os.access(parent, os.W_OK):
         raise OutputPathError(f"cannot write into {parent}: permission denied")
+    lock_output_folder(resolved, shown=target)
     return resolved
 
 
@@ -166,7 +171,9 @@ def output_folder(path: str | os.PathLike[str], kind: str) -> Iterator[Path]:
     it becomes ``path`` (an earlier output folder there is replaced in one rename); when it raises
     (error, Ctrl-C, full disk) it is removed and ``path`` is left as it was.
 
-    Call :func:`check_output_folder` first (before the work) to refuse a folder of other files.
+    Call :func:`check_output_folder` first (before the work) to refuse a folder of other files;
+    it takes the folder's lock (:func:`lock_output_folder`), which the transaction takes too when
+    it was not, and releases when it ends.
     """
     import shutil
 
@@ -174,21 +181,25 @@ def output_folder(path: str | os.PathLike[str], kind: str) -> Iterator[Path]:
 
     target = Path(path).expanduser().resolve()
     target.parent.mkdir(parents=True, exist_ok=True)
+    lock_output_folder(target)
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f"{_NEW}{target.name}.", dir=target.parent))
-    except OSError as exc:
-        raise ScanWriteError(f"cannot write into {target.parent}: {exc.strerror or exc}") from exc
-    try:
-        yield tmp
-        (tmp / MARKER).write_text(kind + "\n", encoding="utf-8")
-        os.chmod(tmp, _final_dir_mode())
-        _swap_in(tmp, target)
-    except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise ScanWriteError(f"cannot write {target}: {exc.strerror or exc}") from exc
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        try:
+            tmp = Path(tempfile.mkdtemp(prefix=f"{_NEW}{target.name}.", dir=target.parent))
+        except OSError as exc:
+            raise ScanWriteError(f"cannot write into {target.parent}: {exc.strerror or exc}") from exc
+        try:
+            yield tmp
+            (tmp / MARKER).write_text(kind + "\n", encoding="utf-8")
+            os.chmod(tmp, _final_dir_mode())
+            _swap_in(tmp, target)
+        except OSError as exc:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise ScanWriteError(f"cannot write {target}: {exc.strerror or exc}") from exc
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+    finally:
+        release_output_folder(target)
 
 
 def _swap_in(tmp: Path, target: Path, attempts: int = 20) -> None:
@@ -225,6 +236,130 @@ def _final_dir_mode() -> int:
     umask = os.umask(0)
     os.umask(umask)
     return 0o777 & ~umask
+
+
+# ----------------------------------------------------------------------------- one run per output folder
+
+#: Output folders this process holds the lock of: resolved path -> (lock file descriptor, pid of
+#: the process that took it; a forked child never releases its parent's lock).
+_OUTPUT_LOCKS: dict[str, tuple[int, int]] = {}
+_OUTPUT_LOCKS_GUARD = threading.Lock()
+
+
+def output_lock_path(path: str | os.PathLike[str]) -> Path:
+    """The lock file of the output folder ``path``: ``.forestreg-lock-<name>`` beside it (a hash
+    of the name when the name is too long for a file name)."""
+    target = Path(path)
+    name = target.name
+    if len((LOCK_PREFIX + name).encode("utf-8", "surrogateescape")) > 240:
+        import hashlib
+
+        name = hashlib.sha1(name.encode("utf-8", "surrogateescape")).hexdigest()
+    return target.parent / f"{LOCK_PREFIX}{name}"
+
+
+def lock_output_folder(path: str | os.PathLike[str], *, shown: str | os.PathLike[str] | None = None) -> None:
+    """Take the exclusive lock of the output folder ``path`` for this process, or refuse at once
+    with :class:`~forestreg.engine.core.errors.OutputPathError` naming the process that holds it:
+    two runs writing one folder would each say done while the folder holds one run's result.
+
+    The lock is ``flock`` on :func:`output_lock_path` (beside the folder, since the folder itself
+    is replaced by a rename): the operating system drops it when the process ends, however it
+    ends, so a lock file left by a killed run never blocks a later one. It is released by
+    :func:`release_output_folder` (the end of a folder transaction) or when the process exits
+    (its file is then removed). Taking it again in the same process does nothing. Without
+    ``fcntl`` (Windows), or where the lock file cannot be made, there is no lock."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        return
+    from .errors import OutputPathError
+
+    target = Path(path).expanduser().resolve()
+    key = str(target)
+    lock = output_lock_path(target)
+    with _OUTPUT_LOCKS_GUARD:
+        held = _OUTPUT_LOCKS.get(key)
+        if held is not None and held[1] == os.getpid():
+            return
+        for _ in range(20):
+            try:
+                fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+            except OSError:
+                return  # no lock file here (a read-only parent is refused by the checks)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = _lock_holder(fd)
+                os.close(fd)
+                raise OutputPathError(f"{shown if shown is not None else target} is being written by another forestreg run "
+                                      f"({f'pid {holder}' if holder else 'pid unknown'}): wait for it to end, or give another "
+                                      "output folder") from None
+            except OSError:  # no locks on this file system (some network mounts)
+                os.close(fd)
+                return
+            try:  # the file the lock was taken on must still be the lock file: its holder removes it
+                same = os.path.samestat(os.fstat(fd), os.stat(lock))  # when it ends, maybe between our open and flock
+            except OSError:
+                same = False
+            if not same:
+                os.close(fd)
+                continue
+            try:
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()}\n".encode())
+            except OSError:
+                pass
+            _OUTPUT_LOCKS[key] = (fd, os.getpid())
+            return
+
+
+def _lock_holder(fd: int) -> str:
+    """The pid a lock file names (its holder writes it just after taking the lock)."""
+    import time
+
+    for _ in range(10):
+        try:
+            text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        except OSError:
+            return ""
+        if text:
+            return text
+        time.sleep(0.02)
+    return ""
+
+
+def release_output_folder(path: str | os.PathLike[str]) -> None:
+    """Release this process's lock of the output folder ``path`` (taken by
+    :func:`check_output_folder` or :func:`lock_output_folder`) and remove its lock file; nothing
+    when this process does not hold it."""
+    key = str(Path(path).expanduser().resolve())
+    with _OUTPUT_LOCKS_GUARD:
+        held = _OUTPUT_LOCKS.get(key)
+        if held is None or held[1] != os.getpid():
+            return
+        del _OUTPUT_LOCKS[key]
+        fd = held[0]
+        lock = output_lock_path(key)
+        try:  # removed while still held: a run that opened it meanwhile sees it is gone and makes a new one
+            if os.path.samestat(os.fstat(fd), os.stat(lock)):
+                os.unlink(lock)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+
+
+def held_output_locks() -> list[str]:
+    """The output folders whose lock this process holds."""
+    with _OUTPUT_LOCKS_GUARD:
+        return sorted(k for k, (_, pid) in _OUTPUT_LOCKS.items() if pid == os.getpid())
+
+
+@atexit.register
+def _release_all_output_locks() -> None:
+    for key in held_output_locks():
+        release_output_folder(key)
 
 
 # ----------------------------------------------------------------------------- locks between processes
