@@ -5,7 +5,9 @@ Every route but ``GET /v1/health`` needs ``Authorization: Bearer <token>`` (the 
 
     GET    /v1/health                 {"status": "ok", "version": ...}
     POST   /v1/jobs                   {"args": [...], "cwd": "/abs/folder"} -> 201 {"id": ...}; 400 arguments the
-                                      CLI refuses; 413 a body over 1 MiB; 422 no absolute cwd, over 2,000
+                                      CLI refuses; 409 its --out is (or holds, or lies in) the output folder
+                                      of a job queued or running; 413 a body over 1 MiB; 422 a cwd that is
+                                      not absolute, no cwd while args hold a relative path, over 2,000
                                       arguments, an argument over 4,096 characters, or a NUL byte
     GET    /v1/jobs                   {"jobs": [...]} (newest first)
     GET    /v1/jobs/{id}              the job: status, progress, step, message, exit_code, result
@@ -16,7 +18,8 @@ Every route but ``GET /v1/health`` needs ``Authorization: Bearer <token>`` (the 
 
 A job runs in the working folder ``cwd`` the client sends (an absolute path; the Python client sends
 its own working folder): relative paths in ``args`` are taken from there, never from the service's
-own working folder. SIGTERM or Ctrl-C stops the service: running jobs are stopped (marked
+own working folder. A job whose paths are all absolute may come without ``cwd``: it then runs in a
+private folder of its own (``STATE/work/<id>``, removed after it when empty). SIGTERM or Ctrl-C stops the service: running jobs are stopped (marked
 ``interrupted``) and the state folder is unlocked, also when a request is still being answered.
 """
 
@@ -43,7 +46,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, Field, field_validator
 
 from ..client import default_state_dir, read_server_info
-from .jobs import ArgumentError, JobManager
+from .jobs import ArgumentError, JobManager, OutputBusy, WorkingFolderNeeded
 from .store import FINAL, JobStore
 
 log = logging.getLogger("forestreg.service")
@@ -84,7 +87,8 @@ def ensure_token(state_dir: Path) -> str:
 
 class JobRequest(BaseModel):
     args: list[str] = Field(..., description=f"the CLI's arguments, e.g. ['register', 'A.laz', 'B.laz', '--out', 'D'] (at most {MAX_ARGS})")
-    cwd: str = Field(..., description="the client's working folder, an absolute path: the job runs there and relative paths in args are taken from it")
+    cwd: Optional[str] = Field(None, description="the client's working folder, an absolute path: the job runs there and relative paths in "
+                                                 "args are taken from it; may be left out when every path in args is absolute")
 
     @field_validator("args")
     @classmethod
@@ -100,7 +104,9 @@ class JobRequest(BaseModel):
 
     @field_validator("cwd")
     @classmethod
-    def _cwd(cls, cwd: str) -> str:
+    def _cwd(cls, cwd: Optional[str]) -> Optional[str]:
+        if cwd is None:
+            return None
         if "\x00" in cwd:
             raise ValueError("the working folder holds a NUL byte")
         if not os.path.isabs(cwd):
@@ -222,10 +228,17 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
 
     @app.post("/v1/jobs", status_code=201, response_model=JobId, dependencies=[Depends(authorised)])
     def submit(request: JobRequest) -> dict:
+        return {"id": queue(request.args, request.cwd)}
+
+    def queue(args: list[str], cwd: Optional[str]) -> str:
         try:
-            return {"id": manager.submit(request.args, request.cwd)}
+            return manager.submit(args, cwd)
         except ArgumentError as exc:
             raise HTTPException(400, str(exc)) from None
+        except WorkingFolderNeeded as exc:
+            raise HTTPException(422, f"cwd: {exc}") from None
+        except OutputBusy as exc:
+            raise HTTPException(409, str(exc)) from None
 
     @app.get("/v1/jobs", dependencies=[Depends(authorised)])
     def jobs(limit: int = 1000) -> dict:
@@ -245,12 +258,9 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
     @app.post("/v1/jobs/{job_id}/resubmit", status_code=201, response_model=JobId, dependencies=[Depends(authorised)])
     def resubmit(job_id: str) -> dict:
         old = job_or_404(job_id)
-        if not old["cwd"] or not os.path.isabs(old["cwd"]):
+        if old["cwd"] and not os.path.isabs(old["cwd"]):
             raise HTTPException(422, f"job {job_id} has no absolute working folder: submit its arguments again with cwd")
-        try:
-            return {"id": manager.submit(old["args"], old["cwd"])}
-        except ArgumentError as exc:
-            raise HTTPException(400, str(exc)) from None
+        return {"id": queue(old["args"], old["cwd"] or None)}
 
     @app.get("/v1/jobs/{job_id}/events", dependencies=[Depends(authorised)])
     async def events(job_id: str, request: Request) -> StreamingResponse:
@@ -295,7 +305,7 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
         where = ".".join(str(p) for p in first.get("loc", ()) if p != "body") or "body"
         what = str(first.get("msg", "invalid request")).removeprefix("Value error, ")
         if where == "cwd" and first.get("type") != "value_error":
-            what = "required: the client's working folder as an absolute path (relative paths in args are taken from it)"
+            what = "must be the client's working folder as an absolute path (a string; relative paths in args are taken from it)"
         elif first.get("type") == "missing":
             what = "missing"
         return JSONResponse({"detail": f"{where}: {what}"}, status_code=422)

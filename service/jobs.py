@@ -42,6 +42,14 @@ class ArgumentError(ValueError):
     """Arguments the CLI would refuse; the message is the CLI's one line."""
 
 
+class WorkingFolderNeeded(ValueError):
+    """A job without a working folder names a relative path (the API's 422): the message names it."""
+
+
+class OutputBusy(ValueError):
+    """A job would write the output folder of a job that is queued or running (the API's 409)."""
+
+
 # ----------------------------------------------------------------------------- arguments
 
 
@@ -100,6 +108,108 @@ def validate_args(args: Sequence[str]) -> argparse.Namespace:
         return _parser().parse_args(list(args))
     except argparse.ArgumentTypeError as exc:  # pragma: no cover - argparse turns these into error()
         raise ArgumentError(f"forestreg: error: {exc}") from exc
+
+
+# ----------------------------------------------------------------------------- paths in arguments
+
+#: String arguments of the CLI that are not paths: scan and run names, spelled-out choices,
+#: coordinates, addresses, sizes, options passed on. Any other string argument is taken as a path
+#: (a new option counts as one until it is listed here: a job then needs a working folder).
+_NOT_PATHS = frozenset({"centre", "tilted", "pairs", "fixed", "name", "tilt", "host", "scheduler", "memory_limit", "preset",
+                        "gui_args", "extra", "progress", "command", "action"})
+#: ... and those that are not paths in one command only ((command, action) -> argument names)
+_NOT_PATHS_IN = {("project", "link"): frozenset({"moving", "reference"}), ("simulate", None): frozenset({"positions"})}
+_GLOBAL_FLAGS = ("-v", "--verbose", "-q", "--quiet")
+
+
+def _command_of(args: Sequence[str]) -> tuple[str, int]:
+    """The command of ``args`` (after the global flags) and its index."""
+    k = 0
+    while k < len(args) and args[k].startswith("-"):
+        k += 2 if args[k] == "--progress" else 1
+    return (args[k], k) if k < len(args) else ("", k)
+
+
+def _string_arguments(command: str, action: Optional[str]) -> list[str]:
+    """The destinations of the string-valued arguments of ``command`` (and its ``action``)."""
+    parser = _parser()
+    for level in (command, action):
+        if level is None:
+            break
+        sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if sub is None or level not in sub.choices:
+            break
+        parser = sub.choices[level]
+    return [a.dest for a in parser._actions
+            if a.nargs != 0 and a.choices is None and a.type in (None, str) and not isinstance(a, argparse._SubParsersAction)]
+
+
+def _looks_like_path(token: str) -> bool:
+    """A token of ``batch --extra`` taken as a path: it holds a separator or ends in a suffix."""
+    import re
+
+    if token.startswith("-"):
+        return False
+    try:
+        float(token)
+        return False
+    except ValueError:
+        pass
+    return "/" in token or "\\" in token or re.search(r"\.[A-Za-z][A-Za-z0-9]{0,5}$", token) is not None
+
+
+def path_arguments(args: Sequence[str], namespace: Optional[argparse.Namespace] = None) -> list[str]:
+    """The paths a job's arguments name (inputs, outputs, parameter files, with the CLI's defaults
+    of those not given), as written."""
+    ns = namespace if namespace is not None else validate_args(args)
+    command, _ = _command_of(list(args))
+    action = getattr(ns, "action", None) if command == "project" else None
+    skip = _NOT_PATHS | _NOT_PATHS_IN.get((command, action), frozenset())
+    found: list[str] = []
+    for dest in _string_arguments(command, action):
+        if dest in skip:
+            continue
+        value = getattr(ns, dest, None)
+        for v in (value if isinstance(value, (list, tuple)) else [value]):
+            if not isinstance(v, str) or not v:
+                continue
+            if dest == "also" and "=" in v and "/" not in v.split("=", 1)[0]:
+                v = v.split("=", 1)[1]  # NAME=TREES
+            found.append(v)
+    extra = getattr(ns, "extra", None) if command == "batch" else None
+    if isinstance(extra, str):
+        import shlex
+
+        try:
+            found += [t.split("=", 1)[1] if t.startswith("--") and "=" in t else t for t in shlex.split(extra)
+                      if _looks_like_path(t.split("=", 1)[1] if t.startswith("--") and "=" in t else t)]
+        except ValueError:
+            pass
+    return found
+
+
+def relative_paths(args: Sequence[str], namespace: Optional[argparse.Namespace] = None) -> list[str]:
+    """The paths of ``args`` that are relative (they need the job's working folder)."""
+    return [p for p in path_arguments(args, namespace) if not os.path.isabs(os.path.expanduser(p))]
+
+
+def output_path(args: Sequence[str], cwd: Optional[str] = None, namespace: Optional[argparse.Namespace] = None) -> Optional[str]:
+    """The resolved output folder of a job (its ``--out``, symbolic links resolved), or None."""
+    ns = namespace if namespace is not None else validate_args(args)
+    out = getattr(ns, "out", None)
+    if not isinstance(out, str) or not out:
+        return None
+    out = os.path.expanduser(out)
+    if not os.path.isabs(out):
+        if not cwd:
+            return None
+        out = os.path.join(cwd, out)
+    return os.path.realpath(out)
+
+
+def _overlaps(a: str, b: str) -> bool:
+    """Whether the folders ``a`` and ``b`` are one, or one holds the other."""
+    return a == b or a.startswith(b.rstrip(os.sep) + os.sep) or b.startswith(a.rstrip(os.sep) + os.sep)
 
 
 def _package_env() -> dict[str, str]:
@@ -209,12 +319,16 @@ def _signal_group(pid: int, sig: int) -> None:
 class JobManager:
     """Queues jobs in the store and runs up to ``workers`` of them at once."""
 
-    def __init__(self, store: JobStore, workers: int = 1, grace_s: float = CANCEL_GRACE_S) -> None:
+    def __init__(self, store: JobStore, workers: int = 1, grace_s: float = CANCEL_GRACE_S, work_dir: Optional[Path] = None) -> None:
         self.store = store
         self.workers = max(1, int(workers))
         self.grace_s = grace_s
+        #: where a job sent without a working folder runs (``STATE/work/<job id>``, its own folder)
+        self.work_dir = Path(work_dir) if work_dir is not None else Path(store.path).parent / "work"
         self._procs: dict[str, subprocess.Popen] = {}
         self._lock = threading.Lock()
+        self._submit_lock = threading.Lock()  # the check of the output folders and the queueing: one job at a time
+        self._outputs: dict[str, Optional[str]] = {}  # job id -> its resolved output folder (a cache)
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -271,15 +385,54 @@ class JobManager:
     # ----------------------------------------------------------------------------- requests
 
     def submit(self, args: Sequence[str], cwd: Optional[str] = None) -> str:
-        validate_args(args)
+        """Queue a job; returns its id. Refused: arguments the CLI refuses (:class:`ArgumentError`);
+        without ``cwd``, a relative path in them (:class:`WorkingFolderNeeded`; the job would run
+        in a private folder of the service); an output folder that is, holds or lies in the output
+        folder of a job queued or running (:class:`OutputBusy`)."""
+        ns = validate_args(args)
         if cwd is not None and "\x00" in cwd:
             raise ArgumentError("forestreg: error: the working directory holds a NUL byte")
+        if cwd is not None and not os.path.isabs(cwd):
+            raise WorkingFolderNeeded(f"the working folder {cwd!r} is not an absolute path")
         if cwd is not None and not Path(cwd).is_dir():
             raise ArgumentError(f"forestreg: error: working directory {cwd} does not exist")
-        job_id = self.store.add(list(args), cwd)
+        if cwd is None:
+            relative = relative_paths(args, ns)
+            if relative:
+                where = ", ".join(repr(p) for p in relative[:3]) + (", ..." if len(relative) > 3 else "")
+                raise WorkingFolderNeeded(f"required: {where} {'is a relative path' if len(relative) == 1 else 'are relative paths'}: "
+                                          "send the client's working folder as cwd (an absolute path), or give every path absolute")
+        out = output_path(args, cwd, ns)
+        with self._submit_lock:
+            if out is not None:
+                for other, status in self._active_jobs():
+                    theirs = self._output_of(other)
+                    if theirs is not None and _overlaps(out, theirs):
+                        relation = "is" if out == theirs else ("is inside" if out.startswith(theirs) else "holds")
+                        raise OutputBusy(f"--out {out} {relation} the output folder of job {other['id']} ({status}"
+                                         f"{', ' + theirs if out != theirs else ''}): wait for it to end, cancel it, or give "
+                                         "another output folder")
+            job_id = self.store.add(list(args), cwd)
+            self._outputs[job_id] = out
         self.last_activity = time.monotonic()
         self._wake.set()
         return job_id
+
+    def _active_jobs(self) -> list[tuple[dict, str]]:
+        """The jobs queued or running: ({id, args, cwd}, status)."""
+        store = self.store
+        with store._lock:  # one query of the store's own connection (its lock serialises it)
+            rows = store._db.execute("SELECT id, args, cwd, status FROM jobs WHERE status IN ('queued', 'running')").fetchall()
+        return [({"id": r["id"], "args": json.loads(r["args"]), "cwd": r["cwd"]}, r["status"]) for r in rows]
+
+    def _output_of(self, job: dict) -> Optional[str]:
+        """The resolved output folder of a stored job (parsed once; None when it has none)."""
+        if job["id"] not in self._outputs:
+            try:
+                self._outputs[job["id"]] = output_path(job["args"], job["cwd"])
+            except ArgumentError:
+                self._outputs[job["id"]] = None
+        return self._outputs[job["id"]]
 
     def cancel(self, job_id: str) -> Optional[dict]:
         job = self.store.get(job_id)
@@ -288,6 +441,7 @@ class JobManager:
         self.store.update(job_id, cancel_requested=1)
         if job["status"] == "queued":
             self.store.update(job_id, status="cancelled", message="cancelled before it started", finished=time.time())
+            self._outputs.pop(job_id, None)
             self.store.add_event(job_id, {"event": "status", "status": "cancelled"})
             return self.store.get(job_id)
         with self._lock:
@@ -323,17 +477,40 @@ class JobManager:
             self.last_activity = time.monotonic()
 
     def _run(self, job: dict) -> None:
+        try:
+            self._run_in(job)
+        finally:
+            self._outputs.pop(job["id"], None)
+
+    def _private_folder(self, job_id: str) -> Path:
+        """``STATE/work/<job id>``: the working folder of a job sent without one (every path in it
+        is absolute); readable by the user only."""
+        from ..engine.core.names import safe_name
+
+        folder = self.work_dir / safe_name(job_id, "job id")
+        self.work_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+        folder.mkdir(exist_ok=True, mode=0o700)
+        return folder
+
+    def _run_in(self, job: dict) -> None:
         job_id, args, cwd = job["id"], job["args"], job["cwd"]
         cmd = job_command(args)
+        private = None
         try:
+            if not cwd:
+                private = self._private_folder(job_id)
             proc = subprocess.Popen(
                 cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                cwd=cwd or None, env=_package_env(), start_new_session=True,
+                cwd=str(private) if private is not None else cwd, env=_package_env(), start_new_session=True,
             )
         except OSError as exc:
             self.store.update(job_id, status="error", message=f"cannot start the job: {exc}", finished=time.time())
             self.store.add_event(job_id, {"event": "status", "status": "error"})
+            if private is not None:
+                self._tidy(job_id, private)
             return
+        if private is not None:
+            cwd = str(private)
         with self._lock:
             self._procs[job_id] = proc
         self.store.update(job_id, pid=proc.pid, message="running")
@@ -402,8 +579,19 @@ class JobManager:
         if result_path:
             fields["result"] = json.dumps(read_result(result_path, cwd))
             fields["result_path"] = str(result_path)
+        if private is not None:
+            self._tidy(job_id, private)
         self.store.update(job_id, **fields)
         self.store.add_event(job_id, {"event": "end", "status": status, "exit_code": code, "message": message, "result": result_path})
+
+    def _tidy(self, job_id: str, private: Path) -> None:
+        """Remove a job's private folder when the job left nothing in it (else keep it, and say so)."""
+        try:
+            private.rmdir()
+        except FileNotFoundError:
+            pass
+        except OSError:
+            self.store.add_event(job_id, {"event": "log", "stream": "service", "message": f"the job left files in its working folder {private}"})
 
 
 def _error_line(lines: list[str]) -> str:

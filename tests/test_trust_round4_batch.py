@@ -264,3 +264,76 @@ def test_the_temporaries_of_a_transaction_are_named_by_one_function(tmp_path):
         assert is_unfinished_output(other) and not is_unfinished_output(other, out / "old-x")
         assert not is_unfinished_output(out / "old-x") and not is_unfinished_output(tmp_path / ".forestreg-tmp-products.abc")
     assert not unfinished_outputs(out) and sorted(os.listdir(out)) == ["old-x", "x"]
+
+
+# ----------------------------------------------------------------------------- the service
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    from forestreg.client import read_server_info, start_service
+
+    state = tmp_path_factory.mktemp("service_state")
+    client = start_service(state, command=CLI, idle_exit_s=None, workers=2, timeout=90)
+    client._state = state
+    yield client
+    info = read_server_info(state)
+    if info is not None:
+        os.kill(info["pid"], signal.SIGTERM)
+        deadline = time.monotonic() + 30
+        while read_server_info(state) is not None and time.monotonic() < deadline:
+            time.sleep(0.1)
+
+
+def _post(service, body: dict) -> tuple[int, dict]:
+    """POST /v1/jobs with exactly ``body`` (the Python client always sends a cwd)."""
+    request = urllib.request.Request(service.url + "/v1/jobs", data=json.dumps(body).encode(), method="POST",
+                                     headers={"Authorization": f"Bearer {service.token}", "Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=30) as resp:
+            return resp.status, json.loads(resp.read())
+    except urllib.error.HTTPError as exc:
+        return exc.code, json.loads(exc.read())
+
+
+def test_a_job_without_cwd_runs_when_every_path_is_absolute(service, tmp_path):
+    """The documented curl call (absolute paths, no ``cwd``) was refused with 422 "cwd: required"."""
+    status, body = _post(service, {"args": ["simulate", "open_field", "--out", str(tmp_path / "sim"), "--positions", "0,0",
+                                            "--size", "20", "--step", "0.6"]})
+    assert status == 201, body
+    final = service.wait(body["id"], timeout=120)
+    assert final["status"] == "done" and final["exit_code"] == 0, final
+    assert (tmp_path / "sim" / "scan_01.laz").is_file() and final["cwd"] is None
+    assert not list((service._state / "work").glob("*")), "the job's private folder was left"
+    # a relative path without cwd: 422 naming it
+    status, body = _post(service, {"args": ["register", "A.laz", str(tmp_path / "B.laz"), "--out", str(tmp_path / "pair")]})
+    assert status == 422 and body["detail"].startswith("cwd: required: 'A.laz' is a relative path"), body
+    status, body = _post(service, {"args": ["params"]})  # no path at all
+    assert status == 201 and service.wait(body["id"], timeout=60)["status"] == "done"
+    status, body = _post(service, {"args": ["params"], "cwd": "relative/folder"})
+    assert status == 422 and body["detail"].startswith("cwd: "), body
+
+
+def test_a_second_job_into_a_busy_output_folder_is_refused_with_409(service, tmp_path):
+    """Two jobs with one ``--out`` both said done, the first job's result_path holding the
+    second's result: the second is refused while the first is queued or running."""
+    from forestreg.client import ServiceError
+
+    slow = ["simulate", "rainforest", "--out", "busy", "--step", "0.05", "--size", "60"]
+    first = service.submit(slow, cwd=tmp_path)
+    try:
+        with pytest.raises(ServiceError) as info:
+            service.submit(slow, cwd=tmp_path)
+        assert info.value.status == 409 and f"is the output folder of job {first}" in info.value.detail, info.value.detail
+        status, body = _post(service, {"args": ["simulate", "open_field", "--out", str(tmp_path / "busy")]})  # the same, absolute
+        assert status == 409, body
+        with pytest.raises(ServiceError) as info:  # inside it
+            service.submit(["simulate", "open_field", "--out", "busy/inner"], cwd=tmp_path)
+        assert info.value.status == 409 and "is inside the output folder of job" in info.value.detail
+        other = service.submit(["params"], cwd=tmp_path)  # other jobs are taken
+        assert service.wait(other, timeout=60)["status"] == "done"
+    finally:
+        service.cancel(first)
+    assert service.wait(first, timeout=60)["status"] == "cancelled"
+    again = service.submit(["simulate", "open_field", "--out", "busy", "--positions", "0,0", "--size", "20", "--step", "0.6"], cwd=tmp_path)
+    assert service.wait(again, timeout=120)["status"] == "done"  # free again once the first one ended
