@@ -54,6 +54,7 @@ from ..terrain.dem import TerrainModel, TerrainParams, terrain_model
 from ..geometry.voxel import voxel_thin
 from ..core.transform import rotation_angle_deg
 from ..core.params import Params, param_field as _p
+from ..core.uncertainty import Alternative, UncertaintyParams, alternative_weight, evidence_notes, icp_covariance_at, judge, weak_directions, with_alternatives
 from .keypoints import KeypointParams, Keypoints, extract_keypoints
 from .matching import KeypointMatch, MatchingParams, assign_one_to_one, match_keypoints, residual_statistics
 from .surfaces import (
@@ -123,6 +124,12 @@ class CoregistrationParams(Params):
     #: the best refined solution must correlate at least this much better (Pearson r) than the
     #: best distinct alternative
     min_correlation_margin: float = _p(0.15, "1", 0.0, 2.0, "least canopy correlation margin over the best distinct alternative")
+    #: the stated uncertainty: a distinct alternative's canopy correlation margin, over this, is
+    #: its lead in matches (its weight, see :func:`~forestreg.engine.core.uncertainty.alternative_weight`)
+    margin_per_match: float = _p(0.02, "1", 0.001, 1.0, "a canopy correlation margin of this much over a distinct alternative counts as one match of lead")
+    #: how the stated uncertainty counts weak motions and alternatives, and the widest it may be
+    #: (an airborne cloud's own accuracy is decimetres: 0.5 m / 1 deg)
+    uncertainty: UncertaintyParams = UncertaintyParams(max_translation_m=0.5, max_rotation_deg=1.0)
     #: the canopy search: the ground-based canopy surface turned by this step (deg) over all
     #: headings and correlated with the UAV surface at every shift; its best distinct peaks join
     #: the keypoint solutions as candidates
@@ -235,6 +242,9 @@ class CoregistrationResult(Outcome):
     quality: Optional[dict[str, float]] = None
     #: standard errors of the result (:func:`jackknife_standard_errors`)
     standard_errors: Optional[dict[str, Any]] = None
+    #: the stated 1-sigma uncertainty (:func:`stated_uncertainty`): the standard errors widened
+    #: along the motions the surfaces hardly pin and by a distinct alternative, with both listed
+    uncertainty: Optional[dict[str, Any]] = None
     #: where the winning candidate came from: "keypoints" or "canopy surfaces" ("" before any)
     coarse_source: str = ""
     #: terrain, stem and tilt evidence (:class:`CoarseEvidence`), when the fine ICP ran
@@ -262,6 +272,9 @@ class CoregistrationResult(Outcome):
         if self.standard_errors:
             se = self.standard_errors
             line += f", standard errors {se['rotation_deg']:.3f} deg / {100 * se['translation_m']:.1f} cm"
+        u = self.uncertainty or {}
+        if u.get("translation_m") is not None and (u.get("weak_directions") or any(a.get("status") == "counted" for a in u.get("alternatives") or ())):
+            line += f", 1 sigma {u['rotation_deg']:.3f} deg / {100 * u['translation_m']:.1f} cm ({'; '.join(evidence_notes(u))})"
         if self.quality and np.isfinite(self.quality.get("ground_dz_median_m", float("nan"))):
             line += f", ground offset {_cm(self.quality['ground_dz_median_m'])} cm"
         return line
@@ -336,6 +349,7 @@ class CoregistrationResult(Outcome):
             "coarse": None if self.coarse is None else self.coarse.to_dict(),
             "quality": _finite_or_none(self.quality),
             "standard_errors": _finite_or_none(self.standard_errors),
+            "uncertainty": self.uncertainty,
             "icp": None if self.icp is None else self.icp.to_dict(),
         }
 
@@ -548,9 +562,10 @@ def _coregister_points(
     best_r, best_k, best_level, coarse = refined[0]
     source, _, best_match = starts[best_k]
     alt = 0.0  # the best alternative that is a different solution: it puts the canopy elsewhere
+    alt_matrix: Optional[np.ndarray] = None
     for r, k, _, m in refined[1:]:
         if _apart_m(m, coarse, sample) > params.distinct_solution_m:
-            alt = max(r, 0.0)
+            alt, alt_matrix = max(r, 0.0), m
             break
     timings["verification_s"] = time.perf_counter() - t
     common = dict(ground_keypoints=g_kp, uav_keypoints=u_kp, match=best_match,
@@ -662,6 +677,14 @@ def _coregister_points(
     common["quality"] = coregistration_quality(ground, uav, g_terrain, u_terrain, result.matrix, params.surface_cell_m)
     if params.jackknife:
         common["standard_errors"] = jackknife_standard_errors(g_ref, u_icp, result.matrix, params, keep)
+        centre = np.median(ground[:: max(1, len(ground) // 20_000)], axis=0)
+        common["uncertainty"] = stated_uncertainty(common["standard_errors"], result, res_after, centre, final_r, alt, alt_matrix, params)
+        refusal = judge(common["uncertainty"]["translation_m"], common["uncertainty"]["rotation_deg"], params.uncertainty,
+                        weak=[_weak(w) for w in common["uncertainty"]["weak_directions"]],
+                        alternatives=[_alt(a) for a in common["uncertainty"]["alternatives"]])
+        if refusal:
+            timings["quality_s"] = time.perf_counter() - t
+            return failed(refusal, **common)
     timings["quality_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
     progress(1.0, f"co-registered from the {source}, decided by the {' and the '.join(decided_by)}: {len(pairs_after)} keypoints matched ({pct:.0f} %), canopy correlation "
@@ -872,6 +895,63 @@ def jackknife_standard_errors(
         "horizontal_m": float(np.hypot(se_t[0], se_t[1])),
         "vertical_m": float(se_t[2]),
     }
+
+
+def stated_uncertainty(standard_errors: dict[str, Any], fine: IcpResult, residuals_m: np.ndarray, centre: np.ndarray,
+                       correlation: float, alternative_correlation: float, alternative: Optional[np.ndarray],
+                       params: "CoregistrationParams") -> dict[str, Any]:
+    """The stated 1-sigma uncertainty of a co-registration at the ground-based cloud's centre
+    (``centre``, its local frame): the jackknife's standard errors, widened along each motion the
+    fine ICP's surfaces hardly pin (:func:`~forestreg.engine.core.uncertainty.weak_directions`) by
+    the surfaces' own precision along it (:func:`~forestreg.engine.core.uncertainty.icp_covariance_at`)
+    or, when they pin it better, the keypoints matched after ICP (their residual spread over the
+    root of their count), and by the best distinct alternative as a
+    mixture (its weight from the canopy correlation margin ``correlation - alternative_correlation``,
+    :attr:`CoregistrationParams.margin_per_match` a match of lead)."""
+    up = params.uncertainty
+    t = float(standard_errors.get("translation_m") or 0.0)
+    r = float(standard_errors.get("rotation_deg") or 0.0)
+    weak = weak_directions(fine.information, up) if fine.information is not None else []
+    res = np.asarray(residuals_m, dtype=float)
+    keypoints_m = float(np.sqrt(np.mean(res**2)) / math.sqrt(len(res))) if len(res) >= 3 else math.inf
+    if weak and np.isfinite(fine.std_m):
+        pos_cov, rot_cov = icp_covariance_at(fine.information, float(fine.std_m), centre, up.independent_patches, up.rotation_patches)
+    for w in weak:  # what pins a weak motion: the surfaces' own precision along it, or the keypoints
+        v = np.asarray(w.vector, dtype=float)
+        if w.kind == "translation":
+            t = math.hypot(t, min(float(np.sqrt(max(v @ pos_cov @ v, 0.0))), keypoints_m))
+        else:
+            turn = float(np.sqrt(max(v @ rot_cov @ v, 0.0)))
+            r = math.hypot(r, math.degrees(min(turn, keypoints_m / max(up.rotation_lever_m, 1e-6))))
+    alternatives = []
+    if alternative is not None:
+        here = apply_transform(fine.matrix, centre[None])[0]
+        there = apply_transform(alternative, centre[None])[0]
+        offset = there - here
+        alternatives.append(Alternative(
+            weight=alternative_weight((correlation - alternative_correlation) / params.margin_per_match, up),
+            offset_m=float(np.linalg.norm(offset)), offset_deg=rotation_angle_deg(fine.matrix[:3, :3].T @ alternative[:3, :3]),
+            support=round(float(alternative_correlation), 3), chosen_support=round(float(correlation), 3),
+            direction_deg=float(np.degrees(np.arctan2(offset[1], offset[0])) % 360.0)))
+    t2, r2 = with_alternatives(t, r, alternatives)
+    return {
+        "translation_m": t2, "rotation_deg": r2, "at": "the ground-based cloud's centre (weak directions in its frame)",
+        "standard_errors": {"translation_m": standard_errors.get("translation_m"), "rotation_deg": standard_errors.get("rotation_deg")},
+        "weak_directions": [w.to_dict() for w in weak],
+        "alternatives": [a.to_dict() for a in alternatives],
+        "method": "jackknife standard errors, widened along weak motions (keypoints after ICP) and by the distinct alternative",
+    }
+
+
+def _weak(d: dict[str, Any]):
+    from ..core.uncertainty import WeakDirection
+
+    return WeakDirection(d["kind"], tuple(d["vector"]), d["share"], d["azimuth_deg"])
+
+
+def _alt(d: dict[str, Any]) -> Alternative:
+    return Alternative(weight=d["weight"], offset_m=d["offset_m"], offset_deg=d["offset_deg"], support=d["support"],
+                       chosen_support=d["chosen_support"], status=d["status"], direction_deg=d["direction_deg"])
 
 
 def _rotation_vector_deg(r: np.ndarray) -> np.ndarray:
