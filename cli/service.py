@@ -29,7 +29,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--params", help="TOML parameter file passed to every plot")
     p.add_argument("--extra", metavar="ARGS", help="more options for every plot's command, e.g. --extra='--no-cylinders --no-report'")
     p.add_argument("--threads", type=int, help="threads of each plot's process (default: the cores shared out among the local workers; 1 with --scheduler)")
-    p.add_argument("--memory-limit", metavar="SIZE", help="memory per worker, e.g. 4GB: a plot whose processes hold more is stopped (an error row); "
+    p.add_argument("--memory-limit", metavar="SIZE", help="memory per worker, e.g. 4GB: a plot whose processes hold more is stopped (an error row; "
+                   "their resident memory is sampled every 0.05 s, so a briefer spike passes and is noted in the row); "
                    "also the local workers' Dask memory limit (default: none)")
     p.set_defaults(func=cmd_batch, long_running=True)
 

@@ -266,6 +266,26 @@ def test_the_temporaries_of_a_transaction_are_named_by_one_function(tmp_path):
     assert not unfinished_outputs(out) and sorted(os.listdir(out)) == ["old-x", "x"]
 
 
+# ----------------------------------------------------------------------------- the memory limit
+
+
+def test_the_memory_limit_stops_a_plot_of_half_a_second(tmp_path, monkeypatch):
+    """``--memory-limit`` is checked every 0.05 s from the start: a plot process that holds 400 MB
+    for 0.3 s is stopped under a 150 MB limit (it was checked first after a second, then every
+    0.5 s, and a 1-2 s plot peaking over the limit passed)."""
+    from forestreg.service import batch
+
+    fake = tmp_path / "python"  # stands for the plot's CLI process
+    fake.write_text(f"#!/bin/sh\nexec {sys.executable} -c 'import time; b = b\"x\" * 400_000_000; time.sleep(0.3)'\n")
+    fake.chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(fake))
+    t0 = time.monotonic()
+    code, _, peak, _, over = batch._run_cli(["params"], 1, 150_000_000)
+    assert over > 150 and code == -signal.SIGKILL, (code, peak, over)
+    assert peak >= over and time.monotonic() - t0 < 10
+    assert batch.MEMORY_SAMPLE_S <= 0.1
+
+
 # ----------------------------------------------------------------------------- the service
 
 
