@@ -298,7 +298,7 @@ SECOND_SCANNER_OFFSET = (9.8, 4.4)  # ... and of b.laz: 512311.0,5401225.1 (10.7
 
 
 def make_sample_data(folder: Path) -> dict:
-    """Write the files the examples name into ``folder`` (about 20 s, 40 MB); returns what was
+    """Write the files the examples name into ``folder`` (about 10 s, 25 MB); returns what was
     simulated (the true poses) for the record.
 
     - ``scan1.laz``, ``scan2.laz`` (and ``A.laz``, ``B.laz``, ``a.laz``, ``b.laz``): two scans of a

@@ -3,8 +3,9 @@ example cannot drift from the code.
 
 One test per fenced block (id ``FILE:LINE``). How a block is classified (run, skip with a reason,
 printed output) and what a run must show (exit status, the files it promises) is described in
-``tests/docs_blocks.py``. The sample data (two TLS plots, ground-based and UAV clouds with field
-records, a re-survey; the file names of the examples) are simulated once per session, about 20 s.
+``tests/docs_blocks.py``. The sample data (a TLS plot of three scans, ground-based and UAV clouds
+with field records, a re-survey; under the file names of the examples) are simulated once per
+session, in about 10 s.
 The examples run with a private home folder (the job service's state lives in it; the compiled
 kernels stay in the user's cache). Select them with ``-m docs``, leave them out with ``-m "not docs"``.
 
@@ -31,7 +32,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from docs_blocks import (  # noqa: E402 - tests/ is on the path (rootdir import mode)
+from docs_blocks import (  # tests/ is on the path (pytest's rootdir import mode)
     PYTHON,
     ROOT,
     SHELL,
@@ -45,6 +46,8 @@ from docs_blocks import (  # noqa: E402 - tests/ is on the path (rootdir import 
     shapes_agree,
     shell_script,
 )
+
+pytestmark = pytest.mark.docs
 
 BLOCKS = examples()
 
@@ -70,7 +73,7 @@ TOOLS = ("curl", "jq")
 
 
 def _marks(block: Block) -> list:
-    marks = [pytest.mark.docs]
+    marks = []
     for (path, line), why in KNOWN_DEFECTS.items():
         if block.path == path and line in block.text:
             marks.append(pytest.mark.xfail(reason=f"known product defect (#47): {why}", strict=False))
