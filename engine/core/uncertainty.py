@@ -65,6 +65,9 @@ class UncertaintyParams(Params):
     rotation_lever_m: float = _p(10.0, "m", 0.1, 1000.0, "A heading is compared with translations over this lever arm to tell whether it is weak")
     evidence_per_match: float = _p(1.5, "1", 0.0, 20.0, "Each match (trunk, stem, keypoint) the best solution has more than a distinct alternative makes the alternative this many e-folds less likely")
     min_alternative_weight: float = _p(1e-4, "1", 0.0, 1.0, "Alternatives less likely than this are not checked or counted")
+    repeat_share: float = _p(0.25, "1", 0.0, 1.0, "When at least this share (and 4) of a solution's matched features (trunks, stems) repeat themselves under a shift (rows of posts, a planted grid), the solution shifted so is an alternative to check")
+    second_share: float = _p(0.5, "1", 0.0, 1.0, "The best distinct solution is checked too when it matches at least this share of the chosen one's matches, however unlikely its lead makes it")
+    passing_weight: float = _p(0.05, "1", 0.0, 0.5, "A distinct alternative that passes every check the chosen solution passed is at least this likely (its lead in matches can come from features that move with the scanner)")
 
 
 @dataclass(frozen=True)
@@ -97,6 +100,11 @@ class WeakDirection:
         return {"kind": self.kind, "vector": list(self.vector), "share": self.share, "azimuth_deg": self.azimuth_deg,
                 "text": self.describe()}
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "WeakDirection":
+        """The weak direction of its :meth:`to_dict`."""
+        return cls(str(d["kind"]), tuple(float(v) for v in d["vector"]), float(d["share"]), d.get("azimuth_deg"))
+
 
 @dataclass(frozen=True)
 class Alternative:
@@ -117,6 +125,9 @@ class Alternative:
     chosen_support: Optional[float] = None
     status: str = "counted"
     direction_deg: Optional[float] = None
+    #: why the alternative exists when the features repeat themselves ("the matched trunks repeat
+    #: ... : regular rows"), else ""
+    pattern: str = ""
 
     def describe(self) -> str:
         """One line for the evidence: where it is and why it counts or not."""
@@ -124,14 +135,22 @@ class Alternative:
         support = ""
         if self.support is not None and self.chosen_support is not None:
             support = f" with {self.support:g} against {self.chosen_support:g}"
+        pattern = f" ({self.pattern})" if self.pattern else ""
         if self.status == "counted":
-            return f"a distinct solution {where} away{support} (probability {self.weight:.2g}) is counted in the uncertainty"
-        return f"a distinct solution {where} away{support}: {self.status}"
+            return f"a distinct solution {where} away{support}{pattern} (probability {self.weight:.2g}) is counted in the uncertainty"
+        return f"a distinct solution {where} away{support}{pattern}: {self.status}"
 
     def to_dict(self) -> dict[str, Any]:
         return {"weight": self.weight, "offset_m": self.offset_m, "offset_deg": self.offset_deg, "support": self.support,
                 "chosen_support": self.chosen_support, "status": self.status, "direction_deg": self.direction_deg,
-                "text": self.describe()}
+                "pattern": self.pattern, "text": self.describe()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Alternative":
+        """The alternative of its :meth:`to_dict`."""
+        return cls(weight=float(d["weight"]), offset_m=float(d["offset_m"]), offset_deg=float(d["offset_deg"]),
+                   support=d.get("support"), chosen_support=d.get("chosen_support"), status=str(d.get("status", "counted")),
+                   direction_deg=d.get("direction_deg"), pattern=str(d.get("pattern") or ""))
 
 
 def _skew(v: np.ndarray) -> np.ndarray:

@@ -54,7 +54,7 @@ from ..terrain.dem import TerrainModel, TerrainParams, terrain_model
 from ..geometry.voxel import voxel_thin
 from ..core.transform import rotation_angle_deg
 from ..core.params import Params, param_field as _p
-from ..core.uncertainty import Alternative, UncertaintyParams, alternative_weight, evidence_notes, icp_covariance_at, judge, weak_directions, with_alternatives
+from ..core.uncertainty import Alternative, UncertaintyParams, WeakDirection, alternative_weight, evidence_notes, icp_covariance_at, judge, weak_directions, with_alternatives
 from .keypoints import KeypointParams, Keypoints, extract_keypoints
 from .matching import KeypointMatch, MatchingParams, assign_one_to_one, match_keypoints, residual_statistics
 from .surfaces import (
@@ -680,8 +680,8 @@ def _coregister_points(
         centre = np.median(ground[:: max(1, len(ground) // 20_000)], axis=0)
         common["uncertainty"] = stated_uncertainty(common["standard_errors"], result, res_after, centre, final_r, alt, alt_matrix, params)
         refusal = judge(common["uncertainty"]["translation_m"], common["uncertainty"]["rotation_deg"], params.uncertainty,
-                        weak=[_weak(w) for w in common["uncertainty"]["weak_directions"]],
-                        alternatives=[_alt(a) for a in common["uncertainty"]["alternatives"]])
+                        weak=[WeakDirection.from_dict(w) for w in common["uncertainty"]["weak_directions"]],
+                        alternatives=[Alternative.from_dict(a) for a in common["uncertainty"]["alternatives"]])
         if refusal:
             timings["quality_s"] = time.perf_counter() - t
             return failed(refusal, **common)
@@ -941,17 +941,6 @@ def stated_uncertainty(standard_errors: dict[str, Any], fine: IcpResult, residua
         "alternatives": [a.to_dict() for a in alternatives],
         "method": "jackknife standard errors, widened along weak motions (keypoints after ICP) and by the distinct alternative",
     }
-
-
-def _weak(d: dict[str, Any]):
-    from ..core.uncertainty import WeakDirection
-
-    return WeakDirection(d["kind"], tuple(d["vector"]), d["share"], d["azimuth_deg"])
-
-
-def _alt(d: dict[str, Any]) -> Alternative:
-    return Alternative(weight=d["weight"], offset_m=d["offset_m"], offset_deg=d["offset_deg"], support=d["support"],
-                       chosen_support=d["chosen_support"], status=d["status"], direction_deg=d["direction_deg"])
 
 
 def _rotation_vector_deg(r: np.ndarray) -> np.ndarray:

@@ -369,6 +369,9 @@ def register(
     # ground overlap, ICP, the VOPs confirmed after ICP, free space). Only when exactly one of them
     # passes every check is it taken; otherwise the pair stays ambiguous and fails.
     log.info("%s - checking both solutions with ICP and free-space evidence", chosen.problem)
+    def checking(candidate: CoarseAttempt) -> PairResult:
+        return _finish(reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed, Progress(None, cancel=cancel))
+
     outcomes = []
     for candidate in (dataclasses.replace(chosen, problem=""), _second_candidate(chosen, params.match_distance_m)):
         outcomes.append(_finish(reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed, Progress(None, cancel=cancel)))
@@ -378,18 +381,21 @@ def register(
         note = f"{chosen.problem}; resolved: the other solution fails its checks ({other.reason})"
         log.info("ambiguity resolved by ICP/free-space evidence")
         excluded = _alternative(passed[0], other, moving, params, f"excluded: it fails its checks ({other.reason})")
-        return _settle(dataclasses.replace(passed[0], ambiguity_resolved=note), [excluded], params)
+        return _count_alternative(dataclasses.replace(passed[0], ambiguity_resolved=note), passed[0].details.chosen, moving, params,
+                                  checking, known=[excluded])
     if len(passed) == 2:
         rot, trans = rigid_errors(passed[0].matrix, passed[1].matrix)
         if rot < 0.2 and trans < 0.05:  # ICP took both to the same place: not two solutions
             same = _alternative(passed[0], passed[1], moving, params, "the same pose after ICP")
-            return _settle(dataclasses.replace(passed[0], ambiguity_resolved=f"{chosen.problem}; resolved: ICP takes both solutions to the same pose"), [same], params)
+            return _count_alternative(dataclasses.replace(passed[0], ambiguity_resolved=f"{chosen.problem}; resolved: ICP takes both solutions to the same pose"),
+                                      passed[0].details.chosen, moving, params, checking, known=[same])
         if prior is not None:
             near = [r for r in passed if _within_prior(r.matrix, prior, moving, prior_tolerance)]
             if len(near) == 1:
                 other = passed[1] if near[0] is passed[0] else passed[0]
                 excluded = _alternative(near[0], other, moving, params, "excluded: it disagrees with the prior pose")
-                return _settle(dataclasses.replace(near[0], ambiguity_resolved=f"{chosen.problem}; resolved: only this solution agrees with the prior pose"), [excluded], params)
+                return _count_alternative(dataclasses.replace(near[0], ambiguity_resolved=f"{chosen.problem}; resolved: only this solution agrees with the prior pose"),
+                                          near[0].details.chosen, moving, params, checking, known=[excluded])
     why = "both pass every check" if len(passed) == 2 else "neither passes every check"
     return _failed(f"{chosen.problem}; ICP and free-space evidence cannot decide ({why})", chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
 
@@ -730,11 +736,13 @@ def _lsf_to_file_rotation(scan: Scan, prepared: PreparedScan) -> np.ndarray:
     return (scan.local_to_file_matrix() @ np.linalg.inv(prepared.local_to_lsf))[:3, :3]
 
 
-def _alternative(result: PairResult, other: PairResult, moving: Scan, params: RegistrationParams, status: str) -> Alternative:
+def _alternative(result: PairResult, other: PairResult, moving: Scan, params: RegistrationParams, status: str,
+                 lead: Optional[float] = None) -> Alternative:
     """The distinct solution ``other`` as the chosen ``result``'s uncertainty counts it: its weight
     from the matched VOPs it trails by (0 unless ``status`` is "counted"), where it puts the
     moving scanner against the chosen matrix (m, deg), from its ICP result when it has one, else
-    from its coarse VOP solution."""
+    from its coarse VOP solution. ``lead``: the matches it trails by (default the difference of
+    the two results' matched VOPs)."""
     s = moving.scanner_position_file
     if other.matrix is not None:
         here = result.matrix[:3, :3] @ s + result.matrix[:3, 3]
@@ -748,36 +756,109 @@ def _alternative(result: PairResult, other: PairResult, moving: Scan, params: Re
             a, b = result.details.chosen.match, other.details.chosen.match
             offset = np.append(np.asarray(b.translation, dtype=float) - np.asarray(a.translation, dtype=float), 0.0)
             turn = abs((float(b.rotation_deg) - float(a.rotation_deg) + 180.0) % 360.0 - 180.0)
-    weight = alternative_weight(result.matched - other.matched, params.uncertainty) if status == "counted" else 0.0
+    lead = result.matched - other.matched if lead is None else lead
+    weight = alternative_weight(lead, params.uncertainty) if status == "counted" else 0.0
     direction = float(np.degrees(np.arctan2(offset[1], offset[0])) % 360.0) if np.hypot(offset[0], offset[1]) > 1e-6 else None
     return Alternative(weight=weight, offset_m=float(np.linalg.norm(offset)), offset_deg=float(turn), support=float(other.matched),
                        chosen_support=float(result.matched), status=status, direction_deg=direction)
 
 
 def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, params: RegistrationParams,
-                       finish: Callable[[CoarseAttempt], PairResult]) -> PairResult:
-    """The chosen solution's result with its best distinct alternative counted: an alternative
-    likely enough to matter (:attr:`~forestreg.engine.core.uncertainty.UncertaintyParams.min_alternative_weight`)
-    is refined and checked like the chosen one; one that fails its checks, or that ICP takes to the
-    same pose, is excluded, one that passes widens the stated uncertainty (and may refuse it)."""
+                       finish: Callable[[CoarseAttempt], PairResult], known: Sequence[Alternative] = ()) -> PairResult:
+    """The chosen solution's result with its alternatives counted: the best distinct coarse
+    solution (when likely enough to matter by its lead,
+    :attr:`~forestreg.engine.core.uncertainty.UncertaintyParams.min_alternative_weight`, or close in
+    matches, ``second_share``), and the chosen one shifted by the step under which its matched
+    trunks repeat themselves (:func:`trunk_repeat`; rows of posts, a planted grid). Each is refined
+    and checked like the chosen one: one that fails its checks, or that ICP takes to the same pose,
+    is excluded; one that passes every check is counted, at least ``passing_weight`` likely,
+    widening the stated uncertainty (and refusing the result when that exceeds the limits).
+    ``known``: alternatives already weighed (the best distinct solution of an ambiguous match,
+    checked before): the best distinct coarse solution is then not checked again."""
+    up = params.uncertainty
     m = chosen.match
-    if m is None or m.second_translation is None or not m.second_matched:
-        return _settle(result, [], params)
-    prior_weight = alternative_weight(chosen.matched - int(m.second_matched), params.uncertainty)
-    if prior_weight < params.uncertainty.min_alternative_weight:
-        return _settle(result, [], params)
-    log.info("a distinct solution matches %d VOPs against %d: refining and checking it too", m.second_matched, chosen.matched)
-    _checking.alternative = True
-    try:
-        other = finish(_second_candidate(chosen, params.match_distance_m))
-    finally:
-        _checking.alternative = False
-    if not other.ok:
-        status = f"excluded: it fails its checks ({other.reason})"
-    else:
-        rot, trans = rigid_errors(result.matrix, other.matrix)
-        status = "the same pose after ICP" if rot < 0.2 and trans < 0.05 else "counted"
-    return _settle(result, [_alternative(result, other, moving, params, status)], params)
+    candidates: list[tuple[CoarseAttempt, float, str]] = []
+    if not known and m is not None and m.second_translation is not None and m.second_matched:
+        lead = chosen.matched - int(m.second_matched)
+        if alternative_weight(lead, up) >= up.min_alternative_weight or m.second_matched >= up.second_share * chosen.matched:
+            candidates.append((_second_candidate(chosen, params.match_distance_m), lead, ""))
+    # the shifts under which the matched trunks repeat: anywhere, and along a motion the surfaces
+    # leave free (there the trunks alone pin the result: three in a row repeating is enough)
+    weak = [np.asarray(w.vector[:2]) for w in weak_directions(result.icp.information, up)
+            if w.kind == "translation" and w.azimuth_deg is not None] if result.icp is not None else []
+    seen: list[np.ndarray] = []
+    for along, least in [(None, max(4.0, up.repeat_share * chosen.matched))] + [(u, 3.0) for u in weak]:
+        repeat = trunk_repeat(chosen, params, along=along)
+        if repeat is None:
+            continue
+        translation, repeated, of = repeat
+        if repeated < least or any(np.hypot(*(translation - t)) < params.distinct.translation_m for t in seen):
+            continue
+        seen.append(translation)
+        pattern = (f"{repeated} of the {of} matched trunks repeat themselves {float(np.hypot(*translation)):.2f} m along "
+                   f"{np.degrees(np.arctan2(translation[1], translation[0])) % 180.0:.0f} deg"
+                   + (", where the surfaces do not pin it" if along is not None else "") + ": regular rows (posts, columns, a planted grid)")
+        candidates.append((_moved_candidate(chosen, 0.0, translation, params.match_distance_m), chosen.matched - repeated, pattern))
+    alternatives = list(known)
+    for candidate, lead, pattern in candidates:
+        log.info("a distinct solution (%s) is refined and checked too", pattern or f"{candidate.matched} VOPs against {chosen.matched}")
+        _checking.alternative = True
+        try:
+            other = finish(candidate)
+        finally:
+            _checking.alternative = False
+        if not other.ok:
+            status = f"excluded: it fails its checks ({other.reason})"
+        else:
+            rot, trans = rigid_errors(result.matrix, other.matrix)
+            status = "the same pose after ICP" if rot < 0.2 and trans < 0.05 else "counted"
+        alternative = _alternative(result, other, moving, params, status, lead=lead)
+        if status == "counted":
+            alternative = dataclasses.replace(alternative, weight=max(alternative.weight, up.passing_weight))
+        alternatives.append(dataclasses.replace(alternative, pattern=pattern))
+    return _settle(result, alternatives, params)
+
+
+def trunk_repeat(attempt: CoarseAttempt, params: RegistrationParams, *, along: Optional[np.ndarray] = None) -> Optional[tuple[np.ndarray, int, int]]:
+    """The shift under which a coarse solution's matched reference trunks (VOPs) best repeat
+    themselves: of every difference between two of them at least ``distinct.translation_m`` long,
+    the one moving the most of them onto another within ``match_distance_m``. Returns that shift
+    (2,) (reference levelled frame, m), how many it repeats and of how many; None with fewer than
+    4 matched trunks. A row of posts repeats nearly all of its posts at its spacing; trees at
+    random repeat two or three by chance. ``along``: only shifts within 15 deg of this horizontal
+    direction (either sense)."""
+    if attempt.match is None or attempt.matched < 4:
+        return None
+    xy = attempt.reference_vops.xy[np.unique(attempt.match.matched_pairs[:, 0])]
+    if len(xy) < 4:
+        return None
+    xy = xy[:60]
+    diff = (xy[None, :, :] - xy[:, None, :]).reshape(-1, 2)
+    length = np.hypot(diff[:, 0], diff[:, 1])
+    keep = length >= params.distinct.translation_m
+    if along is not None:
+        u = np.asarray(along, dtype=float) / max(float(np.hypot(*along)), 1e-12)
+        keep &= np.abs(diff @ u) >= np.cos(np.radians(15.0)) * length
+    diff = diff[keep]
+    if not len(diff):
+        return None
+    shifted = (xy[None, :, :] + diff[:, None, :]).reshape(-1, 2)
+    d, _ = PlaneNearest(xy, params.match_distance_m).query(shifted)
+    counts = (d < params.match_distance_m).reshape(len(diff), len(xy)).sum(axis=1)
+    best = int(np.argmax(counts))
+    return diff[best].astype(float), int(counts[best]), len(xy)
+
+
+def _moved_candidate(attempt: CoarseAttempt, rotation_deg: float, translation: np.ndarray, match_distance_m: float) -> CoarseAttempt:
+    """The attempt with its coarse solution followed by a motion of the reference frame (rotation
+    deg, translation m): the solution where a repeating pattern puts the moving scan next."""
+    m = attempt.match
+    theta = np.deg2rad(rotation_deg)
+    rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    moved = dataclasses.replace(m, second_rotation_deg=float(m.rotation_deg) + float(rotation_deg),
+                                second_translation=rot @ np.asarray(m.translation, dtype=float) + np.asarray(translation, dtype=float),
+                                second_score=m.score, second_matched=m.matched)
+    return _second_candidate(dataclasses.replace(attempt, match=moved), match_distance_m)
 
 
 def _settle(result: PairResult, alternatives: Sequence[Alternative], params: RegistrationParams) -> PairResult:
@@ -790,7 +871,7 @@ def _settle(result: PairResult, alternatives: Sequence[Alternative], params: Reg
         u["translation_m"], u["rotation_deg"] = with_alternatives(t, r, alternatives)
         if any(a.status == "counted" and a.weight > 0 for a in alternatives):
             u["without_alternatives"] = {"translation_m": t, "rotation_deg": r}
-    weak = [WeakDirection(w["kind"], tuple(w["vector"]), w["share"], w["azimuth_deg"]) for w in u.get("weak_directions", [])]
+    weak = [WeakDirection.from_dict(w) for w in u.get("weak_directions", [])]
     reason = judge(u.get("translation_m"), u.get("rotation_deg"), params.uncertainty, weak=weak, alternatives=alternatives)
     if not reason:
         return dataclasses.replace(result, uncertainty=u)
