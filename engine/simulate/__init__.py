@@ -2,10 +2,14 @@
 
 * :func:`make_scene` draws a synthetic plot (:class:`ForestScene`) from a preset in
   :data:`PRESETS`: ``planted_conifer``, ``mixed_temperate``, ``rainforest``, ``sloped``,
-  ``open_field``;
+  ``plantation_rows``, ``open_field``;
+* :func:`make_built_scene` (also through :func:`make_scene`) draws built scenes of
+  :data:`BUILT_PRESETS`: ``corridor``, ``colonnade``, ``fence``, ``courtyard``, ``park``,
+  ``campus`` (walls, posts in rows, few trees);
 * :func:`simulate_tls_scan` casts the rays of one :class:`ScannerSetup` (Open3D ray casting) and
   returns a :class:`SimulatedScan`: the :class:`~forestreg.engine.core.scan.Scan` in the scanner's own
-  frame, per-point material labels and the true pose (``p_world = pose @ p_socs``);
+  frame, per-point material labels and the true pose (``p_world = pose @ p_socs``); a scanner may
+  see a sector only (``ScannerSetup.azimuth_fov_deg``; instruments in :data:`SCANNER_PRESETS`);
 * :func:`simulate_plot` scans a plot from several positions, optionally writes LAZ files and
   ``truth.json``; :func:`relative_pose` gives the true ``T`` (``p_reference = T @ p_moving``);
 * :func:`simulate_scan_from_cloud` simulates a scan from a real merged cloud (paper section 4.3).
@@ -17,6 +21,7 @@ Example::
     T_true = relative_pose(plot, "scan_01", "scan_02")
 """
 
+from .built import BUILT_PRESETS, BuiltConfig, make_built_scene, stand_positions
 from .from_cloud import estimate_point_spacing, simulate_scan_from_cloud
 from .mesh import Material, SceneMesh, SceneRaycaster, build_scene_mesh, raycaster_for
 from .platforms import (
@@ -32,12 +37,13 @@ from .platforms import (
     uav_flight_lines,
 )
 from .plot import SimulatedPlot, relative_pose, simulate_plot
-from .scanner import ScannerSetup, SimulatedScan, simulate_tls_scan
+from .scanner import SCANNER_PRESETS, ScannerSetup, SimulatedScan, scanner_options, simulate_tls_scan
 from .scene import (
     Box,
     ForestScene,
     Liana,
     PRESETS,
+    Post,
     PresetConfig,
     Shrub,
     Target,
@@ -45,17 +51,22 @@ from .scene import (
     Tree,
     make_scene,
     make_terrain,
+    preset_names,
 )
 
 __all__ = [
+    "BUILT_PRESETS",
     "BackpackSetup",
     "Box",
+    "BuiltConfig",
     "CoregistrationCase",
     "ForestScene",
     "Liana",
     "Material",
     "PRESETS",
+    "Post",
     "PresetConfig",
+    "SCANNER_PRESETS",
     "SceneMesh",
     "SceneRaycaster",
     "ScannerSetup",
@@ -71,15 +82,19 @@ __all__ = [
     "build_scene_mesh",
     "canopy_point_density",
     "estimate_point_spacing",
+    "make_built_scene",
     "make_scene",
     "make_terrain",
+    "preset_names",
     "raycaster_for",
     "relative_pose",
+    "scanner_options",
     "simulate_backpack_scan",
     "simulate_coregistration_case",
     "simulate_plot",
     "simulate_scan_from_cloud",
     "simulate_tls_scan",
     "simulate_uav_scan",
+    "stand_positions",
     "uav_flight_lines",
 ]

@@ -191,6 +191,8 @@ def simulate_scan_from_cloud(
     depth_tolerance_m: Optional[float] = None,
     footprint_factor: float = FOOTPRINT_FACTOR,
     height_m: float = 1.5,
+    azimuth_fov_deg: float = 360.0,
+    azimuth_centre_deg: float = 0.0,
 ) -> SimulatedScan:
     """Simulate a level TLS scan at ``position`` from a merged cloud (paper section 4.3).
 
@@ -216,6 +218,8 @@ def simulate_scan_from_cloud(
     depth_tolerance_m : how much nearer an occluding footprint must be; default
         ``max(0.15, 8 * spacing)`` with the occluded point's spacing.
     footprint_factor : a point covers a surface patch of radius ``footprint_factor * spacing``.
+    azimuth_fov_deg, azimuth_centre_deg : the horizontal field of view: a sector this wide centred
+        on this SOCS azimuth (as :class:`~.scanner.ScannerSetup`); points outside it are not seen.
 
     Returns
     -------
@@ -244,6 +248,8 @@ def simulate_scan_from_cloud(
         raise ParameterError(f"angular step must be within 0.005-10 deg, got {angular_step_deg}")
     if not (-90.0 <= elevation_min_deg < elevation_max_deg <= 90.0):
         raise ParameterError("elevation window must satisfy -90 <= min < max <= 90 deg")
+    if not (0.0 < azimuth_fov_deg <= 360.0):
+        raise ParameterError(f"azimuth field of view must be within (0, 360] deg, got {azimuth_fov_deg}")
 
     pos = [float(v) if v is not None else None for v in np.asarray(position, dtype=object).reshape(-1)]
     if len(pos) not in (2, 3) or pos[0] is None or pos[1] is None:
@@ -271,6 +277,8 @@ def simulate_scan_from_cloud(
     ok = (r > 1e-6) & (ie >= 0) & (ie < n_el)
     if max_range_m is not None:
         ok &= r <= max_range_m
+    if azimuth_fov_deg < 360.0:
+        ok &= np.abs((az - azimuth_centre_deg + 180.0) % 360.0 - 180.0) <= azimuth_fov_deg / 2.0
     cand = np.flatnonzero(ok)
     key = ia[cand] * n_el + ie[cand]
     rc = r[cand]
@@ -324,6 +332,7 @@ def simulate_scan_from_cloud(
         "min_range_m": min_range_m,
         "max_range_m": max_range_m,
         "yaw_deg": yaw_deg,
+        **({"azimuth_fov_deg": float(azimuth_fov_deg), "azimuth_centre_deg": float(azimuth_centre_deg)} if azimuth_fov_deg < 360.0 else {}),
         "point_spacing_m": spacing,
         "depth_tolerance_m": float(depth_tolerance_m) if depth_tolerance_m is not None else None,
         "spacing_mode": "local" if point_spacing_m is None else "fixed",
@@ -357,6 +366,8 @@ def simulate_scan_from_cloud(
         max_range_m=float(max_range_m) if max_range_m is not None else 1.0e6,
         range_noise_m=0.0,
         name=scan_name,
+        azimuth_fov_deg=float(azimuth_fov_deg),
+        azimuth_centre_deg=float(azimuth_centre_deg),
     )
     sim_meta = dict(meta)
     sim_meta["source_index"] = sel  # row of each kept point in the input cloud

@@ -16,7 +16,9 @@ target or box it belongs to; 0 for the ground), so that each simulated point can
   (same leaf area, fewer leaves);
 * lianas: thin 6-sided tubes along their control polylines;
 * targets: an 8-sided pole and a 32-sided reflective cylinder with end caps;
-* boxes: 12 triangles each.
+* boxes: 12 triangles each;
+* posts: vertical tubes of ``trunk_segments`` facets (area-equivalent, as stems), capped on top,
+  sunk 0.2 m into the ground.
 """
 
 from __future__ import annotations
@@ -508,6 +510,15 @@ def build_scene_mesh(
     for bx in scene.boxes:
         v, t = box(bx.x, bx.y, bx.z, bx.size, bx.yaw_deg)
         b.add(Material.STRUCTURE, v, t, bx.id)
+
+    for post in scene.posts:
+        v, t = tube(
+            np.array([[post.x, post.y, post.z - 0.2], [post.x, post.y, post.z + post.height_m]]),
+            np.array([post.radius_m] * 2),
+            trunk_segments,
+            cap_end=True,
+        )
+        b.add(Material.STRUCTURE, v, t, post.id)
 
     return b.build({"leaf_side_m": leaf_side, "shrub_leaf_side_m": shrub_side, "trunk_segments": trunk_segments})
 

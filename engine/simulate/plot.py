@@ -16,7 +16,12 @@ A JSON-able dict::
       "trees": [{"id", "x", "y", "z", "dbh_m", "height_m", "lean_deg", "lean_azimuth_deg",
                  "crown_base_m", "crown_radius_m", "shape", "breast_height_xyz"}],
       "targets": [{"id", "x", "y", "z", "ground_z", "radius_m"}],
+      "posts": [{"id", "x", "y", "z", "radius_m", "height_m", "kind"}],    # built scenes only
+      "walls": [{"id", "x", "y", "z", "size", "yaw_deg", "kind"}],         # built scenes only
     }
+
+A scan whose scanner sees less than the full turn also records ``azimuth_fov_deg`` and
+``azimuth_centre_deg`` (SOCS), and one with its own elevation spacing ``elevation_step_deg``.
 
 World = the scene frame (plot centred on the origin, z up). The true registration of a moving
 scan onto a reference scan is ``relative_pose(truth, reference, moving)``.
@@ -34,8 +39,8 @@ import numpy as np
 from ..core.atomic import write_text_atomic
 from ..core.errors import ParameterError, UnknownNameError
 from .mesh import Material, raycaster_for
-from .scanner import ScannerSetup, SimulatedScan, simulate_tls_scan
-from .scene import BREAST_HEIGHT_M, ForestScene, given_or_made_scene
+from .scanner import ScannerSetup, SimulatedScan, field_of_view_meta, simulate_tls_scan
+from .scene import BREAST_HEIGHT_M, FIXED_BOX_KINDS, ForestScene, given_or_made_scene
 from ..core.jsonable import to_jsonable
 
 ProgressCallback = Callable[[float, str], None]
@@ -94,7 +99,8 @@ def simulate_plot(
 
     Parameters
     ----------
-    preset : scene preset (see :data:`~.scene.PRESETS`).
+    preset : scene preset (see :data:`~.scene.PRESETS` and the built scenes of
+        :data:`~.built.BUILT_PRESETS`).
     positions : (x, y) scanner positions in the scene frame (plot centred on the origin); the
         same (x, y) twice is fine (e.g. a level and a tilted scan at one spot).
     out_dir : if given, write ``scan_01.laz``, ``scan_02.laz``, ... (via
@@ -109,7 +115,8 @@ def simulate_plot(
     clearance_m : objects standing within this distance of a scanner position are removed from
         the scene first (an operator sets up in a gap); 0 keeps everything.
     scanner_options : extra :class:`~.scanner.ScannerSetup` fields for every scan
-        (``height_m``, ``elevation_min_deg``, ``max_range_m``, ``range_noise_m``, ...).
+        (``height_m``, ``elevation_min_deg``, ``max_range_m``, ``range_noise_m``,
+        ``azimuth_fov_deg``, ...; an instrument's: :func:`~.scanner.scanner_options`).
     scene : use this scene instead of drawing one from the preset (then ``preset`` is only a
         label and ``scene_overrides`` must be empty).
     scene_overrides : :class:`~.scene.PresetConfig` fields, e.g. ``slope_deg=18``.
@@ -211,6 +218,7 @@ def simulate_plot(
         ],
         "materials": {m.name.lower(): int(m) for m in Material},
     }
+    truth.update(_built_truth(scene))
     if out_path is not None:
         report(0.97, "writing truth.json")
         write_text_atomic(out_path / "truth.json", json.dumps(truth, indent=1))
@@ -254,7 +262,24 @@ def _scan_truth(scene: ForestScene, sim: SimulatedScan, index: int, s_seed: int)
         "n_points": int(len(sim.scan)),
         "matrix": [[float(v) for v in row] for row in sim.pose],
         "targets_socs": targets,
+        **field_of_view_meta(setup),
     }
+
+
+def _built_truth(scene: ForestScene) -> dict[str, Any]:
+    """The posts and the walls/blocks of a built scene (nothing for a forest scene)."""
+    out: dict[str, Any] = {}
+    if scene.posts:
+        out["posts"] = [
+            {"id": p.id, "x": p.x, "y": p.y, "z": p.z, "radius_m": p.radius_m, "height_m": p.height_m, "kind": p.kind}
+            for p in scene.posts
+        ]
+    walls = [b for b in scene.boxes if b.kind in FIXED_BOX_KINDS]
+    if walls:
+        out["walls"] = [
+            {"id": b.id, "x": b.x, "y": b.y, "z": b.z, "size": list(b.size), "yaw_deg": b.yaw_deg, "kind": b.kind} for b in walls
+        ]
+    return out
 
 
 def _tree_truth(t: Any) -> dict[str, Any]:

@@ -6,7 +6,18 @@ The scanner sits at the origin of its own frame. A beam at azimuth ``phi`` (coun
 from the scanner's +x) and elevation ``theta`` (up from the scanner's xy plane) has direction
 ``(cos theta cos phi, cos theta sin phi, sin theta)``. The scanner takes one beam every
 ``angular_step_deg`` in azimuth over the full turn ``[0, 360)`` and in elevation from
-``elevation_min_deg`` to ``elevation_max_deg``, column by column (the order of the points).
+``elevation_min_deg`` to ``elevation_max_deg`` (every ``elevation_step_deg`` when given: a
+scanner of a few laser lines), column by column (the order of the points).
+
+Field of view
+-------------
+``azimuth_fov_deg`` below 360 limits the columns to a sector of that width centred on the SOCS
+azimuth ``azimuth_centre_deg`` (0 = the scanner's +x, which points along ``yaw_deg`` in the scene
+frame): ``round(fov / step)`` columns, evenly spaced, half a column in from each edge of the
+sector. A forward-looking laser on a robot sees about 180 deg ahead; a scanner whose sector stops
+short of the full turn (a tripod leg, the operator, a 300 deg sector) misses the rest.
+:data:`SCANNER_PRESETS` holds such instruments as :class:`ScannerSetup` fields
+(:func:`scanner_options`).
 
 Pose
 ----
@@ -84,6 +95,12 @@ class ScannerSetup:
     name: str = "scan"
     #: absolute z of the optical centre (scene frame); None = ground + height_m
     z: Optional[float] = None
+    #: horizontal field of view (deg): 360 = the full turn; less = a sector
+    azimuth_fov_deg: float = 360.0
+    #: SOCS azimuth (deg, counter-clockwise from the scanner's +x) of the sector's centre
+    azimuth_centre_deg: float = 0.0
+    #: spacing of the elevation lines (deg); None = ``angular_step_deg``
+    elevation_step_deg: Optional[float] = None
 
     def __post_init__(self) -> None:
         if not (0.005 <= self.angular_step_deg <= 10.0):
@@ -99,6 +116,24 @@ class ScannerSetup:
             raise ParameterError(f"range noise must be >= 0, got {self.range_noise_m}")
         if not (0.0 <= self.tilt_deg <= 90.0):
             raise ParameterError(f"tilt must be within 0-90 deg, got {self.tilt_deg}")
+        if not (0.0 < self.azimuth_fov_deg <= 360.0):
+            raise ParameterError(f"azimuth field of view must be within (0, 360] deg, got {self.azimuth_fov_deg}")
+        if self.elevation_step_deg is not None and not (0.005 <= self.elevation_step_deg <= 90.0):
+            raise ParameterError(f"elevation step must be within 0.005-90 deg, got {self.elevation_step_deg}")
+
+    @property
+    def full_turn(self) -> bool:
+        """Whether the scanner sees the full 360 deg in azimuth."""
+        return self.azimuth_fov_deg >= 360.0
+
+    def in_field_of_view(self, azimuth_deg: Any) -> Any:
+        """Whether SOCS azimuths (deg) lie within the horizontal field of view."""
+        a = np.asarray(azimuth_deg, dtype=np.float64)
+        if self.full_turn:
+            return np.ones(a.shape, dtype=bool) if a.ndim else True
+        off = (a - self.azimuth_centre_deg + 180.0) % 360.0 - 180.0
+        out = np.abs(off) <= self.azimuth_fov_deg / 2.0 + 1e-9
+        return out if a.ndim else bool(out)
 
     def resolved(self, seed: int = 0) -> "ScannerSetup":
         """This setup with a concrete yaw (drawn from ``seed`` when ``yaw_deg`` is None)."""
@@ -118,6 +153,37 @@ class ScannerSetup:
         return rotation_about(axis, math.radians(self.tilt_deg)) @ rz
 
 
+#: Instruments as :class:`ScannerSetup` fields (see :func:`scanner_options`):
+#:
+#: * ``tls``: a terrestrial laser scanner on a tripod, the full turn (the defaults);
+#: * ``sector_300``: a tripod scanner sweeping a 300 deg sector: 60 deg behind it unseen (a
+#:   tripod leg, the operator, a scan stopped short);
+#: * ``robot_forward``: a forward-looking laser on a wheeled robot, 0.7 m above the ground, 180 deg
+#:   wide, a band of -20..+20 deg in elevation, ranges 0.3-33 m;
+#: * ``robot_lines``: the same with 16 laser lines 2 deg apart (-15..+15 deg), as a 16-line
+#:   spinning lidar cut to its forward half.
+SCANNER_PRESETS: dict[str, dict[str, Any]] = {
+    "tls": {},
+    "sector_300": {"azimuth_fov_deg": 300.0},
+    "robot_forward": {
+        "azimuth_fov_deg": 180.0, "height_m": 0.7, "elevation_min_deg": -20.0, "elevation_max_deg": 20.0,
+        "min_range_m": 0.3, "max_range_m": 33.0,
+    },
+    "robot_lines": {
+        "azimuth_fov_deg": 180.0, "height_m": 0.7, "elevation_min_deg": -15.0, "elevation_max_deg": 15.0,
+        "elevation_step_deg": 2.0, "min_range_m": 0.3, "max_range_m": 33.0,
+    },
+}
+
+
+def scanner_options(name: str, **overrides: Any) -> dict[str, Any]:
+    """The :class:`ScannerSetup` fields of the instrument ``name`` in :data:`SCANNER_PRESETS`,
+    with ``overrides`` on top (e.g. as ``scanner_options`` of :func:`~.plot.simulate_plot`)."""
+    if name not in SCANNER_PRESETS:
+        raise ParameterError(f"unknown scanner {name!r}; choose one of {', '.join(SCANNER_PRESETS)}")
+    return {**SCANNER_PRESETS[name], **overrides}
+
+
 def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """Rodrigues: rotation by ``angle_rad`` about unit ``axis`` (right-handed)."""
     k = np.asarray(axis, dtype=np.float64)
@@ -126,12 +192,27 @@ def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     return np.eye(3) + math.sin(angle_rad) * kx + (1.0 - math.cos(angle_rad)) * (kx @ kx)
 
 
-def angular_grid(step_deg: float, el_min_deg: float, el_max_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """Azimuths ``[0, 360)`` and elevations ``el_min..el_max`` (inclusive) in degrees."""
-    n_az = int(round(360.0 / step_deg))
-    az = np.arange(n_az) * (360.0 / n_az)
-    n_el = int(math.floor((el_max_deg - el_min_deg) / step_deg + 1e-9)) + 1
-    el = el_min_deg + np.arange(n_el) * step_deg
+def angular_grid(
+    step_deg: float,
+    el_min_deg: float,
+    el_max_deg: float,
+    *,
+    azimuth_fov_deg: float = 360.0,
+    azimuth_centre_deg: float = 0.0,
+    elevation_step_deg: Optional[float] = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Azimuths ``[0, 360)`` (or those of the sector, see the module docstring) and elevations
+    ``el_min..el_max`` (inclusive, every ``elevation_step_deg``, default ``step_deg``) in degrees."""
+    if azimuth_fov_deg >= 360.0:
+        n_az = int(round(360.0 / step_deg))
+        az = np.arange(n_az) * (360.0 / n_az)
+    else:
+        n_az = max(1, int(round(azimuth_fov_deg / step_deg)))
+        width = azimuth_fov_deg / n_az
+        az = (azimuth_centre_deg - azimuth_fov_deg / 2.0 + (np.arange(n_az) + 0.5) * width) % 360.0
+    el_step = step_deg if elevation_step_deg is None else elevation_step_deg
+    n_el = int(math.floor((el_max_deg - el_min_deg) / el_step + 1e-9)) + 1
+    el = el_min_deg + np.arange(n_el) * el_step
     return az, el
 
 
@@ -181,6 +262,18 @@ class SimulatedScan:
         """World-frame points (…, 3) in this scan's SOCS."""
         p = np.asarray(world_xyz, dtype=np.float64)
         return (p - self.pose[:3, 3]) @ self.pose[:3, :3]
+
+
+def field_of_view_meta(setup: ScannerSetup) -> dict[str, Any]:
+    """The sector and elevation lines of a setup that differs from a full-turn scanner on its
+    angular grid (empty for a full-turn scanner: its records stay as they were)."""
+    out: dict[str, Any] = {}
+    if not setup.full_turn:
+        out["azimuth_fov_deg"] = float(setup.azimuth_fov_deg)
+        out["azimuth_centre_deg"] = float(setup.azimuth_centre_deg)
+    if setup.elevation_step_deg is not None:
+        out["elevation_step_deg"] = float(setup.elevation_step_deg)
+    return out
 
 
 def scanner_pose(scene: ForestScene, setup: ScannerSetup) -> np.ndarray:
@@ -237,7 +330,14 @@ def simulate_tls_scan(
     origin = pose[:3, 3]
     rng = np.random.default_rng([int(seed), 104729])
 
-    az, el = angular_grid(setup.angular_step_deg, setup.elevation_min_deg, setup.elevation_max_deg)
+    az, el = angular_grid(
+        setup.angular_step_deg,
+        setup.elevation_min_deg,
+        setup.elevation_max_deg,
+        azimuth_fov_deg=setup.azimuth_fov_deg,
+        azimuth_centre_deg=setup.azimuth_centre_deg,
+        elevation_step_deg=setup.elevation_step_deg,
+    )
     n_el = len(el)
     az_r, el_r = np.radians(az), np.radians(el)
     ca, sa = np.cos(az_r), np.sin(az_r)
@@ -293,6 +393,7 @@ def simulate_tls_scan(
         "n_rays": n_rays,
         "n_blocked_near": n_blocked_near,
     }
+    meta.update(field_of_view_meta(setup))
     scan = Scan.from_points(points, scanner_position=np.zeros(3), intensity=inten, name=setup.name, meta=meta)
     labels.setflags(write=False)
     objs.setflags(write=False)

@@ -35,6 +35,9 @@ rainforest       2400      0.08-0.80  6-40      2500, 0.5-3.0 m  0-5 deg  revers
                                                                           roughness 0.2 m
 sloped           800       0.10-0.55  12-26     300, 0.4-1.8 m   15-20    mixed; roughness 0.3 m;
                                                                  deg      lean up to 10 deg
+plantation_rows  ~830      0.20-0.40  15-20     20, 0.3-1.0 m    0-2 deg  exact rows: 3 m along rows
+                                                                          4 m apart, turned at random,
+                                                                          jitter 0-8 cm, 3 % missing
 open_field       0         -          -         60, 0.3-1.2 m    0-3 deg  building 8 x 6 x 4 m and a
                                                                           post-and-rail fence; no
                                                                           trees
@@ -44,7 +47,11 @@ Heights grow with DBH (``h = low + (high - low) * sqrt(dbh fraction)``, +-10 %, 
 ``exp(N(0, height_scatter))``); trees lean by ``lean_max_deg * U^2`` in a random direction; stems
 keep at least ``r_i + r_j + 0.3 m`` apart.
 
-Every preset places 6-8 reflector targets (10 cm reflective cylinders) on poles 1.2-2.0 m high,
+Built scenes (walls, posts in rows, a corridor, a courtyard, a park) are presets too:
+``make_scene("corridor", seed=...)`` draws them with :func:`~.built.make_built_scene` (see
+:mod:`.built` and :data:`~.built.BUILT_PRESETS`).
+
+Every forest preset places 6-8 reflector targets (10 cm reflective cylinders) on poles 1.2-2.0 m high,
 spread over the central part of the plot (3 m to 30 % of the plot size from the centre).
 """
 
@@ -350,8 +357,31 @@ class Target:
 
 
 @dataclass(frozen=True)
+class Post:
+    """A vertical round post or column: a cylinder of ``radius_m`` standing on the ground at
+    ``(x, y, z)`` up to ``height_m`` above it (meshed like a stem, sunk 0.2 m into the ground).
+
+    Built structures stand in rows at a regular spacing (a colonnade, a fence, a pergola); each
+    post casts a shadow just like a trunk. Posts are not trees: they are kept in
+    :attr:`ForestScene.posts`, apart from :attr:`ForestScene.trees` (the stems' truth)."""
+
+    id: int
+    x: float
+    y: float
+    z: float
+    radius_m: float
+    height_m: float
+    kind: str = "post"
+
+
+#: Box kinds a scanner never stands in and :meth:`ForestScene.cleared` never removes (built walls
+#: and building blocks: an operator sets up beside them, not in them).
+FIXED_BOX_KINDS = frozenset({"wall", "block"})
+
+
+@dataclass(frozen=True)
 class Box:
-    """An oriented box (a building, a fence post or rail), standing on its bottom face.
+    """An oriented box (a building, a wall, a fence post or rail), standing on its bottom face.
 
     ``(x, y, z)`` is the centre of the bottom face, ``size`` the (length, width, height) along its
     own axes, ``yaw_deg`` the azimuth of its length axis.
@@ -377,12 +407,15 @@ class PresetConfig:
     stated. Densities are per hectare."""
 
     description: str
-    #: "none" | "grid" | "random" | "clustered"
+    #: "none" | "grid" | "rows" | "random" | "clustered"
     layout: str = "random"
     #: nominal stem density (stems/ha) for random/clustered layouts; for "grid" it follows
     #: from ``grid_spacing_m`` and ``missing_fraction``
     stems_per_ha: float = 900.0
+    #: grid layouts: the spacing of the trees (along the rows for "rows")
     grid_spacing_m: float = 3.0
+    #: "rows": the spacing of the rows (0 = ``grid_spacing_m``)
+    row_spacing_m: float = 0.0
     #: per-tree jitter of grid positions: a random direction and a distance in this range
     grid_jitter_m: tuple[float, float] = (0.2, 0.5)
     #: fraction of grid positions left empty (dead/thinned trees)
@@ -471,6 +504,13 @@ PRESETS: dict[str, PresetConfig] = {
         description="mixed forest on a 15-20 deg slope with rough ground and leaning trees",
         layout="random", stems_per_ha=800.0, roughness_length_m=5.0, **_stand("sloped"),
     ),
+    "plantation_rows": PresetConfig(
+        description="conifer plantation planted in exact rows: a tree every 3 m along rows 4 m "
+        "apart (the rows turned at random), jitter up to 8 cm, 3 % missing: a near-perfect "
+        "lattice of trunks, where one row or one tree along it looks like the next",
+        layout="rows", grid_spacing_m=3.0, row_spacing_m=4.0, grid_jitter_m=(0.0, 0.08), missing_fraction=0.03,
+        **{**_stand("planted_conifer"), "lean_max_deg": 1.0, "shrubs_per_ha": 20.0},
+    ),
     "open_field": PresetConfig(
         description="non-forest scene: open ground with low shrubs, a building-like box and a "
         "fence; no trees (a registration by trunk shadows must refuse it)",
@@ -487,7 +527,7 @@ PRESETS: dict[str, PresetConfig] = {
 
 @dataclass(frozen=True, eq=False)
 class ForestScene:
-    """A synthetic plot: terrain, trees, shrubs, lianas, reflector targets and boxes.
+    """A synthetic plot: terrain, trees, shrubs, lianas, reflector targets, boxes and posts.
 
     ``extent`` is ``(xmin, xmax, ymin, ymax)`` of the plot (m, scene frame). ``config`` is the
     preset recipe the scene was drawn from (with overrides applied).
@@ -502,8 +542,11 @@ class ForestScene:
     lianas: tuple[Liana, ...] = ()
     targets: tuple[Target, ...] = ()
     boxes: tuple[Box, ...] = ()
-    config: Optional[PresetConfig] = None
+    #: the preset recipe: a :class:`PresetConfig`, or a :class:`~.built.BuiltConfig` for a built scene
+    config: Optional[Any] = None
     meta: Mapping[str, Any] = field(default_factory=dict)
+    #: posts and columns (built scenes)
+    posts: tuple[Post, ...] = ()
 
     @property
     def area_ha(self) -> float:
@@ -530,7 +573,8 @@ class ForestScene:
         """A copy without the objects standing within ``radius_m`` of the given (x, y) positions.
 
         An operator sets a scanner up in a gap; this removes trees whose stem (at 0-2 m) passes
-        within ``radius_m`` of a position, and shrubs, lianas, targets and boxes likewise.
+        within ``radius_m`` of a position, and shrubs, lianas, targets, boxes and posts likewise;
+        walls and building blocks (:data:`FIXED_BOX_KINDS`) stay.
         """
         pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
         if len(pos) == 0 or radius_m <= 0:
@@ -550,7 +594,11 @@ class ForestScene:
             li for li in self.lianas if not any(near(np.asarray(p[:2]), li.radius_m) for p in li.points[:2])
         ]
         targets = [t for t in self.targets if not near(np.array([t.x, t.y]), t.radius_m)]
-        boxes = [b for b in self.boxes if not near(np.array([b.x, b.y]), 0.5 * math.hypot(b.size[0], b.size[1]))]
+        boxes = [
+            b for b in self.boxes
+            if b.kind in FIXED_BOX_KINDS or not near(np.array([b.x, b.y]), 0.5 * math.hypot(b.size[0], b.size[1]))
+        ]
+        posts = [p for p in self.posts if not near(np.array([p.x, p.y]), p.radius_m)]
         meta = dict(self.meta)
         meta["cleared_positions"] = pos.tolist()
         meta["cleared_radius_m"] = radius_m
@@ -561,6 +609,7 @@ class ForestScene:
             lianas=tuple(lianas),
             targets=tuple(targets),
             boxes=tuple(boxes),
+            posts=tuple(posts),
             meta=meta,
         )
 
@@ -584,6 +633,7 @@ class ForestScene:
             "slope_deg": self.terrain.slope_deg,
             "slope_azimuth_deg": self.terrain.slope_azimuth_deg,
             "roughness_m": self.terrain.roughness_m,
+            **({"n_posts": len(self.posts)} if self.posts else {}),
         }
 
 
@@ -597,10 +647,18 @@ def _as_range(name: str, value: Any, current: Any) -> Any:
     return value
 
 
+def preset_names() -> tuple[str, ...]:
+    """Every scene preset :func:`make_scene` takes: the forest presets (:data:`PRESETS`), then the
+    built scenes (:data:`~.built.BUILT_PRESETS`)."""
+    from .built import BUILT_PRESETS
+
+    return tuple(PRESETS) + tuple(BUILT_PRESETS)
+
+
 def preset_config(preset: str, **overrides: Any) -> PresetConfig:
     """The :class:`PresetConfig` of ``preset`` with keyword overrides applied."""
     if preset not in PRESETS:
-        raise ParameterError(f"unknown scene preset {preset!r}; choose one of {', '.join(PRESETS)}")
+        raise ParameterError(f"unknown scene preset {preset!r}; choose one of {', '.join(preset_names())}")
     cfg = PRESETS[preset]
     if not overrides:
         return cfg
@@ -620,10 +678,13 @@ def make_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **overrides:
     Parameters
     ----------
     preset : one of :data:`PRESETS` ("planted_conifer", "mixed_temperate", "rainforest",
-        "sloped", "open_field").
+        "sloped", "plantation_rows", "open_field") or a built scene of
+        :data:`~.built.BUILT_PRESETS` ("corridor", "colonnade", "fence", "courtyard", "park",
+        "campus"; drawn by :func:`~.built.make_built_scene`).
     seed : random seed; the same (preset, seed, size_m, overrides) give the same scene.
     size_m : side of the square plot, centred on the origin.
-    overrides : any :class:`PresetConfig` field, e.g. ``slope_deg=18`` or ``stems_per_ha=500``.
+    overrides : any :class:`PresetConfig` field, e.g. ``slope_deg=18`` or ``stems_per_ha=500``
+        (for a built scene: any :class:`~.built.BuiltConfig` field).
 
     Raises
     ------
@@ -632,6 +693,11 @@ def make_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **overrides:
     """
     if not (10.0 <= float(size_m) <= 500.0):
         raise ParameterError(f"plot size must be between 10 and 500 m, got {size_m}")
+    if preset not in PRESETS:
+        from .built import BUILT_PRESETS, make_built_scene
+
+        if preset in BUILT_PRESETS:
+            return make_built_scene(preset, seed=seed, size_m=size_m, **overrides)
     cfg = preset_config(preset, **overrides)
     rng = np.random.default_rng([int(seed), _stable_hash(preset)])
     half = float(size_m) / 2.0
@@ -776,6 +842,9 @@ def _make_trees(cfg: PresetConfig, extent: tuple[float, ...], terrain: Terrain, 
         pos = pos[keep]
         pos = pos[(pos[:, 0] > xmin) & (pos[:, 0] < xmax) & (pos[:, 1] > ymin) & (pos[:, 1] < ymax)]
         dbh = _sample_dbh(cfg, len(pos), rng)
+    elif cfg.layout == "rows":
+        pos = _row_positions(cfg, extent, rng)
+        dbh = _sample_dbh(cfg, len(pos), rng)
     else:
         n = int(round(cfg.stems_per_ha * area_ha))
         dbh = _sample_dbh(cfg, n, rng)
@@ -786,7 +855,36 @@ def _make_trees(cfg: PresetConfig, extent: tuple[float, ...], terrain: Terrain, 
         dbh = radii * 2.0 / 1.2
         perm = rng.permutation(len(pos))
         pos, dbh = pos[perm], dbh[perm]
+    return _trees_at(cfg, pos, dbh, terrain, rng)
 
+
+def _row_positions(cfg: PresetConfig, extent: tuple[float, ...], rng: np.random.Generator) -> np.ndarray:
+    """Planted rows: trees every ``grid_spacing_m`` along rows ``row_spacing_m`` apart (the grid
+    turned at random, centred on the plot centre), each moved by a random direction and a distance
+    in ``grid_jitter_m``, ``missing_fraction`` of them left out."""
+    xmin, xmax, ymin, ymax = extent
+    along = cfg.grid_spacing_m
+    across = cfg.row_spacing_m if cfg.row_spacing_m > 0 else along
+    rot = math.radians(rng.uniform(0.0, 180.0))
+    c, s = math.cos(rot), math.sin(rot)
+    reach = math.hypot(xmax - xmin, ymax - ymin) / 2.0
+    ka = np.arange(-math.ceil(reach / along), math.ceil(reach / along) + 1)
+    kc = np.arange(-math.ceil(reach / across), math.ceil(reach / across) + 1)
+    ga, gc = np.meshgrid(ka * along, kc * across)
+    u = np.column_stack([ga.ravel(), gc.ravel()])
+    pos = u @ np.array([[c, s], [-s, c]])
+    ang = rng.uniform(0.0, 2 * math.pi, size=len(pos))
+    dist = rng.uniform(*cfg.grid_jitter_m, size=len(pos))
+    pos = pos + np.column_stack([np.cos(ang), np.sin(ang)]) * dist[:, None]
+    keep = rng.uniform(size=len(pos)) >= cfg.missing_fraction
+    pos = pos[keep]
+    inside = (pos[:, 0] > xmin + 0.3) & (pos[:, 0] < xmax - 0.3) & (pos[:, 1] > ymin + 0.3) & (pos[:, 1] < ymax - 0.3)
+    return pos[inside]
+
+
+def _trees_at(cfg: PresetConfig, pos: np.ndarray, dbh: np.ndarray, terrain: Terrain, rng: np.random.Generator) -> list[Tree]:
+    """Trees of ``cfg``'s stand at ``pos`` (n, 2) with diameters ``dbh``: heights, crowns, lean and
+    branches drawn from ``rng``."""
     n = len(pos)
     lo, hi = cfg.dbh_m
     frac = np.clip((dbh - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
