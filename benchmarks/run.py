@@ -45,6 +45,12 @@ plot of `--only bigplot`; `--quick`: a few minutes)::
    the same plot densified to 32 M points, with and without cylinder models, beside Sylva's
    ``ground`` + ``trees`` and reading the file: time, peak memory, ratios, accuracy against the
    truth (about 10 minutes on 2 cores; only with ``--only treescale``).
+14. Calibration of the stated uncertainty (:mod:`benchmarks.calibration`): ~100 pairs drawn afresh
+   from a seed over every kind of scene (built scenes, planted rows, forward-looking and 300 deg
+   scanners, the forest presets, real clouds moved by known transforms); every "ok"'s true error
+   over its stated sigma, the "ok" beyond 3 sigma, the refusal rate per kind (about 15-25 minutes
+   on 2 cores, ``--quick``: one case per kind; only with ``--only calibration``; its seed
+   ``--calibration-seed``, default drawn and printed).
 
 Timings are wall-clock seconds of one run (``time.perf_counter``); nothing is asserted on them.
 An untimed warm-up (a coarse 0.5 deg pair) runs first so imports and library initialisation do
@@ -67,12 +73,13 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import batch_scaling, big_plot, big_scan, coarse_matcher, command_memory, peers, plot_speed, resurvey, scaling, system_b, trees_compare, trees_scale
+    from . import batch_scaling, big_plot, big_scan, calibration, coarse_matcher, command_memory, peers, plot_speed, resurvey, scaling, system_b, trees_compare, trees_scale
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import batch_scaling  # type: ignore[no-redef]
     import big_plot  # type: ignore[no-redef]
     import big_scan  # type: ignore[no-redef]
+    import calibration  # type: ignore[no-redef]
     import coarse_matcher  # type: ignore[no-redef]
     import command_memory  # type: ignore[no-redef]
     import peers  # type: ignore[no-redef]
@@ -333,12 +340,14 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated plot and of the VOP sets (default 0)")
     ap.add_argument("--json", metavar="FILE", type=Path, help="also write every row to this JSON file")
     ap.add_argument("--runs", type=int, default=3, help="timed rounds of the whole-command comparison (default 3)")
-    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands", "trees", "resurvey", "scaling", "batch", "treescale"), action="append",
+    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands", "trees", "resurvey", "scaling", "batch", "treescale", "calibration"), action="append",
                     help="run only these parts (repeatable; default all but bigplot; --quick leaves out plot, big and commands). "
                          "bigplot: ten ~30 M-point scans registered and merged as COPC, about an hour, so only when named; "
                          "scaling: the pair at 1-50 M points per scan beside Sylva and reading, only when named; "
                          "batch: 20 small plots on 1 and 2 local Dask workers, only when named; "
-                         "treescale: trees of a 32 M-point plot beside Sylva and reading, about 10 minutes, only when named")
+                         "treescale: trees of a 32 M-point plot beside Sylva and reading, about 10 minutes, only when named; "
+                         "calibration: the stated uncertainty against the truth on ~100 fresh pairs, only when named")
+    ap.add_argument("--calibration-seed", type=int, help="calibration: the seed of its cases (default: drawn afresh and printed)")
     ap.add_argument("--sizes", help="scaling: points per scan, millions, comma-separated (default 1,3,10,30,50; --quick 0.1,0.3,1)")
     ap.add_argument("--workdir", type=Path, help="bigplot, scaling, batch and treescale: keep their simulated and densified scans here (default bench_out/; reused)")
     args = ap.parse_args(argv)
@@ -431,6 +440,12 @@ def main(argv: Optional[list[str]] = None) -> int:
         resurvey_rows = resurvey.run(seeds=(1,), quick=args.quick)
         print(resurvey.format_rows(resurvey_rows))
         print(flush=True)
+    calibration_run: Optional[dict[str, Any]] = None
+    if "calibration" in parts:  # only when named
+        calibration_run = calibration.run(args.calibration_seed, quick=args.quick)
+        print()
+        print(calibration.format_report(calibration_run["rows"], calibration_run["summary"]))
+        print(f"calibration: seed {calibration_run['seed']}, {calibration_run['n']} cases, {calibration_run['wall_s']:.0f} s", flush=True)
     wall = time.perf_counter() - t_start
     print(f"total benchmark wall time {wall:.0f} s")
 
@@ -438,7 +453,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
                    "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "big_plot": big_plot_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows, "commands": command_rows,
                    "trees_compare": trees_rows, "resurvey": resurvey_rows, "scaling": scaling_rows, "batch": batch_row,
-                   "trees_scale": tree_scale_rows}
+                   "trees_scale": tree_scale_rows, "calibration": calibration_run}
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0
