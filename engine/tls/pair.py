@@ -364,13 +364,15 @@ def register(
         if not result.ok:
             return result
         return _count_alternative(result, chosen, moving, params, lambda candidate: _finish(
-            reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed, Progress(None, cancel=cancel)))
+            reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed,
+            Progress(None, cancel=cancel), alternative=True))
     # Two coarse solutions are nearly as good: let evidence the VOP score did not use decide (the
     # ground overlap, ICP, the VOPs confirmed after ICP, free space). Only when exactly one of them
     # passes every check is it taken; otherwise the pair stays ambiguous and fails.
     log.info("%s - checking both solutions with ICP and free-space evidence", chosen.problem)
     def checking(candidate: CoarseAttempt) -> PairResult:
-        return _finish(reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed, Progress(None, cancel=cancel))
+        return _finish(reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed,
+                       Progress(None, cancel=cancel), alternative=True)
 
     outcomes = []
     for candidate in (dataclasses.replace(chosen, problem=""), _second_candidate(chosen, params.match_distance_m)):
@@ -430,8 +432,12 @@ def _second_candidate(attempt: CoarseAttempt, match_distance_m: float) -> Coarse
 
 
 def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, chosen: CoarseAttempt,
-            base: dict[str, Any], details: dict[str, Any], params: RegistrationParams, timed, step) -> PairResult:
-    """From a confident coarse VOP match to the result: vertical offset, ICP, evidence checks."""
+            base: dict[str, Any], details: dict[str, Any], params: RegistrationParams, timed, step, *,
+            alternative: bool = False) -> PairResult:
+    """From a confident coarse VOP match to the result: vertical offset, ICP, evidence checks.
+    ``alternative``: the solution is an alternative being checked, excluded only by evidence
+    against it (ICP running away, its trunks not coinciding, free space, no overlap), not for
+    having fewer trunks than a result needs (a shift along a row loses the ones at its ends)."""
     step(0.6, "vertical alignment")
     coarse = timed("vertical", vertical_alignment, ref_prep, mov_prep, chosen.match.matrix(), fit_tilt=ref_prep.levelled or mov_prep.levelled)
     if coarse is None:
@@ -452,7 +458,7 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
             f"ICP moved the coarse solution by {moved_m:.2f} m and {turned:.1f} deg: the coarse match is not trustworthy",
             chosen, common, full_details,
         )
-    needed = max(params.min_matched, int(np.ceil(0.5 * chosen.matched)))
+    needed = max(2 if alternative else params.min_matched, int(np.ceil(0.5 * chosen.matched)))
     if confirmed < needed:
         return _failed(
             f"after ICP only {confirmed} of the {chosen.matched} matched VOPs still coincide within "
@@ -782,20 +788,25 @@ def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, 
         lead = chosen.matched - int(m.second_matched)
         if alternative_weight(lead, up) >= up.min_alternative_weight or m.second_matched >= up.second_share * chosen.matched:
             candidates.append((_second_candidate(chosen, params.match_distance_m), lead, ""))
-    # the shifts under which the matched trunks repeat: anywhere, and along a motion the surfaces
-    # leave free (there the trunks alone pin the result: three in a row repeating is enough)
+    # the shifts under which the trunks repeat: the matched ones and all those of the reference
+    # scan (a row of posts beyond the matched ones), at least ``repeat_share`` of them; and the
+    # matched ones along a motion the surfaces leave free (there the trunks alone pin the result:
+    # three in a row repeating is enough)
     weak = [np.asarray(w.vector[:2]) for w in weak_directions(result.icp.information, up)
             if w.kind == "translation" and w.azimuth_deg is not None] if result.icp is not None else []
     seen: list[np.ndarray] = []
-    for along, least in [(None, max(4.0, up.repeat_share * chosen.matched))] + [(u, 3.0) for u in weak]:
-        repeat = trunk_repeat(chosen, params, along=along)
+    rules = [(None, 4.0, False), (None, 3.0, True)] + [(u, 3.0, False) for u in weak]
+    for along, least, everyone in rules:
+        repeat = trunk_repeat(chosen, params, along=along, all_vops=everyone)
         if repeat is None:
             continue
         translation, repeated, of = repeat
-        if repeated < least or any(np.hypot(*(translation - t)) < params.distinct.translation_m for t in seen):
+        if repeated < max(least, up.repeat_share * of if along is None else 0.0) \
+                or any(np.hypot(*(translation - t)) < params.distinct.translation_m for t in seen):
             continue
         seen.append(translation)
-        pattern = (f"{repeated} of the {of} matched trunks repeat themselves {float(np.hypot(*translation)):.2f} m along "
+        which = "trunk shadows of the reference scan" if everyone else "matched trunks"
+        pattern = (f"{repeated} of the {of} {which} repeat themselves {float(np.hypot(*translation)):.2f} m along "
                    f"{np.degrees(np.arctan2(translation[1], translation[0])) % 180.0:.0f} deg"
                    + (", where the surfaces do not pin it" if along is not None else "") + ": regular rows (posts, columns, a planted grid)")
         candidates.append((_moved_candidate(chosen, 0.0, translation, params.match_distance_m), chosen.matched - repeated, pattern))
@@ -819,17 +830,18 @@ def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, 
     return _settle(result, alternatives, params)
 
 
-def trunk_repeat(attempt: CoarseAttempt, params: RegistrationParams, *, along: Optional[np.ndarray] = None) -> Optional[tuple[np.ndarray, int, int]]:
+def trunk_repeat(attempt: CoarseAttempt, params: RegistrationParams, *, along: Optional[np.ndarray] = None,
+                 all_vops: bool = False) -> Optional[tuple[np.ndarray, int, int]]:
     """The shift under which a coarse solution's matched reference trunks (VOPs) best repeat
     themselves: of every difference between two of them at least ``distinct.translation_m`` long,
     the one moving the most of them onto another within ``match_distance_m``. Returns that shift
     (2,) (reference levelled frame, m), how many it repeats and of how many; None with fewer than
     4 matched trunks. A row of posts repeats nearly all of its posts at its spacing; trees at
     random repeat two or three by chance. ``along``: only shifts within 15 deg of this horizontal
-    direction (either sense)."""
+    direction (either sense). ``all_vops``: every reference VOP, not only the matched ones."""
     if attempt.match is None or attempt.matched < 4:
         return None
-    xy = attempt.reference_vops.xy[np.unique(attempt.match.matched_pairs[:, 0])]
+    xy = attempt.reference_vops.xy if all_vops else attempt.reference_vops.xy[np.unique(attempt.match.matched_pairs[:, 0])]
     if len(xy) < 4:
         return None
     xy = xy[:60]
