@@ -133,6 +133,19 @@ def examples(root: Path = ROOT) -> list[Block]:
     return [b for f in markdown_files(root) for b in blocks_of(f, root) if b.is_example]
 
 
+def shell_text(block: Block) -> str:
+    """The shell code of a block: a ``console`` block's prompt lines (``$ `` taken off, with their
+    continuation lines), the printed lines between them left out; any other block as it is."""
+    if block.language != "console":
+        return block.text
+    kept, going = [], False
+    for line in block.text.splitlines():
+        if line.startswith("$ ") or going:
+            kept.append(line[2:] if line.startswith("$ ") and not going else line)
+            going = line.rstrip().endswith("\\")
+    return "\n".join(kept) + "\n"
+
+
 def commands_of(text: str) -> list[str]:
     """A shell block's commands: continuation lines joined, blank and comment lines left out
     (a command keeps its trailing comment)."""
@@ -142,9 +155,9 @@ def commands_of(text: str) -> list[str]:
         if not current and (not line.strip() or line.lstrip().startswith("#")):
             continue
         if line.rstrip().endswith("\\"):
-            current += line.rstrip()[:-1] + " "
+            current += line.rstrip()[:-1].strip() + " "
             continue
-        out.append((current + line).strip() if current else line.strip())
+        out.append(current + line.strip())
         current = ""
     if current.strip():
         out.append(current.strip())
@@ -188,7 +201,7 @@ def undecided(block: Block) -> list[str]:
     if block.language == "":
         reasons.append("an unlabelled block (output, a synopsis or text?)")
     elif block.language in SHELL:
-        others = sorted({c.split()[0] for c in commands_of(block.text) if c.split()[0] != "forestreg"})
+        others = sorted({c.split()[0] for c in commands_of(shell_text(block)) if c.split()[0] != "forestreg"})
         if others:
             reasons.append(f"commands other than forestreg ({', '.join(others)})")
     return reasons
@@ -238,7 +251,7 @@ def promised_paths(block: Block, decision: Decision) -> list[str]:
     if block.language in PYTHON:
         outs = PY_OUT.findall(block.text)
     else:
-        outs = [p for c in commands_of(block.text) for p in outputs_of_command(c)]
+        outs = [p for c in commands_of(shell_text(block)) for p in outputs_of_command(c)]
     tops = {Path(p).parts[0] for p in outs if not Path(p).is_absolute()}
     named: list[str] = []
     for line in block.text.splitlines():
@@ -255,7 +268,7 @@ def shell_script(block: Block, rc_file: Path, data: Path) -> str:
     """A bash script running the block's commands in order in one shell (variables carry over),
     each announced on stderr and its exit status appended to ``rc_file``."""
     lines = []
-    for command in commands_of(block.text):
+    for command in commands_of(shell_text(block)):
         for pattern, variant in VARIANTS:
             if pattern.search(command):
                 lines.append(f"printf '%s\\n' {shlex.quote(f'[docs-test] the files of sample variant {variant!r} for the next command')} >&2")
