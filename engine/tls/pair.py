@@ -720,7 +720,7 @@ def terrain_agreement(reference: PreparedScan, moving: PreparedScan, lsf_matrix:
     return {"terrain_cells": int(both.sum()), "terrain_median_m": float(np.median(diff)), "terrain_p90_m": float(np.percentile(diff, 90))}
 
 
-def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, params: RegistrationParams, to_file: np.ndarray) -> dict[str, Any]:
+def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, params: RegistrationParams, to_file: Optional[np.ndarray] = None) -> dict[str, Any]:
     """1-sigma uncertainty of the result at the moving scanner: the ICP's precision from its
     normal matrix, the matched trunks that still coincide after ICP (within 0.75
     ``match_distance_m``; :func:`~forestreg.engine.tls.uncertainty.pair_uncertainty`) as the
@@ -734,7 +734,7 @@ def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, params: Registrat
     keep = np.hypot(*(moved - ref).T) < 0.75 * params.match_distance_m
     trunks = pair_uncertainty(ref[keep], moved[keep], lsf[:2, 3], icp_std_m=fine.std_m,
                               floor_m=params.min_uncertainty_m, floor_deg=params.min_uncertainty_deg)
-    return combine_with_fit(trunks, fine, lsf[:3, 3], params, to_file)
+    return combine_with_fit(trunks, fine, lsf[:3, 3], params, np.eye(3) if to_file is None else to_file)
 
 
 def _lsf_to_file_rotation(scan: Scan, prepared: PreparedScan) -> np.ndarray:
@@ -907,7 +907,7 @@ def combine_with_fit(trunks: dict[str, Any], fine: IcpResult, at: np.ndarray, pa
     ``fit_deg`` (the ICP's own precision) and ``trunks_m`` / ``trunks_deg`` (the trunks' figures).
     """
     u = dict(trunks)
-    info = fine.information
+    info = getattr(fine, "information", None)
     if info is None or u.get("translation_m") is None or not np.all(np.isfinite(info)) or not np.isfinite(fine.std_m):
         u["weak_directions"] = []
         return u
