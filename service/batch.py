@@ -769,7 +769,11 @@ def _client(workers: Optional[int], scheduler: Optional[str], memory_limit: int 
         # Dask's instruments for data-holding workers (a stack sampler every 10 ms, replica
         # balancing every 2 s, a memory check every 100 ms) only take CPU from the plots.
         with dask.config.set(LOCAL_CLUSTER_CONFIG):
+            # no dashboard; the scheduler's own HTTP server (health, metrics) on a free loopback
+            # port: its default, 8787 on every interface, is taken by a second batch on the
+            # machine, and Dask then warned on stderr
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                                    silence_logs=logging.CRITICAL, memory_limit=memory_limit or "auto")
     finally:
         if ignore:

@@ -231,6 +231,27 @@ def test_two_batches_into_one_output_folder(tmp_path):
         holder.wait(timeout=10)
 
 
+def test_two_batches_on_one_machine_print_no_dask_warning(tmp_path):
+    """A second batch on the machine (into another ``OUT``) ran, but its stderr carried Dask's
+    "Port 8787 is already in use" warning: the scheduler's HTTP server took the default port."""
+    import socket
+
+    _trees_tables(tmp_path / "plots" / "p1")
+    taken = socket.socket()
+    taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        taken.bind(("0.0.0.0", 8787))  # stands for the first batch's scheduler (or the port is taken already)
+        taken.listen(1)
+    except OSError:
+        pass
+    try:
+        run = _run("batch", "plots", "--out", "out", "--command", "change", "--workers", "1", "-q", cwd=tmp_path, timeout=300)
+    finally:
+        taken.close()
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "8787" not in run.stderr and "warn" not in run.stderr.lower(), run.stderr
+
+
 # ----------------------------------------------------------------------------- the temporaries of a transaction
 
 
