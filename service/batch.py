@@ -693,9 +693,11 @@ _LINKED = ("report.html", "poses.json", "result.json", "trees.csv")
 # ----------------------------------------------------------------------------- the batch
 
 
-def _write_summary(out: Path, rows: list[dict], facts: dict) -> tuple[Path, Path]:
+def _write_summary(out: Path, rows: list[dict], facts: dict, *, interrupted: bool = False) -> tuple[Path, Path]:
+    """Write ``summary.csv``, then the overview ``index.html`` (whose failure never loses the
+    summary: said on stderr, or only with -v after Ctrl-C, which may have stopped the overview's
+    first import half-way and left its modules unusable)."""
     from ..engine.core.atomic import write_text_atomic
-    from ..engine.report.batch_report import write_batch_report
 
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=SUMMARY_FIELDS, extrasaction="ignore", lineterminator="\n")
@@ -705,9 +707,11 @@ def _write_summary(out: Path, rows: list[dict], facts: dict) -> tuple[Path, Path
     summary = out / "summary.csv"
     write_text_atomic(summary, buf.getvalue())
     try:
+        from ..engine.report.batch_report import write_batch_report
+
         overview = write_batch_report(rows, out, title=f"forestreg batch: {out.name}", facts=facts)
     except Exception as exc:  # an overview must never lose the summary
-        log.warning("could not write the overview: %s", exc)
+        (log.info if interrupted else log.warning)("could not write the overview: %s", exc)
         overview = out / "index.html"
     return summary, overview
 
@@ -723,11 +727,11 @@ class _Summary:
         self.writes = 0
         self.seconds = 0.0
 
-    def update(self, rows: list[dict], *, force: bool = False) -> None:
+    def update(self, rows: list[dict], *, force: bool = False, interrupted: bool = False) -> None:
         now = time.perf_counter()
         if not force and now < self.next_at:
             return
-        _write_summary(self.out, rows, self.facts)
+        _write_summary(self.out, rows, self.facts, interrupted=interrupted)
         spent = time.perf_counter() - now
         self.writes += 1
         self.seconds += spent
@@ -868,7 +872,7 @@ def run_batch(
                 summary.update(list(rows.values()))
                 report(len(rows) / total, f"{task.name}: {row['status']}")
         except KeyboardInterrupt:
-            summary.update(list(rows.values()), force=True)
+            summary.update(list(rows.values()), force=True, interrupted=True)
             raise BatchInterrupted(len(rows), total, out) from None
         finally:
             client.close()

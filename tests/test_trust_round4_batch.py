@@ -252,6 +252,29 @@ def test_two_batches_on_one_machine_print_no_dask_warning(tmp_path):
     assert "8787" not in run.stderr and "warn" not in run.stderr.lower(), run.stderr
 
 
+def test_an_overview_that_cannot_be_written_never_loses_the_summary(tmp_path, monkeypatch, caplog):
+    """Ctrl-C can stop the overview's first import half-way; the summary written after the
+    interrupt then ended in "internal error (AttributeError: module 'matplotlib' has no attribute
+    ...)" and exit 1 instead of 130. The summary is written whatever the overview's import does."""
+    import logging
+    import types
+
+    from forestreg.service.batch import _Summary, _write_summary
+
+    broken = types.ModuleType("forestreg.engine.report.batch_report")  # as an interrupted import leaves it
+    monkeypatch.setitem(sys.modules, "forestreg.engine.report.batch_report", broken)
+    rows = [{"plot": "p1", "status": "ok", "scans": 2, "registered": 2, "seconds": 1.0, "reason": "", "command": "plot"}]
+    out = tmp_path / "out"
+    out.mkdir()
+    with caplog.at_level(logging.INFO, logger="forestreg.batch"):
+        summary, _ = _write_summary(out, rows, {"command": "plot"})
+        assert [r["plot"] for r in csv.DictReader(summary.open())] == ["p1"]
+        assert [r.levelname for r in caplog.records] == ["WARNING"]  # said on stderr
+        caplog.clear()
+        _Summary(out, {"command": "plot"}).update(rows, force=True, interrupted=True)
+        assert [r.levelname for r in caplog.records] == ["INFO"]  # after Ctrl-C: the one line of the interrupt stays alone
+
+
 # ----------------------------------------------------------------------------- the temporaries of a transaction
 
 
