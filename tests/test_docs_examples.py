@@ -66,6 +66,7 @@ SLOW: set[tuple[str, str]] = {
     ("docs/guide/system-b.md", "from forestreg.engine.coreg.fusion import fuse_scans, write_fused"),
     ("docs/guide/service.md", 'batch = service.run(["batch"'),
     ("README.md", "forestreg batch plots/ --out batch_out --workers 4"),
+    ("docs/guide/cli.md", 'forestreg simulate mixed_temperate --out sim --positions "0,0;12,0"'),
 }
 
 #: Programs besides forestreg and Python that examples call; an example needing one that is not
