@@ -49,6 +49,7 @@ import functools
 import json
 import logging
 import math
+import re
 import secrets
 import sys
 import time
@@ -540,14 +541,25 @@ def format_report(rows: Sequence[Mapping[str, Any]], summary: Optional[Mapping[s
     else:
         lines.append(f"No ok beyond {PROMISE:g} sigma.")
     reasons: dict[str, int] = {}
+    per_kind: dict[str, dict[str, int]] = {}
     for r in rows:
         if r["status"] in ("failed", "error"):
-            key = (r["reason"] or "").split(":")[0][:70]
+            key = reason_key(r["reason"])
             reasons[key] = reasons.get(key, 0) + 1
+            kind = per_kind.setdefault(r["kind"], {})
+            kind[key] = kind.get(key, 0) + 1
     if reasons:
-        lines += ["", "Refusals and errors by reason"]
+        lines += ["", "Refusals and errors by reason (numbers as N)"]
         lines += [f"{n:>5}  {k}" for k, n in sorted(reasons.items(), key=lambda kv: -kv[1])]
+        lines += ["", "Refusals per kind"]
+        for kind in [k for k in s["per_kind"] if k in per_kind]:
+            lines.append(f"  {kind:<16}" + "; ".join(f"{k} {n}" for k, n in sorted(per_kind[kind].items(), key=lambda kv: -kv[1])))
     return "\n".join(lines)
+
+
+def reason_key(reason: Optional[str]) -> str:
+    """The kind of a refusal: its reason up to the first colon or parenthesis, numbers as N."""
+    return re.sub(r"\d+(\.\d+)?", "N", (reason or "").split(":")[0].split(" (")[0])[:80]
 
 
 def _case_line(i: int, n: int, row: Mapping[str, Any]) -> str:
