@@ -21,7 +21,8 @@ from ..core.transform import apply as apply_transform
 from .epoch import EpochTrees
 from .matching import STATUSES, TreeChange, match_trees
 from .params import ChangeParams
-from .registration import StemMatch, persisting_stems, refine_on_stems
+from .registration import StemMatch, persisting_stems, refine_on_stems, stem_alternatives
+from ..core.uncertainty import judge, with_alternatives
 
 __all__ = ["ChangeResult", "detect_change", "file_matrix"]
 
@@ -161,10 +162,19 @@ def detect_change(
         floor = 0.02 if match.vertical_from != "terrain" else 0.0
         vertical = max(vertical, match.vertical_spread_m / math.sqrt(n), floor)
     translation = max(float(unc["translation_m"]), math.hypot(float(unc.get("horizontal_m") or 0.0), vertical))
-    uncertainty = {"translation_m": translation, "rotation_deg": unc["rotation_deg"],
+    alternatives = stem_alternatives(before, after, match, local, params)
+    stated_t, stated_r = with_alternatives(translation, float(unc["rotation_deg"]), alternatives)
+    uncertainty = {"translation_m": stated_t, "rotation_deg": stated_r,
                    "horizontal_m": unc.get("horizontal_m"), "vertical_m": vertical, "vertical_from": match.vertical_from,
                    "heading_deg": unc.get("heading_deg"), "stems": n, "at": "plot centre (the persisting stems' centroid)",
-                   "method": unc.get("method")}
+                   "alternatives": [a.to_dict() for a in alternatives], "weak_directions": [],
+                   "method": f"{unc.get('method')}; distinct solutions counted (stems persisting under each)"}
+    if (stated_t, stated_r) != (translation, float(unc["rotation_deg"])):
+        uncertainty["without_alternatives"] = {"translation_m": translation, "rotation_deg": float(unc["rotation_deg"])}
+    refusal = judge(stated_t, stated_r, params.uncertainty, alternatives=alternatives)
+    if refusal:
+        figures["uncertainty"] = uncertainty
+        return _failed(refusal, figures, before, timings, sources)
     t = time.perf_counter()
     progress(0.6, "matching trees")
     skipped: list = []

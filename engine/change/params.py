@@ -7,6 +7,7 @@ from typing import ClassVar
 
 from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
+from ..core.uncertainty import UncertaintyParams
 from ..geometry.icp_params import IcpParams
 from ..geometry.solution_params import DistinctParams, MarginParams
 
@@ -32,6 +33,8 @@ class ChangeParams(Params):
     #: when another heading and shift is a distinct solution, and the best one's lead over it
     distinct: DistinctParams = DistinctParams()
     margin: MarginParams = MarginParams(min_lead=3, min_lead_fraction=0.25)
+    #: how the stated uncertainty counts the distinct solutions, and the widest it may be
+    uncertainty: UncertaintyParams = UncertaintyParams()
     # --- refinement on stem slices and terrain (not crowns)
     icp: bool = _p(True, "", None, None, "Refine on the persisting stems' slices and the terrain (clouds only; tables are registered on stem positions)")
     #: the ICP of that refinement (the stem slices thinned to 2 cm)

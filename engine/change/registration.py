@@ -60,6 +60,9 @@ class StemMatch:
     vertical_from: str = "terrain"
     vertical_spread_m: float = 0.0
     notes: tuple[str, ...] = field(default_factory=tuple)
+    #: the best distinct alternative's heading (deg) and shift (m, after -> before), None: none
+    second_rotation_deg: Optional[float] = None
+    second_translation: Optional[np.ndarray] = None
 
     @property
     def margin(self) -> int:
@@ -160,6 +163,8 @@ def persisting_stems(before: EpochTrees, after: EpochTrees, params: ChangeParams
                 break
     _, source, spread = _vertical(before, after, pairs) if len(pairs) else (0.0, "terrain", 0.0)
     return StemMatch(matrix=matrix, pairs=pairs, matched_coarse=int(coarse.matched), second_matched=coarse.second_matched,
+                     second_rotation_deg=coarse.second_rotation_deg,
+                     second_translation=None if coarse.second_translation is None else np.asarray(coarse.second_translation, dtype=float),
                      dbh_rejected=rejected, rotation_deg=float(coarse.rotation_deg), coarse_evaluated=int(coarse.evaluated),
                      vertical_from=source, vertical_spread_m=spread)
 
@@ -264,3 +269,50 @@ def _stem_rms(before: EpochTrees, after: EpochTrees, pairs: np.ndarray, matrix: 
     """RMS horizontal distance (m) of the paired stems once AFTER is moved by ``matrix``."""
     moved = apply_transform(matrix, after.breast_points()[pairs[:, 1]])[:, :2]
     return float(np.sqrt(np.mean(np.sum((moved - before.xy[pairs[:, 0]]) ** 2, axis=1))))
+
+
+def stem_alternatives(before: EpochTrees, after: EpochTrees, match: StemMatch, local: np.ndarray,
+                      params: ChangeParams = ChangeParams()) -> list:
+    """The distinct solutions a re-survey's registration must count
+    (:class:`~forestreg.engine.core.uncertainty.Alternative`, offsets at the persisting stems'
+    centroid): the best distinct heading and shift of the coarse match, and the solution ``local``
+    shifted by the step under which the persisting stems repeat themselves (a planted grid,
+    :func:`~forestreg.engine.core.uncertainty.repeat_shift`). Each is judged by the stems that
+    persist under it with a plausible DBH change (:func:`stem_pairs`): fewer than 3 exclude it;
+    otherwise its weight comes from how many fewer persist than under ``local``."""
+    from ..core.transform import rotation_angle_deg
+    from ..core.uncertainty import Alternative, alternative_weight, repeat_shift
+
+    up = params.uncertainty
+    n = len(match.pairs)
+    if n == 0:
+        return []
+    candidates: list[tuple[np.ndarray, str]] = []
+    if match.second_translation is not None and match.second_rotation_deg is not None:
+        candidates.append((rigid_2d_matrix(math.radians(match.second_rotation_deg), match.second_translation, float(local[2, 3])), ""))
+    repeat = repeat_shift(before.xy[match.pairs[:, 0]], params.match_distance_m, params.distinct.translation_m)
+    if repeat is not None and repeat[1] >= max(4.0, up.repeat_share * repeat[2]):
+        shift, repeated, of = repeat
+        step = np.eye(4)
+        step[:2, 3] = shift
+        pattern = (f"{repeated} of the {of} persisting stems repeat themselves {float(np.hypot(*shift)):.2f} m along "
+                   f"{math.degrees(math.atan2(shift[1], shift[0])) % 180.0:.0f} deg: a planted grid")
+        candidates.append((step @ local, pattern))
+    centre = np.append(before.xy[match.pairs[:, 0]].mean(axis=0), 0.0)
+    out = []
+    for matrix, pattern in candidates:
+        persist = len(stem_pairs(before, after, matrix, params.match_distance_m, params.dbh_change_range_m))
+        offset = apply_transform(matrix, centre[None])[0] - apply_transform(local, centre[None])[0]
+        weight = alternative_weight(n - persist, up) if persist >= 3 else 0.0
+        if persist < 3:
+            status = f"excluded: only {persist} stems persist under it with a plausible growth"
+        elif weight < up.min_alternative_weight:
+            status, weight = f"too unlikely to count (probability {weight:.1g})", 0.0
+        else:
+            status = "counted"
+        out.append(Alternative(
+            weight=weight,
+            offset_m=float(np.linalg.norm(offset)), offset_deg=rotation_angle_deg(local[:3, :3].T @ matrix[:3, :3]),
+            support=float(persist), chosen_support=float(n), status=status,
+            direction_deg=float(math.degrees(math.atan2(offset[1], offset[0])) % 360.0), pattern=pattern))
+    return out

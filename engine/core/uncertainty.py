@@ -49,6 +49,7 @@ __all__ = [
     "with_alternatives",
     "judge",
     "evidence_notes",
+    "repeat_shift",
 ]
 
 
@@ -219,6 +220,37 @@ def weak_directions(information: np.ndarray, params: UncertaintyParams = Uncerta
             az = None if float(np.hypot(d[0], d[1])) < 0.5 else float(np.degrees(np.arctan2(d[1], d[0])) % 180.0)
             out.append(WeakDirection("translation", tuple(float(v) for v in d), share, az))
     return out
+
+
+def repeat_shift(xy: np.ndarray, match_distance_m: float, min_shift_m: float, *, along: Optional[np.ndarray] = None,
+                 limit: int = 60) -> Optional[tuple[np.ndarray, int, int]]:
+    """The shift under which a set of features (trunks, stems; (n, 2) horizontal positions, m)
+    best repeats itself: of every difference between two of them at least ``min_shift_m`` long,
+    the one moving the most of them onto another within ``match_distance_m``. Returns that shift
+    (2,), how many it repeats and of how many (the first ``limit`` features are used); None with
+    fewer than 4 features or no such difference. A row of posts repeats nearly all its posts at
+    its spacing; trees at random repeat two or three by chance. ``along``: only shifts within
+    15 deg of this horizontal direction (either sense)."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(xy, dtype=float).reshape(-1, 2)[:limit]
+    if len(pts) < 4:
+        return None
+    diff = (pts[None, :, :] - pts[:, None, :]).reshape(-1, 2)
+    length = np.hypot(diff[:, 0], diff[:, 1])
+    keep = length >= min_shift_m
+    if along is not None:
+        u = np.asarray(along, dtype=float)[:2]
+        u = u / max(float(np.hypot(*u)), 1e-12)
+        keep &= np.abs(diff @ u) >= math.cos(math.radians(15.0)) * length
+    diff = diff[keep]
+    if not len(diff):
+        return None
+    shifted = (pts[None, :, :] + diff[:, None, :]).reshape(-1, 2)
+    d, _ = cKDTree(pts).query(shifted, distance_upper_bound=match_distance_m)
+    counts = np.isfinite(d).reshape(len(diff), len(pts)).sum(axis=1)
+    best = int(np.argmax(counts))
+    return diff[best].astype(float), int(counts[best]), len(pts)
 
 
 def alternative_weight(lead: float, params: UncertaintyParams = UncertaintyParams()) -> float:

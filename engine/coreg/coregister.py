@@ -928,8 +928,10 @@ def stated_uncertainty(standard_errors: dict[str, Any], fine: IcpResult, residua
         here = apply_transform(fine.matrix, centre[None])[0]
         there = apply_transform(alternative, centre[None])[0]
         offset = there - here
+        weight = alternative_weight((correlation - alternative_correlation) / params.margin_per_match, up)
         alternatives.append(Alternative(
-            weight=alternative_weight((correlation - alternative_correlation) / params.margin_per_match, up),
+            weight=weight if weight >= up.min_alternative_weight else 0.0,
+            status="counted" if weight >= up.min_alternative_weight else f"too unlikely to count (probability {weight:.1g})",
             offset_m=float(np.linalg.norm(offset)), offset_deg=rotation_angle_deg(fine.matrix[:3, :3].T @ alternative[:3, :3]),
             support=round(float(alternative_correlation), 3), chosen_support=round(float(correlation), 3),
             direction_deg=float(np.degrees(np.arctan2(offset[1], offset[0])) % 360.0)))

@@ -31,7 +31,7 @@ from ..geometry.nearest import PlaneNearest
 from ..geometry.voxel import voxel_grid
 from .scanner_position import locate_scanner
 from .uncertainty import pair_uncertainty
-from ..core.uncertainty import Alternative, WeakDirection, alternative_weight, icp_covariance_at, judge, weak_directions, with_alternatives
+from ..core.uncertainty import Alternative, WeakDirection, alternative_weight, icp_covariance_at, judge, repeat_shift, weak_directions, with_alternatives
 from .prepare import PreparedScan, PreparedScans, SliceLayer, centre_scan, derived, extract_vops, icp_grid_voxel, prepare_centred, slice_layers
 from .vop import VisualOcclusionPoints
 from .params import RegistrationParams, ScannerPositionParams
@@ -833,32 +833,14 @@ def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, 
 def trunk_repeat(attempt: CoarseAttempt, params: RegistrationParams, *, along: Optional[np.ndarray] = None,
                  all_vops: bool = False) -> Optional[tuple[np.ndarray, int, int]]:
     """The shift under which a coarse solution's matched reference trunks (VOPs) best repeat
-    themselves: of every difference between two of them at least ``distinct.translation_m`` long,
-    the one moving the most of them onto another within ``match_distance_m``. Returns that shift
-    (2,) (reference levelled frame, m), how many it repeats and of how many; None with fewer than
-    4 matched trunks. A row of posts repeats nearly all of its posts at its spacing; trees at
-    random repeat two or three by chance. ``along``: only shifts within 15 deg of this horizontal
-    direction (either sense). ``all_vops``: every reference VOP, not only the matched ones."""
+    themselves (:func:`~forestreg.engine.core.uncertainty.repeat_shift` at ``match_distance_m``,
+    shifts of at least ``distinct.translation_m``; reference levelled frame, m); None with fewer
+    than 4 matched trunks. ``along``: only shifts near this horizontal direction. ``all_vops``:
+    every reference VOP, not only the matched ones."""
     if attempt.match is None or attempt.matched < 4:
         return None
     xy = attempt.reference_vops.xy if all_vops else attempt.reference_vops.xy[np.unique(attempt.match.matched_pairs[:, 0])]
-    if len(xy) < 4:
-        return None
-    xy = xy[:60]
-    diff = (xy[None, :, :] - xy[:, None, :]).reshape(-1, 2)
-    length = np.hypot(diff[:, 0], diff[:, 1])
-    keep = length >= params.distinct.translation_m
-    if along is not None:
-        u = np.asarray(along, dtype=float) / max(float(np.hypot(*along)), 1e-12)
-        keep &= np.abs(diff @ u) >= np.cos(np.radians(15.0)) * length
-    diff = diff[keep]
-    if not len(diff):
-        return None
-    shifted = (xy[None, :, :] + diff[:, None, :]).reshape(-1, 2)
-    d, _ = PlaneNearest(xy, params.match_distance_m).query(shifted)
-    counts = (d < params.match_distance_m).reshape(len(diff), len(xy)).sum(axis=1)
-    best = int(np.argmax(counts))
-    return diff[best].astype(float), int(counts[best]), len(xy)
+    return repeat_shift(xy, params.match_distance_m, params.distinct.translation_m, along=along)
 
 
 def _moved_candidate(attempt: CoarseAttempt, rotation_deg: float, translation: np.ndarray, match_distance_m: float) -> CoarseAttempt:
