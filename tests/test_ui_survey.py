@@ -152,3 +152,31 @@ def test_survey_quality_in_the_tables_and_on_the_map(qtbot, window, surveyed: Pr
         assert circles[c] == pytest.approx(u["translation_m"] * top.uncertainty_factor)
     legend = [t.get_text() for t in top.figure.legends[0].get_texts()]
     assert any("dropped link" in t for t in legend) and any("pose uncertainty" in t for t in legend)
+
+
+def test_link_table_names_the_weak_motion_and_the_alternative(qtbot, surveyed: Project, tmp_path: Path) -> None:
+    """A link whose uncertainty counted a weak motion and a distinct solution shows both, short in
+    the cell and whole in its tooltip."""
+    from forestreg.engine.core.uncertainty import Alternative, WeakDirection
+    from forestreg.ui.results_tables import LinkResultsTable
+
+    project = copy.deepcopy(surveyed)
+    link = next(link for link in project.links if link.result is not None and link.result.get("status") == "ok")
+    weak = WeakDirection("translation", (0.0, 1.0, 0.0), 0.004, 90.0)
+    alternative = Alternative(weight=0.05, offset_m=3.45, offset_deg=0.02, support=7, chosen_support=9, direction_deg=97.0,
+                              pattern="5 of the 9 matched trunks repeat themselves 3.45 m along 97 deg: regular rows (posts, columns, a planted grid)")
+    excluded = Alternative(weight=0.0, offset_m=16.2, offset_deg=180.0, support=4, chosen_support=9,
+                           status="excluded: it fails its checks (ICP fitness 0.05 is below 0.10)")
+    link.result = dict(link.result, uncertainty=dict(link.result["uncertainty"], weak_directions=[weak.to_dict()],
+                                                     alternatives=[alternative.to_dict(), excluded.to_dict()]))
+    table = LinkResultsTable()
+    qtbot.addWidget(table)
+    table.show_project(project)
+    row = project.links.index(link)
+    text = table.text(row, "Weak motion / alternative")
+    assert text == ("free translation along 90 deg; alternative 3.45 m along 97 deg, 0.02 deg (counted); "
+                    "alternative 16.20 m, 180.00 deg (excluded)")
+    tip = table.item(row, table.column("Weak motion / alternative")).toolTip()
+    assert "walls, a row or a fence along it" in tip and "regular rows" in tip and "ICP fitness 0.05" in tip
+    table.resize(1800, 200)
+    table.grab().save(str(tmp_path / "links.png"))
