@@ -15,7 +15,6 @@ import numpy as np
 
 from ..core.atomic import atomic_path
 from ..core.errors import InvalidArgumentError
-from ..core.uncertainty import evidence_notes
 from .topview import Canvas, Panel
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -68,14 +67,25 @@ def pair_figure(result: "PairResult", path: str | os.PathLike[str], *, dpi: int 
 
 
 def _uncertainty_line(result: "PairResult") -> str:
-    """The stated 1-sigma uncertainty of an ok result and what it counted (weak motions, the
-    alternative), for the registered panel's title; "" for a failed one (its reason says it)."""
+    """The stated 1-sigma uncertainty of an ok result and, in a few words, what it counted (weak
+    motions, the alternatives; the full texts are in ``result.json``), for the registered panel's
+    title; "" for a failed one (its reason says it)."""
     u = result.uncertainty or {}
     if not result.ok or u.get("translation_m") is None:
         return ""
     line = f"; 1 sigma {100 * u['translation_m']:.1f} cm / {u['rotation_deg']:.3f} deg"
-    notes = evidence_notes(u)
-    return line + ("; " + "; ".join(notes) if notes else "")
+    for w in u.get("weak_directions") or ():
+        if w.get("kind") == "translation" and w.get("azimuth_deg") is not None:
+            line += f"; free along {w['azimuth_deg']:.0f} deg"
+        elif w.get("kind") == "rotation":
+            line += "; heading weakly pinned"
+    alternatives = [a for a in u.get("alternatives") or () if isinstance(a, dict)]
+    counted = [a for a in alternatives if a.get("status") == "counted"]
+    if counted:
+        line += "; alternative " + ", ".join(f"{a['offset_m']:.2f} m" for a in counted) + " counted"
+    elif alternatives:
+        line += f"; {len(alternatives)} alternative{'s' if len(alternatives) > 1 else ''} excluded"
+    return line
 
 
 def draw_pair(result: "PairResult", *, dpi: int = 110) -> tuple[Canvas, list[Panel]]:
