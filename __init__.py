@@ -4,7 +4,11 @@ The repository root is both a QGIS plugin folder and the import package ``forest
 it stays cheap and Qt-free: the engine is imported on first use of a public name (``__all__``).
 
 Python API (headless; metres, degrees; a matrix maps the moving/ground cloud's file coordinates
-onto the reference/UAV cloud's: ``p_reference = matrix @ p_moving``)::
+onto the reference/UAV cloud's: ``p_reference = matrix @ p_moving``). The functions go through the
+use cases' checks (:mod:`forestreg.app`), as the command line does, before any work: a cloud may be
+a ``Scan``, an (N, 3) array of finite x, y, z in metres or a point file's path, and one in another
+unit (cm, mm, feet) is refused at once with the likely unit; anything else raises a
+:class:`ForestregError` saying what was expected::
 
     import forestreg
 
@@ -23,7 +27,7 @@ onto the reference/UAV cloud's: ``p_reference = matrix @ p_moving``)::
     ground, uav = forestreg.read_scan("backpack.laz"), forestreg.read_scan("uav.laz")
     co = forestreg.coregister(ground, uav)                   # CoregistrationResult
     fused = forestreg.fuse_scans(ground, uav, co.matrix)     # FusionResult
-    trees = forestreg.measure_trees(fused.points)            # TreeInventory
+    trees = forestreg.measure_trees(fused.points)            # TreeInventory (a Scan, an array or a file)
     report = forestreg.evaluate(trees.rows(), "field.csv")   # Evaluation (R2, RMSE, rRMSE)
 
     # every parameter: one dataclass per step, one nested TOML file for all of them
@@ -38,7 +42,8 @@ from typing import Any
 
 __version__ = "0.2.0"
 
-# public name -> module (relative to this package) that defines it
+# public name -> module (relative to this package) that defines it: the functions that take clouds,
+# projects or tables are the use cases' checked entries (app), the types and parameters the engine's
 _LAZY = {
     # foundations
     "Scan": ".engine.core.scan",
@@ -50,40 +55,40 @@ _LAZY = {
     "CancelToken": ".engine.core.progress",
     "Outcome": ".engine.core.outcome",
     "OutcomeRecord": ".engine.core.outcome",
-    "read_scan": ".engine.io",
-    "read_scans": ".engine.io",
-    "write_scan": ".engine.io",
-    "terrain_model": ".engine.terrain",
+    "read_scan": ".app.common",
+    "read_scans": ".app.common",
+    "write_scan": ".app.common",
+    "terrain_model": ".app.trees",
     "TerrainParams": ".engine.terrain",
     # parameters
     "ProductParams": ".engine.params",
     "load_params": ".engine.params",
     # System A: pairs, plots, targets
-    "register": ".engine.tls.pair",
+    "register": ".app.pair",
     "PairResult": ".engine.tls.pair",
     "ManualResult": ".engine.tls.manual",
     "LinkResult": ".engine.tls.project",
     "RegistrationParams": ".engine.tls.params",
     "Project": ".engine.tls.project",
-    "register_project": ".engine.tls.plot",
-    "register_manual": ".engine.tls.manual",
-    "compare_auto_manual": ".engine.tls.compare",
-    "register_survey": ".engine.tls.survey",
+    "register_project": ".app.common",
+    "register_manual": ".app.pair",
+    "compare_auto_manual": ".app.common",
+    "register_survey": ".app.common",
     "SurveyParams": ".engine.tls.survey",
-    "locate_scanner": ".engine.tls.scanner_position",
+    "locate_scanner": ".app.pair",
     # System B: co-registration, fusion, trees, evaluation
-    "coregister": ".engine.coreg.coregister",
+    "coregister": ".app.coregistration",
     "CoregistrationParams": ".engine.coreg.coregister",
     "CoregistrationResult": ".engine.coreg.coregister",
-    "fuse": ".engine.coreg.fusion",
-    "fuse_scans": ".engine.coreg.fusion",
-    "fuse_files": ".engine.coreg.fusion",
+    "fuse": ".app.fusion",
+    "fuse_scans": ".app.fusion",
+    "fuse_files": ".app.fusion",
     "FusionParams": ".engine.coreg.fusion",
     "FusionResult": ".engine.coreg.fusion",
-    "measure_trees": ".engine.trees.inventory",
+    "measure_trees": ".app.trees",
     "TreeParams": ".engine.trees.inventory",
     "TreeInventory": ".engine.trees.inventory",
-    "evaluate": ".engine.trees.evaluate",
+    "evaluate": ".app.evaluation",
     "Evaluation": ".engine.trees.evaluate",
 }
 

@@ -1,5 +1,6 @@
 """What every use case shares: the files' units, the typed outcome of a run, progress with
-cancellation, and the last check before a result is called "ok"."""
+cancellation, the last check before a result is called "ok", and the checks of what the Python API
+is given (clouds as scans, arrays or files; parameters; plot projects)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,10 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
+from ..engine.core.errors import InvalidArgumentError, ParameterError, ScanDataError, UsageError
 from ..engine.core.outcome import Outcome
 
-from .units import UNITS  # noqa: F401 - metres per unit of the files' coordinates
+from .units import UNITS, unit_of_scale, unit_problem  # noqa: F401 - metres per unit of the files' coordinates
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -102,13 +104,35 @@ def check_inputs_exist(*paths) -> None:
             check_readable(p)
 
 
-def check_near_scanner(scan, max_range_m: float, path, units: str) -> None:
-    """Refuse, before the work, a scan with hardly any points within ``D_c`` of its scanner: a
-    georeferenced scan without ``--scanner-position`` or a file in another unit than ``--units``."""
-    from ..engine.core.errors import UsageError
+class UnitError(UsageError, ScanDataError):
+    """A cloud's coordinates are not in the unit given (``--units``, or metres for the Python API):
+    raised by :func:`check_units` with the likely unit. A
+    :class:`~forestreg.engine.core.errors.UsageError` (exit 2) and a
+    :class:`~forestreg.engine.core.errors.ScanDataError` (the points are unusable as given)."""
+
+
+def check_units(points, units: str = "m", label: str = "cloud") -> None:
+    """Refuse a cloud whose coordinates are not in ``units`` (``points``: (N, 3), already scaled to
+    metres by ``units``): :class:`UnitError` naming the likely unit and how to give it
+    (:func:`~forestreg.app.units.unit_problem`). The one unit check of every command that reads a
+    cloud and of every function of the Python API that takes one; well under a second."""
+    if units not in UNITS:
+        raise UsageError(f"unknown unit {units!r}: one of {', '.join(UNITS)}")
+    problem = unit_problem(points, units, label)
+    if problem:
+        raise UnitError(problem)
+
+
+def check_near_scanner(scan, max_range_m: float, path, units: str, *, units_checked: bool = False) -> None:
+    """Refuse, before the work, a scan whose coordinates are not in ``units``
+    (:func:`check_units`) or with hardly any points within ``D_c`` of its
+    scanner: a georeferenced scan without ``--scanner-position`` or a file in another unit than
+    ``--units`` (``units_checked``: the unit was checked when the scan was read)."""
     from ..engine.geometry.voxel import column_bounds
     from ..engine.tls.scanner_position import points_within
 
+    if not units_checked:
+        check_units(scan.points, units, str(path))
     lo, hi = column_bounds(scan.points)
     span = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]))
     if span < 2.0:
@@ -181,3 +205,204 @@ def import_in_background(*modules: str, kernels: bool | str = False) -> None:
                 pass
 
     threading.Thread(target=run, name="forestreg-imports", daemon=True).start()
+
+
+# ----------------------------------------------------------------------------- the Python API's inputs
+
+#: What a cloud given to the Python API may be, for messages.
+CLOUD_TYPES = "a Scan (forestreg.read_scan), an (N, 3) array of x, y, z in metres, or a point file's path"
+
+
+def as_scan(cloud, what: str = "cloud", *, units: bool = True):
+    """A checked :class:`~forestreg.engine.core.scan.Scan` from what the Python API was given: a
+    scan, an (N, 3) array (or nested sequence) of finite x, y, z in metres, or the path of a point
+    file (read in metres). Its coordinates must be in metres (:func:`check_units`,
+    unless ``units`` is False). Anything else raises the product's error naming what is expected:
+    :class:`~forestreg.engine.core.errors.InvalidArgumentError` (another type),
+    :class:`~forestreg.engine.core.errors.ScanDataError` (not (N, 3), NaN, too few points),
+    :class:`UnitError` (not metres), :class:`~forestreg.engine.core.errors.ScanReadError` (a file
+    that cannot be read)."""
+    import os
+
+    from ..engine.core.scan import Scan
+
+    if isinstance(cloud, Scan):
+        scan = cloud
+    elif isinstance(cloud, (str, os.PathLike)):
+        from ..engine.io import read_scan as read
+
+        scan = read(cloud)
+    else:
+        scan = Scan.from_points(as_points(cloud, what, min_points=10), name=what)
+    if units:
+        check_units(scan.points, "m", what if what != "cloud" or not scan.name else scan.name)
+    return scan
+
+
+def as_points(points, what: str = "points", *, min_points: int = 1) -> np.ndarray:
+    """``points`` as a float64 (N, 3) array of finite x, y, z, or the product's error saying what
+    is wrong (:class:`~forestreg.engine.core.errors.InvalidArgumentError` for another type,
+    :class:`~forestreg.engine.core.errors.ScanDataError` for the shape, NaN or too few points)."""
+    from ..engine.core.scan import Scan, check_points
+
+    if isinstance(points, Scan):
+        return points.points
+    if isinstance(points, (str, bytes, dict)) or points is None or not hasattr(points, "__len__"):
+        raise InvalidArgumentError(f"{what}: expected {CLOUD_TYPES}, got {type(points).__name__}")
+    try:
+        return check_points(points, what, min_points=min_points)
+    except (TypeError, ValueError) as exc:  # not numbers, or ragged
+        raise InvalidArgumentError(f"{what}: expected an (N, 3) array of numbers (x, y, z in metres), got {type(points).__name__} "
+                                   f"that is not one ({exc})") from exc
+
+
+def scan_source(source, what: str):
+    """What the engine's registrations take for a scan: a checked scan (:func:`as_scan`), or, for a
+    function that reads one (``lambda: read_scan(path)``), a function that reads and checks it."""
+    if callable(source) and not isinstance(source, type):
+        def load():
+            return as_scan(source(), what)
+
+        return load
+    return as_scan(source, what)
+
+
+def params_of(params, cls, section: str):
+    """``params`` as a ``cls`` (the defaults for None; the ``section`` of a
+    :class:`~forestreg.engine.params.ProductParams`), or a
+    :class:`~forestreg.engine.core.errors.ParameterError` naming the type expected."""
+    if params is None:
+        return cls()
+    if isinstance(params, cls):
+        return params
+    from ..engine.params import ProductParams
+
+    if isinstance(params, ProductParams) and section:
+        return getattr(params, section)
+    raise ParameterError(f"params: expected a {cls.__name__} (or a ProductParams), got {type(params).__name__}")
+
+
+def read_scan(path, **options):
+    """:func:`forestreg.engine.io.read_scan` (same arguments), and the scan's coordinates checked to
+    be in metres once ``unit_scale`` is applied (:func:`check_units`: a file
+    in cm or mm read without its ``unit_scale`` raises :class:`UnitError` naming the likely one)."""
+    import os
+
+    from ..engine.io import read_scan as read
+
+    if not isinstance(path, (str, os.PathLike)):
+        raise InvalidArgumentError(f"expected the path of a point file (str or pathlib.Path), got {type(path).__name__}")
+    scan = read(path, **options)
+    check_units(scan.points, unit_of_scale(options.get("unit_scale", 1.0)), str(path))
+    return scan
+
+
+def read_scans(path, **options):
+    """:func:`forestreg.engine.io.read_scans` (same arguments: every scan of an E57 file), each
+    scan's coordinates checked to be in metres once ``unit_scale`` is applied."""
+    import os
+
+    from ..engine.io import read_scans as read
+
+    if not isinstance(path, (str, os.PathLike)):
+        raise InvalidArgumentError(f"expected the path of a point file (str or pathlib.Path), got {type(path).__name__}")
+    scans = read(path, **options)
+    for scan in scans:
+        check_units(scan.points, unit_of_scale(options.get("unit_scale", 1.0)), f"{path} ({scan.name})")
+    return scans
+
+
+def write_scan(scan, path, *, matrix=None) -> None:
+    """:func:`forestreg.engine.io.write_scan`: a scan (or an (N, 3) array of x, y, z in metres)
+    written to ``path`` (format from the suffix), optionally moved by ``matrix``."""
+    from ..engine.io import write_scan as write
+
+    write(as_scan(scan, "scan", units=False), path, matrix=matrix)
+
+
+# ----------------------------------------------------------------------------- plot projects (Python API)
+
+
+def _as_project(project, what: str = "project"):
+    from ..engine.tls.project import Project
+
+    if isinstance(project, Project):
+        return project
+    if isinstance(project, (str, Path)):
+        return Project.load(project)
+    raise InvalidArgumentError(f"{what}: expected a Project (forestreg.Project.load(path)) or a project file's path, "
+                               f"got {type(project).__name__}")
+
+
+def checked_scans(project, scans=None, *, with_intensity: bool = True):
+    """The plot's scans (a :class:`~forestreg.engine.tls.plot.ScanCache`, ``scans`` when given),
+    checked before the work (the ``plot`` command's check, and the Python API's): each scan in
+    turn until one has its coordinates in metres and points near its scanner
+    (:func:`check_near_scanner`); when none has, the first one's problem is raised in one line
+    (:class:`UnitError`, :class:`~forestreg.engine.core.errors.UsageError` or
+    :class:`~forestreg.engine.core.errors.ScanDataError`: exit 2) instead of every link failing
+    after minutes. A single such scan fails its own link; an unreadable one too."""
+    from ..engine.core.errors import ScanReadError
+    from ..engine.tls.plot import ScanCache
+    from ..engine.tls.scanner_position import ScannerPositionError
+
+    if scans is None:
+        scans = ScanCache(project, with_intensity=with_intensity)
+    problems = []
+    for s in project.scans:
+        try:
+            check_near_scanner(scans(s.name), project.params.max_range_m, s.path, "m")
+        except ScannerPositionError as exc:  # the scanner is looked for as the scan is read: a file in cm shows none
+            problems.append(_unit_error_of(s) or exc)
+            continue
+        except (UsageError, ScanDataError) as exc:  # the wrong unit, no points near the scanner, unusable points
+            problems.append(exc)
+            continue
+        except ScanReadError:
+            pass  # unreadable: its link reports it
+        break
+    if problems and len(problems) == len(project.scans):
+        raise problems[0]
+    return scans
+
+
+def _unit_error_of(entry) -> Optional[Exception]:
+    """The :class:`UnitError` of a project's scan (read again as it is), or None."""
+    from ..engine.io import read_scan as read
+
+    try:
+        scan = read(entry.path, scan_index=entry.scan_index, with_intensity=False)
+        check_units(scan.points, "m", str(entry.path))
+    except UnitError as exc:
+        return exc
+    except Exception:  # noqa: BLE001 - any other problem is the one already found
+        return None
+    return None
+
+
+def register_project(project, *, scans=None, **options):
+    """:func:`forestreg.engine.tls.plot.register_project` (same options) of a checked project: a
+    :class:`~forestreg.engine.tls.project.Project` (or its file) whose scans are in metres."""
+    from ..engine.tls.plot import register_project as register
+
+    project = _as_project(project)
+    return register(project, scans=checked_scans(project, scans, with_intensity=False), **options)
+
+
+def register_survey(project, params=None, *, scans=None, **options):
+    """:func:`forestreg.engine.tls.survey.register_survey` (same options) of a checked project
+    (see :func:`register_project`); ``params`` a :class:`~forestreg.engine.tls.survey.SurveyParams`."""
+    from ..engine.tls.survey import SurveyParams, register_survey as register
+
+    project = _as_project(project)
+    return register(project, params_of(params, SurveyParams, "survey"), scans=checked_scans(project, scans, with_intensity=False),
+                    **options)
+
+
+def compare_auto_manual(project, *, scans=None, **options):
+    """:func:`forestreg.engine.tls.compare.compare_auto_manual` (same options) of a checked project
+    (see :func:`register_project`)."""
+    from ..engine.tls.compare import compare_auto_manual as compare
+
+    project = _as_project(project)
+    return compare(project, scans=checked_scans(project, scans, with_intensity=False), **options)

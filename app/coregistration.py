@@ -18,7 +18,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .common import UNITS, RunOutcome, outcome_of, run_summary, with_cancel
+from .common import UNITS, RunOutcome, as_scan, check_units, outcome_of, params_of, run_summary, scan_source, with_cancel
 from .saved import count_or_none, finite_or_none, mapping_or_empty
 
 log = logging.getLogger("forestreg")
@@ -137,7 +137,7 @@ def coregister_clouds(
     transaction (``None``: nothing written). The outcome is checked the same way whichever door
     asked: a matrix that is not rigid is withheld."""
     from ..engine.core.atomic import check_output_folder
-    from ..engine.coreg.coregister import coregister
+    from ..engine.coreg.coregister import coregister as coregister_scans
     from ..engine.io import read_scan
     from ..engine.report.samples import profile_sample
 
@@ -157,8 +157,9 @@ def coregister_clouds(
             t0 = time.perf_counter()
             if isinstance(source, (str, Path)):
                 scan = read_scan(source, unit_scale=scale, with_intensity=False)  # the co-registration uses x, y, z alone
+                check_units(scan.points, units, str(source))
             else:
-                scan = source
+                scan = as_scan(source, role)
             kept["read_s"] += time.perf_counter() - t0
             kept[role] = scan.without_points()
             if out is not None:
@@ -166,7 +167,7 @@ def coregister_clouds(
             return scan
         return load
 
-    result = coregister(reader(ground, "ground"), reader(uav, "uav"), params, progress=progress)
+    result = coregister_scans(reader(ground, "ground"), reader(uav, "uav"), params, progress=progress)
     inputs = {key: src for key, src in (("ground_file", ground), ("uav_file", uav)) if isinstance(src, (str, Path))}
     summary, ok = run_summary(result, {"read_s": kept["read_s"]}, inputs, units, scale,
                               facts={"distance_threshold_m": params.matching.distance_threshold_m})
@@ -175,6 +176,24 @@ def coregister_clouds(
         report = _write_coregistration_folder(out, result, summary, kept, scale)
     return outcome_of(summary, out=out, result=result, cls=CoregistrationOutcome, report=report,
                       ground=kept["ground"], uav=kept["uav"])
+
+
+def coregister(ground, uav, params=None, progress=None, *, cancel=None):
+    """Co-register ``ground`` (moving) onto ``uav`` (reference)
+    (:func:`forestreg.engine.coreg.coregister.coregister`; returns its
+    :class:`~forestreg.engine.coreg.coregister.CoregistrationResult`, ``p_uav = matrix @ p_ground``
+    in file coordinates), each cloud checked as the ``coregister`` command checks it: a
+    :class:`~forestreg.engine.core.scan.Scan`, an (N, 3) array of finite x, y, z in metres, a point
+    file's path (metres), or a function without arguments that reads one, its coordinates in
+    metres (:func:`~forestreg.app.common.check_units`). ``params``: a
+    :class:`~forestreg.engine.coreg.coregister.CoregistrationParams` (or a
+    :class:`~forestreg.engine.params.ProductParams`). Bad input raises the product's errors."""
+    from ..engine.coreg.coregister import CoregistrationParams
+    from ..engine.coreg.coregister import coregister as coregister_scans
+
+    params = params_of(params, CoregistrationParams, "coregistration")
+    ground, uav = scan_source(ground, "ground"), scan_source(uav, "uav")
+    return coregister_scans(ground, uav, params, progress=with_cancel(progress, cancel))
 
 
 def _write_coregistration_folder(out: Path, result, summary: dict, kept: dict, scale: float) -> Optional[Path]:

@@ -55,9 +55,61 @@ def evaluate_tables(named: Sequence[tuple[str, str | Path]], field_path, out: st
 def evaluate_runs(named, field_table, *, by: str = "position", max_distance: float = 1.0) -> dict:
     """Name -> :class:`~forestreg.engine.trees.evaluate.Evaluation` of each named tree table (no
     file written)."""
-    from ..engine.trees.evaluate import evaluate
+    from ..engine.trees.evaluate import evaluate as evaluate_table
 
-    return {name: evaluate(table, field_table, by=by, max_distance_m=max_distance) for name, table in named}
+    return {name: evaluate_table(table, field_table, by=by, max_distance_m=max_distance) for name, table in named}
+
+
+def evaluate(estimated, field_trees, *, by: str = "position", max_distance_m: float = 1.0, parameters=None) -> "Evaluation":
+    """Match estimated trees to field trees and compute the paper's figures per parameter
+    (:func:`forestreg.engine.trees.evaluate.evaluate`, same arguments), the inputs checked first as
+    the ``evaluate`` command checks them.
+
+    Each table is a :class:`~forestreg.engine.trees.evaluate.TreeTable`, a CSV file's path, rows
+    (a list of dicts: ``tree_id``, ``x``, ``y`` in metres and any parameters) or a
+    :class:`~forestreg.engine.trees.inventory.TreeInventory` (its rows); ``by`` "position" or "id";
+    ``max_distance_m`` a positive number; ``parameters`` None or names of parameters. Anything else
+    raises the product's error naming what is expected
+    (:class:`~forestreg.engine.core.errors.InvalidArgumentError`,
+    :class:`~forestreg.engine.core.errors.ParameterError`; a table that cannot be read or holds
+    implausible values: :class:`~forestreg.engine.trees.evaluate.TreeTableError`)."""
+    import math
+
+    from ..engine.core.errors import ParameterError
+    from ..engine.trees.evaluate import evaluate as evaluate_table
+
+    tables = [_tree_table_input(t, what) for t, what in ((estimated, "estimated"), (field_trees, "field_trees"))]
+    if by not in ("position", "id"):
+        raise ParameterError(f"by: 'position' or 'id', got {by!r}")
+    try:
+        distance = float(max_distance_m)
+    except (TypeError, ValueError):
+        distance = math.nan
+    if isinstance(max_distance_m, bool) or not math.isfinite(distance) or distance <= 0:
+        raise ParameterError(f"max_distance_m: a positive number of metres, got {max_distance_m!r}")
+    if parameters is not None:
+        if isinstance(parameters, (str, bytes)) or not all(isinstance(p, str) for p in parameters):
+            raise ParameterError(f"parameters: a list of parameter names (e.g. ['dbh_m', 'height_m']), got {parameters!r}")
+        parameters = list(parameters)
+    return evaluate_table(tables[0], tables[1], by=by, max_distance_m=distance, parameters=parameters)
+
+
+def _tree_table_input(table, what: str):
+    """A table :func:`evaluate` can take (a TreeInventory as its rows), or the product's error."""
+    from collections.abc import Mapping as AnyMapping
+
+    from ..engine.core.errors import InvalidArgumentError
+    from ..engine.trees.evaluate import TreeTable
+    from ..engine.trees.inventory import TreeInventory
+
+    if isinstance(table, (TreeTable, str, os.PathLike)):
+        return table
+    if isinstance(table, TreeInventory):
+        return table.rows()
+    if isinstance(table, (list, tuple)) and all(isinstance(r, AnyMapping) for r in table):
+        return list(table)
+    raise InvalidArgumentError(f"{what}: expected a TreeTable, a CSV file's path, rows (a list of dicts with tree_id, x, y) "
+                               f"or a TreeInventory, got {type(table).__name__}")
 
 
 def evaluate_into(folder: Path, named, field_table, *, by: str, max_distance: float, shown_as: Optional[Path] = None) -> EvaluationOutcome:

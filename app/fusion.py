@@ -13,7 +13,8 @@ from typing import Optional
 
 import numpy as np
 
-from .common import UNITS, RunOutcome, check_replaceable_point_file, with_cancel
+from .common import UNITS, RunOutcome, as_points, as_scan, check_replaceable_point_file, check_units, params_of, with_cancel
+from .units import unit_of_scale
 
 
 @dataclass(frozen=True)
@@ -72,7 +73,7 @@ def fuse_clouds(
     co-registration, in the files' unit); identity when neither is given."""
     from ..engine.core.atomic import check_output_file
     from ..engine.core.transform import read_matrix, to_metres
-    from ..engine.coreg.fusion import fuse_files
+    from ..engine.coreg.fusion import fuse_files as fuse_point_files
     from ..engine.io import write_fused
     from ..engine.io.base import check_readable
 
@@ -84,9 +85,85 @@ def fuse_clouds(
     if matrix is None:
         matrix = to_metres(read_matrix(transform), scale) if transform else np.eye(4)
     params = params or default_params()
+    check_file_units((uav_path, ground_path), units)
     # the ground-based cloud is read inside, and let go once merged: a scan's points less to hold
-    result, shift = fuse_files(ground_path, uav_path, matrix, params, unit_scale=scale, progress=with_cancel(progress, cancel))
+    result, shift = fuse_point_files(ground_path, uav_path, matrix, params, unit_scale=scale, progress=with_cancel(progress, cancel))
     write_fused(out, result, origin_shift=shift, unit_scale=scale)
     counts = {k: dict(v) for k, v in result.counts.items()}
     return FusionOutcome(status="ok", timings=dict(result.seconds), out=out, summary=result.summary(), result=result,
                          counts=counts, points=len(result.points))
+
+
+def check_file_units(paths, units: str = "m", *, scale: Optional[float] = None) -> None:
+    """Before a fusion: each file's coordinates are in ``units`` (``scale`` metres per unit when
+    it is none of the ``--units`` choices) (:func:`~forestreg.app.common.check_units`). Each file is read once for this and let go (the
+    fusion reads them again as it needs them, so its peak memory stays one scan's points less than
+    holding both: reading costs a few per cent of a fusion's time)."""
+    from ..engine.io import read_scan
+
+    for path in paths:
+        scan = read_scan(path, unit_scale=UNITS[units] if scale is None else scale, with_intensity=False)
+        check_units(scan.points, units, str(path))
+        del scan
+
+
+# ----------------------------------------------------------------------------- the Python API
+
+
+def fuse(ground_points, uav_points, params=None, *, ground_extra=None, uav_extra=None, progress=None):
+    """Fuse co-registered ground-based and UAV points (:func:`forestreg.engine.coreg.fusion.fuse`,
+    same options; returns its :class:`~forestreg.engine.coreg.fusion.FusionResult`): each an (N, 3)
+    array of finite x, y, z in metres, in one frame (or a :class:`~forestreg.engine.core.scan.Scan`:
+    its local points), one of them may be empty; each checked to be in metres
+    (:func:`~forestreg.app.common.check_units`). ``params``: a
+    :class:`~forestreg.engine.coreg.fusion.FusionParams` (or a
+    :class:`~forestreg.engine.params.ProductParams`)."""
+    from ..engine.coreg.fusion import FusionParams
+    from ..engine.coreg.fusion import fuse as fuse_points
+
+    clouds = []
+    for points, what in ((ground_points, "ground-based points"), (uav_points, "UAV points")):
+        p = as_points(points, what, min_points=0)
+        if len(p):
+            check_units(p, "m", what)
+        clouds.append(p)
+    return fuse_points(clouds[0], clouds[1], params_of(params, FusionParams, "fusion"), ground_extra=ground_extra,
+                       uav_extra=uav_extra, progress=progress)
+
+
+def fuse_scans(ground, uav, matrix, params=None, *, progress=None):
+    """Fuse a ground-based scan into a UAV scan's frame (:func:`forestreg.engine.coreg.fusion.fuse_scans`;
+    ``p_uav = matrix @ p_ground`` in file coordinates, metres): each a
+    :class:`~forestreg.engine.core.scan.Scan`, an (N, 3) array of finite x, y, z in metres or a
+    point file's path, checked to be in metres; ``matrix`` a rigid 4x4
+    (:func:`~forestreg.engine.core.transform.check_rigid`)."""
+    from ..engine.core.transform import check_rigid
+    from ..engine.coreg.fusion import FusionParams
+    from ..engine.coreg.fusion import fuse_scans as fuse_two
+
+    m = check_rigid(matrix, "matrix")
+    return fuse_two(as_scan(ground, "ground"), as_scan(uav, "uav"), m, params_of(params, FusionParams, "fusion"), progress=progress)
+
+
+def fuse_files(ground_path, uav_path, matrix, params=None, *, unit_scale: float = 1.0, progress=None):
+    """:func:`forestreg.engine.coreg.fusion.fuse_files` (same arguments: the result and the UAV
+    scan's origin shift) of two point files, each checked first to be in metres once
+    ``unit_scale`` is applied (:func:`~forestreg.app.common.check_units`); ``matrix`` a rigid 4x4
+    in metres."""
+    import os
+
+    from ..engine.core.errors import InvalidArgumentError
+    from ..engine.core.transform import check_rigid
+    from ..engine.coreg.fusion import FusionParams
+    from ..engine.coreg.fusion import fuse_files as fuse_point_files
+    from ..engine.io.base import check_readable, check_unit_scale
+
+    for path, what in ((ground_path, "ground_path"), (uav_path, "uav_path")):
+        if not isinstance(path, (str, os.PathLike)):
+            raise InvalidArgumentError(f"{what}: expected the path of a point file (str or pathlib.Path), got {type(path).__name__}")
+        check_readable(path)
+    m = check_rigid(matrix, "matrix")
+    scale = check_unit_scale(unit_scale)
+    params = params_of(params, FusionParams, "fusion")
+    check_file_units((uav_path, ground_path), unit_of_scale(scale), scale=scale)
+    return fuse_point_files(ground_path, uav_path, m, params, unit_scale=scale, progress=progress)

@@ -16,7 +16,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .common import UNITS, RunOutcome, check_near_scanner, import_in_background, outcome_of, run_summary, with_cancel
+from .common import (UNITS, RunOutcome, as_scan, check_near_scanner, check_units, import_in_background, outcome_of, params_of,
+                     run_summary, scan_source, with_cancel)
 
 log = logging.getLogger("forestreg")
 
@@ -74,8 +75,10 @@ def register_pair(
 
     def read(path, index: int):
         # the registration uses the coordinates alone: intensity only for the registered scan written
-        return read_scan(path, scanner_position=positions[index] if len(positions) > index else None, unit_scale=scale,
+        scan = read_scan(path, scanner_position=positions[index] if len(positions) > index else None, unit_scale=scale,
                          with_intensity=write_registered and index == 1)
+        check_units(scan.points, units, str(path))  # before the scanner is looked for: a file in cm is refused at once
+        return scan
 
     # both scans are read, one after the other (the decompression is multi-core), while the
     # registration engine is imported
@@ -84,7 +87,7 @@ def register_pair(
     early.shutdown(wait=False)
     if out is not None:
         import_in_background(".engine.report.figures", kernels="pair")
-    from ..engine.tls.pair import register
+    from ..engine.tls.pair import register as register_scans
     from ..engine.tls.scanner_position import locate_scanner
 
     # each scan is located and checked in the thread that prepares it (one is read while the
@@ -100,7 +103,7 @@ def register_pair(
             # no scanner position given and the file origin is not the scanner (project/UTM
             # exports): find it from the data, or refuse with the reason
             scan = locate_scanner(scan, scanner_params)
-            check_near_scanner(scan, params.max_range_m, path, units)
+            check_near_scanner(scan, params.max_range_m, path, units, units_checked=True)
             kept[role] = scan.without_points()
             if role == "moving" and write_registered:
                 kept["registered_points"] = scan
@@ -108,7 +111,7 @@ def register_pair(
         return load
 
     ups = [None if u is None else np.asarray(u, dtype=float) for u in ups]
-    result = register(
+    result = register_scans(
         reader(reference_path, 0, "reference"), reader(moving_path, 1, "moving"), params, progress=progress,
         reference_up=ups[0] if len(ups) > 0 else None, moving_up=ups[1] if len(ups) > 1 else None,
     )
@@ -122,6 +125,73 @@ def register_pair(
 
         remember_loaded("pair")  # the kernels the next pair loads while its files are read
     return outcome_of(summary, out=out, result=result, cls=PairOutcome, figure=figure)
+
+
+# ----------------------------------------------------------------------------- the Python API
+
+
+def register(reference, moving, params=None, *, scanner_params=None, **options):
+    """Register ``moving`` onto ``reference`` (:func:`forestreg.engine.tls.pair.register`, same
+    options; returns its :class:`~forestreg.engine.tls.pair.PairResult`), the scans checked as the
+    ``register`` command checks them, before any work.
+
+    Each scan is a :class:`~forestreg.engine.core.scan.Scan`, an (N, 3) array of x, y, z in metres
+    (its scanner at the origin), a point file's path (metres), or a function without arguments
+    that reads one. Its coordinates must be in metres
+    (:func:`~forestreg.app.common.check_units`), its scanner is located
+    (:func:`~forestreg.engine.tls.scanner_position.locate_scanner`) and must have points near it.
+    ``params``: a :class:`~forestreg.engine.tls.params.RegistrationParams` (or a
+    :class:`~forestreg.engine.params.ProductParams`). Bad input raises the product's errors
+    (:class:`~forestreg.engine.core.errors.ForestregError`: another type, not (N, 3), NaN, wrong
+    unit, no points near the scanner); a pair the data do not allow comes back failed with the
+    reason."""
+    from ..engine.core.errors import UsageError
+    from ..engine.tls.pair import register as register_scans
+    from ..engine.tls.params import RegistrationParams, ScannerPositionParams
+    from ..engine.tls.scanner_position import locate_scanner
+
+    params = params_of(params, RegistrationParams, "registration")
+    scanner_params = params_of(scanner_params, ScannerPositionParams, "scanner_position")
+    if reference is moving:
+        raise UsageError("reference and moving are the same scan: a scan cannot be registered onto itself")
+
+    def checked(source, role: str):
+        source = scan_source(source, role)
+
+        def load():
+            scan = locate_scanner(source() if callable(source) else source, scanner_params)
+            check_near_scanner(scan, params.max_range_m, role, "m", units_checked=True)
+            return scan
+
+        return load
+
+    return register_scans(checked(reference, "reference"), checked(moving, "moving"), params, scanner_params=scanner_params,
+                          **options)
+
+
+def register_manual(reference, moving, reference_targets, moving_targets, params=None, **options):
+    """Register ``moving`` onto ``reference`` from shared targets
+    (:func:`forestreg.engine.tls.manual.register_manual`, same arguments), each scan a
+    :class:`~forestreg.engine.core.scan.Scan`, an (N, 3) array of x, y, z in metres or a point
+    file's path, checked to be in metres; ``params`` a
+    :class:`~forestreg.engine.tls.params.RegistrationParams`."""
+    from ..engine.tls.manual import register_manual as register_targets
+    from ..engine.tls.params import RegistrationParams
+
+    return register_targets(as_scan(reference, "reference"), as_scan(moving, "moving"), reference_targets, moving_targets,
+                            params_of(params, RegistrationParams, "registration"), **options)
+
+
+def locate_scanner(scan, params=None):
+    """The scan with a trustworthy scanner position
+    (:func:`forestreg.engine.tls.scanner_position.locate_scanner`): ``scan`` a
+    :class:`~forestreg.engine.core.scan.Scan`, an (N, 3) array of x, y, z in metres or a point
+    file's path, checked to be in metres; ``params`` a
+    :class:`~forestreg.engine.tls.params.ScannerPositionParams`."""
+    from ..engine.tls.params import ScannerPositionParams
+    from ..engine.tls.scanner_position import locate_scanner as locate
+
+    return locate(as_scan(scan, "scan"), params_of(params, ScannerPositionParams, "scanner_position"))
 
 
 def _write_pair_folder(out: Path, result, summary: dict, kept: dict, scale: float, write_registered: bool) -> Optional[Path]:

@@ -18,7 +18,7 @@ from typing import Any, Callable, Optional, Sequence
 
 from ..engine.tls.plot import PlotOutcome, ScanCache, default_links, pose_uncertainty  # noqa: F401 - the plot's types, for the front doors
 from ..engine.tls.project import Link, Project, ScanEntry  # noqa: F401 - the saved plot project
-from .common import RunOutcome, check_near_scanner, check_replaceable_point_file, import_in_background, with_cancel
+from .common import RunOutcome, check_replaceable_point_file, checked_scans, import_in_background, with_cancel
 from .saved import count_or_none, finite_or_none, mapping_or_empty
 
 log = logging.getLogger("forestreg")
@@ -278,24 +278,11 @@ def scan_cache(project, *, with_intensity: bool = True):
 
 
 def check_scans_near_their_scanners(project, scans) -> None:
-    """Before the work: when no scan of the plot has points near its scanner (georeferenced scans
-    without scanner positions, or files in cm/mm), refuse with one line instead of failing every
-    link after minutes. A single such scan fails its own link with the reason."""
-    from ..engine.core.errors import ScanDataError, ScanReadError, UsageError
-    from ..engine.tls.scanner_position import ScannerPositionError
-
-    problems = []
-    for s in project.scans:
-        try:
-            check_near_scanner(scans(s.name), project.params.max_range_m, s.path, "m")
-        except (UsageError, ScannerPositionError) as exc:  # no scanner near the data: a unit or position problem
-            problems.append(str(exc))
-            continue
-        except (ScanReadError, ScanDataError):
-            pass  # unreadable: its link reports it
-        break  # one scan without the problem: the plot goes on (reading every scan first costs minutes)
-    if problems and len(problems) == len(project.scans):
-        raise UsageError(problems[0])
+    """Before the work: when no scan of the plot is in metres with points near its scanner
+    (georeferenced scans without scanner positions, or files in cm/mm), refuse with one line
+    instead of failing every link after minutes (:func:`~forestreg.app.common.checked_scans`, the
+    Python API's check too). A single such scan fails its own link with the reason."""
+    checked_scans(project, scans)
 
 
 def plot_folder(out, scans: Sequence) -> Path:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
-from .common import UNITS, RunOutcome, with_cancel
+from .common import UNITS, RunOutcome, as_points, as_scan, check_units, params_of, with_cancel
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,10 +46,10 @@ def default_params():
 def measure_trees_in(cloud, params=None, *, progress=None, cancel=None):
     """The trees of ``cloud`` (a :class:`~forestreg.engine.core.scan.Scan`, local frame), no file
     written: the engine's :class:`~forestreg.engine.trees.inventory.TreeInventory`."""
-    from ..engine.trees.inventory import measure_trees
+    from ..engine.trees.inventory import measure_trees as measure
 
-    return measure_trees(cloud.points, params or default_params(), progress=with_cancel(progress, cancel),
-                         origin_shift=cloud.origin_shift)
+    return measure(cloud.points, params or default_params(), progress=with_cancel(progress, cancel),
+                   origin_shift=cloud.origin_shift)
 
 
 def measure_trees_file(
@@ -76,7 +76,8 @@ def measure_trees_file(
     matrix = to_metres(read_matrix(transform), scale) if transform else None
     field_table = read_tree_table(field) if field else None  # checked before the work
     # the trees use x, y, z alone
-    cloud = read_scan(cloud_path, unit_scale=scale, with_intensity=False) if is_path else cloud_path
+    cloud = read_scan(cloud_path, unit_scale=scale, with_intensity=False) if is_path else as_scan(cloud_path, "cloud", units=False)
+    check_units(cloud.points, units if is_path else "m", str(cloud_path) if is_path else cloud.name or "cloud")  # before the work
     if matrix is not None:
         cloud = cloud.transformed(matrix)
     params = params or default_params()
@@ -105,6 +106,64 @@ def measure_trees_file(
     return TreesOutcome(status=status, reason=reason, timings=dict(inventory.timings), out=out, result=inventory,
                         points=cloud.points, evaluation=evaluation, report=out / "report.html" if written else None,
                         trees=len(inventory.trees))
+
+
+# ----------------------------------------------------------------------------- the Python API
+
+
+def measure_trees(cloud, params=None, progress=None, *, origin_shift=None, single_tree=None, cancel=None):
+    """Detect, segment and measure every tree of ``cloud``
+    (:func:`forestreg.engine.trees.inventory.measure_trees`, same options; returns its
+    :class:`~forestreg.engine.trees.inventory.TreeInventory`), checked as the ``trees`` command
+    checks it, before any work.
+
+    ``cloud``: a :class:`~forestreg.engine.core.scan.Scan`, an (N, 3) array of finite x, y, z in
+    metres (z up; large georeferenced coordinates are shifted to a local origin and the rows keep
+    them; with ``origin_shift`` the array is taken as local coordinates and the rows add it), or a
+    point file's path (metres). Its coordinates must be in metres
+    (:func:`~forestreg.app.common.check_units`: a cloud in cm or mm is refused at once with the
+    likely unit). ``params``: a :class:`~forestreg.engine.trees.inventory.TreeParams` (or a
+    :class:`~forestreg.engine.params.ProductParams`). Bad input raises the product's errors
+    (:class:`~forestreg.engine.core.errors.ForestregError`); data that do not allow trees give a
+    failed inventory with the reason."""
+    import os
+
+    import numpy as np
+
+    from ..engine.core.scan import Scan
+    from ..engine.trees.inventory import TreeParams
+    from ..engine.trees.inventory import measure_trees as measure
+
+    params = params_of(params, TreeParams, "trees")
+    if origin_shift is not None and not isinstance(cloud, (Scan, str, os.PathLike)):
+        shift = np.asarray(origin_shift, dtype=np.float64).reshape(-1)
+        if shift.shape != (3,) or not np.isfinite(shift).all():
+            from ..engine.core.errors import InvalidArgumentError
+
+            raise InvalidArgumentError(f"origin_shift: expected three finite numbers, got {origin_shift!r}")
+        scan = Scan.from_points(as_points(cloud, "cloud", min_points=10), origin_shift=np.zeros(3), name="cloud")
+        check_units(scan.points, "m", "cloud")
+    else:
+        scan = as_scan(cloud, "cloud")
+        shift = scan.origin_shift if origin_shift is None else np.asarray(origin_shift, dtype=np.float64)
+    return measure(scan.points, params, with_cancel(progress, cancel), origin_shift=shift, single_tree=single_tree)
+
+
+def terrain_model(cloud, params=None, progress=None):
+    """The ground mask and DEM of ``cloud`` (:func:`forestreg.engine.terrain.terrain_model`):
+    a :class:`~forestreg.engine.core.scan.Scan` (its local frame), an (N, 3) array of finite x, y, z
+    in metres or a point file's path, checked to be in metres; ``params`` a
+    :class:`~forestreg.engine.terrain.TerrainParams`."""
+    from ..engine.core.scan import Scan
+    from ..engine.terrain import TerrainParams
+    from ..engine.terrain import terrain_model as model
+
+    if isinstance(cloud, (Scan, str)) or hasattr(cloud, "__fspath__"):
+        points = as_scan(cloud, "cloud").points
+    else:
+        points = as_points(cloud, "cloud", min_points=10)
+        check_units(points, "m", "cloud")
+    return model(points, params_of(params, TerrainParams, ""), progress)
 
 
 def read_trees_folder(folder):
