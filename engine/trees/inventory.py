@@ -1216,6 +1216,14 @@ def _single_tree_inventory(
         quality["height"] = f"top of the single-tree cloud above its base ({base_how}); high"
     if crown.ok:
         quality["crown"] = "crown points of the single-tree cloud; high"
+    if not evidence.single and evidence.stems_apart > 1:  # taken as one tree as asked, but the cloud is a plot
+        several = f"the cloud holds {evidence.stems_apart} stems standing apart: not one tree (measure it as a plot: --single-tree no)"
+        log.warning("single tree asked for, but %s; the values of the one tree measured are flagged", several)
+        for key, value in quality.items():
+            how, _, trust = value.rpartition("; ")
+            if how and trust in TRUST_LEVELS and trust != "none":
+                quality[key] = f"{how}, {evidence.stems_apart} stems in the cloud; {_trust(trust, 'low')}"
+        flags.append(several)
     record = dataclasses.replace(record, quality=quality, flags=tuple(dict.fromkeys(flags)))
     timings["trees_s"] = time.perf_counter() - t
     progress(1.0, "1 tree measured (single-tree cloud)")

@@ -8,6 +8,10 @@ base. :func:`single_tree_evidence` looks at that band: the points are linked on 
 ``min_patch_fraction`` of the band, is at most ``max_base_width_m`` across, the cloud is at most
 ``max_extent_m`` across, and no stem found stands apart from that patch.
 
+A cloud taken as one tree because it was asked for (``mode`` "yes") though it holds several stems
+standing apart at breast height (:func:`separate_stems`: farther apart than :data:`STEMS_APART_M`)
+is a plot: the tree measured from it is flagged and not trusted (its ``stems_apart``).
+
 On such a cloud every point above the ground belongs to the tree, and its height is the cloud's
 extent above the tree's base (the ground under the stem, or, without ground, the lowest point at
 the trunk): no canopy segmentation may cut its crown into several trees, and the edges of the
@@ -24,15 +28,20 @@ from typing import Optional, Sequence
 
 import numpy as np
 from scipy import ndimage
+from scipy.sparse import csgraph
 
 from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
 from .stems import Stem
 
-__all__ = ["SINGLE_TREE_MODES", "SingleTreeEvidence", "SingleTreeParams", "base_stem", "single_tree_evidence"]
+__all__ = ["SINGLE_TREE_MODES", "STEMS_APART_M", "SingleTreeEvidence", "SingleTreeParams", "base_stem", "separate_stems",
+           "single_tree_evidence"]
 
 #: ``auto``: decide from the cloud; ``yes``: the cloud is one tree; ``no``: it is a plot.
 SINGLE_TREE_MODES = ("auto", "yes", "no")
+#: Stems found at breast height farther apart than this (m) are separate trees (the stems of one
+#: multi-stemmed tree stand closer where they are measured).
+STEMS_APART_M = 1.5
 
 
 @dataclass(frozen=True)
@@ -59,7 +68,8 @@ class SingleTreeEvidence:
     """What the base band of a cloud shows. ``single``: the cloud is one tree; ``reason``: why
     (or why not), one line; ``base_xy``: the centre of the largest patch (NaN without one);
     ``base_width_m``: its width; ``patch_fraction``: its share of the band's points;
-    ``band_indices``: indices of the points of the largest patch."""
+    ``band_indices``: indices of the points of the largest patch; ``stems_apart``: the separate
+    stems found (:func:`separate_stems`; 0 without a stem)."""
 
     single: bool
     reason: str
@@ -69,6 +79,18 @@ class SingleTreeEvidence:
     n_patches: int
     extent_m: float
     band_indices: np.ndarray
+    stems_apart: int = 0
+
+
+def separate_stems(stems: Sequence[Stem], apart_m: float = STEMS_APART_M) -> int:
+    """How many separate stems ``stems`` are: groups of stems linked by distances of at most
+    ``apart_m`` at breast height (the stems of one multi-stemmed tree form one group)."""
+    xy = np.array([[s.x, s.y] for s in stems], dtype=np.float64).reshape(-1, 2)
+    if len(xy) <= 1:
+        return len(xy)
+    d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    n, _ = csgraph.connected_components(d <= apart_m, directed=False)
+    return int(n)
 
 
 def single_tree_evidence(
@@ -82,9 +104,10 @@ def single_tree_evidence(
     lo, hi = params.base_band_m
     band = np.flatnonzero((h >= lo) & (h <= hi))
     nan2 = np.full(2, np.nan)
+    n_stems = separate_stems(stems)
     if len(band) < params.min_band_points:
         return SingleTreeEvidence(False, f"{len(band)} points {lo:g}-{hi:g} m above the ground: no base to decide on",
-                                  nan2, math.nan, 0.0, 0, extent, np.zeros(0, dtype=np.int64))
+                                  nan2, math.nan, 0.0, 0, extent, np.zeros(0, dtype=np.int64), n_stems)
     xy = p[band, :2]
     cell = params.link_m
     ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
@@ -115,7 +138,9 @@ def single_tree_evidence(
     else:
         why, single = (f"its base band ({lo:g}-{hi:g} m) is one patch {width:.1f} m across holding "
                        f"{100 * frac:.0f} % of the points, the cloud {extent:.1f} m across"), True
-    return SingleTreeEvidence(single, why, centre, width, frac, int(n), extent, idx)
+    if not single and n_stems > 1:
+        why += f"; it holds {n_stems} stems standing apart at breast height"
+    return SingleTreeEvidence(single, why, centre, width, frac, int(n), extent, idx, n_stems)
 
 
 def base_stem(points: np.ndarray, evidence: SingleTreeEvidence, stems: Sequence[Stem], base_z: float) -> Stem:
