@@ -195,18 +195,34 @@ def check_scan_files(paths: Sequence) -> None:
         read_scan(p)
 
 
-def check_extra_outputs(inputs: Sequence, *, merged=None, e57_out=None, registered_dir=None) -> None:
+def check_extra_outputs(inputs: Sequence, *, merged=None, e57_out=None, registered_dir=None, out=None) -> None:
     """A merged cloud, an E57 file and a folder of registered scans: refused before the work when
-    they would overwrite an input or a file of another kind."""
-    from ..engine.core.atomic import check_output_file, check_output_folder
+    they would overwrite an input or a file of another kind. A file inside ``out`` (the plot's
+    output folder, e.g. ``--merged plot/all.copc.laz``) may lie in a folder the run makes."""
+    from ..engine.core.atomic import check_output_folder
 
     if merged:
-        check_output_file(merged, inputs=inputs, suffixes=POINT_SUFFIXES)
+        _check_extra_file(merged, inputs, POINT_SUFFIXES, out)
         check_replaceable_point_file(merged, "scan_id", "merged cloud")
     if e57_out:
-        check_output_file(e57_out, inputs=inputs, suffixes=(".e57",))
+        _check_extra_file(e57_out, inputs, (".e57",), out)
     if registered_dir:
         check_output_folder(registered_dir, "registered-scans", inputs=inputs)
+
+
+def _check_extra_file(path, inputs: Sequence, suffixes: tuple[str, ...], out) -> None:
+    """:func:`~forestreg.engine.core.atomic.check_output_file`, except that a file inside ``out``
+    whose folder does not exist yet is only checked for its suffix: the run makes that folder with
+    the output folder (which is checked itself), and no input can lie in it."""
+    from ..engine.core.atomic import check_output_file
+    from ..engine.core.errors import OutputPathError
+
+    target = Path(path).expanduser().resolve()
+    if out is not None and not target.parent.is_dir() and Path(out).expanduser().resolve() in target.parents:
+        if target.suffix.lower() not in suffixes:
+            raise OutputPathError(f"{path}: the output must end in {' or '.join(suffixes)}")
+        return
+    check_output_file(path, inputs=inputs, suffixes=suffixes)
 
 
 def new_project(
@@ -411,6 +427,9 @@ def run_plot(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     written: dict = {}
+    for extra in (merged, e57_out):
+        if extra:
+            Path(extra).parent.mkdir(parents=True, exist_ok=True)  # a file inside ``out`` may lie in a folder made now
     if merged:
         written["merged"] = (Path(merged), write_merged(project, merged, scans))
     if registered_dir:

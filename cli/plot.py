@@ -152,7 +152,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
     check_survey_options(args)
     check_scan_files_exist(args.scans)
-    check_extra_outputs(args.scans, **_extra_outputs(args))
+    check_extra_outputs(args.scans, out=args.out, **_extra_outputs(args))
     project, kept = project_from_args(args), 0
     if not getattr(args, "pairs", None) and not getattr(args, "loops", None):
         project, kept = resumable_project(args.out, project)  # a stopped run of the same plot goes on
@@ -217,7 +217,7 @@ def cmd_project(args: argparse.Namespace) -> int:
         return 0
     inputs = [s.path for s in project.scans]
     check_survey_options(args)
-    check_extra_outputs(inputs, **_extra_outputs(args))
+    check_extra_outputs(inputs, out=args.out, **_extra_outputs(args))
     if args.out:
         out = plot_folder(args.out, inputs)
     else:
