@@ -20,6 +20,7 @@ from ..engine.tls.plot import PlotOutcome, ScanCache, default_links, pose_uncert
 from ..engine.tls.project import Link, Project, ScanEntry  # noqa: F401 - the saved plot project
 from .common import RunOutcome, check_replaceable_point_file, checked_scans, import_in_background, with_cancel
 from .saved import count_or_none, finite_or_none, mapping_or_empty
+from ..engine.core.uncertainty import evidence_notes
 
 log = logging.getLogger("forestreg")
 
@@ -37,12 +38,15 @@ class PoseSigma:
     rotation_deg: Optional[float]
     method: str = ""
     fixed: bool = False
+    #: what the uncertainty says of itself: weak directions, alternatives counted or excluded
+    notes: tuple[str, ...] = ()
 
     @classmethod
     def of(cls, d) -> Optional["PoseSigma"]:
         if not isinstance(d, Mapping) or not d:
             return None
-        return cls(finite_or_none(d.get("translation_m")), finite_or_none(d.get("rotation_deg")), str(d.get("method") or ""), bool(d.get("fixed")))
+        return cls(finite_or_none(d.get("translation_m")), finite_or_none(d.get("rotation_deg")), str(d.get("method") or ""),
+                   bool(d.get("fixed")), tuple(evidence_notes(dict(d))))
 
     @property
     def known(self) -> bool:
