@@ -119,15 +119,11 @@ def evaluate_into(folder: Path, named, field_table, *, by: str, max_distance: fl
     paths = write_evaluation(folder, runs)
     lines, failed = [], []
     for name, ev in runs.items():
-        d = ev.detection
-        figures = ", ".join(
-            f"{p} R2 {st.r2:.2f} rRMSE {st.rrmse_percent:.1f} %" for p, st in ev.stats.items() if st.n >= 2
-        )
         if not ev:  # no tree matched: the reason
             failed.append(f"{name}: {ev.reason}")
             lines.append(f"failed: {failed[-1]}")
         else:
-            lines.append(f"{name}: {d.matched} of {d.field_trees} field trees matched; {figures}")
+            lines.append(f"{name}: {ev.summary()}")
     lines.append(f"-> {paths['csv']}, report: {paths['html']}")
     final = Path(shown_as) if shown_as is not None else Path(folder)
     lines = [line.replace(str(folder), str(final)) for line in lines]

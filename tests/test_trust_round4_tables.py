@@ -352,3 +352,22 @@ def test_the_summary_of_a_single_field_tree_has_no_bare_separator(tmp_path):
     est, fld = _tables(tmp_path, [0.3], [0.31])
     no_values = evaluate(est, fld, parameters=["crown_area_m2"]).summary()
     assert no_values == "1 of 1 field trees matched"
+
+
+def test_evaluate_prints_r2_as_undefined_on_constant_or_single_field_values(tmp_path):
+    """The command's line: R2 "n/a" with its reason where field values are all equal or a single
+    tree matched, never a -1e30, and no bare separator at the end."""
+    import subprocess
+    import sys
+
+    est = tmp_path / "est.csv"
+    est.write_text("tree_id,x,y,dbh_m,height_m\n1,0,0,0.3,20\n2,5,0,0.3,20\n3,0,5,0.3,20\n", encoding="utf-8")
+    one = tmp_path / "one.csv"
+    one.write_text("tree_id,x,y,dbh_m,height_m\n1,0,0,0.3,20\n", encoding="utf-8")
+    for table, why in ((est, "field values all equal"), (one, "fewer than 2 pairs")):
+        out = tmp_path / f"E_{table.stem}"
+        run = subprocess.run([sys.executable, "-m", "forestreg", "evaluate", str(table), str(table), "--out", str(out)],
+                             capture_output=True, text=True, timeout=120)
+        assert run.returncode == 0, run.stderr
+        first = run.stdout.splitlines()[0]
+        assert "R2 n/a" in first and why in first and "e+" not in first and not first.rstrip().endswith(";"), first
