@@ -366,7 +366,7 @@ def test_evaluate_prints_r2_as_undefined_on_constant_or_single_field_values(tmp_
     one.write_text("tree_id,x,y,dbh_m,height_m\n1,0,0,0.3,20\n", encoding="utf-8")
     for table, why in ((est, "field values all equal"), (one, "fewer than 2 pairs")):
         out = tmp_path / f"E_{table.stem}"
-        run = subprocess.run([sys.executable, "-m", "forestreg", "evaluate", str(table), str(table), "--out", str(out)],
+        run = subprocess.run([sys.executable, "-m", "forestreg.cli", "evaluate", str(table), str(table), "--out", str(out)],
                              capture_output=True, text=True, timeout=120)
         assert run.returncode == 0, run.stderr
         first = run.stdout.splitlines()[0]
