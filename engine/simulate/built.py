@@ -45,6 +45,7 @@ quarter of their height): :class:`~.scene.Tree` s like any other, in ``scene.tre
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any, Optional
@@ -53,6 +54,7 @@ import numpy as np
 
 from ..core.errors import ParameterError
 from .scene import (
+    SCENE_MAKERS,
     Box,
     ForestScene,
     Post,
@@ -475,3 +477,7 @@ def stand_positions(
         ):
             return xy
     raise ParameterError(f"no {n} positions {separation_m} m apart fit on the walkway of this {scene.preset} scene")
+
+
+for _name in BUILT_PRESETS:  # make_scene draws them too
+    SCENE_MAKERS[_name] = functools.partial(make_built_scene, _name)

@@ -60,7 +60,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -647,12 +647,16 @@ def _as_range(name: str, value: Any, current: Any) -> Any:
     return value
 
 
+#: Scene presets drawn by other modules, by name: ``maker(seed=..., size_m=..., **overrides)``
+#: returning a :class:`ForestScene` (the built scenes of :mod:`.built` enter theirs when the
+#: package is imported).
+SCENE_MAKERS: dict[str, Callable[..., "ForestScene"]] = {}
+
+
 def preset_names() -> tuple[str, ...]:
     """Every scene preset :func:`make_scene` takes: the forest presets (:data:`PRESETS`), then the
-    built scenes (:data:`~.built.BUILT_PRESETS`)."""
-    from .built import BUILT_PRESETS
-
-    return tuple(PRESETS) + tuple(BUILT_PRESETS)
+    others (:data:`SCENE_MAKERS`: the built scenes of :data:`~.built.BUILT_PRESETS`)."""
+    return tuple(PRESETS) + tuple(k for k in SCENE_MAKERS if k not in PRESETS)
 
 
 def preset_config(preset: str, **overrides: Any) -> PresetConfig:
@@ -693,11 +697,8 @@ def make_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **overrides:
     """
     if not (10.0 <= float(size_m) <= 500.0):
         raise ParameterError(f"plot size must be between 10 and 500 m, got {size_m}")
-    if preset not in PRESETS:
-        from .built import BUILT_PRESETS, make_built_scene
-
-        if preset in BUILT_PRESETS:
-            return make_built_scene(preset, seed=seed, size_m=size_m, **overrides)
+    if preset not in PRESETS and preset in SCENE_MAKERS:
+        return SCENE_MAKERS[preset](seed=seed, size_m=size_m, **overrides)
     cfg = preset_config(preset, **overrides)
     rng = np.random.default_rng([int(seed), _stable_hash(preset)])
     half = float(size_m) / 2.0
