@@ -68,6 +68,7 @@ class UncertaintyParams(Params):
     min_alternative_weight: float = _p(1e-4, "1", 0.0, 1.0, "Alternatives less likely than this are not checked or counted")
     repeat_share: float = _p(0.25, "1", 0.0, 1.0, "When at least this share (and 4) of a solution's matched features (trunks, stems) repeat themselves under a shift (rows of posts, a planted grid), the solution shifted so is an alternative to check")
     second_share: float = _p(0.5, "1", 0.0, 1.0, "The best distinct solution is checked too when it matches at least this share of the chosen one's matches, however unlikely its lead makes it")
+    min_fitness_ratio: float = _p(0.6, "1", 0.0, 1.0, "An alternative whose surfaces overlap (ICP fitness) less than this fraction of the chosen solution's is excluded; one whose overlap exceeds the chosen one's by as much is at least as likely as it")
     passing_weight: float = _p(0.05, "1", 0.0, 0.5, "A distinct alternative that passes every check the chosen solution passed is at least this likely (its lead in matches can come from features that move with the scanner)")
 
 

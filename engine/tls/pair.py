@@ -776,8 +776,9 @@ def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, 
     :attr:`~forestreg.engine.core.uncertainty.UncertaintyParams.min_alternative_weight`, or close in
     matches, ``second_share``), and the chosen one shifted by the step under which its matched
     trunks repeat themselves (:func:`trunk_repeat`; rows of posts, a planted grid). Each is refined
-    and checked like the chosen one: one that fails its checks, or that ICP takes to the same pose,
-    is excluded; one that passes every check is counted, at least ``passing_weight`` likely,
+    and checked like the chosen one: one that fails its checks, whose surfaces overlap far less
+    (``min_fitness_ratio``), or that ICP takes to the same pose, is excluded; one that passes every
+    check is counted, at least ``passing_weight`` likely (a tie when it overlaps far more),
     widening the stated uncertainty (and refusing the result when that exceeds the limits).
     ``known``: alternatives already weighed (the best distinct solution of an ambiguous match,
     checked before): the best distinct coarse solution is then not checked again."""
@@ -818,14 +819,18 @@ def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, 
             other = finish(candidate)
         finally:
             _checking.alternative = False
+        fitness, other_fitness = result.icp.fitness, (other.icp.fitness if other.icp is not None else 0.0)
         if not other.ok:
             status = f"excluded: it fails its checks ({other.reason})"
+        elif other_fitness < up.min_fitness_ratio * fitness:
+            status = f"excluded: the surfaces overlap far less under it (ICP fitness {other_fitness:.2f} against {fitness:.2f})"
         else:
             rot, trans = rigid_errors(result.matrix, other.matrix)
             status = "the same pose after ICP" if rot < 0.2 and trans < 0.05 else "counted"
         alternative = _alternative(result, other, moving, params, status, lead=lead)
         if status == "counted":
-            alternative = dataclasses.replace(alternative, weight=max(alternative.weight, up.passing_weight))
+            floor = 0.5 if fitness < up.min_fitness_ratio * other_fitness else up.passing_weight
+            alternative = dataclasses.replace(alternative, weight=max(alternative.weight, floor))
         alternatives.append(dataclasses.replace(alternative, pattern=pattern))
     return _settle(result, alternatives, params)
 
