@@ -168,18 +168,17 @@ def _read_manifest(path: Path) -> dict[str, dict]:
     # before any work, never dropped, never shared by two rows (one would silently replace the other).
     out: dict[str, dict] = {}
     seen: dict[str, tuple[str, list[int]]] = {}
-    for number, r in rows:
-        fields = {k.strip(): (v or "").strip() for k, v in r.items() if isinstance(k, str) and k.strip()}
-        if not any(fields.values()) and not any(r.get(None) or ()):
+    for number, row in rows:
+        cells = {k.strip(): (v or "").strip() for k, v in row.items() if isinstance(k, str) and k.strip()}
+        if not any(cells.values()) and not any(row.get(None) or ()):
             continue  # a row of separators only (a spreadsheet's trailing rows): no plot
-        name = fields.get("plot", "")
+        name = (row.get("plot") or "").strip()
         try:
             safe_name(name, f"{path} row {number}: plot")
         except InvalidArgumentError as exc:
             raise ParameterError(str(exc)) from None
-        first, numbers = seen.setdefault(same_name_key(name), (name, []))
-        numbers.append(number)
-        out[name] = fields
+        seen.setdefault(same_name_key(name), (name, []))[1].append(number)
+        out[name] = cells
     for key, (first, numbers) in seen.items():
         if len(numbers) > 1:
             names = sorted({n for n in out if same_name_key(n) == key})

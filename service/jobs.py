@@ -405,11 +405,11 @@ class JobManager:
         out = output_path(args, cwd, ns)
         with self._submit_lock:
             if out is not None:
-                for other, status in self._active_jobs():
-                    theirs = self._output_of(other)
+                for job, status in self._active_jobs():
+                    theirs = self._output_of(job)
                     if theirs is not None and _overlaps(out, theirs):
                         relation = "is" if out == theirs else ("is inside" if out.startswith(theirs) else "holds")
-                        raise OutputBusy(f"--out {out} {relation} the output folder of job {other['id']} ({status}"
+                        raise OutputBusy(f"--out {out} {relation} the output folder of job {job['id']} ({status}"
                                          f"{', ' + theirs if out != theirs else ''}): wait for it to end, cancel it, or give "
                                          "another output folder")
             job_id = self.store.add(list(args), cwd)
@@ -423,7 +423,7 @@ class JobManager:
         store = self.store
         with store._lock:  # one query of the store's own connection (its lock serialises it)
             rows = store._db.execute("SELECT id, args, cwd, status FROM jobs WHERE status IN ('queued', 'running')").fetchall()
-        return [({"id": r["id"], "args": json.loads(r["args"]), "cwd": r["cwd"]}, r["status"]) for r in rows]
+        return [({"id": job["id"], "args": json.loads(job["args"]), "cwd": job["cwd"]}, job["status"]) for job in rows]
 
     def _output_of(self, job: dict) -> Optional[str]:
         """The resolved output folder of a stored job (parsed once; None when it has none)."""
