@@ -72,13 +72,13 @@ def print_register(outcome, reporter: Reporter) -> int:
     if outcome:
         result = outcome.result
         icp = result.icp
+        for note in evidence_notes(result.uncertainty):  # before the last line, which is the result's
+            say(f"uncertainty: {note}", ns)
         say(
             f"ok: {result.matched} matched VOPs ({result.reference_vops} / {result.moving_vops}), "
             f"ICP std {1000 * icp.std_m:.1f} mm, fitness {icp.fitness:.2f} -> {shown(out) / 'result.json'}",
             ns,
         )
-        for note in evidence_notes(result.uncertainty):
-            say(f"  uncertainty: {note}", ns)
         if outcome.figure is not None:
             print(f"figure: {shown(out) / 'registration.png'}")
         return 0

@@ -188,12 +188,16 @@ def test_a_nul_byte_in_a_job_is_refused_at_submit(service, tmp_path, where):
 
 
 def test_relative_paths_need_the_clients_working_folder(service, tmp_path):
-    """Jobs never run from the service's own folder: the working folder is required and absolute."""
-    args = ["simulate", "open_field", "--out", str(tmp_path / "sim")]  # (absolute: a test never writes elsewhere)
-    for body in ({"args": args}, {"args": args, "cwd": None}, {"args": args, "cwd": "relative/folder"}):
+    """Jobs never run from the service's own folder: a relative path needs the client's working
+    folder (absolute); a job whose paths are all absolute runs without one, in a private folder."""
+    relative = ["simulate", "open_field", "--out", "sim"]
+    for body in ({"args": relative}, {"args": relative, "cwd": None}, {"args": relative, "cwd": "relative/folder"}):
         status, answer, _ = _post(service, "/v1/jobs", json.dumps(body).encode())
         assert status == 422, (body, status, answer)
-        assert "cwd" in _detail(answer) and "absolute" in _detail(answer)
+        assert "cwd" in _detail(answer) and ("absolute" in _detail(answer) or "relative" in _detail(answer))
+    absolute = ["simulate", "open_field", "--out", str(tmp_path / "sim"), "--positions", "0,0", "--size", "20", "--step", "0.8"]
+    status, answer, _ = _post(service, "/v1/jobs", json.dumps({"args": absolute}).encode())
+    assert status == 201, (status, answer)
 
 
 def test_cancelling_a_finished_job_is_409_with_its_status(service, tmp_path):

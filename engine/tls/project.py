@@ -21,6 +21,7 @@ from typing import Any, Optional
 import numpy as np
 
 from ..core.errors import InvalidArgumentError, ProjectFileError, UnknownNameError
+from ..core.names import safe_name
 from .params import RegistrationParams, ScannerPositionParams
 from ..core.outcome import OutcomeRecord
 from ..io.results import ProjectFile
@@ -131,7 +132,7 @@ class Project(ProjectFile):
     def add_scan(self, path: str | Path, *, name: Optional[str] = None, **options: Any) -> ScanEntry:
         """Add a scan file; its name defaults to the file name (made unique)."""
         p = Path(path).resolve()
-        base = name or p.name
+        base = safe_name(name, "a scan's name") if name else p.name
         unique, k = base, 2
         while self.has_scan(unique):
             unique, k = f"{base}#{k}", k + 1
@@ -278,7 +279,7 @@ class Project(ProjectFile):
             folder = p.resolve().parent
             scans = [
                 ScanEntry(
-                    name=str(s["name"]),
+                    name=_scan_name(p, s["name"]),
                     path=(folder / s["path"]).resolve(),
                     scanner_position=None if s.get("scanner_position") is None else tuple(float(v) for v in s["scanner_position"]),
                     scan_index=s.get("scan_index"),
@@ -406,3 +407,12 @@ class ForestResults:
             field_data=one(d.get("field_data")),
             tree_edits=[dict(e) for e in d.get("tree_edits") or []],
         )
+
+
+def _scan_name(project_file: Path, name: Any) -> str:
+    """A scan's name read from a project file, refused (the file named) when it could not be a
+    file name: registered scans and pose files are written under it."""
+    try:
+        return safe_name(name, "scan name")
+    except InvalidArgumentError as exc:
+        raise ProjectFileError(f"{project_file}: {exc}") from exc
