@@ -27,7 +27,7 @@ from typing import ClassVar, Optional
 
 import numpy as np
 
-from .common import UNITS, RunOutcome, with_cancel
+from .common import UNITS, RunOutcome, check_units, with_cancel
 
 __all__ = ["ChangeOutcome", "ChangeSummary", "change_rows", "detect_change_files", "read_change_folder", "read_epoch"]
 
@@ -221,6 +221,7 @@ def _read_survey(p: Path, role: str, units: str, tree_params, change_params, pro
             return epoch, note + (f" ({'; '.join(notes)})" if notes else ""), _real_input(cloud), notes
     else:
         cloud, note = read_scan(p, unit_scale=scale, with_intensity=False), f"cloud {p.name}"
+    check_units(cloud.points, units, f"{role} {p.name}")
     epoch = epoch_from_cloud(cloud.points, tree_params, with_cancel(progress, cancel), origin_shift=cloud.origin_shift, name=role,
                              change=change_params)
     return epoch, f"{note}, {len(cloud.points):,} points", _real_input(p), ()

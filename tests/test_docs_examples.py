@@ -52,13 +52,10 @@ pytestmark = pytest.mark.docs
 
 BLOCKS = examples()
 
-#: Examples that fail today because of a product defect someone is fixing (#47); each stays an
+#: Examples that fail today because of a product defect someone is fixing; each stays an
 #: expected failure (not strict, so a fix turns it into XPASS, a cue to drop it from here) until
 #: the product does what the docs say. Keyed by file and a line of the block.
-KNOWN_DEFECTS: dict[tuple[str, str], str] = {
-    ("docs/guide/system-b.md", 'inventory.write("trees_out", fused.points)'):
-        "TreeInventory.write(out_dir) takes no points and writes no report any more: TypeError",
-}
+KNOWN_DEFECTS: dict[tuple[str, str], str] = {}
 
 #: Examples that take about 20 s or more on 2 cores (the sample data's 10 s not counted).
 SLOW: set[tuple[str, str]] = {
@@ -78,7 +75,7 @@ def _marks(block: Block) -> list:
     marks = []
     for (path, line), why in KNOWN_DEFECTS.items():
         if block.path == path and line in block.text:
-            marks.append(pytest.mark.xfail(reason=f"known product defect (#47): {why}", strict=False))
+            marks.append(pytest.mark.xfail(reason=f"known product defect: {why}", strict=False))
     if any(block.path == path and line in block.text for path, line in SLOW):
         marks.append(pytest.mark.slow)
     return marks

@@ -1,4 +1,4 @@
-"""Trust, round 4 (issue 47): the Python API under a hostile caller, clouds in the wrong unit, a plot
+"""The Python API under a hostile caller, clouds in the wrong unit, a plot
 taken as a single tree, and a merged cloud inside the plot's output folder.
 
 - every public function checks what it is given as the command line does and raises the
@@ -77,7 +77,7 @@ def scans(tmp_path_factory, sim_plot):
     """Two tiny simulated TLS scans (30 m plot, 0.5 deg steps) as files in m, cm and mm:
     ``{unit: (path1, path2)}``, and the plot."""
     plot = sim_plot("planted_conifer", ((0.0, 0.0), (6.0, 2.0), (-5.0, 4.0)), seed=3, step=0.5, size=30.0)
-    folder = tmp_path_factory.mktemp("round4_scans")
+    folder = tmp_path_factory.mktemp("api_scans")
     files = {}
     for unit, factor in (("m", 1.0), ("cm", 100.0), ("mm", 1000.0)):
         files[unit] = tuple(_write_scaled(folder / f"{s.scan.name}_{unit}.laz", s.scan.file_points, factor) for s in plot.scans[:2])
@@ -90,7 +90,7 @@ def pine_plot_units(shared_data, tmp_path_factory):
     from forestreg.engine.io import read_scan
 
     points = read_scan(shared_data / "pine_plot.laz", with_intensity=False).file_points
-    folder = tmp_path_factory.mktemp("round4_pine_plot")
+    folder = tmp_path_factory.mktemp("api_pine_plot")
     return {unit: _write_scaled(folder / f"pine_plot_{unit}.laz", points, factor) for unit, factor in (("cm", 100.0), ("mm", 1000.0))}
 
 

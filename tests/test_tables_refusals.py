@@ -18,6 +18,8 @@ import pytest
 
 from forestreg.engine.core.errors import ParameterError, ScanDataError
 
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
 COLUMNS = ["tree_id", "x", "y", "z", "dbh_m", "height_m", "source", "dbh_quality", "height_quality", "flag"]
 
 
@@ -371,3 +373,28 @@ def test_evaluate_prints_r2_as_undefined_on_constant_or_single_field_values(tmp_
         assert run.returncode == 0, run.stderr
         first = run.stdout.splitlines()[0]
         assert "R2 n/a" in first and why in first and "e+" not in first and not first.rstrip().endswith(";"), first
+
+
+def test_change_refuses_a_cloud_in_centimetres_naming_the_unit(tmp_path):
+    """A survey's cloud in centimetres is refused by the one unit check every command shares
+    (exit 2 in seconds, the likely unit named), before any tree is measured."""
+    import subprocess
+    import sys
+    import time
+
+    from forestreg.engine.core.scan import Scan
+    from forestreg.engine.io import read_scan, write_scan
+
+    plot = DATA / "pine_plot.laz"
+    if not plot.is_file():
+        pytest.skip(f"{plot} is absent")
+    s = read_scan(plot)
+    cm = tmp_path / "cm.laz"
+    write_scan(Scan.from_points((s.points + s.origin_shift) * 100.0, name="cm"), cm)
+    t = time.monotonic()
+    run = subprocess.run([sys.executable, "-m", "forestreg.cli", "change", str(cm), str(plot), "--out", str(tmp_path / "ch")],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2, run.stderr
+    assert "centimetres" in run.stderr and "BEFORE" in run.stderr
+    assert time.monotonic() - t < 60
+    assert not (tmp_path / "ch").exists()
