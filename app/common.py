@@ -406,3 +406,16 @@ def compare_auto_manual(project, *, scans=None, **options):
 
     project = _as_project(project)
     return compare(project, scans=checked_scans(project, scans, with_intensity=False), **options)
+
+
+def release_output_locks() -> list[str]:
+    """Release every output-folder lock this process holds (a long-lived process, the desktop or
+    a Python session, once no run of its own is writing): a run that failed between checking its
+    output folder and writing it keeps no other process out of that folder. Returns the folders
+    released."""
+    from ..engine.core.atomic import held_output_locks, release_output_folder
+
+    held = held_output_locks()
+    for folder in held:
+        release_output_folder(folder)
+    return held

@@ -401,3 +401,23 @@ def test_a_second_job_into_a_busy_output_folder_is_refused_with_409(service, tmp
     assert service.wait(first, timeout=60)["status"] == "cancelled"
     again = service.submit(["simulate", "open_field", "--out", "busy", "--positions", "0,0", "--size", "20", "--step", "0.6"], cwd=tmp_path)
     assert service.wait(again, timeout=120)["status"] == "done"  # free again once the first one ended
+
+
+def test_a_long_lived_process_releases_the_folders_a_failed_run_checked(tmp_path):
+    """The desktop or a Python session: a run that failed after checking its output folder keeps
+    it locked against other processes until the process lets go of its locks (the desktop does
+    when no run of its own is left)."""
+    import subprocess
+    import sys
+
+    from forestreg.app.common import release_output_locks
+    from forestreg.engine.core.atomic import check_output_folder
+
+    out = tmp_path / "o"
+    check_output_folder(out, "register")
+    probe = [sys.executable, "-c", "import sys; from forestreg.engine.core.atomic import lock_output_folder as l\n"
+             "try:\n    l(sys.argv[1])\nexcept Exception as e:\n    print(e); sys.exit(3)", str(out)]
+    held = subprocess.run(probe, capture_output=True, text=True, timeout=60)
+    assert held.returncode == 3 and "being written by another forestreg run" in held.stdout
+    assert str(out.resolve()) in release_output_locks()
+    assert subprocess.run(probe, capture_output=True, text=True, timeout=60).returncode == 0

@@ -96,6 +96,11 @@ class TaskSet(QObject):
         if ended is not None:
             ended()
         if not self._running:
+            # no run of this window writes now: a run that failed after checking its output
+            # folder keeps no other process out of it
+            from ..app.common import release_output_locks
+
+            release_output_locks()
             self.idle.emit()
 
     def busy(self, name: Optional[str] = None) -> bool:
