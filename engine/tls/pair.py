@@ -923,7 +923,7 @@ def combine_with_fit(trunks: dict[str, Any], fine: IcpResult, at: np.ndarray, pa
         strong = strong - np.outer(h, h)
     share = up.evidence_share**2
     horizontal = pos_cov[:2, :2] + share * strong @ trunk_cov @ strong.T
-    heading_weak = any(w.kind == "rotation" for w in weak)
+    heading_weak = any(w.kind == "rotation" and abs(w.vector[2]) > 0.9 for w in weak)
     heading = rot_cov[2, 2] + (0.0 if heading_weak else share * heading_var)
     vertical = max(float(np.sqrt(max(pos_cov[2, 2], 0.0))), params.min_uncertainty_m)
     u.update(
