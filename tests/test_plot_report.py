@@ -21,7 +21,7 @@ from forestreg.engine.report.plot_report import format_cm, write_plot_report
 from forestreg.engine.report.views import compute_top_view
 
 POSITIONS = ((0.0, 0.0), (10.0, 2.0), (-8.0, 6.0))
-ODD_NAME = "scan <b>2</b> & co"
+ODD_NAME = "scan <b>2<b> & co"  # markup and an ampersand (a slash would make it a path: refused)
 EXAMPLE_HTML = Path("/tmp/plot_report_example.html")
 EXAMPLE_TOP_VIEW = Path("/tmp/plot_report_topview.png")
 
@@ -102,7 +102,7 @@ def test_report_of_a_registered_plot(registered, tmp_path):
     assert format_cm(0.020043966) == "2.00"
 
     # every piece of user text is escaped
-    assert "scan &lt;b&gt;2&lt;/b&gt; &amp; co" in text
+    assert "scan &lt;b&gt;2&lt;b&gt; &amp; co" in text
     assert "Plot &lt;A&gt; &amp; B" in text
     assert ODD_NAME not in text and "<A>" not in text
 
@@ -154,7 +154,7 @@ def test_report_names_a_failed_scan_and_its_reason(registered, tmp_path):
     assert "1 of 3 scans could not be registered" in failbox
     assert third in failbox
     assert "the scans share &lt;too few&gt; trunks" in failbox
-    assert "also tried onto scan &lt;b&gt;2&lt;/b&gt; &amp; co: ambiguous" in failbox
+    assert "also tried onto scan &lt;b&gt;2&lt;b&gt; &amp; co: ambiguous" in failbox
     assert "<too few>" not in text
     # the failed link's row: its evidence and no ICP figure
     row = text[text.index(f"{third} \u2192"):]

@@ -232,8 +232,6 @@ def repeat_shift(xy: np.ndarray, match_distance_m: float, min_shift_m: float, *,
     fewer than 4 features or no such difference. A row of posts repeats nearly all its posts at
     its spacing; trees at random repeat two or three by chance. ``along``: only shifts within
     15 deg of this horizontal direction (either sense)."""
-    from scipy.spatial import cKDTree
-
     pts = np.asarray(xy, dtype=float).reshape(-1, 2)[:limit]
     if len(pts) < 4:
         return None
@@ -247,9 +245,12 @@ def repeat_shift(xy: np.ndarray, match_distance_m: float, min_shift_m: float, *,
     diff = diff[keep]
     if not len(diff):
         return None
-    shifted = (pts[None, :, :] + diff[:, None, :]).reshape(-1, 2)
-    d, _ = cKDTree(pts).query(shifted, distance_upper_bound=match_distance_m)
-    counts = np.isfinite(d).reshape(len(diff), len(pts)).sum(axis=1)
+    counts = np.empty(len(diff), dtype=np.int64)
+    reach = float(match_distance_m) ** 2
+    for start in range(0, len(diff), 256):  # every shifted feature against every feature, in blocks
+        shifted = pts[None, :, None, :] + diff[start:start + 256, None, None, :]
+        near = np.sum((shifted - pts[None, None, :, :]) ** 2, axis=-1) <= reach
+        counts[start:start + 256] = near.any(axis=2).sum(axis=1)
     best = int(np.argmax(counts))
     return diff[best].astype(float), int(counts[best]), len(pts)
 

@@ -845,7 +845,7 @@ def trunk_repeat(attempt: CoarseAttempt, params: RegistrationParams, *, along: O
     if attempt.match is None or attempt.matched < 4:
         return None
     xy = attempt.reference_vops.xy if all_vops else attempt.reference_vops.xy[np.unique(attempt.match.matched_pairs[:, 0])]
-    return repeat_shift(xy, params.match_distance_m, params.distinct.translation_m, along=along)
+    return repeat_shift(xy, params.match_distance_m, params.distinct.translation_m, along=along, limit=45 if all_vops else 60)
 
 
 def _moved_candidate(attempt: CoarseAttempt, rotation_deg: float, translation: np.ndarray, match_distance_m: float) -> CoarseAttempt:
