@@ -10,7 +10,7 @@ folder (``trees.csv``, ``stem_curves.csv``, ``cylinders/``, ``report.html``, and
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 

@@ -97,6 +97,15 @@ def detect_format(path: Path) -> str:
 _SNIFF_LINES = 50
 
 
+def _head(path: Path, size: int = 8192) -> "bytes | None":
+    """The first ``size`` bytes of a file, or None when it cannot be read."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(size)
+    except OSError:
+        return None
+
+
 def is_point_cloud_file(path: Path) -> bool:
     """Whether a file is meant as a point cloud, by its content: a file whose first bytes name a
     point-cloud format (LAS/LAZ, PLY, PCD, E57), or whose suffix names a binary one (a damaged
@@ -104,10 +113,8 @@ def is_point_cloud_file(path: Path) -> bool:
     holds three or more numbers under no header or a header naming x, y and z. A table of trees
     (:func:`is_tree_table`: ``tree_id,x,y,z,dbh_m``), notes, or anything unreadable is not."""
     path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(8192)
-    except OSError:
+    head = _head(path)
+    if head is None:
         return False
     if sniff_bytes(head[:64]) is not None or format_from_suffix(path) in _BINARY_NAMES:
         return True
@@ -187,10 +194,8 @@ def is_tree_table(path: Path) -> bool:
     list, with or without an ``x y z`` header (also one with a tree id per point), binary data or
     an unreadable file is not."""
     path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(8192)
-    except OSError:
+    head = _head(path)
+    if head is None:
         return False
     if sniff_bytes(head[:64]) is not None or not looks_like_text(head):
         return False

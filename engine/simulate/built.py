@@ -44,7 +44,6 @@ quarter of their height): :class:`~.scene.Tree` s like any other, in ``scene.tre
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -59,7 +58,7 @@ from .scene import (
     ForestScene,
     Post,
     PresetConfig,
-    _as_range,
+    with_overrides,
     _stable_hash,
     _trees_at,
     make_terrain,
@@ -161,14 +160,7 @@ def built_config(preset: str, **overrides: Any) -> BuiltConfig:
     range field means exactly that value)."""
     if preset not in BUILT_PRESETS:
         raise ParameterError(f"unknown built scene {preset!r}; choose one of {', '.join(BUILT_PRESETS)}")
-    cfg = BUILT_PRESETS[preset]
-    if not overrides:
-        return cfg
-    names = {f.name for f in dataclasses.fields(BuiltConfig)}
-    bad = sorted(set(overrides) - names)
-    if bad:
-        raise ParameterError(f"unknown option(s) of a built scene: {', '.join(bad)}; options are: {', '.join(sorted(names))}")
-    return dataclasses.replace(cfg, **{k: _as_range(k, v, getattr(cfg, k)) for k, v in overrides.items()})
+    return with_overrides(BUILT_PRESETS[preset], overrides, "option(s) of a built scene:")
 
 
 def local_to_world(axis_deg: float, u: Any, v: Any) -> np.ndarray:

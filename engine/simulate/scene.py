@@ -663,17 +663,20 @@ def preset_config(preset: str, **overrides: Any) -> PresetConfig:
     """The :class:`PresetConfig` of ``preset`` with keyword overrides applied."""
     if preset not in PRESETS:
         raise ParameterError(f"unknown scene preset {preset!r}; choose one of {', '.join(preset_names())}")
-    cfg = PRESETS[preset]
+    return with_overrides(PRESETS[preset], overrides, "scene option(s)")
+
+
+def with_overrides(cfg: Any, overrides: dict[str, Any], what: str) -> Any:
+    """A scene recipe (a :class:`PresetConfig` or a built scene's config) with keyword overrides
+    applied (a scalar for a range field means exactly that value); an unknown name is a
+    :class:`~forestreg.engine.core.errors.ParameterError` listing ``what`` the options are."""
     if not overrides:
         return cfg
-    names = {f.name for f in dataclasses.fields(PresetConfig)}
+    names = {f.name for f in dataclasses.fields(cfg)}
     bad = sorted(set(overrides) - names)
     if bad:
-        raise ParameterError(
-            f"unknown scene option(s) {', '.join(bad)}; options are: {', '.join(sorted(names))}"
-        )
-    changes = {k: _as_range(k, v, getattr(cfg, k)) for k, v in overrides.items()}
-    return dataclasses.replace(cfg, **changes)
+        raise ParameterError(f"unknown {what} {', '.join(bad)}; options are: {', '.join(sorted(names))}")
+    return dataclasses.replace(cfg, **{k: _as_range(k, v, getattr(cfg, k)) for k, v in overrides.items()})
 
 
 def make_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **overrides: Any) -> ForestScene:
