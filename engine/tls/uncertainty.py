@@ -97,7 +97,8 @@ def pair_uncertainty(
         a, t = rigid_fit_2d(mov[pick], ref[pick])
         moves.append(displacement(a, t) - d0)
         turns.append(np.degrees(a - angle0))
-    boot_cov = np.cov(np.asarray(moves).T, bias=True) + np.outer(np.mean(moves, axis=0), np.mean(moves, axis=0)) if len(moves) > 1 else np.full((2, 2), np.inf)
+    m = np.asarray(moves, dtype=float).reshape(-1, 2)
+    boot_cov = m.T @ m / len(m) if len(m) > 1 else np.full((2, 2), np.inf)  # second moment about the fit
     boot_m = float(np.sqrt(np.mean(np.sum(np.square(moves), axis=1)))) if moves else float("inf")
     boot_deg = float(np.sqrt(np.mean(np.square(turns)))) if turns else float("inf")
     horizontal = float(np.hypot(correction_m, boot_m))
