@@ -2,7 +2,8 @@
 
 * :func:`make_scene` draws a synthetic plot (:class:`ForestScene`) from a preset in
   :data:`PRESETS`: ``planted_conifer``, ``mixed_temperate``, ``rainforest``, ``sloped``,
-  ``plantation_rows``, ``open_field``;
+  ``plantation_rows``, ``open_field``; round stems, or with ``stem_shapes="real"`` oval stems with
+  bark relief and buttresses (:func:`with_stem_shapes`, :class:`Tree`);
 * :func:`make_built_scene` (also through :func:`make_scene`) draws built scenes of
   :data:`BUILT_PRESETS`: ``corridor``, ``colonnade``, ``fence``, ``courtyard``, ``park``,
   ``campus`` (walls, posts in rows, few trees);
@@ -43,6 +44,7 @@ from .scene import (
     ForestScene,
     Liana,
     PRESETS,
+    STEM_SHAPES,
     Post,
     PresetConfig,
     Shrub,
@@ -52,6 +54,7 @@ from .scene import (
     make_scene,
     make_terrain,
     preset_names,
+    with_stem_shapes,
 )
 
 __all__ = [
@@ -67,6 +70,7 @@ __all__ = [
     "Post",
     "PresetConfig",
     "SCANNER_PRESETS",
+    "STEM_SHAPES",
     "SceneMesh",
     "SceneRaycaster",
     "ScannerSetup",
@@ -97,4 +101,5 @@ __all__ = [
     "simulate_uav_scan",
     "stand_positions",
     "uav_flight_lines",
+    "with_stem_shapes",
 ]

@@ -7,7 +7,10 @@ target or box it belongs to; 0 for the ground), so that each simulated point can
   :meth:`~.scene.Terrain.z`;
 * stems: tapered, leaning tubes with ``trunk_segments`` (default 32) facets around, their vertices
   pushed out so that each ring has the area of the true circle (a circle fitted to the facets is
-  within 0.3 % of the stem radius); the stem is sunk 0.5 m into the ground;
+  within 0.3 % of the stem radius); the stem is sunk 0.5 m into the ground. A shaped stem (oval,
+  buttressed or with bark relief, see :class:`~.scene.Tree`) has 64 facets and its vertices at
+  :meth:`~.scene.Tree.section_radius`, with rings every 4 cm up to 2.5 m along the axis
+  (:func:`stem_tube`);
 * main branches: thin 8-sided tubes from the stem into the crown;
 * crowns and shrubs: a cloud of small randomly oriented leaf triangles filling the crown volume
   (cone for conifers, ellipsoid for broadleaves) at the tree's leaf area density, so that a crown
@@ -27,12 +30,13 @@ import math
 import weakref
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Any
+from typing import Any, Callable, Optional, Union
 
 import numpy as np
 
+from ..core.errors import ParameterError
 from ..geometry.vectors import cross3, perpendicular_frame
-from .scene import BROADLEAF, ForestScene, Tree
+from .scene import BREAST_HEIGHT_M, BROADLEAF, SHAPED_STEM_SEGMENTS, ForestScene, Tree
 
 
 class Material(IntEnum):
@@ -148,17 +152,35 @@ def area_equivalent_factor(n_seg: int) -> float:
 
 def tube(
     centres: np.ndarray,
-    radii: np.ndarray,
+    radii: Union[np.ndarray, Callable[[np.ndarray], np.ndarray]],
     n_seg: int,
     *,
     cap_start: bool = False,
     cap_end: bool = True,
     area_equivalent: bool = True,
+    reference: Optional[np.ndarray] = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A tube along a polyline: rings perpendicular to the local direction, ``n_seg`` facets."""
+    """A tube along a polyline (``centres`` (k, 3), world frame, m): rings perpendicular to the
+    local direction, ``n_seg`` facets. Returns ``(vertices (k * n_seg [+ caps], 3), triangles)``.
+
+    ``radii``: one radius per ring (k,), the vertices pushed out by
+    :func:`area_equivalent_factor` when ``area_equivalent`` (each ring then has the circle's
+    area); or the radius of every vertex, a (k, n_seg) array or a callable taking the vertex
+    angles (n_seg,) and returning that array, used as given. Vertex ``j`` of a ring lies at angle
+    ``a_j = 2 pi j / n_seg`` about the local direction ``d`` (right-handed), measured from
+    ``reference`` projected into the ring's plane (carried along a bent polyline by parallel
+    transport); without ``reference`` from a fixed perpendicular of the first direction."""
     c = np.asarray(centres, dtype=np.float64)
-    r = np.asarray(radii, dtype=np.float64) * (area_equivalent_factor(n_seg) if area_equivalent else 1.0)
     k = len(c)
+    per_vertex = callable(radii) or np.ndim(radii) == 2
+    if callable(radii):
+        r = np.asarray(radii(np.arange(n_seg) * (2.0 * math.pi / n_seg)), dtype=np.float64)
+    elif per_vertex:
+        r = np.asarray(radii, dtype=np.float64)
+    else:
+        r = np.asarray(radii, dtype=np.float64) * (area_equivalent_factor(n_seg) if area_equivalent else 1.0)
+    if per_vertex and r.shape != (k, n_seg):
+        raise ParameterError(f"per-vertex radii must have the shape ({k}, {n_seg}), got {r.shape}")
     seg = np.diff(c, axis=0)
     seg /= np.linalg.norm(seg, axis=1, keepdims=True)
     dirs = np.empty_like(c)
@@ -169,13 +191,14 @@ def tube(
         dirs[1:-1] = mid / np.linalg.norm(mid, axis=1, keepdims=True)
     a = np.arange(n_seg) * (2.0 * math.pi / n_seg)
     ca, sa = np.cos(a), np.sin(a)
+    rr = r[:, :, None] if per_vertex else r[:, None, None]
     if k == 2 or np.allclose(dirs, dirs[0], atol=1e-12):
         # straight tube: one frame for all rings
-        u, v = perpendicular_frame(dirs[0])
+        u, v = perpendicular_frame(dirs[0]) if reference is None else _reference_frame(dirs[0], reference)
         ring = ca[:, None] * u + sa[:, None] * v  # (n_seg, 3)
-        verts = c[:, None, :] + r[:, None, None] * ring[None, :, :]
+        verts = c[:, None, :] + rr * ring[None, :, :]
     else:
-        u, _ = perpendicular_frame(dirs[0])
+        u = perpendicular_frame(dirs[0])[0] if reference is None else _reference_frame(dirs[0], reference)[0]
         verts = np.empty((k, n_seg, 3))
         for i in range(k):
             d = dirs[i]
@@ -186,7 +209,7 @@ def tube(
             else:
                 u = u / nu
             v = cross3(d, u)
-            verts[i] = c[i] + r[i] * (ca[:, None] * u + sa[:, None] * v)
+            verts[i] = c[i] + rr[i] * (ca[:, None] * u + sa[:, None] * v)
     verts = verts.reshape(-1, 3)
     j = np.arange(n_seg)
     jn = (j + 1) % n_seg
@@ -210,6 +233,79 @@ def tube(
     if extra:
         verts = np.vstack([verts, np.asarray(extra)])
     return verts, np.concatenate(tris).astype(np.int64)
+
+
+def _reference_frame(d: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(u, v)``: ``reference`` projected into the plane perpendicular to the unit ``d`` and
+    normalised, ``v = d x u`` (a fixed perpendicular of ``d`` if ``reference`` lies along it)."""
+    ref = np.asarray(reference, dtype=np.float64)
+    u = ref - d * float(d @ ref)
+    nu = math.sqrt(float(u @ u))
+    if nu < 1e-9:
+        return perpendicular_frame(d)
+    u = u / nu
+    return u, cross3(d, u)
+
+
+#: Meshing of a shaped stem (:func:`stem_stations`): rings every ``STEM_FINE_STEP_M`` from the
+#: ground to ``STEM_FINE_TOP_M`` along the axis (the bark relief and lobes in detail where stems
+#: are measured), every ``STEM_COARSE_STEP_M`` above.
+STEM_FINE_STEP_M = 0.04
+STEM_FINE_TOP_M = 2.5
+STEM_COARSE_STEP_M = 1.0
+
+
+def stem_stations(tree: Tree) -> np.ndarray:
+    """Distances (m) along the axis of the rings that mesh the stem of ``tree``, from 0.5 m below
+    the base (the stem is sunk into the ground) to the stem top: the knots of
+    :meth:`~.scene.Tree.profile` for a round stem; a shaped one also at breast height and, with
+    bark relief or buttress lobes, every :data:`STEM_FINE_STEP_M` (on a grid through breast
+    height) from the base up to :data:`STEM_FINE_TOP_M` (lobes alone: up to the flare height)
+    and, with bark relief, every :data:`STEM_COARSE_STEP_M` above."""
+    s, _ = tree.profile()
+    length = float(s[-1])
+    knots = np.concatenate([[-0.5], s] + ([] if tree.is_round else [[BREAST_HEIGHT_M]]))
+    fine: list[np.ndarray] = []
+    fine_top = 0.0
+    if tree.bark_roughness_m > 0.0:
+        fine_top = STEM_FINE_TOP_M
+        fine.append(np.arange(fine_top + STEM_COARSE_STEP_M, length, STEM_COARSE_STEP_M))
+    if tree.buttress_lobes and tree.buttress_amplitude > 0.0:
+        fine_top = max(fine_top, min(max(tree.flare_height_m, 0.1), BREAST_HEIGHT_M))
+    if fine_top > 0.0:  # a grid through breast height
+        k0 = math.floor(BREAST_HEIGHT_M / STEM_FINE_STEP_M + 1e-9)
+        k1 = math.floor((fine_top - BREAST_HEIGHT_M) / STEM_FINE_STEP_M + 1e-9)
+        fine.append(BREAST_HEIGHT_M + STEM_FINE_STEP_M * np.arange(-k0, k1 + 1))
+    knots = np.unique(knots[knots <= length])
+    if not fine:
+        return knots
+    extra = np.concatenate(fine)
+    extra = extra[(extra > -0.5) & (extra < length)]
+    # a station within 5 mm of a knot is left out (the knots carry the profile's corners)
+    extra = extra[np.abs(extra[:, None] - knots[None, :]).min(axis=1) > 0.005]
+    return np.unique(np.concatenate([knots, extra]))
+
+
+def stem_tube(tree: Tree, trunk_segments: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """The stem of ``tree`` as meshed (vertices, triangles; world frame, m), capped at the top.
+
+    A round stem (:attr:`~.scene.Tree.is_round`): ``trunk_segments`` facets, each ring of the
+    circle's area, rings at the profile's knots. A shaped stem: :data:`~.scene.SHAPED_STEM_SEGMENTS`
+    facets, vertex ``j`` of each ring at the stem-frame angle ``2 pi j / n`` and the radius
+    :meth:`~.scene.Tree.section_radius`, rings at :func:`stem_stations`."""
+    if tree.is_round:
+        s, r = tree.profile()
+        s = np.concatenate([[-0.5], s])
+        r = np.concatenate([[r[0]], r])
+        return tube(tree.point_at(s), r, trunk_segments, cap_end=True)
+    s = stem_stations(tree)
+    n = SHAPED_STEM_SEGMENTS
+    u, _, _ = tree.stem_frame()
+
+    def radii(theta: np.ndarray) -> np.ndarray:
+        return np.asarray(tree.section_radius(theta[None, :], s[:, None]), dtype=np.float64)
+
+    return tube(tree.point_at(s), radii, n, cap_end=True, reference=u)
 
 
 def box(cx: float, cy: float, z0: float, size: tuple[float, float, float], yaw_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -396,9 +492,15 @@ def tree_wood_volume(scene: ForestScene, tree: Tree) -> tuple[float, float]:
     profile (frusta between its sections, from the ground up) and the main branches (frusta); the
     truth a cylinder model's volume is checked against. The part of a branch inside the stem is
     counted too (a few cm^3)."""
-    s, r = tree.profile()
-    ds = np.diff(s)
-    stem = float(np.sum(math.pi * ds * (r[:-1] ** 2 + r[:-1] * r[1:] + r[1:] ** 2) / 3.0))
+    if tree.is_round:
+        s, r = tree.profile()
+        ds = np.diff(s)
+        stem = float(np.sum(math.pi * ds * (r[:-1] ** 2 + r[:-1] * r[1:] + r[1:] ** 2) / 3.0))
+    else:  # the smooth meshed sections (frusta of similar polygons between the stations)
+        s = stem_stations(tree)
+        s = s[s >= 0.0]
+        a = np.array([tree.section_area_m2(float(x)) for x in s])
+        stem = float(np.sum(np.diff(s) * (a[:-1] + np.sqrt(a[:-1] * a[1:]) + a[1:]) / 3.0))
     rng = np.random.default_rng([scene.seed, 1, tree.id])
     branch = 0.0
     for p0, p1, rb, rt in _branches(tree, rng):
@@ -454,10 +556,7 @@ def build_scene_mesh(
     leaf_ids: list[np.ndarray] = []
     for tree in scene.trees:
         rng = np.random.default_rng([scene.seed, 1, tree.id])
-        s, r = tree.profile()
-        s = np.concatenate([[-0.5], s])
-        r = np.concatenate([[r[0]], r])
-        v, t = tube(tree.point_at(s), r, trunk_segments, cap_end=True)
+        v, t = stem_tube(tree, trunk_segments)
         b.add(Material.TRUNK, v, t, tree.id)
         for k, (p0, p1, rb, rt) in enumerate(_branches(tree, rng)):
             v, t = tube(np.vstack([p0, p1]), np.array([rb, rt]), _branch_segments(tree, k), cap_end=False)

@@ -47,6 +47,12 @@ Heights grow with DBH (``h = low + (high - low) * sqrt(dbh fraction)``, +-10 %, 
 ``exp(N(0, height_scatter))``); trees lean by ``lean_max_deg * U^2`` in a random direction; stems
 keep at least ``r_i + r_j + 0.3 m`` apart.
 
+Stems are round (a circle in section) unless ``make_scene(..., stem_shapes="real")``: then each
+tree gets an ovality of 0-10 % (major axis at a random angle), a bark relief of 1-3 mm and, on a
+broadleaf of more than 0.45 m DBH, 3-6 buttress lobes at its base (see :class:`Tree` and
+:func:`with_stem_shapes`); ``dbh_m`` stays the tape (girth) diameter at 1.3 m, and every other
+draw of the scene is the same as with round stems.
+
 Built scenes (walls, posts in rows, a corridor, a courtyard, a park) are presets too:
 ``make_scene("corridor", seed=...)`` draws them with :func:`~.built.make_built_scene` (see
 :mod:`.built` and :data:`~.built.BUILT_PRESETS`).
@@ -73,6 +79,69 @@ BROADLEAF = "broadleaf"
 
 #: Breast height (m) along the stem axis from the stem base, where DBH is defined.
 BREAST_HEIGHT_M = 1.3
+
+#: Facets around a shaped (not round) stem, as meshed; the vertices of a section lie at the
+#: stem-frame angles ``2 pi j / SHAPED_STEM_SEGMENTS``.
+SHAPED_STEM_SEGMENTS = 64
+
+#: Largest ovality (``1 - b / a``) and bark relief (m, 1-sigma) a :class:`Tree` accepts.
+MAX_OVALITY = 0.15
+MAX_BARK_ROUGHNESS_M = 0.004
+
+#: Stem shape options of :func:`make_scene`.
+STEM_SHAPES = ("round", "real")
+
+#: Cosine modes of a bark relief field.
+_BARK_MODES = 32
+
+
+def _section_angles(n: int = SHAPED_STEM_SEGMENTS) -> np.ndarray:
+    return np.arange(n) * (2.0 * math.pi / n)
+
+
+def _polygon_perimeter(r: np.ndarray) -> float:
+    """Perimeter of the polygon with radii ``r`` at equally spaced angles."""
+    n = len(r)
+    rn = np.roll(r, -1)
+    return float(np.sum(np.sqrt(r * r + rn * rn - 2.0 * r * rn * math.cos(2.0 * math.pi / n))))
+
+
+def _polygon_area(r: np.ndarray) -> float:
+    """Area of the polygon with radii ``r`` at equally spaced angles."""
+    n = len(r)
+    return float(0.5 * math.sin(2.0 * math.pi / n) * np.sum(r * np.roll(r, -1)))
+
+
+_PATTERNS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray, float]] = {}
+
+
+def _stem_pattern(bark_seed: int, tree_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """A tree's stem pattern from ``(bark_seed, tree_id)``: the bark relief's modes (integer
+    wave numbers around the stem, wave numbers along it in rad/m, phases) and the phase (rad) of
+    the buttress lobes."""
+    key = (int(bark_seed), int(tree_id))
+    hit = _PATTERNS.get(key)
+    if hit is None:
+        rng = np.random.default_rng([key[0] & 0xFFFFFFFF, key[1] & 0xFFFFFFFF, 8111])
+        m = _BARK_MODES
+        around = rng.integers(6, 25, size=m) * rng.choice([-1, 1], size=m)
+        along = 2.0 * math.pi / rng.uniform(0.12, 0.60, size=m) * rng.choice([-1.0, 1.0], size=m)
+        phase = rng.uniform(0.0, 2.0 * math.pi, size=m)
+        hit = (around.astype(np.float64), along, phase, float(rng.uniform(0.0, 2.0 * math.pi)))
+        if len(_PATTERNS) > 4096:
+            _PATTERNS.clear()
+        _PATTERNS[key] = hit
+    return hit
+
+
+def _bark_field(bark_seed: int, tree_id: int, theta: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """The unit bark relief field (1-sigma 1, zero mean around every section) at ``(theta, s)``."""
+    around, along, phase, _ = _stem_pattern(bark_seed, tree_id)
+    th, ss = np.broadcast_arrays(np.asarray(theta, dtype=np.float64), np.asarray(s, dtype=np.float64))
+    out = np.zeros(th.shape)
+    for k in range(len(around)):
+        out += np.cos(around[k] * th + along[k] * ss + phase[k])
+    return out * math.sqrt(2.0 / len(around))
 
 
 # --------------------------------------------------------------------------------------------
@@ -213,6 +282,33 @@ class Tree:
     ``2 * radius_at(1.3) == dbh_m``. ``height_m`` is the vertical height of the top above the base.
     The crown starts at ``crown_base_m`` (vertical, above the base) and has radius
     ``crown_radius_m``: a cone (``shape == "conifer"``) or an ellipsoid (``"broadleaf"``).
+
+    Stem shape
+    ----------
+    By default the stem is round: its section at ``s`` (along the axis) is the circle of radius
+    :meth:`radius_at`. A stem with ``ovality``, buttress lobes or bark relief (not
+    :attr:`is_round`) has the section
+
+        ``r(theta, s) = radius_at(s) * k * e(theta) * (1 + A(s) * L(theta)) + rough(theta, s)``
+
+    in its stem frame (:meth:`stem_frame`: ``theta`` in radians about the axis, measured from the
+    world +x projected into the section plane, counter-clockwise seen from above, i.e.
+    right-handed about the axis; for a vertical stem ``theta`` is the mathematical azimuth):
+
+    * ``e(theta)``: the polar radius of an ellipse of semi-axes 1 and ``1 - ovality``, its major
+      axis at ``theta = radians(ovality_azimuth_deg)`` (the same at every height);
+    * ``L(theta) = ((1 + cos(n (theta - phase))) / 2)^3``: ``n = buttress_lobes`` peaked lobes
+      (0 between them), ``phase`` drawn from the tree's pattern seed; ``A(s) =
+      buttress_amplitude * (1 - s / flare_height)^2`` below the flare height (``flare_height_m``,
+      at most 1.3 m), 0 above it, so the lobes never reach breast height;
+    * ``k``: the scale that makes the smooth section at breast height as meshed (the polygon of
+      :data:`SHAPED_STEM_SEGMENTS` vertices at ``theta_j = 2 pi j / n``) have the perimeter
+      ``pi * dbh_m``: ``dbh_m`` is the tape (girth) diameter (:meth:`girth_diameter_m`), and
+      ``radius_at(s)`` half the girth diameter wherever there are no lobes;
+    * ``rough``: the bark relief, a zero-mean random field of 1-sigma ``bark_roughness_m`` (full
+      on stems over 0.1 m thick, fading to the thin top), correlated over a few cm around and along
+      the stem (wavelengths 12-60 cm along it), drawn from ``(bark_seed, id)`` only: a tree that grows
+      (a larger ``dbh_m``) keeps its bark pattern, lobes and ellipse.
     """
 
     id: int
@@ -243,6 +339,33 @@ class Tree:
     #: leader takes 1/n of its cross-section and reaches the tree's height; the main branches
     #: grow from the leaders); 0: an ordinary stem
     fork_leaders: int = 0
+    #: stem section: ovality ``1 - b / a`` of its ellipse (0 = round; 0..0.15)
+    ovality: float = 0.0
+    #: direction of the ellipse's major axis (deg): angle in the stem frame (:meth:`stem_frame`;
+    #: for a vertical stem, the mathematical azimuth), the same at every height
+    ovality_azimuth_deg: float = 0.0
+    #: buttress lobes around the stem base: 0 (none) or 3..6
+    buttress_lobes: int = 0
+    #: height of a lobe as a fraction of the section radius at the base (s <= 0), decaying to 0 by
+    #: the flare height (0..1)
+    buttress_amplitude: float = 0.0
+    #: bark relief (m): 1-sigma of the radial deviation, zero mean (0..0.004)
+    bark_roughness_m: float = 0.0
+    #: seed of the tree's stem pattern (bark relief, lobe phase) together with ``id``: the
+    #: scene's seed for drawn scenes
+    bark_seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.ovality <= MAX_OVALITY:
+            raise ParameterError(f"tree {self.id}: ovality must be within 0-{MAX_OVALITY}, got {self.ovality}")
+        if self.buttress_lobes not in (0, 3, 4, 5, 6):
+            raise ParameterError(f"tree {self.id}: buttress_lobes must be 0 or 3-6, got {self.buttress_lobes}")
+        if not 0.0 <= self.buttress_amplitude <= 1.0:
+            raise ParameterError(f"tree {self.id}: buttress_amplitude must be within 0-1, got {self.buttress_amplitude}")
+        if not 0.0 <= self.bark_roughness_m <= MAX_BARK_ROUGHNESS_M:
+            raise ParameterError(
+                f"tree {self.id}: bark_roughness_m must be within 0-{MAX_BARK_ROUGHNESS_M} m, got {self.bark_roughness_m}"
+            )
 
     @property
     def axis(self) -> np.ndarray:
@@ -302,10 +425,101 @@ class Tree:
         return np.asarray(s_list), np.asarray(r_list)
 
     def radius_at(self, s: Any) -> Any:
-        """Stem radius (m) at distance ``s`` along the axis from the base (exactly as meshed)."""
+        """Stem radius (m) at distance ``s`` along the axis from the base: exactly as meshed for a
+        round stem; for a shaped stem, half the girth diameter of the section wherever there are
+        no buttress lobes (the ring radius before the shape, see the class docstring)."""
         ss, rr = self.profile()
         out = np.interp(np.asarray(s, dtype=np.float64), ss, rr, right=0.0)
         return float(out) if np.ndim(out) == 0 else out
+
+    # -- stem shape ------------------------------------------------------------------------
+
+    @property
+    def is_round(self) -> bool:
+        """Whether the stem is the default round one (no ovality, lobes or bark relief): meshed
+        as a ``trunk_segments``-gon of the circle's area, exactly as before shapes existed."""
+        return self.ovality == 0.0 and (self.buttress_lobes == 0 or self.buttress_amplitude == 0.0) and self.bark_roughness_m == 0.0
+
+    def stem_frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(u, v, d)``: unit vectors of the stem frame (world frame). ``d`` is the axis
+        (:attr:`axis`), ``u`` the world +x projected into the section plane (+y if the axis lies
+        along x), ``v = d x u``. A section angle ``theta`` (radians) is the direction
+        ``cos(theta) u + sin(theta) v``."""
+        d = self.axis
+        u = np.array([1.0, 0.0, 0.0]) - d * d[0]
+        n = math.sqrt(float(u @ u))
+        if n < 1e-9:
+            u = np.array([0.0, 1.0, 0.0]) - d * d[1]
+            n = math.sqrt(float(u @ u))
+        u = u / n
+        v = np.array([d[1] * u[2] - d[2] * u[1], d[2] * u[0] - d[0] * u[2], d[0] * u[1] - d[1] * u[0]])
+        return u, v, d
+
+    def _shape_factor(self, theta: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """``e(theta) * (1 + A(s) L(theta))`` (dimensionless, broadcast over theta and s)."""
+        phi = theta - math.radians(self.ovality_azimuth_deg)
+        b = 1.0 - self.ovality
+        out = b / np.sqrt((b * np.cos(phi)) ** 2 + np.sin(phi) ** 2)
+        if self.buttress_lobes and self.buttress_amplitude > 0.0:
+            fh = min(max(self.flare_height_m, 0.1), BREAST_HEIGHT_M)
+            a = self.buttress_amplitude * np.clip(1.0 - s / fh, 0.0, 1.0) ** 2
+            lobe = ((1.0 + np.cos(self.buttress_lobes * (theta - _stem_pattern(self.bark_seed, self.id)[3]))) / 2.0) ** 3
+            out = out * (1.0 + a * lobe)
+        return out
+
+    def _ring_scale(self) -> float:
+        """``k``: the scale that gives the smooth meshed section at breast height the perimeter
+        ``pi * dbh_m`` (the lobes are 0 there)."""
+        th = _section_angles()
+        e = self._shape_factor(th, np.full_like(th, BREAST_HEIGHT_M))
+        return 2.0 * math.pi / _polygon_perimeter(e)
+
+    def section_radius(self, theta: Any, s: Any, *, smooth: bool = False) -> Any:
+        """Radius (m) of the stem section at angle ``theta`` (radians, stem frame: see
+        :meth:`stem_frame`) and distance ``s`` (m) along the axis from the base, broadcast over
+        both; with ``smooth`` without the bark relief. A round stem gives :meth:`radius_at`."""
+        th = np.asarray(theta, dtype=np.float64)
+        sa = np.asarray(s, dtype=np.float64)
+        r_ring = np.asarray(self.radius_at(sa), dtype=np.float64)
+        if self.is_round:
+            out = np.broadcast_to(r_ring, np.broadcast_shapes(th.shape, sa.shape)).copy()
+            return float(out) if out.ndim == 0 else out
+        smooth_r = r_ring * self._ring_scale() * self._shape_factor(th, sa)
+        out = smooth_r
+        if not smooth and self.bark_roughness_m > 0.0:
+            rough = self.bark_roughness_m * _bark_field(self.bark_seed, self.id, th, sa) * np.clip(r_ring / 0.05, 0.0, 1.0)
+            out = np.maximum(smooth_r + rough, 0.5 * smooth_r)
+        out = np.asarray(out)
+        return float(out) if out.ndim == 0 else out
+
+    def section_polygon(self, s: float = BREAST_HEIGHT_M) -> np.ndarray:
+        """The smooth section at ``s`` as meshed: radii (m) at the :data:`SHAPED_STEM_SEGMENTS`
+        angles ``theta_j = 2 pi j / n`` of the stem frame (for a round stem, ``radius_at(s)``
+        at every angle)."""
+        th = _section_angles()
+        return np.asarray(self.section_radius(th, np.full_like(th, float(s)), smooth=True), dtype=np.float64)
+
+    def girth_diameter_m(self, s: float = BREAST_HEIGHT_M) -> float:
+        """Tape diameter (m) at ``s`` along the axis: the perimeter of the smooth section as meshed
+        divided by pi (equal to ``dbh_m`` at breast height); a round stem gives
+        ``2 * radius_at(s)`` (the circle)."""
+        if self.is_round:
+            return 2.0 * float(self.radius_at(s))
+        return _polygon_perimeter(self.section_polygon(s)) / math.pi
+
+    def area_diameter_m(self, s: float = BREAST_HEIGHT_M) -> float:
+        """Diameter (m) of the circle with the area of the smooth section at ``s`` as meshed (at
+        most the girth diameter); a round stem gives ``2 * radius_at(s)``."""
+        if self.is_round:
+            return 2.0 * float(self.radius_at(s))
+        return 2.0 * math.sqrt(_polygon_area(self.section_polygon(s)) / math.pi)
+
+    def section_area_m2(self, s: float) -> float:
+        """Area (m^2) of the smooth section at ``s`` (the circle for a round stem, the meshed
+        polygon for a shaped one)."""
+        if self.is_round:
+            return math.pi * float(self.radius_at(s)) ** 2
+        return _polygon_area(self.section_polygon(s))
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -585,7 +799,7 @@ class ForestScene:
 
         trees = []
         for t in self.trees:
-            r = t.dbh_m / 2.0 * (1.0 + t.flare)
+            r = t.dbh_m / 2.0 * (1.0 + t.flare) * (1.0 + t.buttress_amplitude)
             if any(near(t.point_at_height(h), r) for h in (0.0, 1.0, 2.0)):
                 continue
             trees.append(t)
@@ -679,7 +893,9 @@ def with_overrides(cfg: Any, overrides: dict[str, Any], what: str) -> Any:
     return dataclasses.replace(cfg, **{k: _as_range(k, v, getattr(cfg, k)) for k, v in overrides.items()})
 
 
-def make_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **overrides: Any) -> ForestScene:
+def make_scene(
+    preset: str, *, seed: int = 0, size_m: float = 60.0, stem_shapes: str = "round", **overrides: Any
+) -> ForestScene:
     """Draw a plot of ``size_m`` x ``size_m`` metres from a preset (deterministic per seed).
 
     Parameters
@@ -690,18 +906,25 @@ def make_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **overrides:
         "campus"; drawn by :func:`~.built.make_built_scene`).
     seed : random seed; the same (preset, seed, size_m, overrides) give the same scene.
     size_m : side of the square plot, centred on the origin.
+    stem_shapes : "round" (every stem a circle in section, as the other draws of the preset
+        give it) or "real": the same trees with real stem shapes drawn from a stream of their
+        own (:func:`with_stem_shapes`: ovality, bark relief, buttress lobes on big broadleaves);
+        every other draw of the scene is unchanged.
     overrides : any :class:`PresetConfig` field, e.g. ``slope_deg=18`` or ``stems_per_ha=500``
         (for a built scene: any :class:`~.built.BuiltConfig` field).
 
     Raises
     ------
     ParameterError
-        Unknown preset or option, or a plot size outside 10-500 m.
+        Unknown preset, option or stem shape, or a plot size outside 10-500 m.
     """
     if not (10.0 <= float(size_m) <= 500.0):
         raise ParameterError(f"plot size must be between 10 and 500 m, got {size_m}")
+    if stem_shapes not in STEM_SHAPES:
+        raise ParameterError(f"stem_shapes must be one of {', '.join(STEM_SHAPES)}, got {stem_shapes!r}")
     if preset not in PRESETS and preset in SCENE_MAKERS:
-        return SCENE_MAKERS[preset](seed=seed, size_m=size_m, **overrides)
+        made = SCENE_MAKERS[preset](seed=seed, size_m=size_m, **overrides)
+        return with_stem_shapes(made) if stem_shapes == "real" else made
     cfg = preset_config(preset, **overrides)
     rng = np.random.default_rng([int(seed), _stable_hash(preset)])
     half = float(size_m) / 2.0
@@ -722,6 +945,8 @@ def make_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **overrides:
     # separate streams so that e.g. changing shrub density does not move the trees
     r_trees, r_shrubs, r_lianas, r_targets, r_boxes = rng.spawn(5)
     trees = _make_trees(cfg, extent, terrain, r_trees)
+    if stem_shapes == "real":  # a stream of its own: the other draws stay those of the round scene
+        trees = _real_stems(trees, int(seed), preset)
     boxes = _make_boxes(cfg, extent, terrain, r_boxes) if cfg.structures else []
     shrubs = _make_shrubs(cfg, extent, terrain, trees, boxes, r_shrubs)
     lianas = _make_lianas(cfg, extent, terrain, trees, r_lianas)
@@ -737,8 +962,51 @@ def make_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **overrides:
         targets=tuple(targets),
         boxes=tuple(boxes),
         config=cfg,
-        meta={"size_m": float(size_m), "overrides": {k: v for k, v in overrides.items()}},
+        meta={
+            "size_m": float(size_m), "overrides": {k: v for k, v in overrides.items()},
+            **({"stem_shapes": stem_shapes} if stem_shapes != "round" else {}),
+        },
     )
+
+
+#: Ranges of the real stem shapes (:func:`with_stem_shapes`): ovality, bark relief (m), buttress
+#: lobe amplitude; the DBH (m) above which a broadleaf has buttress lobes.
+REAL_OVALITY = (0.0, 0.10)
+REAL_BARK_ROUGHNESS_M = (0.001, 0.003)
+REAL_BUTTRESS_AMPLITUDE = (0.15, 0.40)
+REAL_BUTTRESS_MIN_DBH_M = 0.45
+
+
+def real_stem_shape(tree: Tree, seed: int, preset: str) -> Tree:
+    """``tree`` with a real stem shape drawn from ``(seed, preset, tree.id)`` alone (the same tree
+    of the same scene always gets the same shape): ovality in :data:`REAL_OVALITY` with its major
+    axis at a random angle, bark relief in :data:`REAL_BARK_ROUGHNESS_M` (its pattern seeded by
+    ``seed``), and for a broadleaf over :data:`REAL_BUTTRESS_MIN_DBH_M` DBH 3-6 buttress lobes of
+    amplitude :data:`REAL_BUTTRESS_AMPLITUDE`. ``dbh_m`` (the tape diameter) and every other field
+    stay."""
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, _stable_hash(preset), 4999, int(tree.id) & 0xFFFFFFFF])
+    ovality = float(rng.uniform(*REAL_OVALITY))
+    azimuth = float(rng.uniform(0.0, 360.0))
+    rough = float(rng.uniform(*REAL_BARK_ROUGHNESS_M))
+    lobes = int(rng.integers(3, 7))
+    amplitude = float(rng.uniform(*REAL_BUTTRESS_AMPLITUDE))
+    big_broadleaf = tree.shape == BROADLEAF and tree.dbh_m > REAL_BUTTRESS_MIN_DBH_M
+    return dataclasses.replace(
+        tree, ovality=ovality, ovality_azimuth_deg=azimuth, bark_roughness_m=rough, bark_seed=int(seed),
+        buttress_lobes=lobes if big_broadleaf else 0, buttress_amplitude=amplitude if big_broadleaf else 0.0,
+    )
+
+
+def _real_stems(trees: Sequence[Tree], seed: int, preset: str) -> list[Tree]:
+    return [real_stem_shape(t, seed, preset) for t in trees]
+
+
+def with_stem_shapes(scene: ForestScene) -> ForestScene:
+    """``scene`` with real stem shapes (:func:`real_stem_shape`, drawn from the scene's seed and
+    preset and each tree's id) on every tree; nothing else changes (``meta["stem_shapes"]`` is
+    "real")."""
+    trees = _real_stems(scene.trees, scene.seed, scene.preset)
+    return dataclasses.replace(scene, trees=tuple(trees), meta={**dict(scene.meta), "stem_shapes": "real"})
 
 
 def given_or_made_scene(
@@ -978,6 +1246,7 @@ def _stem_xy(trees: Sequence[Tree]) -> tuple[np.ndarray, np.ndarray]:
     if not trees:
         return np.zeros((0, 2)), np.zeros(0)
     xy = np.array([[t.x, t.y] for t in trees])
+    # the flare only: shrubs, lianas and targets stand where they would beside round stems
     r = np.array([t.dbh_m / 2.0 * (1.0 + t.flare) for t in trees])
     return xy, r
 
