@@ -300,6 +300,8 @@ COLUMN_HELP: dict[str, str] = {
     "lean_deg": "lean of the stem from the vertical, degrees",
     "dbh_arc_coverage": "fraction of the breast-height circle covered by points (0-1)",
     "dbh_rms_mm": "RMS distance of the breast-height points from the fitted circle, millimetres",
+    "dbh_sigma_m": "1-sigma uncertainty of the DBH against the girth-equivalent diameter (perimeter / pi): the fit's noise and the part of the section not seen (a stem seen from one side may be oval), metres",
+    "dbh_ovality": "ovality of the breast-height section (1 - minor / major axis), where the stem was seen around at least 70 % of it",
     "n_points": "points assigned to the tree",
     "wood_fraction": "fraction of the tree's points classed as wood (0-1)",
     "stem_form_factor": "stem volume / (basal area * height); outside the plausible bounds the volume is flagged",

@@ -178,7 +178,7 @@ def detect_change(
     t = time.perf_counter()
     progress(0.6, "matching trees")
     skipped: list = []
-    trees = match_trees(before, after, local, params, skipped)
+    trees = match_trees(before, after, local, params, skipped, shift_sigma_m=float(unc.get("horizontal_m") or stated_t))
     figures["single_stems_without_dbh"] = len(skipped)
     timings["trees_match_s"] = time.perf_counter() - t
     progress(1.0, "done")

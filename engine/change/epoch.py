@@ -26,7 +26,7 @@ from ..core.errors import ScanDataError
 from ..core.progress import Progress, ProgressCallback, as_progress
 from .params import ChangeParams
 
-__all__ = ["EpochTrees", "epoch_from_cloud", "epoch_from_table", "dbh_sigma", "by_trust", "position_unit_mismatch"]
+__all__ = ["EpochTrees", "epoch_from_cloud", "epoch_from_table", "by_trust", "position_unit_mismatch"]
 
 #: The trust words of the inventory's quality columns, in the order of the ``[change]`` tuples by
 #: trust (:attr:`ChangeParams.height_sigma_m`, :attr:`ChangeParams.table_dbh_sigma_m`).
@@ -119,19 +119,6 @@ def _inside_hull(xy: np.ndarray, p: np.ndarray, margin_m: float = 2.0) -> bool:
     return bool(np.all(eq[:, :2] @ p + eq[:, 2] <= margin_m))
 
 
-def dbh_sigma(rms_m: float, n_inliers: int, arc: float, trust: str = "high",
-              without_fit_m: Sequence[float] = ChangeParams().table_dbh_sigma_m) -> float:
-    """1-sigma DBH uncertainty (m) of a circle fit: the noise of the fitted radius
-    (``2 rms / sqrt(n)``, larger on a partial arc), a floor of 3 mm for what a circle does not
-    model (bark, ellipticity, the slice's height), doubled for medium and tripled for low trust.
-    Without a fit's residual: ``without_fit_m`` by trust (:attr:`ChangeParams.table_dbh_sigma_m`)."""
-    if not (math.isfinite(rms_m) and n_inliers > 0):
-        return by_trust(without_fit_m, trust)
-    noise = 2.0 * rms_m / math.sqrt(max(n_inliers, 3)) / max(arc, 0.2)
-    base = math.hypot(noise, 0.003)
-    return base * {"high": 1.0, "medium": 2.0, "low": 3.0}.get(trust, 1.0)
-
-
 def _trust(quality: str) -> str:
     """The trust word at the end of a quality string ("...; high")."""
     word = str(quality or "").rsplit(";", 1)[-1].strip()
@@ -161,7 +148,7 @@ def epoch_from_cloud(
     from ..trees.inventory import _crowns_timed  # the inventory's crown step (heights, shared tops)
     from ..trees.inventory import TreeParams
     from ..trees.segmentation import segment_trees, tree_completeness
-    from ..trees.stems import detect_stems_adaptive, measure_stems
+    from ..trees.stems import dbh_sigma, detect_stems_adaptive, measure_stems
     from ..terrain.dem import terrain_model
 
     params = params or TreeParams()
@@ -236,7 +223,7 @@ def epoch_from_cloud(
             if fit.rms_residual_m > max(0.15 * 0.5 * value, 0.008):
                 trust = "low"
         out["dbh"][k] = value
-        out["dbh_sd"][k] = dbh_sigma(fit.rms_residual_m, fit.n_inliers, fit.arc_coverage, trust, change.table_dbh_sigma_m) if fit is not None and trust != "none" else math.nan
+        out["dbh_sd"][k] = dbh_sigma(value, fit, trust, stem_params.typical_ovality) if trust != "none" else math.nan
         dbh_ok[k] = math.isfinite(value) and trust in ("high", "medium")
         if not dbh_ok[k]:
             reasons.append("stem not measured at breast height" if trust == "none" else "DBH uncertain")

@@ -15,10 +15,12 @@ either survey gets a status:
   the later survey, without any point of the earlier one near it: not compared.
 
 Values per tree: DBH and height in each survey with their 1-sigma, and their changes. The DBH
-change of a stem measured in both clouds is the median difference of the two stem curves between
-1.0 and 2.6 m along the stem (paired sections: the noise of one section is not the change), else
-the difference of the two DBH values. A value one survey cannot support (stem occluded, DBH fit
-unsure, top unseen) is flagged and its change left empty.
+change of a stem measured in both clouds is twice its radial growth in the sectors of its section
+both surveys saw (:mod:`.growth`: an oval stem seen from different sides keeps its shape, which
+cancels), and is withheld, with the reason, where the common arc is too short or too uncertain;
+between two tables it is the difference of the two DBH values. A height change needs both tops
+trusted. A value one survey cannot support (stem occluded, DBH fit unsure, top unseen) is flagged
+and its change left empty.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import numpy as np
 from ..core.transform import apply as apply_transform
 from .epoch import EpochTrees
 from .params import ChangeParams
+from .growth import GrowthFit, paired_growth
 from .registration import stem_pairs
 
 __all__ = ["TreeChange", "STATUSES", "match_trees", "CHANGE_COLUMNS"]
@@ -103,27 +106,14 @@ def _covered(epoch: EpochTrees, xy: np.ndarray, radius_m: float, index_all) -> n
     return np.isfinite(d)
 
 
-def _curve_change(cb: Optional[tuple[np.ndarray, np.ndarray]], ca: Optional[tuple[np.ndarray, np.ndarray]],
-                  lean_b: float, lean_a: float) -> tuple[float, int]:
-    """Median difference (after minus before) of two stem curves over their common sections
-    1.0-2.6 m along the stem, and the number of sections; (NaN, 0) without 3 common sections."""
-    if cb is None or ca is None:
-        return math.nan, 0
-    s = np.arange(1.0, 2.61, 0.25)
-    db = np.interp(s, cb[0], cb[1], left=np.nan, right=np.nan) if len(cb[0]) >= 2 else np.full(len(s), np.nan)
-    da = np.interp(s, ca[0], ca[1], left=np.nan, right=np.nan) if len(ca[0]) >= 2 else np.full(len(s), np.nan)
-    ok = np.isfinite(db) & np.isfinite(da)
-    if np.count_nonzero(ok) < 3:
-        return math.nan, 0
-    return float(np.median(da[ok] - db[ok])), int(np.count_nonzero(ok))
-
-
 def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, params: ChangeParams = ChangeParams(),
-                skipped: Optional[list] = None) -> list[TreeChange]:
+                skipped: Optional[list] = None, shift_sigma_m: float = 0.01) -> list[TreeChange]:
     """Every tree of both surveys with its status and values (module docstring). ``matrix``:
-    ``p_before = matrix @ p_after`` (local frames). Ordered: persisting, removed, new, outside.
-    Stems found in one survey alone without a DBH (nothing measured at breast height) are left
-    out; ``skipped`` (a list) receives one entry per such stem."""
+    ``p_before = matrix @ p_after`` (local frames); ``shift_sigma_m`` the registration's 1-sigma
+    horizontal uncertainty, the prior of a stem's local shift where the plot's stems do not tell
+    it (:func:`~.growth.paired_growth`). Ordered: persisting, removed, new, outside. Stems found
+    in one survey alone without a DBH (nothing measured at breast height) are left out;
+    ``skipped`` (a list) receives one entry per such stem."""
     skipped = [] if skipped is None else skipped
     from scipy.spatial import cKDTree
 
@@ -147,9 +137,11 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     def radius(epoch: EpochTrees, k: int) -> float:
         return 0.5 * epoch.dbh_m[k] if math.isfinite(epoch.dbh_m[k]) else 0.15
 
-    # --- stems found in both surveys
-    for b, a in pairs:
-        out.append(_persisting(before, after, int(b), int(a), float(np.hypot(*(after_in_b[a, :2] - before.xy[b]))), params))
+    # --- stems found in both surveys; their growth from the sectors both clouds saw
+    growth = paired_growth(before, after, pairs, matrix, shift_sigma_m, params.growth)
+    for k, (b, a) in enumerate(pairs):
+        out.append(_persisting(before, after, int(b), int(a), float(np.hypot(*(after_in_b[a, :2] - before.xy[b]))), params,
+                               growth[k] if growth else None))
     # --- stems of BEFORE alone: removed, not found in AFTER, or outside AFTER
     # a stem of one survey alone without a DBH and without points of its own at 1.0-1.6 m is
     # no evidence of a tree removed or grown in (a crown part or branch whorl taken for a stem):
@@ -233,30 +225,34 @@ def _one_side(epoch: EpochTrees, k: int, which: str, xy: Optional[np.ndarray] = 
     return d
 
 
-def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance: float, params: ChangeParams) -> TreeChange:
-    """A stem found in both surveys: its values and changes, flagged where a survey cannot support one."""
+def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance: float, params: ChangeParams,
+                growth: Optional[GrowthFit] = None) -> TreeChange:
+    """A stem found in both surveys: its values and changes, flagged where a survey cannot
+    support one. ``growth``: its diameter growth from the sectors both clouds saw (None for a
+    survey given as a table: the difference of the two DBH values, when both are supported)."""
     flags: list[str] = []
     db, da = float(before.dbh_m[b]), float(after.dbh_m[a])
     sb, sa = float(before.dbh_sigma_m[b]), float(after.dbh_sigma_m[a])
     d_change = d_sigma = math.nan
-    if before.dbh_ok[b] and after.dbh_ok[a]:
-        paired, n = _curve_change(before.curves[b], after.curves[a], 0.0, 0.0)
-        if math.isfinite(paired):
-            d_change = paired
-            # paired sections: the sections' own noise averages out over about n / 2 independent ones
-            d_sigma = math.hypot(sb, sa) / math.sqrt(max(1.0, n / 2.0))
+    if growth is not None:
+        if growth.stated:
+            d_change, d_sigma = growth.dbh_change_m, growth.dbh_change_sigma_m
         else:
-            d_change, d_sigma = da - db, math.hypot(sb, sa)
-        if d_sigma > params.max_dbh_change_sigma_m:
-            flags.append(f"DBH change withheld: too uncertain (1 sigma {1000 * d_sigma:.0f} mm; partial arcs or noisy stem)")
-            d_change = math.nan
-        elif d_change < -params.max_dbh_decrease_sigma * d_sigma:
-            flags.append(f"DBH shrank by {-1000 * d_change:.0f} mm (more than {params.max_dbh_decrease_sigma:g} sigma): check the stem")
+            flags.append(f"DBH change withheld: {growth.reason}")
+    elif before.dbh_ok[b] and after.dbh_ok[a]:
+        d_change, d_sigma = da - db, math.hypot(sb, sa)
     else:
         if not before.dbh_ok[b]:
             flags.append("DBH not supported in BEFORE (stem occluded or fit unsure)")
         if not after.dbh_ok[a]:
             flags.append("DBH not supported in AFTER (stem occluded or fit unsure)")
+    if math.isfinite(d_change):
+        if d_sigma > params.max_dbh_change_sigma_m:
+            flags.append(f"DBH change withheld: too uncertain (1 sigma {1000 * d_sigma:.0f} mm; "
+                         + ("short common arc or noisy stem)" if growth is not None else "partial arcs or noisy stem)"))
+            d_change = math.nan
+        elif d_change < -params.max_dbh_decrease_sigma * d_sigma:
+            flags.append(f"DBH shrank by {-1000 * d_change:.0f} mm (more than {params.max_dbh_decrease_sigma:g} sigma): check the stem")
     hb, ha = float(before.height_m[b]), float(after.height_m[a])
     h_change = h_sigma = math.nan
     if before.height_ok[b] and after.height_ok[a]:

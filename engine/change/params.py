@@ -10,6 +10,7 @@ from ..core.params import Params, param_field as _p
 from ..core.uncertainty import UncertaintyParams
 from ..geometry.icp_params import IcpParams
 from ..geometry.solution_params import DistinctParams, MarginParams
+from .growth import GrowthParams
 
 __all__ = ["ChangeParams"]
 
@@ -45,6 +46,8 @@ class ChangeParams(Params):
     tree_match_distance_m: float = _p(0.5, "m", 0.05, 5.0, "Trees of the two surveys closer than this after the registration are one tree")
     presence_points: int = _p(25, "points", 1, 100000, "Points of the other survey on a stem (1-2.5 m above the ground, within its radius + 5 cm) that show the stem is still (or already) there")
     coverage_radius_m: float = _p(1.5, "m", 0.1, 20.0, "A tree of the later survey is outside the earlier one when that survey has no point within this distance of it (never a new tree where the earlier survey was blind)")
+    #: how a persisting stem's diameter growth is measured from the sectors both surveys saw
+    growth: GrowthParams = GrowthParams()
     max_dbh_change_sigma_m: float = _p(0.01, "m", 0.001, 1.0, "A DBH change whose 1-sigma uncertainty exceeds this is withheld (flagged): too uncertain to tell growth")
     height_outlier_m: float = _p(1.5, "m", 0.1, 50.0, "A height change farther than this (and 3 robust sigma) from the median change of the persisting trees is withheld (flagged): a top unseen in one survey, not growth")
     max_dbh_decrease_sigma: float = _p(3.0, "sigma", 0.0, 100.0, "A DBH that shrank by more than this many sigma is flagged")

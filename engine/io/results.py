@@ -54,6 +54,7 @@ TREE_COLUMNS = (
     "tree_id", "x", "y", "z", "dbh_m", "height_m", "height_source", "height_points_m", "crown_base_m",
     "crown_width_ew_m", "crown_width_ns_m", "crown_area_m2", "crown_volume_m3", "volume_m3", "stem_volume_m3",
     "branch_volume_m3", "qsm_dbh_m", "n_cylinders", "n_branches", "lean_deg", "dbh_arc_coverage", "dbh_rms_mm",
+    "dbh_sigma_m", "dbh_ovality",
     "n_points", "wood_fraction",
     "stem_form_factor", "source", "dbh_quality", "height_quality", "crown_quality", "volume_quality", "flag",
 )

@@ -39,8 +39,8 @@ from .crown import CrownMeasurement, CrownParams, apex_tip, measure_crown, top_c
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
 from .segmentation import CompletenessParams, SegmentationParams, axis_stems, segment_trees, top_layer, tree_completeness
-from .single import SingleTreeEvidence, SingleTreeParams, base_stem, single_tree_evidence
-from .stems import DbhMeasurement, NoisyStemParams, Stem, StemCurve, StemParams, detect_stems_adaptive, measure_stems
+from .single import SingleTreeEvidence, SingleTreeParams, base_stem, flat_dem, single_tree_base, single_tree_evidence
+from .stems import DbhMeasurement, NoisyStemParams, Stem, StemCurve, StemParams, dbh_sigma, detect_stems_adaptive, measure_stems
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +112,9 @@ class TreeRecord:
     flags: tuple[str, ...]
     #: DBH reported (the stem curve at breast height; NaN when not measured)
     dbh_m: float = math.nan
+    #: its 1-sigma against the girth-equivalent diameter (noise and the unseen part of the
+    #: section: :func:`.stems.dbh_sigma`; NaN when not measured)
+    dbh_sigma_m: float = math.nan
     #: wood volume reported (NaN when withheld) and the stem form factor V_stem / (BA * H)
     volume_m3: float = math.nan
     stem_form_factor: float = math.nan
@@ -166,6 +169,8 @@ class TreeRecord:
             "lean_deg": self.stem.lean_deg,
             "dbh_arc_coverage": fit.arc_coverage if fit is not None else math.nan,
             "dbh_rms_mm": 1000.0 * fit.rms_residual_m if fit is not None else math.nan,
+            "dbh_sigma_m": self.dbh_sigma_m,
+            "dbh_ovality": fit.ovality if fit is not None and math.isfinite(self.dbh_m) else math.nan,
             "n_points": self.n_points,
             "wood_fraction": self.wood_fraction,
             "stem_form_factor": self.stem_form_factor,
@@ -203,6 +208,8 @@ class TreeInventory(TreeTablesFile, Outcome):
     method: str = "fine"
     #: why the cloud was (or was not) taken as a single tree, one line ("" when not decided)
     single_tree_reason: str = ""
+    #: a cloud taken as one tree as asked though it is not one: why not, one line ("" otherwise)
+    single_tree_warning: str = ""
     #: whether volumes were asked for (cylinder models fitted); False: no ``cylinders/`` folder
     volume_asked: bool = True
     #: the plot's height-diameter curve that checked soft hints about the tops (None: too few
@@ -821,10 +828,13 @@ def tree_record(
     if params.cylinder_models is False and quality["volume"] == "no cylinder model; none":
         quality["volume"] = "not asked for (no cylinder models); none"
     flags = _flags_that_matter(flags, quality)
+    dbh_trust = quality.get("dbh", "").rsplit(";", 1)[-1].strip()
     return TreeRecord(
         tree_id=stem.id, stem=stem, dbh=d, curve=curve, crown=crown, cylinders=cylinders,
         n_points=int(len(idx)), wood_fraction=_wood_fraction(wood[idx], params.wood_threshold),
-        flags=tuple(dict.fromkeys(flags)), dbh_m=dbh_value, volume_m3=volume, stem_form_factor=ff,
+        flags=tuple(dict.fromkeys(flags)), dbh_m=dbh_value,
+        dbh_sigma_m=dbh_sigma(dbh_value, fit, dbh_trust, stem_params.typical_ovality) if dbh_trust != "none" else math.nan,
+        volume_m3=volume, stem_form_factor=ff,
         source="stem", quality=quality, height_from_curve_m=height_fill,
     )
 
@@ -1152,32 +1162,21 @@ def _single_tree_inventory(
     t = time.perf_counter()
     progress(0.25, "single-tree cloud: one tree, every point above the ground")
     centre = evidence.base_xy
-    found = min(stems, key=lambda s: math.hypot(s.x - centre[0], s.y - centre[1])) if stems else None
-    if found is not None:
-        centre = np.array([found.x, found.y])
-    if not no_ground and model.ground.any():
-        base_z = float(found.ground_z) if found is not None else float(model.dem.height_at(centre[None, :])[0])
-        near = np.hypot(p[model.ground, 0] - centre[0], p[model.ground, 1] - centre[1]) <= params.ground_near_stem_m
-        base_how = "the ground under the stem" + ("" if near.any() else f", interpolated: no ground point within {params.ground_near_stem_m:g} m")
-    else:
-        r = max(1.0, 2.0 * evidence.base_width_m)
-        near = np.hypot(p[:, 0] - centre[0], p[:, 1] - centre[1]) <= r
-        base_z = float(p[near, 2].min()) if near.any() else float(p[:, 2].min())
-        base_how = "the lowest point at the trunk: no ground in the cloud"
-    stem = base_stem(p, evidence, stems, base_z)
+    near = [s for s in stems if math.hypot(s.x - centre[0], s.y - centre[1]) <= 0.5 * evidence.base_width_m + 0.5]
+    candidates = list(evidence.standing) or near
+    found = min(candidates, key=lambda s: math.hypot(s.x - centre[0], s.y - centre[1])) if candidates else None
+    xy, axis = (np.array([found.x, found.y]), found.axis) if found is not None else (centre, np.array([0.0, 0.0, 1.0]))
+    radius = found.radius_m if found is not None else min(0.5, 0.5 * evidence.base_width_m)
+    # the stem's lowest point, or a ground surface around it at or below that point
+    base = single_tree_base(p, xy, axis, radius, None if no_ground else model.ground, params.single_tree,
+                            params.ground_near_stem_m, z0=found.ground_z if found is not None else None)
+    base_z, base_how = base.z, base.how
+    stem = base_stem(p, evidence, [found] if found is not None else [], base_z)
     ground = model.ground
-    if not no_ground:
-        foot = _lowest_stem_point(p, stem)
-        g = p[ground]
-        r = np.hypot(g[:, 0] - stem.x, g[:, 1] - stem.y)
-        around = int(np.count_nonzero((r > 1.0) & (r <= params.ground_near_stem_m)))
-        # the "ground" found is the trunk's foot or low twigs: the trunk reaches below it, and no
-        # ground spreads around the stem (or the trunk reaches far below it)
-        if math.isfinite(foot) and foot < base_z - 0.25 and (around < 20 or foot < base_z - 1.0):
-            base_how = f"the lowest point at the trunk: the ground found lay {base_z - foot:.2f} m above the stem's foot, so the cloud has no ground"
-            base_z = foot
-            stem = base_stem(p, evidence, stems, base_z)
-            ground = np.zeros(len(p), dtype=bool)
+    if not base.on_ground:  # no ground under the tree: heights above its base
+        ground = np.zeros(len(p), dtype=bool)
+        model = TerrainModel(ground=ground, dem=flat_dem(p, base_z, params.terrain.dem_resolution_m))
+        heights = p[:, 2] - base_z
     labels = np.where(ground, 0, stem.id).astype(np.int64)
     if not (labels > 0).any():
         raise ScanDataError("the single-tree cloud holds ground points only")
@@ -1213,17 +1212,22 @@ def _single_tree_inventory(
     quality = dict(record.quality)
     flags = list(record.flags)
     if math.isfinite(crown.height_m):
-        quality["height"] = f"top of the single-tree cloud above its base ({base_how}); high"
+        quality["height"] = f"top of the single-tree cloud above its base ({base_how}); {base.trust}"
+        flags.extend(base.flags)
     if crown.ok:
         quality["crown"] = "crown points of the single-tree cloud; high"
-    if not evidence.single and evidence.stems_apart > 1:  # taken as one tree as asked, but the cloud is a plot
-        several = f"the cloud holds {evidence.stems_apart} stems standing apart: not one tree (measure it as a plot: --single-tree no)"
-        log.warning("single tree asked for, but %s; the values of the one tree measured are flagged", several)
+    warning = ""
+    if not evidence.single:  # taken as one tree as asked, though the cloud is not recognised as one
+        warning = evidence.not_one_tree() + " (measure it as a plot: --single-tree no)"
+        log.warning("single tree asked for, but %s; the values of the one tree measured are flagged", warning)
+        plot = evidence.stems_apart > 1 or evidence.crowns > 1
+        note = (f"{evidence.stems_apart} stems in the cloud" if evidence.stems_apart > 1 else
+                f"{evidence.crowns} crowns in the cloud" if plot else "not recognised as one tree")
         for key, value in quality.items():
             how, _, trust = value.rpartition("; ")
             if how and trust in TRUST_LEVELS and trust != "none":
-                quality[key] = f"{how}, {evidence.stems_apart} stems in the cloud; {_trust(trust, 'low')}"
-        flags.append(several)
+                quality[key] = f"{how}, {note}; {_trust(trust, 'low' if plot else 'medium')}"
+        flags.append(warning)
     record = dataclasses.replace(record, quality=quality, flags=tuple(dict.fromkeys(flags)))
     timings["trees_s"] = time.perf_counter() - t
     progress(1.0, "1 tree measured (single-tree cloud)")
@@ -1232,4 +1236,5 @@ def _single_tree_inventory(
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
         timings=timings, method="single", volume_asked=params.cylinder_models,
         single_tree_reason=evidence.reason if evidence.single else f"taken as one tree as asked, though {evidence.reason}",
+        single_tree_warning=warning,
     )

@@ -132,6 +132,9 @@ class StemParams(Params):
     min_arc_coverage: float = param_field(0.3, "1", 0.0, 1.0, "Least fraction of the circle's angular sectors that must hold points")
     max_fit_residual_m: float = param_field(0.02, "m", 0.001, 0.2, "Largest rms distance from the circle of the points within twice the inlier tolerance of it")
     ransac_iterations: int = param_field(300, "iterations", 1, 100000, "Random three-point circles tried per slice")
+    # --- the section's shape
+    typical_ovality: float = param_field(0.06, "1", 0.0, 0.5, "RMS ovality (1 - minor / major axis) of real stems' sections: a circle fitted to part of an oval section is off by up to this much, which the DBH sigma of a stem seen from one side carries")
+    ovality_min_coverage: float = param_field(0.7, "1", 0.0, 1.0, "Least arc coverage at which the section's ovality is stated")
     # --- stem curve
     stem_curve_step_m: float = param_field(0.25, "m", 0.2, 0.5, "Spacing of the stem-curve sections along the stem")
     stem_curve_start_m: float = param_field(0.3, "m", 0.0, 3.0, "First stem-curve section, along the stem from its base")
@@ -168,7 +171,9 @@ class CircleFit:
     ``arc_coverage`` the fraction of ``n_sectors`` equal angular sectors around the centre that
     hold an inlier;
     ``ok`` is False when any quality check failed, with the reasons in ``reasons`` ("too few
-    points", "partial arc", "high residual", "few inliers", "implausible radius").
+    points", "partial arc", "high residual", "few inliers", "implausible radius");
+    ``ovality`` (1 - minor / major axis) of the section from the inliers' second harmonic about
+    the circle (NaN under ``ovality_min_coverage`` of :func:`fit_stem_circle`).
     """
 
     centre: tuple[float, float]
@@ -179,6 +184,7 @@ class CircleFit:
     n_inliers: int
     ok: bool
     reasons: tuple[str, ...] = ()
+    ovality: float = float("nan")
 
     @property
     def diameter_m(self) -> float:
@@ -315,6 +321,7 @@ def fit_stem_circle(
     n_sectors: int = 18,
     ransac_iterations: int = 300,
     seed: int = 0,
+    ovality_min_coverage: float = 0.7,
 ) -> CircleFit:
     """A stem section's circle in 2D points ``xy`` (M, 2) in metres, with its quality checks.
 
@@ -362,7 +369,43 @@ def fit_stem_circle(
         n_inliers=n_in,
         ok=not reasons,
         reasons=tuple(reasons),
+        ovality=section_ovality(p[near], (cx, cy), r) if coverage >= ovality_min_coverage else float("nan"),
     )
+
+
+def section_ovality(xy: np.ndarray, centre: tuple[float, float], radius_m: float) -> float:
+    """Ovality (1 - minor / major axis) of a section from its points' distances to ``centre``:
+    the amplitude ``A`` of their second harmonic in the angle gives axes ``radius_m +/- A``
+    (metres in, a ratio out; NaN with fewer than 8 points)."""
+    if len(xy) < 8 or not math.isfinite(radius_m) or radius_m <= 0:
+        return float("nan")
+    d = xy - np.asarray(centre, dtype=float)
+    th = np.arctan2(d[:, 1], d[:, 0])
+    a = np.column_stack([np.ones(len(d)), np.cos(th), np.sin(th), np.cos(2 * th), np.sin(2 * th)])
+    sol, *_ = np.linalg.lstsq(a, np.hypot(d[:, 0], d[:, 1]), rcond=None)
+    amp = float(np.hypot(sol[3], sol[4]))
+    return float(2.0 * amp / (radius_m + amp))
+
+
+def dbh_sigma(dbh_m: float, fit: Optional[CircleFit], trust: str = "high", typical_ovality: float = 0.06) -> float:
+    """1-sigma uncertainty (m) of a DBH from a circle ``fit`` of its section, against the
+    girth-equivalent diameter (perimeter / pi, what a tape gives):
+
+    - the noise of the fitted radius (``2 rms / sqrt(n)``, larger on a partial arc) with a floor
+      of 3 mm (bark, the slice's height), doubled for medium and tripled for low trust;
+    - the part of the section not seen: a circle fitted to an arc of an oval section takes the
+      arc's curvature; over oval stems of ``typical_ovality`` (RMS of 1 - b/a) its error is
+      ``1.5 * typical_ovality * dbh * (1 - coverage) ** 1.3`` (1 sigma; nil for a stem seen all
+      round).
+
+    NaN without a fit or a DBH."""
+    if fit is None or not (math.isfinite(dbh_m) and math.isfinite(fit.rms_residual_m)) or fit.n_inliers <= 0:
+        return float("nan")
+    arc = float(fit.arc_coverage)
+    noise = 2.0 * fit.rms_residual_m / math.sqrt(max(fit.n_inliers, 3)) / max(arc, 0.2)
+    base = math.hypot(noise, 0.003) * {"high": 1.0, "medium": 2.0, "low": 3.0}.get(trust, 1.0)
+    shape = 1.5 * typical_ovality * dbh_m * max(1.0 - arc, 0.0) ** 1.3
+    return math.hypot(base, shape)
 
 
 def _fit(xy: np.ndarray, params: StemParams, seed: int = 0, min_arc_coverage: Optional[float] = None, min_points: Optional[int] = None) -> CircleFit:
@@ -378,6 +421,7 @@ def _fit(xy: np.ndarray, params: StemParams, seed: int = 0, min_arc_coverage: Op
         min_points=params.min_slice_points if min_points is None else min_points,
         ransac_iterations=params.ransac_iterations,
         seed=seed,
+        ovality_min_coverage=params.ovality_min_coverage,
     )
 
 

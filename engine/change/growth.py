@@ -1,0 +1,345 @@
+"""Diameter growth of a persisting stem from the sectors of its section both surveys saw.
+
+A circle fitted to one arc of an oval stem gives the curvature of that arc, not the stem's
+diameter: two surveys standing in different places see different arcs, and the difference of
+their two circles can exceed six years of growth. The growth is therefore measured where both
+surveys saw the same bark:
+
+1. **Points.** Each survey's stem band ``section_heights_m`` above its own ground (a vertical
+   offset of the registration does not matter), around the earlier survey's stem axis, the later
+   survey's points moved into that frame by the registration; each point is moved to breast
+   height along the axis (a leaning stem).
+2. **Sectors.** About the earlier survey's circle centre, the points are sorted into angular
+   sectors of ``sector_deg``. In a sector holding at least ``min_sector_points`` points of each
+   survey, the distances are fitted by one line in the angle (the bark's shape there, shared by
+   both surveys), the stem's taper in the height, and the later survey's offset ``d_j``: the
+   radial change there, whatever the stem's shape (oval, lobed, rough: the shape cancels).
+3. **Local alignment.** The registration leaves a small shift ``delta`` at each stem. A shift
+   changes the radial distance in a sector at angle ``theta_j`` by ``delta . (cos, sin)``, so
+   ``d_j = g + delta_x cos(theta_j) + delta_y sin(theta_j) + noise``, solved by least squares
+   with a prior on ``delta`` (:func:`shift_prior`, from the shifts the well-covered stems of the
+   plot show). Over a short common arc the shift along the arc's middle cannot be told from the
+   growth: the stated sigma then holds the prior's, and beyond ``ChangeParams.max_dbh_change_sigma_m``
+   the growth is withheld.
+4. **Growth.** ``dbh_change_m = 2 g``; its sigma from the sectors' scatter about the model and
+   the shift's uncertainty. With a common arc under ``min_common_arc_deg`` nothing is stated and
+   the reason is given.
+
+Frame: the earlier survey's local frame, metres, z up.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..core.errors import ParameterError
+from ..core.params import Params, param_field as _p
+
+__all__ = ["GrowthParams", "GrowthFit", "StemSections", "ShiftPrior", "stem_sections", "sector_growth", "shift_prior", "paired_growth"]
+
+
+@dataclass(frozen=True)
+class GrowthParams(Params):
+    """How the diameter growth of a persisting stem is measured from the sectors both surveys saw.
+    Distances in metres, angles in degrees."""
+
+    section_heights_m: tuple[float, float] = _p((1.0, 1.8), "m", 0.3, 3.0, "Heights above each survey's ground of the stem band whose sectors are compared (around breast height, above the butt flare)")
+    sector_deg: float = _p(20.0, "deg", 5.0, 45.0, "Width of the angular sectors in which the two surveys' radial distances are compared")
+    min_sector_points: int = _p(3, "points", 2, 1000, "Points of each survey a sector needs to be compared")
+    shell_m: tuple[float, float] = _p((0.04, 0.07), "m", 0.005, 0.5, "Points this far inside and outside the earlier survey's circle belong to the bark (the rest is clutter)")
+    min_common_arc_deg: float = _p(60.0, "deg", 0.0, 360.0, "Shortest arc seen in both surveys over which a diameter growth is given (shorter: withheld, with the reason)")
+    sigma_floor_m: float = _p(0.0015, "m", 0.0, 0.1, "Least scatter of the sectors' radial changes (bark relief both surveys resolve differently)")
+    max_shift_m: float = _p(0.05, "m", 0.001, 1.0, "Largest local shift of a stem between the registered surveys; more: the sections are not one stem")
+    well_covered_shift_sigma_m: float = _p(0.003, "m", 0.0001, 0.1, "Stems whose local shift is known this well (1 sigma) from their own sectors tell the plot's shift field")
+    min_prior_sigma_m: float = _p(0.0015, "m", 0.0, 0.1, "Least 1-sigma of the shift a stem is assumed to have from its neighbours' (the field's roughness)")
+
+    def _check(self) -> None:
+        lo, hi = self.section_heights_m
+        if not lo < hi:
+            raise ParameterError("growth.section_heights_m must be (low, high) with low < high")
+
+
+@dataclass(frozen=True)
+class StemSections:
+    """One stem's sectors in both surveys (earlier survey's local frame, metres).
+
+    Per compared sector ``j``: ``angle`` (rad, from +x, about the stem axis), ``change`` (m, the
+    later survey's radial distance minus the earlier one's there, the shape within the sector and
+    the stem's taper taken out) and ``noise`` (m, its 1-sigma from the points' scatter);
+    ``sectors_before`` / ``sectors_after`` the sector indices (0..n-1 around the stem) each survey
+    saw; ``radius_m`` the earlier survey's circle radius."""
+
+    angle: np.ndarray
+    change: np.ndarray
+    noise: np.ndarray
+    sectors_before: frozenset
+    sectors_after: frozenset
+    n_sectors: int
+    radius_m: float
+
+    @property
+    def common_arc_deg(self) -> float:
+        """Degrees of the stem's circumference both surveys saw."""
+        return 360.0 * len(self.sectors_before & self.sectors_after) / self.n_sectors
+
+
+@dataclass(frozen=True)
+class GrowthFit:
+    """The radial growth of one stem: ``dbh_change_m`` (twice the radial change; NaN when not
+    stated) and its 1-sigma ``dbh_change_sigma_m``; ``shift_m`` (x, y) the local shift of the
+    later survey's sections found, with its covariance ``shift_cov`` (m^2); ``common_arc_deg``;
+    ``sectors`` compared; ``rms_m`` the sectors' scatter about the model; ``reason`` why nothing
+    is stated ("" when stated)."""
+
+    dbh_change_m: float
+    dbh_change_sigma_m: float
+    shift_m: tuple[float, float]
+    shift_cov: np.ndarray
+    common_arc_deg: float
+    sectors: int
+    rms_m: float
+    reason: str = ""
+
+    @property
+    def stated(self) -> bool:
+        return not self.reason and math.isfinite(self.dbh_change_m)
+
+
+@dataclass(frozen=True)
+class ShiftPrior:
+    """What a stem's local shift is expected to be before its own sectors are read: ``mean`` (x, y)
+    and a 1-sigma ``sigma_m`` (the same in every direction)."""
+
+    mean: tuple[float, float] = (0.0, 0.0)
+    sigma_m: float = 0.01
+
+
+def stem_sections(before: np.ndarray, after: np.ndarray, centre_bh: np.ndarray, axis: np.ndarray, radius_m: float,
+                  params: GrowthParams = GrowthParams()) -> Optional[StemSections]:
+    """The sectors of one stem both surveys saw. ``before`` / ``after``: (k, 3) points near the
+    stem as (x, y, height above that survey's ground), the later survey's x, y already in the
+    earlier one's frame; ``centre_bh`` the stem axis at 1.3 m (x, y), ``axis`` its unit
+    direction, ``radius_m`` its radius in the earlier survey. None when the earlier survey holds
+    no circle there.
+
+    Each point's distance from the axis (at the point's height) is modelled per sector as a
+    line in the angle (the shape within the sector, shared by both surveys) plus a taper in the
+    height (shared by the stem) plus the sector's change (the later survey only)."""
+    from ..geometry.circle import fit_circle
+
+    lo, hi = params.section_heights_m
+    tilt = np.asarray(axis[:2], dtype=float) / max(float(axis[2]), 1e-6)
+
+    def level(p: np.ndarray) -> np.ndarray:
+        """(x, y) moved to breast height along the axis, and the height above breast height."""
+        p = np.asarray(p, dtype=float).reshape(-1, 3)
+        p = p[(p[:, 2] >= lo) & (p[:, 2] <= hi)]
+        return np.column_stack([p[:, :2] - tilt * (p[:, 2:3] - 1.3), p[:, 2] - 1.3])
+
+    qb, qa = level(before), level(after)
+    d0 = np.hypot(*(qb[:, :2] - np.asarray(centre_bh, dtype=float)).T)
+    shell = np.abs(d0 - radius_m) <= params.shell_m[1] + 0.02
+    if np.count_nonzero(shell) < 10:
+        return None
+    circle = fit_circle(qb[shell, :2], loss="huber", scale_m=0.005)
+    if not (math.isfinite(circle.radius_m) and abs(circle.radius_m - radius_m) < 0.3 * radius_m + 0.02):
+        return None
+    c, r0 = np.asarray(circle.centre, dtype=float), float(circle.radius_m)
+    n_sec = int(round(360.0 / params.sector_deg))
+    width = 2.0 * math.pi / n_sec
+    parts = []
+    for q, later in ((qb, 0.0), (qa, 1.0)):
+        d = np.hypot(*(q[:, :2] - c).T)
+        keep = (d >= r0 - params.shell_m[0]) & (d <= r0 + params.shell_m[1])
+        th = np.arctan2(q[keep, 1] - c[1], q[keep, 0] - c[0])
+        sec = np.floor((th + math.pi) / width).astype(np.int64) % n_sec
+        parts.append(np.column_stack([d[keep], th, q[keep, 2], np.full(int(keep.sum()), later), sec]))
+    pts = np.vstack(parts)
+    sec = pts[:, 4].astype(np.int64)
+    later = pts[:, 3] == 1.0
+    counts_b = np.bincount(sec[~later], minlength=n_sec)
+    counts_a = np.bincount(sec[later], minlength=n_sec)
+    seen_b = frozenset(np.flatnonzero(counts_b >= params.min_sector_points).tolist())
+    seen_a = frozenset(np.flatnonzero(counts_a >= params.min_sector_points).tolist())
+    # the taper: the slope of the distance in the height within each sector and survey (a
+    # fixed-effects slope over every sector either survey saw)
+    dr, dh = [], []
+    for j in sorted(seen_b | seen_a):
+        for which in (~later, later):
+            m = (sec == j) & which
+            if np.count_nonzero(m) >= 3:
+                dr.append(pts[m, 0] - np.median(pts[m, 0]))
+                dh.append(pts[m, 2] - pts[m, 2].mean())
+    taper = 0.0
+    if dr:
+        x, y = np.concatenate(dh), np.concatenate(dr)
+        if float(x @ x) > 1e-6:
+            taper = float(np.clip((x @ y) / (x @ x), -0.1, 0.05))
+    angles, changes, noises = [], [], []
+    for j in sorted(seen_b & seen_a):
+        m = sec == j
+        t0 = -math.pi + (j + 0.5) * width
+        a = np.column_stack([np.ones(int(m.sum())), np.angle(np.exp(1j * (pts[m, 1] - t0))), pts[m, 3]])
+        y = pts[m, 0] - taper * pts[m, 2]
+        ok = np.ones(len(y), dtype=bool)
+        for _ in range(2):  # points far off the sector's line (twigs, mixed pixels) are left out once
+            sol, *_ = np.linalg.lstsq(a[ok], y[ok], rcond=None)
+            r = y - a @ sol
+            scale = max(1.4826 * float(np.median(np.abs(r[ok]))), 5e-4)
+            ok = np.abs(r) <= 3.0 * scale
+        if np.count_nonzero(ok & (a[:, 2] == 0.0)) < 2 or np.count_nonzero(ok & (a[:, 2] == 1.0)) < 2:
+            continue
+        sol, *_ = np.linalg.lstsq(a[ok], y[ok], rcond=None)
+        r = y[ok] - a[ok] @ sol
+        s2 = float(r @ r) / max(int(ok.sum()) - 3, 1)
+        cov = s2 * np.linalg.pinv(a[ok].T @ a[ok])
+        angles.append(t0)
+        changes.append(float(sol[2]))
+        noises.append(math.sqrt(max(float(cov[2, 2]), 0.0)))
+    return StemSections(angle=np.asarray(angles), change=np.asarray(changes), noise=np.asarray(noises),
+                        sectors_before=seen_b, sectors_after=seen_a, n_sectors=n_sec, radius_m=r0)
+
+
+def _solve(sec: StemSections, prior: ShiftPrior, params: GrowthParams, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Weighted least squares of ``change = g + delta . u`` over the sectors ``use`` with the
+    prior on ``delta``: (x = [g, dx, dy], covariance, rms of the residuals). The sectors' scatter
+    about the model (bark relief, shape change) is estimated from the residuals, never below
+    ``sigma_floor_m``."""
+    a = np.column_stack([np.ones(int(use.sum())), np.cos(sec.angle[use]), np.sin(sec.angle[use])])
+    y = sec.change[use]
+    noise2 = np.maximum(sec.noise[use], 1e-4) ** 2
+    mean = np.array([0.0, *prior.mean])
+    prec = np.diag([0.0, 1.0, 1.0]) / prior.sigma_m**2
+    s2 = params.sigma_floor_m**2
+    for _ in range(4):
+        w = 1.0 / (noise2 + s2)
+        normal = (a * w[:, None]).T @ a + prec
+        x = np.linalg.solve(normal, (a * w[:, None]).T @ y + prec @ mean)
+        r = y - a @ x
+        s2 = max(float(np.sum(r**2)) / max(len(y) - 3, 1) - float(np.mean(noise2)), params.sigma_floor_m**2)
+    w = 1.0 / (noise2 + s2)
+    cov = np.linalg.inv((a * w[:, None]).T @ a + prec)
+    return x, cov, float(np.sqrt(np.mean((y - a @ x) ** 2)))
+
+
+def sector_growth(sec: Optional[StemSections], prior: ShiftPrior = ShiftPrior(), params: GrowthParams = GrowthParams()) -> GrowthFit:
+    """The diameter growth of one stem from its sectors (module docstring); ``prior`` the shift
+    the stem is expected to have (:func:`shift_prior`). Never raises: an unmeasurable stem gives
+    a :class:`GrowthFit` with NaN and the reason."""
+    nan2 = np.full((2, 2), np.nan)
+    if sec is None:
+        return GrowthFit(math.nan, math.nan, (math.nan, math.nan), nan2, 0.0, 0, math.nan,
+                         "no section of the stem at breast height in the earlier survey")
+    arc = sec.common_arc_deg
+    distinct = len(sec.sectors_before & sec.sectors_after)
+    if arc < params.min_common_arc_deg or len(sec.change) < 3:
+        seen_b = 360.0 * len(sec.sectors_before) / sec.n_sectors
+        seen_a = 360.0 * len(sec.sectors_after) / sec.n_sectors
+        return GrowthFit(math.nan, math.nan, (math.nan, math.nan), nan2, arc, distinct, math.nan,
+                         f"the surveys saw {arc:.0f} deg of the stem in common (earlier {seen_b:.0f}, later {seen_a:.0f} deg; "
+                         f"at least {params.min_common_arc_deg:g} needed): the sides seen differ")
+    use = np.ones(len(sec.change), dtype=bool)
+    x, cov, rms = _solve(sec, prior, params, use)
+    # sectors far off the model (a branch stub, a twig in one survey, a hole's edge) are left out once
+    r = sec.change - (x[0] + x[1] * np.cos(sec.angle) + x[2] * np.sin(sec.angle))
+    scale = max(1.4826 * float(np.median(np.abs(r))), params.sigma_floor_m)
+    out = np.abs(r) > 3.5 * scale
+    if out.any() and np.count_nonzero(~out) >= 3:
+        use = ~out
+        x, cov, rms = _solve(sec, prior, params, use)
+    shift = (float(x[1]), float(x[2]))
+    if math.hypot(*shift) > params.max_shift_m:
+        return GrowthFit(math.nan, math.nan, shift, cov[1:, 1:], arc, distinct, rms,
+                         f"the sections of the two surveys lie {100 * math.hypot(*shift):.1f} cm apart after the registration "
+                         f"(more than {100 * params.max_shift_m:g} cm): not measured as one stem")
+    return GrowthFit(2.0 * float(x[0]), 2.0 * math.sqrt(max(float(cov[0, 0]), 0.0)), shift, cov[1:, 1:], arc, distinct, rms)
+
+
+def shift_prior(positions: np.ndarray, fits: Sequence[GrowthFit], fallback_sigma_m: float,
+                params: GrowthParams = GrowthParams()) -> list[ShiftPrior]:
+    """The shift each stem is expected to have from the others: the registration leaves a smooth
+    field of small shifts (a translation and a turn about the plot), which the stems whose own
+    sectors fix their shift (1-sigma under ``well_covered_shift_sigma_m``) reveal. Per stem
+    (``positions`` (n, 2), ``fits`` of a first pass with a wide prior): the field at the stem,
+    fitted without the stem itself, with the scatter of the well-covered stems about it as the
+    sigma (at least ``min_prior_sigma_m``). With fewer than 4 such stems: no shift expected,
+    ``fallback_sigma_m`` (the registration's own stated uncertainty)."""
+    positions = np.asarray(positions, dtype=float).reshape(-1, 2)
+    good = []
+    for k, f in enumerate(fits):
+        if f.stated and np.all(np.isfinite(f.shift_cov)):
+            if math.sqrt(max(np.linalg.eigvalsh(f.shift_cov).max(), 0.0)) <= params.well_covered_shift_sigma_m:
+                good.append(k)
+    fallback = ShiftPrior((0.0, 0.0), max(fallback_sigma_m, params.min_prior_sigma_m))
+    if len(good) < 4:
+        return [fallback] * len(fits)
+    g = np.asarray(good)
+    centre = positions[g].mean(axis=0)
+    shifts = np.array([fits[k].shift_m for k in g])
+
+    def field(idx: np.ndarray) -> np.ndarray:
+        """[tx, ty, w] of a translation plus a small turn w (rad): shift = t + w * perp(p - centre)."""
+        p = positions[idx] - centre
+        a = np.zeros((2 * len(idx), 3))
+        a[0::2, 0] = 1.0
+        a[1::2, 1] = 1.0
+        a[0::2, 2] = -p[:, 1]
+        a[1::2, 2] = p[:, 0]
+        sol, *_ = np.linalg.lstsq(a, np.asarray([fits[k].shift_m for k in idx]).reshape(-1), rcond=None)
+        return sol
+
+    def at(sol: np.ndarray, p: np.ndarray) -> np.ndarray:
+        q = p - centre
+        return np.array([sol[0] - sol[2] * q[1], sol[1] + sol[2] * q[0]])
+
+    sol = field(g)
+    resid = shifts - np.array([at(sol, positions[k]) for k in g])
+    own = np.array([math.sqrt(max(float(np.trace(fits[k].shift_cov)) / 2.0, 0.0)) for k in g])
+    # the field's roughness: the scatter of the shifts about it beyond their own uncertainty
+    spread = float(np.sqrt(max(float(np.median(np.sum(resid**2, axis=1))) / (2.0 * 0.6931) - float(np.median(own**2)), 0.0)))
+    sigma = max(spread, params.min_prior_sigma_m)
+    out = []
+    for k in range(len(fits)):
+        idx = g[g != k]
+        s = field(idx) if len(idx) >= 4 else sol
+        m = at(s, positions[k])
+        out.append(ShiftPrior((float(m[0]), float(m[1])), sigma))
+    return out
+
+
+def paired_growth(before, after, pairs: np.ndarray, matrix: np.ndarray, shift_sigma_m: float,
+                  params: GrowthParams = GrowthParams()) -> list[GrowthFit]:
+    """The growth of every stem pair ``pairs`` ((n, 2) indices into ``before`` and ``after``, two
+    :class:`~.epoch.EpochTrees` with points) registered by ``matrix`` (``p_before = matrix @
+    p_after``, local frames): the sections of each (:func:`stem_sections`), a first pass with a
+    wide prior on the local shift, the plot's shift field from the well-covered stems
+    (:func:`shift_prior`; ``shift_sigma_m``, the registration's stated horizontal uncertainty,
+    where too few stems tell it), and the final pass with each stem's prior."""
+    from scipy.spatial import cKDTree
+
+    from ..core.transform import apply as apply_transform
+
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if not len(pairs) or not (before.has_points and after.has_points):
+        return []
+    after_band = apply_transform(matrix, after.band)
+    index_b, index_a = cKDTree(before.band[:, :2]), cKDTree(after_band[:, :2])
+    sections = []
+    for b, a in pairs:
+        r = 0.5 * float(before.dbh_m[b]) if math.isfinite(before.dbh_m[b]) else 0.15
+        centre, axis = before.xy[b], before.axis[b]
+        lean = float(np.hypot(*axis[:2]) / max(float(axis[2]), 1e-6))
+        reach = r + params.shell_m[1] + params.max_shift_m + lean * 0.6
+        nb = np.asarray(index_b.query_ball_point(centre, reach), dtype=np.int64)
+        na = np.asarray(index_a.query_ball_point(centre, reach), dtype=np.int64)
+        pb = np.column_stack([before.band[nb, :2], before.band_heights[nb]])
+        pa = np.column_stack([after_band[na, :2], after.band_heights[na]])
+        sections.append(stem_sections(pb, pa, centre, axis, r, params))
+    wide_prior = ShiftPrior((0.0, 0.0), params.max_shift_m)
+    first = [sector_growth(s, wide_prior, params) for s in sections]
+    priors = shift_prior(before.xy[pairs[:, 0]], first, shift_sigma_m, params)
+    return [sector_growth(s, p, params) for s, p in zip(sections, priors)]
