@@ -73,6 +73,6 @@ fi
 # the numerical kernels compiled now, into the per-version cache (~45 s on 2 cores, once): otherwise
 # the first command after an install compiles those it needs
 .venv/bin/forestreg warmup
-.venv/bin/python -m pip list --format=freeze 2>/dev/null | grep -iE '^(numpy|scipy|open3d|hdbscan|scikit-learn|laspy|matplotlib)==' | tr '\n' ' ' | sed 's/^/setup: versions: /' >&2 || true
+.venv/bin/python -m pip list --format=freeze 2>/dev/null | grep -iE '^(numpy|scipy|open3d|hdbscan|scikit-learn|laspy|pyproj|matplotlib)==' | tr '\n' ' ' | sed 's/^/setup: versions: /' >&2 || true
 echo >&2
 echo "setup: ready (.venv/bin/forestreg)" >&2

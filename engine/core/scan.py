@@ -52,7 +52,9 @@ class Scan:
     name : a short human name (the file stem, or the E57 scan name).
     pose : optional 4x4 float64 prior pose mapping file coordinates of this scan into a common
         frame (an E57 pose, a project pose); ``None`` when unknown.
-    meta : free-form facts about reading (format, dropped rows, unit scale, ...).
+    meta : free-form facts about reading (format, dropped rows, unit scale, ...); ``meta["crs"]``
+        the coordinate reference system of the file coordinates when the file declares one
+        (:class:`~forestreg.engine.io.crs.Crs`).
     """
 
     points: np.ndarray
@@ -182,6 +184,12 @@ class Scan:
         return self.points + self.origin_shift
 
     @property
+    def crs(self):
+        """The coordinate reference system of the file coordinates
+        (:class:`~forestreg.engine.io.crs.Crs`; None: local coordinates, or a moved scan)."""
+        return self.meta.get("crs")
+
+    @property
     def scanner_position_file(self) -> np.ndarray:
         """(3,) scanner position in file coordinates."""
         return self.scanner_position + self.origin_shift
@@ -216,7 +224,8 @@ class Scan:
     def transformed(self, matrix: np.ndarray) -> "Scan":
         """This scan moved by a rigid 4x4 ``matrix`` acting on *file* coordinates
         (``p_new = matrix @ p_file``), e.g. a co-registration result; the new origin shift is the
-        old one moved and rounded to whole metres, so local coordinates stay small."""
+        old one moved and rounded to whole metres, so local coordinates stay small. The moved scan
+        has no CRS (``meta["crs"]`` dropped): its coordinates are in another frame."""
         m = np.asarray(matrix, dtype=np.float64)
         rot, t = m[:3, :3], m[:3, 3]
         moved_shift = rot @ self.origin_shift + t
@@ -230,7 +239,7 @@ class Scan:
             source=self.source,
             name=self.name,
             pose=None,
-            meta={**self.meta, "transformed_by": m.tolist()},
+            meta={**{k: v for k, v in self.meta.items() if k != "crs"}, "transformed_by": m.tolist()},
         )
 
     def __repr__(self) -> str:

@@ -13,7 +13,9 @@ the target, so a failed write leaves no partial file and the previous file intac
 in octree nodes, which viewers stream), out of core like chunked LAS/LAZ.
 
 Frames: readers return file coordinates (scaled to metres by ``unit_scale``); an E57 scan's file
-coordinates are its own coordinates and ``Scan.pose`` maps them into the E57 common frame.
+coordinates are its own coordinates and ``Scan.pose`` maps them into the E57 common frame. The
+coordinate reference system a LAS/LAZ or E57 file declares is kept as ``scan.meta["crs"]``
+(:mod:`~forestreg.engine.io.crs`); LAS/LAZ/COPC writers store the CRS they are given as a WKT VLR.
 """
 
 from __future__ import annotations
@@ -183,12 +185,19 @@ def _position(scanner_position: Optional[Sequence[float] | np.ndarray]) -> Optio
 
 # --------------------------------------------------------------------------------------- writing
 
-def write_scan(scan: Scan, path: PathLike, *, matrix: Optional[np.ndarray] = None) -> None:
+#: ``write_scan``'s default CRS: the scan's own when it is written where it is, none when moved.
+_SCAN_CRS = object()
+
+
+def write_scan(scan: Scan, path: PathLike, *, matrix: Optional[np.ndarray] = None, crs=_SCAN_CRS) -> None:
     """Write a scan's file coordinates (metres), optionally transformed, with its intensity.
 
     ``matrix`` (4x4) maps file coordinates to output coordinates: ``p_out = matrix @ p_file``
     (homogeneous). The format follows the suffix (see :data:`SUPPORTED_WRITE_SUFFIXES`); ``.e57``
-    writes one scan with an identity pose (the points are already transformed).
+    writes one scan with an identity pose (the points are already transformed). ``crs`` (a
+    :class:`~forestreg.engine.io.crs.Crs`, or None) is the CRS of the output coordinates, stored
+    by LAS/LAZ/COPC; by default the scan's own without ``matrix`` and none with one (the moved
+    points are in another frame: the caller names its CRS).
 
     Raises
     ------
@@ -205,7 +214,9 @@ def write_scan(scan: Scan, path: PathLike, *, matrix: Optional[np.ndarray] = Non
         shift = np.round(moved_shift)
         # local coordinates stay small; the large part of the transform goes into the shift
         local = local @ rotation.T + (moved_shift - shift)
-    _write(Path(path), PointsToWrite(local, np.asarray(shift, dtype=np.float64), scan.intensity, None, scan.name or "scan"))
+    if crs is _SCAN_CRS:
+        crs = scan.meta.get("crs") if m is None else None
+    _write(Path(path), PointsToWrite(local, np.asarray(shift, dtype=np.float64), scan.intensity, None, scan.name or "scan", crs))
 
 
 def write_points(
@@ -215,6 +226,7 @@ def write_points(
     intensity: Optional[np.ndarray] = None,
     scan_id: Optional[np.ndarray] = None,
     origin_shift: Optional[np.ndarray] = None,
+    crs=None,
 ) -> None:
     """Write raw points; the format follows the suffix.
 
@@ -226,6 +238,8 @@ def write_points(
     scan_id : optional (N,) whole numbers 0..65535: a ``scan_id`` extra dimension (LAS/LAZ), a
         property (PLY), a column (text); in E57 each id becomes its own scan.
     origin_shift : optional (3,) shift, metres.
+    crs : the coordinate reference system of the written coordinates
+        (:class:`~forestreg.engine.io.crs.Crs`), stored by LAS/LAZ/COPC; None: local.
 
     Raises
     ------
@@ -235,7 +249,7 @@ def write_points(
     pts, inten, ids = _checked_columns(path, points, intensity, scan_id)
     if len(pts) == 0:
         raise ParameterError(f"{path}: there are no points to write")
-    _write(Path(path), PointsToWrite(pts, _checked_shift(origin_shift), inten, ids, Path(path).stem))
+    _write(Path(path), PointsToWrite(pts, _checked_shift(origin_shift), inten, ids, Path(path).stem, crs))
 
 
 def write_point_chunks(
@@ -246,6 +260,7 @@ def write_point_chunks(
     origin_shift: Optional[np.ndarray] = None,
     with_intensity: bool = True,
     with_scan_id: bool = False,
+    crs=None,
 ) -> int:
     """Write a cloud that arrives in chunks (e.g. one registered scan at a time) into one file.
 
@@ -264,6 +279,8 @@ def write_point_chunks(
     bounds : ``(lo, hi)`` (3,) each: bounds that hold every point to come, relative to
         ``origin_shift`` like the points (generous bounds are fine).
     with_intensity : write intensities (chunks without them get 0).
+    crs : the coordinate reference system of the written coordinates
+        (:class:`~forestreg.engine.io.crs.Crs`), stored by LAS/LAZ/COPC; None: local.
 
     Returns the number of points written. Raises as :func:`write_points`; no points at all is a
     :class:`ParameterError`.
@@ -280,7 +297,7 @@ def write_point_chunks(
         write_points(
             target, np.concatenate([p for p, _, _ in parts]), origin_shift=shift,
             intensity=np.concatenate([i for _, i, _ in parts]) if keep else None,
-            scan_id=np.concatenate([d for _, _, d in parts]) if with_scan_id else None,
+            scan_id=np.concatenate([d for _, _, d in parts]) if with_scan_id else None, crs=crs,
         )
         return int(sum(len(p) for p, _, _ in parts))
     lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) + shift for b in bounds)
@@ -288,8 +305,8 @@ def write_point_chunks(
 
     def writer(tmp: Path):
         if _copc.is_copc_path(target):
-            return _copc.CopcWriter(tmp, lo, hi, with_scan_id=with_scan_id, label=str(path))
-        return _las.LasChunkWriter(tmp, lo, hi, compress=target.suffix.lower() == ".laz", with_scan_id=with_scan_id)
+            return _copc.CopcWriter(tmp, lo, hi, with_scan_id=with_scan_id, label=str(path), crs=crs)
+        return _las.LasChunkWriter(tmp, lo, hi, compress=target.suffix.lower() == ".laz", with_scan_id=with_scan_id, crs=crs)
 
     def body(tmp: Path) -> None:
         with writer(tmp) as out:

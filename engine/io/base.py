@@ -60,6 +60,8 @@ class PointsToWrite:
     intensity : optional (N,) intensities.
     scan_id : optional (N,) uint16 scan indices.
     name : scan name (formats that store one, E57).
+    crs : the coordinate reference system of the written coordinates
+        (:class:`~forestreg.engine.io.crs.Crs`; LAS/LAZ/COPC store it), None when local.
     """
 
     local: np.ndarray
@@ -67,6 +69,7 @@ class PointsToWrite:
     intensity: Optional[np.ndarray] = None
     scan_id: Optional[np.ndarray] = None
     name: str = "scan"
+    crs: Any = None
 
 
 def tune_allocator(threshold_bytes: int = 4 << 20) -> None:

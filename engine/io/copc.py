@@ -104,6 +104,8 @@ class CopcWriter:
         default :data:`NODE_POINTS`, :data:`MEMORY_POINTS`).
     label : the file's name in error messages (default ``path``; the caller's target when ``path``
         is a temporary file).
+    crs : the coordinate reference system of the coordinates (a
+        :class:`~forestreg.engine.io.crs.Crs`): an OGC WKT VLR after the COPC info VLR.
 
     Use as a context manager: on a clean exit the file is written; on an exception nothing more is
     written and the temporary folder is removed.
@@ -111,8 +113,10 @@ class CopcWriter:
 
     def __init__(self, path: Path, lo: np.ndarray, hi: np.ndarray, *, with_scan_id: bool = False,
                  node_points: Optional[int] = None, memory_points: Optional[int] = None,
-                 label: Optional[str] = None) -> None:
+                 label: Optional[str] = None, crs=None) -> None:
         self.label = str(path) if label is None else str(label)
+        # the WKT VLR's record: the WKT, NUL-terminated (the WKT bit of the global encoding is always set)
+        self._wkt = b"" if crs is None or not crs.wkt else crs.wkt.encode("utf-8") + b"\0"
         lo = np.asarray(lo, dtype=np.float64).reshape(3)
         hi = np.asarray(hi, dtype=np.float64).reshape(3)
         if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()):
@@ -344,6 +348,8 @@ class CopcWriter:
         if self.with_scan_id:
             extra = struct.pack("<2xBB32s4x120x32s", 3, 0, b"scan_id", b"scan index")
             out += _vlr("LASF_Spec", 4, "extra bytes", extra)
+        if self._wkt:
+            out += _vlr("LASF_Projection", 2112, "OGC WKT coordinate system", self._wkt)
         return out
 
     def _head_bytes(self, evlr_start: int, page_size: int) -> bytes:
@@ -359,7 +365,7 @@ class CopcWriter:
         counts = [n] + [0] * 14
         return _HEADER.pack(
             b"LASF", 0, 16, bytes(16), 1, 4, b"forestreg", b"forestreg", today.timetuple().tm_yday, today.year,
-            _HEADER_SIZE, _HEADER_SIZE + len(vlrs), 3 if self.with_scan_id else 2, 6 | 0x80,
+            _HEADER_SIZE, _HEADER_SIZE + len(vlrs), 2 + int(self.with_scan_id) + int(bool(self._wkt)), 6 | 0x80,
             self._las_dtype.itemsize, 0, 0, 0, 0, 0, 0, self.scale, self.scale, self.scale, *self.offset,
             maxs[0], mins[0], maxs[1], mins[1], maxs[2], mins[2], 0, evlr_start, 1 if evlr_start else 0, n, *counts,
         ) + vlrs
@@ -464,5 +470,5 @@ def write_copc(path: Path, cloud, **options) -> None:
     if not len(local):
         raise ParameterError(f"{path}: there are no points to write")
     lo, hi = local.min(axis=0) + cloud.shift, local.max(axis=0) + cloud.shift
-    with CopcWriter(path, lo, hi, with_scan_id=cloud.scan_id is not None, **options) as out:
+    with CopcWriter(path, lo, hi, with_scan_id=cloud.scan_id is not None, crs=getattr(cloud, "crs", None), **options) as out:
         out.write(local, cloud.shift, intensity=cloud.intensity, scan_id=cloud.scan_id)

@@ -2,7 +2,10 @@
 
 Reading gives each scan's points in its own coordinates (untransformed) and its pose as a 4x4
 matrix mapping them into the file's common frame; the scanner sits at the origin of the scan's own
-coordinates (the file origin, the default). Invalid points (``cartesianInvalidState`` / ``sphericalInvalidState`` non-zero) are
+coordinates (the file origin, the default). The CRS of the common frame, when the file's
+``coordinateMetadata`` names one (a WKT or ``EPSG:n``), is the scan's ``meta["crs"]`` when its pose
+is the identity (its own coordinates are then the common frame's), else ``meta["e57_frame_crs"]``;
+none is written (pye57 sets that field itself). Invalid points (``cartesianInvalidState`` / ``sphericalInvalidState`` non-zero) are
 skipped.
 
 Writing does not use ``pye57.E57.write_scan_raw``: that stores coordinates as float32, which loses
@@ -21,6 +24,7 @@ import numpy as np
 
 from ..core.errors import ScanReadError, ScanWriteError
 from .base import RawCloud
+from .crs import crs_of_e57_root
 
 #: Coordinate resolution of written E57 files, metres.
 E57_SCALE = 1.0e-4
@@ -74,7 +78,13 @@ def read_e57(path: Path, indices: Optional[list[int]] = None) -> list[RawCloud]:
         if count == 0:
             raise ScanReadError(f"{path}: the E57 file holds no scans")
         wanted = list(range(count)) if indices is None else indices
-        return [_read_one(e57, path, i, count) for i in wanted]
+        raws = [_read_one(e57, path, i, count) for i in wanted]
+        crs = crs_of_e57_root(e57.root)  # the file's coordinateMetadata, when it names a CRS
+        if crs is not None:
+            for raw in raws:
+                own = raw.pose is None or np.allclose(raw.pose, np.eye(4), atol=1e-9)
+                raw.meta["crs" if own else "e57_frame_crs"] = crs
+        return raws
     finally:
         e57.close()
 

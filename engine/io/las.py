@@ -16,6 +16,7 @@ import numpy as np
 from ..core.atomic import atomic_path
 from ..core.errors import ScanReadError, ScanWriteError
 from .base import PointsToWrite, RawCloud, tune_allocator
+from .crs import crs_of_las_header
 
 #: Coordinate resolution written to LAS/LAZ, metres (keeps sub-mm steps for UTM-sized values).
 LAS_SCALE = 1.0e-4
@@ -212,6 +213,7 @@ def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS, with_intensit
                 n = _read_chunks(reader, points, intensity_all, chunk_points)
             version = f"{header.version.major}.{header.version.minor}"
             point_format = header.point_format.id
+            crs = crs_of_las_header(header)
     except Exception as exc:  # laspy, lazrs and struct errors: the file is damaged
         raise ScanReadError(f"{path}: cannot be read as {'LAZ' if compressed else 'LAS'} ({_short(exc)}); the file is truncated or corrupt") from exc
     if n < count:
@@ -228,6 +230,8 @@ def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS, with_intensit
         "compressed": compressed,
         "point_count_in_file": n,
     }
+    if crs is not None:
+        meta["crs"] = crs
     return RawCloud(points=points, intensity=intensity, meta=meta)
 
 
@@ -267,11 +271,13 @@ def las_header(
     *,
     extra_dims: Sequence[tuple[str, type, str]] = (),
     system_identifier: str = "forestreg",
+    crs=None,
 ):
     """A LAS 1.4 point format 6 header for points within ``lo``..``hi`` (file coordinates,
     metres; bounds may be generous): offsets the floor of ``lo``, scales :data:`LAS_SCALE` (coarser
     only if the extent would overflow int32), so georeferenced coordinates keep 0.1 mm steps; extra
-    bytes dimensions ``(name, dtype, description)``."""
+    bytes dimensions ``(name, dtype, description)``; with ``crs`` (a
+    :class:`~forestreg.engine.io.crs.Crs`) an OGC WKT VLR naming the coordinates' CRS."""
     import laspy
 
     offset = np.floor(np.asarray(lo, dtype=np.float64))
@@ -285,7 +291,19 @@ def las_header(
     header.system_identifier = system_identifier
     for name, dtype, description in extra_dims:
         header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dtype, description=description))
+    add_crs(header, crs)
     return header
+
+
+def add_crs(header, crs) -> None:
+    """Put ``crs`` (a :class:`~forestreg.engine.io.crs.Crs`, or None: nothing) into a LAS 1.4
+    header as an OGC WKT VLR (laspy's ``add_crs``; the WKT bit of the global encoding set)."""
+    if crs is None:
+        return
+    found = crs.to_pyproj()
+    if found is None:  # no pyproj: the file is written without its CRS
+        return
+    header.add_crs(found)
 
 
 def _fill(record, local: np.ndarray, shift: np.ndarray, offset: np.ndarray, scale: float, intensity: Optional[np.ndarray]) -> None:
@@ -315,13 +333,16 @@ def las_points(
     intensity: Optional[np.ndarray] = None,
     extra_dims: Sequence[tuple[str, type, str]] = (),
     system_identifier: str = "forestreg",
+    crs=None,
 ):
     """A ``laspy.LasData`` (LAS 1.4, point format 6, header :func:`las_header` of the data's
     bounds) of the points ``local + shift`` (file coordinates, metres), single returns, with empty
-    extra-bytes dimensions ``(name, dtype, description)`` for the caller to fill."""
+    extra-bytes dimensions ``(name, dtype, description)`` for the caller to fill; ``crs`` as
+    :func:`las_header`."""
     import laspy
 
-    header = las_header(local.min(axis=0) + shift, local.max(axis=0) + shift, extra_dims=extra_dims, system_identifier=system_identifier)
+    header = las_header(local.min(axis=0) + shift, local.max(axis=0) + shift, extra_dims=extra_dims, system_identifier=system_identifier,
+                        crs=crs)
     las = laspy.LasData(header)
     _fill(las, local, shift, header.offsets, float(header.scales[0]), intensity)
     return las
@@ -336,15 +357,16 @@ class LasChunkWriter:
     optional intensity and a ``scan_id`` per point when the writer was made ``with_scan_id``.
     Intensities are mapped to uint16 chunk by chunk (:func:`intensity_to_uint16`): map them over
     the whole cloud first when they are not uint16 already. ``extra_dims`` (name, dtype,
-    description) are further extra-bytes dimensions, filled through :meth:`write`'s ``fields``.
+    description) are further extra-bytes dimensions, filled through :meth:`write`'s ``fields``;
+    ``crs`` (a :class:`~forestreg.engine.io.crs.Crs`) is written as a WKT VLR.
     """
 
     def __init__(self, path: Path, lo: np.ndarray, hi: np.ndarray, *, compress: bool, with_scan_id: bool = False,
-                 extra_dims: Sequence[tuple[str, type, str]] = (), system_identifier: str = "forestreg") -> None:
+                 extra_dims: Sequence[tuple[str, type, str]] = (), system_identifier: str = "forestreg", crs=None) -> None:
         import laspy
 
         extra = ([("scan_id", np.uint16, "scan index")] if with_scan_id else []) + list(extra_dims)
-        self.header = las_header(lo, hi, extra_dims=extra, system_identifier=system_identifier)
+        self.header = las_header(lo, hi, extra_dims=extra, system_identifier=system_identifier, crs=crs)
         self.with_scan_id = with_scan_id
         self._writer = laspy.open(str(path), mode="w", header=self.header, do_compress=compress)
         self.count = 0
@@ -379,9 +401,10 @@ class LasChunkWriter:
 
 def write_las(tmp: Path, cloud: PointsToWrite, *, compress: bool) -> None:
     """Write points ``cloud.local + cloud.shift`` (file coordinates, metres) as LAS 1.4 point
-    format 6 (:func:`las_points`); ``scan_id`` becomes a uint16 extra-bytes dimension named ``scan_id``."""
+    format 6 (:func:`las_points`); ``scan_id`` becomes a uint16 extra-bytes dimension named ``scan_id``;
+    ``cloud.crs`` a WKT VLR."""
     extra = [("scan_id", np.uint16, "scan index")] if cloud.scan_id is not None else []
-    las = las_points(cloud.local, cloud.shift, intensity=cloud.intensity, extra_dims=extra)
+    las = las_points(cloud.local, cloud.shift, intensity=cloud.intensity, extra_dims=extra, crs=cloud.crs)
     if cloud.scan_id is not None:
         las.scan_id = np.asarray(cloud.scan_id).astype(np.uint16)
     las.write(str(tmp), do_compress=compress)
@@ -397,6 +420,7 @@ def write_fused(
     *,
     origin_shift: Optional[np.ndarray] = None,
     unit_scale: float = 1.0,
+    crs=None,
 ) -> None:
     """Write a fused cloud (:class:`~forestreg.engine.coreg.fusion.FusionResult`: ``points``,
     ``source``, ``extra``) as LAS 1.4 (point format 6), LAZ if ``path`` ends in ``.laz``.
@@ -405,7 +429,8 @@ def write_fused(
     file's units; shift default zero, metres), at 0.1 mm resolution. Each point's source (1
     ground-based, 2 UAV) is in ``point_source_id`` and in an extra uint8 dimension ``source``;
     ``result.extra["intensity"]``, when present, becomes the intensity. Written
-    :data:`WRITE_CHUNK_POINTS` points at a time, atomically (temporary file, then renamed).
+    :data:`WRITE_CHUNK_POINTS` points at a time, atomically (temporary file, then renamed). ``crs``
+    (a :class:`~forestreg.engine.io.crs.Crs`, the UAV cloud's frame) is written as a WKT VLR.
     """
 
     target = str(path)
@@ -424,7 +449,7 @@ def write_fused(
     source = np.asarray(result.source)
     with atomic_path(target) as tmp:
         with LasChunkWriter(tmp, lo, hi, compress=suffix == ".laz", system_identifier="forestreg fusion",
-                            extra_dims=[("source", np.uint8, "1 ground-based, 2 UAV")]) as out:
+                            extra_dims=[("source", np.uint8, "1 ground-based, 2 UAV")], crs=crs) as out:
             for i in range(0, len(pts), WRITE_CHUNK_POINTS):
                 part = source[i : i + WRITE_CHUNK_POINTS]
                 out.write(pts[i : i + WRITE_CHUNK_POINTS] / scale, shift, intensity=None if intensity is None else intensity[i : i + WRITE_CHUNK_POINTS],
