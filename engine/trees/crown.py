@@ -30,7 +30,10 @@ Definitions (paper sec. 5.2.2)
   width_percentile`` percentiles of x and of y;
 * crown area ``CA = pi * a * b / 4`` (ellipse), crown diameter ``CD = (a + b) / 2``, crown length
   ``CL = H - CBH``, crown volume ``CV = pi * CD^2 * CL / 8`` (paraboloid), as in the paper;
-* position: the stem base (x, y).
+* position: the stem base (x, y);
+* outline: the convex hull, projected onto the horizontal, of the crown points within the
+  percentile bounds of the widths (``CrownMeasurement.outline``, local frame; the tree's points
+  above the ground when no crown base is found), for maps.
 
 A tree too sparse to measure gives a :class:`CrownMeasurement` with ``ok = False`` and its
 reasons (NaN where a value cannot be had); bad input raises
@@ -40,8 +43,8 @@ reasons (NaN where a value cannot be had); bad input raises
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Optional, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -101,6 +104,10 @@ class CrownMeasurement:
     #: the tree, as a fraction of the crown radius: small for a seen apex (a tip or dome over the
     #: stem), near 1 for a crown cut flat (its highest points a ring at the crown's rim)
     top_layer_offset_ratio: float = float("nan")
+    #: the crown's outline from above: (M, 2) x, y (metres, the frame of the points measured),
+    #: counter-clockwise, the convex hull of the crown points within the widths' percentile bounds;
+    #: None when too few points (fewer than 3 not on one line)
+    outline: Optional[np.ndarray] = field(default=None, compare=False, repr=False)
 
 
 def top_cut_flat(crown: "CrownMeasurement", params: "CrownParams") -> bool:
@@ -193,18 +200,22 @@ def measure_crown(points: Any, heights: Any, stem: Stem, params: CrownParams = C
     s = d @ stem.axis
     radial = np.linalg.norm(d - s[:, None] * stem.axis, axis=1)
     cbh = crown_base_height(rel_z, radial, stem.radius_m, params)
+    q = params.width_percentile
     if not math.isfinite(cbh):
         reasons.append("no crown points beyond the stem")
         a = b = nan
+        outline = crown_outline(p[rel_z >= 0][:, :2], q)
     else:
         crown = p[(rel_z >= cbh) & (rel_z <= height)]
         if len(crown) < 3:
             reasons.append("too few crown points")
             a = b = nan
+            outline = None
         else:
-            q = params.width_percentile
-            a = float(np.percentile(crown[:, 0], 100 - q) - np.percentile(crown[:, 0], q))
-            b = float(np.percentile(crown[:, 1], 100 - q) - np.percentile(crown[:, 1], q))
+            x_lo, x_hi = np.percentile(crown[:, 0], [q, 100 - q])
+            y_lo, y_hi = np.percentile(crown[:, 1], [q, 100 - q])
+            a, b = float(x_hi - x_lo), float(y_hi - y_lo)
+            outline = crown_outline(crown[:, :2], q, (x_lo, x_hi, y_lo, y_hi))
     cd = (a + b) / 2.0
     cl = height - cbh
     offset = float(radial[top_i])
@@ -229,7 +240,41 @@ def measure_crown(points: Any, heights: Any, stem: Stem, params: CrownParams = C
         top_offset_m=offset,
         top_offset_ratio=offset / (0.5 * cd) if cd > 0 else float("nan"),
         top_layer_offset_ratio=layer_offset / (0.5 * cd) if cd > 0 else float("nan"),
+        outline=outline,
     )
+
+
+def crown_outline(xy: np.ndarray, percentile: float = 0.0, bounds: Optional[tuple[float, float, float, float]] = None) -> Optional[np.ndarray]:
+    """The convex hull of (N, 2) points ``xy`` (metres) within ``bounds`` (x_lo, x_hi, y_lo, y_hi;
+    default the ``percentile`` .. ``100 - percentile`` range of x and of y, so a few stray points do
+    not widen it): (M, 2) vertices counter-clockwise, the first not repeated; None when fewer than
+    3 points not on one line remain."""
+    pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if len(pts) < 3:
+        return None
+    if bounds is None and percentile > 0.0:
+        x_lo, x_hi = np.percentile(pts[:, 0], [percentile, 100 - percentile])
+        y_lo, y_hi = np.percentile(pts[:, 1], [percentile, 100 - percentile])
+        bounds = (x_lo, x_hi, y_lo, y_hi)
+    if bounds is not None:
+        x_lo, x_hi, y_lo, y_hi = bounds
+        pts = pts[(pts[:, 0] >= x_lo) & (pts[:, 0] <= x_hi) & (pts[:, 1] >= y_lo) & (pts[:, 1] <= y_hi)]
+    return convex_hull_2d(pts)
+
+
+def convex_hull_2d(xy: np.ndarray) -> Optional[np.ndarray]:
+    """Vertices (M, 2) of the convex hull of (N, 2) points, counter-clockwise (Qhull), None for
+    fewer than 3 points not on one line."""
+    from scipy.spatial import ConvexHull
+
+    pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if len(pts) < 3 or not np.isfinite(pts).all():
+        return None
+    try:
+        hull = ConvexHull(pts)
+    except Exception:  # noqa: BLE001 - Qhull: all points on one line (or coincident)
+        return None
+    return np.ascontiguousarray(pts[hull.vertices])
 
 
 def measure_crowns(points: Any, heights: Any, labels: Any, stems: Sequence[Stem], params: CrownParams = CrownParams()) -> list[CrownMeasurement]:
