@@ -8,9 +8,11 @@ unit) and writes the output folder as one transaction:
 
 - ``result.json``: status, reason, ``matrix`` (``p_before = matrix @ p_after``, file coordinates,
   the files' unit), ``convention``, evidence, ``uncertainty`` {``translation_m``,
-  ``rotation_deg``} (1 sigma), the tree counts, the inputs;
+  ``rotation_deg``} (1 sigma), the tree counts, the inputs, ``crs`` (BEFORE's frame: its CRS and
+  each survey's);
 - ``tree_changes.csv``: one row per tree (status, x, y in BEFORE file coordinates, DBH and height
   in each survey and their changes in metres, flag, ids and 1-sigma values);
+- ``layers.gpkg``: the same trees as points (``tree_changes``) and their outline, in BEFORE's CRS;
 - ``report.html``: the change map and the figures.
 
 A registration that the data do not allow (unrelated plots, too few persisting stems, an
@@ -258,9 +260,36 @@ def _unit_mismatch(before, after, units_before: str, units_after: str) -> None:
                      f"{found['unit']} against {smaller}'s unit{hint}")
 
 
+def _survey_crs(path: Path, kind: str):
+    """The CRS a survey's input declares, read without its points: a cloud's header; a trees
+    table's ``layers.gpkg`` beside it; a project's trees folder, cloud, or centre scan."""
+    from ..engine.io.crs import read_crs
+    from ..engine.io.gpkg import read_crs as gpkg_crs
+
+    if kind == "cloud":
+        return read_crs(path)
+    if kind == "table":
+        return gpkg_crs((path if path.is_dir() else path.parent) / "layers.gpkg")
+    try:
+        from ..engine.tls.project import Project
+
+        project = Project.load(path)
+    except Exception:  # noqa: BLE001 - the project is read (and its problem told) with the survey
+        return None
+    for name in ("ground", "fused", *project.forest.trees):
+        folder = project.forest.trees.get(name)
+        if folder is not None and (Path(folder) / "trees.csv").is_file():
+            return gpkg_crs(Path(folder) / "layers.gpkg")
+    for cloud in (project.forest.ground_cloud, project.forest.fused_cloud):
+        if cloud is not None and Path(cloud).is_file():
+            return read_crs(cloud)
+    centre = project.centre or (project.scans[0].name if project.scans else None)
+    return read_crs(project.scan(centre).path) if centre else None
+
+
 def detect_change_files(
     before, after, out, params=None, *, units: str = "m", units_before: Optional[str] = None, units_after: Optional[str] = None,
-    report: bool = True, progress=None, cancel=None,
+    report: bool = True, crs=None, progress=None, cancel=None,
 ) -> ChangeOutcome:
     """Compare the surveys ``before`` and ``after`` (paths: clouds, project files, trees tables)
     into the folder ``out`` (a transaction; None: nothing written). ``params``: a
@@ -272,14 +301,17 @@ def detect_change_files(
     :class:`~forestreg.engine.core.errors.ScanDataError`, before anything is written): the same
     file twice (also a folder and its ``trees.csv``), a table with bad rows (positions that are no
     finite number, a DBH not above 0 or in another unit, a tree listed twice), and surveys whose
-    positions differ by a unit factor."""
+    positions differ by a unit factor. The outputs are in BEFORE's frame and take its CRS, or
+    ``crs`` (e.g. "EPSG:32618") when BEFORE declares none or it should win."""
     from ..engine.change import CHANGE_COLUMNS, ChangeParams, detect_change
     from ..engine.core.atomic import check_output_folder, output_folder
     from ..engine.core.errors import UsageError
     from ..engine.core.progress import as_progress
     from ..engine.core.transform import withhold_unless_rigid
+    from ..engine.io.crs import as_crs, frame_crs
     from ..engine.trees.inventory import TreeParams
 
+    given = as_crs(crs, "--crs")
     units_before = units if units_before is None else units_before
     units_after = units if units_after is None else units_after
     for u in (units, units_before, units_after):
@@ -325,6 +357,10 @@ def detect_change_files(
                    inputs={"before": kinds[0], "after": kinds[1]}, unit=units_before, unit_scale=scale,
                    unit_after=units_after, unit_scale_after=scale_after, notes=notes,
                    columns="tree_changes.csv: x, y in BEFORE file coordinates (BEFORE's unit); DBH and heights in metres")
+    frame = frame_crs({"before": _survey_crs(b_path, kinds[0]), "after": _survey_crs(a_path, kinds[1])}, "before", given,
+                      names={"before": f"BEFORE ({b_path.name})", "after": f"AFTER ({a_path.name})"})
+    summary["crs"] = frame.to_dict(frames={"matrix": f"maps {frame.label_of('after')} onto {frame.label_of('before')}",
+                                           "tree_changes.csv": frame.label_of("before"), "layers.gpkg": frame.label_of("before")})
     if units_before != units_after:
         summary["convention"] = (f"{summary.get('convention') or ChangeOutcome.convention}; BEFORE in {units_before}, AFTER in "
                                  f"{units_after}: the matrix scales by {scale_after / scale:.6g}")
@@ -337,7 +373,10 @@ def detect_change_files(
 
         with output_folder(out, "change") as tmp:
             if ok:
+                from .layers import change_layers, write_layers
+
                 write_change_files(tmp, summary, rows, CHANGE_COLUMNS)
+                write_layers(tmp, change_layers(rows, CHANGE_COLUMNS), frame.crs)
             else:
                 from ..engine.core.atomic import write_text_atomic
                 import json

@@ -4,7 +4,9 @@ canopy keypoints (System B).
 :func:`coregister_clouds` reads both clouds (or takes them as scans), co-registers
 (:func:`forestreg.engine.coreg.coregister.coregister`), applies the last rigid check, converts the
 matrix into the files' unit and writes the output folder (``result.json``, ``transform.txt``, the
-keypoint tables, the report) as one transaction.
+keypoint tables, ``layers.gpkg``, the report) as one transaction. The outputs are in the UAV
+cloud's frame and take its CRS (``result.json``'s ``crs`` says which frame each output is in when
+the two files' CRSs differ, or one has none).
 """
 
 from __future__ import annotations
@@ -130,17 +132,20 @@ def default_params():
 
 
 def coregister_clouds(
-    ground, uav, out: Optional[str | Path], params=None, *, units: str = "m", progress=None, cancel=None,
+    ground, uav, out: Optional[str | Path], params=None, *, units: str = "m", crs=None, progress=None, cancel=None,
 ) -> CoregistrationOutcome:
     """Co-register ``ground`` onto ``uav`` (each a file path or a
     :class:`~forestreg.engine.core.scan.Scan`); with ``out``, write that output folder as a
     transaction (``None``: nothing written). The outcome is checked the same way whichever door
-    asked: a matrix that is not rigid is withheld."""
+    asked: a matrix that is not rigid is withheld. ``crs`` (e.g. "EPSG:32618"): the CRS of the UAV
+    frame when its file declares none, or the one that wins over it."""
     from ..engine.core.atomic import check_output_folder
     from ..engine.coreg.coregister import coregister as coregister_scans
     from ..engine.io import read_scan
+    from ..engine.io.crs import as_crs
     from ..engine.report.samples import profile_sample
 
+    given = as_crs(crs, "--crs")
     if params is None:
         params = default_params()
     scale = UNITS[units]
@@ -164,6 +169,10 @@ def coregister_clouds(
             kept[role] = scan.without_points()
             if out is not None:
                 kept[role + "_profile"] = profile_sample(scan.points, role)
+                if role == "ground":  # its outline from above, for layers.gpkg
+                    from .layers import cloud_outline
+
+                    kept["ground_outline"] = cloud_outline(scan.points[:, :2])
             return scan
         return load
 
@@ -171,11 +180,26 @@ def coregister_clouds(
     inputs = {key: src for key, src in (("ground_file", ground), ("uav_file", uav)) if isinstance(src, (str, Path))}
     summary, ok = run_summary(result, {"read_s": kept["read_s"]}, inputs, units, scale,
                               facts={"distance_threshold_m": params.matching.distance_threshold_m})
+    frame = _frame_crs(kept, ground, uav, given)
+    kept["crs"] = frame.crs
+    summary["crs"] = frame.to_dict(frames={
+        "transform.txt": f"maps {frame.label_of('ground')} onto {frame.label_of('uav')}",
+        "keypoints_ground.csv": frame.label_of("ground"), "keypoints_uav.csv": frame.label_of("uav"),
+        "layers.gpkg": f"the UAV frame ({frame.crs.label if frame.crs is not None else 'no CRS'})"})
     report = None
     if out is not None:
         report = _write_coregistration_folder(out, result, summary, kept, scale)
     return outcome_of(summary, out=out, result=result, cls=CoregistrationOutcome, report=report,
                       ground=kept["ground"], uav=kept["uav"])
+
+
+def _frame_crs(kept: dict, ground, uav, given):
+    """The CRS of a co-registration's outputs: the UAV cloud's (or ``given``), and each cloud's."""
+    from ..engine.io.crs import crs_of, frame_crs
+
+    names = {role: (Path(src).name if isinstance(src, (str, Path)) else (getattr(kept.get(role), "name", "") or role))
+             for role, src in (("ground", ground), ("uav", uav))}
+    return frame_crs({"ground": crs_of(kept.get("ground")), "uav": crs_of(kept.get("uav"))}, "uav", given, names=names)
 
 
 def coregister(ground, uav, params=None, progress=None, *, cancel=None):
@@ -227,5 +251,9 @@ def _write_coregistration_folder(out: Path, result, summary: dict, kept: dict, s
                 log.warning("could not draw the figure: %s", exc)
         if ok:
             write_text_atomic(tmp / "transform.txt", format_matrix(np.asarray(summary["matrix"])))
+        from .layers import keypoint_layers, write_layers
+
+        write_layers(tmp, keypoint_layers(result, ground, uav, ok=ok, unit_scale=scale, ground_outline=kept.get("ground_outline")),
+                     kept.get("crs"))
         write_text_atomic(tmp / "result.json", json.dumps(summary, indent=2) + "\n")
     return out / "report.html" if drawn else None

@@ -2,14 +2,16 @@
 (System B).
 
 :func:`fuse_clouds` checks the inputs and the output file before the work, reads the clouds, fuses
-them (:func:`forestreg.engine.coreg.fusion.fuse_files`) and writes the fused LAS/LAZ atomically.
+them (:func:`forestreg.engine.coreg.fusion.fuse_files`) and writes the fused LAS/LAZ atomically, in
+the UAV cloud's frame and with its CRS (a WKT VLR): clouds whose files declare two different CRSs
+are refused unless ``crs`` says which one the output is in.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -40,12 +42,14 @@ class SourceCounts:
 class FusionOutcome(RunOutcome):
     """The fused cloud written to ``out``: ``counts`` per source ("ground", "uav", "total": input,
     redundant, noise, kept), ``points`` kept; ``result`` is the engine's
-    :class:`~forestreg.engine.coreg.fusion.FusionResult`."""
+    :class:`~forestreg.engine.coreg.fusion.FusionResult`; ``crs`` the fused cloud's CRS and each
+    input's (:class:`~forestreg.engine.io.crs.FrameCrs`)."""
 
     method = "redundancy + statistical noise removal"
     convention = "points in the UAV cloud's frame"
     counts: dict = field(default_factory=dict)
     points: int = 0
+    crs: Any = None
 
     def evidence(self) -> dict:
         return {"counts": self.counts, "points": self.points}
@@ -65,21 +69,27 @@ def default_params():
 def fuse_clouds(
     ground_path: str | Path, uav_path: str | Path, out: str | Path, params=None, *,
     matrix: Optional[np.ndarray] = None, transform: Optional[str | Path] = None, units: str = "m",
-    progress=None, cancel=None,
+    crs=None, progress=None, cancel=None,
 ) -> FusionOutcome:
     """Fuse ``ground_path`` into ``uav_path``'s frame and write the LAS/LAZ ``out`` (refused when
     it is an input or a user's own cloud). The ground-to-UAV transform is ``matrix`` (metres, file
     coordinates) or read from ``transform`` (``transform.txt`` or ``result.json`` of a
-    co-registration, in the files' unit); identity when neither is given."""
+    co-registration, in the files' unit); identity when neither is given. The fused cloud has the
+    UAV cloud's CRS, or ``crs`` (e.g. "EPSG:32618") when given; two files declaring different CRSs
+    without ``crs`` are refused (:class:`~forestreg.engine.core.errors.UsageError`, exit 2)."""
     from ..engine.core.atomic import check_output_file
     from ..engine.core.transform import read_matrix, to_metres
     from ..engine.coreg.fusion import fuse_files as fuse_point_files
     from ..engine.io import write_fused
     from ..engine.io.base import check_readable
+    from ..engine.io.crs import as_crs, frame_crs, read_crs
 
+    given = as_crs(crs, "--crs")
     scale = UNITS[units]
     check_readable(ground_path)
     check_readable(uav_path)
+    frame = frame_crs({"ground": read_crs(ground_path), "uav": read_crs(uav_path)}, "uav", given,
+                      names={"ground": Path(ground_path).name, "uav": Path(uav_path).name}, refuse_mixed="fuse")
     out = check_output_file(out, inputs=[ground_path, uav_path, transform], suffixes=(".laz", ".las"))
     check_replaceable_point_file(out, "source", "fused cloud")
     if matrix is None:
@@ -88,10 +98,11 @@ def fuse_clouds(
     check_file_units((uav_path, ground_path), units)
     # the ground-based cloud is read inside, and let go once merged: a scan's points less to hold
     result, shift = fuse_point_files(ground_path, uav_path, matrix, params, unit_scale=scale, progress=with_cancel(progress, cancel))
-    write_fused(out, result, origin_shift=shift, unit_scale=scale)
+    write_fused(out, result, origin_shift=shift, unit_scale=scale, crs=frame.crs)
     counts = {k: dict(v) for k, v in result.counts.items()}
-    return FusionOutcome(status="ok", timings=dict(result.seconds), out=out, summary=result.summary(), result=result,
-                         counts=counts, points=len(result.points))
+    summary = {**result.summary(), "crs": frame.to_dict()}
+    return FusionOutcome(status="ok", timings=dict(result.seconds), out=out, summary=summary, result=result,
+                         counts=counts, points=len(result.points), crs=frame)
 
 
 def check_file_units(paths, units: str = "m", *, scale: Optional[float] = None) -> None:

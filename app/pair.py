@@ -3,7 +3,8 @@
 :func:`register_pair` reads both scans, locates and checks their scanners, registers
 (:func:`forestreg.engine.tls.pair.register`), applies the last rigid check, converts the matrices
 into the files' unit and writes the output folder (``result.json``, ``transform.txt``, the VOP
-tables, the figure, optionally the registered scan) as one transaction.
+tables, the figure, optionally the registered scan) as one transaction. The outputs are in the
+reference scan's frame and take its CRS (``result.json``'s ``crs``; the registered scan's WKT VLR).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ def register_pair(
     units: str = "m",
     write_registered: bool = False,
     scanner_params=None,
+    crs=None,
     progress=None,
     cancel=None,
 ) -> PairOutcome:
@@ -53,9 +55,13 @@ def register_pair(
     Raises on bad input (:class:`~forestreg.engine.core.errors.UsageError`, ...); a pair the data
     do not allow comes back as a failed outcome with the reason. ``scanner_params``: the
     :class:`~forestreg.engine.tls.params.ScannerPositionParams` of a scan whose file does not
-    say where its scanner stood."""
+    say where its scanner stood. ``crs`` (e.g. "EPSG:32618"): the CRS of the reference frame when
+    its file declares none, or the one that wins over it."""
     from concurrent.futures import ThreadPoolExecutor
 
+    from ..engine.io.crs import as_crs
+
+    given = as_crs(crs, "--crs")
     from ..engine.core.atomic import check_output_folder
     from ..engine.core.errors import UsageError
     from ..engine.io import read_scan
@@ -118,6 +124,14 @@ def register_pair(
     read_s = sum(result.timings.get(f"read_{role}_s", 0.0) for role in ("reference", "moving"))
     summary, ok = run_summary(result, {"read_s": read_s}, {"reference_file": reference_path, "moving_file": moving_path}, units, scale,
                               matrix_keys=("matrix", "coarse_matrix"))
+    frame = _frame_crs(kept, reference_path, moving_path, given)
+    kept["crs"] = frame.crs
+    frames = {"transform.txt": f"maps {frame.label_of('moving')} onto {frame.label_of('reference')}",
+              "reference_vops.csv": frame.label_of("reference"), "moving_vops.csv": frame.label_of("moving")}
+    if write_registered:
+        stem = getattr(kept.get("moving"), "name", "") or Path(moving_path).stem
+        frames[f"{stem}_registered.laz"] = f"the reference frame ({frame.crs.label if frame.crs is not None else 'no CRS'})"
+    summary["crs"] = frame.to_dict(frames=frames)
     figure = None
     if out is not None:
         figure = _write_pair_folder(out, result, summary, kept, scale, write_registered)
@@ -125,6 +139,14 @@ def register_pair(
 
         remember_loaded("pair")  # the kernels the next pair loads while its files are read
     return outcome_of(summary, out=out, result=result, cls=PairOutcome, figure=figure)
+
+
+def _frame_crs(kept: dict, reference_path, moving_path, given):
+    """The CRS of a pair's outputs: the reference scan's (or ``given``), and each scan's."""
+    from ..engine.io.crs import crs_of, frame_crs
+
+    return frame_crs({"reference": crs_of(kept.get("reference")), "moving": crs_of(kept.get("moving"))}, "reference", given,
+                     names={"reference": Path(reference_path).name, "moving": Path(moving_path).name})
 
 
 # ----------------------------------------------------------------------------- the Python API
@@ -219,6 +241,7 @@ def _write_pair_folder(out: Path, result, summary: dict, kept: dict, scale: floa
             write_text_atomic(tmp / "transform.txt", format_matrix(np.asarray(summary["matrix"])))
             if write_registered:
                 to_units = np.diag([1.0 / scale, 1.0 / scale, 1.0 / scale, 1.0])
-                write_scan(kept["registered_points"], tmp / f"{moving.name}_registered.laz", matrix=to_units @ result.matrix)
+                write_scan(kept["registered_points"], tmp / f"{moving.name}_registered.laz", matrix=to_units @ result.matrix,
+                           crs=kept.get("crs"))
         write_text_atomic(tmp / "result.json", json.dumps(summary, indent=2) + "\n")
     return out / "registration.png" if drawn else None

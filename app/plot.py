@@ -1,7 +1,9 @@
 """Plot and project runs: every TLS scan of a plot registered (each to the centre scan, tilted ones
 to their level partner, or every pair with a pose graph), poses adjusted, and the plot folder
-written (``project.json``, ``poses.json``, ``<scan>.transform.txt``, ``report.html``; optionally
-a merged cloud, registered scans, an E57 file).
+written (``project.json``, ``poses.json``, ``<scan>.transform.txt``, ``layers.gpkg``,
+``report.html``; optionally a merged cloud, registered scans, an E57 file). Every output is in the
+centre scan's frame and takes its CRS (``poses.json``'s ``crs``, the merged and registered clouds'
+WKT VLR, ``layers.gpkg``).
 
 :func:`new_project` builds a project from scan files and the user's marks; :func:`run_plot`
 registers it and writes the products (``forestreg plot``, ``project run``);
@@ -159,6 +161,8 @@ class PlotRun(RunOutcome):
     dropped: tuple = ()
     #: after the global adjustment: (links adjusted, largest link residual in m), or None
     residual: Optional[tuple] = None
+    #: the CRS of the outputs (the centre scan's) and each scan's (:class:`~forestreg.engine.io.crs.FrameCrs`)
+    crs: Any = None
 
     def evidence(self) -> dict:
         return self.result.evidence() if self.result is not None else {}
@@ -380,17 +384,21 @@ def register_plot_project(project, scans=None, *, rerun: bool = False, progress=
 
 def run_plot(
     project, out: Path, *, scans=None, pairs: Optional[str] = None, fixed: Sequence[str] = (), rerun: bool = False,
-    loops: Optional[float] = None, merged=None, registered_dir=None, e57_out=None, survey=None, progress=None, cancel=None,
+    loops: Optional[float] = None, merged=None, registered_dir=None, e57_out=None, survey=None, crs=None, progress=None, cancel=None,
 ) -> PlotRun:
     """Register the project (``pairs``: every pair with a pose graph, see
     :mod:`forestreg.app.survey`, with the other settings of ``survey``, a
     :class:`~forestreg.engine.tls.params.SurveyParams`; ``loops``: also link scans within that
     many metres), then write
-    poses, transforms and the report into ``out`` (each product replaced by one rename, poses.json
-    last) and the extra products asked for."""
+    poses, transforms, ``layers.gpkg`` and the report into ``out`` (each product replaced by one
+    rename, poses.json last) and the extra products asked for, all in the centre scan's frame with
+    its CRS (``crs``, e.g. "EPSG:32618", when its file declares none, or the one that wins)."""
     import tempfile
 
+    from ..engine.io.crs import as_crs
     from ..engine.tls.plot import add_neighbour_links, adjust_poses, register_project
+
+    given = as_crs(crs, "--crs")
 
     # the report's figures need matplotlib (~0.4 s of imports): loaded while the scans are
     # registered, not on the single thread that writes the report at the end
@@ -414,10 +422,22 @@ def run_plot(
     adjusted = adjust_poses(project, scans) if not pairs else project.adjustment
     if project.path is not None:
         project.save()
+    frame = plot_crs(project, scans, given)
+    frames = {"poses.json": "each matrix maps a scan's file coordinates (its own frame) into the centre scan's frame",
+              "layers.gpkg": "the centre scan's frame"}
+    for path in (merged, registered_dir):
+        if path:
+            frames[str(Path(path).name)] = "the centre scan's frame"
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".forestreg-tmp-products.", dir=out))
     try:
-        write_poses(project, tmp, outcome)
+        write_poses(project, tmp, outcome, crs=frame.to_dict(frames=frames))
+        try:
+            from .layers import plot_layers, write_layers
+
+            write_layers(tmp, plot_layers(project, scans, pose_uncertainty(project), outcome), frame.crs)
+        except Exception as exc:  # the layers must never lose the result
+            log.warning("could not write layers.gpkg: %s", exc)
         try:
             from ..engine.report.plot_report import write_plot_report
 
@@ -435,12 +455,12 @@ def run_plot(
         if extra:
             Path(extra).parent.mkdir(parents=True, exist_ok=True)  # a file inside ``out`` may lie in a folder made now
     if merged:
-        written["merged"] = (Path(merged), write_merged(project, merged, scans))
+        written["merged"] = (Path(merged), write_merged(project, merged, scans, crs=frame.crs))
     if registered_dir:
         from ..engine.core.atomic import output_folder
 
         with output_folder(registered_dir, "registered-scans") as rtmp:
-            written["registered_dir"] = (Path(registered_dir), write_registered_scans(project, rtmp, scans))
+            written["registered_dir"] = (Path(registered_dir), write_registered_scans(project, rtmp, scans, crs=frame.crs))
     if e57_out:
         written["e57_out"] = (Path(e57_out), write_registered_e57(project, e57_out, scans))
     dropped = dropped_links(project)
@@ -449,7 +469,26 @@ def run_plot(
         residual = (len(adjusted["links"]), max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0))
     return PlotRun(status=outcome.status, reason=outcome.reason, out=out, result=outcome, project=project, adjusted=adjusted,
                    uncertainty={name: PoseSigma.of(u) for name, u in pose_uncertainty(project).items()}, written=written,
-                   dropped=dropped, residual=residual)
+                   dropped=dropped, residual=residual, crs=frame)
+
+
+def plot_crs(project, scans=None, given=None):
+    """The CRS of a plot's outputs (:class:`~forestreg.engine.io.crs.FrameCrs`): the centre scan's
+    (or ``given``), and each scan's as its file declares it (a LAS/LAZ header read, not its points;
+    other formats from the scan read for the run)."""
+    from ..engine.io.crs import crs_of, frame_crs, read_crs
+
+    found = {}
+    for s in project.scans:
+        if Path(s.path).suffix.lower() in (".las", ".laz"):
+            found[s.name] = read_crs(s.path)
+            continue
+        try:
+            found[s.name] = crs_of(scans.frame(s.name)) if scans is not None else None
+        except Exception:  # noqa: BLE001 - an unreadable scan: its link reports it
+            found[s.name] = None
+    centre = project.centre or (project.scans[0].name if project.scans else "")
+    return frame_crs(found, centre, given, names={s.name: Path(s.path).name for s in project.scans})
 
 
 def _publish(tmp: Path, out: Path, scan_names) -> None:
@@ -476,29 +515,33 @@ def _publish(tmp: Path, out: Path, scan_names) -> None:
 # ----------------------------------------------------------------------------- products
 
 
-def write_poses(project, out_dir, outcome=None) -> Path:
+def write_poses(project, out_dir, outcome=None, *, crs: Optional[dict] = None) -> Path:
     """Write ``poses.json`` (``{"frame": centre, "scans": {name: {"status", "matrix"}}}``, each
-    matrix mapping that scan's file coordinates into the centre scan's) and one
-    ``<scan>.transform.txt`` per registered scan. Returns the path of ``poses.json``."""
+    matrix mapping that scan's file coordinates into the centre scan's; with ``crs``, the
+    ``result.json``-style ``crs`` entry of the centre frame) and one ``<scan>.transform.txt`` per
+    registered scan. Returns the path of ``poses.json``."""
     from ..engine.io.results import write_poses_files
     from ..engine.tls.plot import poses_document
 
     body, transforms = poses_document(project, outcome)
+    if crs is not None:
+        body["crs"] = crs
     return write_poses_files(out_dir, body, transforms)
 
 
-def write_merged(project, path, scans=None) -> int:
+def write_merged(project, path, scans=None, *, crs=None) -> int:
     """Write every registered scan, in the centre scan's file coordinates, into one point file
     with a ``scan_id`` per point (the scan's index in the project). Returns the point count.
 
     LAS/LAZ are written one scan at a time, so a plot larger than memory can be merged; a
     ``*.copc.laz`` path gives a COPC file, also out of core; intensities are written when every
-    scan has them."""
+    scan has them; ``crs`` (the centre scan's, a :class:`~forestreg.engine.io.crs.Crs`) goes into
+    the LAS/LAZ/COPC header."""
     from ..engine.io import write_point_chunks
     from ..engine.tls.plot import merged_chunks
 
     chunks, bounds, with_intensity = merged_chunks(project, path, scans)
-    return write_point_chunks(path, chunks, bounds=bounds, with_intensity=with_intensity, with_scan_id=True)
+    return write_point_chunks(path, chunks, bounds=bounds, with_intensity=with_intensity, with_scan_id=True, crs=crs)
 
 
 def write_registered_e57(project, path, scans=None) -> int:
@@ -512,9 +555,10 @@ def write_registered_e57(project, path, scans=None) -> int:
     return len(chosen)
 
 
-def write_registered_scans(project, folder, scans=None, *, suffix: str = ".laz") -> int:
+def write_registered_scans(project, folder, scans=None, *, suffix: str = ".laz", crs=None) -> int:
     """Write each registered scan, transformed into the centre scan's file coordinates, as its own
-    file ``<folder>/<scan stem>_registered<suffix>``. Returns how many were written."""
+    file ``<folder>/<scan stem>_registered<suffix>`` (with ``crs``, the centre scan's CRS). Returns
+    how many were written."""
     from ..engine.io import write_scan
     from ..engine.tls.plot import registered_scans
 
@@ -523,7 +567,7 @@ def write_registered_scans(project, folder, scans=None, *, suffix: str = ".laz")
     written = 0
     for name, scan, pose in registered_scans(project, scans):
         stem = Path(name).stem if Path(name).suffix else name
-        write_scan(scan(), out / f"{stem.replace('#', '_')}_registered{suffix}", matrix=pose)
+        write_scan(scan(), out / f"{stem.replace('#', '_')}_registered{suffix}", matrix=pose, crs=crs)
         written += 1
     return written
 

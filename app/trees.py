@@ -3,8 +3,10 @@ ground-based, airborne or fused cloud (System B).
 
 :func:`measure_trees_file` reads the cloud (moved first by a co-registration's transform when
 given), measures (:func:`forestreg.engine.trees.inventory.measure_trees`) and writes the output
-folder (``trees.csv``, ``stem_curves.csv``, ``cylinders/``, ``report.html``, and with field records
-``evaluation/``) as one transaction.
+folder (``trees.csv``, ``stem_curves.csv``, ``cylinders/``, ``layers.gpkg``, ``report.html``, and
+with field records ``evaluation/``) as one transaction. ``layers.gpkg`` holds the trees, their
+crown outlines and the cloud's outline in the cloud's CRS (the co-registration's target CRS when
+the cloud was moved by its transform; ``crs`` when the file declares none).
 """
 
 from __future__ import annotations
@@ -22,13 +24,15 @@ class TreesOutcome(RunOutcome):
     """Measured trees: ``result`` is the engine's
     :class:`~forestreg.engine.trees.inventory.TreeInventory` (local frame, metres), ``points``
     the cloud measured (local frame), ``evaluation`` the outcome of the check against field
-    records (or None), ``report`` the HTML report written (or None)."""
+    records (or None), ``report`` the HTML report written (or None), ``crs`` the CRS of the
+    outputs (:class:`~forestreg.engine.io.crs.FrameCrs`)."""
 
     method = "stems, segmentation, QSM"
     points: Any = None
     evaluation: Any = None
     report: Optional[Path] = None
     trees: int = 0
+    crs: Any = None
 
     def evidence(self) -> dict:
         return {"trees": self.trees, "method": getattr(self.result, "method", "")}
@@ -54,19 +58,23 @@ def measure_trees_in(cloud, params=None, *, progress=None, cancel=None):
 
 def measure_trees_file(
     cloud_path, out: Optional[str | Path], params=None, *, transform=None, field=None, units: str = "m",
-    cylinders: bool = True, report: bool = True, progress=None, cancel=None,
+    cylinders: bool = True, report: bool = True, crs=None, progress=None, cancel=None,
 ) -> TreesOutcome:
     """Measure the trees of ``cloud_path`` (a file, or a :class:`~forestreg.engine.core.scan.Scan`)
     into the folder ``out`` (a transaction; ``None``: nothing written); with ``field`` (field
     records CSV) the trees are also evaluated into ``out/evaluation``. ``transform`` (a
-    co-registration's ``transform.txt``, files' unit) moves the cloud first."""
+    co-registration's ``transform.txt``, files' unit) moves the cloud first. ``crs`` (e.g.
+    "EPSG:32618") is the CRS of the outputs when the cloud's file (or, with ``transform``, the
+    co-registration's ``result.json``) declares none, or the one that wins over it."""
     from ..engine.core.atomic import check_output_folder, output_folder
     from ..engine.core.transform import read_matrix, to_metres
     from ..engine.io import read_scan
     from ..engine.io.base import check_readable
+    from ..engine.io.crs import as_crs, crs_of, frame_crs
     from ..engine.trees.evaluate import read_tree_table
     from .evaluation import evaluate_into
 
+    given = as_crs(crs, "--crs")
     scale = UNITS[units]
     is_path = isinstance(cloud_path, (str, Path))
     if is_path:
@@ -78,8 +86,13 @@ def measure_trees_file(
     # the trees use x, y, z alone
     cloud = read_scan(cloud_path, unit_scale=scale, with_intensity=False) if is_path else as_scan(cloud_path, "cloud", units=False)
     check_units(cloud.points, units if is_path else "m", str(cloud_path) if is_path else cloud.name or "cloud")  # before the work
-    if matrix is not None:
+    name = Path(cloud_path).name if is_path else cloud.name or "cloud"
+    if matrix is not None:  # the moved cloud is in the co-registration's target frame
+        frame = frame_crs({"cloud": crs_of(cloud), "target": transform_target_crs(transform)}, "target", given,
+                          names={"cloud": name, "target": f"the target of {Path(transform).name}"})
         cloud = cloud.transformed(matrix)
+    else:
+        frame = frame_crs({"cloud": crs_of(cloud)}, "cloud", given, names={"cloud": name})
     params = params or default_params()
     if not cylinders:
         params = dataclasses.replace(params, cylinder_models=False)
@@ -88,10 +101,14 @@ def measure_trees_file(
     written = None
     if not inventory:  # the data do not allow trees: the reason, and no folder (complete or absent)
         return TreesOutcome(status="failed", reason=inventory.reason, timings=dict(inventory.timings), out=out, result=inventory,
-                            points=cloud.points)
+                            points=cloud.points, crs=frame)
     if out is not None:
+        from .layers import cloud_outline, trees_layers, write_layers
+
         with output_folder(out, "trees") as tmp:
             inventory.write(tmp, unit_scale=scale)
+            write_layers(tmp, trees_layers(inventory, unit_scale=scale, outline=cloud_outline(cloud.points[:, :2]), cloud_name=name),
+                         frame.crs)
             if report:
                 from ..engine.report.trees_report import write_inventory_report
 
@@ -105,7 +122,25 @@ def measure_trees_file(
         status, reason = "failed", evaluation.reason
     return TreesOutcome(status=status, reason=reason, timings=dict(inventory.timings), out=out, result=inventory,
                         points=cloud.points, evaluation=evaluation, report=out / "report.html" if written else None,
-                        trees=len(inventory.trees))
+                        trees=len(inventory.trees), crs=frame)
+
+
+def transform_target_crs(transform):
+    """The CRS of the frame a co-registration's transform maps into: the ``crs`` entry of its
+    ``result.json`` (the file given, or the one beside ``transform.txt``); None when it names none."""
+    import json
+
+    from ..engine.io.crs import Crs
+
+    if transform is None:
+        return None
+    p = Path(transform)
+    result = p if p.suffix.lower() == ".json" else p.parent / "result.json"
+    try:
+        found = json.loads(result.read_text(encoding="utf-8")).get("crs")
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        return None
+    return Crs.from_dict(found)
 
 
 # ----------------------------------------------------------------------------- the Python API

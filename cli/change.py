@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from ..app.units import UNITS
-from .common import Reporter, add_units_params, product_params, say, shown
+from .common import Reporter, add_crs_option, add_units_params, product_params, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -20,6 +20,7 @@ def add_parsers(sub) -> None:
     p.add_argument("after", help="the later survey: a cloud, a project file or a trees.csv")
     p.add_argument("--out", required=True, help="output folder (result.json, tree_changes.csv, report.html); replaced when the run completes")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    add_crs_option(p, "result.json and layers.gpkg are in BEFORE's frame and take its CRS")
     add_units_params(p, "unit of both surveys' coordinates", cmd_change)
     for role in ("before", "after"):
         p.add_argument(f"--units-{role}", choices=sorted(UNITS), default=None,
@@ -33,7 +34,7 @@ def cmd_change(args: argparse.Namespace) -> int:
     try:
         outcome = detect_change_files(args.before, args.after, args.out, product_params(args), units=args.units,
                                       units_before=args.units_before, units_after=args.units_after,
-                                      report=not args.no_report, progress=reporter)
+                                      report=not args.no_report, crs=args.crs, progress=reporter)
     finally:
         reporter.close()
     out = outcome.out

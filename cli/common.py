@@ -248,6 +248,14 @@ def add_units_params(p: argparse.ArgumentParser, units_help: str, func) -> None:
     p.set_defaults(func=func, long_running=True)
 
 
+def add_crs_option(p: argparse.ArgumentParser, what: str) -> None:
+    """The ``--crs`` option: the coordinate reference system of inputs whose files declare none
+    (``what`` says which outputs take it)."""
+    p.add_argument("--crs", metavar="EPSG:CODE",
+                   help=f"coordinate reference system of the input coordinates when a file declares none, or the one that wins "
+                        f"over the files' (e.g. EPSG:32618, or a WKT): {what}")
+
+
 def shown(path) -> Path:
     """A path as printed: relative to the working folder when inside it (as the user typed it)."""
     p = Path(path)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import PARAMS_HELP, file_section, number, offsets, params_from_args, run_outcome, say, shown
+from .common import PARAMS_HELP, add_crs_option, file_section, number, offsets, params_from_args, run_outcome, say, shown
 
 def _add_plot_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--centre", help="the centre (root) scan: the project frame (default: the first scan)")
@@ -30,6 +30,7 @@ def add_parsers(sub, add_global_flags) -> None:
     p.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
     p.add_argument("--registered-dir", help="also write each registered scan, in the centre scan's coordinates, as its own LAZ into this folder")
     p.add_argument("--loops", type=number("--loops", positive=True), metavar="M", help="also link registered scans standing within M metres of each other, and adjust all poses globally")
+    add_crs_option(p, "poses.json, layers.gpkg and the merged and registered clouds are in the centre scan's frame and take its CRS")
     p.set_defaults(func=cmd_plot, long_running=True)
 
     p = sub.add_parser("compare", help="register a plot automatically and from targets, and compare (the paper's tables 4 and 5)")
@@ -108,7 +109,7 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
     reporter = args.reporter
     run = run_outcome(reporter, run_plot, project, out, scans=scans, pairs=getattr(args, "pairs", None),
                       fixed=getattr(args, "fixed", None) or [], rerun=getattr(args, "rerun", False), loops=getattr(args, "loops", None),
-                      survey=file_section(args, "survey"), **_extra_outputs(args))
+                      survey=file_section(args, "survey"), crs=getattr(args, "crs", None), **_extra_outputs(args))
     outcome = run.result
     for what, (path, count) in run.written.items():
         if what == "merged":
@@ -151,6 +152,10 @@ def cmd_plot(args: argparse.Namespace) -> int:
                             scan_cache)
 
     check_survey_options(args)
+    if getattr(args, "crs", None):  # a bad --crs: one line and exit 2, before the folder is made
+        from ..engine.io.crs import parse_crs
+
+        parse_crs(args.crs)
     check_scan_files_exist(args.scans)
     check_extra_outputs(args.scans, out=args.out, **_extra_outputs(args))
     project, kept = project_from_args(args), 0

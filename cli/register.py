@@ -7,7 +7,8 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from ..engine.core.uncertainty import evidence_notes
-from .common import PARAMS_HELP, UNITS, Reporter, direction, file_section, floats, number, offsets, params_from_args, run_outcome, say, shown
+from .common import (PARAMS_HELP, UNITS, Reporter, add_crs_option, direction, file_section, floats, number, offsets, params_from_args, run_outcome,
+                     say, shown)
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -29,6 +30,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
         help="the true vertical in a scan's own coordinates (from its inclination sensor): first for the reference, again for the moving scan (default: estimated from the data)",
     )
     p.add_argument("--write-registered", action="store_true", help="also write the moving scan transformed into the reference frame (LAZ)")
+    add_crs_option(p, "result.json and the registered scan are in the reference scan's frame and take its CRS")
     p.set_defaults(func=cmd_register, long_running=True)
     return p
 
@@ -37,7 +39,7 @@ def cmd_register(args: argparse.Namespace) -> int:
     return run_register(
         args.reference, args.moving, args.out, params=params_from_args(args), positions=args.scanner_position or [],
         ups=args.up or [], units=args.units, write_registered=args.write_registered, reporter=args.reporter,
-        scanner_params=file_section(args, "scanner_position"),
+        scanner_params=file_section(args, "scanner_position"), crs=args.crs,
     )
 
 
@@ -53,6 +55,7 @@ def run_register(
     write_registered: bool = False,
     reporter: Optional[Reporter] = None,
     scanner_params=None,
+    crs=None,
 ) -> int:
     """Register ``moving_path`` onto ``reference_path`` into the output folder ``out``
     (:func:`forestreg.app.pair.register_pair`) and print the outcome. Returns the exit code (0 ok,
@@ -61,7 +64,8 @@ def run_register(
 
     reporter = reporter or Reporter("none", "register")
     return print_register(run_outcome(reporter, register_pair, reference_path, moving_path, out, params, positions=positions,
-                                      ups=ups, units=units, write_registered=write_registered, scanner_params=scanner_params), reporter)
+                                      ups=ups, units=units, write_registered=write_registered, scanner_params=scanner_params, crs=crs),
+                          reporter)
 
 
 def print_register(outcome, reporter: Reporter) -> int:

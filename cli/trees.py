@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .common import Reporter, add_units_params, number, product_params, run_outcome, say, shown
+from .common import Reporter, add_crs_option, add_units_params, number, product_params, run_outcome, say, shown
 
 
 def add_parsers(sub) -> None:
@@ -21,6 +21,7 @@ def add_parsers(sub) -> None:
                    help="the cloud is one tree (TreeQSM/AdTree-style, little or no ground): one tree, its height the cloud's "
                         "top above its base; 'no' for a plot; default: decided from the cloud")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    add_crs_option(p, "layers.gpkg is in it (with --transform, the co-registration's result.json names the target's)")
     add_units_params(p, "units of the input coordinates", cmd_trees)
 
     p = sub.add_parser("evaluate", help="compare trees.csv with field records: R2, RMSE, rRMSE per parameter (paper table 3)")
@@ -39,18 +40,18 @@ def cmd_trees(args: argparse.Namespace) -> int:
     if getattr(args, "single_tree", None):
         params = params.replace(single_tree=params.single_tree.replace(mode=args.single_tree))
     return run_trees(args.cloud, args.out, transform=args.transform, field=args.field, units=args.units, params=params,
-                     cylinders=not args.no_cylinders, report=not args.no_report, reporter=args.reporter)
+                     cylinders=not args.no_cylinders, report=not args.no_report, reporter=args.reporter, crs=args.crs)
 
 
 def run_trees(cloud_path, out, *, transform=None, field=None, units: str = "m", cylinders: bool = True,
-              report: bool = True, params=None, reporter: Optional[Reporter] = None) -> int:
+              report: bool = True, params=None, reporter: Optional[Reporter] = None, crs=None) -> int:
     """Measure the trees of ``cloud_path`` into the folder ``out``
     (:func:`forestreg.app.trees.measure_trees_file`) and print the outcome."""
     from ..app.trees import measure_trees_file
 
     reporter = reporter or Reporter("none", "trees")
     outcome = run_outcome(reporter, measure_trees_file, cloud_path, out, params, transform=transform, field=field, units=units,
-                          cylinders=cylinders, report=report)
+                          cylinders=cylinders, report=report, crs=crs)
     return print_trees(outcome, reporter, units)
 
 
@@ -68,6 +69,8 @@ def print_trees(outcome, reporter: Reporter, units: str = "m") -> int:
     inventory = outcome.result
     if inventory.method == "single":
         say(f"  single-tree cloud: {inventory.single_tree_reason}", quiet)
+        if getattr(inventory, "single_tree_warning", ""):
+            say(f"warning: {inventory.single_tree_warning}", quiet, err=True)
     say(f"{outcome.line()}{unit_note} -> {shown(out) / 'trees.csv'}", quiet)
     if outcome.report is not None:
         print(f"report: {shown(out) / 'report.html'}")
