@@ -199,7 +199,7 @@ def test_command_with_trees_tables(tmp_path):
     _write_table(tmp_path / "later" / "trees.csv", after)  # a folder of 'forestreg trees'
     out = tmp_path / "out"
     assert _run("change", str(tmp_path / "before.csv"), str(tmp_path / "later"), "--out", str(out)) == 0
-    assert sorted(p.name for p in out.iterdir()) == [".forestreg-output", "report.html", "result.json", "tree_changes.csv"]
+    assert sorted(p.name for p in out.iterdir()) == [".forestreg-output", "layers.gpkg", "report.html", "result.json", "tree_changes.csv"]
     summary = json.loads((out / "result.json").read_text())
     assert summary["status"] == "ok" and summary["convention"].startswith("p_before = matrix @ p_after")
     assert set(summary["uncertainty"]) >= {"translation_m", "rotation_deg"}
