@@ -9,6 +9,10 @@ Scenes (flat ground of the ``planted_conifer`` preset, trees placed by hand):
 - :func:`clipped_conifer_scene`: a conifer in full needle, to be cut to a column around its stem.
 - :func:`suppressed_scene`: dominant broadleaves (26 m) with small suppressed trees (8 m) under
   their crowns: the small trees' tops are hidden in or beside a neighbour's crown.
+- :func:`understory_scene`: a drawn stand (``mixed_temperate`` by default, real stem shapes) with
+  a small tree (DBH 11-17 cm) beside each big one, its top under or inside the big tree's crown
+  and often off its own stem axis (a lean): the small trees whose segments may take a
+  neighbour's crown.
 
 Effects on clouds (world frame, metres):
 
@@ -28,7 +32,8 @@ import numpy as np
 
 from .scene import BROADLEAF, CONIFER, ForestScene, Tree, make_scene
 
-__all__ = ["big_tree_scene", "clipped_conifer_scene", "forked_tree_scene", "leaf_off", "mls_ghosting", "single_tree_scene", "suppressed_scene"]
+__all__ = ["big_tree_scene", "clipped_conifer_scene", "forked_tree_scene", "leaf_off", "mls_ghosting", "single_tree_scene", "suppressed_scene",
+           "understory_scene"]
 
 
 def _with_trees(base: ForestScene, trees: list[Tree]) -> ForestScene:
@@ -72,6 +77,61 @@ def suppressed_scene(seed: int = 0, size_m: float = 24.0) -> ForestScene:
                           height_m=float(rng.uniform(7.0, 9.0)), crown_base_m=3.0, crown_radius_m=1.2, shape=CONIFER))
         k += 1
     return _with_trees(base, trees)
+
+
+def understory_scene(seed: int = 0, size_m: float = 30.0, preset: str = "mixed_temperate", min_big_dbh_m: float = 0.35,
+                     stem_shapes: str = "real", **overrides) -> ForestScene:
+    """A stand drawn from ``preset`` (``make_scene(preset, seed=seed, size_m=size_m,
+    stem_shapes=stem_shapes, **overrides)``) with one small tree added beside each tree of at
+    least ``min_big_dbh_m`` DBH where there is room: DBH 0.11-0.17 m, standing 1.0-2.5 m from the
+    big stem (at most 0.7 of its crown radius), its top from 1.5 m under to 2.5 m inside the big
+    crown's lower surface above it, leaning 0-6 deg in a random direction (its top up to ~1 m
+    off its foot), crown radius 0.8-1.5 m from 40-60 % of its height, conifer or broadleaf at
+    even odds. Stems keep ``r_i + r_j + 0.5 m`` apart; a small tree is left out where none fits.
+    The added trees' ids follow the stand's; their shapes are drawn like the stand's (``real``:
+    :func:`~.scene.real_stem_shape`). Scene frame, metres."""
+    import math
+
+    from .scene import crown_floor, real_stem_shape
+
+    base = make_scene(preset, seed=seed, size_m=size_m, stem_shapes=stem_shapes, **overrides)
+    rng = np.random.default_rng([seed, 4711])
+    trees = list(base.trees)
+    xmin, xmax, ymin, ymax = base.extent
+    next_id = max([t.id for t in trees], default=0) + 1
+    added: list[Tree] = []
+    for big in sorted(base.trees, key=lambda t: -t.dbh_m):
+        if big.dbh_m < min_big_dbh_m:
+            break
+        for _ in range(12):
+            dbh = float(rng.uniform(0.11, 0.17))
+            dist = float(rng.uniform(1.0, max(1.0, min(2.5, 0.7 * big.crown_radius_m))))
+            ang = float(rng.uniform(0.0, 2.0 * math.pi))
+            x, y = big.x + dist * math.cos(ang), big.y + dist * math.sin(ang)
+            if not (xmin + 1.0 < x < xmax - 1.0 and ymin + 1.0 < y < ymax - 1.0):
+                continue
+            if any(math.hypot(o.x - x, o.y - y) < o.dbh_m / 2 + dbh / 2 + 0.5 for o in trees):
+                continue
+            z = float(base.ground_z(x, y))
+            lean = float(rng.uniform(0.0, 6.0))
+            lean_az = float(rng.uniform(0.0, 360.0))
+            conifer = bool(rng.uniform() < 0.5)
+            floor = crown_floor(big, x, y) - z
+            if not math.isfinite(floor) or floor < 5.0:
+                continue
+            height = float(floor + rng.uniform(-1.5, 2.5))
+            cb = float(rng.uniform(0.4, 0.6)) * height
+            small = Tree(next_id, x, y, z, dbh_m=dbh, height_m=height, lean_deg=lean, lean_azimuth_deg=lean_az,
+                         crown_base_m=cb, crown_radius_m=float(rng.uniform(0.8, 1.5)), shape=CONIFER if conifer else BROADLEAF,
+                         top_radius_fraction=0.05 if conifer else 0.3, stem_height_fraction=1.0 if conifer else 0.8,
+                         n_branches=int(rng.integers(3, 6)), leaf_area_density=float(big.leaf_area_density))
+            if stem_shapes == "real":
+                small = real_stem_shape(small, seed, preset)
+            trees.append(small)
+            added.append(small)
+            next_id += 1
+            break
+    return dataclasses.replace(base, trees=tuple(trees), meta={**dict(base.meta), "understory_added": [t.id for t in added]})
 
 
 def single_tree_scene(seed: int = 0, size_m: float = 24.0) -> ForestScene:

@@ -26,6 +26,12 @@ Method (paper sec. 4.3.1: stem detection, then the crowns)
 4. Voxels the search cannot reach (crown parts cut off by occlusion gaps) join the nearest
    reached voxel when it is within ``orphan_max_distance_m`` and they stand at least
    ``orphan_min_height_m`` above the ground (so shrubs and clutter near the ground stay 0).
+5. A thinner stem's segment keeps its own crown (:func:`_keep_own_tops`): beside a thicker stem
+   (by ``dominance_ratio``) whose expected crown (radius ``crown_radius_per_dbh`` times the DBH to
+   the power ``crown_radius_exponent``) reaches its own, its voxels beyond its own expected crown
+   radius that lie deeper (relative to the radius) in the thicker stem's expected crown go to the
+   thicker tree. The shortest paths alone let a small tree whose crown touches a big one take the
+   half of that crown facing it, up to that crown's upper flank.
 
 :func:`tree_completeness` flags trees too incomplete to measure (stem or crown cut by the edge of
 the data, top not seen, too few crown points, DBH fit failed) with a reason for each. "Top
@@ -72,6 +78,8 @@ class SegmentationParams(Params):
     orphan_max_distance_m: float = param_field(1.0, "m", 0.0, 10.0, "Unreached voxels join the nearest reached voxel within this distance")
     orphan_min_height_m: float = param_field(2.0, "m", 0.0, 50.0, "...if they stand at least this high above the ground")
     orphan_passes: int = param_field(20, "passes", 1, 1000, "...repeated this many times at most, so chains of detached parts (a sparse crown) are reached")
+    crown_radius_per_dbh: float = param_field(5.3, "m", 0.0, 50.0, "A stem's expected crown radius is this times its DBH (m) to the power crown_radius_exponent (5.3: 3.5 m for a 0.5 m stem, 1.6 m for a 0.14 m one); a thinner stem's segment keeps no part of a thicker neighbour's expected crown that lies beyond its own (0 = no such check)")
+    crown_radius_exponent: float = param_field(0.6, "1", 0.1, 2.0, "...the power of the DBH in the expected crown radius")
 
 
 def _label_stem_bases(points: np.ndarray, which: np.ndarray, stems: Sequence[Stem], margin_m: float, s_max: float,
@@ -189,9 +197,75 @@ def segment_trees(
             vox_label[orphan[ok]] = vox_label[np.flatnonzero(reached)[nn[ok]]]
             reached = vox_label > 0
             orphan = orphan[~ok]
+    if params.crown_radius_per_dbh > 0:
+        vox_label = _keep_own_tops(centroids, vox_label, stems, params)
     labels[up_idx] = vox_label.astype(labels.dtype)[vox_of]
     report(1.0, "segmented")
     return labels
+
+
+def expected_crown_radius(radius_m: float, params: SegmentationParams) -> float:
+    """The expected crown radius (m) of a stem of radius ``radius_m`` (m):
+    ``crown_radius_per_dbh * DBH ** crown_radius_exponent`` (DBH in m)."""
+    return params.crown_radius_per_dbh * (2.0 * max(radius_m, 0.0)) ** params.crown_radius_exponent
+
+
+def _radial(points: np.ndarray, stem: Stem) -> tuple[np.ndarray, np.ndarray]:
+    """(height above the stem's ground, horizontal distance from the stem's axis at that height) of
+    (N, 3) points, metres."""
+    z = points[:, 2] - stem.ground_z
+    axis = stem.axis
+    s = z / max(float(axis[2]), 0.1)
+    foot = stem.base[None, :2] + s[:, None] * axis[None, :2]
+    return z, np.hypot(points[:, 0] - foot[:, 0], points[:, 1] - foot[:, 1])
+
+
+def _keep_own_tops(centroids: np.ndarray, vox_label: np.ndarray, stems: Sequence[Stem], params: SegmentationParams) -> np.ndarray:
+    """Voxel labels (``vox_label``, one stem id per voxel of ``centroids``, 0 = none) with each
+    thinner stem's segment cut back to its own crown beside thicker neighbours (method step 5 of
+    the module docstring). Returns a new array."""
+    out = vox_label.copy()
+    if len(stems) < 2:
+        return out
+    xy = np.array([[s.x, s.y] for s in stems])
+    r = np.array([s.radius_m for s in stems])
+    crown_r = np.array([expected_crown_radius(float(v), params) if np.isfinite(v) else 0.0 for v in r])
+    index = cKDTree(xy)
+    order = np.argsort(out, kind="stable")
+    sorted_lab = out[order]
+    members = {}
+    for k, s in enumerate(stems):
+        lo, hi = np.searchsorted(sorted_lab, [s.id, s.id + 1])
+        members[s.id] = order[lo:hi]
+    reach = float(crown_r.max()) * 2.0
+    for k, t in enumerate(stems):
+        if not np.isfinite(r[k]) or crown_r[k] <= 0:
+            continue
+        near = [j for j in index.query_ball_point(xy[k], reach) if j != k and np.isfinite(r[j]) and r[j] >= params.dominance_ratio * r[k]
+                and math.hypot(*(xy[j] - xy[k])) < crown_r[j] + crown_r[k]]
+        vox = members[t.id]
+        vox = vox[out[vox] == t.id]
+        if not near or len(vox) < 10:
+            continue
+        c = centroids[vox]
+        depth_t = _radial(c, t)[1] / crown_r[k]  # in its own expected crown: below 1
+        best = np.full(len(vox), np.inf)
+        to = np.zeros(len(vox), dtype=np.int64)
+        for j in near:
+            depth_n = _radial(c, stems[j])[1] / crown_r[j]
+            take = (depth_t > 1.0) & (depth_n < depth_t) & (depth_n < best)
+            best[take] = depth_n[take]
+            to[take] = stems[j].id
+        gone = np.isfinite(best)
+        if not gone.any():
+            continue
+        moved = vox[gone]
+        out[moved] = to[gone]
+        members[t.id] = vox[~gone]
+        for j in near:
+            sid = stems[j].id
+            members[sid] = np.union1d(members[sid], moved[out[moved] == sid])
+    return out
 
 
 def _group_means(group: np.ndarray, values: np.ndarray, rows: np.ndarray, n_groups: int) -> np.ndarray:
