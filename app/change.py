@@ -263,7 +263,7 @@ def _unit_mismatch(before, after, units_before: str, units_after: str) -> None:
 def _survey_crs(path: Path, kind: str):
     """The CRS a survey's input declares, read without its points: a cloud's header; a trees
     table's ``layers.gpkg`` beside it; a project's trees folder, cloud, or centre scan."""
-    from ..engine.io.crs import read_crs
+    from ..engine.io import read_crs
     from ..engine.io.gpkg import read_crs as gpkg_crs
 
     if kind == "cloud":

@@ -82,7 +82,8 @@ def fuse_clouds(
     from ..engine.coreg.fusion import fuse_files as fuse_point_files
     from ..engine.io import write_fused
     from ..engine.io.base import check_readable
-    from ..engine.io.crs import as_crs, frame_crs, read_crs
+    from ..engine.io import read_crs
+    from ..engine.io.crs import as_crs, frame_crs
 
     given = as_crs(crs, "--crs")
     scale = UNITS[units]

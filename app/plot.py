@@ -476,7 +476,8 @@ def plot_crs(project, scans=None, given=None):
     """The CRS of a plot's outputs (:class:`~forestreg.engine.io.crs.FrameCrs`): the centre scan's
     (or ``given``), and each scan's as its file declares it (a LAS/LAZ header read, not its points;
     other formats from the scan read for the run)."""
-    from ..engine.io.crs import crs_of, frame_crs, read_crs
+    from ..engine.io import read_crs
+    from ..engine.io.crs import crs_of, frame_crs
 
     found = {}
     for s in project.scans:

@@ -43,6 +43,7 @@ from .sniff import READ_SUFFIXES, detect_format
 __all__ = [
     "SUPPORTED_READ_SUFFIXES",
     "SUPPORTED_WRITE_SUFFIXES",
+    "read_crs",
     "read_scan",
     "read_scans",
     "write_e57",
@@ -128,6 +129,18 @@ def read_scans(path: PathLike, *, unit_scale: float = 1.0) -> list[Scan]:
         build_scan(raw, p, fmt="e57", unit_scale=scale, label=f"scan {i} ({raw.name})" if many else None)
         for i, raw in enumerate(raws)
     ]
+
+
+def read_crs(path: PathLike):
+    """The coordinate reference system a point file declares (:class:`~forestreg.engine.io.crs.Crs`),
+    read from its header only: a LAS/LAZ file's WKT or GeoTIFF-key VLRs, an E57 file's
+    ``coordinateMetadata``; None for other formats, files without one, or unreadable files."""
+    suffix = Path(path).suffix.lower()
+    if suffix in (".las", ".laz"):
+        return _las.read_las_crs(Path(path))
+    if suffix == ".e57":
+        return _e57.read_e57_crs(Path(path))
+    return None
 
 
 def _read_single(p: Path, fmt: str, *, with_intensity: bool = True) -> tuple[RawCloud, str]:

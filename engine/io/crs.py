@@ -4,7 +4,8 @@ A cloud's CRS says what its *file coordinates* mean on the Earth (e.g. UTM zone 
 is read from a LAS/LAZ file's WKT or GeoTIFF-key VLRs (laspy's ``header.parse_crs``, which needs
 pyproj) and from an E57 file's ``coordinateMetadata`` when that names one; a file without one is in
 *local* coordinates, and the command line's ``--crs`` (e.g. ``EPSG:32618``) names the CRS of such
-a file, or of the outputs where two inputs disagree. A scan keeps the CRS of its file in
+a file, or of the outputs where two inputs disagree (:func:`forestreg.engine.io.read_crs` reads a
+file's without its points). A scan keeps the CRS of its file in
 ``scan.meta["crs"]`` (:class:`Crs`); moving a scan (:meth:`~forestreg.engine.core.scan.Scan.transformed`)
 drops it, since the moved points are in another frame.
 
@@ -20,12 +21,11 @@ from __future__ import annotations
 import functools
 import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Mapping, Optional
 
 log = logging.getLogger("forestreg.io")
 
-__all__ = ["Crs", "FrameCrs", "as_crs", "crs_of", "crs_of_las_header", "frame_crs", "parse_crs", "read_crs"]
+__all__ = ["Crs", "FrameCrs", "as_crs", "crs_of", "crs_of_e57_root", "crs_of_las_header", "frame_crs", "parse_crs"]
 
 #: The LAS VLRs that hold a CRS (laspy's class names).
 _CRS_VLRS = ("WktCoordinateSystemVlr", "GeoKeyDirectoryVlr")
@@ -200,33 +200,6 @@ def crs_of_e57_root(root) -> Optional[Crs]:
     except Exception:  # noqa: BLE001 - libE57 errors: no CRS
         return None
     return _cached_parse(text) if text else None
-
-
-def read_crs(path) -> Optional[Crs]:
-    """The CRS a point file declares, read from its header only (LAS/LAZ VLRs, E57
-    ``coordinateMetadata``); None for other formats, files without one, or unreadable files."""
-    p = Path(path)
-    suffix = p.suffix.lower()
-    try:
-        if suffix in (".las", ".laz"):
-            import laspy
-
-            from .las import check_las_header
-
-            check_las_header(p)
-            with laspy.open(str(p)) as f:
-                return crs_of_las_header(f.header)
-        if suffix == ".e57":
-            import pye57
-
-            e57 = pye57.E57(str(p), mode="r")
-            try:
-                return crs_of_e57_root(e57.root)
-            finally:
-                e57.close()
-    except Exception:  # noqa: BLE001 - the reader says what is wrong with the file where it is read
-        return None
-    return None
 
 
 def crs_of(scan) -> Optional[Crs]:

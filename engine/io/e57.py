@@ -89,6 +89,19 @@ def read_e57(path: Path, indices: Optional[list[int]] = None) -> list[RawCloud]:
         e57.close()
 
 
+def read_e57_crs(path: Path):
+    """The CRS an E57 file's ``coordinateMetadata`` names (:func:`~forestreg.engine.io.crs.crs_of_e57_root`),
+    its points not read; None without one or for a file that cannot be read."""
+    try:
+        e57 = _open(Path(path))
+    except ScanReadError:
+        return None
+    try:
+        return crs_of_e57_root(e57.root)
+    finally:
+        e57.close()
+
+
 def _read_one(e57, path: Path, index: int, count: int) -> RawCloud:
     from pye57.utils import convert_spherical_to_cartesian
 

@@ -235,6 +235,19 @@ def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS, with_intensit
     return RawCloud(points=points, intensity=intensity, meta=meta)
 
 
+def read_las_crs(path: Path):
+    """The CRS a LAS/LAZ file's header declares (:func:`~forestreg.engine.io.crs.crs_of_las_header`),
+    its points not read; None without one, or for a file that cannot be read (its reading says why)."""
+    import laspy
+
+    try:
+        check_las_header(Path(path))
+        with laspy.open(str(path)) as f:
+            return crs_of_las_header(f.header)
+    except Exception:  # noqa: BLE001 - damaged: the reader reports it where the points are read
+        return None
+
+
 def _short(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return text[0] if text else type(exc).__name__
