@@ -239,12 +239,19 @@ def save_edited(folder, inventory, notes, edits, points=None, *, report: bool = 
     """Write the edited inventory like ``forestreg trees`` (with the points: also the report),
     then add an ``edited`` column to ``trees.csv`` (the notes of each tree's edits, "" for the
     others) and the edits as ``edits.json`` with the content hash of the cloud they were made on
-    (replayable on that cloud with :func:`~forestreg.engine.trees.edit.apply_edits`). Returns the
-    trees.csv path."""
+    (replayable on that cloud with :func:`~forestreg.engine.trees.edit.apply_edits`); ``layers.gpkg``
+    is written again from the edited trees, in the CRS of the one the folder held (local without
+    one). Returns the trees.csv path."""
+    from ..engine.io.gpkg import read_crs as layers_crs
     from ..engine.io.results import write_edits
     from ..engine.trees.edit import cloud_digest
+    from .layers import LAYERS_FILE, cloud_outline, trees_layers, write_layers
 
+    import numpy as np
+
+    crs = layers_crs(Path(folder) / LAYERS_FILE)
     path = inventory.write(folder)
+    write_layers(folder, trees_layers(inventory, outline=None if points is None else cloud_outline(np.asarray(points)[:, :2])), crs)
     if report and points is not None:
         from ..engine.report.trees_report import write_inventory_report
 
