@@ -371,14 +371,19 @@ def _measure_trees(
     timings: dict[str, float] = {}
     t = time.perf_counter()
     progress(0.0, "terrain: ground and DEM")
-    model = terrain_model(p, params.terrain, progress.sub(0.0, 0.08))
-    heights = model.dem.normalise(p)
-    below = float(np.mean(heights < -0.5))
+    try:
+        model = terrain_model(p, params.terrain, progress.sub(0.0, 0.08))
+        heights = model.dem.normalise(p)
+        below = float(np.mean(heights < -0.5))
+    except ScanDataError as exc:  # no ground at all (a segmented tree or crown): as a cloud whose ground was removed
+        log.warning("%s; heights are taken above the lowest points instead", exc)
+        below = math.inf
     if below > 0.02:  # the "ground" found lies above part of the cloud: the ground was removed
-        log.warning(
-            "%.0f %% of the points lie more than 0.5 m below the ground model: the cloud seems to have "
-            "no ground; heights are taken above the lowest points instead", 100 * below,
-        )
+        if math.isfinite(below):
+            log.warning(
+                "%.0f %% of the points lie more than 0.5 m below the ground model: the cloud seems to have "
+                "no ground; heights are taken above the lowest points instead", 100 * below,
+            )
         model = TerrainModel(ground=np.zeros(len(p), dtype=bool), dem=_no_ground_dem(p, params.terrain.dem_resolution_m))
         heights = model.dem.normalise(p)
         no_ground = True
@@ -391,7 +396,7 @@ def _measure_trees(
     stems, stem_params, method = detect_stems_adaptive(p, heights, params.stems, progress.sub(0.08, 0.2), params.noisy_stems)
     timings["stems_s"] = time.perf_counter() - t
     mode = params.single_tree.mode if single_tree is None else ("yes" if single_tree else "no")
-    evidence = single_tree_evidence(p, heights, stems, params.single_tree) if mode != "no" else None
+    evidence = single_tree_evidence(p, heights, stems, params.single_tree, model.ground) if mode != "no" else None
     if evidence is not None and (evidence.single or mode == "yes"):
         if not evidence.single and not math.isfinite(evidence.base_width_m):
             raise ScanDataError(f"a single tree was asked for, but {evidence.reason}")
@@ -1162,14 +1167,15 @@ def _single_tree_inventory(
     t = time.perf_counter()
     progress(0.25, "single-tree cloud: one tree, every point above the ground")
     centre = evidence.base_xy
-    near = [s for s in stems if math.hypot(s.x - centre[0], s.y - centre[1]) <= 0.5 * evidence.base_width_m + 0.5]
-    candidates = list(evidence.standing) or near
+    reach = 0.5 * evidence.base_width_m + 0.5 if math.isfinite(evidence.base_width_m) else math.inf
+    near = [s for s in stems if math.hypot(s.x - centre[0], s.y - centre[1]) <= reach]
+    candidates = [s for s in evidence.standing if s in near] or near
     found = min(candidates, key=lambda s: math.hypot(s.x - centre[0], s.y - centre[1])) if candidates else None
     xy, axis = (np.array([found.x, found.y]), found.axis) if found is not None else (centre, np.array([0.0, 0.0, 1.0]))
     radius = found.radius_m if found is not None else min(0.5, 0.5 * evidence.base_width_m)
     # the stem's lowest point, or a ground surface around it at or below that point
     base = single_tree_base(p, xy, axis, radius, None if no_ground else model.ground, params.single_tree,
-                            params.ground_near_stem_m, z0=found.ground_z if found is not None else None)
+                            params.ground_near_stem_m, z0=found.ground_z if found is not None else None, foot_xy=centre)
     base_z, base_how = base.z, base.how
     stem = base_stem(p, evidence, [found] if found is not None else [], base_z)
     ground = model.ground
