@@ -437,7 +437,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         print()
     resurvey_rows: list[dict[str, Any]] = []
     if "resurvey" in parts:
-        resurvey_rows = resurvey.run(seeds=(1,), quick=args.quick)
+        resurvey_rows = resurvey.run(seeds=resurvey.HELD_OUT_SEEDS[:1], quick=args.quick, scans=(2, 5) if args.quick else (2, 3, 5))
         print(resurvey.format_rows(resurvey_rows))
         print(flush=True)
     calibration_run: Optional[dict[str, Any]] = None

@@ -54,8 +54,7 @@ class GrowthParams(Params):
     min_common_arc_deg: float = _p(60.0, "deg", 0.0, 360.0, "Shortest arc seen in both surveys over which a diameter growth is given (shorter: withheld, with the reason)")
     sigma_floor_m: float = _p(0.0015, "m", 0.0, 0.1, "Least scatter of the sectors' radial changes (bark relief both surveys resolve differently)")
     max_shift_m: float = _p(0.05, "m", 0.001, 1.0, "Largest local shift of a stem between the registered surveys; more: the sections are not one stem")
-    well_covered_shift_sigma_m: float = _p(0.003, "m", 0.0001, 0.1, "Stems whose local shift is known this well (1 sigma) from their own sectors tell the plot's shift field")
-    min_prior_sigma_m: float = _p(0.0015, "m", 0.0, 0.1, "Least 1-sigma of the shift a stem is assumed to have from its neighbours' (the field's roughness)")
+    min_prior_sigma_m: float = _p(0.0015, "m", 0.0, 0.1, "Least 1-sigma of the shift a stem is assumed to have from its neighbours' (the field's roughness, found from the stems)")
 
     def _check(self) -> None:
         lo, hi = self.section_heights_m
@@ -261,54 +260,74 @@ def sector_growth(sec: Optional[StemSections], prior: ShiftPrior = ShiftPrior(),
 
 def shift_prior(positions: np.ndarray, fits: Sequence[GrowthFit], fallback_sigma_m: float,
                 params: GrowthParams = GrowthParams()) -> list[ShiftPrior]:
-    """The shift each stem is expected to have from the others: the registration leaves a smooth
-    field of small shifts (a translation and a turn about the plot), which the stems whose own
-    sectors fix their shift (1-sigma under ``well_covered_shift_sigma_m``) reveal. Per stem
-    (``positions`` (n, 2), ``fits`` of a first pass with a wide prior): the field at the stem,
-    fitted without the stem itself, with the scatter of the well-covered stems about it as the
-    sigma (at least ``min_prior_sigma_m``). With fewer than 4 such stems: no shift expected,
-    ``fallback_sigma_m`` (the registration's own stated uncertainty)."""
+    """The shift each stem is expected to have from the others. The registration leaves a smooth
+    field of small shifts over the plot (a translation and a turn about the vertical), which the
+    stems' own sectors reveal, each as well as its common arc allows (``fits``: a first pass with
+    a wide prior, their shift covariances). The field is fitted by generalised least squares,
+    every stem weighted by its shift covariance plus the field's roughness ``s^2``, chosen by
+    maximum likelihood (at least ``min_prior_sigma_m``); each stem's prior is the field fitted
+    without it, at the stem, with ``s`` and the field's own uncertainty there as its sigma.
+    With fewer than 3 stems measured: no shift expected and ``fallback_sigma_m`` (the
+    registration's stated uncertainty). ``positions`` (n, 2) metres."""
     positions = np.asarray(positions, dtype=float).reshape(-1, 2)
-    good = []
-    for k, f in enumerate(fits):
-        if f.stated and np.all(np.isfinite(f.shift_cov)):
-            if math.sqrt(max(np.linalg.eigvalsh(f.shift_cov).max(), 0.0)) <= params.well_covered_shift_sigma_m:
-                good.append(k)
     fallback = ShiftPrior((0.0, 0.0), max(fallback_sigma_m, params.min_prior_sigma_m))
-    if len(good) < 4:
+    use = [k for k, f in enumerate(fits) if f.stated and np.all(np.isfinite(f.shift_cov)) and np.all(np.isfinite(f.shift_m))]
+    if len(use) < 3:
         return [fallback] * len(fits)
-    g = np.asarray(good)
-    centre = positions[g].mean(axis=0)
-    shifts = np.array([fits[k].shift_m for k in g])
+    centre = positions[use].mean(axis=0)
 
-    def field(idx: np.ndarray) -> np.ndarray:
-        """[tx, ty, w] of a translation plus a small turn w (rad): shift = t + w * perp(p - centre)."""
-        p = positions[idx] - centre
-        a = np.zeros((2 * len(idx), 3))
-        a[0::2, 0] = 1.0
-        a[1::2, 1] = 1.0
-        a[0::2, 2] = -p[:, 1]
-        a[1::2, 2] = p[:, 0]
-        sol, *_ = np.linalg.lstsq(a, np.asarray([fits[k].shift_m for k in idx]).reshape(-1), rcond=None)
-        return sol
-
-    def at(sol: np.ndarray, p: np.ndarray) -> np.ndarray:
+    def design(p: np.ndarray) -> np.ndarray:
+        """(2, 3) rows of shift = [tx, ty, w] at ``p``: t + w * perp(p - centre)."""
         q = p - centre
-        return np.array([sol[0] - sol[2] * q[1], sol[1] + sol[2] * q[0]])
+        return np.array([[1.0, 0.0, -q[1]], [0.0, 1.0, q[0]]])
 
-    sol = field(g)
-    resid = shifts - np.array([at(sol, positions[k]) for k in g])
-    own = np.array([math.sqrt(max(float(np.trace(fits[k].shift_cov)) / 2.0, 0.0)) for k in g])
-    # the field's roughness: the scatter of the shifts about it beyond their own uncertainty
-    spread = float(np.sqrt(max(float(np.median(np.sum(resid**2, axis=1))) / (2.0 * 0.6931) - float(np.median(own**2)), 0.0)))
-    sigma = max(spread, params.min_prior_sigma_m)
+    jac = {k: design(positions[k]) for k in use}
+    obs = {k: np.asarray(fits[k].shift_m, dtype=float) for k in use}
+    cov = {k: np.asarray(fits[k].shift_cov, dtype=float) for k in use}
+
+    def solve(idx: Sequence[int], s2: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """(theta, its covariance, -2 log likelihood, each stem's term capped at 16)."""
+        n = np.zeros((3, 3))
+        rhs = np.zeros(3)
+        w = {}
+        for k in idx:
+            w[k] = np.linalg.inv(cov[k] + s2 * np.eye(2))
+            n += jac[k].T @ w[k] @ jac[k]
+            rhs += jac[k].T @ w[k] @ obs[k]
+        n += 1e-12 * np.eye(3)
+        theta = np.linalg.solve(n, rhs)
+        nll = 0.0
+        for k in idx:
+            r = obs[k] - jac[k] @ theta
+            nll += min(float(r @ w[k] @ r), 16.0) - math.log(max(np.linalg.det(w[k]), 1e-300))
+        return theta, np.linalg.inv(n), nll
+
+    grid = np.geomspace(max(params.min_prior_sigma_m, 1e-4), max(params.max_shift_m, 2e-3), 40)
+    s = min(grid, key=lambda g: solve(use, g * g)[2])
     out = []
     for k in range(len(fits)):
-        idx = g[g != k]
-        s = field(idx) if len(idx) >= 4 else sol
-        m = at(s, positions[k])
-        out.append(ShiftPrior((float(m[0]), float(m[1])), sigma))
+        idx = [i for i in use if i != k]
+        if len(idx) < 3:
+            idx = use
+        theta, tcov, _ = solve(idx, s * s)
+        j = design(positions[k])
+        mean = j @ theta
+        spread = float(np.linalg.eigvalsh(j @ tcov @ j.T).max())
+        out.append(ShiftPrior((float(mean[0]), float(mean[1])), math.sqrt(s * s + max(spread, 0.0))))
     return out
+
+
+def _diameter(before, b: int, after, a: int) -> float:
+    """The stem's diameter (m) to cut its sections by: the earlier survey's DBH, else the later
+    one's, else the median of either stem curve (a stem whose DBH was not supported), else 0.3."""
+    for epoch, k in ((before, b), (after, a)):
+        if math.isfinite(epoch.dbh_m[k]):
+            return float(epoch.dbh_m[k])
+    for epoch, k in ((before, b), (after, a)):
+        curve = epoch.curves[k] if len(epoch.curves) > k else None
+        if curve is not None and len(curve[1]) and np.isfinite(curve[1]).any():
+            return float(np.nanmedian(curve[1]))
+    return 0.3
 
 
 def paired_growth(before, after, pairs: np.ndarray, matrix: np.ndarray, shift_sigma_m: float,
@@ -330,7 +349,7 @@ def paired_growth(before, after, pairs: np.ndarray, matrix: np.ndarray, shift_si
     index_b, index_a = cKDTree(before.band[:, :2]), cKDTree(after_band[:, :2])
     sections = []
     for b, a in pairs:
-        r = 0.5 * float(before.dbh_m[b]) if math.isfinite(before.dbh_m[b]) else 0.15
+        r = 0.5 * _diameter(before, b, after, a)
         centre, axis = before.xy[b], before.axis[b]
         lean = float(np.hypot(*axis[:2]) / max(float(axis[2]), 1e-6))
         reach = r + params.shell_m[1] + params.max_shift_m + lean * 0.6

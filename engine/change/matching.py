@@ -5,7 +5,10 @@ either survey gets a status:
 
 - ``persisting``: a stem of each survey within ``tree_match_distance_m`` with a plausible DBH
   change; or a stem found in one survey whose place in the other survey still (or already) holds
-  stem points (it was occluded or not measured there: flagged, its values there left empty);
+  stem points (it was occluded or not measured there: flagged, its values there left empty),
+  or points on part of its surface (``partial_presence_points``: partly seen); and a stem of the
+  later survey alone thicker than ``max_new_dbh_m``, which cannot have grown in since (its place
+  was occluded in the earlier survey);
 - ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
 - ``new``: a stem of the later survey whose place the earlier survey saw without a stem;
 - (a stem found in one survey alone, without a DBH and without points of its own 1.0-1.6 m above
@@ -83,19 +86,26 @@ class TreeChange:
         return d
 
 
-def _stem_points_at(epoch: EpochTrees, xy: np.ndarray, ground_z: np.ndarray, radius: np.ndarray, index,
-                    heights: tuple[float, float] = (1.0, 2.5)) -> np.ndarray:
-    """Points of ``epoch``'s stem band ``heights`` above the ground within ``radius`` + 5 cm of
-    each position (its own local frame). ``index``: a cKDTree of the band's xy."""
+def _stem_evidence(epoch: EpochTrees, xy: np.ndarray, radius: np.ndarray, index,
+                   heights: tuple[float, float] = (1.0, 2.5)) -> tuple[np.ndarray, np.ndarray]:
+    """Per position: the points of ``epoch``'s stem band ``heights`` above the ground within
+    ``radius`` + 5 cm, and those of them on the stem's surface (within 3 cm of the circle of
+    ``radius``) in at least two 20-degree sectors around it (else 0): a stem partly seen."""
     out = np.zeros(len(xy), dtype=np.int64)
+    shell = np.zeros(len(xy), dtype=np.int64)
     if index is None:
-        return out
+        return out, shell
     for k in range(len(xy)):
         near = np.asarray(index.query_ball_point(xy[k], float(radius[k]) + 0.05), dtype=np.int64)
         if len(near):
             h = epoch.band_heights[near]
-            out[k] = int(np.count_nonzero((h >= heights[0]) & (h <= heights[1])))
-    return out
+            m = (h >= heights[0]) & (h <= heights[1])
+            out[k] = int(np.count_nonzero(m))
+            d = epoch.band[near[m], :2] - xy[k]
+            on = np.abs(np.hypot(d[:, 0], d[:, 1]) - float(radius[k])) <= 0.03
+            sectors = np.unique(np.floor(np.degrees(np.arctan2(d[on, 1], d[on, 0])) / 20.0))
+            shell[k] = int(np.count_nonzero(on)) if len(sectors) >= 2 else 0
+    return out, shell
 
 
 def _covered(epoch: EpochTrees, xy: np.ndarray, radius_m: float, index_all) -> np.ndarray:
@@ -149,7 +159,7 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     for epoch, paired, band in ((before, paired_b, band_b), (after, paired_a, band_a)):
         alone = np.array([k for k in sorted(set(range(len(epoch))) - paired) if not math.isfinite(epoch.dbh_m[k])], dtype=np.int64)
         if len(alone) and epoch.has_points:
-            own = _stem_points_at(epoch, epoch.xy[alone], epoch.ground_z[alone], np.full(len(alone), 0.15), band, (1.0, 1.6))
+            own = _stem_evidence(epoch, epoch.xy[alone], np.full(len(alone), 0.15), band, (1.0, 1.6))[0]
             alone = alone[own < params.presence_points]
         skipped.extend(int(k) for k in alone)
         paired |= set(alone.tolist())
@@ -163,7 +173,7 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
             return
         name = "AFTER" if which == "before" else "BEFORE"
         where = in_other[rest, :2]
-        present = _stem_points_at(other, where, in_other[rest, 2] - 1.3, np.array([radius(epoch, k) for k in rest]), band_other)
+        present, partly = _stem_evidence(other, where, np.array([radius(epoch, k) for k in rest]), band_other)
         seen = other.covers(where)
         if cover_other is not None and other.has_points:
             seen &= _covered(other, where, params.coverage_radius_m, cover_other)
@@ -173,6 +183,13 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
             if other.has_points and present[j] >= params.presence_points:
                 out.append(TreeChange(status="persisting", **base,
                                       flag=_join(own, f"stem present in {name} but not measured there (occluded or unsure): no change")))
+            elif other.has_points and partly[j] >= params.partial_presence_points:
+                out.append(TreeChange(status="persisting", **base,
+                                      flag=_join(own, f"stem partly seen in {name} ({partly[j]} points on its surface: occluded there): no change")))
+            elif status == "new" and seen[j] and epoch.dbh_m[k] > params.max_new_dbh_m:
+                out.append(TreeChange(status="persisting", **base, flag=_join(own, (
+                    f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {100 * params.max_new_dbh_m:g} cm): "
+                    f"its place was occluded in {name} ({present[j]} points there): no change"))))
             elif not seen[j]:
                 out.append(TreeChange(status="outside", **base, flag=f"outside the {name} survey: not compared"))
             else:

@@ -45,6 +45,8 @@ class ChangeParams(Params):
     # --- trees matched across the surveys
     tree_match_distance_m: float = _p(0.5, "m", 0.05, 5.0, "Trees of the two surveys closer than this after the registration are one tree")
     presence_points: int = _p(25, "points", 1, 100000, "Points of the other survey on a stem (1-2.5 m above the ground, within its radius + 5 cm) that show the stem is still (or already) there")
+    partial_presence_points: int = _p(8, "points", 1, 100000, "Fewer points than presence_points but at least this many on the stem's surface (within 3 cm of its circle, in two or more 20 deg sectors): the stem was partly seen (occluded) in the other survey, not absent")
+    max_new_dbh_m: float = _p(0.2, "m", 0.01, 5.0, "A stem of the later survey alone thicker than this is not taken as new (a tree grown in since is thin): where the earlier survey shows no stem, its place was occluded there")
     coverage_radius_m: float = _p(1.5, "m", 0.1, 20.0, "A tree of the later survey is outside the earlier one when that survey has no point within this distance of it (never a new tree where the earlier survey was blind)")
     #: how a persisting stem's diameter growth is measured from the sectors both surveys saw
     growth: GrowthParams = GrowthParams()
