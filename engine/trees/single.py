@@ -177,13 +177,20 @@ def _lowest_on_axis(p: np.ndarray, stem: Stem) -> float:
 def _canopy_surface(p: np.ndarray) -> np.ndarray:
     """The highest z of each cell of a grid over ``p`` (0.5 m cells, 1 m where the cloud is
     sparse), empty cells taking the highest of their neighbours (NaN where none)."""
-    xy = p[:, :2]
-    cells_1m = len(np.unique(np.floor(xy - xy.min(axis=0)).astype(np.int64), axis=0))
-    cell = 0.5 if len(p) >= 8.0 * cells_1m else 1.0
-    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
+    xy = p[:, :2] - p[:, :2].min(axis=0)
+    ij_1m = np.floor(xy).astype(np.int64)
+    occupied_1m = np.zeros(tuple(int(v) + 1 for v in ij_1m.max(axis=0)), dtype=bool)
+    occupied_1m[ij_1m[:, 0], ij_1m[:, 1]] = True
+    cell = 0.5 if len(p) >= 8.0 * np.count_nonzero(occupied_1m) else 1.0
+    ij = np.floor(xy / cell).astype(np.int64)
     shape = tuple(int(v) + 1 for v in ij.max(axis=0))
-    top = np.full(shape, -np.inf)
-    np.maximum.at(top, (ij[:, 0], ij[:, 1]), p[:, 2])
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    order = np.argsort(flat, kind="stable")
+    flat_sorted = flat[order]
+    starts = np.flatnonzero(np.r_[True, flat_sorted[1:] != flat_sorted[:-1]])
+    top = np.full(shape[0] * shape[1], -np.inf)
+    top[flat_sorted[starts]] = np.maximum.reduceat(p[order, 2], starts)
+    top = top.reshape(shape)
     empty = ~np.isfinite(top)
     top = np.where(empty, ndimage.maximum_filter(top, size=3, mode="constant", cval=-np.inf), top)
     return np.where(np.isfinite(top), top, np.nan)
