@@ -52,6 +52,8 @@ class HeightCurveParams(Params):
     max_scatter_fill: float = _p(0.06, "1", 0.0, 2.0, "...only from a curve whose scatter is at most this (the prediction is as good as the curve's scatter)")
     min_inliers_fill: int = _p(10, "trees", 3, 100000, "...resting on at least this many trees")
     fill_dbh_margin: float = _p(0.1, "1", 0.0, 10.0, "...for a DBH at most this fraction outside the range of the trees it was fitted to")
+    clear_below: float = _p(0.10, "1", 0.0, 1.0, "A top standing clear over its stem (no hint about it) is the tree's own when its height is at most this fraction below the curve...")
+    clear_above: float = _p(0.15, "1", 0.0, 10.0, "...and at most this fraction above it (an apex seen as a tip: any height below, at most this above); beyond, the height is low and the curve gives the estimate")
     min_tips_fill: int = _p(5, "trees", 0, 100000, "...and in a plot where at least this many trees show their own apex as a tip over the stem, none of them further below the curve than a clear top may stand (such a tree is suppressed, and where suppressed trees grow a hidden top may be one: the curve would stand it too tall)")
 
 
@@ -127,6 +129,12 @@ class HeightCurve:
         trees the curve was fitted to, widened by ``params.fill_dbh_margin`` either way."""
         if self.fill_refusal(params):
             return math.nan
+        return self.estimate_height_m(dbh_m, params)
+
+    def estimate_height_m(self, dbh_m: float, params: "HeightCurveParams") -> float:
+        """The curve's height (m) at a DBH (m) within the range of the trees it was fitted to,
+        widened by ``params.fill_dbh_margin`` either way; NaN outside it (whether the curve may
+        stand in is :meth:`fill_refusal`'s)."""
         lo, hi = self.dbh_min_m * (1.0 - params.fill_dbh_margin), self.dbh_max_m * (1.0 + params.fill_dbh_margin)
         if not (math.isfinite(dbh_m) and lo <= dbh_m <= hi):
             return math.nan

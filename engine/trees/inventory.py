@@ -38,7 +38,7 @@ from .allometry import HeightCurve, HeightCurveParams, fit_height_curve
 from .crown import CrownMeasurement, CrownParams, apex_tip, measure_crown, top_cut_flat, top_over_stem
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
-from .segmentation import CompletenessParams, SegmentationParams, axis_stems, segment_trees, top_layer, tree_completeness
+from .segmentation import CompletenessParams, SegmentationParams, axis_stems, expected_crown_radius, segment_trees, top_layer, tree_completeness
 from .single import SingleTreeEvidence, SingleTreeParams, base_stem, flat_dem, single_tree_base, single_tree_evidence
 from .stems import DbhMeasurement, NoisyStemParams, Stem, StemCurve, StemParams, dbh_sigma, detect_stems_adaptive, measure_stems
 
@@ -93,6 +93,9 @@ class TreeParams(Params):
     #: a thinner stem this close to a thicker one may stand within that tree's crown; closer
     #: than segmentation.axis_dominance_dbh its axis is not continued (it grows from its own points)
     crown_reach_dbh: float = _p(7.0, "DBH", 0.0, 100.0, "a stem whose axis is continued into the crowns, closer than this many of a thicker stem's DBH to it, has its height checked against the plot's height-diameter curve (flagged without one): its top may be in that tree's crown (0 = no such check)")
+    #: a stem under a thicker neighbour's expected crown may be suppressed: the curve does not vouch for its height
+    overtopped_crown_fraction: float = _p(1.0, "1", 0.0, 10.0, "a stem within this fraction of a thicker neighbour's expected crown radius (segmentation.crown_radius_per_dbh) stands under that crown: it may be suppressed, and the plot's height-diameter curve does not vouch for its height (0 = no such check)")
+    overtopped_agreement: float = _p(0.10, "1", 0.0, 1.0, "...unless its points' top stands within this fraction of the curve (the two witnesses agree)")
     #: the radius around a position clicked in an edit (add a tree, split a tree)
     stem_search_radius_m: float = _p(1.0, "m", 0.1, 10.0, "radius around a position given in an edit (add, split) searched for a stem")
 
@@ -462,6 +465,7 @@ def _measure_trees(
     t = time.perf_counter()
     records: list[TreeRecord] = []
     height_curve = _plot_height_curve(stems, dbh, curves, crowns, shared, complete, stem_params, params)
+    overtopped = _under_thicker_crowns(stems, params)
     order, bounds = _points_by_stem(labels, stems)
     for k, stem in enumerate(stems):
         progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: crown and cylinder model")
@@ -470,7 +474,7 @@ def _measure_trees(
             p, stem, idx, dbh[stem.id], curves[stem.id], crowns[stem.id], wood,
             complete[stem.id].reasons if stem.id in complete else (), params, stem_params=stem_params, method=method,
             no_ground=no_ground, ground_near=ground_near.get(stem.id), shared_flag=shared.get(stem.id),
-            height_curve=height_curve,
+            height_curve=height_curve, overtopped=overtopped.get(stem.id),
         ))
     timings["trees_s"] = time.perf_counter() - t
     if method == "noisy" and _airborne_like(heights, params.airborne_band_ratio):  # stems sparse and hardly sampled: the canopy decides
@@ -609,6 +613,7 @@ def tree_record(
     shared_flag: Optional[str] = None,
     top_evidence: bool = True,
     height_curve: Optional[HeightCurve] = None,
+    overtopped: Optional[str] = None,
 ) -> TreeRecord:
     """One tree's record from its measurements: the reported DBH (the stem curve at breast
     height; none from a failed fit), the height's checks, the cylinder model on its wood points
@@ -629,7 +634,10 @@ def tree_record(
     trees grow (:attr:`.allometry.HeightCurve.n_tips_below`) the curve vouches for no top under or
     touching a neighbour's crown. A height low for its top (not its ground) is replaced by the
     curve's where it may stand in (:meth:`.allometry.HeightCurve.fill_height_m`): the record's
-    ``height_m`` reports it, ``crown.height_m`` keeps the points' top. Local frame, metres."""
+    ``height_m`` reports it, ``crown.height_m`` keeps the points' top. For a plot's tree
+    (``top_evidence``) :func:`_judge_top` decides instead (``overtopped``: why the stem stands
+    under a thicker neighbour's expected crown, :func:`_under_thicker_crowns`; None when it does
+    not). Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
     quality: dict[str, str] = {}
@@ -725,66 +733,59 @@ def tree_record(
         h_trust = _trust(h_trust, "low")
         h_how += ", too tall for its stem"
     hints_consistent = False
-    if not hints and top_evidence and height_curve is not None and math.isfinite(crown.height_m):
-        departure = height_curve.departure(dbh_value, crown.height_m)
-        allowed = height_curve.max_departure(params.height_curve)
-        if math.isfinite(departure) and abs(departure) > allowed:
-            top_flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve (beyond "
-                             f"{100 * allowed:.0f} % either way): top hidden, or a neighbour's (height unsure)")
-            h_trust = _trust(h_trust, "low")
-            h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve"
-    if hints:
-        hc = params.height_curve
-        kinds = {k for k, _ in hints}
-        below = hc.below_unseen if "unseen" in kinds else hc.below_under_crown if "under" in kinds else hc.below
-        departure = height_curve.departure(dbh_value, crown.height_m) if height_curve is not None else math.nan
-        if "unseen" in kinds and height_curve is not None and height_curve.scatter > hc.max_scatter_unseen:
-            departure = math.nan  # too loose a curve to vouch for a top not seen
-        within = math.isfinite(departure) and -below <= departure <= hc.above
-        suppressed_here = ""
-        if kinds & {"under", "unseen"} and height_curve is not None and height_curve.n_tips_below:
-            # suppressed trees grow here (trees whose own apex is seen stand far below the curve): a
-            # top under or touching a neighbour's crown may be one's, its segment reaching up into
-            # that crown to a height the curve would call consistent; only a tip vouches for it
-            suppressed_here = (f"suppressed trees grow here ({height_curve.n_tips_below} of {height_curve.n_tips} trees with "
-                               f"their apex seen as a tip stand more than {100 * height_curve.max_departure(hc):.0f} % below the "
-                               f"plot's height-diameter curve): the curve does not vouch for a top under or touching a "
-                               f"neighbour's crown")
-        if kinds == {"under"} and top_evidence and apex_tip(crown, params.crown):
-            # a suppressed tree whose apex is seen as a tip: its own top, however far below the curve
-            hints_consistent = True
-            h_trust = _trust(h_trust, "medium")
-            h_how += ", its apex seen as a tip over the stem"
-        elif within and not suppressed_here:
-            hints_consistent = True
-            h_trust = _trust(h_trust, "medium")
-            h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (consistent)"
-        else:
-            top_flags += [text for _, text in hints]
-            h_trust = _trust(h_trust, "low")
-            if suppressed_here and within:
-                top_flags.append(suppressed_here)
-                h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (not vouched for: suppressed trees grow here)"
-            elif math.isfinite(departure):
-                top_flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve "
-                                 f"(allowed {-100 * below:.0f} % to +{100 * hc.above:.0f} %)")
-                h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve"
+    height_fill = math.nan
+    if top_evidence:  # a plot's tree: the points' top, the plot's curve and the neighbours decide
+        h_trust, h_how, height_fill, top_flags = _judge_top(crown, dbh_value, quality["dbh"], hints, top_flags, h_trust, ground_trust,
+                                                            h_how, params, height_curve, overtopped)
+        hints_consistent = bool(hints) and h_trust != "low"
+        flags += top_flags
+    else:  # a single-tree cloud: its top is the cloud's
+        if hints:
+            hc = params.height_curve
+            kinds = {k for k, _ in hints}
+            below = hc.below_unseen if "unseen" in kinds else hc.below_under_crown if "under" in kinds else hc.below
+            departure = height_curve.departure(dbh_value, crown.height_m) if height_curve is not None else math.nan
+            if "unseen" in kinds and height_curve is not None and height_curve.scatter > hc.max_scatter_unseen:
+                departure = math.nan  # too loose a curve to vouch for a top not seen
+            within = math.isfinite(departure) and -below <= departure <= hc.above
+            suppressed_here = ""
+            if kinds & {"under", "unseen"} and height_curve is not None and height_curve.n_tips_below:
+                # suppressed trees grow here (trees whose own apex is seen stand far below the curve): a
+                # top under or touching a neighbour's crown may be one's, its segment reaching up into
+                # that crown to a height the curve would call consistent; only a tip vouches for it
+                suppressed_here = (f"suppressed trees grow here ({height_curve.n_tips_below} of {height_curve.n_tips} trees with "
+                                   f"their apex seen as a tip stand more than {100 * height_curve.max_departure(hc):.0f} % below the "
+                                   f"plot's height-diameter curve): the curve does not vouch for a top under or touching a "
+                                   f"neighbour's crown")
+            if within and not suppressed_here:
+                hints_consistent = True
+                h_trust = _trust(h_trust, "medium")
+                h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (consistent)"
             else:
-                h_how += ", no height-diameter curve to check it"
+                top_flags += [text for _, text in hints]
+                h_trust = _trust(h_trust, "low")
+                if suppressed_here and within:
+                    top_flags.append(suppressed_here)
+                    h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (not vouched for: suppressed trees grow here)"
+                elif math.isfinite(departure):
+                    top_flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve "
+                                     f"(allowed {-100 * below:.0f} % to +{100 * hc.above:.0f} %)")
+                    h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve"
+                else:
+                    h_how += ", no height-diameter curve to check it"
+        if (h_trust == "low" and ground_trust != "low" and height_curve is not None and math.isfinite(crown.height_m)
+                and not quality["dbh"].endswith(("low", "none"))):
+            height_fill = height_curve.fill_height_m(dbh_value, params.height_curve)
+        if math.isfinite(height_fill):
+            # the points' top is not the tree's: the plot's curve predicts the height, as good as its scatter
+            why = "; ".join(dict.fromkeys(top_flags)) or "top unsure"
+            h_trust = _trust(ground_trust, "medium")
+            h_how = (f"from the plot's height-diameter curve at the DBH (scatter {100 * height_curve.scatter:.0f} %, "
+                     f"{height_curve.n_inliers} trees): the points' top ({crown.height_m:.1f} m) not taken: {why}")
+        else:
+            flags += top_flags
     if "stem cut by the plot edge" in reasons and math.isfinite(dbh_value) and not quality["dbh"].endswith(("low", "none")):
         quality["dbh"] = quality["dbh"].rsplit("; ", 1)[0] + ", stem cut by the plot edge; low"
-    height_fill = math.nan
-    if (h_trust == "low" and ground_trust != "low" and height_curve is not None and math.isfinite(crown.height_m)
-            and not quality["dbh"].endswith(("low", "none"))):
-        height_fill = height_curve.fill_height_m(dbh_value, params.height_curve)
-    if math.isfinite(height_fill):
-        # the points' top is not the tree's: the plot's curve predicts the height, as good as its scatter
-        why = "; ".join(dict.fromkeys(top_flags)) or "top unsure"
-        h_trust = _trust(ground_trust, "medium")
-        h_how = (f"from the plot's height-diameter curve at the DBH (scatter {100 * height_curve.scatter:.0f} %, "
-                 f"{height_curve.n_inliers} trees): the points' top ({crown.height_m:.1f} m) not taken: {why}")
-    else:
-        flags += top_flags
     quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
     if math.isfinite(dbh_value):  # a DBH is reported: no "fit failed" flag, say what is unsure
         failed = [f for f in flags if f.startswith("DBH fit failed")]
@@ -842,6 +843,118 @@ def tree_record(
         volume_m3=volume, stem_form_factor=ff,
         source="stem", quality=quality, height_from_curve_m=height_fill,
     )
+
+
+def _hint_names(hints: Sequence[tuple[str, str]]) -> set[str]:
+    """Short names of the hints about a top (texts of :func:`tree_record` and :func:`_shared_tops`):
+    "flank", "missing", "flat", "under", "touch", "reach" (a stem within a thicker one's crown
+    reach) and "neighbour" (amid or nearer to a neighbour's crown)."""
+    names = set()
+    for _, text in hints:
+        if text.startswith("top on the crown's flank"):
+            names.add("flank")
+        elif text == "top missing":
+            names.add("missing")
+        elif text.startswith("top not seen: crown cut flat"):
+            names.add("flat")
+        elif text.startswith("top under a neighbour's crown"):
+            names.add("under")
+        elif text.startswith("top touching a neighbour's crown"):
+            names.add("touch")
+        elif "within its crown's reach" in text:
+            names.add("reach")
+        else:
+            names.add("neighbour")
+    return names
+
+
+def _judge_top(crown: CrownMeasurement, dbh_value: float, dbh_quality: str, hints: Sequence[tuple[str, str]], top_flags: list[str],
+               h_trust: str, ground_trust: str, h_how: str, params: TreeParams, curve: Optional[HeightCurve],
+               overtopped: Optional[str]) -> tuple[str, str, float, list[str]]:
+    """A plot tree's height: (trust, how, the curve's estimate or NaN, flags of the top).
+
+    The points' top stands (its trust kept) only with evidence that it is the tree's own apex,
+    seen: its apex seen as a tip over the stem (under a neighbour's crown, or beside a thicker
+    stem, at most :attr:`.allometry.HeightCurveParams.clear_above` above the plot's curve), or
+    its top over the stem with no hint at all (not on the flank, not missing or cut flat, no
+    neighbour's crown over, around or nearer to it) and within ``clear_below`` below to
+    ``clear_above`` above the curve (any height without a curve). ``top_flags`` holding a decisive
+    doubt (``h_trust`` low already: too slender, points of no tree above) means no evidence.
+
+    Otherwise the height is low, and the plot's height-diameter curve gives the estimate
+    (:meth:`.allometry.HeightCurve.estimate_height_m`, within the diameters it was fitted on):
+    the curve's height, or for a top under or touching a neighbour's crown that stands below the
+    curve (a suppressed tree, or a top hidden in the crown over it) midway between the two. The
+    curve vouches for it (medium trust, no flag) only where it may stand in
+    (:meth:`.allometry.HeightCurve.fill_refusal`), for a top not under, touching or amid a
+    neighbour's crown, on a stem not standing under a thicker neighbour's expected crown
+    (``overtopped``) unless its points' top stands within
+    :attr:`TreeParams.overtopped_agreement` of the curve: such trees may be suppressed, and the
+    curve stands them too tall. A tip under a neighbour's crown needs a curve to stand (without
+    one it may be a lower part of a tree whose top is hidden in that crown)."""
+    hc = params.height_curve
+    names = _hint_names(hints)
+    nan = math.nan
+    dep = curve.departure(dbh_value, crown.height_m) if curve is not None else nan
+    dep_text = f", {100 * dep:+.0f} % from the plot's height-diameter curve" if math.isfinite(dep) else ""
+    if h_trust != "low" and math.isfinite(crown.height_m):
+        if (apex_tip(crown, params.crown) and names <= {"under", "reach"} and not dep > hc.clear_above
+                and not ("under" in names and not math.isfinite(dep))):
+            # its apex seen as a tip: its own top, however far below the curve (a suppressed tree)
+            return (_trust(h_trust, "medium") if names else h_trust), h_how + ", its apex seen as a tip over the stem" + dep_text, nan, top_flags
+        if not names and (not math.isfinite(dep) or -hc.clear_below <= dep <= hc.clear_above):
+            return h_trust, h_how + (dep_text + " (consistent)" if dep_text else ""), nan, top_flags
+    flags = list(top_flags) + [text for _, text in hints]
+    if math.isfinite(dep) and not names and h_trust != "low":
+        flags.append(f"height {100 * dep:+.0f} % from the plot's height-diameter curve (beyond -{100 * hc.clear_below:.0f} % to "
+                     f"+{100 * hc.clear_above:.0f} %): top hidden, or a neighbour's (height unsure)")
+    elif math.isfinite(dep) and names:
+        flags.append(f"height {100 * dep:+.0f} % from the plot's height-diameter curve")
+    h_how += dep_text if dep_text else ", no height-diameter curve to check it"
+    estimate = curve.estimate_height_m(dbh_value, hc) if curve is not None else nan
+    if not (math.isfinite(estimate) and math.isfinite(crown.height_m)) or ground_trust == "low" or dbh_quality.endswith(("low", "none")):
+        return "low", h_how, nan, flags
+    why = "; ".join(dict.fromkeys(flags)) or "top unsure"
+    scatter = f"scatter {100 * curve.scatter:.0f} %, {curve.n_inliers} trees"
+    if names & {"under", "touch"} and crown.height_m < estimate:
+        estimate = 0.5 * (crown.height_m + estimate)
+        how = (f"midway between the points' top ({crown.height_m:.1f} m) and the plot's height-diameter curve at the DBH "
+               f"({scatter}): a top under a neighbour's crown is a suppressed tree's or hidden in that crown: {why}")
+    else:
+        how = f"from the plot's height-diameter curve at the DBH ({scatter}): the points' top ({crown.height_m:.1f} m) not taken: {why}"
+    refusal = curve.fill_refusal(hc)
+    if not refusal and names & {"under", "touch", "neighbour"}:
+        refusal = "a top under, touching or amid a neighbour's crown (a suppressed tree's, or that crown's)"
+    if not refusal and overtopped is not None and not abs(dep) <= params.overtopped_agreement:
+        refusal = f"{overtopped}, and its points' top {100 * dep:+.0f} % from the curve"
+    if not refusal:
+        return _trust(ground_trust, "medium"), how, estimate, []
+    return "low", f"{how} (not vouched for: {refusal})", estimate, flags
+
+
+def _under_thicker_crowns(stems: Sequence[Stem], params: TreeParams) -> dict[int, str]:
+    """Stems standing under a thicker neighbour's expected crown: a stem at least
+    :attr:`.segmentation.SegmentationParams.dominance_ratio` times thicker within
+    :attr:`TreeParams.overtopped_crown_fraction` of its expected crown radius
+    (:func:`.segmentation.expected_crown_radius`). Such a tree may be suppressed: the plot's
+    height-diameter curve does not vouch for its height. Returns {tree id: why}."""
+    seg = params.segmentation
+    if params.overtopped_crown_fraction <= 0 or seg.crown_radius_per_dbh <= 0 or len(stems) < 2:
+        return {}
+    out: dict[int, str] = {}
+    for s in stems:
+        best = None
+        for o in stems:
+            if o is s or not (o.radius_m >= seg.dominance_ratio * s.radius_m):
+                continue
+            reach = params.overtopped_crown_fraction * expected_crown_radius(o.radius_m, seg)
+            d = math.hypot(o.x - s.x, o.y - s.y)
+            if d < reach and (best is None or d / reach < best[0]):
+                best = (d / reach, d, o)
+        if best is not None:
+            _, d, o = best
+            out[s.id] = f"its stem stands {d:.1f} m from thicker tree {o.id} ({200 * o.radius_m:.0f} cm), under that tree's expected crown"
+    return out
 
 
 def _wood_fraction(wood: np.ndarray, threshold: float) -> float:
