@@ -11,6 +11,7 @@ tables)::
     [fusion]                  redundancy and noise removal (sec. 4.2)
     [trees]                   tree measurement ([trees.stems], [trees.qsm], ...)
     [change]                  re-surveys: persisting stems, registration, tree matching
+    [plan]                    where to scan next: the next-scan planner
 
 Every command accepts such a file with ``--params``; ``forestreg params --toml`` prints the
 defaults as a template. A file may set only the values it changes.
@@ -27,7 +28,7 @@ from .core.params import Params, read_toml
 from .change.params import ChangeParams
 from .coreg.coregister import CoregistrationParams
 from .coreg.fusion import FusionParams
-from .tls.params import RegistrationParams, ScannerPositionParams, SurveyParams
+from .tls.params import PlanParams, RegistrationParams, ScannerPositionParams, SurveyParams
 from .trees.inventory import TreeParams
 
 __all__ = ["ProductParams", "load_params", "params_toml"]
@@ -44,6 +45,7 @@ class ProductParams(Params):
     fusion: FusionParams = FusionParams()
     trees: TreeParams = TreeParams()
     change: ChangeParams = ChangeParams()
+    plan: PlanParams = PlanParams()
 
 
 def load_params(path: str | Path) -> ProductParams:

@@ -17,7 +17,7 @@ from ..core.uncertainty import UncertaintyParams
 from ..geometry.icp_params import IcpParams
 from ..geometry.solution_params import DistinctParams, MarginParams
 
-__all__ = ["RegistrationParams", "ScannerPositionParams", "SurveyParams"]
+__all__ = ["PlanParams", "RegistrationParams", "ScannerPositionParams", "SurveyParams"]
 
 
 @dataclass(frozen=True)
@@ -135,3 +135,22 @@ class SurveyParams(Params):
     def _check(self) -> None:
         if self.pairs not in ("within", "all", "centre"):
             raise ParameterError(f"pairs must be 'within', 'all' or 'centre', not {self.pairs!r}")
+
+
+@dataclass(frozen=True)
+class PlanParams(Params):
+    """Settings of the next-scan planner (``forestreg plan``): where a scan would link to the
+    placed scans and see the most stem surface not yet seen (plan frame: the centre scan's file
+    coordinates seen from above, metres)."""
+
+    radius_m: Optional[float] = _p(None, "m", 2.0, 500.0, "Plot radius around the centre scan's scanner within which stems and ground count and scans are suggested; empty = from the ground the placed scans saw")
+    grid_m: float = _p(1.0, "m", 0.1, 10.0, "Spacing of the candidate scanner positions")
+    clearance_m: float = _p(0.6, "m", 0.0, 5.0, "A suggested scanner stands at least this far from the bark of every mapped stem and from whatever a placed scan saw at the slice height (shrubs, rocks)")
+    min_shared_stems: int = _p(10, "stems", 3, 1000, "Trunk shadows a suggested scan must share with a placed scan within one registration radius D_r (the pair needs min_matched and a lead over a chance match; the rest allows for what the stem map does not show)")
+    stem_band_m: float = _p(2.0, "m", 0.1, 20.0, "Height of the band of bark counted as stem area (stem area = arc length x this height)")
+    arc_bins: int = _p(36, "bins", 8, 360, "Each stem's circumference is followed in this many arcs")
+    patch_m: float = _p(0.5, "m", 0.05, 5.0, "A patch of bark (one arc, this tall) counts as seen once a scan put a point on it: the chance is 1 - exp(-n) for the n points the scan's angular step puts there")
+    merge_m: float = _p(0.4, "m", 0.05, 2.0, "Trunk shadows of different scans within this distance are one stem")
+    azimuth_step_deg: float = _p(0.25, "deg", 0.01, 5.0, "Angular step of the occlusion map of a scanner position")
+    ground_cell_m: float = _p(1.0, "m", 0.1, 10.0, "Cell of the grid of the plot's ground: seen (a placed scan has ground points in it) or in view of a scanner position")
+    min_visible_fraction: float = _p(0.5, "1", 0.0, 1.0, "A stem casts a trunk shadow from a position when at least this fraction of its width is not hidden by nearer stems")
