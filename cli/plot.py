@@ -1,4 +1,4 @@
-"""``forestreg plot``, ``project``, ``compare`` and ``targets``: whole plots of TLS scans (System A)."""
+"""``forestreg plot``, ``plan``, ``project``, ``compare`` and ``targets``: whole plots of TLS scans (System A)."""
 
 from __future__ import annotations
 
@@ -45,6 +45,14 @@ def add_parsers(sub, add_global_flags) -> None:
     p.add_argument("--known", help="approximate targets CSV: name detections after the nearest known target")
     p.add_argument("--max-distance", type=number("--max-distance", positive=True), default=0.3, help="largest distance to a known target, metres (default 0.3)")
     p.set_defaults(func=cmd_targets, long_running=True)
+
+    p = sub.add_parser("plan", help="where to scan next: stems and ground not seen yet, link strength, and 1-3 scanner positions that link and see the most new stem area (plan.json)")
+    p.add_argument("project", metavar="PROJECT_OR_OUT", help="a plot folder (of 'plot' or 'plot --watch') or a project file")
+    p.add_argument("--n", type=number("--n", minimum=1, integer=True), default=1, metavar="N", help="how many next scans to suggest, 1 to 3 (default 1)")
+    p.add_argument("--radius", type=number("--radius", positive=True), metavar="M", help="plot radius in metres around the centre scan's scanner (default: from the ground the scans saw)")
+    p.add_argument("--out", help="the plan file to write (.json; default plan.json beside the project file)")
+    p.add_argument("--params", help=PARAMS_HELP)
+    p.set_defaults(func=cmd_plan, long_running=True)
 
     p = sub.add_parser("project", help="create, inspect, link and re-run a saved plot project")
     psub = p.add_subparsers(dest="action", required=True, metavar="{create,show,link,run}")
@@ -168,6 +176,41 @@ def cmd_plot(args: argparse.Namespace) -> int:
         say(f"resuming the stopped run in {shown(out)}: {kept} of {len(project.links)} links registered before are kept", args, err=True)
     project.save(out / "project.json")
     return run_project(project, out, args, scans)
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    """``plan``: the next scans of a plot (:func:`forestreg.app.plan.plan_next`) and a short table."""
+    from ..app.plan import plan_next
+    from ..engine.core.errors import UsageError
+
+    if args.n > 3:
+        raise UsageError(f"--n must be 1, 2 or 3, got {args.n}")
+    params = file_section(args, "plan")
+    if args.radius is not None:
+        from ..engine.tls.params import PlanParams
+
+        params = (params or PlanParams()).replace(radius_m=args.radius)
+    run = run_outcome(args.reporter, plan_next, args.project, n=args.n, params=params, out=args.out)
+    plan = run.plan
+    print(f"plot: {len(plan.scanners)} scans placed, radius {plan.radius_m:.1f} m around ({plan.centre[0]:.1f}, {plan.centre[1]:.1f}) "
+          f"in {run.frame}'s coordinates")
+    print(f"stems: {plan.stems} mapped, {plan.stems_seen_twice} seen by two or more scans; stem area seen {plan.stem_area_seen_m2:.1f} m2, "
+          f"not seen {plan.stem_area_unseen_m2:.1f} m2; ground seen {plan.ground_seen_m2:.0f} m2, not seen {plan.ground_unseen_m2:.0f} m2")
+    for link in run.links:
+        matched = "-" if link.matched is None else link.matched
+        sigma = "" if link.translation_m is None or link.rotation_deg is None else \
+            f", 1 sigma {100 * link.translation_m:.1f} cm / {link.rotation_deg:.3f} deg"
+        print(f"link {link.moving} -> {link.reference}: {link.strength} ({matched} trunk shadows{sigma})")
+    if plan.suggestions:
+        print(f"{'next':>4} {'x (m)':>8} {'y (m)':>8}  {'links to':<20} {'shared':>6} {'new stem m2':>11} {'new view m2':>11}")
+        for k, s in enumerate(plan.suggestions, 1):
+            print(f"{k:>4} {s.x:>8.1f} {s.y:>8.1f}  {s.links_to:<20} {s.shared_stems:>6} {s.new_stem_area_m2:>11.1f} {s.new_view_m2:>11.0f}")
+    args.reporter.done("", run.out)
+    if not run:
+        say(f"no next scan: {run.reason} -> {shown(run.out)}", args, err=True)
+        return 1
+    say(f"plan: {shown(run.out)}", args)
+    return 0
 
 
 def cmd_project(args: argparse.Namespace) -> int:

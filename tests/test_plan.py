@@ -1,0 +1,152 @@
+"""The next-scan planner: what a position sees (stems as opaque discs), the plot as the placed
+scans saw it, and suggestions that lie in the plot, link to a placed scan (checked by simulating
+and registering the suggested scan) and add stem area not seen yet; ``forestreg plan``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from forestreg.cli import main
+from forestreg.engine.core.transform import rigid_errors
+from forestreg.engine.io import write_scan
+from forestreg.engine.tls.params import PlanParams, RegistrationParams
+from forestreg.engine.tls.plan import PlotCoverage, StemMap, placed_views, plan_scans, sight
+from forestreg.engine.tls.plot import ScanCache, register_project
+from forestreg.engine.tls.project import Project
+
+TWO = ((0.0, 0.0), (7.0, 3.0))
+
+
+def _stems(xy, radius) -> StemMap:
+    xy = np.asarray(xy, dtype=float)
+    return StemMap(xy, np.asarray(radius, dtype=float), tuple(frozenset() for _ in xy), {})
+
+
+def test_a_stem_hides_what_stands_behind_it():
+    stems = _stems([(5.0, 0.0), (10.0, 0.0), (0.0, 8.0)], [0.3, 0.3, 0.2])
+    s = sight((0.0, 0.0), stems, reach_m=30.0)
+    assert s.visible_fraction.tolist() == [1.0, 0.0, 1.0]
+    arcs = s.arcs(stems, 36)
+    front = int(180 // 10)  # the arc of the first stem facing the scanner (at 180 deg about its centre)
+    assert arcs[0, front] == 1.0 and arcs[0, 0] == 0.0 and not arcs[1].any()
+    ground = s.ground(np.array([(7.0, 0.0), (7.0, 3.0), (3.0, 0.0)]), reach_m=30.0)
+    assert ground.tolist() == [False, True, True]
+    assert not sight((0.0, 0.0), stems, reach_m=4.0).visible_fraction.any(), "nothing beyond reach is seen"
+    # a coarser scanner puts fewer points on a far patch than on a near one
+    coarse = sight((0.0, 0.0), _stems([(3.0, 0.0), (0.0, 20.0)], [0.2, 0.2]), reach_m=30.0).arcs(
+        _stems([(3.0, 0.0), (0.0, 20.0)], [0.2, 0.2]), 36, 0.5, np.radians(0.4))
+    assert coarse[0].max() > coarse[1].max() > 0.0
+
+
+@pytest.fixture(scope="module")
+def placed(sim_plot, tmp_path_factory):
+    """Two scans of a small simulated plot, registered: (plot, project, scan cache)."""
+    plot = sim_plot("mixed_temperate", TWO, seed=41, step=0.4, size=30.0)
+    folder = tmp_path_factory.mktemp("placed")
+    project = Project(name="placed")
+    for s in plot.scans:
+        write_scan(s.scan, folder / f"{s.scan.name}.laz")
+        project.add_scan(folder / f"{s.scan.name}.laz")
+    cache = ScanCache(project, with_intensity=False)
+    assert not register_project(project, scans=cache).failed
+    project.save(folder / "project.json")
+    return plot, project, cache
+
+
+def test_the_plot_as_the_placed_scans_saw_it(placed):
+    plot, project, cache = placed
+    views = placed_views(project, cache)
+    assert [v.name for v in views] == ["scan_01.laz", "scan_02.laz"]
+    m0 = plot.scans[0].pose
+    for v, s in zip(views, plot.scans):  # scanners where the truth has them
+        assert np.allclose((m0 @ np.r_[v.scanner, 1.0])[:3], s.position, atol=0.05)
+    assert abs(views[0].step_rad - np.radians(0.4)) < np.radians(0.05)
+    coverage = PlotCoverage(views, PlanParams(radius_m=13.0), project.params)
+    world = (m0[:2, :2] @ coverage.stems.xy.T).T + m0[:2, 3]
+    trees = np.array([(t.x, t.y) for t in plot.scene.trees])
+    nearest = np.min(np.hypot(*(world[:, None, :] - trees[None, :, :]).transpose(2, 0, 1)), axis=1)
+    assert np.median(nearest) < 0.1 and len(coverage.stems) >= 20, "the stem map is made of the plot's stems"
+    assert 0 < coverage.stems.seen_twice <= len(coverage.stems)
+    seen, unseen = coverage.stem_area()
+    assert seen > 0 and unseen > 0
+
+
+def test_suggestions_lie_in_the_plot_link_and_add_unseen_stem_area(placed):
+    _, project, cache = placed
+    params = PlanParams(radius_m=13.0)
+    coverage = PlotCoverage(placed_views(project, cache), params, project.params)
+    plan = plan_scans(placed_views(project, cache), params, project.params, n=3)
+    assert len(plan.suggestions) == 3 and plan.linking <= plan.candidates
+    gains = []
+    for s in plan.suggestions:
+        assert np.hypot(s.x - plan.centre[0], s.y - plan.centre[1]) <= 13.0 + 1e-9
+        assert s.shared_stems >= params.min_shared_stems and s.links_to in plan.scanners
+        assert s.new_stem_area_m2 > 0
+        d = np.hypot(*(coverage.stems.xy - (s.x, s.y)).T) - coverage.stems.radius
+        assert d.min() >= params.clearance_m
+        gains.append(s.gain_m2)
+    assert gains == sorted(gains, reverse=True), "each later suggestion adds what the earlier ones leave"
+    best, arcs, view = coverage.assess((plan.suggestions[0].x, plan.suggestions[0].y))
+    assert best[0] == plan.suggestions[0].shared_stems
+    # a position next to a placed scanner adds less than the suggestion
+    near = coverage.gain(*coverage.assess(plan.centre)[1:])
+    assert near[0] < plan.suggestions[0].new_stem_area_m2
+    # one that links to nothing: none within a tiny plot far from the scans
+    strict = plan_scans(placed_views(project, cache), params.replace(min_shared_stems=1000), project.params)
+    assert not strict.suggestions and "would share 1000 trunk shadows" in strict.reason
+
+
+def test_the_suggested_scan_links_when_it_is_made(placed, tmp_path):
+    """The scanner set up where the plan says: the simulated scan there registers into the plot."""
+    from forestreg.engine.simulate import simulate_plot
+
+    plot, project, cache = placed
+    plan = plan_scans(placed_views(project, cache), PlanParams(radius_m=13.0), project.params, n=1)
+    s = plan.suggestions[0]
+    m0 = plot.scans[0].pose
+    world = (m0 @ np.array([s.x, s.y, 0.0, 1.0]))[:2]
+    new = simulate_plot("mixed_temperate", [tuple(world)], scene=plot.scene, seed=7, angular_step_deg=0.4, clearance_m=0.0).scans[0]
+    write_scan(new.scan, tmp_path / "scan_03.laz")
+    trial = Project.load(project.path)
+    trial.add_scan(tmp_path / "scan_03.laz")
+    outcome = register_project(trial)
+    assert outcome.scans["scan_03.laz"] == "ok", outcome.reasons
+    rot, trans = rigid_errors(trial.poses()["scan_03.laz"], np.linalg.solve(m0, new.pose))
+    assert rot < 0.05 and trans < 0.03
+
+
+def test_plan_command_writes_plan_json_and_a_table(placed, tmp_path, capsys):
+    _, project, _ = placed
+    out = tmp_path / "plan.json"
+    assert main(["plan", str(project.path), "--n", "2", "--radius", "13", "--out", str(out), "--progress", "none"]) == 0
+    text = capsys.readouterr().out
+    assert "link scan_02.laz -> scan_01.laz:" in text and "next" in text
+    doc = json.loads(out.read_text())
+    assert doc["format"] == "forestreg-plan" and doc["frame"] == "scan_01.laz" and len(doc["suggestions"]) == 2
+    assert doc["plot"]["radius_m"] == 13.0 and doc["stems"]["seen_by_two_or_more"] > 0
+    assert doc["links"][0]["strength"] in ("strong", "fair", "weak")
+    for row in doc["suggestions"]:
+        assert set(row) >= {"x", "y", "links_to", "shared_stems", "new_stem_area_m2", "new_view_m2"}
+
+
+@pytest.mark.parametrize("args, code, says", [
+    (["{missing}"], 2, "no such project file"),
+    (["{project}", "--n", "4"], 2, "--n must be 1, 2 or 3"),
+    (["{project}", "--out", "{dir}"], 2, ".json"),
+])
+def test_bad_plan_usage_is_one_line(args, code, says, placed, tmp_path, capsys):
+    _, project, _ = placed
+    values = {"missing": str(tmp_path / "nothing.json"), "project": str(project.path), "dir": str(tmp_path)}
+    assert main(["plan", *[a.format(**values) for a in args], "--progress", "none"]) == code
+    err = capsys.readouterr().err
+    assert says in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_project_without_placed_scans_cannot_be_planned(tmp_path, capsys):
+    project = Project(name="empty", params=RegistrationParams())
+    path = project.save(tmp_path / "project.json")
+    assert main(["plan", str(path), "--progress", "none"]) == 1
+    assert "no scan of the project is placed" in capsys.readouterr().err
