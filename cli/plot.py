@@ -1,4 +1,4 @@
-"""``forestreg plot``, ``plan``, ``project``, ``compare`` and ``targets``: whole plots of TLS scans (System A)."""
+"""``forestreg plot`` (and ``plot --watch``), ``plan``, ``project``, ``compare`` and ``targets``: whole plots of TLS scans (System A)."""
 
 from __future__ import annotations
 
@@ -23,9 +23,15 @@ def _add_plot_options(p: argparse.ArgumentParser) -> None:
 
 def add_parsers(sub, add_global_flags) -> None:
     p = sub.add_parser("plot", help="register all scans of a plot (each to the centre scan, tilted ones to their level partner)")
-    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files, or one multi-scan E57 file")
+    p.add_argument("scans", nargs="*", metavar="SCAN", help="scan files, or one multi-scan E57 file (none with --watch)")
     p.add_argument("--out", required=True, help="output folder: project.json, poses.json, <scan>.transform.txt, report.html")
     _add_plot_options(p)
+    p.add_argument("--watch", metavar="FOLDER", help="watch FOLDER (a scanner's export) and register each scan as it arrives, "
+                   "updating the output folder after each (with watch.json); runs until Ctrl-C or --until-scans")
+    p.add_argument("--until-scans", type=number("--until-scans", minimum=1, integer=True), metavar="N",
+                   help="with --watch: end once N scans are taken in (placed or set aside; duplicates and files that are no scan do not count)")
+    p.add_argument("--poll", type=number("--poll", positive=True), default=1.0, metavar="S",
+                   help="with --watch: seconds between two looks at the folder (default 1; a file counts once it did not change between two looks)")
     p.add_argument("--merged", help="also write all registered scans into one point file (.laz/.las, or .copc.laz for a COPC file viewers such as QGIS and potree stream) with a scan_id per point (never an input)")
     p.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
     p.add_argument("--registered-dir", help="also write each registered scan, in the centre scan's coordinates, as its own LAZ into this folder")
@@ -158,7 +164,14 @@ def _check_scans_near_their_scanners(project, scans) -> None:
 def cmd_plot(args: argparse.Namespace) -> int:
     from ..app.plot import (check_extra_outputs, check_scan_files_exist, check_scans_near_their_scanners, plot_folder, resumable_project,
                             scan_cache)
+    from ..engine.core.errors import UsageError
 
+    if getattr(args, "watch", None):
+        return cmd_watch(args)
+    if not args.scans:
+        raise UsageError("plot needs scan files (SCAN ...), or --watch FOLDER")
+    if getattr(args, "until_scans", None) is not None:
+        raise UsageError("--until-scans goes with --watch FOLDER")
     check_survey_options(args)
     if getattr(args, "crs", None):  # a bad --crs: one line and exit 2, before the folder is made
         from ..engine.io.crs import parse_crs
@@ -176,6 +189,51 @@ def cmd_plot(args: argparse.Namespace) -> int:
         say(f"resuming the stopped run in {shown(out)}: {kept} of {len(project.links)} links registered before are kept", args, err=True)
     project.save(out / "project.json")
     return run_project(project, out, args, scans)
+
+
+#: Options of ``plot`` a watch does not take (each scan is registered onto the centre scan, or the
+#: placed scans nearest it, as it arrives)
+_NOT_WITH_WATCH = ("tilted", "targets", "pairs", "positions", "prior_poses", "fixed", "merged", "e57_out", "registered_dir", "loops")
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    """``plot --watch FOLDER``: register each scan arriving in FOLDER (:func:`forestreg.app.watch.watch_plot`),
+    one line per scan (one JSON event per scan with ``--progress jsonl``); Ctrl-C ends it (exit 0)."""
+    import json
+    import sys
+
+    from ..app.watch import watch_plot
+    from ..engine.core.errors import UsageError
+
+    if args.scans:
+        raise UsageError(f"--watch takes the scans from {args.watch}: give no scan files ({args.scans[0]} ...)")
+    given = [f"--{name.replace('_', '-')}" for name in _NOT_WITH_WATCH if getattr(args, name, None)]
+    if given:
+        raise UsageError(f"{', '.join(given)}: not with --watch (each scan is registered onto the centre scan as it arrives; "
+                         "run 'forestreg plot' on the scans afterwards for these)")
+    jsonl = args.reporter.mode == "jsonl"
+
+    def show(event) -> None:
+        if jsonl:
+            sys.stderr.write(json.dumps(event.to_dict()) + "\n")
+            sys.stderr.flush()
+        print(event.message, flush=True)
+
+    def started(resumed: int) -> None:
+        before = f", going on from the {resumed} scans placed before" if resumed else ""
+        say(f"watching {args.watch} -> {shown(args.out)}{before} (Ctrl-C to stop)", args, err=True)
+
+    run = run_outcome(args.reporter, watch_plot, args.watch, args.out, params_from_args(args), centre=args.centre,
+                      scanner_params=file_section(args, "scanner_position"), plan_params=file_section(args, "plan"),
+                      poll_s=args.poll, until_scans=args.until_scans, on_event=show, on_start=started,
+                      progress=None if args.reporter.mode == "none" else args.reporter)
+    out = Path(args.out)
+    summary = f"{len(run.placed)} of {len(run.taken)} scans placed -> {shown(out) / 'poses.json'}"
+    if run.stopped:
+        summary = f"stopped: {summary}; the same command goes on from here"
+    args.reporter.done(summary, out / "poses.json")
+    say(summary, args, err=bool(run.aside) and not run.stopped)
+    return 0 if run.stopped or run else 1
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
