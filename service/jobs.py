@@ -7,6 +7,9 @@ service starts ``forestreg ... --progress jsonl`` and reads its JSON-lines event
     {"event": "progress", "step": "<id>", "fraction": 0..1, "message": "<text>"}
     {"event": "end", "exit_code": N, "message": "<one line>", "result": "<path or null>"}
 
+and, from a watching plot job (``plot --watch FOLDER``), one ``{"event": "scan", ...}`` per scan
+taken in (:meth:`forestreg.app.watch.WatchEvent.to_dict`), kept as it is.
+
 Other lines are kept as log events. Cancelling sends SIGINT to the job's process group and SIGKILL
 after a grace period; the CLI writes its output folders as transactions, so a cancelled job leaves
 them complete or absent.
@@ -273,7 +276,8 @@ def read_result(path: Optional[str], cwd: Optional[str] = None) -> Any:
 
 
 def parse_event(line: str) -> Optional[dict]:
-    """One JSON-lines event (``progress`` or ``end``) of the CLI, else None."""
+    """One JSON-lines event (``progress``, ``end``, or ``scan``: a scan a watching plot job took
+    in) of the CLI, else None."""
     line = line.strip()
     if not line.startswith("{"):
         return None
@@ -281,7 +285,7 @@ def parse_event(line: str) -> Optional[dict]:
         event = json.loads(line)
     except ValueError:
         return None
-    if not isinstance(event, dict) or event.get("event") not in ("progress", "end"):
+    if not isinstance(event, dict) or event.get("event") not in ("progress", "end", "scan"):
         return None
     return event
 
@@ -540,6 +544,10 @@ class JobManager:
                 continue
             if event["event"] == "end":
                 end = event
+                continue
+            if event["event"] == "scan":  # a watching plot job: each scan's outcome, streamed as it is
+                self.store.update(job_id, message=str(event.get("message") or ""))
+                self.store.add_event(job_id, event)
                 continue
             fraction = min(max(float(event.get("fraction") or 0.0), 0.0), 1.0)
             step, message = str(event.get("step") or ""), str(event.get("message") or "")
