@@ -170,6 +170,27 @@ def test_a_scan_of_another_plot_is_refused_with_the_reason(scans, tmp_path, sim_
     assert json.loads((out / "watch.json").read_text())["files"]["zz_other_plot.laz"]["status"] == "refused"
 
 
+def test_a_scan_that_shares_trunks_but_does_not_link_gets_the_reason_and_where_to_stand(scans, tmp_path):
+    """With an ICP fitness no pair reaches, the second scan's trunk shadows match the centre's
+    (not another plot) but its link fails: the line says so and names a position that links."""
+    from forestreg.app.watch import watch_plot
+    from forestreg.engine.tls.params import RegistrationParams
+
+    _, paths = scans
+    folder, out = tmp_path / "export", tmp_path / "field"
+    folder.mkdir()
+    shutil.copyfile(paths[0], folder / NAMES[0])
+    shutil.copyfile(paths[1], folder / NAMES[1])
+    events = []
+    run = watch_plot(folder, out, RegistrationParams(icp_min_fitness=0.99), poll_s=0.1, until_scans=2, on_event=events.append)
+    assert not run and run.placed == (NAMES[0],)
+    event = events[-1]
+    assert event.name == NAMES[1] and event.status == "not linked" and event.advice is not None
+    assert event.message.startswith(f"{NAMES[1]}: not linked - shares ") and f"trunk shadows with {NAMES[0]}, but ICP fitness" in event.message
+    assert event.message.endswith(f"stand between them, near ({event.advice[0]:.1f}, {event.advice[1]:.1f})")
+    assert event.placed == 1 and event.total == 2
+
+
 def _watcher(folder: Path, out: Path, *extra: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "forestreg.cli", "plot", "--watch", str(folder), "--out", str(out), "--poll", "0.1",
                              "--progress", "none", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
