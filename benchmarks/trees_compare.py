@@ -25,6 +25,17 @@ Cases (small, so the whole runs in a few minutes on a shared machine):
   :data:`TREEQSM` holds the TreeQSM port's figures for them (PyPI ``pytlidar`` 1.1.2, default
   inputs from its ``define_input``; a benchmark reference only, run apart: it pins numba 0.61).
 
+Held-out benchmark (``--halves``; :func:`run_halves`): forestreg and Sylva on the plots of
+:data:`HALF_KINDS` (mixed with suppressed trees, broadleaf rainforest, planted conifers, small
+trees beside big ones under or inside their crowns, crowns intermixed; 2-5 scans; full dome or
+elevation up to +60 deg; oval, rough stems: ``stem_shapes="real"``), each kind drawn once from a
+seed of :data:`TUNE_SEEDS` (the rules and thresholds were chosen on these: "tune") and once from
+a seed of :data:`HELD_OUT_SEEDS` ("held out"; ``--held-out-seed`` draws others). Per half: trees
+found, false stems, DBH rRMSE, height rRMSE over every tree (forestreg and Sylva), the share of
+forestreg's heights left unflagged (height trust not low) with their rRMSE and worst error, and
+the flags' precision (flagged heights really more than 10 % off) and recall (heights more than
+10 % off that are flagged).
+
 The simulated clouds are cached under ``bench_out/trees_compare/``. Run from the repository root:
 ``python -m benchmarks.trees_compare`` (or through ``benchmarks/run.py --only trees``).
 """
@@ -98,6 +109,65 @@ def sim_plot(out: Path = OUT, stem: str = "sim_plot_dome", seed: int = 3, size_m
             mine = pts[ids == t.id]
             seen = len(mine) > 0 and float(cKDTree(mine).query(t.point_at_height(t.height_m))[0]) < 0.3
             trees.append({"id": t.id, "x": t.x, "y": t.y, "dbh_m": t.dbh_m, "height_m": t.height_m, "top_seen": bool(seen)})
+        out.mkdir(parents=True, exist_ok=True)
+        write_points(laz, pts)
+        truth.write_text(json.dumps(trees, indent=1))
+    return laz, json.loads(truth.read_text())
+
+
+#: The held-out benchmark's plot kinds: (name, scene: a preset of
+#: :func:`~forestreg.engine.simulate.make_scene` or "understory"
+#: (:func:`~forestreg.engine.simulate.hard.understory_scene`), scene overrides, scans,
+#: elevation_max_deg, plot side m, angular step deg).
+HALF_KINDS = (
+    ("mixed, suppressed", "mixed_temperate", {"suppressed_clearance_m": 0.5}, 4, 90.0, 30.0, 0.35),
+    ("broadleaf rainforest", "rainforest", {}, 3, 60.0, 25.0, 0.3),
+    ("planted conifer", "planted_conifer", {}, 2, 60.0, 25.0, 0.35),
+    ("small beside big", "understory", {}, 4, 90.0, 30.0, 0.35),
+    ("crowns intermixed", "mixed_temperate", {}, 5, 60.0, 30.0, 0.35),
+)
+#: One seed per kind of :data:`HALF_KINDS`: the plots the rules and thresholds were chosen on.
+TUNE_SEEDS = (101, 102, 103, 104, 105)
+#: One seed per kind: the plots reported as held out (not looked at while choosing).
+HELD_OUT_SEEDS = (201, 202, 203, 204, 205)
+#: Scanner positions (m) by the number of scans.
+SCAN_LAYOUTS = {
+    2: [(-5.0, 0.0), (5.0, 0.0)],
+    3: [(-5.0, -3.0), (5.0, -3.0), (0.0, 5.5)],
+    4: [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)],
+    5: [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0), (0.0, 0.0)],
+}
+
+
+def half_plot(kind: int, seed: int, out: Path = OUT) -> tuple[Path, list[dict[str, Any]]]:
+    """The plot of :data:`HALF_KINDS` ``[kind]`` drawn from ``seed`` (LAZ, the scans merged) and its
+    true trees (id, x, y, DBH, height, shape, whether an added small tree, whether the truth's own
+    points reach within 0.3 m of the top); simulated once and cached."""
+    name, scene_kind, overrides, n_scans, elev, size_m, step = HALF_KINDS[kind]
+    stem = f"half_{kind}_{seed}"
+    laz, truth = out / f"{stem}.laz", out / f"{stem}.json"
+    if not (laz.exists() and truth.exists()):
+        from scipy.spatial import cKDTree
+
+        from forestreg.engine.io import write_points
+        from forestreg.engine.simulate import make_scene, simulate_plot
+        from forestreg.engine.simulate.hard import understory_scene
+
+        if scene_kind == "understory":
+            scene = understory_scene(seed, size_m, **overrides)
+        else:
+            scene = make_scene(scene_kind, seed=seed, size_m=size_m, stem_shapes="real", **overrides)
+        added = set(scene.meta.get("understory_added", ()))
+        plot = simulate_plot(scene_kind, SCAN_LAYOUTS[n_scans], scene=scene, seed=seed, angular_step_deg=step,
+                             scanner_options={"elevation_max_deg": elev})
+        pts = np.vstack([s.world_points() for s in plot.scans])
+        ids = np.concatenate([s.object_ids for s in plot.scans])
+        trees = []
+        for t in plot.scene.trees:
+            mine = pts[ids == t.id]
+            seen = len(mine) > 0 and float(cKDTree(mine).query(t.point_at_height(t.height_m))[0]) < 0.3
+            trees.append({"id": t.id, "x": t.x, "y": t.y, "dbh_m": t.dbh_m, "height_m": t.height_m, "shape": t.shape,
+                          "small_beside_big": t.id in added, "top_seen": bool(seen)})
         out.mkdir(parents=True, exist_ok=True)
         write_points(laz, pts)
         truth.write_text(json.dumps(trees, indent=1))
@@ -245,6 +315,140 @@ def _plots(sylva: Optional[str], work: Path) -> list[dict[str, Any]]:
     return rows
 
 
+def _flag_figures(rows: list[dict[str, str]], truth: list[dict[str, Any]]) -> list[tuple[float, float, bool]]:
+    """(reported height m, true height m, flagged) of forestreg's trees matched to the true trees
+    within :data:`RADIUS_M` with DBH >= 0.1 m (flagged: the height's trust low or none)."""
+    inside = {t["id"]: t for t in truth if math.hypot(t["x"], t["y"]) < RADIUS_M and t["dbh_m"] >= 0.1}
+    txy = np.array([(t["x"], t["y"]) for t in truth])
+    out = []
+    for r in rows:
+        d = np.hypot(txy[:, 0] - _num(r["x"]), txy[:, 1] - _num(r["y"]))
+        k = int(np.argmin(d))
+        if d[k] < MATCH_M and truth[k]["id"] in inside:
+            out.append((_num(r["height_m"]), truth[k]["height_m"], _height_low(r)))
+    return out
+
+
+def run_halves(workdir: Optional[Path] = None, held_out: Optional[list[int]] = None,
+               tune: bool = True) -> list[dict[str, Any]]:
+    """forestreg (``trees --no-cylinders``) and Sylva on every plot of :data:`HALF_KINDS`, for the
+    tune seeds (:data:`TUNE_SEEDS`, unless ``tune`` is False) and the held-out ones
+    (``held_out``, default :data:`HELD_OUT_SEEDS`); one row per (plot, tool) with the figures of
+    :func:`_plot_figures`, the half, kind and seed, and for forestreg the (height, true height,
+    flagged) triples (``heights``)."""
+    sylva = sylva_command()
+    halves = ([("tune", list(TUNE_SEEDS))] if tune else []) + [("held out", list(held_out or HELD_OUT_SEEDS))]
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="forestreg-trees-halves-") as tmp:
+        work = Path(workdir or tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        for half, seeds in halves:
+            for kind, seed in enumerate(seeds):
+                laz, truth = half_plot(kind, seed)
+                case = {"half": half, "kind": HALF_KINDS[kind][0], "seed": seed,
+                        "case": f"{HALF_KINDS[kind][0]} ({HALF_KINDS[kind][3]} scans, up to {HALF_KINDS[kind][4]:.0f} deg, seed {seed})"}
+                print(f"{half}: {case['case']}", file=sys.stderr, flush=True)
+                run_, fr = _forestreg(laz, work, ("--no-cylinders",))
+                rows.append({**case, "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status,
+                             **_plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low),
+                             "heights": _flag_figures(fr, truth), "pairs": _pairs(fr, truth, "dbh_m", "height_m")})
+                if sylva:
+                    res, sy = _sylva_trees(sylva, laz, work)
+                    rows.append({**case, "tool": "sylva ground + trees", **res,
+                                 **_plot_figures(sy, truth, dbh_key="dbh", height_key="height"),
+                                 "pairs": _pairs(sy, truth, "dbh", "height")})
+    return rows
+
+
+def _pairs(rows: list[dict[str, str]], truth: list[dict[str, Any]], dbh_key: str, height_key: str) -> list[tuple[float, float, float, float]]:
+    """(DBH m, true DBH m, height m, true height m) of a tool's trees matched to the true trees
+    within :data:`RADIUS_M` with DBH >= 0.1 m (one per true tree: the nearest)."""
+    inside = {t["id"] for t in truth if math.hypot(t["x"], t["y"]) < RADIUS_M and t["dbh_m"] >= 0.1}
+    txy = np.array([(t["x"], t["y"]) for t in truth])
+    best: dict[int, tuple[float, tuple[float, float, float, float]]] = {}
+    for r in rows:
+        d = np.hypot(txy[:, 0] - _num(r["x"]), txy[:, 1] - _num(r["y"]))
+        k = int(np.argmin(d))
+        t = truth[k]
+        if d[k] < MATCH_M and t["id"] in inside and (t["id"] not in best or d[k] < best[t["id"]][0]):
+            best[t["id"]] = (float(d[k]), (_num(r[dbh_key]), t["dbh_m"], _num(r[height_key]), t["height_m"]))
+    return [v for _, v in best.values()]
+
+
+def halves_summary(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The figures of each half, pooled over its plots: trees found (of true), false stems, DBH
+    rRMSE and height rRMSE over every tree found (each tool), forestreg's unflagged share, their
+    rRMSE and worst error (%), and the flags' precision and recall (a height more than 10 % off
+    is wrong)."""
+    out: dict[str, dict[str, Any]] = {}
+    for half in dict.fromkeys(r["half"] for r in rows):
+        mine = [r for r in rows if r["half"] == half]
+        fig: dict[str, Any] = {"plots": len({r["seed"] for r in mine}), "seeds": sorted({r["seed"] for r in mine})}
+        for tool, key in (("forestreg trees", "fr"), ("sylva ground + trees", "sy")):
+            t = [r for r in mine if r["tool"] == tool]
+            if not t:
+                continue
+            pairs = [p for r in t for p in r.get("pairs", [])]
+            fig[f"{key}_found"] = sum(r["found"] for r in t)
+            fig[f"{key}_true"] = sum(r["true"] for r in t)
+            fig[f"{key}_false"] = sum(r["false_stems"] for r in t)
+            fig[f"{key}_dbh_rrmse"] = _rrmse([(p[0], p[1]) for p in pairs])
+            fig[f"{key}_height_rrmse"] = _rrmse([(p[2], p[3]) for p in pairs])
+        h = [x for r in mine if r["tool"] == "forestreg trees" for x in r.get("heights", [])]
+        if h:
+            off = [abs(a / b - 1.0) > 0.10 if math.isfinite(a) else True for a, b, _ in h]
+            flagged = [f for _, _, f in h]
+            unflagged = [(a, b) for a, b, f in h if not f]
+            tp = sum(o and f for o, f in zip(off, flagged))
+            fig.update(fr_unflagged=len(unflagged), fr_heights=len(h), fr_unflagged_rrmse=_rrmse(unflagged),
+                       fr_unflagged_worst=100.0 * max((abs(a / b - 1.0) for a, b in unflagged), default=math.nan),
+                       flag_precision=100.0 * tp / sum(flagged) if sum(flagged) else math.nan,
+                       flag_recall=100.0 * tp / sum(off) if sum(off) else math.nan, flagged=sum(flagged), wrong=sum(off))
+        out[half] = fig
+    return out
+
+
+def halves_table(rows: list[dict[str, Any]]) -> str:
+    """The held-out benchmark's table (Markdown): one column per half."""
+    s = halves_summary(rows)
+    halves = list(s)
+
+    def cell(half: str, fmt) -> str:
+        try:
+            return fmt(s[half])
+        except (KeyError, ValueError, ZeroDivisionError):
+            return "-"
+
+    lines = ["| | " + " | ".join(f"{h} (seeds {', '.join(map(str, s[h]['seeds']))})" for h in halves) + " |",
+             "|---|" + "---:|" * len(halves)]
+    spec = [
+        ("trees found (forestreg / Sylva)", lambda f: f"{f['fr_found']} / {f['sy_found']} of {f['fr_true']}"),
+        ("false stems (forestreg / Sylva)", lambda f: f"{f['fr_false']} / {f['sy_false']}"),
+        ("DBH rRMSE (forestreg / Sylva)", lambda f: f"{f['fr_dbh_rrmse']:.1f} % / {f['sy_dbh_rrmse']:.1f} %"),
+        ("height rRMSE, every tree (forestreg / Sylva)", lambda f: f"{f['fr_height_rrmse']:.1f} % / {f['sy_height_rrmse']:.1f} %"),
+        ("forestreg heights unflagged", lambda f: f"{f['fr_unflagged']} of {f['fr_heights']} ({100 * f['fr_unflagged'] / f['fr_heights']:.0f} %)"),
+        ("unflagged heights: rRMSE, worst", lambda f: f"{f['fr_unflagged_rrmse']:.1f} %, {f['fr_unflagged_worst']:.0f} %"),
+        ("flag precision (flagged heights > 10 % off)", lambda f: f"{f['flag_precision']:.0f} % ({f['flagged']} flagged)"),
+        ("flag recall (> 10 % off heights flagged)", lambda f: f"{f['flag_recall']:.0f} % ({f['wrong']} > 10 % off)"),
+    ]
+    for name, fmt in spec:
+        lines.append(f"| {name} | " + " | ".join(cell(h, fmt) for h in halves) + " |")
+    return "\n".join(lines)
+
+
+def halves_plot_rows(rows: list[dict[str, Any]]) -> str:
+    """Each plot of the held-out benchmark: found, false stems, DBH and height rRMSE of both tools,
+    forestreg's unflagged heights (Markdown)."""
+    lines = ["| half | plot | tool | found | false | DBH rRMSE % | height rRMSE % | unflagged: n, rRMSE %, worst % | s |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        unf = (f"{r['heights_unflagged']}, {_f(r['unflagged_height_rrmse_pct'], '.1f')}, {_f(r['unflagged_height_max_pct'], '.0f')}"
+               if "heights_unflagged" in r else "-")
+        lines.append(f"| {r['half']} | {r['case']} | {r['tool']} | {r['found']}/{r['true']} | {r['false_stems']} "
+                     f"| {_f(r['dbh_rrmse_pct'], '.1f')} | {_f(r['height_rrmse_pct'], '.1f')} | {unf} | {_f(r.get('wall_s'), '.0f')} |")
+    return "\n".join(lines)
+
+
 def run(workdir: Optional[Path] = None, single_trees_only: bool = False) -> list[dict[str, Any]]:
     """Every case (or the single trees only), forestreg and Sylva in turn; one row per (case, tool)."""
     sylva = sylva_command()
@@ -336,7 +540,15 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--json", type=Path, help="also write the rows to this JSON file")
     ap.add_argument("--workdir", type=Path, help="keep the outputs of every command here")
     ap.add_argument("--single-trees", action="store_true", help="only the single trees (simulated and real)")
+    ap.add_argument("--halves", action="store_true", help="only the held-out benchmark: tune and held-out plots, forestreg and Sylva")
+    ap.add_argument("--held-out-seed", type=int, help="with --halves: draw the held-out plots from this seed on (one per kind) "
+                    "instead of the stored held-out seeds")
     args = ap.parse_args(argv)
+    if args.halves:
+        held = [args.held_out_seed + k for k in range(len(HALF_KINDS))] if args.held_out_seed is not None else None
+        rows = run_halves(args.workdir, held)
+        print("seeds: tune " + ", ".join(map(str, TUNE_SEEDS)) + "; held out " + ", ".join(map(str, held or HELD_OUT_SEEDS)))
+        return show_rows(halves_table(rows) + "\n\n" + halves_plot_rows(rows), rows, args.json, indent=1, default=float)
     rows = run(args.workdir, single_trees_only=args.single_trees)
     return show_rows(format_rows(rows) + "\n\n" + single_tree_table(rows), rows, args.json, indent=1, default=float)
 
