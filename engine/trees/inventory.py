@@ -95,7 +95,7 @@ class TreeParams(Params):
     crown_reach_dbh: float = _p(7.0, "DBH", 0.0, 100.0, "a stem whose axis is continued into the crowns, closer than this many of a thicker stem's DBH to it, has its height checked against the plot's height-diameter curve (flagged without one): its top may be in that tree's crown (0 = no such check)")
     #: a stem under a thicker neighbour's expected crown may be suppressed: the curve does not vouch for its height
     overtopped_crown_fraction: float = _p(1.0, "1", 0.0, 10.0, "a stem within this fraction of a thicker neighbour's expected crown radius (segmentation.crown_radius_per_dbh) stands under that crown: it may be suppressed, and the plot's height-diameter curve does not vouch for its height (0 = no such check)")
-    overtopped_agreement: float = _p(0.10, "1", 0.0, 1.0, "...unless its points' top stands within this fraction of the curve (the two witnesses agree)")
+    curve_agreement: float = _p(0.10, "1", 0.0, 1.0, "a top with only a soft hint (on the crown's flank, missing or cut flat, beside a thicker stem) stands where it agrees with the plot's height-diameter curve within this fraction (the curve's scatter at most height_curve.max_scatter_unseen); the curve's estimate of a stem under a thicker neighbour's expected crown is vouched for only where the points' top agrees with it so")
     #: the radius around a position clicked in an edit (add a tree, split a tree)
     stem_search_radius_m: float = _p(1.0, "m", 0.1, 10.0, "radius around a position given in an edit (add, split) searched for a stem")
 
@@ -878,7 +878,10 @@ def _judge_top(crown: CrownMeasurement, dbh_value: float, dbh_quality: str, hint
     stem, at most :attr:`.allometry.HeightCurveParams.clear_above` above the plot's curve), or
     its top over the stem with no hint at all (not on the flank, not missing or cut flat, no
     neighbour's crown over, around or nearer to it) and within ``clear_below`` below to
-    ``clear_above`` above the curve (any height without a curve). ``top_flags`` holding a decisive
+    ``clear_above`` above the curve (any height without a curve), or with only soft hints (on
+    the crown's flank, missing or cut flat, beside a thicker stem) within
+    :attr:`TreeParams.curve_agreement` of a curve scattering at most ``max_scatter_unseen``
+    (two witnesses agreeing). ``top_flags`` holding a decisive
     doubt (``h_trust`` low already: too slender, points of no tree above) means no evidence.
 
     Otherwise the height is low, and the plot's height-diameter curve gives the estimate
@@ -889,7 +892,7 @@ def _judge_top(crown: CrownMeasurement, dbh_value: float, dbh_quality: str, hint
     (:meth:`.allometry.HeightCurve.fill_refusal`), for a top not under, touching or amid a
     neighbour's crown, on a stem not standing under a thicker neighbour's expected crown
     (``overtopped``) unless its points' top stands within
-    :attr:`TreeParams.overtopped_agreement` of the curve: such trees may be suppressed, and the
+    :attr:`TreeParams.curve_agreement` of the curve: such trees may be suppressed, and the
     curve stands them too tall. A tip under a neighbour's crown needs a curve to stand (without
     one it may be a lower part of a tree whose top is hidden in that crown)."""
     hc = params.height_curve
@@ -904,6 +907,10 @@ def _judge_top(crown: CrownMeasurement, dbh_value: float, dbh_quality: str, hint
             return (_trust(h_trust, "medium") if names else h_trust), h_how + ", its apex seen as a tip over the stem" + dep_text, nan, top_flags
         if not names and (not math.isfinite(dep) or -hc.clear_below <= dep <= hc.clear_above):
             return h_trust, h_how + (dep_text + " (consistent)" if dep_text else ""), nan, top_flags
+        if (names and names <= {"flank", "missing", "flat", "reach"} and curve is not None and curve.scatter <= hc.max_scatter_unseen
+                and abs(dep) <= params.curve_agreement):
+            # a soft hint, the plot's curve agreeing: two witnesses for the top
+            return _trust(h_trust, "medium"), h_how + dep_text + " (consistent)", nan, top_flags
     flags = list(top_flags) + [text for _, text in hints]
     if math.isfinite(dep) and not names and h_trust != "low":
         flags.append(f"height {100 * dep:+.0f} % from the plot's height-diameter curve (beyond -{100 * hc.clear_below:.0f} % to "
@@ -925,7 +932,7 @@ def _judge_top(crown: CrownMeasurement, dbh_value: float, dbh_quality: str, hint
     refusal = curve.fill_refusal(hc)
     if not refusal and names & {"under", "touch", "neighbour"}:
         refusal = "a top under, touching or amid a neighbour's crown (a suppressed tree's, or that crown's)"
-    if not refusal and overtopped is not None and not abs(dep) <= params.overtopped_agreement:
+    if not refusal and overtopped is not None and not abs(dep) <= params.curve_agreement:
         refusal = f"{overtopped}, and its points' top {100 * dep:+.0f} % from the curve"
     if not refusal:
         return _trust(ground_trust, "medium"), how, estimate, []
