@@ -176,18 +176,17 @@ def _trusted_heights(pairs) -> tuple[list, np.ndarray]:
 
 @pytest.mark.slow
 def test_four_scan_mixed_plot_heights_of_suppressed_trees():
-    """Every tree within 11 m found, DBH rRMSE <= 1.7 % (measured 0.8 %). A thinner stem within 6
-    DBH of a thicker one grows from its own points, not up its axis through that tree's crown: 29
-    of the 39 heights within 8 % of the truth (a suppressed tree's axis continued up into its
-    neighbour's crown would measure that neighbour's top); a stem within 7 DBH whose axis still
-    climbs has its height checked against the plot's height-diameter curve. Hints about a top (on
-    the crown's flank, clear under or touching a neighbour's crown, missing in the data) decide only
-    with that curve; but 2 of the 11 trees whose apex is seen as a tip stand 20-37 % below it:
-    suppressed trees grow here, and the curve vouches for no top under or touching a neighbour's
-    crown (7 such, -16 % to +6 %, flagged). The unflagged heights are 19 of 39, rRMSE 2.8 %, worst
-    6.4 %: 3 kept by the curve (on the crown's flank, within 4 %), 3 suppressed conifers by their
-    apex seen as a tip (within 4 %). A tree flagged for its height keeps its DBH's trust; a tree is
-    flagged only when a value is weak."""
+    """Every tree within 11 m found, DBH rRMSE <= 1.7 % (measured 0.9 %). A thinner stem within 6
+    DBH of a thicker one grows from its own points, not up its axis through that tree's crown, and
+    keeps no part of a thicker neighbour's expected crown beyond its own: at least 27 of the 39
+    heights within 8 % of the truth. A height stands only on evidence: its apex a tip over the
+    stem, a top over the stem with no hint within -10 % to +15 % of the plot's height-diameter
+    curve, or a soft hint (on the crown's flank, missing) agreeing with the curve within 10 %. 2
+    of the 10 trees whose apex is seen as a tip stand more than 20 % below the curve: suppressed
+    trees grow here, so the curve vouches for no height; its estimates (21) are flagged. The
+    unflagged heights are 18 of 39, rRMSE 2.9 %, worst 6.4 %, 3 or more of them suppressed trees
+    by their apex seen as a tip (within 5 %). A tree flagged for its height keeps its DBH's trust;
+    a tree is flagged only when a value is weak."""
     from forestreg.engine.trees.crown import CrownParams, top_over_stem
 
     plot, inv = _four_scan_plot(suppressed_clearance_m=0.5)
@@ -204,25 +203,18 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.05
     assert np.max(np.abs(err)) <= 0.10
     assert inv.height_curve is not None and inv.height_curve.n_trees >= 20
-    assert sum(1 for r in inv.trees if any(f.startswith("suppressed trees grow here") for f in r.flags)) >= 5
     # suppressed conifers with their apex seen as a tip stand 20-37 % below the curve: it does not
-    # stand in for the tops not seen here (a hidden top may be a suppressed tree's)
+    # vouch for the tops not seen here (a hidden top may be a suppressed tree's)
     assert inv.height_curve.n_tips_below >= 1 and "suppressed" in inv.height_curve.fill_note
-    assert all(r.height_source == "points" for r in inv.trees)
-    by_curve = [e for (r, _), e in zip(trusted, err) if "height-diameter curve (consistent)" in r.quality["height"]]
-    assert len(by_curve) >= 2 and np.max(np.abs(by_curve)) <= 0.10
+    from_curve = [r for r in inv.trees if r.height_source == "curve"]
+    assert from_curve and all(r.quality["height"].endswith("; low") and "not vouched for" in r.quality["height"] for r in from_curve)
     tips = [e for (r, _), e in zip(trusted, err) if "apex seen as a tip" in r.quality["height"]]
     assert len(tips) >= 3 and np.max(np.abs(tips)) <= 0.05
-    unseen = [(r, t) for r, t in pairs if "top touching a neighbour's crown" in r.quality["height"] or "top missing" in r.quality["height"]]
-    assert len(unseen) >= 8
-    for r, t in unseen:
-        if not r.quality["height"].endswith("low"):
-            assert inv.height_curve.departure(r.dbh_m, r.crown.height_m) >= -0.05
-            assert abs(r.crown.height_m / t.height_m - 1.0) <= 0.10, (t.id, r.quality["height"])
     for r, t in pairs:
         if r.quality["height"].endswith("low"):
             assert r.quality["dbh"].endswith(("high", "medium")), (t.id, r.quality["dbh"])
-        assert ("top over the stem" in r.quality["height"]) == top_over_stem(r.crown, CrownParams())
+        if r.height_source == "points":
+            assert ("top over the stem" in r.quality["height"]) == top_over_stem(r.crown, CrownParams())
     # flags that matter: a flagged tree has a weak value, an unflagged one none
     for r in inv.trees:
         weak = [k for k, q in r.quality.items() if q.endswith(("; low", "; none")) and not q.startswith("not asked for")]
@@ -233,15 +225,13 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
 def test_four_scan_plot_with_the_usual_field_of_view_flags_tops_not_seen():
     """The same plot scanned with a scanner's usual field of view (elevation up to +60 deg, like a
     RIEGL VZ-400), crowns growing into each other: the tops of the tall trees near the scanners
-    are beyond every scan's view. The tallest tree (28 m) is seen up to 19.2 m, its highest point
-    over its stem (trusted as it stands, 31.6 % too low); its top metre is a ring at 0.91 of the
-    crown radius from the stem axis (seen tops: at most 0.72), flagged "top not seen". No unflagged
-    height more than 20 % off: 12 of 39 unflagged, rRMSE 7.2 %, worst 11.2 % (conifers whose tips
-    the view missed: a cone cut lower still tapers). One such cut cone looks like an apex tip 46 %
-    below the curve, so here the curve vouches for no top under or touching a neighbour's crown
-    (3 more flagged, all within 12 %). The height-diameter curve rests only on
-    trees whose tops stand clear, so tops cut by the view do not lower it; the tallest tree stands
-    21 % below it, which flags its height even without the ring."""
+    are beyond every scan's view. The tallest tree (28 m) is seen up to 20.9 m, its highest point
+    on the crown's flank, flagged (its height from the curve, as an estimate: the curve does not
+    vouch for heights where a tip stands 46 % below it, a cone cut lower that looks like an apex).
+    No unflagged height more than 20 % off: 15 of 39 unflagged, rRMSE 8.8 %, worst 16.2 %
+    (conifers whose tips the view missed: a cone cut lower still tapers, and over its stem it
+    looks like a top seen). The height-diameter curve rests only on trees whose tops stand clear,
+    so tops cut by the view do not lower it."""
     plot, inv = _four_scan_plot(elevation_max_deg=60.0)
     pairs = _matched_trees(plot, inv)
     assert len(pairs) == 39
@@ -263,12 +253,14 @@ def test_intermixed_crowns_heights_from_the_curve_where_the_points_cannot_give_t
     """A 40 m mixed plot, four full-dome scans, crowns growing into each other (no gap between a
     suppressed top and the crown over it): thin conifers whose columns run up into broad
     neighbours' crowns, tops inside a taller neighbour's crown or hidden from every scanner. Every
-    height is checked against the plot's height-diameter curve (scatter 3 %; 10 trees whose own
+    height is checked against the plot's height-diameter curve (scatter 3 %; the trees whose own
     apex is a tip follow it, none is suppressed), and where the points' top is not the tree's the
-    curve gives the height: 12 trees, whose points' tops were 6-75 % off, stand within 8 % (measured
-    7.6 %), their highest point kept beside. All 38 heights unflagged (at least 3 of 4 asked), rRMSE
-    4.2 %, worst 11.4 %; of the 121 trees in the cloud, 55 flagged (most beyond 11 m: stems cut by
-    the plot's edge, crowns shared with a neighbour)."""
+    curve gives the height: 22 trees, whose points' tops were up to 74 % off, stand within 10 %
+    (measured 5.4 %), their highest point kept beside. The curve vouches only for a top not under,
+    touching or amid a neighbour's crown on a stem not under a thicker neighbour's expected crown
+    (one here); the others are flagged, their estimates still given. 17 of 38 heights stand
+    unflagged (rRMSE 1.9 %, worst 5.4 %); every height reported within an rRMSE of 4 % (measured
+    3.0 %)."""
     from forestreg.engine.trees.allometry import HeightCurveParams
 
     plot, inv = _four_scan_plot(seed=6, size_m=40.0)
@@ -277,9 +269,11 @@ def test_intermixed_crowns_heights_from_the_curve_where_the_points_cannot_give_t
     assert inv.height_curve is not None and inv.height_curve.fill_refusal(HeightCurveParams()) == ""
     assert inv.height_curve.n_tips >= 5 and inv.height_curve.n_tips_below == 0
     trusted, h = _trusted_heights(pairs)
-    assert len(trusted) >= 0.75 * len(pairs)
-    assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
-    assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.06
+    assert len(trusted) >= 15
+    assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.10
+    assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.04
+    every = np.array([(r.height_m, t.height_m) for r, t in pairs])
+    assert math.sqrt(np.mean((every[:, 0] - every[:, 1]) ** 2)) / every[:, 1].mean() < 0.04
     dbh = np.array([(r.dbh_m, t.dbh_m) for r, t in pairs])
     assert math.sqrt(np.mean((dbh[:, 0] - dbh[:, 1]) ** 2)) / dbh[:, 1].mean() <= 0.017
     filled = [(r, t) for r, t in pairs if r.height_source == "curve"]
@@ -288,8 +282,12 @@ def test_intermixed_crowns_heights_from_the_curve_where_the_points_cannot_give_t
     assert sum(e > 0.2 for e in points_off) >= 2  # the points' top really was not the tree's
     for r, t in filled:
         assert abs(r.height_m / t.height_m - 1.0) <= 0.10, (t.id, r.quality["height"])
-        assert r.height_m == inv.height_curve.height_m(r.dbh_m) and r.height_m != r.crown.height_m
-        assert r.quality["height"].startswith("from the plot's height-diameter curve") and r.quality["height"].endswith("; medium")
+        assert r.height_m != r.crown.height_m
+        if r.quality["height"].endswith("; medium"):  # vouched for: the curve's own height
+            assert r.height_m == inv.height_curve.height_m(r.dbh_m)
+            assert r.quality["height"].startswith("from the plot's height-diameter curve")
+        else:
+            assert r.quality["height"].endswith("; low") and "not vouched for" in r.quality["height"]
         row = r.row()
         assert row["height_source"] == "curve" and row["height_m"] == r.height_m and row["height_points_m"] == r.crown.height_m
     # flags that matter: the crown of a tree whose top went to, or came from, a neighbour stays
@@ -297,7 +295,6 @@ def test_intermixed_crowns_heights_from_the_curve_where_the_points_cannot_give_t
     for r in inv.trees:
         weak = [k for k, q in r.quality.items() if q.endswith(("; low", "; none")) and not q.startswith("not asked for")]
         assert bool(r.flags) == bool(weak), (r.tree_id, r.flags, r.quality)
-    assert sum(1 for r in inv.trees if r.flags) <= 0.5 * len(inv.trees)
     assert "from the height-diameter curve" in inv.summary()
 
 
@@ -305,28 +302,29 @@ def test_intermixed_crowns_heights_from_the_curve_where_the_points_cannot_give_t
 def test_a_loose_height_diameter_relation_gives_no_heights_from_the_curve():
     """The same plot with each tree's height scattered 10 % about the stand's relation (a stand of
     several species or ages): the curve's scatter (11 %) is too wide to stand in for a tree's
-    height, so the heights the points cannot give stay flagged. No height from the curve; no
-    unflagged height more than 20 % off (17 of 38 unflagged, worst 9 %)."""
+    height, so the heights the points cannot give stay flagged: its estimates are given, none
+    vouched for. No unflagged height more than 20 % off (12 of 38 unflagged, worst 5.4 %)."""
     from forestreg.engine.trees.allometry import HeightCurveParams
 
     plot, inv = _four_scan_plot(seed=6, size_m=40.0, height_scatter=0.10)
     pairs = _matched_trees(plot, inv)
     assert inv.height_curve is not None and inv.height_curve.scatter > HeightCurveParams().max_scatter_fill
     assert "scatter" in inv.height_curve.fill_refusal(HeightCurveParams())
-    assert all(r.height_source == "points" for r in inv.trees)
+    assert all(r.quality["height"].endswith("; low") for r in inv.trees if r.height_source == "curve")
     trusted, h = _trusted_heights(pairs)
-    assert len(trusted) >= 12
+    assert len(trusted) >= 11
     assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
 
 
 @pytest.mark.slow
 def test_a_40_m_plot_with_suppressed_trees_trusts_no_top_in_a_neighbours_crown():
     """A 40 m mixed plot whose suppressed trees stand 0.5 m below their neighbours' crowns, scanned
-    four times full-dome. A thin suppressed tree's segment can reach up into the crowns over it to
-    a height the curve calls consistent (a 13 cm stem, truly 10.1 m, measured 16.0 m: +59 %, its
-    top touching a crown above). 2 of the 16 trees whose own apex is seen as a tip stand more than
-    20 % below the curve, so the curve vouches for no top under or touching a neighbour's crown
-    and gives no height: 19 of the 39 found unflagged, rRMSE 4.6 %, worst 12 %."""
+    four times full-dome. A thin suppressed tree's segment kept only the shortest paths could
+    reach up into the crowns over it (a 13 cm stem, truly 10.1 m, measured 16.0 m); keeping no
+    part of a thicker neighbour's expected crown beyond its own, no points' top stands more than
+    30 % above the truth. The curve scatters 7 % and 2 of its tips stand more than 20 % below it:
+    it vouches for no height (its estimates flagged); 18 of the 39 found unflagged, rRMSE 4.6 %,
+    worst 12 %."""
     plot, inv = _four_scan_plot(seed=3, size_m=40.0, suppressed_clearance_m=0.5)
     inside = [t for t in plot.scene.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
     xy = np.array([(r.stem.x, r.stem.y) for r in inv.trees])
@@ -334,12 +332,12 @@ def test_a_40_m_plot_with_suppressed_trees_trusts_no_top_in_a_neighbours_crown()
     pairs = [(inv.trees[k], t) for k, t in nearest if math.hypot(inv.trees[k].stem.x - t.x, inv.trees[k].stem.y - t.y) < 0.5]
     assert len(inside) == 40 and len(pairs) == 39  # a 14 cm stem 1.2 m from two 57 cm ones is not found
     assert inv.height_curve is not None and inv.height_curve.n_tips_below >= 1
-    assert all(r.height_source == "points" for r in inv.trees)
+    assert all(r.quality["height"].endswith("; low") for r in inv.trees if r.height_source == "curve")
     trusted, h = _trusted_heights(pairs)
     assert len(trusted) >= 16
     assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.08
-    assert any(r.crown.height_m > 1.3 * t.height_m and r.quality["height"].endswith("low") for r, t in pairs)
+    assert all(r.crown.height_m <= 1.3 * t.height_m for r, t in pairs)
 
 
 def test_a_leaning_tree_keeps_its_own_top_beside_a_taller_neighbour():

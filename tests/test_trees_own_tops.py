@@ -1,0 +1,172 @@
+"""Small trees beside big ones keep their own tops, and a height stands unflagged only on evidence.
+
+Unit checks of the segmentation's expected-crown rule and of the height judgement, then a small
+simulated plot drawn from a seed the rules were not chosen on (``understory_scene``: a small tree
+beside each big one, its top under or inside the big crown; oval, rough stems; four full-dome
+scans; 20 m square).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import pytest
+
+from forestreg.engine.trees.allometry import HeightCurve
+from forestreg.engine.trees.crown import CrownMeasurement
+from forestreg.engine.trees.inventory import TreeParams, _judge_top, _under_thicker_crowns, measure_trees
+from forestreg.engine.trees.segmentation import SegmentationParams, _keep_own_tops, expected_crown_radius
+from forestreg.engine.trees.stems import Stem
+
+
+def _stem(i: int, x: float, y: float, dbh: float) -> Stem:
+    return Stem(id=i, base=np.array([x, y, 0.0]), axis=np.array([0.0, 0.0, 1.0]), radius_m=dbh / 2.0,
+                point_indices=np.zeros(0, dtype=np.int64))
+
+
+def test_expected_crown_radius_grows_with_the_dbh():
+    params = SegmentationParams()
+    assert expected_crown_radius(0.25, params) == pytest.approx(5.3 * 0.5 ** 0.6)
+    assert 1.5 < expected_crown_radius(0.07, params) < 1.8
+    assert expected_crown_radius(0.07, params.replace(crown_radius_per_dbh=0.0)) == 0.0
+
+
+def test_a_thin_stems_segment_gives_up_the_thick_neighbours_crown_beyond_its_own():
+    """A 14 cm stem 2.5 m from a 50 cm one (expected crown radii 1.6 m and 3.5 m): the thin tree's
+    voxels within 1.6 m of its axis stay its own, those beyond it and deeper in the thick tree's
+    expected crown go to the thick tree; voxels of the thin tree on its far side stay; without a
+    thicker neighbour nothing moves."""
+    thin, thick = _stem(1, 0.0, 0.0, 0.14), _stem(2, 2.5, 0.0, 0.5)
+    own = np.array([[0.3, 0.2, 8.0], [-0.8, 0.5, 9.0], [1.2, 0.0, 10.0]])      # within 1.6 m of the thin axis
+    taken = np.array([[1.9, 0.3, 14.0], [2.0, -0.5, 16.0], [1.7, 0.9, 12.0]])  # beyond 1.6 m, nearer the thick axis
+    far_side = np.array([[-1.8, 0.0, 9.0]])                                   # beyond 1.6 m, away from the thick tree
+    centroids = np.vstack([own, taken, far_side, np.zeros((10, 3)) + [-0.2, 0.0, 7.0]])
+    labels = np.ones(len(centroids), dtype=np.int64)
+    out = _keep_own_tops(centroids, labels, [thin, thick], SegmentationParams())
+    assert out[:3].tolist() == [1, 1, 1]
+    assert out[3:6].tolist() == [2, 2, 2]
+    assert out[6] == 1 and (out[7:] == 1).all()
+    alone = _keep_own_tops(centroids, labels, [thin, _stem(2, 2.5, 0.0, 0.15)], SegmentationParams())
+    assert (alone == 1).all()
+
+
+def _crown(height: float, offset: float = 0.1, ratio: float = 0.05, layer: float = 0.1, diameter: float = 3.0) -> CrownMeasurement:
+    nan = math.nan
+    return CrownMeasurement(tree_id=1, x=0.0, y=0.0, height_m=height, crown_base_m=height / 2, crown_width_ew_m=diameter,
+                            crown_width_ns_m=diameter, crown_area_m2=nan, crown_diameter_m=diameter, crown_length_m=height / 2,
+                            crown_volume_m3=nan, n_points=500, top=(0.0, 0.0, height), ok=True, reasons=(),
+                            top_offset_m=offset, top_offset_ratio=ratio, top_layer_offset_ratio=layer)
+
+
+#: a tight curve resting on many trees, followed by the trees whose apex is a tip: it may stand in
+CURVE = HeightCurve(a=1.15, b=0.18, n_trees=25, n_inliers=25, scatter=0.04, dbh_min_m=0.1, dbh_max_m=0.6, n_tips=8)
+
+
+def _judge(crown, hints=(), dbh=0.3, curve=CURVE, overtopped=None, h_trust="high", top_flags=()):
+    return _judge_top(crown, dbh, "stem curve at 1.3 m; high", list(hints), list(top_flags), h_trust, "high", "highest point",
+                      TreeParams(), curve, overtopped)
+
+
+def test_a_top_stands_only_on_evidence():
+    """A tip over the stem stands, however far below the curve, even under a neighbour's crown
+    (a suppressed tree) if there is a curve to check it on; a top over the stem with no hint stands
+    within -10 % to +15 % of the curve; beyond that, or with any hint, the height is low and the
+    curve gives the estimate."""
+    c = CURVE.height_m(0.3)
+    trust, how, fill, flags = _judge(_crown(0.6 * c))
+    assert trust == "high" and not flags and math.isnan(fill) and "apex seen as a tip" in how
+    under = [("under", "top under a neighbour's crown, 0.8 m clear of it: suppressed, or its top unseen (height unsure)")]
+    trust, _, fill, flags = _judge(_crown(0.6 * c), under)
+    assert trust == "medium" and not flags and math.isnan(fill)
+    trust, _, fill, flags = _judge(_crown(0.6 * c), under, curve=None)
+    assert trust == "low" and flags and math.isnan(fill)  # no curve to check a tip under a crown on
+    dome = _crown(0.95 * c, offset=0.8, ratio=0.4, layer=0.45)
+    assert _judge(dome)[0] == "high"
+    trust, _, fill, flags = _judge(_crown(0.85 * c, offset=0.8, ratio=0.4, layer=0.45))
+    assert trust == "medium" and not flags and fill == pytest.approx(c)  # 15 % short: the curve stands in
+
+
+def test_the_curve_vouches_for_no_suppressed_tree():
+    """A top under or touching a neighbour's crown below the curve gets the estimate midway
+    between its points' top and the curve, flagged; a top on the crown's flank of a stem under a
+    thicker neighbour's expected crown gets the curve's estimate, flagged, unless its points' top
+    agrees with the curve within 10 % (then the points' top stands); a loose curve vouches for
+    nothing."""
+    c = CURVE.height_m(0.14)
+    touch = [("unseen", "top touching a neighbour's crown (3 cm below it): the crown may go on up in that tree (height unsure)")]
+    trust, how, fill, flags = _judge(_crown(0.7 * c, offset=0.9, ratio=0.6, layer=0.6), touch, dbh=0.14)
+    assert trust == "low" and fill == pytest.approx(0.85 * c) and "midway" in how and flags
+    flank = [("hint", "top on the crown's flank, 1.2 m from the stem axis (0.80 of the crown radius): apex unseen or a neighbour's (height unsure)")]
+    under_big = "its stem stands 1.9 m from thicker tree 7 (48 cm), under that tree's expected crown"
+    trust, how, fill, flags = _judge(_crown(1.4 * c, offset=1.2, ratio=0.8), flank, dbh=0.14, overtopped=under_big)
+    assert trust == "low" and fill == pytest.approx(c) and "not vouched for" in how and flags
+    trust, how, fill, flags = _judge(_crown(1.05 * c, offset=1.2, ratio=0.8), flank, dbh=0.14, overtopped=under_big)
+    assert trust == "medium" and math.isnan(fill) and not flags and "(consistent)" in how  # two witnesses agree
+    loose = HeightCurve(a=1.15, b=0.18, n_trees=25, n_inliers=25, scatter=0.12, dbh_min_m=0.1, dbh_max_m=0.6, n_tips=8)
+    trust, _, fill, flags = _judge(_crown(1.4 * c, offset=1.2, ratio=0.8), flank, dbh=0.14, curve=loose)
+    assert trust == "low" and math.isfinite(fill) and flags
+
+
+def test_stems_under_a_thicker_neighbours_expected_crown():
+    stems = [_stem(1, 0.0, 0.0, 0.14), _stem(2, 2.5, 0.0, 0.5), _stem(3, 12.0, 0.0, 0.14), _stem(4, 14.0, 0.0, 0.16)]
+    out = _under_thicker_crowns(stems, TreeParams())
+    assert set(out) == {1} and "thicker tree 2" in out[1]
+
+
+@functools.lru_cache(maxsize=None)
+def _understory_plot(seed: int):
+    """The small plot of the module docstring and its inventory (no cylinder models)."""
+    from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.simulate.hard import understory_scene
+
+    scene = understory_scene(seed, 20.0)
+    plot = simulate_plot("understory", [(-4.0, -4.0), (4.0, -4.0), (4.0, 4.0), (-4.0, 4.0)], scene=scene, seed=seed,
+                         angular_step_deg=0.35, scanner_options={"elevation_max_deg": 90.0})
+    points = np.vstack([s.world_points() for s in plot.scans])
+    return plot, measure_trees(points, TreeParams(cylinder_models=False))
+
+
+def _pairs(plot, inv, radius_m: float = 8.5):
+    """(record, true tree) of the true trees within ``radius_m`` of the centre with DBH >= 0.1 m
+    matched to a stem within 0.5 m, and the count of false stems (a stem within the radius and
+    no true tree within 0.5 m)."""
+    trees = plot.scene.trees
+    txy = np.array([(t.x, t.y) for t in trees])
+    pairs, false = [], 0
+    for r in inv.trees:
+        d = np.hypot(*(txy - (r.stem.x, r.stem.y)).T)
+        k = int(np.argmin(d))
+        if d[k] >= 0.5:
+            false += math.hypot(r.stem.x, r.stem.y) < radius_m and math.isfinite(r.dbh_m)
+        elif math.hypot(trees[k].x, trees[k].y) < radius_m and trees[k].dbh_m >= 0.1:
+            pairs.append((r, trees[k]))
+    return pairs, false
+
+
+@pytest.mark.slow
+def test_small_trees_beside_big_ones_on_a_plot_not_tuned_on():
+    """Seed 7 (the rules were chosen on other seeds): every tree over 10 cm within 8.5 m found (19),
+    no false stem, DBH rRMSE within 3 % (measured 2.3 %); the unflagged heights within 10 % of
+    the truth (measured: 7 of 19, all within 1 %); each of the 4 small trees beside a big one
+    whose points' top stands more than 15 % above its true top (+36 % to +66 %: a neighbour's
+    crown) is flagged; every reported height within an rRMSE of 15 % (measured 12.9 %: the
+    flagged small trees' estimates, from the curve of the big trees, stand 9-59 % too tall)."""
+    plot, inv = _understory_plot(7)
+    pairs, false = _pairs(plot, inv)
+    inside = [t for t in plot.scene.trees if math.hypot(t.x, t.y) < 8.5 and t.dbh_m >= 0.1]
+    assert len(pairs) == len(inside) and false == 0
+    dbh = np.array([(r.dbh_m, t.dbh_m) for r, t in pairs])
+    assert math.sqrt(np.mean((dbh[:, 0] - dbh[:, 1]) ** 2)) / dbh[:, 1].mean() <= 0.03
+    h = np.array([(r.height_m, t.height_m) for r, t in pairs])
+    assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() <= 0.15
+    unflagged = np.array([(r.height_m, t.height_m) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))])
+    assert len(unflagged) >= 6
+    assert np.max(np.abs(unflagged[:, 0] / unflagged[:, 1] - 1.0)) <= 0.10
+    assert math.sqrt(np.mean((unflagged[:, 0] - unflagged[:, 1]) ** 2)) / unflagged[:, 1].mean() <= 0.05
+    added = set(plot.scene.meta["understory_added"])
+    taken = [(r, t) for r, t in pairs if t.id in added and r.crown.height_m > 1.15 * t.height_m]
+    assert len(taken) >= 3
+    for r, t in taken:
+        assert r.quality["height"].endswith("low"), (t.id, r.quality["height"])
