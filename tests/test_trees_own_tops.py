@@ -152,7 +152,8 @@ def test_small_trees_beside_big_ones_on_a_plot_not_tuned_on():
     the truth (measured: 7 of 19, all within 1 %); each of the 4 small trees beside a big one
     whose points' top stands more than 15 % above its true top (+36 % to +66 %: a neighbour's
     crown) is flagged; every reported height within an rRMSE of 15 % (measured 12.9 %: the
-    flagged small trees' estimates, from the curve of the big trees, stand 9-59 % too tall)."""
+    flagged estimates of the 7 small trees, from a curve of free-growing trees, stand -13 % to
+    +59 % off)."""
     plot, inv = _understory_plot(7)
     pairs, false = _pairs(plot, inv)
     inside = [t for t in plot.scene.trees if math.hypot(t.x, t.y) < 8.5 and t.dbh_m >= 0.1]
