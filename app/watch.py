@@ -147,7 +147,9 @@ def _check_las(path: Path) -> FileCheck:
         if "truncated" in text or "too short" in text:
             return FileCheck("partial", "the file is shorter than its header says")
         return FileCheck("not a scan", text.split(": ", 1)[-1])
-    if not compressed or count == 0:
+    if count == 0:  # a writer that fills the count in at the end, or an empty scan
+        return FileCheck("partial", "its header announces no points (yet)")
+    if not compressed:
         return FileCheck("complete")
     size = path.stat().st_size
     with open(path, "rb") as f:
@@ -162,7 +164,21 @@ def _check_las(path: Path) -> FileCheck:
         return FileCheck("partial", f"the file ends at byte {size:,}, before the end of its chunk table (from byte {table:,})")
     if table > 0 and not _chunk_table_reads(path, offset):
         return FileCheck("partial", "its chunk table has not arrived whole")
+    if table <= 0 and not _all_points_read(path, count):  # no chunk table (yet): the points must all decode
+        return FileCheck("partial", f"fewer than the {count:,} points its header announces decode")
     return FileCheck("complete")
+
+
+def _all_points_read(path: Path, count: int) -> bool:
+    """Whether all ``count`` points of a LAS/LAZ file decode."""
+    try:
+        import laspy
+
+        with laspy.open(str(path)) as reader:
+            n = sum(len(chunk) for chunk in reader.chunk_iterator(1_000_000))
+    except Exception:  # laspy says only that the bytes ran out
+        return False
+    return n >= count
 
 
 def _chunk_table_reads(path: Path, offset: int) -> bool:
@@ -349,6 +365,10 @@ class Watch:
         name = path.name
         known = self.files.get(name)
         signature = self.poller.signature(name)
+        if known is not None and known.get("status") in SET_ASIDE and signature is not None \
+                and (known.get("size"), known.get("mtime_ns")) != signature:
+            del self.files[name]  # set aside, then written again (a new export): taken in anew
+            known = None
         if known is not None and known.get("status") in PLACED + SET_ASIDE:
             if known.get("size") is not None and signature is not None and known.get("size") != signature[0]:
                 self._say_once(path, ("changed",), WatchEvent(name, "ignored", f"{name}: changed after it was taken in - the scan taken in stays; "
