@@ -5,10 +5,10 @@ diameter: two surveys standing in different places see different arcs, and the d
 their two circles can exceed six years of growth. The growth is therefore measured where both
 surveys saw the same bark:
 
-1. **Points.** Each survey's stem band ``section_heights_m`` above its own ground (a vertical
-   offset of the registration does not matter), around the earlier survey's stem axis, the later
-   survey's points moved into that frame by the registration; each point is moved to breast
-   height along the axis (a leaning stem).
+1. **Points.** Both surveys' stem band ``section_heights_m`` above the ground under the stem in
+   the earlier survey (the later survey's points moved into its frame by the registration; one
+   ground for both, so a leaning stem is cut at the same heights), around the earlier survey's
+   stem axis; each point is moved to breast height along the axis (a leaning stem).
 2. **Sectors.** About the earlier survey's circle centre, the points are sorted into angular
    sectors of ``sector_deg``. In a sector holding at least ``min_sector_points`` points of each
    survey, the distances are fitted by one line in the angle (the bark's shape there, shared by
@@ -39,7 +39,7 @@ import numpy as np
 from ..core.errors import ParameterError
 from ..core.params import Params, param_field as _p
 
-__all__ = ["GrowthParams", "GrowthFit", "StemSections", "ShiftPrior", "stem_sections", "sector_growth", "shift_prior", "paired_growth"]
+__all__ = ["GrowthParams", "GrowthFit", "StemSections", "ShiftPrior", "stem_sections", "sector_growth", "shift_prior", "stem_growth", "stem_diameter", "StemPlace"]
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,7 @@ class StemSections:
     later survey's radial distance minus the earlier one's there, the shape within the sector and
     the stem's taper taken out) and ``noise`` (m, its 1-sigma from the points' scatter);
     ``sectors_before`` / ``sectors_after`` the sector indices (0..n-1 around the stem) each survey
-    saw; ``radius_m`` the earlier survey's circle radius."""
+    saw; ``radius_m`` the radius of the circle the distances are measured from."""
 
     angle: np.ndarray
     change: np.ndarray
@@ -120,10 +120,9 @@ class ShiftPrior:
 def stem_sections(before: np.ndarray, after: np.ndarray, centre_bh: np.ndarray, axis: np.ndarray, radius_m: float,
                   params: GrowthParams = GrowthParams()) -> Optional[StemSections]:
     """The sectors of one stem both surveys saw. ``before`` / ``after``: (k, 3) points near the
-    stem as (x, y, height above that survey's ground), the later survey's x, y already in the
+    stem as (x, y, height above the ground under the stem), the later survey's already in the
     earlier one's frame; ``centre_bh`` the stem axis at 1.3 m (x, y), ``axis`` its unit
-    direction, ``radius_m`` its radius in the earlier survey. None when the earlier survey holds
-    no circle there.
+    direction, ``radius_m`` its radius roughly. None when neither survey holds a circle there.
 
     Each point's distance from the axis (at the point's height) is modelled per sector as a
     line in the angle (the shape within the sector, shared by both surveys) plus a taper in the
@@ -140,14 +139,21 @@ def stem_sections(before: np.ndarray, after: np.ndarray, centre_bh: np.ndarray, 
         return np.column_stack([p[:, :2] - tilt * (p[:, 2:3] - 1.3), p[:, 2] - 1.3])
 
     qb, qa = level(before), level(after)
-    d0 = np.hypot(*(qb[:, :2] - np.asarray(centre_bh, dtype=float)).T)
-    shell = np.abs(d0 - radius_m) <= params.shell_m[1] + 0.02
-    if np.count_nonzero(shell) < 10:
+    # the centre both surveys' distances are measured from: the earlier survey's circle, else
+    # (a stem the earlier survey saw little of) the later one's
+    found = None
+    for q in (qb, qa):
+        d0 = np.hypot(*(q[:, :2] - np.asarray(centre_bh, dtype=float)).T)
+        shell = np.abs(d0 - radius_m) <= params.shell_m[1] + 0.02
+        if np.count_nonzero(shell) < 10:
+            continue
+        circle = fit_circle(q[shell, :2], loss="huber", scale_m=0.005)
+        if math.isfinite(circle.radius_m) and abs(circle.radius_m - radius_m) < 0.3 * radius_m + 0.02:
+            found = circle
+            break
+    if found is None:
         return None
-    circle = fit_circle(qb[shell, :2], loss="huber", scale_m=0.005)
-    if not (math.isfinite(circle.radius_m) and abs(circle.radius_m - radius_m) < 0.3 * radius_m + 0.02):
-        return None
-    c, r0 = np.asarray(circle.centre, dtype=float), float(circle.radius_m)
+    c, r0 = np.asarray(found.centre, dtype=float), float(found.radius_m)
     n_sec = int(round(360.0 / params.sector_deg))
     width = 2.0 * math.pi / n_sec
     parts = []
@@ -205,24 +211,37 @@ def stem_sections(before: np.ndarray, after: np.ndarray, centre_bh: np.ndarray, 
 
 def _solve(sec: StemSections, prior: ShiftPrior, params: GrowthParams, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Weighted least squares of ``change = g + delta . u`` over the sectors ``use`` with the
-    prior on ``delta``: (x = [g, dx, dy], covariance, rms of the residuals). The sectors' scatter
-    about the model (bark relief, shape change) is estimated from the residuals, never below
-    ``sigma_floor_m``."""
+    prior on ``delta``: (x = [g, dx, dy], covariance, rms of the residuals). Each sector weighs
+    ``1 / (noise^2 + s^2)``: its points' own noise and the sectors' scatter about the model
+    ``s`` (bark relief, shape the sector's line misses), the ``s`` at which the weighted
+    residuals match their degrees of freedom (a random effect), never below ``sigma_floor_m``."""
     a = np.column_stack([np.ones(int(use.sum())), np.cos(sec.angle[use]), np.sin(sec.angle[use])])
     y = sec.change[use]
     noise2 = np.maximum(sec.noise[use], 1e-4) ** 2
     mean = np.array([0.0, *prior.mean])
     prec = np.diag([0.0, 1.0, 1.0]) / prior.sigma_m**2
-    s2 = params.sigma_floor_m**2
-    for _ in range(4):
+
+    def fit(s2: float) -> tuple[np.ndarray, np.ndarray, float]:
         w = 1.0 / (noise2 + s2)
         normal = (a * w[:, None]).T @ a + prec
         x = np.linalg.solve(normal, (a * w[:, None]).T @ y + prec @ mean)
         r = y - a @ x
-        s2 = max(float(np.sum(r**2)) / max(len(y) - 3, 1) - float(np.mean(noise2)), params.sigma_floor_m**2)
-    w = 1.0 / (noise2 + s2)
-    cov = np.linalg.inv((a * w[:, None]).T @ a + prec)
-    return x, cov, float(np.sqrt(np.mean((y - a @ x) ** 2)))
+        return x, normal, float(np.sum(w * r * r))
+
+    dof = max(len(y) - 1, 1)  # the shift is held by its prior as well: one unknown counted
+    lo, hi = params.sigma_floor_m**2, max(params.max_shift_m, 0.01) ** 2
+    if fit(lo)[2] > dof:
+        for _ in range(40):  # bisection in log s^2: the weighted chi^2 falls as s grows
+            mid = math.sqrt(lo * hi)
+            if fit(mid)[2] > dof:
+                lo = mid
+            else:
+                hi = mid
+        s2 = hi
+    else:
+        s2 = lo
+    x, normal, _ = fit(s2)
+    return x, np.linalg.inv(normal), float(np.sqrt(np.mean((y - a @ x) ** 2)))
 
 
 def sector_growth(sec: Optional[StemSections], prior: ShiftPrior = ShiftPrior(), params: GrowthParams = GrowthParams()) -> GrowthFit:
@@ -232,7 +251,7 @@ def sector_growth(sec: Optional[StemSections], prior: ShiftPrior = ShiftPrior(),
     nan2 = np.full((2, 2), np.nan)
     if sec is None:
         return GrowthFit(math.nan, math.nan, (math.nan, math.nan), nan2, 0.0, 0, math.nan,
-                         "no section of the stem at breast height in the earlier survey")
+                         "no section of the stem at breast height in either survey")
     arc = sec.common_arc_deg
     distinct = len(sec.sectors_before & sec.sectors_after)
     if arc < params.min_common_arc_deg or len(sec.change) < 3:
@@ -317,48 +336,60 @@ def shift_prior(positions: np.ndarray, fits: Sequence[GrowthFit], fallback_sigma
     return out
 
 
-def _diameter(before, b: int, after, a: int) -> float:
-    """The stem's diameter (m) to cut its sections by: the earlier survey's DBH, else the later
-    one's, else the median of either stem curve (a stem whose DBH was not supported), else 0.3."""
-    for epoch, k in ((before, b), (after, a)):
-        if math.isfinite(epoch.dbh_m[k]):
-            return float(epoch.dbh_m[k])
-    for epoch, k in ((before, b), (after, a)):
-        curve = epoch.curves[k] if len(epoch.curves) > k else None
-        if curve is not None and len(curve[1]) and np.isfinite(curve[1]).any():
-            return float(np.nanmedian(curve[1]))
-    return 0.3
+def stem_diameter(epoch, k: int) -> float:
+    """Stem ``k``'s diameter (m) to cut its sections by: its DBH, else the median of its stem
+    curve (a stem whose DBH was not supported); NaN when neither is known."""
+    if math.isfinite(epoch.dbh_m[k]):
+        return float(epoch.dbh_m[k])
+    curve = epoch.curves[k] if len(epoch.curves) > k else None
+    if curve is not None and len(curve[1]) and np.isfinite(curve[1]).any():
+        return float(np.nanmedian(curve[1]))
+    return math.nan
 
 
-def paired_growth(before, after, pairs: np.ndarray, matrix: np.ndarray, shift_sigma_m: float,
-                  params: GrowthParams = GrowthParams()) -> list[GrowthFit]:
-    """The growth of every stem pair ``pairs`` ((n, 2) indices into ``before`` and ``after``, two
-    :class:`~.epoch.EpochTrees` with points) registered by ``matrix`` (``p_before = matrix @
-    p_after``, local frames): the sections of each (:func:`stem_sections`), a first pass with a
-    wide prior on the local shift, the plot's shift field from the well-covered stems
-    (:func:`shift_prior`; ``shift_sigma_m``, the registration's stated horizontal uncertainty,
-    where too few stems tell it), and the final pass with each stem's prior."""
+@dataclass(frozen=True)
+class StemPlace:
+    """Where a persisting stem stands in the earlier survey's local frame: ``xy`` its axis 1.3 m
+    above ``ground_z`` (the ground under it), ``axis`` its unit direction (up), ``diameter_m``
+    roughly (to cut its sections)."""
+
+    xy: tuple[float, float]
+    ground_z: float
+    axis: tuple[float, float, float]
+    diameter_m: float
+
+
+def stem_growth(before, after, matrix: np.ndarray, stems: Sequence[StemPlace], shift_sigma_m: float,
+                params: GrowthParams = GrowthParams()) -> list[GrowthFit]:
+    """The growth of every persisting stem ``stems`` between two :class:`~.epoch.EpochTrees`
+    with points, registered by ``matrix`` (``p_before = matrix @ p_after``, local frames): the
+    sections of each (:func:`stem_sections`), a first pass with a wide prior on the local shift,
+    the plot's shift field from them all (:func:`shift_prior`; ``shift_sigma_m``, the
+    registration's stated horizontal uncertainty, where too few stems tell it), and the final
+    pass with each stem's prior. Empty when either survey has no points (a table)."""
     from scipy.spatial import cKDTree
 
     from ..core.transform import apply as apply_transform
 
-    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    if not len(pairs) or not (before.has_points and after.has_points):
+    if not len(stems) or not (before.has_points and after.has_points):
         return []
     after_band = apply_transform(matrix, after.band)
     index_b, index_a = cKDTree(before.band[:, :2]), cKDTree(after_band[:, :2])
     sections = []
-    for b, a in pairs:
-        r = 0.5 * _diameter(before, b, after, a)
-        centre, axis = before.xy[b], before.axis[b]
+    for st in stems:
+        r = 0.5 * (st.diameter_m if math.isfinite(st.diameter_m) else 0.3)
+        centre, axis = np.asarray(st.xy, dtype=float), np.asarray(st.axis, dtype=float)
         lean = float(np.hypot(*axis[:2]) / max(float(axis[2]), 1e-6))
         reach = r + params.shell_m[1] + params.max_shift_m + lean * 0.6
         nb = np.asarray(index_b.query_ball_point(centre, reach), dtype=np.int64)
         na = np.asarray(index_a.query_ball_point(centre, reach), dtype=np.int64)
-        pb = np.column_stack([before.band[nb, :2], before.band_heights[nb]])
-        pa = np.column_stack([after_band[na, :2], after.band_heights[na]])
+        # heights above one ground for both surveys (the earlier one's, the later survey moved
+        # into its frame): a leaning stem cut at each survey's own ground would be cut at
+        # different heights where the two grounds differ, and seem shifted along its lean
+        pb = before.band[nb] - [0.0, 0.0, st.ground_z]
+        pa = after_band[na] - [0.0, 0.0, st.ground_z]
         sections.append(stem_sections(pb, pa, centre, axis, r, params))
     wide_prior = ShiftPrior((0.0, 0.0), params.max_shift_m)
     first = [sector_growth(s, wide_prior, params) for s in sections]
-    priors = shift_prior(before.xy[pairs[:, 0]], first, shift_sigma_m, params)
+    priors = shift_prior(np.array([st.xy for st in stems], dtype=float), first, shift_sigma_m, params)
     return [sector_growth(s, p, params) for s, p in zip(sections, priors)]

@@ -37,7 +37,7 @@ import numpy as np
 from ..core.transform import apply as apply_transform
 from .epoch import EpochTrees
 from .params import ChangeParams
-from .growth import GrowthFit, paired_growth
+from .growth import GrowthFit, StemPlace, stem_diameter, stem_growth
 from .registration import stem_pairs
 
 __all__ = ["TreeChange", "STATUSES", "match_trees", "CHANGE_COLUMNS"]
@@ -147,11 +147,14 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     def radius(epoch: EpochTrees, k: int) -> float:
         return 0.5 * epoch.dbh_m[k] if math.isfinite(epoch.dbh_m[k]) else 0.15
 
-    # --- stems found in both surveys; their growth from the sectors both clouds saw
-    growth = paired_growth(before, after, pairs, matrix, shift_sigma_m, params.growth)
-    for k, (b, a) in enumerate(pairs):
-        out.append(_persisting(before, after, int(b), int(a), float(np.hypot(*(after_in_b[a, :2] - before.xy[b]))), params,
-                               growth[k] if growth else None))
+    # --- stems found in both surveys (their growth below, with the stems found in one)
+    places: list[StemPlace] = []
+    for b, a in pairs:
+        d = stem_diameter(before, int(b))
+        places.append(StemPlace(tuple(before.xy[b]), float(before.ground_z[b]), tuple(before.axis[b]),
+                                d if math.isfinite(d) else stem_diameter(after, int(a))))
+    #: stems found in one survey and present in the other: (index into ``out``, their place)
+    present_alone: list[tuple[int, StemPlace]] = []
     # --- stems of BEFORE alone: removed, not found in AFTER, or outside AFTER
     # a stem of one survey alone without a DBH and without points of its own at 1.0-1.6 m is
     # no evidence of a tree removed or grown in (a crown part or branch whorl taken for a stem):
@@ -180,16 +183,27 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
         for j, k in enumerate(rest):
             base = _one_side(epoch, int(k), which, xy=where[j] if at_other else None)
             own = epoch.flags[k] and f"{which.upper()}: {epoch.flags[k]}"
-            if other.has_points and present[j] >= params.presence_points:
-                out.append(TreeChange(status="persisting", **base,
-                                      flag=_join(own, f"stem present in {name} but not measured there (occluded or unsure): no change")))
-            elif other.has_points and partly[j] >= params.partial_presence_points:
-                out.append(TreeChange(status="persisting", **base,
-                                      flag=_join(own, f"stem partly seen in {name} ({partly[j]} points on its surface: occluded there): no change")))
-            elif status == "new" and seen[j] and epoch.dbh_m[k] > params.max_new_dbh_m:
+            thick_new = status == "new" and seen[j] and epoch.dbh_m[k] > params.max_new_dbh_m
+            if other.has_points and (present[j] >= params.presence_points or partly[j] >= params.partial_presence_points or thick_new):
+                if present[j] >= params.presence_points:
+                    what = f"stem present in {name} but not measured there (occluded or unsure)"
+                elif partly[j] >= params.partial_presence_points:
+                    what = f"stem partly seen in {name} ({partly[j]} points on its surface: occluded there)"
+                else:
+                    what = (f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {100 * params.max_new_dbh_m:g} cm): "
+                            f"its place was occluded in {name} ({present[j]} points there)")
+                if at_other:  # a stem of AFTER: its place in the BEFORE frame
+                    up = matrix[:3, :3] @ epoch.axis[k]
+                    place = StemPlace((float(where[j, 0]), float(where[j, 1])), float(in_other[k, 2]) - 1.3, tuple(up),
+                                      stem_diameter(epoch, int(k)))
+                else:
+                    place = StemPlace(tuple(epoch.xy[k]), float(epoch.ground_z[k]), tuple(epoch.axis[k]), stem_diameter(epoch, int(k)))
+                present_alone.append((len(out), place))
+                out.append(TreeChange(status="persisting", **base, flag=_join(own, what)))
+            elif thick_new:  # a table: no points to measure it by
                 out.append(TreeChange(status="persisting", **base, flag=_join(own, (
                     f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {100 * params.max_new_dbh_m:g} cm): "
-                    f"its place was occluded in {name} ({present[j]} points there): no change"))))
+                    f"no stem at its place in the {name} table: not compared"))))
             elif not seen[j]:
                 out.append(TreeChange(status="outside", **base, flag=f"outside the {name} survey: not compared"))
             else:
@@ -200,7 +214,13 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     alone(before, "before", after, np.array(sorted(set(range(len(before))) - paired_b), dtype=np.int64), before_in_a, band_a, None, "removed", False)
     # --- stems of AFTER alone: new, not found in BEFORE, or outside BEFORE
     alone(after, "after", before, np.array(sorted(set(range(len(after))) - paired_a), dtype=np.int64), after_in_b, band_b, cover_b, "new", True)
-    out = _height_outliers(out, params)
+    # --- growth of every persisting stem from the sectors both clouds saw (one shift field)
+    growth = stem_growth(before, after, matrix, places + [p for _, p in present_alone], shift_sigma_m, params.growth)
+    paired = [_persisting(before, after, int(b), int(a), float(np.hypot(*(after_in_b[a, :2] - before.xy[b]))), params,
+                          growth[k] if growth else None) for k, (b, a) in enumerate(pairs)]
+    for (i, _), fit in zip(present_alone, growth[len(places):]):
+        out[i] = _growth_of_one(out[i], fit, params)
+    out = _height_outliers(paired + out, params)
     order = {s: i for i, s in enumerate(STATUSES)}
     return sorted(out, key=lambda t: (order[t.status], t.x, t.y))
 
@@ -224,6 +244,19 @@ def _height_outliers(trees: list[TreeChange], params: ChangeParams) -> list[Tree
                         "(a top unseen in one survey or a neighbour's crown taken for it)"))
         out.append(t)
     return out
+
+
+def _growth_of_one(t: TreeChange, fit: GrowthFit, params: ChangeParams) -> TreeChange:
+    """A stem found in one survey and present in the other, with its diameter growth from the
+    sectors both clouds saw where they tell it (the DBH of the survey that did not measure the
+    stem stays empty), else the reason none is given."""
+    import dataclasses
+
+    if fit.stated and fit.dbh_change_sigma_m <= params.max_dbh_change_sigma_m:
+        return dataclasses.replace(t, dbh_change_m=fit.dbh_change_m, dbh_change_sigma_m=fit.dbh_change_sigma_m,
+                                   flag=_join(t.flag, "DBH change from the stem's sectors both clouds saw"))
+    why = fit.reason or f"too uncertain (1 sigma {1000 * fit.dbh_change_sigma_m:.0f} mm)"
+    return dataclasses.replace(t, flag=_join(t.flag, f"no DBH change: {why}"))
 
 
 def _join(*parts: str) -> str:
