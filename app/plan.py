@@ -94,7 +94,7 @@ def plan_next(source, *, n: int = 1, params=None, out=None, scans=None, progress
     from ..engine.core.errors import DataError, UsageError
     from ..engine.core.jsonable import to_jsonable
     from ..engine.tls.params import PlanParams
-    from ..engine.tls.plan import placed_views, plan_scans
+    from ..engine.tls.plan import placed_links, placed_views, plan_scans
     from ..engine.tls.plot import ScanCache
     from ..engine.tls.project import Project
 
@@ -115,7 +115,7 @@ def plan_next(source, *, n: int = 1, params=None, out=None, scans=None, progress
     scans = scans if scans is not None else ScanCache(project, with_intensity=False)
     views = placed_views(project, scans, cell_m=params.ground_cell_m)
     report(0.7, "planning the next scans")
-    plan = plan_scans(views, params, project.params, n=int(n))
+    plan = plan_scans(views, params, project.params, n=int(n), links=placed_links(project))
     links = link_strengths(project, params.min_shared_stems)
     doc = plan_document(plan, links, project.centre, params)
     write_text_atomic(target, json.dumps(to_jsonable(doc, nan_as_null=True), indent=1) + "\n")
@@ -137,7 +137,8 @@ def plan_document(plan, links, frame: Optional[str], params) -> dict[str, Any]:
                   "area_not_seen_m2": plan.stem_area_unseen_m2, "band_m": params.stem_band_m},
         "ground": {"seen_m2": plan.ground_seen_m2, "not_seen_m2": plan.ground_unseen_m2},
         "links": [link.to_dict() for link in links],
-        "candidates": {"tried": plan.candidates, "linking": plan.linking, "min_shared_stems": params.min_shared_stems},
+        "candidates": {"tried": plan.candidates, "linking": plan.linking, "min_shared_stems": params.min_shared_stems,
+                       "shared_falloff_m": plan.falloff_m if plan.falloff_m != float("inf") else None},
         "suggestions": [
             {"rank": k + 1, "x": s.x, "y": s.y, "links_to": s.links_to, "shared_stems": s.shared_stems, "vop_radius_m": s.radius_m,
              "distance_m": s.distance_m, "new_stem_area_m2": s.new_stem_area_m2, "new_view_m2": s.new_view_m2,

@@ -504,12 +504,12 @@ class Watch:
 
     def _advice(self, partner: str) -> Optional[tuple]:
         """A position (x, y) that links to ``partner`` and sees the most stem area not seen yet."""
-        from ..engine.tls.plan import placed_views, plan_scans
+        from ..engine.tls.plan import placed_links, placed_views, plan_scans
 
         try:
             views = placed_views(self.project, self.cache, names=[n for n in self.placed() if self.project.has_scan(n)],
                                  cell_m=self.plan_params.ground_cell_m)
-            plan = plan_scans(views, self.plan_params, self.params, n=1, links_to=[partner])
+            plan = plan_scans(views, self.plan_params, self.params, n=1, links_to=[partner], links=placed_links(self.project))
         except Exception as exc:  # advice is a help, never the reason a watch stops
             log.debug("no advice for a scan next to %s: %s", partner, exc)
             return None

@@ -85,7 +85,7 @@ def one_plot(k: int, seed: int, step: float, randoms: int, work: Path) -> dict:
     from forestreg.engine.io import write_scan
     from forestreg.engine.simulate import ScannerSetup, make_scene, raycaster_for, simulate_tls_scan
     from forestreg.engine.tls.params import PlanParams
-    from forestreg.engine.tls.plan import placed_views, plan_scans
+    from forestreg.engine.tls.plan import placed_links, placed_views, plan_scans
     from forestreg.engine.tls.plot import ScanCache, register_project
     from forestreg.engine.tls.project import Project
 
@@ -117,7 +117,7 @@ def one_plot(k: int, seed: int, step: float, randoms: int, work: Path) -> dict:
         row["skipped"] = f"the two placed scans did not link: {base.reason}"
         return row
     t0 = time.perf_counter()
-    plan = plan_scans(placed_views(project, cache), PlanParams(radius_m=radius), project.params, n=1)
+    plan = plan_scans(placed_views(project, cache), PlanParams(radius_m=radius), project.params, n=1, links=placed_links(project))
     row["plan_s"] = round(time.perf_counter() - t0, 2)
     if not plan.suggestions:
         row["skipped"] = f"no suggestion: {plan.reason}"

@@ -13,7 +13,7 @@ from forestreg.cli import main
 from forestreg.engine.core.transform import rigid_errors
 from forestreg.engine.io import write_scan
 from forestreg.engine.tls.params import PlanParams, RegistrationParams
-from forestreg.engine.tls.plan import PlotCoverage, StemMap, placed_views, plan_scans, sight
+from forestreg.engine.tls.plan import PlotCoverage, StemMap, placed_links, placed_views, plan_scans, sight
 from forestreg.engine.tls.plot import ScanCache, register_project
 from forestreg.engine.tls.project import Project
 
@@ -89,12 +89,19 @@ def test_suggestions_lie_in_the_plot_link_and_add_unseen_stem_area(placed):
         assert d.min() >= params.clearance_m
         gains.append(s.gain_m2)
     assert gains == sorted(gains, reverse=True), "each later suggestion adds what the earlier ones leave"
-    best, arcs, view = coverage.assess((plan.suggestions[0].x, plan.suggestions[0].y))
+    best = coverage.assess((plan.suggestions[0].x, plan.suggestions[0].y))[0]
     assert best[0] == plan.suggestions[0].shared_stems
     # a position next to a placed scanner adds less than the suggestion
     near = coverage.gain(*coverage.assess(plan.centre)[1:])
     assert near[0] < plan.suggestions[0].new_stem_area_m2
-    # one that links to nothing: none within a tiny plot far from the scans
+    # the placed link matched fewer trunk shadows than the map predicts: predictions fall off with distance
+    links = placed_links(project)
+    assert [(m, r) for m, r, _ in links] == [("scan_02.laz", "scan_01.laz")] and links[0][2] >= 4
+    calibrated = PlotCoverage(placed_views(project, cache), params, project.params, links=links)
+    assert calibrated.falloff_m > 0
+    far = calibrated.assess((plan.suggestions[0].x, plan.suggestions[0].y))[0]
+    assert far[0] <= best[0] and (far[0] < best[0] or not np.isfinite(calibrated.falloff_m))
+    # one that links to nothing
     strict = plan_scans(placed_views(project, cache), params.replace(min_shared_stems=1000), project.params)
     assert not strict.suggestions and "would share 1000 trunk shadows" in strict.reason
 

@@ -146,7 +146,7 @@ class PlanParams(Params):
     radius_m: Optional[float] = _p(None, "m", 2.0, 500.0, "Plot radius around the centre scan's scanner within which stems and ground count and scans are suggested; empty = from the ground the placed scans saw")
     grid_m: float = _p(1.0, "m", 0.1, 10.0, "Spacing of the candidate scanner positions")
     clearance_m: float = _p(0.6, "m", 0.0, 5.0, "A suggested scanner stands at least this far from the bark of every mapped stem and from whatever a placed scan saw at the slice height (shrubs, rocks)")
-    min_shared_stems: int = _p(10, "stems", 3, 1000, "Trunk shadows a suggested scan must share with a placed scan within one registration radius D_r (the pair needs min_matched and a lead over a chance match; the rest allows for what the stem map does not show)")
+    min_shared_stems: int = _p(10, "stems", 3, 1000, "Trunk shadows a suggested scan must be expected to share with a placed scan within one registration radius D_r (predicted from the stem map, falling off with distance as the placed links bore the map out); the pair needs min_matched and a lead over a chance match, the rest is a margin")
     stem_band_m: float = _p(2.0, "m", 0.1, 20.0, "Height of the band of bark counted as stem area (stem area = arc length x this height)")
     arc_bins: int = _p(36, "bins", 8, 360, "Each stem's circumference is followed in this many arcs")
     patch_m: float = _p(0.5, "m", 0.05, 5.0, "A patch of bark (one arc, this tall) counts as seen once a scan put a point on it: the chance is 1 - exp(-n) for the n points the scan's angular step puts there")

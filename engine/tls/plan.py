@@ -38,7 +38,7 @@ from .pair import _choose_attempt, _coarse_attempt, vop_radii
 from .prepare import PreparedScan, derived, extract_vops, slice_layers
 from .vop import angular_spacing
 
-__all__ = ["PlotCoverage", "ScanPlan", "ScanView", "ShadowEvidence", "Sight", "StemMap", "Suggestion", "plan_scans", "scan_view",
+__all__ = ["PlotCoverage", "ScanPlan", "placed_links", "ScanView", "ShadowEvidence", "Sight", "StemMap", "Suggestion", "plan_scans", "scan_view",
            "shadow_evidence", "sight", "stem_map"]
 
 
@@ -313,6 +313,9 @@ class ScanPlan:
     candidates: int
     linking: int
     step_rad: float = 0.0
+    #: the distance over which the trunk shadows two scans share fall to 1/e of the map's
+    #: prediction, from the placed links (m; infinite without one that matched fewer)
+    falloff_m: float = float("inf")
     suggestions: tuple = ()
     reason: str = ""
     stem_map: Optional[StemMap] = field(default=None, repr=False, compare=False)
@@ -336,7 +339,7 @@ class PlotCoverage:
     :meth:`assess` tells what a scanner at a position would share with the placed scans and see."""
 
     def __init__(self, views: Sequence[ScanView], params: PlanParams, registration: RegistrationParams,
-                 centre: Optional[Sequence[float]] = None) -> None:
+                 centre: Optional[Sequence[float]] = None, links: Sequence[tuple] = ()) -> None:
         if not views:
             raise ValueError("no placed scan to plan from")
         self.views, self.params = list(views), params
@@ -369,6 +372,48 @@ class PlotCoverage:
         # stem area a scanner sees (about half of each circumference) per m2 of plot in view so far:
         # the stems the map cannot show stand in the plot's hidden parts about as densely
         self.density = float((np.pi * stems.radius[self.in_plot] * params.stem_band_m).sum()) / max(float(self.in_view.sum()) * cell * cell, 1.0)
+        self.falloff_m = self._falloff(links)
+
+    def _falloff(self, links: Sequence[tuple]) -> float:
+        """The distance (m) over which the trunk shadows two scans share fall to 1/e of what the
+        stem map predicts, from the placed scans' links ``(moving, reference, matched)``: what the
+        map does not show (shrubs, branches, stems no scan cast a shadow of) hides more the
+        farther apart two scanners stand. Infinite without a link that matched fewer than
+        predicted."""
+        by_name = {v.name: v for v in self.views}
+        found = []
+        for moving, reference, matched in links:
+            if moving not in by_name or reference not in by_name or not matched:
+                continue
+            p = by_name[moving].scanner[:2]
+            predicted = self._shared(p, [reference], falloff_m=np.inf)[0]
+            d = float(np.hypot(*(p - by_name[reference].scanner[:2])))
+            if predicted > 0 and d > 0.5:
+                ratio = min(1.0, float(matched) / predicted)
+                found.append(np.inf if ratio >= 1.0 else -d / math.log(max(ratio, 0.05)))
+        return float(np.median(found)) if found else float("inf")
+
+    def _shared(self, p: np.ndarray, links_to: Optional[Sequence[str]], falloff_m: Optional[float] = None, s: Optional[Sight] = None) -> tuple:
+        """(trunk shadows expected shared, the placed scan, D_r, distance) of the placed scan (of
+        ``links_to``) a scanner at ``p`` would share most with: those it cast a shadow of at that
+        D_r, within D_r of ``p`` and at least ``min_visible_fraction`` of their width visible from
+        it, times ``exp(-distance / falloff_m)``."""
+        falloff = self.falloff_m if falloff_m is None else falloff_m
+        s = s if s is not None else self.sight(p)
+        visible = s.visible_fraction >= self.params.min_visible_fraction
+        best = (0, "", 0.0, 0.0)
+        for v in self.views:
+            if links_to is not None and v.name not in links_to:
+                continue
+            d = float(np.hypot(*(p - v.scanner[:2])))
+            scale = math.exp(-d / falloff) if np.isfinite(falloff) else 1.0
+            for r, index in self.stems.shadows[v.name].items():
+                if not len(index):
+                    continue
+                shared = int(math.floor(scale * np.count_nonzero(visible[index] & (s.distance[index] <= r)) + 1e-9))
+                if shared > best[0]:
+                    best = (shared, v.name, r, d)
+        return best
 
     def sight(self, position) -> Sight:
         return sight(position, self.stems, self.reach, self.params.azimuth_step_deg)
@@ -401,24 +446,13 @@ class PlotCoverage:
         return grid
 
     def assess(self, position, links_to: Optional[Sequence[str]] = None) -> tuple:
-        """What a scanner at ``position`` (x, y) would do: ``((shared trunk shadows, the placed
-        scan, D_r, distance to it), bark patch chances (N, arc_bins), ground cells seen (M,))``, the
-        placed scan the one (of ``links_to``, default all) it shares most trunk shadows with at
-        one D_r (those it cast a shadow of there, within D_r of the position and at least
-        ``min_visible_fraction`` of their width visible from it)."""
+        """What a scanner at ``position`` (x, y) would do: ``((trunk shadows expected shared, the
+        placed scan, D_r, distance to it), bark patch chances (N, arc_bins), plot cells in view
+        (M,))`` for the placed scan (of ``links_to``, default all) it would share most with (see
+        :meth:`_shared`)."""
         p = np.asarray(position, dtype=np.float64)[:2]
         s = self.sight(p)
-        visible = s.visible_fraction >= self.params.min_visible_fraction
-        best = (0, "", 0.0, 0.0)
-        for v in self.views:
-            if links_to is not None and v.name not in links_to:
-                continue
-            for r, index in self.stems.shadows[v.name].items():
-                if not len(index):
-                    continue
-                shared = int(np.count_nonzero(visible[index] & (s.distance[index] <= r)))
-                if shared > best[0]:
-                    best = (shared, v.name, r, float(np.hypot(*(p - v.scanner[:2]))))
+        best = self._shared(p, links_to, s=s)
         return best, s.arcs(self.stems, self.params.arc_bins, self.params.patch_m, self.step_rad), s.ground(self.cells, self.reach)
 
     def gain(self, arcs: np.ndarray, view: np.ndarray, unseen: Optional[np.ndarray] = None,
@@ -433,15 +467,18 @@ class PlotCoverage:
 
 
 def plan_scans(views: Sequence[ScanView], params: PlanParams, registration: RegistrationParams, *, n: int = 1,
-               centre: Optional[Sequence[float]] = None, links_to: Optional[Sequence[str]] = None) -> ScanPlan:
+               centre: Optional[Sequence[float]] = None, links_to: Optional[Sequence[str]] = None,
+               links: Sequence[tuple] = ()) -> ScanPlan:
     """Suggest up to ``n`` next scanner positions for the plot the placed scans ``views`` show.
 
     Each suggestion links to a placed scan (``links_to``: only to these) by the rule of the module
     docstring and, of those that link, adds the most stem area not yet seen (the earlier
     suggestions counted as seen). ``centre``: the plot's centre (x, y), default the first view's
     scanner; the plot radius is ``params.radius_m`` or :func:`_plot_radius`. Stems and ground
-    count within ``registration.max_range_m`` (D_c) of a scanner."""
-    plot = PlotCoverage(views, params, registration, centre)
+    count within ``registration.max_range_m`` (D_c) of a scanner. ``links``: the placed scans'
+    links ``(moving, reference, matched trunk shadows)``, which scale the trunk shadows expected
+    shared with distance (:meth:`PlotCoverage._falloff`)."""
+    plot = PlotCoverage(views, params, registration, centre, links)
     grid = plot.candidates()
     allowed = None if links_to is None else set(links_to)
     rows = []
@@ -457,7 +494,7 @@ def plan_scans(views: Sequence[ScanView], params: PlanParams, registration: Regi
                     stems_seen_twice=int(sum(1 for k, seen in enumerate(plot.stems.seen_by) if plot.in_plot[k] and len(seen) >= 2)),
                     stem_area_seen_m2=seen_area, stem_area_unseen_m2=unseen_area,
                     ground_seen_m2=float(plot.ground_seen.sum() * cell2), ground_unseen_m2=float((~plot.ground_seen).sum() * cell2),
-                    candidates=len(grid), linking=len(rows), step_rad=plot.step_rad, stem_map=plot.stems)
+                    candidates=len(grid), linking=len(rows), step_rad=plot.step_rad, falloff_m=plot.falloff_m, stem_map=plot.stems)
     if not rows:
         return _replace(base, reason=(
             f"no position within the plot (radius {plot.radius:.1f} m, {len(grid)} tried) would share {params.min_shared_stems} "
@@ -547,3 +584,14 @@ def placed_views(project, scans, names: Optional[Sequence[str]] = None, cell_m: 
         lsf_to_plan = poses[name] @ stand.local_to_file_matrix() @ np.linalg.inv(prepared.local_to_lsf)
         views.append(scan_view(name, prepared, lsf_to_plan, project.params, cell_m))
     return views
+
+
+def placed_links(project) -> list[tuple]:
+    """``(moving, reference, matched trunk shadows)`` of every successful trunk-shadow link of
+    ``project`` (what :func:`plan_scans` scales its link predictions with)."""
+    rows = []
+    for link in project.links:
+        matched = link.result.matched if link.ok else None
+        if matched:
+            rows.append((link.moving, link.reference, int(matched)))
+    return rows
