@@ -2,11 +2,11 @@
 
 An :class:`EpochTrees` holds, per tree: the stem axis point at breast height, the ground under
 the stem, DBH and height with a 1-sigma uncertainty each and whether the survey supports the value,
-the stem curve (diameters up the stem, for a paired DBH change), and the flags of the tree
-inventory. From a cloud it also keeps the points the registration and the presence checks need
-and nothing else: the stem band (0.3-3 m above the ground) and thinned ground points.
+the stem curve (diameters up the stem), and the flags of the tree inventory. From a cloud it
+also keeps the points the registration, the growth and the presence checks need and nothing
+else: the stem band (0.3-3 m above the ground) and thinned ground points.
 
-Made from a merged cloud (:func:`epoch_from_cloud`: the tree inventory's own steps, without the
+Made from a merged cloud (:func:`epoch_from_cloud`: the tree inventory itself, without the
 leaf-wood separation and cylinder models, which the change does not use) or from a ``trees.csv``
 of ``forestreg trees`` (:func:`epoch_from_table`: positions, DBH and heights only).
 
@@ -134,22 +134,22 @@ def epoch_from_cloud(
     name: str = "",
     change: ChangeParams = ChangeParams(),
 ) -> EpochTrees:
-    """The trees of a merged ground-based cloud (``points`` (N, 3), local frame, metres, z up):
-    ground and DEM, stems, DBH and stem curves, segmentation and heights (the tree inventory's
-    steps and parameters, ``params`` a :class:`~forestreg.engine.trees.inventory.TreeParams`), with
-    their uncertainties, the no-ground decision and the stem band of ``change``.
+    """The trees of a merged ground-based cloud (``points`` (N, 3), local frame, metres, z up),
+    measured by the tree inventory (:func:`~forestreg.engine.trees.inventory.measure_trees`,
+    ``params`` a :class:`~forestreg.engine.trees.inventory.TreeParams`; no cylinder models, never
+    as a single tree): DBH with its sigma against the tape, heights whose trust is the
+    inventory's (a height the inventory does not vouch for, or one its height-diameter curve
+    stands in for, supports no height change), the flags; then the no-ground decision and the
+    stem band of ``change``.
 
     Raises :class:`ScanDataError` when the cloud is empty or holds no stem.
     """
     from scipy.spatial import cKDTree
 
+    from ..geometry.columns import ColumnIndex
     from ..geometry.icp import thin
-    from ..trees.consistency import curve_dbh
-    from ..trees.inventory import _crowns_timed  # the inventory's crown step (heights, shared tops)
-    from ..trees.inventory import TreeParams
-    from ..trees.segmentation import segment_trees, tree_completeness
-    from ..trees.stems import dbh_sigma, detect_stems_adaptive, measure_stems
-    from ..terrain.dem import terrain_model
+    from ..trees.inventory import TreeParams, measure_trees
+    from ..trees.segmentation import data_footprint
 
     params = params or TreeParams()
     progress = as_progress(progress)
@@ -158,106 +158,59 @@ def epoch_from_cloud(
         raise ScanDataError(f"{name or 'cloud'}: expected a merged cloud of (N, 3) points, got {p.shape}")
     if not np.isfinite(p).all():
         raise ScanDataError(f"{name or 'cloud'}: the cloud holds NaN or infinite coordinates")
-    timings: dict[str, float] = {}
     t = time.perf_counter()
-    progress(0.0, f"{name}: ground and DEM")
-    model = terrain_model(p, params.terrain, progress.sub(0.0, 0.1))
-    heights = model.dem.normalise(p)
-    # the "ground" found lies above part of the cloud: the cloud has no ground. Clouds with ground
-    # hold ~0 % of their points 0.5 m below it, clouds without 2-10 % (varying from run to run
-    # with the cloth simulation): decided at 0.5 %, so the decision does not flip between surveys
-    no_ground = float(np.mean(heights < -0.5)) > change.no_ground_fraction
-    if no_ground:  # the "ground" found lies above part of the cloud: no ground
-        from ..terrain.dem import TerrainModel, lowest_points_dem
-
-        extent = float(max(np.ptp(p[:, 0]), np.ptp(p[:, 1])))
-        dem = lowest_points_dem(p, params.terrain.dem_resolution_m, window_m=2.0 * extent + 0.5 if extent <= 12.0 else 5.0)
-        model = TerrainModel(ground=np.zeros(len(p), dtype=bool), dem=dem)  # as the tree inventory does
-        heights = model.dem.normalise(p)
-    timings["terrain_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    progress(0.1, f"{name}: stems")
-    stems, stem_params, method = detect_stems_adaptive(p, heights, params.stems, progress.sub(0.1, 0.35), params.noisy_stems)
-    timings["stems_s"] = time.perf_counter() - t
-    if not stems:
+    inv = measure_trees(p, params.replace(cylinder_models=False), progress.sub(0.0, 0.9), single_tree=False)
+    records = [r for r in inv.trees if r.source == "stem"] if inv.ok else []
+    if not records:
         raise ScanDataError(f"{name or 'cloud'}: no stem found at breast height: a ground-based forest cloud in metres is needed")
-    t = time.perf_counter()
-    progress(0.35, f"{name}: {len(stems)} stems: DBH and stem curves")
-    dbh, curves = measure_stems(p, heights, stems, stem_params, search_tree=cKDTree(p))
-    timings["dbh_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    progress(0.7, f"{name}: trees and heights")
-    labels = segment_trees(p, heights, stems, params.segmentation, progress.sub(0.7, 0.85))
-    complete = {c.tree_id: c for c in tree_completeness(p, heights, labels, stems, params.completeness, dbh)}
-    # heights and crowns as the tree inventory measures them, with its flags of tops not a tree's
-    # own (under a neighbour's crown, shared with a taller tree, points of no tree above)
-    crowns, shared, _ = _crowns_timed(p, heights, labels, stems, model.ground, params, {})
+    timings = {f"{k}": v for k, v in inv.timings.items()}
     timings["trees_s"] = time.perf_counter() - t
-
-    n = len(stems)
+    progress(0.9, f"{name}: {len(records)} trees: stem band and footprint")
+    heights = inv.heights
+    # clouds with ground hold ~0 % of their points 0.5 m below it, clouds without 2-10 % (varying
+    # from run to run with the cloth simulation): decided at 0.5 %, so that the decision does not
+    # flip between two surveys of one plot; without ground no height supports a change
+    no_ground = (not inv.ground.any()) or float(np.mean(heights < -0.5)) > change.no_ground_fraction
+    n = len(records)
     out = {k: np.full(n, math.nan) for k in ("dbh", "dbh_sd", "h", "h_sd")}
-    xy = np.zeros((n, 2))
-    gz = np.zeros(n)
-    axes = np.zeros((n, 3))
-    dbh_ok = np.zeros(n, dtype=bool)
-    h_ok = np.zeros(n, dtype=bool)
+    xy, gz, axes = np.zeros((n, 2)), np.zeros(n), np.zeros((n, 3))
+    dbh_ok, h_ok = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
     flags: list[str] = []
     curve_list: list[Optional[tuple[np.ndarray, np.ndarray]]] = []
-    bh = stem_params.breast_height_m
-    for k, s in enumerate(stems):
-        d, c = dbh[s.id], curves[s.id]
-        reasons = list(complete[s.id].reasons) if s.id in complete else []
-        centre = s.point_at_height(bh)
-        xy[k], gz[k], axes[k] = centre[:2], s.ground_z, s.axis
-        d_curve = curve_dbh(c, s, bh)
-        fit = d.fit
-        if math.isfinite(d_curve) and (d.ok or "inconsistent slices" in d.reasons):
-            value, trust = d_curve, "high" if d.ok else "medium"
-        elif d.ok and math.isfinite(d.dbh_m):
-            value, trust = d.dbh_m, "medium"
-        else:
-            value, trust = math.nan, "none"
-        if fit is not None and trust != "none":
-            if fit.arc_coverage < 0.5 or method == "noisy":
-                trust = "medium" if trust == "high" else trust
-            if fit.rms_residual_m > max(0.15 * 0.5 * value, 0.008):
-                trust = "low"
-        out["dbh"][k] = value
-        out["dbh_sd"][k] = dbh_sigma(value, fit, trust, stem_params.typical_ovality) if trust != "none" else math.nan
-        dbh_ok[k] = math.isfinite(value) and trust in ("high", "medium")
-        if not dbh_ok[k]:
-            reasons.append("stem not measured at breast height" if trust == "none" else "DBH uncertain")
+    for k, r in enumerate(records):
+        s = r.stem
+        xy[k], gz[k], axes[k] = s.point_at_height(params.stems.breast_height_m)[:2], s.ground_z, s.axis
+        reasons = list(r.flags)
+        d_trust = _trust(r.quality.get("dbh", ""))
+        out["dbh"][k] = r.dbh_m if d_trust != "none" else math.nan
+        out["dbh_sd"][k] = r.dbh_sigma_m if d_trust != "none" else math.nan
+        dbh_ok[k] = math.isfinite(out["dbh"][k]) and d_trust in ("high", "medium")
+        if not dbh_ok[k] and not any("DBH" in f for f in reasons):
+            reasons.append("stem not measured at breast height" if d_trust == "none" else "DBH uncertain")
+        c = r.curve
         good = c.accepted & np.isfinite(c.raw_diameter_m)
         curve_list.append((c.s_m[good].copy(), c.raw_diameter_m[good].copy()) if good.any() else None)
-        h = crowns[s.id].height_m if s.id in crowns else math.nan
-        h_trust = "high"
+        h_trust = _trust(r.quality.get("height", ""))
+        h = r.crown.height_m  # the points' own top: a curve's estimate is not a measurement of growth
         if no_ground:
             h_trust = "low"
             reasons.append("no ground in the cloud: heights above the lowest points")
-        elif any(r.startswith(("top missing", "too few crown points", "too few points")) for r in reasons):
+        elif r.height_source == "curve":
             h_trust = "low"
-            reasons.append("top unseen")
-        elif s.id in shared:
-            h_trust = "low"
-            reasons.append(shared[s.id])
-        elif any("plot edge" in r for r in reasons):
-            h_trust = "medium"
+            reasons.append("top unseen: height from the plot's height-diameter curve")
         out["h"][k] = h
         out["h_sd"][k] = by_trust(change.height_sigma_m, h_trust) if math.isfinite(h) else math.nan
-        h_ok[k] = math.isfinite(h) and h_trust != "low"
+        h_ok[k] = math.isfinite(h) and h_trust in ("high", "medium")
         flags.append("; ".join(dict.fromkeys(reasons)))
     band_mask = (heights >= change.stem_band_m[0]) & (heights <= change.stem_band_m[1])
     band = p[band_mask]
     band_h = heights[band_mask]
-    ground = thin(p[model.ground], 0.25) if model.ground.any() else np.zeros((0, 3))
-    from ..geometry.columns import ColumnIndex
-    from ..trees.segmentation import data_footprint
-
+    ground = thin(p[inv.ground], 0.25) if inv.ground.any() else np.zeros((0, 3))
     footprint = data_footprint(p, 0.5)
     columns = ColumnIndex(p, 1.0)
     foot = np.full(n, np.nan)
     for k in range(n):
-        r = 0.5 * out["dbh"][k] if math.isfinite(out["dbh"][k]) else stems[k].radius_m
+        r = 0.5 * out["dbh"][k] if math.isfinite(out["dbh"][k]) else records[k].stem.radius_m
         near = columns.within(float(xy[k, 0]), float(xy[k, 1]), (r if math.isfinite(r) else 0.15) + 0.1)
         foot[k] = float(p[near, 2].min()) if len(near) else gz[k]
     terrain = False
@@ -266,7 +219,7 @@ def epoch_from_cloud(
         terrain = bool(np.mean(np.isfinite(d)) >= 0.5)
     progress(1.0, f"{name}: {n} trees")
     return EpochTrees(
-        ids=np.array([s.id for s in stems], dtype=np.int64), xy=xy, ground_z=gz, axis=axes,
+        ids=np.array([r.tree_id for r in records], dtype=np.int64), xy=xy, ground_z=gz, axis=axes,
         dbh_m=out["dbh"], dbh_sigma_m=out["dbh_sd"], height_m=out["h"], height_sigma_m=out["h_sd"],
         dbh_ok=dbh_ok, height_ok=h_ok, flags=tuple(flags), curves=tuple(curve_list), band=band, band_heights=band_h,
         ground=ground, origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=float),
