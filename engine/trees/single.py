@@ -440,8 +440,11 @@ def single_tree_base(
     foot = float(p[near, 2].min()) if near.any() else float(p[:, 2].min())
     tree_near = near & ~g
     stem_foot = float(p[tree_near, 2].min()) if tree_near.any() else foot
-    # a ground surface around the stem, no higher than its foot (allowing a slope of about 27 deg)
-    ring = g & (off > radius_m + 0.2) & (off <= ground_near_m) & (p[:, 2] <= foot + 0.3 + 0.5 * off)
+    # a ground surface around the stem, no higher than the stem's own foot (allowing a slope of
+    # about 27 deg): measured from the stem's lowest point, not from the lowest ground point near
+    # it (a hollow in a rough forest floor would cut the floor's upper half near the stem away and
+    # put the surface too low)
+    ring = g & (off > radius_m + 0.2) & (off <= ground_near_m) & (p[:, 2] <= stem_foot + 0.3 + 0.5 * off)
     ground_z = math.nan
     if np.count_nonzero(ring) >= GROUND_POINTS:
         q = p[ring]
