@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from forestreg.engine.trees.consistency import FormFactorBounds, form_factor_check, reconcile_stem
+from forestreg.engine.trees.consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem
 from forestreg.engine.trees.inventory import TREE_COLUMNS, measure_trees
 from forestreg.engine.trees.qsm import CylinderModel
 from forestreg.engine.trees.stems import Stem, StemCurve, StemParams, detect_stems_adaptive, measure_dbh
@@ -119,10 +119,14 @@ def test_spruce_and_pine_dbh_volume_and_wood(shared_data):
         assert len(inv.trees) == 1
         t = inv.trees[0]
         assert t.dbh_m == pytest.approx(dbh_ref, rel=0.03)
-        assert t.dbh_m == pytest.approx(t.curve.diameter_at(1.3 / t.stem.axis[2]), abs=1e-9)
+        # the stem curve's diameter where it has a section at breast height, else the circles
+        # fitted there (spruce: a branch whorl fails that section; the curve's line from the
+        # swollen node below read 7 % high)
+        on_curve = curve_dbh(t.curve, t.stem, 1.3)
+        assert t.dbh_m == pytest.approx(on_curve if math.isfinite(on_curve) else t.dbh.dbh_m, abs=1e-9)
         row = t.row()
         assert set(TREE_COLUMNS) <= set(row)
-        assert row["dbh_quality"].endswith("high")
+        assert row["dbh_quality"].endswith("high" if math.isfinite(on_curve) else "medium")
         ba = math.pi / 4 * t.dbh_m**2
         assert 0.3 <= t.cylinders.stem_volume_m3 / (ba * t.crown.height_m) <= 0.7
         assert abs(t.cylinders.dbh_from_cylinders_m - t.dbh_m) <= 0.1 * t.dbh_m

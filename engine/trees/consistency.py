@@ -51,9 +51,15 @@ class FormFactorBounds(Params):
     withhold_factor: float = param_field(2.0, "1", 1.0, 100.0, "Beyond this factor outside the whole-tree bounds the volume is withheld")
 
 
-def curve_dbh(curve: StemCurve, stem: Stem, breast_height_m: float) -> float:
-    """The stem curve's diameter at breast height (along the axis), NaN where it has none."""
+def curve_dbh(curve: StemCurve, stem: Stem, breast_height_m: float, max_gap_m: float = 0.15) -> float:
+    """The stem curve's diameter at breast height (along the axis), NaN where it has none or
+    where no accepted section lies within ``max_gap_m`` of it (a failed section there bridged by
+    a line between others, e.g. from a swollen branch node: the circles fitted at breast height
+    measure it better)."""
     s = breast_height_m / max(float(stem.axis[2]), 1e-6)
+    near = curve.accepted & (np.abs(curve.s_m - s) <= max_gap_m + 1e-9)
+    if not near.any():
+        return math.nan
     return float(curve.diameter_at(s))
 
 
