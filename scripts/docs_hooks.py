@@ -234,7 +234,7 @@ def parameters_reference(issues: list[str] | None = None) -> str:
         "",
         "Units: `m` metres, `deg` degrees, `1` a dimensionless ratio, fraction or factor; a count",
         "names what it counts. *Paper* is the symbol and value in the method's paper where it gives",
-        "one (Guan et al. 2020 for `[registration]`, Ghorbani et al. 2022 for the others).",
+        "one (Guan et al. 2020 for `[registration]`, Fekry et al. 2022 for the others).",
         "",
     ]
     defaults = ProductParams()
