@@ -550,8 +550,9 @@ def fuse(
 ) -> FusionResult:
     """Fuse co-registered ground-based and UAV clouds: redundancy, then noise (paper 4.2).
 
-    Both clouds must be in the same frame (the UAV cloud already registered onto the ground-based
-    one, or both in the project frame), metres. ``*_extra`` map attribute names (e.g.
+    Both clouds must be in the same frame (the ground-based cloud already moved into the UAV
+    cloud's frame, ``p_uav = matrix @ p_ground`` as :func:`fuse_scans` does, or both in the project
+    frame), metres. ``*_extra`` map attribute names (e.g.
     ``"intensity"``) to per-point arrays, carried to the kept points. One cloud may be empty.
     """
     g = check_points(ground_points, "ground-based points", min_points=0)

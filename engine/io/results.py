@@ -1,9 +1,13 @@
-"""Every output-folder format of forestreg, written and read here (and nowhere in the domain
-packages): the trees folder (``trees.csv``, ``stem_curves.csv``, ``cylinders/tree_NNNN.csv``, the
-edits), the co-registration folder, ``poses.json`` with the transforms, the comparison, the
-targets CSV and the project file. The writers take plain data or any object with the attributes
-they name (this module imports no domain package); the desktop, scripts and tests read the
-folders here instead of parsing CSV or JSON themselves.
+"""Readers and writers of the tabular output files shared by several use cases (not every output
+format: ``result.json``, the reports, the point clouds and the change folder are written by their
+own use cases and writers).
+
+Written here: the trees tables (``trees.csv``, ``stem_curves.csv``, ``cylinders/tree_NNNN.csv``)
+and the hand edits (``edits.json``), ``poses.json`` with the ``*.transform.txt`` files, the
+comparison (JSON and CSV), the targets CSV, the project file (:class:`ProjectFile`) and the
+evaluation tables. Read here: the trees folder and the co-registration folder. The writers take
+plain data or any object with the attributes they name (this module imports no domain package);
+the desktop, scripts and tests read the folders here instead of parsing CSV or JSON themselves.
 
 * :func:`read_trees_dir`: ``trees.csv`` (columns found by name; columns this reader does not know,
   e.g. per-measure quality figures added later, are kept in :attr:`TreeRow.extra`),
