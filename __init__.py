@@ -40,7 +40,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__version__ = "0.2.0"
+from ._version import __version__
 
 # public name -> module (relative to this package) that defines it: the functions that take clouds,
 # projects or tables are the use cases' checked entries (app), the types and parameters the engine's

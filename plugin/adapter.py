@@ -195,7 +195,7 @@ ENGINE_MODULES = ("numpy", "scipy", "open3d", "laspy", "numba", "hdbscan", "fast
 
 def _version() -> str:
     try:
-        from .. import __version__
+        from .._version import __version__
 
         return __version__
     except ImportError:  # pragma: no cover - the adapter outside its package

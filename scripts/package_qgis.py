@@ -56,12 +56,12 @@ class PackagingError(Exception):
 
 
 def package_version(root: Path = ROOT) -> str:
-    """``__version__`` of the package's ``__init__.py`` (read, not imported)."""
-    tree = ast.parse((root / "__init__.py").read_text(encoding="utf-8"))
+    """``__version__`` of the package's ``_version.py`` (read, not imported)."""
+    tree = ast.parse((root / "_version.py").read_text(encoding="utf-8"))
     for node in tree.body:
         if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__version__" for t in node.targets):
             return str(ast.literal_eval(node.value))
-    raise PackagingError("__init__.py has no __version__")
+    raise PackagingError("_version.py has no __version__")
 
 
 def read_metadata(root: Path = ROOT) -> dict[str, str]:
