@@ -161,6 +161,174 @@ def build_plot_args(job: PlotJob) -> list[str]:
     return cmd + [str(a) for a in job.extra_args]
 
 
+@dataclass
+class CoregisterJob:
+    """``forestreg coregister GROUND UAV --out OUT_DIR [--min-cluster-size N] [--voxel M] ...``"""
+
+    ground: Union[str, Path]
+    uav: Union[str, Path]
+    out_dir: Union[str, Path]
+    min_cluster_size: Optional[int] = None
+    voxel_m: Optional[float] = None
+    distance_threshold_m: Optional[float] = None
+    crs: Optional[str] = None
+    units: Optional[str] = None
+    params_file: Optional[Union[str, Path]] = None
+    extra_args: Sequence[str] = ()
+
+
+@dataclass
+class FuseJob:
+    """``forestreg fuse GROUND UAV --out CLOUD [--transform FILE] [--epsilon M] [--cube M] ...``"""
+
+    ground: Union[str, Path]
+    uav: Union[str, Path]
+    out: Union[str, Path]  # the fused cloud (.laz/.las)
+    transform: Optional[Union[str, Path]] = None
+    epsilon_m: Optional[float] = None
+    cube_m: Optional[float] = None
+    crs: Optional[str] = None
+    units: Optional[str] = None
+    params_file: Optional[Union[str, Path]] = None
+    extra_args: Sequence[str] = ()
+
+
+@dataclass
+class TreesJob:
+    """``forestreg trees CLOUD --out OUT_DIR [--transform FILE] [--field CSV] [--no-cylinders] ...``"""
+
+    cloud: Union[str, Path]
+    out_dir: Union[str, Path]
+    transform: Optional[Union[str, Path]] = None
+    field: Optional[Union[str, Path]] = None
+    cylinders: bool = True
+    single_tree: Optional[str] = None  # None (decided from the cloud), "auto", "yes" or "no"
+    report: bool = True
+    crs: Optional[str] = None
+    units: Optional[str] = None
+    params_file: Optional[Union[str, Path]] = None
+    extra_args: Sequence[str] = ()
+
+
+@dataclass
+class EvaluateJob:
+    """``forestreg evaluate TREES FIELD --out OUT_DIR [--name N] [--also [NAME=]TREES] [--by position|id] ...``"""
+
+    trees: Union[str, Path]
+    field: Union[str, Path]
+    out_dir: Union[str, Path]
+    name: Optional[str] = None
+    also: Sequence[str] = ()
+    by: str = "position"
+    max_distance_m: float = 1.0
+    extra_args: Sequence[str] = ()
+
+
+@dataclass
+class ChangeJob:
+    """``forestreg change BEFORE AFTER --out OUT_DIR [--no-report] [--units U] [--units-before U] ...``"""
+
+    before: Union[str, Path]
+    after: Union[str, Path]
+    out_dir: Union[str, Path]
+    report: bool = True
+    crs: Optional[str] = None
+    units: Optional[str] = None
+    units_before: Optional[str] = None
+    units_after: Optional[str] = None
+    params_file: Optional[Union[str, Path]] = None
+    extra_args: Sequence[str] = ()
+
+
+def _options(pairs: Sequence[tuple[str, object]]) -> list[str]:
+    """``--option value`` for each pair whose value is given (numbers as the CLI reads them)."""
+    cmd: list[str] = []
+    for option, value in pairs:
+        if value is None or value == "":
+            continue
+        cmd += [option, _num(value) if isinstance(value, float) else str(value)]
+    return cmd
+
+
+def build_coregister_args(job: CoregisterJob) -> list[str]:
+    """The CLI arguments of a co-registration (a job of the service)."""
+    cmd = ["coregister", str(job.ground), str(job.uav), "--out", str(job.out_dir)]
+    cmd += _options([("--min-cluster-size", None if job.min_cluster_size is None else int(job.min_cluster_size)),
+                     ("--voxel", None if job.voxel_m is None else float(job.voxel_m)),
+                     ("--distance-threshold", None if job.distance_threshold_m is None else float(job.distance_threshold_m)),
+                     ("--crs", job.crs), ("--units", job.units), ("--params", job.params_file)])
+    return cmd + [str(a) for a in job.extra_args]
+
+
+def build_fuse_args(job: FuseJob) -> list[str]:
+    """The CLI arguments of a fusion (a job of the service)."""
+    cmd = ["fuse", str(job.ground), str(job.uav), "--out", str(job.out)]
+    cmd += _options([("--transform", job.transform),
+                     ("--epsilon", None if job.epsilon_m is None else float(job.epsilon_m)),
+                     ("--cube", None if job.cube_m is None else float(job.cube_m)),
+                     ("--crs", job.crs), ("--units", job.units), ("--params", job.params_file)])
+    return cmd + [str(a) for a in job.extra_args]
+
+
+SINGLE_TREE_CHOICES = ("auto", "yes", "no")
+
+
+def build_trees_args(job: TreesJob) -> list[str]:
+    """The CLI arguments of a trees run (a job of the service)."""
+    cmd = ["trees", str(job.cloud), "--out", str(job.out_dir)]
+    cmd += _options([("--transform", job.transform), ("--field", job.field)])
+    if not job.cylinders:
+        cmd.append("--no-cylinders")
+    if job.single_tree:
+        if job.single_tree not in SINGLE_TREE_CHOICES:
+            raise AdapterError(f"single tree: {job.single_tree!r} is none of {', '.join(SINGLE_TREE_CHOICES)}")
+        cmd += ["--single-tree", job.single_tree]
+    if not job.report:
+        cmd.append("--no-report")
+    cmd += _options([("--crs", job.crs), ("--units", job.units), ("--params", job.params_file)])
+    return cmd + [str(a) for a in job.extra_args]
+
+
+EVALUATE_BY = ("position", "id")
+
+
+def build_evaluate_args(job: EvaluateJob) -> list[str]:
+    """The CLI arguments of an evaluation against field records (a job of the service)."""
+    if job.by not in EVALUATE_BY:
+        raise AdapterError(f"match by: {job.by!r} is none of {', '.join(EVALUATE_BY)}")
+    cmd = ["evaluate", str(job.trees), str(job.field), "--out", str(job.out_dir)]
+    cmd += _options([("--name", job.name)])
+    for other in job.also:
+        cmd += ["--also", str(other)]
+    cmd += ["--by", job.by, "--max-distance", _num(job.max_distance_m)]
+    return cmd + [str(a) for a in job.extra_args]
+
+
+def build_change_args(job: ChangeJob) -> list[str]:
+    """The CLI arguments of a re-survey comparison (a job of the service)."""
+    cmd = ["change", str(job.before), str(job.after), "--out", str(job.out_dir)]
+    if not job.report:
+        cmd.append("--no-report")
+    cmd += _options([("--crs", job.crs), ("--units", job.units), ("--units-before", job.units_before),
+                     ("--units-after", job.units_after), ("--params", job.params_file)])
+    return cmd + [str(a) for a in job.extra_args]
+
+
+#: the command of each job type and the function that builds its arguments
+JOB_ARGS = {
+    PairJob: build_pair_args, PlotJob: build_plot_args, CoregisterJob: build_coregister_args, FuseJob: build_fuse_args,
+    TreesJob: build_trees_args, EvaluateJob: build_evaluate_args, ChangeJob: build_change_args,
+}
+
+
+def build_args(job) -> list[str]:
+    """The CLI arguments of any job of :data:`JOB_ARGS`."""
+    try:
+        return JOB_ARGS[type(job)](job)
+    except KeyError:
+        raise AdapterError(f"not a forestreg job: {type(job).__name__}") from None
+
+
 # ----------------------------------------------------------------------------- running (through the service)
 
 
@@ -494,3 +662,53 @@ def register(
 
 #: :func:`register` under the names of its two jobs (the job's type decides what runs)
 register_pair = register_plot = register
+
+
+# ----------------------------------------------------------------------------- layers.gpkg and clouds
+
+#: the GIS layers an output folder of ``trees``, ``change``, ``plot`` and ``coregister`` holds
+LAYERS_FILE = "layers.gpkg"
+#: point cloud files QGIS (>= 3.18) opens with its "pdal" provider
+POINT_CLOUD_SUFFIXES = (".las", ".laz", ".copc.laz")
+
+
+@dataclass(frozen=True)
+class GpkgLayer:
+    """One feature layer of a ``layers.gpkg``: its name, its QML style (``layer_styles``; "" when
+    none) and the URI QGIS's "ogr" provider opens it with."""
+
+    name: str
+    style: str
+    uri: str
+
+
+def gpkg_layers(path: Union[str, Path]) -> list[GpkgLayer]:
+    """The feature layers of a GeoPackage in the order of ``gpkg_contents`` with their default
+    QML styles; [] when the file does not exist (a run that wrote no layers). Standard library only."""
+    import sqlite3
+
+    path = Path(path)
+    if not path.is_file():
+        return []
+    try:
+        con = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
+    except sqlite3.Error as exc:
+        raise AdapterError(f"{path}: not a GeoPackage ({exc})") from exc
+    try:
+        names = [r[0] for r in con.execute("SELECT table_name FROM gpkg_contents WHERE data_type = 'features' ORDER BY rowid")]
+        styles: dict[str, str] = {}
+        try:
+            for table, qml in con.execute("SELECT f_table_name, styleQML FROM layer_styles WHERE useAsDefault ORDER BY id"):
+                styles.setdefault(table, qml or "")
+        except sqlite3.OperationalError:  # no layer_styles table
+            pass
+    except sqlite3.Error as exc:
+        raise AdapterError(f"{path}: not a GeoPackage ({exc})") from exc
+    finally:
+        con.close()
+    return [GpkgLayer(n, styles.get(n, ""), f"{path.resolve()}|layername={n}") for n in names]
+
+
+def is_point_cloud_file(path: Union[None, str, Path]) -> bool:
+    """Whether ``path`` is a LAS/LAZ/COPC file that exists (what a point cloud layer opens)."""
+    return bool(path) and Path(path).is_file() and Path(path).name.lower().endswith(POINT_CLOUD_SUFFIXES)

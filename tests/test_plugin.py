@@ -425,7 +425,13 @@ def test_qgis_provider_headless(pair_run, scans, tmp_path):
               "OUTPUT": str(tmp_path / "out"), "CLI": shlex.join(CLI)}
     report = _qgis_report(exe, QGIS_SCRIPT, _repository_as_plugin(tmp_path), tmp_path, json.dumps(params), timeout=600)
     assert report["loaded_by_import_forestreg"] == [] and report["pyside6"] == []
-    assert report["algorithms"] == {"forestreg:register_pair": "Register TLS pair (trunk shadows)", "forestreg:register_plot": "Register plot"}
+    assert report["algorithms"] == {
+        "forestreg:register_pair": "Register TLS pair (trunk shadows)", "forestreg:register_plot": "Register plot",
+        "forestreg:coregister": "Co-register ground onto UAV (canopy keypoints)", "forestreg:fuse": "Fuse ground and UAV clouds",
+        "forestreg:trees": "Measure trees", "forestreg:evaluate": "Evaluate trees against field records",
+        "forestreg:change": "Re-survey change (persisting, removed, new trees)",
+    }
+    assert {"SCANS", "OUTPUT", "MERGED", "DR"} <= set(report["plot_parameters"])
     assert {"REFERENCE", "MOVING", "OUTPUT", "DR"} <= set(report["pair_parameters"])
     assert {"SCANS", "OUTPUT", "DR"} <= set(report["plot_parameters"])
     assert report["ok"] is True and report["results"]["STATUS"] == "ok"
@@ -539,4 +545,5 @@ def test_qgis_loads_the_packaged_zip(tmp_path):
     zipfile.ZipFile(next(tmp_path.glob("forestreg-qgis-*.zip"))).extractall(plugins)
     report = _qgis_report(exe, QGIS_ZIP_SCRIPT, plugins, tmp_path)
     assert Path(report["file"]).resolve().is_relative_to(plugins.resolve())
-    assert report["algorithms"] == ["forestreg:register_pair", "forestreg:register_plot"]
+    assert report["algorithms"] == sorted(f"forestreg:{n}" for n in ("register_pair", "register_plot", "coregister", "fuse", "trees",
+                                                                      "evaluate", "change"))
