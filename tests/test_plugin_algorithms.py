@@ -409,6 +409,21 @@ def test_the_model_chains_register_plot_trees_and_change(provider):
 # ----------------------------------------------------------------------------- real QGIS
 
 
+def test_metadata_declares_the_processing_provider_for_qgis_process():
+    import configparser
+
+    meta = configparser.ConfigParser(interpolation=None)
+    meta.read(ROOT / "metadata.txt", encoding="utf-8")
+    assert meta["general"]["hasProcessingProvider"] == "yes"  # qgis_process loads only such plugins
+
+
+def test_the_guide_names_every_algorithm_and_the_model():
+    guide = (ROOT / "docs" / "guide" / "qgis.md").read_text(encoding="utf-8")
+    for name in IDS:
+        assert f"`forestreg:{name}`" in guide
+    assert MODEL.relative_to(ROOT).as_posix() in guide
+
+
 def test_qgis_process_runs_trees_on_sample_data(tmp_path):
     exe = shutil.which("qgis_process")
     if exe is None:
