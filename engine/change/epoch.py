@@ -138,8 +138,8 @@ def epoch_from_cloud(
     measured by the tree inventory (:func:`~forestreg.engine.trees.inventory.measure_trees`,
     ``params`` a :class:`~forestreg.engine.trees.inventory.TreeParams`; no cylinder models, never
     as a single tree): DBH with its sigma against the tape, heights whose trust is the
-    inventory's (a height the inventory does not vouch for, or one its height-diameter curve
-    stands in for, supports no height change), the flags; then the no-ground decision and the
+    inventory's (only a height it trusts high supports a height change: not one of medium or low
+    trust, nor one its height-diameter curve stands in for), the flags; then the no-ground decision and the
     stem band of ``change``.
 
     Raises :class:`ScanDataError` when the cloud is empty or holds no stem.
@@ -200,7 +200,7 @@ def epoch_from_cloud(
             reasons.append("top unseen: height from the plot's height-diameter curve")
         out["h"][k] = h
         out["h_sd"][k] = by_trust(change.height_sigma_m, h_trust) if math.isfinite(h) else math.nan
-        h_ok[k] = math.isfinite(h) and h_trust in ("high", "medium")
+        h_ok[k] = math.isfinite(h) and h_trust == "high"  # a change needs tops trusted in both surveys
         flags.append("; ".join(dict.fromkeys(reasons)))
     band_mask = (heights >= change.stem_band_m[0]) & (heights <= change.stem_band_m[1])
     band = p[band_mask]
