@@ -47,7 +47,7 @@ class GrowthParams(Params):
     """How the diameter growth of a persisting stem is measured from the sectors both surveys saw.
     Distances in metres, angles in degrees."""
 
-    section_heights_m: tuple[float, float] = _p((1.0, 1.8), "m", 0.3, 3.0, "Heights above each survey's ground of the stem band whose sectors are compared (around breast height, above the butt flare)")
+    section_heights_m: tuple[float, float] = _p((1.0, 1.8), "m", 0.3, 3.0, "Heights above the ground under the stem (the earlier survey's, for both surveys) of the band whose sectors are compared (around breast height, above the butt flare)")
     sector_deg: float = _p(20.0, "deg", 5.0, 45.0, "Width of the angular sectors in which the two surveys' radial distances are compared")
     min_sector_points: int = _p(3, "points", 2, 1000, "Points of each survey a sector needs to be compared")
     shell_m: tuple[float, float] = _p((0.04, 0.07), "m", 0.005, 0.5, "Points this far inside and outside the earlier survey's circle belong to the bark (the rest is clutter)")
@@ -254,7 +254,10 @@ def sector_growth(sec: Optional[StemSections], prior: ShiftPrior = ShiftPrior(),
                          "no section of the stem at breast height in either survey")
     arc = sec.common_arc_deg
     distinct = len(sec.sectors_before & sec.sectors_after)
-    if arc < params.min_common_arc_deg or len(sec.change) < 3:
+    if arc >= params.min_common_arc_deg and len(sec.change) < 3:
+        return GrowthFit(math.nan, math.nan, (math.nan, math.nan), nan2, arc, distinct, math.nan,
+                         f"only {len(sec.change)} sectors of the stem could be compared (3 needed): too few points of one survey there")
+    if arc < params.min_common_arc_deg:
         seen_b = 360.0 * len(sec.sectors_before) / sec.n_sectors
         seen_a = 360.0 * len(sec.sectors_after) / sec.n_sectors
         return GrowthFit(math.nan, math.nan, (math.nan, math.nan), nan2, arc, distinct, math.nan,
