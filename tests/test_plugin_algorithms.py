@@ -90,7 +90,8 @@ def test_the_provider_has_seven_algorithms_with_their_parameters_and_outputs(pro
         "change": (["BEFORE", "AFTER", "OUTPUT", "REPORT", "CRS", "UNITS", "PARAMS", "UNITS_BEFORE", "UNITS_AFTER", "CLI"],
                    ["CHANGES", "RESULT", "LAYERS", "STATUS", "REASON"]),
         "register_plot": (["SCANS", "CENTRE", "OUTPUT", "MERGED", "DR", "CRS", "CLI"], ["SCANNERS", "STATUS", "REASON", "LAYERS", "POINT_CLOUD"]),
-        "register_pair": (["REFERENCE", "MOVING", "OUTPUT", "DR", "CRS", "CLI"], ["SCANNERS", "STATUS", "REASON", "VOPS", "MATCHED", "TRANSFORM"]),
+        "register_pair": (["REFERENCE", "MOVING", "OUTPUT", "WRITE_REGISTERED", "DR", "CRS", "CLI"],
+                          ["SCANNERS", "STATUS", "REASON", "VOPS", "MATCHED", "TRANSFORM", "POINT_CLOUD"]),
     }
     for name, (parameters, outputs) in expected.items():
         a = algorithms[name]
@@ -175,6 +176,9 @@ CASES = [
     ("change", {"BEFORE": "2019/trees.csv", "AFTER": "2024.laz", "OUTPUT": "ch"}, ["change", "2019/trees.csv", "2024.laz", "--out", "ch"]),
     ("change", {"BEFORE": "a.laz", "AFTER": "b.laz", "OUTPUT": "ch", "REPORT": False, "UNITS": 0, "UNITS_BEFORE": 0, "UNITS_AFTER": 4},
      ["change", "a.laz", "b.laz", "--out", "ch", "--no-report", "--units", "cm", "--units-after", "mm"]),
+    ("register_pair", {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": "pair", "DR": 15}, ["register", "a.laz", "b.laz", "--out", "pair", "--dr", "15.0"]),
+    ("register_pair", {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": "pair", "WRITE_REGISTERED": True},
+     ["register", "a.laz", "b.laz", "--out", "pair", "--write-registered"]),
     ("register_plot", {"SCANS": ["a.laz", "b.laz"], "OUTPUT": "plot", "MERGED": "plot/merged.copc.laz", "CENTRE": "b.laz"},
      ["plot", "a.laz", "b.laz", "--out", "plot", "--centre", "b.laz", "--merged", "plot/merged.copc.laz"]),
 ]
@@ -185,9 +189,13 @@ def test_each_algorithm_builds_the_job_request(provider, monkeypatch, tmp_path, 
     monkeypatch.chdir(tmp_path)
     jobs = _Jobs()
     monkeypatch.setattr(adapter, "run_job", jobs)
-    if name == "register_plot":  # the registration reads what the job wrote: stand in for it
-        monkeypatch.setattr(adapter, "register_plot", lambda job, cli, p, l, c: (jobs(adapter.build_plot_args(job), p, l, c, cli),
-                                                                                 _plot_outputs(tmp_path))[1])
+    if name.startswith("register"):  # the registration reads what the job wrote: stand in for it
+        outputs = _plot_outputs(tmp_path)
+        if name == "register_pair":
+            outputs = adapter.HostOutputs("pair", tmp_path, "ok", "a", {}, [], [], "", adapter.SavedResult.from_dict(
+                {"status": "ok", "matrix": np.eye(4).tolist(), "reference": "a", "moving": "b", "matched": 7}))
+        monkeypatch.setattr(adapter, name, lambda job, cli, p, l, c: (jobs(adapter.build_args(job), p, l, c, cli), outputs)[1])
+        monkeypatch.setattr(adapter, "write_layer_files", lambda o: adapter.LayerFiles(tmp_path / "s.csv", tmp_path / "v.csv"))
     parameters = {**parameters, "CLI": "/opt/forestreg/bin/forestreg"}
     feedback = qgis_fakes.Feedback()
     results = _algorithm(provider, name).processAlgorithm(parameters, qgis_fakes.QgsProcessingContext(), feedback)
@@ -357,6 +365,28 @@ def test_a_plot_loads_its_layers_and_its_merged_cloud(provider, monkeypatch, tmp
     assert results["MERGED"] == str(merged)
     assert [context.store.mapLayer(i).name() for i in results["LAYERS"]] == ["scanners (plot)", "links (plot)", "plot_outline (plot)"]
     assert context.store.mapLayer(results["POINT_CLOUD"]).provider == "pdal"
+
+
+def test_a_pair_loads_its_registered_scan_when_asked(provider, monkeypatch, tmp_path):
+    out = tmp_path / "pair"
+    out.mkdir()
+    result = adapter.SavedResult.from_dict({"status": "ok", "matrix": np.eye(4).tolist(), "reference": "a", "moving": "b", "matched": 7})
+
+    def register_pair(job, cli, progress, log, cancelled):
+        assert job.write_registered
+        (out / "b_registered.laz").write_bytes(b"LASF")
+        return adapter.HostOutputs("pair", out, "ok", "a", {}, [], [], "", result)
+
+    monkeypatch.setattr(adapter, "register_pair", register_pair)
+    for name in ("layer_scanners.csv", "layer_vops.csv"):
+        (out / name).write_text("name,x,y,z\n")
+    monkeypatch.setattr(adapter, "write_layer_files", lambda o: adapter.LayerFiles(out / "layer_scanners.csv", out / "layer_vops.csv"))
+    context = qgis_fakes.QgsProcessingContext()
+    results = _algorithm(provider, "register_pair").processAlgorithm(
+        {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": str(out), "WRITE_REGISTERED": True}, context, qgis_fakes.Feedback())
+    layer = context.store.mapLayer(results["POINT_CLOUD"])
+    assert (layer.name(), layer.provider, layer.source) == ("registered (b onto a)", "pdal", str(out / "b_registered.laz"))
+    assert results["MATCHED"] == 7 and results["TRANSFORM"] == str(out / "transform.txt")
 
 
 # ----------------------------------------------------------------------------- the model

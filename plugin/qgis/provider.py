@@ -260,6 +260,8 @@ class RegisterPairAlgorithm(_Base):
     VOPS = "VOPS"
     MATCHED = "MATCHED"
     TRANSFORM = "TRANSFORM"
+    WRITE_REGISTERED = "WRITE_REGISTERED"
+    POINT_CLOUD = "POINT_CLOUD"
     NAME = "register_pair"
     DISPLAY_NAME = "Register TLS pair (trunk shadows)"
     HELP = (
@@ -274,10 +276,14 @@ class RegisterPairAlgorithm(_Base):
         self.addParameter(QgsProcessingParameterFile(self.REFERENCE, "Reference scan", fileFilter=SCAN_FILTER))
         self.addParameter(QgsProcessingParameterFile(self.MOVING, "Moving scan (mapped onto the reference)", fileFilter=SCAN_FILTER))
         self.addParameter(QgsProcessingParameterFolderDestination(self.OUTPUT, "Output folder"))
+        self.addParameter(QgsProcessingParameterBoolean(
+            self.WRITE_REGISTERED, "Also write the moving scan in the reference frame (--write-registered; LAZ, loaded as a point cloud)",
+            defaultValue=False))
         self._common_parameters()
         self.addOutput(QgsProcessingOutputVectorLayer(self.VOPS, "Visual occlusion points", QgsProcessing.TypeVectorPoint))
         self.addOutput(QgsProcessingOutputNumber(self.MATCHED, "Matched VOPs"))
         self.addOutput(QgsProcessingOutputString(self.TRANSFORM, "transform.txt"))
+        self.addOutput(_point_cloud_output(self.POINT_CLOUD, "Registered moving scan (point cloud layer)"))
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802
         out = self.parameterAsString(parameters, self.OUTPUT, context)
@@ -286,6 +292,7 @@ class RegisterPairAlgorithm(_Base):
             moving=self.parameterAsFile(parameters, self.MOVING, context),
             out_dir=out,
             vop_radius_m=self._dr(parameters, context),
+            write_registered=bool(parameters.get(self.WRITE_REGISTERED)) and self.parameterAsBool(parameters, self.WRITE_REGISTERED, context),
         )
         stem = f"{Path(job.moving).stem} onto {Path(job.reference).stem}"
         outputs, crs, files, results = self._run_job(
@@ -297,6 +304,8 @@ class RegisterPairAlgorithm(_Base):
             self.VOPS: _load_point_layer(files.vops, f"VOPs ({stem})", crs, context, self.VOPS, feedback),
             self.MATCHED: outputs.matched,
             self.TRANSFORM: str(Path(out) / "transform.txt") if outputs.status == "ok" else "",
+            self.POINT_CLOUD: _load_point_cloud(next(iter(sorted(Path(out).glob("*_registered.laz"))), None), f"registered ({stem})",
+                                                context, self.POINT_CLOUD, feedback) if job.write_registered else None,
         }
 
 
