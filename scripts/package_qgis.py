@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import ast
 import configparser
-import fnmatch
 import os
 import re
 import stat
@@ -125,10 +124,9 @@ def plugin_files(root: Path = ROOT) -> list[Path]:
         folder = root.joinpath(*package.split(".")[1:])
         if not folder.is_dir():
             raise PackagingError(f"package {package} has no folder {folder}")
-        patterns = ["*.py"] + list(data.get(package, []))
-        for path in folder.iterdir():
-            if path.is_file() and any(fnmatch.fnmatch(path.name, p) for p in patterns):
-                files.add(path.relative_to(root))
+        patterns = ["*.py"] + list(data.get(package, []))  # relative to the package's folder ("models/*.model3")
+        for pattern in patterns:
+            files |= {path.relative_to(root) for path in folder.glob(pattern) if path.is_file()}
     files |= {Path(name) for name in EXTRA_FILES if (root / name).is_file()}
     return sorted(files)
 

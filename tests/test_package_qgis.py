@@ -132,3 +132,9 @@ def test_a_metadata_file_without_a_required_field_is_refused_in_one_line(tmp_pat
     for word in ("lacks repository, required", "lacks tracker, recommended", "email 'forestreg@example.invalid' is a placeholder"):
         assert word in run.stderr, run.stderr
     assert not out.exists() or not list(out.iterdir())
+
+
+def test_the_plugin_folder_ships_the_processing_model():
+    """The register plot -> trees -> change model lies in a subfolder of the plugin package: the
+    zip and the wheel carry it."""
+    assert Path("plugin/models/plot_trees_change.model3") in _script().plugin_files(ROOT)
