@@ -40,7 +40,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from ._version import __version__
+from ._version import __version__  # noqa: F401 - forestreg.__version__
 
 # public name -> module (relative to this package) that defines it: the functions that take clouds,
 # projects or tables are the use cases' checked entries (app), the types and parameters the engine's
@@ -71,6 +71,7 @@ _LAZY = {
     "RegistrationParams": ".engine.tls.params",
     "Project": ".engine.tls.project",
     "register_project": ".app.common",
+    "plot_scans": ".app.plot",
     "register_manual": ".app.pair",
     "compare_auto_manual": ".app.common",
     "register_survey": ".app.common",

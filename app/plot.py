@@ -5,9 +5,13 @@ written (``project.json``, ``poses.json``, ``<scan>.transform.txt``, ``layers.gp
 centre scan's frame and takes its CRS (``poses.json``'s ``crs``, the merged and registered clouds'
 WKT VLR, ``layers.gpkg``).
 
-:func:`new_project` builds a project from scan files and the user's marks; :func:`run_plot`
-registers it and writes the products (``forestreg plot``, ``project run``);
-:func:`register_plot_project` is the desktop's run (the project saved, no folder written).
+:func:`plot_scans` is the whole ``plot`` use case from scan files, its checks first (the command,
+the job service and the batch through it, and the Python API call it); :func:`new_project` builds
+a project from scan files and the user's marks; :func:`run_plot` registers a project and writes
+the products (``project run``, the watch); :func:`register_plot_project` is the desktop's run of
+the project it edits (the same scan checks first; the project saved, no folder written). The
+rules of editing a project (no link of a scan to itself, the centre scan not moved) are the
+project's own (:class:`~forestreg.engine.tls.project.Project`).
 """
 
 from __future__ import annotations
@@ -364,11 +368,13 @@ def resumable_project(out, project: Project) -> tuple[Project, int]:
 
 def register_plot_project(project, scans=None, *, rerun: bool = False, progress=None, cancel=None,
                           on_link: Optional[Callable[[Any], None]] = None):
-    """Register the project's links, adjust the poses and save the project (the desktop's run:
-    no folder written). Returns the engine's :class:`~forestreg.engine.tls.plot.PlotOutcome`."""
+    """Register the project's links, adjust the poses and save the project (the desktop's run of
+    the project it edits: no folder written). The checks of :func:`plot_scans` that concern the
+    scans come first (:func:`check_scans_near_their_scanners`): a plot the ``plot`` command
+    refuses is refused here too, before any link runs. Returns the engine's :class:`~forestreg.engine.tls.plot.PlotOutcome`."""
     from ..engine.tls.plot import adjust_poses, register_project
 
-    scans = scans if scans is not None else ScanCache(project)
+    scans = checked_scans(project, scans)  # the plot command's check, before any link runs
     report = progress or (lambda f, m: None)
     outcome = register_project(project, rerun=rerun, progress=lambda f, m: report(0.95 * f, m), cancel=cancel,
                                on_link=on_link, scans=scans)
@@ -380,6 +386,44 @@ def register_plot_project(project, scans=None, *, rerun: bool = False, progress=
         project.save()
     report(1.0, "done")
     return outcome
+
+
+def plot_scans(
+    scan_files: Sequence, out, params=None, *, centre: Optional[str] = None, tilted: Sequence[str] = (), targets=None,
+    positions=None, prior_poses=None, fixed: Sequence[str] = (), scanner_params=None, pairs: Optional[str] = None,
+    loops: Optional[float] = None, merged=None, registered_dir=None, e57_out=None, survey=None, crs=None,
+    on_resume: Optional[Callable[[Path, int, int], None]] = None, progress=None, cancel=None,
+) -> PlotRun:
+    """The whole ``plot`` use case, for every front door (the ``plot`` command, the job service
+    and the batch through it, the Python API): the checks before any work (the survey options,
+    ``crs``, the scan files, the extra outputs, the scans near their scanners), the project from
+    the scan files and marks (:func:`new_project`), a stopped run of the same plot in ``out`` gone
+    on with (:func:`resumable_project`; not with ``pairs`` or ``loops``), the folder made and the
+    project saved in it, then :func:`run_plot`. ``on_resume(out, kept, links)`` is told when links
+    of a stopped run are kept. Returns the :class:`PlotRun`."""
+    from ..engine.io.crs import parse_crs
+    from ..engine.tls.params import RegistrationParams
+    from .survey import check_survey_options
+
+    params = params if params is not None else RegistrationParams()
+    check_survey_options(pairs, positions, prior_poses)
+    if crs:  # a bad crs: refused before the folder is made
+        parse_crs(crs)
+    check_scan_files_exist(scan_files)
+    check_extra_outputs(scan_files, out=out, merged=merged, e57_out=e57_out, registered_dir=registered_dir)
+    project = new_project(scan_files, params, name=Path(out).name, centre=centre, tilted=list(tilted or []), targets=targets,
+                          positions=positions, prior_poses=prior_poses, fixed=list(fixed or []), scanner_params=scanner_params)
+    kept = 0
+    if not pairs and not loops:
+        project, kept = resumable_project(out, project)  # a stopped run of the same plot goes on
+    scans = scan_cache(project, with_intensity=bool(merged or registered_dir or e57_out))
+    check_scans_near_their_scanners(project, scans)  # before anything is written
+    folder = plot_folder(out, scan_files)
+    if kept and on_resume is not None:
+        on_resume(folder, kept, len(project.links))
+    project.save(folder / "project.json")
+    return run_plot(project, folder, scans=scans, pairs=pairs, fixed=fixed or [], loops=loops, merged=merged,
+                    registered_dir=registered_dir, e57_out=e57_out, survey=survey, crs=crs, progress=progress, cancel=cancel)
 
 
 def run_plot(

@@ -116,14 +116,19 @@ def _extra_outputs(args: argparse.Namespace) -> dict:
     return {name: getattr(args, name, None) for name in ("merged", "registered_dir", "e57_out")}
 
 
-def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int:
+def run_project(project, out: Path, args: argparse.Namespace) -> int:
     """Register the project into ``out`` (:func:`forestreg.app.plot.run_plot`) and print the outcome."""
     from ..app.plot import run_plot
 
-    reporter = args.reporter
-    run = run_outcome(reporter, run_plot, project, out, scans=scans, pairs=getattr(args, "pairs", None),
+    run = run_outcome(args.reporter, run_plot, project, out, pairs=getattr(args, "pairs", None),
                       fixed=getattr(args, "fixed", None) or [], rerun=getattr(args, "rerun", False), loops=getattr(args, "loops", None),
                       survey=file_section(args, "survey"), crs=getattr(args, "crs", None), **_extra_outputs(args))
+    return print_plot_run(run, args)
+
+
+def print_plot_run(run, args: argparse.Namespace) -> int:
+    """The lines of a finished plot run (:class:`forestreg.app.plot.PlotRun`); the exit code."""
+    reporter, project, out = args.reporter, run.project, run.out
     outcome = run.result
     for what, (path, count) in run.written.items():
         if what == "merged":
@@ -155,15 +160,9 @@ def run_project(project, out: Path, args: argparse.Namespace, scans=None) -> int
     return 0 if run else 1
 
 
-def _check_scans_near_their_scanners(project, scans) -> None:
-    from ..app.plot import check_scans_near_their_scanners
-
-    check_scans_near_their_scanners(project, scans)
-
-
 def cmd_plot(args: argparse.Namespace) -> int:
-    from ..app.plot import (check_extra_outputs, check_scan_files_exist, check_scans_near_their_scanners, plot_folder, resumable_project,
-                            scan_cache)
+    """``plot``: the whole use case is :func:`forestreg.app.plot.plot_scans` (its checks first)."""
+    from ..app.plot import plot_scans
     from ..engine.core.errors import UsageError
 
     if getattr(args, "watch", None):
@@ -172,23 +171,17 @@ def cmd_plot(args: argparse.Namespace) -> int:
         raise UsageError("plot needs scan files (SCAN ...), or --watch FOLDER")
     if getattr(args, "until_scans", None) is not None:
         raise UsageError("--until-scans goes with --watch FOLDER")
-    check_survey_options(args)
-    if getattr(args, "crs", None):  # a bad --crs: one line and exit 2, before the folder is made
-        from ..engine.io.crs import parse_crs
 
-        parse_crs(args.crs)
-    check_scan_files_exist(args.scans)
-    check_extra_outputs(args.scans, out=args.out, **_extra_outputs(args))
-    project, kept = project_from_args(args), 0
-    if not getattr(args, "pairs", None) and not getattr(args, "loops", None):
-        project, kept = resumable_project(args.out, project)  # a stopped run of the same plot goes on
-    scans = scan_cache(project, with_intensity=any(_extra_outputs(args).values()))
-    check_scans_near_their_scanners(project, scans)  # before anything is written
-    out = plot_folder(args.out, args.scans)
-    if kept:
-        say(f"resuming the stopped run in {shown(out)}: {kept} of {len(project.links)} links registered before are kept", args, err=True)
-    project.save(out / "project.json")
-    return run_project(project, out, args, scans)
+    def resumed(out: Path, kept: int, links: int) -> None:
+        say(f"resuming the stopped run in {shown(out)}: {kept} of {links} links registered before are kept", args, err=True)
+
+    run = run_outcome(args.reporter, plot_scans, args.scans, args.out, params_from_args(args), centre=args.centre,
+                      tilted=args.tilted or [], targets=getattr(args, "targets", None), positions=getattr(args, "positions", None),
+                      prior_poses=getattr(args, "prior_poses", None), fixed=getattr(args, "fixed", None) or [],
+                      scanner_params=file_section(args, "scanner_position"), pairs=getattr(args, "pairs", None),
+                      loops=getattr(args, "loops", None), survey=file_section(args, "survey"), crs=getattr(args, "crs", None),
+                      on_resume=resumed, **_extra_outputs(args))
+    return print_plot_run(run, args)
 
 
 #: Options of ``plot`` a watch does not take (each scan is registered onto the centre scan, or the
@@ -312,9 +305,7 @@ def cmd_project(args: argparse.Namespace) -> int:
         for name in (args.moving, args.reference):
             if not project.has_scan(name):
                 raise UsageError(f"{name}: no such scan in the project (scans: {', '.join(s.name for s in project.scans)})")
-        if args.moving == args.reference:
-            raise UsageError(f"a scan cannot be linked to itself ({args.moving})")
-        if args.extra:
+        if args.extra:  # the project's rules (no link to itself, the centre not moved) are the project's own
             project.add_link(args.moving, args.reference, vop_radius_m=args.dr)
         else:
             project.set_link(args.moving, args.reference, vop_radius_m=args.dr)

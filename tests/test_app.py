@@ -151,3 +151,64 @@ def test_typed_records_read_old_damaged_and_withheld_results(tmp_path):
     (tmp_path / "poses.json").write_text("[1, 2]")
     with pytest.raises(SavedFileError, match="not a JSON object"):
         SavedPoses.read(tmp_path / "poses.json")
+
+
+@pytest.fixture()
+def far_positions(pair_case, tmp_path):
+    """Scanner positions 5 km from the points of both scans of the pair (a georeferenced plot
+    given the wrong positions): no scan has points near its scanner."""
+    csv = tmp_path / "positions.csv"
+    csv.write_text("".join(f"{p.name},5000,5000,0\n" for p in (pair_case.reference, pair_case.moving)), encoding="utf-8")
+    return csv
+
+
+def test_scans_far_from_their_scanners_are_refused_by_every_door(pair_case, far_positions, tmp_path, capsys):
+    """The plot command, the plot use case of the Python API and the desktop's run refuse such a
+    plot up front with the same line, and nothing is written."""
+    import forestreg
+    from forestreg.app.plot import new_project
+    from forestreg.engine.core.errors import UsageError
+    from forestreg.engine.params import ProductParams
+    from forestreg.ui.worker import RegistrationWorker
+
+    files = [str(pair_case.reference), str(pair_case.moving)]
+    out = tmp_path / "cli"
+    code = main(["plot", *files, "--positions", str(far_positions), "--out", str(out), "--quiet"])
+    cli_line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert code == 2 and "within D_c" in cli_line and not out.exists()
+
+    with pytest.raises(UsageError) as api:
+        forestreg.plot_scans(files, tmp_path / "api", positions=str(far_positions))
+    assert str(api.value) in cli_line and not (tmp_path / "api").exists()
+
+    project = new_project(files, ProductParams().registration, positions=str(far_positions))
+    worker = RegistrationWorker(project)
+    with pytest.raises(UsageError) as gui:
+        worker._register(lambda f, m: None, CancelToken())  # the desktop's task code
+    assert str(gui.value) == str(api.value)
+    assert all(link.result is None for link in project.links)
+
+
+def test_a_project_edit_is_refused_alike_by_the_command_and_the_desktop_model(qtbot, pair_case, tmp_path, capsys):
+    """The project's editing rules live in the project: linking the centre scan (it defines the
+    frame and is not moved) or a scan to itself is refused with the same words by ``project link``
+    and by the desktop's project model."""
+    from forestreg.app.plot import new_project
+    from forestreg.engine.params import ProductParams
+    from forestreg.ui.project_model import ProjectModel
+
+    files = [str(pair_case.reference), str(pair_case.moving)]
+    path = tmp_path / "p.json"
+    assert main(["project", "create", str(path), *files, "--quiet"]) == 0
+    capsys.readouterr()
+    project = new_project(files, ProductParams().registration)
+    model = ProjectModel(project)
+    centre, other = project.centre, project.scans[1].name
+    for moving, reference in ((centre, other), (other, other)):
+        before = path.read_text(encoding="utf-8")
+        code = main(["project", "link", str(path), moving, reference])
+        cli_line = capsys.readouterr().err.strip().splitlines()[-1]
+        assert code == 2 and path.read_text(encoding="utf-8") == before
+        with pytest.raises(ValueError) as gui:
+            model.link(moving, reference)
+        assert str(gui.value) in cli_line

@@ -335,12 +335,12 @@ def test_a_plot_larger_than_the_scan_cache_registers_and_merges_the_same(four_sc
 def test_the_scanner_check_reads_one_scan_when_it_passes(four_scan_files, registered_four):
     """The check before a plot run (no scan near its scanner: refuse) stops at the first scan that
     passes instead of reading every scan first."""
-    from forestreg.cli.plot import _check_scans_near_their_scanners
+    from forestreg.app.plot import check_scans_near_their_scanners
     from forestreg.engine.tls.plot import ScanCache
 
     project = Project.load(registered_four[0])
     scans = ScanCache(project)
-    _check_scans_near_their_scanners(project, scans)
+    check_scans_near_their_scanners(project, scans)
     assert scans.reads == 1
 
 

@@ -216,23 +216,12 @@ class ProjectModel(QStandardItemModel):
 
     def remove_scan(self, name: str) -> None:
         """Remove a scan and every link naming it (the next scan becomes centre if it was)."""
-        p = self.project
-        p.scan(name)
-        p.scans = [s for s in p.scans if s.name != name]
-        p.links = [link for link in p.links if name not in (link.moving, link.reference)]
-        for s in p.scans:
-            if s.level_partner == name:
-                s.level_partner = None
-        if p.centre == name:
-            p.centre = p.scans[0].name if p.scans else None
+        self.project.remove_scan(name)
         self._changed()
 
     def set_centre(self, name: str) -> None:
         """Make a scan the centre (its own placing link goes; the others keep theirs)."""
-        p = self.project
-        p.scan(name)
-        p.centre = name
-        p.links = [link for link in p.links if link.moving != name or link.extra]
+        self.project.set_centre(name)
         self._changed()
 
     def set_tilted(self, name: str, tilted: bool, partner: Optional[str] = None) -> None:
@@ -249,9 +238,8 @@ class ProjectModel(QStandardItemModel):
         self._changed()
 
     def link(self, moving: str, reference: str) -> Link:
-        """Register ``moving`` onto ``reference`` (replaces the link that placed ``moving``)."""
-        if moving == self.project.centre:
-            raise ValueError(f"{moving} is the centre scan: it defines the project frame and is not moved. Mark another scan as centre first.")
+        """Register ``moving`` onto ``reference`` (replaces the link that placed ``moving``; the
+        project's rules: :meth:`~forestreg.engine.tls.project.Project.set_link`)."""
         link = self.project.set_link(moving, reference)
         self._changed()
         return link

@@ -379,8 +379,7 @@ def _readable_centre(project: Project) -> None:
     if new is None:
         raise DataError(f"no scan of the plot can be read (the centre scan {old}: {reason})")
     log.warning("the centre scan %s cannot be read (%s): %s is the centre instead", old, reason, new)
-    project.centre = new
-    project.links = [link for link in project.links if not (link.moving == new and not link.extra)]
+    project.set_centre(new)
     for link in list(project.links):
         if link.reference == old and not link.extra and link.method != "manual":
             project.set_link(link.moving, new, vop_radius_m=link.vop_radius_m, slice_offsets_m=link.slice_offsets_m)

@@ -155,11 +155,38 @@ class Project(ProjectFile):
         """The link that places ``moving`` (its non-extra link)."""
         return next((link for link in self.links if link.moving == moving and not link.extra), None)
 
-    def set_link(self, moving: str, reference: str, **options: Any) -> Link:
-        """Link ``moving`` to ``reference``, replacing the link that placed it."""
+    def remove_scan(self, name: str) -> None:
+        """Remove a scan and every link naming it (the first scan left becomes centre if it was)."""
+        self.scan(name)
+        self.scans = [s for s in self.scans if s.name != name]
+        self.links = [link for link in self.links if name not in (link.moving, link.reference)]
+        for s in self.scans:
+            if s.level_partner == name:
+                s.level_partner = None
+        if self.centre == name:
+            self.centre = self.scans[0].name if self.scans else None
+
+    def set_centre(self, name: str) -> None:
+        """Make a scan the centre, the project frame: the link that placed it goes (its extra
+        links and the other scans' links stay)."""
+        self.scan(name)
+        self.centre = name
+        self.links = [link for link in self.links if link.moving != name or link.extra]
+
+    def _check_link(self, moving: str, reference: str) -> None:
+        """The rules of every link: both scans exist, and a scan is not linked to itself."""
         self.scan(moving), self.scan(reference)
         if moving == reference:
             raise InvalidArgumentError(f"a scan cannot be linked to itself ({moving})")
+
+    def set_link(self, moving: str, reference: str, **options: Any) -> Link:
+        """Link ``moving`` to ``reference``, replacing the link that placed it. The centre scan
+        defines the project frame and is not moved: it has no placing link (an extra link from it,
+        :meth:`add_link`, closes a loop)."""
+        self._check_link(moving, reference)
+        if moving == self.centre:
+            raise InvalidArgumentError(f"{moving} is the centre scan: it defines the project frame and is not moved. "
+                                       "Mark another scan as centre first.")
         self.links = [link for link in self.links if link.moving != moving or link.extra]
         link = Link(moving=moving, reference=reference, **options)
         self.links.append(link)
@@ -168,9 +195,7 @@ class Project(ProjectFile):
     def add_link(self, moving: str, reference: str, **options: Any) -> Link:
         """Add an extra link (beside the link that places the scan): a loop for the global
         adjustment."""
-        self.scan(moving), self.scan(reference)
-        if moving == reference:
-            raise InvalidArgumentError(f"a scan cannot be linked to itself ({moving})")
+        self._check_link(moving, reference)
         link = Link(moving=moving, reference=reference, extra=True, **options)
         self.links.append(link)
         return link
