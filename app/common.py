@@ -63,6 +63,25 @@ def final_result_check(summary: dict) -> dict:
     return withhold_unless_rigid(summary)
 
 
+def rigid_or_withheld(result):
+    """The last check of a typed registration result (``status``, ``reason``, ``matrix``; a frozen
+    dataclass such as :class:`~forestreg.engine.tls.pair.PairResult`) before the Python API returns
+    it "ok": the check of :func:`final_result_check`. A matrix that is not a finite proper rigid
+    4x4 gives a copy "failed" with the reason and no matrix; anything else is returned as it is."""
+    import dataclasses
+
+    from ..engine.core.errors import TransformError
+    from ..engine.core.transform import check_rigid
+
+    if getattr(result, "status", None) != "ok":
+        return result
+    try:
+        check_rigid(result.matrix, "the result")
+    except TransformError as exc:
+        return dataclasses.replace(result, status="failed", reason=f"{exc}; withheld", matrix=None)
+    return result
+
+
 def run_summary(
     result, read: dict, inputs: dict, units: str, scale: float, *,
     facts: Optional[dict] = None, matrix_keys: tuple[str, ...] = ("matrix",),

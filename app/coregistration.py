@@ -217,7 +217,9 @@ def coregister(ground, uav, params=None, progress=None, *, cancel=None):
 
     params = params_of(params, CoregistrationParams, "coregistration")
     ground, uav = scan_source(ground, "ground"), scan_source(uav, "uav")
-    return coregister_scans(ground, uav, params, progress=with_cancel(progress, cancel))
+    from .common import rigid_or_withheld
+
+    return rigid_or_withheld(coregister_scans(ground, uav, params, progress=with_cancel(progress, cancel)))
 
 
 def _write_coregistration_folder(out: Path, result, summary: dict, kept: dict, scale: float) -> Optional[Path]:

@@ -187,8 +187,10 @@ def register(reference, moving, params=None, *, scanner_params=None, **options):
 
         return load
 
-    return register_scans(checked(reference, "reference"), checked(moving, "moving"), params, scanner_params=scanner_params,
-                          **options)
+    from .common import rigid_or_withheld
+
+    return rigid_or_withheld(register_scans(checked(reference, "reference"), checked(moving, "moving"), params,
+                                            scanner_params=scanner_params, **options))
 
 
 def register_manual(reference, moving, reference_targets, moving_targets, params=None, **options):

@@ -374,3 +374,31 @@ def test_plot_merged_inside_the_output_folder_on_a_fresh_run(scans, tmp_path, mo
     # a wrong suffix inside the folder is still refused before the work
     assert main(["plot", *map(str, files["m"]), "--out", "other", "--merged", "other/all.txt.gz", "-q"]) == 2
     assert not (tmp_path / "other").exists()
+
+
+def test_the_api_withholds_a_matrix_that_is_not_rigid(monkeypatch):
+    """``forestreg.register`` and ``forestreg.coregister`` end with the use cases' last check: an
+    "ok" whose matrix is scaled comes back failed, without the matrix, whatever the engine said."""
+    import dataclasses
+    import importlib
+
+    import forestreg
+
+    coreg_engine = importlib.import_module("forestreg.engine.coreg.coregister")
+    pair_engine = importlib.import_module("forestreg.engine.tls.pair")
+
+    @dataclasses.dataclass(frozen=True)
+    class Result:
+        status: str
+        reason: str
+        matrix: object
+
+    scaled = np.eye(4)
+    scaled[:3, :3] *= 1.01
+    monkeypatch.setattr(pair_engine, "register", lambda *a, **k: Result("ok", "", scaled))
+    monkeypatch.setattr(coreg_engine, "coregister", lambda *a, **k: Result("ok", "", scaled))
+    points = np.random.default_rng(0).uniform(-20, 20, (2000, 3))
+    for result in (forestreg.register(points, points + 1.0), forestreg.coregister(points, points + 1.0)):
+        assert result.status == "failed" and result.matrix is None and "withheld" in result.reason
+    monkeypatch.setattr(pair_engine, "register", lambda *a, **k: Result("ok", "", np.eye(4)))
+    assert forestreg.register(points, points + 1.0).status == "ok"
