@@ -334,14 +334,16 @@ def test_single_tree_yes_on_a_plot_warns_and_flags_the_tree(shared_data, tmp_pat
     done, _ = _run("trees", shared_data / "pine_plot.laz", "--out", tmp_path / "t", "--single-tree", "yes", "--no-cylinders",
                    "--no-report", timeout=300)
     assert done.returncode == 0, done.stderr
-    warnings = [line for line in done.stderr.splitlines() if "stems standing apart" in line]
-    assert len(warnings) == 1 and "WARNING" in warnings[0], done.stderr
+    warnings = [line for line in (done.stdout + done.stderr).splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "stems: not a single tree" in warnings[0], done.stderr
+    assert int(warnings[0].split("holds ")[1].split()[0]) >= 12  # about 16 stems
     assert "1 flagged" in done.stdout + done.stderr
     with open(tmp_path / "t" / "trees.csv", newline="") as fh:
         (row,) = list(csv.DictReader(fh))
-    assert "stems standing apart" in row["flag"] and "not one tree" in row["flag"]
-    for column in ("height_quality", "crown_quality", "dbh_quality"):
+    assert "not a single tree" in row["flag"]
+    for column in ("height_quality", "crown_quality"):
         assert row[column].endswith("; low"), row[column]
+    assert row["dbh_quality"].endswith(("; low", "; none")), row["dbh_quality"]
 
 
 @pytest.mark.parametrize("name", ["pine.laz", "AdTree_Lille_2.xyz"])
