@@ -16,7 +16,6 @@ origin unless a scanner position was given.
 from __future__ import annotations
 
 import csv
-import json
 import os
 import shlex
 import shutil

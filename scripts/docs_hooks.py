@@ -168,7 +168,7 @@ def cli_reference(issues: list[str] | None = None) -> str:
         if name == "gui":
             gui = _gui_parser()
             if gui is None:
-                lines += [f"## `forestreg gui`", "", help_text, "", "(The desktop application's options need the `gui` extra.)", ""]
+                lines += ["## `forestreg gui`", "", help_text, "", "(The desktop application's options need the `gui` extra.)", ""]
                 continue
             lines += _command_section("forestreg gui", help_text, gui, issues)
             continue

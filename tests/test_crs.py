@@ -12,7 +12,6 @@ import pytest
 
 from forestreg.cli import main
 from forestreg.engine.core.errors import UsageError
-from forestreg.engine.core.scan import Scan
 from forestreg.engine.io import read_crs, read_scan, write_point_chunks, write_points, write_scan
 from forestreg.engine.io.crs import Crs, as_crs, frame_crs, parse_crs
 from forestreg.engine.io.gpkg import layer_names, read_layer

@@ -10,7 +10,6 @@ import sqlite3
 import struct
 import time
 import xml.etree.ElementTree as ET
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
