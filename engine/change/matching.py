@@ -22,7 +22,7 @@ change of a stem measured in both clouds is twice its radial growth in the secto
 both surveys saw (:mod:`.growth`: an oval stem seen from different sides keeps its shape, which
 cancels), and is withheld, with the reason, where the common arc is too short or too uncertain;
 between two tables it is the difference of the two DBH values. A height change needs both tops
-trusted. A value one survey cannot support (stem occluded, DBH fit unsure, top unseen) is flagged
+trusted (high). A value one survey cannot support (stem occluded, DBH fit unsure, top unseen) is flagged
 and its change left empty.
 """
 
@@ -121,7 +121,7 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     """Every tree of both surveys with its status and values (module docstring). ``matrix``:
     ``p_before = matrix @ p_after`` (local frames); ``shift_sigma_m`` the registration's 1-sigma
     horizontal uncertainty, the prior of a stem's local shift where the plot's stems do not tell
-    it (:func:`~.growth.paired_growth`). Ordered: persisting, removed, new, outside. Stems found
+    it (:func:`~.growth.stem_growth`). Ordered: persisting, removed, new, outside. Stems found
     in one survey alone without a DBH (nothing measured at breast height) are left out;
     ``skipped`` (a list) receives one entry per such stem."""
     skipped = [] if skipped is None else skipped
