@@ -249,8 +249,11 @@ def test_cloudcompare_plugin_class_is_built_lazily(monkeypatch):
     from importlib.metadata import EntryPoint
 
     assert EntryPoint("forestreg", "forestreg.plugin.cloudcompare:ForestregCC", "cloudcompare.plugins").load() is cls
-    (action,) = cls().getActions()
+    action, trees_action = cls().getActions()
     assert action.name == ccplugin.ACTION_NAME and action.target is ccplugin.register_selected
+    from forestreg.plugin.cloudcompare import trees as cctrees
+
+    assert trees_action.name == cctrees.LOAD_TREES_ACTION_NAME and trees_action.target is cctrees.load_trees_folder
     with pytest.raises(AttributeError):
         ccplugin.NoSuchThing
 

@@ -7,6 +7,10 @@ its progress events are printed to the console) through :mod:`forestreg.plugin.a
 resulting matrix (``p_reference = matrix @ p_moving``) is
 applied to the moving cloud. A failed registration changes nothing and shows the reason.
 
+"forestreg: load trees output folder" draws a ``forestreg trees --out`` folder: one mesh per tree
+(its cylinder model) and one polyline per tree (its stem curve), grouped under the run's name
+(:mod:`forestreg.plugin.cloudcompare.trees`, geometry in :mod:`forestreg.plugin.geometry`).
+
 The runtime discovers the plugin through the entry point group ``cloudcompare.plugins``::
 
     [project.entry-points."cloudcompare.plugins"]
@@ -157,13 +161,17 @@ def _build_plugin_class():
     import pycc
 
     class ForestregCC(pycc.PythonPluginInterface):
-        """The CloudCompare-PythonRuntime plugin: one action on the two selected clouds."""
+        """The CloudCompare-PythonRuntime plugin: register the two selected clouds; load a trees
+        output folder."""
 
         def __init__(self) -> None:
             pycc.PythonPluginInterface.__init__(self)
 
         def getActions(self):  # noqa: N802 - runtime naming
-            return [pycc.Action(name=ACTION_NAME, target=register_selected)]
+            from .trees import LOAD_TREES_ACTION_NAME, load_trees_folder
+
+            return [pycc.Action(name=ACTION_NAME, target=register_selected),
+                    pycc.Action(name=LOAD_TREES_ACTION_NAME, target=load_trees_folder)]
 
     return ForestregCC
 
