@@ -291,3 +291,18 @@ def test_trees_layer_imports_without_pycc():
     code = ("import sys, forestreg.plugin.cloudcompare.trees as m, forestreg.plugin.geometry; "
             "sys.exit(1 if 'pycc' in sys.modules else 0)")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_global_shift_without_a_vector_type(run):
+    from forestreg.plugin.cloudcompare.trees import build_trees_group
+
+    _, _, scene = run
+    pycc = _fake_pycc()
+    del pycc.CCVector3d  # a runtime whose pycc has no CCVector3d (and no cccorelib here): three numbers
+
+    def set_shift(self, *xyz):
+        self.shift = xyz if len(xyz) == 3 else (xyz[0].x, xyz[0].y, xyz[0].z)
+
+    pycc.ccPointCloud.setGlobalShift = set_shift
+    group = build_trees_group(pycc, scene)
+    assert all(c.cloud.shift == scene.shift for c in group.children)

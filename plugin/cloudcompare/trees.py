@@ -29,11 +29,29 @@ def _cloud(pycc, points: np.ndarray, shift) -> Any:
     cloud = pycc.ccPointCloud(np.ascontiguousarray(local[:, 0]), np.ascontiguousarray(local[:, 1]),
                               np.ascontiguousarray(local[:, 2]))
     if any(shift):
-        try:
-            cloud.setGlobalShift(pycc.CCVector3d(*shift))
-        except Exception:
-            cloud.setGlobalShift(*shift)
+        _set_shift(pycc, cloud, shift)
     return cloud
+
+
+def _set_shift(pycc, cloud, shift) -> None:
+    """``setGlobalShift`` with a CCVector3d (from pycc or cccorelib, as the runtime has it), else
+    with three numbers."""
+    makers = [getattr(pycc, "CCVector3d", None)]
+    try:
+        import cccorelib
+
+        makers.append(getattr(cccorelib, "CCVector3d", None))
+    except ImportError:
+        pass
+    for make in makers:
+        if make is None:
+            continue
+        try:
+            cloud.setGlobalShift(make(*shift))
+            return
+        except Exception:  # noqa: BLE001 - another binding's vector type: try the next
+            continue
+    cloud.setGlobalShift(*shift)
 
 
 def _mesh(pycc, item: TreeMesh, shift) -> Any:
