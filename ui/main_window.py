@@ -41,13 +41,14 @@ from .scene_view import SceneView
 from .system_b import SystemBMixin
 from .tasks import TaskSet
 from .top_view import TopViewWidget
+from .watch_actions import WatchMixin
 from .worker import RegistrationWorker, TaskWorker
 
 log = logging.getLogger("forestreg")
 
 ORGANISATION = "forestreg"
 APPLICATION = "forestreg"
-class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
+class MainWindow(WatchMixin, SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
     """forestreg's main window over one project.
 
     ``settings``: where recent files and the window layout are kept (default
@@ -94,6 +95,7 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self.setDockOptions(QMainWindow.DockOption.AnimatedDocks | QMainWindow.DockOption.AllowNestedDocks)
 
         self._build_views()
+        self._build_watch()
         self._build_actions()
         self._build_menus()
         self._build_status()
@@ -188,6 +190,8 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         self.act_add = a("&Add scans\u2026", self._ask_add_scans, QKeySequence("Ctrl+I"), "Add scan files (LAS, LAZ, PLY, PCD, E57, XYZ)")
         self.act_relink = a("Re&link missing scans\u2026", self._ask_relink, None,
                             "Point the project's scans that were moved at the folder that holds them now")
+        self.act_watch = a("&Watch folder\u2026", self._ask_watch_folder, None,
+                           "Register each scan as the scanner's export folder fills (forestreg plot --watch)")
         self.act_export_poses = a("Export &transforms and poses\u2026", self._ask_export_poses, QKeySequence("Ctrl+E"),
                                   "Write poses.json and one <scan>.transform.txt per registered scan")
         self.act_export_merged = a("Export &merged LAZ\u2026", self._ask_export_merged, None, "Write all registered scans into one LAZ file")
@@ -244,6 +248,7 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         m.addSeparator()
         m.addAction(self.act_add)
         m.addAction(self.act_relink)
+        m.addAction(self.act_watch)
         m.addSeparator()
         for act in (self.act_export_poses, self.act_export_merged, self.act_export_scans, self.act_export_e57, self.act_export_report):
             m.addAction(act)
@@ -384,7 +389,8 @@ class MainWindow(SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
         running = self.running
         has_scans = bool(self.project.scans)
         registered = any(p is not None for n, p in self.project.poses().items() if n != self.project.centre) if has_scans else False
-        for act in (self.act_new, self.act_open, self.act_sample, self.act_add, self.act_save_as, self.recent_menu.menuAction()):
+        for act in (self.act_new, self.act_open, self.act_sample, self.act_add, self.act_save_as, self.act_watch,
+                    self.recent_menu.menuAction()):
             act.setEnabled(not running)
         self.act_save.setEnabled(not running)
         self.act_run.setEnabled(not running and len(self.project.scans) >= 2)
