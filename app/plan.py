@@ -91,11 +91,9 @@ def plan_next(source, *, n: int = 1, params=None, out=None, scans=None, progress
     ``plan.json`` (``out``, default beside the project file). ``scans``: a
     :class:`~forestreg.engine.tls.plot.ScanCache` of the project holding its preparations."""
     from ..engine.core.atomic import write_text_atomic
-    from ..engine.core.errors import DataError, UsageError
+    from ..engine.core.errors import UsageError
     from ..engine.core.jsonable import to_jsonable
     from ..engine.tls.params import PlanParams
-    from ..engine.tls.plan import placed_links, placed_views, plan_scans
-    from ..engine.tls.plot import ScanCache
     from ..engine.tls.project import Project
 
     if not 1 <= int(n) <= 3:
@@ -106,22 +104,35 @@ def plan_next(source, *, n: int = 1, params=None, out=None, scans=None, progress
     if target.suffix.lower() != ".json" or target.is_dir():
         raise UsageError(f"{target}: the plan is written to a .json file")
     project = Project.load(path)
+    plan, links = plan_project(project, n=n, params=params, scans=scans, progress=progress, source=path)
+    report = progress or (lambda f, m: None)
+    doc = plan_document(plan, links, project.centre, params)
+    write_text_atomic(target, json.dumps(to_jsonable(doc, nan_as_null=True), indent=1) + "\n")
+    report(1.0, "done")
+    return PlanRun(status="ok" if plan.suggestions else "failed", reason=plan.reason, out=target, plan=plan, links=links,
+                   frame=project.centre)
+
+
+def plan_project(project, *, n: int = 1, params=None, scans=None, progress=None, source=None) -> tuple:
+    """The plan of the next ``n`` scans of the ``project`` in memory (as :func:`plan_next` makes
+    it, nothing written) and the strength of its links: ``(plan, links)``."""
+    from ..engine.core.errors import DataError
+    from ..engine.tls.params import PlanParams
+    from ..engine.tls.plan import placed_links, placed_views, plan_scans
+    from ..engine.tls.plot import ScanCache
+
+    params = params or PlanParams()
     poses = project.poses()
     placed = [s.name for s in project.scans if poses.get(s.name) is not None]
     if not placed:
-        raise DataError(f"{path}: no scan of the project is placed yet (register the plot first)")
+        raise DataError(f"{source or project.name}: no scan of the project is placed yet (register the plot first)")
     report = progress or (lambda f, m: None)
     report(0.0, f"reading the {len(placed)} placed scans")
     scans = scans if scans is not None else ScanCache(project, with_intensity=False)
     views = placed_views(project, scans, cell_m=params.ground_cell_m)
     report(0.7, "planning the next scans")
     plan = plan_scans(views, params, project.params, n=int(n), links=placed_links(project))
-    links = link_strengths(project, params.min_shared_stems)
-    doc = plan_document(plan, links, project.centre, params)
-    write_text_atomic(target, json.dumps(to_jsonable(doc, nan_as_null=True), indent=1) + "\n")
-    report(1.0, "done")
-    return PlanRun(status="ok" if plan.suggestions else "failed", reason=plan.reason, out=target, plan=plan, links=links,
-                   frame=project.centre)
+    return plan, link_strengths(project, params.min_shared_stems)
 
 
 def plan_document(plan, links, frame: Optional[str], params) -> dict[str, Any]:

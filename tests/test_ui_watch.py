@@ -85,7 +85,6 @@ def test_watch_folder_places_scans_as_they_arrive_and_cancel_leaves_the_folder_w
     assert watch.columnCount() == len(WATCH_COLUMNS)
     assert not window.model.index_of_scan(OTHER).isValid()  # set aside: not in the plot
 
-    window.grab().save(str(tmp_path / "watch.png"))
     window.cancel_run()
     qtbot.waitUntil(lambda: not window.running, timeout=60_000)
     assert window.watch_run is not None and window.watch_run.stopped
@@ -98,3 +97,12 @@ def test_watch_folder_places_scans_as_they_arrive_and_cancel_leaves_the_folder_w
     assert [s.name for s in window.project.scans] == list(NAMES)
     assert window.act_watch.isEnabled()
     qtbot.waitUntil(lambda: not window.busy, timeout=60_000)  # the views drawn for the last update
+
+    # Plan next scan: app/plan.py's suggestions as markers on the map
+    assert window.act_plan.isEnabled()
+    assert window.plan_next_scan()
+    qtbot.waitUntil(lambda: getattr(window, "last_plan", None) is not None, timeout=60_000)
+    plan = window.last_plan
+    assert plan.suggestions and window.top_view.plan_markers == len(plan.suggestions)
+    assert window.status_label.text().startswith("Next scan")
+    window.grab().save(str(tmp_path / "watch.png"))

@@ -41,14 +41,14 @@ from .scene_view import SceneView
 from .system_b import SystemBMixin
 from .tasks import TaskSet
 from .top_view import TopViewWidget
-from .watch_actions import WatchMixin
+from .watch_actions import PlanMixin, WatchMixin
 from .worker import RegistrationWorker, TaskWorker
 
 log = logging.getLogger("forestreg")
 
 ORGANISATION = "forestreg"
 APPLICATION = "forestreg"
-class MainWindow(WatchMixin, SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
+class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
     """forestreg's main window over one project.
 
     ``settings``: where recent files and the window layout are kept (default
@@ -190,6 +190,8 @@ class MainWindow(WatchMixin, SystemBMixin, ManualModeMixin, FileActionsMixin, QM
         self.act_add = a("&Add scans\u2026", self._ask_add_scans, QKeySequence("Ctrl+I"), "Add scan files (LAS, LAZ, PLY, PCD, E57, XYZ)")
         self.act_relink = a("Re&link missing scans\u2026", self._ask_relink, None,
                             "Point the project's scans that were moved at the folder that holds them now")
+        self.act_plan = a("&Plan next scan", self.plan_next_scan, None,
+                          "Where the next scans should stand (forestreg plan), marked on the top view")
         self.act_watch = a("&Watch folder\u2026", self._ask_watch_folder, None,
                            "Register each scan as the scanner's export folder fills (forestreg plot --watch)")
         self.act_export_poses = a("Export &transforms and poses\u2026", self._ask_export_poses, QKeySequence("Ctrl+E"),
@@ -255,7 +257,7 @@ class MainWindow(WatchMixin, SystemBMixin, ManualModeMixin, FileActionsMixin, QM
         m.addSeparator()
         m.addAction(self.act_quit)
         m = bar.addMenu("&Registration")
-        for act in (self.act_run, self.act_rerun, self.act_cancel):
+        for act in (self.act_run, self.act_rerun, self.act_cancel, self.act_plan):
             m.addAction(act)
         m = bar.addMenu("&View")
         for act in (self.act_before, self.act_after, self.act_all_points, self.act_reset_camera, self.act_top_camera):
@@ -396,6 +398,7 @@ class MainWindow(WatchMixin, SystemBMixin, ManualModeMixin, FileActionsMixin, QM
         self.act_run.setEnabled(not running and len(self.project.scans) >= 2)
         self.act_rerun.setEnabled(not running and len(self.project.scans) >= 2)
         self.act_cancel.setEnabled(running)
+        self.act_plan.setEnabled(not running and registered)
         for act in (self.act_export_poses, self.act_export_merged, self.act_export_scans, self.act_export_e57, self.act_export_report):
             act.setEnabled(not running and registered)
         self.params_panel.setEnabled(not running)

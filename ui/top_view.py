@@ -203,3 +203,24 @@ class TopViewWidget(QWidget):
             handles.append(Line2D([], [], ls="none", marker="o", ms=9, mfc=(0.42, 0.24, 0.6, 0.18), mec=UNCERTAINTY_COLOUR,
                                   label=f"pose uncertainty, 1 sigma (circle drawn {factor:g}x larger)"))
         return handles
+
+
+def draw_plan(widget: TopViewWidget, suggestions) -> int:
+    """Mark suggested next scanner positions (:class:`~forestreg.engine.tls.plan.Suggestion`, in
+    the project frame) on the top view drawn: a star each, numbered, with the scan it links to.
+    Returns the markers drawn (none when no view is drawn)."""
+    if widget.view is None or not widget.figure.axes or not widget.view.scans:
+        return 0
+    ax = widget.figure.axes[0]
+    o = widget.view.origin[:2]
+    drawn = 0
+    for k, s in enumerate(suggestions, 1):
+        x, y = s.x - o[0], s.y - o[1]
+        ax.plot(x, y, marker="*", ms=16, mfc="#ffd92f", mec="k", mew=1.0, ls="none", zorder=8,
+                label="suggested next scan" if k == 1 else None)
+        ax.annotate(f"next {k}: links to {s.links_to}", xy=(x, y), xytext=(8, -12), textcoords="offset points", fontsize=8, zorder=9,
+                    bbox=dict(boxstyle="round,pad=0.2", fc="#fff7bc", ec="k", lw=0.8, alpha=0.9))
+        drawn += 1
+    widget.plan_markers = drawn
+    widget.canvas.draw_idle()
+    return drawn

@@ -257,3 +257,35 @@ class WatchMixin:
         self._run_ended()
         self.bottom_tabs.setCurrentWidget(self.watch_table)
         self.status_label.setText(text)
+
+
+class PlanMixin:
+    """*Registration > Plan next scan*: :func:`~forestreg.app.plan.plan_project` on the project
+    as it is, its suggestions marked on the top view."""
+
+    def plan_next_scan(self, n: int = 3) -> bool:
+        """Plan the next ``n`` scans in the background and mark them on the map; False when
+        nothing is placed yet or a run is going on."""
+        if self.running or not any(p is not None for name, p in self.project.poses().items() if name != self.project.centre):
+            return False
+        from ..app.plan import plan_project
+
+        project, scans = self.project, self.scans
+        worker = TaskWorker(lambda progress, cancel: plan_project(project, n=n, scans=scans, progress=progress)[0], name="plan")
+        self.status_label.setText("Planning the next scans\u2026")
+        self._start_task(worker, succeeded=self._plan_done,
+                         failed=lambda m, d: self.show_error("No plan for the next scan", m, d))
+        return True
+
+    def _plan_done(self, plan: Any) -> None:
+        from .top_view import draw_plan
+
+        self.last_plan = plan
+        if not plan.suggestions:
+            self.status_label.setText(f"No next scan suggested: {plan.reason}")
+            return
+        draw_plan(self.top_view, plan.suggestions)
+        where = "; ".join(f"({s.x:.1f}, {s.y:.1f}) linking to {s.links_to}" for s in plan.suggestions)
+        text = f"Next scan{'s' if len(plan.suggestions) > 1 else ''}: {where}"
+        log.info("%s", text)
+        self.status_label.setText(text)
