@@ -106,3 +106,30 @@ def test_watch_folder_places_scans_as_they_arrive_and_cancel_leaves_the_folder_w
     assert plan.suggestions and window.top_view.plan_markers == len(plan.suggestions)
     assert window.status_label.text().startswith("Next scan")
     window.grab().save(str(tmp_path / "watch.png"))
+
+
+def test_a_scan_that_does_not_link_shows_the_reason_and_where_to_stand(qtbot, window, scans, tmp_path) -> None:
+    """With an ICP fitness no pair reaches, the second scan shares trunk shadows with the centre
+    scan but does not link: the Watch tab gives the watcher's reason and the position that links."""
+    from forestreg.engine.tls.params import RegistrationParams
+
+    folder, out = tmp_path / "export", tmp_path / "field"
+    folder.mkdir()
+    shutil.copyfile(scans[NAMES[0]], folder / NAMES[0])
+    window.params_panel.set_params(RegistrationParams(icp_min_fitness=0.99))
+    assert window.watch_folder(folder, out, poll_s=0.1)
+    qtbot.waitUntil(lambda: _status(window, NAMES[0]) == "centre", timeout=60_000)
+    shutil.copyfile(scans[NAMES[1]], folder / NAMES[1])
+    qtbot.waitUntil(lambda: _status(window, NAMES[1]) == "not linked", timeout=60_000)
+    event = window.watch_events[-1]
+    watch = window.watch_table
+    reason = watch.text(NAMES[1], "Reason / what to do")
+    assert reason.startswith(event.reason) and "ICP fitness" in reason
+    assert reason.endswith(f"stand between them, near ({event.advice[0]:.1f}, {event.advice[1]:.1f})")
+    assert watch.text(NAMES[1], "Suggested position (x, y m)") == f"{event.advice[0]:.1f}, {event.advice[1]:.1f}"
+    qtbot.waitUntil(lambda: window.model.index_of_scan(NAMES[0]).isValid(), timeout=10_000)
+    assert not window.model.index_of_scan(NAMES[1]).isValid()
+    window.cancel_run()
+    qtbot.waitUntil(lambda: not window.running, timeout=60_000)
+    assert json.loads((out / "watch.json").read_text())["files"][NAMES[1]]["status"] == "not linked"
+    qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
