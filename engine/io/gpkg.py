@@ -279,7 +279,7 @@ def write_geopackage(path, layers: Sequence[Layer], crs=None) -> Path:
     layers = list(layers)
     _check_layers(layers)
     srs_id, srs_row = srs_of(crs)
-    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.") + "000Z"
+    now = _change_time()
     try:
         with atomic_path(target) as tmp:
             tmp.unlink(missing_ok=True)  # sqlite3 makes a new database at the empty name
@@ -291,6 +291,20 @@ def write_geopackage(path, layers: Sequence[Layer], crs=None) -> Path:
     except sqlite3.Error as exc:
         raise ScanWriteError(f"cannot write {target}: {exc}") from exc
     return target
+
+
+def _change_time() -> str:
+    """The GeoPackage's change times (``last_change``, ``update_time``): ``SOURCE_DATE_EPOCH``
+    (seconds, UTC) when set, else 1970-01-01: the same inputs give the same bytes on every run,
+    as every other output does."""
+    import os
+
+    try:
+        seconds = int(os.environ.get("SOURCE_DATE_EPOCH", "0"))
+    except ValueError:
+        seconds = 0
+    stamp = datetime.datetime.fromtimestamp(seconds, datetime.timezone.utc)
+    return stamp.strftime("%Y-%m-%dT%H:%M:%S.") + "000Z"
 
 
 def _fill(con: sqlite3.Connection, layers: Sequence[Layer], srs_id: int, srs_row, now: str) -> None:
