@@ -10,6 +10,15 @@ own (one process compiles it, the others wait and load it), an entry's data file
 the index that names it (each written whole, then renamed into place), and an entry is loaded only
 when it holds the signature asked for; anything else is compiled again. Kernels release the
 interpreter lock (``nogil``), so blocks of independent rows run in parallel threads.
+
+The cache subclasses numba's ``numba.core.caching`` rather than using ``numba.njit(cache=True)``:
+that cache lives in ``__pycache__`` beside the sources (or ``NUMBA_CACHE_DIR`` for the whole
+process), not in a folder per forestreg and numba version; it writes an entry's index before its
+data and loads an entry without checking its signature, so two processes compiling one kernel at
+once (a batch's workers) can leave an index naming data of another signature, or none.
+``numba.core.caching`` is not numba's public API: pyproject.toml pins the numba versions it is
+tested with (:data:`NUMBA_RANGE`), and :func:`numba_cache_api` fails at import, naming what is
+missing, on a numba that lacks a part of it.
 """
 
 from __future__ import annotations
@@ -136,9 +145,43 @@ def cache_is_warm(files: Optional[Iterable[str]] = None) -> bool:
     return bool(files) and all(recorded.get(k) == v for k, v in _source_hashes(files).items())
 
 
-# numba's names (public since numba 0.62, with a leading underscore before)
-_UserLocator = getattr(caching, "UserProvidedCacheLocator", None) or getattr(caching, "_UserProvidedCacheLocator")
-_ResultCacheImpl = caching.CompileResultCacheImpl
+#: The numba versions the kernel cache is tested with (pyproject.toml pins the same range).
+NUMBA_RANGE = ">=0.59,<0.69"
+
+#: What the kernel cache takes from ``numba.core.caching`` (not numba's public API, hence the pin):
+#: each class and the members of it that :class:`_VersionedLocator`, :class:`_CheckedCacheFile`
+#: and :class:`_KernelCache` use or override.
+NUMBA_CACHE_API = {
+    "_SourceFileBackedLocatorMixin": ("from_function",),
+    "CompileResultCacheImpl": ("_locator_classes",),
+    "IndexDataCacheFile": ("save", "load", "_load_index", "_save_index", "_save_data", "_data_name"),
+    "FunctionCache": ("load_overload", "_impl_class"),
+}
+
+
+def numba_cache_api() -> tuple[Any, Any]:
+    """numba's locator of ``NUMBA_CACHE_DIR`` (``UserProvidedCacheLocator``, public since numba
+    0.62, with a leading underscore before) and its ``CompileResultCacheImpl``, after checking that
+    every name in :data:`NUMBA_CACHE_API` is there; ImportError naming the missing ones, numba's
+    version and :data:`NUMBA_RANGE` otherwise."""
+    locator = getattr(caching, "UserProvidedCacheLocator", None) or getattr(caching, "_UserProvidedCacheLocator", None)
+    missing = [] if locator is not None else ["UserProvidedCacheLocator"]
+    for name, members in NUMBA_CACHE_API.items():
+        cls = getattr(caching, name, None)
+        if cls is None:
+            missing.append(name)
+            continue
+        missing += [f"{name}.{m}" for m in members if not hasattr(cls, m)]
+    if locator is not None and not hasattr(locator, "get_suitable_cache_subpath"):
+        missing.append("UserProvidedCacheLocator.get_suitable_cache_subpath")
+    if missing:
+        raise ImportError(
+            f"forestreg's compiled-kernel cache (engine/core/jit.py) builds on numba.core.caching, which in numba "
+            f"{numba.__version__} lacks {', '.join(missing)}: install numba{NUMBA_RANGE} (the range forestreg is tested with)")
+    return locator, caching.CompileResultCacheImpl
+
+
+_UserLocator, _ResultCacheImpl = numba_cache_api()
 
 
 class _VersionedLocator(_UserLocator):
