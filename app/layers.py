@@ -15,6 +15,8 @@ coordinates), with that frame's CRS (:class:`~forestreg.engine.io.crs.FrameCrs`;
   each link's status and 1-sigma uncertainty;
 * ``tree_changes``: a re-survey's trees with their status and growth, coloured by status;
 * ``keypoints``: a co-registration's canopy keypoints in the UAV frame;
+* ``next_scans``: where the next scans of a plot should stand (``forestreg plan``, written to
+  ``plan.gpkg`` beside ``plan.json``), numbered by rank, with the scan each links to and why;
 * ``plot_outline``: the outline of what was measured (the convex hull of the cloud, the scans or
   the trees from above).
 """
@@ -144,6 +146,15 @@ def _outline_style() -> str:
     from ..engine.io.qml import Rule, fill, rule_style
 
     return rule_style("plot_outline", "POLYGON", [Rule("plot outline", "", fill((0, 0, 0, 0), (40, 40, 40, 255), 0.6, style="no"))])
+
+
+def _next_scans_style() -> str:
+    from ..engine.io.qml import Rule, labelled, marker, rule_style
+
+    return labelled(rule_style("next_scans", "POINT", [
+        Rule("next scan 1 (adds the most)", "\"rank\" = 1", marker((255, 217, 47, 255), 6.0, outline=(0, 0, 0, 255), outline_mm=0.4)),
+        Rule("next scans 2 and 3", "\"rank\" > 1", marker((255, 247, 188, 255), 5.0, outline=(0, 0, 0, 255), outline_mm=0.4)),
+    ]), "rank", size_pt=10.0)
 
 
 def _keypoints_style() -> str:
@@ -350,6 +361,34 @@ def keypoint_layers(result, ground, uav, *, ok: bool, unit_scale: float = 1.0, g
                   description="canopy keypoints in the UAV frame (ground-based ones moved by the co-registration)",
                   types={"cloud": "TEXT", "keypoint_id": "INTEGER", "cluster_size": "INTEGER", "matched_with": "INTEGER"}),
             outline_layer(ring, getattr(ground, "name", "ground") or "ground", "the ground-based cloud in the UAV frame", unit_scale)]
+
+
+#: Columns of the ``next_scans`` layer.
+NEXT_SCAN_COLUMNS = ("rank", "links_to", "shared_stems", "needed", "vop_radius_m", "distance_m", "new_stem_area_m2", "new_view_m2",
+                     "expected_stem_area_m2", "reason")
+
+
+def plan_layers(plan, *, unit_scale: float = 1.0) -> list:
+    """The ``next_scans`` layer of a plan (:class:`~forestreg.engine.tls.plan.ScanPlan`): one point
+    per suggestion at its position (plan frame: the centre scan's file coordinates, metres over
+    ``unit_scale`` metres per file unit), best first, with its rank (1-3), the placed scan it links
+    to, the trunk shadows they are expected to share (``needed`` at least) at D_r
+    ``vop_radius_m``, its distance to that scanner (m), the stem area no placed scan saw that it
+    would see (m2), the plot area hidden so far that it has in view (m2) and the stem area expected
+    there (m2), and the reason in words. No feature when no position links."""
+    from ..engine.io.gpkg import Layer
+
+    rows, shapes = [], []
+    for k, s in enumerate(plan.suggestions, 1):
+        rows.append({"rank": k, "links_to": s.links_to, "shared_stems": int(s.shared_stems), "needed": int(s.needed),
+                     "vop_radius_m": float(s.radius_m), "distance_m": float(s.distance_m), "new_stem_area_m2": float(s.new_stem_area_m2),
+                     "new_view_m2": float(s.new_view_m2), "expected_stem_area_m2": float(s.expected_stem_area_m2), "reason": s.reason})
+        shapes.append(np.array([s.x, s.y], dtype=np.float64) / unit_scale)
+    ints, text = {"rank", "shared_stems", "needed"}, {"links_to", "reason"}
+    return [Layer("next_scans", "POINT", NEXT_SCAN_COLUMNS, rows, shapes, style=_next_scans_style(),
+                  description="where to scan next (forestreg plan): each suggested scanner position by rank, the placed scan it links "
+                              "to, the trunk shadows expected shared and the stem area it would newly see",
+                  types={c: ("INTEGER" if c in ints else "TEXT" if c in text else "REAL") for c in NEXT_SCAN_COLUMNS})]
 
 
 def write_layers(folder, layers: Iterable, crs=None) -> Path:

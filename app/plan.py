@@ -1,9 +1,12 @@
 """Where to scan next (``forestreg plan``): from the placed scans of a plot project, the stems seen
 by two or more scans, the stem and ground area not seen yet within the plot, the strength of the
 links, and the next one to three scanner positions that would link to a placed scan and see the
-most stem area not seen yet (:mod:`forestreg.engine.tls.plan`); written to ``plan.json``.
+most stem area not seen yet (:mod:`forestreg.engine.tls.plan`); written to ``plan.json`` and,
+beside it, ``plan.gpkg`` (the suggestions as the ``next_scans`` point layer of
+:func:`~forestreg.app.layers.plan_layers`, styled for QGIS as numbered markers).
 
-Positions are in the plan frame: the centre scan's file coordinates (x, y), metres.
+Positions are in the plan frame: the centre scan's file coordinates (x, y), metres. The layer has
+the plot's CRS when one is known (:func:`plan_crs`), local coordinates otherwise.
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ from .saved import count_or_none, finite_or_none, mapping_or_empty
 
 PLAN_FILE = "plan.json"
 PLAN_FORMAT = "forestreg-plan"
+#: The suffix of the plan's GeoPackage, written beside the plan file (``plan.json`` -> ``plan.gpkg``).
+PLAN_LAYERS_SUFFIX = ".gpkg"
 
 
 @dataclass(frozen=True)
@@ -46,12 +51,15 @@ class LinkStrength:
 @dataclass(frozen=True, eq=False)
 class PlanRun(RunOutcome):
     """A plan: ``plan`` the engine's :class:`~forestreg.engine.tls.plan.ScanPlan`, ``links`` the
-    :class:`LinkStrength` of each placed scan's link, ``out`` the ``plan.json`` written. Failed
-    (with the reason) when no position within the plot would link."""
+    :class:`LinkStrength` of each placed scan's link, ``out`` the ``plan.json`` written, ``layers``
+    the ``plan.gpkg`` beside it, ``crs`` the layer's :class:`~forestreg.engine.io.crs.Crs` (None:
+    local coordinates). Failed (with the reason) when no position within the plot would link."""
 
     plan: Any = None
     links: tuple = ()
     frame: Optional[str] = None
+    layers: Optional[Path] = None
+    crs: Any = None
 
 
 def link_strengths(project, min_shared: int) -> tuple[LinkStrength, ...]:
@@ -88,13 +96,19 @@ def project_of(source) -> Path:
 def plan_next(source, *, n: int = 1, params=None, out=None, scans=None, progress=None) -> PlanRun:
     """Plan the next ``n`` (1 to 3) scans of the plot project ``source`` (a project file or a plot
     folder) with the :class:`~forestreg.engine.tls.params.PlanParams` ``params`` and write
-    ``plan.json`` (``out``, default beside the project file). ``scans``: a
-    :class:`~forestreg.engine.tls.plot.ScanCache` of the project holding its preparations."""
-    from ..engine.core.atomic import write_text_atomic
+    ``plan.json`` (``out``, default beside the project file) and ``plan.gpkg`` beside it (the same
+    name, suffix ``.gpkg``). Both are written to temporary files first and renamed into place
+    together, the GeoPackage first: each is whole or absent, and nothing is replaced when either
+    cannot be written. ``scans``: a :class:`~forestreg.engine.tls.plot.ScanCache` of the project
+    holding its preparations."""
+    from ..engine.core.atomic import atomic_path
     from ..engine.core.errors import UsageError
     from ..engine.core.jsonable import to_jsonable
+    from ..engine.io.gpkg import write_geopackage
     from ..engine.tls.params import PlanParams
+    from ..engine.tls.plot import ScanCache
     from ..engine.tls.project import Project
+    from .layers import plan_layers
 
     if not 1 <= int(n) <= 3:
         raise UsageError(f"--n must be 1, 2 or 3, got {n}")
@@ -103,14 +117,35 @@ def plan_next(source, *, n: int = 1, params=None, out=None, scans=None, progress
     target = Path(out) if out is not None else path.parent / PLAN_FILE
     if target.suffix.lower() != ".json" or target.is_dir():
         raise UsageError(f"{target}: the plan is written to a .json file")
+    layers = target.with_suffix(PLAN_LAYERS_SUFFIX)
     project = Project.load(path)
+    scans = scans if scans is not None else ScanCache(project, with_intensity=False)
     plan, links = plan_project(project, n=n, params=params, scans=scans, progress=progress, source=path)
     report = progress or (lambda f, m: None)
+    crs = plan_crs(path, project, scans)
     doc = plan_document(plan, links, project.centre, params)
-    write_text_atomic(target, json.dumps(to_jsonable(doc, nan_as_null=True), indent=1) + "\n")
+    with atomic_path(target) as tmp_plan, atomic_path(layers) as tmp_layers:  # renamed inner first: plan.gpkg, then plan.json
+        write_geopackage(tmp_layers, plan_layers(plan), crs)
+        tmp_plan.write_text(json.dumps(to_jsonable(doc, nan_as_null=True), indent=1) + "\n", encoding="utf-8")
     report(1.0, "done")
     return PlanRun(status="ok" if plan.suggestions else "failed", reason=plan.reason, out=target, plan=plan, links=links,
-                   frame=project.centre)
+                   frame=project.centre, layers=layers, crs=crs)
+
+
+def plan_crs(project_file, project, scans=None):
+    """The CRS of a plan's layer (:class:`~forestreg.engine.io.crs.Crs`, None when none is known):
+    that of the plot folder's ``layers.gpkg`` beside ``project_file`` (what ``forestreg plot``
+    wrote, its ``--crs`` included), else the centre scan's as its file declares it."""
+    from ..engine.io.gpkg import read_crs
+    from .layers import LAYERS_FILE
+    from .plot import plot_crs
+
+    beside = Path(project_file).parent / LAYERS_FILE
+    if beside.is_file():
+        found = read_crs(beside)
+        if found is not None:
+            return found
+    return plot_crs(project, scans).crs
 
 
 def plan_project(project, *, n: int = 1, params=None, scans=None, progress=None, source=None) -> tuple:
@@ -153,11 +188,12 @@ def plan_document(plan, links, frame: Optional[str], params) -> dict[str, Any]:
         "suggestions": [
             {"rank": k + 1, "x": s.x, "y": s.y, "links_to": s.links_to, "shared_stems": s.shared_stems, "vop_radius_m": s.radius_m,
              "distance_m": s.distance_m, "new_stem_area_m2": s.new_stem_area_m2, "new_view_m2": s.new_view_m2,
-             "expected_stem_area_m2": s.expected_stem_area_m2}
+             "expected_stem_area_m2": s.expected_stem_area_m2, "reason": s.reason}
             for k, s in enumerate(plan.suggestions)
         ],
         "reason": plan.reason or None,
     }
 
 
-__all__ = ["LinkStrength", "PLAN_FILE", "PlanRun", "link_strengths", "plan_document", "plan_next", "project_of"]
+__all__ = ["LinkStrength", "PLAN_FILE", "PLAN_LAYERS_SUFFIX", "PlanRun", "link_strengths", "plan_crs", "plan_document", "plan_next",
+           "project_of"]

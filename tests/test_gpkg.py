@@ -119,7 +119,7 @@ def test_styles_are_qml_documents_qgis_reads():
     from forestreg.app import layers
 
     for style in (layers._trees_style(), layers._crowns_style(), layers._changes_style(), layers._scanners_style(),
-                  layers._links_style(), layers._outline_style(), layers._keypoints_style()):
+                  layers._links_style(), layers._outline_style(), layers._keypoints_style(), layers._next_scans_style()):
         root = ET.fromstring(style.split("\n", 1)[1])
         assert root.tag == "qgis"
         renderer = root.find("renderer-v2")
@@ -133,6 +133,35 @@ def test_styles_are_qml_documents_qgis_reads():
     assert any('"flag"' in f for f in filters)  # flagged trees marked
     changes = [r.get("filter") or "" for r in ET.fromstring(layers._changes_style().split("\n", 1)[1]).iter("rule")]
     assert all(any(f"'{s}'" in f for f in changes) for s in ("persisting", "removed", "new", "outside"))
+
+    # the next scans: markers numbered by rank (QGIS simple labelling over each point)
+    plan = ET.fromstring(layers._next_scans_style().split("\n", 1)[1])
+    assert plan.get("labelsEnabled") == "1" and "Labeling" in plan.get("styleCategories")
+    text = plan.find("labeling/settings/text-style")
+    assert plan.find("labeling").get("type") == "simple" and text.get("fieldName") == "rank" and text.get("isExpression") == "0"
+    assert plan.find("labeling/settings/placement").get("placement") == "1"  # over the point
+    assert [r.get("filter") for r in plan.iter("rule")] == ['"rank" = 1', '"rank" > 1']
+    assert plan[-1].tag == "layerGeometryType" and plan[-1].text == "0"
+
+
+def test_the_next_scans_layer_holds_each_suggestion_at_its_position(tmp_path):
+    from forestreg.app.layers import NEXT_SCAN_COLUMNS, plan_layers
+    from forestreg.engine.tls.plan import Suggestion
+
+    found = [Suggestion(500_012.5, 4_300_008.0, "scan_01.laz", 14, 10, 15.0, 8.1, 4.25, 30.0, 2.1),
+             Suggestion(499_990.0, 4_300_021.5, "scan_02.laz", 11, 10, 20.0, 9.4, 3.5, 12.0, 0.8)]
+    path = write_geopackage(tmp_path / "plan.gpkg", plan_layers(SimpleNamespace(suggestions=tuple(found))), parse_crs("EPSG:32618"))
+    rows, facts = read_layer(path, "next_scans")
+    assert layer_names(path) == ["next_scans"] and facts["srs_id"] == 32618 and facts["geometry_type"] == "POINT" and not facts["z"]
+    assert [r["rank"] for r in rows] == [1, 2] and [r["links_to"] for r in rows] == ["scan_01.laz", "scan_02.laz"]
+    for r, s in zip(rows, found):
+        assert r["geom"][0] == "POINT" and r["geom"][1].tolist() == [s.x, s.y]
+        assert (r["shared_stems"], r["needed"], r["vop_radius_m"], r["new_stem_area_m2"]) == (s.shared_stems, 10, s.radius_m, 4.25 if s is found[0] else 3.5)
+        assert r["reason"] == s.reason and "(10 needed)" in r["reason"]
+    assert set(rows[0]) == {"fid", "geom", *NEXT_SCAN_COLUMNS}
+    assert facts["extent"] == (499_990.0, 4_300_008.0, 500_012.5, 4_300_021.5)
+    empty = write_geopackage(tmp_path / "none.gpkg", plan_layers(SimpleNamespace(suggestions=())))
+    assert read_layer(empty, "next_scans")[0] == [] and read_layer(empty, "next_scans")[1]["srs_id"] == -1
 
 
 def _inventory(n: int, seed: int = 0):

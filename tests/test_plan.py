@@ -136,7 +136,95 @@ def test_plan_command_writes_plan_json_and_a_table(placed, tmp_path, capsys):
     assert doc["plot"]["radius_m"] == 13.0 and doc["stems"]["seen_by_two_or_more"] > 0
     assert doc["links"][0]["strength"] in ("strong", "fair", "weak")
     for row in doc["suggestions"]:
-        assert set(row) >= {"x", "y", "links_to", "shared_stems", "new_stem_area_m2", "new_view_m2"}
+        assert set(row) >= {"x", "y", "links_to", "shared_stems", "new_stem_area_m2", "new_view_m2", "reason"}
+    # plan.gpkg beside plan.json: the same suggestions as points of the next_scans layer, local coordinates
+    points, srs = _next_scans(tmp_path / "plan.gpkg")
+    assert srs == {"next_scans": -1}
+    assert [(r["rank"], r["links_to"], r["shared_stems"]) for r in points] == \
+        [(s["rank"], s["links_to"], s["shared_stems"]) for s in doc["suggestions"]]
+    for r, s in zip(points, doc["suggestions"]):
+        assert r["xy"] == pytest.approx((s["x"], s["y"]), abs=1e-9)
+        assert r["new_stem_area_m2"] == pytest.approx(s["new_stem_area_m2"]) and r["reason"] == s["reason"]
+        assert r["reason"].startswith(f"shares {s['shared_stems']} trunk shadows with {s['links_to']}")
+    assert not [f for f in tmp_path.iterdir() if f.name.startswith(".")], "no temporary file left"
+
+
+def _next_scans(path) -> tuple[list[dict], dict]:
+    """The rows of the ``next_scans`` layer of a GeoPackage read with sqlite3 (``xy`` the point) and
+    the srs_id of each feature layer."""
+    import sqlite3
+
+    from forestreg.engine.io.gpkg import decode_geometry
+
+    con = sqlite3.connect(str(path))
+    try:
+        srs = dict(con.execute("SELECT table_name, srs_id FROM gpkg_geometry_columns"))
+        cur = con.execute("SELECT * FROM next_scans ORDER BY fid")
+        header = [d[0] for d in cur.description]
+        rows = []
+        for values in cur:
+            row = dict(zip(header, values))
+            kind, xy, srs_id = decode_geometry(row.pop("geom"))
+            assert kind == "POINT" and srs_id == srs["next_scans"]
+            rows.append({**row, "xy": tuple(xy)})
+    finally:
+        con.close()
+    return rows, srs
+
+
+def test_plan_gpkg_has_the_plot_crs_and_numbered_markers(placed, tmp_path):
+    """A plot folder whose layers.gpkg is in a CRS: plan.gpkg is in it too, with a QGIS style
+    that numbers the markers by rank."""
+    import sqlite3
+
+    from forestreg.app.layers import outline_layer, write_layers
+    from forestreg.app.plan import plan_next
+    from forestreg.engine.io.crs import parse_crs
+
+    _, project, cache = placed
+    folder = tmp_path / "geo"
+    folder.mkdir()
+    Project.load(project.path).save(folder / "project.json")
+    write_layers(folder, [outline_layer(np.array([(0.0, 0.0), (5.0, 0.0), (0.0, 5.0)]), "plot", "a test ring")], parse_crs("EPSG:32633"))
+    run = plan_next(folder, n=3, params=PlanParams(radius_m=13.0), scans=cache)
+    assert run and run.layers == folder / "plan.gpkg" and run.out == folder / "plan.json" and run.crs.epsg_code == 32633
+    points, srs = _next_scans(run.layers)
+    assert srs == {"next_scans": 32633} and len(points) == len(run.plan.suggestions) == 3
+    assert [r["rank"] for r in points] == [1, 2, 3]
+    assert [r["xy"] for r in points] == [(s.x, s.y) for s in run.plan.suggestions]
+    con = sqlite3.connect(str(run.layers))
+    try:
+        org, code = con.execute("SELECT organization, organization_coordsys_id FROM gpkg_spatial_ref_sys WHERE srs_id = 32633").fetchone()
+        extent = con.execute("SELECT min_x, min_y, max_x, max_y FROM gpkg_contents WHERE table_name = 'next_scans'").fetchone()
+        style = con.execute("SELECT styleQML FROM layer_styles WHERE f_table_name = 'next_scans'").fetchone()[0]
+    finally:
+        con.close()
+    assert (org, code) == ("EPSG", 32633)
+    xy = np.array([r["xy"] for r in points])
+    assert extent == pytest.approx((*xy.min(axis=0), *xy.max(axis=0)))
+    assert '<labeling type="simple">' in style and 'fieldName="rank"' in style and 'labelsEnabled="1"' in style
+
+
+def test_a_plan_without_suggestions_writes_an_empty_layer_and_a_failed_write_replaces_nothing(placed, tmp_path, monkeypatch):
+    from forestreg.app.plan import plan_next
+    from forestreg.engine.core.errors import ScanWriteError
+
+    _, project, cache = placed
+    out = tmp_path / "strict.json"
+    run = plan_next(project.path, params=PlanParams(radius_m=13.0, min_shared_stems=1000), out=out, scans=cache)
+    assert not run and "would share 1000 trunk shadows" in run.reason and run.layers == tmp_path / "strict.gpkg"
+    points, srs = _next_scans(run.layers)
+    assert points == [] and srs == {"next_scans": -1}
+    before = {p.name: p.read_bytes() for p in (out, run.layers)}
+
+    def refuse(*args, **kwargs):
+        raise ScanWriteError("cannot write: the disk is full")
+
+    monkeypatch.setattr("forestreg.engine.io.gpkg.write_geopackage", refuse)
+    with pytest.raises(ScanWriteError):
+        plan_next(project.path, params=PlanParams(radius_m=13.0), out=out, scans=cache)
+    assert {p.name: p.read_bytes() for p in (out, run.layers)} == before, "both files as they were"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["strict.gpkg", "strict.json"]
 
 
 @pytest.mark.parametrize("args, code, says", [

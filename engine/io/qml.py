@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Sequence
 from xml.sax.saxutils import quoteattr
 
-__all__ = ["Rule", "fill", "line", "marker", "rule_style"]
+__all__ = ["Rule", "fill", "labelled", "line", "marker", "rule_style"]
 
 Colour = tuple[int, int, int, int]
 
@@ -91,3 +91,28 @@ def rule_style(name: str, geometry: str, rules: Sequence[Rule]) -> str:
             f'<renderer-v2 type="RuleRenderer" symbollevels="0" enableorderby="0" forceraster="0">'
             f'<rules key="{{{ns}}}">{"".join(rule_xml)}</rules><symbols>{symbols}</symbols></renderer-v2>'
             f"<layerGeometryType>{_GEOMETRY_TYPES[geometry]}</layerGeometryType></qgis>\n")
+
+
+def labelled(document: str, field: str, *, size_pt: float = 9.0, colour: Colour = (0, 0, 0, 255), bold: bool = True,
+             buffer: Colour = (255, 255, 255, 255), buffer_mm: float = 0.8) -> str:
+    """The style ``document`` (from :func:`rule_style`) with labels of the column ``field`` drawn
+    over each point (QGIS "simple" labelling, placed over the point's centre): a marker numbered
+    by its column. ``size_pt`` the text size in points, ``buffer`` a halo ``buffer_mm`` wide."""
+    font = ' fontWeight="75" namedStyle="Bold"' if bold else ' fontWeight="50" namedStyle="Regular"'
+    labeling = (
+        '<labeling type="simple"><settings calloutType="simple">'
+        f'<text-style fieldName={quoteattr(field)} isExpression="0" fontSize="{size_pt:g}" fontSizeUnit="Point"'
+        f' textColor="{_rgba(colour)}" textOpacity="1"{font} fontItalic="0" fontUnderline="0" fontStrikeout="0"'
+        ' multilineHeight="1" previewBkgrdColor="255,255,255,255">'
+        f'<text-buffer bufferDraw="1" bufferSize="{buffer_mm:g}" bufferSizeUnits="MM" bufferColor="{_rgba(buffer)}"'
+        ' bufferOpacity="1" bufferJoinStyle="128" bufferNoFill="1"/>'
+        '</text-style>'
+        '<text-format wrapChar="" multilineAlign="1" plussign="0" decimals="3" formatNumbers="0"/>'
+        '<placement placement="1" quadOffset="4" xOffset="0" yOffset="0" offsetUnits="MM" offsetType="0" dist="0"'
+        ' distUnits="MM" priority="10" placementFlags="10" rotationAngle="0"/>'
+        '<rendering drawLabels="1" obstacle="0" displayAll="1" upsidedownLabels="0" limitNumLabels="0" labelPerPart="0"'
+        ' mergeLines="0" scaleVisibility="0" fontLimitPixelSize="0" zIndex="1"/>'
+        '</settings></labeling>')
+    document = document.replace('styleCategories="Symbology"', 'styleCategories="Symbology|Labeling" labelsEnabled="1"', 1)
+    head, tail = document.rsplit("<layerGeometryType>", 1)
+    return f"{head}{labeling}<layerGeometryType>{tail}"

@@ -288,6 +288,15 @@ class Suggestion:
         """What ranks the suggestions: new stem area plus the stem area expected in the plot area newly in view, m2."""
         return self.new_stem_area_m2 + self.expected_stem_area_m2
 
+    @property
+    def reason(self) -> str:
+        """Why the position is suggested, in one sentence: what it shares with the scan it links
+        to and what it adds (the figures above, rounded)."""
+        return (f"shares {self.shared_stems} trunk shadows with {self.links_to} ({self.needed} needed) within "
+                f"{self.radius_m:g} m, {self.distance_m:.1f} m from its scanner; sees {self.new_stem_area_m2:.1f} m2 of stem "
+                f"no placed scan saw and {self.new_view_m2:.0f} m2 of plot hidden so far "
+                f"({self.expected_stem_area_m2:.1f} m2 of stem expected there)")
+
 
 @dataclass(frozen=True)
 class ScanPlan:
