@@ -1,7 +1,8 @@
 """Field registration in the desktop window: *File > Watch folder...* runs the folder watcher while
 scans are copied into the folder one after another; each placed scan appears in the project tree,
 its link in the links table, a scan of another plot is listed with the watcher's reason, and Cancel
-leaves a whole plot folder."""
+leaves a whole plot folder. The plan's suggestions and the position where a scan that did not
+link should be taken again are marked on the top view and stay through its redraws."""
 
 from __future__ import annotations
 
@@ -52,6 +53,18 @@ def window(qtbot, tmp_path: Path):
 
 def _status(window, name: str):
     return next((e.status for e in reversed(window.watch_events) if e.name == name), None)
+
+
+def _map_texts(window) -> list[str]:
+    """The texts drawn on the top view's map now (labels, annotations)."""
+    axes = window.top_view.figure.axes
+    return [t.get_text() for t in axes[0].texts] if axes else []
+
+
+def _redrawn(qtbot, window) -> None:
+    """The top view recomputed and drawn again, as after an edit or a run."""
+    with qtbot.waitSignal(window.topViewReady, timeout=60_000):
+        window.refresh_top_view()
 
 
 def test_watch_folder_places_scans_as_they_arrive_and_cancel_leaves_the_folder_whole(qtbot, window, scans, tmp_path) -> None:
@@ -105,7 +118,24 @@ def test_watch_folder_places_scans_as_they_arrive_and_cancel_leaves_the_folder_w
     plan = window.last_plan
     assert plan.suggestions and window.top_view.plan_markers == len(plan.suggestions)
     assert window.status_label.text().startswith("Next scan")
+    labels = [f"next {k}: links to {s.links_to}" for k, s in enumerate(plan.suggestions, 1)]
+    o = window.top_view.view.origin[:2]
+    for label, s in zip(labels, plan.suggestions):
+        assert window.top_view.mark_labels[label] == pytest.approx((s.x - o[0], s.y - o[1]))
+
+    # the marks are the top view's state: a re-render and the plot folder read again keep them
+    _redrawn(qtbot, window)
+    assert window.top_view.plan_markers == len(plan.suggestions) and set(labels) <= set(_map_texts(window))
+    from forestreg.app.plot import Project
+
+    window.set_project(Project.load(out / "project.json"))
+    qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
+    assert set(labels) <= set(_map_texts(window)) and window.top_view.plan_markers == len(plan.suggestions)
     window.grab().save(str(tmp_path / "watch.png"))
+    window.top_view.grab().save(str(tmp_path / "plan_map.png"))
+    # another project: the plan is gone with it
+    window.set_project(Project(name="other"))
+    assert window.top_view.plan_markers == 0 and not window.top_view.has_marks
 
 
 def test_a_scan_that_does_not_link_shows_the_reason_and_where_to_stand(qtbot, window, scans, tmp_path) -> None:
@@ -129,7 +159,17 @@ def test_a_scan_that_does_not_link_shows_the_reason_and_where_to_stand(qtbot, wi
     assert watch.text(NAMES[1], "Suggested position (x, y m)") == f"{event.advice[0]:.1f}, {event.advice[1]:.1f}"
     qtbot.waitUntil(lambda: window.model.index_of_scan(NAMES[0]).isValid(), timeout=10_000)
     assert not window.model.index_of_scan(NAMES[1]).isValid()
+
+    # the map marks where to scan again, labelled with the scan's name, over the centre scan
+    label = f"{NAMES[1]}: not linked, scan again here"
+    qtbot.waitUntil(lambda: label in _map_texts(window), timeout=60_000)
+    o = window.top_view.view.origin[:2]
+    assert window.top_view.mark_labels[label] == pytest.approx((event.advice[0] - o[0], event.advice[1] - o[1]))
+    assert NAMES[0] in _map_texts(window), "drawn over the placed centre scan"
     window.cancel_run()
     qtbot.waitUntil(lambda: not window.running, timeout=60_000)
     assert json.loads((out / "watch.json").read_text())["files"][NAMES[1]]["status"] == "not linked"
     qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
+    _redrawn(qtbot, window)  # still there after the map is drawn again
+    assert label in _map_texts(window) and label in window.top_view.mark_labels
+    window.top_view.grab().save(str(tmp_path / "advice_map.png"))

@@ -324,7 +324,15 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         return self.model.project
 
     def set_project(self, project: Project) -> None:
-        """Show another project (nothing asked: see :meth:`confirm_discard`)."""
+        """Show another project (nothing asked: see :meth:`confirm_discard`). The marks of the top
+        view (a plan, the watcher's advice) stay when it is the same project, or its file read
+        again (a watched plot folder updated), and go with any other."""
+        from pathlib import Path
+
+        old = self.project
+        same = project is old or (project.path is not None and old.path is not None and Path(project.path) == Path(old.path))
+        if not same:
+            self.top_view.clear_marks()
         self.model.set_project(project)
         self.scans = ScanCache(project)
         self.previews = PreviewCache(self.scans, budget=self.previews.budget)
@@ -534,8 +542,9 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         self.sceneReady.emit()
 
     def refresh_top_view(self) -> None:
-        """Recompute the top view (slices, VOPs, matches) in the background."""
-        if not any(link.ok for link in self.project.links):
+        """Recompute the top view (slices, VOPs, matches) in the background: once a link is made,
+        or while the map has marks (a plan, the watcher's advice) to show over the placed scans."""
+        if not any(link.ok for link in self.project.links) and not self.top_view.has_marks:
             self.top_view.show_message("Run the registration to see the slices, trunk shadows (VOPs) and matches."
                                        if self.project.scans else "Add scans or open a project.")
             self.topViewReady.emit()

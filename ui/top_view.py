@@ -3,7 +3,13 @@ pairs, in the project frame, from the engine's :func:`compute_top_view` (nothing
 here; this only draws). With the project, the survey quality goes on the map too: each scanner's
 pose uncertainty (a circle, enlarged by a stated factor, and a label in cm / deg), the links
 between scanners and the links the survey adjustment dropped (red, dashed). Zoom and pan with the
-matplotlib toolbar."""
+matplotlib toolbar.
+
+The widget also keeps *marks*: the suggested next scans of a plan (numbered yellow stars) and,
+while a plot folder is watched, where each scan that did not link should be taken again (an orange
+diamond labelled with the scan's name). They are state of the widget, not of one drawing: every
+redraw draws them again, until a new plan or advice replaces them or :meth:`TopViewWidget.clear_marks`
+(another project shown)."""
 
 from __future__ import annotations
 
@@ -28,6 +34,8 @@ DROPPED_COLOUR = "#b42318"
 UNCERTAINTY_COLOUR = "#6a3d9a"
 #: The largest uncertainty circle is drawn about this big (m) on the map: the factor is a power of 10.
 UNCERTAINTY_DRAWN_M = 3.0
+PLAN_FILL, PLAN_LABEL_FILL = "#ffd92f", "#fff7bc"
+ADVICE_COLOUR, ADVICE_FILL = "#b35806", "#fdb863"
 
 
 @dataclass
@@ -84,11 +92,68 @@ class TopViewWidget(QWidget):
         #: per scan, the uncertainty label drawn at its scanner (for tests and the screenshot check)
         self.uncertainty_labels: dict[str, str] = {}
         self.uncertainty_factor = 1.0
+        #: the suggested next scans marked (:class:`~forestreg.engine.tls.plan.Suggestion`, best first)
+        self.plan: tuple = ()
+        #: scan that did not link -> the position (x, y, project frame, m) where a scan would link
+        self.advice: dict[str, tuple[float, float]] = {}
+        #: the marks on the map now: label -> position drawn (x, y, m from the centre scanner)
+        self.mark_labels: dict[str, tuple[float, float]] = {}
+        self.plan_markers = 0
+        self._drawn: Optional[tuple] = None
         self.show_message("Run the registration to see the slices, trunk shadows (VOPs) and matches.")
+
+    @property
+    def has_marks(self) -> bool:
+        """Whether a plan or a watcher's advice is to be marked on the map."""
+        return bool(self.plan or self.advice)
+
+    def set_plan(self, suggestions) -> int:
+        """Mark the suggestions of a new plan (replacing the earlier plan's; empty: none) and
+        redraw; returns the markers drawn (none while no view is drawn: they are drawn with it)."""
+        self.plan = tuple(suggestions)
+        self._redraw()
+        return self.plan_markers
+
+    def set_advice(self, name: str, position: Optional[tuple]) -> None:
+        """Mark where the scan ``name``, which did not link, should be taken again (``position``
+        (x, y) in the project frame, m; None: no mark for it, e.g. once it is placed) and redraw."""
+        if position is None:
+            if self.advice.pop(name, None) is None:
+                return
+        else:
+            self.advice[name] = (float(position[0]), float(position[1]))
+        self._redraw()
+
+    def clear_marks(self) -> None:
+        """Forget the plan and the advice (another project is shown)."""
+        if not self.has_marks:
+            return
+        self.plan, self.advice = (), {}
+        self._redraw()
+
+    def _redraw(self) -> None:
+        """Draw the view shown again with the marks as they are now, keeping the zoom when every
+        mark lies within it."""
+        if self.view is None or self._drawn is None:
+            self.plan_markers, self.mark_labels = 0, {}
+            return
+        ax = self.figure.axes[0] if self.figure.axes else None
+        limits = (ax.get_xlim(), ax.get_ylim()) if ax is not None else None
+        self.show_view(*self._drawn)
+        if limits is None or not self.mark_labels:
+            return
+        (x0, x1), (y0, y1) = limits
+        if all(x0 <= x <= x1 and y0 <= y <= y1 for x, y in self.mark_labels.values()):
+            ax = self.figure.axes[0]
+            ax.set_xlim(x0, x1)
+            ax.set_ylim(y0, y1)
+            self.canvas.draw_idle()
 
     def show_message(self, text: str) -> None:
         """An empty view with a sentence in it."""
         self.view = None
+        self._drawn = None
+        self.plan_markers, self.mark_labels = 0, {}
         self.figure.clear()
         ax = self.figure.add_subplot()
         ax.set_axis_off()
@@ -98,10 +163,13 @@ class TopViewWidget(QWidget):
     def show_view(self, view: TopView, colours: Mapping[str, str], title: str = "", overlay: Optional[SurveyOverlay] = None) -> None:
         """Draw slices, VOPs (circles), VOP radius, scanners (triangles) and matched pairs (green);
         with ``overlay`` the links between scanners (grey; dropped ones red dashed) and each
-        scanner's pose uncertainty (circle and label)."""
+        scanner's pose uncertainty (circle and label); and the marks (:meth:`set_plan`,
+        :meth:`set_advice`)."""
         self.view = view
         self.overlay = overlay
+        self._drawn = (view, colours, title, overlay)
         self.uncertainty_labels = {}
+        self.plan_markers, self.mark_labels = 0, {}
         self.figure.clear()
         ax = self.figure.add_subplot()
         if not view.scans:
@@ -138,9 +206,13 @@ class TopViewWidget(QWidget):
                               label=f"matched trunk shadows ({n_pairs})"))
         if overlay is not None:
             handles += self._draw_overlay(ax, view, overlay, o)
+        handles += self._draw_marks(ax, o)
+        marks = np.array(list(self.mark_labels.values()), dtype=np.float64).reshape(-1, 2)
         allxy = np.concatenate([sv.slice_xy for sv in view.scans.values()] + [sv.scanner[None, :2] for sv in view.scans.values()]) - o
         if len(allxy):
             lo, hi = np.percentile(allxy, 0.5, axis=0) - 2.0, np.percentile(allxy, 99.5, axis=0) + 2.0
+            if len(marks):  # every mark on the map, with room for its label
+                lo, hi = np.minimum(lo, marks.min(axis=0) - 3.0), np.maximum(hi, marks.max(axis=0) + 3.0)
             ax.set_xlim(lo[0], hi[0])
             ax.set_ylim(lo[1], hi[1])
         ax.set_aspect("equal", adjustable="datalim")  # the box fills its room: nothing drawn past the canvas edge
@@ -155,6 +227,35 @@ class TopViewWidget(QWidget):
         for name, problem in view.problems.items():
             ax.text(0.01, 0.01, f"{name}: {problem}", transform=ax.transAxes, fontsize=7, color="#b42318")
         self.canvas.draw_idle()
+
+    def _draw_marks(self, ax, o: np.ndarray) -> list:
+        """The plan's suggestions (a numbered star each, labelled with the scan it links to) and
+        the watcher's advice (an orange diamond labelled with the scan that did not link); their
+        legend entries."""
+        handles = []
+        for k, s in enumerate(self.plan, 1):
+            x, y = s.x - o[0], s.y - o[1]
+            ax.plot(x, y, marker="*", ms=22, mfc=PLAN_FILL, mec="k", mew=1.0, ls="none", zorder=8)
+            ax.text(x, y, str(k), ha="center", va="center", fontsize=7, fontweight="bold", zorder=9)
+            label = f"next {k}: links to {s.links_to}"
+            ax.annotate(label, xy=(x, y), xytext=(10, -14), textcoords="offset points", fontsize=8, zorder=9,
+                        bbox=dict(boxstyle="round,pad=0.2", fc=PLAN_LABEL_FILL, ec="k", lw=0.8, alpha=0.9))
+            self.mark_labels[label] = (x, y)
+        self.plan_markers = len(self.plan)
+        if self.plan:
+            handles.append(Line2D([], [], ls="none", marker="*", ms=12, mfc=PLAN_FILL, mec="k",
+                                  label=f"suggested next scan{'s' if len(self.plan) > 1 else ''}, numbered by what each adds"))
+        for name, (px, py) in self.advice.items():
+            x, y = px - o[0], py - o[1]
+            ax.plot(x, y, marker="D", ms=11, mfc=ADVICE_FILL, mec=ADVICE_COLOUR, mew=1.6, ls="none", zorder=8)
+            label = f"{name}: not linked, scan again here"
+            ax.annotate(label, xy=(x, y), xytext=(9, 8), textcoords="offset points", fontsize=8, zorder=9, color=ADVICE_COLOUR,
+                        bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=ADVICE_COLOUR, lw=1.0, alpha=0.9))
+            self.mark_labels[label] = (x, y)
+        if self.advice:
+            handles.append(Line2D([], [], ls="none", marker="D", ms=8, mfc=ADVICE_FILL, mec=ADVICE_COLOUR, mew=1.4,
+                                  label="where a scan that did not link would link (the watcher's suggestion)"))
+        return handles
 
     def _draw_overlay(self, ax, view: TopView, overlay: SurveyOverlay, o: np.ndarray) -> list:
         """Links between scanners, dropped links and the pose uncertainty at each scanner."""
@@ -207,20 +308,7 @@ class TopViewWidget(QWidget):
 
 def draw_plan(widget: TopViewWidget, suggestions) -> int:
     """Mark suggested next scanner positions (:class:`~forestreg.engine.tls.plan.Suggestion`, in
-    the project frame) on the top view drawn: a star each, numbered, with the scan it links to.
-    Returns the markers drawn (none when no view is drawn)."""
-    if widget.view is None or not widget.figure.axes or not widget.view.scans:
-        return 0
-    ax = widget.figure.axes[0]
-    o = widget.view.origin[:2]
-    drawn = 0
-    for k, s in enumerate(suggestions, 1):
-        x, y = s.x - o[0], s.y - o[1]
-        ax.plot(x, y, marker="*", ms=16, mfc="#ffd92f", mec="k", mew=1.0, ls="none", zorder=8,
-                label="suggested next scan" if k == 1 else None)
-        ax.annotate(f"next {k}: links to {s.links_to}", xy=(x, y), xytext=(8, -12), textcoords="offset points", fontsize=8, zorder=9,
-                    bbox=dict(boxstyle="round,pad=0.2", fc="#fff7bc", ec="k", lw=0.8, alpha=0.9))
-        drawn += 1
-    widget.plan_markers = drawn
-    widget.canvas.draw_idle()
-    return drawn
+    the project frame) on the top view: a numbered star each, labelled with the scan it links to,
+    kept through every redraw until the next plan (:meth:`TopViewWidget.set_plan`). Returns the
+    markers drawn (none while no view is drawn)."""
+    return widget.set_plan(suggestions)

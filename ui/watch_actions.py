@@ -2,7 +2,8 @@
 :mod:`forestreg.app.watch` (the one ``forestreg plot --watch FOLDER --out OUT`` runs) as a
 background task. Each scan placed appears in the project tree and its link in the links table as
 the plot folder is updated; a scan that does not link is listed in the *Watch* tab with the
-watcher's reason and the position that would link. Cancel stops the watch between two updates of
+watcher's reason and the position that would link, and that position is marked on the top view
+with the scan's name (until the scan is placed). Cancel stops the watch between two updates of
 the plot folder, which stays whole (each update is one transaction).
 """
 
@@ -214,6 +215,8 @@ class WatchMixin:
         log.info("%s", ev.message)
         self.watch_table.show_event(ev)
         if ev.status in ("centre", "linked", "not linked", "refused"):
+            # marked before the folder is shown: the top view drawn for it has the mark
+            self.top_view.set_advice(ev.name, ev.advice if ev.status == "not linked" else None)
             self._show_plot_folder()
         if self.watch_worker is not None and not self.watch_worker.token.cancelled:
             self.status_label.setText(f"Watching: {ev.message}")
@@ -261,7 +264,7 @@ class WatchMixin:
 
 class PlanMixin:
     """*Registration > Plan next scan*: :func:`~forestreg.app.plan.plan_project` on the project
-    as it is, its suggestions marked on the top view."""
+    as it is, its suggestions marked on the top view until the next plan or another project."""
 
     def plan_next_scan(self, n: int = 3) -> bool:
         """Plan the next ``n`` scans in the background and mark them on the map; False when
@@ -281,10 +284,10 @@ class PlanMixin:
         from .top_view import draw_plan
 
         self.last_plan = plan
+        draw_plan(self.top_view, plan.suggestions)  # replaces the earlier plan's marks, kept through redraws
         if not plan.suggestions:
             self.status_label.setText(f"No next scan suggested: {plan.reason}")
             return
-        draw_plan(self.top_view, plan.suggestions)
         where = "; ".join(f"({s.x:.1f}, {s.y:.1f}) linking to {s.links_to}" for s in plan.suggestions)
         text = f"Next scan{'s' if len(plan.suggestions) > 1 else ''}: {where}"
         log.info("%s", text)
