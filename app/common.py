@@ -401,29 +401,44 @@ def _unit_error_of(entry) -> Optional[Exception]:
 
 def register_project(project, *, scans=None, **options):
     """:func:`forestreg.engine.tls.plot.register_project` (same options) of a checked project: a
-    :class:`~forestreg.engine.tls.project.Project` (or its file) whose scans are in metres."""
+    :class:`~forestreg.engine.tls.project.Project` (or its file) whose scans are in metres. A
+    project with a file is saved to it after each finished link and at the end
+    (:func:`~forestreg.engine.io.results.save_to_its_file`; ``on_link_done`` replaces that)."""
+    from ..engine.io.results import save_to_its_file
     from ..engine.tls.plot import register_project as register
 
     project = _as_project(project)
-    return register(project, scans=checked_scans(project, scans, with_intensity=False), **options)
+    done = options.setdefault("on_link_done", save_to_its_file)
+    outcome = register(project, scans=checked_scans(project, scans, with_intensity=False), **options)
+    if done is not None:
+        done(project)
+    return outcome
 
 
 def register_survey(project, params=None, *, scans=None, **options):
     """:func:`forestreg.engine.tls.survey.register_survey` (same options) of a checked project
-    (see :func:`register_project`); ``params`` a :class:`~forestreg.engine.tls.survey.SurveyParams`."""
+    (see :func:`register_project`, saved the same way, the adjustment with it); ``params`` a
+    :class:`~forestreg.engine.tls.survey.SurveyParams`."""
+    from ..engine.io.results import save_to_its_file
     from ..engine.tls.survey import SurveyParams, register_survey as register
 
     project = _as_project(project)
-    return register(project, params_of(params, SurveyParams, "survey"), scans=checked_scans(project, scans, with_intensity=False),
-                    **options)
+    done = options.setdefault("on_link_done", save_to_its_file)
+    outcome = register(project, params_of(params, SurveyParams, "survey"), scans=checked_scans(project, scans, with_intensity=False),
+                       **options)
+    if done is not None:
+        done(project)
+    return outcome
 
 
 def compare_auto_manual(project, *, scans=None, **options):
     """:func:`forestreg.engine.tls.compare.compare_auto_manual` (same options) of a checked project
-    (see :func:`register_project`)."""
+    (see :func:`register_project`, saved the same way after each automatic link)."""
+    from ..engine.io.results import save_to_its_file
     from ..engine.tls.compare import compare_auto_manual as compare
 
     project = _as_project(project)
+    options.setdefault("on_link_done", save_to_its_file)
     return compare(project, scans=checked_scans(project, scans, with_intensity=False), **options)
 
 

@@ -372,18 +372,18 @@ def register_plot_project(project, scans=None, *, rerun: bool = False, progress=
     the project it edits: no folder written). The checks of :func:`plot_scans` that concern the
     scans come first (:func:`check_scans_near_their_scanners`): a plot the ``plot`` command
     refuses is refused here too, before any link runs. Returns the engine's :class:`~forestreg.engine.tls.plot.PlotOutcome`."""
+    from ..engine.io.results import save_to_its_file
     from ..engine.tls.plot import adjust_poses, register_project
 
     scans = checked_scans(project, scans)  # the plot command's check, before any link runs
     report = progress or (lambda f, m: None)
     outcome = register_project(project, rerun=rerun, progress=lambda f, m: report(0.95 * f, m), cancel=cancel,
-                               on_link=on_link, scans=scans)
+                               on_link=on_link, on_link_done=save_to_its_file, scans=scans)
     if cancel is not None:
         cancel.raise_if_cancelled()
     report(0.96, "global adjustment")
     adjust_poses(project, scans)
-    if project.path is not None:
-        project.save()
+    save_to_its_file(project)
     report(1.0, "done")
     return outcome
 
@@ -440,6 +440,7 @@ def run_plot(
     import tempfile
 
     from ..engine.io.crs import as_crs
+    from ..engine.io.results import save_to_its_file
     from ..engine.tls.plot import add_neighbour_links, adjust_poses, register_project
 
     given = as_crs(crs, "--crs")
@@ -455,17 +456,17 @@ def run_plot(
     if pairs:
         from .survey import register_survey
 
-        outcome = register_survey(project, pairs, fixed=fixed, rerun=rerun, scans=scans, progress=step, base=survey)
+        outcome = register_survey(project, pairs, fixed=fixed, rerun=rerun, scans=scans, progress=step, base=survey,
+                                  on_link_done=save_to_its_file)
     else:
-        outcome = register_project(project, rerun=rerun, progress=step, scans=scans, cancel=cancel)
+        outcome = register_project(project, rerun=rerun, progress=step, scans=scans, cancel=cancel, on_link_done=save_to_its_file)
     if loops and not pairs:
         added = add_neighbour_links(project, loops)
         if added:
             log.info("closing %d loops between neighbouring scans", len(added))
-            register_project(project, progress=step, scans=scans, cancel=cancel)
+            register_project(project, progress=step, scans=scans, cancel=cancel, on_link_done=save_to_its_file)
     adjusted = adjust_poses(project, scans) if not pairs else project.adjustment
-    if project.path is not None:
-        project.save()
+    save_to_its_file(project)
     frame = plot_crs(project, scans, given)
     frames = {"poses.json": "each matrix maps a scan's file coordinates (its own frame) into the centre scan's frame",
               "layers.gpkg": "the centre scan's frame"}

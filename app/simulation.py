@@ -31,11 +31,12 @@ def simulate_scans(preset: str, positions: Sequence, out, *, seed: int = 0, step
     -> degrees) and write the folder ``out`` as a transaction."""
     from ..engine.core.atomic import check_output_folder, output_folder
     from ..engine.simulate import simulate_plot
+    from ..engine.io.simulated import write_simulated_plot
 
     out = check_output_folder(out, "simulate")
     with output_folder(out, "simulate") as tmp:
-        plot = simulate_plot(preset, list(positions), out_dir=tmp, seed=seed, angular_step_deg=step_deg,
-                             tilted=tilted or None, size_m=size_m, progress=with_cancel(progress, cancel))
+        plot = write_simulated_plot(simulate_plot(preset, list(positions), seed=seed, angular_step_deg=step_deg,
+                             tilted=tilted or None, size_m=size_m, progress=with_cancel(progress, cancel)), tmp)
     return SimulationOutcome(status="ok", out=out, result=plot, scans=tuple((s.scan.name, len(s.scan)) for s in plot.scans))
 
 
@@ -51,9 +52,10 @@ class PairCase:
 def simulated_pair(folder: Path, preset: str, *, seed: int = 1, step_deg: float = 0.15) -> PairCase:
     """Two scans of a ``preset`` plot 12 m apart, written into ``folder``, with their true pose."""
     from ..engine.simulate import relative_pose, simulate_plot
+    from ..engine.io.simulated import write_simulated_plot
 
     folder.mkdir(parents=True, exist_ok=True)
-    plot = simulate_plot(preset, [(0.0, 0.0), (12.0, 3.0)], out_dir=folder, seed=seed, angular_step_deg=step_deg, size_m=50.0)
+    plot = write_simulated_plot(simulate_plot(preset, [(0.0, 0.0), (12.0, 3.0)], seed=seed, angular_step_deg=step_deg, size_m=50.0), folder)
     names = [s.scan.name for s in plot.scans]
     return PairCase(folder / f"{names[0]}.laz", folder / f"{names[1]}.laz", relative_pose(plot, names[0], names[1]))
 
@@ -107,6 +109,7 @@ def simulate_files(preset: str, positions: Sequence, folder: Path, *, seed: int,
                    progress=None) -> list:
     """Simulate a plot into ``folder`` (no transaction: the desktop's sample); returns its scan files."""
     from ..engine.simulate import simulate_plot
+    from ..engine.io.simulated import write_simulated_plot
 
-    plot = simulate_plot(preset, list(positions), seed=seed, angular_step_deg=step_deg, size_m=size_m, out_dir=folder, progress=progress)
+    plot = write_simulated_plot(simulate_plot(preset, list(positions), seed=seed, angular_step_deg=step_deg, size_m=size_m, progress=progress), folder)
     return list(plot.files)

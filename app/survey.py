@@ -59,11 +59,14 @@ def survey_params(pairs: str, project, fixed: Sequence[str] = (), base=None):
     return base.replace(pairs=which, max_distance_m=distance if which == "within" else base.max_distance_m, fixed=fixed_names(project, fixed))
 
 
-def register_survey(project, pairs: str, *, fixed: Sequence[str] = (), rerun: bool = False, scans=None, progress=None, cancel=None, base=None):
+def register_survey(project, pairs: str, *, fixed: Sequence[str] = (), rerun: bool = False, scans=None, progress=None, cancel=None, base=None,
+                    on_link_done=None):
     """Register every pair the survey asks for, solve the pose graph and record the uncertainty
-    in the project (``base``: the other :class:`~forestreg.engine.tls.params.SurveyParams`);
-    returns the engine's :class:`~forestreg.engine.tls.plot.PlotOutcome`."""
+    in the project (``base``: the other :class:`~forestreg.engine.tls.params.SurveyParams`;
+    ``on_link_done(project)`` after each finished link, e.g. saving it); returns the engine's
+    :class:`~forestreg.engine.tls.plot.PlotOutcome`."""
     from ..engine.tls.survey import register_survey as run
     from .common import with_cancel
 
-    return run(project, survey_params(pairs, project, fixed, base), rerun=rerun, progress=with_cancel(progress, cancel), scans=scans)
+    return run(project, survey_params(pairs, project, fixed, base), rerun=rerun, progress=with_cancel(progress, cancel), scans=scans,
+               on_link_done=on_link_done)

@@ -59,13 +59,14 @@ def _env() -> dict[str, str]:
 def simulate(workdir: Path, plots: int = 20) -> Path:
     """``workdir/batch_plots/plot_NN/`` (scans + truth.json), simulated when missing."""
     from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.io.simulated import write_simulated_plot
 
     root = workdir / "batch_plots"
     root.mkdir(parents=True, exist_ok=True)
     for k in range(1, plots + 1):
         folder = root / f"plot_{k:02d}"
         if not (folder / "truth.json").is_file():
-            simulate_plot(PRESET, POSITIONS, seed=k, angular_step_deg=STEP_DEG, size_m=SIZE_M, out_dir=folder)
+            write_simulated_plot(simulate_plot(PRESET, POSITIONS, seed=k, angular_step_deg=STEP_DEG, size_m=SIZE_M), folder)
     for extra in sorted(root.iterdir()):  # fewer plots asked than simulated before
         if extra.is_dir() and extra.name.startswith("plot_") and int(extra.name[5:]) > plots:
             shutil.rmtree(extra)

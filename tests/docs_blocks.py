@@ -339,6 +339,7 @@ def make_sample_data(folder: Path) -> dict:
     from forestreg.engine.params import params_toml
     from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.simulate.resurvey import simulate_resurvey
+    from forestreg.engine.io.simulated import write_resurvey, write_simulated_plot
 
     folder = Path(folder)
     work = folder / ".generated"
@@ -347,8 +348,8 @@ def make_sample_data(folder: Path) -> dict:
 
     # System A: one plot of three scans
     dx, dy = SECOND_SCANNER_OFFSET
-    plot = simulate_plot("planted_conifer", [(0.0, 0.0), (dx, dy), (-6.0, 8.0)], out_dir=work / "plot", seed=1,
-                         angular_step_deg=0.4, size_m=40.0)
+    plot = write_simulated_plot(simulate_plot("planted_conifer", [(0.0, 0.0), (dx, dy), (-6.0, 8.0)], seed=1,
+                         angular_step_deg=0.4, size_m=40.0), work / "plot")
     files = [work / "plot" / f"{s.name}.laz" for s in plot.scans]
     for name, src in (("scan1.laz", files[0]), ("scan2.laz", files[1]), ("A.laz", files[0]), ("B.laz", files[1]),
                       ("a.laz", files[0]), ("b.laz", files[1])):
@@ -387,9 +388,9 @@ def make_sample_data(folder: Path) -> dict:
     record["coregistration"] = np.asarray(case.truth).tolist()
 
     # a re-survey: clouds, and the trees of each survey as tables
-    resurvey = simulate_resurvey(size_m=24.0, seed=1, angular_step_deg=0.5, years=5.0,
+    resurvey = write_resurvey(simulate_resurvey(size_m=24.0, seed=1, angular_step_deg=0.5, years=5.0,
                                  before_positions=((-5.0, -5.0), (5.0, -5.0), (0.0, 5.0)),
-                                 after_positions=((0.0, -7.0), (6.0, 3.0), (-6.0, 3.0)), out_dir=work / "resurvey")
+                                 after_positions=((0.0, -7.0), (6.0, 3.0), (-6.0, 3.0))), work / "resurvey")
     shutil.copyfile(resurvey.files["before"], folder / "plot_2021.laz")
     shutil.copyfile(resurvey.files["after"], folder / "plot_2026.laz")
     inverse = np.linalg.inv(resurvey.matrix)  # scene (BEFORE) -> AFTER frame

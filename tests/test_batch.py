@@ -38,13 +38,14 @@ def plots(tmp_path_factory):
     """``plots/a`` and ``plots/b``: two-scan conifer plots (``a`` names scan_02 its centre);
     ``plots/c``: an open field without trees. Returns the folder and the true relative poses."""
     from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.io.simulated import write_simulated_plot
 
     root = tmp_path_factory.mktemp("batch_plots")
     truth = {}
     for name, preset, positions, seed in (("a", "planted_conifer", [(0, 0), (9, 4)], 1),
                                           ("b", "planted_conifer", [(0, 0), (8, -5)], 3),
                                           ("c", "open_field", [(0, 0), (9, 4)], 1)):
-        plot = simulate_plot(preset, positions, seed=seed, angular_step_deg=0.4, size_m=30, out_dir=root / name)
+        plot = write_simulated_plot(simulate_plot(preset, positions, seed=seed, angular_step_deg=0.4, size_m=30), root / name)
         (root / name / "truth.json").unlink()
         truth[name] = plot
     (root / "a" / "centre.txt").write_text("scan_02.laz\n")
@@ -177,10 +178,11 @@ def test_batch_on_an_existing_scheduler(tmp_path):
 def small_plots(tmp_path_factory):
     """Three three-scan conifer plots at 0.5 deg (a few seconds each)."""
     from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.io.simulated import write_simulated_plot
 
     root = tmp_path_factory.mktemp("batch_small")
     for name, seed in (("p1", 1), ("p2", 2), ("p3", 3)):
-        simulate_plot("planted_conifer", [(0, 0), (9, 4), (-3, 9)], seed=seed, angular_step_deg=0.5, size_m=30, out_dir=root / name)
+        write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (9, 4), (-3, 9)], seed=seed, angular_step_deg=0.5, size_m=30), root / name)
         (root / name / "truth.json").unlink()
     return root
 

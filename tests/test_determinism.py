@@ -161,9 +161,10 @@ def inputs(tmp_path_factory, shared_data) -> dict[str, Path]:
     from forestreg.engine.core.transform import matrix_from_yaw
     from forestreg.engine.io import read_scan, write_scan
     from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.io.simulated import write_simulated_plot
 
     root = tmp_path_factory.mktemp("determinism_inputs")
-    simulate_plot("planted_conifer", [(0, 0), (8, 0), (4, 7)], seed=3, angular_step_deg=0.5, size_m=26, out_dir=root / "plot")
+    write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (8, 0), (4, 7)], seed=3, angular_step_deg=0.5, size_m=26), root / "plot")
     tls = read_scan(shared_data / "pine_plot.laz")
     c = np.median(tls.points[:, :2], axis=0)
     _crop(tls, np.all(np.abs(tls.points[:, :2] - c) <= 3.5, axis=1), root / "tls.laz")

@@ -54,7 +54,9 @@ def registered_four(four_scan_files, tmp_path_factory):
     for p in paths:
         project.add_scan(p)
     path = project.save(tmp_path_factory.mktemp("registered") / "project.json")
-    return path, register_project(project)
+    outcome = register_project(project)
+    project.save()
+    return path, outcome
 
 
 def test_four_scan_plot_registers_every_scan_to_truth(four_scan_files, registered_four):
@@ -64,7 +66,7 @@ def test_four_scan_plot_registers_every_scan_to_truth(four_scan_files, registere
     assert outcome.failed == []
     assert [project.link_of(s.name).reference for s in project.scans[1:]] == [paths[0].name] * 3
     _check_poses(project, plot)
-    # saved after each link: reopening gives the same poses, and re-running keeps them
+    # saved: reopening gives the same poses, and re-running keeps them
     reopened = Project.load(path)
     for name, pose in project.poses().items():
         assert np.allclose(reopened.poses()[name], pose)
@@ -109,6 +111,12 @@ def test_a_scan_from_another_plot_is_reported_and_the_rest_registers(four_scan_f
 
 
 def test_interrupted_run_keeps_finished_links(four_scan_files, tmp_path):
+    """The Python API's run (``forestreg.register_project``) saves a project that has a file after
+    each finished link: stopped after the first, the file holds that link, and a run of the saved
+    project goes on from it. The engine's run itself writes no file: it tells the caller of each
+    finished link (``on_link_done``)."""
+    import forestreg
+
     plot, paths = four_scan_files
     project = Project()
     for p in paths:
@@ -119,12 +127,16 @@ def test_interrupted_run_keeps_finished_links(four_scan_files, tmp_path):
         raise Cancelled("stopped by the test")
 
     with pytest.raises(Cancelled):
-        register_project(project, on_link=stop_after_first)
+        forestreg.register_project(project, on_link=stop_after_first)
     saved = Project.load(tmp_path / "project.json")
     done = [link for link in saved.links if link.result is not None]
     assert len(done) == 1 and done[0].ok
-    outcome = register_project(saved)
+    text = (tmp_path / "project.json").read_text(encoding="utf-8")
+    told = []
+    outcome = register_project(saved, on_link_done=lambda p: told.append(sum(link.result is not None for link in p.links)))
     assert outcome.failed == []
+    assert told == [2, 3], "each finished link is told, with the project holding it"
+    assert (tmp_path / "project.json").read_text(encoding="utf-8") == text, "the engine's run wrote the project file"
     assert saved.link_of(done[0].moving).result == done[0].result, "a finished link is not run again"
     _check_poses(saved, plot)
 

@@ -53,9 +53,10 @@ def service_state(tmp_path_factory):
 def scans(tmp_path_factory):
     """A tiny simulated pair: ``scan_01.laz`` (reference) and ``scan_02.laz`` 9.8 m away."""
     from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.io.simulated import write_simulated_plot
 
     out = tmp_path_factory.mktemp("plugin_scans")
-    simulate_plot("planted_conifer", [(0, 0), (9, 4)], seed=1, angular_step_deg=0.3, size_m=40, out_dir=out)
+    write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (9, 4)], seed=1, angular_step_deg=0.3, size_m=40), out)
     return out
 
 

@@ -73,9 +73,10 @@ def _until(predicate, timeout: float, what: str, interval: float = 0.2):
 def pair(tmp_path_factory):
     """A small simulated pair with its true relative pose."""
     from forestreg.engine.simulate import relative_pose, simulate_plot
+    from forestreg.engine.io.simulated import write_simulated_plot
 
     out = tmp_path_factory.mktemp("service_scans")
-    plot = simulate_plot("planted_conifer", [(0, 0), (9, 4)], seed=1, angular_step_deg=0.4, size_m=30, out_dir=out)
+    plot = write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (9, 4)], seed=1, angular_step_deg=0.4, size_m=30), out)
     return out, relative_pose(plot, "scan_01", "scan_02")
 
 

@@ -573,8 +573,10 @@ def test_writes_laz_and_truth(tmp_path, monkeypatch):
 
         monkeypatch.setattr(io, "write_scan", _fallback_write_scan, raising=False)
 
+    from forestreg.engine.io.simulated import write_simulated_plot
+
     out = tmp_path / "plot"
-    p = simulate_plot("planted_conifer", [(0.0, 0.0), (8.0, 3.0)], out_dir=out, seed=2, size_m=30.0, angular_step_deg=0.8)
+    p = write_simulated_plot(simulate_plot("planted_conifer", [(0.0, 0.0), (8.0, 3.0)], seed=2, size_m=30.0, angular_step_deg=0.8), out)
     assert sorted(f.name for f in out.iterdir()) == ["scan_01.laz", "scan_02.laz", "truth.json"]
     truth = json.loads((out / "truth.json").read_text())
     assert truth == json.loads(json.dumps(p.truth))

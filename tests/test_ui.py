@@ -35,9 +35,10 @@ _REGISTERED: dict[str, Path] = {}
 def plot_dir(tmp_path_factory) -> Path:
     """Three simulated scans (0.4 deg) of a small mixed forest plot."""
     from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.io.simulated import write_simulated_plot
 
     folder = tmp_path_factory.mktemp("ui_plot")
-    simulate_plot("mixed_temperate", [(0, 0), (10, 2), (-8, 6)], seed=3, angular_step_deg=0.4, size_m=40, out_dir=folder)
+    write_simulated_plot(simulate_plot("mixed_temperate", [(0, 0), (10, 2), (-8, 6)], seed=3, angular_step_deg=0.4, size_m=40), folder)
     return folder
 
 

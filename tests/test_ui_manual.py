@@ -25,9 +25,10 @@ RUN_TIMEOUT_MS = 180_000
 def plot(tmp_path_factory):
     """Three simulated scans of a planted conifer plot with targets; the truth is known."""
     from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.io.simulated import write_simulated_plot
 
     folder = tmp_path_factory.mktemp("manual_plot")
-    sim = simulate_plot("planted_conifer", [(0, 0), (9, 3), (-7, 7)], seed=61, angular_step_deg=0.3, size_m=45, out_dir=folder)
+    sim = write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (9, 3), (-7, 7)], seed=61, angular_step_deg=0.3, size_m=45), folder)
     return sim, folder
 
 

@@ -35,9 +35,10 @@ from forestreg.engine.tls.survey import SurveyParams, register_survey  # noqa: E
 def surveyed(tmp_path_factory) -> Project:
     """A survey of three simulated scans with one spoilt (then dropped) extra link, saved."""
     from forestreg.engine.simulate import simulate_plot
+    from forestreg.engine.io.simulated import write_simulated_plot
 
     folder = tmp_path_factory.mktemp("ui_survey")
-    simulate_plot("mixed_temperate", [(0, 0), (10, 2), (-8, 6)], seed=3, angular_step_deg=0.4, size_m=40, out_dir=folder)
+    write_simulated_plot(simulate_plot("mixed_temperate", [(0, 0), (10, 2), (-8, 6)], seed=3, angular_step_deg=0.4, size_m=40), folder)
     project = Project(name="survey plot", params=RegistrationParams(angular_step_deg=0.4, icp=IcpParams(voxel_m=0.1, iterations=30)))
     for f in sorted(folder.glob("scan_*.laz")):
         project.add_scan(f)

@@ -89,6 +89,21 @@ def check_las_header(path: Path) -> tuple[int, bool]:
     return _check_header(Path(path))
 
 
+def las_header_bounds(path: Path) -> Optional[tuple[np.ndarray, np.ndarray]]:
+    """Lower and upper corner (x, y, z) of a LAS/LAZ file's points as its public header states
+    them (file coordinates), the header checked first (:func:`check_las_header`) and no point
+    read; None when the header leaves them empty (all zeros), not finite or the wrong way round
+    (some writers do). ScanReadError for a damaged or truncated file."""
+    check_las_header(Path(path))
+    with open(path, "rb") as fh:
+        head = fh.read(_MIN_HEADER)
+    max_x, min_x, max_y, min_y, max_z, min_z = struct.unpack_from("<6d", head, 179)
+    lo, hi = np.array([min_x, min_y, min_z]), np.array([max_x, max_y, max_z])
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()) or not ((lo != 0).any() or (hi != 0).any()):
+        return None
+    return lo, hi
+
+
 #: Points decoded per chunk when reading: bounds the memory of the raw point records (about 30 to
 #: 70 bytes a point) while the coordinates fill one preallocated array.
 READ_CHUNK_POINTS = 500_000

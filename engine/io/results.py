@@ -553,7 +553,8 @@ def write_targets_csv(path: PathLike, targets_by_scan: Mapping[str, Mapping[str,
 
 class ProjectFile:
     """Saving a plot project (a class with ``path`` and ``to_dict(relative_to=folder)``): the
-    versioned JSON file, scan paths relative to it, written atomically."""
+    versioned JSON file, scan paths relative to it, written atomically, when the caller asks
+    (:meth:`save`, :func:`save_to_its_file`); the engine's runs never save it themselves."""
 
     path: Optional[Path]
 
@@ -568,11 +569,13 @@ class ProjectFile:
         self.path = target
         return target
 
-    def checkpoint(self) -> None:
-        """Save the project to its file, when it has one (after each finished link of a run: an
-        interrupted run loses nothing already computed)."""
-        if self.path is not None:
-            self.save()
+
+def save_to_its_file(project: Any) -> None:
+    """Save a project (a :class:`ProjectFile`) to its file when it has one, else nothing: what the
+    use cases hand a run as its ``on_link_done``, so an interrupted run loses nothing already
+    computed (the engine's runs report each finished link and write no file)."""
+    if project.path is not None:
+        project.save()
 
 
 # ----------------------------------------------------------------------------- evaluation

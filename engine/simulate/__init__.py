@@ -11,14 +11,16 @@
   returns a :class:`SimulatedScan`: the :class:`~forestreg.engine.core.scan.Scan` in the scanner's own
   frame, per-point material labels and the true pose (``p_world = pose @ p_socs``); a scanner may
   see a sector only (``ScannerSetup.azimuth_fov_deg``; instruments in :data:`SCANNER_PRESETS`);
-* :func:`simulate_plot` scans a plot from several positions, optionally writes LAZ files and
-  ``truth.json``; :func:`relative_pose` gives the true ``T`` (``p_reference = T @ p_moving``);
+* :func:`simulate_plot` scans a plot from several positions (in memory: the package writes no
+  file; :func:`forestreg.engine.io.simulated.write_simulated_plot` writes the LAZ files and
+  ``truth.json``); :func:`relative_pose` gives the true ``T`` (``p_reference = T @ p_moving``);
 * :func:`simulate_scan_from_cloud` simulates a scan from a real merged cloud (paper section 4.3).
 
 Example::
 
+    from forestreg.engine.io.simulated import write_simulated_plot
     from forestreg.engine.simulate import simulate_plot, relative_pose
-    plot = simulate_plot("planted_conifer", [(0, 0), (10, 0)], seed=1, out_dir="demo")
+    plot = write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (10, 0)], seed=1), "demo")
     T_true = relative_pose(plot, "scan_01", "scan_02")
 """
 

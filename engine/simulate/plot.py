@@ -1,4 +1,5 @@
-"""Simulate a whole multi-scan TLS plot: scene, scans, files and the ground truth.
+"""Simulate a whole multi-scan TLS plot: scene, scans and the ground truth, in memory
+(:func:`forestreg.engine.io.simulated.write_simulated_plot` writes the files and ``truth.json``).
 
 Truth (``SimulatedPlot.truth``, ``truth.json``)
 -----------------------------------------------
@@ -36,7 +37,6 @@ from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from ..core.atomic import write_text_atomic
 from ..core.errors import ParameterError, UnknownNameError
 from .mesh import Material, raycaster_for
 from .scanner import ScannerSetup, SimulatedScan, field_of_view_meta, simulate_tls_scan
@@ -48,7 +48,8 @@ ProgressCallback = Callable[[float, str], None]
 
 @dataclass(frozen=True, eq=False)
 class SimulatedPlot:
-    """A simulated plot: the scene, its scans (in order) and the truth dict."""
+    """A simulated plot: the scene, its scans (in order) and the truth dict; ``out_dir`` and
+    ``files`` once :func:`~forestreg.engine.io.simulated.write_simulated_plot` wrote it."""
 
     scene: ForestScene
     scans: tuple[SimulatedScan, ...]
@@ -83,7 +84,6 @@ def simulate_plot(
     preset: str,
     positions: Sequence[Sequence[float]],
     *,
-    out_dir: Optional[Union[str, Path]] = None,
     seed: int = 0,
     angular_step_deg: float = 0.2,
     tilted: Optional[Mapping[int, Union[float, Sequence[float]]]] = None,
@@ -103,8 +103,6 @@ def simulate_plot(
         :data:`~.built.BUILT_PRESETS`).
     positions : (x, y) scanner positions in the scene frame (plot centred on the origin); the
         same (x, y) twice is fine (e.g. a level and a tilted scan at one spot).
-    out_dir : if given, write ``scan_01.laz``, ``scan_02.laz``, ... (via
-        :func:`forestreg.engine.io.write_scan`) and ``truth.json`` there (created if missing).
     seed : seeds the scene and every scan (yaw, noise); the same arguments give the same plot.
     angular_step_deg : the scanner's angular resolution.
     tilted : maps a position index (0-based) to a tilt in degrees, or to a pair
@@ -150,13 +148,7 @@ def simulate_plot(
     report(0.03, "building meshes and ray-casting structure")
     caster = raycaster_for(scene)
 
-    out_path: Optional[Path] = None
-    if out_dir is not None:
-        out_path = Path(out_dir)
-        out_path.mkdir(parents=True, exist_ok=True)
-
     scans: list[SimulatedScan] = []
-    files: list[Path] = []
     truth_scans: list[dict[str, Any]] = []
     n = len(pos)
     for i in range(n):
@@ -184,14 +176,7 @@ def simulate_plot(
         report(frac0, f"scanning {name} ({i + 1}/{n})")
         sim = simulate_tls_scan(scene, setup, seed=s_seed, raycaster=caster)
         scans.append(sim)
-        entry = _scan_truth(scene, sim, i, s_seed)
-        if out_path is not None:
-            f = out_path / f"{name}.laz"
-            report(frac0 + 0.8 * 0.9 / n, f"writing {f.name}")
-            _write_laz(sim, f)
-            files.append(f)
-            entry["file"] = f.name
-        truth_scans.append(entry)
+        truth_scans.append(_scan_truth(scene, sim, i, s_seed))
 
     truth = {
         "format": "forestreg-simulated-plot",
@@ -219,24 +204,13 @@ def simulate_plot(
         "materials": {m.name.lower(): int(m) for m in Material},
     }
     truth.update(_built_truth(scene))
-    if out_path is not None:
-        report(0.97, "writing truth.json")
-        write_text_atomic(out_path / "truth.json", json.dumps(truth, indent=1))
     report(1.0, "done")
     return SimulatedPlot(
         scene=scene,
         scans=tuple(scans),
         truth=truth,
-        out_dir=out_path,
-        files=tuple(files),
         meta={"n_triangles": caster.mesh.n_triangles, "triangles": caster.mesh.counts()},
     )
-
-
-def _write_laz(sim: SimulatedScan, path: Path) -> None:
-    from ..io import write_scan  # imported late: optional until the io module exists
-
-    write_scan(sim.scan, path)
 
 
 def _scan_truth(scene: ForestScene, sim: SimulatedScan, index: int, s_seed: int) -> dict[str, Any]:

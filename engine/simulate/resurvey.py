@@ -24,11 +24,10 @@ AFTER cloud is in its own frame, ``p_scene = matrix @ p_after``.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional, Sequence, Union
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
@@ -187,7 +186,8 @@ class ResurveyCase:
 
     ``before`` (N, 3) scene frame; ``after`` (M, 3) in the later survey's frame; ``matrix`` the
     true ``p_before = matrix @ p_after``; ``truth`` the JSON-able truth (matrix, fates, positions);
-    ``files`` the written clouds (``before.laz``, ``after.laz``, ``truth.json``) when written.
+    ``files`` the written clouds (``before.laz``, ``after.laz``, ``truth.json``) once
+    :func:`~forestreg.engine.io.simulated.write_resurvey` wrote them.
     """
 
     before: np.ndarray
@@ -212,7 +212,6 @@ def simulate_resurvey(
     after_heading_deg: float = 117.0,
     after_shift_m: Sequence[float] = (412.7, -238.4, 35.2),
     angular_step_deg: float = 0.3,
-    out_dir: Optional[Union[str, Path]] = None,
     scene: Optional[ForestScene] = None,
     stem_shapes: str = "round",
     scans_per_survey: Optional[int] = None,
@@ -231,9 +230,9 @@ def simulate_resurvey(
     (:func:`~.scene.with_stem_shapes`).
 
     Places within 1 m of any scanner position of either survey are cleared first (an operator
-    sets up in a gap). With ``out_dir`` the clouds are written as ``before.laz`` and ``after.laz``
-    with ``truth.json``; ``truth["before_scan_points"]`` / ``["after_scan_points"]`` count the
-    points of each scan, in the order of the positions.
+    sets up in a gap). ``truth["before_scan_points"]`` / ``["after_scan_points"]`` count the
+    points of each scan, in the order of the positions. Nothing is written here
+    (:func:`~forestreg.engine.io.simulated.write_resurvey` writes the case).
     """
     from .plot import simulate_plot
 
@@ -275,16 +274,4 @@ def simulate_resurvey(
         "after_scan_points": [int(len(s.scan)) for s in after_plot.scans],
         "fates": fates,
     }
-    files: dict[str, Path] = {}
-    if out_dir is not None:
-        from ..core.atomic import write_text_atomic
-        from ..core.scan import Scan
-        from ..io import write_scan
-
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        files = {"before": out / "before.laz", "after": out / "after.laz", "truth": out / "truth.json"}
-        write_scan(Scan.from_points(before, name="before"), files["before"])
-        write_scan(Scan.from_points(after, name="after"), files["after"])
-        write_text_atomic(files["truth"], json.dumps(truth, indent=1))
-    return ResurveyCase(before=before, after=after, matrix=frame, truth=truth, before_scene=base, after_scene=after_scene, files=files)
+    return ResurveyCase(before=before, after=after, matrix=frame, truth=truth, before_scene=base, after_scene=after_scene)

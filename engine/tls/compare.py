@@ -9,7 +9,7 @@ centres of the same target seen from different scans once every scan is in the c
 
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -26,16 +26,19 @@ def compare_auto_manual(
     scans: Optional[ScanCache] = None,
     progress: Optional[ProgressCallback] = None,
     cancel: Optional[CancelToken] = None,
+    on_link_done: Optional[Callable[[Project], None]] = None,
 ) -> dict[str, Any]:
     """Register the project automatically (its links, with retries), then register the same links
     manually from the scans' targets, and compare (the structure is documented in the README and
     read by :func:`~forestreg.engine.report.plot_report.write_plot_report`).
 
     The project keeps the automatic result; the manual poses are in ``["manual_poses"]``.
+    ``on_link_done(project)`` is called after each finished automatic link (see
+    :func:`~forestreg.engine.tls.plot.register_project`); nothing is written here.
     """
     scans = scans or ScanCache(project)
     step = Progress(progress, cancel=cancel)
-    register_project(project, scans=scans, progress=step.sub(0.0, 0.6), cancel=cancel)
+    register_project(project, scans=scans, progress=step.sub(0.0, 0.6), cancel=cancel, on_link_done=on_link_done)
     auto_poses = project.poses()
     placing = [project.link_of(s.name) for s in project.scans if s.name != project.centre]
     manual_links: dict[str, np.ndarray] = {}

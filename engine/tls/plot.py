@@ -23,7 +23,7 @@ import numpy as np
 
 from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanReadError
 from ..io import read_scan
-from ..io.las import intensity_to_uint16
+from ..io.las import intensity_to_uint16, las_header_bounds
 from ..core.outcome import Outcome
 from ..core.imports import import_open3d
 from ..core.progress import CancelToken, Progress, ProgressCallback
@@ -187,19 +187,12 @@ class ScanCache:
         header without reading the points, else from the points."""
         entry = self.project.scan(name)
         if name not in self._scans and entry.path.suffix.lower() in (".las", ".laz"):
-            import laspy
-
-            from ..io.las import check_las_header
-
             try:
-                check_las_header(entry.path)  # a damaged header is not handed to laspy (see _file_scan_bytes)
-                with laspy.open(str(entry.path)) as f:
-                    lo, hi = np.asarray(f.header.mins, dtype=float), np.asarray(f.header.maxs, dtype=float)
-                # some writers leave the bounds empty (zeros) or wrong way round: read the points then
-                if np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all() and (lo != 0).any() | (hi != 0).any():
-                    return lo, hi
-            except Exception:  # an odd header: read the points instead (the reader says what is wrong)
-                pass
+                stated = las_header_bounds(entry.path)
+            except (ScanReadError, OSError):  # a damaged or missing file: the read below says what is wrong
+                stated = None
+            if stated is not None:
+                return stated
         scan = self(name)
         return scan.points.min(axis=0) + scan.origin_shift, scan.points.max(axis=0) + scan.origin_shift
 
@@ -232,7 +225,7 @@ def _file_scan_bytes(path: Path) -> int:
 
     try:  # the header checked first: laspy itself would walk a damaged header's VLR counts (GBs)
         return check_las_header(Path(path))[0] * _FILE_BYTES_PER_POINT
-    except Exception:  # an odd header: no estimate (the read says what is wrong)
+    except (ScanReadError, OSError):  # a damaged or missing file: no estimate (the read says what is wrong)
         return 0
 
 
@@ -290,14 +283,17 @@ def register_project(
     progress: Optional[ProgressCallback] = None,
     cancel: Optional[CancelToken] = None,
     on_link: Optional[Callable[[Link], None]] = None,
+    on_link_done: Optional[Callable[[Project], None]] = None,
     scans: Optional[ScanCache] = None,
     beside: Optional[LinkQueue] = None,
 ) -> PlotOutcome:
     """Register every scan of the project along its link, retrying failed links.
 
-    Links that already succeeded are kept unless ``rerun``. After each link the project is saved
-    (when it has a file) and ``on_link`` is called, so an interrupted run loses nothing already
-    computed. Level scans are registered before tilted ones (their partners must be placed first).
+    Links that already succeeded are kept unless ``rerun``. After each finished link (placing or
+    extra) ``on_link_done(project)`` is called, then, for a placing link, ``on_link(link)``: the
+    caller keeps what is done there (the use cases save the project file, so an interrupted run
+    loses nothing already computed); this function writes no file. Level scans are registered
+    before tilted ones (their partners must be placed first).
 
     ``beside``: further links (not in the project yet) that the thread preparing scans ahead
     registers once its preparations are done, while the links to the centre run (a survey's
@@ -314,7 +310,8 @@ def register_project(
     outcome = PlotOutcome(scans={project.centre: "centre"})
     ahead = _PrepareAhead.start(project, order, scans, rerun=rerun, cancel=cancel, beside=beside)
     try:
-        _register_links(project, order, scans, outcome, step, ahead, rerun=rerun, cancel=cancel, on_link=on_link)
+        _register_links(project, order, scans, outcome, step, ahead, rerun=rerun, cancel=cancel, on_link=on_link,
+                        on_link_done=on_link_done)
     except BaseException:
         if ahead is not None:  # cancelled or failed: a preparation under way ends in its daemon thread
             ahead.stop()
@@ -327,7 +324,8 @@ def register_project(
     extra = [link for link in project.links if link.extra and (rerun or link.result is None)]
     for link in extra:
         link.result = _run_link(project, link, scans, Progress(None, cancel=cancel), cancel)
-        project.checkpoint()
+        if on_link_done is not None:
+            on_link_done(project)
     if beside is None:  # the links are done: their ICP search structures go (the caller's queue still needs them)
         scans.prepared.release(("icp_reference",))
     if not any(link.ok for link in project.links) and project.centre not in scans._frames:
@@ -389,7 +387,7 @@ def _readable_centre(project: Project) -> None:
 
 def _register_links(project: Project, order: list[ScanEntry], scans: ScanCache, outcome: PlotOutcome, step: Progress,
                     ahead: Optional["_PrepareAhead"], *, rerun: bool, cancel: Optional[CancelToken],
-                    on_link: Optional[Callable[[Link], None]]) -> None:
+                    on_link: Optional[Callable[[Link], None]], on_link_done: Optional[Callable[[Project], None]]) -> None:
     """The links of :func:`register_project`, one after the other in ``order``."""
     for k, entry in enumerate(order):
         if ahead is not None:
@@ -411,7 +409,8 @@ def _register_links(project: Project, order: list[ScanEntry], scans: ScanCache, 
             outcome.reasons[entry.name] = link.result.get("reason", "") if link.result is not None else "not run"
             log.warning("%s could not be registered: %s", entry.name, outcome.reasons[entry.name])
         project.adjustment = None
-        project.checkpoint()
+        if on_link_done is not None:
+            on_link_done(project)
         if on_link is not None:
             on_link(link)
 

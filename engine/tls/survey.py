@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import itertools
 import logging
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -275,20 +275,21 @@ def _spanning_poses(frame: str, links: Sequence[Link], fixed: dict[str, np.ndarr
     return poses
 
 
-def _register_two_at_a_time(project: Project, pending: list[Link], scans: ScanCache, step: Progress, cancel: Optional[CancelToken]) -> None:
+def _register_two_at_a_time(project: Project, pending: list[Link], scans: ScanCache, step: Progress, cancel: Optional[CancelToken],
+                            after: Optional[Callable[[], None]]) -> None:
     """Register the further pairs ``pending`` two at a time (threads: a link's coarse matching and
     ICP keep about one core busy), for plots of :func:`~forestreg.engine.tls.plot.small_scans`
     whose scans the links to the centre left prepared (all of them kept), on a
     :class:`~forestreg.engine.tls.plot.LinkQueue` served by this thread and one more. The
     scans' points are let go first (:meth:`~forestreg.engine.tls.plot.ScanCache.let_go_of_points`:
-    the links need only the preparations; two links' work takes about their room). The project is
-    saved and the progress advanced as each link ends; results are those of the same links run
+    the links need only the preparations; two links' work takes about their room). ``after`` is
+    called and the progress advanced as each link ends; results are those of the same links run
     one after the other."""
     # the links run on the kept preparations: the scans' points make room for two links' work
     scans.let_go_of_points()
     queue = LinkQueue(project, pending, scans, cancel)
     try:
-        queue.finish(step, after=project.checkpoint)
+        queue.finish(step, after=after)
     except BaseException:
         queue.close()
         raise
@@ -302,11 +303,16 @@ def register_survey(
     rerun: bool = False,
     progress: Optional[ProgressCallback] = None,
     cancel: Optional[CancelToken] = None,
+    on_link_done: Optional[Callable[[Project], None]] = None,
 ) -> PlotOutcome:
     """Register a whole survey (see the module docstring). The solution (poses, per-link rows,
     dropped links with reasons, per-scan uncertainty and quality) is stored in
-    ``project.adjustment`` (``method: "survey"``), which :meth:`Project.poses` returns."""
+    ``project.adjustment`` (``method: "survey"``), which :meth:`Project.poses` returns.
+
+    ``on_link_done(project)`` is called after each finished link (see
+    :func:`~forestreg.engine.tls.plot.register_project`); this function writes no file."""
     params = params or SurveyParams()
+    after = None if on_link_done is None else (lambda: on_link_done(project))
     scans = scans or ScanCache(project)
     step = Progress(progress, cancel=cancel)
     # the links to the centre take the first part of the progress, the further pairs the rest
@@ -323,7 +329,8 @@ def register_survey(
         beside = LinkQueue(project, [Link(moving=b, reference=a, extra=True) for a, b in itertools.combinations(names, 2)
                                      if frozenset((a, b)) not in linked], scans, cancel)
     try:
-        outcome = register_project(project, rerun=rerun, progress=step.sub(0.0, share), cancel=cancel, scans=scans, beside=beside)
+        outcome = register_project(project, rerun=rerun, progress=step.sub(0.0, share), cancel=cancel, scans=scans, beside=beside,
+                                   on_link_done=on_link_done)
     except BaseException:
         if beside is not None:
             beside.close()
@@ -355,20 +362,21 @@ def register_survey(
         if beside is not None:
             scans.let_go_of_points()  # the links run on the kept preparations: room for two at once
             try:
-                beside.finish(step.sub(share, 1.0), after=project.checkpoint)
+                beside.finish(step.sub(share, 1.0), after=after)
             except BaseException:
                 beside.close()
                 raise
         elif len(pending) > 1 and scans.small and all(
                 scans.is_prepared(name, link.params(project.params)) for link in pending for name in (link.reference, link.moving)):
-            _register_two_at_a_time(project, pending, scans, step.sub(share, 1.0), cancel)
+            _register_two_at_a_time(project, pending, scans, step.sub(share, 1.0), cancel, after)
         for k, link in enumerate(pending):
             if link.result is not None:
                 continue
             sub = step.sub(share + (1 - share) * k / len(pending), share + (1 - share) * (k + 1) / len(pending))
             sub(0.0, f"registering further pair {k + 1} of {len(pending)}: {link.moving} onto {link.reference}")
             link.result = _run_link(project, link, scans, sub, cancel)
-            project.checkpoint()
+            if after is not None:
+                after()
         scans.prepared.release(("icp_reference",))  # the links are done: their ICP search structures go
         step(1.0, "done")
     scanner = {s.name: _scanner_file(scans, s.name) for s in project.scans if _usable(scans, s.name)}
@@ -452,7 +460,6 @@ def register_survey(
         "quality": quality,
         "pairs": params.pairs,
     }
-    project.checkpoint()
     return outcome
 
 
