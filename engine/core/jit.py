@@ -76,7 +76,7 @@ def kernel_cache_dir() -> Optional[str]:
     base = os.environ.get("XDG_CACHE_HOME") or (os.path.join(os.path.expanduser("~"), ".cache") if os.path.expanduser("~") != "~" else "")
     if not base:
         return None
-    from ... import __version__
+    from ..._version import __version__
 
     tag = f"{__version__}-numba{numba.__version__}-py{sys.version_info[0]}{sys.version_info[1]}"
     return os.path.join(base, "forestreg", "kernels", tag)

@@ -111,7 +111,7 @@ def change_report_html(summary: Mapping[str, Any], rows: Sequence[Mapping[str, A
     """The report page: ``summary`` (the ``result.json``), ``rows`` (the trees), ``map_png`` (the
     change map); ``file_rows`` the rows in file coordinates for the table (default ``rows``)."""
     try:
-        from ... import __version__ as version
+        from ..._version import __version__ as version
     except Exception:  # pragma: no cover - defensive
         version = "?"
     body = [f"<h1>forestreg change</h1><p class=\"sub\">BEFORE {_e(summary.get('before', ''))}<br>AFTER {_e(summary.get('after', ''))}<br>"

@@ -83,7 +83,7 @@ def html_page(title: str, body: Sequence[str]) -> str:
 def generated_line() -> str:
     """"generated <date> by forestreg <version>"."""
     try:
-        from ... import __version__ as version
+        from ..._version import __version__ as version
     except Exception:  # pragma: no cover - defensive
         version = "?"
     return f"generated {_dt.datetime.now().strftime('%Y-%m-%d %H:%M')} by forestreg {version}"

@@ -746,7 +746,7 @@ def _natural(key: Any) -> tuple:
 
 def _version() -> str:
     try:
-        from ... import __version__
+        from ..._version import __version__
 
         return str(__version__)
     except Exception:  # pragma: no cover - defensive
