@@ -11,7 +11,6 @@ the two files' CRSs differ, or one has none).
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -223,16 +222,19 @@ def coregister(ground, uav, params=None, progress=None, *, cancel=None):
 
 
 def _write_coregistration_folder(out: Path, result, summary: dict, kept: dict, scale: float) -> Optional[Path]:
-    from ..engine.core.atomic import output_folder, write_text_atomic
-    from ..engine.core.transform import format_matrix
+    """The output folder of a co-registration, as one transaction
+    (:func:`~forestreg.app.outputs.write_result_folder`): the keypoint tables, ``layers.gpkg`` and
+    the report; returns the report's path (or None)."""
     from ..engine.io.tables import write_keypoints_csv
+    from .layers import keypoint_layers, write_layers
+    from .outputs import write_result_folder
 
     ok = summary["status"] == "ok"
     ground, uav = kept["ground"], kept["uav"]
     pairs = result.matched_after_icp if result.matched_after_icp is not None else (
         result.match.pairs if result.match is not None else np.zeros((0, 2), dtype=int))
-    drawn = False
-    with output_folder(out, "coregister") as tmp:
+
+    def write_files(tmp: Path) -> None:
         for scan, kp, column, other, name in (
             (ground, result.ground_keypoints, 0, 1, "keypoints_ground.csv"),
             (uav, result.uav_keypoints, 1, 0, "keypoints_uav.csv"),
@@ -243,19 +245,13 @@ def _write_coregistration_folder(out: Path, result, summary: dict, kept: dict, s
             if len(pairs):
                 matched[pairs[:, column]] = pairs[:, other]
             write_keypoints_csv(tmp / name, kp, scan.local_to_file_matrix(), matched, unit_scale=scale)
-        if result.ground_keypoints is not None:
-            try:
-                from ..engine.report.coregistration_report import write_coregistration_report
-
-                write_coregistration_report(result, tmp, kept["ground_profile"], kept["uav_profile"])
-                drawn = (tmp / "report.html").exists()
-            except Exception as exc:  # a figure must never lose the result
-                log.warning("could not draw the figure: %s", exc)
-        if ok:
-            write_text_atomic(tmp / "transform.txt", format_matrix(np.asarray(summary["matrix"])))
-        from .layers import keypoint_layers, write_layers
-
         write_layers(tmp, keypoint_layers(result, ground, uav, ok=ok, unit_scale=scale, ground_outline=kept.get("ground_outline")),
                      kept.get("crs"))
-        write_text_atomic(tmp / "result.json", json.dumps(summary, indent=2) + "\n")
-    return out / "report.html" if drawn else None
+
+    def draw(tmp: Path) -> None:
+        from ..engine.report.coregistration_report import write_coregistration_report
+
+        write_coregistration_report(result, tmp, kept["ground_profile"], kept["uav_profile"])
+
+    return write_result_folder(out, "coregister", summary, write_files,
+                               draw=draw if result.ground_keypoints is not None else None, drawn_name="report.html")

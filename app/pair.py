@@ -9,7 +9,6 @@ reference scan's frame and take its CRS (``result.json``'s ``crs``; the register
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -219,31 +218,27 @@ def locate_scanner(scan, params=None):
 
 
 def _write_pair_folder(out: Path, result, summary: dict, kept: dict, scale: float, write_registered: bool) -> Optional[Path]:
-    """The output folder of a pair, as one transaction; returns the figure's path (or None)."""
-    from ..engine.core.atomic import output_folder, write_text_atomic
-    from ..engine.core.transform import format_matrix
+    """The output folder of a pair, as one transaction (:func:`~forestreg.app.outputs.write_result_folder`):
+    the VOP tables, the figure, the registered scan when asked and "ok"; returns the figure's path
+    (or None)."""
     from ..engine.io import write_scan
     from ..engine.io.tables import pair_vop_tables, write_vops_csv
+    from .outputs import write_result_folder
 
-    ok = summary["status"] == "ok"
     reference, moving = kept["reference"], kept["moving"]
-    drawn = False
-    with output_folder(out, "register") as tmp:
+
+    def write_files(tmp: Path) -> None:
         for scan, to_file, vops, matched, name in pair_vop_tables(result, reference, moving):
             write_vops_csv(tmp / name, vops.xy, vops.z, to_file, vops.radius, vops.support, matched, unit_scale=scale)
-        if result.details is not None and result.details.chosen is not None:
-            try:
-                from ..engine.report.figures import pair_figure
+        if summary["status"] == "ok" and write_registered:
+            to_units = np.diag([1.0 / scale, 1.0 / scale, 1.0 / scale, 1.0])
+            write_scan(kept["registered_points"], tmp / f"{moving.name}_registered.laz", matrix=to_units @ result.matrix,
+                       crs=kept.get("crs"))
 
-                pair_figure(result, tmp / "registration.png")
-                drawn = (tmp / "registration.png").exists()
-            except Exception as exc:  # a figure must never lose the result
-                log.warning("could not draw the figure: %s", exc)
-        if ok:
-            write_text_atomic(tmp / "transform.txt", format_matrix(np.asarray(summary["matrix"])))
-            if write_registered:
-                to_units = np.diag([1.0 / scale, 1.0 / scale, 1.0 / scale, 1.0])
-                write_scan(kept["registered_points"], tmp / f"{moving.name}_registered.laz", matrix=to_units @ result.matrix,
-                           crs=kept.get("crs"))
-        write_text_atomic(tmp / "result.json", json.dumps(summary, indent=2) + "\n")
-    return out / "registration.png" if drawn else None
+    def draw(tmp: Path) -> None:
+        from ..engine.report.figures import pair_figure
+
+        pair_figure(result, tmp / "registration.png")
+
+    chosen = result.details is not None and result.details.chosen is not None
+    return write_result_folder(out, "register", summary, write_files, draw=draw if chosen else None, drawn_name="registration.png")
