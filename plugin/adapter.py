@@ -70,6 +70,7 @@ class PairJob:
     scanner_positions: Sequence[Sequence[float]] = ()  # reference first, then moving
     units: Optional[str] = None
     write_registered: bool = False
+    crs: Optional[str] = None  # --crs: of the scans' coordinates where they declare none (EPSG:code or WKT)
     extra_args: Sequence[str] = ()
 
 
@@ -83,6 +84,7 @@ class PlotJob:
     vop_radius_m: Optional[float] = None
     params_file: Optional[Union[str, Path]] = None
     merged: Optional[Union[str, Path]] = None
+    crs: Optional[str] = None  # --crs: of the scans' coordinates where they declare none (EPSG:code or WKT)
     extra_args: Sequence[str] = ()
 
 
@@ -136,6 +138,8 @@ def build_pair_args(job: PairJob) -> list[str]:
         cmd += ["--units", job.units]
     if job.write_registered:
         cmd.append("--write-registered")
+    if job.crs:
+        cmd += ["--crs", str(job.crs)]
     return cmd + [str(a) for a in job.extra_args]
 
 
@@ -157,6 +161,8 @@ def build_plot_args(job: PlotJob) -> list[str]:
         cmd += ["--params", str(job.params_file)]
     if job.merged:
         cmd += ["--merged", str(job.merged)]
+    if job.crs:
+        cmd += ["--crs", str(job.crs)]
     return cmd + [str(a) for a in job.extra_args]
 
 

@@ -26,7 +26,7 @@ class QgsProcessingException(Exception):
 
 class QgsProcessing:
     TypeVectorPoint = 0
-    TypeFile = 5
+    TypeFile = 4  # QgsProcessing.SourceType.TypeFile (TypeVector is 5)
 
 
 class _Definition:
@@ -269,12 +269,27 @@ class QgsApplication:
         return None
 
 
-def _modules(version: int, point_clouds: bool) -> dict:
+class QgsProviderRegistry:
+    """The data providers QGIS was built with (``providers``: their keys)."""
+
+    providers = ("ogr", "delimitedtext", "pdal")
+
+    @classmethod
+    def instance(cls):
+        return cls()
+
+    def providerList(self):  # noqa: N802
+        return list(self.providers)
+
+
+def _modules(version: int, point_clouds: bool, pdal: bool = True) -> dict:
     core = types.ModuleType("qgis.core")
     for key, value in globals().items():
         if key.startswith(("Qgs", "Qgis")):
             setattr(core, key, value)
     core.Qgis = type("Qgis", (Qgis,), {"QGIS_VERSION_INT": version})
+    if not pdal:  # a QGIS built without its PDAL provider (Debian 12's 3.22): point cloud classes, no provider
+        core.QgsProviderRegistry = type("QgsProviderRegistry", (QgsProviderRegistry,), {"providers": ("ogr", "delimitedtext")})
     if not point_clouds:
         del core.QgsPointCloudLayer
         del core.QgsProcessingOutputPointCloudLayer
@@ -287,12 +302,13 @@ def _modules(version: int, point_clouds: bool) -> dict:
 
 
 @contextmanager
-def installed(version: int = 33400, point_clouds: bool = True):
+def installed(version: int = 33400, point_clouds: bool = True, pdal: bool = True):
     """The fake ``qgis`` modules in ``sys.modules`` (QGIS ``version``; without point cloud layers
-    when ``point_clouds`` is false), and :mod:`forestreg.plugin.qgis.provider` imported against them."""
+    when ``point_clouds`` is false, without the PDAL provider when ``pdal`` is false), and
+    :mod:`forestreg.plugin.qgis.provider` imported against them."""
     name = "forestreg.plugin.qgis.provider"
     saved = {k: sys.modules.get(k) for k in ("qgis", "qgis.core", "qgis.PyQt", "qgis.PyQt.QtXml", name)}
-    sys.modules.update(_modules(version, point_clouds))
+    sys.modules.update(_modules(version, point_clouds, pdal))
     sys.modules.pop(name, None)
     try:
         yield importlib.import_module(name)

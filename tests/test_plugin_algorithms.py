@@ -2,8 +2,8 @@
 ``qgis.core`` (:mod:`qgis_fakes`): what each declares (ids, parameters with the CLI's defaults,
 outputs that chain), the job request each builds (checked against the CLI's own parser), how the
 job's progress, log lines and cancel reach the Processing feedback, what loads on completion
-(``layers.gpkg`` styled, point clouds where QGIS has them), the model file, and a real
-``qgis_process run forestreg:trees`` where QGIS is installed."""
+(``layers.gpkg`` styled, point clouds where QGIS has them) and the model file. The same
+algorithms in real QGIS (``qgis_process``, PyQGIS): :mod:`test_qgis_real`."""
 
 from __future__ import annotations
 
@@ -177,10 +177,12 @@ CASES = [
     ("change", {"BEFORE": "a.laz", "AFTER": "b.laz", "OUTPUT": "ch", "REPORT": False, "UNITS": 0, "UNITS_BEFORE": 0, "UNITS_AFTER": 4},
      ["change", "a.laz", "b.laz", "--out", "ch", "--no-report", "--units", "cm", "--units-after", "mm"]),
     ("register_pair", {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": "pair", "DR": 15}, ["register", "a.laz", "b.laz", "--out", "pair", "--dr", "15.0"]),
-    ("register_pair", {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": "pair", "WRITE_REGISTERED": True},
-     ["register", "a.laz", "b.laz", "--out", "pair", "--write-registered"]),
+    ("register_pair", {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": "pair", "WRITE_REGISTERED": True, "CRS": "EPSG:26912"},
+     ["register", "a.laz", "b.laz", "--out", "pair", "--write-registered", "--crs", "EPSG:26912"]),
     ("register_plot", {"SCANS": ["a.laz", "b.laz"], "OUTPUT": "plot", "MERGED": "plot/merged.copc.laz", "CENTRE": "b.laz"},
      ["plot", "a.laz", "b.laz", "--out", "plot", "--centre", "b.laz", "--merged", "plot/merged.copc.laz"]),
+    ("register_plot", {"SCANS": ["a.laz", "b.laz"], "OUTPUT": "plot", "CRS": "EPSG:32618"},
+     ["plot", "a.laz", "b.laz", "--out", "plot", "--crs", "EPSG:32618"]),
 ]
 
 
@@ -335,14 +337,14 @@ def test_a_fused_cloud_loads_as_a_point_cloud_layer(provider, monkeypatch, tmp_p
     assert type(layer).__name__ == "QgsPointCloudLayer" and results["POINT_CLOUD"] in context.to_load
 
 
-@pytest.mark.parametrize("version, point_clouds", [(31600, True), (33400, False)])
-def test_no_point_cloud_layer_where_qgis_has_none(monkeypatch, tmp_path, version, point_clouds):
-    with qgis_fakes.installed(version, point_clouds) as provider:
+@pytest.mark.parametrize("version, point_clouds, pdal", [(31600, True, True), (33400, False, True), (32216, True, False)])
+def test_no_point_cloud_layer_where_qgis_has_none(monkeypatch, tmp_path, version, point_clouds, pdal):
+    with qgis_fakes.installed(version, point_clouds, pdal) as provider:
         feedback = qgis_fakes.Feedback()
         results, context = _fuse(provider, monkeypatch, tmp_path, feedback)
         kinds = {o.name(): o.kind for o in _algorithm(provider, "fuse").outputDefinitions()}
     assert results["POINT_CLOUD"] is None and not context.to_load and results["STATUS"] == "ok"
-    assert any("point cloud" in line for line in feedback.info)
+    assert any("point cloud" in line or "PDAL" in line for line in feedback.info) and feedback.errors == []
     if not point_clouds:  # the output is declared as a string where QGIS has no point cloud outputs
         assert kinds["POINT_CLOUD"] == "QgsProcessingOutputString"
 
@@ -364,6 +366,8 @@ def test_a_plot_loads_its_layers_and_its_merged_cloud(provider, monkeypatch, tmp
         {"SCANS": ["a.laz", "b.laz"], "OUTPUT": str(out), "MERGED": str(merged)}, context, qgis_fakes.Feedback())
     assert results["MERGED"] == str(merged)
     assert [context.store.mapLayer(i).name() for i in results["LAYERS"]] == ["scanners (plot)", "links (plot)", "plot_outline (plot)"]
+    # one scanners layer: the styled one of layers.gpkg is the scanner positions output
+    assert results["SCANNERS"] == results["LAYERS"][0] and len(context.store.layers) == 4
     assert context.store.mapLayer(results["POINT_CLOUD"]).provider == "pdal"
 
 
@@ -434,6 +438,8 @@ def test_the_model_chains_register_plot_trees_and_change(provider):
                                 if d.kind.endswith("Destination")}
                     assert s["output_name"] in outputs
     assert model["model_name"] and model["model_group"] == "forestreg"
+    # the scans are files (QGIS's TypeFile, 4): a layer type would make QGIS open each scan as a map layer, and refuse it
+    assert model["parameterDefinitions"]["scans"]["layer_type"] == str(qgis_fakes.QgsProcessing.TypeFile) == "4"
 
 
 # ----------------------------------------------------------------------------- real QGIS
@@ -452,33 +458,3 @@ def test_the_guide_names_every_algorithm_and_the_model():
     for name in IDS:
         assert f"`forestreg:{name}`" in guide
     assert MODEL.relative_to(ROOT).as_posix() in guide
-
-
-def test_qgis_process_runs_trees_on_sample_data(tmp_path):
-    exe = shutil.which("qgis_process")
-    if exe is None:
-        pytest.skip("qgis_process is not installed (QGIS is needed for this run; Debian: apt-get install qgis)")
-    from forestreg.engine.simulate import simulate_plot
-
-    scans = tmp_path / "scans"
-    simulate_plot("planted_conifer", [(0, 0)], seed=1, angular_step_deg=0.3, size_m=30, out_dir=scans)
-    plugins = tmp_path / "plugins"
-    plugins.mkdir()
-    (plugins / "forestreg").symlink_to(ROOT, target_is_directory=True)
-    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "QGIS_PLUGINPATH": str(plugins), "HOME": str(tmp_path),
-           "FORESTREG_SERVICE_DIR": str(tmp_path / "service"), adapter.CLI_ENV: f"{sys.executable} -m forestreg.cli"}
-    subprocess.run([exe, "plugins", "enable", "forestreg"], capture_output=True, text=True, env=env, timeout=120)
-    out = tmp_path / "trees"
-    run = subprocess.run([exe, "--json", "run", "forestreg:trees", "--", f"CLOUD={scans / 'scan_01.laz'}", f"OUTPUT={out}",
-                          "CYLINDERS=false", "REPORT=false"], capture_output=True, text=True, env=env, timeout=900)
-    try:
-        assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
-        results = json.loads(run.stdout[run.stdout.index("{"):])["results"]
-        assert results["STATUS"] == "ok" and Path(results["TREES"]) == out / "trees.csv"
-        assert (out / "layers.gpkg").is_file() and len(results["LAYERS"]) >= 1
-    finally:
-        from forestreg.client import read_server_info
-
-        info = read_server_info(tmp_path / "service")
-        if info:
-            os.kill(info["pid"], 15)

@@ -122,17 +122,17 @@ def _apply_style(layer, qml: str, feedback) -> None:
         feedback.pushInfo(f"style of {layer.name()} not applied: {exc}")
 
 
-def _load_gpkg_layers(folder, label: str, context: QgsProcessingContext, output: str, feedback) -> list:
+def _load_gpkg_layers(folder, label: str, context: QgsProcessingContext, output: str, feedback) -> dict:
     """Each feature layer of ``folder/layers.gpkg`` (trees, crowns, scanners, links, tree_changes,
-    keypoints, plot_outline), styled, loaded into the project when the algorithm completes; the
-    layer ids ([] when the run wrote no ``layers.gpkg``)."""
+    keypoints, plot_outline), styled, loaded into the project when the algorithm completes: its
+    name -> layer id, in the GeoPackage's order ({} when the run wrote no ``layers.gpkg``)."""
     path = Path(folder) / adapter.LAYERS_FILE
     try:
         layers = adapter.gpkg_layers(path)
     except adapter.AdapterError as exc:
         feedback.reportError(str(exc))
-        return []
-    ids = []
+        return {}
+    ids = {}
     for item in layers:
         name = f"{item.name} ({label})"
         layer = QgsVectorLayer(item.uri, name, "ogr")
@@ -142,23 +142,28 @@ def _load_gpkg_layers(folder, label: str, context: QgsProcessingContext, output:
         _apply_style(layer, item.style, feedback)
         context.temporaryLayerStore().addMapLayer(layer)
         context.addLayerToLoadOnCompletion(layer.id(), QgsProcessingContext.LayerDetails(name, context.project(), output))
-        ids.append(layer.id())
+        ids[item.name] = layer.id()
     return ids
 
 
 def _load_point_cloud(path, name: str, context: QgsProcessingContext, output: str, feedback):
     """A LAS/LAZ/COPC cloud as a point cloud layer ("pdal" provider) loaded on completion, where
-    the QGIS version has them (3.18 or newer); its id, or None (older QGIS, no such file, or a
-    cloud the provider cannot open: the file stays in the output folder)."""
+    the QGIS version has them (3.18 or newer) and was built with its PDAL provider; its id, or
+    None (older QGIS, a QGIS without PDAL, no such file, or a cloud the provider cannot open: the
+    file stays in the output folder)."""
     if not adapter.is_point_cloud_file(path):
         return None
     if _qgis_version() < POINT_CLOUD_MIN_VERSION:
         feedback.pushInfo(f"{path}: point cloud layers need QGIS 3.18 or newer; add the file by hand")
         return None
     try:
-        from qgis.core import QgsPointCloudLayer
+        from qgis.core import QgsPointCloudLayer, QgsProviderRegistry
     except ImportError:
         feedback.pushInfo(f"{path}: this QGIS has no point cloud layers")
+        return None
+    if "pdal" not in QgsProviderRegistry.instance().providerList():
+        feedback.pushInfo(f"{path}: this QGIS was built without its PDAL provider, so it opens no LAS/LAZ file; "
+                          "the cloud stays in the output folder (a QGIS with PDAL, or CloudCompare, opens it)")
         return None
     layer = QgsPointCloudLayer(str(path), name, "pdal")
     if not layer.isValid():
@@ -213,7 +218,7 @@ class _Base(QgsProcessingAlgorithm):
             self.DR, "VOP radius D_r in metres (empty: automatic)", type=QgsProcessingParameterNumber.Double,
             optional=True, minValue=1.0, maxValue=100.0,
         ))
-        crs = QgsProcessingParameterCrs(self.CRS, "CRS of the scans' coordinates (for the layers)", optional=True)
+        crs = QgsProcessingParameterCrs(self.CRS, "CRS of the scans' coordinates where they declare none (--crs)", optional=True)
         crs.setFlags(crs.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
         self.addParameter(crs)
         cli = QgsProcessingParameterString(
@@ -233,11 +238,22 @@ class _Base(QgsProcessingAlgorithm):
     def _cli(self, parameters, context):
         return (self.parameterAsString(parameters, self.CLI, context) or "").strip() or None
 
-    def _run_job(self, args, run, failure, layer_name, parameters, context, feedback):
+    def _crs_text(self, parameters, context):
+        """The ``--crs`` value: the CRS's authority id (EPSG:...), else its WKT; None when not given."""
+        if parameters.get(self.CRS) in (None, ""):
+            return None
+        crs = self.parameterAsCrs(parameters, self.CRS, context)
+        if crs is None or not crs.isValid():
+            return None
+        return crs.authid() or crs.toWkt() or None
+
+    def _run_job(self, args, run, failure, layer_name, parameters, context, feedback, layers_output=None):
         """Run the service job ``args`` through ``run(cli, progress, log, cancelled)``, report a
         failure as ``failure: reason``, write the layer CSVs and load the scanner positions as
-        ``scanners (layer_name)``. Returns the outputs, the CRS, the layer files and the common
-        result entries (output folder, scanners layer, status, reason)."""
+        ``scanners (layer_name)``. With ``layers_output`` the styled layers of the output folder's
+        ``layers.gpkg`` load too (that output: their ids), and its own ``scanners`` layer is the
+        scanner positions (one scanners layer, not two). Returns the outputs, the CRS, the layer
+        files and the common result entries (output folder, scanners layer, status, reason)."""
         cli = self._cli(parameters, context)
         feedback.pushInfo("job: forestreg " + " ".join(args))
         outputs = _run_and_report(lambda p, l, c: run(cli, p, l, c), feedback)
@@ -245,13 +261,17 @@ class _Base(QgsProcessingAlgorithm):
             feedback.reportError(f"{failure}: {outputs.reason}")
         crs = self.parameterAsCrs(parameters, self.CRS, context)
         files = adapter.write_layer_files(outputs)
-        scanners = _load_point_layer(files.scanners, f"scanners ({layer_name})", crs, context, self.SCANNERS, feedback)
-        return outputs, crs, files, {
+        gpkg = _load_gpkg_layers(outputs.out_dir, layer_name, context, layers_output, feedback) if layers_output else {}
+        scanners = gpkg.get("scanners") or _load_point_layer(files.scanners, f"scanners ({layer_name})", crs, context, self.SCANNERS, feedback)
+        results = {
             self.OUTPUT: self.parameterAsString(parameters, self.OUTPUT, context),
             self.SCANNERS: scanners,
             self.STATUS: outputs.status,
             self.REASON: outputs.reason,
         }
+        if layers_output:
+            results[layers_output] = list(gpkg.values())
+        return outputs, crs, files, results
 
 
 class RegisterPairAlgorithm(_Base):
@@ -293,6 +313,7 @@ class RegisterPairAlgorithm(_Base):
             out_dir=out,
             vop_radius_m=self._dr(parameters, context),
             write_registered=bool(parameters.get(self.WRITE_REGISTERED)) and self.parameterAsBool(parameters, self.WRITE_REGISTERED, context),
+            crs=self._crs_text(parameters, context),
         )
         stem = f"{Path(job.moving).stem} onto {Path(job.reference).stem}"
         outputs, crs, files, results = self._run_job(
@@ -359,16 +380,16 @@ class RegisterPlotAlgorithm(_Base):
             centre=(self.parameterAsString(parameters, self.CENTRE, context) or "").strip() or None,
             vop_radius_m=self._dr(parameters, context),
             merged=merged or None,
+            crs=self._crs_text(parameters, context),
         )
         label = Path(out).name
         results = self._run_job(
             adapter.build_plot_args(job), lambda *a: adapter.register_plot(job, *a), "not every scan was registered",
-            label, parameters, context, feedback,
+            label, parameters, context, feedback, layers_output=self.LAYERS,
         )[3]
         return {
             **results,
             self.MERGED: merged,
-            self.LAYERS: _load_gpkg_layers(out, label, context, self.LAYERS, feedback),
             self.POINT_CLOUD: _load_point_cloud(merged, f"merged ({label})", context, self.POINT_CLOUD, feedback),
         }
 
@@ -432,15 +453,6 @@ class _JobAlgorithm(_Base):
         if parameters.get(name) in (None, ""):
             return None
         return self.parameterAsInt(parameters, name, context) if integer else self.parameterAsDouble(parameters, name, context)
-
-    def _crs_text(self, parameters, context):
-        """The ``--crs`` value: the CRS's authority id (EPSG:...), else its WKT; None when not given."""
-        if parameters.get(self.CRS) in (None, ""):
-            return None
-        crs = self.parameterAsCrs(parameters, self.CRS, context)
-        if crs is None or not crs.isValid():
-            return None
-        return crs.authid() or crs.toWkt() or None
 
     def _units(self, parameters, context, name=None, first=()):
         """The unit chosen in the enum ``name`` (``UNITS``); None for the CLI's default, "m"."""
@@ -532,7 +544,7 @@ class CoregisterAlgorithm(_JobAlgorithm):
             self.OUTPUT: str(out), **self.status(run),
             self.TRANSFORM: str(transform) if run.returncode == adapter.EXIT_OK and transform.is_file() else "",
             self.RESULT: str(out / "result.json"),
-            self.LAYERS: _load_gpkg_layers(out, f"{Path(job.ground).stem} onto {Path(job.uav).stem}", context, self.LAYERS, feedback),
+            self.LAYERS: list(_load_gpkg_layers(out, f"{Path(job.ground).stem} onto {Path(job.uav).stem}", context, self.LAYERS, feedback).values()),
         }
 
 
@@ -653,7 +665,7 @@ class TreesAlgorithm(_JobAlgorithm):
         return {
             self.OUTPUT: str(out), **self.status(run),
             self.TREES: str(trees) if trees.is_file() else "",
-            self.LAYERS: _load_gpkg_layers(out, Path(str(job.cloud)).stem, context, self.LAYERS, feedback),
+            self.LAYERS: list(_load_gpkg_layers(out, Path(str(job.cloud)).stem, context, self.LAYERS, feedback).values()),
         }
 
 
@@ -765,7 +777,7 @@ class ChangeAlgorithm(_JobAlgorithm):
             self.OUTPUT: str(out), **self.status(run),
             self.CHANGES: str(changes) if changes.is_file() else "",
             self.RESULT: str(out / "result.json"),
-            self.LAYERS: _load_gpkg_layers(out, f"{Path(str(job.after)).stem} since {Path(str(job.before)).stem}", context, self.LAYERS, feedback),
+            self.LAYERS: list(_load_gpkg_layers(out, f"{Path(str(job.after)).stem} since {Path(str(job.before)).stem}", context, self.LAYERS, feedback).values()),
         }
 
 
