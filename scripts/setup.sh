@@ -25,11 +25,12 @@ if [ ${#missing[@]} -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
 fi
 
-# The real plugin hosts, for tests/test_plugin.py: Debian's QGIS Python bindings (the QGIS provider
-# runs headless in /usr/bin/python3) and CloudCompare (run under xvfb-run, installed above). Where
-# apt has no such package (another distribution or release) the tests that need it are skipped;
-# this says so and goes on.
-host_packages=(python3-qgis cloudcompare)
+# The real plugin hosts, for tests/test_plugin.py and tests/test_qgis_real.py: Debian's QGIS Python
+# bindings (the QGIS provider runs headless in /usr/bin/python3), QGIS itself for its qgis_process
+# (the algorithms and the model run headless; package qgis) and CloudCompare (run under xvfb-run,
+# installed above). Where apt has no such package (another distribution or release) the tests that
+# need it are skipped; this says so and goes on.
+host_packages=(python3-qgis qgis cloudcompare)
 host_missing=()
 for p in "${host_packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || host_missing+=("$p")
@@ -53,7 +54,7 @@ if [ ${#host_missing[@]} -gt 0 ]; then
         || echo "setup: installing ${available[*]} failed: the plugin tests that need them will be skipped" >&2
     fi
   else
-    echo "setup: no apt-get here: python3-qgis and cloudcompare not installed, their plugin tests will be skipped" >&2
+    echo "setup: no apt-get here: ${host_missing[*]} not installed, their plugin tests will be skipped" >&2
   fi
 fi
 
