@@ -21,7 +21,7 @@ from ..core.transform import apply as apply_transform
 from .epoch import EpochTrees
 from .matching import STATUSES, TreeChange, match_trees
 from .params import ChangeParams
-from .registration import StemMatch, persisting_stems, refine_on_stems, stem_alternatives
+from .registration import StemMatch, paired_after_xy, persisting_stems, refine_on_stems, stem_alternatives
 from ..core.uncertainty import judge, with_alternatives
 
 __all__ = ["ChangeResult", "detect_change", "file_matrix"]
@@ -146,7 +146,8 @@ def detect_change(
     from ..tls.uncertainty import pair_uncertainty
 
     b_idx, a_idx = match.pairs[:, 0], match.pairs[:, 1]
-    moved = apply_transform(local, after.breast_points()[a_idx])
+    cut_z = before.ground_z[b_idx] + 1.3 - float(local[2, 3])  # BEFORE's breast heights, in AFTER's frame
+    moved = apply_transform(local, np.column_stack([paired_after_xy(before, after, match.pairs, float(local[2, 3])), cut_z]))
     res = np.hypot(*(moved[:, :2] - before.xy[b_idx]).T)
     figures["stem_residual_rms_m"] = float(np.sqrt(np.mean(res**2)))
     figures["stem_residual_max_m"] = float(res.max())
@@ -161,11 +162,16 @@ def detect_change(
         # at least 2 cm for feet (a foot is a stem's lowest point, not a surface both surveys share)
         floor = 0.02 if match.vertical_from != "terrain" else 0.0
         vertical = max(vertical, match.vertical_spread_m / math.sqrt(n), floor)
-    translation = max(float(unc["translation_m"]), math.hypot(float(unc.get("horizontal_m") or 0.0), vertical))
+    # stems are compared at one height, so an error in the height offset moves every stem along
+    # its lean: the same way for stems leaning alike (their mean lean), unseen in the residuals
+    lean = after.axis[a_idx]
+    mean_lean = float(np.hypot(*(lean[:, :2] / np.maximum(np.abs(lean[:, 2:3]), 0.5)).mean(axis=0)))
+    horizontal = math.hypot(float(unc.get("horizontal_m") or 0.0), mean_lean * vertical)
+    translation = max(float(unc["translation_m"]), math.hypot(horizontal, vertical))
     alternatives = stem_alternatives(before, after, match, local, params)
     stated_t, stated_r = with_alternatives(translation, float(unc["rotation_deg"]), alternatives)
     uncertainty = {"translation_m": stated_t, "rotation_deg": stated_r,
-                   "horizontal_m": unc.get("horizontal_m"), "vertical_m": vertical, "vertical_from": match.vertical_from,
+                   "horizontal_m": horizontal, "vertical_m": vertical, "vertical_from": match.vertical_from,
                    "heading_deg": unc.get("heading_deg"), "stems": n, "at": "plot centre (the persisting stems' centroid)",
                    "alternatives": [a.to_dict() for a in alternatives], "weak_directions": [],
                    "method": f"{unc.get('method')}; distinct solutions counted (stems persisting under each)"}
@@ -178,7 +184,7 @@ def detect_change(
     t = time.perf_counter()
     progress(0.6, "matching trees")
     skipped: list = []
-    trees = match_trees(before, after, local, params, skipped, shift_sigma_m=float(unc.get("horizontal_m") or stated_t))
+    trees = match_trees(before, after, local, params, skipped, shift_sigma_m=horizontal or stated_t)
     figures["single_stems_without_dbh"] = len(skipped)
     timings["trees_match_s"] = time.perf_counter() - t
     progress(1.0, "done")

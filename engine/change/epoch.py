@@ -104,6 +104,17 @@ class EpochTrees:
         """(n, 3) stem axis points at breast height (1.3 m above the ground under the stem)."""
         return np.column_stack([self.xy, self.ground_z + 1.3])
 
+    def axis_xy_at(self, idx: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """(k, 2) where the axes of stems ``idx`` pass height ``z`` (this survey's frame, m): the
+        breast-height point moved along the stem's lean. A leaning stem's position depends on the
+        height it is taken at, so two surveys' stems compare at one height."""
+        idx = np.asarray(idx, dtype=np.int64)
+        ax = self.axis[idx]
+        up = np.where(np.abs(ax[:, 2]) > 0.5, ax[:, 2], 1.0)  # leans over 60 deg are not stems
+        along = (np.asarray(z, dtype=float) - (self.ground_z[idx] + 1.3)) / up
+        along = np.where(np.isfinite(along), along, 0.0)
+        return self.xy[idx] + along[:, None] * ax[:, :2]
+
 
 def _inside_hull(xy: np.ndarray, p: np.ndarray, margin_m: float = 2.0) -> bool:
     """Whether ``p`` lies inside the convex hull of ``xy`` grown by ``margin_m``."""
@@ -202,7 +213,8 @@ def epoch_from_cloud(
         out["h_sd"][k] = by_trust(change.height_sigma_m, h_trust) if math.isfinite(h) else math.nan
         h_ok[k] = math.isfinite(h) and h_trust == "high"  # a change needs tops trusted in both surveys
         flags.append("; ".join(dict.fromkeys(reasons)))
-    band_mask = (heights >= change.stem_band_m[0]) & (heights <= change.stem_band_m[1])
+    margin = change.no_ground_band_margin_m if no_ground else 0.0
+    band_mask = (heights >= change.stem_band_m[0] - margin) & (heights <= change.stem_band_m[1] + margin)
     band = p[band_mask]
     band_h = heights[band_mask]
     ground = thin(p[inv.ground], 0.25) if inv.ground.any() else np.zeros((0, 3))

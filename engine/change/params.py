@@ -60,6 +60,7 @@ class ChangeParams(Params):
     #: clouds with ground hold ~0 % of their points 0.5 m below it, clouds without 2-10 %
     no_ground_fraction: float = _p(0.005, "1", 0.0, 1.0, "Fraction of a cloud's points more than 0.5 m below the ground found above which the cloud has no ground (heights then above its lowest points)")
     stem_band_m: tuple[float, float] = _p((0.3, 3.0), "m", 0.0, 10.0, "Heights above the ground of the band kept for the stem slices and the presence checks (holds slice_heights_m and 1-2.5 m)")
+    no_ground_band_margin_m: float = _p(2.0, "m", 0.0, 10.0, "In a cloud without ground, the stem band kept reaches this much further down and up: its heights are above its lowest points, and the other survey's ground under a stem may lie that far off")
 
     def _check(self) -> None:
         self.stem_icp.check_within("change.stem_icp", voxel_m=(0.005, 0.5), distances_m=(0.005, 5.0), iterations=(1, 500))
