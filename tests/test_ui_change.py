@@ -56,3 +56,35 @@ def test_failed_comparison_and_a_wrong_folder(qtbot, window, change_dir, tmp_pat
     assert window.change_view.table.rowCount() == 0
     assert not window.open_change(tmp_path)
     assert window.last_error is not None and "re-survey" in window.last_error[0]
+
+
+def test_gui_change_screenshot_offscreen(change_dir, tmp_path):
+    """``forestreg gui --change DIR --screenshot PNG``: the Re-survey tab drawn without a display,
+    its change map in colour and the tree table filled."""
+    import os
+    import subprocess
+
+    import numpy as np
+    from PySide6.QtGui import QImage
+
+    folder, _ = change_dir
+    out = tmp_path / "change.png"
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM")}
+    done = subprocess.run([sys.executable, "-m", "forestreg.cli", "gui", "--offscreen", "--change", str(folder / "out"),
+                           "--screenshot", str(out), "--size", "1400x900"], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert out.is_file() and out.stat().st_size > 20_000
+    img = QImage(str(out)).convertToFormat(QImage.Format.Format_RGB888)
+    assert (img.width(), img.height()) == (1400, 900)
+    arr = np.frombuffer(img.constBits(), dtype=np.uint8).reshape(img.height(), img.bytesPerLine())[:, : img.width() * 3]
+    rgb = arr.reshape(img.height(), img.width(), 3).astype(int)
+    colours = np.unique(rgb.reshape(-1, 3)[::5], axis=0)
+    assert len(colours) > 200, f"only {len(colours)} distinct colours: the window looks blank"
+    saturated = (rgb.max(axis=2) - rgb.min(axis=2)) > 80  # the map's growth colours and removed/new markers
+    assert saturated.sum() > 2000, "no change map in the screenshot"
+
+    # a folder that is not a change result: one line, exit 2, no picture
+    bad = tmp_path / "bad.png"
+    done = subprocess.run([sys.executable, "-m", "forestreg.cli", "gui", "--offscreen", "--change", str(tmp_path),
+                           "--screenshot", str(bad)], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and "re-survey" in done.stderr.lower() and not bad.exists()

@@ -5,6 +5,7 @@ Usage::
     forestreg gui [--project P] [--offscreen] [--run] [--screenshot OUT.png]
     forestreg gui --offscreen --trees DIR [--cloud FILE] [--tree ID] --screenshot OUT.png
     forestreg gui --offscreen --coregistration DIR --screenshot OUT.png
+    forestreg gui --offscreen --change DIR --screenshot OUT.png
     python -m forestreg.ui.app --offscreen --project P --run --screenshot out.png
 
 ``--offscreen`` needs no display at all: Qt draws the window into memory (its "offscreen"
@@ -15,7 +16,8 @@ the window (see :mod:`forestreg.ui.scene_view`), so the screenshot shows the poi
 once everything is drawn and exits. ``--trees DIR`` opens the result of ``forestreg trees --out
 DIR`` on the Trees tab (map, table, the first tree or ``--tree ID`` in 3D; ``--cloud`` adds the
 measured cloud's points), ``--coregistration DIR`` the result of ``forestreg coregister --out DIR``
-on the Co-registration tab. Exit codes: 0 done, 1 the run failed, 2 bad arguments or an
+on the Co-registration tab, ``--change DIR`` the result of ``forestreg change BEFORE AFTER --out DIR``
+on the Re-survey tab (its change map and tree table). Exit codes: 0 done, 1 the run failed, 2 bad arguments or an
 unreadable project.
 """
 
@@ -44,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cloud", metavar="FILE", help="with --trees: the measured cloud, to draw each tree's points")
     p.add_argument("--tree", type=int, metavar="ID", help="with --trees: the tree to select (default: the first)")
     p.add_argument("--coregistration", metavar="DIR", help="open a co-registration result folder (forestreg coregister --out DIR)")
+    p.add_argument("--change", metavar="DIR", help="open a re-survey result folder (forestreg change BEFORE AFTER --out DIR)")
     p.add_argument("--field", metavar="CSV", help="with --trees: evaluate against field records (Field data tab)")
     p.add_argument("--also", action="append", default=[], metavar="NAME=DIR",
                    help="with --field: another trees folder shown side by side (e.g. fused=trees_fused)")
@@ -149,6 +152,9 @@ def main(argv: Optional[list[str]] = None) -> int:
             return 2
         if args.coregistration and not window.open_coregistration(args.coregistration):
             print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.coregistration}", file=sys.stderr)
+            return 2
+        if args.change and not window.open_change(args.change):
+            print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.change}", file=sys.stderr)
             return 2
         if args.trees and not window.open_trees(args.trees, args.cloud, select=args.tree):
             print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.trees}", file=sys.stderr)
