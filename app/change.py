@@ -29,7 +29,7 @@ from typing import ClassVar, Optional
 
 import numpy as np
 
-from .common import UNITS, RunOutcome, check_units, with_cancel
+from .common import UNITS, RunOutcome, check_units, outcome_of, run_summary, with_cancel
 
 __all__ = ["ChangeOutcome", "ChangeSummary", "change_rows", "detect_change_files", "read_change_folder", "read_epoch"]
 
@@ -307,7 +307,6 @@ def detect_change_files(
     from ..engine.core.atomic import check_output_folder, output_folder
     from ..engine.core.errors import UsageError
     from ..engine.core.progress import as_progress
-    from ..engine.core.transform import withhold_unless_rigid
     from ..engine.io.crs import as_crs, frame_crs
     from ..engine.trees.inventory import TreeParams
 
@@ -344,18 +343,16 @@ def detect_change_files(
     _unit_mismatch(b_epoch, a_epoch, units_before, units_after)
     read_s = time.perf_counter() - t0
     result = detect_change(b_epoch, a_epoch, change_params, prog.sub(0.9, 1.0))
-    summary = withhold_unless_rigid(result.to_dict())  # the last check before "ok"
+    # the last check before "ok"; the matrix's translation in BEFORE's unit
+    summary, ok = run_summary(result, {"read_and_trees_s": read_s}, {"before": b_path, "after": a_path}, units_before, scale,
+                              facts={"before_read": b_note, "after_read": a_note, "inputs": {"before": kinds[0], "after": kinds[1]}})
     if summary.get("matrix") is not None:
         # file coordinates of each survey in its own unit: p_before = M @ p_after holds the unit ratio
         m = np.array(summary["matrix"], dtype=float)
         m[:3, :3] *= scale_after / scale
-        m[:3, 3] /= scale
         summary["matrix"] = m.tolist()
-    summary["timings"] = {"read_and_trees_s": read_s, **summary.get("timings", {})}
     notes = [f"BEFORE: {n}" for n in b_notes] + [f"AFTER: {n}" for n in a_notes]
-    summary.update(before=str(b_path.resolve()), after=str(a_path.resolve()), before_read=b_note, after_read=a_note,
-                   inputs={"before": kinds[0], "after": kinds[1]}, unit=units_before, unit_scale=scale,
-                   unit_after=units_after, unit_scale_after=scale_after, notes=notes,
+    summary.update(unit_after=units_after, unit_scale_after=scale_after, notes=notes,
                    columns="tree_changes.csv: x, y in BEFORE file coordinates (BEFORE's unit); DBH and heights in metres")
     frame = frame_crs({"before": _survey_crs(b_path, kinds[0]), "after": _survey_crs(a_path, kinds[1])}, "before", given,
                       names={"before": f"BEFORE ({b_path.name})", "after": f"AFTER ({a_path.name})"})
@@ -364,7 +361,6 @@ def detect_change_files(
     if units_before != units_after:
         summary["convention"] = (f"{summary.get('convention') or ChangeOutcome.convention}; BEFORE in {units_before}, AFTER in "
                                  f"{units_after}: the matrix scales by {scale_after / scale:.6g}")
-    ok = summary["status"] == "ok"
     rows_local = [t.row(np.zeros(3)) for t in result.trees] if ok else []
     rows = [{**r, "x": (r["x"] + float(result.origin_shift[0])) / scale, "y": (r["y"] + float(result.origin_shift[1])) / scale}
             for r in rows_local]
@@ -389,7 +385,4 @@ def detect_change_files(
 
                 background = b_epoch.band[::7, :2] if b_epoch.has_points else None
                 write_change_report(tmp, summary, rows_local, background, file_rows=rows)
-    m = summary.get("matrix")
-    return ChangeOutcome(status=str(summary["status"]), reason=str(summary.get("reason") or ""),
-                         matrix=None if m is None else np.asarray(m, dtype=float), timings=dict(summary["timings"]),
-                         out=out, summary=summary, result=result, rows=rows, notes=tuple(notes))
+    return outcome_of(summary, out=out, result=result, cls=ChangeOutcome, rows=rows, notes=tuple(notes))
