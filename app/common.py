@@ -23,7 +23,12 @@ class RunOutcome(Outcome):
     """The outcome of one use case: ``status`` ("ok" or "failed"), ``reason``, ``matrix`` (4x4 in
     the files' unit, or None), ``timings`` (seconds per step), the output folder or file ``out``
     (None when nothing was written), ``summary`` (the ``result.json`` written, or the figures of
-    the run) and ``result`` (the engine's typed result). Falsy when not ok."""
+    the run) and ``result`` (the engine's typed result). Falsy when not ok.
+
+    ``result_file`` and ``outputs``: the file a program reads first (``poses.json``, ...) and every
+    file or folder the run wrote, as absolute paths, when the use case lists them (the command
+    line hands them to the job service and the batch in its ``end`` event: nothing is guessed from
+    file names)."""
 
     status: str
     reason: str = ""
@@ -32,6 +37,8 @@ class RunOutcome(Outcome):
     out: Optional[Path] = None
     summary: dict = field(default_factory=dict)
     result: Any = None
+    result_file: Optional[Path] = None
+    outputs: tuple = ()
 
     def evidence(self) -> dict[str, Any]:
         ev = self.summary.get("evidence") if isinstance(self.summary, dict) else None

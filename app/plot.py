@@ -8,8 +8,9 @@ WKT VLR, ``layers.gpkg``).
 :func:`plot_scans` is the whole ``plot`` use case from scan files, its checks first (the command,
 the job service and the batch through it, and the Python API call it); :func:`new_project` builds
 a project from scan files and the user's marks; :func:`run_plot` registers a project and writes
-the products (``project run``, the watch); :func:`register_plot_project` is the desktop's run of
-the project it edits (the same scan checks first; the project saved, no folder written). The
+the products (``project run``, the watch); :func:`register_plot` is the registration they all
+go through, its check of the scans first (:func:`check_scans_near_their_scanners`), and the
+desktop's run of the project it edits (the project saved to its file, no folder written). The
 rules of editing a project (no link of a scan to itself, the centre scan not moved) are the
 project's own (:class:`~forestreg.engine.tls.project.Project`).
 """
@@ -366,25 +367,42 @@ def resumable_project(out, project: Project) -> tuple[Project, int]:
 # ----------------------------------------------------------------------------- the run
 
 
-def register_plot_project(project, scans=None, *, rerun: bool = False, progress=None, cancel=None,
-                          on_link: Optional[Callable[[Any], None]] = None):
-    """Register the project's links, adjust the poses and save the project (the desktop's run of
-    the project it edits: no folder written). The checks of :func:`plot_scans` that concern the
-    scans come first (:func:`check_scans_near_their_scanners`): a plot the ``plot`` command
-    refuses is refused here too, before any link runs. Returns the engine's :class:`~forestreg.engine.tls.plot.PlotOutcome`."""
+def register_plot(project, scans=None, *, pairs: Optional[str] = None, fixed: Sequence[str] = (), rerun: bool = False,
+                  loops: Optional[float] = None, survey=None, progress=None, cancel=None,
+                  on_link: Optional[Callable[[Any], None]] = None):
+    """The registration of every plot run (:func:`plot_scans`, :func:`run_plot`, the desktop's run
+    of the project it edits): the scans checked first (:func:`check_scans_near_their_scanners`: a
+    plot the ``plot`` command refuses is refused here, before any link runs), then the links
+    (``pairs``: every pair with a pose graph, see :mod:`forestreg.app.survey`, with the other
+    settings of ``survey``; ``loops``: also links between scans within that many metres), the
+    global adjustment, and the project saved to its file (when it has one) after each finished
+    link and at the end. ``on_link(link)`` after each link to the centre. Returns the engine's
+    :class:`~forestreg.engine.tls.plot.PlotOutcome`; the poses and the adjustment are in the
+    project."""
     from ..engine.io.results import save_to_its_file
-    from ..engine.tls.plot import adjust_poses, register_project
+    from ..engine.tls.plot import add_neighbour_links, adjust_poses, register_project
 
-    scans = checked_scans(project, scans)  # the plot command's check, before any link runs
-    report = progress or (lambda f, m: None)
-    outcome = register_project(project, rerun=rerun, progress=lambda f, m: report(0.95 * f, m), cancel=cancel,
-                               on_link=on_link, on_link_done=save_to_its_file, scans=scans)
-    if cancel is not None:
-        cancel.raise_if_cancelled()
-    report(0.96, "global adjustment")
-    adjust_poses(project, scans)
+    scans = checked_scans(project, scans)  # before any link runs
+    step = with_cancel(progress, cancel)
+    if pairs:
+        from .survey import register_survey
+
+        outcome = register_survey(project, pairs, fixed=fixed, rerun=rerun, scans=scans, progress=step, base=survey,
+                                  on_link_done=save_to_its_file)
+    else:
+        report = step or (lambda f, m: None)
+        outcome = register_project(project, rerun=rerun, progress=lambda f, m: report(0.95 * f, m), cancel=cancel, scans=scans,
+                                   on_link=on_link, on_link_done=save_to_its_file)
+        if loops:
+            added = add_neighbour_links(project, loops)
+            if added:
+                log.info("closing %d loops between neighbouring scans", len(added))
+                register_project(project, progress=step, scans=scans, cancel=cancel, on_link_done=save_to_its_file)
+        if cancel is not None:
+            cancel.raise_if_cancelled()
+        report(0.96, "global adjustment")
+        adjust_poses(project, scans)
     save_to_its_file(project)
-    report(1.0, "done")
     return outcome
 
 
@@ -437,36 +455,19 @@ def run_plot(
     poses, transforms, ``layers.gpkg`` and the report into ``out`` (each product replaced by one
     rename, poses.json last) and the extra products asked for, all in the centre scan's frame with
     its CRS (``crs``, e.g. "EPSG:32618", when its file declares none, or the one that wins)."""
-    import tempfile
-
+    from ..engine.core.atomic import temporary_folder
     from ..engine.io.crs import as_crs
-    from ..engine.io.results import save_to_its_file
-    from ..engine.tls.plot import add_neighbour_links, adjust_poses, register_project
 
     given = as_crs(crs, "--crs")
 
     # the report's figures need matplotlib (~0.4 s of imports): loaded while the scans are
     # registered, not on the single thread that writes the report at the end
     import_in_background(".engine.report.plot_report", kernels=True)
-    writes_points = bool(merged or registered_dir or e57_out)
     if scans is None:
-        scans = scan_cache(project, with_intensity=writes_points)
-        check_scans_near_their_scanners(project, scans)
-    step = with_cancel(progress, cancel)
-    if pairs:
-        from .survey import register_survey
-
-        outcome = register_survey(project, pairs, fixed=fixed, rerun=rerun, scans=scans, progress=step, base=survey,
-                                  on_link_done=save_to_its_file)
-    else:
-        outcome = register_project(project, rerun=rerun, progress=step, scans=scans, cancel=cancel, on_link_done=save_to_its_file)
-    if loops and not pairs:
-        added = add_neighbour_links(project, loops)
-        if added:
-            log.info("closing %d loops between neighbouring scans", len(added))
-            register_project(project, progress=step, scans=scans, cancel=cancel, on_link_done=save_to_its_file)
-    adjusted = adjust_poses(project, scans) if not pairs else project.adjustment
-    save_to_its_file(project)
+        scans = scan_cache(project, with_intensity=bool(merged or registered_dir or e57_out))
+    outcome = register_plot(project, scans, pairs=pairs, fixed=fixed, rerun=rerun, loops=loops, survey=survey, progress=progress,
+                            cancel=cancel)
+    adjusted = project.adjustment
     frame = plot_crs(project, scans, given)
     frames = {"poses.json": "each matrix maps a scan's file coordinates (its own frame) into the centre scan's frame",
               "layers.gpkg": "the centre scan's frame"}
@@ -474,7 +475,7 @@ def run_plot(
         if path:
             frames[str(Path(path).name)] = "the centre scan's frame"
     out.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=".forestreg-tmp-products.", dir=out))
+    tmp = temporary_folder(out, "products")
     try:
         write_poses(project, tmp, outcome, crs=frame.to_dict(frames=frames))
         try:
@@ -489,7 +490,7 @@ def run_plot(
             write_plot_report(project, tmp / "report.html", scans=scans)
         except Exception as exc:  # a report must never lose the result
             log.warning("could not write the report: %s", exc)
-        _publish(tmp, out, [s.name for s in project.scans])
+        outputs = _publish(tmp, out, [s.name for s in project.scans])
     except BaseException:
         import shutil
 
@@ -508,13 +509,17 @@ def run_plot(
             written["registered_dir"] = (Path(registered_dir), write_registered_scans(project, rtmp, scans, crs=frame.crs))
     if e57_out:
         written["e57_out"] = (Path(e57_out), write_registered_e57(project, e57_out, scans))
+    if project.path is not None:
+        outputs.append(Path(project.path))
+    outputs += [path.resolve() for path, _ in written.values()]
     dropped = dropped_links(project)
     residual = None
     if adjusted:
         residual = (len(adjusted["links"]), max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0))
     return PlotRun(status=outcome.status, reason=outcome.reason, out=out, result=outcome, project=project, adjusted=adjusted,
                    uncertainty={name: PoseSigma.of(u) for name, u in pose_uncertainty(project).items()}, written=written,
-                   dropped=dropped, residual=residual, crs=frame)
+                   dropped=dropped, residual=residual, crs=frame, result_file=(out / "poses.json").resolve(),
+                   outputs=tuple(dict.fromkeys(outputs)))
 
 
 def plot_crs(project, scans=None, given=None):
@@ -537,10 +542,10 @@ def plot_crs(project, scans=None, given=None):
     return frame_crs(found, centre, given, names={s.name: Path(s.path).name for s in project.scans})
 
 
-def _publish(tmp: Path, out: Path, scan_names) -> None:
+def _publish(tmp: Path, out: Path, scan_names) -> list[Path]:
     """Move the finished products from ``tmp`` into ``out`` (each by one rename; poses.json last,
     so a poses.json always belongs to the transforms beside it), and drop the stale transforms of
-    the project's scans (no other file)."""
+    the project's scans (no other file). Returns the products' paths in ``out`` (absolute)."""
     import os
     import shutil
 
@@ -556,6 +561,7 @@ def _publish(tmp: Path, out: Path, scan_names) -> None:
                 shutil.rmtree(target)
         os.replace(f, target)
     shutil.rmtree(tmp, ignore_errors=True)
+    return [(out / f.name).resolve() for f in files]
 
 
 # ----------------------------------------------------------------------------- products

@@ -37,7 +37,9 @@ def simulate_scans(preset: str, positions: Sequence, out, *, seed: int = 0, step
     with output_folder(out, "simulate") as tmp:
         plot = write_simulated_plot(simulate_plot(preset, list(positions), seed=seed, angular_step_deg=step_deg,
                              tilted=tilted or None, size_m=size_m, progress=with_cancel(progress, cancel)), tmp)
-    return SimulationOutcome(status="ok", out=out, result=plot, scans=tuple((s.scan.name, len(s.scan)) for s in plot.scans))
+    files = tuple((out / f.name).resolve() for f in plot.files) + ((out / "truth.json").resolve(),)
+    return SimulationOutcome(status="ok", out=out, result=plot, scans=tuple((s.scan.name, len(s.scan)) for s in plot.scans),
+                             result_file=files[-1], outputs=files)
 
 
 @dataclass(frozen=True)

@@ -106,7 +106,9 @@ class Reporter:
     """Progress of one command on stderr (tqdm bar, JSON lines, or nothing) and its final line.
 
     Called as ``reporter(fraction, message)`` (the engine's progress callback). ``done(message,
-    result)`` records the one-line outcome and the result file for the final ``end`` event.
+    result)`` records the one-line outcome and the result file for the final ``end`` event, which
+    also lists the files the use case reported it wrote (:func:`run_outcome`: its outcome's
+    ``result_file`` and ``outputs``).
     """
 
     def __init__(self, mode: str, command: str) -> None:
@@ -116,6 +118,7 @@ class Reporter:
         self.command = command
         self.message: str = ""
         self.result: Optional[str] = None
+        self.outputs: list[str] = []
         self._bar = None
         self._last = None
         self._last_fraction = -1.0
@@ -169,7 +172,7 @@ class Reporter:
             release_output_folder(folder)
         if self.mode == "jsonl":
             self._emit({"event": "end", "exit_code": int(exit_code), "message": (message or self.message).splitlines()[0] if (message or self.message) else "",
-                        "result": self.result})
+                        "result": self.result, "outputs": self.outputs or ([self.result] if self.result else [])})
 
     @staticmethod
     def _emit(event: dict) -> None:
@@ -227,11 +230,17 @@ def params_from_args(args: argparse.Namespace):
 
 def run_outcome(reporter: "Reporter", use_case, *args, progress=None, **kwargs):
     """``use_case(*args, progress=progress or reporter, **kwargs)`` (a use case of
-    :mod:`forestreg.app`): its outcome, the reporter's bar closed after it whatever happened."""
+    :mod:`forestreg.app`): its outcome, the reporter's bar closed after it whatever happened. The
+    result file and the files the outcome lists (``result_file``, ``outputs``) go to the final
+    ``end`` event."""
     try:
-        return use_case(*args, progress=progress or reporter, **kwargs)
+        outcome = use_case(*args, progress=progress or reporter, **kwargs)
     finally:
         reporter.close()
+    if getattr(outcome, "result_file", None) is not None:
+        reporter.result = str(outcome.result_file)
+    reporter.outputs = [str(p) for p in getattr(outcome, "outputs", ()) or ()]
+    return outcome
 
 
 def say(message: str, args: Optional[argparse.Namespace] = None, *, err: bool = False) -> None:

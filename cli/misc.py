@@ -58,7 +58,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                       tilted=tilted, size_m=args.size)
     for name, count in run.scans:
         print(f"{name}: {count} points")
-    args.reporter.done("", run.out / "truth.json")
+    args.reporter.done("", run.result_file)
     say(f"wrote {len(run.scans)} scans and truth.json to {shown(run.out)}", args)
     return 0
 

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any, Callable, Optional
 
 from .common import PARAMS_HELP, add_crs_option, file_section, number, offsets, params_from_args, run_outcome, say, shown
 
 def _add_plot_options(p: argparse.ArgumentParser) -> None:
+    """The options of a plot's project: a saved project file holds them (``project create`` takes
+    them), except the survey's (:func:`_add_survey_options`), which ``project run`` takes too."""
     p.add_argument("--centre", help="the centre (root) scan: the project frame (default: the first scan)")
     p.add_argument("--tilted", action="append", metavar="SCAN[:PARTNER],...", help="tilted scans, each optionally with the level scan at the same spot")
     p.add_argument("--targets", help="targets CSV (scan,target,x,y,z in each scan's own coordinates)")
@@ -15,14 +18,31 @@ def _add_plot_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dc", type=number("--dc", positive=True), help="reduction radius D_c in metres (default 30)")
     p.add_argument("--dh", type=offsets, help="slice offsets dh in metres, comma-separated")
     p.add_argument("--params", help=PARAMS_HELP)
-    p.add_argument("--pairs", metavar="all|within:D|centre", help="register every pair (or those whose scanners stand within D m), solve a pose graph weighted by each pair's evidence, drop inconsistent links, state each pose's uncertainty")
     p.add_argument("--positions", metavar="CSV", help="scanner positions: CSV scan,x,y,z in each scan's file coordinates (default: the E57 pose, else found from the data)")
     p.add_argument("--prior-poses", metavar="FILE", help="prior poses to check links against: poses.json, JSON {scan: 4x4}, or CSV scan,x,y,z[,heading_deg] (GNSS/compass)")
+    _add_survey_options(p)
+
+
+def _add_survey_options(p: argparse.ArgumentParser) -> None:
+    """``--pairs`` and ``--fixed``: how a plot's scans are registered (``plot``, ``project run``)."""
+    p.add_argument("--pairs", metavar="all|within:D|centre", help="register every pair (or those whose scanners stand within D m), solve a pose graph weighted by each pair's evidence, drop inconsistent links, state each pose's uncertainty")
     p.add_argument("--fixed", action="append", metavar="SCAN,...", help="scans held at their prior poses (with --pairs)")
 
 
-def add_parsers(sub, add_global_flags) -> None:
-    p = sub.add_parser("plot", help="register all scans of a plot (each to the centre scan, tilted ones to their level partner)")
+def _add_point_outputs(p: argparse.ArgumentParser) -> None:
+    """``--merged`` and ``--e57-out``: the registered scans written as one file (``plot``, ``project run``)."""
+    p.add_argument("--merged", help="also write all registered scans into one point file (.laz/.las, or .copc.laz for a COPC file viewers such as QGIS and potree stream) with a scan_id per point (never an input)")
+    p.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
+
+
+def _add_project_run_options(q: argparse.ArgumentParser) -> None:
+    """The options ``project run`` takes beside the project file, ``--out`` and ``--rerun``."""
+    _add_survey_options(q)
+    _add_point_outputs(q)
+
+
+def _add_plot_arguments(p: argparse.ArgumentParser) -> None:
+    """Every argument of ``plot`` (the global flags aside)."""
     p.add_argument("scans", nargs="*", metavar="SCAN", help="scan files, or one multi-scan E57 file (none with --watch)")
     p.add_argument("--out", required=True, help="output folder: project.json, poses.json, <scan>.transform.txt, report.html")
     _add_plot_options(p)
@@ -32,12 +52,46 @@ def add_parsers(sub, add_global_flags) -> None:
                    help="with --watch: end once N scans are taken in (placed or set aside; duplicates and files that are no scan do not count)")
     p.add_argument("--poll", type=number("--poll", positive=True), default=1.0, metavar="S",
                    help="with --watch: seconds between two looks at the folder (default 1; a file counts once it did not change between two looks)")
-    p.add_argument("--merged", help="also write all registered scans into one point file (.laz/.las, or .copc.laz for a COPC file viewers such as QGIS and potree stream) with a scan_id per point (never an input)")
-    p.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
+    _add_point_outputs(p)
     p.add_argument("--registered-dir", help="also write each registered scan, in the centre scan's coordinates, as its own LAZ into this folder")
     p.add_argument("--loops", type=number("--loops", positive=True), metavar="M", help="also link registered scans standing within M metres of each other, and adjust all poses globally")
     add_crs_option(p, "poses.json, layers.gpkg and the merged and registered clouds are in the centre scan's frame and take its CRS")
-    p.set_defaults(func=cmd_plot, long_running=True)
+
+
+def _defaults(add: Callable[[argparse.ArgumentParser], None], *given: str) -> dict[str, Any]:
+    """The destinations of the arguments ``add`` declares, with their defaults (``given``: the
+    required ones)."""
+    p = argparse.ArgumentParser(add_help=False)
+    add(p)
+    return vars(p.parse_args(list(given)))
+
+
+def project_run_args(plot: argparse.Namespace, project_file: Path) -> Optional[list[str]]:
+    """The ``project run`` arguments that finish the ``plot`` command ``plot`` (its arguments as
+    parsed) from its saved project file: the options the project holds (:func:`_add_plot_options`)
+    are left out, those ``project run`` takes (:func:`_add_project_run_options`) are passed on as
+    given; None when the command sets another one (e.g. ``--registered-dir``: only ``plot`` writes
+    it), so the plot starts over. Handed to the batch with the parsed arguments (it does not
+    import the command line, which starts it)."""
+    taken = _defaults(_add_project_run_options)
+    held = set(_defaults(_add_plot_options)) - set(taken)
+    args = ["project", "run", str(project_file), "--out", str(plot.out)]
+    for dest, default in _defaults(_add_plot_arguments, "--out", "-").items():
+        value = getattr(plot, dest, default)
+        if dest in ("scans", "out", *held) or value == default:
+            continue
+        if dest not in taken:
+            return None
+        flag = "--" + dest.replace("_", "-")
+        for v in value if isinstance(value, list) else [value]:
+            args += [flag] if v is True else [flag, str(v)]
+    return args
+
+
+def add_parsers(sub, add_global_flags) -> None:
+    p = sub.add_parser("plot", help="register all scans of a plot (each to the centre scan, tilted ones to their level partner)")
+    _add_plot_arguments(p)
+    p.set_defaults(func=cmd_plot, long_running=True, project_run_args=project_run_args)
 
     p = sub.add_parser("compare", help="register a plot automatically and from targets, and compare (the paper's tables 4 and 5)")
     p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files, or one multi-scan E57 file")
@@ -84,10 +138,7 @@ def add_parsers(sub, add_global_flags) -> None:
     q.add_argument("project", help="project file (.json)")
     q.add_argument("--out", help="output folder (default: the project's folder when forestreg made it, else <project>_results beside the project file)")
     q.add_argument("--rerun", action="store_true", help="run every link again")
-    q.add_argument("--pairs", metavar="all|within:D|centre", help="register every pair (or those within D m), pose graph, inconsistent links dropped, uncertainty per pose")
-    q.add_argument("--fixed", action="append", metavar="SCAN,...", help="scans held at their prior poses (with --pairs)")
-    q.add_argument("--merged", help="also write all registered scans into one point file (.laz/.las, or .copc.laz for COPC; never an input)")
-    q.add_argument("--e57-out", help="also write the registered scans with their poses into one E57 file")
+    _add_project_run_options(q)
     add_global_flags(q)
     q.set_defaults(func=cmd_project, long_running=True)
 
@@ -153,7 +204,7 @@ def print_plot_run(run, args: argparse.Namespace) -> int:
         print(f"global adjustment over {links} links: largest link residual {100 * worst:.1f} cm")
     if (out / "report.html").exists():
         print(f"report: {shown(out) / 'report.html'}")
-    reporter.done("", out / "poses.json")
+    reporter.done("", run.result_file)
     n_ok = len(outcome.registered)
     summary = f"{n_ok} of {len(outcome.scans)} scans registered -> {shown(out) / 'poses.json'}"
     say(f"poses: {shown(out) / 'poses.json'}" if not outcome.failed else summary, args, err=bool(outcome.failed))

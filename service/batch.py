@@ -97,6 +97,11 @@ class PlotTask:
     threads: int = 1  # threads of the plot's process (its numerical thread pools)
     memory_limit: int = 0  # bytes the plot's process tree may hold; 0: no limit
     run: str = ""  # the batch run this task belongs to (tells a retry from a resumed plot)
+    #: ``plot``: its scan files (resolved) and the ``project run`` arguments that finish it from
+    #: the project file a stopped attempt saved (None: its options need a start from scratch);
+    #: both read from the arguments as the command line parses them (:func:`discover_plots`)
+    scans: list[str] = field(default_factory=list)
+    resume: Optional[list[str]] = None
 
 
 @dataclass
@@ -308,9 +313,12 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
     for task in tasks:  # the CLI's own parser, before any plot runs (e.g. a wrong --extra)
         if not task.problem:
             try:
-                validate_args(task.args)
+                parsed = validate_args(task.args)
             except ArgumentError as exc:
                 raise ParameterError(f"plot {task.name}: {str(exc).split('error: ', 1)[-1]}") from None
+            if command == "plot":
+                task.scans = [str(Path(s).resolve()) for s in parsed.scans]
+                task.resume = parsed.project_run_args(parsed, Path(task.out_dir) / "project.json")
     return tasks
 
 
@@ -454,20 +462,17 @@ def _remove_unfinished(out: Path) -> None:
         shutil.rmtree(out, ignore_errors=True)
 
 
-#: Options of ``plot`` kept in its project file (a resumed run needs them no more), and those
-#: ``project run`` takes as they are; with any other option a stopped plot runs again from the start.
-_IN_PROJECT = {"--centre", "--tilted", "--targets", "--dr", "--dc", "--dh", "--params", "--positions", "--prior-poses"}
-_PASSED_ON = {"--pairs", "--fixed", "--merged", "--e57-out"}
-
-
 def _resume_args(t: PlotTask) -> Optional[tuple[list[str], int, int]]:
     """``project run`` arguments that finish a plot an earlier attempt left unfinished (its
     project file in ``OUT/<plot>`` saved after every link, no ``batch.json``), keeping the links
     that attempt registered: (arguments, links done, links); None when there is nothing to resume
-    (no such folder, other scans, no link done, or options ``project run`` does not take)."""
+    (no such folder, other scans, no link done) or the plot's options need a start from scratch
+    (``t.resume`` None: see :func:`discover_plots`)."""
     from ..engine.core.atomic import MARKER
 
     out = Path(t.out_dir)
+    if t.resume is None:
+        return None
     try:
         if (out / MARKER).read_text(encoding="utf-8").strip() != "plot" or (out / "batch.json").exists():
             return None
@@ -477,25 +482,10 @@ def _resume_args(t: PlotTask) -> Optional[tuple[list[str], int, int]]:
         project = SavedProject.read(out / "project.json")
     except SavedFileError:
         return None
-    options = [k for k, a in enumerate(t.args) if a.startswith("--")]
-    first = options[0] if options else len(t.args)
-    scans = {str(Path(a).resolve()) for a in t.args[1:first]}
-    saved = {str(s.path) for s in project.scans}
     done = project.links_ok
-    if saved != scans or not done:
+    if {str(s.path) for s in project.scans} != set(t.scans) or not done:
         return None
-    args = ["project", "run", str(out / "project.json"), "--out", str(out)]
-    k = first
-    while k < len(t.args):
-        option = t.args[k].split("=", 1)[0]
-        takes_value = "=" not in t.args[k] and k + 1 < len(t.args) and not t.args[k + 1].startswith("--")
-        value = t.args[k:k + 1 + int(takes_value)]
-        if option in _PASSED_ON:
-            args += value
-        elif option not in _IN_PROJECT and option != "--out":
-            return None
-        k += len(value)
-    return args, done, len(project.link_statuses)
+    return list(t.resume), done, len(project.link_statuses)
 
 
 def _note_attempt(t: PlotTask, worker: str) -> tuple[int, str]:

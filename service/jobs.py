@@ -5,7 +5,11 @@ CLI's own argparse parser before they are queued (:func:`validate_args`). A work
 service starts ``forestreg ... --progress jsonl`` and reads its JSON-lines events on stderr:
 
     {"event": "progress", "step": "<id>", "fraction": 0..1, "message": "<text>"}
-    {"event": "end", "exit_code": N, "message": "<one line>", "result": "<path or null>"}
+    {"event": "end", "exit_code": N, "message": "<one line>", "result": "<path or null>", "outputs": ["<path>", ...]}
+
+``result`` and ``outputs`` are the files the command's use case reported it wrote (its outcome's
+``result_file`` and ``outputs``): the job record shows exactly those (``result``, read; ``result_path``;
+``outputs``), and nothing when the command reported none.
 
 and, from a watching plot job (``plot --watch FOLDER``), one ``{"event": "scan", ...}`` per scan
 taken in (:meth:`forestreg.app.watch.WatchEvent.to_dict`), kept as it is.
@@ -239,24 +243,6 @@ def job_command(args: Sequence[str]) -> list[str]:
     if any(a == "--progress" or a.startswith("--progress=") for a in args):
         return cli + args
     return cli + args + ["--progress", "jsonl"]
-
-
-def guess_result(args: Sequence[str], cwd: Optional[str] = None) -> Optional[str]:
-    """The result file a command wrote into its ``--out`` folder, if any."""
-    args = list(args)
-    out = None
-    for k, a in enumerate(args):
-        if a == "--out" and k + 1 < len(args):
-            out = args[k + 1]
-        elif a.startswith("--out="):
-            out = a.split("=", 1)[1]
-    if out is None:
-        return None
-    folder = Path(cwd or ".") / out
-    for name in ("result.json", "poses.json", "summary.csv", "comparison.json", "trees.csv"):
-        if (folder / name).is_file():
-            return str((folder / name).resolve())
-    return None
 
 
 def read_result(path: Optional[str], cwd: Optional[str] = None) -> Any:
@@ -578,10 +564,11 @@ class JobManager:
         else:
             status = "error"
             message = str(end.get("message") or _error_line(lines) or f"the command stopped with exit status {code}")
-        result_path = None if cancelled else (end.get("result") or guess_result(args, cwd))
+        result_path = None if cancelled else end.get("result")
         if result_path:
             result_path = str((Path(cwd or ".") / result_path).resolve())
-        fields: dict[str, Any] = dict(status=status, exit_code=code, message=message, finished=time.time())
+        outputs = [] if cancelled else [str((Path(cwd or ".") / p).resolve()) for p in end.get("outputs") or () if isinstance(p, str)]
+        fields: dict[str, Any] = dict(status=status, exit_code=code, message=message, finished=time.time(), outputs=json.dumps(outputs))
         if status == "done":
             fields["progress"] = 1.0
         if result_path:
@@ -590,7 +577,8 @@ class JobManager:
         if private is not None:
             self._tidy(job_id, private)
         self.store.update(job_id, **fields)
-        self.store.add_event(job_id, {"event": "end", "status": status, "exit_code": code, "message": message, "result": result_path})
+        self.store.add_event(job_id, {"event": "end", "status": status, "exit_code": code, "message": message, "result": result_path,
+                                      "outputs": outputs})
 
     def _tidy(self, job_id: str, private: Path) -> None:
         """Remove a job's private folder when the job left nothing in it (else keep it, and say so)."""

@@ -33,6 +33,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     exit_code INTEGER,
     result TEXT,
     result_path TEXT,
+    outputs TEXT,
     pid INTEGER,
     created REAL NOT NULL,
     started REAL,
@@ -60,6 +61,9 @@ class JobStore:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(_SCHEMA)
+        columns = {r["name"] for r in self._db.execute("PRAGMA table_info(jobs)")}
+        if "outputs" not in columns:  # a database of an earlier service: the files each job wrote, as a column
+            self._db.execute("ALTER TABLE jobs ADD COLUMN outputs TEXT")
 
     def close(self) -> None:
         with self._lock:
@@ -162,6 +166,7 @@ def _public(row: sqlite3.Row) -> dict:
         "exit_code": row["exit_code"],
         "result": result,
         "result_path": row["result_path"],
+        "outputs": json.loads(row["outputs"]) if row["outputs"] else [],
         "created": row["created"],
         "started": row["started"],
         "finished": row["finished"],

@@ -1,7 +1,8 @@
 """One input, one verdict: pair registration, co-registration and trees run through the command
 line and through the desktop's task code (the functions its workers run) on the same files give
 the same status and the same matrix, bit for bit (the same trees, byte for byte), because both call
-the same use case of :mod:`forestreg.app`."""
+the same use case of :mod:`forestreg.app`; a plot the use case refuses is refused by every door
+with the same line."""
 
 from __future__ import annotations
 
@@ -163,10 +164,17 @@ def far_positions(pair_case, tmp_path):
 
 
 def test_scans_far_from_their_scanners_are_refused_by_every_door(pair_case, far_positions, tmp_path, capsys):
-    """The plot command, the plot use case of the Python API and the desktop's run refuse such a
-    plot up front with the same line, and nothing is written."""
+    """The plot command, the plot use case of the Python API, a plot job of the job service and
+    the desktop's run (the plot use case's registration, :func:`forestreg.app.plot.register_plot`)
+    refuse such a plot up front with the same line, and nothing is written."""
+    import os
+    import signal
+    import sys
+    import time
+
     import forestreg
     from forestreg.app.plot import new_project
+    from forestreg.client import read_server_info, start_service
     from forestreg.engine.core.errors import UsageError
     from forestreg.engine.params import ProductParams
     from forestreg.ui.worker import RegistrationWorker
@@ -180,6 +188,20 @@ def test_scans_far_from_their_scanners_are_refused_by_every_door(pair_case, far_
     with pytest.raises(UsageError) as api:
         forestreg.plot_scans(files, tmp_path / "api", positions=str(far_positions))
     assert str(api.value) in cli_line and not (tmp_path / "api").exists()
+
+    state = tmp_path / "service"
+    client = start_service(state, command=[sys.executable, "-m", "forestreg.cli"], idle_exit_s=None, workers=1, timeout=90)
+    try:
+        job = client.run(["plot", *files, "--positions", str(far_positions), "--out", "job"], cwd=tmp_path, timeout=300)
+    finally:
+        pid = read_server_info(state)["pid"]
+        os.kill(pid, signal.SIGTERM)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and os.path.exists(f"/proc/{pid}") and \
+                open(f"/proc/{pid}/stat").read().split()[2] != "Z":
+            time.sleep(0.05)
+    assert job["status"] == "error" and job["exit_code"] == 2
+    assert str(api.value) in job["message"] and job["outputs"] == [] and not (tmp_path / "job").exists()
 
     project = new_project(files, ProductParams().registration, positions=str(far_positions))
     worker = RegistrationWorker(project)

@@ -290,33 +290,72 @@ def test_a_long_batch_spaces_its_summary_rewrites(tmp_path):
 
 def test_a_stopped_plot_resumes_from_its_registered_links(tmp_path):
     """A plot folder an attempt left unfinished (its project file, saved after each link, holds a
-    registered link; no batch.json) is finished by ``project run``, keeping the link; with other
+    registered link; no batch.json) is finished by ``project run``, keeping the link and passing
+    on the options ``project run`` takes (read from the plot command's own parser); with other
     scans, no link done, a finished folder or an option ``project run`` lacks, it starts over."""
     from forestreg.engine.core.atomic import MARKER
-    from forestreg.service.batch import PlotTask, _resume_args
+    from forestreg.service.batch import _resume_args, discover_plots
 
-    scans = tmp_path / "plots" / "p"
+    plots = tmp_path / "plots"
+    scans = plots / "p"
     scans.mkdir(parents=True)
     for name in ("s1.laz", "s2.laz", "s3.laz"):
         (scans / name).write_text("x")
+    (scans / "centre.txt").write_text("s2.laz\n")
     out = tmp_path / "out" / "p"
     out.mkdir(parents=True)
     (out / MARKER).write_text("plot\n")
     links = [{"moving": "s2.laz", "reference": "s1.laz", "result": {"status": "ok"}}, {"moving": "s3.laz", "reference": "s1.laz", "result": None}]
     project = {"scans": [{"name": n, "path": f"../../plots/p/{n}"} for n in ("s1.laz", "s2.laz", "s3.laz")], "links": links}
     (out / "project.json").write_text(json.dumps(project))
-    args = ["plot", *[str(scans / n) for n in ("s1.laz", "s2.laz", "s3.laz")], "--out", str(out), "--centre", "s2.laz", "--pairs", "all"]
-    task = PlotTask("p", "plot", args, str(out), 3)
+    extra = ["--pairs", "all", "--dr", "1.5", "--fixed", "s1.laz", "-q"]
+    [task] = discover_plots(plots, out.parent, extra_args=extra)
+    assert "--centre" in task.args and "--dr" in task.args
     resumed, done, total = _resume_args(task)
-    assert resumed == ["project", "run", str(out / "project.json"), "--out", str(out), "--pairs", "all"] and (done, total) == (1, 2)
-    assert _resume_args(PlotTask("p", "plot", args + ["--registered-dir", str(tmp_path / "r")], str(out), 3)) is None
-    assert _resume_args(PlotTask("p", "plot", args[:1] + args[2:], str(out), 2)) is None  # other scans
+    assert resumed == ["project", "run", str(out / "project.json"), "--out", str(out), "--pairs", "all", "--fixed", "s1.laz"]
+    assert (done, total) == (1, 2)
+    [written] = discover_plots(plots, out.parent, extra_args=extra + ["--registered-dir", str(tmp_path / "r")])
+    assert _resume_args(written) is None, "--registered-dir: only plot writes it"
+    (scans / "s4.laz").write_text("x")
+    [more] = discover_plots(plots, out.parent, extra_args=extra)
+    assert _resume_args(more) is None  # other scans
+    (scans / "s4.laz").unlink()
     (out / "batch.json").write_text("{}")
     assert _resume_args(task) is None  # finished: nothing to resume
     (out / "batch.json").unlink()
     links[0]["result"] = {"status": "failed"}
     (out / "project.json").write_text(json.dumps(project))
     assert _resume_args(task) is None  # no link registered yet
+
+
+def test_every_plot_option_is_held_by_the_project_or_taken_by_project_run_or_restarts():
+    """The resume of a stopped plot follows the plot command's parser: each option of ``plot``
+    is held by the saved project (left out), taken by ``project run`` (passed on, and the
+    arguments parse), or makes the plot start over; none is dropped unseen."""
+    from forestreg.cli import build_parser
+
+    parser = build_parser()
+    given = {"--centre": ["s1.laz"], "--tilted": ["s2.laz"], "--targets": ["t.csv"], "--dr": ["1.5"], "--dc": ["20"], "--dh": ["0.5,1"],
+             "--params": ["p.toml"], "--positions": ["pos.csv"], "--prior-poses": ["prior.csv"], "--pairs": ["all"], "--fixed": ["s1.laz"],
+             "--merged": ["m.laz"], "--e57-out": ["r.e57"], "--registered-dir": ["rd"], "--loops": ["12"], "--crs": ["EPSG:32618"],
+             "--watch": ["w"], "--until-scans": ["3"], "--poll": ["2"]}
+    held, passed, restart = set(), set(), set()
+    for flag, values in given.items():
+        plot = parser.parse_args(["plot", "s1.laz", "s2.laz", "--out", "o", flag, *values])
+        args = plot.project_run_args(plot, "o/project.json")
+        if args is None:
+            restart.add(flag)
+        elif flag in args:
+            assert args[args.index(flag):] == [flag, *values]
+            run = parser.parse_args(args)
+            assert getattr(run, flag[2:].replace("-", "_")) == getattr(plot, flag[2:].replace("-", "_"))
+            passed.add(flag)
+        else:
+            assert args == ["project", "run", "o/project.json", "--out", "o"]
+            held.add(flag)
+    assert held == {"--centre", "--tilted", "--targets", "--dr", "--dc", "--dh", "--params", "--positions", "--prior-poses"}
+    assert passed == {"--pairs", "--fixed", "--merged", "--e57-out"}
+    assert restart == {"--registered-dir", "--loops", "--crs", "--watch", "--until-scans", "--poll"}
 
 
 def test_attempts_tell_a_lost_worker_from_a_rerun(tmp_path, monkeypatch):

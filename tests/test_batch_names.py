@@ -298,7 +298,11 @@ def test_the_leftovers_of_one_plot_are_told_from_another_plots_running_transacti
 
 
 def test_the_temporaries_of_a_transaction_are_named_by_one_function(tmp_path):
-    from forestreg.engine.core.atomic import is_unfinished_output, output_folder, unfinished_outputs
+    """The folder transaction's temporaries, and a run's products folder, are made and recognised
+    by the atomic module alone: the batch finds exactly the ones its writer made, whatever they
+    are called, and an output folder holding a products folder counts as empty."""
+    from forestreg.engine.core.atomic import (check_output_folder, is_unfinished_output, output_folder, temporary_folder,
+                                              unfinished_outputs)
 
     out = tmp_path / "out"
     out.mkdir()
@@ -306,8 +310,17 @@ def test_the_temporaries_of_a_transaction_are_named_by_one_function(tmp_path):
         assert unfinished_outputs(out, out / "x") == [other] and unfinished_outputs(out, out / "old-x") == [running]
         assert unfinished_outputs(out) == sorted([running, other])
         assert is_unfinished_output(other) and not is_unfinished_output(other, out / "old-x")
-        assert not is_unfinished_output(out / "old-x") and not is_unfinished_output(tmp_path / ".forestreg-tmp-products.abc")
+        products = temporary_folder(out, "products")
+        assert products.is_dir() and not is_unfinished_output(products) and not is_unfinished_output(out / "old-x")
+        assert unfinished_outputs(out) == sorted([running, other])
+        products.rmdir()
     assert not unfinished_outputs(out) and sorted(os.listdir(out)) == ["old-x", "x"]
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    temporary_folder(fresh, "products")
+    assert check_output_folder(fresh, "plot") == fresh.resolve(), "a products folder left in it: still empty"
+    with pytest.raises(ValueError):
+        temporary_folder(fresh, "new-x")  # a transaction's own name
 
 
 # ----------------------------------------------------------------------------- the memory limit

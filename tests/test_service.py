@@ -162,6 +162,39 @@ def test_a_failed_command_is_an_error_job_with_its_message(service, tmp_path):
     assert "bad.laz" in final["message"]
 
 
+def test_a_plot_job_lists_exactly_the_files_the_use_case_reports(service, pair, tmp_path):
+    """A plot job's record names the files the plot use case reported it wrote (its outcome's
+    ``result_file`` and ``outputs``, handed over in the command's end event), the same as the use
+    case run here gives, and nothing else in the folder."""
+    from forestreg.app.plot import plot_scans
+
+    scans, _ = pair
+    files = [str(scans / "scan_01.laz"), str(scans / "scan_02.laz")]
+    final = service.run(["plot", *files, "--out", "plot"], cwd=tmp_path, timeout=600)
+    assert final["status"] == "done" and final["exit_code"] == 0, final
+    out = (tmp_path / "plot").resolve()
+    run = plot_scans(files, tmp_path / "here")
+    here = (tmp_path / "here").resolve()
+    assert final["result_path"] == str(out / "poses.json") and run.result_file == here / "poses.json"
+    assert sorted(Path(p).relative_to(out).as_posix() for p in final["outputs"]) == \
+        sorted(p.relative_to(here).as_posix() for p in run.outputs)
+    assert {"poses.json", "project.json", "report.html", "layers.gpkg", "scan_02.laz.transform.txt"} <= \
+        {Path(p).name for p in final["outputs"]}
+    assert all(Path(p).is_file() for p in final["outputs"])
+    assert [e for e in service.events(final["id"]) if e is not None][-1]["outputs"] == final["outputs"]
+
+
+def test_a_failed_job_reports_no_result_even_beside_an_earlier_one(service, tmp_path):
+    """A job whose command fails before writing reports no result: an earlier run's result.json in
+    its output folder is not taken for this job's (nothing is found by file name)."""
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "result.json").write_text(json.dumps({"status": "ok", "matrix": None}))
+    final = service.run(["register", str(tmp_path / "missing_a.laz"), str(tmp_path / "missing_b.laz"), "--out", str(out)], timeout=120)
+    assert final["status"] == "error" and final["exit_code"] == 2
+    assert final["result"] is None and final["result_path"] is None and final["outputs"] == []
+
+
 def test_concurrent_jobs_run_at_once(service, tmp_path):
     ids = [service.submit(["simulate", "open_field", "--out", f"sim{k}", "--positions", "0,0", "--size", "20", "--step", "0.6", "--seed", str(k)], cwd=tmp_path)
            for k in range(2)]

@@ -90,8 +90,9 @@ class TaskWorker(QObject):
 
 
 class RegistrationWorker(TaskWorker):
-    """Registers a project (:func:`~forestreg.engine.tls.plot.register_project`), then runs the global
-    adjustment where links close loops, and saves the project when it has a file.
+    """Registers a project through the plot use case's registration (:func:`~forestreg.app.plot.register_plot`:
+    the scans checked first, the links, the global adjustment where links close loops, the project
+    saved when it has a file).
 
     Extra signals: ``link_done(moving_scan_name)`` after each link, ``finished(outcome)`` with the
     engine's :class:`~forestreg.engine.tls.plot.PlotOutcome` (also emitted as ``succeeded``).
@@ -108,10 +109,10 @@ class RegistrationWorker(TaskWorker):
         self.succeeded.connect(self.finished)
 
     def _register(self, progress: Callable[[float, str], None], cancel: CancelToken) -> Any:
-        from ..app.plot import register_plot_project
+        from ..app.plot import register_plot
 
-        return register_plot_project(self.project, self.scans, rerun=self.rerun, progress=progress, cancel=cancel,
-                                     on_link=lambda link: self.link_done.emit(link.moving))
+        return register_plot(self.project, self.scans, rerun=self.rerun, progress=progress, cancel=cancel,
+                             on_link=lambda link: self.link_done.emit(link.moving))
 
 
 def make_thread(worker: TaskWorker, parent: Optional[QObject] = None) -> QThread:

@@ -87,6 +87,16 @@ def is_unfinished_output(path: str | os.PathLike[str], target: str | os.PathLike
     return False
 
 
+def temporary_folder(inside: str | os.PathLike[str], what: str) -> Path:
+    """A new empty folder in the existing folder ``inside``, named ``.forestreg-tmp-<what>.XXXXXXXX``:
+    a run's products before each is moved into place. :func:`check_output_folder` passes over it,
+    and it is never taken for a folder transaction's (:func:`is_unfinished_output`): ``what`` may
+    not start with theirs (``new-``, ``old-``)."""
+    if what.startswith((_NEW[len(TMP_PREFIX):], _OLD[len(TMP_PREFIX):])) or not what:
+        raise ValueError(f"a temporary folder's name may not start with {_NEW!r} or {_OLD!r}: {what!r}")
+    return Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{what}.", dir=inside))
+
+
 def unfinished_outputs(folder: str | os.PathLike[str], target: str | os.PathLike[str] | None = None) -> list[Path]:
     """The temporary folders of unfinished folder transactions in ``folder`` (of the output
     folder ``target`` only, when given), in name order; none when ``folder`` cannot be listed."""
