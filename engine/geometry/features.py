@@ -10,6 +10,11 @@ of neighbours at exactly equal distances, which a k-d tree leaves to its travers
 points at any distance, or within a radius wider than the cells (ICP's matches and normals), are
 found on the same grid by a search that grows shell by shell until no farther cell can hold a
 nearer point: again a k-d tree's answer.
+
+Why this grid and not ``cKDTree``: ``python -m benchmarks.icp_open3d --only nearest`` times an ICP
+stage's matching (a grid or tree of 300 000 points, then 10 searches of 30 000 points within
+0.08 m, 2 threads): 100 ms here against 659 ms with the tree, the same distances to the last bit
+and the same indices.
 """
 
 from __future__ import annotations
