@@ -636,6 +636,15 @@ def write_layer_files(outputs: HostOutputs) -> LayerFiles:
     return LayerFiles(scanners, vops)
 
 
+def output_crs(summary: object) -> Optional[str]:
+    """The CRS a run's outputs are in, as its ``result.json`` or ``poses.json`` names it (its
+    ``crs`` entry): the EPSG id (``"EPSG:32618"``), else the WKT; None for local coordinates."""
+    crs = summary.get("crs") if isinstance(summary, dict) else None
+    if not isinstance(crs, dict):
+        return None
+    return crs.get("epsg") or crs.get("wkt") or None
+
+
 def delimited_text_uri(path: Union[str, Path], crs: Optional[str] = None) -> str:
     """A QGIS ``delimitedtext`` provider URI for a layer CSV (points from x, y, z)."""
     uri = Path(path).resolve().as_uri() + "?type=csv&delimiter=,&xField=x&yField=y&zField=z&detectTypes=yes&geomType=point&spatialIndex=no&subsetIndex=no&watchFile=no"

@@ -163,6 +163,15 @@ class QgsProcessingProvider:
         return list(self._algorithms)
 
 
+class QgsCoordinateReferenceSystem(Crs):
+    def __init__(self, text=""):
+        super().__init__(text)
+
+    def createFromUserInput(self, text):  # noqa: N802
+        self.text = text or ""
+        return self.isValid()
+
+
 class QgsSettings:
     def value(self, key, default=None, type=None):  # noqa: A002
         return default
@@ -184,6 +193,9 @@ class _Layer:
 
     def isValid(self):  # noqa: N802
         return Path(self.source.split("|")[0].split("?")[0].removeprefix("file://")).exists()
+
+    def setCrs(self, crs):  # noqa: N802
+        self.crs = crs
 
     def importNamedStyle(self, doc):  # noqa: N802
         self.styles.append(doc.content)

@@ -393,6 +393,30 @@ def test_a_pair_loads_its_registered_scan_when_asked(provider, monkeypatch, tmp_
     assert results["MATCHED"] == 7 and results["TRANSFORM"] == str(out / "transform.txt")
 
 
+@pytest.mark.parametrize("parameter, crs, uri_crs, set_crs", [
+    (None, {"epsg": "EPSG:26912", "wkt": "PROJCRS[...]"}, "EPSG:26912", None),  # the scans' own CRS, from result.json
+    ("EPSG:32618", {"epsg": "EPSG:26912"}, "EPSG:32618", None),  # the CRS parameter wins
+    (None, {"epsg": None, "wkt": 'PROJCRS["a local grid"]'}, None, 'PROJCRS["a local grid"]'),  # no EPSG id: set from the WKT
+    (None, {"epsg": None, "wkt": None}, None, None),  # local coordinates
+])
+def test_a_pairs_point_layers_take_the_runs_crs(provider, monkeypatch, tmp_path, parameter, crs, uri_crs, set_crs):
+    out = tmp_path / "pair"
+    out.mkdir()
+    summary = {"status": "ok", "matrix": np.eye(4).tolist(), "reference": "a", "moving": "b", "matched": 7, "crs": crs}
+    outputs = adapter.HostOutputs("pair", out, "ok", "a", summary, [], [], "", adapter.SavedResult.from_dict(summary))
+    monkeypatch.setattr(adapter, "register_pair", lambda job, cli, progress, log, cancelled: outputs)
+    for name in ("layer_scanners.csv", "layer_vops.csv"):
+        (out / name).write_text("name,x,y,z\n")
+    monkeypatch.setattr(adapter, "write_layer_files", lambda o: adapter.LayerFiles(out / "layer_scanners.csv", out / "layer_vops.csv"))
+    context = qgis_fakes.QgsProcessingContext()
+    parameters = {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": str(out), **({"CRS": parameter} if parameter else {})}
+    results = _algorithm(provider, "register_pair").processAlgorithm(parameters, context, qgis_fakes.Feedback())
+    for key in ("SCANNERS", "VOPS"):
+        layer = context.store.mapLayer(results[key])
+        assert layer.source.endswith(f"&crs={uri_crs}") if uri_crs else "&crs=" not in layer.source
+        assert (getattr(layer, "crs", None).text if hasattr(layer, "crs") else None) == set_crs
+
+
 # ----------------------------------------------------------------------------- the model
 
 

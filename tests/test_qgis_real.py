@@ -212,6 +212,32 @@ app.exitQgis()
 """
 
 
+PAIR_SCRIPT = r"""
+import json, sys
+from qgis.core import QgsApplication, QgsProcessingContext, QgsProcessingFeedback, QgsProject
+app = QgsApplication([], False)
+app.initQgis()
+from forestreg.plugin.qgis.provider import ForestregProvider
+registry = QgsApplication.processingRegistry()
+provider = ForestregProvider()
+registry.addProvider(provider)
+alg = registry.createAlgorithmById("forestreg:register_pair")
+context = QgsProcessingContext()
+context.setProject(QgsProject.instance())
+results, ok = alg.run(json.loads(sys.argv[1]), context, QgsProcessingFeedback())
+report = {"ok": ok, "status": results["STATUS"]}
+for key in ("SCANNERS", "VOPS"):
+    layer = context.temporaryLayerStore().mapLayer(results[key])
+    report[key] = {"valid": layer.isValid(), "crs": layer.crs().authid(), "count": layer.featureCount()}
+del layer, alg
+context.temporaryLayerStore().removeAllMapLayers()
+del context
+registry.removeProvider(provider)
+print("REPORT" + json.dumps(report))
+app.exitQgis()
+"""
+
+
 def _qml_rules(gpkg: Path, layer: str) -> list[dict]:
     """The rules of ``layer``'s QML style in ``gpkg``'s ``layer_styles``: label, filter, symbol
     layer class, colour (r, g, b, a) and marker size."""
@@ -282,6 +308,26 @@ def test_register_pair_in_qgis_process(qgis, scans, tmp_path):
     assert results["SCANNERS"].startswith("scanners") and results["VOPS"].startswith("VOPs")
     assert len(_rows(out / "layer_vops.csv")) == result["reference_vops"] + result["moving_vops"]
     assert any(line.startswith("job: forestreg register") for line in answer["log"]["info"])
+
+
+def test_a_pairs_point_layers_take_the_scans_crs_in_qgis(qgis, scans, tmp_path):
+    """Scans that declare a CRS: the scanner and VOP layers (delimited text) are in it without the
+    CRS parameter."""
+    import laspy
+    import pyproj
+
+    for name in ("scan_01.laz", "scan_02.laz"):
+        las = laspy.read(scans / name)
+        las.header.add_crs(pyproj.CRS.from_epsg(32618))
+        las.write(tmp_path / name)
+    out = tmp_path / "pair"
+    report = qgis.python(PAIR_SCRIPT, json.dumps({"REFERENCE": str(tmp_path / "scan_01.laz"), "MOVING": str(tmp_path / "scan_02.laz"),
+                                                  "OUTPUT": str(out)}))
+    assert report["ok"] and report["status"] == "ok"
+    assert json.loads((out / "result.json").read_text())["crs"]["epsg"] == "EPSG:32618"
+    result = json.loads((out / "result.json").read_text())
+    assert report["SCANNERS"] == {"valid": True, "crs": "EPSG:32618", "count": 2}
+    assert report["VOPS"] == {"valid": True, "crs": "EPSG:32618", "count": result["reference_vops"] + result["moving_vops"]}
 
 
 def test_register_plot_in_qgis_process(qgis, scans, tmp_path):

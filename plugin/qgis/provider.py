@@ -41,6 +41,7 @@ from qgis.core import (
     QgsProcessingParameterMultipleLayers,
     QgsProcessingParameterNumber,
     QgsProcessingParameterString,
+    QgsCoordinateReferenceSystem,
     QgsProcessingProvider,
     QgsSettings,
     QgsVectorLayer,
@@ -96,12 +97,29 @@ def _run_and_report(run, feedback):
         raise QgsProcessingException(str(exc)) from exc
 
 
+def _layer_crs(crs, summary):
+    """The CRS of a run's point layers: ``crs`` (the CRS parameter) when valid, else the CRS the
+    run's ``result.json``/``poses.json`` names (the scans' own); None for local coordinates."""
+    if crs is not None and crs.isValid():
+        return crs
+    text = adapter.output_crs(summary)
+    if not text:
+        return None
+    found = QgsCoordinateReferenceSystem()
+    found.createFromUserInput(text)
+    return found if found.isValid() else None
+
+
 def _load_point_layer(path: Path, name: str, crs, context: QgsProcessingContext, output: str, feedback):
-    authid = crs.authid() if crs is not None and crs.isValid() else None
-    layer = QgsVectorLayer(adapter.delimited_text_uri(path, authid), name, "delimitedtext")
+    """A layer CSV (``x``, ``y``, ``z`` columns) as a point layer in ``crs`` (None: none), loaded
+    when the algorithm completes; its id, or None."""
+    authid = crs.authid() if crs is not None else None
+    layer = QgsVectorLayer(adapter.delimited_text_uri(path, authid or None), name, "delimitedtext")
     if not layer.isValid():
         feedback.reportError(f"could not open {path} as a point layer")
         return None
+    if crs is not None and not authid:  # a CRS without an EPSG id (from its WKT)
+        layer.setCrs(crs)
     context.temporaryLayerStore().addMapLayer(layer)
     context.addLayerToLoadOnCompletion(layer.id(), QgsProcessingContext.LayerDetails(name, context.project(), output))
     return layer.id()
@@ -259,7 +277,7 @@ class _Base(QgsProcessingAlgorithm):
         outputs = _run_and_report(lambda p, l, c: run(cli, p, l, c), feedback)
         if outputs.status != "ok":
             feedback.reportError(f"{failure}: {outputs.reason}")
-        crs = self.parameterAsCrs(parameters, self.CRS, context)
+        crs = _layer_crs(self.parameterAsCrs(parameters, self.CRS, context), outputs.summary)
         files = adapter.write_layer_files(outputs)
         gpkg = _load_gpkg_layers(outputs.out_dir, layer_name, context, layers_output, feedback) if layers_output else {}
         scanners = gpkg.get("scanners") or _load_point_layer(files.scanners, f"scanners ({layer_name})", crs, context, self.SCANNERS, feedback)
