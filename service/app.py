@@ -283,7 +283,7 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
                 job = store.get(job_id)
                 if job is None or (job["status"] in FINAL and not store.events(job_id, after)):
                     if job is not None and job["status"] in ("cancelled", "interrupted"):
-                        yield f"event: end\ndata: {json.dumps({'event': 'end', 'status': job['status'], 'exit_code': job['exit_code'], 'message': job['message'], 'result': None})}\n\n"
+                        yield f"event: end\ndata: {json.dumps({'event': 'end', 'status': job['status'], 'exit_code': job['exit_code'], 'message': job['message'], 'result': None, 'outputs': []})}\n\n"
                     return
                 if await request.is_disconnected():
                     return

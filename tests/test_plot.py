@@ -623,3 +623,27 @@ def test_cancelling_a_survey_of_every_pair_stops_every_thread_quietly(four_scan_
     time.sleep(3.0)  # a link under way in another thread ends at its next step
     assert died == [], died
     assert all(t <= stopped for t in started), "a link started after the run was cancelled"
+
+
+def test_a_scan_s_bounds_come_from_its_las_header_without_reading_its_points(four_scan_files, tmp_path):
+    """The scan cache's bounds of a LAS/LAZ scan are its header's (read by the LAS reader of
+    ``engine.io``, no point read); a damaged header is not passed over: the scan is read and the
+    reader says what is wrong."""
+    from forestreg.engine.core.errors import ScanReadError
+    from forestreg.engine.tls.plot import ScanCache
+
+    _, paths = four_scan_files
+    broken = tmp_path / "broken.laz"
+    broken.write_bytes(b"LASF" + bytes(300))
+    project = Project()
+    for p in (paths[0], broken):
+        project.add_scan(p)
+    scans = ScanCache(project)
+    lo, hi = scans.bounds(paths[0].name)
+    assert scans.reads == 0
+    scan = read_scan(paths[0])
+    points = scan.points + scan.origin_shift
+    np.testing.assert_allclose(lo, points.min(axis=0), atol=0.002)
+    np.testing.assert_allclose(hi, points.max(axis=0), atol=0.002)
+    with pytest.raises(ScanReadError, match="broken.laz"):
+        scans.bounds("broken.laz")
