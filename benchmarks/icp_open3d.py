@@ -318,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.only in (None, "filters"):
         _print("2-D filters (median of 7 calls)", filters_table())
     if args.only in (None, "nearest"):
-        _print(f"plane nearest within 0.5 m ({args.threads} threads)", nearest_table())
+        _print(f"nearest points ({args.threads} threads; build + query)", nearest_table())
     return 0
 
 
