@@ -18,10 +18,11 @@ nearest cell    0.66 / 1.04 ms         13.9 / 15.0 ms
 Gaussian, s=2   0.29 / 0.38 ms         5.9 / 5.7 ms
 ==============  =====================  =====================
 
-every result equal to SciPy's to the last bit (over four runs the Gaussian on the larger grid took
-0.5-1.2 times SciPy's time, the others 0.16-0.93 times); and importing ``scipy.ndimage`` costs a fresh
-process 0.28 s of CPU (median of 7, whole processes with and without the import), which a small
-pair's run does without (``tests/test_pair_imports.py``).
+(one run), every result equal to SciPy's to the last bit. Over four runs on the shared 2-core
+machine the time ratios ranged 0.16-1.5 (the nearest cell on the larger grid 0.7-1.5, the Gaussian
+on it 0.5-1.2, every other 0.16-1.08): at most a few milliseconds either way, while importing
+``scipy.ndimage`` costs a fresh process 0.28 s of CPU (median of 7, whole processes with and
+without the import), which a small pair's run does without (``tests/test_pair_imports.py``).
 """
 
 from __future__ import annotations
