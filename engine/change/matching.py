@@ -12,7 +12,9 @@ either survey gets a status:
 - ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
 - ``new``: a stem of the later survey whose place the earlier survey saw without a stem;
 - (a stem found in one survey alone, without a DBH and without points of its own 1.0-1.6 m above
-  the ground, is left out: no evidence of a tree removed or grown in);
+  the ground, is left out: no evidence of a tree removed or grown in; so is a stem of the later
+  survey alone without a DBH whose place the earlier one saw without a stem: a tree grown in is
+  one whose DBH crossed the threshold, and none was measured);
 - ``outside``: the other survey did not cover the place: outside its footprint (a cloud's points,
   holes such as a harvest gap filled; a table's stems, their hull grown by 2 m) or, for a tree of
   the later survey, without any point of the earlier one near it: not compared.
@@ -206,6 +208,10 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
                     f"no stem at its place in the {name} table: not compared"))))
             elif not seen[j]:
                 out.append(TreeChange(status="outside", **base, flag=f"outside the {name} survey: not compared"))
+            elif status == "new" and not math.isfinite(epoch.dbh_m[k]):
+                # a tree grown in is one whose DBH crossed the threshold: a stem with no DBH
+                # measured (too few points, a partial arc) is no evidence of one; left out, counted
+                skipped.append(int(k))
             else:
                 why = f"no stem in {name} at its place ({present[j]} points)" if other.has_points else f"no stem in the {name} table at its place"
                 out.append(TreeChange(status=status, **base, flag=_join(why, own)))
