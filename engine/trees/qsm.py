@@ -109,6 +109,10 @@ class QsmParams(Params):
     fork_share: float = _p(0.5, "1", 0.05, 1.0, "A branch carrying at least this share of the points the stem carries on above it (each with their branches) forks the trunk: a co-dominant leader, whose stem taper is judged apart from the trunk's")
     stem_foot_max_gap_m: float = _p(1.5, "m", 0.0, 10.0, "A stem that starts at most this far above the given base (its foot lost to the ground filter or the leaf-wood separation) is lengthened down its axis to it; 0 = never")
     stem_foot_max_tilt_deg: float = _p(60.0, "deg", 0.0, 89.0, "...when its first cylinder leans at most this much from the vertical")
+    patch_spacing_ratio: float = _p(2.0, "1", 0.0, 20.0, "The fine cover sets on the thickest parts are at least this many median point spacings across, the other patch sizes grown in proportion (a sparsely sampled tree: patches that hold points, shells that stay whole); 0 = the sizes as given", "TreeQSM sizes its patches from the stem radius and the point resolution")
+    growth_taper: bool = _p(True, "", None, None, "Branch radii the points cannot resolve (poor fits, or radii below resolvable_spacing_ratio point spacings) follow the tree's own radius against growth length (the wood a cylinder carries), fitted on the resolved cylinders")
+    growth_exponent: float = _p(0.44, "1", 0.1, 1.0, "Exponent of radius against growth length for the unresolved branch radii (the pipe model gives 1/2; TreeQSM's model of the aRchi Tree_1 broadleaf 0.44)")
+    resolvable_spacing_ratio: float = _p(1.5, "1", 0.0, 20.0, "A fitted radius is resolved by the points when it is at least this many median point spacings (about 2 pi times this many points around the circumference)")
     breast_height_m: float = _p(1.3, "m", 0.5, 3.0, "Height above the stem base at which the model's stem diameter (its DBH) is read; in a tree inventory the stems' breast_height_m is used, so both DBHs are read at one height", "DBH at 1.3 m")
 
     def _check(self) -> None:
@@ -1049,6 +1053,72 @@ def pipe_caps(radius: np.ndarray, good: np.ndarray, children: Sequence[Sequence[
     return np.minimum.accumulate(out)
 
 
+def sized_to_spacing(params: QsmParams, spacing_m: float) -> QsmParams:
+    """``params`` with the patch diameters grown in proportion so that the fine cover sets on the
+    thickest parts are at least ``params.patch_spacing_ratio`` times ``spacing_m`` (the median
+    distance from a point to its 4th neighbour, m) across; unchanged where they already are. A
+    sparsely sampled tree (a big tree scanned from afar: 5-15 cm between points) otherwise falls
+    into patches of one or two points whose shells break into arcs."""
+    want = params.patch_spacing_ratio * spacing_m
+    if not (math.isfinite(want) and want > params.patch_diameter2_max_m):
+        return params
+    k = min(want / params.patch_diameter2_max_m, 1.0 / params.patch_diameter2_max_m, 1.0 / params.patch_diameter1_m)
+    return params.replace(
+        patch_diameter1_m=params.patch_diameter1_m * k,
+        patch_diameter2_min_m=params.patch_diameter2_min_m * k,
+        patch_diameter2_max_m=params.patch_diameter2_max_m * k,
+    )
+
+
+def growth_length(parent: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """(K,) growth length of each cylinder (m): its own length plus that of every cylinder it
+    carries (its branch beyond it and all their branches). ``parent`` indices precede their
+    children's, as in :class:`CylinderModel`."""
+    out = np.asarray(length, dtype=np.float64).copy()
+    for k in range(len(out) - 1, 0, -1):
+        if parent[k] >= 0:
+            out[parent[k]] += out[k]
+    return out
+
+
+def growth_taper_radii(
+    radius: np.ndarray, good: np.ndarray, length: np.ndarray, parent: np.ndarray, order: np.ndarray, resolved_m: float,
+    min_radius: float, exponent: float = 0.44, upper: float = 1.5, min_resolved: int = 8,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Radii (K,) where the points cannot resolve them taken from the tree's own radius against
+    growth length, the replaced mask (K,) and the fitted exponent.
+
+    The resolved cylinders (``good`` fits with a radius of at least ``resolved_m``, stem
+    included) set the level of ``radius = c * growth_length ** exponent`` (the pipe model: a
+    branch's cross-section grows with the wood it carries, ``exponent`` 1/2; TreeQSM's models of
+    real broadleaves follow 0.44-0.57; ``c`` the length-weighted robust mean over the resolved
+    cylinders). A branch cylinder (``order`` > 0) with a poor fit gets that radius; one whose
+    radius lies below ``resolved_m`` (a few noisy points or leaves round a thin branch make a
+    circle of any size) keeps its fit up to ``upper`` times that radius. None is thicker than its
+    parent; the stem keeps its own taper. With fewer than ``min_resolved`` resolved cylinders, or resolved growth lengths
+    spanning less than a factor of 10, the radii stay as they are (exponent NaN)."""
+    r = np.asarray(radius, dtype=np.float64).copy()
+    gl = growth_length(parent, length)
+    ok = np.asarray(good, dtype=bool) & (r >= resolved_m) & (gl > 0)
+    replaced = np.zeros(len(r), dtype=bool)
+    if int(ok.sum()) < min_resolved or float(np.ptp(np.log(gl[ok]))) < math.log(10.0):
+        return r, replaced, float("nan")
+    b = float(exponent)
+    a = robust_line(np.zeros(int(ok.sum())), np.log(r[ok]) - b * np.log(gl[ok]), np.asarray(length, dtype=np.float64)[ok])[0]
+    model = np.maximum(np.exp(a + b * np.log(np.maximum(gl, 1e-6))), min_radius)
+    branch = np.asarray(order) > 0
+    poor = branch & ~np.asarray(good, dtype=bool)
+    over = branch & ~ok & ~poor & (r > upper * model)
+    replaced = poor | over
+    r[poor] = model[poor]
+    r[over] = upper * model[over]
+    for k in range(1, len(r)):  # parents first: never thicker than the cylinder it grows from
+        if parent[k] >= 0 and r[k] > r[parent[k]]:
+            r[k] = r[parent[k]]
+            replaced[k] = True
+    return r, replaced, float(b)
+
+
 # --------------------------------------------------------------------------------------------
 # The whole model
 # --------------------------------------------------------------------------------------------
@@ -1257,10 +1327,13 @@ def fit_qsm(
             f"a cylinder model needs at least {params.min_points} points after thinning to {params.thinning_m:.3g} m, "
             f"got {len(p)}: the tree is too small or too sparsely sampled"
         )
+    spacing = local_spacing(p)
+    spacing_m = float(np.median(spacing))
+    params = sized_to_spacing(params, spacing_m)
     if params.neighbour_distance_m is not None:
         neighbour_m: float | np.ndarray = params.neighbour_distance_m
     else:
-        neighbour_m = np.clip(1.5 * local_spacing(p), params.patch_diameter2_min_m / 3.0, params.patch_diameter2_max_m)
+        neighbour_m = np.clip(1.5 * spacing, params.patch_diameter2_min_m / 3.0, params.patch_diameter2_max_m)
 
     # phase 1: coarse cover, structure and rough sizes
     progress(0.05, "coarse cover sets")
@@ -1317,6 +1390,14 @@ def fit_qsm(
         if params.enforce_taper and b == 0:
             radius[idx] = pipe_caps(radius[idx], good[idx], [child_base.get(int(k), []) for k in idx], params.min_radius_m)
 
+    growth = {"slope": float("nan"), "replaced": 0}
+    if params.growth_taper:
+        order = np.array([r["order"] for r in rows], dtype=np.int64)
+        radius, replaced, slope = growth_taper_radii(radius, good, length, parent, order, params.resolvable_spacing_ratio * spacing_m,
+                                                     params.min_radius_m, params.growth_exponent)
+        good &= ~replaced
+        growth = {"slope": slope, "replaced": int(replaced.sum())}
+
     start = np.array([r["start"] for r in rows]).reshape(k, 3)
     axis = np.array([r["axis"] for r in rows]).reshape(k, 3)
     to_base = 0.0
@@ -1349,5 +1430,9 @@ def fit_qsm(
             "thinning_m": float(params.thinning_m),
             "stem_extended_to_base_m": float(to_base),
             "breast_height_m": float(params.breast_height_m),
+            "point_spacing_m": spacing_m,
+            "patch_diameters_m": (float(params.patch_diameter1_m), float(params.patch_diameter2_min_m), float(params.patch_diameter2_max_m)),
+            "growth_taper_slope": growth["slope"],
+            "growth_taper_replaced": growth["replaced"],
         },
     )
