@@ -71,6 +71,7 @@ TREEQSM = {
     "AdTree_tree7.xyz": {"volume_m3": 0.1010, "stem_volume_m3": 0.0272, "dbh_m": 0.0774, "height_m": 5.24},
     "pine.laz": {"volume_m3": 1.0400, "stem_volume_m3": 0.5941, "dbh_m": 0.3377, "height_m": 20.38},
     "cloud.txt": {"volume_m3": 0.0234, "stem_volume_m3": 0.0108, "dbh_m": 0.0751, "height_m": 3.70},
+    "AdTree_Lille_2.xyz": {"volume_m3": 7.5154, "stem_volume_m3": 1.3579, "dbh_m": 0.4973, "height_m": 15.83},
 }
 #: Stem rings of pine_plot.laz counted by hand (m from the cloud's minimum corner; see
 #: tests/test_trees_platforms.py).

@@ -43,7 +43,14 @@ does the same in our own way, in these steps (each a small function):
    stem carries on above it) has its stem taper judged apart below and above the fork; past it
    the stem, the largest fork, keeps at least an equal share of the trunk's cross-section, and
    its filled-in radii no more than the trunk's cross-section less its side branches' (the pipe
-   model). With a given base, a stem whose lowest points were lost is lengthened down to it.
+   model). With a given base, a stem whose lowest points were lost is lengthened down to it;
+7. **growth length** (:func:`growth_taper_radii`): branch radii the points cannot resolve (poor
+   fits, and fits below ``resolvable_spacing_ratio`` point spacings) follow the tree's own
+   ``radius = c * growth_length ** growth_exponent``, ``c`` from the resolved cylinders.
+
+On a sparsely sampled tree (median point spacing above half ``patch_diameter2_max_m``) all patch
+diameters grow in proportion to ``patch_spacing_ratio`` spacings (:func:`sized_to_spacing`), as
+TreeQSM sizes its patches from the stem and the point resolution.
 
 Conventions: metres; points in any frame with z up (the stem base is the lowest part unless a base
 point is given); branch 0 is the stem (order 0); a cylinder's ``parent`` is the cylinder it grows
