@@ -107,6 +107,17 @@ class SavedResult:
         return self.status == "ok"
 
 
+def saved_crs(d: object) -> Optional[str]:
+    """The CRS a run's outputs are in, as its ``result.json`` or ``poses.json`` names it (its
+    ``crs`` entry): the EPSG id (``"EPSG:32618"``), else the WKT; None for local coordinates or
+    no such entry."""
+    crs = d.get("crs") if isinstance(d, Mapping) else None
+    if not isinstance(crs, Mapping):
+        return None
+    found = crs.get("epsg") or crs.get("wkt")
+    return str(found) if found else None
+
+
 @dataclass(frozen=True)
 class SavedPose:
     """One scan of ``poses.json``: its status, reason, the scan it was placed on and ``matrix``

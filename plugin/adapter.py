@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Sequence, Union
 
-from ..app.saved import SavedFileError, SavedPoses, SavedResult, read_scanner_positions
+from ..app.saved import SavedFileError, SavedPoses, SavedResult, read_scanner_positions, saved_crs
 
 Matrix = list  # 4x4 nested lists of floats
 ProgressCallback = Callable[[float, str], None]
@@ -637,12 +637,9 @@ def write_layer_files(outputs: HostOutputs) -> LayerFiles:
 
 
 def output_crs(summary: object) -> Optional[str]:
-    """The CRS a run's outputs are in, as its ``result.json`` or ``poses.json`` names it (its
-    ``crs`` entry): the EPSG id (``"EPSG:32618"``), else the WKT; None for local coordinates."""
-    crs = summary.get("crs") if isinstance(summary, dict) else None
-    if not isinstance(crs, dict):
-        return None
-    return crs.get("epsg") or crs.get("wkt") or None
+    """The CRS a run's outputs are in, as its ``result.json`` or ``poses.json`` names it
+    (:func:`~forestreg.app.saved.saved_crs`): the EPSG id, else the WKT; None for local coordinates."""
+    return saved_crs(summary)
 
 
 def delimited_text_uri(path: Union[str, Path], crs: Optional[str] = None) -> str:

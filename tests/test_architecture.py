@@ -318,6 +318,7 @@ NOT_RESULTS: dict[str, dict[str, str]] = {
     "plugin.adapter": {"env": "the environment of the service's process",
                        "row": "rows of a *_vops.csv (csv.DictReader), read into the host's records",
                        "final": "the service's job record (status, exit code, message) as its HTTP API returns it"},
+    "plugin.qgis.provider": {"gpkg": "the layers of layers.gpkg loaded into QGIS, by layer name"},
     "plugin.geometry": {"c": "a cylinder table's columns by name (read_cylinders_csv: one array per column of CYLINDER_COLUMNS)"},
     "service.app": {"scope": "the ASGI scope", "message": "ASGI messages", "request.headers": "HTTP headers",
                     "request.query_params": "the URL's query", "info": "the service's own state file (url, token, pid)",
