@@ -48,7 +48,7 @@ does the same in our own way, in these steps (each a small function):
    fits, and fits below ``resolvable_spacing_ratio`` point spacings) follow the tree's own
    ``radius = c * growth_length ** growth_exponent``, ``c`` from the resolved cylinders.
 
-On a sparsely sampled tree (median point spacing above half ``patch_diameter2_max_m``) all patch
+On a sparsely sampled tree (median point spacing at the stem's foot above half ``patch_diameter2_max_m``) all patch
 diameters grow in proportion to ``patch_spacing_ratio`` spacings (:func:`sized_to_spacing`), as
 TreeQSM sizes its patches from the stem and the point resolution.
 
@@ -1336,7 +1336,12 @@ def fit_qsm(
         )
     spacing = local_spacing(p)
     spacing_m = float(np.median(spacing))
-    params = sized_to_spacing(params, spacing_m)
+    # the patches are sized to the sampling of the thickest part, the stem's foot (the lowest
+    # tenth of the tree, at least 2 m): a crown sampled more sparsely than its stem (a big tree,
+    # its crown far from the scanners) keeps the stem's fine patches
+    low = p[:, 2] <= float(p[:, 2].min()) + max(2.0, 0.1 * float(np.ptp(p[:, 2])))
+    foot_m = float(np.median(spacing[low])) if int(low.sum()) >= 50 else spacing_m
+    params = sized_to_spacing(params, foot_m)
     if params.neighbour_distance_m is not None:
         neighbour_m: float | np.ndarray = params.neighbour_distance_m
     else:
