@@ -121,7 +121,7 @@ def test_simulated_sparse_ground_under_an_airborne_crown():
 
 def test_pine_plot_flags_only_weak_values(shared_data):
     """The real planted plot: its stems are whole, though the 10 m clip passes near 10 of its 16;
-    a tree is flagged only when one of its values is weak, and then says which. The heights of 14
+    a tree is flagged only when one of its values is weak, and then says which. The heights of 12
     of 16 trees stand (measured), 7 of them on the plot's height-diameter curve (from the 7 trees
     whose tops stand clear: a plantation's heights hardly vary, scatter 5 %)."""
     _, inv = _inventory(str(shared_data / "pine_plot.laz"))
@@ -134,7 +134,10 @@ def test_pine_plot_flags_only_weak_values(shared_data):
     # a DBH near the edge keeps its trust when its section is whole round
     assert sum(1 for t in inv.trees if t.quality["dbh"].endswith(("high", "medium"))) >= 12
     assert inv.height_curve is not None and inv.height_curve.scatter < 0.1
-    assert sum(1 for t in inv.trees if t.quality["height"].endswith(("high", "medium"))) >= 13
+    # a stem without a DBH has no curve to check its top: it stands only as a tip over the stem
+    no_dbh = [t for t in inv.trees if not math.isfinite(t.dbh_m)]
+    assert all(t.quality["height"].endswith("low") or "apex seen as a tip" in t.quality["height"] for t in no_dbh)
+    assert sum(1 for t in inv.trees if t.quality["height"].endswith(("high", "medium"))) >= 12
 
 
 @functools.lru_cache(maxsize=None)

@@ -878,7 +878,7 @@ def _judge_top(crown: CrownMeasurement, dbh_value: float, dbh_quality: str, hint
     stem, at most :attr:`.allometry.HeightCurveParams.clear_above` above the plot's curve), or
     its top over the stem with no hint at all (not on the flank, not missing or cut flat, no
     neighbour's crown over, around or nearer to it) and within ``clear_below`` below to
-    ``clear_above`` above the curve (any height without a curve), or with only soft hints (on
+    ``clear_above`` above the curve (without a curve: its apex seen as a tip), or with only soft hints (on
     the crown's flank, missing or cut flat, beside a thicker stem) within
     :attr:`TreeParams.curve_agreement` of a curve scattering at most ``max_scatter_unseen``
     (two witnesses agreeing). ``top_flags`` holding a decisive
@@ -905,8 +905,10 @@ def _judge_top(crown: CrownMeasurement, dbh_value: float, dbh_quality: str, hint
                 and not ("under" in names and not math.isfinite(dep))):
             # its apex seen as a tip: its own top, however far below the curve (a suppressed tree)
             return (_trust(h_trust, "medium") if names else h_trust), h_how + ", its apex seen as a tip over the stem" + dep_text, nan, top_flags
-        if not names and (not math.isfinite(dep) or -hc.clear_below <= dep <= hc.clear_above):
-            return h_trust, h_how + (dep_text + " (consistent)" if dep_text else ""), nan, top_flags
+        if not names and (-hc.clear_below <= dep <= hc.clear_above if math.isfinite(dep) else apex_tip(crown, params.crown)):
+            # without a curve to check it, a top with no hint stands only as a tip: a crown whose
+            # top the scanners' view cut, or hid behind other crowns, shows no hint either
+            return h_trust, h_how + (dep_text + " (consistent)" if dep_text else ", its apex seen as a tip over the stem"), nan, top_flags
         if (names and names <= {"flank", "missing", "flat", "reach"} and curve is not None and curve.scatter <= hc.max_scatter_unseen
                 and abs(dep) <= params.curve_agreement):
             # a soft hint, the plot's curve agreeing: two witnesses for the top
@@ -917,7 +919,8 @@ def _judge_top(crown: CrownMeasurement, dbh_value: float, dbh_quality: str, hint
                      f"+{100 * hc.clear_above:.0f} %): top hidden, or a neighbour's (height unsure)")
     elif math.isfinite(dep) and names:
         flags.append(f"height {100 * dep:+.0f} % from the plot's height-diameter curve")
-    h_how += dep_text if dep_text else ", no height-diameter curve to check it"
+    h_how += dep_text if dep_text else (", no height-diameter curve to check it" if curve is None
+                                        else ", no DBH for the plot's height-diameter curve to check it")
     estimate = curve.estimate_height_m(dbh_value, hc) if curve is not None else nan
     if not (math.isfinite(estimate) and math.isfinite(crown.height_m)) or ground_trust == "low" or dbh_quality.endswith(("low", "none")):
         return "low", h_how, nan, flags
