@@ -106,7 +106,7 @@ def add_parsers(sub, add_global_flags) -> None:
     p.add_argument("--max-distance", type=number("--max-distance", positive=True), default=0.3, help="largest distance to a known target, metres (default 0.3)")
     p.set_defaults(func=cmd_targets, long_running=True)
 
-    p = sub.add_parser("plan", help="where to scan next: stems and ground not seen yet, link strength, and 1-3 scanner positions that link and see the most new stem area (plan.json)")
+    p = sub.add_parser("plan", help="where to scan next: stems and ground not seen yet, link strength, and 1-3 scanner positions that link and see the most new stem area (plan.json, plan.gpkg)")
     p.add_argument("project", metavar="PROJECT_OR_OUT", help="a plot folder (of 'plot' or 'plot --watch') or a project file")
     p.add_argument("--n", type=number("--n", minimum=1, integer=True), default=1, metavar="N", help="how many next scans to suggest, 1 to 3 (default 1)")
     p.add_argument("--radius", type=number("--radius", positive=True), metavar="M", help="plot radius in metres around the centre scan's scanner (default: from the ground the scans saw)")
@@ -311,7 +311,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     if not run:
         say(f"no next scan: {run.reason} -> {shown(run.out)}", args, err=True)
         return 1
-    say(f"plan: {shown(run.out)}", args)
+    say(f"plan: {shown(run.out)}" + (f" and {shown(run.layers)} (the next_scans layer)" if run.layers else ""), args)
     return 0
 
 

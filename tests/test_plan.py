@@ -129,8 +129,10 @@ def test_plan_command_writes_plan_json_and_a_table(placed, tmp_path, capsys):
     _, project, _ = placed
     out = tmp_path / "plan.json"
     assert main(["plan", str(project.path), "--n", "2", "--radius", "13", "--out", str(out), "--progress", "none"]) == 0
-    text = capsys.readouterr().out
+    captured = capsys.readouterr()
+    text = captured.out
     assert "link scan_02.laz -> scan_01.laz:" in text and "next" in text
+    assert "plan.gpkg (the next_scans layer)" in captured.out + captured.err  # the layer's file is said
     doc = json.loads(out.read_text())
     assert doc["format"] == "forestreg-plan" and doc["frame"] == "scan_01.laz" and len(doc["suggestions"]) == 2
     assert doc["plot"]["radius_m"] == 13.0 and doc["stems"]["seen_by_two_or_more"] > 0
