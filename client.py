@@ -60,7 +60,13 @@ class ServiceError(RuntimeError):
 class Client:
     """The service's HTTP/JSON API as methods (every call bounded by ``timeout`` seconds)."""
 
-    def __init__(self, url: Optional[str] = None, token: Optional[str] = None, state_dir: Optional[Union[str, Path]] = None, timeout: float = 30.0) -> None:
+    def __init__(
+        self,
+        url: Optional[str] = None,
+        token: Optional[str] = None,
+        state_dir: Optional[Union[str, Path]] = None,
+        timeout: float = 30.0,
+    ) -> None:
         state = Path(state_dir) if state_dir else default_state_dir()
         if url is None:
             info = read_server_info(state)
@@ -95,7 +101,9 @@ class Client:
                 detail = exc.reason
             raise ServiceError(f"{method} {path}: {exc.code} {detail}", exc.code, str(detail)) from None
         except (urllib.error.URLError, OSError) as exc:
-            raise ServiceError(f"cannot reach the forestreg service at {self.url}: {getattr(exc, 'reason', exc)}") from None
+            raise ServiceError(
+                f"cannot reach the forestreg service at {self.url}: {getattr(exc, 'reason', exc)}"
+            ) from None
 
     def _json(self, method: str, path: str, body: Any = None, auth: bool = True) -> Any:
         with self._request(method, path, body, auth=auth) as resp:
@@ -179,7 +187,10 @@ class Client:
                         after = event.get("_id", after)
                         kind = event.get("event")
                         if kind == "progress" and progress is not None:
-                            progress(float(event.get("fraction") or 0.0), str(event.get("message") or event.get("step") or ""))
+                            progress(
+                                float(event.get("fraction") or 0.0),
+                                str(event.get("message") or event.get("step") or ""),
+                            )
                         elif kind == "log" and log is not None:
                             log(str(event.get("message", "")))
                     if cancelled is not None and not cancel_sent and cancelled():
@@ -247,7 +258,9 @@ def start_service(
         cmd += ["--idle-exit", str(idle_exit_s)]
     kwargs: dict = {}
     if os.name == "nt":  # pragma: no cover
-        kwargs["creationflags"] = getattr(subprocess, "CREATE_NO_WINDOW", 0) | getattr(subprocess, "CREATE_NEW_PROCESS_GROUP", 0)
+        kwargs["creationflags"] = getattr(subprocess, "CREATE_NO_WINDOW", 0) | getattr(
+            subprocess, "CREATE_NEW_PROCESS_GROUP", 0
+        )
     else:
         kwargs["start_new_session"] = True  # outlives the host that started it
     with (state / "service.log").open("ab") as logfile:
@@ -265,7 +278,9 @@ def start_service(
             if client is not None:
                 return client
             tail = (state / "service.log").read_text(encoding="utf-8", errors="replace").strip().splitlines()[-1:]
-            raise ServiceError(f"the forestreg service did not start (exit status {code}): {tail[0] if tail else 'no message'}")
+            raise ServiceError(
+                f"the forestreg service did not start (exit status {code}): {tail[0] if tail else 'no message'}"
+            )
         time.sleep(0.2)
     raise ServiceError(f"the forestreg service did not answer within {timeout:.0f} s (see {state / 'service.log'})")
 

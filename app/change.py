@@ -73,14 +73,18 @@ class ChangeSummary:
     @classmethod
     def of(cls, d) -> "ChangeSummary":
         from ..engine.core.outcome import OutcomeRecord
-
         from .saved import count_or_none, finite_or_none, mapping_or_empty
 
         rec = OutcomeRecord.from_dict(d)
         trees, unc = mapping_or_empty(rec.get("trees")), mapping_or_empty(rec.get("uncertainty"))
-        return cls(rec.status, rec.reason, count_or_none(rec.evidence.get("persisting_stems")),
-                   *(count_or_none(trees.get(k)) or 0 for k in ("persisting", "removed", "new", "outside")),
-                   finite_or_none(unc.get("translation_m")), finite_or_none(unc.get("rotation_deg")))
+        return cls(
+            rec.status,
+            rec.reason,
+            count_or_none(rec.evidence.get("persisting_stems")),
+            *(count_or_none(trees.get(k)) or 0 for k in ("persisting", "removed", "new", "outside")),
+            finite_or_none(unc.get("translation_m")),
+            finite_or_none(unc.get("rotation_deg")),
+        )
 
     @property
     def ok(self) -> bool:
@@ -116,7 +120,7 @@ def read_change_folder(folder):
 
 
 def _input_kind(path: Path) -> str:
-    """"table" (a table of trees, :func:`~forestreg.engine.io.sniff.is_tree_table`, or a folder
+    """ "table" (a table of trees, :func:`~forestreg.engine.io.sniff.is_tree_table`, or a folder
     holding a ``trees.csv``), "project" (a plot project file) or "cloud"; a missing or unreadable
     input is a one-line error."""
     from ..engine.core.errors import UsageError
@@ -126,7 +130,9 @@ def _input_kind(path: Path) -> str:
     if path.is_dir():
         if (path / "trees.csv").is_file():
             return "table"
-        raise UsageError(f"{path} is a folder without trees.csv: give a cloud, a project file or the trees.csv of 'forestreg trees'")
+        raise UsageError(
+            f"{path} is a folder without trees.csv: give a cloud, a project file or the trees.csv of 'forestreg trees'"
+        )
     check_readable(path)
     if path.suffix.lower() == ".json":
         return "project"
@@ -153,8 +159,14 @@ def _read_table(path: Path, role: str, scale: float, change_params):
     from ..engine.io.tables import read_trees_table
 
     table = read_trees_table(path / "trees.csv" if path.is_dir() else path)
-    epoch = epoch_from_table(table.rows, name=f"{role} ({table.path.name})", unit_scale=scale, change=change_params,
-                             lines=table.lines, dbh_column=table.dbh_column)
+    epoch = epoch_from_table(
+        table.rows,
+        name=f"{role} ({table.path.name})",
+        unit_scale=scale,
+        change=change_params,
+        lines=table.lines,
+        dbh_column=table.dbh_column,
+    )
     return epoch, table.notes + epoch.notes
 
 
@@ -175,13 +187,17 @@ def _project_cloud(path: Path, scale: float):
             return Path(folder) / "trees.csv", f"trees of project {path.name} ({name})"
     for cloud in (project.forest.ground_cloud, project.forest.fused_cloud):
         if cloud is not None and Path(cloud).is_file():
-            return read_scan(cloud, unit_scale=scale, with_intensity=False), f"cloud of project {path.name} ({Path(cloud).name})"
+            return read_scan(
+                cloud, unit_scale=scale, with_intensity=False
+            ), f"cloud of project {path.name} ({Path(cloud).name})"
     poses = project.poses()
     missing = [s.name for s in project.scans if poses.get(s.name) is None]
     if not project.scans:
         raise UsageError(f"project {path}: no scans")
     if missing:
-        raise UsageError(f"project {path}: scan(s) {', '.join(missing)} not registered: run 'forestreg project run' first")
+        raise UsageError(
+            f"project {path}: scan(s) {', '.join(missing)} not registered: run 'forestreg project run' first"
+        )
     parts = []
     for s in project.scans:
         scan = read_scan(s.path, unit_scale=scale, scan_index=s.scan_index, with_intensity=False)
@@ -204,8 +220,7 @@ def read_epoch(path, role: str, *, units: str = "m", tree_params=None, change_pa
 def _read_survey(p: Path, role: str, units: str, tree_params, change_params, progress=None, cancel=None):
     """:func:`read_epoch`, with the file the trees came from (a project's table) and the notes a
     user should see (a DBH column converted, rows left out)."""
-    from ..engine.change import ChangeParams
-    from ..engine.change import epoch_from_cloud
+    from ..engine.change import ChangeParams, epoch_from_cloud
     from ..engine.core.scan import Scan
     from ..engine.io import read_scan
 
@@ -224,8 +239,14 @@ def _read_survey(p: Path, role: str, units: str, tree_params, change_params, pro
     else:
         cloud, note = read_scan(p, unit_scale=scale, with_intensity=False), f"cloud {p.name}"
     check_units(cloud.points, units, f"{role} {p.name}")
-    epoch = epoch_from_cloud(cloud.points, tree_params, with_cancel(progress, cancel), origin_shift=cloud.origin_shift, name=role,
-                             change=change_params)
+    epoch = epoch_from_cloud(
+        cloud.points,
+        tree_params,
+        with_cancel(progress, cancel),
+        origin_shift=cloud.origin_shift,
+        name=role,
+        change=change_params,
+    )
     return epoch, f"{note}, {len(cloud.points):,} points", _real_input(p), ()
 
 
@@ -255,9 +276,15 @@ def _unit_mismatch(before, after, units_before: str, units_after: str) -> None:
         fixes.append(f"--units-{smaller.lower()} {u}")
     same = units_before == units_after
     read_as = f"both read as {units_before}" if same else f"BEFORE read as {units_before}, AFTER as {units_after}"
-    hint = f"; give each survey's unit: {' or '.join(fixes)}" if fixes else "; give each survey's unit (--units-before, --units-after)"
-    raise UsageError(f"the two surveys look like different units ({read_as}): {found['why']}: {larger} looks like "
-                     f"{found['unit']} against {smaller}'s unit{hint}")
+    hint = (
+        f"; give each survey's unit: {' or '.join(fixes)}"
+        if fixes
+        else "; give each survey's unit (--units-before, --units-after)"
+    )
+    raise UsageError(
+        f"the two surveys look like different units ({read_as}): {found['why']}: {larger} looks like "
+        f"{found['unit']} against {smaller}'s unit{hint}"
+    )
 
 
 def _survey_crs(path: Path, kind: str):
@@ -288,8 +315,18 @@ def _survey_crs(path: Path, kind: str):
 
 
 def detect_change_files(
-    before, after, out, params=None, *, units: str = "m", units_before: Optional[str] = None, units_after: Optional[str] = None,
-    report: bool = True, crs=None, progress=None, cancel=None,
+    before,
+    after,
+    out,
+    params=None,
+    *,
+    units: str = "m",
+    units_before: Optional[str] = None,
+    units_after: Optional[str] = None,
+    report: bool = True,
+    crs=None,
+    progress=None,
+    cancel=None,
 ) -> ChangeOutcome:
     """Compare the surveys ``before`` and ``after`` (paths: clouds, project files, trees tables)
     into the folder ``out`` (a transaction; None: nothing written). ``params``: a
@@ -335,35 +372,66 @@ def detect_change_files(
         out = check_output_folder(out, "change", inputs=[b_path, a_path])
     prog = as_progress(with_cancel(progress, cancel))
     t0 = time.perf_counter()
-    b_epoch, b_note, b_real, b_notes = _read_survey(b_path, "BEFORE", units_before, tree_params, change_params, prog.sub(0.0, 0.45))
+    b_epoch, b_note, b_real, b_notes = _read_survey(
+        b_path, "BEFORE", units_before, tree_params, change_params, prog.sub(0.0, 0.45)
+    )
     if kinds[0] == "project":
         same_refused(b_real, _real_input(a_path))
-    a_epoch, a_note, a_real, a_notes = _read_survey(a_path, "AFTER", units_after, tree_params, change_params, prog.sub(0.45, 0.9))
+    a_epoch, a_note, a_real, a_notes = _read_survey(
+        a_path, "AFTER", units_after, tree_params, change_params, prog.sub(0.45, 0.9)
+    )
     same_refused(b_real, a_real)
     _unit_mismatch(b_epoch, a_epoch, units_before, units_after)
     read_s = time.perf_counter() - t0
     result = detect_change(b_epoch, a_epoch, change_params, prog.sub(0.9, 1.0))
     # the last check before "ok"; the matrix's translation in BEFORE's unit
-    summary, ok = run_summary(result, {"read_and_trees_s": read_s}, {"before": b_path, "after": a_path}, units_before, scale,
-                              facts={"before_read": b_note, "after_read": a_note, "inputs": {"before": kinds[0], "after": kinds[1]}})
+    summary, ok = run_summary(
+        result,
+        {"read_and_trees_s": read_s},
+        {"before": b_path, "after": a_path},
+        units_before,
+        scale,
+        facts={"before_read": b_note, "after_read": a_note, "inputs": {"before": kinds[0], "after": kinds[1]}},
+    )
     if summary.get("matrix") is not None:
         # file coordinates of each survey in its own unit: p_before = M @ p_after holds the unit ratio
         m = np.array(summary["matrix"], dtype=float)
         m[:3, :3] *= scale_after / scale
         summary["matrix"] = m.tolist()
     notes = [f"BEFORE: {n}" for n in b_notes] + [f"AFTER: {n}" for n in a_notes]
-    summary.update(unit_after=units_after, unit_scale_after=scale_after, notes=notes,
-                   columns="tree_changes.csv: x, y in BEFORE file coordinates (BEFORE's unit); DBH and heights in metres")
-    frame = frame_crs({"before": _survey_crs(b_path, kinds[0]), "after": _survey_crs(a_path, kinds[1])}, "before", given,
-                      names={"before": f"BEFORE ({b_path.name})", "after": f"AFTER ({a_path.name})"})
-    summary["crs"] = frame.to_dict(frames={"matrix": f"maps {frame.label_of('after')} onto {frame.label_of('before')}",
-                                           "tree_changes.csv": frame.label_of("before"), "layers.gpkg": frame.label_of("before")})
+    summary.update(
+        unit_after=units_after,
+        unit_scale_after=scale_after,
+        notes=notes,
+        columns="tree_changes.csv: x, y in BEFORE file coordinates (BEFORE's unit); DBH and heights in metres",
+    )
+    frame = frame_crs(
+        {"before": _survey_crs(b_path, kinds[0]), "after": _survey_crs(a_path, kinds[1])},
+        "before",
+        given,
+        names={"before": f"BEFORE ({b_path.name})", "after": f"AFTER ({a_path.name})"},
+    )
+    summary["crs"] = frame.to_dict(
+        frames={
+            "matrix": f"maps {frame.label_of('after')} onto {frame.label_of('before')}",
+            "tree_changes.csv": frame.label_of("before"),
+            "layers.gpkg": frame.label_of("before"),
+        }
+    )
     if units_before != units_after:
-        summary["convention"] = (f"{summary.get('convention') or ChangeOutcome.convention}; BEFORE in {units_before}, AFTER in "
-                                 f"{units_after}: the matrix scales by {scale_after / scale:.6g}")
+        summary["convention"] = (
+            f"{summary.get('convention') or ChangeOutcome.convention}; BEFORE in {units_before}, AFTER in "
+            f"{units_after}: the matrix scales by {scale_after / scale:.6g}"
+        )
     rows_local = [t.row(np.zeros(3)) for t in result.trees] if ok else []
-    rows = [{**r, "x": (r["x"] + float(result.origin_shift[0])) / scale, "y": (r["y"] + float(result.origin_shift[1])) / scale}
-            for r in rows_local]
+    rows = [
+        {
+            **r,
+            "x": (r["x"] + float(result.origin_shift[0])) / scale,
+            "y": (r["y"] + float(result.origin_shift[1])) / scale,
+        }
+        for r in rows_local
+    ]
     if out is not None:
         from ..engine.io.change import write_change_files
 
@@ -374,12 +442,14 @@ def detect_change_files(
                 write_change_files(tmp, summary, rows, CHANGE_COLUMNS)
                 write_layers(tmp, change_layers(rows, CHANGE_COLUMNS), frame.crs)
             else:
-                from ..engine.core.atomic import write_text_atomic
                 import json
 
+                from ..engine.core.atomic import write_text_atomic
                 from ..engine.core.jsonable import to_jsonable
 
-                write_text_atomic(tmp / "result.json", json.dumps(to_jsonable(summary, nan_as_null=True), indent=1) + "\n")
+                write_text_atomic(
+                    tmp / "result.json", json.dumps(to_jsonable(summary, nan_as_null=True), indent=1) + "\n"
+                )
             if report:
                 from ..engine.report.change_report import write_change_report
 

@@ -12,7 +12,6 @@ import numpy as np
 
 from ..engine.core.errors import InvalidArgumentError, ParameterError, ScanDataError, UsageError
 from ..engine.core.outcome import Outcome
-
 from .units import UNITS, unit_of_scale, unit_problem  # noqa: F401 - metres per unit of the files' coordinates
 
 ProgressCallback = Callable[[float, str], None]
@@ -90,8 +89,14 @@ def rigid_or_withheld(result):
 
 
 def run_summary(
-    result, read: dict, inputs: dict, units: str, scale: float, *,
-    facts: Optional[dict] = None, matrix_keys: tuple[str, ...] = ("matrix",),
+    result,
+    read: dict,
+    inputs: dict,
+    units: str,
+    scale: float,
+    *,
+    facts: Optional[dict] = None,
+    matrix_keys: tuple[str, ...] = ("matrix",),
 ) -> tuple[dict, bool]:
     """The ``result.json`` summary of a registration-like ``result`` and whether it is "ok".
 
@@ -116,9 +121,16 @@ def run_summary(
 def outcome_of(summary: dict, *, out: Optional[Path] = None, result: Any = None, cls=RunOutcome, **extra) -> RunOutcome:
     """A typed outcome from a checked ``result.json`` summary."""
     m = summary.get("matrix")
-    return cls(status=str(summary.get("status") or "failed"), reason=str(summary.get("reason") or ""),
-               matrix=None if m is None else np.asarray(m, dtype=float), timings=dict(summary.get("timings") or {}),
-               out=out, summary=summary, result=result, **extra)
+    return cls(
+        status=str(summary.get("status") or "failed"),
+        reason=str(summary.get("reason") or ""),
+        matrix=None if m is None else np.asarray(m, dtype=float),
+        timings=dict(summary.get("timings") or {}),
+        out=out,
+        summary=summary,
+        result=result,
+        **extra,
+    )
 
 
 def check_inputs_exist(*paths) -> None:
@@ -164,13 +176,15 @@ def check_near_scanner(scan, max_range_m: float, path, units: str, *, units_chec
     if span < 2.0:
         raise UsageError(
             f"{path}: with --units {units} the points span only {span:.2f} m horizontally; a forest scan spans tens of metres: "
-            "check the file's unit (--units)")
+            "check the file's unit (--units)"
+        )
     near = points_within(scan.points, scan.scanner_position, max_range_m)
     if near < 1000 or near < 0.01 * len(scan.points):
         pos = ", ".join(f"{v:.2f}" for v in scan.scanner_position_file / UNITS[units])
         raise UsageError(
             f"{path}: only {near} of {len(scan.points)} points lie within D_c = {max_range_m:g} m of the scanner position ({pos} {units}); "
-            "for a georeferenced scan give --scanner-position X,Y,Z, and check the file's unit (--units cm|mm|ft)")
+            "for a georeferenced scan give --scanner-position X,Y,Z, and check the file's unit (--units cm|mm|ft)"
+        )
 
 
 def check_replaceable_point_file(path, dimension: str, what: str) -> None:
@@ -278,14 +292,17 @@ def as_points(points, what: str = "points", *, min_points: int = 1) -> np.ndarra
     try:
         return check_points(points, what, min_points=min_points)
     except (TypeError, ValueError) as exc:  # not numbers, or ragged
-        raise InvalidArgumentError(f"{what}: expected an (N, 3) array of numbers (x, y, z in metres), got {type(points).__name__} "
-                                   f"that is not one ({exc})") from exc
+        raise InvalidArgumentError(
+            f"{what}: expected an (N, 3) array of numbers (x, y, z in metres), got {type(points).__name__} "
+            f"that is not one ({exc})"
+        ) from exc
 
 
 def scan_source(source, what: str):
     """What the engine's registrations take for a scan: a checked scan (:func:`as_scan`), or, for a
     function that reads one (``lambda: read_scan(path)``), a function that reads and checks it."""
     if callable(source) and not isinstance(source, type):
+
         def load():
             return as_scan(source(), what)
 
@@ -317,7 +334,9 @@ def read_scan(path, **options):
     from ..engine.io import read_scan as read
 
     if not isinstance(path, (str, os.PathLike)):
-        raise InvalidArgumentError(f"expected the path of a point file (str or pathlib.Path), got {type(path).__name__}")
+        raise InvalidArgumentError(
+            f"expected the path of a point file (str or pathlib.Path), got {type(path).__name__}"
+        )
     scan = read(path, **options)
     check_units(scan.points, unit_of_scale(options.get("unit_scale", 1.0)), str(path))
     return scan
@@ -331,7 +350,9 @@ def read_scans(path, **options):
     from ..engine.io import read_scans as read
 
     if not isinstance(path, (str, os.PathLike)):
-        raise InvalidArgumentError(f"expected the path of a point file (str or pathlib.Path), got {type(path).__name__}")
+        raise InvalidArgumentError(
+            f"expected the path of a point file (str or pathlib.Path), got {type(path).__name__}"
+        )
     scans = read(path, **options)
     for scan in scans:
         check_units(scan.points, unit_of_scale(options.get("unit_scale", 1.0)), f"{path} ({scan.name})")
@@ -356,8 +377,10 @@ def _as_project(project, what: str = "project"):
         return project
     if isinstance(project, (str, Path)):
         return Project.load(project)
-    raise InvalidArgumentError(f"{what}: expected a Project (forestreg.Project.load(path)) or a project file's path, "
-                               f"got {type(project).__name__}")
+    raise InvalidArgumentError(
+        f"{what}: expected a Project (forestreg.Project.load(path)) or a project file's path, "
+        f"got {type(project).__name__}"
+    )
 
 
 def checked_scans(project, scans=None, *, with_intensity: bool = True):
@@ -427,12 +450,17 @@ def register_survey(project, params=None, *, scans=None, **options):
     (see :func:`register_project`, saved the same way, the adjustment with it); ``params`` a
     :class:`~forestreg.engine.tls.survey.SurveyParams`."""
     from ..engine.io.results import save_to_its_file
-    from ..engine.tls.survey import SurveyParams, register_survey as register
+    from ..engine.tls.survey import SurveyParams
+    from ..engine.tls.survey import register_survey as register
 
     project = _as_project(project)
     done = options.setdefault("on_link_done", save_to_its_file)
-    outcome = register(project, params_of(params, SurveyParams, "survey"), scans=checked_scans(project, scans, with_intensity=False),
-                       **options)
+    outcome = register(
+        project,
+        params_of(params, SurveyParams, "survey"),
+        scans=checked_scans(project, scans, with_intensity=False),
+        **options,
+    )
     if done is not None:
         done(project)
     return outcome

@@ -36,8 +36,15 @@ class SideResult:
     @classmethod
     def of(cls, d) -> "SideResult":
         d = d if isinstance(d, Mapping) else {}
-        return cls(str(d.get("status") or "failed"), str(d.get("reason") or ""), d.get("icp_std_m"), d.get("matched"), d.get("targets"),
-                   d.get("reference_vops"), d.get("moving_vops"))
+        return cls(
+            str(d.get("status") or "failed"),
+            str(d.get("reason") or ""),
+            d.get("icp_std_m"),
+            d.get("matched"),
+            d.get("targets"),
+            d.get("reference_vops"),
+            d.get("moving_vops"),
+        )
 
     @property
     def ok(self) -> bool:
@@ -55,11 +62,16 @@ class PairComparison:
     rotation_difference_deg: Optional[float]
     translation_difference_m: Optional[float]
 
-
     @classmethod
     def of(cls, d: Mapping) -> "PairComparison":
-        return cls(str(d.get("moving")), str(d.get("reference")), SideResult.of(d.get("auto")), SideResult.of(d.get("manual")),
-                   d.get("rotation_difference_deg"), d.get("translation_difference_m"))
+        return cls(
+            str(d.get("moving")),
+            str(d.get("reference")),
+            SideResult.of(d.get("auto")),
+            SideResult.of(d.get("manual")),
+            d.get("rotation_difference_deg"),
+            d.get("translation_difference_m"),
+        )
 
 
 @dataclass(frozen=True)
@@ -78,9 +90,14 @@ class ComparisonFigures:
     @classmethod
     def of(cls, d: Mapping) -> "ComparisonFigures":
         targets = d.get("targets") if isinstance(d.get("targets"), Mapping) else {}
-        return cls(tuple(PairComparison.of(p) for p in d.get("pairs") or [] if isinstance(p, Mapping)),
-                   d.get("auto_target_residual_m"), d.get("manual_target_residual_m"), str(d.get("target_residual_note") or ""),
-                   dict(targets.get("auto") or {}), dict(targets.get("manual") or {}))
+        return cls(
+            tuple(PairComparison.of(p) for p in d.get("pairs") or [] if isinstance(p, Mapping)),
+            d.get("auto_target_residual_m"),
+            d.get("manual_target_residual_m"),
+            str(d.get("target_residual_note") or ""),
+            dict(targets.get("auto") or {}),
+            dict(targets.get("manual") or {}),
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,8 +128,10 @@ def compare_plot(project, out, *, inputs: Sequence = (), progress=None, cancel=N
     out = check_output_folder(out, "compare", inputs=list(inputs))
     with_targets = [s.name for s in project.scans if s.targets]
     if len(with_targets) < 2:
-        raise UsageError("compare needs targets in at least two scans (--targets TARGETS.csv with scan,target,x,y,z; "
-                         f"scans with targets: {', '.join(with_targets) or 'none'})")
+        raise UsageError(
+            "compare needs targets in at least two scans (--targets TARGETS.csv with scan,target,x,y,z; "
+            f"scans with targets: {', '.join(with_targets) or 'none'})"
+        )
     scans = ScanCache(project)
     comparison = compare_auto_manual(project, scans=scans, progress=with_cancel(progress, cancel))
     drawn = False
@@ -131,13 +150,26 @@ def compare_plot(project, out, *, inputs: Sequence = (), progress=None, cancel=N
     project.path = out / "project.json"
     figures = ComparisonFigures.of(comparison)
     pairs = figures.pairs
-    failed = tuple(f"{p.moving} -> {p.reference} {name}: {side.reason or 'failed'}"
-                   for p in pairs for name, side in (("auto", p.auto), ("manual", p.manual)) if not side.ok)
-    return ComparisonOutcome(status="failed" if failed else "ok", reason="; ".join(failed), out=out, summary=comparison,
-                             result=comparison, pairs=pairs, auto_target_residual_m=figures.auto_target_residual_m,
-                             manual_target_residual_m=figures.manual_target_residual_m,
-                             target_residual_note=figures.target_residual_note, failed=failed,
-                             json_path=out / Path(json_path).name, report=out / "report.html" if drawn else None)
+    failed = tuple(
+        f"{p.moving} -> {p.reference} {name}: {side.reason or 'failed'}"
+        for p in pairs
+        for name, side in (("auto", p.auto), ("manual", p.manual))
+        if not side.ok
+    )
+    return ComparisonOutcome(
+        status="failed" if failed else "ok",
+        reason="; ".join(failed),
+        out=out,
+        summary=comparison,
+        result=comparison,
+        pairs=pairs,
+        auto_target_residual_m=figures.auto_target_residual_m,
+        manual_target_residual_m=figures.manual_target_residual_m,
+        target_residual_note=figures.target_residual_note,
+        failed=failed,
+        json_path=out / Path(json_path).name,
+        report=out / "report.html" if drawn else None,
+    )
 
 
 def comparison_project(scans: Sequence, params, **marks: Any):

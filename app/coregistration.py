@@ -19,7 +19,17 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .common import UNITS, RunOutcome, as_scan, check_units, outcome_of, params_of, run_summary, scan_source, with_cancel
+from .common import (
+    UNITS,
+    RunOutcome,
+    as_scan,
+    check_units,
+    outcome_of,
+    params_of,
+    run_summary,
+    scan_source,
+    with_cancel,
+)
 from .saved import count_or_none, finite_or_none, mapping_or_empty
 
 log = logging.getLogger("forestreg")
@@ -90,16 +100,28 @@ class CoregistrationSummary:
         res = mapping_or_empty(data.get("residuals_after_icp_m")) or mapping_or_empty(data.get("residuals_m"))
         icp = mapping_or_empty(data.get("icp"))
         errors = mapping_or_empty(data.get("standard_errors")) or mapping_or_empty(data.get("uncertainty"))
-        return cls(rec.status, rec.reason, rec.matrix, str(data.get("ground") or ""), str(data.get("uav") or ""),
-                   str(data.get("ground_file") or ""), str(data.get("uav_file") or ""),
-                   count_or_none(kp.get("ground")), count_or_none(kp.get("uav")), count_or_none(data.get("matched")),
-                   matching_percentage=finite_or_none(data.get("matching_percentage")),
-                   surface_correlation=finite_or_none(data.get("surface_correlation")),
-                   alternative_correlation=finite_or_none(data.get("alternative_correlation")),
-                   heading_deg=finite_or_none(data.get("heading_deg")), residual_mean_m=finite_or_none(res.get("mean")),
-                   residual_rms_m=finite_or_none(res.get("rms")), icp_fitness=finite_or_none(icp.get("fitness")), icp_std_m=finite_or_none(icp.get("std_m")),
-                   standard_errors={str(k): float(v) for k, v in errors.items() if finite_or_none(v) is not None},
-                   total_s=finite_or_none(rec.timings.get("total_s")))
+        return cls(
+            rec.status,
+            rec.reason,
+            rec.matrix,
+            str(data.get("ground") or ""),
+            str(data.get("uav") or ""),
+            str(data.get("ground_file") or ""),
+            str(data.get("uav_file") or ""),
+            count_or_none(kp.get("ground")),
+            count_or_none(kp.get("uav")),
+            count_or_none(data.get("matched")),
+            matching_percentage=finite_or_none(data.get("matching_percentage")),
+            surface_correlation=finite_or_none(data.get("surface_correlation")),
+            alternative_correlation=finite_or_none(data.get("alternative_correlation")),
+            heading_deg=finite_or_none(data.get("heading_deg")),
+            residual_mean_m=finite_or_none(res.get("mean")),
+            residual_rms_m=finite_or_none(res.get("rms")),
+            icp_fitness=finite_or_none(icp.get("fitness")),
+            icp_std_m=finite_or_none(icp.get("std_m")),
+            standard_errors={str(k): float(v) for k, v in errors.items() if finite_or_none(v) is not None},
+            total_s=finite_or_none(rec.timings.get("total_s")),
+        )
 
     @property
     def ok(self) -> bool:
@@ -131,7 +153,15 @@ def default_params():
 
 
 def coregister_clouds(
-    ground, uav, out: Optional[str | Path], params=None, *, units: str = "m", crs=None, progress=None, cancel=None,
+    ground,
+    uav,
+    out: Optional[str | Path],
+    params=None,
+    *,
+    units: str = "m",
+    crs=None,
+    progress=None,
+    cancel=None,
 ) -> CoregistrationOutcome:
     """Co-register ``ground`` onto ``uav`` (each a file path or a
     :class:`~forestreg.engine.core.scan.Scan`); with ``out``, write that output folder as a
@@ -160,7 +190,9 @@ def coregister_clouds(
         def load():
             t0 = time.perf_counter()
             if isinstance(source, (str, Path)):
-                scan = read_scan(source, unit_scale=scale, with_intensity=False)  # the co-registration uses x, y, z alone
+                scan = read_scan(
+                    source, unit_scale=scale, with_intensity=False
+                )  # the co-registration uses x, y, z alone
                 check_units(scan.points, units, str(source))
             else:
                 scan = as_scan(source, role)
@@ -173,31 +205,51 @@ def coregister_clouds(
 
                     kept["ground_outline"] = cloud_outline(scan.points[:, :2])
             return scan
+
         return load
 
     result = coregister_scans(reader(ground, "ground"), reader(uav, "uav"), params, progress=progress)
     inputs = {key: src for key, src in (("ground_file", ground), ("uav_file", uav)) if isinstance(src, (str, Path))}
-    summary, ok = run_summary(result, {"read_s": kept["read_s"]}, inputs, units, scale,
-                              facts={"distance_threshold_m": params.matching.distance_threshold_m})
+    summary, ok = run_summary(
+        result,
+        {"read_s": kept["read_s"]},
+        inputs,
+        units,
+        scale,
+        facts={"distance_threshold_m": params.matching.distance_threshold_m},
+    )
     frame = _frame_crs(kept, ground, uav, given)
     kept["crs"] = frame.crs
-    summary["crs"] = frame.to_dict(frames={
-        "transform.txt": f"maps {frame.label_of('ground')} onto {frame.label_of('uav')}",
-        "keypoints_ground.csv": frame.label_of("ground"), "keypoints_uav.csv": frame.label_of("uav"),
-        "layers.gpkg": f"the UAV frame ({frame.crs.label if frame.crs is not None else 'no CRS'})"})
+    summary["crs"] = frame.to_dict(
+        frames={
+            "transform.txt": f"maps {frame.label_of('ground')} onto {frame.label_of('uav')}",
+            "keypoints_ground.csv": frame.label_of("ground"),
+            "keypoints_uav.csv": frame.label_of("uav"),
+            "layers.gpkg": f"the UAV frame ({frame.crs.label if frame.crs is not None else 'no CRS'})",
+        }
+    )
     report = None
     if out is not None:
         report = _write_coregistration_folder(out, result, summary, kept, scale)
-    return outcome_of(summary, out=out, result=result, cls=CoregistrationOutcome, report=report,
-                      ground=kept["ground"], uav=kept["uav"])
+    return outcome_of(
+        summary,
+        out=out,
+        result=result,
+        cls=CoregistrationOutcome,
+        report=report,
+        ground=kept["ground"],
+        uav=kept["uav"],
+    )
 
 
 def _frame_crs(kept: dict, ground, uav, given):
     """The CRS of a co-registration's outputs: the UAV cloud's (or ``given``), and each cloud's."""
     from ..engine.io.crs import crs_of, frame_crs
 
-    names = {role: (Path(src).name if isinstance(src, (str, Path)) else (getattr(kept.get(role), "name", "") or role))
-             for role, src in (("ground", ground), ("uav", uav))}
+    names = {
+        role: (Path(src).name if isinstance(src, (str, Path)) else (getattr(kept.get(role), "name", "") or role))
+        for role, src in (("ground", ground), ("uav", uav))
+    }
     return frame_crs({"ground": crs_of(kept.get("ground")), "uav": crs_of(kept.get("uav"))}, "uav", given, names=names)
 
 
@@ -231,8 +283,11 @@ def _write_coregistration_folder(out: Path, result, summary: dict, kept: dict, s
 
     ok = summary["status"] == "ok"
     ground, uav = kept["ground"], kept["uav"]
-    pairs = result.matched_after_icp if result.matched_after_icp is not None else (
-        result.match.pairs if result.match is not None else np.zeros((0, 2), dtype=int))
+    pairs = (
+        result.matched_after_icp
+        if result.matched_after_icp is not None
+        else (result.match.pairs if result.match is not None else np.zeros((0, 2), dtype=int))
+    )
 
     def write_files(tmp: Path) -> None:
         for scan, kp, column, other, name in (
@@ -245,13 +300,22 @@ def _write_coregistration_folder(out: Path, result, summary: dict, kept: dict, s
             if len(pairs):
                 matched[pairs[:, column]] = pairs[:, other]
             write_keypoints_csv(tmp / name, kp, scan.local_to_file_matrix(), matched, unit_scale=scale)
-        write_layers(tmp, keypoint_layers(result, ground, uav, ok=ok, unit_scale=scale, ground_outline=kept.get("ground_outline")),
-                     kept.get("crs"))
+        write_layers(
+            tmp,
+            keypoint_layers(result, ground, uav, ok=ok, unit_scale=scale, ground_outline=kept.get("ground_outline")),
+            kept.get("crs"),
+        )
 
     def draw(tmp: Path) -> None:
         from ..engine.report.coregistration_report import write_coregistration_report
 
         write_coregistration_report(result, tmp, kept["ground_profile"], kept["uav_profile"])
 
-    return write_result_folder(out, "coregister", summary, write_files,
-                               draw=draw if result.ground_keypoints is not None else None, drawn_name="report.html")
+    return write_result_folder(
+        out,
+        "coregister",
+        summary,
+        write_files,
+        draw=draw if result.ground_keypoints is not None else None,
+        drawn_name="report.html",
+    )

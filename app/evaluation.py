@@ -8,9 +8,9 @@ rates; the paper's table 3).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
-import os
 from typing import TYPE_CHECKING, Any, Mapping, Optional, Sequence, Union
 
 from .common import RunOutcome
@@ -35,8 +35,16 @@ class EvaluationOutcome(RunOutcome):
         return {name: ev.detection.to_dict() for name, ev in self.runs.items()}
 
 
-def evaluate_tables(named: Sequence[tuple[str, str | Path]], field_path, out: str | Path, *, by: str = "position",
-                    max_distance: float = 1.0, progress=None, cancel=None) -> EvaluationOutcome:
+def evaluate_tables(
+    named: Sequence[tuple[str, str | Path]],
+    field_path,
+    out: str | Path,
+    *,
+    by: str = "position",
+    max_distance: float = 1.0,
+    progress=None,
+    cancel=None,
+) -> EvaluationOutcome:
     """Evaluate the named tree tables (``[(name, trees.csv), ...]``) against ``field_path`` into
     the folder ``out`` (a transaction)."""
     from ..engine.core.atomic import check_output_folder, output_folder
@@ -60,7 +68,9 @@ def evaluate_runs(named, field_table, *, by: str = "position", max_distance: flo
     return {name: evaluate_table(table, field_table, by=by, max_distance_m=max_distance) for name, table in named}
 
 
-def evaluate(estimated, field_trees, *, by: str = "position", max_distance_m: float = 1.0, parameters=None) -> "Evaluation":
+def evaluate(
+    estimated, field_trees, *, by: str = "position", max_distance_m: float = 1.0, parameters=None
+) -> "Evaluation":
     """Match estimated trees to field trees and compute the paper's figures per parameter
     (:func:`forestreg.engine.trees.evaluate.evaluate`, same arguments), the inputs checked first as
     the ``evaluate`` command checks them.
@@ -89,7 +99,9 @@ def evaluate(estimated, field_trees, *, by: str = "position", max_distance_m: fl
         raise ParameterError(f"max_distance_m: a positive number of metres, got {max_distance_m!r}")
     if parameters is not None:
         if isinstance(parameters, (str, bytes)) or not all(isinstance(p, str) for p in parameters):
-            raise ParameterError(f"parameters: a list of parameter names (e.g. ['dbh_m', 'height_m']), got {parameters!r}")
+            raise ParameterError(
+                f"parameters: a list of parameter names (e.g. ['dbh_m', 'height_m']), got {parameters!r}"
+            )
         parameters = list(parameters)
     return evaluate_table(tables[0], tables[1], by=by, max_distance_m=distance, parameters=parameters)
 
@@ -108,11 +120,15 @@ def _tree_table_input(table, what: str):
         return table.rows()
     if isinstance(table, (list, tuple)) and all(isinstance(r, AnyMapping) for r in table):
         return list(table)
-    raise InvalidArgumentError(f"{what}: expected a TreeTable, a CSV file's path, rows (a list of dicts with tree_id, x, y) "
-                               f"or a TreeInventory, got {type(table).__name__}")
+    raise InvalidArgumentError(
+        f"{what}: expected a TreeTable, a CSV file's path, rows (a list of dicts with tree_id, x, y) "
+        f"or a TreeInventory, got {type(table).__name__}"
+    )
 
 
-def evaluate_into(folder: Path, named, field_table, *, by: str, max_distance: float, shown_as: Optional[Path] = None) -> EvaluationOutcome:
+def evaluate_into(
+    folder: Path, named, field_table, *, by: str, max_distance: float, shown_as: Optional[Path] = None
+) -> EvaluationOutcome:
     """Evaluate and write into ``folder`` (inside a transaction); the outcome's ``lines`` name the
     files as they will be (``shown_as``, the folder's final place)."""
     runs = evaluate_runs(named, field_table, by=by, max_distance=max_distance)
@@ -128,8 +144,14 @@ def evaluate_into(folder: Path, named, field_table, *, by: str, max_distance: fl
     final = Path(shown_as) if shown_as is not None else Path(folder)
     lines = [line.replace(str(folder), str(final)) for line in lines]
     paths = {k: final / Path(v).relative_to(folder) for k, v in paths.items()}
-    return EvaluationOutcome(status="failed" if failed else "ok", reason="; ".join(failed), out=final, runs=runs,
-                             lines=tuple(lines), paths=paths)
+    return EvaluationOutcome(
+        status="failed" if failed else "ok",
+        reason="; ".join(failed),
+        out=final,
+        runs=runs,
+        lines=tuple(lines),
+        paths=paths,
+    )
 
 
 def evaluate_files(runs: dict, field_csv) -> dict:
@@ -190,8 +212,10 @@ def write_evaluation(
         raise ParameterError(f"run names {names} are not distinct as file names")
     out = Path(out_dir)
     params = _run_parameters(runs)
-    tables: dict = {"evaluation": (_wide_rows(runs, params), None),
-                    "detection": ([{"run": name, **ev.detection.to_dict()} for name, ev in runs.items()], None)}
+    tables: dict = {
+        "evaluation": (_wide_rows(runs, params), None),
+        "detection": ([{"run": name, **ev.detection.to_dict()} for name, ev in runs.items()], None),
+    }
     for (name, ev), stem in zip(runs.items(), stems):
         tables[f"matches_{stem}"] = (pair_rows(ev), ["field_id", "estimated_id", "distance_m"])
     doc = {

@@ -15,7 +15,16 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .common import UNITS, RunOutcome, as_points, as_scan, check_replaceable_point_file, check_units, params_of, with_cancel
+from .common import (
+    UNITS,
+    RunOutcome,
+    as_points,
+    as_scan,
+    check_replaceable_point_file,
+    check_units,
+    params_of,
+    with_cancel,
+)
 from .units import unit_of_scale
 
 
@@ -67,9 +76,17 @@ def default_params():
 
 
 def fuse_clouds(
-    ground_path: str | Path, uav_path: str | Path, out: str | Path, params=None, *,
-    matrix: Optional[np.ndarray] = None, transform: Optional[str | Path] = None, units: str = "m",
-    crs=None, progress=None, cancel=None,
+    ground_path: str | Path,
+    uav_path: str | Path,
+    out: str | Path,
+    params=None,
+    *,
+    matrix: Optional[np.ndarray] = None,
+    transform: Optional[str | Path] = None,
+    units: str = "m",
+    crs=None,
+    progress=None,
+    cancel=None,
 ) -> FusionOutcome:
     """Fuse ``ground_path`` into ``uav_path``'s frame and write the LAS/LAZ ``out`` (refused when
     it is an input or a user's own cloud). The ground-to-UAV transform is ``matrix`` (metres, file
@@ -80,17 +97,21 @@ def fuse_clouds(
     from ..engine.core.atomic import check_output_file
     from ..engine.core.transform import read_matrix, to_metres
     from ..engine.coreg.fusion import fuse_files as fuse_point_files
-    from ..engine.io import write_fused
+    from ..engine.io import read_crs, write_fused
     from ..engine.io.base import check_readable
-    from ..engine.io import read_crs
     from ..engine.io.crs import as_crs, frame_crs
 
     given = as_crs(crs, "--crs")
     scale = UNITS[units]
     check_readable(ground_path)
     check_readable(uav_path)
-    frame = frame_crs({"ground": read_crs(ground_path), "uav": read_crs(uav_path)}, "uav", given,
-                      names={"ground": Path(ground_path).name, "uav": Path(uav_path).name}, refuse_mixed="fuse")
+    frame = frame_crs(
+        {"ground": read_crs(ground_path), "uav": read_crs(uav_path)},
+        "uav",
+        given,
+        names={"ground": Path(ground_path).name, "uav": Path(uav_path).name},
+        refuse_mixed="fuse",
+    )
     out = check_output_file(out, inputs=[ground_path, uav_path, transform], suffixes=(".laz", ".las"))
     check_replaceable_point_file(out, "source", "fused cloud")
     if matrix is None:
@@ -98,12 +119,22 @@ def fuse_clouds(
     params = params or default_params()
     check_file_units((uav_path, ground_path), units)
     # the ground-based cloud is read inside, and let go once merged: a scan's points less to hold
-    result, shift = fuse_point_files(ground_path, uav_path, matrix, params, unit_scale=scale, progress=with_cancel(progress, cancel))
+    result, shift = fuse_point_files(
+        ground_path, uav_path, matrix, params, unit_scale=scale, progress=with_cancel(progress, cancel)
+    )
     write_fused(out, result, origin_shift=shift, unit_scale=scale, crs=frame.crs)
     counts = {k: dict(v) for k, v in result.counts.items()}
     summary = {**result.summary(), "crs": frame.to_dict()}
-    return FusionOutcome(status="ok", timings=dict(result.seconds), out=out, summary=summary, result=result,
-                         counts=counts, points=len(result.points), crs=frame)
+    return FusionOutcome(
+        status="ok",
+        timings=dict(result.seconds),
+        out=out,
+        summary=summary,
+        result=result,
+        counts=counts,
+        points=len(result.points),
+        crs=frame,
+    )
 
 
 def check_file_units(paths, units: str = "m", *, scale: Optional[float] = None) -> None:
@@ -139,8 +170,14 @@ def fuse(ground_points, uav_points, params=None, *, ground_extra=None, uav_extra
         if len(p):
             check_units(p, "m", what)
         clouds.append(p)
-    return fuse_points(clouds[0], clouds[1], params_of(params, FusionParams, "fusion"), ground_extra=ground_extra,
-                       uav_extra=uav_extra, progress=progress)
+    return fuse_points(
+        clouds[0],
+        clouds[1],
+        params_of(params, FusionParams, "fusion"),
+        ground_extra=ground_extra,
+        uav_extra=uav_extra,
+        progress=progress,
+    )
 
 
 def fuse_scans(ground, uav, matrix, params=None, *, progress=None):
@@ -154,7 +191,9 @@ def fuse_scans(ground, uav, matrix, params=None, *, progress=None):
     from ..engine.coreg.fusion import fuse_scans as fuse_two
 
     m = check_rigid(matrix, "matrix")
-    return fuse_two(as_scan(ground, "ground"), as_scan(uav, "uav"), m, params_of(params, FusionParams, "fusion"), progress=progress)
+    return fuse_two(
+        as_scan(ground, "ground"), as_scan(uav, "uav"), m, params_of(params, FusionParams, "fusion"), progress=progress
+    )
 
 
 def fuse_files(ground_path, uav_path, matrix, params=None, *, unit_scale: float = 1.0, progress=None):
@@ -172,7 +211,9 @@ def fuse_files(ground_path, uav_path, matrix, params=None, *, unit_scale: float 
 
     for path, what in ((ground_path, "ground_path"), (uav_path, "uav_path")):
         if not isinstance(path, (str, os.PathLike)):
-            raise InvalidArgumentError(f"{what}: expected the path of a point file (str or pathlib.Path), got {type(path).__name__}")
+            raise InvalidArgumentError(
+                f"{what}: expected the path of a point file (str or pathlib.Path), got {type(path).__name__}"
+            )
         check_readable(path)
     m = check_rigid(matrix, "matrix")
     scale = check_unit_scale(unit_scale)

@@ -18,8 +18,13 @@ log = logging.getLogger("forestreg")
 
 
 def write_result_folder(
-    out: Path, command: str, summary: dict, write_files: Callable[[Path], None], *,
-    draw: Optional[Callable[[Path], None]] = None, drawn_name: str = "",
+    out: Path,
+    command: str,
+    summary: dict,
+    write_files: Callable[[Path], None],
+    *,
+    draw: Optional[Callable[[Path], None]] = None,
+    drawn_name: str = "",
 ) -> Optional[Path]:
     """Write the folder ``out`` of ``command`` (``"register"``, ``"coregister"``; see
     :func:`~forestreg.engine.core.atomic.output_folder`) as one transaction.

@@ -16,8 +16,19 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .common import (UNITS, RunOutcome, as_scan, check_near_scanner, check_units, import_in_background, outcome_of, params_of,
-                     run_summary, scan_source, with_cancel)
+from .common import (
+    UNITS,
+    RunOutcome,
+    as_scan,
+    check_near_scanner,
+    check_units,
+    import_in_background,
+    outcome_of,
+    params_of,
+    run_summary,
+    scan_source,
+    with_cancel,
+)
 
 log = logging.getLogger("forestreg")
 
@@ -72,7 +83,9 @@ def register_pair(
     if len(ups) > 2:
         raise UsageError("--up is given at most twice (reference, then moving)")
     if Path(reference_path).resolve() == Path(moving_path).resolve():
-        raise UsageError(f"REFERENCE and MOVING are the same file ({reference_path}): a scan cannot be registered onto itself")
+        raise UsageError(
+            f"REFERENCE and MOVING are the same file ({reference_path}): a scan cannot be registered onto itself"
+        )
     scale = UNITS[units]
     if out is not None:
         out = check_output_folder(out, "register", inputs=[reference_path, moving_path])
@@ -80,15 +93,22 @@ def register_pair(
 
     def read(path, index: int):
         # the registration uses the coordinates alone: intensity only for the registered scan written
-        scan = read_scan(path, scanner_position=positions[index] if len(positions) > index else None, unit_scale=scale,
-                         with_intensity=write_registered and index == 1)
+        scan = read_scan(
+            path,
+            scanner_position=positions[index] if len(positions) > index else None,
+            unit_scale=scale,
+            with_intensity=write_registered and index == 1,
+        )
         check_units(scan.points, units, str(path))  # before the scanner is looked for: a file in cm is refused at once
         return scan
 
     # both scans are read, one after the other (the decompression is multi-core), while the
     # registration engine is imported
     early = ThreadPoolExecutor(1, thread_name_prefix="forestreg-read")
-    pending = {0: early.submit(read, reference_path, 0), 1: early.submit(read, moving_path, 1)}  # popped when used: the scan's points are not held
+    pending = {
+        0: early.submit(read, reference_path, 0),
+        1: early.submit(read, moving_path, 1),
+    }  # popped when used: the scan's points are not held
     early.shutdown(wait=False)
     if out is not None:
         import_in_background(".engine.report.figures", kernels="pair")
@@ -113,23 +133,39 @@ def register_pair(
             if role == "moving" and write_registered:
                 kept["registered_points"] = scan
             return scan
+
         return load
 
     ups = [None if u is None else np.asarray(u, dtype=float) for u in ups]
     result = register_scans(
-        reader(reference_path, 0, "reference"), reader(moving_path, 1, "moving"), params, progress=progress,
-        reference_up=ups[0] if len(ups) > 0 else None, moving_up=ups[1] if len(ups) > 1 else None,
+        reader(reference_path, 0, "reference"),
+        reader(moving_path, 1, "moving"),
+        params,
+        progress=progress,
+        reference_up=ups[0] if len(ups) > 0 else None,
+        moving_up=ups[1] if len(ups) > 1 else None,
     )
     read_s = sum(result.timings.get(f"read_{role}_s", 0.0) for role in ("reference", "moving"))
-    summary, ok = run_summary(result, {"read_s": read_s}, {"reference_file": reference_path, "moving_file": moving_path}, units, scale,
-                              matrix_keys=("matrix", "coarse_matrix"))
+    summary, ok = run_summary(
+        result,
+        {"read_s": read_s},
+        {"reference_file": reference_path, "moving_file": moving_path},
+        units,
+        scale,
+        matrix_keys=("matrix", "coarse_matrix"),
+    )
     frame = _frame_crs(kept, reference_path, moving_path, given)
     kept["crs"] = frame.crs
-    frames = {"transform.txt": f"maps {frame.label_of('moving')} onto {frame.label_of('reference')}",
-              "reference_vops.csv": frame.label_of("reference"), "moving_vops.csv": frame.label_of("moving")}
+    frames = {
+        "transform.txt": f"maps {frame.label_of('moving')} onto {frame.label_of('reference')}",
+        "reference_vops.csv": frame.label_of("reference"),
+        "moving_vops.csv": frame.label_of("moving"),
+    }
     if write_registered:
         stem = getattr(kept.get("moving"), "name", "") or Path(moving_path).stem
-        frames[f"{stem}_registered.laz"] = f"the reference frame ({frame.crs.label if frame.crs is not None else 'no CRS'})"
+        frames[f"{stem}_registered.laz"] = (
+            f"the reference frame ({frame.crs.label if frame.crs is not None else 'no CRS'})"
+        )
     summary["crs"] = frame.to_dict(frames=frames)
     figure = None
     if out is not None:
@@ -144,8 +180,12 @@ def _frame_crs(kept: dict, reference_path, moving_path, given):
     """The CRS of a pair's outputs: the reference scan's (or ``given``), and each scan's."""
     from ..engine.io.crs import crs_of, frame_crs
 
-    return frame_crs({"reference": crs_of(kept.get("reference")), "moving": crs_of(kept.get("moving"))}, "reference", given,
-                     names={"reference": Path(reference_path).name, "moving": Path(moving_path).name})
+    return frame_crs(
+        {"reference": crs_of(kept.get("reference")), "moving": crs_of(kept.get("moving"))},
+        "reference",
+        given,
+        names={"reference": Path(reference_path).name, "moving": Path(moving_path).name},
+    )
 
 
 # ----------------------------------------------------------------------------- the Python API
@@ -188,8 +228,11 @@ def register(reference, moving, params=None, *, scanner_params=None, **options):
 
     from .common import rigid_or_withheld
 
-    return rigid_or_withheld(register_scans(checked(reference, "reference"), checked(moving, "moving"), params,
-                                            scanner_params=scanner_params, **options))
+    return rigid_or_withheld(
+        register_scans(
+            checked(reference, "reference"), checked(moving, "moving"), params, scanner_params=scanner_params, **options
+        )
+    )
 
 
 def register_manual(reference, moving, reference_targets, moving_targets, params=None, **options):
@@ -201,8 +244,14 @@ def register_manual(reference, moving, reference_targets, moving_targets, params
     from ..engine.tls.manual import register_manual as register_targets
     from ..engine.tls.params import RegistrationParams
 
-    return register_targets(as_scan(reference, "reference"), as_scan(moving, "moving"), reference_targets, moving_targets,
-                            params_of(params, RegistrationParams, "registration"), **options)
+    return register_targets(
+        as_scan(reference, "reference"),
+        as_scan(moving, "moving"),
+        reference_targets,
+        moving_targets,
+        params_of(params, RegistrationParams, "registration"),
+        **options,
+    )
 
 
 def locate_scanner(scan, params=None):
@@ -217,7 +266,9 @@ def locate_scanner(scan, params=None):
     return locate(as_scan(scan, "scan"), params_of(params, ScannerPositionParams, "scanner_position"))
 
 
-def _write_pair_folder(out: Path, result, summary: dict, kept: dict, scale: float, write_registered: bool) -> Optional[Path]:
+def _write_pair_folder(
+    out: Path, result, summary: dict, kept: dict, scale: float, write_registered: bool
+) -> Optional[Path]:
     """The output folder of a pair, as one transaction (:func:`~forestreg.app.outputs.write_result_folder`):
     the VOP tables, the figure, the registered scan when asked and "ok"; returns the figure's path
     (or None)."""
@@ -232,8 +283,12 @@ def _write_pair_folder(out: Path, result, summary: dict, kept: dict, scale: floa
             write_vops_csv(tmp / name, vops.xy, vops.z, to_file, vops.radius, vops.support, matched, unit_scale=scale)
         if summary["status"] == "ok" and write_registered:
             to_units = np.diag([1.0 / scale, 1.0 / scale, 1.0 / scale, 1.0])
-            write_scan(kept["registered_points"], tmp / f"{moving.name}_registered.laz", matrix=to_units @ result.matrix,
-                       crs=kept.get("crs"))
+            write_scan(
+                kept["registered_points"],
+                tmp / f"{moving.name}_registered.laz",
+                matrix=to_units @ result.matrix,
+                crs=kept.get("crs"),
+            )
 
     def draw(tmp: Path) -> None:
         from ..engine.report.figures import pair_figure
@@ -241,4 +296,6 @@ def _write_pair_folder(out: Path, result, summary: dict, kept: dict, scale: floa
         pair_figure(result, tmp / "registration.png")
 
     chosen = result.details is not None and result.details.chosen is not None
-    return write_result_folder(out, "register", summary, write_files, draw=draw if chosen else None, drawn_name="registration.png")
+    return write_result_folder(
+        out, "register", summary, write_files, draw=draw if chosen else None, drawn_name="registration.png"
+    )

@@ -43,9 +43,16 @@ class LinkStrength:
     strength: str
 
     def to_dict(self) -> dict[str, Any]:
-        return {"moving": self.moving, "reference": self.reference, "matched": self.matched, "confirmed": self.confirmed,
-                "ambiguity": self.ambiguity, "translation_m": self.translation_m, "rotation_deg": self.rotation_deg,
-                "strength": self.strength}
+        return {
+            "moving": self.moving,
+            "reference": self.reference,
+            "matched": self.matched,
+            "confirmed": self.confirmed,
+            "ambiguity": self.ambiguity,
+            "translation_m": self.translation_m,
+            "rotation_deg": self.rotation_deg,
+            "strength": self.strength,
+        }
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,10 +78,23 @@ def link_strengths(project, min_shared: int) -> tuple[LinkStrength, ...]:
         r = link.result
         quality, u = mapping_or_empty(r.get("quality")), mapping_or_empty(r.get("uncertainty"))
         matched = count_or_none(r.get("matched"))
-        word = "" if matched is None else ("strong" if matched >= 2 * min_shared else "fair" if matched >= min_shared else "weak")
-        rows.append(LinkStrength(link.moving, link.reference, matched, count_or_none(quality.get("confirmed_vops")),
-                                 finite_or_none(quality.get("ambiguity")), finite_or_none(u.get("translation_m")),
-                                 finite_or_none(u.get("rotation_deg")), word or "manual"))
+        word = (
+            ""
+            if matched is None
+            else ("strong" if matched >= 2 * min_shared else "fair" if matched >= min_shared else "weak")
+        )
+        rows.append(
+            LinkStrength(
+                link.moving,
+                link.reference,
+                matched,
+                count_or_none(quality.get("confirmed_vops")),
+                finite_or_none(quality.get("ambiguity")),
+                finite_or_none(u.get("translation_m")),
+                finite_or_none(u.get("rotation_deg")),
+                word or "manual",
+            )
+        )
     return tuple(rows)
 
 
@@ -124,12 +144,23 @@ def plan_next(source, *, n: int = 1, params=None, out=None, scans=None, progress
     report = progress or (lambda f, m: None)
     crs = plan_crs(path, project, scans)
     doc = plan_document(plan, links, project.centre, params)
-    with atomic_path(target) as tmp_plan, atomic_path(layers) as tmp_layers:  # renamed inner first: plan.gpkg, then plan.json
+    with (
+        atomic_path(target) as tmp_plan,
+        atomic_path(layers) as tmp_layers,
+    ):  # renamed inner first: plan.gpkg, then plan.json
         write_geopackage(tmp_layers, plan_layers(plan), crs)
         tmp_plan.write_text(json.dumps(to_jsonable(doc, nan_as_null=True), indent=1) + "\n", encoding="utf-8")
     report(1.0, "done")
-    return PlanRun(status="ok" if plan.suggestions else "failed", reason=plan.reason, out=target, plan=plan, links=links,
-                   frame=project.centre, layers=layers, crs=crs)
+    return PlanRun(
+        status="ok" if plan.suggestions else "failed",
+        reason=plan.reason,
+        out=target,
+        plan=plan,
+        links=links,
+        frame=project.centre,
+        layers=layers,
+        crs=crs,
+    )
 
 
 def plan_crs(project_file, project, scans=None):
@@ -179,21 +210,49 @@ def plan_document(plan, links, frame: Optional[str], params) -> dict[str, Any]:
         "convention": "positions (x, y[, z]) in the centre scan's file coordinates, metres, seen from above",
         "plot": {"centre": list(plan.centre), "radius_m": plan.radius_m},
         "scanners": {name: list(xyz) for name, xyz in plan.scanners.items()},
-        "stems": {"mapped": plan.stems, "seen_by_two_or_more": plan.stems_seen_twice, "area_seen_m2": plan.stem_area_seen_m2,
-                  "area_not_seen_m2": plan.stem_area_unseen_m2, "band_m": params.stem_band_m},
+        "stems": {
+            "mapped": plan.stems,
+            "seen_by_two_or_more": plan.stems_seen_twice,
+            "area_seen_m2": plan.stem_area_seen_m2,
+            "area_not_seen_m2": plan.stem_area_unseen_m2,
+            "band_m": params.stem_band_m,
+        },
         "ground": {"seen_m2": plan.ground_seen_m2, "not_seen_m2": plan.ground_unseen_m2},
         "links": [link.to_dict() for link in links],
-        "candidates": {"tried": plan.candidates, "linking": plan.linking, "min_shared_stems": params.min_shared_stems,
-                       "shared_falloff_m": plan.falloff_m if plan.falloff_m != float("inf") else None},
+        "candidates": {
+            "tried": plan.candidates,
+            "linking": plan.linking,
+            "min_shared_stems": params.min_shared_stems,
+            "shared_falloff_m": plan.falloff_m if plan.falloff_m != float("inf") else None,
+        },
         "suggestions": [
-            {"rank": k + 1, "x": s.x, "y": s.y, "links_to": s.links_to, "shared_stems": s.shared_stems, "vop_radius_m": s.radius_m,
-             "distance_m": s.distance_m, "new_stem_area_m2": s.new_stem_area_m2, "new_view_m2": s.new_view_m2,
-             "expected_stem_area_m2": s.expected_stem_area_m2, "reason": s.reason}
+            {
+                "rank": k + 1,
+                "x": s.x,
+                "y": s.y,
+                "links_to": s.links_to,
+                "shared_stems": s.shared_stems,
+                "vop_radius_m": s.radius_m,
+                "distance_m": s.distance_m,
+                "new_stem_area_m2": s.new_stem_area_m2,
+                "new_view_m2": s.new_view_m2,
+                "expected_stem_area_m2": s.expected_stem_area_m2,
+                "reason": s.reason,
+            }
             for k, s in enumerate(plan.suggestions)
         ],
         "reason": plan.reason or None,
     }
 
 
-__all__ = ["LinkStrength", "PLAN_FILE", "PLAN_LAYERS_SUFFIX", "PlanRun", "link_strengths", "plan_crs", "plan_document", "plan_next",
-           "project_of"]
+__all__ = [
+    "LinkStrength",
+    "PLAN_FILE",
+    "PLAN_LAYERS_SUFFIX",
+    "PlanRun",
+    "link_strengths",
+    "plan_crs",
+    "plan_document",
+    "plan_next",
+    "project_of",
+]

@@ -23,11 +23,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
+from ..engine.core.uncertainty import evidence_notes
 from ..engine.tls.plot import PlotOutcome, ScanCache, default_links, pose_uncertainty  # noqa: F401 - the plot's types, for the front doors
 from ..engine.tls.project import Link, Project, ScanEntry  # noqa: F401 - the saved plot project
 from .common import RunOutcome, check_replaceable_point_file, checked_scans, import_in_background, with_cancel
 from .saved import count_or_none, finite_or_none, mapping_or_empty
-from ..engine.core.uncertainty import evidence_notes
 
 log = logging.getLogger("forestreg")
 
@@ -52,8 +52,13 @@ class PoseSigma:
     def of(cls, d) -> Optional["PoseSigma"]:
         if not isinstance(d, Mapping) or not d:
             return None
-        return cls(finite_or_none(d.get("translation_m")), finite_or_none(d.get("rotation_deg")), str(d.get("method") or ""),
-                   bool(d.get("fixed")), tuple(evidence_notes(dict(d))))
+        return cls(
+            finite_or_none(d.get("translation_m")),
+            finite_or_none(d.get("rotation_deg")),
+            str(d.get("method") or ""),
+            bool(d.get("fixed")),
+            tuple(evidence_notes(dict(d))),
+        )
 
     @property
     def known(self) -> bool:
@@ -71,8 +76,11 @@ class DroppedLink:
 
 def dropped_links(project) -> tuple[DroppedLink, ...]:
     """The links the survey adjustment of ``project`` dropped (empty without one)."""
-    return tuple(DroppedLink(str(d.get("moving")), str(d.get("reference")), str(d.get("reason") or ""))
-                 for d in mapping_or_empty(project.adjustment).get("dropped") or [] if isinstance(d, Mapping))
+    return tuple(
+        DroppedLink(str(d.get("moving")), str(d.get("reference")), str(d.get("reason") or ""))
+        for d in mapping_or_empty(project.adjustment).get("dropped") or []
+        if isinstance(d, Mapping)
+    )
 
 
 @dataclass(frozen=True)
@@ -92,8 +100,12 @@ def scan_quality(project) -> dict[str, ScanQuality]:
     found = {}
     for name, q in mapping_or_empty(mapping_or_empty(project.adjustment).get("quality")).items():
         q = mapping_or_empty(q)
-        found[str(name)] = ScanQuality(finite_or_none(q.get("terrain_median_m")), finite_or_none(q.get("max_ambiguity")),
-                                       finite_or_none(q.get("max_residual_m")), count_or_none(q.get("dropped_links")))
+        found[str(name)] = ScanQuality(
+            finite_or_none(q.get("terrain_median_m")),
+            finite_or_none(q.get("max_ambiguity")),
+            finite_or_none(q.get("max_residual_m")),
+            count_or_none(q.get("dropped_links")),
+        )
     return found
 
 
@@ -142,12 +154,22 @@ def link_summary(link) -> Optional[LinkSummary]:
         return None
     r = link.result
     icp, quality = mapping_or_empty(r.get("icp")), mapping_or_empty(r.get("quality"))
-    return LinkSummary(link.reference, r.status, r.get("matched"), finite_or_none(icp.get("std_m")), r.reason,
-                       icp_fitness=finite_or_none(icp.get("fitness")), vop_radius_m=finite_or_none(r.get("vop_radius_m")),
-                       reference_vops=count_or_none(r.get("reference_vops")), moving_vops=count_or_none(r.get("moving_vops")),
-                       vop_residual_m=finite_or_none(r.get("vop_residual_m")), uncertainty=PoseSigma.of(r.get("uncertainty")),
-                       terrain_median_m=finite_or_none(quality.get("terrain_median_m")), ambiguity=finite_or_none(quality.get("ambiguity")),
-                       retried=len(r.get("retried_after") or ()))
+    return LinkSummary(
+        link.reference,
+        r.status,
+        r.get("matched"),
+        finite_or_none(icp.get("std_m")),
+        r.reason,
+        icp_fitness=finite_or_none(icp.get("fitness")),
+        vop_radius_m=finite_or_none(r.get("vop_radius_m")),
+        reference_vops=count_or_none(r.get("reference_vops")),
+        moving_vops=count_or_none(r.get("moving_vops")),
+        vop_residual_m=finite_or_none(r.get("vop_residual_m")),
+        uncertainty=PoseSigma.of(r.get("uncertainty")),
+        terrain_median_m=finite_or_none(quality.get("terrain_median_m")),
+        ambiguity=finite_or_none(quality.get("ambiguity")),
+        retried=len(r.get("retried_after") or ()),
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -239,8 +261,16 @@ def _check_extra_file(path, inputs: Sequence, suffixes: tuple[str, ...], out) ->
 
 
 def new_project(
-    scans: Sequence, params, *, name: str = "plot", centre: Optional[str] = None, tilted: Sequence[str] = (),
-    targets: Optional[str] = None, positions: Optional[str] = None, prior_poses: Optional[str] = None, fixed: Sequence[str] = (),
+    scans: Sequence,
+    params,
+    *,
+    name: str = "plot",
+    centre: Optional[str] = None,
+    tilted: Sequence[str] = (),
+    targets: Optional[str] = None,
+    positions: Optional[str] = None,
+    prior_poses: Optional[str] = None,
+    fixed: Sequence[str] = (),
     scanner_params=None,
 ):
     """A new :class:`~forestreg.engine.tls.project.Project` from scan files (or one multi-scan
@@ -267,7 +297,9 @@ def new_project(
     def known(name: str, option: str) -> str:
         resolved = names.get(Path(name).name, name)
         if not project.has_scan(resolved):
-            raise UsageError(f"{option} {name}: not one of the plot's scans ({', '.join(s.name for s in project.scans)})")
+            raise UsageError(
+                f"{option} {name}: not one of the plot's scans ({', '.join(s.name for s in project.scans)})"
+            )
         return resolved
 
     if centre:
@@ -367,9 +399,19 @@ def resumable_project(out, project: Project) -> tuple[Project, int]:
 # ----------------------------------------------------------------------------- the run
 
 
-def register_plot(project, scans=None, *, pairs: Optional[str] = None, fixed: Sequence[str] = (), rerun: bool = False,
-                  loops: Optional[float] = None, survey=None, progress=None, cancel=None,
-                  on_link: Optional[Callable[[Any], None]] = None):
+def register_plot(
+    project,
+    scans=None,
+    *,
+    pairs: Optional[str] = None,
+    fixed: Sequence[str] = (),
+    rerun: bool = False,
+    loops: Optional[float] = None,
+    survey=None,
+    progress=None,
+    cancel=None,
+    on_link: Optional[Callable[[Any], None]] = None,
+):
     """The registration of every plot run (:func:`plot_scans`, :func:`run_plot`, the desktop's run
     of the project it edits): the scans checked first (:func:`check_scans_near_their_scanners`: a
     plot the ``plot`` command refuses is refused here, before any link runs), then the links
@@ -387,12 +429,27 @@ def register_plot(project, scans=None, *, pairs: Optional[str] = None, fixed: Se
     if pairs:
         from .survey import register_survey
 
-        outcome = register_survey(project, pairs, fixed=fixed, rerun=rerun, scans=scans, progress=step, base=survey,
-                                  on_link_done=save_to_its_file)
+        outcome = register_survey(
+            project,
+            pairs,
+            fixed=fixed,
+            rerun=rerun,
+            scans=scans,
+            progress=step,
+            base=survey,
+            on_link_done=save_to_its_file,
+        )
     else:
         report = step or (lambda f, m: None)
-        outcome = register_project(project, rerun=rerun, progress=lambda f, m: report(0.95 * f, m), cancel=cancel, scans=scans,
-                                   on_link=on_link, on_link_done=save_to_its_file)
+        outcome = register_project(
+            project,
+            rerun=rerun,
+            progress=lambda f, m: report(0.95 * f, m),
+            cancel=cancel,
+            scans=scans,
+            on_link=on_link,
+            on_link_done=save_to_its_file,
+        )
         if loops:
             added = add_neighbour_links(project, loops)
             if added:
@@ -407,10 +464,27 @@ def register_plot(project, scans=None, *, pairs: Optional[str] = None, fixed: Se
 
 
 def plot_scans(
-    scan_files: Sequence, out, params=None, *, centre: Optional[str] = None, tilted: Sequence[str] = (), targets=None,
-    positions=None, prior_poses=None, fixed: Sequence[str] = (), scanner_params=None, pairs: Optional[str] = None,
-    loops: Optional[float] = None, merged=None, registered_dir=None, e57_out=None, survey=None, crs=None,
-    on_resume: Optional[Callable[[Path, int, int], None]] = None, progress=None, cancel=None,
+    scan_files: Sequence,
+    out,
+    params=None,
+    *,
+    centre: Optional[str] = None,
+    tilted: Sequence[str] = (),
+    targets=None,
+    positions=None,
+    prior_poses=None,
+    fixed: Sequence[str] = (),
+    scanner_params=None,
+    pairs: Optional[str] = None,
+    loops: Optional[float] = None,
+    merged=None,
+    registered_dir=None,
+    e57_out=None,
+    survey=None,
+    crs=None,
+    on_resume: Optional[Callable[[Path, int, int], None]] = None,
+    progress=None,
+    cancel=None,
 ) -> PlotRun:
     """The whole ``plot`` use case, for every front door (the ``plot`` command, the job service
     and the batch through it, the Python API): the checks before any work (the survey options,
@@ -429,8 +503,18 @@ def plot_scans(
         parse_crs(crs)
     check_scan_files_exist(scan_files)
     check_extra_outputs(scan_files, out=out, merged=merged, e57_out=e57_out, registered_dir=registered_dir)
-    project = new_project(scan_files, params, name=Path(out).name, centre=centre, tilted=list(tilted or []), targets=targets,
-                          positions=positions, prior_poses=prior_poses, fixed=list(fixed or []), scanner_params=scanner_params)
+    project = new_project(
+        scan_files,
+        params,
+        name=Path(out).name,
+        centre=centre,
+        tilted=list(tilted or []),
+        targets=targets,
+        positions=positions,
+        prior_poses=prior_poses,
+        fixed=list(fixed or []),
+        scanner_params=scanner_params,
+    )
     kept = 0
     if not pairs and not loops:
         project, kept = resumable_project(out, project)  # a stopped run of the same plot goes on
@@ -440,13 +524,39 @@ def plot_scans(
     if kept and on_resume is not None:
         on_resume(folder, kept, len(project.links))
     project.save(folder / "project.json")
-    return run_plot(project, folder, scans=scans, pairs=pairs, fixed=fixed or [], loops=loops, merged=merged,
-                    registered_dir=registered_dir, e57_out=e57_out, survey=survey, crs=crs, progress=progress, cancel=cancel)
+    return run_plot(
+        project,
+        folder,
+        scans=scans,
+        pairs=pairs,
+        fixed=fixed or [],
+        loops=loops,
+        merged=merged,
+        registered_dir=registered_dir,
+        e57_out=e57_out,
+        survey=survey,
+        crs=crs,
+        progress=progress,
+        cancel=cancel,
+    )
 
 
 def run_plot(
-    project, out: Path, *, scans=None, pairs: Optional[str] = None, fixed: Sequence[str] = (), rerun: bool = False,
-    loops: Optional[float] = None, merged=None, registered_dir=None, e57_out=None, survey=None, crs=None, progress=None, cancel=None,
+    project,
+    out: Path,
+    *,
+    scans=None,
+    pairs: Optional[str] = None,
+    fixed: Sequence[str] = (),
+    rerun: bool = False,
+    loops: Optional[float] = None,
+    merged=None,
+    registered_dir=None,
+    e57_out=None,
+    survey=None,
+    crs=None,
+    progress=None,
+    cancel=None,
 ) -> PlotRun:
     """Register the project (``pairs``: every pair with a pose graph, see
     :mod:`forestreg.app.survey`, with the other settings of ``survey``, a
@@ -465,12 +575,23 @@ def run_plot(
     import_in_background(".engine.report.plot_report", kernels=True)
     if scans is None:
         scans = scan_cache(project, with_intensity=bool(merged or registered_dir or e57_out))
-    outcome = register_plot(project, scans, pairs=pairs, fixed=fixed, rerun=rerun, loops=loops, survey=survey, progress=progress,
-                            cancel=cancel)
+    outcome = register_plot(
+        project,
+        scans,
+        pairs=pairs,
+        fixed=fixed,
+        rerun=rerun,
+        loops=loops,
+        survey=survey,
+        progress=progress,
+        cancel=cancel,
+    )
     adjusted = project.adjustment
     frame = plot_crs(project, scans, given)
-    frames = {"poses.json": "each matrix maps a scan's file coordinates (its own frame) into the centre scan's frame",
-              "layers.gpkg": "the centre scan's frame"}
+    frames = {
+        "poses.json": "each matrix maps a scan's file coordinates (its own frame) into the centre scan's frame",
+        "layers.gpkg": "the centre scan's frame",
+    }
     for path in (merged, registered_dir):
         if path:
             frames[str(Path(path).name)] = "the centre scan's frame"
@@ -506,7 +627,10 @@ def run_plot(
         from ..engine.core.atomic import output_folder
 
         with output_folder(registered_dir, "registered-scans") as rtmp:
-            written["registered_dir"] = (Path(registered_dir), write_registered_scans(project, rtmp, scans, crs=frame.crs))
+            written["registered_dir"] = (
+                Path(registered_dir),
+                write_registered_scans(project, rtmp, scans, crs=frame.crs),
+            )
     if e57_out:
         written["e57_out"] = (Path(e57_out), write_registered_e57(project, e57_out, scans))
     if project.path is not None:
@@ -516,10 +640,21 @@ def run_plot(
     residual = None
     if adjusted:
         residual = (len(adjusted["links"]), max((r["after"]["translation_m"] for r in adjusted["links"]), default=0.0))
-    return PlotRun(status=outcome.status, reason=outcome.reason, out=out, result=outcome, project=project, adjusted=adjusted,
-                   uncertainty={name: PoseSigma.of(u) for name, u in pose_uncertainty(project).items()}, written=written,
-                   dropped=dropped, residual=residual, crs=frame, result_file=(out / "poses.json").resolve(),
-                   outputs=tuple(dict.fromkeys(outputs)))
+    return PlotRun(
+        status=outcome.status,
+        reason=outcome.reason,
+        out=out,
+        result=outcome,
+        project=project,
+        adjusted=adjusted,
+        uncertainty={name: PoseSigma.of(u) for name, u in pose_uncertainty(project).items()},
+        written=written,
+        dropped=dropped,
+        residual=residual,
+        crs=frame,
+        result_file=(out / "poses.json").resolve(),
+        outputs=tuple(dict.fromkeys(outputs)),
+    )
 
 
 def plot_crs(project, scans=None, given=None):
@@ -622,4 +757,3 @@ def write_registered_scans(project, folder, scans=None, *, suffix: str = ".laz",
         write_scan(scan(), out / f"{stem.replace('#', '_')}_registered{suffix}", matrix=pose, crs=crs)
         written += 1
     return written
-

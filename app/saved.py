@@ -93,9 +93,16 @@ class SavedResult:
         reason = str(d.get("reason") or ("no matrix; withheld" if d.get("status") == "ok" and matrix is None else ""))
         trees = d.get("trees") if isinstance(d.get("trees"), Mapping) else {}
         icp = d.get("icp") if isinstance(d.get("icp"), Mapping) else {}
-        return cls(status, reason, matrix if status == "ok" else None, str(d.get("reference") or ""), str(d.get("moving") or ""),
-                   count_or_none(d.get("matched")), finite_or_none(icp.get("std_m")),
-                   {str(k): int(v) for k, v in trees.items() if count_or_none(v) is not None})
+        return cls(
+            status,
+            reason,
+            matrix if status == "ok" else None,
+            str(d.get("reference") or ""),
+            str(d.get("moving") or ""),
+            count_or_none(d.get("matched")),
+            finite_or_none(icp.get("std_m")),
+            {str(k): int(v) for k, v in trees.items() if count_or_none(v) is not None},
+        )
 
     @classmethod
     def read(cls, path: PathLike) -> "SavedResult":
@@ -147,8 +154,15 @@ class SavedPoses:
         poses = []
         for name, e in scans.items():
             e = e if isinstance(e, Mapping) else {}
-            poses.append(SavedPose(str(name), str(e.get("status") or "failed"), str(e.get("reason") or ""),
-                                   str(e.get("reference") or ""), _matrix(e.get("matrix"))))
+            poses.append(
+                SavedPose(
+                    str(name),
+                    str(e.get("status") or "failed"),
+                    str(e.get("reason") or ""),
+                    str(e.get("reference") or ""),
+                    _matrix(e.get("matrix")),
+                )
+            )
         return cls(str(d.get("frame") or ""), tuple(poses))
 
     @classmethod
@@ -196,7 +210,9 @@ class SavedProject:
             try:
                 xyz = tuple(float(v) for v in position[:3]) if position else None
             except (TypeError, ValueError) as exc:
-                raise SavedFileError(f"project: scan {s.get('name')!r}: the scanner position is not three numbers") from exc
+                raise SavedFileError(
+                    f"project: scan {s.get('name')!r}: the scanner position is not three numbers"
+                ) from exc
             scans.append(SavedScan(str(s.get("name") or ""), (Path(folder) / s.get("path")).resolve(), xyz))
         links = [mapping_or_empty(link) for link in d.get("links") or [] if isinstance(link, Mapping)]
         return cls(tuple(scans), tuple(str(mapping_or_empty(link.get("result")).get("status") or "") for link in links))

@@ -12,7 +12,9 @@ from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 
-def check_survey_options(pairs: Optional[str] = None, positions: Optional[str] = None, prior_poses: Optional[str] = None) -> None:
+def check_survey_options(
+    pairs: Optional[str] = None, positions: Optional[str] = None, prior_poses: Optional[str] = None
+) -> None:
     """Bad ``pairs`` ("all", "within:D", "centre"), positions CSV or prior poses file: one line
     (exit 2), before any work."""
     from ..engine.tls.survey import parse_pairs, read_positions_csv, read_prior_poses
@@ -25,8 +27,14 @@ def check_survey_options(pairs: Optional[str] = None, positions: Optional[str] =
         read_prior_poses(prior_poses)
 
 
-def survey_inputs(project, known: Callable[[str, str], str], *, positions: Optional[str] = None,
-                  prior_poses: Optional[str] = None, fixed: Sequence[str] = ()) -> None:
+def survey_inputs(
+    project,
+    known: Callable[[str, str], str],
+    *,
+    positions: Optional[str] = None,
+    prior_poses: Optional[str] = None,
+    fixed: Sequence[str] = (),
+) -> None:
     """Scanner positions (CSV scan,x,y,z), prior poses and the names of fixed scans into the
     project; ``known(name, option)`` resolves a scan name or refuses it."""
     from ..engine.tls.survey import read_positions_csv, read_prior_poses
@@ -56,11 +64,25 @@ def survey_params(pairs: str, project, fixed: Sequence[str] = (), base=None):
 
     which, distance = parse_pairs(pairs)
     base = base or SurveyParams()
-    return base.replace(pairs=which, max_distance_m=distance if which == "within" else base.max_distance_m, fixed=fixed_names(project, fixed))
+    return base.replace(
+        pairs=which,
+        max_distance_m=distance if which == "within" else base.max_distance_m,
+        fixed=fixed_names(project, fixed),
+    )
 
 
-def register_survey(project, pairs: str, *, fixed: Sequence[str] = (), rerun: bool = False, scans=None, progress=None, cancel=None, base=None,
-                    on_link_done=None):
+def register_survey(
+    project,
+    pairs: str,
+    *,
+    fixed: Sequence[str] = (),
+    rerun: bool = False,
+    scans=None,
+    progress=None,
+    cancel=None,
+    base=None,
+    on_link_done=None,
+):
     """Register every pair the survey asks for, solve the pose graph and record the uncertainty
     in the project (``base``: the other :class:`~forestreg.engine.tls.params.SurveyParams`;
     ``on_link_done(project)`` after each finished link, e.g. saving it); returns the engine's
@@ -68,5 +90,11 @@ def register_survey(project, pairs: str, *, fixed: Sequence[str] = (), rerun: bo
     from ..engine.tls.survey import register_survey as run
     from .common import with_cancel
 
-    return run(project, survey_params(pairs, project, fixed, base), rerun=rerun, progress=with_cancel(progress, cancel), scans=scans,
-               on_link_done=on_link_done)
+    return run(
+        project,
+        survey_params(pairs, project, fixed, base),
+        rerun=rerun,
+        progress=with_cancel(progress, cancel),
+        scans=scans,
+        on_link_done=on_link_done,
+    )

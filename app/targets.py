@@ -31,8 +31,9 @@ class TargetsOutcome(RunOutcome):
     found: dict = field(default_factory=dict)
 
 
-def detect_targets(scans: Sequence, out, *, known: Optional[str] = None, max_distance: float = 0.3,
-                   progress=None, cancel=None) -> TargetsOutcome:
+def detect_targets(
+    scans: Sequence, out, *, known: Optional[str] = None, max_distance: float = 0.3, progress=None, cancel=None
+) -> TargetsOutcome:
     """Detect the reflectors of each scan file and write the targets CSV ``out`` (scan, target,
     x, y, z; never an input). With ``known`` (an approximate targets CSV) each detection within
     ``max_distance`` metres is named after the nearest known target."""

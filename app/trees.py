@@ -52,13 +52,27 @@ def measure_trees_in(cloud, params=None, *, progress=None, cancel=None):
     written: the engine's :class:`~forestreg.engine.trees.inventory.TreeInventory`."""
     from ..engine.trees.inventory import measure_trees as measure
 
-    return measure(cloud.points, params or default_params(), progress=with_cancel(progress, cancel),
-                   origin_shift=cloud.origin_shift)
+    return measure(
+        cloud.points,
+        params or default_params(),
+        progress=with_cancel(progress, cancel),
+        origin_shift=cloud.origin_shift,
+    )
 
 
 def measure_trees_file(
-    cloud_path, out: Optional[str | Path], params=None, *, transform=None, field=None, units: str = "m",
-    cylinders: bool = True, report: bool = True, crs=None, progress=None, cancel=None,
+    cloud_path,
+    out: Optional[str | Path],
+    params=None,
+    *,
+    transform=None,
+    field=None,
+    units: str = "m",
+    cylinders: bool = True,
+    report: bool = True,
+    crs=None,
+    progress=None,
+    cancel=None,
 ) -> TreesOutcome:
     """Measure the trees of ``cloud_path`` (a file, or a :class:`~forestreg.engine.core.scan.Scan`)
     into the folder ``out`` (a transaction; ``None``: nothing written); with ``field`` (field
@@ -84,12 +98,22 @@ def measure_trees_file(
     matrix = to_metres(read_matrix(transform), scale) if transform else None
     field_table = read_tree_table(field) if field else None  # checked before the work
     # the trees use x, y, z alone
-    cloud = read_scan(cloud_path, unit_scale=scale, with_intensity=False) if is_path else as_scan(cloud_path, "cloud", units=False)
-    check_units(cloud.points, units if is_path else "m", str(cloud_path) if is_path else cloud.name or "cloud")  # before the work
+    cloud = (
+        read_scan(cloud_path, unit_scale=scale, with_intensity=False)
+        if is_path
+        else as_scan(cloud_path, "cloud", units=False)
+    )
+    check_units(
+        cloud.points, units if is_path else "m", str(cloud_path) if is_path else cloud.name or "cloud"
+    )  # before the work
     name = Path(cloud_path).name if is_path else cloud.name or "cloud"
     if matrix is not None:  # the moved cloud is in the co-registration's target frame
-        frame = frame_crs({"cloud": crs_of(cloud), "target": transform_target_crs(transform)}, "target", given,
-                          names={"cloud": name, "target": f"the target of {Path(transform).name}"})
+        frame = frame_crs(
+            {"cloud": crs_of(cloud), "target": transform_target_crs(transform)},
+            "target",
+            given,
+            names={"cloud": name, "target": f"the target of {Path(transform).name}"},
+        )
         cloud = cloud.transformed(matrix)
     else:
         frame = frame_crs({"cloud": crs_of(cloud)}, "cloud", given, names={"cloud": name})
@@ -100,29 +124,54 @@ def measure_trees_file(
     evaluation = None
     written = None
     if not inventory:  # the data do not allow trees: the reason, and no folder (complete or absent)
-        return TreesOutcome(status="failed", reason=inventory.reason, timings=dict(inventory.timings), out=out, result=inventory,
-                            points=cloud.points, crs=frame)
+        return TreesOutcome(
+            status="failed",
+            reason=inventory.reason,
+            timings=dict(inventory.timings),
+            out=out,
+            result=inventory,
+            points=cloud.points,
+            crs=frame,
+        )
     if out is not None:
         from .layers import cloud_outline, trees_layers, write_layers
 
         with output_folder(out, "trees") as tmp:
             inventory.write(tmp, unit_scale=scale)
-            write_layers(tmp, trees_layers(inventory, unit_scale=scale, outline=cloud_outline(cloud.points[:, :2]), cloud_name=name),
-                         frame.crs)
+            write_layers(
+                tmp,
+                trees_layers(inventory, unit_scale=scale, outline=cloud_outline(cloud.points[:, :2]), cloud_name=name),
+                frame.crs,
+            )
             if report:
                 from ..engine.report.trees_report import write_inventory_report
 
                 write_inventory_report(tmp, inventory, cloud.points)
             written = (tmp / "report.html").exists()
             if field_table is not None:
-                evaluation = evaluate_into(tmp / "evaluation", [("trees", read_tree_table(tmp / "trees.csv"))], field_table,
-                                           by="position", max_distance=1.0 / scale, shown_as=out / "evaluation")
+                evaluation = evaluate_into(
+                    tmp / "evaluation",
+                    [("trees", read_tree_table(tmp / "trees.csv"))],
+                    field_table,
+                    by="position",
+                    max_distance=1.0 / scale,
+                    shown_as=out / "evaluation",
+                )
     status, reason = "ok", ""
     if evaluation is not None and not evaluation:
         status, reason = "failed", evaluation.reason
-    return TreesOutcome(status=status, reason=reason, timings=dict(inventory.timings), out=out, result=inventory,
-                        points=cloud.points, evaluation=evaluation, report=out / "report.html" if written else None,
-                        trees=len(inventory.trees), crs=frame)
+    return TreesOutcome(
+        status=status,
+        reason=reason,
+        timings=dict(inventory.timings),
+        out=out,
+        result=inventory,
+        points=cloud.points,
+        evaluation=evaluation,
+        report=out / "report.html" if written else None,
+        trees=len(inventory.trees),
+        crs=frame,
+    )
 
 
 def transform_target_crs(transform):
@@ -242,16 +291,20 @@ def save_edited(folder, inventory, notes, edits, points=None, *, report: bool = 
     (replayable on that cloud with :func:`~forestreg.engine.trees.edit.apply_edits`); ``layers.gpkg``
     is written again from the edited trees, in the CRS of the one the folder held (local without
     one). Returns the trees.csv path."""
+    import numpy as np
+
     from ..engine.io.gpkg import read_crs as layers_crs
     from ..engine.io.results import write_edits
     from ..engine.trees.edit import cloud_digest
     from .layers import LAYERS_FILE, cloud_outline, trees_layers, write_layers
 
-    import numpy as np
-
     crs = layers_crs(Path(folder) / LAYERS_FILE)
     path = inventory.write(folder)
-    write_layers(folder, trees_layers(inventory, outline=None if points is None else cloud_outline(np.asarray(points)[:, :2])), crs)
+    write_layers(
+        folder,
+        trees_layers(inventory, outline=None if points is None else cloud_outline(np.asarray(points)[:, :2])),
+        crs,
+    )
     if report and points is not None:
         from ..engine.report.trees_report import write_inventory_report
 

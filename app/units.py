@@ -96,9 +96,11 @@ def unit_problem(points: Any, units: str = "m", label: str = "cloud") -> Optiona
     unit, also = guess
     factor = UNITS[unit] / scale
     perhaps = f" (perhaps {UNIT_NAMES[also]})" if also else ""
-    return (f"{label}: this cloud looks like {UNIT_NAMES[unit]}{perhaps}, not {UNIT_NAMES[units]}: taken in {said}, {facts}; "
-            f"give its unit: --units {unit}, or convert it to {UNIT_NAMES[units]} (Python: read_scan(path, unit_scale={UNITS[unit]:g}), "
-            f"or the points times {factor:g})")
+    return (
+        f"{label}: this cloud looks like {UNIT_NAMES[unit]}{perhaps}, not {UNIT_NAMES[units]}: taken in {said}, {facts}; "
+        f"give its unit: --units {unit}, or convert it to {UNIT_NAMES[units]} (Python: read_scan(path, unit_scale={UNITS[unit]:g}), "
+        f"or the points times {factor:g})"
+    )
 
 
 # ----------------------------------------------------------------------------- figures

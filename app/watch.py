@@ -77,11 +77,25 @@ class WatchEvent:
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON-lines event of ``--progress jsonl`` (``{"event": "scan", ...}``)."""
-        sigma = None if self.sigma is None else {"translation_m": self.sigma.translation_m, "rotation_deg": self.sigma.rotation_deg}
-        return {"event": "scan", "name": self.name, "status": self.status, "reference": self.reference, "sigma": sigma,
-                "placed": self.placed, "total": self.total, "seconds": None if self.seconds is None else round(self.seconds, 3),
-                "reason": self.reason, "advice": None if self.advice is None else [round(v, 2) for v in self.advice],
-                "same_as": self.same_as, "message": self.message}
+        sigma = (
+            None
+            if self.sigma is None
+            else {"translation_m": self.sigma.translation_m, "rotation_deg": self.sigma.rotation_deg}
+        )
+        return {
+            "event": "scan",
+            "name": self.name,
+            "status": self.status,
+            "reference": self.reference,
+            "sigma": sigma,
+            "placed": self.placed,
+            "total": self.total,
+            "seconds": None if self.seconds is None else round(self.seconds, 3),
+            "reason": self.reason,
+            "advice": None if self.advice is None else [round(v, 2) for v in self.advice],
+            "same_as": self.same_as,
+            "message": self.message,
+        }
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,7 +146,9 @@ def check_scan_file(path: Path) -> FileCheck:
     try:
         read_scan(path, with_intensity=False)
     except (ForestregError, OSError, ValueError, MemoryError) as exc:
-        return FileCheck("not a scan", f"cannot be read as a scan ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})")
+        return FileCheck(
+            "not a scan", f"cannot be read as a scan ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+        )
     return FileCheck("complete")
 
 
@@ -161,7 +177,9 @@ def _check_las(path: Path) -> FileCheck:
         return FileCheck("partial", "the compressed points have not arrived yet")
     (table,) = struct.unpack("<q", raw)
     if table > 0 and table + 8 > size:
-        return FileCheck("partial", f"the file ends at byte {size:,}, before the end of its chunk table (from byte {table:,})")
+        return FileCheck(
+            "partial", f"the file ends at byte {size:,}, before the end of its chunk table (from byte {table:,})"
+        )
     if table > 0 and not _chunk_table_reads(path, offset):
         return FileCheck("partial", "its chunk table has not arrived whole")
     if table <= 0 and not _all_points_read(path, count):  # no chunk table (yet): the points must all decode
@@ -254,8 +272,19 @@ class Watch:
     """One watch of ``folder`` into the plot folder ``out`` (checked and locked by the caller:
     :func:`~forestreg.app.plot.plot_folder`). Call :meth:`step` once per poll."""
 
-    def __init__(self, folder: Path, out: Path, params, *, centre: Optional[str] = None, scanner_params=None,
-                 plan_params=None, on_event: Optional[Callable[[WatchEvent], None]] = None, progress=None, cancel=None) -> None:
+    def __init__(
+        self,
+        folder: Path,
+        out: Path,
+        params,
+        *,
+        centre: Optional[str] = None,
+        scanner_params=None,
+        plan_params=None,
+        on_event: Optional[Callable[[WatchEvent], None]] = None,
+        progress=None,
+        cancel=None,
+    ) -> None:
         from ..engine.tls.params import PlanParams
         from ..engine.tls.plot import ScanCache
         from ..engine.tls.project import Project
@@ -314,17 +343,23 @@ class Watch:
         except (OSError, ValueError) as exc:
             raise UsageError(f"{state_file} cannot be read ({exc}): give a new --out") from exc
         if Path(state.get("folder", "")).resolve() != self.folder.resolve():
-            raise UsageError(f"--out {self.out} holds the watch of another folder ({state.get('folder')}): give another --out")
+            raise UsageError(
+                f"--out {self.out} holds the watch of another folder ({state.get('folder')}): give another --out"
+            )
         if project_file.is_file():
             try:
                 saved = Project.load(project_file)
             except ProjectFileError as exc:
                 raise UsageError(str(exc)) from exc
             if saved.params.to_dict() != self.params.to_dict():
-                raise UsageError(f"--out {self.out} holds a plot registered with other settings (--dr, --dc, --dh or --params): "
-                                 "give the same settings or another --out")
+                raise UsageError(
+                    f"--out {self.out} holds a plot registered with other settings (--dr, --dc, --dh or --params): "
+                    "give the same settings or another --out"
+                )
             if self.centre_name and saved.centre and saved.centre != self.centre_name:
-                raise UsageError(f"--out {self.out} holds a plot with the centre scan {saved.centre}, not {self.centre_name}")
+                raise UsageError(
+                    f"--out {self.out} holds a plot with the centre scan {saved.centre}, not {self.centre_name}"
+                )
             self.project.scans, self.project.links, self.project.centre = saved.scans, saved.links, saved.centre
             self.project.scanner_params = saved.scanner_params
         self.files = {str(k): dict(v) for k, v in (state.get("files") or {}).items() if isinstance(v, dict)}
@@ -332,8 +367,10 @@ class Watch:
         for s in self.project.scans:  # placed after the state was last written (a kill in between)
             entry = self.files.setdefault(s.name, {})
             if entry.get("status") not in PLACED and poses.get(s.name) is not None:
-                entry.update(status="centre" if s.name == self.project.centre else "linked",
-                             reference=None if s.name == self.project.centre else self.project.link_of(s.name).reference)
+                entry.update(
+                    status="centre" if s.name == self.project.centre else "linked",
+                    reference=None if s.name == self.project.centre else self.project.link_of(s.name).reference,
+                )
                 if s.path.is_file():
                     entry["sha256"] = content_hash(s.path)
         for name, entry in list(self.files.items()):  # a placed scan the project lost (never written): taken in again
@@ -365,42 +402,81 @@ class Watch:
         name = path.name
         known = self.files.get(name)
         signature = self.poller.signature(name)
-        if known is not None and known.get("status") in SET_ASIDE and signature is not None \
-                and (known.get("size"), known.get("mtime_ns")) != signature:
+        if (
+            known is not None
+            and known.get("status") in SET_ASIDE
+            and signature is not None
+            and (known.get("size"), known.get("mtime_ns")) != signature
+        ):
             del self.files[name]  # set aside, then written again (a new export): taken in anew
             known = None
         if known is not None and known.get("status") in PLACED + SET_ASIDE:
             if known.get("size") is not None and signature is not None and known.get("size") != signature[0]:
-                self._say_once(path, ("changed",), WatchEvent(name, "ignored", f"{name}: changed after it was taken in - the scan taken in stays; "
-                                                              "copy the new content under a new name to register it", reason="changed"))
+                self._say_once(
+                    path,
+                    ("changed",),
+                    WatchEvent(
+                        name,
+                        "ignored",
+                        f"{name}: changed after it was taken in - the scan taken in stays; "
+                        "copy the new content under a new name to register it",
+                        reason="changed",
+                    ),
+                )
             return
-        if known is not None and known.get("status") in ("duplicate", "ignored") and known.get("size") == (signature or (None,))[0] \
-                and known.get("mtime_ns") == (signature or (None, None))[1]:
+        if (
+            known is not None
+            and known.get("status") in ("duplicate", "ignored")
+            and known.get("size") == (signature or (None,))[0]
+            and known.get("mtime_ns") == (signature or (None, None))[1]
+        ):
             return
         if any(p.name == name for p in self.waiting):
             return
         check = check_scan_file(path)
         if check.state == "partial":
-            self._say_once(path, ("partial", check.reason), WatchEvent(name, "waiting", f"{name}: incomplete ({check.reason}) - waiting for the rest", reason=check.reason))
+            self._say_once(
+                path,
+                ("partial", check.reason),
+                WatchEvent(
+                    name, "waiting", f"{name}: incomplete ({check.reason}) - waiting for the rest", reason=check.reason
+                ),
+            )
             return
         if check.state == "not a scan":
             self._record(name, signature, status="ignored", reason=check.reason)
-            self._say_once(path, ("ignored", check.reason), WatchEvent(name, "ignored", f"{name}: not a scan - {check.reason}: ignored", reason=check.reason))
+            self._say_once(
+                path,
+                ("ignored", check.reason),
+                WatchEvent(name, "ignored", f"{name}: not a scan - {check.reason}: ignored", reason=check.reason),
+            )
             self._publish_state()
             return
         digest = content_hash(path)
-        same = next((n for n, f in self.files.items() if f.get("sha256") == digest and f.get("status") in PLACED + SET_ASIDE), None)
+        same = next(
+            (n for n, f in self.files.items() if f.get("sha256") == digest and f.get("status") in PLACED + SET_ASIDE),
+            None,
+        )
         if same is None:
             same = next((p.name for p in self.waiting if self._waiting_hash.get(p.name) == digest), None)
         if same is not None:
             self._record(name, signature, status="duplicate", same_as=same, sha256=digest)
-            self._emit(WatchEvent(name, "duplicate", f"{name}: the same content as {same} - registered once", same_as=same))
+            self._emit(
+                WatchEvent(name, "duplicate", f"{name}: the same content as {same} - registered once", same_as=same)
+            )
             self._publish_state()
             return
         if self.project.centre is None and self.centre_name and name != self.centre_name:
             self.waiting.append(path)
             self._waiting_hash[name] = digest
-            self._emit(WatchEvent(name, "waiting", f"{name}: complete - waiting for the centre scan {self.centre_name}", reason="no centre scan yet"))
+            self._emit(
+                WatchEvent(
+                    name,
+                    "waiting",
+                    f"{name}: complete - waiting for the centre scan {self.centre_name}",
+                    reason="no centre scan yet",
+                )
+            )
             return
         self._take(path, digest, signature)
 
@@ -426,7 +502,9 @@ class Watch:
         entry = self.project.add_scan(path)
         if entry.name != name:  # a file of the name of a scan the project holds (renamed and copied again)
             self.project.scans.remove(entry)
-            self._record(name, signature, status="ignored", reason="a scan of this name was taken in already", sha256=digest)
+            self._record(
+                name, signature, status="ignored", reason="a scan of this name was taken in already", sha256=digest
+            )
             self._emit(WatchEvent(name, "ignored", f"{name}: a scan of this name was taken in already - ignored"))
             return
         if self.project.centre == name:
@@ -436,7 +514,9 @@ class Watch:
             return
         outcome = register_project(self.project, progress=self.progress, scans=self.cache, cancel=self.cancel)
         if outcome.scans.get(name) == "ok":
-            self._record(name, signature, status="linked", sha256=digest, reference=self.project.link_of(name).reference)
+            self._record(
+                name, signature, status="linked", sha256=digest, reference=self.project.link_of(name).reference
+            )
             self._publish()
             self._emit(self._placed_event(name, "linked", started))
             self._retry_aside(name)
@@ -450,8 +530,16 @@ class Watch:
         self._drop(name)
         self._record(name, signature, status=status, sha256=digest, reason=reason)
         self._publish()
-        event = WatchEvent(name, status, f"{name}: {line}", placed=len(self.placed()), total=len(self._counted()),
-                           seconds=time.perf_counter() - started, reason=reason, advice=advice)
+        event = WatchEvent(
+            name,
+            status,
+            f"{name}: {line}",
+            placed=len(self.placed()),
+            total=len(self._counted()),
+            seconds=time.perf_counter() - started,
+            reason=reason,
+            advice=advice,
+        )
         self._emit(event)
 
     def _drop(self, name: str) -> None:
@@ -473,21 +561,35 @@ class Watch:
             return "refused", f"refused - {reason}", None, reason
         found = []
         for other in placed:
-            ev = shadow_evidence(self.cache.prepared.get(self.cache.for_link(other, self.params), self.params), moving, self.params)
+            ev = shadow_evidence(
+                self.cache.prepared.get(self.cache.for_link(other, self.params), self.params), moving, self.params
+            )
             found.append((ev.confident, ev.lead, ev.matched, other, ev))
         if not found:
             return "refused", f"refused - {reason}", None, reason
         confident, _, _, partner, ev = max(found, key=lambda x: x[:3])
         if not confident:
-            why = (f"shares no trunk shadows with the {len(placed)} placed scan{'s' if len(placed) != 1 else ''} beyond a chance match "
-                   f"(best {ev.matched} with {partner}, another solution {ev.second})")
-            return "refused", f"refused - {why}: a scan of another plot, or taken too far from every placed scan (it is tried again as scans are placed)", None, why
+            why = (
+                f"shares no trunk shadows with the {len(placed)} placed scan{'s' if len(placed) != 1 else ''} beyond a chance match "
+                f"(best {ev.matched} with {partner}, another solution {ev.second})"
+            )
+            return (
+                "refused",
+                f"refused - {why}: a scan of another plot, or taken too far from every placed scan (it is tried again as scans are placed)",
+                None,
+                why,
+            )
         link_reason = self._reason_onto(name, partner) or reason
         needed = self.params.min_matched
-        why = f"shares {ev.matched} trunk shadows with {partner}" + (f" (needs {needed})" if ev.matched < needed else f", but {link_reason}")
+        why = f"shares {ev.matched} trunk shadows with {partner}" + (
+            f" (needs {needed})" if ev.matched < needed else f", but {link_reason}"
+        )
         advice = self._advice(partner)
-        todo = f": stand between them, near ({advice[0]:.1f}, {advice[1]:.1f})" if advice is not None else \
-            ": scan again between it and the placed scans"
+        todo = (
+            f": stand between them, near ({advice[0]:.1f}, {advice[1]:.1f})"
+            if advice is not None
+            else ": scan again between it and the placed scans"
+        )
         return "not linked", f"not linked - {why}{todo}", advice, why
 
     def _reason_onto(self, name: str, reference: str) -> str:
@@ -507,9 +609,15 @@ class Watch:
         from ..engine.tls.plan import placed_links, placed_views, plan_scans
 
         try:
-            views = placed_views(self.project, self.cache, names=[n for n in self.placed() if self.project.has_scan(n)],
-                                 cell_m=self.plan_params.ground_cell_m)
-            plan = plan_scans(views, self.plan_params, self.params, n=1, links_to=[partner], links=placed_links(self.project))
+            views = placed_views(
+                self.project,
+                self.cache,
+                names=[n for n in self.placed() if self.project.has_scan(n)],
+                cell_m=self.plan_params.ground_cell_m,
+            )
+            plan = plan_scans(
+                views, self.plan_params, self.params, n=1, links_to=[partner], links=placed_links(self.project)
+            )
         except Exception as exc:  # advice is a help, never the reason a watch stops
             log.debug("no advice for a scan next to %s: %s", partner, exc)
             return None
@@ -529,8 +637,11 @@ class Watch:
             started = time.perf_counter()
             self.project.add_scan(path)
             try:
-                ev = shadow_evidence(self.cache.prepared.get(self.cache.for_link(placed_now, self.params), self.params),
-                                     self.cache.prepared.get(self.cache.for_link(name, self.params), self.params), self.params)
+                ev = shadow_evidence(
+                    self.cache.prepared.get(self.cache.for_link(placed_now, self.params), self.params),
+                    self.cache.prepared.get(self.cache.for_link(name, self.params), self.params),
+                    self.params,
+                )
             except Exception as exc:  # unreadable now: it stays aside with its reason
                 log.debug("%s not tried again: %s", name, exc)
                 ev = None
@@ -558,11 +669,23 @@ class Watch:
 
         link = self.project.link_of(name)
         sigma = pose_sigmas(self.project).get(name)
-        figures = "ok" if sigma is None or not sigma.known else f"ok, {100 * sigma.translation_m:.1f} cm / {sigma.rotation_deg:.2f} deg"
+        figures = (
+            "ok"
+            if sigma is None or not sigma.known
+            else f"ok, {100 * sigma.translation_m:.1f} cm / {sigma.rotation_deg:.2f} deg"
+        )
         later = f", once {after} was placed" if after else ""
         line = f"{name}: linked to {link.reference} ({figures}){later} - {placed} of {total} placed"
-        return WatchEvent(name, status, line, reference=link.reference, sigma=sigma, placed=placed, total=total,
-                          seconds=time.perf_counter() - started)
+        return WatchEvent(
+            name,
+            status,
+            line,
+            reference=link.reference,
+            sigma=sigma,
+            placed=placed,
+            total=total,
+            seconds=time.perf_counter() - started,
+        )
 
     def _emit(self, event: WatchEvent) -> None:
         self.events.append(event)
@@ -572,8 +695,13 @@ class Watch:
     # ------------------------------------------------------------------ writing OUT
 
     def _state(self) -> dict:
-        return {"format": WATCH_FORMAT, "version": WATCH_VERSION, "folder": str(self.folder.resolve()), "centre": self.project.centre,
-                "files": self.files}
+        return {
+            "format": WATCH_FORMAT,
+            "version": WATCH_VERSION,
+            "folder": str(self.folder.resolve()),
+            "centre": self.project.centre,
+            "files": self.files,
+        }
 
     def _publish_state(self) -> None:
         from ..engine.core.atomic import write_text_atomic
@@ -596,16 +724,32 @@ class Watch:
                 (tmp / "project.json").write_text(text, encoding="utf-8")
             (tmp / WATCH_FILE).write_text(json.dumps(self._state(), indent=1) + "\n", encoding="utf-8")
             last = ("project.json", WATCH_FILE, "poses.json")
-            files = sorted((f for f in tmp.iterdir() if f.is_file()), key=lambda f: (last.index(f.name) if f.name in last else -1, f.name))
+            files = sorted(
+                (f for f in tmp.iterdir() if f.is_file()),
+                key=lambda f: (last.index(f.name) if f.name in last else -1, f.name),
+            )
             for f in files:
                 os.replace(f, self.out / f.name)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-def watch_plot(folder, out, params, *, centre: Optional[str] = None, scanner_params=None, plan_params=None, poll_s: float = 1.0,
-               until_scans: Optional[int] = None, on_event: Optional[Callable[[WatchEvent], None]] = None, progress=None,
-               cancel=None, sleep: Callable[[float], None] = time.sleep, on_start: Optional[Callable[[int], None]] = None) -> WatchRun:
+def watch_plot(
+    folder,
+    out,
+    params,
+    *,
+    centre: Optional[str] = None,
+    scanner_params=None,
+    plan_params=None,
+    poll_s: float = 1.0,
+    until_scans: Optional[int] = None,
+    on_event: Optional[Callable[[WatchEvent], None]] = None,
+    progress=None,
+    cancel=None,
+    sleep: Callable[[float], None] = time.sleep,
+    on_start: Optional[Callable[[int], None]] = None,
+) -> WatchRun:
     """Watch ``folder`` and register each scan arriving there into the plot folder ``out`` (see
     the module docstring), polling every ``poll_s`` seconds, until ``until_scans`` scans have been
     taken in (placed or set aside; None: until Ctrl-C, which ends the watch normally with
@@ -623,8 +767,17 @@ def watch_plot(folder, out, params, *, centre: Optional[str] = None, scanner_par
     if poll_s <= 0:
         raise UsageError(f"--poll must be greater than 0, got {poll_s}")
     out_dir = plot_folder(out, [folder])
-    watch = Watch(folder.resolve(), out_dir, params, centre=centre, scanner_params=scanner_params, plan_params=plan_params,
-                  on_event=on_event, progress=progress, cancel=cancel)
+    watch = Watch(
+        folder.resolve(),
+        out_dir,
+        params,
+        centre=centre,
+        scanner_params=scanner_params,
+        plan_params=plan_params,
+        on_event=on_event,
+        progress=progress,
+        cancel=cancel,
+    )
     resumed = watch.resume()
     if on_start is not None:
         on_start(resumed)
@@ -641,5 +794,14 @@ def watch_plot(folder, out, params, *, centre: Optional[str] = None, scanner_par
     aside = {n: f.get("reason", "") for n, f in watch.files.items() if f.get("status") in SET_ASIDE}
     failed = bool(aside)
     reason = "; ".join(f"{n}: {r}" for n, r in aside.items())
-    return WatchRun(status="failed" if failed else "ok", reason=reason, out=out_dir, placed=placed, taken=taken, aside=aside,
-                    stopped=stopped, events=tuple(watch.events), resumed=resumed)
+    return WatchRun(
+        status="failed" if failed else "ok",
+        reason=reason,
+        out=out_dir,
+        placed=placed,
+        taken=taken,
+        aside=aside,
+        stopped=stopped,
+        events=tuple(watch.events),
+        resumed=resumed,
+    )

@@ -66,7 +66,10 @@ LIMIT_MB = 4096.0
 def plot_positions(n_scans: int, ring_m: float = RING_M) -> list[tuple[float, float]]:
     """Scanner positions (x, y metres, the plot's frame): the centre scan at the origin and the
     other ``n_scans - 1`` evenly on a circle of radius ``ring_m`` around it, the first at +x."""
-    ring = [(ring_m * math.cos(2 * math.pi * k / (n_scans - 1)), ring_m * math.sin(2 * math.pi * k / (n_scans - 1))) for k in range(n_scans - 1)]
+    ring = [
+        (ring_m * math.cos(2 * math.pi * k / (n_scans - 1)), ring_m * math.sin(2 * math.pi * k / (n_scans - 1)))
+        for k in range(n_scans - 1)
+    ]
     return [(0.0, 0.0)] + [(round(x, 2), round(y, 2)) for x, y in ring]
 
 
@@ -77,9 +80,26 @@ def simulate(workdir: Path, n_scans: int) -> Path:
     if not (out / "truth.json").exists():
         positions = ";".join(f"{x:g},{y:g}" for x, y in plot_positions(n_scans))
         subprocess.run(
-            [sys.executable, "-m", "forestreg.cli", "simulate", PRESET, "--out", str(out), f"--positions={positions}",
-             "--step", str(STEP_DEG), "--size", str(SIZE_M), "--seed", str(SEED), "--quiet"],
-            check=True, stdout=subprocess.DEVNULL, env=peers._python_env(),
+            [
+                sys.executable,
+                "-m",
+                "forestreg.cli",
+                "simulate",
+                PRESET,
+                "--out",
+                str(out),
+                f"--positions={positions}",
+                "--step",
+                str(STEP_DEG),
+                "--size",
+                str(SIZE_M),
+                "--seed",
+                str(SEED),
+                "--quiet",
+            ],
+            check=True,
+            stdout=subprocess.DEVNULL,
+            env=peers._python_env(),
         )
     return out
 
@@ -115,7 +135,10 @@ def _poses(out: Path) -> dict[str, Optional[np.ndarray]]:
         scans = json.loads((out / "poses.json").read_text())["scans"]
     except (OSError, ValueError, KeyError):
         return {}
-    return {Path(k).stem: (None if v.get("matrix") is None else np.array(v["matrix"], dtype=float)) for k, v in scans.items()}
+    return {
+        Path(k).stem: (None if v.get("matrix") is None else np.array(v["matrix"], dtype=float))
+        for k, v in scans.items()
+    }
 
 
 def _point_count(path: Path) -> Optional[int]:
@@ -151,12 +174,16 @@ def _sylva_poses(out: Path, files: list[Path]) -> dict[str, Optional[np.ndarray]
     return {files[i].stem: np.linalg.inv(world[0]) @ m for i, m in world.items() if i < len(files)}
 
 
-def _errors(files: list[Path], poses: dict[str, Optional[np.ndarray]], truth: dict[str, np.ndarray]) -> dict[str, Optional[dict[str, float]]]:
+def _errors(
+    files: list[Path], poses: dict[str, Optional[np.ndarray]], truth: dict[str, np.ndarray]
+) -> dict[str, Optional[dict[str, float]]]:
     """Each non-centre scan's pose error against the truth (None: not registered)."""
     errors: dict[str, Optional[dict[str, float]]] = {}
     for path in files[1:]:
         pose = poses.get(path.stem)
-        errors[path.stem] = None if pose is None else dict(zip(("rotation_deg", "translation_m"), rigid_errors(pose, truth[path.stem])))
+        errors[path.stem] = (
+            None if pose is None else dict(zip(("rotation_deg", "translation_m"), rigid_errors(pose, truth[path.stem])))
+        )
     return errors
 
 
@@ -164,8 +191,14 @@ def _stage(result: "peers.Run", **extra: Any) -> dict[str, Any]:
     return {"wall_s": result.wall_s, "peak_mb": result.peak_mb, "status": result.status, **extra}
 
 
-def run(scans: int = 10, copies: int = 10, workdir: Optional[Path] = None, *, timeout_s: float = 4 * 3600.0,
-        with_sylva: bool = True) -> dict[str, Any]:
+def run(
+    scans: int = 10,
+    copies: int = 10,
+    workdir: Optional[Path] = None,
+    *,
+    timeout_s: float = 4 * 3600.0,
+    with_sylva: bool = True,
+) -> dict[str, Any]:
     """Simulate and densify the plot (or reuse it), then, one child process a stage:
 
     1. ``register``: ``forestreg plot`` (the links only), against
@@ -188,19 +221,29 @@ def run(scans: int = 10, copies: int = 10, workdir: Optional[Path] = None, *, ti
     forestreg = [sys.executable, "-m", "forestreg.cli"]
     stages: dict[str, dict[str, Any]] = {}
     # the kernels compiled and cached before anything is timed (a no-op when they are)
-    subprocess.run([*forestreg, "warmup", "--quiet"], check=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    subprocess.run(
+        [*forestreg, "warmup", "--quiet"], check=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env
+    )
 
     out_reg = plot / f"register_x{copies}"
     shutil.rmtree(out_reg, ignore_errors=True)
-    result = peers.run_command([*forestreg, "plot", *map(str, files), "--out", str(out_reg), "--quiet"], env=env, timeout_s=timeout_s,
-                               log=plot / f"register_x{copies}.log")
+    result = peers.run_command(
+        [*forestreg, "plot", *map(str, files), "--out", str(out_reg), "--quiet"],
+        env=env,
+        timeout_s=timeout_s,
+        log=plot / f"register_x{copies}.log",
+    )
     stages["register"] = _stage(result, errors=_errors(files, _poses(out_reg), truth))
     sylva = peers.sylva_command() if with_sylva else None
     if sylva:
         out_sylva = plot / f"sylva_x{copies}"
         shutil.rmtree(out_sylva, ignore_errors=True)
-        result = peers.run_command([sylva, "coreg", *map(str, files), "-o", str(out_sylva), "--quiet"], env=env, timeout_s=timeout_s,
-                                   log=plot / f"sylva_x{copies}.log")
+        result = peers.run_command(
+            [sylva, "coreg", *map(str, files), "-o", str(out_sylva), "--quiet"],
+            env=env,
+            timeout_s=timeout_s,
+            log=plot / f"sylva_x{copies}.log",
+        )
         stages["sylva"] = _stage(result, errors=_errors(files, _sylva_poses(out_sylva, files), truth))
 
     out, merged = plot / f"out_x{copies}", plot / f"merged_x{copies}.copc.laz"
@@ -208,18 +251,31 @@ def run(scans: int = 10, copies: int = 10, workdir: Optional[Path] = None, *, ti
     merged.unlink(missing_ok=True)
     argv = [*forestreg, "plot", *map(str, files), "--out", str(out), "--merged", str(merged), "--quiet"]
     half = max(1, (scans - 1) // 2)
-    result = peers.run_command(argv, env=env, timeout_s=timeout_s, log=plot / f"stopped_x{copies}.log",
-                               kill_when=lambda: _links_done(out) >= half)
+    result = peers.run_command(
+        argv,
+        env=env,
+        timeout_s=timeout_s,
+        log=plot / f"stopped_x{copies}.log",
+        kill_when=lambda: _links_done(out) >= half,
+    )
     stages["stopped"] = _stage(result, links_done=_links_done(out), merged_left=merged.exists())
     log = plot / f"resumed_x{copies}.log"
     result = peers.run_command(argv, env=env, timeout_s=timeout_s, log=log)
     said = [line.strip() for line in log.read_text(errors="replace").splitlines() if line.startswith("resuming")]
-    stages["resumed"] = _stage(result, errors=_errors(files, _poses(out), truth), merged_points=_point_count(merged),
-                               note=said[0] if said else "")
+    stages["resumed"] = _stage(
+        result,
+        errors=_errors(files, _poses(out), truth),
+        merged_points=_point_count(merged),
+        note=said[0] if said else "",
+    )
     laz = plot / f"merged_x{copies}.laz"
     laz.unlink(missing_ok=True)
-    result = peers.run_command([*forestreg, "project", "run", str(out / "project.json"), "--out", str(out), "--merged", str(laz), "--quiet"],
-                               env=env, timeout_s=timeout_s, log=plot / f"laz_x{copies}.log")
+    result = peers.run_command(
+        [*forestreg, "project", "run", str(out / "project.json"), "--out", str(out), "--merged", str(laz), "--quiet"],
+        env=env,
+        timeout_s=timeout_s,
+        log=plot / f"laz_x{copies}.log",
+    )
     stages["laz"] = _stage(result, errors=_errors(files, _poses(out), truth), merged_points=_point_count(laz))
     raw_mb = max(points) * 3 * 8 / 1e6
     return {
@@ -269,29 +325,55 @@ def format_row(row: dict[str, Any]) -> str:
         s = st[key]
         peak = s["peak_mb"]
         merged = s.get("merged_points")
-        lines.append(f"{name:<34} {s['wall_s']:>8.0f} {peak:>8.0f} {peak / row['limit_mb']:>6.2f} {_worst(s.get('errors'))} "
-                     f"{merged if merged is not None else '-':>12} {s['status']:>5}")
+        lines.append(
+            f"{name:<34} {s['wall_s']:>8.0f} {peak:>8.0f} {peak / row['limit_mb']:>6.2f} {_worst(s.get('errors'))} "
+            f"{merged if merged is not None else '-':>12} {s['status']:>5}"
+        )
     if "sylva" in st and st["sylva"]["status"] == 0 and st["register"]["status"] == 0:
-        lines.append(f"forestreg / Sylva: wall {st['register']['wall_s'] / st['sylva']['wall_s']:.2f}x, "
-                     f"peak {st['register']['peak_mb'] / st['sylva']['peak_mb']:.2f}x")
+        lines.append(
+            f"forestreg / Sylva: wall {st['register']['wall_s'] / st['sylva']['wall_s']:.2f}x, "
+            f"peak {st['register']['peak_mb'] / st['sylva']['peak_mb']:.2f}x"
+        )
     stopped = st["stopped"]
-    lines.append(f"stopped by SIGKILL after {stopped['links_done']} of {row['scans'] - 1} links ({stopped['wall_s']:.0f} s in)"
-                 + ("; a merged file was left behind" if stopped["merged_left"] else "; no merged file left behind")
-                 + (f"; the rerun said: \"{st['resumed']['note']}\"" if st["resumed"]["note"] else "; the rerun did NOT resume"))
+    lines.append(
+        f"stopped by SIGKILL after {stopped['links_done']} of {row['scans'] - 1} links ({stopped['wall_s']:.0f} s in)"
+        + ("; a merged file was left behind" if stopped["merged_left"] else "; no merged file left behind")
+        + (f'; the rerun said: "{st["resumed"]["note"]}"' if st["resumed"]["note"] else "; the rerun did NOT resume")
+    )
     for key in ("resumed", "laz"):
         n = st[key].get("merged_points")
         if n is not None and n != row["registered_points"]:
-            lines.append(f"MISMATCH: {STAGE_NAMES[key]} merged {n} points, the registered scans hold {row['registered_points']}")
-    lines.append(f"memory budget: 3x the raw arrays of the largest scan ({row['raw_mb_largest']:.0f} MB) + 300 = {row['budget_mb']:.0f} MB; "
-                 f"limit {row['limit_mb']:.0f} MB")
+            lines.append(
+                f"MISMATCH: {STAGE_NAMES[key]} merged {n} points, the registered scans hold {row['registered_points']}"
+            )
+    lines.append(
+        f"memory budget: 3x the raw arrays of the largest scan ({row['raw_mb_largest']:.0f} MB) + 300 = {row['budget_mb']:.0f} MB; "
+        f"limit {row['limit_mb']:.0f} MB"
+    )
     return "\n".join(lines)
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description="forestreg plot with a merged COPC output on ten ~30 M-point scans: wall, peak memory, accuracy")
-    ap.add_argument("--scans", type=int, default=10, help="scans in the plot: a centre scan and the rest on a 12 m ring (default 10)")
-    ap.add_argument("--copies", type=int, default=10, help="copies of each 0.1 deg scan (~3.1 M points) in its dense scan (default 10: ~31 M)")
-    ap.add_argument("--workdir", type=Path, help="keep the simulated and densified scans here (default bench_out/; reused when present)")
+    ap = argparse.ArgumentParser(
+        description="forestreg plot with a merged COPC output on ten ~30 M-point scans: wall, peak memory, accuracy"
+    )
+    ap.add_argument(
+        "--scans",
+        type=int,
+        default=10,
+        help="scans in the plot: a centre scan and the rest on a 12 m ring (default 10)",
+    )
+    ap.add_argument(
+        "--copies",
+        type=int,
+        default=10,
+        help="copies of each 0.1 deg scan (~3.1 M points) in its dense scan (default 10: ~31 M)",
+    )
+    ap.add_argument(
+        "--workdir",
+        type=Path,
+        help="keep the simulated and densified scans here (default bench_out/; reused when present)",
+    )
     ap.add_argument("--json", type=Path, help="also write the row to this JSON file")
     ap.add_argument("--no-sylva", action="store_true", help="leave out Sylva's run")
     args = ap.parse_args()

@@ -60,7 +60,17 @@ def run(copies: int = 10, workdir: Optional[Path] = None) -> dict[str, Any]:
         truth, points = peers._truth(pair)
         n_big = points[0] * copies
         out = pair / "out_big"
-        argv = [sys.executable, "-m", "forestreg.cli", "register", str(big), str(pair / "scan_02.laz"), "--out", str(out), "--quiet"]
+        argv = [
+            sys.executable,
+            "-m",
+            "forestreg.cli",
+            "register",
+            str(big),
+            str(pair / "scan_02.laz"),
+            "--out",
+            str(out),
+            "--quiet",
+        ]
         result = peers.run_command(argv, env=peers._python_env(), timeout_s=3600)
         raw_mb = (n_big + points[1]) * 3 * 8 / 1e6
         matrix = peers._forestreg_matrix(out)
@@ -71,7 +81,9 @@ def run(copies: int = 10, workdir: Optional[Path] = None) -> dict[str, Any]:
             "wall_s": result.wall_s,
             "peak_mb": result.peak_mb,
             "status": result.status,
-            "error": None if matrix is None else dict(zip(("rotation_deg", "translation_m"), rigid_errors(matrix, truth))),
+            "error": None
+            if matrix is None
+            else dict(zip(("rotation_deg", "translation_m"), rigid_errors(matrix, truth))),
         }
         return row
 
@@ -82,7 +94,11 @@ def format_row(row: dict[str, Any]) -> str:
         f"Big scan: {row['points'][0] / 1e6:.1f} M + {row['points'][1] / 1e6:.1f} M points, raw arrays {row['raw_mb']:.0f} MB; "
         f"peak {row['peak_mb']:.0f} MB = {row['peak_mb'] / row['budget_mb']:.2f} of the budget "
         f"(3x raw + 300 MB = {row['budget_mb']:.0f} MB; limit 4096 MB); wall {row['wall_s']:.0f} s; exit {row['status']}; "
-        + ("no result" if e is None else f"error vs truth {e['rotation_deg']:.4f} deg / {1000 * e['translation_m']:.1f} mm")
+        + (
+            "no result"
+            if e is None
+            else f"error vs truth {e['rotation_deg']:.4f} deg / {1000 * e['translation_m']:.1f} mm"
+        )
     )
 
 

@@ -69,8 +69,8 @@ from forestreg.engine.simulate import (
     simulate_scan_from_cloud,
     stand_positions,
 )
-from forestreg.engine.tls.params import RegistrationParams
 from forestreg.engine.tls.pair import register
+from forestreg.engine.tls.params import RegistrationParams
 
 #: The real clouds (``../shared/data`` beside the repository).
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -181,8 +181,17 @@ def _spec(kind: str, seed: int) -> tuple[str, dict[str, Any]]:
         return kind, _forest_spec(kind, seed, rng, "tls")
     if kind == "forward":
         scanner = "robot_lines" if rng.uniform() < 0.25 else "robot_forward"
-        scenes = ["corridor"] * 3 + ["colonnade", "fence", "courtyard", "park", "campus", "plantation_rows",
-                                     "planted_conifer", "mixed_temperate", "sloped"]
+        scenes = ["corridor"] * 3 + [
+            "colonnade",
+            "fence",
+            "courtyard",
+            "park",
+            "campus",
+            "plantation_rows",
+            "planted_conifer",
+            "mixed_temperate",
+            "sloped",
+        ]
         scene = scenes[int(rng.integers(len(scenes)))]
         sep = float(rng.uniform(1.0, 5.0))
         if scene in BUILT_PRESETS:
@@ -198,11 +207,20 @@ def _spec(kind: str, seed: int) -> tuple[str, dict[str, Any]]:
     if kind == "real_lpine":
         # ground mostly removed: the scanners stand 1.4 m above the stems' base level
         pos = _pair_in_box(rng, (1.0, 12.0, 0.0, 6.0), (3.0, 9.0))
-        return "LPine1_demo.laz", {"file": "LPine1_demo.laz", "positions": [[*p, 1.4] for p in pos],
-                                   "yaw_deg": _yaws(rng), "step_deg": REAL_STEP_DEG}
+        return "LPine1_demo.laz", {
+            "file": "LPine1_demo.laz",
+            "positions": [[*p, 1.4] for p in pos],
+            "yaw_deg": _yaws(rng),
+            "step_deg": REAL_STEP_DEG,
+        }
     if kind == "real_pine_plot":
         pos = _pair_in_box(rng, (2.0, 8.0, 2.0, 8.0), (3.0, 6.0))
-        return "pine_plot.laz", {"file": "pine_plot.laz", "positions": pos, "yaw_deg": _yaws(rng), "step_deg": REAL_STEP_DEG}
+        return "pine_plot.laz", {
+            "file": "pine_plot.laz",
+            "positions": pos,
+            "yaw_deg": _yaws(rng),
+            "step_deg": REAL_STEP_DEG,
+        }
     if kind == "real_tls_copy":
         dist = float(rng.uniform(3.0, 40.0))
         ang = float(rng.uniform(0.0, 2 * math.pi))
@@ -221,7 +239,9 @@ def _yaws(rng: np.random.Generator) -> list[float]:
     return [float(rng.uniform(0.0, 360.0)), float(rng.uniform(0.0, 360.0))]
 
 
-def _pair_in_box(rng: np.random.Generator, box: tuple[float, float, float, float], sep: tuple[float, float]) -> list[list[float]]:
+def _pair_in_box(
+    rng: np.random.Generator, box: tuple[float, float, float, float], sep: tuple[float, float]
+) -> list[list[float]]:
     x0, x1, y0, y1 = box
     for _ in range(1000):
         p = rng.uniform([x0, y0], [x1, y1])
@@ -245,8 +265,15 @@ def _crop(rng: np.random.Generator) -> dict[str, Any]:
     return crop
 
 
-def _built_spec(preset: str, seed: int, rng: np.random.Generator, scanner: str, *, separation: Optional[float] = None,
-                forward: bool = False) -> dict[str, Any]:
+def _built_spec(
+    preset: str,
+    seed: int,
+    rng: np.random.Generator,
+    scanner: str,
+    *,
+    separation: Optional[float] = None,
+    forward: bool = False,
+) -> dict[str, Any]:
     size = 40.0 if preset == "courtyard" else 50.0
     scene = make_scene(preset, seed=seed, size_m=size)
     sep = float(separation if separation is not None else rng.uniform(*BUILT_SEPARATION_M[preset]))
@@ -259,12 +286,26 @@ def _built_spec(preset: str, seed: int, rng: np.random.Generator, scanner: str, 
         yaws = [heading + float(rng.normal(0.0, 3.0)), heading + float(rng.normal(0.0, 3.0))]
     else:
         yaws = _yaws(rng)
-    return {"size_m": size, "positions": pos.tolist(), "yaw_deg": yaws, "scanner": scanner, "step_deg": STEP_DEG,
-            "separation_m": sep}
+    return {
+        "size_m": size,
+        "positions": pos.tolist(),
+        "yaw_deg": yaws,
+        "scanner": scanner,
+        "step_deg": STEP_DEG,
+        "separation_m": sep,
+    }
 
 
-def _forest_spec(preset: str, seed: int, rng: np.random.Generator, scanner: str, *, separation: Optional[float] = None,
-                 size: Optional[float] = None, forward: bool = False) -> dict[str, Any]:
+def _forest_spec(
+    preset: str,
+    seed: int,
+    rng: np.random.Generator,
+    scanner: str,
+    *,
+    separation: Optional[float] = None,
+    size: Optional[float] = None,
+    forward: bool = False,
+) -> dict[str, Any]:
     size = float(size if size is not None else 5.0 * int(rng.integers(8, 13)))  # 40-60 m
     sep = float(separation if separation is not None else rng.uniform(*FOREST_SEPARATION_M))
     half = size / 2.0 - 4.0
@@ -276,8 +317,14 @@ def _forest_spec(preset: str, seed: int, rng: np.random.Generator, scanner: str,
         if np.abs(p).max() < half and np.abs(q).max() < half:
             break
     yaws = [heading + float(rng.normal(0.0, 3.0)), heading + float(rng.normal(0.0, 3.0))] if forward else _yaws(rng)
-    return {"size_m": size, "positions": [p.tolist(), q.tolist()], "yaw_deg": yaws, "scanner": scanner,
-            "step_deg": STEP_DEG, "separation_m": sep}
+    return {
+        "size_m": size,
+        "positions": [p.tolist(), q.tolist()],
+        "yaw_deg": yaws,
+        "scanner": scanner,
+        "step_deg": STEP_DEG,
+        "separation_m": sep,
+    }
 
 
 # --------------------------------------------------------------------------------- making a pair
@@ -306,14 +353,29 @@ def simulate_case(case: Case) -> CasePair:
         pair = _real_copy_pair(case)
     elif "file" in spec:
         cloud = _real_cloud(spec["file"])
-        a, b = (simulate_scan_from_cloud(cloud, p, angular_step_deg=spec["step_deg"], yaw_deg=y, name=n)
-                for p, y, n in zip(spec["positions"], spec["yaw_deg"], ("a", "b")))
+        a, b = (
+            simulate_scan_from_cloud(cloud, p, angular_step_deg=spec["step_deg"], yaw_deg=y, name=n)
+            for p, y, n in zip(spec["positions"], spec["yaw_deg"], ("a", "b"))
+        )
         pair = CasePair(a.scan, b.scan, np.linalg.inv(a.pose) @ b.pose, np.zeros(3), 0.0)
     else:
-        plot = simulate_plot(case.scene, spec["positions"], seed=case.seed, angular_step_deg=spec["step_deg"],
-                             size_m=spec["size_m"], yaw_deg=spec["yaw_deg"], scanner_options=scanner_options(spec["scanner"]))
-        pair = CasePair(plot.scans[0].scan, plot.scans[1].scan, plot.relative_pose(0, 1), np.zeros(3), 0.0,
-                        info={"n_trees": len(plot.scene.trees), "n_posts": len(plot.scene.posts)})
+        plot = simulate_plot(
+            case.scene,
+            spec["positions"],
+            seed=case.seed,
+            angular_step_deg=spec["step_deg"],
+            size_m=spec["size_m"],
+            yaw_deg=spec["yaw_deg"],
+            scanner_options=scanner_options(spec["scanner"]),
+        )
+        pair = CasePair(
+            plot.scans[0].scan,
+            plot.scans[1].scan,
+            plot.relative_pose(0, 1),
+            np.zeros(3),
+            0.0,
+            info={"n_trees": len(plot.scene.trees), "n_posts": len(plot.scene.posts)},
+        )
     pair.simulate_s = time.perf_counter() - t0
     pair.info["simulate_cpu_s"] = time.process_time() - c0
     pair.info["points"] = [len(pair.reference), len(pair.moving)]
@@ -344,8 +406,14 @@ def _real_copy_pair(case: Case) -> CasePair:
     moved = _cropped(pts, spec["crops"][1]) @ move[:3, :3].T + move[:3, 3]
     position = move[:3, 3].copy() if spec["moving_position_given"] else None
     mov = Scan.from_points(moved, scanner_position=position, name="moved copy")
-    return CasePair(ref, mov, np.linalg.inv(move), move[:3, 3].copy(), 0.0,
-                    info={"moving_position": "given" if position is not None else "found from the data"})
+    return CasePair(
+        ref,
+        mov,
+        np.linalg.inv(move),
+        move[:3, 3].copy(),
+        0.0,
+        info={"moving_position": "given" if position is not None else "found from the data"},
+    )
 
 
 # ---------------------------------------------------------------------------------- evaluation
@@ -385,8 +453,9 @@ def _jsonable(o: Any) -> Any:
     return str(o)
 
 
-def evaluate_case(case: Case, params: Union[None, RegistrationParams, Mapping[str, Any]] = None, *,
-                  pair: Optional[CasePair] = None) -> dict[str, Any]:
+def evaluate_case(
+    case: Case, params: Union[None, RegistrationParams, Mapping[str, Any]] = None, *, pair: Optional[CasePair] = None
+) -> dict[str, Any]:
     """Register the pair of ``case`` (made by :func:`simulate_case` unless given as ``pair``, e.g.
     to try several ``params`` on the same scans) and compare the result with the truth.
 
@@ -400,8 +469,18 @@ def evaluate_case(case: Case, params: Union[None, RegistrationParams, Mapping[st
     matched VOPs, the whole ``uncertainty`` dict and the seconds spent (wall ``simulate_s`` and
     ``register_s``; CPU seconds of this process ``info["simulate_cpu_s"]`` and ``register_cpu_s``).
     """
-    row: dict[str, Any] = {**case.to_dict(), "status": None, "reason": "", "sigma_m": None, "sigma_deg": None,
-                           "error_m": None, "error_deg": None, "ratio_m": None, "ratio_deg": None, "wrong": None}
+    row: dict[str, Any] = {
+        **case.to_dict(),
+        "status": None,
+        "reason": "",
+        "sigma_m": None,
+        "sigma_deg": None,
+        "error_m": None,
+        "error_deg": None,
+        "ratio_m": None,
+        "ratio_deg": None,
+        "wrong": None,
+    }
     try:
         if pair is None:
             pair = simulate_case(case)
@@ -416,15 +495,24 @@ def evaluate_case(case: Case, params: Union[None, RegistrationParams, Mapping[st
     try:
         result = register(pair.reference, pair.moving, _as_params(params))
     except Exception as exc:
-        row.update(status="error", reason=f"registration: {type(exc).__name__}: {exc}", register_s=time.perf_counter() - t)
+        row.update(
+            status="error", reason=f"registration: {type(exc).__name__}: {exc}", register_s=time.perf_counter() - t
+        )
         return row
     row["register_s"] = time.perf_counter() - t
     row["register_cpu_s"] = time.process_time() - c
     unc = result.uncertainty or {}
-    row.update(status=result.status, reason=result.reason, matched=result.matched, second_matched=result.second_matched,
-               icp_std_m=None if result.icp is None else float(result.icp.std_m),
-               sigma_m=unc.get("translation_m"), sigma_deg=unc.get("rotation_deg"), uncertainty=_jsonable(unc),
-               ambiguity_resolved=result.ambiguity_resolved)
+    row.update(
+        status=result.status,
+        reason=result.reason,
+        matched=result.matched,
+        second_matched=result.second_matched,
+        icp_std_m=None if result.icp is None else float(result.icp.std_m),
+        sigma_m=unc.get("translation_m"),
+        sigma_deg=unc.get("rotation_deg"),
+        uncertainty=_jsonable(unc),
+        ambiguity_resolved=result.ambiguity_resolved,
+    )
     if result.matrix is not None:
         rot, trans = true_errors(np.asarray(result.matrix), pair.truth, pair.moving_scanner)
         row.update(error_m=trans, error_deg=rot, wrong=bool(trans > WRONG_M or rot > WRONG_DEG))
@@ -455,14 +543,18 @@ def worst_ratio(row: Mapping[str, Any]) -> float:
 def summarise(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """The figures of the report: ``overall`` and ``per_kind`` counts and shares, and
     ``beyond_promise``: every "ok" whose error exceeds 3 sigma (translation or rotation)."""
+
     def figures(sel: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         ok = [r for r in sel if r["status"] == "ok"]
         failed = [r for r in sel if r["status"] == "failed"]
         right = [r for r in ok if not r["wrong"]]
         made = len(ok) + len(failed)
         out: dict[str, Any] = {
-            "cases": len(sel), "ok": len(ok), "refused": len(failed),
-            "errors": sum(r["status"] == "error" for r in sel), "skipped": sum(r["status"] == "skipped" for r in sel),
+            "cases": len(sel),
+            "ok": len(ok),
+            "refused": len(failed),
+            "errors": sum(r["status"] == "error" for r in sel),
+            "skipped": sum(r["status"] == "skipped" for r in sel),
             "refusal_rate": len(failed) / made if made else None,
             "wrong": sum(bool(r["wrong"]) for r in ok),
             "beyond_3_sigma": sum(worst_ratio(r) > PROMISE for r in ok),
@@ -470,7 +562,9 @@ def summarise(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         }
         for k in SIGMAS:
             for what, key in (("m", "ratio_m"), ("deg", "ratio_deg")):
-                out[f"right_within_{k:g}_sigma_{what}"] = (sum(_r(r, key) <= k for r in right) / len(right)) if right else None
+                out[f"right_within_{k:g}_sigma_{what}"] = (
+                    (sum(_r(r, key) <= k for r in right) / len(right)) if right else None
+                )
             out[f"right_within_{k:g}_sigma"] = (sum(worst_ratio(r) <= k for r in right) / len(right)) if right else None
         for key in ("ratio_m", "ratio_deg", "error_m", "error_deg", "sigma_m", "sigma_deg"):
             vals = [_r(r, key) for r in ok]
@@ -480,9 +574,26 @@ def summarise(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
     kinds = [k for k in KINDS if any(r["kind"] == k for r in rows)] + sorted({r["kind"] for r in rows} - set(KINDS))
     beyond = [
-        {k: r.get(k) for k in ("id", "kind", "scene", "seed", "error_m", "sigma_m", "ratio_m", "error_deg", "sigma_deg",
-                               "ratio_deg", "wrong", "matched", "second_matched")}
-        for r in rows if r["status"] == "ok" and worst_ratio(r) > PROMISE
+        {
+            k: r.get(k)
+            for k in (
+                "id",
+                "kind",
+                "scene",
+                "seed",
+                "error_m",
+                "sigma_m",
+                "ratio_m",
+                "error_deg",
+                "sigma_deg",
+                "ratio_deg",
+                "wrong",
+                "matched",
+                "second_matched",
+            )
+        }
+        for r in rows
+        if r["status"] == "ok" and worst_ratio(r) > PROMISE
     ]
     return {
         "overall": figures(rows),
@@ -517,9 +628,15 @@ def format_report(rows: Sequence[Mapping[str, Any]], summary: Optional[Mapping[s
         f"{_pct(o['right_within_1_sigma_deg'])} / {_pct(o['right_within_2_sigma_deg'])}",
         "",
     ]
-    head = (f"{'kind':<16}{'cases':>6}{'ok':>5}{'refused':>9}{'refusal':>9}{'wrong':>7}{'>3 sig':>8}"
-            f"{'<=1 sig':>9}{'<=2 sig':>9}{'med err/sig m':>15}{'med err/sig deg':>17}{'max err/sig':>13}")
-    lines += ["Per kind (err/sig: true error over stated sigma of the ok; <=k sig: share of the right answers)", head, "-" * len(head)]
+    head = (
+        f"{'kind':<16}{'cases':>6}{'ok':>5}{'refused':>9}{'refusal':>9}{'wrong':>7}{'>3 sig':>8}"
+        f"{'<=1 sig':>9}{'<=2 sig':>9}{'med err/sig m':>15}{'med err/sig deg':>17}{'max err/sig':>13}"
+    )
+    lines += [
+        "Per kind (err/sig: true error over stated sigma of the ok; <=k sig: share of the right answers)",
+        head,
+        "-" * len(head),
+    ]
     for kind, f in s["per_kind"].items():
         worst = None if f["max_ratio_m"] is None else max(f["max_ratio_m"], f["max_ratio_deg"])
         lines.append(
@@ -529,8 +646,10 @@ def format_report(rows: Sequence[Mapping[str, Any]], summary: Optional[Mapping[s
         )
     lines.append("")
     if s["beyond_promise"]:
-        head = (f"{'case':<24}{'scene':<18}{'error m':>10}{'sigma m':>10}{'x sig':>8}{'error deg':>11}{'sigma deg':>11}"
-                f"{'x sig':>8}{'matched':>9}")
+        head = (
+            f"{'case':<24}{'scene':<18}{'error m':>10}{'sigma m':>10}{'x sig':>8}{'error deg':>11}{'sigma deg':>11}"
+            f"{'x sig':>8}{'matched':>9}"
+        )
         lines += [f"Every ok beyond {PROMISE:g} sigma", head, "-" * len(head)]
         for b in s["beyond_promise"]:
             lines.append(
@@ -553,7 +672,10 @@ def format_report(rows: Sequence[Mapping[str, Any]], summary: Optional[Mapping[s
         lines += [f"{n:>5}  {k}" for k, n in sorted(reasons.items(), key=lambda kv: -kv[1])]
         lines += ["", "Refusals per kind"]
         for kind in [k for k in s["per_kind"] if k in per_kind]:
-            lines.append(f"  {kind:<16}" + "; ".join(f"{k} {n}" for k, n in sorted(per_kind[kind].items(), key=lambda kv: -kv[1])))
+            lines.append(
+                f"  {kind:<16}"
+                + "; ".join(f"{k} {n}" for k, n in sorted(per_kind[kind].items(), key=lambda kv: -kv[1]))
+            )
     return "\n".join(lines)
 
 
@@ -567,20 +689,32 @@ def _case_line(i: int, n: int, row: Mapping[str, Any]) -> str:
     secs = (row.get("simulate_s") or 0.0) + (row.get("register_s") or 0.0)
     if row["status"] == "ok":
         flag = " WRONG" if row["wrong"] else (" BEYOND 3 SIGMA" if worst_ratio(row) > PROMISE else "")
-        return (f"{head} ok     error {row['error_m']:.3f} m / {row['error_deg']:.3f} deg, sigma "
-                f"{_num(row['sigma_m'], '.3f')} m / {_num(row['sigma_deg'], '.3f')} deg ({secs:.1f} s){flag}")
+        return (
+            f"{head} ok     error {row['error_m']:.3f} m / {row['error_deg']:.3f} deg, sigma "
+            f"{_num(row['sigma_m'], '.3f')} m / {_num(row['sigma_deg'], '.3f')} deg ({secs:.1f} s){flag}"
+        )
     return f"{head} {row['status']:<6} {(row['reason'] or '')[:110]} ({secs:.1f} s)"
 
 
-def run(seed: Optional[int] = None, n: Optional[int] = None, *, quick: bool = False, kinds: Optional[Sequence[str]] = None,
-        params: Union[None, RegistrationParams, Mapping[str, Any]] = None, verbose: bool = True) -> dict[str, Any]:
+def run(
+    seed: Optional[int] = None,
+    n: Optional[int] = None,
+    *,
+    quick: bool = False,
+    kinds: Optional[Sequence[str]] = None,
+    params: Union[None, RegistrationParams, Mapping[str, Any]] = None,
+    verbose: bool = True,
+) -> dict[str, Any]:
     """Draw the cases (a fresh seed unless given), evaluate each, summarise: the JSON-able payload
     of ``--json`` (``seed``, ``cases``, ``rows``, ``summary``, ``wall_s``)."""
     seed = int(secrets.randbelow(2**31 - 1)) if seed is None else int(seed)
     kind_list = list(kinds) if kinds else list(KINDS)
     n = int(n if n is not None else (len(kind_list) if quick else 6 * len(kind_list)))
     if verbose:
-        print(f"calibration: seed {seed}, {n} cases over {len(kind_list)} kinds (repeat with --seed {seed} --cases {n})", flush=True)
+        print(
+            f"calibration: seed {seed}, {n} cases over {len(kind_list)} kinds (repeat with --seed {seed} --cases {n})",
+            flush=True,
+        )
     t0 = time.perf_counter()
     cases = make_cases(seed, n, kind_list)
     logger = logging.getLogger("forestreg")
@@ -598,23 +732,37 @@ def run(seed: Optional[int] = None, n: Optional[int] = None, *, quick: bool = Fa
     summary = summarise(rows)
     wall = time.perf_counter() - t0
     cpu = sum((r.get("info") or {}).get("simulate_cpu_s", 0.0) + (r.get("register_cpu_s") or 0.0) for r in rows)
-    return {"seed": seed, "cpu_s": cpu, "n": n, "kinds": kind_list, "params": None if params is None else _jsonable(_as_params(params).to_dict()),
-            "rows": rows, "summary": summary, "wall_s": wall}
+    return {
+        "seed": seed,
+        "cpu_s": cpu,
+        "n": n,
+        "kinds": kind_list,
+        "params": None if params is None else _jsonable(_as_params(params).to_dict()),
+        "rows": rows,
+        "summary": summary,
+        "wall_s": wall,
+    }
 
 
 def main(argv: Optional[list[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seed", type=int, help="the seed of the cases (default: drawn afresh, printed)")
-    ap.add_argument("--cases", type=int, help=f"number of cases (default 6 per kind: {6 * len(KINDS)}; --quick: one per kind)")
+    ap.add_argument(
+        "--cases", type=int, help=f"number of cases (default 6 per kind: {6 * len(KINDS)}; --quick: one per kind)"
+    )
     ap.add_argument("--quick", action="store_true", help="one case per kind (a few minutes)")
-    ap.add_argument("--kinds", nargs="+", choices=list(KINDS), metavar="KIND", help=f"only these kinds: {', '.join(KINDS)}")
+    ap.add_argument(
+        "--kinds", nargs="+", choices=list(KINDS), metavar="KIND", help=f"only these kinds: {', '.join(KINDS)}"
+    )
     ap.add_argument("--json", type=Path, metavar="FILE", help="write every case, row and the summary to this JSON file")
     args = ap.parse_args(argv)
     payload = run(args.seed, args.cases, quick=args.quick, kinds=args.kinds)
     print()
     print(format_report(payload["rows"], payload["summary"]))
-    print(f"\nseed {payload['seed']}, {payload['n']} cases, wall time {payload['wall_s']:.0f} s "
-          f"(CPU time of the cases {payload['cpu_s']:.0f} s)")
+    print(
+        f"\nseed {payload['seed']}, {payload['n']} cases, wall time {payload['wall_s']:.0f} s "
+        f"(CPU time of the cases {payload['cpu_s']:.0f} s)"
+    )
     if args.json is not None:
         args.json.write_text(json.dumps(_jsonable(payload), indent=1) + "\n")
         print(f"written to {args.json}")

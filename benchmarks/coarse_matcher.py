@@ -89,9 +89,7 @@ def run_packed(n: int = 80, repeats: int = 2, angle_step_deg: float = 0.1) -> li
                 results[name] = res
     finally:
         coarse._kernels = kernels
-    keys = {
-        k: (r.anchor, r.angle_index, r.score, r.second_score, r.second_rotation_deg) for k, r in results.items()
-    }
+    keys = {k: (r.anchor, r.angle_index, r.score, r.second_score, r.second_rotation_deg) for k, r in results.items()}
     if len(set(keys.values())) != 1:
         raise AssertionError(f"packed case: the bound paths disagree: {keys}")
     return [
@@ -193,7 +191,9 @@ if __name__ == "__main__":
     if args.packed:
         for row in run_packed(repeats=args.repeats):
             runs = ", ".join(f"{t:.1f}" for t in row["runs_s"])
-            print(f"packed 80 VOPs, {row['path']:>5} bounds: {row['median_s']:.1f} s (runs: {runs}), "
-                  f"{row['evaluated']} exact scores")
+            print(
+                f"packed 80 VOPs, {row['path']:>5} bounds: {row['median_s']:.1f} s (runs: {runs}), "
+                f"{row['evaluated']} exact scores"
+            )
     else:
         print(_format(run()))

@@ -38,7 +38,14 @@ RAW_BYTES_PER_POINT = 24
 BUDGET_ALLOWANCE_MB = 300.0
 #: The real clouds (beside the repository, as the tests find them) measured with ``trees``.
 REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-REAL_CLOUDS = ("LPine1_demo", "spanner_MLS_Clip", "pine_plot", "TLS_scan_scanner_at_origin", "spanner_ALS_Clip", "lidR_MixedConifer")
+REAL_CLOUDS = (
+    "LPine1_demo",
+    "spanner_MLS_Clip",
+    "pine_plot",
+    "TLS_scan_scanner_at_origin",
+    "spanner_ALS_Clip",
+    "lidR_MixedConifer",
+)
 
 
 def _points_in(path: Path) -> int:
@@ -70,9 +77,16 @@ def run(runs: int = 3, workdir: Optional[Path] = None) -> list[dict[str, Any]]:
     # the cases are simulated (first use) or read in a child process: read here, they grew this
     # process to ~430 MB, which the kernel then counted in the peak of every command and peer
     # started after them (a child's ru_maxrss includes its parent's memory at the fork)
-    subprocess.run([sys.executable, "-c", "from benchmarks import coreg_speed, trees_speed; "
-                    "coreg_speed.load_case('backpack'); trees_speed.load_case()"],
-                   cwd=Path(__file__).resolve().parent.parent, check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from benchmarks import coreg_speed, trees_speed; "
+            "coreg_speed.load_case('backpack'); trees_speed.load_case()",
+        ],
+        cwd=Path(__file__).resolve().parent.parent,
+        check=True,
+    )
     folder = coreg_speed.CACHE / "backpack_seed0"
     ground, uav, plot = folder / "ground.laz", folder / "uav.laz", trees_speed.OUT / "plot.laz"
     n_coreg = _points_in(ground) + _points_in(uav)
@@ -80,15 +94,49 @@ def run(runs: int = 3, workdir: Optional[Path] = None) -> list[dict[str, Any]]:
     rows = []
     with tempfile.TemporaryDirectory(prefix="forestreg-cmdmem-", dir=workdir) as tmp:
         out = Path(tmp)
-        rows.append(_measure("coregister", exe + ["coregister", str(ground), str(uav), "--out", str(out / "coreg"), "--quiet"], n_coreg, runs))
+        rows.append(
+            _measure(
+                "coregister",
+                exe + ["coregister", str(ground), str(uav), "--out", str(out / "coreg"), "--quiet"],
+                n_coreg,
+                runs,
+            )
+        )
         transform = out / "coreg" / "transform.txt"
-        rows.append(_measure("fuse", exe + ["fuse", str(ground), str(uav), "--transform", str(transform), "--out", str(out / "fused.laz"), "--quiet"],
-                             n_coreg, runs))
-        rows.append(_measure("trees", exe + ["trees", str(plot), "--out", str(out / "trees"), "--quiet"], _points_in(plot), runs))
+        rows.append(
+            _measure(
+                "fuse",
+                exe
+                + [
+                    "fuse",
+                    str(ground),
+                    str(uav),
+                    "--transform",
+                    str(transform),
+                    "--out",
+                    str(out / "fused.laz"),
+                    "--quiet",
+                ],
+                n_coreg,
+                runs,
+            )
+        )
+        rows.append(
+            _measure(
+                "trees", exe + ["trees", str(plot), "--out", str(out / "trees"), "--quiet"], _points_in(plot), runs
+            )
+        )
         for name in REAL_CLOUDS:
             cloud = REAL_DATA / f"{name}.laz"
             if cloud.exists():
-                rows.append(_measure(f"trees {name}", exe + ["trees", str(cloud), "--out", str(out / name), "--quiet"], _points_in(cloud), runs))
+                rows.append(
+                    _measure(
+                        f"trees {name}",
+                        exe + ["trees", str(cloud), "--out", str(out / name), "--quiet"],
+                        _points_in(cloud),
+                        runs,
+                    )
+                )
     return rows
 
 

@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from forestreg.engine.coreg import coregister
 from forestreg.engine.core.scan import Scan
 from forestreg.engine.core.transform import rigid_errors
+from forestreg.engine.coreg import coregister
 from forestreg.engine.io import read_scan, write_scan
 
 CACHE = Path("bench_out") / "coreg_speed"
@@ -52,8 +52,15 @@ def load_case(name: str, seed: int = 0) -> tuple[Scan, Scan, np.ndarray]:
         preset, platform, heading, offset = CASES[name]
         t = time.perf_counter()
         case = simulate_coregistration_case(
-            preset, seed=seed, size_m=40.0, ground_platform=platform, heading_deg=heading, offset_m=offset,
-            uav_density_scale=1.0, backpack_density_scale=0.25, tls_step_deg=0.2,
+            preset,
+            seed=seed,
+            size_m=40.0,
+            ground_platform=platform,
+            heading_deg=heading,
+            offset_m=offset,
+            uav_density_scale=1.0,
+            backpack_density_scale=0.25,
+            tls_step_deg=0.2,
         )
         folder.mkdir(parents=True, exist_ok=True)
         write_scan(case.ground, files[0])
@@ -83,7 +90,9 @@ def main() -> None:  # pragma: no cover
     ap.add_argument("--tls", action="store_true", help="the TLS case instead of the backpack one")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeat", type=int, default=1)
-    ap.add_argument("--profile", type=int, default=0, metavar="N", help="cProfile one run, print the N costliest functions")
+    ap.add_argument(
+        "--profile", type=int, default=0, metavar="N", help="cProfile one run, print the N costliest functions"
+    )
     args = ap.parse_args()
     ground, uav, truth = load_case("tls" if args.tls else "backpack", args.seed)
     print(f"ground {len(ground):,} points, UAV {len(uav):,} points")
@@ -97,9 +106,14 @@ def main() -> None:  # pragma: no cover
         return
     for k in range(args.repeat):
         row = run_once(ground, uav, truth)
-        steps = "  ".join(f"{key[:-2]} {v:.2f}" for key, v in row.items() if key.endswith("_s") and isinstance(v, float))
-        err = (f"error {row['rotation_error_deg']:.4f} deg / {1000 * row['translation_error_m']:.1f} mm"
-               if "rotation_error_deg" in row else f"{row['status']}: {row['reason']}")
+        steps = "  ".join(
+            f"{key[:-2]} {v:.2f}" for key, v in row.items() if key.endswith("_s") and isinstance(v, float)
+        )
+        err = (
+            f"error {row['rotation_error_deg']:.4f} deg / {1000 * row['translation_error_m']:.1f} mm"
+            if "rotation_error_deg" in row
+            else f"{row['status']}: {row['reason']}"
+        )
         print(f"run {k + 1}: {steps}  |  keypoints {row.get('keypoints', '-')}  |  {err}", flush=True)
 
 

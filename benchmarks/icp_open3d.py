@@ -81,7 +81,11 @@ def simulated_case(preset: str, seed: int):
     from forestreg.engine.simulate.plot import simulate_plot
 
     plot = simulate_plot(preset, [(-5.0, 0.0), (5.0, 0.0)], angular_step_deg=0.4, size_m=30.0, seed=seed)
-    return plot.scans[0].scan.points.astype("float64"), plot.scans[1].scan.points.astype("float64"), plot.relative_pose(0, 1)
+    return (
+        plot.scans[0].scan.points.astype("float64"),
+        plot.scans[1].scan.points.astype("float64"),
+        plot.relative_pose(0, 1),
+    )
 
 
 def real_case():
@@ -135,8 +139,14 @@ def open3d_icp(ref, mov, initial, loss: str):
             s = s.select_by_index(np.sort(rng.choice(len(s.points), p.max_moving_points, replace=False)).tolist())
         t.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(p.normal_neighbours))
         kernel = reg.TukeyLoss(k=dist) if loss == "tukey" else reg.HuberLoss(k=dist)
-        result = reg.registration_icp(s, t, dist, matrix, reg.TransformationEstimationPointToPlane(kernel),
-                                      reg.ICPConvergenceCriteria(1e-6, 1e-6, p.iterations))
+        result = reg.registration_icp(
+            s,
+            t,
+            dist,
+            matrix,
+            reg.TransformationEstimationPointToPlane(kernel),
+            reg.ICPConvergenceCriteria(1e-6, 1e-6, p.iterations),
+        )
         matrix = np.asarray(result.transformation)
     return matrix
 
@@ -151,8 +161,10 @@ def icp_table() -> list[list[str]]:
         "open3d tukey": lambda r, m, i: open3d_icp(r, m, i, "tukey"),
         "open3d huber": lambda r, m, i: open3d_icp(r, m, i, "huber"),
     }
-    cases = [("sim mixed_temperate", lambda: simulated_case("mixed_temperate", 1)),
-             ("sim planted_conifer", lambda: simulated_case("planted_conifer", 2))]
+    cases = [
+        ("sim mixed_temperate", lambda: simulated_case("mixed_temperate", 1)),
+        ("sim planted_conifer", lambda: simulated_case("planted_conifer", 2)),
+    ]
     if (DATA / "LPine1_demo.laz").exists():
         cases.append(("real LPine1 crops", real_case))
     else:
@@ -173,10 +185,22 @@ def icp_table() -> list[list[str]]:
                 times.append(time.perf_counter() - t0)
             rot, trans = rigid_errors(matrices[0], truth)
             same = bool(np.array_equal(matrices[0], matrices[1]))
-            rows.append([name, size, label, f"{times[0]:.2f}", f"{times[1]:.2f}", f"{rot:.4f}", f"{1000 * trans:.1f}",
-                         "yes" if same else f"no ({np.abs(matrices[0] - matrices[1]).max():.1e})"])
+            rows.append(
+                [
+                    name,
+                    size,
+                    label,
+                    f"{times[0]:.2f}",
+                    f"{times[1]:.2f}",
+                    f"{rot:.4f}",
+                    f"{1000 * trans:.1f}",
+                    "yes" if same else f"no ({np.abs(matrices[0] - matrices[1]).max():.1e})",
+                ]
+            )
         print(f"  {name}: {time.perf_counter() - case_t0:.0f} s with making the clouds", file=sys.stderr)
-    return [["case", "points ref/mov", "method", "run 1 s", "run 2 s", "rot err deg", "trans err mm", "bit-equal"]] + rows
+    return [
+        ["case", "points ref/mov", "method", "run 1 s", "run 2 s", "rot err deg", "trans err mm", "bit-equal"]
+    ] + rows
 
 
 # ----------------------------------------------------------------------------------------- filters
@@ -195,8 +219,10 @@ def _median_time(fn: Callable, repeat: int = 7) -> float:
 def _import_time(module: str, runs: int = 3) -> float:
     """Median seconds a fresh interpreter (NumPy already imported) spends importing ``module``."""
     code = f"import numpy, time; t = time.perf_counter(); import {module}; print(time.perf_counter() - t)"
-    return statistics.median(float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
-                             for _ in range(runs))
+    return statistics.median(
+        float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
+        for _ in range(runs)
+    )
 
 
 def filters_table() -> list[list[str]]:
@@ -211,18 +237,41 @@ def filters_table() -> list[list[str]]:
         grid = np.round(rng.normal(size=(n, n + 7)), 2)  # rounded: ties, as heights in centimetres
         missing = rng.random(grid.shape) < 0.3
         cases = [
-            ("minimum 7x7", lambda: f.minimum_filter_nearest(grid, 7), lambda: ndimage.minimum_filter(grid, 7, mode="nearest")),
-            ("median 3x3", lambda: f.median3_nearest(grid), lambda: ndimage.median_filter(grid, size=3, mode="nearest")),
-            ("nearest cell", lambda: f.nearest_cell_indices(missing),
-             lambda: tuple(ndimage.distance_transform_edt(missing, return_distances=False, return_indices=True))),
-            ("gaussian s=2", lambda: f.gaussian_smooth(grid, 2.0), lambda: ndimage.gaussian_filter(grid, 2.0, mode="constant")),
+            (
+                "minimum 7x7",
+                lambda: f.minimum_filter_nearest(grid, 7),
+                lambda: ndimage.minimum_filter(grid, 7, mode="nearest"),
+            ),
+            (
+                "median 3x3",
+                lambda: f.median3_nearest(grid),
+                lambda: ndimage.median_filter(grid, size=3, mode="nearest"),
+            ),
+            (
+                "nearest cell",
+                lambda: f.nearest_cell_indices(missing),
+                lambda: tuple(ndimage.distance_transform_edt(missing, return_distances=False, return_indices=True)),
+            ),
+            (
+                "gaussian s=2",
+                lambda: f.gaussian_smooth(grid, 2.0),
+                lambda: ndimage.gaussian_filter(grid, 2.0, mode="constant"),
+            ),
         ]
         for name, mine, theirs in cases:
             a, b = mine(), theirs()
             equal = all(np.array_equal(x, y) for x, y in zip(a, b)) if isinstance(a, tuple) else np.array_equal(a, b)
             t_mine, t_theirs = _median_time(mine), _median_time(theirs)
-            rows.append([name, f"{n}x{n + 7}", f"{1000 * t_mine:.2f}", f"{1000 * t_theirs:.2f}", f"{t_mine / t_theirs:.2f}",
-                         "yes" if equal else "no"])
+            rows.append(
+                [
+                    name,
+                    f"{n}x{n + 7}",
+                    f"{1000 * t_mine:.2f}",
+                    f"{1000 * t_theirs:.2f}",
+                    f"{t_mine / t_theirs:.2f}",
+                    "yes" if equal else "no",
+                ]
+            )
     rows.append(["import scipy.ndimage", "fresh process", "", f"{1000 * _import_time('scipy.ndimage'):.0f}", "", ""])
     return [["filter", "grid", "forestreg ms", "scipy ms", "ratio", "bit-equal"]] + rows
 
@@ -253,11 +302,24 @@ def nearest_table() -> list[list[str]]:
         same_d = bool(np.array_equal(d1, d2))
         differ = int((i1 != i2).sum())
         t_mine, t_theirs = _median_time(mine, 5), _median_time(theirs, 5)
-        rows.append([f"{n_ref} refs", f"{n_query / 1e6:.0f} M", f"{1000 * t_mine:.1f}", f"{1000 * t_theirs:.1f}",
-                     f"{t_mine / t_theirs:.2f}", "yes" if same_d else "no", str(differ)])
+        rows.append(
+            [
+                f"{n_ref} refs",
+                f"{n_query / 1e6:.0f} M",
+                f"{1000 * t_mine:.1f}",
+                f"{1000 * t_theirs:.1f}",
+                f"{t_mine / t_theirs:.2f}",
+                "yes" if same_d else "no",
+                str(differ),
+            ]
+        )
     rows.append(icp_search_row())
-    rows.append(["import scipy.spatial", "fresh process", "", f"{1000 * _import_time('scipy.spatial'):.0f}", "", "", ""])
-    return [["reference", "queries", "forestreg ms", "cKDTree ms", "ratio", "distances bit-equal", "indices differing"]] + rows
+    rows.append(
+        ["import scipy.spatial", "fresh process", "", f"{1000 * _import_time('scipy.spatial'):.0f}", "", "", ""]
+    )
+    return [
+        ["reference", "queries", "forestreg ms", "cKDTree ms", "ratio", "distances bit-equal", "indices differing"]
+    ] + rows
 
 
 def icp_search_row() -> list[str]:
@@ -275,7 +337,9 @@ def icp_search_row() -> list[str]:
     ground = np.column_stack([rng.uniform(-15, 15, (n // 2, 2)), rng.normal(0, 0.02, n // 2)])
     centres, angle = rng.uniform(-14, 14, (60, 2)), rng.uniform(0, 2 * np.pi, n // 2)
     stem = rng.integers(0, 60, n // 2)
-    stems = np.column_stack([centres[stem] + 0.15 * np.column_stack([np.cos(angle), np.sin(angle)]), rng.uniform(0, 12, n // 2)])
+    stems = np.column_stack(
+        [centres[stem] + 0.15 * np.column_stack([np.cos(angle), np.sin(angle)]), rng.uniform(0, 12, n // 2)]
+    )
     ref = np.round(np.vstack([ground, stems]), 3)
     query = ref[rng.choice(n, 30_000, replace=False)] + rng.normal(0, 0.02, (30_000, 3))
     workers = int(os.environ["FORESTREG_THREADS"])
@@ -291,8 +355,15 @@ def icp_search_row() -> list[str]:
 
     (d1, i1), (d2, i2) = mine(), theirs()
     t_mine, t_theirs = _median_time(mine, 3), _median_time(theirs, 3)
-    return ["3-D, 300k points", "10 x 30k", f"{1000 * t_mine:.1f}", f"{1000 * t_theirs:.1f}", f"{t_mine / t_theirs:.2f}",
-            "yes" if np.array_equal(d1, d2) else "no", str(int((i1 != i2).sum()))]
+    return [
+        "3-D, 300k points",
+        "10 x 30k",
+        f"{1000 * t_mine:.1f}",
+        f"{1000 * t_theirs:.1f}",
+        f"{t_mine / t_theirs:.2f}",
+        "yes" if np.array_equal(d1, d2) else "no",
+        str(int((i1 != i2).sum())),
+    ]
 
 
 def _print(title: str, table: list[list[str]]) -> None:
@@ -307,7 +378,9 @@ def _print(title: str, table: list[list[str]]) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.icp_open3d", description=__doc__.split("\n\n")[0])
     ap.add_argument("--only", choices=("icp", "filters", "nearest"), help="one part only")
-    ap.add_argument("--threads", type=int, default=2, help="threads of Open3D and of forestreg's kernels (default %(default)s)")
+    ap.add_argument(
+        "--threads", type=int, default=2, help="threads of Open3D and of forestreg's kernels (default %(default)s)"
+    )
     args = ap.parse_args(argv)
     _threads(args.threads)
     if args.only in (None, "icp"):

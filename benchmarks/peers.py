@@ -54,6 +54,7 @@ QUICK_PAIRS = PAIRS[:1]
 #: library and loaded kernels, the figure), set beside Sylva's peak on the largest pair.
 FLOOR_PAIR = ("0.12 M + 0.12 M points (0.5 deg)", "mixed_temperate", 0.5, "-6,0;6,0", 3)
 
+
 def show_rows(text: str, rows: Any, json_path: Optional[Path], **dump: Any) -> int:
     """Print a benchmark's table ``text`` and, with ``json_path``, keep its ``rows`` there as JSON
     (``dump``: options of ``json.dumps``; indent 2 unless given). Returns the exit code, 0."""
@@ -74,7 +75,6 @@ def read_laz_like(source: Path) -> tuple[Any, Any]:
     header.offsets = base.header.offsets
     header.scales = base.header.scales
     return base, header
-
 
 
 @dataclass
@@ -156,8 +156,14 @@ def _tree_rss_mb(pid: int) -> float:
     return total if seen else float("nan")
 
 
-def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeout_s: float = 1800.0, log: Optional[Path] = None,
-                kill_when: Optional[Callable[[], bool]] = None) -> Run:
+def run_command(
+    argv: list[str],
+    *,
+    env: Optional[dict[str, str]] = None,
+    timeout_s: float = 1800.0,
+    log: Optional[Path] = None,
+    kill_when: Optional[Callable[[], bool]] = None,
+) -> Run:
     """Run ``argv`` to completion; its wall time and the peak memory the kernel accounted to it.
     Its output is dropped, or written to ``log`` (stdout and stderr) when given.
 
@@ -172,8 +178,11 @@ def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeou
     sink = subprocess.DEVNULL if log is None else open(log, "wb")
     try:
         launcher = subprocess.Popen(
-            [sys.executable, "-c", _LAUNCHER, str(report), *argv], stdout=sink,
-            stderr=subprocess.STDOUT if log is not None else subprocess.DEVNULL, env=env, start_new_session=True,
+            [sys.executable, "-c", _LAUNCHER, str(report), *argv],
+            stdout=sink,
+            stderr=subprocess.STDOUT if log is not None else subprocess.DEVNULL,
+            env=env,
+            start_new_session=True,
         )
     finally:
         if log is not None:
@@ -197,13 +206,25 @@ def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeou
                 wall = time.perf_counter() - deadline + timeout_s
                 os.killpg(launcher.pid, 9)
                 launcher.wait()
-                return Run(wall_s=float(wall), peak_mb=float("nan"), status=-9, anon_mb=float(anon_mb), file_mb=float(file_mb),
-                           tree_mb=float(tree_mb))
+                return Run(
+                    wall_s=float(wall),
+                    peak_mb=float("nan"),
+                    status=-9,
+                    anon_mb=float(anon_mb),
+                    file_mb=float(file_mb),
+                    tree_mb=float(tree_mb),
+                )
             if time.perf_counter() > deadline:
                 os.killpg(launcher.pid, 9)
                 launcher.wait()
-                return Run(wall_s=float(timeout_s), peak_mb=float("nan"), status=-9, anon_mb=float(anon_mb), file_mb=float(file_mb),
-                           tree_mb=float(tree_mb))
+                return Run(
+                    wall_s=float(timeout_s),
+                    peak_mb=float("nan"),
+                    status=-9,
+                    anon_mb=float(anon_mb),
+                    file_mb=float(file_mb),
+                    tree_mb=float(tree_mb),
+                )
             time.sleep(0.02)
         try:
             result = json.loads(report.read_text())
@@ -217,8 +238,12 @@ def run_command(argv: list[str], *, env: Optional[dict[str, str]] = None, timeou
     finally:
         report.unlink(missing_ok=True)
     return Run(
-        wall_s=float(result["wall_s"]), peak_mb=result["maxrss_kib"] / 1024.0, status=os.waitstatus_to_exitcode(result["status"]),
-        anon_mb=float(anon_mb), file_mb=float(file_mb), tree_mb=float(tree_mb),
+        wall_s=float(result["wall_s"]),
+        peak_mb=result["maxrss_kib"] / 1024.0,
+        status=os.waitstatus_to_exitcode(result["status"]),
+        anon_mb=float(anon_mb),
+        file_mb=float(file_mb),
+        tree_mb=float(tree_mb),
     )
 
 
@@ -240,9 +265,24 @@ def simulate_pair(workdir: Path, label: str, preset: str, step_deg: float, posit
     out = workdir / f"pair_{preset}_{step_deg}_{seed}"
     if not (out / "truth.json").exists():
         subprocess.run(
-            [sys.executable, "-m", "forestreg.cli", "simulate", preset, "--out", str(out), f"--positions={positions}",
-             "--step", str(step_deg), "--seed", str(seed), "--quiet"],
-            check=True, stdout=subprocess.DEVNULL, env=_python_env(),
+            [
+                sys.executable,
+                "-m",
+                "forestreg.cli",
+                "simulate",
+                preset,
+                "--out",
+                str(out),
+                f"--positions={positions}",
+                "--step",
+                str(step_deg),
+                "--seed",
+                str(seed),
+                "--quiet",
+            ],
+            check=True,
+            stdout=subprocess.DEVNULL,
+            env=_python_env(),
         )
     return out
 
@@ -277,10 +317,7 @@ def bench_pair(folder: Path, label: str, runs: int, sylva: Optional[str]) -> dic
     """Time the commands on one pair, ``runs`` rounds after one untimed warm-up round."""
     a, b = str(folder / "scan_01.laz"), str(folder / "scan_02.laz")
     out_f, out_s = folder / "out_forestreg", folder / "out_sylva"
-    reader = (
-        "import sys\nfrom forestreg.engine.io import read_scan\n"
-        "for p in sys.argv[1:]:\n    read_scan(p)\n"
-    )
+    reader = "import sys\nfrom forestreg.engine.io import read_scan\nfor p in sys.argv[1:]:\n    read_scan(p)\n"
     commands = {
         "read": [sys.executable, "-c", reader, a, b],
         "forestreg": [sys.executable, "-m", "forestreg.cli", "register", a, b, "--out", str(out_f), "--quiet"],
@@ -314,10 +351,14 @@ def bench_pair(folder: Path, label: str, runs: int, sylva: Optional[str]) -> dic
             "anon": statistics.median(f.anon_mb / o.anon_mb for f, o in zip(results["forestreg"], results[other])),
         }
     if sylva:
-        row["sylva/read"] = {"wall": statistics.median(s.wall_s / r.wall_s for s, r in zip(results["sylva"], results["read"]))}
+        row["sylva/read"] = {
+            "wall": statistics.median(s.wall_s / r.wall_s for s, r in zip(results["sylva"], results["read"]))
+        }
     for name, matrix in (("forestreg", _forestreg_matrix(out_f)), ("sylva", _sylva_matrix(out_s) if sylva else None)):
         if name in row:
-            row[name]["error"] = None if matrix is None else dict(zip(("rotation_deg", "translation_m"), rigid_errors(matrix, truth)))
+            row[name]["error"] = (
+                None if matrix is None else dict(zip(("rotation_deg", "translation_m"), rigid_errors(matrix, truth)))
+            )
     return row
 
 
@@ -327,12 +368,17 @@ def run(*, quick: bool = False, runs: int = 3, workdir: Optional[Path] = None) -
     rows = []
     with tempfile.TemporaryDirectory(prefix="forestreg-peers-") as tmp:
         base = Path(workdir) if workdir is not None else Path(tmp)
-        for label, preset, step, positions, seed in (QUICK_PAIRS if quick else PAIRS):
+        for label, preset, step, positions, seed in QUICK_PAIRS if quick else PAIRS:
             folder = simulate_pair(base, label, preset, step, positions, seed)
             rows.append(bench_pair(folder, label, runs, sylva))
         if not quick:
             label, preset, step, positions, seed = FLOOR_PAIR
-            rows.append({**bench_pair(simulate_pair(base, label, preset, step, positions, seed), label, runs, sylva), "floor": True})
+            rows.append(
+                {
+                    **bench_pair(simulate_pair(base, label, preset, step, positions, seed), label, runs, sylva),
+                    "floor": True,
+                }
+            )
     return rows
 
 
@@ -350,26 +396,35 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
     lines = [
         "Pair registration, whole commands (median of runs; ratios are medians of the run-by-run ratios)",
     ]
-    head = f"{'pair':<34} {'':>10} {'read':>9} {'forestreg':>10}" + (f" {'Sylva':>9}" if has_sylva else "") + \
-        f" {'fr/read':>8}" + (f" {'fr/Sylva':>9}" if has_sylva else "")
+    head = (
+        f"{'pair':<34} {'':>10} {'read':>9} {'forestreg':>10}"
+        + (f" {'Sylva':>9}" if has_sylva else "")
+        + f" {'fr/read':>8}"
+        + (f" {'fr/Sylva':>9}" if has_sylva else "")
+    )
     lines += [head, "-" * len(head)]
     for r in rows:
         syl = r.get("sylva")
         lines.append(
             f"{r['label']:<34} {'wall s':>10} {r['read']['wall_s']:>9.2f} {r['forestreg']['wall_s']:>10.2f}"
             + (f" {syl['wall_s']:>9.2f}" if syl else "")
-            + f" {r['forestreg/read']['wall']:>8.2f}" + (f" {r['forestreg/sylva']['wall']:>9.2f}" if syl else "")
+            + f" {r['forestreg/read']['wall']:>8.2f}"
+            + (f" {r['forestreg/sylva']['wall']:>9.2f}" if syl else "")
         )
         lines.append(
             f"{'':<34} {'peak MB':>10} {r['read']['peak_mb']:>9.0f} {r['forestreg']['peak_mb']:>10.0f}"
             + (f" {syl['peak_mb']:>9.0f}" if syl else "")
-            + f" {r['forestreg/read']['peak']:>8.2f}" + (f" {r['forestreg/sylva']['peak']:>9.2f}" if syl else "")
+            + f" {r['forestreg/read']['peak']:>8.2f}"
+            + (f" {r['forestreg/sylva']['peak']:>9.2f}" if syl else "")
         )
         lines.append(
             f"{'':<34} {'of it anon.':>10} {r['read']['anon_mb']:>9.0f} {r['forestreg']['anon_mb']:>10.0f}"
             + (f" {syl['anon_mb']:>9.0f}" if syl else "")
-            + f" {r['forestreg/read']['anon']:>8.2f}" + (f" {r['forestreg/sylva']['anon']:>9.2f}" if syl else "")
-            + f"   (file-backed: forestreg {r['forestreg']['file_mb']:.0f}" + (f", Sylva {syl['file_mb']:.0f}" if syl else "") + ")"
+            + f" {r['forestreg/read']['anon']:>8.2f}"
+            + (f" {r['forestreg/sylva']['anon']:>9.2f}" if syl else "")
+            + f"   (file-backed: forestreg {r['forestreg']['file_mb']:.0f}"
+            + (f", Sylva {syl['file_mb']:.0f}" if syl else "")
+            + ")"
         )
         budget = 3 * r["raw_mb"] + 300
         lines.append(
@@ -380,7 +435,14 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
         for name in ("forestreg", "sylva"):
             if name in r:
                 e = r[name].get("error")
-                errors.append(f"{name} " + ("no result" if e is None else f"{e['rotation_deg']:.4f} deg / {1000 * e['translation_m']:.1f} mm"))
+                errors.append(
+                    f"{name} "
+                    + (
+                        "no result"
+                        if e is None
+                        else f"{e['rotation_deg']:.4f} deg / {1000 * e['translation_m']:.1f} mm"
+                    )
+                )
         lines.append(f"{'':<34} error vs truth: " + ", ".join(errors))
     if len(rows) > 1:
         lines.append("-" * len(head))
@@ -398,8 +460,9 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
         lines.append("-" * len(head))
         lines.append(
             f"runtime floor: forestreg register peaks at {floor['forestreg']['peak_mb']:.0f} MB on the {floor['label']} pair "
-            f"(Sylva {floor['sylva']['peak_mb']:.0f} MB)" if "sylva" in floor else
-            f"runtime floor: forestreg register peaks at {floor['forestreg']['peak_mb']:.0f} MB on the {floor['label']} pair"
+            f"(Sylva {floor['sylva']['peak_mb']:.0f} MB)"
+            if "sylva" in floor
+            else f"runtime floor: forestreg register peaks at {floor['forestreg']['peak_mb']:.0f} MB on the {floor['label']} pair"
         )
         largest = max(rows, key=lambda r: r["raw_mb"], default=None)
         if largest is not None and "sylva" in largest:

@@ -103,7 +103,12 @@ def one_plot(k: int, seed: int, step: float, randoms: int, work: Path) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
 
     def scan_at(xy, name: str, s: int):
-        return simulate_tls_scan(scene, ScannerSetup(x=float(xy[0]), y=float(xy[1]), angular_step_deg=step, name=name), seed=s, raycaster=caster)
+        return simulate_tls_scan(
+            scene,
+            ScannerSetup(x=float(xy[0]), y=float(xy[1]), angular_step_deg=step, name=name),
+            seed=s,
+            raycaster=caster,
+        )
 
     sims = [scan_at(xy, f"scan_{i + 1:02d}", seed * 100 + k * 10 + i) for i, xy in enumerate(placed_xy)]
     project = Project(name=folder.name)
@@ -117,7 +122,9 @@ def one_plot(k: int, seed: int, step: float, randoms: int, work: Path) -> dict:
         row["skipped"] = f"the two placed scans did not link: {base.reason}"
         return row
     t0 = time.perf_counter()
-    plan = plan_scans(placed_views(project, cache), PlanParams(radius_m=radius), project.params, n=1, links=placed_links(project))
+    plan = plan_scans(
+        placed_views(project, cache), PlanParams(radius_m=radius), project.params, n=1, links=placed_links(project)
+    )
     row["plan_s"] = round(time.perf_counter() - t0, 2)
     if not plan.suggestions:
         row["skipped"] = f"no suggestion: {plan.reason}"
@@ -133,8 +140,16 @@ def one_plot(k: int, seed: int, step: float, randoms: int, work: Path) -> dict:
     try:
         suggested = scan_at(world, "scan_03", seed * 100 + k * 10 + 5)
     except ScanDataError as exc:  # the position lies inside an object no placed scan saw
-        row.update(x=round(float(world[0]), 2), y=round(float(world[1]), 2), links_to=s.links_to, predicted_shared=s.shared_stems,
-                   distance_m=round(distance, 2), linked=False, reason=f"the scanner stands inside an object ({exc})", suggested_m2=0.0)
+        row.update(
+            x=round(float(world[0]), 2),
+            y=round(float(world[1]), 2),
+            links_to=s.links_to,
+            predicted_shared=s.shared_stems,
+            distance_m=round(distance, 2),
+            linked=False,
+            reason=f"the scanner stands inside an object ({exc})",
+            suggested_m2=0.0,
+        )
         return row
     write_scan(suggested.scan, folder / "scan_03.laz")
     project.add_scan(folder / "scan_03.laz")
@@ -144,9 +159,16 @@ def one_plot(k: int, seed: int, step: float, randoms: int, work: Path) -> dict:
         truth = np.linalg.solve(m0, suggested.pose)
         rot, trans = rigid_errors(project.poses()["scan_03.laz"], truth)
         ok = rot < 0.1 and trans < 0.05
-    row.update(x=round(float(world[0]), 2), y=round(float(world[1]), 2), links_to=s.links_to, predicted_shared=s.shared_stems,
-               distance_m=round(distance, 2), linked=bool(ok), reason="" if ok else outcome.reasons.get("scan_03.laz", "pose off the truth"),
-               suggested_m2=round(new_area(seen_bins(suggested, scene, radius), seen), 3))
+    row.update(
+        x=round(float(world[0]), 2),
+        y=round(float(world[1]), 2),
+        links_to=s.links_to,
+        predicted_shared=s.shared_stems,
+        distance_m=round(distance, 2),
+        linked=bool(ok),
+        reason="" if ok else outcome.reasons.get("scan_03.laz", "pose off the truth"),
+        suggested_m2=round(new_area(seen_bins(suggested, scene, radius), seen), 3),
+    )
     randoms_m2 = []
     tries = 0
     while len(randoms_m2) < randoms and tries < 200:
@@ -185,23 +207,33 @@ def main(argv=None) -> int:
             row["s"] = round(time.perf_counter() - t, 1)
             rows.append(row)
             if "skipped" in row:
-                print(f"{k:2d} {row['preset']:16} seed {row['seed']:6d} {row['size_m']:5.1f} m: skipped - {row['skipped']}", flush=True)
+                print(
+                    f"{k:2d} {row['preset']:16} seed {row['seed']:6d} {row['size_m']:5.1f} m: skipped - {row['skipped']}",
+                    flush=True,
+                )
                 continue
             ratio = row["suggested_m2"] / row["random_median_m2"] if row.get("random_median_m2") else float("nan")
-            print(f"{k:2d} {row['preset']:16} seed {row['seed']:6d} {row['size_m']:5.1f} m: links {'yes' if row['linked'] else 'NO '} "
-                  f"(predicted {row['predicted_shared']} shared, {row['distance_m']:.1f} m from {row['links_to']}) "
-                  f"new stem area {row['suggested_m2']:.2f} m2 vs random median {row['random_median_m2']} m2 ({ratio:.2f}x) "
-                  f"plan {row['plan_s']} s, {row['s']} s{'' if row['linked'] else ' - ' + row['reason']}", flush=True)
+            print(
+                f"{k:2d} {row['preset']:16} seed {row['seed']:6d} {row['size_m']:5.1f} m: links {'yes' if row['linked'] else 'NO '} "
+                f"(predicted {row['predicted_shared']} shared, {row['distance_m']:.1f} m from {row['links_to']}) "
+                f"new stem area {row['suggested_m2']:.2f} m2 vs random median {row['random_median_m2']} m2 ({ratio:.2f}x) "
+                f"plan {row['plan_s']} s, {row['s']} s{'' if row['linked'] else ' - ' + row['reason']}",
+                flush=True,
+            )
     done = [r for r in rows if "skipped" not in r]
     linked = sum(r["linked"] for r in done)
     rate = linked / max(len(done), 1)
     with_random = [r for r in done if r.get("random_median_m2")]
     total = sum(r["suggested_m2"] for r in with_random) / max(sum(r["random_median_m2"] for r in with_random), 1e-9)
     ratios = [r["suggested_m2"] / r["random_median_m2"] for r in with_random]
-    print(f"\nplots: {len(rows)} ({len(rows) - len(done)} skipped), seed {args.seed}, step {args.step} deg, {args.random} random placements each")
+    print(
+        f"\nplots: {len(rows)} ({len(rows) - len(done)} skipped), seed {args.seed}, step {args.step} deg, {args.random} random placements each"
+    )
     print(f"suggested scan links: {linked} of {len(done)} ({100 * rate:.0f} %)")
-    print(f"new stem area, suggested / median random at the same distance: {total:.2f}x summed, "
-          f"{statistics.median(ratios) if ratios else float('nan'):.2f}x median of the plots")
+    print(
+        f"new stem area, suggested / median random at the same distance: {total:.2f}x summed, "
+        f"{statistics.median(ratios) if ratios else float('nan'):.2f}x median of the plots"
+    )
     passed = rate >= 0.95 and total >= 1.2
     print("PASS" if passed else "FAIL")
     return 0 if passed else 1

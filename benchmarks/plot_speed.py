@@ -46,9 +46,24 @@ def simulate(workdir: Path, step_deg: float = 0.1, seed: int = 3) -> Path:
     out = workdir / f"plot4_{step_deg}_{seed}"
     if not (out / "truth.json").exists():
         subprocess.run(
-            [sys.executable, "-m", "forestreg.cli", "simulate", "mixed_temperate", "--out", str(out), f"--positions={POSITIONS}",
-             "--step", str(step_deg), "--seed", str(seed), "--quiet"],
-            check=True, stdout=subprocess.DEVNULL, env=_python_env(),
+            [
+                sys.executable,
+                "-m",
+                "forestreg.cli",
+                "simulate",
+                "mixed_temperate",
+                "--out",
+                str(out),
+                f"--positions={POSITIONS}",
+                "--step",
+                str(step_deg),
+                "--seed",
+                str(seed),
+                "--quiet",
+            ],
+            check=True,
+            stdout=subprocess.DEVNULL,
+            env=_python_env(),
         )
     return out
 
@@ -65,7 +80,10 @@ def _forestreg_poses(out: Path) -> dict[str, Optional[np.ndarray]]:
         poses = json.loads((out / "poses.json").read_text())["scans"]
     except (OSError, ValueError, KeyError):
         return {}
-    return {Path(k).stem: (np.array(v["matrix"], dtype=float) if v.get("matrix") is not None else None) for k, v in poses.items()}
+    return {
+        Path(k).stem: (np.array(v["matrix"], dtype=float) if v.get("matrix") is not None else None)
+        for k, v in poses.items()
+    }
 
 
 def _sylva_poses(out: Path) -> dict[str, Optional[np.ndarray]]:
@@ -95,7 +113,18 @@ def bench(folder: Path, runs: int, sylva: Optional[str]) -> dict[str, Any]:
     reader = "import sys\nfrom forestreg.engine.io import read_scan\nfor p in sys.argv[1:]:\n    read_scan(p)\n"
     commands = {
         "read": [sys.executable, "-c", reader, *files],
-        "forestreg": [sys.executable, "-m", "forestreg.cli", "plot", *files, "--pairs", "all", "--out", str(out_f), "--quiet"],
+        "forestreg": [
+            sys.executable,
+            "-m",
+            "forestreg.cli",
+            "plot",
+            *files,
+            "--pairs",
+            "all",
+            "--out",
+            str(out_f),
+            "--quiet",
+        ],
     }
     if sylva:
         commands["sylva"] = [sylva, "coreg", *files, "-o", str(out_s), "--quiet"]
@@ -110,8 +139,11 @@ def bench(folder: Path, runs: int, sylva: Optional[str]) -> dict[str, Any]:
     points = [int(s["n_points"]) for s in json.loads((folder / "truth.json").read_text())["scans"]]
     row: dict[str, Any] = {"points": points, "runs": runs, "raw_mb": sum(points) * 3 * 8 / 1e6}
     for name, rs in results.items():
-        row[name] = {"wall_s": statistics.median(r.wall_s for r in rs), "peak_mb": statistics.median(r.peak_mb for r in rs),
-                     "status": sorted({r.status for r in rs})}
+        row[name] = {
+            "wall_s": statistics.median(r.wall_s for r in rs),
+            "peak_mb": statistics.median(r.peak_mb for r in rs),
+            "status": sorted({r.status for r in rs}),
+        }
     for other in [k for k in commands if k != "forestreg"]:
         row[f"forestreg/{other}"] = {
             "wall": statistics.median(f.wall_s / o.wall_s for f, o in zip(results["forestreg"], results[other])),
@@ -126,23 +158,40 @@ def bench(folder: Path, runs: int, sylva: Optional[str]) -> dict[str, Any]:
 def format_row(row: dict[str, Any]) -> str:
     """The table of one plot: wall, peak memory, ratios, worst pose error of each tool."""
     has_sylva = "sylva" in row
-    lines = [f"4-scan plot, every pair ({' + '.join(f'{p / 1e6:.2f}' for p in row['points'])} M points), median of {row['runs']} rounds"]
-    head = f"{'':>10} {'read':>9} {'forestreg':>10}" + (f" {'Sylva':>9}" if has_sylva else "") + f" {'fr/read':>8}" + (f" {'fr/Sylva':>9}" if has_sylva else "")
+    lines = [
+        f"4-scan plot, every pair ({' + '.join(f'{p / 1e6:.2f}' for p in row['points'])} M points), median of {row['runs']} rounds"
+    ]
+    head = (
+        f"{'':>10} {'read':>9} {'forestreg':>10}"
+        + (f" {'Sylva':>9}" if has_sylva else "")
+        + f" {'fr/read':>8}"
+        + (f" {'fr/Sylva':>9}" if has_sylva else "")
+    )
     lines += [head, "-" * len(head)]
     for what, key, fmt in (("wall s", "wall_s", "{:.1f}"), ("peak MB", "peak_mb", "{:.0f}")):
         ratio = "wall" if key == "wall_s" else "peak"
         lines.append(
             f"{what:>10} {fmt.format(row['read'][key]):>9} {fmt.format(row['forestreg'][key]):>10}"
             + (f" {fmt.format(row['sylva'][key]):>9}" if has_sylva else "")
-            + f" {row['forestreg/read'][ratio]:>8.2f}" + (f" {row['forestreg/sylva'][ratio]:>9.2f}" if has_sylva else "")
+            + f" {row['forestreg/read'][ratio]:>8.2f}"
+            + (f" {row['forestreg/sylva'][ratio]:>9.2f}" if has_sylva else "")
         )
     budget = 3 * row["raw_mb"] + 300
-    lines.append(f"raw point arrays {row['raw_mb']:.0f} MB: memory budget 3x + 300 = {budget:.0f} MB, forestreg {row['forestreg']['peak_mb'] / budget:.2f} of it")
+    lines.append(
+        f"raw point arrays {row['raw_mb']:.0f} MB: memory budget 3x + 300 = {budget:.0f} MB, forestreg {row['forestreg']['peak_mb'] / budget:.2f} of it"
+    )
     errs = []
     for name in ("forestreg", "sylva"):
         if name in row:
             e = row[name].get("error")
-            errs.append(f"{name} " + ("not every scan registered" if e is None else f"{e['rotation_deg']:.4f} deg / {1000 * e['translation_m']:.1f} mm"))
+            errs.append(
+                f"{name} "
+                + (
+                    "not every scan registered"
+                    if e is None
+                    else f"{e['rotation_deg']:.4f} deg / {1000 * e['translation_m']:.1f} mm"
+                )
+            )
     lines.append("worst pose error vs truth: " + ", ".join(errs))
     if not has_sylva:
         lines.append("Sylva not installed (pip install 'forestreg[bench]'): its columns are left out")
@@ -160,6 +209,8 @@ if __name__ == "__main__":
 
     ap = argparse.ArgumentParser(description="forestreg plot --pairs all vs Sylva coreg on a simulated 4-scan plot")
     ap.add_argument("--runs", type=int, default=2)
-    ap.add_argument("--workdir", type=Path, help="keep the simulated plot here (default bench_out/; reused when present)")
+    ap.add_argument(
+        "--workdir", type=Path, help="keep the simulated plot here (default bench_out/; reused when present)"
+    )
     args = ap.parse_args()
     print(format_row(run(runs=args.runs, workdir=args.workdir)))

@@ -40,7 +40,6 @@ import numpy as np
 from forestreg.engine.change import detect_change, epoch_from_cloud
 from forestreg.engine.simulate.resurvey import simulate_resurvey
 
-
 #: the seeds the growth rules were chosen on; every other seed is held out
 TUNE_SEEDS = (1, 2)
 #: the seeds reported by default (held out)
@@ -61,15 +60,22 @@ def score(case, before, after, result) -> dict[str, Any]:
             err = before.dbh_m[k] - f["dbh_before_m"]
             rel.append(err / f["dbh_before_m"])
             zd.append(abs(err) / before.dbh_sigma_m[k])
-    row.update(dbh_rrmse=math.sqrt(np.mean(np.square(rel))) if rel else None, dbh_n=len(rel),
-               dbh_within_2_sigma=float(np.mean(np.array(zd) < 2.0)) if zd else None)
+    row.update(
+        dbh_rrmse=math.sqrt(np.mean(np.square(rel))) if rel else None,
+        dbh_n=len(rel),
+        dbh_within_2_sigma=float(np.mean(np.array(zd) < 2.0)) if zd else None,
+    )
     if not result.ok:
         return row
     e = np.linalg.inv(case.matrix) @ result.local_matrix
     row["rotation_error_deg"] = math.degrees(math.acos(min(1.0, (np.trace(e[:3, :3]) - 1.0) / 2.0)))
-    trees_after = np.column_stack([before.xy, before.ground_z + 1.3, np.ones(len(before))]) @ np.linalg.inv(case.matrix).T
+    trees_after = (
+        np.column_stack([before.xy, before.ground_z + 1.3, np.ones(len(before))]) @ np.linalg.inv(case.matrix).T
+    )
     moved = trees_after @ result.local_matrix.T
-    row["position_error_max_m"] = float(np.max(np.linalg.norm(moved[:, :3] - (trees_after @ case.matrix.T)[:, :3], axis=1)))
+    row["position_error_max_m"] = float(
+        np.max(np.linalg.norm(moved[:, :3] - (trees_after @ case.matrix.T)[:, :3], axis=1))
+    )
     row["stated_translation_m"] = result.uncertainty["translation_m"]
     row["stated_rotation_deg"] = result.uncertainty["rotation_deg"]
     right = false_new = 0
@@ -97,28 +103,44 @@ def score(case, before, after, result) -> dict[str, Any]:
     truth = {s: sum(f["status"] == s for f in fates) for s in ("persisting", "removed", "new")}
     z = np.array(z)
     row.update(
-        trees_truth=truth, trees_found=result.counts(), statuses_right=right / max(len(result.trees), 1),
-        trees_listed_of_truth=len(result.trees) / len(fates), false_new=false_new,
-        dbh_growth_rmse_mm=1000.0 * math.sqrt(np.mean(np.square(dbh))) if dbh else None, dbh_growth_n=len(dbh),
+        trees_truth=truth,
+        trees_found=result.counts(),
+        statuses_right=right / max(len(result.trees), 1),
+        trees_listed_of_truth=len(result.trees) / len(fates),
+        false_new=false_new,
+        dbh_growth_rmse_mm=1000.0 * math.sqrt(np.mean(np.square(dbh))) if dbh else None,
+        dbh_growth_n=len(dbh),
         dbh_growth_errors_mm=[round(1000.0 * v, 2) for v in dbh],
-        growth_given_share=given / eligible if eligible else None, growth_eligible=eligible,
+        growth_given_share=given / eligible if eligible else None,
+        growth_eligible=eligible,
         growth_within_1_sigma=float(np.mean(z < 1.0)) if len(z) else None,
         growth_within_2_sigma=float(np.mean(z < 2.0)) if len(z) else None,
-        height_growth_rmse_m=math.sqrt(np.mean(np.square(height))) if height else None, height_growth_n=len(height),
+        height_growth_rmse_m=math.sqrt(np.mean(np.square(height))) if height else None,
+        height_growth_n=len(height),
     )
     return row
 
 
-def run(seeds: Sequence[int] = HELD_OUT_SEEDS, quick: bool = False, presets: Sequence[str] = ("mixed_temperate", "planted_conifer"),
-        scans: Sequence[int] = (2, 3, 5), stem_shapes: str = "real") -> list[dict[str, Any]]:
+def run(
+    seeds: Sequence[int] = HELD_OUT_SEEDS,
+    quick: bool = False,
+    presets: Sequence[str] = ("mixed_temperate", "planted_conifer"),
+    scans: Sequence[int] = (2, 3, 5),
+    stem_shapes: str = "real",
+) -> list[dict[str, Any]]:
     """One row per preset, scan count and seed (see the module docstring)."""
     rows = []
     for preset in presets:
         for n_scans in scans:
             for seed in seeds:
                 t = time.perf_counter()
-                case = simulate_resurvey(preset, seed=seed, angular_step_deg=0.4 if quick else 0.3, stem_shapes=stem_shapes,
-                                         scans_per_survey=n_scans)
+                case = simulate_resurvey(
+                    preset,
+                    seed=seed,
+                    angular_step_deg=0.4 if quick else 0.3,
+                    stem_shapes=stem_shapes,
+                    scans_per_survey=n_scans,
+                )
                 sim_s = time.perf_counter() - t
                 t = time.perf_counter()
                 before = epoch_from_cloud(case.before, name="BEFORE")
@@ -127,11 +149,23 @@ def run(seeds: Sequence[int] = HELD_OUT_SEEDS, quick: bool = False, presets: Seq
                 t = time.perf_counter()
                 result = detect_change(before, after)
                 change_s = time.perf_counter() - t
-                row = {"preset": preset, "scans": n_scans, "seed": seed, "half": "tune" if seed in TUNE_SEEDS else "held-out",
-                       "stem_shapes": stem_shapes, "points_before": len(case.before), "points_after": len(case.after), "simulate_s": sim_s,
-                       "trees_both_surveys_s": trees_s, "register_and_match_s": change_s, **score(case, before, after, result)}
+                row = {
+                    "preset": preset,
+                    "scans": n_scans,
+                    "seed": seed,
+                    "half": "tune" if seed in TUNE_SEEDS else "held-out",
+                    "stem_shapes": stem_shapes,
+                    "points_before": len(case.before),
+                    "points_after": len(case.after),
+                    "simulate_s": sim_s,
+                    "trees_both_surveys_s": trees_s,
+                    "register_and_match_s": change_s,
+                    **score(case, before, after, result),
+                }
                 rows.append(row)
-                print(json.dumps({k: v for k, v in row.items() if k != "dbh_growth_errors_mm"}, default=float), flush=True)
+                print(
+                    json.dumps({k: v for k, v in row.items() if k != "dbh_growth_errors_mm"}, default=float), flush=True
+                )
     return rows
 
 
@@ -145,16 +179,31 @@ def pooled(rows: list[dict[str, Any]]) -> dict[str, Any]:
     w1 = [r["growth_within_1_sigma"] * r["dbh_growth_n"] for r in ok if r.get("growth_within_1_sigma") is not None]
     n = sum(r["dbh_growth_n"] for r in ok)
     dn = sum(r.get("dbh_n", 0) for r in rows)
-    return {"cases": len(rows), "ok": len(ok), "growth_rmse_mm": float(np.sqrt(np.mean(errs**2))) if len(errs) else None,
-            "growth_n": n, "growth_given_share": given / eligible if eligible else None,
-            "within_1_sigma": sum(w1) / n if n else None, "within_2_sigma": sum(w2) / n if n else None,
-            "worst_growth_error_mm": float(np.max(np.abs(errs))) if len(errs) else None,
-            "statuses_right": float(np.mean([r["statuses_right"] for r in ok])) if ok else None,
-            "false_new": sum(r["false_new"] for r in ok),
-            "dbh_rrmse": math.sqrt(sum((r["dbh_rrmse"] ** 2) * r["dbh_n"] for r in rows if r.get("dbh_rrmse") is not None) / dn) if dn else None,
-            "dbh_within_2_sigma": sum(r["dbh_within_2_sigma"] * r["dbh_n"] for r in rows if r.get("dbh_within_2_sigma") is not None) / dn if dn else None,
-            "rotation_error_max_deg": max((r["rotation_error_deg"] for r in ok), default=None),
-            "position_error_max_m": max((r["position_error_max_m"] for r in ok), default=None)}
+    return {
+        "cases": len(rows),
+        "ok": len(ok),
+        "growth_rmse_mm": float(np.sqrt(np.mean(errs**2))) if len(errs) else None,
+        "growth_n": n,
+        "growth_given_share": given / eligible if eligible else None,
+        "within_1_sigma": sum(w1) / n if n else None,
+        "within_2_sigma": sum(w2) / n if n else None,
+        "worst_growth_error_mm": float(np.max(np.abs(errs))) if len(errs) else None,
+        "statuses_right": float(np.mean([r["statuses_right"] for r in ok])) if ok else None,
+        "false_new": sum(r["false_new"] for r in ok),
+        "dbh_rrmse": math.sqrt(
+            sum((r["dbh_rrmse"] ** 2) * r["dbh_n"] for r in rows if r.get("dbh_rrmse") is not None) / dn
+        )
+        if dn
+        else None,
+        "dbh_within_2_sigma": sum(
+            r["dbh_within_2_sigma"] * r["dbh_n"] for r in rows if r.get("dbh_within_2_sigma") is not None
+        )
+        / dn
+        if dn
+        else None,
+        "rotation_error_max_deg": max((r["rotation_error_deg"] for r in ok), default=None),
+        "position_error_max_m": max((r["position_error_max_m"] for r in ok), default=None),
+    }
 
 
 def format_rows(rows: list[dict[str, Any]]) -> str:
@@ -164,41 +213,55 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
     def f(v: Any, fmt: str) -> str:
         return "-" if v is None else format(v, fmt)
 
-    lines = ["Re-survey (forestreg change), simulated six years later, stems oval and rough; goals: 0.05 deg / 3 cm, "
-             ">= 95 % statuses, no false new, growth RMSE <= 5 mm for >= 80 % of trees, >= 90 % within 2 sigma",
-             f"{'stand':<16} {'scans':>5} {'seed':>4} {'half':<8} {'status':<7} {'rot deg':>8} {'pos mm':>7} {'statuses':>8} {'false new':>9} "
-             f"{'dDBH mm':>8} {'given':>6} {'<=2 sig':>7} {'DBH %':>6} {'dH m':>6} {'change s':>8}"]
+    lines = [
+        "Re-survey (forestreg change), simulated six years later, stems oval and rough; goals: 0.05 deg / 3 cm, "
+        ">= 95 % statuses, no false new, growth RMSE <= 5 mm for >= 80 % of trees, >= 90 % within 2 sigma",
+        f"{'stand':<16} {'scans':>5} {'seed':>4} {'half':<8} {'status':<7} {'rot deg':>8} {'pos mm':>7} {'statuses':>8} {'false new':>9} "
+        f"{'dDBH mm':>8} {'given':>6} {'<=2 sig':>7} {'DBH %':>6} {'dH m':>6} {'change s':>8}",
+    ]
     for r in rows:
         head = f"{r['preset']:<16} {r['scans']:>5} {r['seed']:>4} {r['half']:<8}"
         if r.get("status") != "ok":
             lines.append(f"{head} {r.get('status', '-'):<7} {r.get('reason', '')}")
             continue
-        lines.append(f"{head} {'ok':<7} {r['rotation_error_deg']:>8.4f} {1000 * r['position_error_max_m']:>7.1f} "
-                     f"{100 * r['statuses_right']:>7.1f}% {r['false_new']:>9} {f(r['dbh_growth_rmse_mm'], '.1f'):>8} "
-                     f"{f(r['growth_given_share'] and 100 * r['growth_given_share'], '.0f'):>5}% "
-                     f"{f(r['growth_within_2_sigma'] and 100 * r['growth_within_2_sigma'], '.0f'):>6}% "
-                     f"{f(r['dbh_rrmse'] and 100 * r['dbh_rrmse'], '.2f'):>6} {f(r['height_growth_rmse_m'], '.2f'):>6} "
-                     f"{r['register_and_match_s']:>8.1f}")
+        lines.append(
+            f"{head} {'ok':<7} {r['rotation_error_deg']:>8.4f} {1000 * r['position_error_max_m']:>7.1f} "
+            f"{100 * r['statuses_right']:>7.1f}% {r['false_new']:>9} {f(r['dbh_growth_rmse_mm'], '.1f'):>8} "
+            f"{f(r['growth_given_share'] and 100 * r['growth_given_share'], '.0f'):>5}% "
+            f"{f(r['growth_within_2_sigma'] and 100 * r['growth_within_2_sigma'], '.0f'):>6}% "
+            f"{f(r['dbh_rrmse'] and 100 * r['dbh_rrmse'], '.2f'):>6} {f(r['height_growth_rmse_m'], '.2f'):>6} "
+            f"{r['register_and_match_s']:>8.1f}"
+        )
     lines.append("")
-    lines.append(f"{'pooled':<10} {'scans':>5} {'cases':>5} {'dDBH RMSE mm':>12} {'worst mm':>8} {'given':>6} {'<=1 sig':>7} {'<=2 sig':>7} "
-                 f"{'statuses':>8} {'false new':>9} {'DBH rRMSE':>9} {'DBH <=2 sig':>11}")
+    lines.append(
+        f"{'pooled':<10} {'scans':>5} {'cases':>5} {'dDBH RMSE mm':>12} {'worst mm':>8} {'given':>6} {'<=1 sig':>7} {'<=2 sig':>7} "
+        f"{'statuses':>8} {'false new':>9} {'DBH rRMSE':>9} {'DBH <=2 sig':>11}"
+    )
     for half in ("tune", "held-out"):
         for n_scans in sorted({r["scans"] for r in rows}):
             part = [r for r in rows if r["scans"] == n_scans and r["half"] == half]
             if not part:
                 continue
             p = pooled(part)
-            lines.append(f"{half:<10} {n_scans:>5} {p['cases']:>5} {f(p['growth_rmse_mm'], '.1f'):>12} {f(p['worst_growth_error_mm'], '.1f'):>8} "
-                         f"{f(p['growth_given_share'] and 100 * p['growth_given_share'], '.0f'):>5}% "
-                         f"{f(p['within_1_sigma'] and 100 * p['within_1_sigma'], '.0f'):>6}% {f(p['within_2_sigma'] and 100 * p['within_2_sigma'], '.0f'):>6}% "
-                         f"{f(p['statuses_right'] and 100 * p['statuses_right'], '.1f'):>7}% {p['false_new']:>9} "
-                         f"{f(p['dbh_rrmse'] and 100 * p['dbh_rrmse'], '.2f'):>8}% {f(p['dbh_within_2_sigma'] and 100 * p['dbh_within_2_sigma'], '.0f'):>10}%")
+            lines.append(
+                f"{half:<10} {n_scans:>5} {p['cases']:>5} {f(p['growth_rmse_mm'], '.1f'):>12} {f(p['worst_growth_error_mm'], '.1f'):>8} "
+                f"{f(p['growth_given_share'] and 100 * p['growth_given_share'], '.0f'):>5}% "
+                f"{f(p['within_1_sigma'] and 100 * p['within_1_sigma'], '.0f'):>6}% {f(p['within_2_sigma'] and 100 * p['within_2_sigma'], '.0f'):>6}% "
+                f"{f(p['statuses_right'] and 100 * p['statuses_right'], '.1f'):>7}% {p['false_new']:>9} "
+                f"{f(p['dbh_rrmse'] and 100 * p['dbh_rrmse'], '.2f'):>8}% {f(p['dbh_within_2_sigma'] and 100 * p['dbh_within_2_sigma'], '.0f'):>10}%"
+            )
     return "\n".join(lines)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, nargs="+", default=list(HELD_OUT_SEEDS), help=f"seeds (the rules were tuned on {TUNE_SEEDS})")
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=list(HELD_OUT_SEEDS),
+        help=f"seeds (the rules were tuned on {TUNE_SEEDS})",
+    )
     ap.add_argument("--scans", type=int, nargs="+", default=[2, 3, 5], help="scans per survey")
     ap.add_argument("--quick", action="store_true", help="a coarser scanner (0.4 deg)")
     ap.add_argument("--preset", nargs="+", default=["mixed_temperate", "planted_conifer"], help="the simulated stands")

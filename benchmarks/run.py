@@ -73,7 +73,21 @@ from typing import Any, Optional
 import numpy as np
 
 if __package__:
-    from . import batch_scaling, big_plot, big_scan, calibration, coarse_matcher, command_memory, peers, plot_speed, resurvey, scaling, system_b, trees_compare, trees_scale
+    from . import (
+        batch_scaling,
+        big_plot,
+        big_scan,
+        calibration,
+        coarse_matcher,
+        command_memory,
+        peers,
+        plot_speed,
+        resurvey,
+        scaling,
+        system_b,
+        trees_compare,
+        trees_scale,
+    )
 else:  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import batch_scaling  # type: ignore[no-redef]
@@ -90,10 +104,10 @@ else:  # run as a script: python benchmarks/run.py
     import trees_compare  # type: ignore[no-redef]
     import trees_scale  # type: ignore[no-redef]
 
-from forestreg.engine.io import read_scan, write_scan
-from forestreg.engine.tls.pair import register
-from forestreg.engine.simulate import simulate_plot
 from forestreg.engine.core.transform import rigid_errors
+from forestreg.engine.io import read_scan, write_scan
+from forestreg.engine.simulate import simulate_plot
+from forestreg.engine.tls.pair import register
 
 PRESET = "mixed_temperate"
 SIZE_M = 60.0
@@ -105,6 +119,7 @@ REGISTRATION_STEPS = ("prepare_reference_s", "prepare_moving_s", "slice_s", "vop
 
 # ------------------------------------------------------------------------------------- environment
 
+
 def environment() -> dict[str, Any]:
     """Cores and thread pools available to this process."""
     info: dict[str, Any] = {
@@ -112,7 +127,9 @@ def environment() -> dict[str, Any]:
         "platform": platform.platform(),
         "cpu_count": os.cpu_count(),
         "usable_cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "thread_env": {k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS") if k in os.environ},
+        "thread_env": {
+            k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS") if k in os.environ
+        },
         "numpy": np.__version__,
         "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
     }
@@ -127,7 +144,8 @@ def environment() -> dict[str, Any]:
         from threadpoolctl import threadpool_info
 
         info["threadpools"] = [
-            {k: p.get(k) for k in ("user_api", "internal_api", "num_threads", "version", "prefix")} for p in threadpool_info()
+            {k: p.get(k) for k in ("user_api", "internal_api", "num_threads", "version", "prefix")}
+            for p in threadpool_info()
         ]
     except ImportError:
         info["threadpools"] = None
@@ -139,20 +157,28 @@ def _format_environment(env: dict[str, Any]) -> str:
         f"forestreg benchmarks - Python {env['python']} on {env['platform']}",
         f"cores: os.cpu_count() = {env['cpu_count']}, usable by this process = {env['usable_cpus']}"
         + (f", thread env {env['thread_env']}" if env["thread_env"] else "")
-        + (f"; 1-min load average at start {env['load_average_1min']:.2f}" if env["load_average_1min"] is not None else ""),
+        + (
+            f"; 1-min load average at start {env['load_average_1min']:.2f}"
+            if env["load_average_1min"] is not None
+            else ""
+        ),
     ]
     if env["threadpools"] is None:
         lines.append("thread pools: threadpoolctl not installed")
     elif not env["threadpools"]:
         lines.append("thread pools: none loaded")
     else:
-        pools = ", ".join(f"{p['internal_api']} {p['version']} ({p['user_api']}) {p['num_threads']} threads" for p in env["threadpools"])
+        pools = ", ".join(
+            f"{p['internal_api']} {p['version']} ({p['user_api']}) {p['num_threads']} threads"
+            for p in env["threadpools"]
+        )
         lines.append(f"thread pools (threadpoolctl): {pools}")
     lines.append(f"numpy {env['numpy']}" + (f", open3d {env['open3d']}" if "open3d" in env else ""))
     return "\n".join(lines)
 
 
 # ------------------------------------------------------------------------------ pair registration
+
 
 def _positions() -> list[tuple[float, float]]:
     half = SEPARATION_M / 2.0
@@ -164,7 +190,11 @@ def bench_pair(label: str, angular_step_deg: float, seed: int, workdir: Path) ->
     marks: list[tuple[float, str]] = []
     t0 = time.perf_counter()
     plot = simulate_plot(
-        PRESET, _positions(), seed=seed, angular_step_deg=angular_step_deg, size_m=SIZE_M,
+        PRESET,
+        _positions(),
+        seed=seed,
+        angular_step_deg=angular_step_deg,
+        size_m=SIZE_M,
         progress=lambda f, m: marks.append((time.perf_counter(), m)),
     )
     t_end = time.perf_counter()
@@ -260,7 +290,10 @@ def _format_pairs(rows: list[dict[str, Any]]) -> str:
         f"Pair registration: simulated {PRESET}, {SIZE_M:.0f} m plot, scanners {SEPARATION_M:.0f} m apart "
         "(wall-clock seconds)",
         line("", [f"step {r['angular_step_deg']:.2f} deg" for r in rows]),
-        line("points per scan (ref / moving)", [f"{r['points'][0] / 1e6:.2f} / {r['points'][1] / 1e6:.2f} M" for r in rows]),
+        line(
+            "points per scan (ref / moving)",
+            [f"{r['points'][0] / 1e6:.2f} / {r['points'][1] / 1e6:.2f} M" for r in rows],
+        ),
     ]
     lines.append("-" * (label_w + width * len(rows)))
     lines.append(line("simulate: scene meshes", [secs(r["simulate_s"]["scene"]) for r in rows]))
@@ -275,7 +308,11 @@ def _format_pairs(rows: list[dict[str, Any]]) -> str:
     for k in steps:
         lines.append(line(f"register: {k}", [secs(r["registration_s"].get(k, 0.0)) for r in rows]))
     lines.append(line("register: total", [secs(r["registration_total_s"]) for r in rows]))
-    lines.append(line("read both + register (user's cost)", [secs(sum(r["read_laz_s"]) + r["registration_total_s"]) for r in rows]))
+    lines.append(
+        line(
+            "read both + register (user's cost)", [secs(sum(r["read_laz_s"]) + r["registration_total_s"]) for r in rows]
+        )
+    )
     lines.append("-" * (label_w + width * len(rows)))
     for r in rows:
         head = f"step {r['angular_step_deg']:.2f} deg: "
@@ -284,13 +321,11 @@ def _format_pairs(rows: list[dict[str, Any]]) -> str:
             continue
         fe, ce = r["final_error"], r["coarse_error"]
         lines.append(
-            head
-            + f"error vs truth: final {fe['rotation_deg']:.3f} deg / {fe['translation_m'] * 1000:.1f} mm, "
+            head + f"error vs truth: final {fe['rotation_deg']:.3f} deg / {fe['translation_m'] * 1000:.1f} mm, "
             f"coarse {ce['rotation_deg']:.3f} deg / {ce['translation_m'] * 1000:.1f} mm"
         )
         lines.append(
-            " " * len(head)
-            + f"matched VOPs {r['matched']} of {r['reference_vops']}/{r['moving_vops']} "
+            " " * len(head) + f"matched VOPs {r['matched']} of {r['reference_vops']}/{r['moving_vops']} "
             f"(next distinct {r['second_matched']}, D_r {r['vop_radius_m']:.0f} m), "
             f"ICP std {r['icp_std_m'] * 1000:.1f} mm, LAZ {r['laz_mb'][0]:.1f}+{r['laz_mb'][1]:.1f} MB"
         )
@@ -298,6 +333,7 @@ def _format_pairs(rows: list[dict[str, Any]]) -> str:
 
 
 # ----------------------------------------------------------------------------------- coarse matcher
+
 
 def _format_coarse(rows: list[dict[str, Any]]) -> str:
     step = rows[0]["angle_step_deg"] if rows else 0.1
@@ -322,6 +358,7 @@ def _format_coarse(rows: list[dict[str, Any]]) -> str:
 
 # ------------------------------------------------------------------------------------------- main
 
+
 def _jsonable(o: Any) -> Any:
     if isinstance(o, np.integer):
         return int(o)
@@ -335,21 +372,50 @@ def _jsonable(o: Any) -> Any:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--quick", action="store_true", help="skip the ~3 M point pair (smoke run)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated plot and of the VOP sets (default 0)")
     ap.add_argument("--json", metavar="FILE", type=Path, help="also write every row to this JSON file")
     ap.add_argument("--runs", type=int, default=3, help="timed rounds of the whole-command comparison (default 3)")
-    ap.add_argument("--only", choices=("pairs", "peers", "plot", "big", "bigplot", "coarse", "system_b", "commands", "trees", "resurvey", "scaling", "batch", "treescale", "calibration"), action="append",
-                    help="run only these parts (repeatable; default all but bigplot; --quick leaves out plot, big and commands). "
-                         "bigplot: ten ~30 M-point scans registered and merged as COPC, about an hour, so only when named; "
-                         "scaling: the pair at 1-50 M points per scan beside Sylva and reading, only when named; "
-                         "batch: 20 small plots on 1 and 2 local Dask workers, only when named; "
-                         "treescale: trees of a 32 M-point plot beside Sylva and reading, about 10 minutes, only when named; "
-                         "calibration: the stated uncertainty against the truth on ~100 fresh pairs, only when named")
-    ap.add_argument("--calibration-seed", type=int, help="calibration: the seed of its cases (default: drawn afresh and printed)")
-    ap.add_argument("--sizes", help="scaling: points per scan, millions, comma-separated (default 1,3,10,30,50; --quick 0.1,0.3,1)")
-    ap.add_argument("--workdir", type=Path, help="bigplot, scaling, batch and treescale: keep their simulated and densified scans here (default bench_out/; reused)")
+    ap.add_argument(
+        "--only",
+        choices=(
+            "pairs",
+            "peers",
+            "plot",
+            "big",
+            "bigplot",
+            "coarse",
+            "system_b",
+            "commands",
+            "trees",
+            "resurvey",
+            "scaling",
+            "batch",
+            "treescale",
+            "calibration",
+        ),
+        action="append",
+        help="run only these parts (repeatable; default all but bigplot; --quick leaves out plot, big and commands). "
+        "bigplot: ten ~30 M-point scans registered and merged as COPC, about an hour, so only when named; "
+        "scaling: the pair at 1-50 M points per scan beside Sylva and reading, only when named; "
+        "batch: 20 small plots on 1 and 2 local Dask workers, only when named; "
+        "treescale: trees of a 32 M-point plot beside Sylva and reading, about 10 minutes, only when named; "
+        "calibration: the stated uncertainty against the truth on ~100 fresh pairs, only when named",
+    )
+    ap.add_argument(
+        "--calibration-seed", type=int, help="calibration: the seed of its cases (default: drawn afresh and printed)"
+    )
+    ap.add_argument(
+        "--sizes", help="scaling: points per scan, millions, comma-separated (default 1,3,10,30,50; --quick 0.1,0.3,1)"
+    )
+    ap.add_argument(
+        "--workdir",
+        type=Path,
+        help="bigplot, scaling, batch and treescale: keep their simulated and densified scans here (default bench_out/; reused)",
+    )
     args = ap.parse_args(argv)
 
     t_start = time.perf_counter()
@@ -358,7 +424,14 @@ def main(argv: Optional[list[str]] = None) -> int:
     print(f"seed {args.seed}{', quick (no ~3 M point pair)' if args.quick else ''}", flush=True)
     print()
 
-    parts = set(args.only or (("pairs", "peers", "coarse", "system_b", "trees", "resurvey") if args.quick else ("pairs", "peers", "plot", "big", "coarse", "system_b", "commands", "trees", "resurvey")))
+    parts = set(
+        args.only
+        or (
+            ("pairs", "peers", "coarse", "system_b", "trees", "resurvey")
+            if args.quick
+            else ("pairs", "peers", "plot", "big", "coarse", "system_b", "commands", "trees", "resurvey")
+        )
+    )
     pair_rows: list[dict[str, Any]] = []
     peer_rows: list[dict[str, Any]] = []
     coarse_rows: list[dict[str, Any]] = []
@@ -395,9 +468,15 @@ def main(argv: Optional[list[str]] = None) -> int:
         print(flush=True)
     scaling_rows: list[dict[str, Any]] = []
     if "scaling" in parts:  # child processes: while this process is small
-        sizes = tuple(float(v) for v in args.sizes.split(",")) if args.sizes else (scaling.QUICK_SIZES_M if args.quick else scaling.SIZES_M)
+        sizes = (
+            tuple(float(v) for v in args.sizes.split(","))
+            if args.sizes
+            else (scaling.QUICK_SIZES_M if args.quick else scaling.SIZES_M)
+        )
         # one round a size (the large ones take minutes); --quick: --runs rounds of its small sizes
-        scaling_rows = scaling.run(sizes, runs=args.runs if args.quick else 1, workdir=(args.workdir / "scaling") if args.workdir else None)
+        scaling_rows = scaling.run(
+            sizes, runs=args.runs if args.quick else 1, workdir=(args.workdir / "scaling") if args.workdir else None
+        )
         print()
         print(scaling.format_rows(scaling_rows))
         print(flush=True)
@@ -437,7 +516,9 @@ def main(argv: Optional[list[str]] = None) -> int:
         print()
     resurvey_rows: list[dict[str, Any]] = []
     if "resurvey" in parts:
-        resurvey_rows = resurvey.run(seeds=resurvey.HELD_OUT_SEEDS[:1], quick=args.quick, scans=(2, 5) if args.quick else (2, 3, 5))
+        resurvey_rows = resurvey.run(
+            seeds=resurvey.HELD_OUT_SEEDS[:1], quick=args.quick, scans=(2, 5) if args.quick else (2, 3, 5)
+        )
         print(resurvey.format_rows(resurvey_rows))
         print(flush=True)
     calibration_run: Optional[dict[str, Any]] = None
@@ -445,15 +526,34 @@ def main(argv: Optional[list[str]] = None) -> int:
         calibration_run = calibration.run(args.calibration_seed, quick=args.quick)
         print()
         print(calibration.format_report(calibration_run["rows"], calibration_run["summary"]))
-        print(f"calibration: seed {calibration_run['seed']}, {calibration_run['n']} cases, {calibration_run['wall_s']:.0f} s", flush=True)
+        print(
+            f"calibration: seed {calibration_run['seed']}, {calibration_run['n']} cases, {calibration_run['wall_s']:.0f} s",
+            flush=True,
+        )
     wall = time.perf_counter() - t_start
     print(f"total benchmark wall time {wall:.0f} s")
 
     if args.json is not None:
-        payload = {"environment": env, "seed": args.seed, "quick": args.quick, "wall_s": wall,
-                   "pairs": pair_rows, "peers": peer_rows, "plot": plot_row, "big_scan": big_row, "big_plot": big_plot_row, "coarse_matcher": coarse_rows, "system_b": system_b_rows, "commands": command_rows,
-                   "trees_compare": trees_rows, "resurvey": resurvey_rows, "scaling": scaling_rows, "batch": batch_row,
-                   "trees_scale": tree_scale_rows, "calibration": calibration_run}
+        payload = {
+            "environment": env,
+            "seed": args.seed,
+            "quick": args.quick,
+            "wall_s": wall,
+            "pairs": pair_rows,
+            "peers": peer_rows,
+            "plot": plot_row,
+            "big_scan": big_row,
+            "big_plot": big_plot_row,
+            "coarse_matcher": coarse_rows,
+            "system_b": system_b_rows,
+            "commands": command_rows,
+            "trees_compare": trees_rows,
+            "resurvey": resurvey_rows,
+            "scaling": scaling_rows,
+            "batch": batch_row,
+            "trees_scale": tree_scale_rows,
+            "calibration": calibration_run,
+        }
         args.json.write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
         print(f"rows written to {args.json}")
     return 0

@@ -114,7 +114,17 @@ def bench_size(workdir: Path, size_m: float, runs: int, sylva: Optional[str]) ->
     reader = "import sys\nfrom forestreg.engine.io import read_scan\nfor p in sys.argv[1:]:\n    read_scan(p)\n"
     commands = {
         "read": [sys.executable, "-c", reader, str(a), str(b)],
-        "forestreg": [sys.executable, "-m", "forestreg.cli", "register", str(a), str(b), "--out", str(out_f), "--quiet"],
+        "forestreg": [
+            sys.executable,
+            "-m",
+            "forestreg.cli",
+            "register",
+            str(a),
+            str(b),
+            "--out",
+            str(out_f),
+            "--quiet",
+        ],
     }
     if sylva:
         commands["sylva"] = [sylva, "coreg", str(a), str(b), "-o", str(out_s), "--quiet"]
@@ -138,9 +148,14 @@ def bench_size(workdir: Path, size_m: float, runs: int, sylva: Optional[str]) ->
                 "wall": statistics.median(x.wall_s / y.wall_s for x, y in zip(results[num], results[den])),
                 "peak": statistics.median(_peak(x) / _peak(y) for x, y in zip(results[num], results[den])),
             }
-    for name, matrix in (("forestreg", peers._forestreg_matrix(out_f)), ("sylva", peers._sylva_matrix(out_s) if sylva else None)):
+    for name, matrix in (
+        ("forestreg", peers._forestreg_matrix(out_f)),
+        ("sylva", peers._sylva_matrix(out_s) if sylva else None),
+    ):
         if name in row:
-            row[name]["error"] = None if matrix is None else dict(zip(("rotation_deg", "translation_m"), rigid_errors(matrix, truth)))
+            row[name]["error"] = (
+                None if matrix is None else dict(zip(("rotation_deg", "translation_m"), rigid_errors(matrix, truth)))
+            )
     return row
 
 
@@ -158,7 +173,10 @@ def run(sizes: Sequence[float] = SIZES_M, runs: int = 1, workdir: Optional[Path]
     # untimed: the first command of a checkout compiles (or loads) its kernels
     a, b, _ = make_pair(workdir, min(sizes))
     warm = a.parent / "out_warm_up"
-    peers.run_command([sys.executable, "-m", "forestreg.cli", "register", str(a), str(b), "--out", str(warm), "--quiet"], env=peers._python_env())
+    peers.run_command(
+        [sys.executable, "-m", "forestreg.cli", "register", str(a), str(b), "--out", str(warm), "--quiet"],
+        env=peers._python_env(),
+    )
     shutil.rmtree(warm, ignore_errors=True)
     rows = []
     for size in sizes:
@@ -189,17 +207,21 @@ def format_rows(rows: list[dict[str, Any]], head: bool = True) -> str:
         lines.append(
             f"| {r['size_m']:g} M | {r['read']['wall_s']:.1f} | {r['forestreg']['wall_s']:.1f}{bad} | "
             + (f"{s['wall_s']:.1f} | {fs['wall']:.2f} | " if s else "- | - | ")
-            + f"{fr['wall']:.2f} | " + (f"{sr['wall']:.2f} | " if sr else "- | ")
+            + f"{fr['wall']:.2f} | "
+            + (f"{sr['wall']:.2f} | " if sr else "- | ")
             + f"{r['read']['peak_mb']:,.0f} | {r['forestreg']['peak_mb']:,.0f} | "
             + (f"{s['peak_mb']:,.0f} | {fs['peak']:.2f} | " if s else "- | - | ")
-            + f"{_error(r['forestreg'].get('error'))} | " + (f"{_error(s.get('error'))} |" if s else "- |")
+            + f"{_error(r['forestreg'].get('error'))} | "
+            + (f"{_error(s.get('error'))} |" if s else "- |")
         )
     return "\n".join(lines)
 
 
 def main(argv: Optional[list[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sizes", default=",".join(f"{s:g}" for s in SIZES_M), help="points per scan, millions, comma-separated")
+    ap.add_argument(
+        "--sizes", default=",".join(f"{s:g}" for s in SIZES_M), help="points per scan, millions, comma-separated"
+    )
     ap.add_argument("--quick", action="store_true", help=f"sizes {', '.join(f'{s:g}' for s in QUICK_SIZES_M)} M")
     ap.add_argument("--runs", type=int, default=1, help="rounds per size (default 1)")
     ap.add_argument("--workdir", type=Path, default=WORKDIR, help=f"the scans' folder (default {WORKDIR}; reused)")

@@ -18,10 +18,10 @@ from typing import Any
 
 import numpy as np
 
+from forestreg.engine.core.transform import rigid_errors
 from forestreg.engine.coreg import coregister
 from forestreg.engine.coreg.fusion import fuse_scans
 from forestreg.engine.simulate.platforms import simulate_coregistration_case
-from forestreg.engine.core.transform import rigid_errors
 
 COREG_STEPS = ("terrain_s", "keypoints_s", "matching_s", "verification_s", "icp_s", "total_s")
 
@@ -35,8 +35,15 @@ def run(seed: int = 0, quick: bool = False) -> list[dict[str, Any]]:
     for preset, platform, heading, offset in cases:
         t = time.perf_counter()
         case = simulate_coregistration_case(
-            preset, seed=seed, size_m=40.0, ground_platform=platform, heading_deg=heading, offset_m=offset,
-            uav_density_scale=1.0, backpack_density_scale=0.1 if quick else 0.25, tls_step_deg=0.2,
+            preset,
+            seed=seed,
+            size_m=40.0,
+            ground_platform=platform,
+            heading_deg=heading,
+            offset_m=offset,
+            uav_density_scale=1.0,
+            backpack_density_scale=0.1 if quick else 0.25,
+            tls_step_deg=0.2,
         )
         sim_s = time.perf_counter() - t
         result = coregister(case.ground, case.uav)
@@ -75,12 +82,28 @@ def run(seed: int = 0, quick: bool = False) -> list[dict[str, Any]]:
 def format_rows(rows: list[dict[str, Any]]) -> str:
     """A plain-text table of :func:`run`'s rows."""
     cols = [
-        ("case", "{}"), ("ground_points", "{:,}"), ("uav_points", "{:,}"), ("status", "{}"), ("reason", "{}"),
-        ("terrain_s", "{:.1f}"), ("keypoints_s", "{:.1f}"), ("matching_s", "{:.1f}"), ("verification_s", "{:.1f}"),
-        ("icp_s", "{:.1f}"), ("total_s", "{:.1f}"), ("keypoints", "{}"), ("matched", "{}"),
-        ("matching_percentage", "{:.0f} %"), ("rotation_error_deg", "{:.4f}"), ("translation_error_m", "{:.4f}"),
-        ("fusion_s", "{:.1f}"), ("fused_points", "{:,}"), ("redundant", "{:,}"), ("noise", "{:,}"),
-        ("trees_s", "{:.1f}"), ("trees", "{}"),
+        ("case", "{}"),
+        ("ground_points", "{:,}"),
+        ("uav_points", "{:,}"),
+        ("status", "{}"),
+        ("reason", "{}"),
+        ("terrain_s", "{:.1f}"),
+        ("keypoints_s", "{:.1f}"),
+        ("matching_s", "{:.1f}"),
+        ("verification_s", "{:.1f}"),
+        ("icp_s", "{:.1f}"),
+        ("total_s", "{:.1f}"),
+        ("keypoints", "{}"),
+        ("matched", "{}"),
+        ("matching_percentage", "{:.0f} %"),
+        ("rotation_error_deg", "{:.4f}"),
+        ("translation_error_m", "{:.4f}"),
+        ("fusion_s", "{:.1f}"),
+        ("fused_points", "{:,}"),
+        ("redundant", "{:,}"),
+        ("noise", "{:,}"),
+        ("trees_s", "{:.1f}"),
+        ("trees", "{}"),
     ]
     lines = ["System B: co-registration (UAV at the paper's density), fusion, tree inventory"]
     width = max(len(c) for c, _ in cols)

@@ -76,8 +76,22 @@ TREEQSM = {
 #: Stem rings of pine_plot.laz counted by hand (m from the cloud's minimum corner; see
 #: tests/test_trees_platforms.py).
 PINE_PLOT_RINGS = [
-    (0.4, 0.0), (0.3, 2.0), (0.4, 4.0), (0.5, 6.1), (0.4, 8.2), (3.5, 1.5), (3.4, 3.6), (3.5, 5.7), (3.5, 7.7),
-    (6.2, 1.0), (6.4, 4.7), (8.0, 4.6), (9.4, 1.2), (9.3, 3.4), (9.3, 5.4), (9.3, 7.5),
+    (0.4, 0.0),
+    (0.3, 2.0),
+    (0.4, 4.0),
+    (0.5, 6.1),
+    (0.4, 8.2),
+    (3.5, 1.5),
+    (3.4, 3.6),
+    (3.5, 5.7),
+    (3.5, 7.7),
+    (6.2, 1.0),
+    (6.4, 4.7),
+    (8.0, 4.6),
+    (9.4, 1.2),
+    (9.3, 3.4),
+    (9.3, 5.4),
+    (9.3, 7.5),
 ]
 
 
@@ -89,8 +103,9 @@ SIM_PLOTS = (
 )
 
 
-def sim_plot(out: Path = OUT, stem: str = "sim_plot_dome", seed: int = 3, size_m: float = 30.0,
-             clearance_m: float = 0.5) -> tuple[Path, list[dict[str, Any]]]:
+def sim_plot(
+    out: Path = OUT, stem: str = "sim_plot_dome", seed: int = 3, size_m: float = 30.0, clearance_m: float = 0.5
+) -> tuple[Path, list[dict[str, Any]]]:
     """A simulated 4-scan plot (LAZ) and its true trees (see :data:`SIM_PLOTS`); simulated once
     and cached."""
     laz, truth = out / f"{stem}.laz", out / f"{stem}.json"
@@ -100,16 +115,24 @@ def sim_plot(out: Path = OUT, stem: str = "sim_plot_dome", seed: int = 3, size_m
         from forestreg.engine.io import write_points
         from forestreg.engine.simulate import simulate_plot
 
-        plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=seed,
-                             angular_step_deg=0.35, size_m=size_m, scanner_options={"elevation_max_deg": 90.0},
-                             suppressed_clearance_m=clearance_m)
+        plot = simulate_plot(
+            "mixed_temperate",
+            [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)],
+            seed=seed,
+            angular_step_deg=0.35,
+            size_m=size_m,
+            scanner_options={"elevation_max_deg": 90.0},
+            suppressed_clearance_m=clearance_m,
+        )
         pts = np.vstack([s.world_points() for s in plot.scans])
         ids = np.concatenate([s.object_ids for s in plot.scans])
         trees = []
         for t in plot.scene.trees:
             mine = pts[ids == t.id]
             seen = len(mine) > 0 and float(cKDTree(mine).query(t.point_at_height(t.height_m))[0]) < 0.3
-            trees.append({"id": t.id, "x": t.x, "y": t.y, "dbh_m": t.dbh_m, "height_m": t.height_m, "top_seen": bool(seen)})
+            trees.append(
+                {"id": t.id, "x": t.x, "y": t.y, "dbh_m": t.dbh_m, "height_m": t.height_m, "top_seen": bool(seen)}
+            )
         out.mkdir(parents=True, exist_ok=True)
         write_points(laz, pts)
         truth.write_text(json.dumps(trees, indent=1))
@@ -159,16 +182,32 @@ def half_plot(kind: int, seed: int, out: Path = OUT) -> tuple[Path, list[dict[st
         else:
             scene = make_scene(scene_kind, seed=seed, size_m=size_m, stem_shapes="real", **overrides)
         added = set(scene.meta.get("understory_added", ()))
-        plot = simulate_plot(scene_kind, SCAN_LAYOUTS[n_scans], scene=scene, seed=seed, angular_step_deg=step,
-                             scanner_options={"elevation_max_deg": elev})
+        plot = simulate_plot(
+            scene_kind,
+            SCAN_LAYOUTS[n_scans],
+            scene=scene,
+            seed=seed,
+            angular_step_deg=step,
+            scanner_options={"elevation_max_deg": elev},
+        )
         pts = np.vstack([s.world_points() for s in plot.scans])
         ids = np.concatenate([s.object_ids for s in plot.scans])
         trees = []
         for t in plot.scene.trees:
             mine = pts[ids == t.id]
             seen = len(mine) > 0 and float(cKDTree(mine).query(t.point_at_height(t.height_m))[0]) < 0.3
-            trees.append({"id": t.id, "x": t.x, "y": t.y, "dbh_m": t.dbh_m, "height_m": t.height_m, "shape": t.shape,
-                          "small_beside_big": t.id in added, "top_seen": bool(seen)})
+            trees.append(
+                {
+                    "id": t.id,
+                    "x": t.x,
+                    "y": t.y,
+                    "dbh_m": t.dbh_m,
+                    "height_m": t.height_m,
+                    "shape": t.shape,
+                    "small_beside_big": t.id in added,
+                    "top_seen": bool(seen),
+                }
+            )
         out.mkdir(parents=True, exist_ok=True)
         write_points(laz, pts)
         truth.write_text(json.dumps(trees, indent=1))
@@ -186,15 +225,23 @@ def sim_single(out: Path = OUT) -> tuple[Path, dict[str, float]]:
         from forestreg.engine.simulate.mesh import tree_wood_volume
 
         scene = leaf_off(single_tree_scene(0))
-        plot = simulate_plot("single", [(-7.0, -3.0), (6.0, -4.0), (1.0, 7.0)], scene=scene, seed=1, angular_step_deg=0.25,
-                             clearance_m=0.5)
+        plot = simulate_plot(
+            "single",
+            [(-7.0, -3.0), (6.0, -4.0), (1.0, 7.0)],
+            scene=scene,
+            seed=1,
+            angular_step_deg=0.25,
+            clearance_m=0.5,
+        )
         pts = np.vstack([s.world_points() for s in plot.scans])
         pts = pts[np.concatenate([s.object_ids for s in plot.scans]) == 1]
         tree = scene.trees[0]
         stem, branch = tree_wood_volume(scene, tree)
         out.mkdir(parents=True, exist_ok=True)
         write_points(laz, pts)
-        truth.write_text(json.dumps({"dbh_m": tree.dbh_m, "height_m": float(pts[:, 2].max() - tree.z), "volume_m3": stem + branch}))
+        truth.write_text(
+            json.dumps({"dbh_m": tree.dbh_m, "height_m": float(pts[:, 2].max() - tree.z), "volume_m3": stem + branch})
+        )
     return laz, json.loads(truth.read_text())
 
 
@@ -217,8 +264,21 @@ def _rrmse(pairs: list[tuple[float, float]]) -> float:
 
 def _forestreg(cloud: Path, work: Path, extra: tuple[str, ...] = ()) -> tuple[Any, list[dict[str, str]]]:
     out = work / f"fr_{cloud.stem}"
-    run = run_command([sys.executable, "-m", "forestreg.cli", "trees", str(cloud), "--out", str(out), "--no-report", "--quiet", *extra],
-                      log=work / f"fr_{cloud.stem}.log")
+    run = run_command(
+        [
+            sys.executable,
+            "-m",
+            "forestreg.cli",
+            "trees",
+            str(cloud),
+            "--out",
+            str(out),
+            "--no-report",
+            "--quiet",
+            *extra,
+        ],
+        log=work / f"fr_{cloud.stem}.log",
+    )
     return run, _rows(out / "trees.csv") if run.status == 0 else []
 
 
@@ -227,8 +287,14 @@ def _sylva_trees(sylva: str, cloud: Path, work: Path) -> tuple[dict[str, float],
     g = run_command([sylva, "--no-progress", "ground", str(cloud), str(norm)])
     t = run_command([sylva, "--no-progress", "trees", str(norm), "-o", str(table)]) if g.status == 0 else g
     ok = g.status == 0 and t.status == 0
-    return ({"wall_s": g.wall_s + t.wall_s, "peak_mb": max(g.peak_mb, t.peak_mb), "status": 0 if ok else (t.status or g.status)},
-            _rows(table) if ok else [])
+    return (
+        {
+            "wall_s": g.wall_s + t.wall_s,
+            "peak_mb": max(g.peak_mb, t.peak_mb),
+            "status": 0 if ok else (t.status or g.status),
+        },
+        _rows(table) if ok else [],
+    )
 
 
 def _sylva_qsm(sylva: str, cloud: Path, work: Path) -> tuple[dict[str, float], dict[str, float]]:
@@ -241,10 +307,15 @@ def _sylva_qsm(sylva: str, cloud: Path, work: Path) -> tuple[dict[str, float], d
         return float(m.group(1)) if m else math.nan
 
     return {"wall_s": run.wall_s, "peak_mb": run.peak_mb, "status": run.status}, {
-        "volume_m3": grab("total_volume_m3"), "stem_volume_m3": grab("stem_volume_m3"), "dbh_m": grab("dbh_m")}
+        "volume_m3": grab("total_volume_m3"),
+        "stem_volume_m3": grab("stem_volume_m3"),
+        "dbh_m": grab("dbh_m"),
+    }
 
 
-def _plot_figures(rows: list[dict[str, str]], truth: list[dict[str, Any]], *, dbh_key: str, height_key: str, flagged=None) -> dict[str, Any]:
+def _plot_figures(
+    rows: list[dict[str, str]], truth: list[dict[str, Any]], *, dbh_key: str, height_key: str, flagged=None
+) -> dict[str, Any]:
     """Found, false stems, DBH and height rRMSE against the simulated truth (see the module docstring)."""
     inside = [t for t in truth if math.hypot(t["x"], t["y"]) < RADIUS_M and t["dbh_m"] >= 0.1]
     txy = np.array([(t["x"], t["y"]) for t in truth])
@@ -260,15 +331,24 @@ def _plot_figures(rows: list[dict[str, str]], truth: list[dict[str, Any]], *, db
     ids = {t["id"] for t in inside}
     found = [(r, t) for r, t in pairs if t["id"] in ids]
     out = {
-        "true": len(inside), "found": len({t["id"] for _, t in found}), "false_stems": false,
+        "true": len(inside),
+        "found": len({t["id"] for _, t in found}),
+        "false_stems": false,
         "dbh_rrmse_pct": _rrmse([(_num(r[dbh_key]), t["dbh_m"]) for r, t in found]),
         "height_rrmse_pct": _rrmse([(_num(r[height_key]), t["height_m"]) for r, t in found]),
     }
     if flagged is not None:
         unflagged = [(r, t) for r, t in found if not flagged(r)]
-        errs = [abs(_num(r[height_key]) - t["height_m"]) / t["height_m"] for r, t in unflagged if math.isfinite(_num(r[height_key]))]
-        out.update(heights_unflagged=len(errs), unflagged_height_rrmse_pct=_rrmse([(_num(r[height_key]), t["height_m"]) for r, t in unflagged]),
-                   unflagged_height_max_pct=100.0 * max(errs) if errs else math.nan)
+        errs = [
+            abs(_num(r[height_key]) - t["height_m"]) / t["height_m"]
+            for r, t in unflagged
+            if math.isfinite(_num(r[height_key]))
+        ]
+        out.update(
+            heights_unflagged=len(errs),
+            unflagged_height_rrmse_pct=_rrmse([(_num(r[height_key]), t["height_m"]) for r, t in unflagged]),
+            unflagged_height_max_pct=100.0 * max(errs) if errs else math.nan,
+        )
     return out
 
 
@@ -292,11 +372,26 @@ def _plots(sylva: Optional[str], work: Path) -> list[dict[str, Any]]:
         run_, fr = _forestreg(laz, work)
         fig = _plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low)
         fig["volume_m3"] = float(np.nansum([_num(r["volume_m3"]) for r in fr]))
-        rows.append({"case": case, "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status, **fig})
+        rows.append(
+            {
+                "case": case,
+                "tool": "forestreg trees",
+                "wall_s": run_.wall_s,
+                "peak_mb": run_.peak_mb,
+                "status": run_.status,
+                **fig,
+            }
+        )
         if sylva:
             res, sy = _sylva_trees(sylva, laz, work)
-            rows.append({"case": case, "tool": "sylva ground + trees", **res,
-                         **_plot_figures(sy, truth, dbh_key="dbh", height_key="height")})
+            rows.append(
+                {
+                    "case": case,
+                    "tool": "sylva ground + trees",
+                    **res,
+                    **_plot_figures(sy, truth, dbh_key="dbh", height_key="height"),
+                }
+            )
 
     real = DATA / "pine_plot.laz"
     if real.exists():
@@ -306,13 +401,24 @@ def _plots(sylva: Optional[str], work: Path) -> list[dict[str, Any]]:
         corner = scan.points[:, :2].min(axis=0) + scan.origin_shift[:2]
         run_, fr = _forestreg(real, work)
         flagged = sum(1 for r in fr if r["flag"])
-        rows.append({"case": "pine_plot.laz (real)", "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb,
-                     "status": run_.status, **_rings_found(fr, corner), "flagged": flagged,
-                     "heights_unflagged": sum(1 for r in fr if not _height_low(r)),
-                     "volume_m3": float(np.nansum([_num(r["volume_m3"]) for r in fr]))})
+        rows.append(
+            {
+                "case": "pine_plot.laz (real)",
+                "tool": "forestreg trees",
+                "wall_s": run_.wall_s,
+                "peak_mb": run_.peak_mb,
+                "status": run_.status,
+                **_rings_found(fr, corner),
+                "flagged": flagged,
+                "heights_unflagged": sum(1 for r in fr if not _height_low(r)),
+                "volume_m3": float(np.nansum([_num(r["volume_m3"]) for r in fr])),
+            }
+        )
         if sylva:
             res, sy = _sylva_trees(sylva, real, work)
-            rows.append({"case": "pine_plot.laz (real)", "tool": "sylva ground + trees", **res, **_rings_found(sy, corner)})
+            rows.append(
+                {"case": "pine_plot.laz (real)", "tool": "sylva ground + trees", **res, **_rings_found(sy, corner)}
+            )
     return rows
 
 
@@ -330,8 +436,9 @@ def _flag_figures(rows: list[dict[str, str]], truth: list[dict[str, Any]]) -> li
     return out
 
 
-def run_halves(workdir: Optional[Path] = None, held_out: Optional[list[int]] = None,
-               tune: bool = True) -> list[dict[str, Any]]:
+def run_halves(
+    workdir: Optional[Path] = None, held_out: Optional[list[int]] = None, tune: bool = True
+) -> list[dict[str, Any]]:
     """forestreg (``trees --no-cylinders``) and Sylva on every plot of :data:`HALF_KINDS`, for the
     tune seeds (:data:`TUNE_SEEDS`, unless ``tune`` is False) and the held-out ones
     (``held_out``, default :data:`HELD_OUT_SEEDS`); one row per (plot, tool) with the figures of
@@ -346,22 +453,43 @@ def run_halves(workdir: Optional[Path] = None, held_out: Optional[list[int]] = N
         for half, seeds in halves:
             for kind, seed in enumerate(seeds):
                 laz, truth = half_plot(kind, seed)
-                case = {"half": half, "kind": HALF_KINDS[kind][0], "seed": seed,
-                        "case": f"{HALF_KINDS[kind][0]} ({HALF_KINDS[kind][3]} scans, up to {HALF_KINDS[kind][4]:.0f} deg, seed {seed})"}
+                case = {
+                    "half": half,
+                    "kind": HALF_KINDS[kind][0],
+                    "seed": seed,
+                    "case": f"{HALF_KINDS[kind][0]} ({HALF_KINDS[kind][3]} scans, up to {HALF_KINDS[kind][4]:.0f} deg, seed {seed})",
+                }
                 print(f"{half}: {case['case']}", file=sys.stderr, flush=True)
                 run_, fr = _forestreg(laz, work, ("--no-cylinders",))
-                rows.append({**case, "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status,
-                             **_plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low),
-                             "heights": _flag_figures(fr, truth), "pairs": _pairs(fr, truth, "dbh_m", "height_m")})
+                rows.append(
+                    {
+                        **case,
+                        "tool": "forestreg trees",
+                        "wall_s": run_.wall_s,
+                        "peak_mb": run_.peak_mb,
+                        "status": run_.status,
+                        **_plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low),
+                        "heights": _flag_figures(fr, truth),
+                        "pairs": _pairs(fr, truth, "dbh_m", "height_m"),
+                    }
+                )
                 if sylva:
                     res, sy = _sylva_trees(sylva, laz, work)
-                    rows.append({**case, "tool": "sylva ground + trees", **res,
-                                 **_plot_figures(sy, truth, dbh_key="dbh", height_key="height"),
-                                 "pairs": _pairs(sy, truth, "dbh", "height")})
+                    rows.append(
+                        {
+                            **case,
+                            "tool": "sylva ground + trees",
+                            **res,
+                            **_plot_figures(sy, truth, dbh_key="dbh", height_key="height"),
+                            "pairs": _pairs(sy, truth, "dbh", "height"),
+                        }
+                    )
     return rows
 
 
-def _pairs(rows: list[dict[str, str]], truth: list[dict[str, Any]], dbh_key: str, height_key: str) -> list[tuple[float, float, float, float]]:
+def _pairs(
+    rows: list[dict[str, str]], truth: list[dict[str, Any]], dbh_key: str, height_key: str
+) -> list[tuple[float, float, float, float]]:
     """(DBH m, true DBH m, height m, true height m) of a tool's trees matched to the true trees
     within :data:`RADIUS_M` with DBH >= 0.1 m (one per true tree: the nearest)."""
     inside = {t["id"] for t in truth if math.hypot(t["x"], t["y"]) < RADIUS_M and t["dbh_m"] >= 0.1}
@@ -401,10 +529,16 @@ def halves_summary(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
             flagged = [f for _, _, f in h]
             unflagged = [(a, b) for a, b, f in h if not f]
             tp = sum(o and f for o, f in zip(off, flagged))
-            fig.update(fr_unflagged=len(unflagged), fr_heights=len(h), fr_unflagged_rrmse=_rrmse(unflagged),
-                       fr_unflagged_worst=100.0 * max((abs(a / b - 1.0) for a, b in unflagged), default=math.nan),
-                       flag_precision=100.0 * tp / sum(flagged) if sum(flagged) else math.nan,
-                       flag_recall=100.0 * tp / sum(off) if sum(off) else math.nan, flagged=sum(flagged), wrong=sum(off))
+            fig.update(
+                fr_unflagged=len(unflagged),
+                fr_heights=len(h),
+                fr_unflagged_rrmse=_rrmse(unflagged),
+                fr_unflagged_worst=100.0 * max((abs(a / b - 1.0) for a, b in unflagged), default=math.nan),
+                flag_precision=100.0 * tp / sum(flagged) if sum(flagged) else math.nan,
+                flag_recall=100.0 * tp / sum(off) if sum(off) else math.nan,
+                flagged=sum(flagged),
+                wrong=sum(off),
+            )
         out[half] = fig
     return out
 
@@ -420,16 +554,30 @@ def halves_table(rows: list[dict[str, Any]]) -> str:
         except (KeyError, ValueError, ZeroDivisionError):
             return "-"
 
-    lines = ["| | " + " | ".join(f"{h} (seeds {', '.join(map(str, s[h]['seeds']))})" for h in halves) + " |",
-             "|---|" + "---:|" * len(halves)]
+    lines = [
+        "| | " + " | ".join(f"{h} (seeds {', '.join(map(str, s[h]['seeds']))})" for h in halves) + " |",
+        "|---|" + "---:|" * len(halves),
+    ]
     spec = [
         ("trees found (forestreg / Sylva)", lambda f: f"{f['fr_found']} / {f['sy_found']} of {f['fr_true']}"),
         ("false stems (forestreg / Sylva)", lambda f: f"{f['fr_false']} / {f['sy_false']}"),
         ("DBH rRMSE (forestreg / Sylva)", lambda f: f"{f['fr_dbh_rrmse']:.1f} % / {f['sy_dbh_rrmse']:.1f} %"),
-        ("height rRMSE, every tree (forestreg / Sylva)", lambda f: f"{f['fr_height_rrmse']:.1f} % / {f['sy_height_rrmse']:.1f} %"),
-        ("forestreg heights unflagged", lambda f: f"{f['fr_unflagged']} of {f['fr_heights']} ({100 * f['fr_unflagged'] / f['fr_heights']:.0f} %)"),
-        ("unflagged heights: rRMSE, worst", lambda f: f"{f['fr_unflagged_rrmse']:.1f} %, {f['fr_unflagged_worst']:.0f} %"),
-        ("flag precision (flagged heights > 10 % off)", lambda f: f"{f['flag_precision']:.0f} % ({f['flagged']} flagged)"),
+        (
+            "height rRMSE, every tree (forestreg / Sylva)",
+            lambda f: f"{f['fr_height_rrmse']:.1f} % / {f['sy_height_rrmse']:.1f} %",
+        ),
+        (
+            "forestreg heights unflagged",
+            lambda f: f"{f['fr_unflagged']} of {f['fr_heights']} ({100 * f['fr_unflagged'] / f['fr_heights']:.0f} %)",
+        ),
+        (
+            "unflagged heights: rRMSE, worst",
+            lambda f: f"{f['fr_unflagged_rrmse']:.1f} %, {f['fr_unflagged_worst']:.0f} %",
+        ),
+        (
+            "flag precision (flagged heights > 10 % off)",
+            lambda f: f"{f['flag_precision']:.0f} % ({f['flagged']} flagged)",
+        ),
         ("flag recall (> 10 % off heights flagged)", lambda f: f"{f['flag_recall']:.0f} % ({f['wrong']} > 10 % off)"),
     ]
     for name, fmt in spec:
@@ -440,13 +588,20 @@ def halves_table(rows: list[dict[str, Any]]) -> str:
 def halves_plot_rows(rows: list[dict[str, Any]]) -> str:
     """Each plot of the held-out benchmark: found, false stems, DBH and height rRMSE of both tools,
     forestreg's unflagged heights (Markdown)."""
-    lines = ["| half | plot | tool | found | false | DBH rRMSE % | height rRMSE % | unflagged: n, rRMSE %, worst % | s |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| half | plot | tool | found | false | DBH rRMSE % | height rRMSE % | unflagged: n, rRMSE %, worst % | s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        unf = (f"{r['heights_unflagged']}, {_f(r['unflagged_height_rrmse_pct'], '.1f')}, {_f(r['unflagged_height_max_pct'], '.0f')}"
-               if "heights_unflagged" in r else "-")
-        lines.append(f"| {r['half']} | {r['case']} | {r['tool']} | {r['found']}/{r['true']} | {r['false_stems']} "
-                     f"| {_f(r['dbh_rrmse_pct'], '.1f')} | {_f(r['height_rrmse_pct'], '.1f')} | {unf} | {_f(r.get('wall_s'), '.0f')} |")
+        unf = (
+            f"{r['heights_unflagged']}, {_f(r['unflagged_height_rrmse_pct'], '.1f')}, {_f(r['unflagged_height_max_pct'], '.0f')}"
+            if "heights_unflagged" in r
+            else "-"
+        )
+        lines.append(
+            f"| {r['half']} | {r['case']} | {r['tool']} | {r['found']}/{r['true']} | {r['false_stems']} "
+            f"| {_f(r['dbh_rrmse_pct'], '.1f')} | {_f(r['height_rrmse_pct'], '.1f')} | {unf} | {_f(r.get('wall_s'), '.0f')} |"
+        )
     return "\n".join(lines)
 
 
@@ -467,18 +622,37 @@ def run(workdir: Optional[Path] = None, single_trees_only: bool = False) -> list
         for case, cloud, ref in singles:
             run_, fr = _forestreg(cloud, work)
             r = fr[0] if len(fr) == 1 else {}
-            rows.append({"case": case, "tool": "forestreg trees", "wall_s": run_.wall_s, "peak_mb": run_.peak_mb, "status": run_.status,
-                         "trees": len(fr), "dbh_m": _num(r.get("dbh_m")), "height_m": _num(r.get("height_m")),
-                         "volume_m3": _num(r.get("volume_m3")), "stem_volume_m3": _num(r.get("stem_volume_m3")),
-                         **{f"true_{k}": v for k, v in ref.items() if not k.startswith("treeqsm")},
-                         **{k: v for k, v in ref.items() if k.startswith("treeqsm")}})
+            rows.append(
+                {
+                    "case": case,
+                    "tool": "forestreg trees",
+                    "wall_s": run_.wall_s,
+                    "peak_mb": run_.peak_mb,
+                    "status": run_.status,
+                    "trees": len(fr),
+                    "dbh_m": _num(r.get("dbh_m")),
+                    "height_m": _num(r.get("height_m")),
+                    "volume_m3": _num(r.get("volume_m3")),
+                    "stem_volume_m3": _num(r.get("stem_volume_m3")),
+                    **{f"true_{k}": v for k, v in ref.items() if not k.startswith("treeqsm")},
+                    **{k: v for k, v in ref.items() if k.startswith("treeqsm")},
+                }
+            )
             if sylva:
                 res, q = _sylva_qsm(sylva, cloud, work)
                 rows.append({"case": case, "tool": "sylva qsm", **res, "trees": 1, **q})
             if "treeqsm_volume_m3" in ref:
-                rows.append({"case": case, "tool": "TreeQSM port (pytlidar, stored)", "trees": 1, "dbh_m": ref["treeqsm_dbh_m"],
-                             "height_m": ref["treeqsm_height_m"], "volume_m3": ref["treeqsm_volume_m3"],
-                             "stem_volume_m3": ref["treeqsm_stem_volume_m3"]})
+                rows.append(
+                    {
+                        "case": case,
+                        "tool": "TreeQSM port (pytlidar, stored)",
+                        "trees": 1,
+                        "dbh_m": ref["treeqsm_dbh_m"],
+                        "height_m": ref["treeqsm_height_m"],
+                        "volume_m3": ref["treeqsm_volume_m3"],
+                        "stem_volume_m3": ref["treeqsm_stem_volume_m3"],
+                    }
+                )
     return rows
 
 
@@ -489,8 +663,10 @@ def single_tree_table(rows: list[dict[str, Any]]) -> str:
     for r in rows:
         if r["case"].endswith("(real)") and ("stem_volume_m3" in r or r["tool"] == "sylva qsm"):
             cases.setdefault(r["case"], {})[r["tool"].split(" (")[0]] = r
-    lines = ["| tree | forestreg total (stem) m3 | sylva qsm total (stem) m3 | TreeQSM port total (stem) m3 | forestreg / TreeQSM total, stem |",
-             "|---|---:|---:|---:|---:|"]
+    lines = [
+        "| tree | forestreg total (stem) m3 | sylva qsm total (stem) m3 | TreeQSM port total (stem) m3 | forestreg / TreeQSM total, stem |",
+        "|---|---:|---:|---:|---:|",
+    ]
     for case, by in cases.items():
         fr, sy, tq = by.get("forestreg trees", {}), by.get("sylva qsm", {}), by.get("TreeQSM port", {})
 
@@ -500,8 +676,10 @@ def single_tree_table(rows: list[dict[str, Any]]) -> str:
         def pct(a: Any, b: Any) -> str:
             return _f(100.0 * (_num(a) / _num(b) - 1.0) if _num(b) > 0 else math.nan, "+.0f") + " %"
 
-        lines.append(f"| {case.replace(' (real)', '')} | {pair(fr)} | {pair(sy)} | {pair(tq)} "
-                     f"| {pct(fr.get('volume_m3'), tq.get('volume_m3'))}, {pct(fr.get('stem_volume_m3'), tq.get('stem_volume_m3'))} |")
+        lines.append(
+            f"| {case.replace(' (real)', '')} | {pair(fr)} | {pair(sy)} | {pair(tq)} "
+            f"| {pct(fr.get('volume_m3'), tq.get('volume_m3'))}, {pct(fr.get('stem_volume_m3'), tq.get('stem_volume_m3'))} |"
+        )
     return "\n".join(lines)
 
 
@@ -511,8 +689,10 @@ def _f(v: Any, fmt: str) -> str:
 
 def format_rows(rows: list[dict[str, Any]]) -> str:
     """A Markdown table of the rows."""
-    head = ("| case | tool | found | false stems | DBH rRMSE % | height rRMSE % (unflagged: n, rRMSE, max) | DBH m | height m | volume m3 "
-            "| s | MB |")
+    head = (
+        "| case | tool | found | false stems | DBH rRMSE % | height rRMSE % (unflagged: n, rRMSE, max) | DBH m | height m | volume m3 "
+        "| s | MB |"
+    )
     lines = ["Trees side by side with Sylva (one run; seconds and MB of each command)", "", head, "|" + "---|" * 11]
     for r in rows:
         found = f"{r['found']}/{r['true']}" if "found" in r else "-"
@@ -528,9 +708,11 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
             truth = f" (true {r['true_volume_m3']:.3f})"
         dbh = _f(r.get("dbh_m"), ".3f") + (f" (true {r['true_dbh_m']:.3f})" if "true_dbh_m" in r else "")
         status = "" if r.get("status", 0) == 0 else f" (failed, status {r['status']})"
-        lines.append(f"| {r['case']} | {r['tool']}{status} | {found} | {r.get('false_stems', '-')} | {_f(r.get('dbh_rrmse_pct'), '.1f')} | {hr} "
-                     f"| {dbh} | {_f(r.get('height_m'), '.2f')} | {_f(r.get('volume_m3'), '.3f')}{truth} | {_f(r.get('wall_s'), '.0f')} "
-                     f"| {_f(r.get('peak_mb'), '.0f')} |")
+        lines.append(
+            f"| {r['case']} | {r['tool']}{status} | {found} | {r.get('false_stems', '-')} | {_f(r.get('dbh_rrmse_pct'), '.1f')} | {hr} "
+            f"| {dbh} | {_f(r.get('height_m'), '.2f')} | {_f(r.get('volume_m3'), '.3f')}{truth} | {_f(r.get('wall_s'), '.0f')} "
+            f"| {_f(r.get('peak_mb'), '.0f')} |"
+        )
     return "\n".join(lines)
 
 
@@ -541,14 +723,27 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--json", type=Path, help="also write the rows to this JSON file")
     ap.add_argument("--workdir", type=Path, help="keep the outputs of every command here")
     ap.add_argument("--single-trees", action="store_true", help="only the single trees (simulated and real)")
-    ap.add_argument("--halves", action="store_true", help="only the held-out benchmark: tune and held-out plots, forestreg and Sylva")
-    ap.add_argument("--held-out-seed", type=int, help="with --halves: draw the held-out plots from this seed on (one per kind) "
-                    "instead of the stored held-out seeds")
+    ap.add_argument(
+        "--halves",
+        action="store_true",
+        help="only the held-out benchmark: tune and held-out plots, forestreg and Sylva",
+    )
+    ap.add_argument(
+        "--held-out-seed",
+        type=int,
+        help="with --halves: draw the held-out plots from this seed on (one per kind) "
+        "instead of the stored held-out seeds",
+    )
     args = ap.parse_args(argv)
     if args.halves:
         held = [args.held_out_seed + k for k in range(len(HALF_KINDS))] if args.held_out_seed is not None else None
         rows = run_halves(args.workdir, held)
-        print("seeds: tune " + ", ".join(map(str, TUNE_SEEDS)) + "; held out " + ", ".join(map(str, held or HELD_OUT_SEEDS)))
+        print(
+            "seeds: tune "
+            + ", ".join(map(str, TUNE_SEEDS))
+            + "; held out "
+            + ", ".join(map(str, held or HELD_OUT_SEEDS))
+        )
         return show_rows(halves_table(rows) + "\n\n" + halves_plot_rows(rows), rows, args.json, indent=1, default=float)
     rows = run(args.workdir, single_trees_only=args.single_trees)
     return show_rows(format_rows(rows) + "\n\n" + single_tree_table(rows), rows, args.json, indent=1, default=float)

@@ -89,8 +89,13 @@ def _forestreg(cloud: Path, work: Path, tag: str, cylinders: bool) -> dict[str, 
     argv = [sys.executable, "-m", "forestreg.cli", "trees", str(cloud), "--out", str(out), "--no-report"]
     run = run_command(argv + ([] if cylinders else ["--no-cylinders"]), log=log)
     rows = trees_compare._rows(out / "trees.csv") if run.status == 0 else []
-    return {"wall_s": run.wall_s, "peak_mb": max(run.peak_mb, run.tree_mb if math.isfinite(run.tree_mb) else 0.0),
-            "status": run.status, "steps": _steps(log), "rows": rows}
+    return {
+        "wall_s": run.wall_s,
+        "peak_mb": max(run.peak_mb, run.tree_mb if math.isfinite(run.tree_mb) else 0.0),
+        "status": run.status,
+        "steps": _steps(log),
+        "rows": rows,
+    }
 
 
 def run(workdir: Optional[Path] = None, copies: int = COPIES) -> list[dict[str, Any]]:
@@ -109,9 +114,17 @@ def run(workdir: Optional[Path] = None, copies: int = COPIES) -> list[dict[str, 
         full = _forestreg(cloud, work, f"{tag}_cyl", cylinders=True)
         for key, res in (("forestreg", fast), ("forestreg_cylinders", full)):
             rows_ = res.pop("rows")
-            row[key] = {**res, **trees_compare._plot_figures(rows_, truth, dbh_key="dbh_m", height_key="height_m",
-                                                             flagged=trees_compare._height_low)}
-        row["cylinder_s"] = full["steps"].get("leafwood", 0.0) + full["steps"].get("trees", math.nan) - fast["steps"].get("trees", math.nan)
+            row[key] = {
+                **res,
+                **trees_compare._plot_figures(
+                    rows_, truth, dbh_key="dbh_m", height_key="height_m", flagged=trees_compare._height_low
+                ),
+            }
+        row["cylinder_s"] = (
+            full["steps"].get("leafwood", 0.0)
+            + full["steps"].get("trees", math.nan)
+            - fast["steps"].get("trees", math.nan)
+        )
         if sylva:
             res, sy = trees_compare._sylva_trees(sylva, cloud, work)
             row["sylva"] = {**res, **trees_compare._plot_figures(sy, truth, dbh_key="dbh", height_key="height")}
@@ -130,8 +143,10 @@ def _ratio(a: dict[str, Any], b: Optional[dict[str, Any]], key: str = "wall_s") 
 
 
 def _accuracy(r: dict[str, Any]) -> str:
-    text = (f"{r['found']}/{r['true']} ({r['false_stems']}), DBH {_f(r['dbh_rrmse_pct'], '.1f')} %, "
-            f"height {_f(r['height_rrmse_pct'], '.1f')} %")
+    text = (
+        f"{r['found']}/{r['true']} ({r['false_stems']}), DBH {_f(r['dbh_rrmse_pct'], '.1f')} %, "
+        f"height {_f(r['height_rrmse_pct'], '.1f')} %"
+    )
     if "heights_unflagged" in r:
         text += f" (unflagged {r['heights_unflagged']}: {_f(r['unflagged_height_rrmse_pct'], '.1f')} %)"
     return text
@@ -139,25 +154,39 @@ def _accuracy(r: dict[str, Any]) -> str:
 
 def format_rows(rows: list[dict[str, Any]]) -> str:
     """Two Markdown tables: time and memory with the ratios, then the accuracy against the truth."""
-    lines = ["Trees at scale (one run; seconds and peak MB of each command; forestreg without cylinder models: "
-             "stems, DBH, heights, crowns; cylinder models: their leaf-wood separation and fits)", "",
-             "| cloud | points | reading | forestreg | Sylva ground + trees | forestreg / Sylva | forestreg / reading "
-             "| peak, forestreg / Sylva | with cylinder models | cylinder models | 1-min load |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "Trees at scale (one run; seconds and peak MB of each command; forestreg without cylinder models: "
+        "stems, DBH, heights, crowns; cylinder models: their leaf-wood separation and fits)",
+        "",
+        "| cloud | points | reading | forestreg | Sylva ground + trees | forestreg / Sylva | forestreg / reading "
+        "| peak, forestreg / Sylva | with cylinder models | cylinder models | 1-min load |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
         fr, fc, sy, rd = r["forestreg"], r["forestreg_cylinders"], r.get("sylva"), r["read"]
         lines.append(
             f"| {r['case']} | {r['points'] / 1e6:.1f} M | {_f(rd['wall_s'], '.1f')} s | {_f(fr['wall_s'], '.1f')} s, {_f(fr['peak_mb'], ',.0f')} MB "
             f"| {_f(sy['wall_s'], '.1f') + ' s, ' + _f(sy['peak_mb'], ',.0f') + ' MB' if sy else '-'} | {_ratio(fr, sy)} | {_ratio(fr, rd)} "
             f"| {_ratio(fr, sy, 'peak_mb')} | {_f(fc['wall_s'], '.1f')} s, {_f(fc['peak_mb'], ',.0f')} MB | {_f(r['cylinder_s'], '.1f')} s "
-            f"| {r['load_1min']:.1f} |")
-    lines += ["", "forestreg's steps without cylinder models (s): " + "; ".join(
-        f"{r['case']}: " + ", ".join(f"{k} {v:.1f}" for k, v in r["forestreg"]["steps"].items()) for r in rows), "",
-        "Against the truth (found/true (false stems), DBH rRMSE, height rRMSE):", "",
-        "| cloud | forestreg | forestreg with cylinder models | Sylva |", "|---|---|---|---|"]
+            f"| {r['load_1min']:.1f} |"
+        )
+    lines += [
+        "",
+        "forestreg's steps without cylinder models (s): "
+        + "; ".join(
+            f"{r['case']}: " + ", ".join(f"{k} {v:.1f}" for k, v in r["forestreg"]["steps"].items()) for r in rows
+        ),
+        "",
+        "Against the truth (found/true (false stems), DBH rRMSE, height rRMSE):",
+        "",
+        "| cloud | forestreg | forestreg with cylinder models | Sylva |",
+        "|---|---|---|---|",
+    ]
     for r in rows:
         sy = r.get("sylva")
-        lines.append(f"| {r['case']} | {_accuracy(r['forestreg'])} | {_accuracy(r['forestreg_cylinders'])} | {_accuracy(sy) if sy else '-'} |")
+        lines.append(
+            f"| {r['case']} | {_accuracy(r['forestreg'])} | {_accuracy(r['forestreg_cylinders'])} | {_accuracy(sy) if sy else '-'} |"
+        )
     return "\n".join(lines)
 
 
@@ -165,8 +194,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     import argparse
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--copies", type=int, default=COPIES, help="copies of the plot in the dense cloud (default 11: 32 M points)")
-    ap.add_argument("--workdir", type=Path, help="keep the clouds and every command's output here (default bench_out/trees_scale)")
+    ap.add_argument(
+        "--copies", type=int, default=COPIES, help="copies of the plot in the dense cloud (default 11: 32 M points)"
+    )
+    ap.add_argument(
+        "--workdir", type=Path, help="keep the clouds and every command's output here (default bench_out/trees_scale)"
+    )
     ap.add_argument("--json", type=Path, help="also write the rows to this JSON file")
     args = ap.parse_args(argv)
     rows = run(args.workdir, args.copies)

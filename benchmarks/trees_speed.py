@@ -54,8 +54,18 @@ def load_case(out: Path = OUT) -> tuple[np.ndarray, list[dict[str, Any]]]:
         mine = points[obj == t.id]
         top = t.point_at_height(t.height_m)
         seen = len(mine) > 0 and float(cKDTree(mine).query(top)[0]) < 0.3
-        trees.append({"id": t.id, "x": t.x, "y": t.y, "z": t.z, "dbh_m": t.dbh_m, "height_m": t.height_m,
-                      "crown_radius_m": t.crown_radius_m, "top_seen": bool(seen)})
+        trees.append(
+            {
+                "id": t.id,
+                "x": t.x,
+                "y": t.y,
+                "z": t.z,
+                "dbh_m": t.dbh_m,
+                "height_m": t.height_m,
+                "crown_radius_m": t.crown_radius_m,
+                "top_seen": bool(seen),
+            }
+        )
     out.mkdir(parents=True, exist_ok=True)
     write_points(laz, points)
     truth_path.write_text(json.dumps({"trees": trees, "n_points": len(points)}, indent=1))
@@ -76,16 +86,26 @@ def accuracy(inventory: Any, truth: dict[str, Any]) -> dict[str, float]:
     found = {t["id"] for _, t in pairs}
     inside = [t for t in trees if abs(t["x"]) < half and abs(t["y"]) < half and t["dbh_m"] >= 0.1]
     dbh = np.array([(r.dbh_m, t["dbh_m"]) for r, t in pairs if math.isfinite(r.dbh_m)])
-    h = [abs(r.crown.height_m - t["height_m"]) / t["height_m"] for r, t in pairs if t["top_seen"] and math.isfinite(r.crown.height_m)]
-    w = [abs(0.5 * (r.crown.crown_width_ew_m + r.crown.crown_width_ns_m) - 2 * t["crown_radius_m"]) / (2 * t["crown_radius_m"])
-         for r, t in pairs if t["top_seen"] and r.crown.ok]
+    h = [
+        abs(r.crown.height_m - t["height_m"]) / t["height_m"]
+        for r, t in pairs
+        if t["top_seen"] and math.isfinite(r.crown.height_m)
+    ]
+    w = [
+        abs(0.5 * (r.crown.crown_width_ew_m + r.crown.crown_width_ns_m) - 2 * t["crown_radius_m"])
+        / (2 * t["crown_radius_m"])
+        for r, t in pairs
+        if t["top_seen"] and r.crown.ok
+    ]
     return {
         "trees": len(inventory.trees),
         "found": sum(t["id"] in found for t in inside),
         "true": len(inside),
         "false_stems": len(inventory.trees) - len(pairs),
         "dbh_measured": len(dbh),
-        "dbh_rrmse_pct": 100 * math.sqrt(np.mean((dbh[:, 0] - dbh[:, 1]) ** 2)) / dbh[:, 1].mean() if len(dbh) else math.nan,
+        "dbh_rrmse_pct": 100 * math.sqrt(np.mean((dbh[:, 0] - dbh[:, 1]) ** 2)) / dbh[:, 1].mean()
+        if len(dbh)
+        else math.nan,
         "height_err_median_pct": 100 * float(np.median(h)) if h else math.nan,
         "crown_width_err_median_pct": 100 * float(np.median(w)) if w else math.nan,
         "volume_sum_m3": float(np.nansum([r.volume_m3 for r in inventory.trees])),
@@ -95,9 +115,27 @@ def accuracy(inventory: Any, truth: dict[str, Any]) -> dict[str, float]:
 
 def per_tree(inventory: Any) -> list[dict[str, Any]]:
     """Each tree's position and main figures (to compare two versions tree by tree)."""
-    return [{k: r[k] for k in ("tree_id", "x", "y", "dbh_m", "height_m", "crown_width_ew_m", "crown_width_ns_m",
-                               "crown_volume_m3", "volume_m3", "n_cylinders", "n_points", "wood_fraction", "flag")}
-            for r in inventory.rows()]
+    return [
+        {
+            k: r[k]
+            for k in (
+                "tree_id",
+                "x",
+                "y",
+                "dbh_m",
+                "height_m",
+                "crown_width_ew_m",
+                "crown_width_ns_m",
+                "crown_volume_m3",
+                "volume_m3",
+                "n_cylinders",
+                "n_points",
+                "wood_fraction",
+                "flag",
+            )
+        }
+        for r in inventory.rows()
+    ]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -124,7 +162,11 @@ def main(argv: list[str] | None = None) -> None:
         cpu, t = time.process_time(), time.perf_counter()
         inventory = measure_trees(points)
         total, cpu = time.perf_counter() - t, time.process_time() - cpu
-    print("timings (s): " + "  ".join(f"{k} {v:.1f}" for k, v in inventory.timings.items()) + f"  total {total:.1f}  (cpu {cpu:.1f})")
+    print(
+        "timings (s): "
+        + "  ".join(f"{k} {v:.1f}" for k, v in inventory.timings.items())
+        + f"  total {total:.1f}  (cpu {cpu:.1f})"
+    )
     acc = accuracy(inventory, truth)
     print("accuracy: " + "  ".join(f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in acc.items()))
     trees = per_tree(inventory)
@@ -133,8 +175,12 @@ def main(argv: list[str] | None = None) -> None:
         differ = sum(json.dumps(a) != json.dumps(b) for a, b in zip(saved, trees)) + abs(len(saved) - len(trees))
         print(f"compared with {args.compare}: {differ} of {len(trees)} trees differ")
     if args.save:
-        (OUT / f"{args.save}.json").write_text(json.dumps(
-            {"timings": {**inventory.timings, "total_s": total, "cpu_s": cpu}, "accuracy": acc, "trees": trees}, indent=1))
+        (OUT / f"{args.save}.json").write_text(
+            json.dumps(
+                {"timings": {**inventory.timings, "total_s": total, "cpu_s": cpu}, "accuracy": acc, "trees": trees},
+                indent=1,
+            )
+        )
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -45,10 +45,13 @@ def _measure(points: np.ndarray) -> dict[str, float]:
     t = time.perf_counter()
     tree = measure_trees(p, single_tree=True).trees[0]
     m = tree.cylinders
-    return {"volume_m3": float(m.total_volume_m3) if m is not None else float("nan"),
-            "stem_volume_m3": float(m.stem_volume_m3) if m is not None else float("nan"),
-            "stem_form_factor": tree.stem_form_factor, "flagged": any("volume" in f for f in tree.flags),
-            "seconds": time.perf_counter() - t}
+    return {
+        "volume_m3": float(m.total_volume_m3) if m is not None else float("nan"),
+        "stem_volume_m3": float(m.stem_volume_m3) if m is not None else float("nan"),
+        "stem_form_factor": tree.stem_form_factor,
+        "flagged": any("volume" in f for f in tree.flags),
+        "seconds": time.perf_counter() - t,
+    }
 
 
 def simulated() -> list[tuple[str, np.ndarray, dict[str, float]]]:
@@ -58,11 +61,16 @@ def simulated() -> list[tuple[str, np.ndarray, dict[str, float]]]:
     out = []
     dense = branching_broadleaf(0, dbh_m=0.6, height_m=18.0, crown_radius_m=7.0, orders=4, children_per_m=2.5)
     pts, _ = scan_wood_tree(dense, leaf_area_density=1.0, range_noise_m=0.005, seed=0)
-    out.append(("sim broadleaf, dense, leaves", pts, {"volume_m3": dense.volume_m3, "stem_volume_m3": dense.stem_volume_m3}))
+    out.append(
+        ("sim broadleaf, dense, leaves", pts, {"volume_m3": dense.volume_m3, "stem_volume_m3": dense.stem_volume_m3})
+    )
     sparse = branching_broadleaf(1, dbh_m=0.55, height_m=20.0, crown_radius_m=7.0, orders=4, children_per_m=2.0)
-    pts, _ = scan_wood_tree(sparse, positions=((-16.0, -6.0), (15.0, -8.0), (3.0, 16.0)), angular_step_deg=0.15,
-                            range_noise_m=0.008, seed=1)
-    out.append(("sim broadleaf, 6.6 cm spacing", pts, {"volume_m3": sparse.volume_m3, "stem_volume_m3": sparse.stem_volume_m3}))
+    pts, _ = scan_wood_tree(
+        sparse, positions=((-16.0, -6.0), (15.0, -8.0), (3.0, 16.0)), angular_step_deg=0.15, range_noise_m=0.008, seed=1
+    )
+    out.append(
+        ("sim broadleaf, 6.6 cm spacing", pts, {"volume_m3": sparse.volume_m3, "stem_volume_m3": sparse.stem_volume_m3})
+    )
     return out
 
 
@@ -76,21 +84,40 @@ def run() -> list[dict[str, Any]]:
         if not path.exists():
             continue
         got = _measure(np.asarray(read_scan(path).points, dtype=np.float64))
-        rows.append({"case": name, "reference": "TreeQSM", **got, "ref_volume_m3": ref["volume_m3"], "ref_stem_volume_m3": ref["stem_volume_m3"]})
+        rows.append(
+            {
+                "case": name,
+                "reference": "TreeQSM",
+                **got,
+                "ref_volume_m3": ref["volume_m3"],
+                "ref_stem_volume_m3": ref["stem_volume_m3"],
+            }
+        )
     for name, pts, truth in simulated():
         got = _measure(pts)
-        rows.append({"case": name, "reference": "truth", **got, "ref_volume_m3": truth["volume_m3"], "ref_stem_volume_m3": truth["stem_volume_m3"]})
+        rows.append(
+            {
+                "case": name,
+                "reference": "truth",
+                **got,
+                "ref_volume_m3": truth["volume_m3"],
+                "ref_stem_volume_m3": truth["stem_volume_m3"],
+            }
+        )
     return rows
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    lines = ["| case | reference | volume m3 (ref) | error | stem m3 (ref) | stem error | stem form factor | flagged |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| case | reference | volume m3 (ref) | error | stem m3 (ref) | stem error | stem form factor | flagged |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         lines.append(
             f"| {r['case']} | {r['reference']} | {r['volume_m3']:.4f} ({r['ref_volume_m3']:.4f}) | "
             f"{100 * (r['volume_m3'] / r['ref_volume_m3'] - 1):+.0f} % | {r['stem_volume_m3']:.4f} ({r['ref_stem_volume_m3']:.4f}) | "
-            f"{100 * (r['stem_volume_m3'] / r['ref_stem_volume_m3'] - 1):+.0f} % | {r['stem_form_factor']:.2f} | {'yes' if r['flagged'] else 'no'} |")
+            f"{100 * (r['stem_volume_m3'] / r['ref_stem_volume_m3'] - 1):+.0f} % | {r['stem_form_factor']:.2f} | {'yes' if r['flagged'] else 'no'} |"
+        )
     return "\n".join(lines)
 
 

@@ -23,7 +23,15 @@ import threading
 from typing import Optional, Sequence
 
 # imported here, not in the signal handler: an interrupt may arrive inside the import machinery
-from .common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, INTERRUPTED, Reporter, add_global_flags, progress_mode
+from .common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    INTERRUPTED,
+    Reporter,
+    add_global_flags,
+    progress_mode,
+)
 
 __all__ = ["build_parser", "entry", "main"]
 
@@ -45,7 +53,10 @@ def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
     from . import change, coreg, misc, plot, register, service, trees, warmup
 
-    parser = _Parser(prog="forestreg", description="Marker-free registration of forest laser scans, co-registration with UAV LiDAR, and tree measurements.")
+    parser = _Parser(
+        prog="forestreg",
+        description="Marker-free registration of forest laser scans, co-registration with UAV LiDAR, and tree measurements.",
+    )
     parser.add_argument("--version", action="version", version=f"forestreg {__version__}")
     add_global_flags(parser, top=True)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
@@ -92,7 +103,11 @@ def main(argv: Optional[Sequence[str]] = None, *, tune_malloc: bool = False) -> 
             Reporter("jsonl", "forestreg").end(code, (_Parser.last_error or "bad usage (see --help)") if code else "")
         return code
     if not logging.getLogger().handlers:
-        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+        logging.basicConfig(
+            level=logging.INFO if args.verbose else logging.WARNING,
+            format="%(levelname)s %(name)s: %(message)s",
+            stream=sys.stderr,
+        )
     elif args.verbose:
         logging.getLogger("forestreg").setLevel(logging.INFO)
     if tune_malloc and args.command in MALLOC_TUNED_COMMANDS and _small_scans(args):
@@ -131,11 +146,17 @@ def main(argv: Optional[Sequence[str]] = None, *, tune_malloc: bool = False) -> 
         _error(message)
         return code
     except OSError as exc:  # disk full, permission denied, ... on a path forestreg did not foresee
-        code, message = EXIT_BAD_INPUT, f"{exc.filename + ': ' if getattr(exc, 'filename', None) else ''}{exc.strerror or exc}"
+        code, message = (
+            EXIT_BAD_INPUT,
+            f"{exc.filename + ': ' if getattr(exc, 'filename', None) else ''}{exc.strerror or exc}",
+        )
         _error(message)
         return code
     except Exception as exc:  # a bug: one line (the traceback with -v), never a half-written output
-        code, message = EXIT_FAILED, f"internal error ({type(exc).__name__}: {_one_line(exc)}); please report it (-v shows the traceback)"
+        code, message = (
+            EXIT_FAILED,
+            f"internal error ({type(exc).__name__}: {_one_line(exc)}); please report it (-v shows the traceback)",
+        )
         if args.verbose:
             import traceback
 
@@ -218,7 +239,12 @@ MALLOC_TOP_PAD = 64 * 2**20
 MALLOC_ARENA_MAX = 2
 #: :func:`_tune_malloc`'s options (``mallopt`` parameter numbers: M_MMAP_THRESHOLD,
 #: M_TRIM_THRESHOLD, M_TOP_PAD, M_ARENA_MAX) and values
-MALLOC_FAST_OPTIONS = ((-3, MALLOC_MMAP_THRESHOLD), (-1, MALLOC_TRIM_THRESHOLD), (-2, MALLOC_TOP_PAD), (-8, MALLOC_ARENA_MAX))
+MALLOC_FAST_OPTIONS = (
+    (-3, MALLOC_MMAP_THRESHOLD),
+    (-1, MALLOC_TRIM_THRESHOLD),
+    (-2, MALLOC_TOP_PAD),
+    (-8, MALLOC_ARENA_MAX),
+)
 #: The commands whose threads share two malloc arenas (:data:`MALLOC_LEAN_OPTIONS`) and nothing
 #: else changed. ``trees``: glibc gives each thread (the stems' thread, the kernels' and the
 #: mixture's pools) an arena of its own, and what one thread freed then stays in its arena
@@ -310,7 +336,9 @@ def _terminate_as_interrupt():
     _quiet_collateral_after_interrupt()
 
     current = signal.getsignal(signal.SIGINT)
-    wanted = current is signal.default_int_handler or (current == signal.SIG_IGN and os.environ.get("FORESTREG_INTERRUPTIBLE") == "1")
+    wanted = current is signal.default_int_handler or (
+        current == signal.SIG_IGN and os.environ.get("FORESTREG_INTERRUPTIBLE") == "1"
+    )
     previous_int = signal.signal(signal.SIGINT, _interrupt) if wanted else None
     return signal.signal(signal.SIGTERM, _interrupt), previous_int
 
@@ -357,7 +385,10 @@ def _quiet_collateral_after_interrupt() -> None:
     def hook(unraisable) -> None:
         if INTERRUPTED.is_set():
             logging.getLogger("forestreg").debug(
-                "after the interrupt, ignored in %r: %s: %s", unraisable.object, type(unraisable.exc_value).__name__, unraisable.exc_value
+                "after the interrupt, ignored in %r: %s: %s",
+                unraisable.object,
+                type(unraisable.exc_value).__name__,
+                unraisable.exc_value,
             )
             return
         previous(unraisable)

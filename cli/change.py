@@ -13,18 +13,27 @@ def add_parsers(sub) -> None:
     p = sub.add_parser(
         "change",
         help="compare two surveys of one plot (re-survey): register AFTER onto BEFORE from the persisting stems, "
-             "then persisting / removed / new trees with DBH and height growth",
+        "then persisting / removed / new trees with DBH and height growth",
         description="BEFORE and AFTER are each a merged ground-based cloud (TLS, MLS, backpack; any frame), a saved plot "
-                    "project (.json) or the trees.csv (or output folder) of 'forestreg trees'.")
+        "project (.json) or the trees.csv (or output folder) of 'forestreg trees'.",
+    )
     p.add_argument("before", help="the earlier survey: a cloud, a project file or a trees.csv")
     p.add_argument("after", help="the later survey: a cloud, a project file or a trees.csv")
-    p.add_argument("--out", required=True, help="output folder (result.json, tree_changes.csv, report.html); replaced when the run completes")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output folder (result.json, tree_changes.csv, report.html); replaced when the run completes",
+    )
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     add_crs_option(p, "result.json and layers.gpkg are in BEFORE's frame and take its CRS")
     add_units_params(p, "unit of both surveys' coordinates", cmd_change)
     for role in ("before", "after"):
-        p.add_argument(f"--units-{role}", choices=sorted(UNITS), default=None,
-                       help=f"unit of the {role.upper()} survey's coordinates, when the two differ (default: --units)")
+        p.add_argument(
+            f"--units-{role}",
+            choices=sorted(UNITS),
+            default=None,
+            help=f"unit of the {role.upper()} survey's coordinates, when the two differ (default: --units)",
+        )
 
 
 def cmd_change(args: argparse.Namespace) -> int:
@@ -32,9 +41,18 @@ def cmd_change(args: argparse.Namespace) -> int:
 
     reporter: Reporter = args.reporter
     try:
-        outcome = detect_change_files(args.before, args.after, args.out, product_params(args), units=args.units,
-                                      units_before=args.units_before, units_after=args.units_after,
-                                      report=not args.no_report, crs=args.crs, progress=reporter)
+        outcome = detect_change_files(
+            args.before,
+            args.after,
+            args.out,
+            product_params(args),
+            units=args.units,
+            units_before=args.units_before,
+            units_after=args.units_after,
+            report=not args.no_report,
+            crs=args.crs,
+            progress=reporter,
+        )
     finally:
         reporter.close()
     out = outcome.out

@@ -14,9 +14,9 @@ import threading
 from pathlib import Path
 from typing import Optional
 
-log = logging.getLogger("forestreg")
-
 from ..app.units import UNITS  # noqa: F401 - the ``--units`` choices
+
+log = logging.getLogger("forestreg")
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -79,11 +79,19 @@ def add_global_flags(parser: argparse.ArgumentParser, *, top: bool = False) -> N
     """-v, -q and --progress, accepted before the command (``top``) and after it."""
     default = (lambda v: v) if top else (lambda v: argparse.SUPPRESS)
     parser.add_argument("-v", "--verbose", action="store_true", default=default(False), help="log every step to stderr")
-    parser.add_argument("-q", "--quiet", action="store_true", default=default(False), help="no progress on stderr (results and errors still printed)")
     parser.add_argument(
-        "--progress", choices=("bar", "jsonl", "none"), default=default(None),
-        help="progress on stderr: a bar (default), JSON lines ({\"event\": \"progress\", ...}, last "
-             "{\"event\": \"end\", ...}) for programs, or none",
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=default(False),
+        help="no progress on stderr (results and errors still printed)",
+    )
+    parser.add_argument(
+        "--progress",
+        choices=("bar", "jsonl", "none"),
+        default=default(None),
+        help='progress on stderr: a bar (default), JSON lines ({"event": "progress", ...}, last '
+        '{"event": "end", ...}) for programs, or none',
     )
 
 
@@ -132,7 +140,14 @@ class Reporter:
             raise KeyboardInterrupt
         f = min(max(float(fraction), 0.0), 1.0)
         if self.mode == "jsonl":
-            self._emit({"event": "progress", "step": step_id(message or self.command), "fraction": round(f, 4), "message": message})
+            self._emit(
+                {
+                    "event": "progress",
+                    "step": step_id(message or self.command),
+                    "fraction": round(f, 4),
+                    "message": message,
+                }
+            )
         elif self.mode == "bar":
             if not sys.stderr.isatty():  # a log: one line per new step (or 10 % more), never cut
                 if message != self._last or f >= self._last_fraction + 0.1 or (f == 1.0 and self._last_fraction < 1.0):
@@ -143,8 +158,13 @@ class Reporter:
             from tqdm import tqdm
 
             if self._bar is None:
-                self._bar = tqdm(total=1000, file=sys.stderr, bar_format="{desc}{percentage:3.0f}%|{bar:30}| {elapsed}",
-                                 desc=f"{self.command} ", leave=False)
+                self._bar = tqdm(
+                    total=1000,
+                    file=sys.stderr,
+                    bar_format="{desc}{percentage:3.0f}%|{bar:30}| {elapsed}",
+                    desc=f"{self.command} ",
+                    leave=False,
+                )
             if message != self._last:  # the whole message on its own line above the bar: never cut
                 tqdm.write(f"{self.command}: {message}", file=sys.stderr)
                 self._last = message
@@ -171,8 +191,15 @@ class Reporter:
         for folder in set(held_output_locks()) - self._locks_before:
             release_output_folder(folder)
         if self.mode == "jsonl":
-            self._emit({"event": "end", "exit_code": int(exit_code), "message": (message or self.message).splitlines()[0] if (message or self.message) else "",
-                        "result": self.result, "outputs": self.outputs or ([self.result] if self.result else [])})
+            self._emit(
+                {
+                    "event": "end",
+                    "exit_code": int(exit_code),
+                    "message": (message or self.message).splitlines()[0] if (message or self.message) else "",
+                    "result": self.result,
+                    "outputs": self.outputs or ([self.result] if self.result else []),
+                }
+            )
 
     @staticmethod
     def _emit(event: dict) -> None:
@@ -260,9 +287,12 @@ def add_units_params(p: argparse.ArgumentParser, units_help: str, func) -> None:
 def add_crs_option(p: argparse.ArgumentParser, what: str) -> None:
     """The ``--crs`` option: the coordinate reference system of inputs whose files declare none
     (``what`` says which outputs take it)."""
-    p.add_argument("--crs", metavar="EPSG:CODE",
-                   help=f"coordinate reference system of the input coordinates when a file declares none, or the one that wins "
-                        f"over the files' (e.g. EPSG:32618, or a WKT): {what}")
+    p.add_argument(
+        "--crs",
+        metavar="EPSG:CODE",
+        help=f"coordinate reference system of the input coordinates when a file declares none, or the one that wins "
+        f"over the files' (e.g. EPSG:32618, or a WKT): {what}",
+    )
 
 
 def shown(path) -> Path:

@@ -13,28 +13,56 @@ from .common import Reporter, floats, number, run_outcome, say, shown
 def add_parsers(sub) -> None:
     p = sub.add_parser("simulate", help="simulate TLS scans of a synthetic forest plot with known poses")
     p.add_argument("preset", help="planted_conifer, mixed_temperate, rainforest, sloped or open_field")
-    p.add_argument("--out", required=True, help="output folder (scan_XX.laz + truth.json); replaced when the run completes")
+    p.add_argument(
+        "--out", required=True, help="output folder (scan_XX.laz + truth.json); replaced when the run completes"
+    )
     p.add_argument("--positions", help="scanner positions 'x,y;x,y;...' in metres (default '0,0;10,0')")
     p.add_argument("--tilt", action="append", metavar="INDEX:DEG", help="tilt scan INDEX by DEG degrees (repeatable)")
-    p.add_argument("--step", type=number("--step", positive=True), default=0.2, help="angular step in degrees (default 0.2)")
-    p.add_argument("--size", type=number("--size", positive=True), default=60.0, help="plot side in metres (default 60)")
+    p.add_argument(
+        "--step", type=number("--step", positive=True), default=0.2, help="angular step in degrees (default 0.2)"
+    )
+    p.add_argument(
+        "--size", type=number("--size", positive=True), default=60.0, help="plot side in metres (default 60)"
+    )
     p.add_argument("--seed", type=number("--seed", minimum=0, integer=True), default=0, help="random seed (default 0)")
     p.set_defaults(func=cmd_simulate, long_running=True)
 
-    p = sub.add_parser("demo", help="simulated data through both systems (TLS pair; ground/UAV co-registration, fusion, trees), checked against the truth")
+    p = sub.add_parser(
+        "demo",
+        help="simulated data through both systems (TLS pair; ground/UAV co-registration, fusion, trees), checked against the truth",
+    )
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     p.add_argument("--preset", default="mixed_temperate", help="System A scene preset (default mixed_temperate)")
-    p.add_argument("--step", type=number("--step", positive=True), default=0.15, help="angular step of the simulated scans, degrees")
+    p.add_argument(
+        "--step",
+        type=number("--step", positive=True),
+        default=0.15,
+        help="angular step of the simulated scans, degrees",
+    )
     p.add_argument("--seed", type=number("--seed", minimum=0, integer=True), default=1, help="random seed (default 1)")
-    p.add_argument("--system", choices=("a", "b", "both"), default="both", help="System A (TLS pair), B (ground/UAV, trees) or both")
+    p.add_argument(
+        "--system",
+        choices=("a", "b", "both"),
+        default="both",
+        help="System A (TLS pair), B (ground/UAV, trees) or both",
+    )
     p.set_defaults(func=cmd_demo, long_running=True)
 
-    p = sub.add_parser("gui", help="the desktop GUI (--offscreen --project P --run --screenshot OUT.png for headless use)", add_help=False)
+    p = sub.add_parser(
+        "gui",
+        help="the desktop GUI (--offscreen --project P --run --screenshot OUT.png for headless use)",
+        add_help=False,
+    )
     p.add_argument("gui_args", nargs=argparse.REMAINDER, help="options of the GUI (see 'forestreg gui --help')")
     p.set_defaults(func=cmd_gui, long_running=False)
 
-    p = sub.add_parser("params", help="print every parameter of the product (or a TOML template: sections [registration], [coregistration], [fusion], [trees])")
-    p.add_argument("--toml", action="store_true", help="print a TOML file of the values (the defaults, or those of --params)")
+    p = sub.add_parser(
+        "params",
+        help="print every parameter of the product (or a TOML template: sections [registration], [coregistration], [fusion], [trees])",
+    )
+    p.add_argument(
+        "--toml", action="store_true", help="print a TOML file of the values (the defaults, or those of --params)"
+    )
     p.add_argument("--params", help="a TOML parameter file to show merged over the defaults")
     p.set_defaults(func=cmd_params, long_running=False)
 
@@ -43,7 +71,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from ..app.simulation import simulate_scans
     from ..engine.core.errors import UsageError
 
-    positions = [tuple(floats(p, 2, "--positions")) for p in args.positions.split(";")] if args.positions else [(0.0, 0.0), (10.0, 0.0)]
+    positions = (
+        [tuple(floats(p, 2, "--positions")) for p in args.positions.split(";")]
+        if args.positions
+        else [(0.0, 0.0), (10.0, 0.0)]
+    )
     tilted = {}
     for item in args.tilt or []:
         index, _, deg = item.partition(":")
@@ -54,8 +86,17 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         if not 0 <= k < len(positions) or not math.isfinite(d):
             raise UsageError(f"--tilt {item}: scan index must be 0..{len(positions) - 1} and the angle finite")
         tilted[k] = d
-    run = run_outcome(args.reporter, simulate_scans, args.preset, positions, args.out, seed=args.seed, step_deg=args.step,
-                      tilted=tilted, size_m=args.size)
+    run = run_outcome(
+        args.reporter,
+        simulate_scans,
+        args.preset,
+        positions,
+        args.out,
+        seed=args.seed,
+        step_deg=args.step,
+        tilted=tilted,
+        size_m=args.size,
+    )
     for name, count in run.scans:
         print(f"{name}: {count} points")
     args.reporter.done("", run.result_file)
@@ -126,10 +167,15 @@ def _demo_system_b(out: Path, args: argparse.Namespace) -> int:
     run_fuse(case.ground, case.uav, out / "fused.laz", transform=transform, reporter=_sub_reporter(args, "fuse"))
     run_trees(case.ground, out / "trees_ground", transform=transform, reporter=_sub_reporter(args, "trees"))
     run_trees(out / "fused.laz", out / "trees_fused", reporter=_sub_reporter(args, "trees"))
-    code = run_evaluate([("ground", out / "trees_ground" / "trees.csv"), ("fused", out / "trees_fused" / "trees.csv")], case.field,
-                        out / "evaluation")
-    print(f"reports: {shown(out) / 'coregistration' / 'report.html'}, {shown(out) / 'trees_fused' / 'report.html'}, "
-          f"{shown(out) / 'evaluation' / 'report.html'}")
+    code = run_evaluate(
+        [("ground", out / "trees_ground" / "trees.csv"), ("fused", out / "trees_fused" / "trees.csv")],
+        case.field,
+        out / "evaluation",
+    )
+    print(
+        f"reports: {shown(out) / 'coregistration' / 'report.html'}, {shown(out) / 'trees_fused' / 'report.html'}, "
+        f"{shown(out) / 'evaluation' / 'report.html'}"
+    )
     args.reporter.done("", out / "evaluation" / "evaluation.json")
     return code
 
@@ -154,7 +200,9 @@ def check_gui_args(gui_args) -> None:
         try:
             w, h = (int(v) for v in values["--size"].lower().split("x"))
         except ValueError:
-            raise UsageError(f"gui --size must be WIDTHxHEIGHT in pixels, e.g. 1600x1000 (got {values['--size']!r})") from None
+            raise UsageError(
+                f"gui --size must be WIDTHxHEIGHT in pixels, e.g. 1600x1000 (got {values['--size']!r})"
+            ) from None
         if w <= 0 or h <= 0 or w > 20000 or h > 20000:
             raise UsageError(f"gui --size {values['--size']}: width and height must be between 1 and 20000 pixels")
     if "--timeout" in values:
@@ -170,7 +218,9 @@ def cmd_gui(args: argparse.Namespace) -> int:
     try:
         from ..ui.app import main as gui_main
     except ImportError as exc:
-        print(f"forestreg: error: the GUI needs the 'gui' extras (pip install 'forestreg[gui]'): {exc}", file=sys.stderr)
+        print(
+            f"forestreg: error: the GUI needs the 'gui' extras (pip install 'forestreg[gui]'): {exc}", file=sys.stderr
+        )
         return 2
     return gui_main(list(args.gui_args))
 

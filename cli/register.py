@@ -7,29 +7,61 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from ..engine.core.uncertainty import evidence_notes
-from .common import (PARAMS_HELP, UNITS, Reporter, add_crs_option, direction, file_section, floats, number, offsets, params_from_args, run_outcome,
-                     say, shown)
+from .common import (
+    PARAMS_HELP,
+    UNITS,
+    Reporter,
+    add_crs_option,
+    direction,
+    file_section,
+    floats,
+    number,
+    offsets,
+    params_from_args,
+    run_outcome,
+    say,
+    shown,
+)
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("register", help="register a moving scan onto a reference scan from trunk shadows")
     p.add_argument("reference", help="reference scan (LAS/LAZ/PLY/PCD/E57/XYZ)")
     p.add_argument("moving", help="moving scan, mapped onto the reference")
-    p.add_argument("--out", required=True, help="output folder (new, empty, or an earlier register output: it is replaced when the run completes)")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output folder (new, empty, or an earlier register output: it is replaced when the run completes)",
+    )
     p.add_argument("--dr", type=number("--dr", positive=True), help="VOP radius D_r in metres (default: automatic)")
     p.add_argument("--dc", type=number("--dc", positive=True), help="reduction radius D_c in metres (default 30)")
     p.add_argument("--dh", type=offsets, help="slice offsets dh in metres, comma-separated (default 0)")
     p.add_argument("--params", help=PARAMS_HELP)
     p.add_argument(
-        "--scanner-position", action="append", type=lambda s: floats(s, 3, "--scanner-position"),
-        metavar="X,Y,Z", help="scanner position in file coordinates: first for the reference, again for the moving scan (default: each file's origin)",
+        "--scanner-position",
+        action="append",
+        type=lambda s: floats(s, 3, "--scanner-position"),
+        metavar="X,Y,Z",
+        help="scanner position in file coordinates: first for the reference, again for the moving scan (default: each file's origin)",
     )
-    p.add_argument("--units", choices=sorted(UNITS), default="m", help="unit of the files' coordinates (default m); results are written in the same unit")
     p.add_argument(
-        "--up", action="append", type=direction("--up"), metavar="X,Y,Z",
+        "--units",
+        choices=sorted(UNITS),
+        default="m",
+        help="unit of the files' coordinates (default m); results are written in the same unit",
+    )
+    p.add_argument(
+        "--up",
+        action="append",
+        type=direction("--up"),
+        metavar="X,Y,Z",
         help="the true vertical in a scan's own coordinates (from its inclination sensor): first for the reference, again for the moving scan (default: estimated from the data)",
     )
-    p.add_argument("--write-registered", action="store_true", help="also write the moving scan transformed into the reference frame (LAZ)")
+    p.add_argument(
+        "--write-registered",
+        action="store_true",
+        help="also write the moving scan transformed into the reference frame (LAZ)",
+    )
     add_crs_option(p, "result.json and the registered scan are in the reference scan's frame and take its CRS")
     p.set_defaults(func=cmd_register, long_running=True)
     return p
@@ -37,9 +69,17 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def cmd_register(args: argparse.Namespace) -> int:
     return run_register(
-        args.reference, args.moving, args.out, params=params_from_args(args), positions=args.scanner_position or [],
-        ups=args.up or [], units=args.units, write_registered=args.write_registered, reporter=args.reporter,
-        scanner_params=file_section(args, "scanner_position"), crs=args.crs,
+        args.reference,
+        args.moving,
+        args.out,
+        params=params_from_args(args),
+        positions=args.scanner_position or [],
+        ups=args.up or [],
+        units=args.units,
+        write_registered=args.write_registered,
+        reporter=args.reporter,
+        scanner_params=file_section(args, "scanner_position"),
+        crs=args.crs,
     )
 
 
@@ -63,9 +103,23 @@ def run_register(
     from ..app.pair import register_pair
 
     reporter = reporter or Reporter("none", "register")
-    return print_register(run_outcome(reporter, register_pair, reference_path, moving_path, out, params, positions=positions,
-                                      ups=ups, units=units, write_registered=write_registered, scanner_params=scanner_params, crs=crs),
-                          reporter)
+    return print_register(
+        run_outcome(
+            reporter,
+            register_pair,
+            reference_path,
+            moving_path,
+            out,
+            params,
+            positions=positions,
+            ups=ups,
+            units=units,
+            write_registered=write_registered,
+            scanner_params=scanner_params,
+            crs=crs,
+        ),
+        reporter,
+    )
 
 
 def print_register(outcome, reporter: Reporter) -> int:

@@ -28,7 +28,9 @@ def add_parser(sub) -> None:
         help="compile the numerical kernels now, into the per-version cache (scripts/setup.sh runs it; "
         "otherwise the first command after an install does it, about 45 s)",
     )
-    p.add_argument("--force", action="store_true", help="compile again even when the cache says the kernels are compiled")
+    p.add_argument(
+        "--force", action="store_true", help="compile again even when the cache says the kernels are compiled"
+    )
     p.set_defaults(func=cmd_warmup, long_running=False)
 
 
@@ -51,8 +53,11 @@ def cmd_warmup(args: argparse.Namespace) -> int:
         say(f"warmup: a command failed (exit {code}); the kernels it reached are compiled", args, err=True)
         return code
     mark_cache_warm()
-    say(f"compiled {signatures} signatures of {kernels} kernels in "
-        f"{time.perf_counter() - t0:.0f} s into {cache_folder() or 'memory (no cache folder)'}", args)
+    say(
+        f"compiled {signatures} signatures of {kernels} kernels in "
+        f"{time.perf_counter() - t0:.0f} s into {cache_folder() or 'memory (no cache folder)'}",
+        args,
+    )
     return 0
 
 
@@ -88,7 +93,9 @@ def _run_commands(folder: Path) -> int:
     scans = [plot / f"scan_0{k}.laz" for k in (1, 2, 3)]
     runs = [
         lambda: register_pair(scans[0], scans[1], folder / "pair", params.registration),
-        lambda: run_plot(new_project(scans, params.registration, name="plot_out"), plot_folder(folder / "plot_out", scans)),
+        lambda: run_plot(
+            new_project(scans, params.registration, name="plot_out"), plot_folder(folder / "plot_out", scans)
+        ),
         lambda: measure_trees_file(scans[0], folder / "trees_tls", params.trees, report=False),
     ]
     case = simulated_coregistration(folder, seed=1, size_m=24.0, ground_extent_m=14.0, tls_step_deg=0.5)

@@ -4,10 +4,10 @@ from .core.errors import (
     Cancelled,
     ForestregError,
     ParameterError,
+    ProjectFileError,
     ScanDataError,
     ScanReadError,
     ScanWriteError,
-    ProjectFileError,
     TargetError,
 )
 from .core.progress import CancelToken, Progress

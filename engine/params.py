@@ -23,9 +23,9 @@ import json
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+from .change.params import ChangeParams
 from .core.errors import ParameterError
 from .core.params import Params, read_toml
-from .change.params import ChangeParams
 from .coreg.coregister import CoregistrationParams
 from .coreg.fusion import FusionParams
 from .tls.params import PlanParams, RegistrationParams, ScannerPositionParams, SurveyParams
@@ -77,8 +77,10 @@ def _homes_of(key: str) -> str:
     homes = _sections_with(key, ProductParams())
     if homes:
         return f"{key} is outside every section: put it under {' or '.join(f'[{h}]' for h in homes)}"
-    return (f"{key} is outside every section, and no section has a parameter of that name "
-            f"(sections: {', '.join(f'[{f.name}]' for f in fields(ProductParams))}; 'forestreg params' lists them all)")
+    return (
+        f"{key} is outside every section, and no section has a parameter of that name "
+        f"(sections: {', '.join(f'[{f.name}]' for f in fields(ProductParams))}; 'forestreg params' lists them all)"
+    )
 
 
 def _toml_value(v: object) -> str:

@@ -258,20 +258,32 @@ def _options(pairs: Sequence[tuple[str, object]]) -> list[str]:
 def build_coregister_args(job: CoregisterJob) -> list[str]:
     """The CLI arguments of a co-registration (a job of the service)."""
     cmd = ["coregister", str(job.ground), str(job.uav), "--out", str(job.out_dir)]
-    cmd += _options([("--min-cluster-size", None if job.min_cluster_size is None else int(job.min_cluster_size)),
-                     ("--voxel", None if job.voxel_m is None else float(job.voxel_m)),
-                     ("--distance-threshold", None if job.distance_threshold_m is None else float(job.distance_threshold_m)),
-                     ("--crs", job.crs), ("--units", job.units), ("--params", job.params_file)])
+    cmd += _options(
+        [
+            ("--min-cluster-size", None if job.min_cluster_size is None else int(job.min_cluster_size)),
+            ("--voxel", None if job.voxel_m is None else float(job.voxel_m)),
+            ("--distance-threshold", None if job.distance_threshold_m is None else float(job.distance_threshold_m)),
+            ("--crs", job.crs),
+            ("--units", job.units),
+            ("--params", job.params_file),
+        ]
+    )
     return cmd + [str(a) for a in job.extra_args]
 
 
 def build_fuse_args(job: FuseJob) -> list[str]:
     """The CLI arguments of a fusion (a job of the service)."""
     cmd = ["fuse", str(job.ground), str(job.uav), "--out", str(job.out)]
-    cmd += _options([("--transform", job.transform),
-                     ("--epsilon", None if job.epsilon_m is None else float(job.epsilon_m)),
-                     ("--cube", None if job.cube_m is None else float(job.cube_m)),
-                     ("--crs", job.crs), ("--units", job.units), ("--params", job.params_file)])
+    cmd += _options(
+        [
+            ("--transform", job.transform),
+            ("--epsilon", None if job.epsilon_m is None else float(job.epsilon_m)),
+            ("--cube", None if job.cube_m is None else float(job.cube_m)),
+            ("--crs", job.crs),
+            ("--units", job.units),
+            ("--params", job.params_file),
+        ]
+    )
     return cmd + [str(a) for a in job.extra_args]
 
 
@@ -314,15 +326,27 @@ def build_change_args(job: ChangeJob) -> list[str]:
     cmd = ["change", str(job.before), str(job.after), "--out", str(job.out_dir)]
     if not job.report:
         cmd.append("--no-report")
-    cmd += _options([("--crs", job.crs), ("--units", job.units), ("--units-before", job.units_before),
-                     ("--units-after", job.units_after), ("--params", job.params_file)])
+    cmd += _options(
+        [
+            ("--crs", job.crs),
+            ("--units", job.units),
+            ("--units-before", job.units_before),
+            ("--units-after", job.units_after),
+            ("--params", job.params_file),
+        ]
+    )
     return cmd + [str(a) for a in job.extra_args]
 
 
 #: the command of each job type and the function that builds its arguments
 JOB_ARGS = {
-    PairJob: build_pair_args, PlotJob: build_plot_args, CoregisterJob: build_coregister_args, FuseJob: build_fuse_args,
-    TreesJob: build_trees_args, EvaluateJob: build_evaluate_args, ChangeJob: build_change_args,
+    PairJob: build_pair_args,
+    PlotJob: build_plot_args,
+    CoregisterJob: build_coregister_args,
+    FuseJob: build_fuse_args,
+    TreesJob: build_trees_args,
+    EvaluateJob: build_evaluate_args,
+    ChangeJob: build_change_args,
 }
 
 
@@ -390,8 +414,14 @@ def engine_problem(cli: Union[None, str, Sequence[str]] = None) -> Optional[str]
     python = command[0]
     code = f"import importlib.util as u; print(' '.join(m for m in {ENGINE_MODULES!r} if u.find_spec(m) is None))"
     try:
-        run = subprocess.run([python, "-c", code], capture_output=True, text=True, timeout=60, env=_subprocess_env(command))
-        missing = run.stdout.split() if run.returncode == 0 else ["(the interpreter failed: " + (run.stderr.strip().splitlines() or ["?"])[-1] + ")"]
+        run = subprocess.run(
+            [python, "-c", code], capture_output=True, text=True, timeout=60, env=_subprocess_env(command)
+        )
+        missing = (
+            run.stdout.split()
+            if run.returncode == 0
+            else ["(the interpreter failed: " + (run.stderr.strip().splitlines() or ["?"])[-1] + ")"]
+        )
     except (OSError, subprocess.SubprocessError) as exc:
         missing = [f"(the interpreter cannot be run: {exc})"]
     if not missing:
@@ -472,7 +502,9 @@ def run_job(
     if code == EXIT_BAD_INPUT:
         raise BadInputError(f"forestreg: bad input: {message}", code, message)
     if final["status"] != "done" or code not in (EXIT_OK, EXIT_FAILED):
-        raise AdapterError(f"forestreg job {final['status']} (exit status {code}): {message or 'no message'}", code, message)
+        raise AdapterError(
+            f"forestreg job {final['status']} (exit status {code}): {message or 'no message'}", code, message
+        )
     return JobRun(job_id, args, code, message, final.get("result"), time.monotonic() - t0)
 
 
@@ -519,12 +551,22 @@ def read_vops_csv(path: Union[str, Path], scan: str, to_frame: Optional[Matrix] 
             p = (float(row["x"]), float(row["y"]), float(row["z"]))
             q = apply_matrix(to_frame, p) if to_frame is not None else p
             other = (row.get("matched_with") or "").strip()
-            rows.append({
-                "scan": scan, "id": int(row["id"]), "x": q[0], "y": q[1], "z": q[2],
-                "x_file": p[0], "y_file": p[1], "z_file": p[2],
-                "radius_m": float(row["radius_m"]), "support_points": int(row["support_points"]),
-                "matched": bool(other), "matched_with": int(other) if other else None,
-            })
+            rows.append(
+                {
+                    "scan": scan,
+                    "id": int(row["id"]),
+                    "x": q[0],
+                    "y": q[1],
+                    "z": q[2],
+                    "x_file": p[0],
+                    "y_file": p[1],
+                    "z_file": p[2],
+                    "radius_m": float(row["radius_m"]),
+                    "support_points": int(row["support_points"]),
+                    "matched": bool(other),
+                    "matched_with": int(other) if other else None,
+                }
+            )
     return rows
 
 
@@ -554,10 +596,22 @@ class HostOutputs:
         return (self.result.matched or 0) if self.result is not None else 0
 
 
-def _scanner(name: str, role: str, status: str, position: Sequence[float], registered: bool, reason: str, **more: str) -> dict:
+def _scanner(
+    name: str, role: str, status: str, position: Sequence[float], registered: bool, reason: str, **more: str
+) -> dict:
     """A scanner record (:data:`SCANNER_FIELDS`)."""
     x, y, z = position
-    return {"name": name, "role": role, "status": status, "registered": registered, "x": x, "y": y, "z": z, "reason": reason, **more}
+    return {
+        "name": name,
+        "role": role,
+        "status": status,
+        "registered": registered,
+        "x": x,
+        "y": y,
+        "z": z,
+        "reason": reason,
+        **more,
+    }
 
 
 def read_pair_outputs(out_dir: Union[str, Path], scanner_positions: Sequence[Sequence[float]] = ()) -> HostOutputs:
@@ -572,14 +626,25 @@ def read_pair_outputs(out_dir: Union[str, Path], scanner_positions: Sequence[Seq
     mov_name = result.moving or "moving"
     ref_pos = tuple(scanner_positions[0]) if len(scanner_positions) > 0 else (0.0, 0.0, 0.0)
     mov_pos = tuple(scanner_positions[1]) if len(scanner_positions) > 1 else (0.0, 0.0, 0.0)
-    scanners = [_scanner(ref_name, "reference", "ok", ref_pos, True, ""),
-                _scanner(mov_name, "moving", result.status, apply_matrix(matrix, mov_pos) if matrix is not None else mov_pos,
-                         matrix is not None, result.reason)]
+    scanners = [
+        _scanner(ref_name, "reference", "ok", ref_pos, True, ""),
+        _scanner(
+            mov_name,
+            "moving",
+            result.status,
+            apply_matrix(matrix, mov_pos) if matrix is not None else mov_pos,
+            matrix is not None,
+            result.reason,
+        ),
+    ]
     vops: list[dict] = []
     # a registration that fails before VOPs exist writes no VOP files: that is not an error
     if (out / "reference_vops.csv").is_file() or result.ok:
         vops += [dict(v, registered=True) for v in read_vops_csv(out / "reference_vops.csv", ref_name)]
-        vops += [dict(v, registered=matrix is not None) for v in read_vops_csv(out / "moving_vops.csv", mov_name, to_frame=matrix)]
+        vops += [
+            dict(v, registered=matrix is not None)
+            for v in read_vops_csv(out / "moving_vops.csv", mov_name, to_frame=matrix)
+        ]
     return HostOutputs("pair", out, result.status, ref_name, summary, scanners, vops, result.reason, result)
 
 
@@ -597,15 +662,40 @@ def read_plot_outputs(out_dir: Union[str, Path]) -> HostOutputs:
     scanners = []
     for s in poses.scans:
         p = positions.get(s.name, (0.0, 0.0, 0.0))
-        scanners.append(_scanner(s.name, "centre" if s.name == poses.frame else "scan", s.status,
-                                 apply_matrix(s.matrix, p) if s.registered else p, s.registered, s.reason, reference=s.reference))
-    return HostOutputs("plot", out, "ok" if not poses.not_registered else "failed", poses.frame, summary, scanners, [], poses.reason())
+        scanners.append(
+            _scanner(
+                s.name,
+                "centre" if s.name == poses.frame else "scan",
+                s.status,
+                apply_matrix(s.matrix, p) if s.registered else p,
+                s.registered,
+                s.reason,
+                reference=s.reference,
+            )
+        )
+    return HostOutputs(
+        "plot", out, "ok" if not poses.not_registered else "failed", poses.frame, summary, scanners, [], poses.reason()
+    )
 
 
 # ----------------------------------------------------------------------------- layer files
 
 SCANNER_FIELDS = ["name", "role", "status", "registered", "x", "y", "z", "reason"]
-VOP_FIELDS = ["scan", "id", "x", "y", "z", "x_file", "y_file", "z_file", "radius_m", "support_points", "matched", "matched_with", "registered"]
+VOP_FIELDS = [
+    "scan",
+    "id",
+    "x",
+    "y",
+    "z",
+    "x_file",
+    "y_file",
+    "z_file",
+    "radius_m",
+    "support_points",
+    "matched",
+    "matched_with",
+    "registered",
+]
 
 
 def write_layer_csv(path: Union[str, Path], records: Sequence[dict], fields: Sequence[str]) -> Path:
@@ -616,7 +706,9 @@ def write_layer_csv(path: Union[str, Path], records: Sequence[dict], fields: Seq
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(fields)
         for r in records:
-            w.writerow(["" if r.get(k) is None else int(r[k]) if isinstance(r.get(k), bool) else r.get(k) for k in fields])
+            w.writerow(
+                ["" if r.get(k) is None else int(r[k]) if isinstance(r.get(k), bool) else r.get(k) for k in fields]
+            )
     os.replace(tmp, path)
     return path
 
@@ -632,7 +724,11 @@ class LayerFiles:
 def write_layer_files(outputs: HostOutputs) -> LayerFiles:
     """``layer_scanners.csv`` (and ``layer_vops.csv`` for a pair) in the output folder."""
     scanners = write_layer_csv(outputs.out_dir / "layer_scanners.csv", outputs.scanners, SCANNER_FIELDS)
-    vops = write_layer_csv(outputs.out_dir / "layer_vops.csv", outputs.vops, VOP_FIELDS) if outputs.kind == "pair" else None
+    vops = (
+        write_layer_csv(outputs.out_dir / "layer_vops.csv", outputs.vops, VOP_FIELDS)
+        if outputs.kind == "pair"
+        else None
+    )
     return LayerFiles(scanners, vops)
 
 
@@ -644,7 +740,10 @@ def output_crs(summary: object) -> Optional[str]:
 
 def delimited_text_uri(path: Union[str, Path], crs: Optional[str] = None) -> str:
     """A QGIS ``delimitedtext`` provider URI for a layer CSV (points from x, y, z)."""
-    uri = Path(path).resolve().as_uri() + "?type=csv&delimiter=,&xField=x&yField=y&zField=z&detectTypes=yes&geomType=point&spatialIndex=no&subsetIndex=no&watchFile=no"
+    uri = (
+        Path(path).resolve().as_uri()
+        + "?type=csv&delimiter=,&xField=x&yField=y&zField=z&detectTypes=yes&geomType=point&spatialIndex=no&subsetIndex=no&watchFile=no"
+    )
     if crs:
         uri += f"&crs={crs}"
     return uri
@@ -663,7 +762,9 @@ def register(
     """Run ``forestreg register`` (a :class:`PairJob`) or ``forestreg plot`` (a :class:`PlotJob`)
     for ``job`` as a job of the service and read what it wrote (also the layer CSVs)."""
     pair = isinstance(job, PairJob)
-    run_job(build_pair_args(job) if pair else build_plot_args(job), progress=progress, log=log, cancelled=cancelled, cli=cli)
+    run_job(
+        build_pair_args(job) if pair else build_plot_args(job), progress=progress, log=log, cancelled=cancelled, cli=cli
+    )
     outputs = read_pair_outputs(job.out_dir, job.scanner_positions) if pair else read_plot_outputs(job.out_dir)
     if pair and outputs.status == "ok":
         _need(Path(job.out_dir) / "transform.txt")
@@ -706,10 +807,15 @@ def gpkg_layers(path: Union[str, Path]) -> list[GpkgLayer]:
     except sqlite3.Error as exc:
         raise AdapterError(f"{path}: not a GeoPackage ({exc})") from exc
     try:
-        names = [r[0] for r in con.execute("SELECT table_name FROM gpkg_contents WHERE data_type = 'features' ORDER BY rowid")]
+        names = [
+            r[0]
+            for r in con.execute("SELECT table_name FROM gpkg_contents WHERE data_type = 'features' ORDER BY rowid")
+        ]
         styles: dict[str, str] = {}
         try:
-            for table, qml in con.execute("SELECT f_table_name, styleQML FROM layer_styles WHERE useAsDefault ORDER BY id"):
+            for table, qml in con.execute(
+                "SELECT f_table_name, styleQML FROM layer_styles WHERE useAsDefault ORDER BY id"
+            ):
                 styles.setdefault(table, qml or "")
         except sqlite3.OperationalError:  # no layer_styles table
             pass

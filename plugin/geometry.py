@@ -31,9 +31,22 @@ __all__ = ["StemLine", "TreeMesh", "TreesScene", "TREE_PALETTE", "tree_colour", 
 #: Tree colours (RGB bytes), the trees report's map palette: tab20 without its reds (the flag
 #: colour) and greys (points in no tree); it repeats every 16 trees.
 TREE_PALETTE = (
-    (31, 119, 180), (255, 127, 14), (44, 160, 44), (148, 103, 189), (140, 86, 75), (227, 119, 194),
-    (188, 189, 34), (23, 190, 207), (174, 199, 232), (255, 187, 120), (152, 223, 138), (197, 176, 213),
-    (196, 156, 148), (247, 182, 210), (219, 219, 141), (158, 218, 229),
+    (31, 119, 180),
+    (255, 127, 14),
+    (44, 160, 44),
+    (148, 103, 189),
+    (140, 86, 75),
+    (227, 119, 194),
+    (188, 189, 34),
+    (23, 190, 207),
+    (174, 199, 232),
+    (255, 187, 120),
+    (152, 223, 138),
+    (197, 176, 213),
+    (196, 156, 148),
+    (247, 182, 210),
+    (219, 219, 141),
+    (158, 218, 229),
 )
 
 #: facets of a tube unless asked otherwise (few: a plot holds thousands of cylinders)
@@ -147,8 +160,9 @@ def _shift_for(points: np.ndarray) -> tuple[float, float, float]:
     return tuple(float(-100.0 * round(c / 100.0)) for c in finite[0])  # type: ignore[return-value]
 
 
-def trees_scene(folder: Union[str, Path], *, facets: int = DEFAULT_FACETS, unit_scale: float = 1.0,
-                name: Optional[str] = None) -> TreesScene:
+def trees_scene(
+    folder: Union[str, Path], *, facets: int = DEFAULT_FACETS, unit_scale: float = 1.0, name: Optional[str] = None
+) -> TreesScene:
     """The meshes and polylines of a trees output folder (see the module docstring); trees
     without a cylinder model get no mesh, trees without stem curve centres no polyline. Raises
     :class:`~forestreg.engine.core.errors.ScanReadError` for a folder without ``trees.csv`` or with
@@ -160,22 +174,42 @@ def trees_scene(folder: Union[str, Path], *, facets: int = DEFAULT_FACETS, unit_
         c = out.cylinders(tid)
         starts = np.stack([c["start_x"], c["start_y"], c["start_z"]], axis=1)
         axes = np.stack([c["axis_x"], c["axis_y"], c["axis_z"]], axis=1)
-        ok = (np.isfinite(starts).all(axis=1) & np.isfinite(axes).all(axis=1) & (np.linalg.norm(axes, axis=1) > 0)
-              & np.isfinite(c["length_m"]) & np.isfinite(c["radius_m"]) & (c["radius_m"] > 0))
+        ok = (
+            np.isfinite(starts).all(axis=1)
+            & np.isfinite(axes).all(axis=1)
+            & (np.linalg.norm(axes, axis=1) > 0)
+            & np.isfinite(c["length_m"])
+            & np.isfinite(c["radius_m"])
+            & (c["radius_m"] > 0)
+        )
         if not ok.any():
             continue
         v, t = tubes(starts[ok], axes[ok], c["length_m"][ok] * per_unit, c["radius_m"][ok] * per_unit, facets)
-        meshes.append(TreeMesh(tree_id=int(tid), vertices=v, triangles=t, n_cylinders=int(ok.sum()), facets=int(facets),
-                               colour=tree_colour(tid)))
+        meshes.append(
+            TreeMesh(
+                tree_id=int(tid),
+                vertices=v,
+                triangles=t,
+                n_cylinders=int(ok.sum()),
+                facets=int(facets),
+                colour=tree_colour(tid),
+            )
+        )
     lines: list[StemLine] = []
     for tid in sorted(out.curves):
         curve = out.curves[tid]
         keep = np.isfinite(curve.centres).all(axis=1)
         if keep.sum() < 2:
             continue
-        lines.append(StemLine(tree_id=int(tid), points=curve.centres[keep], diameter_m=curve.diameter_m[keep],
-                              colour=tree_colour(tid)))
-    first = [m.vertices[:1] for m in meshes] + [ln.points[:1] for ln in lines] + [
-        np.array([[t.x, t.y, t.z if math.isfinite(t.z) else 0.0]]) for t in out.trees[:1]]
+        lines.append(
+            StemLine(
+                tree_id=int(tid), points=curve.centres[keep], diameter_m=curve.diameter_m[keep], colour=tree_colour(tid)
+            )
+        )
+    first = (
+        [m.vertices[:1] for m in meshes]
+        + [ln.points[:1] for ln in lines]
+        + [np.array([[t.x, t.y, t.z if math.isfinite(t.z) else 0.0]]) for t in out.trees[:1]]
+    )
     shift = _shift_for(np.vstack(first)) if first else (0.0, 0.0, 0.0)
     return TreesScene(name=name or Path(folder).resolve().name, meshes=meshes, lines=lines, shift=shift)

@@ -110,14 +110,16 @@ def _usage(parser: argparse.ArgumentParser) -> str:
             os.environ["COLUMNS"] = before
 
 
-def _command_section(title: str, help_text: str, parser: argparse.ArgumentParser, issues: list[str], level: int = 2) -> list[str]:
+def _command_section(
+    title: str, help_text: str, parser: argparse.ArgumentParser, issues: list[str], level: int = 2
+) -> list[str]:
     lines = [f"{'#' * level} `{title}`", ""]
     if help_text:
         lines += [help_text[0].upper() + help_text[1:] + ("" if help_text.endswith(".") else "."), ""]
     else:
         issues.append(f"command '{title}' has no help text")
     usage = _usage(parser)
-    usage = usage[len("usage: "):] if usage.startswith("usage: ") else usage
+    usage = usage[len("usage: ") :] if usage.startswith("usage: ") else usage
     lines += ["```", usage, "```", ""]
     rows = list(_option_rows(parser))
     subs = _subcommands(parser)
@@ -168,7 +170,14 @@ def cli_reference(issues: list[str] | None = None) -> str:
         if name == "gui":
             gui = _gui_parser()
             if gui is None:
-                lines += ["## `forestreg gui`", "", help_text, "", "(The desktop application's options need the `gui` extra.)", ""]
+                lines += [
+                    "## `forestreg gui`",
+                    "",
+                    help_text,
+                    "",
+                    "(The desktop application's options need the `gui` extra.)",
+                    "",
+                ]
                 continue
             lines += _command_section("forestreg gui", help_text, gui, issues)
             continue
@@ -229,7 +238,7 @@ def parameters_reference(issues: list[str] | None = None) -> str:
         "parameters reads one TOML file with `--params FILE`; a file sets only what it changes, and a",
         "misspelt name is refused with its section and the known names. `forestreg params` prints",
         "every value, `forestreg params --toml > my.toml` writes them all as a template (the same as",
-        "`resources/default_params.toml`). From Python: `forestreg.load_params(\"my.toml\")` or",
+        '`resources/default_params.toml`). From Python: `forestreg.load_params("my.toml")` or',
         "`forestreg.ProductParams()`, and `params.registration.replace(vop_radius_m=15.0)`.",
         "",
         "Units: `m` metres, `deg` degrees, `1` a dimensionless ratio, fraction or factor; a count",
@@ -356,11 +365,31 @@ def _column_tables() -> list[tuple[str, str, tuple[str, ...]]]:
     from forestreg.service.batch import SUMMARY_FIELDS
 
     return [
-        ("`reference_vops.csv`, `moving_vops.csv`", "`forestreg register`: the visual occlusion points (trunk axes at the slice) of each scan", tuple(VOP_COLUMNS)),
-        ("`keypoints_ground.csv`, `keypoints_uav.csv`", "`forestreg coregister`: the canopy keypoints of each cloud", tuple(KEYPOINT_COLUMNS)),
-        ("targets CSV", "`--targets` of `plot`, `compare`, `project create`; written by `forestreg targets`: one row per target and scan, coordinates in that scan's own frame", tuple(CSV_COLUMNS)),
-        ("`trees.csv`", "`forestreg trees`: one row per tree, positions in the cloud's file coordinates", tuple(TREE_COLUMNS)),
-        ("`tree_changes.csv`", "`forestreg change`: one row per tree of either survey, `x`, `y` in BEFORE's file coordinates", tuple(CHANGE_COLUMNS)),
+        (
+            "`reference_vops.csv`, `moving_vops.csv`",
+            "`forestreg register`: the visual occlusion points (trunk axes at the slice) of each scan",
+            tuple(VOP_COLUMNS),
+        ),
+        (
+            "`keypoints_ground.csv`, `keypoints_uav.csv`",
+            "`forestreg coregister`: the canopy keypoints of each cloud",
+            tuple(KEYPOINT_COLUMNS),
+        ),
+        (
+            "targets CSV",
+            "`--targets` of `plot`, `compare`, `project create`; written by `forestreg targets`: one row per target and scan, coordinates in that scan's own frame",
+            tuple(CSV_COLUMNS),
+        ),
+        (
+            "`trees.csv`",
+            "`forestreg trees`: one row per tree, positions in the cloud's file coordinates",
+            tuple(TREE_COLUMNS),
+        ),
+        (
+            "`tree_changes.csv`",
+            "`forestreg change`: one row per tree of either survey, `x`, `y` in BEFORE's file coordinates",
+            tuple(CHANGE_COLUMNS),
+        ),
         ("`summary.csv`", "`forestreg batch`: one row per plot", tuple(SUMMARY_FIELDS)),
     ]
 
@@ -380,7 +409,9 @@ def columns_reference(issues: list[str] | None = None) -> str:
         for c in columns:
             text = COLUMN_HELP.get(c, "")
             if not text:
-                issues.append(f"column '{c}' of {name.replace('`', '')} has no description in scripts/docs_hooks.py COLUMN_HELP")
+                issues.append(
+                    f"column '{c}' of {name.replace('`', '')} has no description in scripts/docs_hooks.py COLUMN_HELP"
+                )
             lines.append(f"| `{c}` | {_cell(text)} |")
         lines.append("")
     return "\n".join(lines) + "\n"
@@ -483,7 +514,9 @@ def on_config(config, **kwargs):
         rel = path.relative_to(docs).as_posix()
         if rel in named:
             continue
-        title = next((line[2:].strip() for line in path.read_text(encoding="utf-8").splitlines() if line.startswith("# ")), rel)
+        title = next(
+            (line[2:].strip() for line in path.read_text(encoding="utf-8").splitlines() if line.startswith("# ")), rel
+        )
         extra.append({title: rel})
     nav.extend(extra)  # after the last page (architecture)
     return config

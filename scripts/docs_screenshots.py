@@ -29,9 +29,15 @@ def forestreg(*args: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="docs_screenshots.py", description="Take the documentation's screenshots of the desktop application again.")
-    parser.add_argument("--demo", help="output folder of an earlier 'forestreg demo --system b' (default: run it, about 3 minutes)")
-    parser.add_argument("--out", default=str(ROOT / "docs" / "images"), help="folder of the pictures (default docs/images)")
+    parser = argparse.ArgumentParser(
+        prog="docs_screenshots.py", description="Take the documentation's screenshots of the desktop application again."
+    )
+    parser.add_argument(
+        "--demo", help="output folder of an earlier 'forestreg demo --system b' (default: run it, about 3 minutes)"
+    )
+    parser.add_argument(
+        "--out", default=str(ROOT / "docs" / "images"), help="folder of the pictures (default docs/images)"
+    )
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -44,8 +50,17 @@ def main(argv: list[str] | None = None) -> int:
             ("gui_main.png", ["--sample", "--run"]),
             ("gui_coregistration.png", ["--coregistration", str(b / "coregistration")]),
             ("gui_trees.png", ["--trees", str(b / "trees_fused"), "--cloud", str(b / "fused.laz"), "--tree", "14"]),
-            ("gui_field_data.png", ["--trees", str(b / "trees_ground"), "--field", str(b / "data" / "field.csv"),
-                                    "--also", f"fused={b / 'trees_fused'}"]),
+            (
+                "gui_field_data.png",
+                [
+                    "--trees",
+                    str(b / "trees_ground"),
+                    "--field",
+                    str(b / "data" / "field.csv"),
+                    "--also",
+                    f"fused={b / 'trees_fused'}",
+                ],
+            ),
         ]
         for name, options in shots:
             forestreg("gui", "--offscreen", *options, "--screenshot", str(out / name), "--size", SIZE)

@@ -177,7 +177,9 @@ def _entry(name: str, mode: int, source: Path) -> zipfile.ZipInfo:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="package_qgis.py", description="Package the QGIS plugin as a zip for QGIS's plugin manager.")
+    parser = argparse.ArgumentParser(
+        prog="package_qgis.py", description="Package the QGIS plugin as a zip for QGIS's plugin manager."
+    )
     parser.add_argument("--out", default=str(ROOT / "dist"), help="folder for the zip (default: dist/ of the checkout)")
     args = parser.parse_args(argv)
     try:

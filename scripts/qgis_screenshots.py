@@ -63,7 +63,12 @@ def canopy_height_model(cloud: Path, out: Path) -> dict:
     heights = local[:, 2] - terrain.dem.height_at(local[:, :2])
     chm = chm_of(local, np.clip(heights, 0.0, None), CHM_RESOLUTION_M)
     np.save(out, np.nan_to_num(chm.grid, nan=0.0))
-    return {"grid": str(out), "x0": chm.x0 + float(origin[0]), "y0": chm.y0 + float(origin[1]), "resolution_m": chm.resolution_m}
+    return {
+        "grid": str(out),
+        "x0": chm.x0 + float(origin[0]),
+        "y0": chm.y0 + float(origin[1]),
+        "resolution_m": chm.resolution_m,
+    }
 
 
 def later_survey(trees_csv: Path, out: Path) -> None:
@@ -88,11 +93,25 @@ def later_survey(trees_csv: Path, out: Path) -> None:
         for r in rows:
             if r["tree_id"] == cut:
                 continue
-            w.writerow({**r, "dbh_m": f"{float(r['dbh_m']) + 0.02:.4f}" if r["dbh_m"] else "",
-                        "height_m": f"{float(r['height_m']) + 0.8:.4f}" if r["height_m"] else ""})
+            w.writerow(
+                {
+                    **r,
+                    "dbh_m": f"{float(r['dbh_m']) + 0.02:.4f}" if r["dbh_m"] else "",
+                    "height_m": f"{float(r['height_m']) + 0.8:.4f}" if r["height_m"] else "",
+                }
+            )
         for k, ((x, y), dbh, height) in enumerate(zip(gaps, (0.09, 0.12), (8.5, 10.0)), 1):
-            w.writerow({**{key: "" for key in rows[0]}, "tree_id": str(900 + k), "x": f"{x:.4f}", "y": f"{y:.4f}",
-                        "z": rows[0]["z"], "dbh_m": f"{dbh:.4f}", "height_m": f"{height:.4f}"})
+            w.writerow(
+                {
+                    **{key: "" for key in rows[0]},
+                    "tree_id": str(900 + k),
+                    "x": f"{x:.4f}",
+                    "y": f"{y:.4f}",
+                    "z": rows[0]["z"],
+                    "dbh_m": f"{dbh:.4f}",
+                    "height_m": f"{height:.4f}",
+                }
+            )
 
 
 def make_data(work: Path) -> dict:
@@ -105,17 +124,38 @@ def make_data(work: Path) -> dict:
     las.write(mls)
     forestreg("trees", str(mls), "--out", str(work / "trees"), "--no-cylinders", "--no-report")
     later_survey(work / "trees" / "trees.csv", work / "after.csv")
-    forestreg("change", str(work / "trees" / "trees.csv"), str(work / "after.csv"), "--out", str(work / "change"),
-              "--crs", f"EPSG:{SPANNER_EPSG}", "--no-report")
-    forestreg("simulate", "planted_conifer", "--out", str(work / "scans"), "--positions=-6,-6;6,-6;6,6;-6,6", "--step", "0.3",
-              "--size", "36", "--seed", "2")
+    forestreg(
+        "change",
+        str(work / "trees" / "trees.csv"),
+        str(work / "after.csv"),
+        "--out",
+        str(work / "change"),
+        "--crs",
+        f"EPSG:{SPANNER_EPSG}",
+        "--no-report",
+    )
+    forestreg(
+        "simulate",
+        "planted_conifer",
+        "--out",
+        str(work / "scans"),
+        "--positions=-6,-6;6,-6;6,6;-6,6",
+        "--step",
+        "0.3",
+        "--size",
+        "36",
+        "--seed",
+        "2",
+    )
     scans = sorted(str(p) for p in (work / "scans").glob("scan_*.laz"))
     forestreg("plot", *scans, "--out", str(work / "plot"), "--merged", str(work / "plot" / "merged.laz"))
     return {
         "crs": f"EPSG:{SPANNER_EPSG}",
         "als_chm": canopy_height_model(DATA / "spanner_ALS_Clip.laz", work / "als_chm.npy"),
         "plot_chm": canopy_height_model(work / "plot" / "merged.laz", work / "plot_chm.npy"),
-        "trees": str(work / "trees"), "change": str(work / "change"), "plot": str(work / "plot"),
+        "trees": str(work / "trees"),
+        "change": str(work / "change"),
+        "plot": str(work / "plot"),
     }
 
 
@@ -173,9 +213,13 @@ def render(work: Path, out: Path) -> None:
         top = float(layer.dataProvider().bandStatistics(1).maximumValue)
         ramp = QgsColorRampShader(0.0, top)
         ramp.setColorRampType(QgsColorRampShader.Interpolated)
-        ramp.setColorRampItemList([QgsColorRampShader.ColorRampItem(0.0, QColor(250, 248, 240), "0 m"),
-                                   QgsColorRampShader.ColorRampItem(top / 2, QColor(196, 192, 180), ""),
-                                   QgsColorRampShader.ColorRampItem(top, QColor(92, 88, 84), f"{top:.0f} m")])
+        ramp.setColorRampItemList(
+            [
+                QgsColorRampShader.ColorRampItem(0.0, QColor(250, 248, 240), "0 m"),
+                QgsColorRampShader.ColorRampItem(top / 2, QColor(196, 192, 180), ""),
+                QgsColorRampShader.ColorRampItem(top, QColor(92, 88, 84), f"{top:.0f} m"),
+            ]
+        )
         shader = QgsRasterShader()
         shader.setRasterShaderFunction(ramp)
         layer.setRenderer(QgsSingleBandPseudoColorRenderer(layer.dataProvider(), 1, shader))
@@ -268,18 +312,36 @@ def render(work: Path, out: Path) -> None:
     crs_epsg = data["crs"].split(":")[1]
     als = chm_layer("als_chm", crs_epsg)
     trees, crowns, outline = vector_layers(data["trees"], ["trees", "crowns", "plot_outline"])
-    picture("qgis_trees.png", "Measure trees", [outline, crowns, trees], als, outline,
-            "trees and crowns of layers.gpkg (forestreg:trees of a real MLS clip) over a canopy height model "
-            f"of the airborne clip of the same plot; {data['crs']}")
+    picture(
+        "qgis_trees.png",
+        "Measure trees",
+        [outline, crowns, trees],
+        als,
+        outline,
+        "trees and crowns of layers.gpkg (forestreg:trees of a real MLS clip) over a canopy height model "
+        f"of the airborne clip of the same plot; {data['crs']}",
+    )
     changes, change_outline = vector_layers(data["change"], ["tree_changes", "plot_outline"])
-    picture("qgis_change.png", "Re-survey change", [change_outline, changes], als, change_outline,
-            "tree_changes of layers.gpkg (forestreg:change: the MLS clip's trees and a later survey of them) over "
-            f"the airborne canopy height model; {data['crs']}")
+    picture(
+        "qgis_change.png",
+        "Re-survey change",
+        [change_outline, changes],
+        als,
+        change_outline,
+        "tree_changes of layers.gpkg (forestreg:change: the MLS clip's trees and a later survey of them) over "
+        f"the airborne canopy height model; {data['crs']}",
+    )
     plot_chm = chm_layer("plot_chm", None)
     scanners, links, plot_outline = vector_layers(data["plot"], ["scanners", "links", "plot_outline"])
-    picture("qgis_plot.png", "Register plot", [plot_outline, links, scanners], plot_chm, plot_outline,
-            "scanners, links and outline of layers.gpkg (forestreg:register_plot of four simulated scans) over a "
-            "canopy height model of the merged cloud; the centre scan's coordinates")
+    picture(
+        "qgis_plot.png",
+        "Register plot",
+        [plot_outline, links, scanners],
+        plot_chm,
+        plot_outline,
+        "scanners, links and outline of layers.gpkg (forestreg:register_plot of four simulated scans) over a "
+        "canopy height model of the merged cloud; the centre scan's coordinates",
+    )
     del keep[:], trees, crowns, outline, changes, change_outline, scanners, links, plot_outline, als, plot_chm
     import gc
 
@@ -291,10 +353,18 @@ def render(work: Path, out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="qgis_screenshots.py", description="Draw the QGIS guide's pictures again, headless.")
-    parser.add_argument("--out", default=str(ROOT / "docs" / "images"), help="folder of the pictures (default docs/images)")
-    parser.add_argument("--work", help="folder of the data (default: a temporary folder); with --render, the data made before")
-    parser.add_argument("--render", action="store_true", help="(QGIS's Python) draw the pictures from the data of --work")
+    parser = argparse.ArgumentParser(
+        prog="qgis_screenshots.py", description="Draw the QGIS guide's pictures again, headless."
+    )
+    parser.add_argument(
+        "--out", default=str(ROOT / "docs" / "images"), help="folder of the pictures (default docs/images)"
+    )
+    parser.add_argument(
+        "--work", help="folder of the data (default: a temporary folder); with --render, the data made before"
+    )
+    parser.add_argument(
+        "--render", action="store_true", help="(QGIS's Python) draw the pictures from the data of --work"
+    )
     args = parser.parse_args(argv)
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -310,8 +380,11 @@ def main(argv: list[str] | None = None) -> int:
         if not (plugins / "forestreg").exists():
             (plugins / "forestreg").symlink_to(ROOT, target_is_directory=True)
         env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "PYTHONPATH": str(plugins)}
-        subprocess.run([QGIS_PYTHON, str(Path(__file__).resolve()), "--render", "--work", str(work), "--out", str(out)],
-                       check=True, env=env)
+        subprocess.run(
+            [QGIS_PYTHON, str(Path(__file__).resolve()), "--render", "--work", str(work), "--out", str(out)],
+            check=True,
+            env=env,
+        )
     return 0
 
 

@@ -40,9 +40,9 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from fastapi import Depends, FastAPI, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, Field, field_validator
 
 from ..client import default_state_dir, read_server_info
@@ -86,9 +86,14 @@ def ensure_token(state_dir: Path) -> str:
 
 
 class JobRequest(BaseModel):
-    args: list[str] = Field(..., description=f"the CLI's arguments, e.g. ['register', 'A.laz', 'B.laz', '--out', 'D'] (at most {MAX_ARGS})")
-    cwd: Optional[str] = Field(None, description="the client's working folder, an absolute path: the job runs there and relative paths in "
-                                                 "args are taken from it; may be left out when every path in args is absolute")
+    args: list[str] = Field(
+        ..., description=f"the CLI's arguments, e.g. ['register', 'A.laz', 'B.laz', '--out', 'D'] (at most {MAX_ARGS})"
+    )
+    cwd: Optional[str] = Field(
+        None,
+        description="the client's working folder, an absolute path: the job runs there and relative paths in "
+        "args are taken from it; may be left out when every path in args is absolute",
+    )
 
     @field_validator("args")
     @classmethod
@@ -110,7 +115,9 @@ class JobRequest(BaseModel):
         if "\x00" in cwd:
             raise ValueError("the working folder holds a NUL byte")
         if not os.path.isabs(cwd):
-            raise ValueError("must be the client's working folder as an absolute path (relative paths in args are taken from it)")
+            raise ValueError(
+                "must be the client's working folder as an absolute path (relative paths in args are taken from it)"
+            )
         return cwd
 
 
@@ -167,12 +174,23 @@ class BodyLimit:
             drained += len(message.get("body", b""))
             more = message.get("more_body", False)
         body = json.dumps({"detail": f"request body over {self.limit} bytes"}).encode()
-        await send({"type": "http.response.start", "status": 413,
-                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()), (b"connection", b"close")]})
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 413,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"connection", b"close"),
+                ],
+            }
+        )
         await send({"type": "http.response.body", "body": body})
 
 
-def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = None, on_shutdown: Optional[Callable[[], None]] = None) -> FastAPI:
+def create_app(
+    state_dir: Path, workers: int = 1, grace_s: Optional[float] = None, on_shutdown: Optional[Callable[[], None]] = None
+) -> FastAPI:
     """The application with its job store and worker threads (started on application start-up)."""
     from .. import __version__
 
@@ -193,8 +211,12 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
             store.close()
 
     app = FastAPI(
-        title="forestreg job service", version=__version__, lifespan=lifespan,
-        openapi_url=None, docs_url=None, redoc_url=None,
+        title="forestreg job service",
+        version=__version__,
+        lifespan=lifespan,
+        openapi_url=None,
+        docs_url=None,
+        redoc_url=None,
         description="Queue forestreg commands (the CLI's arguments), watch their progress, cancel them.",
     )
     app.state.manager = manager
@@ -209,8 +231,16 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
         return await call_next(request)
 
     def authorised(credentials: Optional[HTTPAuthorizationCredentials] = Depends(bearer)) -> None:
-        if credentials is None or credentials.scheme.lower() != "bearer" or not secrets.compare_digest(credentials.credentials, token):
-            raise HTTPException(401, "missing or wrong token (Authorization: Bearer <STATE/token>)", headers={"WWW-Authenticate": "Bearer"})
+        if (
+            credentials is None
+            or credentials.scheme.lower() != "bearer"
+            or not secrets.compare_digest(credentials.credentials, token)
+        ):
+            raise HTTPException(
+                401,
+                "missing or wrong token (Authorization: Bearer <STATE/token>)",
+                headers={"WWW-Authenticate": "Bearer"},
+            )
 
     def job_or_404(job_id: str) -> dict:
         job = store.get(job_id)
@@ -259,7 +289,9 @@ def create_app(state_dir: Path, workers: int = 1, grace_s: Optional[float] = Non
     def resubmit(job_id: str) -> dict:
         old = job_or_404(job_id)
         if old["cwd"] and not os.path.isabs(old["cwd"]):
-            raise HTTPException(422, f"job {job_id} has no absolute working folder: submit its arguments again with cwd")
+            raise HTTPException(
+                422, f"job {job_id} has no absolute working folder: submit its arguments again with cwd"
+            )
         return {"id": queue(old["args"], old["cwd"] or None)}
 
     @app.get("/v1/jobs/{job_id}/events", dependencies=[Depends(authorised)])
@@ -345,7 +377,9 @@ def _lock(state_dir: Path):
     except OSError:
         fh.close()
         info = read_server_info(state_dir) or {}
-        raise ServiceRunning(f"a forestreg service already runs with {state_dir} at {info.get('url', '?')} (pid {info.get('pid', '?')})") from None
+        raise ServiceRunning(
+            f"a forestreg service already runs with {state_dir} at {info.get('url', '?')} (pid {info.get('pid', '?')})"
+        ) from None
     return fh
 
 
@@ -367,8 +401,11 @@ def serve(
     state_dir.mkdir(parents=True, exist_ok=True)
     lock = _lock(state_dir)
     if not _is_loopback(host):
-        print(f"forestreg serve: warning: listening on {host}, not only on this machine: anyone who can reach it "
-              "and has the token can run commands as this user", file=sys.stderr)
+        print(
+            f"forestreg serve: warning: listening on {host}, not only on this machine: anyone who can reach it "
+            "and has the token can run commands as this user",
+            file=sys.stderr,
+        )
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -380,6 +417,7 @@ def serve(
         raise OSError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
     sock.listen(128)
     port = sock.getsockname()[1]
+
     def forget_address() -> None:  # before uvicorn re-raises SIGTERM, which ends the process
         current = read_server_info(state_dir)
         if current and current.get("pid") == os.getpid():
@@ -387,8 +425,11 @@ def serve(
                 (state_dir / "server.json").unlink()
 
     app = create_app(state_dir, workers=workers, grace_s=grace_s, on_shutdown=forget_address)
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on",
-                                           timeout_graceful_shutdown=SHUTDOWN_GRACE_S))
+    server = uvicorn.Server(
+        uvicorn.Config(
+            app, log_level="warning", access_log=False, lifespan="on", timeout_graceful_shutdown=SHUTDOWN_GRACE_S
+        )
+    )
     url_host = f"[{host}]" if ":" in host else host
     info = {"url": f"http://{url_host}:{port}", "host": host, "port": port, "pid": os.getpid(), "state": str(state_dir)}
 
@@ -397,7 +438,11 @@ def serve(
             time.sleep(0.05)
         if server.started:
             write_text_atomic(state_dir / "server.json", json.dumps(info) + "\n")
-            print(f"forestreg service at {info['url']} (token in {state_dir / 'token'}; jobs in {state_dir / 'jobs.sqlite'})", file=sys.stderr, flush=True)
+            print(
+                f"forestreg service at {info['url']} (token in {state_dir / 'token'}; jobs in {state_dir / 'jobs.sqlite'})",
+                file=sys.stderr,
+                flush=True,
+            )
 
     def idle_watch() -> None:
         manager: JobManager = app.state.manager

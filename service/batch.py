@@ -57,14 +57,39 @@ from ..app.saved import SavedFileError, SavedPoses, SavedProject, SavedResult
 log = logging.getLogger("forestreg.batch")
 
 COMMANDS = ("plot", "trees", "coregister", "change")
-SUMMARY_FIELDS = ["plot", "status", "scans", "registered", "seconds", "reason", "command", "exit_code", "trees", "worker", "resumed",
-                  "peak_mb", "cpu_s", "threads", "attempts", "retried_after"]
+SUMMARY_FIELDS = [
+    "plot",
+    "status",
+    "scans",
+    "registered",
+    "seconds",
+    "reason",
+    "command",
+    "exit_code",
+    "trees",
+    "worker",
+    "resumed",
+    "peak_mb",
+    "cpu_s",
+    "threads",
+    "attempts",
+    "retried_after",
+]
 PROCESSED = ("ok", "failed")
 _NOT_SCANS = {"centre.txt", "center.txt", "targets.csv", "manifest.csv", "batch.json"}
 #: Environment variables that size the numerical thread pools of a plot's process (OpenMP for
 #: Open3D, the BLAS libraries, Numba, NumExpr, and forestreg's own block pool).
-THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
-                    "NUMEXPR_NUM_THREADS", "NUMBA_NUM_THREADS", "RAYON_NUM_THREADS", "FORESTREG_THREADS")
+THREAD_VARIABLES = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "BLIS_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "NUMBA_NUM_THREADS",
+    "RAYON_NUM_THREADS",
+    "FORESTREG_THREADS",
+)
 #: The folder of ``OUT`` where each plot's attempts are noted (one small JSON file per plot).
 ATTEMPTS_DIR = ".forestreg-batch"
 #: Seconds between two checks of a running plot's exit.
@@ -150,9 +175,7 @@ def _scan_suffixes() -> tuple[str, ...]:
 
 
 def _read_manifest(path: Path) -> dict[str, dict]:
-    from ..engine.core.errors import ParameterError
-
-    from ..engine.core.errors import InvalidArgumentError
+    from ..engine.core.errors import InvalidArgumentError, ParameterError
     from ..engine.core.names import safe_name, same_name_key
 
     rows: list[tuple[int, dict]] = []  # (the row's number as a spreadsheet shows it: the header is row 1, its fields)
@@ -188,9 +211,13 @@ def _read_manifest(path: Path) -> dict[str, dict]:
         if len(numbers) > 1:
             names = sorted({n for n in out if same_name_key(n) == key})
             if len(names) == 1:
-                raise ParameterError(f"{path}: plot {first!r} is named in rows {_and(numbers)}: give each plot its own name")
-            raise ParameterError(f"{path}: plots {_and([repr(n) for n in names])} (rows {_and(numbers)}) differ only in case or "
-                                 "accents: they would be one folder on macOS and Windows; give each plot its own name")
+                raise ParameterError(
+                    f"{path}: plot {first!r} is named in rows {_and(numbers)}: give each plot its own name"
+                )
+            raise ParameterError(
+                f"{path}: plots {_and([repr(n) for n in names])} (rows {_and(numbers)}) differ only in case or "
+                "accents: they would be one folder on macOS and Windows; give each plot its own name"
+            )
     return out
 
 
@@ -224,11 +251,20 @@ def _clouds_in(plot_dir: Path) -> list[Path]:
     if not plot_dir.is_dir():
         return []
     suffixes = _scan_suffixes()
-    return sorted(p for p in plot_dir.iterdir() if p.is_file() and p.suffix.lower() in suffixes
-                  and p.name.lower() not in _NOT_SCANS and not p.name.startswith(".") and is_point_cloud_file(p))
+    return sorted(
+        p
+        for p in plot_dir.iterdir()
+        if p.is_file()
+        and p.suffix.lower() in suffixes
+        and p.name.lower() not in _NOT_SCANS
+        and not p.name.startswith(".")
+        and is_point_cloud_file(p)
+    )
 
 
-def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: Optional[Path] = None, extra_args: Sequence[str] = ()) -> list[PlotTask]:
+def discover_plots(
+    plots_dir: Path, out: Path, command: str = "plot", manifest: Optional[Path] = None, extra_args: Sequence[str] = ()
+) -> list[PlotTask]:
     """The plots of a batch, in name order (subfolders of ``plots_dir``, or the manifest's rows)."""
     from ..engine.core.errors import ParameterError
 
@@ -241,9 +277,15 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
     rows = _read_manifest(manifest) if manifest is not None else None
     manifest_dir = manifest.resolve().parent if manifest is not None else None
     out_resolved = out.resolve()
-    names = sorted(rows) if rows is not None else sorted(
-        p.name for p in plots_dir.iterdir() if p.is_dir() and not p.name.startswith(".") and p.resolve() != out_resolved
-        and not _product_folder(p))
+    names = (
+        sorted(rows)
+        if rows is not None
+        else sorted(
+            p.name
+            for p in plots_dir.iterdir()
+            if p.is_dir() and not p.name.startswith(".") and p.resolve() != out_resolved and not _product_folder(p)
+        )
+    )
     if not names:
         raise ParameterError(f"{plots_dir}: no plot subfolders" + (" in the manifest" if rows is not None else ""))
     tasks = []
@@ -264,7 +306,14 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
                 if not centre:
                     for fname in ("centre.txt", "center.txt"):
                         if (plot_dir / fname).is_file():
-                            centre = next((l.strip() for l in (plot_dir / fname).read_text(encoding="utf-8").splitlines() if l.strip()), "")
+                            centre = next(
+                                (
+                                    l.strip()
+                                    for l in (plot_dir / fname).read_text(encoding="utf-8").splitlines()
+                                    if l.strip()
+                                ),
+                                "",
+                            )
                             break
                 if centre:
                     if not any(Path(s).name == Path(centre).name for s in scans):
@@ -293,7 +342,11 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
                 if row.get(role):
                     pair.append(_resolve(row[role], plot_dir, manifest_dir))
                     continue
-                found = sorted(p for p in plot_dir.iterdir() if p.stem.lower() == role and not p.name.startswith(".")) if plot_dir.is_dir() else []
+                found = (
+                    sorted(p for p in plot_dir.iterdir() if p.stem.lower() == role and not p.name.startswith("."))
+                    if plot_dir.is_dir()
+                    else []
+                )
                 pair.append(str(found[0].resolve()) if len(found) == 1 else "")
                 if len(found) != 1 and not task.problem:
                     task.problem = f"{len(found)} files named {role}.* in {plot_dir}: name the surveys in a manifest (plot,before,after)"
@@ -304,8 +357,13 @@ def discover_plots(plots_dir: Path, out: Path, command: str = "plot", manifest: 
             if not row.get("ground") or not row.get("uav"):
                 task.problem = "the manifest row needs 'ground' and 'uav'"
             task.inputs = 2
-            task.args = ["coregister", _resolve(row.get("ground", ""), plot_dir, manifest_dir),
-                         _resolve(row.get("uav", ""), plot_dir, manifest_dir), "--out", target]
+            task.args = [
+                "coregister",
+                _resolve(row.get("ground", ""), plot_dir, manifest_dir),
+                _resolve(row.get("uav", ""), plot_dir, manifest_dir),
+                "--out",
+                target,
+            ]
         task.args += list(extra_args)
         tasks.append(task)
     from .jobs import ArgumentError, validate_args
@@ -555,9 +613,14 @@ def _run_cli(args: list[str], threads: int, memory_limit: int) -> tuple[int, str
     CPU seconds, peak MB when it was stopped over ``memory_limit`` else 0)."""
     with tempfile.TemporaryFile(mode="w+b") as err:
         try:
-            proc = subprocess.Popen([sys.executable, "-m", "forestreg.cli", *args, "--quiet"], stdin=subprocess.DEVNULL,
-                                    stdout=subprocess.DEVNULL, stderr=err, env=plot_environment(threads),
-                                    preexec_fn=_die_with_parent if _PRCTL is not None else None)
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "forestreg.cli", *args, "--quiet"],
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=err,
+                env=plot_environment(threads),
+                preexec_fn=_die_with_parent if _PRCTL is not None else None,
+            )
         except OSError as exc:
             return -1, f"error: cannot start the CLI: {exc}", 0.0, 0.0, 0.0
         over = sampled = 0.0
@@ -603,9 +666,25 @@ def run_plot(task: dict) -> dict:
 
     t = PlotTask(**task)
     worker = _worker_name()
-    row = {"plot": t.name, "status": "error", "scans": t.inputs, "registered": "", "seconds": 0.0, "reason": "",
-           "command": t.command, "exit_code": "", "trees": "", "worker": worker, "resumed": 0,
-           "peak_mb": "", "cpu_s": "", "threads": t.threads, "attempts": 1, "retried_after": "", "run": t.run}
+    row = {
+        "plot": t.name,
+        "status": "error",
+        "scans": t.inputs,
+        "registered": "",
+        "seconds": 0.0,
+        "reason": "",
+        "command": t.command,
+        "exit_code": "",
+        "trees": "",
+        "worker": worker,
+        "resumed": 0,
+        "peak_mb": "",
+        "cpu_s": "",
+        "threads": t.threads,
+        "attempts": 1,
+        "retried_after": "",
+        "run": t.run,
+    }
     if t.problem:
         row["reason"] = t.problem
         return row
@@ -635,8 +714,10 @@ def run_plot(task: dict) -> dict:
         if t.command == "plot":
             _remove_unfinished(out)
         if over:
-            row["reason"] = (f"stopped over the memory limit: its processes held {over:.0f} MB, the limit is "
-                             f"{t.memory_limit / 1e6:.0f} MB per worker (--memory-limit)")
+            row["reason"] = (
+                f"stopped over the memory limit: its processes held {over:.0f} MB, the limit is "
+                f"{t.memory_limit / 1e6:.0f} MB per worker (--memory-limit)"
+            )
             _finish_attempt(t)
         else:  # interrupted: unfinished, a rerun says an earlier batch stopped during it
             row["reason"] = _last_error(stderr) or "interrupted"
@@ -665,8 +746,10 @@ def run_plot(task: dict) -> dict:
     else:
         row["reason"] = _last_error(stderr) or f"the command stopped with exit status {code}"
     if t.memory_limit and peak * 1e6 > t.memory_limit:  # a spike shorter than the sampling interval
-        note = (f"its peak of {peak:.0f} MB passed the memory limit ({t.memory_limit / 1e6:.0f} MB) between two samples "
-                f"(every {MEMORY_SAMPLE_S:g} s), too briefly to be stopped")
+        note = (
+            f"its peak of {peak:.0f} MB passed the memory limit ({t.memory_limit / 1e6:.0f} MB) between two samples "
+            f"(every {MEMORY_SAMPLE_S:g} s), too briefly to be stopped"
+        )
         row["reason"] = f"{row['reason']}; {note}" if row["reason"] else note
     row["outputs"] = [name for name in _LINKED if (out / name).is_file()]  # for the overview: no stat per row later
     if out.is_dir():
@@ -732,8 +815,10 @@ class BatchInterrupted(KeyboardInterrupt):
     rows in ``OUT/summary.csv`` are kept, and a rerun into ``out`` resumes the others."""
 
     def __init__(self, done: int, total: int, out: Path) -> None:
-        super().__init__(f"interrupted: {done} of {total} plots finished and kept in {out} (summary.csv); "
-                         f"a rerun into {out} runs the others")
+        super().__init__(
+            f"interrupted: {done} of {total} plots finished and kept in {out} (summary.csv); "
+            f"a rerun into {out} runs the others"
+        )
         self.done, self.total, self.out = done, total, out
 
 
@@ -765,9 +850,15 @@ def _client(workers: Optional[int], scheduler: Optional[str], memory_limit: int 
             # no dashboard; the scheduler's own HTTP server (health, metrics) on a free loopback
             # port: its default, 8787 on every interface, is taken by a second batch on the
             # machine, and Dask then warned on stderr
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
-                                   silence_logs=logging.CRITICAL, memory_limit=memory_limit or "auto")
+            cluster = LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                silence_logs=logging.CRITICAL,
+                memory_limit=memory_limit or "auto",
+            )
     finally:
         if ignore:
             signal.signal(signal.SIGINT, previous)
@@ -844,18 +935,39 @@ def run_batch(
             futures = {}
             for rank, t in enumerate(sorted(todo, key=lambda t: -_input_bytes(t))):
                 t.threads, t.memory_limit, t.run = threads, memory_limit, run_id
-                futures[client.submit(run_plot, asdict(t), key=f"forestreg-plot-{t.name}-{run_id}", pure=False, retries=0,
-                                      priority=len(todo) - rank)] = t
+                futures[
+                    client.submit(
+                        run_plot,
+                        asdict(t),
+                        key=f"forestreg-plot-{t.name}-{run_id}",
+                        pure=False,
+                        retries=0,
+                        priority=len(todo) - rank,
+                    )
+                ] = t
             for future in as_completed(futures):
                 task = futures[future]
                 try:
                     row = future.result()
                 except Exception as exc:  # the worker died every time it ran the plot (e.g. its memory)
-                    reason = (f"every worker that ran it died ({exc})" if type(exc).__name__ == "KilledWorker"
-                              else f"the task was lost: {type(exc).__name__}: {exc}")
-                    row = {"plot": task.name, "status": "error", "scans": task.inputs, "registered": "", "seconds": "",
-                           "reason": reason, "command": command, "exit_code": "", "resumed": 0, "threads": threads,
-                           "retried_after": "worker lost"}
+                    reason = (
+                        f"every worker that ran it died ({exc})"
+                        if type(exc).__name__ == "KilledWorker"
+                        else f"the task was lost: {type(exc).__name__}: {exc}"
+                    )
+                    row = {
+                        "plot": task.name,
+                        "status": "error",
+                        "scans": task.inputs,
+                        "registered": "",
+                        "seconds": "",
+                        "reason": reason,
+                        "command": command,
+                        "exit_code": "",
+                        "resumed": 0,
+                        "threads": threads,
+                        "retried_after": "worker lost",
+                    }
                 rows[task.name] = row
                 facts["seconds"] = f"{time.perf_counter() - t0:.1f}"
                 summary.update(list(rows.values()))

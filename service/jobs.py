@@ -122,8 +122,25 @@ def validate_args(args: Sequence[str]) -> argparse.Namespace:
 #: String arguments of the CLI that are not paths: scan and run names, spelled-out choices,
 #: coordinates, addresses, sizes, options passed on. Any other string argument is taken as a path
 #: (a new option counts as one until it is listed here: a job then needs a working folder).
-_NOT_PATHS = frozenset({"centre", "tilted", "pairs", "fixed", "name", "tilt", "host", "scheduler", "memory_limit", "preset",
-                        "gui_args", "extra", "progress", "command", "action"})
+_NOT_PATHS = frozenset(
+    {
+        "centre",
+        "tilted",
+        "pairs",
+        "fixed",
+        "name",
+        "tilt",
+        "host",
+        "scheduler",
+        "memory_limit",
+        "preset",
+        "gui_args",
+        "extra",
+        "progress",
+        "command",
+        "action",
+    }
+)
 #: ... and those that are not paths in one command only ((command, action) -> argument names)
 _NOT_PATHS_IN = {("project", "link"): frozenset({"moving", "reference"}), ("simulate", None): frozenset({"positions"})}
 _GLOBAL_FLAGS = ("-v", "--verbose", "-q", "--quiet")
@@ -147,8 +164,14 @@ def _string_arguments(command: str, action: Optional[str]) -> list[str]:
         if sub is None or level not in sub.choices:
             break
         parser = sub.choices[level]
-    return [a.dest for a in parser._actions
-            if a.nargs != 0 and a.choices is None and a.type in (None, str) and not isinstance(a, argparse._SubParsersAction)]
+    return [
+        a.dest
+        for a in parser._actions
+        if a.nargs != 0
+        and a.choices is None
+        and a.type in (None, str)
+        and not isinstance(a, argparse._SubParsersAction)
+    ]
 
 
 def _looks_like_path(token: str) -> bool:
@@ -177,7 +200,7 @@ def path_arguments(args: Sequence[str], namespace: Optional[argparse.Namespace] 
         if dest in skip:
             continue
         value = getattr(ns, dest, None)
-        for v in (value if isinstance(value, (list, tuple)) else [value]):
+        for v in value if isinstance(value, (list, tuple)) else [value]:
             if not isinstance(v, str) or not v:
                 continue
             if dest == "also" and "=" in v and "/" not in v.split("=", 1)[0]:
@@ -188,8 +211,11 @@ def path_arguments(args: Sequence[str], namespace: Optional[argparse.Namespace] 
         import shlex
 
         try:
-            found += [t.split("=", 1)[1] if t.startswith("--") and "=" in t else t for t in shlex.split(extra)
-                      if _looks_like_path(t.split("=", 1)[1] if t.startswith("--") and "=" in t else t)]
+            found += [
+                t.split("=", 1)[1] if t.startswith("--") and "=" in t else t
+                for t in shlex.split(extra)
+                if _looks_like_path(t.split("=", 1)[1] if t.startswith("--") and "=" in t else t)
+            ]
         except ValueError:
             pass
     return found
@@ -200,7 +226,9 @@ def relative_paths(args: Sequence[str], namespace: Optional[argparse.Namespace] 
     return [p for p in path_arguments(args, namespace) if not os.path.isabs(os.path.expanduser(p))]
 
 
-def output_path(args: Sequence[str], cwd: Optional[str] = None, namespace: Optional[argparse.Namespace] = None) -> Optional[str]:
+def output_path(
+    args: Sequence[str], cwd: Optional[str] = None, namespace: Optional[argparse.Namespace] = None
+) -> Optional[str]:
     """The resolved output folder of a job (its ``--out``, symbolic links resolved), or None."""
     ns = namespace if namespace is not None else validate_args(args)
     out = getattr(ns, "out", None)
@@ -309,7 +337,9 @@ def _signal_group(pid: int, sig: int) -> None:
 class JobManager:
     """Queues jobs in the store and runs up to ``workers`` of them at once."""
 
-    def __init__(self, store: JobStore, workers: int = 1, grace_s: float = CANCEL_GRACE_S, work_dir: Optional[Path] = None) -> None:
+    def __init__(
+        self, store: JobStore, workers: int = 1, grace_s: float = CANCEL_GRACE_S, work_dir: Optional[Path] = None
+    ) -> None:
         self.store = store
         self.workers = max(1, int(workers))
         self.grace_s = grace_s
@@ -327,7 +357,11 @@ class JobManager:
     # ----------------------------------------------------------------------------- life cycle
 
     def start(self) -> None:
-        orphans = [job["pid"] for job in self.store.recover() if job.get("pid") and _alive(job["pid"]) and _is_job_process(job["pid"])]
+        orphans = [
+            job["pid"]
+            for job in self.store.recover()
+            if job.get("pid") and _alive(job["pid"]) and _is_job_process(job["pid"])
+        ]
         if orphans:  # jobs of a service that was killed still run: stop them as a cancel would
             threading.Thread(target=self._stop_orphans, args=(orphans,), daemon=True).start()
         for k in range(self.workers):
@@ -390,8 +424,10 @@ class JobManager:
             relative = relative_paths(args, ns)
             if relative:
                 where = ", ".join(repr(p) for p in relative[:3]) + (", ..." if len(relative) > 3 else "")
-                raise WorkingFolderNeeded(f"required: {where} {'is a relative path' if len(relative) == 1 else 'are relative paths'}: "
-                                          "send the client's working folder as cwd (an absolute path), or give every path absolute")
+                raise WorkingFolderNeeded(
+                    f"required: {where} {'is a relative path' if len(relative) == 1 else 'are relative paths'}: "
+                    "send the client's working folder as cwd (an absolute path), or give every path absolute"
+                )
         out = output_path(args, cwd, ns)
         with self._submit_lock:
             if out is not None:
@@ -399,9 +435,11 @@ class JobManager:
                     theirs = self._output_of(job)
                     if theirs is not None and _overlaps(out, theirs):
                         relation = "is" if out == theirs else ("is inside" if out.startswith(theirs) else "holds")
-                        raise OutputBusy(f"--out {out} {relation} the output folder of job {job['id']} ({status}"
-                                         f"{', ' + theirs if out != theirs else ''}): wait for it to end, cancel it, or give "
-                                         "another output folder")
+                        raise OutputBusy(
+                            f"--out {out} {relation} the output folder of job {job['id']} ({status}"
+                            f"{', ' + theirs if out != theirs else ''}): wait for it to end, cancel it, or give "
+                            "another output folder"
+                        )
             job_id = self.store.add(list(args), cwd)
             self._outputs[job_id] = out
         self.last_activity = time.monotonic()
@@ -412,7 +450,9 @@ class JobManager:
         """The jobs queued or running: ({id, args, cwd}, status)."""
         store = self.store
         with store._lock:  # one query of the store's own connection (its lock serialises it)
-            rows = store._db.execute("SELECT id, args, cwd, status FROM jobs WHERE status IN ('queued', 'running')").fetchall()
+            rows = store._db.execute(
+                "SELECT id, args, cwd, status FROM jobs WHERE status IN ('queued', 'running')"
+            ).fetchall()
         return [({"id": job["id"], "args": json.loads(job["args"]), "cwd": job["cwd"]}, job["status"]) for job in rows]
 
     def _output_of(self, job: dict) -> Optional[str]:
@@ -462,7 +502,9 @@ class JobManager:
                 self._run(job)
             except Exception as exc:  # never lose the worker thread
                 log.exception("job %s", job["id"])
-                self.store.update(job["id"], status="error", message=f"the service could not run the job: {exc}", finished=time.time())
+                self.store.update(
+                    job["id"], status="error", message=f"the service could not run the job: {exc}", finished=time.time()
+                )
                 self.store.add_event(job["id"], {"event": "status", "status": "error"})
             self.last_activity = time.monotonic()
 
@@ -490,8 +532,13 @@ class JobManager:
             if not cwd:
                 private = self._private_folder(job_id)
             proc = subprocess.Popen(
-                cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                cwd=str(private) if private is not None else cwd, env=_package_env(), start_new_session=True,
+                cmd,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                cwd=str(private) if private is not None else cwd,
+                env=_package_env(),
+                start_new_session=True,
             )
         except OSError as exc:
             self.store.update(job_id, status="error", message=f"cannot start the job: {exc}", finished=time.time())
@@ -539,7 +586,12 @@ class JobManager:
             step, message = str(event.get("step") or ""), str(event.get("message") or "")
             now = time.monotonic()
             # keep every change of step or message; thin out a fast stream of fractions
-            if step == last["step"] and message == last["message"] and abs(fraction - last["fraction"]) < 0.01 and now - last["t"] < 0.5:
+            if (
+                step == last["step"]
+                and message == last["message"]
+                and abs(fraction - last["fraction"]) < 0.01
+                and now - last["t"] < 0.5
+            ):
                 continue
             last.update(t=now, fraction=fraction, step=step, message=message)
             self.store.update(job_id, progress=fraction, step=step, message=message)
@@ -567,8 +619,14 @@ class JobManager:
         result_path = None if cancelled else end.get("result")
         if result_path:
             result_path = str((Path(cwd or ".") / result_path).resolve())
-        outputs = [] if cancelled else [str((Path(cwd or ".") / p).resolve()) for p in end.get("outputs") or () if isinstance(p, str)]
-        fields: dict[str, Any] = dict(status=status, exit_code=code, message=message, finished=time.time(), outputs=json.dumps(outputs))
+        outputs = (
+            []
+            if cancelled
+            else [str((Path(cwd or ".") / p).resolve()) for p in end.get("outputs") or () if isinstance(p, str)]
+        )
+        fields: dict[str, Any] = dict(
+            status=status, exit_code=code, message=message, finished=time.time(), outputs=json.dumps(outputs)
+        )
         if status == "done":
             fields["progress"] = 1.0
         if result_path:
@@ -577,8 +635,17 @@ class JobManager:
         if private is not None:
             self._tidy(job_id, private)
         self.store.update(job_id, **fields)
-        self.store.add_event(job_id, {"event": "end", "status": status, "exit_code": code, "message": message, "result": result_path,
-                                      "outputs": outputs})
+        self.store.add_event(
+            job_id,
+            {
+                "event": "end",
+                "status": status,
+                "exit_code": code,
+                "message": message,
+                "result": result_path,
+                "outputs": outputs,
+            },
+        )
 
     def _tidy(self, job_id: str, private: Path) -> None:
         """Remove a job's private folder when the job left nothing in it (else keep it, and say so)."""
@@ -587,7 +654,10 @@ class JobManager:
         except FileNotFoundError:
             pass
         except OSError:
-            self.store.add_event(job_id, {"event": "log", "stream": "service", "message": f"the job left files in its working folder {private}"})
+            self.store.add_event(
+                job_id,
+                {"event": "log", "stream": "service", "message": f"the job left files in its working folder {private}"},
+            )
 
 
 def _error_line(lines: list[str]) -> str:

@@ -93,7 +93,10 @@ class JobStore:
 
     def add_event(self, job_id: str, event: dict) -> int:
         with self._lock:
-            n = (self._db.execute("SELECT COALESCE(MAX(n), 0) FROM events WHERE job_id = ?", (job_id,)).fetchone()[0] or 0) + 1
+            n = (
+                self._db.execute("SELECT COALESCE(MAX(n), 0) FROM events WHERE job_id = ?", (job_id,)).fetchone()[0]
+                or 0
+            ) + 1
             self._db.execute("INSERT INTO events (job_id, n, data) VALUES (?, ?, ?)", (job_id, n, json.dumps(event)))
         return n
 
@@ -103,7 +106,10 @@ class JobStore:
             row = self._db.execute("SELECT id FROM jobs WHERE status = 'queued' ORDER BY seq LIMIT 1").fetchone()
             if row is None:
                 return None
-            self._db.execute("UPDATE jobs SET status = 'running', started = ?, message = 'starting' WHERE id = ?", (time.time(), row["id"]))
+            self._db.execute(
+                "UPDATE jobs SET status = 'running', started = ?, message = 'starting' WHERE id = ?",
+                (time.time(), row["id"]),
+            )
         self.add_event(row["id"], {"event": "status", "status": "running"})
         return self.get(row["id"])
 
@@ -139,7 +145,9 @@ class JobStore:
 
     def events(self, job_id: str, after: int = 0) -> list[tuple[int, dict]]:
         with self._lock:
-            rows = self._db.execute("SELECT n, data FROM events WHERE job_id = ? AND n > ? ORDER BY n", (job_id, after)).fetchall()
+            rows = self._db.execute(
+                "SELECT n, data FROM events WHERE job_id = ? AND n > ? ORDER BY n", (job_id, after)
+            ).fetchall()
         return [(r["n"], json.loads(r["data"])) for r in rows]
 
     def count(self, status: str) -> int:

@@ -46,7 +46,10 @@ FENCE = re.compile(r"^(?P<indent>\s*)(?P<fence>`{3,}|~{3,})\s*(?P<info>[^`\s]*)[
 #: Lines that need a writer's decision, with what they are. A block matching one of these and
 #: carrying no comment fails (the default "run" does not apply to it).
 NEEDS_DECISION = (
-    (re.compile(r"\bpip3? install\b|\bsetup\.sh\b|\bapt(-get)?\b|\bpython3? -m (build|venv)\b|\bforestreg warmup\b"), "installation"),
+    (
+        re.compile(r"\bpip3? install\b|\bsetup\.sh\b|\bapt(-get)?\b|\bpython3? -m (build|venv)\b|\bforestreg warmup\b"),
+        "installation",
+    ),
     (re.compile(r"\bmkdocs\b"), "the documentation site"),
     (re.compile(r"\bforestreg gui\b"), "the desktop GUI"),
     (re.compile(r"\bforestreg serve\b"), "a server that runs until stopped"),
@@ -119,12 +122,14 @@ def blocks_of(path: Path, root: Path = ROOT) -> list[Block]:
         end = k + 1
         while end < len(lines) and not re.match(rf"^\s*{re.escape(fence[0])}{{{len(fence)},}}\s*$", lines[end]):
             end += 1
-        body = [line[indent:] if line[:indent].strip() == "" else line.lstrip() for line in lines[k + 1:end]]
+        body = [line[indent:] if line[:indent].strip() == "" else line.lstrip() for line in lines[k + 1 : end]]
         before = k - 1
         while before >= 0 and not lines[before].strip():
             before -= 1
         mark = MARKER.match(lines[before]) if before >= 0 else None
-        out.append(Block(str(path.relative_to(root)), k + 1, info, "\n".join(body) + "\n", mark.group(1) if mark else None))
+        out.append(
+            Block(str(path.relative_to(root)), k + 1, info, "\n".join(body) + "\n", mark.group(1) if mark else None)
+        )
         k = end + 1
     return out
 
@@ -171,7 +176,9 @@ def parse_marker(text: str) -> Decision:
     kind, rest = words[0], words[1:]
     if kind == "skip":
         if not rest:
-            raise ClassificationError("'docs-test: skip' needs a reason, e.g. <!-- docs-test: skip (the desktop GUI) -->")
+            raise ClassificationError(
+                "'docs-test: skip' needs a reason, e.g. <!-- docs-test: skip (the desktop GUI) -->"
+            )
         return Decision("skip", reason=" ".join(rest))
     if kind == "output":
         if rest not in ([], ["demo"]):
@@ -190,7 +197,9 @@ def parse_marker(text: str) -> Decision:
             elif word == "service":
                 d.service = True
             else:
-                raise ClassificationError(f"'docs-test: run' does not know {word!r} (exit=N, creates=PATH,..., service, timeout=S)")
+                raise ClassificationError(
+                    f"'docs-test: run' does not know {word!r} (exit=N, creates=PATH,..., service, timeout=S)"
+                )
         return d
     raise ClassificationError(f"docs-test comment {text!r}: the first word must be run, skip or output")
 
@@ -271,7 +280,9 @@ def shell_script(block: Block, rc_file: Path, data: Path) -> str:
     for command in commands_of(shell_text(block)):
         for pattern, variant in VARIANTS:
             if pattern.search(command):
-                lines.append(f"printf '%s\\n' {shlex.quote(f'[docs-test] the files of sample variant {variant!r} for the next command')} >&2")
+                lines.append(
+                    f"printf '%s\\n' {shlex.quote(f'[docs-test] the files of sample variant {variant!r} for the next command')} >&2"
+                )
                 lines.append(f"cp -f {shlex.quote(str(data / 'variants' / variant))}/* .")
         lines.append(f"printf '\\n%s\\n' {shlex.quote('[docs-test] $ ' + command)} >&2")
         lines.append(command)
@@ -336,10 +347,10 @@ def make_sample_data(folder: Path) -> dict:
     from forestreg.app.simulation import simulated_coregistration
     from forestreg.engine.core.scan import Scan
     from forestreg.engine.io import read_scan, write_scan
+    from forestreg.engine.io.simulated import write_resurvey, write_simulated_plot
     from forestreg.engine.params import params_toml
     from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.simulate.resurvey import simulate_resurvey
-    from forestreg.engine.io.simulated import write_resurvey, write_simulated_plot
 
     folder = Path(folder)
     work = folder / ".generated"
@@ -348,11 +359,21 @@ def make_sample_data(folder: Path) -> dict:
 
     # System A: one plot of three scans
     dx, dy = SECOND_SCANNER_OFFSET
-    plot = write_simulated_plot(simulate_plot("planted_conifer", [(0.0, 0.0), (dx, dy), (-6.0, 8.0)], seed=1,
-                         angular_step_deg=0.4, size_m=40.0), work / "plot")
+    plot = write_simulated_plot(
+        simulate_plot(
+            "planted_conifer", [(0.0, 0.0), (dx, dy), (-6.0, 8.0)], seed=1, angular_step_deg=0.4, size_m=40.0
+        ),
+        work / "plot",
+    )
     files = [work / "plot" / f"{s.name}.laz" for s in plot.scans]
-    for name, src in (("scan1.laz", files[0]), ("scan2.laz", files[1]), ("A.laz", files[0]), ("B.laz", files[1]),
-                      ("a.laz", files[0]), ("b.laz", files[1])):
+    for name, src in (
+        ("scan1.laz", files[0]),
+        ("scan2.laz", files[1]),
+        ("A.laz", files[0]),
+        ("B.laz", files[1]),
+        ("a.laz", files[0]),
+        ("b.laz", files[1]),
+    ):
         shutil.copyfile(src, folder / name)
     for sub in ("scans", "utm"):
         (folder / sub).mkdir()
@@ -388,14 +409,25 @@ def make_sample_data(folder: Path) -> dict:
     record["coregistration"] = np.asarray(case.truth).tolist()
 
     # a re-survey: clouds, and the trees of each survey as tables
-    resurvey = write_resurvey(simulate_resurvey(size_m=24.0, seed=1, angular_step_deg=0.5, years=5.0,
-                                 before_positions=((-5.0, -5.0), (5.0, -5.0), (0.0, 5.0)),
-                                 after_positions=((0.0, -7.0), (6.0, 3.0), (-6.0, 3.0))), work / "resurvey")
+    resurvey = write_resurvey(
+        simulate_resurvey(
+            size_m=24.0,
+            seed=1,
+            angular_step_deg=0.5,
+            years=5.0,
+            before_positions=((-5.0, -5.0), (5.0, -5.0), (0.0, 5.0)),
+            after_positions=((0.0, -7.0), (6.0, 3.0), (-6.0, 3.0)),
+        ),
+        work / "resurvey",
+    )
     shutil.copyfile(resurvey.files["before"], folder / "plot_2021.laz")
     shutil.copyfile(resurvey.files["after"], folder / "plot_2026.laz")
     inverse = np.linalg.inv(resurvey.matrix)  # scene (BEFORE) -> AFTER frame
     tables: dict[str, str] = {}
-    for year, when, scene, to_frame in (("2021", "before", resurvey.before_scene, np.eye(4)), ("2026", "after", resurvey.after_scene, inverse)):
+    for year, when, scene, to_frame in (
+        ("2021", "before", resurvey.before_scene, np.eye(4)),
+        ("2026", "after", resurvey.after_scene, inverse),
+    ):
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(["tree_id", "x", "y", "z", "dbh_m", "height_m", "source", "dbh_quality", "height_quality", "flag"])
@@ -405,8 +437,20 @@ def make_sample_data(folder: Path) -> dict:
                 continue
             k += 1
             p = to_frame @ np.array([fate["x"], fate["y"], scene.ground_z(fate["x"], fate["y"]), 1.0])
-            w.writerow([k, f"{p[0]:.3f}", f"{p[1]:.3f}", f"{p[2]:.3f}", f"{fate[f'dbh_{when}_m']:.4f}", f"{fate[f'height_{when}_m']:.2f}",
-                        "stem", "stem curve; high", "top; high", ""])
+            w.writerow(
+                [
+                    k,
+                    f"{p[0]:.3f}",
+                    f"{p[1]:.3f}",
+                    f"{p[2]:.3f}",
+                    f"{fate[f'dbh_{when}_m']:.4f}",
+                    f"{fate[f'height_{when}_m']:.2f}",
+                    "stem",
+                    "stem curve; high",
+                    "top; high",
+                    "",
+                ]
+            )
         (folder / f"trees_{year}").mkdir()
         (folder / f"trees_{year}" / "trees.csv").write_text(buf.getvalue())
         tables[year] = buf.getvalue()

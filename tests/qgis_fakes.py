@@ -71,7 +71,17 @@ def _kind(name):
 
 
 QgsProcessingParameterDefinition = _Definition
-PARAMETERS = ("Boolean", "Crs", "Enum", "File", "FileDestination", "FolderDestination", "MultipleLayers", "Number", "String")
+PARAMETERS = (
+    "Boolean",
+    "Crs",
+    "Enum",
+    "File",
+    "FileDestination",
+    "FolderDestination",
+    "MultipleLayers",
+    "Number",
+    "String",
+)
 OUTPUTS = ("File", "Folder", "MultipleLayers", "Number", "PointCloudLayer", "String", "VectorLayer")
 for _n in PARAMETERS:
     globals()[f"QgsProcessingParameter{_n}"] = _kind(f"QgsProcessingParameter{_n}")
@@ -301,7 +311,9 @@ def _modules(version: int, point_clouds: bool, pdal: bool = True) -> dict:
             setattr(core, key, value)
     core.Qgis = type("Qgis", (Qgis,), {"QGIS_VERSION_INT": version})
     if not pdal:  # a QGIS built without its PDAL provider (Debian 12's 3.22): point cloud classes, no provider
-        core.QgsProviderRegistry = type("QgsProviderRegistry", (QgsProviderRegistry,), {"providers": ("ogr", "delimitedtext")})
+        core.QgsProviderRegistry = type(
+            "QgsProviderRegistry", (QgsProviderRegistry,), {"providers": ("ogr", "delimitedtext")}
+        )
     if not point_clouds:
         del core.QgsPointCloudLayer
         del core.QgsProcessingOutputPointCloudLayer

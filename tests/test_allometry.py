@@ -12,7 +12,7 @@ from forestreg.engine.trees.allometry import HeightCurve, HeightCurveParams, fit
 
 def _naslund(a: float, b: float, dbh_m: np.ndarray) -> np.ndarray:
     d = 100.0 * dbh_m
-    return 1.3 + d ** 2 / (a + b * d) ** 2
+    return 1.3 + d**2 / (a + b * d) ** 2
 
 
 def test_curve_recovered_through_wrong_heights():
@@ -96,14 +96,20 @@ def test_the_curve_stands_in_only_where_it_is_tight_and_the_plot_shows_no_suppre
     # not yet checked on trees whose own apex is seen: no stand-in
     assert "tip" in curve.fill_refusal(params) and math.isnan(curve.fill_height_m(0.3, params))
     tips_d = np.array([0.15, 0.2, 0.3, 0.4, 0.45])
-    follows = curve.with_tips(tips_d, np.array([curve.height_m(x) for x in tips_d]) * np.array([0.95, 1.02, 0.9, 1.05, 0.97]), params)
+    follows = curve.with_tips(
+        tips_d, np.array([curve.height_m(x) for x in tips_d]) * np.array([0.95, 1.02, 0.9, 1.05, 0.97]), params
+    )
     assert follows.n_tips == 5 and follows.n_tips_below == 0 and follows.fill_refusal(params) == ""
     assert follows.fill_height_m(0.3, params) == curve.height_m(0.3)
     assert "stands in for heights the points cannot give" in follows.describe()
-    assert math.isnan(follows.fill_height_m(1.15 * d.max(), params)) and math.isnan(follows.fill_height_m(0.85 * d.min(), params))
+    assert math.isnan(follows.fill_height_m(1.15 * d.max(), params)) and math.isnan(
+        follows.fill_height_m(0.85 * d.min(), params)
+    )
     assert math.isfinite(follows.fill_height_m(1.05 * d.max(), params))
     assert math.isnan(follows.fill_height_m(0.3, params.replace(fill=False)))
-    suppressed = curve.with_tips(tips_d, np.array([curve.height_m(x) for x in tips_d]) * np.array([0.95, 1.02, 0.7, 1.05, 0.97]), params)
+    suppressed = curve.with_tips(
+        tips_d, np.array([curve.height_m(x) for x in tips_d]) * np.array([0.95, 1.02, 0.7, 1.05, 0.97]), params
+    )
     assert suppressed.n_tips_below == 1 and "suppressed" in suppressed.fill_refusal(params)
     assert math.isnan(suppressed.fill_height_m(0.3, params)) and "does not stand in" in suppressed.describe()
     h_loose = _naslund(1.5, 0.19, d) * np.exp(rng.normal(0.0, 0.12, 30))

@@ -13,7 +13,15 @@ def test_every_public_name_resolves_and_is_documented():
     for name in forestreg.__all__:
         obj = getattr(forestreg, name)
         assert obj.__doc__, f"forestreg.{name} has no docstring"
-    for name in ("register", "register_project", "coregister", "fuse_scans", "measure_trees", "evaluate", "load_params"):
+    for name in (
+        "register",
+        "register_project",
+        "coregister",
+        "fuse_scans",
+        "measure_trees",
+        "evaluate",
+        "load_params",
+    ):
         assert callable(getattr(forestreg, name))
     assert forestreg.load_params.__module__ == "forestreg.engine.params"
 

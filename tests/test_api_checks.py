@@ -31,10 +31,25 @@ from forestreg.cli import main
 CLI = [sys.executable, "-m", "forestreg.cli"]
 
 REAL_CLOUDS = (
-    "LPine1_demo.laz", "pine_plot.laz", "pine.laz", "spruce.laz", "TLS_scan_scanner_at_origin.laz", "cloud.txt",
-    "spanner_MLS_Clip.laz", "spanner_ALS_Clip.laz", "lidR_MixedConifer.laz", "AdTree_tree1.xyz", "AdTree_tree7.xyz",
-    "AdTree_Lille_2.xyz", "aRchi_Tree_2_point_cloud.las", "SERC_transect_als.laz", "SERC_transect_drone.laz",
-    "SERC_transect_drone_leafoff.laz", "SERC_trunk_tls.laz", "SERC_trunk_mls.laz", "SERC_trunk_drone.laz",
+    "LPine1_demo.laz",
+    "pine_plot.laz",
+    "pine.laz",
+    "spruce.laz",
+    "TLS_scan_scanner_at_origin.laz",
+    "cloud.txt",
+    "spanner_MLS_Clip.laz",
+    "spanner_ALS_Clip.laz",
+    "lidR_MixedConifer.laz",
+    "AdTree_tree1.xyz",
+    "AdTree_tree7.xyz",
+    "AdTree_Lille_2.xyz",
+    "aRchi_Tree_2_point_cloud.las",
+    "SERC_transect_als.laz",
+    "SERC_transect_drone.laz",
+    "SERC_transect_drone_leafoff.laz",
+    "SERC_trunk_tls.laz",
+    "SERC_trunk_mls.laz",
+    "SERC_trunk_drone.laz",
     "SERC_trunk_drone_leafoff.laz",
 )
 
@@ -54,7 +69,9 @@ def _run(*args, timeout: float = 120) -> tuple[subprocess.CompletedProcess, floa
 
 def _python(code: str, timeout: float = 120) -> subprocess.CompletedProcess:
     """``code`` in a Python process of its own (a crash there is a failed test, not a dead pytest)."""
-    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, env=_env(), timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, env=_env(), timeout=timeout
+    )
 
 
 def _write_scaled(path: Path, points: np.ndarray, factor: float) -> Path:
@@ -80,7 +97,9 @@ def scans(tmp_path_factory, sim_plot):
     folder = tmp_path_factory.mktemp("api_scans")
     files = {}
     for unit, factor in (("m", 1.0), ("cm", 100.0), ("mm", 1000.0)):
-        files[unit] = tuple(_write_scaled(folder / f"{s.scan.name}_{unit}.laz", s.scan.file_points, factor) for s in plot.scans[:2])
+        files[unit] = tuple(
+            _write_scaled(folder / f"{s.scan.name}_{unit}.laz", s.scan.file_points, factor) for s in plot.scans[:2]
+        )
     return files, plot
 
 
@@ -91,7 +110,10 @@ def pine_plot_units(shared_data, tmp_path_factory):
 
     points = read_scan(shared_data / "pine_plot.laz", with_intensity=False).file_points
     folder = tmp_path_factory.mktemp("api_pine_plot")
-    return {unit: _write_scaled(folder / f"pine_plot_{unit}.laz", points, factor) for unit, factor in (("cm", 100.0), ("mm", 1000.0))}
+    return {
+        unit: _write_scaled(folder / f"pine_plot_{unit}.laz", points, factor)
+        for unit, factor in (("cm", 100.0), ("mm", 1000.0))
+    }
 
 
 # ----------------------------------------------------------------------------- 2, 13: the Python API
@@ -163,7 +185,8 @@ def test_every_public_function_raises_the_products_errors_naming_what_it_expects
     TypeError, never a crash."""
     files, plot = scans
     calls = json.dumps([c for c, _, _ in HOSTILE_CALLS])
-    done = _python(f"""
+    done = _python(
+        f"""
         import json, os, numpy as np, forestreg
         os.chdir({str(tmp_path)!r})
         P = forestreg.read_scan({str(files["m"][0])!r}).points
@@ -180,11 +203,16 @@ def test_every_public_function_raises_the_products_errors_naming_what_it_expects
             except Exception as exc:
                 out.append(["raw " + type(exc).__name__, str(exc)])
         print(json.dumps(out))
-    """, timeout=300)
+    """,
+        timeout=300,
+    )
     assert done.returncode == 0, f"the interpreter ended with {done.returncode}: {done.stderr[-800:]}"
     results = json.loads(done.stdout.strip().splitlines()[-1])
-    wrong = [f"{call}: {got} {text[:160]!r} (expected {cls} naming {words!r})"
-             for (call, cls, words), (got, text) in zip(HOSTILE_CALLS, results) if got != cls or words not in text]
+    wrong = [
+        f"{call}: {got} {text[:160]!r} (expected {cls} naming {words!r})"
+        for (call, cls, words), (got, text) in zip(HOSTILE_CALLS, results)
+        if got != cls or words not in text
+    ]
     assert wrong == []
 
 
@@ -231,8 +259,22 @@ def test_pine_plot_in_cm_is_measured_with_its_unit(pine_plot_units, tmp_path):
     from forestreg.engine.io import read_scan
 
     check_units(read_scan(pine_plot_units["cm"], unit_scale=0.01).points, "cm", "pine_plot_cm")
-    assert main(["trees", str(pine_plot_units["cm"]), "--out", str(tmp_path / "t"), "--units", "cm", "--no-cylinders",
-                 "--no-report", "-q"]) == 0
+    assert (
+        main(
+            [
+                "trees",
+                str(pine_plot_units["cm"]),
+                "--out",
+                str(tmp_path / "t"),
+                "--units",
+                "cm",
+                "--no-cylinders",
+                "--no-report",
+                "-q",
+            ]
+        )
+        == 0
+    )
 
 
 @pytest.mark.parametrize("unit", ["cm", "mm"])
@@ -243,8 +285,13 @@ def test_every_command_refuses_simulated_scans_in_cm_or_mm(scans, tmp_path, comm
     files, _ = scans
     a, b = files[unit]
     out = tmp_path / "out"
-    args = {"register": (a, b, "--out", out), "plot": (a, b, "--out", out), "coregister": (a, b, "--out", out),
-            "fuse": (a, b, "--out", tmp_path / "fused.laz"), "trees": (a, "--out", out)}[command]
+    args = {
+        "register": (a, b, "--out", out),
+        "plot": (a, b, "--out", out),
+        "coregister": (a, b, "--out", out),
+        "fuse": (a, b, "--out", tmp_path / "fused.laz"),
+        "trees": (a, "--out", out),
+    }[command]
     done, seconds = _run(command, *args, timeout=60)
     assert done.returncode == 2, done.stderr
     assert seconds < 60
@@ -260,8 +307,12 @@ def test_the_api_refuses_simulated_scans_in_cm_and_takes_them_in_metres(scans):
 
     files, plot = scans
     points = plot.scans[0].scan.points
-    for call in (lambda p: forestreg.measure_trees(p), lambda p: forestreg.terrain_model(p),
-                 lambda p: forestreg.fuse(p, np.zeros((0, 3))), lambda p: forestreg.locate_scanner(p)):
+    for call in (
+        lambda p: forestreg.measure_trees(p),
+        lambda p: forestreg.terrain_model(p),
+        lambda p: forestreg.fuse(p, np.zeros((0, 3))),
+        lambda p: forestreg.locate_scanner(p),
+    ):
         with pytest.raises(UnitError, match="centimetres"):
             call(points * 100.0)
     with pytest.raises(UnitError, match="looks like metres"):
@@ -292,9 +343,19 @@ def test_real_clouds_in_cm_are_refused_with_centimetres(shared_data):
     from forestreg.app.common import UnitError, check_units
     from forestreg.engine.io import read_scan
 
-    for name in ("LPine1_demo.laz", "pine_plot.laz", "pine.laz", "spruce.laz", "TLS_scan_scanner_at_origin.laz",
-                 "spanner_MLS_Clip.laz", "spanner_ALS_Clip.laz", "AdTree_tree1.xyz", "AdTree_Lille_2.xyz",
-                 "aRchi_Tree_2_point_cloud.las", "cloud.txt"):
+    for name in (
+        "LPine1_demo.laz",
+        "pine_plot.laz",
+        "pine.laz",
+        "spruce.laz",
+        "TLS_scan_scanner_at_origin.laz",
+        "spanner_MLS_Clip.laz",
+        "spanner_ALS_Clip.laz",
+        "AdTree_tree1.xyz",
+        "AdTree_Lille_2.xyz",
+        "aRchi_Tree_2_point_cloud.las",
+        "cloud.txt",
+    ):
         points = read_scan(shared_data / name, with_intensity=False).points * 100.0
         with pytest.raises(UnitError, match="looks like centimetres"):
             check_units(points, "m", name)
@@ -331,8 +392,17 @@ def test_simulated_ground_and_uav_clouds_pass(tmp_path):
 def test_single_tree_yes_on_a_plot_warns_and_flags_the_tree(shared_data, tmp_path):
     """pine_plot.laz (about 16 stems) with ``--single-tree yes``: one tree as asked, but flagged,
     its values not trusted high, a warning on stderr saying how many stems the cloud holds."""
-    done, _ = _run("trees", shared_data / "pine_plot.laz", "--out", tmp_path / "t", "--single-tree", "yes", "--no-cylinders",
-                   "--no-report", timeout=300)
+    done, _ = _run(
+        "trees",
+        shared_data / "pine_plot.laz",
+        "--out",
+        tmp_path / "t",
+        "--single-tree",
+        "yes",
+        "--no-cylinders",
+        "--no-report",
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr
     warnings = [line for line in (done.stdout + done.stderr).splitlines() if line.startswith("warning:")]
     assert len(warnings) == 1 and "stems: not a single tree" in warnings[0], done.stderr
@@ -352,7 +422,9 @@ def test_a_real_single_tree_is_not_flagged_for_stems(shared_data, name):
     import forestreg
     from forestreg.engine.trees.single import separate_stems
 
-    inventory = forestreg.measure_trees(shared_data / name, forestreg.TreeParams().replace(cylinder_models=False), single_tree=True)
+    inventory = forestreg.measure_trees(
+        shared_data / name, forestreg.TreeParams().replace(cylinder_models=False), single_tree=True
+    )
     (tree,) = inventory.trees
     assert not any("stems" in f for f in tree.flags)
     assert tree.quality["height"].endswith("; high")

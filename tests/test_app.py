@@ -47,7 +47,9 @@ def coreg_case(tmp_path_factory):
     """The demo's ground-based and UAV clouds of one plot."""
     from forestreg.app.simulation import simulated_coregistration
 
-    return simulated_coregistration(tmp_path_factory.mktemp("app_coreg"), seed=1, size_m=24.0, ground_extent_m=14.0, tls_step_deg=0.5)
+    return simulated_coregistration(
+        tmp_path_factory.mktemp("app_coreg"), seed=1, size_m=24.0, ground_extent_m=14.0, tls_step_deg=0.5
+    )
 
 
 def test_pair_registration_same_verdict_on_the_command_line_and_the_desktop(pair_case, tmp_path):
@@ -121,7 +123,9 @@ def test_trees_same_trees_on_the_command_line_and_the_desktop(qtbot, coreg_case,
     write_trees_tables(desk, view.base_inventory)
     assert len(read_trees_dir(desk).trees) == len(cli.trees) > 3
     written = sorted(p.relative_to(out) for p in out.rglob("*.csv"))
-    assert written == sorted(p.relative_to(desk) for p in desk.rglob("*.csv")) and any(p.parts[0] == "cylinders" for p in written)
+    assert written == sorted(p.relative_to(desk) for p in desk.rglob("*.csv")) and any(
+        p.parts[0] == "cylinders" for p in written
+    )
     for name in written:
         assert (desk / name).read_bytes() == (out / name).read_bytes(), name
 
@@ -135,17 +139,42 @@ def test_typed_records_read_old_damaged_and_withheld_results(tmp_path):
     from forestreg.app.saved import SavedFileError, SavedPoses, SavedResult
 
     scaled = (1.01 * np.eye(4)).tolist()
-    co = CoregistrationSummary.of({"status": "ok", "matrix": scaled, "matched": "7", "icp": {"std_m": float("nan")},
-                                   "keypoints": None, "surface_correlation": 0.9, "alternative_correlation": 0.4})
+    co = CoregistrationSummary.of(
+        {
+            "status": "ok",
+            "matrix": scaled,
+            "matched": "7",
+            "icp": {"std_m": float("nan")},
+            "keypoints": None,
+            "surface_correlation": 0.9,
+            "alternative_correlation": 0.4,
+        }
+    )
     assert not co.ok and co.matrix is None and "withheld" in co.reason
-    assert co.matched is None and co.icp_std_m is None and co.keypoints_ground is None and co.margin == pytest.approx(0.5)
-    change = ChangeSummary.of({"status": "ok", "matrix": np.eye(4).tolist(), "trees": {"persisting": 3, "new": True},
-                               "evidence": {"persisting_stems": 3}, "uncertainty": {"translation_m": 0.01}})
+    assert (
+        co.matched is None and co.icp_std_m is None and co.keypoints_ground is None and co.margin == pytest.approx(0.5)
+    )
+    change = ChangeSummary.of(
+        {
+            "status": "ok",
+            "matrix": np.eye(4).tolist(),
+            "trees": {"persisting": 3, "new": True},
+            "evidence": {"persisting_stems": 3},
+            "uncertainty": {"translation_m": 0.01},
+        }
+    )
     assert change.ok and (change.persisting, change.new, change.trees) == (3, 0, 3) and change.rotation_deg is None
     saved = SavedResult.from_dict({"status": "ok", "matrix": [[1, 0], [0, 1]], "matched": 12})
     assert not saved.ok and saved.matrix is None and saved.matched == 12
-    poses = SavedPoses.from_dict({"frame": "a", "scans": {"a": {"status": "centre", "matrix": np.eye(4).tolist()},
-                                                          "b": {"status": "failed", "reason": "too few trunks", "matrix": None}}})
+    poses = SavedPoses.from_dict(
+        {
+            "frame": "a",
+            "scans": {
+                "a": {"status": "centre", "matrix": np.eye(4).tolist()},
+                "b": {"status": "failed", "reason": "too few trunks", "matrix": None},
+            },
+        }
+    )
     assert [s.name for s in poses.not_registered] == ["b"] and poses.reason() == "b: too few trunks"
     with pytest.raises(SavedFileError, match="result.json is missing"):
         SavedResult.read(tmp_path / "result.json")
@@ -159,7 +188,9 @@ def far_positions(pair_case, tmp_path):
     """Scanner positions 5 km from the points of both scans of the pair (a georeferenced plot
     given the wrong positions): no scan has points near its scanner."""
     csv = tmp_path / "positions.csv"
-    csv.write_text("".join(f"{p.name},5000,5000,0\n" for p in (pair_case.reference, pair_case.moving)), encoding="utf-8")
+    csv.write_text(
+        "".join(f"{p.name},5000,5000,0\n" for p in (pair_case.reference, pair_case.moving)), encoding="utf-8"
+    )
     return csv
 
 
@@ -190,15 +221,20 @@ def test_scans_far_from_their_scanners_are_refused_by_every_door(pair_case, far_
     assert str(api.value) in cli_line and not (tmp_path / "api").exists()
 
     state = tmp_path / "service"
-    client = start_service(state, command=[sys.executable, "-m", "forestreg.cli"], idle_exit_s=None, workers=1, timeout=90)
+    client = start_service(
+        state, command=[sys.executable, "-m", "forestreg.cli"], idle_exit_s=None, workers=1, timeout=90
+    )
     try:
         job = client.run(["plot", *files, "--positions", str(far_positions), "--out", "job"], cwd=tmp_path, timeout=300)
     finally:
         pid = read_server_info(state)["pid"]
         os.kill(pid, signal.SIGTERM)
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and os.path.exists(f"/proc/{pid}") and \
-                open(f"/proc/{pid}/stat").read().split()[2] != "Z":
+        while (
+            time.monotonic() < deadline
+            and os.path.exists(f"/proc/{pid}")
+            and open(f"/proc/{pid}/stat").read().split()[2] != "Z"
+        ):
             time.sleep(0.05)
     assert job["status"] == "error" and job["exit_code"] == 2
     assert str(api.value) in job["message"] and job["outputs"] == [] and not (tmp_path / "job").exists()

@@ -22,14 +22,21 @@ import ast
 from functools import lru_cache
 from pathlib import Path
 
-
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "forestreg"
 #: top-level folders that are not part of the shipped package's layering
 SKIP = {"tests", "benchmarks", "scripts", "docs", "resources", ".venv", "build", "dist"}
 
 FRONT_DOORS = ("cli", "ui", "service", "plugin", "client")
-DOMAIN = ("engine.tls", "engine.coreg", "engine.trees", "engine.terrain", "engine.geometry", "engine.change", "engine.simulate")
+DOMAIN = (
+    "engine.tls",
+    "engine.coreg",
+    "engine.trees",
+    "engine.terrain",
+    "engine.geometry",
+    "engine.change",
+    "engine.simulate",
+)
 #: The engine modules that may write files, and why: everything else under ``engine`` computes
 #: and returns (a run reports its progress through callbacks such as ``on_link_done``; the use
 #: cases in ``app`` decide what is written where).
@@ -40,14 +47,42 @@ ENGINE_WRITERS = {
     "engine.core.jit": "the cache of compiled kernels (its warm-up mark and the kernels' index) in the user's cache folder",
 }
 #: what a front door may import below ``app``
-FRONT_DOOR_MAY = ("app", "engine.core", "engine.io", "engine.report", "engine.params", "engine.tls.params",
-                  "cli", "ui", "service", "plugin", "client", "engine")
+FRONT_DOOR_MAY = (
+    "app",
+    "engine.core",
+    "engine.io",
+    "engine.report",
+    "engine.params",
+    "engine.tls.params",
+    "cli",
+    "ui",
+    "service",
+    "plugin",
+    "client",
+    "engine",
+)
 #: parameter modules a front door may import from a domain package (classes only)
 PARAM_MODULES = {"engine.tls.params"}
 
 #: methods that write a file (on a path, a figure, a table, a project)
-WRITE_METHODS = {"write_text", "write_bytes", "savefig", "tofile", "to_csv", "to_json", "to_parquet", "mkdir", "touch", "write",
-                 "write_csv", "save", "checkpoint", "symlink_to", "unlink", "rmdir"}
+WRITE_METHODS = {
+    "write_text",
+    "write_bytes",
+    "savefig",
+    "tofile",
+    "to_csv",
+    "to_json",
+    "to_parquet",
+    "mkdir",
+    "touch",
+    "write",
+    "write_csv",
+    "save",
+    "checkpoint",
+    "symlink_to",
+    "unlink",
+    "rmdir",
+}
 #: modules whose ``open(path, mode)`` takes the path first (else ``x.open(mode)`` is a path's open)
 OPEN_MODULES = {"io", "os", "gzip", "bz2", "lzma", "codecs", "laspy", "builtins", "tarfile", "zipfile", "h5py", "pye57"}
 #: module functions that write or move files, by module
@@ -99,7 +134,7 @@ def _resolve(mod: str, is_package: bool, node: ast.ImportFrom) -> list[str]:
     else:
         if not node.module or not (node.module == PACKAGE or node.module.startswith(PACKAGE + ".")):
             return []
-        target = node.module[len(PACKAGE) + 1:] if node.module != PACKAGE else ""
+        target = node.module[len(PACKAGE) + 1 :] if node.module != PACKAGE else ""
     names = []
     for alias in node.names:
         sub = f"{target}.{alias.name}" if target else alias.name
@@ -115,8 +150,11 @@ def _lazy_table(tree: ast.AST) -> set[str]:
         if isinstance(node, (ast.Assign, ast.AnnAssign)):
             targets = node.targets if isinstance(node, ast.Assign) else [node.target]
             if any(isinstance(t, ast.Name) and t.id == "_LAZY" for t in targets) and isinstance(node.value, ast.Dict):
-                found.update(v.value.lstrip(".") for v in node.value.values
-                             if isinstance(v, ast.Constant) and isinstance(v.value, str) and v.value.startswith("."))
+                found.update(
+                    v.value.lstrip(".")
+                    for v in node.value.values
+                    if isinstance(v, ast.Constant) and isinstance(v.value, str) and v.value.startswith(".")
+                )
     return found
 
 
@@ -134,18 +172,20 @@ def imports() -> dict[str, set[str]]:
             elif isinstance(node, ast.Import):
                 for alias in node.names:
                     if alias.name.startswith(PACKAGE + "."):
-                        deps.add(alias.name[len(PACKAGE) + 1:])
+                        deps.add(alias.name[len(PACKAGE) + 1 :])
                     elif alias.name == PACKAGE:
                         deps.add(PACKAGE)
             elif isinstance(node, ast.Call):  # importlib.import_module(".x.y", ...)
                 f = node.func
-                if (isinstance(f, ast.Attribute) and f.attr == "import_module") or (isinstance(f, ast.Name) and f.id == "import_module"):
+                if (isinstance(f, ast.Attribute) and f.attr == "import_module") or (
+                    isinstance(f, ast.Name) and f.id == "import_module"
+                ):
                     if node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str):
                         name = node.args[0].value
                         if name.startswith("."):
                             deps.add(name.lstrip("."))
                         elif name.startswith(PACKAGE + "."):
-                            deps.add(name[len(PACKAGE) + 1:])
+                            deps.add(name[len(PACKAGE) + 1 :])
         deps.update(_lazy_table(tree))
         graph[mod] = {_known(d, srcs) for d in deps if d} - {mod}
     return graph
@@ -187,17 +227,31 @@ def file_writes() -> dict[str, list[str]]:
             name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else None
             if name is None:
                 continue
-            if name == "open" and node.args and isinstance(node.args[0], ast.Attribute) and node.args[0].attr == "devnull":
+            if (
+                name == "open"
+                and node.args
+                and isinstance(node.args[0], ast.Attribute)
+                and node.args[0].attr == "devnull"
+            ):
                 continue  # the null device (silencing a library's output), not a file
             if name == "open":
                 if _open_mode(node) != "r":
                     hits.append(f"open:{node.lineno}")
-            elif isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and name in WRITE_MODULE_FUNCTIONS.get(f.value.id, ()):
+            elif (
+                isinstance(f, ast.Attribute)
+                and isinstance(f.value, ast.Name)
+                and name in WRITE_MODULE_FUNCTIONS.get(f.value.id, ())
+            ):
                 hits.append(f"{f.value.id}.{name}:{node.lineno}")
             elif name in IN_MEMORY:
                 continue
             elif name in WRITE_FUNCTIONS or name.startswith("write"):
-                if isinstance(f, ast.Attribute) and name in ("write",) and isinstance(f.value, ast.Name) and f.value.id in ("buf", "sys"):
+                if (
+                    isinstance(f, ast.Attribute)
+                    and name in ("write",)
+                    and isinstance(f.value, ast.Name)
+                    and f.value.id in ("buf", "sys")
+                ):
                     continue  # an in-memory buffer or the terminal
                 hits.append(f"{name}:{node.lineno}")
             elif isinstance(f, ast.Attribute) and name in WRITE_METHODS:
@@ -208,11 +262,13 @@ def file_writes() -> dict[str, list[str]]:
 
 
 def _open_mode(node: ast.Call) -> str:
-    """"r" for an ``open`` call that only reads, else "w" (a mode that writes, appends, creates or
+    """ "r" for an ``open`` call that only reads, else "w" (a mode that writes, appends, creates or
     updates, or one not written as a constant): ``open(path, mode)``, ``io.open``/``laspy.open``
     (path first) and a path's ``p.open(mode)`` (mode first)."""
     f = node.func
-    path_first = isinstance(f, ast.Name) or (isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and f.value.id in OPEN_MODULES)
+    path_first = isinstance(f, ast.Name) or (
+        isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and f.value.id in OPEN_MODULES
+    )
     mode = next((k.value for k in node.keywords if k.arg == "mode"), None)
     if mode is None:
         position = 1 if path_first else 0
@@ -306,39 +362,65 @@ KEY_READ_DOORS = ("cli", "ui", "service", "plugin")
 #: ``x["key"]`` or ``x.get("key")`` in those folders fails :func:`test_front_doors_read_no_result_by_string_key`.
 NOT_RESULTS: dict[str, dict[str, str]] = {
     "cli": {"os.environ": "environment variables"},
-    "cli.misc": {"values": "the gui command's own options (--size, --project, ...), parsed by hand",
-                 "r": "rows of the parameter table (name, unit, paper, help) that `forestreg params` prints"},
+    "cli.misc": {
+        "values": "the gui command's own options (--size, --project, ...), parsed by hand",
+        "r": "rows of the parameter table (name, unit, paper, help) that `forestreg params` prints",
+    },
     "ui.sample": {"os.environ": "environment variables"},
     "ui.scene_view": {"os.environ": "environment variables"},
     "ui.params_panel": {"row": "rows of the parameter table (name, default, unit, range, paper, help) the panel edits"},
     "ui.tie_points": {"self.combos": "the panel's two combo boxes by side"},
-    "ui.trees_view": {"t": "a trees.csv row's measure by column name (TreeRow.get; the table's columns are open-ended)",
-                      "tree": "a trees.csv row's measure by column name (TreeRow.get)",
-                      "out.tree(int(tree_id))": "a trees.csv row's measure by column name (TreeRow.get)"},
-    "plugin.adapter": {"env": "the environment of the service's process",
-                       "row": "rows of a *_vops.csv (csv.DictReader), read into the host's records",
-                       "final": "the service's job record (status, exit code, message) as its HTTP API returns it"},
+    "ui.trees_view": {
+        "t": "a trees.csv row's measure by column name (TreeRow.get; the table's columns are open-ended)",
+        "tree": "a trees.csv row's measure by column name (TreeRow.get)",
+        "out.tree(int(tree_id))": "a trees.csv row's measure by column name (TreeRow.get)",
+    },
+    "plugin.adapter": {
+        "env": "the environment of the service's process",
+        "row": "rows of a *_vops.csv (csv.DictReader), read into the host's records",
+        "final": "the service's job record (status, exit code, message) as its HTTP API returns it",
+    },
     "plugin.qgis.provider": {"gpkg": "the layers of layers.gpkg loaded into QGIS, by layer name"},
-    "plugin.geometry": {"c": "a cylinder table's columns by name (read_cylinders_csv: one array per column of CYLINDER_COLUMNS)"},
-    "service.app": {"scope": "the ASGI scope", "message": "ASGI messages", "request.headers": "HTTP headers",
-                    "request.query_params": "the URL's query", "info": "the service's own state file (url, token, pid)",
-                    "job": "the service's job records (its SQLite table, served as JSON)",
-                    "old": "a job record being resubmitted", "first": "the first event of a job's event stream",
-                    "event": "a job's events (progress, log, end)", "current": "a job record being polled",
-                    "app": "the ASGI application's state"},
-    "service.jobs": {"env": "the environment of a job's process", "job": "the service's job records (its SQLite table)",
-                     "event": "the progress events a job prints (one JSON line each)", "end": "a job's end event",
-                     "last": "the last progress event kept", "self.store.raw(job_id)": "a job's raw SQLite row"},
-    "service.store": {"row": "SQLite rows of the job table", "r": "SQLite rows of the job table",
-                      "fields": "the columns of a job record being updated"},
-    "service.batch": {"r": "the batch's own summary rows (one per plot: summary.csv, batch.json)",
-                      "row": "the batch's own summary rows, and a manifest's CSV row (the user's file)",
-                      "previous": "the batch's own row of a plot done by an earlier run (batch.json)",
-                      "rows[name]": "a manifest's CSV row (the user's file)",
-                      "(rows or {}).get(name, {})": "a manifest's CSV row (the user's file)",
-                      "client.scheduler_info()": "Dask's scheduler description",
-                      "_read_json(path) or {}": "the batch's own notes of a plot's attempts (.forestreg-batch/<plot>.json)",
-                      "a": "an attempt of those notes (run, worker, pid, start)", "last": "the last attempt noted"},
+    "plugin.geometry": {
+        "c": "a cylinder table's columns by name (read_cylinders_csv: one array per column of CYLINDER_COLUMNS)"
+    },
+    "service.app": {
+        "scope": "the ASGI scope",
+        "message": "ASGI messages",
+        "request.headers": "HTTP headers",
+        "request.query_params": "the URL's query",
+        "info": "the service's own state file (url, token, pid)",
+        "job": "the service's job records (its SQLite table, served as JSON)",
+        "old": "a job record being resubmitted",
+        "first": "the first event of a job's event stream",
+        "event": "a job's events (progress, log, end)",
+        "current": "a job record being polled",
+        "app": "the ASGI application's state",
+    },
+    "service.jobs": {
+        "env": "the environment of a job's process",
+        "job": "the service's job records (its SQLite table)",
+        "event": "the progress events a job prints (one JSON line each)",
+        "end": "a job's end event",
+        "last": "the last progress event kept",
+        "self.store.raw(job_id)": "a job's raw SQLite row",
+    },
+    "service.store": {
+        "row": "SQLite rows of the job table",
+        "r": "SQLite rows of the job table",
+        "fields": "the columns of a job record being updated",
+    },
+    "service.batch": {
+        "r": "the batch's own summary rows (one per plot: summary.csv, batch.json)",
+        "row": "the batch's own summary rows, and a manifest's CSV row (the user's file)",
+        "previous": "the batch's own row of a plot done by an earlier run (batch.json)",
+        "rows[name]": "a manifest's CSV row (the user's file)",
+        "(rows or {}).get(name, {})": "a manifest's CSV row (the user's file)",
+        "client.scheduler_info()": "Dask's scheduler description",
+        "_read_json(path) or {}": "the batch's own notes of a plot's attempts (.forestreg-batch/<plot>.json)",
+        "a": "an attempt of those notes (run, worker, pid, start)",
+        "last": "the last attempt noted",
+    },
 }
 
 
@@ -351,11 +433,21 @@ def string_key_reads() -> dict[str, list[tuple[str, int, str]]]:
             continue
         for node in ast.walk(tree):
             receiver = None
-            if (isinstance(node, ast.Subscript) and isinstance(node.ctx, ast.Load) and isinstance(node.slice, ast.Constant)
-                    and isinstance(node.slice.value, str)):
+            if (
+                isinstance(node, ast.Subscript)
+                and isinstance(node.ctx, ast.Load)
+                and isinstance(node.slice, ast.Constant)
+                and isinstance(node.slice.value, str)
+            ):
                 receiver = node.value
-            elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "get" and node.args
-                  and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+            elif (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Attribute)
+                and node.func.attr == "get"
+                and node.args
+                and isinstance(node.args[0], ast.Constant)
+                and isinstance(node.args[0].value, str)
+            ):
                 receiver = node.func.value
             if receiver is not None:
                 found.setdefault(mod, []).append((ast.unparse(receiver), node.lineno, ast.unparse(node)))
@@ -364,8 +456,12 @@ def string_key_reads() -> dict[str, list[tuple[str, int, str]]]:
 
 def result_key_reads() -> list[str]:
     """The reads by string key in the front doors that :data:`NOT_RESULTS` does not name."""
-    return sorted(f"{mod}:{line}: {text}" for mod, reads in string_key_reads().items()
-                  for receiver, line, text in reads if receiver not in NOT_RESULTS.get(mod, {}))
+    return sorted(
+        f"{mod}:{line}: {text}"
+        for mod, reads in string_key_reads().items()
+        for receiver, line, text in reads
+        if receiver not in NOT_RESULTS.get(mod, {})
+    )
 
 
 # ----------------------------------------------------------------------------- the rules
@@ -387,19 +483,26 @@ def front_door_violations() -> list[str]:
 
 def engine_writes() -> list[str]:
     """The file-writing calls of engine modules outside :data:`ENGINE_WRITERS`."""
-    return sorted(f"{mod}: {', '.join(hits)}" for mod, hits in file_writes().items()
-                  if within(mod, "engine") and not any(within(mod, w) for w in ENGINE_WRITERS))
+    return sorted(
+        f"{mod}: {', '.join(hits)}"
+        for mod, hits in file_writes().items()
+        if within(mod, "engine") and not any(within(mod, w) for w in ENGINE_WRITERS)
+    )
 
 
 def layer_violations() -> list[str]:
     bad = []
     for mod, deps in imports().items():
         for d in deps:
-            if any(within(mod, dom) for dom in DOMAIN) and (within(d, "engine.report") or within(d, "app") or any(within(d, f) for f in FRONT_DOORS)):
+            if any(within(mod, dom) for dom in DOMAIN) and (
+                within(d, "engine.report") or within(d, "app") or any(within(d, f) for f in FRONT_DOORS)
+            ):
                 bad.append(f"{mod} -> {d}")
             if within(mod, "engine.io") and any(within(d, dom) for dom in DOMAIN + ("engine.report", "app")):
                 bad.append(f"{mod} -> {d}")
-            if within(mod, "engine.core") and not within(d, "engine.core") and d != "_version":  # the version text, a leaf
+            if (
+                within(mod, "engine.core") and not within(d, "engine.core") and d != "_version"
+            ):  # the version text, a leaf
                 bad.append(f"{mod} -> {d}")
             if within(mod, "engine") and (within(d, "app") or d == PACKAGE or any(within(d, f) for f in FRONT_DOORS)):
                 bad.append(f"{mod} -> {d}")
@@ -418,7 +521,9 @@ def test_engine_writes_no_files_outside_its_io_edge():
     """Only :data:`ENGINE_WRITERS` write files; every other engine module (the domain packages,
     ``engine/simulate`` among them) returns what it computed."""
     assert engine_writes() == []
-    assert all(any(within(mod, w) for mod in sources()) for w in ENGINE_WRITERS), "an allowed writer that no longer exists"
+    assert all(any(within(mod, w) for mod in sources()) for w in ENGINE_WRITERS), (
+        "an allowed writer that no longer exists"
+    )
 
 
 def test_layers_point_down():
@@ -439,31 +544,45 @@ def test_front_doors_read_no_result_by_string_key():
     key is of something named in :data:`NOT_RESULTS`, and each entry there is still used."""
     assert result_key_reads() == []
     reads = string_key_reads()
-    stale = [f"{mod}: {receiver}" for mod, named in NOT_RESULTS.items() for receiver in named
-             if not any(r == receiver for r, _, _ in reads.get(mod, []))]
+    stale = [
+        f"{mod}: {receiver}"
+        for mod, named in NOT_RESULTS.items()
+        for receiver in named
+        if not any(r == receiver for r, _, _ in reads.get(mod, []))
+    ]
     assert stale == []
 
 
 def test_the_key_read_checker_sees_result_reads(monkeypatch):
     """The checker itself: a result dict read by string key, by subscript or ``get``, is found,
     whatever the variable is called; a store is not a read."""
-    code = ('def show(outcome, link, x):\n    a = outcome.summary["matched"]\n    b = link.result.get("reason")\n'
-            '    c = x["status"]\n    x["status"] = "ok"\n')
+    code = (
+        'def show(outcome, link, x):\n    a = outcome.summary["matched"]\n    b = link.result.get("reason")\n'
+        '    c = x["status"]\n    x["status"] = "ok"\n'
+    )
     fake = {"ui.fake": (Path("fake.py"), ast.parse(code))}
     import sys
 
     module = sys.modules[__name__]
     monkeypatch.setattr(module, "sources", lambda: fake)
     assert [r.split(": ", 1)[1] for r in result_key_reads()] == [
-        "outcome.summary['matched']", "link.result.get('reason')", "x['status']"]
+        "outcome.summary['matched']",
+        "link.result.get('reason')",
+        "x['status']",
+    ]
 
 
 def _fake_package(monkeypatch, modules: dict[str, str]) -> None:
     """Make the checkers read ``modules`` (dotted name -> source) instead of the package."""
     import sys
 
-    fake = {name: (Path(*name.split("."), "__init__.py") if name in ("engine", "engine.tls", PACKAGE) else Path(f"{name}.py"),
-                   ast.parse(code)) for name, code in modules.items()}
+    fake = {
+        name: (
+            Path(*name.split("."), "__init__.py") if name in ("engine", "engine.tls", PACKAGE) else Path(f"{name}.py"),
+            ast.parse(code),
+        )
+        for name, code in modules.items()
+    }
     module = sys.modules[__name__]
     monkeypatch.setattr(module, "sources", lambda: fake)
     monkeypatch.setattr(module, "imports", imports.__wrapped__)  # uncached: read from the fake
@@ -474,22 +593,29 @@ def test_the_checker_sees_imports_inside_functions_and_of_the_root(monkeypatch):
     x``, ``import forestreg`` and a relative import reaching the root are imports of the root
     package, which imports what its ``_LAZY`` table names; an engine module importing the root is
     a layer violation."""
-    _fake_package(monkeypatch, {
-        PACKAGE: '_LAZY = {"plot_scans": ".app.plot"}\n',
-        "app.plot": "from ..engine.tls import pair\n",
-        "engine.tls.pair": "def f():\n    from ...app import plot\n",
-        "engine.tls.plot": "def g():\n    from ... import __version__\n",
-        "engine.tls.survey": "def h():\n    from forestreg import plot_scans\n",
-        "engine.tls.compare": "import forestreg\n",
-        "cli.plot": "from .. import __version__\n",
-    })
+    _fake_package(
+        monkeypatch,
+        {
+            PACKAGE: '_LAZY = {"plot_scans": ".app.plot"}\n',
+            "app.plot": "from ..engine.tls import pair\n",
+            "engine.tls.pair": "def f():\n    from ...app import plot\n",
+            "engine.tls.plot": "def g():\n    from ... import __version__\n",
+            "engine.tls.survey": "def h():\n    from forestreg import plot_scans\n",
+            "engine.tls.compare": "import forestreg\n",
+            "cli.plot": "from .. import __version__\n",
+        },
+    )
     graph = imports()
     assert graph["engine.tls.pair"] == {"app.plot"}, "an import inside a function"
     assert graph[PACKAGE] == {"app.plot"}, "the root's lazy table"
     assert graph["engine.tls.plot"] == graph["engine.tls.survey"] == graph["engine.tls.compare"] == {PACKAGE}
     assert cycles(module_graph()) == [["app.plot", "engine.tls.pair"]]
-    assert layer_violations() == ["engine.tls.compare -> forestreg", "engine.tls.pair -> app.plot",
-                                  "engine.tls.plot -> forestreg", "engine.tls.survey -> forestreg"]
+    assert layer_violations() == [
+        "engine.tls.compare -> forestreg",
+        "engine.tls.pair -> app.plot",
+        "engine.tls.plot -> forestreg",
+        "engine.tls.survey -> forestreg",
+    ]
     assert front_door_violations() == [], "a front door may import the root (the version, its folder)"
 
 
@@ -498,18 +624,46 @@ def test_the_checker_sees_every_kind_of_write(monkeypatch):
     :data:`ENGINE_WRITERS` (``engine/simulate`` included), none in reading code, and the I/O edge
     may write."""
     writes = {
-        "open(p, 'w')": "open", "open(p, mode='ab')": "open", "p.open('w')": "open", "laspy.open(p, mode='w')": "open",
-        "open(p, m)": "open", "p.write_text('x')": "write_text", "p.write_bytes(b'x')": "write_bytes",
-        "np.save(p, a)": "np.save", "json.dump(d, fh)": "json.dump", "frame.to_csv(p)": "to_csv",
-        "las.write(p)": "write", "project.save()": "save", "write_scan(s, p)": "write_scan",
-        "write_text_atomic(p, t)": "write_text_atomic", "shutil.rmtree(p)": "shutil.rmtree", "os.replace(a, b)": "os.replace",
-        "p.mkdir()": "mkdir", "fig.savefig(p)": "savefig",
+        "open(p, 'w')": "open",
+        "open(p, mode='ab')": "open",
+        "p.open('w')": "open",
+        "laspy.open(p, mode='w')": "open",
+        "open(p, m)": "open",
+        "p.write_text('x')": "write_text",
+        "p.write_bytes(b'x')": "write_bytes",
+        "np.save(p, a)": "np.save",
+        "json.dump(d, fh)": "json.dump",
+        "frame.to_csv(p)": "to_csv",
+        "las.write(p)": "write",
+        "project.save()": "save",
+        "write_scan(s, p)": "write_scan",
+        "write_text_atomic(p, t)": "write_text_atomic",
+        "shutil.rmtree(p)": "shutil.rmtree",
+        "os.replace(a, b)": "os.replace",
+        "p.mkdir()": "mkdir",
+        "fig.savefig(p)": "savefig",
     }
-    reads = ["open(p)", "open(p, 'rb')", "p.open()", "p.open('r')", "laspy.open(p)", "json.loads(t)", "p.read_text()",
-             "dataclasses.replace(x, a=1)", "params.replace(a=1)", "text.replace('a', 'b')", "open(os.devnull, 'w')"]
+    reads = [
+        "open(p)",
+        "open(p, 'rb')",
+        "p.open()",
+        "p.open('r')",
+        "laspy.open(p)",
+        "json.loads(t)",
+        "p.read_text()",
+        "dataclasses.replace(x, a=1)",
+        "params.replace(a=1)",
+        "text.replace('a', 'b')",
+        "open(os.devnull, 'w')",
+    ]
     body = "".join(f"    {code}\n" for code in list(writes) + reads)
-    _fake_package(monkeypatch, {"engine.simulate.plot": f"def f(p, s, a, d, fh, m, t, x):\n{body}",
-                                "engine.io.simulated": f"def f(p):\n{body}"})
+    _fake_package(
+        monkeypatch,
+        {
+            "engine.simulate.plot": f"def f(p, s, a, d, fh, m, t, x):\n{body}",
+            "engine.io.simulated": f"def f(p):\n{body}",
+        },
+    )
     found = file_writes()
     assert [hit.rsplit(":", 1)[0] for hit in found["engine.simulate.plot"]] == list(writes.values())
     assert engine_writes() == [f"engine.simulate.plot: {', '.join(found['engine.simulate.plot'])}"]
@@ -526,8 +680,12 @@ if __name__ == "__main__":  # a report of the measures
     for line in layer_violations():
         print("  ", line)
     print("package cycles:", cycles(package_graph()))
-    print("front-door reads by string key:", sum(len(v) for v in string_key_reads().values()),
-          "of which not named as a non-result:", len(result_key_reads()))
+    print(
+        "front-door reads by string key:",
+        sum(len(v) for v in string_key_reads().values()),
+        "of which not named as a non-result:",
+        len(result_key_reads()),
+    )
     for line in result_key_reads():
         print("  ", line)
     print("module cycles:", cycles(module_graph()))

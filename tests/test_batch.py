@@ -19,7 +19,6 @@ from forestreg.service.batch import discover_plots
 CLI = [sys.executable, "-m", "forestreg.cli"]
 
 
-
 @pytest.fixture(autouse=True)
 def _cli_parser():
     """Batches check their plots' arguments with the CLI's parser (handed over by the commands)."""
@@ -27,6 +26,7 @@ def _cli_parser():
     from forestreg.service.jobs import use_parser
 
     use_parser(build_parser)
+
 
 def _rows(path: Path) -> dict[str, dict]:
     with path.open(newline="") as fh:
@@ -37,15 +37,19 @@ def _rows(path: Path) -> dict[str, dict]:
 def plots(tmp_path_factory):
     """``plots/a`` and ``plots/b``: two-scan conifer plots (``a`` names scan_02 its centre);
     ``plots/c``: an open field without trees. Returns the folder and the true relative poses."""
-    from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.io.simulated import write_simulated_plot
+    from forestreg.engine.simulate import simulate_plot
 
     root = tmp_path_factory.mktemp("batch_plots")
     truth = {}
-    for name, preset, positions, seed in (("a", "planted_conifer", [(0, 0), (9, 4)], 1),
-                                          ("b", "planted_conifer", [(0, 0), (8, -5)], 3),
-                                          ("c", "open_field", [(0, 0), (9, 4)], 1)):
-        plot = write_simulated_plot(simulate_plot(preset, positions, seed=seed, angular_step_deg=0.4, size_m=30), root / name)
+    for name, preset, positions, seed in (
+        ("a", "planted_conifer", [(0, 0), (9, 4)], 1),
+        ("b", "planted_conifer", [(0, 0), (8, -5)], 3),
+        ("c", "open_field", [(0, 0), (9, 4)], 1),
+    ):
+        plot = write_simulated_plot(
+            simulate_plot(preset, positions, seed=seed, angular_step_deg=0.4, size_m=30), root / name
+        )
         (root / name / "truth.json").unlink()
         truth[name] = plot
     (root / "a" / "centre.txt").write_text("scan_02.laz\n")
@@ -56,7 +60,12 @@ def plots(tmp_path_factory):
 def batch_run(plots, tmp_path_factory):
     root, _ = plots
     out = tmp_path_factory.mktemp("batch_out") / "out"
-    run = subprocess.run(CLI + ["batch", str(root), "--out", str(out), "--workers", "2", "--quiet"], capture_output=True, text=True, timeout=900)
+    run = subprocess.run(
+        CLI + ["batch", str(root), "--out", str(out), "--workers", "2", "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     return out, run
 
 
@@ -71,14 +80,19 @@ def test_batch_of_three_plots_on_two_workers(plots, batch_run):
     rows = _rows(out / "summary.csv")
     assert list(rows) == ["a", "b", "c"]
     assert {k: (r["status"], r["scans"], r["registered"]) for k, r in rows.items()} == {
-        "a": ("ok", "2", "2"), "b": ("ok", "2", "2"), "c": ("failed", "2", "1")}
+        "a": ("ok", "2", "2"),
+        "b": ("ok", "2", "2"),
+        "c": ("failed", "2", "1"),
+    }
     assert rows["c"]["reason"].startswith("scan_02.laz: ") and len(rows["c"]["reason"]) > 20  # the honest reason
     assert rows["c"]["exit_code"] == "1" and all(float(r["seconds"]) > 0 for r in rows.values())
     # registered as `forestreg plot` would, with the centre of centre.txt, against the truth
     for name, centre, other in (("a", "scan_02", "scan_01"), ("b", "scan_01", "scan_02")):
         poses = json.loads((out / name / "poses.json").read_text())
         assert poses["frame"] == f"{centre}.laz"
-        rot, trans = rigid_errors(np.array(poses["scans"][f"{other}.laz"]["matrix"]), truth[name].relative_pose(centre, other))
+        rot, trans = rigid_errors(
+            np.array(poses["scans"][f"{other}.laz"]["matrix"]), truth[name].relative_pose(centre, other)
+        )
         assert rot < 0.1 and trans < 0.05, (name, rot, trans)
         assert (out / name / "report.html").is_file()
     assert json.loads((out / "c" / "poses.json").read_text())["scans"]["scan_02.laz"]["matrix"] is None
@@ -98,7 +112,12 @@ def test_rerun_skips_the_processed_plots(batch_run, plots):
     out, _ = batch_run
     before = {name: (out / name / "poses.json").stat().st_mtime_ns for name in "abc"}
     first = _rows(out / "summary.csv")
-    run = subprocess.run(CLI + ["batch", str(root), "--out", str(out), "--workers", "2", "--quiet"], capture_output=True, text=True, timeout=300)
+    run = subprocess.run(
+        CLI + ["batch", str(root), "--out", str(out), "--workers", "2", "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 1, run.stderr[-3000:]  # plot c still did not succeed
     assert "(3 done before, skipped)" in run.stdout
     rows = _rows(out / "summary.csv")
@@ -130,7 +149,11 @@ def test_plot_discovery_and_manifests(tmp_path):
     manifest = tmp_path / "m.csv"
     manifest.write_text("plot,ground,uav\np1,s1.laz,s2.laz\n")
     (co,) = discover_plots(plots, tmp_path / "out", "coregister", manifest)
-    assert co.args[:3] == ["coregister", str((plots / "p1" / "s1.laz").resolve()), str((plots / "p1" / "s2.laz").resolve())]
+    assert co.args[:3] == [
+        "coregister",
+        str((plots / "p1" / "s1.laz").resolve()),
+        str((plots / "p1" / "s2.laz").resolve()),
+    ]
     with pytest.raises(ParameterError, match="needs --manifest"):
         discover_plots(plots, tmp_path / "out", "coregister")
     with pytest.raises(ParameterError, match="no such folder"):
@@ -141,8 +164,16 @@ def test_plot_discovery_and_manifests(tmp_path):
 
 
 def test_bad_batch_input_is_exit_2(tmp_path):
-    run = subprocess.run(CLI + ["batch", str(tmp_path / "nope"), "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 2 and run.stderr.strip().splitlines()[-1] == f"forestreg: error: {tmp_path / 'nope'}: no such folder"
+    run = subprocess.run(
+        CLI + ["batch", str(tmp_path / "nope"), "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert (
+        run.returncode == 2
+        and run.stderr.strip().splitlines()[-1] == f"forestreg: error: {tmp_path / 'nope'}: no such folder"
+    )
 
 
 def test_batch_on_an_existing_scheduler(tmp_path):
@@ -156,33 +187,58 @@ def test_batch_on_an_existing_scheduler(tmp_path):
     (plots / "garbage").mkdir()
     for name in ("a.laz", "b.laz"):
         (plots / "garbage" / name).write_text("not a point cloud")
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, host="127.0.0.1", scheduler_port=0, dashboard_address=":0", protocol="tcp") as cluster:
-        run = subprocess.run(CLI + ["batch", str(plots), "--out", str(tmp_path / "out"), "--scheduler", cluster.scheduler_address, "-q"],
-                             capture_output=True, text=True, timeout=300)
+    with LocalCluster(
+        n_workers=1,
+        threads_per_worker=2,
+        processes=False,
+        host="127.0.0.1",
+        scheduler_port=0,
+        dashboard_address=":0",
+        protocol="tcp",
+    ) as cluster:
+        run = subprocess.run(
+            CLI + ["batch", str(plots), "--out", str(tmp_path / "out"), "--scheduler", cluster.scheduler_address, "-q"],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
     assert run.returncode == 1, run.stderr[-2000:]
     rows = _rows(tmp_path / "out" / "summary.csv")
     # unreadable scans: the plot command runs to its end and says why (failed); one scan: no plot (error)
     assert {k: r["status"] for k, r in rows.items()} == {"garbage": "failed", "lonely": "error"}
-    assert rows["garbage"]["exit_code"] == "1" and "a.laz" in rows["garbage"]["reason"] and "not a valid LAS/LAZ" in rows["garbage"]["reason"]
+    assert (
+        rows["garbage"]["exit_code"] == "1"
+        and "a.laz" in rows["garbage"]["reason"]
+        and "not a valid LAS/LAZ" in rows["garbage"]["reason"]
+    )
     assert "at least two" in rows["lonely"]["reason"]
     assert cluster.scheduler_address in (tmp_path / "out" / "index.html").read_text()
     # a folder of other files is never used as a batch's OUT
     other = tmp_path / "other"
     other.mkdir()
     (other / "notes.txt").write_text("mine")
-    run = subprocess.run(CLI + ["batch", str(plots), "--out", str(other), "-q"], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 2 and "already holds other files" in run.stderr and (other / "notes.txt").read_text() == "mine"
+    run = subprocess.run(
+        CLI + ["batch", str(plots), "--out", str(other), "-q"], capture_output=True, text=True, timeout=120
+    )
+    assert (
+        run.returncode == 2
+        and "already holds other files" in run.stderr
+        and (other / "notes.txt").read_text() == "mine"
+    )
 
 
 @pytest.fixture(scope="module")
 def small_plots(tmp_path_factory):
     """Three three-scan conifer plots at 0.5 deg (a few seconds each)."""
-    from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.io.simulated import write_simulated_plot
+    from forestreg.engine.simulate import simulate_plot
 
     root = tmp_path_factory.mktemp("batch_small")
     for name, seed in (("p1", 1), ("p2", 2), ("p3", 3)):
-        write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (9, 4), (-3, 9)], seed=seed, angular_step_deg=0.5, size_m=30), root / name)
+        write_simulated_plot(
+            simulate_plot("planted_conifer", [(0, 0), (9, 4), (-3, 9)], seed=seed, angular_step_deg=0.5, size_m=30),
+            root / name,
+        )
         (root / name / "truth.json").unlink()
     return root
 
@@ -200,16 +256,24 @@ def test_a_killed_worker_loses_no_plot(small_plots, tmp_path):
     import psutil
 
     out = tmp_path / "out"
-    batch = subprocess.Popen(CLI + ["batch", str(small_plots), "--out", str(out), "--workers", "2", "--quiet"],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    batch = subprocess.Popen(
+        CLI + ["batch", str(small_plots), "--out", str(out), "--workers", "2", "--quiet"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         victim = killed_cli = None
         deadline = time.monotonic() + 300
         while victim is None and time.monotonic() < deadline and batch.poll() is None:
-            for note in sorted((out / ".forestreg-batch").glob("*.json")) if (out / ".forestreg-batch").is_dir() else []:
+            for note in (
+                sorted((out / ".forestreg-batch").glob("*.json")) if (out / ".forestreg-batch").is_dir() else []
+            ):
                 try:
                     attempt = json.loads(note.read_text())["attempts"][-1]
-                    children = [c for c in psutil.Process(attempt["pid"]).children() if "forestreg.cli" in " ".join(c.cmdline())]
+                    children = [
+                        c for c in psutil.Process(attempt["pid"]).children() if "forestreg.cli" in " ".join(c.cmdline())
+                    ]
                 except (ValueError, KeyError, psutil.Error):
                     continue
                 # the plot's command is running and has registered a link: kill its worker now
@@ -218,7 +282,11 @@ def test_a_killed_worker_loses_no_plot(small_plots, tmp_path):
                     links = json.loads(project.read_text())["links"] if project.is_file() else []
                 except (ValueError, KeyError, OSError):
                     continue
-                if children and any((link.get("result") or {}).get("status") == "ok" for link in links) and not (out / note.stem / "poses.json").exists():
+                if (
+                    children
+                    and any((link.get("result") or {}).get("status") == "ok" for link in links)
+                    and not (out / note.stem / "poses.json").exists()
+                ):
                     victim, killed_cli = note.stem, children[0].pid
                     os.kill(attempt["pid"], signal.SIGKILL)
                     break
@@ -234,7 +302,9 @@ def test_a_killed_worker_loses_no_plot(small_plots, tmp_path):
     rows = _rows(out / "summary.csv")
     assert {k: r["status"] for k, r in rows.items()} == {"p1": "ok", "p2": "ok", "p3": "ok"}
     assert {k: r["registered"] for k, r in rows.items()} == {"p1": "3", "p2": "3", "p3": "3"}
-    assert rows[victim]["attempts"] == "2" and rows[victim]["retried_after"].startswith("worker lost (tcp://"), rows[victim]
+    assert rows[victim]["attempts"] == "2" and rows[victim]["retried_after"].startswith("worker lost (tcp://"), rows[
+        victim
+    ]
     assert rows[victim]["retried_after"].endswith("; resumed with 1 of 2 links done"), rows[victim]
     assert all(r["attempts"] == "1" and not r["retried_after"] for k, r in rows.items() if k != victim)
     assert "retried after: worker lost" in (out / "index.html").read_text()
@@ -250,15 +320,26 @@ def test_a_plot_over_the_memory_limit_is_stopped(small_plots, tmp_path):
     plots.mkdir()
     (plots / "p1").symlink_to(small_plots / "p1", target_is_directory=True)
     out = tmp_path / "out"
-    run = subprocess.run(CLI + ["batch", str(plots), "--out", str(out), "--workers", "1", "--memory-limit", "200MB", "--quiet"],
-                         capture_output=True, text=True, timeout=600)
+    run = subprocess.run(
+        CLI + ["batch", str(plots), "--out", str(out), "--workers", "1", "--memory-limit", "200MB", "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert run.returncode == 1, run.stderr[-3000:]
     row = _rows(out / "summary.csv")["p1"]
-    assert row["status"] == "error" and "over the memory limit" in row["reason"] and "the limit is 200 MB" in row["reason"], row
+    assert (
+        row["status"] == "error" and "over the memory limit" in row["reason"] and "the limit is 200 MB" in row["reason"]
+    ), row
     assert float(row["peak_mb"]) > 200
     assert not (out / "p1").exists() and not list(out.glob(".forestreg-tmp*"))
     assert "memory limit per worker: 200 MB" in (out / "index.html").read_text()
-    run = subprocess.run(CLI + ["batch", str(plots), "--out", str(tmp_path / "o2"), "--memory-limit", "50MB"], capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        CLI + ["batch", str(plots), "--out", str(tmp_path / "o2"), "--memory-limit", "50MB"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 2 and "at least 200MB" in run.stderr
 
 
@@ -269,8 +350,22 @@ def test_a_long_batch_spaces_its_summary_rewrites(tmp_path):
 
     from forestreg.service.batch import _Summary
 
-    rows = [{"plot": f"plot_{i:04d}", "status": "ok", "scans": 3, "registered": 3, "seconds": 60.0, "reason": "", "command": "plot",
-             "exit_code": 0, "peak_mb": 400.0, "attempts": 1, "outputs": ["report.html", "poses.json"]} for i in range(1000)]
+    rows = [
+        {
+            "plot": f"plot_{i:04d}",
+            "status": "ok",
+            "scans": 3,
+            "registered": 3,
+            "seconds": 60.0,
+            "reason": "",
+            "command": "plot",
+            "exit_code": 0,
+            "peak_mb": 400.0,
+            "attempts": 1,
+            "outputs": ["report.html", "poses.json"],
+        }
+        for i in range(1000)
+    ]
     out = tmp_path / "out"
     out.mkdir()
     summary = _Summary(out, {"command": "plot"})
@@ -282,7 +377,11 @@ def test_a_long_batch_spaces_its_summary_rewrites(tmp_path):
         time.sleep(0.002)
     summary.update(rows, force=True)
     spent = time.perf_counter() - t0
-    assert summary.writes < 50 and summary.seconds - first <= 0.1 * spent + 0.2, (summary.writes, summary.seconds, spent)
+    assert summary.writes < 50 and summary.seconds - first <= 0.1 * spent + 0.2, (
+        summary.writes,
+        summary.seconds,
+        spent,
+    )
     assert len(_rows(out / "summary.csv")) == 1000
     html = (out / "index.html").read_text()
     assert html.count("<tr>") == 1001 and 'href="plot_0999/report.html"' in html
@@ -305,14 +404,30 @@ def test_a_stopped_plot_resumes_from_its_registered_links(tmp_path):
     out = tmp_path / "out" / "p"
     out.mkdir(parents=True)
     (out / MARKER).write_text("plot\n")
-    links = [{"moving": "s2.laz", "reference": "s1.laz", "result": {"status": "ok"}}, {"moving": "s3.laz", "reference": "s1.laz", "result": None}]
-    project = {"scans": [{"name": n, "path": f"../../plots/p/{n}"} for n in ("s1.laz", "s2.laz", "s3.laz")], "links": links}
+    links = [
+        {"moving": "s2.laz", "reference": "s1.laz", "result": {"status": "ok"}},
+        {"moving": "s3.laz", "reference": "s1.laz", "result": None},
+    ]
+    project = {
+        "scans": [{"name": n, "path": f"../../plots/p/{n}"} for n in ("s1.laz", "s2.laz", "s3.laz")],
+        "links": links,
+    }
     (out / "project.json").write_text(json.dumps(project))
     extra = ["--pairs", "all", "--dr", "1.5", "--fixed", "s1.laz", "-q"]
     [task] = discover_plots(plots, out.parent, extra_args=extra)
     assert "--centre" in task.args and "--dr" in task.args
     resumed, done, total = _resume_args(task)
-    assert resumed == ["project", "run", str(out / "project.json"), "--out", str(out), "--pairs", "all", "--fixed", "s1.laz"]
+    assert resumed == [
+        "project",
+        "run",
+        str(out / "project.json"),
+        "--out",
+        str(out),
+        "--pairs",
+        "all",
+        "--fixed",
+        "s1.laz",
+    ]
     assert (done, total) == (1, 2)
     [written] = discover_plots(plots, out.parent, extra_args=extra + ["--registered-dir", str(tmp_path / "r")])
     assert _resume_args(written) is None, "--registered-dir: only plot writes it"
@@ -335,10 +450,27 @@ def test_every_plot_option_is_held_by_the_project_or_taken_by_project_run_or_res
     from forestreg.cli import build_parser
 
     parser = build_parser()
-    given = {"--centre": ["s1.laz"], "--tilted": ["s2.laz"], "--targets": ["t.csv"], "--dr": ["1.5"], "--dc": ["20"], "--dh": ["0.5,1"],
-             "--params": ["p.toml"], "--positions": ["pos.csv"], "--prior-poses": ["prior.csv"], "--pairs": ["all"], "--fixed": ["s1.laz"],
-             "--merged": ["m.laz"], "--e57-out": ["r.e57"], "--registered-dir": ["rd"], "--loops": ["12"], "--crs": ["EPSG:32618"],
-             "--watch": ["w"], "--until-scans": ["3"], "--poll": ["2"]}
+    given = {
+        "--centre": ["s1.laz"],
+        "--tilted": ["s2.laz"],
+        "--targets": ["t.csv"],
+        "--dr": ["1.5"],
+        "--dc": ["20"],
+        "--dh": ["0.5,1"],
+        "--params": ["p.toml"],
+        "--positions": ["pos.csv"],
+        "--prior-poses": ["prior.csv"],
+        "--pairs": ["all"],
+        "--fixed": ["s1.laz"],
+        "--merged": ["m.laz"],
+        "--e57-out": ["r.e57"],
+        "--registered-dir": ["rd"],
+        "--loops": ["12"],
+        "--crs": ["EPSG:32618"],
+        "--watch": ["w"],
+        "--until-scans": ["3"],
+        "--poll": ["2"],
+    }
     held, passed, restart = set(), set(), set()
     for flag, values in given.items():
         plot = parser.parse_args(["plot", "s1.laz", "s2.laz", "--out", "o", flag, *values])
@@ -346,14 +478,24 @@ def test_every_plot_option_is_held_by_the_project_or_taken_by_project_run_or_res
         if args is None:
             restart.add(flag)
         elif flag in args:
-            assert args[args.index(flag):] == [flag, *values]
+            assert args[args.index(flag) :] == [flag, *values]
             run = parser.parse_args(args)
             assert getattr(run, flag[2:].replace("-", "_")) == getattr(plot, flag[2:].replace("-", "_"))
             passed.add(flag)
         else:
             assert args == ["project", "run", "o/project.json", "--out", "o"]
             held.add(flag)
-    assert held == {"--centre", "--tilted", "--targets", "--dr", "--dc", "--dh", "--params", "--positions", "--prior-poses"}
+    assert held == {
+        "--centre",
+        "--tilted",
+        "--targets",
+        "--dr",
+        "--dc",
+        "--dh",
+        "--params",
+        "--positions",
+        "--prior-poses",
+    }
     assert passed == {"--pairs", "--fixed", "--merged", "--e57-out"}
     assert restart == {"--registered-dir", "--loops", "--crs", "--watch", "--until-scans", "--poll"}
 

@@ -56,8 +56,16 @@ def _trees_tables(folder: Path, seed: int = 3) -> tuple[Path, Path]:
             w = csv.writer(fh)
             w.writerow(["tree_id", "x", "y", "z", "dbh_m", "height_m"])
             for k in range(count):
-                w.writerow([k + 1, f"{xy[k, 0] + 500:.3f}", f"{xy[k, 1] - 200:.3f}", "100.0", f"{dbh[k] + growth:.3f}",
-                            f"{8 + 40 * dbh[k]:.2f}"])
+                w.writerow(
+                    [
+                        k + 1,
+                        f"{xy[k, 0] + 500:.3f}",
+                        f"{xy[k, 1] - 200:.3f}",
+                        "100.0",
+                        f"{dbh[k] + growth:.3f}",
+                        f"{8 + 40 * dbh[k]:.2f}",
+                    ]
+                )
         paths.append(path)
     return paths[0], paths[1]
 
@@ -76,13 +84,27 @@ def test_safe_name_keeps_plain_names(name):
     assert safe_name(name, "plot") == name
 
 
-@pytest.mark.parametrize("name, says", [
-    ("", "is empty"), ("   ", "is empty"), (".", "the folder itself"), ("..", "the parent folder"),
-    ("../escape", "'/' or '\\'"), ("a/b", "'/' or '\\'"), ("..\\escape", "'/' or '\\'"), ("/etc/passwd", "absolute path"),
-    ("C:\\data", "absolute path"), ("a:b", "':'"), ("a\x00b", "NUL"), ("a\nb", "control character"),
-    (".hidden", "starts with '.'"), (".forestreg-output", "starts with '.'"), ("x" * 201, "201 bytes long: at most 200"),
-    ("é" * 101, "202 bytes long"),
-])
+@pytest.mark.parametrize(
+    "name, says",
+    [
+        ("", "is empty"),
+        ("   ", "is empty"),
+        (".", "the folder itself"),
+        ("..", "the parent folder"),
+        ("../escape", "'/' or '\\'"),
+        ("a/b", "'/' or '\\'"),
+        ("..\\escape", "'/' or '\\'"),
+        ("/etc/passwd", "absolute path"),
+        ("C:\\data", "absolute path"),
+        ("a:b", "':'"),
+        ("a\x00b", "NUL"),
+        ("a\nb", "control character"),
+        (".hidden", "starts with '.'"),
+        (".forestreg-output", "starts with '.'"),
+        ("x" * 201, "201 bytes long: at most 200"),
+        ("é" * 101, "202 bytes long"),
+    ],
+)
 def test_safe_name_refuses_what_is_not_one_plain_name(name, says):
     from forestreg.engine.core.names import safe_name
 
@@ -108,7 +130,9 @@ def test_a_manifest_name_that_is_not_one_plain_name_is_refused_before_any_work(t
     manifest.write_text(f"plot,before,after\nfine,{before},{after}\n{name},{before},{after}\n")
     listing = _listing(tmp_path)
     t0 = time.monotonic()
-    run = _run("batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", cwd=tmp_path)
+    run = _run(
+        "batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", cwd=tmp_path
+    )
     assert run.returncode == 2, run.stdout + run.stderr
     assert _last_line(run).startswith(f"forestreg: error: m.csv row 3: plot {name!r} "), run.stderr
     assert time.monotonic() - t0 < 30
@@ -135,14 +159,20 @@ def test_duplicated_plot_names_are_refused_naming_the_name_and_its_rows(tmp_path
     before, after = _trees_tables(tmp_path / "data")
     (tmp_path / "plots").mkdir()
     (tmp_path / "m.csv").write_text(f"plot,before,after\na,{before},{after}\nb,{before},{after}\na,{after},{before}\n")
-    run = _run("batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", cwd=tmp_path)
+    run = _run(
+        "batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", cwd=tmp_path
+    )
     assert run.returncode == 2, run.stdout + run.stderr
     assert _last_line(run) == "forestreg: error: m.csv: plot 'a' is named in rows 2 and 4: give each plot its own name"
     assert not (tmp_path / "o").exists()
     # names that differ only in case are one folder on macOS and Windows
     (tmp_path / "m.csv").write_text(f"plot,before,after\nPlot1,{before},{after}\nplot1,{before},{after}\n")
-    run = _run("batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", cwd=tmp_path)
-    assert run.returncode == 2 and "plots 'Plot1' and 'plot1' (rows 2 and 3) differ only in case" in _last_line(run), run.stderr
+    run = _run(
+        "batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", cwd=tmp_path
+    )
+    assert run.returncode == 2 and "plots 'Plot1' and 'plot1' (rows 2 and 3) differ only in case" in _last_line(run), (
+        run.stderr
+    )
     assert not (tmp_path / "o").exists()
 
 
@@ -152,8 +182,21 @@ def test_a_manifest_batch_writes_only_into_its_output_folder(tmp_path):
     (tmp_path / "plots").mkdir()
     (tmp_path / "m.csv").write_text(f"plot,before,after\nstand 1,{before},{after}\n")
     listing = _listing(tmp_path)
-    run = _run("batch", "plots", "--manifest", "m.csv", "--out", "o", "--command", "change", "--workers", "1", "-q", cwd=tmp_path,
-               timeout=300)
+    run = _run(
+        "batch",
+        "plots",
+        "--manifest",
+        "m.csv",
+        "--out",
+        "o",
+        "--command",
+        "change",
+        "--workers",
+        "1",
+        "-q",
+        cwd=tmp_path,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     assert [p for p in _listing(tmp_path) if not p.startswith("o")] == listing  # nothing beside OUT (no lock file left)
     assert json.loads((tmp_path / "o" / "stand 1" / "batch.json").read_text())["status"] == "ok"
@@ -166,9 +209,13 @@ def test_a_manifest_batch_writes_only_into_its_output_folder(tmp_path):
 def _hold(folder: Path, out: str) -> subprocess.Popen:
     """A process that takes the lock of the output folder ``out`` (as a forestreg run does) and
     sleeps; it prints "held" once it holds it."""
-    code = ("import sys, time; from forestreg.engine.core.atomic import check_output_folder; "
-            f"check_output_folder({out!r}, 'change'); print('held', flush=True); time.sleep(120)")
-    holder = subprocess.Popen([sys.executable, "-c", code], cwd=folder, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    code = (
+        "import sys, time; from forestreg.engine.core.atomic import check_output_folder; "
+        f"check_output_folder({out!r}, 'change'); print('held', flush=True); time.sleep(120)"
+    )
+    holder = subprocess.Popen(
+        [sys.executable, "-c", code], cwd=folder, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     assert holder.stdout.readline().strip() == "held", holder.stderr.read() if holder.poll() is not None else ""
     return holder
 
@@ -180,8 +227,10 @@ def test_a_second_run_into_the_same_output_folder_is_refused_and_a_killed_ones_l
         t0 = time.monotonic()
         run = _run("change", before, after, "--out", "o", cwd=tmp_path)
         assert run.returncode == 2, run.stdout + run.stderr
-        assert _last_line(run) == (f"forestreg: error: o is being written by another forestreg run (pid {holder.pid}): "
-                                   "wait for it to end, or give another output folder")
+        assert _last_line(run) == (
+            f"forestreg: error: o is being written by another forestreg run (pid {holder.pid}): "
+            "wait for it to end, or give another output folder"
+        )
         assert time.monotonic() - t0 < 20 and not (tmp_path / "o").exists()
     finally:
         holder.kill()  # SIGKILL: no exit handler runs, its lock file stays
@@ -196,26 +245,66 @@ def test_a_second_run_into_the_same_output_folder_is_refused_and_a_killed_ones_l
 def test_two_cli_runs_at_once_into_one_folder(tmp_path):
     """Two real runs: the second, started while the first writes ``o``, is refused at once and the
     first one's result is whole; after it, the folder is free again."""
-    first = subprocess.Popen([*CLI, "simulate", "open_field", "--out", "o", "--positions", "0,0;9,4", "--size", "40", "--step", "0.25",
-                              "-q"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = subprocess.Popen(
+        [
+            *CLI,
+            "simulate",
+            "open_field",
+            "--out",
+            "o",
+            "--positions",
+            "0,0;9,4",
+            "--size",
+            "40",
+            "--step",
+            "0.25",
+            "-q",
+        ],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 60
         while not (tmp_path / ".forestreg-lock-o").exists() and first.poll() is None and time.monotonic() < deadline:
             time.sleep(0.02)
         assert first.poll() is None, "the first run ended before the second could start"
-        second = _run("simulate", "open_field", "--out", "o", "--positions", "0,0", "--size", "20", "--step", "0.6", cwd=tmp_path)
+        second = _run(
+            "simulate", "open_field", "--out", "o", "--positions", "0,0", "--size", "20", "--step", "0.6", cwd=tmp_path
+        )
         assert first.poll() is None, "the first run ended before the second was refused: the test proves nothing"
-        assert second.returncode == 2 and f"o is being written by another forestreg run (pid {first.pid})" in _last_line(second), \
-            second.stderr
+        assert (
+            second.returncode == 2
+            and f"o is being written by another forestreg run (pid {first.pid})" in _last_line(second)
+        ), second.stderr
         _, err = first.communicate(timeout=300)
         assert first.returncode == 0, err[-2000:]
     finally:
         if first.poll() is None:
             first.kill()
-    assert sorted(p.name for p in (tmp_path / "o").glob("*.laz")) == ["scan_01.laz", "scan_02.laz"]  # the first run's two scans
+    assert sorted(p.name for p in (tmp_path / "o").glob("*.laz")) == [
+        "scan_01.laz",
+        "scan_02.laz",
+    ]  # the first run's two scans
     assert sorted(os.listdir(tmp_path)) == ["o"]
-    assert _run("simulate", "open_field", "--out", "o", "--positions", "0,0", "--size", "20", "--step", "0.6", "-q",
-                cwd=tmp_path).returncode == 0
+    assert (
+        _run(
+            "simulate",
+            "open_field",
+            "--out",
+            "o",
+            "--positions",
+            "0,0",
+            "--size",
+            "20",
+            "--step",
+            "0.6",
+            "-q",
+            cwd=tmp_path,
+        ).returncode
+        == 0
+    )
 
 
 def test_two_batches_into_one_output_folder(tmp_path):
@@ -224,7 +313,10 @@ def test_two_batches_into_one_output_folder(tmp_path):
     holder = _hold(tmp_path, "out")
     try:
         run = _run("batch", "plots", "--out", "out", "--command", "change", "--workers", "1", cwd=tmp_path)
-        assert run.returncode == 2 and f"out is being written by another forestreg run (pid {holder.pid})" in _last_line(run), run.stderr
+        assert (
+            run.returncode == 2
+            and f"out is being written by another forestreg run (pid {holder.pid})" in _last_line(run)
+        ), run.stderr
         assert not (tmp_path / "out").exists()
     finally:
         holder.kill()
@@ -245,7 +337,9 @@ def test_two_batches_on_one_machine_print_no_dask_warning(tmp_path):
     except OSError:
         pass
     try:
-        run = _run("batch", "plots", "--out", "out", "--command", "change", "--workers", "1", "-q", cwd=tmp_path, timeout=300)
+        run = _run(
+            "batch", "plots", "--out", "out", "--command", "change", "--workers", "1", "-q", cwd=tmp_path, timeout=300
+        )
     finally:
         taken.close()
     assert run.returncode == 0, run.stderr[-2000:]
@@ -263,7 +357,9 @@ def test_an_overview_that_cannot_be_written_never_loses_the_summary(tmp_path, mo
 
     broken = types.ModuleType("forestreg.engine.report.batch_report")  # as an interrupted import leaves it
     monkeypatch.setitem(sys.modules, "forestreg.engine.report.batch_report", broken)
-    rows = [{"plot": "p1", "status": "ok", "scans": 2, "registered": 2, "seconds": 1.0, "reason": "", "command": "plot"}]
+    rows = [
+        {"plot": "p1", "status": "ok", "scans": 2, "registered": 2, "seconds": 1.0, "reason": "", "command": "plot"}
+    ]
     out = tmp_path / "out"
     out.mkdir()
     with caplog.at_level(logging.INFO, logger="forestreg.batch"):
@@ -272,7 +368,9 @@ def test_an_overview_that_cannot_be_written_never_loses_the_summary(tmp_path, mo
         assert [r.levelname for r in caplog.records] == ["WARNING"]  # said on stderr
         caplog.clear()
         _Summary(out, {"command": "plot"}).update(rows, force=True, interrupted=True)
-        assert [r.levelname for r in caplog.records] == ["INFO"]  # after Ctrl-C: the one line of the interrupt stays alone
+        assert [r.levelname for r in caplog.records] == [
+            "INFO"
+        ]  # after Ctrl-C: the one line of the interrupt stays alone
 
 
 # ----------------------------------------------------------------------------- the temporaries of a transaction
@@ -301,8 +399,13 @@ def test_the_temporaries_of_a_transaction_are_named_by_one_function(tmp_path):
     """The folder transaction's temporaries, and a run's products folder, are made and recognised
     by the atomic module alone: the batch finds exactly the ones its writer made, whatever they
     are called, and an output folder holding a products folder counts as empty."""
-    from forestreg.engine.core.atomic import (check_output_folder, is_unfinished_output, output_folder, temporary_folder,
-                                              unfinished_outputs)
+    from forestreg.engine.core.atomic import (
+        check_output_folder,
+        is_unfinished_output,
+        output_folder,
+        temporary_folder,
+        unfinished_outputs,
+    )
 
     out = tmp_path / "out"
     out.mkdir()
@@ -364,8 +467,12 @@ def service(tmp_path_factory):
 
 def _post(service, body: dict) -> tuple[int, dict]:
     """POST /v1/jobs with exactly ``body`` (the Python client always sends a cwd)."""
-    request = urllib.request.Request(service.url + "/v1/jobs", data=json.dumps(body).encode(), method="POST",
-                                     headers={"Authorization": f"Bearer {service.token}", "Content-Type": "application/json"})
+    request = urllib.request.Request(
+        service.url + "/v1/jobs",
+        data=json.dumps(body).encode(),
+        method="POST",
+        headers={"Authorization": f"Bearer {service.token}", "Content-Type": "application/json"},
+    )
     try:
         with urllib.request.urlopen(request, timeout=30) as resp:
             return resp.status, json.loads(resp.read())
@@ -375,15 +482,32 @@ def _post(service, body: dict) -> tuple[int, dict]:
 
 def test_a_job_without_cwd_runs_when_every_path_is_absolute(service, tmp_path):
     """The documented curl call (absolute paths, no ``cwd``) was refused with 422 "cwd: required"."""
-    status, body = _post(service, {"args": ["simulate", "open_field", "--out", str(tmp_path / "sim"), "--positions", "0,0",
-                                            "--size", "20", "--step", "0.6"]})
+    status, body = _post(
+        service,
+        {
+            "args": [
+                "simulate",
+                "open_field",
+                "--out",
+                str(tmp_path / "sim"),
+                "--positions",
+                "0,0",
+                "--size",
+                "20",
+                "--step",
+                "0.6",
+            ]
+        },
+    )
     assert status == 201, body
     final = service.wait(body["id"], timeout=120)
     assert final["status"] == "done" and final["exit_code"] == 0, final
     assert (tmp_path / "sim" / "scan_01.laz").is_file() and final["cwd"] is None
     assert not list((service._state / "work").glob("*")), "the job's private folder was left"
     # a relative path without cwd: 422 naming it
-    status, body = _post(service, {"args": ["register", "A.laz", str(tmp_path / "B.laz"), "--out", str(tmp_path / "pair")]})
+    status, body = _post(
+        service, {"args": ["register", "A.laz", str(tmp_path / "B.laz"), "--out", str(tmp_path / "pair")]}
+    )
     assert status == 422 and body["detail"].startswith("cwd: required: 'A.laz' is a relative path"), body
     status, body = _post(service, {"args": ["params"]})  # no path at all
     assert status == 201 and service.wait(body["id"], timeout=60)["status"] == "done"
@@ -401,8 +525,12 @@ def test_a_second_job_into_a_busy_output_folder_is_refused_with_409(service, tmp
     try:
         with pytest.raises(ServiceError) as info:
             service.submit(slow, cwd=tmp_path)
-        assert info.value.status == 409 and f"is the output folder of job {first}" in info.value.detail, info.value.detail
-        status, body = _post(service, {"args": ["simulate", "open_field", "--out", str(tmp_path / "busy")]})  # the same, absolute
+        assert info.value.status == 409 and f"is the output folder of job {first}" in info.value.detail, (
+            info.value.detail
+        )
+        status, body = _post(
+            service, {"args": ["simulate", "open_field", "--out", str(tmp_path / "busy")]}
+        )  # the same, absolute
         assert status == 409, body
         with pytest.raises(ServiceError) as info:  # inside it
             service.submit(["simulate", "open_field", "--out", "busy/inner"], cwd=tmp_path)
@@ -412,7 +540,9 @@ def test_a_second_job_into_a_busy_output_folder_is_refused_with_409(service, tmp
     finally:
         service.cancel(first)
     assert service.wait(first, timeout=60)["status"] == "cancelled"
-    again = service.submit(["simulate", "open_field", "--out", "busy", "--positions", "0,0", "--size", "20", "--step", "0.6"], cwd=tmp_path)
+    again = service.submit(
+        ["simulate", "open_field", "--out", "busy", "--positions", "0,0", "--size", "20", "--step", "0.6"], cwd=tmp_path
+    )
     assert service.wait(again, timeout=120)["status"] == "done"  # free again once the first one ended
 
 
@@ -428,8 +558,13 @@ def test_a_long_lived_process_releases_the_folders_a_failed_run_checked(tmp_path
 
     out = tmp_path / "o"
     check_output_folder(out, "register")
-    probe = [sys.executable, "-c", "import sys; from forestreg.engine.core.atomic import lock_output_folder as l\n"
-             "try:\n    l(sys.argv[1])\nexcept Exception as e:\n    print(e); sys.exit(3)", str(out)]
+    probe = [
+        sys.executable,
+        "-c",
+        "import sys; from forestreg.engine.core.atomic import lock_output_folder as l\n"
+        "try:\n    l(sys.argv[1])\nexcept Exception as e:\n    print(e); sys.exit(3)",
+        str(out),
+    ]
     held = subprocess.run(probe, capture_output=True, text=True, timeout=60)
     assert held.returncode == 3 and "being written by another forestreg run" in held.stdout
     assert str(out.resolve()) in release_output_locks()

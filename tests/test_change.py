@@ -21,8 +21,21 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 def _table_epoch(xy, dbh, height, name="", z=None) -> EpochTrees:
     z = np.zeros(len(xy)) if z is None else z
-    rows = [{"tree_id": k + 1, "x": x, "y": y, "z": zk, "dbh_m": d, "height_m": h, "dbh_quality": "stem curve; high",
-             "height_quality": "top; high", "source": "stem", "flag": ""} for k, ((x, y), d, h, zk) in enumerate(zip(xy, dbh, height, z))]
+    rows = [
+        {
+            "tree_id": k + 1,
+            "x": x,
+            "y": y,
+            "z": zk,
+            "dbh_m": d,
+            "height_m": h,
+            "dbh_quality": "stem curve; high",
+            "height_quality": "top; high",
+            "source": "stem",
+            "flag": "",
+        }
+        for k, ((x, y), d, h, zk) in enumerate(zip(xy, dbh, height, z))
+    ]
     return epoch_from_table(rows, name=name)
 
 
@@ -57,12 +70,19 @@ def _resurvey_tables(heading_deg, seed=0, removed=15, new=6, noise_m=0.01, shift
     order = rng.permutation(len(a_xy))
     before = _table_epoch(xy, dbh, h, "BEFORE")
     after = _table_epoch(a_local[order, :2], a_dbh[order], a_h[order], "AFTER", z=a_local[order, 2])
-    truth = {"frame": frame, "removed": xy[gone], "new": np.reshape(new_xy, (-1, 2)), "persisting": xy[keep],
-             "growth": (a_dbh[: len(keep)] - dbh[keep])}
+    truth = {
+        "frame": frame,
+        "removed": xy[gone],
+        "new": np.reshape(new_xy, (-1, 2)),
+        "persisting": xy[keep],
+        "growth": (a_dbh[: len(keep)] - dbh[keep]),
+    }
     return before, after, truth
 
 
-def _errors(result, before: EpochTrees, after: EpochTrees, frame: np.ndarray, probe_xy: np.ndarray) -> tuple[float, float]:
+def _errors(
+    result, before: EpochTrees, after: EpochTrees, frame: np.ndarray, probe_xy: np.ndarray
+) -> tuple[float, float]:
     """(rotation error in degrees, largest position error over ``probe_xy`` (BEFORE) in metres)."""
     m = np.asarray(result.matrix)
     e = np.linalg.inv(frame) @ m
@@ -97,7 +117,9 @@ def test_georeferenced_after_survey(tmp_path):
     before, after, truth = _resurvey_tables(-48.0, seed=3, shift=(-512345.6, -5123456.7, -310.2))
     _write_table(tmp_path / "before.csv", before)
     _write_table(tmp_path / "after.csv", after)
-    assert _run("change", str(tmp_path / "before.csv"), str(tmp_path / "after.csv"), "--out", str(tmp_path / "out")) == 0
+    assert (
+        _run("change", str(tmp_path / "before.csv"), str(tmp_path / "after.csv"), "--out", str(tmp_path / "out")) == 0
+    )
     m = np.array(json.loads((tmp_path / "out" / "result.json").read_text())["matrix"])
     probe = np.column_stack([before.xy + before.origin_shift[:2], np.zeros(len(before)), np.ones(len(before))])
     probe = probe @ np.linalg.inv(truth["frame"]).T
@@ -139,10 +161,21 @@ def test_uncertain_values_are_flagged_and_their_change_withheld():
     growth: withheld and flagged; a height whose top was unseen gives no height change."""
     xy, dbh, h = _stand(seed=6)
     before = _table_epoch(xy, dbh, h)
-    rows = [{"tree_id": k + 1, "x": x, "y": y, "z": 0.0, "dbh_m": d + 0.02, "height_m": hh + 2.0, "source": "stem",
-             "dbh_quality": "stem curve; medium" if k == 0 else "stem curve; high",
-             "height_quality": "top; low" if k == 1 else "top; high", "flag": ""}
-            for k, ((x, y), d, hh) in enumerate(zip(xy, dbh, h))]
+    rows = [
+        {
+            "tree_id": k + 1,
+            "x": x,
+            "y": y,
+            "z": 0.0,
+            "dbh_m": d + 0.02,
+            "height_m": hh + 2.0,
+            "source": "stem",
+            "dbh_quality": "stem curve; medium" if k == 0 else "stem curve; high",
+            "height_quality": "top; low" if k == 1 else "top; high",
+            "flag": "",
+        }
+        for k, ((x, y), d, hh) in enumerate(zip(xy, dbh, h))
+    ]
     result = detect_change(before, epoch_from_table(rows))
     assert result.ok
     shift = result.origin_shift[:2]
@@ -188,8 +221,20 @@ def _write_table(path: Path, epoch: EpochTrees) -> None:
         for k in range(len(epoch)):
             x, y = epoch.xy[k] + epoch.origin_shift[:2]
             z = epoch.ground_z[k] + epoch.origin_shift[2]
-            w.writerow([k + 1, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", f"{epoch.dbh_m[k]:.4f}", f"{epoch.height_m[k]:.2f}", "stem",
-                        "stem curve; high", "top; high", ""])
+            w.writerow(
+                [
+                    k + 1,
+                    f"{x:.4f}",
+                    f"{y:.4f}",
+                    f"{z:.4f}",
+                    f"{epoch.dbh_m[k]:.4f}",
+                    f"{epoch.height_m[k]:.2f}",
+                    "stem",
+                    "stem curve; high",
+                    "top; high",
+                    "",
+                ]
+            )
 
 
 def test_command_with_trees_tables(tmp_path):
@@ -199,7 +244,13 @@ def test_command_with_trees_tables(tmp_path):
     _write_table(tmp_path / "later" / "trees.csv", after)  # a folder of 'forestreg trees'
     out = tmp_path / "out"
     assert _run("change", str(tmp_path / "before.csv"), str(tmp_path / "later"), "--out", str(out)) == 0
-    assert sorted(p.name for p in out.iterdir()) == [".forestreg-output", "layers.gpkg", "report.html", "result.json", "tree_changes.csv"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        ".forestreg-output",
+        "layers.gpkg",
+        "report.html",
+        "result.json",
+        "tree_changes.csv",
+    ]
     summary = json.loads((out / "result.json").read_text())
     assert summary["status"] == "ok" and summary["convention"].startswith("p_before = matrix @ p_after")
     assert set(summary["uncertainty"]) >= {"translation_m", "rotation_deg"}
@@ -208,8 +259,18 @@ def test_command_with_trees_tables(tmp_path):
     probe = probe @ np.linalg.inv(truth["frame"]).T  # the plot's trees in the AFTER frame
     assert np.abs(probe @ m.T - probe @ truth["frame"].T).max() < 0.03
     rows = list(csv.DictReader(open(out / "tree_changes.csv")))
-    assert list(rows[0])[:10] == ["status", "x", "y", "dbh_before_m", "dbh_after_m", "dbh_change_m", "height_before_m",
-                                  "height_after_m", "height_change_m", "flag"]
+    assert list(rows[0])[:10] == [
+        "status",
+        "x",
+        "y",
+        "dbh_before_m",
+        "dbh_after_m",
+        "dbh_change_m",
+        "height_before_m",
+        "height_after_m",
+        "height_change_m",
+        "flag",
+    ]
     assert sum(r["status"] == "removed" for r in rows) == len(truth["removed"])
     assert "change map" in (out / "report.html").read_text() or "change-map" in (out / "report.html").read_text()
     # unrelated tables: exit 1, result.json says why, no table of changes

@@ -10,8 +10,8 @@ import pytest
 
 from forestreg.cli import main
 from forestreg.engine.core.errors import ParameterError
-from forestreg.engine.io import read_scan, write_scan
 from forestreg.engine.core.transform import rigid_errors
+from forestreg.engine.io import read_scan, write_scan
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +34,16 @@ def test_register_writes_result_transform_vops_and_registered_scan(pair_files, t
     assert code == 0
     result = json.loads((out / "result.json").read_text())
     assert result["status"] == "ok" and result["reason"] == ""
-    for key in ("reference_vops", "moving_vops", "matched", "icp", "timings", "second_matched", "score_gap_m", "parameters"):
+    for key in (
+        "reference_vops",
+        "moving_vops",
+        "matched",
+        "icp",
+        "timings",
+        "second_matched",
+        "score_gap_m",
+        "parameters",
+    ):
         assert key in result
     matrix = np.array(result["matrix"])
     rot, trans = rigid_errors(matrix, truth)
@@ -82,7 +91,9 @@ def test_params_file_and_cli_overrides(tmp_path, pair_files):
     params.write_text("[registration]\nmatch_distance_m = 0.25\nslice_offsets_m = [0.0, 0.5]\n")
     (ref, mov), truth = pair_files
     out = tmp_path / "out"
-    assert main(["register", str(ref), str(mov), "--out", str(out), "--params", str(params), "--dr", "12", "--quiet"]) == 0
+    assert (
+        main(["register", str(ref), str(mov), "--out", str(out), "--params", str(params), "--dr", "12", "--quiet"]) == 0
+    )
     used = json.loads((out / "result.json").read_text())["parameters"]
     assert used["match_distance_m"] == 0.25 and used["slice_offsets_m"] == [0.0, 0.5] and used["vop_radius_m"] == 12.0
 
@@ -108,10 +119,22 @@ def test_scanner_position_for_georeferenced_scans(tmp_path, pair_files):
         write_scan(scan, moved, matrix=translate)
         geo.append(moved)
     out = tmp_path / "out"
-    code = main([
-        "register", str(geo[0]), str(geo[1]), "--out", str(out), "--dr", "15", "--quiet",
-        "--scanner-position", ",".join(map(str, shift_ref)), "--scanner-position", ",".join(map(str, shift_mov)),
-    ])
+    code = main(
+        [
+            "register",
+            str(geo[0]),
+            str(geo[1]),
+            "--out",
+            str(out),
+            "--dr",
+            "15",
+            "--quiet",
+            "--scanner-position",
+            ",".join(map(str, shift_ref)),
+            "--scanner-position",
+            ",".join(map(str, shift_mov)),
+        ]
+    )
     assert code == 0
     matrix = np.array(json.loads((out / "result.json").read_text())["matrix"])
     # compare near the data: in the scanners' frames (in UTM coordinates a 0.001 deg error alone
@@ -128,13 +151,22 @@ def test_params_command_prints_a_loadable_toml(tmp_path, capsys):
 
     assert main(["params", "--toml"]) == 0
     text = capsys.readouterr().out
-    for section in ("[registration]", "[coregistration]", "[coregistration.keypoints]", "[fusion]", "[trees]", "[trees.qsm]"):
+    for section in (
+        "[registration]",
+        "[coregistration]",
+        "[coregistration.keypoints]",
+        "[fusion]",
+        "[trees]",
+        "[trees.qsm]",
+    ):
         assert section in text
     path = Path(tmp_path / "defaults.toml")
     path.write_text(text)
     assert load_params(path) == ProductParams()
     # a file that sets a few values of several sections
-    path.write_text("[registration]\nvop_radius_m = 12.0\n[trees.stems]\nband_low_m = 1.1\n[fusion]\nnoise_method = 'global'\n")
+    path.write_text(
+        "[registration]\nvop_radius_m = 12.0\n[trees.stems]\nband_low_m = 1.1\n[fusion]\nnoise_method = 'global'\n"
+    )
     p = load_params(path)
     assert p.registration.vop_radius_m == 12.0 and p.trees.stems.band_low_m == 1.1 and p.fusion.noise_method == "global"
     assert p.coregistration == ProductParams().coregistration
@@ -153,8 +185,20 @@ def test_given_vertical_for_a_tilted_scan(tmp_path, sim_plot):
         write_scan(s.scan, paths[-1])
     up = np.linalg.inv(plot.scans[1].pose[:3, :3]) @ np.array([0.0, 0.0, 1.0])
     out = tmp_path / "out"
-    code = main(["register", str(paths[0]), str(paths[1]), "--out", str(out), "--dr", "10", "--quiet",
-                 "--up=0,0,1", "--up=" + ",".join(f"{v:.9f}" for v in up)])
+    code = main(
+        [
+            "register",
+            str(paths[0]),
+            str(paths[1]),
+            "--out",
+            str(out),
+            "--dr",
+            "10",
+            "--quiet",
+            "--up=0,0,1",
+            "--up=" + ",".join(f"{v:.9f}" for v in up),
+        ]
+    )
     assert code == 0
     result = json.loads((out / "result.json").read_text())
     assert result["moving_tilt_deg"] == pytest.approx(30.0, abs=0.01)

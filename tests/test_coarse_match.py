@@ -310,9 +310,7 @@ def test_second_solution_thresholds_are_respected() -> None:
 
 def test_no_distinct_solution_gives_none_fields() -> None:
     reference, moving, _, _ = random_case(35, m_range=(8, 10))
-    fast = match_vops(
-        reference, moving, angle_step_deg=2.0, distinct_rotation_deg=180.0, distinct_translation_m=1e6
-    )
+    fast = match_vops(reference, moving, angle_step_deg=2.0, distinct_rotation_deg=180.0, distinct_translation_m=1e6)
     assert fast.second_score is None and fast.second_matched is None
     assert fast.second_rotation_deg is None and fast.second_translation is None
 
@@ -472,7 +470,9 @@ def test_compiled_and_numpy_agree_at_fine_step_on_80_realistic_vops() -> None:
 
 
 @pytest.mark.parametrize("compiled", [False, True])
-@pytest.mark.parametrize(("seed", "step", "dist", "bin_deg"), [(26, 1.0, DT, 2.0), (27, 2.0, 2.5, 4.0), (28, 1.5, 0.5, 3.0)])
+@pytest.mark.parametrize(
+    ("seed", "step", "dist", "bin_deg"), [(26, 1.0, DT, 2.0), (27, 2.0, 2.5, 4.0), (28, 1.5, 0.5, 3.0)]
+)
 def test_both_bound_paths_are_never_below_the_true_improvement(compiled, seed, step, dist, bin_deg) -> None:
     """Level-1 and level-2 bounds of the numba and of the numpy path >= the true G (incl. packed VOPs)."""
     if compiled and coarse._compiled_kernels() is None:

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from forestreg.cli import main
-from forestreg.engine.tls.compare import compare_auto_manual
 from forestreg.engine.io import write_scan
 from forestreg.engine.io.results import write_targets_csv
+from forestreg.engine.tls.compare import compare_auto_manual
 from forestreg.engine.tls.project import Project
 
 POSITIONS = ((0.0, 0.0), (9.0, 3.0), (-7.0, 7.0), (2.0, -10.0))
@@ -29,7 +29,11 @@ def plot_with_targets(tmp_path_factory, sim_plot):
         path = folder / f"{s.scan.name}.laz"
         write_scan(s.scan, path)
         paths.append(path)
-        seen = {t["id"]: np.array([t["x"], t["y"], t["z"]]) + rng.normal(0, 0.005, 3) for t in truth["targets_socs"] if t["n_points"] >= 1}
+        seen = {
+            t["id"]: np.array([t["x"], t["y"], t["z"]]) + rng.normal(0, 0.005, 3)
+            for t in truth["targets_socs"]
+            if t["n_points"] >= 1
+        }
         targets[path.name] = seen
     csv_path = folder / "targets.csv"
     write_targets_csv(csv_path, targets)
@@ -84,7 +88,11 @@ def test_targets_command_detects_and_names_reflectors(plot_with_targets, tmp_pat
     out = tmp_path / "detected.csv"
     assert main(["targets", str(paths[0]), "--known", str(rough_csv), "--out", str(out)]) == 0
     found = read_targets_csv(out)[paths[0].name]
-    truth = {t["id"]: np.array([t["x"], t["y"], t["z"]]) for t in plot.truth["scans"][0]["targets_socs"] if t["n_points"] >= 5}
+    truth = {
+        t["id"]: np.array([t["x"], t["y"], t["z"]])
+        for t in plot.truth["scans"][0]["targets_socs"]
+        if t["n_points"] >= 5
+    }
     named = [k for k in truth if str(k) in found]
     assert len(named) >= len(truth) - 1 and len(named) >= 3
     for k in named:

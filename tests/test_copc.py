@@ -29,7 +29,7 @@ def _write(path: Path, pts, inten, ids, **options) -> CopcWriter:
     lo, hi = pts.min(axis=0) + SHIFT - 0.5, pts.max(axis=0) + SHIFT + 0.5
     with CopcWriter(path, lo, hi, with_scan_id=True, **options) as w:
         for a in range(0, len(pts), 7_001):  # chunks of odd sizes
-            w.write(pts[a:a + 7_001], SHIFT, intensity=inten[a:a + 7_001], scan_id=ids[a:a + 7_001])
+            w.write(pts[a : a + 7_001], SHIFT, intensity=inten[a : a + 7_001], scan_id=ids[a : a + 7_001])
     return w
 
 
@@ -109,7 +109,7 @@ def test_nodes_hold_the_points_of_their_cube(written):
         for level in levels:
             rec = r.level_query(level)
             xyz = np.column_stack([rec.x, rec.y, rec.z])
-            cell = 2 * info.halfsize / 2 ** level
+            cell = 2 * info.halfsize / 2**level
             keys = np.floor((xyz - (info.center - info.halfsize)) / cell).astype(int)
             found, counts = np.unique(keys, axis=0, return_counts=True)
             listed = {(k.x, k.y, k.z): e.point_count for k, e in entries.items() if k.level == level}
@@ -143,7 +143,10 @@ def test_level_zero_is_an_even_subsample(written):
     # evenly as the dense patch: every occupied 4 m column of the cloud has level-0 points
     grid = np.floor((xyz + SHIFT - (info.center - info.halfsize)) / info.spacing).astype(np.int64)
     assert len(np.unique(grid, axis=0)) == len(grid)
-    cols = lambda p: {tuple(c) for c in np.floor(p[:, :2] / 4.0).astype(int)}
+
+    def cols(p):
+        return {tuple(c) for c in np.floor(p[:, :2] / 4.0).astype(int)}
+
     assert cols(xyz) == cols(pts)
     assert len(top) < len(coarse) < len(pts)
 
@@ -153,7 +156,9 @@ def test_write_point_chunks_and_write_points_pick_copc_by_suffix(tmp_path):
     target = tmp_path / "Merged.COPC.laz"
     assert is_copc_path(target) and not is_copc_path(tmp_path / "copc.laz")
     chunks = [(pts[:3_000], inten[:3_000], ids[:3_000]), (pts[3_000:], inten[3_000:], ids[3_000:])]
-    n = write_point_chunks(target, chunks, bounds=(pts.min(axis=0), pts.max(axis=0)), origin_shift=SHIFT, with_scan_id=True)
+    n = write_point_chunks(
+        target, chunks, bounds=(pts.min(axis=0), pts.max(axis=0)), origin_shift=SHIFT, with_scan_id=True
+    )
     assert n == len(pts)
     with laspy.CopcReader.open(target) as r:
         assert len(r.query()) == len(pts) and np.bincount(r.query().scan_id).tolist() == np.bincount(ids).tolist()
@@ -198,7 +203,9 @@ def test_bad_input_is_refused_with_no_partial_file(tmp_path):
         with pytest.raises(error) as info:
             write_point_chunks(target, chunks, bounds=bounds, with_scan_id=True)
         assert words in str(info.value) and "\n" not in str(info.value)
-        assert str(target) in str(info.value) and ".tmp" not in str(info.value), "the target is named, not a temporary file"
+        assert str(target) in str(info.value) and ".tmp" not in str(info.value), (
+            "the target is named, not a temporary file"
+        )
         assert target.read_bytes() == before, "the previous file is left as it was"
         assert [p.name for p in tmp_path.iterdir()] == ["merged.copc.laz"], "no temporary file or folder left"
     with pytest.raises(ParameterError):

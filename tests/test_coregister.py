@@ -9,17 +9,19 @@ import math
 import numpy as np
 import pytest
 
+from forestreg.engine.core.transform import rigid_errors
 from forestreg.engine.coreg import coregister, extract_keypoints, match_keypoints
 from forestreg.engine.coreg.keypoints import density_peak
 from forestreg.engine.coreg.matching import MatchingParams
 from forestreg.engine.geometry.icp import IcpParams
 from forestreg.engine.simulate.platforms import simulate_coregistration_case
 from forestreg.engine.terrain.dem import terrain_model
-from forestreg.engine.core.transform import rigid_errors
 
 
 @functools.lru_cache(maxsize=None)
-def _case(preset: str, platform: str, heading: float, offset: tuple, seed: int = 0, world_offset: tuple = (0.0, 0.0, 0.0)):
+def _case(
+    preset: str, platform: str, heading: float, offset: tuple, seed: int = 0, world_offset: tuple = (0.0, 0.0, 0.0)
+):
     return simulate_coregistration_case(
         preset,
         seed=seed,
@@ -42,7 +44,14 @@ def _result(*key):
 
 CASES = {
     "backpack, heading 180 deg, 10 m": ("planted_conifer", "backpack", 180.0, (8.0, -6.0, 1.5)),
-    "TLS, heading -75 deg, UTM coordinates": ("mixed_temperate", "tls", -75.0, (-4.0, 9.0, -1.0), 1, (500000.0, 5000000.0, 200.0)),
+    "TLS, heading -75 deg, UTM coordinates": (
+        "mixed_temperate",
+        "tls",
+        -75.0,
+        (-4.0, 9.0, -1.0),
+        1,
+        (500000.0, 5000000.0, 200.0),
+    ),
 }
 
 
@@ -95,8 +104,14 @@ def test_unrelated_plots_fail_with_a_reason():
 
 def test_open_field_has_no_canopy_keypoints():
     case = simulate_coregistration_case(
-        "open_field", seed=3, size_m=30.0, ground_platform="backpack", heading_deg=10.0, offset_m=(1.0, 2.0, 0.0),
-        uav_density_scale=0.2, backpack_density_scale=0.05,
+        "open_field",
+        seed=3,
+        size_m=30.0,
+        ground_platform="backpack",
+        heading_deg=10.0,
+        offset_m=(1.0, 2.0, 0.0),
+        uav_density_scale=0.2,
+        backpack_density_scale=0.05,
     )
     result = coregister(case.ground, case.uav)
     assert not result.ok
@@ -168,8 +183,18 @@ def test_coregister_cli_writes_every_output(tmp_path, capsys):
     assert result["status"] == "ok" and result["reason"] == ""
     rot, trans = rigid_errors(np.array(result["matrix"]), case.matrix)
     assert rot < 0.1 and trans < 0.05
-    for key in ("keypoints", "matched", "matching_percentage", "residuals_m", "icp", "timings", "standard_errors",
-                "quality", "correlation_margin", "candidates_verified"):
+    for key in (
+        "keypoints",
+        "matched",
+        "matching_percentage",
+        "residuals_m",
+        "icp",
+        "timings",
+        "standard_errors",
+        "quality",
+        "correlation_margin",
+        "candidates_verified",
+    ):
         assert key in result
     assert result["distance_threshold_m"] == 1.0
     m = np.loadtxt(out / "transform.txt")
@@ -183,7 +208,18 @@ def test_coregister_cli_writes_every_output(tmp_path, capsys):
     assert sum(int(r.split(",")[-1]) >= 0 for r in rows[1:]) == result["matched_after_icp"]
 
     fused_path = tmp_path / "fused.laz"
-    code = main(["fuse", str(tmp_path / "ground.laz"), str(tmp_path / "uav.laz"), "--transform", str(out / "transform.txt"), "--out", str(fused_path), "--quiet"])
+    code = main(
+        [
+            "fuse",
+            str(tmp_path / "ground.laz"),
+            str(tmp_path / "uav.laz"),
+            "--transform",
+            str(out / "transform.txt"),
+            "--out",
+            str(fused_path),
+            "--quiet",
+        ]
+    )
     assert code == 0
     fused = read_scan(fused_path)
     assert 0.5 * (len(ground) + len(case.uav)) < len(fused) < len(ground) + len(case.uav)
@@ -203,7 +239,18 @@ def test_fuse_refuses_a_non_rigid_transform(tmp_path):
     bad = tmp_path / "t.txt"
     bad.write_text("2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     (tmp_path / "a.xyz").write_text("0 0 0\n1 1 1\n2 2 2\n")
-    code = main(["fuse", str(tmp_path / "a.xyz"), str(tmp_path / "a.xyz"), "--transform", str(bad), "--out", str(tmp_path / "f.laz"), "--quiet"])
+    code = main(
+        [
+            "fuse",
+            str(tmp_path / "a.xyz"),
+            str(tmp_path / "a.xyz"),
+            "--transform",
+            str(bad),
+            "--out",
+            str(tmp_path / "f.laz"),
+            "--quiet",
+        ]
+    )
     assert code == 2
     assert not (tmp_path / "f.laz").exists()
 
@@ -218,13 +265,24 @@ def _drifted_case():
     from forestreg.engine.simulate.platforms import BackpackSetup
 
     walk = BackpackSetup(
-        extent_m=20.0, centre=(0.0, 0.0), density_scale=0.1,
-        slam_tilt_deg=1.5, slam_tilt_azimuth_deg=60.0, slam_drift_deg=1.0, slam_drift_tilt_deg=0.5,
+        extent_m=20.0,
+        centre=(0.0, 0.0),
+        density_scale=0.1,
+        slam_tilt_deg=1.5,
+        slam_tilt_azimuth_deg=60.0,
+        slam_drift_deg=1.0,
+        slam_drift_tilt_deg=0.5,
         slam_drift_m=(0.15, -0.1, 0.05),
     )
     return simulate_coregistration_case(
-        "planted_conifer", seed=2, size_m=40.0, ground_platform="backpack", heading_deg=110.0,
-        offset_m=(-12.0, 6.0, 2.0), uav_density_scale=0.3, backpack_setup=walk,
+        "planted_conifer",
+        seed=2,
+        size_m=40.0,
+        ground_platform="backpack",
+        heading_deg=110.0,
+        offset_m=(-12.0, 6.0, 2.0),
+        uav_density_scale=0.3,
+        backpack_setup=walk,
     )
 
 
@@ -320,8 +378,8 @@ def _uls_like(mls, fine: np.ndarray, seed: int = 0):
 
 @pytest.mark.slow
 def test_real_fine_alignment_is_stable_and_shows_the_slam_tilt(shared_data):
+    from forestreg.engine.core.transform import matrix_from_yaw
     from forestreg.engine.coreg.coregister import _icp_uav_onto_ground
-    from forestreg.engine.core.transform import matrix_from_yaw, rotation_angle_deg
 
     mls, als, ref, fine = _real_pair(str(shared_data))
     assert 1.2 < math.degrees(math.acos(fine[2, 2])) < 1.8  # the MLS's SLAM tilt against the ALS
@@ -374,8 +432,8 @@ def test_unrelated_real_clouds_are_refused_with_a_clear_margin(shared_data):
     """The MLS clip against another real stand (lidR's MixedConifer ALS) and against its own plot's
     ALS mirrored (same statistics, other arrangement): refused, the best refined solution far
     below the acceptance threshold."""
-    from forestreg.engine.coreg import CoregistrationParams
     from forestreg.engine.core.scan import Scan
+    from forestreg.engine.coreg import CoregistrationParams
     from forestreg.engine.io import read_scan
 
     mls, als, _, _ = _real_pair(str(shared_data))
@@ -393,9 +451,9 @@ def test_real_coarse_icp_corrects_a_keypoint_solution_degrees_off(shared_data):
     """The failure of the old pipeline on the real MLS/ULS pair: the best keypoint solution was
     ~8 deg off and was judged before ICP. The candidates' coarse 6-DoF ICP brings solutions 8 and
     15 deg / 1-1.5 m off (about the plot centre) to within 0.2 deg / 10 cm of the fine alignment."""
+    from forestreg.engine.core.transform import matrix_from_yaw
     from forestreg.engine.coreg import CoregistrationParams
     from forestreg.engine.coreg.coregister import _icp_uav_onto_ground
-    from forestreg.engine.core.transform import matrix_from_yaw
 
     mls, als, ref, fine = _real_pair(str(shared_data))
     p = CoregistrationParams()
@@ -404,7 +462,12 @@ def test_real_coarse_icp_corrects_a_keypoint_solution_degrees_off(shared_data):
         wrong = matrix_from_yaw(yaw)
         wrong[:3, 3] = c - wrong[:3, :3] @ c + np.asarray(off)
         start = fine @ wrong
-        m = _icp_uav_onto_ground(ref, als.points, start, p.coarse_icp.replace(max_moving_points=8000, final_tolerance_m=1e-5, final_tolerance_deg=1e-4)).matrix
+        m = _icp_uav_onto_ground(
+            ref,
+            als.points,
+            start,
+            p.coarse_icp.replace(max_moving_points=8000, final_tolerance_m=1e-5, final_tolerance_deg=1e-4),
+        ).matrix
         rot, shift = _errors_at_centre(m, fine, mls.points)
         assert rot < 0.2 and shift < 0.1, (yaw, rot, shift)
 
@@ -419,6 +482,7 @@ def test_scans_given_as_readers_give_the_same_result():
         def read():
             calls.append(scan.name)
             return scan
+
         return read
 
     read = coregister(reader(case.ground), reader(case.uav))
@@ -538,16 +602,27 @@ def test_simulated_leaf_on_uav_and_a_tilted_backpack():
     within 0.3 deg / 15 cm of the truth, the tilt estimated, the stems deciding."""
     from forestreg.engine.simulate.platforms import LEAF_ON_BROADLEAF, BackpackSetup
 
-    walk = BackpackSetup(extent_m=16.0, centre=(0.0, 0.0), density_scale=0.04, slam_tilt_deg=1.5, slam_tilt_azimuth_deg=60.0)
+    walk = BackpackSetup(
+        extent_m=16.0, centre=(0.0, 0.0), density_scale=0.04, slam_tilt_deg=1.5, slam_tilt_azimuth_deg=60.0
+    )
     case = simulate_coregistration_case(
-        "mixed_temperate", seed=7, size_m=34.0, ground_platform="backpack", heading_deg=143.0, offset_m=(-6.0, 6.5, 1.0),
-        uav_density_scale=0.2, backpack_setup=walk, **LEAF_ON_BROADLEAF,
+        "mixed_temperate",
+        seed=7,
+        size_m=34.0,
+        ground_platform="backpack",
+        heading_deg=143.0,
+        offset_m=(-6.0, 6.5, 1.0),
+        uav_density_scale=0.2,
+        backpack_setup=walk,
+        **LEAF_ON_BROADLEAF,
     )
     result = coregister(case.ground, case.uav)
     assert result.ok, result.reason
     rot, _ = rigid_errors(result.matrix, case.matrix)
     centre = case.ground.file_points.mean(axis=0)
-    shift = np.linalg.norm((result.matrix[:3, :3] - case.matrix[:3, :3]) @ centre + result.matrix[:3, 3] - case.matrix[:3, 3])
+    shift = np.linalg.norm(
+        (result.matrix[:3, :3] - case.matrix[:3, :3]) @ centre + result.matrix[:3, 3] - case.matrix[:3, 3]
+    )
     print(f"leaf-on simulated: {rot:.4f} deg, {100 * shift:.2f} cm; {result.summary()}")
     assert rot < 0.3 and shift < 0.15, (rot, shift)
     assert result.matching_percentage < 15.0  # the keypoints alone would not decide

@@ -41,13 +41,38 @@ def test_the_crs_of_the_real_clips_is_read(shared_data):
 
 def test_fusing_the_real_serc_trunk_keeps_its_crs(shared_data, tmp_path, capsys):
     out = tmp_path / "fused.laz"
-    assert main(["fuse", str(shared_data / "SERC_trunk_tls.laz"), str(shared_data / "SERC_trunk_drone.laz"), "--out", str(out), "-q"]) == 0
+    assert (
+        main(
+            [
+                "fuse",
+                str(shared_data / "SERC_trunk_tls.laz"),
+                str(shared_data / "SERC_trunk_drone.laz"),
+                "--out",
+                str(out),
+                "-q",
+            ]
+        )
+        == 0
+    )
     assert read_scan(out).crs.epsg == UTM18
 
 
 def test_trees_of_the_real_als_clip_carry_its_crs_into_layers(shared_data, tmp_path):
     out = tmp_path / "trees"
-    assert main(["trees", str(shared_data / "spanner_ALS_Clip.laz"), "--out", str(out), "--no-cylinders", "--no-report", "-q"]) == 0
+    assert (
+        main(
+            [
+                "trees",
+                str(shared_data / "spanner_ALS_Clip.laz"),
+                "--out",
+                str(out),
+                "--no-cylinders",
+                "--no-report",
+                "-q",
+            ]
+        )
+        == 0
+    )
     n_trees = len((out / "trees.csv").read_text().strip().splitlines()) - 1
     rows, facts = read_layer(out / "layers.gpkg", "trees")
     assert len(rows) == n_trees > 0
@@ -118,11 +143,18 @@ def test_a_moved_scan_keeps_no_crs_unless_its_new_frame_has_one(tmp_path):
     assert scan.transformed(move).crs is None
     write_scan(scan, tmp_path / "moved.laz", matrix=move)
     assert read_scan(tmp_path / "moved.laz").crs is None
-    write_scan(scan, tmp_path / "moved_utm12.laz", matrix=move, crs=parse_crs(UTM12))  # the caller names the new frame's
+    write_scan(
+        scan, tmp_path / "moved_utm12.laz", matrix=move, crs=parse_crs(UTM12)
+    )  # the caller names the new frame's
     assert read_scan(tmp_path / "moved_utm12.laz").crs.epsg == UTM12
     chunks = [(_cloud(1)[:, :] - [500_000.0, 4_300_000.0, 0.0], None, None)]
-    write_point_chunks(tmp_path / "chunks.laz", chunks, bounds=(np.zeros(3), np.array([30.0, 30.0, 120.0])),
-                       origin_shift=np.array([500_000.0, 4_300_000.0, 0.0]), crs=utm)
+    write_point_chunks(
+        tmp_path / "chunks.laz",
+        chunks,
+        bounds=(np.zeros(3), np.array([30.0, 30.0, 120.0])),
+        origin_shift=np.array([500_000.0, 4_300_000.0, 0.0]),
+        crs=utm,
+    )
     assert read_scan(tmp_path / "chunks.laz").crs.same_as(utm)
 
 
@@ -192,7 +224,9 @@ def plot_files(tmp_path_factory, sim_plot):
 
 def test_a_pair_takes_the_reference_crs_and_says_the_moving_scan_had_none(plot_files, tmp_path):
     ref = tmp_path / "ref.laz"
-    write_scan(read_scan(plot_files[0]), ref, crs=parse_crs(UTM18))  # the reference georeferenced, the moving scan local
+    write_scan(
+        read_scan(plot_files[0]), ref, crs=parse_crs(UTM18)
+    )  # the reference georeferenced, the moving scan local
     out = tmp_path / "pair"
     assert main(["register", str(ref), str(plot_files[1]), "--out", str(out), "--write-registered", "-q"]) == 0
     crs = json.loads((out / "result.json").read_text())["crs"]
@@ -205,8 +239,21 @@ def test_a_pair_takes_the_reference_crs_and_says_the_moving_scan_had_none(plot_f
 
 def test_a_plot_carries_the_crs_to_poses_merged_registered_and_layers(plot_files, tmp_path):
     out = tmp_path / "plot"
-    code = main(["plot", *map(str, plot_files), "--out", str(out), "--merged", str(out / "merged.laz"),
-                 "--registered-dir", str(tmp_path / "registered"), "--crs", UTM18, "-q"])
+    code = main(
+        [
+            "plot",
+            *map(str, plot_files),
+            "--out",
+            str(out),
+            "--merged",
+            str(out / "merged.laz"),
+            "--registered-dir",
+            str(tmp_path / "registered"),
+            "--crs",
+            UTM18,
+            "-q",
+        ]
+    )
     assert code == 0
     crs = json.loads((out / "poses.json").read_text())["crs"]
     assert crs["epsg"] == UTM18 and crs["source"] == "--crs" and crs["frame"] == plot_files[0].name
@@ -239,8 +286,22 @@ def test_a_resurvey_takes_before_crs_and_names_it_in_result_and_layers(tmp_path)
     _trees_table(tmp_path / "before" / "trees.csv", xy, dbh)
     _trees_table(tmp_path / "after" / "trees.csv", xy @ rot.T + [12.0, -3.0], dbh + 0.01)
     out = tmp_path / "change"
-    assert main(["change", str(tmp_path / "before" / "trees.csv"), str(tmp_path / "after" / "trees.csv"), "--out", str(out),
-                 "--crs", UTM18, "--no-report", "-q"]) == 0
+    assert (
+        main(
+            [
+                "change",
+                str(tmp_path / "before" / "trees.csv"),
+                str(tmp_path / "after" / "trees.csv"),
+                "--out",
+                str(out),
+                "--crs",
+                UTM18,
+                "--no-report",
+                "-q",
+            ]
+        )
+        == 0
+    )
     crs = json.loads((out / "result.json").read_text())["crs"]
     assert crs["epsg"] == UTM18 and crs["frame"] == "before" and crs["source"] == "--crs"
     rows, facts = read_layer(out / "layers.gpkg", "tree_changes")
@@ -258,8 +319,22 @@ def test_trees_moved_by_a_transform_take_its_target_crs_only(shared_data, tmp_pa
     (co / "transform.txt").write_text("1 0 0 2\n0 1 0 -3\n0 0 1 0\n0 0 0 1\n")
     (co / "result.json").write_text(json.dumps({"status": "ok", "crs": parse_crs(UTM12).to_dict()}))
     out = tmp_path / "trees"
-    assert main(["trees", str(shared_data / "spanner_ALS_Clip.laz"), "--out", str(out), "--transform", str(co / "transform.txt"),
-                 "--no-cylinders", "--no-report", "-q"]) == 0
+    assert (
+        main(
+            [
+                "trees",
+                str(shared_data / "spanner_ALS_Clip.laz"),
+                "--out",
+                str(out),
+                "--transform",
+                str(co / "transform.txt"),
+                "--no-cylinders",
+                "--no-report",
+                "-q",
+            ]
+        )
+        == 0
+    )
     assert read_layer(out / "layers.gpkg", "trees")[1]["srs_id"] == 26912
     (co / "result.json").write_text(json.dumps({"status": "ok"}))  # a target frame without a CRS: local
     assert transform_target_crs(co / "transform.txt") is None

@@ -34,19 +34,25 @@ PACKAGE_PARENT = str(Path(forestreg.__file__).resolve().parent.parent)
 #: Keys of JSON outputs whose values are durations or clock times.
 #: Also the batch's record of how a plot ran, not what it gave: the run's id, the Dask worker's
 #: address, the process id and the peak memory.
-TIMING_KEYS = re.compile(r"^(timings|seconds|elapsed|started|finished|created|updated|date|time|.*_s|.*_seconds|.*_time"
-                         r"|run|worker|pid|peak_mb)$")
+TIMING_KEYS = re.compile(
+    r"^(timings|seconds|elapsed|started|finished|created|updated|date|time|.*_s|.*_seconds|.*_time"
+    r"|run|worker|pid|peak_mb)$"
+)
 #: CSV columns (and HTML table heads) holding durations, and the batch's worker and peak memory.
 TIMING_COLUMNS = re.compile(r"^(seconds|elapsed|.*_s|time|time \(s\)|duration.*|worker|peak_mb|peak MB)$", re.I)
 #: Durations and clock times written in text (reports, logs): "12.3 s", "0.8 s", "1 min 3 s",
 #: "generated 2026-11-28 09:33", "seconds: 119.2", a timings block ``"icp_s": 1.93``.
-TIMING_TEXT = re.compile(rb"\d{4}-\d\d-\d\d[ T]\d\d:\d\d(:\d\d(\.\d+)?)?|\d+(\.\d+)?\s?(s|ms|min)\b|seconds:?\s*\d+(\.\d+)?"
-                         rb"|(&quot;|\")\w+_s(&quot;|\"):\s*[-+.\de]+")
+TIMING_TEXT = re.compile(
+    rb"\d{4}-\d\d-\d\d[ T]\d\d:\d\d(:\d\d(\.\d+)?)?|\d+(\.\d+)?\s?(s|ms|min)\b|seconds:?\s*\d+(\.\d+)?"
+    rb"|(&quot;|\")\w+_s(&quot;|\"):\s*[-+.\de]+"
+)
 
 
 def _env(cache: Path, **extra: str) -> dict:
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([PACKAGE_PARENT] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    env["PYTHONPATH"] = os.pathsep.join(
+        [PACKAGE_PARENT] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+    )
     env["NUMBA_CACHE_DIR"] = str(cache)
     env.pop("OPENBLAS_NUM_THREADS", None)
     env.pop("OMP_NUM_THREADS", None)
@@ -66,8 +72,13 @@ def _start(argv: list[str], out: Path, cache: Path, *, one_core: bool = False, *
 
     log = open(f"{out}.log", "wb")
     argv = [a.replace("{OUT}", str(out)) for a in argv]
-    return subprocess.Popen([sys.executable, "-m", "forestreg.cli", *argv, "-q"], stdout=log, stderr=subprocess.STDOUT,
-                            env=_env(cache, **extra), preexec_fn=preexec)
+    return subprocess.Popen(
+        [sys.executable, "-m", "forestreg.cli", *argv, "-q"],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env=_env(cache, **extra),
+        preexec_fn=preexec,
+    )
 
 
 def _wait(proc: subprocess.Popen, out: Path, timeout: float = 600) -> None:
@@ -94,9 +105,13 @@ def _without_timing_columns(html: bytes) -> bytes:
     for k, table in enumerate(parts):
         if not table.startswith(b"<table"):
             continue
-        heads = [re.sub(rb"<[^>]+>", b"", h).strip().decode(errors="replace") for h in re.findall(rb"<th[^>]*>(.*?)</th>", table, flags=re.S)]
+        heads = [
+            re.sub(rb"<[^>]+>", b"", h).strip().decode(errors="replace")
+            for h in re.findall(rb"<th[^>]*>(.*?)</th>", table, flags=re.S)
+        ]
         drop = {i for i, h in enumerate(heads) if TIMING_COLUMNS.match(h)}
         if drop:
+
             def row(m: re.Match) -> bytes:
                 cells = re.findall(rb"<td[^>]*>.*?</td>", m.group(0), flags=re.S)
                 return b"<tr>" + b"".join(c for i, c in enumerate(cells) if i not in drop) + b"</tr>"
@@ -135,8 +150,10 @@ def _differences(a: dict[str, bytes], b: dict[str, bytes]) -> list[str]:
                 continue
             x, y = a[name], b[name]
             k = next((i for i in range(min(len(x), len(y))) if x[i] != y[i]), min(len(x), len(y)))
-            lines.append(f"{name}: {len(x)} vs {len(y)} bytes, first difference at byte {k}: "
-                         f"{x[max(0, k - 60):k + 60]!r} vs {y[max(0, k - 60):k + 60]!r}")
+            lines.append(
+                f"{name}: {len(x)} vs {len(y)} bytes, first difference at byte {k}: "
+                f"{x[max(0, k - 60) : k + 60]!r} vs {y[max(0, k - 60) : k + 60]!r}"
+            )
     return lines
 
 
@@ -160,11 +177,14 @@ def inputs(tmp_path_factory, shared_data) -> dict[str, Path]:
     from forestreg.engine.core.scan import Scan
     from forestreg.engine.core.transform import matrix_from_yaw
     from forestreg.engine.io import read_scan, write_scan
-    from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.io.simulated import write_simulated_plot
+    from forestreg.engine.simulate import simulate_plot
 
     root = tmp_path_factory.mktemp("determinism_inputs")
-    write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (8, 0), (4, 7)], seed=3, angular_step_deg=0.5, size_m=26), root / "plot")
+    write_simulated_plot(
+        simulate_plot("planted_conifer", [(0, 0), (8, 0), (4, 7)], seed=3, angular_step_deg=0.5, size_m=26),
+        root / "plot",
+    )
     tls = read_scan(shared_data / "pine_plot.laz")
     c = np.median(tls.points[:, :2], axis=0)
     _crop(tls, np.all(np.abs(tls.points[:, :2] - c) <= 3.5, axis=1), root / "tls.laz")
@@ -173,16 +193,29 @@ def inputs(tmp_path_factory, shared_data) -> dict[str, Path]:
     _crop(als, np.all((als.points[:, :2] >= lo + 10) & (als.points[:, :2] <= lo + 50), axis=1), root / "als.laz")
     (root / "plots" / "p1").mkdir(parents=True)
     (root / "plots" / "p2").mkdir(parents=True)
-    _crop(als, np.all((als.points[:, :2] >= lo + 50) & (als.points[:, :2] <= lo + 80), axis=1), root / "plots" / "p1" / "cloud.laz")
-    _crop(als, np.all((als.points[:, :2] >= lo + [0, 50]) & (als.points[:, :2] <= lo + [30, 80]), axis=1), root / "plots" / "p2" / "cloud.laz")
+    _crop(
+        als,
+        np.all((als.points[:, :2] >= lo + 50) & (als.points[:, :2] <= lo + 80), axis=1),
+        root / "plots" / "p1" / "cloud.laz",
+    )
+    _crop(
+        als,
+        np.all((als.points[:, :2] >= lo + [0, 50]) & (als.points[:, :2] <= lo + [30, 80]), axis=1),
+        root / "plots" / "p2" / "cloud.laz",
+    )
     mls = read_scan(shared_data / "spanner_MLS_Clip.laz")
     a = matrix_from_yaw(30.0, np.array([5.0, -3.0, 1.0]))
     p = mls.points[::3]
     write_scan(Scan.from_points(p @ a[:3, :3].T + a[:3, 3], origin_shift=np.zeros(3)), root / "ground.laz")
     return {
-        "s1": root / "plot" / "scan_01.laz", "s2": root / "plot" / "scan_02.laz", "s3": root / "plot" / "scan_03.laz",
-        "tls": root / "tls.laz", "als": root / "als.laz", "plots": root / "plots",
-        "ground": root / "ground.laz", "uav": shared_data / "spanner_ALS_Clip.laz",
+        "s1": root / "plot" / "scan_01.laz",
+        "s2": root / "plot" / "scan_02.laz",
+        "s3": root / "plot" / "scan_03.laz",
+        "tls": root / "tls.laz",
+        "als": root / "als.laz",
+        "plots": root / "plots",
+        "ground": root / "ground.laz",
+        "uav": shared_data / "spanner_ALS_Clip.laz",
     }
 
 
@@ -229,14 +262,16 @@ def test_every_command_gives_the_same_bytes_five_times(inputs, tmp_path):
             if diff:
                 failures.append(f"{name}, run {k} against run 1:\n  " + "\n  ".join(diff[:5]))
         children = resource.getrusage(resource.RUSAGE_CHILDREN)
-        print(f"{name}: 5 runs, {len(first)} files; so far {time.perf_counter() - t0:.0f} s, "
-              f"{children.ru_utime + children.ru_stime - burned:.0f} s of CPU in the runs")
+        print(
+            f"{name}: 5 runs, {len(first)} files; so far {time.perf_counter() - t0:.0f} s, "
+            f"{children.ru_utime + children.ru_stime - burned:.0f} s of CPU in the runs"
+        )
     assert not failures, "\n".join(failures)
 
 
 # ----------------------------------------------------------------------------------- kernel cache
 
-_KERNEL_MODULE = '''
+_KERNEL_MODULE = """
 from forestreg.engine.core.jit import kernel
 
 @kernel
@@ -245,9 +280,9 @@ def weighted_sum(a):
     for i in range(a.shape[0]):
         s += a[i] * (i % 3)
     return s
-'''
+"""
 
-_KERNEL_RUN = '''
+_KERNEL_RUN = """
 import sys, time
 import numpy as np
 sys.path.insert(0, sys.argv[3])
@@ -257,7 +292,7 @@ start = float(sys.argv[2])
 while time.time() < start:
     time.sleep(0.0005)
 print(float(kmod.weighted_sum(a)))
-'''
+"""
 
 
 def test_kernel_cache_with_processes_compiling_at_once(tmp_path, monkeypatch):
@@ -274,9 +309,16 @@ def test_kernel_cache_with_processes_compiling_at_once(tmp_path, monkeypatch):
     expected = float(sum(i * (i % 3) for i in range(50)))
     for round_ in range(2):
         start = time.time() + 6.0  # all four imported by then
-        procs = [subprocess.Popen([sys.executable, str(tmp_path / "run.py"), dtype, str(start), str(tmp_path)],
-                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(cache), text=True)
-                 for dtype in ("float64", "float32", "int64", "int32")]
+        procs = [
+            subprocess.Popen(
+                [sys.executable, str(tmp_path / "run.py"), dtype, str(start), str(tmp_path)],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                env=_env(cache),
+                text=True,
+            )
+            for dtype in ("float64", "float32", "int64", "int32")
+        ]
         for proc in procs:
             out, err = proc.communicate(timeout=300)
             assert proc.returncode == 0, err[-2000:]
@@ -293,15 +335,22 @@ def test_kernel_cache_with_processes_compiling_at_once(tmp_path, monkeypatch):
         assert tuple(payload[3].args) == tuple(key[0])
 
     by_dtype = {str(key[0][0].dtype): name for key, name in overloads.items()}
-    swapped = {key: (by_dtype["float32"] if str(key[0][0].dtype) == "float64" else name) for key, name in overloads.items()}
+    swapped = {
+        key: (by_dtype["float32"] if str(key[0][0].dtype) == "float64" else name) for key, name in overloads.items()
+    }
     with index[0].open("rb") as f:
         version = pickle.load(f)
         stamp, _ = pickle.loads(f.read())
     with index[0].open("wb") as f:
         pickle.dump(version, f, protocol=-1)
         f.write(pickle.dumps((stamp, swapped), protocol=-1))
-    run = subprocess.run([sys.executable, str(tmp_path / "run.py"), "float64", "0", str(tmp_path)], capture_output=True, text=True,
-                         env=_env(cache), timeout=300)
+    run = subprocess.run(
+        [sys.executable, str(tmp_path / "run.py"), "float64", "0", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=_env(cache),
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     assert float(run.stdout.strip()) == expected
 
@@ -322,8 +371,11 @@ def test_link_information_matrix_is_open3d_s_summed_in_a_fixed_order():
     ours = [information_matrix(moving, reference, 0.1, matrix) for _ in range(4)]
     assert all(m.tobytes() == ours[0].tobytes() for m in ours)
     cloud = o3d.geometry.PointCloud
-    theirs = np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(
-        cloud(o3d.utility.Vector3dVector(moving)), cloud(o3d.utility.Vector3dVector(reference)), 0.1, matrix))
+    theirs = np.asarray(
+        o3d.pipelines.registration.get_information_matrix_from_point_clouds(
+            cloud(o3d.utility.Vector3dVector(moving)), cloud(o3d.utility.Vector3dVector(reference)), 0.1, matrix
+        )
+    )
     assert np.abs(ours[0] - theirs).max() <= 1e-12 * np.abs(theirs).max()
 
 
@@ -343,12 +395,20 @@ def test_warmup_records_the_kernel_sources_and_is_skipped_while_they_are_unchang
     monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path))
     assert jit.kernel_cache_dir() == str(tmp_path) and not jit.cache_is_warm()
     source = Path(voxel.__file__)
-    (tmp_path / jit.WARM_MARK).write_text(json.dumps({"files": {str(source): hashlib.sha256(source.read_bytes()).hexdigest()}}))
+    (tmp_path / jit.WARM_MARK).write_text(
+        json.dumps({"files": {str(source): hashlib.sha256(source.read_bytes()).hexdigest()}})
+    )
     # a kernel file the record does not hold (a module added since) makes the cache cold
-    assert not jit.cache_is_warm() and jit.cache_is_warm([str(source)]) and not jit.cache_is_warm([str(source.with_name("icp.py"))])
+    assert (
+        not jit.cache_is_warm()
+        and jit.cache_is_warm([str(source)])
+        and not jit.cache_is_warm([str(source.with_name("icp.py"))])
+    )
     every = jit.kernel_source_files()
     assert str(source) in every and len(every) >= 15
-    (tmp_path / jit.WARM_MARK).write_text(json.dumps({"files": {f: hashlib.sha256(Path(f).read_bytes()).hexdigest() for f in every}}))
+    (tmp_path / jit.WARM_MARK).write_text(
+        json.dumps({"files": {f: hashlib.sha256(Path(f).read_bytes()).hexdigest() for f in every}})
+    )
     assert jit.cache_is_warm()
     assert main(["warmup"]) == 0
     assert "compiled already" in capsys.readouterr().out

@@ -28,14 +28,22 @@ def _hooks():
 
 def _env() -> dict:
     """The environment of a child process that imports this checkout as ``forestreg``."""
-    return {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT.parent), os.environ.get("PYTHONPATH", "")) if p), "NO_MKDOCS_2_WARNING": "1"}
+    return {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT.parent), os.environ.get("PYTHONPATH", "")) if p),
+        "NO_MKDOCS_2_WARNING": "1",
+    }
 
 
 def test_site_builds_strictly(tmp_path):
     pytest.importorskip("mkdocs", reason="the docs extra is not installed (pip install -e '.[docs]')")
     out = subprocess.run(
         [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
-        cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=600,
+        cwd=ROOT,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-5000:]
     warnings = [line for line in out.stderr.splitlines() if line.startswith(("WARNING", "ERROR"))]
@@ -116,8 +124,13 @@ def test_the_output_reference_names_every_key_of_a_real_result(tmp_path, sim_plo
         paths.append(tmp_path / f"{s.scan.name}.laz")
         write_scan(s.scan, paths[-1])
     out = tmp_path / "pair"
-    run = subprocess.run([sys.executable, "-m", "forestreg.cli", "register", *map(str, paths), "--out", str(out), "-q"],
-                         env=_env(), capture_output=True, text=True, timeout=600)
+    run = subprocess.run(
+        [sys.executable, "-m", "forestreg.cli", "register", *map(str, paths), "--out", str(out), "-q"],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert run.returncode in (0, 1), run.stderr
     page = (ROOT / "docs" / "reference" / "outputs.md").read_text(encoding="utf-8")
     result = json.loads((out / "result.json").read_text())
@@ -140,11 +153,26 @@ def test_the_output_reference_names_every_key_of_a_coregistration_result(tmp_pat
     for name, pts in (("ground", ground), ("uav", ground + [0, 0, 0.1])):
         write_scan(Scan(pts, np.zeros(3), np.zeros(3), name=name), tmp_path / f"{name}.laz")
     out = tmp_path / "coreg"
-    run = subprocess.run([sys.executable, "-m", "forestreg.cli", "coregister", str(tmp_path / "ground.laz"), str(tmp_path / "uav.laz"),
-                          "--out", str(out), "-q"], env=_env(), capture_output=True, text=True, timeout=600)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "forestreg.cli",
+            "coregister",
+            str(tmp_path / "ground.laz"),
+            str(tmp_path / "uav.laz"),
+            "--out",
+            str(out),
+            "-q",
+        ],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert run.returncode == 1 and "too little canopy" in run.stderr, run.stderr
     page = (ROOT / "docs" / "reference" / "outputs.md").read_text(encoding="utf-8")
-    section = page[page.index("### `forestreg coregister`"):]
+    section = page[page.index("### `forestreg coregister`") :]
     result = json.loads((out / "result.json").read_text())
     assert [k for k in result if f"`{k}`" not in section] == []
 
@@ -153,7 +181,10 @@ def test_readme_is_short_and_its_commands_are_the_ci_commands():
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     assert len(readme.splitlines()) <= 300
     ci = (ROOT / ".ci" / "run").read_text()
-    for command in ("bash scripts/setup.sh && .venv/bin/forestreg demo --out demo_out", "bash scripts/setup.sh && .venv/bin/python -m pytest -q"):
+    for command in (
+        "bash scripts/setup.sh && .venv/bin/forestreg demo --out demo_out",
+        "bash scripts/setup.sh && .venv/bin/python -m pytest -q",
+    ):
         assert command in readme and command in ci
     for link in re.findall(r"\]\(((?:docs/|CHANGELOG)[^)#]*)", readme):
         assert (ROOT / link).is_file(), link  # a generated page exists only in the built site
@@ -204,8 +235,18 @@ def _words(text: str) -> list[str]:
 def test_troubleshooting_explains_every_failure_reason():
     """Every reason a registration or co-registration fails with, as the code words it, is
     explained on the troubleshooting page (matched on its first literal words)."""
-    page = " ".join(_words(re.sub(r"(?<![A-Za-z])[A-Z](?![A-Za-z])", " ", (ROOT / "docs" / "troubleshooting.md").read_text(encoding="utf-8"))))
-    pattern = re.compile(r'(?:\b(?:_failed|failed|CoarseAttempt)\(\s*(?:[^"\n()]*,\s*)?|\bproblem\s*=\s*\(?\s*)f?"([^"\n]{8,})"')
+    page = " ".join(
+        _words(
+            re.sub(
+                r"(?<![A-Za-z])[A-Z](?![A-Za-z])",
+                " ",
+                (ROOT / "docs" / "troubleshooting.md").read_text(encoding="utf-8"),
+            )
+        )
+    )
+    pattern = re.compile(
+        r'(?:\b(?:_failed|failed|CoarseAttempt)\(\s*(?:[^"\n()]*,\s*)?|\bproblem\s*=\s*\(?\s*)f?"([^"\n]{8,})"'
+    )
     missing, checked = [], 0
     for source in REASON_SOURCES:
         for m in pattern.finditer((ROOT / source).read_text(encoding="utf-8")):

@@ -31,13 +31,12 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-
 from docs_blocks import (  # tests/ is on the path (pytest's rootdir import mode)
     PYTHON,
     ROOT,
     SHELL,
-    ClassificationError,
     Block,
+    ClassificationError,
     commands_of,
     decide,
     examples,
@@ -125,26 +124,50 @@ def test_forestreg_commands_and_python_run_by_default_and_comments_decide():
 
 
 def test_what_an_example_promises():
-    block = _block("forestreg register scan1.laz scan2.laz --out pair\n"
-                   "# pair/result.json (status), pair/transform.txt, and see docs/guide/cli.md\n"
-                   "forestreg plot scans/*.laz --out plot --merged=plot/all.copc.laz\n"
-                   "forestreg params --toml > my.toml   # every parameter\n")
-    assert promised_paths(block, decide(block)) == ["pair", "plot", "plot/all.copc.laz", "my.toml", "pair/result.json", "pair/transform.txt"]
+    block = _block(
+        "forestreg register scan1.laz scan2.laz --out pair\n"
+        "# pair/result.json (status), pair/transform.txt, and see docs/guide/cli.md\n"
+        "forestreg plot scans/*.laz --out plot --merged=plot/all.copc.laz\n"
+        "forestreg params --toml > my.toml   # every parameter\n"
+    )
+    assert promised_paths(block, decide(block)) == [
+        "pair",
+        "plot",
+        "plot/all.copc.laz",
+        "my.toml",
+        "pair/result.json",
+        "pair/transform.txt",
+    ]
     py = _block('job = service.submit(["register", "A.laz", "B.laz", "--out", "pair"])\n', "python")
     assert promised_paths(py, decide(py)) == ["pair"]
     assert commands_of("a \\\n  b\n\n# note\nc  # why\n") == ["a b", "c  # why"]
-    console = _block("$ forestreg params --toml > my.toml\nprinted\n$ forestreg register a.laz \\\n    b.laz --out p\nok: 3\n", "console")
-    assert commands_of(shell_text(console)) == ["forestreg params --toml > my.toml", "forestreg register a.laz b.laz --out p"]
+    console = _block(
+        "$ forestreg params --toml > my.toml\nprinted\n$ forestreg register a.laz \\\n    b.laz --out p\nok: 3\n",
+        "console",
+    )
+    assert commands_of(shell_text(console)) == [
+        "forestreg params --toml > my.toml",
+        "forestreg register a.laz b.laz --out p",
+    ]
     assert decide(console).kind == "run" and promised_paths(console, decide(console)) == ["my.toml", "p"]
 
 
 def test_a_demo_line_in_another_format_is_caught():
-    printed = ("ok: 5 keypoints matched (45 %), canopy correlation 0.90 (margin 0.50 over the best alternative); "
-               "decided by the keypoints, tilt 0.00 deg, standard errors 0.011 deg / 0.2 cm -> demo_out/system_b/coregistration/result.json")
-    assert shapes_agree("ok: 6 keypoints matched (50 %), canopy correlation 0.91 (margin 0.4 over the best alternative); ...", printed)
-    assert not shapes_agree("ok: 5 keypoints matched (45 %), canopy correlation 0.90 (margin 0.47 over the best alternative), "
-                            "standard errors 0.019 deg / 0.3 cm -> demo_out/system_b/coregistration/result.json", printed)
-    assert shapes_agree("wrote 1,018,074 points to demo_out/system_b/fused.laz", "wrote 998 points to demo_out/system_b/fused.laz")
+    printed = (
+        "ok: 5 keypoints matched (45 %), canopy correlation 0.90 (margin 0.50 over the best alternative); "
+        "decided by the keypoints, tilt 0.00 deg, standard errors 0.011 deg / 0.2 cm -> demo_out/system_b/coregistration/result.json"
+    )
+    assert shapes_agree(
+        "ok: 6 keypoints matched (50 %), canopy correlation 0.91 (margin 0.4 over the best alternative); ...", printed
+    )
+    assert not shapes_agree(
+        "ok: 5 keypoints matched (45 %), canopy correlation 0.90 (margin 0.47 over the best alternative), "
+        "standard errors 0.019 deg / 0.3 cm -> demo_out/system_b/coregistration/result.json",
+        printed,
+    )
+    assert shapes_agree(
+        "wrote 1,018,074 points to demo_out/system_b/fused.laz", "wrote 998 points to demo_out/system_b/fused.laz"
+    )
     assert shape_key(printed) == "ok: # keypoints"
 
 
@@ -203,8 +226,9 @@ def _service_state(home: Path) -> Path:
 
 def _run(cmd: list[str], cwd: Path, env: dict, timeout: float) -> tuple[int, str]:
     """Run ``cmd`` in its own process group; the group is killed at the timeout."""
-    proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+    )
     try:
         out, _ = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -238,7 +262,9 @@ def test_example(block: Block, request, tmp_path):
             pytest.skip("printed output")
         _check_demo_lines(block, tmp_path)
         return
-    missing = [tool for tool in TOOLS if re.search(rf"(^|[\s(|]){tool}\s", block.text, re.M) and shutil.which(tool) is None]
+    missing = [
+        tool for tool in TOOLS if re.search(rf"(^|[\s(|]){tool}\s", block.text, re.M) and shutil.which(tool) is None
+    ]
     if missing:
         pytest.skip(f"needs {', '.join(missing)}, not installed here")
     session = request.getfixturevalue("docs_session")
@@ -256,14 +282,18 @@ def _run_example(block: Block, decision, session, tmp_path: Path) -> None:
         elif target.exists() or target.is_symlink():
             target.unlink()
     if decision.service:
-        code, out = _run([sys.executable, "-c", "from forestreg.client import connect; connect()"], work, session.env, 120)
+        code, out = _run(
+            [sys.executable, "-c", "from forestreg.client import connect; connect()"], work, session.env, 120
+        )
         assert code == 0, f"the job service did not start:\n{out[-3000:]}"
     if block.language in PYTHON:
         script = tmp_path / "example.py"
         script.write_text(block.text)
         code, out = _run([sys.executable, str(script)], work, session.env, decision.timeout)
         expected = decision.exit_codes[0]
-        assert code == expected, f"{block.id}: the Python example ended with exit status {code}, expected {expected}:\n{out[-4000:]}"
+        assert code == expected, (
+            f"{block.id}: the Python example ended with exit status {code}, expected {expected}:\n{out[-4000:]}"
+        )
     else:
         assert block.language in SHELL
         rc_file = tmp_path / "exit_codes"
@@ -272,10 +302,18 @@ def _run_example(block: Block, decision, session, tmp_path: Path) -> None:
         code, out = _run(["bash", str(script)], work, session.env, decision.timeout)
         commands = commands_of(shell_text(block))
         codes = [int(x) for x in rc_file.read_text().split()] if rc_file.exists() else []
-        expected = list(decision.exit_codes) * len(commands) if len(decision.exit_codes) == 1 else list(decision.exit_codes)
+        expected = (
+            list(decision.exit_codes) * len(commands) if len(decision.exit_codes) == 1 else list(decision.exit_codes)
+        )
         assert len(expected) == len(commands), f"{block.id}: exit={decision.exit_codes} for {len(commands)} commands"
-        assert len(codes) == len(commands), f"{block.id}: only {len(codes)} of {len(commands)} commands ended:\n{out[-4000:]}"
-        wrong = [f"`{c}` ended with exit status {got}, expected {want}" for c, got, want in zip(commands, codes, expected) if got != want]
+        assert len(codes) == len(commands), (
+            f"{block.id}: only {len(codes)} of {len(commands)} commands ended:\n{out[-4000:]}"
+        )
+        wrong = [
+            f"`{c}` ended with exit status {got}, expected {want}"
+            for c, got, want in zip(commands, codes, expected)
+            if got != want
+        ]
         assert not wrong, f"{block.id}: " + "; ".join(wrong) + f"\n{out[-4000:]}"
     missing = [rel for rel in promised if not (work / rel).exists()]
     assert not missing, f"{block.id}: the example promises {missing}, which it did not write:\n{out[-3000:]}"
@@ -305,21 +343,35 @@ def _demo_lines(demo: Path, tmp_path: Path) -> list[str]:
     problem = None
     try:
         with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(io.StringIO()):
-            print_register(_Saved(status=reg["status"], out=shown / "registration", result=reg,
-                                  figure=demo / "registration" / "registration.png"), Reporter("none", "register"))
+            print_register(
+                _Saved(
+                    status=reg["status"],
+                    out=shown / "registration",
+                    result=reg,
+                    figure=demo / "registration" / "registration.png",
+                ),
+                Reporter("none", "register"),
+            )
             line = CoregistrationResult.summary(co)
-            print_coregister(_Saved(status=co["status"], out=shown / "system_b" / "coregistration", report=None, line=lambda: line),
-                             Reporter("none", "coregister"))
+            print_coregister(
+                _Saved(status=co["status"], out=shown / "system_b" / "coregistration", report=None, line=lambda: line),
+                Reporter("none", "coregister"),
+            )
     except (AttributeError, KeyError, TypeError) as exc:
-        problem = (f"the printing code reads {str(exc.args[0]) if exc.args else repr(exc)!r}, which the demo's result.json in {demo} does not hold: either that "
-                   "folder was written by another version (run 'forestreg demo' again) or the code names it otherwise "
-                   "(teach _Record in tests/test_docs_examples.py the name)")
+        problem = (
+            f"the printing code reads {str(exc.args[0]) if exc.args else repr(exc)!r}, which the demo's result.json in {demo} does not hold: either that "
+            "folder was written by another version (run 'forestreg demo' again) or the code names it otherwise "
+            "(teach _Record in tests/test_docs_examples.py the name)"
+        )
     if problem:
         pytest.fail(problem, pytrace=False)
     lines = buf.getvalue().splitlines()
     b = demo / "system_b"
-    evaluation = evaluate_tables([("ground", b / "trees_ground" / "trees.csv"), ("fused", b / "trees_fused" / "trees.csv")],
-                                 b / "data" / "field.csv", tmp_path / "evaluation")
+    evaluation = evaluate_tables(
+        [("ground", b / "trees_ground" / "trees.csv"), ("fused", b / "trees_fused" / "trees.csv")],
+        b / "data" / "field.csv",
+        tmp_path / "evaluation",
+    )
     return lines + list(evaluation.lines)
 
 
@@ -359,12 +411,14 @@ def _check_demo_lines(block: Block, tmp_path: Path) -> None:
         if not line.strip() or line.strip() == "...":
             continue
         for word in line.replace(",", " ").split():
-            if word.startswith("demo_out/") and not (demo / word[len("demo_out/"):]).exists():
+            if word.startswith("demo_out/") and not (demo / word[len("demo_out/") :]).exists():
                 problems.append(f"{word} (named in {line!r}) is not in the demo's output")
         printed_line = by_key.get(shape_key(line))
         if printed_line is not None:
             compared += 1
             if not shapes_agree(line, printed_line):
                 problems.append(f"documented: {line.strip()}\n      printed: {printed_line}")
-    assert not problems, f"{block.id}: the demo's lines in the docs differ from what it prints:\n  " + "\n  ".join(problems)
+    assert not problems, f"{block.id}: the demo's lines in the docs differ from what it prints:\n  " + "\n  ".join(
+        problems
+    )
     assert compared, f"{block.id}: none of the lines is one the test can compare ({sorted(by_key)})"

@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from forestreg.app.evaluation import write_evaluation
 from forestreg.engine.core.errors import ParameterError
 from forestreg.engine.trees.evaluate import (
     TreeTableError,
@@ -19,7 +20,6 @@ from forestreg.engine.trees.evaluate import (
     read_tree_table,
     tree_table_from_rows,
 )
-from forestreg.app.evaluation import write_evaluation
 
 
 def _write(path, text):
@@ -68,8 +68,11 @@ def test_agreement_by_hand():
 
 
 def test_read_table_converts_cm_and_reads_missing(tmp_path):
-    p = _write(tmp_path / "field.csv", "Tree ID;X;Y;DBH_cm;height_m;crown_area_m2\n"
-               "A1;1.0;2.0;25,5;18.2;NA\nA2;3.5;4.0;31.0;;12.5\n# a comment\nA3;5;6;40;22.0;20\n")
+    p = _write(
+        tmp_path / "field.csv",
+        "Tree ID;X;Y;DBH_cm;height_m;crown_area_m2\n"
+        "A1;1.0;2.0;25,5;18.2;NA\nA2;3.5;4.0;31.0;;12.5\n# a comment\nA3;5;6;40;22.0;20\n",
+    )
     t = read_tree_table(p)
     assert list(t.tree_id) == ["A1", "A2", "A3"]
     np.testing.assert_allclose(t.values["dbh_m"], [0.255, 0.31, 0.40])
@@ -170,18 +173,30 @@ def test_large_plot_matches_every_tree_quickly():
 
 @pytest.fixture()
 def two_runs():
-    field = tree_table_from_rows(_rows(
-        ["1", "2", "3", "4"], [(0, 0), (5, 0), (0, 5), (5, 5)],
-        dbh_cm=[20.0, 30.0, 40.0, 35.0], height_m=[10.0, 20.0, 30.0, 40.0],
-    ))
-    ground = tree_table_from_rows(_rows(
-        ["g1", "g2", "g3", "g9"], [(0.2, 0), (5, 0.3), (0, 5.1), (20, 20)],
-        dbh_m=[0.22, 0.28, 0.43, 0.5], height_m=[12.0, 18.0, 33.0, 25.0],
-    ))
-    fused = tree_table_from_rows(_rows(
-        ["u1", "u2", "u3", "u4"], [(0.1, 0), (5, 0.1), (0, 5), (5.2, 5)],
-        dbh_m=[0.21, 0.30, 0.41, 0.36], height_m=[10.5, 19.5, 30.5, 39.0],
-    ))
+    field = tree_table_from_rows(
+        _rows(
+            ["1", "2", "3", "4"],
+            [(0, 0), (5, 0), (0, 5), (5, 5)],
+            dbh_cm=[20.0, 30.0, 40.0, 35.0],
+            height_m=[10.0, 20.0, 30.0, 40.0],
+        )
+    )
+    ground = tree_table_from_rows(
+        _rows(
+            ["g1", "g2", "g3", "g9"],
+            [(0.2, 0), (5, 0.3), (0, 5.1), (20, 20)],
+            dbh_m=[0.22, 0.28, 0.43, 0.5],
+            height_m=[12.0, 18.0, 33.0, 25.0],
+        )
+    )
+    fused = tree_table_from_rows(
+        _rows(
+            ["u1", "u2", "u3", "u4"],
+            [(0.1, 0), (5, 0.1), (0, 5), (5.2, 5)],
+            dbh_m=[0.21, 0.30, 0.41, 0.36],
+            height_m=[10.5, 19.5, 30.5, 39.0],
+        )
+    )
     return {"ground": evaluate(ground, field), "fused": evaluate(fused, field)}
 
 
@@ -215,7 +230,9 @@ def test_write_evaluation_files(two_runs, tmp_path):
     assert int(dbh["n_fused"]) == 4 and float(dbh["rmse_ground"]) == pytest.approx(0.0238048, abs=1e-6)
     det = list(csv.DictReader(open(paths["detection"], newline="")))
     assert [(d["run"], d["matched"], d["omitted"], d["commission"]) for d in det] == [
-        ("ground", "3", "1", "1"), ("fused", "4", "0", "0")]
+        ("ground", "3", "1", "1"),
+        ("fused", "4", "0", "0"),
+    ]
     doc = json.loads(paths["json"].read_text())
     assert doc["runs"]["fused"]["parameters"]["height_m"]["n"] == 4
     assert doc["runs"]["ground"]["omitted_field_trees"] == ["4"]

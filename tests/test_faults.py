@@ -28,7 +28,7 @@ import pytest
 from forestreg.cli import build_parser, main
 from forestreg.engine.core.errors import TransformError
 from forestreg.engine.core.transform import check_rigid, read_matrix, rigid_errors
-from forestreg.engine.io import read_scan, write_points, write_scan
+from forestreg.engine.io import read_scan, write_scan
 
 POSITIONS = ((0.0, 0.0), (6.0, 2.0), (-5.0, 4.0))
 
@@ -118,8 +118,9 @@ def _cli(*args: str, stderr=subprocess.PIPE) -> subprocess.Popen:
     env["PYTHONPATH"] = os.pathsep.join([p for p in sys.path if p] + [env.get("PYTHONPATH", "")])
     # Ctrl-C as from a terminal, even when the tests themselves run with SIGINT ignored (nohup, "&")
     env["FORESTREG_INTERRUPTIBLE"] = "1"
-    return subprocess.Popen([sys.executable, "-m", "forestreg.cli", *args], stdout=subprocess.DEVNULL, stderr=stderr,
-                            text=True, env=env)
+    return subprocess.Popen(
+        [sys.executable, "-m", "forestreg.cli", *args], stdout=subprocess.DEVNULL, stderr=stderr, text=True, env=env
+    )
 
 
 def _wait_for_progress(proc: subprocess.Popen, min_fraction: float, timeout_s: float = 300.0) -> list[dict]:
@@ -239,7 +240,9 @@ def test_project_link_and_damaged_project_files_exit_2(tiny, tmp_path, capsys):
     # matrices in project files: a 2x2, a scale 2 and a reflection are refused with one line
     data = json.loads(project.read_text())
     for matrix in ([[1, 0], [0, 1]], np.diag([2.0, 2, 2, 1]).tolist(), np.diag([1.0, 1, -1, 1]).tolist()):
-        data["links"] = [{"moving": "scan_02.laz", "reference": "scan_01.laz", "result": {"status": "ok", "matrix": matrix}}]
+        data["links"] = [
+            {"moving": "scan_02.laz", "reference": "scan_01.laz", "result": {"status": "ok", "matrix": matrix}}
+        ]
         damaged = tmp_path / "damaged.json"
         damaged.write_text(json.dumps(data))
         text = damaged.read_bytes()
@@ -288,13 +291,16 @@ def test_nan_rows_are_reported(tmp_path, caplog):
 # ----------------------------------------------------------------------------- matrices: never an "ok" that is not
 
 
-@pytest.mark.parametrize("matrix, what", [
-    (np.diag([1.0, 1.0, -1.0, 1.0]), "reflection"),
-    (np.diag([2.0, 2.0, 2.0, 1.0]), "rigid"),
-    (np.full((4, 4), np.nan), "NaN"),
-    (np.eye(3), "4x4"),
-    (np.array([[1, 0.2, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=float), "rigid"),
-])
+@pytest.mark.parametrize(
+    "matrix, what",
+    [
+        (np.diag([1.0, 1.0, -1.0, 1.0]), "reflection"),
+        (np.diag([2.0, 2.0, 2.0, 1.0]), "rigid"),
+        (np.full((4, 4), np.nan), "NaN"),
+        (np.eye(3), "4x4"),
+        (np.array([[1, 0.2, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=float), "rigid"),
+    ],
+)
 def test_one_checker_refuses_every_non_rigid_matrix(matrix, what):
     with pytest.raises(TransformError, match=what):
         check_rigid(matrix)
@@ -343,7 +349,10 @@ def test_units_mm_gives_the_matrix_transform_and_vops_in_millimetres(tiny, tmp_p
     # the matched VOPs of the moving scan land on their reference VOPs in millimetres
     import csv
 
-    ref = {int(r["id"]): np.array([float(r["x"]), float(r["y"])]) for r in csv.DictReader((out / "reference_vops.csv").open())}
+    ref = {
+        int(r["id"]): np.array([float(r["x"]), float(r["y"])])
+        for r in csv.DictReader((out / "reference_vops.csv").open())
+    }
     rows = [r for r in csv.DictReader((out / "moving_vops.csv").open()) if r["matched_with"]]
     assert len(rows) == result["matched"] >= 4
     for r in rows:
@@ -359,7 +368,9 @@ def test_a_failed_rerun_replaces_the_whole_folder(fast_register, pair_result, ti
     out = tmp_path / "o"
     assert main(["register", str(paths[0]), str(paths[1]), "--out", str(out), "-q"]) == 0
     assert (out / "transform.txt").exists()
-    fast_register["result"] = dataclasses.replace(pair_result, status="failed", reason="too few VOPs (test)", matrix=None)
+    fast_register["result"] = dataclasses.replace(
+        pair_result, status="failed", reason="too few VOPs (test)", matrix=None
+    )
     assert main(["register", str(paths[0]), str(paths[1]), "--out", str(out), "-q"]) == 1
     result = json.loads((out / "result.json").read_text())
     assert result["status"] == "failed"
@@ -368,7 +379,9 @@ def test_a_failed_rerun_replaces_the_whole_folder(fast_register, pair_result, ti
 
 
 @pytest.mark.parametrize("fault", ["interrupt", "disk full", "read-only"])
-def test_a_run_that_breaks_while_writing_leaves_the_previous_result(fault, fast_register, tiny, tmp_path, capsys, monkeypatch):
+def test_a_run_that_breaks_while_writing_leaves_the_previous_result(
+    fault, fast_register, tiny, tmp_path, capsys, monkeypatch
+):
     import forestreg.engine.core.atomic as atomic
     import forestreg.engine.io.tables as tables
 
@@ -384,7 +397,10 @@ def test_a_run_that_breaks_while_writing_leaves_the_previous_result(fault, fast_
         if calls["n"] == 2:  # after the first CSV
             if fault == "interrupt":
                 raise KeyboardInterrupt
-            raise OSError(errno.ENOSPC if fault == "disk full" else errno.EROFS, os.strerror(errno.ENOSPC if fault == "disk full" else errno.EROFS))
+            raise OSError(
+                errno.ENOSPC if fault == "disk full" else errno.EROFS,
+                os.strerror(errno.ENOSPC if fault == "disk full" else errno.EROFS),
+            )
         return real_write(path, text)
 
     monkeypatch.setattr(tables, "write_text_atomic", breaking_write)
@@ -439,7 +455,12 @@ def test_jsonl_progress_and_global_flags_after_the_command(fast_register, tiny, 
     assert code == 0
     err = capsys.readouterr().err
     events = [json.loads(ln) for ln in err.splitlines() if ln.startswith("{")]
-    assert events[0] == {"event": "progress", "step": "matching-vops", "fraction": 0.5, "message": "matching VOPs (coarse)"}
+    assert events[0] == {
+        "event": "progress",
+        "step": "matching-vops",
+        "fraction": 0.5,
+        "message": "matching VOPs (coarse)",
+    }
     assert events[-1]["event"] == "end" and events[-1]["exit_code"] == 0
     assert events[-1]["result"] == str(out.resolve() / "result.json") and events[-1]["message"].startswith("ok:")
     assert err.splitlines()[-1].startswith("{"), "the end event is the last line"
@@ -505,7 +526,9 @@ def test_evaluate_with_no_shared_ids_fails_honestly(tree_tables, capsys):
     assert main(["evaluate", str(est), str(field), "--out", str(folder / "e2")]) == 0
 
 
-@pytest.mark.parametrize("fault, hint", [("heights in feet", "feet"), ("positions in mm", "millimetres"), ("dbh in mm", "millimetres")])
+@pytest.mark.parametrize(
+    "fault, hint", [("heights in feet", "feet"), ("positions in mm", "millimetres"), ("dbh in mm", "millimetres")]
+)
 def test_evaluate_refuses_field_values_in_another_unit(fault, hint, tree_tables, capsys):
     folder, xy, dbh, h, est = tree_tables
     rows = [(f"F{k}", *xy[k], dbh[k], h[k]) for k in range(30)]
@@ -591,7 +614,12 @@ def test_malloc_is_tuned_for_a_command_unless_the_user_set_it(monkeypatch):
     for name in [n for n in os.environ if n.startswith("MALLOC_")] + ["GLIBC_TUNABLES"]:
         monkeypatch.delenv(name, raising=False)
     cli._tune_malloc()
-    assert dict(calls) == {-3: cli.MALLOC_MMAP_THRESHOLD, -1: cli.MALLOC_TRIM_THRESHOLD, -2: cli.MALLOC_TOP_PAD, -8: cli.MALLOC_ARENA_MAX}
+    assert dict(calls) == {
+        -3: cli.MALLOC_MMAP_THRESHOLD,
+        -1: cli.MALLOC_TRIM_THRESHOLD,
+        -2: cli.MALLOC_TOP_PAD,
+        -8: cli.MALLOC_ARENA_MAX,
+    }
     calls.clear()
     monkeypatch.setenv("MALLOC_ARENA_MAX", "4")  # the user's own setting wins: nothing changed
     cli._tune_malloc()
@@ -619,7 +647,13 @@ def test_the_command_starts_one_blas_thread_unless_the_user_asks_for_more():
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["1"]
     if (os.cpu_count() or 1) > 1:  # the user's own setting wins
-        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=dict(env, OPENBLAS_NUM_THREADS="2"))
+        done = subprocess.run(
+            [sys.executable, "-c", code],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env=dict(env, OPENBLAS_NUM_THREADS="2"),
+        )
         assert done.returncode == 0, done.stderr
         assert done.stdout.split() == ["2"]
 
@@ -723,7 +757,9 @@ def test_sigkill_mid_plot_then_resume_keeps_the_finished_links(tiny, tmp_path):
     assert resumed.returncode in (0, 1), err
     data = json.loads(project.read_text())
     again = next(link for link in data["links"] if link["moving"] == first["moving"] and not link.get("extra"))
-    assert json.dumps(again["result"], sort_keys=True) == json.dumps(first["result"], sort_keys=True), "a finished link was run again"
+    assert json.dumps(again["result"], sort_keys=True) == json.dumps(first["result"], sort_keys=True), (
+        "a finished link was run again"
+    )
     assert all(link.get("result") for link in data["links"])
     assert (out / "poses.json").exists()
 
@@ -765,8 +801,10 @@ def test_an_output_folder_of_another_command_is_not_replaced(tiny, tmp_path, cap
     _, paths, _ = tiny
     plot = tmp_path / "plot"
     before = _earlier_output(plot, "plot", "project.json", "{}\n")
-    for argv in (["register", str(paths[0]), str(paths[1]), "--out", str(plot)],
-                 ["simulate", "planted_conifer", "--out", str(plot)]):
+    for argv in (
+        ["register", str(paths[0]), str(paths[1]), "--out", str(plot)],
+        ["simulate", "planted_conifer", "--out", str(plot)],
+    ):
         assert main(argv) == 2, argv
         assert "forestreg plot" in _assert_one_line(capsys.readouterr().err)
         assert _tree(plot) == before
@@ -803,8 +841,16 @@ def test_tables_and_matrices_are_written_in_the_files_unit(tmp_path):
     write_keypoints_csv(tmp_path / "k.csv", kp, shift, np.array([-1]), unit_scale=0.001)
     row = (tmp_path / "k.csv").read_text().splitlines()[1].split(",")
     assert [float(v) for v in row[1:5]] == [101000.0, 202000.0, 13000.0, 30000.0]
-    write_vops_csv(tmp_path / "v.csv", np.array([[1.0, 2.0]]), np.array([3.0]), shift, np.array([0.2]), np.array([9]), [-1],
-                   unit_scale=0.01)
+    write_vops_csv(
+        tmp_path / "v.csv",
+        np.array([[1.0, 2.0]]),
+        np.array([3.0]),
+        shift,
+        np.array([0.2]),
+        np.array([9]),
+        [-1],
+        unit_scale=0.01,
+    )
     row = (tmp_path / "v.csv").read_text().splitlines()[1].split(",")
     assert [float(v) for v in row[1:4]] == [10100.0, 20200.0, 1300.0] and row[4] == "0.200"
 

@@ -32,7 +32,8 @@ CLI = [sys.executable, "-m", "forestreg.cli"]
 
 
 # the user's-files and one-line checks are the fault suite's own
-from test_faults import _assert_one_line, _error_lines, _hash, _tree  # noqa: E402
+from test_faults import _assert_one_line, _hash, _tree  # noqa: E402
+
 # and the service's life cycle checks the service suite's
 from test_service import _signal_and_wait  # noqa: E402
 
@@ -93,8 +94,12 @@ def _pid(state: Path) -> int:
 
 def _post(client, path: str, body: bytes, timeout: float = 30.0) -> tuple[int, dict, float]:
     """(status, JSON answer, seconds) of a raw POST with the service's token."""
-    req = urllib.request.Request(client.url + path, data=body, method="POST", headers={
-        "Authorization": f"Bearer {client.token}", "Content-Type": "application/json"})
+    req = urllib.request.Request(
+        client.url + path,
+        data=body,
+        method="POST",
+        headers={"Authorization": f"Bearer {client.token}", "Content-Type": "application/json"},
+    )
     t0 = time.monotonic()
     try:
         with urllib.request.urlopen(req, timeout=timeout) as resp:
@@ -138,7 +143,10 @@ def test_service_refuses_a_huge_body_and_too_many_arguments_within_a_second_and_
         status, answer, seconds = _post(client, "/v1/jobs", body)
         assert status == 413 and seconds < 1.0, (status, seconds, answer)
         assert "body" in _detail(answer) and "\n" not in _detail(answer)
-        body = json.dumps({"args": ["register", "a.laz", "b.laz", "--out", "o"] + ["-q"] * 200_000, "cwd": str(tmp_path)}, separators=(",", ":")).encode()
+        body = json.dumps(
+            {"args": ["register", "a.laz", "b.laz", "--out", "o"] + ["-q"] * 200_000, "cwd": str(tmp_path)},
+            separators=(",", ":"),
+        ).encode()
         assert len(body) < 1_048_576
         status, answer, seconds = _post(client, "/v1/jobs", body)
         assert status == 422 and seconds < 1.0, (status, seconds, answer)
@@ -160,7 +168,9 @@ def test_sigterm_ends_the_service_while_a_request_is_still_being_served(tmp_path
     deadline = time.monotonic() + 120
     while client.job(job)["status"] != "running" and time.monotonic() < deadline:
         time.sleep(0.1)
-    req = urllib.request.Request(client.url + f"/v1/jobs/{job}/events", headers={"Authorization": f"Bearer {client.token}"})
+    req = urllib.request.Request(
+        client.url + f"/v1/jobs/{job}/events", headers={"Authorization": f"Bearer {client.token}"}
+    )
     stream = urllib.request.urlopen(req, timeout=60)
     stream.readline()
     try:
@@ -178,7 +188,11 @@ def test_sigterm_ends_the_service_while_a_request_is_still_being_served(tmp_path
 @pytest.mark.parametrize("where", ["args", "cwd"])
 def test_a_nul_byte_in_a_job_is_refused_at_submit(service, tmp_path, where):
     """Row 3: a NUL byte in an argument or the working folder: 422 at submit, no job queued."""
-    args = ["register", "a.laz", "b\x00.laz", "--out", "o"] if where == "args" else ["register", "a.laz", "b.laz", "--out", "o"]
+    args = (
+        ["register", "a.laz", "b\x00.laz", "--out", "o"]
+        if where == "args"
+        else ["register", "a.laz", "b.laz", "--out", "o"]
+    )
     cwd = str(tmp_path) if where == "args" else str(tmp_path) + "\x00x"
     before = len(service.jobs())
     status, answer, seconds = _post(service, "/v1/jobs", json.dumps({"args": args, "cwd": cwd}).encode())
@@ -195,14 +209,27 @@ def test_relative_paths_need_the_clients_working_folder(service, tmp_path):
         status, answer, _ = _post(service, "/v1/jobs", json.dumps(body).encode())
         assert status == 422, (body, status, answer)
         assert "cwd" in _detail(answer) and ("absolute" in _detail(answer) or "relative" in _detail(answer))
-    absolute = ["simulate", "open_field", "--out", str(tmp_path / "sim"), "--positions", "0,0", "--size", "20", "--step", "0.8"]
+    absolute = [
+        "simulate",
+        "open_field",
+        "--out",
+        str(tmp_path / "sim"),
+        "--positions",
+        "0,0",
+        "--size",
+        "20",
+        "--step",
+        "0.8",
+    ]
     status, answer, _ = _post(service, "/v1/jobs", json.dumps({"args": absolute}).encode())
     assert status == 201, (status, answer)
 
 
 def test_cancelling_a_finished_job_is_409_with_its_status(service, tmp_path):
     """Row 14: DELETE on a finished job: 409 naming its status; the job is unchanged."""
-    job = service.submit(["simulate", "open_field", "--out", "sim", "--positions", "0,0", "--size", "20", "--step", "0.8"], cwd=tmp_path)
+    job = service.submit(
+        ["simulate", "open_field", "--out", "sim", "--positions", "0,0", "--size", "20", "--step", "0.8"], cwd=tmp_path
+    )
     deadline = time.monotonic() + 180
     while service.job(job)["status"] not in ("done", "error") and time.monotonic() < deadline:
         time.sleep(0.2)
@@ -277,7 +304,12 @@ def test_values_of_the_right_type_still_load(tmp_path):
     """The checks refuse no honest file: integers for floats, whole floats for counts, defaults."""
     from forestreg.engine.params import ProductParams, load_params, params_toml
 
-    p = load_params(_params_file(tmp_path, "[registration]\nmax_range_m = 25\nfollow_terrain = false\n\n[registration.icp]\niterations = 40.0\n"))
+    p = load_params(
+        _params_file(
+            tmp_path,
+            "[registration]\nmax_range_m = 25\nfollow_terrain = false\n\n[registration.icp]\niterations = 40.0\n",
+        )
+    )
     assert p.registration.max_range_m == 25 and p.registration.follow_terrain is False
     assert p.registration.icp.iterations == 40 and isinstance(p.registration.icp.iterations, int)
     assert load_params(_params_file(tmp_path, params_toml())) == ProductParams()
@@ -342,8 +374,8 @@ def test_a_malformed_tree_edit_is_refused_when_read(case, tmp_path, inventory):
 def test_edits_replayed_on_another_cloud_of_the_same_size_are_refused(tmp_path, inventory):
     """Row 8: edits.json records the content hash of the cloud they were made on; replaying them
     on another cloud with the same number of points is refused (the same cloud replays)."""
-    from forestreg.engine.core.errors import ParameterError
     from forestreg.app.trees import save_edited
+    from forestreg.engine.core.errors import ParameterError
     from forestreg.engine.trees import edit as E
 
     points, inv, params = inventory
@@ -409,7 +441,11 @@ def test_no_thread_of_a_plot_run_outlives_it(tiny, tmp_path):
     scans = ScanCache(project)
     scans._small = True  # small scans: the next link's scan is prepared ahead in a thread
     register_project(project, scans=scans)
-    left = [t.name for t in threading.enumerate() if t not in before and t.name in ("forestreg-prepare-ahead", "forestreg-pair")]
+    left = [
+        t.name
+        for t in threading.enumerate()
+        if t not in before and t.name in ("forestreg-prepare-ahead", "forestreg-pair")
+    ]
     assert left == []
 
 
@@ -445,7 +481,7 @@ def test_batch_takes_only_point_clouds_as_scans_and_skips_its_own_output(plots_d
         p.rename(p.with_name("a_field.csv"))
     tasks = discover_plots(plots_dir, tmp_path / "out")
     for task in tasks:
-        names = [Path(a).name for a in task.args[1:task.args.index("--out")]]
+        names = [Path(a).name for a in task.args[1 : task.args.index("--out")]]
         assert "a_field.csv" not in names and "notes.txt" not in names, names
     before = _tree(plots_dir)
     out = plots_dir / "batch_out"
@@ -518,8 +554,10 @@ def test_project_run_without_out_never_replaces_the_users_files(tiny, tmp_path):
 
 
 def _float32_ply(path: Path, points: np.ndarray) -> Path:
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
-              "property float x\nproperty float y\nproperty float z\nend_header\n").encode()
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+        "property float x\nproperty float y\nproperty float z\nend_header\n"
+    ).encode()
     path.write_bytes(header + np.ascontiguousarray(points, dtype="<f4").tobytes())
     return path
 
@@ -540,7 +578,9 @@ def test_utm_sized_float32_plys_are_warned_about_before_the_work(tiny, tmp_path)
     warned = [k for k, line in enumerate(lines) if "32-bit floats" in line]
     assert len(warned) == 2, run.stderr
     assert all("only 0.5 apart (0.5 m in a file in metres)" in lines[k] for k in warned), run.stderr
-    first_step = next((k for k, line in enumerate(lines) if line.startswith("{") and '"registering' in line.lower()), len(lines))
+    first_step = next(
+        (k for k, line in enumerate(lines) if line.startswith("{") and '"registering' in line.lower()), len(lines)
+    )
     assert max(warned) < first_step or first_step == len(lines)
     assert {p: _hash(p) for p in plys} == before
 
@@ -551,7 +591,9 @@ def test_text_ply_with_float_properties_keeps_its_digits(tmp_path):
 
     path = tmp_path / "ascii.ply"
     rows = "\n".join(f"{5212345.125 + k:.3f} {512345.5:.3f} {100.25 + k:.3f}" for k in range(200))
-    path.write_text(f"ply\nformat ascii 1.0\nelement vertex 200\nproperty float x\nproperty float y\nproperty float z\nend_header\n{rows}\n")
+    path.write_text(
+        f"ply\nformat ascii 1.0\nelement vertex 200\nproperty float x\nproperty float y\nproperty float z\nend_header\n{rows}\n"
+    )
     scan = read_scan(path)
     assert np.allclose(scan.file_points[:2, 0], [5212345.125, 5212346.125], atol=1e-6)
     assert "float32_step" not in scan.meta
@@ -590,8 +632,14 @@ def test_ctrl_c_during_a_batch_keeps_the_finished_plots_and_says_so(plots_dir, t
         shutil.copytree(plots_dir / "p2", plots_dir / name)
     before = _tree(plots_dir)
     out = tmp_path / "out"
-    proc = subprocess.Popen([*CLI, "batch", str(plots_dir), "--out", str(out), "--workers", "2", "--progress", "jsonl"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), start_new_session=True)
+    proc = subprocess.Popen(
+        [*CLI, "batch", str(plots_dir), "--out", str(out), "--workers", "2", "--progress", "jsonl"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+        start_new_session=True,
+    )
     try:
         deadline = time.monotonic() + 600
         while time.monotonic() < deadline and not list(out.glob("*/batch.json")) and proc.poll() is None:
@@ -681,8 +729,14 @@ def test_a_scan_with_a_random_header_is_refused_without_reading_gigabytes(tiny, 
     def cap():
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
-    run = subprocess.run([*CLI, "plot", str(garbage), str(paths[0]), str(paths[1]), "--out", str(tmp_path / "out")],
-                         capture_output=True, text=True, env=_env(), timeout=600, preexec_fn=cap)
+    run = subprocess.run(
+        [*CLI, "plot", str(garbage), str(paths[0]), str(paths[1]), "--out", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=600,
+        preexec_fn=cap,
+    )
     assert run.returncode == 1, run.stderr
     assert "Traceback" not in run.stderr and "memory" not in run.stderr
     poses = json.loads((tmp_path / "out" / "poses.json").read_text())
@@ -717,7 +771,7 @@ def test_a_centre_scan_with_a_good_header_but_damaged_points_is_never_ok(tiny, t
     _, paths = tiny
     data = bytearray(paths[0].read_bytes())
     start = len(data) // 3
-    data[start:start + 4096] = bytes(4096)  # zeros over the compressed points
+    data[start : start + 4096] = bytes(4096)  # zeros over the compressed points
     centre = tmp_path / "aaa_damaged.laz"
     centre.write_bytes(bytes(data))
     inputs = [centre, paths[1]]

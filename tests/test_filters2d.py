@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from forestreg.engine.geometry.filters2d import gaussian_smooth, median3_nearest, minimum_filter_nearest, nearest_cell_indices
+from forestreg.engine.geometry.filters2d import (
+    gaussian_smooth,
+    median3_nearest,
+    minimum_filter_nearest,
+    nearest_cell_indices,
+)
 
 
 def _grids(seed: int, count: int = 120):
@@ -22,7 +27,9 @@ def test_minimum_filter_is_scipys_with_edges_repeated():
         if t % 3 == 0:
             a[rng.random(a.shape) < 0.4] = np.inf  # the ground grid's unmeasured cells
         for size in (1, 3, 5, 7, 13):
-            assert np.array_equal(minimum_filter_nearest(a, size), ndimage.minimum_filter(a, size=size, mode="nearest")), (t, size)
+            assert np.array_equal(
+                minimum_filter_nearest(a, size), ndimage.minimum_filter(a, size=size, mode="nearest")
+            ), (t, size)
 
 
 def test_minimum_filter_needs_an_odd_size():
@@ -67,4 +74,6 @@ def test_gaussian_smoothing_is_scipys_with_zeros_beyond_the_grid():
         nx, ny = (int(v) for v in rng.integers(1, 60, 2))
         counts = rng.poisson(float(rng.choice([0.1, 2.0, 40.0])), (nx, ny)).astype(float)
         sigma = float(rng.choice([1.0, 1.3, 2.5, 6.0, 7.7]))
-        assert np.array_equal(gaussian_smooth(counts, sigma), ndimage.gaussian_filter(counts, sigma=sigma, mode="constant")), (t, sigma)
+        assert np.array_equal(
+            gaussian_smooth(counts, sigma), ndimage.gaussian_filter(counts, sigma=sigma, mode="constant")
+        ), (t, sigma)

@@ -73,8 +73,10 @@ def planted():
         u_crown.append(_revolution(cx, cy, 14.03, 17.0, lambda z: 1.2 - 0.4 * (z - 14.0), 0.06, rng))
     g_stem, g_crown, u_crown = np.vstack(g_stem), np.vstack(g_crown), np.vstack(u_crown)
     ground_true = np.vstack([g_stem, g_crown])
-    dup_src = np.r_[rng.choice(len(g_stem), len(g_stem) // 20, replace=False),
-                    len(g_stem) + rng.choice(len(g_crown), len(g_crown) // 5, replace=False)]
+    dup_src = np.r_[
+        rng.choice(len(g_stem), len(g_stem) // 20, replace=False),
+        len(g_stem) + rng.choice(len(g_crown), len(g_crown) // 5, replace=False),
+    ]
     d = rng.normal(size=(len(dup_src), 3))
     d /= np.linalg.norm(d, axis=1)[:, None]
     dups = ground_true[dup_src] + d * rng.uniform(0.0, 0.4 * EPS, len(dup_src))[:, None]
@@ -102,8 +104,10 @@ def test_fuse_removes_planted_duplicates_and_noise(planted):
     dup_removed = 1 - ku[uk == 1].mean()
     noise_removed = 1 - np.r_[kg[gk == 2], ku[uk == 2]].mean()
     genuine_kept = np.r_[kg[gk == 0], ku[uk == 0]].mean()
-    print(f"\nplanted: {len(g):,} ground + {len(u):,} UAV points; duplicates removed {dup_removed:.2%}, "
-          f"noise removed {noise_removed:.2%}, genuine kept {genuine_kept:.3%}; counts {res.counts}")
+    print(
+        f"\nplanted: {len(g):,} ground + {len(u):,} UAV points; duplicates removed {dup_removed:.2%}, "
+        f"noise removed {noise_removed:.2%}, genuine kept {genuine_kept:.3%}; counts {res.counts}"
+    )
     assert dup_removed >= 0.95
     assert noise_removed >= 0.90
     assert genuine_kept >= 0.99
@@ -264,8 +268,10 @@ def test_local_method_is_density_free_where_global_is_not():
     truth = np.r_[np.zeros(len(dense) + len(sparse), bool), np.ones(100, bool)]
     _, local = statistical_noise(pts, FusionParams(noise_method="local"))
     _, glob = statistical_noise(pts, FusionParams(noise_method="global"))
-    print(f"\nlocal: noise {local[truth].mean():.1%}, genuine {local[~truth].mean():.2%}; "
-          f"global: noise {glob[truth].mean():.1%}, genuine {glob[~truth].mean():.2%}")
+    print(
+        f"\nlocal: noise {local[truth].mean():.1%}, genuine {local[~truth].mean():.2%}; "
+        f"global: noise {glob[truth].mean():.1%}, genuine {glob[~truth].mean():.2%}"
+    )
     assert local[truth].mean() >= 0.95 and local[~truth].mean() <= 0.01
     # the global interval confuses the sparse plane with noise (or misses the noise)
     assert glob[truth].mean() < 0.5 or glob[~truth].mean() > 0.05
@@ -291,11 +297,13 @@ def test_simulated_forest_keeps_true_surface(sim_plot):
     true_kept = np.r_[kg, ku[: len(uav)]].mean()
     d, _ = cKDTree(res.points).query(true, distance_upper_bound=0.1)
     covered = (d <= res.params.redundancy_distance_m * (1 + 1e-9)).mean()
-    noise_removed = 1 - ku[len(uav):].mean()
-    true_as_noise = (res.counts["total"]["noise"] - (len(noise) - ku[len(uav):].sum())) / len(true)
-    print(f"\nforest: {len(true):,} true points + {len(noise)} noise; true kept {true_kept:.2%}, "
-          f"true covered within epsilon {covered:.2%}, true removed as noise {true_as_noise:.2%}, "
-          f"noise removed {noise_removed:.1%}; {res.counts}; {res.seconds}")
+    noise_removed = 1 - ku[len(uav) :].mean()
+    true_as_noise = (res.counts["total"]["noise"] - (len(noise) - ku[len(uav) :].sum())) / len(true)
+    print(
+        f"\nforest: {len(true):,} true points + {len(noise)} noise; true kept {true_kept:.2%}, "
+        f"true covered within epsilon {covered:.2%}, true removed as noise {true_as_noise:.2%}, "
+        f"noise removed {noise_removed:.1%}; {res.counts}; {res.seconds}"
+    )
     # a true point is kept, or dropped as a duplicate of a kept point within epsilon
     assert covered >= 0.98
     assert true_as_noise <= 0.015
@@ -399,7 +407,9 @@ def test_streamed_steps_equal_whole_cloud_steps(planted, monkeypatch):
     streamed_order = fusion._spatial_order(pts, 0.5)
     np.testing.assert_array_equal(streamed_order, np.lexsort((key[:, 2], key[:, 1], key[:, 0])))
     np.testing.assert_array_equal(streamed_order, whole[0])
-    np.testing.assert_array_equal(fusion._spatial_order(pts, 0.5, rows=rows), np.lexsort((key_rows[:, 2], key_rows[:, 1], key_rows[:, 0])))
+    np.testing.assert_array_equal(
+        fusion._spatial_order(pts, 0.5, rows=rows), np.lexsort((key_rows[:, 2], key_rows[:, 1], key_rows[:, 0]))
+    )
     np.testing.assert_array_equal(fusion._spatial_order(pts, 0.5, rows=rows), whole[1])
     top = fusion.canopy_top(z_ties, 0.5, 3)
     assert top.sum() > 100

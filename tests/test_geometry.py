@@ -138,7 +138,9 @@ def test_radix_sort_is_numpys_stable_argsort(key_count):
         np.testing.assert_array_equal(sorted_keys, keys[expected])
 
 
-def _ring(r: float, n: int, noise: float, rng: np.random.Generator, centre=(500000.0, 6000000.0), arc_deg: float = 360.0) -> np.ndarray:
+def _ring(
+    r: float, n: int, noise: float, rng: np.random.Generator, centre=(500000.0, 6000000.0), arc_deg: float = 360.0
+) -> np.ndarray:
     a = rng.uniform(0.0, np.radians(arc_deg), n)
     rr = r + rng.normal(0.0, noise, n)
     return np.column_stack([centre[0] + rr * np.cos(a), centre[1] + rr * np.sin(a)])
@@ -147,13 +149,21 @@ def _ring(r: float, n: int, noise: float, rng: np.random.Generator, centre=(5000
 def test_circle_fits_recover_a_known_circle_far_from_the_origin():
     rng = np.random.default_rng(1)
     exact = _ring(0.2, 50, 0.0, rng)
-    for circle in (algebraic_circle(exact), fit_circle(exact), fit_circle(exact, loss="soft_l1", scale_m=0.005), fit_circle(exact, loss="linear")):
+    for circle in (
+        algebraic_circle(exact),
+        fit_circle(exact),
+        fit_circle(exact, loss="soft_l1", scale_m=0.005),
+        fit_circle(exact, loss="linear"),
+    ):
         np.testing.assert_allclose(circle.centre, (500000.0, 6000000.0), atol=1e-6)
         assert abs(circle.radius_m - 0.2) < 1e-6 and circle.rms_residual_m < 1e-6 and circle.n_points == 50
     # a half arc with 3 mm noise: centre and radius within a few millimetres
     half = _ring(0.3, 200, 0.003, rng, arc_deg=180.0)
     circle = fit_circle(half)
-    assert abs(circle.radius_m - 0.3) < 0.005 and np.hypot(circle.centre[0] - 500000.0, circle.centre[1] - 6000000.0) < 0.005
+    assert (
+        abs(circle.radius_m - 0.3) < 0.005
+        and np.hypot(circle.centre[0] - 500000.0, circle.centre[1] - 6000000.0) < 0.005
+    )
     assert 0.002 < circle.rms_residual_m < 0.004
     assert algebraic_circle(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]])) is None  # collinear
     assert algebraic_circle(np.zeros((2, 2))) is None

@@ -84,7 +84,9 @@ def test_no_growth_from_a_stem_seen_from_one_side_then_the_other():
     a, b, phi, bark = _stem(rng)
     before = _section(rng, a, b, phi, [(0.0, math.radians(150))], bark)
     after = _section(rng, a, b, phi, [(math.radians(180), math.radians(330))], bark, grow=0.01)
-    fit = sector_growth(stem_sections(before, after, np.zeros(2), np.array([0.0, 0.0, 1.0]), a, PARAMS), ShiftPrior(), PARAMS)
+    fit = sector_growth(
+        stem_sections(before, after, np.zeros(2), np.array([0.0, 0.0, 1.0]), a, PARAMS), ShiftPrior(), PARAMS
+    )
     assert not fit.stated and math.isnan(fit.dbh_change_m)
     assert "in common" in fit.reason and "at least 60" in fit.reason
 
@@ -101,8 +103,13 @@ def test_shift_prior_follows_the_registration_field():
         a, b, phi, bark = _stem(rng)
         before = _section(rng, a, b, phi, [(0.0, 2 * math.pi)], bark)
         after = _section(rng, a, b, phi, [(0.0, 2 * math.pi)], bark, shift=shift, grow=0.01)
-        fits.append(sector_growth(stem_sections(before, after, np.zeros(2), np.array([0.0, 0.0, 1.0]), a, PARAMS),
-                                  ShiftPrior((0.0, 0.0), PARAMS.max_shift_m), PARAMS))
+        fits.append(
+            sector_growth(
+                stem_sections(before, after, np.zeros(2), np.array([0.0, 0.0, 1.0]), a, PARAMS),
+                ShiftPrior((0.0, 0.0), PARAMS.max_shift_m),
+                PARAMS,
+            )
+        )
     priors = shift_prior(positions, fits, 0.01, PARAMS)
     for p, prior in zip(positions, priors):
         truth = turn * np.array([-p[1], p[0]]) + [0.002, -0.001]
@@ -112,8 +119,15 @@ def test_shift_prior_follows_the_registration_field():
 
 def _one_tree_scene(tree: Tree) -> ForestScene:
     extent = (-12.0, 12.0, -12.0, 12.0)
-    terrain = make_terrain(extent, slope_deg=0.0, slope_azimuth_deg=0.0, roughness_m=0.0, roughness_length_m=5.0, cell_m=0.5,
-                           rng=np.random.default_rng(0))
+    terrain = make_terrain(
+        extent,
+        slope_deg=0.0,
+        slope_azimuth_deg=0.0,
+        roughness_m=0.0,
+        roughness_length_m=5.0,
+        cell_m=0.5,
+        rng=np.random.default_rng(0),
+    )
     return ForestScene(preset="test", seed=0, extent=extent, terrain=terrain, trees=(tree,))
 
 
@@ -123,13 +137,33 @@ def test_dbh_sigma_covers_oval_stems_seen_from_one_side():
     rng = np.random.default_rng(11)
     errors, z = [], []
     for k in range(24):
-        tree = Tree(1, 0.0, 0.0, 0.0, dbh_m=float(rng.uniform(0.15, 0.5)), height_m=12.0, crown_base_m=11.0, crown_radius_m=0.5,
-                    n_branches=0, leaf_area_density=0.0, ovality=float(rng.uniform(0.0, 0.10)),
-                    ovality_azimuth_deg=float(rng.uniform(0.0, 180.0)), bark_roughness_m=float(rng.uniform(0.001, 0.003)), bark_seed=k)
+        tree = Tree(
+            1,
+            0.0,
+            0.0,
+            0.0,
+            dbh_m=float(rng.uniform(0.15, 0.5)),
+            height_m=12.0,
+            crown_base_m=11.0,
+            crown_radius_m=0.5,
+            n_branches=0,
+            leaf_area_density=0.0,
+            ovality=float(rng.uniform(0.0, 0.10)),
+            ovality_azimuth_deg=float(rng.uniform(0.0, 180.0)),
+            bark_roughness_m=float(rng.uniform(0.001, 0.003)),
+            bark_seed=k,
+        )
         dist = rng.uniform(4.0, 9.0)
         heading = rng.uniform(0.0, 2 * math.pi)
-        setup = ScannerSetup(dist * math.cos(heading), dist * math.sin(heading), angular_step_deg=0.1, elevation_min_deg=-8.0,
-                             elevation_max_deg=2.0, range_noise_m=0.002, name="one side")
+        setup = ScannerSetup(
+            dist * math.cos(heading),
+            dist * math.sin(heading),
+            angular_step_deg=0.1,
+            elevation_min_deg=-8.0,
+            elevation_max_deg=2.0,
+            range_noise_m=0.002,
+            name="one side",
+        )
         sim = simulate_tls_scan(_one_tree_scene(tree), setup, seed=k)
         w = sim.world_points()
         on = (sim.labels == Material.TRUNK) & (np.abs(w[:, 2] - 1.3) < 0.05)
@@ -206,8 +240,13 @@ def test_resurvey_of_a_real_plot_without_ground_registers_and_finds_no_growth(sh
     moved = truth_after @ result.local_matrix.T
     error = np.hypot(*(moved[:, :2] - before.xy).T)
     assert error.max() < 0.015  # the stems' own breast-height points, back where they were
-    growth = np.array([(t.dbh_change_m, t.dbh_change_sigma_m) for t in result.trees
-                       if t.status == "persisting" and math.isfinite(t.dbh_change_m)])
+    growth = np.array(
+        [
+            (t.dbh_change_m, t.dbh_change_sigma_m)
+            for t in result.trees
+            if t.status == "persisting" and math.isfinite(t.dbh_change_m)
+        ]
+    )
     assert len(growth) >= 0.8 * result.counts()["persisting"]
     assert math.sqrt(float(np.mean(growth[:, 0] ** 2))) < 0.002  # no growth: RMSE under 2 mm
     assert np.mean(np.abs(growth[:, 0]) < 2.0 * growth[:, 1]) >= 0.9

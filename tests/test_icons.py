@@ -16,7 +16,19 @@ def test_icons_render(qapp):
     from forestreg.ui.icons import ICON_DIR, icon
 
     names = sorted(p.stem for p in ICON_DIR.glob("*.svg"))
-    assert {"open", "save", "add", "sample", "run", "cancel", "before", "after", "export", "report", "forestreg"} <= set(names)
+    assert {
+        "open",
+        "save",
+        "add",
+        "sample",
+        "run",
+        "cancel",
+        "before",
+        "after",
+        "export",
+        "report",
+        "forestreg",
+    } <= set(names)
     for name in names:
         image = icon(name).pixmap(24, 24).toImage()
         assert not image.isNull()

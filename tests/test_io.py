@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from forestreg.engine.core.errors import ParameterError, ScanDataError, ScanReadError, ScanWriteError
+from forestreg.engine.core.scan import Scan
 from forestreg.engine.io import (
     SUPPORTED_READ_SUFFIXES,
     SUPPORTED_WRITE_SUFFIXES,
@@ -20,7 +21,6 @@ from forestreg.engine.io import (
     write_scan,
 )
 from forestreg.engine.io.las import intensity_to_uint16
-from forestreg.engine.core.scan import Scan
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 UTM = np.array([500_123.0, 5_200_456.0, 312.0])
@@ -28,6 +28,7 @@ MM = 1.0e-3
 
 
 # ----------------------------------------------------------------------------------------- helpers
+
 
 def cloud(n: int = 2000, seed: int = 0, center=(0.0, 0.0, 0.0), half: float = 15.0) -> tuple[np.ndarray, np.ndarray]:
     """Random points (m) in a cube around ``center`` and whole-number intensities."""
@@ -76,6 +77,7 @@ def assert_same_points(scan: Scan, expected: np.ndarray, tol: float = MM) -> Non
 
 
 # ---------------------------------------------------------------------------------------- round trips
+
 
 @pytest.mark.parametrize("suffix", [".laz", ".las", ".ply", ".xyz", ".txt", ".e57"])
 def test_write_points_round_trip(tmp_path: Path, suffix: str) -> None:
@@ -184,12 +186,27 @@ def test_float_intensity_written_to_las(tmp_path: Path) -> None:
 
 # ----------------------------------------------------------------------------------- other readers
 
+
 def test_ply_ascii_and_big_endian_with_faces(tmp_path: Path) -> None:
     points, intensity = cloud(n=50, seed=7)
     lines = [f"{x:.6f} {y:.6f} {z:.6f} {i:g}" for (x, y, z), i in zip(points, intensity)]
-    text = "\r\n".join(["ply", "format ascii 1.0", "comment test", "element vertex 50",
-                        "property float64 x", "property float64 y", "property float64 z",
-                        "property float scalar_Intensity", "end_header", *lines]) + "\r\n"
+    text = (
+        "\r\n".join(
+            [
+                "ply",
+                "format ascii 1.0",
+                "comment test",
+                "element vertex 50",
+                "property float64 x",
+                "property float64 y",
+                "property float64 z",
+                "property float scalar_Intensity",
+                "end_header",
+                *lines,
+            ]
+        )
+        + "\r\n"
+    )
     (tmp_path / "a.ply").write_text(text, newline="")
     scan = read_scan(tmp_path / "a.ply")
     assert_same_points(scan, points)
@@ -198,9 +215,11 @@ def test_ply_ascii_and_big_endian_with_faces(tmp_path: Path) -> None:
     rec = np.empty(50, dtype=[("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("reflectance", ">u2")])
     rec["x"], rec["y"], rec["z"], rec["reflectance"] = points[:, 0], points[:, 1], points[:, 2], intensity
     face = np.array([(3, 0, 1, 2)], dtype=[("n", "u1"), ("a", ">i4"), ("b", ">i4"), ("c", ">i4")])
-    head = ("ply\nformat binary_big_endian 1.0\nelement vertex 50\nproperty float x\nproperty float y\n"
-            "property float z\nproperty ushort reflectance\nelement face 1\n"
-            "property list uchar int vertex_indices\nend_header\n").encode()
+    head = (
+        "ply\nformat binary_big_endian 1.0\nelement vertex 50\nproperty float x\nproperty float y\n"
+        "property float z\nproperty ushort reflectance\nelement face 1\n"
+        "property list uchar int vertex_indices\nend_header\n"
+    ).encode()
     (tmp_path / "b.ply").write_bytes(head + rec.tobytes() + face.tobytes())
     scan = read_scan(tmp_path / "b.ply")
     assert_same_points(scan, points, tol=1e-5 * 16)
@@ -243,8 +262,10 @@ def test_pcd_binary_compressed(tmp_path: Path) -> None:
 )
 def test_text_variants(tmp_path: Path, header: str, sep: str, suffix: str, intensity_col: bool) -> None:
     points, intensity = cloud(n=100, seed=10)
-    rows = [sep.join([f"{v:.5f}" for v in p] + [f"{i:g}"] + (["1", "2", "3"] if "R G B" in header else []))
-            for p, i in zip(points, intensity)]
+    rows = [
+        sep.join([f"{v:.5f}" for v in p] + [f"{i:g}"] + (["1", "2", "3"] if "R G B" in header else []))
+        for p, i in zip(points, intensity)
+    ]
     path = tmp_path / f"t{suffix}"
     path.write_text(header + "\n".join(rows) + "\n")
     scan = read_scan(path)
@@ -280,6 +301,7 @@ def _write(path: Path, text: str) -> Path:
 
 # ------------------------------------------------------------------------------------------ sniffing
 
+
 @pytest.mark.parametrize("name", ["actually_laz.txt", "actually_laz.ply", "no_suffix"])
 def test_sniffs_laz_with_wrong_suffix(tmp_path: Path, name: str) -> None:
     points, intensity = cloud(seed=12)
@@ -293,6 +315,7 @@ def test_sniffs_laz_with_wrong_suffix(tmp_path: Path, name: str) -> None:
 
 
 # -------------------------------------------------------------------------------------------- errors
+
 
 def _las_bytes(tmp_path: Path, n: int = 2000, compress: bool = True) -> bytes:
     points, intensity = cloud(n=n, seed=13)
@@ -387,6 +410,7 @@ def test_millimetre_cloud_needs_unit_scale(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------------------------------ E57
 
+
 def test_e57_multi_scan_poses_round_trip(tmp_path: Path) -> None:
     poses = [np.eye(4), rotation_xyz(0.02, -0.01, 1.2, (20.0, -5.0, 0.5)), rotation_z(-2.5, (-8.0, 30.0, 1.0))]
     scans, raw = [], []
@@ -443,10 +467,18 @@ def test_e57_invalid_points_skipped(tmp_path: Path) -> None:
     state[:10] = 2
     path = tmp_path / "invalid.e57"
     with pye57.E57(str(path), mode="w") as e57:
-        e57.write_scan_raw({
-            "cartesianX": points[:, 0], "cartesianY": points[:, 1], "cartesianZ": points[:, 2],
-            "intensity": intensity.astype(np.float32), "cartesianInvalidState": state,
-        }, name="raw", rotation=np.array([1.0, 0.0, 0.0, 0.0]), translation=np.array([1.0, 2.0, 3.0]))
+        e57.write_scan_raw(
+            {
+                "cartesianX": points[:, 0],
+                "cartesianY": points[:, 1],
+                "cartesianZ": points[:, 2],
+                "intensity": intensity.astype(np.float32),
+                "cartesianInvalidState": state,
+            },
+            name="raw",
+            rotation=np.array([1.0, 0.0, 0.0, 0.0]),
+            translation=np.array([1.0, 2.0, 3.0]),
+        )
     scan = read_scan(path)
     assert_same_points(scan, points[10:])  # pye57 writes float32: still far below 1 mm here
     assert scan.meta["dropped_invalid"] == 10
@@ -501,6 +533,7 @@ def test_scan_index_on_single_scan_files(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------- writing
+
 
 def test_failed_write_leaves_previous_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     points, intensity = cloud(seed=40)
@@ -609,7 +642,11 @@ def test_laz_points_are_decoded_straight_by_lazrs_as_laspy_reads_them(tmp_path: 
 
     rng = np.random.default_rng(5)
     n = 123_457  # two full 50,000-point chunks and a short one
-    pts = np.column_stack([rng.uniform(-40, 40, n), rng.uniform(-40, 40, n), rng.uniform(-2, 30, n)]) + [512_000.0, 5_300_000.0, 400.0]
+    pts = np.column_stack([rng.uniform(-40, 40, n), rng.uniform(-40, 40, n), rng.uniform(-2, 30, n)]) + [
+        512_000.0,
+        5_300_000.0,
+        400.0,
+    ]
     inten = rng.integers(1, 60_000, n).astype(np.uint16)
     path = tmp_path / f"cloud.{'copc.laz' if kind == 'copc' else 'laz'}"
     write_scan(Scan.from_points(pts, intensity=inten.astype(np.float32)), path)  # .copc.laz: COPC
@@ -617,7 +654,9 @@ def test_laz_points_are_decoded_straight_by_lazrs_as_laspy_reads_them(tmp_path: 
         header = reader.header
         direct = np.empty((header.point_count, 3))
         direct_intensity = np.empty(header.point_count, dtype=np.uint16)
-        assert las_module._read_laz_direct(path, header, direct, direct_intensity, 30_000) == n, "the straight path was not taken"
+        assert las_module._read_laz_direct(path, header, direct, direct_intensity, 30_000) == n, (
+            "the straight path was not taken"
+        )
     ref = laspy.read(str(path))
     expected = np.column_stack([np.asarray(ref.x), np.asarray(ref.y), np.asarray(ref.z)])
     assert np.array_equal(direct, expected) and np.array_equal(direct_intensity, np.asarray(ref.intensity))

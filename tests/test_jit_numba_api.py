@@ -27,7 +27,8 @@ def test_pyproject_pins_the_tested_numba_range():
     installed = _version(numba.__version__)
     assert _version(low) <= installed < _version(high), (
         f"numba {numba.__version__} is outside the tested range numba{pinned}: run tests/test_jit_numba_api.py and "
-        "the kernel tests with it, then move the pin in pyproject.toml and engine/core/jit.py's NUMBA_RANGE")
+        "the kernel tests with it, then move the pin in pyproject.toml and engine/core/jit.py's NUMBA_RANGE"
+    )
 
 
 def test_installed_numba_has_every_part_the_cache_uses():

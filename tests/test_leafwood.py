@@ -199,7 +199,9 @@ def test_mixture_columns_fill_a_scale_lacking_neighbours_from_the_next_larger() 
             lin, pla, zen1, zen3, missing = measures[s]
             j = index[s][i]
             # the columns are kept in float32
-            row = np.array([lin[j], pla[j], np.cos(np.radians(zen1[j])), np.cos(np.radians(zen3[j]))]).astype(np.float32)
+            row = np.array([lin[j], pla[j], np.cos(np.radians(zen1[j])), np.cos(np.radians(zen3[j]))]).astype(
+                np.float32
+            )
             expected[i, 4 * s : 4 * s + 4] = above if (missing[j] and above is not None) else row
             above = expected[i, 4 * s : 4 * s + 4]
     np.testing.assert_array_equal(columns.rows(slice(None)), expected)

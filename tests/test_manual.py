@@ -9,6 +9,10 @@ import numpy as np
 import pytest
 
 from forestreg.engine.core.errors import Cancelled, TargetError
+from forestreg.engine.core.progress import CancelToken
+from forestreg.engine.core.scan import Scan
+from forestreg.engine.core.transform import apply, matrix_from_yaw, rigid_errors
+from forestreg.engine.io.results import write_targets_csv
 from forestreg.engine.tls.manual import (
     DetectedTarget,
     detect_reflectors,
@@ -21,11 +25,7 @@ from forestreg.engine.tls.manual import (
     target_residuals,
     targets_for,
 )
-from forestreg.engine.io.results import write_targets_csv
 from forestreg.engine.tls.params import RegistrationParams
-from forestreg.engine.core.progress import CancelToken
-from forestreg.engine.core.scan import Scan
-from forestreg.engine.core.transform import apply, matrix_from_yaw, rigid_errors
 
 PLOT = ("planted_conifer", ((0.0, 0.0), (9.0, 4.0)))
 #: A smaller reach makes ICP quicker where the test is not about accuracy.
@@ -106,7 +106,9 @@ def test_icp_correction_beyond_the_limit_fails(plot):
     by ~30 cm, more than the allowed 10 cm, so the result is refused."""
     ref_t = true_targets(plot, 0)
     mov_t = {k: v + np.array([0.3, 0.0, 0.0]) for k, v in true_targets(plot, 1).items()}
-    result = register_manual(plot.scans[0].scan, plot.scans[1].scan, ref_t, mov_t, QUICK.replace(icp_max_correction_m=0.1))
+    result = register_manual(
+        plot.scans[0].scan, plot.scans[1].scan, ref_t, mov_t, QUICK.replace(icp_max_correction_m=0.1)
+    )
     assert result.status == "failed" and not result.ok and result.matrix is None
     assert "ICP moved the target fit" in result.reason
     assert result.icp is not None and result.target_fit is not None
@@ -166,7 +168,9 @@ def test_cancel_stops_the_registration(plot):
     token = CancelToken()
     token.cancel()
     with pytest.raises(Cancelled):
-        register_manual(plot.scans[0].scan, plot.scans[1].scan, true_targets(plot, 0), true_targets(plot, 1), cancel=token)
+        register_manual(
+            plot.scans[0].scan, plot.scans[1].scan, true_targets(plot, 0), true_targets(plot, 1), cancel=token
+        )
 
 
 # ------------------------------------------------------------------ the rigid fit
@@ -218,7 +222,9 @@ def test_csv_round_trip(tmp_path):
 
 def test_csv_free_column_order_semicolons_comments_and_extra_columns(tmp_path):
     path = tmp_path / "t.csv"
-    path.write_text("# picked in RiSCAN\nZ;X;Y;Target;Scan;note\n\n1.0;2.0;3.0;A;s1.laz;ok\n4;5;6;B;s1.laz;\n", encoding="utf-8")
+    path.write_text(
+        "# picked in RiSCAN\nZ;X;Y;Target;Scan;note\n\n1.0;2.0;3.0;A;s1.laz;ok\n4;5;6;B;s1.laz;\n", encoding="utf-8"
+    )
     back = read_targets_csv(path)
     assert np.array_equal(back["s1.laz"]["A"], [2.0, 3.0, 1.0])
     assert np.array_equal(back["s1.laz"]["B"], [5.0, 6.0, 4.0])
@@ -322,7 +328,9 @@ def test_detection_needs_intensity_and_rejects_large_bright_objects():
     with pytest.raises(TargetError, match="no intensity variation"):
         detect_reflectors(Scan.from_points(pts, intensity=np.full(len(pts), 7.0)))
     found = detect_reflectors(Scan.from_points(pts, intensity=inten), shape="flat")
-    assert reflector_threshold(Scan.from_points(pts, intensity=inten)) == pytest.approx(15000 + 1.75 * 2.33 * 3000, rel=0.05)
+    assert reflector_threshold(Scan.from_points(pts, intensity=inten)) == pytest.approx(
+        15000 + 1.75 * 2.33 * 3000, rel=0.05
+    )
     assert len(found) == 1  # the 1 m sign is too large to be a target; scattered bright ground never clusters
     assert found[0].points == 12
     assert np.allclose(found[0].centre, disc.mean(axis=0))
@@ -370,7 +378,12 @@ def test_target_residuals_on_true_and_perturbed_poses(plot):
 
 
 def test_target_residuals_average_all_pairs():
-    targets = {"a": {"T": np.zeros(3), "U": np.zeros(3)}, "b": {"T": np.zeros(3)}, "c": {"T": np.zeros(3)}, "d": {"T": np.zeros(3)}}
+    targets = {
+        "a": {"T": np.zeros(3), "U": np.zeros(3)},
+        "b": {"T": np.zeros(3)},
+        "c": {"T": np.zeros(3)},
+        "d": {"T": np.zeros(3)},
+    }
     poses = {"a": np.eye(4), "b": np.eye(4), "c": np.eye(4), "d": None}
     poses["c"][:3, 3] = [0.06, 0.0, 0.0]
     out = target_residuals(targets, poses)

@@ -47,7 +47,12 @@ def test_precision_factors_invert_the_covariances() -> None:
     from scipy.stats import multivariate_normal
 
     got = model.log_weighted(x[:50])
-    want = np.column_stack([np.log(w) + multivariate_normal(m, c).logpdf(x[:50]) for w, m, c in zip(model.weights, model.means, model.covariances)])
+    want = np.column_stack(
+        [
+            np.log(w) + multivariate_normal(m, c).logpdf(x[:50])
+            for w, m, c in zip(model.weights, model.means, model.covariances)
+        ]
+    )
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
 
 

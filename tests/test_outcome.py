@@ -31,8 +31,16 @@ def test_every_registration_result_is_an_outcome():
 
 
 def test_manual_result_dict_has_the_shared_keys_first_and_seconds():
-    r = ManualResult(status="ok", reason="", matrix=_rigid(), target_fit=None, icp=None,
-                     timings={"target_fit_s": 0.5, "icp_s": 2.0}, reference_name="a", moving_name="b")
+    r = ManualResult(
+        status="ok",
+        reason="",
+        matrix=_rigid(),
+        target_fit=None,
+        icp=None,
+        timings={"target_fit_s": 0.5, "icp_s": 2.0},
+        reference_name="a",
+        moving_name="b",
+    )
     d = r.to_dict()
     assert list(d)[: len(SHARED)] == list(SHARED)
     assert all(k.endswith("_s") for k in d["timings"]) and r.total_s == pytest.approx(2.5)
@@ -44,13 +52,23 @@ def test_manual_result_dict_has_the_shared_keys_first_and_seconds():
 
 def test_coregistration_failure_dict_round_trips():
     r = CoregistrationResult(
-        status="failed", reason="no canopy", matrix=None, local_matrix=None, keypoint_matrix=None,
-        ground_keypoints=None, uav_keypoints=None, match=None, matched_after_icp=None,
-        residuals_after_icp_m=None, icp=None, surface_correlation=float("nan"),
-        alternative_correlation=float("nan"), timings={"terrain_s": 1.0},
+        status="failed",
+        reason="no canopy",
+        matrix=None,
+        local_matrix=None,
+        keypoint_matrix=None,
+        ground_keypoints=None,
+        uav_keypoints=None,
+        match=None,
+        matched_after_icp=None,
+        residuals_after_icp_m=None,
+        icp=None,
+        surface_correlation=float("nan"),
+        alternative_correlation=float("nan"),
+        timings={"terrain_s": 1.0},
     )
     d = r.to_dict()
-    assert list(d)[2: 2 + len(SHARED)] == list(SHARED)  # after format and version
+    assert list(d)[2 : 2 + len(SHARED)] == list(SHARED)  # after format and version
     assert d["evidence"]["matched"] == 0
     rec = OutcomeRecord.from_dict(d)
     assert not rec.ok and rec.reason == "no canopy" and rec.matrix is None and rec.timings == {"terrain_s": 1.0}
@@ -65,15 +83,20 @@ def test_seconds_keys_and_step_timer():
     assert set(t) == {"slice_s", "icp_s"} and t["icp_s"] == 0.25 and t["slice_s"] >= 0.0
 
 
-@pytest.mark.parametrize("bad, why", [
-    (np.full((4, 4), np.nan), "finite"),
-    (np.diag([2.0, 2.0, 2.0, 1.0]), "scale"),
-    (np.diag([1.0, 1.0, -1.0, 1.0]), "mirror"),
-    (None, "no matrix"),
-    ([[1, 0], [0, 1]], "4x4"),
-])
+@pytest.mark.parametrize(
+    "bad, why",
+    [
+        (np.full((4, 4), np.nan), "finite"),
+        (np.diag([2.0, 2.0, 2.0, 1.0]), "scale"),
+        (np.diag([1.0, 1.0, -1.0, 1.0]), "mirror"),
+        (None, "no matrix"),
+        ([[1, 0], [0, 1]], "4x4"),
+    ],
+)
 def test_an_ok_record_is_never_a_bad_matrix(bad, why):
-    rec = OutcomeRecord.from_dict({"status": "ok", "reason": "", "matrix": None if bad is None else np.asarray(bad).tolist()})
+    rec = OutcomeRecord.from_dict(
+        {"status": "ok", "reason": "", "matrix": None if bad is None else np.asarray(bad).tolist()}
+    )
     assert not rec.ok and rec.matrix is None and rec["matrix"] is None and "withheld" in rec.reason, why
 
 
@@ -86,8 +109,14 @@ def test_old_and_odd_records_are_read_safely():
 
 def test_link_result_is_typed_and_a_mapping(tmp_path):
     link = Link("b.laz", "a.laz")
-    link.result = {"status": "ok", "reason": "", "matrix": _rigid().tolist(), "matched": 7,
-                   "timings": {"icp": 1.0}, "uncertainty": {"rotation_deg": 0.01}}
+    link.result = {
+        "status": "ok",
+        "reason": "",
+        "matrix": _rigid().tolist(),
+        "matched": 7,
+        "timings": {"icp": 1.0},
+        "uncertainty": {"rotation_deg": 0.01},
+    }
     assert isinstance(link.result, LinkResult) and link.ok
     assert link.result.matched == 7 == link.result["matched"] and link.result.get("nothing") is None
     assert link.result.uncertainty == {"rotation_deg": 0.01} and link.result.timings == {"icp_s": 1.0}

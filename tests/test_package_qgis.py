@@ -41,14 +41,33 @@ def _version() -> str:
 def _checkout_copy(tmp_path: Path) -> Path:
     """The files the script packages, copied (the script packages the folder it lies in)."""
     copy = tmp_path / "src"
-    shutil.copytree(ROOT, copy, ignore=shutil.ignore_patterns(".git", ".venv", "tests", "benchmarks", "docs", "__pycache__",
-                                                              "build", "dist", "site", "demo_out", "*.egg-info"))
+    shutil.copytree(
+        ROOT,
+        copy,
+        ignore=shutil.ignore_patterns(
+            ".git",
+            ".venv",
+            "tests",
+            "benchmarks",
+            "docs",
+            "__pycache__",
+            "build",
+            "dist",
+            "site",
+            "demo_out",
+            "*.egg-info",
+        ),
+    )
     return copy
 
 
 def _package(root: Path, out: Path, umask: int = 0o022) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(root / "scripts" / "package_qgis.py"), "--out", str(out)], capture_output=True,
-                          text=True, preexec_fn=lambda: os.umask(umask))
+    return subprocess.run(
+        [sys.executable, str(root / "scripts" / "package_qgis.py"), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        preexec_fn=lambda: os.umask(umask),
+    )
 
 
 def test_the_shipped_metadata_has_every_field_the_plugin_repository_asks_for():
@@ -129,7 +148,11 @@ def test_a_metadata_file_without_a_required_field_is_refused_in_one_line(tmp_pat
     run = _package(root, out)
     assert run.returncode == 2
     assert run.stderr.count("\n") == 1, run.stderr
-    for word in ("lacks repository, required", "lacks tracker, recommended", "email 'forestreg@example.invalid' is a placeholder"):
+    for word in (
+        "lacks repository, required",
+        "lacks tracker, recommended",
+        "email 'forestreg@example.invalid' is a placeholder",
+    ):
         assert word in run.stderr, run.stderr
     assert not out.exists() or not list(out.iterdir())
 

@@ -16,7 +16,9 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.parametrize("name", ["engine", "ui", "plugin", "cli"])
 def test_no_plain_top_level_modules_are_importable(name, tmp_path):
     code = f"import importlib.util, sys; sys.exit(0 if importlib.util.find_spec({name!r}) is None else 1)"
-    assert subprocess.run([sys.executable, "-c", code], cwd=tmp_path).returncode == 0, f"a plain '{name}' module is installed"
+    assert subprocess.run([sys.executable, "-c", code], cwd=tmp_path).returncode == 0, (
+        f"a plain '{name}' module is installed"
+    )
 
 
 def test_package_imports_as_forestreg(tmp_path):
@@ -82,14 +84,26 @@ def test_every_package_folder_is_packaged():
 def test_qgis_zip_from_metadata(tmp_path):
     import zipfile
 
-    run = subprocess.run([sys.executable, str(ROOT / "scripts" / "package_qgis.py"), "--out", str(tmp_path)], capture_output=True, text=True)
+    run = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "package_qgis.py"), "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+    )
     assert run.returncode == 0, run.stderr
     path = tmp_path / f"forestreg-qgis-{_version()}.zip"
     names = zipfile.ZipFile(path).namelist()
     assert {n.split("/")[0] for n in names} == {"forestreg"}
-    for needed in ("forestreg/metadata.txt", "forestreg/__init__.py", "forestreg/plugin/qgis/host.py", "forestreg/plugin/qgis/provider.py",
-                   "forestreg/plugin/adapter.py", "forestreg/client.py", "forestreg/cli/__init__.py", "forestreg/engine/tls/pair.py",
-                   "forestreg/resources/icons/forestreg.svg"):
+    for needed in (
+        "forestreg/metadata.txt",
+        "forestreg/__init__.py",
+        "forestreg/plugin/qgis/host.py",
+        "forestreg/plugin/qgis/provider.py",
+        "forestreg/plugin/adapter.py",
+        "forestreg/client.py",
+        "forestreg/cli/__init__.py",
+        "forestreg/engine/tls/pair.py",
+        "forestreg/resources/icons/forestreg.svg",
+    ):
         assert needed in names, needed
     assert not [n for n in names if n.endswith((".pyc", ".pyo")) or "/tests/" in n or "__pycache__" in n]
     meta = configparser.ConfigParser()
@@ -102,9 +116,19 @@ def test_qgis_zip_refuses_a_metadata_version_that_is_not_the_package_version(tmp
     import shutil
 
     copy = tmp_path / "src"
-    shutil.copytree(ROOT, copy, ignore=shutil.ignore_patterns(".git", ".venv", "tests", "benchmarks", "docs", "__pycache__", "build", "dist", "site"))
+    shutil.copytree(
+        ROOT,
+        copy,
+        ignore=shutil.ignore_patterns(
+            ".git", ".venv", "tests", "benchmarks", "docs", "__pycache__", "build", "dist", "site"
+        ),
+    )
     text = (copy / "metadata.txt").read_text().replace(f"version={_version()}", "version=0.0.1")
     (copy / "metadata.txt").write_text(text)
-    run = subprocess.run([sys.executable, str(copy / "scripts" / "package_qgis.py"), "--out", str(tmp_path / "out")], capture_output=True, text=True)
+    run = subprocess.run(
+        [sys.executable, str(copy / "scripts" / "package_qgis.py"), "--out", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+    )
     assert run.returncode == 2 and run.stderr.count("\n") == 1 and "version 0.0.1" in run.stderr
     assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())

@@ -70,28 +70,50 @@ def test_scanner_position_settings_reach_the_scan_cache_and_the_project_file(par
 def test_survey_closure_floor_comes_from_the_file(params):
     """Three scans whose loop misses by 10 cm with 1 mm stated sigmas: it fails to close at the
     default 3 cm floor and closes at the file's 20 cm."""
-    poses = {"a": np.eye(4), "b": matrix_from_yaw(30.0, np.array([10.0, 0.0, 0.0])), "c": matrix_from_yaw(-20.0, np.array([0.0, 10.0, 0.0]))}
+    poses = {
+        "a": np.eye(4),
+        "b": matrix_from_yaw(30.0, np.array([10.0, 0.0, 0.0])),
+        "c": matrix_from_yaw(-20.0, np.array([0.0, 10.0, 0.0])),
+    }
     links = []
     for (m, r), off in ((("b", "a"), 0.1), (("c", "b"), 0.0), (("a", "c"), 0.0)):
         truth = np.linalg.inv(poses[r]) @ poses[m]
         truth[0, 3] += off
         link = Link(moving=m, reference=r)
-        link.result = {"status": "ok", "matrix": truth.tolist(), "uncertainty": {"translation_m": 0.001, "rotation_deg": 0.001}}
+        link.result = {
+            "status": "ok",
+            "matrix": truth.tolist(),
+            "uncertainty": {"translation_m": 0.001, "rotation_deg": 0.001},
+        }
         links.append(link)
     scanner = {n: np.zeros(3) for n in poses}
     default = inconsistent_links(links, scanner, 4.0)
     survey = params.survey
-    from_file = inconsistent_links(links, scanner, survey.closure_sigmas, min_closure_m=survey.min_closure_m, min_closure_deg=survey.min_closure_deg)
-    assert [row["closes"] for row in default[1] if "closes" in row] == [False] and len(default[0]) == 1  # the weakest link goes
+    from_file = inconsistent_links(
+        links,
+        scanner,
+        survey.closure_sigmas,
+        min_closure_m=survey.min_closure_m,
+        min_closure_deg=survey.min_closure_deg,
+    )
+    assert [row["closes"] for row in default[1] if "closes" in row] == [False] and len(
+        default[0]
+    ) == 1  # the weakest link goes
     assert [row["closes"] for row in from_file[1]] == [True] and from_file[0] == []
     from forestreg.app.survey import survey_params
 
     project = Project(name="p")
-    assert survey_params("within:30", project, base=survey).min_closure_m == 0.2  # the command line's pairs, the file's floors
+    assert (
+        survey_params("within:30", project, base=survey).min_closure_m == 0.2
+    )  # the command line's pairs, the file's floors
 
 
 def test_bad_values_in_the_new_sections_are_refused(tmp_path):
-    for text in ('[survey]\npairs = "some"\n', "[scanner_position]\ndefault_height_m = 50.0\n", "[registration]\nauto_vop_radii_m = []\n"):
+    for text in (
+        '[survey]\npairs = "some"\n',
+        "[scanner_position]\ndefault_height_m = 50.0\n",
+        "[registration]\nauto_vop_radii_m = []\n",
+    ):
         path = tmp_path / "bad.toml"
         path.write_text(text, encoding="utf-8")
         with pytest.raises(ParameterError):
@@ -101,16 +123,27 @@ def test_bad_values_in_the_new_sections_are_refused(tmp_path):
 def test_the_coregistration_stem_layer_comes_from_the_file(tmp_path):
     """A thinner stem layer from the file: fewer UAV points make the stem evidence, and the
     co-registration still finds the true transform."""
-    from forestreg.engine.coreg.coregister import coregister
     from forestreg.engine.core.transform import rigid_errors
+    from forestreg.engine.coreg.coregister import coregister
     from forestreg.engine.simulate.platforms import simulate_coregistration_case
 
     path = tmp_path / "coreg.toml"
-    path.write_text("[coregistration]\nstem_layer_m = [0.5, 1.5]\n\n[coregistration.low_layer_icp]\nmax_distances_m = [2.0, 0.5, 0.12]\n", encoding="utf-8")
+    path.write_text(
+        "[coregistration]\nstem_layer_m = [0.5, 1.5]\n\n[coregistration.low_layer_icp]\nmax_distances_m = [2.0, 0.5, 0.12]\n",
+        encoding="utf-8",
+    )
     params = load_params(path).coregistration
     assert params.low_layer_icp.max_distances_m == (2.0, 0.5, 0.12)
-    case = simulate_coregistration_case("planted_conifer", seed=0, size_m=40.0, ground_platform="tls", heading_deg=35.0,
-                                        offset_m=(3.0, -2.0, 0.5), uav_density_scale=0.3, tls_step_deg=0.3)
+    case = simulate_coregistration_case(
+        "planted_conifer",
+        seed=0,
+        size_m=40.0,
+        ground_platform="tls",
+        heading_deg=35.0,
+        offset_m=(3.0, -2.0, 0.5),
+        uav_density_scale=0.3,
+        tls_step_deg=0.3,
+    )
     default, thin = coregister(case.ground, case.uav), coregister(case.ground, case.uav, params)
     assert default.ok and thin.ok
     assert 0 < thin.coarse.stem_layer_points < default.coarse.stem_layer_points
@@ -128,14 +161,21 @@ def test_tree_settings_once_module_constants_come_from_the_file(tmp_path):
     from forestreg.engine.trees.stems import detect_stems_adaptive
 
     path = tmp_path / "trees.toml"
-    path.write_text("[trees.stems]\nsparse_spacing_m = 0.001\n\n[trees.canopy]\nground_tolerance = 0.001\nground_ring_width_m = 0.5\n", encoding="utf-8")
+    path.write_text(
+        "[trees.stems]\nsparse_spacing_m = 0.001\n\n[trees.canopy]\nground_tolerance = 0.001\nground_ring_width_m = 0.5\n",
+        encoding="utf-8",
+    )
     trees = load_params(path).trees
     # a densely sampled stem on flat ground: the fine profile at the default, the noisy one first
     # for the file (both find the stem)
     rng = np.random.default_rng(0)
     a, z = rng.uniform(0, 2 * np.pi, 60000), rng.uniform(0.0, 3.0, 60000)
-    pts = np.vstack([np.column_stack([0.2 * np.cos(a), 0.2 * np.sin(a), z]),
-                     np.column_stack([rng.uniform(-3, 3, (20000, 2)), np.zeros(20000)])])
+    pts = np.vstack(
+        [
+            np.column_stack([0.2 * np.cos(a), 0.2 * np.sin(a), z]),
+            np.column_stack([rng.uniform(-3, 3, (20000, 2)), np.zeros(20000)]),
+        ]
+    )
     profiles = [detect_stems_adaptive(pts, pts[:, 2], p) for p in (ProductParams().trees.stems, trees.stems)]
     assert [(len(stems), name) for stems, _, name in profiles] == [(1, "fine"), (1, "noisy")]
     # open ground on a slope around a crown without returns under it, the DEM 0.2 m off the plane
@@ -157,10 +197,14 @@ def test_airborne_ratio_and_tilted_partner_radius_come_from_the_file(tmp_path, m
     from forestreg.engine.trees.inventory import _airborne_like
 
     path = tmp_path / "p.toml"
-    path.write_text("[registration]\ntilted_partner_vop_radius_m = 12.5\n\n[trees]\nairborne_band_ratio = 0.01\n", encoding="utf-8")
+    path.write_text(
+        "[registration]\ntilted_partner_vop_radius_m = 12.5\n\n[trees]\nairborne_band_ratio = 0.01\n", encoding="utf-8"
+    )
     params = load_params(path)
     heights = np.r_[np.full(30, 2.0), np.full(1000, 10.0)]  # 0.03 points low per point high
-    assert _airborne_like(heights, ProductParams().trees.airborne_band_ratio) and not _airborne_like(heights, params.trees.airborne_band_ratio)
+    assert _airborne_like(heights, ProductParams().trees.airborne_band_ratio) and not _airborne_like(
+        heights, params.trees.airborne_band_ratio
+    )
     radii = []
     monkeypatch.setattr(plot, "_run_link", lambda project, link, *rest: radii.append(link.vop_radius_m))
     project = Project(name="p", params=params.registration)
@@ -190,12 +234,21 @@ def test_tree_flags_edit_search_and_noisy_profile_come_from_the_file(tmp_path):
     from forestreg.engine.trees.stems import Stem, detect_stems_adaptive
 
     path = tmp_path / "p.toml"
-    path.write_text("[trees]\nground_near_stem_m = 1.5\nshared_top_min_points = 3\nmax_slenderness = 20.0\nstem_search_radius_m = 0.3\n"
-                    "cylinder_models = false\n\n[trees.noisy_stems]\nmin_slice_points = 40\n", encoding="utf-8")
+    path.write_text(
+        "[trees]\nground_near_stem_m = 1.5\nshared_top_min_points = 3\nmax_slenderness = 20.0\nstem_search_radius_m = 0.3\n"
+        "cylinder_models = false\n\n[trees.noisy_stems]\nmin_slice_points = 40\n",
+        encoding="utf-8",
+    )
     default, trees = ProductParams().trees.replace(cylinder_models=False), load_params(path).trees
 
     def stem(i, x, r):
-        return Stem(id=i, base=np.array([x, 0.0, 0.0]), axis=np.array([0.0, 0.0, 1.0]), radius_m=r, point_indices=np.zeros(0, dtype=np.int64))
+        return Stem(
+            id=i,
+            base=np.array([x, 0.0, 0.0]),
+            axis=np.array([0.0, 0.0, 1.0]),
+            radius_m=r,
+            point_indices=np.zeros(0, dtype=np.int64),
+        )
 
     # ground 2 m from a stem: near with 3 m, not with 1.5 m
     p = np.array([[2.0, 0.0, 0.0], [0.0, 0.0, 5.0]])
@@ -204,9 +257,26 @@ def test_tree_flags_edit_search_and_noisy_profile_come_from_the_file(tmp_path):
     assert ground_near_stems(p, ground, [stem(1, 0.0, 0.1)], trees.ground_near_stem_m) == {1: False}
     # four points of a thicker neighbour beside a tree's top: a shared top with 3, not with 6
     nan = math.nan
-    crowns = {i: CrownMeasurement(tree_id=i, x=x, y=0.0, height_m=nan, crown_base_m=nan, crown_width_ew_m=nan, crown_width_ns_m=nan,
-                                  crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan, crown_volume_m3=nan, n_points=0,
-                                  top=(x, 0.0, 10.0), ok=True, reasons=()) for i, x in ((1, 0.0), (2, 5.0))}
+    crowns = {
+        i: CrownMeasurement(
+            tree_id=i,
+            x=x,
+            y=0.0,
+            height_m=nan,
+            crown_base_m=nan,
+            crown_width_ew_m=nan,
+            crown_width_ns_m=nan,
+            crown_area_m2=nan,
+            crown_diameter_m=nan,
+            crown_length_m=nan,
+            crown_volume_m3=nan,
+            n_points=0,
+            top=(x, 0.0, 10.0),
+            ok=True,
+            reasons=(),
+        )
+        for i, x in ((1, 0.0), (2, 5.0))
+    }
     pts = np.array([[0.0, 0.0, 10.0]] + [[0.5, 0.1 * k, 10.0] for k in range(4)])
     labels = np.array([1, 2, 2, 2, 2])
     stems = [stem(1, 0.0, 0.1), stem(2, 5.0, 0.2)]
@@ -223,7 +293,13 @@ def test_tree_flags_edit_search_and_noisy_profile_come_from_the_file(tmp_path):
     assert any("slenderness" in f for f in again.flags) and again.quality["height"].endswith("; low")
     # a click 0.6 m beside a stem finds it within 1 m, not within 0.3 m
     click = (rec.stem.x + 0.6, rec.stem.y)
-    assert math.hypot(E._stem_near(points, inv, click, default).x - rec.stem.x, E._stem_near(points, inv, click, default).y - rec.stem.y) < 0.1
+    assert (
+        math.hypot(
+            E._stem_near(points, inv, click, default).x - rec.stem.x,
+            E._stem_near(points, inv, click, default).y - rec.stem.y,
+        )
+        < 0.1
+    )
     with pytest.raises(ScanDataError):
         E._stem_near(points, inv, click, trees)
     # the noisy profile (tried first when the band is sparser than sparse_spacing_m) takes its
@@ -240,11 +316,24 @@ def test_change_uncertainties_band_and_ground_decision_come_from_the_file(tmp_pa
     from forestreg.engine.simulate import simulate_plot
 
     path = tmp_path / "p.toml"
-    path.write_text("[change]\nheight_sigma_m = [0.2, 0.9, 2.0]\ntable_dbh_sigma_m = [0.004, 0.02, 0.05]\n"
-                    "stem_band_m = [0.2, 3.5]\nno_ground_fraction = 0.0\n", encoding="utf-8")
+    path.write_text(
+        "[change]\nheight_sigma_m = [0.2, 0.9, 2.0]\ntable_dbh_sigma_m = [0.004, 0.02, 0.05]\n"
+        "stem_band_m = [0.2, 3.5]\nno_ground_fraction = 0.0\n",
+        encoding="utf-8",
+    )
     default, change = ProductParams().change, load_params(path).change
-    rows = [{"tree_id": "1", "x": "1.0", "y": "2.0", "z": "0.0", "dbh_m": "0.3", "height_m": "20.0",
-             "dbh_quality": "circle fit; medium", "height_quality": "top; low"}]
+    rows = [
+        {
+            "tree_id": "1",
+            "x": "1.0",
+            "y": "2.0",
+            "z": "0.0",
+            "dbh_m": "0.3",
+            "height_m": "20.0",
+            "dbh_quality": "circle fit; medium",
+            "height_quality": "top; low",
+        }
+    ]
     before, after = epoch_from_table(rows, change=default), epoch_from_table(rows, change=change)
     assert (before.dbh_sigma_m[0], before.height_sigma_m[0]) == (0.012, 1.5)
     assert (after.dbh_sigma_m[0], after.height_sigma_m[0]) == (0.02, 2.0)
@@ -271,24 +360,41 @@ def test_uncertainty_floors_and_target_limits_come_from_the_file(tmp_path):
     from forestreg.engine.tls.pair import _pair_uncertainty
 
     path = tmp_path / "p.toml"
-    path.write_text("[registration]\nmin_uncertainty_m = 0.05\nmin_uncertainty_deg = 0.2\n"
-                    "manual_max_target_rmse_m = 0.02\nmanual_min_target_spread_m = 0.5\n", encoding="utf-8")
+    path.write_text(
+        "[registration]\nmin_uncertainty_m = 0.05\nmin_uncertainty_deg = 0.2\n"
+        "manual_max_target_rmse_m = 0.02\nmanual_min_target_spread_m = 0.5\n",
+        encoding="utf-8",
+    )
     default, reg = ProductParams().registration, load_params(path).registration
     # twenty trunks that coincide within 1 mm after ICP: the floors decide what is stated
     rng = np.random.default_rng(3)
     ref = rng.uniform(-12, 12, (20, 2))
     vops = lambda xy: SimpleNamespace(xy=xy)  # noqa: E731
-    attempt = SimpleNamespace(match=SimpleNamespace(matched_pairs=np.column_stack([np.arange(20), np.arange(20)])),
-                              reference_vops=vops(ref), moving_vops=vops(ref + rng.normal(0, 0.001, ref.shape)))
+    attempt = SimpleNamespace(
+        match=SimpleNamespace(matched_pairs=np.column_stack([np.arange(20), np.arange(20)])),
+        reference_vops=vops(ref),
+        moving_vops=vops(ref + rng.normal(0, 0.001, ref.shape)),
+    )
     fine = SimpleNamespace(matrix=np.eye(4), std_m=0.001)
     low, floored = (_pair_uncertainty(attempt, fine, p) for p in (default, reg))
     assert low["translation_m"] < 0.05 and low["rotation_deg"] < 0.2
-    assert floored["vertical_m"] == 0.05 and floored["translation_m"] == pytest.approx(0.05, abs=1e-4) and floored["rotation_deg"] == 0.2
+    assert (
+        floored["vertical_m"] == 0.05
+        and floored["translation_m"] == pytest.approx(0.05, abs=1e-4)
+        and floored["rotation_deg"] == 0.2
+    )
     # five targets, one 5 cm off: a suspect at 2 cm, not at 10 cm
     ref_t = {f"T{k}": np.array(v) for k, v in enumerate([[0, 0, 1], [10, 0, 1.5], [0, 10, 2], [10, 10, 1], [5, 3, 3]])}
     mov_t = {k: v + ([0.05, 0, 0] if k == "T4" else 0.0) for k, v in ref_t.items()}
-    assert suspect_targets(ref_t, mov_t, inlier_m=default.manual_max_target_rmse_m, min_spread_m=default.manual_min_target_spread_m) == []
-    assert suspect_targets(ref_t, mov_t, inlier_m=reg.manual_max_target_rmse_m, min_spread_m=reg.manual_min_target_spread_m) == ["T4"]
+    assert (
+        suspect_targets(
+            ref_t, mov_t, inlier_m=default.manual_max_target_rmse_m, min_spread_m=default.manual_min_target_spread_m
+        )
+        == []
+    )
+    assert suspect_targets(
+        ref_t, mov_t, inlier_m=reg.manual_max_target_rmse_m, min_spread_m=reg.manual_min_target_spread_m
+    ) == ["T4"]
     # T4 8 cm off: a target fit within the default limit (10 cm RMS), refused at 2 cm
     mov_t = {k: v + ([0.08, 0, 0] if k == "T4" else 0.0) for k, v in ref_t.items()}
     assert reg.manual_max_target_rmse_m < fit_to_targets(ref_t, mov_t).rmse_m < default.manual_max_target_rmse_m
@@ -349,11 +455,18 @@ def test_icp_settings_are_one_nested_set_and_old_flat_names_still_read(tmp_path,
 
     p = ProductParams()
     assert p.registration.icp == IcpParams()
-    assert (p.coregistration.icp.voxel_m, p.coregistration.coarse_icp.voxel_m, p.change.stem_icp.voxel_m) == (0.1, 0.3, 0.02)
+    assert (p.coregistration.icp.voxel_m, p.coregistration.coarse_icp.voxel_m, p.change.stem_icp.voxel_m) == (
+        0.1,
+        0.3,
+        0.02,
+    )
     assert "[coregistration.coarse_icp]\nvoxel_m = 0.3" in params_toml()
     path = tmp_path / "old.toml"
-    path.write_text("[registration]\nicp_voxel_m = 0.1\nicp_iterations = 30\n\n[coregistration]\ncoarse_voxel_m = 0.4\n"
-                    "\n[change]\nicp_max_distances_m = [0.3, 0.1]\n", encoding="utf-8")
+    path.write_text(
+        "[registration]\nicp_voxel_m = 0.1\nicp_iterations = 30\n\n[coregistration]\ncoarse_voxel_m = 0.4\n"
+        "\n[change]\nicp_max_distances_m = [0.3, 0.1]\n",
+        encoding="utf-8",
+    )
     with caplog.at_level("WARNING"):
         old = load_params(path)
     assert old.registration.icp == IcpParams(voxel_m=0.1, iterations=30)
@@ -372,8 +485,11 @@ def test_icp_normal_neighbours_and_coarse_tolerance_come_from_the_file(tmp_path)
     from forestreg.engine.geometry.icp import IcpReference, icp
 
     path = tmp_path / "p.toml"
-    path.write_text("[registration.icp]\nnormal_neighbours = 40\n\n[coregistration.coarse_icp]\nfinal_tolerance_m = 0.01\n"
-                    "final_tolerance_deg = 0.5\n", encoding="utf-8")
+    path.write_text(
+        "[registration.icp]\nnormal_neighbours = 40\n\n[coregistration.coarse_icp]\nfinal_tolerance_m = 0.01\n"
+        "final_tolerance_deg = 0.5\n",
+        encoding="utf-8",
+    )
     default, loaded = ProductParams(), load_params(path)
     assert loaded.registration.icp.normal_neighbours == 40
     rng = np.random.default_rng(5)
@@ -381,11 +497,16 @@ def test_icp_normal_neighbours_and_coarse_tolerance_come_from_the_file(tmp_path)
     ref = np.column_stack([xy, 0.3 * np.sin(xy[:, 0]) + 0.2 * np.cos(1.3 * xy[:, 1])])  # a wavy ground
     reference = IcpReference(ref)
     index = np.arange(0, len(reference.level(0.1)[0]), 7)
-    twelve, forty = (reference.normals(0.1, index, p.icp.normal_neighbours) for p in (default.registration, loaded.registration))
+    twelve, forty = (
+        reference.normals(0.1, index, p.icp.normal_neighbours) for p in (default.registration, loaded.registration)
+    )
     turned = np.degrees(np.arccos(np.clip(np.abs(np.sum(twelve * forty, axis=1)), 0.0, 1.0)))
     assert turned.mean() > 0.2  # wider neighbourhoods smooth the normals of the wavy ground
     start = matrix_from_yaw(3.0, np.array([0.3, -0.2, 0.1]))
-    runs = [icp(ref, ref[::3], start, statistics=False, **p.coarse_icp.keywords()) for p in (default.coregistration, loaded.coregistration)]
+    runs = [
+        icp(ref, ref[::3], start, statistics=False, **p.coarse_icp.keywords())
+        for p in (default.coregistration, loaded.coregistration)
+    ]
     assert runs[1].iterations < runs[0].iterations
     assert np.abs(runs[0].matrix - np.eye(4)).max() < 0.01  # the default converges
 
@@ -399,13 +520,20 @@ def test_crown_reach_settings_come_from_the_file(tmp_path):
     from forestreg.engine.trees.stems import Stem
 
     path = tmp_path / "p.toml"
-    path.write_text("[trees]\ncrown_reach_dbh = 12.0\n\n[trees.segmentation]\naxis_dominance_dbh = 2.0\ndominance_ratio = 1.1\n",
-                    encoding="utf-8")
+    path.write_text(
+        "[trees]\ncrown_reach_dbh = 12.0\n\n[trees.segmentation]\naxis_dominance_dbh = 2.0\ndominance_ratio = 1.1\n",
+        encoding="utf-8",
+    )
     default, trees = ProductParams().trees, load_params(path).trees
 
     def stem(i, x, dbh):
-        return Stem(id=i, base=np.array([x, 0.0, 0.0]), axis=np.array([0.0, 0.0, 1.0]), radius_m=dbh / 2,
-                    point_indices=np.zeros(0, dtype=np.int64))
+        return Stem(
+            id=i,
+            base=np.array([x, 0.0, 0.0]),
+            axis=np.array([0.0, 0.0, 1.0]),
+            radius_m=dbh / 2,
+            point_indices=np.zeros(0, dtype=np.int64),
+        )
 
     # a 20 cm stem 2 m from a 40 cm one (6 DBH: 2.4 m), a 23 cm stem 5 m from it
     stems = [stem(1, 0.0, 0.4), stem(2, 2.0, 0.2), stem(3, -5.0, 0.23)]

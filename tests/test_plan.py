@@ -37,7 +37,8 @@ def test_a_stem_hides_what_stands_behind_it():
     assert not sight((0.0, 0.0), stems, reach_m=4.0).visible_fraction.any(), "nothing beyond reach is seen"
     # a coarser scanner puts fewer points on a far patch than on a near one
     coarse = sight((0.0, 0.0), _stems([(3.0, 0.0), (0.0, 20.0)], [0.2, 0.2]), reach_m=30.0).arcs(
-        _stems([(3.0, 0.0), (0.0, 20.0)], [0.2, 0.2]), 36, 0.5, np.radians(0.4))
+        _stems([(3.0, 0.0), (0.0, 20.0)], [0.2, 0.2]), 36, 0.5, np.radians(0.4)
+    )
     assert coarse[0].max() > coarse[1].max() > 0.0
 
 
@@ -115,7 +116,9 @@ def test_the_suggested_scan_links_when_it_is_made(placed, tmp_path):
     s = plan.suggestions[0]
     m0 = plot.scans[0].pose
     world = (m0 @ np.array([s.x, s.y, 0.0, 1.0]))[:2]
-    new = simulate_plot("mixed_temperate", [tuple(world)], scene=plot.scene, seed=7, angular_step_deg=0.4, clearance_m=0.0).scans[0]
+    new = simulate_plot(
+        "mixed_temperate", [tuple(world)], scene=plot.scene, seed=7, angular_step_deg=0.4, clearance_m=0.0
+    ).scans[0]
     write_scan(new.scan, tmp_path / "scan_03.laz")
     trial = Project.load(project.path)
     trial.add_scan(tmp_path / "scan_03.laz")
@@ -142,8 +145,9 @@ def test_plan_command_writes_plan_json_and_a_table(placed, tmp_path, capsys):
     # plan.gpkg beside plan.json: the same suggestions as points of the next_scans layer, local coordinates
     points, srs = _next_scans(tmp_path / "plan.gpkg")
     assert srs == {"next_scans": -1}
-    assert [(r["rank"], r["links_to"], r["shared_stems"]) for r in points] == \
-        [(s["rank"], s["links_to"], s["shared_stems"]) for s in doc["suggestions"]]
+    assert [(r["rank"], r["links_to"], r["shared_stems"]) for r in points] == [
+        (s["rank"], s["links_to"], s["shared_stems"]) for s in doc["suggestions"]
+    ]
     for r, s in zip(points, doc["suggestions"]):
         assert r["xy"] == pytest.approx((s["x"], s["y"]), abs=1e-9)
         assert r["new_stem_area_m2"] == pytest.approx(s["new_stem_area_m2"]) and r["reason"] == s["reason"]
@@ -187,7 +191,11 @@ def test_plan_gpkg_has_the_plot_crs_and_numbered_markers(placed, tmp_path):
     folder = tmp_path / "geo"
     folder.mkdir()
     Project.load(project.path).save(folder / "project.json")
-    write_layers(folder, [outline_layer(np.array([(0.0, 0.0), (5.0, 0.0), (0.0, 5.0)]), "plot", "a test ring")], parse_crs("EPSG:32633"))
+    write_layers(
+        folder,
+        [outline_layer(np.array([(0.0, 0.0), (5.0, 0.0), (0.0, 5.0)]), "plot", "a test ring")],
+        parse_crs("EPSG:32633"),
+    )
     run = plan_next(folder, n=3, params=PlanParams(radius_m=13.0), scans=cache)
     assert run and run.layers == folder / "plan.gpkg" and run.out == folder / "plan.json" and run.crs.epsg_code == 32633
     points, srs = _next_scans(run.layers)
@@ -196,8 +204,12 @@ def test_plan_gpkg_has_the_plot_crs_and_numbered_markers(placed, tmp_path):
     assert [r["xy"] for r in points] == [(s.x, s.y) for s in run.plan.suggestions]
     con = sqlite3.connect(str(run.layers))
     try:
-        org, code = con.execute("SELECT organization, organization_coordsys_id FROM gpkg_spatial_ref_sys WHERE srs_id = 32633").fetchone()
-        extent = con.execute("SELECT min_x, min_y, max_x, max_y FROM gpkg_contents WHERE table_name = 'next_scans'").fetchone()
+        org, code = con.execute(
+            "SELECT organization, organization_coordsys_id FROM gpkg_spatial_ref_sys WHERE srs_id = 32633"
+        ).fetchone()
+        extent = con.execute(
+            "SELECT min_x, min_y, max_x, max_y FROM gpkg_contents WHERE table_name = 'next_scans'"
+        ).fetchone()
         style = con.execute("SELECT styleQML FROM layer_styles WHERE f_table_name = 'next_scans'").fetchone()[0]
     finally:
         con.close()
@@ -207,7 +219,9 @@ def test_plan_gpkg_has_the_plot_crs_and_numbered_markers(placed, tmp_path):
     assert '<labeling type="simple">' in style and 'fieldName="rank"' in style and 'labelsEnabled="1"' in style
 
 
-def test_a_plan_without_suggestions_writes_an_empty_layer_and_a_failed_write_replaces_nothing(placed, tmp_path, monkeypatch):
+def test_a_plan_without_suggestions_writes_an_empty_layer_and_a_failed_write_replaces_nothing(
+    placed, tmp_path, monkeypatch
+):
     from forestreg.app.plan import plan_next
     from forestreg.engine.core.errors import ScanWriteError
 
@@ -229,11 +243,14 @@ def test_a_plan_without_suggestions_writes_an_empty_layer_and_a_failed_write_rep
     assert sorted(p.name for p in tmp_path.iterdir()) == ["strict.gpkg", "strict.json"]
 
 
-@pytest.mark.parametrize("args, code, says", [
-    (["{missing}"], 2, "no such project file"),
-    (["{project}", "--n", "4"], 2, "--n must be 1, 2 or 3"),
-    (["{project}", "--out", "{dir}"], 2, ".json"),
-])
+@pytest.mark.parametrize(
+    "args, code, says",
+    [
+        (["{missing}"], 2, "no such project file"),
+        (["{project}", "--n", "4"], 2, "--n must be 1, 2 or 3"),
+        (["{project}", "--out", "{dir}"], 2, ".json"),
+    ],
+)
 def test_bad_plan_usage_is_one_line(args, code, says, placed, tmp_path, capsys):
     _, project, _ = placed
     values = {"missing": str(tmp_path / "nothing.json"), "project": str(project.path), "dir": str(tmp_path)}

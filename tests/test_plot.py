@@ -8,13 +8,13 @@ import json
 import numpy as np
 import pytest
 
+from forestreg.app.plot import write_poses
 from forestreg.cli import main
 from forestreg.engine.core.errors import Cancelled, ProjectFileError
+from forestreg.engine.core.transform import rigid_errors
 from forestreg.engine.io import read_scan, write_scan
-from forestreg.app.plot import write_poses
 from forestreg.engine.tls.plot import adjust_poses, register_project
 from forestreg.engine.tls.project import Project
-from forestreg.engine.core.transform import rigid_errors
 
 FOUR = ((0.0, 0.0), (10.0, 2.0), (-8.0, 6.0), (3.0, -11.0))
 SIX_WITH_TILTED = ((0.0, 0.0), (9.0, 3.0), (-7.0, 7.0), (2.0, -10.0), (-9.0, -5.0), (9.3, 3.2))
@@ -133,7 +133,9 @@ def test_interrupted_run_keeps_finished_links(four_scan_files, tmp_path):
     assert len(done) == 1 and done[0].ok
     text = (tmp_path / "project.json").read_text(encoding="utf-8")
     told = []
-    outcome = register_project(saved, on_link_done=lambda p: told.append(sum(link.result is not None for link in p.links)))
+    outcome = register_project(
+        saved, on_link_done=lambda p: told.append(sum(link.result is not None for link in p.links))
+    )
     assert outcome.failed == []
     assert told == [2, 3], "each finished link is told, with the project holding it"
     assert (tmp_path / "project.json").read_text(encoding="utf-8") == text, "the engine's run wrote the project file"
@@ -141,7 +143,9 @@ def test_interrupted_run_keeps_finished_links(four_scan_files, tmp_path):
     _check_poses(saved, plot)
 
 
-def test_a_plot_command_stopped_mid_run_resumes_from_its_saved_links(four_scan_files, registered_four, tmp_path, capsys):
+def test_a_plot_command_stopped_mid_run_resumes_from_its_saved_links(
+    four_scan_files, registered_four, tmp_path, capsys
+):
     """What ``plot`` leaves when killed after its first link (the project file, no poses.json):
     the same command again keeps that link and registers the rest; other settings, a finished run
     or a scan file changed since start over."""
@@ -227,7 +231,21 @@ def test_plot_and_project_commands(four_scan_files, tmp_path, capsys):
     plot, paths = four_scan_files
     out = tmp_path / "out"
     merged = tmp_path / "merged.laz"
-    code = main(["plot", *map(str, paths[:3]), "--out", str(out), "--centre", paths[0].name, "--merged", str(merged), "--loops", "20", "--quiet"])
+    code = main(
+        [
+            "plot",
+            *map(str, paths[:3]),
+            "--out",
+            str(out),
+            "--centre",
+            paths[0].name,
+            "--merged",
+            str(merged),
+            "--loops",
+            "20",
+            "--quiet",
+        ]
+    )
     assert code == 0
     body = json.loads((out / "poses.json").read_text())
     assert "adjustment" in body, "poses.json always holds the adjustment key (None without loops)"
@@ -265,8 +283,8 @@ def test_a_cache_without_intensity_holds_the_same_points(four_scan_files):
 
 
 def test_multi_scan_e57_opens_as_a_project_and_poses_are_written_back(four_scan_files, tmp_path):
-    from forestreg.engine.io import read_scans, write_e57
     from forestreg.app.plot import write_registered_e57
+    from forestreg.engine.io import read_scans, write_e57
     from forestreg.engine.tls.plot import ScanCache, project_from_e57
 
     plot, paths = four_scan_files
@@ -326,7 +344,9 @@ def test_a_plot_larger_than_the_scan_cache_registers_and_merges_the_same(four_sc
         assert n == sum(len(s) for s in originals)
         merged = read_scan(tmp_path / f"merged{suffix}")
         assert len(merged) == n
-        expected = np.vstack([s.file_points @ poses[p.name][:3, :3].T + poses[p.name][:3, 3] for s, p in zip(originals, paths)])
+        expected = np.vstack(
+            [s.file_points @ poses[p.name][:3, :3].T + poses[p.name][:3, 3] for s, p in zip(originals, paths)]
+        )
         lo, hi = merged.file_points.min(axis=0), merged.file_points.max(axis=0)
         assert np.allclose(lo, expected.min(axis=0), atol=2e-4) and np.allclose(hi, expected.max(axis=0), atol=2e-4)
         if suffix in (".laz", ".copc.laz"):
@@ -335,13 +355,12 @@ def test_a_plot_larger_than_the_scan_cache_registers_and_merges_the_same(four_sc
             las = laspy.read(tmp_path / f"merged{suffix}")
             assert np.bincount(las.scan_id).tolist() == [len(s) for s in originals]
             first = np.column_stack([las.x, las.y, las.z])[las.scan_id == 1]
-            want = expected[len(originals[0]): len(originals[0]) + len(originals[1])]
+            want = expected[len(originals[0]) : len(originals[0]) + len(originals[1])]
             if suffix == ".copc.laz":  # laid out node by node: compare the sorted coordinates
                 first, want = np.sort(first, axis=0), np.sort(want, axis=0)
                 with laspy.CopcReader.open(tmp_path / f"merged{suffix}") as copc:
                     assert len(copc.query()) == n and len(copc.level_query(0)) < n
             assert np.abs(first - want).max() < 2e-4
-
 
 
 def test_the_scanner_check_reads_one_scan_when_it_passes(four_scan_files, registered_four):
@@ -375,15 +394,14 @@ def test_a_link_holds_one_scan_s_points_the_centre_is_read_once(four_scan_files,
         assert np.array_equal(project.link_of(p.name).matrix, done.link_of(p.name).matrix)
 
 
-
 def test_the_top_view_keeps_no_prepared_scan(four_scan_files, registered_four):
     """The report's top view keeps each scan's slices and VOPs, not its prepared scan (points and
     ICP grid, 0.5 GB at 30 M points): once the cache lets them go, they are freed."""
     import gc
     import weakref
 
-    from forestreg.engine.tls.plot import ScanCache
     from forestreg.engine.report.views import compute_top_view
+    from forestreg.engine.tls.plot import ScanCache
 
     project = Project.load(registered_four[0])
     scans = ScanCache(project)
@@ -397,13 +415,12 @@ def test_the_top_view_keeps_no_prepared_scan(four_scan_files, registered_four):
     assert len(compute_top_view(project, scans).scans) == 4  # drawn again from what the view kept
 
 
-
 def test_the_report_draws_let_go_scans_without_reading_them_again(four_scan_files, registered_four):
     """Scans whose preparations the caches let go during the links are drawn in the report's top
     view from what their preparations left (slice layers, VOPs): no scan is read or prepared again
     (ten 30 M-point scans: minutes, and the run's memory peak), and the view is the same."""
-    from forestreg.engine.tls.plot import ScanCache
     from forestreg.engine.report.views import compute_top_view
+    from forestreg.engine.tls.plot import ScanCache
 
     plot, paths = four_scan_files
     project = Project(name="one-scan-room")
@@ -423,7 +440,9 @@ def test_the_report_draws_let_go_scans_without_reading_them_again(four_scan_file
         assert np.allclose(a.slice_xy, b.slice_xy) and np.allclose(a.vops_xy, b.vops_xy)
 
 
-def test_merged_laz_written_in_blocks_keeps_every_point_in_order(four_scan_files, registered_four, tmp_path, monkeypatch):
+def test_merged_laz_written_in_blocks_keeps_every_point_in_order(
+    four_scan_files, registered_four, tmp_path, monkeypatch
+):
     """Merging moves each scan in blocks (not kept in the cache): the LAZ holds every point of
     every scan in order, in the centre frame, with its intensity and scan id."""
     import laspy
@@ -447,14 +466,15 @@ def test_merged_laz_written_in_blocks_keeps_every_point_in_order(four_scan_files
     start = 0
     for s, p in zip(originals, paths):
         want = s.file_points @ poses[p.name][:3, :3].T + poses[p.name][:3, 3]
-        assert np.abs(got[start:start + len(s)] - want).max() < 2e-4
+        assert np.abs(got[start : start + len(s)] - want).max() < 2e-4
         if s.intensity is not None:
-            assert np.array_equal(np.asarray(las.intensity[start:start + len(s)]), intensity_to_uint16(s.intensity))
+            assert np.array_equal(np.asarray(las.intensity[start : start + len(s)]), intensity_to_uint16(s.intensity))
         start += len(s)
 
 
-
-def test_the_next_scan_is_prepared_while_a_link_runs_and_the_links_are_the_same(four_scan_files, registered_four, monkeypatch):
+def test_the_next_scan_is_prepared_while_a_link_runs_and_the_links_are_the_same(
+    four_scan_files, registered_four, monkeypatch
+):
     """A plot of small scans reads and prepares the next link's scan in a background thread while
     a link runs: every scan is still read and prepared once, and the links are bit for bit those
     of the run that reads and prepares one scan at a time."""
@@ -521,7 +541,9 @@ def test_further_pairs_run_two_at_a_time_with_the_same_results(four_scan_files, 
         for s in project.scans:  # as the links to the centre leave them (here loaded as done)
             scans.for_link(s.name, project.params)
         messages = []
-        register_survey(project, SurveyParams(pairs="all"), scans=scans, progress=lambda fraction, message: messages.append(message))
+        register_survey(
+            project, SurveyParams(pairs="all"), scans=scans, progress=lambda fraction, message: messages.append(message)
+        )
         assert any("two at a time" in m for m in messages) == parallel
         further = {(link.moving, link.reference): link for link in project.links if link.extra}
         return further, scans
@@ -572,17 +594,23 @@ def test_a_survey_of_every_pair_registers_further_pairs_beside_the_centre_links(
     project, scans = run()
     further = {(link.moving, link.reference): link for link in project.links if link.extra}
     assert len(further) == 3 and (scans.reads, scans.prepared.made) == (4, 4) and len(scans._scans) == 0
-    assert not any(("icp_reference",) in p.derived for p in scans.prepared._prepared.values()), "ICP structures kept after the links"
+    assert not any(("icp_reference",) in p.derived for p in scans.prepared._prepared.values()), (
+        "ICP structures kept after the links"
+    )
     assert any(threads[key] == "forestreg-prepare-ahead" for key in further), threads
     threads.clear()
     monkeypatch.setattr(plot_module, "SEQUENTIAL_PREPARE_POINTS", 0)  # no scan is small: one at a time
     alone, _ = run()
     assert set(threads.values()) == {"MainThread"}
-    assert [(link.moving, link.reference, link.extra) for link in alone.links] == [(link.moving, link.reference, link.extra) for link in project.links]
+    assert [(link.moving, link.reference, link.extra) for link in alone.links] == [
+        (link.moving, link.reference, link.extra) for link in project.links
+    ]
     for a, b in zip(project.links, alone.links):
         assert a.ok == b.ok and (not a.ok or np.array_equal(a.matrix, b.matrix)), (a.moving, a.reference)
     for name, pose in project.poses().items():
-        assert (pose is None) == (alone.poses()[name] is None) and (pose is None or np.array_equal(pose, alone.poses()[name])), name
+        assert (pose is None) == (alone.poses()[name] is None) and (
+            pose is None or np.array_equal(pose, alone.poses()[name])
+        ), name
 
 
 def test_cancelling_a_survey_of_every_pair_stops_every_thread_quietly(four_scan_files, monkeypatch):

@@ -15,10 +15,10 @@ import pytest
 
 from forestreg.engine.core.errors import ScanWriteError
 from forestreg.engine.io import write_scan
-from forestreg.engine.tls.plot import ScanCache, register_project
-from forestreg.engine.tls.project import Project
 from forestreg.engine.report.plot_report import format_cm, write_plot_report
 from forestreg.engine.report.views import compute_top_view
+from forestreg.engine.tls.plot import ScanCache, register_project
+from forestreg.engine.tls.project import Project
 
 POSITIONS = ((0.0, 0.0), (10.0, 2.0), (-8.0, 6.0))
 ODD_NAME = "scan <b>2<b> & co"  # markup and an ampersand (a slash would make it a path: refused)
@@ -98,7 +98,7 @@ def test_report_of_a_registered_plot(registered, tmp_path):
         assert f'<td class="num"><b>{format_cm(r["icp"]["std_m"])}</b></td>' in text
         assert f'<td class="num">{r["reference_vops"]}</td><td class="num">{r["moving_vops"]}</td>' in text
         assert f'<td class="num">{r["matched"] - r["second_matched"]}</td>' in text
-        assert f'{sum(r["timings"].values()):.1f}' in text
+        assert f"{sum(r['timings'].values()):.1f}" in text
     assert format_cm(0.020043966) == "2.00"
 
     # every piece of user text is escaped
@@ -149,7 +149,7 @@ def test_report_names_a_failed_scan_and_its_reason(registered, tmp_path):
     text = out.read_text(encoding="utf-8")
     _check_html(text)
     assert "<title>Failed &lt;scan&gt; test</title>" in text
-    failbox = text[text.index('class="failbox"'):]
+    failbox = text[text.index('class="failbox"') :]
     failbox = failbox[: failbox.index("</div>")]
     assert "1 of 3 scans could not be registered" in failbox
     assert third in failbox
@@ -157,7 +157,7 @@ def test_report_names_a_failed_scan_and_its_reason(registered, tmp_path):
     assert "also tried onto scan &lt;b&gt;2&lt;b&gt; &amp; co: ambiguous" in failbox
     assert "<too few>" not in text
     # the failed link's row: its evidence and no ICP figure
-    row = text[text.index(f"{third} \u2192"):]
+    row = text[text.index(f"{third} \u2192") :]
     row = row[: row.index("</tr>")]
     assert '<td class="num">31</td><td class="num">12</td><td class="num"><b>2</b></td>' in row
     assert '<td class="num"><b>\u2013</b></td>' in row and "1.8" in row and "failed" in row
@@ -186,22 +186,44 @@ def test_report_with_adjustment_manual_loop_link_and_comparison(registered, tmp_
     p.adjustment = {
         "poses": {k: (None if v is None else v.tolist()) for k, v in poses.items()},
         "links": [
-            {"moving": names[1], "reference": names[0], "before": {"rotation_deg": 0.02, "translation_m": 0.031},
-             "after": {"rotation_deg": 0.004, "translation_m": 0.0072}},
-            {"moving": names[2], "reference": names[1], "before": {"rotation_deg": 0.05, "translation_m": 0.052},
-             "after": {"rotation_deg": None}},
+            {
+                "moving": names[1],
+                "reference": names[0],
+                "before": {"rotation_deg": 0.02, "translation_m": 0.031},
+                "after": {"rotation_deg": 0.004, "translation_m": 0.0072},
+            },
+            {
+                "moving": names[2],
+                "reference": names[1],
+                "before": {"rotation_deg": 0.05, "translation_m": 0.052},
+                "after": {"rotation_deg": None},
+            },
         ],
     }
     comparison = {
         "pairs": [
-            {"moving": names[1], "reference": names[0],
-             "auto": {"status": "ok", "matched": 18, "icp_std_m": 0.0123, "reference_vops": 45, "moving_vops": 50},
-             "manual": {"status": "ok", "icp_std_m": 0.0117, "targets": 5},
-             "rotation_difference_deg": 0.0213, "translation_difference_m": 0.0089},
-            {"moving": names[2], "reference": names[0],
-             "auto": {"status": "failed", "matched": 3, "icp_std_m": None, "reference_vops": 44, "moving_vops": None},
-             "manual": {"status": "ok", "icp_std_m": 0.0098, "targets": 4},
-             "rotation_difference_deg": None, "translation_difference_m": None},
+            {
+                "moving": names[1],
+                "reference": names[0],
+                "auto": {"status": "ok", "matched": 18, "icp_std_m": 0.0123, "reference_vops": 45, "moving_vops": 50},
+                "manual": {"status": "ok", "icp_std_m": 0.0117, "targets": 5},
+                "rotation_difference_deg": 0.0213,
+                "translation_difference_m": 0.0089,
+            },
+            {
+                "moving": names[2],
+                "reference": names[0],
+                "auto": {
+                    "status": "failed",
+                    "matched": 3,
+                    "icp_std_m": None,
+                    "reference_vops": 44,
+                    "moving_vops": None,
+                },
+                "manual": {"status": "ok", "icp_std_m": 0.0098, "targets": 4},
+                "rotation_difference_deg": None,
+                "translation_difference_m": None,
+            },
         ],
         "auto_target_residual_m": 0.024,
         "manual_target_residual_m": 0.0233,

@@ -52,11 +52,13 @@ def service_state(tmp_path_factory):
 @pytest.fixture(scope="module")
 def scans(tmp_path_factory):
     """A tiny simulated pair: ``scan_01.laz`` (reference) and ``scan_02.laz`` 9.8 m away."""
-    from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.io.simulated import write_simulated_plot
+    from forestreg.engine.simulate import simulate_plot
 
     out = tmp_path_factory.mktemp("plugin_scans")
-    write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (9, 4)], seed=1, angular_step_deg=0.3, size_m=40), out)
+    write_simulated_plot(
+        simulate_plot("planted_conifer", [(0, 0), (9, 4)], seed=1, angular_step_deg=0.3, size_m=40), out
+    )
     return out
 
 
@@ -66,7 +68,9 @@ def pair_run(scans, tmp_path_factory):
     out = tmp_path_factory.mktemp("plugin_pair") / "registration"
     seen: dict = {"progress": [], "log": []}
     job = adapter.PairJob(scans / "scan_01.laz", scans / "scan_02.laz", out)
-    outputs = adapter.register_pair(job, CLI, progress=lambda f, m: seen["progress"].append((f, m)), log=seen["log"].append)
+    outputs = adapter.register_pair(
+        job, CLI, progress=lambda f, m: seen["progress"].append((f, m)), log=seen["log"].append
+    )
     return outputs, out, seen
 
 
@@ -74,12 +78,30 @@ def pair_run(scans, tmp_path_factory):
 
 
 def test_pair_and_plot_command_lines():
-    job = adapter.PairJob("ref.laz", "mov.laz", "out", vop_radius_m=15, scanner_positions=[(1, 2, 3), (4.5, 5, 6)], units="cm")
+    job = adapter.PairJob(
+        "ref.laz", "mov.laz", "out", vop_radius_m=15, scanner_positions=[(1, 2, 3), (4.5, 5, 6)], units="cm"
+    )
     cmd = adapter.build_pair_command(job, ["forestreg"])
-    assert cmd == ["forestreg", "register", "ref.laz", "mov.laz", "--out", "out", "--dr", "15.0",
-                   "--scanner-position", "1.0,2.0,3.0", "--scanner-position", "4.5,5.0,6.0", "--units", "cm"]
+    assert cmd == [
+        "forestreg",
+        "register",
+        "ref.laz",
+        "mov.laz",
+        "--out",
+        "out",
+        "--dr",
+        "15.0",
+        "--scanner-position",
+        "1.0,2.0,3.0",
+        "--scanner-position",
+        "4.5,5.0,6.0",
+        "--units",
+        "cm",
+    ]
     assert cmd[1:] == adapter.build_pair_args(job)  # the job's arguments, without the program
-    plot = adapter.build_plot_command(adapter.PlotJob(["a.laz", "b.laz", "c.laz"], "o", centre="b.laz", vop_radius_m=20), ["forestreg"])
+    plot = adapter.build_plot_command(
+        adapter.PlotJob(["a.laz", "b.laz", "c.laz"], "o", centre="b.laz", vop_radius_m=20), ["forestreg"]
+    )
     assert plot == ["forestreg", "plot", "a.laz", "b.laz", "c.laz", "--out", "o", "--centre", "b.laz", "--dr", "20.0"]
     with pytest.raises(adapter.AdapterError):
         adapter.build_plot_command(adapter.PlotJob([], "o"))
@@ -110,8 +132,12 @@ def test_adapter_shows_job_events_and_cancels(scans, tmp_path, service_state):
 
     seen = []
     with pytest.raises(adapter.CancelledError):
-        adapter.run_job(["register", str(scans / "scan_01.laz"), str(scans / "scan_02.laz"), "--out", str(tmp_path / "c")],
-                        progress=lambda f, m: seen.append((f, m)), cancelled=lambda: bool(seen), cli=CLI)
+        adapter.run_job(
+            ["register", str(scans / "scan_01.laz"), str(scans / "scan_02.laz"), "--out", str(tmp_path / "c")],
+            progress=lambda f, m: seen.append((f, m)),
+            cancelled=lambda: bool(seen),
+            cli=CLI,
+        )
     assert seen and 0.0 <= seen[0][0] < 1.0
     job = connect(start=False).jobs()[0]  # the newest job of the service the adapter started
     assert job["status"] == "cancelled" and job["args"][0] == "register"
@@ -130,13 +156,25 @@ def test_a_missing_output_file_is_named(tmp_path):
         adapter.read_pair_outputs(tmp_path)
     with pytest.raises(adapter.AdapterError, match="poses.json is missing"):
         adapter.read_plot_outputs(tmp_path)
-    (tmp_path / "result.json").write_text(json.dumps({"status": "ok", "matrix": np.eye(4).tolist(), "reference": "a", "moving": "b"}))
+    (tmp_path / "result.json").write_text(
+        json.dumps({"status": "ok", "matrix": np.eye(4).tolist(), "reference": "a", "moving": "b"})
+    )
     with pytest.raises(adapter.AdapterError, match="reference_vops.csv is missing"):
         adapter.read_pair_outputs(tmp_path)
 
 
 def test_a_failed_pair_leaves_the_moving_scan_unregistered(tmp_path):
-    (tmp_path / "result.json").write_text(json.dumps({"status": "failed", "reason": "fewer than 4 VOPs in the moving scan", "matrix": None, "reference": "a", "moving": "b"}))
+    (tmp_path / "result.json").write_text(
+        json.dumps(
+            {
+                "status": "failed",
+                "reason": "fewer than 4 VOPs in the moving scan",
+                "matrix": None,
+                "reference": "a",
+                "moving": "b",
+            }
+        )
+    )
     out = adapter.read_pair_outputs(tmp_path)
     assert out.status == "failed" and out.matrix is None and out.vops == []
     assert out.reason.startswith("fewer than 4 VOPs")
@@ -177,14 +215,20 @@ def test_real_pair_records_match_result_json(pair_run):
         assert [r["id"] for r in recs] == [int(row["id"]) for row in rows]
         assert [r["matched"] for r in recs] == [bool(row["matched_with"]) for row in rows]
         assert sum(r["matched"] for r in recs) == result["matched"]
-        np.testing.assert_allclose([[r["x_file"], r["y_file"], r["z_file"]] for r in recs], [[float(row[k]) for k in "xyz"] for row in rows])
+        np.testing.assert_allclose(
+            [[r["x_file"], r["y_file"], r["z_file"]] for r in recs], [[float(row[k]) for k in "xyz"] for row in rows]
+        )
     # reference VOPs stay put, moving VOPs are mapped by the matrix and meet their partners
     refs = {r["id"]: r for r in by_scan[ref["name"]]}
     for r in by_scan[ref["name"]]:
         assert (r["x"], r["y"], r["z"]) == (r["x_file"], r["y_file"], r["z_file"])
     gaps = []
     for m in by_scan[mov["name"]]:
-        np.testing.assert_allclose([m["x"], m["y"], m["z"]], matrix[:3, :3] @ [m["x_file"], m["y_file"], m["z_file"]] + matrix[:3, 3], atol=1e-9)
+        np.testing.assert_allclose(
+            [m["x"], m["y"], m["z"]],
+            matrix[:3, :3] @ [m["x_file"], m["y_file"], m["z_file"]] + matrix[:3, 3],
+            atol=1e-9,
+        )
         if m["matched"]:
             partner = refs[m["matched_with"]]
             assert partner["matched_with"] == m["id"]
@@ -213,9 +257,13 @@ def test_real_plot_poses(scans, pair_run, tmp_path):
     assert [s["name"] for s in outputs.scanners] == list(poses["scans"])
     centre, other = outputs.scanners
     assert centre["role"] == "centre" and (centre["x"], centre["y"], centre["z"]) == (0.0, 0.0, 0.0)
-    np.testing.assert_allclose([other["x"], other["y"], other["z"]], np.array(poses["scans"]["scan_02.laz"]["matrix"])[:3, 3])
+    np.testing.assert_allclose(
+        [other["x"], other["y"], other["z"]], np.array(poses["scans"]["scan_02.laz"]["matrix"])[:3, 3]
+    )
     # the same registration as the pair run
-    np.testing.assert_allclose([other["x"], other["y"], other["z"]], [pair_outputs.scanners[1][k] for k in "xyz"], atol=0.01)
+    np.testing.assert_allclose(
+        [other["x"], other["y"], other["z"]], [pair_outputs.scanners[1][k] for k in "xyz"], atol=0.01
+    )
     assert seen and max(seen) >= 0.9
     assert len(_csv_rows(tmp_path / "plot" / "layer_scanners.csv")) == 2
 
@@ -265,7 +313,9 @@ def test_pyproject_declares_the_cloudcompare_entry_point():
     except ImportError:  # Python < 3.11
         import tomli as tomllib
     meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    assert meta["project"]["entry-points"]["cloudcompare.plugins"] == {"forestreg": "forestreg.plugin.cloudcompare:ForestregCC"}
+    assert meta["project"]["entry-points"]["cloudcompare.plugins"] == {
+        "forestreg": "forestreg.plugin.cloudcompare:ForestregCC"
+    }
 
 
 def test_cloudcompare_entry_point_if_installed():
@@ -273,7 +323,9 @@ def test_cloudcompare_entry_point_if_installed():
 
     eps = [ep for ep in entry_points(group="cloudcompare.plugins") if ep.value.startswith("forestreg.")]
     if not eps:
-        pytest.skip("no forestreg entry point in group 'cloudcompare.plugins' in this environment (pyproject.toml declares it; reinstall the package to register it)")
+        pytest.skip(
+            "no forestreg entry point in group 'cloudcompare.plugins' in this environment (pyproject.toml declares it; reinstall the package to register it)"
+        )
     assert eps[0].value == "forestreg.plugin.cloudcompare:ForestregCC"
 
 
@@ -316,8 +368,23 @@ def test_transform_txt_is_accepted_by_cloudcompare_apply_trans(pair_run, tmp_pat
     cloud = tmp_path / "cloud.xyz"
     np.savetxt(cloud, pts, fmt="%.6f")
     saved = tmp_path / "moved.xyz"
-    cmd = runner + [binary, "-SILENT", "-AUTO_SAVE", "OFF", "-O", str(cloud), "-APPLY_TRANS", str(transform),
-                    "-C_EXPORT_FMT", "ASC", "-PREC", "9", "-SAVE_CLOUDS", "FILE", str(saved)]
+    cmd = runner + [
+        binary,
+        "-SILENT",
+        "-AUTO_SAVE",
+        "OFF",
+        "-O",
+        str(cloud),
+        "-APPLY_TRANS",
+        str(transform),
+        "-C_EXPORT_FMT",
+        "ASC",
+        "-PREC",
+        "9",
+        "-SAVE_CLOUDS",
+        "FILE",
+        str(saved),
+    ]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=180, cwd=tmp_path)
     assert run.returncode == 0 and saved.is_file(), run.stdout[-2000:] + run.stderr[-2000:]
     moved = np.loadtxt(saved, ndmin=2)[:, :3]
@@ -331,7 +398,9 @@ def _python_with_qgis():
     """An interpreter where ``qgis.core`` imports: this one, else Debian's /usr/bin/python3."""
     for exe in dict.fromkeys([sys.executable, "/usr/bin/python3"]):
         if Path(exe).exists():
-            ok = subprocess.run([exe, "-c", "import qgis.core"], capture_output=True, env={**os.environ, "QT_QPA_PLATFORM": "offscreen"})
+            ok = subprocess.run(
+                [exe, "-c", "import qgis.core"], capture_output=True, env={**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+            )
             if ok.returncode == 0:
                 return exe
     return None
@@ -358,10 +427,12 @@ def _qgis_report(exe: str, script: str, plugins: Path, tmp_path: Path, *args: st
     """Run ``script`` in QGIS's Python with ``plugins`` on its path; the JSON it printed after
     ``REPORT`` (the run must succeed)."""
     env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "PYTHONPATH": str(plugins), "HOME": str(tmp_path)}
-    run = subprocess.run([exe, "-c", script, *args], capture_output=True, text=True, timeout=timeout, env=env, cwd=tmp_path)
+    run = subprocess.run(
+        [exe, "-c", script, *args], capture_output=True, text=True, timeout=timeout, env=env, cwd=tmp_path
+    )
     lines = [l for l in run.stdout.splitlines() if l.startswith("REPORT")]
     assert run.returncode == 0 and lines, run.stdout[-3000:] + run.stderr[-3000:]
-    return json.loads(lines[-1][len("REPORT"):])
+    return json.loads(lines[-1][len("REPORT") :])
 
 
 QGIS_SCRIPT = r"""
@@ -425,14 +496,21 @@ app.exitQgis()
 
 def test_qgis_provider_headless(pair_run, scans, tmp_path):
     exe = _qgis_or_skip()
-    params = {"REFERENCE": str(scans / "scan_01.laz"), "MOVING": str(scans / "scan_02.laz"),
-              "OUTPUT": str(tmp_path / "out"), "CLI": shlex.join(CLI)}
+    params = {
+        "REFERENCE": str(scans / "scan_01.laz"),
+        "MOVING": str(scans / "scan_02.laz"),
+        "OUTPUT": str(tmp_path / "out"),
+        "CLI": shlex.join(CLI),
+    }
     report = _qgis_report(exe, QGIS_SCRIPT, _repository_as_plugin(tmp_path), tmp_path, json.dumps(params), timeout=600)
     assert report["loaded_by_import_forestreg"] == [] and report["pyside6"] == []
     assert report["algorithms"] == {
-        "forestreg:register_pair": "Register TLS pair (trunk shadows)", "forestreg:register_plot": "Register plot",
-        "forestreg:coregister": "Co-register ground onto UAV (canopy keypoints)", "forestreg:fuse": "Fuse ground and UAV clouds",
-        "forestreg:trees": "Measure trees", "forestreg:evaluate": "Evaluate trees against field records",
+        "forestreg:register_pair": "Register TLS pair (trunk shadows)",
+        "forestreg:register_plot": "Register plot",
+        "forestreg:coregister": "Co-register ground onto UAV (canopy keypoints)",
+        "forestreg:fuse": "Fuse ground and UAV clouds",
+        "forestreg:trees": "Measure trees",
+        "forestreg:evaluate": "Evaluate trees against field records",
         "forestreg:change": "Re-survey change (persisting, removed, new trees)",
     }
     assert {"SCANS", "OUTPUT", "MERGED", "DR"} <= set(report["plot_parameters"])
@@ -543,11 +621,17 @@ def test_qgis_loads_the_packaged_zip(tmp_path):
     import zipfile
 
     exe = _qgis_or_skip()
-    run = subprocess.run([sys.executable, str(ROOT / "scripts" / "package_qgis.py"), "--out", str(tmp_path)], capture_output=True, text=True)
+    run = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "package_qgis.py"), "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+    )
     assert run.returncode == 0, run.stderr
     plugins = tmp_path / "plugins"
     zipfile.ZipFile(next(tmp_path.glob("forestreg-qgis-*.zip"))).extractall(plugins)
     report = _qgis_report(exe, QGIS_ZIP_SCRIPT, plugins, tmp_path)
     assert Path(report["file"]).resolve().is_relative_to(plugins.resolve())
-    assert report["algorithms"] == sorted(f"forestreg:{n}" for n in ("register_pair", "register_plot", "coregister", "fuse", "trees",
-                                                                      "evaluate", "change"))
+    assert report["algorithms"] == sorted(
+        f"forestreg:{n}"
+        for n in ("register_pair", "register_plot", "coregister", "fuse", "trees", "evaluate", "change")
+    )

@@ -7,10 +7,6 @@ algorithms in real QGIS (``qgis_process``, PyQGIS): :mod:`test_qgis_real`."""
 
 from __future__ import annotations
 
-import json
-import os
-import shutil
-import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -81,17 +77,57 @@ def test_the_provider_has_seven_algorithms_with_their_parameters_and_outputs(pro
         assert a.displayName() and a.shortHelpString() and a.groupId() in ("registration", "trees")
         assert a.createInstance().name() == a.name()
     expected = {
-        "coregister": (["GROUND", "UAV", "OUTPUT", "MIN_CLUSTER_SIZE", "VOXEL", "DISTANCE_THRESHOLD", "CRS", "UNITS", "PARAMS", "CLI"],
-                       ["TRANSFORM", "RESULT", "LAYERS", "STATUS", "REASON"]),
-        "fuse": (["GROUND", "UAV", "TRANSFORM", "OUTPUT", "EPSILON", "CUBE", "CRS", "UNITS", "PARAMS", "CLI"], ["POINT_CLOUD", "STATUS", "REASON"]),
-        "trees": (["CLOUD", "OUTPUT", "TRANSFORM", "FIELD", "CYLINDERS", "SINGLE_TREE", "REPORT", "CRS", "UNITS", "PARAMS", "CLI"],
-                  ["TREES", "LAYERS", "STATUS", "REASON"]),
-        "evaluate": (["TREES", "FIELD", "OUTPUT", "RUN_NAME", "ALSO", "BY", "MAX_DISTANCE", "CLI"], ["EVALUATION", "STATUS", "REASON"]),
-        "change": (["BEFORE", "AFTER", "OUTPUT", "REPORT", "CRS", "UNITS", "PARAMS", "UNITS_BEFORE", "UNITS_AFTER", "CLI"],
-                   ["CHANGES", "RESULT", "LAYERS", "STATUS", "REASON"]),
-        "register_plot": (["SCANS", "CENTRE", "OUTPUT", "MERGED", "DR", "CRS", "CLI"], ["SCANNERS", "STATUS", "REASON", "LAYERS", "POINT_CLOUD"]),
-        "register_pair": (["REFERENCE", "MOVING", "OUTPUT", "WRITE_REGISTERED", "DR", "CRS", "CLI"],
-                          ["SCANNERS", "STATUS", "REASON", "VOPS", "MATCHED", "TRANSFORM", "POINT_CLOUD"]),
+        "coregister": (
+            [
+                "GROUND",
+                "UAV",
+                "OUTPUT",
+                "MIN_CLUSTER_SIZE",
+                "VOXEL",
+                "DISTANCE_THRESHOLD",
+                "CRS",
+                "UNITS",
+                "PARAMS",
+                "CLI",
+            ],
+            ["TRANSFORM", "RESULT", "LAYERS", "STATUS", "REASON"],
+        ),
+        "fuse": (
+            ["GROUND", "UAV", "TRANSFORM", "OUTPUT", "EPSILON", "CUBE", "CRS", "UNITS", "PARAMS", "CLI"],
+            ["POINT_CLOUD", "STATUS", "REASON"],
+        ),
+        "trees": (
+            [
+                "CLOUD",
+                "OUTPUT",
+                "TRANSFORM",
+                "FIELD",
+                "CYLINDERS",
+                "SINGLE_TREE",
+                "REPORT",
+                "CRS",
+                "UNITS",
+                "PARAMS",
+                "CLI",
+            ],
+            ["TREES", "LAYERS", "STATUS", "REASON"],
+        ),
+        "evaluate": (
+            ["TREES", "FIELD", "OUTPUT", "RUN_NAME", "ALSO", "BY", "MAX_DISTANCE", "CLI"],
+            ["EVALUATION", "STATUS", "REASON"],
+        ),
+        "change": (
+            ["BEFORE", "AFTER", "OUTPUT", "REPORT", "CRS", "UNITS", "PARAMS", "UNITS_BEFORE", "UNITS_AFTER", "CLI"],
+            ["CHANGES", "RESULT", "LAYERS", "STATUS", "REASON"],
+        ),
+        "register_plot": (
+            ["SCANS", "CENTRE", "OUTPUT", "MERGED", "DR", "CRS", "CLI"],
+            ["SCANNERS", "STATUS", "REASON", "LAYERS", "POINT_CLOUD"],
+        ),
+        "register_pair": (
+            ["REFERENCE", "MOVING", "OUTPUT", "WRITE_REGISTERED", "DR", "CRS", "CLI"],
+            ["SCANNERS", "STATUS", "REASON", "VOPS", "MATCHED", "TRANSFORM", "POINT_CLOUD"],
+        ),
     }
     for name, (parameters, outputs) in expected.items():
         a = algorithms[name]
@@ -99,7 +135,9 @@ def test_the_provider_has_seven_algorithms_with_their_parameters_and_outputs(pro
         assert [o.name() for o in a.outputDefinitions()] == outputs, name
         kinds = {d.name(): d.kind for d in a.parameterDefinitions()}
         # the output (a folder, or the fused cloud) is a destination: an output of the model step
-        assert kinds["OUTPUT"] == ("QgsProcessingParameterFileDestination" if name == "fuse" else "QgsProcessingParameterFolderDestination")
+        assert kinds["OUTPUT"] == (
+            "QgsProcessingParameterFileDestination" if name == "fuse" else "QgsProcessingParameterFolderDestination"
+        )
         for d in a.parameterDefinitions():
             if d.name() in ("CLI", "PARAMS", "CRS", "UNITS_BEFORE", "UNITS_AFTER"):
                 assert d.advanced(), (name, d.name())
@@ -111,7 +149,12 @@ def test_outputs_chain_plot_trees_change(provider):
     kinds = {(n, o.name()): o.kind for n in IDS for o in _algorithm(provider, n).outputDefinitions()}
     params = {(n, d.name()): d.kind for n in IDS for d in _algorithm(provider, n).parameterDefinitions()}
     assert params[("register_plot", "MERGED")] == "QgsProcessingParameterFileDestination"
-    assert params[("trees", "CLOUD")] == params[("change", "BEFORE")] == params[("change", "AFTER")] == "QgsProcessingParameterFile"
+    assert (
+        params[("trees", "CLOUD")]
+        == params[("change", "BEFORE")]
+        == params[("change", "AFTER")]
+        == "QgsProcessingParameterFile"
+    )
     assert kinds[("trees", "TREES")] == kinds[("coregister", "TRANSFORM")] == "QgsProcessingOutputFile"
     assert params[("fuse", "TRANSFORM")] == params[("trees", "TRANSFORM")] == "QgsProcessingParameterFile"
 
@@ -123,10 +166,16 @@ def test_defaults_are_the_cli_defaults(provider):
     p = {x.name(): x for x in alg.parameterDefinitions()}
     assert p["CYLINDERS"].defaultValue() is (not d.no_cylinders) is True
     assert p["REPORT"].defaultValue() is (not d.no_report) is True
-    assert d.single_tree is None and p["SINGLE_TREE"].options()[p["SINGLE_TREE"].defaultValue()] == "decided from the cloud"
+    assert (
+        d.single_tree is None
+        and p["SINGLE_TREE"].options()[p["SINGLE_TREE"].defaultValue()] == "decided from the cloud"
+    )
     assert p["SINGLE_TREE"].options()[1:] == list(next(a for a in trees._actions if a.dest == "single_tree").choices)
     units = next(a for a in trees._actions if a.dest == "units")
-    assert p["UNITS"].options() == sorted(units.choices) and p["UNITS"].options()[p["UNITS"].defaultValue()] == units.default == "m"
+    assert (
+        p["UNITS"].options() == sorted(units.choices)
+        and p["UNITS"].options()[p["UNITS"].defaultValue()] == units.default == "m"
+    )
 
     _, evaluate = _cli_parser("evaluate")
     d = evaluate.parse_args(["t.csv", "f.csv", "--out", "o"])
@@ -135,7 +184,10 @@ def test_defaults_are_the_cli_defaults(provider):
     assert p["BY"].options() == list(next(a for a in evaluate._actions if a.dest == "by").choices)
     assert p["MAX_DISTANCE"].defaultValue() == d.max_distance == 1.0
 
-    for command, names in (("coregister", ("min_cluster_size", "voxel", "distance_threshold")), ("fuse", ("epsilon", "cube"))):
+    for command, names in (
+        ("coregister", ("min_cluster_size", "voxel", "distance_threshold")),
+        ("fuse", ("epsilon", "cube")),
+    ):
         _, sub = _cli_parser(command)
         d = sub.parse_args(["g.laz", "u.laz", "--out", "o.laz" if command == "fuse" else "o"])
         assert all(getattr(d, n) is None for n in names)  # no default: the parameters' own (optional, empty)
@@ -154,35 +206,179 @@ def test_defaults_are_the_cli_defaults(provider):
 
 
 CASES = [
-    ("coregister", {"GROUND": "g.laz", "UAV": "u.laz", "OUTPUT": "co"}, ["coregister", "g.laz", "u.laz", "--out", "co"]),
-    ("coregister", {"GROUND": "g.laz", "UAV": "u.laz", "OUTPUT": "co", "MIN_CLUSTER_SIZE": 12, "VOXEL": 0.25, "DISTANCE_THRESHOLD": 2,
-                    "CRS": "EPSG:32618", "UNITS": 0, "PARAMS": "p.toml"},
-     ["coregister", "g.laz", "u.laz", "--out", "co", "--min-cluster-size", "12", "--voxel", "0.25", "--distance-threshold", "2.0",
-      "--crs", "EPSG:32618", "--units", "cm", "--params", "p.toml"]),
-    ("fuse", {"GROUND": "g.laz", "UAV": "u.laz", "OUTPUT": "fused.laz"}, ["fuse", "g.laz", "u.laz", "--out", "fused.laz"]),
-    ("fuse", {"GROUND": "g.laz", "UAV": "u.laz", "OUTPUT": "fused.laz", "TRANSFORM": "co/transform.txt", "EPSILON": 0.02, "CUBE": 5, "UNITS": 3},
-     ["fuse", "g.laz", "u.laz", "--out", "fused.laz", "--transform", "co/transform.txt", "--epsilon", "0.02", "--cube", "5.0", "--units", "mm"]),
+    (
+        "coregister",
+        {"GROUND": "g.laz", "UAV": "u.laz", "OUTPUT": "co"},
+        ["coregister", "g.laz", "u.laz", "--out", "co"],
+    ),
+    (
+        "coregister",
+        {
+            "GROUND": "g.laz",
+            "UAV": "u.laz",
+            "OUTPUT": "co",
+            "MIN_CLUSTER_SIZE": 12,
+            "VOXEL": 0.25,
+            "DISTANCE_THRESHOLD": 2,
+            "CRS": "EPSG:32618",
+            "UNITS": 0,
+            "PARAMS": "p.toml",
+        },
+        [
+            "coregister",
+            "g.laz",
+            "u.laz",
+            "--out",
+            "co",
+            "--min-cluster-size",
+            "12",
+            "--voxel",
+            "0.25",
+            "--distance-threshold",
+            "2.0",
+            "--crs",
+            "EPSG:32618",
+            "--units",
+            "cm",
+            "--params",
+            "p.toml",
+        ],
+    ),
+    (
+        "fuse",
+        {"GROUND": "g.laz", "UAV": "u.laz", "OUTPUT": "fused.laz"},
+        ["fuse", "g.laz", "u.laz", "--out", "fused.laz"],
+    ),
+    (
+        "fuse",
+        {
+            "GROUND": "g.laz",
+            "UAV": "u.laz",
+            "OUTPUT": "fused.laz",
+            "TRANSFORM": "co/transform.txt",
+            "EPSILON": 0.02,
+            "CUBE": 5,
+            "UNITS": 3,
+        },
+        [
+            "fuse",
+            "g.laz",
+            "u.laz",
+            "--out",
+            "fused.laz",
+            "--transform",
+            "co/transform.txt",
+            "--epsilon",
+            "0.02",
+            "--cube",
+            "5.0",
+            "--units",
+            "mm",
+        ],
+    ),
     ("trees", {"CLOUD": "plot.laz", "OUTPUT": "trees"}, ["trees", "plot.laz", "--out", "trees"]),
-    ("trees", {"CLOUD": "plot.laz", "OUTPUT": "trees", "TRANSFORM": "t.txt", "FIELD": "field.csv", "CYLINDERS": False, "SINGLE_TREE": 2,
-               "REPORT": False, "CRS": "EPSG:25832", "UNITS": 2},
-     ["trees", "plot.laz", "--out", "trees", "--transform", "t.txt", "--field", "field.csv", "--no-cylinders", "--single-tree", "yes",
-      "--no-report", "--crs", "EPSG:25832"]),
-    ("evaluate", {"TREES": "trees/trees.csv", "FIELD": "field.csv", "OUTPUT": "ev"},
-     ["evaluate", "trees/trees.csv", "field.csv", "--out", "ev", "--by", "position", "--max-distance", "1.0"]),
-    ("evaluate", {"TREES": "a/trees.csv", "FIELD": "field.csv", "OUTPUT": "ev", "RUN_NAME": "tls", "ALSO": "fused=b/trees.csv; c/trees.csv",
-                  "BY": 1, "MAX_DISTANCE": 0.5},
-     ["evaluate", "a/trees.csv", "field.csv", "--out", "ev", "--name", "tls", "--also", "fused=b/trees.csv", "--also", "c/trees.csv",
-      "--by", "id", "--max-distance", "0.5"]),
-    ("change", {"BEFORE": "2019/trees.csv", "AFTER": "2024.laz", "OUTPUT": "ch"}, ["change", "2019/trees.csv", "2024.laz", "--out", "ch"]),
-    ("change", {"BEFORE": "a.laz", "AFTER": "b.laz", "OUTPUT": "ch", "REPORT": False, "UNITS": 0, "UNITS_BEFORE": 0, "UNITS_AFTER": 4},
-     ["change", "a.laz", "b.laz", "--out", "ch", "--no-report", "--units", "cm", "--units-after", "mm"]),
-    ("register_pair", {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": "pair", "DR": 15}, ["register", "a.laz", "b.laz", "--out", "pair", "--dr", "15.0"]),
-    ("register_pair", {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": "pair", "WRITE_REGISTERED": True, "CRS": "EPSG:26912"},
-     ["register", "a.laz", "b.laz", "--out", "pair", "--write-registered", "--crs", "EPSG:26912"]),
-    ("register_plot", {"SCANS": ["a.laz", "b.laz"], "OUTPUT": "plot", "MERGED": "plot/merged.copc.laz", "CENTRE": "b.laz"},
-     ["plot", "a.laz", "b.laz", "--out", "plot", "--centre", "b.laz", "--merged", "plot/merged.copc.laz"]),
-    ("register_plot", {"SCANS": ["a.laz", "b.laz"], "OUTPUT": "plot", "CRS": "EPSG:32618"},
-     ["plot", "a.laz", "b.laz", "--out", "plot", "--crs", "EPSG:32618"]),
+    (
+        "trees",
+        {
+            "CLOUD": "plot.laz",
+            "OUTPUT": "trees",
+            "TRANSFORM": "t.txt",
+            "FIELD": "field.csv",
+            "CYLINDERS": False,
+            "SINGLE_TREE": 2,
+            "REPORT": False,
+            "CRS": "EPSG:25832",
+            "UNITS": 2,
+        },
+        [
+            "trees",
+            "plot.laz",
+            "--out",
+            "trees",
+            "--transform",
+            "t.txt",
+            "--field",
+            "field.csv",
+            "--no-cylinders",
+            "--single-tree",
+            "yes",
+            "--no-report",
+            "--crs",
+            "EPSG:25832",
+        ],
+    ),
+    (
+        "evaluate",
+        {"TREES": "trees/trees.csv", "FIELD": "field.csv", "OUTPUT": "ev"},
+        ["evaluate", "trees/trees.csv", "field.csv", "--out", "ev", "--by", "position", "--max-distance", "1.0"],
+    ),
+    (
+        "evaluate",
+        {
+            "TREES": "a/trees.csv",
+            "FIELD": "field.csv",
+            "OUTPUT": "ev",
+            "RUN_NAME": "tls",
+            "ALSO": "fused=b/trees.csv; c/trees.csv",
+            "BY": 1,
+            "MAX_DISTANCE": 0.5,
+        },
+        [
+            "evaluate",
+            "a/trees.csv",
+            "field.csv",
+            "--out",
+            "ev",
+            "--name",
+            "tls",
+            "--also",
+            "fused=b/trees.csv",
+            "--also",
+            "c/trees.csv",
+            "--by",
+            "id",
+            "--max-distance",
+            "0.5",
+        ],
+    ),
+    (
+        "change",
+        {"BEFORE": "2019/trees.csv", "AFTER": "2024.laz", "OUTPUT": "ch"},
+        ["change", "2019/trees.csv", "2024.laz", "--out", "ch"],
+    ),
+    (
+        "change",
+        {
+            "BEFORE": "a.laz",
+            "AFTER": "b.laz",
+            "OUTPUT": "ch",
+            "REPORT": False,
+            "UNITS": 0,
+            "UNITS_BEFORE": 0,
+            "UNITS_AFTER": 4,
+        },
+        ["change", "a.laz", "b.laz", "--out", "ch", "--no-report", "--units", "cm", "--units-after", "mm"],
+    ),
+    (
+        "register_pair",
+        {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": "pair", "DR": 15},
+        ["register", "a.laz", "b.laz", "--out", "pair", "--dr", "15.0"],
+    ),
+    (
+        "register_pair",
+        {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": "pair", "WRITE_REGISTERED": True, "CRS": "EPSG:26912"},
+        ["register", "a.laz", "b.laz", "--out", "pair", "--write-registered", "--crs", "EPSG:26912"],
+    ),
+    (
+        "register_plot",
+        {"SCANS": ["a.laz", "b.laz"], "OUTPUT": "plot", "MERGED": "plot/merged.copc.laz", "CENTRE": "b.laz"},
+        ["plot", "a.laz", "b.laz", "--out", "plot", "--centre", "b.laz", "--merged", "plot/merged.copc.laz"],
+    ),
+    (
+        "register_plot",
+        {"SCANS": ["a.laz", "b.laz"], "OUTPUT": "plot", "CRS": "EPSG:32618"},
+        ["plot", "a.laz", "b.laz", "--out", "plot", "--crs", "EPSG:32618"],
+    ),
 ]
 
 
@@ -194,10 +390,25 @@ def test_each_algorithm_builds_the_job_request(provider, monkeypatch, tmp_path, 
     if name.startswith("register"):  # the registration reads what the job wrote: stand in for it
         outputs = _plot_outputs(tmp_path)
         if name == "register_pair":
-            outputs = adapter.HostOutputs("pair", tmp_path, "ok", "a", {}, [], [], "", adapter.SavedResult.from_dict(
-                {"status": "ok", "matrix": np.eye(4).tolist(), "reference": "a", "moving": "b", "matched": 7}))
-        monkeypatch.setattr(adapter, name, lambda job, cli, p, l, c: (jobs(adapter.build_args(job), p, l, c, cli), outputs)[1])
-        monkeypatch.setattr(adapter, "write_layer_files", lambda o: adapter.LayerFiles(tmp_path / "s.csv", tmp_path / "v.csv"))
+            outputs = adapter.HostOutputs(
+                "pair",
+                tmp_path,
+                "ok",
+                "a",
+                {},
+                [],
+                [],
+                "",
+                adapter.SavedResult.from_dict(
+                    {"status": "ok", "matrix": np.eye(4).tolist(), "reference": "a", "moving": "b", "matched": 7}
+                ),
+            )
+        monkeypatch.setattr(
+            adapter, name, lambda job, cli, p, l, c: (jobs(adapter.build_args(job), p, l, c, cli), outputs)[1]
+        )
+        monkeypatch.setattr(
+            adapter, "write_layer_files", lambda o: adapter.LayerFiles(tmp_path / "s.csv", tmp_path / "v.csv")
+        )
     parameters = {**parameters, "CLI": "/opt/forestreg/bin/forestreg"}
     feedback = qgis_fakes.Feedback()
     results = _algorithm(provider, name).processAlgorithm(parameters, qgis_fakes.QgsProcessingContext(), feedback)
@@ -220,7 +431,8 @@ def test_a_failed_command_is_status_failed_with_its_reason(provider, monkeypatch
     monkeypatch.setattr(adapter, "run_job", _Jobs(exit_code=1, message="failed: fewer than 3 keypoints matched"))
     feedback = qgis_fakes.Feedback()
     results = _algorithm(provider, "coregister").processAlgorithm(
-        {"GROUND": "g.laz", "UAV": "u.laz", "OUTPUT": str(tmp_path / "co")}, qgis_fakes.QgsProcessingContext(), feedback)
+        {"GROUND": "g.laz", "UAV": "u.laz", "OUTPUT": str(tmp_path / "co")}, qgis_fakes.QgsProcessingContext(), feedback
+    )
     assert results["STATUS"] == "failed" and results["REASON"] == "fewer than 3 keypoints matched"
     assert results["TRANSFORM"] == "" and any("fewer than 3 keypoints" in e for e in feedback.errors)
 
@@ -239,8 +451,13 @@ def test_an_unknown_choice_is_refused_before_the_job():
 
 @pytest.mark.parametrize("name", ["coregister", "fuse", "trees", "evaluate", "change"])
 def test_job_progress_log_and_cancel_reach_the_feedback(provider, monkeypatch, tmp_path, name):
-    params = {"coregister": {"GROUND": "g", "UAV": "u"}, "fuse": {"GROUND": "g", "UAV": "u"}, "trees": {"CLOUD": "c"},
-              "evaluate": {"TREES": "t", "FIELD": "f"}, "change": {"BEFORE": "a", "AFTER": "b"}}[name]
+    params = {
+        "coregister": {"GROUND": "g", "UAV": "u"},
+        "fuse": {"GROUND": "g", "UAV": "u"},
+        "trees": {"CLOUD": "c"},
+        "evaluate": {"TREES": "t", "FIELD": "f"},
+        "change": {"BEFORE": "a", "AFTER": "b"},
+    }[name]
     params = {**params, "OUTPUT": str(tmp_path / ("out.laz" if name == "fuse" else "out"))}
     monkeypatch.setattr(adapter, "run_job", _Jobs())
     feedback = qgis_fakes.Feedback()
@@ -262,7 +479,9 @@ def test_service_errors_become_processing_exceptions(provider, monkeypatch):
     monkeypatch.setattr(adapter, "run_job", refuse)
     feedback = qgis_fakes.Feedback()
     with pytest.raises(qgis_fakes.QgsProcessingException, match="bad input"):
-        _algorithm(provider, "trees").processAlgorithm({"CLOUD": "c.laz", "OUTPUT": "o"}, qgis_fakes.QgsProcessingContext(), feedback)
+        _algorithm(provider, "trees").processAlgorithm(
+            {"CLOUD": "c.laz", "OUTPUT": "o"}, qgis_fakes.QgsProcessingContext(), feedback
+        )
     assert feedback.errors == ["c.laz: no such file"]
 
 
@@ -278,9 +497,28 @@ def _write_layers(folder, names=("trees", "crowns", "plot_outline")):
     layers = []
     for n in names:
         if n == "trees":
-            layers.append(Layer(n, "POINT", ("tree_id",), [{"tree_id": 1}], [np.array([1.0, 2.0, 1.3])], z=True, style="<qgis>trees</qgis>"))
+            layers.append(
+                Layer(
+                    n,
+                    "POINT",
+                    ("tree_id",),
+                    [{"tree_id": 1}],
+                    [np.array([1.0, 2.0, 1.3])],
+                    z=True,
+                    style="<qgis>trees</qgis>",
+                )
+            )
         else:
-            layers.append(Layer(n, "POLYGON", ("name",), [{"name": n}], [ring], style="" if n == "plot_outline" else f"<qgis>{n}</qgis>"))
+            layers.append(
+                Layer(
+                    n,
+                    "POLYGON",
+                    ("name",),
+                    [{"name": n}],
+                    [ring],
+                    style="" if n == "plot_outline" else f"<qgis>{n}</qgis>",
+                )
+            )
     write_geopackage(folder / "layers.gpkg", layers)
     (folder / "trees.csv").write_text("tree_id,x,y\n1,1,2\n")
 
@@ -288,7 +526,11 @@ def _write_layers(folder, names=("trees", "crowns", "plot_outline")):
 def test_adapter_lists_the_layers_of_a_geopackage_with_their_styles(tmp_path):
     _write_layers(tmp_path)
     layers = adapter.gpkg_layers(tmp_path / "layers.gpkg")
-    assert [(l.name, l.style) for l in layers] == [("trees", "<qgis>trees</qgis>"), ("crowns", "<qgis>crowns</qgis>"), ("plot_outline", "")]
+    assert [(l.name, l.style) for l in layers] == [
+        ("trees", "<qgis>trees</qgis>"),
+        ("crowns", "<qgis>crowns</qgis>"),
+        ("plot_outline", ""),
+    ]
     assert layers[0].uri == f"{(tmp_path / 'layers.gpkg').resolve()}|layername=trees"
     assert adapter.gpkg_layers(tmp_path / "none.gpkg") == []
     (tmp_path / "bad.gpkg").write_text("not a database")
@@ -300,25 +542,36 @@ def test_trees_loads_the_styled_layers_of_its_output_folder(provider, monkeypatc
     out = tmp_path / "trees"
     monkeypatch.setattr(adapter, "run_job", _Jobs(files=lambda args: _write_layers(args[args.index("--out") + 1])))
     context = qgis_fakes.QgsProcessingContext()
-    results = _algorithm(provider, "trees").processAlgorithm({"CLOUD": str(tmp_path / "plot.laz"), "OUTPUT": str(out)}, context,
-                                                              qgis_fakes.Feedback())
+    results = _algorithm(provider, "trees").processAlgorithm(
+        {"CLOUD": str(tmp_path / "plot.laz"), "OUTPUT": str(out)}, context, qgis_fakes.Feedback()
+    )
     assert results["OUTPUT"] == str(out) and results["TREES"] == str(out / "trees.csv")
     layers = [context.store.mapLayer(i) for i in results["LAYERS"]]
-    assert [(l.name(), l.provider) for l in layers] == [("trees (plot)", "ogr"), ("crowns (plot)", "ogr"), ("plot_outline (plot)", "ogr")]
+    assert [(l.name(), l.provider) for l in layers] == [
+        ("trees (plot)", "ogr"),
+        ("crowns (plot)", "ogr"),
+        ("plot_outline (plot)", "ogr"),
+    ]
     assert layers[0].source.endswith("layers.gpkg|layername=trees")
     assert [l.styles for l in layers] == [["<qgis>trees</qgis>"], ["<qgis>crowns</qgis>"], []]
     assert list(context.to_load) == results["LAYERS"] and {d.output for d in context.to_load.values()} == {"LAYERS"}
 
 
 def test_change_and_coregister_load_their_layers_a_run_without_them_loads_none(provider, monkeypatch, tmp_path):
-    monkeypatch.setattr(adapter, "run_job", _Jobs(files=lambda args: _write_layers(args[args.index("--out") + 1], ("tree_changes",))))
+    monkeypatch.setattr(
+        adapter, "run_job", _Jobs(files=lambda args: _write_layers(args[args.index("--out") + 1], ("tree_changes",)))
+    )
     context = qgis_fakes.QgsProcessingContext()
-    results = _algorithm(provider, "change").processAlgorithm({"BEFORE": "2019.csv", "AFTER": "2024.csv", "OUTPUT": str(tmp_path / "ch")},
-                                                              context, qgis_fakes.Feedback())
+    results = _algorithm(provider, "change").processAlgorithm(
+        {"BEFORE": "2019.csv", "AFTER": "2024.csv", "OUTPUT": str(tmp_path / "ch")}, context, qgis_fakes.Feedback()
+    )
     assert [context.store.mapLayer(i).name() for i in results["LAYERS"]] == ["tree_changes (2024 since 2019)"]
     monkeypatch.setattr(adapter, "run_job", _Jobs())
-    results = _algorithm(provider, "coregister").processAlgorithm({"GROUND": "g", "UAV": "u", "OUTPUT": str(tmp_path / "co")},
-                                                                  qgis_fakes.QgsProcessingContext(), qgis_fakes.Feedback())
+    results = _algorithm(provider, "coregister").processAlgorithm(
+        {"GROUND": "g", "UAV": "u", "OUTPUT": str(tmp_path / "co")},
+        qgis_fakes.QgsProcessingContext(),
+        qgis_fakes.Feedback(),
+    )
     assert results["LAYERS"] == []
 
 
@@ -326,7 +579,9 @@ def _fuse(provider, monkeypatch, tmp_path, feedback):
     out = tmp_path / "fused.laz"
     monkeypatch.setattr(adapter, "run_job", _Jobs(files=lambda args: out.write_bytes(b"LASF")))
     context = qgis_fakes.QgsProcessingContext()
-    results = _algorithm(provider, "fuse").processAlgorithm({"GROUND": "g.laz", "UAV": "u.laz", "OUTPUT": str(out)}, context, feedback)
+    results = _algorithm(provider, "fuse").processAlgorithm(
+        {"GROUND": "g.laz", "UAV": "u.laz", "OUTPUT": str(out)}, context, feedback
+    )
     return results, context
 
 
@@ -337,7 +592,9 @@ def test_a_fused_cloud_loads_as_a_point_cloud_layer(provider, monkeypatch, tmp_p
     assert type(layer).__name__ == "QgsPointCloudLayer" and results["POINT_CLOUD"] in context.to_load
 
 
-@pytest.mark.parametrize("version, point_clouds, pdal", [(31600, True, True), (33400, False, True), (32216, True, False)])
+@pytest.mark.parametrize(
+    "version, point_clouds, pdal", [(31600, True, True), (33400, False, True), (32216, True, False)]
+)
 def test_no_point_cloud_layer_where_qgis_has_none(monkeypatch, tmp_path, version, point_clouds, pdal):
     with qgis_fakes.installed(version, point_clouds, pdal) as provider:
         feedback = qgis_fakes.Feedback()
@@ -363,9 +620,14 @@ def test_a_plot_loads_its_layers_and_its_merged_cloud(provider, monkeypatch, tmp
     (out / "layer_scanners.csv").write_text("name,x,y,z\n")
     context = qgis_fakes.QgsProcessingContext()
     results = _algorithm(provider, "register_plot").processAlgorithm(
-        {"SCANS": ["a.laz", "b.laz"], "OUTPUT": str(out), "MERGED": str(merged)}, context, qgis_fakes.Feedback())
+        {"SCANS": ["a.laz", "b.laz"], "OUTPUT": str(out), "MERGED": str(merged)}, context, qgis_fakes.Feedback()
+    )
     assert results["MERGED"] == str(merged)
-    assert [context.store.mapLayer(i).name() for i in results["LAYERS"]] == ["scanners (plot)", "links (plot)", "plot_outline (plot)"]
+    assert [context.store.mapLayer(i).name() for i in results["LAYERS"]] == [
+        "scanners (plot)",
+        "links (plot)",
+        "plot_outline (plot)",
+    ]
     # one scanners layer: the styled one of layers.gpkg is the scanner positions output
     assert results["SCANNERS"] == results["LAYERS"][0] and len(context.store.layers) == 4
     assert context.store.mapLayer(results["POINT_CLOUD"]).provider == "pdal"
@@ -374,7 +636,9 @@ def test_a_plot_loads_its_layers_and_its_merged_cloud(provider, monkeypatch, tmp
 def test_a_pair_loads_its_registered_scan_when_asked(provider, monkeypatch, tmp_path):
     out = tmp_path / "pair"
     out.mkdir()
-    result = adapter.SavedResult.from_dict({"status": "ok", "matrix": np.eye(4).tolist(), "reference": "a", "moving": "b", "matched": 7})
+    result = adapter.SavedResult.from_dict(
+        {"status": "ok", "matrix": np.eye(4).tolist(), "reference": "a", "moving": "b", "matched": 7}
+    )
 
     def register_pair(job, cli, progress, log, cancelled):
         assert job.write_registered
@@ -384,21 +648,43 @@ def test_a_pair_loads_its_registered_scan_when_asked(provider, monkeypatch, tmp_
     monkeypatch.setattr(adapter, "register_pair", register_pair)
     for name in ("layer_scanners.csv", "layer_vops.csv"):
         (out / name).write_text("name,x,y,z\n")
-    monkeypatch.setattr(adapter, "write_layer_files", lambda o: adapter.LayerFiles(out / "layer_scanners.csv", out / "layer_vops.csv"))
+    monkeypatch.setattr(
+        adapter, "write_layer_files", lambda o: adapter.LayerFiles(out / "layer_scanners.csv", out / "layer_vops.csv")
+    )
     context = qgis_fakes.QgsProcessingContext()
     results = _algorithm(provider, "register_pair").processAlgorithm(
-        {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": str(out), "WRITE_REGISTERED": True}, context, qgis_fakes.Feedback())
+        {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": str(out), "WRITE_REGISTERED": True},
+        context,
+        qgis_fakes.Feedback(),
+    )
     layer = context.store.mapLayer(results["POINT_CLOUD"])
-    assert (layer.name(), layer.provider, layer.source) == ("registered (b onto a)", "pdal", str(out / "b_registered.laz"))
+    assert (layer.name(), layer.provider, layer.source) == (
+        "registered (b onto a)",
+        "pdal",
+        str(out / "b_registered.laz"),
+    )
     assert results["MATCHED"] == 7 and results["TRANSFORM"] == str(out / "transform.txt")
 
 
-@pytest.mark.parametrize("parameter, crs, uri_crs, set_crs", [
-    (None, {"epsg": "EPSG:26912", "wkt": "PROJCRS[...]"}, "EPSG:26912", None),  # the scans' own CRS, from result.json
-    ("EPSG:32618", {"epsg": "EPSG:26912"}, "EPSG:32618", None),  # the CRS parameter wins
-    (None, {"epsg": None, "wkt": 'PROJCRS["a local grid"]'}, None, 'PROJCRS["a local grid"]'),  # no EPSG id: set from the WKT
-    (None, {"epsg": None, "wkt": None}, None, None),  # local coordinates
-])
+@pytest.mark.parametrize(
+    "parameter, crs, uri_crs, set_crs",
+    [
+        (
+            None,
+            {"epsg": "EPSG:26912", "wkt": "PROJCRS[...]"},
+            "EPSG:26912",
+            None,
+        ),  # the scans' own CRS, from result.json
+        ("EPSG:32618", {"epsg": "EPSG:26912"}, "EPSG:32618", None),  # the CRS parameter wins
+        (
+            None,
+            {"epsg": None, "wkt": 'PROJCRS["a local grid"]'},
+            None,
+            'PROJCRS["a local grid"]',
+        ),  # no EPSG id: set from the WKT
+        (None, {"epsg": None, "wkt": None}, None, None),  # local coordinates
+    ],
+)
 def test_a_pairs_point_layers_take_the_runs_crs(provider, monkeypatch, tmp_path, parameter, crs, uri_crs, set_crs):
     out = tmp_path / "pair"
     out.mkdir()
@@ -407,9 +693,16 @@ def test_a_pairs_point_layers_take_the_runs_crs(provider, monkeypatch, tmp_path,
     monkeypatch.setattr(adapter, "register_pair", lambda job, cli, progress, log, cancelled: outputs)
     for name in ("layer_scanners.csv", "layer_vops.csv"):
         (out / name).write_text("name,x,y,z\n")
-    monkeypatch.setattr(adapter, "write_layer_files", lambda o: adapter.LayerFiles(out / "layer_scanners.csv", out / "layer_vops.csv"))
+    monkeypatch.setattr(
+        adapter, "write_layer_files", lambda o: adapter.LayerFiles(out / "layer_scanners.csv", out / "layer_vops.csv")
+    )
     context = qgis_fakes.QgsProcessingContext()
-    parameters = {"REFERENCE": "a.laz", "MOVING": "b.laz", "OUTPUT": str(out), **({"CRS": parameter} if parameter else {})}
+    parameters = {
+        "REFERENCE": "a.laz",
+        "MOVING": "b.laz",
+        "OUTPUT": str(out),
+        **({"CRS": parameter} if parameter else {}),
+    }
     results = _algorithm(provider, "register_pair").processAlgorithm(parameters, context, qgis_fakes.Feedback())
     for key in ("SCANNERS", "VOPS"):
         layer = context.store.mapLayer(results[key])
@@ -445,8 +738,16 @@ def test_the_model_chains_register_plot_trees_and_change(provider):
         return s
 
     # the plot's merged cloud is the trees' cloud; the trees' trees.csv is the later survey of change
-    assert source("forestreg:trees", "CLOUD") == {"child_id": ids["forestreg:register_plot"], "output_name": "MERGED", "source": "1"}
-    assert source("forestreg:change", "AFTER") == {"child_id": ids["forestreg:trees"], "output_name": "TREES", "source": "1"}
+    assert source("forestreg:trees", "CLOUD") == {
+        "child_id": ids["forestreg:register_plot"],
+        "output_name": "MERGED",
+        "source": "1",
+    }
+    assert source("forestreg:change", "AFTER") == {
+        "child_id": ids["forestreg:trees"],
+        "output_name": "TREES",
+        "source": "1",
+    }
     assert source("forestreg:change", "BEFORE")["source"] == "0"  # a model input: the earlier survey
     # every parameter the model feeds exists in its algorithm, every model input is defined
     for alg, child in by_alg.items():
@@ -457,9 +758,15 @@ def test_the_model_chains_register_plot_trees_and_change(provider):
                 if s["source"] == "0":
                     assert s["parameter_name"] in model["parameterDefinitions"]
                 elif s["source"] == "1":
-                    outputs = {o.name() for o in _algorithm(provider, algorithms[s["child_id"]].split(":")[1]).outputDefinitions()}
-                    outputs |= {d.name() for d in _algorithm(provider, algorithms[s["child_id"]].split(":")[1]).parameterDefinitions()
-                                if d.kind.endswith("Destination")}
+                    outputs = {
+                        o.name()
+                        for o in _algorithm(provider, algorithms[s["child_id"]].split(":")[1]).outputDefinitions()
+                    }
+                    outputs |= {
+                        d.name()
+                        for d in _algorithm(provider, algorithms[s["child_id"]].split(":")[1]).parameterDefinitions()
+                        if d.kind.endswith("Destination")
+                    }
                     assert s["output_name"] in outputs
     assert model["model_name"] and model["model_group"] == "forestreg"
     # the scans are files (QGIS's TypeFile, 4): a layer type would make QGIS open each scan as a map layer, and refuse it

@@ -33,8 +33,16 @@ class _Cylinders:
     def to_table(self):
         n = len(self.start)
         table = {c: np.zeros(n) for c in CYLINDER_COLUMNS}
-        table.update(cylinder_id=np.arange(n), parent_id=np.arange(n) - 1, axis_x=self.axis[:, 0], axis_y=self.axis[:, 1],
-                     axis_z=self.axis[:, 2], length_m=self.length, radius_m=self.radius, surface_coverage=np.ones(n))
+        table.update(
+            cylinder_id=np.arange(n),
+            parent_id=np.arange(n) - 1,
+            axis_x=self.axis[:, 0],
+            axis_y=self.axis[:, 1],
+            axis_z=self.axis[:, 2],
+            length_m=self.length,
+            radius_m=self.radius,
+            surface_coverage=np.ones(n),
+        )
         return table
 
 
@@ -47,23 +55,37 @@ def _stem(base, lean, n, rng):
     radii = np.linspace(0.18, 0.04, n)
     b_axis = np.array([0.6, -0.5, 0.62])
     b_axis /= np.linalg.norm(b_axis)
-    return _Cylinders(start=np.vstack([starts, starts[n // 2]]), axis=np.vstack([np.tile(axis, (n, 1)), b_axis]),
-                      length=np.append(lengths, 1.1), radius=np.append(radii, 0.03)), axis
+    return _Cylinders(
+        start=np.vstack([starts, starts[n // 2]]),
+        axis=np.vstack([np.tile(axis, (n, 1)), b_axis]),
+        length=np.append(lengths, 1.1),
+        radius=np.append(radii, 0.03),
+    ), axis
 
 
 def _inventory():
     rng = np.random.default_rng(7)
     trees, rows = [], []
-    for tid, (base, lean, n) in {3: (np.array([1.0, 2.0, 0.1]), 0.05, 6), 4: (np.array([-4.0, 3.5, 0.3]), -0.1, 4),
-                                 9: (np.array([2.5, -5.0, 0.0]), 0.0, 5)}.items():
+    for tid, (base, lean, n) in {
+        3: (np.array([1.0, 2.0, 0.1]), 0.05, 6),
+        4: (np.array([-4.0, 3.5, 0.3]), -0.1, 4),
+        9: (np.array([2.5, -5.0, 0.0]), 0.0, 5),
+    }.items():
         cyl, axis = _stem(base, lean, n, rng)
         heights = np.array([0.5, 1.3, 2.0, 3.0])
         centres = base + heights[:, None] * axis / axis[2]
         if tid == 9:
             centres[2] = np.nan  # a height without a centre: skipped by the line
-        curve = SimpleNamespace(s_m=heights, heights_m=heights, diameter_m=np.array([0.36, 0.32, 0.3, 0.26]),
-                                raw_diameter_m=np.array([0.36, 0.33, 0.3, 0.25]), accepted=np.ones(4, bool),
-                                interpolated=np.zeros(4, bool), centres=centres, reasons=("", "", "", ""))
+        curve = SimpleNamespace(
+            s_m=heights,
+            heights_m=heights,
+            diameter_m=np.array([0.36, 0.32, 0.3, 0.26]),
+            raw_diameter_m=np.array([0.36, 0.33, 0.3, 0.25]),
+            accepted=np.ones(4, bool),
+            interpolated=np.zeros(4, bool),
+            centres=centres,
+            reasons=("", "", "", ""),
+        )
         trees.append(SimpleNamespace(tree_id=tid, curve=curve, cylinders=None if tid == 4 else cyl))
         x, y, z = base + ORIGIN
         rows.append({"tree_id": tid, "x": x, "y": y, "z": z, "dbh_m": 0.32, "n_cylinders": len(cyl.start), "flag": ""})
@@ -102,7 +124,7 @@ def test_tube_vertices_lie_on_the_cylinders_in_file_coordinates(run):
     for mesh in scene.meshes:
         cyl = models[mesh.tree_id]
         for i in range(len(cyl.start)):
-            v = mesh.vertices[2 * FACETS * i: 2 * FACETS * (i + 1)]
+            v = mesh.vertices[2 * FACETS * i : 2 * FACETS * (i + 1)]
             start = cyl.start[i] + ORIGIN  # file coordinates: the run's origin shift added
             np.testing.assert_allclose(_distance_to_axis(v, start, cyl.axis[i]), cyl.radius[i], rtol=0, atol=1e-9)
             along = (v - start) @ cyl.axis[i]
@@ -142,7 +164,9 @@ def test_shift_for_georeferenced_coordinates_and_units(run, tmp_path):
     shift = np.asarray(scene.shift)
     assert np.abs(scene.meshes[0].vertices + shift).max() < 1e3  # single precision is enough after the shift
     assert (shift % 100 == 0).all()
-    local = SimpleNamespace(trees=[], origin_shift=np.zeros(3), rows=lambda: [{"tree_id": 1, "x": 1.0, "y": 2.0, "z": 0.0}])
+    local = SimpleNamespace(
+        trees=[], origin_shift=np.zeros(3), rows=lambda: [{"tree_id": 1, "x": 1.0, "y": 2.0, "z": 0.0}]
+    )
     write_trees_tables(tmp_path / "near", local)
     assert G.trees_scene(tmp_path / "near").shift == (0.0, 0.0, 0.0)
     in_cm = G.trees_scene(folder, facets=FACETS, unit_scale=0.01)  # starts in cm: lengths and radii scaled to them
@@ -288,8 +312,10 @@ def test_pycc_layer_builds_one_group_of_meshes_and_polylines(run):
 def test_trees_layer_imports_without_pycc():
     import subprocess
 
-    code = ("import sys, forestreg.plugin.cloudcompare.trees as m, forestreg.plugin.geometry; "
-            "sys.exit(1 if 'pycc' in sys.modules else 0)")
+    code = (
+        "import sys, forestreg.plugin.cloudcompare.trees as m, forestreg.plugin.geometry; "
+        "sys.exit(1 if 'pycc' in sys.modules else 0)"
+    )
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 

@@ -18,10 +18,10 @@ import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import pytest
+
 from forestreg.plugin import adapter
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,11 +64,16 @@ class Qgis:
 
         self.service = folder / "service"
         self.env = {
-            **os.environ, "QT_QPA_PLATFORM": "offscreen", "QGIS_PLUGINPATH": str(self.plugins),
+            **os.environ,
+            "QT_QPA_PLATFORM": "offscreen",
+            "QGIS_PLUGINPATH": str(self.plugins),
             # QGIS's profile, settings and caches in the test's folder; the compiled kernels where they are
-            "XDG_DATA_HOME": str(folder / "data"), "XDG_CONFIG_HOME": str(folder / "config"),
-            "XDG_CACHE_HOME": str(folder / "cache"), "XDG_RUNTIME_DIR": str(folder / "runtime"),
-            "NUMBA_CACHE_DIR": kernel_cache_dir() or "", "FORESTREG_SERVICE_DIR": str(self.service),
+            "XDG_DATA_HOME": str(folder / "data"),
+            "XDG_CONFIG_HOME": str(folder / "config"),
+            "XDG_CACHE_HOME": str(folder / "cache"),
+            "XDG_RUNTIME_DIR": str(folder / "runtime"),
+            "NUMBA_CACHE_DIR": kernel_cache_dir() or "",
+            "FORESTREG_SERVICE_DIR": str(self.service),
             adapter.CLI_ENV: f"{sys.executable} -m forestreg.cli",
         }
         (folder / "runtime").mkdir(mode=0o700)
@@ -76,7 +81,9 @@ class Qgis:
             del self.env["NUMBA_CACHE_DIR"]
 
     def process(self, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-        return subprocess.run([*self.command, *args], capture_output=True, text=True, env=self.env, timeout=timeout, cwd=self.folder)
+        return subprocess.run(
+            [*self.command, *args], capture_output=True, text=True, env=self.env, timeout=timeout, cwd=self.folder
+        )
 
     def run(self, algorithm: str, timeout: float = 600, **parameters) -> dict:
         """``qgis_process --json run ALGORITHM -- NAME=VALUE ...`` (a list value: the name repeated);
@@ -87,17 +94,23 @@ class Qgis:
                 values.append(f"{name}={v}")
         run = self.process("--json", "run", algorithm, "--", *values, timeout=timeout)
         assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
-        return json.loads(run.stdout[run.stdout.index("{"):])
+        return json.loads(run.stdout[run.stdout.index("{") :])
 
     def python(self, script: str, *args: str, timeout: float = 300) -> dict:
         """``script`` in QGIS's Python with the plugins folder on its path; the JSON it printed
         after ``REPORT``."""
         env = {**self.env, "PYTHONPATH": str(self.plugins)}
-        run = subprocess.run([QGIS_PYTHON, "-c", script, *args], capture_output=True, text=True, env=env, timeout=timeout,
-                             cwd=self.folder)
+        run = subprocess.run(
+            [QGIS_PYTHON, "-c", script, *args],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=timeout,
+            cwd=self.folder,
+        )
         lines = [line for line in run.stdout.splitlines() if line.startswith("REPORT")]
         assert run.returncode == 0 and lines, run.stdout[-3000:] + run.stderr[-3000:]
-        return json.loads(lines[-1][len("REPORT"):])
+        return json.loads(lines[-1][len("REPORT") :])
 
     def stop_service(self) -> None:
         from forestreg.client import read_server_info
@@ -114,7 +127,9 @@ class Qgis:
 def qgis(tmp_path_factory):
     command = qgis_process_command()
     if command is None:
-        pytest.skip("qgis_process is not installed (QGIS is needed for these runs; Debian: apt-get install qgis python3-qgis)")
+        pytest.skip(
+            "qgis_process is not installed (QGIS is needed for these runs; Debian: apt-get install qgis python3-qgis)"
+        )
     folder = tmp_path_factory.mktemp("qgis")
     q = Qgis(command, folder)
     if not _qgis_python_works(q.env):
@@ -129,8 +144,29 @@ def qgis(tmp_path_factory):
 def scans(tmp_path_factory):
     """Two simulated TLS scans of a 24 m conifer plot, 10 m apart, with their truth (``forestreg simulate``)."""
     folder = tmp_path_factory.mktemp("scans") / "scans"
-    run = subprocess.run([sys.executable, "-m", "forestreg.cli", "simulate", "planted_conifer", "--out", str(folder), "--positions",
-                          "0,0;10,0", "--step", "0.4", "--size", "24", "--seed", "1", "-q"], capture_output=True, text=True, timeout=600)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "forestreg.cli",
+            "simulate",
+            "planted_conifer",
+            "--out",
+            str(folder),
+            "--positions",
+            "0,0;10,0",
+            "--step",
+            "0.4",
+            "--size",
+            "24",
+            "--seed",
+            "1",
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     return folder
 
@@ -245,7 +281,9 @@ def _qml_rules(gpkg: Path, layer: str) -> list[dict]:
 
     con = sqlite3.connect(gpkg)
     try:
-        (qml,) = con.execute("SELECT styleQML FROM layer_styles WHERE f_table_name = ? AND useAsDefault", (layer,)).fetchone()
+        (qml,) = con.execute(
+            "SELECT styleQML FROM layer_styles WHERE f_table_name = ? AND useAsDefault", (layer,)
+        ).fetchone()
     finally:
         con.close()
     root = ET.fromstring(qml.split("\n", 1)[1])
@@ -255,8 +293,15 @@ def _qml_rules(gpkg: Path, layer: str) -> list[dict]:
         layer_el = symbols[rule.get("symbol")]
         props = {p.get("k"): p.get("v") for p in layer_el.iter("prop")}
         colour = props.get("color") or props.get("line_color")
-        out.append({"label": rule.get("label"), "filter": rule.get("filter") or "", "class": layer_el.get("class"),
-                    "colour": [int(v) for v in colour.split(",")], "size": float(props["size"]) if "size" in props else None})
+        out.append(
+            {
+                "label": rule.get("label"),
+                "filter": rule.get("filter") or "",
+                "class": layer_el.get("class"),
+                "colour": [int(v) for v in colour.split(",")],
+                "size": float(props["size"]) if "size" in props else None,
+            }
+        )
     return out
 
 
@@ -273,8 +318,12 @@ def _gpkg_srs(gpkg: Path) -> dict:
 
     con = sqlite3.connect(gpkg)
     try:
-        return dict(con.execute("SELECT c.table_name, s.organization || ':' || s.organization_coordsys_id FROM gpkg_contents c "
-                                "JOIN gpkg_spatial_ref_sys s ON s.srs_id = c.srs_id WHERE c.data_type = 'features'").fetchall())
+        return dict(
+            con.execute(
+                "SELECT c.table_name, s.organization || ':' || s.organization_coordsys_id FROM gpkg_contents c "
+                "JOIN gpkg_spatial_ref_sys s ON s.srs_id = c.srs_id WHERE c.data_type = 'features'"
+            ).fetchall()
+        )
     finally:
         con.close()
 
@@ -291,7 +340,9 @@ def test_qgis_process_lists_the_seven_algorithms(qgis):
 
 def test_register_pair_in_qgis_process(qgis, scans, tmp_path):
     out = tmp_path / "pair"
-    answer = qgis.run("forestreg:register_pair", REFERENCE=scans / "scan_01.laz", MOVING=scans / "scan_02.laz", OUTPUT=out)
+    answer = qgis.run(
+        "forestreg:register_pair", REFERENCE=scans / "scan_01.laz", MOVING=scans / "scan_02.laz", OUTPUT=out
+    )
     results = answer["results"]
     result = json.loads((out / "result.json").read_text())
     assert results["STATUS"] == "ok" and results["MATCHED"] == result["matched"] >= 5
@@ -321,20 +372,37 @@ def test_a_pairs_point_layers_take_the_scans_crs_in_qgis(qgis, scans, tmp_path):
         las.header.add_crs(pyproj.CRS.from_epsg(32618))
         las.write(tmp_path / name)
     out = tmp_path / "pair"
-    report = qgis.python(PAIR_SCRIPT, json.dumps({"REFERENCE": str(tmp_path / "scan_01.laz"), "MOVING": str(tmp_path / "scan_02.laz"),
-                                                  "OUTPUT": str(out)}))
+    report = qgis.python(
+        PAIR_SCRIPT,
+        json.dumps(
+            {"REFERENCE": str(tmp_path / "scan_01.laz"), "MOVING": str(tmp_path / "scan_02.laz"), "OUTPUT": str(out)}
+        ),
+    )
     assert report["ok"] and report["status"] == "ok"
     assert json.loads((out / "result.json").read_text())["crs"]["epsg"] == "EPSG:32618"
     result = json.loads((out / "result.json").read_text())
     assert report["SCANNERS"] == {"valid": True, "crs": "EPSG:32618", "count": 2}
-    assert report["VOPS"] == {"valid": True, "crs": "EPSG:32618", "count": result["reference_vops"] + result["moving_vops"]}
+    assert report["VOPS"] == {
+        "valid": True,
+        "crs": "EPSG:32618",
+        "count": result["reference_vops"] + result["moving_vops"],
+    }
 
 
 def test_register_plot_in_qgis_process(qgis, scans, tmp_path):
     out = tmp_path / "plot"
-    results = qgis.run("forestreg:register_plot", SCANS=[scans / "scan_01.laz", scans / "scan_02.laz"], OUTPUT=out,
-                       MERGED=out / "merged.laz", CRS="EPSG:32618")["results"]
-    assert results["STATUS"] == "ok" and Path(results["MERGED"]) == out / "merged.laz" and (out / "merged.laz").stat().st_size > 100_000
+    results = qgis.run(
+        "forestreg:register_plot",
+        SCANS=[scans / "scan_01.laz", scans / "scan_02.laz"],
+        OUTPUT=out,
+        MERGED=out / "merged.laz",
+        CRS="EPSG:32618",
+    )["results"]
+    assert (
+        results["STATUS"] == "ok"
+        and Path(results["MERGED"]) == out / "merged.laz"
+        and (out / "merged.laz").stat().st_size > 100_000
+    )
     assert [name.split("__")[0] for name in results["LAYERS"]] == ["scanners", "links", "plot_outline"]
     assert results["SCANNERS"] == results["LAYERS"][0]  # one scanners layer, the styled one
     poses = json.loads((out / "poses.json").read_text())["scans"]
@@ -362,7 +430,10 @@ def test_trees_in_qgis_process_and_its_layers_in_qgis(qgis, trees_run, mls):
     # the trees lie inside the input cloud's extent, in its coordinates
     header = laspy.read(mls).header
     x0, y0, x1, y1 = layers["trees"]["extent"]
-    assert header.mins[0] - 0.01 <= x0 <= x1 <= header.maxs[0] + 0.01 and header.mins[1] - 0.01 <= y0 <= y1 <= header.maxs[1] + 0.01
+    assert (
+        header.mins[0] - 0.01 <= x0 <= x1 <= header.maxs[0] + 0.01
+        and header.mins[1] - 0.01 <= y0 <= y1 <= header.maxs[1] + 0.01
+    )
     # graduated by DBH (one rule per DBH class), flagged trees ringed on top, as the QML says
     labels = [r["label"] for r in layers["trees"]["rules"]]
     assert sum('"dbh_m"' in r["filter"] for r in layers["trees"]["rules"]) >= 5 and labels[-1].startswith("flagged")
@@ -378,8 +449,15 @@ def test_evaluate_in_qgis_process(qgis, trees_run, tmp_path):
         w = csv.writer(fh)
         w.writerow(["tree_id", "x", "y", "dbh_cm", "height_m"])
         for i, r in enumerate(trees):
-            w.writerow([r["tree_id"], float(r["x"]) + 0.1, float(r["y"]) - 0.1, round(float(r["dbh_m"]) * 100 + (1 if i % 2 else -1), 2),
-                        round(float(r["height_m"]) + (0.5 if i % 2 else -0.5), 3)])
+            w.writerow(
+                [
+                    r["tree_id"],
+                    float(r["x"]) + 0.1,
+                    float(r["y"]) - 0.1,
+                    round(float(r["dbh_m"]) * 100 + (1 if i % 2 else -1), 2),
+                    round(float(r["height_m"]) + (0.5 if i % 2 else -0.5), 3),
+                ]
+            )
     out = tmp_path / "evaluation"
     results = qgis.run("forestreg:evaluate", TREES=trees_out / "trees.csv", FIELD=field, OUTPUT=out)["results"]
     assert results["STATUS"] == "ok" and Path(results["EVALUATION"]) == out / "evaluation.json"
@@ -393,24 +471,43 @@ def test_change_in_qgis_process_and_its_layers_in_qgis(qgis, trees_run, tmp_path
     _, trees_out = trees_run
     later = _rows(trees_out / "trees.csv")
     before = tmp_path / "before.csv"
-    with open(before, "w", newline="", encoding="utf-8") as fh:  # the same trees 2 cm thinner and 0.8 m lower, and one cut since
+    with open(
+        before, "w", newline="", encoding="utf-8"
+    ) as fh:  # the same trees 2 cm thinner and 0.8 m lower, and one cut since
         w = csv.DictWriter(fh, fieldnames=list(later[0]))
         w.writeheader()
         for r in later:
-            w.writerow({**r, "dbh_m": f"{float(r['dbh_m']) - 0.02:.4f}" if r["dbh_m"] else "",
-                        "height_m": f"{float(r['height_m']) - 0.8:.4f}" if r["height_m"] else ""})
-        w.writerow({**later[0], "tree_id": "999", "x": f"{float(later[0]['x']) + 6:.4f}", "y": f"{float(later[0]['y']) + 6:.4f}"})
+            w.writerow(
+                {
+                    **r,
+                    "dbh_m": f"{float(r['dbh_m']) - 0.02:.4f}" if r["dbh_m"] else "",
+                    "height_m": f"{float(r['height_m']) - 0.8:.4f}" if r["height_m"] else "",
+                }
+            )
+        w.writerow(
+            {
+                **later[0],
+                "tree_id": "999",
+                "x": f"{float(later[0]['x']) + 6:.4f}",
+                "y": f"{float(later[0]['y']) + 6:.4f}",
+            }
+        )
     out = tmp_path / "change"
-    results = qgis.run("forestreg:change", BEFORE=before, AFTER=trees_out / "trees.csv", OUTPUT=out, REPORT="false",
-                       CRS=SPANNER_CRS)["results"]
+    results = qgis.run(
+        "forestreg:change", BEFORE=before, AFTER=trees_out / "trees.csv", OUTPUT=out, REPORT="false", CRS=SPANNER_CRS
+    )["results"]
     assert results["STATUS"] == "ok" and Path(results["CHANGES"]) == out / "tree_changes.csv"
     changes = _rows(out / "tree_changes.csv")
     persisting = [r for r in changes if r["status"] == "persisting"]
     assert [r["tree_id_before"] for r in changes if r["status"] == "removed"] == ["999"]
     assert len(persisting) >= len(later) - 2
-    grown = [float(r["dbh_after_m"]) - float(r["dbh_before_m"]) for r in persisting if r["dbh_after_m"] and r["dbh_before_m"]]
+    grown = [
+        float(r["dbh_after_m"]) - float(r["dbh_before_m"]) for r in persisting if r["dbh_after_m"] and r["dbh_before_m"]
+    ]
     assert grown and np.allclose(grown, 0.02, atol=1e-4)
-    assert np.median([float(r["height_change_m"]) for r in persisting if r["height_change_m"]]) == pytest.approx(0.8, abs=0.01)
+    assert np.median([float(r["height_change_m"]) for r in persisting if r["height_change_m"]]) == pytest.approx(
+        0.8, abs=0.01
+    )
 
     report = qgis.python(LAYERS_SCRIPT, str(out))[str(out)]
     layers = report["layers"]
@@ -441,8 +538,14 @@ def test_fuse_in_qgis_process(qgis, shared_data, tmp_path):
 @pytest.mark.slow
 def test_coregister_in_qgis_process(qgis, shared_data, tmp_path):
     out = tmp_path / "co"
-    results = qgis.run("forestreg:coregister", GROUND=shared_data / "spanner_MLS_Clip.laz", UAV=shared_data / "spanner_ALS_Clip.laz",
-                       OUTPUT=out, CRS=SPANNER_CRS, timeout=900)["results"]
+    results = qgis.run(
+        "forestreg:coregister",
+        GROUND=shared_data / "spanner_MLS_Clip.laz",
+        UAV=shared_data / "spanner_ALS_Clip.laz",
+        OUTPUT=out,
+        CRS=SPANNER_CRS,
+        timeout=900,
+    )["results"]
     assert results["STATUS"] == "ok" and Path(results["TRANSFORM"]) == out / "transform.txt"
     import laspy
 
@@ -468,11 +571,29 @@ def test_the_model_runs_headless(qgis, scans, tmp_path):
         w = csv.writer(fh)
         w.writerow(["tree_id", "x", "y", "z", "dbh_m", "height_m"])
         for t in truth["trees"]:
-            w.writerow([t["id"], round(t["x"], 3), round(t["y"], 3), round(t["z"], 3), round(t["dbh_m"] - 0.01, 4), round(t["height_m"], 2)])
+            w.writerow(
+                [
+                    t["id"],
+                    round(t["x"], 3),
+                    round(t["y"], 3),
+                    round(t["z"], 3),
+                    round(t["dbh_m"] - 0.01, 4),
+                    round(t["height_m"], 2),
+                ]
+            )
     folders = {"plot": tmp_path / "plot", "trees": tmp_path / "trees", "change": tmp_path / "change"}
-    answer = qgis.run(str(MODEL), timeout=1200, scans=[scans / "scan_01.laz", scans / "scan_02.laz"], earlier_survey=earlier, **{
-        "forestreg:register_plot_1:Plot folder": folders["plot"], "forestreg:register_plot_1:Merged cloud": folders["plot"] / "merged.laz",
-        "forestreg:trees_1:Trees folder": folders["trees"], "forestreg:change_1:Change folder": folders["change"]})
+    answer = qgis.run(
+        str(MODEL),
+        timeout=1200,
+        scans=[scans / "scan_01.laz", scans / "scan_02.laz"],
+        earlier_survey=earlier,
+        **{
+            "forestreg:register_plot_1:Plot folder": folders["plot"],
+            "forestreg:register_plot_1:Merged cloud": folders["plot"] / "merged.laz",
+            "forestreg:trees_1:Trees folder": folders["trees"],
+            "forestreg:change_1:Change folder": folders["change"],
+        },
+    )
     assert Path(answer["results"]["forestreg:change_1:Change folder"]) == folders["change"]
     assert (folders["plot"] / "merged.laz").is_file() and (folders["trees"] / "layers.gpkg").is_file()
     result = json.loads((folders["change"] / "result.json").read_text())
@@ -480,5 +601,9 @@ def test_the_model_runs_headless(qgis, scans, tmp_path):
     changes = _rows(folders["change"] / "tree_changes.csv")
     persisting = [r for r in changes if r["status"] == "persisting"]
     assert len(persisting) >= 0.7 * len(truth["trees"])
-    grown = [float(r["dbh_after_m"]) - float(r["dbh_before_m"]) for r in persisting if r["dbh_after_m"] and r["dbh_before_m"]]
-    assert len(grown) >= 10 and np.median(grown) == pytest.approx(0.01, abs=0.005)  # the merged cloud's DBH: the truth's within mm
+    grown = [
+        float(r["dbh_after_m"]) - float(r["dbh_before_m"]) for r in persisting if r["dbh_after_m"] and r["dbh_before_m"]
+    ]
+    assert len(grown) >= 10 and np.median(grown) == pytest.approx(
+        0.01, abs=0.005
+    )  # the merged cloud's DBH: the truth's within mm

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from forestreg.engine.core.errors import ParameterError, ScanDataError, ScanReadError
-from forestreg.engine.simulate.mesh import Material
 from forestreg.engine.geometry.circle import fit_circle
+from forestreg.engine.simulate.mesh import Material
 from forestreg.engine.simulate.plot import simulate_plot
 from forestreg.engine.simulate.scene import make_scene
 from forestreg.engine.trees.qsm import (
@@ -36,7 +36,12 @@ def single_tree() -> dict[str, Any]:
     scene = dataclasses.replace(scene, trees=(tree,), shrubs=(), lianas=(), boxes=())
     pos = [(tree.x + 6 * math.cos(a), tree.y + 6 * math.sin(a)) for a in np.radians([0, 120, 240])]
     plot = simulate_plot(
-        "planted_conifer", pos, seed=3, angular_step_deg=0.2, size_m=20, scene=scene,
+        "planted_conifer",
+        pos,
+        seed=3,
+        angular_step_deg=0.2,
+        size_m=20,
+        scene=scene,
         scanner_options={"elevation_max_deg": 85.0},
     )
     pts = np.concatenate([s.world_points() for s in plot.scans])

@@ -38,12 +38,16 @@ def test_points_land_on_the_pixels_of_their_data_coordinates(dpi):
 def test_marker_size_later_layers_on_top_and_data_limits():
     fig, ax = plt.subplots(figsize=(4, 4))
     rgba = np.array([[0, 0, 255, 255], [0, 255, 0, 255]], dtype=np.uint8)  # bytes per point, used as given
-    add_points(ax, [(np.array([[0.0, 0.0], [4.0, 4.0]]), "red", 30.0), (np.array([[0.0, 0.0], [10.0, 10.0]]), rgba, 1.0)])
+    add_points(
+        ax, [(np.array([[0.0, 0.0], [4.0, 4.0]]), "red", 30.0), (np.array([[0.0, 0.0], [10.0, 10.0]]), rgba, 1.0)]
+    )
     lo, hi = ax.get_xlim()
     assert lo < 0.0 and hi > 10.0  # the points count in the autoscaled limits, as a scatter's
     img = _render(fig, 100)
-    count = {name: int(((img[:, :, 0] == r) & (img[:, :, 1] == g) & (img[:, :, 2] == b)).sum())
-             for name, (r, g, b) in {"red": (255, 0, 0), "blue": (0, 0, 255), "green": (0, 255, 0)}.items()}
+    count = {
+        name: int(((img[:, :, 0] == r) & (img[:, :, 1] == g) & (img[:, :, 2] == b)).sum())
+        for name, (r, g, b) in {"red": (255, 0, 0), "blue": (0, 0, 255), "green": (0, 255, 0)}.items()
+    }
     # s = 30 points squared: a disc of sqrt(30) * 100 / 72 = 7.6 px across, a quarter pixel wider
     # for the antialiased edge (radius 4.05 px: ~52 px); the blue point (s = 1: radius 0.94 px,
     # its pixel and up to its four neighbours) covers the red disc's centre
@@ -78,7 +82,10 @@ def test_painted_discs_equal_a_pixel_by_pixel_painting(radius):
     paint_discs(got, pixels, colours[0], radius, colours)
     want = np.zeros_like(got)
     reach = int(np.ceil(radius)) + 1  # one ring more than needed: the pruning must not matter
-    rings = sorted(((dc, dr) for dr in range(-reach, reach + 1) for dc in range(-reach, reach + 1)), key=lambda o: -(o[0] ** 2 + o[1] ** 2))
+    rings = sorted(
+        ((dc, dr) for dr in range(-reach, reach + 1) for dc in range(-reach, reach + 1)),
+        key=lambda o: -(o[0] ** 2 + o[1] ** 2),
+    )
     for dc, dr in rings:
         for k, (x, y) in enumerate(pixels):
             c, r = int(np.floor(x)) + dc, int(np.floor(y)) + dr

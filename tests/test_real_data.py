@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from forestreg.engine.io import read_scan
-from forestreg.engine.tls.prepare import extract_vops, prepare_scan, slice_layers
-from forestreg.engine.tls.params import RegistrationParams
-from forestreg.engine.tls.pair import register
-from forestreg.engine.simulate import simulate_scan_from_cloud
 from forestreg.engine.core.transform import rigid_errors
+from forestreg.engine.io import read_scan
+from forestreg.engine.simulate import simulate_scan_from_cloud
+from forestreg.engine.tls.pair import register
+from forestreg.engine.tls.params import RegistrationParams
+from forestreg.engine.tls.prepare import extract_vops, prepare_scan, slice_layers
 
 
 def test_real_riegl_scan_yields_vops_on_vertical_stems(shared_data):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from forestreg.engine.tls.params import RegistrationParams
-from forestreg.engine.tls.pair import register
 from forestreg.engine.core.transform import rigid_errors
+from forestreg.engine.tls.pair import register
+from forestreg.engine.tls.params import RegistrationParams
 
 FINE_ROTATION_DEG = 0.05
 FINE_TRANSLATION_M = 0.02
@@ -26,7 +26,15 @@ def _check_against_truth(result, truth) -> None:
     assert result.matched >= 4
     assert result.matched - (result.second_matched or 0) >= 2
     assert result.icp.std_m < 0.03
-    assert set(result.timings) >= {"prepare_reference_s", "prepare_moving_s", "slice_s", "vops_s", "coarse_s", "vertical_s", "icp_s"}
+    assert set(result.timings) >= {
+        "prepare_reference_s",
+        "prepare_moving_s",
+        "slice_s",
+        "vops_s",
+        "coarse_s",
+        "vertical_s",
+        "icp_s",
+    }
 
 
 @pytest.mark.parametrize(
@@ -71,7 +79,10 @@ def test_a_densified_pair_is_prepared_at_its_scan_resolution_and_registers_alike
     _check_against_truth(dense, plot.relative_pose(0, 1))
     rot, trans = rigid_errors(dense.matrix, original.matrix)
     assert rot < 0.01 and trans < 0.002, (rot, trans)
-    for a, b in ((dense.details.reference, original.details.reference), (dense.details.moving, original.details.moving)):
+    for a, b in (
+        (dense.details.reference, original.details.reference),
+        (dense.details.moving, original.details.moving),
+    ):
         assert len(b.points) <= len(a.points) < 1.3 * len(b.points)  # a copy jittered across a pixel edge stays
 
 
@@ -151,6 +162,7 @@ def test_scans_read_by_the_engine_are_let_go_once_centred(sim_plot, monkeypatch)
             copy = dataclasses.replace(scan.scan, points=scan.scan.points.copy())
             raw.append(weakref.ref(copy.points))
             return copy
+
         return read
 
     centring: dict = {}  # thread -> the raw points it centred
@@ -187,12 +199,16 @@ def test_free_space_check_refuses_a_plausible_wrong_pose(sim_plot, turn_deg, shi
     result = register(plot.scans[0].scan, plot.scans[1].scan)
     d = result.details
     params = RegistrationParams()
-    right, _ = mutual_free_space_violation(d.reference, d.moving, d.reference_layers, d.moving_layers, d.lsf_matrix, params)
+    right, _ = mutual_free_space_violation(
+        d.reference, d.moving, d.reference_layers, d.moving_layers, d.lsf_matrix, params
+    )
     wrong = np.eye(4)
     c, s = np.cos(np.radians(turn_deg)), np.sin(np.radians(turn_deg))
     wrong[:2, :2] = [[c, -s], [s, c]]
     wrong[:2, 3] = (shift_m * 0.6, shift_m * 0.8)
-    violation, tested = mutual_free_space_violation(d.reference, d.moving, d.reference_layers, d.moving_layers, wrong @ d.lsf_matrix, params)
+    violation, tested = mutual_free_space_violation(
+        d.reference, d.moving, d.reference_layers, d.moving_layers, wrong @ d.lsf_matrix, params
+    )
     assert right < 0.1 and tested >= 100
     assert violation > params.max_free_space_violation, (right, violation)
 
@@ -302,13 +318,15 @@ def test_pair_figure_keeps_each_title_over_its_own_panel(sim_plot, tmp_path, fai
         assert 0 <= panel.left < panel.right <= width and 0 <= panel.top < panel.bottom <= height
     assert panels[0].right < panels[1].left and panels[1].right < panels[2].left
     one_line = panels[1].title_box[3] - panels[1].title_box[1]
-    assert (panels[2].title_box[3] - panels[2].title_box[1]) > 1.5 * one_line  # the reason, or the stated uncertainty, on a second line
+    assert (
+        panels[2].title_box[3] - panels[2].title_box[1]
+    ) > 1.5 * one_line  # the reason, or the stated uncertainty, on a second line
     assert ((panels[0].title_box[3] - panels[0].title_box[1]) > 1.5 * one_line) == long_name
     pixels = np.asarray(canvas.image)
 
     def colours_near(panel, xy, reach=12):
-        (x, y), = panel.to_px(np.asarray(xy, dtype=float).reshape(1, 2)).astype(int)
-        return {tuple(p) for p in pixels[y - reach:y + reach, x - reach:x + reach].reshape(-1, 3)}
+        ((x, y),) = panel.to_px(np.asarray(xy, dtype=float).reshape(1, 2)).astype(int)
+        return {tuple(p) for p in pixels[y - reach : y + reach, x - reach : x + reach].reshape(-1, 3)}
 
     att = result.details.chosen
     assert (0, 0, 0) in colours_near(panels[0], (0.0, 0.0), 4)  # the reference scanner

@@ -72,11 +72,13 @@ def _until(predicate, timeout: float, what: str, interval: float = 0.2):
 @pytest.fixture(scope="module")
 def pair(tmp_path_factory):
     """A small simulated pair with its true relative pose."""
-    from forestreg.engine.simulate import relative_pose, simulate_plot
     from forestreg.engine.io.simulated import write_simulated_plot
+    from forestreg.engine.simulate import relative_pose, simulate_plot
 
     out = tmp_path_factory.mktemp("service_scans")
-    plot = write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (9, 4)], seed=1, angular_step_deg=0.4, size_m=30), out)
+    plot = write_simulated_plot(
+        simulate_plot("planted_conifer", [(0, 0), (9, 4)], seed=1, angular_step_deg=0.4, size_m=30), out
+    )
     return out, relative_pose(plot, "scan_01", "scan_02")
 
 
@@ -134,7 +136,9 @@ def test_register_job_reports_progress_and_the_right_matrix(service, pair, tmp_p
 
     scans, truth = pair
     seen = []
-    job_id = service.submit(["register", str(scans / "scan_01.laz"), str(scans / "scan_02.laz"), "--out", "reg"], cwd=tmp_path)
+    job_id = service.submit(
+        ["register", str(scans / "scan_01.laz"), str(scans / "scan_02.laz"), "--out", "reg"], cwd=tmp_path
+    )
     final = service.wait(job_id, progress=lambda f, m: seen.append((f, m)), timeout=300)
     assert final["status"] == "done" and final["exit_code"] == 0, final
     assert final["progress"] == 1.0 and final["message"].startswith("ok:")
@@ -176,10 +180,12 @@ def test_a_plot_job_lists_exactly_the_files_the_use_case_reports(service, pair, 
     run = plot_scans(files, tmp_path / "here")
     here = (tmp_path / "here").resolve()
     assert final["result_path"] == str(out / "poses.json") and run.result_file == here / "poses.json"
-    assert sorted(Path(p).relative_to(out).as_posix() for p in final["outputs"]) == \
-        sorted(p.relative_to(here).as_posix() for p in run.outputs)
-    assert {"poses.json", "project.json", "report.html", "layers.gpkg", "scan_02.laz.transform.txt"} <= \
-        {Path(p).name for p in final["outputs"]}
+    assert sorted(Path(p).relative_to(out).as_posix() for p in final["outputs"]) == sorted(
+        p.relative_to(here).as_posix() for p in run.outputs
+    )
+    assert {"poses.json", "project.json", "report.html", "layers.gpkg", "scan_02.laz.transform.txt"} <= {
+        Path(p).name for p in final["outputs"]
+    }
     assert all(Path(p).is_file() for p in final["outputs"])
     assert [e for e in service.events(final["id"]) if e is not None][-1]["outputs"] == final["outputs"]
 
@@ -190,14 +196,34 @@ def test_a_failed_job_reports_no_result_even_beside_an_earlier_one(service, tmp_
     out = tmp_path / "o"
     out.mkdir()
     (out / "result.json").write_text(json.dumps({"status": "ok", "matrix": None}))
-    final = service.run(["register", str(tmp_path / "missing_a.laz"), str(tmp_path / "missing_b.laz"), "--out", str(out)], timeout=120)
+    final = service.run(
+        ["register", str(tmp_path / "missing_a.laz"), str(tmp_path / "missing_b.laz"), "--out", str(out)], timeout=120
+    )
     assert final["status"] == "error" and final["exit_code"] == 2
     assert final["result"] is None and final["result_path"] is None and final["outputs"] == []
 
 
 def test_concurrent_jobs_run_at_once(service, tmp_path):
-    ids = [service.submit(["simulate", "open_field", "--out", f"sim{k}", "--positions", "0,0", "--size", "20", "--step", "0.6", "--seed", str(k)], cwd=tmp_path)
-           for k in range(2)]
+    ids = [
+        service.submit(
+            [
+                "simulate",
+                "open_field",
+                "--out",
+                f"sim{k}",
+                "--positions",
+                "0,0",
+                "--size",
+                "20",
+                "--step",
+                "0.6",
+                "--seed",
+                str(k),
+            ],
+            cwd=tmp_path,
+        )
+        for k in range(2)
+    ]
     finals = [service.wait(i, timeout=300) for i in ids]
     assert [f["status"] for f in finals] == ["done", "done"], finals
     a, b = finals
@@ -210,7 +236,11 @@ def test_cancel_stops_the_run(service, pair, tmp_path):
     scans, _ = pair
     out = tmp_path / "cancelled"
     job_id = service.submit(["register", str(scans / "scan_01.laz"), str(scans / "scan_02.laz"), "--out", str(out)])
-    _until(lambda: service.job(job_id)["status"] == "running" and service.job(job_id)["progress"] > 0, 120, "the job to make progress")
+    _until(
+        lambda: service.job(job_id)["status"] == "running" and service.job(job_id)["progress"] > 0,
+        120,
+        "the job to make progress",
+    )
     job_pid = _until(lambda: _job_pid(client_state(service), job_id), 10, "the job's pid")
     t0 = time.monotonic()
     service.cancel(job_id)
@@ -229,9 +259,15 @@ def test_restart_after_kill_9_keeps_the_jobs(pair, tmp_path):
     assert done["status"] == "done"
     slow = client.submit(["simulate", "rainforest", "--out", str(tmp_path / "slow"), "--step", "0.05", "--size", "60"])
     queued = client.submit(["params", "--toml"])
-    _until(lambda: client.job(slow)["status"] == "running" and client.job(slow)["progress"] > 0, 120, "the slow job to run")
+    _until(
+        lambda: client.job(slow)["status"] == "running" and client.job(slow)["progress"] > 0, 120, "the slow job to run"
+    )
     job_pid = _until(lambda: _job_pid(state, slow), 10, "the job's pid")
-    _until(lambda: [p for p in tmp_path.iterdir() if p.name.startswith(".forestreg-tmp")], 30, "the job's temporary output folder")
+    _until(
+        lambda: [p for p in tmp_path.iterdir() if p.name.startswith(".forestreg-tmp")],
+        30,
+        "the job's temporary output folder",
+    )
     old_pid = read_server_info(state)["pid"]
     os.kill(old_pid, signal.SIGKILL)
     _until(lambda: not _alive(old_pid), 10, "the service to die")
@@ -243,9 +279,15 @@ def test_restart_after_kill_9_keeps_the_jobs(pair, tmp_path):
         jobs = {j["id"]: j for j in client.jobs()}
         assert jobs[done["id"]]["status"] == "done"
         assert jobs[slow]["status"] == "interrupted" and "resubmit" in jobs[slow]["message"]
-        _until(lambda: not _alive(job_pid), 30, "the orphaned job to be stopped")  # ... until the new service stopped it
+        _until(
+            lambda: not _alive(job_pid), 30, "the orphaned job to be stopped"
+        )  # ... until the new service stopped it
         # stopped as a cancel would: the CLI removed its temporary folder, no output folder appeared
-        _until(lambda: not [p for p in tmp_path.iterdir() if p.name.startswith(".forestreg-tmp")], 10, "the temporary folder to go")
+        _until(
+            lambda: not [p for p in tmp_path.iterdir() if p.name.startswith(".forestreg-tmp")],
+            10,
+            "the temporary folder to go",
+        )
         assert not (tmp_path / "slow").exists()
         assert client.wait(queued, timeout=120)["status"] == "done"  # the queued job ran after the restart
         again = client.resubmit(slow)
@@ -284,7 +326,9 @@ def test_client_connect_starts_and_reuses_a_service(tmp_path, monkeypatch):
         # a second service on the same state folder is refused while the first one runs
         import subprocess
 
-        second = subprocess.run(CLI + ["serve", "--port", "0", "--state", str(state)], capture_output=True, text=True, timeout=60)
+        second = subprocess.run(
+            CLI + ["serve", "--port", "0", "--state", str(state)], capture_output=True, text=True, timeout=60
+        )
         assert second.returncode == 2 and "already runs" in second.stderr
         final = again.run(["params", "--toml"], timeout=120)
         assert final["status"] == "done" and final["exit_code"] == 0 and final["result"] is None
@@ -296,8 +340,10 @@ def test_client_connect_starts_and_reuses_a_service(tmp_path, monkeypatch):
 def test_hosts_import_no_server_or_cluster_library():
     import subprocess
 
-    code = ("import sys, forestreg, forestreg.client, forestreg.plugin.adapter, forestreg.plugin.cloudcompare; "
-            "print(sorted({m.split('.')[0] for m in sys.modules} & {'fastapi', 'uvicorn', 'dask', 'distributed', 'numpy', 'starlette'}))")
+    code = (
+        "import sys, forestreg, forestreg.client, forestreg.plugin.adapter, forestreg.plugin.cloudcompare; "
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'fastapi', 'uvicorn', 'dask', 'distributed', 'numpy', 'starlette'}))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
 
@@ -306,7 +352,12 @@ def test_a_batch_job_runs_the_batch_engine(service, tmp_path):
     (tmp_path / "plots" / "lonely").mkdir(parents=True)
     (tmp_path / "plots" / "lonely" / "only.laz").write_text("one scan is no plot")
     seen = []
-    final = service.run(["batch", "plots", "--out", "out", "--workers", "1"], cwd=tmp_path, progress=lambda f, m: seen.append((f, m)), timeout=300)
+    final = service.run(
+        ["batch", "plots", "--out", "out", "--workers", "1"],
+        cwd=tmp_path,
+        progress=lambda f, m: seen.append((f, m)),
+        timeout=300,
+    )
     assert final["status"] == "done" and final["exit_code"] == 1, final  # processed, but not every plot could run
     (row,) = final["result"]["rows"]
     assert (row["plot"], row["status"]) == ("lonely", "error") and "at least two" in row["reason"]
@@ -318,9 +369,22 @@ def test_job_command_and_progress_events():
     from forestreg.service import jobs
 
     assert jobs.job_command(["register", "a.laz", "b.laz", "--out", "o"]) == [
-        sys.executable, "-m", "forestreg.cli", "register", "a.laz", "b.laz", "--out", "o", "--progress", "jsonl"]
+        sys.executable,
+        "-m",
+        "forestreg.cli",
+        "register",
+        "a.laz",
+        "b.laz",
+        "--out",
+        "o",
+        "--progress",
+        "jsonl",
+    ]
     assert jobs.job_command(["params", "--progress=none"])[-1] == "--progress=none"  # the job's own choice stays
-    assert jobs.parse_event('{"event": "progress", "step": "slice", "fraction": 0.3, "message": "slicing"}')["fraction"] == 0.3
+    assert (
+        jobs.parse_event('{"event": "progress", "step": "slice", "fraction": 0.3, "message": "slicing"}')["fraction"]
+        == 0.3
+    )
     assert jobs.parse_event('{"event": "end", "exit_code": 1, "message": "failed", "result": null}')["exit_code"] == 1
     for line in ("register  30%|###|", "{not json", '{"event": "other"}', "[1, 2]"):
         assert jobs.parse_event(line) is None

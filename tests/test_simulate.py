@@ -40,12 +40,25 @@ def _single_tree_scene() -> ForestScene:
     scanner position (0, 0) to exercise the minimum range."""
     extent = (-20.0, 20.0, -20.0, 20.0)
     terrain = make_terrain(
-        extent, slope_deg=0.0, slope_azimuth_deg=0.0, roughness_m=0.0, roughness_length_m=5.0, cell_m=0.5,
+        extent,
+        slope_deg=0.0,
+        slope_azimuth_deg=0.0,
+        roughness_m=0.0,
+        roughness_length_m=5.0,
+        cell_m=0.5,
         rng=np.random.default_rng(0),
     )
     tree = Tree(
-        id=1, x=TREE_XY[0], y=TREE_XY[1], z=0.0, dbh_m=TREE_DBH, height_m=12.0, crown_base_m=11.0,
-        crown_radius_m=0.5, n_branches=0, leaf_area_density=0.0,
+        id=1,
+        x=TREE_XY[0],
+        y=TREE_XY[1],
+        z=0.0,
+        dbh_m=TREE_DBH,
+        height_m=12.0,
+        crown_base_m=11.0,
+        crown_radius_m=0.5,
+        n_branches=0,
+        leaf_area_density=0.0,
     )
     close = Target(id=1, x=-1.0, y=0.0, z=1.5, ground_z=0.0)
     return ForestScene(preset="test", seed=0, extent=extent, terrain=terrain, trees=(tree,), targets=(close,))
@@ -64,7 +77,9 @@ def level_scan(tree_scene) -> SimulatedScan:
 
 @pytest.fixture(scope="module")
 def tilted_scan(tree_scene) -> SimulatedScan:
-    setup = ScannerSetup(0.0, 0.0, yaw_deg=-20.0, tilt_deg=30.0, tilt_azimuth_deg=120.0, angular_step_deg=0.3, name="tilted")
+    setup = ScannerSetup(
+        0.0, 0.0, yaw_deg=-20.0, tilt_deg=30.0, tilt_azimuth_deg=120.0, angular_step_deg=0.3, name="tilted"
+    )
     return simulate_tls_scan(tree_scene, setup, seed=2)
 
 
@@ -72,8 +87,12 @@ def tilted_scan(tree_scene) -> SimulatedScan:
 def plot() -> SimulatedPlot:
     """A small plantation: two level scans 10 m apart and a 30-deg tilted scan at the second spot."""
     return simulate_plot(
-        "planted_conifer", [(0.0, 0.0), (10.0, 0.0), (10.0, 0.0)], seed=3, size_m=40.0,
-        angular_step_deg=0.4, tilted={2: (30.0, 45.0)},
+        "planted_conifer",
+        [(0.0, 0.0), (10.0, 0.0), (10.0, 0.0)],
+        seed=3,
+        size_m=40.0,
+        angular_step_deg=0.4,
+        tilted={2: (30.0, 45.0)},
     )
 
 
@@ -315,8 +334,14 @@ def test_open_field_has_no_trunks():
 
 def test_progress_callback():
     seen = []
-    simulate_plot("open_field", [(0.0, 0.0), (5.0, 0.0)], seed=0, size_m=30.0, angular_step_deg=1.0,
-                  progress=lambda f, m: seen.append((f, m)))
+    simulate_plot(
+        "open_field",
+        [(0.0, 0.0), (5.0, 0.0)],
+        seed=0,
+        size_m=30.0,
+        angular_step_deg=1.0,
+        progress=lambda f, m: seen.append((f, m)),
+    )
     fr = [f for f, _ in seen]
     assert fr[0] == 0.0 and fr[-1] == 1.0
     assert all(b >= a for a, b in zip(fr, fr[1:]))
@@ -333,7 +358,9 @@ def scenes() -> dict[str, ForestScene]:
 
 
 def test_preset_stem_density_and_sizes(scenes):
-    pc, mt, rf, sl, of = (scenes[k] for k in ("planted_conifer", "mixed_temperate", "rainforest", "sloped", "open_field"))
+    pc, mt, rf, sl, of = (
+        scenes[k] for k in ("planted_conifer", "mixed_temperate", "rainforest", "sloped", "open_field")
+    )
     assert 850 <= pc.stems_per_ha <= 1150
     assert 800 <= mt.stems_per_ha <= 1000
     assert rf.stems_per_ha > 2000
@@ -372,7 +399,9 @@ def test_planted_grid_is_jittered_and_gappy(scenes):
 
 
 def test_preset_terrain_and_understory(scenes):
-    pc, mt, rf, sl, of = (scenes[k] for k in ("planted_conifer", "mixed_temperate", "rainforest", "sloped", "open_field"))
+    pc, mt, rf, sl, of = (
+        scenes[k] for k in ("planted_conifer", "mixed_temperate", "rainforest", "sloped", "open_field")
+    )
     assert 15.0 <= sl.terrain.slope_deg <= 20.0
     assert sl.terrain.roughness_m > 0.2
     for sc in (pc, mt, rf, of):
@@ -459,7 +488,9 @@ def _pixels(q: np.ndarray, step: float, el_min: float) -> np.ndarray:
     el = np.degrees(np.arctan2(q[:, 2], np.hypot(q[:, 0], q[:, 1])))
     az = np.degrees(np.arctan2(q[:, 1], q[:, 0])) % 360.0
     n_az = int(round(360.0 / step))
-    return (np.rint(az / (360.0 / n_az)).astype(np.int64) % n_az) * 100000 + np.rint((el - el_min) / step).astype(np.int64)
+    return (np.rint(az / (360.0 / n_az)).astype(np.int64) % n_az) * 100000 + np.rint((el - el_min) / step).astype(
+        np.int64
+    )
 
 
 @pytest.mark.parametrize("spacing", [0.0, None])
@@ -507,7 +538,11 @@ def test_from_cloud_footprint_stops_leaks_through_sparse_near_surface(spacing):
         q = sim.scan.points
         ang_y = np.degrees(np.arctan2(q[:, 1], q[:, 0]))
         ang_z = np.degrees(np.arctan2(q[:, 2], q[:, 0]))
-        inside = (np.abs(ang_y) < np.degrees(np.arctan(0.95 / 3.0))) & (ang_z > np.degrees(np.arctan(-0.95 / 3))) & (ang_z < np.degrees(np.arctan(0.95 / 3)))
+        inside = (
+            (np.abs(ang_y) < np.degrees(np.arctan(0.95 / 3.0)))
+            & (ang_z > np.degrees(np.arctan(-0.95 / 3)))
+            & (ang_z < np.degrees(np.arctan(0.95 / 3)))
+        )
         return int((inside & (q[:, 0] > 5.0)).sum())
 
     assert behind(leaky) > 100  # plain nearest-per-pixel sees through the sparse wall
@@ -576,7 +611,9 @@ def test_writes_laz_and_truth(tmp_path, monkeypatch):
     from forestreg.engine.io.simulated import write_simulated_plot
 
     out = tmp_path / "plot"
-    p = write_simulated_plot(simulate_plot("planted_conifer", [(0.0, 0.0), (8.0, 3.0)], seed=2, size_m=30.0, angular_step_deg=0.8), out)
+    p = write_simulated_plot(
+        simulate_plot("planted_conifer", [(0.0, 0.0), (8.0, 3.0)], seed=2, size_m=30.0, angular_step_deg=0.8), out
+    )
     assert sorted(f.name for f in out.iterdir()) == ["scan_01.laz", "scan_02.laz", "truth.json"]
     truth = json.loads((out / "truth.json").read_text())
     assert truth == json.loads(json.dumps(p.truth))
@@ -603,8 +640,13 @@ def test_suppressed_trees_stand_below_their_neighbours_crowns():
     def inside(t, others, drawn=None) -> list[int]:
         """Taller neighbours (the tree as drawn at most 85 % of their height) whose crown holds its top."""
         apex = t.point_at_height(t.height_m)
-        return [o.id for o in others if o.id != t.id and (drawn or t).height_m <= 0.85 * o.height_m
-                and crown_floor(o, apex[0], apex[1]) - 0.5 < t.z + t.height_m - 1e-9]
+        return [
+            o.id
+            for o in others
+            if o.id != t.id
+            and (drawn or t).height_m <= 0.85 * o.height_m
+            and crown_floor(o, apex[0], apex[1]) - 0.5 < t.z + t.height_m - 1e-9
+        ]
 
     before = [t.id for t in plain.trees if inside(t, plain.trees)]
     lowered = [b.id for a, b in zip(plain.trees, shy.trees) if b.height_m < a.height_m]
@@ -628,9 +670,15 @@ def test_four_scan_plot_tops_seen_by_a_full_dome_scanner():
     from forestreg.engine.simulate import simulate_plot
 
     def seen(elevation_max: float, clearance: float) -> int:
-        plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=3,
-                             angular_step_deg=0.35, size_m=30.0, scanner_options={"elevation_max_deg": elevation_max},
-                             suppressed_clearance_m=clearance)
+        plot = simulate_plot(
+            "mixed_temperate",
+            [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)],
+            seed=3,
+            angular_step_deg=0.35,
+            size_m=30.0,
+            scanner_options={"elevation_max_deg": elevation_max},
+            suppressed_clearance_m=clearance,
+        )
         pts = np.vstack([s.world_points() for s in plot.scans])
         ids = np.concatenate([s.object_ids for s in plot.scans])
         inside = [t for t in plot.scene.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]

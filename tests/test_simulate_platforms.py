@@ -283,9 +283,7 @@ def test_coregistration_with_utm_like_coordinates(scene):
 
 
 def test_coregistration_is_deterministic_per_seed():
-    kw = dict(
-        size_m=15.0, ground_extent_m=8.0, uav_density_scale=0.05, backpack_density_scale=0.01, heading_deg=10.0
-    )
+    kw = dict(size_m=15.0, ground_extent_m=8.0, uav_density_scale=0.05, backpack_density_scale=0.01, heading_deg=10.0)
     a = simulate_coregistration_case("planted_conifer", seed=7, **kw)
     b = simulate_coregistration_case("planted_conifer", seed=7, **kw)
     c = simulate_coregistration_case("planted_conifer", seed=8, **kw)
@@ -323,7 +321,9 @@ def test_backpack_slam_tilt_and_drift(scene):
     g = cloud.points[cloud.labels == Material.GROUND]
     a, b, _ = np.linalg.lstsq(np.column_stack([g[:, 0], g[:, 1], np.ones(len(g))]), g[:, 2], rcond=None)[0]
     truth_g = g @ fit[:3, :3].T + fit[:3, 3]
-    a0, b0, _ = np.linalg.lstsq(np.column_stack([truth_g[:, 0], truth_g[:, 1], np.ones(len(g))]), truth_g[:, 2], rcond=None)[0]
+    a0, b0, _ = np.linalg.lstsq(
+        np.column_stack([truth_g[:, 0], truth_g[:, 1], np.ones(len(g))]), truth_g[:, 2], rcond=None
+    )[0]
     slope = np.array([a - a0, b - b0])
     assert abs(np.degrees(np.arctan(np.hypot(*slope))) - 1.5) < 0.05
     assert abs(np.degrees(np.arctan2(-slope[1], -slope[0])) - 30.0) < 2.0

@@ -41,8 +41,13 @@ def corridor():
 
 def test_forward_looking_scan_sees_only_its_sector_and_clips_its_range(corridor):
     pos = stand_positions(corridor, 3.0, np.random.default_rng(0), n=1)[0]
-    setup = ScannerSetup(x=float(pos[0]), y=float(pos[1]), yaw_deg=corridor.meta["axis_deg"], angular_step_deg=0.5,
-                         **scanner_options("robot_forward", azimuth_centre_deg=25.0))
+    setup = ScannerSetup(
+        x=float(pos[0]),
+        y=float(pos[1]),
+        yaw_deg=corridor.meta["axis_deg"],
+        angular_step_deg=0.5,
+        **scanner_options("robot_forward", azimuth_centre_deg=25.0),
+    )
     sim = simulate_tls_scan(corridor, setup, seed=1)
     off = _offset(_socs_azimuth(sim.scan.points), 25.0)
     assert len(off) > 1000
@@ -74,7 +79,9 @@ def test_a_300_degree_sector_leaves_its_gap_empty_and_a_full_turn_is_unchanged(c
 
 def test_sixteen_laser_lines():
     scene = make_scene("fence", seed=2, size_m=30.0)
-    setup = ScannerSetup(x=0.0, y=3.0, yaw_deg=scene.meta["axis_deg"], angular_step_deg=0.5, **scanner_options("robot_lines"))
+    setup = ScannerSetup(
+        x=0.0, y=3.0, yaw_deg=scene.meta["axis_deg"], angular_step_deg=0.5, **scanner_options("robot_lines")
+    )
     sim = simulate_tls_scan(scene, setup, seed=0)
     el = np.degrees(np.arcsin(sim.scan.points[:, 2] / np.linalg.norm(sim.scan.points, axis=1)))
     lines = np.unique(np.round(el).astype(int))
@@ -127,7 +134,9 @@ def test_posts_stand_at_the_stated_spacing_in_straight_rows(corridor):
         assert all(0.1 <= by_id[i].radius_m <= 0.2 for i in row["post_ids"])
     # the two rows face each other across the corridor
     a, b = rows
-    assert abs(abs(a["v_m"] - b["v_m"]) - (corridor.meta["corridor_width_m"] - 2 * corridor.meta["post_offset_m"])) < 1e-9
+    assert (
+        abs(abs(a["v_m"] - b["v_m"]) - (corridor.meta["corridor_width_m"] - 2 * corridor.meta["post_offset_m"])) < 1e-9
+    )
 
 
 @pytest.mark.parametrize("preset", sorted(BUILT_PRESETS))
@@ -141,7 +150,9 @@ def test_built_scenes_are_deterministic_and_walkable(preset):
     pos = stand_positions(a, 4.0, np.random.default_rng(0))
     assert np.hypot(*(pos[1] - pos[0])) == pytest.approx(4.0)
     cleared = a.cleared(pos, 1.0)
-    assert [x for x in cleared.boxes if x.kind in ("wall", "block")] == [x for x in a.boxes if x.kind in ("wall", "block")]
+    assert [x for x in cleared.boxes if x.kind in ("wall", "block")] == [
+        x for x in a.boxes if x.kind in ("wall", "block")
+    ]
 
 
 def test_built_scene_contents():
@@ -182,8 +193,15 @@ def test_from_cloud_sector():
     ang = rng.uniform(0, 2 * np.pi, 20000)
     rad = rng.uniform(3, 15, 20000)
     cloud = np.column_stack([rad * np.cos(ang), rad * np.sin(ang), rng.uniform(-1.4, 3.0, 20000)])
-    sim = simulate_scan_from_cloud(cloud, (0.0, 0.0, 0.0), angular_step_deg=2.0, point_spacing_m=0.0, yaw_deg=40.0,
-                                   azimuth_fov_deg=120.0, azimuth_centre_deg=-30.0)
+    sim = simulate_scan_from_cloud(
+        cloud,
+        (0.0, 0.0, 0.0),
+        angular_step_deg=2.0,
+        point_spacing_m=0.0,
+        yaw_deg=40.0,
+        azimuth_fov_deg=120.0,
+        azimuth_centre_deg=-30.0,
+    )
     off = _offset(_socs_azimuth(sim.scan.points), -30.0)
     assert np.abs(off).max() <= 60.0 + 1e-6 and np.abs(off).max() > 55.0
     assert sim.setup.azimuth_fov_deg == 120.0

@@ -29,7 +29,12 @@ EXTENT = (-10.0, 10.0, -10.0, 10.0)
 
 def _flat_scene(tree: Tree) -> ForestScene:
     terrain = make_terrain(
-        EXTENT, slope_deg=0.0, slope_azimuth_deg=0.0, roughness_m=0.0, roughness_length_m=5.0, cell_m=0.5,
+        EXTENT,
+        slope_deg=0.0,
+        slope_azimuth_deg=0.0,
+        roughness_m=0.0,
+        roughness_length_m=5.0,
+        cell_m=0.5,
         rng=np.random.default_rng(0),
     )
     return ForestScene(preset="test", seed=0, extent=EXTENT, terrain=terrain, trees=(tree,))
@@ -37,8 +42,19 @@ def _flat_scene(tree: Tree) -> ForestScene:
 
 def _bare(**shape) -> Tree:
     """A bare vertical stem (DBH 0.40 m) at the origin, no crown."""
-    return Tree(1, 0.0, 0.0, 0.0, dbh_m=0.40, height_m=12.0, crown_base_m=11.0, crown_radius_m=0.5, n_branches=0,
-                leaf_area_density=0.0, **shape)
+    return Tree(
+        1,
+        0.0,
+        0.0,
+        0.0,
+        dbh_m=0.40,
+        height_m=12.0,
+        crown_base_m=11.0,
+        crown_radius_m=0.5,
+        n_branches=0,
+        leaf_area_density=0.0,
+        **shape,
+    )
 
 
 def _fit_circle(xy: np.ndarray) -> tuple[float, float, float]:
@@ -79,10 +95,13 @@ def _old_round_stem(tree: Tree, n_seg: int = 32) -> tuple[np.ndarray, np.ndarray
     a0 = (ii * n_seg + j).ravel()
     a1 = (ii * n_seg + jn).ravel()
     top = (k - 1) * n_seg
-    tris = np.concatenate([
-        np.column_stack([a0, a0 + n_seg, a1 + n_seg]), np.column_stack([a0, a1 + n_seg, a1]),
-        np.column_stack([np.full(n_seg, len(verts)), top + j, top + jn]),
-    ])
+    tris = np.concatenate(
+        [
+            np.column_stack([a0, a0 + n_seg, a1 + n_seg]),
+            np.column_stack([a0, a1 + n_seg, a1]),
+            np.column_stack([np.full(n_seg, len(verts)), top + j, top + jn]),
+        ]
+    )
     return np.vstack([verts, c[-1][None, :]]), tris.astype(np.int64)
 
 
@@ -94,8 +113,19 @@ def _old_round_stem(tree: Tree, n_seg: int = 32) -> tuple[np.ndarray, np.ndarray
 def test_round_stems_keep_the_mesh_they_had():
     for tree in (
         Tree(1, 2.0, -1.0, 0.3, dbh_m=0.3, height_m=15.0),
-        Tree(2, 0.0, 0.0, 0.0, dbh_m=0.55, height_m=22.0, lean_deg=6.0, lean_azimuth_deg=130.0, shape=BROADLEAF,
-             stem_height_fraction=0.8, flare_height_m=1.3),
+        Tree(
+            2,
+            0.0,
+            0.0,
+            0.0,
+            dbh_m=0.55,
+            height_m=22.0,
+            lean_deg=6.0,
+            lean_azimuth_deg=130.0,
+            shape=BROADLEAF,
+            stem_height_fraction=0.8,
+            flare_height_m=1.3,
+        ),
     ):
         assert tree.is_round
         v_old, t_old = _old_round_stem(tree)
@@ -112,8 +142,19 @@ def test_real_stem_shapes_leave_every_other_draw_of_the_scene():
     a = make_scene("rainforest", seed=4, size_m=20.0)
     b = make_scene("rainforest", seed=4, size_m=20.0, stem_shapes="real")
     assert len(a.trees) == len(b.trees) > 50
-    fields = [f.name for f in dataclasses.fields(Tree) if f.name not in
-              ("ovality", "ovality_azimuth_deg", "buttress_lobes", "buttress_amplitude", "bark_roughness_m", "bark_seed")]
+    fields = [
+        f.name
+        for f in dataclasses.fields(Tree)
+        if f.name
+        not in (
+            "ovality",
+            "ovality_azimuth_deg",
+            "buttress_lobes",
+            "buttress_amplitude",
+            "bark_roughness_m",
+            "bark_seed",
+        )
+    ]
     for ta, tb in zip(a.trees, b.trees):
         assert all(getattr(ta, f) == getattr(tb, f) for f in fields)
         assert ta.is_round and not tb.is_round
@@ -200,9 +241,19 @@ def oval_views() -> tuple[Tree, dict[str, np.ndarray]]:
     tree = _bare(ovality=0.10, ovality_azimuth_deg=0.0, bark_roughness_m=0.002)
     scene = _flat_scene(tree)
     out = {}
-    for k, (name, (x, y)) in enumerate({"+x": (4.0, 0.0), "+y": (0.0, 4.0), "-x": (-4.0, 0.0), "-y": (0.0, -4.0)}.items()):
-        setup = ScannerSetup(x, y, yaw_deg=0.0, angular_step_deg=0.25, elevation_min_deg=-20.0, elevation_max_deg=10.0,
-                             range_noise_m=0.002, name=name)
+    for k, (name, (x, y)) in enumerate(
+        {"+x": (4.0, 0.0), "+y": (0.0, 4.0), "-x": (-4.0, 0.0), "-y": (0.0, -4.0)}.items()
+    ):
+        setup = ScannerSetup(
+            x,
+            y,
+            yaw_deg=0.0,
+            angular_step_deg=0.25,
+            elevation_min_deg=-20.0,
+            elevation_max_deg=10.0,
+            range_noise_m=0.002,
+            name=name,
+        )
         sim = simulate_tls_scan(scene, setup, seed=k)
         w = sim.world_points()
         on = (sim.labels == Material.TRUNK) & (sim.object_ids == 1) & (np.abs(w[:, 2] - 1.3) < 0.05)
@@ -255,13 +306,26 @@ def test_grow_scene_keeps_the_stem_shape_and_grows_the_girth():
             continue
         n_persisting += 1
         t1 = by_id[f["id"]]
-        for name in ("ovality", "ovality_azimuth_deg", "buttress_lobes", "buttress_amplitude", "bark_roughness_m",
-                     "bark_seed", "x", "y", "z", "lean_deg", "lean_azimuth_deg"):
+        for name in (
+            "ovality",
+            "ovality_azimuth_deg",
+            "buttress_lobes",
+            "buttress_amplitude",
+            "bark_roughness_m",
+            "bark_seed",
+            "x",
+            "y",
+            "z",
+            "lean_deg",
+            "lean_azimuth_deg",
+        ):
             assert getattr(t1, name) == getattr(t0, name)
         growth = f["dbh_after_m"] - f["dbh_before_m"]
         assert 0.006 < growth < 0.035
         assert t1.girth_diameter_m() - t0.girth_diameter_m() == pytest.approx(growth, abs=1e-9)
-        assert f["area_dbh_after_m"] / f["area_dbh_before_m"] == pytest.approx(f["dbh_after_m"] / f["dbh_before_m"], rel=1e-9)
+        assert f["area_dbh_after_m"] / f["area_dbh_before_m"] == pytest.approx(
+            f["dbh_after_m"] / f["dbh_before_m"], rel=1e-9
+        )
         if t0.dbh_m > 0.1:  # the same bark pattern (full relief on stems over 0.1 m)
             bark0 = t0.section_radius(th, 1.3) - t0.section_radius(th, 1.3, smooth=True)
             bark1 = t1.section_radius(th, 1.3) - t1.section_radius(th, 1.3, smooth=True)
@@ -271,8 +335,15 @@ def test_grow_scene_keeps_the_stem_shape_and_grows_the_girth():
 
 @pytest.mark.parametrize("n", [2, 3, 5])
 def test_resurvey_with_n_scans_per_survey(n):
-    case = simulate_resurvey("planted_conifer", size_m=15.0, seed=1, angular_step_deg=0.5, scans_per_survey=n,
-                             stem_shapes="real", removed_fraction=0.1)
+    case = simulate_resurvey(
+        "planted_conifer",
+        size_m=15.0,
+        seed=1,
+        angular_step_deg=0.5,
+        scans_per_survey=n,
+        stem_shapes="real",
+        removed_fraction=0.1,
+    )
     truth = case.truth
     before, after = truth["before_positions"], truth["after_positions"]
     assert len(before) == len(after) == len(truth["before_scan_points"]) == len(truth["after_scan_points"]) == n

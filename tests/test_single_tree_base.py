@@ -85,7 +85,9 @@ def test_a_hollow_in_a_rough_floor_does_not_pull_the_ground_down():
         p = p[p[:, 2] >= 0.3]
         g = np.column_stack([rng.uniform(-1.25, 1.25, 3000), rng.uniform(-1.25, 1.25, 3000), np.zeros(3000)])
         g[:, 2] = 0.1 * g[:, 0] + rng.uniform(-0.25, 0.25, 3000)
-        hollow = np.column_stack([rng.uniform(-0.6, -0.45, 30), rng.uniform(-0.1, 0.1, 30), rng.uniform(-0.55, -0.5, 30)])
+        hollow = np.column_stack(
+            [rng.uniform(-0.6, -0.45, 30), rng.uniform(-0.1, 0.1, 30), rng.uniform(-0.55, -0.5, 30)]
+        )
         cloud = np.vstack([p, g, hollow])
         ground = np.r_[np.zeros(len(p), dtype=bool), np.ones(len(g) + len(hollow), dtype=bool)]
         base = single_tree_base(cloud, (0.0, 0.0), radius_m=0.2, ground=ground)
@@ -113,7 +115,9 @@ def test_an_uncertain_base_lowers_the_trust():
     sparse = single_tree_base(np.vstack([p, stem]), (0.0, 0.0), radius_m=0.2)
     assert sparse.trust == "medium" and any("points in the lowest metre" in f for f in sparse.flags)
     cut = np.column_stack([rng.uniform(-2, 2, 300), rng.uniform(-2, 2, 300), rng.uniform(0.0, 0.1, 300)])
-    flat = single_tree_base(np.vstack([p, stem, cut]), (0.0, 0.0), radius_m=0.2, params=SingleTreeParams(min_base_points=10))
+    flat = single_tree_base(
+        np.vstack([p, stem, cut]), (0.0, 0.0), radius_m=0.2, params=SingleTreeParams(min_base_points=10)
+    )
     assert any("cut flat" in f for f in flat.flags)
     dense = single_tree_base(_trunk_and_crown(rng), (0.0, 0.0), radius_m=0.2)
     assert dense.trust == "high" and not dense.flags
@@ -207,8 +211,9 @@ def _street_tree():
     scene = single_tree_scene(0)
     tree = dataclasses.replace(scene.trees[0], height_m=11.0, crown_base_m=1.5, crown_radius_m=4.0, dbh_m=0.35)
     scene = dataclasses.replace(scene, trees=(tree,))
-    plot = simulate_plot("single", [(-7.0, -3.0), (6.0, -4.0), (1.0, 7.0)], scene=scene, seed=1, angular_step_deg=0.25,
-                         clearance_m=0.5)
+    plot = simulate_plot(
+        "single", [(-7.0, -3.0), (6.0, -4.0), (1.0, 7.0)], scene=scene, seed=1, angular_step_deg=0.25, clearance_m=0.5
+    )
     pts = np.vstack([s.world_points() for s in plot.scans])
     ids = np.concatenate([s.object_ids for s in plot.scans])
     return tree, pts[ids == 1]
@@ -287,8 +292,21 @@ def test_trees_command_warns_when_a_plot_is_forced_to_one_tree(shared_data, tmp_
 
     for name, what in [("pine_plot.laz", "stems"), ("spanner_ALS_Clip.laz", "crowns")]:
         out = tmp_path / name
-        assert main(["trees", str(shared_data / name), "--out", str(out), "--no-report", "--no-cylinders",
-                     "--single-tree", "yes"]) == 0
+        assert (
+            main(
+                [
+                    "trees",
+                    str(shared_data / name),
+                    "--out",
+                    str(out),
+                    "--no-report",
+                    "--no-cylinders",
+                    "--single-tree",
+                    "yes",
+                ]
+            )
+            == 0
+        )
         err = capsys.readouterr().err
         warning = [line for line in err.splitlines() if line.startswith("warning: the cloud holds")]
         assert len(warning) == 1 and f" {what}: not a single tree" in warning[0], err
@@ -302,7 +320,13 @@ def test_trees_command_warns_when_a_plot_is_forced_to_one_tree(shared_data, tmp_
 
 def test_single_tree_base_is_above_no_stem_point(shared_data):
     """On every real single tree the base is at or below the lowest point near the stem."""
-    for name in ["AdTree_Lille_2.xyz", "AdTree_tree1.xyz", "AdTree_tree7.xyz", "aRchi_Tree_2_point_cloud.las", "cloud.txt"]:
+    for name in [
+        "AdTree_Lille_2.xyz",
+        "AdTree_tree1.xyz",
+        "AdTree_tree7.xyz",
+        "aRchi_Tree_2_point_cloud.las",
+        "cloud.txt",
+    ]:
         p = _points(str(shared_data / name))
         r = measure_trees(p, PARAMS).trees[0]
         assert r.stem.ground_z <= _lowest_stem_point(p, r.stem.x, r.stem.y, 0.5) + 1e-9, name

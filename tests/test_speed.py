@@ -57,7 +57,9 @@ def test_clustering_on_the_grid_equals_the_graph_of_all_pairs():
     rng = np.random.default_rng(2)
     pts = np.round(rng.uniform(0, 6, (4000, 3)) * [1, 1, 0.05], 3)  # a millimetre grid: pairs at the limits
     reach = np.maximum(0.05, 0.01 * np.hypot(pts[:, 0], pts[:, 1]))
-    np.testing.assert_array_equal(cluster.connected_clusters(pts, float(reach.max()), reach_m=reach), _brute_clusters(pts, reach))
+    np.testing.assert_array_equal(
+        cluster.connected_clusters(pts, float(reach.max()), reach_m=reach), _brute_clusters(pts, reach)
+    )
     fixed = np.full(len(pts), 0.06)
     labels = cluster.connected_clusters(pts, 0.06)
     np.testing.assert_array_equal(labels, _brute_clusters(pts, fixed))
@@ -82,13 +84,16 @@ def test_chunked_las_reading_equals_one_chunk(tmp_path):
     rng = np.random.default_rng(4)
     local = rng.uniform(-20, 20, (10007, 3))
     path = tmp_path / "a.laz"
-    write_las(path, PointsToWrite(local, np.array([500000.0, 5000000.0, 100.0]), intensity=rng.integers(0, 60000, len(local))), compress=True)
+    write_las(
+        path,
+        PointsToWrite(local, np.array([500000.0, 5000000.0, 100.0]), intensity=rng.integers(0, 60000, len(local))),
+        compress=True,
+    )
     whole = read_las(path, chunk_points=10**7)
     chunked = read_las(path, chunk_points=997)
     np.testing.assert_array_equal(whole.points, chunked.points)
     np.testing.assert_array_equal(whole.intensity, chunked.intensity)
     np.testing.assert_allclose(chunked.points - [500000.0, 5000000.0, 100.0], local, atol=1e-4)
-
 
 
 @pytest.mark.parametrize("point_format", [6, 1])  # LAZ 1.4 layers (x, y, z decoded alone), and a LAS 1.2 record
@@ -99,7 +104,11 @@ def test_reading_without_intensity_gives_the_same_points(tmp_path, point_format)
     local = rng.uniform(-20, 20, (20011, 3))
     path = tmp_path / "a.laz"
     if point_format == 6:
-        write_las(path, PointsToWrite(local, np.array([500000.0, 5000000.0, 100.0]), intensity=rng.integers(0, 60000, len(local))), compress=True)
+        write_las(
+            path,
+            PointsToWrite(local, np.array([500000.0, 5000000.0, 100.0]), intensity=rng.integers(0, 60000, len(local))),
+            compress=True,
+        )
     else:
         las = laspy.create(point_format=1, file_version="1.2")
         las.header.scales, las.header.offsets = [0.001] * 3, [0.0] * 3
@@ -111,7 +120,10 @@ def test_reading_without_intensity_gives_the_same_points(tmp_path, point_format)
     bare = read_las(path, chunk_points=4999, with_intensity=False)
     assert full.intensity is not None and bare.intensity is None
     np.testing.assert_array_equal(bare.points, full.points)
-    np.testing.assert_allclose(bare.points - (0.0 if point_format == 1 else [500000.0, 5000000.0, 100.0]), local, atol=1e-3)
+    np.testing.assert_allclose(
+        bare.points - (0.0 if point_format == 1 else [500000.0, 5000000.0, 100.0]), local, atol=1e-3
+    )
+
 
 def test_coarse_bounds_built_in_blocks_keep_the_literal_optimum(monkeypatch):
     rng = np.random.default_rng(5)
@@ -135,7 +147,9 @@ def test_downsampling_in_slabs_equals_one_pass(monkeypatch):
     monkeypatch.setattr(voxel, "DOWNSAMPLE_POINTS_PER_SLAB", 1500)
     slabs = voxel.voxel_downsample(pts, 0.7)
     assert slabs.shape == whole.shape
-    np.testing.assert_allclose(slabs, whole, rtol=0, atol=1e-12)  # same voxels, same order; sums may differ in the last bit
+    np.testing.assert_allclose(
+        slabs, whole, rtol=0, atol=1e-12
+    )  # same voxels, same order; sums may differ in the last bit
 
 
 def test_icp_distance_figures_equal_a_full_nearest_neighbour_search():
@@ -200,9 +214,15 @@ def test_grid_nearest_and_k_nearest_equal_kd_tree_queries(cell_m):
     from forestreg.engine.geometry.features import SphereGrid, local_covariances, nearest_within
 
     rng = np.random.default_rng(8)
-    pts = np.round(rng.uniform(0, 3, (8000, 3)) * [1, 1, 0.2], 2) + [700.0, 400.0, 90.0]  # centimetre steps: ties, points on faces
+    pts = np.round(rng.uniform(0, 3, (8000, 3)) * [1, 1, 0.2], 2) + [
+        700.0,
+        400.0,
+        90.0,
+    ]  # centimetre steps: ties, points on faces
     pts[:5] += 6.0  # a few isolated points
-    queries = np.vstack([pts[::5] + rng.normal(0, 0.05, (1600, 3)), rng.uniform(-1, 4, (400, 3)) + [700.0, 400.0, 90.0], [[1e7, 0, 0]]])
+    queries = np.vstack(
+        [pts[::5] + rng.normal(0, 0.05, (1600, 3)), rng.uniform(-1, 4, (400, 3)) + [700.0, 400.0, 90.0], [[1e7, 0, 0]]]
+    )
     grid, tree = SphereGrid(pts, cell_m), cKDTree(pts)
     for radius in (0.02, 0.1, 0.7):
         d, j = nearest_within(queries, grid, radius)
@@ -279,7 +299,9 @@ def test_the_kernels_a_use_case_loaded_are_preloaded_in_their_order(tmp_path, mo
     assert listed == [(_twice.py_func.__module__, "_twice", (types.float64,))]
     # a signature this process has not loaded: preloaded, then the call finds it
     with open(tmp_path / "loaded-test.pkl", "wb") as f:
-        pickle.dump([("no.such.module", "k", (types.float64,)), (_twice.py_func.__module__, "_twice", (types.int64,))], f)
+        pickle.dump(
+            [("no.such.module", "k", (types.float64,)), (_twice.py_func.__module__, "_twice", (types.int64,))], f
+        )
     assert (types.int64,) not in _twice.overloads
     jit.preload("test", wait_s=0.2)
     assert (types.int64,) in _twice.overloads and _twice(3) == 6
@@ -330,7 +352,9 @@ def test_centring_keeps_the_near_points_a_mask_would():
     np.testing.assert_array_equal(centred, want)
     # near: the levelling sample, the first point of each 0.1 m voxel within 15 m
     np.testing.assert_array_equal(near, _first_in_voxels(want, 15.0, 0.1))
-    assert 1000 < len(near) < int((d2 <= np.float32(15.0**2)).sum()) < len(centred) < len(pts)  # some voxels held several
+    assert (
+        1000 < len(near) < int((d2 <= np.float32(15.0**2)).sum()) < len(centred) < len(pts)
+    )  # some voxels held several
     again, none = _centred_float32(pts, origin, 48.0**2)
     np.testing.assert_array_equal(again, want)
     assert none is None
@@ -352,17 +376,24 @@ def test_centring_thins_to_the_first_point_of_each_pixel():
     f = full.astype(np.float64)
     r = np.linalg.norm(f, axis=1)
     inner = r < pixels.near_m
-    k = np.minimum((np.log(np.maximum(r, pixels.near_m) / pixels.near_m) / np.log(pixels.ratio)).astype(np.int64), len(pixels.step_rad) - 1)
+    k = np.minimum(
+        (np.log(np.maximum(r, pixels.near_m) / pixels.near_m) / np.log(pixels.ratio)).astype(np.int64),
+        len(pixels.step_rad) - 1,
+    )
     step = pixels.step_rad[k]
     col = np.clip(((np.arctan2(f[:, 1], f[:, 0]) + np.pi) / step).astype(np.int64), 0, pixels.columns[k] - 1)
-    row = np.clip(((np.arctan2(f[:, 2], np.hypot(f[:, 0], f[:, 1])) + np.pi / 2) / step).astype(np.int64), 0, pixels.rows[k] - 1)
+    row = np.clip(
+        ((np.arctan2(f[:, 2], np.hypot(f[:, 0], f[:, 1])) + np.pi / 2) / step).astype(np.int64), 0, pixels.rows[k] - 1
+    )
     cell = pixels.offset[k] + row * pixels.columns[k] + col
     _, first = np.unique(cell[~inner], return_index=True)
     keep = inner.copy()
     keep[np.flatnonzero(~inner)[first]] = True
     np.testing.assert_array_equal(thinned, full[keep])
     assert len(thinned) < len(full) - 10000  # jittered copies and the dense near field went
-    assert np.degrees(pixels.step_rad[-1]) == 0.05 and np.all(pixels.step_rad[:-1] * pixels.near_m * pixels.ratio ** np.arange(len(pixels.step_rad) - 1) >= 0.02 - 1e-12)
+    assert np.degrees(pixels.step_rad[-1]) == 0.05 and np.all(
+        pixels.step_rad[:-1] * pixels.near_m * pixels.ratio ** np.arange(len(pixels.step_rad) - 1) >= 0.02 - 1e-12
+    )
     np.testing.assert_array_equal(near, _first_in_voxels(thinned, 15.0, 0.1))
 
 
@@ -372,12 +403,16 @@ def test_the_levelling_sample_is_the_first_point_of_each_voxel_within_reach():
     rng = np.random.default_rng(5)
     near_field = rng.normal(0.0, 0.5, (200000, 3))  # dense around the scanner: many points a voxel
     far = rng.uniform(-20, 20, (50000, 3))
-    cloud = np.concatenate([near_field, far, [[15.0, 0.0, 0.0], [-15.0, 0.0, 0.0], [0.0, 0.0, -15.0]]])  # on the sphere: kept
+    cloud = np.concatenate(
+        [near_field, far, [[15.0, 0.0, 0.0], [-15.0, 0.0, 0.0], [0.0, 0.0, -15.0]]]
+    )  # on the sphere: kept
     sample = level.level_sample(cloud)
     np.testing.assert_array_equal(sample, _first_in_voxels(cloud, 15.0, 0.1))
     assert len(sample) < len(cloud) // 2
     np.testing.assert_array_equal(level.level_sample(sample), sample)  # a sample is its own sample
-    np.testing.assert_array_equal(level.level_sample(cloud.astype(np.float32), voxel_m=0.25, radius_m=8.0), _first_in_voxels(cloud, 8.0, 0.25))
+    np.testing.assert_array_equal(
+        level.level_sample(cloud.astype(np.float32), voxel_m=0.25, radius_m=8.0), _first_in_voxels(cloud, 8.0, 0.25)
+    )
 
 
 def test_icp_normals_kept_row_by_row_equal_the_normals_of_the_whole_level():
@@ -453,7 +488,9 @@ def test_voxel_centroids_equal_unique_and_bincount():
         keys = voxel_keys(p, voxel_m)
         _, first, inverse, counts = np.unique(keys, return_index=True, return_inverse=True, return_counts=True)
         anchor = p[first]
-        sums = np.column_stack([np.bincount(inverse, weights=p[:, a] - anchor[inverse, a], minlength=len(counts)) for a in range(3)])
+        sums = np.column_stack(
+            [np.bincount(inverse, weights=p[:, a] - anchor[inverse, a], minlength=len(counts)) for a in range(3)]
+        )
         centroids, voxel_of_point = voxel_centroids(p, voxel_m)
         np.testing.assert_array_equal(centroids, anchor + sums / counts[:, None])
         np.testing.assert_array_equal(voxel_of_point, inverse)
@@ -485,12 +522,25 @@ def test_free_space_pick_equals_slicing_the_moved_points(sim_plot, follow_terrai
     d = register(plot.scans[0].scan, plot.scans[1].scan, params).details
     picked = []
     monkeypatch.setattr(evidence, "apply_transform", lambda m, p: (picked.append(p), apply_transform(m, p))[1])
-    evidence._side(d.reference, d.reference_layers, d.moving, d.lsf_matrix, params, 15.0, dict(bin_deg=0.5, margin_m=0.5, near_m=2.0, reach_m=15.0))
+    evidence._side(
+        d.reference,
+        d.reference_layers,
+        d.moving,
+        d.lsf_matrix,
+        params,
+        15.0,
+        dict(bin_deg=0.5, margin_m=0.5, near_m=2.0, reach_m=15.0),
+    )
     moved = apply_transform(d.lsf_matrix, d.moving.points[~d.moving.ground_mask].astype(np.float64))
     want = np.zeros(len(moved), dtype=bool)
     for offset in (0.0, 0.6):
         if follow_terrain:
-            want |= slice_layer(moved, d.reference.ground, centre_height_m=d.reference.scanner_height_m + offset, thickness_m=params.slice_thickness_m)
+            want |= slice_layer(
+                moved,
+                d.reference.ground,
+                centre_height_m=d.reference.scanner_height_m + offset,
+                thickness_m=params.slice_thickness_m,
+            )
         else:
             want |= slice_layer(moved, None, centre_height_m=offset, thickness_m=params.slice_thickness_m)
     want &= np.hypot(moved[:, 0], moved[:, 1]) < 15.0
@@ -520,12 +570,21 @@ def test_column_index_discs_equal_kd_tree_ball_queries(offset):
     from forestreg.engine.geometry.columns import ColumnIndex
 
     rng = np.random.default_rng(6)
-    p = np.column_stack([rng.uniform(-30, 30, 60_000) + offset, rng.uniform(-20, 25, 60_000) + offset, rng.uniform(0, 30, 60_000)])
+    p = np.column_stack(
+        [rng.uniform(-30, 30, 60_000) + offset, rng.uniform(-20, 25, 60_000) + offset, rng.uniform(0, 30, 60_000)]
+    )
     p[:200, :2] = np.round(p[:200, :2])  # points on cell borders
     tree = cKDTree(p[:, :2])
     for cell in (0.7, 1.0, 3.0):
         columns = ColumnIndex(p, cell)
-        for x, y, r in [(0, 0, 2.0), (29.5, 24.0, 3.0), (-31, -21, 1.5), (100, 100, 5.0), (3, -4, 0.0), (10.2, 5.3, 12.0)]:
+        for x, y, r in [
+            (0, 0, 2.0),
+            (29.5, 24.0, 3.0),
+            (-31, -21, 1.5),
+            (100, 100, 5.0),
+            (3, -4, 0.0),
+            (10.2, 5.3, 12.0),
+        ]:
             got = columns.within(x + offset, y + offset, r)
             want = np.sort(tree.query_ball_point([x + offset, y + offset], r))
             np.testing.assert_array_equal(got, want)
@@ -608,7 +667,9 @@ def test_normals_on_the_grid_and_in_blocks_equal_a_kd_tree_and_one_decomposition
     w, v = np.linalg.eigh(cov)
     np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", normals, v[:, :, 0])), 1.0, atol=1e-6)
     np.testing.assert_allclose(variation, w[:, 0] / w.sum(axis=1), atol=1e-9)
-    grid_cov, _ = features.local_covariances(thinned, thinned, k=20, grid=features.SphereGrid(thinned, level.NORMAL_SEARCH_CELL_M))
+    grid_cov, _ = features.local_covariances(
+        thinned, thinned, k=20, grid=features.SphereGrid(thinned, level.NORMAL_SEARCH_CELL_M)
+    )
     tree_cov, _ = features.local_covariances(thinned, thinned, k=20)
     np.testing.assert_array_equal(grid_cov, tree_cov)
     monkeypatch.setattr(features, "worker_count", lambda: 1)

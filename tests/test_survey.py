@@ -9,10 +9,10 @@ import json
 import numpy as np
 import pytest
 
+from forestreg.app.plot import write_poses
 from forestreg.engine.core.scan import Scan
 from forestreg.engine.core.transform import matrix_from_yaw, rigid_errors
 from forestreg.engine.io import read_scan, write_scan
-from forestreg.app.plot import write_poses
 from forestreg.engine.tls.plot import ScanCache
 from forestreg.engine.tls.project import Project
 from forestreg.engine.tls.scanner_position import ScannerPositionError, locate_scanner
@@ -27,7 +27,12 @@ def _placement(scanner_world: np.ndarray, rng: np.random.Generator) -> np.ndarra
     (about the scanner) and the position by up to 5 m."""
     to_scanner = np.eye(4)
     to_scanner[:3, 3] = -scanner_world
-    err = matrix_from_yaw(rng.uniform(-30.0, 30.0), scanner_world + np.r_[rng.uniform(-3.5, 3.5, 2), rng.uniform(-0.5, 0.5)]) @ to_scanner
+    err = (
+        matrix_from_yaw(
+            rng.uniform(-30.0, 30.0), scanner_world + np.r_[rng.uniform(-3.5, 3.5, 2), rng.uniform(-0.5, 0.5)]
+        )
+        @ to_scanner
+    )
     err[:3, 3] += UTM
     return err
 
@@ -95,7 +100,9 @@ def test_a_scan_in_project_coordinates_gets_its_own_position(sim_plot):
 
 def test_a_merged_or_empty_cloud_is_refused_with_a_reason():
     rng = np.random.default_rng(0)
-    flat = np.column_stack([rng.uniform(0, 40, 50000) + 6e5, rng.uniform(0, 40, 50000) + 5e6, rng.normal(0, 0.02, 50000)])
+    flat = np.column_stack(
+        [rng.uniform(0, 40, 50000) + 6e5, rng.uniform(0, 40, 50000) + 5e6, rng.normal(0, 0.02, 50000)]
+    )
     with pytest.raises(ScannerPositionError, match="scanner-position"):
         locate_scanner(Scan.from_points(flat, name="uniform"))
 
@@ -118,7 +125,12 @@ def test_georeferenced_survey_without_positions_registers_to_truth(georeferenced
         print(f"{p.name}: error {rot:.4f} deg, {1000 * trans:.1f} mm; stated {u}")
         assert u is not None and set(u) >= {"translation_m", "rotation_deg"}
         if k:
-            assert trans <= 3.0 * u["translation_m"] + 1e-9 and rot <= 3.0 * u["rotation_deg"] + 1e-9, (p.name, trans, rot, u)
+            assert trans <= 3.0 * u["translation_m"] + 1e-9 and rot <= 3.0 * u["rotation_deg"] + 1e-9, (
+                p.name,
+                trans,
+                rot,
+                u,
+            )
             assert u["translation_m"] < 0.1 and u["rotation_deg"] < 0.5, "an uncertainty that says nothing"
         quality = body["scans"][p.name]["quality"]
         assert quality["links"] >= 1
@@ -158,7 +170,9 @@ def test_stated_pair_uncertainty_is_honest(georeferenced, surveyed):
     for link in project.links:
         if not link.ok or not (link.result or {}).get("uncertainty"):
             continue
-        truth = np.linalg.inv(_truth(plot, placements, index[link.reference])) @ _truth(plot, placements, index[link.moving])
+        truth = np.linalg.inv(_truth(plot, placements, index[link.reference])) @ _truth(
+            plot, placements, index[link.moving]
+        )
         s = placements[index[link.moving]][:3, 3]
         d = (link.matrix - truth)[:3, :3] @ s + (link.matrix - truth)[:3, 3]
         rot, _ = rigid_errors(link.matrix, truth)

@@ -37,7 +37,9 @@ def test_stated_uncertainty_is_calibrated_over_many_pairs(sim_plot):
                 ratios.append(max(trans / u["translation_m"], rot / u["rotation_deg"]))
     ratios = np.array(ratios)
     within = {k: float(np.mean(ratios <= k)) for k in (1, 2, 3)}
-    print(f"calibration over {len(ratios)} pairs ({failed} failed honestly): within 1x {within[1]:.2f}, 2x {within[2]:.2f}, 3x {within[3]:.2f}; median ratio {np.median(ratios):.2f}")
+    print(
+        f"calibration over {len(ratios)} pairs ({failed} failed honestly): within 1x {within[1]:.2f}, 2x {within[2]:.2f}, 3x {within[3]:.2f}; median ratio {np.median(ratios):.2f}"
+    )
     assert len(ratios) >= 8
     assert within[3] >= 0.9, "the true error exceeds 3x the stated uncertainty too often"
     assert np.median(ratios) > 0.02, "the stated uncertainty is uselessly large"

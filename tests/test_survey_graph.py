@@ -26,7 +26,11 @@ def _link(poses, a, b, rng, noise_m=0.003, noise_deg=0.01, sigma=(0.005, 0.02)):
     truth = np.linalg.inv(poses[b]) @ poses[a]
     m = matrix_from_yaw(rng.normal(0, noise_deg), rng.normal(0, noise_m, 3)) @ truth
     link = Link(moving=a, reference=b)
-    link.result = {"status": "ok", "matrix": m.tolist(), "uncertainty": {"translation_m": sigma[0], "rotation_deg": sigma[1]}}
+    link.result = {
+        "status": "ok",
+        "matrix": m.tolist(),
+        "uncertainty": {"translation_m": sigma[0], "rotation_deg": sigma[1]},
+    }
     return link
 
 
@@ -48,7 +52,9 @@ def test_one_wrong_link_among_all_pairs_is_found():
     poses, scanner, rng = _survey()
     links = [_link(poses, a, b, rng) for a, b in itertools.combinations(sorted(poses), 2)]
     wrong = links[4]
-    wrong.result = wrong.result.replace(matrix=(matrix_from_yaw(6.0, np.array([0.8, -0.4, 0.0])) @ wrong.result.matrix).tolist())
+    wrong.result = wrong.result.replace(
+        matrix=(matrix_from_yaw(6.0, np.array([0.8, -0.4, 0.0])) @ wrong.result.matrix).tolist()
+    )
     culprits, rows = inconsistent_links(links, scanner, 4.0)
     assert culprits == [wrong]
     assert sum(not r["closes"] for r in rows if "closes" in r) == len(poses) - 2
@@ -63,8 +69,10 @@ def test_pair_uncertainty_grows_with_trunk_scatter_and_propagates_along_chains()
     assert 0 < tight["translation_m"] < loose["translation_m"] and tight["rotation_deg"] < loose["rotation_deg"]
     assert pair_uncertainty(ref[:2], ref[:2], np.zeros(2))["translation_m"] is None
     positions = {"a": np.zeros(3), "b": np.array([10.0, 0, 0]), "c": np.array([20.0, 0, 0])}
-    rows = [{"moving": "b", "reference": "a", "translation_m": 0.01, "rotation_deg": 0.05},
-            {"moving": "c", "reference": "b", "translation_m": 0.01, "rotation_deg": 0.05}]
+    rows = [
+        {"moving": "b", "reference": "a", "translation_m": 0.01, "rotation_deg": 0.05},
+        {"moving": "c", "reference": "b", "translation_m": 0.01, "rotation_deg": 0.05},
+    ]
     u = propagate_uncertainty("a", positions, rows)
     assert u["a"]["translation_m"] == 0.0
     assert u["c"]["translation_m"] > np.hypot(0.01, 0.01) and u["c"]["rotation_deg"] > u["b"]["rotation_deg"]

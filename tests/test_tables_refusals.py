@@ -51,9 +51,21 @@ def _surveys(heading_deg=25.0, seed=0, removed=6):
     a_dbh = dbh[keep] + rng.uniform(0.01, 0.03, len(keep))
 
     def rows(p, d, hh, z):
-        return [{"tree_id": str(k + 1), "x": f"{x:.4f}", "y": f"{y:.4f}", "z": f"{z:.3f}", "dbh_m": f"{dk:.4f}",
-                 "height_m": f"{hk:.2f}", "source": "stem", "dbh_quality": "stem curve; high", "height_quality": "top; high",
-                 "flag": ""} for k, ((x, y), dk, hk) in enumerate(zip(p, d, hh))]
+        return [
+            {
+                "tree_id": str(k + 1),
+                "x": f"{x:.4f}",
+                "y": f"{y:.4f}",
+                "z": f"{z:.3f}",
+                "dbh_m": f"{dk:.4f}",
+                "height_m": f"{hk:.2f}",
+                "source": "stem",
+                "dbh_quality": "stem curve; high",
+                "height_quality": "top; high",
+                "flag": "",
+            }
+            for k, ((x, y), dk, hk) in enumerate(zip(p, d, hh))
+        ]
 
     return rows(xy, dbh, h, 0.0), rows(a_xy, a_dbh, h[keep] + 1.5, 12.0)
 
@@ -102,7 +114,9 @@ def test_one_repeated_row_is_named_and_two_close_trees_of_other_sizes_are_not(tm
     err = _refused(capsys, tmp_path, tmp_path / "before.csv", a)
     assert "1 tree(s) listed twice" in err and "lines 5 and 7" in err
     # a fork: a second stem 3 cm away with another DBH is a tree of its own
-    fork = dict(after[3], tree_id="99", x=f"{float(after[3]['x']) + 0.03:.4f}", dbh_m=f"{float(after[3]['dbh_m']) / 2:.4f}")
+    fork = dict(
+        after[3], tree_id="99", x=f"{float(after[3]['x']) + 0.03:.4f}", dbh_m=f"{float(after[3]['dbh_m']) / 2:.4f}"
+    )
     a = _write(tmp_path / "fork.csv", after + [fork])
     out = tmp_path / "fork_out"
     assert _run("change", str(tmp_path / "before.csv"), str(a), "--out", str(out)) == 0
@@ -111,8 +125,16 @@ def test_one_repeated_row_is_named_and_two_close_trees_of_other_sizes_are_not(tm
 # ------------------------------------------------------------------- DBH and coordinates
 
 
-@pytest.mark.parametrize("value, words", [("-0.3", "zero or negative"), ("0", "zero or negative"), ("7.5", "above 5 m"),
-                                          ("abc", "not a number"), ("inf", "not a number")])
+@pytest.mark.parametrize(
+    "value, words",
+    [
+        ("-0.3", "zero or negative"),
+        ("0", "zero or negative"),
+        ("7.5", "above 5 m"),
+        ("abc", "not a number"),
+        ("inf", "not a number"),
+    ],
+)
 def test_change_refuses_an_impossible_dbh_naming_the_column_and_lines(tmp_path, capsys, value, words):
     _, _, before, after = _pair(tmp_path)
     bad = [dict(r, dbh_m=value) if k in (2, 9) else r for k, r in enumerate(after)]
@@ -180,8 +202,10 @@ def test_dbh_in_millimetres_under_dbh_m_is_a_unit_error(tmp_path, capsys):
 
 def test_one_survey_in_feet_is_a_unit_error_and_units_after_reads_it(tmp_path, capsys):
     _, _, before, after = _pair(tmp_path)
-    ft = [dict(r, x=f"{float(r['x']) / 0.3048:.4f}", y=f"{float(r['y']) / 0.3048:.4f}", z=f"{float(r['z']) / 0.3048:.4f}")
-          for r in after]
+    ft = [
+        dict(r, x=f"{float(r['x']) / 0.3048:.4f}", y=f"{float(r['y']) / 0.3048:.4f}", z=f"{float(r['z']) / 0.3048:.4f}")
+        for r in after
+    ]
     a = _write(tmp_path / "after_ft.csv", ft)
     err = _refused(capsys, tmp_path, tmp_path / "before.csv", a)
     assert "different units" in err and "AFTER looks like feet" in err and "--units-after ft" in err
@@ -232,8 +256,11 @@ def test_tables_in_any_case_delimiter_and_dbh_unit_are_read(tmp_path, capsys):
         "upper.csv": (_renamed(after, {c: c.upper() for c in COLUMNS}), [c.upper() for c in COLUMNS], ","),
         "semicolon.csv": (after, COLUMNS, ";"),
         "tab.txt": (after, COLUMNS, "\t"),
-        "mm_upper.csv": ([dict(r, DBH_MM=f"{1000 * float(r['dbh_m']):.1f}") for r in after],
-                         [c if c != "dbh_m" else "DBH_MM" for c in COLUMNS], ";"),
+        "mm_upper.csv": (
+            [dict(r, DBH_MM=f"{1000 * float(r['dbh_m']):.1f}") for r in after],
+            [c if c != "dbh_m" else "DBH_MM" for c in COLUMNS],
+            ";",
+        ),
     }
     for name, (rows, columns, delimiter) in cases.items():
         path = _write(tmp_path / name, rows, columns, delimiter)
@@ -246,11 +273,15 @@ def test_tables_in_any_case_delimiter_and_dbh_unit_are_read(tmp_path, capsys):
         if name == "cm.csv":
             assert "note: AFTER: dbh_cm converted to metres (divided by 100)" in printed
             assert result["notes"] == ["AFTER: dbh_cm converted to metres (divided by 100)"]
-            growth = [float(r["dbh_change_m"]) for r in csv.DictReader(open(out / "tree_changes.csv")) if r["dbh_change_m"]]
+            growth = [
+                float(r["dbh_change_m"]) for r in csv.DictReader(open(out / "tree_changes.csv")) if r["dbh_change_m"]
+            ]
             assert 0.009 < np.median(growth) < 0.031  # metres, as from dbh_m
     # a point list with an x y z header (and a tree id per point) stays a cloud
     cloud = tmp_path / "points.csv"
-    cloud.write_text("X,Y,Z,tree_id\n" + "".join(f"{i * 0.1:.1f},{i * 0.2:.1f},{i * 0.05:.2f},{i % 3}\n" for i in range(50)))
+    cloud.write_text(
+        "X,Y,Z,tree_id\n" + "".join(f"{i * 0.1:.1f},{i * 0.2:.1f},{i * 0.05:.2f},{i % 3}\n" for i in range(50))
+    )
     assert not is_tree_table(cloud) and is_point_cloud_file(cloud)
 
 
@@ -318,8 +349,16 @@ def test_a_key_outside_every_section_is_refused_naming_its_sections(tmp_path, ca
 
 def _tables(tmp_path: Path, field_dbh, est_dbh):
     def write(name, dbh):
-        rows = [{"tree_id": str(k + 1), "x": f"{3.0 * k:.1f}", "y": f"{(k % 2) * 4.0:.1f}", "dbh_m": f"{d}", "height_m": f"{18 + k}"}
-                for k, d in enumerate(dbh)]
+        rows = [
+            {
+                "tree_id": str(k + 1),
+                "x": f"{3.0 * k:.1f}",
+                "y": f"{(k % 2) * 4.0:.1f}",
+                "dbh_m": f"{d}",
+                "height_m": f"{18 + k}",
+            }
+            for k, d in enumerate(dbh)
+        ]
         return _write(tmp_path / name, rows, ["tree_id", "x", "y", "dbh_m", "height_m"])
 
     return write("est.csv", est_dbh), write("field.csv", field_dbh)
@@ -337,7 +376,11 @@ def test_r2_over_equal_field_values_is_undefined_not_minus_1e30(tmp_path, capsys
     out = tmp_path / "E"
     assert _run("evaluate", str(est), str(fld), "--out", str(out)) == 0
     doc = json.loads((out / "evaluation.json").read_text())
-    dbh = doc["runs"]["run"]["parameters"]["dbh_m"] if "run" in doc["runs"] else next(iter(doc["runs"].values()))["parameters"]["dbh_m"]
+    dbh = (
+        doc["runs"]["run"]["parameters"]["dbh_m"]
+        if "run" in doc["runs"]
+        else next(iter(doc["runs"].values()))["parameters"]["dbh_m"]
+    )
     assert dbh["r2"] is None and dbh["r2_note"].startswith("field values all equal")
     html = (out / "report.html").read_text()
     assert 'title="R² undefined: field values all equal (0.35)">n/a</td>' in html
@@ -368,8 +411,12 @@ def test_evaluate_prints_r2_as_undefined_on_constant_or_single_field_values(tmp_
     one.write_text("tree_id,x,y,dbh_m,height_m\n1,0,0,0.3,20\n", encoding="utf-8")
     for table, why in ((est, "field values all equal"), (one, "fewer than 2 pairs")):
         out = tmp_path / f"E_{table.stem}"
-        run = subprocess.run([sys.executable, "-m", "forestreg.cli", "evaluate", str(table), str(table), "--out", str(out)],
-                             capture_output=True, text=True, timeout=120)
+        run = subprocess.run(
+            [sys.executable, "-m", "forestreg.cli", "evaluate", str(table), str(table), "--out", str(out)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert run.returncode == 0, run.stderr
         first = run.stdout.splitlines()[0]
         assert "R2 n/a" in first and why in first and "e+" not in first and not first.rstrip().endswith(";"), first
@@ -392,8 +439,12 @@ def test_change_refuses_a_cloud_in_centimetres_naming_the_unit(tmp_path):
     cm = tmp_path / "cm.laz"
     write_scan(Scan.from_points((s.points + s.origin_shift) * 100.0, name="cm"), cm)
     t = time.monotonic()
-    run = subprocess.run([sys.executable, "-m", "forestreg.cli", "change", str(cm), str(plot), "--out", str(tmp_path / "ch")],
-                         capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        [sys.executable, "-m", "forestreg.cli", "change", str(cm), str(plot), "--out", str(tmp_path / "ch")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 2, run.stderr
     assert "centimetres" in run.stderr and "BEFORE" in run.stderr
     assert time.monotonic() - t < 60

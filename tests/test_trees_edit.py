@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from forestreg.engine.core.errors import ParameterError, ScanDataError
 from forestreg.app.trees import save_edited
+from forestreg.engine.core.errors import ParameterError, ScanDataError
 from forestreg.engine.io.results import read_trees_dir
 from forestreg.engine.trees import edit as E
 from forestreg.engine.trees.inventory import TreeParams, measure_trees
@@ -111,7 +111,9 @@ def test_edits_are_written_marked_and_replayed(tmp_path):
     marked = {t.tree_id: t.edited for t in out.trees if t.edited}
     assert marked == notes
     dbh = next(t for t in out.trees if t.tree_id == a.tree_id).get("dbh_m")
-    assert dbh == pytest.approx(next(r for r in cur.trees if r.tree_id == a.tree_id).dbh_m, abs=1e-4)  # the reported DBH
+    assert dbh == pytest.approx(
+        next(r for r in cur.trees if r.tree_id == a.tree_id).dbh_m, abs=1e-4
+    )  # the reported DBH
     replayed = E.apply_edits(points, inv, E.read_edits(tmp_path / "edits.json"), PARAMS)
     assert [r.tree_id for r in replayed.trees] == [r.tree_id for r in cur.trees]
     assert json.loads((tmp_path / "edits.json").read_text())["edits"][0]["kind"] == "merge"

@@ -94,12 +94,33 @@ def test_simulated_sparse_ground_under_an_airborne_crown():
     from forestreg.engine.simulate.scene import BROADLEAF, CONIFER, Tree, make_scene
 
     base = make_scene("planted_conifer", seed=0, size_m=40.0, slope_deg=(15.0, 15.0))
-    trees = [Tree(1, 0.0, 0.0, 0.0, dbh_m=0.6, height_m=18.0, crown_base_m=1.0, crown_radius_m=7.0, shape=BROADLEAF,
-                  top_radius_fraction=0.3, stem_height_fraction=0.7, n_branches=8, leaf_area_density=8.0),
-             Tree(2, 12.0, 8.0, 0.0, dbh_m=0.35, height_m=20.0, crown_base_m=8.0, crown_radius_m=2.5, shape=CONIFER),
-             Tree(3, -12.0, -9.0, 0.0, dbh_m=0.3, height_m=16.0, crown_base_m=7.0, crown_radius_m=2.2, shape=CONIFER)]
-    scene = dataclasses.replace(base, trees=tuple(dataclasses.replace(t, z=float(base.ground_z(t.x, t.y))) for t in trees),
-                                shrubs=(), lianas=(), targets=(), boxes=())
+    trees = [
+        Tree(
+            1,
+            0.0,
+            0.0,
+            0.0,
+            dbh_m=0.6,
+            height_m=18.0,
+            crown_base_m=1.0,
+            crown_radius_m=7.0,
+            shape=BROADLEAF,
+            top_radius_fraction=0.3,
+            stem_height_fraction=0.7,
+            n_branches=8,
+            leaf_area_density=8.0,
+        ),
+        Tree(2, 12.0, 8.0, 0.0, dbh_m=0.35, height_m=20.0, crown_base_m=8.0, crown_radius_m=2.5, shape=CONIFER),
+        Tree(3, -12.0, -9.0, 0.0, dbh_m=0.3, height_m=16.0, crown_base_m=7.0, crown_radius_m=2.2, shape=CONIFER),
+    ]
+    scene = dataclasses.replace(
+        base,
+        trees=tuple(dataclasses.replace(t, z=float(base.ground_z(t.x, t.y))) for t in trees),
+        shrubs=(),
+        lianas=(),
+        targets=(),
+        boxes=(),
+    )
     cloud = simulate_uav_scan(scene, UavSetup(altitude_m=60.0, line_spacing_m=40.0, density_scale=0.05), seed=1)
     p, lab = np.asarray(cloud.points), np.asarray(cloud.labels)
     true_ground = np.array([scene.ground_z(x, y) for x, y in p[:, :2]])
@@ -163,9 +184,15 @@ def _four_scan_plot(seed: int = 3, size_m: float = 30.0, elevation_max_deg: floa
     from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.trees.inventory import TreeParams
 
-    plot = simulate_plot("mixed_temperate", [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)], seed=seed,
-                         angular_step_deg=0.35, size_m=size_m, scanner_options={"elevation_max_deg": elevation_max_deg},
-                         **scene_overrides)
+    plot = simulate_plot(
+        "mixed_temperate",
+        [(-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)],
+        seed=seed,
+        angular_step_deg=0.35,
+        size_m=size_m,
+        scanner_options={"elevation_max_deg": elevation_max_deg},
+        **scene_overrides,
+    )
     points = np.vstack([s.world_points() for s in plot.scans])
     return plot, measure_trees(points, TreeParams(cylinder_models=False))
 
@@ -210,7 +237,9 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     # vouch for the tops not seen here (a hidden top may be a suppressed tree's)
     assert inv.height_curve.n_tips_below >= 1 and "suppressed" in inv.height_curve.fill_note
     from_curve = [r for r in inv.trees if r.height_source == "curve"]
-    assert from_curve and all(r.quality["height"].endswith("; low") and "not vouched for" in r.quality["height"] for r in from_curve)
+    assert from_curve and all(
+        r.quality["height"].endswith("; low") and "not vouched for" in r.quality["height"] for r in from_curve
+    )
     tips = [e for (r, _), e in zip(trusted, err) if "apex seen as a tip" in r.quality["height"]]
     assert len(tips) >= 3 and np.max(np.abs(tips)) <= 0.05
     for r, t in pairs:
@@ -220,7 +249,9 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
             assert ("top over the stem" in r.quality["height"]) == top_over_stem(r.crown, CrownParams())
     # flags that matter: a flagged tree has a weak value, an unflagged one none
     for r in inv.trees:
-        weak = [k for k, q in r.quality.items() if q.endswith(("; low", "; none")) and not q.startswith("not asked for")]
+        weak = [
+            k for k, q in r.quality.items() if q.endswith(("; low", "; none")) and not q.startswith("not asked for")
+        ]
         assert bool(r.flags) == bool(weak), (r.tree_id, r.flags, r.quality)
 
 
@@ -247,7 +278,9 @@ def test_four_scan_plot_with_the_usual_field_of_view_flags_tops_not_seen():
     assert tallest_r.quality["height"].endswith("low")
     assert any(f.startswith(("top not seen: crown cut flat", "height -")) for f in tallest_r.flags), tallest_r.flags
     for r in inv.trees:
-        weak = [k for k, q in r.quality.items() if q.endswith(("; low", "; none")) and not q.startswith("not asked for")]
+        weak = [
+            k for k, q in r.quality.items() if q.endswith(("; low", "; none")) and not q.startswith("not asked for")
+        ]
         assert bool(r.flags) == bool(weak), (r.tree_id, r.flags, r.quality)
 
 
@@ -292,11 +325,17 @@ def test_intermixed_crowns_heights_from_the_curve_where_the_points_cannot_give_t
         else:
             assert r.quality["height"].endswith("; low") and "not vouched for" in r.quality["height"]
         row = r.row()
-        assert row["height_source"] == "curve" and row["height_m"] == r.height_m and row["height_points_m"] == r.crown.height_m
+        assert (
+            row["height_source"] == "curve"
+            and row["height_m"] == r.height_m
+            and row["height_points_m"] == r.crown.height_m
+        )
     # flags that matter: the crown of a tree whose top went to, or came from, a neighbour stays
     # flagged when the curve gives its height
     for r in inv.trees:
-        weak = [k for k, q in r.quality.items() if q.endswith(("; low", "; none")) and not q.startswith("not asked for")]
+        weak = [
+            k for k, q in r.quality.items() if q.endswith(("; low", "; none")) and not q.startswith("not asked for")
+        ]
         assert bool(r.flags) == bool(weak), (r.tree_id, r.flags, r.quality)
     assert "from the height-diameter curve" in inv.summary()
 
@@ -332,7 +371,9 @@ def test_a_40_m_plot_with_suppressed_trees_trusts_no_top_in_a_neighbours_crown()
     inside = [t for t in plot.scene.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
     xy = np.array([(r.stem.x, r.stem.y) for r in inv.trees])
     nearest = [(int(np.argmin(np.hypot(*(xy - (t.x, t.y)).T))), t) for t in inside]
-    pairs = [(inv.trees[k], t) for k, t in nearest if math.hypot(inv.trees[k].stem.x - t.x, inv.trees[k].stem.y - t.y) < 0.5]
+    pairs = [
+        (inv.trees[k], t) for k, t in nearest if math.hypot(inv.trees[k].stem.x - t.x, inv.trees[k].stem.y - t.y) < 0.5
+    ]
     assert len(inside) == 40 and len(pairs) == 39  # a 14 cm stem 1.2 m from two 57 cm ones is not found
     assert inv.height_curve is not None and inv.height_curve.n_tips_below >= 1
     assert all(r.quality["height"].endswith("; low") for r in inv.trees if r.height_source == "curve")
@@ -354,20 +395,43 @@ def test_a_leaning_tree_keeps_its_own_top_beside_a_taller_neighbour():
 
     lean = math.radians(20.0)
     axis = np.array([math.sin(lean), 0.0, math.cos(lean)])
-    leaning = Stem(id=1, base=np.array([0.0, 0.0, 0.0]), axis=axis, radius_m=0.15, point_indices=np.zeros(0, dtype=np.int64))
-    tall = Stem(id=2, base=np.array([9.0, 0.0, 0.0]), axis=np.array([0.0, 0.0, 1.0]), radius_m=0.25,
-                point_indices=np.zeros(0, dtype=np.int64))
+    leaning = Stem(
+        id=1, base=np.array([0.0, 0.0, 0.0]), axis=axis, radius_m=0.15, point_indices=np.zeros(0, dtype=np.int64)
+    )
+    tall = Stem(
+        id=2,
+        base=np.array([9.0, 0.0, 0.0]),
+        axis=np.array([0.0, 0.0, 1.0]),
+        radius_m=0.25,
+        point_indices=np.zeros(0, dtype=np.int64),
+    )
     nan = math.nan
 
     def crown(i, top, height):
-        return CrownMeasurement(tree_id=i, x=0.0, y=0.0, height_m=height, crown_base_m=nan, crown_width_ew_m=nan, crown_width_ns_m=nan,
-                                crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan, crown_volume_m3=nan, n_points=0,
-                                top=tuple(top), ok=True, reasons=())
+        return CrownMeasurement(
+            tree_id=i,
+            x=0.0,
+            y=0.0,
+            height_m=height,
+            crown_base_m=nan,
+            crown_width_ew_m=nan,
+            crown_width_ns_m=nan,
+            crown_area_m2=nan,
+            crown_diameter_m=nan,
+            crown_length_m=nan,
+            crown_volume_m3=nan,
+            n_points=0,
+            top=tuple(top),
+            ok=True,
+            reasons=(),
+        )
 
     for top, shared in ((leaning.base + 16.0 * axis, False), (np.array([7.5, 0.0, 14.0]), True)):
         crowns = {1: crown(1, top, float(top[2])), 2: crown(2, (9.0, 0.0, 25.0), 25.0)}
         pts = np.array([top, [9.0, 0.0, 25.0]])
         labels = np.array([1, 2])
-        flags = _shared_tops(pts, labels, [leaning, tall], crowns, ColumnIndex(pts, 1.0), TreeParams().shared_top_min_points)
+        flags = _shared_tops(
+            pts, labels, [leaning, tall], crowns, ColumnIndex(pts, 1.0), TreeParams().shared_top_min_points
+        )
         assert (1 in flags) == shared, (top, flags)
         assert 2 not in flags

@@ -18,7 +18,9 @@ from forestreg.engine.trees.inventory import TREE_COLUMNS, measure_trees
 def _plot():
     from forestreg.engine.simulate import simulate_plot
 
-    plot = simulate_plot("planted_conifer", [(-4.0, -4.0), (4.0, -4.0), (0.0, 4.0)], seed=2, angular_step_deg=0.3, size_m=18.0)
+    plot = simulate_plot(
+        "planted_conifer", [(-4.0, -4.0), (4.0, -4.0), (0.0, 4.0)], seed=2, angular_step_deg=0.3, size_m=18.0
+    )
     points = np.vstack([s.world_points() for s in plot.scans])
     return plot, points
 
@@ -90,7 +92,9 @@ def test_heights_crowns_and_volumes_against_truth():
     assert np.median(h_err) < 0.03, f"median height error {100 * np.median(h_err):.1f} %"
     cb_err = np.array([abs(r.crown.crown_base_m - t.crown_base_m) for r, t in pairs if r.crown.ok])
     assert np.median(cb_err) < 0.5
-    widths = np.array([(0.5 * (r.crown.crown_width_ew_m + r.crown.crown_width_ns_m), 2 * t.crown_radius_m) for r, t in visible])
+    widths = np.array(
+        [(0.5 * (r.crown.crown_width_ew_m + r.crown.crown_width_ns_m), 2 * t.crown_radius_m) for r, t in visible]
+    )
     assert np.median(np.abs(widths[:, 0] - widths[:, 1]) / widths[:, 1]) < 0.25
     # the cylinder model's stem volume up to the crown base: within 10 % of the true volume there
     errs = []
@@ -130,7 +134,9 @@ def test_trees_and_evaluate_commands(tmp_path):
         rows = list(csv.DictReader(f))
     assert tuple(rows[0].keys()) == TREE_COLUMNS
     assert len(rows) == len(_inventory().trees)
-    assert all((out / "cylinders" / f"tree_{int(r['tree_id']):04d}.csv").exists() for r in rows if int(r["n_cylinders"]) > 0)
+    assert all(
+        (out / "cylinders" / f"tree_{int(r['tree_id']):04d}.csv").exists() for r in rows if int(r["n_cylinders"]) > 0
+    )
     assert (out / "report.html").stat().st_size > 100_000
     assert (out / "stem_curves.csv").exists()
     ev = json.loads((out / "evaluation" / "evaluation.json").read_text())

@@ -22,13 +22,18 @@ from forestreg.engine.trees.stems import Stem
 
 
 def _stem(i: int, x: float, y: float, dbh: float) -> Stem:
-    return Stem(id=i, base=np.array([x, y, 0.0]), axis=np.array([0.0, 0.0, 1.0]), radius_m=dbh / 2.0,
-                point_indices=np.zeros(0, dtype=np.int64))
+    return Stem(
+        id=i,
+        base=np.array([x, y, 0.0]),
+        axis=np.array([0.0, 0.0, 1.0]),
+        radius_m=dbh / 2.0,
+        point_indices=np.zeros(0, dtype=np.int64),
+    )
 
 
 def test_expected_crown_radius_grows_with_the_dbh():
     params = SegmentationParams()
-    assert expected_crown_radius(0.25, params) == pytest.approx(5.3 * 0.5 ** 0.6)
+    assert expected_crown_radius(0.25, params) == pytest.approx(5.3 * 0.5**0.6)
     assert 1.5 < expected_crown_radius(0.07, params) < 1.8
     assert expected_crown_radius(0.07, params.replace(crown_radius_per_dbh=0.0)) == 0.0
 
@@ -39,9 +44,9 @@ def test_a_thin_stems_segment_gives_up_the_thick_neighbours_crown_beyond_its_own
     expected crown go to the thick tree; voxels of the thin tree on its far side stay; without a
     thicker neighbour nothing moves."""
     thin, thick = _stem(1, 0.0, 0.0, 0.14), _stem(2, 2.5, 0.0, 0.5)
-    own = np.array([[0.3, 0.2, 8.0], [-0.8, 0.5, 9.0], [1.2, 0.0, 10.0]])      # within 1.6 m of the thin axis
+    own = np.array([[0.3, 0.2, 8.0], [-0.8, 0.5, 9.0], [1.2, 0.0, 10.0]])  # within 1.6 m of the thin axis
     taken = np.array([[1.9, 0.3, 14.0], [2.0, -0.5, 16.0], [1.7, 0.9, 12.0]])  # beyond 1.6 m, nearer the thick axis
-    far_side = np.array([[-1.8, 0.0, 9.0]])                                   # beyond 1.6 m, away from the thick tree
+    far_side = np.array([[-1.8, 0.0, 9.0]])  # beyond 1.6 m, away from the thick tree
     centroids = np.vstack([own, taken, far_side, np.zeros((10, 3)) + [-0.2, 0.0, 7.0]])
     labels = np.ones(len(centroids), dtype=np.int64)
     out = _keep_own_tops(centroids, labels, [thin, thick], SegmentationParams())
@@ -52,12 +57,30 @@ def test_a_thin_stems_segment_gives_up_the_thick_neighbours_crown_beyond_its_own
     assert (alone == 1).all()
 
 
-def _crown(height: float, offset: float = 0.1, ratio: float = 0.05, layer: float = 0.1, diameter: float = 3.0) -> CrownMeasurement:
+def _crown(
+    height: float, offset: float = 0.1, ratio: float = 0.05, layer: float = 0.1, diameter: float = 3.0
+) -> CrownMeasurement:
     nan = math.nan
-    return CrownMeasurement(tree_id=1, x=0.0, y=0.0, height_m=height, crown_base_m=height / 2, crown_width_ew_m=diameter,
-                            crown_width_ns_m=diameter, crown_area_m2=nan, crown_diameter_m=diameter, crown_length_m=height / 2,
-                            crown_volume_m3=nan, n_points=500, top=(0.0, 0.0, height), ok=True, reasons=(),
-                            top_offset_m=offset, top_offset_ratio=ratio, top_layer_offset_ratio=layer)
+    return CrownMeasurement(
+        tree_id=1,
+        x=0.0,
+        y=0.0,
+        height_m=height,
+        crown_base_m=height / 2,
+        crown_width_ew_m=diameter,
+        crown_width_ns_m=diameter,
+        crown_area_m2=nan,
+        crown_diameter_m=diameter,
+        crown_length_m=height / 2,
+        crown_volume_m3=nan,
+        n_points=500,
+        top=(0.0, 0.0, height),
+        ok=True,
+        reasons=(),
+        top_offset_m=offset,
+        top_offset_ratio=ratio,
+        top_layer_offset_ratio=layer,
+    )
 
 
 #: a tight curve resting on many trees, followed by the trees whose apex is a tip: it may stand in
@@ -65,8 +88,19 @@ CURVE = HeightCurve(a=1.15, b=0.18, n_trees=25, n_inliers=25, scatter=0.04, dbh_
 
 
 def _judge(crown, hints=(), dbh=0.3, curve=CURVE, overtopped=None, h_trust="high", top_flags=()):
-    return _judge_top(crown, dbh, "stem curve at 1.3 m; high", list(hints), list(top_flags), h_trust, "high", "highest point",
-                      TreeParams(), curve, overtopped)
+    return _judge_top(
+        crown,
+        dbh,
+        "stem curve at 1.3 m; high",
+        list(hints),
+        list(top_flags),
+        h_trust,
+        "high",
+        "highest point",
+        TreeParams(),
+        curve,
+        overtopped,
+    )
 
 
 def test_a_top_stands_only_on_evidence():
@@ -77,7 +111,9 @@ def test_a_top_stands_only_on_evidence():
     c = CURVE.height_m(0.3)
     trust, how, fill, flags = _judge(_crown(0.6 * c))
     assert trust == "high" and not flags and math.isnan(fill) and "apex seen as a tip" in how
-    under = [("under", "top under a neighbour's crown, 0.8 m clear of it: suppressed, or its top unseen (height unsure)")]
+    under = [
+        ("under", "top under a neighbour's crown, 0.8 m clear of it: suppressed, or its top unseen (height unsure)")
+    ]
     trust, _, fill, flags = _judge(_crown(0.6 * c), under)
     assert trust == "medium" and not flags and math.isnan(fill)
     trust, _, fill, flags = _judge(_crown(0.6 * c), under, curve=None)
@@ -95,10 +131,20 @@ def test_the_curve_vouches_for_no_suppressed_tree():
     agrees with the curve within 10 % (then the points' top stands); a loose curve vouches for
     nothing."""
     c = CURVE.height_m(0.14)
-    touch = [("unseen", "top touching a neighbour's crown (3 cm below it): the crown may go on up in that tree (height unsure)")]
+    touch = [
+        (
+            "unseen",
+            "top touching a neighbour's crown (3 cm below it): the crown may go on up in that tree (height unsure)",
+        )
+    ]
     trust, how, fill, flags = _judge(_crown(0.7 * c, offset=0.9, ratio=0.6, layer=0.6), touch, dbh=0.14)
     assert trust == "low" and fill == pytest.approx(0.85 * c) and "midway" in how and flags
-    flank = [("hint", "top on the crown's flank, 1.2 m from the stem axis (0.80 of the crown radius): apex unseen or a neighbour's (height unsure)")]
+    flank = [
+        (
+            "hint",
+            "top on the crown's flank, 1.2 m from the stem axis (0.80 of the crown radius): apex unseen or a neighbour's (height unsure)",
+        )
+    ]
     under_big = "its stem stands 1.9 m from thicker tree 7 (48 cm), under that tree's expected crown"
     trust, how, fill, flags = _judge(_crown(1.4 * c, offset=1.2, ratio=0.8), flank, dbh=0.14, overtopped=under_big)
     assert trust == "low" and fill == pytest.approx(c) and "not vouched for" in how and flags
@@ -122,8 +168,14 @@ def _understory_plot(seed: int):
     from forestreg.engine.simulate.hard import understory_scene
 
     scene = understory_scene(seed, 20.0)
-    plot = simulate_plot("understory", [(-4.0, -4.0), (4.0, -4.0), (4.0, 4.0), (-4.0, 4.0)], scene=scene, seed=seed,
-                         angular_step_deg=0.35, scanner_options={"elevation_max_deg": 90.0})
+    plot = simulate_plot(
+        "understory",
+        [(-4.0, -4.0), (4.0, -4.0), (4.0, 4.0), (-4.0, 4.0)],
+        scene=scene,
+        seed=seed,
+        angular_step_deg=0.35,
+        scanner_options={"elevation_max_deg": 90.0},
+    )
     points = np.vstack([s.world_points() for s in plot.scans])
     return plot, measure_trees(points, TreeParams(cylinder_models=False))
 
@@ -162,7 +214,9 @@ def test_small_trees_beside_big_ones_on_a_plot_not_tuned_on():
     assert math.sqrt(np.mean((dbh[:, 0] - dbh[:, 1]) ** 2)) / dbh[:, 1].mean() <= 0.03
     h = np.array([(r.height_m, t.height_m) for r, t in pairs])
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() <= 0.15
-    unflagged = np.array([(r.height_m, t.height_m) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))])
+    unflagged = np.array(
+        [(r.height_m, t.height_m) for r, t in pairs if not r.quality["height"].endswith(("low", "none"))]
+    )
     assert len(unflagged) >= 6
     assert np.max(np.abs(unflagged[:, 0] / unflagged[:, 1] - 1.0)) <= 0.10
     assert math.sqrt(np.mean((unflagged[:, 0] - unflagged[:, 1]) ** 2)) / unflagged[:, 1].mean() <= 0.05

@@ -19,21 +19,64 @@ from forestreg.engine.trees.stems import Stem, StemCurve, StemParams, detect_ste
 #: Stem rings of spanner_MLS_Clip.laz counted by hand in a plot of its 1.2-1.4 m slice (x, y in
 #: metres from the cloud's minimum corner): 20 clear rings (the other blobs of the slice are shrubs).
 MLS_RINGS = [
-    (2.0, 6.9), (4.8, 11.9), (8.4, 11.8), (10.6, 24.6), (10.7, 5.7), (11.0, 14.0), (11.9, 5.5), (14.9, 7.4),
-    (14.9, 25.5), (19.1, 15.9), (19.8, 10.8), (20.9, 8.9), (21.0, 21.5), (21.1, 11.3), (24.4, 14.9), (25.0, 11.5),
-    (25.4, 22.2), (25.8, 1.5), (17.2, 5.7), (25.0, 9.7),
+    (2.0, 6.9),
+    (4.8, 11.9),
+    (8.4, 11.8),
+    (10.6, 24.6),
+    (10.7, 5.7),
+    (11.0, 14.0),
+    (11.9, 5.5),
+    (14.9, 7.4),
+    (14.9, 25.5),
+    (19.1, 15.9),
+    (19.8, 10.8),
+    (20.9, 8.9),
+    (21.0, 21.5),
+    (21.1, 11.3),
+    (24.4, 14.9),
+    (25.0, 11.5),
+    (25.4, 22.2),
+    (25.8, 1.5),
+    (17.2, 5.7),
+    (25.0, 9.7),
 ]
 
 
 #: Stem rings of pine_plot.laz (16; a smear at (6.3, 2.9) is no ring) and LPine1_demo.laz (14)
 #: counted by hand in their 1.2-1.4 m slices, metres from the cloud's minimum corner.
 PINE_PLOT_RINGS = [
-    (0.4, 0.0), (0.3, 2.0), (0.4, 4.0), (0.5, 6.1), (0.4, 8.2), (3.5, 1.5), (3.4, 3.6), (3.5, 5.7), (3.5, 7.7),
-    (6.2, 1.0), (6.4, 4.7), (8.0, 4.6), (9.4, 1.2), (9.3, 3.4), (9.3, 5.4), (9.3, 7.5),
+    (0.4, 0.0),
+    (0.3, 2.0),
+    (0.4, 4.0),
+    (0.5, 6.1),
+    (0.4, 8.2),
+    (3.5, 1.5),
+    (3.4, 3.6),
+    (3.5, 5.7),
+    (3.5, 7.7),
+    (6.2, 1.0),
+    (6.4, 4.7),
+    (8.0, 4.6),
+    (9.4, 1.2),
+    (9.3, 3.4),
+    (9.3, 5.4),
+    (9.3, 7.5),
 ]
 LPINE_RINGS = [
-    (2.1, 5.6), (3.1, 9.8), (4.8, 2.0), (5.1, 7.6), (6.0, 3.9), (7.3, 9.6), (8.1, 2.8), (8.2, 8.5), (9.3, 4.7),
-    (11.0, 6.3), (13.2, 6.9), (14.1, 1.4), (15.3, 2.6), (16.4, 5.9),
+    (2.1, 5.6),
+    (3.1, 9.8),
+    (4.8, 2.0),
+    (5.1, 7.6),
+    (6.0, 3.9),
+    (7.3, 9.6),
+    (8.1, 2.8),
+    (8.2, 8.5),
+    (9.3, 4.7),
+    (11.0, 6.3),
+    (13.2, 6.9),
+    (14.1, 1.4),
+    (15.3, 2.6),
+    (16.4, 5.9),
 ]
 
 
@@ -143,10 +186,18 @@ def test_spruce_and_pine_dbh_volume_and_wood(shared_data):
 def _stem_model(radii: list[float]) -> CylinderModel:
     k = len(radii)
     return CylinderModel(
-        start=np.column_stack([np.zeros(k), np.zeros(k), np.arange(k, dtype=float)]), axis=np.tile([0.0, 0.0, 1.0], (k, 1)),
-        length_m=np.ones(k), radius_m=np.asarray(radii, dtype=float), parent=np.arange(-1, k - 1),
-        extension=np.append(np.arange(1, k), -1), branch=np.zeros(k, int), branch_order=np.zeros(k, int),
-        position_in_branch=np.arange(1, k + 1), added=np.zeros(k, bool), mad_m=np.zeros(k), surface_coverage=np.ones(k),
+        start=np.column_stack([np.zeros(k), np.zeros(k), np.arange(k, dtype=float)]),
+        axis=np.tile([0.0, 0.0, 1.0], (k, 1)),
+        length_m=np.ones(k),
+        radius_m=np.asarray(radii, dtype=float),
+        parent=np.arange(-1, k - 1),
+        extension=np.append(np.arange(1, k), -1),
+        branch=np.zeros(k, int),
+        branch_order=np.zeros(k, int),
+        position_in_branch=np.arange(1, k + 1),
+        added=np.zeros(k, bool),
+        mad_m=np.zeros(k),
+        surface_coverage=np.ones(k),
     )
 
 
@@ -157,7 +208,9 @@ def test_cylinder_stem_follows_the_stem_curve_and_reaches_the_top():
     stem = Stem(id=1, base=np.zeros(3), axis=np.array([0.0, 0.0, 1.0]), radius_m=0.4, point_indices=np.zeros(0, int))
     s = np.arange(0.3, 3.05, 0.25)
     d = 0.8 - 0.01 * s
-    curve = StemCurve(1, s, s, d, d, np.ones(len(s), bool), np.zeros(len(s), bool), np.zeros((len(s), 3)), ("",) * len(s))
+    curve = StemCurve(
+        1, s, s, d, d, np.ones(len(s), bool), np.zeros(len(s), bool), np.zeros((len(s), 3)), ("",) * len(s)
+    )
     model, changed = reconcile_stem(_stem_model([0.09, 0.08, 0.08, 0.07]), stem, curve, 20.0)
     assert changed >= 3
     assert model.dbh_from_cylinders_m == pytest.approx(0.8 - 0.013, abs=0.01)

@@ -41,18 +41,32 @@ def _fake_plot():
         pts += [stem, crown]
         ids += [np.full(len(stem), tid), np.full(len(crown), tid)]
         wood += [np.full(len(stem), 0.9), np.full(len(crown), 0.1)]
-        rows.append({"tree_id": tid, "x": x, "y": y, "dbh_m": 2 * r, "height_m": h, "crown_base_m": h * 0.5,
-                     "crown_area_m2": 7.0, "crown_volume_m3": 20.0, "volume_m3": 0.3 * tid,
-                     "flag": "leaning, check the stem" if tid == 3 else ""})
+        rows.append(
+            {
+                "tree_id": tid,
+                "x": x,
+                "y": y,
+                "dbh_m": 2 * r,
+                "height_m": h,
+                "crown_base_m": h * 0.5,
+                "crown_area_m2": 7.0,
+                "crown_volume_m3": 20.0,
+                "volume_m3": 0.3 * tid,
+                "flag": "leaning, check the stem" if tid == 3 else "",
+            }
+        )
         if tid != 2:
             n = 6
             seg = h / n
             table = {
-                "start_x": np.r_[np.full(n, x), x, x], "start_y": np.r_[np.full(n, y), y, y],
+                "start_x": np.r_[np.full(n, x), x, x],
+                "start_y": np.r_[np.full(n, y), y, y],
                 "start_z": np.r_[np.arange(n) * seg, 5.0, 6.0],
-                "axis_x": np.r_[np.zeros(n), 0.8, -0.6], "axis_y": np.r_[np.zeros(n), 0.0, 0.0],
+                "axis_x": np.r_[np.zeros(n), 0.8, -0.6],
+                "axis_y": np.r_[np.zeros(n), 0.0, 0.0],
                 "axis_z": np.r_[np.ones(n), 0.6, 0.8],
-                "length_m": np.r_[np.full(n, seg), 2.0, 1.5], "radius_m": np.r_[np.linspace(r, r / 3, n), 0.05, 0.03],
+                "length_m": np.r_[np.full(n, seg), 2.0, 1.5],
+                "radius_m": np.r_[np.linspace(r, r / 3, n), 0.05, 0.03],
                 "branch_order": np.r_[np.zeros(n), 1, 2],
                 "parent": np.r_[-1, np.arange(n - 1), 1, 2],
             }
@@ -105,9 +119,16 @@ def test_figure_cap_and_missing_values(tmp_path):
 
 
 def test_cylinder_polygons():
-    vertical = {"start_x": np.array([1.0]), "start_y": np.array([0.0]), "start_z": np.array([0.5]),
-                "axis_x": np.array([0.0]), "axis_y": np.array([0.0]), "axis_z": np.array([2.0]),  # not unit: normalised
-                "length_m": np.array([2.0]), "radius_m": np.array([0.1])}
+    vertical = {
+        "start_x": np.array([1.0]),
+        "start_y": np.array([0.0]),
+        "start_z": np.array([0.5]),
+        "axis_x": np.array([0.0]),
+        "axis_y": np.array([0.0]),
+        "axis_z": np.array([2.0]),  # not unit: normalised
+        "length_m": np.array([2.0]),
+        "radius_m": np.array([0.1]),
+    }
     poly = cylinder_polygons(vertical)[0]
     np.testing.assert_allclose(sorted(set(np.round(poly[:, 0], 9))), [0.9, 1.1])
     np.testing.assert_allclose(sorted(set(np.round(poly[:, 1], 9))), [0.5, 2.5])
@@ -155,13 +176,20 @@ def test_report_marks_heights_from_the_curve(tmp_path):
     from forestreg.engine.trees.allometry import HeightCurve
 
     rows, pts, ids, wood, cyls = _fake_plot()
-    rows = [{**r, "height_quality": "highest tree point; high", "height_source": "points", "height_points_m": r["height_m"]} for r in rows]
-    rows[1].update(height_source="curve", height_points_m=0.6 * rows[1]["height_m"],
-                   height_quality="from the plot's height-diameter curve at the DBH: the points' top not taken; medium")
+    rows = [
+        {**r, "height_quality": "highest tree point; high", "height_source": "points", "height_points_m": r["height_m"]}
+        for r in rows
+    ]
+    rows[1].update(
+        height_source="curve",
+        height_points_m=0.6 * rows[1]["height_m"],
+        height_quality="from the plot's height-diameter curve at the DBH: the points' top not taken; medium",
+    )
     curve = HeightCurve(a=1.2, b=0.19, n_trees=12, n_inliers=11, scatter=0.05)
     html = write_trees_report(tmp_path, rows, pts, ids, wood, cyls, height_curve=curve).read_text()
     assert html.count("<sup>c</sup>") == 2  # the one height and the note under the table
     assert _share_of_colour(tmp_path / "figures" / "height_curve.png", "#1f77b4") > 0.0002
-    plain = write_trees_report(tmp_path / "plain", [{**r, "height_source": "points"} for r in rows], pts, ids, wood, cyls,
-                               height_curve=curve).read_text()
+    plain = write_trees_report(
+        tmp_path / "plain", [{**r, "height_source": "points"} for r in rows], pts, ids, wood, cyls, height_curve=curve
+    ).read_text()
     assert plain.count("<sup>c</sup>") == 1

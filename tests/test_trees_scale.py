@@ -35,7 +35,9 @@ def test_voxel_representatives_are_the_thinned_points_and_map_every_point_to_its
 def _plot():
     from forestreg.engine.simulate import simulate_plot
 
-    plot = simulate_plot("planted_conifer", [(-4.0, -4.0), (4.0, -4.0), (0.0, 4.0)], seed=2, angular_step_deg=0.3, size_m=18.0)
+    plot = simulate_plot(
+        "planted_conifer", [(-4.0, -4.0), (4.0, -4.0), (0.0, 4.0)], seed=2, angular_step_deg=0.3, size_m=18.0
+    )
     points = np.vstack([s.world_points() for s in plot.scans])
     # the same plot four times denser: copies of every point moved by up to 2 mm
     rng = np.random.default_rng(0)
@@ -82,7 +84,10 @@ def test_a_dense_cloud_is_measured_thinned_as_well_as_at_its_own_density():
     assert found1 >= found0 >= 0.9 * true
     assert false1 <= false0 + 0
     assert dbh1 < max(1.2 * dbh0, 0.05), f"DBH rRMSE {100 * dbh1:.1f} % thinned, {100 * dbh0:.1f} % at its own density"
-    h0, h1 = (math.sqrt(np.nanmean([(p[k].crown.height_m - plot.scene.trees[k].height_m) ** 2 for k in p])) for p in (pairs0, pairs1))
+    h0, h1 = (
+        math.sqrt(np.nanmean([(p[k].crown.height_m - plot.scene.trees[k].height_m) ** 2 for k in p]))
+        for p in (pairs0, pairs1)
+    )
     assert h1 <= h0 + 0.05, f"height RMSE {h1:.2f} m thinned, {h0:.2f} m at its own density"
     # the dense cloud's points carry the trees' ids as the simulator's objects do
     obj = np.concatenate([s.object_ids for s in plot.scans])

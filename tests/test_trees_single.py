@@ -13,8 +13,15 @@ import pytest
 from forestreg.engine.trees.inventory import measure_trees
 
 #: The real single trees of ../shared/data (no or little ground; pine and spruce with ground).
-SINGLE = ["AdTree_tree1.xyz", "AdTree_tree7.xyz", "AdTree_Lille_2.xyz", "aRchi_Tree_2_point_cloud.las", "pine.laz",
-          "spruce.laz", "cloud.txt"]
+SINGLE = [
+    "AdTree_tree1.xyz",
+    "AdTree_tree7.xyz",
+    "AdTree_Lille_2.xyz",
+    "aRchi_Tree_2_point_cloud.las",
+    "pine.laz",
+    "spruce.laz",
+    "cloud.txt",
+]
 #: Real plots and stands: never one tree.
 PLOTS = ["pine_plot.laz", "spanner_ALS_Clip.laz", "lidR_MixedConifer.laz", "spanner_MLS_Clip.laz"]
 
@@ -55,8 +62,9 @@ def _single(kind: str, ground: bool):
     scene = single_tree_scene(0)
     if kind == "leaf-off":
         scene = leaf_off(scene)
-    plot = simulate_plot("single", [(-7.0, -3.0), (6.0, -4.0), (1.0, 7.0)], scene=scene, seed=1, angular_step_deg=0.25,
-                         clearance_m=0.5)
+    plot = simulate_plot(
+        "single", [(-7.0, -3.0), (6.0, -4.0), (1.0, 7.0)], scene=scene, seed=1, angular_step_deg=0.25, clearance_m=0.5
+    )
     pts = np.vstack([s.world_points() for s in plot.scans])
     ids = np.concatenate([s.object_ids for s in plot.scans])
     tree_pts = pts[ids == 1]
@@ -124,8 +132,20 @@ def test_trees_command_single_tree_option(shared_data, tmp_path, capsys):
 
     from forestreg.cli import main
 
-    assert main(["trees", str(shared_data / "aRchi_Tree_2_point_cloud.las"), "--out", str(tmp_path / "t"), "--no-report",
-                 "--no-cylinders", "--single-tree"]) == 0
+    assert (
+        main(
+            [
+                "trees",
+                str(shared_data / "aRchi_Tree_2_point_cloud.las"),
+                "--out",
+                str(tmp_path / "t"),
+                "--no-report",
+                "--no-cylinders",
+                "--single-tree",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "single-tree cloud:" in out and "1 tree found in a single-tree cloud" in out
     with (tmp_path / "t" / "trees.csv").open() as f:
@@ -152,7 +172,9 @@ def test_uav_cloud_of_a_single_urban_tree_is_one_tree():
     assert len(measure_trees(p, TreeParams(cylinder_models=False), single_tree=False).trees) >= 2  # the plot's way
 
 
-@pytest.mark.parametrize("positions, step_deg", [([(-5.0, -2.0), (4.0, -3.0), (1.0, 5.0)], 0.25), ([(-6.0, -1.0)], 0.2)])
+@pytest.mark.parametrize(
+    "positions, step_deg", [([(-5.0, -2.0), (4.0, -3.0), (1.0, 5.0)], 0.25), ([(-6.0, -1.0)], 0.2)]
+)
 def test_simulated_forked_trunk_volume(positions, step_deg):
     """A small leaf-off broadleaf whose trunk forks at 1.2 m into three leaders (as the real
     AdTree_tree7), scanned from three sides or from one: one tree, its wood volume within 8 % of
@@ -195,8 +217,15 @@ def test_simulated_clipped_crown_conifer_column():
     scene = clipped_conifer_scene(0)
     tree = scene.trees[0]
     positions = [(6.0 * math.cos(a), 6.0 * math.sin(a)) for a in np.radians([0.0, 120.0, 240.0])]
-    plot = simulate_plot("planted_conifer", positions, scene=scene, seed=1, angular_step_deg=0.2, clearance_m=0.5,
-                         scanner_options={"elevation_max_deg": 85.0})
+    plot = simulate_plot(
+        "planted_conifer",
+        positions,
+        scene=scene,
+        seed=1,
+        angular_step_deg=0.2,
+        clearance_m=0.5,
+        scanner_options={"elevation_max_deg": 85.0},
+    )
     pts = np.vstack([s.world_points() for s in plot.scans])
     half = 1.25
     pts = pts[(np.abs(pts[:, 0] - tree.x) < half) & (np.abs(pts[:, 1] - tree.y) < half) & (pts[:, 2] > tree.z - 0.3)]

@@ -196,7 +196,9 @@ def test_detection_rate_and_false_stems(planted: PlotData) -> None:
     found = set(planted.match.values())
     rate = len(found & set(visible)) / len(visible)
     false_stems = [s.id for s in planted.stems if s.id not in planted.match]
-    print(f"visible trees {len(visible)}, found {len(found & set(visible))} ({rate:.1%}), false stems {len(false_stems)}")
+    print(
+        f"visible trees {len(visible)}, found {len(found & set(visible))} ({rate:.1%}), false stems {len(false_stems)}"
+    )
     assert len(visible) >= 30
     assert rate >= 0.9
     assert len(false_stems) <= 1
@@ -213,7 +215,9 @@ def test_stem_positions_and_ground(planted: PlotData) -> None:
         t = planted.trees[tid]
         errors_xy.append(math.hypot(st.x - t.x, st.y - t.y))
         errors_z.append(abs(st.ground_z - t.z))
-    print(f"base position error median {np.median(errors_xy) * 100:.1f} cm, ground z median {np.median(errors_z) * 100:.1f} cm")
+    print(
+        f"base position error median {np.median(errors_xy) * 100:.1f} cm, ground z median {np.median(errors_z) * 100:.1f} cm"
+    )
     assert np.median(errors_xy) < 0.02
     assert np.percentile(errors_xy, 90) < 0.06
     assert np.median(errors_z) < 0.05
@@ -342,7 +346,9 @@ def test_real_single_stems(shared_data, name: str, dbh_range: tuple[float, float
     d, s = curve.diameter_m[ok], curve.s_m[ok]
     steps = np.diff(d) / d[:-1]
     slope = np.polyfit(s, d, 1)[0]
-    print(f"{name}: curve {curve.length_m:.1f} m, {curve.accepted.sum()} accepted sections, largest step {np.abs(steps).max():.1%}, taper {slope * 100:.2f} cm/m")
+    print(
+        f"{name}: curve {curve.length_m:.1f} m, {curve.accepted.sum()} accepted sections, largest step {np.abs(steps).max():.1%}, taper {slope * 100:.2f} cm/m"
+    )
     assert curve.length_m >= min_length
     assert np.abs(steps).max() < 0.20  # no jumps
     assert (steps > 0.05).mean() < 0.1  # monotone-ish: few sections wider than the one below

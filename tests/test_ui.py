@@ -34,11 +34,13 @@ _REGISTERED: dict[str, Path] = {}
 @pytest.fixture(scope="module")
 def plot_dir(tmp_path_factory) -> Path:
     """Three simulated scans (0.4 deg) of a small mixed forest plot."""
-    from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.io.simulated import write_simulated_plot
+    from forestreg.engine.simulate import simulate_plot
 
     folder = tmp_path_factory.mktemp("ui_plot")
-    write_simulated_plot(simulate_plot("mixed_temperate", [(0, 0), (10, 2), (-8, 6)], seed=3, angular_step_deg=0.4, size_m=40), folder)
+    write_simulated_plot(
+        simulate_plot("mixed_temperate", [(0, 0), (10, 2), (-8, 6)], seed=3, angular_step_deg=0.4, size_m=40), folder
+    )
     return folder
 
 
@@ -64,7 +66,10 @@ def test_run_fills_the_tables(qtbot, window, open_project, project_file: Path, t
         window.run_worker.progress.connect(lambda f, m: progress.append((f, m)))
         window.run_worker.link_done.connect(links_done.append)
         # the GUI thread keeps handling events: progress reaches the status bar during the run
-        qtbot.waitUntil(lambda: window.progress_bar.value() > 0 and window.status_label.text() != "Registering\u2026", timeout=60_000)
+        qtbot.waitUntil(
+            lambda: window.progress_bar.value() > 0 and window.status_label.text() != "Registering\u2026",
+            timeout=60_000,
+        )
         window.set_scene_mode("before")
     qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
     outcome = finished.args[0]
@@ -130,7 +135,9 @@ def test_cancel_stops_and_keeps_the_window_usable(qtbot, window, open_project, p
     before = project_file.read_text()
     with qtbot.waitSignal(window.runCancelled, timeout=RUN_TIMEOUT_MS):
         assert window.run()
-        qtbot.waitUntil(lambda: window.progress_bar.isVisible() and "prepar" in window.status_label.text(), timeout=60_000)
+        qtbot.waitUntil(
+            lambda: window.progress_bar.isVisible() and "prepar" in window.status_label.text(), timeout=60_000
+        )
         window.act_cancel.trigger()
     qtbot.waitUntil(lambda: not window.running, timeout=60_000)
     assert window.last_error is None
@@ -146,7 +153,9 @@ def test_cancel_stops_and_keeps_the_window_usable(qtbot, window, open_project, p
     assert Project.load(project_file).centre == "scan_02.laz"
 
 
-def test_an_unreadable_scan_fails_its_link_with_a_readable_reason(qtbot, window, open_project, plot_dir: Path, tmp_path: Path) -> None:
+def test_an_unreadable_scan_fails_its_link_with_a_readable_reason(
+    qtbot, window, open_project, plot_dir: Path, tmp_path: Path
+) -> None:
     """A scan file that is gone fails its own link (the engine's rule), not the whole run; the
     reason shows in the links table, whose Reason column appears only now."""
     project = Project(name="broken", params=_params())
@@ -211,8 +220,11 @@ def test_save_reopen_and_project_edits(qtbot, window, open_project, project_file
     assert "damaged" in window.last_error[1] and window.project.path == out.resolve()
     assert bad.read_text() == "{ not json"
     # shortcuts, and settings kept for the next start
-    assert [window.act_run.shortcut().toString(), window.act_cancel.shortcut().toString(),
-            window.act_save.shortcut().toString()] == ["Ctrl+R", "Esc", "Ctrl+S"]
+    assert [
+        window.act_run.shortcut().toString(),
+        window.act_cancel.shortcut().toString(),
+        window.act_save.shortcut().toString(),
+    ] == ["Ctrl+R", "Esc", "Ctrl+S"]
     window.resize(1234, 777)
     window.save_settings()
     from forestreg.ui.main_window import MainWindow
@@ -234,8 +246,14 @@ def test_parameter_panel_builds_the_params(qtbot) -> None:
     assert set(panel.field_names()) == set(flat) and "icp.normal_neighbours" in flat
     assert "D_c" in panel.editor("max_range_m").toolTip() and panel.editor("max_range_m").suffix() == " m"
     wanted = RegistrationParams(
-        max_range_m=25.0, slice_offsets_m=(0.0, 0.6), fallback_slice_offsets_m=(), follow_terrain=False,
-        angular_step_deg=0.25, vop_radius_m=12.5, min_matched=5, icp=IcpParams(max_distances_m=(0.4, 0.1), normal_neighbours=20),
+        max_range_m=25.0,
+        slice_offsets_m=(0.0, 0.6),
+        fallback_slice_offsets_m=(),
+        follow_terrain=False,
+        angular_step_deg=0.25,
+        vop_radius_m=12.5,
+        min_matched=5,
+        icp=IcpParams(max_distances_m=(0.4, 0.1), normal_neighbours=20),
     )
     seen = []
     panel.paramsChanged.connect(seen.append)

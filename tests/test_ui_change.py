@@ -13,7 +13,7 @@ pytest.importorskip("PySide6")
 pytest.importorskip("pytestqt")
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_change import _resurvey_tables, _run, _table_epoch, _stand, _write_table  # noqa: E402
+from test_change import _resurvey_tables, _run, _stand, _table_epoch, _write_table  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -70,8 +70,25 @@ def test_gui_change_screenshot_offscreen(change_dir, tmp_path):
     folder, _ = change_dir
     out = tmp_path / "change.png"
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM")}
-    done = subprocess.run([sys.executable, "-m", "forestreg.cli", "gui", "--offscreen", "--change", str(folder / "out"),
-                           "--screenshot", str(out), "--size", "1400x900"], env=env, capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "forestreg.cli",
+            "gui",
+            "--offscreen",
+            "--change",
+            str(folder / "out"),
+            "--screenshot",
+            str(out),
+            "--size",
+            "1400x900",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert out.is_file() and out.stat().st_size > 20_000
     img = QImage(str(out)).convertToFormat(QImage.Format.Format_RGB888)
@@ -85,6 +102,21 @@ def test_gui_change_screenshot_offscreen(change_dir, tmp_path):
 
     # a folder that is not a change result: one line, exit 2, no picture
     bad = tmp_path / "bad.png"
-    done = subprocess.run([sys.executable, "-m", "forestreg.cli", "gui", "--offscreen", "--change", str(tmp_path),
-                           "--screenshot", str(bad)], env=env, capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "forestreg.cli",
+            "gui",
+            "--offscreen",
+            "--change",
+            str(tmp_path),
+            "--screenshot",
+            str(bad),
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 2 and "re-survey" in done.stderr.lower() and not bad.exists()

@@ -19,8 +19,16 @@ TIMEOUT_MS = 400_000
 def _case():
     from forestreg.engine.simulate.platforms import simulate_coregistration_case
 
-    return simulate_coregistration_case("planted_conifer", seed=0, size_m=28.0, ground_platform="backpack", heading_deg=120.0,
-                                        offset_m=(5.0, -5.0, 1.0), uav_density_scale=0.3, backpack_density_scale=0.1)
+    return simulate_coregistration_case(
+        "planted_conifer",
+        seed=0,
+        size_m=28.0,
+        ground_platform="backpack",
+        heading_deg=120.0,
+        offset_m=(5.0, -5.0, 1.0),
+        uav_density_scale=0.3,
+        backpack_density_scale=0.1,
+    )
 
 
 @pytest.fixture(scope="module")

@@ -24,24 +24,31 @@ RUN_TIMEOUT_MS = 180_000
 @pytest.fixture(scope="module")
 def plot(tmp_path_factory):
     """Three simulated scans of a planted conifer plot with targets; the truth is known."""
-    from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.io.simulated import write_simulated_plot
+    from forestreg.engine.simulate import simulate_plot
 
     folder = tmp_path_factory.mktemp("manual_plot")
-    sim = write_simulated_plot(simulate_plot("planted_conifer", [(0, 0), (9, 3), (-7, 7)], seed=61, angular_step_deg=0.3, size_m=45), folder)
+    sim = write_simulated_plot(
+        simulate_plot("planted_conifer", [(0, 0), (9, 3), (-7, 7)], seed=61, angular_step_deg=0.3, size_m=45), folder
+    )
     return sim, folder
 
 
 def picked_targets(sim, index: int, seed: int = 0) -> dict[str, np.ndarray]:
     """The targets a user could pick in scan ``index``: those hit by a beam, true centre + 5 mm."""
     rng = np.random.default_rng(seed + index)
-    return {f"T{t['id']}": np.array([t["x"], t["y"], t["z"]]) + rng.normal(0, 0.005, 3)
-            for t in sim.truth["scans"][index]["targets_socs"] if t["n_points"] >= 1}
+    return {
+        f"T{t['id']}": np.array([t["x"], t["y"], t["z"]]) + rng.normal(0, 0.005, 3)
+        for t in sim.truth["scans"][index]["targets_socs"]
+        if t["n_points"] >= 1
+    }
 
 
 @pytest.fixture
 def project_file(plot, scans_project) -> Path:
-    return scans_project(plot[1], "manual plot", RegistrationParams(angular_step_deg=0.3, icp=IcpParams(voxel_m=0.2, iterations=20)))
+    return scans_project(
+        plot[1], "manual plot", RegistrationParams(angular_step_deg=0.3, icp=IcpParams(voxel_m=0.2, iterations=20))
+    )
 
 
 def _pick_all(window, sim) -> dict[str, dict[str, np.ndarray]]:
@@ -69,8 +76,10 @@ def test_picked_targets_and_manual_registration(qtbot, window, open_project, plo
     # a click in the 3D view (pick mode, before-view) maps back to the scan's file coordinates
     window.set_pick_mode(True)
     assert window.scene_view.pick_mode and window.scene_mode == "before"
-    qtbot.waitUntil(lambda: window.scene_view.scene is not None and window.scene_view.scene.mode == "before" and not window.busy,
-                    timeout=60_000)
+    qtbot.waitUntil(
+        lambda: window.scene_view.scene is not None and window.scene_view.scene.mode == "before" and not window.busy,
+        timeout=60_000,
+    )
     cloud = window.scene_view.scene.clouds[1]
     scan_name, xyz = window.scan_at(cloud.points[100])
     assert scan_name == cloud.name
@@ -118,7 +127,9 @@ def test_picked_targets_and_manual_registration(qtbot, window, open_project, plo
     assert window.project.link_of(names[1]).method == "auto" and window.project.link_of(names[1]).result is None
 
 
-def test_targets_table_csv_round_trip_and_reflectors(qtbot, window, open_project, plot, project_file: Path, tmp_path: Path) -> None:
+def test_targets_table_csv_round_trip_and_reflectors(
+    qtbot, window, open_project, plot, project_file: Path, tmp_path: Path
+) -> None:
     from forestreg.engine.io.results import write_targets_csv
     from forestreg.engine.tls.manual import read_targets_csv
 
@@ -157,7 +168,11 @@ def test_targets_table_csv_round_trip_and_reflectors(qtbot, window, open_project
     panel.add_button.click()
     assert len(window.targets_of(names[0])) == len(wanted[names[0]])
     # detected reflectors are named after the scan's targets
-    truth = {f"T{t['id']}": np.array([t["x"], t["y"], t["z"]]) for t in sim.truth["scans"][0]["targets_socs"] if t["n_points"] >= 5}
+    truth = {
+        f"T{t['id']}": np.array([t["x"], t["y"], t["z"]])
+        for t in sim.truth["scans"][0]["targets_socs"]
+        if t["n_points"] >= 5
+    }
     rough = {k: v + np.array([0.05, -0.04, 0.02]) for k, v in truth.items()}
     window.set_targets(names[0], rough)
     with qtbot.waitSignal(window.reflectorsDetected, timeout=60_000) as detected:
@@ -260,7 +275,10 @@ def test_tie_points_side_by_side(qtbot, window, open_project, plot, project_file
         mov_targets = picked_targets(sim, names.index(link_scans[1]))
         for tid in sorted(set(ref_targets) & set(mov_targets)):
             panel.id_edit.setText(tid)
-            for side, scan, targets in (("reference", link_scans[0], ref_targets), ("moving", link_scans[1], mov_targets)):
+            for side, scan, targets in (
+                ("reference", link_scans[0], ref_targets),
+                ("moving", link_scans[1], mov_targets),
+            ):
                 display = targets[tid] - tie.scanners[side]  # what the view's point picker reports
                 with qtbot.waitSignal(window.targetsChanged, timeout=5000) as changed:
                     tie.views[side].pointPicked.emit(display)
@@ -282,6 +300,8 @@ def test_tie_points_side_by_side(qtbot, window, open_project, plot, project_file
     qtbot.waitUntil(lambda: not window.busy, timeout=60_000)
     poses = window.project.poses()
     for row, link in enumerate(window.project.links):
-        assert window.link_table.value(row, "Method") == "manual" and window.link_table.value(row, "Status") == "ok", link.result
+        assert window.link_table.value(row, "Method") == "manual" and window.link_table.value(row, "Status") == "ok", (
+            link.result
+        )
         rot, trans = rigid_errors(poses[link.moving], sim.relative_pose(0, names.index(link.moving)))
         assert rot < 0.05 and trans < 0.02, (link.moving, rot, trans)

@@ -19,8 +19,8 @@ pytest.importorskip("PySide6")
 pytest.importorskip("pyvista")
 pytest.importorskip("pytestqt")
 
-from PySide6.QtCore import QSettings  # noqa: E402
 from matplotlib.colors import to_hex  # noqa: E402
+from PySide6.QtCore import QSettings  # noqa: E402
 
 from forestreg.app.plot import PoseSigma  # noqa: E402
 from forestreg.engine.core.transform import matrix_from_yaw  # noqa: E402
@@ -34,12 +34,16 @@ from forestreg.engine.tls.survey import SurveyParams, register_survey  # noqa: E
 @pytest.fixture(scope="module")
 def surveyed(tmp_path_factory) -> Project:
     """A survey of three simulated scans with one spoilt (then dropped) extra link, saved."""
-    from forestreg.engine.simulate import simulate_plot
     from forestreg.engine.io.simulated import write_simulated_plot
+    from forestreg.engine.simulate import simulate_plot
 
     folder = tmp_path_factory.mktemp("ui_survey")
-    write_simulated_plot(simulate_plot("mixed_temperate", [(0, 0), (10, 2), (-8, 6)], seed=3, angular_step_deg=0.4, size_m=40), folder)
-    project = Project(name="survey plot", params=RegistrationParams(angular_step_deg=0.4, icp=IcpParams(voxel_m=0.1, iterations=30)))
+    write_simulated_plot(
+        simulate_plot("mixed_temperate", [(0, 0), (10, 2), (-8, 6)], seed=3, angular_step_deg=0.4, size_m=40), folder
+    )
+    project = Project(
+        name="survey plot", params=RegistrationParams(angular_step_deg=0.4, icp=IcpParams(voxel_m=0.1, iterations=30))
+    )
     for f in sorted(folder.glob("scan_*.laz")):
         project.add_scan(f)
     scans = ScanCache(project)
@@ -52,8 +56,12 @@ def surveyed(tmp_path_factory) -> Project:
     about[:3, 3] = -at
     true = np.linalg.inv(poses[extra.reference]) @ poses[extra.moving]
     spoilt = matrix_from_yaw(6.0, at + np.array([1.0, 0.0, 0.0])) @ about @ true
-    extra.result = dict(copy.deepcopy(own.result), reference=extra.reference, matrix=spoilt.tolist(),
-                        uncertainty={"translation_m": 0.05, "rotation_deg": 0.3})
+    extra.result = dict(
+        copy.deepcopy(own.result),
+        reference=extra.reference,
+        matrix=spoilt.tolist(),
+        uncertainty={"translation_m": 0.05, "rotation_deg": 0.3},
+    )
     register_survey(project, SurveyParams(pairs="centre"), scans=scans)
     assert [(d["moving"], d["reference"]) for d in project.adjustment["dropped"]] == [(extra.moving, extra.reference)]
     project.save(folder / "survey.json")
@@ -93,7 +101,10 @@ def test_survey_quality_in_the_tables_and_on_the_map(qtbot, window, surveyed: Pr
     for row, link in enumerate(project.links):
         u = link.result["uncertainty"]
         assert table.value(row, "Pose uncertainty (cm / deg)") == pytest.approx((u["translation_m"], u["rotation_deg"]))
-        assert table.text(row, "Pose uncertainty (cm / deg)") == f"{100 * u['translation_m']:.2f} / {u['rotation_deg']:.3f}"
+        assert (
+            table.text(row, "Pose uncertainty (cm / deg)")
+            == f"{100 * u['translation_m']:.2f} / {u['rotation_deg']:.3f}"
+        )
         q = link.result["quality"]
         assert table.value(row, "Terrain agreement (cm)") == pytest.approx(q["terrain_median_m"])
         assert q["terrain_median_m"] < 0.05  # the simulated scans agree on the ground within centimetres
@@ -134,11 +145,14 @@ def test_survey_quality_in_the_tables_and_on_the_map(qtbot, window, surveyed: Pr
         if name == project.centre:
             assert top.uncertainty_labels[name] == "frame scan"
         else:
-            assert top.uncertainty_labels[name] == f"\u00b1{100 * u['translation_m']:.1f} cm, {u['rotation_deg']:.2f}\u00b0"
+            assert (
+                top.uncertainty_labels[name]
+                == f"\u00b1{100 * u['translation_m']:.1f} cm, {u['rotation_deg']:.2f}\u00b0"
+            )
     assert top.uncertainty_factor == uncertainty_scale({n: PoseSigma.of(u) for n, u in engine_u.items()}) > 1
     ax = top.figure.axes[0]
     o = top.view.origin[:2]
-    (moving, reference), = dropped
+    ((moving, reference),) = dropped
     red = [line for line in ax.lines if to_hex(line.get_color()) == DROPPED_COLOUR]
     assert len(red) == 1 and red[0].get_linestyle() == "--"
     xy = np.column_stack(red[0].get_data())
@@ -164,19 +178,40 @@ def test_link_table_names_the_weak_motion_and_the_alternative(qtbot, surveyed: P
     project = copy.deepcopy(surveyed)
     link = next(link for link in project.links if link.result is not None and link.result.get("status") == "ok")
     weak = WeakDirection("translation", (0.0, 1.0, 0.0), 0.004, 90.0)
-    alternative = Alternative(weight=0.05, offset_m=3.45, offset_deg=0.02, support=7, chosen_support=9, direction_deg=97.0,
-                              pattern="5 of the 9 matched trunks repeat themselves 3.45 m along 97 deg: regular rows (posts, columns, a planted grid)")
-    excluded = Alternative(weight=0.0, offset_m=16.2, offset_deg=180.0, support=4, chosen_support=9,
-                           status="excluded: it fails its checks (ICP fitness 0.05 is below 0.10)")
-    link.result = dict(link.result, uncertainty=dict(link.result["uncertainty"], weak_directions=[weak.to_dict()],
-                                                     alternatives=[alternative.to_dict(), excluded.to_dict()]))
+    alternative = Alternative(
+        weight=0.05,
+        offset_m=3.45,
+        offset_deg=0.02,
+        support=7,
+        chosen_support=9,
+        direction_deg=97.0,
+        pattern="5 of the 9 matched trunks repeat themselves 3.45 m along 97 deg: regular rows (posts, columns, a planted grid)",
+    )
+    excluded = Alternative(
+        weight=0.0,
+        offset_m=16.2,
+        offset_deg=180.0,
+        support=4,
+        chosen_support=9,
+        status="excluded: it fails its checks (ICP fitness 0.05 is below 0.10)",
+    )
+    link.result = dict(
+        link.result,
+        uncertainty=dict(
+            link.result["uncertainty"],
+            weak_directions=[weak.to_dict()],
+            alternatives=[alternative.to_dict(), excluded.to_dict()],
+        ),
+    )
     table = LinkResultsTable()
     qtbot.addWidget(table)
     table.show_project(project)
     row = project.links.index(link)
     text = table.text(row, "Weak motion / alternative")
-    assert text == ("free translation along 90 deg; alternative 3.45 m along 97 deg, 0.02 deg (counted); "
-                    "alternative 16.20 m, 180.00 deg (excluded)")
+    assert text == (
+        "free translation along 90 deg; alternative 3.45 m along 97 deg, 0.02 deg (counted); "
+        "alternative 16.20 m, 180.00 deg (excluded)"
+    )
     tip = table.item(row, table.column("Weak motion / alternative")).toolTip()
     assert "walls, a row or a fence along it" in tip and "regular rows" in tip and "ICP fitness 0.05" in tip
     table.resize(1800, 200)

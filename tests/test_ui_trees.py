@@ -66,7 +66,9 @@ def test_trees_folder_map_table_and_3d(qtbot, window, cloud, trees_dir):
         assert table.value(row, "height_m") == pytest.approx(rows[tid]["height_m"], abs=1e-4, nan_ok=True)
         assert table.value(row, "flag") == rows[tid]["flag"]
         if math.isfinite(rows[tid]["dbh_m"]):
-            assert table.text(row, "dbh_m") == f"{100 * table.value(row, 'dbh_m'):.1f}"  # cm, as written (4 decimals of m)
+            assert (
+                table.text(row, "dbh_m") == f"{100 * table.value(row, 'dbh_m'):.1f}"
+            )  # cm, as written (4 decimals of m)
         assert table.text(row, "tree_id").startswith("\u26a0") == bool(rows[tid]["flag"])
     # sorting by DBH puts the thinnest measured tree first
     table.sortItems(table.column("dbh_m"), Qt.SortOrder.AscendingOrder)
@@ -83,7 +85,11 @@ def test_trees_folder_map_table_and_3d(qtbot, window, cloud, trees_dir):
     ax = view.curve.figure.axes[0]
     assert f"tree {target.tree_id}" in ax.get_title()
     # the map: one marker per tree, flagged ones as crosses
-    assert view.map.figure.axes[0].get_title().startswith(f"{len(inv.trees)} trees, {sum(bool(r.flags) for r in inv.trees)} flagged")
+    assert (
+        view.map.figure.axes[0]
+        .get_title()
+        .startswith(f"{len(inv.trees)} trees, {sum(bool(r.flags) for r in inv.trees)} flagged")
+    )
     # a bad folder: one clear message, nothing replaced
     assert not window.open_trees(folder / "nope")
     assert "not a trees result folder" in window.last_error[1]
@@ -119,7 +125,9 @@ def test_correction_loop_edits_undo_and_save(qtbot, window, cloud, tmp_path):
     assert "\u270e" in view.table.text(row, "tree_id")
     # undo restores the engine's trees
     assert view.undo()
-    assert view.table.rowCount() == n and view.table.value(view.table.row_of(b.tree_id), "dbh_m") == pytest.approx(b.dbh_m, abs=1e-4)
+    assert view.table.rowCount() == n and view.table.value(view.table.row_of(b.tree_id), "dbh_m") == pytest.approx(
+        b.dbh_m, abs=1e-4
+    )
     # DBH at 2 m: the value shown is the engine's for that edit
     view.select_tree(a.tree_id)
     assert view.dbh_height_selected(2.0)
@@ -160,8 +168,11 @@ def test_a_height_from_the_curve_is_marked_in_the_table(window, cloud, trees_dir
     shutil.copytree(folder, copy)
     with (copy / "trees.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
-    rows[0].update(height_source="curve", height_m="21.5",
-                   height_quality="from the plot's height-diameter curve at the DBH: the points' top (14.2 m) not taken; medium")
+    rows[0].update(
+        height_source="curve",
+        height_m="21.5",
+        height_quality="from the plot's height-diameter curve at the DBH: the points' top (14.2 m) not taken; medium",
+    )
     with (copy / "trees.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
@@ -186,16 +197,50 @@ def test_offscreen_screenshot_of_a_trees_folder(trees_dir, cloud, tmp_path):
     folder, inv = trees_dir
     out = tmp_path / "trees.png"
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    proc = subprocess.run([sys.executable, "-m", "forestreg.ui.app", "--offscreen", "--trees", str(folder), "--cloud", str(cloud[1]),
-                           "--size", "1280x800", "--screenshot", str(out)], capture_output=True, text=True, timeout=600, env=env)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "forestreg.ui.app",
+            "--offscreen",
+            "--trees",
+            str(folder),
+            "--cloud",
+            str(cloud[1]),
+            "--size",
+            "1280x800",
+            "--screenshot",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+    )
     assert proc.returncode == 0, proc.stderr
     img = QImage(str(out))
     assert (img.width(), img.height()) == (1280, 800)  # nothing widens the window beyond the screen
-    x, y, w, h = (int(v) for v in next(l for l in proc.stdout.splitlines() if l.startswith("3d view:")).split(":")[1].split())
+    x, y, w, h = (
+        int(v) for v in next(l for l in proc.stdout.splitlines() if l.startswith("3d view:")).split(":")[1].split()
+    )
     colours = {img.pixel(x + i * w // 40, y + j * h // 40) for i in range(1, 40) for j in range(1, 40)}
     assert len(colours) > 20  # the tree is drawn, not an empty background
-    bad = subprocess.run([sys.executable, "-m", "forestreg.ui.app", "--offscreen", "--trees", str(tmp_path / "none"),
-                          "--screenshot", str(tmp_path / "x.png")], capture_output=True, text=True, timeout=300, env=env)
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "forestreg.ui.app",
+            "--offscreen",
+            "--trees",
+            str(tmp_path / "none"),
+            "--screenshot",
+            str(tmp_path / "x.png"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert bad.returncode == 2 and "not a trees result folder" in bad.stderr and "Traceback" not in bad.stderr
 
 
@@ -205,8 +250,11 @@ def test_field_data_evaluation_side_by_side(window, cloud, trees_dir, tmp_path):
     plot, _, scan = cloud
     folder, inv = trees_dir
     field = tmp_path / "field.csv"
-    lines = ["tree_id,x,y,dbh_m,height_m"] + [f"T{t.id},{t.x:.3f},{t.y:.3f},{t.dbh_m:.4f},{t.height_m:.3f}"
-                                             for t in plot.scene.trees if abs(t.x) < 6.5 and abs(t.y) < 6.5]
+    lines = ["tree_id,x,y,dbh_m,height_m"] + [
+        f"T{t.id},{t.x:.3f},{t.y:.3f},{t.dbh_m:.4f},{t.height_m:.3f}"
+        for t in plot.scene.trees
+        if abs(t.x) < 6.5 and abs(t.y) < 6.5
+    ]
     field.write_text("\n".join(lines) + "\n")
     assert window.evaluate_field(field, {"one": folder, "again": folder / "trees.csv"})
     view = window.evaluation_view

@@ -67,7 +67,9 @@ def _redrawn(qtbot, window) -> None:
         window.refresh_top_view()
 
 
-def test_watch_folder_places_scans_as_they_arrive_and_cancel_leaves_the_folder_whole(qtbot, window, scans, tmp_path) -> None:
+def test_watch_folder_places_scans_as_they_arrive_and_cancel_leaves_the_folder_whole(
+    qtbot, window, scans, tmp_path
+) -> None:
     from forestreg.engine.core.atomic import TMP_PREFIX
     from forestreg.ui.watch_actions import WATCH_COLUMNS
 

@@ -100,7 +100,9 @@ def test_an_alternative_nearly_as_good_widens_the_uncertainty_beyond_the_limit()
 def test_an_alternative_far_behind_or_excluded_changes_nothing():
     params = UncertaintyParams()
     far_behind = Alternative(weight=alternative_weight(40, params), offset_m=5.0, offset_deg=30.0)
-    excluded = Alternative(weight=0.0, offset_m=3.0, offset_deg=1.0, status="excluded: it fails its checks (ICP fitness)")
+    excluded = Alternative(
+        weight=0.0, offset_m=3.0, offset_deg=1.0, status="excluded: it fails its checks (ICP fitness)"
+    )
     t, r = with_alternatives(0.01, 0.05, [far_behind, excluded])
     assert t == pytest.approx(0.01, rel=1e-6) and r == pytest.approx(0.05, rel=1e-6)
     assert judge(t, r, params, alternatives=[far_behind, excluded]) == ""

@@ -20,7 +20,7 @@ PARAMS = RegistrationParams(angular_step_deg=0.3)
 
 
 def _right_within_sigma_or_refused(result, truth, *, refusal_words=()) -> str:
-    """"ok" with the true error within 3 sigma, or "refused" with a reason naming any of
+    """ "ok" with the true error within 3 sigma, or "refused" with a reason naming any of
     ``refusal_words``; fails otherwise."""
     if not result.ok:
         assert any(w in result.reason for w in refusal_words), result.reason
@@ -37,22 +37,34 @@ def _built_pair(preset: str, seed: int, separation: float, scanner: str = "tls")
     scene = make_scene(preset, seed=seed, size_m=44.0)
     positions = stand_positions(scene, separation, np.random.default_rng(seed), n=2, across_m=0.5)
     axis = scene.meta["axis_deg"]
-    plot = simulate_plot(preset, [tuple(p) for p in positions], seed=seed, angular_step_deg=0.3, size_m=44.0, scene=scene,
-                         scanner_options=scanner_options(scanner), yaw_deg=[axis, axis])
+    plot = simulate_plot(
+        preset,
+        [tuple(p) for p in positions],
+        seed=seed,
+        angular_step_deg=0.3,
+        size_m=44.0,
+        scene=scene,
+        scanner_options=scanner_options(scanner),
+        yaw_deg=[axis, axis],
+    )
     return plot
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("preset, seed, separation, scanner", [
-    ("corridor", 0, 3.4, "tls"),          # scanners one column spacing apart
-    ("corridor", 2, 6.8, "tls"),          # two spacings apart
-    ("colonnade", 2, 3.5, "robot_forward"),  # the robot's 180 deg laser along a colonnade
-])
+@pytest.mark.parametrize(
+    "preset, seed, separation, scanner",
+    [
+        ("corridor", 0, 3.4, "tls"),  # scanners one column spacing apart
+        ("corridor", 2, 6.8, "tls"),  # two spacings apart
+        ("colonnade", 2, 3.5, "robot_forward"),  # the robot's 180 deg laser along a colonnade
+    ],
+)
 def test_rows_of_columns_are_refused_naming_the_repeat_or_right(preset, seed, separation, scanner):
     plot = _built_pair(preset, seed, separation, scanner)
     result = register(plot.scans[0].scan, plot.scans[1].scan, PARAMS)
-    verdict = _right_within_sigma_or_refused(result, plot.relative_pose(0, 1),
-                                             refusal_words=("repeat themselves", "ambiguous", "regular", "too few"))
+    verdict = _right_within_sigma_or_refused(
+        result, plot.relative_pose(0, 1), refusal_words=("repeat themselves", "ambiguous", "regular", "too few")
+    )
     print(preset, scanner, verdict, result.reason)
     if verdict == "refused" and "cannot be pinned down" in result.reason:
         # the refusal is the stated uncertainty covering the alternative one column spacing away
@@ -62,8 +74,14 @@ def test_rows_of_columns_are_refused_naming_the_repeat_or_right(preset, seed, se
 
 @pytest.mark.slow
 def test_a_300_deg_sector_scanner_in_a_forest_registers_within_its_sigma():
-    plot = simulate_plot("mixed_temperate", [(0.0, 0.0), (9.0, 4.0)], seed=12, angular_step_deg=0.3, size_m=45.0,
-                         scanner_options=scanner_options("sector_300"))
+    plot = simulate_plot(
+        "mixed_temperate",
+        [(0.0, 0.0), (9.0, 4.0)],
+        seed=12,
+        angular_step_deg=0.3,
+        size_m=45.0,
+        scanner_options=scanner_options("sector_300"),
+    )
     result = register(plot.scans[0].scan, plot.scans[1].scan, PARAMS)
     assert _right_within_sigma_or_refused(result, plot.relative_pose(0, 1)) == "ok"
     assert result.uncertainty["translation_m"] < 0.05
@@ -73,8 +91,11 @@ def test_a_300_deg_sector_scanner_in_a_forest_registers_within_its_sigma():
 def test_a_plantation_scanned_30_m_apart_is_right_or_names_the_rows():
     plot = simulate_plot("plantation_rows", [(-15.0, 0.3), (15.0, -0.4)], seed=5, angular_step_deg=0.3, size_m=60.0)
     result = register(plot.scans[0].scan, plot.scans[1].scan, PARAMS)
-    _right_within_sigma_or_refused(result, plot.relative_pose(0, 1),
-                                   refusal_words=("repeat themselves", "regular planting", "too few", "share too few"))
+    _right_within_sigma_or_refused(
+        result,
+        plot.relative_pose(0, 1),
+        refusal_words=("repeat themselves", "regular planting", "too few", "share too few"),
+    )
 
 
 def test_a_resurvey_of_a_planted_grid_counts_the_shifted_grid():
@@ -95,11 +116,27 @@ def test_a_resurvey_of_a_planted_grid_counts_the_shifted_grid():
         dbh = np.full(len(xy), 0.25) + rng.normal(0, 0.002, len(xy))  # even-aged
 
         def rows(points, d):
-            return [{"tree_id": k + 1, "x": x, "y": y, "z": z, "dbh_m": v, "height_m": 18.0, "dbh_quality": "stem curve; high",
-                     "height_quality": "top; high", "source": "stem", "flag": ""} for k, ((x, y, z), v) in enumerate(zip(points, d))]
+            return [
+                {
+                    "tree_id": k + 1,
+                    "x": x,
+                    "y": y,
+                    "z": z,
+                    "dbh_m": v,
+                    "height_m": 18.0,
+                    "dbh_quality": "stem curve; high",
+                    "height_quality": "top; high",
+                    "source": "stem",
+                    "flag": "",
+                }
+                for k, ((x, y, z), v) in enumerate(zip(points, d))
+            ]
+
         after_xyz = (np.column_stack([xy, np.zeros(len(xy)), np.ones(len(xy))]) @ inv.T)[:, :3]
-        return detect_change(epoch_from_table(rows(np.column_stack([xy, np.zeros(len(xy))]), dbh), name="BEFORE"),
-                             epoch_from_table(rows(after_xyz, dbh + 0.02), name="AFTER"))
+        return detect_change(
+            epoch_from_table(rows(np.column_stack([xy, np.zeros(len(xy))]), dbh), name="BEFORE"),
+            epoch_from_table(rows(after_xyz, dbh + 0.02), name="AFTER"),
+        )
 
     exact = change(grid)
     assert not exact.ok and "ambiguous" in exact.reason, exact.reason

@@ -49,7 +49,10 @@ def plot_poses(scans, tmp_path_factory):
 
 
 def _env() -> dict:
-    return {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT.parent), os.environ.get("PYTHONPATH", "")) if p)}
+    return {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT.parent), os.environ.get("PYTHONPATH", "")) if p),
+    }
 
 
 def _same_poses(poses: dict, expected: dict) -> None:
@@ -63,6 +66,7 @@ def _same_poses(poses: dict, expected: dict) -> None:
 
 def _copier(pairs, *, gap_s: float = 0.0):
     """A thread copying ``(source, target)`` pairs one after the other."""
+
     def run():
         for source, target in pairs:
             shutil.copyfile(source, target)
@@ -78,22 +82,42 @@ def test_watch_registers_each_scan_as_it_arrives_and_ends_as_plot(scans, plot_po
     folder, out = tmp_path / "export", tmp_path / "field"
     folder.mkdir()
     copier = _copier([(p, folder / p.name) for p in paths], gap_s=0.3)
-    code = main(["plot", "--watch", str(folder), "--out", str(out), "--until-scans", "4", "--poll", "0.1", "--progress", "jsonl"])
+    code = main(
+        [
+            "plot",
+            "--watch",
+            str(folder),
+            "--out",
+            str(out),
+            "--until-scans",
+            "4",
+            "--poll",
+            "0.1",
+            "--progress",
+            "jsonl",
+        ]
+    )
     copier.join()
     captured = capsys.readouterr()
     assert code == 0, captured.err[-2000:]
     lines = [line for line in captured.out.splitlines() if line.startswith("scan_")]
     assert lines[0] == "scan_01.laz: centre (the plot's frame) - 1 of 1 placed"
     for k, line in enumerate(lines[1:], 2):
-        assert line.startswith(f"scan_{k:02d}.laz: linked to scan_01.laz (ok, ") and line.endswith(f" deg) - {k} of {k} placed"), line
+        assert line.startswith(f"scan_{k:02d}.laz: linked to scan_01.laz (ok, ") and line.endswith(
+            f" deg) - {k} of {k} placed"
+        ), line
     events = [json.loads(x) for x in captured.err.splitlines() if x.startswith('{"event": "scan"')]
-    assert [(e["name"], e["status"], e["placed"]) for e in events] == [(n, "centre" if k == 1 else "linked", k) for k, n in enumerate(NAMES, 1)]
+    assert [(e["name"], e["status"], e["placed"]) for e in events] == [
+        (n, "centre" if k == 1 else "linked", k) for k, n in enumerate(NAMES, 1)
+    ]
     assert all(e["seconds"] is not None for e in events)
     # the folder is a whole plot folder, and its poses are those of ``forestreg plot``
     poses = json.loads((out / "poses.json").read_text())["scans"]
     _same_poses(poses, plot_poses)
     state = json.loads((out / "watch.json").read_text())
-    assert {n: f["status"] for n, f in state["files"].items()} == {n: "centre" if n == NAMES[0] else "linked" for n in NAMES}
+    assert {n: f["status"] for n, f in state["files"].items()} == {
+        n: "centre" if n == NAMES[0] else "linked" for n in NAMES
+    }
     assert all((out / f"{n}.transform.txt").is_file() for n in NAMES) and (out / "report.html").is_file()
     assert not [p for p in out.iterdir() if p.name.startswith(".forestreg-tmp-")]
     for k, name in enumerate(NAMES):  # and near the truth
@@ -128,14 +152,16 @@ def test_partial_file_waits_a_copy_is_registered_once_and_other_files_are_ignore
             assert arrived["waiting"].wait(PATIENCE_S)  # ... seen settled, and waited for
             shutil.copyfile(paths[0], folder / "scan_01 copy.laz")
             assert arrived["duplicate"].wait(PATIENCE_S)
-            f.write(data[int(0.6 * len(data)):])
+            f.write(data[int(0.6 * len(data)) :])
 
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
     run = watch_plot(folder, out, RegistrationParams(), poll_s=0.1, until_scans=2, on_event=on_event)
     feeder.join(5)
     assert run and run.placed == NAMES[:2] and not run.stopped
-    assert [e.status for e in seen[NAMES[1]]] == ["waiting", "linked"], "a partial file is named once, then registered when whole"
+    assert [e.status for e in seen[NAMES[1]]] == ["waiting", "linked"], (
+        "a partial file is named once, then registered when whole"
+    )
     assert "chunk table" in seen[NAMES[1]][0].reason
     assert [(e.status, e.same_as) for e in seen["scan_01 copy.laz"]] == [("duplicate", NAMES[0])]
     for other in ("notes.txt", "photo.jpg"):
@@ -182,18 +208,42 @@ def test_a_scan_that_shares_trunks_but_does_not_link_gets_the_reason_and_where_t
     shutil.copyfile(paths[0], folder / NAMES[0])
     shutil.copyfile(paths[1], folder / NAMES[1])
     events = []
-    run = watch_plot(folder, out, RegistrationParams(icp_min_fitness=0.99), poll_s=0.1, until_scans=2, on_event=events.append)
+    run = watch_plot(
+        folder, out, RegistrationParams(icp_min_fitness=0.99), poll_s=0.1, until_scans=2, on_event=events.append
+    )
     assert not run and run.placed == (NAMES[0],)
     event = events[-1]
     assert event.name == NAMES[1] and event.status == "not linked" and event.advice is not None
-    assert event.message.startswith(f"{NAMES[1]}: not linked - shares ") and f"trunk shadows with {NAMES[0]}, but ICP fitness" in event.message
+    assert (
+        event.message.startswith(f"{NAMES[1]}: not linked - shares ")
+        and f"trunk shadows with {NAMES[0]}, but ICP fitness" in event.message
+    )
     assert event.message.endswith(f"stand between them, near ({event.advice[0]:.1f}, {event.advice[1]:.1f})")
     assert event.placed == 1 and event.total == 2
 
 
 def _watcher(folder: Path, out: Path, *extra: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "forestreg.cli", "plot", "--watch", str(folder), "--out", str(out), "--poll", "0.1",
-                             "--progress", "none", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "forestreg.cli",
+            "plot",
+            "--watch",
+            str(folder),
+            "--out",
+            str(out),
+            "--poll",
+            "0.1",
+            "--progress",
+            "none",
+            *extra,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
 
 
 def _read_until(proc: subprocess.Popen, prefix: str) -> list[str]:
@@ -231,11 +281,33 @@ def test_a_killed_watch_goes_on_from_the_scans_placed(scans, plot_poses, tmp_pat
     proc.stderr.close()
     assert sorted(json.loads((out / "watch.json").read_text())["files"])[:2] == list(NAMES[:2])
     shutil.copyfile(paths[3], folder / NAMES[3])
-    again = subprocess.run([sys.executable, "-m", "forestreg.cli", "plot", "--watch", str(folder), "--out", str(out), "--poll", "0.1",
-                            "--progress", "none", "--until-scans", "4"], capture_output=True, text=True, env=_env(), timeout=300)
+    again = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "forestreg.cli",
+            "plot",
+            "--watch",
+            str(folder),
+            "--out",
+            str(out),
+            "--poll",
+            "0.1",
+            "--progress",
+            "none",
+            "--until-scans",
+            "4",
+        ],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=300,
+    )
     assert again.returncode == 0, again.stderr[-2000:]
     lines = [line for line in again.stdout.splitlines() if line.startswith("scan_")]
-    assert [line.split(":")[0] for line in lines] == list(NAMES[2:]), "the placed scans are kept, the others taken in once"
+    assert [line.split(":")[0] for line in lines] == list(NAMES[2:]), (
+        "the placed scans are kept, the others taken in once"
+    )
     assert lines[-1].endswith("4 of 4 placed")
     project = json.loads((out / "project.json").read_text())
     assert [s["name"] for s in project["scans"]] == list(NAMES)
@@ -261,14 +333,17 @@ def test_ctrl_c_ends_a_watch_with_its_folder_whole(scans, tmp_path):
     assert not [p for p in out.iterdir() if p.name.startswith(".forestreg-tmp-")]
 
 
-@pytest.mark.parametrize("args, says", [
-    (["--watch", "{folder}", "--out", "{out}", "{scan}"], "give no scan files"),
-    (["--watch", "{folder}", "--out", "{out}", "--pairs", "all"], "not with --watch"),
-    (["--watch", "{folder}/missing", "--out", "{out}"], "no such folder"),
-    (["--out", "{out}", "--until-scans", "2", "{scan}", "{scan}"], "--until-scans goes with --watch"),
-    (["--out", "{out}"], "plot needs scan files"),
-    (["--watch", "{folder}", "--out", "{folder}"], "--out"),
-])
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        (["--watch", "{folder}", "--out", "{out}", "{scan}"], "give no scan files"),
+        (["--watch", "{folder}", "--out", "{out}", "--pairs", "all"], "not with --watch"),
+        (["--watch", "{folder}/missing", "--out", "{out}"], "no such folder"),
+        (["--out", "{out}", "--until-scans", "2", "{scan}", "{scan}"], "--until-scans goes with --watch"),
+        (["--out", "{out}"], "plot needs scan files"),
+        (["--watch", "{folder}", "--out", "{folder}"], "--out"),
+    ],
+)
 def test_bad_watch_usage_is_one_line_and_exit_2(args, says, tmp_path, capsys):
     folder = tmp_path / "export"
     folder.mkdir()
@@ -294,7 +369,10 @@ def test_a_watch_job_of_the_service_streams_one_event_per_scan(scans, tmp_path):
     manager = JobManager(JobStore(tmp_path / "state" / "jobs.db"), workers=1)
     manager.start()
     try:
-        job = manager.submit(["plot", "--watch", str(folder), "--out", str(out), "--until-scans", "1", "--poll", "0.1"], cwd=str(tmp_path))
+        job = manager.submit(
+            ["plot", "--watch", str(folder), "--out", str(out), "--until-scans", "1", "--poll", "0.1"],
+            cwd=str(tmp_path),
+        )
         deadline = time.monotonic() + PATIENCE_S
         while time.monotonic() < deadline and manager.store.get(job)["status"] not in ("done", "error", "cancelled"):
             time.sleep(0.2)

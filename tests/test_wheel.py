@@ -49,7 +49,9 @@ def _base_python() -> str:
 
 
 def _uv() -> list[str] | None:
-    found = shutil.which("uv") or (str(Path(sys.executable).with_name("uv")) if Path(sys.executable).with_name("uv").exists() else None)
+    found = shutil.which("uv") or (
+        str(Path(sys.executable).with_name("uv")) if Path(sys.executable).with_name("uv").exists() else None
+    )
     return [found] if found else None
 
 
@@ -57,7 +59,9 @@ def _uv() -> list[str] | None:
 def dist(tmp_path_factory) -> Path:
     pytest.importorskip("build", reason="the 'build' package is not installed (pip install -e '.[test]')")
     out = tmp_path_factory.mktemp("dist")
-    run = subprocess.run([sys.executable, "-m", "build", "--outdir", str(out), str(ROOT)], capture_output=True, text=True, timeout=900)
+    run = subprocess.run(
+        [sys.executable, "-m", "build", "--outdir", str(out), str(ROOT)], capture_output=True, text=True, timeout=900
+    )
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     return out
 
@@ -68,12 +72,30 @@ def test_build_makes_a_wheel_and_an_sdist_with_the_version(dist):
     sdist = dist / f"forestreg-{version}.tar.gz"
     assert wheel.is_file() and sdist.is_file(), sorted(p.name for p in dist.iterdir())
     names = set(zipfile.ZipFile(wheel).namelist())
-    for needed in ("forestreg/__init__.py", "forestreg/metadata.txt", "forestreg/cli/__init__.py", "forestreg/engine/tls/pair.py",
-                   "forestreg/resources/default_params.toml", "forestreg/resources/icons/run.svg", "forestreg/plugin/qgis/provider.py"):
+    for needed in (
+        "forestreg/__init__.py",
+        "forestreg/metadata.txt",
+        "forestreg/cli/__init__.py",
+        "forestreg/engine/tls/pair.py",
+        "forestreg/resources/default_params.toml",
+        "forestreg/resources/icons/run.svg",
+        "forestreg/plugin/qgis/provider.py",
+    ):
         assert needed in names, needed
-    assert not any(n.startswith(("forestreg/tests/", "tests/", "forestreg/docs/", "forestreg/scripts/", "forestreg/benchmarks/")) for n in names)
+    assert not any(
+        n.startswith(("forestreg/tests/", "tests/", "forestreg/docs/", "forestreg/scripts/", "forestreg/benchmarks/"))
+        for n in names
+    )
     archive = tarfile.open(sdist).getnames()
-    for needed in ("CHANGELOG.md", "README.md", "mkdocs.yml", "docs/index.md", "scripts/docs_hooks.py", "scripts/package_qgis.py", "tests/test_docs.py"):
+    for needed in (
+        "CHANGELOG.md",
+        "README.md",
+        "mkdocs.yml",
+        "docs/index.md",
+        "scripts/docs_hooks.py",
+        "scripts/package_qgis.py",
+        "tests/test_docs.py",
+    ):
         assert f"forestreg-{version}/{needed}" in archive, needed
     meta = zipfile.ZipFile(wheel).read(f"forestreg-{version}.dist-info/METADATA").decode()
     assert f"Version: {version}" in meta
@@ -88,7 +110,9 @@ def test_the_wheel_installs_and_registers_in_a_clean_environment(dist, tmp_path)
     env = _clean_env()
     uv = _uv()
     if uv:
-        subprocess.run(uv + ["venv", "-q", "-p", _base_python(), str(venv)], check=True, env=env, cwd=tmp_path, timeout=300)
+        subprocess.run(
+            uv + ["venv", "-q", "-p", _base_python(), str(venv)], check=True, env=env, cwd=tmp_path, timeout=300
+        )
         install = uv + ["pip", "install", "-q", "-p", str(venv / "bin" / "python"), str(wheel)]
     else:
         subprocess.run([_base_python(), "-m", "venv", str(venv)], check=True, env=env, cwd=tmp_path, timeout=300)
@@ -97,8 +121,18 @@ def test_the_wheel_installs_and_registers_in_a_clean_environment(dist, tmp_path)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     python = venv / "bin" / "python"
     # the environment is clean: no system site packages, and forestreg comes from the wheel
-    where = subprocess.run([str(python), "-c", "import sys, forestreg; print(forestreg.__file__); print(sys.flags.no_user_site, any('site-packages' in p and not p.startswith(sys.prefix) for p in sys.path))"],
-                           capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+    where = subprocess.run(
+        [
+            str(python),
+            "-c",
+            "import sys, forestreg; print(forestreg.__file__); print(sys.flags.no_user_site, any('site-packages' in p and not p.startswith(sys.prefix) for p in sys.path))",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=120,
+    )
     assert where.returncode == 0, where.stderr
     location, flags = where.stdout.split("\n", 1)
     assert Path(location).resolve().is_relative_to(venv.resolve()) and not Path(location).resolve().is_relative_to(ROOT)
@@ -108,11 +142,36 @@ def test_the_wheel_installs_and_registers_in_a_clean_environment(dist, tmp_path)
     out = subprocess.run([forestreg, "--version"], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == f"forestreg {version}", out.stdout + out.stderr
 
-    sim = subprocess.run([forestreg, "simulate", "planted_conifer", "--out", "sim", "--positions", "0,0;7,2", "--step", "0.5", "--size", "30", "-q"],
-                         capture_output=True, text=True, env=env, cwd=tmp_path, timeout=900)
+    sim = subprocess.run(
+        [
+            forestreg,
+            "simulate",
+            "planted_conifer",
+            "--out",
+            "sim",
+            "--positions",
+            "0,0;7,2",
+            "--step",
+            "0.5",
+            "--size",
+            "30",
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=900,
+    )
     assert sim.returncode == 0, sim.stderr[-3000:]
-    reg = subprocess.run([forestreg, "register", "sim/scan_01.laz", "sim/scan_02.laz", "--out", "pair", "-q"],
-                         capture_output=True, text=True, env=env, cwd=tmp_path, timeout=900)
+    reg = subprocess.run(
+        [forestreg, "register", "sim/scan_01.laz", "sim/scan_02.laz", "--out", "pair", "-q"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=900,
+    )
     assert reg.returncode == 0, reg.stdout[-2000:] + reg.stderr[-3000:]
     result = json.loads((tmp_path / "pair" / "result.json").read_text())
     truth = json.loads((tmp_path / "sim" / "truth.json").read_text())

@@ -38,20 +38,50 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="forestreg gui", description="forestreg's desktop window")
     p.add_argument("--project", help="project file to open")
     p.add_argument("--offscreen", action="store_true", help="no display: draw the window in memory (with --screenshot)")
-    p.add_argument("--run", action="store_true", help="register the project (scans not registered yet) after opening it")
-    p.add_argument("--screenshot", metavar="OUT.png", help="save a screenshot of the whole window when everything is drawn, then exit")
-    p.add_argument("--size", default=f"{DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}", help="window size WIDTHxHEIGHT for screenshots (default %(default)s)")
+    p.add_argument(
+        "--run", action="store_true", help="register the project (scans not registered yet) after opening it"
+    )
+    p.add_argument(
+        "--screenshot",
+        metavar="OUT.png",
+        help="save a screenshot of the whole window when everything is drawn, then exit",
+    )
+    p.add_argument(
+        "--size",
+        default=f"{DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}",
+        help="window size WIDTHxHEIGHT for screenshots (default %(default)s)",
+    )
     p.add_argument("--sample", action="store_true", help="open the simulated sample plot (made on first use)")
-    p.add_argument("--trees", metavar="DIR", help="open a trees result folder (forestreg trees --out DIR) on the Trees tab")
+    p.add_argument(
+        "--trees", metavar="DIR", help="open a trees result folder (forestreg trees --out DIR) on the Trees tab"
+    )
     p.add_argument("--cloud", metavar="FILE", help="with --trees: the measured cloud, to draw each tree's points")
     p.add_argument("--tree", type=int, metavar="ID", help="with --trees: the tree to select (default: the first)")
-    p.add_argument("--coregistration", metavar="DIR", help="open a co-registration result folder (forestreg coregister --out DIR)")
-    p.add_argument("--change", metavar="DIR", help="open a re-survey result folder (forestreg change BEFORE AFTER --out DIR)")
+    p.add_argument(
+        "--coregistration", metavar="DIR", help="open a co-registration result folder (forestreg coregister --out DIR)"
+    )
+    p.add_argument(
+        "--change", metavar="DIR", help="open a re-survey result folder (forestreg change BEFORE AFTER --out DIR)"
+    )
     p.add_argument("--field", metavar="CSV", help="with --trees: evaluate against field records (Field data tab)")
-    p.add_argument("--also", action="append", default=[], metavar="NAME=DIR",
-                   help="with --field: another trees folder shown side by side (e.g. fused=trees_fused)")
-    p.add_argument("--results-tab", metavar="NAME", help="show this tab of the results dock (Links, Scans, Targets, Comparison, Log)")
-    p.add_argument("--timeout", type=float, default=3600.0, help="longest wait for the run and the views, seconds (default %(default)s)")
+    p.add_argument(
+        "--also",
+        action="append",
+        default=[],
+        metavar="NAME=DIR",
+        help="with --field: another trees folder shown side by side (e.g. fused=trees_fused)",
+    )
+    p.add_argument(
+        "--results-tab",
+        metavar="NAME",
+        help="show this tab of the results dock (Links, Scans, Targets, Comparison, Log)",
+    )
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=3600.0,
+        help="longest wait for the run and the views, seconds (default %(default)s)",
+    )
     return p
 
 
@@ -148,16 +178,28 @@ def main(argv: Optional[list[str]] = None) -> int:
         window.resize(*size)
         window.show()
         if args.project and not window.open_project(args.project):
-            print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.project}", file=sys.stderr)
+            print(
+                f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.project}",
+                file=sys.stderr,
+            )
             return 2
         if args.coregistration and not window.open_coregistration(args.coregistration):
-            print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.coregistration}", file=sys.stderr)
+            print(
+                f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.coregistration}",
+                file=sys.stderr,
+            )
             return 2
         if args.change and not window.open_change(args.change):
-            print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.change}", file=sys.stderr)
+            print(
+                f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.change}",
+                file=sys.stderr,
+            )
             return 2
         if args.trees and not window.open_trees(args.trees, args.cloud, select=args.tree):
-            print(f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.trees}", file=sys.stderr)
+            print(
+                f"forestreg gui: {window.last_error[1] if window.last_error else 'cannot open ' + args.trees}",
+                file=sys.stderr,
+            )
             return 2
         if args.field:
             runs = {Path(args.trees).name if args.trees else "trees": args.trees} if args.trees else {}
@@ -168,7 +210,10 @@ def main(argv: Optional[list[str]] = None) -> int:
                     return 2
                 runs[name] = folder
             if not runs or not window.evaluate_field(args.field, runs):
-                print(f"forestreg gui: {window.last_error[1] if window.last_error else '--field needs --trees or --also'}", file=sys.stderr)
+                print(
+                    f"forestreg gui: {window.last_error[1] if window.last_error else '--field needs --trees or --also'}",
+                    file=sys.stderr,
+                )
                 return 2
         if args.sample and not args.project:
             window.open_sample()
@@ -188,7 +233,9 @@ def main(argv: Optional[list[str]] = None) -> int:
                 code = 1
         if args.results_tab:
             tabs = window.bottom_tabs
-            found = [k for k in range(tabs.count()) if tabs.tabText(k).replace("&", "").lower() == args.results_tab.lower()]
+            found = [
+                k for k in range(tabs.count()) if tabs.tabText(k).replace("&", "").lower() == args.results_tab.lower()
+            ]
             if not found:
                 names = ", ".join(tabs.tabText(k).replace("&", "") for k in range(tabs.count()))
                 print(f"forestreg gui: no results tab {args.results_tab!r} (one of {names})", file=sys.stderr)

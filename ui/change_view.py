@@ -15,18 +15,33 @@ from typing import Any, Optional
 
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QPixmap
-from PySide6.QtWidgets import QAbstractItemView, QComboBox, QHBoxLayout, QLabel, QSizePolicy, QTableWidgetItem, QVBoxLayout, QWidget
+from PySide6.QtWidgets import (
+    QAbstractItemView,
+    QComboBox,
+    QHBoxLayout,
+    QLabel,
+    QSizePolicy,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
 
 from ..app.change import ROW_FILTERS, ChangeSummary, change_rows
 from .panes import figures_table, headline, lay_out_view, two_panes
 
 #: Table columns: (header, row key, scale, decimals).
 COLUMNS = (
-    ("Status", "status", None, 0), ("x", "x", 1.0, 2), ("y", "y", 1.0, 2),
-    ("DBH before (cm)", "dbh_before_m", 100.0, 1), ("DBH after (cm)", "dbh_after_m", 100.0, 1),
-    ("DBH change (mm)", "dbh_change_m", 1000.0, 1), ("\u00b1 (mm)", "dbh_change_sigma_m", 1000.0, 1),
-    ("Height before (m)", "height_before_m", 1.0, 1), ("Height after (m)", "height_after_m", 1.0, 1),
-    ("Height change (m)", "height_change_m", 1.0, 2), ("Flag", "flag", None, 0),
+    ("Status", "status", None, 0),
+    ("x", "x", 1.0, 2),
+    ("y", "y", 1.0, 2),
+    ("DBH before (cm)", "dbh_before_m", 100.0, 1),
+    ("DBH after (cm)", "dbh_after_m", 100.0, 1),
+    ("DBH change (mm)", "dbh_change_m", 1000.0, 1),
+    ("\u00b1 (mm)", "dbh_change_sigma_m", 1000.0, 1),
+    ("Height before (m)", "height_before_m", 1.0, 1),
+    ("Height after (m)", "height_after_m", 1.0, 1),
+    ("Height change (m)", "height_change_m", 1.0, 2),
+    ("Flag", "flag", None, 0),
 )
 FILTERS = ROW_FILTERS
 
@@ -37,8 +52,10 @@ class ChangeView(QWidget):
     def __init__(self, parent: Optional[QWidget] = None) -> None:
         super().__init__(parent)
         self.output: Any = None
-        self.headline = headline("Compare two surveys of one plot: run 'forestreg change BEFORE AFTER --out DIR', "
-                                 "then File \u25b8 Open re-survey result\u2026")
+        self.headline = headline(
+            "Compare two surveys of one plot: run 'forestreg change BEFORE AFTER --out DIR', "
+            "then File \u25b8 Open re-survey result\u2026"
+        )
         self.map = QLabel()
         self.map.setAlignment(Qt.AlignmentFlag.AlignCenter)
         self.map.setMinimumSize(200, 200)
@@ -69,12 +86,17 @@ class ChangeView(QWidget):
         self.output = output
         summary = ChangeSummary.of(output.result)
         if summary.ok:
-            how = (f" (\u00b1 {100 * summary.translation_m:.1f} cm, {summary.rotation_deg:.3f}\u00b0)"
-                   if summary.translation_m is not None and summary.rotation_deg is not None else "")
+            how = (
+                f" (\u00b1 {100 * summary.translation_m:.1f} cm, {summary.rotation_deg:.3f}\u00b0)"
+                if summary.translation_m is not None and summary.rotation_deg is not None
+                else ""
+            )
             stems = "?" if summary.persisting_stems is None else summary.persisting_stems
-            text = (f"<b>AFTER registered onto BEFORE</b>{how} from {stems} persisting stems: {summary.persisting} persisting, "
-                    f"{summary.removed} removed, {summary.new} new"
-                    + (f", {summary.outside} outside the other survey" if summary.outside else ""))
+            text = (
+                f"<b>AFTER registered onto BEFORE</b>{how} from {stems} persisting stems: {summary.persisting} persisting, "
+                f"{summary.removed} removed, {summary.new} new"
+                + (f", {summary.outside} outside the other survey" if summary.outside else "")
+            )
         else:
             text = f"<b style='color:#b42318'>Not compared:</b> {summary.reason}"
         self.headline.setText(text)
@@ -117,8 +139,11 @@ class ChangeView(QWidget):
 
     def _scale_map(self) -> None:
         if self._pixmap is not None and not self._pixmap.isNull():
-            self.map.setPixmap(self._pixmap.scaled(self.map.size(), Qt.AspectRatioMode.KeepAspectRatio,
-                                                   Qt.TransformationMode.SmoothTransformation))
+            self.map.setPixmap(
+                self._pixmap.scaled(
+                    self.map.size(), Qt.AspectRatioMode.KeepAspectRatio, Qt.TransformationMode.SmoothTransformation
+                )
+            )
 
     def resizeEvent(self, event: Any) -> None:  # noqa: N802 - Qt's name
         super().resizeEvent(event)

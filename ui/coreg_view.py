@@ -67,25 +67,69 @@ def evidence_rows(summary: CoregistrationSummary) -> list[tuple[str, Any, str, s
     def shown(value: Any) -> str:
         return dash if value is None else str(value)
 
-    add("Result", summary.status, summary.status.upper(), summary.reason or "the ground-based cloud was placed on the UAV cloud")
-    add("Keypoints ground / UAV", (summary.keypoints_ground, summary.keypoints_uav),
-        f"{shown(summary.keypoints_ground)} / {shown(summary.keypoints_uav)}", "tree tops found in each cloud's canopy (paper: canopy keypoints)")
+    add(
+        "Result",
+        summary.status,
+        summary.status.upper(),
+        summary.reason or "the ground-based cloud was placed on the UAV cloud",
+    )
+    add(
+        "Keypoints ground / UAV",
+        (summary.keypoints_ground, summary.keypoints_uav),
+        f"{shown(summary.keypoints_ground)} / {shown(summary.keypoints_uav)}",
+        "tree tops found in each cloud's canopy (paper: canopy keypoints)",
+    )
     pct = summary.matching_percentage
-    add("Matched keypoints", summary.matched, shown(summary.matched) + (f"  ({pct:.0f} % of the ground-based)" if _num(pct) else ""),
-        "ground-based tree tops that coincide with a UAV tree top after the registration")
+    add(
+        "Matched keypoints",
+        summary.matched,
+        shown(summary.matched) + (f"  ({pct:.0f} % of the ground-based)" if _num(pct) else ""),
+        "ground-based tree tops that coincide with a UAV tree top after the registration",
+    )
     corr, alt, margin = summary.surface_correlation, summary.alternative_correlation, summary.margin
-    add("Canopy surface correlation", corr, f"{corr:.2f}" if _num(corr) else None,
-        "how well the two canopy surfaces agree after the registration (1 = identical; right answers 0.8-0.9)")
+    add(
+        "Canopy surface correlation",
+        corr,
+        f"{corr:.2f}" if _num(corr) else None,
+        "how well the two canopy surfaces agree after the registration (1 = identical; right answers 0.8-0.9)",
+    )
     add("Best alternative", alt, f"{alt:.2f}" if _num(alt) else None, "correlation of the best distinct other solution")
-    add("Margin over the alternative", margin, f"{margin:.2f}" if margin is not None else None,
-        "a large margin means the solution is not a guess between look-alike placements")
+    add(
+        "Margin over the alternative",
+        margin,
+        f"{margin:.2f}" if margin is not None else None,
+        "a large margin means the solution is not a guess between look-alike placements",
+    )
     heading = summary.heading_deg
-    add("Turn about the vertical", heading, f"{heading:.2f}\u00b0" if _num(heading) else None, "heading of the ground-based cloud in the UAV frame")
-    for v, label in ((summary.residual_mean_m, "Keypoint residual, mean"), (summary.residual_rms_m, "Keypoint residual, RMS")):
-        add(label, v, f"{100 * v:.1f} cm" if _num(v) else None, "distance between matched tree tops after the registration")
+    add(
+        "Turn about the vertical",
+        heading,
+        f"{heading:.2f}\u00b0" if _num(heading) else None,
+        "heading of the ground-based cloud in the UAV frame",
+    )
+    for v, label in (
+        (summary.residual_mean_m, "Keypoint residual, mean"),
+        (summary.residual_rms_m, "Keypoint residual, RMS"),
+    ):
+        add(
+            label,
+            v,
+            f"{100 * v:.1f} cm" if _num(v) else None,
+            "distance between matched tree tops after the registration",
+        )
     f, s = summary.icp_fitness, summary.icp_std_m
-    add("Fine fit overlap", f, f"{f:.2f}" if _num(f) else None, "share of points with a partner in the other cloud after ICP")
-    add("Fine fit std", s, f"{100 * s:.1f} cm" if _num(s) else None, "standard deviation of the point distances after ICP")
+    add(
+        "Fine fit overlap",
+        f,
+        f"{f:.2f}" if _num(f) else None,
+        "share of points with a partner in the other cloud after ICP",
+    )
+    add(
+        "Fine fit std",
+        s,
+        f"{100 * s:.1f} cm" if _num(s) else None,
+        "standard deviation of the point distances after ICP",
+    )
     for key, v in summary.standard_errors.items():
         add(f"Standard error {key}", v, f"{v:.4g}", "uncertainty of the transform estimated by the engine")
     t = summary.total_s
@@ -115,7 +159,11 @@ class _Picture(QLabel):
 
     def _rescale(self) -> None:
         if self._pix is not None:
-            self.setPixmap(self._pix.scaled(self.size(), Qt.AspectRatioMode.KeepAspectRatio, Qt.TransformationMode.SmoothTransformation))
+            self.setPixmap(
+                self._pix.scaled(
+                    self.size(), Qt.AspectRatioMode.KeepAspectRatio, Qt.TransformationMode.SmoothTransformation
+                )
+            )
 
     def resizeEvent(self, event: QResizeEvent) -> None:  # noqa: N802 - Qt API
         super().resizeEvent(event)
@@ -137,8 +185,10 @@ class CoregistrationView(QWidget):
         self.fusion_counts: Optional[dict[str, dict[str, int]]] = None
         self.fused_path: Optional[str] = None
         self.last_error: Optional[tuple[str, str]] = None
-        self.headline = headline("Open a co-registration result (File \u25b8 Open co-registration result\u2026) or run one "
-                                 "(Co-register\u2026): the ground-based cloud is placed on the UAV/ALS cloud by tree tops.")
+        self.headline = headline(
+            "Open a co-registration result (File \u25b8 Open co-registration result\u2026) or run one "
+            "(Co-register\u2026): the ground-based cloud is placed on the UAV/ALS cloud by tree tops."
+        )
         self.run_button = QPushButton("Co-register\u2026")
         self.run_button.setToolTip("Choose a ground-based cloud and a UAV/ALS cloud and co-register them")
         self.accept_button = QPushButton("Accept")
@@ -167,7 +217,9 @@ class CoregistrationView(QWidget):
         ll.addWidget(self.table, 1)
         ll.addWidget(self.fusion_label)
         self.picture = _Picture()
-        lay_out_view(self, self.headline, two_panes(Qt.Orientation.Vertical, self.picture, left, (420, 300)), rows=[bar])
+        lay_out_view(
+            self, self.headline, two_panes(Qt.Orientation.Vertical, self.picture, left, (420, 300)), rows=[bar]
+        )
         self._update_buttons()
 
     # ------------------------------------------------------------------ showing
@@ -178,11 +230,15 @@ class CoregistrationView(QWidget):
         self.fusion_label.setText("")
         s = shown.summary
         if shown.ok:
-            self.headline.setText(f"<b style='color:{OK_COLOUR}'>Co-registered</b>: {s.ground or 'ground'} \u2192 "
-                                  f"{s.uav or 'uav'}. Check the figure (matched tree tops joined by black lines, "
-                                  "the profile on the right), then accept or reject.")
+            self.headline.setText(
+                f"<b style='color:{OK_COLOUR}'>Co-registered</b>: {s.ground or 'ground'} \u2192 "
+                f"{s.uav or 'uav'}. Check the figure (matched tree tops joined by black lines, "
+                "the profile on the right), then accept or reject."
+            )
         else:
-            self.headline.setText(f"<b style='color:{BAD_COLOUR}'>Not co-registered</b>: {s.reason or 'no reason given'}")
+            self.headline.setText(
+                f"<b style='color:{BAD_COLOUR}'>Not co-registered</b>: {s.reason or 'no reason given'}"
+            )
         rows = evidence_rows(s)
         self.table.setRowCount(len(rows))
         for r, (label, value, text, meaning) in enumerate(rows):
@@ -230,8 +286,13 @@ class CoregistrationView(QWidget):
         self.run_button.setEnabled(not running)
         self.accept_button.setEnabled(ok and not running and self.shown.decision != "accepted")
         self.reject_button.setEnabled(self.shown is not None and not running and self.shown.decision != "rejected")
-        self.fuse_button.setEnabled(ok and not running and self.shown.decision == "accepted"
-                                    and bool(self.shown.ground_file) and bool(self.shown.uav_file))
+        self.fuse_button.setEnabled(
+            ok
+            and not running
+            and self.shown.decision == "accepted"
+            and bool(self.shown.ground_file)
+            and bool(self.shown.uav_file)
+        )
 
     # ------------------------------------------------------------------ work
 
@@ -253,7 +314,9 @@ class CoregistrationView(QWidget):
             self.task.end()
             self._update_buttons()
 
-        self._start_task(worker, succeeded=succeeded, failed=failed, cancelled=cancelled, progress=self.task.report, ended=ended)
+        self._start_task(
+            worker, succeeded=succeeded, failed=failed, cancelled=cancelled, progress=self.task.report, ended=ended
+        )
 
     def cancel(self) -> None:
         if self.worker is not None:
@@ -261,6 +324,7 @@ class CoregistrationView(QWidget):
 
     def run(self, ground_file: str, uav_file: str) -> None:
         """Co-register two cloud files in a worker (the engine's defaults)."""
+
         def task(progress: Callable[[float, str], None], cancel: Any) -> CoregistrationShown:
             from ..app.coregistration import coregister_clouds
             from ..engine.io import read_scan
@@ -269,11 +333,15 @@ class CoregistrationView(QWidget):
             progress(0.0, "reading the clouds")
             ground, uav = read_scan(ground_file), read_scan(uav_file)
             # the same use case as the command line: its last check withholds a matrix that is not rigid
-            outcome = coregister_clouds(ground, uav, None, progress=lambda f, m: progress(0.05 + 0.85 * f, m), cancel=cancel)
+            outcome = coregister_clouds(
+                ground, uav, None, progress=lambda f, m: progress(0.05 + 0.85 * f, m), cancel=cancel
+            )
             progress(0.92, "drawing the figure")
             result = outcome.result
             png = coregistration_png(result, ground.points, uav.points) if result.ground_keypoints is not None else None
-            return CoregistrationShown(summary=outcome.figures, png=png, ground_file=str(ground_file), uav_file=str(uav_file))
+            return CoregistrationShown(
+                summary=outcome.figures, png=png, ground_file=str(ground_file), uav_file=str(uav_file)
+            )
 
         def done(shown: CoregistrationShown) -> None:
             self.show_result(shown)
@@ -292,8 +360,14 @@ class CoregistrationView(QWidget):
             from ..app.fusion import fuse_clouds
 
             progress(0.0, "reading the clouds")
-            outcome = fuse_clouds(shown.ground_file, shown.uav_file, out_file, matrix=matrix,
-                                  progress=lambda f, m: progress(0.05 + 0.9 * f, m), cancel=cancel)
+            outcome = fuse_clouds(
+                shown.ground_file,
+                shown.uav_file,
+                out_file,
+                matrix=matrix,
+                progress=lambda f, m: progress(0.05 + 0.9 * f, m),
+                cancel=cancel,
+            )
             return outcome.sources
 
         def done(counts: dict[str, SourceCounts]) -> None:
@@ -303,7 +377,9 @@ class CoregistrationView(QWidget):
             for source in ("ground", "uav", "total"):
                 c = counts.get(source)
                 if c:
-                    lines.append(f"{source}: {c.input:,} in, {c.redundant:,} duplicates and {c.noise:,} noise removed, {c.kept:,} kept")
+                    lines.append(
+                        f"{source}: {c.input:,} in, {c.redundant:,} duplicates and {c.noise:,} noise removed, {c.kept:,} kept"
+                    )
             self.fusion_label.setText("<br>".join(lines))
             self.fused.emit(counts)
 
@@ -313,4 +389,6 @@ class CoregistrationView(QWidget):
 def shown_from_folder(out: Any, summary: CoregistrationSummary) -> CoregistrationShown:
     """A :class:`CoregistrationShown` of a folder read by
     :func:`~forestreg.app.coregistration.read_coregistration_folder` (its output and summary)."""
-    return CoregistrationShown(summary=summary, figure_path=out.figure, ground_file=summary.ground_file, uav_file=summary.uav_file)
+    return CoregistrationShown(
+        summary=summary, figure_path=out.figure, ground_file=summary.ground_file, uav_file=summary.uav_file
+    )

@@ -25,11 +25,17 @@ class EvaluationView(QWidget):
     def __init__(self, parent: Optional[QWidget] = None) -> None:
         super().__init__(parent)
         self.runs: dict[str, Any] = {}
-        self.headline = headline("Compare tree tables with field records: File \u25b8 Evaluate against field data\u2026")
+        self.headline = headline(
+            "Compare tree tables with field records: File \u25b8 Evaluate against field data\u2026"
+        )
         self.table = figures_table(COLUMNS, stretch_last=False)
-        tips = {"R\u00b2": "coefficient of determination against the field values", "RMSE": "root mean square error (parameter unit)",
-                "rRMSE (%)": "RMSE relative to the field mean", "Bias": "mean of estimate minus field (parameter unit)",
-                "n": "matched trees with both values"}
+        tips = {
+            "R\u00b2": "coefficient of determination against the field values",
+            "RMSE": "root mean square error (parameter unit)",
+            "rRMSE (%)": "RMSE relative to the field mean",
+            "Bias": "mean of estimate minus field (parameter unit)",
+            "n": "matched trees with both values",
+        }
         for k, c in enumerate(COLUMNS):
             if c in tips:
                 self.table.horizontalHeaderItem(k).setToolTip(tips[c])
@@ -43,8 +49,10 @@ class EvaluationView(QWidget):
         parts = []
         for name, ev in runs.items():
             d = ev.detection
-            parts.append(f"<b>{name}</b>: {d.matched} of {d.field_trees} field trees matched, {d.omitted} missed, "
-                         f"{d.commission} extra")
+            parts.append(
+                f"<b>{name}</b>: {d.matched} of {d.field_trees} field trees matched, {d.omitted} missed, "
+                f"{d.commission} extra"
+            )
         self.headline.setText(f"Against {field_name}: " + "; ".join(parts))
         rows = [(name, s) for name, ev in runs.items() for s in ev.stats.values()]
         order = {name: k for k, name in enumerate(runs)}
@@ -54,8 +62,12 @@ class EvaluationView(QWidget):
             info = s.info
             scale, unit = (100.0, "cm") if info.unit == "m" and s.parameter == "dbh_m" else (1.0, info.unit)
             cells = [
-                (name, name), (s.parameter, f"{info.label} ({unit})"), (s.n, str(s.n)),
-                (s.r2, _f(s.r2, 3)), (s.rmse, _f(s.rmse * scale, 2)), (s.rrmse_percent, _f(s.rrmse_percent, 1)),
+                (name, name),
+                (s.parameter, f"{info.label} ({unit})"),
+                (s.n, str(s.n)),
+                (s.r2, _f(s.r2, 3)),
+                (s.rmse, _f(s.rmse * scale, 2)),
+                (s.rrmse_percent, _f(s.rrmse_percent, 1)),
                 (s.bias, _f(s.bias * scale, 2)),
             ]
             for c, (value, text) in enumerate(cells):
@@ -70,19 +82,26 @@ class EvaluationView(QWidget):
         """The raw figure of one run and parameter (tests)."""
         k = COLUMNS.index(column)
         for r in range(self.table.rowCount()):
-            if self.table.item(r, 0).data(Qt.ItemDataRole.UserRole) == run and \
-                    self.table.item(r, 1).data(Qt.ItemDataRole.UserRole) == parameter:
+            if (
+                self.table.item(r, 0).data(Qt.ItemDataRole.UserRole) == run
+                and self.table.item(r, 1).data(Qt.ItemDataRole.UserRole) == parameter
+            ):
                 return self.table.item(r, k).data(Qt.ItemDataRole.UserRole)
         raise KeyError((run, parameter))
 
     def _draw(self, runs: Mapping[str, Any]) -> None:
         self.figure.clear()
-        params = [p for p in ("dbh_m", "height_m", "volume_m3", "crown_area_m2", "crown_base_m", "crown_volume_m3")
-                  if any(p in ev.stats and ev.stats[p].n for ev in runs.values())][:4]
+        params = [
+            p
+            for p in ("dbh_m", "height_m", "volume_m3", "crown_area_m2", "crown_base_m", "crown_volume_m3")
+            if any(p in ev.stats and ev.stats[p].n for ev in runs.values())
+        ][:4]
         if not params:
             ax = self.figure.add_subplot()
             ax.set_axis_off()
-            ax.text(0.5, 0.5, "No parameter in common with the field data", ha="center", va="center", transform=ax.transAxes)
+            ax.text(
+                0.5, 0.5, "No parameter in common with the field data", ha="center", va="center", transform=ax.transAxes
+            )
             self.canvas.draw_idle()
             return
         axes = self.figure.subplots(1, len(params), squeeze=False)[0]
@@ -95,8 +114,14 @@ class EvaluationView(QWidget):
                     continue
                 scale = 100.0 if p == "dbh_m" else 1.0
                 e, f = s.estimate * scale, s.field_value * scale
-                ax.scatter(f, e, s=16, color=RUN_COLOURS[k % len(RUN_COLOURS)], alpha=0.8,
-                           label=f"{name}: R\u00b2 {_f(s.r2, 2)}, rRMSE {_f(s.rrmse_percent, 1)} %")
+                ax.scatter(
+                    f,
+                    e,
+                    s=16,
+                    color=RUN_COLOURS[k % len(RUN_COLOURS)],
+                    alpha=0.8,
+                    label=f"{name}: R\u00b2 {_f(s.r2, 2)}, rRMSE {_f(s.rrmse_percent, 1)} %",
+                )
                 lo, hi = min(lo, f.min(), e.min()), max(hi, f.max(), e.max())
                 label = s.info.label + (" (cm)" if p == "dbh_m" else f" ({s.info.unit})")
             if math.isfinite(lo):
@@ -115,4 +140,3 @@ class EvaluationView(QWidget):
 
 def _f(v: Any, digits: int) -> str:
     return f"{v:.{digits}f}" if isinstance(v, (int, float)) and math.isfinite(v) else "\u2013"
-

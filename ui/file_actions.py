@@ -15,9 +15,9 @@ from PySide6.QtCore import QByteArray, QUrl
 from PySide6.QtGui import QDesktopServices
 from PySide6.QtWidgets import QFileDialog, QMessageBox
 
+from ..app.plot import Project
 from ..engine.core.errors import ForestregError
 from ..engine.io import SUPPORTED_READ_SUFFIXES
-from ..app.plot import Project
 from .worker import TaskWorker, describe_error
 
 log = logging.getLogger("forestreg")
@@ -68,14 +68,21 @@ class FileActionsMixin:
         """A clear message naming the missing files; interactively, an offer to relink them."""
         missing = self.missing_scans()
         names = "\n".join(f"  {s.name}: {s.path}" for s in missing[:20]) + ("\n  ..." if len(missing) > 20 else "")
-        message = (f"{len(missing)} of the {len(self.project.scans)} scans of this project are not where it says "
-                   f"(moved or deleted):\n{names}\n\nPoint the project at the folder that holds them now with "
-                   "File > Relink missing scans…")
+        message = (
+            f"{len(missing)} of the {len(self.project.scans)} scans of this project are not where it says "
+            f"(moved or deleted):\n{names}\n\nPoint the project at the folder that holds them now with "
+            "File > Relink missing scans…"
+        )
         if not self.interactive:
             self.show_error("Scans not found", message)
             return
-        answer = QMessageBox.question(self, "Scans not found", message + "\n\nChoose that folder now?",
-                                      QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No, QMessageBox.StandardButton.Yes)
+        answer = QMessageBox.question(
+            self,
+            "Scans not found",
+            message + "\n\nChoose that folder now?",
+            QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No,
+            QMessageBox.StandardButton.Yes,
+        )
         self.last_error = ("Scans not found", message, "")
         if answer == QMessageBox.StandardButton.Yes:
             self._ask_relink()
@@ -97,7 +104,11 @@ class FileActionsMixin:
             return []
         found: list[str] = []
         for s in self.missing_scans():
-            candidates = [folder / s.path.name] + sorted(folder.glob(f"*/{s.path.name}")) + sorted(folder.glob(f"*/*/{s.path.name}"))
+            candidates = (
+                [folder / s.path.name]
+                + sorted(folder.glob(f"*/{s.path.name}"))
+                + sorted(folder.glob(f"*/*/{s.path.name}"))
+            )
             hit = next((c for c in candidates if c.is_file()), None)
             if hit is not None:
                 s.path = hit.resolve()
@@ -110,7 +121,10 @@ class FileActionsMixin:
             self.statusBar().showMessage(f"Relinked {len(found)} scans to {folder}", 5000)
         still = self.missing_scans()
         if still:
-            self.show_error("Scans not found", f"{len(still)} scans are not in {folder} either: " + ", ".join(s.path.name for s in still))
+            self.show_error(
+                "Scans not found",
+                f"{len(still)} scans are not in {folder} either: " + ", ".join(s.path.name for s in still),
+            )
         else:
             self.last_error = None
         return found
@@ -152,7 +166,9 @@ class FileActionsMixin:
         if self.running or not self.confirm_discard():
             return
         self._start_task(
-            TaskWorker(lambda progress, cancel: make_sample_project(progress=progress, cancel=cancel), name="sample plot"),
+            TaskWorker(
+                lambda progress, cancel: make_sample_project(progress=progress, cancel=cancel), name="sample plot"
+            ),
             succeeded=lambda path: self.open_project(path),
             failed=lambda m, d: self.show_error("Cannot make the sample plot", m, d),
             progress=self._show_progress,
@@ -163,7 +179,9 @@ class FileActionsMixin:
         if not self.dirty or not self.interactive or not self.project.scans:
             return True
         answer = QMessageBox.question(
-            self, "Unsaved changes", f"The project {self.project.name} has unsaved changes. Save them first?",
+            self,
+            "Unsaved changes",
+            f"The project {self.project.name} has unsaved changes. Save them first?",
             QMessageBox.StandardButton.Save | QMessageBox.StandardButton.Discard | QMessageBox.StandardButton.Cancel,
             QMessageBox.StandardButton.Save,
         )
@@ -192,7 +210,9 @@ class FileActionsMixin:
         self.save_project()
 
     def _ask_save_as(self) -> bool:
-        start = str(self.project.path) if self.project.path else str(Path(self._last_dir()) / f"{self.project.name}.json")
+        start = (
+            str(self.project.path) if self.project.path else str(Path(self._last_dir()) / f"{self.project.name}.json")
+        )
         path, _ = QFileDialog.getSaveFileName(self, "Save project", start, PROJECT_FILTER)
         if not path:
             return False
@@ -208,7 +228,9 @@ class FileActionsMixin:
             self.add_scans(paths)
 
     def _ask_load_params(self) -> None:
-        path, _ = QFileDialog.getOpenFileName(self, "Load parameters", self._last_dir(), "Parameter files (*.toml);;All files (*)")
+        path, _ = QFileDialog.getOpenFileName(
+            self, "Load parameters", self._last_dir(), "Parameter files (*.toml);;All files (*)"
+        )
         if path:
             try:
                 self.params_panel.load_toml(path)
@@ -242,7 +264,12 @@ class FileActionsMixin:
         self._ask_save("Registered scans", "registered.e57", "E57 (*.e57)", self.export_e57)
 
     def _ask_export_report(self) -> None:
-        self._ask_save("HTML report", "report.html", "HTML (*.html)", lambda path: self.export_report(path, open_after=self.interactive))
+        self._ask_save(
+            "HTML report",
+            "report.html",
+            "HTML (*.html)",
+            lambda path: self.export_report(path, open_after=self.interactive),
+        )
 
     # ---------------------------------------------------------------- exports
 
@@ -260,33 +287,48 @@ class FileActionsMixin:
         from ..app.plot import write_poses
 
         project, outcome = self.project, self.last_outcome
-        self._export("export transforms", lambda: write_poses(project, folder, outcome),
-                     lambda path: self._exported(f"Wrote {path} and the transforms"), "Cannot export the transforms")
+        self._export(
+            "export transforms",
+            lambda: write_poses(project, folder, outcome),
+            lambda path: self._exported(f"Wrote {path} and the transforms"),
+            "Cannot export the transforms",
+        )
 
     def export_merged(self, path: str | Path) -> None:
         """``write_merged`` to ``path`` (in the background)."""
         from ..app.plot import write_merged
 
         project, scans = self.project, self.scans
-        self._export("export merged", lambda: write_merged(project, path, scans),
-                     lambda count: self._exported(f"Wrote {count:,} points to {path}"), "Cannot export the merged cloud")
+        self._export(
+            "export merged",
+            lambda: write_merged(project, path, scans),
+            lambda count: self._exported(f"Wrote {count:,} points to {path}"),
+            "Cannot export the merged cloud",
+        )
 
     def export_scans(self, folder: str | Path) -> None:
         """``write_registered_scans`` into ``folder`` (in the background)."""
         from ..app.plot import write_registered_scans
 
         project, scans = self.project, self.scans
-        self._export("export scans", lambda: write_registered_scans(project, folder, scans),
-                     lambda count: self._exported(f"Wrote {count} registered scans to {folder}"),
-                     "Cannot export the registered scans")
+        self._export(
+            "export scans",
+            lambda: write_registered_scans(project, folder, scans),
+            lambda count: self._exported(f"Wrote {count} registered scans to {folder}"),
+            "Cannot export the registered scans",
+        )
 
     def export_e57(self, path: str | Path) -> None:
         """``write_registered_e57`` to ``path`` (in the background)."""
         from ..app.plot import write_registered_e57
 
         project, scans = self.project, self.scans
-        self._export("export e57", lambda: write_registered_e57(project, path, scans),
-                     lambda count: self._exported(f"Wrote {count} registered scans to {path}"), "Cannot export the E57 file")
+        self._export(
+            "export e57",
+            lambda: write_registered_e57(project, path, scans),
+            lambda count: self._exported(f"Wrote {count} registered scans to {path}"),
+            "Cannot export the E57 file",
+        )
 
     def export_report(self, path: str | Path, *, open_after: bool = False) -> None:
         """``write_plot_report`` to ``path`` (in the background); opens it in the browser if asked."""
@@ -299,7 +341,9 @@ class FileActionsMixin:
             if open_after:
                 QDesktopServices.openUrl(QUrl.fromLocalFile(str(Path(path).resolve())))
 
-        self._export("export report", lambda: write_plot_report(project, path, scans=scans), done, "Cannot write the report")
+        self._export(
+            "export report", lambda: write_plot_report(project, path, scans=scans), done, "Cannot write the report"
+        )
 
     def _exported(self, text: str) -> None:
         log.info("%s", text)

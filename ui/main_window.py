@@ -27,10 +27,10 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from ..engine.core.errors import ForestregError
 from ..app.plot import Project, ScanCache
-from .icons import icon
+from ..engine.core.errors import ForestregError
 from .file_actions import FileActionsMixin
+from .icons import icon
 from .log_pane import LogPane
 from .manual_mode import ManualModeMixin
 from .params_panel import ParameterPanel
@@ -48,6 +48,8 @@ log = logging.getLogger("forestreg")
 
 ORGANISATION = "forestreg"
 APPLICATION = "forestreg"
+
+
 class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActionsMixin, QMainWindow):
     """forestreg's main window over one project.
 
@@ -133,7 +135,9 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         self.tree.setDropIndicatorShown(True)
         self.tree.setDragDropMode(QAbstractItemView.DragDropMode.DragDrop)
         self.tree.setDefaultDropAction(Qt.DropAction.LinkAction)
-        self.tree.setToolTip("Right-click a scan to mark the centre or a tilted scan; drag a scan onto another to link it")
+        self.tree.setToolTip(
+            "Right-click a scan to mark the centre or a tilted scan; drag a scan onto another to link it"
+        )
         self.model.refreshed.connect(self._tree_refreshed)
         self.tree_dock = self._dock("Project", self.tree, Qt.DockWidgetArea.LeftDockWidgetArea)
 
@@ -164,12 +168,17 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         dock = QDockWidget(title, self)
         dock.setObjectName(f"dock-{title.lower()}")
         dock.setWidget(widget)
-        dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable | QDockWidget.DockWidgetFeature.DockWidgetFloatable
-                         | QDockWidget.DockWidgetFeature.DockWidgetClosable)
+        dock.setFeatures(
+            QDockWidget.DockWidgetFeature.DockWidgetMovable
+            | QDockWidget.DockWidgetFeature.DockWidgetFloatable
+            | QDockWidget.DockWidgetFeature.DockWidgetClosable
+        )
         self.addDockWidget(area, dock)
         return dock
 
-    def _action(self, text: str, slot: Callable[[], Any], shortcut: Any = None, tip: str = "", checkable: bool = False) -> QAction:
+    def _action(
+        self, text: str, slot: Callable[[], Any], shortcut: Any = None, tip: str = "", checkable: bool = False
+    ) -> QAction:
         action = QAction(text, self)
         if shortcut is not None:
             action.setShortcut(QKeySequence(shortcut))
@@ -184,52 +193,142 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         a = self._action
         self.act_new = a("&New project", self.new_project, QKeySequence.StandardKey.New, "Start an empty project")
         self.act_open = a("&Open project\u2026", self._ask_open, QKeySequence.StandardKey.Open, "Open a saved project")
-        self.act_sample = a("Open &sample plot", self.open_sample, None, "Open a simulated forest plot with three scans (made on first use)")
+        self.act_sample = a(
+            "Open &sample plot",
+            self.open_sample,
+            None,
+            "Open a simulated forest plot with three scans (made on first use)",
+        )
         self.act_save = a("&Save project", self._save, QKeySequence.StandardKey.Save, "Save the project")
-        self.act_save_as = a("Save project &as\u2026", self._ask_save_as, QKeySequence("Ctrl+Shift+S"), "Save the project to another file")
-        self.act_add = a("&Add scans\u2026", self._ask_add_scans, QKeySequence("Ctrl+I"), "Add scan files (LAS, LAZ, PLY, PCD, E57, XYZ)")
-        self.act_relink = a("Re&link missing scans\u2026", self._ask_relink, None,
-                            "Point the project's scans that were moved at the folder that holds them now")
-        self.act_plan = a("&Plan next scan", self.plan_next_scan, None,
-                          "Where the next scans should stand (forestreg plan), marked on the top view")
-        self.act_watch = a("&Watch folder\u2026", self._ask_watch_folder, None,
-                           "Register each scan as the scanner's export folder fills (forestreg plot --watch)")
-        self.act_export_poses = a("Export &transforms and poses\u2026", self._ask_export_poses, QKeySequence("Ctrl+E"),
-                                  "Write poses.json and one <scan>.transform.txt per registered scan")
-        self.act_export_merged = a("Export &merged LAZ\u2026", self._ask_export_merged, None, "Write all registered scans into one LAZ file")
-        self.act_export_scans = a("Export registered &scans (one LAZ each)\u2026", self._ask_export_scans, None,
-                                  "Write each registered scan in the centre scan's coordinates as its own LAZ file")
-        self.act_export_e57 = a("Export registered &E57…", self._ask_export_e57, None,
-                                "Write the registered scans into one E57 file, each with its pose")
-        self.act_export_report = a("Export HTML &report\u2026", self._ask_export_report, QKeySequence("Ctrl+Shift+E"),
-                                   "Write the plot report (one HTML file)")
-        self.act_open_trees = a("Open t&rees result\u2026", self._ask_open_trees, None,
-                                "Show the trees measured by 'forestreg trees --out DIR' (map, table, each tree in 3D)")
-        self.act_open_coreg = a("Open &co-registration result\u2026", self._ask_open_coregistration, None,
-                                "Show a ground-based / UAV co-registration made by 'forestreg coregister --out DIR'")
-        self.act_open_change = a("Open re-&survey result\u2026", self._ask_open_change, None,
-                                 "Show two surveys of one plot compared by 'forestreg change BEFORE AFTER --out DIR'")
-        self.act_evaluate = a("&Evaluate against field data\u2026", self._ask_evaluate, None,
-                              "Compare tree tables (e.g. ground-only and fused) with field records: R2, RMSE, rRMSE")
+        self.act_save_as = a(
+            "Save project &as\u2026",
+            self._ask_save_as,
+            QKeySequence("Ctrl+Shift+S"),
+            "Save the project to another file",
+        )
+        self.act_add = a(
+            "&Add scans\u2026",
+            self._ask_add_scans,
+            QKeySequence("Ctrl+I"),
+            "Add scan files (LAS, LAZ, PLY, PCD, E57, XYZ)",
+        )
+        self.act_relink = a(
+            "Re&link missing scans\u2026",
+            self._ask_relink,
+            None,
+            "Point the project's scans that were moved at the folder that holds them now",
+        )
+        self.act_plan = a(
+            "&Plan next scan",
+            self.plan_next_scan,
+            None,
+            "Where the next scans should stand (forestreg plan), marked on the top view",
+        )
+        self.act_watch = a(
+            "&Watch folder\u2026",
+            self._ask_watch_folder,
+            None,
+            "Register each scan as the scanner's export folder fills (forestreg plot --watch)",
+        )
+        self.act_export_poses = a(
+            "Export &transforms and poses\u2026",
+            self._ask_export_poses,
+            QKeySequence("Ctrl+E"),
+            "Write poses.json and one <scan>.transform.txt per registered scan",
+        )
+        self.act_export_merged = a(
+            "Export &merged LAZ\u2026", self._ask_export_merged, None, "Write all registered scans into one LAZ file"
+        )
+        self.act_export_scans = a(
+            "Export registered &scans (one LAZ each)\u2026",
+            self._ask_export_scans,
+            None,
+            "Write each registered scan in the centre scan's coordinates as its own LAZ file",
+        )
+        self.act_export_e57 = a(
+            "Export registered &E57…",
+            self._ask_export_e57,
+            None,
+            "Write the registered scans into one E57 file, each with its pose",
+        )
+        self.act_export_report = a(
+            "Export HTML &report\u2026",
+            self._ask_export_report,
+            QKeySequence("Ctrl+Shift+E"),
+            "Write the plot report (one HTML file)",
+        )
+        self.act_open_trees = a(
+            "Open t&rees result\u2026",
+            self._ask_open_trees,
+            None,
+            "Show the trees measured by 'forestreg trees --out DIR' (map, table, each tree in 3D)",
+        )
+        self.act_open_coreg = a(
+            "Open &co-registration result\u2026",
+            self._ask_open_coregistration,
+            None,
+            "Show a ground-based / UAV co-registration made by 'forestreg coregister --out DIR'",
+        )
+        self.act_open_change = a(
+            "Open re-&survey result\u2026",
+            self._ask_open_change,
+            None,
+            "Show two surveys of one plot compared by 'forestreg change BEFORE AFTER --out DIR'",
+        )
+        self.act_evaluate = a(
+            "&Evaluate against field data\u2026",
+            self._ask_evaluate,
+            None,
+            "Compare tree tables (e.g. ground-only and fused) with field records: R2, RMSE, rRMSE",
+        )
         self.act_quit = a("&Quit", self.close, QKeySequence.StandardKey.Quit, "Close forestreg")
-        self.act_run = a("&Run registration", lambda: self.run(), QKeySequence("Ctrl+R"), "Register every scan not registered yet")
-        self.act_rerun = a("Run &all links again", lambda: self.run(rerun=True), QKeySequence("Ctrl+Shift+R"),
-                           "Register every scan again, also those already registered")
-        self.act_cancel = a("&Cancel", self.cancel_run, QKeySequence(Qt.Key.Key_Escape), "Stop the running registration")
+        self.act_run = a(
+            "&Run registration", lambda: self.run(), QKeySequence("Ctrl+R"), "Register every scan not registered yet"
+        )
+        self.act_rerun = a(
+            "Run &all links again",
+            lambda: self.run(rerun=True),
+            QKeySequence("Ctrl+Shift+R"),
+            "Register every scan again, also those already registered",
+        )
+        self.act_cancel = a(
+            "&Cancel", self.cancel_run, QKeySequence(Qt.Key.Key_Escape), "Stop the running registration"
+        )
         self.act_cancel.setEnabled(False)
-        self.act_before = a("3D view &before registration", lambda: self.set_scene_mode("before"), QKeySequence("Ctrl+1"),
-                            "Each scan in its own coordinates", checkable=True)
-        self.act_after = a("3D view &after registration", lambda: self.set_scene_mode("after"), QKeySequence("Ctrl+2"),
-                           "The scans in the project frame", checkable=True)
+        self.act_before = a(
+            "3D view &before registration",
+            lambda: self.set_scene_mode("before"),
+            QKeySequence("Ctrl+1"),
+            "Each scan in its own coordinates",
+            checkable=True,
+        )
+        self.act_after = a(
+            "3D view &after registration",
+            lambda: self.set_scene_mode("after"),
+            QKeySequence("Ctrl+2"),
+            "The scans in the project frame",
+            checkable=True,
+        )
         group = QActionGroup(self)
         group.addAction(self.act_before)
         group.addAction(self.act_after)
         self.act_before.setChecked(True)
-        self.act_all_points = a("Draw &all points (slower)", self._toggle_all_points, None,
-                                "Draw every point of every scan instead of a 200 000-point sample", checkable=True)
-        self.act_reset_camera = a("Reset 3D &camera", self.scene_view.reset_camera, QKeySequence("Ctrl+0"), "Look at all points again")
-        self.act_top_camera = a("3D &top view", self.scene_view.top_view, QKeySequence("Ctrl+3"),
-                                "Look straight down, north up: trunks seen twice mean a poor registration")
+        self.act_all_points = a(
+            "Draw &all points (slower)",
+            self._toggle_all_points,
+            None,
+            "Draw every point of every scan instead of a 200 000-point sample",
+            checkable=True,
+        )
+        self.act_reset_camera = a(
+            "Reset 3D &camera", self.scene_view.reset_camera, QKeySequence("Ctrl+0"), "Look at all points again"
+        )
+        self.act_top_camera = a(
+            "3D &top view",
+            self.scene_view.top_view,
+            QKeySequence("Ctrl+3"),
+            "Look straight down, north up: trunks seen twice mean a poor registration",
+        )
         self.act_about = a("&About forestreg", self._about)
         for act in (self.act_new, self.act_open, self.act_save, self.act_add, self.act_run, self.act_cancel):
             act.setShortcutContext(Qt.ShortcutContext.WindowShortcut)
@@ -252,7 +351,13 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         m.addAction(self.act_relink)
         m.addAction(self.act_watch)
         m.addSeparator()
-        for act in (self.act_export_poses, self.act_export_merged, self.act_export_scans, self.act_export_e57, self.act_export_report):
+        for act in (
+            self.act_export_poses,
+            self.act_export_merged,
+            self.act_export_scans,
+            self.act_export_e57,
+            self.act_export_report,
+        ):
             m.addAction(act)
         m.addSeparator()
         m.addAction(self.act_quit)
@@ -269,9 +374,16 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         m.addAction(self.act_about)
 
         for act, name in (
-            (self.act_open, "open"), (self.act_save, "save"), (self.act_add, "add"), (self.act_sample, "sample"),
-            (self.act_run, "run"), (self.act_cancel, "cancel"), (self.act_before, "before"), (self.act_after, "after"),
-            (self.act_export_poses, "export"), (self.act_export_report, "report"),
+            (self.act_open, "open"),
+            (self.act_save, "save"),
+            (self.act_add, "add"),
+            (self.act_sample, "sample"),
+            (self.act_run, "run"),
+            (self.act_cancel, "cancel"),
+            (self.act_before, "before"),
+            (self.act_after, "after"),
+            (self.act_export_poses, "export"),
+            (self.act_export_report, "report"),
         ):
             act.setIcon(icon(name))
         self.setWindowIcon(icon("forestreg"))
@@ -330,7 +442,9 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         from pathlib import Path
 
         old = self.project
-        same = project is old or (project.path is not None and old.path is not None and Path(project.path) == Path(old.path))
+        same = project is old or (
+            project.path is not None and old.path is not None and Path(project.path) == Path(old.path)
+        )
         if not same:
             self.top_view.clear_marks()
         self.model.set_project(project)
@@ -398,16 +512,33 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
     def _update_actions(self) -> None:
         running = self.running
         has_scans = bool(self.project.scans)
-        registered = any(p is not None for n, p in self.project.poses().items() if n != self.project.centre) if has_scans else False
-        for act in (self.act_new, self.act_open, self.act_sample, self.act_add, self.act_save_as, self.act_watch,
-                    self.recent_menu.menuAction()):
+        registered = (
+            any(p is not None for n, p in self.project.poses().items() if n != self.project.centre)
+            if has_scans
+            else False
+        )
+        for act in (
+            self.act_new,
+            self.act_open,
+            self.act_sample,
+            self.act_add,
+            self.act_save_as,
+            self.act_watch,
+            self.recent_menu.menuAction(),
+        ):
             act.setEnabled(not running)
         self.act_save.setEnabled(not running)
         self.act_run.setEnabled(not running and len(self.project.scans) >= 2)
         self.act_rerun.setEnabled(not running and len(self.project.scans) >= 2)
         self.act_cancel.setEnabled(running)
         self.act_plan.setEnabled(not running and registered)
-        for act in (self.act_export_poses, self.act_export_merged, self.act_export_scans, self.act_export_e57, self.act_export_report):
+        for act in (
+            self.act_export_poses,
+            self.act_export_merged,
+            self.act_export_scans,
+            self.act_export_e57,
+            self.act_export_report,
+        ):
             act.setEnabled(not running and registered)
         self.params_panel.setEnabled(not running)
         self._manual_refresh()
@@ -444,8 +575,15 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         self.last_error = None
         self._set_busy(True, "Registering\u2026")
         log.info("registration started (%d scans)", len(self.project.scans))
-        self.tasks.start(worker, succeeded=self._run_finished, failed=self._run_failed, cancelled=self._run_cancelled,
-                         progress=self._show_progress, link_done=self._link_done, ended=self._run_ended)
+        self.tasks.start(
+            worker,
+            succeeded=self._run_finished,
+            failed=self._run_failed,
+            cancelled=self._run_cancelled,
+            progress=self._show_progress,
+            link_done=self._link_done,
+            ended=self._run_ended,
+        )
         return True
 
     def cancel_run(self) -> None:
@@ -545,8 +683,11 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         """Recompute the top view (slices, VOPs, matches) in the background: once a link is made,
         or while the map has marks (a plan, the watcher's advice) to show over the placed scans."""
         if not any(link.ok for link in self.project.links) and not self.top_view.has_marks:
-            self.top_view.show_message("Run the registration to see the slices, trunk shadows (VOPs) and matches."
-                                       if self.project.scans else "Add scans or open a project.")
+            self.top_view.show_message(
+                "Run the registration to see the slices, trunk shadows (VOPs) and matches."
+                if self.project.scans
+                else "Add scans or open a project."
+            )
             self.topViewReady.emit()
             return
         self._start_view_task("top view", self._top_task, self._top_built)
@@ -561,8 +702,12 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
         from ..engine.report.views import scan_colours
         from .top_view import SurveyOverlay
 
-        self.top_view.show_view(view, scan_colours(self.project), title=f"{self.project.name}: trunk shadows, matches and pose uncertainty",
-                                overlay=SurveyOverlay.of(self.project))
+        self.top_view.show_view(
+            view,
+            scan_colours(self.project),
+            title=f"{self.project.name}: trunk shadows, matches and pose uncertainty",
+            overlay=SurveyOverlay.of(self.project),
+        )
         self.topViewReady.emit()
 
     def _start_view_task(self, name: str, make: Callable[[], TaskWorker], done: Callable[[Any], None]) -> None:
@@ -581,8 +726,12 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
                 self._pending.discard(name)
                 self._start_view_task(name, make, done)
 
-        self._start_task(make(), succeeded=succeeded, ended=ended,
-                         failed=lambda m, d: log.warning("the %s could not be drawn: %s", name, m))
+        self._start_task(
+            make(),
+            succeeded=succeeded,
+            ended=ended,
+            failed=lambda m, d: log.warning("the %s could not be drawn: %s", name, m),
+        )
 
     def _start_task(self, worker: TaskWorker, **callbacks: Any) -> None:
         self.tasks.start(worker, **callbacks)
@@ -615,7 +764,9 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
             if entry.tilted:
                 menu.addAction("Mark as level (not tilted)", lambda: self._edit(self.model.set_tilted, name, False))
             else:
-                menu.addAction("Mark as tilted (partner found by the run)", lambda: self._edit(self.model.set_tilted, name, True))
+                menu.addAction(
+                    "Mark as tilted (partner found by the run)", lambda: self._edit(self.model.set_tilted, name, True)
+                )
             others = [s.name for s in p.scans if s.name != name]
             beside = menu.addMenu("Tilted, beside")
             for other in others:
@@ -628,7 +779,9 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
             menu.addAction("Forget its result", lambda: self._edit(self.model.clear_results, [name]))
             menu.addAction("Remove from project", lambda: self._edit(self.model.remove_scan, name))
         elif link is not None:
-            menu.addAction("Forget the result (run it again with Run)", lambda: self._edit(self.model.clear_results, [link.moving]))
+            menu.addAction(
+                "Forget the result (run it again with Run)", lambda: self._edit(self.model.clear_results, [link.moving])
+            )
             self._link_method_actions(menu, link)
         else:
             menu.addAction(self.act_add)
@@ -659,7 +812,8 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
 
     def _about(self) -> None:
         QMessageBox.about(
-            self, "About forestreg",
+            self,
+            "About forestreg",
             "forestreg registers terrestrial laser scans of forest plots without targets, from the "
             "shadows that tree trunks cast in the scans (Guan et al. 2020).\n\n"
             "Add the scans of a plot, mark the centre scan, press Run (Ctrl+R), then export the "
@@ -672,8 +826,10 @@ class MainWindow(PlanMixin, WatchMixin, SystemBMixin, ManualModeMixin, FileActio
             # first show without a saved layout: the results tables get a fifth of the height, not half
             self._docks_sized = True
             # after the first layout pass (sizing during showEvent is overridden by it)
-            QTimer.singleShot(0, lambda: self.resizeDocks([self.results_dock], [max(150, self.height() // 5)],
-                                                          Qt.Orientation.Vertical))
+            QTimer.singleShot(
+                0,
+                lambda: self.resizeDocks([self.results_dock], [max(150, self.height() // 5)], Qt.Orientation.Vertical),
+            )
 
     def closeEvent(self, event: QCloseEvent) -> None:  # noqa: N802 - Qt API
         if self.running and self.interactive:

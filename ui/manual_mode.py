@@ -20,10 +20,10 @@ from PySide6.QtCore import QPoint, Qt, QTimer
 from PySide6.QtWidgets import QFileDialog, QMenu
 
 from ..engine.core.errors import ForestregError
+from ..engine.core.transform import apply as apply_transform
 from .manual_panel import ComparisonView, TargetsPanel, next_target_id
 from .tie_points import TIE_POINTS_PER_SCAN, TiePointsView
 from .worker import TaskWorker, describe_error
-from ..engine.core.transform import apply as apply_transform
 
 log = logging.getLogger("forestreg")
 
@@ -77,25 +77,67 @@ class ManualModeMixin:
         self.link_table.customContextMenuRequested.connect(self._link_table_menu)
 
         a = self._action
-        self.act_import_targets = a("&Import targets CSV\u2026", self._ask_import_targets, None,
-                                    "Read target centres of the scans from a CSV (scan,target,x,y,z in each scan's file coordinates)")
-        self.act_export_targets = a("&Export targets CSV\u2026", self._ask_export_targets, None, "Write the targets of every scan to a CSV")
-        self.act_detect = a("&Detect reflectors", lambda: self.detect_reflectors(), None,
-                            "Find high-reflectance targets in the selected scan from its intensity")
-        self.act_pick = a("&Pick target in 3D view", lambda: None, QKeySequenceText("Ctrl+T"),
-                          "Click a point of the selected scan in the 3D view to place the target named in the Targets tab", checkable=True)
+        self.act_import_targets = a(
+            "&Import targets CSV\u2026",
+            self._ask_import_targets,
+            None,
+            "Read target centres of the scans from a CSV (scan,target,x,y,z in each scan's file coordinates)",
+        )
+        self.act_export_targets = a(
+            "&Export targets CSV\u2026", self._ask_export_targets, None, "Write the targets of every scan to a CSV"
+        )
+        self.act_detect = a(
+            "&Detect reflectors",
+            lambda: self.detect_reflectors(),
+            None,
+            "Find high-reflectance targets in the selected scan from its intensity",
+        )
+        self.act_pick = a(
+            "&Pick target in 3D view",
+            lambda: None,
+            QKeySequenceText("Ctrl+T"),
+            "Click a point of the selected scan in the 3D view to place the target named in the Targets tab",
+            checkable=True,
+        )
         self.act_pick.toggled.connect(self.set_pick_mode)
-        self.act_all_manual = a("Register all links from &targets (manual)", lambda: self.set_all_link_methods("manual"), None,
-                                "Set every link to the manual method")
-        self.act_all_auto = a("Register all links from trunk &shadows (auto)", lambda: self.set_all_link_methods("auto"), None,
-                              "Set every link to the automatic (marker-free) method")
-        self.act_run_manual = a("Run &manual registration", lambda: self.run_manual(), QKeySequenceText("Ctrl+M"),
-                                "Register the links set to manual from the scans' targets")
-        self.act_compare = a("&Compare auto vs manual", lambda: self.compare_auto_manual(), None,
-                             "Register the plot both ways and show the paper's tables 4 and 5")
+        self.act_all_manual = a(
+            "Register all links from &targets (manual)",
+            lambda: self.set_all_link_methods("manual"),
+            None,
+            "Set every link to the manual method",
+        )
+        self.act_all_auto = a(
+            "Register all links from trunk &shadows (auto)",
+            lambda: self.set_all_link_methods("auto"),
+            None,
+            "Set every link to the automatic (marker-free) method",
+        )
+        self.act_run_manual = a(
+            "Run &manual registration",
+            lambda: self.run_manual(),
+            QKeySequenceText("Ctrl+M"),
+            "Register the links set to manual from the scans' targets",
+        )
+        self.act_compare = a(
+            "&Compare auto vs manual",
+            lambda: self.compare_auto_manual(),
+            None,
+            "Register the plot both ways and show the paper's tables 4 and 5",
+        )
         m = self.menuBar().addMenu("&Manual")
-        for act in (self.act_import_targets, self.act_export_targets, None, self.act_detect, self.act_pick, None,
-                    self.act_all_manual, self.act_all_auto, self.act_run_manual, None, self.act_compare):
+        for act in (
+            self.act_import_targets,
+            self.act_export_targets,
+            None,
+            self.act_detect,
+            self.act_pick,
+            None,
+            self.act_all_manual,
+            self.act_all_auto,
+            self.act_run_manual,
+            None,
+            self.act_compare,
+        ):
             if act is None:
                 m.addSeparator()
             else:
@@ -118,10 +160,22 @@ class ManualModeMixin:
             self.targets_panel.select_scan(names[0])
         self._show_targets(self.targets_panel.scan)
         running = self.running
-        for act in (self.act_import_targets, self.act_detect, self.act_all_manual, self.act_all_auto, self.act_run_manual, self.act_compare):
+        for act in (
+            self.act_import_targets,
+            self.act_detect,
+            self.act_all_manual,
+            self.act_all_auto,
+            self.act_run_manual,
+            self.act_compare,
+        ):
             act.setEnabled(not running and bool(names))
-        for w in (self.targets_panel.detect_button, self.targets_panel.import_button, self.targets_panel.run_manual_button,
-                  self.targets_panel.compare_button, self.targets_panel.manual_all_button):
+        for w in (
+            self.targets_panel.detect_button,
+            self.targets_panel.import_button,
+            self.targets_panel.run_manual_button,
+            self.targets_panel.compare_button,
+            self.targets_panel.manual_all_button,
+        ):
             w.setEnabled(not running and bool(names))
 
     def _show_targets(self, name: str) -> None:
@@ -134,8 +188,10 @@ class ManualModeMixin:
             return
         links = [lk for lk in self.project.links if lk.moving == name and not lk.extra]
         method = links[0].method if links else ("centre" if name == self.project.centre else "auto")
-        info = (f"{len(entry.targets)} target(s) of {name}, in its own file coordinates (m). "
-                f"Its link: {method}. A manual link needs at least 3 targets shared (by id) with its reference scan.")
+        info = (
+            f"{len(entry.targets)} target(s) of {name}, in its own file coordinates (m). "
+            f"Its link: {method}. A manual link needs at least 3 targets shared (by id) with its reference scan."
+        )
         self.targets_panel.show_targets(entry.targets, info)
 
     def targets_of(self, scan_name: str) -> dict[str, np.ndarray]:
@@ -143,7 +199,9 @@ class ManualModeMixin:
 
     def set_targets(self, scan_name: str, targets: Mapping[str, Any]) -> None:
         """Replace a scan's targets (file coordinates)."""
-        self.project.scan(scan_name).targets = {str(k): np.asarray(v, dtype=float).reshape(3) for k, v in targets.items()}
+        self.project.scan(scan_name).targets = {
+            str(k): np.asarray(v, dtype=float).reshape(3) for k, v in targets.items()
+        }
         self._targets_changed(scan_name)
 
     def _targets_changed(self, scan_name: str) -> None:
@@ -225,7 +283,9 @@ class ManualModeMixin:
         self.tie_view.set_pick_mode(on)
         if on:
             self.bottom_tabs.setCurrentWidget(self.targets_tab)
-            self.status_label.setText("Pick target: click a point of a scan in the 3D view; it gets the id typed in the Targets tab")
+            self.status_label.setText(
+                "Pick target: click a point of a scan in the 3D view; it gets the id typed in the Targets tab"
+            )
 
     def _point_picked(self, display_xyz: Any) -> None:
         """A point clicked in the 3D view (display coordinates of the before-view)."""
@@ -269,7 +329,9 @@ class ManualModeMixin:
             except (ForestregError, OSError, ValueError) as exc:
                 log.warning("%s cannot be drawn: %s", name, exc)
                 continue
-            self.tie_view.show_side(side, name, pts, scanner, colours.get(name, "#777777"), total, self.project.scan(name).targets)
+            self.tie_view.show_side(
+                side, name, pts, scanner, colours.get(name, "#777777"), total, self.project.scan(name).targets
+            )
         self.tie_view.highlight(self.targets_panel.id_edit.text().strip() or None)
         return True
 
@@ -329,7 +391,9 @@ class ManualModeMixin:
             self.import_targets_csv(path)
 
     def _ask_export_targets(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Export targets", str(Path(self._last_dir()) / "targets.csv"), TARGETS_FILTER)
+        path, _ = QFileDialog.getSaveFileName(
+            self, "Export targets", str(Path(self._last_dir()) / "targets.csv"), TARGETS_FILTER
+        )
         if path:
             self._remember_dir(path)
             self.export_targets_csv(path)
@@ -359,8 +423,10 @@ class ManualModeMixin:
             entry.targets.update({k: np.asarray(v, dtype=float) for k, v in targets.items()})
             count += len(targets)
         if unknown:
-            self.show_error("Some targets were not imported",
-                            f"The project has no scan named {', '.join(unknown)}; their targets were skipped.")
+            self.show_error(
+                "Some targets were not imported",
+                f"The project has no scan named {', '.join(unknown)}; their targets were skipped.",
+            )
         self.dirty = True
         self._update_title()
         self._manual_refresh()
@@ -407,7 +473,9 @@ class ManualModeMixin:
             if known:
                 entry.targets.update(named)
                 n = len(named)
-                text = f"{len(found)} reflector(s) found in {name}; {n} of its {len(known)} targets moved to a detection"
+                text = (
+                    f"{len(found)} reflector(s) found in {name}; {n} of its {len(known)} targets moved to a detection"
+                )
             else:
                 added = {}
                 k = 1
@@ -423,8 +491,11 @@ class ManualModeMixin:
             log.info("%s", text)
             self.reflectorsDetected.emit(name, n)
 
-        self._start_task(TaskWorker(work, name="detect reflectors"), succeeded=done,
-                         failed=lambda m, d: self.show_error("Cannot detect reflectors", m, d))
+        self._start_task(
+            TaskWorker(work, name="detect reflectors"),
+            succeeded=done,
+            failed=lambda m, d: self.show_error("Cannot detect reflectors", m, d),
+        )
         return True
 
     # ================================================================== link methods
@@ -442,7 +513,13 @@ class ManualModeMixin:
         default_links(p)
         link = p.link_of(moving)
         if link.method != method:
-            p.set_link(moving, link.reference, method=method, vop_radius_m=link.vop_radius_m, slice_offsets_m=link.slice_offsets_m)
+            p.set_link(
+                moving,
+                link.reference,
+                method=method,
+                vop_radius_m=link.vop_radius_m,
+                slice_offsets_m=link.slice_offsets_m,
+            )
         self.model._changed()
 
     def set_all_link_methods(self, method: str) -> None:
@@ -454,7 +531,13 @@ class ManualModeMixin:
         default_links(p)
         for link in list(p.links):
             if not link.extra and link.method != method:
-                p.set_link(link.moving, link.reference, method=method, vop_radius_m=link.vop_radius_m, slice_offsets_m=link.slice_offsets_m)
+                p.set_link(
+                    link.moving,
+                    link.reference,
+                    method=method,
+                    vop_radius_m=link.vop_radius_m,
+                    slice_offsets_m=link.slice_offsets_m,
+                )
         self.model._changed()
         self.bottom_tabs.setCurrentWidget(self.link_table)
 
@@ -482,8 +565,11 @@ class ManualModeMixin:
             return False
         manual = [link for link in self.project.links if link.method == "manual"]
         if not manual:
-            self.show_error("No manual link", "Set a link to manual first (right-click it in the Links table or the "
-                            "project tree, or Manual > Register all links from targets).")
+            self.show_error(
+                "No manual link",
+                "Set a link to manual first (right-click it in the Links table or the "
+                "project tree, or Manual > Register all links from targets).",
+            )
             return False
         short = []
         for link in manual:
@@ -530,8 +616,14 @@ class ManualModeMixin:
         # the automatic side must run the marker-free method on every link
         for k, link in enumerate(work.links):
             if link.method != "auto":
-                work.links[k] = Link(moving=link.moving, reference=link.reference, method="auto",
-                                     vop_radius_m=link.vop_radius_m, slice_offsets_m=link.slice_offsets_m, extra=link.extra)
+                work.links[k] = Link(
+                    moving=link.moving,
+                    reference=link.reference,
+                    method="auto",
+                    vop_radius_m=link.vop_radius_m,
+                    slice_offsets_m=link.slice_offsets_m,
+                    extra=link.extra,
+                )
         scans = self.scans
         self.status_label.setText("Comparing auto and manual registration\u2026")
         self.act_compare.setEnabled(False)
@@ -554,9 +646,16 @@ class ManualModeMixin:
             self.progress_bar.hide()
             self._manual_refresh()
 
-        self._start_task(TaskWorker(lambda progress, cancel: compare_auto_manual(work, scans=scans, progress=progress, cancel=cancel),
-                                    name="compare"),
-                         succeeded=done, failed=failed, progress=self._show_progress, ended=ended)
+        self._start_task(
+            TaskWorker(
+                lambda progress, cancel: compare_auto_manual(work, scans=scans, progress=progress, cancel=cancel),
+                name="compare",
+            ),
+            succeeded=done,
+            failed=failed,
+            progress=self._show_progress,
+            ended=ended,
+        )
         return True
 
 

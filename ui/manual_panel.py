@@ -35,9 +35,19 @@ from .results_tables import _fmt, _item, _num, _Table
 
 TARGET_COLUMNS = ("Target", "x (m)", "y (m)", "z (m)")
 
-COMPARE_COLUMNS = ("Pair (moving \u2192 reference)", "VOPs ref", "VOPs mov", "Matched VOPs", "ICP std auto (cm)",
-                   "ICP std manual (cm)", "Targets", "Rot. diff (\u00b0)", "Transl. diff (cm)",
-                   "Auto", "Manual")
+COMPARE_COLUMNS = (
+    "Pair (moving \u2192 reference)",
+    "VOPs ref",
+    "VOPs mov",
+    "Matched VOPs",
+    "ICP std auto (cm)",
+    "ICP std manual (cm)",
+    "Targets",
+    "Rot. diff (\u00b0)",
+    "Transl. diff (cm)",
+    "Auto",
+    "Manual",
+)
 COMPARE_TIPS = {
     "Matched VOPs": "Trunk shadows (VOPs) matched by the marker-free (proposed) method",
     "ICP std auto (cm)": "ICP standard deviation after the marker-free registration (paper table 4)",
@@ -90,14 +100,19 @@ class TargetsPanel(QWidget):
         b = self._button
         self.add_button = b("Add", "Add a target row (then type its coordinates, or pick it in the 3D view)")
         self.delete_button = b("Delete", "Delete the selected targets of this scan")
-        self.pick_button = b("Pick target", "Click a point of this scan in the 3D view (before registration) to place the target named in the id box")
+        self.pick_button = b(
+            "Pick target",
+            "Click a point of this scan in the 3D view (before registration) to place the target named in the id box",
+        )
         self.pick_button.setCheckable(True)
         self.detect_button = b("Detect reflectors", "Find bright (high-reflectance) targets in this scan's intensity")
         self.import_button = b("Import CSV\u2026", "Read targets of all scans from a CSV (scan,target,x,y,z)")
         self.export_button = b("Export CSV\u2026", "Write the targets of all scans to a CSV (scan,target,x,y,z)")
         self.manual_all_button = b("All links manual", "Register every scan from its targets (manual method)")
         self.run_manual_button = b("Run manual registration", "Register the links set to manual from the targets")
-        self.compare_button = b("Compare auto vs manual", "Register the plot both ways and show the paper's tables 4 and 5")
+        self.compare_button = b(
+            "Compare auto vs manual", "Register the plot both ways and show the paper's tables 4 and 5"
+        )
         self.info = QLabel("")
         self.info.setStyleSheet("color: #555;")
         self.info.setWordWrap(True)
@@ -112,7 +127,13 @@ class TargetsPanel(QWidget):
         top.addWidget(self.pick_button)
         top.addWidget(self.detect_button)
         second = QHBoxLayout()
-        for w in (self.import_button, self.export_button, self.manual_all_button, self.run_manual_button, self.compare_button):
+        for w in (
+            self.import_button,
+            self.export_button,
+            self.manual_all_button,
+            self.run_manual_button,
+            self.compare_button,
+        ):
             second.addWidget(w)
         second.addStretch(1)
         lay = QVBoxLayout(self)
@@ -258,8 +279,10 @@ class ComparisonView(QWidget):
     def __init__(self, parent: Optional[QWidget] = None) -> None:
         super().__init__(parent)
         self.comparison: Optional[dict[str, Any]] = None
-        self.summary = QLabel("Press \u201cCompare auto vs manual\u201d (Manual menu) to register the plot both ways: "
-                              "from trunk shadows and from the scans' targets.")
+        self.summary = QLabel(
+            "Press \u201cCompare auto vs manual\u201d (Manual menu) to register the plot both ways: "
+            "from trunk shadows and from the scans' targets."
+        )
         self.summary.setWordWrap(True)
         self.pairs_table = _Table(COMPARE_COLUMNS)
         for k, name in enumerate(COMPARE_COLUMNS):
@@ -277,8 +300,12 @@ class ComparisonView(QWidget):
         lay.addWidget(self.summary)
         lay.addWidget(QLabel("<b>Per pair</b> (paper table 4)"))
         lay.addWidget(self.pairs_table)
-        lay.addWidget(QLabel("<b>Per plot</b> (paper table 5): average distance between the centres of one target seen "
-                             "from different scans, then per target"))
+        lay.addWidget(
+            QLabel(
+                "<b>Per plot</b> (paper table 5): average distance between the centres of one target seen "
+                "from different scans, then per target"
+            )
+        )
         lay.addWidget(self.residual_table, 1)
         split = QSplitter(Qt.Orientation.Horizontal)
         split.addWidget(left)
@@ -339,8 +366,12 @@ class ComparisonView(QWidget):
         ids = sorted(set(t_auto) | set(t_manual), key=lambda i: (len(str(i)), str(i)))
         rt.setRowCount(0)
         rt.setRowCount(1 + len(ids))
-        plot_row = [_item("average target residual"), _item(auto_r, _fmt(auto_r, 2, 100.0)),
-                    _item(manual_r, _fmt(manual_r, 2, 100.0)), _item(seen)]
+        plot_row = [
+            _item("average target residual"),
+            _item(auto_r, _fmt(auto_r, 2, 100.0)),
+            _item(manual_r, _fmt(manual_r, 2, 100.0)),
+            _item(seen),
+        ]
         for cell in plot_row:
             font = cell.font()
             font.setBold(True)
@@ -349,13 +380,17 @@ class ComparisonView(QWidget):
             rt.setItem(0, c, cell)
         for r, tid in enumerate(ids, start=1):
             va, vm = t_auto.get(tid), t_manual.get(tid)
-            for c, cell in enumerate([_item(f"target {tid}"), _item(va, _fmt(va, 2, 100.0)), _item(vm, _fmt(vm, 2, 100.0)), _item("", "")]):
+            for c, cell in enumerate(
+                [_item(f"target {tid}"), _item(va, _fmt(va, 2, 100.0)), _item(vm, _fmt(vm, 2, 100.0)), _item("", "")]
+            ):
                 rt.setItem(r, c, cell)
         ok = sum(1 for p in pairs if p.auto.ok and p.manual.ok)
         text = f"{len(pairs)} pairs registered both ways, {ok} succeeded with both methods."
         if _num(auto_r) and _num(manual_r):
-            text += (f" Average target residual: marker-free {100 * auto_r:.2f} cm, manual {100 * manual_r:.2f} cm "
-                     f"(difference {100 * (auto_r - manual_r):+.2f} cm).")
+            text += (
+                f" Average target residual: marker-free {100 * auto_r:.2f} cm, manual {100 * manual_r:.2f} cm "
+                f"(difference {100 * (auto_r - manual_r):+.2f} cm)."
+            )
         self.summary.setText(text)
         rt.resizeColumnsToContents()
         w = max(self.splitter.width(), 600)

@@ -93,8 +93,14 @@ def label_for(name: str, paper: str = "") -> str:
     if words and words[-1] in ("m", "deg"):
         words = words[:-1]
     text = " ".join(words).capitalize()
-    for jargon, plain in (("Icp", "Fine registration"), ("icp", "fine registration"), ("Vops", "Trunk shadows"),
-                          ("vops", "trunk shadows"), ("Vop", "Trunk-shadow"), ("vop", "trunk-shadow")):
+    for jargon, plain in (
+        ("Icp", "Fine registration"),
+        ("icp", "fine registration"),
+        ("Vops", "Trunk shadows"),
+        ("vops", "trunk shadows"),
+        ("Vop", "Trunk-shadow"),
+        ("vop", "trunk-shadow"),
+    ):
         text = text.replace(jargon, plain)
     return text
 
@@ -105,7 +111,7 @@ def format_tuple(values: Any) -> str:
 
 
 def parse_tuple(text: str) -> tuple[float, ...]:
-    """"0.5, 0.2" -> ``(0.5, 0.2)`` (semicolons and spaces also separate); raises ParameterError."""
+    """ "0.5, 0.2" -> ``(0.5, 0.2)`` (semicolons and spaces also separate); raises ParameterError."""
     parts = [t for t in text.replace(";", ",").replace(" ", ",").split(",") if t.strip()]
     try:
         return tuple(float(t) for t in parts)
@@ -114,8 +120,11 @@ def parse_tuple(text: str) -> tuple[float, ...]:
 
 
 def _decimals(lo: Optional[float], default: Any) -> int:
-    smallest = min(abs(v) for v in (lo, default) if isinstance(v, (int, float)) and v) if any(
-        isinstance(v, (int, float)) and v for v in (lo, default)) else 1.0
+    smallest = (
+        min(abs(v) for v in (lo, default) if isinstance(v, (int, float)) and v)
+        if any(isinstance(v, (int, float)) and v for v in (lo, default))
+        else 1.0
+    )
     return int(min(6, max(2, math.ceil(-math.log10(smallest)) + 1)))
 
 
@@ -129,7 +138,9 @@ class _Field:
         lo, hi = row["range"] or (None, None)
         tip = [f"{label_for(self.name)}: {row['help']}"]
         if lo is not None or hi is not None:
-            tip.append(f"Range: {lo if lo is not None else '-inf'} to {hi if hi is not None else 'inf'} {self.unit}".rstrip())
+            tip.append(
+                f"Range: {lo if lo is not None else '-inf'} to {hi if hi is not None else 'inf'} {self.unit}".rstrip()
+            )
         if row["paper"]:
             tip.append(f"Paper's symbol: {row['paper']}")
         tip.append(f"Default: {self._text(self.default)}   (name: {self.name})")
@@ -162,8 +173,9 @@ class _Field:
             self.editor = box
             if self.kind == "optional":
                 self.auto = QCheckBox("auto")
-                self.auto.setToolTip("Let the engine choose per scan (it tries increasing values); "
-                                     "untick to set a value")
+                self.auto.setToolTip(
+                    "Let the engine choose per scan (it tries increasing values); untick to set a value"
+                )
                 # while "auto" is on no number is shown: a greyed value would read as the one in use
                 self.auto_note = QLabel("per scan")
                 self.auto_note.setStyleSheet("color: #667085;")
@@ -340,7 +352,12 @@ class ParameterPanel(QWidget):
             text = str(exc)
             for name, f in self._fields.items():
                 group, _, last = name.rpartition(".")
-                if text.startswith(name) or text.startswith(label_for(name)) or f"({name}" in text or (group and f"[{group}] {last}" in text):
+                if (
+                    text.startswith(name)
+                    or text.startswith(label_for(name))
+                    or f"({name}" in text
+                    or (group and f"[{group}] {last}" in text)
+                ):
                     f.mark(True)
             self.message.setText(text)
             self.message.show()

@@ -24,12 +24,18 @@ NAME_ROLE = Qt.ItemDataRole.UserRole + 2  # scan name (scan, pair) or link index
 #: MIME type of a dragged scan (its name, UTF-8).
 SCAN_MIME = "application/x-forestreg-scan"
 
-STATUS_COLOURS = {"ok": "#1a7f37", "registered": "#1a7f37", "centre": "#0b5cad", "failed": "#b42318", "not run": "#6e6e6e",
-                  "file missing": "#b42318"}
+STATUS_COLOURS = {
+    "ok": "#1a7f37",
+    "registered": "#1a7f37",
+    "centre": "#0b5cad",
+    "failed": "#b42318",
+    "not run": "#6e6e6e",
+    "file missing": "#b42318",
+}
 
 
 def link_status(link: Link) -> str:
-    """"ok", "failed" or "not run"."""
+    """ "ok", "failed" or "not run"."""
     if link.result is None:
         return "not run"
     return "ok" if link.ok else link.result.status
@@ -269,7 +275,9 @@ class ProjectModel(QStandardItemModel):
             data.setData(SCAN_MIME, QByteArray(names[0].encode("utf-8")))
         return data
 
-    def canDropMimeData(self, data: QMimeData, action: Qt.DropAction, row: int, column: int, parent: QModelIndex) -> bool:  # noqa: N802
+    def canDropMimeData(
+        self, data: QMimeData, action: Qt.DropAction, row: int, column: int, parent: QModelIndex
+    ) -> bool:  # noqa: N802
         target = self.scan_name(parent)
         if not self.editable or not data.hasFormat(SCAN_MIME) or target is None:
             return False

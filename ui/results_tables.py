@@ -15,18 +15,53 @@ from PySide6.QtCore import Qt
 from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import QAbstractItemView, QHeaderView, QTableWidget, QTableWidgetItem, QWidget
 
-from ..app.plot import Link, PoseSigma, Project, ScanQuality, dropped_links as survey_dropped, link_summary, pose_sigmas, scan_quality
+from ..app.plot import Link, PoseSigma, Project, ScanQuality, link_summary, pose_sigmas, scan_quality
+from ..app.plot import dropped_links as survey_dropped
 from ..engine.report.views import scan_states
 from .panes import CellsByName
 from .project_model import STATUS_COLOURS, link_status
 
-LINK_COLUMNS = ("Moving", "Reference", "Method", "Status", "Search radius (m)", "Trunk shadows ref / mov", "Matched",
-                "Fine fit std (cm)", "Overlap", "Shadow residual (cm)", "Pose uncertainty (cm / deg)", "Weak motion / alternative",
-                "Terrain agreement (cm)", "Ambiguity", "Dropped", "Reason")
-SCAN_COLUMNS = ("Scan", "State", "Placed on", "x (m)", "y (m)", "z (m)", "Heading (\u00b0)", "Pose uncertainty (cm / deg)",
-                "Terrain agreement (cm)", "Ambiguity", "Loop residual (cm)", "Dropped", "Reason")
+LINK_COLUMNS = (
+    "Moving",
+    "Reference",
+    "Method",
+    "Status",
+    "Search radius (m)",
+    "Trunk shadows ref / mov",
+    "Matched",
+    "Fine fit std (cm)",
+    "Overlap",
+    "Shadow residual (cm)",
+    "Pose uncertainty (cm / deg)",
+    "Weak motion / alternative",
+    "Terrain agreement (cm)",
+    "Ambiguity",
+    "Dropped",
+    "Reason",
+)
+SCAN_COLUMNS = (
+    "Scan",
+    "State",
+    "Placed on",
+    "x (m)",
+    "y (m)",
+    "z (m)",
+    "Heading (\u00b0)",
+    "Pose uncertainty (cm / deg)",
+    "Terrain agreement (cm)",
+    "Ambiguity",
+    "Loop residual (cm)",
+    "Dropped",
+    "Reason",
+)
 #: Survey quality columns: hidden while no row has a value (a project registered before them).
-QUALITY_COLUMNS = ("Pose uncertainty (cm / deg)", "Terrain agreement (cm)", "Ambiguity", "Loop residual (cm)", "Dropped")
+QUALITY_COLUMNS = (
+    "Pose uncertainty (cm / deg)",
+    "Terrain agreement (cm)",
+    "Ambiguity",
+    "Loop residual (cm)",
+    "Dropped",
+)
 
 LINK_TIPS = {
     "Search radius (m)": "Radius around the scanner in which trunk shadows were extracted (paper: D_r)",
@@ -36,20 +71,20 @@ LINK_TIPS = {
     "Overlap": "Fraction of moving points in the shared area with a reference point near them after the fine registration (ICP fitness)",
     "Shadow residual (cm)": "Mean distance of the matched trunk shadows (VOPs) after the coarse registration",
     "Pose uncertainty (cm / deg)": "How far to trust the pose, without ground truth (1 sigma): position error at the scanner "
-                                   "in cm and rotation error in degrees. For a link: from its matched trunks after the fine "
-                                   "registration; for a scan: propagated from the centre scan along the most certain links",
+    "in cm and rotation error in degrees. For a link: from its matched trunks after the fine "
+    "registration; for a scan: propagated from the centre scan along the most certain links",
     "Weak motion / alternative": "What the stated uncertainty counted beyond the fit: a motion the surfaces hardly pin "
-                                 "(walls or a row along it, a lone trunk) and a distinct solution that fitted nearly as "
-                                 "well (counted in the uncertainty, or excluded with the reason). The full text is in the "
-                                 "cell's tooltip",
+    "(walls or a row along it, a lone trunk) and a distinct solution that fitted nearly as "
+    "well (counted in the uncertainty, or excluded with the reason). The full text is in the "
+    "cell's tooltip",
     "Terrain agreement (cm)": "Median height difference of the two scans' ground models where both saw the ground, after "
-                              "registration (for a scan: the worst of its links). Small = the scans agree on the terrain",
+    "registration (for a scan: the worst of its links). Small = the scans agree on the terrain",
     "Ambiguity": "Trunks matched by the second-best coarse solution divided by those of the best (paper: I_A): near 0 = "
-                 "unambiguous, near 1 = two placements explain the trunks almost equally well (for a scan: its worst link)",
+    "unambiguous, near 1 = two placements explain the trunks almost equally well (for a scan: its worst link)",
     "Loop residual (cm)": "Largest disagreement, at the scanner, between this scan's links and the adjusted poses "
-                          "(only where links close loops)",
+    "(only where links close loops)",
     "Dropped": "Links the survey adjustment left out because they disagree with the priors or with the other links' loops "
-               "(the reason is in the cell's tooltip); for a scan: how many of its links were dropped",
+    "(the reason is in the cell's tooltip); for a scan: how many of its links were dropped",
 }
 
 
@@ -102,7 +137,7 @@ def _notes_item(u: Optional[PoseSigma]) -> QTableWidgetItem:
         elif note.startswith("rotation about"):
             short.append("free " + note.split(" weakly")[0])
         elif note.startswith("a distinct solution"):
-            where = note[len("a distinct solution "):].split(" away")[0]
+            where = note[len("a distinct solution ") :].split(" away")[0]
             verdict = "counted" if "is counted" in note else ("same pose" if "same pose" in note else "excluded")
             short.append(f"alternative {where} ({verdict})")
     return _item("; ".join(notes), "; ".join(short), tip="\n".join(notes))
@@ -179,7 +214,10 @@ class LinkResultsTable(_Table):
                 _item(status),
                 _figure_item(run, "vop_radius_m", 0),
                 _item(vops, f"{vops[0]} / {vops[1]}" if None not in vops else "\u2013"),
-                _item(run.matched if run is not None else None, None if run is not None and run.matched is not None else "\u2013"),
+                _item(
+                    run.matched if run is not None else None,
+                    None if run is not None and run.matched is not None else "\u2013",
+                ),
                 _figure_item(run, "icp_std_m", 2, 100.0),
                 _figure_item(run, "icp_fitness", 3),
                 _figure_item(run, "vop_residual_m", 2, 100.0),

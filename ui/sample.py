@@ -7,10 +7,10 @@ import os
 from pathlib import Path
 from typing import Callable, Optional
 
-from ..engine.core.errors import Cancelled
-from ..engine.tls.params import RegistrationParams
-from ..engine.core.progress import CancelToken
 from ..app.plot import Project
+from ..engine.core.errors import Cancelled
+from ..engine.core.progress import CancelToken
+from ..engine.tls.params import RegistrationParams
 
 PRESET = "mixed_temperate"
 POSITIONS = [(0.0, 0.0), (10.0, 2.0), (-8.0, 6.0)]

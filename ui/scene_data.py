@@ -114,7 +114,9 @@ def build_scene(
         else:
             placed = pts - scanner
             scanner_placed = np.zeros(3)
-        scene.clouds.append(SceneCloud(name, placed.astype(np.float32), colours.get(name, "#777777"), scanner_placed, total))
+        scene.clouds.append(
+            SceneCloud(name, placed.astype(np.float32), colours.get(name, "#777777"), scanner_placed, total)
+        )
     if progress is not None:
         progress(1.0, "3D view ready")
     return scene

@@ -34,7 +34,7 @@ BACKGROUND = ("#f4f6f8", "#c9d3de")  # bottom, top
 
 
 def choose_renderer() -> str:
-    """"image" or "interactive" for the running QGuiApplication (see the module docstring)."""
+    """ "image" or "interactive" for the running QGuiApplication (see the module docstring)."""
     forced = os.environ.get("FORESTREG_3D", "").strip().lower()
     if forced in ("image", "interactive"):
         return forced
@@ -75,19 +75,45 @@ def add_guides(pl: Any, bounds: Any) -> None:
     pl.add_mesh(bar, color="#111111", name="guide:scale", reset_camera=False, pickable=False)
     for k in range(2):
         tick = base + [k * length, 0.0, 0.0]
-        pl.add_mesh(pv.Line(tick - [0, 0, 0.0], tick + [0, 0, 0.12 * length]).tube(radius=thick, n_sides=12),
-                    color="#111111", name=f"guide:tick{k}", reset_camera=False, pickable=False)
+        pl.add_mesh(
+            pv.Line(tick - [0, 0, 0.0], tick + [0, 0, 0.12 * length]).tube(radius=thick, n_sides=12),
+            color="#111111",
+            name=f"guide:tick{k}",
+            reset_camera=False,
+            pickable=False,
+        )
     text = f"{length:g} m"
-    pl.add_point_labels([base + [length / 2.0, 0.0, 0.0]], [text], name="guide:scale-label", font_size=12,
-                        text_color="#111111", shape_color="white", shape_opacity=0.7, show_points=False,
-                        always_visible=True, pickable=False, reset_camera=False)
+    pl.add_point_labels(
+        [base + [length / 2.0, 0.0, 0.0]],
+        [text],
+        name="guide:scale-label",
+        font_size=12,
+        text_color="#111111",
+        shape_color="white",
+        shape_opacity=0.7,
+        show_points=False,
+        always_visible=True,
+        pickable=False,
+        reset_camera=False,
+    )
     tail = base + [-0.08 * length - 0.02 * (x1 - x0), 0.0, 0.0]
-    arrow = pv.Arrow(start=tail, direction=(0.0, 1.0, 0.0), scale=0.5 * length, tip_length=0.35, tip_radius=0.15,
-                     shaft_radius=0.06)
+    arrow = pv.Arrow(
+        start=tail, direction=(0.0, 1.0, 0.0), scale=0.5 * length, tip_length=0.35, tip_radius=0.15, shaft_radius=0.06
+    )
     pl.add_mesh(arrow, color="#b42318", name="guide:north", reset_camera=False, pickable=False)
-    pl.add_point_labels([tail + [0.0, 0.62 * length, 0.0]], ["N"], name="guide:north-label", font_size=14, bold=True,
-                        text_color="#b42318", shape_opacity=0.0, show_points=False, always_visible=True,
-                        pickable=False, reset_camera=False)
+    pl.add_point_labels(
+        [tail + [0.0, 0.62 * length, 0.0]],
+        ["N"],
+        name="guide:north-label",
+        font_size=14,
+        bold=True,
+        text_color="#b42318",
+        shape_opacity=0.0,
+        show_points=False,
+        always_visible=True,
+        pickable=False,
+        reset_camera=False,
+    )
 
 
 def view_from_south_west(pl: Any) -> None:
@@ -127,8 +153,12 @@ class _ImageLabel(QLabel):
         pos = event.position().toPoint()
         press = getattr(self, "_press", None)
         self._last = None
-        if self.view.pick_mode and press is not None and (pos - press).manhattanLength() <= 3 \
-                and self._button == Qt.MouseButton.LeftButton:
+        if (
+            self.view.pick_mode
+            and press is not None
+            and (pos - press).manhattanLength() <= 3
+            and self._button == Qt.MouseButton.LeftButton
+        ):
             self.view.pick_in_image(pos.x(), pos.y(), self.width(), self.height())
 
     def mouseMoveEvent(self, event: QMouseEvent) -> None:  # noqa: N802 - Qt API
@@ -201,9 +231,15 @@ class SceneView(QWidget):
             return
         try:
             if on:
-                pl.enable_point_picking(callback=lambda point, *rest: self._picked(point), use_picker=True,
-                                        show_message="Click a point to place the target", left_clicking=True,
-                                        show_point=True, color="magenta", point_size=14)
+                pl.enable_point_picking(
+                    callback=lambda point, *rest: self._picked(point),
+                    use_picker=True,
+                    show_message="Click a point to place the target",
+                    left_clicking=True,
+                    show_point=True,
+                    color="magenta",
+                    point_size=14,
+                )
             else:
                 pl.disable_picking()
         except Exception as exc:  # noqa: BLE001 - picking is optional
@@ -268,13 +304,27 @@ class SceneView(QWidget):
         labels = []
         for cloud in scene.clouds:
             if len(cloud.points):
-                pl.add_mesh(pv.PolyData(cloud.points), color=cloud.colour, point_size=size, style="points",
-                            render_points_as_spheres=False, name=f"scan:{cloud.name}", reset_camera=False)
-            pl.add_mesh(pv.Sphere(radius=0.35, center=cloud.scanner), color=cloud.colour, name=f"scanner:{cloud.name}",
-                        reset_camera=False)
+                pl.add_mesh(
+                    pv.PolyData(cloud.points),
+                    color=cloud.colour,
+                    point_size=size,
+                    style="points",
+                    render_points_as_spheres=False,
+                    name=f"scan:{cloud.name}",
+                    reset_camera=False,
+                )
+            pl.add_mesh(
+                pv.Sphere(radius=0.35, center=cloud.scanner),
+                color=cloud.colour,
+                name=f"scanner:{cloud.name}",
+                reset_camera=False,
+            )
             labels.append((f"{cloud.name}  ({cloud.total_points:,} points)", cloud.colour))
-        title = "Before registration: each scan in its own coordinates" if scene.mode == "before" else \
-            "After registration: scans in the project frame"
+        title = (
+            "Before registration: each scan in its own coordinates"
+            if scene.mode == "before"
+            else "After registration: scans in the project frame"
+        )
         if scene.missing:
             title += f"  (not shown: {', '.join(scene.missing)})"
         pl.add_text(title, position="upper_left", font_size=10, color="#222222", name="title")
@@ -335,10 +385,23 @@ class SceneView(QWidget):
                 pass
         pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         if len(pts) and self.scene is not None and self.scene.clouds:
-            pl.add_mesh(pv.PolyData(pts), color=colour, point_size=11, style="points", render_points_as_spheres=True,
-                        name="markers", reset_camera=False, pickable=False)
-            pl.add_text(f"\u25cf {len(pts)} {label}", position=(12, 10 + 22 * len(self.scene.clouds)),
-                        font_size=9, color=colour, name="markers-legend")
+            pl.add_mesh(
+                pv.PolyData(pts),
+                color=colour,
+                point_size=11,
+                style="points",
+                render_points_as_spheres=True,
+                name="markers",
+                reset_camera=False,
+                pickable=False,
+            )
+            pl.add_text(
+                f"\u25cf {len(pts)} {label}",
+                position=(12, 10 + 22 * len(self.scene.clouds)),
+                font_size=9,
+                color=colour,
+                name="markers-legend",
+            )
         self._update()
 
     def reset_camera(self) -> None:
@@ -406,7 +469,9 @@ class SceneView(QWidget):
         self.image_label.setPixmap(pix)
 
     def _unavailable(self, exc: BaseException) -> None:
-        log.warning("the 3D view cannot render here (%s): install Mesa's EGL or OSMesa (Debian: libegl1 libgl1-mesa-dri)", exc)
+        log.warning(
+            "the 3D view cannot render here (%s): install Mesa's EGL or OSMesa (Debian: libegl1 libgl1-mesa-dri)", exc
+        )
         if self.plotter is not None:
             try:
                 self.plotter.close()

@@ -53,15 +53,24 @@ class SystemBMixin:
     def _tab_changed(self, index: int) -> None:
         """The TLS docks (project tree, parameters, results) belong to the TLS tab: hidden on the
         System B tabs so that the map, table and 3D view get the room, shown again on return."""
-        hints = {TAB_COREG: "Co-registration: open a result (File menu) or Co-register\u2026 a ground-based and a UAV cloud",
-                 TAB_TREES: "Trees: click a tree on the map or in the table; Measure trees\u2026 to correct them",
-                 TAB_EVAL: "Field data: File \u25b8 Evaluate against field data\u2026"}
+        hints = {
+            TAB_COREG: "Co-registration: open a result (File menu) or Co-register\u2026 a ground-based and a UAV cloud",
+            TAB_TREES: "Trees: click a tree on the map or in the table; Measure trees\u2026 to correct them",
+            TAB_EVAL: "Field data: File \u25b8 Evaluate against field data\u2026",
+        }
         label = getattr(self, "status_label", None)
         title = self.central_tabs.tabText(index)
         if label is not None and title in hints:
             label.setText(hints[title])
-        docks = [d for d in (getattr(self, "tree_dock", None), getattr(self, "params_dock", None),
-                             getattr(self, "results_dock", None)) if d is not None]
+        docks = [
+            d
+            for d in (
+                getattr(self, "tree_dock", None),
+                getattr(self, "params_dock", None),
+                getattr(self, "results_dock", None),
+            )
+            if d is not None
+        ]
         if self.central_tabs.widget(index) is self.view_splitter:
             if self._tls_docks_visible is not None:
                 for d in docks:
@@ -88,7 +97,11 @@ class SystemBMixin:
             self._show_coregistration(forest.coregistration, forest.coregistration_decision)
         for name, folder in forest.trees.items():
             if (folder / "trees.csv").is_file():
-                cloud = forest.fused_cloud if name == "fused" and forest.fused_cloud and forest.fused_cloud.is_file() else None
+                cloud = (
+                    forest.fused_cloud
+                    if name == "fused" and forest.fused_cloud and forest.fused_cloud.is_file()
+                    else None
+                )
                 self._show_trees(folder, cloud)
                 break
         if self.project.scans or forest.empty:
@@ -108,7 +121,9 @@ class SystemBMixin:
 
     # ------------------------------------------------------------------ trees
 
-    def open_trees(self, folder: str | Path, cloud: Optional[str | Path] = None, *, select: Optional[int] = None) -> bool:
+    def open_trees(
+        self, folder: str | Path, cloud: Optional[str | Path] = None, *, select: Optional[int] = None
+    ) -> bool:
         """Show a ``forestreg trees --out DIR`` folder; ``cloud`` the measured cloud (optional: its
         points around the selected tree are drawn). False with :attr:`last_error` on failure."""
         if not self._show_trees(folder, cloud, select=select):
@@ -119,9 +134,11 @@ class SystemBMixin:
         self.show_tab(TAB_TREES)
         return True
 
-    def _show_trees(self, folder: str | Path, cloud: Optional[str | Path] = None, *, select: Optional[int] = None) -> bool:
-        from ..engine.io import read_scan
+    def _show_trees(
+        self, folder: str | Path, cloud: Optional[str | Path] = None, *, select: Optional[int] = None
+    ) -> bool:
         from ..app.trees import read_trees_folder
+        from ..engine.io import read_scan
 
         try:
             out = read_trees_folder(folder)
@@ -204,13 +221,16 @@ class SystemBMixin:
         return True
 
     def _ask_evaluate(self) -> None:
-        field, _ = QFileDialog.getOpenFileName(self, "Field data (CSV: tree id, x, y, DBH, height, ...)", self._last_dir(),
-                                               "CSV (*.csv);;All files (*)")
+        field, _ = QFileDialog.getOpenFileName(
+            self, "Field data (CSV: tree id, x, y, DBH, height, ...)", self._last_dir(), "CSV (*.csv);;All files (*)"
+        )
         if not field:
             return
         runs: dict[str, str] = {}
         while True:
-            folder = QFileDialog.getExistingDirectory(self, f"Trees result folder {len(runs) + 1} (cancel when done)", str(Path(field).parent))
+            folder = QFileDialog.getExistingDirectory(
+                self, f"Trees result folder {len(runs) + 1} (cancel when done)", str(Path(field).parent)
+            )
             if not folder:
                 break
             runs[Path(folder).name] = folder
@@ -218,10 +238,16 @@ class SystemBMixin:
             self.evaluate_field(field, runs)
 
     def _ask_open_trees(self) -> None:
-        folder = QFileDialog.getExistingDirectory(self, "Trees result folder (forestreg trees --out DIR)", self._last_dir())
+        folder = QFileDialog.getExistingDirectory(
+            self, "Trees result folder (forestreg trees --out DIR)", self._last_dir()
+        )
         if folder:
-            cloud, _ = QFileDialog.getOpenFileName(self, "The measured cloud (optional: cancel to skip)", self._last_dir(),
-                                                   "Point clouds (*.las *.laz *.ply *.pcd *.xyz *.txt *.e57)")
+            cloud, _ = QFileDialog.getOpenFileName(
+                self,
+                "The measured cloud (optional: cancel to skip)",
+                self._last_dir(),
+                "Point clouds (*.las *.laz *.ply *.pcd *.xyz *.txt *.e57)",
+            )
             self.open_trees(folder, cloud or None)
 
     def open_change(self, folder: str | Path) -> bool:
@@ -240,18 +266,24 @@ class SystemBMixin:
         return True
 
     def _ask_open_change(self) -> None:
-        folder = QFileDialog.getExistingDirectory(self, "Re-survey result folder (forestreg change --out DIR)", self._last_dir())
+        folder = QFileDialog.getExistingDirectory(
+            self, "Re-survey result folder (forestreg change --out DIR)", self._last_dir()
+        )
         if folder:
             self.open_change(folder)
 
     def _ask_open_coregistration(self) -> None:
-        folder = QFileDialog.getExistingDirectory(self, "Co-registration result folder (forestreg coregister --out DIR)", self._last_dir())
+        folder = QFileDialog.getExistingDirectory(
+            self, "Co-registration result folder (forestreg coregister --out DIR)", self._last_dir()
+        )
         if folder:
             self.open_coregistration(folder)
 
     def _ask_coregister(self) -> None:
         filt = "Point clouds (*.las *.laz *.ply *.pcd *.xyz *.txt *.e57)"
-        ground, _ = QFileDialog.getOpenFileName(self, "Ground-based cloud (TLS plot, backpack, handheld)", self._last_dir(), filt)
+        ground, _ = QFileDialog.getOpenFileName(
+            self, "Ground-based cloud (TLS plot, backpack, handheld)", self._last_dir(), filt
+        )
         if not ground:
             return
         uav, _ = QFileDialog.getOpenFileName(self, "UAV or airborne cloud", str(Path(ground).parent), filt)
@@ -259,8 +291,11 @@ class SystemBMixin:
             self.coreg_view.run(ground, uav)
 
     def _ask_fuse(self) -> None:
-        start = str(Path(self.coreg_view.shown.ground_file).with_name("fused.laz")) if self.coreg_view.shown else "fused.laz"
+        start = (
+            str(Path(self.coreg_view.shown.ground_file).with_name("fused.laz"))
+            if self.coreg_view.shown
+            else "fused.laz"
+        )
         path, _ = QFileDialog.getSaveFileName(self, "Fused cloud", start, "LAZ (*.laz);;LAS (*.las)")
         if path:
             self.coreg_view.fuse(path)
-

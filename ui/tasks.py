@@ -73,8 +73,17 @@ class TaskSet(QObject):
     ) -> TaskWorker:
         """Start ``worker`` in its own thread; the callbacks run in the GUI thread."""
         key = id(worker)
-        relay = _Relay(self, {"succeeded": succeeded, "failed": failed, "cancelled": cancelled,
-                              "progress": progress, "link_done": link_done, "ended": ended})
+        relay = _Relay(
+            self,
+            {
+                "succeeded": succeeded,
+                "failed": failed,
+                "cancelled": cancelled,
+                "progress": progress,
+                "link_done": link_done,
+                "ended": ended,
+            },
+        )
         worker.progress.connect(relay.progress)
         worker.succeeded.connect(relay.succeeded)
         worker.failed.connect(relay.failed)

@@ -95,12 +95,22 @@ class TiePointsView(QWidget):
 
     # ------------------------------------------------------------------ drawing
 
-    def show_side(self, side: str, name: str, points_file: np.ndarray, scanner_file: np.ndarray, colour: str,
-                  total: int, targets: Mapping[str, Any]) -> None:
+    def show_side(
+        self,
+        side: str,
+        name: str,
+        points_file: np.ndarray,
+        scanner_file: np.ndarray,
+        colour: str,
+        total: int,
+        targets: Mapping[str, Any],
+    ) -> None:
         """Draw one scan (file coordinates in, drawn centred on its scanner) and its targets."""
         scanner = np.asarray(scanner_file, dtype=float).reshape(3)
         self.scanners[side] = scanner
-        cloud = SceneCloud(name, (np.asarray(points_file, dtype=float) - scanner).astype(np.float32), colour, np.zeros(3), int(total))
+        cloud = SceneCloud(
+            name, (np.asarray(points_file, dtype=float) - scanner).astype(np.float32), colour, np.zeros(3), int(total)
+        )
         self.views[side].show_scene(Scene(mode="before", clouds=[cloud]))
         self.set_targets(side, targets)
 
@@ -132,17 +142,49 @@ class TiePointsView(QWidget):
         if display and view.scene is not None:
             others = [k for k in display if k != self.highlighted]
             if others:
-                pl.add_point_labels(np.array([display[k] for k in others]), others, name="target-labels", font_size=11,
-                                    point_size=1, shape_opacity=0.6, always_visible=True, pickable=False, reset_camera=False)
+                pl.add_point_labels(
+                    np.array([display[k] for k in others]),
+                    others,
+                    name="target-labels",
+                    font_size=11,
+                    point_size=1,
+                    shape_opacity=0.6,
+                    always_visible=True,
+                    pickable=False,
+                    reset_camera=False,
+                )
             if self.highlighted in display:
                 at = display[self.highlighted][None, :].astype(np.float32)
-                pl.add_mesh(pv.PolyData(at), color=HIGHLIGHT_COLOUR, point_size=22, style="points", render_points_as_spheres=True,
-                            name="target-highlight", reset_camera=False, pickable=False)
-                pl.add_point_labels(at, [self.highlighted], name="target-highlight-label", font_size=14, bold=True,
-                                    text_color="black", shape_color=HIGHLIGHT_COLOUR, shape_opacity=0.95, point_size=1,
-                                    always_visible=True, pickable=False, reset_camera=False)
+                pl.add_mesh(
+                    pv.PolyData(at),
+                    color=HIGHLIGHT_COLOUR,
+                    point_size=22,
+                    style="points",
+                    render_points_as_spheres=True,
+                    name="target-highlight",
+                    reset_camera=False,
+                    pickable=False,
+                )
+                pl.add_point_labels(
+                    at,
+                    [self.highlighted],
+                    name="target-highlight-label",
+                    font_size=14,
+                    bold=True,
+                    text_color="black",
+                    shape_color=HIGHLIGHT_COLOUR,
+                    shape_opacity=0.95,
+                    point_size=1,
+                    always_visible=True,
+                    pickable=False,
+                    reset_camera=False,
+                )
         name = self.combos[side].currentText()
-        here = f"target {self.highlighted} " + ("placed" if self.highlighted in targets else "not placed yet") if self.highlighted else ""
+        here = (
+            f"target {self.highlighted} " + ("placed" if self.highlighted in targets else "not placed yet")
+            if self.highlighted
+            else ""
+        )
         self.captions[side].setText(f"{name}: {len(targets)} target(s)" + (f"; {here}" if here else ""))
         view._update()
 
@@ -164,4 +206,3 @@ class TiePointsView(QWidget):
     def close_views(self) -> None:
         for view in self.views.values():
             view.close_view()
-

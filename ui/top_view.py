@@ -58,7 +58,10 @@ class SurveyOverlay:
 def uncertainty_scale(uncertainty: Mapping[str, PoseSigma]) -> float:
     """The factor (1, 2 or 5 times a power of 10, >= 1) the uncertainty circles are drawn enlarged
     by, so the largest is at most :data:`UNCERTAINTY_DRAWN_M` on the map."""
-    largest = max((u.translation_m for u in uncertainty.values() if u.translation_m is not None and u.translation_m > 0), default=0.0)
+    largest = max(
+        (u.translation_m for u in uncertainty.values() if u.translation_m is not None and u.translation_m > 0),
+        default=0.0,
+    )
     if largest <= 0 or largest >= UNCERTAINTY_DRAWN_M:
         return 1.0
     wanted = UNCERTAINTY_DRAWN_M / largest
@@ -160,7 +163,9 @@ class TopViewWidget(QWidget):
         ax.text(0.5, 0.5, text, ha="center", va="center", wrap=True, fontsize=11, color="0.35", transform=ax.transAxes)
         self.canvas.draw_idle()
 
-    def show_view(self, view: TopView, colours: Mapping[str, str], title: str = "", overlay: Optional[SurveyOverlay] = None) -> None:
+    def show_view(
+        self, view: TopView, colours: Mapping[str, str], title: str = "", overlay: Optional[SurveyOverlay] = None
+    ) -> None:
         """Draw slices, VOPs (circles), VOP radius, scanners (triangles) and matched pairs (green);
         with ``overlay`` the links between scanners (grey; dropped ones red dashed) and each
         scanner's pose uncertainty (circle and label); and the marks (:meth:`set_plan`,
@@ -174,7 +179,15 @@ class TopViewWidget(QWidget):
         ax = self.figure.add_subplot()
         if not view.scans:
             ax.set_axis_off()
-            ax.text(0.5, 0.5, "No registered scan to draw yet.", ha="center", va="center", transform=ax.transAxes, color="0.35")
+            ax.text(
+                0.5,
+                0.5,
+                "No registered scan to draw yet.",
+                ha="center",
+                va="center",
+                transform=ax.transAxes,
+                color="0.35",
+            )
             self.canvas.draw_idle()
             return
         o = view.origin[:2]
@@ -184,16 +197,45 @@ class TopViewWidget(QWidget):
         for name, sv in view.scans.items():
             colour = colours.get(name, "#555555")
             xy = sv.slice_xy - o
-            ax.scatter(xy[:, 0], xy[:, 1], s=size, color=_lighter(colour, 0.25), alpha=0.6, linewidths=0, rasterized=True, zorder=1)
+            ax.scatter(
+                xy[:, 0],
+                xy[:, 1],
+                s=size,
+                color=_lighter(colour, 0.25),
+                alpha=0.6,
+                linewidths=0,
+                rasterized=True,
+                zorder=1,
+            )
             v = sv.vops_xy - o
             ax.scatter(v[:, 0], v[:, 1], s=26, facecolors="none", edgecolors=colour, linewidths=1.1, zorder=3)
             c = sv.scanner[:2] - o
-            ax.add_patch(Circle(tuple(c), sv.radius_m, fill=False, ls=(0, (4, 4)), color=colour, lw=0.7, alpha=0.6, zorder=2))
+            ax.add_patch(
+                Circle(tuple(c), sv.radius_m, fill=False, ls=(0, (4, 4)), color=colour, lw=0.7, alpha=0.6, zorder=2)
+            )
             ax.plot(c[0], c[1], marker="^", ms=11, mfc=colour, mec="k", mew=1.0, ls="none", zorder=6)
-            ax.annotate(name, xy=(c[0], c[1]), xytext=(7, 7), textcoords="offset points", fontsize=8, zorder=7,
-                        bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=colour, lw=1.0, alpha=0.85))
-            handles.append(Line2D([], [], ls="none", marker="o", ms=6, mfc="none", mec=colour, mew=1.4,
-                                  label=f"{name}: {len(sv.vops_xy)} trunk shadows (within {sv.radius_m:.0f} m)"))
+            ax.annotate(
+                name,
+                xy=(c[0], c[1]),
+                xytext=(7, 7),
+                textcoords="offset points",
+                fontsize=8,
+                zorder=7,
+                bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=colour, lw=1.0, alpha=0.85),
+            )
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    ls="none",
+                    marker="o",
+                    ms=6,
+                    mfc="none",
+                    mec=colour,
+                    mew=1.4,
+                    label=f"{name}: {len(sv.vops_xy)} trunk shadows (within {sv.radius_m:.0f} m)",
+                )
+            )
         n_pairs = 0
         for lv in view.links:
             if not len(lv.pairs):
@@ -202,13 +244,29 @@ class TopViewWidget(QWidget):
             a, b = lv.pairs[:, 0] - o, lv.pairs[:, 1] - o
             mid = (a + b) / 2
             ax.scatter(mid[:, 0], mid[:, 1], s=90, facecolors="none", edgecolors=MATCH_COLOUR, linewidths=1.6, zorder=4)
-        handles.append(Line2D([], [], ls="none", marker="o", ms=9, mfc="none", mec=MATCH_COLOUR, mew=1.6,
-                              label=f"matched trunk shadows ({n_pairs})"))
+        handles.append(
+            Line2D(
+                [],
+                [],
+                ls="none",
+                marker="o",
+                ms=9,
+                mfc="none",
+                mec=MATCH_COLOUR,
+                mew=1.6,
+                label=f"matched trunk shadows ({n_pairs})",
+            )
+        )
         if overlay is not None:
             handles += self._draw_overlay(ax, view, overlay, o)
         handles += self._draw_marks(ax, o)
         marks = np.array(list(self.mark_labels.values()), dtype=np.float64).reshape(-1, 2)
-        allxy = np.concatenate([sv.slice_xy for sv in view.scans.values()] + [sv.scanner[None, :2] for sv in view.scans.values()]) - o
+        allxy = (
+            np.concatenate(
+                [sv.slice_xy for sv in view.scans.values()] + [sv.scanner[None, :2] for sv in view.scans.values()]
+            )
+            - o
+        )
         if len(allxy):
             lo, hi = np.percentile(allxy, 0.5, axis=0) - 2.0, np.percentile(allxy, 99.5, axis=0) + 2.0
             if len(marks):  # every mark on the map, with room for its label
@@ -238,23 +296,59 @@ class TopViewWidget(QWidget):
             ax.plot(x, y, marker="*", ms=22, mfc=PLAN_FILL, mec="k", mew=1.0, ls="none", zorder=8)
             ax.text(x, y, str(k), ha="center", va="center", fontsize=7, fontweight="bold", zorder=9)
             label = f"next {k}: links to {s.links_to}"
-            ax.annotate(label, xy=(x, y), xytext=(10, -14), textcoords="offset points", fontsize=8, zorder=9,
-                        bbox=dict(boxstyle="round,pad=0.2", fc=PLAN_LABEL_FILL, ec="k", lw=0.8, alpha=0.9))
+            ax.annotate(
+                label,
+                xy=(x, y),
+                xytext=(10, -14),
+                textcoords="offset points",
+                fontsize=8,
+                zorder=9,
+                bbox=dict(boxstyle="round,pad=0.2", fc=PLAN_LABEL_FILL, ec="k", lw=0.8, alpha=0.9),
+            )
             self.mark_labels[label] = (x, y)
         self.plan_markers = len(self.plan)
         if self.plan:
-            handles.append(Line2D([], [], ls="none", marker="*", ms=12, mfc=PLAN_FILL, mec="k",
-                                  label=f"suggested next scan{'s' if len(self.plan) > 1 else ''}, numbered by what each adds"))
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    ls="none",
+                    marker="*",
+                    ms=12,
+                    mfc=PLAN_FILL,
+                    mec="k",
+                    label=f"suggested next scan{'s' if len(self.plan) > 1 else ''}, numbered by what each adds",
+                )
+            )
         for name, (px, py) in self.advice.items():
             x, y = px - o[0], py - o[1]
             ax.plot(x, y, marker="D", ms=11, mfc=ADVICE_FILL, mec=ADVICE_COLOUR, mew=1.6, ls="none", zorder=8)
             label = f"{name}: not linked, scan again here"
-            ax.annotate(label, xy=(x, y), xytext=(9, 8), textcoords="offset points", fontsize=8, zorder=9, color=ADVICE_COLOUR,
-                        bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=ADVICE_COLOUR, lw=1.0, alpha=0.9))
+            ax.annotate(
+                label,
+                xy=(x, y),
+                xytext=(9, 8),
+                textcoords="offset points",
+                fontsize=8,
+                zorder=9,
+                color=ADVICE_COLOUR,
+                bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=ADVICE_COLOUR, lw=1.0, alpha=0.9),
+            )
             self.mark_labels[label] = (x, y)
         if self.advice:
-            handles.append(Line2D([], [], ls="none", marker="D", ms=8, mfc=ADVICE_FILL, mec=ADVICE_COLOUR, mew=1.4,
-                                  label="where a scan that did not link would link (the watcher's suggestion)"))
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    ls="none",
+                    marker="D",
+                    ms=8,
+                    mfc=ADVICE_FILL,
+                    mec=ADVICE_COLOUR,
+                    mew=1.4,
+                    label="where a scan that did not link would link (the watcher's suggestion)",
+                )
+            )
         return handles
 
     def _draw_overlay(self, ax, view: TopView, overlay: SurveyOverlay, o: np.ndarray) -> list:
@@ -276,11 +370,27 @@ class TopViewWidget(QWidget):
             if segment(m, r, color=DROPPED_COLOUR, lw=1.8, ls=(0, (5, 3)), zorder=5):
                 n_dropped += 1
                 mid = (where[m] + where[r]) / 2
-                ax.annotate("dropped", xy=tuple(mid), xytext=(6, 0), textcoords="offset points", fontsize=7,
-                            color=DROPPED_COLOUR, zorder=7, bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8))
+                ax.annotate(
+                    "dropped",
+                    xy=tuple(mid),
+                    xytext=(6, 0),
+                    textcoords="offset points",
+                    fontsize=7,
+                    color=DROPPED_COLOUR,
+                    zorder=7,
+                    bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8),
+                )
         if n_dropped:
-            handles.append(Line2D([], [], color=DROPPED_COLOUR, lw=1.8, ls=(0, (5, 3)),
-                                  label=f"dropped link ({n_dropped}): disagrees with the other links"))
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    color=DROPPED_COLOUR,
+                    lw=1.8,
+                    ls=(0, (5, 3)),
+                    label=f"dropped link ({n_dropped}): disagrees with the other links",
+                )
+            )
         factor = uncertainty_scale(overlay.uncertainty)
         self.uncertainty_factor = factor
         drawn = 0
@@ -293,16 +403,43 @@ class TopViewWidget(QWidget):
                 text = "held fixed" if u.fixed else "frame scan"
             else:
                 text = f"\u00b1{100 * t:.1f} cm, {r:.2f}\u00b0"
-                ax.add_patch(Circle(tuple(c), t * factor, fill=True, fc=UNCERTAINTY_COLOUR, alpha=0.18,
-                                    ec=UNCERTAINTY_COLOUR, lw=1.2, zorder=5))
+                ax.add_patch(
+                    Circle(
+                        tuple(c),
+                        t * factor,
+                        fill=True,
+                        fc=UNCERTAINTY_COLOUR,
+                        alpha=0.18,
+                        ec=UNCERTAINTY_COLOUR,
+                        lw=1.2,
+                        zorder=5,
+                    )
+                )
                 drawn += 1
             self.uncertainty_labels[name] = text
-            ax.annotate(text, xy=tuple(c), xytext=(7, -16), textcoords="offset points", fontsize=7,
-                        color=UNCERTAINTY_COLOUR, zorder=7,
-                        bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8))
+            ax.annotate(
+                text,
+                xy=tuple(c),
+                xytext=(7, -16),
+                textcoords="offset points",
+                fontsize=7,
+                color=UNCERTAINTY_COLOUR,
+                zorder=7,
+                bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8),
+            )
         if drawn:
-            handles.append(Line2D([], [], ls="none", marker="o", ms=9, mfc=(0.42, 0.24, 0.6, 0.18), mec=UNCERTAINTY_COLOUR,
-                                  label=f"pose uncertainty, 1 sigma (circle drawn {factor:g}x larger)"))
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    ls="none",
+                    marker="o",
+                    ms=9,
+                    mfc=(0.42, 0.24, 0.6, 0.18),
+                    mec=UNCERTAINTY_COLOUR,
+                    label=f"pose uncertainty, 1 sigma (circle drawn {factor:g}x larger)",
+                )
+            )
         return handles
 
 

@@ -50,8 +50,20 @@ BRANCH_COLOUR = "#c9a36b"
 #: figures added later) follow with their own names.
 KNOWN_COLUMNS: tuple[tuple[str, str, float, int, str], ...] = (
     ("dbh_m", "DBH (cm)", 100.0, 1, "Stem diameter at breast height (1.3 m above the ground), from circle fits"),
-    ("height_m", "Height (m)", 1.0, 1, "Tree height above the ground model: its highest point, or the plot's height-diameter curve where that point is not the tree's top (marked \"(curve)\", the reason in its tip)"),
-    ("height_points_m", "Highest point (m)", 1.0, 1, "The tree's highest point above the ground model, whether or not it was taken as the height"),
+    (
+        "height_m",
+        "Height (m)",
+        1.0,
+        1,
+        "Tree height above the ground model: its highest point, or the plot's height-diameter curve where that point is not the tree's top (marked \"(curve)\", the reason in its tip)",
+    ),
+    (
+        "height_points_m",
+        "Highest point (m)",
+        1.0,
+        1,
+        "The tree's highest point above the ground model, whether or not it was taken as the height",
+    ),
     ("crown_base_m", "Crown base (m)", 1.0, 1, "Height of the lowest live crown above the ground"),
     ("crown_width_ew_m", "Crown E-W (m)", 1.0, 1, "Crown width east-west"),
     ("crown_width_ns_m", "Crown N-S (m)", 1.0, 1, "Crown width north-south"),
@@ -64,7 +76,13 @@ KNOWN_COLUMNS: tuple[tuple[str, str, float, int, str], ...] = (
     ("n_cylinders", "Cylinders", 1.0, 0, "Cylinders in the tree's model"),
     ("n_branches", "Branches", 1.0, 0, "Branches in the tree's model"),
     ("lean_deg", "Lean (\u00b0)", 1.0, 1, "Stem lean from the vertical"),
-    ("dbh_arc_coverage", "DBH arc seen", 1.0, 2, "Share of the stem's circumference with points at breast height (1 = all round)"),
+    (
+        "dbh_arc_coverage",
+        "DBH arc seen",
+        1.0,
+        2,
+        "Share of the stem's circumference with points at breast height (1 = all round)",
+    ),
     ("dbh_rms_mm", "DBH fit rms (mm)", 1.0, 1, "Root mean square distance of the points from the fitted circle"),
     ("n_points", "Points", 1.0, 0, "Points of the tree"),
     ("wood_fraction", "Wood share", 1.0, 2, "Share of the tree's points classed as wood"),
@@ -116,10 +134,17 @@ class TreeTable(CellsByName, QTableWidget):
         self.setSortingEnabled(False)
         known = [c for c in KNOWN_COLUMNS if c[0] in out.columns]
         names = {c[0] for c in KNOWN_COLUMNS}
-        extra = [(c, c, 1.0, 3, f"{c} (as written by the trees engine)") for c in out.numeric_columns
-                 if c not in names and c not in HIDDEN]
-        self.columns = [("tree_id", "Tree", 1.0, 0, "Tree id in trees.csv (\u26a0 flagged, \u270e edited by hand)")] + known + extra + [
-            ("flag", "Flag", 1.0, 0, "Why the engine flagged the tree (empty: complete and measured)")]
+        extra = [
+            (c, c, 1.0, 3, f"{c} (as written by the trees engine)")
+            for c in out.numeric_columns
+            if c not in names and c not in HIDDEN
+        ]
+        self.columns = (
+            [("tree_id", "Tree", 1.0, 0, "Tree id in trees.csv (\u26a0 flagged, \u270e edited by hand)")]
+            + known
+            + extra
+            + [("flag", "Flag", 1.0, 0, "Why the engine flagged the tree (empty: complete and measured)")]
+        )
         self.clear()
         self.setColumnCount(len(self.columns))
         self.setHorizontalHeaderLabels([c[1] for c in self.columns])
@@ -218,10 +243,16 @@ class TreeMap(_FigurePanel):
                 ax.add_patch(Ellipse((x, y), ew, ns, fill=True, fc=colour, alpha=0.10, ec=colour, lw=0.8, zorder=1))
             dbh = t.get("dbh_m")
             size = 12 + 220 * (dbh if math.isfinite(dbh) else 0.1)
-            ax.scatter([x], [y], s=size, c=colour, marker="X" if t.flagged else "o", edgecolors="k", linewidths=0.5, zorder=3)
-            ax.annotate(str(t.tree_id), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7, color="0.2", zorder=4)
+            ax.scatter(
+                [x], [y], s=size, c=colour, marker="X" if t.flagged else "o", edgecolors="k", linewidths=0.5, zorder=3
+            )
+            ax.annotate(
+                str(t.tree_id), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7, color="0.2", zorder=4
+            )
             if t.tree_id == selected:
-                ax.scatter([x], [y], s=size + 220, facecolors="none", edgecolors=SELECT_COLOUR, linewidths=2.2, zorder=5)
+                ax.scatter(
+                    [x], [y], s=size + 220, facecolors="none", edgecolors=SELECT_COLOUR, linewidths=2.2, zorder=5
+                )
         if good.any():
             lo, hi = np.nanmin(xy[good], axis=0) - self.origin - 3.0, np.nanmax(xy[good], axis=0) - self.origin + 3.0
             ax.set_xlim(lo[0], hi[0])
@@ -266,7 +297,9 @@ class StemCurvePlot(_FigurePanel):
         curve = out.curves.get(int(tree_id)) if out is not None and tree_id is not None else None
         if curve is None or not len(curve.height_m):
             ax.set_axis_off()
-            ax.text(0.5, 0.5, "No stem curve for this tree", ha="center", va="center", color="0.4", transform=ax.transAxes)
+            ax.text(
+                0.5, 0.5, "No stem curve for this tree", ha="center", va="center", color="0.4", transform=ax.transAxes
+            )
             self.canvas.draw_idle()
             return
         h, d = curve.height_m, 100.0 * curve.diameter_m
@@ -276,12 +309,24 @@ class StemCurvePlot(_FigurePanel):
         ax.plot(d[np.isfinite(d)], h[np.isfinite(d)], color=STEM_COLOUR, lw=1.0, zorder=1)
         ax.scatter(d[fit], h[fit], s=18, color=STEM_COLOUR, zorder=3, label="fitted")
         if interp.any():
-            ax.scatter(d[interp], h[interp], s=18, facecolors="white", edgecolors=STEM_COLOUR, zorder=3, label="interpolated")
+            ax.scatter(
+                d[interp], h[interp], s=18, facecolors="white", edgecolors=STEM_COLOUR, zorder=3, label="interpolated"
+            )
         if raw.any():
-            ax.scatter(100.0 * curve.raw_diameter_m[raw], h[raw], s=14, marker="x", color="0.55", zorder=2, label="rejected fit")
+            ax.scatter(
+                100.0 * curve.raw_diameter_m[raw],
+                h[raw],
+                s=14,
+                marker="x",
+                color="0.55",
+                zorder=2,
+                label="rejected fit",
+            )
         dbh = out.tree(int(tree_id)).get("dbh_m")
         if math.isfinite(dbh):
-            ax.scatter([100 * dbh], [1.3], s=60, marker="D", color=SELECT_COLOUR, zorder=4, label=f"DBH {100 * dbh:.1f} cm")
+            ax.scatter(
+                [100 * dbh], [1.3], s=60, marker="D", color=SELECT_COLOUR, zorder=4, label=f"DBH {100 * dbh:.1f} cm"
+            )
         ax.set_xlabel("diameter (cm)", fontsize=8)
         ax.set_ylabel("height above ground (m)", fontsize=8)
         ax.tick_params(labelsize=7)
@@ -354,8 +399,9 @@ class TreesView(QWidget):
     edited = Signal(str)  # the note of the edit done
     editFailed = Signal(str)
 
-    def __init__(self, parent: Optional[QWidget] = None, renderer: Optional[str] = None,
-                 start_task: Optional[Any] = None) -> None:
+    def __init__(
+        self, parent: Optional[QWidget] = None, renderer: Optional[str] = None, start_task: Optional[Any] = None
+    ) -> None:
         super().__init__(parent)
         self.out: Optional[TreesOutput] = None
         self.points: Optional[np.ndarray] = None
@@ -375,7 +421,9 @@ class TreesView(QWidget):
         self.table = TreeTable()
         self.scene3d = SceneView(renderer=renderer)
         self.curve = StemCurvePlot()
-        self.info = QLabel("Open a trees result folder (File \u25b8 Open trees result\u2026), made by 'forestreg trees --out DIR'.")
+        self.info = QLabel(
+            "Open a trees result folder (File \u25b8 Open trees result\u2026), made by 'forestreg trees --out DIR'."
+        )
         self.info.setWordWrap(True)
         self.info.setStyleSheet("padding: 4px; color: #344054;")
         left = QSplitter(Qt.Orientation.Vertical)
@@ -410,10 +458,18 @@ class TreesView(QWidget):
             bar.addWidget(b)
             return b
 
-        self.measure_button = button("Measure trees\u2026", "Measure the trees of a cloud here (needed to correct them)", self._ask_measure)
+        self.measure_button = button(
+            "Measure trees\u2026", "Measure the trees of a cloud here (needed to correct them)", self._ask_measure
+        )
         self.delete_button = button("Delete", "Delete the selected tree (a false stem)", self.delete_selected)
-        self.merge_button = button("Merge with\u2026", "Merge the selected tree with the next tree you click on the map", lambda: self._arm("merge"))
-        self.split_button = button("Split at\u2026", "Split the selected tree: click the second stem on the map", lambda: self._arm("split"))
+        self.merge_button = button(
+            "Merge with\u2026",
+            "Merge the selected tree with the next tree you click on the map",
+            lambda: self._arm("merge"),
+        )
+        self.split_button = button(
+            "Split at\u2026", "Split the selected tree: click the second stem on the map", lambda: self._arm("split")
+        )
         self.add_button = button("Add stem\u2026", "Add a missed stem: click it on the map", lambda: self._arm("add"))
         self.dbh_height = QDoubleSpinBox()
         self.dbh_height.setRange(0.3, 5.0)
@@ -423,9 +479,17 @@ class TreesView(QWidget):
         self.dbh_height.setToolTip("Height along the stem at which the DBH is measured (above a buttress)")
         bar.addWidget(QLabel("DBH at"))
         bar.addWidget(self.dbh_height)
-        self.dbh_button = button("Apply", "Measure the selected tree's DBH at this height", lambda: self.dbh_height_selected(self.dbh_height.value()))
+        self.dbh_button = button(
+            "Apply",
+            "Measure the selected tree's DBH at this height",
+            lambda: self.dbh_height_selected(self.dbh_height.value()),
+        )
         self.undo_button = button("Undo", "Undo the last edit", self.undo)
-        self.save_button = button("Save\u2026", "Write the edited trees (trees.csv with an 'edited' column, edits.json, report)", self._ask_save)
+        self.save_button = button(
+            "Save\u2026",
+            "Write the edited trees (trees.csv with an 'edited' column, edits.json, report)",
+            self._ask_save,
+        )
         self.edit_status = QLabel("")
         self.edit_status.setStyleSheet("color: #475467;")
         # a long message must not widen the window (1280 px screens)
@@ -475,15 +539,25 @@ class TreesView(QWidget):
             self.edit_task.end()
             self._update_edit_buttons()
 
-        self._start_task(worker, succeeded=done, failed=failed, cancelled=lambda: self.edit_status.setText(f"{what}: cancelled"),
-                         progress=self.edit_task.report, ended=ended)
+        self._start_task(
+            worker,
+            succeeded=done,
+            failed=failed,
+            cancelled=lambda: self.edit_status.setText(f"{what}: cancelled"),
+            progress=self.edit_task.report,
+            ended=ended,
+        )
         return True
 
     def _ask_measure(self) -> None:
         from PySide6.QtWidgets import QFileDialog
 
-        path, _ = QFileDialog.getOpenFileName(self, "Cloud to measure (ground-based or fused)", "",
-                                              "Point clouds (*.las *.laz *.ply *.pcd *.xyz *.txt *.e57)")
+        path, _ = QFileDialog.getOpenFileName(
+            self,
+            "Cloud to measure (ground-based or fused)",
+            "",
+            "Point clouds (*.las *.laz *.ply *.pcd *.xyz *.txt *.e57)",
+        )
         if path:
             self.measure(path)
 
@@ -553,7 +627,9 @@ class TreesView(QWidget):
                     self.selected = new[-1]
             elif edit.kind == "delete":
                 self.selected = None
-            self._set_inventory(after, note=f"{edit.describe()} (tree {edit.trees[0] if edit.trees else self.selected})")
+            self._set_inventory(
+                after, note=f"{edit.describe()} (tree {edit.trees[0] if edit.trees else self.selected})"
+            )
             self.edited.emit(edit.describe())
 
         return self._work(edit.describe(), task, done)
@@ -572,8 +648,11 @@ class TreesView(QWidget):
         """Split the selected tree at the second stem near (x, y) (file coordinates)."""
         from ..app.trees import edit as TreeEdit
 
-        return self.selected is not None and self.inventory is not None and \
-            self.apply(TreeEdit("split", (self.selected,), xy=self._to_local(x, y)))
+        return (
+            self.selected is not None
+            and self.inventory is not None
+            and self.apply(TreeEdit("split", (self.selected,), xy=self._to_local(x, y)))
+        )
 
     def add_stem_at(self, x: float, y: float) -> bool:
         """Add the stem near (x, y) (file coordinates)."""
@@ -584,7 +663,9 @@ class TreesView(QWidget):
     def dbh_height_selected(self, height_m: float) -> bool:
         from ..app.trees import edit as TreeEdit
 
-        return self.selected is not None and self.apply(TreeEdit("dbh_height", (self.selected,), height_m=float(height_m)))
+        return self.selected is not None and self.apply(
+            TreeEdit("dbh_height", (self.selected,), height_m=float(height_m))
+        )
 
     def undo(self) -> bool:
         """Go back one edit."""
@@ -615,8 +696,11 @@ class TreesView(QWidget):
 
     def _arm(self, action: str) -> None:
         self.pending = action
-        text = {"merge": "Click the tree to merge into the selected one", "split": "Click the second stem of the selected tree",
-                "add": "Click the missed stem on the map"}[action]
+        text = {
+            "merge": "Click the tree to merge into the selected one",
+            "split": "Click the second stem of the selected tree",
+            "add": "Click the missed stem on the map",
+        }[action]
         self.edit_status.setText(text + " (Esc: cancel)")
 
     def _map_position_clicked(self, x: float, y: float) -> None:
@@ -646,7 +730,9 @@ class TreesView(QWidget):
 
     # ------------------------------------------------------------------ loading
 
-    def show_output(self, out: TreesOutput, points: Optional[np.ndarray] = None, *, select: Optional[int] = None) -> None:
+    def show_output(
+        self, out: TreesOutput, points: Optional[np.ndarray] = None, *, select: Optional[int] = None
+    ) -> None:
         """Show a trees folder; ``points`` (N, 3, file coordinates) the measured cloud, optional."""
         self.out = out
         self.points = None if points is None else np.asarray(points, dtype=np.float64)
@@ -738,8 +824,12 @@ class TreesView(QWidget):
                     pl.add_mesh(ring, color="#f59e0b" if interp else SELECT_COLOUR, line_width=3, name=f"ring{k}")
                 legend.append(("stem circles (blue fitted, amber interpolated)", SELECT_COLOUR))
             if not legend:
-                pl.add_text(f"Tree {tid}: nothing to draw (no cylinder model, no stem curve, no cloud)",
-                            position="upper_left", font_size=10, color="#444444")
+                pl.add_text(
+                    f"Tree {tid}: nothing to draw (no cylinder model, no stem curve, no cloud)",
+                    position="upper_left",
+                    font_size=10,
+                    color="#444444",
+                )
                 return
             title = f"Tree {tid}"
             dbh, height = tree.get("dbh_m"), tree.get("height_m")
@@ -749,8 +839,16 @@ class TreesView(QWidget):
                 title += f"   height {height:.1f} m" + (" (curve)" if tree.height_source == "curve" else "")
             if tree.flagged:
                 title += "   \u26a0 flagged"
-            pl.add_text(title, position="upper_left", font_size=10, color=FLAG_COLOUR if tree.flagged else "#222222", name="title")
-            pl.add_text("\n".join(t for t, _ in legend), position="upper_right", font_size=9, color="#333333", name="legend")
+            pl.add_text(
+                title,
+                position="upper_left",
+                font_size=10,
+                color=FLAG_COLOUR if tree.flagged else "#222222",
+                name="title",
+            )
+            pl.add_text(
+                "\n".join(t for t, _ in legend), position="upper_right", font_size=9, color="#333333", name="legend"
+            )
             r = max(radius, 1.0)
             ztop = height if math.isfinite(height) else 10.0
             add_guides(pl, (-r, r, -r, r, 0.0, ztop))
@@ -768,4 +866,3 @@ def _with_centres(curve: Any, centres: np.ndarray) -> Any:
     import dataclasses
 
     return dataclasses.replace(curve, centres=centres)
-

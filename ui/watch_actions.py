@@ -50,7 +50,9 @@ class WatchWorker(TaskWorker):
 
     scan_event = Signal(object)
 
-    def __init__(self, folder: Path, out: Path, params: Any, *, centre: Optional[str] = None, poll_s: float = 0.5) -> None:
+    def __init__(
+        self, folder: Path, out: Path, params: Any, *, centre: Optional[str] = None, poll_s: float = 0.5
+    ) -> None:
         super().__init__(self._watch, name="watch")
         self.folder, self.out, self.params, self.centre, self.poll_s = Path(folder), Path(out), params, centre, poll_s
 
@@ -66,8 +68,17 @@ class WatchWorker(TaskWorker):
     def _watch(self, progress: Any, cancel: Any) -> Any:
         from ..app.watch import watch_plot
 
-        return watch_plot(self.folder, self.out, self.params, centre=self.centre, poll_s=self.poll_s,
-                          on_event=self.scan_event.emit, progress=progress, cancel=cancel, sleep=self._sleep)
+        return watch_plot(
+            self.folder,
+            self.out,
+            self.params,
+            centre=self.centre,
+            poll_s=self.poll_s,
+            on_event=self.scan_event.emit,
+            progress=progress,
+            cancel=cancel,
+            sleep=self._sleep,
+        )
 
 
 class _EventRelay(QObject):
@@ -132,7 +143,9 @@ class WatchDialog(QDialog):
         self.setWindowTitle("Watch folder")
         form = QFormLayout(self)
         self.folder = self._row(form, "Folder the scanner fills", start, "Folder the scanner's export fills")
-        self.out = self._row(form, "Plot folder to write", str(Path(start) / "registered"), "Output folder (new, or a watch's to go on)")
+        self.out = self._row(
+            form, "Plot folder to write", str(Path(start) / "registered"), "Output folder (new, or a watch's to go on)"
+        )
         self.centre = QLineEdit()
         self.centre.setPlaceholderText("the first scan to arrive")
         self.centre.setToolTip("File name of the centre scan (the plot's frame); empty: the first scan to arrive")
@@ -181,7 +194,9 @@ class WatchMixin:
             self._remember_dir(folder)
             self.watch_folder(folder, out, centre=centre or None)
 
-    def watch_folder(self, folder: str | Path, out: str | Path, *, centre: Optional[str] = None, poll_s: float = 0.5) -> bool:
+    def watch_folder(
+        self, folder: str | Path, out: str | Path, *, centre: Optional[str] = None, poll_s: float = 0.5
+    ) -> bool:
         """Watch ``folder`` and register each scan arriving there into the plot folder ``out``
         (the parameter panel's settings), showing each as it is placed; False when it cannot start."""
         if self.running or not self.confirm_discard():
@@ -202,8 +217,14 @@ class WatchMixin:
         self.progress_bar.setRange(0, 0)  # no end known: a busy bar
         self.bottom_tabs.setCurrentWidget(self.watch_table)
         log.info("watching %s into %s", folder, out)
-        self.tasks.start(worker, succeeded=self._watch_finished, failed=self._watch_failed, cancelled=self._watch_cancelled,
-                         progress=self._watch_progress, ended=self._watch_ended)
+        self.tasks.start(
+            worker,
+            succeeded=self._watch_finished,
+            failed=self._watch_failed,
+            cancelled=self._watch_cancelled,
+            progress=self._watch_progress,
+            ended=self._watch_ended,
+        )
         return True
 
     def _watch_progress(self, fraction: float, message: str) -> None:
@@ -269,15 +290,20 @@ class PlanMixin:
     def plan_next_scan(self, n: int = 3) -> bool:
         """Plan the next ``n`` scans in the background and mark them on the map; False when
         nothing is placed yet or a run is going on."""
-        if self.running or not any(p is not None for name, p in self.project.poses().items() if name != self.project.centre):
+        if self.running or not any(
+            p is not None for name, p in self.project.poses().items() if name != self.project.centre
+        ):
             return False
         from ..app.plan import plan_project
 
         project, scans = self.project, self.scans
-        worker = TaskWorker(lambda progress, cancel: plan_project(project, n=n, scans=scans, progress=progress)[0], name="plan")
+        worker = TaskWorker(
+            lambda progress, cancel: plan_project(project, n=n, scans=scans, progress=progress)[0], name="plan"
+        )
         self.status_label.setText("Planning the next scans\u2026")
-        self._start_task(worker, succeeded=self._plan_done,
-                         failed=lambda m, d: self.show_error("No plan for the next scan", m, d))
+        self._start_task(
+            worker, succeeded=self._plan_done, failed=lambda m, d: self.show_error("No plan for the next scan", m, d)
+        )
         return True
 
     def _plan_done(self, plan: Any) -> None:

@@ -111,8 +111,14 @@ class RegistrationWorker(TaskWorker):
     def _register(self, progress: Callable[[float, str], None], cancel: CancelToken) -> Any:
         from ..app.plot import register_plot
 
-        return register_plot(self.project, self.scans, rerun=self.rerun, progress=progress, cancel=cancel,
-                             on_link=lambda link: self.link_done.emit(link.moving))
+        return register_plot(
+            self.project,
+            self.scans,
+            rerun=self.rerun,
+            progress=progress,
+            cancel=cancel,
+            on_link=lambda link: self.link_done.emit(link.moving),
+        )
 
 
 def make_thread(worker: TaskWorker, parent: Optional[QObject] = None) -> QThread:

@@ -20,7 +20,19 @@ from .params import ChangeParams
 from .registration import StemMatch, persisting_stems, refine_on_stems
 
 __all__ = [
-    "CHANGE_COLUMNS", "ChangeParams", "ChangeResult", "EpochTrees", "STATUSES", "StemMatch", "TreeChange",
-    "detect_change", "epoch_from_cloud", "epoch_from_table", "file_matrix", "match_trees", "persisting_stems",
-    "position_unit_mismatch", "refine_on_stems",
+    "CHANGE_COLUMNS",
+    "ChangeParams",
+    "ChangeResult",
+    "EpochTrees",
+    "STATUSES",
+    "StemMatch",
+    "TreeChange",
+    "detect_change",
+    "epoch_from_cloud",
+    "epoch_from_table",
+    "file_matrix",
+    "match_trees",
+    "persisting_stems",
+    "position_unit_mismatch",
+    "refine_on_stems",
 ]

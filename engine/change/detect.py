@@ -18,11 +18,11 @@ import numpy as np
 from ..core.outcome import Outcome
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..core.transform import apply as apply_transform
+from ..core.uncertainty import judge, with_alternatives
 from .epoch import EpochTrees
 from .matching import STATUSES, TreeChange, match_trees
 from .params import ChangeParams
 from .registration import StemMatch, paired_after_xy, persisting_stems, refine_on_stems, stem_alternatives
-from ..core.uncertainty import judge, with_alternatives
 
 __all__ = ["ChangeResult", "detect_change", "file_matrix"]
 
@@ -75,10 +75,13 @@ class ChangeResult(Outcome):
         u = self.uncertainty or {}
         d = [t.dbh_change_m for t in self.trees if t.status == "persisting" and math.isfinite(t.dbh_change_m)]
         growth = f", median DBH growth {1000 * float(np.median(d)):.0f} mm" if d else ""
-        return (f"{self.figures.get('persisting_stems', 0)} persisting stems registered AFTER onto BEFORE "
-                f"(+/- {100 * (u.get('translation_m') or 0):.1f} cm, {u.get('rotation_deg') or 0:.3f} deg); "
-                f"{c['persisting']} persisting, {c['removed']} removed, {c['new']} new"
-                + (f", {c['outside']} outside the other survey" if c["outside"] else "") + growth)
+        return (
+            f"{self.figures.get('persisting_stems', 0)} persisting stems registered AFTER onto BEFORE "
+            f"(+/- {100 * (u.get('translation_m') or 0):.1f} cm, {u.get('rotation_deg') or 0:.3f} deg); "
+            f"{c['persisting']} persisting, {c['removed']} removed, {c['new']} new"
+            + (f", {c['outside']} outside the other survey" if c["outside"] else "")
+            + growth
+        )
 
     def to_dict(self) -> dict[str, Any]:
         d = self.outcome_dict()
@@ -88,7 +91,9 @@ class ChangeResult(Outcome):
         return d
 
 
-def _failed(reason: str, figures: dict[str, Any], before: EpochTrees, timings: dict[str, float], sources: dict[str, str]) -> ChangeResult:
+def _failed(
+    reason: str, figures: dict[str, Any], before: EpochTrees, timings: dict[str, float], sources: dict[str, str]
+) -> ChangeResult:
     return ChangeResult("failed", reason, None, None, None, (), figures, before.origin_shift, timings, sources)
 
 
@@ -107,31 +112,56 @@ def detect_change(
     solution away (more than ``max_icp_correction_m``, or the persisting stems apart).
     """
     progress = as_progress(progress)
-    timings: dict[str, float] = {**{f"before_{k}": v for k, v in before.timings.items()},
-                                 **{f"after_{k}": v for k, v in after.timings.items()}}
+    timings: dict[str, float] = {
+        **{f"before_{k}": v for k, v in before.timings.items()},
+        **{f"after_{k}": v for k, v in after.timings.items()},
+    }
     sources = {"before": before.source, "after": after.source}
     figures: dict[str, Any] = {"stems_before": len(before), "stems_after": len(after)}
     smaller = min(len(before), len(after))
     if smaller < params.min_persisting:
-        return _failed(f"too few stems to register: {len(before)} in BEFORE, {len(after)} in AFTER "
-                       f"(at least {params.min_persisting} must persist)", figures, before, timings, sources)
+        return _failed(
+            f"too few stems to register: {len(before)} in BEFORE, {len(after)} in AFTER "
+            f"(at least {params.min_persisting} must persist)",
+            figures,
+            before,
+            timings,
+            sources,
+        )
     t = time.perf_counter()
     progress(0.0, "matching stems from any heading")
     match: StemMatch = persisting_stems(before, after, params)
     timings["stems_match_s"] = time.perf_counter() - t
     n = len(match.pairs)
-    figures.update(persisting_stems=n, coarse_matched=match.matched_coarse, second_matched=match.second_matched,
-                   margin=match.margin, dbh_rejected=match.dbh_rejected,
-                   coarse_heading_deg=round(float(match.rotation_deg) % 360.0, 9) % 360.0 + 0.0,  # in [0, 360): never 360.0
-                   persisting_fraction=n / smaller)
+    figures.update(
+        persisting_stems=n,
+        coarse_matched=match.matched_coarse,
+        second_matched=match.second_matched,
+        margin=match.margin,
+        dbh_rejected=match.dbh_rejected,
+        coarse_heading_deg=round(float(match.rotation_deg) % 360.0, 9) % 360.0 + 0.0,  # in [0, 360): never 360.0
+        persisting_fraction=n / smaller,
+    )
     need = max(params.min_persisting, math.ceil(params.min_persisting_fraction * smaller))
     if n < need:
-        return _failed(f"too few persisting stems: {n} of {smaller} match (at least {need} needed): "
-                       "unrelated plots, or too much changed", figures, before, timings, sources)
+        return _failed(
+            f"too few persisting stems: {n} of {smaller} match (at least {need} needed): "
+            "unrelated plots, or too much changed",
+            figures,
+            before,
+            timings,
+            sources,
+        )
     need_margin = params.margin.needed(match.matched_coarse)
     if match.second_matched is not None and match.margin < need_margin:
-        return _failed(f"ambiguous: another heading or shift matches {match.second_matched} stems against "
-                       f"{match.matched_coarse} (a margin of {need_margin} is needed)", figures, before, timings, sources)
+        return _failed(
+            f"ambiguous: another heading or shift matches {match.second_matched} stems against "
+            f"{match.matched_coarse} (a margin of {need_margin} is needed)",
+            figures,
+            before,
+            timings,
+            sources,
+        )
     t = time.perf_counter()
     progress(0.3, f"{n} persisting stems: refining on stem slices and terrain")
     local, icp_figures = refine_on_stems(before, after, match, params)
@@ -140,14 +170,22 @@ def detect_change(
     figures["vertical_from"] = match.vertical_from
     figures["vertical_spread_m"] = match.vertical_spread_m
     if icp_figures.get("disagree"):
-        return _failed(f"the persisting stems and the stem slices/terrain disagree: {icp_figures['why']} "
-                       f"(more than {params.max_icp_correction_m:g} m)", figures, before, timings, sources)
+        return _failed(
+            f"the persisting stems and the stem slices/terrain disagree: {icp_figures['why']} "
+            f"(more than {params.max_icp_correction_m:g} m)",
+            figures,
+            before,
+            timings,
+            sources,
+        )
     # the persisting stems after the final fit: residuals and uncertainty
     from ..tls.uncertainty import pair_uncertainty
 
     b_idx, a_idx = match.pairs[:, 0], match.pairs[:, 1]
     cut_z = before.ground_z[b_idx] + 1.3 - float(local[2, 3])  # BEFORE's breast heights, in AFTER's frame
-    moved = apply_transform(local, np.column_stack([paired_after_xy(before, after, match.pairs, float(local[2, 3])), cut_z]))
+    moved = apply_transform(
+        local, np.column_stack([paired_after_xy(before, after, match.pairs, float(local[2, 3])), cut_z])
+    )
     res = np.hypot(*(moved[:, :2] - before.xy[b_idx]).T)
     figures["stem_residual_rms_m"] = float(np.sqrt(np.mean(res**2)))
     figures["stem_residual_max_m"] = float(res.max())
@@ -170,11 +208,19 @@ def detect_change(
     translation = max(float(unc["translation_m"]), math.hypot(horizontal, vertical))
     alternatives = stem_alternatives(before, after, match, local, params)
     stated_t, stated_r = with_alternatives(translation, float(unc["rotation_deg"]), alternatives)
-    uncertainty = {"translation_m": stated_t, "rotation_deg": stated_r,
-                   "horizontal_m": horizontal, "vertical_m": vertical, "vertical_from": match.vertical_from,
-                   "heading_deg": unc.get("heading_deg"), "stems": n, "at": "plot centre (the persisting stems' centroid)",
-                   "alternatives": [a.to_dict() for a in alternatives], "weak_directions": [],
-                   "method": f"{unc.get('method')}; distinct solutions counted (stems persisting under each)"}
+    uncertainty = {
+        "translation_m": stated_t,
+        "rotation_deg": stated_r,
+        "horizontal_m": horizontal,
+        "vertical_m": vertical,
+        "vertical_from": match.vertical_from,
+        "heading_deg": unc.get("heading_deg"),
+        "stems": n,
+        "at": "plot centre (the persisting stems' centroid)",
+        "alternatives": [a.to_dict() for a in alternatives],
+        "weak_directions": [],
+        "method": f"{unc.get('method')}; distinct solutions counted (stems persisting under each)",
+    }
     if (stated_t, stated_r) != (translation, float(unc["rotation_deg"])):
         uncertainty["without_alternatives"] = {"translation_m": translation, "rotation_deg": float(unc["rotation_deg"])}
     refusal = judge(stated_t, stated_r, params.uncertainty, alternatives=alternatives)
@@ -188,5 +234,15 @@ def detect_change(
     figures["single_stems_without_dbh"] = len(skipped)
     timings["trees_match_s"] = time.perf_counter() - t
     progress(1.0, "done")
-    return ChangeResult("ok", "", file_matrix(before, after, local), local, uncertainty, tuple(trees), figures,
-                        before.origin_shift, timings, sources)
+    return ChangeResult(
+        "ok",
+        "",
+        file_matrix(before, after, local),
+        local,
+        uncertainty,
+        tuple(trees),
+        figures,
+        before.origin_shift,
+        timings,
+        sources,
+    )

@@ -173,7 +173,9 @@ def epoch_from_cloud(
     inv = measure_trees(p, params.replace(cylinder_models=False), progress.sub(0.0, 0.9), single_tree=False)
     records = [r for r in inv.trees if r.source == "stem"] if inv.ok else []
     if not records:
-        raise ScanDataError(f"{name or 'cloud'}: no stem found at breast height: a ground-based forest cloud in metres is needed")
+        raise ScanDataError(
+            f"{name or 'cloud'}: no stem found at breast height: a ground-based forest cloud in metres is needed"
+        )
     timings = {f"{k}": v for k, v in inv.timings.items()}
     timings["trees_s"] = time.perf_counter() - t
     progress(0.9, f"{name}: {len(records)} trees: stem band and footprint")
@@ -231,11 +233,28 @@ def epoch_from_cloud(
         terrain = bool(np.mean(np.isfinite(d)) >= 0.5)
     progress(1.0, f"{name}: {n} trees")
     return EpochTrees(
-        ids=np.array([r.tree_id for r in records], dtype=np.int64), xy=xy, ground_z=gz, axis=axes,
-        dbh_m=out["dbh"], dbh_sigma_m=out["dbh_sd"], height_m=out["h"], height_sigma_m=out["h_sd"],
-        dbh_ok=dbh_ok, height_ok=h_ok, flags=tuple(flags), curves=tuple(curve_list), band=band, band_heights=band_h,
-        ground=ground, origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=float),
-        footprint=footprint, foot_z=foot, terrain=terrain, source="cloud", name=name, timings=timings,
+        ids=np.array([r.tree_id for r in records], dtype=np.int64),
+        xy=xy,
+        ground_z=gz,
+        axis=axes,
+        dbh_m=out["dbh"],
+        dbh_sigma_m=out["dbh_sd"],
+        height_m=out["h"],
+        height_sigma_m=out["h_sd"],
+        dbh_ok=dbh_ok,
+        height_ok=h_ok,
+        flags=tuple(flags),
+        curves=tuple(curve_list),
+        band=band,
+        band_heights=band_h,
+        ground=ground,
+        origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=float),
+        footprint=footprint,
+        foot_z=foot,
+        terrain=terrain,
+        source="cloud",
+        name=name,
+        timings=timings,
     )
 
 
@@ -278,7 +297,7 @@ class _Rows:
         return int(self.lines[i]) if self.lines is not None else i + 1
 
     def named(self, idx: Sequence[int], column: Optional[str] = None) -> str:
-        """"lines 4, 9 (tree_id 3, 8; dbh_m '-0.2', 'abc')" for the rows ``idx``."""
+        """ "lines 4, 9 (tree_id 3, 8; dbh_m '-0.2', 'abc')" for the rows ``idx``."""
         idx = list(idx)
         word = ("line" if self.lines is not None else "row") + ("s" if len(idx) > 1 else "")
         shown = idx[:_NAMED]
@@ -289,7 +308,9 @@ class _Rows:
             detail.append("tree_id " + ", ".join(t or "-" for t in ids))
         if column is not None:
             detail.append(f"{column} " + ", ".join(repr(str(self.rows[i].get(column, "")).strip()) for i in shown))
-        return f"{word} {', '.join(str(self.number(i)) for i in shown)}{more}" + (f" ({'; '.join(detail)})" if detail else "")
+        return f"{word} {', '.join(str(self.number(i)) for i in shown)}{more}" + (
+            f" ({'; '.join(detail)})" if detail else ""
+        )
 
 
 def _dbh_unit_hint(median: float) -> str:
@@ -299,9 +320,15 @@ def _dbh_unit_hint(median: float) -> str:
     return "centimetres: name the column dbh_cm (it is converted), or convert the values to metres"
 
 
-def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_scale: float = 1.0,
-                     change: ChangeParams = ChangeParams(), lines: Optional[Sequence[int]] = None,
-                     dbh_column: str = "dbh_m") -> EpochTrees:
+def epoch_from_table(
+    rows: Sequence[Mapping[str, Any]],
+    *,
+    name: str = "",
+    unit_scale: float = 1.0,
+    change: ChangeParams = ChangeParams(),
+    lines: Optional[Sequence[int]] = None,
+    dbh_column: str = "dbh_m",
+) -> EpochTrees:
     """The trees of a ``trees.csv`` of ``forestreg trees`` (rows as dicts of its columns: x, y, z
     in file coordinates, ``dbh_m``, ``height_m``, the quality columns and ``flag``). Positions
     are the stem bases (the table has no breast-height point); trees without a stem (from the
@@ -347,7 +374,9 @@ def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_
         if len(bad):
             problems.append(f"column z is not a finite number at {named.named(bad, 'z')}")
     if problems:
-        raise ScanDataError(f"{who}: " + "; ".join(problems) + ": every tree needs its position; correct or remove these rows")
+        raise ScanDataError(
+            f"{who}: " + "; ".join(problems) + ": every tree needs its position; correct or remove these rows"
+        )
     stem = np.array([str(r.get("source", "stem") or "stem").strip().lower() == "stem" for r in rows], dtype=bool)
     dbh, dbh_given = values("dbh_m")
     bad = np.flatnonzero(stem & dbh_given & ~np.isfinite(dbh))
@@ -357,11 +386,15 @@ def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_
     median = float(np.median(dbh[sized])) if sized.any() else math.nan
     if median > 3.0:
         raw = np.median([_value(rows[i], dbh_column)[0] for i in np.flatnonzero(sized)])
-        raise ScanDataError(f"{who}: column {dbh_column} has a median of {raw:.4g} over {int(sized.sum())} trees, "
-                            f"{median:.3g} m as a DBH (a DBH in metres is below 3): the values look like {_dbh_unit_hint(median)}")
+        raise ScanDataError(
+            f"{who}: column {dbh_column} has a median of {raw:.4g} over {int(sized.sum())} trees, "
+            f"{median:.3g} m as a DBH (a DBH in metres is below 3): the values look like {_dbh_unit_hint(median)}"
+        )
     if dbh_column != "dbh_m" and median < 0.02:
-        raise ScanDataError(f"{who}: column {dbh_column} has a median of {median:.3g} m as a DBH over {int(sized.sum())} trees: "
-                            "the values look like metres: name the column dbh_m")
+        raise ScanDataError(
+            f"{who}: column {dbh_column} has a median of {median:.3g} m as a DBH over {int(sized.sum())} trees: "
+            "the values look like metres: name the column dbh_m"
+        )
     bad = np.flatnonzero(stem & np.isfinite(dbh) & (dbh <= 0))
     if len(bad):
         problems.append(f"column {dbh_column} is zero or negative at {named.named(bad, dbh_column)}")
@@ -374,7 +407,9 @@ def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_
         problems.append(f"column height_m is not a number at {named.named(bad, 'height_m')}")
     bad = np.flatnonzero(np.isfinite(height) & ((height < 0) | (height > MAX_TABLE_HEIGHT_M)))
     if len(bad):
-        problems.append(f"column height_m is negative or above {MAX_TABLE_HEIGHT_M:g} m at {named.named(bad, 'height_m')}")
+        problems.append(
+            f"column height_m is negative or above {MAX_TABLE_HEIGHT_M:g} m at {named.named(bad, 'height_m')}"
+        )
     if problems:
         raise ScanDataError(f"{who}: " + "; ".join(problems) + ": correct or remove these rows")
     keep_idx = np.flatnonzero(stem)
@@ -388,19 +423,26 @@ def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_
         more = f" and {len(pairs) - _NAMED} more pairs" if len(pairs) > _NAMED else ""
         raise ScanDataError(
             f"{who}: {len(pairs)} tree(s) listed twice (the same place within {100 * DUPLICATE_DISTANCE_M:g} cm and the same "
-            f"DBH within {100 * DUPLICATE_DBH_M:g} cm): {word} {shown}{more}; remove the repeated rows")
+            f"DBH within {100 * DUPLICATE_DBH_M:g} cm): {word} {shown}{more}; remove the repeated rows"
+        )
     keep = [rows[i] for i in keep_idx]
     notes = []
     if len(keep) < n_all:
-        notes.append(f"{n_all - len(keep)} of {n_all} trees without a stem (source not 'stem') left out: they cannot be matched by their stems")
+        notes.append(
+            f"{n_all - len(keep)} of {n_all} trees without a stem (source not 'stem') left out: they cannot be matched by their stems"
+        )
     xyz = xyz[keep_idx] * unit_scale
     shift = np.floor(xyz.mean(axis=0))
     local = xyz - shift
     n = len(keep)
     dbh = dbh[keep_idx]
     h = height[keep_idx]
-    d_trust = [_trust(str(r.get("dbh_quality", "") or ("; high" if math.isfinite(d) else ""))) for r, d in zip(keep, dbh)]
-    h_trust = [_trust(str(r.get("height_quality", "") or ("; high" if math.isfinite(v) else ""))) for r, v in zip(keep, h)]
+    d_trust = [
+        _trust(str(r.get("dbh_quality", "") or ("; high" if math.isfinite(d) else ""))) for r, d in zip(keep, dbh)
+    ]
+    h_trust = [
+        _trust(str(r.get("height_quality", "") or ("; high" if math.isfinite(v) else ""))) for r, v in zip(keep, h)
+    ]
     d_sd = np.array([by_trust(change.table_dbh_sigma_m, t) for t in d_trust])
     h_sd = np.array([by_trust(change.height_sigma_m, t) for t in h_trust])
     ids = []
@@ -410,13 +452,27 @@ def epoch_from_table(rows: Sequence[Mapping[str, Any]], *, name: str = "", unit_
         except (TypeError, ValueError):
             ids.append(k + 1)
     return EpochTrees(
-        ids=np.array(ids, dtype=np.int64), xy=local[:, :2], ground_z=local[:, 2], axis=np.tile([0.0, 0.0, 1.0], (n, 1)),
-        dbh_m=dbh, dbh_sigma_m=d_sd, height_m=h, height_sigma_m=h_sd,
+        ids=np.array(ids, dtype=np.int64),
+        xy=local[:, :2],
+        ground_z=local[:, 2],
+        axis=np.tile([0.0, 0.0, 1.0], (n, 1)),
+        dbh_m=dbh,
+        dbh_sigma_m=d_sd,
+        height_m=h,
+        height_sigma_m=h_sd,
         dbh_ok=np.isfinite(dbh) & np.array([t in ("high", "medium") for t in d_trust]),
         height_ok=np.isfinite(h) & np.array([t in ("high", "medium") for t in h_trust]),
-        flags=tuple(str(r.get("flag", "") or "") for r in keep), curves=tuple(None for _ in keep),
-        band=np.zeros((0, 3)), band_heights=np.zeros(0), ground=np.zeros((0, 3)), origin_shift=shift,
-        foot_z=local[:, 2].copy(), terrain=True, source="table", name=name, notes=tuple(notes),
+        flags=tuple(str(r.get("flag", "") or "") for r in keep),
+        curves=tuple(None for _ in keep),
+        band=np.zeros((0, 3)),
+        band_heights=np.zeros(0),
+        ground=np.zeros((0, 3)),
+        origin_shift=shift,
+        foot_z=local[:, 2].copy(),
+        terrain=True,
+        source="table",
+        name=name,
+        notes=tuple(notes),
     )
 
 
@@ -466,7 +522,9 @@ def position_unit_mismatch(before: EpochTrees, after: EpochTrees) -> Optional[di
             rim = e.xy[ConvexHull(e.xy).vertices]
         except QhullError:  # stems on a line
             rim = e.xy
-        return float(np.median(d[:, 1])), float(np.max(np.hypot(*(rim[:, None, :] - rim[None, :, :]).transpose(2, 0, 1))))
+        return float(np.median(d[:, 1])), float(
+            np.max(np.hypot(*(rim[:, None, :] - rim[None, :, :]).transpose(2, 0, 1)))
+        )
 
     (sb, eb), (sa, ea) = figures(before), figures(after)
     if min(sb, eb, sa, ea) <= 0:
@@ -475,7 +533,9 @@ def position_unit_mismatch(before: EpochTrees, after: EpochTrees) -> Optional[di
     for unit, metres in POSITION_UNITS:
         for larger, ratio in (("AFTER", 1.0 / metres), ("BEFORE", metres)):
             if all(abs(math.log(r / ratio)) < math.log(UNIT_RATIO_TOLERANCE) for r in (spacing, extent)):
-                why = (f"AFTER's stems are {spacing:.3g} times as far apart as BEFORE's (median spacing {sa:.3g} against "
-                       f"{sb:.3g}) over a {extent:.3g} times wider plot (widest {ea:.4g} against {eb:.4g})")
+                why = (
+                    f"AFTER's stems are {spacing:.3g} times as far apart as BEFORE's (median spacing {sa:.3g} against "
+                    f"{sb:.3g}) over a {extent:.3g} times wider plot (widest {ea:.4g} against {eb:.4g})"
+                )
                 return {"larger": larger, "unit": unit, "factor": metres, "why": why}
     return None

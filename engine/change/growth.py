@@ -37,9 +37,21 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..core.errors import ParameterError
-from ..core.params import Params, param_field as _p
+from ..core.params import Params
+from ..core.params import param_field as _p
 
-__all__ = ["GrowthParams", "GrowthFit", "StemSections", "ShiftPrior", "stem_sections", "sector_growth", "shift_prior", "stem_growth", "stem_diameter", "StemPlace"]
+__all__ = [
+    "GrowthParams",
+    "GrowthFit",
+    "StemSections",
+    "ShiftPrior",
+    "stem_sections",
+    "sector_growth",
+    "shift_prior",
+    "stem_growth",
+    "stem_diameter",
+    "StemPlace",
+]
 
 
 @dataclass(frozen=True)
@@ -47,14 +59,52 @@ class GrowthParams(Params):
     """How the diameter growth of a persisting stem is measured from the sectors both surveys saw.
     Distances in metres, angles in degrees."""
 
-    section_heights_m: tuple[float, float] = _p((1.0, 1.8), "m", 0.3, 3.0, "Heights above the ground under the stem (the earlier survey's, for both surveys) of the band whose sectors are compared (around breast height, above the butt flare)")
-    sector_deg: float = _p(20.0, "deg", 5.0, 45.0, "Width of the angular sectors in which the two surveys' radial distances are compared")
+    section_heights_m: tuple[float, float] = _p(
+        (1.0, 1.8),
+        "m",
+        0.3,
+        3.0,
+        "Heights above the ground under the stem (the earlier survey's, for both surveys) of the band whose sectors are compared (around breast height, above the butt flare)",
+    )
+    sector_deg: float = _p(
+        20.0, "deg", 5.0, 45.0, "Width of the angular sectors in which the two surveys' radial distances are compared"
+    )
     min_sector_points: int = _p(3, "points", 2, 1000, "Points of each survey a sector needs to be compared")
-    shell_m: tuple[float, float] = _p((0.04, 0.07), "m", 0.005, 0.5, "Points this far inside and outside the earlier survey's circle belong to the bark (the rest is clutter)")
-    min_common_arc_deg: float = _p(60.0, "deg", 0.0, 360.0, "Shortest arc seen in both surveys over which a diameter growth is given (shorter: withheld, with the reason)")
-    sigma_floor_m: float = _p(0.0015, "m", 0.0, 0.1, "Least scatter of the sectors' radial changes (bark relief both surveys resolve differently)")
-    max_shift_m: float = _p(0.05, "m", 0.001, 1.0, "Largest local shift of a stem between the registered surveys; more: the sections are not one stem")
-    min_prior_sigma_m: float = _p(0.0015, "m", 0.0, 0.1, "Least 1-sigma of the shift a stem is assumed to have from its neighbours' (the field's roughness, found from the stems)")
+    shell_m: tuple[float, float] = _p(
+        (0.04, 0.07),
+        "m",
+        0.005,
+        0.5,
+        "Points this far inside and outside the earlier survey's circle belong to the bark (the rest is clutter)",
+    )
+    min_common_arc_deg: float = _p(
+        60.0,
+        "deg",
+        0.0,
+        360.0,
+        "Shortest arc seen in both surveys over which a diameter growth is given (shorter: withheld, with the reason)",
+    )
+    sigma_floor_m: float = _p(
+        0.0015,
+        "m",
+        0.0,
+        0.1,
+        "Least scatter of the sectors' radial changes (bark relief both surveys resolve differently)",
+    )
+    max_shift_m: float = _p(
+        0.05,
+        "m",
+        0.001,
+        1.0,
+        "Largest local shift of a stem between the registered surveys; more: the sections are not one stem",
+    )
+    min_prior_sigma_m: float = _p(
+        0.0015,
+        "m",
+        0.0,
+        0.1,
+        "Least 1-sigma of the shift a stem is assumed to have from its neighbours' (the field's roughness, found from the stems)",
+    )
 
     def _check(self) -> None:
         lo, hi = self.section_heights_m
@@ -117,8 +167,14 @@ class ShiftPrior:
     sigma_m: float = 0.01
 
 
-def stem_sections(before: np.ndarray, after: np.ndarray, centre_bh: np.ndarray, axis: np.ndarray, radius_m: float,
-                  params: GrowthParams = GrowthParams()) -> Optional[StemSections]:
+def stem_sections(
+    before: np.ndarray,
+    after: np.ndarray,
+    centre_bh: np.ndarray,
+    axis: np.ndarray,
+    radius_m: float,
+    params: GrowthParams = GrowthParams(),
+) -> Optional[StemSections]:
     """The sectors of one stem both surveys saw. ``before`` / ``after``: (k, 3) points near the
     stem as (x, y, height above the ground under the stem), the later survey's already in the
     earlier one's frame; ``centre_bh`` the stem axis at 1.3 m (x, y), ``axis`` its unit
@@ -205,11 +261,20 @@ def stem_sections(before: np.ndarray, after: np.ndarray, centre_bh: np.ndarray, 
         angles.append(t0)
         changes.append(float(sol[2]))
         noises.append(math.sqrt(max(float(cov[2, 2]), 0.0)))
-    return StemSections(angle=np.asarray(angles), change=np.asarray(changes), noise=np.asarray(noises),
-                        sectors_before=seen_b, sectors_after=seen_a, n_sectors=n_sec, radius_m=r0)
+    return StemSections(
+        angle=np.asarray(angles),
+        change=np.asarray(changes),
+        noise=np.asarray(noises),
+        sectors_before=seen_b,
+        sectors_after=seen_a,
+        n_sectors=n_sec,
+        radius_m=r0,
+    )
 
 
-def _solve(sec: StemSections, prior: ShiftPrior, params: GrowthParams, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def _solve(
+    sec: StemSections, prior: ShiftPrior, params: GrowthParams, use: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
     """Weighted least squares of ``change = g + delta . u`` over the sectors ``use`` with the
     prior on ``delta``: (x = [g, dx, dy], covariance, rms of the residuals). Each sector weighs
     ``1 / (noise^2 + s^2)``: its points' own noise and the sectors' scatter about the model
@@ -244,25 +309,51 @@ def _solve(sec: StemSections, prior: ShiftPrior, params: GrowthParams, use: np.n
     return x, np.linalg.inv(normal), float(np.sqrt(np.mean((y - a @ x) ** 2)))
 
 
-def sector_growth(sec: Optional[StemSections], prior: ShiftPrior = ShiftPrior(), params: GrowthParams = GrowthParams()) -> GrowthFit:
+def sector_growth(
+    sec: Optional[StemSections], prior: ShiftPrior = ShiftPrior(), params: GrowthParams = GrowthParams()
+) -> GrowthFit:
     """The diameter growth of one stem from its sectors (module docstring); ``prior`` the shift
     the stem is expected to have (:func:`shift_prior`). Never raises: an unmeasurable stem gives
     a :class:`GrowthFit` with NaN and the reason."""
     nan2 = np.full((2, 2), np.nan)
     if sec is None:
-        return GrowthFit(math.nan, math.nan, (math.nan, math.nan), nan2, 0.0, 0, math.nan,
-                         "no section of the stem at breast height in either survey")
+        return GrowthFit(
+            math.nan,
+            math.nan,
+            (math.nan, math.nan),
+            nan2,
+            0.0,
+            0,
+            math.nan,
+            "no section of the stem at breast height in either survey",
+        )
     arc = sec.common_arc_deg
     distinct = len(sec.sectors_before & sec.sectors_after)
     if arc >= params.min_common_arc_deg and len(sec.change) < 3:
-        return GrowthFit(math.nan, math.nan, (math.nan, math.nan), nan2, arc, distinct, math.nan,
-                         f"only {len(sec.change)} sectors of the stem could be compared (3 needed): too few points of one survey there")
+        return GrowthFit(
+            math.nan,
+            math.nan,
+            (math.nan, math.nan),
+            nan2,
+            arc,
+            distinct,
+            math.nan,
+            f"only {len(sec.change)} sectors of the stem could be compared (3 needed): too few points of one survey there",
+        )
     if arc < params.min_common_arc_deg:
         seen_b = 360.0 * len(sec.sectors_before) / sec.n_sectors
         seen_a = 360.0 * len(sec.sectors_after) / sec.n_sectors
-        return GrowthFit(math.nan, math.nan, (math.nan, math.nan), nan2, arc, distinct, math.nan,
-                         f"the surveys saw {arc:.0f} deg of the stem in common (earlier {seen_b:.0f}, later {seen_a:.0f} deg; "
-                         f"at least {params.min_common_arc_deg:g} needed): the sides seen differ")
+        return GrowthFit(
+            math.nan,
+            math.nan,
+            (math.nan, math.nan),
+            nan2,
+            arc,
+            distinct,
+            math.nan,
+            f"the surveys saw {arc:.0f} deg of the stem in common (earlier {seen_b:.0f}, later {seen_a:.0f} deg; "
+            f"at least {params.min_common_arc_deg:g} needed): the sides seen differ",
+        )
     use = np.ones(len(sec.change), dtype=bool)
     x, cov, rms = _solve(sec, prior, params, use)
     # sectors far off the model (a branch stub, a twig in one survey, a hole's edge) are left out once
@@ -274,14 +365,25 @@ def sector_growth(sec: Optional[StemSections], prior: ShiftPrior = ShiftPrior(),
         x, cov, rms = _solve(sec, prior, params, use)
     shift = (float(x[1]), float(x[2]))
     if math.hypot(*shift) > params.max_shift_m:
-        return GrowthFit(math.nan, math.nan, shift, cov[1:, 1:], arc, distinct, rms,
-                         f"the sections of the two surveys lie {100 * math.hypot(*shift):.1f} cm apart after the registration "
-                         f"(more than {100 * params.max_shift_m:g} cm): not measured as one stem")
-    return GrowthFit(2.0 * float(x[0]), 2.0 * math.sqrt(max(float(cov[0, 0]), 0.0)), shift, cov[1:, 1:], arc, distinct, rms)
+        return GrowthFit(
+            math.nan,
+            math.nan,
+            shift,
+            cov[1:, 1:],
+            arc,
+            distinct,
+            rms,
+            f"the sections of the two surveys lie {100 * math.hypot(*shift):.1f} cm apart after the registration "
+            f"(more than {100 * params.max_shift_m:g} cm): not measured as one stem",
+        )
+    return GrowthFit(
+        2.0 * float(x[0]), 2.0 * math.sqrt(max(float(cov[0, 0]), 0.0)), shift, cov[1:, 1:], arc, distinct, rms
+    )
 
 
-def shift_prior(positions: np.ndarray, fits: Sequence[GrowthFit], fallback_sigma_m: float,
-                params: GrowthParams = GrowthParams()) -> list[ShiftPrior]:
+def shift_prior(
+    positions: np.ndarray, fits: Sequence[GrowthFit], fallback_sigma_m: float, params: GrowthParams = GrowthParams()
+) -> list[ShiftPrior]:
     """The shift each stem is expected to have from the others. The registration leaves a smooth
     field of small shifts over the plot (a translation and a turn about the vertical), which the
     stems' own sectors reveal, each as well as its common arc allows (``fits``: a first pass with
@@ -293,7 +395,11 @@ def shift_prior(positions: np.ndarray, fits: Sequence[GrowthFit], fallback_sigma
     registration's stated uncertainty). ``positions`` (n, 2) metres."""
     positions = np.asarray(positions, dtype=float).reshape(-1, 2)
     fallback = ShiftPrior((0.0, 0.0), max(fallback_sigma_m, params.min_prior_sigma_m))
-    use = [k for k, f in enumerate(fits) if f.stated and np.all(np.isfinite(f.shift_cov)) and np.all(np.isfinite(f.shift_m))]
+    use = [
+        k
+        for k, f in enumerate(fits)
+        if f.stated and np.all(np.isfinite(f.shift_cov)) and np.all(np.isfinite(f.shift_m))
+    ]
     if len(use) < 3:
         return [fallback] * len(fits)
     centre = positions[use].mean(axis=0)
@@ -362,8 +468,14 @@ class StemPlace:
     diameter_m: float
 
 
-def stem_growth(before, after, matrix: np.ndarray, stems: Sequence[StemPlace], shift_sigma_m: float,
-                params: GrowthParams = GrowthParams()) -> list[GrowthFit]:
+def stem_growth(
+    before,
+    after,
+    matrix: np.ndarray,
+    stems: Sequence[StemPlace],
+    shift_sigma_m: float,
+    params: GrowthParams = GrowthParams(),
+) -> list[GrowthFit]:
     """The growth of every persisting stem ``stems`` between two :class:`~.epoch.EpochTrees`
     with points, registered by ``matrix`` (``p_before = matrix @ p_after``, local frames): the
     sections of each (:func:`stem_sections`), a first pass with a wide prior on the local shift,

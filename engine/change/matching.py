@@ -38,8 +38,8 @@ import numpy as np
 
 from ..core.transform import apply as apply_transform
 from .epoch import EpochTrees
-from .params import ChangeParams
 from .growth import GrowthFit, StemPlace, stem_diameter, stem_growth
+from .params import ChangeParams
 from .registration import stem_pairs
 
 __all__ = ["TreeChange", "STATUSES", "match_trees", "CHANGE_COLUMNS"]
@@ -48,9 +48,25 @@ STATUSES = ("persisting", "removed", "new", "outside")
 
 #: Columns of ``tree_changes.csv`` (x, y in BEFORE file coordinates; metres).
 CHANGE_COLUMNS = (
-    "status", "x", "y", "dbh_before_m", "dbh_after_m", "dbh_change_m", "height_before_m", "height_after_m",
-    "height_change_m", "flag", "tree_id_before", "tree_id_after", "dbh_before_sigma_m", "dbh_after_sigma_m",
-    "dbh_change_sigma_m", "height_before_sigma_m", "height_after_sigma_m", "height_change_sigma_m", "match_distance_m",
+    "status",
+    "x",
+    "y",
+    "dbh_before_m",
+    "dbh_after_m",
+    "dbh_change_m",
+    "height_before_m",
+    "height_after_m",
+    "height_change_m",
+    "flag",
+    "tree_id_before",
+    "tree_id_after",
+    "dbh_before_sigma_m",
+    "dbh_after_sigma_m",
+    "dbh_change_sigma_m",
+    "height_before_sigma_m",
+    "height_after_sigma_m",
+    "height_change_sigma_m",
+    "match_distance_m",
 )
 
 
@@ -88,8 +104,9 @@ class TreeChange:
         return d
 
 
-def _stem_evidence(epoch: EpochTrees, xy: np.ndarray, radius: np.ndarray, index,
-                   heights: tuple[float, float] = (1.0, 2.5)) -> tuple[np.ndarray, np.ndarray]:
+def _stem_evidence(
+    epoch: EpochTrees, xy: np.ndarray, radius: np.ndarray, index, heights: tuple[float, float] = (1.0, 2.5)
+) -> tuple[np.ndarray, np.ndarray]:
     """Per position: the points of ``epoch``'s stem band ``heights`` above the ground within
     ``radius`` + 5 cm, and those of them on the stem's surface (within 3 cm of the circle of
     ``radius``) in at least two 20-degree sectors around it (else 0): a stem partly seen."""
@@ -118,8 +135,14 @@ def _covered(epoch: EpochTrees, xy: np.ndarray, radius_m: float, index_all) -> n
     return np.isfinite(d)
 
 
-def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, params: ChangeParams = ChangeParams(),
-                skipped: Optional[list] = None, shift_sigma_m: float = 0.01) -> list[TreeChange]:
+def match_trees(
+    before: EpochTrees,
+    after: EpochTrees,
+    matrix: np.ndarray,
+    params: ChangeParams = ChangeParams(),
+    skipped: Optional[list] = None,
+    shift_sigma_m: float = 0.01,
+) -> list[TreeChange]:
     """Every tree of both surveys with its status and values (module docstring). ``matrix``:
     ``p_before = matrix @ p_after`` (local frames); ``shift_sigma_m`` the registration's 1-sigma
     horizontal uncertainty, the prior of a stem's local shift where the plot's stems do not tell
@@ -153,8 +176,14 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     places: list[StemPlace] = []
     for b, a in pairs:
         d = stem_diameter(before, int(b))
-        places.append(StemPlace(tuple(before.xy[b]), float(before.ground_z[b]), tuple(before.axis[b]),
-                                d if math.isfinite(d) else stem_diameter(after, int(a))))
+        places.append(
+            StemPlace(
+                tuple(before.xy[b]),
+                float(before.ground_z[b]),
+                tuple(before.axis[b]),
+                d if math.isfinite(d) else stem_diameter(after, int(a)),
+            )
+        )
     #: stems found in one survey and present in the other: (index into ``out``, their place)
     present_alone: list[tuple[int, StemPlace]] = []
     # --- stems of BEFORE alone: removed, not found in AFTER, or outside AFTER
@@ -162,14 +191,26 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
     # no evidence of a tree removed or grown in (a crown part or branch whorl taken for a stem):
     # left out, counted
     for epoch, paired, band in ((before, paired_b, band_b), (after, paired_a, band_a)):
-        alone = np.array([k for k in sorted(set(range(len(epoch))) - paired) if not math.isfinite(epoch.dbh_m[k])], dtype=np.int64)
+        alone = np.array(
+            [k for k in sorted(set(range(len(epoch))) - paired) if not math.isfinite(epoch.dbh_m[k])], dtype=np.int64
+        )
         if len(alone) and epoch.has_points:
             own = _stem_evidence(epoch, epoch.xy[alone], np.full(len(alone), 0.15), band, (1.0, 1.6))[0]
             alone = alone[own < params.presence_points]
         skipped.extend(int(k) for k in alone)
         paired |= set(alone.tolist())
-    def alone(epoch: EpochTrees, which: str, other: EpochTrees, rest: np.ndarray, in_other: np.ndarray, band_other, cover_other,
-              status: str, at_other: bool) -> None:
+
+    def alone(
+        epoch: EpochTrees,
+        which: str,
+        other: EpochTrees,
+        rest: np.ndarray,
+        in_other: np.ndarray,
+        band_other,
+        cover_other,
+        status: str,
+        at_other: bool,
+    ) -> None:
         """Stems of ``epoch`` alone (``rest``; ``in_other`` its breast points in the other's frame):
         persisting where the other survey has stem points there, outside where it did not see the
         place (its footprint; and, with ``cover_other``, points near it: never a false new tree
@@ -186,26 +227,46 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
             base = _one_side(epoch, int(k), which, xy=where[j] if at_other else None)
             own = epoch.flags[k] and f"{which.upper()}: {epoch.flags[k]}"
             thick_new = status == "new" and seen[j] and epoch.dbh_m[k] > params.max_new_dbh_m
-            if other.has_points and (present[j] >= params.presence_points or partly[j] >= params.partial_presence_points or thick_new):
+            if other.has_points and (
+                present[j] >= params.presence_points or partly[j] >= params.partial_presence_points or thick_new
+            ):
                 if present[j] >= params.presence_points:
                     what = f"stem present in {name} but not measured there (occluded or unsure)"
                 elif partly[j] >= params.partial_presence_points:
                     what = f"stem partly seen in {name} ({partly[j]} points on its surface: occluded there)"
                 else:
-                    what = (f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {100 * params.max_new_dbh_m:g} cm): "
-                            f"its place was occluded in {name} ({present[j]} points there)")
+                    what = (
+                        f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {100 * params.max_new_dbh_m:g} cm): "
+                        f"its place was occluded in {name} ({present[j]} points there)"
+                    )
                 if at_other:  # a stem of AFTER: its place in the BEFORE frame
                     up = matrix[:3, :3] @ epoch.axis[k]
-                    place = StemPlace((float(where[j, 0]), float(where[j, 1])), float(in_other[k, 2]) - 1.3, tuple(up),
-                                      stem_diameter(epoch, int(k)))
+                    place = StemPlace(
+                        (float(where[j, 0]), float(where[j, 1])),
+                        float(in_other[k, 2]) - 1.3,
+                        tuple(up),
+                        stem_diameter(epoch, int(k)),
+                    )
                 else:
-                    place = StemPlace(tuple(epoch.xy[k]), float(epoch.ground_z[k]), tuple(epoch.axis[k]), stem_diameter(epoch, int(k)))
+                    place = StemPlace(
+                        tuple(epoch.xy[k]), float(epoch.ground_z[k]), tuple(epoch.axis[k]), stem_diameter(epoch, int(k))
+                    )
                 present_alone.append((len(out), place))
                 out.append(TreeChange(status="persisting", **base, flag=_join(own, what)))
             elif thick_new:  # a table: no points to measure it by
-                out.append(TreeChange(status="persisting", **base, flag=_join(own, (
-                    f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {100 * params.max_new_dbh_m:g} cm): "
-                    f"no stem at its place in the {name} table: not compared"))))
+                out.append(
+                    TreeChange(
+                        status="persisting",
+                        **base,
+                        flag=_join(
+                            own,
+                            (
+                                f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {100 * params.max_new_dbh_m:g} cm): "
+                                f"no stem at its place in the {name} table: not compared"
+                            ),
+                        ),
+                    )
+                )
             elif not seen[j]:
                 out.append(TreeChange(status="outside", **base, flag=f"outside the {name} survey: not compared"))
             elif status == "new" and not math.isfinite(epoch.dbh_m[k]):
@@ -213,18 +274,52 @@ def match_trees(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, param
                 # measured (too few points, a partial arc) is no evidence of one; left out, counted
                 skipped.append(int(k))
             else:
-                why = f"no stem in {name} at its place ({present[j]} points)" if other.has_points else f"no stem in the {name} table at its place"
+                why = (
+                    f"no stem in {name} at its place ({present[j]} points)"
+                    if other.has_points
+                    else f"no stem in the {name} table at its place"
+                )
                 out.append(TreeChange(status=status, **base, flag=_join(why, own)))
 
     # --- stems of BEFORE alone: removed, not found in AFTER, or outside AFTER (its footprint)
-    alone(before, "before", after, np.array(sorted(set(range(len(before))) - paired_b), dtype=np.int64), before_in_a, band_a, None, "removed", False)
+    alone(
+        before,
+        "before",
+        after,
+        np.array(sorted(set(range(len(before))) - paired_b), dtype=np.int64),
+        before_in_a,
+        band_a,
+        None,
+        "removed",
+        False,
+    )
     # --- stems of AFTER alone: new, not found in BEFORE, or outside BEFORE
-    alone(after, "after", before, np.array(sorted(set(range(len(after))) - paired_a), dtype=np.int64), after_in_b, band_b, cover_b, "new", True)
+    alone(
+        after,
+        "after",
+        before,
+        np.array(sorted(set(range(len(after))) - paired_a), dtype=np.int64),
+        after_in_b,
+        band_b,
+        cover_b,
+        "new",
+        True,
+    )
     # --- growth of every persisting stem from the sectors both clouds saw (one shift field)
     growth = stem_growth(before, after, matrix, places + [p for _, p in present_alone], shift_sigma_m, params.growth)
-    paired = [_persisting(before, after, int(b), int(a), float(np.hypot(*(after_in_b[a, :2] - before.xy[b]))), params,
-                          growth[k] if growth else None) for k, (b, a) in enumerate(pairs)]
-    for (i, _), fit in zip(present_alone, growth[len(places):]):
+    paired = [
+        _persisting(
+            before,
+            after,
+            int(b),
+            int(a),
+            float(np.hypot(*(after_in_b[a, :2] - before.xy[b]))),
+            params,
+            growth[k] if growth else None,
+        )
+        for k, (b, a) in enumerate(pairs)
+    ]
+    for (i, _), fit in zip(present_alone, growth[len(places) :]):
         out[i] = _growth_of_one(out[i], fit, params)
     out = _height_outliers(paired + out, params)
     order = {s: i for i, s in enumerate(STATUSES)}
@@ -237,7 +332,9 @@ def _height_outliers(trees: list[TreeChange], params: ChangeParams) -> list[Tree
     in one survey or a neighbour's crown taken for the top, not growth."""
     import dataclasses
 
-    values = np.array([t.height_change_m for t in trees if t.status == "persisting" and math.isfinite(t.height_change_m)])
+    values = np.array(
+        [t.height_change_m for t in trees if t.status == "persisting" and math.isfinite(t.height_change_m)]
+    )
     if len(values) < 5:
         return trees
     med = float(np.median(values))
@@ -245,9 +342,16 @@ def _height_outliers(trees: list[TreeChange], params: ChangeParams) -> list[Tree
     out = []
     for t in trees:
         if t.status == "persisting" and math.isfinite(t.height_change_m) and abs(t.height_change_m - med) > limit:
-            t = dataclasses.replace(t, height_change_m=math.nan, height_change_sigma_m=math.nan, flag=_join(
-                t.flag, f"height change withheld: {t.height_change_m:+.1f} m against the stand's {med:+.1f} m "
-                        "(a top unseen in one survey or a neighbour's crown taken for it)"))
+            t = dataclasses.replace(
+                t,
+                height_change_m=math.nan,
+                height_change_sigma_m=math.nan,
+                flag=_join(
+                    t.flag,
+                    f"height change withheld: {t.height_change_m:+.1f} m against the stand's {med:+.1f} m "
+                    "(a top unseen in one survey or a neighbour's crown taken for it)",
+                ),
+            )
         out.append(t)
     return out
 
@@ -259,8 +363,12 @@ def _growth_of_one(t: TreeChange, fit: GrowthFit, params: ChangeParams) -> TreeC
     import dataclasses
 
     if fit.stated and fit.dbh_change_sigma_m <= params.max_dbh_change_sigma_m:
-        return dataclasses.replace(t, dbh_change_m=fit.dbh_change_m, dbh_change_sigma_m=fit.dbh_change_sigma_m,
-                                   flag=_join(t.flag, "DBH change from the stem's sectors both clouds saw"))
+        return dataclasses.replace(
+            t,
+            dbh_change_m=fit.dbh_change_m,
+            dbh_change_sigma_m=fit.dbh_change_sigma_m,
+            flag=_join(t.flag, "DBH change from the stem's sectors both clouds saw"),
+        )
     why = fit.reason or f"too uncertain (1 sigma {1000 * fit.dbh_change_sigma_m:.0f} mm)"
     return dataclasses.replace(t, flag=_join(t.flag, f"no DBH change: {why}"))
 
@@ -281,8 +389,15 @@ def _one_side(epoch: EpochTrees, k: int, which: str, xy: Optional[np.ndarray] = 
     return d
 
 
-def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance: float, params: ChangeParams,
-                growth: Optional[GrowthFit] = None) -> TreeChange:
+def _persisting(
+    before: EpochTrees,
+    after: EpochTrees,
+    b: int,
+    a: int,
+    distance: float,
+    params: ChangeParams,
+    growth: Optional[GrowthFit] = None,
+) -> TreeChange:
     """A stem found in both surveys: its values and changes, flagged where a survey cannot
     support one. ``growth``: its diameter growth from the sectors both clouds saw (None for a
     survey given as a table: the difference of the two DBH values, when both are supported)."""
@@ -304,11 +419,15 @@ def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance:
             flags.append("DBH not supported in AFTER (stem occluded or fit unsure)")
     if math.isfinite(d_change):
         if d_sigma > params.max_dbh_change_sigma_m:
-            flags.append(f"DBH change withheld: too uncertain (1 sigma {1000 * d_sigma:.0f} mm; "
-                         + ("short common arc or noisy stem)" if growth is not None else "partial arcs or noisy stem)"))
+            flags.append(
+                f"DBH change withheld: too uncertain (1 sigma {1000 * d_sigma:.0f} mm; "
+                + ("short common arc or noisy stem)" if growth is not None else "partial arcs or noisy stem)")
+            )
             d_change = math.nan
         elif d_change < -params.max_dbh_decrease_sigma * d_sigma:
-            flags.append(f"DBH shrank by {-1000 * d_change:.0f} mm (more than {params.max_dbh_decrease_sigma:g} sigma): check the stem")
+            flags.append(
+                f"DBH shrank by {-1000 * d_change:.0f} mm (more than {params.max_dbh_decrease_sigma:g} sigma): check the stem"
+            )
     hb, ha = float(before.height_m[b]), float(after.height_m[a])
     h_change = h_sigma = math.nan
     if before.height_ok[b] and after.height_ok[a]:
@@ -317,14 +436,34 @@ def _persisting(before: EpochTrees, after: EpochTrees, b: int, a: int, distance:
     else:
         for epoch, k, which in ((before, b, "BEFORE"), (after, a, "AFTER")):
             if not epoch.height_ok[k]:
-                why = ("no ground" if "no ground" in epoch.flags[k] else "top not its own" if "top " in epoch.flags[k] and "unseen" not in epoch.flags[k]
-                       else "top unseen" if math.isfinite(epoch.height_m[k]) else "no height")
+                why = (
+                    "no ground"
+                    if "no ground" in epoch.flags[k]
+                    else "top not its own"
+                    if "top " in epoch.flags[k] and "unseen" not in epoch.flags[k]
+                    else "top unseen"
+                    if math.isfinite(epoch.height_m[k])
+                    else "no height"
+                )
                 flags.append(f"height not supported in {which} ({why})")
     return TreeChange(
-        status="persisting", x=float(before.xy[b, 0]), y=float(before.xy[b, 1]),
-        tree_id_before=int(before.ids[b]), tree_id_after=int(after.ids[a]),
-        dbh_before_m=db, dbh_after_m=da, dbh_change_m=d_change, dbh_before_sigma_m=sb, dbh_after_sigma_m=sa,
-        dbh_change_sigma_m=d_sigma, height_before_m=hb, height_after_m=ha, height_change_m=h_change,
-        height_before_sigma_m=float(before.height_sigma_m[b]), height_after_sigma_m=float(after.height_sigma_m[a]),
-        height_change_sigma_m=h_sigma, match_distance_m=distance, flag="; ".join(flags),
+        status="persisting",
+        x=float(before.xy[b, 0]),
+        y=float(before.xy[b, 1]),
+        tree_id_before=int(before.ids[b]),
+        tree_id_after=int(after.ids[a]),
+        dbh_before_m=db,
+        dbh_after_m=da,
+        dbh_change_m=d_change,
+        dbh_before_sigma_m=sb,
+        dbh_after_sigma_m=sa,
+        dbh_change_sigma_m=d_sigma,
+        height_before_m=hb,
+        height_after_m=ha,
+        height_change_m=h_change,
+        height_before_sigma_m=float(before.height_sigma_m[b]),
+        height_after_sigma_m=float(after.height_sigma_m[a]),
+        height_change_sigma_m=h_sigma,
+        match_distance_m=distance,
+        flag="; ".join(flags),
     )

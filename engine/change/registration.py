@@ -79,8 +79,13 @@ def rigid_2d_matrix(angle_rad: float, t: np.ndarray, dz: float = 0.0) -> np.ndar
     return m
 
 
-def stem_pairs(before: EpochTrees, after: EpochTrees, matrix: np.ndarray, max_distance_m: float,
-               dbh_change_range_m: tuple[float, float]) -> np.ndarray:
+def stem_pairs(
+    before: EpochTrees,
+    after: EpochTrees,
+    matrix: np.ndarray,
+    max_distance_m: float,
+    dbh_change_range_m: tuple[float, float],
+) -> np.ndarray:
     """(k, 2) indices (before, after) of stems within ``max_distance_m`` of each other once the
     later survey is moved by ``matrix``, one partner each (nearest first), whose DBH change is
     plausible (unknown DBH passes)."""
@@ -151,8 +156,14 @@ def persisting_stems(before: EpochTrees, after: EpochTrees, params: ChangeParams
     """
     from ..tls.coarse import match_vops
 
-    coarse = match_vops(before.xy, after.xy, angle_step_deg=params.angle_step_deg, match_distance_m=params.match_distance_m,
-                        distinct_rotation_deg=params.distinct.rotation_deg, distinct_translation_m=params.distinct.translation_m)
+    coarse = match_vops(
+        before.xy,
+        after.xy,
+        angle_step_deg=params.angle_step_deg,
+        match_distance_m=params.match_distance_m,
+        distinct_rotation_deg=params.distinct.rotation_deg,
+        distinct_translation_m=params.distinct.translation_m,
+    )
     theta = math.radians(coarse.rotation_deg)
     matrix = rigid_2d_matrix(theta, coarse.translation)
     pairs = coarse.matched_pairs  # (before, after)
@@ -173,15 +184,30 @@ def persisting_stems(before: EpochTrees, after: EpochTrees, params: ChangeParams
             if same:
                 break
     _, source, spread = _vertical(before, after, pairs) if len(pairs) else (0.0, "terrain", 0.0)
-    return StemMatch(matrix=matrix, pairs=pairs, matched_coarse=int(coarse.matched), second_matched=coarse.second_matched,
-                     second_rotation_deg=coarse.second_rotation_deg,
-                     second_translation=None if coarse.second_translation is None else np.asarray(coarse.second_translation, dtype=float),
-                     dbh_rejected=rejected, rotation_deg=float(coarse.rotation_deg), coarse_evaluated=int(coarse.evaluated),
-                     vertical_from=source, vertical_spread_m=spread)
+    return StemMatch(
+        matrix=matrix,
+        pairs=pairs,
+        matched_coarse=int(coarse.matched),
+        second_matched=coarse.second_matched,
+        second_rotation_deg=coarse.second_rotation_deg,
+        second_translation=None
+        if coarse.second_translation is None
+        else np.asarray(coarse.second_translation, dtype=float),
+        dbh_rejected=rejected,
+        rotation_deg=float(coarse.rotation_deg),
+        coarse_evaluated=int(coarse.evaluated),
+        vertical_from=source,
+        vertical_spread_m=spread,
+    )
 
 
-def _stem_slices(epoch: EpochTrees, idx: np.ndarray, heights: tuple[float, float], margin_m: float,
-                 shrink_m: Optional[np.ndarray] = None) -> np.ndarray:
+def _stem_slices(
+    epoch: EpochTrees,
+    idx: np.ndarray,
+    heights: tuple[float, float],
+    margin_m: float,
+    shrink_m: Optional[np.ndarray] = None,
+) -> np.ndarray:
     """Stem-band points within each stem's radius + ``margin_m`` of its axis and within
     ``heights`` above the ground; with ``shrink_m`` each stem's points are moved towards its axis
     by that much (its growth taken off)."""
@@ -217,7 +243,9 @@ def _stem_slices(epoch: EpochTrees, idx: np.ndarray, heights: tuple[float, float
     return np.vstack(out) if out else np.zeros((0, 3))
 
 
-def refine_on_stems(before: EpochTrees, after: EpochTrees, match: StemMatch, params: ChangeParams = ChangeParams()) -> tuple[np.ndarray, dict[str, Any]]:
+def refine_on_stems(
+    before: EpochTrees, after: EpochTrees, match: StemMatch, params: ChangeParams = ChangeParams()
+) -> tuple[np.ndarray, dict[str, Any]]:
     """The registration refined by ICP on the persisting stems' slices and the terrain.
 
     Returns ``(matrix, figures)``: the refined 4x4 (after -> before) or the stem solution when the
@@ -258,8 +286,13 @@ def refine_on_stems(before: EpochTrees, after: EpochTrees, match: StemMatch, par
     result = icp(ref_all, mov_all, match.matrix, **params.stem_icp.keywords())
     matrix = result.matrix
     probe = after.breast_points()[a_idx]
-    figures = {"fitness": result.fitness, "rmse_m": result.rmse_m, "std_m": result.std_m,
-               "stem_points": int(len(mov)), "ground_points": int(len(mov_all) - len(mov))}
+    figures = {
+        "fitness": result.fitness,
+        "rmse_m": result.rmse_m,
+        "std_m": result.std_m,
+        "stem_points": int(len(mov)),
+        "ground_points": int(len(mov_all) - len(mov)),
+    }
     shift = float(np.max(np.linalg.norm(apply_transform(matrix, probe) - apply_transform(match.matrix, probe), axis=1)))
     figures["correction_m"] = shift
     # the persisting stems must still land on their partners: the refinement may not pull them
@@ -268,11 +301,19 @@ def refine_on_stems(before: EpochTrees, after: EpochTrees, match: StemMatch, par
     after_rms = _stem_rms(before, after, match.pairs, matrix)
     figures["stem_rms_before_m"], figures["stem_rms_after_m"] = before_rms, after_rms
     if not np.isfinite(matrix).all() or shift > params.max_icp_correction_m:
-        return match.matrix, {**figures, "used": False, "disagree": True,
-                              "why": f"the stem slices and terrain move the stem solution by {shift:.2f} m"}
+        return match.matrix, {
+            **figures,
+            "used": False,
+            "disagree": True,
+            "why": f"the stem slices and terrain move the stem solution by {shift:.2f} m",
+        }
     if after_rms > max(2.0 * before_rms, 0.02):
-        return match.matrix, {**figures, "used": False, "disagree": True,
-                              "why": f"the stem slices and terrain pull the persisting stems apart (rms {100 * before_rms:.1f} -> {100 * after_rms:.1f} cm)"}
+        return match.matrix, {
+            **figures,
+            "used": False,
+            "disagree": True,
+            "why": f"the stem slices and terrain pull the persisting stems apart (rms {100 * before_rms:.1f} -> {100 * after_rms:.1f} cm)",
+        }
     return matrix, {**figures, "used": True}
 
 
@@ -282,8 +323,9 @@ def _stem_rms(before: EpochTrees, after: EpochTrees, pairs: np.ndarray, matrix: 
     return float(np.sqrt(np.mean(np.sum((moved - before.xy[pairs[:, 0]]) ** 2, axis=1))))
 
 
-def stem_alternatives(before: EpochTrees, after: EpochTrees, match: StemMatch, local: np.ndarray,
-                      params: ChangeParams = ChangeParams()) -> list:
+def stem_alternatives(
+    before: EpochTrees, after: EpochTrees, match: StemMatch, local: np.ndarray, params: ChangeParams = ChangeParams()
+) -> list:
     """The distinct solutions a re-survey's registration must count
     (:class:`~forestreg.engine.core.uncertainty.Alternative`, offsets at the persisting stems'
     centroid): the best distinct heading and shift of the coarse match, and the solution ``local``
@@ -300,14 +342,18 @@ def stem_alternatives(before: EpochTrees, after: EpochTrees, match: StemMatch, l
         return []
     candidates: list[tuple[np.ndarray, str]] = []
     if match.second_translation is not None and match.second_rotation_deg is not None:
-        candidates.append((rigid_2d_matrix(math.radians(match.second_rotation_deg), match.second_translation, float(local[2, 3])), ""))
+        candidates.append(
+            (rigid_2d_matrix(math.radians(match.second_rotation_deg), match.second_translation, float(local[2, 3])), "")
+        )
     repeat = repeat_shift(before.xy[match.pairs[:, 0]], params.match_distance_m, params.distinct.translation_m)
     if repeat is not None and repeat[1] >= max(4.0, up.repeat_share * repeat[2]):
         shift, repeated, of = repeat
         step = np.eye(4)
         step[:2, 3] = shift
-        pattern = (f"{repeated} of the {of} persisting stems repeat themselves {float(np.hypot(*shift)):.2f} m along "
-                   f"{math.degrees(math.atan2(shift[1], shift[0])) % 180.0:.0f} deg: a planted grid")
+        pattern = (
+            f"{repeated} of the {of} persisting stems repeat themselves {float(np.hypot(*shift)):.2f} m along "
+            f"{math.degrees(math.atan2(shift[1], shift[0])) % 180.0:.0f} deg: a planted grid"
+        )
         candidates.append((step @ local, pattern))
     centre = np.append(before.xy[match.pairs[:, 0]].mean(axis=0), 0.0)
     out = []
@@ -321,9 +367,16 @@ def stem_alternatives(before: EpochTrees, after: EpochTrees, match: StemMatch, l
             status, weight = f"too unlikely to count (probability {weight:.1g})", 0.0
         else:
             status = "counted"
-        out.append(Alternative(
-            weight=weight,
-            offset_m=float(np.linalg.norm(offset)), offset_deg=rotation_angle_deg(local[:3, :3].T @ matrix[:3, :3]),
-            support=float(persist), chosen_support=float(n), status=status,
-            direction_deg=float(math.degrees(math.atan2(offset[1], offset[0])) % 360.0), pattern=pattern))
+        out.append(
+            Alternative(
+                weight=weight,
+                offset_m=float(np.linalg.norm(offset)),
+                offset_deg=rotation_angle_deg(local[:3, :3].T @ matrix[:3, :3]),
+                support=float(persist),
+                chosen_support=float(n),
+                status=status,
+                direction_deg=float(math.degrees(math.atan2(offset[1], offset[0])) % 360.0),
+                pattern=pattern,
+            )
+        )
     return out

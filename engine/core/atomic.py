@@ -77,7 +77,7 @@ def is_unfinished_output(path: str | os.PathLike[str], target: str | os.PathLike
     name = p.name
     for prefix in (_NEW, _OLD):
         if name.startswith(prefix):
-            of, dot, random = name[len(prefix):].rpartition(".")
+            of, dot, random = name[len(prefix) :].rpartition(".")
             if not (dot and of and random) or not all(c.isascii() and (c.isalnum() or c == "_") for c in random):
                 return False
             if target is None:
@@ -92,7 +92,7 @@ def temporary_folder(inside: str | os.PathLike[str], what: str) -> Path:
     a run's products before each is moved into place. :func:`check_output_folder` passes over it,
     and it is never taken for a folder transaction's (:func:`is_unfinished_output`): ``what`` may
     not start with theirs (``new-``, ``old-``)."""
-    if what.startswith((_NEW[len(TMP_PREFIX):], _OLD[len(TMP_PREFIX):])) or not what:
+    if what.startswith((_NEW[len(TMP_PREFIX) :], _OLD[len(TMP_PREFIX) :])) or not what:
         raise ValueError(f"a temporary folder's name may not start with {_NEW!r} or {_OLD!r}: {what!r}")
     return Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{what}.", dir=inside))
 
@@ -132,7 +132,8 @@ def check_output_folder(path: str | os.PathLike[str], kind: str, *, inputs: "tup
         entries = [e for e in target.iterdir() if not e.name.startswith((TMP_PREFIX, LOCK_PREFIX))]
         if entries and not (target / MARKER).is_file():
             raise OutputPathError(
-                f"--out {target} already holds other files (not a forestreg output folder): give a new or empty folder")
+                f"--out {target} already holds other files (not a forestreg output folder): give a new or empty folder"
+            )
         if entries:
             try:
                 earlier = (target / MARKER).read_text(encoding="utf-8").strip()
@@ -140,7 +141,8 @@ def check_output_folder(path: str | os.PathLike[str], kind: str, *, inputs: "tup
                 earlier = ""
             if earlier and earlier != kind:
                 raise OutputPathError(
-                    f"--out {target} holds the output of 'forestreg {earlier}', not of '{kind}': give another folder")
+                    f"--out {target} holds the output of 'forestreg {earlier}', not of '{kind}': give another folder"
+                )
     parent = resolved.parent
     if not parent.exists():
         try:
@@ -153,7 +155,9 @@ def check_output_folder(path: str | os.PathLike[str], kind: str, *, inputs: "tup
     return resolved
 
 
-def check_output_file(path: str | os.PathLike[str], *, inputs: "tuple | list" = (), suffixes: "tuple[str, ...]" = ()) -> Path:
+def check_output_file(
+    path: str | os.PathLike[str], *, inputs: "tuple | list" = (), suffixes: "tuple[str, ...]" = ()
+) -> Path:
     """Refuse an output file that is an input, a folder, of another kind than ``suffixes``, or in a
     folder that cannot be written, before any work. Returns the resolved path."""
     from .errors import OutputPathError
@@ -302,9 +306,11 @@ def lock_output_folder(path: str | os.PathLike[str], *, shown: str | os.PathLike
             except BlockingIOError:
                 holder = _lock_holder(fd)
                 os.close(fd)
-                raise OutputPathError(f"{shown if shown is not None else target} is being written by another forestreg run "
-                                      f"({f'pid {holder}' if holder else 'pid unknown'}): wait for it to end, or give another "
-                                      "output folder") from None
+                raise OutputPathError(
+                    f"{shown if shown is not None else target} is being written by another forestreg run "
+                    f"({f'pid {holder}' if holder else 'pid unknown'}): wait for it to end, or give another "
+                    "output folder"
+                ) from None
             except OSError:  # no locks on this file system (some network mounts)
                 os.close(fd)
                 return

@@ -23,13 +23,12 @@ missing, on a numba that lacks a part of it.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Callable, Iterable, Iterator, Optional
+from typing import Any, Callable, Iterable, Optional
 
 import numba
 from numba.core import caching, sigutils
@@ -73,7 +72,9 @@ def kernel_cache_dir() -> Optional[str]:
     None when neither is set (no home folder)."""
     if numba.config.CACHE_DIR:
         return str(numba.config.CACHE_DIR)
-    base = os.environ.get("XDG_CACHE_HOME") or (os.path.join(os.path.expanduser("~"), ".cache") if os.path.expanduser("~") != "~" else "")
+    base = os.environ.get("XDG_CACHE_HOME") or (
+        os.path.join(os.path.expanduser("~"), ".cache") if os.path.expanduser("~") != "~" else ""
+    )
     if not base:
         return None
     from ..._version import __version__
@@ -177,7 +178,8 @@ def numba_cache_api() -> tuple[Any, Any]:
     if missing:
         raise ImportError(
             f"forestreg's compiled-kernel cache (engine/core/jit.py) builds on numba.core.caching, which in numba "
-            f"{numba.__version__} lacks {', '.join(missing)}: install numba{NUMBA_RANGE} (the range forestreg is tested with)")
+            f"{numba.__version__} lacks {', '.join(missing)}: install numba{NUMBA_RANGE} (the range forestreg is tested with)"
+        )
     return locator, caching.CompileResultCacheImpl
 
 
@@ -201,7 +203,9 @@ class _VersionedLocator(_UserLocator):
 
 class _KernelCacheImpl(_ResultCacheImpl):
     # NUMBA_CACHE_DIR (when set), then the per-version folder, then numba's own places
-    _locator_classes = [_UserLocator, _VersionedLocator] + [c for c in _ResultCacheImpl._locator_classes if c is not _UserLocator]
+    _locator_classes = [_UserLocator, _VersionedLocator] + [
+        c for c in _ResultCacheImpl._locator_classes if c is not _UserLocator
+    ]
 
 
 class _CheckedCacheFile(caching.IndexDataCacheFile):
@@ -287,12 +291,15 @@ def _say_compiling(source: str) -> None:
         return
     log.warning(
         "compiling the numerical kernels for this machine: about %d s, only on the first run "
-        "('forestreg warmup' does it ahead; they are kept in %s)", FIRST_COMPILE_S, kernel_cache_dir() or "no cache folder"
+        "('forestreg warmup' does it ahead; they are kept in %s)",
+        FIRST_COMPILE_S,
+        kernel_cache_dir() or "no cache folder",
     )
 
 
 #: Seconds the first command after an install spends compiling its kernels (measured on 2 cores).
 FIRST_COMPILE_S = 45
+
 
 def _locked_compile(dispatcher: Any) -> None:
     """Make ``dispatcher.compile`` (numba calls it for every signature not yet in memory) hold
@@ -344,7 +351,14 @@ def _blas_module_alone() -> None:
         if scipy_spec is None or not scipy_spec.origin:
             return
         folder = os.path.join(os.path.dirname(scipy_spec.origin), "linalg")
-        path = next((p for p in (os.path.join(folder, "cython_blas" + s) for s in importlib.machinery.EXTENSION_SUFFIXES) if os.path.exists(p)), None)
+        path = next(
+            (
+                p
+                for p in (os.path.join(folder, "cython_blas" + s) for s in importlib.machinery.EXTENSION_SUFFIXES)
+                if os.path.exists(p)
+            ),
+            None,
+        )
         if path is None:
             return
         spec = importlib.util.spec_from_file_location(name, path)

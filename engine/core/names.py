@@ -39,7 +39,11 @@ def name_problem(value: object) -> str:
         return "is the folder itself ('.'), not a name: give a plain name"
     if value == "..":
         return "is the parent folder ('..'), not a name: give a plain name"
-    if value.startswith(("/", "\\")) or os.path.isabs(value) or (len(value) > 2 and value[1] == ":" and value[0].isalpha() and value[2] in "/\\"):
+    if (
+        value.startswith(("/", "\\"))
+        or os.path.isabs(value)
+        or (len(value) > 2 and value[1] == ":" and value[0].isalpha() and value[2] in "/\\")
+    ):
         return "is an absolute path: give one plain name (no folders)"
     if "\x00" in value:
         return "holds a NUL byte"
@@ -65,7 +69,11 @@ def safe_name(value: object, what: str = "name") -> str:
     separator ...``."""
     problem = name_problem(value)
     if problem:
-        shown = repr(value) if isinstance(value, str) and len(value) <= 80 else (repr(value[:77]) + "..." if isinstance(value, str) else "")
+        shown = (
+            repr(value)
+            if isinstance(value, str) and len(value) <= 80
+            else (repr(value[:77]) + "..." if isinstance(value, str) else "")
+        )
         raise InvalidArgumentError(f"{what} {shown} {problem}".replace("  ", " "))
     return value  # type: ignore[return-value]
 

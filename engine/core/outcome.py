@@ -149,7 +149,9 @@ class OutcomeRecord(Mapping):
         "failed", or an "ok" whose matrix is missing or not a finite proper rigid 4x4, is read as
         "failed" with the reason and no matrix (never a NaN or scaled "ok")."""
         if isinstance(d, OutcomeRecord):
-            return cls(**{k: getattr(d, k) for k in ("status", "reason", "matrix", "method", "evidence", "timings", "data")})
+            return cls(
+                **{k: getattr(d, k) for k in ("status", "reason", "matrix", "method", "evidence", "timings", "data")}
+            )
         if not isinstance(d, Mapping):
             raise TypeError(f"an outcome is a mapping, got {type(d).__name__}")
         from .transform import withhold_unless_rigid

@@ -40,7 +40,14 @@ P = TypeVar("P", bound="Params")
 log = logging.getLogger(__name__)
 
 
-def param_field(default: Any, unit: str = "", lo: Optional[float] = None, hi: Optional[float] = None, help: str = "", paper: str = "") -> Any:
+def param_field(
+    default: Any,
+    unit: str = "",
+    lo: Optional[float] = None,
+    hi: Optional[float] = None,
+    help: str = "",
+    paper: str = "",
+) -> Any:
     """A dataclass field carrying ``unit``, ``range`` (lo, hi), ``help`` and ``paper`` metadata;
     lists become tuples (parameters are immutable).
 
@@ -87,7 +94,9 @@ def _matches(kind: str, v: Any) -> Optional[str]:
             element, count = parts[0], len(parts)
         else:
             return None
-        noun = {"float": "numbers", "int": "whole numbers", "str": "texts", "bool": "true/false values"}.get(element, element)
+        noun = {"float": "numbers", "int": "whole numbers", "str": "texts", "bool": "true/false values"}.get(
+            element, element
+        )
         what = f"a list of {f'{count} ' if count else ''}{noun}"
         if not isinstance(v, tuple) or (count is not None and len(v) != count):
             return what
@@ -121,7 +130,9 @@ def validate_types(params: Any) -> None:
         wanted = _matches(_kind(f), value)
         if wanted is not None:
             unit = f.metadata.get("unit", "")
-            raise ParameterError(f"{f.name} = {_shown(value)}: {wanted}{f' ({unit})' if unit and wanted != 'true or false' else ''} belongs here")
+            raise ParameterError(
+                f"{f.name} = {_shown(value)}: {wanted}{f' ({unit})' if unit and wanted != 'true or false' else ''} belongs here"
+            )
 
 
 def validate_ranges(params: Any) -> None:
@@ -140,7 +151,9 @@ def validate_ranges(params: Any) -> None:
             if not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ParameterError(f"{f.name}: {v!r} is not a finite number")
             if (lo is not None and v < lo) or (hi is not None and v > hi):
-                raise ParameterError(f"{f.name} = {v} {f.metadata.get('unit', '')} is outside [{lo}, {hi}]".replace("  ", " "))
+                raise ParameterError(
+                    f"{f.name} = {v} {f.metadata.get('unit', '')} is outside [{lo}, {hi}]".replace("  ", " ")
+                )
 
 
 def _flat(value: Any) -> list[Any]:
@@ -177,8 +190,12 @@ def _moved_names(cls: type, values: Mapping[str, Any], where: str) -> Mapping[st
             table = out.get(nested, {})
             if isinstance(table, Mapping):
                 out[nested] = {name: values[k], **table}
-        log.warning("parameter [%s] %s is now %s; the old name is read for now", section, k,
-                    " and ".join(f"[{section}.{p.split('.', 1)[0]}] {p.split('.', 1)[1]}" for p in places))
+        log.warning(
+            "parameter [%s] %s is now %s; the old name is read for now",
+            section,
+            k,
+            " and ".join(f"[{section}.{p.split('.', 1)[0]}] {p.split('.', 1)[1]}" for p in places),
+        )
     return out
 
 

@@ -14,11 +14,10 @@ origin ``(0, 0, 0)`` unless a position is given (E57 pose, project file, or opti
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional, Union
-
-import logging
 
 import numpy as np
 
@@ -115,8 +114,13 @@ class Scan:
             )
         if n_bad:
             pts = pts[finite]
-            log.warning("%s: %d of %d points (%.1f %%) have NaN or infinite coordinates and were dropped",
-                        label, n_bad, n_in, 100.0 * n_bad / n_in)
+            log.warning(
+                "%s: %d of %d points (%.1f %%) have NaN or infinite coordinates and were dropped",
+                label,
+                n_bad,
+                n_in,
+                100.0 * n_bad / n_in,
+            )
         if len(pts) < MIN_POINTS:
             raise ScanDataError(f"{label}: only {len(pts)} valid points; a scan needs at least {MIN_POINTS}")
         # column by column: a reduction along the long axis is many times faster than min(axis=0)
@@ -274,8 +278,14 @@ def check_points(points: Any, what: str = "points", *, min_points: int = 1) -> n
     if p.ndim != 2 or p.shape[1] != 3:
         raise ScanDataError(f"{what}: expected an (N, 3) array of x, y, z, got shape {p.shape}")
     if len(p) < min_points:
-        raise ScanDataError(f"{what} is empty" if len(p) == 0 and min_points <= 1 else f"{what} needs at least {min_points} points, got {len(p)}")
+        raise ScanDataError(
+            f"{what} is empty"
+            if len(p) == 0 and min_points <= 1
+            else f"{what} needs at least {min_points} points, got {len(p)}"
+        )
     bad = ~np.isfinite(p).all(axis=1) if not np.isfinite(p.sum()) else None
     if bad is not None and bad.any():
-        raise ScanDataError(f"{what}: {int(bad.sum())} of {len(p)} points have NaN or infinite coordinates; remove them first")
+        raise ScanDataError(
+            f"{what}: {int(bad.sum())} of {len(p)} points have NaN or infinite coordinates; remove them first"
+        )
     return p

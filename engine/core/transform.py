@@ -84,8 +84,10 @@ def check_rigid(matrix, what: str = "matrix", *, atol: float = 1e-5) -> np.ndarr
     r = m[:3, :3]
     if not np.allclose(r @ r.T, np.eye(3), atol=atol):
         scale = np.linalg.norm(r, axis=0)
-        raise TransformError(f"{what}: not a rigid transform (rotation not orthonormal: column lengths "
-                             f"{', '.join(f'{s:.4g}' for s in scale)}; scaled or sheared)")
+        raise TransformError(
+            f"{what}: not a rigid transform (rotation not orthonormal: column lengths "
+            f"{', '.join(f'{s:.4g}' for s in scale)}; scaled or sheared)"
+        )
     if np.linalg.det(r) < 0:
         raise TransformError(f"{what}: a reflection (determinant -1), not a rotation")
     return m

@@ -37,7 +37,8 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from .params import Params, param_field as _p
+from .params import Params
+from .params import param_field as _p
 
 __all__ = [
     "UncertaintyParams",
@@ -57,19 +58,81 @@ __all__ = [
 class UncertaintyParams(Params):
     """How a registration's stated 1-sigma uncertainty is made and when it refuses the result."""
 
-    max_translation_m: float = _p(0.10, "m", 0.001, 100.0, "A result whose stated 1-sigma translation (alternatives and weak directions counted) exceeds this is refused: a surveyor's tolerance")
-    max_rotation_deg: float = _p(0.5, "deg", 0.001, 180.0, "A result whose stated 1-sigma rotation exceeds this is refused")
-    independent_patches: float = _p(150.0, "1", 1.0, 1e7, "The fit's residuals count as this many independent measurements (neighbouring points share one surface): the fit's precision is the residual spread over the square root of this times each motion's share of the normal matrix")
-    rotation_patches: float = _p(600.0, "1", 1.0, 1e7, "...and this many for the rotation, which averages over the whole overlap")
-    evidence_share: float = _p(0.25, "1", 0.0, 1.0, "Share of the independent evidence's own figure (the trunks' correction and bootstrap) added to the fit's precision along every direction the surfaces pin; along a weak direction all of it")
-    weak_share: float = _p(0.04, "1", 0.0, 1.0, "A motion whose share of the surfaces' normal matrix is below this fraction of the strongest one is weak (walls along it, a row, a lone trunk)")
-    rotation_lever_m: float = _p(10.0, "m", 0.1, 1000.0, "A heading is compared with translations over this lever arm to tell whether it is weak")
-    evidence_per_match: float = _p(1.5, "1", 0.0, 20.0, "Each match (trunk, stem, keypoint) the best solution has more than a distinct alternative makes the alternative this many e-folds less likely")
-    min_alternative_weight: float = _p(1e-4, "1", 0.0, 1.0, "Alternatives less likely than this are not checked or counted")
-    repeat_share: float = _p(0.25, "1", 0.0, 1.0, "When at least this share (and 4) of a solution's matched features (trunks, stems) repeat themselves under a shift (rows of posts, a planted grid), the solution shifted so is an alternative to check")
-    second_share: float = _p(0.5, "1", 0.0, 1.0, "The best distinct solution is checked too when it matches at least this share of the chosen one's matches, however unlikely its lead makes it")
-    min_fitness_ratio: float = _p(0.6, "1", 0.0, 1.0, "An alternative whose surfaces overlap (ICP fitness) less than this fraction of the chosen solution's is excluded; one whose overlap exceeds the chosen one's by as much is at least as likely as it")
-    passing_weight: float = _p(0.05, "1", 0.0, 0.5, "A distinct alternative that passes every check the chosen solution passed is at least this likely (its lead in matches can come from features that move with the scanner)")
+    max_translation_m: float = _p(
+        0.10,
+        "m",
+        0.001,
+        100.0,
+        "A result whose stated 1-sigma translation (alternatives and weak directions counted) exceeds this is refused: a surveyor's tolerance",
+    )
+    max_rotation_deg: float = _p(
+        0.5, "deg", 0.001, 180.0, "A result whose stated 1-sigma rotation exceeds this is refused"
+    )
+    independent_patches: float = _p(
+        150.0,
+        "1",
+        1.0,
+        1e7,
+        "The fit's residuals count as this many independent measurements (neighbouring points share one surface): the fit's precision is the residual spread over the square root of this times each motion's share of the normal matrix",
+    )
+    rotation_patches: float = _p(
+        600.0, "1", 1.0, 1e7, "...and this many for the rotation, which averages over the whole overlap"
+    )
+    evidence_share: float = _p(
+        0.25,
+        "1",
+        0.0,
+        1.0,
+        "Share of the independent evidence's own figure (the trunks' correction and bootstrap) added to the fit's precision along every direction the surfaces pin; along a weak direction all of it",
+    )
+    weak_share: float = _p(
+        0.04,
+        "1",
+        0.0,
+        1.0,
+        "A motion whose share of the surfaces' normal matrix is below this fraction of the strongest one is weak (walls along it, a row, a lone trunk)",
+    )
+    rotation_lever_m: float = _p(
+        10.0, "m", 0.1, 1000.0, "A heading is compared with translations over this lever arm to tell whether it is weak"
+    )
+    evidence_per_match: float = _p(
+        1.5,
+        "1",
+        0.0,
+        20.0,
+        "Each match (trunk, stem, keypoint) the best solution has more than a distinct alternative makes the alternative this many e-folds less likely",
+    )
+    min_alternative_weight: float = _p(
+        1e-4, "1", 0.0, 1.0, "Alternatives less likely than this are not checked or counted"
+    )
+    repeat_share: float = _p(
+        0.25,
+        "1",
+        0.0,
+        1.0,
+        "When at least this share (and 4) of a solution's matched features (trunks, stems) repeat themselves under a shift (rows of posts, a planted grid), the solution shifted so is an alternative to check",
+    )
+    second_share: float = _p(
+        0.5,
+        "1",
+        0.0,
+        1.0,
+        "The best distinct solution is checked too when it matches at least this share of the chosen one's matches, however unlikely its lead makes it",
+    )
+    min_fitness_ratio: float = _p(
+        0.6,
+        "1",
+        0.0,
+        1.0,
+        "An alternative whose surfaces overlap (ICP fitness) less than this fraction of the chosen solution's is excluded; one whose overlap exceeds the chosen one's by as much is at least as likely as it",
+    )
+    passing_weight: float = _p(
+        0.05,
+        "1",
+        0.0,
+        0.5,
+        "A distinct alternative that passes every check the chosen solution passed is at least this likely (its lead in matches can come from features that move with the scanner)",
+    )
 
 
 @dataclass(frozen=True)
@@ -92,15 +155,24 @@ class WeakDirection:
         pct = f"{100 * self.share:.0f} %" if self.share >= 0.01 else f"{100 * self.share:.1f} %"
         if self.kind == "rotation":
             axis = "the vertical" if abs(self.vector[2]) > 0.9 else "a horizontal axis"
-            return f"rotation about {axis} weakly constrained by the surfaces ({pct} of the strongest): few trunks or one"
+            return (
+                f"rotation about {axis} weakly constrained by the surfaces ({pct} of the strongest): few trunks or one"
+            )
         if self.azimuth_deg is None:
             return f"vertical translation weakly constrained by the surfaces ({pct} of the strongest): little ground"
-        return (f"translation along {self.azimuth_deg:.0f} deg weakly constrained by the surfaces ({pct} of the strongest): "
-                "walls, a row or a fence along it")
+        return (
+            f"translation along {self.azimuth_deg:.0f} deg weakly constrained by the surfaces ({pct} of the strongest): "
+            "walls, a row or a fence along it"
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"kind": self.kind, "vector": list(self.vector), "share": self.share, "azimuth_deg": self.azimuth_deg,
-                "text": self.describe()}
+        return {
+            "kind": self.kind,
+            "vector": list(self.vector),
+            "share": self.share,
+            "azimuth_deg": self.azimuth_deg,
+            "text": self.describe(),
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "WeakDirection":
@@ -133,7 +205,11 @@ class Alternative:
 
     def describe(self) -> str:
         """One line for the evidence: where it is and why it counts or not."""
-        where = f"{self.offset_m:.2f} m" + (f" along {self.direction_deg:.0f} deg" if self.direction_deg is not None else "") + f", {self.offset_deg:.2f} deg"
+        where = (
+            f"{self.offset_m:.2f} m"
+            + (f" along {self.direction_deg:.0f} deg" if self.direction_deg is not None else "")
+            + f", {self.offset_deg:.2f} deg"
+        )
         support = ""
         if self.support is not None and self.chosen_support is not None:
             support = f" with {self.support:g} against {self.chosen_support:g}"
@@ -143,24 +219,45 @@ class Alternative:
         return f"a distinct solution {where} away{support}{pattern}: {self.status}"
 
     def to_dict(self) -> dict[str, Any]:
-        return {"weight": self.weight, "offset_m": self.offset_m, "offset_deg": self.offset_deg, "support": self.support,
-                "chosen_support": self.chosen_support, "status": self.status, "direction_deg": self.direction_deg,
-                "pattern": self.pattern, "text": self.describe()}
+        return {
+            "weight": self.weight,
+            "offset_m": self.offset_m,
+            "offset_deg": self.offset_deg,
+            "support": self.support,
+            "chosen_support": self.chosen_support,
+            "status": self.status,
+            "direction_deg": self.direction_deg,
+            "pattern": self.pattern,
+            "text": self.describe(),
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Alternative":
         """The alternative of its :meth:`to_dict`."""
-        return cls(weight=float(d["weight"]), offset_m=float(d["offset_m"]), offset_deg=float(d["offset_deg"]),
-                   support=d.get("support"), chosen_support=d.get("chosen_support"), status=str(d.get("status", "counted")),
-                   direction_deg=d.get("direction_deg"), pattern=str(d.get("pattern") or ""))
+        return cls(
+            weight=float(d["weight"]),
+            offset_m=float(d["offset_m"]),
+            offset_deg=float(d["offset_deg"]),
+            support=d.get("support"),
+            chosen_support=d.get("chosen_support"),
+            status=str(d.get("status", "counted")),
+            direction_deg=d.get("direction_deg"),
+            pattern=str(d.get("pattern") or ""),
+        )
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def icp_covariance_at(information: np.ndarray, residual_std_m: float, point: Sequence[float], patches: float,
-                      rotation_patches: Optional[float] = None, extra: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+def icp_covariance_at(
+    information: np.ndarray,
+    residual_std_m: float,
+    point: Sequence[float],
+    patches: float,
+    rotation_patches: Optional[float] = None,
+    extra: Optional[np.ndarray] = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The fit's 1-sigma covariance of the position of ``point`` (3x3, m^2) and of the rotation
     (3x3, rad^2), from a point-to-plane normal matrix.
 
@@ -223,8 +320,9 @@ def weak_directions(information: np.ndarray, params: UncertaintyParams = Uncerta
     return out
 
 
-def repeat_shift(xy: np.ndarray, match_distance_m: float, min_shift_m: float, *, along: Optional[np.ndarray] = None,
-                 limit: int = 60) -> Optional[tuple[np.ndarray, int, int]]:
+def repeat_shift(
+    xy: np.ndarray, match_distance_m: float, min_shift_m: float, *, along: Optional[np.ndarray] = None, limit: int = 60
+) -> Optional[tuple[np.ndarray, int, int]]:
     """The shift under which a set of features (trunks, stems; (n, 2) horizontal positions, m)
     best repeats itself: of every difference between two of them at least ``min_shift_m`` long,
     the one moving the most of them onto another within ``match_distance_m``. Returns that shift
@@ -248,9 +346,9 @@ def repeat_shift(xy: np.ndarray, match_distance_m: float, min_shift_m: float, *,
     counts = np.empty(len(diff), dtype=np.int64)
     reach = float(match_distance_m) ** 2
     for start in range(0, len(diff), 256):  # every shifted feature against every feature, in blocks
-        shifted = pts[None, :, None, :] + diff[start:start + 256, None, None, :]
+        shifted = pts[None, :, None, :] + diff[start : start + 256, None, None, :]
         near = np.sum((shifted - pts[None, None, :, :]) ** 2, axis=-1) <= reach
-        counts[start:start + 256] = near.any(axis=2).sum(axis=1)
+        counts[start : start + 256] = near.any(axis=2).sum(axis=1)
     best = int(np.argmax(counts))
     return diff[best].astype(float), int(counts[best]), len(pts)
 
@@ -264,7 +362,9 @@ def alternative_weight(lead: float, params: UncertaintyParams = UncertaintyParam
     return 1.0 / (1.0 + math.exp(x))
 
 
-def with_alternatives(translation_m: float, rotation_deg: float, alternatives: Sequence[Alternative]) -> tuple[float, float]:
+def with_alternatives(
+    translation_m: float, rotation_deg: float, alternatives: Sequence[Alternative]
+) -> tuple[float, float]:
     """The stated 1-sigma values widened by the counted alternatives: the root of the mixture's
     mean square distance to the truth, ``(1 - W) sigma^2 + sum w_i (offset_i^2 + sigma^2)``."""
     counted = [a for a in alternatives if a.status == "counted" and a.weight > 0]
@@ -276,8 +376,14 @@ def with_alternatives(translation_m: float, rotation_deg: float, alternatives: S
     return float(math.sqrt(var_t)), float(math.sqrt(var_r))
 
 
-def judge(translation_m: Optional[float], rotation_deg: Optional[float], params: UncertaintyParams = UncertaintyParams(),
-          *, weak: Sequence[WeakDirection] = (), alternatives: Sequence[Alternative] = ()) -> str:
+def judge(
+    translation_m: Optional[float],
+    rotation_deg: Optional[float],
+    params: UncertaintyParams = UncertaintyParams(),
+    *,
+    weak: Sequence[WeakDirection] = (),
+    alternatives: Sequence[Alternative] = (),
+) -> str:
     """The reason to refuse a result whose stated uncertainty is too wide ("" when it stands):
     the figures against the limits, then what widened them (the counted alternatives, the weak
     directions)."""

@@ -46,15 +46,27 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError
-from ..geometry.icp import IcpParams, IcpReference, IcpResult, icp, thin
 from ..core.outcome import Outcome
+from ..core.params import Params
+from ..core.params import param_field as _p
 from ..core.progress import Progress, ProgressCallback, as_progress
 from ..core.scan import Scan, ScanSource
-from ..terrain.dem import TerrainModel, TerrainParams, terrain_model
-from ..geometry.voxel import voxel_thin
+from ..core.transform import apply as apply_transform
 from ..core.transform import rotation_angle_deg
-from ..core.params import Params, param_field as _p
-from ..core.uncertainty import Alternative, UncertaintyParams, WeakDirection, alternative_weight, evidence_notes, icp_covariance_at, judge, weak_directions, with_alternatives
+from ..core.uncertainty import (
+    Alternative,
+    UncertaintyParams,
+    WeakDirection,
+    alternative_weight,
+    evidence_notes,
+    icp_covariance_at,
+    judge,
+    weak_directions,
+    with_alternatives,
+)
+from ..geometry.icp import IcpParams, IcpReference, IcpResult, icp, thin
+from ..geometry.voxel import voxel_thin
+from ..terrain.dem import TerrainModel, TerrainParams, terrain_model
 from .keypoints import KeypointParams, Keypoints, extract_keypoints
 from .matching import KeypointMatch, MatchingParams, assign_one_to_one, match_keypoints, residual_statistics
 from .surfaces import (
@@ -66,7 +78,6 @@ from .surfaces import (
     surface_correlation,
     terrain_levelling,
 )
-from ..core.transform import apply as apply_transform
 
 __all__ = ["CoarseEvidence", "CoregistrationParams", "CoregistrationResult", "coregister", "coregister_points"]
 
@@ -78,9 +89,11 @@ class CoregistrationParams(Params):
     #: the ICP settings once named here, now in the nested ICP sets
     #: (the former ICP voxel and iterations were shared by several ICP runs: they set each of them)
     _moved: ClassVar[dict[str, Any]] = {
-        "icp_voxel_m": ("icp.voxel_m", "low_layer_icp.voxel_m"), "icp_distances_m": "icp.max_distances_m",
+        "icp_voxel_m": ("icp.voxel_m", "low_layer_icp.voxel_m"),
+        "icp_distances_m": "icp.max_distances_m",
         "icp_iterations": ("icp.iterations", "coarse_icp.iterations", "low_layer_icp.iterations"),
-        "coarse_icp_distances_m": "coarse_icp.max_distances_m", "coarse_voxel_m": "coarse_icp.voxel_m",
+        "coarse_icp_distances_m": "coarse_icp.max_distances_m",
+        "coarse_voxel_m": "coarse_icp.voxel_m",
         "low_layer_icp_distances_m": "low_layer_icp.max_distances_m",
     }
 
@@ -95,7 +108,13 @@ class CoregistrationParams(Params):
     #: solutions and that every ICP run moves
     icp: IcpParams = IcpParams(voxel_m=0.1, max_distances_m=(1.0, 0.5, 0.25, 0.12))
     #: fewer matched keypoints than this fail
-    min_matched: int = _p(3, "keypoints", 3, 100000, "fewest matched keypoints (the canopy surface check carries the rest of the evidence)")
+    min_matched: int = _p(
+        3,
+        "keypoints",
+        3,
+        100000,
+        "fewest matched keypoints (the canopy surface check carries the rest of the evidence)",
+    )
     #: a lower matching percentage fails (%)
     min_matching_percentage: float = _p(15.0, "%", 0.0, 100.0, "lowest matching percentage")
     #: verification: the canopy surface models (highest point per cell of this size, m) of the
@@ -106,7 +125,9 @@ class CoregistrationParams(Params):
     #: a solution whose canopy surfaces correlate less than this fails (Pearson r)
     #: (after the coarse ICP: right solutions reach 0.8-0.95 on simulated and real plots, wrong
     #: ones and unrelated real plots 0.3-0.65)
-    min_surface_correlation: float = _p(0.65, "1", -1.0, 1.0, "lowest canopy surface correlation (after the coarse ICP)")
+    min_surface_correlation: float = _p(
+        0.65, "1", -1.0, 1.0, "lowest canopy surface correlation (after the coarse ICP)"
+    )
     #: solutions moving the ground-based keypoints by more than this on average (m) are distinct
     distinct_solution_m: float = _p(2.5, "m", 0.01, 1000.0, "distinct solution distance")
     #: fewer common cells than this make no evidence
@@ -120,13 +141,27 @@ class CoregistrationParams(Params):
     candidates_verified: int = _p(5, "solutions", 1, 100, "keypoint solutions refined by a coarse ICP and verified")
     #: the coarse ICP of the candidates: wide distances on few points, stopping once the
     #: solution is in the fine ICP's basin (updates below 0.1 mm and 0.001 deg)
-    coarse_icp: IcpParams = IcpParams(voxel_m=0.3, max_distances_m=(3.0, 1.5, 0.75), max_moving_points=4000, final_tolerance_m=1e-4, final_tolerance_deg=1e-3)
+    coarse_icp: IcpParams = IcpParams(
+        voxel_m=0.3,
+        max_distances_m=(3.0, 1.5, 0.75),
+        max_moving_points=4000,
+        final_tolerance_m=1e-4,
+        final_tolerance_deg=1e-3,
+    )
     #: the best refined solution must correlate at least this much better (Pearson r) than the
     #: best distinct alternative
-    min_correlation_margin: float = _p(0.15, "1", 0.0, 2.0, "least canopy correlation margin over the best distinct alternative")
+    min_correlation_margin: float = _p(
+        0.15, "1", 0.0, 2.0, "least canopy correlation margin over the best distinct alternative"
+    )
     #: the stated uncertainty: a distinct alternative's canopy correlation margin, over this, is
     #: its lead in matches (its weight, see :func:`~forestreg.engine.core.uncertainty.alternative_weight`)
-    margin_per_match: float = _p(0.02, "1", 0.001, 1.0, "a canopy correlation margin of this much over a distinct alternative counts as one match of lead")
+    margin_per_match: float = _p(
+        0.02,
+        "1",
+        0.001,
+        1.0,
+        "a canopy correlation margin of this much over a distinct alternative counts as one match of lead",
+    )
     #: how the stated uncertainty counts weak motions and alternatives, and the widest it may be
     #: (an airborne cloud's own accuracy is decimetres: 0.5 m / 1 deg)
     uncertainty: UncertaintyParams = UncertaintyParams(max_translation_m=0.5, max_rotation_deg=1.0)
@@ -139,7 +174,9 @@ class CoregistrationParams(Params):
     #: 0.5 m column plus this (m; twice this in the coarse ICP): leaf-on foliage above every
     #: ground-based return has no counterpart and pulls ICP off (real MLS onto a leaf-on ULS-like
     #: cloud: 2 deg / 0.9 m off without, 0.01 deg with); 0 uses every UAV point
-    visible_tolerance_m: float = _p(0.5, "m", 0.0, 100.0, "UAV points above the ground-based cloud's top by more than this are left out of ICP")
+    visible_tolerance_m: float = _p(
+        0.5, "m", 0.0, 100.0, "UAV points above the ground-based cloud's top by more than this are left out of ICP"
+    )
     #: without matched keypoints (fewer than ``min_matched`` or below ``min_matching_percentage``)
     #: the canopy surfaces decide when they correlate at least this much, with at least this
     #: margin over the best distinct alternative (or the stems decide, see below)
@@ -152,18 +189,34 @@ class CoregistrationParams(Params):
     max_terrain_nmad_m: float = _p(0.5, "m", 0.0, 100.0, "largest spread of the terrain heights after co-registration")
     #: the stem layer (m above the UAV's DEM): stems and understorey a UAV glimpses through
     #: foliage; its points up to the upper height (and the UAV ground) refine every candidate
-    stem_layer_m: tuple[float, float] = _p((0.5, 2.5), "m", 0.0, 50.0, "heights above the UAV's ground of the stem layer (stem evidence; its points and the ground refine each candidate)")
+    stem_layer_m: tuple[float, float] = _p(
+        (0.5, 2.5),
+        "m",
+        0.0,
+        50.0,
+        "heights above the UAV's ground of the stem layer (stem evidence; its points and the ground refine each candidate)",
+    )
     #: that refinement, an ICP of the UAV's stem layer and ground onto each candidate (stopping
     #: as the coarse ICP does)
-    low_layer_icp: IcpParams = IcpParams(voxel_m=0.1, max_distances_m=(2.0, 1.0, 0.5, 0.25, 0.12), max_moving_points=8000, final_tolerance_m=1e-4, final_tolerance_deg=1e-3)
+    low_layer_icp: IcpParams = IcpParams(
+        voxel_m=0.1,
+        max_distances_m=(2.0, 1.0, 0.5, 0.25, 0.12),
+        max_moving_points=8000,
+        final_tolerance_m=1e-4,
+        final_tolerance_deg=1e-3,
+    )
     #: where the UAV sees at least this many points in the stem layer (stems, understorey),
     #: at least this fraction must lie within 0.3 m of the ground-based cloud
     min_stem_layer_points: int = _p(50, "points", 1, 100000000, "fewest UAV stem-layer points that make stem evidence")
-    min_stem_layer_agreement: float = _p(0.3, "1", 0.0, 1.0, "least fraction of UAV stem-layer points near the ground-based cloud")
+    min_stem_layer_agreement: float = _p(
+        0.3, "1", 0.0, 1.0, "least fraction of UAV stem-layer points near the ground-based cloud"
+    )
     #: ... and with at least this fraction near (and the terrains compared and agreeing) the stems
     #: decide without matched keypoints (right solutions: 0.93-0.95 on the real MLS against a
     #: leaf-on ULS-like cloud; a solution 5 deg off: 0.57)
-    decisive_stem_agreement: float = _p(0.8, "1", 0.0, 1.0, "stem-layer agreement that decides without matched keypoints")
+    decisive_stem_agreement: float = _p(
+        0.8, "1", 0.0, 1.0, "stem-layer agreement that decides without matched keypoints"
+    )
     #: standard errors by a delete-one-quadrant jackknife of the fine ICP (4 more short ICP runs)
     jackknife: bool = _p(True, "", None, None, "standard errors by a jackknife over plot quadrants")
 
@@ -273,7 +326,9 @@ class CoregistrationResult(Outcome):
             se = self.standard_errors
             line += f", standard errors {se['rotation_deg']:.3f} deg / {100 * se['translation_m']:.1f} cm"
         u = self.uncertainty or {}
-        if u.get("translation_m") is not None and (u.get("weak_directions") or any(a.get("status") == "counted" for a in u.get("alternatives") or ())):
+        if u.get("translation_m") is not None and (
+            u.get("weak_directions") or any(a.get("status") == "counted" for a in u.get("alternatives") or ())
+        ):
             line += f", 1 sigma {u['rotation_deg']:.3f} deg / {100 * u['translation_m']:.1f} cm ({'; '.join(evidence_notes(u))})"
         if self.quality and np.isfinite(self.quality.get("ground_dz_median_m", float("nan"))):
             line += f", ground offset {_cm(self.quality['ground_dz_median_m'])} cm"
@@ -293,7 +348,9 @@ class CoregistrationResult(Outcome):
             "matching_percentage": self.matching_percentage,
             "surface_correlation": self.surface_correlation,
             "correlation_margin": self.correlation_margin,
-            "standard_errors": None if not self.standard_errors else {
+            "standard_errors": None
+            if not self.standard_errors
+            else {
                 k: self.standard_errors.get(k) for k in ("rotation_deg", "translation_m") if k in self.standard_errors
             },
             "ground_dz_median_m": None if not self.quality else self.quality.get("ground_dz_median_m"),
@@ -406,8 +463,13 @@ def coregister_points(
     return _limited(lambda: (ground, uav), params, as_progress(progress), ground_terrain, uav_terrain)
 
 
-def _limited(load: Callable[[], tuple[np.ndarray, np.ndarray]], params: CoregistrationParams, progress: Progress,
-             ground_terrain: Optional[TerrainModel], uav_terrain: Optional[TerrainModel]) -> CoregistrationResult:
+def _limited(
+    load: Callable[[], tuple[np.ndarray, np.ndarray]],
+    params: CoregistrationParams,
+    progress: Progress,
+    ground_terrain: Optional[TerrainModel],
+    uav_terrain: Optional[TerrainModel],
+) -> CoregistrationResult:
     """:func:`_coregister_points` with BLAS and OpenMP single-threaded (see :func:`coregister_points`)."""
     from threadpoolctl import threadpool_limits
 
@@ -433,9 +495,18 @@ def _coregister_points(
     def failed(reason: str, **kw: Any) -> CoregistrationResult:
         timings["total_s"] = time.perf_counter() - t0
         base: dict[str, Any] = dict(
-            matrix=None, local_matrix=None, keypoint_matrix=None, ground_keypoints=None, uav_keypoints=None,
-            match=None, matched_after_icp=None, residuals_after_icp_m=None, icp=None, surface_correlation=0.0,
-            alternative_correlation=0.0, timings=timings,
+            matrix=None,
+            local_matrix=None,
+            keypoint_matrix=None,
+            ground_keypoints=None,
+            uav_keypoints=None,
+            match=None,
+            matched_after_icp=None,
+            residuals_after_icp_m=None,
+            icp=None,
+            surface_correlation=0.0,
+            alternative_correlation=0.0,
+            timings=timings,
         )
         base.update(kw)
         return CoregistrationResult(status="failed", reason=reason, **base)
@@ -466,7 +537,10 @@ def _coregister_points(
 
         # 2. keypoints
         t = time.perf_counter()
-        progress(0.22, f"[2/6] canopy keypoints of both clouds (terrain: {g_terrain.n_ground:,} / {u_terrain.n_ground:,} ground points)")
+        progress(
+            0.22,
+            f"[2/6] canopy keypoints of both clouds (terrain: {g_terrain.n_ground:,} / {u_terrain.n_ground:,} ground points)",
+        )
         # meanwhile a third thread thins the clouds for the ICP runs (voxel sorts: the GIL is free)
         icp_job = pool.submit(_icp_inputs, ground, uav, params.icp.voxel_m)
         g_job = pool.submit(extract_keypoints, ground, g_terrain.dem, params.keypoints)
@@ -495,13 +569,23 @@ def _coregister_points(
     g_thin = g_ref.level(0.2)[0]
     g_canopy = _column_tops(g_thin[g_terrain.dem.normalise(g_thin) > params.surface_min_height_m], 0.25)
     if len(g_canopy) < params.min_surface_cells:
-        return failed(f"ground-based cloud: too little canopy above {params.surface_min_height_m:.0f} m for the canopy surfaces",
-                      ground_keypoints=g_kp, uav_keypoints=u_kp)
+        return failed(
+            f"ground-based cloud: too little canopy above {params.surface_min_height_m:.0f} m for the canopy surfaces",
+            ground_keypoints=g_kp,
+            uav_keypoints=u_kp,
+        )
     uav_surface = SurfaceGrid.of(thin(u_icp, 0.2), params.surface_cell_m)
     sample = g_canopy[:: max(1, len(g_canopy) // 500)]
-    progress(0.68, f"[3/6] canopy surfaces searched over every {params.heading_step_deg:g} deg of heading and every shift")
-    peaks = canopy_search(g_canopy, uav_surface, heading_step_deg=params.heading_step_deg,
-                          n_peaks=params.canopy_peaks, distinct_m=params.distinct_solution_m)
+    progress(
+        0.68, f"[3/6] canopy surfaces searched over every {params.heading_step_deg:g} deg of heading and every shift"
+    )
+    peaks = canopy_search(
+        g_canopy,
+        uav_surface,
+        heading_step_deg=params.heading_step_deg,
+        n_peaks=params.canopy_peaks,
+        distinct_m=params.distinct_solution_m,
+    )
     timings["canopy_search_s"] = time.perf_counter() - t
     t = time.perf_counter()
     ranked = []
@@ -521,8 +605,11 @@ def _coregister_points(
         if all(_apart_m(pk.matrix, m, sample) > params.distinct_solution_m for _, m, _ in starts):
             starts.append(("canopy surfaces", pk.matrix, None))
     if not starts:
-        return failed("no candidate: neither the keypoints nor the canopy surfaces give a transform",
-                      ground_keypoints=g_kp, uav_keypoints=u_kp)
+        return failed(
+            "no candidate: neither the keypoints nor the canopy surfaces give a transform",
+            ground_keypoints=g_kp,
+            uav_keypoints=u_kp,
+        )
     timings["ranking_s"] = time.perf_counter() - t
 
     # 5. each candidate levelled on the terrain (vertical offset and tilt), refined by a coarse
@@ -537,7 +624,10 @@ def _coregister_points(
     # ULS-like cloud: candidates 2.5-14 deg off come to 0.01 deg by these points alone)
     low = u_terrain.dem.normalise(u_icp) < params.stem_layer_m[1]
     low = low if low.sum() >= 200 else None
-    progress(0.75, f"[4/6] coarse ICP of {len(starts)} candidates ({sum(s == 'keypoints' for s, _, _ in starts)} from keypoints) and canopy checks")
+    progress(
+        0.75,
+        f"[4/6] coarse ICP of {len(starts)} candidates ({sum(s == 'keypoints' for s, _, _ in starts)} from keypoints) and canopy checks",
+    )
 
     def coarse_icp(start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         fit = terrain_levelling(g_ground_pts, g_terrain.dem, u_ground_pts, start)
@@ -546,9 +636,10 @@ def _coregister_points(
         m = _icp_uav_onto_ground(g_ref, u_icp, level, params.coarse_icp, statistics=False, keep=keep).matrix
         if low is not None:  # the stems and ground the UAV sees, onto the ground-based cloud
             m = _icp_uav_onto_ground(g_ref, u_icp, m, params.low_layer_icp, statistics=False, keep=low).matrix
-        if _apart_m(m, level, sample) > params.max_icp_shift_m or rotation_angle_deg(
-            (np.linalg.inv(level) @ m)[:3, :3]
-        ) > params.max_icp_rotation_deg:
+        if (
+            _apart_m(m, level, sample) > params.max_icp_shift_m
+            or rotation_angle_deg((np.linalg.inv(level) @ m)[:3, :3]) > params.max_icp_rotation_deg
+        ):
             m = level  # ICP ran away: keep the levelled start as it is
         return level, m
 
@@ -557,7 +648,10 @@ def _coregister_points(
         for k, (level, m) in enumerate(pool.map(coarse_icp, [m for _, m, _ in starts])):
             r, n = surface_correlation(g_canopy, uav_surface, m)
             refined.append((r if n >= params.min_surface_cells else 0.0, k, level, m))
-            progress(0.75 + 0.1 * (k + 1) / len(starts), f"[4/6] candidate {k + 1}/{len(starts)} ({starts[k][0]}): canopy correlation {r:.2f} after ICP")
+            progress(
+                0.75 + 0.1 * (k + 1) / len(starts),
+                f"[4/6] candidate {k + 1}/{len(starts)} ({starts[k][0]}): canopy correlation {r:.2f} after ICP",
+            )
     refined.sort(key=lambda v: -v[0])
     best_r, best_k, best_level, coarse = refined[0]
     source, _, best_match = starts[best_k]
@@ -568,10 +662,16 @@ def _coregister_points(
             alt, alt_matrix = max(r, 0.0), m
             break
     timings["verification_s"] = time.perf_counter() - t
-    common = dict(ground_keypoints=g_kp, uav_keypoints=u_kp, match=best_match,
-                  keypoint_matrix=None if best_match is None else best_match.matrix,
-                  surface_correlation=best_r, alternative_correlation=alt, candidates_verified=len(starts),
-                  coarse_source=source)
+    common = dict(
+        ground_keypoints=g_kp,
+        uav_keypoints=u_kp,
+        match=best_match,
+        keypoint_matrix=None if best_match is None else best_match.matrix,
+        surface_correlation=best_r,
+        alternative_correlation=alt,
+        candidates_verified=len(starts),
+        coarse_source=source,
+    )
     if best_r < params.min_surface_correlation:
         return failed(
             f"the canopy surfaces do not agree under any of {len(starts)} refined solutions: correlation "
@@ -588,7 +688,9 @@ def _coregister_points(
     # 6. fine ICP from the best candidate: the UAV points the ground can have seen onto the
     # ground-based surfaces
     t = time.perf_counter()
-    progress(0.86, f"[5/6] fine ICP from the best candidate ({source}; correlation {best_r:.2f}, margin {best_r - alt:.2f})")
+    progress(
+        0.86, f"[5/6] fine ICP from the best candidate ({source}; correlation {best_r:.2f}, margin {best_r - alt:.2f})"
+    )
     keep = _visible(u_icp, visible_ref, coarse, params.visible_tolerance_m)
     result = _icp_uav_onto_ground(g_ref, u_icp, coarse, params.icp, keep=keep)
     timings["icp_s"] = time.perf_counter() - t
@@ -601,14 +703,17 @@ def _coregister_points(
         res_after = np.linalg.norm(moved - u_kp.xyz[pairs_after[:, 1]], axis=1)
     else:
         pairs_after, res_after = np.zeros((0, 2), dtype=np.int64), np.zeros(0)
-    common.update(icp=result, matched_after_icp=pairs_after, residuals_after_icp_m=res_after, surface_correlation=final_r)
+    common.update(
+        icp=result, matched_after_icp=pairs_after, residuals_after_icp_m=res_after, surface_correlation=final_r
+    )
 
     # 7. the evidence together: canopy (correlation, margin), terrain (offset, tilt, spread), stems
     # where the UAV sees them, keypoints matched
     terrain = terrain_levelling(g_ground_pts, g_terrain.dem, u_ground_pts, result.matrix, max_tilt_deg=90.0)
     footprint = _overlap(uav, ground[:: max(1, len(ground) // 50_000)], result.matrix, margin_m=0.0)
-    n_stem, stem_frac = stem_layer_agreement(uav, u_terrain.dem, g_ref.full_tree, result.matrix, footprint,
-                                             band_m=params.stem_layer_m)
+    n_stem, stem_frac = stem_layer_agreement(
+        uav, u_terrain.dem, g_ref.full_tree, result.matrix, footprint, band_m=params.stem_layer_m
+    )
     n_min = min(len(g_kp), len(u_kp))
     pct = 100.0 * len(pairs_after) / n_min if n_min else 0.0
     evidence = CoarseEvidence(
@@ -639,14 +744,26 @@ def _coregister_points(
     keypoints_agree = len(pairs_after) >= params.min_matched and pct >= params.min_matching_percentage
     canopy_decisive = final_r >= params.decisive_correlation and final_r - alt >= params.decisive_margin
     stems_decisive = (
-        n_stem >= params.min_stem_layer_points and stem_frac >= params.decisive_stem_agreement
-        and terrain is not None and terrain.count >= 100
+        n_stem >= params.min_stem_layer_points
+        and stem_frac >= params.decisive_stem_agreement
+        and terrain is not None
+        and terrain.count >= 100
     )
-    decided_by = tuple(name for name, held in (("keypoints", keypoints_agree), ("canopy surfaces", canopy_decisive),
-                                               ("stems", stems_decisive)) if held)
+    decided_by = tuple(
+        name
+        for name, held in (
+            ("keypoints", keypoints_agree),
+            ("canopy surfaces", canopy_decisive),
+            ("stems", stems_decisive),
+        )
+        if held
+    )
     if not decided_by:
-        stems = (f"{100 * stem_frac:.0f} % of {n_stem} UAV stem-layer points near the ground-based cloud"
-                 if n_stem else "no UAV stem-layer points")
+        stems = (
+            f"{100 * stem_frac:.0f} % of {n_stem} UAV stem-layer points near the ground-based cloud"
+            if n_stem
+            else "no UAV stem-layer points"
+        )
         return failed(
             f"the evidence is too weak: {len(pairs_after)} keypoints match ({pct:.0f} %, need {params.min_matching_percentage:.0f} %), "
             f"the canopy surfaces alone are not decisive (correlation {final_r:.2f}, margin {final_r - alt:.2f}; "
@@ -654,8 +771,10 @@ def _coregister_points(
             f"need {100 * params.decisive_stem_agreement:.0f} % of at least {params.min_stem_layer_points} with the terrain compared)",
             **common,
         )
-    if terrain is not None and terrain.count >= 100 and (
-        terrain.tilt_deg > params.max_terrain_tilt_deg or terrain.nmad_m > params.max_terrain_nmad_m
+    if (
+        terrain is not None
+        and terrain.count >= 100
+        and (terrain.tilt_deg > params.max_terrain_tilt_deg or terrain.nmad_m > params.max_terrain_nmad_m)
     ):
         return failed(
             f"the terrains disagree under the solution: tilted {terrain.tilt_deg:.2f} deg to each other, "
@@ -678,17 +797,26 @@ def _coregister_points(
     if params.jackknife:
         common["standard_errors"] = jackknife_standard_errors(g_ref, u_icp, result.matrix, params, keep)
         centre = np.median(ground[:: max(1, len(ground) // 20_000)], axis=0)
-        common["uncertainty"] = stated_uncertainty(common["standard_errors"], result, res_after, centre, final_r, alt, alt_matrix, params)
-        refusal = judge(common["uncertainty"]["translation_m"], common["uncertainty"]["rotation_deg"], params.uncertainty,
-                        weak=[WeakDirection.from_dict(w) for w in common["uncertainty"]["weak_directions"]],
-                        alternatives=[Alternative.from_dict(a) for a in common["uncertainty"]["alternatives"]])
+        common["uncertainty"] = stated_uncertainty(
+            common["standard_errors"], result, res_after, centre, final_r, alt, alt_matrix, params
+        )
+        refusal = judge(
+            common["uncertainty"]["translation_m"],
+            common["uncertainty"]["rotation_deg"],
+            params.uncertainty,
+            weak=[WeakDirection.from_dict(w) for w in common["uncertainty"]["weak_directions"]],
+            alternatives=[Alternative.from_dict(a) for a in common["uncertainty"]["alternatives"]],
+        )
         if refusal:
             timings["quality_s"] = time.perf_counter() - t
             return failed(refusal, **common)
     timings["quality_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
-    progress(1.0, f"co-registered from the {source}, decided by the {' and the '.join(decided_by)}: {len(pairs_after)} keypoints matched ({pct:.0f} %), canopy correlation "
-                  f"{final_r:.2f} (margin {final_r - alt:.2f}), ICP fitness {result.fitness:.2f}")
+    progress(
+        1.0,
+        f"co-registered from the {source}, decided by the {' and the '.join(decided_by)}: {len(pairs_after)} keypoints matched ({pct:.0f} %), canopy correlation "
+        f"{final_r:.2f} (margin {final_r - alt:.2f}), ICP fitness {result.fitness:.2f}",
+    )
     return CoregistrationResult(
         status="ok", reason="", matrix=result.matrix, local_matrix=result.matrix, timings=timings, **common
     )
@@ -833,7 +961,9 @@ def coregistration_quality(
         high = (g_top[canopy] - u_dem.height_at(centres)) > 2.0
         a, b = grid.z[canopy][high], g_top[canopy][high]
         out.update(_robust("canopy_dz", a - b))
-        out["canopy_correlation"] = float(np.corrcoef(a, b)[0, 1]) if len(a) > 2 and a.std() > 0 and b.std() > 0 else float("nan")
+        out["canopy_correlation"] = (
+            float(np.corrcoef(a, b)[0, 1]) if len(a) > 2 and a.std() > 0 and b.std() > 0 else float("nan")
+        )
     else:
         out.update(_robust("canopy_dz", np.zeros(0)))
         out["canopy_correlation"] = float("nan")
@@ -853,7 +983,10 @@ def _robust(name: str, values: np.ndarray) -> dict[str, float]:
 
 
 def jackknife_standard_errors(
-    ground: IcpReference, uav: np.ndarray, matrix: np.ndarray, params: "CoregistrationParams",
+    ground: IcpReference,
+    uav: np.ndarray,
+    matrix: np.ndarray,
+    params: "CoregistrationParams",
     use: Optional[np.ndarray] = None,
 ) -> dict[str, Any]:
     """Delete-one-quadrant jackknife of the fine ICP: the UAV points of the overlap are split into
@@ -871,7 +1004,9 @@ def jackknife_standard_errors(
     rot_vecs, shifts = [], []
 
     def without(k: int) -> np.ndarray:
-        return _icp_uav_onto_ground(ground, uav, matrix, short, keep=(q != k) if use is None else (q != k) & use, statistics=False).matrix
+        return _icp_uav_onto_ground(
+            ground, uav, matrix, short, keep=(q != k) if use is None else (q != k) & use, statistics=False
+        ).matrix
 
     with ThreadPoolExecutor(max_workers=2) as pool:  # independent runs on a shared reference
         runs = list(pool.map(without, range(4)))
@@ -897,9 +1032,16 @@ def jackknife_standard_errors(
     }
 
 
-def stated_uncertainty(standard_errors: dict[str, Any], fine: IcpResult, residuals_m: np.ndarray, centre: np.ndarray,
-                       correlation: float, alternative_correlation: float, alternative: Optional[np.ndarray],
-                       params: "CoregistrationParams") -> dict[str, Any]:
+def stated_uncertainty(
+    standard_errors: dict[str, Any],
+    fine: IcpResult,
+    residuals_m: np.ndarray,
+    centre: np.ndarray,
+    correlation: float,
+    alternative_correlation: float,
+    alternative: Optional[np.ndarray],
+    params: "CoregistrationParams",
+) -> dict[str, Any]:
     """The stated 1-sigma uncertainty of a co-registration at the ground-based cloud's centre
     (``centre``, its local frame): the jackknife's standard errors, widened along each motion the
     fine ICP's surfaces hardly pin (:func:`~forestreg.engine.core.uncertainty.weak_directions`) by
@@ -915,7 +1057,9 @@ def stated_uncertainty(standard_errors: dict[str, Any], fine: IcpResult, residua
     res = np.asarray(residuals_m, dtype=float)
     keypoints_m = float(np.sqrt(np.mean(res**2)) / math.sqrt(len(res))) if len(res) >= 3 else math.inf
     if weak and np.isfinite(fine.std_m):
-        pos_cov, rot_cov = icp_covariance_at(fine.information, float(fine.std_m), centre, up.independent_patches, up.rotation_patches)
+        pos_cov, rot_cov = icp_covariance_at(
+            fine.information, float(fine.std_m), centre, up.independent_patches, up.rotation_patches
+        )
     for w in weak:  # what pins a weak motion: the surfaces' own precision along it, or the keypoints
         v = np.asarray(w.vector, dtype=float)
         if w.kind == "translation":
@@ -929,16 +1073,28 @@ def stated_uncertainty(standard_errors: dict[str, Any], fine: IcpResult, residua
         there = apply_transform(alternative, centre[None])[0]
         offset = there - here
         weight = alternative_weight((correlation - alternative_correlation) / params.margin_per_match, up)
-        alternatives.append(Alternative(
-            weight=weight if weight >= up.min_alternative_weight else 0.0,
-            status="counted" if weight >= up.min_alternative_weight else f"too unlikely to count (probability {weight:.1g})",
-            offset_m=float(np.linalg.norm(offset)), offset_deg=rotation_angle_deg(fine.matrix[:3, :3].T @ alternative[:3, :3]),
-            support=round(float(alternative_correlation), 3), chosen_support=round(float(correlation), 3),
-            direction_deg=float(np.degrees(np.arctan2(offset[1], offset[0])) % 360.0)))
+        alternatives.append(
+            Alternative(
+                weight=weight if weight >= up.min_alternative_weight else 0.0,
+                status="counted"
+                if weight >= up.min_alternative_weight
+                else f"too unlikely to count (probability {weight:.1g})",
+                offset_m=float(np.linalg.norm(offset)),
+                offset_deg=rotation_angle_deg(fine.matrix[:3, :3].T @ alternative[:3, :3]),
+                support=round(float(alternative_correlation), 3),
+                chosen_support=round(float(correlation), 3),
+                direction_deg=float(np.degrees(np.arctan2(offset[1], offset[0])) % 360.0),
+            )
+        )
     t2, r2 = with_alternatives(t, r, alternatives)
     return {
-        "translation_m": t2, "rotation_deg": r2, "at": "the ground-based cloud's centre (weak directions in its frame)",
-        "standard_errors": {"translation_m": standard_errors.get("translation_m"), "rotation_deg": standard_errors.get("rotation_deg")},
+        "translation_m": t2,
+        "rotation_deg": r2,
+        "at": "the ground-based cloud's centre (weak directions in its frame)",
+        "standard_errors": {
+            "translation_m": standard_errors.get("translation_m"),
+            "rotation_deg": standard_errors.get("rotation_deg"),
+        },
         "weak_directions": [w.to_dict() for w in weak],
         "alternatives": [a.to_dict() for a in alternatives],
         "method": "jackknife standard errors, widened along weak motions (keypoints after ICP) and by the distinct alternative",

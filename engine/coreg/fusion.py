@@ -34,11 +34,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
-from ..core.scan import check_points
 from ..core.errors import ParameterError, ScanDataError
 from ..core.outcome import Outcome
-from ..core.params import Params, param_field as _p
+from ..core.params import Params
+from ..core.params import param_field as _p
 from ..core.progress import Progress, ProgressCallback
+from ..core.scan import check_points
 from ..core.transform import apply as apply_transform
 from ..geometry.sorting import sort_keys
 from ..io.las import write_fused  # noqa: F401 - the fused cloud's writer lives with the LAS format
@@ -67,8 +68,6 @@ _ORDER_SEED = 20220
 _CHUNK = 1 << 20
 
 
-
-
 @dataclass(frozen=True)
 class FusionParams(Params):
     """Settings of the ground-based/UAV fusion (paper 4.2). Distances in metres.
@@ -78,21 +77,78 @@ class FusionParams(Params):
     """
 
     # --- redundancy (paper 4.2.1)
-    cube_side_m: float = _p(0.5, "m", 0.02, 50.0, "Side of the cubes the cloud is partitioned into; only sets the size of the work batches (pairs across cube faces are found too)", "l")
-    redundancy_distance_m: float = _p(0.01, "m", 1e-4, 0.5, "Points of the merged cloud closer than this are the same surface sampled twice: one is kept", "epsilon")
-    redundancy_scope: str = _p("between_sources", "", None, None, "'between_sources': a point is redundant when a point of the winning source lies within epsilon (the same surface sampled by both platforms; each source keeps its own density); 'all': any two points of the merged cloud closer than epsilon, so each source is also thinned to an epsilon spacing")
-    keep_source: int = _p(GROUND, "1", 1, 2, "Which source wins a duplicate: 1 = the ground-based point (denser, more precise), 2 = the UAV point")
+    cube_side_m: float = _p(
+        0.5,
+        "m",
+        0.02,
+        50.0,
+        "Side of the cubes the cloud is partitioned into; only sets the size of the work batches (pairs across cube faces are found too)",
+        "l",
+    )
+    redundancy_distance_m: float = _p(
+        0.01,
+        "m",
+        1e-4,
+        0.5,
+        "Points of the merged cloud closer than this are the same surface sampled twice: one is kept",
+        "epsilon",
+    )
+    redundancy_scope: str = _p(
+        "between_sources",
+        "",
+        None,
+        None,
+        "'between_sources': a point is redundant when a point of the winning source lies within epsilon (the same surface sampled by both platforms; each source keeps its own density); 'all': any two points of the merged cloud closer than epsilon, so each source is also thinned to an epsilon spacing",
+    )
+    keep_source: int = _p(
+        GROUND,
+        "1",
+        1,
+        2,
+        "Which source wins a duplicate: 1 = the ground-based point (denser, more precise), 2 = the UAV point",
+    )
     # --- noise (paper 4.2.2)
-    noise_method: str = _p("local", "", None, None, "'local' (default): mean distance to the k nearest neighbours relative to the same figure of those neighbours, points beyond mean + std_ratio * std of that ratio are noise (density-independent); 'global': Ning et al. / statistical outlier removal on the mean k-NN distance itself; 'paper': eq. 4-6 literally (nu, sigma, min_neighbours)")
+    noise_method: str = _p(
+        "local",
+        "",
+        None,
+        None,
+        "'local' (default): mean distance to the k nearest neighbours relative to the same figure of those neighbours, points beyond mean + std_ratio * std of that ratio are noise (density-independent); 'global': Ning et al. / statistical outlier removal on the mean k-NN distance itself; 'paper': eq. 4-6 literally (nu, sigma, min_neighbours)",
+    )
     k_neighbours: int = _p(12, "points", 3, 200, "Neighbours of each point for the 'local' and 'global' noise filters")
-    std_ratio: float = _p(3.0, "std", 0.5, 10.0, "Noise beyond mean + std_ratio * standard deviation of the distance statistic ('local' and 'global')")
+    std_ratio: float = _p(
+        3.0,
+        "std",
+        0.5,
+        10.0,
+        "Noise beyond mean + std_ratio * standard deviation of the distance statistic ('local' and 'global')",
+    )
     noise_radius_m: float = _p(0.15, "m", 0.01, 5.0, "Radius of the neighbourhood of eq. 4-5 (method 'paper')", "nu")
-    sigma: float = _p(0.625, "1", 0.0, 1.0, "Probability threshold of eq. 6 (method 'paper'); Pr never exceeds 1 - 1/e = 0.632, see statistical_noise", "sigma")
-    min_neighbours: int = _p(2, "points", 0, 1000, "Method 'paper': points with fewer neighbours than this within nu are isolated: noise")
-    max_neighbours: int = _p(64, "points", 4, 1000, "Method 'paper': at most this many (the nearest) neighbours within nu are used")
-    canopy_top_cell_m: float = _p(0.5, "m", 0.0, 10.0, "The highest points of every cell of this size (the canopy surface, tree tops) are never removed as noise; 0 = no protection")
+    sigma: float = _p(
+        0.625,
+        "1",
+        0.0,
+        1.0,
+        "Probability threshold of eq. 6 (method 'paper'); Pr never exceeds 1 - 1/e = 0.632, see statistical_noise",
+        "sigma",
+    )
+    min_neighbours: int = _p(
+        2, "points", 0, 1000, "Method 'paper': points with fewer neighbours than this within nu are isolated: noise"
+    )
+    max_neighbours: int = _p(
+        64, "points", 4, 1000, "Method 'paper': at most this many (the nearest) neighbours within nu are used"
+    )
+    canopy_top_cell_m: float = _p(
+        0.5,
+        "m",
+        0.0,
+        10.0,
+        "The highest points of every cell of this size (the canopy surface, tree tops) are never removed as noise; 0 = no protection",
+    )
     canopy_top_points: int = _p(3, "points", 1, 1000, "How many of the highest points per cell are protected")
-    noise_sources: tuple[int, ...] = _p((GROUND, UAV), "1", 1, 2, "Sources whose points the noise filter may remove (the statistics use every point)")
+    noise_sources: tuple[int, ...] = _p(
+        (GROUND, UAV), "1", 1, 2, "Sources whose points the noise filter may remove (the statistics use every point)"
+    )
     # --- work size
     batch_points: int = _p(1_000_000, "points", 1000, 100_000_000, "Points handled at once (memory bound)")
 
@@ -100,9 +156,13 @@ class FusionParams(Params):
         if not self.noise_sources:
             raise ParameterError("noise_sources: needs at least one value")
         if self.noise_method not in NOISE_METHODS:
-            raise ParameterError(f"noise_method {self.noise_method!r} is unknown; use one of {', '.join(NOISE_METHODS)}")
+            raise ParameterError(
+                f"noise_method {self.noise_method!r} is unknown; use one of {', '.join(NOISE_METHODS)}"
+            )
         if self.redundancy_scope not in REDUNDANCY_SCOPES:
-            raise ParameterError(f"redundancy_scope {self.redundancy_scope!r} is unknown; use one of {', '.join(REDUNDANCY_SCOPES)}")
+            raise ParameterError(
+                f"redundancy_scope {self.redundancy_scope!r} is unknown; use one of {', '.join(REDUNDANCY_SCOPES)}"
+            )
         if self.keep_source not in (GROUND, UAV):
             raise ParameterError(f"keep_source must be {GROUND} (ground) or {UAV} (UAV), not {self.keep_source}")
         if self.cube_side_m < 2.0 * self.redundancy_distance_m:
@@ -121,7 +181,9 @@ def _check_source(source: Any, n: int) -> np.ndarray:
     if src.shape != (n,):
         raise ScanDataError(f"source: expected one label per point ({n}), got shape {src.shape}")
     if n and not np.isin(src, (GROUND, UAV)).all():
-        raise ScanDataError(f"source: labels must be {GROUND} (ground) or {UAV} (UAV); found {sorted(set(np.unique(src).tolist()) - {GROUND, UAV})[:5]}")
+        raise ScanDataError(
+            f"source: labels must be {GROUND} (ground) or {UAV} (UAV); found {sorted(set(np.unique(src).tolist()) - {GROUND, UAV})[:5]}"
+        )
     return src.astype(np.uint8)
 
 
@@ -464,7 +526,9 @@ def _paper_noise_sorted(sorted_pts: np.ndarray, params: FusionParams, prog: Prog
     count_sorted = np.empty(n, dtype=np.int64)
     batch = max(1, params.batch_points // 8)
     for lo in range(0, n, batch):
-        d, _ = tree.query(sorted_pts[lo : lo + batch], k=kmax + 1, distance_upper_bound=params.noise_radius_m, workers=_workers())
+        d, _ = tree.query(
+            sorted_pts[lo : lo + batch], k=kmax + 1, distance_upper_bound=params.noise_radius_m, workers=_workers()
+        )
         d = d[:, 1:]
         valid = np.isfinite(d)
         k = valid.sum(axis=1)
@@ -561,8 +625,11 @@ def fuse(
         raise ScanDataError("both clouds are empty: nothing to fuse")
     g_extra = _check_extra(ground_extra, len(g), "ground_extra")
     u_extra = _check_extra(uav_extra, len(u), "uav_extra")
-    return _fuse(lambda: _Merged(np.concatenate([g, u]), len(g), g_extra, u_extra), params,
-                 progress if isinstance(progress, Progress) else Progress(progress))
+    return _fuse(
+        lambda: _Merged(np.concatenate([g, u]), len(g), g_extra, u_extra),
+        params,
+        progress if isinstance(progress, Progress) else Progress(progress),
+    )
 
 
 @dataclass
@@ -621,7 +688,9 @@ def _fuse(merge: Callable[[], _Merged], params: FusionParams, prog: Progress) ->
             "noise": int((src_r[noise_r] == code).sum()),
             "kept": int((src_r[~noise_r] == code).sum()),
         }
-    counts["total"] = {key: counts["ground"][key] + counts["uav"][key] for key in ("input", "redundant", "noise", "kept")}
+    counts["total"] = {
+        key: counts["ground"][key] + counts["uav"][key] for key in ("input", "redundant", "noise", "kept")
+    }
 
     source = src[kept]
     ground_index = kept[source == GROUND]
@@ -719,7 +788,9 @@ def fuse_scans(
     scan's local frame; write them with ``write_fused(path, result, origin_shift=uav.origin_shift)``.
     Intensities are carried along when both scans have them."""
     m = _check_matrix(matrix)
-    return _fuse(lambda: _merge_scans(ground, uav, m), params, progress if isinstance(progress, Progress) else Progress(progress))
+    return _fuse(
+        lambda: _merge_scans(ground, uav, m), params, progress if isinstance(progress, Progress) else Progress(progress)
+    )
 
 
 def fuse_files(
@@ -745,8 +816,11 @@ def fuse_files(
     m = _check_matrix(matrix)
     check_readable(ground_path)  # read only once the work starts: a missing file is said first
     uav = read_scan(uav_path, unit_scale=unit_scale)
-    result = _fuse(lambda: _merge_scans(read_scan(ground_path, unit_scale=unit_scale), uav, m), params,
-                   progress if isinstance(progress, Progress) else Progress(progress))
+    result = _fuse(
+        lambda: _merge_scans(read_scan(ground_path, unit_scale=unit_scale), uav, m),
+        params,
+        progress if isinstance(progress, Progress) else Progress(progress),
+    )
     return result, np.asarray(uav.origin_shift, dtype=np.float64)
 
 
@@ -763,7 +837,11 @@ def _merge_scans(ground: "Scan", uav: "Scan", matrix: np.ndarray) -> _Merged:
     UAV points; intensities when both scans have them."""
     # ground local -> ground file -> UAV file -> UAV local
     local = matrix.copy()
-    local[:3, 3] = matrix[:3, :3] @ np.asarray(ground.origin_shift, dtype=np.float64) + matrix[:3, 3] - np.asarray(uav.origin_shift, dtype=np.float64)
+    local[:3, 3] = (
+        matrix[:3, :3] @ np.asarray(ground.origin_shift, dtype=np.float64)
+        + matrix[:3, 3]
+        - np.asarray(uav.origin_shift, dtype=np.float64)
+    )
     n_g = len(ground.points)
     if n_g + len(uav.points) == 0:
         raise ScanDataError("both clouds are empty: nothing to fuse")
@@ -773,7 +851,9 @@ def _merge_scans(ground: "Scan", uav: "Scan", matrix: np.ndarray) -> _Merged:
         pts[lo:hi] = apply_transform(local, ground.points[lo:hi])
     pts[n_g:] = uav.points
     both = ground.intensity is not None and uav.intensity is not None
-    return _Merged(pts, n_g, {"intensity": ground.intensity} if both else {}, {"intensity": uav.intensity} if both else {})
+    return _Merged(
+        pts, n_g, {"intensity": ground.intensity} if both else {}, {"intensity": uav.intensity} if both else {}
+    )
 
 
 def _workers() -> int:

@@ -27,10 +27,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError, ScanDataError
+from ..core.params import Params
+from ..core.params import param_field as _p
 from ..core.progress import Progress
-from ..terrain.dem import Dem
-from ..core.params import Params, param_field as _p
 from ..geometry.voxel import voxel_thin
+from ..terrain.dem import Dem
 
 __all__ = [
     "KeypointParams",

@@ -35,10 +35,11 @@ from typing import ClassVar, Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..core.params import Params
+from ..core.params import param_field as _p
 from ..core.progress import Progress
-from ..core.transform import fit_rigid
-from ..core.params import Params, param_field as _p
 from ..core.transform import apply as apply_transform
+from ..core.transform import fit_rigid
 from ..geometry.solution_params import DistinctParams
 
 __all__ = [
@@ -56,7 +57,10 @@ class MatchingParams(Params):
     """Parameters of keypoint matching."""
 
     #: the settings once named here, now in ``[coregistration.matching.distinct]``
-    _moved: ClassVar[dict[str, str]] = {"distinct_heading_deg": "distinct.rotation_deg", "distinct_translation_m": "distinct.translation_m"}
+    _moved: ClassVar[dict[str, str]] = {
+        "distinct_heading_deg": "distinct.rotation_deg",
+        "distinct_translation_m": "distinct.translation_m",
+    }
 
     #: D_thr: a ground keypoint within this distance (m, horizontal) of a UAV keypoint matches it
     distance_threshold_m: float = _p(1.0, "m", 0.01, 100.0, "D_thr", "1 m")
@@ -71,7 +75,6 @@ class MatchingParams(Params):
     #: solutions closer than this in heading (deg) and translation (m) are the same solution
     distinct: DistinctParams = DistinctParams(rotation_deg=3.0, translation_m=1.5)
     seed: int = _p(0, "1", 0, 2**31 - 1, "random seed of the subset of seed pairs")
-
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,7 +131,9 @@ class _OccupancyRaster:
         shape = np.ceil((hi - lo) / cell).astype(int) + 1
         self.grid = np.zeros((shape[0], shape[1]), dtype=bool)
         r = int(math.ceil(radius / cell))
-        offs = np.array([(a, b) for a in range(-r, r + 1) for b in range(-r, r + 1) if math.hypot(a, b) * cell <= radius])
+        offs = np.array(
+            [(a, b) for a in range(-r, r + 1) for b in range(-r, r + 1) if math.hypot(a, b) * cell <= radius]
+        )
         base = np.floor((xy - lo) / cell).astype(int)
         cells = (base[:, None, :] + offs[None, :, :]).reshape(-1, 2)
         self.grid[cells[:, 0], cells[:, 1]] = True
@@ -136,7 +141,12 @@ class _OccupancyRaster:
     def count(self, xy: np.ndarray) -> np.ndarray:
         """Hits per row of (H, K, 2) query positions -> (H,)."""
         idx = np.floor((xy - self.origin) / self.cell).astype(np.int64)
-        inside = (idx[..., 0] >= 0) & (idx[..., 1] >= 0) & (idx[..., 0] < self.grid.shape[0]) & (idx[..., 1] < self.grid.shape[1])
+        inside = (
+            (idx[..., 0] >= 0)
+            & (idx[..., 1] >= 0)
+            & (idx[..., 0] < self.grid.shape[0])
+            & (idx[..., 1] < self.grid.shape[1])
+        )
         hit = np.zeros(idx.shape[:-1], dtype=bool)
         hit[inside] = self.grid[idx[..., 0][inside], idx[..., 1][inside]]
         return hit.sum(axis=-1)
@@ -199,7 +209,9 @@ def assign_one_to_one(ground: np.ndarray, uav: np.ndarray, matrix: np.ndarray, t
     return np.column_stack([np.asarray(rows)[r_idx[ok]], np.asarray(cols)[c_idx[ok]]]).astype(np.int64)
 
 
-def _refine(ground: np.ndarray, uav: np.ndarray, initial: np.ndarray, params: MatchingParams) -> tuple[np.ndarray, np.ndarray]:
+def _refine(
+    ground: np.ndarray, uav: np.ndarray, initial: np.ndarray, params: MatchingParams
+) -> tuple[np.ndarray, np.ndarray]:
     """Alternate one-to-one assignment and rigid fitting from ``initial``; 2D (heading + XY, mean
     Z offset) while few pairs, all six degrees of freedom from 6 pairs on."""
     matrix = initial.copy()
@@ -323,7 +335,10 @@ class _SolutionSet:
                 for dj in (-1, 0, 1):
                     for h2, x2, y2 in self.bins.get(((h + dh) % self.heading_bins, i + di, j + dj), ()):
                         d = abs((heading - h2 + math.pi) % (2 * math.pi) - math.pi)
-                        if math.degrees(d) < self.params.distinct.rotation_deg and math.hypot(x - x2, y - y2) < self.params.distinct.translation_m:
+                        if (
+                            math.degrees(d) < self.params.distinct.rotation_deg
+                            and math.hypot(x - x2, y - y2) < self.params.distinct.translation_m
+                        ):
                             return True
         return False
 
@@ -335,7 +350,9 @@ class _SolutionSet:
 def _solution(ground: np.ndarray, uav: np.ndarray, matrix: np.ndarray, pairs: np.ndarray, score: int) -> KeypointMatch:
     moved = apply_transform(matrix, ground[pairs[:, 0]])
     res = np.linalg.norm(moved - uav[pairs[:, 1]], axis=1)
-    return KeypointMatch(matrix=matrix, pairs=pairs, residuals_m=res, hypothesis_score=score, heading_deg=_heading_deg(matrix))
+    return KeypointMatch(
+        matrix=matrix, pairs=pairs, residuals_m=res, hypothesis_score=score, heading_deg=_heading_deg(matrix)
+    )
 
 
 def residual_statistics(residuals_m: np.ndarray) -> dict[str, float]:

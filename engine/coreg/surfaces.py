@@ -206,7 +206,11 @@ def canopy_search(
         if res[0] <= -1.0 or len(kept) >= n_peaks:
             break
         cand = peak(h, res)
-        if any(np.mean(np.linalg.norm(apply_transform(cand.matrix, sample) - apply_transform(k.matrix, sample), axis=1)) <= distinct_m for k in kept):
+        if any(
+            np.mean(np.linalg.norm(apply_transform(cand.matrix, sample) - apply_transform(k.matrix, sample), axis=1))
+            <= distinct_m
+            for k in kept
+        ):
             continue
         # refine the heading by half and quarter steps about the peak
         best_h, best = h, res
@@ -300,8 +304,9 @@ def terrain_levelling(
 # --------------------------------------------------------------------------------------------
 
 
-def seen_from_ground(uav: np.ndarray, ground: np.ndarray, matrix: np.ndarray, *, cell_m: float = 0.5,
-                     tolerance_m: float = 0.5) -> np.ndarray:
+def seen_from_ground(
+    uav: np.ndarray, ground: np.ndarray, matrix: np.ndarray, *, cell_m: float = 0.5, tolerance_m: float = 0.5
+) -> np.ndarray:
     """Mask of the UAV points a ground-based scanner can have seen too: in a column (``cell_m``
     square, UAV frame) where the ground-based cloud moved by ``matrix`` has points, and no higher
     than its highest point there plus ``tolerance_m``. Foliage above every ground-based return

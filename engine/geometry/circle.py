@@ -47,7 +47,9 @@ class Circle:
 
 def _make(xy: np.ndarray, cx: float, cy: float, r: float) -> Circle:
     d = np.hypot(xy[:, 0] - cx, xy[:, 1] - cy) - r
-    return Circle((float(cx), float(cy)), float(r), float(np.sqrt(np.mean(d * d))) if len(xy) else float("nan"), len(xy))
+    return Circle(
+        (float(cx), float(cy)), float(r), float(np.sqrt(np.mean(d * d))) if len(xy) else float("nan"), len(xy)
+    )
 
 
 def _kasa(q: np.ndarray) -> Optional[tuple[float, float, float]]:
@@ -125,7 +127,14 @@ def refine_circle(
     return _make(p, c[0] + mean[0], c[1] + mean[1], abs(r))
 
 
-def fit_circle(xy: np.ndarray, *, loss: Loss = "huber", scale_m: Optional[float] = None, iterations: int = 15, tolerance_m: float = 1e-5) -> Circle:
+def fit_circle(
+    xy: np.ndarray,
+    *,
+    loss: Loss = "huber",
+    scale_m: Optional[float] = None,
+    iterations: int = 15,
+    tolerance_m: float = 1e-5,
+) -> Circle:
     """Circle through 2D points ``xy`` (M >= 3, metres): the algebraic (Kasa) start refined by
     :func:`refine_circle` (by default robust, Huber weights)."""
     p = np.asarray(xy, dtype=np.float64)
@@ -137,7 +146,9 @@ def fit_circle(xy: np.ndarray, *, loss: Loss = "huber", scale_m: Optional[float]
 
 
 @kernel
-def _inlier_counts(x: np.ndarray, y: np.ndarray, cx: np.ndarray, cy: np.ndarray, r: np.ndarray, tolerance: float) -> np.ndarray:
+def _inlier_counts(
+    x: np.ndarray, y: np.ndarray, cx: np.ndarray, cy: np.ndarray, r: np.ndarray, tolerance: float
+) -> np.ndarray:
     """For each circle ``(cx, cy, r)`` (C,), the number of points ``(x, y)`` (M,) whose distance
     from it, ``|hypot(x - cx, y - cy) - r|``, is below ``tolerance`` (metres)."""
     counts = np.zeros(len(cx), dtype=np.int64)
@@ -175,13 +186,20 @@ def ransac_circle(
     if not plausible.any():
         return None
     ux, uy, r = ux[plausible], uy[plausible], r[plausible]
-    counts = _inlier_counts(np.ascontiguousarray(score_xy[:, 0]), np.ascontiguousarray(score_xy[:, 1]), ux, uy, r, float(tolerance_m))
+    counts = _inlier_counts(
+        np.ascontiguousarray(score_xy[:, 0]), np.ascontiguousarray(score_xy[:, 1]), ux, uy, r, float(tolerance_m)
+    )
     best = int(np.argmax(counts))
     return _make(xy, ux[best], uy[best], r[best])
 
 
 def robust_circle(
-    xy: np.ndarray, *, inlier_tolerance_m: float, radius_range_m: tuple[float, float], ransac_iterations: int = 300, seed: int = 0
+    xy: np.ndarray,
+    *,
+    inlier_tolerance_m: float,
+    radius_range_m: tuple[float, float],
+    ransac_iterations: int = 300,
+    seed: int = 0,
 ) -> Optional[tuple[Circle, int]]:
     """A circle among clutter, and its inlier count (points of ``xy`` within
     ``inlier_tolerance_m``).
@@ -203,7 +221,11 @@ def robust_circle(
     rs = ransac_circle(q, tol, ransac_iterations, (radius_range_m[0] * 0.5, radius_range_m[1] * 1.5), rng)
     if rs is not None:
         near = rs.distances(q) < 2.0 * tol
-        candidates.append(refine_circle(q[near] if near.sum() >= 3 else q, rs, loss="soft_l1", scale_m=scale, iterations=30, tolerance_m=1e-6))
+        candidates.append(
+            refine_circle(
+                q[near] if near.sum() >= 3 else q, rs, loss="soft_l1", scale_m=scale, iterations=30, tolerance_m=1e-6
+            )
+        )
     best: Optional[tuple[int, float, Circle]] = None
     for cand in candidates:
         res = cand.distances(p)

@@ -8,8 +8,8 @@ from typing import Optional
 
 import numpy as np
 
-from .features import SphereGrid, first_at_least
 from ..core.jit import kernel
+from .features import SphereGrid, first_at_least
 
 __all__ = ["connected_clusters"]
 
@@ -25,9 +25,17 @@ def _root(parent: np.ndarray, i: int) -> int:
 
 @kernel
 def _link_pairs(
-    d2_max: float, reach2: np.ndarray, parent: np.ndarray,
-    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
-    cell_z: np.ndarray, pts: np.ndarray,
+    d2_max: float,
+    reach2: np.ndarray,
+    parent: np.ndarray,
+    origin: np.ndarray,
+    cell: float,
+    nx: int,
+    ny: int,
+    index: np.ndarray,
+    column_start: np.ndarray,
+    cell_z: np.ndarray,
+    pts: np.ndarray,
 ) -> None:
     """Join in ``parent`` (union-find over the original indices) every pair of grid points whose
     squared distance ``(dx^2 + dy^2) + dz^2`` is at most ``d2_max`` and, when ``reach2`` is not

@@ -30,14 +30,28 @@ if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 
 __all__ = [
-    "SphereGrid", "eigen_features", "kth_nearest_distance", "local_covariances", "nearest_within", "neighbour_means", "normals_and_variation",
+    "SphereGrid",
+    "eigen_features",
+    "kth_nearest_distance",
+    "local_covariances",
+    "nearest_within",
+    "neighbour_means",
+    "normals_and_variation",
     "query_order",
 ]
 
 
 @kernel
 def _offset_covariance(
-    pts: np.ndarray, sel: np.ndarray, m: int, qx: float, qy: float, qz: float, d: np.ndarray, pr: np.ndarray, out: np.ndarray,
+    pts: np.ndarray,
+    sel: np.ndarray,
+    m: int,
+    qx: float,
+    qy: float,
+    qz: float,
+    d: np.ndarray,
+    pr: np.ndarray,
+    out: np.ndarray,
 ) -> None:
     """Covariance (3, 3) into ``out`` of the points ``pts[sel[:m]]`` as offsets from the query
     ``(qx, qy, qz)``: ``E[d d^T] - E[d] E[d]^T``, means over ``m`` (>= 1); scratch arrays ``d``
@@ -94,7 +108,9 @@ class SphereGrid:
         from .sorting import sort_keys
 
         # indices and layers in 32 bits where they fit: a level of ICP holds 8 bytes a point less
-        self.index, key = sort_keys(key, float(self.nx) * self.ny * self.layers, np.int32 if len(p) < 2**31 - 1 else np.int64)
+        self.index, key = sort_keys(
+            key, float(self.nx) * self.ny * self.layers, np.int32 if len(p) < 2**31 - 1 else np.int64
+        )
         if reorder and p is points:
             for a in range(3):  # one column's copy at a time
                 p[:, a] = p[:, a][self.index]
@@ -113,7 +129,9 @@ class SphereGrid:
 
 
 @kernel
-def _cell_key_rows(start: int, stop: int, p: np.ndarray, origin: np.ndarray, cell: float, ny: int, layers: int, key: np.ndarray) -> None:
+def _cell_key_rows(
+    start: int, stop: int, p: np.ndarray, origin: np.ndarray, cell: float, ny: int, layers: int, key: np.ndarray
+) -> None:
     """Rows ``start:stop`` of a :class:`SphereGrid`'s sort key: ``(ix * ny + iy) * layers + iz``,
     cells ``floor((p - origin) / cell)``."""
     for i in range(start, stop):
@@ -153,9 +171,22 @@ def _nearest_scratch(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @kernel
 def _nearest_in_sphere(
-    qx: float, qy: float, qz: float, origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray,
-    column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int,
-    best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
+    qx: float,
+    qy: float,
+    qz: float,
+    origin: np.ndarray,
+    cell: float,
+    nx: int,
+    ny: int,
+    index: np.ndarray,
+    column_start: np.ndarray,
+    cell_z: np.ndarray,
+    pts: np.ndarray,
+    r2: float,
+    k: int,
+    best_d2: np.ndarray,
+    best_index: np.ndarray,
+    best: np.ndarray,
 ) -> int:
     """The (at most ``k``) grid points with squared distance below ``r2`` from the query, nearest
     first (ties by original index): their sorted positions into ``best[:m]``; returns ``m``. The
@@ -166,15 +197,49 @@ def _nearest_in_sphere(
     m = 0
     for ax in range(max(ix - 1, 0), min(ix + 2, nx)):
         for ay in range(max(iy - 1, 0), min(iy + 2, ny)):
-            m = _offer_layers(ax, ay, iz - 1, iz + 1, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
+            m = _offer_layers(
+                ax,
+                ay,
+                iz - 1,
+                iz + 1,
+                qx,
+                qy,
+                qz,
+                ny,
+                index,
+                column_start,
+                cell_z,
+                pts,
+                r2,
+                k,
+                m,
+                best_d2,
+                best_index,
+                best,
+            )
     return m
 
 
 @kernel
 def _offer_layers(
-    ax: int, ay: int, z0: int, z1: int, qx: float, qy: float, qz: float, ny: int, index: np.ndarray,
-    column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int, m: int,
-    best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
+    ax: int,
+    ay: int,
+    z0: int,
+    z1: int,
+    qx: float,
+    qy: float,
+    qz: float,
+    ny: int,
+    index: np.ndarray,
+    column_start: np.ndarray,
+    cell_z: np.ndarray,
+    pts: np.ndarray,
+    r2: float,
+    k: int,
+    m: int,
+    best_d2: np.ndarray,
+    best_index: np.ndarray,
+    best: np.ndarray,
 ) -> int:
     """Offer the points of the layers ``z0..z1`` of the column ``(ax, ay)`` to the list of the
     (at most ``k``) nearest found so far (``m`` of them, kept as :func:`_nearest_in_sphere` keeps
@@ -207,9 +272,23 @@ def _offer_layers(
 
 @kernel
 def _nearest_growing(
-    qx: float, qy: float, qz: float, origin: np.ndarray, cell: float, nx: int, ny: int, layers: int,
-    index: np.ndarray, column_start: np.ndarray, cell_z: np.ndarray, pts: np.ndarray, r2: float, k: int,
-    best_d2: np.ndarray, best_index: np.ndarray, best: np.ndarray,
+    qx: float,
+    qy: float,
+    qz: float,
+    origin: np.ndarray,
+    cell: float,
+    nx: int,
+    ny: int,
+    layers: int,
+    index: np.ndarray,
+    column_start: np.ndarray,
+    cell_z: np.ndarray,
+    pts: np.ndarray,
+    r2: float,
+    k: int,
+    best_d2: np.ndarray,
+    best_index: np.ndarray,
+    best: np.ndarray,
 ) -> int:
     """The (at most ``k``) grid points nearest the query with a squared distance below ``r2``
     (``inf``: at any distance), as :func:`_nearest_in_sphere` lists them; none for a query that
@@ -237,10 +316,67 @@ def _nearest_growing(
                 if gx * gx + gy * gy > (r2 if m < k else best_d2[k - 1]):
                     continue
                 if first or max(abs(ax - ix), abs(ay - iy)) == ring:  # a new column: all the block's layers
-                    m = _offer_layers(ax, ay, iz - ring, iz + ring, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
+                    m = _offer_layers(
+                        ax,
+                        ay,
+                        iz - ring,
+                        iz + ring,
+                        qx,
+                        qy,
+                        qz,
+                        ny,
+                        index,
+                        column_start,
+                        cell_z,
+                        pts,
+                        r2,
+                        k,
+                        m,
+                        best_d2,
+                        best_index,
+                        best,
+                    )
                 else:  # a column searched before: its new layers below and above
-                    m = _offer_layers(ax, ay, iz - ring, iz - ring, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
-                    m = _offer_layers(ax, ay, iz + ring, iz + ring, qx, qy, qz, ny, index, column_start, cell_z, pts, r2, k, m, best_d2, best_index, best)
+                    m = _offer_layers(
+                        ax,
+                        ay,
+                        iz - ring,
+                        iz - ring,
+                        qx,
+                        qy,
+                        qz,
+                        ny,
+                        index,
+                        column_start,
+                        cell_z,
+                        pts,
+                        r2,
+                        k,
+                        m,
+                        best_d2,
+                        best_index,
+                        best,
+                    )
+                    m = _offer_layers(
+                        ax,
+                        ay,
+                        iz + ring,
+                        iz + ring,
+                        qx,
+                        qy,
+                        qz,
+                        ny,
+                        index,
+                        column_start,
+                        cell_z,
+                        pts,
+                        r2,
+                        k,
+                        m,
+                        best_d2,
+                        best_index,
+                        best,
+                    )
         first = False
         if ring >= whole:
             return m
@@ -266,9 +402,22 @@ def _nearest_growing(
 
 @kernel
 def _covariance_rows(
-    start: int, stop: int, q: np.ndarray, r2: float, k: int, layers: int, cov: np.ndarray, count: np.ndarray,
-    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
-    cell_z: np.ndarray, pts: np.ndarray,
+    start: int,
+    stop: int,
+    q: np.ndarray,
+    r2: float,
+    k: int,
+    layers: int,
+    cov: np.ndarray,
+    count: np.ndarray,
+    origin: np.ndarray,
+    cell: float,
+    nx: int,
+    ny: int,
+    index: np.ndarray,
+    column_start: np.ndarray,
+    cell_z: np.ndarray,
+    pts: np.ndarray,
 ) -> None:
     """Rows ``start:stop`` of :func:`local_covariances` on a :class:`SphereGrid`: from the ``k``
     nearest points within the grid's sphere (``r2``, its radius squared, finite) or at any
@@ -279,9 +428,29 @@ def _covariance_rows(
     for i in range(start, stop):
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
         if sphere:
-            m = _nearest_in_sphere(qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)
+            m = _nearest_in_sphere(
+                qx, qy, qz, origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best
+            )
         else:
-            m = _nearest_growing(qx, qy, qz, origin, cell, nx, ny, layers, index, column_start, cell_z, pts, np.inf, k, best_d2, best_index, best)
+            m = _nearest_growing(
+                qx,
+                qy,
+                qz,
+                origin,
+                cell,
+                nx,
+                ny,
+                layers,
+                index,
+                column_start,
+                cell_z,
+                pts,
+                np.inf,
+                k,
+                best_d2,
+                best_index,
+                best,
+            )
         count[i] = m
         if m > 0:
             _offset_covariance(pts, best, m, qx, qy, qz, d, pr, cov[i])
@@ -289,20 +458,53 @@ def _covariance_rows(
 
 @kernel
 def _nearest_rows(
-    start: int, stop: int, rows: np.ndarray, q: np.ndarray, r2: float, layers: int, distance: np.ndarray, nearest: np.ndarray,
-    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
-    cell_z: np.ndarray, pts: np.ndarray,
+    start: int,
+    stop: int,
+    rows: np.ndarray,
+    q: np.ndarray,
+    r2: float,
+    layers: int,
+    distance: np.ndarray,
+    nearest: np.ndarray,
+    origin: np.ndarray,
+    cell: float,
+    nx: int,
+    ny: int,
+    index: np.ndarray,
+    column_start: np.ndarray,
+    cell_z: np.ndarray,
+    pts: np.ndarray,
 ) -> None:
     """Rows ``rows[start:stop]`` of :func:`nearest_within`."""
     best_d2, best_index, best = _nearest_scratch(1)
     for t in range(start, stop):
         i = rows[t]
-        if _nearest_growing(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, layers, index, column_start, cell_z, pts, r2, 1, best_d2, best_index, best):
+        if _nearest_growing(
+            q[i, 0],
+            q[i, 1],
+            q[i, 2],
+            origin,
+            cell,
+            nx,
+            ny,
+            layers,
+            index,
+            column_start,
+            cell_z,
+            pts,
+            r2,
+            1,
+            best_d2,
+            best_index,
+            best,
+        ):
             distance[i] = np.sqrt(best_d2[0])
             nearest[i] = best_index[0]
 
 
-def nearest_within(queries: np.ndarray, grid: SphereGrid, radius_m: float, *, order: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+def nearest_within(
+    queries: np.ndarray, grid: SphereGrid, radius_m: float, *, order: Optional[np.ndarray] = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The nearest of a :class:`SphereGrid`'s points strictly within ``radius_m`` (any, the grid's
     cell being no limit) of each query, as a k-d tree's ``query(queries,
     distance_upper_bound=radius_m)`` gives it: distances (Q,) in metres, ``inf`` where there is
@@ -320,7 +522,18 @@ def nearest_within(queries: np.ndarray, grid: SphereGrid, radius_m: float, *, or
         rows = query_order(q, grid) if order is None else np.asarray(order, dtype=np.int64)
         if len(rows) != len(q):
             raise ValueError(f"order holds {len(rows)} rows for {len(q)} queries")
-        run_blocks(_nearest_rows, len(q), rows, q, float(radius_m) ** 2, grid.layers, distance, nearest, *grid.args(), block=8192)
+        run_blocks(
+            _nearest_rows,
+            len(q),
+            rows,
+            q,
+            float(radius_m) ** 2,
+            grid.layers,
+            distance,
+            nearest,
+            *grid.args(),
+            block=8192,
+        )
     return distance, nearest
 
 
@@ -335,14 +548,46 @@ def query_order(queries: np.ndarray, grid: SphereGrid) -> np.ndarray:
 
 @kernel
 def _kth_nearest_rows(
-    start: int, stop: int, q: np.ndarray, k: int, layers: int, distance: np.ndarray,
-    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
-    cell_z: np.ndarray, pts: np.ndarray,
+    start: int,
+    stop: int,
+    q: np.ndarray,
+    k: int,
+    layers: int,
+    distance: np.ndarray,
+    origin: np.ndarray,
+    cell: float,
+    nx: int,
+    ny: int,
+    index: np.ndarray,
+    column_start: np.ndarray,
+    cell_z: np.ndarray,
+    pts: np.ndarray,
 ) -> None:
     """Rows ``start:stop`` of :func:`kth_nearest_distance`."""
     best_d2, best_index, best = _nearest_scratch(k)
     for i in range(start, stop):
-        if _nearest_growing(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, layers, index, column_start, cell_z, pts, np.inf, k, best_d2, best_index, best) == k:
+        if (
+            _nearest_growing(
+                q[i, 0],
+                q[i, 1],
+                q[i, 2],
+                origin,
+                cell,
+                nx,
+                ny,
+                layers,
+                index,
+                column_start,
+                cell_z,
+                pts,
+                np.inf,
+                k,
+                best_d2,
+                best_index,
+                best,
+            )
+            == k
+        ):
             distance[i] = np.sqrt(best_d2[k - 1])
 
 
@@ -410,7 +655,18 @@ def local_covariances(
     if np.isfinite(radius_m):
         if grid is None or grid.radius_m != float(radius_m):
             grid = SphereGrid(c, radius_m)
-        run_blocks(_covariance_rows, len(q_all), q_all, float(radius_m) * float(radius_m), k, grid.layers, cov, count, *grid.args(), block=block)
+        run_blocks(
+            _covariance_rows,
+            len(q_all),
+            q_all,
+            float(radius_m) * float(radius_m),
+            k,
+            grid.layers,
+            cov,
+            count,
+            *grid.args(),
+            block=block,
+        )
         return cov, count
     if grid is not None:
         run_blocks(_covariance_rows, len(q_all), q_all, np.inf, k, grid.layers, cov, count, *grid.args(), block=block)
@@ -429,15 +685,44 @@ def local_covariances(
 
 @kernel
 def _neighbour_mean_rows(
-    start: int, stop: int, q: np.ndarray, values: np.ndarray, r2: float, k: int, out: np.ndarray,
-    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
-    cell_z: np.ndarray, pts: np.ndarray,
+    start: int,
+    stop: int,
+    q: np.ndarray,
+    values: np.ndarray,
+    r2: float,
+    k: int,
+    out: np.ndarray,
+    origin: np.ndarray,
+    cell: float,
+    nx: int,
+    ny: int,
+    index: np.ndarray,
+    column_start: np.ndarray,
+    cell_z: np.ndarray,
+    pts: np.ndarray,
 ) -> None:
     """Rows ``start:stop`` of :func:`neighbour_means` on a :class:`SphereGrid`."""
     best_d2, best_index, best = _nearest_scratch(k)
     slots = np.empty(k)
     for i in range(start, stop):
-        m = _nearest_in_sphere(q[i, 0], q[i, 1], q[i, 2], origin, cell, nx, ny, index, column_start, cell_z, pts, r2, k, best_d2, best_index, best)
+        m = _nearest_in_sphere(
+            q[i, 0],
+            q[i, 1],
+            q[i, 2],
+            origin,
+            cell,
+            nx,
+            ny,
+            index,
+            column_start,
+            cell_z,
+            pts,
+            r2,
+            k,
+            best_d2,
+            best_index,
+            best,
+        )
         for t in range(k):
             slots[t] = values[best_index[t]] if t < m else 0.0
         out[i] = pairwise_sum(slots, 0, k) / m if m > 0 else np.nan
@@ -453,7 +738,9 @@ def neighbour_means(points: np.ndarray, values: np.ndarray, radius_m: float, k: 
     if len(p) == 0:
         return out
     grid = SphereGrid(p, radius_m)
-    run_blocks(_neighbour_mean_rows, len(p), p, v, float(radius_m) * float(radius_m), min(int(k), len(p)), out, *grid.args())
+    run_blocks(
+        _neighbour_mean_rows, len(p), p, v, float(radius_m) * float(radius_m), min(int(k), len(p)), out, *grid.args()
+    )
     return out
 
 

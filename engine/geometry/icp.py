@@ -36,11 +36,11 @@ from typing import TYPE_CHECKING, Optional, Sequence
 
 import numpy as np
 
-from .icp_params import IcpParams
-from ..core.transform import rotation_from_vector
-from ..core.transform import apply as apply_transform
-from .features import SphereGrid, first_at_least, local_covariances, nearest_within, normals_and_variation, query_order
 from ..core.jit import kernel, run_blocks, worker_count
+from ..core.transform import apply as apply_transform
+from ..core.transform import rotation_from_vector
+from .features import SphereGrid, first_at_least, local_covariances, nearest_within, normals_and_variation, query_order
+from .icp_params import IcpParams
 from .voxel import VoxelGrid, column_bounds, voxel_downsample
 
 if TYPE_CHECKING:
@@ -99,7 +99,10 @@ def thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
 #: matches lie in the 27 cells around a point, and the 12 nearest points for a normal mostly too.
 CELL_VOXELS = 2.5
 
-def _normals_at(points: np.ndarray, grid: SphereGrid, index: np.ndarray, neighbours: int = IcpParams.normal_neighbours) -> np.ndarray:
+
+def _normals_at(
+    points: np.ndarray, grid: SphereGrid, index: np.ndarray, neighbours: int = IcpParams.normal_neighbours
+) -> np.ndarray:
     """Unit normals (arbitrary sign) of ``points[index]`` from their ``neighbours`` nearest
     points (``grid`` is made of ``points``): the least eigenvector of the local covariance."""
     cov, _ = local_covariances(points[index], points, k=neighbours, grid=grid)
@@ -167,7 +170,9 @@ class IcpReference:
             if len(now) > 1:
                 from concurrent.futures import ThreadPoolExecutor
 
-                with ThreadPoolExecutor(min(len(now), worker_count()), thread_name_prefix="forestreg-icp-levels") as pool:
+                with ThreadPoolExecutor(
+                    min(len(now), worker_count()), thread_name_prefix="forestreg-icp-levels"
+                ) as pool:
                     for key, level in zip(now, pool.map(make, now)):
                         self._levels[key] = level
             for key in sources:
@@ -184,7 +189,10 @@ class IcpReference:
                 # each level point's row among the normals computed so far (-1: none yet), and
                 # those rows: 4 bytes a level point, not 25 for a full (M, 3) array of which an
                 # ICP run fills a few per cent
-                self._normals[key] = (np.full(len(ref), -1, dtype=np.int32 if len(ref) < 2**31 else np.int64), np.zeros((0, 3)))
+                self._normals[key] = (
+                    np.full(len(ref), -1, dtype=np.int32 if len(ref) < 2**31 else np.int64),
+                    np.zeros((0, 3)),
+                )
             row, computed = self._normals[key]
             need = index[row[index] < 0]  # after a stage's first iteration, few
             if len(need):
@@ -194,7 +202,9 @@ class IcpReference:
                 self._normals[key] = (row, computed)
             return computed[row[index]]
 
-    def distance_stats(self, moved: np.ndarray, max_distance_m: float, *, use_full_tree: bool = False) -> tuple[float, float, int]:
+    def distance_stats(
+        self, moved: np.ndarray, max_distance_m: float, *, use_full_tree: bool = False
+    ) -> tuple[float, float, int]:
         """:func:`nearest_distance_stats` of ``moved`` against all the reference points. With a
         grid, only the points of the voxels whose centroid lies within ``max_distance_m`` plus a
         voxel diagonal of a moved point are searched (a point and its voxel's centroid are at most
@@ -208,11 +218,23 @@ class IcpReference:
             distance = np.full(len(q), np.inf)
             ring = max(1, int(np.ceil(reach / cells.cell_m)))
             run_blocks(
-                _nearest_member_rows, len(q), q, float(max_distance_m) ** 2, reach * reach, ring, self.points,
-                self.grid.order, self.grid.starts, distance, *cells.args(), block=4096,
+                _nearest_member_rows,
+                len(q),
+                q,
+                float(max_distance_m) ** 2,
+                reach * reach,
+                ring,
+                self.points,
+                self.grid.order,
+                self.grid.starts,
+                distance,
+                *cells.args(),
+                block=4096,
             )
             return _stats(distance)
-        return nearest_distance_stats(self.points, moved, max_distance_m, tree=self.full_tree if use_full_tree else None)
+        return nearest_distance_stats(
+            self.points, moved, max_distance_m, tree=self.full_tree if use_full_tree else None
+        )
 
     @property
     def full_tree(self) -> cKDTree:
@@ -281,7 +303,11 @@ def icp(
     finest = max(voxel_m, min(max_distances_m) / 2.5) if len(max_distances_m) else voxel_m
     stage_voxels = [max(voxel_m, dist / 2.5) for dist in max_distances_m]
     prepared.level(finest)
-    mov_fine = np.asarray(moving, dtype=np.float64) if moving_voxel_m is not None and abs(moving_voxel_m - finest) < 1e-9 else thin(moving, finest)
+    mov_fine = (
+        np.asarray(moving, dtype=np.float64)
+        if moving_voxel_m is not None and abs(moving_voxel_m - finest) < 1e-9
+        else thin(moving, finest)
+    )
     # every stage's thinned clouds made at once in threads: the reference's levels and the moving
     # cloud's wider stages (each thinned from the finest, as one at a time)
     from concurrent.futures import ThreadPoolExecutor
@@ -295,7 +321,9 @@ def icp(
         # a wide stage only brings the next one into its basin: it stops at 0.1 mm / 0.001 deg
         # updates; the last stage converges to 0.01 mm / 0.0001 deg
         final_stage = stage == len(max_distances_m) - 1
-        stop_m, stop_rad = (final_tolerance[0], np.radians(final_tolerance[1])) if final_stage else (1e-4, np.radians(1e-3))
+        stop_m, stop_rad = (
+            (final_tolerance[0], np.radians(final_tolerance[1])) if final_stage else (1e-4, np.radians(1e-3))
+        )
         voxel = stage_voxels[stage]
         ref, grid = prepared.level(voxel)
         mov = mov_fine if voxel <= finest else moving_levels[voxel]
@@ -381,10 +409,24 @@ def _stats(distance: np.ndarray) -> tuple[float, float, int]:
 
 @kernel
 def _nearest_member_rows(
-    start: int, stop: int, q: np.ndarray, max2: float, reach2: float, ring: int, points: np.ndarray,
-    order: np.ndarray, starts: np.ndarray, distance: np.ndarray,
-    origin: np.ndarray, cell: float, nx: int, ny: int, index: np.ndarray, column_start: np.ndarray,
-    cell_z: np.ndarray, centroids: np.ndarray,
+    start: int,
+    stop: int,
+    q: np.ndarray,
+    max2: float,
+    reach2: float,
+    ring: int,
+    points: np.ndarray,
+    order: np.ndarray,
+    starts: np.ndarray,
+    distance: np.ndarray,
+    origin: np.ndarray,
+    cell: float,
+    nx: int,
+    ny: int,
+    index: np.ndarray,
+    column_start: np.ndarray,
+    cell_z: np.ndarray,
+    centroids: np.ndarray,
 ) -> None:
     """Rows ``start:stop`` of :meth:`IcpReference.distance_stats` on a voxel grid: the distance
     from each query to its nearest point (``points[order[starts[v]:starts[v + 1]]]`` for the
@@ -436,7 +478,7 @@ def _near_cells(points: np.ndarray, around: np.ndarray, cell_m: float, chunk: in
     near = (cells[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
     wanted = np.unique((near[:, 0] * span[1] + near[:, 1]) * span[2] + near[:, 2])
     for start in range(0, len(points), chunk):
-        block = points[start:start + chunk]
+        block = points[start : start + chunk]
         ok = np.ones(len(block), dtype=bool)
         key = np.zeros(len(block), dtype=np.int64)
         for axis in range(3):
@@ -444,5 +486,5 @@ def _near_cells(points: np.ndarray, around: np.ndarray, cell_m: float, chunk: in
             ok &= (c >= 0) & (c < span[axis])
             key = key * span[axis] + c
         at = np.minimum(np.searchsorted(wanted, key), len(wanted) - 1)
-        keep[start:start + chunk] = ok & (wanted[at] == key)
+        keep[start : start + chunk] = ok & (wanted[at] == key)
     return keep

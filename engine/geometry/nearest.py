@@ -61,14 +61,28 @@ class PlaneNearest:
         index = np.full(len(q), self.count, dtype=np.int64)
         if len(q) and self.count:
             run_blocks(
-                _plane_nearest_rows, len(q), q, self.max_distance_m * self.max_distance_m, self.origin, self.cell_m,
-                self.nx, self.ny, self.keys, self.order, self.points, distance, index, block=65536,
+                _plane_nearest_rows,
+                len(q),
+                q,
+                self.max_distance_m * self.max_distance_m,
+                self.origin,
+                self.cell_m,
+                self.nx,
+                self.ny,
+                self.keys,
+                self.order,
+                self.points,
+                distance,
+                index,
+                block=65536,
             )
         return distance, index
 
 
 @kernel
-def _plane_nearest_rows(start, stop, q, r2, origin, cell, nx, ny, keys, order, pts, distance, index):  # pragma: no cover - compiled
+def _plane_nearest_rows(
+    start, stop, q, r2, origin, cell, nx, ny, keys, order, pts, distance, index
+):  # pragma: no cover - compiled
     """Rows ``start:stop`` of :meth:`PlaneNearest.query`."""
     n = len(keys)
     for i in range(start, stop):

@@ -7,7 +7,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ..core.params import Params, param_field as _p
+from ..core.params import Params
+from ..core.params import param_field as _p
 
 __all__ = ["DistinctParams", "MarginParams"]
 
@@ -26,8 +27,20 @@ class MarginParams(Params):
     """How far the best solution of a search (VOPs of a pair, stems of two surveys) must lead the
     best distinct alternative to count as unambiguous."""
 
-    min_lead: int = _p(2, "matches", 0, 1000, "The best solution must match at least this many more (VOPs, stems) than the best distinct alternative")
-    min_lead_fraction: float = _p(0.1, "1", 0.0, 1.0, "...and at least this fraction of its own matches more (a plantation's grid lets another solution match many)")
+    min_lead: int = _p(
+        2,
+        "matches",
+        0,
+        1000,
+        "The best solution must match at least this many more (VOPs, stems) than the best distinct alternative",
+    )
+    min_lead_fraction: float = _p(
+        0.1,
+        "1",
+        0.0,
+        1.0,
+        "...and at least this fraction of its own matches more (a plantation's grid lets another solution match many)",
+    )
 
     def needed(self, matched: int) -> int:
         """The lead over the best distinct alternative that a solution matching ``matched`` needs."""

@@ -26,12 +26,24 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from .sums import segment_sum
 from ..core.cells import cell_bits, claim_cell, first_in_cells
 from ..core.jit import kernel, run_blocks
 from .sorting import sort_keys
+from .sums import segment_sum
 
-__all__ = ["VoxelGrid", "claim_voxel", "column_bounds", "voxel_bitmap", "voxel_centroids", "voxel_downsample", "voxel_grid", "voxel_keys", "voxel_representatives", "voxel_thin", "warm_up"]
+__all__ = [
+    "VoxelGrid",
+    "claim_voxel",
+    "column_bounds",
+    "voxel_bitmap",
+    "voxel_centroids",
+    "voxel_downsample",
+    "voxel_grid",
+    "voxel_keys",
+    "voxel_representatives",
+    "voxel_thin",
+    "warm_up",
+]
 
 
 def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -80,7 +92,7 @@ def floor_cells(values: np.ndarray, lo: float, cell_m: float, dtype=np.int64) ->
     (a 30 M-point column would take two of 240 MB)."""
     out = np.empty(len(values), dtype=dtype)
     for a in range(0, len(values), CELL_BLOCK_POINTS):
-        out[a:a + CELL_BLOCK_POINTS] = np.floor((values[a:a + CELL_BLOCK_POINTS] - lo) / cell_m)
+        out[a : a + CELL_BLOCK_POINTS] = np.floor((values[a : a + CELL_BLOCK_POINTS] - lo) / cell_m)
     return out
 
 
@@ -115,7 +127,9 @@ def _keys(pts: np.ndarray, voxel_m: float, origin: np.ndarray, top: np.ndarray, 
 
 
 @kernel
-def _key_rows(start: int, stop: int, pts: np.ndarray, lo: np.ndarray, voxel_m: float, span: np.ndarray, key: np.ndarray) -> None:
+def _key_rows(
+    start: int, stop: int, pts: np.ndarray, lo: np.ndarray, voxel_m: float, span: np.ndarray, key: np.ndarray
+) -> None:
     """Rows ``start:stop`` of :func:`voxel_keys`: ``(ix * span_y + iy) * span_z + iz`` with the
     cells ``floor((p - lo) / voxel_m)`` computed in float64."""
     for i in range(start, stop):
@@ -210,7 +224,9 @@ def voxel_bitmap(voxel_m: float, radius_m: float) -> np.ndarray:
 
 
 @kernel(inline="always")
-def claim_voxel(x: float, y: float, z: float, voxel_m: float, half: int, occupied: np.ndarray) -> bool:  # pragma: no cover - compiled
+def claim_voxel(
+    x: float, y: float, z: float, voxel_m: float, half: int, occupied: np.ndarray
+) -> bool:  # pragma: no cover - compiled
     """Whether the point ``(x, y, z)`` (scanner-centred, within the sphere of the bitmap, see
     :func:`voxel_bitmap`; ``half`` its cells on each side of the scanner) is the first in its
     ``voxel_m`` voxel of the grid with a corner at the scanner: its cell was not claimed in
@@ -226,7 +242,11 @@ def claim_voxel(x: float, y: float, z: float, voxel_m: float, half: int, occupie
 
 
 def voxel_centroids(
-    points: np.ndarray, voxel_m: float, rows: Optional[np.ndarray] = None, *, index_dtype: type = np.int64,
+    points: np.ndarray,
+    voxel_m: float,
+    rows: Optional[np.ndarray] = None,
+    *,
+    index_dtype: type = np.int64,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(centroids (M, 3), voxel_of_point (N,))``: the mean point of every occupied voxel (in
     key order) and the voxel index of each point. Sums are taken relative to a point of the voxel,
@@ -316,7 +336,9 @@ def _centroids_at(p, rows, voxel_of_point, first, out):  # pragma: no cover - co
 
 
 @kernel
-def _number_runs(sorted_keys: np.ndarray, order: np.ndarray, voxel_of_point: np.ndarray, first: np.ndarray) -> int:  # pragma: no cover - compiled
+def _number_runs(
+    sorted_keys: np.ndarray, order: np.ndarray, voxel_of_point: np.ndarray, first: np.ndarray
+) -> int:  # pragma: no cover - compiled
     """Number the runs of equal ``sorted_keys`` (stably sorted; ``order`` the permutation): each
     point's run into ``voxel_of_point`` (input order) and each run's first point (the smallest
     input index) into ``first``. Returns the number of runs."""
@@ -330,7 +352,9 @@ def _number_runs(sorted_keys: np.ndarray, order: np.ndarray, voxel_of_point: np.
 
 
 @kernel
-def _centroids(p: np.ndarray, voxel_of_point: np.ndarray, first: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
+def _centroids(
+    p: np.ndarray, voxel_of_point: np.ndarray, first: np.ndarray, out: np.ndarray
+) -> None:  # pragma: no cover - compiled
     """Each voxel's mean point into ``out`` (zeros): the offsets of its points from its first
     point (the anchor) summed in input order (as ``np.bincount`` adds its weights), divided by
     their count and added to the anchor."""
@@ -391,7 +415,9 @@ def voxel_grid(points: np.ndarray, voxel_m: float) -> VoxelGrid:
     return VoxelGrid(float(voxel_m), centroids, order, starts)
 
 
-def _grid(points: np.ndarray, voxel_m: float, *, members: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+def _grid(
+    points: np.ndarray, voxel_m: float, *, members: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     pts = np.asarray(points)
     index_type = np.int32 if len(pts) < 2**31 - 1 else np.int64
     if len(pts) == 0:
@@ -422,10 +448,16 @@ def _grid(points: np.ndarray, voxel_m: float, *, members: bool) -> tuple[np.ndar
         return np.zeros((0, 3)), np.zeros(0, dtype=index_type), np.zeros(1, dtype=index_type)
     if not members:
         return np.concatenate(parts), None, None
-    return np.concatenate(parts), np.concatenate(orders), np.append(np.concatenate(starts_parts), done).astype(index_type)
+    return (
+        np.concatenate(parts),
+        np.concatenate(orders),
+        np.append(np.concatenate(starts_parts), done).astype(index_type),
+    )
 
 
-def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray, hi: np.ndarray, *, members: bool = False) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+def _downsample(
+    pts: np.ndarray, voxel_m: float, origin: np.ndarray, hi: np.ndarray, *, members: bool = False
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Centroids of the occupied voxels of a grid starting at ``origin`` (the points lie below
     ``hi``), in key order, each voxel's first position in ``order`` (``starts``) and, with
     ``members``, ``order``: the point indices sorted by voxel (input order within a voxel). Compiled: one pass for the keys, a
@@ -445,7 +477,9 @@ def _downsample(pts: np.ndarray, voxel_m: float, origin: np.ndarray, hi: np.ndar
 
 
 @kernel
-def _centroid_rows(start: int, stop: int, pts: np.ndarray, order: np.ndarray, bounds: np.ndarray, longest: int, out: np.ndarray) -> None:
+def _centroid_rows(
+    start: int, stop: int, pts: np.ndarray, order: np.ndarray, bounds: np.ndarray, longest: int, out: np.ndarray
+) -> None:
     """Voxels ``start:stop`` of :func:`_downsample`: the mean of the points ``pts[order[bounds[v]:
     bounds[v + 1]]]`` into ``out[v]`` (float64), taken as the offsets from the voxel's first point
     summed in ``np.add.reduceat``'s order, divided by the count and added back to that point."""

@@ -36,7 +36,17 @@ from . import las as _las
 from . import pcd as _pcd
 from . import ply as _ply
 from . import xyz as _xyz
-from .base import PathLike, PointsToWrite, RawCloud, as_column, as_matrix, as_points, build_scan, check_readable, check_unit_scale
+from .base import (
+    PathLike,
+    PointsToWrite,
+    RawCloud,
+    as_column,
+    as_matrix,
+    as_points,
+    build_scan,
+    check_readable,
+    check_unit_scale,
+)
 from .las import write_fused  # noqa: F401 - the fused cloud (System B)
 from .sniff import READ_SUFFIXES, detect_format
 
@@ -60,6 +70,7 @@ SUPPORTED_WRITE_SUFFIXES: tuple[str, ...] = (".laz", ".las", ".ply", ".xyz", ".t
 
 
 # --------------------------------------------------------------------------------------- reading
+
 
 def read_scan(
     path: PathLike,
@@ -106,8 +117,14 @@ def read_scan(
         count = _e57.scan_count(p)
         chosen = _pick_e57_index(p, count, index)
         raw = _e57.read_e57(p, [chosen])[0]
-        return build_scan(raw, p, fmt="e57", unit_scale=scale, scanner_position=_position(scanner_position),
-                          label=f"scan {chosen} ({raw.name})" if count > 1 else None)
+        return build_scan(
+            raw,
+            p,
+            fmt="e57",
+            unit_scale=scale,
+            scanner_position=_position(scanner_position),
+            label=f"scan {chosen} ({raw.name})" if count > 1 else None,
+        )
     if index not in (None, 0):
         raise ScanReadError(f"{p}: holds a single scan; scan_index {index} does not exist (use 0 or leave it out)")
     raw, name = _read_single(p, fmt, with_intensity=with_intensity)
@@ -180,7 +197,9 @@ def _pick_e57_index(p: Path, count: int, index: Optional[int]) -> int:
             )
         return 0
     if index >= count:
-        raise ScanReadError(f"{p}: the E57 file holds {count} scan(s); scan_index {index} is out of range 0 to {count - 1}")
+        raise ScanReadError(
+            f"{p}: the E57 file holds {count} scan(s); scan_index {index} is out of range 0 to {count - 1}"
+        )
     return index
 
 
@@ -229,7 +248,10 @@ def write_scan(scan: Scan, path: PathLike, *, matrix: Optional[np.ndarray] = Non
         local = local @ rotation.T + (moved_shift - shift)
     if crs is _SCAN_CRS:
         crs = scan.meta.get("crs") if m is None else None
-    _write(Path(path), PointsToWrite(local, np.asarray(shift, dtype=np.float64), scan.intensity, None, scan.name or "scan", crs))
+    _write(
+        Path(path),
+        PointsToWrite(local, np.asarray(shift, dtype=np.float64), scan.intensity, None, scan.name or "scan", crs),
+    )
 
 
 def write_points(
@@ -308,9 +330,12 @@ def write_point_chunks(
             raise ParameterError(f"{path}: every chunk needs a scan_id per point")
         keep = with_intensity and all(i is not None for _, i, _ in parts)
         write_points(
-            target, np.concatenate([p for p, _, _ in parts]), origin_shift=shift,
+            target,
+            np.concatenate([p for p, _, _ in parts]),
+            origin_shift=shift,
             intensity=np.concatenate([i for _, i, _ in parts]) if keep else None,
-            scan_id=np.concatenate([d for _, _, d in parts]) if with_scan_id else None, crs=crs,
+            scan_id=np.concatenate([d for _, _, d in parts]) if with_scan_id else None,
+            crs=crs,
         )
         return int(sum(len(p) for p, _, _ in parts))
     lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) + shift for b in bounds)
@@ -319,7 +344,9 @@ def write_point_chunks(
     def writer(tmp: Path):
         if _copc.is_copc_path(target):
             return _copc.CopcWriter(tmp, lo, hi, with_scan_id=with_scan_id, label=str(path), crs=crs)
-        return _las.LasChunkWriter(tmp, lo, hi, compress=target.suffix.lower() == ".laz", with_scan_id=with_scan_id, crs=crs)
+        return _las.LasChunkWriter(
+            tmp, lo, hi, compress=target.suffix.lower() == ".laz", with_scan_id=with_scan_id, crs=crs
+        )
 
     def body(tmp: Path) -> None:
         with writer(tmp) as out:
@@ -345,18 +372,28 @@ def _checked_shift(origin_shift: Optional[np.ndarray]) -> np.ndarray:
 
 
 def _checked_columns(
-    path: PathLike, points: np.ndarray, intensity: Optional[np.ndarray] = None, scan_id: Optional[np.ndarray] = None,
+    path: PathLike,
+    points: np.ndarray,
+    intensity: Optional[np.ndarray] = None,
+    scan_id: Optional[np.ndarray] = None,
 ) -> tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
     """Points (N, 3) finite, intensity (N,) and scan ids (N,) whole numbers 0..65535 as uint16;
     ParameterError naming ``path`` otherwise."""
     pts = as_points(points)
     if not np.isfinite(pts).all():
-        raise ParameterError(f"{path}: {int((~np.isfinite(pts).all(axis=1)).sum())} points have NaN or infinite coordinates")
+        raise ParameterError(
+            f"{path}: {int((~np.isfinite(pts).all(axis=1)).sum())} points have NaN or infinite coordinates"
+        )
     inten = as_column(intensity, len(pts), "intensity")
     ids = as_column(scan_id, len(pts), "scan_id")
     if ids is not None:
         ids_f = ids.astype(np.float64)
-        if not np.isfinite(ids_f).all() or (ids_f < 0).any() or (ids_f > 65535).any() or (ids_f != np.round(ids_f)).any():
+        if (
+            not np.isfinite(ids_f).all()
+            or (ids_f < 0).any()
+            or (ids_f > 65535).any()
+            or (ids_f != np.round(ids_f)).any()
+        ):
             raise ParameterError("scan_id must hold whole numbers 0..65535")
         ids = ids_f.astype(np.uint16)
     return pts, inten, ids
@@ -399,15 +436,19 @@ def _write(target: Path, cloud: PointsToWrite) -> None:
     """Write points ``cloud.local + cloud.shift`` in the format the suffix of ``target`` names."""
     suffix = target.suffix.lower()
     if _copc.is_copc_path(target):
+
         def body(tmp: Path) -> None:
             _copc.write_copc(tmp, cloud, label=str(target))
     elif suffix in (".las", ".laz"):
+
         def body(tmp: Path) -> None:
             _las.write_las(tmp, cloud, compress=suffix == ".laz")
     elif suffix == ".ply":
+
         def body(tmp: Path) -> None:
             _ply.write_ply(tmp, cloud)
     elif suffix in (".xyz", ".txt"):
+
         def body(tmp: Path) -> None:
             _xyz.write_text(tmp, cloud)
     elif suffix == ".e57":
@@ -430,7 +471,9 @@ def _e57_entries(cloud: PointsToWrite) -> list[_e57.E57Entry]:
     entries = []
     for value in np.unique(scan_id):
         sel = scan_id == value
-        entries.append(_e57.E57Entry(local[sel], shift, None if intensity is None else intensity[sel], np.eye(4), f"scan {value}"))
+        entries.append(
+            _e57.E57Entry(local[sel], shift, None if intensity is None else intensity[sel], np.eye(4), f"scan {value}")
+        )
     return entries
 
 

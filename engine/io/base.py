@@ -110,7 +110,9 @@ def read_text_lines(path: PathLike, error: type[Exception], what: str) -> tuple[
         raise error(f"{what} {p} does not exist") from exc
     except (OSError, UnicodeDecodeError) as exc:
         raise error(f"{what} {p} cannot be read: {getattr(exc, 'strerror', None) or exc}") from exc
-    return p, [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip() and not line.lstrip().startswith("#")]
+    return p, [
+        (i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip() and not line.lstrip().startswith("#")
+    ]
 
 
 def check_unit_scale(unit_scale: float) -> float:
@@ -193,7 +195,7 @@ def build_scan(
         if label is None and message.startswith(path.name):
             raise
         if raw.name and message.startswith(f"{raw.name}: "):
-            message = message[len(raw.name) + 2:]
+            message = message[len(raw.name) + 2 :]
         raise ScanDataError(f"{path.name}, {where}: {message}" if label else f"{path.name}: {message}") from exc
 
 
@@ -251,4 +253,9 @@ def float32_precision(path: Path, points: np.ndarray, meta: dict[str, Any]) -> N
     logging.getLogger("forestreg.io").warning(
         "%s stores x, y, z as 32-bit floats: at coordinates of %.3g its values are only %.3g apart (%.3g m in a file "
         "in metres); that precision is lost in the file and no result can be finer (write it with 64-bit floats, or "
-        "shifted near 0)", Path(path).name, big, step, step)
+        "shifted near 0)",
+        Path(path).name,
+        big,
+        step,
+        step,
+    )

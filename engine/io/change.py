@@ -42,7 +42,9 @@ def _cell(v: Any) -> str:
     return str(v)
 
 
-def write_change_files(folder: PathLike, summary: Mapping[str, Any], rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> dict[str, Path]:
+def write_change_files(
+    folder: PathLike, summary: Mapping[str, Any], rows: Sequence[Mapping[str, Any]], columns: Sequence[str]
+) -> dict[str, Path]:
     """Write ``result.json`` (``summary``, JSON-able; NaN as null) and ``tree_changes.csv``
     (``rows`` in ``columns`` order; floats with 4 decimals, NaN/None empty) into ``folder``."""
     out = Path(folder)

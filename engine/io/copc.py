@@ -78,9 +78,19 @@ def is_copc_path(path) -> bool:
 
 def _las_record_dtype(with_scan_id: bool) -> np.dtype:
     """LAS point format 6 (30 bytes), plus a uint16 ``scan_id`` extra-bytes dimension."""
-    fields = [("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("intensity", "<u2"), ("returns", "u1"),
-              ("flags", "u1"), ("classification", "u1"), ("user_data", "u1"), ("scan_angle", "<i2"),
-              ("point_source_id", "<u2"), ("gps_time", "<f8")]
+    fields = [
+        ("X", "<i4"),
+        ("Y", "<i4"),
+        ("Z", "<i4"),
+        ("intensity", "<u2"),
+        ("returns", "u1"),
+        ("flags", "u1"),
+        ("classification", "u1"),
+        ("user_data", "u1"),
+        ("scan_angle", "<i2"),
+        ("point_source_id", "<u2"),
+        ("gps_time", "<f8"),
+    ]
     if with_scan_id:
         fields.append(("scan_id", "<u2"))
     return np.dtype(fields)
@@ -111,16 +121,27 @@ class CopcWriter:
     written and the temporary folder is removed.
     """
 
-    def __init__(self, path: Path, lo: np.ndarray, hi: np.ndarray, *, with_scan_id: bool = False,
-                 node_points: Optional[int] = None, memory_points: Optional[int] = None,
-                 label: Optional[str] = None, crs=None) -> None:
+    def __init__(
+        self,
+        path: Path,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        *,
+        with_scan_id: bool = False,
+        node_points: Optional[int] = None,
+        memory_points: Optional[int] = None,
+        label: Optional[str] = None,
+        crs=None,
+    ) -> None:
         self.label = str(path) if label is None else str(label)
         # the WKT VLR's record: the WKT, NUL-terminated (the WKT bit of the global encoding is always set)
         self._wkt = b"" if crs is None or not crs.wkt else crs.wkt.encode("utf-8") + b"\0"
         lo = np.asarray(lo, dtype=np.float64).reshape(3)
         hi = np.asarray(hi, dtype=np.float64).reshape(3)
         if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()):
-            raise ParameterError(f"{self.label}: bounds must be finite with hi >= lo, got {lo.tolist()} .. {hi.tolist()}")
+            raise ParameterError(
+                f"{self.label}: bounds must be finite with hi >= lo, got {lo.tolist()} .. {hi.tolist()}"
+            )
         node_points = NODE_POINTS if node_points is None else node_points
         memory_points = MEMORY_POINTS if memory_points is None else memory_points
         if int(node_points) < 1 or int(memory_points) < int(node_points):
@@ -140,8 +161,10 @@ class CopcWriter:
         side = int((top - self.m).max()) + 1
         self.g = grid_bits(self.node_points)
         self.s = max(int(math.ceil(math.log2(side))), self.g + 1)
-        if (self.m < -2 ** 31).any() or (self.m + 2 ** self.s > 2 ** 31).any():
-            raise ScanWriteError(f"{self.label}: the bounds {lo.tolist()} .. {hi.tolist()} are too large for one COPC file")
+        if (self.m < -(2**31)).any() or (self.m + 2**self.s > 2**31).any():
+            raise ScanWriteError(
+                f"{self.label}: the bounds {lo.tolist()} .. {hi.tolist()} are too large for one COPC file"
+            )
         self.max_level = self.s - self.g
         self._las_dtype = _las_record_dtype(self.with_scan_id)
         self.count = 0
@@ -166,8 +189,14 @@ class CopcWriter:
 
     # ------------------------------------------------------------------------------- input
 
-    def write(self, local: np.ndarray, shift: np.ndarray, *, intensity: Optional[np.ndarray] = None,
-              scan_id: Optional[np.ndarray] = None) -> None:
+    def write(
+        self,
+        local: np.ndarray,
+        shift: np.ndarray,
+        *,
+        intensity: Optional[np.ndarray] = None,
+        scan_id: Optional[np.ndarray] = None,
+    ) -> None:
         """Add points ``local + shift`` ((N, 3), metres) with optional intensities (mapped to uint16
         per call, :func:`~forestreg.engine.io.las.intensity_to_uint16`) and scan ids."""
         local = np.asarray(local, dtype=np.float64)
@@ -183,11 +212,12 @@ class CopcWriter:
             rec = np.zeros(b - a, dtype=_REC)
             steps = np.round((local[a:b] - (self.offset - shift)) / self.scale)
             lo, hi = steps.min(axis=0), steps.max(axis=0)
-            if (lo < self.m).any() or (hi >= self.m + 2 ** self.s).any():
-                outside = ((steps < self.m) | (steps >= self.m + 2 ** self.s)).any(axis=1)
+            if (lo < self.m).any() or (hi >= self.m + 2**self.s).any():
+                outside = ((steps < self.m) | (steps >= self.m + 2**self.s)).any(axis=1)
                 raise ScanWriteError(
                     f"{self.label}: {int(outside.sum())} points lie outside the bounds given for the file "
-                    f"({(self.offset + self.m * self.scale).tolist()} and {2 ** self.s * self.scale:.1f} m on)")
+                    f"({(self.offset + self.m * self.scale).tolist()} and {2**self.s * self.scale:.1f} m on)"
+                )
             rec["X"], rec["Y"], rec["Z"] = steps[:, 0], steps[:, 1], steps[:, 2]
             self._mins = np.minimum(self._mins, lo.astype(np.int64))
             self._maxs = np.maximum(self._maxs, hi.astype(np.int64))
@@ -267,7 +297,7 @@ class CopcWriter:
         start = 0
         for o in range(8):
             if counts[o]:
-                self._build(self._child_key(key, o), rest[start:start + counts[o]])
+                self._build(self._child_key(key, o), rest[start : start + counts[o]])
             start += counts[o]
 
     def _emit(self, key: tuple[int, int, int, int], rec: np.ndarray) -> None:
@@ -341,8 +371,16 @@ class CopcWriter:
     def _vlrs(self, evlr_start: int, page_size: int) -> bytes:
         half = 2 ** (self.s - 1) * self.scale
         centre = self.offset + (self.m - 0.5 + 2 ** (self.s - 1)) * self.scale
-        copc = struct.pack("<3dddQQdd88x", *centre, half, 2 * half / (1 << self.g),
-                           evlr_start + _EVLR_HEAD if evlr_start else 0, page_size, 0.0, 0.0)
+        copc = struct.pack(
+            "<3dddQQdd88x",
+            *centre,
+            half,
+            2 * half / (1 << self.g),
+            evlr_start + _EVLR_HEAD if evlr_start else 0,
+            page_size,
+            0.0,
+            0.0,
+        )
         out = _vlr("copc", 1, "COPC info", copc)
         out += _vlr("laszip encoded", 22204, "lazrs variable chunks", bytes(self._laz_vlr.record_data()))
         if self.with_scan_id:
@@ -363,12 +401,47 @@ class CopcWriter:
             mins = maxs = np.zeros(3)
         today = datetime.date.today()
         counts = [n] + [0] * 14
-        return _HEADER.pack(
-            b"LASF", 0, 16, bytes(16), 1, 4, b"forestreg", b"forestreg", today.timetuple().tm_yday, today.year,
-            _HEADER_SIZE, _HEADER_SIZE + len(vlrs), 2 + int(self.with_scan_id) + int(bool(self._wkt)), 6 | 0x80,
-            self._las_dtype.itemsize, 0, 0, 0, 0, 0, 0, self.scale, self.scale, self.scale, *self.offset,
-            maxs[0], mins[0], maxs[1], mins[1], maxs[2], mins[2], 0, evlr_start, 1 if evlr_start else 0, n, *counts,
-        ) + vlrs
+        return (
+            _HEADER.pack(
+                b"LASF",
+                0,
+                16,
+                bytes(16),
+                1,
+                4,
+                b"forestreg",
+                b"forestreg",
+                today.timetuple().tm_yday,
+                today.year,
+                _HEADER_SIZE,
+                _HEADER_SIZE + len(vlrs),
+                2 + int(self.with_scan_id) + int(bool(self._wkt)),
+                6 | 0x80,
+                self._las_dtype.itemsize,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                self.scale,
+                self.scale,
+                self.scale,
+                *self.offset,
+                maxs[0],
+                mins[0],
+                maxs[1],
+                mins[1],
+                maxs[2],
+                mins[2],
+                0,
+                evlr_start,
+                1 if evlr_start else 0,
+                n,
+                *counts,
+            )
+            + vlrs
+        )
 
     def __enter__(self) -> "CopcWriter":
         return self
@@ -470,5 +543,7 @@ def write_copc(path: Path, cloud, **options) -> None:
     if not len(local):
         raise ParameterError(f"{path}: there are no points to write")
     lo, hi = local.min(axis=0) + cloud.shift, local.max(axis=0) + cloud.shift
-    with CopcWriter(path, lo, hi, with_scan_id=cloud.scan_id is not None, crs=getattr(cloud, "crs", None), **options) as out:
+    with CopcWriter(
+        path, lo, hi, with_scan_id=cloud.scan_id is not None, crs=getattr(cloud, "crs", None), **options
+    ) as out:
         out.write(local, cloud.shift, intensity=cloud.intensity, scan_id=cloud.scan_id)

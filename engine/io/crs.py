@@ -151,7 +151,9 @@ def parse_crs(text: str, what: str = "--crs") -> Crs:
         raise UsageError(f"{what} {text}: reading a CRS needs pyproj (pip install pyproj)")
     found = _cached_parse(value) if value else None
     if found is None:
-        raise UsageError(f"{what} {text!r} is not a coordinate reference system: give one as EPSG:CODE (e.g. EPSG:32618), a WKT or a PROJ string")
+        raise UsageError(
+            f"{what} {text!r} is not a coordinate reference system: give one as EPSG:CODE (e.g. EPSG:32618), a WKT or a PROJ string"
+        )
     return found
 
 
@@ -244,7 +246,11 @@ class FrameCrs:
         coordinates)" without a CRS), ``source``, ``frame``, ``inputs`` (role -> the CRS its file
         declares, in words) and, when the inputs disagree or ``--crs`` overrode a file's, ``frames``
         (output -> the frame it is in, ``frames`` given by the caller) and ``notes``."""
-        d: dict[str, Any] = self.crs.to_dict() if self.crs is not None else {"epsg": None, "name": "none (local coordinates)", "wkt": None}
+        d: dict[str, Any] = (
+            self.crs.to_dict()
+            if self.crs is not None
+            else {"epsg": None, "name": "none (local coordinates)", "wkt": None}
+        )
         d["source"] = self.source
         d["frame"] = self.frame
         d["inputs"] = {role: (c.label if c is not None else None) for role, c in self.inputs.items()}
@@ -255,8 +261,14 @@ class FrameCrs:
         return d
 
 
-def frame_crs(inputs: Mapping[str, Optional[Crs]], frame: str, given: Optional[Crs] = None, *,
-              names: Optional[Mapping[str, str]] = None, refuse_mixed: str = "") -> FrameCrs:
+def frame_crs(
+    inputs: Mapping[str, Optional[Crs]],
+    frame: str,
+    given: Optional[Crs] = None,
+    *,
+    names: Optional[Mapping[str, str]] = None,
+    refuse_mixed: str = "",
+) -> FrameCrs:
     """The CRS of outputs in the frame of the input ``frame`` (a role of ``inputs``: role -> the
     CRS its file declares): ``given`` (``--crs``) when there is one, else that input's own.
 
@@ -270,11 +282,13 @@ def frame_crs(inputs: Mapping[str, Optional[Crs]], frame: str, given: Optional[C
     declared = {role: c for role, c in inputs.items() if c is not None}
     notes = []
     roles = list(declared)
-    differ = [(a, b) for i, a in enumerate(roles) for b in roles[i + 1:] if not declared[a].same_as(declared[b])]
+    differ = [(a, b) for i, a in enumerate(roles) for b in roles[i + 1 :] if not declared[a].same_as(declared[b])]
     if differ and refuse_mixed and given is None:
         a, b = differ[0]
-        raise UsageError(f"cannot {refuse_mixed} clouds in two CRSs: {name[a]} is in {declared[a].label}, {name[b]} in "
-                         f"{declared[b].label}; give --crs with the one the output is in")
+        raise UsageError(
+            f"cannot {refuse_mixed} clouds in two CRSs: {name[a]} is in {declared[a].label}, {name[b]} in "
+            f"{declared[b].label}; give --crs with the one the output is in"
+        )
     if given is not None:
         crs, source = given, "--crs"
         for role, c in declared.items():
@@ -288,8 +302,10 @@ def frame_crs(inputs: Mapping[str, Optional[Crs]], frame: str, given: Optional[C
             if c is None and role != frame:
                 notes.append(f"{name[role]} declares no CRS (local coordinates)")
     elif declared:
-        notes.append(f"the outputs are in {name.get(frame, frame)}'s frame, which declares no CRS (give --crs); "
-                     + ", ".join(f"{name[r]} is in {c.label}" for r, c in declared.items()))
+        notes.append(
+            f"the outputs are in {name.get(frame, frame)}'s frame, which declares no CRS (give --crs); "
+            + ", ".join(f"{name[r]} is in {c.label}" for r, c in declared.items())
+        )
     for a, b in differ:
         if given is None:
             notes.append(f"{name[a]} is in {declared[a].label}, {name[b]} in {declared[b].label}")

@@ -41,7 +41,16 @@ import numpy as np
 from ..core.atomic import atomic_path
 from ..core.errors import ParameterError, ScanReadError, ScanWriteError
 
-__all__ = ["CUSTOM_SRS_ID", "Layer", "decode_geometry", "encode_geometry", "layer_names", "read_layer", "srs_of", "write_geopackage"]
+__all__ = [
+    "CUSTOM_SRS_ID",
+    "Layer",
+    "decode_geometry",
+    "encode_geometry",
+    "layer_names",
+    "read_layer",
+    "srs_of",
+    "write_geopackage",
+]
 
 #: ``srs_id`` of a CRS that has no single EPSG code (the first of GDAL's own range).
 CUSTOM_SRS_ID = 100000
@@ -100,7 +109,14 @@ def encode_geometry(kind: str, coords: Optional[np.ndarray], srs_id: int, z: boo
         if not np.isfinite(c).all():
             return _empty(kind, srs_id, z)
         env = struct.pack("<4d", c[0], c[0], c[1], c[1])
-        return b"GP\x00" + bytes([_FLAGS_XY_ENVELOPE]) + struct.pack("<i", srs_id) + env + struct.pack("<BI", 1, code) + c.tobytes()
+        return (
+            b"GP\x00"
+            + bytes([_FLAGS_XY_ENVELOPE])
+            + struct.pack("<i", srs_id)
+            + env
+            + struct.pack("<BI", 1, code)
+            + c.tobytes()
+        )
     c = c.reshape(len(c), -1)
     if c.shape[1] < dim:
         c = np.hstack([c, np.zeros((len(c), dim - c.shape[1]))])
@@ -150,7 +166,7 @@ def decode_geometry(blob: Optional[bytes]) -> tuple[Optional[str], Optional[np.n
     envelope = (flags >> 1) & 0b111
     pos = 8 + 8 * _ENVELOPE_DOUBLES.get(envelope, 0)
     wkb_order = "<" if b[pos] == 1 else ">"
-    code = struct.unpack(wkb_order + "I", b[pos + 1:pos + 5])[0]
+    code = struct.unpack(wkb_order + "I", b[pos + 1 : pos + 5])[0]
     pos += 5
     base, has_z = code % 1000, code // 1000 in (1, 3)
     dim = 3 if has_z else 2
@@ -159,14 +175,22 @@ def decode_geometry(blob: Optional[bytes]) -> tuple[Optional[str], Optional[np.n
     if kind == "POINT":
         return kind, np.frombuffer(b, dtype=dt, count=dim, offset=pos).astype(np.float64), srs_id
     if kind == "LINESTRING":
-        n = struct.unpack(wkb_order + "I", b[pos:pos + 4])[0]
-        return kind, np.frombuffer(b, dtype=dt, count=n * dim, offset=pos + 4).reshape(n, dim).astype(np.float64), srs_id
+        n = struct.unpack(wkb_order + "I", b[pos : pos + 4])[0]
+        return (
+            kind,
+            np.frombuffer(b, dtype=dt, count=n * dim, offset=pos + 4).reshape(n, dim).astype(np.float64),
+            srs_id,
+        )
     if kind == "POLYGON":
-        rings = struct.unpack(wkb_order + "I", b[pos:pos + 4])[0]
+        rings = struct.unpack(wkb_order + "I", b[pos : pos + 4])[0]
         if rings == 0:
             return kind, np.zeros((0, dim)), srs_id
-        n = struct.unpack(wkb_order + "I", b[pos + 4:pos + 8])[0]
-        return kind, np.frombuffer(b, dtype=dt, count=n * dim, offset=pos + 8).reshape(n, dim).astype(np.float64), srs_id
+        n = struct.unpack(wkb_order + "I", b[pos + 4 : pos + 8])[0]
+        return (
+            kind,
+            np.frombuffer(b, dtype=dt, count=n * dim, offset=pos + 8).reshape(n, dim).astype(np.float64),
+            srs_id,
+        )
     raise ScanReadError(f"unsupported WKB geometry type {code}")
 
 
@@ -186,9 +210,11 @@ def srs_of(crs) -> tuple[int, Optional[tuple[str, str, int, str, str]]]:
     return CUSTOM_SRS_ID, (crs.name, "NONE", CUSTOM_SRS_ID, definition, crs.label)
 
 
-_WGS84_WKT = ('GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563,AUTHORITY["EPSG","7030"]],'
-              'AUTHORITY["EPSG","6326"]],PRIMEM["Greenwich",0,AUTHORITY["EPSG","8901"]],UNIT["degree",0.0174532925199433,'
-              'AUTHORITY["EPSG","9122"]],AXIS["Latitude",NORTH],AXIS["Longitude",EAST],AUTHORITY["EPSG","4326"]]')
+_WGS84_WKT = (
+    'GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563,AUTHORITY["EPSG","7030"]],'
+    'AUTHORITY["EPSG","6326"]],PRIMEM["Greenwich",0,AUTHORITY["EPSG","8901"]],UNIT["degree",0.0174532925199433,'
+    'AUTHORITY["EPSG","9122"]],AXIS["Latitude",NORTH],AXIS["Longitude",EAST],AUTHORITY["EPSG","4326"]]'
+)
 
 _SCHEMA = """
 CREATE TABLE gpkg_spatial_ref_sys (srs_name TEXT NOT NULL, srs_id INTEGER NOT NULL PRIMARY KEY, organization TEXT NOT NULL,
@@ -257,16 +283,24 @@ def _column_type(values: Sequence[Any], given: Optional[str]) -> str:
 def _check_layers(layers: Sequence[Layer]) -> None:
     names = set()
     for layer in layers:
-        if not layer.name or not all(ch.isalnum() or ch == "_" for ch in layer.name) or layer.name.lower().startswith(("gpkg_", "rtree_", "sqlite_")):
+        if (
+            not layer.name
+            or not all(ch.isalnum() or ch == "_" for ch in layer.name)
+            or layer.name.lower().startswith(("gpkg_", "rtree_", "sqlite_"))
+        ):
             raise ParameterError(f"layer name {layer.name!r}: use letters, digits and '_' (not gpkg_/rtree_/sqlite_)")
         if layer.name.lower() in names or layer.name.lower() == "layer_styles":
             raise ParameterError(f"layer {layer.name!r} is given twice (or is the styles table)")
         names.add(layer.name.lower())
         if layer.geometry not in _WKB_TYPES:
-            raise ParameterError(f"layer {layer.name}: geometry must be one of {', '.join(_WKB_TYPES)}, got {layer.geometry!r}")
+            raise ParameterError(
+                f"layer {layer.name}: geometry must be one of {', '.join(_WKB_TYPES)}, got {layer.geometry!r}"
+            )
         if len(layer.shapes) != len(layer.rows):
             raise ParameterError(f"layer {layer.name}: {len(layer.shapes)} shapes for {len(layer.rows)} rows")
-        if {c.lower() for c in layer.columns} & {"fid", "geom"} or len({c.lower() for c in layer.columns}) != len(layer.columns):
+        if {c.lower() for c in layer.columns} & {"fid", "geom"} or len({c.lower() for c in layer.columns}) != len(
+            layer.columns
+        ):
             raise ParameterError(f"layer {layer.name}: column names must be unique and not 'fid' or 'geom'")
 
 
@@ -317,7 +351,14 @@ def _fill(con: sqlite3.Connection, layers: Sequence[Layer], srs_id: int, srs_row
         if statement.strip():
             con.execute(statement)
     srs = [
-        ("WGS 84 geodetic", 4326, "EPSG", 4326, _WGS84_WKT, "longitude/latitude coordinates in decimal degrees on the WGS 84 spheroid"),
+        (
+            "WGS 84 geodetic",
+            4326,
+            "EPSG",
+            4326,
+            _WGS84_WKT,
+            "longitude/latitude coordinates in decimal degrees on the WGS 84 spheroid",
+        ),
         ("Undefined cartesian SRS", -1, "NONE", -1, "undefined", "undefined cartesian coordinate reference system"),
         ("Undefined geographic SRS", 0, "NONE", 0, "undefined", "undefined geographic coordinate reference system"),
     ]
@@ -328,11 +369,16 @@ def _fill(con: sqlite3.Connection, layers: Sequence[Layer], srs_id: int, srs_row
     for layer in layers:
         _write_layer(con, layer, srs_id, now)
     styled = [layer for layer in layers if layer.style]
-    con.execute("INSERT INTO gpkg_contents (table_name, data_type, identifier, description, last_change, srs_id) "
-                "VALUES ('layer_styles', 'attributes', 'layer_styles', 'QGIS layer styles (QML)', ?, NULL)", (now,))
-    con.executemany("INSERT INTO layer_styles (f_table_catalog, f_table_schema, f_table_name, f_geometry_column, styleName, styleQML, "
-                    "styleSLD, useAsDefault, description, owner, ui, update_time) VALUES ('', '', ?, 'geom', ?, ?, '', 1, ?, '', '', ?)",
-                    [(layer.name, layer.name, layer.style, f"forestreg style of {layer.name}", now) for layer in styled])
+    con.execute(
+        "INSERT INTO gpkg_contents (table_name, data_type, identifier, description, last_change, srs_id) "
+        "VALUES ('layer_styles', 'attributes', 'layer_styles', 'QGIS layer styles (QML)', ?, NULL)",
+        (now,),
+    )
+    con.executemany(
+        "INSERT INTO layer_styles (f_table_catalog, f_table_schema, f_table_name, f_geometry_column, styleName, styleQML, "
+        "styleSLD, useAsDefault, description, owner, ui, update_time) VALUES ('', '', ?, 'geom', ?, ?, '', 1, ?, '', '', ?)",
+        [(layer.name, layer.name, layer.style, f"forestreg style of {layer.name}", now) for layer in styled],
+    )
     con.execute("COMMIT")
 
 
@@ -341,22 +387,37 @@ def _write_layer(con: sqlite3.Connection, layer: Layer, srs_id: int, now: str) -
     rows = list(layer.rows)
     types = [_column_type([r.get(c) for r in rows], layer.types.get(c)) for c in columns]
     defs = ", ".join(f"{_quote(c)} {t}" for c, t in zip(columns, types))
-    con.execute(f"CREATE TABLE {_quote(layer.name)} (fid INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, geom {layer.geometry}"
-                + (f", {defs}" if defs else "") + ")")
+    con.execute(
+        f"CREATE TABLE {_quote(layer.name)} (fid INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, geom {layer.geometry}"
+        + (f", {defs}" if defs else "")
+        + ")"
+    )
     blobs = [encode_geometry(layer.geometry, s, srs_id, layer.z) for s in layer.shapes]
     placeholders = ", ".join("?" for _ in range(len(columns) + 1))
     names = ", ".join(["geom", *(_quote(c) for c in columns)])
-    con.executemany(f"INSERT INTO {_quote(layer.name)} ({names}) VALUES ({placeholders})",
-                    [(blob, *(_cell(r.get(c)) for c in columns)) for blob, r in zip(blobs, rows)])
+    con.executemany(
+        f"INSERT INTO {_quote(layer.name)} ({names}) VALUES ({placeholders})",
+        [(blob, *(_cell(r.get(c)) for c in columns)) for blob, r in zip(blobs, rows)],
+    )
     extent = _extent([s for s in layer.shapes if s is not None])
-    con.execute("INSERT INTO gpkg_contents (table_name, data_type, identifier, description, last_change, min_x, min_y, max_x, max_y, srs_id) "
-                "VALUES (?, 'features', ?, ?, ?, ?, ?, ?, ?, ?)", (layer.name, layer.name, layer.description, now, *extent, srs_id))
-    con.execute("INSERT INTO gpkg_geometry_columns VALUES (?, 'geom', ?, ?, ?, 0)", (layer.name, layer.geometry, srs_id, 1 if layer.z else 0))
+    con.execute(
+        "INSERT INTO gpkg_contents (table_name, data_type, identifier, description, last_change, min_x, min_y, max_x, max_y, srs_id) "
+        "VALUES (?, 'features', ?, ?, ?, ?, ?, ?, ?, ?)",
+        (layer.name, layer.name, layer.description, now, *extent, srs_id),
+    )
+    con.execute(
+        "INSERT INTO gpkg_geometry_columns VALUES (?, 'geom', ?, ?, ?, 0)",
+        (layer.name, layer.geometry, srs_id, 1 if layer.z else 0),
+    )
 
 
 def _extent(shapes: Sequence[np.ndarray]) -> tuple[Optional[float], ...]:
     """(min_x, min_y, max_x, max_y) of the shapes' finite coordinates, Nones without any."""
-    parts = [np.asarray(s, dtype=np.float64).reshape(-1, np.asarray(s).shape[-1])[:, :2] for s in shapes if np.asarray(s).size]
+    parts = [
+        np.asarray(s, dtype=np.float64).reshape(-1, np.asarray(s).shape[-1])[:, :2]
+        for s in shapes
+        if np.asarray(s).size
+    ]
     xy = np.vstack(parts) if parts else np.zeros((0, 2))
     xy = xy[np.isfinite(xy).all(axis=1)]
     if not len(xy):
@@ -382,7 +443,10 @@ def layer_names(path) -> list[str]:
     """The feature layers of a GeoPackage, in the order of ``gpkg_contents``."""
     con = _connect(path)
     try:
-        return [r[0] for r in con.execute("SELECT table_name FROM gpkg_contents WHERE data_type = 'features' ORDER BY rowid")]
+        return [
+            r[0]
+            for r in con.execute("SELECT table_name FROM gpkg_contents WHERE data_type = 'features' ORDER BY rowid")
+        ]
     except sqlite3.Error as exc:
         raise ScanReadError(f"{path}: not a GeoPackage ({exc})") from exc
     finally:
@@ -399,7 +463,9 @@ def read_layer(path, name: str) -> tuple[list[dict[str, Any]], dict[str, Any]]:
         found = con.execute(
             "SELECT g.geometry_type_name, g.srs_id, g.z, s.organization, s.organization_coordsys_id, s.definition, "
             "c.min_x, c.min_y, c.max_x, c.max_y FROM gpkg_geometry_columns g JOIN gpkg_spatial_ref_sys s ON s.srs_id = g.srs_id "
-            "JOIN gpkg_contents c ON c.table_name = g.table_name WHERE g.table_name = ?", (name,)).fetchone()
+            "JOIN gpkg_contents c ON c.table_name = g.table_name WHERE g.table_name = ?",
+            (name,),
+        ).fetchone()
         if found is None:
             raise ScanReadError(f"{path}: no feature layer {name!r}")
         cur = con.execute(f"SELECT * FROM {_quote(name)} ORDER BY fid")
@@ -414,8 +480,15 @@ def read_layer(path, name: str) -> tuple[list[dict[str, Any]], dict[str, Any]]:
         raise ScanReadError(f"{path}: cannot read layer {name!r} ({exc})") from exc
     finally:
         con.close()
-    facts = {"geometry_type": found[0], "srs_id": found[1], "z": bool(found[2]), "organization": found[3],
-             "organization_coordsys_id": found[4], "definition": found[5], "extent": tuple(found[6:10])}
+    facts = {
+        "geometry_type": found[0],
+        "srs_id": found[1],
+        "z": bool(found[2]),
+        "organization": found[3],
+        "organization_coordsys_id": found[4],
+        "definition": found[5],
+        "extent": tuple(found[6:10]),
+    }
     return rows, facts
 
 
@@ -432,7 +505,8 @@ def read_crs(path):
     try:
         found = con.execute(
             "SELECT s.srs_id, s.organization, s.organization_coordsys_id, s.definition FROM gpkg_geometry_columns g "
-            "JOIN gpkg_spatial_ref_sys s ON s.srs_id = g.srs_id ORDER BY g.rowid LIMIT 1").fetchone()
+            "JOIN gpkg_spatial_ref_sys s ON s.srs_id = g.srs_id ORDER BY g.rowid LIMIT 1"
+        ).fetchone()
     except sqlite3.Error:
         return None
     finally:

@@ -57,7 +57,9 @@ def _check_header(path: Path) -> tuple[int, bool]:
         raise bad(f"header size {header_size}")
     if offset < header_size or offset > size:
         if offset > size:
-            raise ScanReadError(f"{path}: is truncated (the point data should start at byte {offset}, the file has {size})")
+            raise ScanReadError(
+                f"{path}: is truncated (the point data should start at byte {offset}, the file has {size})"
+            )
         raise bad(f"point data offset {offset}")
     if n_vlr * _VLR_HEADER > offset - header_size:
         raise bad(f"{n_vlr} VLRs do not fit before the points")
@@ -78,7 +80,9 @@ def _check_header(path: Path) -> tuple[int, bool]:
             f"({count * record_len:,} bytes) but only {data_bytes:,} bytes follow"
         )
     if compressed and count > 0 and data_bytes < 8:
-        raise ScanReadError(f"{path}: is truncated: the header announces {count:,} points but no compressed data follow")
+        raise ScanReadError(
+            f"{path}: is truncated: the header announces {count:,} points but no compressed data follow"
+        )
     return count, compressed
 
 
@@ -99,7 +103,9 @@ def las_header_bounds(path: Path) -> Optional[tuple[np.ndarray, np.ndarray]]:
         head = fh.read(_MIN_HEADER)
     max_x, min_x, max_y, min_y, max_z, min_z = struct.unpack_from("<6d", head, 179)
     lo, hi = np.array([min_x, min_y, min_z]), np.array([max_x, max_y, max_z])
-    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()) or not ((lo != 0).any() or (hi != 0).any()):
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()) or not (
+        (lo != 0).any() or (hi != 0).any()
+    ):
         return None
     return lo, hi
 
@@ -118,18 +124,20 @@ def _read_chunks(reader, points: np.ndarray, intensity: Optional[np.ndarray], ch
         if k == 0:
             break
         k = min(k, total - n)
-        points[n:n + k, 0] = chunk.x[:k]
-        points[n:n + k, 1] = chunk.y[:k]
-        points[n:n + k, 2] = chunk.z[:k]
+        points[n : n + k, 0] = chunk.x[:k]
+        points[n : n + k, 1] = chunk.y[:k]
+        points[n : n + k, 2] = chunk.z[:k]
         if intensity is not None:
-            intensity[n:n + k] = chunk.intensity[:k]
+            intensity[n : n + k] = chunk.intensity[:k]
         n += k
         if n >= total:
             break
     return n
 
 
-def _read_laz_direct(path: Path, header, points: np.ndarray, intensity: Optional[np.ndarray], chunk_points: int) -> Optional[int]:
+def _read_laz_direct(
+    path: Path, header, points: np.ndarray, intensity: Optional[np.ndarray], chunk_points: int
+) -> Optional[int]:
     """Decode a LAZ file's points into ``points`` (scaled x, y, z) and ``intensity`` straight with
     lazrs, a group of LAZ chunks (about ``chunk_points`` points) per call; returns the points read,
     or None when the file is not laid out as this expects (no LASzip VLR, another record size, a
@@ -143,7 +151,14 @@ def _read_laz_direct(path: Path, header, points: np.ndarray, intensity: Optional
         import lazrs
     except ImportError:
         return None
-    vlr = next((v for v in header.vlrs if getattr(v, "record_id", None) == 22204 and str(getattr(v, "user_id", "")).startswith("laszip")), None)
+    vlr = next(
+        (
+            v
+            for v in header.vlrs
+            if getattr(v, "record_id", None) == 22204 and str(getattr(v, "user_id", "")).startswith("laszip")
+        ),
+        None,
+    )
     if vlr is None:
         return None
     total = len(points)
@@ -164,7 +179,9 @@ def _read_laz_direct(path: Path, header, points: np.ndarray, intensity: Optional
                 return None
             position = int(header.offset_to_point_data) + 8  # after the chunk table's offset
             scales, offsets = np.asarray(header.scales, dtype=np.float64), np.asarray(header.offsets, dtype=np.float64)
-            xyz_only = lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_XY_RETURNS_CHANNEL | lazrs.SELECTIVE_DECOMPRESS_Z)
+            xyz_only = lazrs.DecompressionSelection(
+                lazrs.SELECTIVE_DECOMPRESS_XY_RETURNS_CHANNEL | lazrs.SELECTIVE_DECOMPRESS_Z
+            )
             groups, k = [], 0
             while k < len(table):
                 group = [table[k]]
@@ -184,18 +201,18 @@ def _read_laz_direct(path: Path, header, points: np.ndarray, intensity: Optional
                 compressed = compressed_all[:size_bytes]
                 if f.readinto(compressed) != size_bytes:
                     return None
-                raw = raw_all[:count * dtype.itemsize]
+                raw = raw_all[: count * dtype.itemsize]
                 if intensity is None:  # x, y, z alone (LAZ 1.4 layers; older formats decode every field)
                     lazrs.decompress_points_with_chunk_table(compressed, vlr.record_data, raw, group, xyz_only)
                 else:
                     lazrs.decompress_points_with_chunk_table(compressed, vlr.record_data, raw, group)
                 records = raw.view(dtype)
                 for axis, name in enumerate(("X", "Y", "Z")):  # scaled in place: no temporary arrays
-                    column = points[n:n + count, axis]
+                    column = points[n : n + count, axis]
                     np.multiply(records[name], scales[axis], out=column)
                     column += offsets[axis]
                 if intensity is not None:
-                    intensity[n:n + count] = records["intensity"]
+                    intensity[n : n + count] = records["intensity"]
                 n += count
                 position += size_bytes
             return n
@@ -230,7 +247,9 @@ def read_las(path: Path, *, chunk_points: int = READ_CHUNK_POINTS, with_intensit
             point_format = header.point_format.id
             crs = crs_of_las_header(header)
     except Exception as exc:  # laspy, lazrs and struct errors: the file is damaged
-        raise ScanReadError(f"{path}: cannot be read as {'LAZ' if compressed else 'LAS'} ({_short(exc)}); the file is truncated or corrupt") from exc
+        raise ScanReadError(
+            f"{path}: cannot be read as {'LAZ' if compressed else 'LAS'} ({_short(exc)}); the file is truncated or corrupt"
+        ) from exc
     if n < count:
         raise ScanReadError(f"{path}: is truncated: the header announces {count:,} points, only {n:,} could be read")
     if n < total:
@@ -334,7 +353,9 @@ def add_crs(header, crs) -> None:
     header.add_crs(found)
 
 
-def _fill(record, local: np.ndarray, shift: np.ndarray, offset: np.ndarray, scale: float, intensity: Optional[np.ndarray]) -> None:
+def _fill(
+    record, local: np.ndarray, shift: np.ndarray, offset: np.ndarray, scale: float, intensity: Optional[np.ndarray]
+) -> None:
     """Set the integer coordinates (``local + shift`` in the header's offset and scale), single
     returns and intensity of a laspy point record or LasData of ``len(local)`` points."""
     rel = local - (offset - shift)  # small numbers: no precision lost to large offsets
@@ -369,8 +390,13 @@ def las_points(
     :func:`las_header`."""
     import laspy
 
-    header = las_header(local.min(axis=0) + shift, local.max(axis=0) + shift, extra_dims=extra_dims, system_identifier=system_identifier,
-                        crs=crs)
+    header = las_header(
+        local.min(axis=0) + shift,
+        local.max(axis=0) + shift,
+        extra_dims=extra_dims,
+        system_identifier=system_identifier,
+        crs=crs,
+    )
     las = laspy.LasData(header)
     _fill(las, local, shift, header.offsets, float(header.scales[0]), intensity)
     return las
@@ -389,8 +415,18 @@ class LasChunkWriter:
     ``crs`` (a :class:`~forestreg.engine.io.crs.Crs`) is written as a WKT VLR.
     """
 
-    def __init__(self, path: Path, lo: np.ndarray, hi: np.ndarray, *, compress: bool, with_scan_id: bool = False,
-                 extra_dims: Sequence[tuple[str, type, str]] = (), system_identifier: str = "forestreg", crs=None) -> None:
+    def __init__(
+        self,
+        path: Path,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        *,
+        compress: bool,
+        with_scan_id: bool = False,
+        extra_dims: Sequence[tuple[str, type, str]] = (),
+        system_identifier: str = "forestreg",
+        crs=None,
+    ) -> None:
         import laspy
 
         extra = ([("scan_id", np.uint16, "scan index")] if with_scan_id else []) + list(extra_dims)
@@ -399,8 +435,15 @@ class LasChunkWriter:
         self._writer = laspy.open(str(path), mode="w", header=self.header, do_compress=compress)
         self.count = 0
 
-    def write(self, local: np.ndarray, shift: np.ndarray, *, intensity: Optional[np.ndarray] = None,
-              scan_id: Optional[np.ndarray] = None, fields: Optional[dict[str, np.ndarray]] = None) -> None:
+    def write(
+        self,
+        local: np.ndarray,
+        shift: np.ndarray,
+        *,
+        intensity: Optional[np.ndarray] = None,
+        scan_id: Optional[np.ndarray] = None,
+        fields: Optional[dict[str, np.ndarray]] = None,
+    ) -> None:
         """Append points ``local + shift`` (N, 3), metres; ``fields`` maps point dimension names
         (standard ones such as ``point_source_id`` or the ``extra_dims``) to (N,) values."""
         import laspy
@@ -408,8 +451,14 @@ class LasChunkWriter:
         if len(local) == 0:
             return
         record = laspy.ScaleAwarePointRecord.zeros(len(local), header=self.header)
-        _fill(record, np.asarray(local, dtype=np.float64), np.asarray(shift, dtype=np.float64),
-              self.header.offsets, float(self.header.scales[0]), intensity)
+        _fill(
+            record,
+            np.asarray(local, dtype=np.float64),
+            np.asarray(shift, dtype=np.float64),
+            self.header.offsets,
+            float(self.header.scales[0]),
+            intensity,
+        )
         if self.with_scan_id:
             record.scan_id = np.asarray(scan_id).astype(np.uint16)
         for name, values in (fields or {}).items():
@@ -470,15 +519,38 @@ def write_fused(
         raise ScanWriteError(f"{target}: the fused cloud is empty; nothing to write")
     scale = float(unit_scale)
     shift = (np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64).reshape(3)) / scale
-    lo = np.min([(pts[i : i + WRITE_CHUNK_POINTS] / scale).min(axis=0) for i in range(0, len(pts), WRITE_CHUNK_POINTS)], axis=0) + shift
-    hi = np.max([(pts[i : i + WRITE_CHUNK_POINTS] / scale).max(axis=0) for i in range(0, len(pts), WRITE_CHUNK_POINTS)], axis=0) + shift
+    lo = (
+        np.min(
+            [(pts[i : i + WRITE_CHUNK_POINTS] / scale).min(axis=0) for i in range(0, len(pts), WRITE_CHUNK_POINTS)],
+            axis=0,
+        )
+        + shift
+    )
+    hi = (
+        np.max(
+            [(pts[i : i + WRITE_CHUNK_POINTS] / scale).max(axis=0) for i in range(0, len(pts), WRITE_CHUNK_POINTS)],
+            axis=0,
+        )
+        + shift
+    )
     intensity = result.extra.get("intensity")
     intensity = None if intensity is None else intensity_to_uint16(intensity)  # over the whole cloud, then by chunk
     source = np.asarray(result.source)
     with atomic_path(target) as tmp:
-        with LasChunkWriter(tmp, lo, hi, compress=suffix == ".laz", system_identifier="forestreg fusion",
-                            extra_dims=[("source", np.uint8, "1 ground-based, 2 UAV")], crs=crs) as out:
+        with LasChunkWriter(
+            tmp,
+            lo,
+            hi,
+            compress=suffix == ".laz",
+            system_identifier="forestreg fusion",
+            extra_dims=[("source", np.uint8, "1 ground-based, 2 UAV")],
+            crs=crs,
+        ) as out:
             for i in range(0, len(pts), WRITE_CHUNK_POINTS):
                 part = source[i : i + WRITE_CHUNK_POINTS]
-                out.write(pts[i : i + WRITE_CHUNK_POINTS] / scale, shift, intensity=None if intensity is None else intensity[i : i + WRITE_CHUNK_POINTS],
-                          fields={"point_source_id": part.astype(np.uint16), "source": part.astype(np.uint8)})
+                out.write(
+                    pts[i : i + WRITE_CHUNK_POINTS] / scale,
+                    shift,
+                    intensity=None if intensity is None else intensity[i : i + WRITE_CHUNK_POINTS],
+                    fields={"point_source_id": part.astype(np.uint16), "source": part.astype(np.uint8)},
+                )

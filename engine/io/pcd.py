@@ -90,7 +90,9 @@ def read_pcd(path: Path) -> RawCloud:
         intensity = _intensity(data, names)
     elif kind == "binary":
         if path.stat().st_size - header_len < count * dtype.itemsize:
-            raise ScanReadError(f"{path}: is truncated: the PCD header announces {count:,} points, the data are shorter")
+            raise ScanReadError(
+                f"{path}: is truncated: the PCD header announces {count:,} points, the data are shorter"
+            )
         data = np.fromfile(path, dtype=dtype, count=count, offset=header_len)
         xyz = np.column_stack([data[a] for a in "xyz"]).astype(np.float64)
         intensity = _intensity(data, names)
@@ -128,14 +130,16 @@ def _read_ascii(path: Path, dtype: np.dtype, count: int, header_len: int) -> np.
         raise ScanReadError(f"{path}: PCD point lines cannot be parsed ({exc})") from exc
     width = sum(int(np.prod(dtype[n].shape)) if dtype[n].shape else 1 for n in dtype.names or ())
     if len(flat) < count:
-        raise ScanReadError(f"{path}: is truncated: the PCD header announces {count:,} points, the file holds {len(flat):,}")
+        raise ScanReadError(
+            f"{path}: is truncated: the PCD header announces {count:,} points, the file holds {len(flat):,}"
+        )
     if flat.shape[1] < width:
         raise ScanReadError(f"{path}: PCD point lines have {flat.shape[1]} values, the header names {width}")
     out = np.empty(count, dtype=dtype)
     col = 0
     for name in dtype.names or ():
         n = int(np.prod(dtype[name].shape)) if dtype[name].shape else 1
-        out[name] = flat[:, col] if n == 1 else flat[:, col:col + n]
+        out[name] = flat[:, col] if n == 1 else flat[:, col : col + n]
         col += n
     return out
 

@@ -15,14 +15,33 @@ from ..core.errors import ScanReadError
 from .base import PointsToWrite, RawCloud, float32_precision
 
 _TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 _FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 #: Property names taken as intensity, in order of preference (compared lower-case).
-INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectance", "scalar_reflectance", "amplitude", "scalar_amplitude")
+INTENSITY_NAMES = (
+    "intensity",
+    "scalar_intensity",
+    "reflectance",
+    "scalar_reflectance",
+    "amplitude",
+    "scalar_amplitude",
+)
 _MAX_HEADER = 1 << 20
 
 
@@ -116,7 +135,9 @@ def _read_binary(path: Path, before: list[_Element], vertex: _Element, header_le
     try:
         data = np.fromfile(path, dtype=dtype, count=vertex.count, offset=header_len + skip)
     except (OSError, ValueError) as exc:
-        raise ScanReadError(f"{path}: PLY vertex data cannot be read ({exc}); the file is truncated or corrupt") from exc
+        raise ScanReadError(
+            f"{path}: PLY vertex data cannot be read ({exc}); the file is truncated or corrupt"
+        ) from exc
     if len(data) < vertex.count:
         raise ScanReadError(
             f"{path}: is truncated: the PLY header announces {vertex.count:,} vertices, the file holds {len(data):,}"
@@ -141,7 +162,9 @@ def _read_ascii(path: Path, before: list[_Element], vertex: _Element, header_len
             f"{path}: is truncated: the PLY header announces {vertex.count:,} vertices, the file holds {len(flat):,}"
         )
     if flat.shape[1] < len(vertex.props):
-        raise ScanReadError(f"{path}: PLY vertex lines have {flat.shape[1]} values, the header names {len(vertex.props)}")
+        raise ScanReadError(
+            f"{path}: PLY vertex lines have {flat.shape[1]} values, the header names {len(vertex.props)}"
+        )
     data = np.empty(vertex.count, dtype=dtype)
     for k, (name, _) in enumerate(vertex.props):
         data[name] = flat[:, k]
@@ -153,8 +176,15 @@ def write_ply(tmp: Path, cloud: PointsToWrite) -> None:
     float ``intensity``; ushort ``scan_id``."""
     local, shift, intensity, scan_id = cloud.local, cloud.shift, cloud.intensity, cloud.scan_id
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-    header = ["ply", "format binary_little_endian 1.0", "comment written by forestreg",
-              f"element vertex {len(local)}", "property double x", "property double y", "property double z"]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment written by forestreg",
+        f"element vertex {len(local)}",
+        "property double x",
+        "property double y",
+        "property double z",
+    ]
     if intensity is not None:
         fields.append(("intensity", "<f4"))
         header.append("property float intensity")

@@ -36,26 +36,69 @@ def _rgba(c: Colour) -> str:
     return ",".join(str(int(v)) for v in c)
 
 
-def marker(colour: Colour, size_mm: float = 2.0, *, shape: str = "circle", outline: Colour = (35, 35, 35, 255),
-           outline_mm: float = 0.2) -> Symbol:
+def marker(
+    colour: Colour,
+    size_mm: float = 2.0,
+    *,
+    shape: str = "circle",
+    outline: Colour = (35, 35, 35, 255),
+    outline_mm: float = 0.2,
+) -> Symbol:
     """A simple marker (``shape``: circle, square, triangle, star, cross, ...) of ``size_mm``."""
-    return Symbol("marker", "SimpleMarker", (("color", _rgba(colour)), ("name", shape), ("outline_color", _rgba(outline)),
-                                              ("outline_style", "solid"), ("outline_width", f"{outline_mm:g}"),
-                                              ("outline_width_unit", "MM"), ("size", f"{size_mm:g}"), ("size_unit", "MM")))
+    return Symbol(
+        "marker",
+        "SimpleMarker",
+        (
+            ("color", _rgba(colour)),
+            ("name", shape),
+            ("outline_color", _rgba(outline)),
+            ("outline_style", "solid"),
+            ("outline_width", f"{outline_mm:g}"),
+            ("outline_width_unit", "MM"),
+            ("size", f"{size_mm:g}"),
+            ("size_unit", "MM"),
+        ),
+    )
 
 
 def line(colour: Colour, width_mm: float = 0.5, *, style: str = "solid") -> Symbol:
     """A simple line (``style``: solid, dash, dot) ``width_mm`` wide."""
-    return Symbol("line", "SimpleLine", (("line_color", _rgba(colour)), ("line_style", style), ("line_width", f"{width_mm:g}"),
-                                         ("line_width_unit", "MM"), ("capstyle", "round"), ("joinstyle", "round")))
+    return Symbol(
+        "line",
+        "SimpleLine",
+        (
+            ("line_color", _rgba(colour)),
+            ("line_style", style),
+            ("line_width", f"{width_mm:g}"),
+            ("line_width_unit", "MM"),
+            ("capstyle", "round"),
+            ("joinstyle", "round"),
+        ),
+    )
 
 
-def fill(colour: Colour, outline: Colour = (35, 35, 35, 255), outline_mm: float = 0.3, *, outline_style: str = "solid",
-         style: str = "solid") -> Symbol:
+def fill(
+    colour: Colour,
+    outline: Colour = (35, 35, 35, 255),
+    outline_mm: float = 0.3,
+    *,
+    outline_style: str = "solid",
+    style: str = "solid",
+) -> Symbol:
     """A simple fill (``style`` "no" for outline only) with an outline."""
-    return Symbol("fill", "SimpleFill", (("color", _rgba(colour)), ("style", style), ("outline_color", _rgba(outline)),
-                                         ("outline_style", outline_style), ("outline_width", f"{outline_mm:g}"),
-                                         ("outline_width_unit", "MM"), ("joinstyle", "round")))
+    return Symbol(
+        "fill",
+        "SimpleFill",
+        (
+            ("color", _rgba(colour)),
+            ("style", style),
+            ("outline_color", _rgba(outline)),
+            ("outline_style", outline_style),
+            ("outline_width", f"{outline_mm:g}"),
+            ("outline_width_unit", "MM"),
+            ("joinstyle", "round"),
+        ),
+    )
 
 
 @dataclass(frozen=True)
@@ -71,9 +114,11 @@ class Rule:
 def _symbol_xml(name: str, s: Symbol) -> str:
     options = "".join(f'<Option type="QString" name={quoteattr(k)} value={quoteattr(v)}/>' for k, v in s.props)
     props = "".join(f"<prop k={quoteattr(k)} v={quoteattr(v)}/>" for k, v in s.props)
-    return (f'<symbol type="{s.kind}" name={quoteattr(name)} alpha="1" clip_to_extent="1" force_rhr="0">'
-            f'<layer class="{s.layer_class}" enabled="1" locked="0" pass="0"><Option type="Map">{options}</Option>{props}</layer>'
-            "</symbol>")
+    return (
+        f'<symbol type="{s.kind}" name={quoteattr(name)} alpha="1" clip_to_extent="1" force_rhr="0">'
+        f'<layer class="{s.layer_class}" enabled="1" locked="0" pass="0"><Option type="Map">{options}</Option>{props}</layer>'
+        "</symbol>"
+    )
 
 
 def rule_style(name: str, geometry: str, rules: Sequence[Rule]) -> str:
@@ -86,15 +131,25 @@ def rule_style(name: str, geometry: str, rules: Sequence[Rule]) -> str:
         filt = f" filter={quoteattr(r.filter)}" if r.filter else ""
         rule_xml.append(f'<rule key="{{{uuid.uuid5(ns, str(k))}}}" symbol="{k}" label={quoteattr(r.label)}{filt}/>')
     symbols = "".join(_symbol_xml(str(k), r.symbol) for k, r in enumerate(rules))
-    return ("<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n"
-            '<qgis version="3.22.0" styleCategories="Symbology">'
-            f'<renderer-v2 type="RuleRenderer" symbollevels="0" enableorderby="0" forceraster="0">'
-            f'<rules key="{{{ns}}}">{"".join(rule_xml)}</rules><symbols>{symbols}</symbols></renderer-v2>'
-            f"<layerGeometryType>{_GEOMETRY_TYPES[geometry]}</layerGeometryType></qgis>\n")
+    return (
+        "<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n"
+        '<qgis version="3.22.0" styleCategories="Symbology">'
+        f'<renderer-v2 type="RuleRenderer" symbollevels="0" enableorderby="0" forceraster="0">'
+        f'<rules key="{{{ns}}}">{"".join(rule_xml)}</rules><symbols>{symbols}</symbols></renderer-v2>'
+        f"<layerGeometryType>{_GEOMETRY_TYPES[geometry]}</layerGeometryType></qgis>\n"
+    )
 
 
-def labelled(document: str, field: str, *, size_pt: float = 9.0, colour: Colour = (0, 0, 0, 255), bold: bool = True,
-             buffer: Colour = (255, 255, 255, 255), buffer_mm: float = 0.8) -> str:
+def labelled(
+    document: str,
+    field: str,
+    *,
+    size_pt: float = 9.0,
+    colour: Colour = (0, 0, 0, 255),
+    bold: bool = True,
+    buffer: Colour = (255, 255, 255, 255),
+    buffer_mm: float = 0.8,
+) -> str:
     """The style ``document`` (from :func:`rule_style`) with labels of the column ``field`` drawn
     over each point (QGIS "simple" labelling, placed over the point's centre): a marker numbered
     by its column. ``size_pt`` the text size in points, ``buffer`` a halo ``buffer_mm`` wide."""
@@ -106,13 +161,16 @@ def labelled(document: str, field: str, *, size_pt: float = 9.0, colour: Colour 
         ' multilineHeight="1" previewBkgrdColor="255,255,255,255">'
         f'<text-buffer bufferDraw="1" bufferSize="{buffer_mm:g}" bufferSizeUnits="MM" bufferColor="{_rgba(buffer)}"'
         ' bufferOpacity="1" bufferJoinStyle="128" bufferNoFill="1"/>'
-        '</text-style>'
+        "</text-style>"
         '<text-format wrapChar="" multilineAlign="1" plussign="0" decimals="3" formatNumbers="0"/>'
         '<placement placement="1" quadOffset="4" xOffset="0" yOffset="0" offsetUnits="MM" offsetType="0" dist="0"'
         ' distUnits="MM" priority="10" placementFlags="10" rotationAngle="0"/>'
         '<rendering drawLabels="1" obstacle="0" displayAll="1" upsidedownLabels="0" limitNumLabels="0" labelPerPart="0"'
         ' mergeLines="0" scaleVisibility="0" fontLimitPixelSize="0" zIndex="1"/>'
-        '</settings></labeling>')
-    document = document.replace('styleCategories="Symbology"', 'styleCategories="Symbology|Labeling" labelsEnabled="1"', 1)
+        "</settings></labeling>"
+    )
+    document = document.replace(
+        'styleCategories="Symbology"', 'styleCategories="Symbology|Labeling" labelsEnabled="1"', 1
+    )
     head, tail = document.rsplit("<layerGeometryType>", 1)
     return f"{head}{labeling}<layerGeometryType>{tail}"

@@ -55,25 +55,87 @@ PathLike = Union[str, os.PathLike[str]]
 
 #: Columns of ``trees.csv``, in order (one row per tree; positions in the file's unit, sizes in metres).
 TREE_COLUMNS = (
-    "tree_id", "x", "y", "z", "dbh_m", "height_m", "height_source", "height_points_m", "crown_base_m",
-    "crown_width_ew_m", "crown_width_ns_m", "crown_area_m2", "crown_volume_m3", "volume_m3", "stem_volume_m3",
-    "branch_volume_m3", "qsm_dbh_m", "n_cylinders", "n_branches", "lean_deg", "dbh_arc_coverage", "dbh_rms_mm",
-    "dbh_sigma_m", "dbh_ovality",
-    "n_points", "wood_fraction",
-    "stem_form_factor", "source", "dbh_quality", "height_quality", "crown_quality", "volume_quality", "flag",
+    "tree_id",
+    "x",
+    "y",
+    "z",
+    "dbh_m",
+    "height_m",
+    "height_source",
+    "height_points_m",
+    "crown_base_m",
+    "crown_width_ew_m",
+    "crown_width_ns_m",
+    "crown_area_m2",
+    "crown_volume_m3",
+    "volume_m3",
+    "stem_volume_m3",
+    "branch_volume_m3",
+    "qsm_dbh_m",
+    "n_cylinders",
+    "n_branches",
+    "lean_deg",
+    "dbh_arc_coverage",
+    "dbh_rms_mm",
+    "dbh_sigma_m",
+    "dbh_ovality",
+    "n_points",
+    "wood_fraction",
+    "stem_form_factor",
+    "source",
+    "dbh_quality",
+    "height_quality",
+    "crown_quality",
+    "volume_quality",
+    "flag",
 )
 
 #: Columns of a cylinder table (``cylinders/tree_NNNN.csv``), one row per cylinder.
 CYLINDER_COLUMNS: tuple[str, ...] = (
-    "cylinder_id", "parent_id", "extension_id", "branch_id", "branch_order", "position_in_branch",
-    "start_x", "start_y", "start_z", "axis_x", "axis_y", "axis_z",
-    "length_m", "radius_m", "surface_coverage", "mad_m", "added",
+    "cylinder_id",
+    "parent_id",
+    "extension_id",
+    "branch_id",
+    "branch_order",
+    "position_in_branch",
+    "start_x",
+    "start_y",
+    "start_z",
+    "axis_x",
+    "axis_y",
+    "axis_z",
+    "length_m",
+    "radius_m",
+    "surface_coverage",
+    "mad_m",
+    "added",
 )
 #: Cylinder columns written as whole numbers.
-CYLINDER_INT_COLUMNS = {"cylinder_id", "parent_id", "extension_id", "branch_id", "branch_order", "position_in_branch", "added"}
+CYLINDER_INT_COLUMNS = {
+    "cylinder_id",
+    "parent_id",
+    "extension_id",
+    "branch_id",
+    "branch_order",
+    "position_in_branch",
+    "added",
+}
 
 #: Columns of trees.csv read as text (everything else is a number; empty cells are NaN).
-TEXT_COLUMNS = ("flag", "flags", "edited", "edit", "tree_id", "species", "source", "height_source", "dbh_quality", "height_quality", "crown_quality", "volume_quality")
+TEXT_COLUMNS = (
+    "flag",
+    "flags",
+    "edited",
+    "edit",
+    "tree_id",
+    "species",
+    "source",
+    "height_source",
+    "dbh_quality",
+    "height_quality",
+    "crown_quality",
+    "volume_quality",
+)
 
 
 def read_csv_rows(path: PathLike) -> tuple[list[str], list[dict[str, str]]]:
@@ -209,8 +271,17 @@ def read_trees_dir(folder: PathLike, cylinder_model: Any = None) -> TreesOutput:
             raise ScanReadError(f"{table}: line {k + 2} has no tree id")
         values = {c: _number(r.get(c)) for c in header if c not in TEXT_COLUMNS}
         extra = {c: str(r.get(c) or "") for c in header if c in TEXT_COLUMNS and c not in ("flag", "tree_id")}
-        trees.append(TreeRow(tree_id=int(tid), x=values.get("x", math.nan), y=values.get("y", math.nan),
-                             z=values.get("z", math.nan), values=values, flag=str(r.get("flag") or ""), extra=extra))
+        trees.append(
+            TreeRow(
+                tree_id=int(tid),
+                x=values.get("x", math.nan),
+                y=values.get("y", math.nan),
+                z=values.get("z", math.nan),
+                values=values,
+                flag=str(r.get("flag") or ""),
+                extra=extra,
+            )
+        )
     curves: dict[int, StemCurveRows] = {}
     curve_file = root / "stem_curves.csv"
     if curve_file.is_file():
@@ -239,11 +310,19 @@ def read_trees_dir(folder: PathLike, cylinder_model: Any = None) -> TreesOutput:
                 cylinder_files[int(path.stem.split("_", 1)[1])] = path
             except ValueError:
                 continue
-    return TreesOutput(folder=root, columns=tuple(header), trees=trees, curves=curves, cylinder_files=cylinder_files,
-                       cylinder_model=cylinder_model)
+    return TreesOutput(
+        folder=root,
+        columns=tuple(header),
+        trees=trees,
+        curves=curves,
+        cylinder_files=cylinder_files,
+        cylinder_model=cylinder_model,
+    )
 
 
-def trees_output_from_inventory(inventory: Any, notes: Optional[Mapping[int, str]] = None, folder: PathLike = "") -> TreesOutput:
+def trees_output_from_inventory(
+    inventory: Any, notes: Optional[Mapping[int, str]] = None, folder: PathLike = ""
+) -> TreesOutput:
     """The same view of an in-memory :class:`~forestreg.engine.trees.inventory.TreeInventory`
     (file coordinates, as ``trees.csv`` would hold them); ``notes`` tree id -> edit note."""
     import dataclasses
@@ -257,18 +336,33 @@ def trees_output_from_inventory(inventory: Any, notes: Optional[Mapping[int, str
         extra = {c: str(row[c]) for c in TEXT_COLUMNS if c in row and c not in ("flag", "tree_id")}
         if notes.get(rec.tree_id):
             extra["edited"] = notes[rec.tree_id]
-        trees.append(TreeRow(tree_id=int(rec.tree_id), x=values["x"], y=values["y"], z=values["z"], values=values,
-                             flag=str(row.get("flag") or ""), extra=extra))
+        trees.append(
+            TreeRow(
+                tree_id=int(rec.tree_id),
+                x=values["x"],
+                y=values["y"],
+                z=values["z"],
+                values=values,
+                flag=str(row.get("flag") or ""),
+                extra=extra,
+            )
+        )
         c = rec.curve
         curves[int(rec.tree_id)] = StemCurveRows(
-            height_m=np.asarray(c.heights_m, dtype=float), diameter_m=np.asarray(c.diameter_m, dtype=float),
-            raw_diameter_m=np.asarray(c.raw_diameter_m, dtype=float), centres=np.asarray(c.centres, dtype=float) + shift,
-            accepted=np.asarray(c.accepted, dtype=bool), interpolated=np.asarray(c.interpolated, dtype=bool),
-            reasons=tuple(c.reasons))
+            height_m=np.asarray(c.heights_m, dtype=float),
+            diameter_m=np.asarray(c.diameter_m, dtype=float),
+            raw_diameter_m=np.asarray(c.raw_diameter_m, dtype=float),
+            centres=np.asarray(c.centres, dtype=float) + shift,
+            accepted=np.asarray(c.accepted, dtype=bool),
+            interpolated=np.asarray(c.interpolated, dtype=bool),
+            reasons=tuple(c.reasons),
+        )
         if rec.cylinders is not None:
             models[int(rec.tree_id)] = dataclasses.replace(rec.cylinders, start=rec.cylinders.start + shift)
     columns = tuple(TREE_COLUMNS) + (("edited",) if notes else ())
-    return TreesOutput(folder=Path(folder), columns=columns, trees=trees, curves=curves, cylinder_files={}, models=models)
+    return TreesOutput(
+        folder=Path(folder), columns=columns, trees=trees, curves=curves, cylinder_files={}, models=models
+    )
 
 
 @dataclass(frozen=True)
@@ -311,8 +405,9 @@ def _keypoints(path: Path) -> tuple[np.ndarray, np.ndarray]:
     header, rows = read_csv_rows(path)
     xyz = np.array([[_number(r.get(c)) for c in ("x", "y", "z")] for r in rows], dtype=np.float64).reshape(-1, 3)
     key = next((c for c in ("matched_with", "matched", "match") if c in header), None)
-    matched = np.array([int(_number(r.get(key))) if key and math.isfinite(_number(r.get(key))) else -1 for r in rows],
-                       dtype=int)
+    matched = np.array(
+        [int(_number(r.get(key))) if key and math.isfinite(_number(r.get(key))) else -1 for r in rows], dtype=int
+    )
     return xyz, matched
 
 
@@ -321,7 +416,9 @@ def read_coregistration_dir(folder: PathLike) -> CoregistrationOutput:
     root = Path(folder)
     path = root / "result.json"
     if not path.is_file():
-        raise ScanReadError(f"{root} is not a co-registration result folder (no result.json; made by 'forestreg coregister --out DIR')")
+        raise ScanReadError(
+            f"{root} is not a co-registration result folder (no result.json; made by 'forestreg coregister --out DIR')"
+        )
     try:
         result = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -337,8 +434,15 @@ def read_coregistration_dir(folder: PathLike) -> CoregistrationOutput:
             raise ScanReadError(f"{path}: the matrix is not 4x4 ({exc})") from exc
     g, gm = _keypoints(root / "keypoints_ground.csv")
     u, um = _keypoints(root / "keypoints_uav.csv")
-    return CoregistrationOutput(folder=root, result=result, matrix=matrix, ground_keypoints=g, ground_matched=gm,
-                                uav_keypoints=u, uav_matched=um)
+    return CoregistrationOutput(
+        folder=root,
+        result=result,
+        matrix=matrix,
+        ground_keypoints=g,
+        ground_matched=gm,
+        uav_keypoints=u,
+        uav_matched=um,
+    )
 
 
 # ----------------------------------------------------------------------------- writers
@@ -361,7 +465,19 @@ def csv_text(columns: Sequence[str], rows: Sequence[Mapping[str, Any]]) -> str:
     return buf.getvalue()
 
 
-STEM_CURVE_COLUMNS = ("tree_id", "s_m", "height_m", "diameter_m", "raw_diameter_m", "accepted", "interpolated", "x", "y", "z", "reason")
+STEM_CURVE_COLUMNS = (
+    "tree_id",
+    "s_m",
+    "height_m",
+    "diameter_m",
+    "raw_diameter_m",
+    "accepted",
+    "interpolated",
+    "x",
+    "y",
+    "z",
+    "reason",
+)
 
 
 def write_trees_tables(out_dir: PathLike, inventory: Any, *, unit_scale: float = 1.0) -> Path:
@@ -374,20 +490,32 @@ def write_trees_tables(out_dir: PathLike, inventory: Any, *, unit_scale: float =
     out.mkdir(parents=True, exist_ok=True)
     shift = np.asarray(inventory.origin_shift, dtype=np.float64)
     rows = inventory.rows()
-    file_rows = rows if unit_scale == 1.0 else [
-        {**r, "x": r["x"] / unit_scale, "y": r["y"] / unit_scale, "z": r["z"] / unit_scale} for r in rows]
+    file_rows = (
+        rows
+        if unit_scale == 1.0
+        else [{**r, "x": r["x"] / unit_scale, "y": r["y"] / unit_scale, "z": r["z"] / unit_scale} for r in rows]
+    )
     write_text_atomic(out / "trees.csv", csv_text(TREE_COLUMNS, file_rows))
     curve_rows = []
     for t in inventory.trees:
         c = t.curve
         for k in range(len(c.s_m)):
             centre = (c.centres[k] + shift) / unit_scale if np.isfinite(c.centres[k]).all() else [math.nan] * 3
-            curve_rows.append({
-                "tree_id": t.tree_id, "s_m": c.s_m[k], "height_m": c.heights_m[k],
-                "diameter_m": c.diameter_m[k], "raw_diameter_m": c.raw_diameter_m[k],
-                "accepted": int(c.accepted[k]), "interpolated": int(c.interpolated[k]),
-                "x": centre[0], "y": centre[1], "z": centre[2], "reason": c.reasons[k],
-            })
+            curve_rows.append(
+                {
+                    "tree_id": t.tree_id,
+                    "s_m": c.s_m[k],
+                    "height_m": c.heights_m[k],
+                    "diameter_m": c.diameter_m[k],
+                    "raw_diameter_m": c.raw_diameter_m[k],
+                    "accepted": int(c.accepted[k]),
+                    "interpolated": int(c.interpolated[k]),
+                    "x": centre[0],
+                    "y": centre[1],
+                    "z": centre[2],
+                    "reason": c.reasons[k],
+                }
+            )
     write_text_atomic(out / "stem_curves.csv", csv_text(STEM_CURVE_COLUMNS, curve_rows))
     cyl_dir = out / "cylinders"  # only when a tree has a cylinder model: no empty folder
     for t in inventory.trees:
@@ -406,8 +534,12 @@ def write_cylinders_csv(path: PathLike, table: Mapping[str, np.ndarray]) -> None
     cols = [np.asarray(table[c]) for c in CYLINDER_COLUMNS]
     lines = [",".join(CYLINDER_COLUMNS)]
     for i in range(len(cols[0]) if cols else 0):
-        lines.append(",".join(str(int(col[i])) if name in CYLINDER_INT_COLUMNS else repr(float(col[i]))
-                              for name, col in zip(CYLINDER_COLUMNS, cols)))
+        lines.append(
+            ",".join(
+                str(int(col[i])) if name in CYLINDER_INT_COLUMNS else repr(float(col[i]))
+                for name, col in zip(CYLINDER_COLUMNS, cols)
+            )
+        )
     write_text_atomic(path, "\n".join(lines) + "\n")
 
 
@@ -460,8 +592,12 @@ class TreeTablesFile:
         return write_trees_tables(out_dir, self, unit_scale=unit_scale)
 
 
-def write_edits(trees_csv: PathLike, notes: Mapping[int, str], edits: Sequence[Mapping[str, Any]],
-                cloud: Optional[Mapping[str, Any]] = None) -> None:
+def write_edits(
+    trees_csv: PathLike,
+    notes: Mapping[int, str],
+    edits: Sequence[Mapping[str, Any]],
+    cloud: Optional[Mapping[str, Any]] = None,
+) -> None:
     """Add an ``edited`` column to ``trees_csv`` (the note of each tree's edits, "" for the others)
     and write the edits (their dicts) as ``edits.json`` beside it (replayable), with ``cloud``
     (``points`` and ``sha256`` of the cloud they were made on, or None)."""
@@ -481,9 +617,19 @@ def write_edits(trees_csv: PathLike, notes: Mapping[int, str], edits: Sequence[M
         buf = io.StringIO()
         csv.writer(buf, lineterminator="\n").writerows(rows)
         write_text_atomic(path, buf.getvalue())
-    write_text_atomic(path.parent / "edits.json",
-                      json.dumps({"format": "forestreg-tree-edits", "version": 1, "cloud": None if cloud is None else dict(cloud),
-                                  "edits": list(edits)}, indent=2) + "\n")
+    write_text_atomic(
+        path.parent / "edits.json",
+        json.dumps(
+            {
+                "format": "forestreg-tree-edits",
+                "version": 1,
+                "cloud": None if cloud is None else dict(cloud),
+                "edits": list(edits),
+            },
+            indent=2,
+        )
+        + "\n",
+    )
 
 
 def write_poses_files(out_dir: PathLike, body: Mapping[str, Any], transforms: Mapping[str, str]) -> Path:
@@ -514,15 +660,47 @@ def write_comparison(comparison: Mapping[str, Any], out_dir: PathLike) -> tuple[
     write_text_atomic(json_path, json.dumps(comparison, indent=2) + "\n")
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["moving", "reference", "auto_status", "auto_matched_vops", "auto_icp_std_m", "manual_status", "manual_targets",
-                "manual_icp_std_m", "rotation_difference_deg", "translation_difference_m"])
+    w.writerow(
+        [
+            "moving",
+            "reference",
+            "auto_status",
+            "auto_matched_vops",
+            "auto_icp_std_m",
+            "manual_status",
+            "manual_targets",
+            "manual_icp_std_m",
+            "rotation_difference_deg",
+            "translation_difference_m",
+        ]
+    )
     for p in comparison["pairs"]:
-        w.writerow([p["moving"], p["reference"], p["auto"]["status"], _cell(p["auto"]["matched"]), _cell(p["auto"]["icp_std_m"]),
-                    p["manual"]["status"], _cell(p["manual"]["targets"]), _cell(p["manual"]["icp_std_m"]),
-                    _cell(p["rotation_difference_deg"]), _cell(p["translation_difference_m"])])
+        w.writerow(
+            [
+                p["moving"],
+                p["reference"],
+                p["auto"]["status"],
+                _cell(p["auto"]["matched"]),
+                _cell(p["auto"]["icp_std_m"]),
+                p["manual"]["status"],
+                _cell(p["manual"]["targets"]),
+                _cell(p["manual"]["icp_std_m"]),
+                _cell(p["rotation_difference_deg"]),
+                _cell(p["translation_difference_m"]),
+            ]
+        )
     w.writerow([])
-    w.writerow(["plot", "", "auto_target_residual_m", _cell(comparison["auto_target_residual_m"]), "", "manual_target_residual_m",
-                _cell(comparison["manual_target_residual_m"])])
+    w.writerow(
+        [
+            "plot",
+            "",
+            "auto_target_residual_m",
+            _cell(comparison["auto_target_residual_m"]),
+            "",
+            "manual_target_residual_m",
+            _cell(comparison["manual_target_residual_m"]),
+        ]
+    )
     csv_path = out / "comparison.csv"
     write_text_atomic(csv_path, buf.getvalue())
     return json_path, csv_path
@@ -544,7 +722,9 @@ def write_targets_csv(path: PathLike, targets_by_scan: Mapping[str, Mapping[str,
         for target, xyz in targets.items():
             v = np.asarray(xyz, dtype=np.float64).reshape(-1)
             if v.shape != (3,) or not np.isfinite(v).all():
-                raise TargetError(f"target {target!r} of scan {scan!r}: a centre must be three finite numbers, got {xyz!r}")
+                raise TargetError(
+                    f"target {target!r} of scan {scan!r}: a centre must be three finite numbers, got {xyz!r}"
+                )
             if not str(scan).strip() or not str(target).strip():
                 raise TargetError("scan and target names must not be empty")
             writer.writerow([scan, target, *(repr(float(c)) for c in v)])
@@ -605,8 +785,12 @@ def file_stem(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name.strip()) or "run"
 
 
-def write_evaluation_files(out_dir: PathLike, tables: Mapping[str, tuple[Sequence[Mapping[str, Any]], Optional[Sequence[str]]]],
-                           doc: Mapping[str, Any], figures: Mapping[str, bytes]) -> dict[str, Path]:
+def write_evaluation_files(
+    out_dir: PathLike,
+    tables: Mapping[str, tuple[Sequence[Mapping[str, Any]], Optional[Sequence[str]]]],
+    doc: Mapping[str, Any],
+    figures: Mapping[str, bytes],
+) -> dict[str, Path]:
     """Write an evaluation's files into ``out_dir`` (created if missing), each atomically: the CSV
     ``tables`` (file stem -> (rows, header when there are no rows)), ``evaluation.json`` (``doc``)
     and ``figures/<name>.png`` (PNG bytes). Returns the paths by name: the table stems, "json"

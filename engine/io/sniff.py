@@ -88,9 +88,7 @@ def detect_format(path: Path) -> str:
         if not looks_like_text(more):
             raise ScanReadError(f"{path}: is binary data, not a text point list")
         return "xyz"
-    raise ScanReadError(
-        f"{path}: unknown scan format (not LAS/LAZ, PLY, PCD, E57 or a text point list)"
-    )
+    raise ScanReadError(f"{path}: unknown scan format (not LAS/LAZ, PLY, PCD, E57 or a text point list)")
 
 
 #: lines of a text file looked at by :func:`is_point_cloud_file`
@@ -142,10 +140,23 @@ TABLE_DELIMITERS = (",", ";", "\t")
 #: Column names (normalised: :func:`column_key`) that only a table of trees has: a file whose
 #: header names one of them is a table, never a point list (a tree id or a height can be a
 #: point's attribute in a segmented or normalised cloud; a diameter or a species cannot).
-TREE_TABLE_MARKERS = frozenset({
-    "dbh", "dbh_m", "dbh_cm", "dbh_mm", "diameter", "diameter_m", "diameter_cm", "diameter_mm",
-    "crown_base_m", "crown_area_m2", "crown_volume_m3", "volume_m3", "species",
-})
+TREE_TABLE_MARKERS = frozenset(
+    {
+        "dbh",
+        "dbh_m",
+        "dbh_cm",
+        "dbh_mm",
+        "diameter",
+        "diameter_m",
+        "diameter_cm",
+        "diameter_mm",
+        "crown_base_m",
+        "crown_area_m2",
+        "crown_volume_m3",
+        "volume_m3",
+        "species",
+    }
+)
 
 
 def column_key(name: object) -> str:

@@ -43,13 +43,24 @@ def write_vops_csv(
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(VOP_COLUMNS)
     for k in range(len(xy)):
-        w.writerow([k, f"{pts[k, 0]:.4f}", f"{pts[k, 1]:.4f}", f"{pts[k, 2]:.4f}", f"{radius[k]:.3f}",
-                    int(support[k]), "" if matched_with[k] < 0 else int(matched_with[k])])
+        w.writerow(
+            [
+                k,
+                f"{pts[k, 0]:.4f}",
+                f"{pts[k, 1]:.4f}",
+                f"{pts[k, 2]:.4f}",
+                f"{radius[k]:.3f}",
+                int(support[k]),
+                "" if matched_with[k] < 0 else int(matched_with[k]),
+            ]
+        )
     write_text_atomic(path, buf.getvalue())
     return Path(path)
 
 
-def write_keypoints_csv(path: str | Path, keypoints, local_to_file: np.ndarray, matched_with: np.ndarray, *, unit_scale: float = 1.0) -> Path:
+def write_keypoints_csv(
+    path: str | Path, keypoints, local_to_file: np.ndarray, matched_with: np.ndarray, *, unit_scale: float = 1.0
+) -> Path:
     """Canopy keypoints in file coordinates (file units): id, x, y, z (on the DEM), peak_z,
     cluster_size, matched_with (-1: unmatched)."""
     buf = io.StringIO()
@@ -119,7 +130,9 @@ def read_trees_table(path: str | Path) -> TreesTable:
 
     p, numbered = read_text_lines(path, ScanReadError, "trees table")
     if not numbered:
-        raise ScanReadError(f"{p}: the table is empty: it needs a header with x, y and dbh_m (or dbh_cm, dbh_mm), then one row per tree")
+        raise ScanReadError(
+            f"{p}: the table is empty: it needs a header with x, y and dbh_m (or dbh_cm, dbh_mm), then one row per tree"
+        )
     delimiter = table_delimiter(numbered[0][1])
     try:
         parsed = list(csv.reader(io.StringIO("\n".join(line for _, line in numbered)), delimiter=delimiter))
@@ -131,8 +144,10 @@ def read_trees_table(path: str | Path) -> TreesTable:
     missing = [k for k in ("x", "y") if k not in keys] + ([] if dbh else ["dbh_m"])
     if missing:
         has = ", ".join(c for c in columns if c) or "none"
-        raise ScanReadError(f"{p}: the table has columns {has}; it needs x, y and dbh_m (or dbh_cm, dbh_mm)"
-                            f" (missing: {', '.join(missing)}; delimiter {'tab' if delimiter == chr(9) else repr(delimiter)})")
+        raise ScanReadError(
+            f"{p}: the table has columns {has}; it needs x, y and dbh_m (or dbh_cm, dbh_mm)"
+            f" (missing: {', '.join(missing)}; delimiter {'tab' if delimiter == chr(9) else repr(delimiter)})"
+        )
     twice = sorted({k for k in keys if k and keys.count(k) > 1})
     if twice:
         raise ScanReadError(f"{p}: column(s) {', '.join(twice)} given twice (names compared in any case)")

@@ -23,7 +23,15 @@ _HEADER_SCAN_LINES = 200
 #: Largest fraction of lines the tolerant parser may skip before the file counts as damaged.
 MAX_SKIPPED_FRACTION = 0.05
 #: Header names taken as intensity (compared lower-case).
-_INTENSITY_NAMES = ("intensity", "scalar_intensity", "i", "reflectance", "scalar_reflectance", "amplitude", "scalar_amplitude")
+_INTENSITY_NAMES = (
+    "intensity",
+    "scalar_intensity",
+    "i",
+    "reflectance",
+    "scalar_reflectance",
+    "amplitude",
+    "scalar_amplitude",
+)
 _SPLIT = re.compile(r"[\s,;]+")
 _CHUNK_ROWS = 200_000
 
@@ -40,7 +48,7 @@ def _words(line: str) -> list[str]:
     text = line.strip()
     for lead in ("//", "#"):
         if text.startswith(lead):
-            text = text[len(lead):]
+            text = text[len(lead) :]
     return [w for w in _SPLIT.split(text.strip()) if w]
 
 
@@ -94,8 +102,14 @@ def read_text(path: Path) -> RawCloud:
     skipped = 0
     try:
         table = np.loadtxt(
-            path, dtype=np.float64, delimiter=delimiter, skiprows=skip, usecols=usecols,
-            comments="#", ndmin=2, encoding="latin-1",  # one comment string keeps the C fast path
+            path,
+            dtype=np.float64,
+            delimiter=delimiter,
+            skiprows=skip,
+            usecols=usecols,
+            comments="#",
+            ndmin=2,
+            encoding="latin-1",  # one comment string keeps the C fast path
         )
     except ValueError:
         table, skipped = _read_tolerant(path, skip, usecols)
@@ -162,5 +176,5 @@ def write_text(tmp: Path, cloud: PointsToWrite) -> None:
     with open(tmp, "w", encoding="ascii", newline="\n") as fh:
         fh.write("//" + " ".join(names) + "\n")
         for start in range(0, len(local), _CHUNK_ROWS):
-            chunk = np.column_stack([c[start:start + _CHUNK_ROWS] for c in columns])
+            chunk = np.column_stack([c[start : start + _CHUNK_ROWS] for c in columns])
             fh.write((row_format * len(chunk)) % tuple(chunk.ravel().tolist()))

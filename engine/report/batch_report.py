@@ -24,34 +24,60 @@ def batch_report_html(rows: Sequence[Mapping[str, Any]], out_dir: Path, *, title
     counts: dict[str, int] = {}
     for r in rows:
         counts[str(r["status"])] = counts.get(str(r["status"]), 0) + 1
-    body = [f"<h1>{esc(title)}</h1>", f"<p class=\"small\">{esc(generated_line())}</p>"]
-    body.append("<p>" + ", ".join(f"<b>{n}</b> {esc(s)}" for s, n in sorted(counts.items(), key=lambda kv: _ORDER.get(kv[0], 3)))
-                + f" of {len(rows)} plots. " + "; ".join(f"{esc(k)}: {esc(v)}" for k, v in facts.items()) + "</p>")
+    body = [f"<h1>{esc(title)}</h1>", f'<p class="small">{esc(generated_line())}</p>']
+    body.append(
+        "<p>"
+        + ", ".join(f"<b>{n}</b> {esc(s)}" for s, n in sorted(counts.items(), key=lambda kv: _ORDER.get(kv[0], 3)))
+        + f" of {len(rows)} plots. "
+        + "; ".join(f"{esc(k)}: {esc(v)}" for k, v in facts.items())
+        + "</p>"
+    )
     with_trees = any(str(r.get("trees") or "") for r in rows)
-    head = ["plot", "status", "scans", "registered"] + (["trees"] if with_trees else []) + ["seconds", "peak MB", "attempts", "reason", "outputs"]
+    head = (
+        ["plot", "status", "scans", "registered"]
+        + (["trees"] if with_trees else [])
+        + ["seconds", "peak MB", "attempts", "reason", "outputs"]
+    )
     body.append("<table><thead><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr></thead><tbody>")
     for r in sorted(rows, key=lambda r: (_ORDER.get(str(r["status"]), 3), str(r["plot"]))):
         folder = out_dir / str(r["plot"])
         known = r.get("outputs")  # the plot's files, listed when it finished: no look-up per row and rewrite
-        names = [n for n in _LINKED if n in known] if isinstance(known, (list, tuple)) else [n for n in _LINKED if (folder / n).is_file()]
+        names = (
+            [n for n in _LINKED if n in known]
+            if isinstance(known, (list, tuple))
+            else [n for n in _LINKED if (folder / n).is_file()]
+        )
         href = quote(str(r["plot"])) + "/"  # the plot's folder in out_dir
         links = [f'<a href="{esc(href + name)}">{esc(name)}</a>' for name in names]
         colour = _STATUS_COLOUR.get(str(r["status"]), "#555")
         seconds = r.get("seconds")
         cells = [
-            esc(r["plot"]), f'<b style="color:{colour}">{esc(r["status"])}</b>', esc(r.get("scans", "")),
-            esc(r.get("registered", "")), *([esc(r.get("trees", ""))] if with_trees else []),
+            esc(r["plot"]),
+            f'<b style="color:{colour}">{esc(r["status"])}</b>',
+            esc(r.get("scans", "")),
+            esc(r.get("registered", "")),
+            *([esc(r.get("trees", ""))] if with_trees else []),
             esc(f"{float(seconds):.1f}" if seconds not in (None, "") else ""),
             esc(f"{float(peak):.0f}" if (peak := r.get("peak_mb")) not in (None, "") else ""),
-            esc(str(r.get("attempts") or "") + (f" (retried after: {r['retried_after']})" if r.get("retried_after") else "")),
-            esc(r.get("reason", "")), " ".join(links),
+            esc(
+                str(r.get("attempts") or "")
+                + (f" (retried after: {r['retried_after']})" if r.get("retried_after") else "")
+            ),
+            esc(r.get("reason", "")),
+            " ".join(links),
         ]
         body.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     body.append("</tbody></table>")
     return html_page(title, body)
 
 
-def write_batch_report(rows: Sequence[Mapping[str, Any]], out_dir: str | os.PathLike[str], *, title: str = "forestreg batch", facts: Mapping[str, Any] = {}) -> Path:
+def write_batch_report(
+    rows: Sequence[Mapping[str, Any]],
+    out_dir: str | os.PathLike[str],
+    *,
+    title: str = "forestreg batch",
+    facts: Mapping[str, Any] = {},
+) -> Path:
     """Write ``OUT/index.html`` for the batch; returns its path."""
     out = Path(out_dir)
     path = out / "index.html"

@@ -55,15 +55,27 @@ def coregistration_png(
     ):
         if u_kp is not None and len(u_kp):
             ax.scatter(u_kp.canopy[::7, 0], u_kp.canopy[::7, 1], s=0.4, c="#9ecae1", linewidths=0)
-            ax.scatter(u_kp.xyz[:, 0], u_kp.xyz[:, 1], marker="x", s=36, c=UAV_COLOUR, label=f"UAV keypoints ({len(u_kp)})")
+            ax.scatter(
+                u_kp.xyz[:, 0], u_kp.xyz[:, 1], marker="x", s=36, c=UAV_COLOUR, label=f"UAV keypoints ({len(u_kp)})"
+            )
         if g_kp is not None and len(g_kp):
             kp = g_kp.xyz if moved is None else apply_transform(moved, g_kp.xyz)
-            ax.scatter(kp[:, 0], kp[:, 1], s=40, facecolors="none", edgecolors=GROUND_COLOUR, linewidths=1.4,
-                       label=f"ground-based keypoints ({len(g_kp)})")
+            ax.scatter(
+                kp[:, 0],
+                kp[:, 1],
+                s=40,
+                facecolors="none",
+                edgecolors=GROUND_COLOUR,
+                linewidths=1.4,
+                label=f"ground-based keypoints ({len(g_kp)})",
+            )
             pairs = None
             if moved is not None:
-                pairs = result.matched_after_icp if result.matched_after_icp is not None else (
-                    result.match.pairs if result.match is not None else None)
+                pairs = (
+                    result.matched_after_icp
+                    if result.matched_after_icp is not None
+                    else (result.match.pairs if result.match is not None else None)
+                )
             if pairs is not None and u_kp is not None:
                 for gi, ui in pairs:
                     ax.plot([kp[gi, 0], u_kp.xyz[ui, 0]], [kp[gi, 1], u_kp.xyz[ui, 1]], c="k", lw=1.2)
@@ -118,48 +130,81 @@ def write_coregistration_report(
         ("keypoints ground-based / UAV", f"{d['keypoints']['ground']} / {d['keypoints']['uav']}"),
         ("matched keypoints", f"{d['matched']} ({d['matching_percentage']:.1f} %)"),
     ]
-    for key, label in (("residuals_m", "keypoint residual before ICP"), ("residuals_after_icp_m", "keypoint residual after ICP")):
+    for key, label in (
+        ("residuals_m", "keypoint residual before ICP"),
+        ("residuals_after_icp_m", "keypoint residual after ICP"),
+    ):
         r = d[key]
         if r["mean"] == r["mean"]:  # not NaN
-            rows.append((label, f"mean {100 * r['mean']:.1f} cm, median {100 * r['median']:.1f} cm, "
-                                f"quartiles {100 * r['q1']:.1f} - {100 * r['q3']:.1f} cm"))
+            rows.append(
+                (
+                    label,
+                    f"mean {100 * r['mean']:.1f} cm, median {100 * r['median']:.1f} cm, "
+                    f"quartiles {100 * r['q1']:.1f} - {100 * r['q3']:.1f} cm",
+                )
+            )
     if d["icp"]:
-        rows.append(("ICP", f"fitness {d['icp']['fitness']:.2f}, RMSE {100 * d['icp']['rmse_m']:.1f} cm, "
-                            f"std {100 * d['icp']['std_m']:.1f} cm"))
-    rows.append(("canopy surface correlation (result / best distinct alternative, margin)",
-                 f"{d['surface_correlation']:.2f} / {d['alternative_correlation']:.2f} (margin {d['correlation_margin']:.2f}, "
-                 f"{d['candidates_verified']} candidates refined and verified)"))
+        rows.append(
+            (
+                "ICP",
+                f"fitness {d['icp']['fitness']:.2f}, RMSE {100 * d['icp']['rmse_m']:.1f} cm, "
+                f"std {100 * d['icp']['std_m']:.1f} cm",
+            )
+        )
+    rows.append(
+        (
+            "canopy surface correlation (result / best distinct alternative, margin)",
+            f"{d['surface_correlation']:.2f} / {d['alternative_correlation']:.2f} (margin {d['correlation_margin']:.2f}, "
+            f"{d['candidates_verified']} candidates refined and verified)",
+        )
+    )
     se = d.get("standard_errors")
     if se:
-        rows.append(("standard errors (jackknife over plot quadrants)",
-                     f"rotation {se['rotation_deg']:.3f} deg (heading {se['heading_deg']:.3f}, tilt {se['tilt_deg']:.3f}), "
-                     f"translation {100 * se['translation_m']:.1f} cm (horizontal {100 * se['horizontal_m']:.1f}, "
-                     f"vertical {100 * se['vertical_m']:.1f})"))
+        rows.append(
+            (
+                "standard errors (jackknife over plot quadrants)",
+                f"rotation {se['rotation_deg']:.3f} deg (heading {se['heading_deg']:.3f}, tilt {se['tilt_deg']:.3f}), "
+                f"translation {100 * se['translation_m']:.1f} cm (horizontal {100 * se['horizontal_m']:.1f}, "
+                f"vertical {100 * se['vertical_m']:.1f})",
+            )
+        )
     q = d.get("quality")
     if q:
         if q.get("ground_dz_count") and q.get("ground_dz_median_m") is not None:
-            rows.append(("ground height agreement (UAV ground - ground-based DEM)",
-                         f"median {100 * q['ground_dz_median_m']:+.1f} cm, NMAD {100 * q['ground_dz_nmad_m']:.1f} cm "
-                         f"({q['ground_dz_count']} points)"))
+            rows.append(
+                (
+                    "ground height agreement (UAV ground - ground-based DEM)",
+                    f"median {100 * q['ground_dz_median_m']:+.1f} cm, NMAD {100 * q['ground_dz_nmad_m']:.1f} cm "
+                    f"({q['ground_dz_count']} points)",
+                )
+            )
         if q.get("canopy_dz_count") and q.get("canopy_dz_median_m") is not None:
-            rows.append(("canopy surface residual (UAV top - ground-based top, 1 m cells)",
-                         f"median {100 * q['canopy_dz_median_m']:+.1f} cm, NMAD {100 * q['canopy_dz_nmad_m']:.1f} cm "
-                         f"({q['canopy_dz_count']} cells)"))
+            rows.append(
+                (
+                    "canopy surface residual (UAV top - ground-based top, 1 m cells)",
+                    f"median {100 * q['canopy_dz_median_m']:+.1f} cm, NMAD {100 * q['canopy_dz_nmad_m']:.1f} cm "
+                    f"({q['canopy_dz_count']} cells)",
+                )
+            )
     if d["heading_deg"] is not None:
         rows.append(("heading", f"{d['heading_deg']:.3f} deg"))
     table = "\n".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows)
-    matrix = "" if d["matrix"] is None else "<pre>" + "\n".join(" ".join(f"{v: .9f}" for v in row) for row in d["matrix"]) + "</pre>"
+    matrix = (
+        ""
+        if d["matrix"] is None
+        else "<pre>" + "\n".join(" ".join(f"{v: .9f}" for v in row) for row in d["matrix"]) + "</pre>"
+    )
     page = f"""<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>forestreg co-registration</title>
 <style>body{{font-family:sans-serif;margin:1.5em;max-width:1400px}} th{{text-align:left;padding-right:1em}}
 img{{max-width:100%}} pre{{background:#f4f4f4;padding:.5em}}</style></head><body>
 <h1>Ground-based / UAV co-registration</h1>
-<p>{html.escape(d['ground'])} &rarr; {html.escape(d['uav'])}; {html.escape(d['convention'])}</p>
+<p>{html.escape(d["ground"])} &rarr; {html.escape(d["uav"])}; {html.escape(d["convention"])}</p>
 <table>{table}</table>
 <h2>Matrix</h2>{matrix}
 <h2>Keypoints and profile</h2>
 <img src="data:image/png;base64,{base64.b64encode(png).decode()}" alt="keypoints before and after">
-<h2>Timings (s)</h2><pre>{html.escape(json.dumps(d['timings'], indent=1))}</pre>
+<h2>Timings (s)</h2><pre>{html.escape(json.dumps(d["timings"], indent=1))}</pre>
 </body></html>
 """
     path = out / "report.html"

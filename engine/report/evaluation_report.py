@@ -27,8 +27,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..core.atomic import write_text_atomic  # noqa: E402
-from .style import REPORT_CSS  # noqa: E402
 from ..trees.evaluate import PARAMETERS  # noqa: E402
+from .style import REPORT_CSS  # noqa: E402
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..trees.evaluate import Evaluation
@@ -38,11 +38,14 @@ RUN_COLOURS = ("#1f77b4", "#d95f02", "#2ca02c", "#7b3fb5", "#8c564b", "#e377c2",
 RUN_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
 DASH = "\u2013"
 
-CSS = REPORT_CSS + """
+CSS = (
+    REPORT_CSS
+    + """
 td.best { font-weight: 700; }
 tr.flagged td { background: #fff3f2; }
 figure { display: inline-block; vertical-align: top; }
 """
+)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -72,7 +75,7 @@ def img_tag(png: bytes, alt: str, ident: str) -> str:
 def html_page(title: str, body: Sequence[str]) -> str:
     """A complete HTML document with the report style."""
     return (
-        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+        '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
         '<meta name="viewport" content="width=device-width, initial-scale=1">\n'
         f"<title>{esc(title)}</title>\n<style>{CSS}</style>\n</head>\n<body>\n"
         + "\n".join(body)
@@ -81,7 +84,7 @@ def html_page(title: str, body: Sequence[str]) -> str:
 
 
 def generated_line() -> str:
-    """"generated <date> by forestreg <version>"."""
+    """ "generated <date> by forestreg <version>"."""
     try:
         from ..._version import __version__ as version
     except Exception:  # pragma: no cover - defensive
@@ -127,7 +130,9 @@ def run_colour(k: int) -> str:
 def scatter_png(runs: Mapping[str, "Evaluation"], parameter: str, *, dpi: int = 100) -> Optional[bytes]:
     """Estimate against field value of one parameter, one colour per run, with the 1:1 line and
     each run's n, R2 and RMSE in the legend; None when no run has a pair for it."""
-    series = [(name, ev.stats[parameter]) for name, ev in runs.items() if parameter in ev.stats and ev.stats[parameter].n > 0]
+    series = [
+        (name, ev.stats[parameter]) for name, ev in runs.items() if parameter in ev.stats and ev.stats[parameter].n > 0
+    ]
     if not series:
         return None
     info = PARAMETERS[parameter]
@@ -138,8 +143,18 @@ def scatter_png(runs: Mapping[str, "Evaluation"], parameter: str, *, dpi: int = 
         e, f = s.estimate * scale, s.field_value * scale
         lo, hi = min(lo, e.min(), f.min()), max(hi, e.max(), f.max())
         label = f"{name}: n={s.n}, R²={s.r2_text()}, RMSE={fmt(s.rmse, digits, scale)} {unit}"
-        ax.scatter(f, e, s=26, c=run_colour(k), marker=RUN_MARKERS[k % len(RUN_MARKERS)], alpha=0.8,
-                   edgecolors="white", linewidths=0.4, label=label, zorder=3)
+        ax.scatter(
+            f,
+            e,
+            s=26,
+            c=run_colour(k),
+            marker=RUN_MARKERS[k % len(RUN_MARKERS)],
+            alpha=0.8,
+            edgecolors="white",
+            linewidths=0.4,
+            label=label,
+            zorder=3,
+        )
     pad = 0.05 * (hi - lo) if hi > lo else max(abs(hi), 1.0) * 0.1
     lo, hi = lo - pad, hi + pad
     ax.plot([lo, hi], [lo, hi], ls="--", c="0.35", lw=1.0, label="1:1", zorder=2)
@@ -199,7 +214,9 @@ def evaluation_report_html(
     for p in params:
         png = figs.get(p) or scatter_png(runs, p)
         if png is not None:
-            imgs.append(f"<figure>{img_tag(png, f'{PARAMETERS[p].label} estimate against field', f'scatter_{p}')}</figure>")
+            imgs.append(
+                f"<figure>{img_tag(png, f'{PARAMETERS[p].label} estimate against field', f'scatter_{p}')}</figure>"
+            )
     body.append("<h2>3. Estimates against field values</h2>")
     body.append("".join(imgs) if imgs else "<p>No parameter has a matched pair with both values.</p>")
     body.append(
@@ -244,15 +261,17 @@ def _table3_section(runs: Mapping[str, "Evaluation"], params: Sequence[str]) -> 
         ("bias", "Bias", lambda v: abs(v)),
         ("n", "n", None),
     )
-    head1 = "<tr><th rowspan=\"2\">Parameter</th>" + "".join(
-        f'<th colspan="{len(names)}">{label}</th>' for _, label, _ in groups
-    ) + "</tr>"
+    head1 = (
+        '<tr><th rowspan="2">Parameter</th>'
+        + "".join(f'<th colspan="{len(names)}">{label}</th>' for _, label, _ in groups)
+        + "</tr>"
+    )
     head2 = "<tr>" + "".join(f"<th>{esc(n)}</th>" for _ in groups for n in names) + "</tr>"
     rows = []
     for p in params:
         info = PARAMETERS[p]
         scale, unit, digits = display_unit(p)
-        cells = [f"<td><b>{esc(info.label)}</b> <span class=\"note\">({esc(unit)})</span></td>"]
+        cells = [f'<td><b>{esc(info.label)}</b> <span class="note">({esc(unit)})</span></td>']
         for metric, _, key in groups:
             values = []
             for n in names:
@@ -278,13 +297,22 @@ def _table3_section(runs: Mapping[str, "Evaluation"], params: Sequence[str]) -> 
                 cells.append(f'<td class="{cls}"{title}>{esc(text)}</td>')
         rows.append("<tr>" + "".join(cells) + "</tr>")
     table = "<table>" + head1 + head2 + "".join(rows) + "</table>" if rows else "<p>No parameter to compare.</p>"
-    undefined = sorted({f"{PARAMETERS[p].label} ({esc(n)}): {esc(runs[n].stats[p].r2_note)}" for p in params for n in names
-                        if p in runs[n].stats and runs[n].stats[p].n > 0 and runs[n].stats[p].r2_note})
+    undefined = sorted(
+        {
+            f"{PARAMETERS[p].label} ({esc(n)}): {esc(runs[n].stats[p].r2_note)}"
+            for p in params
+            for n in names
+            if p in runs[n].stats and runs[n].stats[p].n > 0 and runs[n].stats[p].r2_note
+        }
+    )
     if undefined:
-        table += ('<p class="note">R² n/a: undefined where the field values do not spread (SS<sub>tot</sub> = 0) or there are '
-                  "fewer than 2 pairs: " + "; ".join(undefined) + ".</p>")
+        table += (
+            '<p class="note">R² n/a: undefined where the field values do not spread (SS<sub>tot</sub> = 0) or there are '
+            "fewer than 2 pairs: " + "; ".join(undefined) + ".</p>"
+        )
     return (
-        "<h2>2. Evaluation of the estimated parameters (paper table 3)</h2>" + table
+        "<h2>2. Evaluation of the estimated parameters (paper table 3)</h2>"
+        + table
         + '<p class="note">RMSE and bias in the unit given after the parameter (DBH in cm); the better run of each figure '
         "is in bold (highest R², lowest RMSE and rRMSE, smallest absolute bias). n: matched trees with both values.</p>"
     )

@@ -22,7 +22,6 @@ if TYPE_CHECKING:  # pragma: no cover
 
 from .topview import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402,F401 - one definition of the scan colours
 
-
 #: Characters of a panel's title line: a longer title (a long scan name, a failure's reason) is
 #: wrapped on two lines, and the panels start lower.
 TITLE_WIDTH = 62
@@ -101,13 +100,17 @@ def draw_pair(result: "PairResult", *, dpi: int = 110) -> tuple[Canvas, list[Pan
     titles = [
         f"reference {result.reference_name}: slice and VOPs {within}",
         f"moving {result.moving_name}: slice and VOPs {within}",
-        f"registered: {result.matched} matched VOPs (green) - " + ("ok" if result.ok else f"FAILED: {result.reason}")
+        f"registered: {result.matched} matched VOPs (green) - "
+        + ("ok" if result.ok else f"FAILED: {result.reason}")
         + _uncertainty_line(result),
     ]
     canvas = Canvas(18.0, 6.2, dpi)
     boxes = _boxes(any(len(t) > TITLE_WIDTH for t in titles))  # room for titles on two lines
     sides = []
-    for box, layers, vops in ((boxes[0], det.reference_layers, att.reference_vops), (boxes[1], det.moving_layers, att.moving_vops)):
+    for box, layers, vops in (
+        (boxes[0], det.reference_layers, att.reference_vops),
+        (boxes[1], det.moving_layers, att.moving_vops),
+    ):
         pts = _slice_points(layers, radius)[:, :2]
         circle = np.array([[-radius, -radius], [radius, radius]])
         panel = Panel(canvas, box, *_extent(pts, vops.xy, vops.rejected_xy, circle))
@@ -120,7 +123,10 @@ def draw_pair(result: "PairResult", *, dpi: int = 110) -> tuple[Canvas, list[Pan
     joint = Panel(canvas, boxes[2], *_extent(ref_pts, moved, att.reference_vops.xy, mov_vops, scanner))
     joint.points(ref_pts, "#6baed6", 2.0)
     joint.points(moved, "#fd8d3c", 2.0)
-    for panel, vops, colour, title in ((sides[0], att.reference_vops, REFERENCE_COLOUR, titles[0]), (sides[1], att.moving_vops, MOVING_COLOUR, titles[1])):
+    for panel, vops, colour, title in (
+        (sides[0], att.reference_vops, REFERENCE_COLOUR, titles[0]),
+        (sides[1], att.moving_vops, MOVING_COLOUR, titles[1]),
+    ):
         panel.frame(title, wrap=TITLE_WIDTH)
         if len(vops.rejected_xy):
             panel.markers(vops.rejected_xy, "x", "0.35", size=14, line_pt=0.8, label="rejected (visibility)")

@@ -16,7 +16,9 @@ import numpy as np
 __all__ = ["paint_discs"]
 
 
-def paint_discs(image: np.ndarray, pixels: np.ndarray, colour: np.ndarray, radius_px: float, colours: Optional[np.ndarray] = None) -> None:
+def paint_discs(
+    image: np.ndarray, pixels: np.ndarray, colour: np.ndarray, radius_px: float, colours: Optional[np.ndarray] = None
+) -> None:
     """Paint a disc at each of ``pixels`` (N, 2: column, row as floats in the image's own pixel
     coordinates, a pixel ``(c, r)`` spanning ``[c, c + 1) x [r, r + 1)``) into ``image`` (H, W, C)
     uint8, in place: the pixels whose centres lie within ``radius_px`` of the point, and the
@@ -33,7 +35,12 @@ def paint_discs(image: np.ndarray, pixels: np.ndarray, colour: np.ndarray, radiu
         return max(0.0, abs(o) - 0.5)
 
     rings = sorted(
-        ((dc, dr) for dr in range(-reach, reach + 1) for dc in range(-reach, reach + 1) if reachable(dc) ** 2 + reachable(dr) ** 2 <= radius_px * radius_px),
+        (
+            (dc, dr)
+            for dr in range(-reach, reach + 1)
+            for dc in range(-reach, reach + 1)
+            if reachable(dc) ** 2 + reachable(dr) ** 2 <= radius_px * radius_px
+        ),
         key=lambda o: -(o[0] ** 2 + o[1] ** 2),
     )
     for dc, dr in rings:

@@ -42,10 +42,10 @@ from matplotlib.lines import Line2D  # noqa: E402
 
 from ..core.atomic import write_text_atomic  # noqa: E402
 from ..core.uncertainty import evidence_notes  # noqa: E402
-from .style import REPORT_CSS  # noqa: E402
 from ..tls.params import RegistrationParams  # noqa: E402
 from ..tls.plot import ScanCache  # noqa: E402
 from ..tls.project import Link, Project  # noqa: E402
+from .style import REPORT_CSS  # noqa: E402
 from .views import (  # noqa: E402
     MATCH_COLOUR,
     MOVING_COLOUR,
@@ -129,7 +129,7 @@ def plot_report_html(
     )
     body = _numbered_sections(body)
     return (
-        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+        '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
         '<meta name="viewport" content="width=device-width, initial-scale=1">\n'
         f"<title>{_e(title)}</title>\n<style>{REPORT_CSS}</style>\n</head>\n<body>\n"
         + "\n".join(body)
@@ -175,15 +175,30 @@ def _top_view_figure(project: Project, view: TopView, colours: Mapping[str, str]
     for name, sv in view.scans.items():
         colour = colours.get(name, "0.3")
         xy = sv.slice_xy - o
-        ax.scatter(xy[:, 0], xy[:, 1], s=size, color=_lighter(colour, 0.2), alpha=0.6, linewidths=0, rasterized=True, zorder=1)
-        handles.append(Line2D([], [], ls="none", marker="o", ms=7, mfc="none", mec=colour, mew=1.6,
-                              label=f"{_short(name, 28)} ({len(sv.vops_xy)} VOPs, D_r {sv.radius_m:.0f} m)"))
+        ax.scatter(
+            xy[:, 0], xy[:, 1], s=size, color=_lighter(colour, 0.2), alpha=0.6, linewidths=0, rasterized=True, zorder=1
+        )
+        handles.append(
+            Line2D(
+                [],
+                [],
+                ls="none",
+                marker="o",
+                ms=7,
+                mfc="none",
+                mec=colour,
+                mew=1.6,
+                label=f"{_short(name, 28)} ({len(sv.vops_xy)} VOPs, D_r {sv.radius_m:.0f} m)",
+            )
+        )
     for name, sv in view.scans.items():
         colour = colours.get(name, "0.3")
         xy = sv.vops_xy - o
         ax.scatter(xy[:, 0], xy[:, 1], s=34, facecolors="none", edgecolors=colour, linewidths=1.3, zorder=3)
         c = sv.scanner[:2] - o
-        ax.add_patch(plt.Circle(tuple(c), sv.radius_m, fill=False, ls=(0, (4, 4)), color=colour, lw=0.7, alpha=0.6, zorder=2))
+        ax.add_patch(
+            plt.Circle(tuple(c), sv.radius_m, fill=False, ls=(0, (4, 4)), color=colour, lw=0.7, alpha=0.6, zorder=2)
+        )
     n_pairs = 0
     for lv in view.links:
         if not len(lv.pairs):
@@ -193,21 +208,52 @@ def _top_view_figure(project: Project, view: TopView, colours: Mapping[str, str]
         b = lv.pairs[:, 1] - o
         for p, q in zip(a, b):
             ax.plot([p[0], q[0]], [p[1], q[1]], color=MATCH_COLOUR, lw=2.0, zorder=4)
-        ax.scatter((a[:, 0] + b[:, 0]) / 2, (a[:, 1] + b[:, 1]) / 2, s=140, facecolors="none",
-                   edgecolors=MATCH_COLOUR, linewidths=1.8, zorder=4)
+        ax.scatter(
+            (a[:, 0] + b[:, 0]) / 2,
+            (a[:, 1] + b[:, 1]) / 2,
+            s=140,
+            facecolors="none",
+            edgecolors=MATCH_COLOUR,
+            linewidths=1.8,
+            zorder=4,
+        )
     for name, sv in view.scans.items():
         colour = colours.get(name, "0.3")
         c = sv.scanner[:2] - o
         ax.plot(c[0], c[1], marker="^", ms=13, mfc=colour, mec="k", mew=1.2, ls="none", zorder=6)
-        ax.annotate(_short(name, 24), xy=(c[0], c[1]), xytext=(9, 9), textcoords="offset points", fontsize=10,
-                    fontweight="bold", color="k", zorder=7,
-                    bbox=dict(boxstyle="round,pad=0.25", fc="white", ec=colour, lw=1.2, alpha=0.9))
-    handles.append(Line2D([], [], ls="none", marker="o", ms=11, mfc="none", mec=MATCH_COLOUR, mew=1.8,
-                          label=f"VOPs matched across a link ({n_pairs})"))
+        ax.annotate(
+            _short(name, 24),
+            xy=(c[0], c[1]),
+            xytext=(9, 9),
+            textcoords="offset points",
+            fontsize=10,
+            fontweight="bold",
+            color="k",
+            zorder=7,
+            bbox=dict(boxstyle="round,pad=0.25", fc="white", ec=colour, lw=1.2, alpha=0.9),
+        )
+    handles.append(
+        Line2D(
+            [],
+            [],
+            ls="none",
+            marker="o",
+            ms=11,
+            mfc="none",
+            mec=MATCH_COLOUR,
+            mew=1.8,
+            label=f"VOPs matched across a link ({n_pairs})",
+        )
+    )
     handles.append(Line2D([], [], ls="none", marker="^", ms=10, mfc="0.6", mec="k", label="scanner"))
     handles.append(Line2D([], [], ls=(0, (4, 4)), color="0.4", lw=0.8, label="VOP radius D_r"))
     if view.scans:
-        allxy = np.concatenate([sv.slice_xy for sv in view.scans.values()] + [sv.scanner[None, :2] for sv in view.scans.values()]) - o
+        allxy = (
+            np.concatenate(
+                [sv.slice_xy for sv in view.scans.values()] + [sv.scanner[None, :2] for sv in view.scans.values()]
+            )
+            - o
+        )
         lo, hi = np.percentile(allxy, 0.2, axis=0) - 2.0, np.percentile(allxy, 99.8, axis=0) + 2.0
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[1], hi[1])
@@ -243,21 +289,40 @@ def _draw_bars(ax, panel: BarPanel) -> None:
     for k, (name, values, colour) in enumerate(series):
         pos = x - 0.4 + width * (k + 0.5)
         vals = [float(v) if _num(v) else 0.0 for v in values]
-        bars = ax.bar(pos, vals, width * 0.92, color=colour, label=name if len(series) > 1 else None, edgecolor="0.25", lw=0.5)
+        bars = ax.bar(
+            pos, vals, width * 0.92, color=colour, label=name if len(series) > 1 else None, edgecolor="0.25", lw=0.5
+        )
         for b, v in zip(bars, values):
             centre = b.get_x() + b.get_width() / 2
             if _num(v):
-                ax.annotate(f"{float(v):.{panel.digits}f}", (centre, b.get_height()), xytext=(0, 2),
-                            textcoords="offset points", ha="center", va="bottom", fontsize=8)
+                ax.annotate(
+                    f"{float(v):.{panel.digits}f}",
+                    (centre, b.get_height()),
+                    xytext=(0, 2),
+                    textcoords="offset points",
+                    ha="center",
+                    va="bottom",
+                    fontsize=8,
+                )
             else:
-                ax.annotate("n/a", (centre, 0), xytext=(0, 2), textcoords="offset points",
-                            ha="center", va="bottom", fontsize=8, color="#b42318")
+                ax.annotate(
+                    "n/a",
+                    (centre, 0),
+                    xytext=(0, 2),
+                    textcoords="offset points",
+                    ha="center",
+                    va="bottom",
+                    fontsize=8,
+                    color="#b42318",
+                )
     for xi, note in zip(x, panel.notes or ()):
         if note:
             ax.annotate(note, (xi, top * 0.5), ha="center", va="center", fontsize=9, color="#b42318", fontweight="bold")
     ax.set_xticks(x)
     slanted = len(panel.labels) > 3
-    ax.set_xticklabels([_short(lab, 34) for lab in panel.labels], rotation=20 if slanted else 0, ha="right" if slanted else "center")
+    ax.set_xticklabels(
+        [_short(lab, 34) for lab in panel.labels], rotation=20 if slanted else 0, ha="right" if slanted else "center"
+    )
     ax.set_ylabel(panel.ylabel)
     ax.set_ylim(0, top * 1.2)
     ax.set_title(panel.title, fontsize=11)
@@ -269,7 +334,9 @@ def _draw_bars(ax, panel: BarPanel) -> None:
 def _bars_png(*panels: BarPanel, dpi: int = 100) -> bytes:
     """Bar chart panels side by side, as PNG bytes."""
     widths = [min(max(5.5, 0.7 * max(len(p.labels), 1) * max(len(p.series), 1) + 2.5), 14.0) for p in panels]
-    fig, axes = plt.subplots(1, len(panels), figsize=(sum(widths), 4.3), gridspec_kw={"width_ratios": widths}, squeeze=False)
+    fig, axes = plt.subplots(
+        1, len(panels), figsize=(sum(widths), 4.3), gridspec_kw={"width_ratios": widths}, squeeze=False
+    )
     for ax, panel in zip(axes[0], panels):
         _draw_bars(ax, panel)
     fig.tight_layout()
@@ -288,26 +355,33 @@ def _numbered_sections(body: list[str]) -> list[str]:
     count = iter(range(1, 100))
     return [re.sub(r"<h2>\d+\. ", lambda m: f"<h2>{next(count)}. ", part) for part in body]
 
+
 # ------------------------------------------------------------------------------------------------
 
 
-def _summary_section(project: Project, states: Mapping[str, ScanState], colours: Mapping[str, str], view: TopView) -> str:
+def _summary_section(
+    project: Project, states: Mapping[str, ScanState], colours: Mapping[str, str], view: TopView
+) -> str:
     failed = [s for s in states.values() if s.status == "failed"]
     placed = [s for s in states.values() if s.status != "failed"]
     out = ["<h2>1. Summary</h2>"]
     if failed:
         items = "".join(
-            f"<li><b>{_e(s.name)}</b>" + (f" (onto {_e(s.reference)})" if s.reference else "") + f": {_e(s.reason)}</li>"
+            f"<li><b>{_e(s.name)}</b>"
+            + (f" (onto {_e(s.reference)})" if s.reference else "")
+            + f": {_e(s.reason)}</li>"
             for s in failed
         )
         out.append(
             f'<div class="failbox"><h3>{len(failed)} of {len(states)} scans could not be registered</h3>'
-            f"<ul>{items}</ul><p class=\"note\">These scans are listed here and left out of the top view. "
+            f'<ul>{items}</ul><p class="note">These scans are listed here and left out of the top view. '
             "Try another reference scan nearer to them, a larger D_r, or other slice heights (dh).</p></div>"
         )
     else:
-        out.append(f'<div class="okbox">All {len(states)} scans are registered into the frame of the centre scan '
-                   f"<b>{_e(project.centre or DASH)}</b>.</div>")
+        out.append(
+            f'<div class="okbox">All {len(states)} scans are registered into the frame of the centre scan '
+            f"<b>{_e(project.centre or DASH)}</b>.</div>"
+        )
     origin = view.origin
     rows = []
     for s in project.scans:
@@ -333,14 +407,19 @@ def _summary_section(project: Project, states: Mapping[str, ScanState], colours:
     out.append(
         "<table><tr><th>Scan</th><th>Set-up</th><th>Registered onto</th><th>Points</th>"
         "<th>Scanner x (m)</th><th>Scanner y (m)</th><th>Scanner z (m)</th><th>Status</th></tr>"
-        + "".join(rows) + "</table>"
+        + "".join(rows)
+        + "</table>"
     )
     out.append(
-        f'<p>Centre scan (project frame): <b>{_e(project.centre or DASH)}</b> &middot; registered: '
+        f"<p>Centre scan (project frame): <b>{_e(project.centre or DASH)}</b> &middot; registered: "
         f"<b>{len(placed)}</b> of {len(states)} (centre included) &middot; failed: "
         f'<b class="{"bad" if failed else ""}">{len(failed)}</b>{_e(adjusted)}. '
         f"Scanner positions are in the project frame relative to the centre scanner"
-        + (f" (which stands at {_e(', '.join(f'{v:.2f}' for v in origin))} m in its file coordinates)" if np.any(origin != 0) else "")
+        + (
+            f" (which stands at {_e(', '.join(f'{v:.2f}' for v in origin))} m in its file coordinates)"
+            if np.any(origin != 0)
+            else ""
+        )
         + ".</p>"
     )
     if project.path is not None:
@@ -407,7 +486,7 @@ def _links_section(project: Project, view: TopView, colours: Mapping[str, str]) 
         tf = r.get("target_fit") if isinstance(r.get("target_fit"), Mapping) else None
         if tf:
             ids = tf.get("target_ids")
-            method += f"<br><span class=\"note\">{len(ids) if isinstance(ids, list) else '?'} targets, fit RMSE {_fmt(tf.get('rmse_m'), 1, 100)} cm</span>"
+            method += f'<br><span class="note">{len(ids) if isinstance(ids, list) else "?"} targets, fit RMSE {_fmt(tf.get("rmse_m"), 1, 100)} cm</span>'
         if link.extra:
             method += '<br><span class="note">loop link (adjustment only)</span>'
         if len(r) == 0:  # no result yet (a failed result is a falsy record, but it was run)
@@ -416,9 +495,17 @@ def _links_section(project: Project, view: TopView, colours: Mapping[str, str]) 
             status = '<span class="ok">ok</span>'
             after = r.get("retried_after")
             if isinstance(after, list) and after:
-                status += '<br><span class="note">after failing onto ' + _e(
-                    "; ".join(f"{t.get('reference', '?')} ({t.get('reason', '')})" for t in after if isinstance(t, Mapping))
-                ) + "</span>"
+                status += (
+                    '<br><span class="note">after failing onto '
+                    + _e(
+                        "; ".join(
+                            f"{t.get('reference', '?')} ({t.get('reason', '')})"
+                            for t in after
+                            if isinstance(t, Mapping)
+                        )
+                    )
+                    + "</span>"
+                )
         else:
             status = f'<span class="bad">failed</span>: {_e(failure_reason(r))}'
         std = icp.get("std_m")
@@ -453,10 +540,19 @@ def _links_section(project: Project, view: TopView, colours: Mapping[str, str]) 
         "within the last ICP distance. Time: the whole pair registration.</p>"
     )
     if any(v is not None for v in stds):
-        png = _bars_png(BarPanel(labels, [("ICP std", stds, cols)], "ICP standard deviation (cm)",
-                                 "ICP standard deviation per link (bar colour: moving scan)", notes=notes))
-        out.append(f"<figure>{_img(png, 'ICP standard deviation per link', 'icpbars')}"
-                   "<figcaption>ICP standard deviation of each link (cm); failed links have no bar.</figcaption></figure>")
+        png = _bars_png(
+            BarPanel(
+                labels,
+                [("ICP std", stds, cols)],
+                "ICP standard deviation (cm)",
+                "ICP standard deviation per link (bar colour: moving scan)",
+                notes=notes,
+            )
+        )
+        out.append(
+            f"<figure>{_img(png, 'ICP standard deviation per link', 'icpbars')}"
+            "<figcaption>ICP standard deviation of each link (cm); failed links have no bar.</figcaption></figure>"
+        )
     return "\n".join(out)
 
 
@@ -480,11 +576,13 @@ def _uncertainty_section(project: Project, states: Mapping[str, Any]) -> str:
     except Exception:  # noqa: BLE001 - a report never fails on a damaged project
         sigma = {}
     quality = adj.get("quality") if isinstance(adj.get("quality"), Mapping) else {}
-    out = ["<h2>9. Pose uncertainty and quality</h2>",
-           "<p>How far to trust each pose without ground truth: the 1-sigma uncertainty relative to the centre scan "
-           "(from the trunks matched in each link, propagated along the most certain chain of links and inflated where "
-           "loops disagree more than stated); the links of each scan and the largest disagreement between a link and "
-           "the final poses.</p>"]
+    out = [
+        "<h2>9. Pose uncertainty and quality</h2>",
+        "<p>How far to trust each pose without ground truth: the 1-sigma uncertainty relative to the centre scan "
+        "(from the trunks matched in each link, propagated along the most certain chain of links and inflated where "
+        "loops disagree more than stated); the links of each scan and the largest disagreement between a link and "
+        "the final poses.</p>",
+    ]
     rows = []
     for s in project.scans:
         u = sigma.get(s.name) if isinstance(sigma, Mapping) else None
@@ -493,11 +591,11 @@ def _uncertainty_section(project: Project, states: Mapping[str, Any]) -> str:
         t = u.get("translation_m") if isinstance(u, Mapping) else None
         r = u.get("rotation_deg") if isinstance(u, Mapping) else None
         rows.append(
-            f"<tr><td>{_e(s.name)}</td><td class=\"num\">{format_cm(t)}</td><td class=\"num\">{_fmt(r, 3)}</td>"
-            f"<td class=\"num\">{_e(str(q.get('links', '-')))}</td><td class=\"num\">{format_cm(q.get('max_residual_m'))}</td>"
-            f"<td class=\"num\">{_fmt(q.get('max_residual_deg'), 3)}</td><td class=\"num\">{_e(str(q.get('dropped_links', '-')))}</td>"
-            f"<td class=\"num\">{format_cm(q.get('terrain_median_m'))}</td><td class=\"num\">{_e(str(q.get('min_matched_vops', '-')))}</td>"
-            f"<td class=\"num\">{_fmt(q.get('max_ambiguity'), 2)}</td></tr>"
+            f'<tr><td>{_e(s.name)}</td><td class="num">{format_cm(t)}</td><td class="num">{_fmt(r, 3)}</td>'
+            f'<td class="num">{_e(str(q.get("links", "-")))}</td><td class="num">{format_cm(q.get("max_residual_m"))}</td>'
+            f'<td class="num">{_fmt(q.get("max_residual_deg"), 3)}</td><td class="num">{_e(str(q.get("dropped_links", "-")))}</td>'
+            f'<td class="num">{format_cm(q.get("terrain_median_m"))}</td><td class="num">{_e(str(q.get("min_matched_vops", "-")))}</td>'
+            f'<td class="num">{_fmt(q.get("max_ambiguity"), 2)}</td></tr>'
         )
     out.append(
         "<table><tr><th>Scan</th><th>Position 1-sigma (cm)</th><th>Rotation 1-sigma (deg)</th><th>Links</th>"
@@ -508,27 +606,40 @@ def _uncertainty_section(project: Project, states: Mapping[str, Any]) -> str:
     for link in project.links:
         notes = evidence_notes(link.result.uncertainty) if link.result is not None else []
         if notes:
-            counted.append(f"<li>{_e(link.moving)} {ARROW} {_e(link.reference)}: {'; '.join(_e(n) for n in notes)}</li>")
+            counted.append(
+                f"<li>{_e(link.moving)} {ARROW} {_e(link.reference)}: {'; '.join(_e(n) for n in notes)}</li>"
+            )
     if counted:
-        out.append("<p><b>What the links' uncertainties counted</b> (motions the surfaces hardly pin, distinct "
-                   "solutions that fitted nearly as well):</p><ul>" + "".join(counted) + "</ul>")
+        out.append(
+            "<p><b>What the links' uncertainties counted</b> (motions the surfaces hardly pin, distinct "
+            "solutions that fitted nearly as well):</p><ul>" + "".join(counted) + "</ul>"
+        )
     dropped = [d for d in (adj.get("dropped") or []) if isinstance(d, Mapping)]
     if dropped:
-        out.append("<p><b>Links dropped as inconsistent:</b></p><ul>" + "".join(
-            f"<li>{_e(str(d.get('moving', '?')))} {ARROW} {_e(str(d.get('reference', '?')))}: {_e(str(d.get('reason', '')))}</li>" for d in dropped
-        ) + "</ul>")
+        out.append(
+            "<p><b>Links dropped as inconsistent:</b></p><ul>"
+            + "".join(
+                f"<li>{_e(str(d.get('moving', '?')))} {ARROW} {_e(str(d.get('reference', '?')))}: {_e(str(d.get('reason', '')))}</li>"
+                for d in dropped
+            )
+            + "</ul>"
+        )
     if _num(adj.get("uncertainty_inflation")) and adj["uncertainty_inflation"] > 1.0:
-        out.append(f"<p class=\"note\">The loops disagree more than the links state: every stated uncertainty was multiplied by {adj['uncertainty_inflation']:.2f}.</p>")
+        out.append(
+            f'<p class="note">The loops disagree more than the links state: every stated uncertainty was multiplied by {adj["uncertainty_inflation"]:.2f}.</p>'
+        )
     return "\n".join(out)
 
 
 def _adjustment_section(project: Project) -> str:
     adj = project.adjustment or {}
     rows_in = [r for r in (adj.get("links") or []) if isinstance(r, Mapping)]
-    out = ["<h2>4. Global adjustment</h2>",
-           "<p>Extra links close loops; the adjustment spreads their disagreement over all links. Each row is how far the "
-           "poses disagree with a link's own result, before and after the adjustment (rotation in degrees, translation "
-           "at the moving scanner in cm).</p>"]
+    out = [
+        "<h2>4. Global adjustment</h2>",
+        "<p>Extra links close loops; the adjustment spreads their disagreement over all links. Each row is how far the "
+        "poses disagree with a link's own result, before and after the adjustment (rotation in degrees, translation "
+        "at the moving scanner in cm).</p>",
+    ]
     if not rows_in:
         out.append("<p>The adjustment recorded no link residuals.</p>")
         return "\n".join(out)
@@ -549,16 +660,29 @@ def _adjustment_section(project: Project) -> str:
             f'<td class="num">{_fmt(a.get("rotation_deg"), 3)}</td><td class="num">{format_cm(a.get("translation_m"))}</td></tr>'
         )
     out.append(
-        "<table><tr><th rowspan=\"2\">Link (moving " + ARROW + " reference)</th><th colspan=\"2\">Before adjustment</th>"
-        "<th colspan=\"2\">After adjustment</th></tr><tr><th>Rotation (deg)</th><th>Translation (cm)</th>"
+        '<table><tr><th rowspan="2">Link (moving ' + ARROW + ' reference)</th><th colspan="2">Before adjustment</th>'
+        '<th colspan="2">After adjustment</th></tr><tr><th>Rotation (deg)</th><th>Translation (cm)</th>'
         "<th>Rotation (deg)</th><th>Translation (cm)</th></tr>" + "".join(rows) + "</table>"
     )
     png = _bars_png(
-        BarPanel(labels, [("before", tb, "#9e9ac8"), ("after", ta, "#3f007d")], "translation residual (cm)", "Translation residual per link"),
-        BarPanel(labels, [("before", rb, "#9e9ac8"), ("after", ra, "#3f007d")], "rotation residual (deg)", "Rotation residual per link", digits=3),
+        BarPanel(
+            labels,
+            [("before", tb, "#9e9ac8"), ("after", ta, "#3f007d")],
+            "translation residual (cm)",
+            "Translation residual per link",
+        ),
+        BarPanel(
+            labels,
+            [("before", rb, "#9e9ac8"), ("after", ra, "#3f007d")],
+            "rotation residual (deg)",
+            "Rotation residual per link",
+            digits=3,
+        ),
     )
-    out.append(f"<figure>{_img(png, 'link residuals before and after the adjustment', 'adjbars')}"
-               "<figcaption>Disagreement between each link and the poses, before and after the adjustment.</figcaption></figure>")
+    out.append(
+        f"<figure>{_img(png, 'link residuals before and after the adjustment', 'adjbars')}"
+        "<figcaption>Disagreement between each link and the poses, before and after the adjustment.</figcaption></figure>"
+    )
     return "\n".join(out)
 
 
@@ -572,10 +696,12 @@ def comparison_section(comparison: Mapping[str, Any]) -> str:
     entries are shown as a dash.
     """
     pairs = [p for p in (comparison.get("pairs") or []) if isinstance(p, Mapping)]
-    out = ["<h2>5. Marker-free against manual registration</h2>",
-           "<p>The same pairs registered from trunk shadows (proposed method) and from targets picked by hand "
-           "(manual method, then the same ICP), as in the paper's tables 4 and 5.</p>",
-           "<h3>Per pair (paper table 4)</h3>"]
+    out = [
+        "<h2>5. Marker-free against manual registration</h2>",
+        "<p>The same pairs registered from trunk shadows (proposed method) and from targets picked by hand "
+        "(manual method, then the same ICP), as in the paper's tables 4 and 5.</p>",
+        "<h3>Per pair (paper table 4)</h3>",
+    ]
     rows, labels, s_auto, s_manual, rot, trans = [], [], [], [], [], []
     for p in pairs:
         a = p.get("auto") if isinstance(p.get("auto"), Mapping) else {}
@@ -597,11 +723,11 @@ def comparison_section(comparison: Mapping[str, Any]) -> str:
             f"<td>{_status_html(a.get('status'))}</td><td>{_status_html(m.get('status'))}</td></tr>"
         )
     out.append(
-        "<table><tr><th rowspan=\"2\">Registering scans<br>(moving " + ARROW + " reference)</th>"
-        "<th rowspan=\"2\"><i>P<sub>s</sub></i></th><th rowspan=\"2\"><i>P<sub>t</sub></i></th>"
-        "<th rowspan=\"2\"><i>P<sub>s</sub></i> &cap; <i>P<sub>t</sub></i></th>"
-        "<th colspan=\"2\">ICP standard deviation (cm)</th><th rowspan=\"2\">Targets (manual)</th>"
-        "<th colspan=\"2\">Difference between the two results</th><th colspan=\"2\">Status</th></tr>"
+        '<table><tr><th rowspan="2">Registering scans<br>(moving ' + ARROW + " reference)</th>"
+        '<th rowspan="2"><i>P<sub>s</sub></i></th><th rowspan="2"><i>P<sub>t</sub></i></th>'
+        '<th rowspan="2"><i>P<sub>s</sub></i> &cap; <i>P<sub>t</sub></i></th>'
+        '<th colspan="2">ICP standard deviation (cm)</th><th rowspan="2">Targets (manual)</th>'
+        '<th colspan="2">Difference between the two results</th><th colspan="2">Status</th></tr>'
         "<tr><th>Proposed method</th><th>Manual method</th><th>Rotation (deg)</th><th>Translation (cm)</th>"
         "<th>Proposed</th><th>Manual</th></tr>" + "".join(rows) + "</table>"
     )
@@ -612,27 +738,51 @@ def comparison_section(comparison: Mapping[str, Any]) -> str:
     out.append("<h3>Per plot (paper table 5)</h3>")
     out.append(
         "<table><tr><th>Plot</th><th>Proposed method (cm)</th><th>Manual method (cm)</th><th>Targets seen twice</th></tr>"
-        f"<tr><td>average target distance residual</td><td class=\"num\"><b>{format_cm(auto_r)}</b></td>"
-        f"<td class=\"num\"><b>{format_cm(manual_r)}</b></td>"
-        f"<td class=\"num\">{_e(str(len(set(t_auto) | set(t_manual))))}</td></tr></table>"
+        f'<tr><td>average target distance residual</td><td class="num"><b>{format_cm(auto_r)}</b></td>'
+        f'<td class="num"><b>{format_cm(manual_r)}</b></td>'
+        f'<td class="num">{_e(str(len(set(t_auto) | set(t_manual))))}</td></tr></table>'
         '<p class="note">With every scan in the project frame, the mean distance between the centres of the same target '
         "seen from different scans.</p>"
-        + (f'<p class="note"><b>Not available:</b> {_e(comparison["target_residual_note"])}</p>'
-           if comparison.get("target_residual_note") else "")
+        + (
+            f'<p class="note"><b>Not available:</b> {_e(comparison["target_residual_note"])}</p>'
+            if comparison.get("target_residual_note")
+            else ""
+        )
     )
     if pairs and any(v is not None for v in s_auto + s_manual):
         png = _bars_png(
-            BarPanel(labels, [("proposed (marker-free)", s_auto, AUTO_COLOUR), ("manual (targets)", s_manual, MANUAL_COLOUR)],
-                     "ICP standard deviation (cm)", "ICP standard deviation per pair"),
+            BarPanel(
+                labels,
+                [("proposed (marker-free)", s_auto, AUTO_COLOUR), ("manual (targets)", s_manual, MANUAL_COLOUR)],
+                "ICP standard deviation (cm)",
+                "ICP standard deviation per pair",
+            ),
         )
-        png2 = None if all(v is None for v in trans + rot) else _bars_png(
-            BarPanel(labels, [("translation", trans, "#6a51a3")], "translation difference (cm)", "Proposed against manual: translation"),
-            BarPanel(labels, [("rotation", rot, "#fd8d3c")], "rotation difference (deg)", "Proposed against manual: rotation", digits=3),
+        png2 = (
+            None
+            if all(v is None for v in trans + rot)
+            else _bars_png(
+                BarPanel(
+                    labels,
+                    [("translation", trans, "#6a51a3")],
+                    "translation difference (cm)",
+                    "Proposed against manual: translation",
+                ),
+                BarPanel(
+                    labels,
+                    [("rotation", rot, "#fd8d3c")],
+                    "rotation difference (deg)",
+                    "Proposed against manual: rotation",
+                    digits=3,
+                ),
+            )
         )
-        diff_img = "" if png2 is None else _img(png2, 'difference per pair', 'cmpdiff')
-        out.append(f"<figure>{_img(png, 'ICP std per pair, proposed and manual', 'cmppairs')}{diff_img}"
-                   "<figcaption>Per pair: the ICP standard deviation of both methods, and how far apart the two results are "
-                   "(rotation in degrees, translation at the moving scanner in cm).</figcaption></figure>")
+        diff_img = "" if png2 is None else _img(png2, "difference per pair", "cmpdiff")
+        out.append(
+            f"<figure>{_img(png, 'ICP std per pair, proposed and manual', 'cmppairs')}{diff_img}"
+            "<figcaption>Per pair: the ICP standard deviation of both methods, and how far apart the two results are "
+            "(rotation in degrees, translation at the moving scanner in cm).</figcaption></figure>"
+        )
     ids = sorted(set(t_auto) | set(t_manual), key=_natural)
     if ids:
         va = [100.0 * t_auto[i] if _num(t_auto.get(i)) else None for i in ids]
@@ -641,12 +791,24 @@ def comparison_section(comparison: Mapping[str, Any]) -> str:
             f'<tr><td>{_e(str(i))}</td><td class="num">{format_cm(t_auto.get(i))}</td><td class="num">{format_cm(t_manual.get(i))}</td></tr>'
             for i in ids
         )
-        out.append("<table><tr><th>Target</th><th>Proposed method (cm)</th><th>Manual method (cm)</th></tr>" + rows + "</table>")
-        png = _bars_png(BarPanel([str(i) for i in ids], [("proposed (marker-free)", va, AUTO_COLOUR), ("manual (targets)", vm, MANUAL_COLOUR)],
-                                 "mean distance residual (cm)", "Target distance residual per target: proposed against manual"))
-        out.append(f"<figure>{_img(png, 'target residual per target', 'cmptargets')}"
-                   "<figcaption>Per target: the mean distance between its centres seen from different scans, with the scans "
-                   "placed by each method.</figcaption></figure>")
+        out.append(
+            "<table><tr><th>Target</th><th>Proposed method (cm)</th><th>Manual method (cm)</th></tr>"
+            + rows
+            + "</table>"
+        )
+        png = _bars_png(
+            BarPanel(
+                [str(i) for i in ids],
+                [("proposed (marker-free)", va, AUTO_COLOUR), ("manual (targets)", vm, MANUAL_COLOUR)],
+                "mean distance residual (cm)",
+                "Target distance residual per target: proposed against manual",
+            )
+        )
+        out.append(
+            f"<figure>{_img(png, 'target residual per target', 'cmptargets')}"
+            "<figcaption>Per target: the mean distance between its centres seen from different scans, with the scans "
+            "placed by each method.</figcaption></figure>"
+        )
     return "\n".join(out)
 
 
@@ -666,12 +828,14 @@ def _parameters_section(project: Project) -> str:
             + f'</td><td class="{"changed" if changed else ""}">{_e(text)}</td>'
         )
     per_row = 3
-    rows = "".join("<tr>" + "".join(cells[i:i + per_row]) + "</tr>" for i in range(0, len(cells), per_row))
+    rows = "".join("<tr>" + "".join(cells[i : i + per_row]) + "</tr>" for i in range(0, len(cells), per_row))
     head = "<tr>" + "<th>Parameter</th><th>Value</th>" * per_row + "</tr>"
-    out = ["<h2>Parameters</h2>",
-           '<p class="note">The project\'s registration parameters (paper table 2 where it gives a value; hover a name '
-           "for its meaning). Values changed from the defaults are shown <span class=\"changed\">like this</span>.</p>",
-           "<table>" + head + rows + "</table>"]
+    out = [
+        "<h2>Parameters</h2>",
+        '<p class="note">The project\'s registration parameters (paper table 2 where it gives a value; hover a name '
+        'for its meaning). Values changed from the defaults are shown <span class="changed">like this</span>.</p>',
+        "<table>" + head + rows + "</table>",
+    ]
     overrides = []
     for link in project.links:
         bits = []
@@ -696,7 +860,11 @@ def _e(text: Any) -> str:
 
 
 def _num(value: Any) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and math.isfinite(float(value))
+    return (
+        isinstance(value, (int, float, np.integer, np.floating))
+        and not isinstance(value, bool)
+        and math.isfinite(float(value))
+    )
 
 
 def _fmt(value: Any, digits: int, scale: float = 1.0, *, thousands: bool = False) -> str:

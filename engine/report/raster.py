@@ -39,7 +39,12 @@ class PointRaster(Artist):
         self._layers = []
         for xy, colours, size in layers:
             xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-            if isinstance(colours, np.ndarray) and colours.dtype == np.uint8 and colours.ndim == 2 and colours.shape[1] == 4:
+            if (
+                isinstance(colours, np.ndarray)
+                and colours.dtype == np.uint8
+                and colours.ndim == 2
+                and colours.shape[1] == 4
+            ):
                 rgba = colours  # RGBA bytes already: 4 bytes a point, not 32
             else:
                 rgba = (to_rgba_array(colours) * 255.0 + 0.5).astype(np.uint8)

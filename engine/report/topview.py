@@ -39,7 +39,7 @@ SUPERSAMPLE = 2
 def rgb(colour: str) -> tuple[int, int, int]:
     """``"#rrggbb"`` or a grey level ``"0.45"`` (matplotlib's notation) as an RGB tuple."""
     if colour.startswith("#") and len(colour) == 7:
-        return tuple(int(colour[i:i + 2], 16) for i in (1, 3, 5))  # type: ignore[return-value]
+        return tuple(int(colour[i : i + 2], 16) for i in (1, 3, 5))  # type: ignore[return-value]
     level = float(colour)
     if not 0.0 <= level <= 1.0:
         raise ValueError(f"not a colour: {colour!r}")
@@ -108,12 +108,23 @@ class Canvas:
             self._image = Image.fromarray(self.pixels)
         return self._image
 
-    def text(self, xy: tuple[float, float], text: str, size_pt: float, *, anchor: str = "mm", fill=(0, 0, 0), rotate: bool = False) -> None:
+    def text(
+        self,
+        xy: tuple[float, float],
+        text: str,
+        size_pt: float,
+        *,
+        anchor: str = "mm",
+        fill=(0, 0, 0),
+        rotate: bool = False,
+    ) -> None:
         """``text`` at drawing pixel ``xy`` (Pillow's ``anchor``), ``size_pt`` points; ``rotate``:
         turned 90 degrees counter-clockwise (a y-axis label), centred on ``xy``."""
         font = _font(max(1, int(round(self.px(size_pt)))))
         if not rotate:
-            self.draw().multiline_text(xy, text, font=font, fill=fill, anchor=anchor, align="center", spacing=self.px(size_pt) * 0.25)
+            self.draw().multiline_text(
+                xy, text, font=font, fill=fill, anchor=anchor, align="center", spacing=self.px(size_pt) * 0.25
+            )
             return
         left, top, right, bottom = font.getbbox(text)
         label = Image.new("L", (right - left + 4, bottom - top + 4), 0)
@@ -143,7 +154,9 @@ class Panel:
     matplotlib's margins; the axes shrink to keep one metre as long across as up, centred in the
     box)."""
 
-    def __init__(self, canvas: Canvas, box: tuple[float, float, float, float], lo: Sequence[float], hi: Sequence[float]) -> None:
+    def __init__(
+        self, canvas: Canvas, box: tuple[float, float, float, float], lo: Sequence[float], hi: Sequence[float]
+    ) -> None:
         self.canvas = canvas
         w, h = canvas.width * canvas.scale, canvas.height * canvas.scale
         x0, y0, x1, y1 = box[0] * w, box[1] * h, box[2] * w, box[3] * h
@@ -163,14 +176,23 @@ class Panel:
     def to_px(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) metres -> drawing pixels (column, row; rows grow downwards)."""
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-        return np.column_stack([self.left + (xy[:, 0] - self.lo[0]) * self.unit, self.bottom - (xy[:, 1] - self.lo[1]) * self.unit])
+        return np.column_stack(
+            [self.left + (xy[:, 0] - self.lo[0]) * self.unit, self.bottom - (xy[:, 1] - self.lo[1]) * self.unit]
+        )
 
     def points(self, xy: np.ndarray, colour: str, size: float) -> None:
         """Paint points (N, 2) as discs of a scatter marker's area ``size`` (points squared),
         clipped to the axes. Call before any other drawing."""
         pix = self.to_px(xy)
-        inside = (pix[:, 0] >= self.left) & (pix[:, 0] < self.right) & (pix[:, 1] >= self.top) & (pix[:, 1] < self.bottom)
-        paint_discs(self.canvas.pixels, pix[inside], np.array(rgb(colour), dtype=np.uint8), 0.5 * math.sqrt(max(size, 0.0)) * self.canvas.px(1.0))
+        inside = (
+            (pix[:, 0] >= self.left) & (pix[:, 0] < self.right) & (pix[:, 1] >= self.top) & (pix[:, 1] < self.bottom)
+        )
+        paint_discs(
+            self.canvas.pixels,
+            pix[inside],
+            np.array(rgb(colour), dtype=np.uint8),
+            0.5 * math.sqrt(max(size, 0.0)) * self.canvas.px(1.0),
+        )
 
     def frame(self, title: str, *, wrap: int = 62, grid_pt: float = 0.3) -> None:
         """Grid, frame, ticks, tick labels, axis labels (x (m), y (m)) and the title (wrapped at
@@ -184,7 +206,9 @@ class Panel:
                 if axis == 0:
                     x = float(self.to_px(np.array([[value, self.lo[1]]]))[0, 0])
                     d.line([(x, self.top), (x, self.bottom)], fill=(176, 176, 176), width=max(1, round(c.px(grid_pt))))
-                    d.line([(x, self.bottom), (x, self.bottom + c.px(3.5))], fill=(0, 0, 0), width=max(1, round(c.px(0.8))))
+                    d.line(
+                        [(x, self.bottom), (x, self.bottom + c.px(3.5))], fill=(0, 0, 0), width=max(1, round(c.px(0.8)))
+                    )
                     c.text((x, self.bottom + c.px(5.0)), _tick_label(value, step), 10, anchor="mt")
                 else:
                     y = float(self.to_px(np.array([[self.lo[0], value]]))[0, 1])
@@ -197,9 +221,20 @@ class Panel:
         title = textwrap.fill(title, wrap, max_lines=2, placeholder=" ...")
         at = ((self.left + self.right) / 2, self.top - c.px(6.0))
         c.text(at, title, 12, anchor="md")
-        self.title_box = d.multiline_textbbox(at, title, font=_font(max(1, int(round(c.px(12))))), anchor="md", align="center", spacing=c.px(12) * 0.25)
+        self.title_box = d.multiline_textbbox(
+            at, title, font=_font(max(1, int(round(c.px(12))))), anchor="md", align="center", spacing=c.px(12) * 0.25
+        )
 
-    def markers(self, xy: np.ndarray, marker: str, colour: str, *, size: float, line_pt: float = 1.0, label: Optional[str] = None) -> None:
+    def markers(
+        self,
+        xy: np.ndarray,
+        marker: str,
+        colour: str,
+        *,
+        size: float,
+        line_pt: float = 1.0,
+        label: Optional[str] = None,
+    ) -> None:
         """Markers at (N, 2) metres: ``"o"`` open circle, ``"x"``, ``"+"``, ``"^"`` filled
         triangle; ``size`` the marker area in points squared (a triangle's ``size``: its
         matplotlib ``markersize`` squared). ``label`` adds a legend entry."""
@@ -243,10 +278,24 @@ class Panel:
         w, h = pad * 3 + sample + text_w, pad * 2 + row * len(self._legend)
         x1, y0 = self.right - c.px(5.0), self.top + c.px(5.0)
         x0, y1 = x1 - w, y0 + h
-        d.rounded_rectangle([x0, y0, x1, y1], radius=c.px(3.0), fill=(255, 255, 255), outline=(204, 204, 204), width=max(1, round(c.px(0.8))))
+        d.rounded_rectangle(
+            [x0, y0, x1, y1],
+            radius=c.px(3.0),
+            fill=(255, 255, 255),
+            outline=(204, 204, 204),
+            width=max(1, round(c.px(0.8))),
+        )
         for k, e in enumerate(self._legend):
             y = y0 + pad + row * (k + 0.5)
-            _marker(d, x0 + pad + sample / 2, y, e.marker, 0.5 * math.sqrt(max(e.size, 0.0)) * c.px(1.0), e.colour, max(1, round(c.px(e.line_pt))))
+            _marker(
+                d,
+                x0 + pad + sample / 2,
+                y,
+                e.marker,
+                0.5 * math.sqrt(max(e.size, 0.0)) * c.px(1.0),
+                e.colour,
+                max(1, round(c.px(e.line_pt))),
+            )
             d.text((x0 + pad * 2 + sample, y), e.label, font=font, fill=(0, 0, 0), anchor="lm")
 
 

@@ -34,11 +34,11 @@ import numpy as np  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
 from matplotlib.patches import Circle, Patch  # noqa: E402
 
-from ..core.scan import check_points
 from ..core.atomic import atomic_path, write_text_atomic  # noqa: E402
 from ..core.errors import ScanDataError  # noqa: E402
-from .raster import PointRaster, add_points  # noqa: E402
+from ..core.scan import check_points
 from .evaluation_report import DASH, esc, fmt, generated_line, html_page, img_tag, png_bytes  # noqa: E402
+from .raster import PointRaster, add_points  # noqa: E402
 
 #: Per-tree figures drawn at most (the rest of the trees are listed without one).
 MAX_TREE_FIGURES = 60
@@ -69,7 +69,9 @@ TABLE_COLUMNS = (
 _RNG_SEED = 7
 
 
-def write_inventory_report(out_dir: str | os.PathLike[str], inventory: Any, points: np.ndarray, *, title: str = "forestreg trees") -> Path:
+def write_inventory_report(
+    out_dir: str | os.PathLike[str], inventory: Any, points: np.ndarray, *, title: str = "forestreg trees"
+) -> Path:
     """:func:`write_trees_report` of a tree inventory (``rows()``, ``trees``, ``labels``,
     ``wood_probability``, ``origin_shift``) and the cloud it was measured in (local frame)."""
     shift = np.asarray(inventory.origin_shift, dtype=np.float64)
@@ -78,8 +80,16 @@ def write_inventory_report(out_dir: str | os.PathLike[str], inventory: Any, poin
     wood = inventory.wood_probability
     if len(wood) and np.isnan(wood[0]) and np.isnan(wood).all():  # not measured (no cylinder models): grey
         wood = None
-    return write_trees_report(out_dir, rows, points, inventory.labels, wood, cyl, title=title,
-                              height_curve=getattr(inventory, "height_curve", None))
+    return write_trees_report(
+        out_dir,
+        rows,
+        points,
+        inventory.labels,
+        wood,
+        cyl,
+        title=title,
+        height_curve=getattr(inventory, "height_curve", None),
+    )
 
 
 def write_trees_report(
@@ -141,8 +151,9 @@ def write_trees_report(
         curve_png = _height_curve_png(rows, height_curve)
         _write_png(fig_dir / "height_curve.png", curve_png)
         curve_section = (
-            "<figure>" + img_tag(curve_png, "heights against the height-diameter curve", "curve") +
-            "<figcaption>Height against DBH: each tree coloured by its height's trust (black high: its top stands clear; "
+            "<figure>"
+            + img_tag(curve_png, "heights against the height-diameter curve", "curve")
+            + "<figcaption>Height against DBH: each tree coloured by its height's trust (black high: its top stands clear; "
             "orange medium: a hint about its top, its height consistent with the curve or its apex a tip; red low: flagged; blue squares: "
             "heights predicted from the curve where the points' top was hidden or a neighbour's, a dot at that top). The line is the "
             f"plot's height-diameter curve, {esc(height_curve.describe())}; dashed, {100 * height_curve.widest_below:.0f} % below "
@@ -238,8 +249,12 @@ def _group_points(ids: np.ndarray) -> dict[int, np.ndarray]:
     return out
 
 
-def _cylinder_table(cylinders: Mapping[Any, Mapping[str, np.ndarray]], tid: Any) -> tuple[Optional[dict[str, np.ndarray]], str]:
-    table = cylinders.get(tid) if tid in cylinders else cylinders.get(_int_id(tid)) if _int_id(tid) in cylinders else None
+def _cylinder_table(
+    cylinders: Mapping[Any, Mapping[str, np.ndarray]], tid: Any
+) -> tuple[Optional[dict[str, np.ndarray]], str]:
+    table = (
+        cylinders.get(tid) if tid in cylinders else cylinders.get(_int_id(tid)) if _int_id(tid) in cylinders else None
+    )
     if table is None:
         return None, ""
     missing = [c for c in CYLINDER_COLUMNS if c not in table]
@@ -252,7 +267,9 @@ def _cylinder_table(cylinders: Mapping[Any, Mapping[str, np.ndarray]], tid: Any)
         raise ScanDataError(f"tree {tid}: the columns of its cylinder table differ in length")
     cols["branch_order"] = order
     ok = np.all([np.isfinite(v) for v in cols.values()], axis=0) if n else np.zeros(0, bool)
-    return {k: v[ok] for k, v in cols.items()}, ("" if ok.all() else f"{int((~ok).sum())} cylinders with missing values not drawn")
+    return {k: v[ok] for k, v in cols.items()}, (
+        "" if ok.all() else f"{int((~ok).sum())} cylinders with missing values not drawn"
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -284,9 +301,15 @@ def _scale_text(scale: float) -> str:
     return "to scale" if scale == 1 else f"{scale:g} times"
 
 
-def _map_png(pts: np.ndarray, ids: np.ndarray, rows: Sequence[Mapping[str, Any]], dbh_scale: Optional[float]) -> tuple[bytes, float]:
+def _map_png(
+    pts: np.ndarray, ids: np.ndarray, rows: Sequence[Mapping[str, Any]], dbh_scale: Optional[float]
+) -> tuple[bytes, float]:
     rng = np.random.default_rng(_RNG_SEED)
-    sel = np.arange(len(pts)) if len(pts) <= MAX_MAP_POINTS else np.sort(rng.choice(len(pts), MAX_MAP_POINTS, replace=False))
+    sel = (
+        np.arange(len(pts))
+        if len(pts) <= MAX_MAP_POINTS
+        else np.sort(rng.choice(len(pts), MAX_MAP_POINTS, replace=False))
+    )
     p, t = pts[sel, :2], ids[sel]
     stems = np.array([[r["x"], r["y"]] for r in rows if math.isfinite(r["x"]) and math.isfinite(r["y"])]).reshape(-1, 2)
     corners = np.vstack([p.min(axis=0), p.max(axis=0)] if len(p) else np.zeros((0, 2)))
@@ -303,14 +326,25 @@ def _map_png(pts: np.ndarray, ids: np.ndarray, rows: Sequence[Mapping[str, Any]]
             continue
         colour = FLAG_COLOUR if r["flag"] else "k"
         if math.isfinite(r["dbh_m"]) and r["dbh_m"] > 0:
-            ax.add_patch(Circle((r["x"], r["y"]), r["dbh_m"] / 2 * scale, fill=False, ec=colour, lw=2.0 if r["flag"] else 0.9))
+            ax.add_patch(
+                Circle((r["x"], r["y"]), r["dbh_m"] / 2 * scale, fill=False, ec=colour, lw=2.0 if r["flag"] else 0.9)
+            )
         ax.plot(r["x"], r["y"], marker="x" if r["flag"] else "+", color=colour, ms=7, mew=1.6 if r["flag"] else 1.0)
         if r["flag"]:
             ax.plot(r["x"], r["y"], marker="o", mfc="none", mec=FLAG_COLOUR, ms=16, mew=2.0)
-        ax.annotate(str(r["tree_id"]) + (" !" if r["flag"] else ""), (r["x"], r["y"]), xytext=(9, 7) if r["flag"] else (4, 4),
-                    textcoords="offset points", fontsize=fontsize, color=colour, fontweight="bold" if r["flag"] else "normal")
+        ax.annotate(
+            str(r["tree_id"]) + (" !" if r["flag"] else ""),
+            (r["x"], r["y"]),
+            xytext=(9, 7) if r["flag"] else (4, 4),
+            textcoords="offset points",
+            fontsize=fontsize,
+            color=colour,
+            fontweight="bold" if r["flag"] else "normal",
+        )
     handles = [
-        plt.Line2D([], [], ls="", marker="o", mfc="none", mec="k", ms=8, label=f"stem, DBH circle ({_scale_text(scale)})"),
+        plt.Line2D(
+            [], [], ls="", marker="o", mfc="none", mec="k", ms=8, label=f"stem, DBH circle ({_scale_text(scale)})"
+        ),
         plt.Line2D([], [], ls="", marker="o", mfc="none", mec=FLAG_COLOUR, ms=10, mew=2.0, label="flagged tree"),
     ]
     ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.9)
@@ -336,15 +370,34 @@ def _height_curve_png(rows: Sequence[Mapping[str, Any]], curve: Any) -> bytes:
         line = np.array([curve.height_m(x) for x in grid])
         ax.plot(100 * grid, line, color="k", lw=1.4, label="height-diameter curve")
         lo, hi = 1.0 - curve.widest_below, 1.0 + curve.above
-        ax.plot(100 * grid, lo * line, color="k", lw=0.8, ls="--", label=f"-{100 * curve.widest_below:.0f} % / +{100 * curve.above:.0f} %")
+        ax.plot(
+            100 * grid,
+            lo * line,
+            color="k",
+            lw=0.8,
+            ls="--",
+            label=f"-{100 * curve.widest_below:.0f} % / +{100 * curve.above:.0f} %",
+        )
         ax.plot(100 * grid, hi * line, color="k", lw=0.8, ls="--")
     fill = np.array([r["height_source"] == "curve" for r in rows])
     top = np.array([r["height_points_m"] for r in rows], dtype=np.float64)
-    for level, colour, marker, label in (("high", "k", "o", "high"), ("medium", "#ff7f00", "o", "medium (a hint about the top; consistent)"),
-                                         ("low", FLAG_COLOUR, "x", "low (flagged)")):
+    for level, colour, marker, label in (
+        ("high", "k", "o", "high"),
+        ("medium", "#ff7f00", "o", "medium (a hint about the top; consistent)"),
+        ("low", FLAG_COLOUR, "x", "low (flagged)"),
+    ):
         sel = ok & (trust == level) & ~fill
         if sel.any():
-            ax.plot(100 * d[sel], h[sel], ls="", marker=marker, color=colour, ms=6, mew=1.6, label=f"{label}: {int(sel.sum())}")
+            ax.plot(
+                100 * d[sel],
+                h[sel],
+                ls="",
+                marker=marker,
+                color=colour,
+                ms=6,
+                mew=1.6,
+                label=f"{label}: {int(sel.sum())}",
+            )
     sel = ok & fill
     if sel.any():
         # the curve's height, and a thin line to the points' top it stands in for
@@ -352,8 +405,17 @@ def _height_curve_png(rows: Sequence[Mapping[str, Any]], curve: Any) -> bytes:
             if math.isfinite(b):
                 ax.plot([x, x], [a, b], color="#1f77b4", lw=0.7, alpha=0.7)
         ax.plot(100 * d[sel], top[sel], ls="", marker=".", color="#1f77b4", ms=4)
-        ax.plot(100 * d[sel], h[sel], ls="", marker="s", mfc="none", color="#1f77b4", ms=6, mew=1.4,
-                label=f"from the curve: {int(sel.sum())} (dot: the points' top, not taken)")
+        ax.plot(
+            100 * d[sel],
+            h[sel],
+            ls="",
+            marker="s",
+            mfc="none",
+            color="#1f77b4",
+            ms=6,
+            mew=1.4,
+            label=f"from the curve: {int(sel.sum())} (dot: the points' top, not taken)",
+        )
     ax.set_xlabel("DBH (cm)")
     ax.set_ylabel("height (m)")
     ax.set_title("Heights and the plot's height-diameter curve", fontsize=11)
@@ -402,7 +464,13 @@ class _TreeFigure:
     def close(self) -> None:
         plt.close(self.fig)
 
-    def png(self, row: Mapping[str, Any], pts: np.ndarray, wood: Optional[np.ndarray], cyl: Optional[Mapping[str, np.ndarray]]) -> bytes:
+    def png(
+        self,
+        row: Mapping[str, Any],
+        pts: np.ndarray,
+        wood: Optional[np.ndarray],
+        cyl: Optional[Mapping[str, np.ndarray]],
+    ) -> bytes:
         """PNG bytes of one tree: ``pts`` (N, 3) its points (metres), ``wood`` their wood
         probability or None, ``cyl`` its cylinder table or None."""
         for artist in self._tree_artists:  # the previous tree's
@@ -420,25 +488,60 @@ class _TreeFigure:
                 drawn.append(ax_p.add_artist(PointRaster([(pts[:, [0, 2]], UNCLASSIFIED_COLOUR, 0.6)])))
             else:
                 is_wood = wood >= WOOD_THRESHOLD
-                drawn.append(ax_p.add_artist(PointRaster([(pts[~is_wood][:, [0, 2]], LEAF_COLOUR, 0.6), (pts[is_wood][:, [0, 2]], WOOD_COLOUR, 0.8)])))
-                drawn.append(ax_p.legend(handles=[plt.Line2D([], [], ls="", marker="o", ms=4, color=c, label=name)
-                                                  for c, name in ((LEAF_COLOUR, "leaf"), (WOOD_COLOUR, "wood"))], loc="upper right", fontsize=7))
+                drawn.append(
+                    ax_p.add_artist(
+                        PointRaster(
+                            [(pts[~is_wood][:, [0, 2]], LEAF_COLOUR, 0.6), (pts[is_wood][:, [0, 2]], WOOD_COLOUR, 0.8)]
+                        )
+                    )
+                )
+                drawn.append(
+                    ax_p.legend(
+                        handles=[
+                            plt.Line2D([], [], ls="", marker="o", ms=4, color=c, label=name)
+                            for c, name in ((LEAF_COLOUR, "leaf"), (WOOD_COLOUR, "wood"))
+                        ],
+                        loc="upper right",
+                        fontsize=7,
+                    )
+                )
         else:
-            drawn.append(ax_p.text(0.5, 0.5, "no points", transform=ax_p.transAxes, ha="center", va="center", color="0.4"))
+            drawn.append(
+                ax_p.text(0.5, 0.5, "no points", transform=ax_p.transAxes, ha="center", va="center", color="0.4")
+            )
         n_cyl = 0
         if cyl is not None and len(cyl["start_x"]):
             polys = cylinder_polygons(cyl)
             order = np.clip(np.asarray(cyl["branch_order"]).astype(int), 0, len(ORDER_COLOURS) - 1)
             draw = np.argsort(order, kind="stable")  # stem first, higher orders on top
-            drawn.append(ax_c.add_collection(PolyCollection(polys[draw], facecolors=[ORDER_COLOURS[o] for o in order[draw]], edgecolors="none"),
-                                             autolim=False))
+            drawn.append(
+                ax_c.add_collection(
+                    PolyCollection(polys[draw], facecolors=[ORDER_COLOURS[o] for o in order[draw]], edgecolors="none"),
+                    autolim=False,
+                )
+            )
             extent.append(polys.reshape(-1, 2))
             n_cyl = len(polys)
             present = sorted(set(order.tolist()))
-            drawn.append(ax_c.legend(handles=[Patch(color=ORDER_COLOURS[o], label="stem" if o == 0 else f"order {o}" + ("+" if o == len(ORDER_COLOURS) - 1 else ""))
-                                              for o in present], loc="upper right", fontsize=7))
+            drawn.append(
+                ax_c.legend(
+                    handles=[
+                        Patch(
+                            color=ORDER_COLOURS[o],
+                            label="stem" if o == 0 else f"order {o}" + ("+" if o == len(ORDER_COLOURS) - 1 else ""),
+                        )
+                        for o in present
+                    ],
+                    loc="upper right",
+                    fontsize=7,
+                )
+            )
         else:
-            drawn.append(ax_c.text(0.5, 0.5, "no cylinder model", transform=ax_c.transAxes, ha="center", va="center", color="0.4"))
+            drawn.append(
+                ax_c.text(
+                    0.5, 0.5, "no cylinder model", transform=ax_c.transAxes, ha="center", va="center", color="0.4"
+                )
+            )
         if extent:  # the same window on both panels
             xz = np.vstack(extent)
             lo, hi = xz.min(axis=0), xz.max(axis=0)
@@ -475,7 +578,7 @@ def _summary_section(rows: Sequence[Mapping[str, Any]], ids: np.ndarray, wood: O
         v = np.array([r[key] for r in rows], dtype=np.float64)
         v = v[np.isfinite(v)]
         if not len(v):
-            return f"<td class=\"num\">{DASH}</td>" * 3
+            return f'<td class="num">{DASH}</td>' * 3
         return "".join(f'<td class="num">{fmt(x, digits, scale)}</td>' for x in (v.mean(), v.min(), v.max()))
 
     flagged = sum(1 for r in rows if r["flag"])
@@ -498,19 +601,28 @@ def _summary_section(rows: Sequence[Mapping[str, Any]], ids: np.ndarray, wood: O
 
 
 def _table_section(rows: Sequence[Mapping[str, Any]], drawn: set[str]) -> str:
-    head = "<tr><th>Tree</th>" + "".join(f"<th>{esc(h)}</th>" for _, h, _, _ in TABLE_COLUMNS) + "<th>Trust (DBH / H / crown / V)</th><th>Flag</th></tr>"
+    head = (
+        "<tr><th>Tree</th>"
+        + "".join(f"<th>{esc(h)}</th>" for _, h, _, _ in TABLE_COLUMNS)
+        + "<th>Trust (DBH / H / crown / V)</th><th>Flag</th></tr>"
+    )
     body = []
     for r in sorted(rows, key=lambda r: _natural(r["tree_id"])):
         tid = str(r["tree_id"])
         name = f'<a href="#tree-{esc(_file_stem(tid))}">{esc(tid)}</a>' if tid in drawn else esc(tid)
         # a height from the plot's height-diameter curve is marked "c"
-        cells = "".join(f'<td class="num">{fmt(r[k], d, s)}'
-                        + ("<sup>c</sup>" if k == "height_m" and r["height_source"] == "curve" else "") + "</td>"
-                        for k, _, s, d in TABLE_COLUMNS)
+        cells = "".join(
+            f'<td class="num">{fmt(r[k], d, s)}'
+            + ("<sup>c</sup>" if k == "height_m" and r["height_source"] == "curve" else "")
+            + "</td>"
+            for k, _, s, d in TABLE_COLUMNS
+        )
         flag = f'<span class="bad">{esc(r["flag"])}</span>' if r["flag"] else ""
         trust = r.get("trust") or {}
         trust_cell = " / ".join(esc(trust.get(m) or "-") for m in QUALITY_MEASURES)
-        body.append(f'<tr class="{"flagged" if r["flag"] else ""}" id="row-{esc(_file_stem(tid))}"><td>{name}</td>{cells}<td>{trust_cell}</td><td>{flag}</td></tr>')
+        body.append(
+            f'<tr class="{"flagged" if r["flag"] else ""}" id="row-{esc(_file_stem(tid))}"><td>{name}</td>{cells}<td>{trust_cell}</td><td>{flag}</td></tr>'
+        )
     return (
         "<h2>3. Trees</h2><table>" + head + "".join(body) + "</table>"
         '<p class="note">DBH: diameter at breast height (1.3 m); H: height (<sup>c</sup>: from the plot\'s height-diameter '
@@ -520,17 +632,24 @@ def _table_section(rows: Sequence[Mapping[str, Any]], drawn: set[str]) -> str:
     )
 
 
-def _trees_section(order: Sequence[Mapping[str, Any]], drawn: Mapping[str, bytes], cap: int, problems: Sequence[str]) -> str:
-    out = ["<h2>4. Tree by tree</h2>",
-           '<p class="note">Left: the tree\'s points seen from the side (x against z), wood brown, leaves green. Right: its '
-           "cylinder model on the same plane, each cylinder a band as wide as its diameter, coloured by branch order "
-           "(stem dark brown).</p>"]
+def _trees_section(
+    order: Sequence[Mapping[str, Any]], drawn: Mapping[str, bytes], cap: int, problems: Sequence[str]
+) -> str:
+    out = [
+        "<h2>4. Tree by tree</h2>",
+        '<p class="note">Left: the tree\'s points seen from the side (x against z), wood brown, leaves green. Right: its '
+        "cylinder model on the same plane, each cylinder a band as wide as its diameter, coloured by branch order "
+        "(stem dark brown).</p>",
+    ]
     for r in order:
         tid = str(r["tree_id"])
         if tid in drawn:
-            out.append(f'<figure id="tree-{esc(_file_stem(tid))}">{img_tag(drawn[tid], f"tree {tid}", f"img-tree-{_file_stem(tid)}")}'
-                       f"<figcaption>Tree {esc(tid)}" + (f' &middot; <span class="bad">{esc(r["flag"])}</span>' if r["flag"] else "")
-                       + "</figcaption></figure>")
+            out.append(
+                f'<figure id="tree-{esc(_file_stem(tid))}">{img_tag(drawn[tid], f"tree {tid}", f"img-tree-{_file_stem(tid)}")}'
+                f"<figcaption>Tree {esc(tid)}"
+                + (f' &middot; <span class="bad">{esc(r["flag"])}</span>' if r["flag"] else "")
+                + "</figcaption></figure>"
+            )
     rest = [str(r["tree_id"]) for r in order if str(r["tree_id"]) not in drawn]
     if rest:
         out.append(f"<p>No figure (at most {cap} per report) for trees: {esc(', '.join(rest))}.</p>")

@@ -16,24 +16,40 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ForestregError
+from ..core.transform import apply as apply_transform
 from ..tls.params import RegistrationParams
 from ..tls.plot import ScanCache
 from ..tls.prepare import derived, extract_vops, prepare_scan, slice_layers
 from ..tls.project import Link, Project
-from ..core.transform import apply as apply_transform
-
 from .topview import MOVING_COLOUR, REFERENCE_COLOUR  # noqa: E402 - the pair figures' colours
+
 #: VOP radius (D_r, m) drawn for a scan whose link does not say which one it used.
 DEFAULT_VOP_RADIUS_M = 15.0
 #: At most this many slice points are drawn in the top view (all scans together).
 MAX_TOP_VIEW_POINTS = 100_000
 #: Scan colours: the pair figure's reference and moving colours first; no green (matched VOPs).
 SCAN_COLOURS = (
-    REFERENCE_COLOUR, MOVING_COLOUR, "#7b3fb5", "#8c564b", "#e377c2", "#17becf",
-    "#bcbd22", "#d62728", "#393b79", "#7f7f7f", "#ff9896", "#637939",
+    REFERENCE_COLOUR,
+    MOVING_COLOUR,
+    "#7b3fb5",
+    "#8c564b",
+    "#e377c2",
+    "#17becf",
+    "#bcbd22",
+    "#d62728",
+    "#393b79",
+    "#7f7f7f",
+    "#ff9896",
+    "#637939",
 )
+
+
 def _num(value: Any) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and math.isfinite(float(value))
+    return (
+        isinstance(value, (int, float, np.integer, np.floating))
+        and not isinstance(value, bool)
+        and math.isfinite(float(value))
+    )
 
 
 #: Colour of matched VOP pairs.
@@ -79,11 +95,15 @@ def scan_states(project: Project) -> dict[str, ScanState]:
 
 def failure_reason(result: Mapping[str, Any]) -> str:
     """The reason a link failed, with the references its retries tried."""
-    reason = str(result.get("reason") or "").strip() or f"status {result.get('status', 'unknown')!s} (no reason recorded)"
+    reason = (
+        str(result.get("reason") or "").strip() or f"status {result.get('status', 'unknown')!s} (no reason recorded)"
+    )
     retried = result.get("retried")
     if isinstance(retried, list) and retried:
         tries = "; ".join(
-            f"onto {t.get('reference', '?')}: {t.get('reason', '') or 'failed'}" for t in retried if isinstance(t, Mapping)
+            f"onto {t.get('reference', '?')}: {t.get('reason', '') or 'failed'}"
+            for t in retried
+            if isinstance(t, Mapping)
         )
         reason += f" (also tried {tries})"
     return reason

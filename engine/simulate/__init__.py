@@ -42,11 +42,11 @@ from .platforms import (
 from .plot import SimulatedPlot, relative_pose, simulate_plot
 from .scanner import SCANNER_PRESETS, ScannerSetup, SimulatedScan, scanner_options, simulate_tls_scan
 from .scene import (
+    PRESETS,
+    STEM_SHAPES,
     Box,
     ForestScene,
     Liana,
-    PRESETS,
-    STEM_SHAPES,
     Post,
     PresetConfig,
     Shrub,

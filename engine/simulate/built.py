@@ -58,13 +58,21 @@ from .scene import (
     ForestScene,
     Post,
     PresetConfig,
-    with_overrides,
     _stable_hash,
     _trees_at,
     make_terrain,
+    with_overrides,
 )
 
-__all__ = ["BUILT_PRESETS", "BuiltConfig", "built_config", "local_to_world", "make_built_scene", "post_rows", "stand_positions"]
+__all__ = [
+    "BUILT_PRESETS",
+    "BuiltConfig",
+    "built_config",
+    "local_to_world",
+    "make_built_scene",
+    "post_rows",
+    "stand_positions",
+]
 
 #: The stand of the trees of built scenes: open-grown park broadleaves.
 PARK_TREES = PresetConfig(
@@ -131,23 +139,42 @@ BUILT_PRESETS: dict[str, BuiltConfig] = {
     ),
     "colonnade": BuiltConfig(
         description="a colonnade: a wall with a row of columns 3-4 m apart in front of it, open on the other side",
-        layout="colonnade", post_diameter_m=(0.3, 0.4), post_offset_m=(2.5, 4.0), post_rows=(1, 1),
+        layout="colonnade",
+        post_diameter_m=(0.3, 0.4),
+        post_offset_m=(2.5, 4.0),
+        post_rows=(1, 1),
     ),
     "fence": BuiltConfig(
         description="a fence line: posts 0.2-0.3 m thick every 3-4 m with two rails, open on both sides",
-        layout="fence", post_diameter_m=(0.2, 0.3), post_height_m=2.0, rail_heights_m=(0.5, 1.1), post_rows=(1, 1),
+        layout="fence",
+        post_diameter_m=(0.2, 0.3),
+        post_height_m=2.0,
+        rail_heights_m=(0.5, 1.1),
+        post_rows=(1, 1),
     ),
     "courtyard": BuiltConfig(
         description="a courtyard: four walls 6-10 m high around a 26-32 m square with an entrance, 3-6 trees",
-        layout="courtyard", wall_height_m=(6.0, 10.0), wall_thickness_m=0.5, n_trees=(3, 6), tree_spacing_m=6.0,
+        layout="courtyard",
+        wall_height_m=(6.0, 10.0),
+        wall_thickness_m=0.5,
+        n_trees=(3, 6),
+        tree_spacing_m=6.0,
     ),
     "park": BuiltConfig(
         description="a park by buildings: 1-2 building blocks, 4-7 trees far apart, lamp posts",
-        layout="grounds", n_buildings=(1, 2), n_trees=(4, 7), tree_spacing_m=8.0, n_lamp_posts=(0, 2),
+        layout="grounds",
+        n_buildings=(1, 2),
+        n_trees=(4, 7),
+        tree_spacing_m=8.0,
+        n_lamp_posts=(0, 2),
     ),
     "campus": BuiltConfig(
         description="a campus: 3-4 building blocks (many planes), 2-4 trees far apart, lamp posts",
-        layout="grounds", n_buildings=(3, 4), n_trees=(2, 4), tree_spacing_m=8.0, n_lamp_posts=(1, 3),
+        layout="grounds",
+        n_buildings=(3, 4),
+        n_trees=(2, 4),
+        tree_spacing_m=8.0,
+        n_lamp_posts=(1, 3),
     ),
 }
 
@@ -197,7 +224,17 @@ class _Layout:
     def _next_id(self) -> int:
         return len(self.boxes) + len(self.posts) + 1
 
-    def wall(self, u: float, v: float, length: float, thickness: float, height: float, *, along: bool = True, kind: str = "wall") -> None:
+    def wall(
+        self,
+        u: float,
+        v: float,
+        length: float,
+        thickness: float,
+        height: float,
+        *,
+        along: bool = True,
+        kind: str = "wall",
+    ) -> None:
         """A wall (or block) centred at local (u, v): ``length`` along the axis (``along``) or
         across it."""
         x, y = local_to_world(self.axis_deg, u, v)
@@ -206,16 +243,44 @@ class _Layout:
         a = math.radians(yaw)
         ends = [(x + s * half * math.cos(a), y + s * half * math.sin(a)) for s in (-1.0, 1.0)]
         z = min(float(self.terrain.z(*e)) for e in ends + [(x, y)]) - 0.2
-        self.boxes.append(Box(id=self._next_id(), x=float(x), y=float(y), z=z, size=(float(length), float(thickness), float(height) + 0.2),
-                              yaw_deg=float(yaw % 360.0), kind=kind))
+        self.boxes.append(
+            Box(
+                id=self._next_id(),
+                x=float(x),
+                y=float(y),
+                z=z,
+                size=(float(length), float(thickness), float(height) + 0.2),
+                yaw_deg=float(yaw % 360.0),
+                kind=kind,
+            )
+        )
         self.footprints.append((float(x), float(y), half, thickness / 2.0, yaw))
 
     def post(self, x: float, y: float, radius: float, height: float, kind: str = "post") -> None:
-        self.posts.append(Post(id=self._next_id(), x=float(x), y=float(y), z=float(self.terrain.z(x, y)), radius_m=float(radius),
-                               height_m=float(height), kind=kind))
+        self.posts.append(
+            Post(
+                id=self._next_id(),
+                x=float(x),
+                y=float(y),
+                z=float(self.terrain.z(x, y)),
+                radius_m=float(radius),
+                height_m=float(height),
+                kind=kind,
+            )
+        )
 
-    def post_row(self, v: float, spacing: float, radius: float, height: float, phase: float, half_length: float,
-                 jitter: float, rng: np.random.Generator, kind: str = "post") -> list[int]:
+    def post_row(
+        self,
+        v: float,
+        spacing: float,
+        radius: float,
+        height: float,
+        phase: float,
+        half_length: float,
+        jitter: float,
+        rng: np.random.Generator,
+        kind: str = "post",
+    ) -> list[int]:
         """Posts every ``spacing`` along the line ``v`` at ``u = phase + k * spacing`` within
         ``|u| <= half_length``; returns their ids."""
         k0 = math.ceil((-half_length - phase) / spacing)
@@ -230,8 +295,16 @@ class _Layout:
             self.post(xy[0], xy[1], radius, height, kind)
             ids.append(self.posts[-1].id)
             us.append(u)
-        self.rows.append({"v_m": float(v), "spacing_m": float(spacing), "u_m": [float(u) for u in us], "post_ids": ids,
-                          "radius_m": float(radius), "kind": kind})
+        self.rows.append(
+            {
+                "v_m": float(v),
+                "spacing_m": float(spacing),
+                "u_m": [float(u) for u in us],
+                "post_ids": ids,
+                "radius_m": float(radius),
+                "kind": kind,
+            }
+        )
         return ids
 
     def clear_of(self, xy: np.ndarray, margin: float) -> bool:
@@ -266,13 +339,31 @@ def make_built_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **over
     extent = (-half, half, -half, half)
     slope = _uniform(rng, cfg.slope_deg)
     slope_az = float(rng.uniform(0.0, 360.0))
-    terrain = make_terrain(extent, slope_deg=slope, slope_azimuth_deg=slope_az, roughness_m=cfg.roughness_m,
-                           roughness_length_m=cfg.roughness_length_m, cell_m=cfg.terrain_cell_m, rng=rng)
+    terrain = make_terrain(
+        extent,
+        slope_deg=slope,
+        slope_azimuth_deg=slope_az,
+        roughness_m=cfg.roughness_m,
+        roughness_length_m=cfg.roughness_length_m,
+        cell_m=cfg.terrain_cell_m,
+        rng=rng,
+    )
     r_layout, r_trees = rng.spawn(2)
     axis = 0.0 if cfg.layout in ("courtyard", "grounds") else float(r_layout.uniform(0.0, 180.0))
     lay = _Layout(axis, terrain, extent)
-    meta: dict[str, Any] = {"size_m": float(size_m), "overrides": dict(overrides), "axis_deg": axis, "built": cfg.layout}
-    builder = {"corridor": _corridor, "colonnade": _colonnade, "fence": _fence, "courtyard": _courtyard, "grounds": _grounds}
+    meta: dict[str, Any] = {
+        "size_m": float(size_m),
+        "overrides": dict(overrides),
+        "axis_deg": axis,
+        "built": cfg.layout,
+    }
+    builder = {
+        "corridor": _corridor,
+        "colonnade": _colonnade,
+        "fence": _fence,
+        "courtyard": _courtyard,
+        "grounds": _grounds,
+    }
     if cfg.layout not in builder:
         raise ParameterError(f"unknown built layout {cfg.layout!r}")
     tree_zone = builder[cfg.layout](cfg, lay, half, r_layout, meta)
@@ -291,7 +382,9 @@ def make_built_scene(preset: str, *, seed: int = 0, size_m: float = 60.0, **over
     )
 
 
-def _corridor(cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Generator, meta: dict[str, Any]) -> Optional[tuple]:
+def _corridor(
+    cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Generator, meta: dict[str, Any]
+) -> Optional[tuple]:
     width = _uniform(rng, cfg.corridor_width_m)
     height = _uniform(rng, cfg.wall_height_m)
     spacing = _uniform(rng, cfg.post_spacing_m)
@@ -309,12 +402,21 @@ def _corridor(cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Genera
     # the walkway: between the rows (or a row and the far wall), 1 m clear of posts and walls
     lo_w = (-row_v + radius if -1.0 in sides else -width / 2.0) + 1.0
     hi_w = (row_v - radius if 1.0 in sides else width / 2.0) - 1.0
-    meta.update(corridor_width_m=width, wall_height_m=height, post_spacing_m=spacing, post_diameter_m=2.0 * radius,
-                post_offset_m=offset, n_post_rows=len(sides), walkway=(float(lo_w), float(hi_w)))
+    meta.update(
+        corridor_width_m=width,
+        wall_height_m=height,
+        post_spacing_m=spacing,
+        post_diameter_m=2.0 * radius,
+        post_offset_m=offset,
+        n_post_rows=len(sides),
+        walkway=(float(lo_w), float(hi_w)),
+    )
     return None
 
 
-def _colonnade(cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Generator, meta: dict[str, Any]) -> Optional[tuple]:
+def _colonnade(
+    cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Generator, meta: dict[str, Any]
+) -> Optional[tuple]:
     height = _uniform(rng, cfg.wall_height_m)
     spacing = _uniform(rng, cfg.post_spacing_m)
     radius = _uniform(rng, cfg.post_diameter_m) / 2.0
@@ -325,29 +427,54 @@ def _colonnade(cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Gener
     wall_v = row_v - offset
     lay.wall(0.0, wall_v - t / 2.0, 2.0 * half, t, height)
     lay.post_row(row_v, spacing, radius, cfg.post_height_m, phase, half - 1.0, cfg.post_jitter_m, rng)
-    meta.update(wall_height_m=height, post_spacing_m=spacing, post_diameter_m=2.0 * radius, post_offset_m=offset,
-                n_post_rows=1, walkway=(float(row_v + 1.0 + radius), float(min(row_v + 14.0, half - 4.0))))
+    meta.update(
+        wall_height_m=height,
+        post_spacing_m=spacing,
+        post_diameter_m=2.0 * radius,
+        post_offset_m=offset,
+        n_post_rows=1,
+        walkway=(float(row_v + 1.0 + radius), float(min(row_v + 14.0, half - 4.0))),
+    )
     return None
 
 
-def _fence(cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Generator, meta: dict[str, Any]) -> Optional[tuple]:
+def _fence(
+    cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Generator, meta: dict[str, Any]
+) -> Optional[tuple]:
     spacing = _uniform(rng, cfg.post_spacing_m)
     radius = _uniform(rng, cfg.post_diameter_m) / 2.0
     phase = float(rng.uniform(0.0, spacing))
     row_v = -2.0
-    lay.post_row(row_v, spacing, radius, cfg.post_height_m, phase, half - 1.0, cfg.post_jitter_m, rng, kind="fence_post")
+    lay.post_row(
+        row_v, spacing, radius, cfg.post_height_m, phase, half - 1.0, cfg.post_jitter_m, rng, kind="fence_post"
+    )
     us = lay.rows[-1]["u_m"]
     for h in cfg.rail_heights_m:
         for ua, ub in zip(us[:-1], us[1:]):
             x, y = local_to_world(lay.axis_deg, (ua + ub) / 2.0, row_v)
-            lay.boxes.append(Box(id=lay._next_id(), x=float(x), y=float(y), z=float(lay.terrain.z(x, y)) + h,
-                                 size=(float(ub - ua), 0.04, 0.12), yaw_deg=float(lay.axis_deg), kind="fence_rail"))
-    meta.update(post_spacing_m=spacing, post_diameter_m=2.0 * radius, n_post_rows=1,
-                walkway=(float(row_v + 1.0 + radius), float(min(row_v + 14.0, half - 4.0))))
+            lay.boxes.append(
+                Box(
+                    id=lay._next_id(),
+                    x=float(x),
+                    y=float(y),
+                    z=float(lay.terrain.z(x, y)) + h,
+                    size=(float(ub - ua), 0.04, 0.12),
+                    yaw_deg=float(lay.axis_deg),
+                    kind="fence_rail",
+                )
+            )
+    meta.update(
+        post_spacing_m=spacing,
+        post_diameter_m=2.0 * radius,
+        n_post_rows=1,
+        walkway=(float(row_v + 1.0 + radius), float(min(row_v + 14.0, half - 4.0))),
+    )
     return None
 
 
-def _courtyard(cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Generator, meta: dict[str, Any]) -> Optional[tuple]:
+def _courtyard(
+    cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Generator, meta: dict[str, Any]
+) -> Optional[tuple]:
     t = cfg.wall_thickness_m
     side = min(_uniform(rng, cfg.courtyard_side_m), 2.0 * (half - t) - 1.0)
     if side < 10.0:
@@ -369,12 +496,20 @@ def _courtyard(cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Gener
         for s0, s1 in ((a0, a1), (b0, b1)):
             c = (s0 + s1) / 2.0
             lay.wall(u + (c if along else 0.0), v + (0.0 if along else c), s1 - s0, t, height, along=along)
-    meta.update(courtyard_side_m=side, wall_height_m=height, entrance_m=entrance, entrance_wall=gate_wall,
-                walkway=(-side / 2.0 + 2.0, side / 2.0 - 2.0), walkway_along=(-side / 2.0 + 2.0, side / 2.0 - 2.0))
+    meta.update(
+        courtyard_side_m=side,
+        wall_height_m=height,
+        entrance_m=entrance,
+        entrance_wall=gate_wall,
+        walkway=(-side / 2.0 + 2.0, side / 2.0 - 2.0),
+        walkway_along=(-side / 2.0 + 2.0, side / 2.0 - 2.0),
+    )
     return (-side / 2.0 + 3.0, side / 2.0 - 3.0)
 
 
-def _grounds(cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Generator, meta: dict[str, Any]) -> Optional[tuple]:
+def _grounds(
+    cfg: BuiltConfig, lay: _Layout, half: float, rng: np.random.Generator, meta: dict[str, Any]
+) -> Optional[tuple]:
     n_b = _integer(rng, cfg.n_buildings)
     # blocks at the plot's edges: each on its own side, its inner face 9-14 m from the centre
     sides = rng.permutation(4)[:n_b]
@@ -454,7 +589,9 @@ def stand_positions(
     xmin, xmax, ymin, ymax = scene.extent
     span = (n - 1) * separation_m
     lay = _Layout(axis, scene.terrain, scene.extent)
-    lay.footprints = [(b.x, b.y, b.size[0] / 2.0, b.size[1] / 2.0, b.yaw_deg) for b in scene.boxes if b.kind in ("wall", "block")]
+    lay.footprints = [
+        (b.x, b.y, b.size[0] / 2.0, b.size[1] / 2.0, b.yaw_deg) for b in scene.boxes if b.kind in ("wall", "block")
+    ]
     lay.posts = list(scene.posts)
     reach = min(xmax - xmin, ymax - ymin) / 2.0 - 3.0
     u_lo, u_hi = scene.meta.get("walkway_along", (-reach, reach))
@@ -464,8 +601,10 @@ def stand_positions(
         uv = [(u0 + k * separation_m, float(np.clip(v0 + rng.uniform(-across_m, across_m), lo, hi))) for k in range(n)]
         xy = np.array([local_to_world(axis, u, v) for u, v in uv])
         inside = (xy[:, 0] > xmin + 3) & (xy[:, 0] < xmax - 3) & (xy[:, 1] > ymin + 3) & (xy[:, 1] < ymax - 3)
-        if inside.all() and all(lay.clear_of(p, 1.0) for p in xy) and all(
-            math.hypot(p[0] - t.x, p[1] - t.y) > 1.5 for p in xy for t in scene.trees
+        if (
+            inside.all()
+            and all(lay.clear_of(p, 1.0) for p in xy)
+            and all(math.hypot(p[0] - t.x, p[1] - t.y) > 1.5 for p in xy for t in scene.trees)
         ):
             return xy
     raise ParameterError(f"no {n} positions {separation_m} m apart fit on the walkway of this {scene.preset} scene")

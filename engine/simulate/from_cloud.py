@@ -67,7 +67,9 @@ MAX_FOOTPRINT_PX = 12
 REFERENCE_RANGE_M = 10.0
 
 
-def estimate_point_spacing(points: np.ndarray, *, sample: int = 20000, seed: int = 0, max_points: int = 2_000_000) -> float:
+def estimate_point_spacing(
+    points: np.ndarray, *, sample: int = 20000, seed: int = 0, max_points: int = 2_000_000
+) -> float:
     """A robust spacing of the cloud (m): the 75th percentile of nearest-neighbour distances of a
     random sample of points (an upper quantile, so that sparse parts count: leaks come from them).
 
@@ -88,6 +90,7 @@ def estimate_point_spacing(points: np.ndarray, *, sample: int = 20000, seed: int
     nn = d[:, 1]
     nn = nn[nn > 0]
     return float(np.percentile(nn, 75)) * scale if len(nn) else 0.0
+
 
 #: Spacing cap (m): isolated points (leaves, noise) stand for at most this much surface.
 MAX_SPACING_M = 0.10
@@ -168,9 +171,7 @@ def _scanner_height(points: np.ndarray, x: float, y: float, height_m: float) -> 
         sel = dxy < radius
         if sel.sum() >= 10:
             return float(np.percentile(points[sel, 2], 2.0)) + height_m
-    raise ParameterError(
-        f"no points within 8 m of ({x:.2f}, {y:.2f}) to find the ground; give the position's z"
-    )
+    raise ParameterError(f"no points within 8 m of ({x:.2f}, {y:.2f}) to find the ground; give the position's z")
 
 
 def simulate_scan_from_cloud(
@@ -332,7 +333,11 @@ def simulate_scan_from_cloud(
         "min_range_m": min_range_m,
         "max_range_m": max_range_m,
         "yaw_deg": yaw_deg,
-        **({"azimuth_fov_deg": float(azimuth_fov_deg), "azimuth_centre_deg": float(azimuth_centre_deg)} if azimuth_fov_deg < 360.0 else {}),
+        **(
+            {"azimuth_fov_deg": float(azimuth_fov_deg), "azimuth_centre_deg": float(azimuth_centre_deg)}
+            if azimuth_fov_deg < 360.0
+            else {}
+        ),
         "point_spacing_m": spacing,
         "depth_tolerance_m": float(depth_tolerance_m) if depth_tolerance_m is not None else None,
         "spacing_mode": "local" if point_spacing_m is None else "fixed",
@@ -351,7 +356,11 @@ def simulate_scan_from_cloud(
     inten = None if src_intensity is None else np.asarray(src_intensity)[sel]
     scan_name = name or "simulated"
     scan = Scan.from_points(q[sel], scanner_position=np.zeros(3), intensity=inten, name=scan_name, meta=meta)
-    lab = (np.asarray(labels)[sel].astype(np.uint8) if labels is not None else np.full(len(sel), int(Material.NONE), dtype=np.uint8))
+    lab = (
+        np.asarray(labels)[sel].astype(np.uint8)
+        if labels is not None
+        else np.full(len(sel), int(Material.NONE), dtype=np.uint8)
+    )
     lab.setflags(write=False)
     pose.setflags(write=False)
     setup = ScannerSetup(

@@ -32,8 +32,16 @@ import numpy as np
 
 from .scene import BROADLEAF, CONIFER, ForestScene, Tree, make_scene
 
-__all__ = ["big_tree_scene", "clipped_conifer_scene", "forked_tree_scene", "leaf_off", "mls_ghosting", "single_tree_scene", "suppressed_scene",
-           "understory_scene"]
+__all__ = [
+    "big_tree_scene",
+    "clipped_conifer_scene",
+    "forked_tree_scene",
+    "leaf_off",
+    "mls_ghosting",
+    "single_tree_scene",
+    "suppressed_scene",
+    "understory_scene",
+]
 
 
 def _with_trees(base: ForestScene, trees: list[Tree]) -> ForestScene:
@@ -48,13 +56,29 @@ def big_tree_scene(seed: int = 0, size_m: float = 30.0) -> ForestScene:
     (DBH 0.25-0.4 m, 20-24 m) and a thin tree (DBH 6 cm, 6 m)."""
     base = make_scene("planted_conifer", seed=seed, size_m=size_m, slope_deg=(0.0, 0.0))
     trees = [
-        Tree(1, 0.0, 0.0, 0.0, dbh_m=1.5, height_m=48.0, crown_base_m=24.0, crown_radius_m=8.0, shape=BROADLEAF,
-             top_radius_fraction=0.3, stem_height_fraction=0.8, flare=1.0, flare_height_m=1.2, n_branches=6,
-             leaf_area_density=0.4),
+        Tree(
+            1,
+            0.0,
+            0.0,
+            0.0,
+            dbh_m=1.5,
+            height_m=48.0,
+            crown_base_m=24.0,
+            crown_radius_m=8.0,
+            shape=BROADLEAF,
+            top_radius_fraction=0.3,
+            stem_height_fraction=0.8,
+            flare=1.0,
+            flare_height_m=1.2,
+            n_branches=6,
+            leaf_area_density=0.4,
+        ),
         Tree(2, 7.0, -6.0, 0.0, dbh_m=0.4, height_m=24.0, crown_base_m=12.0, crown_radius_m=2.5, shape=CONIFER),
         Tree(3, -7.5, -5.0, 0.0, dbh_m=0.3, height_m=22.0, crown_base_m=11.0, crown_radius_m=2.2, shape=CONIFER),
         Tree(4, -6.0, 7.5, 0.0, dbh_m=0.25, height_m=20.0, crown_base_m=10.0, crown_radius_m=2.0, shape=CONIFER),
-        Tree(5, 5.5, 6.5, 0.0, dbh_m=0.06, height_m=6.0, crown_base_m=3.0, crown_radius_m=0.8, shape=CONIFER, flare=0.1),
+        Tree(
+            5, 5.5, 6.5, 0.0, dbh_m=0.06, height_m=6.0, crown_base_m=3.0, crown_radius_m=0.8, shape=CONIFER, flare=0.1
+        ),
     ]
     return _with_trees(base, trees)
 
@@ -68,19 +92,49 @@ def suppressed_scene(seed: int = 0, size_m: float = 24.0) -> ForestScene:
     trees: list[Tree] = []
     k = 1
     for i, (x, y) in enumerate([(-5.0, -5.0), (5.0, -5.0), (-5.0, 5.0), (5.0, 5.0)]):
-        trees.append(Tree(k, x, y, 0.0, dbh_m=float(rng.uniform(0.45, 0.5)), height_m=float(rng.uniform(25.0, 27.0)),
-                          crown_base_m=12.0, crown_radius_m=4.5, shape=BROADLEAF, top_radius_fraction=0.3,
-                          stem_height_fraction=0.8, n_branches=5))
+        trees.append(
+            Tree(
+                k,
+                x,
+                y,
+                0.0,
+                dbh_m=float(rng.uniform(0.45, 0.5)),
+                height_m=float(rng.uniform(25.0, 27.0)),
+                crown_base_m=12.0,
+                crown_radius_m=4.5,
+                shape=BROADLEAF,
+                top_radius_fraction=0.3,
+                stem_height_fraction=0.8,
+                n_branches=5,
+            )
+        )
         k += 1
         ang = float(rng.uniform(0.0, 2.0 * np.pi))
-        trees.append(Tree(k, x + 2.5 * np.cos(ang), y + 2.5 * np.sin(ang), 0.0, dbh_m=float(rng.uniform(0.10, 0.14)),
-                          height_m=float(rng.uniform(7.0, 9.0)), crown_base_m=3.0, crown_radius_m=1.2, shape=CONIFER))
+        trees.append(
+            Tree(
+                k,
+                x + 2.5 * np.cos(ang),
+                y + 2.5 * np.sin(ang),
+                0.0,
+                dbh_m=float(rng.uniform(0.10, 0.14)),
+                height_m=float(rng.uniform(7.0, 9.0)),
+                crown_base_m=3.0,
+                crown_radius_m=1.2,
+                shape=CONIFER,
+            )
+        )
         k += 1
     return _with_trees(base, trees)
 
 
-def understory_scene(seed: int = 0, size_m: float = 30.0, preset: str = "mixed_temperate", min_big_dbh_m: float = 0.35,
-                     stem_shapes: str = "real", **overrides) -> ForestScene:
+def understory_scene(
+    seed: int = 0,
+    size_m: float = 30.0,
+    preset: str = "mixed_temperate",
+    min_big_dbh_m: float = 0.35,
+    stem_shapes: str = "real",
+    **overrides,
+) -> ForestScene:
     """A stand drawn from ``preset`` (``make_scene(preset, seed=seed, size_m=size_m,
     stem_shapes=stem_shapes, **overrides)``) with one small tree added beside each tree of at
     least ``min_big_dbh_m`` DBH where there is room: DBH 0.11-0.17 m, standing 1.0-2.5 m from the
@@ -121,17 +175,32 @@ def understory_scene(seed: int = 0, size_m: float = 30.0, preset: str = "mixed_t
                 continue
             height = float(floor + rng.uniform(-1.5, 2.5))
             cb = float(rng.uniform(0.4, 0.6)) * height
-            small = Tree(next_id, x, y, z, dbh_m=dbh, height_m=height, lean_deg=lean, lean_azimuth_deg=lean_az,
-                         crown_base_m=cb, crown_radius_m=float(rng.uniform(0.8, 1.5)), shape=CONIFER if conifer else BROADLEAF,
-                         top_radius_fraction=0.05 if conifer else 0.3, stem_height_fraction=1.0 if conifer else 0.8,
-                         n_branches=int(rng.integers(3, 6)), leaf_area_density=float(big.leaf_area_density))
+            small = Tree(
+                next_id,
+                x,
+                y,
+                z,
+                dbh_m=dbh,
+                height_m=height,
+                lean_deg=lean,
+                lean_azimuth_deg=lean_az,
+                crown_base_m=cb,
+                crown_radius_m=float(rng.uniform(0.8, 1.5)),
+                shape=CONIFER if conifer else BROADLEAF,
+                top_radius_fraction=0.05 if conifer else 0.3,
+                stem_height_fraction=1.0 if conifer else 0.8,
+                n_branches=int(rng.integers(3, 6)),
+                leaf_area_density=float(big.leaf_area_density),
+            )
             if stem_shapes == "real":
                 small = real_stem_shape(small, seed, preset)
             trees.append(small)
             added.append(small)
             next_id += 1
             break
-    return dataclasses.replace(base, trees=tuple(trees), meta={**dict(base.meta), "understory_added": [t.id for t in added]})
+    return dataclasses.replace(
+        base, trees=tuple(trees), meta={**dict(base.meta), "understory_added": [t.id for t in added]}
+    )
 
 
 def single_tree_scene(seed: int = 0, size_m: float = 24.0) -> ForestScene:
@@ -139,8 +208,21 @@ def single_tree_scene(seed: int = 0, size_m: float = 24.0) -> ForestScene:
     wide crown (radius 5 m) from 3 m, eight main branches; nothing else (a single-tree cloud of the
     kind TreeQSM and AdTree take, once its ground is cut away)."""
     base = make_scene("planted_conifer", seed=seed, size_m=size_m, slope_deg=(0.0, 0.0))
-    tree = Tree(1, 0.0, 0.0, 0.0, dbh_m=0.42, height_m=12.0, crown_base_m=3.0, crown_radius_m=5.0, shape=BROADLEAF,
-                top_radius_fraction=0.3, stem_height_fraction=0.75, n_branches=8, leaf_area_density=0.3)
+    tree = Tree(
+        1,
+        0.0,
+        0.0,
+        0.0,
+        dbh_m=0.42,
+        height_m=12.0,
+        crown_base_m=3.0,
+        crown_radius_m=5.0,
+        shape=BROADLEAF,
+        top_radius_fraction=0.3,
+        stem_height_fraction=0.75,
+        n_branches=8,
+        leaf_area_density=0.3,
+    )
     return _with_trees(base, [tree])
 
 
@@ -150,9 +232,23 @@ def forked_tree_scene(seed: int = 0, size_m: float = 16.0) -> ForestScene:
     high, crown radius 2 m from 1.5 m, nine main branches on the leaders. Its DBH is not measurable
     (breast height lies above the fork); the wood volume is the truth."""
     base = make_scene("planted_conifer", seed=seed, size_m=size_m, slope_deg=(0.0, 0.0))
-    tree = Tree(1, 0.0, 0.0, 0.0, dbh_m=0.18, height_m=6.0, crown_base_m=1.5, crown_radius_m=2.0, shape=BROADLEAF,
-                top_radius_fraction=1.01, stem_height_fraction=1.2 / 6.0, flare=0.1, n_branches=9, leaf_area_density=0.3,
-                fork_leaders=3)
+    tree = Tree(
+        1,
+        0.0,
+        0.0,
+        0.0,
+        dbh_m=0.18,
+        height_m=6.0,
+        crown_base_m=1.5,
+        crown_radius_m=2.0,
+        shape=BROADLEAF,
+        top_radius_fraction=1.01,
+        stem_height_fraction=1.2 / 6.0,
+        flare=0.1,
+        n_branches=9,
+        leaf_area_density=0.3,
+        fork_leaders=3,
+    )
     return _with_trees(base, [tree])
 
 
@@ -163,8 +259,19 @@ def clipped_conifer_scene(seed: int = 0, size_m: float = 16.0) -> ForestScene:
     surround the thin branches, so a cylinder fitted to needles instead of wood is far too thick
     (the truth: :func:`~.mesh.tree_wood_volume`, :func:`~.mesh.branch_wood_in_box`)."""
     base = make_scene("planted_conifer", seed=seed, size_m=size_m, slope_deg=(0.0, 0.0))
-    tree = Tree(1, 0.0, 0.0, 0.0, dbh_m=0.26, height_m=20.0, crown_base_m=9.0, crown_radius_m=2.2, shape=CONIFER,
-                n_branches=12, leaf_area_density=0.5)
+    tree = Tree(
+        1,
+        0.0,
+        0.0,
+        0.0,
+        dbh_m=0.26,
+        height_m=20.0,
+        crown_base_m=9.0,
+        crown_radius_m=2.2,
+        shape=CONIFER,
+        n_branches=12,
+        leaf_area_density=0.5,
+    )
     return _with_trees(base, [tree])
 
 

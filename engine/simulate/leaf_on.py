@@ -93,8 +93,12 @@ def leaf_on_uav_view(
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 100 or not np.isfinite(p).all():
         raise ParameterError("leaf_on_uav_view: needs at least 100 finite (x, y, z) points")
-    for name, v in (("cell_m", cell_m), ("crown_spread_m", crown_spread_m), ("curvature_radius_m", curvature_radius_m),
-                    ("foliage_depth_m", foliage_depth_m)):
+    for name, v in (
+        ("cell_m", cell_m),
+        ("crown_spread_m", crown_spread_m),
+        ("curvature_radius_m", curvature_radius_m),
+        ("foliage_depth_m", foliage_depth_m),
+    ):
         if not (math.isfinite(v) and v > 0):
             raise ParameterError(f"{name} must be positive, got {v}")
     if not 0.0 <= understorey_fraction <= 1.0 or foliage_density_per_m2 < 0:
@@ -122,9 +126,13 @@ def leaf_on_uav_view(
     gap = ~np.isfinite(e)
     surface = ~gap & (p[:, 2] >= e - foliage_depth_m)
     under = ~gap & ~surface & (rng.random(len(p)) < understorey_fraction)
-    labels = np.concatenate([
-        np.full(len(foliage), FOLIAGE), np.full(int(surface.sum()), SURFACE),
-        np.full(int(gap.sum()), GAP), np.full(int(under.sum()), UNDER),
-    ]).astype(np.uint8)
+    labels = np.concatenate(
+        [
+            np.full(len(foliage), FOLIAGE),
+            np.full(int(surface.sum()), SURFACE),
+            np.full(int(gap.sum()), GAP),
+            np.full(int(under.sum()), UNDER),
+        ]
+    ).astype(np.uint8)
     out = np.vstack([foliage, p[surface], p[gap], p[under]])
     return out, labels

@@ -308,7 +308,9 @@ def stem_tube(tree: Tree, trunk_segments: int = 32) -> tuple[np.ndarray, np.ndar
     return tube(tree.point_at(s), radii, n, cap_end=True, reference=u)
 
 
-def box(cx: float, cy: float, z0: float, size: tuple[float, float, float], yaw_deg: float) -> tuple[np.ndarray, np.ndarray]:
+def box(
+    cx: float, cy: float, z0: float, size: tuple[float, float, float], yaw_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
     """An oriented box standing on its bottom face centred at (cx, cy, z0)."""
     lx, ly, lz = size
     xs = np.array([-lx, lx, lx, -lx]) / 2.0
@@ -319,19 +321,27 @@ def box(cx: float, cy: float, z0: float, size: tuple[float, float, float], yaw_d
     verts = np.vstack([np.column_stack([x, y, np.full(4, z0)]), np.column_stack([x, y, np.full(4, z0 + lz)])])
     tris = np.array(
         [
-            [0, 2, 1], [0, 3, 2],  # bottom
-            [4, 5, 6], [4, 6, 7],  # top
-            [0, 1, 5], [0, 5, 4],
-            [1, 2, 6], [1, 6, 5],
-            [2, 3, 7], [2, 7, 6],
-            [3, 0, 4], [3, 4, 7],
+            [0, 2, 1],
+            [0, 3, 2],  # bottom
+            [4, 5, 6],
+            [4, 6, 7],  # top
+            [0, 1, 5],
+            [0, 5, 4],
+            [1, 2, 6],
+            [1, 6, 5],
+            [2, 3, 7],
+            [2, 7, 6],
+            [3, 0, 4],
+            [3, 4, 7],
         ],
         dtype=np.int64,
     )
     return verts, tris
 
 
-def leaves(centres: np.ndarray, side_m: float, rng: np.random.Generator, n_orientations: int = 512) -> tuple[np.ndarray, np.ndarray]:
+def leaves(
+    centres: np.ndarray, side_m: float, rng: np.random.Generator, n_orientations: int = 512
+) -> tuple[np.ndarray, np.ndarray]:
     """Equilateral triangles of side ``side_m``, randomly oriented, centred at ``centres``.
 
     Orientations are drawn from ``n_orientations`` random templates (isotropic), which is much
@@ -378,7 +388,9 @@ def sample_crown(tree: Tree, n: int, rng: np.random.Generator) -> np.ndarray:
     length = max(tree.height_m - tree.crown_base_m, 0.0)
     r = tree.crown_radius_m
     if tree.shape == BROADLEAF:
-        c = tree.point_at_height(min(tree.stem_height_fraction * tree.height_m, (tree.crown_base_m + tree.height_m) / 2.0))
+        c = tree.point_at_height(
+            min(tree.stem_height_fraction * tree.height_m, (tree.crown_base_m + tree.height_m) / 2.0)
+        )
         d = rng.standard_normal((n, 3))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         d *= rng.uniform(size=(n, 1)) ** (1.0 / 3.0)
@@ -476,7 +488,9 @@ def _forked_branches(tree: Tree, rng: np.random.Generator) -> list[tuple[np.ndar
         d = np.array([math.cos(el) * math.cos(a), math.cos(el) * math.sin(a), math.sin(el)])
         r_at = rb + (rt - rb) * f
         blen = tree.crown_radius_m * rng.uniform(0.4, 0.7) / max(math.cos(el), 0.3)
-        out.append((p0 + f * (p1 - p0), p0 + f * (p1 - p0) + blen * d, float(max(r_at / 3.0, 0.01)), BRANCH_TIP_RADIUS_M))
+        out.append(
+            (p0 + f * (p1 - p0), p0 + f * (p1 - p0) + blen * d, float(max(r_at / 3.0, 0.01)), BRANCH_TIP_RADIUS_M)
+        )
     return out
 
 

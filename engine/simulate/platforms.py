@@ -38,15 +38,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError, ScanDataError
-from ..core.params import Params, param_field as _p
+from ..core.params import Params
+from ..core.params import param_field as _p
 from ..core.progress import Progress
 from ..core.scan import Scan
+from ..core.transform import apply as apply_transform
 from ..core.transform import fit_rigid
 from .mesh import Material, SceneRaycaster, raycaster_for
 from .plot import simulate_plot
 from .scanner import intensity_model
 from .scene import ForestScene, given_or_made_scene
-from ..core.transform import apply as apply_transform
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -67,7 +68,9 @@ class SpinningSensor(Params):
     rotation_hz: float = _p(10.0, "Hz", 1.0, 50.0, "Sensor rotations per second", "5-20 Hz")
     azimuth_step_deg: float = _p(0.2, "deg", 0.05, 5.0, "Rotation between two firings of the channels", "0.1-0.4 deg")
     n_channels: int = _p(16, "", 1, 128, "Laser channels, spread evenly over the vertical field of view", "VLP-16")
-    vertical_fov_deg: float = _p(30.0, "deg", 0.0, 90.0, "Spread of the channels out of the rotation plane (along track on a UAV)", "30 deg")
+    vertical_fov_deg: float = _p(
+        30.0, "deg", 0.0, 90.0, "Spread of the channels out of the rotation plane (along track on a UAV)", "30 deg"
+    )
 
     @property
     def channel_elevations_deg(self) -> np.ndarray:
@@ -90,17 +93,34 @@ class UavSetup(SpinningSensor):
     speed_m_s: float = _p(5.0, "m/s", 0.5, 30.0, "Ground speed along the flight lines", "3.6 m/s")
     line_spacing_m: float = _p(50.0, "m", 2.0, 1000.0, "Distance between neighbouring flight lines")
     heading_deg: float = _p(0.0, "deg", -360.0, 360.0, "Direction of the first flight line (counter-clockwise from +x)")
-    line_offset_m: float = _p(0.0, "m", -1000.0, 1000.0, "Across-track shift of the line pattern (0: a line passes over the plot centre)")
-    margin_m: Optional[float] = _p(None, "m", 0.0, 2000.0, "Lines are flown over the plot plus this margin on either side; empty = the half swath at the ground, so every line that can see the plot is flown")
+    line_offset_m: float = _p(
+        0.0, "m", -1000.0, 1000.0, "Across-track shift of the line pattern (0: a line passes over the plot centre)"
+    )
+    margin_m: Optional[float] = _p(
+        None,
+        "m",
+        0.0,
+        2000.0,
+        "Lines are flown over the plot plus this margin on either side; empty = the half swath at the ground, so every line that can see the plot is flown",
+    )
     swath_half_angle_deg: float = _p(45.0, "deg", 1.0, 89.0, "Returns are kept within this angle of nadir in the sweep")
     max_range_m: float = _p(100.0, "m", 1.0, 2000.0, "Farthest return", "100 m")
     range_noise_m: float = _p(0.03, "m", 0.0, 1.0, "Standard deviation of the range noise", "+-3 cm")
-    density_scale: float = _p(1.0, "", 1e-4, 4.0, "Fraction of the sensor's pulses fired (scales the point density; 1 = the real sensor)")
+    density_scale: float = _p(
+        1.0, "", 1e-4, 4.0, "Fraction of the sensor's pulses fired (scales the point density; 1 = the real sensor)"
+    )
 
     @property
     def pulses_per_second(self) -> float:
         """Rays fired per second within the swath."""
-        return self.n_channels * self.rotation_hz * 2.0 * self.swath_half_angle_deg / self.azimuth_step_deg * self.density_scale
+        return (
+            self.n_channels
+            * self.rotation_hz
+            * 2.0
+            * self.swath_half_angle_deg
+            / self.azimuth_step_deg
+            * self.density_scale
+        )
 
     @property
     def nominal_density_per_m2(self) -> float:
@@ -124,21 +144,54 @@ class BackpackSetup(SpinningSensor):
     speed_m_s: float = _p(1.2, "m/s", 0.1, 5.0, "Walking speed")
     tilt_deg: float = _p(45.0, "deg", 0.0, 90.0, "Tilt of the rotation axis back from vertical")
     min_range_m: float = _p(0.5, "m", 0.0, 10.0, "Nearer returns are dropped (the operator and the backpack)")
-    max_range_m: float = _p(30.0, "m", 1.0, 200.0, "Farthest return (a walking scanner's useful range)", "15-20 m (HLS)")
+    max_range_m: float = _p(
+        30.0, "m", 1.0, 200.0, "Farthest return (a walking scanner's useful range)", "15-20 m (HLS)"
+    )
     range_noise_m: float = _p(0.025, "m", 0.0, 1.0, "Standard deviation of the range noise", "+-(2-3) cm")
-    density_scale: float = _p(0.25, "", 1e-4, 4.0, "Fraction of the sensor's pulses fired; the default gives about the paper's 5-10 thousand points/m2 in the walked area, 1 = the real sensor")
-    waypoints: Optional[tuple[tuple[float, float], ...]] = _p(None, "m", None, None, "Path as (x, y) pairs in the scene frame; empty = a serpentine")
-    extent_m: Optional[float] = _p(None, "m", 1.0, 1000.0, "Side of the square walked in a serpentine; empty = the plot less edge_margin_m on each side")
+    density_scale: float = _p(
+        0.25,
+        "",
+        1e-4,
+        4.0,
+        "Fraction of the sensor's pulses fired; the default gives about the paper's 5-10 thousand points/m2 in the walked area, 1 = the real sensor",
+    )
+    waypoints: Optional[tuple[tuple[float, float], ...]] = _p(
+        None, "m", None, None, "Path as (x, y) pairs in the scene frame; empty = a serpentine"
+    )
+    extent_m: Optional[float] = _p(
+        None,
+        "m",
+        1.0,
+        1000.0,
+        "Side of the square walked in a serpentine; empty = the plot less edge_margin_m on each side",
+    )
     centre: tuple[float, float] = _p((0.0, 0.0), "m", None, None, "Centre of the serpentine")
     line_spacing_m: float = _p(6.0, "m", 0.5, 100.0, "Distance between the serpentine's lines")
     edge_margin_m: float = _p(2.0, "m", 0.0, 100.0, "Default serpentine: distance kept from the plot edge")
-    clearance_m: float = _p(0.5, "m", 0.0, 5.0, "Least distance between the sensor path and a stem surface, target pole or building")
+    clearance_m: float = _p(
+        0.5, "m", 0.0, 5.0, "Least distance between the sensor path and a stem surface, target pole or building"
+    )
     sectors_per_rotation: int = _p(4, "", 1, 64, "Ray groups per rotation, each cast from its own position")
-    slam_tilt_deg: float = _p(0.0, "deg", 0.0, 20.0, "SLAM map error: constant tilt of the whole map (about a horizontal axis through the walk's start)", "real MLS: ~1-2 deg")
-    slam_tilt_azimuth_deg: float = _p(30.0, "deg", -360.0, 360.0, "Direction (mathematical azimuth) in which the map tilts down")
-    slam_drift_deg: float = _p(0.0, "deg", 0.0, 20.0, "SLAM map error: rotation drift accumulated linearly over the walk (its heading part)")
-    slam_drift_tilt_deg: float = _p(0.0, "deg", 0.0, 20.0, "SLAM map error: tilt drift accumulated linearly over the walk (about the x axis)")
-    slam_drift_m: tuple[float, float, float] = _p((0.0, 0.0, 0.0), "m", None, None, "SLAM map error: position drift (x, y, z) accumulated linearly over the walk")
+    slam_tilt_deg: float = _p(
+        0.0,
+        "deg",
+        0.0,
+        20.0,
+        "SLAM map error: constant tilt of the whole map (about a horizontal axis through the walk's start)",
+        "real MLS: ~1-2 deg",
+    )
+    slam_tilt_azimuth_deg: float = _p(
+        30.0, "deg", -360.0, 360.0, "Direction (mathematical azimuth) in which the map tilts down"
+    )
+    slam_drift_deg: float = _p(
+        0.0, "deg", 0.0, 20.0, "SLAM map error: rotation drift accumulated linearly over the walk (its heading part)"
+    )
+    slam_drift_tilt_deg: float = _p(
+        0.0, "deg", 0.0, 20.0, "SLAM map error: tilt drift accumulated linearly over the walk (about the x axis)"
+    )
+    slam_drift_m: tuple[float, float, float] = _p(
+        (0.0, 0.0, 0.0), "m", None, None, "SLAM map error: position drift (x, y, z) accumulated linearly over the walk"
+    )
 
     def _check(self) -> None:
         drift = tuple(float(v) for v in self.slam_drift_m)
@@ -256,9 +309,7 @@ def _readonly(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _cloud(
-    chunks: "_Chunks", trajectory: np.ndarray, meta: dict[str, Any], what: str
-) -> SimulatedCloud:
+def _cloud(chunks: "_Chunks", trajectory: np.ndarray, meta: dict[str, Any], what: str) -> SimulatedCloud:
     points, labels, objs, inten = chunks.arrays()
     if len(points) < 10:
         raise ScanDataError(
@@ -359,8 +410,10 @@ def uav_flight_lines(scene: ForestScene, setup: UavSetup) -> np.ndarray:
     if k1 < k0:  # spacing wider than the block: one line nearest the centre
         k0 = k1 = int(round(-setup.line_offset_m / setup.line_spacing_m))
     offsets = setup.line_offset_m + np.arange(k0, k1 + 1) * setup.line_spacing_m
-    reach = depth * math.tan(math.radians(setup.vertical_fov_deg / 2.0)) / math.cos(
-        math.radians(setup.swath_half_angle_deg)
+    reach = (
+        depth
+        * math.tan(math.radians(setup.vertical_fov_deg / 2.0))
+        / math.cos(math.radians(setup.swath_half_angle_deg))
     )
     a0, a1 = along.min() - reach - 1.0, along.max() + reach + 1.0
     lines = np.empty((len(offsets), 2, 2))
@@ -833,8 +886,13 @@ class CoregistrationCase:
 #: foliage and few stems; a backpack sees the stems, the lower crowns and the tops through gaps: of
 #: ~27 UAV and ~11 ground-based canopy keypoints, at most 2 match.
 LEAF_ON_BROADLEAF: Mapping[str, Any] = {
-    "conifer_fraction": 0.0, "leaf_area_density": 0.5, "stems_per_ha": 1000.0, "height_m": (6.0, 28.0),
-    "dbh_power": 1.5, "crown_radius_ab": (1.0, 5.0), "crown_base_fraction": (0.35, 0.55),
+    "conifer_fraction": 0.0,
+    "leaf_area_density": 0.5,
+    "stems_per_ha": 1000.0,
+    "height_m": (6.0, 28.0),
+    "dbh_power": 1.5,
+    "crown_radius_ab": (1.0, 5.0),
+    "crown_base_fraction": (0.35, 0.55),
 }
 
 
@@ -954,9 +1012,7 @@ def simulate_coregistration_case(
     if ground_platform == "backpack":
         bp = backpack_setup
         if bp is None:
-            bp = BackpackSetup(
-                extent_m=max(extent_m - 4.0, 2.0), centre=(cx, cy), density_scale=backpack_density_scale
-            )
+            bp = BackpackSetup(extent_m=max(extent_m - 4.0, 2.0), centre=(cx, cy), density_scale=backpack_density_scale)
         raw = simulate_backpack_scan(scene, bp, seed=_derived_seed(seed, 2), progress=prog.sub(0.5, 0.95))
     else:
         if tls_positions is None:

@@ -38,10 +38,10 @@ from typing import Any, Callable, Mapping, Optional, Sequence, Union
 import numpy as np
 
 from ..core.errors import ParameterError, UnknownNameError
+from ..core.jsonable import to_jsonable
 from .mesh import Material, raycaster_for
 from .scanner import ScannerSetup, SimulatedScan, field_of_view_meta, simulate_tls_scan
 from .scene import BREAST_HEIGHT_M, FIXED_BOX_KINDS, ForestScene, given_or_made_scene
-from ..core.jsonable import to_jsonable
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -251,7 +251,8 @@ def _built_truth(scene: ForestScene) -> dict[str, Any]:
     walls = [b for b in scene.boxes if b.kind in FIXED_BOX_KINDS]
     if walls:
         out["walls"] = [
-            {"id": b.id, "x": b.x, "y": b.y, "z": b.z, "size": list(b.size), "yaw_deg": b.yaw_deg, "kind": b.kind} for b in walls
+            {"id": b.id, "x": b.x, "y": b.y, "z": b.z, "size": list(b.size), "yaw_deg": b.yaw_deg, "kind": b.kind}
+            for b in walls
         ]
     return out
 

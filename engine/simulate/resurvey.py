@@ -32,7 +32,16 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from ..core.errors import ParameterError
-from .scene import BREAST_HEIGHT_M, CONIFER, STEM_SHAPES, ForestScene, Tree, make_scene, real_stem_shape, with_stem_shapes
+from .scene import (
+    BREAST_HEIGHT_M,
+    CONIFER,
+    STEM_SHAPES,
+    ForestScene,
+    Tree,
+    make_scene,
+    real_stem_shape,
+    with_stem_shapes,
+)
 
 __all__ = ["ResurveyCase", "frame_matrix", "grow_scene", "simulate_resurvey", "survey_positions"]
 
@@ -135,19 +144,38 @@ def grow_scene(
         dd = years * rng.uniform(*dbh_growth_mm_per_year) / 1000.0
         dh = years * rng.uniform(*height_growth_m_per_year)
         bh = t.point_at_height(1.3)
-        entry = {"id": t.id, "x": float(bh[0]), "y": float(bh[1]), "dbh_before_m": t.dbh_m, "height_before_m": t.height_m,
-                 "ovality": t.ovality, "area_dbh_before_m": t.area_diameter_m(BREAST_HEIGHT_M)}
+        entry = {
+            "id": t.id,
+            "x": float(bh[0]),
+            "y": float(bh[1]),
+            "dbh_before_m": t.dbh_m,
+            "height_before_m": t.height_m,
+            "ovality": t.ovality,
+            "area_dbh_before_m": t.area_diameter_m(BREAST_HEIGHT_M),
+        }
         if k in removed:
-            fates.append({**entry, "status": "removed", "dbh_after_m": None, "height_after_m": None, "area_dbh_after_m": None})
+            fates.append(
+                {**entry, "status": "removed", "dbh_after_m": None, "height_after_m": None, "area_dbh_after_m": None}
+            )
             continue
         g = dataclasses.replace(
-            t, dbh_m=round(t.dbh_m + dd, 5), height_m=t.height_m + dh,
-            crown_base_m=t.crown_base_m + 0.5 * dh, crown_radius_m=t.crown_radius_m * float(rng.uniform(1.0, 1.2)),
+            t,
+            dbh_m=round(t.dbh_m + dd, 5),
+            height_m=t.height_m + dh,
+            crown_base_m=t.crown_base_m + 0.5 * dh,
+            crown_radius_m=t.crown_radius_m * float(rng.uniform(1.0, 1.2)),
             leaf_area_density=t.leaf_area_density * float(rng.uniform(*crown_density_factor)),
         )
         grown.append(g)
-        fates.append({**entry, "status": "persisting", "dbh_after_m": g.dbh_m, "height_after_m": g.height_m,
-                      "area_dbh_after_m": g.area_diameter_m(BREAST_HEIGHT_M)})
+        fates.append(
+            {
+                **entry,
+                "status": "persisting",
+                "dbh_after_m": g.dbh_m,
+                "height_after_m": g.height_m,
+                "area_dbh_after_m": g.area_diameter_m(BREAST_HEIGHT_M),
+            }
+        )
     # ingrowth: thin trees in free places (at least 1.5 m from any standing stem and 1.5 m from a scanner)
     xmin, xmax, ymin, ymax = scene.extent
     n_new = int(round(ingrowth_fraction * n))
@@ -162,18 +190,41 @@ def grow_scene(
             continue
         dbh = float(rng.uniform(*ingrowth_dbh_m))
         h = float(rng.uniform(5.0, 8.0))
-        t = Tree(next_id, float(p[0]), float(p[1]), float(scene.ground_z(p[0], p[1])), dbh_m=round(dbh, 5), height_m=h,
-                 lean_deg=float(rng.uniform(0.0, 2.0)), lean_azimuth_deg=float(rng.uniform(0.0, 360.0)),
-                 crown_base_m=0.4 * h, crown_radius_m=0.8 + 2.0 * dbh, shape=CONIFER, n_branches=3,
-                 leaf_area_density=0.5)
+        t = Tree(
+            next_id,
+            float(p[0]),
+            float(p[1]),
+            float(scene.ground_z(p[0], p[1])),
+            dbh_m=round(dbh, 5),
+            height_m=h,
+            lean_deg=float(rng.uniform(0.0, 2.0)),
+            lean_azimuth_deg=float(rng.uniform(0.0, 360.0)),
+            crown_base_m=0.4 * h,
+            crown_radius_m=0.8 + 2.0 * dbh,
+            shape=CONIFER,
+            n_branches=3,
+            leaf_area_density=0.5,
+        )
         if real_shapes:  # drawn from the tree's own stream: the other draws stay
             t = real_stem_shape(t, scene.seed, scene.preset)
         grown.append(t)
         standing.append(p)
         bh = t.point_at_height(1.3)
-        fates.append({"id": t.id, "status": "new", "x": float(bh[0]), "y": float(bh[1]), "dbh_before_m": None,
-                      "dbh_after_m": t.dbh_m, "height_before_m": None, "height_after_m": t.height_m,
-                      "ovality": t.ovality, "area_dbh_before_m": None, "area_dbh_after_m": t.area_diameter_m(BREAST_HEIGHT_M)})
+        fates.append(
+            {
+                "id": t.id,
+                "status": "new",
+                "x": float(bh[0]),
+                "y": float(bh[1]),
+                "dbh_before_m": None,
+                "dbh_after_m": t.dbh_m,
+                "height_before_m": None,
+                "height_after_m": t.height_m,
+                "ovality": t.ovality,
+                "area_dbh_before_m": None,
+                "area_dbh_after_m": t.area_diameter_m(BREAST_HEIGHT_M),
+            }
+        )
         next_id += 1
         n_new -= 1
     after = dataclasses.replace(scene, trees=tuple(grown), meta={**dict(scene.meta), "years_later": float(years)})
@@ -248,24 +299,34 @@ def simulate_resurvey(
     if scene is not None:
         base = with_stem_shapes(scene) if stem_shapes == "real" else scene
     else:
-        base = make_scene(preset, seed=seed, size_m=size_m, **({"stem_shapes": stem_shapes} if stem_shapes != "round" else {}))
+        base = make_scene(
+            preset, seed=seed, size_m=size_m, **({"stem_shapes": stem_shapes} if stem_shapes != "round" else {})
+        )
     every = [tuple(p) for p in before_positions] + [tuple(p) for p in after_positions]
     base = base.cleared(every, 1.0)
     growth.setdefault("keep_clear", every)
     after_scene, fates = grow_scene(base, seed=seed, **growth)
-    before_plot = simulate_plot(preset, before_positions, scene=base, seed=seed, angular_step_deg=angular_step_deg, clearance_m=0.0)
-    after_plot = simulate_plot(preset, after_positions, scene=after_scene, seed=seed + 1000, angular_step_deg=angular_step_deg, clearance_m=0.0)
+    before_plot = simulate_plot(
+        preset, before_positions, scene=base, seed=seed, angular_step_deg=angular_step_deg, clearance_m=0.0
+    )
+    after_plot = simulate_plot(
+        preset, after_positions, scene=after_scene, seed=seed + 1000, angular_step_deg=angular_step_deg, clearance_m=0.0
+    )
     before = np.vstack([s.world_points() for s in before_plot.scans])
     frame = frame_matrix(after_heading_deg, after_shift_m)
     after_world = np.vstack([s.world_points() for s in after_plot.scans])
     after = (after_world - frame[:3, 3]) @ frame[:3, :3]  # p_after = inv(frame) @ p_scene
     truth = {
         "format": "forestreg-simulated-resurvey",
-        "conventions": {"matrix": "p_before = matrix @ p_after (the registration to find)",
-                        "before": "scene frame: plot centred on the origin, metres, z up",
-                        "trees": "x, y: the stem axis at 1.3 m, BEFORE (scene) frame; dbh_*_m: tape (girth) "
-                                 "diameters at 1.3 m; area_dbh_*_m: diameters of the circle of the section's area"},
-        "preset": preset, "seed": int(seed), "size_m": float(size_m),
+        "conventions": {
+            "matrix": "p_before = matrix @ p_after (the registration to find)",
+            "before": "scene frame: plot centred on the origin, metres, z up",
+            "trees": "x, y: the stem axis at 1.3 m, BEFORE (scene) frame; dbh_*_m: tape (girth) "
+            "diameters at 1.3 m; area_dbh_*_m: diameters of the circle of the section's area",
+        },
+        "preset": preset,
+        "seed": int(seed),
+        "size_m": float(size_m),
         "matrix": frame.tolist(),
         "stem_shapes": stem_shapes,
         "before_positions": [list(map(float, p)) for p in before_positions],
@@ -274,4 +335,6 @@ def simulate_resurvey(
         "after_scan_points": [int(len(s.scan)) for s in after_plot.scans],
         "fates": fates,
     }
-    return ResurveyCase(before=before, after=after, matrix=frame, truth=truth, before_scene=base, after_scene=after_scene)
+    return ResurveyCase(
+        before=before, after=after, matrix=frame, truth=truth, before_scene=base, after_scene=after_scene
+    )

@@ -166,12 +166,21 @@ SCANNER_PRESETS: dict[str, dict[str, Any]] = {
     "tls": {},
     "sector_300": {"azimuth_fov_deg": 300.0},
     "robot_forward": {
-        "azimuth_fov_deg": 180.0, "height_m": 0.7, "elevation_min_deg": -20.0, "elevation_max_deg": 20.0,
-        "min_range_m": 0.3, "max_range_m": 33.0,
+        "azimuth_fov_deg": 180.0,
+        "height_m": 0.7,
+        "elevation_min_deg": -20.0,
+        "elevation_max_deg": 20.0,
+        "min_range_m": 0.3,
+        "max_range_m": 33.0,
     },
     "robot_lines": {
-        "azimuth_fov_deg": 180.0, "height_m": 0.7, "elevation_min_deg": -15.0, "elevation_max_deg": 15.0,
-        "elevation_step_deg": 2.0, "min_range_m": 0.3, "max_range_m": 33.0,
+        "azimuth_fov_deg": 180.0,
+        "height_m": 0.7,
+        "elevation_min_deg": -15.0,
+        "elevation_max_deg": 15.0,
+        "elevation_step_deg": 2.0,
+        "min_range_m": 0.3,
+        "max_range_m": 33.0,
     },
 }
 

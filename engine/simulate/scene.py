@@ -361,7 +361,9 @@ class Tree:
         if self.buttress_lobes not in (0, 3, 4, 5, 6):
             raise ParameterError(f"tree {self.id}: buttress_lobes must be 0 or 3-6, got {self.buttress_lobes}")
         if not 0.0 <= self.buttress_amplitude <= 1.0:
-            raise ParameterError(f"tree {self.id}: buttress_amplitude must be within 0-1, got {self.buttress_amplitude}")
+            raise ParameterError(
+                f"tree {self.id}: buttress_amplitude must be within 0-1, got {self.buttress_amplitude}"
+            )
         if not 0.0 <= self.bark_roughness_m <= MAX_BARK_ROUGHNESS_M:
             raise ParameterError(
                 f"tree {self.id}: bark_roughness_m must be within 0-{MAX_BARK_ROUGHNESS_M} m, got {self.bark_roughness_m}"
@@ -438,7 +440,11 @@ class Tree:
     def is_round(self) -> bool:
         """Whether the stem is the default round one (no ovality, lobes or bark relief): meshed
         as a ``trunk_segments``-gon of the circle's area, exactly as before shapes existed."""
-        return self.ovality == 0.0 and (self.buttress_lobes == 0 or self.buttress_amplitude == 0.0) and self.bark_roughness_m == 0.0
+        return (
+            self.ovality == 0.0
+            and (self.buttress_lobes == 0 or self.buttress_amplitude == 0.0)
+            and self.bark_roughness_m == 0.0
+        )
 
     def stem_frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(u, v, d)``: unit vectors of the stem frame (world frame). ``d`` is the axis
@@ -463,7 +469,9 @@ class Tree:
         if self.buttress_lobes and self.buttress_amplitude > 0.0:
             fh = min(max(self.flare_height_m, 0.1), BREAST_HEIGHT_M)
             a = self.buttress_amplitude * np.clip(1.0 - s / fh, 0.0, 1.0) ** 2
-            lobe = ((1.0 + np.cos(self.buttress_lobes * (theta - _stem_pattern(self.bark_seed, self.id)[3]))) / 2.0) ** 3
+            lobe = (
+                (1.0 + np.cos(self.buttress_lobes * (theta - _stem_pattern(self.bark_seed, self.id)[3]))) / 2.0
+            ) ** 3
             out = out * (1.0 + a * lobe)
         return out
 
@@ -487,7 +495,9 @@ class Tree:
         smooth_r = r_ring * self._ring_scale() * self._shape_factor(th, sa)
         out = smooth_r
         if not smooth and self.bark_roughness_m > 0.0:
-            rough = self.bark_roughness_m * _bark_field(self.bark_seed, self.id, th, sa) * np.clip(r_ring / 0.05, 0.0, 1.0)
+            rough = (
+                self.bark_roughness_m * _bark_field(self.bark_seed, self.id, th, sa) * np.clip(r_ring / 0.05, 0.0, 1.0)
+            )
             out = np.maximum(smooth_r + rough, 0.5 * smooth_r)
         out = np.asarray(out)
         return float(out) if out.ndim == 0 else out
@@ -679,15 +689,87 @@ class PresetConfig:
 #: The forest presets' stands, one row a preset: the :class:`PresetConfig` fields named in
 #: :data:`_STAND_FIELDS`, in that order.
 _STAND_FIELDS = (
-    "dbh_m", "dbh_power", "height_m", "conifer_fraction", "crown_base_fraction", "crown_radius_ab", "lean_max_deg",
-    "branches_per_tree", "leaf_area_density", "shrubs_per_ha", "shrub_height_m", "shrub_radius_m", "slope_deg", "roughness_m",
+    "dbh_m",
+    "dbh_power",
+    "height_m",
+    "conifer_fraction",
+    "crown_base_fraction",
+    "crown_radius_ab",
+    "lean_max_deg",
+    "branches_per_tree",
+    "leaf_area_density",
+    "shrubs_per_ha",
+    "shrub_height_m",
+    "shrub_radius_m",
+    "slope_deg",
+    "roughness_m",
 )
 _STANDS: dict[str, tuple[Any, ...]] = {
     #                  DBH m         DBH^-p height m      conifer crown base    crown r a+bD lean  branches LAD   shrubs  shrub h     shrub r     slope deg     rough m
-    "planted_conifer": ((0.20, 0.40), 0.0, (15.0, 20.0), 1.0,  (0.50, 0.65), (1.0, 3.5), 2.0,  (3, 5), 0.6,  50.0,   (0.3, 1.0), (0.3, 0.7), (0.0, 2.0),   0.05),
-    "mixed_temperate": ((0.10, 0.60), 1.0, (12.0, 28.0), 0.45, (0.35, 0.55), (0.8, 5.0), 6.0,  (3, 6), 0.5,  400.0,  (0.5, 2.0), (0.4, 1.2), (0.0, 3.0),   0.10),
-    "rainforest":      ((0.08, 0.80), 2.0, (6.0, 40.0),  0.0,  (0.45, 0.70), (0.8, 7.0), 8.0,  (2, 6), 0.45, 2500.0, (0.5, 3.0), (0.4, 1.2), (0.0, 5.0),   0.20),
-    "sloped":          ((0.10, 0.55), 1.0, (12.0, 26.0), 0.5,  (0.40, 0.60), (0.8, 4.5), 10.0, (3, 6), 0.5,  300.0,  (0.4, 1.8), (0.4, 1.0), (15.0, 20.0), 0.30),
+    "planted_conifer": (
+        (0.20, 0.40),
+        0.0,
+        (15.0, 20.0),
+        1.0,
+        (0.50, 0.65),
+        (1.0, 3.5),
+        2.0,
+        (3, 5),
+        0.6,
+        50.0,
+        (0.3, 1.0),
+        (0.3, 0.7),
+        (0.0, 2.0),
+        0.05,
+    ),
+    "mixed_temperate": (
+        (0.10, 0.60),
+        1.0,
+        (12.0, 28.0),
+        0.45,
+        (0.35, 0.55),
+        (0.8, 5.0),
+        6.0,
+        (3, 6),
+        0.5,
+        400.0,
+        (0.5, 2.0),
+        (0.4, 1.2),
+        (0.0, 3.0),
+        0.10,
+    ),
+    "rainforest": (
+        (0.08, 0.80),
+        2.0,
+        (6.0, 40.0),
+        0.0,
+        (0.45, 0.70),
+        (0.8, 7.0),
+        8.0,
+        (2, 6),
+        0.45,
+        2500.0,
+        (0.5, 3.0),
+        (0.4, 1.2),
+        (0.0, 5.0),
+        0.20,
+    ),
+    "sloped": (
+        (0.10, 0.55),
+        1.0,
+        (12.0, 26.0),
+        0.5,
+        (0.40, 0.60),
+        (0.8, 4.5),
+        10.0,
+        (3, 6),
+        0.5,
+        300.0,
+        (0.4, 1.8),
+        (0.4, 1.0),
+        (15.0, 20.0),
+        0.30,
+    ),
 }
 
 
@@ -701,35 +783,60 @@ PRESETS: dict[str, PresetConfig] = {
     "planted_conifer": PresetConfig(
         description="even-aged conifer plantation on a jittered 3 m grid (~1000 stems/ha), "
         "pruned stems, cone crowns, few low shrubs, nearly flat",
-        layout="grid", grid_spacing_m=3.0, grid_jitter_m=(0.2, 0.5), missing_fraction=0.10, **_stand("planted_conifer"),
+        layout="grid",
+        grid_spacing_m=3.0,
+        grid_jitter_m=(0.2, 0.5),
+        missing_fraction=0.10,
+        **_stand("planted_conifer"),
     ),
     "mixed_temperate": PresetConfig(
         description="uneven-aged mixed temperate forest (~900 stems/ha, clustered and random), "
         "conifer and broadleaf crowns, moderate shrub layer up to 2 m",
-        layout="clustered", stems_per_ha=900.0, cluster_fraction=0.5, cluster_radius_m=3.0, cluster_size=6.0,
+        layout="clustered",
+        stems_per_ha=900.0,
+        cluster_fraction=0.5,
+        cluster_radius_m=3.0,
+        cluster_size=6.0,
         **_stand("mixed_temperate"),
     ),
     "rainforest": PresetConfig(
         description="tropical rainforest: >2000 stems/ha, mostly thin (reverse-J DBH 0.08-0.8 m), "
         "dense understory, lianas and high canopy cover",
-        layout="random", stems_per_ha=2400.0, shrub_leaf_area_density=0.9, lianas_per_ha=120.0, **_stand("rainforest"),
+        layout="random",
+        stems_per_ha=2400.0,
+        shrub_leaf_area_density=0.9,
+        lianas_per_ha=120.0,
+        **_stand("rainforest"),
     ),
     "sloped": PresetConfig(
         description="mixed forest on a 15-20 deg slope with rough ground and leaning trees",
-        layout="random", stems_per_ha=800.0, roughness_length_m=5.0, **_stand("sloped"),
+        layout="random",
+        stems_per_ha=800.0,
+        roughness_length_m=5.0,
+        **_stand("sloped"),
     ),
     "plantation_rows": PresetConfig(
         description="conifer plantation planted in exact rows: a tree every 3 m along rows 4 m "
         "apart (the rows turned at random), jitter up to 8 cm, 3 % missing: a near-perfect "
         "lattice of trunks, where one row or one tree along it looks like the next",
-        layout="rows", grid_spacing_m=3.0, row_spacing_m=4.0, grid_jitter_m=(0.0, 0.08), missing_fraction=0.03,
+        layout="rows",
+        grid_spacing_m=3.0,
+        row_spacing_m=4.0,
+        grid_jitter_m=(0.0, 0.08),
+        missing_fraction=0.03,
         **{**_stand("planted_conifer"), "lean_max_deg": 1.0, "shrubs_per_ha": 20.0},
     ),
     "open_field": PresetConfig(
         description="non-forest scene: open ground with low shrubs, a building-like box and a "
         "fence; no trees (a registration by trunk shadows must refuse it)",
-        layout="none", stems_per_ha=0.0, shrubs_per_ha=60.0, shrub_height_m=(0.3, 1.2), shrub_radius_m=(0.3, 1.0),
-        slope_deg=(0.0, 3.0), roughness_m=0.10, structures=True,
+        layout="none",
+        stems_per_ha=0.0,
+        shrubs_per_ha=60.0,
+        shrub_height_m=(0.3, 1.2),
+        shrub_radius_m=(0.3, 1.0),
+        slope_deg=(0.0, 3.0),
+        roughness_m=0.10,
+        structures=True,
     ),
 }
 
@@ -804,12 +911,11 @@ class ForestScene:
                 continue
             trees.append(t)
         shrubs = [s for s in self.shrubs if not near(np.array([s.x, s.y]), s.radius_m)]
-        lianas = [
-            li for li in self.lianas if not any(near(np.asarray(p[:2]), li.radius_m) for p in li.points[:2])
-        ]
+        lianas = [li for li in self.lianas if not any(near(np.asarray(p[:2]), li.radius_m) for p in li.points[:2])]
         targets = [t for t in self.targets if not near(np.array([t.x, t.y]), t.radius_m)]
         boxes = [
-            b for b in self.boxes
+            b
+            for b in self.boxes
             if b.kind in FIXED_BOX_KINDS or not near(np.array([b.x, b.y]), 0.5 * math.hypot(b.size[0], b.size[1]))
         ]
         posts = [p for p in self.posts if not near(np.array([p.x, p.y]), p.radius_m)]
@@ -963,7 +1069,8 @@ def make_scene(
         boxes=tuple(boxes),
         config=cfg,
         meta={
-            "size_m": float(size_m), "overrides": {k: v for k, v in overrides.items()},
+            "size_m": float(size_m),
+            "overrides": {k: v for k, v in overrides.items()},
             **({"stem_shapes": stem_shapes} if stem_shapes != "round" else {}),
         },
     )
@@ -992,8 +1099,13 @@ def real_stem_shape(tree: Tree, seed: int, preset: str) -> Tree:
     amplitude = float(rng.uniform(*REAL_BUTTRESS_AMPLITUDE))
     big_broadleaf = tree.shape == BROADLEAF and tree.dbh_m > REAL_BUTTRESS_MIN_DBH_M
     return dataclasses.replace(
-        tree, ovality=ovality, ovality_azimuth_deg=azimuth, bark_roughness_m=rough, bark_seed=int(seed),
-        buttress_lobes=lobes if big_broadleaf else 0, buttress_amplitude=amplitude if big_broadleaf else 0.0,
+        tree,
+        ovality=ovality,
+        ovality_azimuth_deg=azimuth,
+        bark_roughness_m=rough,
+        bark_seed=int(seed),
+        buttress_lobes=lobes if big_broadleaf else 0,
+        buttress_amplitude=amplitude if big_broadleaf else 0.0,
     )
 
 
@@ -1105,7 +1217,9 @@ def _make_trees(cfg: PresetConfig, extent: tuple[float, ...], terrain: Terrain, 
         gx, gy = np.meshgrid(big, big)
         g = np.column_stack([gx.ravel(), gy.ravel()])
         pos = g @ np.array([[c, s], [-s, c]])
-        inside = (pos[:, 0] > xmin + 0.3) & (pos[:, 0] < xmax - 0.3) & (pos[:, 1] > ymin + 0.3) & (pos[:, 1] < ymax - 0.3)
+        inside = (
+            (pos[:, 0] > xmin + 0.3) & (pos[:, 0] < xmax - 0.3) & (pos[:, 1] > ymin + 0.3) & (pos[:, 1] < ymax - 0.3)
+        )
         pos = pos[inside]
         ang = rng.uniform(0.0, 2 * math.pi, size=len(pos))
         dist = rng.uniform(*cfg.grid_jitter_m, size=len(pos))
@@ -1154,7 +1268,9 @@ def _row_positions(cfg: PresetConfig, extent: tuple[float, ...], rng: np.random.
     return pos[inside]
 
 
-def _trees_at(cfg: PresetConfig, pos: np.ndarray, dbh: np.ndarray, terrain: Terrain, rng: np.random.Generator) -> list[Tree]:
+def _trees_at(
+    cfg: PresetConfig, pos: np.ndarray, dbh: np.ndarray, terrain: Terrain, rng: np.random.Generator
+) -> list[Tree]:
     """Trees of ``cfg``'s stand at ``pos`` (n, 2) with diameters ``dbh``: heights, crowns, lean and
     branches drawn from ``rng``."""
     n = len(pos)
@@ -1211,7 +1327,9 @@ def crown_floor(tree: Tree, x: float, y: float) -> float:
     length = max(tree.height_m - tree.crown_base_m, 0.0)
     r = tree.crown_radius_m
     if tree.shape == BROADLEAF:
-        c = tree.point_at_height(min(tree.stem_height_fraction * tree.height_m, (tree.crown_base_m + tree.height_m) / 2.0))
+        c = tree.point_at_height(
+            min(tree.stem_height_fraction * tree.height_m, (tree.crown_base_m + tree.height_m) / 2.0)
+        )
         rho = math.hypot(x - c[0], y - c[1])
         if rho >= r:
             return math.inf
@@ -1239,8 +1357,11 @@ def _suppress_under_crowns(trees: list[Tree], clearance_m: float) -> list[Tree]:
         apex = t.point_at_height(new_h)
         clear = all(crown_floor(o, float(apex[0]), float(apex[1])) - clearance_m - t.z >= new_h - 1e-9 for o in over)
         if clear and 0.6 * t.height_m <= new_h < t.height_m:
-            out[i] = dataclasses.replace(t, height_m=float(new_h), crown_base_m=float(t.crown_base_m * new_h / t.height_m))
+            out[i] = dataclasses.replace(
+                t, height_m=float(new_h), crown_base_m=float(t.crown_base_m * new_h / t.height_m)
+            )
     return out
+
 
 def _stem_xy(trees: Sequence[Tree]) -> tuple[np.ndarray, np.ndarray]:
     if not trees:
@@ -1270,7 +1391,11 @@ def _make_shrubs(
             rad = float(rng.uniform(*cfg.shrub_radius_m))
             if len(xy) and (np.hypot(xy[:, 0] - p[0], xy[:, 1] - p[1]) < r + 0.3).any():
                 continue
-            if any(abs(p[0] - b.x) < b.size[0] / 2 + rad and abs(p[1] - b.y) < b.size[1] / 2 + rad for b in boxes if b.kind == "building"):
+            if any(
+                abs(p[0] - b.x) < b.size[0] / 2 + rad and abs(p[1] - b.y) < b.size[1] / 2 + rad
+                for b in boxes
+                if b.kind == "building"
+            ):
                 continue
             out.append(
                 Shrub(
@@ -1370,10 +1495,18 @@ def _make_boxes(cfg: PresetConfig, extent: tuple[float, ...], terrain: Terrain, 
     bx, by = d * math.cos(ang), d * math.sin(ang)
     yaw = float(rng.uniform(0.0, 180.0))
     size = (8.0, 6.0, 4.0)
-    corners_z = [
-        terrain.z(bx + sx * size[0] / 2, by + sy * size[1] / 2) for sx in (-1, 1) for sy in (-1, 1)
-    ]
-    out.append(Box(id=1, x=bx, y=by, z=float(min(corners_z)) - 0.2, size=(size[0], size[1], size[2] + 0.2), yaw_deg=yaw, kind="building"))
+    corners_z = [terrain.z(bx + sx * size[0] / 2, by + sy * size[1] / 2) for sx in (-1, 1) for sy in (-1, 1)]
+    out.append(
+        Box(
+            id=1,
+            x=bx,
+            y=by,
+            z=float(min(corners_z)) - 0.2,
+            size=(size[0], size[1], size[2] + 0.2),
+            yaw_deg=yaw,
+            kind="building",
+        )
+    )
     # a straight fence across the plot on the other side: posts every 2.5 m and two rails
     fang = ang + math.pi + rng.uniform(-0.5, 0.5)
     fd = 0.6 * half
@@ -1388,7 +1521,9 @@ def _make_boxes(cfg: PresetConfig, extent: tuple[float, ...], terrain: Terrain, 
         if not (xmin < p[0] < xmax and ymin < p[1] < ymax):
             continue
         z = float(terrain.z(p[0], p[1]))
-        out.append(Box(id=k, x=float(p[0]), y=float(p[1]), z=z - 0.1, size=(0.1, 0.1, 1.3), yaw_deg=fyaw, kind="fence_post"))
+        out.append(
+            Box(id=k, x=float(p[0]), y=float(p[1]), z=z - 0.1, size=(0.1, 0.1, 1.3), yaw_deg=fyaw, kind="fence_post")
+        )
         k += 1
     for rail_h in (0.5, 1.1):
         for i in range(n_posts - 1):
@@ -1396,6 +1531,16 @@ def _make_boxes(cfg: PresetConfig, extent: tuple[float, ...], terrain: Terrain, 
             if not (xmin < p[0] < xmax and ymin < p[1] < ymax):
                 continue
             z = float(terrain.z(p[0], p[1]))
-            out.append(Box(id=k, x=float(p[0]), y=float(p[1]), z=z + rail_h, size=(2.5, 0.03, 0.1), yaw_deg=fyaw, kind="fence_rail"))
+            out.append(
+                Box(
+                    id=k,
+                    x=float(p[0]),
+                    y=float(p[1]),
+                    z=z + rail_h,
+                    size=(2.5, 0.03, 0.1),
+                    yaw_deg=fyaw,
+                    kind="fence_rail",
+                )
+            )
             k += 1
     return out

@@ -111,7 +111,9 @@ def branching_broadleaf(
     ``tip_radius_m``; segments are about ``segment_m`` long (the stem's 0.5 m) and each turns up
     to ``bend_deg``. Deterministic for a ``seed``."""
     if not (0.0 < crown_base_m < height_m) or dbh_m <= 0 or crown_radius_m <= 0 or orders < 1:
-        raise ParameterError("a branching broadleaf needs 0 < crown base < height, a positive DBH and crown radius, orders >= 1")
+        raise ParameterError(
+            "a branching broadleaf needs 0 < crown base < height, a positive DBH and crown radius, orders >= 1"
+        )
     rng = np.random.default_rng([int(seed), 7919])
     r_bh = 0.5 * dbh_m
     centre_z = 0.5 * (crown_base_m + height_m)
@@ -142,8 +144,17 @@ def branching_broadleaf(
     branch: list[int] = []
     parent: list[int] = []
 
-    def grow(p0: np.ndarray, d0: np.ndarray, length: float, r_base: float, o: int, parent_k: int, bid: int,
-             radius_of=None, seg_len: float = segment_m) -> list[tuple[int, float]]:
+    def grow(
+        p0: np.ndarray,
+        d0: np.ndarray,
+        length: float,
+        r_base: float,
+        o: int,
+        parent_k: int,
+        bid: int,
+        radius_of=None,
+        seg_len: float = segment_m,
+    ) -> list[tuple[int, float]]:
         """Lay one branch down as frusta; returns (frustum index, distance along) of each."""
         n = max(1, int(math.ceil(length / seg_len)))
         step = length / n
@@ -225,9 +236,15 @@ def branching_broadleaf(
             next_id[0] += 1
             todo.append((child, child_len, o + 1))
     return WoodTree(
-        start=np.array(start), end=np.array(end), radius_start_m=np.array(r0s), radius_end_m=np.array(r1s),
-        order=np.array(order, dtype=np.int64), branch=np.array(branch, dtype=np.int64), parent=np.array(parent, dtype=np.int64),
-        dbh_m=float(dbh_m), height_m=float(max(np.max(np.array(end)[:, 2]), height_m)),
+        start=np.array(start),
+        end=np.array(end),
+        radius_start_m=np.array(r0s),
+        radius_end_m=np.array(r1s),
+        order=np.array(order, dtype=np.int64),
+        branch=np.array(branch, dtype=np.int64),
+        parent=np.array(parent, dtype=np.int64),
+        dbh_m=float(dbh_m),
+        height_m=float(max(np.max(np.array(end)[:, 2]), height_m)),
     )
 
 
@@ -253,8 +270,13 @@ def scan_wood_tree(
     b = _Builder()
     for k in range(len(tree.order)):
         n_seg = 32 if tree.order[k] == 0 else 12
-        v, t = tube(np.vstack([tree.start[k], tree.end[k]]), np.array([tree.radius_start_m[k], tree.radius_end_m[k]]), n_seg,
-                    cap_start=False, cap_end=True)
+        v, t = tube(
+            np.vstack([tree.start[k], tree.end[k]]),
+            np.array([tree.radius_start_m[k], tree.radius_end_m[k]]),
+            n_seg,
+            cap_start=False,
+            cap_end=True,
+        )
         b.add(Material.TRUNK if tree.order[k] == 0 else Material.BRANCH, v, t, 1)
     if leaf_area_density > 0:
         top = int(tree.order.max())

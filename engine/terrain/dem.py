@@ -27,11 +27,12 @@ from typing import Iterator, Optional
 
 import numpy as np
 
-from ..core.scan import check_points
 from ..core.errors import ParameterError, ScanDataError
-from ..core.progress import Progress
-from ..core.params import Params, param_field as _p
 from ..core.jit import kernel, run_blocks
+from ..core.params import Params
+from ..core.params import param_field as _p
+from ..core.progress import Progress
+from ..core.scan import check_points
 from ..geometry.voxel import voxel_thin
 
 __all__ = ["Dem", "TerrainModel", "TerrainParams", "build_dem", "classify_ground", "lowest_points_dem", "terrain_model"]
@@ -51,7 +52,6 @@ class TerrainParams(Params):
     dem_resolution_m: float = _p(0.5, "m", 0.05, 20.0, "DEM cell size", "0.5 m")
     #: the cloud is thinned to one point per this voxel before CSF (speed), metres; 0 keeps all
     thin_voxel_m: float = _p(0.1, "m", 0.0, 5.0, "thinning before CSF")
-
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,13 +93,36 @@ class Dem:
         kernel (blocks on threads), no temporaries the size of the input (a 2.9 M-point cloud
         needed ~200 MB of them as array operations); the same arithmetic, value for value."""
         h = np.ascontiguousarray(self.heights, dtype=np.float64)
-        run_blocks(_bilinear_rows, len(out), x, y, z if z is not None else x, z is not None,
-                   float(self.x0), float(self.y0), float(self.resolution_m), h, out, block=262144)
+        run_blocks(
+            _bilinear_rows,
+            len(out),
+            x,
+            y,
+            z if z is not None else x,
+            z is not None,
+            float(self.x0),
+            float(self.y0),
+            float(self.resolution_m),
+            h,
+            out,
+            block=262144,
+        )
 
 
 @kernel
-def _bilinear_rows(start: int, stop: int, x: np.ndarray, y: np.ndarray, z: np.ndarray, subtract: bool,
-                   x0: float, y0: float, resolution: float, h: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
+def _bilinear_rows(
+    start: int,
+    stop: int,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    subtract: bool,
+    x0: float,
+    y0: float,
+    resolution: float,
+    h: np.ndarray,
+    out: np.ndarray,
+) -> None:  # pragma: no cover - compiled
     """Rows ``start:stop`` of :meth:`Dem.height_at` (``subtract``: of ``z`` minus it): the cell
     coordinate clamped to the grid, the lower cell at most the last but one, the four corners
     weighted in the order the array expression had them."""
@@ -114,8 +137,12 @@ def _bilinear_rows(start: int, stop: int, x: np.ndarray, y: np.ndarray, z: np.nd
         r1 = min(r0 + 1, ny - 1)
         tx = fx - c0
         ty = fy - r0
-        g = (h[r0, c0] * (1 - tx) * (1 - ty) + h[r0, c1] * tx * (1 - ty)
-             + h[r1, c0] * (1 - tx) * ty + h[r1, c1] * tx * ty)
+        g = (
+            h[r0, c0] * (1 - tx) * (1 - ty)
+            + h[r0, c1] * tx * (1 - ty)
+            + h[r1, c0] * (1 - tx) * ty
+            + h[r1, c1] * tx * ty
+        )
         out[i] = z[i] - g if subtract else g
 
 
@@ -239,9 +266,7 @@ def build_dem(
     nx = max(int(np.ceil((xmax - xmin) / resolution_m)), 1) + 1
     ny = max(int(np.ceil((ymax - ymin) / resolution_m)), 1) + 1
     if nx * ny > 50_000_000:
-        raise ParameterError(
-            f"a DEM of {nx} x {ny} cells at {resolution_m} m is too large: check the units or extent"
-        )
+        raise ParameterError(f"a DEM of {nx} x {ny} cells at {resolution_m} m is too large: check the units or extent")
     x0 = xmin - resolution_m / 2.0
     y0 = ymin - resolution_m / 2.0
     col = np.clip(((g[:, 0] - x0) / resolution_m).astype(np.int64), 0, nx - 1)

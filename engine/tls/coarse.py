@@ -107,6 +107,7 @@ def _compiled_kernels():
             _kernels_tried = True
     return _kernels
 
+
 __all__ = ["CoarseMatch", "match_vops", "match_vops_literal", "overlap_score"]
 
 #: Scores within this many metres of the best are treated as ties (searched exhaustively).
@@ -253,7 +254,13 @@ class _Scorer:
     """Exact ``D_overlap`` of (i, j, k) candidates; counts how many were computed."""
 
     def __init__(
-        self, reference: np.ndarray, moving: np.ndarray, k_count: int, step_deg: float, dist: float, record: bool = False
+        self,
+        reference: np.ndarray,
+        moving: np.ndarray,
+        k_count: int,
+        step_deg: float,
+        dist: float,
+        record: bool = False,
     ):
         self.reference = reference
         self.moving = moving
@@ -297,9 +304,7 @@ class _Scorer:
 
     def matches(self, i: int, j: int, k: int) -> np.ndarray:
         """(reference index, moving index) pairs closer than D_t under candidate (i, j, k)."""
-        pts = _transform(
-            self.reference, self.moving, np.array([i]), np.array([j]), self.cos_k[[k]], self.sin_k[[k]]
-        )[0]
+        pts = _transform(self.reference, self.moving, np.array([i]), np.array([j]), self.cos_k[[k]], self.sin_k[[k]])[0]
         dist, idx = self.index.query(pts)
         hit = np.flatnonzero(dist < self.dist)
         return np.column_stack([idx[hit], hit]).astype(np.int64).reshape(-1, 2)
@@ -495,7 +500,9 @@ class _Bounds:
             from . import coarse_kernels  # imported already: these bounds were built with it
 
             return coarse_kernels.fine_bounds(
-                np.ascontiguousarray(cells, dtype=np.int64), *self.rows, self.anchor_const,
+                np.ascontiguousarray(cells, dtype=np.int64),
+                *self.rows,
+                self.anchor_const,
                 (self.k_count, B, n_bins, self.step_rad, self.dist + self.slack, self.wide_limit),
             )
         if self._table is None:
@@ -576,15 +583,37 @@ def _build_bounds(
         )
         order = np.argsort(rho_r, kind="stable")
         cell_bound, anchor_const, anchor_max, cell_min = kernels.coarse_bounds(
-            rho_r[order], order // m, order % m, psi[order], rho_m.reshape(n, n), phi.reshape(n, n), own,
+            rho_r[order],
+            order // m,
+            order % m,
+            psi[order],
+            rho_m.reshape(n, n),
+            phi.reshape(n, n),
+            own,
             (k_count, B, n_bins, step_rad, d_win, wide_limit),
         )
         empty_f, empty_i = np.zeros(0), np.zeros(0, dtype=np.int32)
         return _Bounds(
-            m=m, n=n, k_count=k_count, bin_size=B, n_bins=n_bins, step_rad=step_rad, dist=dist,
-            slack=2.0 * slack, anchor_const=anchor_const, peak=empty_f, a_lo=empty_i, a_hi=empty_i,
-            dr2=empty_f, prod4=empty_f, anchors=(empty_i, empty_i), wrap=np.arange(6 * n_bins + 2) % n_bins,
-            cell_bound=cell_bound, rows=rows, wide_limit=wide_limit, anchor_max=anchor_max,
+            m=m,
+            n=n,
+            k_count=k_count,
+            bin_size=B,
+            n_bins=n_bins,
+            step_rad=step_rad,
+            dist=dist,
+            slack=2.0 * slack,
+            anchor_const=anchor_const,
+            peak=empty_f,
+            a_lo=empty_i,
+            a_hi=empty_i,
+            dr2=empty_f,
+            prod4=empty_f,
+            anchors=(empty_i, empty_i),
+            wrap=np.arange(6 * n_bins + 2) % n_bins,
+            cell_bound=cell_bound,
+            rows=rows,
+            wide_limit=wide_limit,
+            anchor_max=anchor_max,
             cell_min=cell_min,
         )
     jj, ll = np.triu_indices(n, 1)  # one twin per moving pair: j < l
@@ -597,7 +626,9 @@ def _build_bounds(
     anchor_const = np.zeros(m * n)
     row_i = np.repeat(np.arange(m, dtype=np.int32), m)
     row_q = np.tile(np.arange(m, dtype=np.int32), m)
-    kept: dict[str, list[np.ndarray]] = {k: [] for k in ("peak", "a_lo", "a_hi", "dr2", "prod4", "anchor_a", "anchor_b")}
+    kept: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("peak", "a_lo", "a_hi", "dr2", "prod4", "anchor_a", "anchor_b")
+    }
     # The tuples are built for blocks of moving pairs (about _TUPLES_PER_CHUNK * 4 tuples at a
     # time) and only the kept ones are stored: the temporaries stay small for many VOPs.
     ends = np.cumsum(cnt_all)
@@ -643,8 +674,15 @@ def _build_bounds(
         kept["anchor_b"].append(anchor_b[keep])
     del order, sorted_r, lo_all, cnt_all
     anchor_const += np.tile(own, n)
-    dtypes = {"peak": np.float64, "a_lo": np.int32, "a_hi": np.int32, "dr2": np.float64, "prod4": np.float64,
-              "anchor_a": np.int32, "anchor_b": np.int32}
+    dtypes = {
+        "peak": np.float64,
+        "a_lo": np.int32,
+        "a_hi": np.int32,
+        "dr2": np.float64,
+        "prod4": np.float64,
+        "anchor_a": np.int32,
+        "anchor_b": np.int32,
+    }
     joined = {k: (np.concatenate(v) if v else np.zeros(0, dtype=dtypes[k])) for k, v in kept.items()}
     del kept
     bounds = _Bounds(

@@ -36,9 +36,7 @@ _compiled = kernel(error_model="numpy")
 
 
 @_compiled
-def _window_value(
-    peak: float, lo: int, hi: int, half_step: float, dr2: float, prod4: float, d_win: float
-) -> float:
+def _window_value(peak: float, lo: int, hi: int, half_step: float, dr2: float, prod4: float, d_win: float) -> float:
     """Bound of ``max(0, D_t - distance)`` over angle indices ``lo..hi`` (metres; ``d_win = D_t + slack``).
 
     The distance is smallest at the angle nearest the peak; ``sin(x) >= x - x^3/6`` (x = half the
@@ -63,9 +61,12 @@ def _half_window(y2: float) -> float:
     ``(5/112) y^7 / (1 - y^2)``: the bound exceeds the true half-window by < 1e-6 rad here (the
     windows are the numpy path's ``acos`` windows), and the factor 1 + 1e-12 covers rounding.
     """
-    return 2.0 * np.sqrt(y2) * (
-        1.0 + y2 * (1.0 / 6.0 + y2 * (3.0 / 40.0 + y2 * (5.0 / 112.0) / (1.0 - y2)))
-    ) * (1.0 + 1e-12)
+    return (
+        2.0
+        * np.sqrt(y2)
+        * (1.0 + y2 * (1.0 / 6.0 + y2 * (3.0 / 40.0 + y2 * (5.0 / 112.0) / (1.0 - y2))))
+        * (1.0 + 1e-12)
+    )
 
 
 @_compiled
@@ -317,8 +318,22 @@ def fine_bounds(
             j = anchor // m
             i = anchor - j * m
             count, _ = _anchor_tuples(
-                i, j, ref_r, ref_psi, mov_r, mov_phi, mov_idx, inv_step, offset, d_win, wide_limit,
-                peak, a_lo, a_hi, dr2, prod4,
+                i,
+                j,
+                ref_r,
+                ref_psi,
+                mov_r,
+                mov_phi,
+                mov_idx,
+                inv_step,
+                offset,
+                d_win,
+                wide_limit,
+                peak,
+                a_lo,
+                a_hi,
+                dr2,
+                prod4,
             )
         for t in range(count):
             lo_t, hi_t = a_lo[t], a_hi[t]

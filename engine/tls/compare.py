@@ -13,11 +13,11 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
+from ..core.progress import CancelToken, Progress, ProgressCallback
+from ..core.transform import rotation_angle_deg
 from .manual import register_manual, target_residuals
 from .plot import ScanCache, register_project
-from ..core.progress import CancelToken, Progress, ProgressCallback
 from .project import Project
-from ..core.transform import rotation_angle_deg
 
 
 def compare_auto_manual(
@@ -47,8 +47,13 @@ def compare_auto_manual(
         sub = step.sub(0.6 + 0.4 * k / max(len(placing), 1), 0.6 + 0.4 * (k + 1) / max(len(placing), 1))
         reference, moving = scans(link.reference), scans(link.moving)
         manual = register_manual(
-            reference, moving, project.scan(link.reference).targets, project.scan(link.moving).targets,
-            link.params(project.params), progress=sub, cancel=cancel,
+            reference,
+            moving,
+            project.scan(link.reference).targets,
+            project.scan(link.moving).targets,
+            link.params(project.params),
+            progress=sub,
+            cancel=cancel,
         )
         if manual.ok:
             manual_links[link.moving] = manual.matrix
@@ -77,7 +82,9 @@ def compare_auto_manual(
             diff = np.linalg.inv(manual.matrix) @ link.matrix
             row["rotation_difference_deg"] = rotation_angle_deg(diff[:3, :3])
             scanner = np.append(moving.scanner_position_file, 1.0)
-            row["translation_difference_m"] = float(np.linalg.norm((link.matrix @ scanner - manual.matrix @ scanner)[:3]))
+            row["translation_difference_m"] = float(
+                np.linalg.norm((link.matrix @ scanner - manual.matrix @ scanner)[:3])
+            )
         pairs.append(row)
     manual_poses = _compose(project, manual_links)
     # target ids are known to name the same targets across scans only where the target fit of a
@@ -88,9 +95,12 @@ def compare_auto_manual(
     manual_res = target_residuals(targets, manual_poses)
     note = ""
     if auto_res.get("mean_m") is None:
-        reasons = sorted({p["manual"]["reason"] for p in pairs if p["manual"]["status"] != "ok" and p["manual"]["reason"]})
+        reasons = sorted(
+            {p["manual"]["reason"] for p in pairs if p["manual"]["status"] != "ok" and p["manual"]["reason"]}
+        )
         note = "no target is seen, under the same id, by two scans whose targets were fitted" + (
-            f" ({'; '.join(reasons)})" if reasons else "")
+            f" ({'; '.join(reasons)})" if reasons else ""
+        )
     step(1.0, "done")
     return {
         "frame": project.centre,
@@ -114,7 +124,11 @@ def _compose(project: Project, link_matrices: dict[str, np.ndarray]) -> dict[str
     for _ in range(len(project.scans)):
         for s in project.scans:
             link = project.link_of(s.name)
-            if poses[s.name] is None and link is not None and s.name in link_matrices and poses.get(link.reference) is not None:
+            if (
+                poses[s.name] is None
+                and link is not None
+                and s.name in link_matrices
+                and poses.get(link.reference) is not None
+            ):
                 poses[s.name] = poses[link.reference] @ link_matrices[s.name]
     return poses
-

@@ -10,14 +10,16 @@ from typing import Sequence
 import numpy as np
 
 from ..core.jit import kernel, run_blocks
-from .params import RegistrationParams
+from ..core.transform import apply as apply_transform
 from .ground import ground_at
+from .params import RegistrationParams
 from .prepare import PreparedScan, SliceLayer
 from .vop import polar
-from ..core.transform import apply as apply_transform
 
 
-def _violation(seen: np.ndarray, other: np.ndarray, *, bin_deg: float, margin_m: float, near_m: float, reach_m: float) -> tuple[float, int]:
+def _violation(
+    seen: np.ndarray, other: np.ndarray, *, bin_deg: float, margin_m: float, near_m: float, reach_m: float
+) -> tuple[float, int]:
     """Fraction of the points ``other`` (N, 3) that lie where the scanner that saw the points
     ``seen`` saw through: in front of (``margin_m`` nearer than) its first return in the same
     azimuth bin of ``bin_deg``, between ``near_m`` and ``reach_m`` from the scanner (both in its
@@ -64,15 +66,27 @@ def mutual_free_space_violation(
     of a correct pair's points into free space (measured on a real RIEGL scan). Levelled scanner
     frames (the prepared scans'), metres."""
     reach_m = params.free_space_reach_m
-    options = dict(bin_deg=params.free_space_bin_deg, margin_m=params.free_space_margin_m, near_m=params.free_space_near_m, reach_m=reach_m)
+    options = dict(
+        bin_deg=params.free_space_bin_deg,
+        margin_m=params.free_space_margin_m,
+        near_m=params.free_space_near_m,
+        reach_m=reach_m,
+    )
     a = _side(reference, reference_layers, moving, moving_to_reference, params, reach_m, options)
     b = _side(moving, moving_layers, reference, np.linalg.inv(moving_to_reference), params, reach_m, options)
     candidates = [x for x in (a, b) if np.isfinite(x[0])]
     return max(candidates) if candidates else (float("nan"), 0)
 
 
-def _side(this: PreparedScan, this_layers: Sequence[SliceLayer], other: PreparedScan, other_to_this: np.ndarray,
-          params: RegistrationParams, reach_m: float, options: dict) -> tuple[float, int]:
+def _side(
+    this: PreparedScan,
+    this_layers: Sequence[SliceLayer],
+    other: PreparedScan,
+    other_to_this: np.ndarray,
+    params: RegistrationParams,
+    reach_m: float,
+    options: dict,
+) -> tuple[float, int]:
     """The violation of ``this`` scanner's free space by ``other``'s points at its layers' heights."""
     seen = np.concatenate([layer.xyz for layer in this_layers]) if this_layers else np.zeros((0, 3))
     offsets = [layer.offset_m for layer in this_layers]
@@ -85,21 +99,51 @@ def _side(this: PreparedScan, this_layers: Sequence[SliceLayer], other: Prepared
     if params.follow_terrain:
         centres = np.array([this.scanner_height_m + o for o in offsets])
         ground = this.ground
-        origin, cell, heights = np.asarray(ground.origin, dtype=np.float64), float(ground.cell_m), np.asarray(ground.heights, dtype=np.float64)
+        origin, cell, heights = (
+            np.asarray(ground.origin, dtype=np.float64),
+            float(ground.cell_m),
+            np.asarray(ground.heights, dtype=np.float64),
+        )
     else:
         centres = np.asarray(offsets, dtype=np.float64)
         origin, cell, heights = np.zeros(2), 1.0, np.zeros((0, 0))
     m = np.asarray(other_to_this, dtype=np.float64)
     picked = np.zeros(len(other.points), dtype=np.bool_)
-    run_blocks(_in_layers_rows, len(other.points), other.points, other.ground_mask, m, reach_m * reach_m, params.follow_terrain,
-               origin, cell, heights, centres, half, picked, block=262144)
+    run_blocks(
+        _in_layers_rows,
+        len(other.points),
+        other.points,
+        other.ground_mask,
+        m,
+        reach_m * reach_m,
+        params.follow_terrain,
+        origin,
+        cell,
+        heights,
+        centres,
+        half,
+        picked,
+        block=262144,
+    )
     return _violation(seen, apply_transform(m, other.points[np.flatnonzero(picked)].astype(np.float64)), **options)
 
 
 @kernel
-def _in_layers_rows(start: int, stop: int, points: np.ndarray, ground: np.ndarray, m: np.ndarray, reach2: float, follow_terrain: bool,
-                    origin: np.ndarray, cell_m: float, heights: np.ndarray, centres: np.ndarray, half: float,
-                    out: np.ndarray) -> None:  # pragma: no cover - compiled
+def _in_layers_rows(
+    start: int,
+    stop: int,
+    points: np.ndarray,
+    ground: np.ndarray,
+    m: np.ndarray,
+    reach2: float,
+    follow_terrain: bool,
+    origin: np.ndarray,
+    cell_m: float,
+    heights: np.ndarray,
+    centres: np.ndarray,
+    half: float,
+    out: np.ndarray,
+) -> None:  # pragma: no cover - compiled
     """Rows ``start:stop``: ``out[i]`` whether point ``i`` is not ``ground`` and ``m`` moves it
     within horizontal distance ``sqrt(reach2)`` of the origin and into a slice layer: a height
     (above the ground grid ``origin, cell_m, heights`` when ``follow_terrain``, else z) within

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..core.errors import DataError
 import numpy as np
 
+from ..core.errors import DataError
 from ..core.jit import kernel
 from ..geometry.filters2d import median3_nearest, minimum_filter_nearest, nearest_cell_indices
 from ..geometry.voxel import column_bounds
@@ -40,12 +40,16 @@ def _lowest_voxel_kernel(points, lo, voxel_m, ny, lowest, mask):  # pragma: no c
     arithmetic); ``lowest`` (columns,) is scratch filled with int64's maximum."""
     n = points.shape[0]
     for i in range(n):
-        c = np.int64(np.floor((np.float64(points[i, 0]) - lo[0]) / voxel_m)) * ny + np.int64(np.floor((np.float64(points[i, 1]) - lo[1]) / voxel_m))
+        c = np.int64(np.floor((np.float64(points[i, 0]) - lo[0]) / voxel_m)) * ny + np.int64(
+            np.floor((np.float64(points[i, 1]) - lo[1]) / voxel_m)
+        )
         iz = np.int64(np.floor((np.float64(points[i, 2]) - lo[2]) / voxel_m))
         if iz < lowest[c]:
             lowest[c] = iz
     for i in range(n):
-        c = np.int64(np.floor((np.float64(points[i, 0]) - lo[0]) / voxel_m)) * ny + np.int64(np.floor((np.float64(points[i, 1]) - lo[1]) / voxel_m))
+        c = np.int64(np.floor((np.float64(points[i, 0]) - lo[0]) / voxel_m)) * ny + np.int64(
+            np.floor((np.float64(points[i, 1]) - lo[1]) / voxel_m)
+        )
         mask[i] = np.int64(np.floor((np.float64(points[i, 2]) - lo[2]) / voxel_m)) == lowest[c]
 
 
@@ -66,7 +70,9 @@ class GroundGrid:
     def cell_index(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Cell indices (clipped to the grid) of (N, 2) positions and whether they fall inside."""
         ij = np.floor((np.asarray(xy)[:, :2] - self.origin) / self.cell_m).astype(np.int64)
-        inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < self.heights.shape[0]) & (ij[:, 1] < self.heights.shape[1])
+        inside = (
+            (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < self.heights.shape[0]) & (ij[:, 1] < self.heights.shape[1])
+        )
         ix = np.clip(ij[:, 0], 0, self.heights.shape[0] - 1)
         iy = np.clip(ij[:, 1], 0, self.heights.shape[1] - 1)
         return ix, iy, inside
@@ -76,7 +82,13 @@ class GroundGrid:
         xy = np.asarray(xy)
         out = np.empty(len(xy))
         if len(xy):
-            _bilinear_kernel(xy, np.asarray(self.origin, dtype=np.float64), float(self.cell_m), np.asarray(self.heights, dtype=np.float64), out)
+            _bilinear_kernel(
+                xy,
+                np.asarray(self.origin, dtype=np.float64),
+                float(self.cell_m),
+                np.asarray(self.heights, dtype=np.float64),
+                out,
+            )
         return out
 
     def measured_at(self, xy: np.ndarray) -> np.ndarray:
@@ -111,7 +123,9 @@ def ground_at(x, y, origin, cell_m, h):  # pragma: no cover - compiled
     return top * (1 - fy) + bottom * fy
 
 
-def ground_grid(points: np.ndarray, *, cell_m: float = 0.5, window_m: float = 3.0, max_step_m: float = 0.6) -> GroundGrid:
+def ground_grid(
+    points: np.ndarray, *, cell_m: float = 0.5, window_m: float = 3.0, max_step_m: float = 0.6
+) -> GroundGrid:
     """Estimate a ground-height grid from the lowest point of each cell.
 
     A cell's lowest point is canopy or a trunk where the ground is hidden; such cells stand out
@@ -125,7 +139,9 @@ def ground_grid(points: np.ndarray, *, cell_m: float = 0.5, window_m: float = 3.
     cell_m : grid cell side, metres.
     """
     if len(points) == 0:
-        raise DataError("no points to estimate the ground from near the scanner (a georeferenced scan? give its scanner position: --scanner-position X,Y,Z)")
+        raise DataError(
+            "no points to estimate the ground from near the scanner (a georeferenced scan? give its scanner position: --scanner-position X,Y,Z)"
+        )
     origin = np.floor(column_bounds(points[:, :2])[0] / cell_m) * cell_m
     i = np.floor((points[:, 0] - origin[0]) / cell_m).astype(np.int64)
     j = np.floor((points[:, 1] - origin[1]) / cell_m).astype(np.int64)
@@ -156,7 +172,9 @@ def _fill_nearest(grid: np.ndarray) -> np.ndarray:
     return grid[ix, iy]
 
 
-def scanner_height_above_ground(grid: GroundGrid, scanner_xyz: np.ndarray, *, inner_m: float = 1.0, outer_m: float = 4.0) -> float:
+def scanner_height_above_ground(
+    grid: GroundGrid, scanner_xyz: np.ndarray, *, inner_m: float = 1.0, outer_m: float = 4.0
+) -> float:
     """Height of the scanner above the ground around it, metres: scanner z minus the median ground
     height of measured cells between ``inner_m`` and ``outer_m`` horizontally (the scanner's own
     blind spot and tripod are inside ``inner_m``)."""

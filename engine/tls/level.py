@@ -15,8 +15,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..geometry.features import SphereGrid, local_covariances, normals_and_variation
 from ..core.jit import kernel, run_blocks
+from ..geometry.features import SphereGrid, local_covariances, normals_and_variation
 from ..geometry.voxel import claim_voxel, voxel_bitmap
 from .params import RegistrationParams
 
@@ -48,7 +48,12 @@ NORMAL_SEARCH_CELL_M = 0.5
 LEVEL_SAMPLE_POINTS = 60000
 
 
-def level_sample(points: np.ndarray, *, voxel_m: float = RegistrationParams.level_voxel_m, radius_m: float = RegistrationParams.level_radius_m) -> np.ndarray:
+def level_sample(
+    points: np.ndarray,
+    *,
+    voxel_m: float = RegistrationParams.level_voxel_m,
+    radius_m: float = RegistrationParams.level_radius_m,
+) -> np.ndarray:
     """The even sample whose normals estimate a scan's vertical: of the points (scanner-centred,
     metres) within ``radius_m`` of the scanner, the first (in the points' order) in each
     ``voxel_m`` voxel of a grid with a corner at the scanner; float32 (M, 3), in the points'
@@ -57,12 +62,16 @@ def level_sample(points: np.ndarray, *, voxel_m: float = RegistrationParams.leve
     pts = np.asarray(points)
     occupied = voxel_bitmap(voxel_m, radius_m)
     out = np.empty((len(pts), 3), dtype=np.float32)  # only the rows written are ever touched
-    count = _first_in_voxels(pts, np.float32(radius_m * radius_m), float(voxel_m), int(np.ceil(radius_m / voxel_m)), occupied, out)
+    count = _first_in_voxels(
+        pts, np.float32(radius_m * radius_m), float(voxel_m), int(np.ceil(radius_m / voxel_m)), occupied, out
+    )
     return out[:count].copy()
 
 
 @kernel
-def _first_in_voxels(points: np.ndarray, r2: float, voxel_m: float, half: int, occupied: np.ndarray, out: np.ndarray) -> int:  # pragma: no cover - compiled
+def _first_in_voxels(
+    points: np.ndarray, r2: float, voxel_m: float, half: int, occupied: np.ndarray, out: np.ndarray
+) -> int:  # pragma: no cover - compiled
     """:func:`level_sample`: rows of ``points`` within ``sqrt(r2)`` (float32 sum of squares) that
     claim their voxel, packed into ``out``; returns how many."""
     count = 0
@@ -167,9 +176,13 @@ def estimate_up_direction(
         if np.degrees(np.arccos(np.clip(trunk_up @ ground, -1.0, 1.0))) <= max_slope_deg:
             return UpEstimate(trunk_up, ground, trunk_up, strength, "trunks, agreeing with the ground")
         if tilt_deg(trunk_up) < tilt_deg(ground):
-            return UpEstimate(trunk_up, ground, trunk_up, strength, "trunks (the ground disagrees; the more level reading wins)")
+            return UpEstimate(
+                trunk_up, ground, trunk_up, strength, "trunks (the ground disagrees; the more level reading wins)"
+            )
     if tilt_deg(ground) < ground_only_min_tilt_deg:
-        return UpEstimate(z, ground, trunk_up, strength, f"ground tilted {tilt_deg(ground):.1f} deg: taken as level (terrain slope)")
+        return UpEstimate(
+            z, ground, trunk_up, strength, f"ground tilted {tilt_deg(ground):.1f} deg: taken as level (terrain slope)"
+        )
     if trunk_up is not None and strength >= min_trunk_strength:
         return UpEstimate(z, ground, trunk_up, strength, "trunks and ground disagree: taken as level")
     return UpEstimate(ground, ground, trunk_up, strength, "ground")
@@ -212,14 +225,35 @@ def _great_circle_votes(normals: np.ndarray, directions: np.ndarray, band: float
     normals = normals[np.argsort(normals[:, 2], kind="stable")]
     beta = float(np.arcsin(min(band, 1.0)))
     reach = np.arccos(np.clip(directions[:, 2], -1.0, 1.0)) + beta
-    limits = np.where(reach >= np.pi / 2, len(normals), np.searchsorted(normals[:, 2], np.sin(np.minimum(reach, np.pi / 2)) + 1e-9, side="right"))
+    limits = np.where(
+        reach >= np.pi / 2,
+        len(normals),
+        np.searchsorted(normals[:, 2], np.sin(np.minimum(reach, np.pi / 2)) + 1e-9, side="right"),
+    )
     columns = np.ascontiguousarray(normals.T, dtype=np.float64)  # x, y and z each contiguous, read in order
-    run_blocks(_vote_rows, len(directions), columns, np.ascontiguousarray(directions, dtype=np.float64), limits.astype(np.int64), float(band), votes, block=64)
+    run_blocks(
+        _vote_rows,
+        len(directions),
+        columns,
+        np.ascontiguousarray(directions, dtype=np.float64),
+        limits.astype(np.int64),
+        float(band),
+        votes,
+        block=64,
+    )
     return votes
 
 
 @kernel
-def _vote_rows(start: int, stop: int, columns: np.ndarray, directions: np.ndarray, limits: np.ndarray, band: float, votes: np.ndarray) -> None:  # pragma: no cover - compiled
+def _vote_rows(
+    start: int,
+    stop: int,
+    columns: np.ndarray,
+    directions: np.ndarray,
+    limits: np.ndarray,
+    band: float,
+    votes: np.ndarray,
+) -> None:  # pragma: no cover - compiled
     """Directions ``start:stop`` of :func:`_great_circle_votes`: ``votes[k]`` the normals among
     the first ``limits[k]`` (``columns``: their x, y and z rows) with ``|n . d_k| < band``."""
     x, y, z = columns[0], columns[1], columns[2]
@@ -236,7 +270,9 @@ def _direction_mode(normals: np.ndarray, bandwidth_deg: float = 8.0) -> np.ndarr
     """Mode of unit vectors on the sphere by mean shift (flat cone kernel), started from their
     normalised mean and re-started from the densest of a few seeds."""
     cos_bw = np.cos(np.radians(bandwidth_deg))
-    seeds = [normals.mean(axis=0)] + list(normals[np.random.default_rng(0).choice(len(normals), min(20, len(normals)), replace=False)])
+    seeds = [normals.mean(axis=0)] + list(
+        normals[np.random.default_rng(0).choice(len(normals), min(20, len(normals)), replace=False)]
+    )
     best, best_count = None, -1
     for seed in seeds:
         u = seed / np.linalg.norm(seed)

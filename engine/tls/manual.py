@@ -19,7 +19,6 @@ Frames: target coordinates are in each scan's *file coordinates*; ``TargetFit.ma
 from __future__ import annotations
 
 import csv
-import io
 import itertools
 import logging
 import math
@@ -31,15 +30,15 @@ from typing import Any, Mapping, Optional, Sequence
 import numpy as np
 
 from ..core.errors import TargetError
-from ..geometry.icp import IcpResult
-from .prepare import prepare_scan
-from .params import RegistrationParams
 from ..core.outcome import Outcome, StepTimer
 from ..core.progress import CancelToken, Progress, ProgressCallback
-from .pair import file_to_lsf_matrix, fine_registration, lsf_to_file_matrix
 from ..core.scan import Scan
 from ..core.transform import apply, fit_rigid, rotation_angle_deg
 from ..geometry.cluster import connected_clusters
+from ..geometry.icp import IcpResult
+from .pair import file_to_lsf_matrix, fine_registration, lsf_to_file_matrix
+from .params import RegistrationParams
+from .prepare import prepare_scan
 
 log = logging.getLogger("forestreg")
 
@@ -78,7 +77,9 @@ def read_targets_csv(path: str | Path) -> dict[str, Targets]:
 
     p, lines = read_text_lines(path, TargetError, "target file")
     if not lines:
-        raise TargetError(f"target file {p} is empty; it needs a header line 'scan,target,x,y,z' and one line per target")
+        raise TargetError(
+            f"target file {p} is empty; it needs a header line 'scan,target,x,y,z' and one line per target"
+        )
     header_no, header_line = lines[0]
     delimiter = next((d for d in (",", ";", "\t") if d in header_line), ",")
     rows = list(csv.reader([line for _, line in lines], delimiter=delimiter))
@@ -194,8 +195,12 @@ def shared_target_ids(reference_targets: Mapping[str, Any], moving_targets: Mapp
     return [str(k) for k in reference_targets if str(k) in mov]
 
 
-def fit_to_targets(reference_targets: Mapping[str, Any], moving_targets: Mapping[str, Any], *,
-                   min_spread_m: float = _LIMITS.manual_min_target_spread_m) -> TargetFit:
+def fit_to_targets(
+    reference_targets: Mapping[str, Any],
+    moving_targets: Mapping[str, Any],
+    *,
+    min_spread_m: float = _LIMITS.manual_min_target_spread_m,
+) -> TargetFit:
     """Least-squares rigid transform (no scale) ``reference ~ matrix @ moving`` from the targets
     the two sets share (by id). ``min_spread_m``: the least RMS distance of the shared targets
     from one straight line (:attr:`RegistrationParams.manual_min_target_spread_m`).
@@ -235,9 +240,13 @@ def _line_spread(points: np.ndarray) -> float:
     return float(np.sqrt(np.sum(s[1:] ** 2) / len(points)))
 
 
-def suspect_targets(reference_targets: Mapping[str, Any], moving_targets: Mapping[str, Any], *,
-                    inlier_m: float = _LIMITS.manual_max_target_rmse_m,
-                    min_spread_m: float = _LIMITS.manual_min_target_spread_m) -> list[str]:
+def suspect_targets(
+    reference_targets: Mapping[str, Any],
+    moving_targets: Mapping[str, Any],
+    *,
+    inlier_m: float = _LIMITS.manual_max_target_rmse_m,
+    min_spread_m: float = _LIMITS.manual_min_target_spread_m,
+) -> list[str]:
     """Shared targets inconsistent with the largest mutually consistent subset (the likely mixed
     up or mis-picked ones), worst first; empty when all fit or no consistent subset of 3 exists.
 
@@ -249,8 +258,9 @@ def suspect_targets(reference_targets: Mapping[str, Any], moving_targets: Mappin
     return _consensus_outliers(reference_targets, moving_targets, inlier_m, min_spread_m) or []
 
 
-def _consensus_outliers(reference_targets: Mapping[str, Any], moving_targets: Mapping[str, Any], inlier_m: float,
-                        min_spread_m: float) -> Optional[list[str]]:
+def _consensus_outliers(
+    reference_targets: Mapping[str, Any], moving_targets: Mapping[str, Any], inlier_m: float, min_spread_m: float
+) -> Optional[list[str]]:
     """:func:`suspect_targets`, but None when no 3 targets agree (no consensus at all)."""
     ref = _as_targets(reference_targets, "reference")
     mov = _as_targets(moving_targets, "moving")
@@ -393,7 +403,9 @@ def register_manual(
         suspects = outliers or []
         timings.add("target_fit", time.perf_counter() - t0)
         worst = suspects[0] if suspects else fit.worst_id
-        detail = ", ".join(f"{t} {r:.2f} m" for t, r in sorted(zip(fit.target_ids, fit.residuals_m), key=lambda x: -x[1]))
+        detail = ", ".join(
+            f"{t} {r:.2f} m" for t, r in sorted(zip(fit.target_ids, fit.residuals_m), key=lambda x: -x[1])
+        )
         if suspects:
             agree = len(fit.target_ids) - len(suspects)
             why = f"target(s) {', '.join(suspects)} disagree with the other {agree} - ids mixed up or wrongly picked"
@@ -406,7 +418,9 @@ def register_manual(
         return _failed(
             f"the targets do not fit: RMS residual {fit.rmse_m:.3f} m over {len(fit.target_ids)} targets "
             f"(limit {params.manual_max_target_rmse_m:.2f} m; residuals {detail}). Worst target: {worst}; {why}",
-            base, target_fit=fit, suspects=suspects,
+            base,
+            target_fit=fit,
+            suspects=suspects,
         )
     timings.add("target_fit", time.perf_counter() - t0)
     log.info("target fit: %d targets, RMS %.1f mm", len(fit.target_ids), 1000 * fit.rmse_m)
@@ -440,7 +454,10 @@ def register_manual(
     step(1.0, "done")
     log.info(
         "ok: target RMS %.1f mm, ICP moved it %.1f mm / %.3f deg, ICP std %.1f mm",
-        1000 * fit.rmse_m, 1000 * moved_m, turned, 1000 * fine.std_m,
+        1000 * fit.rmse_m,
+        1000 * moved_m,
+        turned,
+        1000 * fine.std_m,
     )
     return ManualResult(status="ok", reason="", matrix=matrix, **common)
 
@@ -529,11 +546,15 @@ def detect_reflectors(
     if shape not in CENTRE_DEPTH_FACTOR:
         raise TargetError(f"unknown target shape {shape!r}; use one of {', '.join(CENTRE_DEPTH_FACTOR)}")
     if scan.intensity is None:
-        raise TargetError(f"{scan.name}: the scan has no intensity; reflectors cannot be found - pick the targets by hand")
+        raise TargetError(
+            f"{scan.name}: the scan has no intensity; reflectors cannot be found - pick the targets by hand"
+        )
     inten = np.asarray(scan.intensity, dtype=np.float64)
     finite = np.isfinite(inten)
     if finite.sum() < 10 or np.ptp(inten[finite]) <= 0.0:
-        raise TargetError(f"{scan.name}: the scan has no intensity variation (all values equal); reflectors cannot be found")
+        raise TargetError(
+            f"{scan.name}: the scan has no intensity variation (all values equal); reflectors cannot be found"
+        )
     median, threshold = _threshold(inten[finite], intensity_quantile, bulk_factor)
     if intensity_threshold is not None:
         threshold = float(intensity_threshold)
@@ -637,7 +658,9 @@ def match_detected_to_known(
 # --------------------------------------------------------------------------------------------
 
 
-def target_residuals(targets_by_scan: Mapping[str, Mapping[str, Any]], poses: Mapping[str, Optional[np.ndarray]]) -> dict[str, Any]:
+def target_residuals(
+    targets_by_scan: Mapping[str, Mapping[str, Any]], poses: Mapping[str, Optional[np.ndarray]]
+) -> dict[str, Any]:
     """The paper's per-plot accuracy figure (table 5): with every scan in the project frame, the
     mean distance between the centres of one target seen from different scans.
 
@@ -672,7 +695,11 @@ def target_residuals(targets_by_scan: Mapping[str, Mapping[str, Any]], poses: Ma
             continue
         pts = np.array([p for _, p in obs])
         d = [float(np.linalg.norm(pts[i] - pts[j])) for i, j in itertools.combinations(range(len(pts)), 2)]
-        per_target[tid] = {"scans": [s for s, _ in obs], "mean_distance_m": float(np.mean(d)), "max_distance_m": float(np.max(d))}
+        per_target[tid] = {
+            "scans": [s for s, _ in obs],
+            "mean_distance_m": float(np.mean(d)),
+            "max_distance_m": float(np.max(d)),
+        }
     means = [v["mean_distance_m"] for v in per_target.values()]
     return {
         "per_target": per_target,

@@ -20,26 +20,46 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
+from ..core.outcome import Outcome, StepTimer
+from ..core.progress import CancelToken, Progress, ProgressCallback
+from ..core.scan import Scan, ScanSource
+from ..core.transform import apply as apply_transform
+from ..core.transform import rigid_errors, rotation_angle_deg, rotation_from_vector
+from ..core.uncertainty import (
+    Alternative,
+    WeakDirection,
+    alternative_weight,
+    icp_covariance_at,
+    judge,
+    repeat_shift,
+    weak_directions,
+    with_alternatives,
+)
+from ..geometry.icp import IcpReference, IcpResult, icp
+from ..geometry.nearest import PlaneNearest
+from ..geometry.voxel import voxel_grid
+
 # the coarse matcher's compiled bounds, imported with the pair (the matcher imports them at its
 # first match): a process that loads a pair's kernels in the background while the scans are read
 # and prepared (:func:`~forestreg.engine.core.jit.preload`) loads these with them
 from . import coarse_kernels  # noqa: F401
 from .coarse import CoarseMatch, match_vops
 from .evidence import mutual_free_space_violation
-from ..geometry.icp import IcpReference, IcpResult, icp
-from ..geometry.nearest import PlaneNearest
-from ..geometry.voxel import voxel_grid
+from .params import RegistrationParams, ScannerPositionParams
+from .prepare import (
+    PreparedScan,
+    PreparedScans,
+    SliceLayer,
+    centre_scan,
+    derived,
+    extract_vops,
+    icp_grid_voxel,
+    prepare_centred,
+    slice_layers,
+)
 from .scanner_position import locate_scanner
 from .uncertainty import pair_uncertainty
-from ..core.uncertainty import Alternative, WeakDirection, alternative_weight, icp_covariance_at, judge, repeat_shift, weak_directions, with_alternatives
-from .prepare import PreparedScan, PreparedScans, SliceLayer, centre_scan, derived, extract_vops, icp_grid_voxel, prepare_centred, slice_layers
 from .vop import VisualOcclusionPoints
-from .params import RegistrationParams, ScannerPositionParams
-from ..core.outcome import Outcome, StepTimer
-from ..core.progress import CancelToken, Progress, ProgressCallback
-from ..core.scan import Scan, ScanSource
-from ..core.transform import rigid_errors, rotation_angle_deg, rotation_from_vector
-from ..core.transform import apply as apply_transform
 
 log = logging.getLogger("forestreg")
 
@@ -159,9 +179,9 @@ class PairResult(Outcome):
             "icp_std_m": None if self.icp is None else self.icp.std_m,
             "icp_fitness": None if self.icp is None else self.icp.fitness,
             "free_space_violation": self.free_space_violation,
-            "standard_errors": None if not self.uncertainty else {
-                k: self.uncertainty.get(k) for k in ("rotation_deg", "translation_m") if k in self.uncertainty
-            },
+            "standard_errors": None
+            if not self.uncertainty
+            else {k: self.uncertainty.get(k) for k in ("rotation_deg", "translation_m") if k in self.uncertainty},
         }
 
     def to_dict(self) -> dict[str, Any]:
@@ -204,7 +224,6 @@ def _checked_up(up: Optional[np.ndarray], what: str) -> Optional[np.ndarray]:
     if v.shape != (3,) or not np.isfinite(v).all() or np.linalg.norm(v) < 1e-9:
         raise ParameterError(f"{what} must be a finite non-zero direction (3 numbers), got {up!r}")
     return v / np.linalg.norm(v)
-
 
 
 def register(
@@ -307,7 +326,9 @@ def register(
         # else runs beside, is shorter by as much (a large scan's is made with it, see above)
         grid = None
         if prepared_scan.icp_grid is None and _pair_threads() < 2:  # one core: nothing to run beside
-            prepared_scan = dataclasses.replace(prepared_scan, icp_grid=voxel_grid(prepared_scan.points, icp_grid_voxel(params)))
+            prepared_scan = dataclasses.replace(
+                prepared_scan, icp_grid=voxel_grid(prepared_scan.points, icp_grid_voxel(params))
+            )
         elif prepared_scan.icp_grid is None:
             grid = ThreadPoolExecutor(1, thread_name_prefix="forestreg-icp-grid")
             grid_job = grid.submit(voxel_grid, prepared_scan.points, icp_grid_voxel(params))
@@ -325,25 +346,39 @@ def register(
     read = {role: threading.Event() for role in ("reference", "moving")}
     failed: list[tuple[str, BaseException]] = []
     with ThreadPoolExecutor(max_workers=_pair_threads()) as pool:
-        jobs = {"reference": pool.submit(read_and_prepare, reference, "reference"), "moving": pool.submit(read_and_prepare, moving, "moving")}
+        jobs = {
+            "reference": pool.submit(read_and_prepare, reference, "reference"),
+            "moving": pool.submit(read_and_prepare, moving, "moving"),
+        }
         del reference, moving
         for role in ("reference", "moving"):
             read[role].wait()
         if failed:  # the reference's error first when both fail, whichever thread failed first
             raise dict(failed).get("reference", failed[0][1])
         step(0.0, "preparing both scans")
-        (reference, ref_prep), (moving, mov_prep) = ((scans[role], jobs[role].result()) for role in ("reference", "moving"))
+        (reference, ref_prep), (moving, mov_prep) = (
+            (scans[role], jobs[role].result()) for role in ("reference", "moving")
+        )
     log.info("registering %s onto %s", moving.name, reference.name)
     for name, prep in ((reference.name, ref_prep), (moving.name, mov_prep)):
         log.info(
             "%s: %d points within %.0f m, tilt %.2f deg%s, scanner %.2f m above ground",
-            name, len(prep.points), params.max_range_m, prep.tilt_deg, " (levelled)" if prep.levelled else "", prep.scanner_height_m,
+            name,
+            len(prep.points),
+            params.max_range_m,
+            prep.tilt_deg,
+            " (levelled)" if prep.levelled else "",
+            prep.scanner_height_m,
         )
     step(0.3, "slicing")
     attempts = _coarse_attempts(ref_prep, mov_prep, params, timed, step.sub(0.3, 0.5))
     if params.fallback_slice_offsets_m and all(a.matched < params.min_matched for a in attempts):
         wider = params.replace(slice_offsets_m=tuple(params.slice_offsets_m) + tuple(params.fallback_slice_offsets_m))
-        log.info("no confident match at dh %s: adding slice layers at dh %s", params.slice_offsets_m, params.fallback_slice_offsets_m)
+        log.info(
+            "no confident match at dh %s: adding slice layers at dh %s",
+            params.slice_offsets_m,
+            params.fallback_slice_offsets_m,
+        )
         attempts += _coarse_attempts(ref_prep, mov_prep, wider, timed, step.sub(0.5, 0.6))
     chosen = _choose_attempt(attempts)
     base = dict(
@@ -355,51 +390,132 @@ def register(
         params=params,
         attempts=[a.summary() for a in attempts],
     )
-    details = dict(reference=ref_prep, moving=mov_prep, reference_layers=chosen.reference_layers, moving_layers=chosen.moving_layers, attempts=attempts, chosen=chosen)
-    ambiguous = chosen.problem.startswith("ambiguous") and chosen.match is not None and chosen.match.second_translation is not None
+    details = dict(
+        reference=ref_prep,
+        moving=mov_prep,
+        reference_layers=chosen.reference_layers,
+        moving_layers=chosen.moving_layers,
+        attempts=attempts,
+        chosen=chosen,
+    )
+    ambiguous = (
+        chosen.problem.startswith("ambiguous")
+        and chosen.match is not None
+        and chosen.match.second_translation is not None
+    )
     if chosen.problem and not ambiguous:
         return _failed(chosen.problem, chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
     if not ambiguous:
         result = _finish(reference, moving, ref_prep, mov_prep, chosen, base, details, params, timed, step)
         if not result.ok:
             return result
-        return _count_alternative(result, chosen, moving, params, lambda candidate: _finish(
-            reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed,
-            Progress(None, cancel=cancel), alternative=True))
+        return _count_alternative(
+            result,
+            chosen,
+            moving,
+            params,
+            lambda candidate: _finish(
+                reference,
+                moving,
+                ref_prep,
+                mov_prep,
+                candidate,
+                base,
+                dict(details, chosen=candidate),
+                params,
+                timed,
+                Progress(None, cancel=cancel),
+                alternative=True,
+            ),
+        )
     # Two coarse solutions are nearly as good: let evidence the VOP score did not use decide (the
     # ground overlap, ICP, the VOPs confirmed after ICP, free space). Only when exactly one of them
     # passes every check is it taken; otherwise the pair stays ambiguous and fails.
     log.info("%s - checking both solutions with ICP and free-space evidence", chosen.problem)
+
     def checking(candidate: CoarseAttempt) -> PairResult:
-        return _finish(reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed,
-                       Progress(None, cancel=cancel), alternative=True)
+        return _finish(
+            reference,
+            moving,
+            ref_prep,
+            mov_prep,
+            candidate,
+            base,
+            dict(details, chosen=candidate),
+            params,
+            timed,
+            Progress(None, cancel=cancel),
+            alternative=True,
+        )
 
     outcomes = []
     for candidate in (dataclasses.replace(chosen, problem=""), _second_candidate(chosen, params.match_distance_m)):
-        outcomes.append(_finish(reference, moving, ref_prep, mov_prep, candidate, base, dict(details, chosen=candidate), params, timed, Progress(None, cancel=cancel)))
+        outcomes.append(
+            _finish(
+                reference,
+                moving,
+                ref_prep,
+                mov_prep,
+                candidate,
+                base,
+                dict(details, chosen=candidate),
+                params,
+                timed,
+                Progress(None, cancel=cancel),
+            )
+        )
     passed = [r for r in outcomes if r.ok]
     if len(passed) == 1 and passed[0].matched >= params.min_matched:
         other = outcomes[1] if passed[0] is outcomes[0] else outcomes[0]
         note = f"{chosen.problem}; resolved: the other solution fails its checks ({other.reason})"
         log.info("ambiguity resolved by ICP/free-space evidence")
         excluded = _alternative(passed[0], other, moving, params, f"excluded: it fails its checks ({other.reason})")
-        return _count_alternative(dataclasses.replace(passed[0], ambiguity_resolved=note), passed[0].details.chosen, moving, params,
-                                  checking, known=[excluded])
+        return _count_alternative(
+            dataclasses.replace(passed[0], ambiguity_resolved=note),
+            passed[0].details.chosen,
+            moving,
+            params,
+            checking,
+            known=[excluded],
+        )
     if len(passed) == 2:
         rot, trans = rigid_errors(passed[0].matrix, passed[1].matrix)
         if rot < 0.2 and trans < 0.05:  # ICP took both to the same place: not two solutions
             same = _alternative(passed[0], passed[1], moving, params, "the same pose after ICP")
-            return _count_alternative(dataclasses.replace(passed[0], ambiguity_resolved=f"{chosen.problem}; resolved: ICP takes both solutions to the same pose"),
-                                      passed[0].details.chosen, moving, params, checking, known=[same])
+            return _count_alternative(
+                dataclasses.replace(
+                    passed[0],
+                    ambiguity_resolved=f"{chosen.problem}; resolved: ICP takes both solutions to the same pose",
+                ),
+                passed[0].details.chosen,
+                moving,
+                params,
+                checking,
+                known=[same],
+            )
         if prior is not None:
             near = [r for r in passed if _within_prior(r.matrix, prior, moving, prior_tolerance)]
             if len(near) == 1:
                 other = passed[1] if near[0] is passed[0] else passed[0]
                 excluded = _alternative(near[0], other, moving, params, "excluded: it disagrees with the prior pose")
-                return _count_alternative(dataclasses.replace(near[0], ambiguity_resolved=f"{chosen.problem}; resolved: only this solution agrees with the prior pose"),
-                                          near[0].details.chosen, moving, params, checking, known=[excluded])
+                return _count_alternative(
+                    dataclasses.replace(
+                        near[0],
+                        ambiguity_resolved=f"{chosen.problem}; resolved: only this solution agrees with the prior pose",
+                    ),
+                    near[0].details.chosen,
+                    moving,
+                    params,
+                    checking,
+                    known=[excluded],
+                )
     why = "both pass every check" if len(passed) == 2 else "neither passes every check"
-    return _failed(f"{chosen.problem}; ICP and free-space evidence cannot decide ({why})", chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
+    return _failed(
+        f"{chosen.problem}; ICP and free-space evidence cannot decide ({why})",
+        chosen,
+        base,
+        PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None),
+    )
 
 
 def _within_prior(matrix: np.ndarray, prior: np.ndarray, moving: Scan, tolerance: tuple[float, float]) -> bool:
@@ -424,24 +540,53 @@ def _second_candidate(attempt: CoarseAttempt, match_distance_m: float) -> Coarse
     pairs = np.column_stack([idx[hit], hit]).astype(np.int64).reshape(-1, 2)
     second = dataclasses.replace(
         m,
-        rotation_deg=m.second_rotation_deg, translation=np.asarray(m.second_translation), score=m.second_score,
-        matched=int(len(pairs)), matched_pairs=pairs,
-        second_score=m.score, second_matched=m.matched, second_rotation_deg=m.rotation_deg, second_translation=m.translation,
+        rotation_deg=m.second_rotation_deg,
+        translation=np.asarray(m.second_translation),
+        score=m.second_score,
+        matched=int(len(pairs)),
+        matched_pairs=pairs,
+        second_score=m.score,
+        second_matched=m.matched,
+        second_rotation_deg=m.rotation_deg,
+        second_translation=m.translation,
     )
     return dataclasses.replace(attempt, match=second, problem="")
 
 
-def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, chosen: CoarseAttempt,
-            base: dict[str, Any], details: dict[str, Any], params: RegistrationParams, timed, step, *,
-            alternative: bool = False) -> PairResult:
+def _finish(
+    reference: Scan,
+    moving: Scan,
+    ref_prep: PreparedScan,
+    mov_prep: PreparedScan,
+    chosen: CoarseAttempt,
+    base: dict[str, Any],
+    details: dict[str, Any],
+    params: RegistrationParams,
+    timed,
+    step,
+    *,
+    alternative: bool = False,
+) -> PairResult:
     """From a confident coarse VOP match to the result: vertical offset, ICP, evidence checks.
     ``alternative``: the solution is an alternative being checked, excluded only by evidence
     against it (ICP running away, its trunks not coinciding, free space, no overlap), not for
     having fewer trunks than a result needs (a shift along a row loses the ones at its ends)."""
     step(0.6, "vertical alignment")
-    coarse = timed("vertical", vertical_alignment, ref_prep, mov_prep, chosen.match.matrix(), fit_tilt=ref_prep.levelled or mov_prep.levelled)
+    coarse = timed(
+        "vertical",
+        vertical_alignment,
+        ref_prep,
+        mov_prep,
+        chosen.match.matrix(),
+        fit_tilt=ref_prep.levelled or mov_prep.levelled,
+    )
     if coarse is None:
-        return _failed("the two scans share no ground where the match puts them: no vertical offset", chosen, base, PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None))
+        return _failed(
+            "the two scans share no ground where the match puts them: no vertical offset",
+            chosen,
+            base,
+            PairDetails(**details, lsf_matrix=None, coarse_lsf_matrix=None),
+        )
     dz = float(coarse[2, 3])
 
     step(0.65, "ICP")
@@ -456,27 +601,37 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
     if moved_m > params.icp_max_correction_m or turned > 5.0:
         return _failed(
             f"ICP moved the coarse solution by {moved_m:.2f} m and {turned:.1f} deg: the coarse match is not trustworthy",
-            chosen, common, full_details,
+            chosen,
+            common,
+            full_details,
         )
     needed = max(2 if alternative else params.min_matched, int(np.ceil(0.5 * chosen.matched)))
     if confirmed < needed:
         return _failed(
             f"after ICP only {confirmed} of the {chosen.matched} matched VOPs still coincide within "
             f"{0.75 * params.match_distance_m:.2f} m (need {needed}): the VOP match was chance, not the same trunks",
-            chosen, common, full_details,
+            chosen,
+            common,
+            full_details,
         )
-    violation, tested = mutual_free_space_violation(ref_prep, mov_prep, chosen.reference_layers, chosen.moving_layers, fine.matrix, params)
+    violation, tested = mutual_free_space_violation(
+        ref_prep, mov_prep, chosen.reference_layers, chosen.moving_layers, fine.matrix, params
+    )
     if tested >= 100 and violation > params.max_free_space_violation:
         return _failed(
             f"{100 * violation:.0f} % of one scan's trunk-slice points stand where the other scanner saw empty space "
             f"(allowed {100 * params.max_free_space_violation:.0f} %): the scans do not fit together there - wrong match",
-            chosen, dict(common, free_space_violation=violation), full_details,
+            chosen,
+            dict(common, free_space_violation=violation),
+            full_details,
         )
     common["free_space_violation"] = None if tested < 100 else violation
     if fine.fitness < params.icp_min_fitness:
         return _failed(
             f"ICP fitness {fine.fitness:.2f} is below {params.icp_min_fitness:.2f}: the scans hardly overlap where the match puts them",
-            chosen, common, full_details,
+            chosen,
+            common,
+            full_details,
         )
     matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, fine.matrix)
     coarse_matrix = lsf_to_file_matrix(reference, moving, ref_prep, mov_prep, coarse)
@@ -491,7 +646,10 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
     step(1.0, "done")
     log.info(
         "ok: %d matched VOPs, ICP std %.1f mm, fitness %.2f (%.1f s)",
-        chosen.matched, 1000 * fine.std_m, fine.fitness, base["timings"].get("total_s", sum(base["timings"].values())),
+        chosen.matched,
+        1000 * fine.std_m,
+        fine.fitness,
+        base["timings"].get("total_s", sum(base["timings"].values())),
     )
     return PairResult(
         status="ok",
@@ -514,7 +672,9 @@ def _finish(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: Pre
     )
 
 
-def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: RegistrationParams, timed, step: Progress) -> list[CoarseAttempt]:
+def _coarse_attempts(
+    ref_prep: PreparedScan, mov_prep: PreparedScan, params: RegistrationParams, timed, step: Progress
+) -> list[CoarseAttempt]:
     """Slice both scans at ``params.slice_offsets_m`` and match their VOPs at ``params``'s VOP
     radius, or at each automatic radius."""
     ref_layers = timed("slice", derived, ref_prep, ("layers", params), lambda: slice_layers(ref_prep, params))
@@ -523,7 +683,9 @@ def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: Reg
     step(0.0, f"visual occlusion points within {', '.join(f'{r:.0f}' for r in radii)} m")
     # every (scan, radius) extraction is independent and mostly compiled-kernel and numpy work (which
     # releases the GIL): two at a time
-    jobs = [(prep, layers, radius) for radius in radii for prep, layers in ((ref_prep, ref_layers), (mov_prep, mov_layers))]
+    jobs = [
+        (prep, layers, radius) for radius in radii for prep, layers in ((ref_prep, ref_layers), (mov_prep, mov_layers))
+    ]
 
     def vops(job: tuple) -> VisualOcclusionPoints:
         prep, layers, radius = job
@@ -533,14 +695,28 @@ def _coarse_attempts(ref_prep: PreparedScan, mov_prep: PreparedScan, params: Reg
         found = timed("vops", lambda: list(pool.map(vops, jobs)))
         step(0.5, f"matching the visual occlusion points within {', '.join(f'{r:.0f}' for r in radii)} m")
         # the radii are matched independently (compiled kernels, without the GIL): two at a time
-        matched = timed("coarse", lambda: list(pool.map(lambda k: _coarse_attempt(found[2 * k], found[2 * k + 1], radii[k], params), range(len(radii)))))
+        matched = timed(
+            "coarse",
+            lambda: list(
+                pool.map(lambda k: _coarse_attempt(found[2 * k], found[2 * k + 1], radii[k], params), range(len(radii)))
+            ),
+        )
     attempts = []
     for k, radius in enumerate(radii):
         ref_vops, mov_vops = found[2 * k], found[2 * k + 1]
-        attempt = dataclasses.replace(matched[k], slice_offsets_m=tuple(params.slice_offsets_m), reference_layers=ref_layers, moving_layers=mov_layers)
+        attempt = dataclasses.replace(
+            matched[k],
+            slice_offsets_m=tuple(params.slice_offsets_m),
+            reference_layers=ref_layers,
+            moving_layers=mov_layers,
+        )
         log.info(
             "D_r %.0f m, dh %s: %d / %d VOPs, %d matched (next distinct: %s)%s",
-            radius, params.slice_offsets_m, len(ref_vops), len(mov_vops), attempt.matched,
+            radius,
+            params.slice_offsets_m,
+            len(ref_vops),
+            len(mov_vops),
+            attempt.matched,
             None if attempt.match is None else attempt.match.second_matched,
             f" - {attempt.problem}" if attempt.problem else "",
         )
@@ -582,11 +758,16 @@ def _pair_threads() -> int:
     return min(2, worker_count())
 
 
-def _coarse_attempt(ref_vops: VisualOcclusionPoints, mov_vops: VisualOcclusionPoints, radius: float, params: RegistrationParams) -> CoarseAttempt:
+def _coarse_attempt(
+    ref_vops: VisualOcclusionPoints, mov_vops: VisualOcclusionPoints, radius: float, params: RegistrationParams
+) -> CoarseAttempt:
     """Match the VOPs of one radius and judge the evidence."""
     if len(ref_vops) < params.min_vops or len(mov_vops) < params.min_vops:
         return CoarseAttempt(
-            radius, ref_vops, mov_vops, None,
+            radius,
+            ref_vops,
+            mov_vops,
+            None,
             f"too few visual occlusion points within {radius:.0f} m (reference {len(ref_vops)}, moving {len(mov_vops)}; "
             f"need {params.min_vops}): no trunks visible in the slice - not a forest scan, or try other slice heights (--dh)",
         )
@@ -617,7 +798,9 @@ def _choose_attempt(attempts: list[CoarseAttempt]) -> CoarseAttempt:
     return max(attempts, key=lambda a: (not a.problem, a.margin, a.matched, -a.radius_m))
 
 
-def fine_registration(reference: PreparedScan, moving: PreparedScan, coarse_lsf: np.ndarray, params: RegistrationParams) -> IcpResult:
+def fine_registration(
+    reference: PreparedScan, moving: PreparedScan, coarse_lsf: np.ndarray, params: RegistrationParams
+) -> IcpResult:
     """ICP (paper sec. 2.6) from a coarse moving-LSF -> reference-LSF matrix, on the points the two
     scans can share (see :func:`overlap_region`)."""
     if reference.icp_grid is not None and moving.icp_grid is not None:
@@ -626,7 +809,9 @@ def fine_registration(reference: PreparedScan, moving: PreparedScan, coarse_lsf:
         # distance of the moving points, so the reference's overlap is found by the search)
         centroids = moving.icp_grid.centroids
         reference_scanner = np.linalg.inv(coarse_lsf)[:2, 3]
-        near = (centroids[:, 0] - reference_scanner[0]) ** 2 + (centroids[:, 1] - reference_scanner[1]) ** 2 <= params.max_range_m**2
+        near = (centroids[:, 0] - reference_scanner[0]) ** 2 + (
+            centroids[:, 1] - reference_scanner[1]
+        ) ** 2 <= params.max_range_m**2
         return icp(
             _icp_reference(reference),
             centroids[near],
@@ -647,7 +832,9 @@ def _icp_reference(prepared: PreparedScan) -> IcpReference:
     return derived(prepared, ("icp_reference",), lambda: IcpReference(prepared.points, prepared.icp_grid))
 
 
-def overlap_region(reference: np.ndarray, moving: np.ndarray, moving_to_reference: np.ndarray, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+def overlap_region(
+    reference: np.ndarray, moving: np.ndarray, moving_to_reference: np.ndarray, reach_m: float
+) -> tuple[np.ndarray, np.ndarray]:
     """The points each scan could share with the other: reference points within ``reach_m``
     (horizontally) of the moving scanner and moving points within ``reach_m`` of the reference
     scanner, under the transform ``moving_to_reference`` (levelled scanner frames, metres)."""
@@ -658,7 +845,9 @@ def overlap_region(reference: np.ndarray, moving: np.ndarray, moving_to_referenc
     return reference[ref_keep], moving[mov_keep]
 
 
-def vertical_alignment(reference: PreparedScan, moving: PreparedScan, horizontal: np.ndarray, *, fit_tilt: bool) -> Optional[np.ndarray]:
+def vertical_alignment(
+    reference: PreparedScan, moving: PreparedScan, horizontal: np.ndarray, *, fit_tilt: bool
+) -> Optional[np.ndarray]:
     """The vertical part of the coarse registration from the two ground grids.
 
     ``horizontal`` (3x3, moving LSF xy -> reference LSF xy) places the moving ground cells over
@@ -693,7 +882,9 @@ def vertical_alignment(reference: PreparedScan, moving: PreparedScan, horizontal
     return matrix
 
 
-def _vop_confirmation(attempt: CoarseAttempt, lsf_matrix: np.ndarray, match_distance_m: float) -> tuple[Optional[float], int]:
+def _vop_confirmation(
+    attempt: CoarseAttempt, lsf_matrix: np.ndarray, match_distance_m: float
+) -> tuple[Optional[float], int]:
     """Check the coarse VOP match against the ICP result, which does not depend on it: the mean
     horizontal distance (m) between the matched VOPs after the final transform, and how many of
     them still coincide within 0.75 ``D_t`` (the same trunks do; chance matches scatter)."""
@@ -717,10 +908,16 @@ def terrain_agreement(reference: PreparedScan, moving: PreparedScan, lsf_matrix:
     if both.sum() < 10:
         return {"terrain_cells": int(both.sum()), "terrain_median_m": None, "terrain_p90_m": None}
     diff = np.abs(reference.ground.height_at(moved[both, :2]) - moved[both, 2])
-    return {"terrain_cells": int(both.sum()), "terrain_median_m": float(np.median(diff)), "terrain_p90_m": float(np.percentile(diff, 90))}
+    return {
+        "terrain_cells": int(both.sum()),
+        "terrain_median_m": float(np.median(diff)),
+        "terrain_p90_m": float(np.percentile(diff, 90)),
+    }
 
 
-def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, params: RegistrationParams, to_file: Optional[np.ndarray] = None) -> dict[str, Any]:
+def _pair_uncertainty(
+    attempt: CoarseAttempt, fine: IcpResult, params: RegistrationParams, to_file: Optional[np.ndarray] = None
+) -> dict[str, Any]:
     """1-sigma uncertainty of the result at the moving scanner: the ICP's precision from its
     normal matrix, the matched trunks that still coincide after ICP (within 0.75
     ``match_distance_m``; :func:`~forestreg.engine.tls.uncertainty.pair_uncertainty`) as the
@@ -732,8 +929,14 @@ def _pair_uncertainty(attempt: CoarseAttempt, fine: IcpResult, params: Registrat
     moved = attempt.moving_vops.xy[pairs[:, 1]] @ lsf[:2, :2].T + lsf[:2, 3]
     ref = attempt.reference_vops.xy[pairs[:, 0]]
     keep = np.hypot(*(moved - ref).T) < 0.75 * params.match_distance_m
-    trunks = pair_uncertainty(ref[keep], moved[keep], lsf[:2, 3], icp_std_m=fine.std_m,
-                              floor_m=params.min_uncertainty_m, floor_deg=params.min_uncertainty_deg)
+    trunks = pair_uncertainty(
+        ref[keep],
+        moved[keep],
+        lsf[:2, 3],
+        icp_std_m=fine.std_m,
+        floor_m=params.min_uncertainty_m,
+        floor_deg=params.min_uncertainty_deg,
+    )
     return combine_with_fit(trunks, fine, lsf[:3, 3], params, np.eye(3) if to_file is None else to_file)
 
 
@@ -742,8 +945,14 @@ def _lsf_to_file_rotation(scan: Scan, prepared: PreparedScan) -> np.ndarray:
     return (scan.local_to_file_matrix() @ np.linalg.inv(prepared.local_to_lsf))[:3, :3]
 
 
-def _alternative(result: PairResult, other: PairResult, moving: Scan, params: RegistrationParams, status: str,
-                 lead: Optional[float] = None) -> Alternative:
+def _alternative(
+    result: PairResult,
+    other: PairResult,
+    moving: Scan,
+    params: RegistrationParams,
+    status: str,
+    lead: Optional[float] = None,
+) -> Alternative:
     """The distinct solution ``other`` as the chosen ``result``'s uncertainty counts it: its weight
     from the matched VOPs it trails by (0 unless ``status`` is "counted"), where it puts the
     moving scanner against the chosen matrix (m, deg), from its ICP result when it has one, else
@@ -757,20 +966,41 @@ def _alternative(result: PairResult, other: PairResult, moving: Scan, params: Re
         turn = rotation_angle_deg(result.matrix[:3, :3].T @ other.matrix[:3, :3])
     else:
         offset, turn = np.zeros(3), 0.0
-        if other.details is not None and other.details.chosen is not None and other.details.chosen.match is not None \
-                and result.details is not None and result.details.chosen is not None and result.details.chosen.match is not None:
+        if (
+            other.details is not None
+            and other.details.chosen is not None
+            and other.details.chosen.match is not None
+            and result.details is not None
+            and result.details.chosen is not None
+            and result.details.chosen.match is not None
+        ):
             a, b = result.details.chosen.match, other.details.chosen.match
             offset = np.append(np.asarray(b.translation, dtype=float) - np.asarray(a.translation, dtype=float), 0.0)
             turn = abs((float(b.rotation_deg) - float(a.rotation_deg) + 180.0) % 360.0 - 180.0)
     lead = result.matched - other.matched if lead is None else lead
     weight = alternative_weight(lead, params.uncertainty) if status == "counted" else 0.0
-    direction = float(np.degrees(np.arctan2(offset[1], offset[0])) % 360.0) if np.hypot(offset[0], offset[1]) > 1e-6 else None
-    return Alternative(weight=weight, offset_m=float(np.linalg.norm(offset)), offset_deg=float(turn), support=float(other.matched),
-                       chosen_support=float(result.matched), status=status, direction_deg=direction)
+    direction = (
+        float(np.degrees(np.arctan2(offset[1], offset[0])) % 360.0) if np.hypot(offset[0], offset[1]) > 1e-6 else None
+    )
+    return Alternative(
+        weight=weight,
+        offset_m=float(np.linalg.norm(offset)),
+        offset_deg=float(turn),
+        support=float(other.matched),
+        chosen_support=float(result.matched),
+        status=status,
+        direction_deg=direction,
+    )
 
 
-def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, params: RegistrationParams,
-                       finish: Callable[[CoarseAttempt], PairResult], known: Sequence[Alternative] = ()) -> PairResult:
+def _count_alternative(
+    result: PairResult,
+    chosen: CoarseAttempt,
+    moving: Scan,
+    params: RegistrationParams,
+    finish: Callable[[CoarseAttempt], PairResult],
+    known: Sequence[Alternative] = (),
+) -> PairResult:
     """The chosen solution's result with its alternatives counted: the best distinct coarse
     solution (when likely enough to matter by its lead,
     :attr:`~forestreg.engine.core.uncertainty.UncertaintyParams.min_alternative_weight`, or close in
@@ -787,14 +1017,24 @@ def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, 
     candidates: list[tuple[CoarseAttempt, float, str]] = []
     if not known and m is not None and m.second_translation is not None and m.second_matched:
         lead = chosen.matched - int(m.second_matched)
-        if alternative_weight(lead, up) >= up.min_alternative_weight or m.second_matched >= up.second_share * chosen.matched:
+        if (
+            alternative_weight(lead, up) >= up.min_alternative_weight
+            or m.second_matched >= up.second_share * chosen.matched
+        ):
             candidates.append((_second_candidate(chosen, params.match_distance_m), lead, ""))
     # the shifts under which the trunks repeat: the matched ones and all those of the reference
     # scan (a row of posts beyond the matched ones), at least ``repeat_share`` of them; and the
     # matched ones along a motion the surfaces leave free (there the trunks alone pin the result:
     # three in a row repeating is enough)
-    weak = [np.asarray(w.vector[:2]) for w in weak_directions(result.icp.information, up)
-            if w.kind == "translation" and w.azimuth_deg is not None] if result.icp is not None else []
+    weak = (
+        [
+            np.asarray(w.vector[:2])
+            for w in weak_directions(result.icp.information, up)
+            if w.kind == "translation" and w.azimuth_deg is not None
+        ]
+        if result.icp is not None
+        else []
+    )
     seen: list[np.ndarray] = []
     rules = [(None, 4.0, False), (None, 3.0, True)] + [(u, 3.0, False) for u in weak]
     for along, least, everyone in rules:
@@ -802,18 +1042,27 @@ def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, 
         if repeat is None:
             continue
         translation, repeated, of = repeat
-        if repeated < max(least, up.repeat_share * of if along is None else 0.0) \
-                or any(np.hypot(*(translation - t)) < params.distinct.translation_m for t in seen):
+        if repeated < max(least, up.repeat_share * of if along is None else 0.0) or any(
+            np.hypot(*(translation - t)) < params.distinct.translation_m for t in seen
+        ):
             continue
         seen.append(translation)
         which = "trunk shadows of the reference scan" if everyone else "matched trunks"
-        pattern = (f"{repeated} of the {of} {which} repeat themselves {float(np.hypot(*translation)):.2f} m along "
-                   f"{np.degrees(np.arctan2(translation[1], translation[0])) % 180.0:.0f} deg"
-                   + (", where the surfaces do not pin it" if along is not None else "") + ": regular rows (posts, columns, a planted grid)")
-        candidates.append((_moved_candidate(chosen, 0.0, translation, params.match_distance_m), chosen.matched - repeated, pattern))
+        pattern = (
+            f"{repeated} of the {of} {which} repeat themselves {float(np.hypot(*translation)):.2f} m along "
+            f"{np.degrees(np.arctan2(translation[1], translation[0])) % 180.0:.0f} deg"
+            + (", where the surfaces do not pin it" if along is not None else "")
+            + ": regular rows (posts, columns, a planted grid)"
+        )
+        candidates.append(
+            (_moved_candidate(chosen, 0.0, translation, params.match_distance_m), chosen.matched - repeated, pattern)
+        )
     alternatives = list(known)
     for candidate, lead, pattern in candidates:
-        log.info("a distinct solution (%s) is refined and checked too", pattern or f"{candidate.matched} VOPs against {chosen.matched}")
+        log.info(
+            "a distinct solution (%s) is refined and checked too",
+            pattern or f"{candidate.matched} VOPs against {chosen.matched}",
+        )
         _checking.alternative = True
         try:
             other = finish(candidate)
@@ -835,8 +1084,9 @@ def _count_alternative(result: PairResult, chosen: CoarseAttempt, moving: Scan, 
     return _settle(result, alternatives, params)
 
 
-def trunk_repeat(attempt: CoarseAttempt, params: RegistrationParams, *, along: Optional[np.ndarray] = None,
-                 all_vops: bool = False) -> Optional[tuple[np.ndarray, int, int]]:
+def trunk_repeat(
+    attempt: CoarseAttempt, params: RegistrationParams, *, along: Optional[np.ndarray] = None, all_vops: bool = False
+) -> Optional[tuple[np.ndarray, int, int]]:
     """The shift under which a coarse solution's matched reference trunks (VOPs) best repeat
     themselves (:func:`~forestreg.engine.core.uncertainty.repeat_shift` at ``match_distance_m``,
     shifts of at least ``distinct.translation_m``; reference levelled frame, m); None with fewer
@@ -844,19 +1094,31 @@ def trunk_repeat(attempt: CoarseAttempt, params: RegistrationParams, *, along: O
     every reference VOP, not only the matched ones."""
     if attempt.match is None or attempt.matched < 4:
         return None
-    xy = attempt.reference_vops.xy if all_vops else attempt.reference_vops.xy[np.unique(attempt.match.matched_pairs[:, 0])]
-    return repeat_shift(xy, params.match_distance_m, params.distinct.translation_m, along=along, limit=45 if all_vops else 60)
+    xy = (
+        attempt.reference_vops.xy
+        if all_vops
+        else attempt.reference_vops.xy[np.unique(attempt.match.matched_pairs[:, 0])]
+    )
+    return repeat_shift(
+        xy, params.match_distance_m, params.distinct.translation_m, along=along, limit=45 if all_vops else 60
+    )
 
 
-def _moved_candidate(attempt: CoarseAttempt, rotation_deg: float, translation: np.ndarray, match_distance_m: float) -> CoarseAttempt:
+def _moved_candidate(
+    attempt: CoarseAttempt, rotation_deg: float, translation: np.ndarray, match_distance_m: float
+) -> CoarseAttempt:
     """The attempt with its coarse solution followed by a motion of the reference frame (rotation
     deg, translation m): the solution where a repeating pattern puts the moving scan next."""
     m = attempt.match
     theta = np.deg2rad(rotation_deg)
     rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
-    moved = dataclasses.replace(m, second_rotation_deg=float(m.rotation_deg) + float(rotation_deg),
-                                second_translation=rot @ np.asarray(m.translation, dtype=float) + np.asarray(translation, dtype=float),
-                                second_score=m.score, second_matched=m.matched)
+    moved = dataclasses.replace(
+        m,
+        second_rotation_deg=float(m.rotation_deg) + float(rotation_deg),
+        second_translation=rot @ np.asarray(m.translation, dtype=float) + np.asarray(translation, dtype=float),
+        second_score=m.score,
+        second_matched=m.matched,
+    )
     return _second_candidate(dataclasses.replace(attempt, match=moved), match_distance_m)
 
 
@@ -871,15 +1133,18 @@ def _settle(result: PairResult, alternatives: Sequence[Alternative], params: Reg
         if any(a.status == "counted" and a.weight > 0 for a in alternatives):
             u["without_alternatives"] = {"translation_m": t, "rotation_deg": r}
     weak = [WeakDirection.from_dict(w) for w in u.get("weak_directions", [])]
-    reason = judge(u.get("translation_m"), u.get("rotation_deg"), params.uncertainty, weak=weak, alternatives=alternatives)
+    reason = judge(
+        u.get("translation_m"), u.get("rotation_deg"), params.uncertainty, weak=weak, alternatives=alternatives
+    )
     if not reason:
         return dataclasses.replace(result, uncertainty=u)
     log.warning("registration refused: %s", reason)
     return dataclasses.replace(result, status="failed", reason=reason, matrix=None, coarse_matrix=None, uncertainty=u)
 
 
-def combine_with_fit(trunks: dict[str, Any], fine: IcpResult, at: np.ndarray, params: RegistrationParams,
-                     to_file: np.ndarray = np.eye(3)) -> dict[str, Any]:
+def combine_with_fit(
+    trunks: dict[str, Any], fine: IcpResult, at: np.ndarray, params: RegistrationParams, to_file: np.ndarray = np.eye(3)
+) -> dict[str, Any]:
     """The stated 1-sigma uncertainty at ``at`` (the moving scanner in the reference's levelled
     frame) from the ICP's normal matrix and the trunks' figures (``trunks``, from
     :func:`~forestreg.engine.tls.uncertainty.pair_uncertainty`).
@@ -916,8 +1181,14 @@ def combine_with_fit(trunks: dict[str, Any], fine: IcpResult, at: np.ndarray, pa
             var = heading_var + 1e-12 if abs(v[2]) > 0.9 else 1e6
             g = np.concatenate([v, np.zeros(3)])
         extra += np.outer(g, g) / var
-    pos_cov, rot_cov = icp_covariance_at(info, float(fine.std_m), at, up.independent_patches, up.rotation_patches, extra)
-    weak_h = [np.asarray(w.vector[:2]) / max(np.hypot(*w.vector[:2]), 1e-12) for w in weak if w.kind == "translation" and w.azimuth_deg is not None]
+    pos_cov, rot_cov = icp_covariance_at(
+        info, float(fine.std_m), at, up.independent_patches, up.rotation_patches, extra
+    )
+    weak_h = [
+        np.asarray(w.vector[:2]) / max(np.hypot(*w.vector[:2]), 1e-12)
+        for w in weak
+        if w.kind == "translation" and w.azimuth_deg is not None
+    ]
     strong = np.eye(2)
     for h in weak_h:
         strong = strong - np.outer(h, h)
@@ -927,16 +1198,22 @@ def combine_with_fit(trunks: dict[str, Any], fine: IcpResult, at: np.ndarray, pa
     heading = rot_cov[2, 2] + (0.0 if heading_weak else share * heading_var)
     vertical = max(float(np.sqrt(max(pos_cov[2, 2], 0.0))), params.min_uncertainty_m)
     u.update(
-        trunks_m=u["translation_m"], trunks_deg=u["rotation_deg"],
-        fit_m=float(np.sqrt(max(np.trace(pos_cov), 0.0))), fit_deg=float(np.degrees(np.sqrt(max(np.trace(rot_cov), 0.0)))),
+        trunks_m=u["translation_m"],
+        trunks_deg=u["rotation_deg"],
+        fit_m=float(np.sqrt(max(np.trace(pos_cov), 0.0))),
+        fit_deg=float(np.degrees(np.sqrt(max(np.trace(rot_cov), 0.0)))),
         horizontal_m=float(np.sqrt(max(np.trace(horizontal), 0.0))),
         vertical_m=vertical,
         heading_deg=float(np.degrees(np.sqrt(max(heading, 0.0)))),
         translation_m=max(params.min_uncertainty_m, float(np.sqrt(max(np.trace(horizontal), 0.0) + vertical**2))),
-        rotation_deg=max(params.min_uncertainty_deg, float(np.degrees(np.sqrt(max(heading + rot_cov[0, 0] + rot_cov[1, 1], 0.0))))),
+        rotation_deg=max(
+            params.min_uncertainty_deg, float(np.degrees(np.sqrt(max(heading + rot_cov[0, 0] + rot_cov[1, 1], 0.0))))
+        ),
         weak_directions=[_in_file_frame(w, to_file).to_dict() for w in weak],
-        method=("ICP normal matrix (the surfaces' precision) with the matched trunks after ICP as the check; "
-                "along weak directions the trunks alone; distinct alternatives counted"),
+        method=(
+            "ICP normal matrix (the surfaces' precision) with the matched trunks after ICP as the check; "
+            "along weak directions the trunks alone; distinct alternatives counted"
+        ),
     )
     return u
 
@@ -945,20 +1222,40 @@ def _in_file_frame(w: WeakDirection, to_file: np.ndarray) -> WeakDirection:
     """A weak direction with its vector turned from the levelled frame into the file frame."""
     v = np.asarray(to_file, dtype=float) @ np.asarray(w.vector, dtype=float)
     v = v / max(float(np.linalg.norm(v)), 1e-12)
-    az = None if w.kind == "rotation" or np.hypot(v[0], v[1]) < 0.5 else float(np.degrees(np.arctan2(v[1], v[0])) % 180.0)
+    az = (
+        None
+        if w.kind == "rotation" or np.hypot(v[0], v[1]) < 0.5
+        else float(np.degrees(np.arctan2(v[1], v[0])) % 180.0)
+    )
     return WeakDirection(w.kind, tuple(float(x) for x in v), w.share, az)
 
 
-def lsf_to_file_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, lsf_matrix: np.ndarray) -> np.ndarray:
+def lsf_to_file_matrix(
+    reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, lsf_matrix: np.ndarray
+) -> np.ndarray:
     """A moving-LSF -> reference-LSF matrix as a moving-file -> reference-file matrix (composes
     moving file -> local -> LSF -> reference LSF -> local -> file)."""
     file_to_local = np.linalg.inv(moving.local_to_file_matrix())
-    return reference.local_to_file_matrix() @ np.linalg.inv(ref_prep.local_to_lsf) @ lsf_matrix @ mov_prep.local_to_lsf @ file_to_local
+    return (
+        reference.local_to_file_matrix()
+        @ np.linalg.inv(ref_prep.local_to_lsf)
+        @ lsf_matrix
+        @ mov_prep.local_to_lsf
+        @ file_to_local
+    )
 
 
-def file_to_lsf_matrix(reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, file_matrix: np.ndarray) -> np.ndarray:
+def file_to_lsf_matrix(
+    reference: Scan, moving: Scan, ref_prep: PreparedScan, mov_prep: PreparedScan, file_matrix: np.ndarray
+) -> np.ndarray:
     """The inverse of :func:`lsf_to_file_matrix`: a file -> file matrix in the levelled frames."""
-    return ref_prep.local_to_lsf @ np.linalg.inv(reference.local_to_file_matrix()) @ file_matrix @ moving.local_to_file_matrix() @ np.linalg.inv(mov_prep.local_to_lsf)
+    return (
+        ref_prep.local_to_lsf
+        @ np.linalg.inv(reference.local_to_file_matrix())
+        @ file_matrix
+        @ moving.local_to_file_matrix()
+        @ np.linalg.inv(mov_prep.local_to_lsf)
+    )
 
 
 #: set in a thread while it checks an alternative solution: its failures are evidence, not news

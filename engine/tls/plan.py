@@ -33,13 +33,26 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .params import PlanParams, RegistrationParams
 from .pair import _choose_attempt, _coarse_attempt, vop_radii
+from .params import PlanParams, RegistrationParams
 from .prepare import PreparedScan, derived, extract_vops, slice_layers
 from .vop import angular_spacing
 
-__all__ = ["PlotCoverage", "ScanPlan", "placed_links", "ScanView", "ShadowEvidence", "Sight", "StemMap", "Suggestion", "plan_scans", "scan_view",
-           "shadow_evidence", "sight", "stem_map"]
+__all__ = [
+    "PlotCoverage",
+    "ScanPlan",
+    "placed_links",
+    "ScanView",
+    "ShadowEvidence",
+    "Sight",
+    "StemMap",
+    "Suggestion",
+    "plan_scans",
+    "scan_view",
+    "shadow_evidence",
+    "sight",
+    "stem_map",
+]
 
 
 # ----------------------------------------------------------------------------- what the placed scans saw
@@ -71,8 +84,9 @@ def _apply(matrix: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     return xyz @ matrix[:3, :3].T + matrix[:3, 3]
 
 
-def scan_view(name: str, prepared: PreparedScan, lsf_to_plan: np.ndarray, params: RegistrationParams,
-              cell_m: float = 1.0) -> ScanView:
+def scan_view(
+    name: str, prepared: PreparedScan, lsf_to_plan: np.ndarray, params: RegistrationParams, cell_m: float = 1.0
+) -> ScanView:
     """The :class:`ScanView` of a scan from its preparation for registration with ``params``
     (levelled scanner frame) and the 4x4 matrix from that frame into the plan frame. The trunk
     shadows and slice layers are the ones its links used (kept with the preparation)."""
@@ -89,7 +103,9 @@ def scan_view(name: str, prepared: PreparedScan, lsf_to_plan: np.ndarray, params
         if len(far) >= 100:
             step = angular_spacing(far)
             break
-    slice_xy = _apply(lsf_to_plan, np.concatenate([layer.xyz for layer in layers]))[:, :2] if layers else np.zeros((0, 2))
+    slice_xy = (
+        _apply(lsf_to_plan, np.concatenate([layer.xyz for layer in layers]))[:, :2] if layers else np.zeros((0, 2))
+    )
     obstacles = (np.unique(np.floor(slice_xy / _OBSTACLE_CELL_M).astype(np.int64), axis=0) + 0.5) * _OBSTACLE_CELL_M
     ground = prepared.points[prepared.ground_mask]
     if len(ground):
@@ -146,11 +162,17 @@ def stem_map(views: Sequence[ScanView], merge_m: float = 0.4) -> StemMap:
             owner.append(np.full(len(pts), k))
             radius_of.append(np.full(len(pts), radius))
     if not xy or sum(len(p) for p in xy) == 0:
-        return StemMap(np.zeros((0, 2)), np.zeros(0), (), {v.name: {r: np.zeros(0, dtype=np.int64) for r in v.vops} for v in views})
+        return StemMap(
+            np.zeros((0, 2)), np.zeros(0), (), {v.name: {r: np.zeros(0, dtype=np.int64) for r in v.vops} for v in views}
+        )
     pts, rads, owners, radii = np.concatenate(xy), np.concatenate(rad), np.concatenate(owner), np.concatenate(radius_of)
     pairs = cKDTree(pts).query_pairs(merge_m, output_type="ndarray")
     n = len(pts)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else coo_matrix((n, n))
+    graph = (
+        coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        if len(pairs)
+        else coo_matrix((n, n))
+    )
     count, labels = connected_components(graph, directed=False)
     centres = np.zeros((count, 2))
     np.add.at(centres, labels, pts)
@@ -292,10 +314,12 @@ class Suggestion:
     def reason(self) -> str:
         """Why the position is suggested, in one sentence: what it shares with the scan it links
         to and what it adds (the figures above, rounded)."""
-        return (f"shares {self.shared_stems} trunk shadows with {self.links_to} ({self.needed} needed) within "
-                f"{self.radius_m:g} m, {self.distance_m:.1f} m from its scanner; sees {self.new_stem_area_m2:.1f} m2 of stem "
-                f"no placed scan saw and {self.new_view_m2:.0f} m2 of plot hidden so far "
-                f"({self.expected_stem_area_m2:.1f} m2 of stem expected there)")
+        return (
+            f"shares {self.shared_stems} trunk shadows with {self.links_to} ({self.needed} needed) within "
+            f"{self.radius_m:g} m, {self.distance_m:.1f} m from its scanner; sees {self.new_stem_area_m2:.1f} m2 of stem "
+            f"no placed scan saw and {self.new_view_m2:.0f} m2 of plot hidden so far "
+            f"({self.expected_stem_area_m2:.1f} m2 of stem expected there)"
+        )
 
 
 @dataclass(frozen=True)
@@ -347,8 +371,14 @@ class PlotCoverage:
     plot's ground cells and which were seen, and the stem area expected per m2 of ground.
     :meth:`assess` tells what a scanner at a position would share with the placed scans and see."""
 
-    def __init__(self, views: Sequence[ScanView], params: PlanParams, registration: RegistrationParams,
-                 centre: Optional[Sequence[float]] = None, links: Sequence[tuple] = ()) -> None:
+    def __init__(
+        self,
+        views: Sequence[ScanView],
+        params: PlanParams,
+        registration: RegistrationParams,
+        centre: Optional[Sequence[float]] = None,
+        links: Sequence[tuple] = (),
+    ) -> None:
         if not views:
             raise ValueError("no placed scan to plan from")
         self.views, self.params = list(views), params
@@ -360,7 +390,9 @@ class PlotCoverage:
         self.ground_reach = float(np.median([v.ground_reach_m for v in views]))
         # the plot's ground cells and which were seen
         span = int(math.ceil(self.radius / cell)) + 1
-        ij = np.stack(np.meshgrid(np.arange(-span, span + 1), np.arange(-span, span + 1), indexing="ij"), axis=-1).reshape(-1, 2)
+        ij = np.stack(
+            np.meshgrid(np.arange(-span, span + 1), np.arange(-span, span + 1), indexing="ij"), axis=-1
+        ).reshape(-1, 2)
         ij = ij + np.floor(c / cell).astype(np.int64)
         cells = (ij + 0.5) * cell
         inside = np.hypot(*(cells - c).T) <= self.radius
@@ -380,7 +412,9 @@ class PlotCoverage:
             self.in_view |= sees.ground(self.cells, self.reach)
         # stem area a scanner sees (about half of each circumference) per m2 of plot in view so far:
         # the stems the map cannot show stand in the plot's hidden parts about as densely
-        self.density = float((np.pi * stems.radius[self.in_plot] * params.stem_band_m).sum()) / max(float(self.in_view.sum()) * cell * cell, 1.0)
+        self.density = float((np.pi * stems.radius[self.in_plot] * params.stem_band_m).sum()) / max(
+            float(self.in_view.sum()) * cell * cell, 1.0
+        )
         self.falloff_m = self._falloff(links)
 
     def _falloff(self, links: Sequence[tuple]) -> float:
@@ -402,7 +436,13 @@ class PlotCoverage:
                 found.append(np.inf if ratio >= 1.0 else -d / math.log(max(ratio, 0.05)))
         return float(np.median(found)) if found else float("inf")
 
-    def _shared(self, p: np.ndarray, links_to: Optional[Sequence[str]], falloff_m: Optional[float] = None, s: Optional[Sight] = None) -> tuple:
+    def _shared(
+        self,
+        p: np.ndarray,
+        links_to: Optional[Sequence[str]],
+        falloff_m: Optional[float] = None,
+        s: Optional[Sight] = None,
+    ) -> tuple:
         """(trunk shadows expected shared, the placed scan, D_r, distance) of the placed scan (of
         ``links_to``) a scanner at ``p`` would share most with: those it cast a shadow of at that
         D_r, within D_r of ``p`` and at least ``min_visible_fraction`` of their width visible from
@@ -439,7 +479,11 @@ class PlotCoverage:
         slice height."""
         step = self.params.grid_m
         k = int(math.floor(self.radius / step))
-        grid = np.stack(np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij"), axis=-1).reshape(-1, 2) * step + self.centre
+        grid = (
+            np.stack(np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij"), axis=-1).reshape(-1, 2)
+            * step
+            + self.centre
+        )
         grid = grid[np.hypot(*(grid - self.centre).T) <= self.radius]
         if len(self.stems):
             from scipy.spatial import cKDTree
@@ -462,10 +506,19 @@ class PlotCoverage:
         p = np.asarray(position, dtype=np.float64)[:2]
         s = self.sight(p)
         best = self._shared(p, links_to, s=s)
-        return best, s.arcs(self.stems, self.params.arc_bins, self.params.patch_m, self.step_rad), s.ground(self.cells, self.reach)
+        return (
+            best,
+            s.arcs(self.stems, self.params.arc_bins, self.params.patch_m, self.step_rad),
+            s.ground(self.cells, self.reach),
+        )
 
-    def gain(self, arcs: np.ndarray, view: np.ndarray, unseen: Optional[np.ndarray] = None,
-             in_view: Optional[np.ndarray] = None) -> tuple[float, float, float]:
+    def gain(
+        self,
+        arcs: np.ndarray,
+        view: np.ndarray,
+        unseen: Optional[np.ndarray] = None,
+        in_view: Optional[np.ndarray] = None,
+    ) -> tuple[float, float, float]:
         """(new stem area m2, plot area newly in view m2, stem area expected there m2) of a
         position's :meth:`assess` figures, given what is seen (default: by the placed scans)."""
         u = self.unseen if unseen is None else unseen
@@ -475,9 +528,16 @@ class PlotCoverage:
         return new_area, new_view, float(self.density * new_view)
 
 
-def plan_scans(views: Sequence[ScanView], params: PlanParams, registration: RegistrationParams, *, n: int = 1,
-               centre: Optional[Sequence[float]] = None, links_to: Optional[Sequence[str]] = None,
-               links: Sequence[tuple] = ()) -> ScanPlan:
+def plan_scans(
+    views: Sequence[ScanView],
+    params: PlanParams,
+    registration: RegistrationParams,
+    *,
+    n: int = 1,
+    centre: Optional[Sequence[float]] = None,
+    links_to: Optional[Sequence[str]] = None,
+    links: Sequence[tuple] = (),
+) -> ScanPlan:
     """Suggest up to ``n`` next scanner positions for the plot the placed scans ``views`` show.
 
     Each suggestion links to a placed scan (``links_to``: only to these) by the rule of the module
@@ -497,17 +557,30 @@ def plan_scans(views: Sequence[ScanView], params: PlanParams, registration: Regi
             rows.append((p, link, arcs, ground))
     seen_area, unseen_area = plot.stem_area()
     cell2 = plot.cell * plot.cell
-    base = ScanPlan(centre=(float(plot.centre[0]), float(plot.centre[1])), radius_m=plot.radius,
-                    scanners={v.name: tuple(float(x) for x in v.scanner) for v in views},
-                    stems=int(plot.in_plot.sum()),
-                    stems_seen_twice=int(sum(1 for k, seen in enumerate(plot.stems.seen_by) if plot.in_plot[k] and len(seen) >= 2)),
-                    stem_area_seen_m2=seen_area, stem_area_unseen_m2=unseen_area,
-                    ground_seen_m2=float(plot.ground_seen.sum() * cell2), ground_unseen_m2=float((~plot.ground_seen).sum() * cell2),
-                    candidates=len(grid), linking=len(rows), step_rad=plot.step_rad, falloff_m=plot.falloff_m, stem_map=plot.stems)
+    base = ScanPlan(
+        centre=(float(plot.centre[0]), float(plot.centre[1])),
+        radius_m=plot.radius,
+        scanners={v.name: tuple(float(x) for x in v.scanner) for v in views},
+        stems=int(plot.in_plot.sum()),
+        stems_seen_twice=int(sum(1 for k, seen in enumerate(plot.stems.seen_by) if plot.in_plot[k] and len(seen) >= 2)),
+        stem_area_seen_m2=seen_area,
+        stem_area_unseen_m2=unseen_area,
+        ground_seen_m2=float(plot.ground_seen.sum() * cell2),
+        ground_unseen_m2=float((~plot.ground_seen).sum() * cell2),
+        candidates=len(grid),
+        linking=len(rows),
+        step_rad=plot.step_rad,
+        falloff_m=plot.falloff_m,
+        stem_map=plot.stems,
+    )
     if not rows:
-        return _replace(base, reason=(
-            f"no position within the plot (radius {plot.radius:.1f} m, {len(grid)} tried) would share {params.min_shared_stems} "
-            f"trunk shadows with {'a placed scan' if links_to is None else ' or '.join(links_to)}"))
+        return _replace(
+            base,
+            reason=(
+                f"no position within the plot (radius {plot.radius:.1f} m, {len(grid)} tried) would share {params.min_shared_stems} "
+                f"trunk shadows with {'a placed scan' if links_to is None else ' or '.join(links_to)}"
+            ),
+        )
     suggestions = []
     unseen, in_view = plot.unseen.copy(), plot.in_view.copy()
     taken: set[int] = set()
@@ -525,7 +598,11 @@ def plan_scans(views: Sequence[ScanView], params: PlanParams, registration: Regi
         taken.add(best_k)
         unseen = unseen * (1.0 - arcs)
         in_view = in_view | view
-        suggestions.append(Suggestion(float(p[0]), float(p[1]), link[1], link[0], params.min_shared_stems, link[2], link[3], *best_parts))
+        suggestions.append(
+            Suggestion(
+                float(p[0]), float(p[1]), link[1], link[0], params.min_shared_stems, link[2], link[3], *best_parts
+            )
+        )
     return _replace(base, suggestions=tuple(suggestions))
 
 
@@ -569,7 +646,13 @@ def shadow_evidence(reference: PreparedScan, moving: PreparedScan, params: Regis
         found = []
         for prepared in (reference, moving):
             layers = derived(prepared, ("layers", params), lambda prepared=prepared: slice_layers(prepared, params))
-            found.append(derived(prepared, ("vops", params, radius), lambda layers=layers, radius=radius: extract_vops(layers, params, radius)))
+            found.append(
+                derived(
+                    prepared,
+                    ("vops", params, radius),
+                    lambda layers=layers, radius=radius: extract_vops(layers, params, radius),
+                )
+            )
         attempts.append(_coarse_attempt(found[0], found[1], radius, params))
     best = _choose_attempt(attempts)
     second = 0 if best.match is None else int(best.match.second_matched or 0)

@@ -22,21 +22,22 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from ..core.errors import DataError, InvalidArgumentError, ScanDataError, ScanReadError
+from ..core.imports import import_open3d
+from ..core.outcome import Outcome
+from ..core.progress import CancelToken, Progress, ProgressCallback
+from ..core.scan import Scan
+from ..core.transform import apply as apply_transform
+from ..core.transform import format_matrix, rigid_errors
+from ..geometry.voxel import voxel_downsample
 from ..io import read_scan
 from ..io.las import intensity_to_uint16, las_header_bounds
-from ..core.outcome import Outcome
-from ..core.imports import import_open3d
-from ..core.progress import CancelToken, Progress, ProgressCallback
-from .project import Link, LinkResult, Project, ScanEntry
 from .pair import SEQUENTIAL_PREPARE_POINTS, register
 from .prepare import PREPARED_BYTES_PER_POINT, PreparedScans, scan_identity
+from .project import Link, LinkResult, Project, ScanEntry
 from .scanner_position import locate_scanner
-from ..core.scan import Scan
-from ..core.transform import format_matrix, rigid_errors
-from ..core.transform import apply as apply_transform
-from ..geometry.voxel import voxel_downsample
 
 log = logging.getLogger("forestreg")
+
 
 class ScanCache:
     """Reads the scans of a project on first use and keeps the most recently used ones in memory,
@@ -73,7 +74,9 @@ class ScanCache:
         #: how many times a scan file was read (a scan read twice was let go in between)
         self.reads = 0
         #: the scans prepared for registration, shared by the links (each scan prepared once)
-        self.prepared = PreparedScans(max_bytes=PREPARED_CACHE_BYTES if max_bytes is None else max(int(max_bytes) // 2, 1))
+        self.prepared = PreparedScans(
+            max_bytes=PREPARED_CACHE_BYTES if max_bytes is None else max(int(max_bytes) // 2, 1)
+        )
 
     def __call__(self, name: str, *, keep: bool = True) -> Scan:
         """The scan ``name`` (read unless kept). ``keep=False``: a scan not in memory is read and
@@ -87,7 +90,12 @@ class ScanCache:
             if keep:
                 with self._lock:
                     self._make_room(_file_scan_bytes(entry.path))
-            scan = read_scan(entry.path, scanner_position=entry.scanner_position, scan_index=entry.scan_index, with_intensity=self.with_intensity)
+            scan = read_scan(
+                entry.path,
+                scanner_position=entry.scanner_position,
+                scan_index=entry.scan_index,
+                with_intensity=self.with_intensity,
+            )
             with self._lock:
                 self.reads += 1
                 known = self._located.get(name)
@@ -306,12 +314,24 @@ def register_project(
     scans = scans or ScanCache(project)
     _readable_centre(project)
     step = Progress(progress, cancel=cancel)
-    order = [s for s in project.scans if s.name != project.centre and not s.tilted] + [s for s in project.scans if s.tilted and s.name != project.centre]
+    order = [s for s in project.scans if s.name != project.centre and not s.tilted] + [
+        s for s in project.scans if s.tilted and s.name != project.centre
+    ]
     outcome = PlotOutcome(scans={project.centre: "centre"})
     ahead = _PrepareAhead.start(project, order, scans, rerun=rerun, cancel=cancel, beside=beside)
     try:
-        _register_links(project, order, scans, outcome, step, ahead, rerun=rerun, cancel=cancel, on_link=on_link,
-                        on_link_done=on_link_done)
+        _register_links(
+            project,
+            order,
+            scans,
+            outcome,
+            step,
+            ahead,
+            rerun=rerun,
+            cancel=cancel,
+            on_link=on_link,
+            on_link_done=on_link_done,
+        )
     except BaseException:
         if ahead is not None:  # cancelled or failed: a preparation under way ends in its daemon thread
             ahead.stop()
@@ -372,8 +392,14 @@ def _readable_centre(project: Project) -> None:
     reason = _unreadable(project.scan(old).path)
     if reason is None:
         return
-    new = next((s.name for s in sorted(project.scans, key=lambda s: s.tilted)
-                if s.name != old and _unreadable(s.path) is None), None)
+    new = next(
+        (
+            s.name
+            for s in sorted(project.scans, key=lambda s: s.tilted)
+            if s.name != old and _unreadable(s.path) is None
+        ),
+        None,
+    )
     if new is None:
         raise DataError(f"no scan of the plot can be read (the centre scan {old}: {reason})")
     log.warning("the centre scan %s cannot be read (%s): %s is the centre instead", old, reason, new)
@@ -385,9 +411,19 @@ def _readable_centre(project: Project) -> None:
         project.set_link(old, new)
 
 
-def _register_links(project: Project, order: list[ScanEntry], scans: ScanCache, outcome: PlotOutcome, step: Progress,
-                    ahead: Optional["_PrepareAhead"], *, rerun: bool, cancel: Optional[CancelToken],
-                    on_link: Optional[Callable[[Link], None]], on_link_done: Optional[Callable[[Project], None]]) -> None:
+def _register_links(
+    project: Project,
+    order: list[ScanEntry],
+    scans: ScanCache,
+    outcome: PlotOutcome,
+    step: Progress,
+    ahead: Optional["_PrepareAhead"],
+    *,
+    rerun: bool,
+    cancel: Optional[CancelToken],
+    on_link: Optional[Callable[[Link], None]],
+    on_link_done: Optional[Callable[[Project], None]],
+) -> None:
     """The links of :func:`register_project`, one after the other in ``order``."""
     for k, entry in enumerate(order):
         if ahead is not None:
@@ -422,8 +458,12 @@ def small_scans(project: Project, scans: ScanCache, names: list[str]) -> bool:
     points each, whose preparations fit the cache's budget together. Larger plots are worked one
     scan and one link at a time (their memory stays within what the caches allow)."""
     points = [_file_scan_bytes(project.scan(name).path) // _FILE_BYTES_PER_POINT for name in dict.fromkeys(names)]
-    return bool(points) and min(points) > 0 and max(points) <= SEQUENTIAL_PREPARE_POINTS \
+    return (
+        bool(points)
+        and min(points) > 0
+        and max(points) <= SEQUENTIAL_PREPARE_POINTS
         and sum(points) * PREPARED_BYTES_PER_POINT <= scans.prepared.max_bytes
+    )
 
 
 class LinkQueue:
@@ -446,8 +486,15 @@ class LinkQueue:
         with self._changed:
             if self._closed or (self._cancel is not None and self._cancel.cancelled):
                 return None
-            ready = [link for link in self._waiting if not prepared_only or all(
-                self._scans.is_prepared(name, link.params(self.project.params)) for name in (link.reference, link.moving))]
+            ready = [
+                link
+                for link in self._waiting
+                if not prepared_only
+                or all(
+                    self._scans.is_prepared(name, link.params(self.project.params))
+                    for name in (link.reference, link.moving)
+                )
+            ]
             busy = {link.reference for link in self._running}
             link = next((x for x in ready if x.reference not in busy), ready[0] if ready else None)
             if link is not None:
@@ -468,7 +515,9 @@ class LinkQueue:
         try:
             while (link := self._take(prepared_only)) is not None:
                 try:
-                    link.result = _run_link(self.project, link, self._scans, Progress(None, cancel=self._cancel), self._cancel)
+                    link.result = _run_link(
+                        self.project, link, self._scans, Progress(None, cancel=self._cancel), self._cancel
+                    )
                 except Exception as exc:  # cancelled, or an error the calling thread meets again and reports
                     log.debug("%s onto %s left to the calling thread: %s", link.moving, link.reference, exc)
                     return
@@ -506,10 +555,15 @@ class LinkQueue:
         step(ended() / max(total, 1), f"registering {total} further pairs, two at a time")
         while (link := self._take(False)) is not None:
             try:
-                link.result = _run_link(self.project, link, self._scans, Progress(None, cancel=self._cancel), self._cancel)
+                link.result = _run_link(
+                    self.project, link, self._scans, Progress(None, cancel=self._cancel), self._cancel
+                )
             finally:
                 self._done(link)
-            step(ended() / max(total, 1), f"registered further pair {ended()} of {total}: {link.moving} onto {link.reference}")
+            step(
+                ended() / max(total, 1),
+                f"registered further pair {ended()} of {total}: {link.moving} onto {link.reference}",
+            )
             if after is not None:
                 after()
         with self._changed:
@@ -529,7 +583,13 @@ class _PrepareAhead:
     on one thread gets one core's work from it); larger plots read and prepare one scan at a time. A scan that cannot be read or prepared here is left to its link, which reads it
     again and says why."""
 
-    def __init__(self, scans: ScanCache, plan: list[tuple[int, str, Any]], cancel: Optional[CancelToken], beside: Optional[LinkQueue]) -> None:
+    def __init__(
+        self,
+        scans: ScanCache,
+        plan: list[tuple[int, str, Any]],
+        cancel: Optional[CancelToken],
+        beside: Optional[LinkQueue],
+    ) -> None:
         self._scans, self._plan, self._cancel, self._beside = scans, plan, cancel, beside
         self._current = -1
         self._stopped = False
@@ -537,8 +597,16 @@ class _PrepareAhead:
         self._thread = threading.Thread(target=self._run, name="forestreg-prepare-ahead", daemon=True)
 
     @classmethod
-    def start(cls, project: Project, order: list[ScanEntry], scans: ScanCache, *, rerun: bool,
-              cancel: Optional[CancelToken], beside: Optional[LinkQueue] = None) -> Optional["_PrepareAhead"]:
+    def start(
+        cls,
+        project: Project,
+        order: list[ScanEntry],
+        scans: ScanCache,
+        *,
+        rerun: bool,
+        cancel: Optional[CancelToken],
+        beside: Optional[LinkQueue] = None,
+    ) -> Optional["_PrepareAhead"]:
         """The preparer for the links of ``order`` that will run, started; None when the plot is not
         eligible (see the class). With ``beside``, once its preparations are done the thread
         registers the queue's links whose scans are prepared."""
@@ -546,7 +614,12 @@ class _PrepareAhead:
         seen: set = set()
         for k, entry in enumerate(order):
             link = project.link_of(entry.name)
-            if link is None or (link.ok and not rerun) or link.method == "manual" or (entry.tilted and not entry.level_partner):
+            if (
+                link is None
+                or (link.ok and not rerun)
+                or link.method == "manual"
+                or (entry.tilted and not entry.level_partner)
+            ):
                 continue
             params = link.params(project.params)
             if not plan:  # the first link prepares its reference itself, while its moving scan is prepared here
@@ -592,7 +665,9 @@ class _PrepareAhead:
             self._beside.run(prepared_only=True)  # (errors are left to the calling thread)
 
 
-def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> LinkResult:
+def _run_link(
+    project: Project, link: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]
+) -> LinkResult:
     """Run one link (auto or manual) and return its typed result; an unusable scan or data that
     do not allow it give a "failed" result with the reason, not an exception."""
     try:
@@ -607,18 +682,33 @@ def _run_link(project: Project, link: Link, scans: ScanCache, progress: Progress
             moving = scans.for_link(link.moving, params, prepare=False)
     except (ScanReadError, ScanDataError, DataError) as exc:
         # one unusable scan (unreadable, no scanner position to be found) fails its links, not the plot
-        return LinkResult.from_dict({"status": "failed", "reason": str(exc), "matrix": None, "reference": link.reference, "moving": link.moving})
+        return LinkResult.from_dict(
+            {"status": "failed", "reason": str(exc), "matrix": None, "reference": link.reference, "moving": link.moving}
+        )
     if link.method == "manual":
         from .manual import register_manual
 
         result = register_manual(
-            reference, moving, project.scan(link.reference).targets, project.scan(link.moving).targets,
-            link.params(project.params), progress=progress, cancel=cancel,
+            reference,
+            moving,
+            project.scan(link.reference).targets,
+            project.scan(link.moving).targets,
+            link.params(project.params),
+            progress=progress,
+            cancel=cancel,
         )
     else:
         prior = _link_prior(project, link, reference, moving)
         try:
-            result = register(reference, moving, link.params(project.params), progress=progress, cancel=cancel, prior=prior, prepared=scans.prepared)
+            result = register(
+                reference,
+                moving,
+                link.params(project.params),
+                progress=progress,
+                cancel=cancel,
+                prior=prior,
+                prepared=scans.prepared,
+            )
         except DataError as exc:  # e.g. no points near a georeferenced scan's assumed scanner
             return LinkResult.from_dict({"status": "failed", "reason": str(exc), "matrix": None})
         finally:
@@ -646,7 +736,14 @@ def _link_prior(project: Project, link: Link, reference: Scan, moving: Scan) -> 
     return None
 
 
-def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> Link:
+def _retry(
+    project: Project,
+    entry: ScanEntry,
+    failed: Link,
+    scans: ScanCache,
+    progress: Progress,
+    cancel: Optional[CancelToken],
+) -> Link:
     """Try the failed scan against the scans already registered, nearest to its first reference
     first; keep the first success (the failed attempt is recorded in the link)."""
     poses = project.chained_poses()
@@ -654,10 +751,23 @@ def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, p
     candidates = [n for n, p in poses.items() if p is not None and n not in (entry.name, failed.reference)]
     if first is not None:
         candidates.sort(key=lambda n: float(np.linalg.norm(poses[n][:3, 3] - first[:3, 3])))
-    tried = [{"reference": failed.reference, "reason": (failed.result if failed.result is not None else {}).get("reason", "")}]
+    tried = [
+        {
+            "reference": failed.reference,
+            "reason": (failed.result if failed.result is not None else {}).get("reason", ""),
+        }
+    ]
     for k, name in enumerate(candidates):
-        link = Link(moving=entry.name, reference=name, method=failed.method, vop_radius_m=failed.vop_radius_m, slice_offsets_m=failed.slice_offsets_m)
-        link.result = _run_link(project, link, scans, progress.sub(k / len(candidates), (k + 1) / len(candidates)), cancel)
+        link = Link(
+            moving=entry.name,
+            reference=name,
+            method=failed.method,
+            vop_radius_m=failed.vop_radius_m,
+            slice_offsets_m=failed.slice_offsets_m,
+        )
+        link.result = _run_link(
+            project, link, scans, progress.sub(k / len(candidates), (k + 1) / len(candidates)), cancel
+        )
         if link.ok:
             link.result = link.result.replace(retried_after=tried)
             project.replace_link(failed, link)
@@ -668,7 +778,9 @@ def _retry(project: Project, entry: ScanEntry, failed: Link, scans: ScanCache, p
     return failed
 
 
-def _register_tilted_without_partner(project: Project, entry: ScanEntry, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]) -> Link:
+def _register_tilted_without_partner(
+    project: Project, entry: ScanEntry, scans: ScanCache, progress: Progress, cancel: Optional[CancelToken]
+) -> Link:
     """A tilted scan whose level partner is not named: register it to every registered level scan
     (D_r ``tilted_partner_vop_radius_m``) and take the success whose scanner lies closest (the
     partner stands at the same spot)."""
@@ -704,7 +816,9 @@ def link_residuals(project: Project, poses: dict[str, Optional[np.ndarray]]) -> 
     return rows
 
 
-def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m: float = 0.1, max_distance_m: float = 0.1) -> Optional[dict[str, Any]]:
+def adjust_poses(
+    project: Project, scans: Optional[ScanCache] = None, *, voxel_m: float = 0.1, max_distance_m: float = 0.1
+) -> Optional[dict[str, Any]]:
     """Global adjustment: where successful links close loops (more links than a tree needs), a
     pose graph (open3d, Levenberg-Marquardt, the centre scan fixed) spreads the disagreement over
     the links. Each link is weighted by the information matrix of its overlap.
@@ -737,10 +851,16 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
 
     for link in links:
         information = information_matrix(cloud(link.moving), cloud(link.reference), max_distance_m, link.matrix)
-        graph.edges.append(reg.PoseGraphEdge(index[link.moving], index[link.reference], link.matrix, information, uncertain=link.extra))
-    option = reg.GlobalOptimizationOption(max_correspondence_distance=max_distance_m, edge_prune_threshold=0.25, reference_node=index[project.centre])
+        graph.edges.append(
+            reg.PoseGraphEdge(index[link.moving], index[link.reference], link.matrix, information, uncertain=link.extra)
+        )
+    option = reg.GlobalOptimizationOption(
+        max_correspondence_distance=max_distance_m, edge_prune_threshold=0.25, reference_node=index[project.centre]
+    )
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option)
+        reg.global_optimization(
+            graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option
+        )
     adjusted: dict[str, Optional[np.ndarray]] = {s.name: None for s in project.scans}
     centre_inv = np.linalg.inv(np.asarray(graph.nodes[index[project.centre]].pose))
     for n in names:
@@ -749,16 +869,21 @@ def adjust_poses(project: Project, scans: Optional[ScanCache] = None, *, voxel_m
     rows = []
     for r in link_residuals(project, adjusted):
         b = before.get((r["moving"], r["reference"]), {})
-        rows.append({
-            "moving": r["moving"], "reference": r["reference"],
-            "before": {"rotation_deg": b.get("rotation_deg"), "translation_m": b.get("translation_m")},
-            "after": {"rotation_deg": r["rotation_deg"], "translation_m": r["translation_m"]},
-        })
+        rows.append(
+            {
+                "moving": r["moving"],
+                "reference": r["reference"],
+                "before": {"rotation_deg": b.get("rotation_deg"), "translation_m": b.get("translation_m")},
+                "after": {"rotation_deg": r["rotation_deg"], "translation_m": r["translation_m"]},
+            }
+        )
     project.adjustment = {"poses": {k: (None if v is None else v.tolist()) for k, v in adjusted.items()}, "links": rows}
     return project.adjustment
 
 
-def information_matrix(moving: np.ndarray, reference: np.ndarray, max_distance_m: float, matrix: np.ndarray) -> np.ndarray:
+def information_matrix(
+    moving: np.ndarray, reference: np.ndarray, max_distance_m: float, matrix: np.ndarray
+) -> np.ndarray:
     """The 6 x 6 information matrix of a link (rotation first, then translation; Choi et al.
     2015, as open3d's ``get_information_matrix_from_point_clouds``): each ``moving`` point moved by
     ``matrix`` and its nearest ``reference`` point within ``max_distance_m`` (both (N, 3), metres)
@@ -770,15 +895,19 @@ def information_matrix(moving: np.ndarray, reference: np.ndarray, max_distance_m
     moved = apply_transform(np.asarray(matrix), np.asarray(moving, dtype=np.float64))
     if len(moved) == 0 or len(reference) == 0:
         return np.zeros((6, 6))
-    distance, index = cKDTree(np.asarray(reference, dtype=np.float64)).query(moved, distance_upper_bound=float(max_distance_m))
+    distance, index = cKDTree(np.asarray(reference, dtype=np.float64)).query(
+        moved, distance_upper_bound=float(max_distance_m)
+    )
     q = np.asarray(reference, dtype=np.float64)[index[np.isfinite(distance)]]
     x, y, z = q[:, 0], q[:, 1], q[:, 2]
     zero, one = np.zeros(len(q)), np.ones(len(q))
-    g = np.concatenate([
-        np.stack([zero, z, -y, one, zero, zero], axis=1),
-        np.stack([-z, zero, x, zero, one, zero], axis=1),
-        np.stack([y, -x, zero, zero, zero, one], axis=1),
-    ])
+    g = np.concatenate(
+        [
+            np.stack([zero, z, -y, one, zero, zero], axis=1),
+            np.stack([-z, zero, x, zero, one, zero], axis=1),
+            np.stack([y, -x, zero, zero, zero, one], axis=1),
+        ]
+    )
     return np.einsum("ni,nj->ij", g, g)
 
 
@@ -788,13 +917,20 @@ def poses_document(project: Project, outcome: Optional[PlotOutcome] = None) -> t
     ``<scan>.transform.txt`` per registered scan (scan -> text); written by
     :func:`forestreg.engine.io.results.write_poses_files`."""
     poses = project.poses()
-    body: dict[str, Any] = {"frame": project.centre, "convention": "p_centre = matrix @ p_scan (file coordinates)", "scans": {}}
+    body: dict[str, Any] = {
+        "frame": project.centre,
+        "convention": "p_centre = matrix @ p_scan (file coordinates)",
+        "scans": {},
+    }
     transforms: dict[str, str] = {}
     for s in project.scans:
         pose = poses.get(s.name)
         if outcome is not None and outcome.scans.get(s.name) == "failed":
             pose = None  # e.g. a centre scan that could not be read: no identity matrix for it
-        entry: dict[str, Any] = {"status": "ok" if pose is not None else "failed", "matrix": None if pose is None else pose.tolist()}
+        entry: dict[str, Any] = {
+            "status": "ok" if pose is not None else "failed",
+            "matrix": None if pose is None else pose.tolist(),
+        }
         if pose is None and outcome is not None and s.name in outcome.reasons:
             entry["reason"] = outcome.reasons[s.name]
         link = project.link_of(s.name)
@@ -834,14 +970,23 @@ def pose_uncertainty(project: Project) -> dict[str, Optional[dict[str, float]]]:
     for link in project.links:
         u = (link.result if link.result is not None else {}).get("uncertainty") or {}
         if link.ok and link.moving in positions and link.reference in positions:
-            rows.append({"moving": link.moving, "reference": link.reference, "translation_m": u.get("translation_m"), "rotation_deg": u.get("rotation_deg")})
+            rows.append(
+                {
+                    "moving": link.moving,
+                    "reference": link.reference,
+                    "translation_m": u.get("translation_m"),
+                    "rotation_deg": u.get("rotation_deg"),
+                }
+            )
     if project.centre is None:
         return {}
     found = propagate_uncertainty(project.centre, positions, rows)
     return {n: found.get(n) for n in positions}
 
 
-def merged_chunks(project: Project, path: str | Path, scans: Optional[ScanCache] = None) -> tuple[Any, tuple[np.ndarray, np.ndarray], bool]:
+def merged_chunks(
+    project: Project, path: str | Path, scans: Optional[ScanCache] = None
+) -> tuple[Any, tuple[np.ndarray, np.ndarray], bool]:
     """Every registered scan in the centre scan's file coordinates, for one point file with a
     ``scan_id`` per point (the scan's index in the project): the chunks ``(points, intensity,
     scan_id)`` (a generator: one scan read at a time, so a plot larger than memory can be
@@ -901,7 +1046,9 @@ def project_from_e57(path: str | Path, *, name: Optional[str] = None) -> Project
     project = Project(name=name or source.stem)
     for k, scan in enumerate(read_scans(source)):
         label = scan.name if scan.name and scan.name != source.stem else f"{source.stem}_{k:02d}"
-        project.add_scan(source, name=label, scan_index=k, prior_pose=None if scan.pose is None else np.array(scan.pose))
+        project.add_scan(
+            source, name=label, scan_index=k, prior_pose=None if scan.pose is None else np.array(scan.pose)
+        )
     return project
 
 
@@ -935,7 +1082,7 @@ def add_neighbour_links(project: Project, max_distance_m: float) -> list[Link]:
     placed = [s.name for s in project.scans if s.name != project.centre and poses.get(s.name) is not None]
     added = []
     for i, a in enumerate(placed):
-        for b in placed[i + 1:]:
+        for b in placed[i + 1 :]:
             if frozenset((a, b)) in linked:
                 continue
             if np.linalg.norm(poses[a][:2, 3] - poses[b][:2, 3]) <= max_distance_m:

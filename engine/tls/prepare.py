@@ -16,9 +16,9 @@ import numpy as np
 from ..core.cells import cell_bits, claim_cell
 from ..core.jit import kernel
 from ..geometry.voxel import VoxelGrid, claim_voxel, voxel_bitmap, voxel_grid
-from .params import RegistrationParams
 from .ground import GroundGrid, ground_grid, lowest_voxel_ground, scanner_height_above_ground
 from .level import estimate_up_direction, levelling_rotation, tilt_deg
+from .params import RegistrationParams
 from .vop import (
     VisualOcclusionPoints,
     angular_spacing,
@@ -54,7 +54,11 @@ class PreparedScan:
     @property
     def nbytes(self) -> int:
         """Bytes held by the points, ground mask and ICP grid (for caches with a memory budget)."""
-        grid = 0 if self.icp_grid is None else self.icp_grid.centroids.nbytes + self.icp_grid.order.nbytes + self.icp_grid.starts.nbytes
+        grid = (
+            0
+            if self.icp_grid is None
+            else self.icp_grid.centroids.nbytes + self.icp_grid.order.nbytes + self.icp_grid.starts.nbytes
+        )
         return int(self.points.nbytes + self.ground_mask.nbytes + grid)
 
 
@@ -72,8 +76,11 @@ def scan_identity(scan) -> tuple:
     frame, metres, to the nanometre), point count, and the first and last point."""
     pts = scan.points
     return (
-        scan.name, tuple(np.round(np.asarray(scan.scanner_position, dtype=float), 9)), len(pts),
-        tuple(pts[0]) if len(pts) else (), tuple(pts[-1]) if len(pts) else (),
+        scan.name,
+        tuple(np.round(np.asarray(scan.scanner_position, dtype=float), 9)),
+        len(pts),
+        tuple(pts[0]) if len(pts) else (),
+        tuple(pts[-1]) if len(pts) else (),
     )
 
 
@@ -110,13 +117,19 @@ class PreparedScans:
         # its layers and VOPs after it was let go; what else lands there is let go by release()
         self._outlines[key] = (prepared.local_to_lsf, prepared.derived)
 
-    def outline(self, identity: tuple, params: RegistrationParams, up: Optional[np.ndarray] = None) -> Optional[tuple[np.ndarray, dict]]:
+    def outline(
+        self, identity: tuple, params: RegistrationParams, up: Optional[np.ndarray] = None
+    ) -> Optional[tuple[np.ndarray, dict]]:
         """``(local_to_lsf, {derived key: value})`` of the scan of ``identity`` for ``params``:
         its kept preparation's matrix, slice layers and VOPs (keys as for :func:`derived`), or
         what it left when it was let go; None when it was never prepared for ``params``."""
         key = self._key(identity, params, up)
         with self._lock:
-            found = (self._prepared[key].local_to_lsf, self._prepared[key].derived) if key in self._prepared else self._outlines.get(key)
+            found = (
+                (self._prepared[key].local_to_lsf, self._prepared[key].derived)
+                if key in self._prepared
+                else self._outlines.get(key)
+            )
             if found is None:
                 return None
             return found[0], {k: v for k, v in list(found[1].items()) if k and k[0] in ("layers", "vops")}
@@ -125,7 +138,9 @@ class PreparedScans:
     def _key(identity: tuple, params: RegistrationParams, up: Optional[np.ndarray]) -> tuple:
         return (identity, params, None if up is None else tuple(np.asarray(up, dtype=float)))
 
-    def kept(self, identity: tuple, params: RegistrationParams, up: Optional[np.ndarray] = None) -> Optional[PreparedScan]:
+    def kept(
+        self, identity: tuple, params: RegistrationParams, up: Optional[np.ndarray] = None
+    ) -> Optional[PreparedScan]:
         """The kept preparation of the scan of ``identity`` (:func:`scan_identity`) for ``params``,
         or None (marked as just used when found)."""
         key = self._key(identity, params, up)
@@ -135,7 +150,14 @@ class PreparedScans:
                 return self._prepared[key]
         return None
 
-    def stand_in(self, frame, identity: tuple, prepared: PreparedScan, params: RegistrationParams, up: Optional[np.ndarray] = None):
+    def stand_in(
+        self,
+        frame,
+        identity: tuple,
+        prepared: PreparedScan,
+        params: RegistrationParams,
+        up: Optional[np.ndarray] = None,
+    ):
         """A stand-in for a scan whose preparation for ``params`` is ``prepared``: ``frame`` (the
         scan without its points, :meth:`~forestreg.engine.core.scan.Scan.without_points`) copied,
         which :meth:`get` answers with ``prepared`` for as long as the stand-in lives, so a link
@@ -174,7 +196,6 @@ class PreparedScans:
             while len(self._prepared) > 1 and sum(p.nbytes for p in self._prepared.values()) > self.max_bytes:
                 self._let_go()
         return prepared
-
 
     def clear(self) -> None:
         """Let go of every kept preparation (stand-ins still alive keep theirs; outlines stay)."""
@@ -259,8 +280,14 @@ def centre_scan(
     estimate = up is None and params.level_tilted
     # generous before levelling; the vertical is estimated from a sample of the points within
     # level_radius_m (one a level_voxel_m voxel)
-    centred, near = _centred_float32(points_local, scanner_local, (reach * 1.6) ** 2, params.level_radius_m**2 if estimate else None,
-                                     thinning=thinning_pixels(params), level_voxel_m=params.level_voxel_m)
+    centred, near = _centred_float32(
+        points_local,
+        scanner_local,
+        (reach * 1.6) ** 2,
+        params.level_radius_m**2 if estimate else None,
+        thinning=thinning_pixels(params),
+        level_voxel_m=params.level_voxel_m,
+    )
     return CentredScan(centred, near)
 
 
@@ -369,8 +396,15 @@ def icp_grid_voxel(params: RegistrationParams) -> float:
     return params.icp.finest_voxel_m
 
 
-def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near_d2: Optional[float] = None, *,
-                     thinning: Optional[ThinningPixels] = None, level_voxel_m: float = RegistrationParams.level_voxel_m) -> tuple[np.ndarray, Optional[np.ndarray]]:
+def _centred_float32(
+    points: np.ndarray,
+    origin: np.ndarray,
+    max_d2: float,
+    near_d2: Optional[float] = None,
+    *,
+    thinning: Optional[ThinningPixels] = None,
+    level_voxel_m: float = RegistrationParams.level_voxel_m,
+) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """The points within ``sqrt(max_d2)`` (3D) of ``origin``, shifted so that ``origin`` is 0, as
     float32 (a 50 m neighbourhood keeps micrometre steps), with ``thinning`` only the first of
     each of its pixels (seen from ``origin``), and, with ``near_d2``, the
@@ -386,19 +420,65 @@ def _centred_float32(points: np.ndarray, origin: np.ndarray, max_d2: float, near
     occupied = voxel_bitmap(level_voxel_m, radius) if near_d2 is not None else np.zeros(0, dtype=np.uint64)
     t = thinning
     if t is None:
-        step, columns, rows, offset, near_m, log_ratio = np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), 0.0, 1.0
+        step, columns, rows, offset, near_m, log_ratio = (
+            np.zeros(0),
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            0.0,
+            1.0,
+        )
     else:
-        step, columns, rows, offset, near_m, log_ratio = t.step_rad, t.columns, t.rows, t.offset, t.near_m, float(np.log(t.ratio))
+        step, columns, rows, offset, near_m, log_ratio = (
+            t.step_rad,
+            t.columns,
+            t.rows,
+            t.offset,
+            t.near_m,
+            float(np.log(t.ratio)),
+        )
     pixels = cell_bits(0 if t is None else t.bits)
     # the limits as float32, as numpy compares a float32 array with a Python float
-    kept, close = _centre_rows(np.asarray(points), origin, np.float32(max_d2), np.float32(-1.0 if near_d2 is None else near_d2),
-                               level_voxel_m, int(np.ceil(radius / level_voxel_m)), occupied,
-                               step, columns, rows, offset, near_m, log_ratio, pixels, out, near)
+    kept, close = _centre_rows(
+        np.asarray(points),
+        origin,
+        np.float32(max_d2),
+        np.float32(-1.0 if near_d2 is None else near_d2),
+        level_voxel_m,
+        int(np.ceil(radius / level_voxel_m)),
+        occupied,
+        step,
+        columns,
+        rows,
+        offset,
+        near_m,
+        log_ratio,
+        pixels,
+        out,
+        near,
+    )
     return out[:kept], (near[:close].copy() if near_d2 is not None else None)
 
 
 @kernel
-def _centre_rows(points, origin, max_d2, near_d2, voxel_m, half, occupied, step, columns, rows, offset, near_m, log_ratio, pixels, out, near):  # pragma: no cover - compiled
+def _centre_rows(
+    points,
+    origin,
+    max_d2,
+    near_d2,
+    voxel_m,
+    half,
+    occupied,
+    step,
+    columns,
+    rows,
+    offset,
+    near_m,
+    log_ratio,
+    pixels,
+    out,
+    near,
+):  # pragma: no cover - compiled
     """:func:`_centred_float32` in one pass: each coordinate minus the origin in float64, then
     float32; the squared distance summed in float32 (x, then y, then z); with thinning pixels
     (``step`` not empty: :class:`ThinningPixels`' arrays, one bit a pixel in ``pixels``) a kept
@@ -424,7 +504,9 @@ def _centre_rows(points, origin, max_d2, near_d2, voxel_m, half, occupied, step,
                     k = min(np.int64(np.log(r / near_m) / log_ratio), last)
                     s = step[k]
                     col = min(max(np.int64((np.arctan2(yf, xf) + np.pi) / s), 0), columns[k] - 1)
-                    row = min(max(np.int64((np.arctan2(zf, np.sqrt(xf * xf + yf * yf)) + 0.5 * np.pi) / s), 0), rows[k] - 1)
+                    row = min(
+                        max(np.int64((np.arctan2(zf, np.sqrt(xf * xf + yf * yf)) + 0.5 * np.pi) / s), 0), rows[k] - 1
+                    )
                     if not claim_cell(offset[k] + row * columns[k] + col, pixels):
                         continue
             out[kept, 0] = x
@@ -463,7 +545,12 @@ def slice_layers(prepared: PreparedScan, params: RegistrationParams) -> list[Sli
     layers = []
     for offset in params.slice_offsets_m:
         if params.follow_terrain:
-            mask = slice_layer(pts, prepared.ground, centre_height_m=prepared.scanner_height_m + offset, thickness_m=params.slice_thickness_m)
+            mask = slice_layer(
+                pts,
+                prepared.ground,
+                centre_height_m=prepared.scanner_height_m + offset,
+                thickness_m=params.slice_thickness_m,
+            )
         else:
             mask = slice_layer(pts, None, centre_height_m=offset, thickness_m=params.slice_thickness_m)
         xyz = pts[mask]
@@ -482,7 +569,9 @@ def extract_vops(layers: Sequence[SliceLayer], params: RegistrationParams, radiu
     return _merge_layers(found, [layer.offset_m for layer in layers], params.ground_voxel_m)
 
 
-def _layer_vops(layer: SliceLayer, params: RegistrationParams, radius_m: float, layer_index: int) -> VisualOcclusionPoints:
+def _layer_vops(
+    layer: SliceLayer, params: RegistrationParams, radius_m: float, layer_index: int
+) -> VisualOcclusionPoints:
     cand = outermost_candidates(
         layer.azimuth,
         layer.distance,
@@ -529,7 +618,15 @@ def _layer_vops(layer: SliceLayer, params: RegistrationParams, radius_m: float, 
         support.append(len(members))
     if not xy:
         empty = VisualOcclusionPoints.empty()
-        return VisualOcclusionPoints(empty.xy, empty.z, empty.bark_xy, empty.radius, empty.support, empty.layer, np.array(rejected).reshape(-1, 2))
+        return VisualOcclusionPoints(
+            empty.xy,
+            empty.z,
+            empty.bark_xy,
+            empty.radius,
+            empty.support,
+            empty.layer,
+            np.array(rejected).reshape(-1, 2),
+        )
     n = len(xy)
     return VisualOcclusionPoints(
         xy=np.array(xy),
@@ -542,7 +639,9 @@ def _layer_vops(layer: SliceLayer, params: RegistrationParams, radius_m: float, 
     )
 
 
-def _merge_layers(per_layer: Sequence[VisualOcclusionPoints], offsets_m: Sequence[float], merge_distance_m: float) -> VisualOcclusionPoints:
+def _merge_layers(
+    per_layer: Sequence[VisualOcclusionPoints], offsets_m: Sequence[float], merge_distance_m: float
+) -> VisualOcclusionPoints:
     """Combine the layers' VOPs; a VOP within ``merge_distance_m`` of one from a lower layer (or an
     earlier VOP of the same layer) is the same trunk and dropped (paper: keep the bottom-most)."""
     if len(per_layer) == 1:
@@ -568,6 +667,11 @@ def _merge_layers(per_layer: Sequence[VisualOcclusionPoints], offsets_m: Sequenc
         kept.append(int(idx))
     sel = np.array(sorted(kept))
     return VisualOcclusionPoints(
-        xy=allv.xy[sel], z=allv.z[sel], bark_xy=allv.bark_xy[sel], radius=allv.radius[sel],
-        support=allv.support[sel], layer=allv.layer[sel], rejected_xy=allv.rejected_xy,
+        xy=allv.xy[sel],
+        z=allv.z[sel],
+        bark_xy=allv.bark_xy[sel],
+        radius=allv.radius[sel],
+        support=allv.support[sel],
+        layer=allv.layer[sel],
+        rejected_xy=allv.rejected_xy,
     )

@@ -22,9 +22,9 @@ import numpy as np
 
 from ..core.errors import InvalidArgumentError, ProjectFileError, UnknownNameError
 from ..core.names import safe_name
-from .params import RegistrationParams, ScannerPositionParams
 from ..core.outcome import OutcomeRecord
 from ..io.results import ProjectFile
+from .params import RegistrationParams, ScannerPositionParams
 
 FORMAT = "forestreg-project"
 VERSION = 1
@@ -149,7 +149,9 @@ class Project(ProjectFile):
         for s in self.scans:
             if s.name == name:
                 return s
-        raise UnknownNameError(f"no scan named {name!r} in the project (scans: {', '.join(s.name for s in self.scans)})")
+        raise UnknownNameError(
+            f"no scan named {name!r} in the project (scans: {', '.join(s.name for s in self.scans)})"
+        )
 
     def link_of(self, moving: str) -> Optional[Link]:
         """The link that places ``moving`` (its non-extra link)."""
@@ -185,8 +187,10 @@ class Project(ProjectFile):
         :meth:`add_link`, closes a loop)."""
         self._check_link(moving, reference)
         if moving == self.centre:
-            raise InvalidArgumentError(f"{moving} is the centre scan: it defines the project frame and is not moved. "
-                                       "Mark another scan as centre first.")
+            raise InvalidArgumentError(
+                f"{moving} is the centre scan: it defines the project frame and is not moved. "
+                "Mark another scan as centre first."
+            )
         self.links = [link for link in self.links if link.moving != moving or link.extra]
         link = Link(moving=moving, reference=reference, **options)
         self.links.append(link)
@@ -292,12 +296,16 @@ class Project(ProjectFile):
         except FileNotFoundError as exc:
             raise ProjectFileError(f"project file {p} does not exist") from exc
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ProjectFileError(f"project file {p} is damaged and cannot be read ({exc}); it was left untouched") from exc
+            raise ProjectFileError(
+                f"project file {p} is damaged and cannot be read ({exc}); it was left untouched"
+            ) from exc
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise ProjectFileError(f"{p} is not a forestreg project file")
         version = data.get("version")
         if not isinstance(version, int) or version > VERSION:
-            raise ProjectFileError(f"{p} was written by a newer forestreg (project format {version}; this one reads up to {VERSION})")
+            raise ProjectFileError(
+                f"{p} was written by a newer forestreg (project format {version}; this one reads up to {VERSION})"
+            )
         if version < 1:
             raise ProjectFileError(f"{p} has an unsupported old project format {version}")
         try:
@@ -306,7 +314,9 @@ class Project(ProjectFile):
                 ScanEntry(
                     name=_scan_name(p, s["name"]),
                     path=(folder / s["path"]).resolve(),
-                    scanner_position=None if s.get("scanner_position") is None else tuple(float(v) for v in s["scanner_position"]),
+                    scanner_position=None
+                    if s.get("scanner_position") is None
+                    else tuple(float(v) for v in s["scanner_position"]),
                     scan_index=s.get("scan_index"),
                     tilted=bool(s.get("tilted", False)),
                     level_partner=s.get("level_partner"),
@@ -364,12 +374,16 @@ def _check_matrices(path: Path, scans: list[ScanEntry], links: list[dict[str, An
                 check_rigid(s.prior_pose, f"the prior pose of {s.name}")
         for link in links:
             if not isinstance(link, dict):
-                raise ProjectFileError(f"project file {path} is damaged (a link is {type(link).__name__}, not an object); it was left untouched")
+                raise ProjectFileError(
+                    f"project file {path} is damaged (a link is {type(link).__name__}, not an object); it was left untouched"
+                )
             r, moving, reference = link.get("result"), link["moving"], link["reference"]
             if isinstance(r, dict) and r.get("matrix") is not None:
                 check_rigid(r["matrix"], f"the link {moving} -> {reference}")
             if moving == reference:
-                raise ProjectFileError(f"project file {path}: the scan {moving} is linked to itself; it was left untouched")
+                raise ProjectFileError(
+                    f"project file {path}: the scan {moving} is linked to itself; it was left untouched"
+                )
     except TransformError as exc:
         raise ProjectFileError(f"project file {path}: {exc}; it was left untouched") from exc
 
@@ -394,11 +408,20 @@ class ForestResults:
 
     @property
     def empty(self) -> bool:
-        return not (self.ground_cloud or self.uav_clouds or self.coregistration or self.fused_cloud or self.trees
-                    or self.field_data or self.tree_edits or self.coregistration_decision)
+        return not (
+            self.ground_cloud
+            or self.uav_clouds
+            or self.coregistration
+            or self.fused_cloud
+            or self.trees
+            or self.field_data
+            or self.tree_edits
+            or self.coregistration_decision
+        )
 
     def to_dict(self, rel: Any = str) -> dict[str, Any]:
         """JSON form; ``rel`` turns an absolute path into the stored (relative) text."""
+
         def one(p: Optional[Path]) -> Optional[str]:
             return None if p is None else rel(Path(p))
 
@@ -416,6 +439,7 @@ class ForestResults:
     @classmethod
     def from_dict(cls, d: dict[str, Any], folder: Path) -> "ForestResults":
         """Read :meth:`to_dict`'s form, paths resolved against the project's folder."""
+
         def one(v: Any) -> Optional[Path]:
             return None if v in (None, "") else (Path(folder) / str(v)).resolve()
 

@@ -29,12 +29,12 @@ from typing import Optional
 
 import numpy as np
 
-from .params import ScannerPositionParams
 from ..core.errors import ScanDataError
-from ..core.scan import Scan
 from ..core.jit import kernel
+from ..core.scan import Scan
 from ..geometry.filters2d import gaussian_smooth
 from ..geometry.voxel import column_bounds
+from .params import ScannerPositionParams
 
 log = logging.getLogger("forestreg")
 
@@ -111,6 +111,7 @@ def estimate_scanner_position(points: np.ndarray, params: Optional[ScannerPositi
     Raises :class:`ScannerPositionError` where no single dominant density peak exists.
     """
     from scipy import ndimage  # here: only for a scan whose file origin is not confirmed at once
+
     p = params or ScannerPositionParams()
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) < 1000:
@@ -146,7 +147,11 @@ def estimate_scanner_position(points: np.ndarray, params: Optional[ScannerPositi
     inside = np.sum((ground[:, :2] - centre) ** 2, axis=1) <= p.disc_m**2 if len(ground) else np.zeros(0, bool)
     g = ground[inside]
     # precision of a mean of a symmetric ring: sigma_r / sqrt(n) per axis, at least a centimetre
-    spread = float(max(0.01, np.sqrt(np.mean(np.sum((g[:, :2] - centre) ** 2, axis=1)) / max(len(g), 1)))) if len(g) else float("inf")
+    spread = (
+        float(max(0.01, np.sqrt(np.mean(np.sum((g[:, :2] - centre) ** 2, axis=1)) / max(len(g), 1))))
+        if len(g)
+        else float("inf")
+    )
 
     ground_z, height, height_from = _ground_and_height(g, centre, p)
 
@@ -164,7 +169,9 @@ def estimate_scanner_position(points: np.ndarray, params: Optional[ScannerPositi
     occupied = float((counts > 0).sum()) * cell * cell
     mean_disc = len(pts) * np.pi * p.near_m**2 / max(occupied, np.pi * p.near_m**2)
     peak_ratio = float(near.sum() / max(mean_disc, 1.0))
-    return ScannerEstimate(position, peak_ratio, second_ratio, height, height_from, ground_z, spread, iterations, blind_circle)
+    return ScannerEstimate(
+        position, peak_ratio, second_ratio, height, height_from, ground_z, spread, iterations, blind_circle
+    )
 
 
 def find_blind_circle(points: np.ndarray, params: Optional[ScannerPositionParams] = None) -> Optional[ScannerEstimate]:
@@ -173,6 +180,7 @@ def find_blind_circle(points: np.ndarray, params: Optional[ScannerPositionParams
     round hole, 0.8-4 m in radius, fully enclosed by ground returns, refined by the cone fit.
     Returns None where there is no such hole or more than one."""
     from scipy import ndimage  # here: only for a scan whose file origin is not confirmed at once
+
     p = params or ScannerPositionParams()
     pts = np.asarray(points, dtype=np.float64)
     ground = pts[_near_ground(pts, p.ground_band_m)]
@@ -210,14 +218,29 @@ def find_blind_circle(points: np.ndarray, params: Optional[ScannerPositionParams
     ground_z = float(coef[2])
     start = np.array([centre[0], centre[1], ground_z + p.default_height_m])
     # the edge of a hole in a resampled cloud is ragged: a looser fit, still one apex for most sectors
-    refined = _blind_cone(pts, start, ground_z, dataclasses.replace(p, disc_m=max(p.disc_m, radius + 2.0)), tolerance_rad=0.05, min_fraction=0.5)
+    refined = _blind_cone(
+        pts,
+        start,
+        ground_z,
+        dataclasses.replace(p, disc_m=max(p.disc_m, radius + 2.0)),
+        tolerance_rad=0.05,
+        min_fraction=0.5,
+    )
     if refined is None:
         return None
     position, spread = refined
     return ScannerEstimate(position, 0.0, 0.0, p.default_height_m, "default", ground_z, spread, 0, True)
 
 
-def _blind_cone(points: np.ndarray, start: np.ndarray, ground_z: float, p: ScannerPositionParams, *, tolerance_rad: float = 0.02, min_fraction: float = 0.6) -> Optional[tuple[np.ndarray, float]]:
+def _blind_cone(
+    points: np.ndarray,
+    start: np.ndarray,
+    ground_z: float,
+    p: ScannerPositionParams,
+    *,
+    tolerance_rad: float = 0.02,
+    min_fraction: float = 0.6,
+) -> Optional[tuple[np.ndarray, float]]:
     """Ray geometry: the innermost ground return of each of 72 azimuth sectors lies on the cone of
     the scanner's lowest beam (the edge of the blind circle). A robust least-squares fit of the
     cone's apex (x, y; z held near ``start`` by a weak prior, as z and the cone angle trade off on
@@ -317,7 +340,12 @@ def _ground_and_height(ground: np.ndarray, centre: np.ndarray, p: ScannerPositio
     return z, best, "ground profile"
 
 
-def origin_is_plausible(points: np.ndarray, candidate: np.ndarray, estimate: Optional[ScannerEstimate], params: Optional[ScannerPositionParams] = None) -> bool:
+def origin_is_plausible(
+    points: np.ndarray,
+    candidate: np.ndarray,
+    estimate: Optional[ScannerEstimate],
+    params: Optional[ScannerPositionParams] = None,
+) -> bool:
     """Whether ``candidate`` (local frame) can be the scanner: points lie around it and, where an
     estimate exists, its ``near_m`` disc holds at least half the points of the estimate's disc."""
     p = params or ScannerPositionParams()
@@ -331,7 +359,9 @@ def origin_is_plausible(points: np.ndarray, candidate: np.ndarray, estimate: Opt
     return near >= 0.5 * at_estimate
 
 
-def origin_is_density_peak(points: np.ndarray, origin: np.ndarray, params: Optional[ScannerPositionParams] = None) -> bool:
+def origin_is_density_peak(
+    points: np.ndarray, origin: np.ndarray, params: Optional[ScannerPositionParams] = None
+) -> bool:
     """Whether the file origin (local frame) is as dense a place as the scan's density peak: the
     origin's ``near_m`` disc holds at least 100 points and 80 % of the points of the disc around
     the peak of the smoothed density map. The quick confirmation of a scanner-centred export (the
@@ -353,7 +383,9 @@ def origin_is_density_peak(points: np.ndarray, origin: np.ndarray, params: Optio
     _xy_histogram(pts, float(lo[0]), float(lo[1]), float(cell), shape[1], counts)
     smooth = gaussian_smooth(counts.reshape(shape).astype(np.float64), max(p.smooth_m / cell, 1.0))
     peak = lo + (np.array(np.unravel_index(int(np.argmax(smooth)), smooth.shape)) + 0.5) * cell
-    at_origin, at_peak = _disc_counts(pts, float(o[0]), float(o[1]), float(peak[0]), float(peak[1]), float(p.near_m) ** 2)
+    at_origin, at_peak = _disc_counts(
+        pts, float(o[0]), float(o[1]), float(peak[0]), float(peak[1]), float(p.near_m) ** 2
+    )
     return at_origin >= 100 and at_origin >= 0.8 * at_peak
 
 
@@ -361,7 +393,9 @@ def points_within(points: np.ndarray, centre: np.ndarray, radius_m: float) -> in
     """How many of the (N, 3) points lie within ``radius_m`` horizontally of ``centre`` (x, y;
     same frame, metres): one compiled pass, no temporaries."""
     c = np.asarray(centre, dtype=np.float64)
-    return int(_disc_counts(np.asarray(points), float(c[0]), float(c[1]), float(c[0]), float(c[1]), float(radius_m) ** 2)[0])
+    return int(
+        _disc_counts(np.asarray(points), float(c[0]), float(c[1]), float(c[0]), float(c[1]), float(radius_m) ** 2)[0]
+    )
 
 
 @kernel
@@ -437,12 +471,17 @@ def locate_scanner(scan: Scan, params: Optional[ScannerPositionParams] = None) -
         if origin_is_plausible(scan.points, origin, estimate, p):
             return confirmed
         if not estimate.blind_circle and _origin_inside_data(scan.points, origin):
-            log.warning("%s: a density peak away from the file origin, but no blind circle under it; keeping the origin", scan.name)
+            log.warning(
+                "%s: a density peak away from the file origin, but no blind circle under it; keeping the origin",
+                scan.name,
+            )
             return dataclasses.replace(scan, meta={**scan.meta, "scanner_position": "file origin (not confirmed)"})
         log.info(
             "%s: no scanner position given and the file origin is not the scanner; found it from the data at "
             "(%.2f, %.2f, %.2f) (file coordinates), %.2f m above ground",
-            scan.name, *(estimate.position + scan.origin_shift), estimate.height_m,
+            scan.name,
+            *(estimate.position + scan.origin_shift),
+            estimate.height_m,
         )
         meta = {**scan.meta, "scanner_position": "estimated", "scanner_estimate": estimate.to_dict()}
         position = estimate.position.copy()
@@ -452,7 +491,11 @@ def locate_scanner(scan: Scan, params: Optional[ScannerPositionParams] = None) -
         return confirmed
     if _origin_inside_data(scan.points, origin):
         # e.g. a scanner-centred scan whose ground was removed: nothing contradicts the origin
-        log.warning("%s: the data neither confirm nor contradict the file origin as the scanner position (%s); keeping it", scan.name, problem)
+        log.warning(
+            "%s: the data neither confirm nor contradict the file origin as the scanner position (%s); keeping it",
+            scan.name,
+            problem,
+        )
         return dataclasses.replace(scan, meta={**scan.meta, "scanner_position": "file origin (not confirmed)"})
     raise ScannerPositionError(
         f"{scan.name}: no scanner position is given, the file origin has no points near it, and the data do not show "

@@ -32,9 +32,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from .params import SurveyParams
 from ..core.progress import CancelToken, Progress, ProgressCallback
 from ..core.transform import rigid_errors
+from .params import SurveyParams
 from .plot import LinkQueue, PlotOutcome, ScanCache, _run_link, default_links, informative_priors, register_project
 from .project import Link, Project
 from .uncertainty import propagate_uncertainty
@@ -42,6 +42,7 @@ from .uncertainty import propagate_uncertainty
 log = logging.getLogger("forestreg")
 
 __all__ = ["SurveyParams", "register_survey", "solve_pose_graph", "inconsistent_links"]
+
 
 def _link_sigma(link: Link) -> tuple[float, float]:
     """A link's stated 1-sigma (translation m, rotation deg); manual/old links get a cautious default."""
@@ -67,7 +68,9 @@ def _usable(scans: ScanCache, name: str) -> bool:
         return False
 
 
-def _prior_positions(project: Project, scans: ScanCache, poses: dict[str, Optional[np.ndarray]]) -> dict[str, np.ndarray]:
+def _prior_positions(
+    project: Project, scans: ScanCache, poses: dict[str, Optional[np.ndarray]]
+) -> dict[str, np.ndarray]:
     """Scanner positions in the frame scan's file coordinates: from the registered poses, else from
     prior poses (relative to the frame scan's prior), else the file coordinates themselves when the
     files share a georeferenced frame (large coordinates)."""
@@ -123,7 +126,9 @@ def _prior_conflict(project: Project, scans: ScanCache, link: Link, params: Surv
     # error swinging the moving scanner about the reference scanner (lever arm = their distance)
     ref_pos = _scanner_file(scans, link.reference)
     lever = float(np.linalg.norm(expected[:2] - ref_pos[:2]))
-    allowed_m = 2.0 * params.prior_position_tolerance_m + 2.0 * lever * np.sin(np.radians(min(params.prior_heading_tolerance_deg, 90.0)) / 1.0)
+    allowed_m = 2.0 * params.prior_position_tolerance_m + 2.0 * lever * np.sin(
+        np.radians(min(params.prior_heading_tolerance_deg, 90.0)) / 1.0
+    )
     allowed_deg = min(180.0, 2.0 * params.prior_heading_tolerance_deg)
     if off > allowed_m or turn > allowed_deg:
         return (
@@ -142,7 +147,12 @@ def _error(link_matrix: np.ndarray, predicted: np.ndarray, at: np.ndarray) -> tu
 
 
 def inconsistent_links(
-    links: Sequence[Link], scanner: dict[str, np.ndarray], closure_sigmas: float, *, min_closure_m: float = 0.03, min_closure_deg: float = 0.1,
+    links: Sequence[Link],
+    scanner: dict[str, np.ndarray],
+    closure_sigmas: float,
+    *,
+    min_closure_m: float = 0.03,
+    min_closure_deg: float = 0.1,
 ) -> tuple[list[Link], list[dict[str, Any]]]:
     """Links whose triangles all fail to close while at least one closes elsewhere in the graph.
 
@@ -184,15 +194,28 @@ def inconsistent_links(
         for row in rows:
             if row["closes"] or x.moving not in row["scans"] or x.reference not in row["scans"]:
                 continue
-            others = [by_pair[frozenset(p)] for p in itertools.combinations(row["scans"], 2) if frozenset(p) != frozenset((x.moving, x.reference))]
+            others = [
+                by_pair[frozenset(p)]
+                for p in itertools.combinations(row["scans"], 2)
+                if frozenset(p) != frozenset((x.moving, x.reference))
+            ]
             partners_ok &= all(passed.get(id(o), 0) > 0 for o in others)
         if partners_ok:
             culprits.append(x)
     if not culprits and drop:
         # the loops cannot single the culprit out (e.g. one lone triangle): the link with the
         # weakest evidence (largest stated uncertainty) goes, reported as such
-        culprits = [max(drop, key=lambda x: (_link_sigma(x)[0], -((x.result if x.result is not None else {}).get("matched") or 0)))]
-        rows.append({"note": f"loops cannot single out the wrong link; the weakest ({culprits[0].moving} -> {culprits[0].reference}) is dropped"})
+        culprits = [
+            max(
+                drop,
+                key=lambda x: (_link_sigma(x)[0], -((x.result if x.result is not None else {}).get("matched") or 0)),
+            )
+        ]
+        rows.append(
+            {
+                "note": f"loops cannot single out the wrong link; the weakest ({culprits[0].moving} -> {culprits[0].reference}) is dropped"
+            }
+        )
     return culprits, rows
 
 
@@ -220,8 +243,8 @@ def solve_pose_graph(
         poses = dict(held)
         for n, k in index.items():
             m = np.eye(4)
-            m[:3, :3] = Rotation.from_rotvec(x[6 * k:6 * k + 3]).as_matrix() @ initial[n][:3, :3]
-            m[:3, 3] = centre[n] + x[6 * k + 3:6 * k + 6]
+            m[:3, :3] = Rotation.from_rotvec(x[6 * k : 6 * k + 3]).as_matrix() @ initial[n][:3, :3]
+            m[:3, 3] = centre[n] + x[6 * k + 3 : 6 * k + 6]
             poses[n] = m
         return poses
 
@@ -251,10 +274,15 @@ def solve_pose_graph(
         predicted = np.linalg.inv(poses[link.reference]) @ poses[link.moving]
         rot, trans = _error(link.matrix, predicted, scanner[link.moving])
         sig_t, sig_r = _link_sigma(link)
-        rows.append({
-            "moving": link.moving, "reference": link.reference, "rotation_deg": rot, "translation_m": trans,
-            "normalised": max(rot / sig_r, trans / sig_t),
-        })
+        rows.append(
+            {
+                "moving": link.moving,
+                "reference": link.reference,
+                "rotation_deg": rot,
+                "translation_m": trans,
+                "normalised": max(rot / sig_r, trans / sig_t),
+            }
+        )
     return poses, rows
 
 
@@ -275,8 +303,14 @@ def _spanning_poses(frame: str, links: Sequence[Link], fixed: dict[str, np.ndarr
     return poses
 
 
-def _register_two_at_a_time(project: Project, pending: list[Link], scans: ScanCache, step: Progress, cancel: Optional[CancelToken],
-                            after: Optional[Callable[[], None]]) -> None:
+def _register_two_at_a_time(
+    project: Project,
+    pending: list[Link],
+    scans: ScanCache,
+    step: Progress,
+    cancel: Optional[CancelToken],
+    after: Optional[Callable[[], None]],
+) -> None:
     """Register the further pairs ``pending`` two at a time (threads: a link's coarse matching and
     ICP keep about one core busy), for plots of :func:`~forestreg.engine.tls.plot.small_scans`
     whose scans the links to the centre left prepared (all of them kept), on a
@@ -326,11 +360,26 @@ def register_survey(
         default_links(project)
         scans.keep_prepared_points = False  # the links run on the preparations: room for two at once
         linked = {frozenset((link.moving, link.reference)) for link in project.links}
-        beside = LinkQueue(project, [Link(moving=b, reference=a, extra=True) for a, b in itertools.combinations(names, 2)
-                                     if frozenset((a, b)) not in linked], scans, cancel)
+        beside = LinkQueue(
+            project,
+            [
+                Link(moving=b, reference=a, extra=True)
+                for a, b in itertools.combinations(names, 2)
+                if frozenset((a, b)) not in linked
+            ],
+            scans,
+            cancel,
+        )
     try:
-        outcome = register_project(project, rerun=rerun, progress=step.sub(0.0, share), cancel=cancel, scans=scans, beside=beside,
-                                   on_link_done=on_link_done)
+        outcome = register_project(
+            project,
+            rerun=rerun,
+            progress=step.sub(0.0, share),
+            cancel=cancel,
+            scans=scans,
+            beside=beside,
+            on_link_done=on_link_done,
+        )
     except BaseException:
         if beside is not None:
             beside.close()
@@ -339,7 +388,9 @@ def register_survey(
     if params.pairs != "centre":
         positions = _prior_positions(project, scans, project.chained_poses())
         linked = {frozenset((link.moving, link.reference)) for link in project.links}
-        early = {frozenset((link.moving, link.reference)): link for link in (beside.links if beside is not None else [])}
+        early = {
+            frozenset((link.moving, link.reference)): link for link in (beside.links if beside is not None else [])
+        }
         added: list[Link] = []
         for a, b in itertools.combinations(names, 2):
             if frozenset((a, b)) in linked:
@@ -356,7 +407,9 @@ def register_survey(
                 added.append(project.add_link(b, a))
         for link in early.values():  # a retried link now joins these scans
             beside.discard(link)
-        pending = [link for link in project.links if link.extra and (link.result is None or any(link is x for x in added))]
+        pending = [
+            link for link in project.links if link.extra and (link.result is None or any(link is x for x in added))
+        ]
         if pending:
             log.info("registering %d further pairs", len(pending))
         if beside is not None:
@@ -366,8 +419,15 @@ def register_survey(
             except BaseException:
                 beside.close()
                 raise
-        elif len(pending) > 1 and scans.small and all(
-                scans.is_prepared(name, link.params(project.params)) for link in pending for name in (link.reference, link.moving)):
+        elif (
+            len(pending) > 1
+            and scans.small
+            and all(
+                scans.is_prepared(name, link.params(project.params))
+                for link in pending
+                for name in (link.reference, link.moving)
+            )
+        ):
             _register_two_at_a_time(project, pending, scans, step.sub(share, 1.0), cancel, after)
         for k, link in enumerate(pending):
             if link.result is not None:
@@ -386,19 +446,35 @@ def register_survey(
             outcome.reasons.setdefault(s.name, f"the centre scan {frame} cannot be used")
         project.adjustment = None
         return outcome
-    ok_links = [link for link in project.links if link.ok and link.matrix is not None and link.moving in scanner and link.reference in scanner]
+    ok_links = [
+        link
+        for link in project.links
+        if link.ok and link.matrix is not None and link.moving in scanner and link.reference in scanner
+    ]
     dropped: list[dict[str, Any]] = []
     kept = []
     for link in ok_links:
         why = _prior_conflict(project, scans, link, params)
         if why:
-            dropped.append({"moving": link.moving, "reference": link.reference, "reason": f"inconsistent with the prior poses: {why}"})
+            dropped.append(
+                {
+                    "moving": link.moving,
+                    "reference": link.reference,
+                    "reason": f"inconsistent with the prior poses: {why}",
+                }
+            )
             log.warning("dropping link %s -> %s: %s", link.moving, link.reference, why)
         else:
             kept.append(link)
     triangles: list[dict[str, Any]] = []
     while True:
-        culprits, triangles = inconsistent_links(kept, scanner, params.closure_sigmas, min_closure_m=params.min_closure_m, min_closure_deg=params.min_closure_deg)
+        culprits, triangles = inconsistent_links(
+            kept,
+            scanner,
+            params.closure_sigmas,
+            min_closure_m=params.min_closure_m,
+            min_closure_deg=params.min_closure_deg,
+        )
         if not culprits:
             break
         worst = max(culprits, key=lambda x: _link_sigma(x)[0])
@@ -422,7 +498,9 @@ def register_survey(
     before = {}  # each link against the spanning-tree poses the adjustment started from
     for link in kept:
         if link.moving in initial and link.reference in initial:
-            rot, trans = _error(link.matrix, np.linalg.inv(initial[link.reference]) @ initial[link.moving], scanner[link.moving])
+            rot, trans = _error(
+                link.matrix, np.linalg.inv(initial[link.reference]) @ initial[link.moving], scanner[link.moving]
+            )
             before[(link.moving, link.reference)] = {"rotation_deg": rot, "translation_m": trans}
     # loops that disagree more than the links state: inflate every stated sigma by the excess
     dof = max(6 * len(rows) - 6 * max(len(poses) - 1 - len(fixed), 0), 0)
@@ -430,12 +508,22 @@ def register_survey(
     inflation = float(np.sqrt(chi2 / dof)) if dof > 0 else 1.0
     inflation = max(1.0, inflation)
     positions = {n: p[:3, :3] @ scanner[n] + p[:3, 3] for n, p in poses.items() if n in scanner}
-    link_sigmas = [{"moving": x.moving, "reference": x.reference, "translation_m": _link_sigma(x)[0] * inflation, "rotation_deg": _link_sigma(x)[1] * inflation} for x in kept]
+    link_sigmas = [
+        {
+            "moving": x.moving,
+            "reference": x.reference,
+            "translation_m": _link_sigma(x)[0] * inflation,
+            "rotation_deg": _link_sigma(x)[1] * inflation,
+        }
+        for x in kept
+    ]
     uncertainty = propagate_uncertainty(frame, positions, link_sigmas)
     for name in fixed:
         uncertainty[name] = {"translation_m": 0.0, "rotation_deg": 0.0, "fixed": True}
     quality = _quality(project, kept, rows, dropped)
-    all_poses: dict[str, Optional[list]] = {s.name: (poses[s.name].tolist() if s.name in poses else None) for s in project.scans}
+    all_poses: dict[str, Optional[list]] = {
+        s.name: (poses[s.name].tolist() if s.name in poses else None) for s in project.scans
+    }
     for s in project.scans:
         if s.name in poses and outcome.scans.get(s.name) == "failed":
             outcome.scans[s.name] = "ok"
@@ -447,12 +535,16 @@ def register_survey(
     project.adjustment = {
         "method": "survey",
         "poses": all_poses,
-        "links": [{
-            "moving": r["moving"], "reference": r["reference"],
-            "before": before.get((r["moving"], r["reference"]), {}),
-            "after": {"rotation_deg": r["rotation_deg"], "translation_m": r["translation_m"]},
-            "normalised_residual": r["normalised"],
-        } for r in rows],
+        "links": [
+            {
+                "moving": r["moving"],
+                "reference": r["reference"],
+                "before": before.get((r["moving"], r["reference"]), {}),
+                "after": {"rotation_deg": r["rotation_deg"], "translation_m": r["translation_m"]},
+                "normalised_residual": r["normalised"],
+            }
+            for r in rows
+        ],
         "dropped": dropped,
         "triangles": triangles,
         "uncertainty": {k: v for k, v in uncertainty.items() if k in poses},
@@ -463,7 +555,9 @@ def register_survey(
     return outcome
 
 
-def _quality(project: Project, kept: Sequence[Link], rows: Sequence[dict[str, Any]], dropped: Sequence[dict[str, Any]]) -> dict[str, Any]:
+def _quality(
+    project: Project, kept: Sequence[Link], rows: Sequence[dict[str, Any]], dropped: Sequence[dict[str, Any]]
+) -> dict[str, Any]:
     """Per scan, from its links: how many, worst residual after the adjustment, matched trunks,
     ambiguity (second best / best matched VOPs), ICP spread and fitness, free space."""
     residual = {(r["moving"], r["reference"]): r for r in rows}
@@ -476,25 +570,29 @@ def _quality(project: Project, kept: Sequence[Link], rows: Sequence[dict[str, An
             icp = res.get("icp") or {}
             r = residual.get((x.moving, x.reference), {})
             matched = res.get("matched") or 0
-            items.append({
-                "other": x.reference if x.moving == s.name else x.moving,
-                "matched_vops": matched,
-                "ambiguity": None if not matched else (res.get("second_matched") or 0) / matched,
-                "vop_residual_m": res.get("vop_residual_m"),
-                "icp_std_m": icp.get("std_m"),
-                "icp_fitness": icp.get("fitness"),
-                "free_space_violation": res.get("free_space_violation"),
-                "terrain_median_m": (res.get("quality") or {}).get("terrain_median_m"),
-                "terrain_cells": (res.get("quality") or {}).get("terrain_cells"),
-                "residual_m": r.get("translation_m"),
-                "residual_deg": r.get("rotation_deg"),
-            })
+            items.append(
+                {
+                    "other": x.reference if x.moving == s.name else x.moving,
+                    "matched_vops": matched,
+                    "ambiguity": None if not matched else (res.get("second_matched") or 0) / matched,
+                    "vop_residual_m": res.get("vop_residual_m"),
+                    "icp_std_m": icp.get("std_m"),
+                    "icp_fitness": icp.get("fitness"),
+                    "free_space_violation": res.get("free_space_violation"),
+                    "terrain_median_m": (res.get("quality") or {}).get("terrain_median_m"),
+                    "terrain_cells": (res.get("quality") or {}).get("terrain_cells"),
+                    "residual_m": r.get("translation_m"),
+                    "residual_deg": r.get("rotation_deg"),
+                }
+            )
         out[s.name] = {
             "links": len(mine),
             "dropped_links": sum(s.name in (d["moving"], d["reference"]) for d in dropped),
             "max_residual_m": max((i["residual_m"] for i in items if i["residual_m"] is not None), default=None),
             "max_residual_deg": max((i["residual_deg"] for i in items if i["residual_deg"] is not None), default=None),
-            "terrain_median_m": max((i["terrain_median_m"] for i in items if i["terrain_median_m"] is not None), default=None),
+            "terrain_median_m": max(
+                (i["terrain_median_m"] for i in items if i["terrain_median_m"] is not None), default=None
+            ),
             "min_matched_vops": min((i["matched_vops"] for i in items), default=None),
             "max_ambiguity": max((i["ambiguity"] for i in items if i["ambiguity"] is not None), default=None),
             "per_link": items,
@@ -523,7 +621,9 @@ def read_positions_csv(path: str) -> dict[str, tuple[float, float, float]]:
         except ValueError:
             if k == lines[0][0]:
                 continue  # header
-            raise ParameterError(f"positions CSV {path}, line {k}: x,y,z must be numbers, got {','.join(row[1:4])!r}") from None
+            raise ParameterError(
+                f"positions CSV {path}, line {k}: x,y,z must be numbers, got {','.join(row[1:4])!r}"
+            ) from None
         if not np.isfinite(xyz).all():
             raise ParameterError(f"positions CSV {path}, line {k}: x,y,z must be finite")
         out[row[0].strip()] = xyz  # type: ignore[assignment]
@@ -560,7 +660,12 @@ def read_prior_poses(path: str) -> dict[str, np.ndarray]:
             if m is None:
                 continue
             arr = np.asarray(m, dtype=float) if isinstance(m, list) else None
-            if arr is None or arr.shape != (4, 4) or not np.isfinite(arr).all() or abs(np.linalg.det(arr[:3, :3]) - 1.0) > 1e-3:
+            if (
+                arr is None
+                or arr.shape != (4, 4)
+                or not np.isfinite(arr).all()
+                or abs(np.linalg.det(arr[:3, :3]) - 1.0) > 1e-3
+            ):
                 raise ParameterError(f"prior poses {path}: {name}: a pose must be a rigid 4x4 matrix")
             out[str(name)] = arr
     else:
@@ -574,7 +679,9 @@ def read_prior_poses(path: str) -> dict[str, np.ndarray]:
             except ValueError:
                 if k == 1:
                     continue
-                raise ParameterError(f"prior poses {path}, line {k}: expected scan,x,y,z[,heading_deg] numbers") from None
+                raise ParameterError(
+                    f"prior poses {path}, line {k}: expected scan,x,y,z[,heading_deg] numbers"
+                ) from None
             if len(values) < 3 or not np.isfinite(values).all():
                 raise ParameterError(f"prior poses {path}, line {k}: expected scan,x,y,z[,heading_deg]")
             heading = values[3] if len(values) > 3 else 0.0

@@ -26,7 +26,9 @@ from .params import RegistrationParams
 __all__ = ["rigid_fit_2d", "pair_uncertainty", "propagate_uncertainty"]
 
 
-def rigid_fit_2d(source: np.ndarray, target: np.ndarray, weights: Optional[np.ndarray] = None) -> tuple[float, np.ndarray]:
+def rigid_fit_2d(
+    source: np.ndarray, target: np.ndarray, weights: Optional[np.ndarray] = None
+) -> tuple[float, np.ndarray]:
     """Least-squares 2D rotation (radians, counter-clockwise) and translation with
     ``target ~ Rot(angle) @ source + t`` (Kabsch in the plane)."""
     w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=float)
@@ -77,7 +79,9 @@ def pair_uncertainty(
     vertical = max(floor_m, 0.25 * float(icp_std_m))
     if n < 3:
         return {
-            "translation_m": None, "rotation_deg": None, "pairs": n,
+            "translation_m": None,
+            "rotation_deg": None,
+            "pairs": n,
             "method": "fewer than 3 matched trunks: no uncertainty from the data",
         }
 
@@ -148,7 +152,11 @@ def propagate_uncertainty(
         if best.get(name, (np.inf, np.inf))[0] < var_t:
             continue
         for other, t, r in graph.get(name, []):
-            lever = float(np.linalg.norm(np.asarray(positions[other]) - np.asarray(positions[name]))) if other in positions and name in positions else 0.0
+            lever = (
+                float(np.linalg.norm(np.asarray(positions[other]) - np.asarray(positions[name])))
+                if other in positions and name in positions
+                else 0.0
+            )
             vt = var_t + t * t + var_r * np.radians(1.0) ** 2 * lever**2
             vr = var_r + r * r
             if vt < best.get(other, (np.inf, np.inf))[0]:

@@ -21,11 +21,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .ground import GroundGrid
+from ..core.jit import kernel
 from ..geometry.circle import algebraic_circle
 from ..geometry.cluster import connected_clusters
 from ..geometry.features import SphereGrid, kth_nearest_distance
-from ..core.jit import kernel
+from .ground import GroundGrid
 
 
 @dataclass(frozen=True)
@@ -145,7 +145,9 @@ def density_mode(points_xy: np.ndarray, *, bandwidth_m: float, max_iterations: i
     key = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]  # orders cells as (x, y) rows
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     centre = points_xy[inverse.reshape(-1) == int(np.argmax(counts))].mean(axis=0)
-    return _mean_shift(np.ascontiguousarray(points_xy, dtype=np.float64), centre, float(bandwidth_m), int(max_iterations))
+    return _mean_shift(
+        np.ascontiguousarray(points_xy, dtype=np.float64), centre, float(bandwidth_m), int(max_iterations)
+    )
 
 
 @kernel
@@ -243,5 +245,8 @@ def _azimuth_window(sorted_azimuth: np.ndarray, lo: float, hi: float) -> np.ndar
         spans += [(lo, two_pi), (0.0, hi - two_pi)]
     else:
         spans.append((lo, hi))
-    parts = [np.arange(np.searchsorted(sorted_azimuth, a, "left"), np.searchsorted(sorted_azimuth, b, "right")) for a, b in spans]
+    parts = [
+        np.arange(np.searchsorted(sorted_azimuth, a, "left"), np.searchsorted(sorted_azimuth, b, "right"))
+        for a, b in spans
+    ]
     return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)

@@ -29,7 +29,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..core.params import Params, param_field as _p
+from ..core.params import Params
+from ..core.params import param_field as _p
 
 __all__ = ["HeightCurve", "HeightCurveParams", "fit_height_curve"]
 
@@ -38,23 +39,105 @@ __all__ = ["HeightCurve", "HeightCurveParams", "fit_height_curve"]
 class HeightCurveParams(Params):
     """Settings of the plot's height-diameter curve and of the consistency it grants."""
 
-    min_trees: int = _p(6, "trees", 3, 100000, "Fewest trees with a DBH and a height for the plot's height-diameter curve; fewer: no curve, and soft hints about a top decide alone")
-    below_under_crown: float = _p(0.15, "1", 0.0, 1.0, "A tree whose top stands clear under a neighbour's crown is consistent with the curve up to this fraction below it (suppressed trees stand well below the curve; where crowns grow into each other, such a top is often a tree whose upper crown went to the neighbour)")
-    below: float = _p(0.10, "1", 0.0, 1.0, "...a tree with another hint (its top on the crown's flank, amid or nearer to a neighbour's crown, or its stem within a thicker one's crown reach) up to this fraction below it")
-    below_unseen: float = _p(0.05, "1", 0.0, 1.0, "...a tree whose top is missing in the data, cut flat or touching the crown over it up to this fraction below it (such a height can only be short: on the curve, little is missing)")
-    above: float = _p(0.10, "1", 0.0, 1.0, "...and any of them up to this fraction above it (a top taken from a neighbour's crown stands above)")
-    max_departure: float = _p(0.20, "1", 0.0, 10.0, "A tree with no hint about its top is flagged when its height departs from the curve by more than this fraction either way (a top hidden, or a neighbour's crown taken)...")
-    max_departure_scatter: float = _p(2.5, "1", 0.0, 100.0, "...or by more than this many times the curve's scatter, where that is wider (a loose curve, as of a stand of several species, flags only what is unusual for it)")
-    max_scatter_unseen: float = _p(0.08, "1", 0.0, 2.0, "A top not seen is vouched for only by a curve whose scatter is at most this")
-    max_scatter: float = _p(0.25, "1", 0.01, 2.0, "A curve whose robust scatter (of log heights) exceeds this is not used: the heights of the plot do not follow one relation")
+    min_trees: int = _p(
+        6,
+        "trees",
+        3,
+        100000,
+        "Fewest trees with a DBH and a height for the plot's height-diameter curve; fewer: no curve, and soft hints about a top decide alone",
+    )
+    below_under_crown: float = _p(
+        0.15,
+        "1",
+        0.0,
+        1.0,
+        "A tree whose top stands clear under a neighbour's crown is consistent with the curve up to this fraction below it (suppressed trees stand well below the curve; where crowns grow into each other, such a top is often a tree whose upper crown went to the neighbour)",
+    )
+    below: float = _p(
+        0.10,
+        "1",
+        0.0,
+        1.0,
+        "...a tree with another hint (its top on the crown's flank, amid or nearer to a neighbour's crown, or its stem within a thicker one's crown reach) up to this fraction below it",
+    )
+    below_unseen: float = _p(
+        0.05,
+        "1",
+        0.0,
+        1.0,
+        "...a tree whose top is missing in the data, cut flat or touching the crown over it up to this fraction below it (such a height can only be short: on the curve, little is missing)",
+    )
+    above: float = _p(
+        0.10,
+        "1",
+        0.0,
+        1.0,
+        "...and any of them up to this fraction above it (a top taken from a neighbour's crown stands above)",
+    )
+    max_departure: float = _p(
+        0.20,
+        "1",
+        0.0,
+        10.0,
+        "A tree with no hint about its top is flagged when its height departs from the curve by more than this fraction either way (a top hidden, or a neighbour's crown taken)...",
+    )
+    max_departure_scatter: float = _p(
+        2.5,
+        "1",
+        0.0,
+        100.0,
+        "...or by more than this many times the curve's scatter, where that is wider (a loose curve, as of a stand of several species, flags only what is unusual for it)",
+    )
+    max_scatter_unseen: float = _p(
+        0.08, "1", 0.0, 2.0, "A top not seen is vouched for only by a curve whose scatter is at most this"
+    )
+    max_scatter: float = _p(
+        0.25,
+        "1",
+        0.01,
+        2.0,
+        "A curve whose robust scatter (of log heights) exceeds this is not used: the heights of the plot do not follow one relation",
+    )
     iterations: int = _p(10, "rounds", 1, 100, "Reweighting rounds of the robust fit")
-    fill: bool = _p(True, "", None, None, "A height the points cannot give (flagged for its top: hidden, or a neighbour's) is predicted from the curve instead, as inventories do for trees not measured, and reported as such (height_source 'curve'; the points' top kept in height_points_m)")
-    max_scatter_fill: float = _p(0.06, "1", 0.0, 2.0, "...only from a curve whose scatter is at most this (the prediction is as good as the curve's scatter)")
+    fill: bool = _p(
+        True,
+        "",
+        None,
+        None,
+        "A height the points cannot give (flagged for its top: hidden, or a neighbour's) is predicted from the curve instead, as inventories do for trees not measured, and reported as such (height_source 'curve'; the points' top kept in height_points_m)",
+    )
+    max_scatter_fill: float = _p(
+        0.06,
+        "1",
+        0.0,
+        2.0,
+        "...only from a curve whose scatter is at most this (the prediction is as good as the curve's scatter)",
+    )
     min_inliers_fill: int = _p(10, "trees", 3, 100000, "...resting on at least this many trees")
-    fill_dbh_margin: float = _p(0.1, "1", 0.0, 10.0, "...for a DBH at most this fraction outside the range of the trees it was fitted to")
-    clear_below: float = _p(0.10, "1", 0.0, 1.0, "A top standing clear over its stem (no hint about it) is the tree's own when its height is at most this fraction below the curve...")
-    clear_above: float = _p(0.15, "1", 0.0, 10.0, "...and at most this fraction above it (an apex seen as a tip: any height below, at most this above); beyond, the height is low and the curve gives the estimate")
-    min_tips_fill: int = _p(5, "trees", 0, 100000, "...and in a plot where at least this many trees show their own apex as a tip over the stem, none of them further below the curve than a clear top may stand (such a tree is suppressed, and where suppressed trees grow a hidden top may be one: the curve would stand it too tall)")
+    fill_dbh_margin: float = _p(
+        0.1, "1", 0.0, 10.0, "...for a DBH at most this fraction outside the range of the trees it was fitted to"
+    )
+    clear_below: float = _p(
+        0.10,
+        "1",
+        0.0,
+        1.0,
+        "A top standing clear over its stem (no hint about it) is the tree's own when its height is at most this fraction below the curve...",
+    )
+    clear_above: float = _p(
+        0.15,
+        "1",
+        0.0,
+        10.0,
+        "...and at most this fraction above it (an apex seen as a tip: any height below, at most this above); beyond, the height is low and the curve gives the estimate",
+    )
+    min_tips_fill: int = _p(
+        5,
+        "trees",
+        0,
+        100000,
+        "...and in a plot where at least this many trees show their own apex as a tip over the stem, none of them further below the curve than a clear top may stand (such a tree is suppressed, and where suppressed trees grow a hidden top may be one: the curve would stand it too tall)",
+    )
 
 
 @dataclass(frozen=True)
@@ -119,8 +202,10 @@ class HeightCurve:
         if self.n_tips < params.min_tips_fill:
             return f"{self.n_tips} tree{'' if self.n_tips == 1 else 's'} with its apex seen as a tip to check it on (fewer than {params.min_tips_fill})"
         if self.n_tips_below:
-            return (f"{self.n_tips_below} of {self.n_tips} trees with their apex seen as a tip stand more than "
-                    f"{100 * self.max_departure(params):.0f} % below it: suppressed trees grow here")
+            return (
+                f"{self.n_tips_below} of {self.n_tips} trees with their apex seen as a tip stand more than "
+                f"{100 * self.max_departure(params):.0f} % below it: suppressed trees grow here"
+            )
         return ""
 
     def fill_height_m(self, dbh_m: float, params: "HeightCurveParams") -> float:
@@ -147,17 +232,25 @@ class HeightCurve:
         dep = dep[np.isfinite(dep)]
         out = replace(self, n_tips=int(len(dep)), n_tips_below=int(np.count_nonzero(dep < -self.max_departure(params))))
         refusal = out.fill_refusal(params)
-        note = ("stands in for heights the points cannot give" if not refusal
-                else f"does not stand in for heights the points cannot give: {refusal}")
+        note = (
+            "stands in for heights the points cannot give"
+            if not refusal
+            else f"does not stand in for heights the points cannot give: {refusal}"
+        )
         return replace(out, fill_note=note)
 
     def describe(self) -> str:
         """One line for reports: the curve and what it rests on."""
-        return (f"Näslund h = 1.3 + d^2/({self.a:.3f} + {self.b:.4f} d)^2 (d in cm) from {self.n_trees} trees "
-                f"({self.n_inliers} kept), scatter {100 * self.scatter:.0f} %" + (f"; {self.fill_note}" if self.fill_note else ""))
+        return (
+            f"Näslund h = 1.3 + d^2/({self.a:.3f} + {self.b:.4f} d)^2 (d in cm) from {self.n_trees} trees "
+            f"({self.n_inliers} kept), scatter {100 * self.scatter:.0f} %"
+            + (f"; {self.fill_note}" if self.fill_note else "")
+        )
 
 
-def fit_height_curve(dbh_m: np.ndarray, height_m: np.ndarray, params: HeightCurveParams = HeightCurveParams()) -> Optional[HeightCurve]:
+def fit_height_curve(
+    dbh_m: np.ndarray, height_m: np.ndarray, params: HeightCurveParams = HeightCurveParams()
+) -> Optional[HeightCurve]:
     """Fit the plot's height-diameter curve to trees' DBH (m) and heights (m) robustly. Pairs with
     a DBH or height that is not finite, a DBH not above 0 or a height not above 1.3 m are left
     out. Returns None when fewer than ``params.min_trees`` remain, when the fit is degenerate (the
@@ -200,8 +293,20 @@ def fit_height_curve(dbh_m: np.ndarray, height_m: np.ndarray, params: HeightCurv
     if not (math.isfinite(a) and math.isfinite(b) and a > 0) or scale > params.max_scatter:
         return None
     kept = d[w > 0]
-    return HeightCurve(a=float(a), b=float(b), n_trees=int(len(d)), n_inliers=int(np.count_nonzero(w > 0)), scatter=float(scale),
-                       dbh_min_m=float(kept.min()) / 100.0, dbh_max_m=float(kept.max()) / 100.0,
-                       widest_below=max(params.below_under_crown, params.below, params.below_unseen, params.max_departure,
-                                        params.max_departure_scatter * scale),
-                       above=max(params.above, params.max_departure, params.max_departure_scatter * scale))
+    return HeightCurve(
+        a=float(a),
+        b=float(b),
+        n_trees=int(len(d)),
+        n_inliers=int(np.count_nonzero(w > 0)),
+        scatter=float(scale),
+        dbh_min_m=float(kept.min()) / 100.0,
+        dbh_max_m=float(kept.max()) / 100.0,
+        widest_below=max(
+            params.below_under_crown,
+            params.below,
+            params.below_unseen,
+            params.max_departure,
+            params.max_departure_scatter * scale,
+        ),
+        above=max(params.above, params.max_departure, params.max_departure_scatter * scale),
+    )

@@ -44,18 +44,52 @@ class CanopyParams(Params):
     chm_resolution_m: float = param_field(0.5, "m", 0.1, 5.0, "Cell size of the canopy height model")
     min_height_m: float = param_field(2.0, "m", 0.5, 50.0, "Tops and crown cells lower than this are not trees")
     window_base_m: float = param_field(1.2, "m", 0.1, 10.0, "Radius of the tree-top search window at height 0")
-    window_per_height: float = param_field(0.05, "m/m", 0.0, 1.0, "Growth of the tree-top window radius per metre of tree height")
-    window_range_m: tuple[float, float] = param_field((1.2, 3.0), "m", 0.1, 20.0, "Smallest and largest tree-top window radius")
-    crown_height_fraction: float = param_field(0.45, "1", 0.0, 1.0, "A crown cell is at least this fraction of its tree's top height (Dalponte th_tree)")
-    max_crown_radius_m: float = param_field(8.0, "m", 0.5, 50.0, "Largest horizontal distance of a crown cell from its top")
-    crown_base_percentile: float = param_field(2.0, "%", 0.0, 50.0, "The crown base is at least this percentile of the crown points' heights")
-    max_crown_gap_m: float = param_field(2.0, "m", 0.5, 20.0, "Going down from the top, a vertical gap this long without points ends the crown (below: understory)")
-    width_percentile: float = param_field(1.0, "%", 0.0, 25.0, "Crown widths run from this percentile of the crown cells' x (y) to 100 minus it")
+    window_per_height: float = param_field(
+        0.05, "m/m", 0.0, 1.0, "Growth of the tree-top window radius per metre of tree height"
+    )
+    window_range_m: tuple[float, float] = param_field(
+        (1.2, 3.0), "m", 0.1, 20.0, "Smallest and largest tree-top window radius"
+    )
+    crown_height_fraction: float = param_field(
+        0.45, "1", 0.0, 1.0, "A crown cell is at least this fraction of its tree's top height (Dalponte th_tree)"
+    )
+    max_crown_radius_m: float = param_field(
+        8.0, "m", 0.5, 50.0, "Largest horizontal distance of a crown cell from its top"
+    )
+    crown_base_percentile: float = param_field(
+        2.0, "%", 0.0, 50.0, "The crown base is at least this percentile of the crown points' heights"
+    )
+    max_crown_gap_m: float = param_field(
+        2.0,
+        "m",
+        0.5,
+        20.0,
+        "Going down from the top, a vertical gap this long without points ends the crown (below: understory)",
+    )
+    width_percentile: float = param_field(
+        1.0, "%", 0.0, 25.0, "Crown widths run from this percentile of the crown cells' x (y) to 100 minus it"
+    )
     min_crown_cells: int = param_field(3, "cells", 1, 10000, "Crowns of fewer cells are dropped (noise)")
-    min_crown_points: int = param_field(10, "points", 1, 100000, "Crowns of fewer points are dropped (noise, a fragment of a neighbour's crown)")
-    ground_ring_width_m: float = param_field(5.0, "m", 0.5, 50.0, "Where few ground returns lie under a crown, a plane through those in a ring this wide around it checks the DEM under the top")
-    ground_ring_min_points: int = param_field(10, "points", 3, 100000, "Fewest ground returns in that ring for the plane")
-    ground_tolerance: float = param_field(0.05, "1", 0.0, 1.0, "The DEM under the top may stand off that plane by at most this fraction of the tree height; farther, the height is unsure")
+    min_crown_points: int = param_field(
+        10, "points", 1, 100000, "Crowns of fewer points are dropped (noise, a fragment of a neighbour's crown)"
+    )
+    ground_ring_width_m: float = param_field(
+        5.0,
+        "m",
+        0.5,
+        50.0,
+        "Where few ground returns lie under a crown, a plane through those in a ring this wide around it checks the DEM under the top",
+    )
+    ground_ring_min_points: int = param_field(
+        10, "points", 3, 100000, "Fewest ground returns in that ring for the plane"
+    )
+    ground_tolerance: float = param_field(
+        0.05,
+        "1",
+        0.0,
+        1.0,
+        "The DEM under the top may stand off that plane by at most this fraction of the tree height; farther, the height is unsure",
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,7 +202,9 @@ def _crown_base(heights: np.ndarray, params: CanopyParams, bin_m: float = 0.5) -
     return float(max(base, np.percentile(heights, params.crown_base_percentile)))
 
 
-def canopy_trees(points: Any, heights: Any, params: CanopyParams = CanopyParams()) -> tuple[list[CanopyTree], np.ndarray]:
+def canopy_trees(
+    points: Any, heights: Any, params: CanopyParams = CanopyParams()
+) -> tuple[list[CanopyTree], np.ndarray]:
     """Trees found from the canopy of a cloud (see the module docstring).
 
     ``points`` (N, 3) local frame, ``heights`` (N,) normalised heights. Returns the trees (ids 1,
@@ -242,12 +278,23 @@ def canopy_trees(points: Any, heights: Any, params: CanopyParams = CanopyParams(
         new_id[k] = tid
         close = index.query_ball_point(p[top_i, :2], 1.0)
         beside = bool(len(close)) and float(h[veg_idx[close]].max()) > 1.05 * height
-        trees.append(CanopyTree(
-            tree_id=tid, top=p[top_i].copy(), beside_taller=beside, ground_z=float(ground[top_i]), height_m=height, crown_base_m=cbh,
-            crown_width_ew_m=a, crown_width_ns_m=b, crown_area_m2=math.pi * a * b / 4.0,
-            crown_volume_m3=math.pi * cd * cd * max(height - cbh, 0.0) / 8.0, n_cells=int(len(cells)),
-            chm_max_m=float(np.nanmax(g[lab == k])), point_indices=np.sort(idx),
-        ))
+        trees.append(
+            CanopyTree(
+                tree_id=tid,
+                top=p[top_i].copy(),
+                beside_taller=beside,
+                ground_z=float(ground[top_i]),
+                height_m=height,
+                crown_base_m=cbh,
+                crown_width_ew_m=a,
+                crown_width_ns_m=b,
+                crown_area_m2=math.pi * a * b / 4.0,
+                crown_volume_m3=math.pi * cd * cd * max(height - cbh, 0.0) / 8.0,
+                n_cells=int(len(cells)),
+                chm_max_m=float(np.nanmax(g[lab == k])),
+                point_indices=np.sort(idx),
+            )
+        )
     labels = new_id[labels]
     return trees, labels
 
@@ -270,8 +317,15 @@ class GroundEvidence:
     text: str
 
 
-def ground_evidence(ground_xyz: np.ndarray, ground_index: Any, top: np.ndarray, crown_radius_m: float, dem_z: float,
-                    height_m: float, params: CanopyParams = CanopyParams()) -> GroundEvidence:
+def ground_evidence(
+    ground_xyz: np.ndarray,
+    ground_index: Any,
+    top: np.ndarray,
+    crown_radius_m: float,
+    dem_z: float,
+    height_m: float,
+    params: CanopyParams = CanopyParams(),
+) -> GroundEvidence:
     """The evidence for the ground under ``top`` (see :class:`GroundEvidence`). ``ground_xyz``
     (G, 3) the ground returns, ``ground_index`` a ``cKDTree`` of their x, y. Where few returns lie
     under the crown (sparse ground under a dense crown, the DEM interpolated across it, or crown
@@ -298,14 +352,18 @@ def ground_evidence(ground_xyz: np.ndarray, ground_index: Any, top: np.ndarray, 
     off = abs(dem_z - ring_z) if math.isfinite(ring_z) else nan
     # returns under the crown that stand off the open ground around it are crown undersides or
     # low vegetation taken for ground as much as a sparse ground interpolated wrongly
-    unsure = (math.isfinite(off) and off > params.ground_tolerance * height_m) or (not dense and not math.isfinite(off) and nearest > r)
+    unsure = (math.isfinite(off) and off > params.ground_tolerance * height_m) or (
+        not dense and not math.isfinite(off) and nearest > r
+    )
     if dense:
         text = f"ground from {n_under} returns within {core:.1f} m of the top"
         if math.isfinite(off):
             text += f", {dem_z - ring_z:+.2f} m from the plane of {len(g)} returns around the crown"
     else:
-        text = (f"ground under the crown sparse ({n_under} returns within {core:.1f} m of the top, nearest {nearest:.1f} m): "
-                f"DEM interpolated")
+        text = (
+            f"ground under the crown sparse ({n_under} returns within {core:.1f} m of the top, nearest {nearest:.1f} m): "
+            f"DEM interpolated"
+        )
         if math.isfinite(off):
             text += f", {dem_z - ring_z:+.2f} m from the plane of {len(g)} returns around the crown"
         else:

@@ -43,12 +43,24 @@ class FormFactorBounds(Params):
     (a cone is 1/3, a paraboloid 1/2, a cylinder 1), with a margin; whole tree (stem and
     branches) up to 1.0. Beyond ``withhold_factor`` times the bounds the volume is withheld."""
 
-    stem: tuple[float, float] = param_field((0.25, 0.8), "1", 0.0, 2.0, "Plausible stem form factors V_stem / (BA * H); outside: volume flagged")
-    total: tuple[float, float] = param_field((0.25, 1.1), "1", 0.0, 3.0, "Plausible whole-tree form factors V / (BA * H); outside: volume flagged")
+    stem: tuple[float, float] = param_field(
+        (0.25, 0.8), "1", 0.0, 2.0, "Plausible stem form factors V_stem / (BA * H); outside: volume flagged"
+    )
+    total: tuple[float, float] = param_field(
+        (0.25, 1.1), "1", 0.0, 3.0, "Plausible whole-tree form factors V / (BA * H); outside: volume flagged"
+    )
     #: an open-grown tree (a single-tree cloud: urban, park, solitary) carries much of its wood in
     #: its branches: TreeQSM gives whole-tree form factors of 1.5-2.1 on such real trees
-    open_grown_total: tuple[float, float] = param_field((0.25, 2.5), "1", 0.0, 5.0, "Plausible whole-tree form factors of an open-grown single tree; outside: volume flagged")
-    withhold_factor: float = param_field(2.0, "1", 1.0, 100.0, "Beyond this factor outside the whole-tree bounds the volume is withheld")
+    open_grown_total: tuple[float, float] = param_field(
+        (0.25, 2.5),
+        "1",
+        0.0,
+        5.0,
+        "Plausible whole-tree form factors of an open-grown single tree; outside: volume flagged",
+    )
+    withhold_factor: float = param_field(
+        2.0, "1", 1.0, 100.0, "Beyond this factor outside the whole-tree bounds the volume is withheld"
+    )
 
 
 def curve_dbh(curve: StemCurve, stem: Stem, breast_height_m: float, max_gap_m: float = 0.15) -> float:
@@ -63,7 +75,9 @@ def curve_dbh(curve: StemCurve, stem: Stem, breast_height_m: float, max_gap_m: f
     return float(curve.diameter_at(s))
 
 
-def stem_curve_wood(points: np.ndarray, index: "cKDTree | ColumnIndex", stem: Stem, curve: StemCurve, tolerance_m: float) -> np.ndarray:
+def stem_curve_wood(
+    points: np.ndarray, index: "cKDTree | ColumnIndex", stem: Stem, curve: StemCurve, tolerance_m: float
+) -> np.ndarray:
     """Indices of the points on the stem as traced by ``curve`` (within each section's radius plus
     ``tolerance_m`` of its centre, within half a step along the axis), sorted. ``index`` is a
     ``cKDTree`` of ``points``, or a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of
@@ -80,7 +94,9 @@ def stem_curve_wood(points: np.ndarray, index: "cKDTree | ColumnIndex", stem: St
     for j in good:
         if not np.isfinite(centres[j]).all():
             if len(fitted) >= 2:
-                centres[j] = np.array([np.interp(curve.s_m[j], curve.s_m[fitted], centres[fitted, d]) for d in range(3)])
+                centres[j] = np.array(
+                    [np.interp(curve.s_m[j], curve.s_m[fitted], centres[fitted, d]) for d in range(3)]
+                )
             else:
                 centres[j] = stem.point_at(curve.s_m[j])
     # the balls that gather the candidates: one per section, and the butt below the first section
@@ -102,12 +118,16 @@ def stem_curve_wood(points: np.ndarray, index: "cKDTree | ColumnIndex", stem: St
         d = points[idx] - (c if j is not None else stem.base)
         along = d @ stem.axis
         radial = np.linalg.norm(d - along[:, None] * stem.axis, axis=1)
-        between = (np.abs(along) <= 0.5 * step + 1e-9) if j is not None else (along >= -0.05) & (along <= curve.s_m[first])
+        between = (
+            (np.abs(along) <= 0.5 * step + 1e-9) if j is not None else (along >= -0.05) & (along <= curve.s_m[first])
+        )
         found.append(idx[between & (radial <= r)])
     return np.unique(np.concatenate(found)) if found else np.zeros(0, dtype=np.int64)
 
 
-def _ball_query(points: np.ndarray, index: "cKDTree | ColumnIndex", balls: list[tuple[np.ndarray, float]]) -> list[np.ndarray]:
+def _ball_query(
+    points: np.ndarray, index: "cKDTree | ColumnIndex", balls: list[tuple[np.ndarray, float]]
+) -> list[np.ndarray]:
     """The indices (int64) of the points within each ball ``(centre (3,), radius)``: from the k-d
     tree, or from a k-d tree of the points of a :class:`ColumnIndex` in the balls' footprint (the
     disc around all of them, and their height range)."""
@@ -157,7 +177,11 @@ def reconcile_stem(model: CylinderModel, stem: Stem, curve: StemCurve, height_m:
             else:
                 # past a fork the stem goes on as one leader: its share of the trunk's cross-section
                 left = fork_r[fork_s < s]
-                r_on = math.sqrt(max(r_top**2 - float(np.sum(left**2)), r_top**2 / (len(left) + 1))) if len(left) else r_top
+                r_on = (
+                    math.sqrt(max(r_top**2 - float(np.sum(left**2)), r_top**2 / (len(left) + 1)))
+                    if len(left)
+                    else r_top
+                )
                 ref = r_on * max(h_top - s, 0.0) / max(h_top - s_hi, 1e-6)
                 new = float(np.clip(old, 0.85 * ref, 1.5 * ref + 0.005))
             new = max(new, 0.002)
@@ -179,7 +203,9 @@ def reconcile_stem(model: CylinderModel, stem: Stem, curve: StemCurve, height_m:
     return dataclasses.replace(model, radius_m=radius, added=added, meta=meta), changed
 
 
-def _leaders(model: CylinderModel, stem_idx: np.ndarray, s_mid: np.ndarray, ratio: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def _leaders(
+    model: CylinderModel, stem_idx: np.ndarray, s_mid: np.ndarray, ratio: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
     """Where the stem forks: the distance along the stem axis (of the stem cylinder's middle) and
     the base radius of every branch growing from a stem cylinder with at least ``ratio`` times
     that cylinder's radius (a co-dominant leader, not a side branch)."""
@@ -240,7 +266,11 @@ def _complete_stem(model: CylinderModel, stem: Stem, height_m: float, step_m: fl
 
 
 def form_factor_check(
-    volume_m3: float, stem_volume_m3: float, dbh_m: float, height_m: float, bounds: FormFactorBounds = FormFactorBounds()
+    volume_m3: float,
+    stem_volume_m3: float,
+    dbh_m: float,
+    height_m: float,
+    bounds: FormFactorBounds = FormFactorBounds(),
 ) -> tuple[float, float, str, Optional[str]]:
     """Check the volumes against ``f * BA * H``. Returns (total volume to report (NaN when
     withheld), the stem form factor, the volume quality string, a flag or None)."""
@@ -255,9 +285,19 @@ def form_factor_check(
     lo_t, hi_t = bounds.total
     w = bounds.withhold_factor
     if f_total > w * hi_t or f_total < lo_t / w:
-        return math.nan, f_stem, f"withheld: form factor {f_total:.2f} absurd; none", (
-            f"volume withheld: cylinder volume {volume_m3:.3g} m3 gives form factor {f_total:.2f} (plausible {lo_t}-{hi_t})")
+        return (
+            math.nan,
+            f_stem,
+            f"withheld: form factor {f_total:.2f} absurd; none",
+            (
+                f"volume withheld: cylinder volume {volume_m3:.3g} m3 gives form factor {f_total:.2f} (plausible {lo_t}-{hi_t})"
+            ),
+        )
     if not (lo_t <= f_total <= hi_t) or (math.isfinite(f_stem) and not (lo_s <= f_stem <= hi_s)):
-        return volume_m3, f_stem, f"cylinder model, form factor {f_total:.2f} (stem {f_stem:.2f}) implausible; low", (
-            f"volume implausible: form factor {f_total:.2f}, stem {f_stem:.2f} (plausible {lo_s}-{hi_s})")
+        return (
+            volume_m3,
+            f_stem,
+            f"cylinder model, form factor {f_total:.2f} (stem {f_stem:.2f}) implausible; low",
+            (f"volume implausible: form factor {f_total:.2f}, stem {f_stem:.2f} (plausible {lo_s}-{hi_s})"),
+        )
     return volume_m3, f_stem, f"cylinder model, stem on the stem curve, form factor {f_total:.2f}; high", None

@@ -58,21 +58,81 @@ from .stems import Stem, check_cloud
 class CrownParams(Params):
     """Settings of the height and crown measurements. Distances in metres."""
 
-    top_neighbour_radius_m: float = param_field(1.0, "m", 0.01, 5.0, "The top is the highest point with enough tree points within this distance")
-    top_min_neighbours: int = param_field(2, "points", 0, 1000, "Points needed around the top (fewer: a stray point, skipped)")
-    profile_bin_m: float = param_field(0.25, "m", 0.05, 5.0, "Height bin of the vertical profile that gives the crown base")
-    stem_clearance_m: float = param_field(0.3, "m", 0.0, 5.0, "Points farther than the stem radius plus this from the stem axis spread beyond the stem (crown)")
-    min_bin_fraction: float = param_field(0.1, "1", 0.0, 1.0, "A profile bin belongs to the live crown when it holds this fraction of the fullest bin's points")
-    min_crown_run_m: float = param_field(1.0, "m", 0.0, 20.0, "The live crown starts with at least this height of crown bins in a row")
-    max_crown_gap_m: float = param_field(1.0, "m", 0.0, 20.0, "Crown bins separated by at most this belong to one crown; the crown is the run holding the most points")
-    width_percentile: float = param_field(0.5, "%", 0.0, 25.0, "Crown widths run from this percentile of x (y) to 100 minus it (robust to stray points)")
+    top_neighbour_radius_m: float = param_field(
+        1.0, "m", 0.01, 5.0, "The top is the highest point with enough tree points within this distance"
+    )
+    top_min_neighbours: int = param_field(
+        2, "points", 0, 1000, "Points needed around the top (fewer: a stray point, skipped)"
+    )
+    profile_bin_m: float = param_field(
+        0.25, "m", 0.05, 5.0, "Height bin of the vertical profile that gives the crown base"
+    )
+    stem_clearance_m: float = param_field(
+        0.3,
+        "m",
+        0.0,
+        5.0,
+        "Points farther than the stem radius plus this from the stem axis spread beyond the stem (crown)",
+    )
+    min_bin_fraction: float = param_field(
+        0.1,
+        "1",
+        0.0,
+        1.0,
+        "A profile bin belongs to the live crown when it holds this fraction of the fullest bin's points",
+    )
+    min_crown_run_m: float = param_field(
+        1.0, "m", 0.0, 20.0, "The live crown starts with at least this height of crown bins in a row"
+    )
+    max_crown_gap_m: float = param_field(
+        1.0,
+        "m",
+        0.0,
+        20.0,
+        "Crown bins separated by at most this belong to one crown; the crown is the run holding the most points",
+    )
+    width_percentile: float = param_field(
+        0.5, "%", 0.0, 25.0, "Crown widths run from this percentile of x (y) to 100 minus it (robust to stray points)"
+    )
     min_points: int = param_field(50, "points", 3, 10**9, "Fewest points of a tree to measure it")
-    max_top_offset: float = param_field(0.4, "1", 0.0, 10.0, "The top counts as seen when the highest point stands over the stem: within this fraction of the crown radius from the stem axis (farther: it is on the crown's flank, the apex above it unseen or a neighbour's)...")
-    top_axis_tolerance_deg: float = param_field(3.0, "deg", 0.0, 30.0, "...or within the height times the tangent of this angle (a stem's sweep, and its lean measured on the lower stem, move the axis at the top)")
-    top_layer_m: float = param_field(1.0, "m", 0.05, 10.0, "Depth below the top of the crown's top layer, whose points tell a seen apex from a crown cut flat")
-    tip_max_offset: float = param_field(0.1, "1", 0.0, 1.0, "A top within this fraction of the crown radius from the stem axis...")
-    tip_max_layer_offset: float = param_field(0.2, "1", 0.0, 1.0, "...whose top layer lies within this fraction of it is an apex seen as a tip (a cone's tip: neither a crown cut flat nor a neighbour's crown)")
-    max_top_layer_offset: float = param_field(0.8, "1", 0.0, 10.0, "A top layer whose points lie at a median distance from the stem axis beyond this fraction of the crown radius is a cap or ring around the stem, not an apex: the crown was cut flat (its top beyond the scanner's field of view or hidden by other crowns), the height unsure")
+    max_top_offset: float = param_field(
+        0.4,
+        "1",
+        0.0,
+        10.0,
+        "The top counts as seen when the highest point stands over the stem: within this fraction of the crown radius from the stem axis (farther: it is on the crown's flank, the apex above it unseen or a neighbour's)...",
+    )
+    top_axis_tolerance_deg: float = param_field(
+        3.0,
+        "deg",
+        0.0,
+        30.0,
+        "...or within the height times the tangent of this angle (a stem's sweep, and its lean measured on the lower stem, move the axis at the top)",
+    )
+    top_layer_m: float = param_field(
+        1.0,
+        "m",
+        0.05,
+        10.0,
+        "Depth below the top of the crown's top layer, whose points tell a seen apex from a crown cut flat",
+    )
+    tip_max_offset: float = param_field(
+        0.1, "1", 0.0, 1.0, "A top within this fraction of the crown radius from the stem axis..."
+    )
+    tip_max_layer_offset: float = param_field(
+        0.2,
+        "1",
+        0.0,
+        1.0,
+        "...whose top layer lies within this fraction of it is an apex seen as a tip (a cone's tip: neither a crown cut flat nor a neighbour's crown)",
+    )
+    max_top_layer_offset: float = param_field(
+        0.8,
+        "1",
+        0.0,
+        10.0,
+        "A top layer whose points lie at a median distance from the stem axis beyond this fraction of the crown radius is a cap or ring around the stem, not an apex: the crown was cut flat (its top beyond the scanner's field of view or hidden by other crowns), the height unsure",
+    )
 
 
 @dataclass(frozen=True)
@@ -123,8 +183,12 @@ def apex_tip(crown: "CrownMeasurement", params: "CrownParams") -> bool:
     ``tip_max_offset`` of the crown radius from the stem axis and its top layer within
     ``tip_max_layer_offset`` (a crown cut lower shows a ring, a neighbour's crown does not narrow to
     a point over this stem). False when not known."""
-    return (math.isfinite(crown.top_offset_ratio) and math.isfinite(crown.top_layer_offset_ratio)
-            and crown.top_offset_ratio <= params.tip_max_offset and crown.top_layer_offset_ratio <= params.tip_max_layer_offset)
+    return (
+        math.isfinite(crown.top_offset_ratio)
+        and math.isfinite(crown.top_layer_offset_ratio)
+        and crown.top_offset_ratio <= params.tip_max_offset
+        and crown.top_layer_offset_ratio <= params.tip_max_layer_offset
+    )
 
 
 def top_over_stem(crown: "CrownMeasurement", params: "CrownParams") -> bool:
@@ -134,7 +198,9 @@ def top_over_stem(crown: "CrownMeasurement", params: "CrownParams") -> bool:
     if not (math.isfinite(crown.top_offset_m) and math.isfinite(crown.height_m)):
         return False
     radius = 0.5 * crown.crown_diameter_m if math.isfinite(crown.crown_diameter_m) else 0.0
-    allowed = max(params.max_top_offset * radius, crown.height_m * math.tan(math.radians(params.top_axis_tolerance_deg)))
+    allowed = max(
+        params.max_top_offset * radius, crown.height_m * math.tan(math.radians(params.top_axis_tolerance_deg))
+    )
     return crown.top_offset_m <= allowed
 
 
@@ -192,7 +258,23 @@ def measure_crown(points: Any, heights: Any, stem: Stem, params: CrownParams = C
     reasons: list[str] = []
     nan = float("nan")
     if len(p) < params.min_points:
-        return CrownMeasurement(stem.id, stem.x, stem.y, nan, nan, nan, nan, nan, nan, nan, nan, len(p), (nan, nan, nan), False, (f"too few points ({len(p)})",))
+        return CrownMeasurement(
+            stem.id,
+            stem.x,
+            stem.y,
+            nan,
+            nan,
+            nan,
+            nan,
+            nan,
+            nan,
+            nan,
+            nan,
+            len(p),
+            (nan, nan, nan),
+            False,
+            (f"too few points ({len(p)})",),
+        )
     rel_z = p[:, 2] - stem.ground_z
     top_i = tree_top(p, params.top_neighbour_radius_m, params.top_min_neighbours)
     height = float(rel_z[top_i])
@@ -244,7 +326,9 @@ def measure_crown(points: Any, heights: Any, stem: Stem, params: CrownParams = C
     )
 
 
-def crown_outline(xy: np.ndarray, percentile: float = 0.0, bounds: Optional[tuple[float, float, float, float]] = None) -> Optional[np.ndarray]:
+def crown_outline(
+    xy: np.ndarray, percentile: float = 0.0, bounds: Optional[tuple[float, float, float, float]] = None
+) -> Optional[np.ndarray]:
     """The convex hull of (N, 2) points ``xy`` (metres) within ``bounds`` (x_lo, x_hi, y_lo, y_hi;
     default the ``percentile`` .. ``100 - percentile`` range of x and of y, so a few stray points do
     not widen it): (M, 2) vertices counter-clockwise, the first not repeated; None when fewer than
@@ -277,7 +361,9 @@ def convex_hull_2d(xy: np.ndarray) -> Optional[np.ndarray]:
     return np.ascontiguousarray(pts[hull.vertices])
 
 
-def measure_crowns(points: Any, heights: Any, labels: Any, stems: Sequence[Stem], params: CrownParams = CrownParams()) -> list[CrownMeasurement]:
+def measure_crowns(
+    points: Any, heights: Any, labels: Any, stems: Sequence[Stem], params: CrownParams = CrownParams()
+) -> list[CrownMeasurement]:
     """:func:`measure_crown` for every stem's tree (``labels`` from
     :func:`~.segmentation.segment_trees`), in the order of ``stems``."""
     p, h = check_cloud(points, heights)
@@ -293,7 +379,25 @@ def measure_crowns(points: Any, heights: Any, labels: Any, stems: Sequence[Stem]
         idx = order[lo:hi]
         if len(idx) == 0:
             nan = float("nan")
-            out.append(CrownMeasurement(stem.id, stem.x, stem.y, nan, nan, nan, nan, nan, nan, nan, nan, 0, (nan, nan, nan), False, ("no points assigned to this tree",)))
+            out.append(
+                CrownMeasurement(
+                    stem.id,
+                    stem.x,
+                    stem.y,
+                    nan,
+                    nan,
+                    nan,
+                    nan,
+                    nan,
+                    nan,
+                    nan,
+                    nan,
+                    0,
+                    (nan, nan, nan),
+                    False,
+                    ("no points assigned to this tree",),
+                )
+            )
             continue
         out.append(measure_crown(p[idx], h[idx], stem, params))
     return out

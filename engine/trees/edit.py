@@ -29,10 +29,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError, ScanDataError
+from .consistency import stem_curve_wood
 from .crown import CrownMeasurement, measure_crown
 from .inventory import TreeInventory, TreeParams, TreeRecord, ground_near_stems, tree_record
 from .segmentation import tree_completeness
-from .consistency import stem_curve_wood
 from .stems import Stem, detect_stems, measure_dbh, stem_curve
 
 __all__ = [
@@ -73,13 +73,19 @@ class TreeEdit:
             if isinstance(getattr(self, name), list):
                 object.__setattr__(self, name, tuple(getattr(self, name)))
         if not isinstance(self.trees, tuple) or not all(_is_id(t) for t in self.trees):
-            raise ParameterError(f"a {self.kind} edit: trees must be a list of tree ids (whole numbers), not {self.trees!r}")
+            raise ParameterError(
+                f"a {self.kind} edit: trees must be a list of tree ids (whole numbers), not {self.trees!r}"
+            )
         wanted = {"delete": 1, "merge": 2, "split": 1, "add": 0, "dbh_height": 1}[self.kind]
         if len(self.trees) != wanted:
             count = {0: "no tree", 1: "one tree", 2: "two trees"}[wanted]
             raise ParameterError(f"a {self.kind} needs {count}, not {len(self.trees)}")
-        if self.xy is not None and not (isinstance(self.xy, tuple) and len(self.xy) == 2 and all(_is_number(v) for v in self.xy)):
-            raise ParameterError(f"a {self.kind} edit: the position must be two finite numbers (x, y in m), not {self.xy!r}")
+        if self.xy is not None and not (
+            isinstance(self.xy, tuple) and len(self.xy) == 2 and all(_is_number(v) for v in self.xy)
+        ):
+            raise ParameterError(
+                f"a {self.kind} edit: the position must be two finite numbers (x, y in m), not {self.xy!r}"
+            )
         if self.kind in ("split", "add") and self.xy is None:
             raise ParameterError(f"a {self.kind} needs a position (x, y in m)")
         if self.height_m is not None and not _is_number(self.height_m):
@@ -100,8 +106,12 @@ class TreeEdit:
         return f"DBH measured at {self.height_m:.2f} m"
 
     def to_dict(self) -> dict[str, Any]:
-        return {"kind": self.kind, "trees": list(self.trees), "xy": None if self.xy is None else list(self.xy),
-                "height_m": self.height_m}
+        return {
+            "kind": self.kind,
+            "trees": list(self.trees),
+            "xy": None if self.xy is None else list(self.xy),
+            "height_m": self.height_m,
+        }
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "TreeEdit":
@@ -121,8 +131,7 @@ class TreeEdit:
             raise ParameterError(f"a {d['kind']} edit: trees must be a list of tree ids (whole numbers), not {trees!r}")
         if xy is not None and not isinstance(xy, list):
             raise ParameterError(f"a {d['kind']} edit: the position must be two finite numbers (x, y in m), not {xy!r}")
-        return cls(kind=d["kind"], trees=tuple(trees),
-                   xy=None if xy is None else tuple(xy), height_m=d.get("height_m"))
+        return cls(kind=d["kind"], trees=tuple(trees), xy=None if xy is None else tuple(xy), height_m=d.get("height_m"))
 
 
 def _is_id(v: Any) -> bool:
@@ -130,7 +139,11 @@ def _is_id(v: Any) -> bool:
 
 
 def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v)
+    return (
+        isinstance(v, (int, float, np.integer, np.floating))
+        and not isinstance(v, (bool, np.bool_))
+        and math.isfinite(v)
+    )
 
 
 class TreeEdits(list):
@@ -173,8 +186,14 @@ def measure_tree(
     completeness flags and cylinder model, with the step functions ``measure_trees`` uses."""
     p = points
     heights = inventory.heights
-    base_params = params.noisy_stems.apply(params.stems) if getattr(inventory, "method", "fine") == "noisy" else params.stems
-    stem_params = base_params if breast_height_m is None else dataclasses.replace(base_params, breast_height_m=float(breast_height_m))
+    base_params = (
+        params.noisy_stems.apply(params.stems) if getattr(inventory, "method", "fine") == "noisy" else params.stems
+    )
+    stem_params = (
+        base_params
+        if breast_height_m is None
+        else dataclasses.replace(base_params, breast_height_m=float(breast_height_m))
+    )
     index = search_tree if search_tree is not None else cKDTree(p)
     dbh = measure_dbh(p, heights, stem, stem_params, search_tree=index)
     curve = stem_curve(p, heights, stem, base_params, search_tree=index)
@@ -186,17 +205,39 @@ def measure_tree(
     except ScanDataError as exc:
         nan = math.nan
         crown = CrownMeasurement(
-            tree_id=stem.id, x=stem.x, y=stem.y, height_m=nan, crown_base_m=nan, crown_width_ew_m=nan,
-            crown_width_ns_m=nan, crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan,
-            crown_volume_m3=nan, n_points=int(len(indices)), top=(nan, nan, nan), ok=False, reasons=(str(exc),),
+            tree_id=stem.id,
+            x=stem.x,
+            y=stem.y,
+            height_m=nan,
+            crown_base_m=nan,
+            crown_width_ew_m=nan,
+            crown_width_ns_m=nan,
+            crown_area_m2=nan,
+            crown_diameter_m=nan,
+            crown_length_m=nan,
+            crown_volume_m3=nan,
+            n_points=int(len(indices)),
+            top=(nan, nan, nan),
+            ok=False,
+            reasons=(str(exc),),
         )
     wood = inventory.wood_probability.copy() if len(inventory.wood_probability) == len(p) else np.zeros(len(p))
     wood[stem_curve_wood(p, index, stem, curve, max(2.0 * stem_params.inlier_tolerance_m, 0.03))] = 1.0
     ground = np.asarray(inventory.ground, dtype=bool)
     no_ground = not ground.any()
     return tree_record(
-        p, stem, np.asarray(indices), dbh, curve, crown, wood, complete[0].reasons if complete else (), params,
-        stem_params=stem_params, method=getattr(inventory, "method", "fine"), no_ground=no_ground,
+        p,
+        stem,
+        np.asarray(indices),
+        dbh,
+        curve,
+        crown,
+        wood,
+        complete[0].reasons if complete else (),
+        params,
+        stem_params=stem_params,
+        method=getattr(inventory, "method", "fine"),
+        no_ground=no_ground,
         ground_near=ground_near_stems(p, ground, [stem], params.ground_near_stem_m).get(stem.id),
         height_curve=getattr(inventory, "height_curve", None),
     )
@@ -214,14 +255,17 @@ def _record(inventory: TreeInventory, tree_id: int) -> TreeRecord:
     raise ParameterError(f"there is no tree {tree_id}")
 
 
-def _stem_near(points: np.ndarray, inventory: TreeInventory, xy: Sequence[float], params: TreeParams,
-               exclude: Iterable[Stem] = ()) -> Stem:
+def _stem_near(
+    points: np.ndarray, inventory: TreeInventory, xy: Sequence[float], params: TreeParams, exclude: Iterable[Stem] = ()
+) -> Stem:
     """The stem nearest ``xy`` found by the stem detector in the points within
     ``params.stem_search_radius_m`` of it (stems in ``exclude`` are not taken); ScanDataError if none."""
     c = np.asarray(xy, dtype=np.float64)[:2]
     near = np.flatnonzero(np.hypot(points[:, 0] - c[0], points[:, 1] - c[1]) <= params.stem_search_radius_m)
     if len(near) < 30:
-        raise ScanDataError(f"too few points within {params.stem_search_radius_m:g} m of ({c[0]:.2f}, {c[1]:.2f}) to find a stem")
+        raise ScanDataError(
+            f"too few points within {params.stem_search_radius_m:g} m of ({c[0]:.2f}, {c[1]:.2f}) to find a stem"
+        )
     found = detect_stems(points[near], inventory.heights[near], params.stems)
     taken = [s for s in exclude]
     found = [s for s in found if all(math.hypot(s.x - t.x, s.y - t.y) > max(s.radius_m, t.radius_m) for t in taken)]
@@ -248,7 +292,9 @@ def delete_tree(inventory: TreeInventory, tree_id: int) -> TreeInventory:
     return _replace(inventory, [r for r in inventory.trees if r.tree_id != tree_id], labels)
 
 
-def merge_trees(points: np.ndarray, inventory: TreeInventory, keep: int, other: int, params: TreeParams = TreeParams()) -> TreeInventory:
+def merge_trees(
+    points: np.ndarray, inventory: TreeInventory, keep: int, other: int, params: TreeParams = TreeParams()
+) -> TreeInventory:
     """One tree taken as two: ``other``'s points join ``keep`` (whose stem stays) and the merged
     tree is measured again; ``other`` is removed."""
     if keep == other:
@@ -257,13 +303,16 @@ def merge_trees(points: np.ndarray, inventory: TreeInventory, keep: int, other: 
     _record(inventory, other)
     labels = inventory.labels.copy()
     labels[labels == other] = keep
-    merged = measure_tree(points, dataclasses.replace(inventory, labels=labels), a.stem, np.flatnonzero(labels == keep), params)
+    merged = measure_tree(
+        points, dataclasses.replace(inventory, labels=labels), a.stem, np.flatnonzero(labels == keep), params
+    )
     rest = [r for r in inventory.trees if r.tree_id not in (keep, other)]
     return _replace(inventory, rest + [merged], labels)
 
 
-def split_tree(points: np.ndarray, inventory: TreeInventory, tree_id: int, xy: Sequence[float],
-               params: TreeParams = TreeParams()) -> TreeInventory:
+def split_tree(
+    points: np.ndarray, inventory: TreeInventory, tree_id: int, xy: Sequence[float], params: TreeParams = TreeParams()
+) -> TreeInventory:
     """Two trees taken as one: a second stem is detected near ``xy``; the tree's points go to the
     nearer of the two stem axes (horizontally, at each point's height), both are measured again;
     the new tree gets the next free id."""
@@ -290,7 +339,9 @@ def split_tree(points: np.ndarray, inventory: TreeInventory, tree_id: int, xy: S
     return _replace(inventory, rest + [rec_a, rec_b], labels)
 
 
-def add_stem(points: np.ndarray, inventory: TreeInventory, xy: Sequence[float], params: TreeParams = TreeParams()) -> TreeInventory:
+def add_stem(
+    points: np.ndarray, inventory: TreeInventory, xy: Sequence[float], params: TreeParams = TreeParams()
+) -> TreeInventory:
     """A missed stem: detected near ``xy``. It takes the points within 1.5 m of it horizontally
     (above the ground clearance) that are unassigned or nearer to it than to their own stem; it
     and the trees it took points from are measured again. The new tree gets the next free id."""
@@ -320,8 +371,9 @@ def add_stem(points: np.ndarray, inventory: TreeInventory, xy: Sequence[float], 
     return _replace(inventory, rest + new, labels)
 
 
-def dbh_at_height(points: np.ndarray, inventory: TreeInventory, tree_id: int, height_m: float,
-                  params: TreeParams = TreeParams()) -> TreeInventory:
+def dbh_at_height(
+    points: np.ndarray, inventory: TreeInventory, tree_id: int, height_m: float, params: TreeParams = TreeParams()
+) -> TreeInventory:
     """Measure the tree's DBH at ``height_m`` along its stem (above a buttress) instead of the
     breast height; the rest of the tree is measured again as well (same points)."""
     lo, hi = 0.3, 5.0
@@ -332,7 +384,9 @@ def dbh_at_height(points: np.ndarray, inventory: TreeInventory, tree_id: int, he
     return _replace(inventory, [r for r in inventory.trees if r.tree_id != tree_id] + [rec], inventory.labels)
 
 
-def apply_edit(points: np.ndarray, inventory: TreeInventory, edit: TreeEdit, params: TreeParams = TreeParams()) -> TreeInventory:
+def apply_edit(
+    points: np.ndarray, inventory: TreeInventory, edit: TreeEdit, params: TreeParams = TreeParams()
+) -> TreeInventory:
     """Apply one :class:`TreeEdit`."""
     p = np.asarray(points, dtype=np.float64)
     if len(p) != len(inventory.labels):
@@ -357,14 +411,17 @@ def apply_edit(points: np.ndarray, inventory: TreeInventory, edit: TreeEdit, par
     return dbh_at_height(p, inventory, t[0], edit.height_m, params)
 
 
-def apply_edits(points: np.ndarray, inventory: TreeInventory, edits: Iterable[TreeEdit],
-                params: TreeParams = TreeParams()) -> TreeInventory:
+def apply_edits(
+    points: np.ndarray, inventory: TreeInventory, edits: Iterable[TreeEdit], params: TreeParams = TreeParams()
+) -> TreeInventory:
     """Replay edits in order (e.g. those read from ``edits.json`` on the same cloud). Edits read
     from a file that records its cloud's hash (:class:`TreeEdits`) are refused on another cloud."""
     recorded = getattr(edits, "cloud", None)
     if recorded is not None and cloud_digest(points) != recorded:
-        raise ParameterError("these tree edits were made on another cloud (its content differs; the same number of "
-                             "points is not enough): open the cloud they were made on")
+        raise ParameterError(
+            "these tree edits were made on another cloud (its content differs; the same number of "
+            "points is not enough): open the cloud they were made on"
+        )
     for e in edits:
         inventory = apply_edit(points, inventory, e, params)
     return inventory

@@ -33,8 +33,8 @@ from typing import Any, Iterable, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from ..core.outcome import Outcome
 from ..core.errors import ForestregError, ParameterError
+from ..core.outcome import Outcome
 
 
 class TreeTableError(ForestregError):
@@ -67,11 +67,21 @@ PARAMETERS: dict[str, ParameterInfo] = {
 }
 #: Column name aliases accepted in files (lower case, spaces and dashes as underscores).
 _ALIASES = {
-    "id": "tree_id", "tree": "tree_id", "treeid": "tree_id", "tree_no": "tree_id", "tree_number": "tree_id",
-    "x_m": "x", "y_m": "y",
-    "h_m": "height_m", "height": None, "dbh": None,
-    "cbh_m": "crown_base_m", "crown_base_height_m": "crown_base_m",
-    "ca_m2": "crown_area_m2", "cv_m3": "crown_volume_m3", "v_m3": "volume_m3",
+    "id": "tree_id",
+    "tree": "tree_id",
+    "treeid": "tree_id",
+    "tree_no": "tree_id",
+    "tree_number": "tree_id",
+    "x_m": "x",
+    "y_m": "y",
+    "h_m": "height_m",
+    "height": None,
+    "dbh": None,
+    "cbh_m": "crown_base_m",
+    "crown_base_height_m": "crown_base_m",
+    "ca_m2": "crown_area_m2",
+    "cv_m3": "crown_volume_m3",
+    "v_m3": "volume_m3",
 }
 _MISSING = {"", "na", "n/a", "nan", "null", "none", "-", "--", "?"}
 
@@ -188,7 +198,9 @@ def _table(header: Sequence[str], records: Sequence[Mapping[str, Any]], source: 
     records = [{renamed.get(k, k): v for k, v in r.items()} for r in records]
     missing = [c for c in ("tree_id", "x", "y") if c not in header]
     if missing:
-        raise TreeTableError(f"{source}: missing column(s) {', '.join(missing)}; a tree table needs tree_id, x, y (metres)")
+        raise TreeTableError(
+            f"{source}: missing column(s) {', '.join(missing)}; a tree table needs tree_id, x, y (metres)"
+        )
     if not records:
         raise TreeTableError(f"{source}: holds no trees")
     ids = np.array([_id_text(r.get("tree_id")) for r in records], dtype=object)
@@ -247,7 +259,9 @@ def _numbers(records: Sequence[Mapping[str, Any]], column: str, source: str) -> 
         try:
             f = float(v.strip().replace(",", ".") if isinstance(v, str) else v)
         except (TypeError, ValueError):
-            raise TreeTableError(f"{source}: tree {r.get('tree_id', i + 1)}: {column} = {v!r} is not a number") from None
+            raise TreeTableError(
+                f"{source}: tree {r.get('tree_id', i + 1)}: {column} = {v!r} is not a number"
+            ) from None
         if math.isfinite(f):
             out[i] = f
     return out
@@ -391,9 +405,15 @@ class ParameterStats:
     def to_dict(self) -> dict[str, Any]:
         info = self.info
         out = {
-            "parameter": self.parameter, "label": info.label, "unit": info.unit, "n": self.n,
-            "r2": _json_num(self.r2), "rmse": _json_num(self.rmse), "rrmse_percent": _json_num(self.rrmse_percent),
-            "bias": _json_num(self.bias), "field_mean": _json_num(self.field_mean),
+            "parameter": self.parameter,
+            "label": info.label,
+            "unit": info.unit,
+            "n": self.n,
+            "r2": _json_num(self.r2),
+            "rmse": _json_num(self.rmse),
+            "rrmse_percent": _json_num(self.rrmse_percent),
+            "bias": _json_num(self.bias),
+            "field_mean": _json_num(self.field_mean),
         }
         if not math.isfinite(self.r2):
             out["r2_note"] = self.r2_note or "undefined"
@@ -457,9 +477,13 @@ class Detection:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "field_trees": self.field_trees, "estimated_trees": self.estimated_trees, "matched": self.matched,
-            "omitted": self.omitted, "commission": self.commission,
-            "omission_rate": _json_num(self.omission_rate), "commission_rate": _json_num(self.commission_rate),
+            "field_trees": self.field_trees,
+            "estimated_trees": self.estimated_trees,
+            "matched": self.matched,
+            "omitted": self.omitted,
+            "commission": self.commission,
+            "omission_rate": _json_num(self.omission_rate),
+            "commission_rate": _json_num(self.commission_rate),
         }
 
 
@@ -489,8 +513,11 @@ class Evaluation(Outcome):
         if not self.ok:
             return self.reason
         d = self.detection
-        figures = ", ".join(f"{p} R2 {st.r2_text()} rRMSE {_text(st.rrmse_percent, '.1f')} %"
-                            for p, st in self.stats.items() if st.n >= 1)
+        figures = ", ".join(
+            f"{p} R2 {st.r2_text()} rRMSE {_text(st.rrmse_percent, '.1f')} %"
+            for p, st in self.stats.items()
+            if st.n >= 1
+        )
         return f"{d.matched} of {d.field_trees} field trees matched" + (f"; {figures}" if figures else "")
 
     def to_dict(self, *, pairs: bool = True) -> dict[str, Any]:
@@ -539,16 +566,36 @@ def evaluate(
         ok = np.isfinite(e_all) & np.isfinite(f_all)
         fig = agreement(e_all, f_all)
         stats[name] = ParameterStats(
-            name, int(fig["n"]), fig["r2"], fig["rmse"], fig["rrmse_percent"], fig["bias"], fig["field_mean"],
-            e_all[ok], f_all[ok], est.tree_id[match.estimated_index][ok], fld.tree_id[match.field_index][ok],
+            name,
+            int(fig["n"]),
+            fig["r2"],
+            fig["rmse"],
+            fig["rrmse_percent"],
+            fig["bias"],
+            fig["field_mean"],
+            e_all[ok],
+            f_all[ok],
+            est.tree_id[match.estimated_index][ok],
+            fld.tree_id[match.field_index][ok],
             r2_undefined(f_all[ok]),
         )
         _check_value_units(name, e_all[ok], f_all[ok], fld.source)
     detection = Detection(len(fld), len(est), len(match), len(match.omitted), len(match.commission))
     if detection.matched == 0:
-        how = "no shared tree ids" if by == "id" else f"no tree within {max_distance_m:g} m of a field tree (same coordinates and units?)"
-        return Evaluation(match, detection, stats, est, fld, status="failed",
-                          reason=f"0 of {detection.field_trees} field trees matched ({how})")
+        how = (
+            "no shared tree ids"
+            if by == "id"
+            else f"no tree within {max_distance_m:g} m of a field tree (same coordinates and units?)"
+        )
+        return Evaluation(
+            match,
+            detection,
+            stats,
+            est,
+            fld,
+            status="failed",
+            reason=f"0 of {detection.field_trees} field trees matched ({how})",
+        )
     return Evaluation(match, detection, stats, est, fld)
 
 
@@ -582,7 +629,8 @@ def _check_value_units(name: str, estimate: np.ndarray, field_value: np.ndarray,
         if abs(np.log(ratio / factor)) < np.log(1.3):
             raise TreeTableError(
                 f"{source}: the field {name} values are {ratio:.3g} times the estimates (median {f:.4g} vs "
-                f"{e:.4g} {PARAMETERS[name].unit}): they look like {unit}; convert them to {PARAMETERS[name].unit}")
+                f"{e:.4g} {PARAMETERS[name].unit}): they look like {unit}; convert them to {PARAMETERS[name].unit}"
+            )
 
 
 def _check_position_units(est: "TreeTable", fld: "TreeTable") -> None:
@@ -590,6 +638,7 @@ def _check_position_units(est: "TreeTable", fld: "TreeTable") -> None:
     against metres): position matching would find nothing."""
     if len(est) < 3 or len(fld) < 3:
         return
+
     def spread(t: "TreeTable") -> float:
         xy = np.column_stack([t.x, t.y])
         xy = xy[np.isfinite(xy).all(axis=1)]
@@ -603,7 +652,8 @@ def _check_position_units(est: "TreeTable", fld: "TreeTable") -> None:
         if ratio > factor / 3:
             raise TreeTableError(
                 f"{fld.source}: the field positions spread {sf:,.0f} units against {se:,.1f} m for the trees: "
-                f"they look like {unit}; convert them to metres (same coordinates as the cloud)")
+                f"they look like {unit}; convert them to metres (same coordinates as the cloud)"
+            )
 
 
 def pair_rows(evaluation: Evaluation) -> list[dict[str, Any]]:
@@ -611,7 +661,11 @@ def pair_rows(evaluation: Evaluation) -> list[dict[str, Any]]:
     m, est, fld = evaluation.match, evaluation.estimated, evaluation.field_table
     rows = []
     for e, f, d in zip(m.estimated_index, m.field_index, m.distance_m):
-        row: dict[str, Any] = {"field_id": str(fld.tree_id[f]), "estimated_id": str(est.tree_id[e]), "distance_m": _json_num(d)}
+        row: dict[str, Any] = {
+            "field_id": str(fld.tree_id[f]),
+            "estimated_id": str(est.tree_id[e]),
+            "distance_m": _json_num(d),
+        }
         for name in evaluation.stats:
             row[f"{name}_estimated"] = _json_num(est.values[name][e]) if name in est.values else None
             row[f"{name}_field"] = _json_num(fld.values[name][f]) if name in fld.values else None
@@ -629,7 +683,6 @@ def _json_num(value: Any) -> Optional[float]:
         return None
     v = float(value)
     return v if math.isfinite(v) else None
-
 
 
 __all__ = [

@@ -25,22 +25,40 @@ import numpy as np
 
 from ..core.errors import ScanDataError
 from ..core.outcome import Outcome
+from ..core.params import Params
+from ..core.params import param_field as _p
 from ..core.progress import Progress, ProgressCallback, as_progress
-from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
-from ..core.params import Params, param_field as _p
 from ..geometry.columns import ColumnIndex
 from ..geometry.sorting import order_by_label
 from ..geometry.voxel import voxel_representatives
 from ..io.results import TREE_COLUMNS, TreeTablesFile  # noqa: F401 - the columns of trees.csv
+from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
+from .allometry import HeightCurve, HeightCurveParams, fit_height_curve
 from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
-from .allometry import HeightCurve, HeightCurveParams, fit_height_curve
 from .crown import CrownMeasurement, CrownParams, apex_tip, measure_crown, top_cut_flat, top_over_stem
 from .leafwood import LeafWoodParams, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
-from .segmentation import CompletenessParams, SegmentationParams, axis_stems, expected_crown_radius, segment_trees, top_layer, tree_completeness
+from .segmentation import (
+    CompletenessParams,
+    SegmentationParams,
+    axis_stems,
+    expected_crown_radius,
+    segment_trees,
+    top_layer,
+    tree_completeness,
+)
 from .single import SingleTreeEvidence, SingleTreeParams, base_stem, flat_dem, single_tree_base, single_tree_evidence
-from .stems import DbhMeasurement, NoisyStemParams, Stem, StemCurve, StemParams, dbh_sigma, detect_stems_adaptive, measure_stems
+from .stems import (
+    DbhMeasurement,
+    NoisyStemParams,
+    Stem,
+    StemCurve,
+    StemParams,
+    dbh_sigma,
+    detect_stems_adaptive,
+    measure_stems,
+)
 
 log = logging.getLogger(__name__)
 
@@ -75,29 +93,93 @@ class TreeParams(Params):
     cylinder_models: bool = _p(True, "", None, None, "fit cylinder models")
     #: a cloud denser than the steps need (a merged plot of many fine scans) is measured on one
     #: point per voxel; every point still gets its tree, height, wood probability and ground flag
-    thin_above_points: int = _p(8_000_000, "points", 0, 1e12, "clouds of more points are measured on one point per voxel of thin_voxel_m (every point still gets its tree, height, wood probability and ground flag); 0: never thinned")
-    thin_voxel_m: float = _p(0.015, "m", 0.001, 0.1, "side of the voxels of that thinning (finer than the leaf-wood separation's own 0.02 m)")
+    thin_above_points: int = _p(
+        8_000_000,
+        "points",
+        0,
+        1e12,
+        "clouds of more points are measured on one point per voxel of thin_voxel_m (every point still gets its tree, height, wood probability and ground flag); 0: never thinned",
+    )
+    thin_voxel_m: float = _p(
+        0.015, "m", 0.001, 0.1, "side of the voxels of that thinning (finer than the leaf-wood separation's own 0.02 m)"
+    )
     #: ground-based clouds hold 0.1 and more (a TLS plot of tall trees without ground 0.04, but its
     #: stems are dense), airborne ones 0.005-0.03
-    airborne_band_ratio: float = _p(0.08, "1", 0.0, 10.0, "points at 1-3 m above the ground per point above 3 m below which a cloud with sparsely sampled stems (noisy profile) is taken as airborne: trees without a sampled stem come from the canopy height model")
+    airborne_band_ratio: float = _p(
+        0.08,
+        "1",
+        0.0,
+        10.0,
+        "points at 1-3 m above the ground per point above 3 m below which a cloud with sparsely sampled stems (noisy profile) is taken as airborne: trees without a sampled stem come from the canopy height model",
+    )
     #: a stem's height is measured above the ground interpolated under it
-    ground_near_stem_m: float = _p(3.0, "m", 0.1, 50.0, "a stem without a ground point this near (horizontally) has its height flagged: the ground under it is interpolated")
+    ground_near_stem_m: float = _p(
+        3.0,
+        "m",
+        0.1,
+        50.0,
+        "a stem without a ground point this near (horizontally) has its height flagged: the ground under it is interpolated",
+    )
     #: height over DBH beyond which a stem hardly stands: a thin tree measured taller has a
     #: neighbour's crown for its top (suppressed trees under a neighbour), or its DBH is wrong
-    max_slenderness: float = _p(140.0, "1", 10.0, 1000.0, "height over DBH (both in metres) beyond which the height is flagged as unsure: the top may be a neighbour's")
+    max_slenderness: float = _p(
+        140.0,
+        "1",
+        10.0,
+        1000.0,
+        "height over DBH (both in metres) beyond which the height is flagged as unsure: the top may be a neighbour's",
+    )
     #: points of thicker neighbours within 1 m of a tree's top (and not more than 0.5 m below it)
-    shared_top_min_points: int = _p(6, "points", 1, 10000, "points of thicker neighbours around a tree's top (within 1 m, not more than 0.5 m below it) from which the top is flagged as possibly the neighbour's")
+    shared_top_min_points: int = _p(
+        6,
+        "points",
+        1,
+        10000,
+        "points of thicker neighbours around a tree's top (within 1 m, not more than 0.5 m below it) from which the top is flagged as possibly the neighbour's",
+    )
     #: a suppressed tree's apex stands clear below the neighbour's crown over it
-    top_clearance_radius_m: float = _p(0.3, "m", 0.05, 3.0, "a top under a neighbour's crown is clear of it when no point of another tree lies within this distance (horizontally) and min_top_clearance_m above it")
-    min_top_clearance_m: float = _p(0.2, "m", 0.0, 5.0, "...a top touching the crown over it (closer) has its height flagged: that crown may hold the tree's upper crown, or the top found is in it")
+    top_clearance_radius_m: float = _p(
+        0.3,
+        "m",
+        0.05,
+        3.0,
+        "a top under a neighbour's crown is clear of it when no point of another tree lies within this distance (horizontally) and min_top_clearance_m above it",
+    )
+    min_top_clearance_m: float = _p(
+        0.2,
+        "m",
+        0.0,
+        5.0,
+        "...a top touching the crown over it (closer) has its height flagged: that crown may hold the tree's upper crown, or the top found is in it",
+    )
     #: a thinner stem this close to a thicker one may stand within that tree's crown; closer
     #: than segmentation.axis_dominance_dbh its axis is not continued (it grows from its own points)
-    crown_reach_dbh: float = _p(7.0, "DBH", 0.0, 100.0, "a stem whose axis is continued into the crowns, closer than this many of a thicker stem's DBH to it, has its height checked against the plot's height-diameter curve (flagged without one): its top may be in that tree's crown (0 = no such check)")
+    crown_reach_dbh: float = _p(
+        7.0,
+        "DBH",
+        0.0,
+        100.0,
+        "a stem whose axis is continued into the crowns, closer than this many of a thicker stem's DBH to it, has its height checked against the plot's height-diameter curve (flagged without one): its top may be in that tree's crown (0 = no such check)",
+    )
     #: a stem under a thicker neighbour's expected crown may be suppressed: the curve does not vouch for its height
-    overtopped_crown_fraction: float = _p(1.0, "1", 0.0, 10.0, "a stem within this fraction of a thicker neighbour's expected crown radius (segmentation.crown_radius_per_dbh) stands under that crown: it may be suppressed, and the plot's height-diameter curve does not vouch for its height (0 = no such check)")
-    curve_agreement: float = _p(0.10, "1", 0.0, 1.0, "a top with only a soft hint (on the crown's flank, missing or cut flat, beside a thicker stem) stands where it agrees with the plot's height-diameter curve within this fraction (the curve's scatter at most height_curve.max_scatter_unseen); the curve's estimate of a stem under a thicker neighbour's expected crown is vouched for only where the points' top agrees with it so")
+    overtopped_crown_fraction: float = _p(
+        1.0,
+        "1",
+        0.0,
+        10.0,
+        "a stem within this fraction of a thicker neighbour's expected crown radius (segmentation.crown_radius_per_dbh) stands under that crown: it may be suppressed, and the plot's height-diameter curve does not vouch for its height (0 = no such check)",
+    )
+    curve_agreement: float = _p(
+        0.10,
+        "1",
+        0.0,
+        1.0,
+        "a top with only a soft hint (on the crown's flank, missing or cut flat, beside a thicker stem) stands where it agrees with the plot's height-diameter curve within this fraction (the curve's scatter at most height_curve.max_scatter_unseen); the curve's estimate of a stem under a thicker neighbour's expected crown is vouched for only where the points' top agrees with it so",
+    )
     #: the radius around a position clicked in an edit (add a tree, split a tree)
-    stem_search_radius_m: float = _p(1.0, "m", 0.1, 10.0, "radius around a position given in an edit (add, split) searched for a stem")
+    stem_search_radius_m: float = _p(
+        1.0, "m", 0.1, 10.0, "radius around a position given in an edit (add, split) searched for a stem"
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,12 +219,12 @@ class TreeRecord:
 
     @property
     def height_source(self) -> str:
-        """"points" (the tree's highest point) or "curve" (the plot's height-diameter curve)."""
+        """ "points" (the tree's highest point) or "curve" (the plot's height-diameter curve)."""
         return "curve" if math.isfinite(self.height_from_curve_m) else "points"
 
     @property
     def flag(self) -> str:
-        """"" for a complete, measured tree; otherwise the reasons joined by "; "."""
+        """ "" for a complete, measured tree; otherwise the reasons joined by "; "."""
         return "; ".join(self.flags)
 
     def row(self, origin_shift: np.ndarray = np.zeros(3)) -> dict[str, Any]:
@@ -226,13 +308,26 @@ class TreeInventory(TreeTablesFile, Outcome):
     matrix = None
 
     @classmethod
-    def failed(cls, reason: str, n_points: int, origin_shift: Optional[np.ndarray] = None,
-               timings: Optional[dict[str, float]] = None) -> "TreeInventory":
+    def failed(
+        cls,
+        reason: str,
+        n_points: int,
+        origin_shift: Optional[np.ndarray] = None,
+        timings: Optional[dict[str, float]] = None,
+    ) -> "TreeInventory":
         """The outcome of a cloud the data do not allow trees in: no tree, the reason."""
-        return cls(trees=[], labels=np.zeros(n_points, dtype=np.int64), heights=np.full(n_points, np.nan),
-                   wood_probability=np.zeros(n_points), ground=np.zeros(n_points, dtype=bool), dem=None,
-                   origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-                   timings=dict(timings or {}), status="failed", reason=reason)
+        return cls(
+            trees=[],
+            labels=np.zeros(n_points, dtype=np.int64),
+            heights=np.full(n_points, np.nan),
+            wood_probability=np.zeros(n_points),
+            ground=np.zeros(n_points, dtype=bool),
+            dem=None,
+            origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
+            timings=dict(timings or {}),
+            status="failed",
+            reason=reason,
+        )
 
     def evidence(self) -> dict[str, Any]:
         out = {"trees": len(self.trees), "method": self.method, "flagged": sum(1 for t in self.trees if t.flags)}
@@ -250,8 +345,12 @@ class TreeInventory(TreeTablesFile, Outcome):
         h = sum(1 for t in self.trees if math.isfinite(t.height_m))
         vol = sum(1 for t in self.trees if math.isfinite(t.volume_m3))
         flagged = sum(1 for t in self.trees if t.flags)
-        how = {"fine": "from stems", "noisy": "from stems (noisy/sparse profile)", "canopy": "from the canopy (no stems)",
-               "single": "in a single-tree cloud"}.get(self.method, self.method)
+        how = {
+            "fine": "from stems",
+            "noisy": "from stems (noisy/sparse profile)",
+            "canopy": "from the canopy (no stems)",
+            "single": "in a single-tree cloud",
+        }.get(self.method, self.method)
         canopy = sum(1 for t in self.trees if t.source == "canopy")
         if self.method != "canopy" and canopy:
             how += f" and {canopy} from the canopy"
@@ -316,7 +415,9 @@ def measure_trees(
         raise ScanDataError("trees: expected a non-empty (N, 3) cloud")
     if not np.isfinite(p).all():
         raise ScanDataError("trees: the cloud holds NaN or infinite coordinates")
-    measure = functools.partial(_measure_trees, params=params, progress=progress, origin_shift=origin_shift, single_tree=single_tree)
+    measure = functools.partial(
+        _measure_trees, params=params, progress=progress, origin_shift=origin_shift, single_tree=single_tree
+    )
     try:
         if params.thin_above_points and len(p) > params.thin_above_points:
             return _measure_thinned(p, params, measure)
@@ -325,7 +426,9 @@ def measure_trees(
         return TreeInventory.failed(str(exc), len(p), origin_shift)
 
 
-def _measure_thinned(p: np.ndarray, params: TreeParams, measure: Callable[[np.ndarray], TreeInventory]) -> TreeInventory:
+def _measure_thinned(
+    p: np.ndarray, params: TreeParams, measure: Callable[[np.ndarray], TreeInventory]
+) -> TreeInventory:
     """:func:`measure_trees` of a cloud of more than ``params.thin_above_points`` points: the
     trees measured (``measure``: :func:`_measure_trees` with the call's settings) on the first
     point of each ``params.thin_voxel_m`` voxel, then the per-point results carried to every point
@@ -341,7 +444,9 @@ def _measure_thinned(p: np.ndarray, params: TreeParams, measure: Callable[[np.nd
     inventory = measure(thinned)
     del thinned
     if not inventory:  # the data do not allow trees: the outcome as the whole cloud's
-        return TreeInventory.failed(inventory.reason, len(p), inventory.origin_shift, {"thin_s": thin_s, **inventory.timings})
+        return TreeInventory.failed(
+            inventory.reason, len(p), inventory.origin_shift, {"thin_s": thin_s, **inventory.timings}
+        )
     t = time.perf_counter()
     labels = inventory.labels[inverse]
     wood = inventory.wood_probability[inverse]
@@ -351,13 +456,20 @@ def _measure_thinned(p: np.ndarray, params: TreeParams, measure: Callable[[np.nd
     n_max = max([int(labels.max()) if len(labels) else 0] + [r.tree_id for r in inventory.trees]) + 1
     counts = np.bincount(labels, minlength=n_max)
     woody = np.bincount(labels[wood >= params.wood_threshold], minlength=n_max)
-    trees = [dataclasses.replace(r, n_points=int(counts[r.tree_id]),
-                                 wood_fraction=float(woody[r.tree_id] / counts[r.tree_id]) if counts[r.tree_id] else 0.0)
-             if r.source == "stem" and math.isfinite(r.wood_fraction) else dataclasses.replace(r, n_points=int(counts[r.tree_id]))
-             for r in inventory.trees]
+    trees = [
+        dataclasses.replace(
+            r,
+            n_points=int(counts[r.tree_id]),
+            wood_fraction=float(woody[r.tree_id] / counts[r.tree_id]) if counts[r.tree_id] else 0.0,
+        )
+        if r.source == "stem" and math.isfinite(r.wood_fraction)
+        else dataclasses.replace(r, n_points=int(counts[r.tree_id]))
+        for r in inventory.trees
+    ]
     timings = {"thin_s": thin_s, **inventory.timings, "expand_s": time.perf_counter() - t}
-    return dataclasses.replace(inventory, trees=trees, labels=labels, heights=heights, wood_probability=wood, ground=ground,
-                               timings=timings)
+    return dataclasses.replace(
+        inventory, trees=trees, labels=labels, heights=heights, wood_probability=wood, ground=ground, timings=timings
+    )
 
 
 def _measure_trees(
@@ -385,9 +497,12 @@ def _measure_trees(
         if math.isfinite(below):
             log.warning(
                 "%.0f %% of the points lie more than 0.5 m below the ground model: the cloud seems to have "
-                "no ground; heights are taken above the lowest points instead", 100 * below,
+                "no ground; heights are taken above the lowest points instead",
+                100 * below,
             )
-        model = TerrainModel(ground=np.zeros(len(p), dtype=bool), dem=_no_ground_dem(p, params.terrain.dem_resolution_m))
+        model = TerrainModel(
+            ground=np.zeros(len(p), dtype=bool), dem=_no_ground_dem(p, params.terrain.dem_resolution_m)
+        )
         heights = model.dem.normalise(p)
         no_ground = True
     else:
@@ -396,7 +511,9 @@ def _measure_trees(
 
     t = time.perf_counter()
     progress(0.08, "detecting stems")
-    stems, stem_params, method = detect_stems_adaptive(p, heights, params.stems, progress.sub(0.08, 0.2), params.noisy_stems)
+    stems, stem_params, method = detect_stems_adaptive(
+        p, heights, params.stems, progress.sub(0.08, 0.2), params.noisy_stems
+    )
     timings["stems_s"] = time.perf_counter() - t
     mode = params.single_tree.mode if single_tree is None else ("yes" if single_tree else "no")
     evidence = single_tree_evidence(p, heights, stems, params.single_tree, model.ground) if mode != "no" else None
@@ -404,8 +521,9 @@ def _measure_trees(
         if not evidence.single and not math.isfinite(evidence.base_width_m):
             raise ScanDataError(f"a single tree was asked for, but {evidence.reason}")
         log.info("single-tree cloud: %s", evidence.reason if mode == "auto" else "as asked")
-        return _single_tree_inventory(p, heights, model, no_ground, stems, stem_params, method, evidence, params, progress,
-                                      origin_shift, timings)
+        return _single_tree_inventory(
+            p, heights, model, no_ground, stems, stem_params, method, evidence, params, progress, origin_shift, timings
+        )
     if not stems:
         return _canopy_inventory(p, heights, model, no_ground, params, progress, origin_shift, timings)
 
@@ -439,7 +557,8 @@ def _measure_trees(
             heights = None
             vegetation_wood = (
                 wood_probability(p[vegetation], params.leafwood, progress.sub(0.45, 0.6))
-                if np.count_nonzero(vegetation) >= 50 else 0.0
+                if np.count_nonzero(vegetation) >= 50
+                else 0.0
             )
             heights = model.dem.normalise(p)
             wood = np.zeros(len(p))  # made after the separation: not held through its peak
@@ -470,29 +589,60 @@ def _measure_trees(
     for k, stem in enumerate(stems):
         progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: crown and cylinder model")
         idx = order[bounds[k] : bounds[k + len(stems)]]
-        records.append(tree_record(
-            p, stem, idx, dbh[stem.id], curves[stem.id], crowns[stem.id], wood,
-            complete[stem.id].reasons if stem.id in complete else (), params, stem_params=stem_params, method=method,
-            no_ground=no_ground, ground_near=ground_near.get(stem.id), shared_flag=shared.get(stem.id),
-            height_curve=height_curve, overtopped=overtopped.get(stem.id),
-        ))
+        records.append(
+            tree_record(
+                p,
+                stem,
+                idx,
+                dbh[stem.id],
+                curves[stem.id],
+                crowns[stem.id],
+                wood,
+                complete[stem.id].reasons if stem.id in complete else (),
+                params,
+                stem_params=stem_params,
+                method=method,
+                no_ground=no_ground,
+                ground_near=ground_near.get(stem.id),
+                shared_flag=shared.get(stem.id),
+                height_curve=height_curve,
+                overtopped=overtopped.get(stem.id),
+            )
+        )
     timings["trees_s"] = time.perf_counter() - t
-    if method == "noisy" and _airborne_like(heights, params.airborne_band_ratio):  # stems sparse and hardly sampled: the canopy decides
+    if method == "noisy" and _airborne_like(
+        heights, params.airborne_band_ratio
+    ):  # stems sparse and hardly sampled: the canopy decides
         t = time.perf_counter()
         progress(0.98, "airborne cloud: trees without a sampled stem from the canopy height model")
         records, labels = _add_canopy_trees(p, heights, labels, records, no_ground, params, model.ground)
         timings["canopy_s"] = time.perf_counter() - t
     progress(1.0, f"{len(records)} trees measured")
     return TreeInventory(
-        trees=records, labels=labels, heights=heights, wood_probability=wood, ground=model.ground, dem=model.dem,
+        trees=records,
+        labels=labels,
+        heights=heights,
+        wood_probability=wood,
+        ground=model.ground,
+        dem=model.dem,
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method=method, volume_asked=params.cylinder_models, height_curve=height_curve,
+        timings=timings,
+        method=method,
+        volume_asked=params.cylinder_models,
+        height_curve=height_curve,
     )
 
 
-def _plot_height_curve(stems: Sequence[Stem], dbh: dict[int, DbhMeasurement], curves: dict[int, StemCurve],
-                       crowns: dict[int, CrownMeasurement], shared: dict[int, str], complete: dict[int, Any],
-                       stem_params: StemParams, params: TreeParams) -> Optional[HeightCurve]:
+def _plot_height_curve(
+    stems: Sequence[Stem],
+    dbh: dict[int, DbhMeasurement],
+    curves: dict[int, StemCurve],
+    crowns: dict[int, CrownMeasurement],
+    shared: dict[int, str],
+    complete: dict[int, Any],
+    stem_params: StemParams,
+    params: TreeParams,
+) -> Optional[HeightCurve]:
     """The plot's height-diameter curve (:func:`.allometry.fit_height_curve`) from the trees whose
     tops stand clear: over the stem, not cut flat, not missing, with no hint of a neighbour's
     crown; None with fewer than :attr:`.allometry.HeightCurveParams.min_trees` of them. The trees
@@ -502,21 +652,31 @@ def _plot_height_curve(stems: Sequence[Stem], dbh: dict[int, DbhMeasurement], cu
     for s in stems:
         c = crowns.get(s.id)
         reasons = complete[s.id].reasons if s.id in complete else ()
-        if (c is None or s.id in shared or "top missing" in reasons or not top_over_stem(c, params.crown)
-                or top_cut_flat(c, params.crown)):
+        if (
+            c is None
+            or s.id in shared
+            or "top missing" in reasons
+            or not top_over_stem(c, params.crown)
+            or top_cut_flat(c, params.crown)
+        ):
             continue
         d.append(_curve_or_slices_dbh(s, dbh, curves, stem_params))
         h.append(c.height_m)
     curve = fit_height_curve(np.array(d), np.array(h), params.height_curve)
     if curve is None:
         return None
-    tips = [(_curve_or_slices_dbh(s, dbh, curves, stem_params), crowns[s.id].height_m) for s in stems
-            if s.id in crowns and apex_tip(crowns[s.id], params.crown)]
+    tips = [
+        (_curve_or_slices_dbh(s, dbh, curves, stem_params), crowns[s.id].height_m)
+        for s in stems
+        if s.id in crowns and apex_tip(crowns[s.id], params.crown)
+    ]
     tips_arr = np.array(tips, dtype=np.float64).reshape(-1, 2)
     return curve.with_tips(tips_arr[:, 0], tips_arr[:, 1], params.height_curve)
 
 
-def _curve_or_slices_dbh(s: Stem, dbh: dict[int, DbhMeasurement], curves: dict[int, StemCurve], stem_params: StemParams) -> float:
+def _curve_or_slices_dbh(
+    s: Stem, dbh: dict[int, DbhMeasurement], curves: dict[int, StemCurve], stem_params: StemParams
+) -> float:
     """A stem's DBH (m) for the height-diameter curve: the stem curve's at breast height, else the
     circle fits'."""
     value = curve_dbh(curves[s.id], s, stem_params.breast_height_m)
@@ -529,12 +689,19 @@ def _points_by_stem(labels: np.ndarray, stems: Sequence[Stem]) -> tuple[np.ndarr
     where used (~30 ms for 2.9 M points), not held through the leaf-wood separation."""
     order, starts = order_by_label(labels, np.int32 if len(labels) < 2**31 else np.int64)
     ids = np.array([s.id for s in stems], dtype=np.int64)
-    return order, np.concatenate([starts[np.minimum(ids, len(starts) - 1)], starts[np.minimum(ids + 1, len(starts) - 1)]])
+    return order, np.concatenate(
+        [starts[np.minimum(ids, len(starts) - 1)], starts[np.minimum(ids + 1, len(starts) - 1)]]
+    )
 
 
 def _crowns_timed(
-    p: np.ndarray, heights: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], ground: np.ndarray,
-    params: TreeParams, timings: dict[str, float],
+    p: np.ndarray,
+    heights: np.ndarray,
+    labels: np.ndarray,
+    stems: Sequence[Stem],
+    ground: np.ndarray,
+    params: TreeParams,
+    timings: dict[str, float],
 ) -> tuple[dict[int, CrownMeasurement], dict[int, str], dict[int, bool]]:
     """Every tree's crown (:func:`.crown.measure_crown`) and the flags of tops not their own
     (:func:`_shared_tops`), with what the tree records need: whether ground points lie within
@@ -549,21 +716,42 @@ def _crowns_timed(
         except ScanDataError as exc:  # no points reached this stem
             nan = math.nan
             crowns[stem.id] = CrownMeasurement(
-                tree_id=stem.id, x=stem.x, y=stem.y, height_m=nan, crown_base_m=nan, crown_width_ew_m=nan,
-                crown_width_ns_m=nan, crown_area_m2=nan, crown_diameter_m=nan, crown_length_m=nan,
-                crown_volume_m3=nan, n_points=int(len(idx)), top=(nan, nan, nan), ok=False, reasons=(str(exc),),
+                tree_id=stem.id,
+                x=stem.x,
+                y=stem.y,
+                height_m=nan,
+                crown_base_m=nan,
+                crown_width_ew_m=nan,
+                crown_width_ns_m=nan,
+                crown_area_m2=nan,
+                crown_diameter_m=nan,
+                crown_length_m=nan,
+                crown_volume_m3=nan,
+                n_points=int(len(idx)),
+                top=(nan, nan, nan),
+                ok=False,
+                reasons=(str(exc),),
             )
     del order
     columns = ColumnIndex(p, 1.0)  # for the disc queries of both below
-    shared = _shared_tops(p, labels, stems, crowns, columns, params.shared_top_min_points, params.top_clearance_radius_m,
-                          params.min_top_clearance_m)
+    shared = _shared_tops(
+        p,
+        labels,
+        stems,
+        crowns,
+        columns,
+        params.shared_top_min_points,
+        params.top_clearance_radius_m,
+        params.min_top_clearance_m,
+    )
     shared.update({k: v for k, v in _within_crown_reach(stems, params).items() if k not in shared})
     timings["crowns_s"] = time.perf_counter() - t
     return crowns, shared, ground_near_stems(p, ground, stems, params.ground_near_stem_m, columns)
 
 
-def ground_near_stems(p: np.ndarray, ground: np.ndarray, stems: Sequence[Stem], radius_m: float,
-                      columns: Optional[ColumnIndex] = None) -> dict[int, bool]:
+def ground_near_stems(
+    p: np.ndarray, ground: np.ndarray, stems: Sequence[Stem], radius_m: float, columns: Optional[ColumnIndex] = None
+) -> dict[int, bool]:
     """Whether any ground point (``ground``: a mask of ``p``) lies within ``radius_m``
     (:attr:`TreeParams.ground_near_stem_m`) horizontally of each stem's position; empty when the
     cloud has no ground. ``columns``: a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of
@@ -654,8 +842,10 @@ def tree_record(
             trust = _trust(trust, "medium")
         if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d_curve, 0.008):
             trust = _trust(trust, "low")
-            flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
-                         f"{1000 * d_curve:.0f} mm stem (noisy or ghosted shell)")
+            flags.append(
+                f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
+                f"{1000 * d_curve:.0f} mm stem (noisy or ghosted shell)"
+            )
         if math.isfinite(d.dbh_m) and abs(d.dbh_m - d_curve) > 0.1 * d_curve:
             trust = _trust(trust, "low")
             flags.append(f"DBH slices ({d.dbh_m:.3f} m) and stem curve ({d_curve:.3f} m) disagree")
@@ -666,8 +856,10 @@ def tree_record(
         trust = "medium"
         if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d.dbh_m, 0.008):
             trust = "low"
-            flags.append(f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
-                         f"{1000 * d.dbh_m:.0f} mm stem (noisy or ghosted shell)")
+            flags.append(
+                f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
+                f"{1000 * d.dbh_m:.0f} mm stem (noisy or ghosted shell)"
+            )
         quality["dbh"] = f"circle fits at 1.3 m (no stem-curve section there); {trust}"
     else:
         dbh_value = math.nan
@@ -699,13 +891,20 @@ def tree_record(
     # top missing, cut flat or touching the crown over it: the height can only be short)
     hints: list[tuple[str, str]] = []
     if top_evidence and math.isfinite(crown.top_offset_m) and not over_stem:
-        hints.append(("hint", f"top on the crown's flank, {crown.top_offset_m:.1f} m from the stem axis ({ratio:.2f} of the "
-                              f"crown radius): apex unseen or a neighbour's (height unsure)"))
+        hints.append(
+            (
+                "hint",
+                f"top on the crown's flank, {crown.top_offset_m:.1f} m from the stem axis ({ratio:.2f} of the "
+                f"crown radius): apex unseen or a neighbour's (height unsure)",
+            )
+        )
         h_how += f", top {crown.top_offset_m:.1f} m ({ratio:.2f} of the crown radius) from the stem"
     elif top_evidence and over_stem:
         h_how += f", top over the stem ({crown.top_offset_m:.1f} m, {ratio:.2f} of the crown radius, from its axis)"
     # a sparse tip over the stem is the apex seen thinly, not a missing top
-    top_missing = "top missing" in reasons and not (top_evidence and over_stem and not _flat_top(tree_pts, stem, params.completeness))
+    top_missing = "top missing" in reasons and not (
+        top_evidence and over_stem and not _flat_top(tree_pts, stem, params.completeness)
+    )
     flags = [f for f in flags if f != "top missing"]
     if top_missing:
         hints.append(("unseen", "top missing"))
@@ -715,9 +914,14 @@ def tree_record(
         h_how += ", crown too sparse to confirm the top"
     if top_evidence and over_stem and not top_missing and top_cut_flat(crown, params.crown):
         # the highest point stands over the stem, but the top layer is a ring at the crown's rim
-        hints.append(("unseen", f"top not seen: crown cut flat, its top {params.crown.top_layer_m:g} m a ring at "
-                                f"{crown.top_layer_offset_ratio:.2f} of the crown radius from the stem axis: height unsure "
-                                f"(likely too low)"))
+        hints.append(
+            (
+                "unseen",
+                f"top not seen: crown cut flat, its top {params.crown.top_layer_m:g} m a ring at "
+                f"{crown.top_layer_offset_ratio:.2f} of the crown radius from the stem axis: height unsure "
+                f"(likely too low)",
+            )
+        )
         h_how += f", top layer cut flat ({crown.top_layer_offset_ratio:.2f} of the crown radius from the axis)"
     if shared_flag:
         h_how += ", " + shared_flag.split(":")[0]  # what the flag found, without its verdict
@@ -728,15 +932,28 @@ def tree_record(
             top_flags.append(shared_flag)
             h_trust = _trust(h_trust, "low")
     if math.isfinite(dbh_value) and dbh_value > 0 and crown.height_m / dbh_value > params.max_slenderness:
-        top_flags.append(f"height {crown.height_m:.1f} m on a {100 * dbh_value:.0f} cm stem (slenderness {crown.height_m / dbh_value:.0f}, "
-                         f"beyond {params.max_slenderness:.0f}): the top may be a neighbour's (height unsure)")
+        top_flags.append(
+            f"height {crown.height_m:.1f} m on a {100 * dbh_value:.0f} cm stem (slenderness {crown.height_m / dbh_value:.0f}, "
+            f"beyond {params.max_slenderness:.0f}): the top may be a neighbour's (height unsure)"
+        )
         h_trust = _trust(h_trust, "low")
         h_how += ", too tall for its stem"
     hints_consistent = False
     height_fill = math.nan
     if top_evidence:  # a plot's tree: the points' top, the plot's curve and the neighbours decide
-        h_trust, h_how, height_fill, top_flags = _judge_top(crown, dbh_value, quality["dbh"], hints, top_flags, h_trust, ground_trust,
-                                                            h_how, params, height_curve, overtopped)
+        h_trust, h_how, height_fill, top_flags = _judge_top(
+            crown,
+            dbh_value,
+            quality["dbh"],
+            hints,
+            top_flags,
+            h_trust,
+            ground_trust,
+            h_how,
+            params,
+            height_curve,
+            overtopped,
+        )
         hints_consistent = bool(hints) and h_trust != "low"
         flags += top_flags
     else:  # a single-tree cloud: its top is the cloud's
@@ -753,10 +970,12 @@ def tree_record(
                 # suppressed trees grow here (trees whose own apex is seen stand far below the curve): a
                 # top under or touching a neighbour's crown may be one's, its segment reaching up into
                 # that crown to a height the curve would call consistent; only a tip vouches for it
-                suppressed_here = (f"suppressed trees grow here ({height_curve.n_tips_below} of {height_curve.n_tips} trees with "
-                                   f"their apex seen as a tip stand more than {100 * height_curve.max_departure(hc):.0f} % below the "
-                                   f"plot's height-diameter curve): the curve does not vouch for a top under or touching a "
-                                   f"neighbour's crown")
+                suppressed_here = (
+                    f"suppressed trees grow here ({height_curve.n_tips_below} of {height_curve.n_tips} trees with "
+                    f"their apex seen as a tip stand more than {100 * height_curve.max_departure(hc):.0f} % below the "
+                    f"plot's height-diameter curve): the curve does not vouch for a top under or touching a "
+                    f"neighbour's crown"
+                )
             if within and not suppressed_here:
                 hints_consistent = True
                 h_trust = _trust(h_trust, "medium")
@@ -768,30 +987,47 @@ def tree_record(
                     top_flags.append(suppressed_here)
                     h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve (not vouched for: suppressed trees grow here)"
                 elif math.isfinite(departure):
-                    top_flags.append(f"height {100 * departure:+.0f} % from the plot's height-diameter curve "
-                                     f"(allowed {-100 * below:.0f} % to +{100 * hc.above:.0f} %)")
+                    top_flags.append(
+                        f"height {100 * departure:+.0f} % from the plot's height-diameter curve "
+                        f"(allowed {-100 * below:.0f} % to +{100 * hc.above:.0f} %)"
+                    )
                     h_how += f", {100 * departure:+.0f} % from the plot's height-diameter curve"
                 else:
                     h_how += ", no height-diameter curve to check it"
-        if (h_trust == "low" and ground_trust != "low" and height_curve is not None and math.isfinite(crown.height_m)
-                and not quality["dbh"].endswith(("low", "none"))):
+        if (
+            h_trust == "low"
+            and ground_trust != "low"
+            and height_curve is not None
+            and math.isfinite(crown.height_m)
+            and not quality["dbh"].endswith(("low", "none"))
+        ):
             height_fill = height_curve.fill_height_m(dbh_value, params.height_curve)
         if math.isfinite(height_fill):
             # the points' top is not the tree's: the plot's curve predicts the height, as good as its scatter
             why = "; ".join(dict.fromkeys(top_flags)) or "top unsure"
             h_trust = _trust(ground_trust, "medium")
-            h_how = (f"from the plot's height-diameter curve at the DBH (scatter {100 * height_curve.scatter:.0f} %, "
-                     f"{height_curve.n_inliers} trees): the points' top ({crown.height_m:.1f} m) not taken: {why}")
+            h_how = (
+                f"from the plot's height-diameter curve at the DBH (scatter {100 * height_curve.scatter:.0f} %, "
+                f"{height_curve.n_inliers} trees): the points' top ({crown.height_m:.1f} m) not taken: {why}"
+            )
         else:
             flags += top_flags
-    if "stem cut by the plot edge" in reasons and math.isfinite(dbh_value) and not quality["dbh"].endswith(("low", "none")):
+    if (
+        "stem cut by the plot edge" in reasons
+        and math.isfinite(dbh_value)
+        and not quality["dbh"].endswith(("low", "none"))
+    ):
         quality["dbh"] = quality["dbh"].rsplit("; ", 1)[0] + ", stem cut by the plot edge; low"
     quality["height"] = f"{h_how}; {h_trust}" if math.isfinite(crown.height_m) else "not measured; none"
     if math.isfinite(dbh_value):  # a DBH is reported: no "fit failed" flag, say what is unsure
         failed = [f for f in flags if f.startswith("DBH fit failed")]
         flags = [f for f in flags if not f.startswith("DBH fit failed")]
         if failed:
-            flags.append("DBH slices inconsistent: the stem curve's value is given (" + quality["dbh"].rsplit("; ", 1)[-1] + " trust)")
+            flags.append(
+                "DBH slices inconsistent: the stem curve's value is given ("
+                + quality["dbh"].rsplit("; ", 1)[-1]
+                + " trust)"
+            )
     if not crown.ok:
         flags += [f"crown: {r}" for r in crown.reasons]
     c_trust = "high" if crown.ok else "none"
@@ -801,8 +1037,10 @@ def tree_record(
         c_trust = "medium" if hints_consistent else "low"
         if c_trust == "low" and math.isfinite(height_fill):
             # the top's flag went with the height the curve replaced; the crown's doubt stays
-            flags.append(f"crown unsure: {shared_flag.split(':')[0]} (its points may hold part of a neighbour's crown, "
-                         f"or miss its own top)")
+            flags.append(
+                f"crown unsure: {shared_flag.split(':')[0]} (its points may hold part of a neighbour's crown, "
+                f"or miss its own top)"
+            )
     quality["crown"] = f"crown points of the segmented tree; {c_trust}"
     # --- cylinder model, on the wood points, its stem made consistent with the stem curve
     cylinders = None
@@ -820,13 +1058,19 @@ def tree_record(
             flags.append(f"cylinder model not fitted: too few wood points ({int(np.count_nonzero(w))})")
     if cylinders is not None:
         volume, ff, quality["volume"], vflag = form_factor_check(
-            cylinders.total_volume_m3, cylinders.stem_volume_m3, dbh_value,
-            height_fill if math.isfinite(height_fill) else crown.height_m, params.form_factors)
+            cylinders.total_volume_m3,
+            cylinders.stem_volume_m3,
+            dbh_value,
+            height_fill if math.isfinite(height_fill) else crown.height_m,
+            params.form_factors,
+        )
         if vflag:
             flags.append(vflag)
         n_top = int(cylinders.meta.get("stem_cylinders_added_to_top", 0))
         if n_top and "; high" in quality["volume"]:
-            quality["volume"] = quality["volume"].replace("; high", f", upper stem ({n_top} cylinders) tapered to the top; medium")
+            quality["volume"] = quality["volume"].replace(
+                "; high", f", upper stem ({n_top} cylinders) tapered to the top; medium"
+            )
         if "top missing" in reasons and "; high" in quality["volume"]:
             quality["volume"] = quality["volume"].replace("; high", "; medium")
     else:
@@ -836,12 +1080,24 @@ def tree_record(
     flags = _flags_that_matter(flags, quality)
     dbh_trust = quality.get("dbh", "").rsplit(";", 1)[-1].strip()
     return TreeRecord(
-        tree_id=stem.id, stem=stem, dbh=d, curve=curve, crown=crown, cylinders=cylinders,
-        n_points=int(len(idx)), wood_fraction=_wood_fraction(wood[idx], params.wood_threshold),
-        flags=tuple(dict.fromkeys(flags)), dbh_m=dbh_value,
-        dbh_sigma_m=dbh_sigma(dbh_value, fit, dbh_trust, stem_params.typical_ovality) if dbh_trust != "none" else math.nan,
-        volume_m3=volume, stem_form_factor=ff,
-        source="stem", quality=quality, height_from_curve_m=height_fill,
+        tree_id=stem.id,
+        stem=stem,
+        dbh=d,
+        curve=curve,
+        crown=crown,
+        cylinders=cylinders,
+        n_points=int(len(idx)),
+        wood_fraction=_wood_fraction(wood[idx], params.wood_threshold),
+        flags=tuple(dict.fromkeys(flags)),
+        dbh_m=dbh_value,
+        dbh_sigma_m=dbh_sigma(dbh_value, fit, dbh_trust, stem_params.typical_ovality)
+        if dbh_trust != "none"
+        else math.nan,
+        volume_m3=volume,
+        stem_form_factor=ff,
+        source="stem",
+        quality=quality,
+        height_from_curve_m=height_fill,
     )
 
 
@@ -868,9 +1124,19 @@ def _hint_names(hints: Sequence[tuple[str, str]]) -> set[str]:
     return names
 
 
-def _judge_top(crown: CrownMeasurement, dbh_value: float, dbh_quality: str, hints: Sequence[tuple[str, str]], top_flags: list[str],
-               h_trust: str, ground_trust: str, h_how: str, params: TreeParams, curve: Optional[HeightCurve],
-               overtopped: Optional[str]) -> tuple[str, str, float, list[str]]:
+def _judge_top(
+    crown: CrownMeasurement,
+    dbh_value: float,
+    dbh_quality: str,
+    hints: Sequence[tuple[str, str]],
+    top_flags: list[str],
+    h_trust: str,
+    ground_trust: str,
+    h_how: str,
+    params: TreeParams,
+    curve: Optional[HeightCurve],
+    overtopped: Optional[str],
+) -> tuple[str, str, float, list[str]]:
     """A plot tree's height: (trust, how, the curve's estimate or NaN, flags of the top).
 
     The points' top stands (its trust kept) only with evidence that it is the tree's own apex,
@@ -901,35 +1167,71 @@ def _judge_top(crown: CrownMeasurement, dbh_value: float, dbh_quality: str, hint
     dep = curve.departure(dbh_value, crown.height_m) if curve is not None else nan
     dep_text = f", {100 * dep:+.0f} % from the plot's height-diameter curve" if math.isfinite(dep) else ""
     if h_trust != "low" and math.isfinite(crown.height_m):
-        if (apex_tip(crown, params.crown) and names <= {"under", "reach"} and not dep > hc.clear_above
-                and not ("under" in names and not math.isfinite(dep))):
+        if (
+            apex_tip(crown, params.crown)
+            and names <= {"under", "reach"}
+            and not dep > hc.clear_above
+            and not ("under" in names and not math.isfinite(dep))
+        ):
             # its apex seen as a tip: its own top, however far below the curve (a suppressed tree)
-            return (_trust(h_trust, "medium") if names else h_trust), h_how + ", its apex seen as a tip over the stem" + dep_text, nan, top_flags
-        if not names and (-hc.clear_below <= dep <= hc.clear_above if math.isfinite(dep) else apex_tip(crown, params.crown)):
+            return (
+                (_trust(h_trust, "medium") if names else h_trust),
+                h_how + ", its apex seen as a tip over the stem" + dep_text,
+                nan,
+                top_flags,
+            )
+        if not names and (
+            -hc.clear_below <= dep <= hc.clear_above if math.isfinite(dep) else apex_tip(crown, params.crown)
+        ):
             # without a curve to check it, a top with no hint stands only as a tip: a crown whose
             # top the scanners' view cut, or hid behind other crowns, shows no hint either
-            return h_trust, h_how + (dep_text + " (consistent)" if dep_text else ", its apex seen as a tip over the stem"), nan, top_flags
-        if (names and names <= {"flank", "missing", "flat", "reach"} and curve is not None and curve.scatter <= hc.max_scatter_unseen
-                and abs(dep) <= params.curve_agreement):
+            return (
+                h_trust,
+                h_how + (dep_text + " (consistent)" if dep_text else ", its apex seen as a tip over the stem"),
+                nan,
+                top_flags,
+            )
+        if (
+            names
+            and names <= {"flank", "missing", "flat", "reach"}
+            and curve is not None
+            and curve.scatter <= hc.max_scatter_unseen
+            and abs(dep) <= params.curve_agreement
+        ):
             # a soft hint, the plot's curve agreeing: two witnesses for the top
             return _trust(h_trust, "medium"), h_how + dep_text + " (consistent)", nan, top_flags
     flags = list(top_flags) + [text for _, text in hints]
     if math.isfinite(dep) and not names and h_trust != "low":
-        flags.append(f"height {100 * dep:+.0f} % from the plot's height-diameter curve (beyond -{100 * hc.clear_below:.0f} % to "
-                     f"+{100 * hc.clear_above:.0f} %): top hidden, or a neighbour's (height unsure)")
+        flags.append(
+            f"height {100 * dep:+.0f} % from the plot's height-diameter curve (beyond -{100 * hc.clear_below:.0f} % to "
+            f"+{100 * hc.clear_above:.0f} %): top hidden, or a neighbour's (height unsure)"
+        )
     elif math.isfinite(dep) and names:
         flags.append(f"height {100 * dep:+.0f} % from the plot's height-diameter curve")
-    h_how += dep_text if dep_text else (", no height-diameter curve to check it" if curve is None
-                                        else ", no DBH for the plot's height-diameter curve to check it")
+    h_how += (
+        dep_text
+        if dep_text
+        else (
+            ", no height-diameter curve to check it"
+            if curve is None
+            else ", no DBH for the plot's height-diameter curve to check it"
+        )
+    )
     estimate = curve.estimate_height_m(dbh_value, hc) if curve is not None else nan
-    if not (math.isfinite(estimate) and math.isfinite(crown.height_m)) or ground_trust == "low" or dbh_quality.endswith(("low", "none")):
+    if (
+        not (math.isfinite(estimate) and math.isfinite(crown.height_m))
+        or ground_trust == "low"
+        or dbh_quality.endswith(("low", "none"))
+    ):
         return "low", h_how, nan, flags
     why = "; ".join(dict.fromkeys(flags)) or "top unsure"
     scatter = f"scatter {100 * curve.scatter:.0f} %, {curve.n_inliers} trees"
     if names & {"under", "touch"} and crown.height_m < estimate:
         estimate = 0.5 * (crown.height_m + estimate)
-        how = (f"midway between the points' top ({crown.height_m:.1f} m) and the plot's height-diameter curve at the DBH "
-               f"({scatter}): a top under a neighbour's crown is a suppressed tree's or hidden in that crown: {why}")
+        how = (
+            f"midway between the points' top ({crown.height_m:.1f} m) and the plot's height-diameter curve at the DBH "
+            f"({scatter}): a top under a neighbour's crown is a suppressed tree's or hidden in that crown: {why}"
+        )
     else:
         how = f"from the plot's height-diameter curve at the DBH ({scatter}): the points' top ({crown.height_m:.1f} m) not taken: {why}"
     refusal = curve.fill_refusal(hc)
@@ -963,7 +1265,9 @@ def _under_thicker_crowns(stems: Sequence[Stem], params: TreeParams) -> dict[int
                 best = (d / reach, d, o)
         if best is not None:
             _, d, o = best
-            out[s.id] = f"its stem stands {d:.1f} m from thicker tree {o.id} ({200 * o.radius_m:.0f} cm), under that tree's expected crown"
+            out[s.id] = (
+                f"its stem stands {d:.1f} m from thicker tree {o.id} ({200 * o.radius_m:.0f} cm), under that tree's expected crown"
+            )
     return out
 
 
@@ -1018,12 +1322,19 @@ def _within_crown_reach(stems: Sequence[Stem], params: TreeParams) -> dict[int, 
     out: dict[int, str] = {}
     ratio = params.segmentation.dominance_ratio
     for s in axis_stems(stems, params.segmentation.axis_dominance_dbh, ratio):
-        near = [(math.hypot(o.x - s.x, o.y - s.y), o) for o in stems
-                if o is not s and o.radius_m >= ratio * s.radius_m and math.hypot(o.x - s.x, o.y - s.y) < params.crown_reach_dbh * 2.0 * o.radius_m]
+        near = [
+            (math.hypot(o.x - s.x, o.y - s.y), o)
+            for o in stems
+            if o is not s
+            and o.radius_m >= ratio * s.radius_m
+            and math.hypot(o.x - s.x, o.y - s.y) < params.crown_reach_dbh * 2.0 * o.radius_m
+        ]
         if near:
             d, o = min(near, key=lambda t: t[0])
-            out[s.id] = (f"stem {d:.1f} m from thicker tree {o.id} ({200 * o.radius_m:.0f} cm), within its crown's reach: "
-                         f"the top may be in that tree's crown (height unsure)")
+            out[s.id] = (
+                f"stem {d:.1f} m from thicker tree {o.id} ({200 * o.radius_m:.0f} cm), within its crown's reach: "
+                f"the top may be in that tree's crown (height unsure)"
+            )
     return out
 
 
@@ -1037,14 +1348,24 @@ def _top_hint_kind(flag: str) -> str:
         return "under"
     if flag.startswith("top touching a neighbour's crown"):
         return "unseen"
-    if flag.startswith(("top amid the crown of thicker tree", "top shared with taller tree")) or "within its crown's reach" in flag:
+    if (
+        flag.startswith(("top amid the crown of thicker tree", "top shared with taller tree"))
+        or "within its crown's reach" in flag
+    ):
         return "hint"
     return ""
 
 
-def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crowns: dict[int, CrownMeasurement],
-                 columns: ColumnIndex, min_points: int, clearance_radius_m: float = 0.3,
-                 min_clearance_m: float = 0.2) -> dict[int, str]:
+def _shared_tops(
+    p: np.ndarray,
+    labels: np.ndarray,
+    stems: Sequence[Stem],
+    crowns: dict[int, CrownMeasurement],
+    columns: ColumnIndex,
+    min_points: int,
+    clearance_radius_m: float = 0.3,
+    min_clearance_m: float = 0.2,
+) -> dict[int, str]:
     """Trees whose top is not their own or was not seen: points of no tree stand above the top
     (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
     stand above the top (within 1 m horizontally, more than 1 m higher; the top clear of them by at
@@ -1081,11 +1402,17 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
             column = column[(labels[column] != s.id) & (p[column, 2] > top[2] + 0.02)]
             gap = float(p[column, 2].min() - top[2]) if len(column) else math.inf
             if gap >= min_clearance_m:
-                clear = f"{gap:.1f} m clear of it" if math.isfinite(gap) else f"nothing over the top within {clearance_radius_m:g} m"
+                clear = (
+                    f"{gap:.1f} m clear of it"
+                    if math.isfinite(gap)
+                    else f"nothing over the top within {clearance_radius_m:g} m"
+                )
                 out[s.id] = f"top under a neighbour's crown, {clear}: suppressed, or its top unseen (height unsure)"
             else:
-                out[s.id] = (f"top touching a neighbour's crown ({100 * gap:.0f} cm below it): the crown may go on up "
-                             f"in that tree (height unsure)")
+                out[s.id] = (
+                    f"top touching a neighbour's crown ({100 * gap:.0f} cm below it): the crown may go on up "
+                    f"in that tree (height unsure)"
+                )
             continue
         # the top amid the crown of a thicker neighbour (crowns intermixed at the same level): the
         # top found may be the neighbour's
@@ -1093,9 +1420,13 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
         amid = near[(labels[near] > 0) & (labels[near] != s.id) & (p[near, 2] > top[2] - 0.5)]
         if len(amid):
             ids, counts = np.unique(labels[amid], return_counts=True)
-            thicker = [(int(c), int(i)) for i, c in zip(ids, counts) if int(i) in radius and radius[int(i)] > radius[s.id]]
+            thicker = [
+                (int(c), int(i)) for i, c in zip(ids, counts) if int(i) in radius and radius[int(i)] > radius[s.id]
+            ]
             if thicker and sum(c for c, _ in thicker) >= min_points:
-                out[s.id] = f"top amid the crown of thicker tree {max(thicker)[1]}: height unsure (the top may be that tree's)"
+                out[s.id] = (
+                    f"top amid the crown of thicker tree {max(thicker)[1]}: height unsure (the top may be that tree's)"
+                )
                 continue
         # each stem's axis taken where it passes the top's height (a leaning stem's top stands
         # beside its foot)
@@ -1104,7 +1435,12 @@ def _shared_tops(p: np.ndarray, labels: np.ndarray, stems: Sequence[Stem], crown
             if o.id == s.id:
                 continue
             co = crowns.get(o.id)
-            if co is None or not math.isfinite(co.height_m) or not math.isfinite(c.height_m) or co.height_m <= c.height_m:
+            if (
+                co is None
+                or not math.isfinite(co.height_m)
+                or not math.isfinite(c.height_m)
+                or co.height_m <= c.height_m
+            ):
                 continue
             if _axis_distance(o, top) < own and own > 1.0:
                 out[s.id] = f"top shared with taller tree {o.id}: height unsure"
@@ -1119,8 +1455,14 @@ def _axis_distance(stem: Stem, point: np.ndarray) -> float:
 
 
 def _canopy_inventory(
-    p: np.ndarray, heights: np.ndarray, model: TerrainModel, no_ground: bool, params: TreeParams,
-    progress: Progress, origin_shift: Optional[np.ndarray], timings: dict[str, float],
+    p: np.ndarray,
+    heights: np.ndarray,
+    model: TerrainModel,
+    no_ground: bool,
+    params: TreeParams,
+    progress: Progress,
+    origin_shift: Optional[np.ndarray],
+    timings: dict[str, float],
 ) -> TreeInventory:
     """Trees of a cloud without stems (airborne): tops and crowns from the canopy height model."""
     t = time.perf_counter()
@@ -1135,9 +1477,16 @@ def _canopy_inventory(
     records = [_canopy_record(ct, ct.tree_id, no_ground, evidence(ct)) for ct in trees]
     progress(1.0, f"{len(records)} trees from the canopy")
     return TreeInventory(
-        trees=records, labels=labels, heights=heights, wood_probability=np.zeros(len(p)), ground=model.ground,
-        dem=model.dem, origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method="canopy", volume_asked=params.cylinder_models,
+        trees=records,
+        labels=labels,
+        heights=heights,
+        wood_probability=np.zeros(len(p)),
+        ground=model.ground,
+        dem=model.dem,
+        origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
+        timings=timings,
+        method="canopy",
+        volume_asked=params.cylinder_models,
     )
 
 
@@ -1158,20 +1507,35 @@ def _ground_evidence_fn(p: np.ndarray, ground: np.ndarray, no_ground: bool, para
     return evidence
 
 
-def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool, ground_ev: Optional[GroundEvidence] = None) -> TreeRecord:
+def _canopy_record(
+    ct: CanopyTree, tree_id: int, no_ground: bool, ground_ev: Optional[GroundEvidence] = None
+) -> TreeRecord:
     """The record of a tree found from the canopy (no stem): position, height, crown; DBH and
     volume not measured (flagged)."""
     nan = math.nan
     base = np.array([ct.top[0], ct.top[1], ct.ground_z])
-    stem = Stem(id=tree_id, base=base, axis=np.array([0.0, 0.0, 1.0]), radius_m=nan, point_indices=np.zeros(0, dtype=np.int64))
+    stem = Stem(
+        id=tree_id, base=base, axis=np.array([0.0, 0.0, 1.0]), radius_m=nan, point_indices=np.zeros(0, dtype=np.int64)
+    )
     dbh = DbhMeasurement(tree_id, nan, base + [0, 0, 1.3], 1.3, None, False, ("stem not sampled",))
     empty = np.zeros(0)
     curve = StemCurve(tree_id, empty, empty, empty, empty, np.zeros(0, bool), np.zeros(0, bool), np.zeros((0, 3)), ())
     crown = CrownMeasurement(
-        tree_id=tree_id, x=float(ct.top[0]), y=float(ct.top[1]), height_m=ct.height_m, crown_base_m=ct.crown_base_m,
-        crown_width_ew_m=ct.crown_width_ew_m, crown_width_ns_m=ct.crown_width_ns_m, crown_area_m2=ct.crown_area_m2,
-        crown_diameter_m=0.5 * (ct.crown_width_ew_m + ct.crown_width_ns_m), crown_length_m=ct.height_m - ct.crown_base_m,
-        crown_volume_m3=ct.crown_volume_m3, n_points=len(ct.point_indices), top=tuple(float(v) for v in ct.top), ok=True, reasons=(),
+        tree_id=tree_id,
+        x=float(ct.top[0]),
+        y=float(ct.top[1]),
+        height_m=ct.height_m,
+        crown_base_m=ct.crown_base_m,
+        crown_width_ew_m=ct.crown_width_ew_m,
+        crown_width_ns_m=ct.crown_width_ns_m,
+        crown_area_m2=ct.crown_area_m2,
+        crown_diameter_m=0.5 * (ct.crown_width_ew_m + ct.crown_width_ns_m),
+        crown_length_m=ct.height_m - ct.crown_base_m,
+        crown_volume_m3=ct.crown_volume_m3,
+        n_points=len(ct.point_indices),
+        top=tuple(float(v) for v in ct.top),
+        ok=True,
+        reasons=(),
     )
     flags = ["DBH not measured: stem not sampled (tree from the canopy)"]
     h_trust = "high"
@@ -1188,8 +1552,16 @@ def _canopy_record(ct: CanopyTree, tree_id: int, no_ground: bool, ground_ev: Opt
             flags.append(f"{ground_ev.text}: height unsure")
             h_trust = "low"
     return TreeRecord(
-        tree_id=tree_id, stem=stem, dbh=dbh, curve=curve, crown=crown, cylinders=None,
-        n_points=len(ct.point_indices), wood_fraction=nan, flags=tuple(flags), source="canopy",
+        tree_id=tree_id,
+        stem=stem,
+        dbh=dbh,
+        curve=curve,
+        crown=crown,
+        cylinders=None,
+        n_points=len(ct.point_indices),
+        wood_fraction=nan,
+        flags=tuple(flags),
+        source="canopy",
         quality={
             "dbh": "not measured: stem not sampled; none",
             "height": f"highest crown point above the DEM (canopy height model){ground_how}; {h_trust}",
@@ -1208,7 +1580,12 @@ def _airborne_like(heights: np.ndarray, band_ratio: float) -> bool:
 
 
 def _add_canopy_trees(
-    p: np.ndarray, heights: np.ndarray, labels: np.ndarray, records: list[TreeRecord], no_ground: bool, params: TreeParams,
+    p: np.ndarray,
+    heights: np.ndarray,
+    labels: np.ndarray,
+    records: list[TreeRecord],
+    no_ground: bool,
+    params: TreeParams,
     ground: np.ndarray,
 ) -> tuple[list[TreeRecord], np.ndarray]:
     """Airborne clouds: the canopy height model decides the crowns, stems attach to them.
@@ -1247,11 +1624,18 @@ def _add_canopy_trees(
         r = records[owner]
         labels[ct.point_indices] = r.tree_id
         crown = dataclasses.replace(
-            r.crown, height_m=float(ct.top[2] - r.stem.ground_z), crown_base_m=ct.crown_base_m,
-            crown_width_ew_m=ct.crown_width_ew_m, crown_width_ns_m=ct.crown_width_ns_m, crown_area_m2=ct.crown_area_m2,
+            r.crown,
+            height_m=float(ct.top[2] - r.stem.ground_z),
+            crown_base_m=ct.crown_base_m,
+            crown_width_ew_m=ct.crown_width_ew_m,
+            crown_width_ns_m=ct.crown_width_ns_m,
+            crown_area_m2=ct.crown_area_m2,
             crown_diameter_m=0.5 * (ct.crown_width_ew_m + ct.crown_width_ns_m),
-            crown_length_m=float(ct.top[2] - r.stem.ground_z) - ct.crown_base_m, crown_volume_m3=ct.crown_volume_m3,
-            top=tuple(float(v) for v in ct.top), ok=True, reasons=(),
+            crown_length_m=float(ct.top[2] - r.stem.ground_z) - ct.crown_base_m,
+            crown_volume_m3=ct.crown_volume_m3,
+            top=tuple(float(v) for v in ct.top),
+            ok=True,
+            reasons=(),
         )
         quality = dict(r.quality)
         offset = math.hypot(r.stem.x - ct.top[0], r.stem.y - ct.top[1])
@@ -1259,7 +1643,9 @@ def _add_canopy_trees(
         trust = "low" if (no_ground or ct.beside_taller or far) else "high"
         quality["height"] = f"highest point of its canopy segment above the stem's ground; {trust}"
         quality["crown"] = "crown segment of the canopy height model; medium"
-        flags = [f for f in r.flags if not f.startswith(("top ", "points of no tree", "crown:", "too few crown", "height "))]
+        flags = [
+            f for f in r.flags if not f.startswith(("top ", "points of no tree", "crown:", "too few crown", "height "))
+        ]
         if ct.beside_taller:
             flags.append("top beside a taller crown: height unsure (tops not separable)")
         if far:
@@ -1270,15 +1656,33 @@ def _add_canopy_trees(
                 continue
             o = out[k]
             quality = dict(o.quality)
-            quality["height"] = quality.get("height", "").rsplit("; ", 1)[0] + ", under the crown of tree " + f"{r.tree_id}; low"
-            out[k] = dataclasses.replace(o, quality=quality, flags=tuple(dict.fromkeys(
-                list(o.flags) + [f"under the crown of tree {r.tree_id}: own top unseen (height unsure)"])))
+            quality["height"] = (
+                quality.get("height", "").rsplit("; ", 1)[0] + ", under the crown of tree " + f"{r.tree_id}; low"
+            )
+            out[k] = dataclasses.replace(
+                o,
+                quality=quality,
+                flags=tuple(
+                    dict.fromkeys(
+                        list(o.flags) + [f"under the crown of tree {r.tree_id}: own top unseen (height unsure)"]
+                    )
+                ),
+            )
     return out, labels
 
 
 def _single_tree_inventory(
-    p: np.ndarray, heights: np.ndarray, model: TerrainModel, no_ground: bool, stems: Sequence[Stem], stem_params: StemParams,
-    method: str, evidence: SingleTreeEvidence, params: TreeParams, progress: Progress, origin_shift: Optional[np.ndarray],
+    p: np.ndarray,
+    heights: np.ndarray,
+    model: TerrainModel,
+    no_ground: bool,
+    stems: Sequence[Stem],
+    stem_params: StemParams,
+    method: str,
+    evidence: SingleTreeEvidence,
+    params: TreeParams,
+    progress: Progress,
+    origin_shift: Optional[np.ndarray],
     timings: dict[str, float],
 ) -> TreeInventory:
     """One tree: every point above the ground is the tree's; its height is the cloud's top above
@@ -1297,8 +1701,17 @@ def _single_tree_inventory(
     xy, axis = (np.array([found.x, found.y]), found.axis) if found is not None else (centre, np.array([0.0, 0.0, 1.0]))
     radius = found.radius_m if found is not None else min(0.5, 0.5 * evidence.base_width_m)
     # the stem's lowest point, or a ground surface around it at or below that point
-    base = single_tree_base(p, xy, axis, radius, None if no_ground else model.ground, params.single_tree,
-                            params.ground_near_stem_m, z0=found.ground_z if found is not None else None, foot_xy=centre)
+    base = single_tree_base(
+        p,
+        xy,
+        axis,
+        radius,
+        None if no_ground else model.ground,
+        params.single_tree,
+        params.ground_near_stem_m,
+        z0=found.ground_z if found is not None else None,
+        foot_xy=centre,
+    )
     base_z, base_how = base.z, base.how
     stem = base_stem(p, evidence, [found] if found is not None else [], base_z)
     ground = model.ground
@@ -1319,7 +1732,9 @@ def _single_tree_inventory(
     idx = np.flatnonzero(labels > 0)
     # the cloud's top: a twig sampled sparsely still counts (a point alone, farther than 1.5 m
     # from any other, is a stray return)
-    crown = measure_crown(p[idx], heights[idx], stem, params.crown.replace(top_neighbour_radius_m=1.5, top_min_neighbours=1))
+    crown = measure_crown(
+        p[idx], heights[idx], stem, params.crown.replace(top_neighbour_radius_m=1.5, top_min_neighbours=1)
+    )
     timings["single_tree_s"] = time.perf_counter() - t
     t = time.perf_counter()
     if params.cylinder_models:
@@ -1335,9 +1750,12 @@ def _single_tree_inventory(
     del index
     t = time.perf_counter()
     progress(0.7, "cylinder model")
-    open_grown = dataclasses.replace(params, form_factors=params.form_factors.replace(total=params.form_factors.open_grown_total))
-    record = tree_record(p, stem, idx, d, curve, crown, wood, (), open_grown, stem_params=stem_params, method=method,
-                         top_evidence=False)
+    open_grown = dataclasses.replace(
+        params, form_factors=params.form_factors.replace(total=params.form_factors.open_grown_total)
+    )
+    record = tree_record(
+        p, stem, idx, d, curve, crown, wood, (), open_grown, stem_params=stem_params, method=method, top_evidence=False
+    )
     quality = dict(record.quality)
     flags = list(record.flags)
     if math.isfinite(crown.height_m):
@@ -1350,8 +1768,13 @@ def _single_tree_inventory(
         warning = evidence.not_one_tree() + " (measure it as a plot: --single-tree no)"
         log.warning("single tree asked for, but %s; the values of the one tree measured are flagged", warning)
         plot = evidence.stems_apart > 1 or evidence.crowns > 1
-        note = (f"{evidence.stems_apart} stems in the cloud" if evidence.stems_apart > 1 else
-                f"{evidence.crowns} crowns in the cloud" if plot else "not recognised as one tree")
+        note = (
+            f"{evidence.stems_apart} stems in the cloud"
+            if evidence.stems_apart > 1
+            else f"{evidence.crowns} crowns in the cloud"
+            if plot
+            else "not recognised as one tree"
+        )
         for key, value in quality.items():
             how, _, trust = value.rpartition("; ")
             if how and trust in TRUST_LEVELS and trust != "none":
@@ -1361,9 +1784,18 @@ def _single_tree_inventory(
     timings["trees_s"] = time.perf_counter() - t
     progress(1.0, "1 tree measured (single-tree cloud)")
     return TreeInventory(
-        trees=[record], labels=labels, heights=heights, wood_probability=wood, ground=ground, dem=model.dem,
+        trees=[record],
+        labels=labels,
+        heights=heights,
+        wood_probability=wood,
+        ground=ground,
+        dem=model.dem,
         origin_shift=np.zeros(3) if origin_shift is None else np.asarray(origin_shift, dtype=np.float64),
-        timings=timings, method="single", volume_asked=params.cylinder_models,
-        single_tree_reason=evidence.reason if evidence.single else f"taken as one tree as asked, though {evidence.reason}",
+        timings=timings,
+        method="single",
+        volume_asked=params.cylinder_models,
+        single_tree_reason=evidence.reason
+        if evidence.single
+        else f"taken as one tree as asked, though {evidence.reason}",
         single_tree_warning=warning,
     )

@@ -43,12 +43,13 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from ..core.scan import check_points
 from ..core.errors import ParameterError
-from ..core.params import Params, param_field as _p
-from ..core.progress import Progress
-from ..geometry.features import SphereGrid, eigen_features, local_covariances, neighbour_means
 from ..core.jit import kernel, run_blocks, worker_count
+from ..core.params import Params
+from ..core.params import param_field as _p
+from ..core.progress import Progress
+from ..core.scan import check_points
+from ..geometry.features import SphereGrid, eigen_features, local_covariances, neighbour_means
 from ..geometry.voxel import voxel_centroids
 from .mixture import fit_gaussian_mixture
 
@@ -56,8 +57,6 @@ from .mixture import fit_gaussian_mixture
 FEATURES_PER_SCALE = 6
 #: The fewest points a cloud must have for leaf-wood separation.
 MIN_POINTS = 50
-
-
 
 
 @dataclass(frozen=True)
@@ -72,37 +71,62 @@ class LeafWoodParams(Params):
     """
 
     radii_m: tuple[float, ...] = _p(
-        (0.05, 0.1, 0.2, 0.4), "m", 0.005, 5.0,
-        "Radii mu of the neighbourhood spheres, one feature set per radius", "mu = {mu_1 ... mu_n}",
+        (0.05, 0.1, 0.2, 0.4),
+        "m",
+        0.005,
+        5.0,
+        "Radii mu of the neighbourhood spheres, one feature set per radius",
+        "mu = {mu_1 ... mu_n}",
     )
     min_neighbours: int = _p(6, "points", 4, 1000, "Fewest neighbours in a sphere for its covariance to count")
     max_neighbours: int = _p(48, "points", 8, 1000, "At most this many nearest neighbours in a sphere are used (speed)")
     thinning_ratio: float = _p(
-        4.0, "1", 1.0, 20.0,
+        4.0,
+        "1",
+        1.0,
+        20.0,
         "Each scale's neighbours come from the cloud thinned to voxels of radius / this ratio",
     )
     base_voxel_m: float = _p(
-        0.02, "m", 0.002, 0.5,
+        0.02,
+        "m",
+        0.002,
+        0.5,
         "Features and probabilities are computed on the cloud thinned to voxels of this size "
         "(at most half the smallest radius) and handed to every point of the voxel",
     )
     full_weight_neighbours: int = _p(
-        16, "points", 4, 1000,
+        16,
+        "points",
+        4,
+        1000,
         "A scale's shape counts fully in the woodness score from this many neighbours on "
         "(linearly less down to min_neighbours): sparse spheres look falsely linear",
     )
     wood_score_threshold: float = _p(
-        0.55, "1", 0.0, 1.0,
+        0.55,
+        "1",
+        0.0,
+        1.0,
         "Rule-based woodness at or above which a point looks like wood (trunk surface or branch line)",
     )
     n_components: int = _p(6, "components", 2, 20, "Components of the Gaussian mixture fitted to the features")
-    max_fit_points: int = _p(10000, "points", 1000, 10_000_000, "The mixture is fitted to at most this many points (random sample)")
+    max_fit_points: int = _p(
+        10000, "points", 1000, 10_000_000, "The mixture is fitted to at most this many points (random sample)"
+    )
     score_weight: float = _p(
-        0.3, "1", 0.0, 1.0,
+        0.3,
+        "1",
+        0.0,
+        1.0,
         "Weight of a point's own rule-based verdict against its mixture components' wood share",
     )
     smoothing_radius_m: float = _p(
-        0.1, "m", 0.0, 2.0, "Probabilities are averaged over neighbours within this radius (0 = off)",
+        0.1,
+        "m",
+        0.0,
+        2.0,
+        "Probabilities are averaged over neighbours within this radius (0 = off)",
     )
     smoothing_neighbours: int = _p(16, "points", 1, 200, "At most this many nearest neighbours are averaged")
     seed: int = _p(0, "1", 0, 2**31 - 1, "Seed of the random sample and the mixture's initialisation")
@@ -174,9 +198,7 @@ _FEATURE_BLOCK = 16_384
 _EVIDENCE_BLOCK = 65_536
 
 
-def _features_on(
-    base: np.ndarray, prm: LeafWoodParams, progress: Progress
-) -> tuple[np.ndarray, np.ndarray]:
+def _features_on(base: np.ndarray, prm: LeafWoodParams, progress: Progress) -> tuple[np.ndarray, np.ndarray]:
     """Features (M, 6 * scales) and neighbour counts (M, scales) of the base points
     (:func:`_scale_features` of every scale, handed to the base points)."""
     out = np.empty((len(base), FEATURES_PER_SCALE * len(prm.radii_m)))  # every column is written below
@@ -281,10 +303,19 @@ def woodness_score(
     :func:`shape_measures` per scale when already computed.
     """
     measures = measures if measures is not None else _scale_measures(features)
-    return _woodness([(linearity, planarity, features[:, s * FEATURES_PER_SCALE + 5]) for s, (linearity, planarity, _) in enumerate(measures)], counts, params)
+    return _woodness(
+        [
+            (linearity, planarity, features[:, s * FEATURES_PER_SCALE + 5])
+            for s, (linearity, planarity, _) in enumerate(measures)
+        ],
+        counts,
+        params,
+    )
 
 
-def _woodness(scales: list[tuple[np.ndarray, np.ndarray, np.ndarray]], counts: np.ndarray, params: LeafWoodParams) -> np.ndarray:
+def _woodness(
+    scales: list[tuple[np.ndarray, np.ndarray, np.ndarray]], counts: np.ndarray, params: LeafWoodParams
+) -> np.ndarray:
     """:func:`woodness_score` from each scale's (linearity, planarity, zenith3 in degrees)."""
     num = np.zeros(len(counts))
     den = np.zeros(len(counts))
@@ -293,8 +324,9 @@ def _woodness(scales: list[tuple[np.ndarray, np.ndarray, np.ndarray]], counts: n
     return _rule_score(num, den)
 
 
-def _scale_evidence(s: int, linearity: np.ndarray, planarity: np.ndarray, zenith3: np.ndarray, count: np.ndarray,
-                    params: LeafWoodParams) -> tuple[np.ndarray, np.ndarray]:
+def _scale_evidence(
+    s: int, linearity: np.ndarray, planarity: np.ndarray, zenith3: np.ndarray, count: np.ndarray, params: LeafWoodParams
+) -> tuple[np.ndarray, np.ndarray]:
     """Scale ``s``'s evidence for wood, ``max(linearity, planarity * sin^2(zenith3))``, and its
     weight in the woodness average (the neighbour count's ramp times ``s + 1``), per point."""
     upright = np.sin(np.radians(zenith3)) ** 2  # as shape_measures has it
@@ -303,8 +335,14 @@ def _scale_evidence(s: int, linearity: np.ndarray, planarity: np.ndarray, zenith
     return evidence, np.clip((count - params.min_neighbours) / span, 0.0, 1.0) * (s + 1)
 
 
-def _accumulate(num: np.ndarray, den: np.ndarray, evidence: np.ndarray, weight: np.ndarray,
-                at: Optional[np.ndarray] = None, first: int = 0) -> None:
+def _accumulate(
+    num: np.ndarray,
+    den: np.ndarray,
+    evidence: np.ndarray,
+    weight: np.ndarray,
+    at: Optional[np.ndarray] = None,
+    first: int = 0,
+) -> None:
     """Add a scale's weighted evidence to the woodness average's sums (scales in increasing order):
     point ``i`` takes ``evidence[at[i] - first]`` and ``weight[at[i] - first]`` (``at``: each
     point's row among the scale's values, None: the same rows; ``evidence`` and ``weight`` the
@@ -370,7 +408,9 @@ def _mixture_x(scales: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, np.nda
     return x, np.isfinite(x).all(axis=1)
 
 
-def _mixture_block(linearity: np.ndarray, planarity: np.ndarray, zenith1: np.ndarray, zenith3: np.ndarray) -> np.ndarray:
+def _mixture_block(
+    linearity: np.ndarray, planarity: np.ndarray, zenith1: np.ndarray, zenith3: np.ndarray
+) -> np.ndarray:
     """One scale's mixture columns (n, 4) of some points: linearity, planarity, cos zenith1, cos
     zenith3 (zeniths given in degrees)."""
     return np.column_stack([linearity, planarity, np.cos(np.radians(zenith1)), np.cos(np.radians(zenith3))])
@@ -389,8 +429,15 @@ class _MixtureColumns:
         self.missing: list[np.ndarray] = []
         self.index: list[Optional[np.ndarray]] = []
 
-    def add(self, linearity: np.ndarray, planarity: np.ndarray, zenith1: np.ndarray, zenith3: np.ndarray,
-            missing: np.ndarray, index: Optional[np.ndarray] = None) -> None:
+    def add(
+        self,
+        linearity: np.ndarray,
+        planarity: np.ndarray,
+        zenith1: np.ndarray,
+        zenith3: np.ndarray,
+        missing: np.ndarray,
+        index: Optional[np.ndarray] = None,
+    ) -> None:
         """The next larger scale: its measures (zeniths in degrees) and where it lacks neighbours,
         per point of that scale; ``index`` (M,): each base point's row among them (None: the
         base points themselves)."""
@@ -400,7 +447,9 @@ class _MixtureColumns:
         """:meth:`add` of a scale whose (V, 4) columns are made already (:func:`_mixture_block`)."""
         self.columns.append(np.asarray(columns, dtype=np.float32))
         self.missing.append(np.asarray(missing, dtype=bool))
-        self.index.append(None if index is None else index.astype(np.int32 if len(columns) < 2**31 else np.int64, copy=False))
+        self.index.append(
+            None if index is None else index.astype(np.int32 if len(columns) < 2**31 else np.int64, copy=False)
+        )
 
     def rows(self, which) -> np.ndarray:
         """Rows ``which`` (indices or a slice of the base points) of the matrix, a scale lacking
@@ -419,9 +468,7 @@ class _MixtureColumns:
 _POSTERIOR_BLOCK = 16384
 
 
-def mixture_wood_share(
-    x: np.ndarray, is_wood_by_rule: np.ndarray, params: LeafWoodParams
-) -> np.ndarray:
+def mixture_wood_share(x: np.ndarray, is_wood_by_rule: np.ndarray, params: LeafWoodParams) -> np.ndarray:
     """Wood probability (n,) from a Gaussian mixture of ``x`` (n, d) (fitted without labels).
 
     Each component's wood share is the posterior-weighted fraction of its points that the rule
@@ -432,7 +479,9 @@ def mixture_wood_share(
     return _mixture_share(lambda which: x[which], len(x), np.asarray(is_wood_by_rule, dtype=bool), params)
 
 
-def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: np.ndarray, params: LeafWoodParams) -> np.ndarray:
+def _mixture_share(
+    take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: np.ndarray, params: LeafWoodParams
+) -> np.ndarray:
     """:func:`mixture_wood_share` of the ``n`` rows ``take(which)`` gives (``which``: indices or a
     slice): the sample the mixture is fitted to, each block of rows and each block of posteriors
     are made when needed, never the whole feature or posterior matrix. ``is_wood_by_rule``: bool,
@@ -447,6 +496,7 @@ def _mixture_share(take: Callable[[Any], np.ndarray], n: int, is_wood_by_rule: n
     # small matrices: BLAS threads only fight each other (several times slower on a busy machine)
     with threadpool_limits(1):
         mixture = fit_gaussian_mixture(take(fit), k, reg_covar=1e-4, max_iter=100, seed=params.seed)
+
         # row by row the same posteriors, in blocks that stay in the cache (a third of the time),
         # on threads (NumPy's array operations release the interpreter lock); never all of them
         # at once (8 bytes a row and component): a first pass sums them, a second weighs the
@@ -531,8 +581,9 @@ def wood_probability(
     progress = progress or Progress()
     prm = params
     # held to the end: 4 bytes a point
-    base, base_of_point = voxel_centroids(p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0),
-                                          index_dtype=np.int32 if len(p) < 2**31 else np.int64)
+    base, base_of_point = voxel_centroids(
+        p, min(prm.base_voxel_m, prm.radii_m[0] / 2.0), index_dtype=np.int32 if len(p) < 2**31 else np.int64
+    )
     # the points are not needed past their thinning: an array made for this call (the caller's
     # p[vegetation]) is let go here, not at the return
     del p, points
@@ -555,7 +606,8 @@ def wood_probability(
                 _accumulate(num, den, evidence[: a - first], weight[: a - first], voxel_of_base, first)
                 first = a
             evidence[a - first : b - first], weight[a - first : b - first] = _scale_evidence(
-                s, linearity, planarity, f[:, 5], count, prm)
+                s, linearity, planarity, f[:, 5], count, prm
+            )
             scale_columns[a:b] = _mixture_block(linearity, planarity, f[:, 3], f[:, 5])
             missing[a:b] = np.isnan(f[:, 0])
             del f, count, linearity, planarity
@@ -573,8 +625,11 @@ def wood_probability(
     elif complete.any():
         rows = np.flatnonzero(complete).astype(np.int32 if len(base) < 2**31 else np.int64)
         del complete
-        share = _blend(rule[rows], _mixture_share(lambda which: columns.rows(rows[which]), len(rows), rule[rows], prm),
-                       prm.score_weight)
+        share = _blend(
+            rule[rows],
+            _mixture_share(lambda which: columns.rows(rows[which]), len(rows), rule[rows], prm),
+            prm.score_weight,
+        )
         prob = np.zeros(len(base))  # made after the mixture: not held through its peak
         prob[rows] = share
         del rows, share

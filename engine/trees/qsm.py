@@ -71,15 +71,16 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from ..core.scan import check_points
 from ..core.errors import ParameterError, ScanDataError
-from ..core.params import Params, param_field as _p
+from ..core.params import Params
+from ..core.params import param_field as _p
 from ..core.progress import Progress
-from ..io.results import CYLINDER_COLUMNS, CylinderTableFile
+from ..core.scan import check_points
 from ..geometry.circle import fit_circle
 from ..geometry.robust import huber_weights, median, robust_scale, weighted_step
 from ..geometry.vectors import perpendicular_frame
 from ..geometry.voxel import voxel_centroids
+from ..io.results import CYLINDER_COLUMNS, CylinderTableFile
 
 #: Columns of :meth:`CylinderModel.to_table` and of the CSV file, in order.
 TABLE_COLUMNS = CYLINDER_COLUMNS  # the columns of a cylinder table (engine/io/results.py owns the format)
@@ -93,34 +94,171 @@ class QsmParams(Params):
     (PatchDim1 0.06-0.09 m, PatchDim2Min 0.036-0.067 m, PatchDim2Max 0.049-0.09 m).
     """
 
-    patch_diameter1_m: float = _p(0.08, "m", 0.01, 1.0, "Diameter of the coarse cover sets that find the tree's structure", "PatchDim1 = 0.06-0.09 m")
-    patch_diameter2_min_m: float = _p(0.05, "m", 0.005, 1.0, "Diameter of the fine cover sets on the thinnest branches: the smallest element modelled", "PatchDim2Min = 0.036-0.067 m")
-    patch_diameter2_max_m: float = _p(0.07, "m", 0.005, 1.0, "Diameter of the fine cover sets on the thickest parts (the stem)", "PatchDim2Max = 0.049-0.09 m")
-    downsample_m: Optional[float] = _p(None, "m", 0.001, 0.5, "Points are thinned to voxels of this size first; empty = a third of patch_diameter2_min_m")
-    neighbour_distance_m: Optional[float] = _p(None, "m", 0.001, 0.5, "Two cover sets touch when their points come this close; empty = 1.5 times each point's local spacing (to its 4th neighbour), between a third of patch_diameter2_min_m and patch_diameter2_max_m")
-    max_gap_m: float = _p(0.25, "m", 0.0, 5.0, "Parts not connected to the base are joined across gaps up to this size; farther parts are left out")
-    base_height_m: float = _p(0.1, "m", 0.01, 2.0, "Cover sets up to this height above the lowest point (or the given base) start the shortest paths")
-    base_radius_m: float = _p(1.0, "m", 0.05, 10.0, "With a given base point: cover sets within this horizontal distance of it can start the shortest paths")
-    min_branch_shells: int = _p(2, "shells", 1, 100, "A side shoot spanning fewer shells than this is not a branch: its points join the node it grows from")
-    min_branch_points: int = _p(10, "points", 1, 100000, "A longer side shoot with fewer (thinned) points than this is noise: left out")
-    cylinder_relative_length: float = _p(3.0, "1", 0.5, 20.0, "Cylinder length as a multiple of its radius (at least one shell)", "TreeQSM lcyl")
+    patch_diameter1_m: float = _p(
+        0.08,
+        "m",
+        0.01,
+        1.0,
+        "Diameter of the coarse cover sets that find the tree's structure",
+        "PatchDim1 = 0.06-0.09 m",
+    )
+    patch_diameter2_min_m: float = _p(
+        0.05,
+        "m",
+        0.005,
+        1.0,
+        "Diameter of the fine cover sets on the thinnest branches: the smallest element modelled",
+        "PatchDim2Min = 0.036-0.067 m",
+    )
+    patch_diameter2_max_m: float = _p(
+        0.07,
+        "m",
+        0.005,
+        1.0,
+        "Diameter of the fine cover sets on the thickest parts (the stem)",
+        "PatchDim2Max = 0.049-0.09 m",
+    )
+    downsample_m: Optional[float] = _p(
+        None,
+        "m",
+        0.001,
+        0.5,
+        "Points are thinned to voxels of this size first; empty = a third of patch_diameter2_min_m",
+    )
+    neighbour_distance_m: Optional[float] = _p(
+        None,
+        "m",
+        0.001,
+        0.5,
+        "Two cover sets touch when their points come this close; empty = 1.5 times each point's local spacing (to its 4th neighbour), between a third of patch_diameter2_min_m and patch_diameter2_max_m",
+    )
+    max_gap_m: float = _p(
+        0.25,
+        "m",
+        0.0,
+        5.0,
+        "Parts not connected to the base are joined across gaps up to this size; farther parts are left out",
+    )
+    base_height_m: float = _p(
+        0.1,
+        "m",
+        0.01,
+        2.0,
+        "Cover sets up to this height above the lowest point (or the given base) start the shortest paths",
+    )
+    base_radius_m: float = _p(
+        1.0,
+        "m",
+        0.05,
+        10.0,
+        "With a given base point: cover sets within this horizontal distance of it can start the shortest paths",
+    )
+    min_branch_shells: int = _p(
+        2,
+        "shells",
+        1,
+        100,
+        "A side shoot spanning fewer shells than this is not a branch: its points join the node it grows from",
+    )
+    min_branch_points: int = _p(
+        10, "points", 1, 100000, "A longer side shoot with fewer (thinned) points than this is noise: left out"
+    )
+    cylinder_relative_length: float = _p(
+        3.0, "1", 0.5, 20.0, "Cylinder length as a multiple of its radius (at least one shell)", "TreeQSM lcyl"
+    )
     max_cylinder_length_m: float = _p(1.0, "m", 0.05, 10.0, "Longest cylinder")
-    min_fit_points: int = _p(10, "points", 5, 10000, "Fewest points for a circle fit; below, the radius comes from the taper")
-    min_surface_coverage: float = _p(0.35, "1", 0.0, 1.0, "Least fraction of the cylinder surface (sectors x length bins) holding points for a fit to count")
-    max_relative_mad: float = _p(0.35, "1", 0.01, 10.0, "Largest mean absolute distance of points from the fitted surface, relative to the radius, for a fit to count")
+    min_fit_points: int = _p(
+        10, "points", 5, 10000, "Fewest points for a circle fit; below, the radius comes from the taper"
+    )
+    min_surface_coverage: float = _p(
+        0.35,
+        "1",
+        0.0,
+        1.0,
+        "Least fraction of the cylinder surface (sectors x length bins) holding points for a fit to count",
+    )
+    max_relative_mad: float = _p(
+        0.35,
+        "1",
+        0.01,
+        10.0,
+        "Largest mean absolute distance of points from the fitted surface, relative to the radius, for a fit to count",
+    )
     min_radius_m: float = _p(0.002, "m", 0.0, 0.1, "Smallest radius of any cylinder")
-    taper_tolerance: float = _p(0.25, "1", 0.01, 10.0, "A fit more than this fraction below the branch's robust taper line (or twice this above it) is treated as poor")
-    enforce_taper: bool = _p(True, "", None, None, "Radii never increase along a branch and a child is never thicker than its parent cylinder")
-    min_points: int = _p(30, "points", 4, 1000000, "Fewest points a tree must have for a cylinder model (as given, and after thinning)")
-    max_fit_points: int = _p(1500, "points", 10, 1000000, "A cylinder is fitted to at most this many of its points (evenly picked)")
-    fork_share: float = _p(0.5, "1", 0.05, 1.0, "A branch carrying at least this share of the points the stem carries on above it (each with their branches) forks the trunk: a co-dominant leader, whose stem taper is judged apart from the trunk's")
-    stem_foot_max_gap_m: float = _p(1.5, "m", 0.0, 10.0, "A stem that starts at most this far above the given base (its foot lost to the ground filter or the leaf-wood separation) is lengthened down its axis to it; 0 = never")
-    stem_foot_max_tilt_deg: float = _p(60.0, "deg", 0.0, 89.0, "...when its first cylinder leans at most this much from the vertical")
-    patch_spacing_ratio: float = _p(2.0, "1", 0.0, 20.0, "The fine cover sets on the thickest parts are at least this many median point spacings across, the other patch sizes grown in proportion (a sparsely sampled tree: patches that hold points, shells that stay whole); 0 = the sizes as given", "TreeQSM sizes its patches from the stem radius and the point resolution")
-    growth_taper: bool = _p(True, "", None, None, "Branch radii the points cannot resolve (poor fits, or radii below resolvable_spacing_ratio point spacings) follow the tree's own radius against growth length (the wood a cylinder carries), fitted on the resolved cylinders")
-    growth_exponent: float = _p(0.44, "1", 0.1, 1.0, "Exponent of radius against growth length for the unresolved branch radii (the pipe model gives 1/2; TreeQSM's model of the aRchi Tree_1 broadleaf 0.44)")
-    resolvable_spacing_ratio: float = _p(1.5, "1", 0.0, 20.0, "A fitted radius is resolved by the points when it is at least this many median point spacings (about 2 pi times this many points around the circumference)")
-    breast_height_m: float = _p(1.3, "m", 0.5, 3.0, "Height above the stem base at which the model's stem diameter (its DBH) is read; in a tree inventory the stems' breast_height_m is used, so both DBHs are read at one height", "DBH at 1.3 m")
+    taper_tolerance: float = _p(
+        0.25,
+        "1",
+        0.01,
+        10.0,
+        "A fit more than this fraction below the branch's robust taper line (or twice this above it) is treated as poor",
+    )
+    enforce_taper: bool = _p(
+        True,
+        "",
+        None,
+        None,
+        "Radii never increase along a branch and a child is never thicker than its parent cylinder",
+    )
+    min_points: int = _p(
+        30, "points", 4, 1000000, "Fewest points a tree must have for a cylinder model (as given, and after thinning)"
+    )
+    max_fit_points: int = _p(
+        1500, "points", 10, 1000000, "A cylinder is fitted to at most this many of its points (evenly picked)"
+    )
+    fork_share: float = _p(
+        0.5,
+        "1",
+        0.05,
+        1.0,
+        "A branch carrying at least this share of the points the stem carries on above it (each with their branches) forks the trunk: a co-dominant leader, whose stem taper is judged apart from the trunk's",
+    )
+    stem_foot_max_gap_m: float = _p(
+        1.5,
+        "m",
+        0.0,
+        10.0,
+        "A stem that starts at most this far above the given base (its foot lost to the ground filter or the leaf-wood separation) is lengthened down its axis to it; 0 = never",
+    )
+    stem_foot_max_tilt_deg: float = _p(
+        60.0, "deg", 0.0, 89.0, "...when its first cylinder leans at most this much from the vertical"
+    )
+    patch_spacing_ratio: float = _p(
+        2.0,
+        "1",
+        0.0,
+        20.0,
+        "The fine cover sets on the thickest parts are at least this many median point spacings across, the other patch sizes grown in proportion (a sparsely sampled tree: patches that hold points, shells that stay whole); 0 = the sizes as given",
+        "TreeQSM sizes its patches from the stem radius and the point resolution",
+    )
+    growth_taper: bool = _p(
+        True,
+        "",
+        None,
+        None,
+        "Branch radii the points cannot resolve (poor fits, or radii below resolvable_spacing_ratio point spacings) follow the tree's own radius against growth length (the wood a cylinder carries), fitted on the resolved cylinders",
+    )
+    growth_exponent: float = _p(
+        0.44,
+        "1",
+        0.1,
+        1.0,
+        "Exponent of radius against growth length for the unresolved branch radii (the pipe model gives 1/2; TreeQSM's model of the aRchi Tree_1 broadleaf 0.44)",
+    )
+    resolvable_spacing_ratio: float = _p(
+        1.5,
+        "1",
+        0.0,
+        20.0,
+        "A fitted radius is resolved by the points when it is at least this many median point spacings (about 2 pi times this many points around the circumference)",
+    )
+    breast_height_m: float = _p(
+        1.3,
+        "m",
+        0.5,
+        3.0,
+        "Height above the stem base at which the model's stem diameter (its DBH) is read; in a tree inventory the stems' breast_height_m is used, so both DBHs are read at one height",
+        "DBH at 1.3 m",
+    )
 
     def _check(self) -> None:
         if self.patch_diameter2_min_m > self.patch_diameter2_max_m:
@@ -519,7 +657,9 @@ def segment(
     sources = _base_sets(centroids, set_points, component, base, params.base_height_m, params.base_radius_m)
     edges, weight, connected = join_components(centroids, edges, weight, sources, params.max_gap_m)
     graph = _adjacency(n_sets, edges, weight)
-    dist, pred, _ = csgraph.dijkstra(graph, directed=False, indices=np.flatnonzero(sources), min_only=True, return_predecessors=True)
+    dist, pred, _ = csgraph.dijkstra(
+        graph, directed=False, indices=np.flatnonzero(sources), min_only=True, return_predecessors=True
+    )
     connected &= np.isfinite(dist)
     shell = np.where(connected, np.floor(np.where(connected, dist, 0.0) / shell_width_m), -1).astype(np.int64)
 
@@ -781,7 +921,12 @@ def surface_coverage(angles: np.ndarray, t: np.ndarray, t_min: float, t_max: flo
 
 
 def refine_cylinder(
-    points: np.ndarray, centre: np.ndarray, axis: np.ndarray, radius: float, iterations: int = 8, tolerance: float = 1e-5
+    points: np.ndarray,
+    centre: np.ndarray,
+    axis: np.ndarray,
+    radius: float,
+    iterations: int = 8,
+    tolerance: float = 1e-5,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Least-squares cylinder through ``points``: Gauss-Newton on the axis position (2), the axis
     direction (2) and the radius, with Huber weights, from a starting cylinder. Returns
@@ -838,7 +983,17 @@ def fit_cylinder(points: np.ndarray, direction: np.ndarray, params: QsmParams) -
     if n < max(params.min_fit_points, 3):
         spread = np.linalg.norm((points - mean) - t[:, None] * axis, axis=1)
         r = median(spread) if n else params.min_radius_m
-        return CylinderFit(mean, axis, max(r, params.min_radius_m), float(t.min(initial=0.0)), float(t.max(initial=0.0)), float("nan"), 0.0, n, False)
+        return CylinderFit(
+            mean,
+            axis,
+            max(r, params.min_radius_m),
+            float(t.min(initial=0.0)),
+            float(t.max(initial=0.0)),
+            float("nan"),
+            0.0,
+            n,
+            False,
+        )
 
     def measure(centre: np.ndarray, axis: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray, float, float]:
         u, v2 = perpendicular_frame(axis)
@@ -973,7 +1128,12 @@ def taper_radii(
 
 
 def _stem_down_to_base(
-    start: np.ndarray, axis: np.ndarray, length: np.ndarray, branch: np.ndarray, base: np.ndarray, max_gap_m: float,
+    start: np.ndarray,
+    axis: np.ndarray,
+    length: np.ndarray,
+    branch: np.ndarray,
+    base: np.ndarray,
+    max_gap_m: float,
     max_tilt_deg: float,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """The first stem cylinder lengthened down its axis to the given base's height when the
@@ -1023,7 +1183,9 @@ def _stem_forks(branch: np.ndarray, parent: np.ndarray, n_points: np.ndarray, sh
     return forks
 
 
-def _child_base_radii(branch: np.ndarray, parent: np.ndarray, radius: np.ndarray, good: np.ndarray) -> dict[int, list[float]]:
+def _child_base_radii(
+    branch: np.ndarray, parent: np.ndarray, radius: np.ndarray, good: np.ndarray
+) -> dict[int, list[float]]:
     """For each cylinder that branches fork from, the base radii of those branches as their own
     fits show them (before any taper): the median of the good fits among each branch's first
     three cylinders, else its first fit's rough radius; never more than the parent's fit."""
@@ -1040,7 +1202,9 @@ def _child_base_radii(branch: np.ndarray, parent: np.ndarray, radius: np.ndarray
     return out
 
 
-def pipe_caps(radius: np.ndarray, good: np.ndarray, children: Sequence[Sequence[float]], min_radius: float) -> np.ndarray:
+def pipe_caps(
+    radius: np.ndarray, good: np.ndarray, children: Sequence[Sequence[float]], min_radius: float
+) -> np.ndarray:
     """Radii of one branch's cylinders (base to tip) whose filled-in values (``good`` False: no
     fit of their own, the taper's) are held to what the pipe model leaves past each fork: beyond
     a cylinder with side branches of base radii ``children[j]``, the branch keeps the cross-section
@@ -1089,8 +1253,16 @@ def growth_length(parent: np.ndarray, length: np.ndarray) -> np.ndarray:
 
 
 def growth_taper_radii(
-    radius: np.ndarray, good: np.ndarray, length: np.ndarray, parent: np.ndarray, order: np.ndarray, resolved_m: float,
-    min_radius: float, exponent: float = 0.44, upper: float = 1.5, min_resolved: int = 8,
+    radius: np.ndarray,
+    good: np.ndarray,
+    length: np.ndarray,
+    parent: np.ndarray,
+    order: np.ndarray,
+    resolved_m: float,
+    min_radius: float,
+    exponent: float = 0.44,
+    upper: float = 1.5,
+    min_resolved: int = 8,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Radii (K,) where the points cannot resolve them taken from the tree's own radius against
     growth length, the replaced mask (K,) and the fitted exponent.
@@ -1111,7 +1283,9 @@ def growth_taper_radii(
     if int(ok.sum()) < min_resolved or float(np.ptp(np.log(gl[ok]))) < math.log(10.0):
         return r, replaced, float("nan")
     b = float(exponent)
-    a = robust_line(np.zeros(int(ok.sum())), np.log(r[ok]) - b * np.log(gl[ok]), np.asarray(length, dtype=np.float64)[ok])[0]
+    a = robust_line(
+        np.zeros(int(ok.sum())), np.log(r[ok]) - b * np.log(gl[ok]), np.asarray(length, dtype=np.float64)[ok]
+    )[0]
     model = np.maximum(np.exp(a + b * np.log(np.maximum(gl, 1e-6))), min_radius)
     branch = np.asarray(order) > 0
     poor = branch & ~np.asarray(good, dtype=bool)
@@ -1131,7 +1305,9 @@ def growth_taper_radii(
 # --------------------------------------------------------------------------------------------
 
 
-def _node_geometry(points: np.ndarray, node_of_point: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _node_geometry(
+    points: np.ndarray, node_of_point: np.ndarray, n_nodes: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centroid (R, 3), rough radius (R,) (median distance of the points from the centroid) and
     point count (R,) of each node."""
     ok = node_of_point >= 0
@@ -1150,7 +1326,11 @@ def _node_geometry(points: np.ndarray, node_of_point: np.ndarray, n_nodes: int) 
 
 
 def _pieces(
-    chain: np.ndarray, node_radius: np.ndarray, shell_width: float, params: QsmParams, node_count: Optional[np.ndarray] = None
+    chain: np.ndarray,
+    node_radius: np.ndarray,
+    shell_width: float,
+    params: QsmParams,
+    node_count: Optional[np.ndarray] = None,
 ) -> list[np.ndarray]:
     """Cut a branch (node chain) into runs of nodes about ``cylinder_relative_length`` radii long;
     with ``node_count`` (points per node), a run on a sparsely sampled branch grows (up to
@@ -1160,10 +1340,14 @@ def _pieces(
     i = 0
     longest = max(1, int(round(params.max_cylinder_length_m / shell_width)))
     while i < len(chain):
-        target = float(np.clip(params.cylinder_relative_length * node_radius[chain[i]], shell_width, params.max_cylinder_length_m))
+        target = float(
+            np.clip(params.cylinder_relative_length * node_radius[chain[i]], shell_width, params.max_cylinder_length_m)
+        )
         k = max(1, int(round(target / shell_width)))
         if node_count is not None:
-            while k < longest and i + k < len(chain) and int(node_count[chain[i : i + k]].sum()) < params.min_fit_points:
+            while (
+                k < longest and i + k < len(chain) and int(node_count[chain[i : i + k]].sum()) < params.min_fit_points
+            ):
                 k += 1
         out.append(chain[i : i + k])
         i += k
@@ -1263,7 +1447,9 @@ def _fit_branches(
     return rows
 
 
-def _strip_alias(seg: Segmentation, rows: list[dict[str, Any]], centroid: np.ndarray, factor: float = 1.1) -> np.ndarray:
+def _strip_alias(
+    seg: Segmentation, rows: list[dict[str, Any]], centroid: np.ndarray, factor: float = 1.1
+) -> np.ndarray:
     """Node aliases that fold branches lying on their parent's surface (see
     :func:`_merge_fragments`), judged by the fitted parent cylinders: every shell centre of the
     branch is within ``factor`` times the radius of the nearest parent cylinder from its axis (an
@@ -1290,7 +1476,9 @@ def _strip_alias(seg: Segmentation, rows: list[dict[str, Any]], centroid: np.nda
         outside = np.maximum(np.maximum(-t, t - length[None, :]), 0.0)
         nearest = np.argmin(np.hypot(perp, outside), axis=1)
         rows_idx = np.arange(len(pts))
-        if np.all(perp[rows_idx, nearest] <= factor * radius[nearest]) and np.all(outside[rows_idx, nearest] <= radius[nearest]):
+        if np.all(perp[rows_idx, nearest] <= factor * radius[nearest]) and np.all(
+            outside[rows_idx, nearest] <= radius[nearest]
+        ):
             alias[seg.branches[b]] = _nearest_nodes(seg.branches[b], seg.branches[pb], centroid)
     return alias
 
@@ -1354,7 +1542,9 @@ def fit_qsm(
     _, r1, _ = _node_geometry(p, seg1.node_of_point, n1)
     stem_r = float(np.percentile(r1[seg1.branches[0]], 75)) if len(seg1.branches[0]) else float(r1.max())
     rel = np.where(seg1.node_of_point >= 0, r1[np.maximum(seg1.node_of_point, 0)] / max(stem_r, 1e-6), 0.0)
-    diam = params.patch_diameter2_min_m + np.clip(rel, 0.0, 1.0) * (params.patch_diameter2_max_m - params.patch_diameter2_min_m)
+    diam = params.patch_diameter2_min_m + np.clip(rel, 0.0, 1.0) * (
+        params.patch_diameter2_max_m - params.patch_diameter2_min_m
+    )
 
     # phase 2: fine cover of varying size, final segmentation
     progress(0.35, "fine cover sets")
@@ -1392,7 +1582,13 @@ def fit_qsm(
         for part in parts:
             from_base = np.cumsum(length[part]) - 0.5 * length[part]
             radius[part], good[part] = taper_radii(
-                radius[part], good[part], coverage[part] * length[part], from_base, float(length[part].sum()), cap, params
+                radius[part],
+                good[part],
+                coverage[part] * length[part],
+                from_base,
+                float(length[part].sum()),
+                cap,
+                params,
             )
             if radius[part[0]] < floor:  # the stem goes on as the largest fork: at least an equal share
                 radius[part] = np.minimum(radius[part] * (floor / radius[part[0]]), cap)
@@ -1400,13 +1596,23 @@ def fit_qsm(
             cap = float(radius[at]) if params.enforce_taper else cap
             floor = float(radius[at]) / math.sqrt(len(child_base.get(at, [])) + 1.0)
         if params.enforce_taper and b == 0:
-            radius[idx] = pipe_caps(radius[idx], good[idx], [child_base.get(int(k), []) for k in idx], params.min_radius_m)
+            radius[idx] = pipe_caps(
+                radius[idx], good[idx], [child_base.get(int(k), []) for k in idx], params.min_radius_m
+            )
 
     growth = {"slope": float("nan"), "replaced": 0}
     if params.growth_taper:
         order = np.array([r["order"] for r in rows], dtype=np.int64)
-        radius, replaced, slope = growth_taper_radii(radius, good, length, parent, order, params.resolvable_spacing_ratio * spacing_m,
-                                                     params.min_radius_m, params.growth_exponent)
+        radius, replaced, slope = growth_taper_radii(
+            radius,
+            good,
+            length,
+            parent,
+            order,
+            params.resolvable_spacing_ratio * spacing_m,
+            params.min_radius_m,
+            params.growth_exponent,
+        )
         good &= ~replaced
         growth = {"slope": slope, "replaced": int(replaced.sum())}
 
@@ -1414,8 +1620,9 @@ def fit_qsm(
     axis = np.array([r["axis"] for r in rows]).reshape(k, 3)
     to_base = 0.0
     if base_pt is not None:
-        start, length, to_base = _stem_down_to_base(start, axis, length, branch, base_pt, params.stem_foot_max_gap_m,
-                                                      params.stem_foot_max_tilt_deg)
+        start, length, to_base = _stem_down_to_base(
+            start, axis, length, branch, base_pt, params.stem_foot_max_gap_m, params.stem_foot_max_tilt_deg
+        )
 
     progress(1.0, "cylinder model done")
     return CylinderModel(
@@ -1443,7 +1650,11 @@ def fit_qsm(
             "stem_extended_to_base_m": float(to_base),
             "breast_height_m": float(params.breast_height_m),
             "point_spacing_m": spacing_m,
-            "patch_diameters_m": (float(params.patch_diameter1_m), float(params.patch_diameter2_min_m), float(params.patch_diameter2_max_m)),
+            "patch_diameters_m": (
+                float(params.patch_diameter1_m),
+                float(params.patch_diameter2_min_m),
+                float(params.patch_diameter2_max_m),
+            ),
             "growth_taper_slope": growth["slope"],
             "growth_taper_replaced": growth["replaced"],
         },

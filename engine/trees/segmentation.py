@@ -55,35 +55,78 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from ..core.errors import ScanDataError
-from ..core.progress import Progress
-from ..core.params import Params, param_field
-from .stems import DbhMeasurement, Stem, check_cloud
-from ..geometry.columns import ColumnIndex
 from ..core.jit import kernel
+from ..core.params import Params, param_field
+from ..core.progress import Progress
+from ..geometry.columns import ColumnIndex
 from ..geometry.voxel import voxel_centroids
+from .stems import DbhMeasurement, Stem, check_cloud
 
 
 @dataclass(frozen=True)
 class SegmentationParams(Params):
     """Settings of tree segmentation. Distances in metres."""
 
-    ground_clearance_m: float = param_field(0.3, "m", 0.0, 3.0, "Points lower than this above the ground are ground or understory (unless on a stem)")
-    stem_margin_m: float = param_field(0.05, "m", 0.0, 1.0, "Low points within a stem's radius plus this of its axis belong to the stem")
+    ground_clearance_m: float = param_field(
+        0.3, "m", 0.0, 3.0, "Points lower than this above the ground are ground or understory (unless on a stem)"
+    )
+    stem_margin_m: float = param_field(
+        0.05, "m", 0.0, 1.0, "Low points within a stem's radius plus this of its axis belong to the stem"
+    )
     voxel_m: float = param_field(0.15, "m", 0.02, 1.0, "Voxel size of the connectivity graph")
     link_distance_m: float = param_field(0.3, "m", 0.02, 3.0, "Voxels whose centroids are closer than this are linked")
-    axis_capture_m: float = param_field(0.5, "m", 0.0, 5.0, "A stem's axis is continued upward while points lie within its radius plus this of the axis...")
-    axis_max_gap_m: float = param_field(3.0, "m", 0.0, 50.0, "...with gaps (occluded stem) of at most this length; 0 = no axis continuation")
-    axis_dominance_dbh: float = param_field(6.0, "DBH", 0.0, 100.0, "...but not for a stem with a thicker stem closer than this many of the thicker stem's DBH (within its crown reach: the axis would climb through that crown); 0 = every stem's axis continued")
-    dominance_ratio: float = param_field(1.25, "1", 1.0, 10.0, "...thicker: a DBH at least this many times the stem's (neighbours of about the same DBH are co-dominant, each continued)")
-    orphan_max_distance_m: float = param_field(1.0, "m", 0.0, 10.0, "Unreached voxels join the nearest reached voxel within this distance")
-    orphan_min_height_m: float = param_field(2.0, "m", 0.0, 50.0, "...if they stand at least this high above the ground")
-    orphan_passes: int = param_field(20, "passes", 1, 1000, "...repeated this many times at most, so chains of detached parts (a sparse crown) are reached")
-    crown_radius_per_dbh: float = param_field(5.3, "m", 0.0, 50.0, "A stem's expected crown radius is this times its DBH (m) to the power crown_radius_exponent (5.3: 3.5 m for a 0.5 m stem, 1.6 m for a 0.14 m one); a thinner stem's segment keeps no part of a thicker neighbour's expected crown that lies beyond its own (0 = no such check)")
-    crown_radius_exponent: float = param_field(0.6, "1", 0.1, 2.0, "...the power of the DBH in the expected crown radius")
+    axis_capture_m: float = param_field(
+        0.5,
+        "m",
+        0.0,
+        5.0,
+        "A stem's axis is continued upward while points lie within its radius plus this of the axis...",
+    )
+    axis_max_gap_m: float = param_field(
+        3.0, "m", 0.0, 50.0, "...with gaps (occluded stem) of at most this length; 0 = no axis continuation"
+    )
+    axis_dominance_dbh: float = param_field(
+        6.0,
+        "DBH",
+        0.0,
+        100.0,
+        "...but not for a stem with a thicker stem closer than this many of the thicker stem's DBH (within its crown reach: the axis would climb through that crown); 0 = every stem's axis continued",
+    )
+    dominance_ratio: float = param_field(
+        1.25,
+        "1",
+        1.0,
+        10.0,
+        "...thicker: a DBH at least this many times the stem's (neighbours of about the same DBH are co-dominant, each continued)",
+    )
+    orphan_max_distance_m: float = param_field(
+        1.0, "m", 0.0, 10.0, "Unreached voxels join the nearest reached voxel within this distance"
+    )
+    orphan_min_height_m: float = param_field(
+        2.0, "m", 0.0, 50.0, "...if they stand at least this high above the ground"
+    )
+    orphan_passes: int = param_field(
+        20,
+        "passes",
+        1,
+        1000,
+        "...repeated this many times at most, so chains of detached parts (a sparse crown) are reached",
+    )
+    crown_radius_per_dbh: float = param_field(
+        5.3,
+        "m",
+        0.0,
+        50.0,
+        "A stem's expected crown radius is this times its DBH (m) to the power crown_radius_exponent (5.3: 3.5 m for a 0.5 m stem, 1.6 m for a 0.14 m one); a thinner stem's segment keeps no part of a thicker neighbour's expected crown that lies beyond its own (0 = no such check)",
+    )
+    crown_radius_exponent: float = param_field(
+        0.6, "1", 0.1, 2.0, "...the power of the DBH in the expected crown radius"
+    )
 
 
-def _label_stem_bases(points: np.ndarray, which: np.ndarray, stems: Sequence[Stem], margin_m: float, s_max: float,
-                      labels: np.ndarray) -> None:
+def _label_stem_bases(
+    points: np.ndarray, which: np.ndarray, stems: Sequence[Stem], margin_m: float, s_max: float, labels: np.ndarray
+) -> None:
     """Label (stem id) the points of mask ``which`` within a stem's radius + margin of its axis,
     between 0.5 m below its base and ``s_max`` along it, into ``labels`` (a later stem wins a
     point two stems reach). The candidates of each stem come from a
@@ -128,7 +171,9 @@ def segment_trees(
         return labels
     for stem in stems:
         if len(stem.point_indices) and int(np.max(stem.point_indices)) >= len(p):
-            raise ScanDataError(f"stem {stem.id} refers to point {int(np.max(stem.point_indices))}, but there are {len(p)} points: stems must come from the same points")
+            raise ScanDataError(
+                f"stem {stem.id} refers to point {int(np.max(stem.point_indices))}, but there are {len(p)} points: stems must come from the same points"
+            )
     report(0.0, "assigning stem bases")
     low = h < params.ground_clearance_m
     if low.any():
@@ -147,8 +192,9 @@ def segment_trees(
     n_nodes = n_vox
     axis_rows, axis_cols, axis_weights = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
     if params.axis_max_gap_m > 0:
-        axis_rows, axis_cols, axis_weights, n_nodes = _axis_links(centroids, axis_stems(stems, params.axis_dominance_dbh, params.dominance_ratio), params,
-                                                                  centroid_tree)
+        axis_rows, axis_cols, axis_weights, n_nodes = _axis_links(
+            centroids, axis_stems(stems, params.axis_dominance_dbh, params.dominance_ratio), params, centroid_tree
+        )
     del centroid_tree
     # the links' ends and lengths straight into the arrays the sparse matrix is made of (4-byte
     # node numbers where they fit): no per-part copies and no (pairs, 3) gathered coordinates
@@ -190,7 +236,9 @@ def segment_trees(
         for _ in range(params.orphan_passes):
             if len(orphan) == 0 or not reached.any():
                 break
-            dist, nn = cKDTree(centroids[reached]).query(centroids[orphan], distance_upper_bound=params.orphan_max_distance_m)
+            dist, nn = cKDTree(centroids[reached]).query(
+                centroids[orphan], distance_upper_bound=params.orphan_max_distance_m
+            )
             ok = np.isfinite(dist)
             if not ok.any():
                 break
@@ -220,7 +268,9 @@ def _radial(points: np.ndarray, stem: Stem) -> tuple[np.ndarray, np.ndarray]:
     return z, np.hypot(points[:, 0] - foot[:, 0], points[:, 1] - foot[:, 1])
 
 
-def _keep_own_tops(centroids: np.ndarray, vox_label: np.ndarray, stems: Sequence[Stem], params: SegmentationParams) -> np.ndarray:
+def _keep_own_tops(
+    centroids: np.ndarray, vox_label: np.ndarray, stems: Sequence[Stem], params: SegmentationParams
+) -> np.ndarray:
     """Voxel labels (``vox_label``, one stem id per voxel of ``centroids``, 0 = none) with each
     thinner stem's segment cut back to its own crown beside thicker neighbours (method step 5 of
     the module docstring). Returns a new array."""
@@ -241,8 +291,14 @@ def _keep_own_tops(centroids: np.ndarray, vox_label: np.ndarray, stems: Sequence
     for k, t in enumerate(stems):
         if not np.isfinite(r[k]) or crown_r[k] <= 0:
             continue
-        near = [j for j in index.query_ball_point(xy[k], reach) if j != k and np.isfinite(r[j]) and r[j] >= params.dominance_ratio * r[k]
-                and math.hypot(*(xy[j] - xy[k])) < crown_r[j] + crown_r[k]]
+        near = [
+            j
+            for j in index.query_ball_point(xy[k], reach)
+            if j != k
+            and np.isfinite(r[j])
+            and r[j] >= params.dominance_ratio * r[k]
+            and math.hypot(*(xy[j] - xy[k])) < crown_r[j] + crown_r[k]
+        ]
         vox = members[t.id]
         vox = vox[out[vox] == t.id]
         if not near or len(vox) < 10:
@@ -304,8 +360,9 @@ def axis_stems(stems: Sequence[Stem], dominance_dbh: float, ratio: float = 1.25)
     return [s for s, h in zip(stems, hidden) if not h]
 
 
-def _axis_links(centroids: np.ndarray, stems: Sequence[Stem], params: SegmentationParams,
-                tree: Optional[cKDTree] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def _axis_links(
+    centroids: np.ndarray, stems: Sequence[Stem], params: SegmentationParams, tree: Optional[cKDTree] = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Graph links of the stems' continued axes: (rows, cols, weights, total node count).
 
     Axis nodes are numbered after the voxels. Each stem's nodes run every ``voxel_m`` along its
@@ -365,16 +422,54 @@ def _axis_links(centroids: np.ndarray, stems: Sequence[Stem], params: Segmentati
 class CompletenessParams(Params):
     """Settings of the completeness checks of segmented trees. Distances in metres."""
 
-    footprint_cell_m: float = param_field(0.25, "m", 0.05, 10.0, "Cell size of the map of where the data reach (the plot footprint); edges are known to within a cell")
-    stem_edge_margin_m: float = param_field(0.25, "m", 0.0, 20.0, "A stem whose circle comes closer than this to the edge of the data, and whose breast-height section is not whole, is flagged as cut by the edge")
-    min_whole_arc: float = param_field(0.6, "1", 0.0, 1.0, "A breast-height section covering at least this fraction of the circle is whole (a stem near the edge is not cut)")
-    max_edge_point_fraction: float = param_field(0.05, "1", 0.0, 1.0, "A tree with more than this fraction of its points in the outermost cells of the footprint is flagged as cut by the edge")
+    footprint_cell_m: float = param_field(
+        0.25,
+        "m",
+        0.05,
+        10.0,
+        "Cell size of the map of where the data reach (the plot footprint); edges are known to within a cell",
+    )
+    stem_edge_margin_m: float = param_field(
+        0.25,
+        "m",
+        0.0,
+        20.0,
+        "A stem whose circle comes closer than this to the edge of the data, and whose breast-height section is not whole, is flagged as cut by the edge",
+    )
+    min_whole_arc: float = param_field(
+        0.6,
+        "1",
+        0.0,
+        1.0,
+        "A breast-height section covering at least this fraction of the circle is whole (a stem near the edge is not cut)",
+    )
+    max_edge_point_fraction: float = param_field(
+        0.05,
+        "1",
+        0.0,
+        1.0,
+        "A tree with more than this fraction of its points in the outermost cells of the footprint is flagged as cut by the edge",
+    )
     min_tree_points: int = param_field(200, "points", 1, 10**9, "Trees with fewer points are flagged as too sparse")
-    crown_clearance_m: float = param_field(0.5, "m", 0.0, 10.0, "Points farther than the stem radius plus this from the stem axis count as crown points")
+    crown_clearance_m: float = param_field(
+        0.5, "m", 0.0, 10.0, "Points farther than the stem radius plus this from the stem axis count as crown points"
+    )
     min_crown_points: int = param_field(100, "points", 0, 10**9, "Trees with fewer crown points are flagged")
     top_layer_m: float = param_field(1.0, "m", 0.05, 10.0, "Depth of the top layer examined for a missing top")
-    min_top_points: int = param_field(5, "points", 0, 10**6, "Fewer points in the top layer: the top rests on a sparse tip, the true top was probably not seen")
-    max_top_spread_ratio: float = param_field(0.9, "1", 0.0, 1.0, "A top layer wider than this fraction of the tree's widest layer: the crown is cut flat at the top (clipped data or a top hidden behind other crowns)")
+    min_top_points: int = param_field(
+        5,
+        "points",
+        0,
+        10**6,
+        "Fewer points in the top layer: the top rests on a sparse tip, the true top was probably not seen",
+    )
+    max_top_spread_ratio: float = param_field(
+        0.9,
+        "1",
+        0.0,
+        1.0,
+        "A top layer wider than this fraction of the tree's widest layer: the crown is cut flat at the top (clipped data or a top hidden behind other crowns)",
+    )
 
 
 @dataclass(frozen=True)
@@ -407,7 +502,9 @@ class Footprint:
 
     def cell_of(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(row, column) of points (N, 2), clipped to the grid."""
-        ij = np.floor((np.asarray(xy, dtype=np.float64).reshape(-1, 2) - (self.x0, self.y0)) / self.cell_m).astype(np.int64)
+        ij = np.floor((np.asarray(xy, dtype=np.float64).reshape(-1, 2) - (self.x0, self.y0)) / self.cell_m).astype(
+            np.int64
+        )
         return np.clip(ij[:, 1], 0, self.inside.shape[0] - 1), np.clip(ij[:, 0], 0, self.inside.shape[1] - 1)
 
     def distance_to_edge(self, x: float, y: float) -> float:
@@ -502,7 +599,9 @@ def top_layer(rel_z: np.ndarray, radial: np.ndarray, layer_m: float) -> tuple[in
     top = float(np.max(rel_z))
     layer = rel_z >= top - layer_m
     bins = np.floor((top - rel_z) / layer_m).astype(np.int64)
-    widest = max((float(np.percentile(radial[bins == b], 90)) for b in np.unique(bins) if (bins == b).sum() >= 5), default=0.0)
+    widest = max(
+        (float(np.percentile(radial[bins == b], 90)) for b in np.unique(bins) if (bins == b).sum() >= 5), default=0.0
+    )
     spread = float(np.percentile(radial[layer], 90))
     return int(layer.sum()), (spread / widest if widest > 0 else 1.0)
 

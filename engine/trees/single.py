@@ -46,11 +46,26 @@ from scipy import ndimage
 from scipy.sparse import csgraph
 
 from ..core.errors import ParameterError
-from ..core.params import Params, param_field as _p
+from ..core.params import Params
+from ..core.params import param_field as _p
 from .stems import Stem
 
-__all__ = ["MAX_BOX_FILL", "SINGLE_TREE_MODES", "STEMS_APART_M", "SingleTreeBase", "SingleTreeEvidence", "SingleTreeParams",
-           "base_stem", "box_fill", "count_crowns", "flat_dem", "separate_stems", "single_tree_base", "single_tree_evidence", "standing_stems"]
+__all__ = [
+    "MAX_BOX_FILL",
+    "SINGLE_TREE_MODES",
+    "STEMS_APART_M",
+    "SingleTreeBase",
+    "SingleTreeEvidence",
+    "SingleTreeParams",
+    "base_stem",
+    "box_fill",
+    "count_crowns",
+    "flat_dem",
+    "separate_stems",
+    "single_tree_base",
+    "single_tree_evidence",
+    "standing_stems",
+]
 
 #: ``auto``: decide from the cloud; ``yes``: the cloud is one tree; ``no``: it is a plot.
 SINGLE_TREE_MODES = ("auto", "yes", "no")
@@ -70,16 +85,44 @@ class SingleTreeParams(Params):
     """How a single-tree cloud is recognised (distances in metres)."""
 
     mode: str = _p("auto", "", None, None, "single-tree cloud: auto (decide from the cloud), yes, no")
-    base_band_m: tuple[float, float] = _p((0.3, 1.5), "m", 0.0, 10.0, "Heights above the base of the band whose points must form one patch")
-    link_m: float = _p(0.3, "m", 0.05, 2.0, "Points of the band closer than about this are linked into one patch (grid cell)")
-    min_patch_fraction: float = _p(0.85, "1", 0.5, 1.0, "The largest patch holds at least this fraction of the band's points")
-    max_base_width_m: float = _p(3.0, "m", 0.2, 20.0, "The largest patch is at most this across (one trunk or one multi-stemmed base)")
+    base_band_m: tuple[float, float] = _p(
+        (0.3, 1.5), "m", 0.0, 10.0, "Heights above the base of the band whose points must form one patch"
+    )
+    link_m: float = _p(
+        0.3, "m", 0.05, 2.0, "Points of the band closer than about this are linked into one patch (grid cell)"
+    )
+    min_patch_fraction: float = _p(
+        0.85, "1", 0.5, 1.0, "The largest patch holds at least this fraction of the band's points"
+    )
+    max_base_width_m: float = _p(
+        3.0, "m", 0.2, 20.0, "The largest patch is at most this across (one trunk or one multi-stemmed base)"
+    )
     max_extent_m: float = _p(30.0, "m", 1.0, 200.0, "A single-tree cloud is at most this across")
     min_band_points: int = _p(30, "points", 3, 10**6, "Fewer band points than this: no base to decide on")
-    foot_depth_m: float = _p(2.0, "m", 0.2, 10.0, "Without ground, the cloud's points up to this far above its lowest are its foot: one narrow patch of them under one crown is one tree (a segmented airborne tree, a low-crowned street tree)")
-    crown_prominence_m: float = _p(2.0, "m", 0.1, 50.0, "A crown top is a separate crown when it stands out of the canopy by at least this (and the fraction below)")
-    crown_prominence_fraction: float = _p(0.15, "1", 0.0, 1.0, "... and by at least this fraction of the cloud's height")
-    min_base_points: int = _p(10, "points", 1, 10**6, "Fewer points than this in the lowest metre at the stem, without ground under it: the tree's base is uncertain (the cloud may be cut at the bottom)")
+    foot_depth_m: float = _p(
+        2.0,
+        "m",
+        0.2,
+        10.0,
+        "Without ground, the cloud's points up to this far above its lowest are its foot: one narrow patch of them under one crown is one tree (a segmented airborne tree, a low-crowned street tree)",
+    )
+    crown_prominence_m: float = _p(
+        2.0,
+        "m",
+        0.1,
+        50.0,
+        "A crown top is a separate crown when it stands out of the canopy by at least this (and the fraction below)",
+    )
+    crown_prominence_fraction: float = _p(
+        0.15, "1", 0.0, 1.0, "... and by at least this fraction of the cloud's height"
+    )
+    min_base_points: int = _p(
+        10,
+        "points",
+        1,
+        10**6,
+        "Fewer points than this in the lowest metre at the stem, without ground under it: the tree's base is uncertain (the cloud may be cut at the bottom)",
+    )
 
     def _check(self) -> None:
         if self.mode not in SINGLE_TREE_MODES:
@@ -230,7 +273,9 @@ def box_fill(points: np.ndarray, cell: float = 0.5) -> float:
     occupied = np.zeros(shape, dtype=bool)
     occupied[ij[:, 0], ij[:, 1]] = True
     padded = np.pad(occupied, 1)
-    filled = ndimage.binary_fill_holes(ndimage.binary_closing(padded, np.ones((3, 3), dtype=bool)))[1:-1, 1:-1] | occupied
+    filled = (
+        ndimage.binary_fill_holes(ndimage.binary_closing(padded, np.ones((3, 3), dtype=bool)))[1:-1, 1:-1] | occupied
+    )
     return float(filled.mean())
 
 
@@ -252,7 +297,10 @@ def _largest_patch(xy: np.ndarray, cell: float) -> tuple[np.ndarray, int, float,
 
 
 def single_tree_evidence(
-    points: np.ndarray, heights: np.ndarray, stems: Sequence[Stem] = (), params: SingleTreeParams = SingleTreeParams(),
+    points: np.ndarray,
+    heights: np.ndarray,
+    stems: Sequence[Stem] = (),
+    params: SingleTreeParams = SingleTreeParams(),
     ground: Optional[np.ndarray] = None,
 ) -> SingleTreeEvidence:
     """Whether ``points`` (N, 3, local frame) are one tree, from their base band (``heights``:
@@ -276,32 +324,59 @@ def single_tree_evidence(
         if extent > params.max_extent_m:
             why, single = f"the cloud is {extent:.1f} m across (a single tree at most {params.max_extent_m:g} m)", False
         elif frac < params.min_patch_fraction:
-            why, single = (f"its base band ({lo:g}-{hi:g} m) falls into {n} patches, the largest holding "
-                           f"{100 * frac:.0f} % of the points"), False
+            why, single = (
+                (
+                    f"its base band ({lo:g}-{hi:g} m) falls into {n} patches, the largest holding "
+                    f"{100 * frac:.0f} % of the points"
+                ),
+                False,
+            )
         elif width > params.max_base_width_m:
             why, single = f"its base ({lo:g}-{hi:g} m) is {width:.1f} m across", False
         elif apart:
             why, single = f"{len(apart)} stem(s) stand apart from the base", False
         else:
-            why, single = (f"its base band ({lo:g}-{hi:g} m) is one patch {width:.1f} m across holding "
-                           f"{100 * frac:.0f} % of the points, the cloud {extent:.1f} m across"), True
+            why, single = (
+                (
+                    f"its base band ({lo:g}-{hi:g} m) is one patch {width:.1f} m across holding "
+                    f"{100 * frac:.0f} % of the points, the cloud {extent:.1f} m across"
+                ),
+                True,
+            )
         evidence = SingleTreeEvidence(single, why, centre, width, frac, n, band_indices=idx, **common)
     else:
-        evidence = SingleTreeEvidence(False, f"{len(band)} points {lo:g}-{hi:g} m above the ground: no base to decide on",
-                                      nan2, math.nan, 0.0, 0, band_indices=np.zeros(0, dtype=np.int64), **common)
+        evidence = SingleTreeEvidence(
+            False,
+            f"{len(band)} points {lo:g}-{hi:g} m above the ground: no base to decide on",
+            nan2,
+            math.nan,
+            0.0,
+            0,
+            band_indices=np.zeros(0, dtype=np.int64),
+            **common,
+        )
     if not evidence.single and extent <= params.max_extent_m:
         by_foot = _foot_evidence(p, h, ground, standing, crowns, extent, params)
         if by_foot is not None:
             return by_foot
     if not evidence.single and n_stems > 1:
-        evidence = dataclasses.replace(evidence, reason=evidence.reason + f"; it holds {n_stems} stems standing apart at breast height")
+        evidence = dataclasses.replace(
+            evidence, reason=evidence.reason + f"; it holds {n_stems} stems standing apart at breast height"
+        )
     elif not evidence.single and crowns > 1:
         evidence = dataclasses.replace(evidence, reason=evidence.reason + f"; it holds {crowns} separate crowns")
     return evidence
 
 
-def _foot_evidence(p: np.ndarray, h: np.ndarray, ground: Optional[np.ndarray], standing: Sequence[Stem], crowns: int,
-                   extent: float, params: SingleTreeParams) -> Optional[SingleTreeEvidence]:
+def _foot_evidence(
+    p: np.ndarray,
+    h: np.ndarray,
+    ground: Optional[np.ndarray],
+    standing: Sequence[Stem],
+    crowns: int,
+    extent: float,
+    params: SingleTreeParams,
+) -> Optional[SingleTreeEvidence]:
     """The cloud as one tree without ground, decided from its foot (its lowest points, up to
     ``params.foot_depth_m`` above the lowest, or less where a low crown widens it: the deepest of
     0.5, 0.75, ... m that passes): at least two points, ``min_patch_fraction`` of them within half
@@ -349,10 +424,24 @@ def _foot_evidence(p: np.ndarray, h: np.ndarray, ground: Optional[np.ndarray], s
     inside = ((upper.min(axis=0) <= centre) & (centre <= upper.max(axis=0))).all()
     if not inside or box_fill(p) > MAX_BOX_FILL:  # a crop of a forest whose ground was removed
         return None
-    why = (f"its foot (the {len(foot)} points up to {depth:g} m above its lowest) is one patch "
-           f"{width:.1f} m across under one crown, the cloud {extent:.1f} m across, no ground")
-    return SingleTreeEvidence(True, why, centre, width, frac, n, extent, foot[members], separate_stems(standing), crowns,
-                              tuple(standing), by_foot=True)
+    why = (
+        f"its foot (the {len(foot)} points up to {depth:g} m above its lowest) is one patch "
+        f"{width:.1f} m across under one crown, the cloud {extent:.1f} m across, no ground"
+    )
+    return SingleTreeEvidence(
+        True,
+        why,
+        centre,
+        width,
+        frac,
+        n,
+        extent,
+        foot[members],
+        separate_stems(standing),
+        crowns,
+        tuple(standing),
+        by_foot=True,
+    )
 
 
 def base_stem(points: np.ndarray, evidence: SingleTreeEvidence, stems: Sequence[Stem], base_z: float) -> Stem:
@@ -366,10 +455,22 @@ def base_stem(points: np.ndarray, evidence: SingleTreeEvidence, stems: Sequence[
         # the axis followed down (or up) to the base height
         t = (base_z - s.base[2]) / axis[2] if axis[2] > 1e-6 else 0.0
         base = s.base + t * axis
-        return Stem(id=1, base=base, axis=axis, radius_m=s.radius_m, point_indices=s.point_indices, n_good_slices=s.n_good_slices)
+        return Stem(
+            id=1,
+            base=base,
+            axis=axis,
+            radius_m=s.radius_m,
+            point_indices=s.point_indices,
+            n_good_slices=s.n_good_slices,
+        )
     radius = min(0.5, 0.5 * evidence.base_width_m)
-    return Stem(id=1, base=np.array([centre[0], centre[1], base_z]), axis=np.array([0.0, 0.0, 1.0]), radius_m=radius,
-                point_indices=evidence.band_indices)
+    return Stem(
+        id=1,
+        base=np.array([centre[0], centre[1], base_z]),
+        axis=np.array([0.0, 0.0, 1.0]),
+        radius_m=radius,
+        point_indices=evidence.band_indices,
+    )
 
 
 @dataclass(frozen=True)
@@ -408,9 +509,15 @@ def _axis_offset(p: np.ndarray, xy: np.ndarray, axis: np.ndarray, z0: float) -> 
 
 
 def single_tree_base(
-    points: np.ndarray, xy: Sequence[float], axis: Sequence[float] = (0.0, 0.0, 1.0), radius_m: float = 0.0,
-    ground: Optional[np.ndarray] = None, params: SingleTreeParams = SingleTreeParams(), ground_near_m: float = 3.0,
-    z0: Optional[float] = None, foot_xy: Optional[Sequence[float]] = None,
+    points: np.ndarray,
+    xy: Sequence[float],
+    axis: Sequence[float] = (0.0, 0.0, 1.0),
+    radius_m: float = 0.0,
+    ground: Optional[np.ndarray] = None,
+    params: SingleTreeParams = SingleTreeParams(),
+    ground_near_m: float = 3.0,
+    z0: Optional[float] = None,
+    foot_xy: Optional[Sequence[float]] = None,
 ) -> SingleTreeBase:
     """The base of the one tree of ``points`` (N, 3, local frame) whose stem stands at ``xy``
     (its ``axis`` through (xy, ``z0``), unit and up; ``radius_m``): the lowest point at the stem
@@ -468,13 +575,17 @@ def single_tree_base(
     flags: list[str] = []
     low = int(np.count_nonzero(near & (p[:, 2] <= base + 1.0)))
     if low < params.min_base_points:
-        flags.append(f"base uncertain: {low} points in the lowest metre at the stem and no ground under it "
-                     f"(the stem's foot may lie lower)")
+        flags.append(
+            f"base uncertain: {low} points in the lowest metre at the stem and no ground under it "
+            f"(the stem's foot may lie lower)"
+        )
     cut = p[np.abs(p[:, 2] - base) <= 0.25, :2]
     spread = float(max(np.ptp(cut[:, 0]), np.ptp(cut[:, 1]))) if len(cut) else 0.0
     if spread > max(1.0, 6.0 * radius_m):
-        flags.append(f"base uncertain: the cloud's lowest points spread {spread:.1f} m across at one level "
-                     f"and no ground under them (cut flat above the ground?)")
+        flags.append(
+            f"base uncertain: the cloud's lowest points spread {spread:.1f} m across at one level "
+            f"and no ground under them (cut flat above the ground?)"
+        )
     trust = ("high", "medium", "low")[min(len(flags), 2)]
     return SingleTreeBase(base, how, False, trust, tuple(flags), stem_foot, ground_z, low)
 

@@ -54,10 +54,10 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from ..core.scan import check_points
 from ..core.errors import ParameterError, ScanDataError
 from ..core.params import Params, param_field
 from ..core.progress import Progress
+from ..core.scan import check_points
 from ..geometry.circle import robust_circle
 from ..geometry.cluster import connected_clusters
 from ..geometry.features import local_covariances, normals_and_variation
@@ -95,57 +95,185 @@ class StemParams(Params):
     """Every setting of stem detection, DBH and stem curves. Distances in metres, angles in degrees."""
 
     # --- breast height and slices
-    breast_height_m: float = param_field(1.3, "m", 0.5, 3.0, "Height of the DBH slice, measured along the stem axis from the stem base", "DBH at 1.3 m")
-    slice_half_width_m: float = param_field(0.05, "m", 0.01, 0.3, "Half the thickness of a slice in which a stem circle is fitted")
-    sparse_slice_points: int = param_field(30, "points", 0, 100000, "A slice with fewer points is widened to max_slice_half_width_m")
+    breast_height_m: float = param_field(
+        1.3, "m", 0.5, 3.0, "Height of the DBH slice, measured along the stem axis from the stem base", "DBH at 1.3 m"
+    )
+    slice_half_width_m: float = param_field(
+        0.05, "m", 0.01, 0.3, "Half the thickness of a slice in which a stem circle is fitted"
+    )
+    sparse_slice_points: int = param_field(
+        30, "points", 0, 100000, "A slice with fewer points is widened to max_slice_half_width_m"
+    )
     max_slice_half_width_m: float = param_field(0.1, "m", 0.01, 0.5, "Half thickness of a widened sparse slice")
-    dbh_slice_offsets_m: tuple[float, ...] = param_field((0.1, -0.1, 0.2, -0.2), "m", -0.5, 0.5, "Slices this far above (+) or below (-) breast height also measure the DBH (those within 0.1 m always, farther ones only when the nearer fail)")
-    max_dbh_slice_spread: float = param_field(0.2, "1", 0.0, 1.0, "Good DBH slices disagreeing by more than this fraction of the DBH make it not ok")
-    max_dbh_band_deviation: float = param_field(0.3, "1", 0.0, 5.0, "A DBH circle whose radius differs from the detection band's by more than this fraction is rejected")
+    dbh_slice_offsets_m: tuple[float, ...] = param_field(
+        (0.1, -0.1, 0.2, -0.2),
+        "m",
+        -0.5,
+        0.5,
+        "Slices this far above (+) or below (-) breast height also measure the DBH (those within 0.1 m always, farther ones only when the nearer fail)",
+    )
+    max_dbh_slice_spread: float = param_field(
+        0.2, "1", 0.0, 1.0, "Good DBH slices disagreeing by more than this fraction of the DBH make it not ok"
+    )
+    max_dbh_band_deviation: float = param_field(
+        0.3,
+        "1",
+        0.0,
+        5.0,
+        "A DBH circle whose radius differs from the detection band's by more than this fraction is rejected",
+    )
     # --- detection band and local geometry
     band_low_m: float = param_field(1.0, "m", 0.1, 5.0, "Bottom of the height band in which stems are detected")
     band_high_m: float = param_field(3.0, "m", 0.5, 10.0, "Top of the height band in which stems are detected")
-    detection_voxel_m: float = param_field(0.01, "m", 0.0, 0.1, "Band points are thinned to one per voxel of this size before detection (0 = no thinning)")
-    neighbour_radius_m: float = param_field(0.08, "m", 0.01, 0.5, "Radius of the neighbourhood whose covariance gives a point's local geometry")
+    detection_voxel_m: float = param_field(
+        0.01, "m", 0.0, 0.1, "Band points are thinned to one per voxel of this size before detection (0 = no thinning)"
+    )
+    neighbour_radius_m: float = param_field(
+        0.08, "m", 0.01, 0.5, "Radius of the neighbourhood whose covariance gives a point's local geometry"
+    )
     min_neighbours: int = param_field(6, "points", 3, 1000, "Points with fewer neighbours are dropped as noise")
-    max_normal_tilt_deg: float = param_field(25.0, "deg", 1.0, 90.0, "A bark point's surface normal is within this angle of horizontal")
-    max_surface_variation: float = param_field(0.2, "1", 0.0, 1.0 / 3.0, "Largest smallest-eigenvalue fraction of a point's neighbourhood (0 = flat surface, 1/3 = isotropic scatter)")
+    max_normal_tilt_deg: float = param_field(
+        25.0, "deg", 1.0, 90.0, "A bark point's surface normal is within this angle of horizontal"
+    )
+    max_surface_variation: float = param_field(
+        0.2,
+        "1",
+        0.0,
+        1.0 / 3.0,
+        "Largest smallest-eigenvalue fraction of a point's neighbourhood (0 = flat surface, 1/3 = isotropic scatter)",
+    )
     # --- clustering and stem acceptance
-    cluster_distance_m: float = param_field(0.1, "m", 0.005, 1.0, "Vertical points closer than this belong to the same cluster (single linkage)")
+    cluster_distance_m: float = param_field(
+        0.1, "m", 0.005, 1.0, "Vertical points closer than this belong to the same cluster (single linkage)"
+    )
     min_cluster_points: int = param_field(30, "points", 3, 100000, "Smallest cluster examined as a stem")
-    min_stem_extent_m: float = param_field(0.6, "m", 0.1, 10.0, "A stem cluster spans at least this height within the band")
-    subslice_m: float = param_field(0.25, "m", 0.05, 2.0, "Height of the sub-slices fitted with circles during detection")
-    detection_min_arc_coverage: float = param_field(0.2, "1", 0.0, 1.0, "Least arc coverage of the sub-slice circles during detection (a stem seen from one side still counts; its DBH is flagged 'partial arc')")
-    detection_min_slice_points: int = param_field(10, "points", 3, 100000, "Fewest points in a detection sub-slice for a circle fit")
+    min_stem_extent_m: float = param_field(
+        0.6, "m", 0.1, 10.0, "A stem cluster spans at least this height within the band"
+    )
+    subslice_m: float = param_field(
+        0.25, "m", 0.05, 2.0, "Height of the sub-slices fitted with circles during detection"
+    )
+    detection_min_arc_coverage: float = param_field(
+        0.2,
+        "1",
+        0.0,
+        1.0,
+        "Least arc coverage of the sub-slice circles during detection (a stem seen from one side still counts; its DBH is flagged 'partial arc')",
+    )
+    detection_min_slice_points: int = param_field(
+        10, "points", 3, 100000, "Fewest points in a detection sub-slice for a circle fit"
+    )
     min_good_subslices: int = param_field(2, "slices", 1, 100, "A stem needs at least this many good sub-slice circles")
-    max_radius_spread: float = param_field(0.2, "1", 0.0, 2.0, "Sub-slice circles of one stem differ in radius by at most this fraction")
-    max_interior_fraction: float = param_field(0.03, "1", 0.0, 10.0, "Band points inside a candidate stem (well within its circle), per point on its surface, above which it is foliage or twigs around something else, not a trunk")
-    min_lean_span_m: float = param_field(1.0, "m", 0.0, 10.0, "A stem's lean is estimated only from good sub-slices spanning at least this height; shorter stretches are taken as vertical")
-    max_lean_deg: float = param_field(25.0, "deg", 0.0, 89.0, "Stems leaning more than this are branches or dead wood, not stems")
-    dbh_range_m: tuple[float, float] = param_field((0.05, 2.0), "m", 0.005, 5.0, "Plausible stem diameters; circles outside are rejected (the 5 cm floor keeps out thin poles, e.g. target stands)")
-    min_stem_gap_m: float = param_field(0.1, "m", 0.0, 5.0, "Of two stems whose surfaces are closer than this at breast height only the thicker is kept (the other is a sucker, a branch stub or a climber)")
-    ground_ring_m: tuple[float, float] = param_field((0.6, 1.5), "m", 0.0, 10.0, "The stem's ground height is the median ground under the points this far (inner, outer) beyond its surface")
+    max_radius_spread: float = param_field(
+        0.2, "1", 0.0, 2.0, "Sub-slice circles of one stem differ in radius by at most this fraction"
+    )
+    max_interior_fraction: float = param_field(
+        0.03,
+        "1",
+        0.0,
+        10.0,
+        "Band points inside a candidate stem (well within its circle), per point on its surface, above which it is foliage or twigs around something else, not a trunk",
+    )
+    min_lean_span_m: float = param_field(
+        1.0,
+        "m",
+        0.0,
+        10.0,
+        "A stem's lean is estimated only from good sub-slices spanning at least this height; shorter stretches are taken as vertical",
+    )
+    max_lean_deg: float = param_field(
+        25.0, "deg", 0.0, 89.0, "Stems leaning more than this are branches or dead wood, not stems"
+    )
+    dbh_range_m: tuple[float, float] = param_field(
+        (0.05, 2.0),
+        "m",
+        0.005,
+        5.0,
+        "Plausible stem diameters; circles outside are rejected (the 5 cm floor keeps out thin poles, e.g. target stands)",
+    )
+    min_stem_gap_m: float = param_field(
+        0.1,
+        "m",
+        0.0,
+        5.0,
+        "Of two stems whose surfaces are closer than this at breast height only the thicker is kept (the other is a sucker, a branch stub or a climber)",
+    )
+    ground_ring_m: tuple[float, float] = param_field(
+        (0.6, 1.5),
+        "m",
+        0.0,
+        10.0,
+        "The stem's ground height is the median ground under the points this far (inner, outer) beyond its surface",
+    )
     # --- circle fit quality
     min_slice_points: int = param_field(15, "points", 3, 100000, "Fewest points in a slice for a circle fit")
-    inlier_tolerance_m: float = param_field(0.015, "m", 0.001, 0.2, "Points within this distance of a circle are its inliers (RANSAC and quality)")
-    min_inlier_fraction: float = param_field(0.4, "1", 0.0, 1.0, "Least fraction of a slice's points on the fitted circle")
-    min_arc_coverage: float = param_field(0.3, "1", 0.0, 1.0, "Least fraction of the circle's angular sectors that must hold points")
-    max_fit_residual_m: float = param_field(0.02, "m", 0.001, 0.2, "Largest rms distance from the circle of the points within twice the inlier tolerance of it")
+    inlier_tolerance_m: float = param_field(
+        0.015, "m", 0.001, 0.2, "Points within this distance of a circle are its inliers (RANSAC and quality)"
+    )
+    min_inlier_fraction: float = param_field(
+        0.4, "1", 0.0, 1.0, "Least fraction of a slice's points on the fitted circle"
+    )
+    min_arc_coverage: float = param_field(
+        0.3, "1", 0.0, 1.0, "Least fraction of the circle's angular sectors that must hold points"
+    )
+    max_fit_residual_m: float = param_field(
+        0.02,
+        "m",
+        0.001,
+        0.2,
+        "Largest rms distance from the circle of the points within twice the inlier tolerance of it",
+    )
     ransac_iterations: int = param_field(300, "iterations", 1, 100000, "Random three-point circles tried per slice")
     # --- the section's shape
-    typical_ovality: float = param_field(0.06, "1", 0.0, 0.5, "RMS ovality (1 - minor / major axis) of real stems' sections: a circle fitted to part of an oval section is off by up to this much, which the DBH sigma of a stem seen from one side carries")
-    ovality_min_coverage: float = param_field(0.7, "1", 0.0, 1.0, "Least arc coverage at which the section's ovality is stated")
+    typical_ovality: float = param_field(
+        0.06,
+        "1",
+        0.0,
+        0.5,
+        "RMS ovality (1 - minor / major axis) of real stems' sections: a circle fitted to part of an oval section is off by up to this much, which the DBH sigma of a stem seen from one side carries",
+    )
+    ovality_min_coverage: float = param_field(
+        0.7, "1", 0.0, 1.0, "Least arc coverage at which the section's ovality is stated"
+    )
     # --- stem curve
     stem_curve_step_m: float = param_field(0.25, "m", 0.2, 0.5, "Spacing of the stem-curve sections along the stem")
-    stem_curve_start_m: float = param_field(0.3, "m", 0.0, 3.0, "First stem-curve section, along the stem from its base")
-    max_failed_sections: int = param_field(4, "sections", 1, 100, "The stem curve ends after this many failed sections in a row")
-    search_margin_m: float = param_field(0.08, "m", 0.0, 1.0, "Points within the expected radius plus this of the predicted centre enter a slice")
-    taper_window: int = param_field(5, "sections", 3, 51, "Sections in the running median that stands for the expected taper")
-    max_taper_deviation: float = param_field(0.12, "1", 0.0, 1.0, "Sections deviating more than this fraction from the running median are rejected")
-    max_relative_residual: float = param_field(1.75, "1", 1.0, 100.0, "Sections whose circle residual exceeds this multiple of the stem's median are rejected (branch whorls, foliage)")
-    max_section_growth: float = param_field(0.15, "1", 0.0, 2.0, "A section may be at most this fraction wider than the accepted one below it (stems taper upward)")
+    stem_curve_start_m: float = param_field(
+        0.3, "m", 0.0, 3.0, "First stem-curve section, along the stem from its base"
+    )
+    max_failed_sections: int = param_field(
+        4, "sections", 1, 100, "The stem curve ends after this many failed sections in a row"
+    )
+    search_margin_m: float = param_field(
+        0.08, "m", 0.0, 1.0, "Points within the expected radius plus this of the predicted centre enter a slice"
+    )
+    taper_window: int = param_field(
+        5, "sections", 3, 51, "Sections in the running median that stands for the expected taper"
+    )
+    max_taper_deviation: float = param_field(
+        0.12, "1", 0.0, 1.0, "Sections deviating more than this fraction from the running median are rejected"
+    )
+    max_relative_residual: float = param_field(
+        1.75,
+        "1",
+        1.0,
+        100.0,
+        "Sections whose circle residual exceeds this multiple of the stem's median are rejected (branch whorls, foliage)",
+    )
+    max_section_growth: float = param_field(
+        0.15,
+        "1",
+        0.0,
+        2.0,
+        "A section may be at most this fraction wider than the accepted one below it (stems taper upward)",
+    )
     # --- the profile chosen for the cloud (detect_stems_adaptive)
-    sparse_spacing_m: float = param_field(0.03, "m", 0.001, 1.0, "Band points whose median distance to their 4th neighbour exceeds this are sampled too sparsely (or noisily) for the fine profile: the noisy one is tried first (mobile, backpack, UAV clouds)")
+    sparse_spacing_m: float = param_field(
+        0.03,
+        "m",
+        0.001,
+        1.0,
+        "Band points whose median distance to their 4th neighbour exceeds this are sampled too sparsely (or noisily) for the fine profile: the noisy one is tried first (mobile, backpack, UAV clouds)",
+    )
 
     def _check(self) -> None:
         if self.band_high_m <= self.band_low_m:
@@ -292,7 +420,11 @@ class StemCurve:
     def diameter_at(self, s: Any) -> Any:
         """Accepted diameter interpolated at distance(s) ``s`` along the axis (NaN outside)."""
         good = np.isfinite(self.diameter_m)
-        out = np.interp(np.asarray(s, dtype=np.float64), self.s_m[good], self.diameter_m[good], left=np.nan, right=np.nan) if good.any() else np.full(np.shape(s), np.nan)
+        out = (
+            np.interp(np.asarray(s, dtype=np.float64), self.s_m[good], self.diameter_m[good], left=np.nan, right=np.nan)
+            if good.any()
+            else np.full(np.shape(s), np.nan)
+        )
         return float(out) if np.ndim(out) == 0 else out
 
 
@@ -339,9 +471,13 @@ def fit_stem_circle(
     if len(p) < 3:
         raise ScanDataError(f"fit_stem_circle needs at least 3 points, got {len(p)}")
     tol = inlier_tolerance_m
-    found = robust_circle(p, inlier_tolerance_m=tol, radius_range_m=radius_range_m, ransac_iterations=ransac_iterations, seed=seed)
+    found = robust_circle(
+        p, inlier_tolerance_m=tol, radius_range_m=radius_range_m, ransac_iterations=ransac_iterations, seed=seed
+    )
     if found is None:
-        return CircleFit((float("nan"), float("nan")), float("nan"), float("nan"), 0.0, len(p), 0, False, ("degenerate points",))
+        return CircleFit(
+            (float("nan"), float("nan")), float("nan"), float("nan"), 0.0, len(p), 0, False, ("degenerate points",)
+        )
     circle, n_in = found
     (cx, cy), r = circle.centre, circle.radius_m
     res = circle.distances(p)
@@ -408,7 +544,13 @@ def dbh_sigma(dbh_m: float, fit: Optional[CircleFit], trust: str = "high", typic
     return math.hypot(base, shape)
 
 
-def _fit(xy: np.ndarray, params: StemParams, seed: int = 0, min_arc_coverage: Optional[float] = None, min_points: Optional[int] = None) -> CircleFit:
+def _fit(
+    xy: np.ndarray,
+    params: StemParams,
+    seed: int = 0,
+    min_arc_coverage: Optional[float] = None,
+    min_points: Optional[int] = None,
+) -> CircleFit:
     """:func:`fit_stem_circle` with the settings of ``params``."""
     lo, hi = params.dbh_range_m
     return fit_stem_circle(
@@ -430,7 +572,9 @@ def _fit(xy: np.ndarray, params: StemParams, seed: int = 0, min_arc_coverage: Op
 # --------------------------------------------------------------------------------------------
 
 
-def local_geometry(points: np.ndarray, radius_m: float, min_neighbours: int, max_neighbours: int = 24) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def local_geometry(
+    points: np.ndarray, radius_m: float, min_neighbours: int, max_neighbours: int = 24
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per point: unit normal (eigenvector of the smallest covariance eigenvalue of its neighbours
     within ``radius_m``), surface variation (smallest eigenvalue / sum) and neighbour count.
 
@@ -472,7 +616,9 @@ def _fit_axis(centres: np.ndarray, weights: np.ndarray, min_span_m: float = 0.0)
     return np.array([sx[0], sy[0], 0.0]), direction / np.linalg.norm(direction)
 
 
-def _stem_from_cluster(pts: np.ndarray, hts: np.ndarray, ground: np.ndarray, params: StemParams, seed: int) -> Optional[_Candidate]:
+def _stem_from_cluster(
+    pts: np.ndarray, hts: np.ndarray, ground: np.ndarray, params: StemParams, seed: int
+) -> Optional[_Candidate]:
     """Fit a stem (axis, radius) to one cluster of vertical band points; None if it is no stem."""
     lo, hi = float(hts.min()), float(hts.max())
     if hi - lo < params.min_stem_extent_m:
@@ -487,7 +633,9 @@ def _stem_from_cluster(pts: np.ndarray, hts: np.ndarray, ground: np.ndarray, par
             continue
         f = _fit(pts[m, :2], params, seed + k, params.detection_min_arc_coverage, params.detection_min_slice_points)
         if f.ok:
-            fits.append((f.centre[0], f.centre[1], float(pts[m, 2].mean()), f.radius_m, f.inlier_fraction * f.arc_coverage))
+            fits.append(
+                (f.centre[0], f.centre[1], float(pts[m, 2].mean()), f.radius_m, f.inlier_fraction * f.arc_coverage)
+            )
     if len(fits) < params.min_good_subslices:
         return None
     arr = np.asarray(fits)
@@ -512,7 +660,7 @@ def _stem_from_cluster(pts: np.ndarray, hts: np.ndarray, ground: np.ndarray, par
     # stretch a vertical axis is tried first, the fitted lean only if the centres need it
     limit = max(0.3 * med, 0.02)
     found = None
-    for min_span in ((params.min_lean_span_m, 0.0) if params.min_lean_span_m > 0 else (0.0,)):
+    for min_span in (params.min_lean_span_m, 0.0) if params.min_lean_span_m > 0 else (0.0,):
         sub = arr
         for _ in range(2):
             point0, axis = _fit_axis(sub[:, :3], sub[:, 4], min_span)
@@ -546,7 +694,9 @@ def _axis_distance(points: np.ndarray, base: np.ndarray, axis: np.ndarray) -> tu
     return s, radial
 
 
-def detect_stems(points: Any, heights: Any, params: StemParams = StemParams(), progress: Optional[Progress] = None) -> list[Stem]:
+def detect_stems(
+    points: Any, heights: Any, params: StemParams = StemParams(), progress: Optional[Progress] = None
+) -> list[Stem]:
     """Detect the stems of a point cloud around breast height.
 
     ``points`` (N, 3) in metres (local frame, z up) and ``heights`` (N,) their normalised heights.
@@ -563,7 +713,9 @@ def detect_stems(points: Any, heights: Any, params: StemParams = StemParams(), p
     thin = band_idx[voxel_thin(p[band_idx], params.detection_voxel_m)]
     normals, variation, _ = local_geometry(p[thin], params.neighbour_radius_m, params.min_neighbours)
     with np.errstate(invalid="ignore"):
-        vertical = (np.abs(normals[:, 2]) <= math.sin(math.radians(params.max_normal_tilt_deg))) & (variation <= params.max_surface_variation)
+        vertical = (np.abs(normals[:, 2]) <= math.sin(math.radians(params.max_normal_tilt_deg))) & (
+            variation <= params.max_surface_variation
+        )
     cand_idx = thin[vertical]
     if len(cand_idx) < params.min_cluster_points:
         return []
@@ -628,7 +780,9 @@ class NoisyStemParams(Params):
         return params.replace(**{f.name: getattr(self, f.name) for f in fields(self)})
 
 
-def band_spacing(points: np.ndarray, heights: np.ndarray, params: StemParams = StemParams(), sample: int = 20000) -> float:
+def band_spacing(
+    points: np.ndarray, heights: np.ndarray, params: StemParams = StemParams(), sample: int = 20000
+) -> float:
     """Median distance (m) from a detection-band point to its 4th nearest band neighbour (NaN when
     the band holds fewer than 5 points): the sampling density of the stems."""
     band = np.flatnonzero((heights >= params.band_low_m) & (heights <= params.band_high_m))
@@ -641,7 +795,10 @@ def band_spacing(points: np.ndarray, heights: np.ndarray, params: StemParams = S
 
 
 def detect_stems_adaptive(
-    points: Any, heights: Any, params: StemParams = StemParams(), progress: Optional[Progress] = None,
+    points: Any,
+    heights: Any,
+    params: StemParams = StemParams(),
+    progress: Optional[Progress] = None,
     noisy_profile: NoisyStemParams = NoisyStemParams(),
 ) -> tuple[list[Stem], StemParams, str]:
     """:func:`detect_stems` with the settings chosen for the cloud's stem sampling.
@@ -656,7 +813,11 @@ def detect_stems_adaptive(
     assert h is not None
     spacing = band_spacing(p, h, params)
     noisy = noisy_profile.apply(params)
-    order = [(noisy, "noisy"), (params, "fine")] if math.isfinite(spacing) and spacing > params.sparse_spacing_m else [(params, "fine"), (noisy, "noisy")]
+    order = (
+        [(noisy, "noisy"), (params, "fine")]
+        if math.isfinite(spacing) and spacing > params.sparse_spacing_m
+        else [(params, "fine"), (noisy, "noisy")]
+    )
     for prm, name in order:
         stems = detect_stems(p, h, prm, progress)
         if stems:
@@ -664,7 +825,9 @@ def detect_stems_adaptive(
     return [], order[0][0], order[0][1]
 
 
-def _interior_fraction(points: np.ndarray, heights: np.ndarray, tree_xy: cKDTree, cand: _Candidate, params: StemParams) -> float:
+def _interior_fraction(
+    points: np.ndarray, heights: np.ndarray, tree_xy: cKDTree, cand: _Candidate, params: StemParams
+) -> float:
     """Points inside a candidate stem (closer to its axis than its radius minus a margin) per
     point on its surface, in the detection band: about 0 for a trunk (nothing can be seen inside
     wood), large for a ring of foliage or twigs around something else."""
@@ -680,7 +843,9 @@ def _interior_fraction(points: np.ndarray, heights: np.ndarray, tree_xy: cKDTree
     return inside / max(surface, 1)
 
 
-def _merge_candidates(candidates: list[_Candidate], p: np.ndarray, h: np.ndarray, band_idx: np.ndarray, params: StemParams) -> list[Stem]:
+def _merge_candidates(
+    candidates: list[_Candidate], p: np.ndarray, h: np.ndarray, band_idx: np.ndarray, params: StemParams
+) -> list[Stem]:
     """Merge candidates whose breast-height circles overlap; attach the band points of each."""
     if not candidates:
         return []
@@ -720,7 +885,13 @@ def _merge_candidates(candidates: list[_Candidate], p: np.ndarray, h: np.ndarray
             base = base + ((ground_z - base[2]) / axis[2]) * axis
             centre_bh = base + (params.breast_height_m / axis[2]) * axis
         # the stem's band points: within radius + tolerance of the axis
-        near = np.asarray(tree.query_ball_point(centre_bh[:2], radius + 0.3 + (params.band_high_m - params.breast_height_m) * math.tan(math.acos(min(1.0, axis[2])))), dtype=np.int64)
+        near = np.asarray(
+            tree.query_ball_point(
+                centre_bh[:2],
+                radius + 0.3 + (params.band_high_m - params.breast_height_m) * math.tan(math.acos(min(1.0, axis[2]))),
+            ),
+            dtype=np.int64,
+        )
         if len(near):
             _, radial = _axis_distance(band_pts[near], base, axis)
             near = near[radial <= radius + 2 * params.inlier_tolerance_m + 0.01]
@@ -730,16 +901,17 @@ def _merge_candidates(candidates: list[_Candidate], p: np.ndarray, h: np.ndarray
     for cand in sorted(stems, key=lambda c: -c[2]):
         c_bh = cand[0] + (params.breast_height_m / cand[1][2]) * cand[1]
         gaps = [
-            math.hypot(*(c_bh[:2] - (k[0] + (params.breast_height_m / k[1][2]) * k[1])[:2]))
-            - cand[2]
-            - k[2]
+            math.hypot(*(c_bh[:2] - (k[0] + (params.breast_height_m / k[1][2]) * k[1])[:2])) - cand[2] - k[2]
             for k in kept
         ]
         if not gaps or min(gaps) >= params.min_stem_gap_m:
             kept.append(cand)
     stems = kept
     stems.sort(key=lambda s: (round(float(s[0][0]), 3), round(float(s[0][1]), 3)))
-    return [Stem(id=i + 1, base=b, axis=a, radius_m=r, point_indices=ix, n_good_slices=ng) for i, (b, a, r, ng, ix) in enumerate(stems)]
+    return [
+        Stem(id=i + 1, base=b, axis=a, radius_m=r, point_indices=ix, n_good_slices=ng)
+        for i, (b, a, r, ng, ix) in enumerate(stems)
+    ]
 
 
 # --------------------------------------------------------------------------------------------
@@ -798,7 +970,9 @@ def _section(
     return fit, world_centre, n
 
 
-def _stem_section_problems(fit: CircleFit, stem: Stem, expected_uv: tuple[float, float], params: StemParams) -> list[str]:
+def _stem_section_problems(
+    fit: CircleFit, stem: Stem, expected_uv: tuple[float, float], params: StemParams
+) -> list[str]:
     """Reasons why a circle fitted to a slice of ``stem`` is not that stem's section: its own
     quality flags, a centre off the stem axis, a radius far from the detection band's."""
     reasons = list(fit.reasons)
@@ -811,7 +985,9 @@ def _stem_section_problems(fit: CircleFit, stem: Stem, expected_uv: tuple[float,
     return reasons
 
 
-def measure_dbh(points: Any, heights: Any, stem: Stem, params: StemParams = StemParams(), *, search_tree: Optional[cKDTree] = None) -> DbhMeasurement:
+def measure_dbh(
+    points: Any, heights: Any, stem: Stem, params: StemParams = StemParams(), *, search_tree: Optional[cKDTree] = None
+) -> DbhMeasurement:
     """DBH of ``stem`` (metres) from circles fitted to slices perpendicular to its axis.
 
     The slices lie at ``params.breast_height_m`` along the axis from the stem base and
@@ -841,14 +1017,20 @@ def _measure_dbh(p: np.ndarray, stem: Stem, params: StemParams, tree: cKDTree) -
         if good and abs(offset) > 0.1 + 1e-9:
             break
         fit, centre, n = _section(p, stem, bh + offset, (0.0, 0.0), search, params, tree, seed=stem.id * 100 + k)
-        reasons = (f"too few points at breast height ({n})",) if fit is None else tuple(_stem_section_problems(fit, stem, (0.0, 0.0), params))
+        reasons = (
+            (f"too few points at breast height ({n})",)
+            if fit is None
+            else tuple(_stem_section_problems(fit, stem, (0.0, 0.0), params))
+        )
         if offset == 0.0:
             first_reasons, first_fit, first_centre = reasons, fit, centre
         if fit is not None and not reasons:
             good.append((offset, fit.diameter_m, fit, centre))
     if not good:
         # a failed fit reports no value (the fit itself stays for diagnosis)
-        return DbhMeasurement(stem.id, float("nan"), first_centre, bh, first_fit, False, first_reasons or ("no slice could be fitted",))
+        return DbhMeasurement(
+            stem.id, float("nan"), first_centre, bh, first_fit, False, first_reasons or ("no slice could be fitted",)
+        )
     near = [g for g in good if abs(g[0]) <= 0.1 + 1e-9]
     note = ""
     if not near:
@@ -864,7 +1046,12 @@ def _measure_dbh(p: np.ndarray, stem: Stem, params: StemParams, tree: cKDTree) -
 
 
 def measure_stems(
-    points: Any, heights: Any, stems: list[Stem], params: StemParams = StemParams(), *, search_tree: Optional[cKDTree] = None
+    points: Any,
+    heights: Any,
+    stems: list[Stem],
+    params: StemParams = StemParams(),
+    *,
+    search_tree: Optional[cKDTree] = None,
 ) -> tuple[dict[int, DbhMeasurement], dict[int, StemCurve]]:
     """:func:`measure_dbh` and :func:`stem_curve` of every stem, by stem id: the cloud is checked
     and indexed (``search_tree``, a ``cKDTree`` of ``points``, if not given) once, and the stems'
@@ -914,7 +1101,9 @@ def _running_median(values: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
-def stem_curve(points: Any, heights: Any, stem: Stem, params: StemParams = StemParams(), *, search_tree: Optional[cKDTree] = None) -> StemCurve:
+def stem_curve(
+    points: Any, heights: Any, stem: Stem, params: StemParams = StemParams(), *, search_tree: Optional[cKDTree] = None
+) -> StemCurve:
     """Stem diameters every ``params.stem_curve_step_m`` along the axis of ``stem``, from
     ``params.stem_curve_start_m`` up to where the fits fail (``max_failed_sections`` in a row).
 
@@ -990,7 +1179,15 @@ def _stem_curve(p: np.ndarray, stem: Stem, params: StemParams, tree: cKDTree, s_
             good_r.append(fit.radius_m)  # type: ignore[union-attr]
         s += step
         k += 1
-    return _accept_curve(stem, np.asarray(s_values), np.asarray(raw), np.asarray(rms), np.asarray(centres).reshape(-1, 3), reasons, params)
+    return _accept_curve(
+        stem,
+        np.asarray(s_values),
+        np.asarray(raw),
+        np.asarray(rms),
+        np.asarray(centres).reshape(-1, 3),
+        reasons,
+        params,
+    )
 
 
 def robust_taper(s: np.ndarray, d: np.ndarray, *, iterations: int = 5) -> np.ndarray:
@@ -1015,7 +1212,15 @@ def robust_taper(s: np.ndarray, d: np.ndarray, *, iterations: int = 5) -> np.nda
     return fitted
 
 
-def _accept_curve(stem: Stem, s: np.ndarray, raw: np.ndarray, rms: np.ndarray, centres: np.ndarray, reasons: list[str], params: StemParams) -> StemCurve:
+def _accept_curve(
+    stem: Stem,
+    s: np.ndarray,
+    raw: np.ndarray,
+    rms: np.ndarray,
+    centres: np.ndarray,
+    reasons: list[str],
+    params: StemParams,
+) -> StemCurve:
     """Taper checks on the raw sections; interpolation of the rejected ones (see stem_curve)."""
     reasons = list(reasons)
     accepted = np.isfinite(raw)

@@ -50,7 +50,9 @@ def register_files(
     return adapter.register_pair(job, cli, progress=progress, log=log)
 
 
-def local_matrix(matrix: Sequence[Sequence[float]], reference_shift: Sequence[float], moving_shift: Sequence[float]) -> list:
+def local_matrix(
+    matrix: Sequence[Sequence[float]], reference_shift: Sequence[float], moving_shift: Sequence[float]
+) -> list:
     """The matrix to apply to the moving cloud's *local* (CloudCompare-shifted) coordinates.
 
     CloudCompare stores ``local = global + shift`` per cloud. With ``global_ref = M @ global_mov``:
@@ -117,7 +119,9 @@ def _apply_to_cloud(pycc, cloud, m: list) -> None:
             getattr(cloud, name)()
 
 
-def register_selected(vop_radius_m: Optional[float] = None, cli=None, out_dir: Optional[str] = None) -> Optional[adapter.HostOutputs]:
+def register_selected(
+    vop_radius_m: Optional[float] = None, cli=None, out_dir: Optional[str] = None
+) -> Optional[adapter.HostOutputs]:
     """The action: register the two selected clouds (reference first) and move the second."""
     import numpy as np
     import pycc
@@ -135,8 +139,15 @@ def register_selected(vop_radius_m: Optional[float] = None, cli=None, out_dir: O
         files.append(write_ply(work / name, local / _scale(cloud) - np.asarray(_shift(cloud))))
     cc.freezeUI(True)
     try:
-        outputs = register_files(files[0], files[1], work / "registration", vop_radius_m=vop_radius_m, cli=cli,
-                                 progress=lambda f, msg: print(f"forestreg {100 * f:3.0f}% {msg}"), log=print)
+        outputs = register_files(
+            files[0],
+            files[1],
+            work / "registration",
+            vop_radius_m=vop_radius_m,
+            cli=cli,
+            progress=lambda f, msg: print(f"forestreg {100 * f:3.0f}% {msg}"),
+            log=print,
+        )
     finally:
         cc.freezeUI(False)
     if outputs.matrix is None:
@@ -149,9 +160,15 @@ def register_selected(vop_radius_m: Optional[float] = None, cli=None, out_dir: O
         moving.setGlobalShift(pycc.CCVector3d(*s) if hasattr(pycc, "CCVector3d") else s)
     except Exception:
         pass
-    std = outputs.result.icp_std_m if outputs.result is not None and outputs.result.icp_std_m is not None else float("nan")
-    print(f"forestreg: ok, {outputs.matched} matched VOPs, ICP std {1000 * std:.1f} mm; "
-          f"transform.txt in {outputs.out_dir}")
+    std = (
+        outputs.result.icp_std_m
+        if outputs.result is not None and outputs.result.icp_std_m is not None
+        else float("nan")
+    )
+    print(
+        f"forestreg: ok, {outputs.matched} matched VOPs, ICP std {1000 * std:.1f} mm; "
+        f"transform.txt in {outputs.out_dir}"
+    )
     cc.updateUI()
     cc.redrawAll()
     return outputs
@@ -170,8 +187,10 @@ def _build_plugin_class():
         def getActions(self):  # noqa: N802 - runtime naming
             from .trees import LOAD_TREES_ACTION_NAME, load_trees_folder
 
-            return [pycc.Action(name=ACTION_NAME, target=register_selected),
-                    pycc.Action(name=LOAD_TREES_ACTION_NAME, target=load_trees_folder)]
+            return [
+                pycc.Action(name=ACTION_NAME, target=register_selected),
+                pycc.Action(name=LOAD_TREES_ACTION_NAME, target=load_trees_folder),
+            ]
 
     return ForestregCC
 

@@ -26,8 +26,9 @@ __all__ = ["LOAD_TREES_ACTION_NAME", "build_trees_group", "load_trees_folder"]
 def _cloud(pycc, points: np.ndarray, shift) -> Any:
     """A ccPointCloud of ``points`` (file coordinates) stored as ``points + shift``, with that shift."""
     local = np.asarray(points, dtype=np.float64) + np.asarray(shift, dtype=np.float64)
-    cloud = pycc.ccPointCloud(np.ascontiguousarray(local[:, 0]), np.ascontiguousarray(local[:, 1]),
-                              np.ascontiguousarray(local[:, 2]))
+    cloud = pycc.ccPointCloud(
+        np.ascontiguousarray(local[:, 0]), np.ascontiguousarray(local[:, 1]), np.ascontiguousarray(local[:, 2])
+    )
     if any(shift):
         _set_shift(pycc, cloud, shift)
     return cloud
@@ -111,8 +112,9 @@ def _ask_folder() -> Optional[str]:
     return QFileDialog.getExistingDirectory(None, "forestreg trees output folder") or None
 
 
-def load_trees_folder(folder: Union[None, str, Path] = None, *, facets: int = DEFAULT_FACETS, unit_scale: float = 1.0,
-                      pycc=None) -> Any:
+def load_trees_folder(
+    folder: Union[None, str, Path] = None, *, facets: int = DEFAULT_FACETS, unit_scale: float = 1.0, pycc=None
+) -> Any:
     """The action: read a ``forestreg trees --out`` folder (asked for when not given) and add
     its group to CloudCompare's database; returns the group (None when no folder was chosen)."""
     if pycc is None:

@@ -22,15 +22,16 @@ from pathlib import Path
 
 from qgis.core import (
     Qgis,
+    QgsCoordinateReferenceSystem,
     QgsProcessing,
     QgsProcessingAlgorithm,
     QgsProcessingContext,
     QgsProcessingException,
+    QgsProcessingOutputFile,
+    QgsProcessingOutputMultipleLayers,
     QgsProcessingOutputNumber,
     QgsProcessingOutputString,
     QgsProcessingOutputVectorLayer,
-    QgsProcessingOutputFile,
-    QgsProcessingOutputMultipleLayers,
     QgsProcessingParameterBoolean,
     QgsProcessingParameterCrs,
     QgsProcessingParameterDefinition,
@@ -41,7 +42,6 @@ from qgis.core import (
     QgsProcessingParameterMultipleLayers,
     QgsProcessingParameterNumber,
     QgsProcessingParameterString,
-    QgsCoordinateReferenceSystem,
     QgsProcessingProvider,
     QgsSettings,
     QgsVectorLayer,
@@ -159,7 +159,9 @@ def _load_gpkg_layers(folder, label: str, context: QgsProcessingContext, output:
             continue
         _apply_style(layer, item.style, feedback)
         context.temporaryLayerStore().addMapLayer(layer)
-        context.addLayerToLoadOnCompletion(layer.id(), QgsProcessingContext.LayerDetails(name, context.project(), output))
+        context.addLayerToLoadOnCompletion(
+            layer.id(), QgsProcessingContext.LayerDetails(name, context.project(), output)
+        )
         ids[item.name] = layer.id()
     return ids
 
@@ -180,8 +182,10 @@ def _load_point_cloud(path, name: str, context: QgsProcessingContext, output: st
         feedback.pushInfo(f"{path}: this QGIS has no point cloud layers")
         return None
     if "pdal" not in QgsProviderRegistry.instance().providerList():
-        feedback.pushInfo(f"{path}: this QGIS was built without its PDAL provider, so it opens no LAS/LAZ file; "
-                          "the cloud stays in the output folder (a QGIS with PDAL, or CloudCompare, opens it)")
+        feedback.pushInfo(
+            f"{path}: this QGIS was built without its PDAL provider, so it opens no LAS/LAZ file; "
+            "the cloud stays in the output folder (a QGIS with PDAL, or CloudCompare, opens it)"
+        )
         return None
     layer = QgsPointCloudLayer(str(path), name, "pdal")
     if not layer.isValid():
@@ -232,20 +236,32 @@ class _Base(QgsProcessingAlgorithm):
         return type(self)()
 
     def _common_parameters(self) -> None:
-        self.addParameter(QgsProcessingParameterNumber(
-            self.DR, "VOP radius D_r in metres (empty: automatic)", type=QgsProcessingParameterNumber.Double,
-            optional=True, minValue=1.0, maxValue=100.0,
-        ))
-        crs = QgsProcessingParameterCrs(self.CRS, "CRS of the scans' coordinates where they declare none (--crs)", optional=True)
+        self.addParameter(
+            QgsProcessingParameterNumber(
+                self.DR,
+                "VOP radius D_r in metres (empty: automatic)",
+                type=QgsProcessingParameterNumber.Double,
+                optional=True,
+                minValue=1.0,
+                maxValue=100.0,
+            )
+        )
+        crs = QgsProcessingParameterCrs(
+            self.CRS, "CRS of the scans' coordinates where they declare none (--crs)", optional=True
+        )
         crs.setFlags(crs.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
         self.addParameter(crs)
         cli = QgsProcessingParameterString(
-            self.CLI, "forestreg command that starts the service (path, or e.g. 'python3 -m forestreg.cli'; empty: forestreg on PATH)",
-            defaultValue=QgsSettings().value(SETTINGS_CLI, "", type=str), optional=True,
+            self.CLI,
+            "forestreg command that starts the service (path, or e.g. 'python3 -m forestreg.cli'; empty: forestreg on PATH)",
+            defaultValue=QgsSettings().value(SETTINGS_CLI, "", type=str),
+            optional=True,
         )
         cli.setFlags(cli.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
         self.addParameter(cli)
-        self.addOutput(QgsProcessingOutputVectorLayer(self.SCANNERS, "Scanner positions", QgsProcessing.TypeVectorPoint))
+        self.addOutput(
+            QgsProcessingOutputVectorLayer(self.SCANNERS, "Scanner positions", QgsProcessing.TypeVectorPoint)
+        )
         self.addOutput(QgsProcessingOutputString(self.STATUS, "Status (ok / failed)"))
         self.addOutput(QgsProcessingOutputString(self.REASON, "Reason of a failure"))
 
@@ -280,7 +296,9 @@ class _Base(QgsProcessingAlgorithm):
         crs = _layer_crs(self.parameterAsCrs(parameters, self.CRS, context), outputs.summary)
         files = adapter.write_layer_files(outputs)
         gpkg = _load_gpkg_layers(outputs.out_dir, layer_name, context, layers_output, feedback) if layers_output else {}
-        scanners = gpkg.get("scanners") or _load_point_layer(files.scanners, f"scanners ({layer_name})", crs, context, self.SCANNERS, feedback)
+        scanners = gpkg.get("scanners") or _load_point_layer(
+            files.scanners, f"scanners ({layer_name})", crs, context, self.SCANNERS, feedback
+        )
         results = {
             self.OUTPUT: self.parameterAsString(parameters, self.OUTPUT, context),
             self.SCANNERS: scanners,
@@ -312,13 +330,21 @@ class RegisterPairAlgorithm(_Base):
 
     def initAlgorithm(self, config=None):  # noqa: N802
         self.addParameter(QgsProcessingParameterFile(self.REFERENCE, "Reference scan", fileFilter=SCAN_FILTER))
-        self.addParameter(QgsProcessingParameterFile(self.MOVING, "Moving scan (mapped onto the reference)", fileFilter=SCAN_FILTER))
+        self.addParameter(
+            QgsProcessingParameterFile(self.MOVING, "Moving scan (mapped onto the reference)", fileFilter=SCAN_FILTER)
+        )
         self.addParameter(QgsProcessingParameterFolderDestination(self.OUTPUT, "Output folder"))
-        self.addParameter(QgsProcessingParameterBoolean(
-            self.WRITE_REGISTERED, "Also write the moving scan in the reference frame (--write-registered; LAZ, loaded as a point cloud)",
-            defaultValue=False))
+        self.addParameter(
+            QgsProcessingParameterBoolean(
+                self.WRITE_REGISTERED,
+                "Also write the moving scan in the reference frame (--write-registered; LAZ, loaded as a point cloud)",
+                defaultValue=False,
+            )
+        )
         self._common_parameters()
-        self.addOutput(QgsProcessingOutputVectorLayer(self.VOPS, "Visual occlusion points", QgsProcessing.TypeVectorPoint))
+        self.addOutput(
+            QgsProcessingOutputVectorLayer(self.VOPS, "Visual occlusion points", QgsProcessing.TypeVectorPoint)
+        )
         self.addOutput(QgsProcessingOutputNumber(self.MATCHED, "Matched VOPs"))
         self.addOutput(QgsProcessingOutputString(self.TRANSFORM, "transform.txt"))
         self.addOutput(_point_cloud_output(self.POINT_CLOUD, "Registered moving scan (point cloud layer)"))
@@ -330,21 +356,34 @@ class RegisterPairAlgorithm(_Base):
             moving=self.parameterAsFile(parameters, self.MOVING, context),
             out_dir=out,
             vop_radius_m=self._dr(parameters, context),
-            write_registered=bool(parameters.get(self.WRITE_REGISTERED)) and self.parameterAsBool(parameters, self.WRITE_REGISTERED, context),
+            write_registered=bool(parameters.get(self.WRITE_REGISTERED))
+            and self.parameterAsBool(parameters, self.WRITE_REGISTERED, context),
             crs=self._crs_text(parameters, context),
         )
         stem = f"{Path(job.moving).stem} onto {Path(job.reference).stem}"
         outputs, crs, files, results = self._run_job(
-            adapter.build_pair_args(job), lambda *a: adapter.register_pair(job, *a), "registration failed", stem,
-            parameters, context, feedback,
+            adapter.build_pair_args(job),
+            lambda *a: adapter.register_pair(job, *a),
+            "registration failed",
+            stem,
+            parameters,
+            context,
+            feedback,
         )
         return {
             **results,
             self.VOPS: _load_point_layer(files.vops, f"VOPs ({stem})", crs, context, self.VOPS, feedback),
             self.MATCHED: outputs.matched,
             self.TRANSFORM: str(Path(out) / "transform.txt") if outputs.status == "ok" else "",
-            self.POINT_CLOUD: _load_point_cloud(next(iter(sorted(Path(out).glob("*_registered.laz"))), None), f"registered ({stem})",
-                                                context, self.POINT_CLOUD, feedback) if job.write_registered else None,
+            self.POINT_CLOUD: _load_point_cloud(
+                next(iter(sorted(Path(out).glob("*_registered.laz"))), None),
+                f"registered ({stem})",
+                context,
+                self.POINT_CLOUD,
+                feedback,
+            )
+            if job.write_registered
+            else None,
         }
 
 
@@ -366,13 +405,22 @@ class RegisterPlotAlgorithm(_Base):
     )
 
     def initAlgorithm(self, config=None):  # noqa: N802
-        self.addParameter(QgsProcessingParameterMultipleLayers(self.SCANS, "Scan files", layerType=QgsProcessing.TypeFile))
-        self.addParameter(QgsProcessingParameterString(self.CENTRE, "Centre scan (file name; empty: the first scan)", optional=True))
+        self.addParameter(
+            QgsProcessingParameterMultipleLayers(self.SCANS, "Scan files", layerType=QgsProcessing.TypeFile)
+        )
+        self.addParameter(
+            QgsProcessingParameterString(self.CENTRE, "Centre scan (file name; empty: the first scan)", optional=True)
+        )
         self.addParameter(QgsProcessingParameterFolderDestination(self.OUTPUT, "Output folder"))
-        self.addParameter(QgsProcessingParameterFileDestination(
-            self.MERGED, "Merged cloud of all registered scans (--merged; .laz/.las, .copc.laz for COPC)", fileFilter=LAS_FILTER,
-            optional=True, createByDefault=False,
-        ))
+        self.addParameter(
+            QgsProcessingParameterFileDestination(
+                self.MERGED,
+                "Merged cloud of all registered scans (--merged; .laz/.las, .copc.laz for COPC)",
+                fileFilter=LAS_FILTER,
+                optional=True,
+                createByDefault=False,
+            )
+        )
         self._common_parameters()
         self.addOutput(QgsProcessingOutputMultipleLayers(self.LAYERS, "Layers of layers.gpkg"))
         self.addOutput(_point_cloud_output(self.POINT_CLOUD, "Merged cloud (point cloud layer)"))
@@ -392,9 +440,14 @@ class RegisterPlotAlgorithm(_Base):
         scans = self._scans(parameters, context)
         if len(scans) < 2:
             raise QgsProcessingException("a plot needs at least two scan files")
-        merged = (self.parameterAsFileOutput(parameters, self.MERGED, context) or "").strip() if parameters.get(self.MERGED) else ""
+        merged = (
+            (self.parameterAsFileOutput(parameters, self.MERGED, context) or "").strip()
+            if parameters.get(self.MERGED)
+            else ""
+        )
         job = adapter.PlotJob(
-            scans=scans, out_dir=out,
+            scans=scans,
+            out_dir=out,
             centre=(self.parameterAsString(parameters, self.CENTRE, context) or "").strip() or None,
             vop_radius_m=self._dr(parameters, context),
             merged=merged or None,
@@ -402,8 +455,14 @@ class RegisterPlotAlgorithm(_Base):
         )
         label = Path(out).name
         results = self._run_job(
-            adapter.build_plot_args(job), lambda *a: adapter.register_plot(job, *a), "not every scan was registered",
-            label, parameters, context, feedback, layers_output=self.LAYERS,
+            adapter.build_plot_args(job),
+            lambda *a: adapter.register_plot(job, *a),
+            "not every scan was registered",
+            label,
+            parameters,
+            context,
+            feedback,
+            layers_output=self.LAYERS,
         )[3]
         return {
             **results,
@@ -441,16 +500,23 @@ class _JobAlgorithm(_Base):
 
     def _units_parameters(self, what: str) -> None:
         """``--units`` (default m) and ``--params``."""
-        self.addParameter(QgsProcessingParameterEnum(self.UNITS, f"Units ({what}; --units)", options=list(UNITS),
-                                                     defaultValue=UNITS.index(DEFAULT_UNITS)))
-        params = QgsProcessingParameterFile(self.PARAMS, "Parameter file (--params; TOML)", optional=True, fileFilter=TOML_FILTER)
+        self.addParameter(
+            QgsProcessingParameterEnum(
+                self.UNITS, f"Units ({what}; --units)", options=list(UNITS), defaultValue=UNITS.index(DEFAULT_UNITS)
+            )
+        )
+        params = QgsProcessingParameterFile(
+            self.PARAMS, "Parameter file (--params; TOML)", optional=True, fileFilter=TOML_FILTER
+        )
         params.setFlags(params.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
         self.addParameter(params)
 
     def _cli_parameter(self) -> None:
         cli = QgsProcessingParameterString(
-            self.CLI, "forestreg command that starts the service (path, or e.g. 'python3 -m forestreg.cli'; empty: forestreg on PATH)",
-            defaultValue=QgsSettings().value(SETTINGS_CLI, "", type=str), optional=True,
+            self.CLI,
+            "forestreg command that starts the service (path, or e.g. 'python3 -m forestreg.cli'; empty: forestreg on PATH)",
+            defaultValue=QgsSettings().value(SETTINGS_CLI, "", type=str),
+            optional=True,
         )
         cli.setFlags(cli.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
         self.addParameter(cli)
@@ -470,7 +536,11 @@ class _JobAlgorithm(_Base):
     def _optional_number(self, parameters, name, context, integer=False):
         if parameters.get(name) in (None, ""):
             return None
-        return self.parameterAsInt(parameters, name, context) if integer else self.parameterAsDouble(parameters, name, context)
+        return (
+            self.parameterAsInt(parameters, name, context)
+            if integer
+            else self.parameterAsDouble(parameters, name, context)
+        )
 
     def _units(self, parameters, context, name=None, first=()):
         """The unit chosen in the enum ``name`` (``UNITS``); None for the CLI's default, "m"."""
@@ -499,8 +569,7 @@ class _JobAlgorithm(_Base):
     def status(self, run) -> dict:
         ok = run.returncode == adapter.EXIT_OK
         message = run.message or ""
-        return {self.STATUS: "ok" if ok else "failed",
-                self.REASON: "" if ok else message.removeprefix("failed: ")}
+        return {self.STATUS: "ok" if ok else "failed", self.REASON: "" if ok else message.removeprefix("failed: ")}
 
 
 class CoregisterAlgorithm(_JobAlgorithm):
@@ -523,17 +592,37 @@ class CoregisterAlgorithm(_JobAlgorithm):
 
     def initAlgorithm(self, config=None):  # noqa: N802
         self.addParameter(QgsProcessingParameterFile(self.GROUND, "Ground-based cloud", fileFilter=SCAN_FILTER))
-        self.addParameter(QgsProcessingParameterFile(self.UAV, "UAV cloud (the reference frame)", fileFilter=SCAN_FILTER))
+        self.addParameter(
+            QgsProcessingParameterFile(self.UAV, "UAV cloud (the reference frame)", fileFilter=SCAN_FILTER)
+        )
         self.addParameter(QgsProcessingParameterFolderDestination(self.OUTPUT, "Output folder"))
-        self.addParameter(QgsProcessingParameterNumber(
-            self.MIN_CLUSTER_SIZE, "HDBSCAN MinClusterSize (--min-cluster-size; empty: from the point density)",
-            type=QgsProcessingParameterNumber.Integer, optional=True, minValue=2))
-        self.addParameter(QgsProcessingParameterNumber(
-            self.VOXEL, "Thinning voxel before clustering, m (--voxel; empty: 0.3)", type=QgsProcessingParameterNumber.Double,
-            optional=True, minValue=0.0))
-        self.addParameter(QgsProcessingParameterNumber(
-            self.DISTANCE_THRESHOLD, "D_thr for matched keypoints, m (--distance-threshold; empty: 1)",
-            type=QgsProcessingParameterNumber.Double, optional=True, minValue=0.0))
+        self.addParameter(
+            QgsProcessingParameterNumber(
+                self.MIN_CLUSTER_SIZE,
+                "HDBSCAN MinClusterSize (--min-cluster-size; empty: from the point density)",
+                type=QgsProcessingParameterNumber.Integer,
+                optional=True,
+                minValue=2,
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterNumber(
+                self.VOXEL,
+                "Thinning voxel before clustering, m (--voxel; empty: 0.3)",
+                type=QgsProcessingParameterNumber.Double,
+                optional=True,
+                minValue=0.0,
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterNumber(
+                self.DISTANCE_THRESHOLD,
+                "D_thr for matched keypoints, m (--distance-threshold; empty: 1)",
+                type=QgsProcessingParameterNumber.Double,
+                optional=True,
+                minValue=0.0,
+            )
+        )
         self._crs_parameter("result.json and layers.gpkg are in the UAV cloud's frame and take its CRS")
         self._units_parameters("of the input coordinates; results are written in the same unit")
         self._cli_parameter()
@@ -544,12 +633,14 @@ class CoregisterAlgorithm(_JobAlgorithm):
 
     def job(self, parameters, context):
         return adapter.CoregisterJob(
-            ground=self._file(parameters, self.GROUND, context), uav=self._file(parameters, self.UAV, context),
+            ground=self._file(parameters, self.GROUND, context),
+            uav=self._file(parameters, self.UAV, context),
             out_dir=self.parameterAsString(parameters, self.OUTPUT, context),
             min_cluster_size=self._optional_number(parameters, self.MIN_CLUSTER_SIZE, context, integer=True),
             voxel_m=self._optional_number(parameters, self.VOXEL, context),
             distance_threshold_m=self._optional_number(parameters, self.DISTANCE_THRESHOLD, context),
-            crs=self._crs_text(parameters, context), units=self._units(parameters, context),
+            crs=self._crs_text(parameters, context),
+            units=self._units(parameters, context),
             params_file=self._file(parameters, self.PARAMS, context),
         )
 
@@ -559,10 +650,15 @@ class CoregisterAlgorithm(_JobAlgorithm):
         out = Path(job.out_dir)
         transform = out / "transform.txt"
         return {
-            self.OUTPUT: str(out), **self.status(run),
+            self.OUTPUT: str(out),
+            **self.status(run),
             self.TRANSFORM: str(transform) if run.returncode == adapter.EXIT_OK and transform.is_file() else "",
             self.RESULT: str(out / "result.json"),
-            self.LAYERS: list(_load_gpkg_layers(out, f"{Path(job.ground).stem} onto {Path(job.uav).stem}", context, self.LAYERS, feedback).values()),
+            self.LAYERS: list(
+                _load_gpkg_layers(
+                    out, f"{Path(job.ground).stem} onto {Path(job.uav).stem}", context, self.LAYERS, feedback
+                ).values()
+            ),
         }
 
 
@@ -585,16 +681,35 @@ class FuseAlgorithm(_JobAlgorithm):
     def initAlgorithm(self, config=None):  # noqa: N802
         self.addParameter(QgsProcessingParameterFile(self.GROUND, "Ground-based cloud", fileFilter=SCAN_FILTER))
         self.addParameter(QgsProcessingParameterFile(self.UAV, "UAV cloud (the output frame)", fileFilter=SCAN_FILTER))
-        self.addParameter(QgsProcessingParameterFile(
-            self.TRANSFORM, "Transform (--transform: transform.txt or result.json of coregister; empty: identity)",
-            optional=True, fileFilter=TRANSFORM_FILTER))
-        self.addParameter(QgsProcessingParameterFileDestination(self.OUTPUT, "Fused cloud (.laz/.las)", fileFilter=LAS_FILTER))
-        self.addParameter(QgsProcessingParameterNumber(
-            self.EPSILON, "Redundancy distance, m (--epsilon; empty: 0.01)", type=QgsProcessingParameterNumber.Double,
-            optional=True, minValue=0.0))
-        self.addParameter(QgsProcessingParameterNumber(
-            self.CUBE, "Cube side of the redundancy search, m (--cube; empty: the default)", type=QgsProcessingParameterNumber.Double,
-            optional=True, minValue=0.0))
+        self.addParameter(
+            QgsProcessingParameterFile(
+                self.TRANSFORM,
+                "Transform (--transform: transform.txt or result.json of coregister; empty: identity)",
+                optional=True,
+                fileFilter=TRANSFORM_FILTER,
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterFileDestination(self.OUTPUT, "Fused cloud (.laz/.las)", fileFilter=LAS_FILTER)
+        )
+        self.addParameter(
+            QgsProcessingParameterNumber(
+                self.EPSILON,
+                "Redundancy distance, m (--epsilon; empty: 0.01)",
+                type=QgsProcessingParameterNumber.Double,
+                optional=True,
+                minValue=0.0,
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterNumber(
+                self.CUBE,
+                "Cube side of the redundancy search, m (--cube; empty: the default)",
+                type=QgsProcessingParameterNumber.Double,
+                optional=True,
+                minValue=0.0,
+            )
+        )
         self._crs_parameter("the fused cloud takes it; needed when the two files declare different CRSs")
         self._units_parameters("of the input coordinates and of the fused cloud")
         self._cli_parameter()
@@ -603,12 +718,14 @@ class FuseAlgorithm(_JobAlgorithm):
 
     def job(self, parameters, context):
         return adapter.FuseJob(
-            ground=self._file(parameters, self.GROUND, context), uav=self._file(parameters, self.UAV, context),
+            ground=self._file(parameters, self.GROUND, context),
+            uav=self._file(parameters, self.UAV, context),
             out=self.parameterAsFileOutput(parameters, self.OUTPUT, context),
             transform=self._file(parameters, self.TRANSFORM, context),
             epsilon_m=self._optional_number(parameters, self.EPSILON, context),
             cube_m=self._optional_number(parameters, self.CUBE, context),
-            crs=self._crs_text(parameters, context), units=self._units(parameters, context),
+            crs=self._crs_text(parameters, context),
+            units=self._units(parameters, context),
             params_file=self._file(parameters, self.PARAMS, context),
         )
 
@@ -616,7 +733,8 @@ class FuseAlgorithm(_JobAlgorithm):
         job = self.job(parameters, context)
         run = self.run_service_job(job, parameters, context, feedback)
         return {
-            self.OUTPUT: str(job.out), **self.status(run),
+            self.OUTPUT: str(job.out),
+            **self.status(run),
             self.POINT_CLOUD: _load_point_cloud(job.out, Path(str(job.out)).name, context, self.POINT_CLOUD, feedback),
         }
 
@@ -646,15 +764,40 @@ class TreesAlgorithm(_JobAlgorithm):
     def initAlgorithm(self, config=None):  # noqa: N802
         self.addParameter(QgsProcessingParameterFile(self.CLOUD, "Cloud (ground included)", fileFilter=SCAN_FILTER))
         self.addParameter(QgsProcessingParameterFolderDestination(self.OUTPUT, "Output folder"))
-        self.addParameter(QgsProcessingParameterFile(
-            self.TRANSFORM, "Move the cloud first (--transform: transform.txt of coregister)", optional=True, fileFilter=TRANSFORM_FILTER))
-        self.addParameter(QgsProcessingParameterFile(
-            self.FIELD, "Field records CSV: also evaluate the trees against them (--field)", optional=True, fileFilter=CSV_FILTER))
-        self.addParameter(QgsProcessingParameterBoolean(
-            self.CYLINDERS, "Cylinder models and leaf-wood separation (off: --no-cylinders; faster, no volume)", defaultValue=True))
-        self.addParameter(QgsProcessingParameterEnum(
-            self.SINGLE_TREE, "The cloud is one tree (--single-tree)", options=list(SINGLE_TREE_OPTIONS), defaultValue=0))
-        self.addParameter(QgsProcessingParameterBoolean(self.REPORT, "HTML report (off: --no-report)", defaultValue=True))
+        self.addParameter(
+            QgsProcessingParameterFile(
+                self.TRANSFORM,
+                "Move the cloud first (--transform: transform.txt of coregister)",
+                optional=True,
+                fileFilter=TRANSFORM_FILTER,
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterFile(
+                self.FIELD,
+                "Field records CSV: also evaluate the trees against them (--field)",
+                optional=True,
+                fileFilter=CSV_FILTER,
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterBoolean(
+                self.CYLINDERS,
+                "Cylinder models and leaf-wood separation (off: --no-cylinders; faster, no volume)",
+                defaultValue=True,
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterEnum(
+                self.SINGLE_TREE,
+                "The cloud is one tree (--single-tree)",
+                options=list(SINGLE_TREE_OPTIONS),
+                defaultValue=0,
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterBoolean(self.REPORT, "HTML report (off: --no-report)", defaultValue=True)
+        )
         self._crs_parameter("layers.gpkg is in it")
         self._units_parameters("of the input coordinates")
         self._cli_parameter()
@@ -663,15 +806,25 @@ class TreesAlgorithm(_JobAlgorithm):
         self._status_outputs()
 
     def job(self, parameters, context):
-        single = SINGLE_TREE_OPTIONS[self.parameterAsEnum(parameters, self.SINGLE_TREE, context)] if parameters.get(self.SINGLE_TREE) not in (None, "") else None
+        single = (
+            SINGLE_TREE_OPTIONS[self.parameterAsEnum(parameters, self.SINGLE_TREE, context)]
+            if parameters.get(self.SINGLE_TREE) not in (None, "")
+            else None
+        )
         return adapter.TreesJob(
             cloud=self._file(parameters, self.CLOUD, context),
             out_dir=self.parameterAsString(parameters, self.OUTPUT, context),
-            transform=self._file(parameters, self.TRANSFORM, context), field=self._file(parameters, self.FIELD, context),
-            cylinders=self.parameterAsBool(parameters, self.CYLINDERS, context) if parameters.get(self.CYLINDERS) is not None else True,
+            transform=self._file(parameters, self.TRANSFORM, context),
+            field=self._file(parameters, self.FIELD, context),
+            cylinders=self.parameterAsBool(parameters, self.CYLINDERS, context)
+            if parameters.get(self.CYLINDERS) is not None
+            else True,
             single_tree=None if single in (None, SINGLE_TREE_OPTIONS[0]) else single,
-            report=self.parameterAsBool(parameters, self.REPORT, context) if parameters.get(self.REPORT) is not None else True,
-            crs=self._crs_text(parameters, context), units=self._units(parameters, context),
+            report=self.parameterAsBool(parameters, self.REPORT, context)
+            if parameters.get(self.REPORT) is not None
+            else True,
+            crs=self._crs_text(parameters, context),
+            units=self._units(parameters, context),
             params_file=self._file(parameters, self.PARAMS, context),
         )
 
@@ -681,9 +834,12 @@ class TreesAlgorithm(_JobAlgorithm):
         out = Path(job.out_dir)
         trees = out / "trees.csv"
         return {
-            self.OUTPUT: str(out), **self.status(run),
+            self.OUTPUT: str(out),
+            **self.status(run),
             self.TREES: str(trees) if trees.is_file() else "",
-            self.LAYERS: list(_load_gpkg_layers(out, Path(str(job.cloud)).stem, context, self.LAYERS, feedback).values()),
+            self.LAYERS: list(
+                _load_gpkg_layers(out, Path(str(job.cloud)).stem, context, self.LAYERS, feedback).values()
+            ),
         }
 
 
@@ -709,25 +865,49 @@ class EvaluateAlgorithm(_JobAlgorithm):
         self.addParameter(QgsProcessingParameterFile(self.TREES, "trees.csv of Measure trees", fileFilter=CSV_FILTER))
         self.addParameter(QgsProcessingParameterFile(self.FIELD, "Field records CSV", fileFilter=CSV_FILTER))
         self.addParameter(QgsProcessingParameterFolderDestination(self.OUTPUT, "Output folder"))
-        self.addParameter(QgsProcessingParameterString(self.RUN_NAME, "Name of the first run (--name; empty: its folder name)", optional=True))
-        self.addParameter(QgsProcessingParameterString(
-            self.ALSO, "Other runs side by side (--also; [NAME=]TREES entries separated by ';')", optional=True))
-        self.addParameter(QgsProcessingParameterEnum(self.BY, "Match trees by (--by)", options=list(adapter.EVALUATE_BY), defaultValue=0))
-        self.addParameter(QgsProcessingParameterNumber(
-            self.MAX_DISTANCE, "Largest distance of a position match, m (--max-distance)", type=QgsProcessingParameterNumber.Double,
-            defaultValue=1.0, minValue=0.0))
+        self.addParameter(
+            QgsProcessingParameterString(
+                self.RUN_NAME, "Name of the first run (--name; empty: its folder name)", optional=True
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterString(
+                self.ALSO, "Other runs side by side (--also; [NAME=]TREES entries separated by ';')", optional=True
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterEnum(
+                self.BY, "Match trees by (--by)", options=list(adapter.EVALUATE_BY), defaultValue=0
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterNumber(
+                self.MAX_DISTANCE,
+                "Largest distance of a position match, m (--max-distance)",
+                type=QgsProcessingParameterNumber.Double,
+                defaultValue=1.0,
+                minValue=0.0,
+            )
+        )
         self._cli_parameter()
         self.addOutput(QgsProcessingOutputFile(self.EVALUATION, "evaluation.json"))
         self._status_outputs()
 
     def job(self, parameters, context):
         also = [a.strip() for a in (self._string(parameters, self.ALSO, context) or "").split(";") if a.strip()]
-        by = adapter.EVALUATE_BY[self.parameterAsEnum(parameters, self.BY, context)] if parameters.get(self.BY) not in (None, "") else "position"
+        by = (
+            adapter.EVALUATE_BY[self.parameterAsEnum(parameters, self.BY, context)]
+            if parameters.get(self.BY) not in (None, "")
+            else "position"
+        )
         distance = self._optional_number(parameters, self.MAX_DISTANCE, context)
         return adapter.EvaluateJob(
-            trees=self._file(parameters, self.TREES, context), field=self._file(parameters, self.FIELD, context),
+            trees=self._file(parameters, self.TREES, context),
+            field=self._file(parameters, self.FIELD, context),
             out_dir=self.parameterAsString(parameters, self.OUTPUT, context),
-            name=self._string(parameters, self.RUN_NAME, context), also=also, by=by,
+            name=self._string(parameters, self.RUN_NAME, context),
+            also=also,
+            by=by,
             max_distance_m=1.0 if distance is None else distance,
         )
 
@@ -735,7 +915,11 @@ class EvaluateAlgorithm(_JobAlgorithm):
         job = self.job(parameters, context)
         run = self.run_service_job(job, parameters, context, feedback)
         evaluation = Path(job.out_dir) / "evaluation.json"
-        return {self.OUTPUT: str(job.out_dir), **self.status(run), self.EVALUATION: str(evaluation) if evaluation.is_file() else ""}
+        return {
+            self.OUTPUT: str(job.out_dir),
+            **self.status(run),
+            self.EVALUATION: str(evaluation) if evaluation.is_file() else "",
+        }
 
 
 class ChangeAlgorithm(_JobAlgorithm):
@@ -758,15 +942,29 @@ class ChangeAlgorithm(_JobAlgorithm):
     )
 
     def initAlgorithm(self, config=None):  # noqa: N802
-        self.addParameter(QgsProcessingParameterFile(self.BEFORE, "Earlier survey (cloud, project .json or trees.csv)", fileFilter=SURVEY_FILTER))
-        self.addParameter(QgsProcessingParameterFile(self.AFTER, "Later survey (cloud, project .json or trees.csv)", fileFilter=SURVEY_FILTER))
+        self.addParameter(
+            QgsProcessingParameterFile(
+                self.BEFORE, "Earlier survey (cloud, project .json or trees.csv)", fileFilter=SURVEY_FILTER
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterFile(
+                self.AFTER, "Later survey (cloud, project .json or trees.csv)", fileFilter=SURVEY_FILTER
+            )
+        )
         self.addParameter(QgsProcessingParameterFolderDestination(self.OUTPUT, "Output folder"))
-        self.addParameter(QgsProcessingParameterBoolean(self.REPORT, "HTML report (off: --no-report)", defaultValue=True))
+        self.addParameter(
+            QgsProcessingParameterBoolean(self.REPORT, "HTML report (off: --no-report)", defaultValue=True)
+        )
         self._crs_parameter("result.json and layers.gpkg are in BEFORE's frame and take its CRS")
         self._units_parameters("of both surveys' coordinates")
         for name, role in ((self.UNITS_BEFORE, "earlier"), (self.UNITS_AFTER, "later")):
-            units = QgsProcessingParameterEnum(name, f"Units of the {role} survey when the two differ (--units-{'before' if role == 'earlier' else 'after'})",
-                                               options=["as Units", *UNITS], defaultValue=0)
+            units = QgsProcessingParameterEnum(
+                name,
+                f"Units of the {role} survey when the two differ (--units-{'before' if role == 'earlier' else 'after'})",
+                options=["as Units", *UNITS],
+                defaultValue=0,
+            )
             units.setFlags(units.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
             self.addParameter(units)
         self._cli_parameter()
@@ -777,10 +975,14 @@ class ChangeAlgorithm(_JobAlgorithm):
 
     def job(self, parameters, context):
         return adapter.ChangeJob(
-            before=self._file(parameters, self.BEFORE, context), after=self._file(parameters, self.AFTER, context),
+            before=self._file(parameters, self.BEFORE, context),
+            after=self._file(parameters, self.AFTER, context),
             out_dir=self.parameterAsString(parameters, self.OUTPUT, context),
-            report=self.parameterAsBool(parameters, self.REPORT, context) if parameters.get(self.REPORT) is not None else True,
-            crs=self._crs_text(parameters, context), units=self._units(parameters, context),
+            report=self.parameterAsBool(parameters, self.REPORT, context)
+            if parameters.get(self.REPORT) is not None
+            else True,
+            crs=self._crs_text(parameters, context),
+            units=self._units(parameters, context),
             units_before=self._units(parameters, context, self.UNITS_BEFORE, first=("as Units",)),
             units_after=self._units(parameters, context, self.UNITS_AFTER, first=("as Units",)),
             params_file=self._file(parameters, self.PARAMS, context),
@@ -792,16 +994,32 @@ class ChangeAlgorithm(_JobAlgorithm):
         out = Path(job.out_dir)
         changes = out / "tree_changes.csv"
         return {
-            self.OUTPUT: str(out), **self.status(run),
+            self.OUTPUT: str(out),
+            **self.status(run),
             self.CHANGES: str(changes) if changes.is_file() else "",
             self.RESULT: str(out / "result.json"),
-            self.LAYERS: list(_load_gpkg_layers(out, f"{Path(str(job.after)).stem} since {Path(str(job.before)).stem}", context, self.LAYERS, feedback).values()),
+            self.LAYERS: list(
+                _load_gpkg_layers(
+                    out,
+                    f"{Path(str(job.after)).stem} since {Path(str(job.before)).stem}",
+                    context,
+                    self.LAYERS,
+                    feedback,
+                ).values()
+            ),
         }
 
 
 #: the provider's algorithms, in the order of the toolbox
-ALGORITHMS = (RegisterPairAlgorithm, RegisterPlotAlgorithm, CoregisterAlgorithm, FuseAlgorithm, TreesAlgorithm,
-              EvaluateAlgorithm, ChangeAlgorithm)
+ALGORITHMS = (
+    RegisterPairAlgorithm,
+    RegisterPlotAlgorithm,
+    CoregisterAlgorithm,
+    FuseAlgorithm,
+    TreesAlgorithm,
+    EvaluateAlgorithm,
+    ChangeAlgorithm,
+)
 
 
 class ForestregProvider(QgsProcessingProvider):
