@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 from ..app.saved import SavedFileError, SavedPoses, SavedProject, SavedResult
+from ..engine.report.batch_report import LINKED_OUTPUTS
 
 log = logging.getLogger("forestreg.batch")
 
@@ -751,15 +752,13 @@ def run_plot(task: dict) -> dict:
             f"(every {MEMORY_SAMPLE_S:g} s), too briefly to be stopped"
         )
         row["reason"] = f"{row['reason']}; {note}" if row["reason"] else note
-    row["outputs"] = [name for name in _LINKED if (out / name).is_file()]  # for the overview: no stat per row later
+    row["outputs"] = [
+        name for name in LINKED_OUTPUTS if (out / name).is_file()
+    ]  # for the overview: no stat per row later
     if out.is_dir():
         write_text_atomic(out / "batch.json", json.dumps(row, indent=2) + "\n")
     _finish_attempt(t)
     return row
-
-
-#: The files of a plot's folder the overview links to.
-_LINKED = ("report.html", "poses.json", "result.json", "trees.csv")
 
 
 # ----------------------------------------------------------------------------- the batch

@@ -16,7 +16,8 @@ from .evaluation_report import esc, generated_line, html_page
 
 _STATUS_COLOUR = {"ok": "#1a7f37", "failed": "#b35900", "error": "#c62828"}
 _ORDER = {"error": 0, "failed": 1, "ok": 2}
-_LINKED = ("report.html", "poses.json", "result.json", "trees.csv")
+#: The files of a plot's folder the batch overview links to (the batch lists those present).
+LINKED_OUTPUTS = ("report.html", "poses.json", "result.json", "trees.csv")
 
 
 def batch_report_html(rows: Sequence[Mapping[str, Any]], out_dir: Path, *, title: str, facts: Mapping[str, Any]) -> str:
@@ -43,9 +44,9 @@ def batch_report_html(rows: Sequence[Mapping[str, Any]], out_dir: Path, *, title
         folder = out_dir / str(r["plot"])
         known = r.get("outputs")  # the plot's files, listed when it finished: no look-up per row and rewrite
         names = (
-            [n for n in _LINKED if n in known]
+            [n for n in LINKED_OUTPUTS if n in known]
             if isinstance(known, (list, tuple))
-            else [n for n in _LINKED if (folder / n).is_file()]
+            else [n for n in LINKED_OUTPUTS if (folder / n).is_file()]
         )
         href = quote(str(r["plot"])) + "/"  # the plot's folder in out_dir
         links = [f'<a href="{esc(href + name)}">{esc(name)}</a>' for name in names]
