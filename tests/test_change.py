@@ -434,3 +434,53 @@ def test_change_is_a_service_job_and_a_batch_command(tmp_path):
     assert row["status"] == "ok" and row["registered"] == 1 and row["trees"] == 66, row
     assert "result.json" in row["outputs"] and (tmp_path / "out" / "plot1" / "result.json").is_file()
     assert run_plot(asdict(tasks["plot3"]))["status"] == "error"
+
+
+def _with_points(epoch: EpochTrees, extra: np.ndarray = np.zeros((0, 2))) -> EpochTrees:
+    """``epoch`` (a table) with a stem band: 40 points on each stem's circle at 1.0-2.5 m, the
+    ``extra`` (x, y) places each holding 12 points within 3 cm of it, and a ground grid."""
+    import dataclasses
+
+    rng = np.random.default_rng(3)
+    band = []
+    for (x, y), d in zip(epoch.xy, epoch.dbh_m):
+        th = rng.uniform(0, 2 * math.pi, 40)
+        band.append(np.column_stack([x + 0.5 * d * np.cos(th), y + 0.5 * d * np.sin(th), rng.uniform(1.0, 2.5, 40)]))
+    for x, y in extra:
+        band.append(
+            np.column_stack(
+                [x + rng.uniform(-0.03, 0.03, 12), y + rng.uniform(-0.03, 0.03, 12), rng.uniform(1.0, 2.5, 12)]
+            )
+        )
+    band = np.vstack(band)
+    gx, gy = np.meshgrid(np.arange(-16.0, 16.0, 0.5), np.arange(-16.0, 16.0, 0.5))
+    ground = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    return dataclasses.replace(epoch, band=band, band_heights=band[:, 2].copy(), ground=ground)
+
+
+def test_a_stem_whose_place_the_earlier_survey_saw_points_at_is_not_new():
+    """A stem of the later survey alone is new only where the earlier survey saw its place empty:
+    a dozen points there (an occluded stem partly hit, too few to measure) make it persisting,
+    with the reason; with nothing there it is new."""
+    from forestreg.engine.change.matching import match_trees
+
+    xy, dbh, h = _stand(n=30, seed=5)
+    spot = np.array([[0.6, -0.4]])
+    while np.hypot(*(xy - spot[0]).T).min() < 2.0:
+        spot = spot + 1.0
+    before_table = _table_epoch(xy, dbh, h, "BEFORE")
+    after_table = _table_epoch(np.vstack([xy, spot]), np.append(dbh + 0.01, 0.12), np.append(h + 1.0, 9.0), "AFTER")
+    shift = before_table.origin_shift[:2] - after_table.origin_shift[:2]
+    matrix = np.eye(4)
+    matrix[:2, 3] = -shift
+    after = _with_points(after_table)
+    for extra, status, why in (
+        (spot - before_table.origin_shift[:2], "persisting", "not empty in BEFORE"),
+        (np.zeros((0, 2)), "new", "no stem in BEFORE"),
+    ):
+        before = _with_points(before_table, extra)
+        trees = match_trees(before, after, matrix)
+        found = [t for t in trees if t.tree_id_after == len(xy) + 1]
+        assert len(found) == 1, [t.status for t in trees if t.tree_id_before is None]
+        assert found[0].status == status and why in found[0].flag, (found[0].status, found[0].flag)
+        assert sum(t.status == "persisting" for t in trees) == len(xy) + (status == "persisting")

@@ -10,7 +10,9 @@ either survey gets a status:
   later survey alone thicker than ``max_new_dbh_m``, which cannot have grown in since (its place
   was occluded in the earlier survey);
 - ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
-- ``new``: a stem of the later survey whose place the earlier survey saw without a stem;
+- ``new``: a stem of the later survey whose place the earlier survey saw empty (fewer than
+  ``partial_presence_points`` points there: more, too few to measure, mean a stem occluded there,
+  persisting);
 - (a stem found in one survey alone, without a DBH and without points of its own 1.0-1.6 m above
   the ground, is left out: no evidence of a tree removed or grown in; so is a stem of the later
   survey alone without a DBH whose place the earlier one saw without a stem: a tree grown in is
@@ -227,13 +229,23 @@ def match_trees(
             base = _one_side(epoch, int(k), which, xy=where[j] if at_other else None)
             own = epoch.flags[k] and f"{which.upper()}: {epoch.flags[k]}"
             thick_new = status == "new" and seen[j] and epoch.dbh_m[k] > params.max_new_dbh_m
+            # a tree grown in stood where the earlier survey saw nothing: points at its place
+            # there (fewer than show a stem) mean it was occluded, not absent
+            not_empty = status == "new" and present[j] >= params.partial_presence_points
             if other.has_points and (
-                present[j] >= params.presence_points or partly[j] >= params.partial_presence_points or thick_new
+                present[j] >= params.presence_points
+                or partly[j] >= params.partial_presence_points
+                or thick_new
+                or not_empty
             ):
                 if present[j] >= params.presence_points:
                     what = f"stem present in {name} but not measured there (occluded or unsure)"
                 elif partly[j] >= params.partial_presence_points:
                     what = f"stem partly seen in {name} ({partly[j]} points on its surface: occluded there)"
+                elif not_empty:
+                    what = (
+                        f"its place not empty in {name} ({present[j]} points there, too few to measure): occluded there"
+                    )
                 else:
                     what = (
                         f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {100 * params.max_new_dbh_m:g} cm): "
