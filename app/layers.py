@@ -386,11 +386,29 @@ def change_layers(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> 
     return [layer, outline_layer(convex_hull_2d(xy) if len(xy) >= 3 else None, "trees", "the trees of both surveys")]
 
 
+def _slices_outline(project, scans, hull) -> tuple[Optional[np.ndarray], str]:
+    """The outline from above of what the registered scans measured: the convex hull of their
+    stem-height slices in the plot frame (the slices the links were registered on, kept by the
+    run: no scan is read again), or (None, "") when they cannot be drawn. A scan's header
+    bounds, turned by its pose, cover far more than its points (the box's corners)."""
+    from ..engine.report.views import compute_top_view
+
+    try:
+        view = compute_top_view(project, scans)
+    except Exception:  # noqa: BLE001 - the layers fall back to the scans' extents
+        return None, ""
+    xy = [v.slice_xy for v in view.scans.values() if len(v.slice_xy)]
+    if not xy or view.problems:
+        return None, ""
+    return hull(np.vstack(xy)), "the registered scans' stem-height slices"
+
+
 def plot_layers(project, scans, uncertainty: Mapping[str, Any], outcome=None, *, unit_scale: float = 1.0) -> list:
     """The ``scanners``, ``links`` and ``plot_outline`` layers of a registered plot, in the centre
     scan's file coordinates: each placed scanner (its position moved by its pose), each link as a
     line between its two scanners (NULL geometry where one is not placed) with its status and
-    1-sigma uncertainty, and the convex hull of the placed scans' bounds from above. ``scans`` a
+    1-sigma uncertainty, and the outline from above of what they measured (:func:`_slices_outline`,
+    else the hull of the placed scans' bounds). ``scans`` a
     :class:`~forestreg.engine.tls.plot.ScanCache` (frames and bounds known from the run: nothing
     read again for LAS/LAZ), ``uncertainty`` scan -> 1 sigma."""
     from ..engine.core.transform import apply
@@ -481,7 +499,9 @@ def plot_layers(project, scans, uncertainty: Mapping[str, Any], outcome=None, *,
     )
     from ..engine.trees.crown import convex_hull_2d
 
-    ring = convex_hull_2d(np.vstack(corners)) if corners else None
+    ring, what = _slices_outline(project, scans, convex_hull_2d)
+    if ring is None:
+        ring, what = (convex_hull_2d(np.vstack(corners)) if corners else None), "the registered scans' extents"
     return [
         Layer(
             "scanners",
@@ -508,7 +528,7 @@ def plot_layers(project, scans, uncertainty: Mapping[str, Any], outcome=None, *,
                 for c in link_cols
             },
         ),
-        outline_layer(ring, project.name or "plot", "the registered scans' extents"),
+        outline_layer(ring, project.name or "plot", what, unit_scale),
     ]
 
 

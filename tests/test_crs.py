@@ -268,6 +268,14 @@ def test_a_plot_carries_the_crs_to_poses_merged_registered_and_layers(plot_files
     links, _ = read_layer(out / "layers.gpkg", "links")
     assert len(links) == 2 and all(r["status"] == "ok" and r["geom"][0] == "LINESTRING" for r in links)
     assert all(r["sigma_translation_m"] is not None for r in links)
+    # the plot's outline is that of the points measured (the merged cloud), not of the scans' boxes
+    (outline,), _ = read_layer(out / "layers.gpkg", "plot_outline")
+    assert outline["outline_of"] == "the registered scans' stem-height slices"
+    merged = read_scan(out / "merged.laz").points
+    from scipy.spatial import ConvexHull
+
+    cloud_area = ConvexHull(np.asarray(merged)[:, :2]).volume
+    assert 0.5 * cloud_area < outline["area_m2"] <= 1.01 * cloud_area
 
 
 def _trees_table(path: Path, xy: np.ndarray, dbh: np.ndarray) -> None:
