@@ -459,6 +459,7 @@ def register_plot(
             cancel.raise_if_cancelled()
         report(0.96, "global adjustment")
         adjust_poses(project, scans)
+        report(1.0, "done")
     save_to_its_file(project)
     return outcome
 
