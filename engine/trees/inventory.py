@@ -586,8 +586,9 @@ def _measure_trees(
     height_curve = _plot_height_curve(stems, dbh, curves, crowns, shared, complete, stem_params, params)
     overtopped = _under_thicker_crowns(stems, params)
     order, bounds = _points_by_stem(labels, stems)
+    what = "crown and cylinder model" if params.cylinder_models else "crown"
     for k, stem in enumerate(stems):
-        progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: crown and cylinder model")
+        progress(0.6 + 0.4 * k / len(stems), f"tree {k + 1} of {len(stems)}: {what}")
         idx = order[bounds[k] : bounds[k + len(stems)]]
         records.append(
             tree_record(
