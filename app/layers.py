@@ -386,12 +386,13 @@ def change_layers(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> 
     return [layer, outline_layer(convex_hull_2d(xy) if len(xy) >= 3 else None, "trees", "the trees of both surveys")]
 
 
-def _slices_outline(project, scans, hull) -> tuple[Optional[np.ndarray], str]:
+def _slices_outline(project, scans) -> tuple[Optional[np.ndarray], str]:
     """The outline from above of what the registered scans measured: the convex hull of their
     stem-height slices in the plot frame (the slices the links were registered on, kept by the
     run: no scan is read again), or (None, "") when they cannot be drawn. A scan's header
     bounds, turned by its pose, cover far more than its points (the box's corners)."""
     from ..engine.report.views import compute_top_view
+    from ..engine.trees.crown import convex_hull_2d
 
     try:
         view = compute_top_view(project, scans)
@@ -400,7 +401,7 @@ def _slices_outline(project, scans, hull) -> tuple[Optional[np.ndarray], str]:
     xy = [v.slice_xy for v in view.scans.values() if len(v.slice_xy)]
     if not xy or view.problems:
         return None, ""
-    return hull(np.vstack(xy)), "the registered scans' stem-height slices"
+    return convex_hull_2d(np.vstack(xy)), "the registered scans' stem-height slices"
 
 
 def plot_layers(project, scans, uncertainty: Mapping[str, Any], outcome=None, *, unit_scale: float = 1.0) -> list:
@@ -499,7 +500,7 @@ def plot_layers(project, scans, uncertainty: Mapping[str, Any], outcome=None, *,
     )
     from ..engine.trees.crown import convex_hull_2d
 
-    ring, what = _slices_outline(project, scans, convex_hull_2d)
+    ring, what = _slices_outline(project, scans)
     if ring is None:
         ring, what = (convex_hull_2d(np.vstack(corners)) if corners else None), "the registered scans' extents"
     return [

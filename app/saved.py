@@ -117,7 +117,8 @@ class SavedResult:
 def saved_crs(d: object) -> Optional[str]:
     """The CRS a run's outputs are in, as its ``result.json`` or ``poses.json`` names it (its
     ``crs`` entry): the EPSG id (``"EPSG:32618"``), else the WKT; None for local coordinates or
-    no such entry."""
+    no such entry. Text only, without pyproj (:meth:`~forestreg.engine.io.crs.Crs.from_dict`
+    parses it): the QGIS plugin reads it in QGIS's own Python."""
     crs = d.get("crs") if isinstance(d, Mapping) else None
     if not isinstance(crs, Mapping):
         return None

@@ -22,7 +22,7 @@ from ..core.uncertainty import judge, with_alternatives
 from .epoch import EpochTrees
 from .matching import STATUSES, TreeChange, match_trees
 from .params import ChangeParams
-from .registration import StemMatch, paired_after_xy, persisting_stems, refine_on_stems, stem_alternatives
+from .registration import StemMatch, paired_after_points, persisting_stems, refine_on_stems, stem_alternatives
 
 __all__ = ["ChangeResult", "detect_change", "file_matrix"]
 
@@ -182,10 +182,7 @@ def detect_change(
     from ..tls.uncertainty import pair_uncertainty
 
     b_idx, a_idx = match.pairs[:, 0], match.pairs[:, 1]
-    cut_z = before.ground_z[b_idx] + 1.3 - float(local[2, 3])  # BEFORE's breast heights, in AFTER's frame
-    moved = apply_transform(
-        local, np.column_stack([paired_after_xy(before, after, match.pairs, float(local[2, 3])), cut_z])
-    )
+    moved = apply_transform(local, paired_after_points(before, after, match.pairs, float(local[2, 3])))
     res = np.hypot(*(moved[:, :2] - before.xy[b_idx]).T)
     figures["stem_residual_rms_m"] = float(np.sqrt(np.mean(res**2)))
     figures["stem_residual_max_m"] = float(res.max())

@@ -128,14 +128,15 @@ def _vertical(before: EpochTrees, after: EpochTrees, pairs: np.ndarray) -> tuple
     return med, source, float(1.4826 * np.median(np.abs(dz - med)))
 
 
-def paired_after_xy(before: EpochTrees, after: EpochTrees, pairs: np.ndarray, dz: float) -> np.ndarray:
-    """(k, 2) the AFTER stems of ``pairs`` (AFTER's frame) where their axes pass the height at
+def paired_after_points(before: EpochTrees, after: EpochTrees, pairs: np.ndarray, dz: float) -> np.ndarray:
+    """(k, 3) the AFTER stems of ``pairs`` (AFTER's frame) where their axes pass the height at
     which BEFORE measured its partner (BEFORE's breast height; ``dz`` = BEFORE minus AFTER height
     offset). The two surveys' grounds under a stem may differ (a cloud without ground, another
     DEM): breast-height positions of leaning stems would then differ by the lean times that
     difference, the same way for stems leaning alike, a shift no residual shows."""
     b, a = pairs[:, 0], pairs[:, 1]
-    return after.axis_xy_at(a, before.ground_z[b] + 1.3 - dz)
+    z = before.ground_z[b] + 1.3 - dz
+    return np.column_stack([after.axis_xy_at(a, z), z])
 
 
 def _fit(before: EpochTrees, after: EpochTrees, pairs: np.ndarray) -> np.ndarray:
@@ -144,7 +145,7 @@ def _fit(before: EpochTrees, after: EpochTrees, pairs: np.ndarray) -> np.ndarray
     from ..tls.uncertainty import rigid_fit_2d
 
     dz = _vertical(before, after, pairs)[0]
-    angle, t = rigid_fit_2d(paired_after_xy(before, after, pairs, dz), before.xy[pairs[:, 0]])
+    angle, t = rigid_fit_2d(paired_after_points(before, after, pairs, dz)[:, :2], before.xy[pairs[:, 0]])
     return rigid_2d_matrix(angle, t, dz)
 
 
