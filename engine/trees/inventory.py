@@ -176,6 +176,22 @@ class TreeParams(Params):
         1.0,
         "a top with only a soft hint (on the crown's flank, missing or cut flat, beside a thicker stem) stands where it agrees with the plot's height-diameter curve within this fraction (the curve's scatter at most height_curve.max_scatter_unseen); the curve's estimate of a stem under a thicker neighbour's expected crown is vouched for only where the points' top agrees with it so",
     )
+    #: a top under or touching a neighbour's crown belongs to a suppressed tree, or to a tree whose
+    #: upper crown went to that neighbour: how high it reaches among the neighbours' tops tells
+    neighbour_radius_m: float = _p(
+        3.0,
+        "m",
+        0.5,
+        50.0,
+        "the neighbours a tree's top is compared with: the trees whose stems stand within this distance (horizontally) of its stem",
+    )
+    min_neighbour_reach: float = _p(
+        0.65,
+        "1",
+        0.0,
+        10.0,
+        "a top that reaches at least this fraction of its tallest neighbour's top (neighbour_radius_m) is no suppressed tree's: amid a neighbour's crown it stands where it agrees with the plot's height-diameter curve within curve_agreement; under or touching a neighbour's crown further below the curve, the curve vouches for its height (its upper crown went to the neighbour); on a stem under a thicker neighbour's expected crown the curve may vouch for it (0 = no such evidence)",
+    )
     #: the radius around a position clicked in an edit (add a tree, split a tree)
     stem_search_radius_m: float = _p(
         1.0, "m", 0.1, 10.0, "radius around a position given in an edit (add, split) searched for a stem"
@@ -585,6 +601,7 @@ def _measure_trees(
     records: list[TreeRecord] = []
     height_curve = _plot_height_curve(stems, dbh, curves, crowns, shared, complete, stem_params, params)
     overtopped = _under_thicker_crowns(stems, params)
+    reaches = _neighbour_reach(stems, crowns, params.neighbour_radius_m)
     order, bounds = _points_by_stem(labels, stems)
     what = "crown and cylinder model" if params.cylinder_models else "crown"
     for k, stem in enumerate(stems):
@@ -608,6 +625,7 @@ def _measure_trees(
                 shared_flag=shared.get(stem.id),
                 height_curve=height_curve,
                 overtopped=overtopped.get(stem.id),
+                reach=reaches.get(stem.id, math.nan),
             )
         )
     timings["trees_s"] = time.perf_counter() - t
@@ -803,6 +821,7 @@ def tree_record(
     top_evidence: bool = True,
     height_curve: Optional[HeightCurve] = None,
     overtopped: Optional[str] = None,
+    reach: float = math.nan,
 ) -> TreeRecord:
     """One tree's record from its measurements: the reported DBH (the stem curve at breast
     height; none from a failed fit), the height's checks, the cylinder model on its wood points
@@ -826,7 +845,8 @@ def tree_record(
     ``height_m`` reports it, ``crown.height_m`` keeps the points' top. For a plot's tree
     (``top_evidence``) :func:`_judge_top` decides instead (``overtopped``: why the stem stands
     under a thicker neighbour's expected crown, :func:`_under_thicker_crowns`; None when it does
-    not). Local frame, metres."""
+    not; ``reach``: its top over its tallest neighbour's, :func:`_neighbour_reach`, NaN when not
+    known). Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
     quality: dict[str, str] = {}
@@ -954,6 +974,7 @@ def tree_record(
             params,
             height_curve,
             overtopped,
+            reach,
         )
         hints_consistent = bool(hints) and h_trust != "low"
         flags += top_flags
@@ -1137,70 +1158,107 @@ def _judge_top(
     params: TreeParams,
     curve: Optional[HeightCurve],
     overtopped: Optional[str],
+    reach: float = math.nan,
 ) -> tuple[str, str, float, list[str]]:
     """A plot tree's height: (trust, how, the curve's estimate or NaN, flags of the top).
 
-    The points' top stands (its trust kept) only with evidence that it is the tree's own apex,
-    seen: its apex seen as a tip over the stem (under a neighbour's crown, or beside a thicker
-    stem, at most :attr:`.allometry.HeightCurveParams.clear_above` above the plot's curve), or
-    its top over the stem with no hint at all (not on the flank, not missing or cut flat, no
-    neighbour's crown over, around or nearer to it) and within ``clear_below`` below to
-    ``clear_above`` above the curve (without a curve: its apex seen as a tip), or with only soft hints (on
-    the crown's flank, missing or cut flat, beside a thicker stem) within
-    :attr:`TreeParams.curve_agreement` of a curve scattering at most ``max_scatter_unseen``
-    (two witnesses agreeing). ``top_flags`` holding a decisive
-    doubt (``h_trust`` low already: too slender, points of no tree above) means no evidence.
+    The evidence: the top's place (its apex seen as a tip over the stem, over the stem, on the
+    crown's flank, missing or cut flat), the hints of a neighbour (its crown over the top, touching
+    it or around it, a thicker stem near: ``hints``), the height's departure ``dep`` from the
+    plot's height-diameter curve ``curve``, and ``reach``: the points' top over the tallest
+    neighbour's top within :attr:`TreeParams.neighbour_radius_m` (:func:`_neighbour_reach`; NaN
+    without a neighbour). A top that reaches at least :attr:`TreeParams.min_neighbour_reach` of
+    it is no suppressed tree's (under or touching a neighbour's crown well below the curve: its
+    upper crown went to that neighbour). The rules, in order (``top_flags`` holding a
+    decisive doubt, ``h_trust`` low already: too slender, points of no tree above, means none of
+    the first three):
 
-    Otherwise the height is low, and the plot's height-diameter curve gives the estimate
-    (:meth:`.allometry.HeightCurve.estimate_height_m`, within the diameters it was fitted on):
-    the curve's height, or for a top under or touching a neighbour's crown that stands below the
-    curve (a suppressed tree, or a top hidden in the crown over it) midway between the two. The
-    curve vouches for it (medium trust, no flag) only where it may stand in
-    (:meth:`.allometry.HeightCurve.fill_refusal`), for a top not under, touching or amid a
-    neighbour's crown, on a stem not standing under a thicker neighbour's expected crown
-    (``overtopped``) unless its points' top stands within
-    :attr:`TreeParams.curve_agreement` of the curve: such trees may be suppressed, and the
-    curve stands them too tall. A tip under a neighbour's crown needs a curve to stand (without
-    one it may be a lower part of a tree whose top is hidden in that crown)."""
+    1. Its apex seen as a tip (under a neighbour's crown, or beside a thicker stem), at most
+       :attr:`.allometry.HeightCurveParams.clear_above` above the curve: the points' top stands,
+       however far below the curve (a suppressed tree). Under a neighbour's crown it needs a
+       curve (without one it may be a lower part of a tree whose top is hidden in that crown).
+    2. Two witnesses: a top with no hint within ``clear_below`` below to ``clear_above`` above the
+       curve (without a curve: only as a tip), or with soft hints only (on the flank, missing,
+       cut flat, beside a thicker stem, amid or nearer to a neighbour's crown: this one only
+       where the top reaches up among its neighbours') within :attr:`TreeParams.curve_agreement`
+       of a curve scattering at most ``max_scatter_unseen``. A top under or touching a
+       neighbour's crown is no witness: a small tree's segment reaching up to the crown over it
+       stands as tall as the curve says a free-grown tree of its DBH would.
+       The height stands; where the points' top, not a tip, stands below the curve and the curve
+       may stand in (:meth:`.allometry.HeightCurve.fill_refusal`; a trusted DBH within its
+       range) the curve's height is given instead: a missed apex only shortens a tree.
+    3. Otherwise the height is low and the curve gives the estimate
+       (:meth:`.allometry.HeightCurve.estimate_height_m`): its height, or for a top under or
+       touching a neighbour's crown below the curve that does not reach up among its neighbours'
+       (a suppressed tree, or a top hidden in the crown over it) midway between the two. The
+       curve vouches for it (medium trust, no flag) where it may stand in, and not for a top amid
+       a neighbour's crown, nor for a top under or touching one unless it reaches up among its
+       neighbours' and stands more than ``curve_agreement`` below the curve, nor on a stem
+       standing under a thicker neighbour's expected crown (``overtopped``) unless its top
+       stands within ``curve_agreement`` of the curve or reaches up among its neighbours': such
+       trees may be suppressed, and the curve stands them too tall."""
     hc = params.height_curve
     names = _hint_names(hints)
     nan = math.nan
     dep = curve.departure(dbh_value, crown.height_m) if curve is not None else nan
     dep_text = f", {100 * dep:+.0f} % from the plot's height-diameter curve" if math.isfinite(dep) else ""
+    estimate = curve.estimate_height_m(dbh_value, hc) if curve is not None else nan
+    # the curve's height where it may stand in for the points' top (tight, resting on enough trees,
+    # no suppressed trees among those whose apex is a tip, a trusted DBH within its range)
+    stand_in = (
+        estimate
+        if curve is not None
+        and math.isfinite(estimate)
+        and not curve.fill_refusal(hc)
+        and ground_trust != "low"
+        and not dbh_quality.endswith(("low", "none"))
+        else nan
+    )
+    reaches = params.min_neighbour_reach > 0 and reach >= params.min_neighbour_reach
+    tip = apex_tip(crown, params.crown)
     if h_trust != "low" and math.isfinite(crown.height_m):
         if (
-            apex_tip(crown, params.crown)
+            tip
             and names <= {"under", "reach"}
             and not dep > hc.clear_above
             and not ("under" in names and not math.isfinite(dep))
         ):
-            # its apex seen as a tip: its own top, however far below the curve (a suppressed tree)
+            # 1. its apex seen as a tip: its own top, however far below the curve (a suppressed tree)
             return (
                 (_trust(h_trust, "medium") if names else h_trust),
                 h_how + ", its apex seen as a tip over the stem" + dep_text,
                 nan,
                 top_flags,
             )
-        if not names and (
-            -hc.clear_below <= dep <= hc.clear_above if math.isfinite(dep) else apex_tip(crown, params.crown)
-        ):
+        witnesses = ""
+        if not names and (-hc.clear_below <= dep <= hc.clear_above if math.isfinite(dep) else tip):
             # without a curve to check it, a top with no hint stands only as a tip: a crown whose
             # top the scanners' view cut, or hid behind other crowns, shows no hint either
-            return (
-                h_trust,
-                h_how + (dep_text + " (consistent)" if dep_text else ", its apex seen as a tip over the stem"),
-                nan,
-                top_flags,
-            )
-        if (
+            witnesses = dep_text + " (consistent)" if dep_text else ", its apex seen as a tip over the stem"
+        elif (
             names
-            and names <= {"flank", "missing", "flat", "reach"}
+            and names <= {"flank", "missing", "flat", "reach", "neighbour"}
+            and (reaches or "neighbour" not in names)
             and curve is not None
             and curve.scatter <= hc.max_scatter_unseen
             and abs(dep) <= params.curve_agreement
         ):
-            # a soft hint, the plot's curve agreeing: two witnesses for the top
-            return _trust(h_trust, "medium"), h_how + dep_text + " (consistent)", nan, top_flags
+            # 2. a soft hint, the plot's curve agreeing: two witnesses for the top
+            witnesses = dep_text + " (consistent)"
+        if witnesses:
+            trust = _trust(h_trust, "medium") if names else h_trust
+            if dep < 0 and math.isfinite(stand_in):
+                # a top not seen as a tip, below the curve: its apex may be missing in the data
+                return (
+                    _trust(trust, "medium"),
+                    f"from the plot's height-diameter curve at the DBH (scatter {100 * curve.scatter:.0f} %, "
+                    f"{curve.n_inliers} trees): the points' top ({crown.height_m:.1f} m) {100 * dep:+.0f} % from "
+                    f"it, not seen as a tip (its apex may be missing)",
+                    stand_in,
+                    top_flags,
+                )
+            return trust, h_how + witnesses, nan, top_flags
+    # 3. the points' top not taken
     flags = list(top_flags) + [text for _, text in hints]
     if math.isfinite(dep) and not names and h_trust != "low":
         flags.append(
@@ -1218,7 +1276,6 @@ def _judge_top(
             else ", no DBH for the plot's height-diameter curve to check it"
         )
     )
-    estimate = curve.estimate_height_m(dbh_value, hc) if curve is not None else nan
     if (
         not (math.isfinite(estimate) and math.isfinite(crown.height_m))
         or ground_trust == "low"
@@ -1227,18 +1284,26 @@ def _judge_top(
         return "low", h_how, nan, flags
     why = "; ".join(dict.fromkeys(flags)) or "top unsure"
     scatter = f"scatter {100 * curve.scatter:.0f} %, {curve.n_inliers} trees"
-    if names & {"under", "touch"} and crown.height_m < estimate:
+    # a top under or touching a neighbour's crown, well below the curve, reaching up among its
+    # neighbours' tops: the tree's upper crown went to that neighbour (no suppressed tree)
+    crown_lost = bool(names & {"under", "touch"}) and reaches and dep < -params.curve_agreement
+    if names & {"under", "touch"} and crown.height_m < estimate and not crown_lost:
         estimate = 0.5 * (crown.height_m + estimate)
         how = (
             f"midway between the points' top ({crown.height_m:.1f} m) and the plot's height-diameter curve at the DBH "
             f"({scatter}): a top under a neighbour's crown is a suppressed tree's or hidden in that crown: {why}"
         )
+    elif crown_lost:
+        how = (
+            f"from the plot's height-diameter curve at the DBH ({scatter}): the points' top ({crown.height_m:.1f} m) "
+            f"reaches {100 * reach:.0f} % of its tallest neighbour's, its upper crown in that neighbour's: {why}"
+        )
     else:
         how = f"from the plot's height-diameter curve at the DBH ({scatter}): the points' top ({crown.height_m:.1f} m) not taken: {why}"
     refusal = curve.fill_refusal(hc)
-    if not refusal and names & {"under", "touch", "neighbour"}:
+    if not refusal and ("neighbour" in names or (names & {"under", "touch"} and not crown_lost)):
         refusal = "a top under, touching or amid a neighbour's crown (a suppressed tree's, or that crown's)"
-    if not refusal and overtopped is not None and not abs(dep) <= params.curve_agreement:
+    if not refusal and overtopped is not None and not abs(dep) <= params.curve_agreement and not reaches:
         refusal = f"{overtopped}, and its points' top {100 * dep:+.0f} % from the curve"
     if not refusal:
         return _trust(ground_trust, "medium"), how, estimate, []
@@ -1269,6 +1334,24 @@ def _under_thicker_crowns(stems: Sequence[Stem], params: TreeParams) -> dict[int
             out[s.id] = (
                 f"its stem stands {d:.1f} m from thicker tree {o.id} ({200 * o.radius_m:.0f} cm), under that tree's expected crown"
             )
+    return out
+
+
+def _neighbour_reach(stems: Sequence[Stem], crowns: dict[int, CrownMeasurement], radius_m: float) -> dict[int, float]:
+    """How high each tree's top reaches among its neighbours' (the trees whose stems stand within
+    ``radius_m`` of its stem, horizontally): its crown height over the tallest of theirs
+    (:attr:`.crown.CrownMeasurement.height_m`). A suppressed tree stays well below its neighbours;
+    a tree whose upper crown went to a neighbour reaches up among them. Trees without a neighbour
+    so near, or without a height, are left out. Returns {tree id: ratio}."""
+    xy = np.array([(s.x, s.y) for s in stems], dtype=np.float64).reshape(-1, 2)
+    h = np.array([crowns[s.id].height_m if s.id in crowns else math.nan for s in stems], dtype=np.float64)
+    out: dict[int, float] = {}
+    for k, s in enumerate(stems):
+        d = np.hypot(xy[:, 0] - s.x, xy[:, 1] - s.y)
+        near = (d < radius_m) & np.isfinite(h)
+        near[k] = False
+        if near.any() and math.isfinite(h[k]):
+            out[s.id] = float(h[k] / h[near].max())
     return out
 
 
