@@ -435,3 +435,82 @@ def test_a_leaning_tree_keeps_its_own_top_beside_a_taller_neighbour():
         )
         assert (1 in flags) == shared, (top, flags)
         assert 2 not in flags
+
+
+def test_a_top_under_a_neighbours_crown_judged_by_how_high_it_reaches():
+    """Three trees of 20 cm DBH on a tight curve (scatter 4 %, 25 trees, no suppressed tips), each
+    with its top under a 24 m neighbour's crown 2 m away and 20 % below the curve: one whose top
+    reaches 0.80 of the neighbour's (its upper crown went to the neighbour) gets the curve's height,
+    vouched for (medium, no flag); one reaching 0.45 (a suppressed tree) gets the estimate midway
+    between its points' top and the curve, flagged; and a top not seen as a tip over its stem, 6 %
+    below the curve with no hint (its apex missed) takes the curve's height, medium."""
+    from forestreg.engine.trees.allometry import HeightCurve
+    from forestreg.engine.trees.crown import CrownMeasurement
+    from forestreg.engine.trees.inventory import TreeParams, _judge_top, _neighbour_reach
+    from forestreg.engine.trees.stems import Stem
+
+    nan = math.nan
+    curve = HeightCurve(a=1.15, b=0.18, n_trees=25, n_inliers=25, scatter=0.04, dbh_min_m=0.1, dbh_max_m=0.6, n_tips=8)
+    c = curve.height_m(0.2)
+
+    def crown(i, height, ratio=0.6):
+        return CrownMeasurement(
+            tree_id=i,
+            x=0.0,
+            y=0.0,
+            height_m=height,
+            crown_base_m=height / 2,
+            crown_width_ew_m=3.0,
+            crown_width_ns_m=3.0,
+            crown_area_m2=nan,
+            crown_diameter_m=3.0,
+            crown_length_m=height / 2,
+            crown_volume_m3=nan,
+            n_points=500,
+            top=(0.0, 0.0, height),
+            ok=True,
+            reasons=(),
+            top_offset_m=1.5 * ratio,
+            top_offset_ratio=ratio,
+            top_layer_offset_ratio=ratio,
+        )
+
+    def stem(i, x, dbh):
+        return Stem(
+            id=i,
+            base=np.array([x, 0.0, 0.0]),
+            axis=np.array([0.0, 0.0, 1.0]),
+            radius_m=dbh / 2,
+            point_indices=np.zeros(0, dtype=np.int64),
+        )
+
+    stems = [stem(1, 0.0, 0.2), stem(2, 2.0, 0.5), stem(3, 20.0, 0.2)]
+    crowns = {1: crown(1, 0.8 * c), 2: crown(2, 0.8 * c / 0.8), 3: crown(3, 0.8 * c)}
+    reach = _neighbour_reach(stems, crowns, TreeParams().neighbour_radius_m)
+    assert reach[1] == pytest.approx(0.8) and reach[2] == pytest.approx(1.25) and 3 not in reach
+    under = [
+        ("under", "top under a neighbour's crown, 0.8 m clear of it: suppressed, or its top unseen (height unsure)")
+    ]
+
+    def judge(height, hints, r, ratio=0.6):
+        return _judge_top(
+            crown(1, height, ratio),
+            0.2,
+            "stem curve at 1.3 m; high",
+            hints,
+            [],
+            "high",
+            "high",
+            "highest point",
+            TreeParams(),
+            curve,
+            "its stem stands 2.0 m from thicker tree 2 (50 cm), under that tree's expected crown",
+            r,
+        )
+
+    trust, how, fill, flags = judge(0.8 * c, under, 0.8)
+    assert trust == "medium" and not flags and fill == pytest.approx(c) and "upper crown" in how
+    trust, how, fill, flags = judge(0.8 * c, under, 0.45)
+    assert trust == "low" and flags and fill == pytest.approx(0.9 * c) and "midway" in how
+    trust, how, fill, flags = judge(0.94 * c, [], nan, ratio=0.3)
+    assert trust == "medium" and not flags and fill == pytest.approx(c) and "apex may be missing" in how

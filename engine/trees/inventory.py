@@ -190,7 +190,7 @@ class TreeParams(Params):
         "1",
         0.0,
         10.0,
-        "a top that reaches at least this fraction of its tallest neighbour's top (neighbour_radius_m) is no suppressed tree's: amid a neighbour's crown it stands where it agrees with the plot's height-diameter curve within curve_agreement; under or touching a neighbour's crown further below the curve, the curve vouches for its height (its upper crown went to the neighbour); on a stem under a thicker neighbour's expected crown the curve may vouch for it (0 = no such evidence)",
+        "a top under or touching a neighbour's crown that reaches at least this fraction of its tallest neighbour's top (neighbour_radius_m) is no suppressed tree's: more than curve_agreement below the plot's height-diameter curve, the curve vouches for its height (its upper crown went to the neighbour); on a stem under a thicker neighbour's expected crown the curve may vouch for a top reaching so high (0 = no such evidence)",
     )
     #: the radius around a position clicked in an edit (add a tree, split a tree)
     stem_search_radius_m: float = _p(
@@ -1179,11 +1179,11 @@ def _judge_top(
        curve (without one it may be a lower part of a tree whose top is hidden in that crown).
     2. Two witnesses: a top with no hint within ``clear_below`` below to ``clear_above`` above the
        curve (without a curve: only as a tip), or with soft hints only (on the flank, missing,
-       cut flat, beside a thicker stem, amid or nearer to a neighbour's crown: this one only
-       where the top reaches up among its neighbours') within :attr:`TreeParams.curve_agreement`
-       of a curve scattering at most ``max_scatter_unseen``. A top under or touching a
+       cut flat, beside a thicker stem) within :attr:`TreeParams.curve_agreement` of a curve
+       scattering at most ``max_scatter_unseen``. A top under, touching, amid or nearer to a
        neighbour's crown is no witness: a small tree's segment reaching up to the crown over it
-       stands as tall as the curve says a free-grown tree of its DBH would.
+       stands as tall as the curve says a free-grown tree of its DBH would, and a top amid a
+       neighbour's crown may be that neighbour's.
        The height stands; where the points' top, not a tip, stands below the curve and the curve
        may stand in (:meth:`.allometry.HeightCurve.fill_refusal`; a trusted DBH within its
        range) the curve's height is given instead: a missed apex only shortens a tree.
@@ -1237,8 +1237,7 @@ def _judge_top(
             witnesses = dep_text + " (consistent)" if dep_text else ", its apex seen as a tip over the stem"
         elif (
             names
-            and names <= {"flank", "missing", "flat", "reach", "neighbour"}
-            and (reaches or "neighbour" not in names)
+            and names <= {"flank", "missing", "flat", "reach"}
             and curve is not None
             and curve.scatter <= hc.max_scatter_unseen
             and abs(dep) <= params.curve_agreement
