@@ -131,11 +131,14 @@ def _one_tree_scene(tree: Tree) -> ForestScene:
     return ForestScene(preset="test", seed=0, extent=extent, terrain=terrain, trees=(tree,))
 
 
-def test_dbh_sigma_covers_oval_stems_seen_from_one_side():
-    """Oval stems (0-10 %, bark relief 1-3 mm) each scanned from one side: the circle's DBH
-    misses the tape DBH by up to several per cent, and the stated sigma covers it."""
+@pytest.mark.parametrize("views", [1, 2])
+def test_dbh_of_oval_stems_seen_from_one_or_two_sides(views):
+    """Oval stems (0-10 %, bark relief 1-3 mm), each scanned from one side or from two places
+    70-125 deg apart: a plain circle's DBH misses the tape DBH by several per cent; the section
+    fitted with its oval part (the inventory's DBH) comes closer, and the stated sigma covers
+    both. Measured (24 stems): one side 3.5 % -> 2.3 %, two sides 2.0 % -> 0.4 % rRMSE."""
     rng = np.random.default_rng(11)
-    errors, z = [], []
+    errors, z, oval_errors, oval_z = [], [], [], []
     for k in range(24):
         tree = Tree(
             1,
@@ -153,28 +156,37 @@ def test_dbh_sigma_covers_oval_stems_seen_from_one_side():
             bark_roughness_m=float(rng.uniform(0.001, 0.003)),
             bark_seed=k,
         )
-        dist = rng.uniform(4.0, 9.0)
         heading = rng.uniform(0.0, 2 * math.pi)
-        setup = ScannerSetup(
-            dist * math.cos(heading),
-            dist * math.sin(heading),
-            angular_step_deg=0.1,
-            elevation_min_deg=-8.0,
-            elevation_max_deg=2.0,
-            range_noise_m=0.002,
-            name="one side",
-        )
-        sim = simulate_tls_scan(_one_tree_scene(tree), setup, seed=k)
-        w = sim.world_points()
-        on = (sim.labels == Material.TRUNK) & (np.abs(w[:, 2] - 1.3) < 0.05)
-        fit = fit_stem_circle(w[on, :2], min_arc_coverage=0.0)
-        d = 2.0 * fit.radius_m
-        err = d - tree.girth_diameter_m()
-        errors.append(err / tree.girth_diameter_m())
-        z.append(abs(err) / dbh_sigma(d, fit, "medium"))
-    errors, z = np.array(errors), np.array(z)
-    assert np.max(np.abs(errors)) > 0.03  # seen from one side, oval stems are off
+        pts = []
+        for v in range(views):
+            dist = rng.uniform(4.0, 9.0)
+            towards = heading + v * rng.uniform(1.2, 2.2)
+            setup = ScannerSetup(
+                dist * math.cos(towards),
+                dist * math.sin(towards),
+                angular_step_deg=0.1,
+                elevation_min_deg=-8.0,
+                elevation_max_deg=2.0,
+                range_noise_m=0.002,
+                name=f"side {v}",
+            )
+            sim = simulate_tls_scan(_one_tree_scene(tree), setup, seed=10 * k + v)
+            w = sim.world_points()
+            on = (sim.labels == Material.TRUNK) & (np.abs(w[:, 2] - 1.3) < 0.05)
+            pts.append(w[on, :2])
+        for typical, errs, zs in ((None, errors, z), (0.06, oval_errors, oval_z)):
+            fit = fit_stem_circle(np.vstack(pts), min_arc_coverage=0.0, typical_ovality=typical)
+            d = 2.0 * fit.radius_m
+            err = d - tree.girth_diameter_m()
+            errs.append(err / tree.girth_diameter_m())
+            zs.append(abs(err) / dbh_sigma(d, fit, "medium"))
+    errors, z, oval_errors, oval_z = map(np.array, (errors, z, oval_errors, oval_z))
+    rrmse, oval_rrmse = (float(np.sqrt(np.mean(e**2))) for e in (errors, oval_errors))
+    assert rrmse > (0.03 if views == 1 else 0.012)  # a plain circle takes the seen arc's curvature
+    assert oval_rrmse < (0.8 * rrmse if views == 1 else 0.5 * rrmse)
+    assert oval_rrmse < (0.035 if views == 1 else 0.01)
     assert np.mean(z < 2.0) >= 0.9
+    assert np.mean(oval_z < 2.0) >= 0.9
 
 
 @pytest.mark.slow

@@ -230,7 +230,7 @@ class StemParams(Params):
         "1",
         0.0,
         0.5,
-        "RMS ovality (1 - minor / major axis) of real stems' sections: a circle fitted to part of an oval section is off by up to this much, which the DBH sigma of a stem seen from one side carries",
+        "RMS ovality (1 - minor / major axis) of real stems' sections: the prior of the oval part fitted with each stem section, so a section seen from one side is measured as the girth-equivalent circle and its DBH sigma carries what the unseen part leaves open",
     )
     ovality_min_coverage: float = param_field(
         0.7, "1", 0.0, 1.0, "Least arc coverage at which the section's ovality is stated"
@@ -301,7 +301,9 @@ class CircleFit:
     ``ok`` is False when any quality check failed, with the reasons in ``reasons`` ("too few
     points", "partial arc", "high residual", "few inliers", "implausible radius");
     ``ovality`` (1 - minor / major axis) of the section from the inliers' second harmonic about
-    the circle (NaN under ``ovality_min_coverage`` of :func:`fit_stem_circle`).
+    the circle (NaN under ``ovality_min_coverage`` of :func:`fit_stem_circle`);
+    ``shape_sigma_m`` the 1-sigma uncertainty of ``radius_m`` from the part of an oval section
+    not seen (0 for a plain circle, see :func:`oval_section`).
     """
 
     centre: tuple[float, float]
@@ -313,6 +315,7 @@ class CircleFit:
     ok: bool
     reasons: tuple[str, ...] = ()
     ovality: float = float("nan")
+    shape_sigma_m: float = 0.0
 
     @property
     def diameter_m(self) -> float:
@@ -454,12 +457,19 @@ def fit_stem_circle(
     ransac_iterations: int = 300,
     seed: int = 0,
     ovality_min_coverage: float = 0.7,
+    typical_ovality: Optional[float] = None,
 ) -> CircleFit:
     """A stem section's circle in 2D points ``xy`` (M, 2) in metres, with its quality checks.
 
     The circle is :func:`~forestreg.engine.geometry.circle.robust_circle` (the better of a refined
     algebraic and a refined RANSAC circle; ``ransac_iterations`` random point triples, inliers
     within ``inlier_tolerance_m``). Quality checks set ``ok`` and ``reasons``.
+
+    With ``typical_ovality`` (RMS of 1 - minor / major axis of the stems) the circle of a good fit
+    is refined to the section's girth-equivalent circle by :func:`oval_section`: its centre and
+    mean radius, with the section's oval part fitted under that prior, so an arc seen from one
+    side does not hand its own curvature to the diameter; ``shape_sigma_m`` then says how much
+    the unseen part leaves open.
 
     Raises :class:`ScanDataError` for fewer than 3 points or NaN/infinite values.
     """
@@ -496,6 +506,15 @@ def fit_stem_circle(
         reasons.append("few inliers")
     if not math.isfinite(rms) or rms > max_residual_m:
         reasons.append("high residual")
+    ovality, shape_sigma = float("nan"), 0.0
+    if typical_ovality is not None and not reasons and typical_ovality > 0:
+        oval = oval_section(p[near], (cx, cy), r, typical_ovality)
+        if oval is not None:
+            cx, cy = oval.centre
+            r, shape_sigma = oval.radius_m, oval.shape_sigma_m
+            ovality = oval.ovality
+    elif coverage >= ovality_min_coverage:
+        ovality = section_ovality(p[near], (cx, cy), r)
     return CircleFit(
         centre=(cx, cy),
         radius_m=r,
@@ -505,7 +524,87 @@ def fit_stem_circle(
         n_inliers=n_in,
         ok=not reasons,
         reasons=tuple(reasons),
-        ovality=section_ovality(p[near], (cx, cy), r) if coverage >= ovality_min_coverage else float("nan"),
+        ovality=ovality if coverage >= ovality_min_coverage else float("nan"),
+        shape_sigma_m=shape_sigma,
+    )
+
+
+@dataclass(frozen=True)
+class OvalSection:
+    """A stem section as a circle with an oval part: distance from ``centre`` at angle ``t`` is
+    ``radius_m + a2 cos 2t + b2 sin 2t`` (metres, the frame of the points).
+
+    ``radius_m`` is the mean radius, the girth-equivalent radius (perimeter / 2 pi) to second
+    order in the ovality; ``ovality`` (1 - minor / major axis) from the oval part's amplitude;
+    ``shape_sigma_m`` the 1-sigma uncertainty of ``radius_m`` that the oval part adds to a plain
+    circle's (how much of the section's shape the seen arcs leave open)."""
+
+    centre: tuple[float, float]
+    radius_m: float
+    ovality: float
+    shape_sigma_m: float
+
+
+def oval_section(
+    xy: np.ndarray,
+    centre: tuple[float, float],
+    radius_m: float,
+    typical_ovality: float,
+    *,
+    iterations: int = 12,
+) -> Optional[OvalSection]:
+    """The section of points ``xy`` (M, 2; metres) around a circle (``centre``, ``radius_m``) as
+    an :class:`OvalSection`: Gauss-Newton least squares on the points' distances from the centre
+    against ``radius + a2 cos 2t + b2 sin 2t``, the oval terms ``a2, b2`` under a zero-mean
+    Gaussian prior whose spread follows ``typical_ovality`` (an ellipse of ovality ``e`` has
+    amplitude ``e r / 2`` split over the two terms). The noise scale is the points' own rms
+    residual.
+
+    On a full round the prior barely matters and the mean radius is the girth-equivalent one; on
+    a short arc the prior keeps the oval part to what stems have, and the posterior spread of the
+    radius says what is left open. None for fewer than 8 points or a fit that does not converge
+    to a plausible section (radius off by more than half)."""
+    p = np.asarray(xy, dtype=np.float64)
+    if len(p) < 8 or not (math.isfinite(radius_m) and radius_m > 0):
+        return None
+    prior_sd = max(typical_ovality * radius_m / (2.0 * math.sqrt(2.0)), 1e-6)
+    x = np.array([centre[0], centre[1], radius_m, 0.0, 0.0])
+    prior = np.array([0.0, 0.0, 0.0, 1.0, 1.0]) / prior_sd**2
+    h = np.eye(5)
+    for _ in range(iterations):
+        d = p - x[:2]
+        dist = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
+        c2, s2 = (d[:, 0] ** 2 - d[:, 1] ** 2) / dist**2, 2.0 * d[:, 0] * d[:, 1] / dist**2
+        res = dist - (x[2] + x[3] * c2 + x[4] * s2)
+        # Tukey's biweight on the residuals (scale from their MAD): mixed pixels at a silhouette's
+        # edge and twigs against the bark do not pull the section
+        scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), 1e-4)
+        u = res / (4.685 * scale)
+        w = np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0)
+        sig2 = max(float(np.sum(w * res**2) / max(np.sum(w), 1.0)), 1e-8)
+        jac = np.column_stack([-d[:, 0] / dist, -d[:, 1] / dist, -np.ones(len(p)), -c2, -s2])
+        h = (jac * w[:, None]).T @ jac / sig2 + np.diag(prior)
+        g = (jac * w[:, None]).T @ res / sig2 + prior * x
+        try:
+            step = np.linalg.solve(h, -g)
+        except np.linalg.LinAlgError:
+            return None
+        x = x + step
+        if float(np.abs(step).max()) < 1e-7:
+            break
+    if not (np.isfinite(x).all() and abs(x[2] - radius_m) <= 0.5 * radius_m):
+        return None
+    try:
+        var_full = float(np.linalg.inv(h)[2, 2])
+        var_circle = float(np.linalg.inv(h[:3, :3])[2, 2])
+    except np.linalg.LinAlgError:
+        return None
+    amp = float(np.hypot(x[3], x[4]))
+    return OvalSection(
+        centre=(float(x[0]), float(x[1])),
+        radius_m=float(x[2]),
+        ovality=float(2.0 * amp / (x[2] + amp)),
+        shape_sigma_m=math.sqrt(max(var_full - var_circle, 0.0)),
     )
 
 
@@ -529,10 +628,11 @@ def dbh_sigma(dbh_m: float, fit: Optional[CircleFit], trust: str = "high", typic
 
     - the noise of the fitted radius (``2 rms / sqrt(n)``, larger on a partial arc) with a floor
       of 3 mm (bark, the slice's height), doubled for medium and tripled for low trust;
-    - the part of the section not seen: a circle fitted to an arc of an oval section takes the
-      arc's curvature; over oval stems of ``typical_ovality`` (RMS of 1 - b/a) its error is
-      ``1.5 * typical_ovality * dbh * (1 - coverage) ** 1.3`` (1 sigma; nil for a stem seen all
-      round).
+    - the part of the section not seen: twice the fit's ``shape_sigma_m`` when the section was
+      fitted with its oval part (:func:`oval_section`); otherwise a plain circle fitted to an arc
+      of an oval section takes the arc's curvature, and over oval stems of ``typical_ovality``
+      (RMS of 1 - b/a) its error is ``1.5 * typical_ovality * dbh * (1 - coverage) ** 1.3``
+      (1 sigma; nil for a stem seen all round).
 
     NaN without a fit or a DBH."""
     if fit is None or not (math.isfinite(dbh_m) and math.isfinite(fit.rms_residual_m)) or fit.n_inliers <= 0:
@@ -540,7 +640,10 @@ def dbh_sigma(dbh_m: float, fit: Optional[CircleFit], trust: str = "high", typic
     arc = float(fit.arc_coverage)
     noise = 2.0 * fit.rms_residual_m / math.sqrt(max(fit.n_inliers, 3)) / max(arc, 0.2)
     base = math.hypot(noise, 0.003) * {"high": 1.0, "medium": 2.0, "low": 3.0}.get(trust, 1.0)
-    shape = 1.5 * typical_ovality * dbh_m * max(1.0 - arc, 0.0) ** 1.3
+    if fit.shape_sigma_m > 0:
+        shape = 2.0 * fit.shape_sigma_m
+    else:
+        shape = 1.5 * typical_ovality * dbh_m * max(1.0 - arc, 0.0) ** 1.3
     return math.hypot(base, shape)
 
 
@@ -550,8 +653,10 @@ def _fit(
     seed: int = 0,
     min_arc_coverage: Optional[float] = None,
     min_points: Optional[int] = None,
+    oval: bool = False,
 ) -> CircleFit:
-    """:func:`fit_stem_circle` with the settings of ``params``."""
+    """:func:`fit_stem_circle` with the settings of ``params``; ``oval`` refines a good fit to the
+    girth-equivalent circle of an oval section (``params.typical_ovality``)."""
     lo, hi = params.dbh_range_m
     return fit_stem_circle(
         xy,
@@ -564,6 +669,7 @@ def _fit(
         ransac_iterations=params.ransac_iterations,
         seed=seed,
         ovality_min_coverage=params.ovality_min_coverage,
+        typical_ovality=params.typical_ovality if oval else None,
     )
 
 
@@ -965,7 +1071,7 @@ def _section(
         n = int(m.sum())
     if n < max(params.min_slice_points, 3):
         return None, world_centre, n
-    fit = _fit(np.column_stack([pu[m], pv[m]]), params, seed)
+    fit = _fit(np.column_stack([pu[m], pv[m]]), params, seed, oval=True)
     world_centre = origin + fit.centre[0] * u + fit.centre[1] * v
     return fit, world_centre, n
 
