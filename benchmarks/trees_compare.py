@@ -34,7 +34,9 @@ a seed of :data:`HELD_OUT_SEEDS` ("held out"; ``--held-out-seed`` draws others).
 found, false stems, DBH rRMSE, height rRMSE over every tree (forestreg and Sylva), the share of
 forestreg's heights left unflagged (height trust not low) with their rRMSE and worst error, and
 the flags' precision (flagged heights really more than 10 % off) and recall (heights more than
-10 % off that are flagged).
+10 % off that are flagged). ``--height-evidence`` (:func:`height_evidence`) runs forestreg
+alone, in-process, on the same cached plots and gives every matched tree's height evidence and
+verdict beside its truth: the loop for choosing the height rules on the tune half.
 
 The simulated clouds are cached under ``bench_out/trees_compare/``. Run from the repository root:
 ``python -m benchmarks.trees_compare`` (or through ``benchmarks/run.py --only trees``).
@@ -487,6 +489,98 @@ def run_halves(
     return rows
 
 
+def height_evidence(seeds: Optional[dict[str, list[int]]] = None) -> list[dict[str, Any]]:
+    """forestreg's height judgement on the cached plots of the halves, tree by tree (in-process
+    ``measure_trees`` without cylinder models, no Sylva: minutes, not the whole benchmark): for
+    every true tree of DBH >= 0.1 m within :data:`RADIUS_M` matched to a stem within
+    :data:`MATCH_M`, the evidence the judgement sees (the top's offset from the stem axis and its
+    top layer's, as fractions of the crown radius; apex seen as a tip, top over the stem, cut
+    flat; the departure from the plot's height-diameter curve; the reach among the neighbours'
+    tops, :attr:`~forestreg.engine.trees.inventory.TreeParams.min_neighbour_reach`; the point
+    count; the quality text naming the hints) beside the verdict (trust, flagged, where the
+    height came from) and the truth (errors of the reported height, of the points' top and of the
+    curve's height, fractions). ``seeds``: {half: seeds, one per kind}; default both halves."""
+    from forestreg.engine.io import read_scan
+    from forestreg.engine.trees.crown import CrownParams, apex_tip, top_cut_flat, top_over_stem
+    from forestreg.engine.trees.inventory import TreeParams, _neighbour_reach, measure_trees
+
+    params = TreeParams(cylinder_models=False)
+    crown_params = CrownParams()
+    out: list[dict[str, Any]] = []
+    for half, half_seeds in (seeds or {"tune": list(TUNE_SEEDS), "held out": list(HELD_OUT_SEEDS)}).items():
+        for kind, seed in enumerate(half_seeds):
+            laz, truth = half_plot(kind, seed)
+            scan = read_scan(laz)
+            pts = np.asarray(scan.points, dtype=np.float64)
+            shift = np.floor(pts.mean(axis=0))
+            print(f"{half}: {HALF_KINDS[kind][0]}, seed {seed}", file=sys.stderr, flush=True)
+            inv = measure_trees(pts - shift, params, single_tree=False)
+            reach = _neighbour_reach(
+                [r.stem for r in inv.trees], {r.tree_id: r.crown for r in inv.trees}, params.neighbour_radius_m
+            )
+            curve = inv.height_curve
+            inside = [t for t in truth if math.hypot(t["x"], t["y"]) < RADIUS_M and t["dbh_m"] >= 0.1]
+            xy = np.array([(r.stem.x + shift[0], r.stem.y + shift[1]) for r in inv.trees]).reshape(-1, 2)
+            for t in inside:
+                d = np.hypot(xy[:, 0] - t["x"], xy[:, 1] - t["y"])
+                if not len(d) or d.min() >= MATCH_M:
+                    continue
+                r = inv.trees[int(np.argmin(d))]
+                c = r.crown
+                curve_h = curve.height_m(r.dbh_m) if curve is not None else math.nan
+                quality = r.quality["height"]
+                out.append(
+                    {
+                        "half": half,
+                        "kind": HALF_KINDS[kind][0],
+                        "seed": seed,
+                        "tree_id": r.tree_id,
+                        "true_height_m": t["height_m"],
+                        "height_m": r.height_m,
+                        "height_source": r.height_source,
+                        "trust": quality.rsplit("; ", 1)[-1],
+                        "flagged": quality.endswith(("low", "none")),
+                        "error": r.height_m / t["height_m"] - 1.0,
+                        "points_error": c.height_m / t["height_m"] - 1.0,
+                        "curve_error": curve_h / t["height_m"] - 1.0,
+                        "departure": curve.departure(r.dbh_m, c.height_m) if curve is not None else math.nan,
+                        "reach": reach.get(r.tree_id, math.nan),
+                        "top_offset_ratio": c.top_offset_ratio,
+                        "top_layer_offset_ratio": c.top_layer_offset_ratio,
+                        "apex_tip": apex_tip(c, crown_params),
+                        "top_over_stem": top_over_stem(c, crown_params),
+                        "cut_flat": top_cut_flat(c, crown_params),
+                        "n_points": r.n_points,
+                        "dbh_m": r.dbh_m,
+                        "true_dbh_m": t["dbh_m"],
+                        "small_beside_big": t.get("small_beside_big", False),
+                        "true_top_seen": t.get("top_seen", False),
+                        "quality": quality,
+                    }
+                )
+    return out
+
+
+def evidence_summary(rows: list[dict[str, Any]]) -> str:
+    """Per half: trees, unflagged (share, rRMSE, worst) and the flags' precision and recall (a
+    height more than 10 % off is wrong) of :func:`height_evidence`'s rows."""
+    lines = []
+    for half in dict.fromkeys(r["half"] for r in rows):
+        e = np.array([r["error"] for r in rows if r["half"] == half])
+        flagged = np.array([r["flagged"] for r in rows if r["half"] == half], dtype=bool)
+        wrong = np.abs(e) > 0.10
+        kept = e[~flagged]
+        lines.append(
+            f"{half}: {len(e)} trees, every height rRMSE {100 * math.sqrt(np.mean(e**2)):.1f} %; unflagged "
+            f"{len(kept)} ({100 * len(kept) / max(len(e), 1):.0f} %), rRMSE "
+            f"{100 * math.sqrt(np.mean(kept**2)) if len(kept) else math.nan:.1f} %, worst "
+            f"{100 * np.max(np.abs(kept)) if len(kept) else math.nan:.0f} %; flag precision "
+            f"{100 * np.mean(wrong[flagged]) if flagged.any() else math.nan:.0f} %, recall "
+            f"{100 * np.mean(flagged[wrong]) if wrong.any() else math.nan:.0f} %"
+        )
+    return "\n".join(lines)
+
+
 def _pairs(
     rows: list[dict[str, str]], truth: list[dict[str, Any]], dbh_key: str, height_key: str
 ) -> list[tuple[float, float, float, float]]:
@@ -729,12 +823,21 @@ def main(argv: Optional[list[str]] = None) -> int:
         help="only the held-out benchmark: tune and held-out plots, forestreg and Sylva",
     )
     ap.add_argument(
+        "--height-evidence",
+        action="store_true",
+        help="only forestreg's height judgement on the cached plots of the halves, tree by tree (no Sylva); "
+        "--json writes the rows",
+    )
+    ap.add_argument(
         "--held-out-seed",
         type=int,
         help="with --halves: draw the held-out plots from this seed on (one per kind) "
         "instead of the stored held-out seeds",
     )
     args = ap.parse_args(argv)
+    if args.height_evidence:
+        rows = height_evidence()
+        return show_rows(evidence_summary(rows), rows, args.json, indent=1, default=float)
     if args.halves:
         held = [args.held_out_seed + k for k in range(len(HALF_KINDS))] if args.held_out_seed is not None else None
         rows = run_halves(args.workdir, held)
