@@ -21,6 +21,7 @@ from forestreg.engine.simulate.mesh import Material
 from forestreg.engine.terrain.dem import terrain_model
 from forestreg.engine.trees.stems import (
     Stem,
+    StemCurve,
     StemParams,
     detect_stems,
     fit_stem_circle,
@@ -354,3 +355,30 @@ def test_real_single_stems(shared_data, name: str, dbh_range: tuple[float, float
     assert (steps > 0.05).mean() < 0.1  # monotone-ish: few sections wider than the one below
     assert -0.03 < slope < 0.0
     assert abs(curve.diameter_at(1.3) - dbh.dbh_m) / dbh.dbh_m < 0.08
+
+
+def test_stem_curve_anchored_at_a_dbh_where_its_own_section_failed():
+    """A whorl failed the sections at 1.05-1.55 m: the curve bridges them along the line from a
+    swollen section at 0.8 m; anchored at the DBH measured at 1.3 m it passes through that DBH,
+    the rest unchanged; a curve with its own section near breast height is left as it is."""
+    s = np.arange(0.3, 3.0, 0.25)
+    raw = 0.30 - 0.02 * s
+    raw[2] = 0.33  # a swollen section at 0.8 m
+    accepted = np.ones(len(s), bool)
+    accepted[3:6] = False  # 1.05, 1.30, 1.55 failed
+    diameter = raw.copy()
+    diameter[3:6] = np.interp(s[3:6], s[[2, 6]], raw[[2, 6]])
+
+    def curve_of(acc: np.ndarray, d: np.ndarray) -> StemCurve:
+        return StemCurve(1, s, s, raw, d, acc, ~acc, np.zeros((len(s), 3)), ("",) * len(s))
+
+    curve = curve_of(accepted, diameter)
+    assert curve.diameter_at(1.3) > 0.29  # bridged from the swollen section
+    anchored = curve.anchored(1.3, 0.27)
+    assert anchored.diameter_at(1.3) == pytest.approx(0.27, abs=1e-9)
+    assert np.array_equal(anchored.diameter_m[:3], curve.diameter_m[:3])
+    assert np.array_equal(anchored.diameter_m[6:], curve.diameter_m[6:])
+    # its own section within 0.15 m of breast height: unchanged
+    own = accepted.copy()
+    own[4] = True
+    assert curve_of(own, raw).anchored(1.3, 0.2).diameter_at(1.3) == pytest.approx(raw[4])

@@ -1073,7 +1073,9 @@ def tree_record(
                 # the model's DBH is read at the inventory's one breast height (its stems')
                 qsm_params = params.qsm.replace(breast_height_m=params.stems.breast_height_m)
                 cylinders = fit_qsm(tree_pts[w], qsm_params, base=stem.base)
-                cylinders, _ = reconcile_stem(cylinders, stem, curve, crown.height_m)
+                # the stem curve, through the DBH where a whorl failed its breast-height section
+                at_bh = stem_params.breast_height_m / max(float(stem.axis[2]), 1e-6)
+                cylinders, _ = reconcile_stem(cylinders, stem, curve.anchored(at_bh, dbh_value), crown.height_m)
             except ScanDataError as exc:
                 flags.append(f"cylinder model failed: {exc}")
         else:

@@ -45,6 +45,7 @@ returned with ``ok = False`` and its reasons, never as a confident number.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, fields
 from typing import Any, Optional
@@ -430,6 +431,28 @@ class StemCurve:
         )
         return float(out) if np.ndim(out) == 0 else out
 
+    def anchored(self, s: float, diameter_m: float, max_gap_m: float = 0.15) -> "StemCurve":
+        """The curve passing through ``diameter_m`` at ``s`` (m along the axis) where no accepted
+        section lies within ``max_gap_m`` of ``s`` and accepted sections lie on both sides of it:
+        the sections between those two are interpolated through the anchor instead of along the
+        line between them (a DBH measured at breast height where a branch whorl failed the
+        curve's own section). Otherwise the curve itself."""
+        ok = np.flatnonzero(self.accepted)
+        if not (math.isfinite(s) and math.isfinite(diameter_m)) or not len(ok):
+            return self
+        if np.any(np.abs(self.s_m[ok] - s) <= max_gap_m + 1e-9):
+            return self
+        below, above = ok[self.s_m[ok] < s], ok[self.s_m[ok] > s]
+        if not (len(below) and len(above)):
+            return self
+        lo, hi = int(below[-1]), int(above[0])
+        diameter = self.diameter_m.copy()
+        inside = np.arange(lo + 1, hi)
+        diameter[inside] = np.interp(
+            self.s_m[inside], [self.s_m[lo], s, self.s_m[hi]], [self.diameter_m[lo], diameter_m, self.diameter_m[hi]]
+        )
+        return dataclasses.replace(self, diameter_m=diameter)
+
 
 # --------------------------------------------------------------------------------------------
 # Circle fitting
@@ -562,8 +585,9 @@ def oval_section(
 
     On a full round the prior barely matters and the mean radius is the girth-equivalent one; on
     a short arc the prior keeps the oval part to what stems have, and the posterior spread of the
-    radius says what is left open. None for fewer than 8 points or a fit that does not converge
-    to a plausible section (radius off by more than half)."""
+    radius says what is left open. None for fewer than 8 points, or a fit that does not converge
+    to a section an oval of this stem's kind explains (its radius or centre moved from the
+    circle's by more than ``2 * typical_ovality * radius_m``: clutter, not shape)."""
     p = np.asarray(xy, dtype=np.float64)
     if len(p) < 8 or not (math.isfinite(radius_m) and radius_m > 0):
         return None
@@ -592,7 +616,9 @@ def oval_section(
         x = x + step
         if float(np.abs(step).max()) < 1e-7:
             break
-    if not (np.isfinite(x).all() and abs(x[2] - radius_m) <= 0.5 * radius_m):
+    reach = 2.0 * typical_ovality * radius_m
+    moved = math.hypot(x[0] - centre[0], x[1] - centre[1])
+    if not (np.isfinite(x).all() and abs(x[2] - radius_m) <= reach and moved <= reach):
         return None
     try:
         var_full = float(np.linalg.inv(h)[2, 2])
