@@ -44,7 +44,8 @@ def cloud_outline(xy: np.ndarray) -> Optional[np.ndarray]:
     """The convex hull (M, 2), counter-clockwise, of (N, 2) points ``xy`` (metres) from above; None
     with fewer than 3 points not on one line. The points inside the octagon of the extreme points
     along x, y and the diagonals cannot be hull vertices and are dropped first (Akl-Toussaint):
-    a few vector passes over millions of points leave a few to hull (~0.1 s for 3 M points)."""
+    a few passes over millions of points leave a few to hull."""
+    from ..engine.geometry.hull import hull_candidates
     from ..engine.trees.crown import convex_hull_2d
 
     p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -58,11 +59,8 @@ def cloud_outline(xy: np.ndarray) -> Optional[np.ndarray]:
     octagon = convex_hull_2d(p[extreme])
     if octagon is None:
         return convex_hull_2d(p)
-    outside = np.zeros(len(p), dtype=bool)
-    for (ax, ay), (bx, by) in zip(octagon, np.roll(octagon, -1, axis=0)):
-        # counter-clockwise ring: a point on or right of an edge (cross product <= 0) may be a vertex
-        a, b = by - ay, bx - ax
-        outside |= b * y - a * x <= b * ay - a * ax
+    # counter-clockwise ring: a point on or right of an edge (cross product <= 0) may be a vertex
+    outside = hull_candidates(x, y, octagon)
     return convex_hull_2d(np.vstack([p[outside], octagon]))
 
 

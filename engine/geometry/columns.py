@@ -63,11 +63,32 @@ class ColumnIndex:
         i0, j0, i1, j1 = max(int(i0), 0), max(int(j0), 0), min(int(i1), nx - 1), min(int(j1), ny - 1)
         if i0 > i1 or j0 > j1:
             return np.zeros(0, dtype=np.int64)
-        parts = [self.order[self.starts[i * ny + j0] : self.starts[i * ny + j1 + 1]] for i in range(i0, i1 + 1)]
-        rows = np.concatenate(parts).astype(np.int64)
-        xy = self.points[rows, :2]
-        d2 = (xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2
-        return np.sort(rows[d2 <= radius_m * radius_m])
+        if self.points.dtype != np.float64:  # the distances in the points' own precision
+            parts = [self.order[self.starts[i * ny + j0] : self.starts[i * ny + j1 + 1]] for i in range(i0, i1 + 1)]
+            rows = np.concatenate(parts).astype(np.int64)
+            xy = self.points[rows, :2]
+            d2 = (xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2
+            return np.sort(rows[d2 <= radius_m * radius_m])
+        size = int(sum(self.starts[i * ny + j1 + 1] - self.starts[i * ny + j0] for i in range(i0, i1 + 1)))
+        rows, spare = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
+        runs = np.empty((i1 - i0 + 1) * (j1 - j0 + 1) + 1, dtype=np.int64)
+        n, in_spare = _disc_rows(
+            self.order,
+            self.starts,
+            ny,
+            i0,
+            i1,
+            j0,
+            j1,
+            self.points,
+            float(x),
+            float(y),
+            radius_m * radius_m,
+            rows,
+            spare,
+            runs,
+        )
+        return (spare if in_spare else rows)[:n]
 
 
 @kernel
@@ -77,3 +98,58 @@ def _column_key_rows(start, stop, pts, lo, cell, ny, keys):  # pragma: no cover 
         ix = np.int64(np.floor((np.float64(pts[i, 0]) - lo[0]) / cell))
         iy = np.int64(np.floor((np.float64(pts[i, 1]) - lo[1]) / cell))
         keys[i] = ix * ny + iy
+
+
+@kernel
+def _disc_rows(order, starts, ny, i0, i1, j0, j1, pts, x, y, r2, rows, spare, runs):  # pragma: no cover - compiled
+    """The rows of columns ``i0..i1`` x ``j0..j1`` within ``sqrt(r2)`` of ``(x, y)``, sorted: each
+    column's rows are ascending (a stable counting sort made them), so the kept rows are collected
+    run by run (one run a column) and the runs merged pairwise. Returns their count and whether
+    they ended in ``spare`` (else in ``rows``)."""
+    n = 0
+    k = 0
+    runs[0] = 0
+    for i in range(i0, i1 + 1):
+        for c in range(i * ny + j0, i * ny + j1 + 1):
+            for q in range(starts[c], starts[c + 1]):
+                row = order[q]
+                dx = pts[row, 0] - x
+                dy = pts[row, 1] - y
+                if dx * dx + dy * dy <= r2:
+                    rows[n] = row
+                    n += 1
+            if n > runs[k]:  # empty columns make no run
+                k += 1
+                runs[k] = n
+    src, dst = rows, spare
+    in_spare = False
+    while k > 1:
+        m = 0
+        for s in range(0, k, 2):
+            lo = runs[s]
+            mid = runs[s + 1]
+            hi = runs[s + 2] if s + 2 <= k else mid
+            a, b, o = lo, mid, lo
+            while a < mid and b < hi:
+                if src[b] < src[a]:
+                    dst[o] = src[b]
+                    b += 1
+                else:
+                    dst[o] = src[a]
+                    a += 1
+                o += 1
+            while a < mid:
+                dst[o] = src[a]
+                a += 1
+                o += 1
+            while b < hi:
+                dst[o] = src[b]
+                b += 1
+                o += 1
+            runs[m] = lo
+            m += 1
+        runs[m] = runs[k]
+        k = m
+        src, dst = dst, src
+        in_spare = not in_spare
+    return n, in_spare

@@ -552,8 +552,10 @@ class _TreeFigure:
         for ax in (ax_p, ax_c):
             ax.set_xlim(*window[0])
             ax.set_ylim(*window[1])
-        ax_p.set_title(f"points ({len(pts):,} drawn)", fontsize=9)
-        ax_c.set_title(f"cylinder model ({n_cyl} cylinders, width 2r)", fontsize=9)
+        # at the top of the axes, where matplotlib would place them (nothing stands above the
+        # axes): placed so, a draw does not measure every tick label to place them
+        ax_p.set_title(f"points ({len(pts):,} drawn)", fontsize=9, y=1.0)
+        ax_c.set_title(f"cylinder model ({n_cyl} cylinders, width 2r)", fontsize=9, y=1.0)
         head = f"Tree {row['tree_id']}: DBH {fmt(row['dbh_m'], 1, 100.0)} cm, H {fmt(row['height_m'], 2)} m, V {fmt(row['volume_m3'], 3)} m³"
         if row["flag"]:
             head += f"  [{row['flag'][:60]}]"

@@ -47,9 +47,9 @@ from dataclasses import dataclass, field
 from typing import Any, Optional, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..core.errors import ScanDataError
+from ..core.jit import kernel
 from ..core.params import Params, param_field
 from .stems import Stem, check_cloud
 
@@ -206,18 +206,52 @@ def top_over_stem(crown: "CrownMeasurement", params: "CrownParams") -> bool:
 
 def tree_top(points: np.ndarray, radius_m: float, min_neighbours: int) -> int:
     """Index of the highest point with at least ``min_neighbours`` other points within
-    ``radius_m`` (the highest point when none qualifies)."""
+    ``radius_m`` (the highest point when none qualifies). The points are taken from the top
+    down, each one's neighbours counted among the points within ``radius_m`` of its height (a
+    slice of the height order, not a k-d tree of the whole tree)."""
     order = np.argsort(points[:, 2])[::-1]
     if min_neighbours <= 0 or len(points) <= min_neighbours:
         return int(order[0])
-    tree = cKDTree(points)
-    for start in range(0, len(order), 256):
-        chunk = order[start : start + 256]
-        counts = np.array([len(c) - 1 for c in tree.query_ball_point(points[chunk], radius_m)])
-        good = np.flatnonzero(counts >= min_neighbours)
-        if len(good):
-            return int(chunk[good[0]])
-    return int(order[0])
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    k = _first_with_neighbours(pts, np.ascontiguousarray(order), float(radius_m) ** 2, int(min_neighbours))
+    return int(order[k if k >= 0 else 0])
+
+
+@kernel
+def _first_with_neighbours(pts, order, r2, need):  # pragma: no cover - compiled
+    """Position in ``order`` (the rows of ``pts`` by height, highest first) of the first row with
+    at least ``need`` other rows within squared distance ``r2``; -1 when none. Its neighbours lie
+    in the slice of ``order`` around it whose squared height difference is at most ``r2``."""
+    n = order.shape[0]
+    for k in range(n):
+        c = order[k]
+        x, y, z = pts[c, 0], pts[c, 1], pts[c, 2]
+        count = 0
+        j = k - 1
+        while j >= 0 and count < need:
+            q = order[j]
+            dz = z - pts[q, 2]
+            if dz * dz > r2:
+                break
+            dx = x - pts[q, 0]
+            dy = y - pts[q, 1]
+            if dx * dx + dy * dy + dz * dz <= r2:
+                count += 1
+            j -= 1
+        j = k + 1
+        while j < n and count < need:
+            q = order[j]
+            dz = z - pts[q, 2]
+            if dz * dz > r2:
+                break
+            dx = x - pts[q, 0]
+            dy = y - pts[q, 1]
+            if dx * dx + dy * dy + dz * dz <= r2:
+                count += 1
+            j += 1
+        if count >= need:
+            return k
+    return -1
 
 
 def crown_base_height(rel_z: np.ndarray, radial: np.ndarray, stem_radius_m: float, params: CrownParams) -> float:

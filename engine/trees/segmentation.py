@@ -59,6 +59,7 @@ from ..core.jit import kernel
 from ..core.params import Params, param_field
 from ..core.progress import Progress
 from ..geometry.columns import ColumnIndex
+from ..geometry.sorting import order_by_label
 from ..geometry.voxel import voxel_centroids
 from .stems import DbhMeasurement, Stem, check_cloud
 
@@ -231,25 +232,38 @@ def segment_trees(
     if params.orphan_max_distance_m > 0 and reached.any() and (~reached).any():
         vox_height = _group_means(vox_of, h, up_idx, n_vox)
         orphan = np.flatnonzero(~reached & (vox_height >= params.orphan_min_height_m))
-        # repeated, so that a sparse crown (a tall tree seen from far below) is reached as a
-        # chain of detached parts, each within the distance of the part before
-        for _ in range(params.orphan_passes):
-            if len(orphan) == 0 or not reached.any():
-                break
-            dist, nn = cKDTree(centroids[reached]).query(
-                centroids[orphan], distance_upper_bound=params.orphan_max_distance_m
-            )
-            ok = np.isfinite(dist)
-            if not ok.any():
-                break
-            vox_label[orphan[ok]] = vox_label[np.flatnonzero(reached)[nn[ok]]]
-            reached = vox_label > 0
-            orphan = orphan[~ok]
+        vox_label = _attach_orphans(centroids, vox_label, orphan, params.orphan_max_distance_m, params.orphan_passes)
     if params.crown_radius_per_dbh > 0:
         vox_label = _keep_own_tops(centroids, vox_label, stems, params)
     labels[up_idx] = vox_label.astype(labels.dtype)[vox_of]
     report(1.0, "segmented")
     return labels
+
+
+def _attach_orphans(
+    centroids: np.ndarray, vox_label: np.ndarray, orphan: np.ndarray, max_distance_m: float, passes: int
+) -> np.ndarray:
+    """The voxel labels ``vox_label`` (a stem id per voxel of ``centroids``, 0 = none) with the
+    unreached voxels ``orphan`` (ascending voxel numbers) given the label of the nearest reached
+    voxel (label > 0) within ``max_distance_m``, repeated at most
+    ``passes`` times: a sparse crown (a tall tree seen from far below) is reached as a chain of
+    detached parts, each within the distance of the part before. An orphan left after a pass has
+    no reached voxel within the distance, so the next pass searches only the voxels that pass
+    reached (one k-d tree of the plot's reached voxels, then small ones), with the labels a search
+    of every reached voxel gives."""
+    vox_label = vox_label.copy()
+    sources = np.flatnonzero(vox_label > 0)
+    for _ in range(passes):
+        if len(orphan) == 0 or len(sources) == 0:
+            break
+        dist, nn = cKDTree(centroids[sources]).query(centroids[orphan], distance_upper_bound=max_distance_m)
+        ok = np.isfinite(dist)
+        if not ok.any():
+            break
+        vox_label[orphan[ok]] = vox_label[sources[nn[ok]]]
+        sources = orphan[ok]
+        orphan = orphan[~ok]
+    return vox_label
 
 
 def expected_crown_radius(radius_m: float, params: SegmentationParams) -> float:
@@ -553,9 +567,10 @@ def tree_completeness(
         raise ScanDataError(f"labels must be one tree id per point, shape ({len(p)},), got {lab.shape}")
     footprint = data_footprint(p, params.footprint_cell_m)
     cell = params.footprint_cell_m
+    rows_of = _rows_by_label(lab)
     out: list[TreeCompleteness] = []
     for stem in stems:
-        idx = np.flatnonzero(lab == stem.id)
+        idx = rows_of(stem.id)
         reasons: list[str] = []
         n_crown = 0
         if footprint.distance_to_edge(stem.x, stem.y) < stem.radius_m + params.stem_edge_margin_m:
@@ -592,6 +607,23 @@ def tree_completeness(
     return out
 
 
+def _rows_by_label(labels: np.ndarray) -> Any:
+    """A function of a label giving the rows (ascending) of ``labels`` holding it, as
+    ``np.flatnonzero(labels == label)`` gives them: from one counting sort of non-negative integer
+    labels (a pass over the cloud per tree otherwise)."""
+    if not (np.issubdtype(labels.dtype, np.integer) and len(labels) and int(labels.min()) >= 0):
+        return lambda label: np.flatnonzero(labels == label)
+    order, starts = order_by_label(labels, np.int32 if len(labels) < 2**31 else np.int64)
+    empty = order[:0].astype(np.int64)
+
+    def rows(label: int) -> np.ndarray:
+        if not 0 <= label < len(starts) - 1:
+            return empty
+        return order[starts[label] : starts[label + 1]].astype(np.int64)
+
+    return rows
+
+
 def top_layer(rel_z: np.ndarray, radial: np.ndarray, layer_m: float) -> tuple[int, float]:
     """(points in the top ``layer_m`` of a tree, the spread of that layer as a fraction of the
     widest layer of the tree); spreads are 90th percentiles of the distance from the stem axis in
@@ -599,8 +631,10 @@ def top_layer(rel_z: np.ndarray, radial: np.ndarray, layer_m: float) -> tuple[in
     top = float(np.max(rel_z))
     layer = rel_z >= top - layer_m
     bins = np.floor((top - rel_z) / layer_m).astype(np.int64)
+    order = np.argsort(bins, kind="stable")  # each bin's points in their own order
+    _, first, counts = np.unique(bins[order], return_index=True, return_counts=True)
     widest = max(
-        (float(np.percentile(radial[bins == b], 90)) for b in np.unique(bins) if (bins == b).sum() >= 5), default=0.0
+        (float(np.percentile(radial[order[f : f + c]], 90)) for f, c in zip(first, counts) if c >= 5), default=0.0
     )
     spread = float(np.percentile(radial[layer], 90))
     return int(layer.sum()), (spread / widest if widest > 0 else 1.0)

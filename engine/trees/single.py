@@ -48,6 +48,8 @@ from scipy.sparse import csgraph
 from ..core.errors import ParameterError
 from ..core.params import Params
 from ..core.params import param_field as _p
+from ..geometry.columns import ColumnIndex
+from ..geometry.sorting import order_by_label
 from .stems import Stem
 
 __all__ = [
@@ -190,12 +192,10 @@ def standing_stems(points: np.ndarray, heights: np.ndarray, stems: Sequence[Stem
     low = p[np.asarray(heights) < 3.0]
     if not len(low):
         return []
-    from scipy.spatial import cKDTree
-
-    index = cKDTree(low[:, :2])
+    index = ColumnIndex(low, 1.0)  # disc queries without a k-d tree of the low points
     out = []
     for s in stems:
-        near = np.asarray(index.query_ball_point([s.x, s.y], 2.0), dtype=np.int64)
+        near = index.within(s.x, s.y, 2.0)
         if not len(near):
             continue
         q = low[near]
@@ -228,7 +228,7 @@ def _canopy_surface(p: np.ndarray) -> np.ndarray:
     ij = np.floor(xy / cell).astype(np.int64)
     shape = tuple(int(v) + 1 for v in ij.max(axis=0))
     flat = ij[:, 0] * shape[1] + ij[:, 1]
-    order = np.argsort(flat, kind="stable")
+    order, _ = order_by_label(flat)  # a counting sort by cell: argsort's stable order
     flat_sorted = flat[order]
     starts = np.flatnonzero(np.r_[True, flat_sorted[1:] != flat_sorted[:-1]])
     top = np.full(shape[0] * shape[1], -np.inf)

@@ -1,0 +1,113 @@
+"""The compiled and incremental forms of the tree steps give what their plain forms give: the tree
+top (a slice of the height order instead of a k-d tree of the tree), the orphan voxels' labels
+(each pass searching the voxels the pass before reached), the disc queries of float32 points,
+the rows of each tree (one counting sort), the top layer's spread and the hull candidates."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+
+def _top_by_kd_tree(points, radius_m, min_neighbours):
+    order = np.argsort(points[:, 2])[::-1]
+    if min_neighbours <= 0 or len(points) <= min_neighbours:
+        return int(order[0])
+    tree = cKDTree(points)
+    for k in order:
+        if len(tree.query_ball_point(points[k], radius_m)) - 1 >= min_neighbours:
+            return int(k)
+    return int(order[0])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_tree_top_is_the_highest_point_with_enough_neighbours(seed):
+    from forestreg.engine.trees.crown import tree_top
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(4, 4000))
+    pts = np.round(rng.random((n, 3)) * rng.uniform(0.5, 15.0), int(rng.integers(1, 4)))  # ties, duplicates
+    pts[: n // 10, 2] += 5.0 * rng.random(n // 10)  # stray points above
+    for radius, need in [(0.05, 2), (0.3, 1), (1.0, 2), (1.0, 5), (0.2, 0)]:
+        assert tree_top(pts, radius, need) == _top_by_kd_tree(pts, radius, need)
+    stray = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 1.0], [0.1, 0.0, 0.9], [0.0, 0.1, 0.8]])
+    assert tree_top(stray, 0.5, 2) == 1  # the lone highest point is skipped
+    assert tree_top(stray, 0.5, 3) == 0  # none qualifies: the highest
+
+
+def test_orphans_join_as_a_search_of_every_reached_voxel_joins_them():
+    from forestreg.engine.trees.segmentation import _attach_orphans
+
+    rng = np.random.default_rng(3)
+    crown = rng.random((400, 3)) * 3.0
+    chain = crown[0] + np.outer(np.arange(1, 301), [0.2, 0.1, 0.1])  # detached parts 0.245 m apart
+    centroids = np.vstack([crown, chain])
+    labels = np.zeros(len(centroids), dtype=np.int64)
+    labels[:400] = rng.integers(1, 4, 400)
+    labels[:400][rng.random(400) < 0.3] = 0
+    labels[0] = 2
+    orphan = np.flatnonzero(labels == 0)
+    want = labels.copy()
+    left = orphan
+    for _ in range(20):  # every pass searching every reached voxel
+        reached = np.flatnonzero(want > 0)
+        dist, nn = cKDTree(centroids[reached]).query(centroids[left], distance_upper_bound=0.5)
+        ok = np.isfinite(dist)
+        if not ok.any():
+            break
+        want[left[ok]] = want[reached[nn[ok]]]
+        left = left[~ok]
+    got = _attach_orphans(centroids, labels, orphan, 0.5, 20)
+    np.testing.assert_array_equal(got, want)
+    assert (labels[orphan] == 0).all()  # the input is left as it was
+    assert 20 <= np.count_nonzero(got[400:]) < 300  # the chain is reached pass by pass, 20 passes at most
+
+
+def test_disc_queries_of_float32_points_keep_their_precision():
+    from forestreg.engine.geometry.columns import ColumnIndex
+
+    rng = np.random.default_rng(4)
+    p = (rng.random((20_000, 3)) * 20.0).astype(np.float32)
+    columns = ColumnIndex(p, 1.0)
+    for x, y, r in [(5.0, 5.0, 2.0), (0.0, 19.9, 3.5), (10.0, 10.0, 0.0)]:
+        xy = p[:, :2]
+        d2 = (xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2
+        np.testing.assert_array_equal(columns.within(x, y, r), np.flatnonzero(d2 <= r * r))
+
+
+def test_tree_rows_and_top_layer_as_masks_give_them():
+    from forestreg.engine.trees.segmentation import _rows_by_label, top_layer
+
+    rng = np.random.default_rng(5)
+    labels = rng.integers(0, 7, 5000).astype(np.int32)
+    rows = _rows_by_label(labels)
+    for v in (0, 3, 6, 7, 100, -1):
+        np.testing.assert_array_equal(rows(v), np.flatnonzero(labels == v))
+    negative = _rows_by_label(labels - 2)
+    np.testing.assert_array_equal(negative(-1), np.flatnonzero(labels == 1))
+    z, radial = rng.random(3000) * 20.0, rng.random(3000) * 4.0
+    top = float(z.max())
+    bins = np.floor((top - z) / 1.0).astype(np.int64)
+    widest = max(float(np.percentile(radial[bins == b], 90)) for b in np.unique(bins) if (bins == b).sum() >= 5)
+    layer = z >= top - 1.0
+    assert top_layer(z, radial, 1.0) == (int(layer.sum()), float(np.percentile(radial[layer], 90)) / widest)
+
+
+def test_hull_candidates_keep_the_points_on_or_outside_an_edge():
+    from forestreg.app.layers import cloud_outline
+    from forestreg.engine.geometry.hull import hull_candidates
+    from forestreg.engine.trees.crown import convex_hull_2d
+
+    rng = np.random.default_rng(6)
+    p = np.round(rng.normal(size=(50_000, 2)) * 10.0, 1)
+    x, y = p[:, 0], p[:, 1]
+    ring = convex_hull_2d(p[[np.argmin(x), np.argmax(x), np.argmin(y), np.argmax(y)]])
+    want = np.zeros(len(p), dtype=bool)
+    for (ax, ay), (bx, by) in zip(ring, np.roll(ring, -1, axis=0)):
+        a, b = by - ay, bx - ax
+        want |= b * y - a * x <= b * ay - a * ax
+    got = hull_candidates(x, y, ring)
+    np.testing.assert_array_equal(got, want)
+    assert 0 < np.count_nonzero(got) < len(p) // 2
+    np.testing.assert_array_equal(cloud_outline(p), convex_hull_2d(p))
