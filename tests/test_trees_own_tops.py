@@ -204,7 +204,7 @@ def _pairs(plot, inv, radius_m: float = 8.5):
 def test_small_trees_beside_big_ones_on_a_plot_not_tuned_on():
     """Seed 7 (the rules were chosen on other seeds): every tree over 10 cm within 8.5 m found (19),
     no false stem, DBH rRMSE within 3 % (measured 2.3 %); the unflagged heights within 10 % of
-    the truth (measured: 7 of 19, all within 1 %); each of the 4 small trees beside a big one
+    the truth (measured: 9 of 19, all within 5 %); each of the 4 small trees beside a big one
     whose points' top stands more than 15 % above its true top (+36 % to +66 %: a neighbour's
     crown) is flagged; every reported height within an rRMSE of 15 % (measured 12.9 %: the
     flagged estimates of the 7 small trees, from a curve of free-growing trees, stand -13 % to
