@@ -308,12 +308,18 @@ def _linear_fill(known: np.ndarray, values: np.ndarray, query: np.ndarray) -> np
     coordinates and sums in the same order: a test), without importing ``scipy.interpolate``
     (and ``scipy.optimize`` with it: 11 MB and 0.25 s in every ``trees`` run)."""
     from scipy.spatial import Delaunay
+    from threadpoolctl import threadpool_limits
 
-    tri = Delaunay(known)
-    simplex = tri.find_simplex(query)
+    # one BLAS thread: the triangles' transforms are thousands of 2 x 2 LAPACK solves, and with
+    # the BLAS threads woken for each one the fill of a 5 M-point plot's DEM took 0.4-5 s on the
+    # shared 2-core machine (0.03-0.3 s alone), the same values
+    with threadpool_limits(1, user_api="blas"):
+        tri = Delaunay(known)
+        simplex = tri.find_simplex(query)
+        transform = tri.transform
     out = np.full(len(query), np.nan)
     inside = simplex >= 0
-    t = tri.transform[simplex[inside]]  # (n, 3, 2): the inverse of each triangle's edge matrix, then its third vertex
+    t = transform[simplex[inside]]  # (n, 3, 2): the inverse of each triangle's edge matrix, then its third vertex
     q = query[inside]
     d0, d1 = q[:, 0] - t[:, 2, 0], q[:, 1] - t[:, 2, 1]
     b0 = t[:, 0, 0] * d0 + t[:, 0, 1] * d1
