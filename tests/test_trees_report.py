@@ -193,3 +193,15 @@ def test_report_marks_heights_from_the_curve(tmp_path):
         tmp_path / "plain", [{**r, "height_source": "points"} for r in rows], pts, ids, wood, cyls, height_curve=curve
     ).read_text()
     assert plain.count("<sup>c</sup>") == 1
+
+
+def test_trees_without_cylinder_models_get_the_points_panel_alone(tmp_path):
+    rows, pts, ids, wood, cyls = _fake_plot()
+    both = write_trees_report(tmp_path / "with", rows, pts, ids, wood, cyls).read_text()
+    alone = write_trees_report(tmp_path / "without", rows, pts, ids, None, {}).read_text()
+    wide = mpimg.imread(tmp_path / "with" / "figures" / "tree_1.png")
+    narrow = mpimg.imread(tmp_path / "without" / "figures" / "tree_1.png")
+    assert narrow.shape[0] == wide.shape[0] and narrow.shape[1] < 0.75 * wide.shape[1]
+    assert narrow[..., :3].std() > 0.05  # the points drawn
+    assert "Right: its cylinder model" in both and "Right:" not in alone
+    assert "grey (wood and leaves not told apart); no cylinder models" in alone

@@ -163,7 +163,7 @@ def write_trees_report(
     drawn: dict[str, bytes] = {}
     order = sorted(rows, key=lambda r: _natural(r["tree_id"]))
     problems: list[str] = []
-    figure = _TreeFigure()
+    figure = _TreeFigure(models=bool(cylinders))
     try:
         for row in order[: max(0, int(max_tree_figures))]:
             tid = row["tree_id"]
@@ -185,7 +185,7 @@ def write_trees_report(
         f"stem positions (+) with circles of the DBH enlarged {_scale_text(scale)}, tree ids; flagged trees in red.</figcaption></figure>",
         _summary_section(rows, ids, wood) + curve_section,
         _table_section(rows, set(drawn)),
-        _trees_section(order, drawn, max_tree_figures, problems),
+        _trees_section(order, drawn, max_tree_figures, problems, models=bool(cylinders), wood=wood is not None),
     ]
     path = out / "report.html"
     write_text_atomic(path, html_page(title, body))
@@ -448,18 +448,29 @@ def cylinder_polygons(cyl: Mapping[str, np.ndarray], axes: tuple[int, int] = (0,
 class _TreeFigure:
     """The per-tree figure (points coloured leaf / wood beside the cylinder model, side view x-z,
     the same window on both), made once and redrawn for every tree: a figure of its own per tree,
-    laid out by ``tight_layout``, cost 0.13 s a tree (7.4 s of a 58-tree plot's 32 s run, now
-    3.3 s); the layout is fixed instead (both panels keep equal axes, centred in their halves)."""
+    laid out by ``tight_layout``, cost 0.13 s a tree; the layout is fixed instead (both panels keep
+    equal axes, centred in their halves). ``models`` False (no tree of the report has a cylinder
+    model: none asked for): the points' panel alone, half the drawing."""
 
-    def __init__(self) -> None:
-        self.fig, (self.ax_p, self.ax_c) = plt.subplots(1, 2, figsize=(9.0, 5.6))
-        self.fig.subplots_adjust(left=0.08, right=0.98, bottom=0.1, top=0.88, wspace=0.2)
-        for ax in (self.ax_p, self.ax_c):
+    def __init__(self, models: bool = True) -> None:
+        if models:
+            self.fig, (self.ax_p, self.ax_c) = plt.subplots(1, 2, figsize=(9.0, 5.6))
+            self.fig.subplots_adjust(left=0.08, right=0.98, bottom=0.1, top=0.88, wspace=0.2)
+        else:
+            self.fig, self.ax_p = plt.subplots(figsize=(6.0, 5.6))
+            self.fig.subplots_adjust(left=0.12, right=0.97, bottom=0.1, top=0.86)
+            self.ax_c = None
+        for ax in self.axes:
             ax.set_aspect("equal", adjustable="box")
             ax.set_xlabel("x (m)")
             ax.grid(True, lw=0.3)
         self.ax_p.set_ylabel("z (m)")
         self._tree_artists: list[Any] = []
+
+    @property
+    def axes(self) -> tuple[Any, ...]:
+        """The panels: the points', and the cylinder model's when drawn."""
+        return (self.ax_p,) if self.ax_c is None else (self.ax_p, self.ax_c)
 
     def close(self) -> None:
         plt.close(self.fig)
@@ -510,7 +521,9 @@ class _TreeFigure:
                 ax_p.text(0.5, 0.5, "no points", transform=ax_p.transAxes, ha="center", va="center", color="0.4")
             )
         n_cyl = 0
-        if cyl is not None and len(cyl["start_x"]):
+        if ax_c is None:
+            pass
+        elif cyl is not None and len(cyl["start_x"]):
             polys = cylinder_polygons(cyl)
             order = np.clip(np.asarray(cyl["branch_order"]).astype(int), 0, len(ORDER_COLOURS) - 1)
             draw = np.argsort(order, kind="stable")  # stem first, higher orders on top
@@ -549,16 +562,17 @@ class _TreeFigure:
             window = ((lo[0] - pad, hi[0] + pad), (lo[1] - pad, hi[1] + pad))
         else:
             window = ((0.0, 1.0), (0.0, 1.0))
-        for ax in (ax_p, ax_c):
+        for ax in self.axes:
             ax.set_xlim(*window[0])
             ax.set_ylim(*window[1])
         # at the top of the axes, where matplotlib would place them (nothing stands above the
         # axes): placed so, a draw does not measure every tick label to place them
         ax_p.set_title(f"points ({len(pts):,} drawn)", fontsize=9, y=1.0)
-        ax_c.set_title(f"cylinder model ({n_cyl} cylinders, width 2r)", fontsize=9, y=1.0)
+        if ax_c is not None:
+            ax_c.set_title(f"cylinder model ({n_cyl} cylinders, width 2r)", fontsize=9, y=1.0)
         head = f"Tree {row['tree_id']}: DBH {fmt(row['dbh_m'], 1, 100.0)} cm, H {fmt(row['height_m'], 2)} m, V {fmt(row['volume_m3'], 3)} m³"
         if row["flag"]:
-            head += f"  [{row['flag'][:60]}]"
+            head += ("  " if ax_c is not None else "\n") + f"[{row['flag'][:60]}]"
         self.fig.suptitle(head.replace("$", r"\$"), fontsize=10, color=FLAG_COLOUR if row["flag"] else "k")
         buf = io.BytesIO()
         self.fig.savefig(buf, format="png", dpi=80)
@@ -635,14 +649,24 @@ def _table_section(rows: Sequence[Mapping[str, Any]], drawn: set[str]) -> str:
 
 
 def _trees_section(
-    order: Sequence[Mapping[str, Any]], drawn: Mapping[str, bytes], cap: int, problems: Sequence[str]
+    order: Sequence[Mapping[str, Any]],
+    drawn: Mapping[str, bytes],
+    cap: int,
+    problems: Sequence[str],
+    *,
+    models: bool = True,
+    wood: bool = True,
 ) -> str:
-    out = [
-        "<h2>4. Tree by tree</h2>",
+    note = (
         '<p class="note">Left: the tree\'s points seen from the side (x against z), wood brown, leaves green. Right: its '
         "cylinder model on the same plane, each cylinder a band as wide as its diameter, coloured by branch order "
-        "(stem dark brown).</p>",
-    ]
+        "(stem dark brown).</p>"
+        if models
+        else '<p class="note">The tree\'s points seen from the side (x against z), '
+        + ("wood brown, leaves green" if wood else "grey (wood and leaves not told apart)")
+        + "; no cylinder models.</p>"
+    )
+    out = ["<h2>4. Tree by tree</h2>", note]
     for r in order:
         tid = str(r["tree_id"])
         if tid in drawn:
