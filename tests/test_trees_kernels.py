@@ -111,3 +111,20 @@ def test_hull_candidates_keep_the_points_on_or_outside_an_edge():
     np.testing.assert_array_equal(got, want)
     assert 0 < np.count_nonzero(got) < len(p) // 2
     np.testing.assert_array_equal(cloud_outline(p), convex_hull_2d(p))
+
+
+@pytest.mark.parametrize("offset", [0.0, 4e5])
+def test_disc_queries_of_columns_inside_or_outside_the_disc_equal_ball_queries(offset):
+    # columns wholly inside the disc give their rows unread, those outside none: points on the
+    # columns' borders and on the disc's rim are decided as the k-d tree decides them
+    from forestreg.engine.geometry.columns import ColumnIndex
+
+    rng = np.random.default_rng(7)
+    grid = np.round(rng.uniform(-10, 10, (40_000, 2)) * 4) / 4  # on the 0.5 m column borders
+    p = np.column_stack([grid + offset, rng.uniform(0, 20, len(grid))])
+    tree = cKDTree(p[:, :2])
+    for cell in (0.5, 1.0):
+        columns = ColumnIndex(p, cell)
+        for x, y, r in [(0.0, 0.0, 3.0), (0.25, -0.5, 2.5), (1.0, 1.0, 5.0), (-9.75, 9.75, 4.0), (3.0, 4.0, 5.0)]:
+            want = np.sort(tree.query_ball_point([x + offset, y + offset], r))
+            np.testing.assert_array_equal(columns.within(x + offset, y + offset, r), want)

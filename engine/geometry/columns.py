@@ -84,6 +84,12 @@ class ColumnIndex:
             float(x),
             float(y),
             radius_m * radius_m,
+            float(self.origin[0]),
+            float(self.origin[1]),
+            self.cell_m,
+            # a column's points may stand this far outside its square (the rounding of their
+            # column numbers), with room to spare
+            1e-9 * (1.0 + float(np.abs(self.origin).max()) + self.cell_m * max(nx, ny)),
             rows,
             spare,
             runs,
@@ -101,23 +107,45 @@ def _column_key_rows(start, stop, pts, lo, cell, ny, keys):  # pragma: no cover 
 
 
 @kernel
-def _disc_rows(order, starts, ny, i0, i1, j0, j1, pts, x, y, r2, rows, spare, runs):  # pragma: no cover - compiled
-    """The rows of columns ``i0..i1`` x ``j0..j1`` within ``sqrt(r2)`` of ``(x, y)``, sorted: each
-    column's rows are ascending (a stable counting sort made them), so the kept rows are collected
-    run by run (one run a column) and the runs merged pairwise. Returns their count and whether
-    they ended in ``spare`` (else in ``rows``)."""
+def _disc_rows(
+    order, starts, ny, i0, i1, j0, j1, pts, x, y, r2, ox, oy, cell, margin, rows, spare, runs
+):  # pragma: no cover - compiled
+    """The rows of columns ``i0..i1`` x ``j0..j1`` (squares of side ``cell`` from ``(ox, oy)``)
+    within ``sqrt(r2)`` of ``(x, y)``, sorted: each column's rows are ascending (a stable counting
+    sort made them), so the kept rows are collected run by run (one run a column) and the runs
+    merged pairwise. A column whose square (widened by ``margin``) lies inside the disc by a
+    relative 1e-9 gives all its rows without reading their points, one outside it none; the
+    others are tested point by point (``dx * dx + dy * dy <= r2``). Returns their count and
+    whether they ended in ``spare`` (else in ``rows``)."""
     n = 0
     k = 0
     runs[0] = 0
+    inside, outside = r2 * (1.0 - 1e-9), r2 * (1.0 + 1e-9)
     for i in range(i0, i1 + 1):
-        for c in range(i * ny + j0, i * ny + j1 + 1):
-            for q in range(starts[c], starts[c + 1]):
-                row = order[q]
-                dx = pts[row, 0] - x
-                dy = pts[row, 1] - y
-                if dx * dx + dy * dy <= r2:
-                    rows[n] = row
+        xa = ox + i * cell - margin - x
+        xb = ox + (i + 1) * cell + margin - x
+        far_x = max(abs(xa), abs(xb))
+        near_x = max(xa, 0.0, -xb)
+        for jj in range(j0, j1 + 1):
+            ya = oy + jj * cell - margin - y
+            yb = oy + (jj + 1) * cell + margin - y
+            far_y = max(abs(ya), abs(yb))
+            near_y = max(ya, 0.0, -yb)
+            c = i * ny + jj
+            if near_x * near_x + near_y * near_y > outside:
+                continue
+            if far_x * far_x + far_y * far_y <= inside:
+                for q in range(starts[c], starts[c + 1]):
+                    rows[n] = order[q]
                     n += 1
+            else:
+                for q in range(starts[c], starts[c + 1]):
+                    row = order[q]
+                    dx = pts[row, 0] - x
+                    dy = pts[row, 1] - y
+                    if dx * dx + dy * dy <= r2:
+                        rows[n] = row
+                        n += 1
             if n > runs[k]:  # empty columns make no run
                 k += 1
                 runs[k] = n
