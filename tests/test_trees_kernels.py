@@ -128,3 +128,18 @@ def test_disc_queries_of_columns_inside_or_outside_the_disc_equal_ball_queries(o
         for x, y, r in [(0.0, 0.0, 3.0), (0.25, -0.5, 2.5), (1.0, 1.0, 5.0), (-9.75, 9.75, 4.0), (3.0, 4.0, 5.0)]:
             want = np.sort(tree.query_ball_point([x + offset, y + offset], r))
             np.testing.assert_array_equal(columns.within(x + offset, y + offset, r), want)
+
+
+def test_circle_inlier_counts_are_the_distance_tests():
+    from forestreg.engine.geometry.circle import _inlier_counts
+
+    rng = np.random.default_rng(8)
+    for k in range(40):
+        ang = rng.random(500) * 2 * np.pi
+        x = np.round(np.cos(ang) * 0.2 + rng.normal(0, 0.01, 500), 3 if k % 2 else 12)
+        y = np.round(np.sin(ang) * 0.2 + rng.normal(0, 0.01, 500), 3 if k % 2 else 12)
+        cx, cy, r = rng.normal(0, 0.02, 300), rng.normal(0, 0.02, 300), rng.uniform(0.0, 0.4, 300)
+        cx[:50], cy[:50], r[:50] = 0.0, 0.0, np.round(np.hypot(x[:50], y[:50]) + 0.01, 3)  # points on the rim
+        tol = [0.005, 0.01, 0.3][k % 3]
+        want = (np.abs(np.hypot(x[None] - cx[:, None], y[None] - cy[:, None]) - r[:, None]) < tol).sum(axis=1)
+        np.testing.assert_array_equal(_inlier_counts(x, y, cx, cy, r, tol), want)

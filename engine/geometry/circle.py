@@ -150,12 +150,29 @@ def _inlier_counts(
     x: np.ndarray, y: np.ndarray, cx: np.ndarray, cy: np.ndarray, r: np.ndarray, tolerance: float
 ) -> np.ndarray:
     """For each circle ``(cx, cy, r)`` (C,), the number of points ``(x, y)`` (M,) whose distance
-    from it, ``|hypot(x - cx, y - cy) - r|``, is below ``tolerance`` (metres)."""
+    from it, ``|hypot(x - cx, y - cy) - r|``, is below ``tolerance`` (metres). A point whose
+    squared distance from the centre lies clearly (by a relative 1e-9, far beyond the rounding of
+    either form) inside or outside the ring is decided from it; the others by that test itself,
+    so the counts are the test's."""
     counts = np.zeros(len(cx), dtype=np.int64)
     for c in range(len(cx)):
+        lo, hi = r[c] - tolerance, r[c] + tolerance
+        margin = 1e-9 * (1.0 + abs(r[c]) + abs(tolerance))
+        inner = max(lo + margin, 0.0)
+        in_lo = inner * inner
+        in_hi = (hi - margin) * (hi - margin) if hi - margin > inner else -1.0
+        out_lo = (lo - margin) * (lo - margin) if lo - margin > 0.0 else -1.0
+        out_hi = (hi + margin) * (hi + margin)
         n = 0
         for i in range(len(x)):
-            if abs(math.hypot(x[i] - cx[c], y[i] - cy[c]) - r[c]) < tolerance:
+            dx = x[i] - cx[c]
+            dy = y[i] - cy[c]
+            d2 = dx * dx + dy * dy
+            if in_lo <= d2 <= in_hi:
+                n += 1
+            elif d2 < out_lo or d2 > out_hi:
+                continue
+            elif abs(math.hypot(dx, dy) - r[c]) < tolerance:
                 n += 1
         counts[c] = n
     return counts
