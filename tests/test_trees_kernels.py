@@ -143,3 +143,18 @@ def test_circle_inlier_counts_are_the_distance_tests():
         tol = [0.005, 0.01, 0.3][k % 3]
         want = (np.abs(np.hypot(x[None] - cx[:, None], y[None] - cy[:, None]) - r[:, None]) < tol).sum(axis=1)
         np.testing.assert_array_equal(_inlier_counts(x, y, cx, cy, r, tol), want)
+
+
+def test_footprint_cells_are_the_floored_offsets():
+    from forestreg.engine.trees.segmentation import data_footprint
+
+    rng = np.random.default_rng(9)
+    for pts, cell in [(rng.normal(size=(20_000, 3)) * 7.0, 0.5), (np.round(rng.random((5000, 3)) * 20.0, 1), 1.0)]:
+        footprint = data_footprint(pts, cell)
+        x0, y0 = pts[:, 0].min() - cell, pts[:, 1].min() - cell
+        ij = np.floor((pts[:, :2] - (x0, y0)) / cell).astype(np.int64)
+        occupied = np.zeros((ij[:, 1].max() + 2, ij[:, 0].max() + 2), dtype=bool)
+        occupied[ij[:, 1], ij[:, 0]] = True
+        assert footprint.inside.shape == occupied.shape
+        assert (footprint.inside >= occupied).all() and footprint.inside[occupied].all()
+        assert data_footprint(pts.astype(np.float32), cell).inside.shape[0] >= occupied.shape[0] - 1
