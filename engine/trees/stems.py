@@ -529,13 +529,13 @@ def fit_stem_circle(
         reasons.append("few inliers")
     if not math.isfinite(rms) or rms > max_residual_m:
         reasons.append("high residual")
-    ovality, shape_sigma = float("nan"), 0.0
-    if typical_ovality is not None and not reasons and typical_ovality > 0:
+    oval = None
+    if typical_ovality is not None and typical_ovality > 0 and not reasons:
         oval = oval_section(p[near], (cx, cy), r, typical_ovality)
-        if oval is not None:
-            cx, cy = oval.centre
-            r, shape_sigma = oval.radius_m, oval.shape_sigma_m
-            ovality = oval.ovality
+    ovality, shape_sigma = float("nan"), 0.0
+    if oval is not None:
+        cx, cy = oval.centre
+        r, shape_sigma, ovality = oval.radius_m, oval.shape_sigma_m, oval.ovality
     elif coverage >= ovality_min_coverage:
         ovality = section_ovality(p[near], (cx, cy), r)
     return CircleFit(
