@@ -158,3 +158,21 @@ def test_footprint_cells_are_the_floored_offsets():
         assert footprint.inside.shape == occupied.shape
         assert (footprint.inside >= occupied).all() and footprint.inside[occupied].all()
         assert data_footprint(pts.astype(np.float32), cell).inside.shape[0] >= occupied.shape[0] - 1
+
+
+def test_grid_cells_and_maxima_as_numpy_floors_them():
+    from forestreg.engine.geometry.grid import cell_extent, cell_maxima, mark_cells
+
+    rng = np.random.default_rng(10)
+    p = np.column_stack([rng.uniform(-3, 9, 30_000), rng.uniform(2, 7, 30_000), rng.normal(size=30_000)])
+    p[:100, :2] = np.round(p[:100, :2] * 2) / 2  # on the cells' borders
+    lo = (float(p[:, 0].min()), float(p[:, 1].min()))
+    for cell in (0.5, 1.0, 0.3):
+        ij = np.floor((p[:, :2] - lo) / cell).astype(np.int64)
+        assert cell_extent(p, lo, cell) == (int(ij[:, 0].max()), int(ij[:, 1].max()))
+        top = np.full(tuple(ij.max(axis=0) + 1), -np.inf)
+        np.maximum.at(top, (ij[:, 0], ij[:, 1]), p[:, 2])
+        np.testing.assert_array_equal(cell_maxima(p, lo, cell), top)
+        marked = np.zeros(top.shape[::-1], dtype=bool)
+        mark_cells(p, lo, cell, marked.T)  # a transposed view: rows by y
+        np.testing.assert_array_equal(marked, np.isfinite(top).T)

@@ -59,6 +59,7 @@ from ..core.jit import kernel
 from ..core.params import Params, param_field
 from ..core.progress import Progress
 from ..geometry.columns import ColumnIndex
+from ..geometry.grid import cell_extent, mark_cells
 from ..geometry.sorting import order_by_label
 from ..geometry.voxel import voxel_centroids
 from .stems import DbhMeasurement, Stem, check_cloud
@@ -539,35 +540,12 @@ def data_footprint(points: np.ndarray, cell_m: float) -> Footprint:
     """The :class:`Footprint` of a cloud's XY extent on cells of ``cell_m`` metres."""
     x0, y0 = float(points[:, 0].min()) - cell_m, float(points[:, 1].min()) - cell_m
     # the cells in compiled passes (no (N, 2) temporaries: three of 80 MB for 5 M points)
-    pts = np.ascontiguousarray(points[:, :2], dtype=np.float64) if points.dtype != np.float64 else points
-    last = _last_cell(pts, x0, y0, float(cell_m))
-    occupied = np.zeros((int(last[1]) + 2, int(last[0]) + 2), dtype=bool)
-    _mark_cells(pts, x0, y0, float(cell_m), occupied)
+    nx, ny = cell_extent(points, (x0, y0), cell_m)
+    occupied = np.zeros((ny + 2, nx + 2), dtype=bool)
+    mark_cells(points, (x0, y0), cell_m, occupied.T)
     inside = ndimage.binary_fill_holes(ndimage.binary_closing(occupied, iterations=1, border_value=0))
     edge, nearest = ndimage.distance_transform_edt(inside, return_indices=True)
     return Footprint(inside, edge * cell_m, nearest, x0, y0, cell_m)
-
-
-@kernel
-def _last_cell(pts, x0, y0, cell):  # pragma: no cover - compiled
-    """The largest column and row ``floor((x - x0) / cell)``, ``floor((y - y0) / cell)`` of the
-    points (N, >= 2)."""
-    last = np.zeros(2, dtype=np.int64)
-    for i in range(pts.shape[0]):
-        c = np.int64(np.floor((pts[i, 0] - x0) / cell))
-        r = np.int64(np.floor((pts[i, 1] - y0) / cell))
-        if c > last[0]:
-            last[0] = c
-        if r > last[1]:
-            last[1] = r
-    return last
-
-
-@kernel
-def _mark_cells(pts, x0, y0, cell, occupied):  # pragma: no cover - compiled
-    """Set ``occupied[row, column]`` of every point's cell."""
-    for i in range(pts.shape[0]):
-        occupied[np.int64(np.floor((pts[i, 1] - y0) / cell)), np.int64(np.floor((pts[i, 0] - x0) / cell))] = True
 
 
 def tree_completeness(

@@ -49,7 +49,7 @@ from ..core.errors import ParameterError
 from ..core.params import Params
 from ..core.params import param_field as _p
 from ..geometry.columns import ColumnIndex
-from ..geometry.sorting import order_by_label
+from ..geometry.grid import cell_extent, cell_maxima, mark_cells
 from .stems import Stem
 
 __all__ = [
@@ -220,20 +220,12 @@ def _lowest_on_axis(p: np.ndarray, stem: Stem) -> float:
 def _canopy_surface(p: np.ndarray) -> np.ndarray:
     """The highest z of each cell of a grid over ``p`` (0.5 m cells, 1 m where the cloud is
     sparse), empty cells taking the highest of their neighbours (NaN where none)."""
-    xy = p[:, :2] - p[:, :2].min(axis=0)
-    ij_1m = np.floor(xy).astype(np.int64)
-    occupied_1m = np.zeros(tuple(int(v) + 1 for v in ij_1m.max(axis=0)), dtype=bool)
-    occupied_1m[ij_1m[:, 0], ij_1m[:, 1]] = True
+    lo = tuple(float(v) for v in p[:, :2].min(axis=0))
+    nx, ny = cell_extent(p, lo, 1.0)
+    occupied_1m = np.zeros((nx + 1, ny + 1), dtype=bool)
+    mark_cells(p, lo, 1.0, occupied_1m)
     cell = 0.5 if len(p) >= 8.0 * np.count_nonzero(occupied_1m) else 1.0
-    ij = np.floor(xy / cell).astype(np.int64)
-    shape = tuple(int(v) + 1 for v in ij.max(axis=0))
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
-    order, _ = order_by_label(flat)  # a counting sort by cell: argsort's stable order
-    flat_sorted = flat[order]
-    starts = np.flatnonzero(np.r_[True, flat_sorted[1:] != flat_sorted[:-1]])
-    top = np.full(shape[0] * shape[1], -np.inf)
-    top[flat_sorted[starts]] = np.maximum.reduceat(p[order, 2], starts)
-    top = top.reshape(shape)
+    top = cell_maxima(p, lo, cell)  # compiled passes: no (N, 2) temporaries, no sort
     empty = ~np.isfinite(top)
     top = np.where(empty, ndimage.maximum_filter(top, size=3, mode="constant", cval=-np.inf), top)
     return np.where(np.isfinite(top), top, np.nan)
