@@ -45,7 +45,7 @@ def cloud_outline(xy: np.ndarray) -> Optional[np.ndarray]:
     with fewer than 3 points not on one line. The points inside the octagon of the extreme points
     along x, y and the diagonals cannot be hull vertices and are dropped first (Akl-Toussaint):
     a few passes over millions of points leave a few to hull."""
-    from ..engine.geometry.hull import hull_candidates
+    from ..engine.geometry.hull import extreme_rows, hull_candidates
     from ..engine.trees.crown import convex_hull_2d
 
     p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -53,14 +53,11 @@ def cloud_outline(xy: np.ndarray) -> Optional[np.ndarray]:
         p = p[np.isfinite(p).all(axis=1)]
     if len(p) <= 20_000:
         return convex_hull_2d(p)
-    x, y = np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1])
-    s, d = x + y, x - y
-    extreme = np.unique([int(f(v)) for v in (x, y, s, d) for f in (np.argmin, np.argmax)])
-    octagon = convex_hull_2d(p[extreme])
+    octagon = convex_hull_2d(p[extreme_rows(p)])
     if octagon is None:
         return convex_hull_2d(p)
     # counter-clockwise ring: a point on or right of an edge (cross product <= 0) may be a vertex
-    outside = hull_candidates(x, y, octagon)
+    outside = hull_candidates(p, octagon)
     return convex_hull_2d(np.vstack([p[outside], octagon]))
 
 

@@ -96,7 +96,7 @@ def test_tree_rows_and_top_layer_as_masks_give_them():
 
 def test_hull_candidates_keep_the_points_on_or_outside_an_edge():
     from forestreg.app.layers import cloud_outline
-    from forestreg.engine.geometry.hull import hull_candidates
+    from forestreg.engine.geometry.hull import extreme_rows, hull_candidates
     from forestreg.engine.trees.crown import convex_hull_2d
 
     rng = np.random.default_rng(6)
@@ -107,9 +107,12 @@ def test_hull_candidates_keep_the_points_on_or_outside_an_edge():
     for (ax, ay), (bx, by) in zip(ring, np.roll(ring, -1, axis=0)):
         a, b = by - ay, bx - ax
         want |= b * y - a * x <= b * ay - a * ax
-    got = hull_candidates(x, y, ring)
+    got = hull_candidates(p, ring)
     np.testing.assert_array_equal(got, want)
     assert 0 < np.count_nonzero(got) < len(p) // 2
+    s, d = x + y, x - y
+    want_extremes = np.unique([int(f(v)) for v in (x, y, s, d) for f in (np.argmin, np.argmax)])
+    np.testing.assert_array_equal(extreme_rows(p), want_extremes)  # ties: the first row, as argmin
     np.testing.assert_array_equal(cloud_outline(p), convex_hull_2d(p))
 
 
