@@ -162,11 +162,13 @@ def test_spruce_and_pine_dbh_volume_and_wood(shared_data):
         assert len(inv.trees) == 1
         t = inv.trees[0]
         assert t.dbh_m == pytest.approx(dbh_ref, rel=0.03)
-        # the stem curve's diameter where it has a section at breast height, else the circles
-        # fitted there (spruce: a branch whorl fails that section; the curve's line from the
-        # swollen node below read 7 % high)
+        # the circles fitted at and around breast height; where the stem curve has a section
+        # there it agrees (spruce: a branch whorl fails that section; the curve's line from the
+        # swollen node below read 7 % high, and the DBH's trust is then medium)
         on_curve = curve_dbh(t.curve, t.stem, 1.3)
-        assert t.dbh_m == pytest.approx(on_curve if math.isfinite(on_curve) else t.dbh.dbh_m, abs=1e-9)
+        assert t.dbh_m == pytest.approx(t.dbh.dbh_m, abs=1e-9)
+        if math.isfinite(on_curve):
+            assert t.dbh_m == pytest.approx(on_curve, rel=0.02)
         row = t.row()
         assert set(TREE_COLUMNS) <= set(row)
         assert row["dbh_quality"].endswith("high" if math.isfinite(on_curve) else "medium")

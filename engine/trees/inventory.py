@@ -211,7 +211,8 @@ class TreeRecord:
     n_points: int
     wood_fraction: float
     flags: tuple[str, ...]
-    #: DBH reported (the stem curve at breast height; NaN when not measured)
+    #: DBH reported (the circles at and around breast height, the stem curve's where they
+    #: disagree; NaN when not measured)
     dbh_m: float = math.nan
     #: its 1-sigma against the girth-equivalent diameter (noise and the unseen part of the
     #: section: :func:`.stems.dbh_sigma`; NaN when not measured)
@@ -823,8 +824,9 @@ def tree_record(
     overtopped: Optional[str] = None,
     reach: float = math.nan,
 ) -> TreeRecord:
-    """One tree's record from its measurements: the reported DBH (the stem curve at breast
-    height; none from a failed fit), the height's checks, the cylinder model on its wood points
+    """One tree's record from its measurements: the reported DBH (the circles at and around
+    breast height where the stem curve has a section there, the curve's diameter where they
+    disagree; none from a failed fit), the height's checks, the cylinder model on its wood points
     made consistent with the stem curve, the form-factor check, the flags and the quality of each
     measure. ``idx`` are the tree's point indices into ``p``; ``wood`` the wood probability of
     every point (the stem traced by the curve already counted as wood); ``reasons`` the
@@ -851,26 +853,31 @@ def tree_record(
     flags = list(reasons)
     quality: dict[str, str] = {}
     tree_pts = p[idx]
-    # --- DBH: the stem curve at breast height; a failed fit gives no value
+    # --- DBH: the circles at and around breast height where the stem curve has a section there
+    # (its own section is one of them; the slices average out their range noise), the curve's
+    # diameter where the slices disagree; a failed fit gives no value
     d_curve = curve_dbh(curve, stem, stem_params.breast_height_m)
     fit = d.fit
     if math.isfinite(d_curve) and (d.ok or "inconsistent slices" in d.reasons):
-        dbh_value = d_curve
+        on_slices = d.ok and math.isfinite(d.dbh_m)
+        dbh_value = d.dbh_m if on_slices else d_curve
         trust = "high" if d.ok else "medium"
         if fit is not None and fit.arc_coverage < 0.5:
             trust = _trust(trust, "medium")
         if method == "noisy":
             trust = _trust(trust, "medium")
-        if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d_curve, 0.008):
+        if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * dbh_value, 0.008):
             trust = _trust(trust, "low")
             flags.append(
                 f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
-                f"{1000 * d_curve:.0f} mm stem (noisy or ghosted shell)"
+                f"{1000 * dbh_value:.0f} mm stem (noisy or ghosted shell)"
             )
         if math.isfinite(d.dbh_m) and abs(d.dbh_m - d_curve) > 0.1 * d_curve:
             trust = _trust(trust, "low")
             flags.append(f"DBH slices ({d.dbh_m:.3f} m) and stem curve ({d_curve:.3f} m) disagree")
-        how = "stem curve at 1.3 m" + (" (noisy/sparse profile)" if method == "noisy" else "")
+        how = ("circles at 1.3 m +/- 0.1 m on the stem curve" if on_slices else "stem curve at 1.3 m") + (
+            " (noisy/sparse profile)" if method == "noisy" else ""
+        )
         quality["dbh"] = f"{how}, arc {fit.arc_coverage:.2f}; {trust}" if fit is not None else f"{how}; {trust}"
     elif d.ok and math.isfinite(d.dbh_m):
         dbh_value = d.dbh_m

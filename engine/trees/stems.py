@@ -62,6 +62,7 @@ from ..core.scan import check_points
 from ..geometry.circle import robust_circle
 from ..geometry.cluster import connected_clusters
 from ..geometry.features import local_covariances, normals_and_variation
+from ..geometry.robust import median
 from ..geometry.voxel import voxel_thin
 
 # --------------------------------------------------------------------------------------------
@@ -602,7 +603,7 @@ def oval_section(
         res = dist - (x[2] + x[3] * c2 + x[4] * s2)
         # Tukey's biweight on the residuals (scale from their MAD): mixed pixels at a silhouette's
         # edge and twigs against the bark do not pull the section
-        scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), 1e-4)
+        scale = max(1.4826 * median(np.abs(res - median(res))), 1e-4)
         u = res / (4.685 * scale)
         w = np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0)
         sig2 = max(float(np.sum(w * res**2) / max(np.sum(w), 1.0)), 1e-8)
@@ -1124,10 +1125,11 @@ def measure_dbh(
 
     The slices lie at ``params.breast_height_m`` along the axis from the stem base and
     ``dbh_slice_offsets_m`` above and below it; each fit must pass the circle checks, be centred on
-    the stem axis and agree with the detection band's radius. The DBH is the median of the good
-    fits (breast height and the slices within 0.1 m of it), which keeps a branch stub or a clump
-    of twigs in one slice from deciding it; good fits disagreeing by more than
-    ``max_dbh_slice_spread`` make it not ok ("inconsistent slices"). When no slice within 0.1 m is
+    the stem axis and agree with the detection band's radius. The DBH is the mean of the good
+    fits (breast height and the slices within 0.1 m of it) that lie within 5 % of their median:
+    the range noise of single slices averages out, and a branch stub or a clump of twigs in one
+    slice does not decide it; good fits disagreeing by more than ``max_dbh_slice_spread`` make it
+    not ok ("inconsistent slices") and give their median. When no slice within 0.1 m is
     good, the nearest good farther slice is used and ``note`` says so. ``heights`` are accepted
     for a uniform interface and validated; the slices follow the stem's own base, so leaning
     stems and slopes are measured along the stem.
@@ -1169,11 +1171,16 @@ def _measure_dbh(p: np.ndarray, stem: Stem, params: StemParams, tree: cKDTree) -
         near = good[:1]
         note = f"measured {bh + near[0][0]:.2f} m along the stem: the slices within 0.1 m of breast height failed ({', '.join(first_reasons or ())})"
     diameters = np.array([g[1] for g in near])
-    dbh = float(np.median(diameters))
+    middle = float(np.median(diameters))
+    # the mean of the slices that agree with their median (within 5 %): their range noise
+    # averages out, while a branch stub or a clump of twigs in one slice is left out
+    agree = np.abs(diameters - middle) <= 0.05 * middle
+    dbh = float(np.mean(diameters[agree]))
     main = min(near, key=lambda g: abs(g[1] - dbh))
     reasons_out: list[str] = []
-    if len(diameters) > 1 and (diameters.max() - diameters.min()) > params.max_dbh_slice_spread * dbh:
+    if len(diameters) > 1 and (diameters.max() - diameters.min()) > params.max_dbh_slice_spread * middle:
         reasons_out.append("inconsistent slices")
+        dbh = middle
     return DbhMeasurement(stem.id, dbh, main[3], bh + main[0], main[2], not reasons_out, tuple(reasons_out), note)
 
 
