@@ -227,28 +227,18 @@ def _first_with_neighbours(pts, order, r2, need):  # pragma: no cover - compiled
         c = order[k]
         x, y, z = pts[c, 0], pts[c, 1], pts[c, 2]
         count = 0
-        j = k - 1
-        while j >= 0 and count < need:
-            q = order[j]
-            dz = z - pts[q, 2]
-            if dz * dz > r2:
-                break
-            dx = x - pts[q, 0]
-            dy = y - pts[q, 1]
-            if dx * dx + dy * dy + dz * dz <= r2:
-                count += 1
-            j -= 1
-        j = k + 1
-        while j < n and count < need:
-            q = order[j]
-            dz = z - pts[q, 2]
-            if dz * dz > r2:
-                break
-            dx = x - pts[q, 0]
-            dy = y - pts[q, 1]
-            if dx * dx + dy * dy + dz * dz <= r2:
-                count += 1
-            j += 1
+        for step in (-1, 1):  # the higher rows, then the lower ones
+            j = k + step
+            while 0 <= j < n and count < need:
+                q = order[j]
+                dz = z - pts[q, 2]
+                if dz * dz > r2:
+                    break
+                dx = x - pts[q, 0]
+                dy = y - pts[q, 1]
+                if dx * dx + dy * dy + dz * dz <= r2:
+                    count += 1
+                j += step
         if count >= need:
             return k
     return -1

@@ -858,10 +858,12 @@ def tree_record(
     # diameter where the slices disagree; a failed fit gives no value
     d_curve = curve_dbh(curve, stem, stem_params.breast_height_m)
     fit = d.fit
-    if math.isfinite(d_curve) and (d.ok or "inconsistent slices" in d.reasons):
-        on_slices = d.ok and math.isfinite(d.dbh_m)
+    on_curve = math.isfinite(d_curve)
+    on_slices = d.ok and math.isfinite(d.dbh_m)
+    if on_slices or (on_curve and "inconsistent slices" in d.reasons):
         dbh_value = d.dbh_m if on_slices else d_curve
-        trust = "high" if d.ok else "medium"
+        # no stem-curve section at breast height (a whorl, a gap): the slices alone, medium
+        trust = "high" if d.ok and on_curve else "medium"
         if fit is not None and fit.arc_coverage < 0.5:
             trust = _trust(trust, "medium")
         if method == "noisy":
@@ -872,23 +874,16 @@ def tree_record(
                 f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
                 f"{1000 * dbh_value:.0f} mm stem (noisy or ghosted shell)"
             )
-        if math.isfinite(d.dbh_m) and abs(d.dbh_m - d_curve) > 0.1 * d_curve:
+        if on_curve and math.isfinite(d.dbh_m) and abs(d.dbh_m - d_curve) > 0.1 * d_curve:
             trust = _trust(trust, "low")
             flags.append(f"DBH slices ({d.dbh_m:.3f} m) and stem curve ({d_curve:.3f} m) disagree")
-        how = ("circles at 1.3 m +/- 0.1 m on the stem curve" if on_slices else "stem curve at 1.3 m") + (
-            " (noisy/sparse profile)" if method == "noisy" else ""
-        )
-        quality["dbh"] = f"{how}, arc {fit.arc_coverage:.2f}; {trust}" if fit is not None else f"{how}; {trust}"
-    elif d.ok and math.isfinite(d.dbh_m):
-        dbh_value = d.dbh_m
-        trust = "medium"
-        if fit is not None and fit.rms_residual_m > max(0.15 * 0.5 * d.dbh_m, 0.008):
-            trust = "low"
-            flags.append(
-                f"DBH uncertain: circle residual {1000 * fit.rms_residual_m:.0f} mm on a "
-                f"{1000 * d.dbh_m:.0f} mm stem (noisy or ghosted shell)"
+        if not on_curve:
+            quality["dbh"] = f"circle fits at 1.3 m (no stem-curve section there); {trust}"
+        else:
+            how = ("circles at 1.3 m +/- 0.1 m on the stem curve" if on_slices else "stem curve at 1.3 m") + (
+                " (noisy/sparse profile)" if method == "noisy" else ""
             )
-        quality["dbh"] = f"circle fits at 1.3 m (no stem-curve section there); {trust}"
+            quality["dbh"] = f"{how}, arc {fit.arc_coverage:.2f}; {trust}" if fit is not None else f"{how}; {trust}"
     else:
         dbh_value = math.nan
         why = ", ".join(d.reasons) or "no stem-curve section at breast height"
