@@ -261,3 +261,30 @@ def test_stem_lengthened_down_to_a_given_base(single_tree: dict[str, Any]) -> No
     m = fit_qsm(wood[wood[:, 2] > z0 + 0.5], base=[*np.median(wood[wood[:, 2] < z0 + 1.0, :2], axis=0), z0])
     assert m.meta["stem_extended_to_base_m"] > 0.4
     assert m.base_z == pytest.approx(z0, abs=0.02)
+
+
+def test_growth_taper_level_lifted_to_the_branches_own_fits() -> None:
+    """Unresolved branch radii follow radius = c * growth_length ** 0.44 with ``c`` from the
+    resolved trunk; where the good branch fits sit higher (the model's growth lengths shortened
+    by wood it lost), ``c`` is theirs; where they sit lower, the trunk's stands."""
+    from forestreg.engine.trees.qsm import growth_length, growth_taper_radii
+
+    # a trunk of 10 cylinders 10 m long, a branch of 12 cylinders 0.25 m long from its foot
+    parent = np.r_[-1, np.arange(9), 0, np.arange(10, 21)]
+    length = np.r_[np.full(10, 10.0), np.full(12, 0.25)]
+    order = np.r_[np.zeros(10, dtype=int), np.ones(12, dtype=int)]
+    gl = growth_length(parent, length)
+    assert gl[0] == pytest.approx(103.0) and gl[9] == pytest.approx(10.0) and gl[10] == pytest.approx(3.0)
+    good = np.r_[np.ones(20, dtype=bool), False, False]  # the branch's last two fits are poor
+    for share, level in ((1.5, 0.03), (0.7, 0.02)):
+        radius = 0.02 * gl**0.44
+        radius[10:] *= share
+        radius[20:] = 0.5
+        r, replaced, b = growth_taper_radii(
+            radius, good, length, parent, order, resolved_m=0.05, min_radius=0.002, min_resolved=8
+        )
+        assert b == pytest.approx(0.44)
+        assert replaced[20:].all() and not replaced[:20].any()
+        # never thicker than the fit they grow from
+        np.testing.assert_allclose(r[20:], np.minimum(level * gl[20:] ** 0.44, radius[19]), rtol=1e-6)
+        np.testing.assert_allclose(r[:20], radius[:20])  # the fits stand

@@ -46,7 +46,8 @@ does the same in our own way, in these steps (each a small function):
    model). With a given base, a stem whose lowest points were lost is lengthened down to it;
 7. **growth length** (:func:`growth_taper_radii`): branch radii the points cannot resolve (poor
    fits, and fits below ``resolvable_spacing_ratio`` point spacings) follow the tree's own
-   ``radius = c * growth_length ** growth_exponent``, ``c`` from the resolved cylinders.
+   ``radius = c * growth_length ** growth_exponent``, ``c`` from the resolved cylinders, or from
+   the good branch fits where they sit higher (growth lengths shortened by wood the model lost).
 
 On a sparsely sampled tree (median point spacing at the stem's foot above half ``patch_diameter2_max_m``) all patch
 diameters grow in proportion to ``patch_spacing_ratio`` spacings (:func:`sized_to_spacing`), as
@@ -1271,7 +1272,10 @@ def growth_taper_radii(
     included) set the level of ``radius = c * growth_length ** exponent`` (the pipe model: a
     branch's cross-section grows with the wood it carries, ``exponent`` 1/2; TreeQSM's models of
     real broadleaves follow 0.44-0.57; ``c`` the length-weighted robust mean over the resolved
-    cylinders). A branch cylinder (``order`` > 0) with a poor fit gets that radius; one whose
+    cylinders). The growth lengths are the model's own, so wood it lost (twigs separated out with
+    the leaves, parts left out) shortens them, most on the crown's branches: where the good branch
+    fits (``order`` > 0, at least ``min_resolved`` of them) sit higher on average, ``c`` is their
+    robust mean instead. A branch cylinder (``order`` > 0) with a poor fit gets that radius; one whose
     radius lies below ``resolved_m`` (a few noisy points or leaves round a thin branch make a
     circle of any size) keeps its fit up to ``upper`` times that radius. None is thicker than its
     parent; the stem keeps its own taper. With fewer than ``min_resolved`` resolved cylinders, or resolved growth lengths
@@ -1283,11 +1287,17 @@ def growth_taper_radii(
     if int(ok.sum()) < min_resolved or float(np.ptp(np.log(gl[ok]))) < math.log(10.0):
         return r, replaced, float("nan")
     b = float(exponent)
-    a = robust_line(
-        np.zeros(int(ok.sum())), np.log(r[ok]) - b * np.log(gl[ok]), np.asarray(length, dtype=np.float64)[ok]
-    )[0]
-    model = np.maximum(np.exp(a + b * np.log(np.maximum(gl, 1e-6))), min_radius)
+    w = np.asarray(length, dtype=np.float64)
+    level = np.log(np.maximum(r, 1e-12)) - b * np.log(np.maximum(gl, 1e-12))
+    a = robust_line(np.zeros(int(ok.sum())), level[ok], w[ok])[0]
     branch = np.asarray(order) > 0
+    # the growth lengths are those of the model: wood it lost (twigs among the leaves, parts left
+    # out) only ever shortens them, most on the crown's branches, and a line set on the trunk then
+    # runs below the branches it fills in; the branches' own good fits lift it to their level
+    fitted = np.asarray(good, dtype=bool) & branch & (gl > 0)
+    if int(fitted.sum()) >= min_resolved:
+        a = max(a, robust_line(np.zeros(int(fitted.sum())), level[fitted], w[fitted])[0])
+    model = np.maximum(np.exp(a + b * np.log(np.maximum(gl, 1e-6))), min_radius)
     poor = branch & ~np.asarray(good, dtype=bool)
     over = branch & ~ok & ~poor & (r > upper * model)
     replaced = poor | over
