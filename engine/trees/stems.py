@@ -1070,16 +1070,19 @@ def _section(
     params: StemParams,
     tree: Optional[cKDTree],
     seed: int,
+    half_width_m: Optional[float] = None,
 ) -> tuple[Optional[CircleFit], np.ndarray, int]:
     """Fit a circle to the slice perpendicular to the stem axis at ``s`` (m along the axis), using
     the points within ``search_radius`` of ``centre_uv`` (in the slice plane). A slice holding
     fewer than ``sparse_slice_points`` points is widened to ``max_slice_half_width_m`` (a thin or
     distant stem has few points per slice; its taper over a few centimetres is negligible).
+    ``half_width_m`` gives the slice's half thickness instead (not widened).
     Returns the fit (None when the slice is too sparse), the world centre and the point count."""
     u, v = _perpendicular_basis(stem.axis)
     origin = stem.point_at(s)
     world_centre = origin + centre_uv[0] * u + centre_uv[1] * v
-    half = max(params.slice_half_width_m, params.max_slice_half_width_m)
+    thin = params.slice_half_width_m if half_width_m is None else half_width_m
+    half = max(thin, params.max_slice_half_width_m) if half_width_m is None else half_width_m
     reach = math.hypot(search_radius, half) + 1e-6
     if tree is not None:
         idx = np.asarray(tree.query_ball_point(world_centre, reach), dtype=np.int64)
@@ -1091,9 +1094,9 @@ def _section(
     along = q @ stem.axis
     pu, pv = q @ u, q @ v
     near_axis = np.hypot(pu - centre_uv[0], pv - centre_uv[1]) <= search_radius
-    m = (np.abs(along) <= params.slice_half_width_m) & near_axis
+    m = (np.abs(along) <= thin) & near_axis
     n = int(m.sum())
-    if n < params.sparse_slice_points and half > params.slice_half_width_m:
+    if n < params.sparse_slice_points and half > thin:
         m = (np.abs(along) <= half) & near_axis
         n = int(m.sum())
     if n < max(params.min_slice_points, 3):
@@ -1101,6 +1104,58 @@ def _section(
     fit = _fit(np.column_stack([pu[m], pv[m]]), params, seed, oval=True)
     world_centre = origin + fit.centre[0] * u + fit.centre[1] * v
     return fit, world_centre, n
+
+
+def _stretch_section(
+    p: np.ndarray,
+    stem: Stem,
+    s: float,
+    search_radius: float,
+    half_width_m: float,
+    params: StemParams,
+    tree: cKDTree,
+    seed: int,
+) -> tuple[Optional[CircleFit], np.ndarray]:
+    """One section fitted to the stretch of ``stem`` within ``half_width_m`` of ``s`` (m along
+    the axis): the points within ``search_radius`` of the axis, projected along it. The stretch is
+    cut into slices ``2 * slice_half_width_m`` thick; a slice whose points lie much farther from
+    the fitted section than the other slices' (rms of their distances, each capped at twice the
+    inlier tolerance, above ``max_relative_residual`` times the slices' median and by more than
+    half the tolerance) holds a branch, a neighbour or foliage: it is left out and the section
+    fitted again (twice at most). Returns the fit (None with too few points) and its world
+    centre."""
+    u, v = _perpendicular_basis(stem.axis)
+    origin = stem.point_at(s)
+    idx = np.asarray(tree.query_ball_point(origin, math.hypot(search_radius, half_width_m) + 1e-6), dtype=np.int64)
+    q = p[idx] - origin
+    along = q @ stem.axis
+    xy = np.column_stack([q @ u, q @ v])
+    m = (np.abs(along) <= half_width_m) & (np.hypot(xy[:, 0], xy[:, 1]) <= search_radius)
+    xy, along = xy[m], along[m]
+    if len(xy) < max(params.min_slice_points, 3):
+        return None, origin
+    thick = 2.0 * params.slice_half_width_m
+    part = np.floor((along + half_width_m) / thick).astype(np.int64)
+    fit = _fit(xy, params, seed, oval=True)
+    cap = 2.0 * params.inlier_tolerance_m
+    for _ in range(2):
+        if not fit.ok:
+            break
+        res = np.minimum(np.abs(np.hypot(xy[:, 0] - fit.centre[0], xy[:, 1] - fit.centre[1]) - fit.radius_m), cap)
+        parts = [k for k in np.unique(part) if (part == k).sum() >= 5]
+        if len(parts) < 3:
+            break
+        rms = np.array([math.sqrt(float(np.mean(res[part == k] ** 2))) for k in parts])
+        typical = float(np.median(rms))
+        bad = (rms > params.max_relative_residual * typical) & (rms > typical + 0.5 * params.inlier_tolerance_m)
+        if not bad.any():
+            break
+        keep = ~np.isin(part, np.asarray(parts)[bad])
+        if keep.sum() < max(params.min_slice_points, 3):
+            break
+        xy, part = xy[keep], part[keep]
+        fit = _fit(xy, params, seed, oval=True)
+    return fit, origin + fit.centre[0] * u + fit.centre[1] * v
 
 
 def _stem_section_problems(
@@ -1181,6 +1236,19 @@ def _measure_dbh(p: np.ndarray, stem: Stem, params: StemParams, tree: cKDTree) -
     if len(diameters) > 1 and (diameters.max() - diameters.min()) > params.max_dbh_slice_spread * middle:
         reasons_out.append("inconsistent slices")
         dbh = middle
+    else:
+        # one section fitted to the whole stretch the slices span: the scan lines of every slice
+        # fill each other's arc and the bark's roughness averages over the stretch
+        span = max(abs(o) for o in offsets) + params.slice_half_width_m
+        slab, slab_centre = _stretch_section(p, stem, bh, search, span, params, tree, seed=stem.id * 100 + len(offsets))
+        if (
+            slab is not None
+            and not _stem_section_problems(slab, stem, (0.0, 0.0), params)
+            and abs(slab.diameter_m - dbh) <= params.max_dbh_slice_spread * dbh
+        ):
+            dbh, main = slab.diameter_m, (0.0, slab.diameter_m, slab, slab_centre)
+            if note:
+                note = f"measured on the stem {bh - span:.2f}-{bh + span:.2f} m along it: the slices within 0.1 m of breast height failed ({', '.join(first_reasons or ())})"
     return DbhMeasurement(stem.id, dbh, main[3], bh + main[0], main[2], not reasons_out, tuple(reasons_out), note)
 
 
