@@ -510,9 +510,75 @@ def test_a_top_under_a_neighbours_crown_judged_by_how_high_it_reaches():
             r,
         )
 
-    trust, how, fill, flags = judge(0.8 * c, under, 0.8)
+    trust, how, fill, flags, _ = judge(0.8 * c, under, 0.8)
     assert trust == "medium" and not flags and fill == pytest.approx(c) and "upper crown" in how
-    trust, how, fill, flags = judge(0.8 * c, under, 0.45)
+    trust, how, fill, flags, _ = judge(0.8 * c, under, 0.45)
     assert trust == "low" and flags and fill == pytest.approx(0.9 * c) and "midway" in how
-    trust, how, fill, flags = judge(0.94 * c, [], nan, ratio=0.3)
+    trust, how, fill, flags, _ = judge(0.94 * c, [], nan, ratio=0.3)
     assert trust == "medium" and not flags and fill == pytest.approx(c) and "apex may be missing" in how
+
+
+def test_a_top_too_tall_for_its_stem_without_a_curve_is_bounded_by_its_slenderness():
+    """A 12 cm stem whose segment took a neighbour's crown up to 25 m (slenderness 208): with no
+    height-diameter curve, its height is the tallest such a stem stands (140 times the DBH,
+    16.8 m), flagged, its source "slenderness"; a top within that bound stays the points' own (low,
+    no estimate). With a curve fitted on 20-60 cm trees, an 8 cm stem's top taken from a
+    neighbour's crown gets the curve extrapolated to its DBH, never vouched for."""
+    from forestreg.engine.trees.allometry import HeightCurve
+    from forestreg.engine.trees.crown import CrownMeasurement
+    from forestreg.engine.trees.inventory import TreeParams, _judge_top
+
+    nan = math.nan
+    params = TreeParams()
+    slender = (
+        "height 25.0 m on a 12 cm stem (slenderness 208, beyond 140): the top may be a neighbour's (height unsure)"
+    )
+
+    def crown(height):
+        return CrownMeasurement(
+            tree_id=1,
+            x=0.0,
+            y=0.0,
+            height_m=height,
+            crown_base_m=height / 2,
+            crown_width_ew_m=3.0,
+            crown_width_ns_m=3.0,
+            crown_area_m2=nan,
+            crown_diameter_m=3.0,
+            crown_length_m=height / 2,
+            crown_volume_m3=nan,
+            n_points=500,
+            top=(1.5, 0.0, height),
+            ok=True,
+            reasons=(),
+            top_offset_m=1.5,
+            top_offset_ratio=1.0,
+            top_layer_offset_ratio=1.0,
+        )
+
+    def judge(height, dbh, curve, top_flags=(), h_trust="low"):
+        return _judge_top(
+            crown(height),
+            dbh,
+            "stem curve at 1.3 m; high",
+            [("flank", "top on the crown's flank")],
+            list(top_flags),
+            h_trust,
+            "high",
+            "highest point",
+            params,
+            curve,
+            None,
+            nan,
+        )
+
+    trust, how, fill, flags, source = judge(25.0, 0.12, None, [slender])
+    assert trust == "low" and source == "slenderness" and slender in flags
+    assert fill == pytest.approx(params.max_slenderness * 0.12) and "too tall for it" in how
+    trust, how, fill, flags, source = judge(15.0, 0.12, None, h_trust="high")
+    assert trust == "low" and math.isnan(fill) and flags
+    curve = HeightCurve(a=1.15, b=0.18, n_trees=25, n_inliers=25, scatter=0.04, dbh_min_m=0.2, dbh_max_m=0.6, n_tips=8)
+    assert math.isnan(curve.estimate_height_m(0.08, params.height_curve))
+    trust, how, fill, flags, source = judge(15.0, 0.08, curve, [slender])
+    assert trust == "low" and source == "curve" and fill == pytest.approx(curve.height_m(0.08))
+    assert "not vouched for: its DBH (8 cm) outside the 20-60 cm" in how

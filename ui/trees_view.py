@@ -55,7 +55,7 @@ KNOWN_COLUMNS: tuple[tuple[str, str, float, int, str], ...] = (
         "Height (m)",
         1.0,
         1,
-        "Tree height above the ground model: its highest point, or the plot's height-diameter curve where that point is not the tree's top (marked \"(curve)\", the reason in its tip)",
+        'Tree height above the ground model: its highest point, or an estimate where that point is not the tree\'s top: the plot\'s height-diameter curve (marked "(curve)") or the tallest its stem stands ("(slenderness)"), the reason in its tip',
     ),
     (
         "height_points_m",
@@ -166,10 +166,10 @@ class TreeTable(CellsByName, QTableWidget):
                     item = _cell(flag, flag, tip=flag)
                     if flag:
                         item.setForeground(QBrush(QColor(FLAG_COLOUR)))
-                elif name == "height_m" and t.height_source == "curve":
+                elif name == "height_m" and t.height_source != "points":
                     # predicted from the plot's height-diameter curve: marked, the reason in the tip
                     v = t.get(name)
-                    item = _cell(v, f"{v * scale:.{digits}f} (curve)", tip=t.quality("height"))
+                    item = _cell(v, f"{v * scale:.{digits}f} ({t.height_source})", tip=t.quality("height"))
                 else:
                     v = t.get(name)
                     text = "\u2013" if not math.isfinite(v) else f"{v * scale:.{digits}f}"
@@ -836,7 +836,9 @@ class TreesView(QWidget):
             if math.isfinite(dbh):
                 title += f"   DBH {100 * dbh:.1f} cm"
             if math.isfinite(height):
-                title += f"   height {height:.1f} m" + (" (curve)" if tree.height_source == "curve" else "")
+                title += f"   height {height:.1f} m" + (
+                    f" ({tree.height_source})" if tree.height_source != "points" else ""
+                )
             if tree.flagged:
                 title += "   \u26a0 flagged"
             pl.add_text(

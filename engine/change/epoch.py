@@ -208,9 +208,13 @@ def epoch_from_cloud(
         if no_ground:
             h_trust = "low"
             reasons.append("no ground in the cloud: heights above the lowest points")
-        elif r.height_source == "curve":
+        elif r.height_source != "points":
             h_trust = "low"
-            reasons.append("top unseen: height from the plot's height-diameter curve")
+            reasons.append(
+                "top unseen: height from the plot's height-diameter curve"
+                if r.height_source == "curve"
+                else "top too tall for its stem: height bounded by its slenderness"
+            )
         out["h"][k] = h
         out["h_sd"][k] = by_trust(change.height_sigma_m, h_trust) if math.isfinite(h) else math.nan
         h_ok[k] = math.isfinite(h) and h_trust == "high"  # a change needs tops trusted in both surveys

@@ -68,6 +68,9 @@ TABLE_COLUMNS = (
 )
 _RNG_SEED = 7
 
+#: the table's mark of a height not the points' own, by ``height_source``
+_HEIGHT_MARK = {"curve": "<sup>c</sup>", "slenderness": "<sup>s</sup>"}
+
 
 def write_inventory_report(
     out_dir: str | os.PathLike[str], inventory: Any, points: np.ndarray, *, title: str = "forestreg trees"
@@ -379,7 +382,7 @@ def _height_curve_png(rows: Sequence[Mapping[str, Any]], curve: Any) -> bytes:
             label=f"-{100 * curve.widest_below:.0f} % / +{100 * curve.above:.0f} %",
         )
         ax.plot(100 * grid, hi * line, color="k", lw=0.8, ls="--")
-    fill = np.array([r["height_source"] == "curve" for r in rows])
+    fill = np.array([r["height_source"] != "points" for r in rows])
     top = np.array([r["height_points_m"] for r in rows], dtype=np.float64)
     for level, colour, marker, label in (
         ("high", "k", "o", "high"),
@@ -414,7 +417,7 @@ def _height_curve_png(rows: Sequence[Mapping[str, Any]], curve: Any) -> bytes:
             color="#1f77b4",
             ms=6,
             mew=1.4,
-            label=f"from the curve: {int(sel.sum())} (dot: the points' top, not taken)",
+            label=f"estimated: {int(sel.sum())} (dot: the points' top, not taken)",
         )
     ax.set_xlabel("DBH (cm)")
     ax.set_ylabel("height (m)")
@@ -629,7 +632,7 @@ def _table_section(rows: Sequence[Mapping[str, Any]], drawn: set[str]) -> str:
         # a height from the plot's height-diameter curve is marked "c"
         cells = "".join(
             f'<td class="num">{fmt(r[k], d, s)}'
-            + ("<sup>c</sup>" if k == "height_m" and r["height_source"] == "curve" else "")
+            + (_HEIGHT_MARK.get(r["height_source"], "") if k == "height_m" else "")
             + "</td>"
             for k, _, s, d in TABLE_COLUMNS
         )
@@ -642,7 +645,8 @@ def _table_section(rows: Sequence[Mapping[str, Any]], drawn: set[str]) -> str:
     return (
         "<h2>3. Trees</h2><table>" + head + "".join(body) + "</table>"
         '<p class="note">DBH: diameter at breast height (1.3 m); H: height (<sup>c</sup>: from the plot\'s height-diameter '
-        "curve, the points' top hidden or a neighbour's); CBH: crown base height; CA: crown projection area; "
+        "curve, the points' top hidden or a neighbour's; <sup>s</sup>: at most the tallest its stem stands, the points' top "
+        "too tall for it); CBH: crown base height; CA: crown projection area; "
         "CV: crown volume; V: wood volume of the cylinder model. Trust of each measure (high, medium, low, none; how it was "
         "obtained is in trees.csv's quality columns). Flagged trees (red) need a look: the flag says why.</p>"
     )

@@ -224,20 +224,24 @@ class TreeRecord:
     source: str = "stem"
     #: per measure: "<how>; <trust>" (trust: high, medium, low, none)
     quality: dict[str, str] = field(default_factory=dict)
-    #: the height predicted by the plot's height-diameter curve where the points' top was not the
-    #: tree's (NaN: the height is the points' own, ``crown.height_m``)
-    height_from_curve_m: float = math.nan
+    #: the height estimated where the points' top was not the tree's (NaN: the height is the
+    #: points' own, ``crown.height_m``), and how: "curve" (the plot's height-diameter curve at the
+    #: DBH) or "slenderness" (a top too tall for its stem, no curve to predict it: the tallest a
+    #: stem of that DBH stands, :attr:`TreeParams.max_slenderness` times it)
+    height_estimate_m: float = math.nan
+    height_estimate_source: str = "curve"
 
     @property
     def height_m(self) -> float:
-        """The height reported (m): the curve's prediction where the points' top was not taken,
-        else the highest tree point above the ground (``crown.height_m``)."""
-        return self.height_from_curve_m if math.isfinite(self.height_from_curve_m) else self.crown.height_m
+        """The height reported (m): the estimate where the points' top was not taken, else the
+        highest tree point above the ground (``crown.height_m``)."""
+        return self.height_estimate_m if math.isfinite(self.height_estimate_m) else self.crown.height_m
 
     @property
     def height_source(self) -> str:
-        """ "points" (the tree's highest point) or "curve" (the plot's height-diameter curve)."""
-        return "curve" if math.isfinite(self.height_from_curve_m) else "points"
+        """ "points" (the tree's highest point), "curve" (the plot's height-diameter curve) or
+        "slenderness" (the tallest its stem stands: the points' top is too tall for it)."""
+        return self.height_estimate_source if math.isfinite(self.height_estimate_m) else "points"
 
     @property
     def flag(self) -> str:
@@ -962,9 +966,9 @@ def tree_record(
         h_trust = _trust(h_trust, "low")
         h_how += ", too tall for its stem"
     hints_consistent = False
-    height_fill = math.nan
+    height_fill, fill_source = math.nan, "curve"
     if top_evidence:  # a plot's tree: the points' top, the plot's curve and the neighbours decide
-        h_trust, h_how, height_fill, top_flags = _judge_top(
+        h_trust, h_how, height_fill, top_flags, fill_source = _judge_top(
             crown,
             dbh_value,
             quality["dbh"],
@@ -1123,7 +1127,8 @@ def tree_record(
         stem_form_factor=ff,
         source="stem",
         quality=quality,
-        height_from_curve_m=height_fill,
+        height_estimate_m=height_fill,
+        height_estimate_source=fill_source,
     )
 
 
@@ -1163,8 +1168,9 @@ def _judge_top(
     curve: Optional[HeightCurve],
     overtopped: Optional[str],
     reach: float = math.nan,
-) -> tuple[str, str, float, list[str]]:
-    """A plot tree's height: (trust, how, the curve's estimate or NaN, flags of the top).
+) -> tuple[str, str, float, list[str], str]:
+    """A plot tree's height: (trust, how, an estimate or NaN, flags of the top, the estimate's
+    source: "curve" or "slenderness").
 
     The evidence: the top's place (its apex seen as a tip over the stem, over the stem, on the
     crown's flank, missing or cut flat), the hints of a neighbour (its crown over the top, touching
@@ -1200,7 +1206,11 @@ def _judge_top(
        neighbours' and stands more than ``curve_agreement`` below the curve, nor on a stem
        standing under a thicker neighbour's expected crown (``overtopped``) unless its top
        stands within ``curve_agreement`` of the curve or reaches up among its neighbours': such
-       trees may be suppressed, and the curve stands them too tall."""
+       trees may be suppressed, and the curve stands them too tall. A DBH outside the range of the
+       trees the curve rests on gets the curve extrapolated, never vouched for.
+    4. No curve to give an estimate, and a top too tall for its stem (more than
+       :attr:`TreeParams.max_slenderness` times the DBH: a neighbour's crown taken): the height is
+       at most that many times the DBH, the tallest such a stem stands (low, flagged)."""
     hc = params.height_curve
     names = _hint_names(hints)
     nan = math.nan
@@ -1233,6 +1243,7 @@ def _judge_top(
                 h_how + ", its apex seen as a tip over the stem" + dep_text,
                 nan,
                 top_flags,
+                "curve",
             )
         witnesses = ""
         if not names and (-hc.clear_below <= dep <= hc.clear_above if math.isfinite(dep) else tip):
@@ -1259,8 +1270,9 @@ def _judge_top(
                     f"it, not seen as a tip (its apex may be missing)",
                     stand_in,
                     top_flags,
+                    "curve",
                 )
-            return trust, h_how + witnesses, nan, top_flags
+            return trust, h_how + witnesses, nan, top_flags, "curve"
     # 3. the points' top not taken
     flags = list(top_flags) + [text for _, text in hints]
     if math.isfinite(dep) and not names and h_trust != "low":
@@ -1279,12 +1291,27 @@ def _judge_top(
             else ", no DBH for the plot's height-diameter curve to check it"
         )
     )
-    if (
-        not (math.isfinite(estimate) and math.isfinite(crown.height_m))
-        or ground_trust == "low"
-        or dbh_quality.endswith(("low", "none"))
-    ):
-        return "low", h_how, nan, flags
+    # a DBH outside the range of the trees the curve rests on: its height there, extrapolated (the
+    # curve rises from 1.3 m at no diameter to its asymptote), is an estimate it never vouches for
+    beyond = ""
+    if curve is not None and not math.isfinite(estimate) and math.isfinite(dbh_value) and dbh_value > 0:
+        estimate = curve.height_m(dbh_value)
+        beyond = (
+            f"its DBH ({100 * dbh_value:.0f} cm) outside the {100 * curve.dbh_min_m:.0f}-{100 * curve.dbh_max_m:.0f} cm "
+            "of the trees it rests on"
+        )
+    if ground_trust == "low" or dbh_quality.endswith(("low", "none")) or not math.isfinite(crown.height_m):
+        return "low", h_how, nan, flags, "curve"
+    if not math.isfinite(estimate):
+        bound = params.max_slenderness * dbh_value if math.isfinite(dbh_value) else nan
+        if math.isfinite(bound) and crown.height_m > bound:
+            # 4. a top too tall for its stem, no curve to predict the height: at most what such a stem carries
+            how = (
+                f"at most {params.max_slenderness:.0f} times the DBH ({bound:.1f} m), the tallest such a stem stands: "
+                f"the points' top ({crown.height_m:.1f} m) is too tall for it (a neighbour's crown taken); {h_how}"
+            )
+            return "low", how, bound, flags, "slenderness"
+        return "low", h_how, nan, flags, "curve"
     why = "; ".join(dict.fromkeys(flags)) or "top unsure"
     scatter = f"scatter {100 * curve.scatter:.0f} %, {curve.n_inliers} trees"
     # a top under or touching a neighbour's crown, well below the curve, reaching up among its
@@ -1303,14 +1330,14 @@ def _judge_top(
         )
     else:
         how = f"from the plot's height-diameter curve at the DBH ({scatter}): the points' top ({crown.height_m:.1f} m) not taken: {why}"
-    refusal = curve.fill_refusal(hc)
+    refusal = beyond or curve.fill_refusal(hc)
     if not refusal and ("neighbour" in names or (names & {"under", "touch"} and not crown_lost)):
         refusal = "a top under, touching or amid a neighbour's crown (a suppressed tree's, or that crown's)"
     if not refusal and overtopped is not None and not abs(dep) <= params.curve_agreement and not reaches:
         refusal = f"{overtopped}, and its points' top {100 * dep:+.0f} % from the curve"
     if not refusal:
-        return _trust(ground_trust, "medium"), how, estimate, []
-    return "low", f"{how} (not vouched for: {refusal})", estimate, flags
+        return _trust(ground_trust, "medium"), how, estimate, [], "curve"
+    return "low", f"{how} (not vouched for: {refusal})", estimate, flags, "curve"
 
 
 def _under_thicker_crowns(stems: Sequence[Stem], params: TreeParams) -> dict[int, str]:
