@@ -1180,12 +1180,14 @@ def measure_dbh(
 
     The slices lie at ``params.breast_height_m`` along the axis from the stem base and
     ``dbh_slice_offsets_m`` above and below it; each fit must pass the circle checks, be centred on
-    the stem axis and agree with the detection band's radius. The DBH is the mean of the good
-    fits (breast height and the slices within 0.1 m of it) that lie within 5 % of their median:
-    the range noise of single slices averages out, and a branch stub or a clump of twigs in one
-    slice does not decide it; good fits disagreeing by more than ``max_dbh_slice_spread`` make it
-    not ok ("inconsistent slices") and give their median. When no slice within 0.1 m is
-    good, the nearest good farther slice is used and ``note`` says so. ``heights`` are accepted
+    the stem axis and agree with the detection band's radius. Good fits (breast height and the
+    slices within 0.1 m of it) disagreeing by more than ``max_dbh_slice_spread`` make it not ok
+    ("inconsistent slices") and give their median. Otherwise the DBH is that of one section
+    fitted to the whole stretch the slices span (:func:`_stretch_section`: the scan lines of all
+    slices fill each other's arc, the bark's roughness averages over the stretch, a slice holding
+    a branch is left out) when it passes the same checks and lies within ``max_dbh_slice_spread``
+    of the slices; else the mean of the good fits within 5 % of their median. When no slice
+    within 0.1 m is good, the nearest good farther slice stands for them and ``note`` says so. ``heights`` are accepted
     for a uniform interface and validated; the slices follow the stem's own base, so leaning
     stems and slopes are measured along the stem.
     """
