@@ -88,7 +88,8 @@ CURVE = HeightCurve(a=1.15, b=0.18, n_trees=25, n_inliers=25, scatter=0.04, dbh_
 
 
 def _judge(crown, hints=(), dbh=0.3, curve=CURVE, overtopped=None, h_trust="high", top_flags=()):
-    return _judge_top(
+    """(trust, how, estimate, flags) of :func:`_judge_top`; every estimate here is the curve's."""
+    *out, source = _judge_top(
         crown,
         dbh,
         "stem curve at 1.3 m; high",
@@ -101,6 +102,8 @@ def _judge(crown, hints=(), dbh=0.3, curve=CURVE, overtopped=None, h_trust="high
         curve,
         overtopped,
     )
+    assert source == "curve"
+    return tuple(out)
 
 
 def test_a_top_stands_only_on_evidence():
