@@ -1282,6 +1282,12 @@ def _judge_top(
         )
     elif math.isfinite(dep) and names:
         flags.append(f"height {100 * dep:+.0f} % from the plot's height-diameter curve")
+    elif not flags:
+        flags.append(
+            "top not seen as a tip over the stem, and no height-diameter curve to check it (height unsure)"
+            if curve is None
+            else "top not seen as a tip over the stem, and no DBH for the plot's height-diameter curve (height unsure)"
+        )
     h_how += (
         dep_text
         if dep_text
