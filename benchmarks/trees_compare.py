@@ -30,7 +30,10 @@ Held-out benchmark (``--halves``; :func:`run_halves`): forestreg and Sylva on th
 trees beside big ones under or inside their crowns, crowns intermixed; 2-5 scans; full dome or
 elevation up to +60 deg; oval, rough stems: ``stem_shapes="real"``), each kind drawn once from a
 seed of :data:`TUNE_SEEDS` (the rules and thresholds were chosen on these: "tune") and once from
-a seed of :data:`HELD_OUT_SEEDS` ("held out"; ``--held-out-seed`` draws others). Per half: trees
+a seed of :data:`HELD_OUT_SEEDS` ("held out"; ``--held-out-seed`` draws others), and once more
+from a seed of :data:`LOOSE_SEEDS` with each tree's height scattered about the stand's
+height-diameter relation (:data:`LOOSE_HEIGHT_SCATTER`, as in a stand of several species or ages:
+"looser"; never used to choose a rule). Per group: trees
 found, false stems, DBH rRMSE, height rRMSE over every tree (forestreg and Sylva), the share of
 forestreg's heights left unflagged (height trust not low) with their rRMSE and worst error, and
 the flags' precision (flagged heights really more than 10 % off) and recall (heights more than
@@ -156,6 +159,10 @@ HALF_KINDS = (
 TUNE_SEEDS = (101, 102, 103, 104, 105)
 #: One seed per kind: the plots reported as held out (not looked at while choosing).
 HELD_OUT_SEEDS = (201, 202, 203, 204, 205)
+#: One seed per kind: plots whose heights scatter about the stand's relation (held out too).
+LOOSE_SEEDS = (301, 302, 303, 304, 305)
+#: ...by exp(N(0, this)) per tree (:attr:`~forestreg.engine.simulate.scene.PresetConfig.height_scatter`).
+LOOSE_HEIGHT_SCATTER = 0.12
 #: Scanner positions (m) by the number of scans.
 SCAN_LAYOUTS = {
     2: [(-5.0, 0.0), (5.0, 0.0)],
@@ -165,12 +172,18 @@ SCAN_LAYOUTS = {
 }
 
 
-def half_plot(kind: int, seed: int, out: Path = OUT) -> tuple[Path, list[dict[str, Any]]]:
+def half_plot(
+    kind: int, seed: int, out: Path = OUT, height_scatter: float = 0.0
+) -> tuple[Path, list[dict[str, Any]]]:
     """The plot of :data:`HALF_KINDS` ``[kind]`` drawn from ``seed`` (LAZ, the scans merged) and its
     true trees (id, x, y, DBH, height, shape, whether an added small tree, whether the truth's own
-    points reach within 0.3 m of the top); simulated once and cached."""
+    points reach within 0.3 m of the top); simulated once and cached. ``height_scatter``: each
+    tree's height scattered about the stand's relation by exp(N(0, it))."""
     name, scene_kind, overrides, n_scans, elev, size_m, step = HALF_KINDS[kind]
     stem = f"half_{kind}_{seed}"
+    if height_scatter > 0:
+        overrides = {**overrides, "height_scatter": height_scatter}
+        stem += f"_scatter{round(100 * height_scatter)}"
     laz, truth = out / f"{stem}.laz", out / f"{stem}.json"
     if not (laz.exists() and truth.exists()):
         from scipy.spatial import cKDTree
@@ -439,22 +452,27 @@ def _flag_figures(rows: list[dict[str, str]], truth: list[dict[str, Any]]) -> li
 
 
 def run_halves(
-    workdir: Optional[Path] = None, held_out: Optional[list[int]] = None, tune: bool = True
+    workdir: Optional[Path] = None, held_out: Optional[list[int]] = None, tune: bool = True, loose: bool = True
 ) -> list[dict[str, Any]]:
     """forestreg (``trees --no-cylinders``) and Sylva on every plot of :data:`HALF_KINDS`, for the
-    tune seeds (:data:`TUNE_SEEDS`, unless ``tune`` is False) and the held-out ones
-    (``held_out``, default :data:`HELD_OUT_SEEDS`); one row per (plot, tool) with the figures of
+    tune seeds (:data:`TUNE_SEEDS`, unless ``tune`` is False), the held-out ones
+    (``held_out``, default :data:`HELD_OUT_SEEDS`) and, unless ``loose`` is False, the looser
+    ones (:data:`LOOSE_SEEDS`, heights scattered by :data:`LOOSE_HEIGHT_SCATTER`); one row per (plot, tool) with the figures of
     :func:`_plot_figures`, the half, kind and seed, and for forestreg the (height, true height,
     flagged) triples (``heights``)."""
     sylva = sylva_command()
-    halves = ([("tune", list(TUNE_SEEDS))] if tune else []) + [("held out", list(held_out or HELD_OUT_SEEDS))]
+    halves = (
+        ([("tune", list(TUNE_SEEDS), 0.0)] if tune else [])
+        + [("held out", list(held_out or HELD_OUT_SEEDS), 0.0)]
+        + ([("looser", list(LOOSE_SEEDS), LOOSE_HEIGHT_SCATTER)] if loose else [])
+    )
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="forestreg-trees-halves-") as tmp:
         work = Path(workdir or tmp)
         work.mkdir(parents=True, exist_ok=True)
-        for half, seeds in halves:
+        for half, seeds, scatter in halves:
             for kind, seed in enumerate(seeds):
-                laz, truth = half_plot(kind, seed)
+                laz, truth = half_plot(kind, seed, height_scatter=scatter)
                 case = {
                     "half": half,
                     "kind": HALF_KINDS[kind][0],
@@ -820,7 +838,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument(
         "--halves",
         action="store_true",
-        help="only the held-out benchmark: tune and held-out plots, forestreg and Sylva",
+        help="only the held-out benchmark: tune, held-out and looser plots, forestreg and Sylva",
     )
     ap.add_argument(
         "--height-evidence",
@@ -846,6 +864,8 @@ def main(argv: Optional[list[str]] = None) -> int:
             + ", ".join(map(str, TUNE_SEEDS))
             + "; held out "
             + ", ".join(map(str, held or HELD_OUT_SEEDS))
+            + f"; looser (heights scattered {100 * LOOSE_HEIGHT_SCATTER:.0f} % about the stand's relation) "
+            + ", ".join(map(str, LOOSE_SEEDS))
         )
         return show_rows(halves_table(rows) + "\n\n" + halves_plot_rows(rows), rows, args.json, indent=1, default=float)
     rows = run(args.workdir, single_trees_only=args.single_trees)
