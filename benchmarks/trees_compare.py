@@ -172,9 +172,7 @@ SCAN_LAYOUTS = {
 }
 
 
-def half_plot(
-    kind: int, seed: int, out: Path = OUT, height_scatter: float = 0.0
-) -> tuple[Path, list[dict[str, Any]]]:
+def half_plot(kind: int, seed: int, out: Path = OUT, height_scatter: float = 0.0) -> tuple[Path, list[dict[str, Any]]]:
     """The plot of :data:`HALF_KINDS` ``[kind]`` drawn from ``seed`` (LAZ, the scans merged) and its
     true trees (id, x, y, DBH, height, shape, whether an added small tree, whether the truth's own
     points reach within 0.3 m of the top); simulated once and cached. ``height_scatter``: each
