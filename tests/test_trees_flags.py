@@ -582,3 +582,56 @@ def test_a_top_too_tall_for_its_stem_without_a_curve_is_bounded_by_its_slenderne
     trust, how, fill, flags, source = judge(15.0, 0.08, curve, [slender])
     assert trust == "low" and source == "curve" and fill == pytest.approx(curve.height_m(0.08))
     assert "not vouched for: its DBH (8 cm) outside the 20-60 cm" in how
+
+
+def test_a_loose_curve_keeps_a_clear_tops_own_height():
+    """A top standing clear over its stem (no hint) 18 % below the plot's curve: on a tight curve
+    (scatter 4 %, standing in) the curve's height is given, vouched for; on a loose one (scatter
+    12 %, a stand of several species or ages: within twice its scatter) the points' top is kept,
+    flagged; 30 % below even the loose curve, the curve's estimate is given again."""
+    from forestreg.engine.trees.allometry import HeightCurve
+    from forestreg.engine.trees.crown import CrownMeasurement
+    from forestreg.engine.trees.inventory import TreeParams, _judge_top
+
+    nan = math.nan
+    params = TreeParams()
+
+    def judge(curve, fraction):
+        height = fraction * curve.height_m(0.3)
+        crown = CrownMeasurement(
+            tree_id=1,
+            x=0.0,
+            y=0.0,
+            height_m=height,
+            crown_base_m=height / 2,
+            crown_width_ew_m=4.0,
+            crown_width_ns_m=4.0,
+            crown_area_m2=nan,
+            crown_diameter_m=4.0,
+            crown_length_m=height / 2,
+            crown_volume_m3=nan,
+            n_points=800,
+            top=(0.4, 0.0, height),
+            ok=True,
+            reasons=(),
+            top_offset_m=0.4,
+            top_offset_ratio=0.2,
+            top_layer_offset_ratio=0.3,
+        )
+        return _judge_top(
+            crown, 0.3, "stem curve at 1.3 m; high", [], [], "high", "high", "highest point", params, curve, None, nan
+        )
+
+    def curve(scatter):
+        return HeightCurve(
+            a=1.15, b=0.18, n_trees=25, n_inliers=25, scatter=scatter, dbh_min_m=0.1, dbh_max_m=0.6, n_tips=8
+        )
+
+    tight, loose = curve(0.04), curve(0.12)
+    assert tight.fill_refusal(params.height_curve) == "" and loose.fill_refusal(params.height_curve) != ""
+    trust, how, fill, flags, _ = judge(tight, 0.82)
+    assert trust == "medium" and not flags and fill == pytest.approx(tight.height_m(0.3))
+    trust, how, fill, flags, _ = judge(loose, 0.82)
+    assert trust == "low" and math.isnan(fill) and flags and "points' top kept" in how
+    trust, how, fill, flags, _ = judge(loose, 0.70)
+    assert trust == "low" and fill == pytest.approx(loose.height_m(0.3)) and flags

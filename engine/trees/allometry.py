@@ -131,6 +131,13 @@ class HeightCurveParams(Params):
         10.0,
         "...and at most this fraction above it (an apex seen as a tip: any height below, at most this above); beyond, the height is low and the curve gives the estimate",
     )
+    clear_scatter: float = _p(
+        2.0,
+        "1",
+        0.0,
+        100.0,
+        "A top standing clear over its stem beyond that band but within this many times the curve's scatter of it keeps its points' height (flagged): in a stand of several species or ages a tree departs that far from the curve on its own, and a loose curve's estimate is no better",
+    )
     min_tips_fill: int = _p(
         5,
         "trees",
@@ -185,6 +192,13 @@ class HeightCurve:
         is flagged: ``params.max_departure``, or ``params.max_departure_scatter`` times this curve's
         scatter where that is wider."""
         return max(params.max_departure, params.max_departure_scatter * self.scatter)
+
+    def clear_band(self, params: "HeightCurveParams") -> tuple[float, float]:
+        """(below, above): how far below and above this curve (fractions of its height) a top
+        standing clear over its stem keeps its points' height: ``params.clear_below`` and
+        ``params.clear_above``, each widened to ``params.clear_scatter`` times this curve's scatter."""
+        wide = params.clear_scatter * self.scatter
+        return max(params.clear_below, wide), max(params.clear_above, wide)
 
     def fill_refusal(self, params: "HeightCurveParams") -> str:
         """Why this curve may not stand in for heights the points cannot give ("" when it may): it

@@ -1197,7 +1197,11 @@ def _judge_top(
        The height stands; where the points' top, not a tip, stands below the curve and the curve
        may stand in (:meth:`.allometry.HeightCurve.fill_refusal`; a trusted DBH within its
        range) the curve's height is given instead: a missed apex only shortens a tree.
-    3. Otherwise the height is low and the curve gives the estimate
+    3. Otherwise the height is low. A top with no hint beyond that band but within
+       :meth:`.allometry.HeightCurve.clear_band` (the band widened to ``clear_scatter`` times a
+       loose curve's scatter: in a stand of several species or ages trees depart that far on
+       their own) keeps its points' height where the curve may not stand in. Otherwise the curve
+       gives the estimate
        (:meth:`.allometry.HeightCurve.estimate_height_m`): its height, or for a top under or
        touching a neighbour's crown below the curve that does not reach up among its neighbours'
        (a suppressed tree, or a top hidden in the crown over it) midway between the two. The
@@ -1308,6 +1312,17 @@ def _judge_top(
         )
     if ground_trust == "low" or dbh_quality.endswith(("low", "none")) or not math.isfinite(crown.height_m):
         return "low", h_how, nan, flags, "curve"
+    if not names and h_trust != "low" and math.isfinite(dep) and curve.fill_refusal(hc):
+        wide_below, wide_above = curve.clear_band(hc)
+        if -wide_below <= dep <= wide_above:
+            # a loose curve: the departure is one a tree of this stand may have, no evidence against the top
+            return (
+                "low",
+                f"{h_how} (within {100 * hc.clear_scatter * curve.scatter:.0f} %, twice the curve's scatter: the points' top kept)",
+                nan,
+                flags,
+                "curve",
+            )
     if not math.isfinite(estimate):
         bound = params.max_slenderness * dbh_value if math.isfinite(dbh_value) else nan
         if math.isfinite(bound) and crown.height_m > bound:
