@@ -484,3 +484,42 @@ def test_a_stem_whose_place_the_earlier_survey_saw_points_at_is_not_new():
         assert len(found) == 1, [t.status for t in trees if t.tree_id_before is None]
         assert found[0].status == status and why in found[0].flag, (found[0].status, found[0].flag)
         assert sum(t.status == "persisting" for t in trees) == len(xy) + (status == "persisting")
+
+
+def test_a_stem_thicker_than_the_plot_lets_a_tree_grow_in_is_not_new():
+    """Stems of 10-40 cm that grew 1-3 cm, and two stems of the later survey alone where the earlier
+    one had none: a 9 cm one is new; an 18 cm one is thicker than a tree grown in since can be (the
+    earlier survey's thinnest stem plus what its trees grew at most, under the fixed 20 cm), so its
+    place was occluded: persisting, with the reason. Without that bound (min_new_bound_pairs 0)
+    both are new."""
+    from forestreg.engine.change.matching import match_trees
+    from forestreg.engine.change.params import ChangeParams
+
+    xy, dbh, h = _stand(n=40, seed=9)
+    dbh = dbh - 0.05  # 10-40 cm
+    rng = np.random.default_rng(3)
+    spots = []
+    for p in ([2.0, 1.0], [-3.0, -4.0]):
+        p = np.array(p)
+        while np.hypot(*(xy - p).T).min() < 2.0 or any(np.hypot(*(p - q)) < 2.0 for q in spots):
+            p = p + 0.7
+        spots.append(p)
+    before = _table_epoch(xy, dbh, h, "BEFORE")
+    after = _table_epoch(
+        np.vstack([xy, spots]),
+        np.append(dbh + rng.uniform(0.01, 0.03, len(xy)), [0.09, 0.18]),
+        np.append(h + 1.0, [7.0, 14.0]),
+        "AFTER",
+    )
+    matrix = np.eye(4)
+    matrix[:2, 3] = after.origin_shift[:2] - before.origin_shift[:2]
+    for params, statuses in (
+        (ChangeParams(), ("new", "persisting")),
+        (ChangeParams(min_new_bound_pairs=0), ("new", "new")),
+    ):
+        trees = match_trees(before, after, matrix, params)
+        for k, status in zip((len(xy) + 1, len(xy) + 2), statuses):
+            found = [t for t in trees if t.tree_id_after == k]
+            assert len(found) == 1 and found[0].status == status, [(t.status, t.flag) for t in found]
+            if status == "persisting":
+                assert "thinnest stem" in found[0].flag and "cannot have grown in" in found[0].flag, found[0].flag

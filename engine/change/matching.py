@@ -7,8 +7,9 @@ either survey gets a status:
   change; or a stem found in one survey whose place in the other survey still (or already) holds
   stem points (it was occluded or not measured there: flagged, its values there left empty),
   or points on part of its surface (``partial_presence_points``: partly seen); and a stem of the
-  later survey alone thicker than ``max_new_dbh_m``, which cannot have grown in since (its place
-  was occluded in the earlier survey);
+  later survey alone thicker than a tree grown in since can be (``max_new_dbh_m``, or less where
+  the plot tells: the earlier survey's thinnest stem plus what its persisting trees grew at most;
+  its place was occluded in the earlier survey);
 - ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
 - ``new``: a stem of the later survey whose place the earlier survey saw empty (fewer than
   ``partial_presence_points`` points there: more, too few to measure, mean a stem occluded there,
@@ -129,6 +130,30 @@ def _stem_evidence(
     return out, shell
 
 
+def _new_dbh_bound(before: EpochTrees, after: EpochTrees, pairs: np.ndarray, params: ChangeParams) -> tuple[float, str]:
+    """The thickest a tree grown in since the earlier survey may be (m), and that bound in words:
+    ``params.max_new_dbh_m``, or less where the plot tells: a tree grown in was thinner than the
+    thinnest stem the earlier survey measured (else it would stand among them) and has grown at
+    most as much as its persisting trees did (the 95th percentile of their DBH differences,
+    measured noise included), with at least ``params.min_new_bound_pairs`` of them measured in
+    both surveys."""
+    fixed = (params.max_new_dbh_m, f"{100 * params.max_new_dbh_m:g} cm")
+    db = before.dbh_m[pairs[:, 0]] if len(pairs) else np.zeros(0)
+    da = after.dbh_m[pairs[:, 1]] if len(pairs) else np.zeros(0)
+    ok = np.isfinite(db) & np.isfinite(da)
+    thinnest = before.dbh_m[np.isfinite(before.dbh_m)]
+    if params.min_new_bound_pairs <= 0 or np.count_nonzero(ok) < params.min_new_bound_pairs or not len(thinnest):
+        return fixed
+    grown = max(float(np.percentile(da[ok] - db[ok], 95.0)), 0.0)
+    bound = float(thinnest.min()) + grown
+    if bound >= params.max_new_dbh_m:
+        return fixed
+    return bound, (
+        f"{100 * bound:.0f} cm: the earlier survey's thinnest stem, {100 * thinnest.min():.0f} cm, and the "
+        f"{1000 * grown:.0f} mm its persisting trees grew at most"
+    )
+
+
 def _covered(epoch: EpochTrees, xy: np.ndarray, radius_m: float, index_all) -> np.ndarray:
     """Whether ``epoch`` has any point (band or ground; stems for a table) within ``radius_m``."""
     if index_all is None:
@@ -170,6 +195,7 @@ def match_trees(
     band_a, _ = indexes(after)
 
     out: list[TreeChange] = []
+    new_max_m, new_max_why = _new_dbh_bound(before, after, pairs, params)
 
     def radius(epoch: EpochTrees, k: int) -> float:
         return 0.5 * epoch.dbh_m[k] if math.isfinite(epoch.dbh_m[k]) else 0.15
@@ -228,7 +254,7 @@ def match_trees(
         for j, k in enumerate(rest):
             base = _one_side(epoch, int(k), which, xy=where[j] if at_other else None)
             own = epoch.flags[k] and f"{which.upper()}: {epoch.flags[k]}"
-            thick_new = status == "new" and seen[j] and epoch.dbh_m[k] > params.max_new_dbh_m
+            thick_new = status == "new" and seen[j] and epoch.dbh_m[k] > new_max_m
             # a tree grown in stood where the earlier survey saw nothing: points at its place
             # there (fewer than show a stem) mean it was occluded, not absent
             not_empty = status == "new" and present[j] >= params.partial_presence_points
@@ -248,7 +274,7 @@ def match_trees(
                     )
                 else:
                     what = (
-                        f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {100 * params.max_new_dbh_m:g} cm): "
+                        f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {new_max_why}): "
                         f"its place was occluded in {name} ({present[j]} points there)"
                     )
                 if at_other:  # a stem of AFTER: its place in the BEFORE frame
@@ -273,7 +299,7 @@ def match_trees(
                         flag=_join(
                             own,
                             (
-                                f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {100 * params.max_new_dbh_m:g} cm): "
+                                f"a {100 * epoch.dbh_m[k]:.0f} cm stem cannot have grown in since (more than {new_max_why}): "
                                 f"no stem at its place in the {name} table: not compared"
                             ),
                         ),

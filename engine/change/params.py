@@ -105,6 +105,13 @@ class ChangeParams(Params):
         5.0,
         "A stem of the later survey alone thicker than this is not taken as new (a tree grown in since is thin): where the earlier survey shows no stem, its place was occluded there",
     )
+    min_new_bound_pairs: int = _p(
+        10,
+        "trees",
+        0,
+        100000,
+        "With at least this many stems measured in both surveys, a tree grown in may be no thicker than the earlier survey's thinnest stem plus what its persisting trees grew at most (95th percentile of their DBH differences), where that is below max_new_dbh_m; thicker: its place was occluded, persisting (0 = max_new_dbh_m alone)",
+    )
     coverage_radius_m: float = _p(
         1.5,
         "m",
