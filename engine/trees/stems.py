@@ -1070,19 +1070,16 @@ def _section(
     params: StemParams,
     tree: Optional[cKDTree],
     seed: int,
-    half_width_m: Optional[float] = None,
 ) -> tuple[Optional[CircleFit], np.ndarray, int]:
     """Fit a circle to the slice perpendicular to the stem axis at ``s`` (m along the axis), using
     the points within ``search_radius`` of ``centre_uv`` (in the slice plane). A slice holding
     fewer than ``sparse_slice_points`` points is widened to ``max_slice_half_width_m`` (a thin or
     distant stem has few points per slice; its taper over a few centimetres is negligible).
-    ``half_width_m`` gives the slice's half thickness instead (not widened).
     Returns the fit (None when the slice is too sparse), the world centre and the point count."""
     u, v = _perpendicular_basis(stem.axis)
     origin = stem.point_at(s)
     world_centre = origin + centre_uv[0] * u + centre_uv[1] * v
-    thin = params.slice_half_width_m if half_width_m is None else half_width_m
-    half = max(thin, params.max_slice_half_width_m) if half_width_m is None else half_width_m
+    half = max(params.slice_half_width_m, params.max_slice_half_width_m)
     reach = math.hypot(search_radius, half) + 1e-6
     if tree is not None:
         idx = np.asarray(tree.query_ball_point(world_centre, reach), dtype=np.int64)
@@ -1094,9 +1091,9 @@ def _section(
     along = q @ stem.axis
     pu, pv = q @ u, q @ v
     near_axis = np.hypot(pu - centre_uv[0], pv - centre_uv[1]) <= search_radius
-    m = (np.abs(along) <= thin) & near_axis
+    m = (np.abs(along) <= params.slice_half_width_m) & near_axis
     n = int(m.sum())
-    if n < params.sparse_slice_points and half > thin:
+    if n < params.sparse_slice_points and half > params.slice_half_width_m:
         m = (np.abs(along) <= half) & near_axis
         n = int(m.sum())
     if n < max(params.min_slice_points, 3):
