@@ -1318,7 +1318,8 @@ def _judge_top(
             # a loose curve: the departure is one a tree of this stand may have, no evidence against the top
             return (
                 "low",
-                f"{h_how} (within {100 * hc.clear_scatter * curve.scatter:.0f} %, twice the curve's scatter: the points' top kept)",
+                f"{h_how} (within {hc.clear_scatter:g} times the curve's scatter, {100 * hc.clear_scatter * curve.scatter:.0f} %: "
+                "the points' top kept)",
                 nan,
                 flags,
                 "curve",
