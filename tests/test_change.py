@@ -489,7 +489,7 @@ def test_a_stem_whose_place_the_earlier_survey_saw_points_at_is_not_new():
 def test_a_stem_thicker_than_the_plot_lets_a_tree_grow_in_is_not_new():
     """Stems of 10-40 cm that grew 1-3 cm, and two stems of the later survey alone where the earlier
     one had none: a 9 cm one is new; an 18 cm one is thicker than a tree grown in since can be (the
-    earlier survey's thinnest stem plus what its trees grew at most, under the fixed 20 cm), so its
+    earlier survey's thin stems plus what its trees grew at most, under the fixed 20 cm), so its
     place was occluded: persisting, with the reason. Without that bound (min_new_bound_pairs 0)
     both are new."""
     from forestreg.engine.change.matching import match_trees
@@ -522,4 +522,4 @@ def test_a_stem_thicker_than_the_plot_lets_a_tree_grow_in_is_not_new():
             found = [t for t in trees if t.tree_id_after == k]
             assert len(found) == 1 and found[0].status == status, [(t.status, t.flag) for t in found]
             if status == "persisting":
-                assert "thinnest stem" in found[0].flag and "cannot have grown in" in found[0].flag, found[0].flag
+                assert "thin stems" in found[0].flag and "cannot have grown in" in found[0].flag, found[0].flag

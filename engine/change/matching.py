@@ -8,7 +8,7 @@ either survey gets a status:
   stem points (it was occluded or not measured there: flagged, its values there left empty),
   or points on part of its surface (``partial_presence_points``: partly seen); and a stem of the
   later survey alone thicker than a tree grown in since can be (``max_new_dbh_m``, or less where
-  the plot tells: the earlier survey's thinnest stem plus what its persisting trees grew at most;
+  the plot tells: the earlier survey's thin stems plus what its persisting trees grew at most;
   its place was occluded in the earlier survey);
 - ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
 - ``new``: a stem of the later survey whose place the earlier survey saw empty (fewer than
@@ -133,23 +133,24 @@ def _stem_evidence(
 def _new_dbh_bound(before: EpochTrees, after: EpochTrees, pairs: np.ndarray, params: ChangeParams) -> tuple[float, str]:
     """The thickest a tree grown in since the earlier survey may be (m), and that bound in words:
     ``params.max_new_dbh_m``, or less where the plot tells: a tree grown in was thinner than the
-    thinnest stem the earlier survey measured (else it would stand among them) and has grown at
-    most as much as its persisting trees did (the 95th percentile of their DBH differences,
-    measured noise included), with at least ``params.min_new_bound_pairs`` of them measured in
-    both surveys."""
+    thin stems the earlier survey measured (their 5th percentile: else it would stand among them)
+    and has grown at most as much as its persisting trees did (the 95th percentile of their DBH
+    differences, measured noise included), with at least ``params.min_new_bound_pairs`` of them
+    measured in both surveys."""
     fixed = (params.max_new_dbh_m, f"{100 * params.max_new_dbh_m:g} cm")
     db = before.dbh_m[pairs[:, 0]] if len(pairs) else np.zeros(0)
     da = after.dbh_m[pairs[:, 1]] if len(pairs) else np.zeros(0)
     ok = np.isfinite(db) & np.isfinite(da)
-    thinnest = before.dbh_m[np.isfinite(before.dbh_m)]
-    if params.min_new_bound_pairs <= 0 or np.count_nonzero(ok) < params.min_new_bound_pairs or not len(thinnest):
+    measured = before.dbh_m[np.isfinite(before.dbh_m)]
+    if params.min_new_bound_pairs <= 0 or np.count_nonzero(ok) < params.min_new_bound_pairs or not len(measured):
         return fixed
     grown = max(float(np.percentile(da[ok] - db[ok], 95.0)), 0.0)
-    bound = float(thinnest.min()) + grown
+    thin = float(np.percentile(measured, 5.0))
+    bound = thin + grown
     if bound >= params.max_new_dbh_m:
         return fixed
     return bound, (
-        f"{100 * bound:.0f} cm: the earlier survey's thinnest stem, {100 * thinnest.min():.0f} cm, and the "
+        f"{100 * bound:.0f} cm: the earlier survey's thin stems, {100 * thin:.0f} cm, and the "
         f"{1000 * grown:.0f} mm its persisting trees grew at most"
     )
 

@@ -110,7 +110,7 @@ class ChangeParams(Params):
         "trees",
         0,
         100000,
-        "With at least this many stems measured in both surveys, a tree grown in may be no thicker than the earlier survey's thinnest stem plus what its persisting trees grew at most (95th percentile of their DBH differences), where that is below max_new_dbh_m; thicker: its place was occluded, persisting (0 = max_new_dbh_m alone)",
+        "With at least this many stems measured in both surveys, a tree grown in may be no thicker than the earlier survey's thin stems (5th percentile of its DBH) plus what its persisting trees grew at most (95th percentile of their DBH differences), where that is below max_new_dbh_m; thicker: its place was occluded, persisting (0 = max_new_dbh_m alone)",
     )
     coverage_radius_m: float = _p(
         1.5,
