@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -87,9 +88,9 @@ def _crown(
 CURVE = HeightCurve(a=1.15, b=0.18, n_trees=25, n_inliers=25, scatter=0.04, dbh_min_m=0.1, dbh_max_m=0.6, n_tips=8)
 
 
-def _judge(crown, hints=(), dbh=0.3, curve=CURVE, overtopped=None, h_trust="high", top_flags=()):
-    """(trust, how, estimate, flags) of :func:`_judge_top`; every estimate here is the curve's."""
-    *out, source = _judge_top(
+def _judge(crown, hints=(), dbh=0.3, curve=CURVE, overtopped=None, h_trust="high", top_flags=(), source="curve"):
+    """(trust, how, estimate, flags) of :func:`_judge_top`, its estimate's source asserted."""
+    *out, got = _judge_top(
         crown,
         dbh,
         "stem curve at 1.3 m; high",
@@ -102,7 +103,7 @@ def _judge(crown, hints=(), dbh=0.3, curve=CURVE, overtopped=None, h_trust="high
         curve,
         overtopped,
     )
-    assert source == "curve"
+    assert got == source
     return tuple(out)
 
 
@@ -231,3 +232,54 @@ def test_small_trees_beside_big_ones_on_a_plot_not_tuned_on():
     assert len(taken) >= 3
     for r, t in taken:
         assert r.quality["height"].endswith("low"), (t.id, r.quality["height"])
+
+
+def test_a_top_too_tall_for_its_stem_without_a_curve_is_bounded_by_its_slenderness():
+    """A 12 cm stem whose segment took a neighbour's crown up to 25 m (slenderness 208): with no
+    height-diameter curve, its height is the tallest such a stem stands (140 times the DBH,
+    16.8 m), flagged, its source "slenderness"; a top within that bound stays the points' own (low,
+    no estimate). With a curve fitted on 20-60 cm trees, an 8 cm stem's top taken from a
+    neighbour's crown gets the curve extrapolated to its DBH, never vouched for."""
+    params = TreeParams()
+    slender = (
+        "height 25.0 m on a 12 cm stem (slenderness 208, beyond 140): the top may be a neighbour's (height unsure)"
+    )
+    flank = [("flank", "top on the crown's flank")]
+
+    def crown(height):
+        return _crown(height, offset=1.5, ratio=1.0, layer=1.0)
+
+    trust, how, fill, flags = _judge(
+        crown(25.0), flank, 0.12, None, h_trust="low", top_flags=[slender], source="slenderness"
+    )
+    assert trust == "low" and slender in flags
+    assert fill == pytest.approx(params.max_slenderness * 0.12) and "too tall for it" in how
+    trust, how, fill, flags = _judge(crown(15.0), flank, 0.12, None)
+    assert trust == "low" and math.isnan(fill) and flags
+    curve = HeightCurve(a=1.15, b=0.18, n_trees=25, n_inliers=25, scatter=0.04, dbh_min_m=0.2, dbh_max_m=0.6, n_tips=8)
+    assert math.isnan(curve.estimate_height_m(0.08, params.height_curve))
+    trust, how, fill, flags = _judge(crown(15.0), flank, 0.08, curve, h_trust="low", top_flags=[slender])
+    assert trust == "low" and fill == pytest.approx(curve.height_m(0.08))
+    assert "not vouched for: its DBH (8 cm) outside the 20-60 cm" in how
+
+
+def test_a_loose_curve_keeps_a_clear_tops_own_height():
+    """A top standing clear over its stem (no hint) 18 % below the plot's curve: on a tight curve
+    (scatter 4 %, standing in) the curve's height is given, vouched for; on a loose one (scatter
+    12 %, a stand of several species or ages: within twice its scatter) the points' top is kept,
+    flagged; 30 % below even the loose curve, the curve's estimate is given again."""
+    params = TreeParams()
+
+    def judge(curve, fraction):
+        return _judge(
+            _crown(fraction * curve.height_m(0.3), offset=0.4, ratio=0.2, layer=0.3, diameter=4.0), curve=curve
+        )
+
+    loose = replace(CURVE, scatter=0.12)
+    assert CURVE.fill_refusal(params.height_curve) == "" and loose.fill_refusal(params.height_curve) != ""
+    trust, how, fill, flags = judge(CURVE, 0.82)
+    assert trust == "medium" and not flags and fill == pytest.approx(CURVE.height_m(0.3))
+    trust, how, fill, flags = judge(loose, 0.82)
+    assert trust == "low" and math.isnan(fill) and flags and "points' top kept" in how
+    trust, how, fill, flags = judge(loose, 0.70)
+    assert trust == "low" and fill == pytest.approx(loose.height_m(0.3)) and flags
