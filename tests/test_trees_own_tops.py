@@ -283,3 +283,46 @@ def test_a_loose_curve_keeps_a_clear_tops_own_height():
     assert trust == "low" and math.isnan(fill) and flags and "points' top kept" in how
     trust, how, fill, flags = judge(loose, 0.70)
     assert trust == "low" and fill == pytest.approx(loose.height_m(0.3)) and flags
+
+
+def _canopy(height) -> np.ndarray:
+    """A canopy surface sampled every 0.25 m over 8 x 8 m: ``height(x, y)`` in metres."""
+    g = np.arange(-4.0, 4.0 + 1e-9, 0.25)
+    x, y = np.meshgrid(g, g)
+    return np.column_stack([x.ravel(), y.ravel(), height(x, y).ravel()])
+
+
+def _joined(p: np.ndarray, own_top: tuple, other_top: tuple) -> str:
+    """:func:`_joined_taller_top` of a short tree (stem at y = -1.5) under a taller one (y = 2)."""
+    from forestreg.engine.geometry.columns import ColumnIndex
+    from forestreg.engine.trees.inventory import _joined_taller_top
+
+    stems = [_stem(1, 0.0, -1.5, 0.5), _stem(2, 0.0, 2.0, 0.48)]
+    crowns = {1: replace(_crown(own_top[2]), top=own_top), 2: replace(_crown(other_top[2]), top=other_top)}
+    params = TreeParams()
+    return _joined_taller_top(
+        p,
+        stems[0],
+        np.array(own_top),
+        stems,
+        crowns,
+        ColumnIndex(p, 1.0),
+        params.shared_apex_distance_m,
+        params.shared_apex_drop_m,
+    )
+
+
+def test_a_top_joined_to_a_taller_apex_close_by_is_that_trees():
+    """A top whose taller neighbour's apex stands 0.8 m away, the canopy between them never 0.5 m
+    lower, is that tree's crown (a short tree's segment took its flank): flagged. Two apexes with
+    a dip between them, or farther apart than 1 m, are two trees' own."""
+    # one broad crown with its apex at (0, 0.5): the short tree's "top" 0.8 m down its flank
+    one = _canopy(lambda x, y: 28.45 - 0.25 * np.hypot(x, y - 0.5))
+    got = _joined(one, (0.0, -0.25, 28.2625), (0.0, 0.5, 28.45))
+    assert got.startswith("top shared with taller tree 2") and "0.8 m away" in got
+    # two steep conifer apexes 1 m apart: the canopy dips 1.5 m between them (two trees' own)
+    two = _canopy(lambda x, y: np.maximum(28.0 - 4.0 * np.hypot(x, y + 0.5), 28.3 - 4.0 * np.hypot(x, y - 0.5)))
+    assert _joined(two, (0.0, -0.5, 28.0), (0.0, 0.5, 28.3)) == ""
+    # a taller apex 1.5 m away, joined: tops that far apart may both be their trees' own
+    far = _canopy(lambda x, y: 28.45 - 0.1 * np.hypot(x, y - 1.25))
+    assert _joined(far, (0.0, -0.25, 28.3), (0.0, 1.25, 28.45)) == ""

@@ -28,6 +28,7 @@ from ..core.outcome import Outcome
 from ..core.params import Params
 from ..core.params import param_field as _p
 from ..core.progress import Progress, ProgressCallback, as_progress
+from ..geometry.cluster import connected_clusters
 from ..geometry.columns import ColumnIndex
 from ..geometry.sorting import order_by_label
 from ..geometry.voxel import voxel_representatives
@@ -151,6 +152,17 @@ class TreeParams(Params):
         0.0,
         5.0,
         "...a top touching the crown over it (closer) has its height flagged: that crown may hold the tree's upper crown, or the top found is in it",
+    )
+    #: two trees' own apexes do not stand side by side in one crown
+    shared_apex_distance_m: float = _p(
+        1.0,
+        "m",
+        0.0,
+        10.0,
+        "a top with a taller tree's top within this distance (horizontally), joined to it by points at most shared_apex_drop_m below the lower top (each within 0.75 m of the next), is that tree's crown: its height is flagged (0: not checked)",
+    )
+    shared_apex_drop_m: float = _p(
+        0.5, "m", 0.0, 10.0, "...the dip below the lower top that two trees' own apexes that close would show"
     )
     #: a thinner stem this close to a thicker one may stand within that tree's crown; closer
     #: than segmentation.axis_dominance_dbh its axis is not continued (it grows from its own points)
@@ -767,6 +779,8 @@ def _crowns_timed(
         params.shared_top_min_points,
         params.top_clearance_radius_m,
         params.min_top_clearance_m,
+        params.shared_apex_distance_m,
+        params.shared_apex_drop_m,
     )
     shared.update({k: v for k, v in _within_crown_reach(stems, params).items() if k not in shared})
     timings["crowns_s"] = time.perf_counter() - t
@@ -1501,13 +1515,17 @@ def _shared_tops(
     min_points: int,
     clearance_radius_m: float = 0.3,
     min_clearance_m: float = 0.2,
+    apex_distance_m: float = 0.0,
+    apex_drop_m: float = 0.5,
 ) -> dict[int, str]:
     """Trees whose top is not their own or was not seen: points of no tree stand above the top
     (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
     stand above the top (within 1 m horizontally, more than 1 m higher; the top clear of them by at
     least ``min_clearance_m`` within ``clearance_radius_m``, or touching them), thicker neighbours' points
-    surround the top at its level (at least ``min_points``: :attr:`TreeParams.shared_top_min_points`), or the top lies nearer
-    to a taller neighbour's stem axis than to its own. Returns {tree id: flag}.
+    surround the top at its level (at least ``min_points``: :attr:`TreeParams.shared_top_min_points`), a taller
+    neighbour's apex stands within ``apex_distance_m`` of the top with no dip of ``apex_drop_m``
+    between them (:func:`_joined_taller_top`), or the top lies nearer to a taller neighbour's stem
+    axis than to its own. Returns {tree id: flag}.
     ``columns``: a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of ``p`` for the few
     disc queries (two k-d trees of the xy of the tree points and of the others took ~110 MB for
     2.9 M points, the command's peak then)."""
@@ -1564,6 +1582,10 @@ def _shared_tops(
                     f"top amid the crown of thicker tree {max(thicker)[1]}: height unsure (the top may be that tree's)"
                 )
                 continue
+        joined = _joined_taller_top(p, s, top, stems, crowns, columns, apex_distance_m, apex_drop_m)
+        if joined:
+            out[s.id] = joined
+            continue
         # each stem's axis taken where it passes the top's height (a leaning stem's top stands
         # beside its foot)
         own = _axis_distance(s, top)
@@ -1582,6 +1604,50 @@ def _shared_tops(
                 out[s.id] = f"top shared with taller tree {o.id}: height unsure"
                 break
     return out
+
+
+def _joined_taller_top(
+    p: np.ndarray,
+    s: Stem,
+    top: np.ndarray,
+    stems: Sequence[Stem],
+    crowns: dict[int, CrownMeasurement],
+    columns: ColumnIndex,
+    max_distance_m: float,
+    max_drop_m: float,
+    link_m: float = 0.75,
+) -> str:
+    """A flag when the top of ``s`` (``top``, x y z in metres) is part of a taller tree's apex: that
+    tree's top stands within ``max_distance_m`` of it horizontally, and points of any tree or none
+    standing at most ``max_drop_m`` below the lower top join the two (each within ``link_m`` of
+    the next). Two trees' own apexes that close would show a dip between them. "" otherwise (and
+    for ``max_distance_m`` 0)."""
+    if max_distance_m <= 0:
+        return ""
+    for o in stems:
+        co = crowns.get(o.id)
+        if o.id == s.id or co is None or not np.isfinite(co.top).all() or not co.top[2] > top[2]:
+            continue
+        other = np.asarray(co.top, dtype=np.float64)
+        length = float(np.hypot(*(other[:2] - top[:2])))
+        if not length <= max_distance_m:
+            continue
+        mid = 0.5 * (top[:2] + other[:2])
+        rows = columns.within(float(mid[0]), float(mid[1]), 0.5 * length + link_m)
+        rows = rows[p[rows, 2] >= top[2] - max_drop_m]
+        if len(rows) < 2:
+            continue
+        q = p[rows]
+        comp = connected_clusters(q, link_m)
+        if (
+            comp[int(np.argmin(np.linalg.norm(q - top, axis=1)))]
+            == comp[int(np.argmin(np.linalg.norm(q - other, axis=1)))]
+        ):
+            return (
+                f"top shared with taller tree {o.id} (its apex {length:.1f} m away, no dip of {max_drop_m:g} m "
+                "between them): height unsure"
+            )
+    return ""
 
 
 def _axis_distance(stem: Stem, point: np.ndarray) -> float:
