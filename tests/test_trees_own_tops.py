@@ -326,3 +326,35 @@ def test_a_top_joined_to_a_taller_apex_close_by_is_that_trees():
     # a taller apex 1.5 m away, joined: tops that far apart may both be their trees' own
     far = _canopy(lambda x, y: 28.45 - 0.1 * np.hypot(x, y - 1.25))
     assert _joined(far, (0.0, -0.25, 28.3), (0.0, 1.25, 28.45)) == ""
+
+
+def test_a_thinner_trees_crown_over_a_thicker_ones_top_is_flagged():
+    """A 36 cm tree's segment holding the crown over a 43 cm neighbour's top (the thicker tree's
+    upper crown went to the thinner one): the thick tree's top is under a neighbour's crown, and
+    the thin tree's height is flagged as possibly that tree's. The other way round (a thin
+    suppressed tree under a thick one's crown) flags only the thin tree."""
+    from forestreg.engine.geometry.columns import ColumnIndex
+    from forestreg.engine.trees.inventory import _shared_tops
+
+    rng = np.random.default_rng(5)
+
+    def column(x: float, z0: float, z1: float, n: int = 400) -> np.ndarray:
+        r, a = 0.9 * np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
+        return np.column_stack([x + r * np.cos(a), r * np.sin(a), rng.uniform(z0, z1, n)])
+
+    def flags(thin_over: bool) -> dict[int, str]:
+        stems = [_stem(1, 2.0, 0.0, 0.36), _stem(2, 0.0, 0.0, 0.43)]
+        lower, upper = (2, 1) if thin_over else (1, 2)
+        p = np.vstack([column(0.0, 10.0, 17.7), column(0.0, 19.0, 26.0)])
+        labels = np.repeat([lower, upper], 400)
+        crowns = {
+            lower: replace(_crown(17.7), top=(0.0, 0.0, 17.7)),
+            upper: replace(_crown(26.0), top=(0.3, 0.0, 26.0)),
+        }
+        return _shared_tops(p, labels, stems, crowns, ColumnIndex(p, 1.0), min_points=6)
+
+    got = flags(thin_over=True)
+    assert got[2].startswith("top under a neighbour's crown")
+    assert got[1].startswith("crown over the top of thicker tree 2")
+    got = flags(thin_over=False)
+    assert got[1].startswith("top under a neighbour's crown") and 2 not in got

@@ -1491,15 +1491,15 @@ def _within_crown_reach(stems: Sequence[Stem], params: TreeParams) -> dict[int, 
 def _top_hint_kind(flag: str) -> str:
     """The kind of a :func:`_shared_tops` flag as :func:`tree_record` weighs it against the
     plot's height-diameter curve: "under" (clear under a neighbour's crown), "unseen" (touching the
-    crown over it), "hint" (amid or nearer to a neighbour's crown, or a stem within a thicker
-    one's crown reach: :func:`_within_crown_reach`), or "" for the decisive ones (points of no
-    tree above the top)."""
+    crown over it), "hint" (amid or nearer to a neighbour's crown, its crown over a thicker
+    neighbour's top, or a stem within a thicker one's crown reach: :func:`_within_crown_reach`),
+    or "" for the decisive ones (points of no tree above the top)."""
     if flag.startswith("top under a neighbour's crown"):
         return "under"
     if flag.startswith("top touching a neighbour's crown"):
         return "unseen"
     if (
-        flag.startswith(("top amid the crown of thicker tree", "top shared with taller tree"))
+        flag.startswith(("top amid the crown of thicker tree", "top shared with taller tree", "crown over the top of"))
         or "within its crown's reach" in flag
     ):
         return "hint"
@@ -1517,6 +1517,7 @@ def _shared_tops(
     min_clearance_m: float = 0.2,
     apex_distance_m: float = 0.0,
     apex_drop_m: float = 0.5,
+    thicker_ratio: float = 1.1,
 ) -> dict[int, str]:
     """Trees whose top is not their own or was not seen: points of no tree stand above the top
     (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
@@ -1525,7 +1526,10 @@ def _shared_tops(
     surround the top at its level (at least ``min_points``: :attr:`TreeParams.shared_top_min_points`), a taller
     neighbour's apex stands within ``apex_distance_m`` of the top with no dip of ``apex_drop_m``
     between them (:func:`_joined_taller_top`), or the top lies nearer to a taller neighbour's stem
-    axis than to its own. Returns {tree id: flag}.
+    axis than to its own. A tree whose points stand over the top of a neighbour at least
+    ``thicker_ratio`` times thicker is flagged too (unless flagged already): the thicker tree is
+    the taller as a rule, and that crown its upper part, which went to the thinner tree's segment.
+    Returns {tree id: flag}.
     ``columns``: a :class:`~forestreg.engine.geometry.columns.ColumnIndex` of ``p`` for the few
     disc queries (two k-d trees of the xy of the tree points and of the others took ~110 MB for
     2.9 M points, the command's peak then)."""
@@ -1533,6 +1537,7 @@ def _shared_tops(
     if not (labels > 0).any():
         return out
     radius = {s.id: float(s.radius_m) for s in stems}
+    over_thicker: dict[int, int] = {}
     for s in stems:
         c = crowns.get(s.id)
         if c is None or not np.isfinite(c.top).all():
@@ -1549,6 +1554,12 @@ def _shared_tops(
         near = near[labels[near] > 0]
         over = near[(labels[near] != s.id) & (p[near, 2] > top[2] + 1.0)]
         if len(over) >= 5:
+            ids, counts = np.unique(labels[over], return_counts=True)
+            above = int(ids[np.argmax(counts)])
+            if radius.get(above, math.inf) * thicker_ratio < radius[s.id]:
+                # a thinner tree's segment over a thicker one's top: the thicker tree is the taller
+                # as a rule, and that crown its upper part
+                over_thicker.setdefault(above, s.id)
             # a suppressed tree's apex stands clear below the crown over it; a neighbour's points
             # right above the top mean the crown goes on up (the upper crown went to the neighbour,
             # or the top found is in the neighbour's crown)
@@ -1603,6 +1614,11 @@ def _shared_tops(
             if _axis_distance(o, top) < own and own > 1.0:
                 out[s.id] = f"top shared with taller tree {o.id}: height unsure"
                 break
+    for tree_id, thick in over_thicker.items():
+        if tree_id not in out:
+            out[tree_id] = (
+                f"crown over the top of thicker tree {thick}: its upper part may be that tree's (height unsure)"
+            )
     return out
 
 
