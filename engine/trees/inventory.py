@@ -164,6 +164,13 @@ class TreeParams(Params):
     shared_apex_drop_m: float = _p(
         0.5, "m", 0.0, 10.0, "...the dip below the lower top that two trees' own apexes that close would show"
     )
+    over_thicker_ratio: float = _p(
+        1.1,
+        "1",
+        1.0,
+        10.0,
+        "a tree whose segment's points stand over the top of a neighbour at least this many times thicker has its height flagged: the thicker tree is the taller as a rule, and that crown its upper part (1: any thinner tree over a thicker one's top)",
+    )
     #: a thinner stem this close to a thicker one may stand within that tree's crown; closer
     #: than segmentation.axis_dominance_dbh its axis is not continued (it grows from its own points)
     crown_reach_dbh: float = _p(
@@ -781,6 +788,7 @@ def _crowns_timed(
         params.min_top_clearance_m,
         params.shared_apex_distance_m,
         params.shared_apex_drop_m,
+        params.over_thicker_ratio,
     )
     shared.update({k: v for k, v in _within_crown_reach(stems, params).items() if k not in shared})
     timings["crowns_s"] = time.perf_counter() - t
