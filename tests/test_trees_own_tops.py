@@ -297,15 +297,13 @@ def _joined(p: np.ndarray, own_top: tuple, other_top: tuple) -> str:
     from forestreg.engine.geometry.columns import ColumnIndex
     from forestreg.engine.trees.inventory import _joined_taller_top
 
-    stems = [_stem(1, 0.0, -1.5, 0.5), _stem(2, 0.0, 2.0, 0.48)]
-    crowns = {1: replace(_crown(own_top[2]), top=own_top), 2: replace(_crown(other_top[2]), top=other_top)}
     params = TreeParams()
     return _joined_taller_top(
         p,
-        stems[0],
+        _stem(1, 0.0, -1.5, 0.5),
         np.array(own_top),
-        stems,
-        crowns,
+        np.array([1, 2]),
+        np.array([own_top, other_top]),
         ColumnIndex(p, 1.0),
         params.shared_apex_distance_m,
         params.shared_apex_drop_m,

@@ -1546,6 +1546,9 @@ def _shared_tops(
         return out
     radius = {s.id: float(s.radius_m) for s in stems}
     over_thicker: dict[int, int] = {}
+    # every tree's top (NaN without one), for the neighbours' apexes near each top
+    top_ids = np.array(list(crowns), dtype=np.int64)
+    tops = np.array([crowns[k].top for k in top_ids], dtype=np.float64).reshape(-1, 3)
     for s in stems:
         c = crowns.get(s.id)
         if c is None or not np.isfinite(c.top).all():
@@ -1601,7 +1604,7 @@ def _shared_tops(
                     f"top amid the crown of thicker tree {max(thicker)[1]}: height unsure (the top may be that tree's)"
                 )
                 continue
-        joined = _joined_taller_top(p, s, top, stems, crowns, columns, apex_distance_m, apex_drop_m)
+        joined = _joined_taller_top(p, s, top, top_ids, tops, columns, apex_distance_m, apex_drop_m)
         if joined:
             out[s.id] = joined
             continue
@@ -1634,8 +1637,8 @@ def _joined_taller_top(
     p: np.ndarray,
     s: Stem,
     top: np.ndarray,
-    stems: Sequence[Stem],
-    crowns: dict[int, CrownMeasurement],
+    top_ids: np.ndarray,
+    tops: np.ndarray,
     columns: ColumnIndex,
     max_distance_m: float,
     max_drop_m: float,
@@ -1644,20 +1647,18 @@ def _joined_taller_top(
     """A flag when the top of ``s`` (``top``, x y z in metres) is part of a taller tree's apex: that
     tree's top stands within ``max_distance_m`` of it horizontally, and points of any tree or none
     standing at most ``max_drop_m`` below the lower top join the two (each within ``link_m`` of
-    the next). Two trees' own apexes that close would show a dip between them. "" otherwise (and
-    for ``max_distance_m`` 0)."""
-    if max_distance_m <= 0:
+    the next). Two trees' own apexes that close would show a dip between them. ``tops`` (n, 3) the
+    trees' tops (NaN where none), ``top_ids`` their tree ids. "" otherwise (and for
+    ``max_distance_m`` 0)."""
+    if max_distance_m <= 0 or not len(tops):
         return ""
-    for o in stems:
-        co = crowns.get(o.id)
-        if o.id == s.id or co is None or not np.isfinite(co.top).all() or not co.top[2] > top[2]:
-            continue
-        other = np.asarray(co.top, dtype=np.float64)
-        length = float(np.hypot(*(other[:2] - top[:2])))
-        if not length <= max_distance_m:
-            continue
+    with np.errstate(invalid="ignore"):
+        distance = np.hypot(tops[:, 0] - top[0], tops[:, 1] - top[1])
+        taller = np.flatnonzero((tops[:, 2] > top[2]) & (distance <= max_distance_m) & (top_ids != s.id))
+    for k in taller[np.argsort(distance[taller])]:
+        other = tops[k]
         mid = 0.5 * (top[:2] + other[:2])
-        rows = columns.within(float(mid[0]), float(mid[1]), 0.5 * length + link_m)
+        rows = columns.within(float(mid[0]), float(mid[1]), 0.5 * float(distance[k]) + link_m)
         rows = rows[p[rows, 2] >= top[2] - max_drop_m]
         if len(rows) < 2:
             continue
@@ -1668,8 +1669,8 @@ def _joined_taller_top(
             == comp[int(np.argmin(np.linalg.norm(q - other, axis=1)))]
         ):
             return (
-                f"top shared with taller tree {o.id} (its apex {length:.1f} m away, no dip of {max_drop_m:g} m "
-                "between them): height unsure"
+                f"top shared with taller tree {int(top_ids[k])} (its apex {distance[k]:.1f} m away, no dip of "
+                f"{max_drop_m:g} m between them): height unsure"
             )
     return ""
 
