@@ -293,7 +293,8 @@ def _canopy(height) -> np.ndarray:
 
 
 def _joined(p: np.ndarray, own_top: tuple, other_top: tuple) -> str:
-    """:func:`_joined_taller_top` of a short tree (stem at y = -1.5) under a taller one (y = 2)."""
+    """:func:`_joined_taller_top` of tree 1 (stem at y = -1.5, top ``own_top``) beside taller tree 2
+    (top ``other_top``) over the canopy ``p``."""
     from forestreg.engine.geometry.columns import ColumnIndex
     from forestreg.engine.trees.inventory import _joined_taller_top
 
