@@ -1523,7 +1523,7 @@ def _shared_tops(
     min_points: int,
     clearance_radius_m: float = 0.3,
     min_clearance_m: float = 0.2,
-    apex_distance_m: float = 0.0,
+    apex_distance_m: float = 1.0,
     apex_drop_m: float = 0.5,
     thicker_ratio: float = 1.1,
 ) -> dict[int, str]:
