@@ -1229,7 +1229,8 @@ def _measure_dbh(p: np.ndarray, stem: Stem, params: StemParams, tree: cKDTree) -
     # the mean of the slices that agree with their median (within 5 %): their range noise
     # averages out, while a branch stub or a clump of twigs in one slice is left out
     agree = np.abs(diameters - middle) <= 0.05 * middle
-    dbh = float(np.mean(diameters[agree]))
+    # two slices more than 10 % apart: neither is within 5 % of their median, which stands
+    dbh = float(np.mean(diameters[agree])) if agree.any() else middle
     main = min(near, key=lambda g: abs(g[1] - dbh))
     reasons_out: list[str] = []
     if len(diameters) > 1 and (diameters.max() - diameters.min()) > params.max_dbh_slice_spread * middle:
