@@ -367,8 +367,9 @@ def test_a_40_m_plot_with_suppressed_trees_trusts_no_top_in_a_neighbours_crown()
     reach up into the crowns over it (a 13 cm stem, truly 10.1 m, measured 16.0 m); keeping no
     part of a thicker neighbour's expected crown beyond its own, no points' top stands more than
     30 % above the truth. The curve scatters 7 % and 2 of its tips stand more than 20 % below it:
-    it vouches for no height (its estimates flagged); 16 of the 39 found unflagged, rRMSE 3.2 %,
-    worst 7.7 %."""
+    it vouches for no height (its estimates flagged); 15 of the 39 found unflagged, rRMSE 3.2 %,
+    worst 7.7 % (a 16th, right within 1 %, is flagged: it stands under a thicker neighbour's
+    expected crown and reaches less than 85 % of its top)."""
     plot, inv = _four_scan_plot(seed=3, size_m=40.0, suppressed_clearance_m=0.5)
     inside = [t for t in plot.scene.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
     xy = np.array([(r.stem.x, r.stem.y) for r in inv.trees])
@@ -380,7 +381,7 @@ def test_a_40_m_plot_with_suppressed_trees_trusts_no_top_in_a_neighbours_crown()
     assert inv.height_curve is not None and inv.height_curve.n_tips_below >= 1
     assert all(r.quality["height"].endswith("; low") for r in inv.trees if r.height_source == "curve")
     trusted, h = _trusted_heights(pairs)
-    assert len(trusted) >= 16
+    assert len(trusted) >= 15
     assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.20
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.08
     assert all(r.crown.height_m <= 1.3 * t.height_m for r, t in pairs)
@@ -445,7 +446,9 @@ def test_a_top_under_a_neighbours_crown_judged_by_how_high_it_reaches():
     reaches 0.80 of the neighbour's (its upper crown went to the neighbour) gets the curve's height,
     vouched for (medium, no flag); one reaching 0.45 (a suppressed tree) gets the estimate midway
     between its points' top and the curve, flagged; and a top not seen as a tip over its stem, 6 %
-    below the curve with no hint (its apex missed) takes the curve's height, medium."""
+    below the curve with no hint (its apex missed), reaching 94 % of the neighbour's top, takes the
+    curve's height, medium; reaching 80 % of it (a suppressed tree's segment may have taken that
+    crown) it is flagged."""
     from forestreg.engine.trees.allometry import HeightCurve
     from forestreg.engine.trees.crown import CrownMeasurement
     from forestreg.engine.trees.inventory import TreeParams, _judge_top, _neighbour_reach
@@ -514,5 +517,8 @@ def test_a_top_under_a_neighbours_crown_judged_by_how_high_it_reaches():
     assert trust == "medium" and not flags and fill == pytest.approx(c) and "upper crown" in how
     trust, how, fill, flags, _ = judge(0.8 * c, under, 0.45)
     assert trust == "low" and flags and fill == pytest.approx(0.9 * c) and "midway" in how
-    trust, how, fill, flags, _ = judge(0.94 * c, [], nan, ratio=0.3)
+    trust, how, fill, flags, _ = judge(0.94 * c, [], 0.94, ratio=0.3)
     assert trust == "medium" and not flags and fill == pytest.approx(c) and "apex may be missing" in how
+    # the same top reaching only 80 % of the thick neighbour's: inside that crown, not vouched for
+    trust, how, fill, flags, _ = judge(0.94 * c, [], 0.8, ratio=0.3)
+    assert trust == "low" and flags and math.isnan(fill) and "not vouched for" in how

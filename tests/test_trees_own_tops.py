@@ -88,7 +88,9 @@ def _crown(
 CURVE = HeightCurve(a=1.15, b=0.18, n_trees=25, n_inliers=25, scatter=0.04, dbh_min_m=0.1, dbh_max_m=0.6, n_tips=8)
 
 
-def _judge(crown, hints=(), dbh=0.3, curve=CURVE, overtopped=None, h_trust="high", top_flags=(), source="curve"):
+def _judge(
+    crown, hints=(), dbh=0.3, curve=CURVE, overtopped=None, h_trust="high", top_flags=(), source="curve", reach=math.nan
+):
     """(trust, how, estimate, flags) of :func:`_judge_top`, its estimate's source asserted."""
     *out, got = _judge_top(
         crown,
@@ -102,6 +104,7 @@ def _judge(crown, hints=(), dbh=0.3, curve=CURVE, overtopped=None, h_trust="high
         TreeParams(),
         curve,
         overtopped,
+        reach,
     )
     assert got == source
     return tuple(out)
@@ -357,3 +360,63 @@ def test_a_thinner_trees_crown_over_a_thicker_ones_top_is_flagged():
     assert got[1].startswith("crown over the top of thicker tree 2")
     got = flags(thin_over=False)
     assert got[1].startswith("top under a neighbour's crown") and 2 not in got
+
+
+def test_a_top_well_clear_below_the_crown_over_it_is_a_suppressed_trees_own():
+    """A thin tree's top 3 m below the thick neighbour's crown over it: nothing of it goes on up
+    into that crown, so the top is its own (the crown 0.5 m over it may hold its upper part).
+    Judged: over its stem and below the curve, its points' top stands (medium trust, no flag);
+    off its axis (the last seen part of a crown whose top is hidden) it gets the estimate midway
+    to the curve, flagged, as a top under a crown with no clearance does."""
+    from forestreg.engine.geometry.columns import ColumnIndex
+    from forestreg.engine.trees.inventory import _shared_tops
+
+    rng = np.random.default_rng(9)
+
+    def column(z0: float, z1: float, n: int = 400) -> np.ndarray:
+        r, a = 1.5 * np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
+        return np.column_stack([r * np.cos(a), r * np.sin(a), rng.uniform(z0, z1, n)])
+
+    def hint(gap: float) -> str:
+        stems = [_stem(1, 0.2, 0.0, 0.14), _stem(2, 2.2, 0.0, 0.45)]
+        p = np.vstack([column(5.0, 9.0), column(9.0 + gap, 12.0 + gap, 4000)])
+        labels = np.repeat([1, 2], [400, 4000])
+        crowns = {1: replace(_crown(9.0), top=(0.0, 0.0, 9.0)), 2: replace(_crown(24.0), top=(2.2, 0.0, 24.0))}
+        return _shared_tops(p, labels, stems, crowns, ColumnIndex(p, 1.0), min_points=6)[1]
+
+    clear, close = hint(3.0), hint(0.5)
+    assert (
+        clear.startswith("top under a neighbour's crown, 3.0 m clear of it") and "a suppressed tree's own top" in clear
+    )
+    assert close.startswith("top under a neighbour's crown, 0.5 m clear of it") and "unseen" in close, close
+
+    c = CURVE.height_m(0.14)
+    trust, how, fill, flags = _judge(_crown(0.7 * c, offset=0.1, ratio=0.05, layer=0.5), [("under", clear)], dbh=0.14)
+    assert trust == "medium" and math.isnan(fill) and not flags and "suppressed tree's own top" in how
+    off_axis = _crown(0.7 * c, offset=0.5, ratio=0.35, layer=0.5)
+    for h in (clear, close):
+        trust, how, fill, flags = _judge(off_axis, [("under", h)], dbh=0.14)
+        assert trust == "low" and "midway" in how and fill == pytest.approx(0.85 * c) and flags
+    trust, how, fill, flags = _judge(_crown(0.7 * c, offset=0.1, ratio=0.05, layer=0.5), [("under", close)], dbh=0.14)
+    assert trust == "low" and "midway" in how and flags
+
+
+def test_a_top_the_curve_agrees_with_on_a_stem_under_a_thicker_crown_is_not_vouched_for():
+    """A 17 cm stem under a 32 cm neighbour's expected crown whose points' top stands +7 % from the
+    curve: a suppressed tree's segment that took the crown over it reads as tall as the curve of
+    free-grown trees says, so the two do not vouch for each other (flagged, the points' top kept):
+    it reaches 82 % of its tallest neighbour's top, inside that crown. Reaching 95 % of it (a
+    co-dominant's own top), its apex seen as a tip over the stem, or no thicker neighbour, it
+    stands."""
+    under_big = "its stem stands 2.5 m from thicker tree 7 (32 cm), under that tree's expected crown"
+    c = CURVE.height_m(0.17)
+    side = _crown(1.07 * c, offset=0.4, ratio=0.31, layer=0.5)
+    trust, how, fill, flags = _judge(side, dbh=0.17, overtopped=under_big, reach=0.82)
+    assert trust == "low" and math.isnan(fill) and "not vouched for" in how
+    assert any("may have taken that crown" in f for f in flags)
+    trust, _, fill, flags = _judge(side, dbh=0.17, overtopped=under_big, reach=0.95)
+    assert trust == "high" and math.isnan(fill) and not flags
+    trust, _, fill, flags = _judge(_crown(1.07 * c, offset=0.4, ratio=0.31, layer=0.5), dbh=0.17)
+    assert trust == "high" and math.isnan(fill) and not flags
+    trust, _, fill, flags = _judge(_crown(1.07 * c), dbh=0.17, overtopped=under_big)
+    assert trust == "high" and math.isnan(fill) and not flags  # a tip: its own apex

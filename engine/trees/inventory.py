@@ -153,6 +153,21 @@ class TreeParams(Params):
         5.0,
         "...a top touching the crown over it (closer) has its height flagged: that crown may hold the tree's upper crown, or the top found is in it",
     )
+    #: a suppressed tree's own top stands well clear below the crown over it
+    suppressed_top_clearance_m: float = _p(
+        1.0,
+        "m",
+        0.0,
+        50.0,
+        "a top over its stem, under a neighbour's crown and clear of it by at least this much (the crown over it does not reach down to it: no part of the tree goes on up into it), below the plot's height-diameter curve, is a suppressed tree's own top: its height stands (0: only an apex seen as a tip stands so)",
+    )
+    suppressed_top_max_offset: float = _p(
+        0.25,
+        "1",
+        0.0,
+        10.0,
+        "...and its highest point within this fraction of the crown radius from the stem axis (a leader's tip; the last seen part of a crown whose top is hidden ends anywhere across it)",
+    )
     #: two trees' own apexes do not stand side by side in one crown
     shared_apex_distance_m: float = _p(
         1.0,
@@ -194,6 +209,13 @@ class TreeParams(Params):
         0.0,
         1.0,
         "a top with only a soft hint (on the crown's flank, missing or cut flat, beside a thicker stem) stands where it agrees with the plot's height-diameter curve within this fraction (the curve's scatter at most height_curve.max_scatter_unseen); the curve's estimate of a stem under a thicker neighbour's expected crown is vouched for only where the points' top agrees with it so",
+    )
+    overtopped_reach: float = _p(
+        0.85,
+        "1",
+        0.0,
+        10.0,
+        "a top on a stem under a thicker neighbour's expected crown that agrees with the plot's height-diameter curve stands where it reaches at least this fraction of its tallest neighbour's top (neighbour_radius_m: a co-dominant's own top); lower, it is flagged (a suppressed tree's segment that took the crown over it ends inside that crown, as tall as the curve says a free-grown tree would be)",
     )
     #: a top under or touching a neighbour's crown belongs to a suppressed tree, or to a tree whose
     #: upper crown went to that neighbour: how high it reaches among the neighbours' tops tells
@@ -789,6 +811,7 @@ def _crowns_timed(
         params.shared_apex_distance_m,
         params.shared_apex_drop_m,
         params.over_thicker_ratio,
+        params.suppressed_top_clearance_m,
     )
     shared.update({k: v for k, v in _within_crown_reach(stems, params).items() if k not in shared})
     timings["crowns_s"] = time.perf_counter() - t
@@ -1168,6 +1191,8 @@ def _hint_names(hints: Sequence[tuple[str, str]]) -> set[str]:
             names.add("flat")
         elif text.startswith("top under a neighbour's crown"):
             names.add("under")
+            if "a suppressed tree's own top" in text:
+                names.add("clear")
         elif text.startswith("top touching a neighbour's crown"):
             names.add("touch")
         elif "within its crown's reach" in text:
@@ -1209,8 +1234,17 @@ def _judge_top(
        :attr:`.allometry.HeightCurveParams.clear_above` above the curve: the points' top stands,
        however far below the curve (a suppressed tree). Under a neighbour's crown it needs a
        curve (without one it may be a lower part of a tree whose top is hidden in that crown).
+       So does a top under a neighbour's crown and clear of it by at least
+       :attr:`TreeParams.suppressed_top_clearance_m`, its highest point within
+       :attr:`TreeParams.suppressed_top_max_offset` of the crown radius from the stem axis, below
+       the curve, with no other hint than a top missing in the data: the crown over it does not
+       reach down to it, so nothing of the tree goes on up into that crown.
     2. Two witnesses: a top with no hint within ``clear_below`` below to ``clear_above`` above the
-       curve (without a curve: only as a tip), or with soft hints only (on the flank, missing,
+       curve (without a curve: only as a tip; on a stem standing under a thicker neighbour's
+       expected crown, ``overtopped``, only as a tip or reaching at least
+       :attr:`TreeParams.overtopped_reach` of its tallest neighbour's top: a suppressed tree's
+       segment that took the crown over it ends inside that crown, as tall as the curve of
+       free-grown trees says, so its points' top is kept, flagged), or with soft hints only (on the flank, missing,
        cut flat, beside a thicker stem) within :attr:`TreeParams.curve_agreement` of a curve
        scattering at most ``max_scatter_unseen``. A top under, touching, amid or nearer to a
        neighbour's crown is no witness: a small tree's segment reaching up to the crown over it
@@ -1259,19 +1293,44 @@ def _judge_top(
     if h_trust != "low" and math.isfinite(crown.height_m):
         if (
             tip
-            and names <= {"under", "reach"}
+            and names - {"clear"} <= {"under", "reach"}
             and not dep > hc.clear_above
             and not ("under" in names and not math.isfinite(dep))
+        ) or (
+            "clear" in names
+            and names <= {"under", "clear", "reach", "missing"}
+            and dep <= 0.0
+            and crown.top_offset_ratio <= params.suppressed_top_max_offset
         ):
-            # 1. its apex seen as a tip: its own top, however far below the curve (a suppressed tree)
+            # 1. its apex seen as a tip, or clear below the crown over it: its own top, however far
+            # below the curve (a suppressed tree)
+            seen = (
+                ", its apex seen as a tip over the stem"
+                if tip
+                else " (a suppressed tree's own top: the crown over it does not reach down to it)"
+            )
             return (
                 (_trust(h_trust, "medium") if names else h_trust),
-                h_how + ", its apex seen as a tip over the stem" + dep_text,
+                h_how + seen + dep_text,
                 nan,
                 top_flags,
                 "curve",
             )
         witnesses = ""
+        if (
+            not names
+            and overtopped is not None
+            and not tip
+            and -hc.clear_below <= dep <= hc.clear_above
+            and not reach >= params.overtopped_reach
+        ):
+            # a stem under a thicker neighbour's expected crown: a suppressed tree's segment that
+            # took the crown over it stands as tall as the curve of free-grown trees says
+            why = (
+                f"{overtopped}: its segment may have taken that crown, and the plot's height-diameter curve says "
+                "as much of a suppressed tree (height unsure)"
+            )
+            return "low", f"{h_how}{dep_text} (not vouched for: {overtopped})", nan, list(top_flags) + [why], "curve"
         if not names and (-hc.clear_below <= dep <= hc.clear_above if math.isfinite(dep) else tip):
             # without a curve to check it, a top with no hint stands only as a tip: a crown whose
             # top the scanners' view cut, or hid behind other crowns, shows no hint either
@@ -1526,11 +1585,14 @@ def _shared_tops(
     apex_distance_m: float = 1.0,
     apex_drop_m: float = 0.5,
     thicker_ratio: float = 1.1,
+    suppressed_clearance_m: float = 1.0,
 ) -> dict[int, str]:
     """Trees whose top is not their own or was not seen: points of no tree stand above the top
     (within the crown's reach of the stem: the crown was not reached), a taller neighbour's points
     stand above the top (within 1 m horizontally, more than 1 m higher; the top clear of them by at
-    least ``min_clearance_m`` within ``clearance_radius_m``, or touching them), thicker neighbours' points
+    least ``min_clearance_m`` within ``clearance_radius_m``, or touching them; clear by at least
+    ``suppressed_clearance_m``, nothing of the tree goes on up into that crown: a suppressed tree's
+    own top, :func:`_judge_top` rule 1), thicker neighbours' points
     surround the top at its level (at least ``min_points``: :attr:`TreeParams.shared_top_min_points`), a taller
     neighbour's apex stands within ``apex_distance_m`` of the top with no dip of ``apex_drop_m``
     between them (:func:`_joined_taller_top`), or the top lies nearer to a taller neighbour's stem
@@ -1583,7 +1645,13 @@ def _shared_tops(
                     if math.isfinite(gap)
                     else f"nothing over the top within {clearance_radius_m:g} m"
                 )
-                out[s.id] = f"top under a neighbour's crown, {clear}: suppressed, or its top unseen (height unsure)"
+                if 0 < suppressed_clearance_m <= gap < math.inf:
+                    out[s.id] = (
+                        f"top under a neighbour's crown, {clear}: a suppressed tree's own top where it stands over "
+                        "its stem and below the plot's height-diameter curve (height unsure)"
+                    )
+                else:
+                    out[s.id] = f"top under a neighbour's crown, {clear}: suppressed, or its top unseen (height unsure)"
             else:
                 out[s.id] = (
                     f"top touching a neighbour's crown ({100 * gap:.0f} cm below it): the crown may go on up "
