@@ -41,6 +41,12 @@ the flags' precision (flagged heights really more than 10 % off) and recall (hei
 alone, in-process, on the same cached plots and gives every matched tree's height evidence and
 verdict beside its truth: the loop for choosing the height rules on the tune half.
 
+Another crown model (``--branched``; :func:`run_branched`): mixed temperate stands whose trees are
+grown as branching skeletons with leaves on the twigs (:mod:`forestreg.engine.simulate.branched_stand`),
+dominant broadleaves and narrow-crowned trees with suppressed trees under their crowns, four
+full-dome scans; the same figures, for the seeds looked at while a rule was chosen
+(:data:`BRANCHED_TUNE_SEEDS`) and for seeds held out (:data:`BRANCHED_HELD_OUT_SEEDS`).
+
 The simulated clouds are cached under ``bench_out/trees_compare/``. Run from the repository root:
 ``python -m benchmarks.trees_compare`` (or through ``benchmarks/run.py --only trees``).
 """
@@ -225,6 +231,82 @@ def half_plot(kind: int, seed: int, out: Path = OUT, height_scatter: float = 0.0
         write_points(laz, pts)
         truth.write_text(json.dumps(trees, indent=1))
     return laz, json.loads(truth.read_text())
+
+
+#: Branched stands (:mod:`forestreg.engine.simulate.branched_stand`: crowns grown from branches and
+#: leaves, another crown model than the plots'): the seeds a height rule was checked on while it
+#: was chosen, and the seeds held out.
+BRANCHED_TUNE_SEEDS = (601, 602, 603, 604, 605, 606)
+BRANCHED_HELD_OUT_SEEDS = (611, 612, 613, 614, 615, 616)
+
+
+def branched_plot(seed: int, out: Path = OUT) -> tuple[Path, list[dict[str, Any]]]:
+    """A branched stand drawn from ``seed`` (four full-dome scans at 0.3 deg from 5 m off the centre
+    along both diagonals, merged; LAZ) and its true trees (id, x, y, DBH, height: the top of the
+    tree's own mesh, form, suppressed); simulated once and cached."""
+    laz, truth = out / f"branched_{seed}.laz", out / f"branched_{seed}.json"
+    if not (laz.exists() and truth.exists()):
+        from forestreg.engine.io import write_points
+        from forestreg.engine.simulate.branched_stand import branched_stand, scan_branched_stand
+
+        stand = branched_stand(seed)
+        pts, _, heights = scan_branched_stand(stand, seed, SCAN_LAYOUTS[4])
+        out.mkdir(parents=True, exist_ok=True)
+        write_points(laz, pts)
+        trees = [
+            {
+                "id": t.id,
+                "x": t.x,
+                "y": t.y,
+                "dbh_m": t.dbh_m,
+                "height_m": heights[t.id],
+                "form": t.form,
+                "suppressed": t.suppressed,
+            }
+            for t in stand
+        ]
+        truth.write_text(json.dumps(trees, indent=1))
+    return laz, json.loads(truth.read_text())
+
+
+def run_branched(workdir: Optional[Path] = None) -> list[dict[str, Any]]:
+    """forestreg (``trees --no-cylinders``) and Sylva on the branched stands
+    (:data:`BRANCHED_TUNE_SEEDS`, :data:`BRANCHED_HELD_OUT_SEEDS`): rows as :func:`run_halves`'."""
+    sylva = sylva_command()
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="forestreg-trees-branched-") as tmp:
+        work = Path(workdir or tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        for half, seeds in (("branched, tune", BRANCHED_TUNE_SEEDS), ("branched, held out", BRANCHED_HELD_OUT_SEEDS)):
+            for seed in seeds:
+                laz, truth = branched_plot(seed)
+                case = {"half": half, "kind": "branched stand", "seed": seed, "case": f"branched stand (seed {seed})"}
+                print(f"{half}: {case['case']}", file=sys.stderr, flush=True)
+                run_, fr = _forestreg(laz, work, ("--no-cylinders",))
+                rows.append(
+                    {
+                        **case,
+                        "tool": "forestreg trees",
+                        "wall_s": run_.wall_s,
+                        "peak_mb": run_.peak_mb,
+                        "status": run_.status,
+                        **_plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low),
+                        "heights": _flag_figures(fr, truth),
+                        "pairs": _pairs(fr, truth, "dbh_m", "height_m"),
+                    }
+                )
+                if sylva:
+                    res, sy = _sylva_trees(sylva, laz, work)
+                    rows.append(
+                        {
+                            **case,
+                            "tool": "sylva ground + trees",
+                            **res,
+                            **_plot_figures(sy, truth, dbh_key="dbh", height_key="height"),
+                            "pairs": _pairs(sy, truth, "dbh", "height"),
+                        }
+                    )
+    return rows
 
 
 def sim_single(out: Path = OUT) -> tuple[Path, dict[str, float]]:
@@ -850,7 +932,16 @@ def main(argv: Optional[list[str]] = None) -> int:
         help="with --halves: draw the held-out plots from this seed on (one per kind) "
         "instead of the stored held-out seeds",
     )
+    ap.add_argument(
+        "--branched",
+        action="store_true",
+        help="only the branched stands (crowns grown from branches and leaves): tune and held-out seeds, "
+        "forestreg and Sylva",
+    )
     args = ap.parse_args(argv)
+    if args.branched:
+        rows = run_branched(args.workdir)
+        return show_rows(halves_table(rows) + "\n\n" + halves_plot_rows(rows), rows, args.json, indent=1, default=float)
     if args.height_evidence:
         rows = height_evidence()
         return show_rows(evidence_summary(rows), rows, args.json, indent=1, default=float)

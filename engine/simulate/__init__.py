@@ -14,7 +14,11 @@
 * :func:`simulate_plot` scans a plot from several positions (in memory: the package writes no
   file; :func:`forestreg.engine.io.simulated.write_simulated_plot` writes the LAZ files and
   ``truth.json``); :func:`relative_pose` gives the true ``T`` (``p_reference = T @ p_moving``);
-* :func:`simulate_scan_from_cloud` simulates a scan from a real merged cloud (paper section 4.3).
+* :func:`simulate_scan_from_cloud` simulates a scan from a real merged cloud (paper section 4.3);
+* :mod:`.wood` and :mod:`.branched_stand` grow trees as branching skeletons with leaves on the
+  twigs (no crown shape filled): single broadleaves with known wood, and mixed stands with
+  suppressed trees under dominant crowns, scanned full-dome (another crown model to check the
+  tree rules on).
 
 Example::
 
