@@ -386,7 +386,7 @@ def _height_curve_png(rows: Sequence[Mapping[str, Any]], curve: Any) -> bytes:
     top = np.array([r["height_points_m"] for r in rows], dtype=np.float64)
     for level, colour, marker, label in (
         ("high", "k", "o", "high"),
-        ("medium", "#ff7f00", "o", "medium (a hint about the top; consistent)"),
+        ("medium", "#ff7f00", "o", "medium (a hint about the top, weighed: the top stands)"),
         ("low", FLAG_COLOUR, "x", "low (flagged)"),
     ):
         sel = ok & (trust == level) & ~fill
