@@ -281,31 +281,7 @@ def run_branched(workdir: Optional[Path] = None) -> list[dict[str, Any]]:
             for seed in seeds:
                 laz, truth = branched_plot(seed)
                 case = {"half": half, "kind": "branched stand", "seed": seed, "case": f"branched stand (seed {seed})"}
-                print(f"{half}: {case['case']}", file=sys.stderr, flush=True)
-                run_, fr = _forestreg(laz, work, ("--no-cylinders",))
-                rows.append(
-                    {
-                        **case,
-                        "tool": "forestreg trees",
-                        "wall_s": run_.wall_s,
-                        "peak_mb": run_.peak_mb,
-                        "status": run_.status,
-                        **_plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low),
-                        "heights": _flag_figures(fr, truth),
-                        "pairs": _pairs(fr, truth, "dbh_m", "height_m"),
-                    }
-                )
-                if sylva:
-                    res, sy = _sylva_trees(sylva, laz, work)
-                    rows.append(
-                        {
-                            **case,
-                            "tool": "sylva ground + trees",
-                            **res,
-                            **_plot_figures(sy, truth, dbh_key="dbh", height_key="height"),
-                            "pairs": _pairs(sy, truth, "dbh", "height"),
-                        }
-                    )
+                rows += _both_tools(case, laz, truth, work, sylva)
     return rows
 
 
@@ -559,31 +535,41 @@ def run_halves(
                     "seed": seed,
                     "case": f"{HALF_KINDS[kind][0]} ({HALF_KINDS[kind][3]} scans, up to {HALF_KINDS[kind][4]:.0f} deg, seed {seed})",
                 }
-                print(f"{half}: {case['case']}", file=sys.stderr, flush=True)
-                run_, fr = _forestreg(laz, work, ("--no-cylinders",))
-                rows.append(
-                    {
-                        **case,
-                        "tool": "forestreg trees",
-                        "wall_s": run_.wall_s,
-                        "peak_mb": run_.peak_mb,
-                        "status": run_.status,
-                        **_plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low),
-                        "heights": _flag_figures(fr, truth),
-                        "pairs": _pairs(fr, truth, "dbh_m", "height_m"),
-                    }
-                )
-                if sylva:
-                    res, sy = _sylva_trees(sylva, laz, work)
-                    rows.append(
-                        {
-                            **case,
-                            "tool": "sylva ground + trees",
-                            **res,
-                            **_plot_figures(sy, truth, dbh_key="dbh", height_key="height"),
-                            "pairs": _pairs(sy, truth, "dbh", "height"),
-                        }
-                    )
+                rows += _both_tools(case, laz, truth, work, sylva)
+    return rows
+
+
+def _both_tools(
+    case: dict[str, Any], laz: Path, truth: list[dict[str, Any]], work: Path, sylva: Optional[str]
+) -> list[dict[str, Any]]:
+    """forestreg (``trees --no-cylinders``) and, where installed, Sylva on one simulated plot: a row
+    each with ``case`` and the figures of :func:`_plot_figures`; forestreg's with its (height, true
+    height, flagged) triples (``heights``), both with their matched pairs."""
+    print(f"{case['half']}: {case['case']}", file=sys.stderr, flush=True)
+    run_, fr = _forestreg(laz, work, ("--no-cylinders",))
+    rows = [
+        {
+            **case,
+            "tool": "forestreg trees",
+            "wall_s": run_.wall_s,
+            "peak_mb": run_.peak_mb,
+            "status": run_.status,
+            **_plot_figures(fr, truth, dbh_key="dbh_m", height_key="height_m", flagged=_height_low),
+            "heights": _flag_figures(fr, truth),
+            "pairs": _pairs(fr, truth, "dbh_m", "height_m"),
+        }
+    ]
+    if sylva:
+        res, sy = _sylva_trees(sylva, laz, work)
+        rows.append(
+            {
+                **case,
+                "tool": "sylva ground + trees",
+                **res,
+                **_plot_figures(sy, truth, dbh_key="dbh", height_key="height"),
+                "pairs": _pairs(sy, truth, "dbh", "height"),
+            }
+        )
     return rows
 
 

@@ -7,7 +7,7 @@ another way, this module grows every tree as a branching skeleton
 to twigs, leaves hanging on the twigs) and stands them together as a mixed temperate plot:
 
 * dominant and codominant trees (DBH 20-60 cm) at least 3 m apart, broadleaves with wide crowns
-  and narrow-crowned trees (conifer-like: crowns from low on the stem, a third as wide);
+  and narrow-crowned trees (conifer-like: crowns from low on the stem, about half as wide);
 * heights from one height-diameter relation with 8 % scatter;
 * suppressed trees (DBH 10-18 cm) 1.3-2.6 m from a dominant's stem, their tops from 2 m below that
   crown's base to 2 m into it.
@@ -65,7 +65,7 @@ def branched_stand(seed: int, size_m: float = 28.0, *, n_suppressed: int = 14) -
     deterministic for a ``seed``; about 20 dominants and codominants and ``n_suppressed``
     suppressed trees under their crowns."""
     rng = np.random.default_rng([int(seed), 48271])
-    phase = rng.uniform(0, 2 * math.pi, size=2)  # the ground's (:func:`_stand_phase`)
+    phase = rng.uniform(0, 2 * math.pi, size=2)  # the ground's two waves: the draw of _stand_phase
     half = size_m / 2.0
     placed: list[tuple[float, float, float]] = []  # x, y, stem radius
     big: list[dict] = []
@@ -127,6 +127,8 @@ def branched_stand(seed: int, size_m: float = 28.0, *, n_suppressed: int = 14) -
 
 
 def _stand_phase(seed: int) -> np.ndarray:
+    """The phases of the ground's two waves of the stand drawn from ``seed``: the first draw of
+    :func:`branched_stand`, so the scan meshes the ground its trees stand on."""
     return np.random.default_rng([int(seed), 48271]).uniform(0, 2 * math.pi, size=2)
 
 

@@ -1244,8 +1244,9 @@ def _judge_top(
        expected crown, ``overtopped``, only as a tip or reaching at least
        :attr:`TreeParams.overtopped_reach` of its tallest neighbour's top: a suppressed tree's
        segment that took the crown over it ends inside that crown, as tall as the curve of
-       free-grown trees says, so its points' top is kept, flagged), or with soft hints only (on the flank, missing,
-       cut flat, beside a thicker stem) within :attr:`TreeParams.curve_agreement` of a curve
+       free-grown trees says, so its points' top is kept, flagged), or with soft hints only (on
+       the flank, missing, cut flat, beside a thicker stem) within
+       :attr:`TreeParams.curve_agreement` of a curve
        scattering at most ``max_scatter_unseen``. A top under, touching, amid or nearer to a
        neighbour's crown is no witness: a small tree's segment reaching up to the crown over it
        stands as tall as the curve says a free-grown tree of its DBH would, and a top amid a
