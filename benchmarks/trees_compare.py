@@ -250,7 +250,7 @@ def branched_plot(seed: int, out: Path = OUT) -> tuple[Path, list[dict[str, Any]
         from forestreg.engine.simulate.branched_stand import branched_stand, scan_branched_stand
 
         stand = branched_stand(seed)
-        pts, _, heights = scan_branched_stand(stand, seed, SCAN_LAYOUTS[4])
+        pts, _, heights = scan_branched_stand(stand, SCAN_LAYOUTS[4])
         out.mkdir(parents=True, exist_ok=True)
         write_points(laz, pts)
         trees = [
@@ -263,7 +263,7 @@ def branched_plot(seed: int, out: Path = OUT) -> tuple[Path, list[dict[str, Any]
                 "form": t.form,
                 "suppressed": t.suppressed,
             }
-            for t in stand
+            for t in stand.trees
         ]
         truth.write_text(json.dumps(trees, indent=1))
     return laz, json.loads(truth.read_text())

@@ -20,7 +20,7 @@ from forestreg.engine.trees.inventory import TreeParams, measure_trees
 def _stand(seed: int):
     """(stand, points, each point's tree id, true heights, inventory without cylinder models)."""
     stand = branched_stand(seed)
-    points, ids, heights = scan_branched_stand(stand, seed)
+    points, ids, heights = scan_branched_stand(stand)
     return stand, points, ids, heights, measure_trees(points, TreeParams(cylinder_models=False))
 
 
@@ -29,7 +29,7 @@ def test_a_branched_stand_has_suppressed_trees_under_dominant_crowns_and_true_to
     (their tops 5-16 m, under a dominant's crown); a tree's true height is the top of its own
     mesh, and the scans reach within 0.3 m of it for most trees."""
     stand, points, ids, heights, _ = _stand(615)
-    inside = [t for t in stand if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
+    inside = [t for t in stand.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
     assert 20 <= len(inside) <= 30
     suppressed = [t for t in inside if t.suppressed]
     assert len(suppressed) >= 0.25 * len(inside)
@@ -46,14 +46,14 @@ def test_trees_on_a_branched_stand_not_tuned_on():
     part of it read 46-67 % too tall, their tops agreeing with the plot's height-diameter curve:
     each height more than 25 % off is flagged."""
     stand, _, _, heights, inv = _stand(615)
-    inside = [t for t in stand if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
+    inside = [t for t in stand.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
     xy = np.array([(r.stem.x, r.stem.y) for r in inv.trees])
     pairs = []
     for t in inside:
         d = np.hypot(*(xy - (t.x, t.y)).T)
         assert d.min() < 0.5, f"tree {t.id} not found"
         pairs.append((inv.trees[int(np.argmin(d))], t))
-    true_xy = np.array([(t.x, t.y) for t in stand])
+    true_xy = np.array([(t.x, t.y) for t in stand.trees])
     false = [
         r.tree_id
         for r in inv.trees

@@ -50,6 +50,16 @@ class StandTree:
         return self.wood.dbh_m
 
 
+@dataclass(frozen=True, eq=False)
+class BranchedStand:
+    """A stand drawn by :func:`branched_stand`: its ``trees``, the ``seed`` it was drawn from (the
+    scans' noise and leaves follow it) and the phases (rad) of its ground's two waves."""
+
+    seed: int
+    trees: tuple[StandTree, ...]
+    ground_phase: tuple[float, float]
+
+
 def _ground_z(x: np.ndarray, y: np.ndarray, phase: np.ndarray) -> np.ndarray:
     """Gently rolling ground (m): two long waves, 0.3 m at most."""
     return 0.15 * np.sin(x / 9.0 + phase[0]) + 0.15 * np.sin(y / 11.0 + phase[1])
@@ -60,12 +70,12 @@ def _height_m(dbh_m: float) -> float:
     return 1.3 + 26.7 * (1.0 - math.exp(-5.0 * dbh_m))
 
 
-def branched_stand(seed: int, size_m: float = 28.0, *, n_suppressed: int = 14) -> list[StandTree]:
+def branched_stand(seed: int, size_m: float = 28.0, *, n_suppressed: int = 14) -> BranchedStand:
     """A mixed temperate stand of branching trees in a ``size_m`` square (see the module notes):
     deterministic for a ``seed``; about 20 dominants and codominants and ``n_suppressed``
     suppressed trees under their crowns."""
     rng = np.random.default_rng([int(seed), 48271])
-    phase = rng.uniform(0, 2 * math.pi, size=2)  # the ground's two waves: the draw of _stand_phase
+    phase = rng.uniform(0, 2 * math.pi, size=2)  # the ground's two waves
     half = size_m / 2.0
     placed: list[tuple[float, float, float]] = []  # x, y, stem radius
     big: list[dict] = []
@@ -123,18 +133,11 @@ def branched_stand(seed: int, size_m: float = 28.0, *, n_suppressed: int = 14) -
                 k + 1, float(t["x"]), float(t["y"]), gz, wood, "narrow" if t["narrow"] else "broadleaf", suppressed
             )
         )
-    return out
-
-
-def _stand_phase(seed: int) -> np.ndarray:
-    """The phases of the ground's two waves of the stand drawn from ``seed``: the first draw of
-    :func:`branched_stand`, so the scan meshes the ground its trees stand on."""
-    return np.random.default_rng([int(seed), 48271]).uniform(0, 2 * math.pi, size=2)
+    return BranchedStand(int(seed), tuple(out), (float(phase[0]), float(phase[1])))
 
 
 def scan_branched_stand(
-    stand: Sequence[StandTree],
-    seed: int,
+    stand: BranchedStand,
     positions: Sequence[tuple[float, float]] = ((-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0)),
     *,
     size_m: float = 28.0,
@@ -146,16 +149,16 @@ def scan_branched_stand(
     leaf_side_m: float = 0.08,
     twig_radius_m: float = 0.012,
 ) -> tuple[np.ndarray, np.ndarray, dict[int, float]]:
-    """Full-dome TLS scans of ``stand`` (drawn by :func:`branched_stand` from ``seed``) from
-    ``positions`` (x, y, m), merged.
+    """Full-dome TLS scans of ``stand`` (:func:`branched_stand`) from ``positions`` (x, y, m),
+    merged; the leaves and the range noise are drawn from the stand's seed.
 
     Returns the points (N, 3), each point's tree id (N,; 0 for the ground) and each tree's true
     height (m): the top of its mesh above the ground at its stem."""
-    rng = np.random.default_rng([int(seed), 15485863])
-    phase = _stand_phase(seed)
+    rng = np.random.default_rng([stand.seed, 15485863])
+    phase = np.asarray(stand.ground_phase)
     b = _Builder()
     heights: dict[int, float] = {}
-    for t in stand:
+    for t in stand.trees:
         w = t.wood
         shift = np.array([t.x, t.y, t.ground_z])
         top = float(max(w.start[:, 2].max(), w.end[:, 2].max()))
