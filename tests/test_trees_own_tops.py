@@ -18,7 +18,12 @@ import pytest
 from forestreg.engine.trees.allometry import HeightCurve
 from forestreg.engine.trees.crown import CrownMeasurement
 from forestreg.engine.trees.inventory import TreeParams, _judge_top, _under_thicker_crowns, measure_trees
-from forestreg.engine.trees.segmentation import SegmentationParams, _keep_own_tops, expected_crown_radius
+from forestreg.engine.trees.segmentation import (
+    SegmentationParams,
+    _cut_above_gaps,
+    _keep_own_tops,
+    expected_crown_radius,
+)
 from forestreg.engine.trees.stems import Stem
 
 
@@ -56,6 +61,55 @@ def test_a_thin_stems_segment_gives_up_the_thick_neighbours_crown_beyond_its_own
     assert out[6] == 1 and (out[7:] == 1).all()
     alone = _keep_own_tops(centroids, labels, [thin, _stem(2, 2.5, 0.0, 0.15)], SegmentationParams())
     assert (alone == 1).all()
+
+
+def _column(x: float, y: float, z0: float, z1: float, spread: float, rng: np.random.Generator) -> np.ndarray:
+    """Voxel centroids every 0.15 m from ``z0`` to ``z1`` (m), around (x, y) out to ``spread`` m."""
+    z = np.arange(z0, z1, 0.15)
+    a = rng.uniform(0, 2 * np.pi, len(z))
+    r = rng.uniform(0, spread, len(z))
+    return np.column_stack([x + r * np.cos(a), y + r * np.sin(a), z])
+
+
+def test_a_thin_stems_segment_ends_at_an_empty_band_under_a_thicker_neighbours_crown():
+    """A 15 cm stem 2.3 m from a 30 cm one: its segment holds its own crown from 3 to 10 m, then
+    nothing from 10 to 12.5 m, then a part of the neighbour's crown from 12.5 to 16.5 m over it.
+    The part above the gap goes to the thick tree; a gap of 0.6 m (less than ``top_gap_m``, 1.25 m), a
+    segment below the gap with no crown of its own (a sparse stem under its crown: airborne
+    scans), a few voxels above it (a sparse tip), a part above beyond the thick tree's expected
+    crown, or no thicker neighbour keep the segment whole."""
+    rng = np.random.default_rng(3)
+    thin, thick = _stem(1, 0.0, 0.0, 0.15), _stem(2, 2.3, 0.0, 0.30)
+    own = np.vstack([_column(0.0, 0.0, 3.0, 10.0, 1.2, rng) for _ in range(4)])
+    over = np.vstack([_column(0.8, 0.0, 12.5, 16.5, 1.5, rng) for _ in range(3)])
+    centroids = np.vstack([own, over])
+    labels = np.ones(len(centroids), dtype=np.int64)
+    out = _cut_above_gaps(centroids, labels, [thin, thick], SegmentationParams())
+    assert (out[: len(own)] == 1).all()
+    assert (out[len(own) :] == 2).all()
+    # the band between the parts shallower than top_gap_m: one tree
+    near = np.vstack([own, over - [0.0, 0.0, 1.9]])
+    kept = _cut_above_gaps(near, np.ones(len(near), dtype=np.int64), [thin, thick], SegmentationParams())
+    assert (kept == 1).all()
+    # a sparse stem under the crown (nothing of the part below the gap beyond 0.5 m of the axis)
+    stem_only = np.vstack([_column(0.0, 0.0, 3.0, 10.0, 0.1, rng), over])
+    kept = _cut_above_gaps(stem_only, np.ones(len(stem_only), dtype=np.int64), [thin, thick], SegmentationParams())
+    assert (kept == 1).all()
+    # a few voxels over the gap (a sparse tip of the tree's own, seen in pieces)
+    tip = np.vstack([own, over[:12]])
+    kept = _cut_above_gaps(tip, np.ones(len(tip), dtype=np.int64), [thin, thick], SegmentationParams())
+    assert (kept == 1).all()
+    # the part above beyond the thick tree's expected crown (2.6 m; it stands 4 m away): the thin
+    # tree's own crown over a stretch of stem no scanner saw
+    own_crown = np.vstack([own, over - [1.3, 0.0, 0.0]])
+    far = [thin, _stem(2, 4.0, 0.0, 0.30)]
+    kept = _cut_above_gaps(own_crown, np.ones(len(own_crown), dtype=np.int64), far, SegmentationParams())
+    assert (kept == 1).all()
+    # no thicker neighbour
+    kept = _cut_above_gaps(centroids, labels, [thin, _stem(2, 2.3, 0.0, 0.16)], SegmentationParams())
+    assert (kept == 1).all()
+    # the cut switched off
+    assert (_cut_above_gaps(centroids, labels, [thin, thick], SegmentationParams(top_gap_m=0.0)) == 1).all()
 
 
 def _crown(
@@ -365,7 +419,8 @@ def test_a_thinner_trees_crown_over_a_thicker_ones_top_is_flagged():
 def test_a_top_well_clear_below_the_crown_over_it_is_a_suppressed_trees_own():
     """A thin tree's top 3 m below the thick neighbour's crown over it: nothing of it goes on up
     into that crown, so the top is its own (the crown 0.5 m over it may hold its upper part).
-    Judged: over its stem and below the curve, its points' top stands (medium trust, no flag);
+    Judged: over its stem and below the curve, or above a curve extrapolated to its DBH, its
+    points' top stands (medium trust, no flag); above the curve within its DBH range it does not;
     off its axis (the last seen part of a crown whose top is hidden) it gets the estimate midway
     to the curve, flagged, as a top under a crown with no clearance does."""
     from forestreg.engine.geometry.columns import ColumnIndex
@@ -399,6 +454,13 @@ def test_a_top_well_clear_below_the_crown_over_it_is_a_suppressed_trees_own():
         assert trust == "low" and "midway" in how and fill == pytest.approx(0.85 * c) and flags
     trust, how, fill, flags = _judge(_crown(0.7 * c, offset=0.1, ratio=0.05, layer=0.5), [("under", close)], dbh=0.14)
     assert trust == "low" and "midway" in how and flags
+    # above the curve, at a DBH within the trees it rests on (10-60 cm): not a suppressed tree's top
+    trust, how, fill, flags = _judge(_crown(1.2 * c, offset=0.1, ratio=0.05, layer=0.5), [("under", clear)], dbh=0.14)
+    assert trust == "low" and flags and "suppressed tree's own top (" not in how
+    # at a DBH outside them (7 cm: the curve extrapolated, it cannot say) the clear top stands
+    c7 = CURVE.height_m(0.07)
+    trust, how, fill, flags = _judge(_crown(1.2 * c7, offset=0.1, ratio=0.05, layer=0.5), [("under", clear)], dbh=0.07)
+    assert trust == "medium" and math.isnan(fill) and not flags and "suppressed tree's own top" in how
 
 
 def test_a_top_the_curve_agrees_with_on_a_stem_under_a_thicker_crown_is_not_vouched_for():

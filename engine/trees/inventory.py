@@ -1237,8 +1237,10 @@ def _judge_top(
        So does a top under a neighbour's crown and clear of it by at least
        :attr:`TreeParams.suppressed_top_clearance_m`, its highest point within
        :attr:`TreeParams.suppressed_top_max_offset` of the crown radius from the stem axis, below
-       the curve, with no other hint than a top missing in the data: the crown over it does not
-       reach down to it, so nothing of the tree goes on up into that crown.
+       the curve (or at a DBH outside the range of the trees the curve rests on, where the curve
+       is an extrapolation that cannot say), with no other hint than a top missing in the data:
+       the crown over it does not reach down to it, so nothing of the tree goes on up into that
+       crown.
     2. Two witnesses: a top with no hint within ``clear_below`` below to ``clear_above`` above the
        curve (without a curve: only as a tip; on a stem standing under a thicker neighbour's
        expected crown, ``overtopped``, only as a tip or reaching at least
@@ -1300,7 +1302,8 @@ def _judge_top(
         ) or (
             "clear" in names
             and names <= {"under", "clear", "reach", "missing"}
-            and dep <= 0.0
+            and curve is not None
+            and (dep <= 0.0 or not math.isfinite(estimate))
             and crown.top_offset_ratio <= params.suppressed_top_max_offset
         ):
             # 1. its apex seen as a tip, or clear below the crown over it: its own top, however far

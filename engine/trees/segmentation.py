@@ -32,6 +32,12 @@ Method (paper sec. 4.3.1: stem detection, then the crowns)
    radius that lie deeper (relative to the radius) in the thicker stem's expected crown go to the
    thicker tree. The shortest paths alone let a small tree whose crown touches a big one take the
    half of that crown facing it, up to that crown's upper flank.
+6. A thinner stem's segment beside a thicker one ends at an empty height band (:func:`_cut_above_gaps`):
+   one tree's stem and crown are continuous from its foot to its top, so where its segment holds
+   no point over a band at least ``top_gap_m`` deep, its part below holds a crown of its own and
+   the part above lies within the thicker neighbour's expected crown, that part is the
+   neighbour's crown (a suppressed tree under a big crown, its segment reaching that crown around
+   the gap) and goes to it.
 
 :func:`tree_completeness` flags trees too incomplete to measure (stem or crown cut by the edge of
 the data, top not seen, too few crown points, DBH fit failed) with a reason for each. "Top
@@ -47,7 +53,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 from scipy import ndimage, sparse
@@ -123,6 +129,27 @@ class SegmentationParams(Params):
     )
     crown_radius_exponent: float = param_field(
         0.6, "1", 0.1, 2.0, "...the power of the DBH in the expected crown radius"
+    )
+    top_gap_m: float = param_field(
+        1.25,
+        "m",
+        0.0,
+        20.0,
+        "A thinner stem's segment beside a thicker neighbour (as for crown_radius_per_dbh) ends at a height band at least this deep holding none of its points, when the part below holds a crown of its own: the part above, where it lies within the neighbour's expected crown (that crown, reached around the gap), goes to the neighbour (0 = no such cut)",
+    )
+    top_gap_min_crown_voxels: int = param_field(
+        20,
+        "voxels",
+        1,
+        100000,
+        "...a crown of its own: at least this many voxels of the part below the gap more than 0.5 m from the stem's axis",
+    )
+    top_gap_min_voxels_above: int = param_field(
+        50,
+        "voxels",
+        1,
+        100000,
+        "...and a crown part above it: at least this many voxels (fewer are a sparse tip of the tree's own, seen in pieces)",
     )
 
 
@@ -236,6 +263,7 @@ def segment_trees(
         vox_label = _attach_orphans(centroids, vox_label, orphan, params.orphan_max_distance_m, params.orphan_passes)
     if params.crown_radius_per_dbh > 0:
         vox_label = _keep_own_tops(centroids, vox_label, stems, params)
+        vox_label = _cut_above_gaps(centroids, vox_label, stems, params)
     labels[up_idx] = vox_label.astype(labels.dtype)[vox_of]
     report(1.0, "segmented")
     return labels
@@ -283,30 +311,22 @@ def _radial(points: np.ndarray, stem: Stem) -> tuple[np.ndarray, np.ndarray]:
     return z, np.hypot(points[:, 0] - foot[:, 0], points[:, 1] - foot[:, 1])
 
 
-def _keep_own_tops(
-    centroids: np.ndarray, vox_label: np.ndarray, stems: Sequence[Stem], params: SegmentationParams
-) -> np.ndarray:
-    """Voxel labels (``vox_label``, one stem id per voxel of ``centroids``, 0 = none) with each
-    thinner stem's segment cut back to its own crown beside thicker neighbours (method step 5 of
-    the module docstring). Returns a new array."""
-    out = vox_label.copy()
-    if len(stems) < 2:
-        return out
-    xy = np.array([[s.x, s.y] for s in stems])
-    r = np.array([s.radius_m for s in stems])
+def _thicker_neighbours(stems: Sequence[Stem], params: SegmentationParams) -> tuple[np.ndarray, list[list[int]]]:
+    """The expected crown radius (m) of each stem, and for each stem the indices (into ``stems``)
+    of its thicker neighbours: at least ``dominance_ratio`` times thicker, their stems closer than
+    the sum of the two expected crown radii (the crowns may meet)."""
+    xy = np.array([[s.x, s.y] for s in stems], dtype=np.float64).reshape(-1, 2)
+    r = np.array([s.radius_m for s in stems], dtype=np.float64)
     crown_r = np.array([expected_crown_radius(float(v), params) if np.isfinite(v) else 0.0 for v in r])
+    near: list[list[int]] = [[] for _ in stems]
+    if len(stems) < 2:
+        return crown_r, near
     index = cKDTree(xy)
-    order = np.argsort(out, kind="stable")
-    sorted_lab = out[order]
-    members = {}
-    for k, s in enumerate(stems):
-        lo, hi = np.searchsorted(sorted_lab, [s.id, s.id + 1])
-        members[s.id] = order[lo:hi]
     reach = float(crown_r.max()) * 2.0
-    for k, t in enumerate(stems):
+    for k in range(len(stems)):
         if not np.isfinite(r[k]) or crown_r[k] <= 0:
             continue
-        near = [
+        near[k] = [
             j
             for j in index.query_ball_point(xy[k], reach)
             if j != k
@@ -314,20 +334,55 @@ def _keep_own_tops(
             and r[j] >= params.dominance_ratio * r[k]
             and math.hypot(*(xy[j] - xy[k])) < crown_r[j] + crown_r[k]
         ]
+    return crown_r, near
+
+
+def _members(vox_label: np.ndarray, stems: Sequence[Stem]) -> dict[int, np.ndarray]:
+    """{stem id: its voxels (ascending)} of the voxel labels."""
+    order = np.argsort(vox_label, kind="stable")
+    sorted_lab = vox_label[order]
+    out = {}
+    for s in stems:
+        lo, hi = np.searchsorted(sorted_lab, [s.id, s.id + 1])
+        out[s.id] = np.sort(order[lo:hi])
+    return out
+
+
+def _reassign_thin_segments(
+    centroids: np.ndarray,
+    vox_label: np.ndarray,
+    stems: Sequence[Stem],
+    params: SegmentationParams,
+    chosen: Callable[[np.ndarray, Stem, float, np.ndarray], np.ndarray],
+) -> np.ndarray:
+    """Voxel labels (``vox_label``, one stem id per voxel of ``centroids``, 0 = none) with voxels
+    of each thinner stem's segment beside thicker neighbours (:func:`_thicker_neighbours`) given
+    to the neighbour in whose expected crown they lie deepest (relative to its radius).
+    ``chosen(c, stem, crown_radius, deepest)`` picks them: ``c`` the segment's voxel centroids,
+    ``crown_radius`` the stem's expected crown radius (m), ``deepest`` each voxel's least depth
+    in the neighbours' expected crowns (distance from the axis over the crown radius); it returns
+    a boolean mask over ``c``. The segments are taken in the order of ``stems``, each with the
+    voxels given to it before. Returns a new array."""
+    out = vox_label.copy()
+    if len(stems) < 2:
+        return out
+    crown_r, neighbours = _thicker_neighbours(stems, params)
+    members = _members(out, stems)
+    for k, t in enumerate(stems):
+        near = neighbours[k]
         vox = members[t.id]
         vox = vox[out[vox] == t.id]
         if not near or len(vox) < 10:
             continue
         c = centroids[vox]
-        depth_t = _radial(c, t)[1] / crown_r[k]  # in its own expected crown: below 1
-        best = np.full(len(vox), np.inf)
+        deepest = np.full(len(vox), np.inf)
         to = np.zeros(len(vox), dtype=np.int64)
         for j in near:
             depth_n = _radial(c, stems[j])[1] / crown_r[j]
-            take = (depth_t > 1.0) & (depth_n < depth_t) & (depth_n < best)
-            best[take] = depth_n[take]
+            take = depth_n < deepest
+            deepest[take] = depth_n[take]
             to[take] = stems[j].id
-        gone = np.isfinite(best)
+        gone = chosen(c, t, float(crown_r[k]), deepest)
         if not gone.any():
             continue
         moved = vox[gone]
@@ -337,6 +392,58 @@ def _keep_own_tops(
             sid = stems[j].id
             members[sid] = np.union1d(members[sid], moved[out[moved] == sid])
     return out
+
+
+def _keep_own_tops(
+    centroids: np.ndarray, vox_label: np.ndarray, stems: Sequence[Stem], params: SegmentationParams
+) -> np.ndarray:
+    """Voxel labels (``vox_label``, one stem id per voxel of ``centroids``, 0 = none) with each
+    thinner stem's segment cut back to its own crown beside thicker neighbours (method step 5 of
+    the module docstring): its voxels beyond its own expected crown radius that lie deeper in a
+    neighbour's. Returns a new array."""
+
+    def beyond_own_crown(c: np.ndarray, stem: Stem, crown_radius: float, deepest: np.ndarray) -> np.ndarray:
+        depth_t = _radial(c, stem)[1] / crown_radius  # in its own expected crown: below 1
+        return (depth_t > 1.0) & (deepest < depth_t)
+
+    return _reassign_thin_segments(centroids, vox_label, stems, params, beyond_own_crown)
+
+
+def _cut_above_gaps(
+    centroids: np.ndarray, vox_label: np.ndarray, stems: Sequence[Stem], params: SegmentationParams
+) -> np.ndarray:
+    """Voxel labels (``vox_label``, one stem id per voxel of ``centroids``, 0 = none) with each
+    thinner stem's segment beside a thicker neighbour (:func:`_thicker_neighbours`) ending at its
+    lowest empty height band at least ``top_gap_m`` deep above which it still holds voxels, when
+    the part below holds a crown of its own (at least ``top_gap_min_crown_voxels`` voxels more
+    than 0.5 m from the stem's axis) and the part above a crown part (at least
+    ``top_gap_min_voxels_above`` voxels: a few are the tree's own sparse tip). One tree's stem and
+    crown are continuous from its foot to its top; a part standing over such a gap, within the
+    thicker neighbours' expected crowns (its median voxel), is a neighbour's crown, reached around
+    it (the shortest paths through touching crowns, or a detached part attached to the nearest
+    segment). Each of its voxels goes to the thicker neighbour in whose expected crown it lies
+    deepest (relative to that crown's radius). A part beyond them is the tree's own crown over a
+    stretch of its stem that no scanner saw (a plantation's pines: a bare stem, the crown high
+    up) and stays. Returns a new array (unchanged for ``top_gap_m`` 0)."""
+    if params.top_gap_m <= 0:
+        return vox_label.copy()
+
+    def over_a_gap(c: np.ndarray, stem: Stem, crown_radius: float, deepest: np.ndarray) -> np.ndarray:
+        z, radial = _radial(c, stem)
+        zs = np.sort(z)
+        for g in np.flatnonzero(np.diff(zs) >= params.top_gap_m):
+            below = z <= zs[g]
+            if np.count_nonzero(below & (radial > 0.5)) < params.top_gap_min_crown_voxels:
+                continue
+            above = ~below
+            if np.count_nonzero(above) < params.top_gap_min_voxels_above:
+                break  # the voxels over the lowest gap are few: the tree's own tip in pieces
+            if float(np.median(deepest[above])) <= 1.0:  # within the thicker neighbours' expected crowns
+                return above
+            break
+        return np.zeros(len(c), dtype=bool)
+
+    return _reassign_thin_segments(centroids, vox_label, stems, params, over_a_gap)
 
 
 def _group_means(group: np.ndarray, values: np.ndarray, rows: np.ndarray, n_groups: int) -> np.ndarray:
