@@ -41,10 +41,12 @@ def test_a_branched_stand_has_suppressed_trees_under_dominant_crowns_and_true_to
 
 def test_trees_on_a_branched_stand_not_tuned_on():
     """Seed 615 (held out): every tree found, no false stem, DBH within 3 % rRMSE (measured
-    1.1 %; one stem occluded at breast height has none); at least 12 heights unflagged (measured 14), each within 10 % of the truth (measured
-    within 1 %). The small trees standing under a thicker neighbour's crown whose segment took
-    part of it read 46-67 % too tall, their tops agreeing with the plot's height-diameter curve:
-    each height more than 25 % off is flagged."""
+    1.1 %; one stem occluded at breast height has none); at least 15 heights unflagged (measured
+    16), each within 10 % of the truth (measured within 1 %). No tree's highest point stands more
+    than 10 % over its true top (measured 5 %): the small trees under a thicker neighbour's crown
+    whose segments reached that crown across an empty band (up to +79 % without the cut) end at
+    the band. Every tree's height within 10 % rRMSE (measured 8.4 %; Sylva 9.1 % on this stand),
+    and each height more than 25 % off is flagged."""
     stand, _, _, heights, inv = _stand(615)
     inside = [t for t in stand.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
     xy = np.array([(r.stem.x, r.stem.y) for r in inv.trees])
@@ -66,6 +68,9 @@ def test_trees_on_a_branched_stand_not_tuned_on():
     err = {t.id: r.height_m / heights[t.id] - 1.0 for r, t in pairs}
     low = {t.id: r.quality["height"].endswith(("low", "none")) for r, t in pairs}
     unflagged = [e for k, e in err.items() if not low[k]]
-    assert len(unflagged) >= 12
+    assert len(unflagged) >= 15
+    assert max(r.crown.height_m / heights[t.id] - 1.0 for r, t in pairs) <= 0.10
+    h = np.array([(r.height_m, heights[t.id]) for r, t in pairs])
+    assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() <= 0.10
     assert max(abs(e) for e in unflagged) <= 0.10
     assert all(low[k] for k, e in err.items() if abs(e) > 0.25)
