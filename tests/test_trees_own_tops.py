@@ -74,7 +74,7 @@ def _column(x: float, y: float, z0: float, z1: float, spread: float, rng: np.ran
 def test_a_thin_stems_segment_ends_at_an_empty_band_under_a_thicker_neighbours_crown():
     """A 15 cm stem 2.3 m from a 30 cm one: its segment holds its own crown from 3 to 10 m, then
     nothing from 10 to 12.5 m, then a part of the neighbour's crown from 12.5 to 16.5 m over it.
-    The part above the gap goes to the thick tree; a gap of 0.6 m (less than ``top_gap_m``, 1.25 m), a
+    The part above the gap goes to the thick tree; a gap of 0.7 m (less than ``top_gap_m``, 1.25 m), a
     segment below the gap with no crown of its own (a sparse stem under its crown: airborne
     scans), a few voxels above it (a sparse tip), a part above beyond the thick tree's expected
     crown, or no thicker neighbour keep the segment whole."""
