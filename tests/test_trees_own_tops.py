@@ -419,8 +419,8 @@ def test_a_thinner_trees_crown_over_a_thicker_ones_top_is_flagged():
 def test_a_top_well_clear_below_the_crown_over_it_is_a_suppressed_trees_own():
     """A thin tree's top 3 m below the thick neighbour's crown over it: nothing of it goes on up
     into that crown, so the top is its own (the crown 0.5 m over it may hold its upper part).
-    Judged: over its stem and below the curve, or above a curve extrapolated to its DBH, its
-    points' top stands (medium trust, no flag); above the curve within its DBH range it does not;
+    Judged: over its stem and below the curve, or above a curve extrapolated to its DBH, or
+    without a DBH, its points' top stands (medium trust, no flag); above the curve within its DBH range it does not;
     off its axis (the last seen part of a crown whose top is hidden) it gets the estimate midway
     to the curve, flagged, as a top under a crown with no clearance does."""
     from forestreg.engine.geometry.columns import ColumnIndex
@@ -460,6 +460,11 @@ def test_a_top_well_clear_below_the_crown_over_it_is_a_suppressed_trees_own():
     # at a DBH outside them (7 cm: the curve extrapolated, it cannot say) the clear top stands
     c7 = CURVE.height_m(0.07)
     trust, how, fill, flags = _judge(_crown(1.2 * c7, offset=0.1, ratio=0.05, layer=0.5), [("under", clear)], dbh=0.07)
+    assert trust == "medium" and math.isnan(fill) and not flags and "suppressed tree's own top" in how
+    # no DBH measured (a stem seen over too short an arc): the curve cannot say either
+    trust, how, fill, flags = _judge(
+        _crown(0.9 * c, offset=0.1, ratio=0.05, layer=0.5), [("under", clear)], dbh=math.nan
+    )
     assert trust == "medium" and math.isnan(fill) and not flags and "suppressed tree's own top" in how
 
 

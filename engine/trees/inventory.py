@@ -1237,8 +1237,9 @@ def _judge_top(
        So does a top under a neighbour's crown and clear of it by at least
        :attr:`TreeParams.suppressed_top_clearance_m`, its highest point within
        :attr:`TreeParams.suppressed_top_max_offset` of the crown radius from the stem axis, below
-       the curve (or at a DBH outside the range of the trees the curve rests on, where the curve
-       is an extrapolation that cannot say), with no other hint than a top missing in the data:
+       the curve (or where the curve gives no estimate at the tree's DBH: a DBH outside the range
+       of the trees it rests on, where it could only be extrapolated, or no DBH measured), with no
+       other hint than a top missing in the data:
        the crown over it does not reach down to it, so nothing of the tree goes on up into that
        crown.
     2. Two witnesses: a top with no hint within ``clear_below`` below to ``clear_above`` above the

@@ -338,13 +338,14 @@ def _thicker_neighbours(stems: Sequence[Stem], params: SegmentationParams) -> tu
 
 
 def _members(vox_label: np.ndarray, stems: Sequence[Stem]) -> dict[int, np.ndarray]:
-    """{stem id: its voxels (ascending)} of the voxel labels."""
+    """{stem id: its voxels (ascending: a stable sort keeps each label's voxels in order)} of the
+    voxel labels."""
     order = np.argsort(vox_label, kind="stable")
     sorted_lab = vox_label[order]
     out = {}
     for s in stems:
         lo, hi = np.searchsorted(sorted_lab, [s.id, s.id + 1])
-        out[s.id] = np.sort(order[lo:hi])
+        out[s.id] = order[lo:hi]
     return out
 
 
