@@ -45,8 +45,10 @@ def test_trees_on_a_branched_stand_not_tuned_on():
     16), each within 10 % of the truth (measured within 1 %). No tree's highest point stands more
     than 10 % over its true top (measured 5 %): the small trees under a thicker neighbour's crown
     whose segments reached that crown across an empty band (up to +79 % without the cut) end at
-    the band. Every tree's height within 10 % rRMSE (measured 8.4 %; Sylva 9.1 % on this stand),
-    and each height more than 25 % off is flagged."""
+    the band. Every tree's height within 7 % rRMSE (measured 5.3 %; Sylva 9.1 % on this stand),
+    every suppressed tree's within 10 % (measured 5.5 %: a top under or touching the crown over it
+    keeps its points' height, flagged, where the curve of free-grown trees stood it up to 66 % too
+    tall), and each height more than 25 % off is flagged."""
     stand, _, _, heights, inv = _stand(615)
     inside = [t for t in stand.trees if math.hypot(t.x, t.y) < 11.0 and t.dbh_m >= 0.1]
     xy = np.array([(r.stem.x, r.stem.y) for r in inv.trees])
@@ -71,6 +73,7 @@ def test_trees_on_a_branched_stand_not_tuned_on():
     assert len(unflagged) >= 15
     assert max(r.crown.height_m / heights[t.id] - 1.0 for r, t in pairs) <= 0.10
     h = np.array([(r.height_m, heights[t.id]) for r, t in pairs])
-    assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() <= 0.10
+    assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() <= 0.07
+    assert max(abs(err[t.id]) for _, t in pairs if t.suppressed) <= 0.10
     assert max(abs(e) for e in unflagged) <= 0.10
     assert all(low[k] for k, e in err.items() if abs(e) > 0.25)

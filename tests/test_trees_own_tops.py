@@ -189,8 +189,9 @@ def test_a_top_stands_only_on_evidence():
 
 
 def test_the_curve_vouches_for_no_suppressed_tree():
-    """A top under or touching a neighbour's crown below the curve gets the estimate midway
-    between its points' top and the curve, flagged; a top on the crown's flank of a stem under a
+    """A top under or touching a neighbour's crown below the curve keeps its points' top, flagged
+    (the curve of free-grown trees stands a suppressed tree too tall), unless its segment holds no
+    crown beyond the stem (then the curve's estimate, flagged); a top on the crown's flank of a stem under a
     thicker neighbour's expected crown gets the curve's estimate, flagged, unless its points' top
     agrees with the curve within 10 % (then the points' top stands); a loose curve vouches for
     nothing."""
@@ -202,7 +203,12 @@ def test_the_curve_vouches_for_no_suppressed_tree():
         )
     ]
     trust, how, fill, flags = _judge(_crown(0.7 * c, offset=0.9, ratio=0.6, layer=0.6), touch, dbh=0.14)
-    assert trust == "low" and fill == pytest.approx(0.85 * c) and "midway" in how and flags
+    assert trust == "low" and math.isnan(fill) and "points' top kept" in how and flags
+    # a stem whose segment holds no crown beyond the stem: its points' top is where the stem was
+    # last seen, so the curve gives the estimate (flagged)
+    bare = replace(_crown(0.35 * c, offset=0.1, ratio=0.05), reasons=("no crown points beyond the stem",))
+    trust, how, fill, flags = _judge(bare, touch, dbh=0.14)
+    assert trust == "low" and fill == pytest.approx(c) and "not taken" in how and flags
     flank = [
         (
             "hint",
@@ -421,8 +427,8 @@ def test_a_top_well_clear_below_the_crown_over_it_is_a_suppressed_trees_own():
     into that crown, so the top is its own (the crown 0.5 m over it may hold its upper part).
     Judged: over its stem and below the curve, or above a curve extrapolated to its DBH, or
     without a DBH, its points' top stands (medium trust, no flag); above the curve within its DBH range it does not;
-    off its axis (the last seen part of a crown whose top is hidden) it gets the estimate midway
-    to the curve, flagged, as a top under a crown with no clearance does."""
+    off its axis (the last seen part of a crown whose top is hidden) its points' top is kept,
+    flagged, as a top under a crown with no clearance is."""
     from forestreg.engine.geometry.columns import ColumnIndex
     from forestreg.engine.trees.inventory import _shared_tops
 
@@ -451,9 +457,9 @@ def test_a_top_well_clear_below_the_crown_over_it_is_a_suppressed_trees_own():
     off_axis = _crown(0.7 * c, offset=0.5, ratio=0.35, layer=0.5)
     for h in (clear, close):
         trust, how, fill, flags = _judge(off_axis, [("under", h)], dbh=0.14)
-        assert trust == "low" and "midway" in how and fill == pytest.approx(0.85 * c) and flags
+        assert trust == "low" and "points' top kept" in how and math.isnan(fill) and flags
     trust, how, fill, flags = _judge(_crown(0.7 * c, offset=0.1, ratio=0.05, layer=0.5), [("under", close)], dbh=0.14)
-    assert trust == "low" and "midway" in how and flags
+    assert trust == "low" and "points' top kept" in how and math.isnan(fill) and flags
     # above the curve, at a DBH within the trees it rests on (10-60 cm): not a suppressed tree's top
     trust, how, fill, flags = _judge(_crown(1.2 * c, offset=0.1, ratio=0.05, layer=0.5), [("under", clear)], dbh=0.14)
     assert trust == "low" and flags and "suppressed tree's own top (" not in how

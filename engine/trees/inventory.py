@@ -1262,9 +1262,12 @@ def _judge_top(
        loose curve's scatter: in a stand of several species or ages trees depart that far on
        their own) keeps its points' height where the curve may not stand in. Otherwise the curve
        gives the estimate
-       (:meth:`.allometry.HeightCurve.estimate_height_m`): its height, or for a top under or
+       (:meth:`.allometry.HeightCurve.estimate_height_m`): its height; but a top under or
        touching a neighbour's crown below the curve that does not reach up among its neighbours'
-       (a suppressed tree, or a top hidden in the crown over it) midway between the two. The
+       (a suppressed tree, or a top hidden in the crown over it) keeps its points' height, low,
+       where its segment holds a crown beyond the stem: the curve of free-grown trees stands a
+       suppressed tree too tall, and a hidden top is no nearer the curve than the points' top on
+       the whole. The
        curve vouches for it (medium trust, no flag) where it may stand in, and not for a top amid
        a neighbour's crown, nor for a top under or touching one unless it reaches up among its
        neighbours' and stands more than ``curve_agreement`` below the curve, nor on a stem
@@ -1425,13 +1428,21 @@ def _judge_top(
     # a top under or touching a neighbour's crown, well below the curve, reaching up among its
     # neighbours' tops: the tree's upper crown went to that neighbour (no suppressed tree)
     crown_lost = bool(names & {"under", "touch"}) and reaches and dep < -params.curve_agreement
-    if names & {"under", "touch"} and crown.height_m < estimate and not crown_lost:
-        estimate = 0.5 * (crown.height_m + estimate)
-        how = (
-            f"midway between the points' top ({crown.height_m:.1f} m) and the plot's height-diameter curve at the DBH "
-            f"({scatter}): a top under a neighbour's crown is a suppressed tree's or hidden in that crown: {why}"
+    # a stem whose segment holds no crown beyond the stem: its points' top is where the stem was
+    # last seen, not a top
+    crownless = any(r.startswith(("no crown points", "too few crown points", "too few points")) for r in crown.reasons)
+    if names & {"under", "touch"} and crown.height_m < estimate and not crown_lost and not crownless:
+        # a suppressed tree's own top, or one hidden in the crown over it: the curve of free-grown
+        # trees stands a suppressed tree too tall, so the points' top is kept, flagged
+        return (
+            "low",
+            f"{h_how} (below the curve's {estimate:.1f} m ({scatter}), under or touching a neighbour's crown: "
+            f"a suppressed tree's own top, or hidden in that crown; the points' top kept)",
+            nan,
+            flags,
+            "curve",
         )
-    elif crown_lost:
+    if crown_lost:
         how = (
             f"from the plot's height-diameter curve at the DBH ({scatter}): the points' top ({crown.height_m:.1f} m) "
             f"reaches {100 * reach:.0f} % of its tallest neighbour's, its upper crown in that neighbour's: {why}"
