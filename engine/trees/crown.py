@@ -169,6 +169,13 @@ class CrownMeasurement:
     #: None when too few points (fewer than 3 not on one line)
     outline: Optional[np.ndarray] = field(default=None, compare=False, repr=False)
 
+    @property
+    def crownless(self) -> bool:
+        """Whether the tree's points hold no crown beyond the stem (too few points, none beyond
+        the stem, or too few above the crown base): its highest point is where the stem was last
+        seen, not a top."""
+        return any(r.startswith(("too few points", "no crown points", "too few crown points")) for r in self.reasons)
+
 
 def top_cut_flat(crown: "CrownMeasurement", params: "CrownParams") -> bool:
     """Whether the crown's top layer is a cap or ring around the stem rather than an apex: its

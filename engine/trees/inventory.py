@@ -1428,10 +1428,7 @@ def _judge_top(
     # a top under or touching a neighbour's crown, well below the curve, reaching up among its
     # neighbours' tops: the tree's upper crown went to that neighbour (no suppressed tree)
     crown_lost = bool(names & {"under", "touch"}) and reaches and dep < -params.curve_agreement
-    # a stem whose segment holds no crown beyond the stem: its points' top is where the stem was
-    # last seen, not a top
-    crownless = any(r.startswith(("no crown points", "too few crown points", "too few points")) for r in crown.reasons)
-    if names & {"under", "touch"} and crown.height_m < estimate and not crown_lost and not crownless:
+    if names & {"under", "touch"} and crown.height_m < estimate and not crown_lost and not crown.crownless:
         # a suppressed tree's own top, or one hidden in the crown over it: the curve of free-grown
         # trees stands a suppressed tree too tall, so the points' top is kept, flagged
         return (
