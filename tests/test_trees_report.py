@@ -170,6 +170,24 @@ def test_report_draws_heights_against_the_height_diameter_curve(tmp_path):
     assert not (tmp_path / "none" / "figures" / "height_curve.png").exists()
 
 
+def test_report_draws_the_scanner_stations(tmp_path):
+    """With the stations found in the cloud, the map draws them (blue triangles) and its caption
+    names them and their upward limit; without, neither."""
+    from forestreg.engine.tls.stations import Stations
+
+    rows, pts, ids, wood, cyls = _fake_plot()
+    stations = Stations(np.array([[1.0, 1.0, 1.5], [9.0, 9.0, 1.5]]), 60.0, step_ratio=0.3, direction_share=1.0)
+    html = write_trees_report(tmp_path / "with", rows, pts, ids, wood, cyls, stations=stations).read_text()
+    assert "scanner stations (blue triangles): 2 scanner stations, upward limit 60 deg" in html
+    plain = write_trees_report(tmp_path / "plain", rows, pts, ids, wood, cyls).read_text()
+    assert "scanner station" not in plain
+    blue = "#1f77b4"
+    assert (
+        _share_of_colour(tmp_path / "with" / "figures" / "map.png", blue)
+        > _share_of_colour(tmp_path / "plain" / "figures" / "map.png", blue) + 0.0001
+    )  # two triangles; none of the tree colours is this blue
+
+
 def test_report_marks_heights_from_the_curve(tmp_path):
     """A height from the plot's height-diameter curve is marked in the table (a superscript c,
     explained under it) and drawn as a blue square with its points' top; the others are not."""

@@ -92,6 +92,7 @@ def write_inventory_report(
         cyl,
         title=title,
         height_curve=getattr(inventory, "height_curve", None),
+        stations=getattr(inventory, "stations", None),
     )
 
 
@@ -107,6 +108,7 @@ def write_trees_report(
     max_tree_figures: int = MAX_TREE_FIGURES,
     dbh_scale: Optional[float] = None,
     height_curve: Optional[Any] = None,
+    stations: Optional[Any] = None,
 ) -> Path:
     """Write ``out_dir/report.html`` and ``out_dir/figures/*.png``; return the HTML's path.
 
@@ -128,6 +130,9 @@ def write_trees_report(
         size (printed on the map).
     height_curve : the plot's height-diameter curve (:class:`forestreg.engine.trees.allometry.HeightCurve`:
         ``height_m(dbh_m)`` and ``describe()``), drawn with the trees' heights; None: no such figure.
+    stations : the terrestrial scanner stations found in the cloud
+        (:class:`forestreg.engine.tls.stations.Stations`: ``positions`` (K, 3) in the frame of
+        ``points`` and ``describe()``), drawn on the map and named under it; None: not looked for.
     """
     pts = check_points(points, "points", min_points=0)
     ids = np.asarray(tree_ids)
@@ -146,7 +151,8 @@ def write_trees_report(
     fig_dir.mkdir(parents=True, exist_ok=True)
 
     groups = _group_points(ids)
-    map_png, scale = _map_png(pts, ids, rows, dbh_scale)
+    station_xy = np.asarray(stations.positions, dtype=np.float64)[:, :2] if stations is not None else np.zeros((0, 2))
+    map_png, scale = _map_png(pts, ids, rows, dbh_scale, station_xy)
     _write_png(fig_dir / "map.png", map_png)
 
     curve_section = ""
@@ -185,7 +191,9 @@ def write_trees_report(
         f'<p class="sub">{len(rows)} trees &middot; {len(pts):,} points &middot; {esc(generated_line())}</p>',
         "<h2>1. Plot map</h2>",
         f"<figure>{img_tag(map_png, 'plot map', 'map')}<figcaption>Top view: points coloured by tree (grey: no tree), "
-        f"stem positions (+) with circles of the DBH enlarged {_scale_text(scale)}, tree ids; flagged trees in red.</figcaption></figure>",
+        f"stem positions (+) with circles of the DBH enlarged {_scale_text(scale)}, tree ids; flagged trees in red"
+        + (f"; scanner stations (blue triangles): {esc(stations.describe())}" if stations is not None else "")
+        + ".</figcaption></figure>",
         _summary_section(rows, ids, wood) + curve_section,
         _table_section(rows, set(drawn)),
         _trees_section(order, drawn, max_tree_figures, problems, models=bool(cylinders), wood=wood is not None),
@@ -305,7 +313,11 @@ def _scale_text(scale: float) -> str:
 
 
 def _map_png(
-    pts: np.ndarray, ids: np.ndarray, rows: Sequence[Mapping[str, Any]], dbh_scale: Optional[float]
+    pts: np.ndarray,
+    ids: np.ndarray,
+    rows: Sequence[Mapping[str, Any]],
+    dbh_scale: Optional[float],
+    stations: np.ndarray = np.zeros((0, 2)),
 ) -> tuple[bytes, float]:
     rng = np.random.default_rng(_RNG_SEED)
     sel = (
@@ -350,6 +362,11 @@ def _map_png(
         ),
         plt.Line2D([], [], ls="", marker="o", mfc="none", mec=FLAG_COLOUR, ms=10, mew=2.0, label="flagged tree"),
     ]
+    if len(stations):
+        ax.plot(stations[:, 0], stations[:, 1], ls="", marker="^", color="tab:blue", mec="k", ms=11, zorder=5)
+        handles.append(
+            plt.Line2D([], [], ls="", marker="^", color="tab:blue", mec="k", ms=9, label="scanner station (found)")
+        )
     ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.9)
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")

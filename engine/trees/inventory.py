@@ -34,6 +34,7 @@ from ..geometry.sorting import order_by_label
 from ..geometry.voxel import voxel_representatives
 from ..io.results import TREE_COLUMNS, TreeTablesFile  # noqa: F401 - the columns of trees.csv
 from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
+from ..tls.stations import StationParams, Stations, beyond_view, scanner_stations
 from .allometry import HeightCurve, HeightCurveParams, fit_height_curve
 from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
@@ -88,6 +89,9 @@ class TreeParams(Params):
     height_curve: HeightCurveParams = HeightCurveParams()
     #: single-tree clouds (one tree, little or no ground): recognised, forced or ruled out
     single_tree: SingleTreeParams = SingleTreeParams()
+    #: the terrestrial scanner stations of a merged plot and how far up they saw: a top at the
+    #: edge of every station's view may be cut by it
+    stations: StationParams = StationParams()
     #: points with a wood probability at least this are wood (input of the cylinder model)
     wood_threshold: float = _p(0.5, "1", 0.0, 1.0, "wood probability threshold")
     #: fit a cylinder model per tree (the slowest step)
@@ -362,6 +366,9 @@ class TreeInventory(TreeTablesFile, Outcome):
     #: the plot's height-diameter curve that checked soft hints about the tops (None: too few
     #: trees, or their heights follow no one relation)
     height_curve: Optional[HeightCurve] = None
+    #: the terrestrial scanner stations found in the cloud and their upward limit (None: not
+    #: looked for, as in a single-tree cloud or one without ground)
+    stations: Optional[Stations] = None
     #: "ok", or "failed" when the data do not allow any tree (the reason says why)
     status: str = "ok"
     reason: str = ""
@@ -396,6 +403,8 @@ class TreeInventory(TreeTablesFile, Outcome):
         if self.height_curve is not None:
             out["height_curve"] = self.height_curve.describe()
             out["heights_from_curve"] = sum(1 for t in self.trees if t.height_source == "curve")
+        if self.stations is not None:
+            out["scanner_stations"] = self.stations.describe()
         return out
 
     def summary(self) -> str:
@@ -644,6 +653,11 @@ def _measure_trees(
     timings["completeness_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    stations = scanner_stations(p, params.stations, ground=model.ground) if not no_ground else None
+    view_flags = _tops_beyond_view(crowns, stations, params.stations)
+    timings["stations_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
     records: list[TreeRecord] = []
     height_curve = _plot_height_curve(stems, dbh, curves, crowns, shared, complete, stem_params, params)
     overtopped = _under_thicker_crowns(stems, params)
@@ -672,6 +686,7 @@ def _measure_trees(
                 height_curve=height_curve,
                 overtopped=overtopped.get(stem.id),
                 reach=reaches.get(stem.id, math.nan),
+                view_flag=view_flags.get(stem.id),
             )
         )
     timings["trees_s"] = time.perf_counter() - t
@@ -695,6 +710,7 @@ def _measure_trees(
         method=method,
         volume_asked=params.cylinder_models,
         height_curve=height_curve,
+        stations=stations,
     )
 
 
@@ -737,6 +753,25 @@ def _plot_height_curve(
     ]
     tips_arr = np.array(tips, dtype=np.float64).reshape(-1, 2)
     return curve.with_tips(tips_arr[:, 0], tips_arr[:, 1], params.height_curve)
+
+
+def _tops_beyond_view(
+    crowns: dict[int, CrownMeasurement], stations: Optional[Stations], params: StationParams
+) -> dict[int, str]:
+    """The trees whose top may be cut by the scanners' view, with the flag that says so: the point
+    ``params.clearance_m`` over the top lies above the upward limit from every station
+    (:func:`~forestreg.engine.tls.stations.beyond_view`). Empty where the view is not limited."""
+    if stations is None or not stations.limited:
+        return {}
+    out = {}
+    for tree_id, c in crowns.items():
+        if math.isfinite(c.height_m) and beyond_view(np.asarray(c.top), stations, params.clearance_m):
+            out[tree_id] = (
+                f"top at the edge of the scanners' view: {params.clearance_m:g} m over it lies above the upward "
+                f"limit ({stations.upward_limit_deg:.0f} deg) of every one of the {len(stations.positions)} "
+                "stations, so a taller top would not have been seen (height may be short)"
+            )
+    return out
 
 
 def _curve_or_slices_dbh(
@@ -872,6 +907,7 @@ def tree_record(
     height_curve: Optional[HeightCurve] = None,
     overtopped: Optional[str] = None,
     reach: float = math.nan,
+    view_flag: Optional[str] = None,
 ) -> TreeRecord:
     """One tree's record from its measurements: the reported DBH (the circles at and around
     breast height where the stem curve has a section there, the curve's diameter where they
@@ -897,7 +933,8 @@ def tree_record(
     (``top_evidence``) :func:`_judge_top` decides instead (``overtopped``: why the stem stands
     under a thicker neighbour's expected crown, :func:`_under_thicker_crowns`; None when it does
     not; ``reach``: its top over its tallest neighbour's, :func:`_neighbour_reach`, NaN when not
-    known). Local frame, metres."""
+    known; ``view_flag``: why its top may be cut by the scanners' view, :func:`_tops_beyond_view`,
+    a decisive doubt). Local frame, metres."""
     stem_params = stem_params or params.stems
     flags = list(reasons)
     quality: dict[str, str] = {}
@@ -1003,6 +1040,10 @@ def tree_record(
         else:
             top_flags.append(shared_flag)
             h_trust = _trust(h_trust, "low")
+    if view_flag and top_evidence:
+        top_flags.append(view_flag)
+        h_trust = _trust(h_trust, "low")
+        h_how += ", top at the edge of the scanners' view"
     if math.isfinite(dbh_value) and dbh_value > 0 and crown.height_m / dbh_value > params.max_slenderness:
         top_flags.append(
             f"height {crown.height_m:.1f} m on a {100 * dbh_value:.0f} cm stem (slenderness {crown.height_m / dbh_value:.0f}, "
@@ -1026,6 +1067,7 @@ def tree_record(
             height_curve,
             overtopped,
             reach,
+            view_cut=bool(view_flag),
         )
         hints_consistent = bool(hints) and h_trust != "low"
         flags += top_flags
@@ -1215,6 +1257,7 @@ def _judge_top(
     curve: Optional[HeightCurve],
     overtopped: Optional[str],
     reach: float = math.nan,
+    view_cut: bool = False,
 ) -> tuple[str, str, float, list[str], str]:
     """A plot tree's height: (trust, how, an estimate or NaN, flags of the top, the estimate's
     source: "curve" or "slenderness").
@@ -1277,7 +1320,11 @@ def _judge_top(
        trees the curve rests on gets the curve extrapolated, never vouched for.
     4. No curve to give an estimate, and a top too tall for its stem (more than
        :attr:`TreeParams.max_slenderness` times the DBH: a neighbour's crown taken): the height is
-       at most that many times the DBH, the tallest such a stem stands (low, flagged)."""
+       at most that many times the DBH, the tallest such a stem stands (low, flagged).
+
+    A top at the edge of the scanners' view (``view_cut``, a decisive doubt) is a lower bound: the
+    curve's height replaces it (as in rule 3) only where the curve stands higher; otherwise the
+    points' top is kept, low."""
     hc = params.height_curve
     names = _hint_names(hints)
     nan = math.nan
@@ -1451,6 +1498,15 @@ def _judge_top(
         refusal = "a top under, touching or amid a neighbour's crown (a suppressed tree's, or that crown's)"
     if not refusal and overtopped is not None and not abs(dep) <= params.curve_agreement and not reaches:
         refusal = f"{overtopped}, and its points' top {100 * dep:+.0f} % from the curve"
+    if view_cut and estimate <= crown.height_m:
+        # a top at the edge of the scanners' view is a lower bound: a curve standing lower is wrong
+        return (
+            "low",
+            f"{h_how} (at the edge of the scanners' view: the points' top kept, a lower bound)",
+            nan,
+            flags,
+            "curve",
+        )
     if not refusal:
         return _trust(ground_trust, "medium"), how, estimate, [], "curve"
     return "low", f"{how} (not vouched for: {refusal})", estimate, flags, "curve"
