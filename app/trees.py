@@ -35,7 +35,11 @@ class TreesOutcome(RunOutcome):
     crs: Any = None
 
     def evidence(self) -> dict:
-        return {"trees": self.trees, "method": getattr(self.result, "method", "")}
+        out = {"trees": self.trees, "method": getattr(self.result, "method", "")}
+        stations = getattr(self.result, "stations", None)
+        if stations is not None:
+            out["scanner_stations"] = stations.describe()
+        return out
 
     def line(self) -> str:
         return self.result.summary() if self.result is not None else f"{self.status}: {self.reason}"

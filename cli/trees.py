@@ -130,6 +130,9 @@ def print_trees(outcome, reporter: Reporter, units: str = "m") -> int:
         say(f"  {step.removesuffix('_s')}: {seconds:.1f} s", quiet)
     unit_note = "" if units == "m" else f" (positions in {units}, sizes in metres)"
     inventory = outcome.result
+    stations = getattr(inventory, "stations", None)
+    if stations is not None and len(stations.positions):
+        say(f"  {stations.describe()}", quiet)
     if inventory.method == "single":
         say(f"  single-tree cloud: {inventory.single_tree_reason}", quiet)
         if getattr(inventory, "single_tree_warning", ""):

@@ -219,14 +219,16 @@ def upward_limit(
     width = 6
     candidates = np.arange(30, 76)
     ratios: list[np.ndarray] = []
+    radius = params.view_radius_m
     for s in np.asarray(stations, dtype=np.float64).reshape(-1, 3):
-        d = pts - s
+        # the points over the station's square first: no (N, 3) temporaries of a large cloud
+        box = (np.abs(pts[:, 0] - s[0]) <= radius) & (np.abs(pts[:, 1] - s[1]) <= radius) & (pts[:, 2] > s[2] + 1.0)
+        d = pts[box] - s
         h2 = d[:, 0] ** 2 + d[:, 1] ** 2
-        m = (h2 <= params.view_radius_m**2) & (d[:, 2] > 1.0)
-        if np.count_nonzero(m) < 500:
+        d, h2 = d[h2 <= radius**2], h2[h2 <= radius**2]
+        if len(d) < 500:
             continue
-        d = d[m]
-        el = np.degrees(np.arctan2(d[:, 2], np.sqrt(h2[m])))
+        el = np.degrees(np.arctan2(d[:, 2], np.sqrt(h2)))
         sector = (np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2 * np.pi) * 8).astype(np.int64)) % 8
         solid = np.sin(np.radians(edges[1:])) - np.sin(np.radians(edges[:-1]))
         for k in range(8):
