@@ -29,7 +29,8 @@ import numpy as np
 
 from ..core.params import Params
 from ..core.params import param_field as _p
-from .scanner_position import _density_map, _ground_plane, _near_ground
+from .params import ScannerPositionParams
+from .scanner_position import _blind_cone, _density_map, _ground_plane, _near_ground
 
 __all__ = ["StationParams", "Stations", "find_stations", "upward_limit", "scanner_stations", "beyond_view"]
 
@@ -66,14 +67,14 @@ class StationParams(Params):
         15.0, unit="m", lo=2.0, hi=100.0, help="points within this horizontal distance of a station test its view"
     )
     max_step_ratio: float = _p(
-        0.6,
+        0.7,
         unit="1",
         lo=0.05,
         hi=1.0,
         help="an upward limit: the points per steradian above it at most this fraction of those below (median over the directions)",
     )
     min_direction_share: float = _p(
-        0.7, unit="1", lo=0.1, hi=1.0, help="... with the step in at least this share of the directions"
+        0.65, unit="1", lo=0.1, hi=1.0, help="... with the step in at least this share of the directions"
     )
     clearance_m: float = _p(
         0.5,
@@ -121,9 +122,11 @@ def find_stations(
     tripod: on the near-ground density map, the mean density in the ring ``ring_m`` from a place
     over that within ``hole_m`` of it (plus 5 % of the mean occupied density) is at least
     ``min_ring_contrast``, and the ring itself at least ``min_ring_density`` times the mean.
-    Stations are the local maxima of that contrast ``min_separation_m`` apart (the centre of a
-    grid cell: within about half a metre of the tripod), each ``scanner_height_m`` over the
-    ground plane through the near-ground points of its ring. Empty for an
+    Stations are the local maxima of that contrast ``min_separation_m`` apart, each moved to the
+    centroid of its hole (:func:`_hole_centre`) and ``scanner_height_m`` over the ground plane
+    through the near-ground points of its ring; where the hole is the station's own (under 0.5 %
+    of the ring's density in it: no other station's points), the fit of the cone of its lowest
+    beam (:mod:`.scanner_position`) places it. Empty for an
     airborne or mobile cloud (no blind circles) or a scan that sees straight down. ``ground``: a
     mask of the ground points (default: the points within 0.3 m of the lowest in their 0.5 m
     column)."""
@@ -160,14 +163,34 @@ def find_stations(
     ii, jj = np.nonzero(peaks)
     order = np.argsort(-contrast[ii, jj], kind="stable")[: params.max_stations]
     out: list[np.ndarray] = []
+    cone = ScannerPositionParams()
     for k in order:
-        c = _hole_centre(ground, lo + (np.array([ii[k], jj[k]]) + 0.5) * cell, params)
-        near = ground[np.sum((ground[:, :2] - c) ** 2, axis=1) <= outer**2]
+        start = lo + (np.array([ii[k], jj[k]]) + 0.5) * cell
+        local = _in_square(ground, start, outer + 1.0)
+        c = _hole_centre(local, start, params)
+        near = local[np.sum((local[:, :2] - c) ** 2, axis=1) <= outer**2]
         if len(near) < 50 or any(math.hypot(*(c - q[:2])) < params.min_separation_m for q in out):
             continue
-        coef, _ = _ground_plane(near, c)
-        out.append(np.array([c[0], c[1], float(coef[2]) + params.scanner_height_m]))
+        coef, _ = _ground_plane(near[:: max(1, len(near) // 5000)], c)
+        position = np.array([c[0], c[1], float(coef[2]) + params.scanner_height_m])
+        r = np.hypot(local[:, 0] - c[0], local[:, 1] - c[1])
+        in_hole = np.count_nonzero(r <= params.hole_m) / params.hole_m**2
+        in_ring = np.count_nonzero((r >= inner) & (r <= outer)) / (outer**2 - inner**2)
+        if in_hole < 0.005 * in_ring:
+            # a blind circle no other station's points reached: the cone of the scan's lowest beam
+            # pins the tripod to centimetres (the single-scan estimate's fit)
+            refined = _blind_cone(_in_square(pts, c, cone.disc_m + 2.0), position, float(coef[2]), cone)
+            position = refined[0] if refined is not None else position
+        out.append(position)
     return np.array(out).reshape(-1, 3)
+
+
+def _in_square(points: np.ndarray, centre: np.ndarray, half_m: float) -> np.ndarray:
+    """The points within ``half_m`` of ``centre`` (x, y) along both axes: a copy of that square
+    alone, without (N, 2) temporaries of the whole cloud."""
+    keep = np.abs(points[:, 0] - centre[0]) <= half_m
+    keep &= np.abs(points[:, 1] - centre[1]) <= half_m
+    return points[keep]
 
 
 def _hole_centre(ground: np.ndarray, start: np.ndarray, params: StationParams) -> np.ndarray:
@@ -209,21 +232,24 @@ def upward_limit(
     """The stations' common upward limit (degrees above the horizon), the median step of the
     points per steradian there and the share of the directions showing it; (90, ratio, share) where
     no limit shows. Each station's view (points within ``view_radius_m`` horizontally, at least
-    1 m above it) is cut into 8 directions; in each, the points per steradian in the 6 degrees
-    above a candidate elevation (35-80 deg) over those in the 6 degrees below. The limit is the
+    1 m above it) is cut into 8 directions; in each, the points per steradian in the 3 degrees
+    above a candidate elevation (30-75 deg) over those in the 3 degrees below (a scanner's limit
+    is a sharp edge in its own points; the canopy's structure and the other stations' points
+    change slowly across it). The limit is the
     candidate where the median of these ratios is lowest, when it is at most ``max_step_ratio``
     and at least ``min_direction_share`` of the directions (with 30 points below) drop to 0.75 or
     less."""
     pts = np.asarray(points, dtype=np.float64)
     edges = np.arange(20.0, 91.0, 1.0)
-    width = 6
+    width = 3
     candidates = np.arange(30, 76)
     ratios: list[np.ndarray] = []
     radius = params.view_radius_m
     for s in np.asarray(stations, dtype=np.float64).reshape(-1, 3):
         # the points over the station's square first: no (N, 3) temporaries of a large cloud
-        box = (np.abs(pts[:, 0] - s[0]) <= radius) & (np.abs(pts[:, 1] - s[1]) <= radius) & (pts[:, 2] > s[2] + 1.0)
-        d = pts[box] - s
+        d = _in_square(pts, s, radius) - s
+        d = d[d[:, 2] > 1.0]
+        d = d[:: max(1, len(d) // 300_000)]  # a third of a million points give every window hundreds
         h2 = d[:, 0] ** 2 + d[:, 1] ** 2
         d, h2 = d[h2 <= radius**2], h2[h2 <= radius**2]
         if len(d) < 500:

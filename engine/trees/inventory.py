@@ -763,15 +763,18 @@ def _tops_beyond_view(
     (:func:`~forestreg.engine.tls.stations.beyond_view`). Empty where the view is not limited."""
     if stations is None or not stations.limited:
         return {}
-    out = {}
-    for tree_id, c in crowns.items():
-        if math.isfinite(c.height_m) and beyond_view(np.asarray(c.top), stations, params.clearance_m):
-            out[tree_id] = (
-                f"top at the edge of the scanners' view: {params.clearance_m:g} m over it lies above the upward "
-                f"limit ({stations.upward_limit_deg:.0f} deg) of every one of the {len(stations.positions)} "
-                "stations, so a taller top would not have been seen (height may be short)"
-            )
-    return out
+    n = len(stations.positions)
+    whose = "the one station" if n == 1 else f"every one of the {n} stations"
+    flag = (
+        f"top at the edge of the scanners' view: {params.clearance_m:g} m over it lies above the upward limit "
+        f"({stations.upward_limit_deg:.0f} deg) of {whose}, so a taller top would not have been seen (height may "
+        "be short)"
+    )
+    return {
+        tree_id: flag
+        for tree_id, c in crowns.items()
+        if math.isfinite(c.height_m) and beyond_view(np.asarray(c.top), stations, params.clearance_m)
+    }
 
 
 def _curve_or_slices_dbh(
