@@ -185,12 +185,17 @@ def find_stations(
     return np.array(out).reshape(-1, 3)
 
 
-def _in_square(points: np.ndarray, centre: np.ndarray, half_m: float) -> np.ndarray:
-    """The points within ``half_m`` of ``centre`` (x, y) along both axes: a copy of that square
-    alone, without (N, 2) temporaries of the whole cloud."""
+def _square_mask(points: np.ndarray, centre: np.ndarray, half_m: float) -> np.ndarray:
+    """Which points lie within ``half_m`` of ``centre`` (x, y) along both axes (no (N, 2)
+    temporaries of the whole cloud)."""
     keep = np.abs(points[:, 0] - centre[0]) <= half_m
     keep &= np.abs(points[:, 1] - centre[1]) <= half_m
-    return points[keep]
+    return keep
+
+
+def _in_square(points: np.ndarray, centre: np.ndarray, half_m: float) -> np.ndarray:
+    """A copy of the points of :func:`_square_mask`."""
+    return points[_square_mask(points, centre, half_m)]
 
 
 def _hole_centre(ground: np.ndarray, start: np.ndarray, params: StationParams) -> np.ndarray:
@@ -246,10 +251,10 @@ def upward_limit(
     ratios: list[np.ndarray] = []
     radius = params.view_radius_m
     for s in np.asarray(stations, dtype=np.float64).reshape(-1, 3):
-        # the points over the station's square first: no (N, 3) temporaries of a large cloud
-        d = _in_square(pts, s, radius) - s
-        d = d[d[:, 2] > 1.0]
-        d = d[:: max(1, len(d) // 300_000)]  # a third of a million points give every window hundreds
+        # the points over the station's square, every k-th of them (a third of a million give each
+        # window hundreds): no (N, 3) copy of a large cloud
+        idx = np.flatnonzero(_square_mask(pts, s, radius) & (pts[:, 2] > s[2] + 1.0))
+        d = pts[idx[:: max(1, len(idx) // 300_000)]] - s
         h2 = d[:, 0] ** 2 + d[:, 1] ** 2
         d, h2 = d[h2 <= radius**2], h2[h2 <= radius**2]
         if len(d) < 500:
