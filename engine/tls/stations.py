@@ -105,6 +105,7 @@ class Stations:
         return len(self.positions) > 0 and math.isfinite(self.upward_limit_deg) and self.upward_limit_deg < 90.0
 
     def describe(self) -> str:
+        """One line: how many stations, and their upward limit and how it was found."""
         if not len(self.positions):
             return "no scanner stations found"
         what = f"{len(self.positions)} scanner station{'s' if len(self.positions) != 1 else ''}"
@@ -174,9 +175,9 @@ def find_stations(
         coef, _ = _ground_plane(near[:: max(1, len(near) // 5000)], c)
         position = np.array([c[0], c[1], float(coef[2]) + params.scanner_height_m])
         r = np.hypot(local[:, 0] - c[0], local[:, 1] - c[1])
-        in_hole = np.count_nonzero(r <= params.hole_m) / params.hole_m**2
-        in_ring = np.count_nonzero((r >= inner) & (r <= outer)) / (outer**2 - inner**2)
-        if in_hole < 0.005 * in_ring:
+        hole_density = np.count_nonzero(r <= params.hole_m) / params.hole_m**2
+        ring_density = np.count_nonzero((r >= inner) & (r <= outer)) / (outer**2 - inner**2)
+        if hole_density < 0.005 * ring_density:
             # a blind circle no other station's points reached: the cone of the scan's lowest beam
             # pins the tripod to centimetres (the single-scan estimate's fit)
             refined = _blind_cone(_in_square(pts, c, cone.disc_m + 2.0), position, float(coef[2]), cone)
