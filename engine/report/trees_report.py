@@ -192,7 +192,7 @@ def write_trees_report(
         "<h2>1. Plot map</h2>",
         f"<figure>{img_tag(map_png, 'plot map', 'map')}<figcaption>Top view: points coloured by tree (grey: no tree), "
         f"stem positions (+) with circles of the DBH enlarged {_scale_text(scale)}, tree ids; flagged trees in red"
-        + (f"; scanner stations (blue triangles): {esc(stations.describe())}" if stations is not None else "")
+        + (f"; scanner stations (blue triangles): {esc(stations.describe())}" if station_xy.size else "")
         + ".</figcaption></figure>",
         _summary_section(rows, ids, wood) + curve_section,
         _table_section(rows, set(drawn)),

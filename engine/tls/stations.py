@@ -107,7 +107,11 @@ class Stations:
     def describe(self) -> str:
         """One line: how many stations, and their upward limit and how it was found."""
         if not len(self.positions):
-            return "no scanner stations found"
+            return (
+                "the scanners' view not checked (upward_limit_deg 90)"
+                if self.limit_from == "set"
+                else "no scanner stations found"
+            )
         what = f"{len(self.positions)} scanner station{'s' if len(self.positions) != 1 else ''}"
         if not self.limited:
             return f"{what}, full dome"
