@@ -117,3 +117,28 @@ def test_the_curve_stands_in_only_where_it_is_tight_and_the_plot_shows_no_suppre
     assert "scatter" in loose.fill_refusal(params) and math.isnan(loose.fill_height_m(0.3, params))
     few = fit_height_curve(d[:8], h[:8]).with_tips(tips_d, np.array([curve.height_m(x) for x in tips_d]), params)
     assert "fewer than 10" in few.fill_refusal(params) and math.isnan(few.fill_height_m(0.3, params))
+
+
+def test_the_curve_vouches_for_a_top_under_a_crown_only_on_a_thick_stem_of_a_plot_without_suppressed_tips():
+    """Where the trees seen as tips follow the curve, a stem at least the plot's median DBH
+    (0.30 m here) stands clear of suppression, a thinner one does not; where one of them stands
+    30 % below it (a suppressed tree), no stem does; without the plot's DBHs none does;
+    quantile 1 leaves the thickest stem only."""
+    rng = np.random.default_rng(3)
+    d = rng.uniform(0.15, 0.5, 30)
+    h = _naslund(1.5, 0.19, d) * np.exp(rng.normal(0.0, 0.04, 30))
+    params = HeightCurveParams()
+    curve = fit_height_curve(d, h)
+    tips_d = np.array([0.15, 0.2, 0.3, 0.4, 0.45])
+    on_curve = np.array([curve.height_m(x) for x in tips_d])
+    stand = np.linspace(0.1, 0.5, 41)
+    free = curve.with_tips(tips_d, on_curve, params, stand_dbh_m=stand)
+    assert free.n_tips_below == 0 and abs(free.stand_dbh_m - 0.3) < 1e-9
+    assert free.free_of_suppression(0.31, params) and free.free_of_suppression(0.5, params)
+    assert not free.free_of_suppression(0.29, params) and not free.free_of_suppression(math.nan, params)
+    sup = curve.with_tips(tips_d, on_curve * np.array([0.95, 0.7, 1.0, 1.05, 0.97]), params, stand_dbh_m=stand)
+    assert sup.n_tips_below == 1 and not sup.free_of_suppression(0.5, params)
+    assert not curve.with_tips(tips_d, on_curve, params).free_of_suppression(0.5, params)
+    top = params.replace(free_dbh_quantile=1.0)
+    only_top = curve.with_tips(tips_d, on_curve, top, stand_dbh_m=stand)
+    assert not only_top.free_of_suppression(0.45, top) and only_top.free_of_suppression(0.5, top)

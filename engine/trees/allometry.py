@@ -145,6 +145,13 @@ class HeightCurveParams(Params):
         100000,
         "...and in a plot where at least this many trees show their own apex as a tip over the stem, none of them further below the curve than a clear top may stand (such a tree is suppressed, and where suppressed trees grow a hidden top may be one: the curve would stand it too tall)",
     )
+    free_dbh_quantile: float = _p(
+        0.5,
+        "1",
+        0.0,
+        1.0,
+        "Suppressed trees are the thinner part of a stand: where no tree seen as a tip stands suppressed, the curve vouches for a top hidden under, touching or amid a neighbour's crown on a stem at least this quantile of the plot's DBHs (1: the thickest only)",
+    )
 
 
 @dataclass(frozen=True)
@@ -169,6 +176,9 @@ class HeightCurve:
     #: below the curve than a clear top may (suppressed trees; see :meth:`fill_refusal`)
     n_tips: int = 0
     n_tips_below: int = 0
+    #: the plot's DBH (m) at :attr:`HeightCurveParams.free_dbh_quantile` of its trees (see
+    #: :meth:`free_of_suppression`; NaN when not given)
+    stand_dbh_m: float = math.nan
     #: whether it stands in for heights the points cannot give, and if not why (set by :meth:`with_tips`)
     fill_note: str = ""
 
@@ -199,6 +209,19 @@ class HeightCurve:
         ``params.clear_above``, each widened to ``params.clear_scatter`` times this curve's scatter."""
         wide = params.clear_scatter * self.scatter
         return max(params.clear_below, wide), max(params.clear_above, wide)
+
+    def free_of_suppression(self, dbh_m: float, params: "HeightCurveParams") -> bool:
+        """Whether a stem of this DBH (m) stands clear of the plot's suppressed trees: none of the
+        trees whose apex is seen as a tip stands suppressed (:attr:`n_tips_below`), and the stem
+        is at least :attr:`stand_dbh_m` (the plot's DBH at ``params.free_dbh_quantile``). A tree
+        overtopped by a neighbour is a thin one of its stand; the curve of free-grown trees stands
+        it too tall."""
+        return (
+            not self.n_tips_below
+            and math.isfinite(dbh_m)
+            and math.isfinite(self.stand_dbh_m)
+            and dbh_m >= self.stand_dbh_m
+        )
 
     def fill_refusal(self, params: "HeightCurveParams") -> str:
         """Why this curve may not stand in for heights the points cannot give ("" when it may): it
@@ -239,12 +262,26 @@ class HeightCurve:
             return math.nan
         return self.height_m(dbh_m)
 
-    def with_tips(self, dbh_m: np.ndarray, height_m: np.ndarray, params: "HeightCurveParams") -> "HeightCurve":
+    def with_tips(
+        self,
+        dbh_m: np.ndarray,
+        height_m: np.ndarray,
+        params: "HeightCurveParams",
+        stand_dbh_m: Optional[np.ndarray] = None,
+    ) -> "HeightCurve":
         """This curve with the trees whose own apex is seen as a tip (their DBH and height, m)
-        counted, and those more than :meth:`max_departure` below it (see :meth:`fill_refusal`)."""
+        counted, and those more than :meth:`max_departure` below it (see :meth:`fill_refusal`);
+        ``stand_dbh_m``: the DBHs (m) of the plot's trees (see :meth:`free_of_suppression`)."""
         dep = np.array([self.departure(float(d), float(h)) for d, h in zip(dbh_m, height_m)], dtype=np.float64)
         dep = dep[np.isfinite(dep)]
-        out = replace(self, n_tips=int(len(dep)), n_tips_below=int(np.count_nonzero(dep < -self.max_departure(params))))
+        stand = np.asarray(stand_dbh_m if stand_dbh_m is not None else [], dtype=np.float64)
+        stand = stand[np.isfinite(stand) & (stand > 0)]
+        out = replace(
+            self,
+            n_tips=int(len(dep)),
+            n_tips_below=int(np.count_nonzero(dep < -self.max_departure(params))),
+            stand_dbh_m=float(np.quantile(stand, params.free_dbh_quantile)) if len(stand) else math.nan,
+        )
         refusal = out.fill_refusal(params)
         note = (
             "stands in for heights the points cannot give"

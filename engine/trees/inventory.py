@@ -752,7 +752,8 @@ def _plot_height_curve(
         if s.id in crowns and apex_tip(crowns[s.id], params.crown)
     ]
     tips_arr = np.array(tips, dtype=np.float64).reshape(-1, 2)
-    return curve.with_tips(tips_arr[:, 0], tips_arr[:, 1], params.height_curve)
+    stand = np.array([_curve_or_slices_dbh(s, dbh, curves, stem_params) for s in stems], dtype=np.float64)
+    return curve.with_tips(tips_arr[:, 0], tips_arr[:, 1], params.height_curve, stand_dbh_m=stand)
 
 
 def _tops_beyond_view(
@@ -1296,7 +1297,8 @@ def _judge_top(
        free-grown trees says, so its points' top is kept, flagged), or with soft hints only (on
        the flank, missing, cut flat, beside a thicker stem) within
        :attr:`TreeParams.curve_agreement` of a curve
-       scattering at most ``max_scatter_unseen``. A top under, touching, amid or nearer to a
+       scattering at most ``max_scatter_unseen`` (a top off its stem beside a thicker stem only
+       where no tree seen as a tip stands suppressed). A top under, touching, amid or nearer to a
        neighbour's crown is no witness: a small tree's segment reaching up to the crown over it
        stands as tall as the curve says a free-grown tree of its DBH would, and a top amid a
        neighbour's crown may be that neighbour's.
@@ -1316,7 +1318,9 @@ def _judge_top(
        the whole. The
        curve vouches for it (medium trust, no flag) where it may stand in, and not for a top amid
        a neighbour's crown, nor for a top under or touching one unless it reaches up among its
-       neighbours' and stands more than ``curve_agreement`` below the curve, nor on a stem
+       neighbours' and stands more than ``curve_agreement`` below the curve, unless no tree seen
+       as a tip stands suppressed and the stem is one of the plot's thicker ones
+       (:meth:`.allometry.HeightCurve.free_of_suppression`), nor on a stem
        standing under a thicker neighbour's expected crown (``overtopped``) unless its top
        stands within ``curve_agreement`` of the curve or reaches up among its neighbours': such
        trees may be suppressed, and the curve stands them too tall. A DBH outside the range of the
@@ -1325,12 +1329,25 @@ def _judge_top(
        :attr:`TreeParams.max_slenderness` times the DBH: a neighbour's crown taken): the height is
        at most that many times the DBH, the tallest such a stem stands (low, flagged).
 
+    A curve that at least half the trees whose apex is seen as a tip stand more than
+    :meth:`.allometry.HeightCurve.max_departure` below is taken as none: it may rest on tops cut
+    alike.
+
     A top at the edge of the scanners' view (``view_cut``, a decisive doubt) is a lower bound: the
     curve's height replaces it (as in rule 3) only where the curve stands higher; otherwise the
     points' top is kept, low."""
     hc = params.height_curve
     names = _hint_names(hints)
     nan = math.nan
+    no_curve = "no height-diameter curve"
+    if curve is not None and curve.n_tips_below and 2 * curve.n_tips_below >= curve.n_tips:
+        # most trees whose apex is seen as a tip, the tops known whole, stand far below the curve:
+        # it rests on tops cut alike (a stand whose tops the scanners miss) and checks no top
+        no_curve = (
+            f"the plot's height-diameter curve (above {curve.n_tips_below} of its {curve.n_tips} trees seen as a tip "
+            f"by more than {100 * curve.max_departure(hc):.0f} %: it may rest on tops cut alike), so none"
+        )
+        curve = None
     dep = curve.departure(dbh_value, crown.height_m) if curve is not None else nan
     dep_text = f", {100 * dep:+.0f} % from the plot's height-diameter curve" if math.isfinite(dep) else ""
     estimate = curve.estimate_height_m(dbh_value, hc) if curve is not None else nan
@@ -1399,8 +1416,11 @@ def _judge_top(
             and curve is not None
             and curve.scatter <= hc.max_scatter_unseen
             and abs(dep) <= params.curve_agreement
+            and not ("reach" in names and curve.n_tips_below and not top_over_stem(crown, params.crown))
         ):
-            # 2. a soft hint, the plot's curve agreeing: two witnesses for the top
+            # 2. a soft hint, the plot's curve agreeing: two witnesses for the top (not for a top off
+            # its stem within a thicker one's crown reach where suppressed trees grow: its segment
+            # may have taken that crown, as tall as the curve says a free-grown tree would be)
             witnesses = dep_text + " (consistent)"
         if witnesses:
             trust = _trust(h_trust, "medium") if names else h_trust
@@ -1427,7 +1447,7 @@ def _judge_top(
         flags.append(f"height {100 * dep:+.0f} % from the plot's height-diameter curve")
     elif not flags:
         flags.append(
-            "top not seen as a tip over the stem, and no height-diameter curve to check it (height unsure)"
+            f"top not seen as a tip over the stem, and {no_curve} to check it (height unsure)"
             if curve is None
             else "top not seen as a tip over the stem, and no DBH for the plot's height-diameter curve (height unsure)"
         )
@@ -1435,7 +1455,7 @@ def _judge_top(
         dep_text
         if dep_text
         else (
-            ", no height-diameter curve to check it"
+            f", {no_curve} to check it"
             if curve is None
             else ", no DBH for the plot's height-diameter curve to check it"
         )
@@ -1497,7 +1517,11 @@ def _judge_top(
     else:
         how = f"from the plot's height-diameter curve at the DBH ({scatter}): the points' top ({crown.height_m:.1f} m) not taken: {why}"
     refusal = beyond or curve.fill_refusal(hc)
-    if not refusal and ("neighbour" in names or (names & {"under", "touch"} and not crown_lost)):
+    if (
+        not refusal
+        and ("neighbour" in names or (names & {"under", "touch"} and not crown_lost))
+        and not curve.free_of_suppression(dbh_value, hc)
+    ):
         refusal = "a top under, touching or amid a neighbour's crown (a suppressed tree's, or that crown's)"
     if not refusal and overtopped is not None and not abs(dep) <= params.curve_agreement and not reaches:
         refusal = f"{overtopped}, and its points' top {100 * dep:+.0f} % from the curve"
