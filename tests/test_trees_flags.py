@@ -214,7 +214,7 @@ def test_four_scan_mixed_plot_heights_of_suppressed_trees():
     curve, or a soft hint (on the crown's flank, missing) agreeing with the curve within 10 %. 2
     of the 10 trees whose apex is seen as a tip stand more than 20 % below the curve: suppressed
     trees grow here, so the curve vouches for no height; its estimates (21) are flagged. The
-    unflagged heights are 18 of 39, rRMSE 2.9 %, worst 6.4 %, 3 or more of them suppressed trees
+    unflagged heights are 18 of 39, rRMSE 3.1 %, worst 6.4 %, 3 or more of them suppressed trees
     by their apex seen as a tip (within 5 %). A tree flagged for its height keeps its DBH's trust;
     a tree is flagged only when a value is weak."""
     from forestreg.engine.trees.crown import CrownParams, top_over_stem
@@ -295,11 +295,12 @@ def test_intermixed_crowns_heights_from_the_curve_where_the_points_cannot_give_t
     curve gives the height: 20 trees, whose points' tops were up to 74 % off, stand within 10 %
     (measured 8.0 %), their highest point kept beside. The curve vouches only for a top not under,
     touching or amid a neighbour's crown on a stem not under a thicker neighbour's expected crown
-    (one here), or for a top under a neighbour's crown that reaches up among its neighbours'
+    (one here), for such a top on a stem of at least the plot's median DBH (no suppressed tree
+    shows here), or for a top under a neighbour's crown that reaches up among its neighbours'
     (at least 65 % of the tallest one's) more than 10 % below the curve: its upper crown went to
     that neighbour; a top over the stem, not a tip, below the curve takes the curve's height. The
     others are flagged, their estimates still given (a top under or touching a neighbour's crown
-    below the curve keeps its points' height). 22 of 38 heights stand unflagged (rRMSE 2.5 %,
+    below the curve keeps its points' height). 24 of 38 heights stand unflagged (rRMSE 2.5 %,
     worst 8.0 %); every height reported within an rRMSE of 4 % (measured 3.4 %)."""
     from forestreg.engine.trees.allometry import HeightCurveParams
 
@@ -309,7 +310,7 @@ def test_intermixed_crowns_heights_from_the_curve_where_the_points_cannot_give_t
     assert inv.height_curve is not None and inv.height_curve.fill_refusal(HeightCurveParams()) == ""
     assert inv.height_curve.n_tips >= 5 and inv.height_curve.n_tips_below == 0
     trusted, h = _trusted_heights(pairs)
-    assert len(trusted) >= 20
+    assert len(trusted) >= 23
     assert np.max(np.abs(h[:, 0] / h[:, 1] - 1.0)) <= 0.10
     assert math.sqrt(np.mean((h[:, 0] - h[:, 1]) ** 2)) / h[:, 1].mean() < 0.04
     every = np.array([(r.height_m, t.height_m) for r, t in pairs])

@@ -225,6 +225,42 @@ def test_the_curve_vouches_for_no_suppressed_tree():
     assert trust == "low" and math.isfinite(fill) and flags
 
 
+def test_the_curve_vouches_for_a_hidden_top_on_a_thick_stem_only_where_no_suppressed_tree_shows():
+    """A top amid a thicker neighbour's crown gets the curve's estimate: vouched for (medium) on a
+    stem of at least the plot's median DBH where none of the trees seen as tips stands suppressed,
+    flagged on a thinner stem or where one does. A top off its stem within a thicker stem's crown
+    reach that agrees with the curve stands (two witnesses), but not where suppressed trees grow;
+    a top over its stem there still stands. A curve that half its tips stand more than 20 % below
+    checks no top."""
+    c = CURVE.height_m(0.4)
+    amid = [("neighbour", "top amid the crown of thicker tree 9: height unsure (the top may be that tree's)")]
+    free = replace(CURVE, stand_dbh_m=0.3)
+    trust, how, fill, flags = _judge(_crown(1.3 * c, offset=1.5, ratio=0.9), amid, dbh=0.4, curve=free)
+    assert trust == "medium" and fill == pytest.approx(c) and not flags and "not vouched" not in how
+    trust, how, fill, flags = _judge(_crown(1.3 * c, offset=1.5, ratio=0.9), amid, dbh=0.25, curve=free)
+    assert trust == "low" and "a top under, touching or amid" in how and flags  # thinner than the median
+    assert _judge(_crown(1.3 * c, offset=1.5, ratio=0.9), amid, dbh=0.4, curve=CURVE)[0] == "low"  # no stand DBH
+    suppressed = replace(free, n_tips_below=1)
+    trust, how, _, _ = _judge(_crown(1.3 * c, offset=1.5, ratio=0.9), amid, dbh=0.4, curve=suppressed)
+    assert trust == "low" and "suppressed trees grow here" in how
+    reach = [
+        (
+            "hint",
+            "stem 3.5 m from thicker tree 33 (54 cm), within its crown's reach: the top may be in that tree's crown (height unsure)",
+        )
+    ]
+    off = _crown(1.03 * c, offset=2.1, ratio=1.13, layer=0.9)
+    trust, how, fill, _ = _judge(off, reach, dbh=0.4)
+    assert trust == "medium" and "(consistent)" in how and math.isnan(fill)
+    trust, how, _, flags = _judge(off, reach, dbh=0.4, curve=replace(CURVE, n_tips_below=1))
+    assert trust == "low" and flags
+    over = _crown(1.02 * c, offset=0.1, ratio=0.05, layer=0.1)
+    assert _judge(over, reach, dbh=0.4, curve=replace(CURVE, n_tips_below=1))[0] == "medium"
+    cut_alike = replace(CURVE, n_tips=2, n_tips_below=1)
+    trust, how, fill, flags = _judge(off, reach, dbh=0.4, curve=cut_alike)
+    assert trust == "low" and math.isnan(fill) and "it may rest on tops cut alike" in how
+
+
 def test_stems_under_a_thicker_neighbours_expected_crown():
     stems = [_stem(1, 0.0, 0.0, 0.14), _stem(2, 2.5, 0.0, 0.5), _stem(3, 12.0, 0.0, 0.14), _stem(4, 14.0, 0.0, 0.16)]
     out = _under_thicker_crowns(stems, TreeParams())
