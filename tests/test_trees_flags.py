@@ -350,7 +350,7 @@ def test_a_loose_height_diameter_relation_gives_no_heights_from_the_curve():
     """The same plot with each tree's height scattered 10 % about the stand's relation (a stand of
     several species or ages): the curve's scatter (11 %) is too wide to stand in for a tree's
     height, so the heights the points cannot give stay flagged: its estimates are given, none
-    vouched for. No unflagged height more than 20 % off (12 of 38 unflagged, worst 5.4 %)."""
+    vouched for. No unflagged height more than 20 % off (11 of 38 unflagged, worst 5.4 %)."""
     from forestreg.engine.trees.allometry import HeightCurveParams
 
     plot, inv = _four_scan_plot(seed=6, size_m=40.0, height_scatter=0.10)
