@@ -83,3 +83,14 @@ def test_real_clouds(shared_data):
     for name in ("lidR_MixedConifer.laz", "spanner_MLS_Clip.laz", "SERC_trunk_mls.laz"):
         cloud = np.asarray(read_scan(shared_data / name).points, dtype=np.float64)
         assert len(scanner_stations(cloud).positions) == 0, name
+
+
+def test_a_ring_that_is_no_ring_is_refused():
+    """A ring whose inner radius is not below its outer one, or a blind circle reaching into the
+    ring, is a parameter error (one line, exit 2 at the command line), not an empty search."""
+    from forestreg.engine.core.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="ring_m"):
+        StationParams(ring_m=(3.0, 1.0))
+    with pytest.raises(ParameterError, match="hole_m"):
+        StationParams(hole_m=2.0)

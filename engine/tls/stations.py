@@ -27,6 +27,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..core.errors import ParameterError
 from ..core.params import Params
 from ..core.params import param_field as _p
 from .params import ScannerPositionParams
@@ -83,6 +84,13 @@ class StationParams(Params):
         hi=5.0,
         help="a top is beyond view when the point this far above it is, from every station",
     )
+
+    def _check(self) -> None:
+        inner, outer = self.ring_m
+        if not inner < outer:
+            raise ParameterError("ring_m must be (inner, outer) with inner < outer")
+        if not self.hole_m < inner:
+            raise ParameterError("hole_m must be smaller than the inner radius of ring_m")
 
 
 @dataclass(frozen=True)
@@ -255,6 +263,8 @@ def upward_limit(
     candidates = np.arange(30, 76)
     ratios: list[np.ndarray] = []
     radius = params.view_radius_m
+    # cumulative solid angle per unit azimuth of the 1-degree elevation bins
+    cum_sa = np.concatenate([[0.0], np.cumsum(np.sin(np.radians(edges[1:])) - np.sin(np.radians(edges[:-1])))])
     for s in np.asarray(stations, dtype=np.float64).reshape(-1, 3):
         # the points over the station's square, every k-th of them (a third of a million give each
         # window hundreds): no (N, 3) copy of a large cloud
@@ -266,11 +276,9 @@ def upward_limit(
             continue
         el = np.degrees(np.arctan2(d[:, 2], np.sqrt(h2)))
         sector = (np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2 * np.pi) * 8).astype(np.int64)) % 8
-        solid = np.sin(np.radians(edges[1:])) - np.sin(np.radians(edges[:-1]))
         for k in range(8):
             n, _ = np.histogram(el[sector == k], bins=edges)
             cum = np.concatenate([[0.0], np.cumsum(n)])
-            cum_sa = np.concatenate([[0.0], np.cumsum(solid)])
             row = np.full(len(candidates), np.nan)
             for j, x in enumerate(candidates):
                 b = int(x - edges[0])
