@@ -139,6 +139,30 @@ def test_fit_circle_flags_and_bad_input() -> None:
         fit_stem_circle(np.zeros((5, 3)))
 
 
+def test_a_circle_with_points_inside_it_is_no_stem_section() -> None:
+    """A trunk is opaque: a circle drawn round returns scattered inside it (a sparse airborne
+    stem, clutter) fails as a section, while a real section with a stray return or two inside
+    (mixed pixels, noise) passes."""
+    rng = np.random.default_rng(5)
+    kw = dict(inlier_tolerance_m=0.04, max_residual_m=0.04, max_interior_fraction=0.1)
+    # 40 returns scattered over a 0.6 m patch round a 0.4 m stem, as a leaf-off drone flight
+    # sees it: half on the stem's rim, half through its crown of twigs, drawn as a 0.76 m circle
+    rim = _arc(0.38, 100, 260, 20, 0.01, rng)
+    inside = rng.uniform(-0.2, 0.2, size=(14, 2)) + (2.0, -1.0)
+    scattered = fit_stem_circle(np.vstack([rim, inside]), **kw)
+    assert not scattered.ok and "points inside the circle" in scattered.reasons
+    # without the check the same points pass: the check is what withholds the diameter
+    assert fit_stem_circle(np.vstack([rim, inside]), inlier_tolerance_m=0.04, max_residual_m=0.04).ok
+    # a real section with two stray returns inside (fewer than 3) and one with 5 % inside pass
+    ring = _arc(0.2, 0, 360, 120, 0.005, rng)
+    assert fit_stem_circle(np.vstack([ring, [[2.0, -1.0], [2.02, -0.98]]]), **kw).ok
+    few = rng.uniform(-0.05, 0.05, size=(6, 2)) + (2.0, -1.0)
+    assert fit_stem_circle(np.vstack([ring, few]), **kw).ok
+    # a thin stem has no inside to check (its interior is within the noise band)
+    thin = _arc(0.04, 0, 360, 60, 0.003, rng)
+    assert fit_stem_circle(np.vstack([thin, [[2.0, -1.0]] * 4]), **kw).ok
+
+
 def test_robust_taper_ignores_a_bad_section() -> None:
     s = np.arange(1.0, 8.0, 0.25)
     d = 0.30 - 0.01 * s
@@ -443,3 +467,25 @@ def test_two_dbh_slices_that_disagree_give_their_median() -> None:
     )
     got = measure_dbh(p, p[:, 2], stem)
     assert got.ok and 0.2 < got.dbh_m < 0.226
+
+
+def test_one_real_stem_from_four_platforms_gives_no_wrong_dbh(shared_data) -> None:
+    """SERC's trunk section as TLS, backpack MLS and two drone flights saw it (one frame). The
+    stem is 0.39-0.45 m across at 0.5-0.8 m above the ground, where circles fitted to each
+    platform's points agree (TLS 0.42, MLS 0.40). The TLS, MLS and leaf-on drone clouds end 1.0 m above the ground, so
+    no breast height: no DBH. The leaf-off flight reaches 1.75 m with 34 scattered returns round
+    breast height; a 0.76 m circle drawn through some of them, with others inside it, once stood
+    as the DBH: it is withheld now, or, if given, near the stem's own diameter."""
+    from forestreg.engine.io import read_scan
+    from forestreg.engine.trees.inventory import TreeParams, measure_trees
+
+    for name in ("SERC_trunk_tls.laz", "SERC_trunk_mls.laz", "SERC_trunk_drone.laz", "SERC_trunk_drone_leafoff.laz"):
+        path = shared_data / name
+        if not path.exists():
+            pytest.skip(f"{path} is absent")
+        pts = np.asarray(read_scan(path).points, dtype=np.float64)
+        inv = measure_trees(pts - np.floor(pts.min(axis=0)), TreeParams(cylinder_models=False))
+        assert len(inv.trees) == 1, name
+        dbh = inv.trees[0].dbh_m
+        print(name, dbh, inv.trees[0].quality["dbh"])
+        assert not math.isfinite(dbh) or 0.34 <= dbh <= 0.50, (name, dbh)

@@ -226,6 +226,13 @@ class StemParams(Params):
         "Largest rms distance from the circle of the points within twice the inlier tolerance of it",
     )
     ransac_iterations: int = param_field(300, "iterations", 1, 100000, "Random three-point circles tried per slice")
+    max_section_interior_fraction: float = param_field(
+        0.1,
+        "1",
+        0.0,
+        10.0,
+        "A DBH or stem-curve section whose points well inside its circle number more than this per point on the circle (and at least 3) is no trunk's section: nothing is seen inside wood",
+    )
     # --- the section's shape
     typical_ovality: float = param_field(
         0.06,
@@ -301,7 +308,8 @@ class CircleFit:
     ``arc_coverage`` the fraction of ``n_sectors`` equal angular sectors around the centre that
     hold an inlier;
     ``ok`` is False when any quality check failed, with the reasons in ``reasons`` ("too few
-    points", "partial arc", "high residual", "few inliers", "implausible radius");
+    points", "partial arc", "high residual", "few inliers", "implausible radius", "points inside
+    the circle");
     ``ovality`` (1 - minor / major axis) of the section from the inliers' second harmonic about
     the circle (NaN under ``ovality_min_coverage`` of :func:`fit_stem_circle`);
     ``shape_sigma_m`` the 1-sigma uncertainty of ``radius_m`` from the part of an oval section
@@ -460,6 +468,16 @@ class StemCurve:
 # --------------------------------------------------------------------------------------------
 
 
+def interior_counts(radial: np.ndarray, radius_m: float, tolerance_m: float) -> tuple[int, int]:
+    """Points well inside a stem's circle and points on it, from their distances ``radial`` (m)
+    to its centre or axis: inside is closer than ``radius_m`` less the larger of 0.4 of it and
+    three ``tolerance_m``; on it is within two ``tolerance_m`` of the circle. A trunk is opaque,
+    so the first count is about 0 for a real stem section."""
+    surface = int((np.abs(radial - radius_m) <= 2.0 * tolerance_m).sum())
+    inside = int((radial < radius_m - max(0.4 * radius_m, 3.0 * tolerance_m)).sum())
+    return inside, surface
+
+
 def _arc_coverage(xy: np.ndarray, cx: float, cy: float, n_sectors: int) -> float:
     if len(xy) == 0:
         return 0.0
@@ -482,6 +500,7 @@ def fit_stem_circle(
     seed: int = 0,
     ovality_min_coverage: float = 0.7,
     typical_ovality: Optional[float] = None,
+    max_interior_fraction: Optional[float] = None,
 ) -> CircleFit:
     """A stem section's circle in 2D points ``xy`` (M, 2) in metres, with its quality checks.
 
@@ -494,6 +513,11 @@ def fit_stem_circle(
     mean radius, with the section's oval part fitted under that prior, so an arc seen from one
     side does not hand its own curvature to the diameter; ``shape_sigma_m`` then says how much
     the unseen part leaves open.
+
+    With ``max_interior_fraction``, a circle with more points well inside it than this per point
+    on it (:func:`interior_counts`; at least 3 such points) fails as "points inside the circle":
+    a trunk is opaque, so such a circle was drawn through clutter, or round a thinner stem
+    among scattered returns.
 
     Raises :class:`ScanDataError` for fewer than 3 points or NaN/infinite values.
     """
@@ -514,7 +538,8 @@ def fit_stem_circle(
         )
     circle, n_in = found
     (cx, cy), r = circle.centre, circle.radius_m
-    res = circle.distances(p)
+    radial = np.hypot(p[:, 0] - cx, p[:, 1] - cy)
+    res = np.abs(radial - r)
     inliers = res < tol
     near = res < 2.0 * tol  # the circle's own points and their noise; farther ones are clutter
     rms = float(np.sqrt(np.mean(res[near] ** 2))) if near.any() else float("inf")
@@ -530,6 +555,10 @@ def fit_stem_circle(
         reasons.append("few inliers")
     if not math.isfinite(rms) or rms > max_residual_m:
         reasons.append("high residual")
+    if max_interior_fraction is not None:
+        inside, surface = interior_counts(radial, r, tol)
+        if inside >= 3 and inside > max_interior_fraction * surface:
+            reasons.append("points inside the circle")
     oval = None
     if typical_ovality is not None and typical_ovality > 0 and not reasons:
         oval = oval_section(p[near], (cx, cy), r, typical_ovality)
@@ -682,8 +711,10 @@ def _fit(
     min_points: Optional[int] = None,
     oval: bool = False,
 ) -> CircleFit:
-    """:func:`fit_stem_circle` with the settings of ``params``; ``oval`` refines a good fit to the
-    girth-equivalent circle of an oval section (``params.typical_ovality``)."""
+    """:func:`fit_stem_circle` with the settings of ``params``; ``oval`` (a DBH or stem-curve
+    section) refines a good fit to the girth-equivalent circle of an oval section
+    (``params.typical_ovality``) and fails one with points inside it
+    (``params.max_section_interior_fraction``)."""
     lo, hi = params.dbh_range_m
     return fit_stem_circle(
         xy,
@@ -697,6 +728,7 @@ def _fit(
         seed=seed,
         ovality_min_coverage=params.ovality_min_coverage,
         typical_ovality=params.typical_ovality if oval else None,
+        max_interior_fraction=params.max_section_interior_fraction if oval else None,
     )
 
 
@@ -971,8 +1003,7 @@ def _interior_fraction(
         return 0.0
     idx = idx[(heights[idx] >= params.band_low_m) & (heights[idx] <= params.band_high_m)]
     _, radial = _axis_distance(points[idx], cand.base, cand.axis)
-    surface = int((np.abs(radial - cand.radius) <= 2 * params.inlier_tolerance_m).sum())
-    inside = int((radial < cand.radius - max(0.4 * cand.radius, 3 * params.inlier_tolerance_m)).sum())
+    inside, surface = interior_counts(radial, cand.radius, params.inlier_tolerance_m)
     return inside / max(surface, 1)
 
 
@@ -1183,7 +1214,8 @@ def measure_dbh(
     fitted to the whole stretch the slices span (:func:`_stretch_section`: the scan lines of all
     slices fill each other's arc, the bark's roughness averages over the stretch, a slice holding
     a branch is left out) when it passes the same checks and lies within ``max_dbh_slice_spread``
-    of the slices; else the mean of the good fits within 5 % of their median. When no slice
+    of the slices; else the mean of the good fits within 5 % of their median, unless that section
+    failed for points inside its circle (not ok, "points inside the circle"). When no slice
     within 0.1 m is good, the nearest good farther slice stands for them and ``note`` says so. ``heights`` are accepted
     for a uniform interface and validated; the slices follow the stem's own base, so leaning
     stems and slopes are measured along the stem.
@@ -1249,6 +1281,10 @@ def _measure_dbh(p: np.ndarray, stem: Stem, params: StemParams, tree: cKDTree) -
             dbh, main = slab.diameter_m, (0.0, slab.diameter_m, slab, slab_centre)
             if note:
                 note = f"measured on the stem {bh - span:.2f}-{bh + span:.2f} m along it: the slices within 0.1 m of breast height failed ({', '.join(first_reasons or ())})"
+        elif slab is not None and "points inside the circle" in slab.reasons:
+            # the whole stretch holds returns inside the circle, though each thin slice has
+            # too few of them to tell: no trunk stands there
+            reasons_out.append("points inside the circle")
     return DbhMeasurement(stem.id, dbh, main[3], bh + main[0], main[2], not reasons_out, tuple(reasons_out), note)
 
 
