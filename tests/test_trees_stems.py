@@ -145,8 +145,8 @@ def test_a_circle_with_points_inside_it_is_no_stem_section() -> None:
     (mixed pixels, noise) passes."""
     rng = np.random.default_rng(5)
     kw = dict(inlier_tolerance_m=0.04, max_residual_m=0.04, max_interior_fraction=0.1)
-    # 40 returns scattered over a 0.6 m patch round a 0.4 m stem, as a leaf-off drone flight
-    # sees it: half on the stem's rim, half through its crown of twigs, drawn as a 0.76 m circle
+    # 34 returns as a leaf-off drone flight sees a 0.4 m stem among twigs: 20 on the rim of the
+    # 0.76 m circle a fit draws through them and 14 scattered through a 0.4 m patch inside it
     rim = _arc(0.38, 100, 260, 20, 0.01, rng)
     inside = rng.uniform(-0.2, 0.2, size=(14, 2)) + (2.0, -1.0)
     scattered = fit_stem_circle(np.vstack([rim, inside]), **kw)
