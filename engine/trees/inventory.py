@@ -60,6 +60,7 @@ from .stems import (
     dbh_sigma,
     detect_stems_adaptive,
     measure_stems,
+    remeasure_params,
 )
 
 log = logging.getLogger(__name__)
@@ -883,7 +884,9 @@ def _measure_stems_timed(
     dbh, curves = measure_stems(p, heights, stems, stem_params, search_tree=index)
     if method == "noisy":  # thin stems found with the noisy settings may still be measured finely
         thin = [s for s in stems if not dbh[s.id].ok and s.radius_m < 0.1]
-        fine_dbh, fine_curves = measure_stems(p, heights, thin, fine_params, search_tree=index)
+        fine_dbh, fine_curves = measure_stems(
+            p, heights, thin, remeasure_params(fine_params, stem_params), search_tree=index
+        )
         for s in thin:
             if fine_dbh[s.id].ok:
                 dbh[s.id] = fine_dbh[s.id]
@@ -2117,7 +2120,9 @@ def _single_tree_inventory(
     dbh, curves = measure_stems(p, heights, [stem], stem_params, search_tree=index)
     d, curve = dbh[stem.id], curves[stem.id]
     if method == "noisy" and not d.ok:  # a thin stem of a noisy profile may still be measured finely
-        fine_dbh, fine_curves = measure_stems(p, heights, [stem], params.stems, search_tree=index)
+        fine_dbh, fine_curves = measure_stems(
+            p, heights, [stem], remeasure_params(params.stems, stem_params), search_tree=index
+        )
         if fine_dbh[stem.id].ok:
             d, curve = fine_dbh[stem.id], fine_curves[stem.id]
     idx = np.flatnonzero(labels > 0)

@@ -233,6 +233,13 @@ class StemParams(Params):
         10.0,
         "A DBH or stem-curve section whose points well inside its circle number more than this per point on the circle (and at least 3) is no trunk's section: nothing is seen inside wood",
     )
+    section_interior_margin_m: float = param_field(
+        0.0,
+        "m",
+        0.0,
+        1.0,
+        "Least depth inside a section's circle at which a return counts as inside it (never less than 0.4 of the radius or three inlier tolerances); a stem of a noisy cloud measured again finely takes three noisy tolerances, as far as that cloud's noise and ghost shells reach",
+    )
     # --- the section's shape
     typical_ovality: float = param_field(
         0.06,
@@ -468,14 +475,22 @@ class StemCurve:
 # --------------------------------------------------------------------------------------------
 
 
-def interior_counts(radial: np.ndarray, radius_m: float, tolerance_m: float) -> tuple[int, int]:
+def interior_counts(radial: np.ndarray, radius_m: float, tolerance_m: float, margin_m: float = 0.0) -> tuple[int, int]:
     """Points well inside a stem's circle and points on it, from their distances ``radial`` (m)
-    to its centre or axis: inside is closer than ``radius_m`` less the larger of 0.4 of it and
-    three ``tolerance_m``; on it is within two ``tolerance_m`` of the circle. A trunk is opaque,
-    so the first count is about 0 for a real stem section."""
+    to its centre or axis: inside is closer than ``radius_m`` less the largest of 0.4 of it,
+    three ``tolerance_m`` and ``margin_m``; on it is within two ``tolerance_m`` of the circle. A
+    trunk is opaque, so the first count is about 0 for a real stem section."""
     surface = int((np.abs(radial - radius_m) <= 2.0 * tolerance_m).sum())
-    inside = int((radial < radius_m - max(0.4 * radius_m, 3.0 * tolerance_m)).sum())
+    inside = int((radial < radius_m - max(0.4 * radius_m, 3.0 * tolerance_m, margin_m)).sum())
     return inside, surface
+
+
+def remeasure_params(fine: StemParams, noisy: StemParams) -> StemParams:
+    """The fine profile ``fine`` for a stem that the noisy profile ``noisy`` could not measure:
+    its sections' circles are fitted finely, but a return counts as inside one only deeper than
+    the noisy profile's margin (three of its tolerances), as far as the cloud's noise and ghost
+    shells reach."""
+    return fine.replace(section_interior_margin_m=max(fine.section_interior_margin_m, 3.0 * noisy.inlier_tolerance_m))
 
 
 def _arc_coverage(xy: np.ndarray, cx: float, cy: float, n_sectors: int) -> float:
@@ -501,6 +516,7 @@ def fit_stem_circle(
     ovality_min_coverage: float = 0.7,
     typical_ovality: Optional[float] = None,
     max_interior_fraction: Optional[float] = None,
+    interior_margin_m: float = 0.0,
 ) -> CircleFit:
     """A stem section's circle in 2D points ``xy`` (M, 2) in metres, with its quality checks.
 
@@ -515,7 +531,8 @@ def fit_stem_circle(
     the unseen part leaves open.
 
     With ``max_interior_fraction``, a circle with more points well inside it than this per point
-    on it (:func:`interior_counts`; at least 3 such points) fails as "points inside the circle":
+    on it (:func:`interior_counts`, at least ``interior_margin_m`` deep; at least 3 such points)
+    fails as "points inside the circle":
     a trunk is opaque, so such a circle was drawn through clutter, or round a thinner stem
     among scattered returns.
 
@@ -556,7 +573,7 @@ def fit_stem_circle(
     if not math.isfinite(rms) or rms > max_residual_m:
         reasons.append("high residual")
     if max_interior_fraction is not None:
-        inside, surface = interior_counts(radial, r, tol)
+        inside, surface = interior_counts(radial, r, tol, interior_margin_m)
         if inside >= 3 and inside > max_interior_fraction * surface:
             reasons.append("points inside the circle")
     oval = None
@@ -729,6 +746,7 @@ def _fit(
         ovality_min_coverage=params.ovality_min_coverage,
         typical_ovality=params.typical_ovality if oval else None,
         max_interior_fraction=params.max_section_interior_fraction if oval else None,
+        interior_margin_m=params.section_interior_margin_m,
     )
 
 
