@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from forestreg.engine.trees.inventory import measure_trees
+from forestreg.engine.trees.inventory import TreeParams, measure_trees
 
 #: The real single trees of ../shared/data (no or little ground; pine and spruce with ground).
 SINGLE = [
@@ -238,3 +238,58 @@ def test_simulated_clipped_crown_conifer_column():
     assert r.cylinders.stem_volume_m3 == pytest.approx(stem_v, rel=0.05)
     assert r.cylinders.branch_volume_m3 <= 2.0 * branch_in + 0.005
     assert r.dbh_m == pytest.approx(tree.dbh_m, rel=0.03)
+
+
+def _curve(s: np.ndarray, d: np.ndarray):
+    from forestreg.engine.trees.stems import StemCurve
+
+    n = len(s)
+    return StemCurve(0, s, s, d, d, np.isfinite(d), np.zeros(n, bool), np.zeros((n, 3)), tuple("" for _ in range(n)))
+
+
+def test_a_cloud_ending_on_its_stem_is_cut():
+    """A trunk section clipped from a tree ends on a section as wide as its foot; a tree's stem
+    curve ends in thin sections well below its top."""
+    from forestreg.engine.trees.single import stem_cut_at_top
+    from forestreg.engine.trees.stems import Stem
+
+    stem = Stem(1, np.array([0.0, 0.0, 10.0]), np.array([0.0, 0.0, 1.0]), 0.2, np.arange(5))
+    trunk = _curve(np.array([0.3, 0.55, 0.8]), np.array([0.42, 0.41, 0.41]))
+    assert stem_cut_at_top(trunk, stem, 11.0) == pytest.approx((0.41, 0.2))
+    assert stem_cut_at_top(trunk, stem, 11.4) is None  # 0.6 m of cloud above the section
+    # a pine: its curve runs to 16.3 m, 8 cm across, 3.5 m under its top
+    s = np.arange(0.3, 16.31, 0.25)
+    pine = _curve(s, 0.26 - 0.011 * s)
+    assert stem_cut_at_top(pine, stem, 10.0 + 19.8) is None
+    # a curve ending near the top in a twig-thin section is no cut
+    assert stem_cut_at_top(_curve(s, 0.26 - 0.0155 * s), stem, 10.0 + 16.5) is None
+    assert stem_cut_at_top(_curve(s, np.full(len(s), np.nan)), stem, 11.0) is None
+
+
+@pytest.mark.parametrize(
+    "name, cut",
+    [
+        ("SERC_trunk_tls.laz", True),
+        ("SERC_trunk_mls.laz", True),
+        ("SERC_trunk_drone_leafoff.laz", True),
+        ("pine.laz", False),
+        ("spruce.laz", False),
+        ("AdTree_Lille_2.xyz", False),
+        ("aRchi_Tree_2_point_cloud.las", False),
+    ],
+)
+def test_real_trunk_sections_give_their_height_as_a_lower_bound(shared_data, name, cut):
+    """SERC's trunk section (about 1 m of a big tree's stem over its ground) ends on the stem:
+    its 1.0-1.7 m "height" is a lower bound, not trusted; whole trees keep their trust."""
+    path = shared_data / name
+    if not path.exists():
+        pytest.skip(f"{path} is absent")
+    p = np.array(_points(str(path)), dtype=np.float64)
+    r = measure_trees(p - np.floor(p.min(axis=0)), TreeParams(cylinder_models=False)).trees[0]
+    q = r.quality["height"]
+    assert ("cut above" in q) == cut, q
+    if cut:
+        assert q.endswith("low") and any("lower bound" in f for f in r.flags)
+        assert r.height_m < 2.0
+    else:
+        assert not q.endswith("low")

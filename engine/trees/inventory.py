@@ -50,7 +50,15 @@ from .segmentation import (
     top_layer,
     tree_completeness,
 )
-from .single import SingleTreeEvidence, SingleTreeParams, base_stem, flat_dem, single_tree_base, single_tree_evidence
+from .single import (
+    SingleTreeEvidence,
+    SingleTreeParams,
+    base_stem,
+    flat_dem,
+    single_tree_base,
+    single_tree_evidence,
+    stem_cut_at_top,
+)
 from .stems import (
     DbhMeasurement,
     NoisyStemParams,
@@ -2157,6 +2165,11 @@ def _single_tree_inventory(
     if math.isfinite(crown.height_m):
         quality["height"] = f"top of the single-tree cloud above its base ({base_how}); {base.trust}"
         flags.extend(base.flags)
+        cut = stem_cut_at_top(curve, stem, crown.top[2], params.single_tree)
+        if cut is not None:
+            why = f"the cloud ends on the stem ({cut[0]:.2f} m across {cut[1]:.2f} m below its top): cut above"
+            quality["height"] = f"top of the single-tree cloud above its base ({base_how}), {why}, a lower bound; low"
+            flags.append(f"height a lower bound: {why}")
     if crown.ok:
         quality["crown"] = "crown points of the single-tree cloud; high"
     warning = ""

@@ -27,7 +27,8 @@ extent above the tree's base (:func:`single_tree_base`): the lowest point of its
 ground under it where a ground surface lies around the stem at or below that point; a ground model
 filled across an empty area or lying above the stem's lowest points is never the base. Without
 ground, a base seen through few points or a cloud cut flat at the bottom lowers the height's
-trust. No canopy
+trust. A cloud that ends on its stem (:func:`stem_cut_at_top`: a trunk section clipped from a
+tree) gives its top as a lower bound, not trusted. No canopy
 segmentation may cut its crown into several trees, and the edges of the cloud are the tree's, not
 a plot border cutting it.
 
@@ -50,7 +51,7 @@ from ..core.params import Params
 from ..core.params import param_field as _p
 from ..geometry.columns import ColumnIndex
 from ..geometry.grid import cell_extent, cell_maxima, mark_cells
-from .stems import Stem
+from .stems import Stem, StemCurve
 
 __all__ = [
     "MAX_BOX_FILL",
@@ -67,6 +68,7 @@ __all__ = [
     "single_tree_base",
     "single_tree_evidence",
     "standing_stems",
+    "stem_cut_at_top",
 ]
 
 #: ``auto``: decide from the cloud; ``yes``: the cloud is one tree; ``no``: it is a plot.
@@ -124,6 +126,13 @@ class SingleTreeParams(Params):
         1,
         10**6,
         "Fewer points than this in the lowest metre at the stem, without ground under it: the tree's base is uncertain (the cloud may be cut at the bottom)",
+    )
+    cut_stem_gap_m: float = _p(
+        0.5,
+        "m",
+        0.0,
+        10.0,
+        "A stem-curve section this close below the cloud's top, at least 5 cm and half the stem's median section across: the cloud ends on the stem (cut above), its height a lower bound",
     )
 
     def _check(self) -> None:
@@ -591,3 +600,23 @@ def flat_dem(points: np.ndarray, z: float, resolution_m: float = 0.5):
     lo = p[:, :2].min(axis=0) - resolution_m / 2.0
     n = np.ceil((p[:, :2].max(axis=0) - lo) / resolution_m).astype(int) + 1
     return Dem(float(lo[0]), float(lo[1]), float(resolution_m), np.full((int(n[1]), int(n[0])), float(z)))
+
+
+def stem_cut_at_top(
+    curve: StemCurve, stem: Stem, top_z: float, params: SingleTreeParams = SingleTreeParams()
+) -> Optional[tuple[float, float]]:
+    """Where a single-tree cloud ends on its stem: ``(diameter_m, depth_m)`` of the stem curve's
+    highest accepted section when it lies at most ``params.cut_stem_gap_m`` below the cloud's
+    top ``top_z`` (m, the frame's z) and is at least 5 cm and half the median of the accepted
+    sections across; None otherwise. A tree's stem tapers to twigs well below its top, so a
+    cloud whose top is a section of its trunk was cut above (a trunk clipped from a larger
+    tree): its top is a lower bound of the tree's height."""
+    ok = np.asarray(curve.accepted, dtype=bool) & np.isfinite(curve.diameter_m)
+    if not ok.any():
+        return None
+    s, d = np.asarray(curve.s_m)[ok], np.asarray(curve.diameter_m)[ok]
+    k = int(np.argmax(s))
+    depth = float(top_z - stem.point_at(s[k])[2])
+    if depth > params.cut_stem_gap_m or d[k] < max(0.05, 0.5 * float(np.median(d))):
+        return None
+    return float(d[k]), max(depth, 0.0)
