@@ -186,6 +186,14 @@ def test_a_top_stands_only_on_evidence():
     assert _judge(_crown(1.05 * c, offset=0.8, ratio=0.4, layer=0.45))[0] == "high"  # above the curve: its own
     trust, _, fill, flags = _judge(_crown(0.85 * c, offset=0.8, ratio=0.4, layer=0.45))
     assert trust == "medium" and not flags and fill == pytest.approx(c)  # 15 % short: the curve stands in
+    # a tip 20 % above the curve: beyond a tight curve's band, within twice a loose curve's scatter
+    # (a stand of several species or ages)
+    trust, how, fill, flags = _judge(_crown(1.2 * c))
+    assert fill == pytest.approx(c) and "not taken" in how  # the tight curve stands in
+    loose = replace(CURVE, scatter=0.12)
+    trust, how, fill, flags = _judge(_crown(1.2 * c), curve=loose)
+    assert trust == "high" and not flags and math.isnan(fill) and "apex seen as a tip" in how
+    assert _judge(_crown(1.3 * c), curve=loose)[0] == "low"
 
 
 def test_the_curve_vouches_for_no_suppressed_tree():

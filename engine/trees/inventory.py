@@ -1289,7 +1289,8 @@ def _judge_top(
     the first three):
 
     1. Its apex seen as a tip (under a neighbour's crown, or beside a thicker stem), at most
-       :attr:`.allometry.HeightCurveParams.clear_above` above the curve: the points' top stands,
+       :attr:`.allometry.HeightCurveParams.clear_above` above the curve (widened for a loose curve,
+       :meth:`.allometry.HeightCurve.clear_band`): the points' top stands,
        however far below the curve (a suppressed tree). Under a neighbour's crown it needs a
        curve (without one it may be a lower part of a tree whose top is hidden in that crown).
        So does a top under a neighbour's crown and clear of it by at least
@@ -1375,11 +1376,14 @@ def _judge_top(
     )
     reaches = params.min_neighbour_reach > 0 and reach >= params.min_neighbour_reach
     tip = apex_tip(crown, params.crown)
+    # how far above the curve a top standing clear over its stem may stand: clear_above, widened
+    # for a loose curve (a stand of several species or ages) to clear_scatter times its scatter
+    clear_above = curve.clear_band(hc)[1] if curve is not None else hc.clear_above
     if h_trust != "low" and math.isfinite(crown.height_m):
         if (
             tip
             and names - {"clear"} <= {"under", "reach"}
-            and not dep > hc.clear_above
+            and not dep > clear_above
             and not ("under" in names and not math.isfinite(dep))
         ) or (
             "clear" in names
@@ -2170,6 +2174,15 @@ def _single_tree_inventory(
             why = f"the cloud ends on the stem ({cut[0]:.2f} m across {cut[1]:.2f} m below its top): cut above"
             quality["height"] = f"top of the single-tree cloud above its base ({base_how}), {why}, a lower bound; low"
             flags.append(f"height a lower bound: {why}")
+        elif crown.height_m < stem_params.breast_height_m:
+            # no tree stands below breast height with a measurable stem: a seedling's cloud, or a
+            # piece cut from a tree (a trunk section, a stump) whose top says nothing of the tree's
+            why = (
+                f"the cloud reaches {crown.height_m:.2f} m above its base, below breast height "
+                f"({stem_params.breast_height_m:g} m): a seedling, or a piece cut from a tree"
+            )
+            quality["height"] = f"top of the single-tree cloud above its base ({base_how}), {why}; low"
+            flags.append(f"height unsure: {why}")
     if crown.ok:
         quality["crown"] = "crown points of the single-tree cloud; high"
     warning = ""
