@@ -186,6 +186,13 @@ def test_a_top_stands_only_on_evidence():
     assert _judge(_crown(1.05 * c, offset=0.8, ratio=0.4, layer=0.45))[0] == "high"  # above the curve: its own
     trust, _, fill, flags = _judge(_crown(0.85 * c, offset=0.8, ratio=0.4, layer=0.45))
     assert trust == "medium" and not flags and fill == pytest.approx(c)  # 15 % short: the curve stands in
+    # its highest point right over the stem axis, its top metre too wide for a tip (a leader among
+    # its branches): its own apex down to 20 % below the curve, no further
+    leader = dict(offset=0.1, ratio=0.05, layer=0.45)
+    trust, how, fill, flags = _judge(_crown(0.85 * c, **leader))
+    assert trust == "medium" and not flags and math.isnan(fill) and "over the stem axis" in how
+    trust, how, fill, flags = _judge(_crown(0.75 * c, **leader))
+    assert trust == "medium" and fill == pytest.approx(c) and "over the stem axis" not in how
     # a tip 20 % above the curve: beyond a tight curve's band, within twice a loose curve's scatter
     # (a stand of several species or ages)
     trust, how, fill, flags = _judge(_crown(1.2 * c))

@@ -131,6 +131,13 @@ class HeightCurveParams(Params):
         10.0,
         "...and at most this fraction above it (an apex seen as a tip: any height below, at most this above); beyond, the height is low and the curve gives the estimate",
     )
+    axis_below: float = _p(
+        0.20,
+        "1",
+        0.0,
+        1.0,
+        "A top with no hint whose highest point stands over the stem axis (within the crown's tip_max_offset of the crown radius), its top metre too wide for a tip (a leader among its branches), keeps its points' height down to this fraction below the curve: its own apex, seen (a missed apex leaves the highest point on the crown's flank)",
+    )
     clear_scatter: float = _p(
         2.0,
         "1",

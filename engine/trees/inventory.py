@@ -1316,7 +1316,12 @@ def _judge_top(
        neighbour's crown may be that neighbour's.
        The height stands; where the points' top, not a tip, stands below the curve and the curve
        may stand in (:meth:`.allometry.HeightCurve.fill_refusal`; a trusted DBH within its
-       range) the curve's height is given instead: a missed apex only shortens a tree.
+       range) the curve's height is given instead: a missed apex only shortens a tree. A top with
+       no hint whose highest point stands over the stem axis (within
+       :attr:`.crown.CrownParams.tip_max_offset` of the crown radius), its top metre too wide for
+       a tip, stands on its own (medium) from ``clear_below`` down to ``axis_below`` below the
+       curve: a leader among its branches, its own apex (a missed apex leaves the highest point on
+       the crown's flank).
     3. Otherwise the height is low. A top with no hint beyond that band but within
        :meth:`.allometry.HeightCurve.clear_band` (the band widened to ``clear_scatter`` times a
        loose curve's scatter: in a stand of several species or ages trees depart that far on
@@ -1425,6 +1430,22 @@ def _judge_top(
             # without a curve to check it, a top with no hint stands only as a tip: a crown whose
             # top the scanners' view cut, or hid behind other crowns, shows no hint either
             witnesses = dep_text + " (consistent)" if dep_text else ", its apex seen as a tip over the stem"
+        elif (
+            not names
+            and not tip
+            and crown.top_offset_ratio <= params.crown.tip_max_offset
+            and -hc.axis_below <= dep < -hc.clear_below
+        ):
+            # its highest point right over the stem axis, its top metre too wide for a tip (a
+            # leader among its branches): its own apex, seen; a missed apex leaves the highest
+            # point on the crown's flank, and the curve stands such a tree too tall
+            return (
+                _trust(h_trust, "medium"),
+                f"{h_how}{dep_text} (its highest point over the stem axis: its own apex)",
+                nan,
+                top_flags,
+                "curve",
+            )
         elif (
             names
             and names <= {"flank", "missing", "flat", "reach"}
