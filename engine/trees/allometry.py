@@ -136,7 +136,14 @@ class HeightCurveParams(Params):
         "1",
         0.0,
         1.0,
-        "A top with no hint whose highest point stands over the stem axis (within the crown's tip_max_offset of the crown radius), its top metre too wide for a tip (a leader among its branches), keeps its points' height down to this fraction below the curve: its own apex, seen (a missed apex leaves the highest point on the crown's flank)",
+        "A top with no hint whose highest point stands over the stem axis (within the crown's tip_max_offset of the crown radius), its top metre too wide for a tip (a leader among its branches), keeps its points' height down to this fraction below the curve: its own apex, seen (a missed apex leaves the highest point on the crown's flank)...",
+    )
+    axis_above: float = _p(
+        0.30,
+        "1",
+        0.0,
+        10.0,
+        "...and up to this fraction above it, as does an apex seen as a tip: a neighbour's crown does not peak over another tree's stem",
     )
     clear_scatter: float = _p(
         2.0,

@@ -1289,8 +1289,8 @@ def _judge_top(
     the first three):
 
     1. Its apex seen as a tip (under a neighbour's crown, or beside a thicker stem), at most
-       :attr:`.allometry.HeightCurveParams.clear_above` above the curve (widened for a loose curve,
-       :meth:`.allometry.HeightCurve.clear_band`): the points' top stands,
+       :attr:`.allometry.HeightCurveParams.axis_above` above the curve (or a loose curve's
+       :meth:`.allometry.HeightCurve.clear_band`, if wider): the points' top stands,
        however far below the curve (a suppressed tree). Under a neighbour's crown it needs a
        curve (without one it may be a lower part of a tree whose top is hidden in that crown).
        So does a top under a neighbour's crown and clear of it by at least
@@ -1319,9 +1319,10 @@ def _judge_top(
        range) the curve's height is given instead: a missed apex only shortens a tree. A top with
        no hint whose highest point stands over the stem axis (within
        :attr:`.crown.CrownParams.tip_max_offset` of the crown radius), its top metre too wide for
-       a tip, stands on its own (medium) from ``clear_below`` down to ``axis_below`` below the
-       curve: a leader among its branches, its own apex (a missed apex leaves the highest point on
-       the crown's flank).
+       a tip, stands on its own (medium) beyond that band, down to ``axis_below`` below the curve
+       and up to ``axis_above`` above it: a leader among its branches, its own apex (a missed apex
+       leaves the highest point on the crown's flank, and a neighbour's crown does not peak over
+       this stem).
     3. Otherwise the height is low. A top with no hint beyond that band but within
        :meth:`.allometry.HeightCurve.clear_band` (the band widened to ``clear_scatter`` times a
        loose curve's scatter: in a stand of several species or ages trees depart that far on
@@ -1381,14 +1382,15 @@ def _judge_top(
     )
     reaches = params.min_neighbour_reach > 0 and reach >= params.min_neighbour_reach
     tip = apex_tip(crown, params.crown)
-    # how far above the curve a top standing clear over its stem may stand: clear_above, widened
+    # how far above the curve a top over the stem axis may stand: axis_above, or clear_above widened
     # for a loose curve (a stand of several species or ages) to clear_scatter times its scatter
-    clear_above = curve.clear_band(hc)[1] if curve is not None else hc.clear_above
+    axis_above = max(curve.clear_band(hc)[1] if curve is not None else hc.clear_above, hc.axis_above)
+    over_axis = crown.top_offset_ratio <= params.crown.tip_max_offset
     if h_trust != "low" and math.isfinite(crown.height_m):
         if (
             tip
             and names - {"clear"} <= {"under", "reach"}
-            and not dep > clear_above
+            and not dep > axis_above
             and not ("under" in names and not math.isfinite(dep))
         ) or (
             "clear" in names
@@ -1430,15 +1432,11 @@ def _judge_top(
             # without a curve to check it, a top with no hint stands only as a tip: a crown whose
             # top the scanners' view cut, or hid behind other crowns, shows no hint either
             witnesses = dep_text + " (consistent)" if dep_text else ", its apex seen as a tip over the stem"
-        elif (
-            not names
-            and not tip
-            and crown.top_offset_ratio <= params.crown.tip_max_offset
-            and -hc.axis_below <= dep < -hc.clear_below
-        ):
+        elif not names and not tip and over_axis and -hc.axis_below <= dep <= axis_above:
             # its highest point right over the stem axis, its top metre too wide for a tip (a
             # leader among its branches): its own apex, seen; a missed apex leaves the highest
-            # point on the crown's flank, and the curve stands such a tree too tall
+            # point on the crown's flank, a neighbour's crown does not peak over this stem, and
+            # the curve would stand such a tree too tall or too short
             return (
                 _trust(h_trust, "medium"),
                 f"{h_how}{dep_text} (its highest point over the stem axis: its own apex)",
