@@ -474,8 +474,8 @@ def test_one_real_stem_from_four_platforms_gives_no_wrong_dbh(shared_data) -> No
     stem is 0.39-0.45 m across at 0.5-0.8 m above the ground, where circles fitted to each
     platform's points agree (TLS 0.42, MLS 0.40). The TLS, MLS and leaf-on drone clouds end 1.0 m above the ground, so
     no breast height: no DBH. The leaf-off flight reaches 1.75 m with 34 scattered returns round
-    breast height; a 0.76 m circle drawn through some of them, with others inside it, once stood
-    as the DBH: it is withheld now, or, if given, near the stem's own diameter."""
+    breast height; a 0.76 m circle drawn through some of them, with others inside it, is no DBH:
+    the DBH is withheld, or, if given, near the stem's own diameter."""
     from forestreg.engine.io import read_scan
     from forestreg.engine.trees.inventory import TreeParams, measure_trees
 
@@ -487,5 +487,4 @@ def test_one_real_stem_from_four_platforms_gives_no_wrong_dbh(shared_data) -> No
         inv = measure_trees(pts - np.floor(pts.min(axis=0)), TreeParams(cylinder_models=False))
         assert len(inv.trees) == 1, name
         dbh = inv.trees[0].dbh_m
-        print(name, dbh, inv.trees[0].quality["dbh"])
         assert not math.isfinite(dbh) or 0.34 <= dbh <= 0.50, (name, dbh)
