@@ -39,7 +39,7 @@ from .allometry import HeightCurve, HeightCurveParams, fit_height_curve
 from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
 from .crown import CrownMeasurement, CrownParams, apex_tip, measure_crown, top_cut_flat, top_over_stem
-from .leafwood import LeafWoodParams, wood_probability
+from .leafwood import LeafWoodParams, wood_along_paths, wood_probability
 from .qsm import CylinderModel, QsmParams, fit_qsm
 from .segmentation import (
     CompletenessParams,
@@ -1175,7 +1175,7 @@ def tree_record(
     # --- cylinder model, on the wood points, its stem made consistent with the stem curve
     cylinders = None
     if params.cylinder_models and len(idx) >= 50:
-        w = wood[idx] >= params.wood_threshold
+        w = wood_along_paths(tree_pts, wood[idx], stem.base, params.leafwood, params.wood_threshold)
         if np.count_nonzero(w) >= 200:
             try:
                 # the model's DBH is read at the inventory's one breast height (its stems')

@@ -42,6 +42,9 @@ from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
 import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
 
 from ..core.errors import ParameterError
 from ..core.jit import kernel, run_blocks, worker_count
@@ -129,6 +132,29 @@ class LeafWoodParams(Params):
         "Probabilities are averaged over neighbours within this radius (0 = off)",
     )
     smoothing_neighbours: int = _p(16, "points", 1, 200, "At most this many nearest neighbours are averaged")
+    path_min_extent_m: float = _p(
+        1.0,
+        "m",
+        0.0,
+        100.0,
+        "Per tree, a point on the shortest paths from the stem's foot to points at least this much "
+        "farther along the tree is wood: it carries part of the tree (a branch whose points leaves "
+        "hide from the local shapes); a leaf or a twig's tip leads nowhere (0 = off)",
+    )
+    path_min_probability: float = _p(
+        0.2,
+        "1",
+        0.0,
+        1.0,
+        "...if its wood probability is at least this (a point clearly scattered like foliage stays leaf)",
+    )
+    path_max_step_m: float = _p(
+        0.3, "m", 0.01, 5.0, "The paths step between points at most this far apart (a wider gap ends them)"
+    )
+    path_neighbours: int = _p(10, "points", 2, 100, "The paths step to a point's nearest neighbours, at most this many")
+    path_voxel_m: float = _p(
+        0.02, "m", 0.001, 1.0, "The paths run over the tree's points thinned to voxels of this size (speed)"
+    )
     seed: int = _p(0, "1", 0, 2**31 - 1, "Seed of the random sample and the mixture's initialisation")
 
     def _check(self) -> None:
@@ -640,6 +666,60 @@ def wood_probability(
     prob = smooth_over_neighbours(base, prob, prm.smoothing_radius_m, prm.smoothing_neighbours)
     progress(1.0, "leaf-wood separation done")
     return np.clip(prob[base_of_point], 0.0, 1.0)
+
+
+def wood_along_paths(
+    points: np.ndarray,
+    probability: np.ndarray,
+    root: np.ndarray,
+    params: LeafWoodParams = LeafWoodParams(),
+    threshold: float = 0.5,
+) -> np.ndarray:
+    """Wood points (N,) bool of one tree: those whose wood ``probability`` is at least
+    ``threshold``, and those the tree's shortest paths run through on their way from its foot to
+    points at least ``params.path_min_extent_m`` farther along the tree, if their probability is
+    at least ``params.path_min_probability``.
+
+    A branch carries the points beyond it: every shortest path from the stem's foot to the twigs
+    and leaves it bears runs along it, while a leaf (or a twig's tip) leads nowhere. In a crown in
+    leaf the local shapes call much of a branch foliage (its points few and leaves around them);
+    the paths find it again. Points and ``root`` (3,) in metres, one frame; the paths run over the
+    points thinned to ``path_voxel_m`` voxels, stepping to each one's ``path_neighbours``
+    nearest within ``path_max_step_m``, from the voxel nearest ``root`` (the stem's foot). Points
+    out of reach of the root keep their own verdict."""
+    p = np.asarray(points, dtype=np.float64)
+    prob = np.asarray(probability, dtype=np.float64)
+    wood = prob >= threshold
+    if params.path_min_extent_m <= 0.0 or len(p) < 2:
+        return wood
+    centres, voxel_of_point = voxel_centroids(p, params.path_voxel_m)
+    n = len(centres)
+    k = min(params.path_neighbours, n - 1)
+    if k < 1:
+        return wood
+    d, nb = cKDTree(centres).query(centres, k=k + 1, distance_upper_bound=params.path_max_step_m)
+    d, nb = d[:, 1:], nb[:, 1:]
+    ok = nb < n
+    rows = np.repeat(np.arange(n), k)[ok.ravel()]
+    graph = sparse.csr_matrix((np.maximum(d[ok], 1e-9), (rows, nb[ok])), shape=(n, n))
+    start = int(np.argmin(np.linalg.norm(centres - np.asarray(root, dtype=np.float64)[None, :3], axis=1)))
+    dist, pred = csgraph.dijkstra(graph, directed=False, indices=start, return_predecessors=True)
+    reached = np.isfinite(dist)
+    order = np.flatnonzero(reached)[np.argsort(-dist[reached], kind="stable")]
+    reach = np.where(reached, dist, -np.inf)
+    _farthest_beyond(order, pred.astype(np.int64), reach)
+    carries = np.where(reached, reach - dist, 0.0) >= params.path_min_extent_m
+    return wood | (carries[voxel_of_point] & (prob >= params.path_min_probability))
+
+
+@kernel
+def _farthest_beyond(order, pred, reach):  # pragma: no cover - compiled
+    """``reach[q]``: the largest path distance of any node whose shortest path runs through q
+    (``order``: the reached nodes, farthest first; ``pred`` each one's predecessor, < 0 none)."""
+    for i in order:
+        q = pred[i]
+        if q >= 0 and reach[i] > reach[q]:
+            reach[q] = reach[i]
 
 
 def classify_wood(
