@@ -9,6 +9,7 @@ status and how fast it comes, and that SIGTERM always ends the service and unloc
 
 from __future__ import annotations
 
+import csv
 import fcntl
 import json
 import os
@@ -782,3 +783,36 @@ def test_a_centre_scan_with_a_good_header_but_damaged_points_is_never_ok(tiny, t
     assert poses["scans"][centre.name]["status"] == "failed" and poses["scans"][centre.name]["matrix"] is None
     assert "0 of 2 scans registered" in run.stderr
     assert {p: _hash(p) for p in inputs} == before
+
+
+def test_stray_points_far_from_the_cloud_are_left_out(shared_data, tmp_path):
+    """Three returns 800 m off and one 500 m under a real plot: the cloth of the ground filter
+    would span the empty kilometre (minutes of work the signals cannot stop) and the point under
+    the plot would pull its ground down. They are left out with a warning, and the trees are those
+    of the plot alone."""
+    from forestreg.engine.core.scan import Scan
+    from forestreg.engine.geometry.cluster import stray_points
+    from forestreg.engine.io import read_scan, write_scan
+    from forestreg.engine.trees.inventory import measure_trees
+
+    scan = read_scan(shared_data / "pine_plot.laz")
+    p = np.asarray(scan.points, dtype=np.float64)
+    mid = np.median(p, axis=0)
+    far = mid + np.array([[800.0, 0.0, 0.0], [800.0, 3.0, 1.0], [801.0, -2.0, 0.5], [0.0, 0.0, -500.0]])
+    q = np.vstack([p, far])
+    stray = stray_points(q)
+    assert stray[-4:].all() and not stray[:-4].any()
+    # two plots of one size 100 m apart are both kept: neither is a stray
+    assert not stray_points(np.vstack([p, p + [100.0, 0.0, 0.0]])).any()
+    path = tmp_path / "with_strays.laz"
+    write_scan(Scan.from_points(q), path)
+    t = time.monotonic()
+    run = _run("trees", path, "--out", tmp_path / "out", "--no-cylinders", "--no-report", timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert time.monotonic() - t < 120
+    assert "4 stray points left out" in run.stderr
+    alone = measure_trees(p - np.floor(p.mean(axis=0)), single_tree=False)
+    with open(tmp_path / "out" / "trees.csv", newline="") as f:
+        got = [float(r["height_m"]) for r in csv.DictReader(f)]
+    assert len(got) == len(alone.trees) == 16
+    assert np.allclose(np.sort(got), np.sort([r.height_m for r in alone.trees]), atol=0.2)

@@ -10,8 +10,9 @@ import numpy as np
 
 from ..core.jit import kernel
 from .features import SphereGrid, first_at_least
+from .voxel import voxel_centroids
 
-__all__ = ["connected_clusters"]
+__all__ = ["connected_clusters", "stray_points"]
 
 
 @kernel
@@ -114,3 +115,30 @@ def connected_clusters(points: np.ndarray, distance_m: float, *, reach_m: Option
     d = float(distance_m)
     _link_pairs(d * d, reach2, parent, *grid.args())
     return _number_by_first_point(parent)
+
+
+def stray_points(points: np.ndarray, gap_m: float = 20.0, max_share: float = 0.001) -> np.ndarray:
+    """(N,) bool: points standing apart from the cloud, more than about ``gap_m`` from it, in
+    groups that together hold at most ``max_share`` of the points (a few returns from a bird, a
+    far wall or a bad range, stray points kept by a clip). Points (N, 3) in metres.
+
+    The cloud is thinned to voxels of ``gap_m / 2`` and their centroids linked within ``gap_m``
+    (:func:`connected_clusters`); the group holding the most points is the cloud, and the others
+    are strays while their points add up to at most ``max_share`` of all (two plots in one file
+    are kept, both). None of them in a cloud without such groups."""
+    p = np.asarray(points, dtype=np.float64)
+    stray = np.zeros(len(p), dtype=bool)
+    if len(p) < 2 or gap_m <= 0:
+        return stray
+    centres, voxel_of_point = voxel_centroids(p, gap_m / 2.0)
+    if len(centres) < 2:
+        return stray
+    group = connected_clusters(centres, gap_m)
+    counts = np.bincount(group, weights=np.bincount(voxel_of_point, minlength=len(centres)))
+    if len(counts) < 2:
+        return stray
+    others = np.argsort(counts)[:-1]  # every group but the largest, fewest points first
+    within = others[np.cumsum(counts[others]) <= max_share * len(p)]
+    if len(within):
+        stray = np.isin(group, within)[voxel_of_point]
+    return stray

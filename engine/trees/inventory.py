@@ -28,7 +28,7 @@ from ..core.outcome import Outcome
 from ..core.params import Params
 from ..core.params import param_field as _p
 from ..core.progress import Progress, ProgressCallback, as_progress
-from ..geometry.cluster import connected_clusters
+from ..geometry.cluster import connected_clusters, stray_points
 from ..geometry.columns import ColumnIndex
 from ..geometry.sorting import order_by_label
 from ..geometry.voxel import voxel_representatives
@@ -117,6 +117,16 @@ class TreeParams(Params):
     thin_voxel_m: float = _p(
         0.015, "m", 0.001, 0.1, "side of the voxels of that thinning (finer than the leaf-wood separation's own 0.02 m)"
     )
+    #: a few points far from the rest (a bird, a far wall, a bad range) would stretch the ground
+    #: model over empty space, or pull it down under the trees
+    stray_gap_m: float = _p(
+        20.0,
+        "m",
+        0.0,
+        1e6,
+        "points more than about this far from the rest of the cloud, together at most stray_max_share of it, are left out as strays (0: kept)",
+    )
+    stray_max_share: float = _p(0.001, "1", 0.0, 0.5, "the largest share of the points left out as strays")
     #: ground-based clouds hold 0.1 and more (a TLS plot of tall trees without ground 0.04, but its
     #: stems are dense), airborne ones 0.005-0.03
     airborne_band_ratio: float = _p(
@@ -499,11 +509,47 @@ def measure_trees(
         _measure_trees, params=params, progress=progress, origin_shift=origin_shift, single_tree=single_tree
     )
     try:
+        stray = stray_points(p, params.stray_gap_m, params.stray_max_share)
+        if stray.any():
+            return _measure_without_strays(p, stray, params, measure)
         if params.thin_above_points and len(p) > params.thin_above_points:
             return _measure_thinned(p, params, measure)
         return measure(p)
     except ScanDataError as exc:  # the data do not allow it: a failed outcome, as a registration gives
         return TreeInventory.failed(str(exc), len(p), origin_shift)
+
+
+def _measure_without_strays(
+    p: np.ndarray, stray: np.ndarray, params: TreeParams, measure: Callable[[np.ndarray], TreeInventory]
+) -> TreeInventory:
+    """:func:`measure_trees` of a cloud with stray points (``stray``, :func:`stray_points`): the
+    trees measured on the rest, the strays in no tree, not ground, without a wood probability and
+    their heights above the same DEM; the warning says how many and how far."""
+    rest = p[~stray]
+    far = float(np.max(np.linalg.norm(p[stray] - np.median(rest, axis=0), axis=1)))
+    log.warning(
+        "%d stray point%s left out: more than %g m from the rest of the cloud (up to %.0f m from its middle)",
+        int(stray.sum()),
+        "" if stray.sum() == 1 else "s",
+        params.stray_gap_m,
+        far,
+    )
+    if params.thin_above_points and len(rest) > params.thin_above_points:
+        inventory = _measure_thinned(rest, params, measure)
+    else:
+        inventory = measure(rest)
+    if not inventory:
+        return TreeInventory.failed(inventory.reason, len(p), inventory.origin_shift, inventory.timings)
+    labels = np.zeros(len(p), dtype=inventory.labels.dtype)
+    labels[~stray] = inventory.labels
+    wood = np.full(len(p), np.nan)
+    wood[~stray] = inventory.wood_probability
+    ground = np.zeros(len(p), dtype=bool)
+    ground[~stray] = inventory.ground
+    heights = np.empty(len(p))
+    heights[~stray] = inventory.heights
+    heights[stray] = inventory.dem.normalise(p[stray])
+    return dataclasses.replace(inventory, labels=labels, heights=heights, wood_probability=wood, ground=ground)
 
 
 def _measure_thinned(
