@@ -29,7 +29,7 @@ from typing import ClassVar, Optional
 
 import numpy as np
 
-from .common import UNITS, RunOutcome, check_units, outcome_of, run_summary, with_cancel
+from .common import UNITS, RunOutcome, check_units, outcome_of, refuse_same_file, run_summary, with_cancel
 
 __all__ = ["ChangeOutcome", "ChangeSummary", "change_rows", "detect_change_files", "read_change_folder", "read_epoch"]
 
@@ -142,15 +142,6 @@ def _input_kind(path: Path) -> str:
 def _real_input(path: Path) -> Path:
     """The file an input stands for: a folder's ``trees.csv``, links and ``..`` resolved."""
     return ((path / "trees.csv") if path.is_dir() else path).resolve()
-
-
-def _same_input(a: Path, b: Path) -> bool:
-    import os
-
-    try:
-        return a == b or os.path.samefile(a, b)
-    except OSError:
-        return False
 
 
 def _read_table(path: Path, role: str, scale: float, change_params):
@@ -362,8 +353,7 @@ def detect_change_files(
     b_path, a_path = Path(before), Path(after)
 
     def same_refused(b: Path, a: Path) -> None:
-        if _same_input(b, a):
-            raise UsageError(f"BEFORE and AFTER are the same file ({b}): give the two surveys")
+        refuse_same_file(b, a, "BEFORE and AFTER are the same file: give the two surveys")
 
     same_refused(b_path.resolve(), a_path.resolve())
     kinds = (_input_kind(b_path), _input_kind(a_path))  # both checked before any work

@@ -142,6 +142,25 @@ def check_inputs_exist(*paths) -> None:
             check_readable(p)
 
 
+def same_file(a, b) -> bool:
+    """Whether paths ``a`` and ``b`` name one file (links and ``..`` resolved; False when either
+    cannot be looked at)."""
+    import os
+
+    try:
+        return Path(a).resolve() == Path(b).resolve() or os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def refuse_same_file(a, b, message: str) -> None:
+    """A :class:`~forestreg.engine.core.errors.UsageError` (exit 2) saying ``message`` (with the
+    file named) when ``a`` and ``b`` are one file: a command comparing two inputs given one twice
+    would report a perfect, meaningless match."""
+    if a is not None and b is not None and same_file(a, b):
+        raise UsageError(f"{message} ({a})")
+
+
 class UnitError(UsageError, ScanDataError):
     """A cloud's coordinates are not in the unit given (``--units``, or metres for the Python API):
     raised by :func:`check_units` with the likely unit. A

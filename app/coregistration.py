@@ -26,6 +26,7 @@ from .common import (
     check_units,
     outcome_of,
     params_of,
+    refuse_same_file,
     run_summary,
     scan_source,
     with_cancel,
@@ -179,6 +180,8 @@ def coregister_clouds(
         params = default_params()
     scale = UNITS[units]
     paths = [x for x in (ground, uav) if isinstance(x, (str, Path))]
+    if len(paths) == 2:
+        refuse_same_file(*paths, "GROUND and UAV are the same file: a cloud cannot be co-registered onto itself")
     if out is not None:
         out = check_output_folder(out, "coregister", inputs=paths)
     progress = with_cancel(progress, cancel)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Optional, Sequence, Union
 
-from .common import RunOutcome
+from .common import RunOutcome, refuse_same_file
 
 if TYPE_CHECKING:
     from ..engine.trees.evaluate import Evaluation
@@ -50,6 +50,8 @@ def evaluate_tables(
     from ..engine.core.atomic import check_output_folder, output_folder
     from ..engine.trees.evaluate import read_tree_table
 
+    for _, path in named:
+        refuse_same_file(path, field_path, "the tree table and the field records are the same file")
     out = check_output_folder(out, "evaluate", inputs=[field_path, *[p for _, p in named]])
     field_table = read_tree_table(field_path)
     tables = [(name, read_tree_table(path)) for name, path in named]  # every table checked before the work

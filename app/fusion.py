@@ -23,6 +23,7 @@ from .common import (
     check_replaceable_point_file,
     check_units,
     params_of,
+    refuse_same_file,
     with_cancel,
 )
 from .units import unit_of_scale
@@ -105,6 +106,7 @@ def fuse_clouds(
     scale = UNITS[units]
     check_readable(ground_path)
     check_readable(uav_path)
+    refuse_same_file(ground_path, uav_path, "GROUND and UAV are the same file: a cloud is not fused with itself")
     frame = frame_crs(
         {"ground": read_crs(ground_path), "uav": read_crs(uav_path)},
         "uav",

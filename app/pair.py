@@ -25,6 +25,7 @@ from .common import (
     import_in_background,
     outcome_of,
     params_of,
+    refuse_same_file,
     run_summary,
     scan_source,
     with_cancel,
@@ -82,10 +83,9 @@ def register_pair(
         raise UsageError("--scanner-position is given at most twice (reference, then moving)")
     if len(ups) > 2:
         raise UsageError("--up is given at most twice (reference, then moving)")
-    if Path(reference_path).resolve() == Path(moving_path).resolve():
-        raise UsageError(
-            f"REFERENCE and MOVING are the same file ({reference_path}): a scan cannot be registered onto itself"
-        )
+    refuse_same_file(
+        reference_path, moving_path, "REFERENCE and MOVING are the same file: a scan cannot be registered onto itself"
+    )
     scale = UNITS[units]
     if out is not None:
         out = check_output_folder(out, "register", inputs=[reference_path, moving_path])

@@ -110,6 +110,10 @@ def main(argv: Optional[Sequence[str]] = None, *, tune_malloc: bool = False) -> 
         )
     elif args.verbose:
         logging.getLogger("forestreg").setLevel(logging.INFO)
+    # the libraries' own reports of a file they cannot read come before forestreg's one line that
+    # says which file and why (laspy logs a damaged LAZ as an error of its own)
+    for library in ("laspy", "distributed"):
+        logging.getLogger(library).setLevel(logging.DEBUG if args.verbose else logging.CRITICAL)
     if tune_malloc and args.command in MALLOC_TUNED_COMMANDS and _small_scans(args):
         _tune_malloc()
         if args.command == "register":

@@ -411,8 +411,10 @@ def test_evaluate_prints_r2_as_undefined_on_constant_or_single_field_values(tmp_
     one.write_text("tree_id,x,y,dbh_m,height_m\n1,0,0,0.3,20\n", encoding="utf-8")
     for table, why in ((est, "field values all equal"), (one, "fewer than 2 pairs")):
         out = tmp_path / f"E_{table.stem}"
+        field = tmp_path / f"field_{table.name}"  # the same records as field data (one file twice is refused)
+        field.write_bytes(table.read_bytes())
         run = subprocess.run(
-            [sys.executable, "-m", "forestreg.cli", "evaluate", str(table), str(table), "--out", str(out)],
+            [sys.executable, "-m", "forestreg.cli", "evaluate", str(table), str(field), "--out", str(out)],
             capture_output=True,
             text=True,
             timeout=120,

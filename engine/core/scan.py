@@ -105,7 +105,9 @@ class Scan:
         n_in = len(pts)
         # a finite total means every value is finite (NaN and +-inf propagate): the row-by-row
         # test only for clouds that hold some
-        finite = np.isfinite(pts).all(axis=1) if not np.isfinite(pts.sum()) else None
+        with np.errstate(invalid="ignore", over="ignore"):  # +inf + -inf: NaN, and no warning
+            total = pts.sum()
+        finite = np.isfinite(pts).all(axis=1) if not np.isfinite(total) else None
         n_bad = 0 if finite is None else int(n_in - finite.sum())
         if n_in and n_bad > MAX_NONFINITE_FRACTION * n_in:
             raise ScanDataError(

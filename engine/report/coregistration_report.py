@@ -84,7 +84,8 @@ def coregistration_png(
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
         ax.set_title(title, fontsize=10)
-        ax.legend(loc="upper right", fontsize=8)
+        if ax.get_legend_handles_labels()[1]:
+            ax.legend(loc="upper right", fontsize=8)
     if panels == 3 and matrix is not None:
         ax = axes[2]
         g = apply_transform(matrix, profile_sample(ground_points, "ground"))
