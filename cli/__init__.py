@@ -134,7 +134,9 @@ def main(argv: Optional[Sequence[str]] = None, *, tune_malloc: bool = False) -> 
         return 0
     except KeyboardInterrupt:
         INTERRUPTED.set()  # also when Python's own handler raised it (Ctrl-C off our handler)
-        code, message = EXIT_INTERRUPTED, "interrupted: the output was left as it was before the run"
+        code = EXIT_INTERRUPTED
+        said = getattr(args, "interrupted_message", None)  # a command's own account of what it kept
+        message = (said() if callable(said) else "") or "interrupted: the output was left as it was before the run"
         _error(message)
         return code
     except DataError as exc:

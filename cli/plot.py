@@ -343,6 +343,16 @@ def cmd_plot(args: argparse.Namespace) -> int:
             err=True,
         )
 
+    def interrupted() -> str:
+        # a plot run keeps what it has linked (OUT/project.json) so that the same command resumes it
+        if not (Path(args.out) / "project.json").is_file():
+            return ""
+        return (
+            f"interrupted: the links registered so far are kept in {shown(Path(args.out))} (project.json); "
+            "the same command resumes from them"
+        )
+
+    args.interrupted_message = interrupted
     run = run_outcome(
         args.reporter,
         plot_scans,

@@ -195,6 +195,7 @@ BAD_INPUT = {
     "coregister a cloud onto itself": ["coregister", "{A}", "{A}", "--out", "{O}"],
     "fuse a cloud with itself": ["fuse", "{A}", "{T}/../{T.name}/{A.name}", "--out", "{O}.laz"],
     "evaluate a table against itself": ["evaluate", "{X}/text.csv", "{X}/text.csv", "--out", "{O}"],
+    "--out under a file": _pair_into_out("register")[:-1] + ["{X}/other.txt/sub"],
     "plot of one scan": ["plot", "{A}", "--out", "{O}"],
     "plot with a scan twice": ["plot", "{A}", "{B}", "{A}", "--out", "{O}"],
     "compare without targets": _pair_into_out("compare"),
@@ -765,6 +766,29 @@ def test_sigkill_mid_plot_then_resume_keeps_the_finished_links(tiny, tmp_path):
     )
     assert all(link.get("result") for link in data["links"])
     assert (out / "poses.json").exists()
+
+
+def test_ctrl_c_mid_plot_says_what_it_kept(tiny, tmp_path):
+    """Ctrl-C once a link is saved: exit 130 and one line saying the links are kept for the same
+    command to resume (not "left as it was before the run": the folder holds project.json)."""
+    _, paths, _ = tiny
+    out = tmp_path / "plot"
+    proc = _cli("plot", *map(str, paths), "--out", str(out), "--dr", "10", "-q")
+    end = time.monotonic() + 600
+    while time.monotonic() < end and proc.poll() is None:
+        try:
+            if any(link.get("result") for link in json.loads((out / "project.json").read_text()).get("links", [])):
+                break
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.1)
+    assert proc.poll() is None, "the plot ended before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    line = _assert_one_line(err)
+    assert "kept in" in line and "resumes" in line and "left as it was" not in line, line
+    assert (out / "project.json").is_file()
 
 
 def test_two_runs_into_one_folder_leave_one_complete_result(tiny, tmp_path):

@@ -144,6 +144,9 @@ def check_output_folder(path: str | os.PathLike[str], kind: str, *, inputs: "tup
                     f"--out {target} holds the output of 'forestreg {earlier}', not of '{kind}': give another folder"
                 )
     parent = resolved.parent
+    nearest = next(a for a in (parent, *parent.parents) if a.exists())
+    if not nearest.is_dir():
+        raise OutputPathError(f"--out {target}: {nearest} is a file, not a folder: give a new folder")
     if not parent.exists():
         try:
             parent.mkdir(parents=True, exist_ok=True)
