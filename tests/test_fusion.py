@@ -338,6 +338,19 @@ def test_bad_input_and_parameters():
         FusionParams(keep_source=3)
 
 
+def test_clouds_that_do_not_overlap_are_refused(planted):
+    """A ground-based cloud in millimetres read as metres, or moved by a wrong transform, lies
+    beside the UAV cloud: a fusion would only stack the two (nothing redundant). Refused, saying
+    how far apart they lie; clouds that touch are fused."""
+    ground, uav = planted["ground"], planted["uav"]
+    with pytest.raises(ScanDataError, match="do not overlap.*check the transform and the files' units"):
+        fuse(ground * 0.001 + [500.0, 0.0, 0.0], uav)
+    with pytest.raises(ScanDataError, match="do not overlap"):
+        fuse(ground + [0.0, 40.0, 0.0], uav)
+    edge = ground + [0.5 * np.ptp(ground[:, 0]), 0.0, 0.0]  # half beside it: still one stand
+    assert len(fuse(edge, uav).points) > 0
+
+
 def test_tree_tips_the_uav_adds_survive_the_noise_filter():
     """A dense ground-based cone (a conifer crown) and a sparse UAV sample of its upper part,
     reaching the tip the ground-based cloud never saw: the highest UAV points stay in the fused

@@ -187,6 +187,28 @@ def _check_source(source: Any, n: int) -> np.ndarray:
     return src.astype(np.uint8)
 
 
+def _check_overlap(ground: np.ndarray, uav: np.ndarray, sample: int = 100_000) -> None:
+    """ScanDataError when the two clouds, in one frame (metres), do not overlap in plan: the
+    ground-based cloud's extent (its 1st to 99th percentile in x and y, of a sample) lies wholly
+    outside the UAV cloud's. A fusion of such clouds only stacks them (no point is redundant):
+    the transform, or one file's unit, is wrong."""
+    if not len(ground) or not len(uav):
+        return
+    rng = np.random.default_rng(0)
+    g = ground[rng.choice(len(ground), sample)] if len(ground) > sample else ground
+    u = uav[rng.choice(len(uav), sample)] if len(uav) > sample else uav
+    g_lo, g_hi = np.percentile(g[:, :2], [1, 99], axis=0)
+    u_lo, u_hi = np.percentile(u[:, :2], [1, 99], axis=0)
+    if np.all(g_lo <= u_hi) and np.all(u_lo <= g_hi):
+        return
+    gap = float(np.linalg.norm(np.maximum(0.0, np.maximum(g_lo - u_hi, u_lo - g_hi))))
+    raise ScanDataError(
+        f"the clouds do not overlap: the ground-based cloud, moved by the transform, spans "
+        f"{g_hi[0] - g_lo[0]:.3g} x {g_hi[1] - g_lo[1]:.3g} m and lies {gap:.3g} m beside the UAV cloud's "
+        f"{u_hi[0] - u_lo[0]:.3g} x {u_hi[1] - u_lo[1]:.3g} m: check the transform and the files' units"
+    )
+
+
 # ------------------------------------------------------------------------------------------------
 # redundancy (paper 4.2.1)
 # ------------------------------------------------------------------------------------------------
@@ -652,6 +674,7 @@ def _fuse(merge: Callable[[], _Merged], params: FusionParams, prog: Progress) ->
     pts, n_ground, g_extra, u_extra = merged.points, merged.n_ground, merged.ground_extra, merged.uav_extra
     del merged
     n = len(pts)
+    _check_overlap(pts[:n_ground], pts[n_ground:])
     src = np.concatenate([np.full(n_ground, GROUND, np.uint8), np.full(n - n_ground, UAV, np.uint8)])
     t0 = time.perf_counter()
     prog(0.0, "fusion: removing redundant points")

@@ -442,12 +442,14 @@ class TreeInventory(TreeTablesFile, Outcome):
             "single": "in a single-tree cloud",
         }.get(self.method, self.method)
         canopy = sum(1 for t in self.trees if t.source == "canopy")
+        found = f"{n} tree{'' if n == 1 else 's'} found {how}"
         if self.method != "canopy" and canopy:
-            how += f" and {canopy} from the canopy"
+            # the stems' trees and the canopy's counted apart: "38 found from stems and 25 from the canopy" read as 63
+            found = f"{n} trees found: {n - canopy} {how} and {canopy} from the canopy"
         volume = f"{vol} with volume" if self.volume_asked else "volume not asked for (no cylinder models)"
         by_curve = sum(1 for t in self.trees if t.height_source == "curve")
         height = f"{h} with height" + (f" ({by_curve} from the height-diameter curve)" if by_curve else "")
-        return f"{n} tree{'' if n == 1 else 's'} found {how}: {dbh} with DBH, {height}, {volume}; {flagged} flagged"
+        return f"{found}: {dbh} with DBH, {height}, {volume}; {flagged} flagged"
 
     def rows(self) -> list[dict[str, Any]]:
         return [t.row(self.origin_shift) for t in self.trees]
