@@ -19,8 +19,9 @@ its points are leaves by forestreg's separation) at 11 cm between points, and gi
 6.2 m3 branches, 4.5 times its stem (total form factor 2.4; aRchi Tree_2 and tree1 1.8). A
 cylinder model of a raw cloud counts leaf clumps as wood: forestreg's own model of the raw Lille_2
 cloud gives 15.0 m3, and of the simulated leafy broadleaf at 10 cm 4.0 m3 for 1.8 m3 of wood (on
-its wood points alone 2.1 m3). On that simulated tree the leaf-wood separation keeps about half
-of the wood points (recall 0.54), so forestreg's branches fall short there.
+its wood points alone 2.1 m3). On that simulated tree the shape features keep about half of the
+wood points (recall 0.48) and the tree's shortest paths from its foot give back some (0.55, at the
+same precision 0.94); its branches still fall short (0.22 of 0.50 m3).
 
 Run from the repository root: ``python -m benchmarks.volume_treeqsm`` (about two minutes);
 ``--tree1 PATH`` reads aRchi's Tree_1 from another place.
