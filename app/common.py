@@ -12,7 +12,7 @@ import numpy as np
 
 from ..engine.core.errors import InvalidArgumentError, ParameterError, ScanDataError, UsageError
 from ..engine.core.outcome import Outcome
-from .units import UNITS, unit_of_scale, unit_problem  # noqa: F401 - metres per unit of the files' coordinates
+from .units import UNITS, precision_problem, unit_of_scale, unit_problem  # noqa: F401 - metres per unit of the files' coordinates
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -175,7 +175,7 @@ def check_units(points, units: str = "m", label: str = "cloud") -> None:
     cloud and of every function of the Python API that takes one; well under a second."""
     if units not in UNITS:
         raise UsageError(f"unknown unit {units!r}: one of {', '.join(UNITS)}")
-    problem = unit_problem(points, units, label)
+    problem = unit_problem(points, units, label) or precision_problem(points, label)
     if problem:
         raise UnitError(problem)
 

@@ -58,6 +58,41 @@ PLAUSIBLE_HEIGHT_M = (3.0, 80.0)
 PLAUSIBLE_SPACING_M = (0.002, 0.5)
 
 
+#: A cloud whose x, y or z coordinates take distinct values at least this far apart (m), each
+#: shared by many points, was stored with too little precision for trees (float32 keeps about 7
+#: digits: 0.25-0.5 m at UTM northings).
+COARSE_STEP_M = 0.1
+#: ... many: at least this many points per distinct value (a small cloud's values are few anyway).
+POINTS_PER_VALUE = 20
+
+
+def precision_problem(points: Any, label: str = "cloud") -> Optional[str]:
+    """Why the coordinates of ``points`` (N, 3; metres) are too coarse to measure trees on (one
+    line), or None: x or y whose distinct values (in a sample of :data:`SAMPLE_POINTS`) lie at
+    least :data:`COARSE_STEP_M` apart, each held by :data:`POINTS_PER_VALUE` points or more on
+    average, with several points on each (x, y) position, as float32 storage of georeferenced
+    coordinates leaves them (a raster of heights exported as points, one point per cell, is not
+    refused)."""
+    import numpy as np
+
+    p = _sample(points, SAMPLE_POINTS, 1)
+    if len(np.unique(p[:, :2], axis=0)) * 4 > len(p):
+        return None
+    for k, axis in enumerate("xy"):
+        values = np.unique(p[:, k])
+        if len(values) < 2 or len(p) < POINTS_PER_VALUE * len(values):
+            continue
+        step = float(np.min(np.diff(values)))
+        if step >= COARSE_STEP_M:
+            return (
+                f"{label}: its {axis} coordinates take only {len(values)} values, {step:.3g} m apart, for "
+                f"{len(p)} points: they were stored with too little precision (float32 keeps about 7 digits, "
+                "a fraction of a metre at georeferenced coordinates); export the cloud in double precision "
+                "or with a local offset"
+            )
+    return None
+
+
 def unit_of_scale(scale: float) -> str:
     """The ``--units`` name of ``scale`` metres per unit ("m" for a scale that is none of them)."""
     return next((name for name, s in UNITS.items() if abs(s - float(scale)) <= 1e-9 * s), "m")

@@ -337,6 +337,27 @@ def test_no_real_cloud_in_metres_is_refused(shared_data):
     assert slow == []
 
 
+def test_georeferenced_coordinates_stored_as_float32_are_refused(shared_data, tmp_path):
+    """pine_plot.laz at UTM coordinates stored as float32 (northing steps of 0.5 m) gave "6 trees
+    found from the canopy (no stems)", exit 0. The coarse steps are refused in one line (exit 2),
+    before any work; a raster of heights exported as points (one per 0.5 m cell) is not."""
+    from forestreg.app.common import UnitError, check_units
+    from forestreg.engine.io import read_scan
+
+    p = np.asarray(read_scan(shared_data / "pine_plot.laz").points, dtype=np.float64)
+    utm = (p - p.mean(axis=0) + [470_000.0, 5_210_000.0, 250.0]).astype(np.float32).astype(np.float64)
+    with pytest.raises(UnitError, match=r"y coordinates take only \d+ values, 0.5 m apart"):
+        check_units(utm, "m", "pine_utm")
+    path = tmp_path / "pine_utm.xyz"
+    np.savetxt(path, utm, fmt="%.3f")
+    assert main(["trees", str(path), "--out", str(tmp_path / "t"), "--no-cylinders", "--no-report", "-q"]) == 2
+    assert not (tmp_path / "t").exists()
+    check_units(p, "m", "pine_plot")  # the same cloud in double precision passes
+    x, y = np.meshgrid(np.arange(0.0, 60.0, 0.5), np.arange(0.0, 60.0, 0.5))
+    raster = np.c_[x.ravel(), y.ravel(), np.random.default_rng(0).uniform(0, 25, x.size)]
+    check_units(raster, "m", "dsm")
+
+
 def test_real_clouds_in_cm_are_refused_with_centimetres(shared_data):
     """The plots and trees of ../shared/data times 100 are refused as centimetres (trunk sections a
     metre tall are not: nothing in them says so, and they run fast)."""

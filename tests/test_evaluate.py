@@ -92,6 +92,9 @@ BAD_TABLES = (
     ("duplicate", "tree_id,x,y\n1,0,0\n1,1,1\n"),
     ("not a number", "tree_id,x,y,dbh_m\n1,0,0,thick\n"),
     ("negative", "tree_id,x,y,height_m\n1,0,0,-3\n"),
+    ("dbh_cm has negative", "tree_id,x,y,dbh_cm\n1,0,0,25\n2,1,1,-12.3\n"),
+    ("DBH of 0", "tree_id,x,y,dbh_m\n1,0,0,0.3\n2,1,1,0\n"),
+    ("infinite", "tree_id,x,y,dbh_m\n1,0,0,0.3\n2,1,1,inf\n"),
 )
 
 

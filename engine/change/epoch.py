@@ -165,8 +165,13 @@ def epoch_from_cloud(
     params = params or TreeParams()
     progress = as_progress(progress)
     p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 100:
+    if p.ndim != 2 or p.shape[1] != 3:
         raise ScanDataError(f"{name or 'cloud'}: expected a merged cloud of (N, 3) points, got {p.shape}")
+    if len(p) < 100:
+        raise ScanDataError(
+            f"{name or 'cloud'}: {len(p)} point{'' if len(p) == 1 else 's'}, too few for a survey of a plot "
+            "(at least 100; give the merged cloud of the survey's scans)"
+        )
     if not np.isfinite(p).all():
         raise ScanDataError(f"{name or 'cloud'}: the cloud holds NaN or infinite coordinates")
     t = time.perf_counter()

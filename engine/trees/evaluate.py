@@ -216,6 +216,8 @@ def _table(header: Sequence[str], records: Sequence[Mapping[str, Any]], source: 
     if "dbh_cm" in header and "dbh_m" not in header:
         cm = _numbers(records, "dbh_cm", source)
         finite = cm[np.isfinite(cm)]
+        if len(finite) and finite.min() < 0:
+            raise TreeTableError(f"{source}: column dbh_cm has negative values (tree {ids[np.nanargmin(cm)]})")
         if len(finite) and finite.max() < 2.0:
             raise TreeTableError(
                 f"{source}: column dbh_cm holds values up to {finite.max():.3g}, which look like metres, not centimetres; "
@@ -238,6 +240,12 @@ def _table(header: Sequence[str], records: Sequence[Mapping[str, Any]], source: 
                 f"{info.max_plausible:g} {info.unit}{hint}"
             )
         values[name] = v
+    dbh = values.get("dbh_m")
+    if dbh is not None and (dbh == 0).any():
+        bad = np.flatnonzero(dbh == 0)[0]
+        raise TreeTableError(
+            f"{source}: tree {ids[bad]} has a DBH of {dbh[bad]:g}: no tree is that thick; leave a DBH not measured empty"
+        )
     return TreeTable(ids, x, y, values, source, tuple(notes))
 
 
@@ -262,6 +270,10 @@ def _numbers(records: Sequence[Mapping[str, Any]], column: str, source: str) -> 
             raise TreeTableError(
                 f"{source}: tree {r.get('tree_id', i + 1)}: {column} = {v!r} is not a number"
             ) from None
+        if math.isinf(f):
+            raise TreeTableError(
+                f"{source}: tree {r.get('tree_id', i + 1)}: {column} = {v!r} is infinite: leave a value not measured empty"
+            )
         if math.isfinite(f):
             out[i] = f
     return out
