@@ -152,6 +152,18 @@ def test_als_stand_gives_trees_from_the_canopy(shared_data):
     assert inv.summary().startswith(f"{len(inv.trees)} trees found from the canopy")
 
 
+def test_a_wall_gives_no_trees_from_the_canopy():
+    """A wall 20 m long and 10 m high, no ground: its top line is one cell of the canopy height
+    model wide, not a crown (it gave 7 trees about 10 m tall). A real ALS stand's crowns all span
+    at least 1 m each way."""
+    from forestreg.engine.trees.inventory import measure_trees
+
+    rng = np.random.default_rng(0)
+    wall = np.c_[np.zeros(50_000), rng.uniform(0, 20, 50_000), rng.uniform(0, 10, 50_000)]
+    inv = measure_trees(wall)
+    assert not inv and "no tree crowns" in inv.reason
+
+
 @pytest.mark.slow
 def test_spruce_and_pine_dbh_volume_and_wood(shared_data):
     """DBH = an independent circle fit at 1.3 m; the cylinder model stays on the stem (spruce:

@@ -70,6 +70,14 @@ class CanopyParams(Params):
         1.0, "%", 0.0, 25.0, "Crown widths run from this percentile of the crown cells' x (y) to 100 minus it"
     )
     min_crown_cells: int = param_field(3, "cells", 1, 10000, "Crowns of fewer cells are dropped (noise)")
+    min_crown_width_m: float = param_field(
+        1.0,
+        "m",
+        0.0,
+        20.0,
+        "Crowns narrower than this across either axis are dropped: the top of a wall, a pole or a fence, "
+        "a line of wires (a tree crown spans at least two cells of the canopy height model each way)",
+    )
     min_crown_points: int = param_field(
         10, "points", 1, 100000, "Crowns of fewer points are dropped (noise, a fragment of a neighbour's crown)"
     )
@@ -273,6 +281,8 @@ def canopy_trees(
         q = params.width_percentile
         a = float(np.percentile(xs, 100 - q) - np.percentile(xs, q)) + res
         b = float(np.percentile(ys, 100 - q) - np.percentile(ys, q)) + res
+        if min(a, b) < params.min_crown_width_m:
+            continue
         cd = 0.5 * (a + b)
         tid = len(trees) + 1
         new_id[k] = tid
