@@ -273,6 +273,19 @@ def test_text_variants(tmp_path: Path, header: str, sep: str, suffix: str, inten
     np.testing.assert_array_equal(scan.intensity, intensity.astype(np.float32))
 
 
+def test_text_with_decimal_commas(tmp_path: Path) -> None:
+    """A spreadsheet's export in many locales, 1,25;3,50;0,75: read as the numbers it holds (it
+    was read as twice the columns, integers and fractions apart, and refused as millimetres)."""
+    points, intensity = cloud(n=100, seed=12)
+    rows = [";".join(f"{v:.5f}".replace(".", ",") for v in (*p, i)) for p, i in zip(points, intensity)]
+    scan = read_scan(_write(tmp_path / "comma.txt", "x;y;z;intensity\n" + "\n".join(rows) + "\n"))
+    assert_same_points(scan, points)
+    np.testing.assert_allclose(scan.intensity, intensity.astype(np.float32))
+    bad = _write(tmp_path / "mixed.txt", "1,5;2,5;3,5\n1,5;2,5;x\n")
+    with pytest.raises(ScanReadError, match="decimal commas"):
+        read_scan(bad)
+
+
 def test_text_pts_rgb_and_damaged_lines(tmp_path: Path) -> None:
     points, intensity = cloud(n=100, seed=11)
     body = "\n".join(f"{x:.4f} {y:.4f} {z:.4f} {int(i) - 2048} 10 20 30" for (x, y, z), i in zip(points, intensity))

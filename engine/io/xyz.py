@@ -33,6 +33,11 @@ _INTENSITY_NAMES = (
     "scalar_amplitude",
 )
 _SPLIT = re.compile(r"[\s,;]+")
+#: A number written with a decimal comma (1,25 or -3,5e2), as spreadsheets in many locales write
+#: them, fields separated by semicolons.
+_DECIMAL_COMMA = re.compile(r"[-+]?\d+(,\d+)?([eE][-+]?\d+)?")
+#: The "delimiter" :func:`_layout` gives a file of such numbers.
+_DECIMAL_COMMA_LAYOUT = "decimal comma"
 _CHUNK_ROWS = 200_000
 
 
@@ -66,6 +71,9 @@ def _layout(path: Path) -> tuple[int, Optional[str], int, list[str]]:
                     header = _words(stripped)
                 continue
             words = _words(stripped)
+            fields = [w.strip() for w in stripped.split(";")]
+            if ";" in stripped and len(fields) >= 3 and all(_DECIMAL_COMMA.fullmatch(w) for w in fields if w):
+                return index, _DECIMAL_COMMA_LAYOUT, len([w for w in fields if w]), header
             if len(words) >= 3 and all(_is_number(w) for w in words):
                 if "," in stripped:
                     delimiter: Optional[str] = ","
@@ -101,17 +109,31 @@ def read_text(path: Path) -> RawCloud:
     usecols = xyz_cols + ([inten_col] if inten_col is not None else [])
     skipped = 0
     try:
-        table = np.loadtxt(
-            path,
-            dtype=np.float64,
-            delimiter=delimiter,
-            skiprows=skip,
-            usecols=usecols,
-            comments="#",
-            ndmin=2,
-            encoding="latin-1",  # one comment string keeps the C fast path
-        )
+        if delimiter == _DECIMAL_COMMA_LAYOUT:  # 0,132;18,645;3,971: the commas are decimal points
+            with open(path, "r", encoding="latin-1", newline=None) as fh:
+                table = np.loadtxt(
+                    (line.replace(",", ".") for line in fh),
+                    dtype=np.float64,
+                    delimiter=";",
+                    skiprows=skip,
+                    usecols=usecols,
+                    comments="#",
+                    ndmin=2,
+                )
+        else:
+            table = np.loadtxt(
+                path,
+                dtype=np.float64,
+                delimiter=delimiter,
+                skiprows=skip,
+                usecols=usecols,
+                comments="#",
+                ndmin=2,
+                encoding="latin-1",  # one comment string keeps the C fast path
+            )
     except ValueError:
+        if delimiter == _DECIMAL_COMMA_LAYOUT:
+            raise ScanReadError(f"{path}: a line does not hold numbers with decimal commas separated by ';'") from None
         table, skipped = _read_tolerant(path, skip, usecols)
     if len(table) == 0:
         raise ScanReadError(f"{path}: contains no points")
