@@ -58,9 +58,9 @@ PLAUSIBLE_HEIGHT_M = (3.0, 80.0)
 PLAUSIBLE_SPACING_M = (0.002, 0.5)
 
 
-#: A cloud whose x, y or z coordinates take distinct values at least this far apart (m), each
-#: shared by many points, was stored with too little precision for trees (float32 keeps about 7
-#: digits: 0.25-0.5 m at UTM northings).
+#: A cloud whose x or y coordinates take distinct values at least this far apart (m), each shared
+#: by many points, was stored with too little precision for trees (float32 keeps about 7 digits:
+#: 0.25-0.5 m at UTM northings).
 COARSE_STEP_M = 0.1
 #: ... many: at least this many points per distinct value (a small cloud's values are few anyway).
 POINTS_PER_VALUE = 20

@@ -130,7 +130,7 @@ def stray_points(points: np.ndarray, gap_m: float = 20.0, max_share: float = 0.0
     stray = np.zeros(len(p), dtype=bool)
     if len(p) < 2 or gap_m <= 0:
         return stray
-    centres, voxel_of_point = voxel_centroids(p, gap_m / 2.0)
+    centres, voxel_of_point = voxel_centroids(p, gap_m / 2.0, index_dtype=np.int32 if len(p) < 2**31 else np.int64)
     if len(centres) < 2:
         return stray
     group = connected_clusters(centres, gap_m)
