@@ -244,7 +244,7 @@ def _table(header: Sequence[str], records: Sequence[Mapping[str, Any]], source: 
     if dbh is not None and (dbh == 0).any():
         bad = np.flatnonzero(dbh == 0)[0]
         raise TreeTableError(
-            f"{source}: tree {ids[bad]} has a DBH of {dbh[bad]:g}: no tree is that thick; leave a DBH not measured empty"
+            f"{source}: tree {ids[bad]} has a DBH of 0 m: no tree is 0 m thick; leave a DBH not measured empty"
         )
     return TreeTable(ids, x, y, values, source, tuple(notes))
 
