@@ -95,7 +95,7 @@ def test_paths_find_the_branches_leaves_hide() -> None:
 def test_broadleaf_in_leaf_keeps_its_branches(case: str, tolerance: float, branch_share: float) -> None:
     """The cylinder model of a broadleaf in leaf at about 10 cm between points keeps branches the
     local shapes alone lose: measured -15 % and -22 % of the wood, branches 45 % and 17 % of
-    theirs (without the paths -22 % and -29 %, branches 22 % and none)."""
+    theirs (the shape features alone: -22 % and -29 %, branches 22 % and none)."""
     tree, p, _ = _leafy_broadleaf(*LEAFY[case])
     m = measure_trees(p, single_tree=True).trees[0].cylinders
     assert abs(m.total_volume_m3 / tree.volume_m3 - 1.0) <= tolerance, (
