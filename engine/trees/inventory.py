@@ -510,13 +510,11 @@ def measure_trees(
     measure = functools.partial(
         _measure_trees, params=params, progress=progress, origin_shift=origin_shift, single_tree=single_tree
     )
+    if params.thin_above_points:  # a dense cloud measured on one point per voxel
+        measure = functools.partial(_measure_dense, params=params, measure=measure)
     try:
         stray = stray_points(p, params.stray_gap_m, params.stray_max_share)
-        if stray.any():
-            return _measure_without_strays(p, stray, params, measure)
-        if params.thin_above_points and len(p) > params.thin_above_points:
-            return _measure_thinned(p, params, measure)
-        return measure(p)
+        return _measure_without_strays(p, stray, params, measure) if stray.any() else measure(p)
     except ScanDataError as exc:  # the data do not allow it: a failed outcome, as a registration gives
         return TreeInventory.failed(str(exc), len(p), origin_shift)
 
@@ -536,10 +534,7 @@ def _measure_without_strays(
         params.stray_gap_m,
         far,
     )
-    if params.thin_above_points and len(rest) > params.thin_above_points:
-        inventory = _measure_thinned(rest, params, measure)
-    else:
-        inventory = measure(rest)
+    inventory = measure(rest)
     if not inventory:
         return TreeInventory.failed(inventory.reason, len(p), inventory.origin_shift, inventory.timings)
     labels = np.zeros(len(p), dtype=inventory.labels.dtype)
@@ -552,6 +547,12 @@ def _measure_without_strays(
     heights[~stray] = inventory.heights
     heights[stray] = inventory.dem.normalise(p[stray])
     return dataclasses.replace(inventory, labels=labels, heights=heights, wood_probability=wood, ground=ground)
+
+
+def _measure_dense(p: np.ndarray, params: TreeParams, measure: Callable[[np.ndarray], TreeInventory]) -> TreeInventory:
+    """``measure(p)``, or :func:`_measure_thinned` for a cloud of more than
+    ``params.thin_above_points`` points."""
+    return _measure_thinned(p, params, measure) if len(p) > params.thin_above_points else measure(p)
 
 
 def _measure_thinned(
