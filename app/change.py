@@ -229,7 +229,7 @@ def _read_survey(p: Path, role: str, units: str, tree_params, change_params, pro
             return epoch, note + (f" ({'; '.join(notes)})" if notes else ""), _real_input(cloud), notes
     else:
         cloud, note = read_scan(p, unit_scale=scale, with_intensity=False), f"cloud {p.name}"
-    check_units(cloud.points, units, f"{role} {p.name}")
+    check_units(cloud, units, f"{role} {p.name}")
     epoch = epoch_from_cloud(
         cloud.points,
         tree_params,

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..engine.core.errors import InvalidArgumentError, ParameterError, ScanDataError, UsageError
 from ..engine.core.outcome import Outcome
-from .units import UNITS, precision_problem, unit_of_scale, unit_problem  # noqa: F401 - metres per unit of the files' coordinates
+from .units import UNITS, crs_unit_problem, precision_problem, unit_of_scale, unit_problem  # noqa: F401 - metres per unit of the files' coordinates
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -168,14 +168,25 @@ class UnitError(UsageError, ScanDataError):
     :class:`~forestreg.engine.core.errors.ScanDataError` (the points are unusable as given)."""
 
 
-def check_units(points, units: str = "m", label: str = "cloud") -> None:
-    """Refuse a cloud whose coordinates are not in ``units`` (``points``: (N, 3), already scaled to
-    metres by ``units``): :class:`UnitError` naming the likely unit and how to give it
-    (:func:`~forestreg.app.units.unit_problem`). The one unit check of every command that reads a
-    cloud and of every function of the Python API that takes one; well under a second."""
+def check_units(cloud, units: str = "m", label: str = "cloud") -> None:
+    """Refuse a cloud whose coordinates are not in ``units``: :class:`UnitError` naming the likely
+    unit and how to give it. ``cloud`` is a :class:`~forestreg.engine.core.scan.Scan` or its points
+    ((N, 3), already scaled to metres by ``units``). A scan whose file declares a CRS is refused
+    when the CRS's unit is not ``units`` or is not a length on x, y and z
+    (:func:`~forestreg.app.units.crs_unit_problem`); the points themselves are judged by their
+    extent and spacing (:func:`~forestreg.app.units.unit_problem`) and their precision
+    (:func:`~forestreg.app.units.precision_problem`). The one unit check of every command that
+    reads a cloud and of every function of the Python API that takes one; well under a second."""
     if units not in UNITS:
         raise UsageError(f"unknown unit {units!r}: one of {', '.join(UNITS)}")
-    problem = unit_problem(points, units, label) or precision_problem(points, label)
+    points = getattr(cloud, "points", cloud)
+    meta = getattr(cloud, "meta", None)
+    crs, read_in = None, units
+    if isinstance(meta, dict):  # the CRS is judged against the unit the file was read in
+        crs, read_in = meta.get("crs"), unit_of_scale(meta.get("unit_scale", UNITS[units]))
+    problem = (
+        crs_unit_problem(crs, read_in, label) or unit_problem(points, units, label) or precision_problem(points, label)
+    )
     if problem:
         raise UnitError(problem)
 
@@ -189,7 +200,7 @@ def check_near_scanner(scan, max_range_m: float, path, units: str, *, units_chec
     from ..engine.tls.scanner_position import points_within
 
     if not units_checked:
-        check_units(scan.points, units, str(path))
+        check_units(scan, units, str(path))
     lo, hi = column_bounds(scan.points)
     span = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]))
     if span < 2.0:
@@ -294,7 +305,7 @@ def as_scan(cloud, what: str = "cloud", *, units: bool = True):
     else:
         scan = Scan.from_points(as_points(cloud, what, min_points=10), name=what)
     if units:
-        check_units(scan.points, "m", what if what != "cloud" or not scan.name else scan.name)
+        check_units(scan, "m", what if what != "cloud" or not scan.name else scan.name)
     return scan
 
 
@@ -357,7 +368,7 @@ def read_scan(path, **options):
             f"expected the path of a point file (str or pathlib.Path), got {type(path).__name__}"
         )
     scan = read(path, **options)
-    check_units(scan.points, unit_of_scale(options.get("unit_scale", 1.0)), str(path))
+    check_units(scan, unit_of_scale(options.get("unit_scale", 1.0)), str(path))
     return scan
 
 
@@ -374,7 +385,7 @@ def read_scans(path, **options):
         )
     scans = read(path, **options)
     for scan in scans:
-        check_units(scan.points, unit_of_scale(options.get("unit_scale", 1.0)), f"{path} ({scan.name})")
+        check_units(scan, unit_of_scale(options.get("unit_scale", 1.0)), f"{path} ({scan.name})")
     return scans
 
 
@@ -440,7 +451,7 @@ def _unit_error_of(entry) -> Optional[Exception]:
 
     try:
         scan = read(entry.path, scan_index=entry.scan_index, with_intensity=False)
-        check_units(scan.points, "m", str(entry.path))
+        check_units(scan, "m", str(entry.path))
     except UnitError as exc:
         return exc
     except Exception:  # noqa: BLE001 - any other problem is the one already found

@@ -196,7 +196,7 @@ def coregister_clouds(
                 scan = read_scan(
                     source, unit_scale=scale, with_intensity=False
                 )  # the co-registration uses x, y, z alone
-                check_units(scan.points, units, str(source))
+                check_units(scan, units, str(source))
             else:
                 scan = as_scan(source, role)
             kept["read_s"] += time.perf_counter() - t0

@@ -148,7 +148,7 @@ def check_file_units(paths, units: str = "m", *, scale: Optional[float] = None) 
 
     for path in paths:
         scan = read_scan(path, unit_scale=UNITS[units] if scale is None else scale, with_intensity=False)
-        check_units(scan.points, units, str(path))
+        check_units(scan, units, str(path))
         del scan
 
 

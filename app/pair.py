@@ -99,7 +99,7 @@ def register_pair(
             unit_scale=scale,
             with_intensity=write_registered and index == 1,
         )
-        check_units(scan.points, units, str(path))  # before the scanner is looked for: a file in cm is refused at once
+        check_units(scan, units, str(path))  # before the scanner is looked for: a file in cm is refused at once
         return scan
 
     # both scans are read, one after the other (the decompression is multi-core), while the

@@ -108,7 +108,7 @@ def measure_trees_file(
         else as_scan(cloud_path, "cloud", units=False)
     )
     check_units(
-        cloud.points, units if is_path else "m", str(cloud_path) if is_path else cloud.name or "cloud"
+        cloud, units if is_path else "m", str(cloud_path) if is_path else cloud.name or "cloud"
     )  # before the work
     name = Path(cloud_path).name if is_path else cloud.name or "cloud"
     if matrix is not None:  # the moved cloud is in the co-registration's target frame
@@ -230,7 +230,7 @@ def measure_trees(cloud, params=None, progress=None, *, origin_shift=None, singl
 
             raise InvalidArgumentError(f"origin_shift: expected three finite numbers, got {origin_shift!r}")
         scan = Scan.from_points(as_points(cloud, "cloud", min_points=10), origin_shift=np.zeros(3), name="cloud")
-        check_units(scan.points, "m", "cloud")
+        check_units(scan, "m", "cloud")
     else:
         scan = as_scan(cloud, "cloud")
         shift = scan.origin_shift if origin_shift is None else np.asarray(origin_shift, dtype=np.float64)

@@ -93,6 +93,67 @@ def precision_problem(points: Any, label: str = "cloud") -> Optional[str]:
     return None
 
 
+#: Two lengths of unit agree when they differ by at most this fraction (the international foot and
+#: the US survey foot, 2 ppm apart, are the same for trees).
+UNIT_TOLERANCE = 1e-5
+
+
+def crs_unit_problem(crs: Any, units: str = "m", label: str = "cloud") -> Optional[str]:
+    """Why a cloud whose file declares the coordinate reference system ``crs`` (a
+    :class:`~forestreg.engine.io.crs.Crs`, or None) cannot be read in ``units`` (one line), or None:
+    a CRS whose axes are in another unit (a State Plane CRS in US survey feet read as metres), a
+    geographic CRS (degrees of latitude and longitude), a geocentric one (its z is not up) and a
+    compound CRS whose heights are in another unit than its eastings and northings. Without pyproj,
+    or for a CRS it cannot read, nothing is said."""
+    if crs is None or units not in UNITS:
+        return None
+    try:
+        c = crs.to_pyproj()
+        if c is None:
+            return None
+        parts = list(c.sub_crs_list) if c.is_compound else [c]
+        horizontal = parts[0]
+        axes = [a for part in parts for a in part.axis_info]
+    except Exception:  # noqa: BLE001 - a CRS pyproj cannot read: the points' own check decides
+        return None
+    name = getattr(crs, "label", None) or str(c.name)
+    if horizontal.is_geographic:
+        return (
+            f"{label}: its CRS {name} is geographic (latitude and longitude in degrees): trees are measured in a "
+            "projected CRS in metres or feet; reproject the cloud first (e.g. to its UTM zone)"
+        )
+    if horizontal.is_geocentric:
+        return (
+            f"{label}: its CRS {name} is geocentric (Earth-centred x, y, z: z is not up): reproject the cloud to a "
+            "projected CRS first (e.g. its UTM zone)"
+        )
+    factors = [float(a.unit_conversion_factor) for a in axes if a.unit_conversion_factor]
+    if not factors:
+        return None
+    said = UNITS[units]
+
+    def same(a: float, b: float) -> bool:
+        return abs(a - b) <= UNIT_TOLERANCE * max(a, b)
+
+    if not all(same(f, factors[0]) for f in factors):
+        kinds = ", ".join(f"{a.name.lower()} in {a.unit_name}s" for a in axes)
+        return (
+            f"{label}: its CRS {name} mixes units ({kinds}): forestreg reads one unit for x, y and z; "
+            "convert the heights to the unit of the eastings first"
+        )
+    if same(factors[0], said):
+        return None
+    unit = min(UNITS, key=lambda u: abs(UNITS[u] - factors[0]))  # the closer foot of the two
+    unit = unit if same(UNITS[unit], factors[0]) else None
+    given = f"--units {units}" if units != "m" else "metres (the default)"
+    told = UNIT_NAMES[unit] if unit else f"{axes[0].unit_name}s ({factors[0]:g} m)"
+    how = f"give --units {unit}" if unit else "convert the cloud to metres first"
+    return (
+        f"{label}: its CRS {name} gives its coordinates in {told}, but they were to be read in {given}: "
+        f"{how} (Python: read_scan(path, unit_scale={factors[0]:g}))"
+    )
+
+
 def unit_of_scale(scale: float) -> str:
     """The ``--units`` name of ``scale`` metres per unit ("m" for a scale that is none of them)."""
     return next((name for name, s in UNITS.items() if abs(s - float(scale)) <= 1e-9 * s), "m")

@@ -347,3 +347,66 @@ def test_trees_moved_by_a_transform_take_its_target_crs_only(shared_data, tmp_pa
     (co / "result.json").write_text(json.dumps({"status": "ok"}))  # a target frame without a CRS: local
     assert transform_target_crs(co / "transform.txt") is None
     assert transform_target_crs(tmp_path / "nowhere" / "transform.txt") is None
+
+
+# ----------------------------------------------------------------------------- the CRS's unit
+
+USFT = 1200.0 / 3937.0
+
+
+@pytest.fixture(scope="module")
+def pine_in_feet(shared_data, tmp_path_factory):
+    """The real pine plot as a US State Plane file: coordinates in US survey feet with its CRS."""
+    pts = read_scan(shared_data / "pine_plot.laz").points + np.array([300_000.0, 60_000.0, 20.0])
+    path = tmp_path_factory.mktemp("feet") / "pine_ftus.laz"
+    write_points(path, pts / USFT, crs=parse_crs("EPSG:2263"))
+    return path
+
+
+def test_a_cloud_whose_crs_is_in_feet_is_refused_as_metres_and_read_as_feet(
+    shared_data, pine_in_feet, tmp_path, capsys
+):
+    assert main(["trees", str(pine_in_feet), "--out", str(tmp_path / "m"), "--no-cylinders", "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "US survey feet" in err and "--units usft" in err
+    assert not (tmp_path / "m").exists()
+    out = tmp_path / "ft"
+    args = ["trees", str(pine_in_feet), "--units", "usft", "--out", str(out), "--no-cylinders", "--no-report", "-q"]
+    assert main(args) == 0
+    ref = tmp_path / "ref"
+    assert (
+        main(["trees", str(shared_data / "pine_plot.laz"), "--out", str(ref), "--no-cylinders", "--no-report", "-q"])
+        == 0
+    )
+    feet, metres = _heights(out / "trees.csv"), _heights(ref / "trees.csv")
+    assert len(feet) == len(metres) > 10
+    assert np.allclose(np.sort(feet), np.sort(metres), atol=0.05)  # the sizes in metres, as from the metric file
+
+
+def _heights(path: Path) -> np.ndarray:
+    import csv
+
+    with open(path, newline="") as f:
+        return np.array([float(r["height_m"]) for r in csv.DictReader(f) if r["height_m"]])
+
+
+def test_crs_units_that_cannot_be_read_are_named(tmp_path):
+    from forestreg.app.common import UnitError, check_units
+    from forestreg.app.units import crs_unit_problem
+
+    feet = parse_crs("EPSG:2263")
+    assert crs_unit_problem(feet, "usft") is None and crs_unit_problem(feet, "ft") is None  # 2 ppm apart
+    assert "--units usft" in crs_unit_problem(feet, "m")
+    assert crs_unit_problem(parse_crs(UTM18), "m") is None
+    assert "--units m" in crs_unit_problem(parse_crs(UTM18), "cm")
+    assert "geographic" in crs_unit_problem(parse_crs("EPSG:4326"), "m")
+    assert "geocentric" in crs_unit_problem(parse_crs("EPSG:4978"), "m")
+    assert "mixes units" in crs_unit_problem(parse_crs("EPSG:32618+6360"), "m")  # UTM metres, NAVD88 feet
+    assert crs_unit_problem(parse_crs("EPSG:2263+6360"), "usft") is None  # feet on all three axes
+    assert crs_unit_problem(None, "m") is None
+    # the Python API: a scan read in its CRS's unit passes the check of a function taking metres
+    path = tmp_path / "ft.laz"
+    write_points(path, _cloud(n=20_000, offset=(1_000_000.0, 200_000.0, 50.0)) / USFT, crs=feet)
+    check_units(read_scan(path, unit_scale=USFT), "m", "api")
+    with pytest.raises(UnitError, match="US survey feet"):
+        check_units(read_scan(path), "m", "api")
