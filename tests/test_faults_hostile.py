@@ -425,6 +425,28 @@ def test_an_unreadable_centre_scan_is_never_ok_and_a_readable_centre_is_taken(ti
     assert {p: _hash(p) for p in inputs} == before
 
 
+def test_each_unreadable_scan_of_a_plot_gives_its_own_reason(tiny, tmp_path):
+    """An empty scan first (the centre by name) and a truncated LAZ next: both are known from
+    their headers (the LAZ's chunk table lies past its end), a readable scan is the centre, and
+    each failed scan's reason is its own, never its reference's."""
+    import laspy
+
+    _, paths = tiny
+    empty = tmp_path / "aaa_empty.las"
+    with laspy.open(empty, mode="w", header=laspy.LasHeader(point_format=3, version="1.2")) as w:
+        w.write_points(laspy.ScaleAwarePointRecord.zeros(0, header=w.header))
+    data = paths[0].read_bytes()
+    cut = tmp_path / "aab_cut.laz"
+    cut.write_bytes(data[: len(data) // 2])
+    run = _run("plot", empty, cut, *paths, "--out", tmp_path / "out")
+    assert run.returncode == 1 and "Traceback" not in run.stderr, run.stderr
+    poses = json.loads((tmp_path / "out" / "poses.json").read_text())
+    assert poses["frame"] == paths[0].name
+    assert "contains no points" in poses["scans"][empty.name]["reason"]
+    assert "truncated" in poses["scans"][cut.name]["reason"] and cut.name in poses["scans"][cut.name]["reason"]
+    assert all(poses["scans"][p.name]["status"] == "ok" for p in paths), poses["scans"]
+
+
 def test_no_thread_of_a_plot_run_outlives_it(tiny, tmp_path):
     """Row 10 (the cause): the thread preparing the next scan ahead still ran (importing modules)
     when the plot went on to import open3d, whose import walks ``sys.modules``: "dictionary

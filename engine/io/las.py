@@ -83,6 +83,15 @@ def _check_header(path: Path) -> tuple[int, bool]:
         raise ScanReadError(
             f"{path}: is truncated: the header announces {count:,} points but no compressed data follow"
         )
+    if compressed and count > 0:  # LAZ: the points start with the offset of the chunk table (-1: none)
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            (table,) = struct.unpack("<q", fh.read(8))
+        if table != -1 and table + 8 > size:
+            raise ScanReadError(
+                f"{path}: is truncated: its compressed points end at byte {table:,} (their chunk table), "
+                f"the file has {size:,}"
+            )
     return count, compressed
 
 

@@ -374,8 +374,8 @@ def _unreadable(path: Path) -> Optional[str]:
 
     try:
         check_readable(path)
-        if detect_format(Path(path)) == "las":
-            check_las_header(Path(path))
+        if detect_format(Path(path)) == "las" and check_las_header(Path(path))[0] == 0:
+            return f"{path}: contains no points"
     except (ScanReadError, ScanDataError) as exc:
         return str(exc)
     return None
@@ -670,20 +670,29 @@ def _run_link(
 ) -> LinkResult:
     """Run one link (auto or manual) and return its typed result; an unusable scan or data that
     do not allow it give a "failed" result with the reason, not an exception."""
+    reading = link.reference
     try:
         if link.method == "manual":
-            reference, moving = scans(link.reference), scans(link.moving)
+            reference = scans(link.reference)
+            reading = link.moving
+            moving = scans(link.moving)
         else:
             # the reference prepared first and held as a stand-in without points, then the moving
             # scan (a stand-in too when its preparation is kept): one scan's points at a time
             params = link.params(project.params)
             progress(0.0, "preparing both scans")  # (or waiting for the thread preparing them ahead)
             reference = scans.for_link(link.reference, params)
+            reading = link.moving
             moving = scans.for_link(link.moving, params, prepare=False)
     except (ScanReadError, ScanDataError, DataError) as exc:
-        # one unusable scan (unreadable, no scanner position to be found) fails its links, not the plot
+        # one unusable scan (unreadable, no scanner position to be found) fails its links, not the
+        # plot; a link that fails on its reference says so (the reference's own entry has the reason)
+        reason = str(exc)
+        if reading == link.reference:  # the moving scan's own fault first, when its header shows one
+            own = _unreadable(project.scan(link.moving).path)
+            reason = own or f"its reference scan {link.reference} cannot be used ({exc})"
         return LinkResult.from_dict(
-            {"status": "failed", "reason": str(exc), "matrix": None, "reference": link.reference, "moving": link.moving}
+            {"status": "failed", "reason": reason, "matrix": None, "reference": link.reference, "moving": link.moving}
         )
     if link.method == "manual":
         from .manual import register_manual
