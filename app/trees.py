@@ -12,11 +12,15 @@ the cloud was moved by its transform; ``crs`` when the file declares none).
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
 from .common import UNITS, RunOutcome, as_points, as_scan, check_units, params_of, with_cancel
+from .units import tall_stand_note
+
+log = logging.getLogger("forestreg")
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,6 +131,10 @@ def measure_trees_file(
     inventory = measure_trees_in(cloud, params, progress=progress, cancel=cancel)
     evaluation = None
     written = None
+    if inventory and is_path and frame.crs is None:  # nothing says the file is in metres
+        note = tall_stand_note([t.height_m for t in inventory.trees], units, name)
+        if note:
+            log.warning(note)
     if not inventory:  # the data do not allow trees: the reason, and no folder (complete or absent)
         return TreesOutcome(
             status="failed",

@@ -154,6 +154,35 @@ def crs_unit_problem(crs: Any, units: str = "m", label: str = "cloud") -> Option
     )
 
 
+#: A plot whose trees stand this tall at the median (m) is more likely a file in feet read as
+#: metres than a forest (only the tallest old-growth stands reach it).
+TALL_STAND_M = 45.0
+#: ... over at least this many trees with a height.
+TALL_STAND_TREES = 5
+
+
+def tall_stand_note(heights_m: Any, units: str = "m", label: str = "cloud") -> Optional[str]:
+    """A warning (one line) when the trees of a cloud read in metres without a CRS to say so stand
+    implausibly tall (median of ``heights_m`` at least :data:`TALL_STAND_M` over at least
+    :data:`TALL_STAND_TREES` trees): a file in feet read as metres gives trees 3.28 times too tall
+    and thick, and nothing else in the points tells feet from metres (a tree's height over its
+    diameter is the same in both). None otherwise."""
+    import numpy as np
+
+    h = np.asarray(heights_m, dtype=np.float64)
+    h = h[np.isfinite(h)]
+    if units != "m" or len(h) < TALL_STAND_TREES:
+        return None
+    median = float(np.median(h))
+    if median < TALL_STAND_M:
+        return None
+    return (
+        f"{label}: its trees stand {median:.0f} m tall at the median ({len(h)} trees), as only the tallest "
+        f"old-growth stands do: if the file is in feet, run again with --units ft (or usft); these would be "
+        f"{median * UNITS['ft']:.0f} m"
+    )
+
+
 def unit_of_scale(scale: float) -> str:
     """The ``--units`` name of ``scale`` metres per unit ("m" for a scale that is none of them)."""
     return next((name for name, s in UNITS.items() if abs(s - float(scale)) <= 1e-9 * s), "m")

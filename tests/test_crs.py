@@ -410,3 +410,22 @@ def test_crs_units_that_cannot_be_read_are_named(tmp_path):
     check_units(read_scan(path, unit_scale=USFT), "m", "api")
     with pytest.raises(UnitError, match="US survey feet"):
         check_units(read_scan(path), "m", "api")
+
+
+def test_a_local_file_in_feet_read_as_metres_is_warned_about(shared_data, tmp_path, caplog):
+    """Without a CRS nothing in the points tells feet from metres (a tree's height over its
+    diameter is the same in both): the pine plot in feet gives 56 m pines, and the run says that
+    only the tallest old-growth stands are so tall and how to give feet. In metres it is silent."""
+    from forestreg.app.units import tall_stand_note
+
+    path = tmp_path / "pine_ft.laz"
+    write_points(path, read_scan(shared_data / "pine_plot.laz").points / 0.3048)
+    out = tmp_path / "ft"
+    assert main(["trees", str(path), "--out", str(out), "--no-cylinders", "--no-report", "-q"]) == 0
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("--units ft" in w and "m tall at the median" in w for w in warned), warned
+    assert np.median(_heights(out / "trees.csv")) > 45.0
+    assert tall_stand_note([20.0, 25.0, 30.0, 28.0, 22.0]) is None
+    assert tall_stand_note([60.0] * 4) is None  # too few trees to say
+    assert tall_stand_note([60.0] * 5, units="ft") is None  # the unit was given
+    assert "--units ft" in tall_stand_note([60.0] * 5)
