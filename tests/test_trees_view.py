@@ -86,3 +86,26 @@ def test_without_the_check_cut_tops_stand_unflagged():
     inv, pairs, _ = _matched(90.0)
     assert not inv.stations.limited and len(inv.stations.positions) == 0
     assert sum(1 for r, t, cut in pairs if cut and _unflagged(r) and r.height_m < 0.9 * t.height_m) >= 3
+
+
+def test_the_height_curve_rests_on_tops_in_view(monkeypatch):
+    """Tops at the edge of the view are lower bounds: the plot's height-diameter curve is fitted
+    without them (``[trees.height_curve] in_view_only``), so tops cut alike do not pull it down.
+    Here 12 of the 27 trees the curve would rest on are such tops."""
+    import forestreg.engine.trees.inventory as inventory
+
+    fitted = []
+    real_fit = inventory.fit_height_curve
+
+    def spy(d, h, params):
+        fitted.append(np.asarray(h, dtype=np.float64))
+        return real_fit(d, h, params)
+
+    monkeypatch.setattr(inventory, "fit_height_curve", spy)
+    inv, _, _ = _matched()
+    cut = [r.crown.height_m for r in inv.trees if any("edge of the scanners' view" in f for f in r.flags)]
+    assert len(cut) >= 5 and len(fitted[-1]) >= 10
+    assert not np.isin(np.round(cut, 6), np.round(fitted[-1], 6)).any()
+    params = TreeParams(cylinder_models=False, stations=StationParams(upward_limit_deg=0.0))
+    measure_trees(_plot()[1], params.replace(height_curve=params.height_curve.replace(in_view_only=False)))
+    assert np.isin(np.round(cut, 6), np.round(fitted[-1], 6)).sum() >= 5  # without the rule they would be in it

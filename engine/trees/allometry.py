@@ -99,6 +99,13 @@ class HeightCurveParams(Params):
         "A curve whose robust scatter (of log heights) exceeds this is not used: the heights of the plot do not follow one relation",
     )
     iterations: int = _p(10, "rounds", 1, 100, "Reweighting rounds of the robust fit")
+    in_view_only: bool = _p(
+        True,
+        "",
+        None,
+        None,
+        "The curve rests only on tops the scanners saw with room above them: a top at the edge of their upward view (trees.stations) is a lower bound, and tops cut alike would pull the curve down with them",
+    )
     fill: bool = _p(
         True,
         "",

@@ -19,7 +19,7 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, Optional, Sequence
+from typing import Any, Callable, Collection, Optional, Sequence
 
 import numpy as np
 
@@ -717,7 +717,8 @@ def _measure_trees(
 
     t = time.perf_counter()
     records: list[TreeRecord] = []
-    height_curve = _plot_height_curve(stems, dbh, curves, crowns, shared, complete, stem_params, params)
+    cut_by_view = set(view_flags) if params.height_curve.in_view_only else set()
+    height_curve = _plot_height_curve(stems, dbh, curves, crowns, shared, complete, stem_params, params, cut_by_view)
     overtopped = _under_thicker_crowns(stems, params)
     reaches = _neighbour_reach(stems, crowns, params.neighbour_radius_m)
     order, bounds = _points_by_stem(labels, stems)
@@ -781,10 +782,12 @@ def _plot_height_curve(
     complete: dict[int, Any],
     stem_params: StemParams,
     params: TreeParams,
+    cut_by_view: Collection[int] = (),
 ) -> Optional[HeightCurve]:
     """The plot's height-diameter curve (:func:`.allometry.fit_height_curve`) from the trees whose
     tops stand clear: over the stem, not cut flat, not missing, with no hint of a neighbour's
-    crown; None with fewer than :attr:`.allometry.HeightCurveParams.min_trees` of them. The trees
+    crown, and not at the edge of the scanners' view (``cut_by_view``: tree ids); None with fewer
+    than :attr:`.allometry.HeightCurveParams.min_trees` of them. The trees
     whose own apex is seen as a tip (:func:`.crown.apex_tip`) are counted on it
     (:meth:`.allometry.HeightCurve.with_tips`): they say whether suppressed trees grow here."""
     d, h = [], []
@@ -794,6 +797,7 @@ def _plot_height_curve(
         if (
             c is None
             or s.id in shared
+            or s.id in cut_by_view
             or "top missing" in reasons
             or not top_over_stem(c, params.crown)
             or top_cut_flat(c, params.crown)
