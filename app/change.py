@@ -29,7 +29,16 @@ from typing import ClassVar, Optional
 
 import numpy as np
 
-from .common import UNITS, RunOutcome, check_units, outcome_of, refuse_same_file, run_summary, with_cancel
+from .common import (
+    UNITS,
+    RunOutcome,
+    check_units,
+    check_upright,
+    outcome_of,
+    refuse_same_file,
+    run_summary,
+    with_cancel,
+)
 
 __all__ = ["ChangeOutcome", "ChangeSummary", "change_rows", "detect_change_files", "read_change_folder", "read_epoch"]
 
@@ -230,6 +239,7 @@ def _read_survey(p: Path, role: str, units: str, tree_params, change_params, pro
     else:
         cloud, note = read_scan(p, unit_scale=scale, with_intensity=False), f"cloud {p.name}"
     check_units(cloud, units, f"{role} {p.name}")
+    check_upright(cloud, f"{role} {p.name}")
     epoch = epoch_from_cloud(
         cloud.points,
         tree_params,

@@ -191,6 +191,23 @@ def check_units(cloud, units: str = "m", label: str = "cloud") -> None:
         raise UnitError(problem)
 
 
+def check_upright(cloud, label: str = "cloud") -> None:
+    """Refuse a cloud whose z axis is not up (:class:`~forestreg.engine.core.errors.UsageError`,
+    exit 2): its trunks stand clearly off z (:func:`~forestreg.engine.tls.level.stem_axis`; a
+    scan in a tilted scanner's own frame, or a cloud exported on its side), where stems, heights
+    and crowns would be measured across the trees. ``cloud``: a Scan or its (N, 3) points,
+    metres. About half a second; a cloud without clear trunks passes."""
+    from ..engine.tls.level import stem_axis
+
+    axis = stem_axis(getattr(cloud, "points", cloud))
+    if not axis.upright:
+        raise UsageError(
+            f"{label}: its z axis is not up: its trunks stand along a direction {axis.tilt_deg:.0f} deg off it "
+            "(a scan in a tilted scanner's own frame, or a cloud exported on its side); level it first "
+            "(register a tilted scan onto a level one with `forestreg register` or `plot`)"
+        )
+
+
 def check_near_scanner(scan, max_range_m: float, path, units: str, *, units_checked: bool = False) -> None:
     """Refuse, before the work, a scan whose coordinates are not in ``units``
     (:func:`check_units`) or with hardly any points within ``D_c`` of its

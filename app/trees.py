@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
-from .common import UNITS, RunOutcome, as_points, as_scan, check_units, params_of, with_cancel
+from .common import UNITS, RunOutcome, as_points, as_scan, check_units, check_upright, params_of, with_cancel
 from .units import tall_stand_note
 
 log = logging.getLogger("forestreg")
@@ -115,6 +115,7 @@ def measure_trees_file(
         cloud, units if is_path else "m", str(cloud_path) if is_path else cloud.name or "cloud"
     )  # before the work
     name = Path(cloud_path).name if is_path else cloud.name or "cloud"
+    check_upright(cloud, str(cloud_path) if is_path else name)
     if matrix is not None:  # the moved cloud is in the co-registration's target frame
         frame = frame_crs(
             {"cloud": crs_of(cloud), "target": transform_target_crs(transform)},
@@ -242,6 +243,7 @@ def measure_trees(cloud, params=None, progress=None, *, origin_shift=None, singl
     else:
         scan = as_scan(cloud, "cloud")
         shift = scan.origin_shift if origin_shift is None else np.asarray(origin_shift, dtype=np.float64)
+    check_upright(scan, "cloud")
     return measure(scan.points, params, with_cancel(progress, cancel), origin_shift=shift, single_tree=single_tree)
 
 
