@@ -150,7 +150,8 @@ def crs_unit_problem(crs: Any, units: str = "m", label: str = "cloud") -> Option
     how = f"give --units {unit}" if unit else "convert the cloud to metres first"
     return (
         f"{label}: its CRS {name} gives its coordinates in {told}, but they were to be read in {given}: "
-        f"{how} (Python: read_scan(path, unit_scale={factors[0]:g}))"
+        f"{how} (Python: read_scan(path, unit_scale={factors[0]:g})); if the file's CRS is wrong, correct it first "
+        "(e.g. PDAL's writers.las a_srs)"
     )
 
 
