@@ -320,8 +320,34 @@ UPRIGHT_MIN_SUPPORT = 0.02
 #: ... and the normals of flat surfaces number at least this many (sparse airborne clouds and
 #: small clouds give no evidence either way).
 UPRIGHT_MIN_NORMALS = 2000
+#: The most points of a cloud :func:`stem_axis` samples its voxels from (a stride through larger ones).
+STEM_AXIS_POINTS = 4_000_000
 #: The cone (degrees) round z searched for the best upright reading.
 UPRIGHT_NEAR_Z_DEG = 10.0
+
+
+def _spread_votes(
+    normals: np.ndarray, directions: np.ndarray, band: float, sectors: int, chunk: int = 256
+) -> np.ndarray:
+    """:func:`stem_axis`'s score of each unit direction: the normals within ``band`` (a sine) of
+    its perpendicular great circle, by their place round it (``sectors`` of its half), the lower
+    quartile of the sectors' counts times ``sectors``. Directions ``chunk`` at a time."""
+    score = np.zeros(len(directions))
+    seed = np.where(np.abs(directions[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    first = np.cross(directions, seed)
+    first /= np.linalg.norm(first, axis=1, keepdims=True)
+    second = np.cross(directions, first)
+    for lo in range(0, len(directions), chunk):
+        hi = min(lo + chunk, len(directions))
+        rows, cols = np.nonzero(np.abs(normals @ directions[lo:hi].T) < band)  # (normal, direction) pairs
+        n = normals[rows]
+        az = np.mod(
+            np.arctan2(np.einsum("ij,ij->i", n, second[lo + cols]), np.einsum("ij,ij->i", n, first[lo + cols])), np.pi
+        )
+        sector = np.minimum((az / np.pi * sectors).astype(np.int64), sectors - 1)
+        counts = np.bincount(cols * sectors + sector, minlength=(hi - lo) * sectors)
+        score[lo:hi] = sectors * np.percentile(counts.reshape(hi - lo, sectors), 25, axis=1)
+    return score
 
 
 @dataclass(frozen=True)
@@ -369,24 +395,15 @@ def stem_axis(
     if len(pts) < 100:
         return StemAxis(None, 0.0, 1.0, 0)
     centre = np.median(pts[:: max(1, len(pts) // 200_000)], axis=0)
-    normals, variation = surface_normals(level_sample(pts - centre, voxel_m=voxel_m, radius_m=radius_m))
+    # a dense cloud thinned by stride first (its voxels stay full): no copy of all its points
+    near = pts[:: max(1, len(pts) // STEM_AXIS_POINTS)] - centre
+    normals, variation = surface_normals(level_sample(near, voxel_m=voxel_m, radius_m=radius_m))
     flat = normals[variation < 0.02]
     if len(flat) < 200:
         return StemAxis(None, 0.0, 1.0, int(len(flat)))
     flat = flat * np.sign(flat[:, 2:3] + 1e-12)
     directions = _hemisphere_directions(90.0, step_deg, np.array([0.0, 0.0, 1.0]))
-    band = np.sin(np.radians(3.0))
-    score = np.zeros(len(directions))
-    for k, d in enumerate(directions):
-        near = flat[np.abs(flat @ d) < band]
-        if len(near) < sectors:
-            continue
-        a = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
-        a /= np.linalg.norm(a)
-        b = np.cross(d, a)
-        az = np.mod(np.arctan2(near @ b, near @ a), np.pi)
-        counts = np.bincount(np.minimum((az / np.pi * sectors).astype(np.int64), sectors - 1), minlength=sectors)
-        score[k] = sectors * float(np.percentile(counts, 25))
+    score = _spread_votes(flat, directions, np.sin(np.radians(3.0)), sectors)
     best = int(np.argmax(score))
     if score[best] <= 0:
         return StemAxis(None, 0.0, 1.0, int(len(flat)))
