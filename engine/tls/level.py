@@ -201,13 +201,19 @@ def _trunk_vertical(walls: np.ndarray, max_tilt_deg: float) -> tuple[Optional[np
         return None, strength
     fine = _hemisphere_directions(3.0, 0.5, best)
     best = fine[int(np.argmax(_great_circle_votes(walls, fine, band)))]
+    return _refined_axis(walls, best), strength
+
+
+def _refined_axis(normals: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """``axis`` refined as the smallest eigenvector of the scatter of the ``normals`` within 6,
+    then 3 deg of its perpendicular great circle (upward)."""
     for tol in (6.0, 3.0):
-        near = walls[np.abs(walls @ best) < np.sin(np.radians(tol))]
+        near = normals[np.abs(normals @ axis) < np.sin(np.radians(tol))]
         if len(near) < 30:
             break
         _, v = np.linalg.eigh(near.T @ near)
-        best = v[:, 0] * np.sign(v[2, 0] + 1e-12)
-    return best, strength
+        axis = v[:, 0] * np.sign(v[2, 0] + 1e-12)
+    return axis
 
 
 def _great_circle_votes(normals: np.ndarray, directions: np.ndarray, band: float) -> np.ndarray:
@@ -408,11 +414,5 @@ def stem_axis(
     if score[best] <= 0:
         return StemAxis(None, 0.0, 1.0, int(len(flat)))
     vertical = float(score[directions[:, 2] >= np.cos(np.radians(UPRIGHT_NEAR_Z_DEG))].max()) / float(score[best])
-    axis = directions[best]
-    for tol in (6.0, 3.0):
-        near = flat[np.abs(flat @ axis) < np.sin(np.radians(tol))]
-        if len(near) < 30:
-            break
-        _, v = np.linalg.eigh(near.T @ near)
-        axis = v[:, 0] * np.sign(v[2, 0] + 1e-12)
+    axis = _refined_axis(flat, directions[best])
     return StemAxis(axis, tilt_deg(axis), vertical, int(len(flat)), float(score[best]) / len(flat))
