@@ -172,7 +172,8 @@ def check_units(cloud, units: str = "m", label: str = "cloud") -> None:
     """Refuse a cloud whose coordinates are not in ``units``: :class:`UnitError` naming the likely
     unit and how to give it. ``cloud`` is a :class:`~forestreg.engine.core.scan.Scan` or its points
     ((N, 3), already scaled to metres by ``units``). A scan whose file declares a CRS is refused
-    when the CRS's unit is not ``units`` or is not a length on x, y and z
+    when the CRS's unit is not the one the file was read in (its ``meta["unit_scale"]``) or is not
+    one length on x, y and z
     (:func:`~forestreg.app.units.crs_unit_problem`); the points themselves are judged by their
     extent and spacing (:func:`~forestreg.app.units.unit_problem`) and their precision
     (:func:`~forestreg.app.units.precision_problem`). The one unit check of every command that
