@@ -164,6 +164,33 @@ def test_a_wall_gives_no_trees_from_the_canopy():
     assert not inv and "no tree crowns" in inv.reason
 
 
+@pytest.mark.parametrize("n", [500, 5000, 50_000])
+def test_points_scattered_through_a_volume_give_no_canopy_trees(n):
+    """Points drawn at random in a 30 m cube gave 8 and 48 "trees" with heights trusted high: the
+    local maxima of noise. Their highest points in neighbouring cells are unrelated."""
+    rng = np.random.default_rng(n)
+    inv = measure_trees(rng.uniform(0.0, 30.0, (n, 3)))
+    assert not inv and "form no canopy" in inv.reason
+
+
+@pytest.mark.parametrize("name", ["lidR_MixedConifer.laz", "spanner_ALS_Clip.laz", "SERC_transect_als.laz"])
+def test_real_canopies_are_surfaces_even_sparse(shared_data, name):
+    """Real ALS canopies, thinned to a twentieth of their points (0.2-4 returns per m2), still
+    correlate well above the threshold between neighbouring cells; noise of as many points does not."""
+    from forestreg.engine.trees.canopy import CanopyParams, canopy_surface_problem
+
+    p, h = _cloud(str(shared_data / name))
+    keep = np.random.default_rng(0).random(len(p)) < 0.05
+    assert canopy_surface_problem(p[keep], h[keep]) == ""
+    rng = np.random.default_rng(1)
+    noise = np.column_stack(
+        [rng.uniform(p[:, 0].min(), p[:, 0].max(), keep.sum()), rng.uniform(p[:, 1].min(), p[:, 1].max(), keep.sum())]
+    )
+    assert "form no canopy" in canopy_surface_problem(
+        np.c_[noise, np.zeros(len(noise))], rng.permutation(h[keep]), CanopyParams()
+    )
+
+
 @pytest.mark.slow
 def test_spruce_and_pine_dbh_volume_and_wood(shared_data):
     """DBH = an independent circle fit at 1.3 m; the cylinder model stays on the stem (spruce:

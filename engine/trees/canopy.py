@@ -18,6 +18,11 @@ above, as lidR's ``locate_trees(lmf())`` + ``segment_trees(dalponte2016())`` do:
    widths east-west and north-south (percentile extents of the crown's cells), crown area
    ``pi * a * b / 4`` and volume ``pi * CD^2 * CL / 8`` (paraboloid; paper sec. 4.3.4).
 
+Before any of this, :func:`canopy_surface_problem` checks that the vegetation is a canopy at all:
+crowns are surfaces metres across, so the highest points of neighbouring cells lie close to each
+other; points scattered through a volume (noise, a cloud of another kind) leave neighbouring
+cells unrelated, and their local maxima are no trees.
+
 Frame: the cloud's local frame (metres, z up); heights are normalised heights (above the DEM).
 """
 
@@ -34,7 +39,7 @@ from scipy import ndimage
 from ..core.errors import ScanDataError
 from ..core.params import Params, param_field
 
-__all__ = ["CanopyParams", "CanopyTree", "canopy_height_model", "canopy_trees"]
+__all__ = ["CanopyParams", "CanopyTree", "canopy_height_model", "canopy_surface_problem", "canopy_trees"]
 
 
 @dataclass(frozen=True)
@@ -90,6 +95,13 @@ class CanopyParams(Params):
     )
     ground_ring_min_points: int = param_field(
         10, "points", 3, 100000, "Fewest ground returns in that ring for the plane"
+    )
+    min_surface_correlation: float = param_field(
+        0.3,
+        "1",
+        -1.0,
+        1.0,
+        "Least correlation between the highest points of neighbouring 1 m (or 2 m) cells over the vegetation: a canopy is a surface (real ALS, ULS and TLS canopies 0.54-0.89), points scattered through a volume are not (near 0)",
     )
     ground_tolerance: float = param_field(
         0.05,
@@ -161,6 +173,57 @@ def canopy_height_model(points: np.ndarray, heights: np.ndarray, resolution_m: f
     smooth = ndimage.median_filter(filled, size=3, mode="nearest")
     smooth[empty & (grown == -np.inf)] = np.nan
     return Chm(grid=smooth, x0=x0, y0=y0, resolution_m=resolution_m)
+
+
+def _neighbour_correlation(xy: np.ndarray, h: np.ndarray, cell_m: float) -> tuple[float, int]:
+    """Pearson correlation of the highest ``h`` of each pair of side-by-side occupied cells of
+    ``cell_m`` (metres) over the points ``xy`` (M, 2), and the number of such pairs."""
+    col = ((xy[:, 0] - xy[:, 0].min()) / cell_m).astype(np.int64)
+    row = ((xy[:, 1] - xy[:, 1].min()) / cell_m).astype(np.int64)
+    nx, ny = int(col.max()) + 1, int(row.max()) + 1
+    grid = np.full(nx * ny, -np.inf)
+    np.maximum.at(grid, row * nx + col, h)
+    grid = grid.reshape(ny, nx)
+    a = np.concatenate([grid[:, :-1].ravel(), grid[:-1, :].ravel()])
+    b = np.concatenate([grid[:, 1:].ravel(), grid[1:, :].ravel()])
+    both = np.isfinite(a) & np.isfinite(b)
+    if both.sum() < 3 or np.std(a[both]) == 0.0 or np.std(b[both]) == 0.0:
+        return float("nan"), int(both.sum())
+    return float(np.corrcoef(a[both], b[both])[0, 1]), int(both.sum())
+
+
+def canopy_surface_problem(
+    points: Any,
+    heights: Any,
+    params: CanopyParams = CanopyParams(),
+    *,
+    min_pairs: int = 50,
+    max_points: int = 2_000_000,
+) -> str:
+    """Why the vegetation of a cloud is no canopy, or "" when it is one (or too small to tell).
+
+    Over the points at least ``params.min_height_m`` above the ground, the highest point of each
+    1 m and 2 m cell is compared with its side neighbours': on a canopy they correlate (crowns are
+    surfaces metres across), while points scattered through a volume give unrelated maxima. The
+    larger of the two correlations below ``params.min_surface_correlation`` is a problem; fewer
+    than ``min_pairs`` neighbouring cells say nothing. ``points`` (N, 3) local frame, metres;
+    ``heights`` (N,) above the ground; at most ``max_points`` of them are looked at (every k-th)."""
+    p = np.asarray(points, dtype=np.float64)
+    h = np.asarray(heights, dtype=np.float64)
+    veg = np.flatnonzero(h >= params.min_height_m)
+    if len(veg) > max_points:
+        veg = veg[:: -(-len(veg) // max_points)]
+    if len(veg) < 3:
+        return ""
+    found = [_neighbour_correlation(p[veg, :2], h[veg], cell) for cell in (1.0, 2.0)]
+    told = [r for r, n in found if n >= min_pairs and math.isfinite(r)]
+    if not told or max(told) >= params.min_surface_correlation:
+        return ""
+    return (
+        f"the points above {params.min_height_m:g} m form no canopy: the highest points of neighbouring "
+        f"1-2 m cells correlate {max(told):.2f} (a canopy's surface at least {params.min_surface_correlation:g}), "
+        "as points scattered through a volume do"
+    )
 
 
 def _tree_tops(chm: Chm, params: CanopyParams) -> list[tuple[int, int]]:

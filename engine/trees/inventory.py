@@ -36,7 +36,7 @@ from ..io.results import TREE_COLUMNS, TreeTablesFile  # noqa: F401 - the column
 from ..terrain.dem import Dem, TerrainModel, TerrainParams, lowest_points_dem, terrain_model
 from ..tls.stations import StationParams, Stations, beyond_view, scanner_stations
 from .allometry import HeightCurve, HeightCurveParams, fit_height_curve
-from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_trees, ground_evidence
+from .canopy import CanopyParams, CanopyTree, GroundEvidence, canopy_surface_problem, canopy_trees, ground_evidence
 from .consistency import FormFactorBounds, curve_dbh, form_factor_check, reconcile_stem, stem_curve_wood
 from .crown import CrownMeasurement, CrownParams, apex_tip, measure_crown, top_cut_flat, top_over_stem
 from .leafwood import LeafWoodParams, wood_along_paths, wood_probability
@@ -1945,6 +1945,9 @@ def _canopy_inventory(
     """Trees of a cloud without stems (airborne): tops and crowns from the canopy height model."""
     t = time.perf_counter()
     progress(0.3, "no stems at breast height: trees from the canopy height model")
+    problem = canopy_surface_problem(p, heights, params.canopy)
+    if problem:
+        raise ScanDataError(f"no stems found at breast height, and {problem}")
     trees, labels = canopy_trees(p, heights, params.canopy)
     timings["canopy_s"] = time.perf_counter() - t
     if not trees:
