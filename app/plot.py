@@ -241,8 +241,22 @@ def check_extra_outputs(inputs: Sequence, *, merged=None, e57_out=None, register
         check_replaceable_point_file(merged, "scan_id", "merged cloud")
     if e57_out:
         _check_extra_file(e57_out, inputs, (".e57",), out)
+        _check_replaceable_e57(e57_out)
     if registered_dir:
         check_output_folder(registered_dir, "registered-scans", inputs=inputs)
+
+
+def _check_replaceable_e57(path) -> None:
+    """An existing E57 file at an output path is replaced only when forestreg wrote every scan of
+    it (an earlier ``--e57-out``); a scanner's or another program's E57 is refused."""
+    from ..engine.core.errors import OutputPathError
+    from ..engine.io.e57 import written_by_forestreg
+
+    p = Path(path)
+    if p.exists() and not written_by_forestreg(p):
+        raise OutputPathError(
+            f"{p} exists and is not an earlier E57 output of forestreg: it would be overwritten; give a new file name"
+        )
 
 
 def _check_extra_file(path, inputs: Sequence, suffixes: tuple[str, ...], out) -> None:

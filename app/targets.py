@@ -35,9 +35,11 @@ def detect_targets(
     scans: Sequence, out, *, known: Optional[str] = None, max_distance: float = 0.3, progress=None, cancel=None
 ) -> TargetsOutcome:
     """Detect the reflectors of each scan file and write the targets CSV ``out`` (scan, target,
-    x, y, z; never an input). With ``known`` (an approximate targets CSV) each detection within
-    ``max_distance`` metres is named after the nearest known target."""
+    x, y, z; a new file: never an input, never an existing table, which may hold targets picked
+    by hand). With ``known`` (an approximate targets CSV) each detection within ``max_distance``
+    metres is named after the nearest known target."""
     from ..engine.core.atomic import check_output_file
+    from ..engine.core.errors import OutputPathError, UsageError
     from ..engine.io import read_scan
     from ..engine.io.base import check_readable
     from ..engine.io.results import write_targets_csv
@@ -45,7 +47,14 @@ def detect_targets(
 
     for p in scans:
         check_readable(p)
+    twice = sorted({str(p) for p in scans if [Path(q).resolve() for q in scans].count(Path(p).resolve()) > 1})
+    if twice:
+        raise UsageError(f"a scan is given twice: {', '.join(twice)}")
     out = check_output_file(out, inputs=list(scans) + ([known] if known else []), suffixes=(".csv", ".txt"))
+    if Path(out).exists():
+        raise OutputPathError(
+            f"{out} exists: a targets table is never replaced (it may hold targets picked by hand); give a new file name"
+        )
     known_targets = read_targets_csv(known) if known else {}
     step = with_cancel(progress, cancel) or (lambda f, m: None)
     found: dict = {}

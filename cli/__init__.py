@@ -225,6 +225,8 @@ def _small_scans(args) -> bool:
         return False
     for path in paths:
         try:
+            if not os.path.isfile(path):  # a pipe or a device would block open(); the command says why
+                return False
             with open(path, "rb") as f:
                 head = f.read(255)
         except (OSError, TypeError):

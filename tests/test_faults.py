@@ -57,7 +57,18 @@ def tiny(tmp_path_factory, sim_plot):
     (bad / "2x2.txt").write_text("1 0\n0 1\n")
     (bad / "identity.txt").write_text("\n".join(" ".join(str(v) for v in r) for r in m) + "\n")
     (bad / "other.txt").write_text("a user's notes\n")
+    _other_program_e57(bad / "scanner.e57")
     return plot, paths, bad
+
+
+def _other_program_e57(path: Path) -> None:
+    """A small valid E57 file written by another program (no forestreg description)."""
+    import pye57
+
+    rng = np.random.default_rng(0)
+    e57 = pye57.E57(str(path), mode="w")
+    e57.write_scan_raw({k: rng.random(500) for k in ("cartesianX", "cartesianY", "cartesianZ")}, name="station 1")
+    e57.close()
 
 
 @pytest.fixture(scope="module")
@@ -188,6 +199,9 @@ BAD_INPUT = {
     "trees garbage --field": ["trees", "{A}", "--out", "{O}", "--field", "{X}/text.csv"],
     "evaluate missing tables": ["evaluate", "{X}/missing.csv", "{X}/missing2.csv", "--out", "{O}"],
     "targets --out is a scan": ["targets", "{A}", "--out", "{A}"],
+    "targets --out a user's table": ["targets", "{A}", "--out", "{X}/other.txt"],
+    "targets a scan twice": ["targets", "{A}", "{A}", "--out", "{O}.csv"],
+    "plot --e57-out onto another program's E57": _pair_into_out("plot", "--e57-out", "{X}/scanner.e57"),
     "simulate --size 0": ["simulate", "planted_conifer", "--out", "{O}", "--size", "0"],
     "simulate --out is a scan": ["simulate", "planted_conifer", "--out", "{A}"],
     "gui --size 0x-5": ["gui", "--size", "0x-5"],

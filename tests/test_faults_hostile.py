@@ -838,3 +838,18 @@ def test_stray_points_far_from_the_cloud_are_left_out(shared_data, tmp_path):
         got = [float(r["height_m"]) for r in csv.DictReader(f)]
     assert len(got) == len(alone.trees) == 16
     assert np.allclose(np.sort(got), np.sort([r.height_m for r in alone.trees]), atol=0.2)
+
+
+@pytest.mark.parametrize("command", ["trees", "register", "coregister", "targets"])
+def test_a_named_pipe_as_a_scan_is_refused_at_once(tiny, tmp_path, command):
+    """A pipe (or a device such as /dev/stdin) opened as a scan waits for a writer forever: the
+    CLI, through its own entry point, names it within seconds and writes nothing."""
+    _, paths = tiny
+    fifo = tmp_path / "points.xyz"
+    os.mkfifo(fifo)
+    out = tmp_path / ("out.csv" if command == "targets" else "out")
+    scans = [fifo] if command in ("trees", "targets") else [fifo, paths[0]]
+    run = _run(command, *scans, "--out", out, timeout=60)
+    assert run.returncode == 2, run.stderr
+    assert "not a regular file" in _assert_one_line(run.stderr)
+    assert not out.exists()

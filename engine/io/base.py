@@ -127,18 +127,21 @@ def check_unit_scale(unit_scale: float) -> float:
 
 
 def check_readable(path: PathLike) -> Path:
-    """Return ``path`` as a :class:`Path` if it is an existing, non-empty, readable file.
+    """Return ``path`` as a :class:`Path` if it is an existing, non-empty, readable regular file.
 
     Raises
     ------
     ScanReadError
-        Missing, a folder, empty, or not readable.
+        Missing, a folder, a pipe or a device (opening one would wait for a writer), empty, or not
+        readable.
     """
     p = Path(path)
     if not p.exists():
         raise ScanReadError(f"{p}: no such file")
     if p.is_dir():
         raise ScanReadError(f"{p}: is a folder, not a scan file")
+    if not p.is_file():
+        raise ScanReadError(f"{p}: is not a regular file (a pipe, socket or device): save the points to a file first")
     try:
         size = p.stat().st_size
         with open(p, "rb"):

@@ -89,6 +89,30 @@ def read_e57(path: Path, indices: Optional[list[int]] = None) -> list[RawCloud]:
         e57.close()
 
 
+#: the description forestreg gives each scan it writes into an E57 file
+WRITTEN_BY = "written by forestreg"
+
+
+def written_by_forestreg(path: Path) -> bool:
+    """Whether the E57 file at ``path`` holds scans and every one of them was written by forestreg
+    (its ``description``): an earlier output that may be replaced. False for a file that cannot
+    be read as E57."""
+    try:
+        e57 = _open(Path(path))
+    except ScanReadError:
+        return False
+    try:
+        scans = e57.root["data3D"]
+        count = scans.childCount()
+        return count > 0 and all(
+            scans[i].isDefined("description") and scans[i]["description"].value() == WRITTEN_BY for i in range(count)
+        )
+    except Exception:  # noqa: BLE001 - a structure libe57 cannot walk is not ours
+        return False
+    finally:
+        e57.close()
+
+
 def read_e57_crs(path: Path):
     """The CRS an E57 file's ``coordinateMetadata`` names (:func:`~forestreg.engine.io.crs.crs_of_e57_root`),
     its points not read; None without one or for a file that cannot be read."""
@@ -221,7 +245,7 @@ def _write_entry(e57, entry: E57Entry) -> None:
     node = libe57.StructureNode(imf)
     node.set("guid", libe57.StringNode(imf, "{%s}" % uuid.uuid4()))
     node.set("name", libe57.StringNode(imf, entry.name))
-    node.set("description", libe57.StringNode(imf, "written by forestreg"))
+    node.set("description", libe57.StringNode(imf, WRITTEN_BY))
 
     pose = libe57.StructureNode(imf)
     rotation = libe57.StructureNode(imf)
