@@ -34,6 +34,7 @@ from .common import (
     RunOutcome,
     check_units,
     check_upright,
+    given_crs,
     outcome_of,
     refuse_same_file,
     run_summary,
@@ -345,10 +346,10 @@ def detect_change_files(
     from ..engine.core.atomic import check_output_folder, output_folder
     from ..engine.core.errors import UsageError
     from ..engine.core.progress import as_progress
-    from ..engine.io.crs import as_crs, frame_crs
+    from ..engine.io.crs import frame_crs
     from ..engine.trees.inventory import TreeParams
 
-    given = as_crs(crs, "--crs")
+    given = given_crs(crs, units_before if units_before is not None else units)
     units_before = units if units_before is None else units_before
     units_after = units if units_after is None else units_after
     for u in (units, units_before, units_after):

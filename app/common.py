@@ -192,6 +192,20 @@ def check_units(cloud, units: str = "m", label: str = "cloud") -> None:
         raise UnitError(problem)
 
 
+def given_crs(crs, units: str = "m"):
+    """The CRS a user gave (``--crs``: a :class:`~forestreg.engine.io.crs.Crs`, text such as
+    "EPSG:32618" or a WKT, or None) for coordinates read in ``units``, refused as a file's own CRS
+    would be (:func:`~forestreg.app.units.crs_unit_problem`, :class:`UnitError`): a geographic or
+    geocentric CRS, one in another unit, one mixing units."""
+    from ..engine.io.crs import as_crs
+
+    found = as_crs(crs, "--crs")
+    problem = crs_unit_problem(found, units, "--crs")
+    if problem:
+        raise UnitError(problem)
+    return found
+
+
 def check_upright(cloud, label: str = "cloud") -> None:
     """Refuse a cloud whose z axis is not up (:class:`~forestreg.engine.core.errors.UsageError`,
     exit 2): its trunks stand clearly off z (:func:`~forestreg.engine.tls.level.stem_axis`; a

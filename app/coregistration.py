@@ -24,6 +24,7 @@ from .common import (
     RunOutcome,
     as_scan,
     check_units,
+    given_crs,
     outcome_of,
     params_of,
     refuse_same_file,
@@ -172,10 +173,9 @@ def coregister_clouds(
     from ..engine.core.atomic import check_output_folder
     from ..engine.coreg.coregister import coregister as coregister_scans
     from ..engine.io import read_scan
-    from ..engine.io.crs import as_crs
     from ..engine.report.samples import profile_sample
 
-    given = as_crs(crs, "--crs")
+    given = given_crs(crs, units)
     if params is None:
         params = default_params()
     scale = UNITS[units]

@@ -22,6 +22,7 @@ from .common import (
     as_scan,
     check_replaceable_point_file,
     check_units,
+    given_crs,
     params_of,
     refuse_same_file,
     with_cancel,
@@ -100,9 +101,9 @@ def fuse_clouds(
     from ..engine.coreg.fusion import fuse_files as fuse_point_files
     from ..engine.io import read_crs, write_fused
     from ..engine.io.base import check_readable
-    from ..engine.io.crs import as_crs, frame_crs
+    from ..engine.io.crs import frame_crs
 
-    given = as_crs(crs, "--crs")
+    given = given_crs(crs, units)
     scale = UNITS[units]
     check_readable(ground_path)
     check_readable(uav_path)

@@ -22,6 +22,7 @@ from .common import (
     as_scan,
     check_near_scanner,
     check_units,
+    given_crs,
     import_in_background,
     outcome_of,
     params_of,
@@ -70,9 +71,7 @@ def register_pair(
     its file declares none, or the one that wins over it."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from ..engine.io.crs import as_crs
-
-    given = as_crs(crs, "--crs")
+    given = given_crs(crs, units)
     from ..engine.core.atomic import check_output_folder
     from ..engine.core.errors import UsageError
     from ..engine.io import read_scan

@@ -26,7 +26,14 @@ from typing import Any, Callable, Optional, Sequence
 from ..engine.core.uncertainty import evidence_notes
 from ..engine.tls.plot import PlotOutcome, ScanCache, default_links, pose_uncertainty  # noqa: F401 - the plot's types, for the front doors
 from ..engine.tls.project import Link, Project, ScanEntry  # noqa: F401 - the saved plot project
-from .common import RunOutcome, check_replaceable_point_file, checked_scans, import_in_background, with_cancel
+from .common import (
+    RunOutcome,
+    check_replaceable_point_file,
+    checked_scans,
+    given_crs,
+    import_in_background,
+    with_cancel,
+)
 from .saved import count_or_none, finite_or_none, mapping_or_empty
 
 log = logging.getLogger("forestreg")
@@ -508,14 +515,12 @@ def plot_scans(
     on with (:func:`resumable_project`; not with ``pairs`` or ``loops``), the folder made and the
     project saved in it, then :func:`run_plot`. ``on_resume(out, kept, links)`` is told when links
     of a stopped run are kept. Returns the :class:`PlotRun`."""
-    from ..engine.io.crs import parse_crs
     from ..engine.tls.params import RegistrationParams
     from .survey import check_survey_options
 
     params = params if params is not None else RegistrationParams()
     check_survey_options(pairs, positions, prior_poses)
-    if crs:  # a bad crs: refused before the folder is made
-        parse_crs(crs)
+    given_crs(crs, "m")  # a bad crs, or one the scans cannot be in: refused before the folder is made
     check_scan_files_exist(scan_files)
     check_extra_outputs(scan_files, out=out, merged=merged, e57_out=e57_out, registered_dir=registered_dir)
     project = new_project(
@@ -581,9 +586,8 @@ def run_plot(
     rename, poses.json last) and the extra products asked for, all in the centre scan's frame with
     its CRS (``crs``, e.g. "EPSG:32618", when its file declares none, or the one that wins)."""
     from ..engine.core.atomic import temporary_folder
-    from ..engine.io.crs import as_crs
 
-    given = as_crs(crs, "--crs")
+    given = given_crs(crs, "m")
 
     # the report's figures need matplotlib (~0.4 s of imports): loaded while the scans are
     # registered, not on the single thread that writes the report at the end

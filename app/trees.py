@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
-from .common import UNITS, RunOutcome, as_points, as_scan, check_units, check_upright, params_of, with_cancel
+from .common import UNITS, RunOutcome, as_points, as_scan, check_units, check_upright, given_crs, params_of, with_cancel
 from .units import tall_stand_note
 
 log = logging.getLogger("forestreg")
@@ -92,11 +92,11 @@ def measure_trees_file(
     from ..engine.core.transform import read_matrix, to_metres
     from ..engine.io import read_scan
     from ..engine.io.base import check_readable
-    from ..engine.io.crs import as_crs, crs_of, frame_crs
+    from ..engine.io.crs import crs_of, frame_crs
     from ..engine.trees.evaluate import read_tree_table
     from .evaluation import evaluate_into
 
-    given = as_crs(crs, "--crs")
+    given = given_crs(crs, units)
     scale = UNITS[units]
     is_path = isinstance(cloud_path, (str, Path))
     if is_path:

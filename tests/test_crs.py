@@ -429,3 +429,20 @@ def test_a_local_file_in_feet_read_as_metres_is_warned_about(shared_data, tmp_pa
     assert tall_stand_note([60.0] * 4) is None  # too few trees to say
     assert tall_stand_note([60.0] * 5, units="ft") is None  # the unit was given
     assert "--units ft" in tall_stand_note([60.0] * 5)
+
+
+@pytest.mark.parametrize(
+    "crs, said", [("EPSG:4326", "geographic"), ("EPSG:4978", "geocentric"), ("EPSG:2236", "US survey feet")]
+)
+@pytest.mark.parametrize("command", ["trees", "register", "plot"])
+def test_a_crs_given_on_the_command_line_is_checked_as_a_files_own(shared_data, tmp_path, capsys, crs, said, command):
+    """``--crs`` wins over the files' CRS, so it is held to the same checks: a local cloud in
+    metres declared in latitude and longitude, Earth-centred coordinates or State Plane feet gave
+    outputs in that CRS with exit 0."""
+    cloud = shared_data / "pine_plot.laz"
+    scans = [cloud] if command == "trees" else [cloud, shared_data / "LPine1_demo.laz"]
+    out = tmp_path / "out"
+    assert main([command, *map(str, scans), "--crs", crs, "--out", str(out), "-q"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert len(line.splitlines()) == 1 and line.count("--crs") >= 1 and said in line
+    assert not out.exists()
