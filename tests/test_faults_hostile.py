@@ -840,6 +840,24 @@ def test_stray_points_far_from_the_cloud_are_left_out(shared_data, tmp_path):
     assert np.allclose(np.sort(got), np.sort([r.height_m for r in alone.trees]), atol=0.2)
 
 
+def test_a_few_returns_kilometres_off_are_dropped_and_a_cloud_in_mm_still_refused(shared_data):
+    """One return 6 km off (or two at 1e300) made a real plot "probably in millimetres", also with
+    --units m given: they are strays, dropped with a warning, as NaN rows are. A cloud large as a
+    whole is still in another unit."""
+    from forestreg.engine.core.errors import ScanDataError
+    from forestreg.engine.core.scan import Scan
+    from forestreg.engine.io import read_scan
+
+    p = np.asarray(read_scan(shared_data / "pine_plot.laz").points, dtype=np.float64)
+    p = p - np.floor(p.mean(axis=0))
+    for far in ([[6000.0, 0.0, 0.0]], [[1e300, 0.0, 0.0], [0.0, -1e300, 5.0]]):
+        scan = Scan.from_points(np.vstack([p, far]))
+        assert len(scan.points) == len(p)
+        assert np.ptp(scan.points, axis=0).max() < 100.0
+    with pytest.raises(ScanDataError, match="millimetres"):
+        Scan.from_points(p * 1000.0)
+
+
 @pytest.mark.parametrize("command", ["trees", "register", "coregister", "targets"])
 def test_a_named_pipe_as_a_scan_is_refused_at_once(tiny, tmp_path, command):
     """A pipe (or a device such as /dev/stdin) opened as a scan waits for a writer forever: the

@@ -29,6 +29,9 @@ LARGE_COORDINATE_M = 1.0e4
 log = logging.getLogger("forestreg")
 
 MAX_EXTENT_M = 5.0e3
+#: At most this share of a scan's points may lie more than half MAX_EXTENT_M from its median and
+#: be dropped as strays; more, and the cloud as a whole is taken to be in the wrong units.
+MAX_STRAY_FRACTION = 0.001
 #: The fewest points a scan may have.
 MIN_POINTS = 10
 #: At most this fraction of non-finite rows is dropped; more is an error.
@@ -129,6 +132,24 @@ class Scan:
         lo = np.array([pts[:, k].min() for k in range(3)])
         hi = np.array([pts[:, k].max() for k in range(3)])
         extent = float((hi - lo).max())
+        if extent > MAX_EXTENT_M:
+            # a few returns far off (a bad range, a ghost at 1e300) are strays, dropped as the
+            # non-finite ones are; a cloud that is large as a whole is in another unit
+            middle = np.median(pts[:: max(1, len(pts) // 100_000)], axis=0)
+            stray = np.abs(pts - middle).max(axis=1) > MAX_EXTENT_M / 2.0
+            n_stray = int(stray.sum())
+            if 0 < n_stray <= MAX_STRAY_FRACTION * len(pts):
+                pts = pts[~stray]
+                log.warning(
+                    "%s: %d of %d points lie more than %.0f m from the rest and were dropped as strays",
+                    label,
+                    n_stray,
+                    len(pts) + n_stray,
+                    MAX_EXTENT_M / 2.0,
+                )
+                lo = np.array([pts[:, k].min() for k in range(3)])
+                hi = np.array([pts[:, k].max() for k in range(3)])
+                extent = float((hi - lo).max())
         if extent > MAX_EXTENT_M:
             raise ScanDataError(
                 f"{label}: the points span {extent:,.0f} units; a forest scan spans at most a few "
