@@ -48,6 +48,9 @@ MIN_COLUMNS = 20
 TALL_MAX_M = 150.0
 #: A cloud said to be in cm, mm or feet that spans less than this (m) is not a forest cloud.
 SMALL_MIN_M = 0.5
+#: A cloud in metres that spans less than this (m) both across and in height holds no tree: a
+#: file in kilometres, or coordinates scaled away.
+TINY_MAX_M = 0.1
 #: The points the check looks at (a random sample of larger clouds).
 SAMPLE_POINTS = 200_000
 #: The points the spacing is measured on when a cloud is refused (a random thinning of larger ones).
@@ -210,7 +213,7 @@ def unit_problem(points: Any, units: str = "m", label: str = "cloud") -> Optiona
         return None
     figures = _figures(p)
     too_large = _too_large(figures)
-    too_small = units != "m" and max(figures["height"], figures["width"]) < SMALL_MIN_M
+    too_small = max(figures["height"], figures["width"]) < (SMALL_MIN_M if units != "m" else TINY_MAX_M)
     if not too_large and not too_small:
         return None
     spacing = _spacing(points)
@@ -218,7 +221,10 @@ def unit_problem(points: Any, units: str = "m", label: str = "cloud") -> Optiona
     facts = _facts(figures, spacing, too_large)
     guess = _likely_unit(p, spacing, units, larger=too_small)
     if guess is None:
-        return f"{label}: this cloud is not in {UNIT_NAMES[units]}: {facts}; check the file's unit (--units)"
+        return (
+            f"{label}: this cloud is not in {UNIT_NAMES[units]}: {facts}; check the file's unit "
+            f"(--units {'|'.join(UNITS)}), or convert it to metres first"
+        )
     unit, also = guess
     factor = UNITS[unit] / scale
     perhaps = f" (perhaps {UNIT_NAMES[also]})" if also else ""

@@ -10,7 +10,9 @@ either survey gets a status:
   later survey alone thicker than a tree grown in since can be (``max_new_dbh_m``, or less where
   the plot tells: the earlier survey's thin stems plus what its persisting trees grew at most;
   its place was occluded in the earlier survey);
-- ``removed``: a stem of the earlier survey whose place the later survey sees without a stem;
+- ``removed``: a stem of the earlier survey whose place the later survey sees without a stem
+  (in a later survey with ground, returns of its ground or stem band at the very place:
+  ``removed_place_points``);
 - ``new``: a stem of the later survey whose place the earlier survey saw empty (fewer than
   ``partial_presence_points`` points there: more, too few to measure, mean a stem occluded there,
   persisting);
@@ -20,7 +22,8 @@ either survey gets a status:
   one whose DBH crossed the threshold, and none was measured);
 - ``outside``: the other survey did not cover the place: outside its footprint (a cloud's points,
   holes such as a harvest gap filled; a table's stems, their hull grown by 2 m) or, for a tree of
-  the later survey, without any point of the earlier one near it: not compared.
+  the later survey, without any point of the earlier one near it; or, for a tree of the earlier
+  survey, its place hidden in the later one (no return where it stood): not compared.
 
 Values per tree: DBH and height in each survey with their 1-sigma, and their changes. The DBH
 change of a stem measured in both clouds is twice its radial growth in the sectors of its section
@@ -193,7 +196,7 @@ def match_trees(
         return cKDTree(epoch.band[:, :2]), cKDTree(np.vstack([epoch.band[:, :2], epoch.ground[:, :2]]))
 
     band_b, cover_b = indexes(before)
-    band_a, _ = indexes(after)
+    band_a, cover_a = indexes(after)
 
     out: list[TreeChange] = []
     new_max_m, new_max_why = _new_dbh_bound(before, after, pairs, params)
@@ -239,11 +242,16 @@ def match_trees(
         cover_other,
         status: str,
         at_other: bool,
+        place_index=None,
     ) -> None:
         """Stems of ``epoch`` alone (``rest``; ``in_other`` its breast points in the other's frame):
         persisting where the other survey has stem points there, outside where it did not see the
         place (its footprint; and, with ``cover_other``, points near it: never a false new tree
-        where a survey was blind), else ``status``. ``at_other``: positions in the other's frame."""
+        where a survey was blind), else ``status``. ``at_other``: positions in the other's frame.
+        ``place_index`` (a KD-tree of the other's band and ground, xy): where the other survey has
+        ground under its stems (``terrain``), a stem is "removed" only where it has returns at its
+        very place (``removed_place_points``); else its place was hidden there, "outside" (not
+        compared)."""
         if not len(rest):
             return
         name = "AFTER" if which == "before" else "BEFORE"
@@ -252,6 +260,14 @@ def match_trees(
         seen = other.covers(where)
         if cover_other is not None and other.has_points:
             seen &= _covered(other, where, params.coverage_radius_m, cover_other)
+        # returns of the other survey at the place itself (stem band or ground): none, and the
+        # place was hidden there rather than seen empty
+        place_reach = np.array([radius(epoch, k) + params.removed_place_margin_m for k in rest])
+        hidden: list[Optional[int]] = [None] * len(rest)
+        if status == "removed" and other.has_points and other.terrain and place_index is not None:
+            for j in range(len(rest)):
+                n = len(place_index.query_ball_point(where[j], place_reach[j]))
+                hidden[j] = n if n < params.removed_place_points else None
         for j, k in enumerate(rest):
             base = _one_side(epoch, int(k), which, xy=where[j] if at_other else None)
             own = epoch.flags[k] and f"{which.upper()}: {epoch.flags[k]}"
@@ -308,6 +324,19 @@ def match_trees(
                 )
             elif not seen[j]:
                 out.append(TreeChange(status="outside", **base, flag=f"outside the {name} survey: not compared"))
+            elif status == "removed" and hidden[j] is not None:
+                # a tree is taken as removed only where the later survey saw its place empty
+                out.append(
+                    TreeChange(
+                        status="outside",
+                        **base,
+                        flag=_join(
+                            f"its place hidden in {name} ({hidden[j]} returns within {place_reach[j]:.2f} m of where the "
+                            "stem stood: occluded there): not compared",
+                            own,
+                        ),
+                    )
+                )
             elif status == "new" and not math.isfinite(epoch.dbh_m[k]):
                 # a tree grown in is one whose DBH crossed the threshold: a stem with no DBH
                 # measured (too few points, a partial arc) is no evidence of one; left out, counted
@@ -331,6 +360,7 @@ def match_trees(
         None,
         "removed",
         False,
+        cover_a,
     )
     # --- stems of AFTER alone: new, not found in BEFORE, or outside BEFORE
     alone(

@@ -112,6 +112,16 @@ class ChangeParams(Params):
         100000,
         "With at least this many stems measured in both surveys, a tree grown in may be no thicker than the earlier survey's thin stems (5th percentile of its DBH) plus what its persisting trees grew at most (95th percentile of their DBH differences), where that is below max_new_dbh_m; thicker: its place was occluded, persisting (0 = max_new_dbh_m alone)",
     )
+    removed_place_points: int = _p(
+        2,
+        "points",
+        0,
+        100000,
+        "A tree of the earlier survey is removed only where the later survey (with ground) has at least this many returns (stem band or ground) within its radius + removed_place_margin_m of where it stood: the empty place seen; fewer, its place was hidden there (occluded) and it is not compared (status outside)",
+    )
+    removed_place_margin_m: float = _p(
+        0.3, "m", 0.0, 5.0, "How far beyond a stem's radius the returns that show its place empty are counted"
+    )
     coverage_radius_m: float = _p(
         1.5,
         "m",
