@@ -135,7 +135,8 @@ def _input_kind(path: Path) -> str:
     input is a one-line error."""
     from ..engine.core.errors import UsageError
     from ..engine.io.base import check_readable
-    from ..engine.io.sniff import is_tree_table
+    from ..engine.io.las import check_las_header
+    from ..engine.io.sniff import detect_format, is_tree_table
 
     if path.is_dir():
         if (path / "trees.csv").is_file():
@@ -146,7 +147,11 @@ def _input_kind(path: Path) -> str:
     check_readable(path)
     if path.suffix.lower() == ".json":
         return "project"
-    return "table" if is_tree_table(path) else "cloud"
+    if is_tree_table(path):
+        return "table"
+    if detect_format(path) == "las":  # a damaged or truncated header is known before any work
+        check_las_header(path)
+    return "cloud"
 
 
 def _real_input(path: Path) -> Path:

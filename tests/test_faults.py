@@ -58,7 +58,22 @@ def tiny(tmp_path_factory, sim_plot):
     (bad / "identity.txt").write_text("\n".join(" ".join(str(v) for v in r) for r in m) + "\n")
     (bad / "other.txt").write_text("a user's notes\n")
     _other_program_e57(bad / "scanner.e57")
+    _count_lies(paths[0], bad / "count_lies.las")
     return plot, paths, bad
+
+
+def _count_lies(scan: Path, path: Path) -> None:
+    """``scan`` as a LAS file whose header announces 100 points of the many that follow."""
+    import struct
+
+    import laspy
+
+    laspy.read(scan).write(path, do_compress=False)
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<I", data, 107, 100)
+    if data[25] >= 4:  # LAS 1.4: the 64-bit count too
+        struct.pack_into("<Q", data, 247, 100)
+    path.write_bytes(bytes(data))
 
 
 def _other_program_e57(path: Path) -> None:
@@ -199,6 +214,7 @@ BAD_INPUT = {
     "trees garbage --field": ["trees", "{A}", "--out", "{O}", "--field", "{X}/text.csv"],
     "evaluate missing tables": ["evaluate", "{X}/missing.csv", "{X}/missing2.csv", "--out", "{O}"],
     "targets --out is a scan": ["targets", "{A}", "--out", "{A}"],
+    "trees a LAS announcing fewer points than it holds": ["trees", "{X}/count_lies.las", "--out", "{O}"],
     "targets --out a user's table": ["targets", "{A}", "--out", "{X}/other.txt"],
     "targets a scan twice": ["targets", "{A}", "{A}", "--out", "{O}.csv"],
     "plot --e57-out onto another program's E57": _pair_into_out("plot", "--e57-out", "{X}/scanner.e57"),

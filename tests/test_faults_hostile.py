@@ -270,6 +270,7 @@ BAD_PARAMS = {
     "number for a text": ("[fusion]\nnoise_method = 3\n", "noise_method"),
     "string for an optional number": ('[registration]\nvop_radius_m = "15"\n', "vop_radius_m"),
     "string for a nested number": ('[trees.stems]\nbreast_height_m = "1.3"\n', "breast_height_m"),
+    "a range upside down": ("[trees.stems]\nground_ring_m = [1.5, 0.6]\n", "ground_ring_m"),
 }
 
 

@@ -154,6 +154,9 @@ def validate_ranges(params: Any) -> None:
                 raise ParameterError(
                     f"{f.name} = {v} {f.metadata.get('unit', '')} is outside [{lo}, {hi}]".replace("  ", " ")
                 )
+        # a pair of numbers is a range (smallest, largest; inner, outer): its ends in order
+        if _kind(f) == "tuple[float,float]" and isinstance(value, tuple) and len(value) == 2 and value[0] > value[1]:
+            raise ParameterError(f"{f.name} = {list(value)}: a range, its first value must not exceed its second")
 
 
 def _flat(value: Any) -> list[Any]:

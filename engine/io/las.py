@@ -79,6 +79,20 @@ def _check_header(path: Path) -> tuple[int, bool]:
             f"{path}: is truncated: the header announces {count:,} points "
             f"({count * record_len:,} bytes) but only {data_bytes:,} bytes follow"
         )
+    if not compressed:
+        # what follows the points in LAS 1.3/1.4: waveform packets and extended VLRs, where given
+        ends = [size]
+        if minor >= 3 and len(head) >= 235:
+            ends.append(struct.unpack_from("<Q", head, 227)[0])
+        if minor >= 4 and len(head) >= 243:
+            ends.append(struct.unpack_from("<Q", head, 235)[0])
+        end = min(e for e in ends if offset < e <= size) if any(offset < e <= size for e in ends) else size
+        records = (end - offset) // record_len
+        if records > count:
+            raise ScanReadError(
+                f"{path}: has an inconsistent LAS header: it announces {count:,} points, but {records:,} point records "
+                "follow it (read as it says, the rest would be lost); rewrite the header (e.g. with PDAL or lasinfo -repair)"
+            )
     if compressed and count > 0 and data_bytes < 8:
         raise ScanReadError(
             f"{path}: is truncated: the header announces {count:,} points but no compressed data follow"

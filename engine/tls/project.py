@@ -302,7 +302,11 @@ class Project(ProjectFile):
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise ProjectFileError(f"{p} is not a forestreg project file")
         version = data.get("version")
-        if not isinstance(version, int) or version > VERSION:
+        if not isinstance(version, int) or isinstance(version, bool):
+            raise ProjectFileError(
+                f"project file {p} is damaged: its format version is {version!r}, not a whole number; it was left untouched"
+            )
+        if version > VERSION:
             raise ProjectFileError(
                 f"{p} was written by a newer forestreg (project format {version}; this one reads up to {VERSION})"
             )
