@@ -28,7 +28,7 @@ import pytest
 from forestreg.cli import build_parser, main
 from forestreg.engine.core.errors import TransformError
 from forestreg.engine.core.transform import check_rigid, read_matrix, rigid_errors
-from forestreg.engine.io import read_scan, write_scan
+from forestreg.engine.io import read_scan, write_points, write_scan
 
 POSITIONS = ((0.0, 0.0), (6.0, 2.0), (-5.0, 4.0))
 
@@ -59,6 +59,7 @@ def tiny(tmp_path_factory, sim_plot):
     (bad / "other.txt").write_text("a user's notes\n")
     _other_program_e57(bad / "scanner.e57")
     _count_lies(paths[0], bad / "count_lies.las")
+    write_points(bad / "in_km.laz", read_scan(paths[0]).points / 1000.0)
     return plot, paths, bad
 
 
@@ -214,6 +215,7 @@ BAD_INPUT = {
     "trees garbage --field": ["trees", "{A}", "--out", "{O}", "--field", "{X}/text.csv"],
     "evaluate missing tables": ["evaluate", "{X}/missing.csv", "{X}/missing2.csv", "--out", "{O}"],
     "targets --out is a scan": ["targets", "{A}", "--out", "{A}"],
+    "trees a cloud in kilometres": ["trees", "{X}/in_km.laz", "--out", "{O}"],
     "trees a LAS announcing fewer points than it holds": ["trees", "{X}/count_lies.las", "--out", "{O}"],
     "targets --out a user's table": ["targets", "{A}", "--out", "{X}/other.txt"],
     "targets a scan twice": ["targets", "{A}", "{A}", "--out", "{O}.csv"],
