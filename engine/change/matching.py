@@ -331,8 +331,8 @@ def match_trees(
                         status="outside",
                         **base,
                         flag=_join(
-                            f"its place hidden in {name} ({hidden[j]} returns within {place_reach[j]:.2f} m of where the "
-                            "stem stood: occluded there): not compared",
+                            f"its place hidden in {name} ({hidden[j]} return{'' if hidden[j] == 1 else 's'} within "
+                            f"{place_reach[j]:.2f} m of where the stem stood: occluded there): not compared",
                             own,
                         ),
                     )
