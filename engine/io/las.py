@@ -91,7 +91,7 @@ def _check_header(path: Path) -> tuple[int, bool]:
         if records > count:
             raise ScanReadError(
                 f"{path}: has an inconsistent LAS header: it announces {count:,} points, but {records:,} point records "
-                "follow it (read as it says, the rest would be lost); rewrite the header (e.g. with PDAL or lasinfo -repair)"
+                "follow it (read as it says, the rest would be lost); repair the header (e.g. LAStools: lasinfo -repair)"
             )
     if compressed and count > 0 and data_bytes < 8:
         raise ScanReadError(
