@@ -989,8 +989,10 @@ def detect_stems_adaptive(
     Dense, clean stems (TLS) use ``params`` ("fine" profile). Where the band points are spaced more
     than ``params.sparse_spacing_m`` apart (mobile, backpack, UAV clouds), or the fine profile finds
     nothing, ``params`` with the values of ``noisy_profile`` are used ("noisy" profile: thick shells,
-    ghosts, few points); when the profile chosen by the spacing finds nothing, the other is tried. Returns (stems, the parameters used, the profile name); the DBH and stem
-    curves must be measured with the same parameters.
+    ghosts, few points); when the profile chosen by the spacing finds nothing, or at most
+    :data:`FEW_STEMS` stems none of which has a DBH section that passes its checks, the other is
+    tried (and its stems taken if it finds one it can measure). Returns (stems, the parameters
+    used, the profile name); the DBH and stem curves must be measured with the same parameters.
     """
     p, h = check_cloud(points, heights)
     assert h is not None
@@ -1001,11 +1003,38 @@ def detect_stems_adaptive(
         if math.isfinite(spacing) and spacing > params.sparse_spacing_m
         else [(params, "fine"), (noisy, "noisy")]
     )
+    unmeasured: Optional[tuple[list[Stem], StemParams, str]] = None
     for prm, name in order:
         stems = detect_stems(p, h, prm, progress)
-        if stems:
-            return stems, prm, name
-    return [], order[0][0], order[0][1]
+        if not stems:
+            continue
+        if len(stems) <= FEW_STEMS and not any(_has_section(p, h, s, prm) for s in stems):
+            # a few "stems" none of which has a section at breast height (a clump of twigs the
+            # profile took for a trunk, as where its detection grid falls): the other profile
+            # decides, if it finds a stem it can measure
+            unmeasured = unmeasured or (stems, prm, name)
+            continue
+        return stems, prm, name
+    return unmeasured if unmeasured is not None else ([], order[0][0], order[0][1])
+
+
+#: A profile that finds at most this many stems has them checked for a section at breast height.
+FEW_STEMS = 5
+
+
+def _has_section(p: np.ndarray, h: np.ndarray, stem: Stem, params: StemParams) -> bool:
+    """Whether ``stem`` has a DBH section that passes its checks (:func:`measure_dbh`), measured
+    on the points near it only (no index of the whole cloud is built)."""
+    reach = stem.radius_m * 1.25 + params.search_margin_m + 1.0
+    near = np.flatnonzero(
+        (np.abs(p[:, 0] - stem.x) <= reach)
+        & (np.abs(p[:, 1] - stem.y) <= reach)
+        & (h >= params.breast_height_m - 0.6)
+        & (h <= params.breast_height_m + 0.6)
+    )
+    if len(near) < 3:
+        return False
+    return bool(measure_dbh(p[near], h[near], stem, params).ok)
 
 
 def _interior_fraction(
