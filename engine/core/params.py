@@ -154,9 +154,16 @@ def validate_ranges(params: Any) -> None:
                 raise ParameterError(
                     f"{f.name} = {v} {f.metadata.get('unit', '')} is outside [{lo}, {hi}]".replace("  ", " ")
                 )
-        # a pair of numbers is a range (smallest, largest; inner, outer): its ends in order
-        if _kind(f) == "tuple[float,float]" and isinstance(value, tuple) and len(value) == 2 and value[0] > value[1]:
+        # a pair of numbers whose default rises is a range (smallest, largest; inner, outer): its
+        # ends stay in order (a pair such as a centre's x, y has no order)
+        if _is_range(f) and isinstance(value, tuple) and len(value) == 2 and value[0] > value[1]:
             raise ParameterError(f"{f.name} = {list(value)}: a range, its first value must not exceed its second")
+
+
+def _is_range(f: dataclasses.Field) -> bool:
+    """Whether the field is a pair of numbers whose default rises (a range)."""
+    d = f.default
+    return _kind(f) == "tuple[float,float]" and isinstance(d, tuple) and len(d) == 2 and d[0] < d[1]
 
 
 def _flat(value: Any) -> list[Any]:
