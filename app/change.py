@@ -354,9 +354,9 @@ def detect_change_files(
     from ..engine.io.crs import frame_crs
     from ..engine.trees.inventory import TreeParams
 
-    given = given_crs(crs, units_before if units_before is not None else units)
     units_before = units if units_before is None else units_before
     units_after = units if units_after is None else units_after
+    given = given_crs(crs, units_before)
     for u in (units, units_before, units_after):
         if u not in UNITS:
             raise UsageError(f"unknown unit {u!r}: one of {', '.join(UNITS)}")

@@ -192,6 +192,15 @@ def check_units(cloud, units: str = "m", label: str = "cloud") -> None:
         raise UnitError(problem)
 
 
+def refuse_scans_given_twice(paths) -> None:
+    """:class:`~forestreg.engine.core.errors.UsageError` (exit 2) naming the scans given more
+    than once among ``paths`` (compared as resolved paths: links and ``..`` followed)."""
+    resolved = [Path(p).resolve() for p in paths]
+    twice = sorted({str(p) for p, r in zip(paths, resolved) if resolved.count(r) > 1})
+    if twice:
+        raise UsageError(f"a scan is given twice: {', '.join(twice)}")
+
+
 def given_crs(crs, units: str = "m"):
     """The CRS a user gave (``--crs``: a :class:`~forestreg.engine.io.crs.Crs`, text such as
     "EPSG:32618" or a WKT, or None) for coordinates read in ``units``, refused as a file's own CRS

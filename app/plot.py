@@ -32,6 +32,7 @@ from .common import (
     checked_scans,
     given_crs,
     import_in_background,
+    refuse_scans_given_twice,
     with_cancel,
 )
 from .saved import count_or_none, finite_or_none, mapping_or_empty
@@ -213,11 +214,7 @@ def check_scan_files_exist(paths: Sequence) -> None:
 
     if len(paths) == 1 and Path(paths[0]).suffix.lower() != ".e57":
         raise UsageError(f"a plot needs at least two scans (or one multi-scan E57 file); got only {paths[0]}")
-    resolved = [Path(p).resolve() for p in paths]
-    twice = sorted({str(p) for p in paths if resolved.count(Path(p).resolve()) > 1})
-    if twice:
-        raise UsageError(f"a scan is given twice: {', '.join(twice)}")
-
+    refuse_scans_given_twice(paths)
     for p in paths:
         if not Path(p).exists():
             raise ScanReadError(f"{p}: no such file")

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .common import RunOutcome, with_cancel
+from .common import RunOutcome, refuse_scans_given_twice, with_cancel
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,7 @@ def detect_targets(
     by hand). With ``known`` (an approximate targets CSV) each detection within ``max_distance``
     metres is named after the nearest known target."""
     from ..engine.core.atomic import check_output_file
-    from ..engine.core.errors import OutputPathError, UsageError
+    from ..engine.core.errors import OutputPathError
     from ..engine.io import read_scan
     from ..engine.io.base import check_readable
     from ..engine.io.results import write_targets_csv
@@ -47,9 +47,7 @@ def detect_targets(
 
     for p in scans:
         check_readable(p)
-    twice = sorted({str(p) for p in scans if [Path(q).resolve() for q in scans].count(Path(p).resolve()) > 1})
-    if twice:
-        raise UsageError(f"a scan is given twice: {', '.join(twice)}")
+    refuse_scans_given_twice(scans)
     out = check_output_file(out, inputs=list(scans) + ([known] if known else []), suffixes=(".csv", ".txt"))
     if Path(out).exists():
         raise OutputPathError(

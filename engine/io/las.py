@@ -86,7 +86,7 @@ def _check_header(path: Path) -> tuple[int, bool]:
             ends.append(struct.unpack_from("<Q", head, 227)[0])
         if minor >= 4 and len(head) >= 243:
             ends.append(struct.unpack_from("<Q", head, 235)[0])
-        end = min(e for e in ends if offset < e <= size) if any(offset < e <= size for e in ends) else size
+        end = min((e for e in ends if offset < e <= size), default=size)
         records = (end - offset) // record_len
         if records > count:
             raise ScanReadError(
